@@ -1,0 +1,241 @@
+"""The region frame: the wire format of every region and telemetry sample.
+
+A frame is a MessagePack array of four items (``codecs/FORMAT.md`` pins it
+byte by byte)::
+
+    [layout_id: u32, seq: u64, t_ns: i64, data: bin]
+
+``layout_id`` identifies the region's names, types and order
+(:func:`zplatform.datavector.layout_id_of`), ``seq`` is the sender's loop
+number, ``t_ns`` the sender's synchronised time, ``data`` the region's raw
+little-endian bytes.
+
+Encoding goes into a preallocated ``bytearray`` owned by the encoder (no
+allocation per frame once the buffer has grown to the frame size). Decoding
+checks shape, types, ranges, ``layout_id`` and length, in that order, before
+anything touches a Data Vector; every failure raises a
+:class:`~zplatform.errors.CodecError` subclass and nothing else.
+"""
+
+from __future__ import annotations
+
+import struct
+from typing import Annotated
+
+import msgspec
+from msgspec import Meta
+
+from .datavector import DataVector
+from .errors import CodecError, FrameFormatError, FrameSizeError, LayoutMismatchError
+
+__all__ = [
+    "Frame",
+    "FrameDecoder",
+    "FrameEncoder",
+    "RegionCodec",
+    "decode_frame",
+    "encode_frame",
+    "frame_overhead",
+]
+
+U32 = Annotated[int, Meta(ge=0, le=0xFFFF_FFFF)]
+# MessagePack ints stop at 2**64-1, so ge=0 is the whole u64 check.
+U64 = Annotated[int, Meta(ge=0)]
+I64 = Annotated[int, Meta(ge=-(1 << 63), le=(1 << 63) - 1)]
+
+
+# fixarray(4), 0xce u32, 0xcf u64, 0xd3 i64: big-endian, as MessagePack says.
+_HDR = struct.Struct(">BBIBQBq")
+_HDR_LEN = _HDR.size  # 24
+_BIN8 = struct.Struct(">BB")
+_BIN16 = struct.Struct(">BH")
+_BIN32 = struct.Struct(">BI")
+
+
+class Frame(msgspec.Struct, array_like=True, gc=False, frozen=True):
+    """A decoded frame. ``data`` is a zero-copy view into the received buffer:
+    valid as long as that buffer is; copy it (``write_region``) to keep it."""
+
+    layout_id: U32
+    seq: U64
+    t_ns: I64
+    data: memoryview
+
+
+def frame_overhead(size: int) -> int:
+    """Bytes a frame adds around ``size`` data bytes (at most 34)."""
+    # fixarray(1) + u32(5) + u64(9) + i64(9) + bin header (2, 3 or 5)
+    return 1 + 5 + 9 + 9 + (2 if size < 256 else 3 if size < 65536 else 5)
+
+
+class FrameEncoder:
+    """Encodes frames into one reusable buffer.
+
+    :meth:`encode` returns the encoder's own ``bytearray``: it is overwritten
+    by the next call, so hand it to zenoh (which copies) before encoding
+    again. The buffer is resized only when the data length changes (never,
+    for a region). Not thread-safe; one per sending loop.
+    """
+
+    __slots__ = ("_buf", "_mv", "_n")
+
+    def __init__(self, capacity: int = 0) -> None:
+        self._buf = bytearray()
+        self._mv = memoryview(self._buf)
+        self._n = -1
+        self._resize(capacity)
+
+    def _resize(self, n: int) -> None:
+        # A bytearray cannot be resized while a memoryview is exported.
+        self._mv.release()
+        need = _HDR_LEN + (2 if n < 256 else 3 if n < 65536 else 5) + n
+        self._buf = bytearray(need)
+        if n < 256:
+            _BIN8.pack_into(self._buf, _HDR_LEN, 0xC4, n)
+        elif n < 65536:
+            _BIN16.pack_into(self._buf, _HDR_LEN, 0xC5, n)
+        else:
+            _BIN32.pack_into(self._buf, _HDR_LEN, 0xC6, n)
+        self._mv = memoryview(self._buf)
+        self._n = n
+
+    def encode(
+        self, layout_id: int, seq: int, t_ns: int, data: bytes | bytearray | memoryview
+    ) -> bytearray:
+        """Encode one frame; raises FrameFormatError for out-of-range header fields.
+
+        Why not msgspec's ``encode_into`` here: it writes the smallest int
+        markers (so a frame's length would vary with ``seq``) and re-grows its
+        buffer on every call (measured 558 us at 1 MB against 29 us for a
+        plain copy). The fixed-width header keeps every frame of a region the
+        same length, with fields at fixed offsets a peer in any language can
+        index; it is still plain MessagePack, and msgspec decodes it.
+        """
+        n = len(data)
+        if n != self._n:
+            self._resize(n)
+        try:
+            _HDR.pack_into(self._buf, 0, 0x94, 0xCE, layout_id, 0xCF, seq, 0xD3, t_ns)
+        except struct.error as exc:
+            raise FrameFormatError(
+                f"header out of range (layout_id {layout_id}, seq {seq}, t_ns {t_ns}): {exc}"
+            ) from exc
+        self._mv[len(self._buf) - n :] = data
+        return self._buf
+
+
+_decoder = msgspec.msgpack.Decoder(Frame)
+
+
+def decode_frame(frame: bytes | bytearray | memoryview) -> Frame:
+    """Decode any frame (no layout check). Raises FrameFormatError on malformed input.
+
+    Accepts any valid MessagePack encoding of the four items (a peer may use
+    smaller int markers); :meth:`FrameEncoder.encode` always writes the
+    fixed-width form.
+    """
+    try:
+        return _decoder.decode(frame)
+    except (msgspec.DecodeError, msgspec.ValidationError) as exc:
+        raise FrameFormatError(f"not a region frame: {exc}") from exc
+    except (TypeError, ValueError, OverflowError) as exc:  # defensive: never leak others
+        raise FrameFormatError(f"not a region frame: {exc}") from exc
+
+
+def encode_frame(
+    layout_id: int, seq: int, t_ns: int, data: bytes | bytearray | memoryview
+) -> bytes:
+    """Encode one frame into new ``bytes`` (allocates; for tools and tests)."""
+    return bytes(FrameEncoder(len(data)).encode(layout_id, seq, t_ns, data))
+
+
+class FrameDecoder:
+    """Decodes frames of one expected layout and size.
+
+    :meth:`decode` raises :class:`LayoutMismatchError` or
+    :class:`FrameSizeError` after :func:`decode_frame`'s format checks.
+    """
+
+    __slots__ = ("layout_id", "name", "size")
+
+    def __init__(self, layout_id: int, size: int, name: str = "region") -> None:
+        self.layout_id = layout_id
+        self.size = size
+        self.name = name
+
+    def decode(self, frame: bytes | bytearray | memoryview) -> Frame:
+        f = decode_frame(frame)
+        if f.layout_id != self.layout_id:
+            raise LayoutMismatchError(
+                f"{self.name}: frame layout_id {f.layout_id:#010x}, expected "
+                f"{self.layout_id:#010x} (the peer runs another mission config)"
+            )
+        if len(f.data) != self.size:
+            raise FrameSizeError(
+                f"{self.name}: frame carries {len(f.data)} data bytes, region is {self.size}"
+            )
+        return f
+
+
+class RegionCodec:
+    """Encoder and decoder bound to one region of one Data Vector.
+
+    ``encode(seq, t_ns)`` frames the region's current bytes (one copy, into
+    the encoder's buffer); ``apply(frame)`` checks a received frame and copies
+    its data into the region (one copy), returning the decoded header.
+    """
+
+    __slots__ = ("_dec", "_enc", "_view", "dv", "layout_id", "region")
+
+    def __init__(self, dv: DataVector, region: str) -> None:
+        spec = dv.layout.region(region)
+        self.dv = dv
+        self.region = region
+        self.layout_id = spec.layout_id
+        self._view = dv.region_view(region)
+        self._enc = FrameEncoder(spec.size)
+        self._dec = FrameDecoder(spec.layout_id, spec.size, region)
+
+    def encode(self, seq: int, t_ns: int) -> bytearray:
+        """Frame the region now; the returned buffer is reused by the next call."""
+        return self._enc.encode(self.layout_id, seq, t_ns, self._view)
+
+    def check(self, frame: bytes | bytearray | memoryview) -> Frame:
+        """Decode and check without applying (raises CodecError)."""
+        return self._dec.decode(frame)
+
+    def apply(self, frame: bytes | bytearray | memoryview) -> Frame:
+        """Decode, check, then copy the data into the region (raises CodecError;
+        the region is untouched when it does)."""
+        f = self._dec.decode(frame)
+        self._view[:] = f.data
+        return f
+
+
+def vector_codec_ids(dv: DataVector) -> tuple[int, int]:
+    """``(layout_id, size)`` of a whole-vector (telemetry) frame."""
+    return dv.layout.layout_id, dv.layout.size
+
+
+class VectorCodec:
+    """Like :class:`RegionCodec` for the whole Data Vector (telemetry)."""
+
+    __slots__ = ("_dec", "_enc", "_view", "dv", "layout_id")
+
+    def __init__(self, dv: DataVector) -> None:
+        self.dv = dv
+        self.layout_id = dv.layout.layout_id
+        self._view = dv.view()
+        self._enc = FrameEncoder(dv.layout.size)
+        self._dec = FrameDecoder(self.layout_id, dv.layout.size, "telemetry")
+
+    def encode(self, seq: int, t_ns: int) -> bytearray:
+        return self._enc.encode(self.layout_id, seq, t_ns, self._view)
+
+    def apply(self, frame: bytes | bytearray | memoryview) -> Frame:
+        f = self._dec.decode(frame)
+        self._view[:] = f.data
+        return f
+
+
+__all__ += ["CodecError", "VectorCodec", "vector_codec_ids"]

@@ -1,0 +1,563 @@
+"""The mission configuration: YAML decoded into typed, checked structs.
+
+``load_mission(path)`` is the only way in. It decodes the YAML with msgspec
+(``forbid_unknown_fields``, so a typo fails at load), then checks every rule
+of thesis 000 ch. 4.1.1 (Data Vector), 4.2.1 (network) and the topology rules
+of DESIGN.md, and finally adds the platform elements of DESIGN.md §5 to the
+regions. Every failure is a :class:`~zplatform.errors.ConfigError` whose
+message names the YAML path of the bad field and what was expected.
+
+After loading, a :class:`Mission` is treated as immutable: the runtime reads
+it, never writes it. Checks of the control sections (state machine,
+controllers, commands) that need the whole Data Vector live with the modules
+that own those sections and are run by ``load_mission`` too.
+"""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+from typing import Annotated, Any, Literal
+
+import msgspec
+from msgspec import Meta
+
+from .errors import ConfigError
+from .types import SCALAR_TYPES, ScalarType, parse_type
+
+__all__ = [
+    "CMD_NAMES",
+    "CMD_STATUS_NAMES",
+    "CONTROLLER_MODES",
+    "FAULT_NAMES",
+    "ActionConfig",
+    "ClockConfig",
+    "CommandsConfig",
+    "ComponentConfig",
+    "ElementConfig",
+    "FaultsConfig",
+    "Mission",
+    "NodeConfig",
+    "StateConfig",
+    "StateMachineConfig",
+    "TransitionConfig",
+    "TransportConfig",
+    "decode_mission",
+    "load_mission",
+]
+
+Scalar = int | float | bool | str
+Value = Scalar | list[Scalar]
+
+# Operator commands carried in gn_cmd / cn_cmd (thesis 4.8, seed 003 ARM).
+CMD_NAMES: tuple[str, ...] = ("NONE", "NOOP", "LAUNCH", "ABORT", "WRITE", "HOLD", "RESUME", "ARM")
+CMD_STATUS_NAMES: tuple[str, ...] = (
+    "NONE",
+    "ACCEPTED",
+    "REJECTED_UNKNOWN",
+    "REJECTED_NOT_ALLOWED",
+    "REJECTED_BAD_ARGUMENT",
+    "REJECTED_REPLAY",
+    "REJECTED_NOT_ARMED",
+)
+CONTROLLER_MODES: tuple[str, ...] = ("enabled", "safed", "manual")
+# Critical-error flag values (thesis 4.11.1: a flag the state machine reads).
+FAULT_NAMES: tuple[str, ...] = (
+    "NONE",
+    "DN_LOST",
+    "CONTROLLER_FAILED",
+    "SYNC_OVERRUNS",
+    "LOOP_OVERRUNS",
+)
+
+_NAME_RE = re.compile(r"^[a-z][a-z0-9_]*$")
+_ENUM_NAME_RE = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*$")
+_DN_RE = re.compile(r"^dn([0-9]+)$")
+_FLOAT_WORDS = ("nan", "inf", "+inf", "-inf", "infinity", "-infinity")
+
+
+class _Struct(msgspec.Struct, forbid_unknown_fields=True, omit_defaults=True):
+    pass
+
+
+class ElementConfig(_Struct):
+    """One Data Vector element: ``{name, type, initial, enum}``.
+
+    ``type`` is a scalar (``f32``), a fixed array (``f32[3]``) or ``enum``
+    (an unsigned integer sized to the names). ``enum`` lists the names of an
+    enum's values 0, 1, 2, ...; ``initial`` may then be a name.
+    """
+
+    name: str
+    type: str = "enum"
+    initial: Value | None = None
+    enum: list[str] | None = None
+    doc: str = ""
+
+
+class NodeConfig(_Struct):
+    """A zenoh peer: where it listens and whom it connects to."""
+
+    listen: list[str] = msgspec.field(default_factory=list)
+    connect: list[str] = msgspec.field(default_factory=list)
+    cpu: int | None = None
+    priority: Annotated[int, Meta(ge=1, le=99)] | None = None
+    host: str = ""
+    board: dict[str, Any] = msgspec.field(default_factory=dict)
+
+
+class TransportConfig(_Struct):
+    """Zenoh session settings shared by every node of the mission."""
+
+    multicast_scouting: bool = False
+    gossip_scouting: bool = True
+    lease_ms: Annotated[int, Meta(ge=100, le=60_000)] = 1000
+    lowlatency: bool = False
+    shared_memory: bool = True
+
+
+class ClockConfig(_Struct):
+    """Clock synchronisation (thesis 4.9)."""
+
+    offset_bound_ms: Annotated[float, Meta(gt=0)] = 100.0
+    exchanges: Annotated[int, Meta(ge=8, le=10_000)] = 200
+    keep_fraction: Annotated[float, Meta(gt=0, le=1)] = 0.1
+    resync_s: Annotated[float, Meta(ge=0)] = 10.0
+
+
+class ActionConfig(_Struct):
+    """A timed write: ``at_s`` seconds into the state, ``element = value``."""
+
+    element: str
+    value: Scalar
+    at_s: Annotated[float, Meta(ge=0)] = 0.0
+
+
+class TransitionConfig(_Struct):
+    """Go to state ``to`` when ``element op value`` holds, or after ``after_s``."""
+
+    to: str
+    element: str | None = None
+    op: Literal["==", "!=", "<", "<=", ">", ">="] | None = None
+    value: Scalar | None = None
+    after_s: Annotated[float, Meta(ge=0)] | None = None
+
+
+class StateConfig(_Struct):
+    actions: list[ActionConfig] = msgspec.field(default_factory=list)
+    transitions: list[TransitionConfig] = msgspec.field(default_factory=list)
+    doc: str = ""
+
+
+class StateMachineConfig(_Struct):
+    """States in order; ``initial`` becomes ``cn_state``'s initial value."""
+
+    initial: str
+    states: dict[str, StateConfig]
+
+
+class ComponentConfig(_Struct):
+    """A controller or device instance: class, node, rate group, own config."""
+
+    name: str
+    cls: str = msgspec.field(name="class")
+    node: str
+    rate_divisor: Annotated[int, Meta(ge=1)] = 1
+    rate_phase: Annotated[int, Meta(ge=0)] = 0
+    initial_mode: Literal["enabled", "safed", "manual"] = "safed"
+    config: dict[str, Any] = msgspec.field(default_factory=dict)
+
+
+class CommandsConfig(_Struct):
+    """Command rules: per-state whitelist and hazardous commands (seed 003)."""
+
+    whitelist: dict[str, list[str]] = msgspec.field(default_factory=dict)
+    hazardous: list[str] = msgspec.field(default_factory=list)
+    writable: list[str] | None = None
+
+
+class FaultsConfig(_Struct):
+    """Which errors after start are critical (thesis 4.11.1)."""
+
+    dn_lost_loops: Annotated[int, Meta(ge=0)] = 50
+    controller_fail_loops: Annotated[int, Meta(ge=0)] = 3
+    sync_overrun_loops: Annotated[int, Meta(ge=0)] = 10
+    loop_overrun_loops: Annotated[int, Meta(ge=0)] = 0
+
+
+class Mission(_Struct):
+    """A whole mission file. See ``configs/*.yaml`` for examples."""
+
+    mission: str
+    nodes: dict[str, NodeConfig]
+    regions: dict[str, list[ElementConfig]]
+    vehicle: str = "rocket"
+    loop_hz: Annotated[float, Meta(gt=0, le=10_000)] = 100.0
+    sync_timeout_ms: Annotated[float, Meta(gt=0)] = 2.0
+    telemetry_divisor: Annotated[int, Meta(ge=1)] = 1
+    transport: TransportConfig = msgspec.field(default_factory=TransportConfig)
+    clock: ClockConfig = msgspec.field(default_factory=ClockConfig)
+    state_machine: StateMachineConfig | None = None
+    controllers: list[ComponentConfig] = msgspec.field(default_factory=list)
+    devices: list[ComponentConfig] = msgspec.field(default_factory=list)
+    commands: CommandsConfig = msgspec.field(default_factory=CommandsConfig)
+    faults: FaultsConfig = msgspec.field(default_factory=FaultsConfig)
+    doc: str = ""
+
+    # -- derived views (cheap; computed from the checked fields) -----------
+    @property
+    def device_nodes(self) -> list[str]:
+        """Device node names in index order (``dn0``, ``dn1``, ...)."""
+        return sorted((n for n in self.nodes if _DN_RE.match(n)), key=lambda n: int(n[2:]))
+
+    @property
+    def has_ground(self) -> bool:
+        return "gn" in self.nodes
+
+    @property
+    def period_ns(self) -> int:
+        return round(1e9 / self.loop_hz)
+
+    @property
+    def sync_timeout_ns(self) -> int:
+        return round(self.sync_timeout_ms * 1e6)
+
+    def region_names(self) -> list[str]:
+        """Every region of the CN's Data Vector, in buffer order."""
+        names = ["cn"]
+        for dn in self.device_nodes:
+            names += [f"cn_to_{dn}", f"{dn}_to_cn"]
+        if self.has_ground:
+            names.append("gn_to_cn")
+        return names
+
+    def node_regions(self, node: str) -> list[str]:
+        """The regions held in ``node``'s Data Vector (thesis 4.3)."""
+        if node == "cn":
+            return self.region_names()
+        if node == "gn":
+            return ["gn_to_cn"]
+        if node in self.nodes and _DN_RE.match(node):
+            return [f"cn_to_{node}", f"{node}_to_cn"]
+        raise ConfigError(f"no node named {node!r}; nodes: {sorted(self.nodes)}", "$.nodes")
+
+    def element(self, name: str) -> tuple[str, ElementConfig]:
+        """``(region, element config)`` of element ``name``; KeyError if absent."""
+        for region, elements in self.regions.items():
+            for e in elements:
+                if e.name == name:
+                    return region, e
+        raise KeyError(name)
+
+
+# ---------------------------------------------------------------------------
+# loading
+
+
+def load_mission(path: str | Path) -> Mission:
+    """Read, decode and check a mission YAML file.
+
+    Blocks on file I/O only. Raises :class:`ConfigError` naming the YAML path
+    of the first bad field; never returns a partially valid mission.
+    """
+    p = Path(path)
+    try:
+        text = p.read_bytes()
+    except OSError as exc:
+        raise ConfigError(f"cannot read mission file {str(p)!r}: {exc.strerror}", "$") from exc
+    return decode_mission(text, source=str(p))
+
+
+def decode_mission(text: bytes | str, source: str = "<string>") -> Mission:
+    """Decode and check a mission from YAML text (see :func:`load_mission`)."""
+    try:
+        raw = msgspec.yaml.decode(text)
+    except msgspec.DecodeError as exc:
+        raise ConfigError(f"{source}: not valid YAML: {exc}", "$") from exc
+    if raw is None or raw == {}:
+        raise ConfigError(f"{source}: mission config is empty", "$")
+    if not isinstance(raw, dict):
+        raise ConfigError(f"{source}: expected a mapping at the top level", "$")
+    try:
+        mission = msgspec.convert(raw, type=Mission)
+    except msgspec.ValidationError as exc:
+        msg, _, where = str(exc).partition(" - at `")
+        raise ConfigError(msg, where.rstrip("`") or "$") from exc
+    _check_mission(mission)
+    _add_platform_elements(mission)
+    _check_elements(mission)
+    _check_control_sections(mission)
+    return mission
+
+
+def _check_mission(m: Mission) -> None:
+    if not _NAME_RE.match(m.vehicle):
+        raise ConfigError(
+            f"vehicle key prefix must match {_NAME_RE.pattern}, got {m.vehicle!r}", "$.vehicle"
+        )
+    if not m.nodes:
+        raise ConfigError("a mission needs at least the control node 'cn'", "$.nodes")
+    if "cn" not in m.nodes:
+        raise ConfigError("the control node 'cn' is missing", "$.nodes")
+    for name in m.nodes:
+        if name not in ("cn", "gn") and not _DN_RE.match(name):
+            raise ConfigError(
+                f"node name {name!r} is not one of cn, gn, dn0, dn1, ...", f"$.nodes.{name}"
+            )
+    dns = m.device_nodes
+    if [int(d[2:]) for d in dns] != list(range(len(dns))):
+        raise ConfigError(
+            f"device nodes must be numbered dn0..dn{len(dns) - 1} without gaps, got {dns}",
+            "$.nodes",
+        )
+    seen: dict[str, str] = {}
+    for name, node in m.nodes.items():
+        for i, ep in enumerate(node.listen):
+            where = f"$.nodes.{name}.listen[{i}]"
+            _check_endpoint(ep, where)
+            if ep in seen:
+                raise ConfigError(f"endpoint {ep!r} is also listened on by {seen[ep]}", where)
+            seen[ep] = name
+        for i, ep in enumerate(node.connect):
+            _check_endpoint(ep, f"$.nodes.{name}.connect[{i}]")
+    if m.sync_timeout_ms * 1e6 >= m.period_ns:
+        raise ConfigError(
+            f"sync_timeout_ms {m.sync_timeout_ms} must be shorter than the loop period "
+            f"({1000.0 / m.loop_hz:g} ms)",
+            "$.sync_timeout_ms",
+        )
+    valid = set(m.region_names())
+    for region, elements in m.regions.items():
+        where = f"$.regions.{region}"
+        if region not in valid:
+            raise ConfigError(
+                f"region {region!r} does not match the node topology; valid regions: "
+                f"{m.region_names()}",
+                where,
+            )
+        if not elements:
+            raise ConfigError("a region must have at least one element", where)
+
+
+_ENDPOINT_RE = re.compile(r"^(tcp|udp|tls|quic|unixsock-stream|ws)/(.+)$")
+
+
+def _check_endpoint(ep: str, where: str) -> None:
+    m = _ENDPOINT_RE.match(ep)
+    if m is None:
+        raise ConfigError(
+            f"endpoint {ep!r} is not '<proto>/<address>' (e.g. tcp/10.0.0.1:7447)", where
+        )
+    if m.group(1) in ("tcp", "udp", "tls", "quic", "ws"):
+        host, sep, port = m.group(2).rpartition(":")
+        if not sep or not host or not port.isdigit() or not 0 <= int(port) <= 65535:
+            raise ConfigError(f"endpoint {ep!r} needs host:port with a port 0-65535", where)
+
+
+def _platform_elements(m: Mission) -> dict[str, list[ElementConfig]]:
+    """The elements every mission has (DESIGN.md §5), per region."""
+    states = list(m.state_machine.states) if m.state_machine else ["IDLE"]
+    initial = m.state_machine.initial if m.state_machine else "IDLE"
+    E = ElementConfig
+    cn = [
+        E("cn_loop", "u64", 0),
+        E("cn_time_ns", "i64", 0),
+        E("cn_state", "enum", initial, states),
+        E("cn_loop_overruns", "u32", 0),
+        E("cn_sync_overruns", "u32", 0),
+        E("cn_errors", "u32", 0),
+        E("cn_last_error", "u16", 0),
+        E("cn_bad_frames", "u32", 0),
+        E("cn_cmd", "enum", "NONE", list(CMD_NAMES)),
+        E("cn_cmd_seq", "u32", 0),
+        E("cn_cmd_status", "enum", "NONE", list(CMD_STATUS_NAMES)),
+        E("cn_fault", "enum", "NONE", list(FAULT_NAMES)),
+        E("cn_time_in_state_ns", "i64", 0),
+    ]
+    for dn in m.device_nodes:
+        cn += [
+            E(f"cn_rx_{dn}", "u32", 0),
+            E(f"cn_missed_{dn}", "u32", 0),
+            E(f"cn_late_{dn}", "u32", 0),
+        ]
+    out: dict[str, list[ElementConfig]] = {"cn": cn}
+    for dn in m.device_nodes:
+        out[f"cn_to_{dn}"] = []
+        out[f"{dn}_to_cn"] = [
+            E(f"{dn}_loop", "u64", 0),
+            E(f"{dn}_time_ns", "i64", 0),
+            E(f"{dn}_loop_overruns", "u32", 0),
+            E(f"{dn}_errors", "u32", 0),
+            E(f"{dn}_bad_frames", "u32", 0),
+            E(f"{dn}_clock_offset_ns", "i64", 0),
+        ]
+    if m.has_ground:
+        out["gn_to_cn"] = [
+            E("gn_cmd", "enum", "NONE", list(CMD_NAMES)),
+            E("gn_cmd_seq", "u32", 0),
+            E("gn_cmd_element", "u16", 0),
+            E("gn_cmd_value", "f64", 0.0),
+        ]
+    # A controller's mode lives where its node reads it: in `cn` for CN
+    # controllers, in `cn_to_dnX` for DN controllers (the CN's state machine
+    # writes it, the sync protocol carries it down).
+    for i, c in enumerate(m.controllers):
+        region = "cn" if c.node == "cn" else f"cn_to_{c.node}"
+        if region not in out:
+            raise ConfigError(
+                f"controller {c.name!r} is placed on {c.node!r}, which is not a cn or device node",
+                f"$.controllers[{i}].node",
+            )
+        out[region].append(E(f"{c.name}_mode", "enum", c.initial_mode, list(CONTROLLER_MODES)))
+    return out
+
+
+def _add_platform_elements(m: Mission) -> None:
+    platform = _platform_elements(m)
+    regions: dict[str, list[ElementConfig]] = {}
+    for region in m.region_names():
+        regions[region] = platform.get(region, []) + list(m.regions.get(region, []))
+    m.regions = regions
+
+
+def element_spec(e: ElementConfig) -> tuple[ScalarType, int]:
+    """``(scalar type, array count)`` of a checked element (enum -> its int)."""
+    if e.type == "enum":
+        n = len(e.enum or ())
+        return SCALAR_TYPES["u8" if n <= 256 else "u16"], 0
+    parsed = parse_type(e.type)
+    assert parsed is not None, "element_spec on an unchecked element"
+    return parsed
+
+
+def _check_elements(m: Mission) -> None:
+    seen: dict[str, str] = {}
+    for region, elements in m.regions.items():
+        for i, e in enumerate(elements):
+            where = f"$.regions.{region}[{i}]"
+            if not _NAME_RE.match(e.name):
+                raise ConfigError(
+                    f"element name {e.name!r} must match {_NAME_RE.pattern}", f"{where}.name"
+                )
+            if e.name in seen:
+                raise ConfigError(
+                    f"duplicate element name {e.name!r} (first in region {seen[e.name]!r}; "
+                    "platform elements are added automatically, do not declare them)",
+                    f"{where}.name",
+                )
+            seen[e.name] = region
+            _check_element_type(e, where)
+            e.initial = _check_initial(e, where)
+
+
+def _check_element_type(e: ElementConfig, where: str) -> None:
+    if e.type == "enum" and e.enum is None:
+        raise ConfigError(
+            f"element {e.name!r} needs a `type` ({', '.join(SCALAR_TYPES)}, an array like "
+            "'f32[3]') or a list of `enum` names",
+            f"{where}.type",
+        )
+    if e.type == "enum" or e.enum is not None:
+        if not e.enum:
+            raise ConfigError("an enum needs a non-empty list of names in `enum`", f"{where}.enum")
+        if e.type != "enum":
+            parsed = parse_type(e.type)
+            if parsed is None or parsed[0].kind != "int" or parsed[1] != 0:
+                raise ConfigError(
+                    f"an element with `enum` names must have type 'enum', got {e.type!r}",
+                    f"{where}.type",
+                )
+            e.type = "enum"
+        names = e.enum
+        for j, n in enumerate(names):
+            if not _ENUM_NAME_RE.match(n):
+                raise ConfigError(f"enum name {n!r} is not an identifier", f"{where}.enum[{j}]")
+        if len(set(names)) != len(names):
+            raise ConfigError(f"enum names repeat: {names}", f"{where}.enum")
+        if len(names) > 65536:
+            raise ConfigError("an enum holds at most 65536 names", f"{where}.enum")
+        return
+    if parse_type(e.type) is None:
+        raise ConfigError(
+            f"invalid element type {e.type!r}; expected one of "
+            f"{', '.join(SCALAR_TYPES)}, an array like 'f32[3]', or 'enum'",
+            f"{where}.type",
+        )
+
+
+def _coerce_scalar(st: ScalarType, v: object, where: str, enum: list[str] | None) -> Scalar:
+    if enum is not None:
+        if isinstance(v, str):
+            if v not in enum:
+                raise ConfigError(f"{v!r} is not one of the enum names {enum}", where)
+            return enum.index(v)
+        if isinstance(v, int) and not isinstance(v, bool) and 0 <= v < len(enum):
+            return v
+        raise ConfigError(f"expected one of the enum names {enum}, got {v!r}", where)
+    if st.kind == "float" and isinstance(v, str):
+        # YAML has no literal for nan/inf in flow style everyone writes; accept
+        # the spelled-out names and nothing else (a "1.5" string is a typo).
+        if v.strip().lower() not in _FLOAT_WORDS:
+            raise ConfigError(f"expected a number for {st.name}, got {v!r}", where)
+        return float(v)
+    if not st.fits(v):
+        if st.kind == "int":
+            raise ConfigError(
+                f"initial value {v!r} does not fit {st.name} (range {st.lo}..{st.hi})", where
+            )
+        raise ConfigError(f"initial value {v!r} does not fit {st.name}", where)
+    if st.kind == "bool":
+        return bool(v)
+    if st.kind == "int":
+        assert isinstance(v, int | float)
+        return int(v)
+    assert isinstance(v, int | float)
+    return float(v)
+
+
+def _check_initial(e: ElementConfig, where: str) -> Value:
+    st, count = element_spec(e)
+    v = e.initial
+    w = f"{where}.initial"
+    if v is None:
+        v = 0 if e.enum else (False if st.kind == "bool" else (0.0 if st.kind == "float" else 0))
+        return [v] * count if count else v
+    if count == 0:
+        if isinstance(v, list):
+            raise ConfigError(f"a scalar {e.type} element needs a scalar initial value", w)
+        return _coerce_scalar(st, v, w, e.enum)
+    if isinstance(v, list):
+        if len(v) != count:
+            raise ConfigError(f"expected {count} initial values for {e.type}, got {len(v)}", w)
+        return [_coerce_scalar(st, x, f"{w}[{j}]", None) for j, x in enumerate(v)]
+    return [_coerce_scalar(st, v, w, None)] * count
+
+
+def _check_control_sections(m: Mission) -> None:
+    """Structural checks of the control sections; semantic checks that need
+    the whole Data Vector are done by the owning modules' ``check_config``."""
+    for section in ("controllers", "devices"):
+        names: set[str] = set()
+        for i, c in enumerate(getattr(m, section)):
+            where = f"$.{section}[{i}]"
+            if not _NAME_RE.match(c.name):
+                raise ConfigError(f"name {c.name!r} must match {_NAME_RE.pattern}", f"{where}.name")
+            if c.name in names:
+                raise ConfigError(f"duplicate {section[:-1]} name {c.name!r}", f"{where}.name")
+            names.add(c.name)
+            if c.node not in m.nodes or c.node == "gn":
+                raise ConfigError(
+                    f"{section[:-1]} {c.name!r} is placed on {c.node!r}; "
+                    "expected cn or a device node",
+                    f"{where}.node",
+                )
+            if section == "devices" and c.node == "cn":
+                raise ConfigError("devices run on device nodes only", f"{where}.node")
+            if ":" not in c.cls:
+                raise ConfigError(
+                    f"class {c.cls!r} must be 'package.module:ClassName'", f"{where}.class"
+                )
+    # Imported here: those modules import this one.
+    from . import _checks
+
+    _checks.run_all(m)

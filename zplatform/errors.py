@@ -1,0 +1,124 @@
+"""The zplatform error tree (thesis 000, ch. 4.11, made Pythonic).
+
+The thesis' C++ platform returns an ``Error_t`` status from every function and
+has the node mains decide what to do with it. In Python the same contract is
+carried by exceptions: every error the platform raises on purpose is a
+subclass of :class:`ZPlatformError`, so a node main can tell "ours, with a
+clear message" from a bug with one ``except``. Low-level errors (msgspec,
+numpy, zenoh, OS) are converted at the boundary with ``raise ... from exc``.
+
+How the mains handle them (thesis 4.11.1):
+
+* during initialisation: print the message and exit non-zero;
+* after start, non-critical: count in the Data Vector, publish an event,
+  keep the loop rate;
+* after start, critical: raise a fault flag that the mission's state machine
+  sends to an abort state.
+
+The tree::
+
+    ZPlatformError
+    ├── ConfigError              mission YAML invalid; message names the YAML path
+    ├── DataVectorError          unknown element, bad value, size mismatch
+    ├── CodecError               a frame that must not touch the Data Vector
+    │   ├── FrameFormatError     not a frame: bad MessagePack, wrong shape/types
+    │   ├── LayoutMismatchError  a frame of another region layout
+    │   └── FrameSizeError       data length differs from the region size
+    ├── TimebaseError            clock would overflow; offset applied too late
+    ├── SchedulerError           bad period / rate group; real-time set-up misuse
+    ├── TransportError           zenoh session or key-space failure
+    ├── ClockSyncError           offset could not be estimated or exceeds bound
+    ├── StateMachineError        state-machine misuse at run time
+    ├── CommandError             a command refused before it was sent (CLI)
+    ├── ControlError             controller/device construction or wiring
+    └── NodeError                a node main cannot start or run
+"""
+
+from __future__ import annotations
+
+__all__ = [
+    "ClockSyncError",
+    "CodecError",
+    "CommandError",
+    "ConfigError",
+    "ControlError",
+    "DataVectorError",
+    "FrameFormatError",
+    "FrameSizeError",
+    "LayoutMismatchError",
+    "NodeError",
+    "SchedulerError",
+    "StateMachineError",
+    "TimebaseError",
+    "TransportError",
+    "ZPlatformError",
+]
+
+
+class ZPlatformError(Exception):
+    """Root of every error zplatform raises on purpose."""
+
+
+class ConfigError(ZPlatformError):
+    """The mission configuration is invalid.
+
+    ``path`` is the YAML path of the offending field (``$.regions.cn[2].type``),
+    so the message can be acted on without reading the loader's code.
+    """
+
+    def __init__(self, message: str, path: str = "$") -> None:
+        self.path = path
+        self.reason = message
+        super().__init__(f"{message} - at `{path}`")
+
+
+class DataVectorError(ZPlatformError):
+    """Unknown element or region, value that does not fit, buffer size mismatch."""
+
+
+class CodecError(ZPlatformError):
+    """A received frame was rejected before it touched the Data Vector."""
+
+
+class FrameFormatError(CodecError):
+    """The bytes are not a region frame (bad MessagePack, wrong shape or types)."""
+
+
+class LayoutMismatchError(CodecError):
+    """The frame was encoded for another region layout (``layout_id`` differs)."""
+
+
+class FrameSizeError(CodecError):
+    """The frame's data length differs from the region's size."""
+
+
+class TimebaseError(ZPlatformError):
+    """The node clock cannot start or cannot be adjusted as asked."""
+
+
+class SchedulerError(ZPlatformError):
+    """Invalid periodic-loop or rate-group parameters."""
+
+
+class TransportError(ZPlatformError):
+    """A zenoh session, declaration or key-space operation failed."""
+
+
+class ClockSyncError(ZPlatformError):
+    """Clock offset could not be estimated, or exceeds the mission bound."""
+
+
+class StateMachineError(ZPlatformError):
+    """The state machine was used in a way its configuration forbids."""
+
+
+class CommandError(ZPlatformError):
+    """An operator command was refused before it was sent."""
+
+
+class ControlError(ZPlatformError):
+    """A controller or device could not be built or wired to the Data Vector."""
+
+
+class NodeError(ZPlatformError):
+    """A node main could not start, or stopped on an unrecoverable error."""
