@@ -52,9 +52,12 @@ _BIN16 = struct.Struct(">BH")
 _BIN32 = struct.Struct(">BI")
 
 
-class Frame(msgspec.Struct, array_like=True, gc=False, frozen=True):
+class Frame(msgspec.Struct, array_like=True, gc=False, frozen=True, forbid_unknown_fields=True):
     """A decoded frame. ``data`` is a zero-copy view into the received buffer:
-    valid as long as that buffer is; copy it (``write_region``) to keep it."""
+    valid as long as that buffer is; copy it (``write_region``) to keep it.
+
+    ``forbid_unknown_fields``: an array-like struct otherwise ignores extra
+    trailing items, and a frame is an array of exactly four."""
 
     layout_id: U32
     seq: U64

@@ -74,6 +74,7 @@ _NAME_RE = re.compile(r"^[a-z][a-z0-9_]*$")
 _ENUM_NAME_RE = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*$")
 _DN_RE = re.compile(r"^dn([0-9]+)$")
 _FLOAT_WORDS = ("nan", "inf", "+inf", "-inf", "infinity", "-infinity")
+_EXP_FLOAT_RE = re.compile(r"^[-+]?(?:[0-9]+\.?[0-9]*|\.[0-9]+)e[-+]?[0-9]+$")
 
 
 class _Struct(msgspec.Struct, forbid_unknown_fields=True, omit_defaults=True):
@@ -276,6 +277,7 @@ def decode_mission(text: bytes | str, source: str = "<string>") -> Mission:
         raise ConfigError(f"{source}: not valid YAML: {exc}", "$") from exc
     if raw is None or raw == {}:
         raise ConfigError(f"{source}: mission config is empty", "$")
+    _check_duplicate_keys(text)
     if not isinstance(raw, dict):
         raise ConfigError(f"{source}: expected a mapping at the top level", "$")
     try:
@@ -284,10 +286,42 @@ def decode_mission(text: bytes | str, source: str = "<string>") -> Mission:
         msg, _, where = str(exc).partition(" - at `")
         raise ConfigError(msg, where.rstrip("`") or "$") from exc
     _check_mission(mission)
-    _add_platform_elements(mission)
-    _check_elements(mission)
+    # Structural checks of controllers/devices come before the platform
+    # elements are added: a repeated controller name must be reported as
+    # such, not as the repeated `<name>_mode` element it would create.
     _check_control_sections(mission)
+    n_platform = _add_platform_elements(mission)
+    _check_elements(mission, n_platform)
+    # Imported here: those modules import this one.
+    from . import _checks
+
+    _checks.run_all(mission)
     return mission
+
+
+def _check_duplicate_keys(text: bytes | str) -> None:
+    """Refuse a key given twice in one mapping (two regions ``cn:``, two
+    ``name:`` in one element): YAML loaders silently keep the last one."""
+    import yaml
+
+    loader = getattr(yaml, "CSafeLoader", yaml.SafeLoader)
+    root = yaml.compose(text, Loader=loader)  # already parsed once: no YAMLError here
+    stack: list[tuple[yaml.Node, str]] = [(root, "$")] if root is not None else []
+    while stack:
+        node, path = stack.pop()
+        if isinstance(node, yaml.MappingNode):
+            seen: set[object] = set()
+            for k, v in node.value:
+                key = k.value if isinstance(k, yaml.ScalarNode) else id(k)
+                where = f"{path}.{key}"
+                if key in seen:
+                    raise ConfigError(
+                        f"key {key!r} is given twice (line {k.start_mark.line + 1})", where
+                    )
+                seen.add(key)
+                stack.append((v, where))
+        elif isinstance(node, yaml.SequenceNode):
+            stack += [(v, f"{path}[{i}]") for i, v in enumerate(node.value)]
 
 
 def _check_mission(m: Mission) -> None:
@@ -390,6 +424,7 @@ def _platform_elements(m: Mission) -> dict[str, list[ElementConfig]]:
             E(f"{dn}_errors", "u32", 0),
             E(f"{dn}_bad_frames", "u32", 0),
             E(f"{dn}_clock_offset_ns", "i64", 0),
+            E(f"{dn}_clock_drift_ns", "i64", 0),
         ]
     if m.has_ground:
         out["gn_to_cn"] = [
@@ -412,12 +447,14 @@ def _platform_elements(m: Mission) -> dict[str, list[ElementConfig]]:
     return out
 
 
-def _add_platform_elements(m: Mission) -> None:
+def _add_platform_elements(m: Mission) -> dict[str, int]:
+    """Prepend the platform elements; returns how many each region got."""
     platform = _platform_elements(m)
     regions: dict[str, list[ElementConfig]] = {}
     for region in m.region_names():
         regions[region] = platform.get(region, []) + list(m.regions.get(region, []))
     m.regions = regions
+    return {region: len(elements) for region, elements in platform.items()}
 
 
 def element_spec(e: ElementConfig) -> tuple[ScalarType, int]:
@@ -430,22 +467,43 @@ def element_spec(e: ElementConfig) -> tuple[ScalarType, int]:
     return parsed
 
 
-def _check_elements(m: Mission) -> None:
-    seen: dict[str, str] = {}
+def _element_path(m: Mission, region: str, i: int, n_platform: int, name: str) -> str:
+    """The YAML path of the ``i``-th element of a region after platform elements
+    were prepended: the index the user wrote, or where a platform element
+    comes from (``cn_state`` from the state machine, ``<c>_mode`` from a
+    controller)."""
+    if i >= n_platform:
+        return f"$.regions.{region}[{i - n_platform}]"
+    if name == "cn_state":
+        return "$.state_machine"
+    for j, c in enumerate(m.controllers):
+        if name == f"{c.name}_mode":
+            return f"$.controllers[{j}]"
+    return f"$.regions.{region}"
+
+
+def _check_elements(m: Mission, n_platform: dict[str, int]) -> None:
+    seen: dict[str, tuple[str, str]] = {}
     for region, elements in m.regions.items():
+        n = n_platform.get(region, 0)
         for i, e in enumerate(elements):
-            where = f"$.regions.{region}[{i}]"
+            where = _element_path(m, region, i, n, e.name)
             if not _NAME_RE.match(e.name):
                 raise ConfigError(
                     f"element name {e.name!r} must match {_NAME_RE.pattern}", f"{where}.name"
                 )
             if e.name in seen:
+                first_region, first_where = seen[e.name]
+                # Blame the element the user declared: when this one is a
+                # platform element, the user's earlier one is the culprit.
+                culprit = first_where if i < n else where
                 raise ConfigError(
-                    f"duplicate element name {e.name!r} (first in region {seen[e.name]!r}; "
+                    f"duplicate element name {e.name!r} (also in region "
+                    f"{first_region if culprit == where else region!r}; "
                     "platform elements are added automatically, do not declare them)",
-                    f"{where}.name",
+                    f"{culprit}.name",
                 )
-            seen[e.name] = region
+            seen[e.name] = (region, where)
             _check_element_type(e, where)
             e.initial = _check_initial(e, where)
 
@@ -497,9 +555,14 @@ def _coerce_scalar(st: ScalarType, v: object, where: str, enum: list[str] | None
     if st.kind == "float" and isinstance(v, str):
         # YAML has no literal for nan/inf in flow style everyone writes; accept
         # the spelled-out names and nothing else (a "1.5" string is a typo).
-        if v.strip().lower() not in _FLOAT_WORDS:
+        # PyYAML (YAML 1.1) also reads an exponent without a dot (`1e-3`) as
+        # a string: accept that form too, then range-check it like a number.
+        word = v.strip().lower()
+        if word in _FLOAT_WORDS:
+            return float(v)
+        if not _EXP_FLOAT_RE.match(word):
             raise ConfigError(f"expected a number for {st.name}, got {v!r}", where)
-        return float(v)
+        v = float(word)
     if not st.fits(v):
         if st.kind == "int":
             raise ConfigError(
@@ -535,7 +598,8 @@ def _check_initial(e: ElementConfig, where: str) -> Value:
 
 def _check_control_sections(m: Mission) -> None:
     """Structural checks of the control sections; semantic checks that need
-    the whole Data Vector are done by the owning modules' ``check_config``."""
+    the whole Data Vector are done by the owning modules' ``check_config``
+    (``_checks.run_all``, called by :func:`decode_mission` afterwards)."""
     for section in ("controllers", "devices"):
         names: set[str] = set()
         for i, c in enumerate(getattr(m, section)):
@@ -557,7 +621,3 @@ def _check_control_sections(m: Mission) -> None:
                 raise ConfigError(
                     f"class {c.cls!r} must be 'package.module:ClassName'", f"{where}.class"
                 )
-    # Imported here: those modules import this one.
-    from . import _checks
-
-    _checks.run_all(m)

@@ -188,8 +188,9 @@ class Handle:
     ``get()`` returns a Python scalar (``int``/``float``/``bool``) for scalar
     elements and a writable numpy view (no copy) for arrays. ``set(v)`` writes
     without range checks beyond what ``struct`` enforces (ints that do not fit
-    raise :class:`DataVectorError`); use :meth:`DataVector.set` for checked
-    writes of untrusted values.
+    raise :class:`DataVectorError`, and the element then reads 0: ``struct``
+    clears the bytes before it converts); use :meth:`DataVector.set` for
+    checked writes of untrusted values, which leaves the vector unchanged.
     """
 
     __slots__ = ("_buf", "_fmt", "_off", "_view", "spec")

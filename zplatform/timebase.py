@@ -126,8 +126,8 @@ class VirtualClock:
         """Move forward by ``ns`` (>= 0); returns the new time."""
         if ns < 0:
             raise TimebaseError("a virtual clock does not go backwards")
+        check_overflow(self._now + ns)  # before moving: a refused advance leaves it
         self._now += ns
-        check_overflow(self._now)
         return self._now
 
     def set(self, now_ns: int) -> None:

@@ -1,0 +1,116 @@
+"""Real node processes on loopback for integration and system tests.
+
+:class:`Cluster` copies a mission onto free ports, spawns nodes as separate
+processes (``python -m zplatform node ...``), and watches the CN's telemetry
+from the test process. Waiting is always on telemetry predicates (or process
+exit), never on sleeps; every spawned process is killed at exit.
+"""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+from zplatform.config import Mission, load_mission
+from zplatform.datavector import DataVector
+from zplatform.node.ground import TelemetryReceiver
+from zplatform.timebase import NodeClock
+from zplatform.transport import NodeSession, rewrite_endpoints
+
+ROOT = Path(__file__).resolve().parents[2]
+CONFIGS = ROOT / "configs"
+
+
+class Cluster:
+    def __init__(self, mission_file: str | Path, tmp: Path) -> None:
+        self.path = tmp / "mission.yaml"
+        rewrite_endpoints(mission_file, self.path)
+        self.mission: Mission = load_mission(self.path)
+        self.tmp = tmp
+        self.procs: dict[str, subprocess.Popen[bytes]] = {}
+        self._ns: NodeSession | None = None
+        self._rx: TelemetryReceiver | None = None
+
+    # -- processes ---------------------------------------------------------
+    def spawn(self, name: str, *extra: str, env: dict[str, str] | None = None) -> subprocess.Popen[bytes]:
+        e = dict(os.environ, PYTHONUNBUFFERED="1")
+        e.update(env or {})
+        log = open(self.tmp / f"{name}.log", "ab")  # noqa: SIM115 - closed with the process
+        p = subprocess.Popen(
+            [sys.executable, "-m", "zplatform", "node", str(self.path), name,
+             "--no-realtime", "--summary", str(self.tmp / f"{name}.json"), *extra],
+            stdout=log, stderr=subprocess.STDOUT, env=e, cwd=ROOT,
+        )
+        self.procs[name] = p
+        return p
+
+    def log(self, name: str) -> str:
+        return (self.tmp / f"{name}.log").read_text(errors="replace")
+
+    def kill(self, name: str) -> None:
+        p = self.procs.pop(name)
+        p.kill()
+        p.wait()
+
+    def close(self) -> None:
+        if self._rx is not None:
+            self._rx.close()
+        if self._ns is not None:
+            self._ns.close()
+        for p in self.procs.values():
+            if p.poll() is None:
+                p.terminate()
+        for p in self.procs.values():
+            try:
+                p.wait(timeout=10)
+            except subprocess.TimeoutExpired:
+                p.kill()
+                p.wait()
+
+    def __enter__(self) -> Cluster:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    # -- telemetry ---------------------------------------------------------
+    @property
+    def session(self) -> Any:
+        if self._ns is None:
+            self._ns = NodeSession(self.mission, None)
+        return self._ns.session
+
+    @property
+    def rx(self) -> TelemetryReceiver:
+        if self._rx is None:
+            self._rx = TelemetryReceiver(self.session, self.mission, NodeClock().now_ns)
+        return self._rx
+
+    @property
+    def tm(self) -> DataVector:
+        return self.rx.dv
+
+    def wait_for(self, pred: Callable[[DataVector], bool], timeout_s: float = 30.0, what: str = "") -> None:
+        """Read telemetry until ``pred(dv)`` holds; fail with the last values."""
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            for name, p in self.procs.items():
+                if p.poll() is not None and name == "cn":
+                    raise AssertionError(f"cn exited ({p.returncode}):\n{self.log('cn')[-3000:]}")
+            if self.rx.next(0.2) is not None and pred(self.rx.dv):
+                return
+        raise AssertionError(
+            f"timed out waiting for {what or pred}; last telemetry: "
+            f"{ {k: v for k, v in self.rx.dv.values().items() if k.startswith('cn_')} }"
+        )
+
+    def advance(self, loops: int, timeout_s: float = 30.0) -> None:
+        """Wait until the CN ran ``loops`` more loops."""
+        self.wait_for(lambda dv: True, timeout_s, "telemetry")
+        target = int(self.tm.get("cn_loop")) + loops
+        self.wait_for(lambda dv: int(dv.get("cn_loop")) >= target, timeout_s, f"cn_loop >= {target}")

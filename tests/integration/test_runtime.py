@@ -1,0 +1,126 @@
+"""The node runtime as real processes on loopback (issue: node runtime)."""
+
+from __future__ import annotations
+
+import json
+import random
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from zplatform.codec import encode_frame
+from zplatform.telemetry import read_csv
+
+from .harness import CONFIGS, ROOT, Cluster
+
+pytestmark = pytest.mark.timeout(180)
+
+
+def test_minimal_mission_runs_at_rate_with_zero_misses(tmp_path: Path) -> None:
+    """`zplatform up minimal`: loops advance at the rate, one CSV row per snapshot, no misses."""
+    csv_path = tmp_path / "tm.csv"
+    summary_path = tmp_path / "summary.json"
+    r = subprocess.run(
+        [sys.executable, "-m", "zplatform", "up", str(CONFIGS / "minimal.yaml"), "--free-ports",
+         "--duration", "3", "--log", str(csv_path), "--summary", str(summary_path),
+         "--quiet", "--no-realtime"],
+        cwd=ROOT, capture_output=True, text=True, timeout=120,
+    )
+    assert r.returncode == 0, r.stderr[-3000:]
+    s = json.loads(summary_path.read_text())
+    assert s["loops"] == 300
+    assert 95.0 < s["rate_hz"] < 105.0
+    assert s["missed"] == {"dn0": 0}
+    assert s["late"] == {"dn0": 0}
+    assert s["final_state"] == "IDLE"
+    assert s["errors"] == 0
+    rows = read_csv(csv_path)
+    assert len(rows) == s["telemetry_received"]
+    # Every loop's snapshot arrived (loop numbers 1..300 plus the closing frame).
+    loops = [int(row["cn_loop"]) for row in rows]
+    assert set(range(1, 301)) <= set(loops)
+    assert s["telemetry_gaps"] == 0
+
+
+def test_killed_device_node_is_missed_and_rejoins(tmp_path: Path) -> None:
+    """A DN killed mid-run: CN keeps its rate, its misses climb, others unaffected, it rejoins."""
+    with Cluster(CONFIGS / "led_test.yaml", tmp_path) as c:
+        for n in ("dn0", "dn1", "dn2", "cn"):
+            c.spawn(n)
+        c.advance(50)
+        c.kill("dn1")
+        missed0 = int(c.tm.get("cn_missed_dn1"))
+        c.wait_for(lambda dv: int(dv.get("cn_missed_dn1")) >= missed0 + 100, 30, "dn1 misses climb")
+        assert int(c.tm.get("cn_missed_dn0")) == 0
+        assert int(c.tm.get("cn_missed_dn2")) == 0
+        # The CN kept its loop going while dn1 was gone.
+        loop_a = int(c.tm.get("cn_loop"))
+        c.advance(100)
+        assert int(c.tm.get("cn_loop")) - loop_a >= 100
+        rx_before = int(c.tm.get("cn_rx_dn1"))
+        c.spawn("dn1")
+        c.wait_for(lambda dv: int(dv.get("cn_rx_dn1")) >= rx_before + 50, 60, "dn1 rejoins")
+        missed_after = int(c.tm.get("cn_missed_dn1"))
+        c.advance(100)
+        assert int(c.tm.get("cn_missed_dn1")) == missed_after, "dn1 misses stop after rejoining"
+        assert int(c.tm.get("dn1_loop")) > 0
+
+
+def test_bad_frames_are_counted_never_applied(tmp_path: Path) -> None:
+    """Wrong-layout frames and random bytes to a DN key and to the CN: counted, not applied."""
+    with Cluster(CONFIGS / "minimal.yaml", tmp_path) as c:
+        c.spawn("dn0")
+        c.spawn("cn")
+        c.advance(20)
+        s = c.session
+        v = c.mission.vehicle
+        rng = random.Random(7)
+        junk = [bytes(rng.getrandbits(8) for _ in range(rng.randint(0, 64))) for _ in range(5)]
+        wrong_layout = encode_frame(0xDEADBEEF, 10**6, 0, b"\x00" * 4)
+        # To the DN's sync key (as if we were a CN with another mission).
+        for payload in [*junk, wrong_layout]:
+            replies = s.get(f"{v}/dn0/to_cn", payload=payload, timeout=2.0)
+            for _ in replies:
+                pass
+        # To the CN's ground-command key.
+        for payload in [*junk, wrong_layout]:
+            s.put(f"{v}/gn/to_cn", payload)
+        n = len(junk) + 1
+        c.wait_for(
+            lambda dv: int(dv.get("dn0_bad_frames")) >= n and int(dv.get("cn_bad_frames")) >= n,
+            30,
+            "bad frames counted",
+        )
+        assert int(c.tm.get("dn0_bad_frames")) == n
+        assert int(c.tm.get("cn_bad_frames")) == n
+        # Nothing was applied: the setpoint and the command state are untouched.
+        assert c.tm.get("dn0_setpoint") == 0.0
+        assert c.tm.get_name("cn_cmd_status") == "NONE"
+        # The loop kept its rate.
+        c.advance(50)
+        assert int(c.tm.get("cn_missed_dn0")) == 0
+
+
+@pytest.mark.parametrize("skew_ms", [50.0, -30.0])
+def test_clock_sync_measures_injected_offset(tmp_path: Path, skew_ms: float) -> None:
+    """A DN clock skewed on purpose is measured within 1 ms of the injected offset."""
+    with Cluster(CONFIGS / "minimal.yaml", tmp_path) as c:
+        c.spawn("dn0", env={"ZPLATFORM_CLOCK_SKEW_NS": str(int(skew_ms * 1e6))})
+        c.spawn("cn")
+        c.advance(10)
+        measured_ms = int(c.tm.get("dn0_clock_offset_ns")) / 1e6
+        # offset = CN - DN: a DN ahead by +50 ms is corrected by -50 ms.
+        assert abs(measured_ms + skew_ms) < 1.0, measured_ms
+
+
+def test_cn_refuses_to_start_beyond_offset_bound(tmp_path: Path) -> None:
+    """Beyond the mission's bound (100 ms) the CN refuses to start, naming the node."""
+    with Cluster(CONFIGS / "minimal.yaml", tmp_path) as c:
+        c.spawn("dn0", env={"ZPLATFORM_CLOCK_SKEW_NS": str(250_000_000)})
+        cn = c.spawn("cn")
+        rc = cn.wait(timeout=90)
+        assert rc != 0
+        out = c.log("cn")
+        assert "dn0" in out and "refuses to start" in out, out[-2000:]

@@ -1,0 +1,423 @@
+"""Runtime subcommands: ``up``, ``node``, ``log``, ``cmd``, ``tap`` (DESIGN.md §6)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import queue
+import signal
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+import zenoh
+
+from .codec import RegionCodec, VectorCodec
+from .config import Mission, load_mission
+from .datavector import DataVector, Layout
+from .errors import CodecError, CommandError, NodeError
+from .events import decode_event
+from .node.runtime import PARENT_ENV, setup_logging, write_summary
+from .transport import NodeSession, rewrite_endpoints
+
+__all__ = ["register"]
+
+
+def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
+    p = sub.add_parser("up", help="spawn every node of a mission as its own process")
+    p.add_argument("mission")
+    p.add_argument("--duration", type=float, help="seconds of loops (default: until Ctrl-C)")
+    p.add_argument("--log", help="ground telemetry CSV")
+    p.add_argument("--summary", help="write the run summary JSON here ('-' = stdout)")
+    p.add_argument("--free-ports", action="store_true", help="remap every endpoint to a free port")
+    p.add_argument("--no-realtime", action="store_true", help="skip SCHED_FIFO/affinity set-up")
+    p.add_argument("--quiet", action="store_true", help="no live status line")
+    p.add_argument("--ready-timeout", type=float, default=60.0)
+    p.set_defaults(func=cmd_up)
+
+    p = sub.add_parser("node", help="run one node of a mission (multi-host deployments)")
+    p.add_argument("mission")
+    p.add_argument("name", help="cn, dnX or gn")
+    p.add_argument("--duration", type=float, help="CN: seconds of loops; GN: seconds of logging")
+    p.add_argument("--log", help="GN: telemetry CSV")
+    p.add_argument("--summary", help="write this node's summary JSON here")
+    p.add_argument("--no-realtime", action="store_true")
+    p.add_argument("--ready-timeout", type=float, default=60.0)
+    p.add_argument("-v", "--verbose", action="store_true")
+    p.set_defaults(func=cmd_node)
+
+    p = sub.add_parser("log", help="log telemetry snapshots to CSV")
+    p.add_argument("mission")
+    p.add_argument("--out", required=True)
+    p.add_argument("--duration", type=float)
+    p.add_argument("--summary")
+    p.set_defaults(func=cmd_log)
+
+    p = sub.add_parser("cmd", help="send one operator command and wait for its verdict")
+    p.add_argument("mission")
+    p.add_argument("command", help="launch|abort|noop|hold|resume|arm|write")
+    p.add_argument("args", nargs="*", help="write: ELEMENT VALUE")
+    p.add_argument("--arm", action="store_true", help="send ARM n first, then the command as n+1")
+    p.add_argument("--timeout", type=float, default=10.0)
+    p.set_defaults(func=cmd_cmd)
+
+    p = sub.add_parser("tap", help="print every sample on matching keys, decoded")
+    p.add_argument("mission")
+    p.add_argument("keyexpr", nargs="?", help="default: {vehicle}/**")
+    p.add_argument("--count", type=int, help="stop after N samples")
+    p.add_argument("--timeout", type=float, help="stop after S seconds")
+    p.add_argument("--json", action="store_true", help="one JSON object per line")
+    p.set_defaults(func=cmd_tap)
+
+
+# ---------------------------------------------------------------- node / log
+
+
+def cmd_node(args: argparse.Namespace) -> int:
+    setup_logging(args.verbose)
+    mission = load_mission(args.mission)
+    name = args.name
+    realtime = not args.no_realtime
+    summary: dict[str, Any]
+    if name == "cn":
+        from .node.control import run_control_node
+
+        summary = run_control_node(
+            mission,
+            duration_s=args.duration,
+            realtime=realtime,
+            ready_timeout_s=args.ready_timeout,
+        )
+    elif name == "gn":
+        from .node.ground import run_ground_logger
+
+        summary = run_ground_logger(mission, args.log, as_node=True, duration_s=args.duration)
+    elif name in mission.device_nodes:
+        from .node.device import run_device_node
+
+        summary = run_device_node(
+            mission, name, realtime=realtime, ready_timeout_s=args.ready_timeout
+        )
+    else:
+        raise NodeError(f"no node {name!r} in mission {mission.mission!r}: {sorted(mission.nodes)}")
+    write_summary(args.summary, summary)
+    return 0
+
+
+def cmd_log(args: argparse.Namespace) -> int:
+    setup_logging()
+    from .node.ground import run_ground_logger
+
+    mission = load_mission(args.mission)
+    summary = run_ground_logger(mission, args.out, as_node=False, duration_s=args.duration)
+    write_summary(args.summary, summary)
+    return 0
+
+
+# ---------------------------------------------------------------- cmd
+
+
+def cmd_cmd(args: argparse.Namespace) -> int:
+    from .node.ground import CommandSender
+
+    mission = load_mission(args.mission)
+    element = args.args[0] if len(args.args) > 0 else None
+    value = args.args[1] if len(args.args) > 1 else None
+    if len(args.args) > 2:
+        raise CommandError(f"too many arguments: {args.args}")
+    sender = CommandSender(mission, timeout_s=args.timeout)
+    try:
+        # Refused before anything is sent: unknown command, element, value.
+        sender.validate(args.command, element, value)
+        if args.arm:
+            results = sender.send_armed(args.command)
+        else:
+            results = [sender.send(args.command, element, value)]
+    finally:
+        sender.close()
+    for r in results:
+        print(f"{r.command} #{r.seq}: {r.status}")
+    return 0 if all(r.accepted for r in results) else 1
+
+
+# ---------------------------------------------------------------- tap
+
+
+class _TapDecoder:
+    """Decodes any sample of the key space into named values."""
+
+    def __init__(self, mission: Mission) -> None:
+        self.mission = mission
+        v = mission.vehicle
+        self._by_key: dict[str, Any] = {}
+        cn = DataVector(Layout.for_node(mission, "cn"))
+        self._by_key[f"{v}/cn/telemetry"] = (VectorCodec(cn), cn)
+        for region in mission.region_names():
+            if region == "cn":
+                continue
+            dv = DataVector(Layout.for_regions(mission, [region]))
+            codec = RegionCodec(dv, region)
+            if region.startswith("cn_to_"):
+                key = f"{v}/cn/to_{region[6:]}"
+            elif region == "gn_to_cn":
+                key = f"{v}/gn/to_cn"
+            else:
+                key = f"{v}/{region[:-6]}/to_cn"
+            self._by_key[key] = (codec, dv)
+
+    def decode(self, key: str, payload: bytes) -> dict[str, Any]:
+        if key.endswith("/events"):
+            try:
+                e = decode_event(payload)
+            except CodecError as exc:
+                return {"key": key, "error": str(exc)}
+            return {
+                "key": key,
+                "event": {
+                    "node": e.node,
+                    "seq": e.seq,
+                    "t_ns": e.t_ns,
+                    "severity": e.severity,
+                    "id": e.id,
+                    "text": e.text,
+                },
+            }
+        entry = self._by_key.get(key)
+        if entry is None:
+            return {"key": key, "bytes": len(payload), "hex": payload[:64].hex()}
+        codec, dv = entry
+        try:
+            frame = codec.apply(payload)
+        except CodecError as exc:
+            return {"key": key, "error": str(exc)}
+        values: dict[str, Any] = {}
+        for name, spec in dv.layout.elements.items():
+            values[name] = (
+                dv.get_name(name)
+                if spec.enum is not None
+                else (dv.get(name).tolist() if spec.count else dv.get(name))
+            )
+        return {"key": key, "seq": frame.seq, "t_ns": frame.t_ns, "values": values}
+
+
+def cmd_tap(args: argparse.Namespace) -> int:
+    mission = load_mission(args.mission)
+    dec = _TapDecoder(mission)
+    keyexpr = args.keyexpr or f"{mission.vehicle}/**"
+    q: queue.SimpleQueue[tuple[str, bytes]] = queue.SimpleQueue()
+    ns = NodeSession(mission, None)
+    sub = ns.session.declare_subscriber(
+        keyexpr,
+        zenoh.handlers.Callback(
+            lambda s: q.put((str(s.key_expr), s.payload.to_bytes())), indirect=False
+        ),
+    )
+    n = 0
+    deadline = time.monotonic() + args.timeout if args.timeout else None
+    try:
+        while args.count is None or n < args.count:
+            left = None if deadline is None else deadline - time.monotonic()
+            if left is not None and left <= 0:
+                break
+            try:
+                key, payload = q.get(timeout=min(left, 0.5) if left is not None else 0.5)
+            except queue.Empty:
+                continue
+            d = dec.decode(key, payload)
+            n += 1
+            if args.json:
+                print(json.dumps(d, default=str), flush=True)
+            elif "values" in d:
+                vals = " ".join(f"{k}={v}" for k, v in d["values"].items())
+                print(f"{key} seq={d['seq']} t_ns={d['t_ns']} {vals}", flush=True)
+            else:
+                print(f"{key} {json.dumps({k: v for k, v in d.items() if k != 'key'})}", flush=True)
+    except KeyboardInterrupt:
+        pass
+    finally:
+        sub.undeclare()
+        ns.close()
+    return 0
+
+
+# ---------------------------------------------------------------- up
+
+
+class _Children:
+    """The node processes ``up`` spawned; every one is reaped on exit."""
+
+    def __init__(self) -> None:
+        self.procs: dict[str, subprocess.Popen[bytes]] = {}
+
+    def spawn(self, name: str, argv: list[str]) -> None:
+        env = dict(os.environ, PYTHONUNBUFFERED="1")
+        env[PARENT_ENV] = str(os.getpid())
+        # A new session: a Ctrl-C in the terminal reaches `up` alone, which
+        # then stops the nodes in order (CN first, so the ground logs the end).
+        self.procs[name] = subprocess.Popen(
+            [sys.executable, "-m", "zplatform", *argv], env=env, start_new_session=True
+        )
+
+    def dead(self) -> list[tuple[str, int]]:
+        return [(n, p.returncode) for n, p in self.procs.items() if p.poll() is not None]
+
+    def stop(self, names: list[str], timeout_s: float = 10.0) -> dict[str, int]:
+        codes: dict[str, int] = {}
+        for n in names:
+            p = self.procs.get(n)
+            if p is not None and p.poll() is None:
+                p.send_signal(signal.SIGTERM)
+        for n in names:
+            p = self.procs.get(n)
+            if p is None:
+                continue
+            try:
+                codes[n] = p.wait(timeout=timeout_s)
+            except subprocess.TimeoutExpired:
+                p.kill()
+                codes[n] = p.wait()
+        return codes
+
+    def stop_all(self) -> dict[str, int]:
+        order = [n for n in self.procs if n == "cn"] + [n for n in self.procs if n != "cn"]
+        return self.stop(order)
+
+
+def cmd_up(args: argparse.Namespace) -> int:
+    mission = load_mission(args.mission)  # refuse a bad mission before spawning
+    tmp = Path(tempfile.mkdtemp(prefix="zplatform-up-"))
+    path = str(args.mission)
+    if args.free_ports:
+        path = str(tmp / "mission.yaml")
+        rewrite_endpoints(args.mission, path)
+        mission = load_mission(path)
+    children = _Children()
+    common = ["--ready-timeout", str(args.ready_timeout)]
+    if args.no_realtime:
+        common.append("--no-realtime")
+    summaries = {n: tmp / f"{n}.json" for n in mission.nodes}
+    stopping = False
+
+    def on_signal(signum: int, frame: Any) -> None:
+        nonlocal stopping
+        stopping = True
+
+    signal.signal(signal.SIGINT, on_signal)
+    signal.signal(signal.SIGTERM, on_signal)
+    rc = 0
+    try:
+        # Spawn everything before opening our own zenoh session: never fork
+        # a process that holds one (DESIGN.md §8).
+        for dn in mission.device_nodes:
+            children.spawn(dn, ["node", path, dn, "--summary", str(summaries[dn]), *common])
+        if mission.has_ground:
+            gn = ["node", path, "gn", "--summary", str(summaries["gn"])]
+            if args.log:
+                gn += ["--log", args.log]
+            children.spawn("gn", gn)
+        cn = ["node", path, "cn", "--summary", str(summaries["cn"]), *common]
+        if args.duration is not None:
+            cn += ["--duration", str(args.duration)]
+        children.spawn("cn", cn)
+        rc = _watch(mission, children, args, lambda: stopping)
+    finally:
+        codes = children.stop_all()
+    for name, code in codes.items():
+        if code not in (0, -signal.SIGTERM) and rc == 0:
+            print(f"zplatform up: node {name} exited with code {code}", file=sys.stderr)
+            rc = 1
+    summary = _merge_summaries(mission, summaries)
+    summary["exit_codes"] = codes
+    write_summary(args.summary, summary)
+    if not args.quiet:
+        _print_summary(summary)
+    return rc
+
+
+def _watch(mission: Mission, children: _Children, args: argparse.Namespace, stopping: Any) -> int:
+    """Live status until the CN finishes, a node dies, or Ctrl-C. Returns rc."""
+    from .node.ground import TelemetryReceiver
+    from .timebase import NodeClock
+
+    ns = NodeSession(mission, None)
+    rx = TelemetryReceiver(ns.session, mission, NodeClock().now_ns)
+    tty = sys.stdout.isatty()
+    try:
+        last_print = time.monotonic()
+        last_loop = 0
+        ready_deadline = time.monotonic() + args.ready_timeout + 30
+        while not stopping():
+            dead = children.dead()
+            if any(n == "cn" for n, _ in dead):
+                code = dict(dead)["cn"]
+                return 0 if code == 0 else 1
+            others = [(n, c) for n, c in dead if n != "cn"]
+            if others:
+                for n, c in others:
+                    print(f"zplatform up: node {n} died (exit code {c}); stopping", file=sys.stderr)
+                return 1
+            got = rx.next(0.2)
+            if rx.received == 0 and got is None and time.monotonic() > ready_deadline:
+                print("zplatform up: no telemetry from the control node", file=sys.stderr)
+                return 1
+            now = time.monotonic()
+            if not args.quiet and rx.received and now - last_print >= 1.0:
+                dv = rx.dv
+                loop = int(dv.get("cn_loop"))
+                rate = (loop - last_loop) / (now - last_print) if last_loop else 0.0
+                misses = " ".join(
+                    f"{dn}={int(dv.get(f'cn_missed_{dn}'))}" for dn in mission.device_nodes
+                )
+                line = (
+                    f"loop {loop:>8}  {rate:6.1f} Hz  missed {misses or '-'}  "
+                    f"overruns {int(dv.get('cn_loop_overruns'))}/{int(dv.get('cn_sync_overruns'))}"
+                    f"  state {dv.get_name('cn_state')}  cmd {dv.get_name('cn_cmd_status')}"
+                )
+                print(("\r" + line) if tty else line, end="" if tty else "\n", flush=True)
+                last_print, last_loop = now, loop
+        return 0
+    finally:
+        if tty and not args.quiet:
+            print()
+        rx.close()
+        ns.close()
+
+
+def _merge_summaries(mission: Mission, paths: dict[str, Path]) -> dict[str, Any]:
+    per: dict[str, Any] = {}
+    for name, p in paths.items():
+        try:
+            per[name] = json.loads(p.read_text())
+        except (OSError, ValueError):
+            per[name] = None
+    cn = per.get("cn") or {}
+    gn = per.get("gn") or {}
+    return {
+        "mission": mission.mission,
+        "loops": cn.get("loops", 0),
+        "duration_s": cn.get("duration_s", 0.0),
+        "rate_hz": cn.get("rate_hz", 0.0),
+        "loop_overruns": cn.get("loop_overruns"),
+        "sync_overruns": cn.get("sync_overruns"),
+        "missed": cn.get("missed", {}),
+        "late": cn.get("late", {}),
+        "bad_frames": cn.get("bad_frames"),
+        "telemetry_received": gn.get("telemetry_received"),
+        "telemetry_gaps": gn.get("telemetry_gaps"),
+        "errors": cn.get("errors"),
+        "final_state": cn.get("final_state"),
+        "nodes": per,
+    }
+
+
+def _print_summary(s: dict[str, Any]) -> None:
+    print(
+        f"{s['mission']}: {s['loops']} loops in {s['duration_s']:.2f} s "
+        f"({s['rate_hz']:.2f} Hz); overruns loop {s['loop_overruns']} sync {s['sync_overruns']}; "
+        f"missed {s['missed']}; late {s['late']}; telemetry {s['telemetry_received']} "
+        f"(gaps {s['telemetry_gaps']}); errors {s['errors']}; final state {s['final_state']}"
+    )

@@ -1,0 +1,149 @@
+"""Clock synchronisation between each DN and the CN (thesis 4.9), NTP-style.
+
+The CN serves ``{vehicle}/cn/clock``. A DN sends ``t1`` (its clock), the CN
+stamps ``t2`` when the query reaches it and ``t3`` when it replies, the DN
+stamps ``t4`` on receipt. Per exchange::
+
+    offset = ((t2 - t1) + (t3 - t4)) / 2      # CN clock minus DN clock
+    delay  = (t4 - t1) - (t3 - t2)            # round trip minus CN time
+
+Over many exchanges the fastest ``keep_fraction`` (smallest delay, least
+queueing asymmetry) are kept and their median offset is the estimate.
+
+Why the node clocks and not zenoh's timestamps: what must agree across
+nodes is each node's :class:`~zplatform.timebase.NodeClock`, the clock that
+stamps loops and frames. Zenoh's timestamp stack reads zenoh's own clock
+(the host's), which knows nothing of the node clock's anchor; and its HLC is
+pulled forward by peers (DESIGN.md §8). Stamping with the node clocks at
+both ends measures the quantity we correct, with the same four-time method.
+``t2`` is taken in the zenoh callback (a clock read, no blocking); the reply
+is sent from a server thread, whose queueing shows up between t2 and t3 and
+so cancels out of the delay.
+"""
+
+from __future__ import annotations
+
+import queue
+import struct
+import threading
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import zenoh
+
+from .errors import ClockSyncError
+from .transport import KeySpace
+
+__all__ = ["ClockEstimate", "ClockServer", "estimate_offset"]
+
+_REQ = struct.Struct("<q")
+_REP = struct.Struct("<qqq")
+
+
+@dataclass(frozen=True, slots=True)
+class ClockEstimate:
+    """Result of :func:`estimate_offset` (ns; ``offset_ns`` = CN - DN)."""
+
+    offset_ns: int
+    delay_ns: int
+    exchanges: int
+    kept: int
+    spread_ns: int
+
+
+class ClockServer:
+    """The CN's clock queryable. Runs its own reply thread; ``close()`` stops it."""
+
+    def __init__(self, session: zenoh.Session, keys: KeySpace, now_ns: Callable[[], int]) -> None:
+        self._now = now_ns
+        self._q: queue.SimpleQueue[tuple[zenoh.Query, int] | None] = queue.SimpleQueue()
+        self._key = keys.clock
+        self.served = 0
+        self._queryable = session.declare_queryable(
+            self._key, zenoh.handlers.Callback(self._on_query, indirect=False)
+        )
+        self._thread = threading.Thread(target=self._serve, name="clock-server", daemon=True)
+        self._thread.start()
+
+    def _on_query(self, query: zenoh.Query) -> None:
+        self._q.put((query, self._now()))  # t2, then hand off
+
+    def _serve(self) -> None:
+        while True:
+            item = self._q.get()
+            if item is None:
+                return
+            query, t2 = item
+            with query:
+                p = query.payload
+                raw = p.to_bytes() if p is not None else b""
+                if len(raw) != _REQ.size:
+                    query.reply_err(b"clock request must be one little-endian i64")
+                    continue
+                (t1,) = _REQ.unpack(raw)
+                query.reply(self._key, _REP.pack(t1, t2, self._now()))
+            self.served += 1
+
+    def close(self) -> None:
+        self._queryable.undeclare()
+        self._q.put(None)
+        self._thread.join(timeout=2)
+
+
+def estimate_offset(
+    session: zenoh.Session,
+    keys: KeySpace,
+    now_ns: Callable[[], int],
+    *,
+    exchanges: int = 200,
+    keep_fraction: float = 0.1,
+    timeout_s: float = 1.0,
+) -> ClockEstimate:
+    """Measure the CN-minus-local clock offset over ``exchanges`` round trips.
+
+    Blocks for the exchanges (about 0.3 ms each on loopback). Raises
+    ClockSyncError when fewer than half the exchanges get a valid reply
+    (the CN's clock server is unreachable).
+    """
+    samples: list[tuple[int, int]] = []
+    replies: queue.SimpleQueue[bytes | None] = queue.SimpleQueue()
+
+    def on_reply(r: zenoh.Reply) -> None:
+        ok = r.ok
+        replies.put(ok.payload.to_bytes() if ok is not None else None)
+
+    cb = zenoh.handlers.Callback(on_reply, indirect=False)
+    for _ in range(exchanges):
+        t1 = now_ns()
+        session.get(
+            keys.clock,
+            cb,
+            payload=_REQ.pack(t1),
+            consolidation=zenoh.ConsolidationMode.NONE,
+            timeout=timeout_s,
+        )
+        try:
+            raw = replies.get(timeout=timeout_s)
+        except queue.Empty:
+            continue
+        t4 = now_ns()
+        if raw is None or len(raw) != _REP.size:
+            continue
+        e1, t2, t3 = _REP.unpack(raw)
+        if e1 != t1:  # a late reply to an earlier exchange
+            continue
+        samples.append((((t2 - t1) + (t3 - t4)) // 2, (t4 - t1) - (t3 - t2)))
+    if len(samples) < exchanges // 2:
+        raise ClockSyncError(
+            f"clock sync got {len(samples)} of {exchanges} replies from {keys.clock}"
+        )
+    samples.sort(key=lambda s: s[1])
+    kept = samples[: max(3, int(len(samples) * keep_fraction))]
+    offsets = sorted(o for o, _ in kept)
+    return ClockEstimate(
+        offset_ns=offsets[len(offsets) // 2],
+        delay_ns=kept[len(kept) // 2][1],
+        exchanges=len(samples),
+        kept=len(kept),
+        spread_ns=offsets[-1] - offsets[0],
+    )

@@ -1,0 +1,440 @@
+"""The operator command handler (thesis 000 ch. 4.8, 6.1; seed 003), sans-IO.
+
+The ground node sends one request per ``gn_to_cn`` frame: ``gn_cmd`` (a
+command of :data:`~zplatform.config.CMD_NAMES`), ``gn_cmd_seq`` (a number
+that must grow with every request), and for WRITE ``gn_cmd_element`` (the
+element's index in the CN's element list, ``ElementSpec.index``) and
+``gn_cmd_value``. The handler has the thesis' three internal states:
+
+* **Idle**: nothing to do;
+* **Requested**: the runtime applied a new ``gn_to_cn`` frame this loop;
+  the request is validated, then accepted or rejected;
+* **Active**: an accepted command is in ``cn_cmd`` for exactly one loop, so
+  the state machine's transitions (``cn_cmd == LAUNCH``) see it once; the
+  next loop clears it to ``NONE``.
+
+Validation, first failure wins (the status goes to ``cn_cmd_status``):
+
+1. ``REJECTED_UNKNOWN``: the code is not a command (``NONE`` included);
+2. ``REJECTED_REPLAY``: ``gn_cmd_seq`` is not above the highest number seen
+   so far (any first number >= 1 is fine). Every request that is not a
+   replay raises that number, accepted or rejected;
+3. ``REJECTED_NOT_ALLOWED``: the command is not in the current state's
+   whitelist (``commands.whitelist``; a state not listed allows every
+   command). NOOP and ARM follow the whitelist like the others. HOLD and
+   RESUME are also refused when there is no state machine to hold;
+4. ``REJECTED_NOT_ARMED``: a hazardous command (``commands.hazardous``)
+   needs double confirmation (seed 003): an accepted ARM numbered exactly
+   ``gn_cmd_seq - 1``, accepted at most :data:`ARM_WINDOW_NS` before. An
+   ARM confirms one command only;
+5. ``REJECTED_BAD_ARGUMENT``: for WRITE, the element index names no
+   writable element, or the value does not fit its type (enum: an index in
+   range; ints: integral and in range; bool: 0 or 1; floats: finite and in
+   range).
+
+An accepted command sets ``cn_cmd`` (WRITE also writes the element; HOLD and
+RESUME call the state machine) and becomes Active. Every request writes
+``cn_cmd_seq = gn_cmd_seq`` and ``cn_cmd_status`` and emits an event: INFO
+``cmd_accepted`` or WARNING ``cmd_rejected`` with the reason. Nothing in a
+request can make :meth:`CommandHandler.step` raise.
+
+The numbers are remembered for the CN's life: a ground tool continues from
+the ``cn_cmd_seq`` it reads in telemetry (see :func:`fill_request`).
+"""
+
+from __future__ import annotations
+
+import difflib
+import enum
+import logging
+import math
+from typing import TYPE_CHECKING, Any
+
+from .config import CMD_NAMES, CMD_STATUS_NAMES
+from .errors import CommandError, ConfigError, DataVectorError
+from .events import EventLog, Severity
+from .statemachine import logic_writable
+
+if TYPE_CHECKING:
+    from .config import Mission
+    from .datavector import DataVector, ElementSpec, Handle
+    from .statemachine import StateMachine
+
+__all__ = [
+    "ARM_WINDOW_NS",
+    "Command",
+    "CommandHandler",
+    "CommandStatus",
+    "check_config",
+    "element_index",
+    "fill_request",
+    "writable_elements",
+]
+
+log = logging.getLogger("zplatform.commands")
+
+ARM_WINDOW_NS = 10_000_000_000
+"""How long an accepted ARM confirms the next (hazardous) command: 10 s."""
+
+
+class Command(enum.IntEnum):
+    """Operator commands; the values of ``gn_cmd`` and ``cn_cmd``."""
+
+    NONE = 0
+    NOOP = 1
+    LAUNCH = 2
+    ABORT = 3
+    WRITE = 4
+    HOLD = 5
+    RESUME = 6
+    ARM = 7
+
+
+class CommandStatus(enum.IntEnum):
+    """Outcome of the last request; the values of ``cn_cmd_status``."""
+
+    NONE = 0
+    ACCEPTED = 1
+    REJECTED_UNKNOWN = 2
+    REJECTED_NOT_ALLOWED = 3
+    REJECTED_BAD_ARGUMENT = 4
+    REJECTED_REPLAY = 5
+    REJECTED_NOT_ARMED = 6
+
+
+assert tuple(c.name for c in Command) == CMD_NAMES, "Command must mirror config.CMD_NAMES"
+assert tuple(s.name for s in CommandStatus) == CMD_STATUS_NAMES, "mirror CMD_STATUS_NAMES"
+
+_N_CMDS = len(CMD_NAMES)
+_F32_MAX = 3.4028234663852886e38
+
+
+# ---------------------------------------------------------------------------
+# configuration
+
+
+def _all_element_names(mission: Mission) -> list[str]:
+    """The CN's element list, in ``ElementSpec.index`` order."""
+    return [e.name for r in mission.region_names() for e in mission.regions[r]]
+
+
+def writable_elements(mission: Mission) -> list[str]:
+    """Elements a WRITE command may write, in Data Vector order.
+
+    ``commands.writable`` when given; otherwise every scalar element CN logic
+    may write (:func:`~zplatform.statemachine.logic_writable`: the mission's
+    own elements of ``cn`` and ``cn_to_dnX``, controller modes, ``cn_fault``).
+    """
+    if mission.commands.writable is not None:
+        chosen = set(mission.commands.writable)
+        return [n for n in _all_element_names(mission) if n in chosen]
+    allowed = logic_writable(mission)
+    out = []
+    for r in mission.region_names():
+        for e in mission.regions[r]:
+            if e.name in allowed and "[" not in e.type:
+                out.append(e.name)
+    return out
+
+
+def _state_names(mission: Mission) -> list[str]:
+    sm = mission.state_machine
+    return list(sm.states) if sm is not None else ["IDLE"]
+
+
+def check_config(mission: Mission) -> None:
+    """Check the ``commands`` section; raises ConfigError naming the YAML path.
+
+    * whitelist keys are states, values are command names (not ``NONE``);
+    * hazardous entries are command names other than ``NONE`` and ``ARM``
+      (ARM is the confirmation), and a state that allows a hazardous
+      command also allows ARM (else it could never be accepted there);
+    * ``writable`` elements exist, are scalars, and may be written by CN
+      logic (not platform bookkeeping, not received from a peer).
+
+    Logs a warning for a ``cn_cmd == X`` transition in a state whose
+    whitelist refuses ``X`` (the transition can never fire).
+    """
+    from .statemachine import _why_not_writable
+
+    cfg = mission.commands
+    states = _state_names(mission)
+    commands = [c for c in CMD_NAMES if c != "NONE"]
+    for i, h in enumerate(cfg.hazardous):
+        w = f"$.commands.hazardous[{i}]"
+        if h not in commands:
+            raise ConfigError(f"{h!r} is not a command; commands: {', '.join(commands)}", w)
+        if h == "ARM":
+            raise ConfigError("ARM cannot be hazardous: it is the confirmation itself", w)
+    for state, allowed in cfg.whitelist.items():
+        w = f"$.commands.whitelist.{state}"
+        if state not in states:
+            raise ConfigError(f"the whitelist names state {state!r}; states: {states}", w)
+        for j, c in enumerate(allowed):
+            if c not in commands:
+                raise ConfigError(
+                    f"{c!r} is not a command; commands: {', '.join(commands)}", f"{w}[{j}]"
+                )
+        for h in cfg.hazardous:
+            if h in allowed and "ARM" not in allowed:
+                raise ConfigError(
+                    f"{h} is hazardous and needs an ARM first, but state {state} does not "
+                    "allow ARM",
+                    w,
+                )
+    if cfg.writable is not None:
+        table = {e.name: (r, e) for r, es in mission.regions.items() for e in es}
+        can = logic_writable(mission)
+        for i, name in enumerate(cfg.writable):
+            w = f"$.commands.writable[{i}]"
+            if name not in table:
+                close = difflib.get_close_matches(name, list(table), n=3)
+                hint = f"; did you mean {', '.join(close)}?" if close else ""
+                raise ConfigError(f"no element named {name!r} in the Data Vector{hint}", w)
+            region, e = table[name]
+            if "[" in e.type:
+                raise ConfigError(
+                    f"element {name!r} is an array ({e.type}); WRITE sets one scalar", w
+                )
+            if name not in can:
+                raise ConfigError(_why_not_writable(mission, region, name), w)
+    sm = mission.state_machine
+    if sm is not None:
+        for state, st in sm.states.items():
+            listed = cfg.whitelist.get(state)
+            if listed is None:
+                continue
+            for i, t in enumerate(st.transitions):
+                if (
+                    t.element == "cn_cmd"
+                    and t.op == "=="
+                    and isinstance(t.value, str)
+                    and t.value not in listed
+                ):
+                    log.warning(
+                        "state %s refuses command %s, so this transition never fires - at "
+                        "`$.state_machine.states.%s.transitions[%d]`",
+                        state,
+                        t.value,
+                        state,
+                        i,
+                    )
+
+
+# ---------------------------------------------------------------------------
+# ground side
+
+
+def element_index(mission: Mission, name: str) -> int:
+    """The ``gn_cmd_element`` value naming element ``name`` (its index in the
+    CN's element list). Raises CommandError for an unknown name."""
+    names = _all_element_names(mission)
+    try:
+        return names.index(name)
+    except ValueError:
+        close = difflib.get_close_matches(name, names, n=3)
+        hint = f"; did you mean {', '.join(close)}?" if close else ""
+        raise CommandError(f"no element named {name!r}{hint}") from None
+
+
+def fill_request(
+    dv: DataVector, command: str, seq: int, element_index: int = 0, value: float = 0.0
+) -> None:
+    """Write one command request into the ``gn_to_cn`` elements of ``dv``.
+
+    ``command`` is a name of :data:`~zplatform.config.CMD_NAMES` (any case,
+    not ``NONE``); ``seq`` must be above every number the CN has seen (read
+    ``cn_cmd_seq`` from telemetry and add one). Raises CommandError for an
+    unknown command, a ``seq`` outside 1..2**32-1, an ``element_index``
+    outside 0..65535, or a ``dv`` without the ``gn_to_cn`` region. The value
+    itself is checked by the CN (a bad one is rejected there).
+    """
+    name = command.upper()
+    if name not in CMD_NAMES or name == "NONE":
+        raise CommandError(
+            f"unknown command {command!r}; commands: {', '.join(CMD_NAMES[1:])}"
+        )
+    if not 1 <= seq <= 0xFFFF_FFFF:
+        raise CommandError(f"command number {seq} is outside 1..4294967295")
+    if not 0 <= element_index <= 0xFFFF:
+        raise CommandError(f"element index {element_index} is outside 0..65535")
+    try:
+        dv.handle("gn_cmd").set(CMD_NAMES.index(name))
+        dv.handle("gn_cmd_seq").set(seq)
+        dv.handle("gn_cmd_element").set(element_index)
+        dv.handle("gn_cmd_value").set(float(value))
+    except DataVectorError as exc:
+        raise CommandError(f"cannot fill a command request: {exc}") from exc
+
+
+# ---------------------------------------------------------------------------
+# the handler
+
+
+def _write_value(spec: ElementSpec, v: float) -> tuple[Any, str]:
+    """``(stored value, "")`` for a WRITE of ``v`` to ``spec``, or
+    ``(None, reason)`` when it does not fit."""
+    st = spec.scalar
+    if math.isnan(v) or math.isinf(v):
+        return None, f"value {v} is not finite"
+    if spec.enum is not None:
+        if v.is_integer() and 0 <= v < len(spec.enum):
+            return int(v), ""
+        return None, f"{v:g} is not an index of {spec.name}'s names 0..{len(spec.enum) - 1}"
+    if st.kind == "bool":
+        if v in (0.0, 1.0):
+            return v == 1.0, ""
+        return None, f"{v:g} is not 0 or 1 for bool element {spec.name}"
+    if st.kind == "int":
+        assert st.lo is not None and st.hi is not None
+        if v.is_integer() and st.lo <= int(v) <= st.hi:
+            return int(v), ""
+        return None, f"{v!r} is not an integer in {st.lo}..{st.hi} for {st.name} {spec.name}"
+    if st.size == 4 and abs(v) > _F32_MAX:
+        return None, f"{v!r} does not fit f32 element {spec.name}"
+    return v, ""
+
+
+class CommandHandler:
+    """Validates and applies operator command requests on the CN (module doc).
+
+    ``dv`` is the CN's Data Vector. ``statemachine`` receives HOLD and
+    RESUME (without one, they are refused). Construction runs
+    :func:`check_config` and resolves the whitelist, the hazardous set and
+    the writable elements into tables indexed by state and command code, so
+    a loop without a request costs one attribute test.
+
+    Not thread-safe: the CN loop calls :meth:`step` once per loop, before
+    the state machine's step.
+    """
+
+    def __init__(
+        self,
+        mission: Mission,
+        dv: DataVector,
+        events: EventLog,
+        statemachine: StateMachine | None = None,
+    ) -> None:
+        check_config(mission)
+        self._events = events
+        self._sm = statemachine
+        self._h_cmd = dv.handle("cn_cmd")
+        self._h_seq = dv.handle("cn_cmd_seq")
+        self._h_status = dv.handle("cn_cmd_status")
+        self._h_state = dv.handle("cn_state")
+        self._has_ground = "gn_to_cn" in dv.layout.regions
+        if self._has_ground:
+            self._g_cmd = dv.handle("gn_cmd")
+            self._g_seq = dv.handle("gn_cmd_seq")
+            self._g_elem = dv.handle("gn_cmd_element")
+            self._g_value = dv.handle("gn_cmd_value")
+        states = self._h_state.spec.enum or ()
+        self._states = states
+        wl = mission.commands.whitelist
+        self._allowed: tuple[tuple[bool, ...], ...] = tuple(
+            tuple(s not in wl or c in wl[s] for c in CMD_NAMES) for s in states
+        )
+        self._hazardous = tuple(c in mission.commands.hazardous for c in CMD_NAMES)
+        targets: list[Handle | None] = [None] * len(dv.layout.elements)
+        for name in writable_elements(mission):
+            h = dv.handle(name)
+            targets[h.spec.index] = h
+        self._targets = tuple(targets)
+        self._names_by_index = tuple(
+            sorted(dv.layout.elements, key=lambda n: dv.layout.elements[n].index)
+        )
+        self._active = False
+        self._last_seq = 0
+        self._arm_seq = -1
+        self._arm_t_ns = 0
+
+    @property
+    def active(self) -> bool:
+        """Whether an accepted command is in ``cn_cmd`` this loop."""
+        return self._active
+
+    @property
+    def last_seq(self) -> int:
+        """The highest request number seen (0 before the first request)."""
+        return self._last_seq
+
+    def step(self, new_request: bool, t_ns: int) -> None:
+        """One loop: clear last loop's active command, then handle the request
+        the runtime applied this loop (``new_request``). Never raises."""
+        if self._active:
+            self._h_cmd.set(0)
+            self._active = False
+        if not new_request or not self._has_ground:
+            return
+        cmd = self._g_cmd.get()
+        seq = self._g_seq.get()
+        status, detail = self._validate(cmd, seq, t_ns)
+        self._h_seq.set(seq)
+        self._h_status.set(status)
+        name = CMD_NAMES[cmd] if cmd < _N_CMDS else f"code {cmd}"
+        if status == CommandStatus.ACCEPTED:
+            self._h_cmd.set(cmd)
+            self._active = True
+            text = f"command {name} #{seq} accepted{detail}"
+            self._events.emit(Severity.INFO, "cmd_accepted", text, t_ns)
+        else:
+            text = f"command {name} #{seq} rejected ({CMD_STATUS_NAMES[status]}): {detail}"
+            self._events.emit(Severity.WARNING, "cmd_rejected", text, t_ns)
+
+    def _validate(self, cmd: int, seq: int, t_ns: int) -> tuple[int, str]:
+        """``(status, detail)``; performs the command when it is accepted."""
+        if cmd == Command.NONE or cmd >= _N_CMDS:
+            if seq > self._last_seq:
+                self._last_seq = seq
+            return CommandStatus.REJECTED_UNKNOWN, f"{cmd} is not a command code"
+        if seq <= self._last_seq:
+            return (
+                CommandStatus.REJECTED_REPLAY,
+                f"number {seq} is not above the last one seen ({self._last_seq})",
+            )
+        self._last_seq = seq
+        state = self._h_state.get()
+        if state < len(self._allowed) and not self._allowed[state][cmd]:
+            return (
+                CommandStatus.REJECTED_NOT_ALLOWED,
+                f"not allowed in state {self._states[state]}",
+            )
+        if self._hazardous[cmd]:
+            armed = self._arm_seq == seq - 1 and 0 <= t_ns - self._arm_t_ns <= ARM_WINDOW_NS
+            self._arm_seq = -1
+            if not armed:
+                return (
+                    CommandStatus.REJECTED_NOT_ARMED,
+                    f"hazardous: needs an accepted ARM #{seq - 1} within the last "
+                    f"{ARM_WINDOW_NS // 1_000_000_000} s",
+                )
+        if cmd == Command.WRITE:
+            return self._write()
+        if cmd == Command.HOLD or cmd == Command.RESUME:
+            if self._sm is None:
+                return CommandStatus.REJECTED_NOT_ALLOWED, "no state machine to hold or resume"
+            changed = self._sm.hold(t_ns) if cmd == Command.HOLD else self._sm.resume(t_ns)
+            if not changed:
+                return CommandStatus.ACCEPTED, " (no change: already so)"
+        elif cmd == Command.ARM:
+            self._arm_seq = seq
+            self._arm_t_ns = t_ns
+        return CommandStatus.ACCEPTED, ""
+
+    def _write(self) -> tuple[int, str]:
+        idx = self._g_elem.get()
+        value = self._g_value.get()
+        target = self._targets[idx] if idx < len(self._targets) else None
+        if target is None:
+            if idx < len(self._names_by_index):
+                return (
+                    CommandStatus.REJECTED_BAD_ARGUMENT,
+                    f"element {self._names_by_index[idx]} is not writable",
+                )
+            return CommandStatus.REJECTED_BAD_ARGUMENT, f"no element with index {idx}"
+        v, reason = _write_value(target.spec, value)
+        if reason:
+            return CommandStatus.REJECTED_BAD_ARGUMENT, reason
+        target.set(v)
+        shown = target.spec.name_of(v) if target.spec.enum is not None else repr(v)
+        return CommandStatus.ACCEPTED, f" ({target.spec.name} = {shown})"

@@ -1,0 +1,209 @@
+"""Error handling after start (thesis 000 ch. 4.11.1), sans-IO.
+
+The thesis' node mains handle an error after start in one of two ways:
+
+* **critical**: set a flag the state machine reads, so a configured
+  transition (``cn_fault != NONE -> ABORT``) takes the vehicle to a safe
+  state. The flag is ``cn_fault``, an enum of
+  :data:`~zplatform.config.FAULT_NAMES`;
+* **non-critical**: count it in the Data Vector (``cn_errors``, with the
+  code in ``cn_last_error``) and publish an event; the loop keeps its rate.
+
+:class:`FaultMonitor` decides which is which from the ``faults`` section:
+a symptom becomes critical when it persists for N consecutive loops (N = 0
+turns that check off):
+
+================== ==================================== ======================
+fault              symptom, per loop                    N
+================== ==================================== ======================
+DN_LOST            ``cn_missed_dnX`` grew (any dnX)     ``dn_lost_loops``
+CONTROLLER_FAILED  ``dnX_errors`` grew (any dnX), or a  ``controller_fail_loops``
+                   CN controller raised
+                   (:meth:`~FaultMonitor.report_controller_failure`)
+SYNC_OVERRUNS      ``cn_sync_overruns`` grew            ``sync_overrun_loops``
+LOOP_OVERRUNS      ``cn_loop_overruns`` grew            ``loop_overrun_loops``
+================== ==================================== ======================
+
+Only the first fault latches: once ``cn_fault`` is not ``NONE`` it stays
+until someone writes it back (a WRITE command of ``cn_fault = NONE``, or a
+state-machine action); a symptom still present then raises it again. A
+raised fault emits one CRITICAL event.
+"""
+
+from __future__ import annotations
+
+import enum
+from typing import TYPE_CHECKING
+
+from .config import FAULT_NAMES
+from .events import EventLog, Severity
+
+if TYPE_CHECKING:
+    from .config import Mission
+    from .datavector import DataVector, Handle
+
+__all__ = ["ErrorCode", "Fault", "FaultMonitor"]
+
+_U32_MAX = 0xFFFF_FFFF
+
+
+class Fault(enum.IntEnum):
+    """Values of ``cn_fault``."""
+
+    NONE = 0
+    DN_LOST = 1
+    CONTROLLER_FAILED = 2
+    SYNC_OVERRUNS = 3
+    LOOP_OVERRUNS = 4
+
+
+assert tuple(f.name for f in Fault) == FAULT_NAMES, "Fault must mirror config.FAULT_NAMES"
+
+
+class ErrorCode(enum.IntEnum):
+    """Codes for ``cn_last_error`` (non-critical errors). 0 = none yet.
+
+    Missions may use their own codes from 1000 up.
+    """
+
+    NONE = 0
+    SYNC_TIMEOUT = 1
+    BAD_FRAME = 2
+    LOOP_OVERRUN = 3
+    CONTROLLER_ERROR = 4
+    DEVICE_ERROR = 5
+    CLOCK_SYNC = 6
+    TELEMETRY = 7
+    EVENTS_DROPPED = 8
+
+
+class _Watch:
+    """A counter element and how many consecutive loops it has grown."""
+
+    __slots__ = ("fault", "get", "last", "limit", "run", "text")
+
+    def __init__(self, h: Handle, fault: Fault, limit: int, text: str) -> None:
+        self.get = h.get
+        self.last: int = h.get()
+        self.fault = fault
+        self.limit = limit
+        self.run = 0
+        self.text = text
+
+
+class FaultMonitor:
+    """Turns persistent symptoms into the ``cn_fault`` flag (module doc).
+
+    ``dv`` is the CN's Data Vector. The runtime calls :meth:`step` once per
+    loop after the sync step (so this loop's ``cn_missed_dnX`` and received
+    ``dnX_errors`` are in), before the state machine. Counters that are
+    present at construction are the baseline. Everything is resolved at
+    construction; a step reads the watched counters and compares integers.
+    Not thread-safe (the CN loop thread only). No method raises.
+    """
+
+    def __init__(self, mission: Mission, dv: DataVector, events: EventLog) -> None:
+        f = mission.faults
+        self._events = events
+        self._h_fault = dv.handle("cn_fault")
+        self._h_errors = dv.handle("cn_errors")
+        self._h_last = dv.handle("cn_last_error")
+        self._controller_limit = f.controller_fail_loops
+        watches: list[_Watch] = []
+        dns = mission.device_nodes
+        if f.dn_lost_loops > 0:
+            for dn in dns:
+                watches.append(
+                    _Watch(
+                        dv.handle(f"cn_missed_{dn}"),
+                        Fault.DN_LOST,
+                        f.dn_lost_loops,
+                        f"{dn} missed {f.dn_lost_loops} syncs in a row",
+                    )
+                )
+        if f.controller_fail_loops > 0:
+            for dn in dns:
+                watches.append(
+                    _Watch(
+                        dv.handle(f"{dn}_errors"),
+                        Fault.CONTROLLER_FAILED,
+                        f.controller_fail_loops,
+                        f"{dn} reported errors in {f.controller_fail_loops} loops in a row",
+                    )
+                )
+        if f.sync_overrun_loops > 0:
+            watches.append(
+                _Watch(
+                    dv.handle("cn_sync_overruns"),
+                    Fault.SYNC_OVERRUNS,
+                    f.sync_overrun_loops,
+                    f"sync overran in {f.sync_overrun_loops} loops in a row",
+                )
+            )
+        if f.loop_overrun_loops > 0:
+            watches.append(
+                _Watch(
+                    dv.handle("cn_loop_overruns"),
+                    Fault.LOOP_OVERRUNS,
+                    f.loop_overrun_loops,
+                    f"loop overran in {f.loop_overrun_loops} loops in a row",
+                )
+            )
+        self._watches = tuple(watches)
+
+    @property
+    def fault(self) -> str:
+        """The current ``cn_fault`` value's name."""
+        v = self._h_fault.get()
+        return FAULT_NAMES[v] if v < len(FAULT_NAMES) else str(v)
+
+    def step(self, t_ns: int) -> None:
+        """Update the consecutive-growth runs; raise the first fault due.
+
+        Watches are checked in order DN_LOST, CONTROLLER_FAILED,
+        SYNC_OVERRUNS, LOOP_OVERRUNS; every run is updated every loop.
+        """
+        for w in self._watches:
+            v = w.get()
+            if v > w.last:
+                w.run += 1
+            else:
+                w.run = 0
+            w.last = v
+            if w.run >= w.limit:
+                self.raise_fault(w.fault, w.text, t_ns)
+
+    def report_controller_failure(self, name: str, consecutive: int, t_ns: int) -> None:
+        """A CN controller raised in ``consecutive`` loops in a row (the
+        controller runner calls this every loop one raises). Raises
+        CONTROLLER_FAILED when ``consecutive >= faults.controller_fail_loops``
+        (and that is > 0). Does not count the error in ``cn_errors``: the
+        runner reports it with :meth:`error` too."""
+        limit = self._controller_limit
+        if limit > 0 and consecutive >= limit:
+            self.raise_fault(
+                Fault.CONTROLLER_FAILED,
+                f"controller {name} failed in {consecutive} loops in a row",
+                t_ns,
+            )
+
+    def raise_fault(self, fault: Fault, text: str, t_ns: int) -> bool:
+        """Set ``cn_fault`` unless a fault is already latched.
+
+        Returns True and emits a CRITICAL ``fault`` event when it was set;
+        False (silently) when another fault was latched already.
+        """
+        if self._h_fault.get() != Fault.NONE or fault == Fault.NONE:
+            return False
+        self._h_fault.set(int(fault))
+        self._events.emit(Severity.CRITICAL, "fault", f"fault {fault.name}: {text}", t_ns)
+        return True
+
+    def error(self, code: int, text: str, t_ns: int) -> None:
+        """A non-critical error: ``cn_errors += 1`` (saturating),
+        ``cn_last_error = code`` (clamped to 0..65535), a WARNING event."""
+        n = self._h_errors.get()
+        if n < _U32_MAX:
+            self._h_errors.set(n + 1)
+        self._h_last.set(min(max(int(code), 0), 0xFFFF))
+        self._events.emit(Severity.WARNING, "error", text, t_ns)

@@ -1,0 +1,175 @@
+"""Device Node Main (thesis 4.14): entry and the triggered loop on zenoh.
+
+Entry: open the session, wait for the CN, measure the clock offset to it
+(NTP-style over zenoh, :mod:`zplatform.clocksync`), apply it once and lock
+the clock, declare the sync queryable, then announce liveliness: from that
+moment the CN may trigger loops.
+
+Loop: block on the CN's query (the trigger), which applies ``cn_to_dnX`` and
+replies with ``dnX_to_cn`` at once; then sensors -> controllers -> actuators
+with the query's loop number and one local timestamp. A background thread
+re-estimates the offset every ``clock.resync_s`` and reports the drift in
+``dnX_clock_drift_ns`` without stepping the clock (thesis 4.10.1).
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+from typing import Any
+
+from ..clocksync import estimate_offset
+from ..config import Mission
+from ..errors import ClockSyncError, NodeError, TransportError
+from ..sync import DeviceSync
+from ..timebase import NodeClock
+from ..transport import NodeSession, wait_for_nodes
+from .logic import DeviceLogic
+from .runtime import EventPublisher, StopFlag, realtime_setup
+
+__all__ = ["DeviceNode", "run_device_node"]
+
+log = logging.getLogger("zplatform.dn")
+
+
+class DeviceNode:
+    """One DN process. Build, :meth:`start` (blocks for clock sync), :meth:`run`."""
+
+    def __init__(
+        self,
+        mission: Mission,
+        name: str,
+        *,
+        stop: StopFlag | None = None,
+        clock: NodeClock | None = None,
+        lowlatency: bool | None = None,
+    ) -> None:
+        if name not in mission.device_nodes:
+            raise NodeError(f"{name!r} is not a device node of mission {mission.mission!r}")
+        self.mission = mission
+        self.name = name
+        self.stop = stop or StopFlag(install=False)
+        self.clock = clock or NodeClock()
+        self.logic = DeviceLogic(mission, name)
+        self.dv = self.logic.dv
+        self.ns = NodeSession(mission, name, announce=False, lowlatency=lowlatency)
+        self._offset_h = self.dv.handle(f"{name}_clock_offset_ns")
+        self._drift_h = self.dv.handle(f"{name}_clock_drift_ns")
+        self._overruns = self.dv.handle(f"{name}_loop_overruns")
+        self.drift_ns = 0
+        self.loops = 0
+        self.sync: DeviceSync | None = None
+        self._events: EventPublisher | None = None
+        self._resync: threading.Thread | None = None
+
+    def start(self, ready_timeout_s: float = 60.0) -> int:
+        """Wait for the CN, sync the clock, declare the queryable, announce.
+
+        Returns the applied offset (ns). Raises NodeError on failure.
+        """
+        s, keys, m = self.ns.session, self.ns.keys, self.mission
+        try:
+            wait_for_nodes(s, keys, ["cn"], ready_timeout_s, self.stop.event)
+            est = estimate_offset(
+                s,
+                keys,
+                self.clock.now_ns,
+                exchanges=m.clock.exchanges,
+                keep_fraction=m.clock.keep_fraction,
+            )
+        except (TransportError, ClockSyncError) as exc:
+            raise NodeError(f"{self.name} cannot start: {exc}") from exc
+        self.clock.apply_offset(est.offset_ns)
+        self.clock.lock()
+        self._offset_h.set(est.offset_ns)
+        log.info(
+            "%s clock offset %+.3f ms (delay %.0f us, %d of %d exchanges kept)",
+            self.name,
+            est.offset_ns / 1e6,
+            est.delay_ns / 1e3,
+            est.kept,
+            est.exchanges,
+        )
+        self.sync = DeviceSync(s, keys, self.dv, self.name, self.clock.now_ns)
+        self._events = EventPublisher(s, keys.events(self.name), self.logic.events)
+        if m.clock.resync_s > 0:
+            self._resync = threading.Thread(target=self._resync_loop, daemon=True)
+            self._resync.start()
+        self.ns.announce()
+        return est.offset_ns
+
+    def _resync_loop(self) -> None:
+        # Background: measure, never step the clock; the loop publishes it.
+        m = self.mission
+        while not self.stop.event.wait(m.clock.resync_s):
+            try:
+                est = estimate_offset(
+                    self.ns.session,
+                    self.ns.keys,
+                    self.clock.now_ns,
+                    exchanges=50,
+                    keep_fraction=m.clock.keep_fraction,
+                )
+            except Exception as exc:  # the CN may be gone; report and keep trying
+                log.warning("%s clock re-sync failed: %s", self.name, exc)
+                continue
+            self.drift_ns = est.offset_ns
+
+    def run(self, *, max_loops: int | None = None, realtime: bool = True) -> None:
+        """Serve triggers until stopped (or ``max_loops``). Blocks."""
+        assert self.sync is not None and self._events is not None, "start() first"
+        nc = self.mission.nodes[self.name]
+        if realtime:
+            realtime_setup(nc.priority, nc.cpu)
+        period = self.mission.period_ns
+        wait = self.sync.wait
+        step = self.logic.step
+        now = self.clock.now_ns
+        while not self.stop.is_set():
+            loop = wait(0.2)
+            if loop is None:
+                continue
+            t = now()
+            self._drift_h.set(self.drift_ns)
+            step(loop, t)
+            self._events.flush()
+            if now() - t > period:
+                self._overruns.set(self._overruns.get() + 1)
+            self.loops += 1
+            if max_loops is not None and self.loops >= max_loops:
+                break
+
+    def summary(self) -> dict[str, Any]:
+        return {
+            "node": self.name,
+            "loops": self.loops,
+            "clock_offset_ns": int(self._offset_h.get()),
+            "clock_drift_ns": self.drift_ns,
+            "bad_frames": int(self.dv.get(f"{self.name}_bad_frames")),
+            "errors": int(self.dv.get(f"{self.name}_errors")),
+            "stale_queries": self.sync.stale if self.sync else 0,
+        }
+
+    def close(self) -> None:
+        self.stop.set()
+        if self._events is not None:
+            self._events.undeclare()
+        if self.sync is not None:
+            self.sync.close()
+        if self._resync is not None:
+            self._resync.join(timeout=2)
+        self.ns.close()
+
+
+def run_device_node(
+    mission: Mission, name: str, *, realtime: bool = True, ready_timeout_s: float = 60.0
+) -> dict[str, Any]:
+    """Entry function: start, serve until SIGTERM. Blocks; returns the summary."""
+    stop = StopFlag()
+    node = DeviceNode(mission, name, stop=stop)
+    try:
+        node.start(ready_timeout_s)
+        node.run(realtime=realtime)
+        return node.summary()
+    finally:
+        node.close()

@@ -1,0 +1,151 @@
+"""What every node main shares: stop signals, event publishing, RT set-up.
+
+Kept apart from the per-node mains so each main reads as its loop.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import signal
+import sys
+import threading
+from pathlib import Path
+from types import FrameType
+from typing import Any
+
+import zenoh
+
+from ..events import EventLog, encode_event
+from ..scheduler import RealtimeStatus, setup_realtime
+
+__all__ = ["PARENT_ENV", "EventPublisher", "StopFlag", "realtime_setup", "write_summary"]
+
+# Set by `zplatform up` for its children: if that process goes away (even by
+# SIGKILL, which it cannot forward), the node stops by itself.
+PARENT_ENV = "ZPLATFORM_PARENT_PID"
+
+log = logging.getLogger("zplatform.node")
+
+
+class StopFlag:
+    """Set by SIGTERM/SIGINT (or by code); the loop checks it once per loop.
+
+    The handler only sets a flag: whatever the loop is doing finishes, the
+    node then closes its session cleanly and exits 0.
+    """
+
+    def __init__(self, install: bool = True) -> None:
+        self.event = threading.Event()
+        self.signal: int | None = None
+        if install and threading.current_thread() is threading.main_thread():
+            signal.signal(signal.SIGTERM, self._on_signal)
+            signal.signal(signal.SIGINT, self._on_signal)
+        parent = os.environ.get(PARENT_ENV)
+        if install and parent and parent.isdigit():
+            threading.Thread(
+                target=self._watch_parent, args=(int(parent),), name="parent-watch", daemon=True
+            ).start()
+
+    def _watch_parent(self, parent: int) -> None:
+        while not self.event.wait(0.5):
+            if os.getppid() != parent:
+                log.warning("parent process %d is gone; stopping", parent)
+                self.event.set()
+                return
+
+    def _on_signal(self, signum: int, frame: FrameType | None) -> None:
+        self.signal = signum
+        self.event.set()
+
+    def is_set(self) -> bool:
+        return self.event.is_set()
+
+    def set(self) -> None:
+        self.event.set()
+
+
+class EventPublisher:
+    """Publishes a node's events on ``{vehicle}/{node}/events``.
+
+    Call :meth:`flush` once per loop: it costs one int compare when nothing
+    was emitted, and events are rare (state changes, verdicts, failures).
+    Events are also written to the node's log (stderr) for the operator.
+    """
+
+    def __init__(self, session: zenoh.Session, key: str, events: EventLog) -> None:
+        self.events = events
+        self._pub = session.declare_publisher(key)
+        self._seen = 0
+
+    def flush(self) -> None:
+        if self.events.emitted == self._seen:
+            return
+        self._seen = self.events.emitted
+        for e in self.events.drain():
+            self._pub.put(encode_event(e))
+            log.log(_LEVELS.get(e.severity, logging.INFO), "%s %s: %s", e.node, e.id, e.text)
+
+    def undeclare(self) -> None:
+        self.flush()
+        self._pub.undeclare()
+
+
+_LEVELS = {
+    0: logging.DEBUG,
+    1: logging.INFO,
+    2: logging.WARNING,
+    3: logging.ERROR,
+    4: logging.CRITICAL,
+}
+
+
+def realtime_setup(priority: int | None, cpu: int | None) -> RealtimeStatus:
+    """Apply SCHED_FIFO/affinity when configured; falls back with a log line.
+
+    The loop thread alone is not enough on zenoh: replies are received and
+    handed over by zenoh's own threads, so every thread of the process that
+    exists now (the session is open) gets the same policy.
+    """
+    status = setup_realtime(priority=priority, cpu=cpu)
+    for note in status.notes:
+        log.info("realtime: %s", note)
+    if status.fifo and priority is not None:
+        promoted = _promote_threads(priority)
+        log.info("realtime: SCHED_FIFO %d on %d threads", priority, promoted)
+    return status
+
+
+def _promote_threads(priority: int) -> int:
+    n = 0
+    try:
+        tids = [int(t) for t in os.listdir("/proc/self/task")]
+    except OSError:
+        return 0
+    for tid in tids:
+        try:
+            os.sched_setscheduler(tid, os.SCHED_FIFO, os.sched_param(priority))
+            n += 1
+        except OSError:
+            pass
+    return n
+
+
+def write_summary(path: str | None, summary: dict[str, Any]) -> None:
+    """Write a run summary as JSON to ``path`` ('-' = stdout); no-op for None."""
+    if path is None:
+        return
+    text = json.dumps(summary, indent=2, sort_keys=True)
+    if path == "-":
+        sys.stdout.write(text + "\n")
+    else:
+        Path(path).write_text(text + "\n")
+
+
+def setup_logging(verbose: bool = False) -> None:
+    logging.basicConfig(
+        level=logging.DEBUG if verbose else logging.INFO,
+        format="%(asctime)s %(name)s %(levelname)s %(message)s",
+        stream=sys.stderr,
+    )

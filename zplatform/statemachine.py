@@ -1,0 +1,574 @@
+"""The mission state machine (thesis 000 ch. 4.5), sans-IO.
+
+A state has a timed *action sequence* (writes of Data Vector elements at
+given seconds into the state) and an ordered list of *transitions*. A
+transition fires on a condition ``element op value`` (``cn_cmd == LAUNCH``,
+``tank_pressure > 30.5``, ``cn_fault != NONE``) or after ``after_s`` seconds
+in the state. The current state is the ``cn_state`` element; the time in it
+is ``cn_time_in_state_ns``.
+
+Per loop, :meth:`StateMachine.step` does, with the loop's one timestamp:
+
+1. on the very first step, enter the initial state and run its actions due
+   at 0 s;
+2. evaluate the current state's transitions in config order: the first that
+   holds fires, at most one per step; the new state is entered at this
+   step's time (time in state 0);
+3. run the actions of the (possibly new) state that have come due and not
+   yet run, in ``at_s`` order (config order for equal times): an action at
+   0 s runs in the loop its state is entered, every action runs at most once
+   per visit of its state;
+4. write ``cn_state`` and ``cn_time_in_state_ns``.
+
+So a state's transitions are first evaluated in the loop after it was
+entered (the initial state's also in the first loop), and its 0 s actions
+always run, however soon it is left.
+
+*Hold* (the HOLD command) freezes the time in state: timed actions and
+``after_s`` transitions wait, while condition transitions still fire (an
+ABORT must work during a hold). RESUME continues the clock where it stopped.
+Any transition ends a hold: the new state starts with a running clock.
+
+Everything is resolved at construction: element handles, comparison
+functions, values converted to the element's stored form, event texts. A
+step only reads handles, compares and writes; it never raises for a valid
+config and builds no containers or strings (it emits one event, and so
+allocates one, only when the state changes).
+
+:func:`check_config` checks the ``state_machine`` section against the whole
+Data Vector (thesis 4.5.1 and the rules below), raising
+:class:`~zplatform.errors.ConfigError` with the YAML path of the first bad
+field; unreachable states are logged as warnings on the
+``zplatform.statemachine`` logger, not errors.
+"""
+
+from __future__ import annotations
+
+import difflib
+import logging
+import math
+import operator
+import re
+import struct
+from collections.abc import Callable
+from typing import TYPE_CHECKING, Any
+
+from .errors import ConfigError
+from .events import EventLog, Severity
+from .types import ScalarType
+
+if TYPE_CHECKING:
+    from .config import ElementConfig, Mission, TransitionConfig
+    from .datavector import DataVector
+
+__all__ = [
+    "StateMachine",
+    "check_config",
+    "check_structure",
+    "logic_writable",
+    "platform_element_names",
+    "unreachable_states",
+]
+
+log = logging.getLogger("zplatform.statemachine")
+
+_STATE_NAME_RE = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*$")
+_FLOAT_WORDS = ("inf", "+inf", "-inf", "infinity", "+infinity", "-infinity", "nan")
+_F32 = struct.Struct("<f")
+
+OPS: dict[str, Callable[[Any, Any], bool]] = {
+    "==": operator.eq,
+    "!=": operator.ne,
+    "<": operator.lt,
+    "<=": operator.le,
+    ">": operator.gt,
+    ">=": operator.ge,
+}
+_EQUALITY_OPS = ("==", "!=")
+
+# Platform elements that CN logic may write: a controller's mode is how the
+# state machine enables and safes controllers (thesis 4.6.1), and cn_fault
+# is cleared by writing NONE to it (thesis 4.11.1).
+_LOGIC_WRITABLE_PLATFORM = ("cn_fault",)
+
+
+# ---------------------------------------------------------------------------
+# element tables shared with the command handler
+
+
+def platform_element_names(mission: Mission) -> frozenset[str]:
+    """Names of every element the platform adds (DESIGN.md §5), modes included."""
+    from .config import _platform_elements
+
+    return frozenset(e.name for es in _platform_elements(mission).values() for e in es)
+
+
+def _received_regions(mission: Mission) -> frozenset[str]:
+    """Regions the CN receives from peers: overwritten on every sync."""
+    return frozenset(r for r in mission.region_names() if r.endswith("_to_cn"))
+
+
+def logic_writable(mission: Mission) -> frozenset[str]:
+    """Elements CN logic may write (state-machine actions, WRITE commands).
+
+    Every element of the CN's own regions (``cn``, ``cn_to_dnX``) except the
+    platform's bookkeeping (``cn_state``, ``cn_loop``, counters, ...);
+    controller modes (``<name>_mode``) and ``cn_fault`` are writable.
+    Elements of received regions (``dnX_to_cn``, ``gn_to_cn``) are not: the
+    next sync would overwrite the write.
+    """
+    platform = platform_element_names(mission)
+    modes = {f"{c.name}_mode" for c in mission.controllers}
+    received = _received_regions(mission)
+    out: set[str] = set()
+    for region, elements in mission.regions.items():
+        if region in received:
+            continue
+        for e in elements:
+            if e.name not in platform or e.name in modes or e.name in _LOGIC_WRITABLE_PLATFORM:
+                out.add(e.name)
+    return frozenset(out)
+
+
+def _why_not_writable(mission: Mission, region: str, name: str) -> str:
+    if region in _received_regions(mission):
+        peer = region[: -len("_to_cn")]
+        return (
+            f"element {name!r} is received from {peer} every loop (region {region}); "
+            "a write on the CN would be overwritten"
+        )
+    return f"element {name!r} is maintained by the platform and cannot be written"
+
+
+def _element_table(mission: Mission) -> dict[str, tuple[str, ElementConfig]]:
+    return {e.name: (r, e) for r, es in mission.regions.items() for e in es}
+
+
+def _no_element(name: str, table: dict[str, tuple[str, ElementConfig]]) -> str:
+    close = difflib.get_close_matches(name, list(table), n=3)
+    hint = f"; did you mean {', '.join(close)}?" if close else ""
+    return f"no element named {name!r} in the Data Vector{hint}"
+
+
+def config_value(
+    e: ElementConfig, scalar: ScalarType, v: object, *, allow_nan: bool = True
+) -> int | float | bool:
+    """Convert a YAML value for element ``e`` to what the element stores.
+
+    Enums take a name or an index, bools ``true``/``false`` (or 0/1), ints
+    an integral number in range, floats a number or ``inf``/``-inf``/``nan``
+    spelled out (``nan`` only when ``allow_nan``). A value for an ``f32``
+    element is rounded to ``f32``, so it compares equal to what is stored.
+    Raises ValueError with a message saying what was expected.
+    """
+    if e.enum is not None:
+        if isinstance(v, str):
+            if v in e.enum:
+                return e.enum.index(v)
+            raise ValueError(f"{v!r} is not one of {e.name}'s names {e.enum}")
+        if isinstance(v, int) and not isinstance(v, bool) and 0 <= v < len(e.enum):
+            return v
+        raise ValueError(f"expected one of {e.name}'s names {e.enum}, got {v!r}")
+    if scalar.kind == "bool":
+        if isinstance(v, bool):
+            return v
+        if isinstance(v, int) and v in (0, 1):
+            return bool(v)
+        raise ValueError(f"expected true or false for bool element {e.name!r}, got {v!r}")
+    if isinstance(v, str):
+        if scalar.kind == "float" and v.strip().lower() in _FLOAT_WORDS:
+            v = float(v)
+        else:
+            raise ValueError(f"expected a number for {scalar.name} element {e.name!r}, got {v!r}")
+    if isinstance(v, float) and math.isnan(v) and not allow_nan:
+        raise ValueError("nan compares unequal to everything; the condition could never hold")
+    if not scalar.fits(v):
+        rng = f" (range {scalar.lo}..{scalar.hi})" if scalar.kind == "int" else ""
+        raise ValueError(f"{v!r} does not fit {scalar.name} element {e.name!r}{rng}")
+    assert isinstance(v, int | float)
+    if scalar.kind == "int":
+        return int(v)
+    f = float(v)
+    if scalar.size == 4:
+        f = _F32.unpack(_F32.pack(f))[0]
+    return f
+
+
+# ---------------------------------------------------------------------------
+# configuration checks
+
+
+def check_structure(mission: Mission) -> None:
+    """The checks that need no Data Vector: states, names, targets, shapes.
+
+    Raises :class:`ConfigError` with the YAML path. Safe to call before the
+    platform elements are added (``cn_state`` is built from these states).
+    """
+    sm = mission.state_machine
+    if sm is None:
+        return
+    if not sm.states:
+        raise ConfigError("a state machine needs at least one state", "$.state_machine.states")
+    for name in sm.states:
+        if not _STATE_NAME_RE.match(name):
+            raise ConfigError(
+                f"state name {name!r} is not an identifier (letters, digits, _)",
+                f"$.state_machine.states.{name}",
+            )
+    states = list(sm.states)
+    if sm.initial not in sm.states:
+        raise ConfigError(
+            f"initial state {sm.initial!r} is not a state; states: {states}",
+            "$.state_machine.initial",
+        )
+    for name, st in sm.states.items():
+        for i, t in enumerate(st.transitions):
+            w = f"$.state_machine.states.{name}.transitions[{i}]"
+            _check_transition_shape(t, w)
+            if t.to not in sm.states:
+                raise ConfigError(
+                    f"target state {t.to!r} is not a state; states: {states}", f"{w}.to"
+                )
+
+
+def _check_transition_shape(t: TransitionConfig, w: str) -> None:
+    parts = {"element": t.element, "op": t.op, "value": t.value}
+    given = [k for k, v in parts.items() if v is not None]
+    if t.after_s is not None:
+        if given:
+            raise ConfigError(
+                "a transition has either a condition (element, op, value) or after_s, "
+                f"not both; got after_s and {', '.join(given)}",
+                w,
+            )
+        return
+    if not given:
+        raise ConfigError("a transition needs a condition (element, op, value) or after_s", w)
+    for k, v in parts.items():
+        if v is None:
+            raise ConfigError(
+                f"a transition condition needs element, op and value; `{k}` is missing",
+                f"{w}.{k}",
+            )
+
+
+def check_config(mission: Mission, *, warn: bool = True) -> None:
+    """Check the ``state_machine`` section against the mission's Data Vector.
+
+    Rules (each failure raises :class:`ConfigError` naming the YAML path):
+
+    * at least one state; state names are identifiers; ``initial`` is a
+      state (thesis 4.5.1: no duplicate states is enforced by the mapping);
+    * a transition has exactly one of a condition (``element``, ``op``,
+      ``value``, all three) or ``after_s``; its target ``to`` is a state;
+    * an action's or condition's element exists in the Data Vector;
+    * a condition's element is a scalar; bools and enums compare only with
+      ``==`` and ``!=``; the value fits the element's type (enum names or
+      indices, ``true``/``false``, an int in range, a number; never ``nan``);
+    * an action writes an element CN logic may write (:func:`logic_writable`)
+      with a value that fits its type (an array element gets every item set).
+
+    With ``warn``, states no transition path reaches from the initial state
+    are logged as warnings (they are not errors: a state may be kept for a
+    later revision of the mission).
+    """
+    sm = mission.state_machine
+    if sm is None:
+        return
+    check_structure(mission)
+    from .config import element_spec
+
+    table = _element_table(mission)
+    writable = logic_writable(mission)
+    for name, st in sm.states.items():
+        base = f"$.state_machine.states.{name}"
+        for i, a in enumerate(st.actions):
+            w = f"{base}.actions[{i}]"
+            if a.element not in table:
+                raise ConfigError(_no_element(a.element, table), f"{w}.element")
+            region, e = table[a.element]
+            if a.element not in writable:
+                raise ConfigError(
+                    _why_not_writable(mission, region, a.element) + " by an action",
+                    f"{w}.element",
+                )
+            scalar, _ = element_spec(e)
+            try:
+                config_value(e, scalar, a.value)
+            except ValueError as exc:
+                raise ConfigError(str(exc), f"{w}.value") from None
+        for i, t in enumerate(st.transitions):
+            if t.after_s is not None:
+                continue
+            w = f"{base}.transitions[{i}]"
+            assert t.element is not None and t.op is not None
+            if t.element not in table:
+                raise ConfigError(_no_element(t.element, table), f"{w}.element")
+            _, e = table[t.element]
+            scalar, count = element_spec(e)
+            if count:
+                raise ConfigError(
+                    f"element {t.element!r} is an array ({e.type}); a condition compares a scalar",
+                    f"{w}.element",
+                )
+            if t.op not in _EQUALITY_OPS and (e.enum is not None or scalar.kind == "bool"):
+                kind = "an enum" if e.enum is not None else "a bool"
+                raise ConfigError(
+                    f"`{t.op}` on {kind} element {t.element!r}; bools and enums compare "
+                    "only with == and !=",
+                    f"{w}.op",
+                )
+            try:
+                config_value(e, scalar, t.value, allow_nan=False)
+            except ValueError as exc:
+                raise ConfigError(str(exc), f"{w}.value") from None
+    if warn:
+        for s in unreachable_states(mission):
+            log.warning(
+                "state %r cannot be reached from the initial state %r - at `$.state_machine."
+                "states.%s`",
+                s,
+                sm.initial,
+                s,
+            )
+
+
+def unreachable_states(mission: Mission) -> list[str]:
+    """States no chain of transitions reaches from the initial one, in config order."""
+    sm = mission.state_machine
+    if sm is None or sm.initial not in sm.states:
+        return []
+    seen = {sm.initial}
+    todo = [sm.initial]
+    while todo:
+        st = sm.states.get(todo.pop())
+        if st is None:
+            continue
+        for t in st.transitions:
+            if t.to not in seen:
+                seen.add(t.to)
+                todo.append(t.to)
+    return [s for s in sm.states if s not in seen]
+
+
+# ---------------------------------------------------------------------------
+# run time
+
+
+class _Transition:
+    """One resolved transition. ``after_ns < 0`` means a condition one."""
+
+    __slots__ = ("after_ns", "get", "op", "target", "text", "value")
+
+    def __init__(
+        self,
+        target: int,
+        text: str,
+        after_ns: int = -1,
+        get: Callable[[], Any] | None = None,
+        op: Callable[[Any, Any], bool] = operator.eq,
+        value: Any = None,
+    ) -> None:
+        self.target = target
+        self.text = text
+        self.after_ns = after_ns
+        self.get = get
+        self.op = op
+        self.value = value
+
+
+class _Action:
+    __slots__ = ("at_ns", "set", "value")
+
+    def __init__(self, at_ns: int, set: Callable[[Any], None], value: Any) -> None:
+        self.at_ns = at_ns
+        self.set = set
+        self.value = value
+
+
+def _fmt_s(seconds: float) -> str:
+    return f"{seconds:g} s"
+
+
+class StateMachine:
+    """The mission state machine on the CN's Data Vector (see module doc).
+
+    ``dv`` must be the CN's Data Vector (it holds ``cn_state`` and every
+    element the transitions and actions name). Construction runs
+    :func:`check_config` (raises :class:`ConfigError` for an invalid
+    mission) and resolves everything the step needs. A mission without a
+    ``state_machine`` section has the single state ``IDLE`` and does nothing
+    but keep the time in it.
+
+    Not thread-safe: the CN loop thread calls :meth:`step`, :meth:`hold` and
+    :meth:`resume` (the command handler calls the last two).
+    """
+
+    __slots__ = (
+        "_actions",
+        "_entered_ns",
+        "_events",
+        "_h_state",
+        "_h_tis",
+        "_held_ns",
+        "_hold_start",
+        "_initial",
+        "_next_action",
+        "_started",
+        "_state",
+        "_tis",
+        "_transitions",
+        "states",
+    )
+
+    def __init__(self, mission: Mission, dv: DataVector, events: EventLog) -> None:
+        check_config(mission, warn=False)
+        from .config import element_spec
+
+        self._events = events
+        self._h_state = dv.handle("cn_state")
+        self._h_tis = dv.handle("cn_time_in_state_ns")
+        names = self._h_state.spec.enum
+        assert names is not None, "cn_state is an enum"
+        self.states: tuple[str, ...] = names
+        index = {n: i for i, n in enumerate(names)}
+        table = _element_table(mission)
+        sm = mission.state_machine
+        transitions: list[tuple[_Transition, ...]] = []
+        actions: list[tuple[_Action, ...]] = []
+        for name in names:
+            st = sm.states[name] if sm is not None else None
+            trs: list[_Transition] = []
+            acts: list[_Action] = []
+            if st is not None:
+                for t in st.transitions:
+                    target = index[t.to]
+                    if t.after_s is not None:
+                        text = f"state {name} -> {t.to} (after {_fmt_s(t.after_s)})"
+                        trs.append(_Transition(target, text, after_ns=round(t.after_s * 1e9)))
+                        continue
+                    assert t.element is not None and t.op is not None
+                    e = table[t.element][1]
+                    value = config_value(e, element_spec(e)[0], t.value, allow_nan=False)
+                    shown = t.value if isinstance(t.value, str) else repr(t.value).lower()
+                    text = f"state {name} -> {t.to} ({t.element} {t.op} {shown})"
+                    get = dv.handle(t.element).get
+                    trs.append(_Transition(target, text, get=get, op=OPS[t.op], value=value))
+                for a in sorted(st.actions, key=lambda a: a.at_s):  # stable: config order ties
+                    h = dv.handle(a.element)
+                    e = table[a.element][1]
+                    v = config_value(e, h.spec.scalar, a.value)
+                    acts.append(_Action(round(a.at_s * 1e9), h.set, v))
+            transitions.append(tuple(trs))
+            actions.append(tuple(acts))
+        self._transitions = tuple(transitions)
+        self._actions = tuple(actions)
+        initial = sm.initial if sm is not None else names[0]
+        self._initial = index[initial]
+        self._state = self._initial
+        self._started = False
+        self._entered_ns = 0
+        self._held_ns = 0
+        self._hold_start: int | None = None
+        self._next_action = 0
+        self._tis = 0
+
+    # -- queries -----------------------------------------------------------
+    @property
+    def state(self) -> str:
+        """The current state's name (the initial state before the first step)."""
+        return self.states[self._state]
+
+    @property
+    def state_index(self) -> int:
+        """The current state's index (the value of ``cn_state``)."""
+        return self._state
+
+    @property
+    def time_in_state_ns(self) -> int:
+        """Time in the current state at the last step, holds excluded."""
+        return self._tis
+
+    @property
+    def holding(self) -> bool:
+        """Whether a HOLD is in effect."""
+        return self._hold_start is not None
+
+    # -- the loop ----------------------------------------------------------
+    def _time_in_state(self, t_ns: int) -> int:
+        held = self._held_ns
+        if self._hold_start is not None:
+            held += t_ns - self._hold_start
+        return t_ns - self._entered_ns - held
+
+    def _run_due(self, tis: int) -> None:
+        acts = self._actions[self._state]
+        i = self._next_action
+        n = len(acts)
+        while i < n and acts[i].at_ns <= tis:
+            a = acts[i]
+            a.set(a.value)
+            i += 1
+        self._next_action = i
+
+    def step(self, t_ns: int) -> None:
+        """Advance one loop at time ``t_ns`` (see the module doc for the order).
+
+        Never raises for a mission that passed :func:`check_config`.
+        """
+        if not self._started:
+            self._started = True
+            self._entered_ns = t_ns
+            self._held_ns = 0
+            if self._hold_start is not None:  # held before the first step
+                self._hold_start = t_ns
+            self._run_due(0)
+        tis = self._time_in_state(t_ns)
+        for tr in self._transitions[self._state]:
+            if tr.after_ns >= 0:
+                if tis < tr.after_ns:
+                    continue
+            elif not tr.op(tr.get(), tr.value):  # type: ignore[misc]
+                continue
+            self._state = tr.target
+            self._entered_ns = t_ns
+            self._held_ns = 0
+            self._next_action = 0
+            tis = 0
+            self._events.emit(Severity.INFO, "state_change", tr.text, t_ns)
+            if self._hold_start is not None:
+                self._hold_start = None
+                self._events.emit(Severity.INFO, "hold_ended", "hold ended by a transition", t_ns)
+            break
+        self._run_due(tis)
+        self._tis = tis
+        self._h_state.set(self._state)
+        self._h_tis.set(tis)
+
+    def hold(self, t_ns: int) -> bool:
+        """Freeze the time in state from ``t_ns``; False if already holding.
+
+        Timed actions and ``after_s`` transitions wait; condition transitions
+        still fire (and end the hold).
+        """
+        if self._hold_start is not None:
+            return False
+        self._hold_start = t_ns
+        tis = self._time_in_state(t_ns) if self._started else 0
+        self._events.emit(
+            Severity.INFO, "hold", f"hold in state {self.state} at {tis / 1e9:.3f} s", t_ns
+        )
+        return True
+
+    def resume(self, t_ns: int) -> bool:
+        """End a hold at ``t_ns``: the time in state continues where it
+        stopped. False if no hold was in effect."""
+        if self._hold_start is None:
+            return False
+        self._held_ns += t_ns - self._hold_start
+        self._hold_start = None
+        tis = self._time_in_state(t_ns) if self._started else 0
+        self._events.emit(
+            Severity.INFO, "resume", f"resume in state {self.state} at {tis / 1e9:.3f} s", t_ns
+        )
+        return True

@@ -1,0 +1,257 @@
+"""Zenoh transport: session config from the mission, the key space, readiness.
+
+Every node is a zenoh *peer*. Its ``zenoh.Config`` is built here from the
+mission alone (listen and connect endpoints, scouting, lease, low latency,
+shared memory), so the same file runs on one host with loopback endpoints or
+across hosts with real addresses; nothing else knows which.
+
+Tools that are not mission nodes (``tap``, ``cmd``, ``log``) open a peer that
+listens nowhere and connects to *every* node's listen endpoints. Zenoh peers
+do not forward for each other (DESIGN.md §8), so this full fan-out is what
+lets a tap see keys put by any node.
+
+Readiness is explicit: each node declares a liveliness token on
+``{vehicle}/{node}/alive`` and :func:`wait_for_nodes` blocks on a liveliness
+subscriber (with history) until the wanted nodes are alive. Nobody sleeps to
+wait for a peer.
+"""
+
+from __future__ import annotations
+
+import json
+import queue
+import socket
+import threading
+import time
+from collections.abc import Iterable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import yaml
+import zenoh
+
+from .config import Mission
+from .errors import TransportError
+
+__all__ = [
+    "KeySpace",
+    "NodeSession",
+    "free_port",
+    "open_session",
+    "rewrite_endpoints",
+    "wait_for_nodes",
+    "zenoh_config",
+]
+
+
+@dataclass(frozen=True, slots=True)
+class KeySpace:
+    """The keys of DESIGN.md §3 for one vehicle prefix."""
+
+    vehicle: str
+
+    def dn_to_cn(self, dn: str) -> str:
+        return f"{self.vehicle}/{dn}/to_cn"
+
+    def cn_to_dn(self, dn: str) -> str:
+        return f"{self.vehicle}/cn/to_{dn}"
+
+    @property
+    def telemetry(self) -> str:
+        return f"{self.vehicle}/cn/telemetry"
+
+    @property
+    def gn_to_cn(self) -> str:
+        return f"{self.vehicle}/gn/to_cn"
+
+    def events(self, node: str) -> str:
+        return f"{self.vehicle}/{node}/events"
+
+    @property
+    def all_events(self) -> str:
+        return f"{self.vehicle}/*/events"
+
+    @property
+    def clock(self) -> str:
+        return f"{self.vehicle}/cn/clock"
+
+    def alive(self, node: str) -> str:
+        return f"{self.vehicle}/{node}/alive"
+
+    @property
+    def all_alive(self) -> str:
+        return f"{self.vehicle}/*/alive"
+
+    @property
+    def everything(self) -> str:
+        return f"{self.vehicle}/**"
+
+
+def _insert(cfg: zenoh.Config, key: str, value: Any) -> None:
+    try:
+        cfg.insert_json5(key, json.dumps(value))
+    except Exception as exc:  # zenoh raises ZError; keep the key in the message
+        raise TransportError(f"zenoh config {key}={value!r} rejected: {exc}") from exc
+
+
+def zenoh_config(
+    mission: Mission,
+    node: str | None,
+    *,
+    lowlatency: bool | None = None,
+    shared_memory: bool | None = None,
+) -> zenoh.Config:
+    """A peer config for ``node`` (``None``: a tool connecting to every node).
+
+    ``lowlatency``/``shared_memory`` override the mission's transport section
+    (benchmark variants). Raises TransportError if zenoh rejects a setting.
+    """
+    t = mission.transport
+    cfg = zenoh.Config()
+    _insert(cfg, "mode", "peer")
+    if node is None:
+        listen: list[str] = []
+        connect = [ep for n in mission.nodes.values() for ep in n.listen]
+    else:
+        if node not in mission.nodes:
+            raise TransportError(f"no node {node!r} in mission {mission.mission!r}")
+        listen = list(mission.nodes[node].listen)
+        connect = list(mission.nodes[node].connect)
+    _insert(cfg, "listen/endpoints", listen)
+    _insert(cfg, "connect/endpoints", connect)
+    # Keep retrying connects: peers start in any order.
+    _insert(cfg, "connect/timeout_ms", -1)
+    _insert(cfg, "connect/exit_on_failure", False)
+    _insert(cfg, "scouting/multicast/enabled", t.multicast_scouting)
+    _insert(cfg, "scouting/gossip/enabled", t.gossip_scouting)
+    _insert(cfg, "transport/link/tx/lease", t.lease_ms)
+    ll = t.lowlatency if lowlatency is None else lowlatency
+    if ll:
+        # lowlatency needs QoS off (zenoh refuses the pair otherwise).
+        _insert(cfg, "transport/unicast/lowlatency", True)
+        _insert(cfg, "transport/unicast/qos/enabled", False)
+    shm = t.shared_memory if shared_memory is None else shared_memory
+    _insert(cfg, "transport/shared_memory/enabled", shm)
+    return cfg
+
+
+def open_session(cfg: zenoh.Config) -> zenoh.Session:
+    """Open a zenoh session; raises TransportError (e.g. a port in use)."""
+    try:
+        return zenoh.open(cfg)
+    except Exception as exc:
+        raise TransportError(f"cannot open zenoh session: {exc}") from exc
+
+
+class NodeSession:
+    """A node's zenoh session plus its liveliness token. Context manager.
+
+    ``close()`` undeclares the token first so peers see the node leave at
+    once, then closes the session; it is idempotent.
+    """
+
+    def __init__(
+        self, mission: Mission, node: str | None, *, announce: bool = True, **overrides: Any
+    ) -> None:
+        self.mission = mission
+        self.node = node
+        self.keys = KeySpace(mission.vehicle)
+        self.session = open_session(zenoh_config(mission, node, **overrides))
+        self._token: zenoh.LivelinessToken | None = None
+        self._closed = False
+        if announce:
+            self.announce()
+
+    def announce(self) -> None:
+        """Declare this node's liveliness token (once it is ready to serve)."""
+        if self.node is not None and self._token is None:
+            self._token = self.session.liveliness().declare_token(self.keys.alive(self.node))
+
+    def close(self) -> None:
+        if self._closed:
+            return
+        self._closed = True
+        if self._token is not None:
+            try:
+                self._token.undeclare()
+            except Exception:  # already gone with the session: nothing to do
+                pass
+        self.session.close()
+
+    def __enter__(self) -> NodeSession:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+def wait_for_nodes(
+    session: zenoh.Session,
+    keys: KeySpace,
+    nodes: Iterable[str],
+    timeout_s: float,
+    stop: threading.Event | None = None,
+) -> set[str]:
+    """Block until every node in ``nodes`` has a liveliness token.
+
+    Returns the set of alive nodes. Raises TransportError naming the missing
+    nodes when ``timeout_s`` passes (or ``stop`` is set) first.
+    """
+    want = set(nodes)
+    alive: set[str] = set()
+    q: queue.SimpleQueue[tuple[str, bool]] = queue.SimpleQueue()
+
+    def on_sample(s: zenoh.Sample) -> None:  # hand off only
+        q.put((str(s.key_expr), s.kind == zenoh.SampleKind.PUT))
+
+    sub = session.liveliness().declare_subscriber(
+        keys.all_alive, zenoh.handlers.Callback(on_sample, indirect=False), history=True
+    )
+    try:
+        deadline = time.monotonic() + timeout_s
+        while not want <= alive:
+            left = deadline - time.monotonic()
+            if left <= 0 or (stop is not None and stop.is_set()):
+                raise TransportError(
+                    f"nodes not alive after {timeout_s:g} s: {sorted(want - alive)}"
+                )
+            try:
+                key, up = q.get(timeout=min(left, 0.2))
+            except queue.Empty:
+                continue
+            name = key.split("/")[-2]
+            if up:
+                alive.add(name)
+            else:
+                alive.discard(name)
+        return alive
+    finally:
+        sub.undeclare()
+
+
+def free_port() -> int:
+    """A TCP port free on 127.0.0.1 right now (the OS picks it)."""
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def rewrite_endpoints(src: str | Path, dst: str | Path, host: str = "127.0.0.1") -> dict[str, int]:
+    """Copy mission ``src`` to ``dst`` with every node on a fresh free port.
+
+    Each node listens on ``tcp/{host}:{port}``; each non-CN node connects to
+    the CN. Returns ``{node: port}``. For running a shipped mission beside
+    another one (tests, benchmarks) without port clashes.
+    """
+    raw = yaml.safe_load(Path(src).read_text())
+    nodes = raw.get("nodes") or {}
+    ports = {name: free_port() for name in nodes}
+    cn_ep = f"tcp/{host}:{ports['cn']}" if "cn" in ports else None
+    for name, node in nodes.items():
+        node = node or {}
+        node["listen"] = [f"tcp/{host}:{ports[name]}"]
+        node["connect"] = [] if name == "cn" or cn_ep is None else [cn_ep]
+        nodes[name] = node
+    Path(dst).write_text(yaml.safe_dump(raw, sort_keys=False))
+    return ports
