@@ -122,17 +122,18 @@ def cmd_log(args: argparse.Namespace) -> int:
 
 
 def cmd_cmd(args: argparse.Namespace) -> int:
-    from .node.ground import CommandSender
+    from .node.ground import CommandSender, validate_command
 
     mission = load_mission(args.mission)
     element = args.args[0] if len(args.args) > 0 else None
     value = args.args[1] if len(args.args) > 1 else None
     if len(args.args) > 2:
         raise CommandError(f"too many arguments: {args.args}")
+    # Refused before anything is sent (before any session is opened):
+    # unknown command, unknown element, value that does not fit.
+    validate_command(mission, args.command, element, value)
     sender = CommandSender(mission, timeout_s=args.timeout)
     try:
-        # Refused before anything is sent: unknown command, element, value.
-        sender.validate(args.command, element, value)
         if args.arm:
             results = sender.send_armed(args.command)
         else:

@@ -251,9 +251,7 @@ def fill_request(
     """
     name = command.upper()
     if name not in CMD_NAMES or name == "NONE":
-        raise CommandError(
-            f"unknown command {command!r}; commands: {', '.join(CMD_NAMES[1:])}"
-        )
+        raise CommandError(f"unknown command {command!r}; commands: {', '.join(CMD_NAMES[1:])}")
     if not 1 <= seq <= 0xFFFF_FFFF:
         raise CommandError(f"command number {seq} is outside 1..4294967295")
     if not 0 <= element_index <= 0xFFFF:

@@ -86,7 +86,6 @@ class NoConfig(msgspec.Struct, forbid_unknown_fields=True):
 
 
 S = TypeVar("S", bound=msgspec.Struct)
-C = TypeVar("C")
 
 
 def decode_component_config(cfg_type: type[S], raw: dict[str, Any], where: str) -> S:
@@ -104,7 +103,7 @@ def decode_component_config(cfg_type: type[S], raw: dict[str, Any], where: str) 
         raise ConfigError(msg, path) from exc
 
 
-def load_component_class(spec: str, base: type[C], where: str) -> type[C]:
+def load_component_class(spec: str, base: type[Any], where: str) -> type[Any]:
     """Import ``"package.module:ClassName"`` and check it subclasses ``base``.
 
     Raises ConfigError (path ``where``) when the module or class cannot be
@@ -128,9 +127,12 @@ def load_component_class(spec: str, base: type[C], where: str) -> type[C]:
     if obj is None:
         raise ConfigError(f"module {mod_name!r} has no attribute {cls_name!r}", where)
     if not isinstance(obj, type) or not issubclass(obj, base):
-        raise ConfigError(f"{spec!r} is not a {base.__module__}.{base.__qualname__} subclass", where)
-    if getattr(obj, "__abstractmethods__", None):
-        missing = ", ".join(sorted(obj.__abstractmethods__))
+        raise ConfigError(
+            f"{spec!r} is not a {base.__module__}.{base.__qualname__} subclass", where
+        )
+    abstract = getattr(obj, "__abstractmethods__", None)
+    if abstract:
+        missing = ", ".join(sorted(abstract))
         raise ConfigError(f"{spec!r} is abstract (does not implement {missing})", where)
     return obj
 
@@ -263,7 +265,7 @@ class Controller(Component):
     def run_safed(self, t_ns: int) -> None:
         """One loop in the safe configuration: write every output's safe value."""
 
-    def run_manual(self, t_ns: int) -> None:  # noqa: B027 - default is deliberately empty
+    def run_manual(self, t_ns: int) -> None:
         """One loop with control logic off (thesis 6.2): outputs are left alone."""
 
 
@@ -319,12 +321,15 @@ class ControllerSet:
         # cn_last_error is the CN's; a DN's errors are seen by the CN as dnX_errors.
         self._last_error = dv.handle("cn_last_error") if node == "cn" else None
         self._slots: dict[str, _Slot] = {}
+        # On the CN the mode element holds the safed write; on a DN the CN's
+        # next frame overwrites it, so the safing is latched locally.
+        self._latch = node != "cn"
         for i in _component_indices(mission, "controllers", node):
             c = mission.controllers[i]
             where = f"$.controllers[{i}]"
             cls = load_component_class(c.cls, Controller, f"{where}.class")
             try:
-                inst = cls(c, dv, where=where)
+                inst: Controller = cls(c, dv, where=where)
             except ZPlatformError:
                 raise
             except Exception as exc:
@@ -405,7 +410,8 @@ class ControllerSet:
                 f"controller {c.name} raised {type(exc).__name__} in {mode_name}: {exc}; safed",
                 t_ns,
             )
-        s.latched = commanded
+        if self._latch:
+            s.latched = commanded
         s.last = SAFED
         s.mode.set(SAFED)
         if self.faults is not None:

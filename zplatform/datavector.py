@@ -320,13 +320,17 @@ class DataVector:
         """Check ``value`` against ``spec`` and convert it to what is stored."""
         st = spec.scalar
         if spec.count:
-            arr = np.asarray(value)
+            # dtype=object keeps Python ints exact: a plain asarray makes
+            # [0, 2**64 - 1] a float64 array, and its check would then fail.
+            arr = value if isinstance(value, np.ndarray) else np.asarray(value, dtype=object)
             if arr.shape not in ((), (spec.count,)):
                 raise DataVectorError(
                     f"{spec.name} holds {spec.count} values, got shape {arr.shape}"
                 )
             items = arr.reshape(-1).tolist()
             for x in items:
+                if isinstance(x, np.generic):  # numpy scalars inside a list
+                    x = x.item()
                 if not st.fits(x):
                     raise DataVectorError(f"{x!r} does not fit {spec.name} ({spec.type_text})")
             return value

@@ -417,7 +417,7 @@ class DeviceSet:
                     f"{where}.class",
                 )
             try:
-                dev = cls(c, dv, board, where=where)
+                dev: Device = cls(c, dv, board, where=where)
             except ZPlatformError:
                 raise
             except Exception as exc:

@@ -43,7 +43,7 @@ class Cluster:
         log = open(self.tmp / f"{name}.log", "ab")  # noqa: SIM115 - closed with the process
         p = subprocess.Popen(
             [sys.executable, "-m", "zplatform", "node", str(self.path), name,
-             "--no-realtime", "--summary", str(self.tmp / f"{name}.json"), *extra],
+             "--summary", str(self.tmp / f"{name}.json"), *extra],
             stdout=log, stderr=subprocess.STDOUT, env=e, cwd=ROOT,
         )
         self.procs[name] = p

@@ -25,7 +25,7 @@ def test_minimal_mission_runs_at_rate_with_zero_misses(tmp_path: Path) -> None:
     r = subprocess.run(
         [sys.executable, "-m", "zplatform", "up", str(CONFIGS / "minimal.yaml"), "--free-ports",
          "--duration", "3", "--log", str(csv_path), "--summary", str(summary_path),
-         "--quiet", "--no-realtime"],
+         "--quiet"],
         cwd=ROOT, capture_output=True, text=True, timeout=120,
     )
     assert r.returncode == 0, r.stderr[-3000:]

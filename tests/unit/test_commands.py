@@ -85,9 +85,7 @@ class Rig:
         self.ch = CommandHandler(m, self.dv, self.events, self.sm)
         self.t = 100 * S
 
-    def send(
-        self, command: str, seq: int, element: str | int = 0, value: float = 0.0
-    ) -> str:
+    def send(self, command: str, seq: int, element: str | int = 0, value: float = 0.0) -> str:
         """One loop with a request; returns the resulting cn_cmd_status name."""
         idx = element_index(self.m, element) if isinstance(element, str) else element
         fill_request(self.dv, command, seq, idx, value)

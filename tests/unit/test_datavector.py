@@ -209,6 +209,23 @@ def test_array_set_checked(dv: DataVector) -> None:
     assert raw(dv, "a_bool") == b"\x01\x00"
 
 
+def test_array_set_exact_64_bit_ints(layout: Layout) -> None:
+    # [0, 2**64 - 1] is a float64 array to a plain np.asarray; the check must
+    # not go through floats.
+    m = decode_mission(
+        "mission: t\nnodes: {cn: {}}\nregions:\n  cn:\n    - {name: a, type: 'u64[3]'}\n"
+    )
+    dv = DataVector(Layout.for_node(m, "cn"))
+    dv.set("a", [0, 2**64 - 1, 2**63 + 1])
+    assert dv.values()["a"] == [0, 2**64 - 1, 2**63 + 1]
+    with pytest.raises(DataVectorError):
+        dv.set("a", [0, 2**64, 1])
+    dv.set("a", [np.uint64(1), np.int8(2), 3])  # numpy scalars in a list
+    assert dv.values()["a"] == [1, 2, 3]
+    dv.set("a", np.array([5, 6, 7], dtype=np.uint64))
+    assert dv.values()["a"] == [5, 6, 7]
+
+
 @pytest.mark.parametrize(
     ("name", "value"),
     [

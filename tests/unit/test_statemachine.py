@@ -195,7 +195,9 @@ def test_rule_transition_element_is_scalar() -> None:
     assert "is an array" in e.reason
 
 
-@pytest.mark.parametrize(("element", "value", "kind"), [("flag", True, "bool"), ("mode", "Q", "enum")])
+@pytest.mark.parametrize(
+    ("element", "value", "kind"), [("flag", True, "bool"), ("mode", "Q", "enum")]
+)
 def test_rule_bool_and_enum_compare_only_for_equality(element: str, value: Any, kind: str) -> None:
     e = config_error(
         f"""

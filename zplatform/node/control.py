@@ -215,11 +215,13 @@ class ControlNode:
         }
 
     def close(self) -> None:
-        """Publish a last telemetry frame and release zenoh entities (idempotent)."""
+        """Publish the final snapshot if the divisor skipped it; release zenoh (idempotent)."""
         if self.ns._closed:
             return
         try:
-            self._tm_pub.put(self._tm.encode(int(self.dv.get("cn_loop")), self.clock.now_ns()))
+            last = int(self.dv.get("cn_loop"))
+            if last % self._divisor:  # the last loop's snapshot was not sent yet
+                self._tm_pub.put(self._tm.encode(last, self.clock.now_ns()))
             self._events.undeclare()
             self.sync.close()
             self.clock_server.close()

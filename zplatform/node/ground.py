@@ -37,6 +37,7 @@ __all__ = [
     "CommandSender",
     "TelemetryReceiver",
     "run_ground_logger",
+    "validate_command",
 ]
 
 log = logging.getLogger("zplatform.gn")
@@ -85,8 +86,7 @@ class TelemetryReceiver:
                 self.gaps += (frame.seq - self.last_seq) // div - 1
             if self.first_seq < 0:
                 self.first_seq = frame.seq
-            if frame.seq != self.last_seq:  # the CN's closing frame repeats the last loop
-                self.received += 1
+            self.received += 1
             self.last_seq = frame.seq
             return rx
 
@@ -154,6 +154,49 @@ def run_ground_logger(
     }
 
 
+def validate_command(
+    mission: Mission, command: str, element: str | None = None, value: str | None = None
+) -> tuple[str, int, float]:
+    """Check an operator command against the mission before anything is sent.
+
+    Returns ``(COMMAND, element index, value)`` as they go into ``gn_to_cn``.
+    Raises CommandError for an unknown command, element, or a value that
+    does not fit the element (enum names and true/false accepted).
+    """
+    cmd = command.upper()
+    if cmd not in CMD_NAMES or cmd == "NONE":
+        raise CommandError(
+            f"unknown command {command!r}; expected one of "
+            f"{', '.join(c.lower() for c in CMD_NAMES[1:])}"
+        )
+    if cmd != "WRITE":
+        if element is not None:
+            raise CommandError(f"{command} takes no arguments")
+        return cmd, 0, 0.0
+    if element is None or value is None:
+        raise CommandError("write needs ELEMENT VALUE")
+    try:
+        spec = Layout.for_node(mission, "cn").element(element)
+    except DataVectorError as exc:
+        raise CommandError(str(exc)) from None
+    if spec.count:
+        raise CommandError(f"{element} is an array; WRITE takes scalars only")
+    v: Any = value
+    if spec.enum is not None and value in spec.enum:
+        v = spec.enum.index(value)
+    elif spec.scalar.kind == "bool":
+        v = {"true": 1, "on": 1, "false": 0, "off": 0}.get(value.lower(), value)
+    try:
+        num = float(v)
+    except ValueError:
+        raise CommandError(f"{value!r} is not a valid value for {element}") from None
+    try:
+        DataVector.coerce(spec, int(num) if num.is_integer() else num)
+    except DataVectorError as exc:
+        raise CommandError(str(exc)) from None
+    return cmd, spec.index, num
+
+
 @dataclass(frozen=True, slots=True)
 class CommandResult:
     command: str
@@ -189,45 +232,7 @@ class CommandSender:
     def validate(
         self, command: str, element: str | None, value: str | None
     ) -> tuple[str, int, float]:
-        """Check a command before sending; returns (COMMAND, element index, value)."""
-        cmd = command.upper()
-        if cmd not in CMD_NAMES or cmd == "NONE":
-            raise CommandError(
-                f"unknown command {command!r}; expected one of "
-                f"{', '.join(c.lower() for c in CMD_NAMES[1:])}"
-            )
-        if cmd != "WRITE":
-            if element is not None:
-                raise CommandError(f"{command} takes no arguments")
-            return cmd, 0, 0.0
-        if element is None or value is None:
-            raise CommandError("write needs ELEMENT VALUE")
-        layout = self.rx.dv.layout
-        try:
-            spec = layout.element(element)
-        except DataVectorError as exc:
-            raise CommandError(str(exc)) from None
-        if spec.count:
-            raise CommandError(f"{element} is an array; WRITE takes scalars only")
-        v: Any = value
-        if spec.enum is not None:
-            if value in spec.enum:
-                v = spec.enum.index(value)
-        elif spec.scalar.kind == "bool":
-            low = value.lower()
-            if low in ("true", "on", "1"):
-                v = 1
-            elif low in ("false", "off", "0"):
-                v = 0
-        try:
-            num = float(v)
-        except ValueError:
-            raise CommandError(f"{value!r} is not a valid value for {element}") from None
-        try:
-            DataVector.coerce(spec, int(num) if num.is_integer() else num)
-        except DataVectorError as exc:
-            raise CommandError(str(exc)) from None
-        return cmd, spec.index, num
+        return validate_command(self.mission, command, element, value)
 
     def wait_telemetry(self) -> None:
         """Block until one telemetry snapshot arrived (the CN is up)."""

@@ -1,0 +1,144 @@
+"""System tests as real processes: `zplatform up` plus `zplatform cmd` from outside.
+
+Each test reads like the thesis' procedure (5.1.3): start the mission, send
+operator commands from another process when telemetry shows the system is
+ready for them, stop it, then verify the ground's CSV log.
+"""
+
+from __future__ import annotations
+
+import json
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from zplatform.config import load_mission
+from zplatform.node.ground import TelemetryReceiver
+from zplatform.telemetry import read_csv
+from zplatform.timebase import NodeClock
+from zplatform.transport import NodeSession, rewrite_endpoints
+
+ROOT = Path(__file__).resolve().parents[2]
+pytestmark = pytest.mark.timeout(240)
+
+LEDS = {s: f"led_{s.lower()}_fb" for s in "ABCDE"}
+SEQ = [f"led_seq{i}_fb" for i in range(5)]
+
+
+class Mission:
+    """`zplatform up` in the background, watched through telemetry."""
+
+    def __init__(self, config: str, tmp: Path) -> None:
+        self.path = tmp / "mission.yaml"
+        rewrite_endpoints(ROOT / "configs" / config, self.path)
+        self.mission = load_mission(self.path)
+        self.csv = tmp / "ground.csv"
+        self.summary = tmp / "summary.json"
+        self.up = subprocess.Popen(
+            [sys.executable, "-m", "zplatform", "up", str(self.path), "--log", str(self.csv),
+             "--summary", str(self.summary), "--quiet"],
+            cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+        )
+        self.ns = NodeSession(self.mission, None)
+        self.rx = TelemetryReceiver(self.ns.session, self.mission, NodeClock().now_ns)
+
+    def await_telemetry(self, pred, what: str, timeout_s: float = 60.0) -> None:  # type: ignore[no-untyped-def]
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            if self.up.poll() is not None:
+                raise AssertionError(f"up exited early: {self.up.stdout.read().decode()[-3000:]}")  # type: ignore[union-attr]
+            if self.rx.next(0.2) is not None and pred(self.rx.dv):
+                return
+        raise AssertionError(f"timed out waiting for {what}; state {self.rx.dv.get_name('cn_state')}")
+
+    def await_state(self, state: str, timeout_s: float = 60.0) -> None:
+        self.await_telemetry(lambda dv: dv.get_name("cn_state") == state, f"state {state}", timeout_s)
+
+    def cmd(self, *args: str) -> subprocess.CompletedProcess[str]:
+        return subprocess.run(
+            [sys.executable, "-m", "zplatform", "cmd", str(self.path), *args],
+            cwd=ROOT, capture_output=True, text=True, timeout=60,
+        )
+
+    def stop(self) -> dict:  # type: ignore[type-arg]
+        self.rx.close()
+        self.ns.close()
+        self.up.send_signal(signal.SIGINT)
+        out, _ = self.up.communicate(timeout=60)
+        assert self.up.returncode == 0, out.decode()[-3000:]
+        return json.loads(self.summary.read_text())  # type: ignore[no-any-return]
+
+    def kill(self) -> None:
+        if self.up.poll() is None:
+            self.up.kill()
+            self.up.wait()
+
+
+def test_led_platform_walks_a_to_e(tmp_path: Path) -> None:
+    """Thesis 5.1.3.1 as processes: A -LAUNCH-> B -3 s-> C -LED4-> D -ABORT-> E, LEDs per state."""
+    m = Mission("led_test.yaml", tmp_path)
+    try:
+        m.await_state("A")
+        m.await_telemetry(lambda dv: bool(dv.get("led_a_fb")), "state LED A lit")
+        r = m.cmd("launch")
+        assert r.returncode == 0 and "ACCEPTED" in r.stdout, r.stdout + r.stderr
+        # A command not whitelisted in B is refused, and says why.
+        m.await_state("B")
+        r = m.cmd("write", "b_timer_done", "true")
+        assert r.returncode == 1 and "REJECTED_NOT_ALLOWED" in r.stdout, r.stdout + r.stderr
+        m.await_state("D", timeout_s=60)
+        m.await_telemetry(lambda dv: dv.get("led_flash_fb"), "flash LED on")
+        m.await_telemetry(lambda dv: not dv.get("led_flash_fb"), "flash LED off")
+        r = m.cmd("abort")
+        assert r.returncode == 0 and "ACCEPTED" in r.stdout, r.stdout + r.stderr
+        m.await_state("E")
+        m.await_telemetry(lambda dv: dv.get("led_e_fb"), "state LED E lit")
+        summary = m.stop()
+    finally:
+        m.kill()
+    rows = read_csv(m.csv)
+    states = [r["cn_state"] for r in rows]
+    order = [s for i, s in enumerate(states) if i == 0 or states[i - 1] != s]
+    assert order == ["A", "B", "C", "D", "E"]
+    for row in rows:
+        lit = {s for s, e in LEDS.items() if row[e] == "1"}
+        # The state LED feedback lags the state by at most the two loops the
+        # command/feedback round trip through dn0 takes.
+        assert len(lit) <= 2
+    by_state: dict[str, list[dict[str, str]]] = {}
+    for row in rows:
+        by_state.setdefault(row["cn_state"], []).append(row)
+    for s, led in LEDS.items():
+        tail = by_state[s][-1]
+        assert tail[led] == "1", f"{led} not lit at the end of state {s}"
+        assert all(tail[o] == "0" for o in LEDS.values() if o != led)
+    # C lights the sequential LEDs one after the other; D flashes; E: only E's LED.
+    assert by_state["C"][-1][SEQ[3]] == "1"
+    assert {r["led_flash_fb"] for r in by_state["D"]} == {"0", "1"}
+    e_tail = by_state["E"][-1]
+    assert all(e_tail[s] == "0" for s in SEQ) and e_tail["led_flash_fb"] == "0"
+    assert summary["final_state"] == "E"
+    assert summary["errors"] == 0
+    assert all(v == 0 for v in summary["missed"].values()), summary["missed"]
+    assert summary["telemetry_gaps"] == 0
+
+
+def test_cmd_refuses_unknown_before_sending(tmp_path: Path) -> None:
+    """Unknown commands and elements are refused before anything is sent (no CN needed)."""
+    path = tmp_path / "m.yaml"
+    rewrite_endpoints(ROOT / "configs" / "led_test.yaml", path)
+    for args, msg in (
+        (["explode"], "unknown command"),
+        (["write", "no_such_element", "1"], "no element named"),
+        (["write", "led_a_cmd", "7"], "does not fit"),
+    ):
+        r = subprocess.run(
+            [sys.executable, "-m", "zplatform", "cmd", str(path), *args, "--timeout", "2"],
+            cwd=ROOT, capture_output=True, text=True, timeout=60,
+        )
+        assert r.returncode == 2, r.stdout + r.stderr
+        assert msg in r.stderr, r.stderr

@@ -1,0 +1,140 @@
+"""The golden frames of codecs/vectors/: decode each bit-exactly, re-encode to the same bytes.
+
+The vectors are produced by hand with ``codecs/generate_vectors.py``; this test
+never regenerates them. A failure here means the wire format changed: either a
+bug, or a deliberate change that needs new vectors and a note in FORMAT.md.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import struct
+from functools import cache
+from pathlib import Path
+from typing import Any
+
+import msgspec
+import pytest
+
+from zplatform import DataVector, ElementSpec, Layout, RegionCodec, decode_frame, load_mission
+from zplatform.datavector import _region_descriptor
+
+VECTORS = Path(__file__).resolve().parents[2] / "codecs" / "vectors"
+NAMES = sorted(p.stem for p in VECTORS.glob("*.json"))
+
+
+@cache
+def layout() -> Layout:
+    return Layout.for_node(load_mission(VECTORS / "mission.yaml"), "cn")
+
+
+def load(name: str) -> tuple[dict[str, Any], bytes]:
+    return json.loads((VECTORS / f"{name}.json").read_text()), (VECTORS / f"{name}.bin").read_bytes()
+
+
+def is_bits(item: Any) -> bool:
+    return isinstance(item, dict) and ("f32_bits" in item or "f64_bits" in item)
+
+
+def item_bytes(spec: ElementSpec, item: Any) -> bytes:
+    """The little-endian bytes of one JSON item of ``spec`` (FORMAT.md §8)."""
+    st = spec.scalar
+    if is_bits(item):
+        key = "f32_bits" if st.size == 4 else "f64_bits"
+        assert st.kind == "float" and set(item) == {key}, (spec.name, item)
+        return int(item[key], 16).to_bytes(st.size, "little")
+    if spec.enum is not None:
+        assert spec.enum[item["value"]] == item["name"], (spec.name, item)
+        item = item["value"]
+    if st.kind == "float":
+        assert isinstance(item, float) and math.isfinite(item), (spec.name, item)
+    elif st.kind == "bool":
+        assert isinstance(item, bool), (spec.name, item)
+    else:
+        assert isinstance(item, int) and not isinstance(item, bool), (spec.name, item)
+    return struct.pack("<" + st.struct, item)
+
+
+def element_bytes(spec: ElementSpec, value: Any) -> bytes:
+    if spec.count:
+        assert isinstance(value, list) and len(value) == spec.count, spec.name
+        return b"".join(item_bytes(spec, x) for x in value)
+    return item_bytes(spec, value)
+
+
+def test_vectors_present() -> None:
+    bins = sorted(p.stem for p in VECTORS.glob("*.bin"))
+    assert bins == NAMES, "every .bin needs its .json and the other way round"
+    assert len(NAMES) >= 16
+    regions = {load(n)[0]["region"] for n in NAMES}
+    assert regions >= {f"cn_to_dn{i}" for i in range(7)}
+    sizes = {load(n)[0]["data_size"] for n in NAMES}
+    assert sizes >= {255, 256, 65535, 65536}
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_header_and_layout(name: str) -> None:
+    meta, frame = load(name)
+    r = layout().region(meta["region"])
+    assert meta["name"] == name
+    assert meta["descriptor"] == _region_descriptor(r.name, r.elements)
+    assert meta["layout_id"] == r.layout_id == int(meta["layout_id_hex"], 16)
+    assert meta["data_size"] == r.size
+    assert meta["frame_size"] == len(frame)
+    assert frame.hex().startswith(meta["frame_head_hex"])
+    assert list(meta["values"]) == [e.name for e in r.elements]
+    # Any MessagePack decoder reads the frame as the four items.
+    lid, seq, t_ns, data = msgspec.msgpack.decode(frame)
+    assert (lid, seq, t_ns, len(data)) == (r.layout_id, meta["seq"], meta["t_ns"], r.size)
+    f = decode_frame(frame)
+    assert (f.layout_id, f.seq, f.t_ns, bytes(f.data)) == (lid, seq, t_ns, data)
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_decode_bit_exact(name: str) -> None:
+    meta, frame = load(name)
+    dv = DataVector(layout())
+    f = RegionCodec(dv, meta["region"]).apply(frame)
+    assert (f.seq, f.t_ns) == (meta["seq"], meta["t_ns"])
+    for element, value in meta["values"].items():
+        spec = dv.layout.element(element)
+        got = bytes(dv.buf[spec.offset : spec.offset + spec.size])
+        assert got == element_bytes(spec, value), element
+        # and as Python values, where JSON holds them as numbers
+        if spec.enum is not None:
+            assert dv.get_name(element) == value["name"]
+        elif not spec.count and not is_bits(value):
+            assert dv.get(element) == value and type(dv.get(element)) is type(value)
+        elif spec.count and not any(is_bits(x) for x in value):
+            assert dv.get(element).tolist() == value
+
+
+def write_json_values(dv: DataVector, values: dict[str, Any]) -> None:
+    """Write JSON values the way a node would: checked sets, raw bytes only for
+    floats given by their bits (a Python float may not carry an f32 NaN's bits)."""
+    for element, value in values.items():
+        spec = dv.layout.element(element)
+        items = value if spec.count else [value]
+        if any(is_bits(x) for x in items):
+            dv.buf[spec.offset : spec.offset + spec.size] = element_bytes(spec, value)
+        elif spec.enum is not None:
+            dv.set(element, value["name"])
+        else:
+            dv.set(element, value)
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_reencode_identical(name: str) -> None:
+    meta, frame = load(name)
+    dv = DataVector(layout())
+    write_json_values(dv, meta["values"])
+    out = RegionCodec(dv, meta["region"]).encode(meta["seq"], meta["t_ns"])
+    assert bytes(out) == frame
+
+
+def test_worked_example_in_format_md() -> None:
+    # FORMAT.md §9 walks through this vector byte by byte.
+    _, frame = load("scalars_typical")
+    text = (VECTORS.parent / "FORMAT.md").read_text()
+    assert frame[:26].hex(" ") in text
