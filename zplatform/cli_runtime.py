@@ -34,6 +34,7 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p.add_argument("--log", help="ground telemetry CSV")
     p.add_argument("--summary", help="write the run summary JSON here ('-' = stdout)")
     p.add_argument("--free-ports", action="store_true", help="remap every endpoint to a free port")
+    p.add_argument("--commands", help="command script the ground node plays (at 1.0 launch)")
     p.add_argument("--no-realtime", action="store_true", help="skip SCHED_FIFO/affinity set-up")
     p.add_argument("--quiet", action="store_true", help="no live status line")
     p.add_argument("--ready-timeout", type=float, default=60.0)
@@ -44,6 +45,7 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p.add_argument("name", help="cn, dnX or gn")
     p.add_argument("--duration", type=float, help="CN: seconds of loops; GN: seconds of logging")
     p.add_argument("--log", help="GN: telemetry CSV")
+    p.add_argument("--commands", help="GN: command script to play (at 1.0 launch)")
     p.add_argument("--summary", help="write this node's summary JSON here")
     p.add_argument("--no-realtime", action="store_true")
     p.add_argument("--ready-timeout", type=float, default=60.0)
@@ -95,7 +97,12 @@ def cmd_node(args: argparse.Namespace) -> int:
     elif name == "gn":
         from .node.ground import run_ground_logger
 
-        summary = run_ground_logger(mission, args.log, as_node=True, duration_s=args.duration)
+        from .lockstep import load_commands
+
+        script = load_commands(args.commands) if args.commands else None
+        summary = run_ground_logger(
+            mission, args.log, as_node=True, duration_s=args.duration, script=script
+        )
     elif name in mission.device_nodes:
         from .node.device import run_device_node
 
@@ -290,6 +297,10 @@ class _Children:
 
 def cmd_up(args: argparse.Namespace) -> int:
     mission = load_mission(args.mission)  # refuse a bad mission before spawning
+    if args.commands:
+        from .lockstep import load_commands
+
+        load_commands(args.commands)  # and a bad script
     tmp = Path(tempfile.mkdtemp(prefix="zplatform-up-"))
     path = str(args.mission)
     if args.free_ports:
@@ -319,6 +330,8 @@ def cmd_up(args: argparse.Namespace) -> int:
             gn = ["node", path, "gn", "--summary", str(summaries["gn"])]
             if args.log:
                 gn += ["--log", args.log]
+            if args.commands:
+                gn += ["--commands", str(Path(args.commands).resolve())]
             children.spawn("gn", gn)
         cn = ["node", path, "cn", "--summary", str(summaries["cn"]), *common]
         if args.duration is not None:
@@ -409,6 +422,7 @@ def _merge_summaries(mission: Mission, paths: dict[str, Path]) -> dict[str, Any]
         "bad_frames": cn.get("bad_frames"),
         "telemetry_received": gn.get("telemetry_received"),
         "telemetry_gaps": gn.get("telemetry_gaps"),
+        "commands": gn.get("commands", []),
         "errors": cn.get("errors"),
         "final_state": cn.get("final_state"),
         "nodes": per,

@@ -142,7 +142,7 @@ def _state_names(mission: Mission) -> list[str]:
     return list(sm.states) if sm is not None else ["IDLE"]
 
 
-def check_config(mission: Mission) -> None:
+def check_config(mission: Mission, *, warn: bool = True) -> None:
     """Check the ``commands`` section; raises ConfigError naming the YAML path.
 
     * whitelist keys are states, values are command names (not ``NONE``);
@@ -152,8 +152,8 @@ def check_config(mission: Mission) -> None:
     * ``writable`` elements exist, are scalars, and may be written by CN
       logic (not platform bookkeeping, not received from a peer).
 
-    Logs a warning for a ``cn_cmd == X`` transition in a state whose
-    whitelist refuses ``X`` (the transition can never fire).
+    With ``warn``, logs a warning for a ``cn_cmd == X`` transition in a
+    state whose whitelist refuses ``X`` (the transition can never fire).
     """
     from .statemachine import _why_not_writable
 
@@ -199,7 +199,7 @@ def check_config(mission: Mission) -> None:
             if name not in can:
                 raise ConfigError(_why_not_writable(mission, region, name), w)
     sm = mission.state_machine
-    if sm is not None:
+    if warn and sm is not None:
         for state, st in sm.states.items():
             listed = cfg.whitelist.get(state)
             if listed is None:
@@ -313,7 +313,7 @@ class CommandHandler:
         events: EventLog,
         statemachine: StateMachine | None = None,
     ) -> None:
-        check_config(mission)
+        check_config(mission, warn=False)
         self._events = events
         self._sm = statemachine
         self._h_cmd = dv.handle("cn_cmd")

@@ -93,15 +93,18 @@ faults: {controller_fail_loops: 3}
 
 
 def mission(controllers: str) -> Mission:
-    return decode_mission(BASE + "controllers:\n" + textwrap.indent(textwrap.dedent(controllers), "  "))
+    body = textwrap.indent(textwrap.dedent(controllers), "  ")
+    return decode_mission(BASE + "controllers:\n" + body)
 
 
-def recorder(name: str = "a", out: str = "out_a", node: str = "cn", **kw: object) -> str:
+def recorder(
+    name: str = "a", out: str = "out_a", node: str = "cn", rate: str = "", **kw: object
+) -> str:
+    """One YAML controller entry of class Recorder; ``rate`` adds fields."""
     cfg = ", ".join([f"out: {out}", *(f"{k}: {str(v).lower()}" for k, v in kw.items())])
-    extra = kw.pop("_extra", "") if "_extra" in kw else ""
     return (
         f"- {{name: {name}, class: '{HERE}:Recorder', node: {node}, "
-        f"initial_mode: enabled, config: {{{cfg}}}{extra}}}\n"
+        f"initial_mode: enabled, config: {{{cfg}}}{rate}}}\n"
     )
 
 
@@ -354,8 +357,7 @@ def test_check_config_builds_every_node() -> None:
 
 def test_rate_divisor_and_phase() -> None:
     m = mission(
-        recorder("a", "out_a").rstrip().rstrip("}") + ", rate_divisor: 2, rate_phase: 1}\n"
-        + recorder("b", "out_b")
+        recorder("a", "out_a", rate=", rate_divisor: 2, rate_phase: 1") + recorder("b", "out_b")
     )
     r = Rig(m)
     r.run(6)
@@ -364,7 +366,7 @@ def test_rate_divisor_and_phase() -> None:
 
 
 def test_rate_phase_out_of_range_is_a_config_error() -> None:
-    m = mission(recorder().rstrip().rstrip("}") + ", rate_divisor: 2, rate_phase: 2}\n")
+    m = mission(recorder(rate=", rate_divisor: 2, rate_phase: 2"))
     with pytest.raises(ConfigError) as ei:
         ControllerSet(m, "cn", DataVector(Layout.for_node(m, "cn")))
     assert ei.value.path == "$.controllers[0].rate_phase"
@@ -376,8 +378,9 @@ def test_rate_phase_out_of_range_is_a_config_error() -> None:
 def test_sequential_leds_light_cumulatively_from_enable_time() -> None:
     from nodes.led_test import SequentialLedController
 
+    leds = "\n    ".join(f"- {{name: l{i}, type: bool}}" for i in range(3))
     m = decode_mission(
-        BASE.replace("- {name: level, type: f64}", "- {name: l0, type: bool}\n    - {name: l1, type: bool}\n    - {name: l2, type: bool}")
+        BASE.replace("- {name: level, type: f64}", leds)
         + "controllers:\n  - {name: s, class: 'nodes.led_test:SequentialLedController', node: cn,"
         " initial_mode: enabled, config: {leds: [l0, l1, l2], step_s: 0.5}}\n"
     )

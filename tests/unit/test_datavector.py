@@ -209,7 +209,7 @@ def test_array_set_checked(dv: DataVector) -> None:
     assert raw(dv, "a_bool") == b"\x01\x00"
 
 
-def test_array_set_exact_64_bit_ints(layout: Layout) -> None:
+def test_array_set_exact_64_bit_ints() -> None:
     # [0, 2**64 - 1] is a float64 array to a plain np.asarray; the check must
     # not go through floats.
     m = decode_mission(

@@ -24,6 +24,7 @@ import zenoh
 
 from ..codec import RegionCodec, VectorCodec
 from ..commands import fill_request
+from ..lockstep import ScriptCommand, resolve_write
 from ..config import CMD_NAMES, Mission
 from ..datavector import DataVector, Layout
 from ..errors import CodecError, CommandError, DataVectorError
@@ -102,6 +103,7 @@ def run_ground_logger(
     duration_s: float | None = None,
     stop: StopFlag | None = None,
     idle_exit_s: float | None = None,
+    script: list[ScriptCommand] | None = None,
 ) -> dict[str, Any]:
     """Log telemetry snapshots to CSV until stopped or ``duration_s``. Blocks.
 
@@ -116,6 +118,7 @@ def run_ground_logger(
     ns = NodeSession(mission, node)
     rx = TelemetryReceiver(ns.session, mission, clock.now_ns)
     logger = CsvLogger(out_csv, rx.dv.layout) if out_csv else None
+    player = ScriptPlayer(ns.session, mission, script) if script else None
     start = time.monotonic()
     last_rx = start
     try:
@@ -134,6 +137,8 @@ def run_ground_logger(
             last_rx = time.monotonic()
             if logger is not None:
                 logger.write(t, rx.dv)
+            if player is not None:
+                player.on_telemetry(rx.dv)
         # Drain what is already queued so nothing received is dropped.
         while (t := rx.next(0.0)) is not None:
             if logger is not None:
@@ -141,6 +146,8 @@ def run_ground_logger(
     finally:
         if logger is not None:
             logger.close()
+        if player is not None:
+            player.close()
         rx.close()
         ns.close()
     return {
@@ -151,6 +158,10 @@ def run_ground_logger(
         "first_seq": rx.first_seq,
         "last_seq": rx.last_seq,
         "final_state": rx.dv.get_name("cn_state") if rx.received else None,
+        "commands": [
+            {"command": r.command, "seq": r.seq, "status": r.status}
+            for r in (player.results if player is not None else [])
+        ],
     }
 
 
@@ -175,26 +186,60 @@ def validate_command(
         return cmd, 0, 0.0
     if element is None or value is None:
         raise CommandError("write needs ELEMENT VALUE")
-    try:
-        spec = Layout.for_node(mission, "cn").element(element)
-    except DataVectorError as exc:
-        raise CommandError(str(exc)) from None
-    if spec.count:
-        raise CommandError(f"{element} is an array; WRITE takes scalars only")
-    v: Any = value
-    if spec.enum is not None and value in spec.enum:
-        v = spec.enum.index(value)
-    elif spec.scalar.kind == "bool":
-        v = {"true": 1, "on": 1, "false": 0, "off": 0}.get(value.lower(), value)
-    try:
-        num = float(v)
-    except ValueError:
-        raise CommandError(f"{value!r} is not a valid value for {element}") from None
-    try:
-        DataVector.coerce(spec, int(num) if num.is_integer() else num)
-    except DataVectorError as exc:
-        raise CommandError(str(exc)) from None
-    return cmd, spec.index, num
+    index, num = resolve_write(Layout.for_node(mission, "cn"), element, value, "write")
+    return cmd, index, num
+
+
+class ScriptPlayer:
+    """Plays a command script (``at 1.0 launch``) from the ground node.
+
+    Times count from the first telemetry snapshot, on the CN's clock (its
+    ``cn_time_ns``), so a script means the same thing live and in the
+    lockstep runner. Commands go out one at a time: the next is sent only
+    after the CN's verdict on the previous one is seen, so numbers stay
+    consecutive (ARM n, LAUNCH n+1). Call :meth:`on_telemetry` after each
+    snapshot; it never blocks.
+    """
+
+    def __init__(self, session: zenoh.Session, mission: Mission, script: list[ScriptCommand]):
+        self.mission = mission
+        self.script = list(script)
+        self.req = DataVector(Layout.for_regions(mission, ["gn_to_cn"]))
+        self._codec = RegionCodec(self.req, "gn_to_cn")
+        self._pub = session.declare_publisher(f"{mission.vehicle}/gn/to_cn")
+        self._t0: int | None = None
+        self._waiting: tuple[int, ScriptCommand] | None = None
+        self.results: list[CommandResult] = []
+
+    @property
+    def done(self) -> bool:
+        return not self.script and self._waiting is None
+
+    def on_telemetry(self, dv: DataVector) -> None:
+        t = int(dv.get("cn_time_ns"))
+        if self._t0 is None:
+            self._t0 = t
+        if self._waiting is not None:
+            seq, sc = self._waiting
+            if int(dv.get("cn_cmd_seq")) == seq and dv.get_name("cn_cmd_status") != "NONE":
+                r = CommandResult(sc.command, seq, dv.get_name("cn_cmd_status"))
+                self.results.append(r)
+                log.info("%s: %s #%d %s", sc.source, sc.command, seq, r.status)
+                self._waiting = None
+            return
+        if not self.script or t - self._t0 < self.script[0].at_ns:
+            return
+        if not self._pub.matching_status.matching:
+            return  # the CN is not subscribed yet: try again next snapshot
+        sc = self.script.pop(0)
+        cmd, index, num = validate_command(self.mission, sc.command, sc.element, sc.value)
+        seq = int(dv.get("cn_cmd_seq")) + 1
+        fill_request(self.req, cmd, seq, index, num)
+        self._pub.put(bytes(self._codec.encode(seq, t)))
+        self._waiting = (seq, sc)
+
+    def close(self) -> None:
+        self._pub.undeclare()
 
 
 @dataclass(frozen=True, slots=True)

@@ -1,0 +1,177 @@
+"""Tests of zplatform.telemetry: the CSV log format of DESIGN.md §6."""
+
+from __future__ import annotations
+
+import io
+import math
+import struct
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from zplatform import DataVector, DataVectorError, Layout, decode_mission
+from zplatform.telemetry import MAX_ARRAY_COLUMNS, CsvLogger, csv_columns, read_csv
+
+MISSION = """
+mission: tmtest
+nodes: {cn: {}, dn0: {}}
+state_machine:
+  initial: IDLE
+  states: {IDLE: {}, RUN: {}}
+regions:
+  cn:
+    - {name: flag, type: bool}
+    - {name: count, type: i32, initial: -7}
+    - {name: big, type: u64}
+    - {name: x64, type: f64}
+    - {name: x32, type: f32}
+    - {name: vec, type: "f32[3]"}
+    - {name: sixteen, type: "u8[16]"}
+    - {name: blob, type: "u8[17]"}
+    - {name: mode, enum: [OFF, LOW, HIGH], initial: LOW}
+  cn_to_dn0:
+    - {name: cmd, type: bool}
+  dn0_to_cn:
+    - {name: fb, type: bool}
+"""
+
+
+@pytest.fixture
+def dv() -> DataVector:
+    return DataVector(Layout.for_node(decode_mission(MISSION), "cn"))
+
+
+def one_row(dv: DataVector, t: int = 5) -> dict[str, str]:
+    buf = io.StringIO()
+    CsvLogger(buf, dv.layout).write(t, dv)
+    buf.seek(0)
+    rows = read_csv(buf)
+    assert len(rows) == 1
+    return rows[0]
+
+
+def test_header_lists_elements_in_order_expands_small_arrays_omits_large(dv: DataVector) -> None:
+    cols = csv_columns(dv.layout)
+    assert cols[0] == "rx_time_ns"
+    assert cols[1:4] == ["cn_loop", "cn_time_ns", "cn_state"]
+    i = cols.index("x32")
+    assert cols[i + 1 : i + 4] == ["vec[0]", "vec[1]", "vec[2]"]
+    assert [c for c in cols if c.startswith("sixteen")] == [f"sixteen[{k}]" for k in range(16)]
+    assert MAX_ARRAY_COLUMNS == 16
+    assert not any(c.startswith("blob") for c in cols)
+    assert cols[-2:] == ["cmd", "fb"] or cols.index("cmd") < cols.index("fb")
+    buf = io.StringIO()
+    log = CsvLogger(buf, dv.layout)
+    assert log.columns == cols
+    assert buf.getvalue() == ",".join(cols) + "\n"
+
+
+def test_values_are_formatted_per_type(dv: DataVector) -> None:
+    dv.set("flag", True)
+    dv.set("big", 2**64 - 1)
+    dv.set("x64", 0.1)
+    dv.set("x32", 0.1)
+    dv.set("vec", [1.5, -2.0, 3.25])
+    dv.handle("sixteen").get()[:] = np.arange(16)
+    dv.handle("blob").get()[:] = 9
+    dv.set("cn_state", "RUN")
+    row = one_row(dv, t=123)
+    assert row["rx_time_ns"] == "123"
+    assert row["flag"] == "1" and row["cmd"] == "0"
+    assert row["count"] == "-7"
+    assert row["big"] == "18446744073709551615"
+    assert row["x64"] == "0.1"
+    assert row["x32"] == "0.1"  # shortest text that reads back as the same f32
+    assert [row[f"vec[{k}]"] for k in range(3)] == ["1.5", "-2.0", "3.25"]
+    assert [row[f"sixteen[{k}]"] for k in range(16)] == [str(k) for k in range(16)]
+    assert row["mode"] == "LOW"  # enums by name
+    assert row["cn_state"] == "RUN"
+    assert row["cn_cmd_status"] == "NONE"
+    assert "9" not in [row.get("blob"), row.get("blob[0]")]
+
+
+def test_enum_value_without_a_name_is_written_as_its_number(dv: DataVector) -> None:
+    dv.handle("mode").set(9)
+    assert one_row(dv)["mode"] == "9"
+
+
+F64 = [0.1, 1 / 3, -1e-300, 1e300, 5e-324, 2.0**53 + 1, -0.0, 123456789.123456789]
+
+
+@pytest.mark.parametrize("v", F64)
+def test_f64_round_trips_exactly(dv: DataVector, v: float) -> None:
+    dv.set("x64", v)
+    text = one_row(dv)["x64"]
+    assert float(text) == v and math.copysign(1, float(text)) == math.copysign(1, v)
+
+
+F32 = [0.1, 1 / 3, 3.4028234663852886e38, 1.17549435e-38, 1e-45, 16777217.0, -2.5e-7, 1e20]
+
+
+@pytest.mark.parametrize("v", F32)
+def test_f32_round_trips_exactly(dv: DataVector, v: float) -> None:
+    dv.set("x32", v)
+    stored = dv.get("x32")
+    text = one_row(dv)["x32"]
+    assert np.float32(float(text)) == np.float32(stored)
+    assert len(text) <= 16
+
+
+@pytest.mark.parametrize(("v", "text"), [(math.nan, "nan"), (math.inf, "inf"), (-math.inf, "-inf")])
+def test_non_finite_floats(dv: DataVector, v: float, text: str) -> None:
+    dv.set("x64", v)
+    dv.set("x32", v)
+    row = one_row(dv)
+    assert row["x64"] == text and row["x32"] == text
+
+
+def test_file_target_context_manager_and_rows(dv: DataVector, tmp_path: Path) -> None:
+    p = tmp_path / "tm.csv"
+    with CsvLogger(p, dv.layout) as log:
+        for k in range(3):
+            dv.set("cn_loop", k)
+            log.write(1000 + k, dv)
+        assert log.rows == 3
+    rows = read_csv(p)
+    assert [r["cn_loop"] for r in rows] == ["0", "1", "2"]
+    assert [r["rx_time_ns"] for r in rows] == ["1000", "1001", "1002"]
+    data = p.read_bytes()
+    assert b"\r" not in data and data.endswith(b"\n")
+    log.close()  # idempotent
+
+
+def test_stream_target_is_not_closed(dv: DataVector) -> None:
+    buf = io.StringIO()
+    with CsvLogger(buf, dv.layout) as log:
+        log.write(0, dv)
+    assert not buf.closed
+
+
+def test_other_layout_is_refused(dv: DataVector) -> None:
+    other = DataVector(Layout.for_node(decode_mission(MISSION.replace("flag", "flog")), "cn"))
+    log = CsvLogger(io.StringIO(), dv.layout)
+    with pytest.raises(DataVectorError, match="not the logger's"):
+        log.write(0, other)
+
+
+def test_same_layout_from_another_build_is_accepted(dv: DataVector) -> None:
+    twin = DataVector(Layout.for_node(decode_mission(MISSION), "cn"))
+    log = CsvLogger(io.StringIO(), dv.layout)
+    log.write(0, twin)
+
+
+def test_rows_are_identical_for_identical_vectors(dv: DataVector) -> None:
+    twin = DataVector(Layout.for_node(decode_mission(MISSION), "cn"))
+    for v in (dv, twin):
+        v.set("x32", 0.3)
+        v.set("mode", "HIGH")
+    assert one_row(dv) == one_row(twin)
+
+
+def test_one_unpack_covers_every_column(dv: DataVector) -> None:
+    log = CsvLogger(io.StringIO(), dv.layout)
+    n_values = len(log._struct.unpack_from(dv.buf, 0))
+    assert n_values == len(log.columns) - 1
+    assert log._struct.size <= dv.layout.size
+    assert struct.calcsize("<" + "x" * 0) == 0
