@@ -15,8 +15,11 @@ from .codec import (
     decode_frame,
     encode_frame,
 )
+from .commands import CommandHandler, fill_request
 from .config import Mission, decode_mission, load_mission
+from .control import Controller, ControllerSet
 from .datavector import DataVector, ElementSpec, Handle, Layout, RegionSpec
+from .devices import Actuator, Board, Device, DeviceSet, Sensor, SimBoard
 from .errors import (
     ClockSyncError,
     CodecError,
@@ -34,20 +37,40 @@ from .errors import (
     TransportError,
     ZPlatformError,
 )
+from .events import Event, EventLog, Severity
+from .faults import FaultMonitor
+from .lockstep import LockstepRunner, SimResult
+from .node.logic import ControlLogic, DeviceLogic
 from .scheduler import GcGuard, LoopStats, PeriodicLoop, RateGroups, setup_realtime
+from .statemachine import StateMachine
+from .telemetry import CsvLogger, read_csv
 from .timebase import NodeClock, VirtualClock
+from .transport import KeySpace
 
 __version__ = "0.1.0"
 
 __all__ = [
+    "Actuator",
+    "Board",
     "ClockSyncError",
     "CodecError",
     "CommandError",
+    "CommandHandler",
     "ConfigError",
     "ControlError",
+    "ControlLogic",
+    "Controller",
+    "ControllerSet",
+    "CsvLogger",
     "DataVector",
     "DataVectorError",
+    "Device",
+    "DeviceLogic",
+    "DeviceSet",
     "ElementSpec",
+    "Event",
+    "EventLog",
+    "FaultMonitor",
     "Frame",
     "FrameDecoder",
     "FrameEncoder",
@@ -55,8 +78,10 @@ __all__ = [
     "FrameSizeError",
     "GcGuard",
     "Handle",
+    "KeySpace",
     "Layout",
     "LayoutMismatchError",
+    "LockstepRunner",
     "LoopStats",
     "Mission",
     "NodeClock",
@@ -66,6 +91,11 @@ __all__ = [
     "RegionCodec",
     "RegionSpec",
     "SchedulerError",
+    "Sensor",
+    "Severity",
+    "SimBoard",
+    "SimResult",
+    "StateMachine",
     "StateMachineError",
     "TimebaseError",
     "TransportError",
@@ -76,6 +106,8 @@ __all__ = [
     "decode_frame",
     "decode_mission",
     "encode_frame",
+    "fill_request",
     "load_mission",
+    "read_csv",
     "setup_realtime",
 ]

@@ -69,6 +69,12 @@ def _mission_report(m: Mission) -> dict[str, object]:
 
 def cmd_check(args: argparse.Namespace) -> int:
     m = load_mission(args.mission)
+    # The runtime builds controllers and devices at start; `check` does it
+    # now, so a bad class path or component config fails here, not on the pad.
+    from . import control, devices
+
+    control.check_config(m)
+    devices.check_config(m)
     rep = _mission_report(m)
     if args.json:
         print(json.dumps(rep, indent=2))
@@ -112,6 +118,8 @@ _EXTRA: list[Callable[[argparse._SubParsersAction[argparse.ArgumentParser]], Non
 def _load_extras() -> None:
     import importlib
 
+    if _EXTRA:  # once per process: main() may be called again (tests)
+        return
     for mod in ("zplatform.cli_runtime", "zplatform.cli_ground", "zplatform.cli_sim"):
         try:
             m = importlib.import_module(mod)

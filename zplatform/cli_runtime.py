@@ -95,9 +95,8 @@ def cmd_node(args: argparse.Namespace) -> int:
             ready_timeout_s=args.ready_timeout,
         )
     elif name == "gn":
-        from .node.ground import run_ground_logger
-
         from .lockstep import load_commands
+        from .node.ground import run_ground_logger
 
         script = load_commands(args.commands) if args.commands else None
         summary = run_ground_logger(
@@ -218,12 +217,11 @@ def cmd_tap(args: argparse.Namespace) -> int:
     keyexpr = args.keyexpr or f"{mission.vehicle}/**"
     q: queue.SimpleQueue[tuple[str, bytes]] = queue.SimpleQueue()
     ns = NodeSession(mission, None)
-    sub = ns.session.declare_subscriber(
-        keyexpr,
-        zenoh.handlers.Callback(
-            lambda s: q.put((str(s.key_expr), s.payload.to_bytes())), indirect=False
-        ),
-    )
+
+    def on_sample(sample: zenoh.Sample) -> None:
+        q.put((str(sample.key_expr), sample.payload.to_bytes()))  # hand off only
+
+    sub = ns.session.declare_subscriber(keyexpr, zenoh.handlers.Callback(on_sample, indirect=False))
     n = 0
     deadline = time.monotonic() + args.timeout if args.timeout else None
     try:

@@ -376,9 +376,9 @@ class ControllerSet:
                     c.run_enabled(t_ns)
                 elif mode == MANUAL:
                     c.run_manual(t_ns)
-                else:
-                    c.run_safed(t_ns)
+                else:  # safed, or a value that is no mode: fail safe
                     mode = SAFED
+                    c.run_safed(t_ns)
             except Exception as exc:
                 self._failed(s, commanded, mode, exc, t_ns)
                 continue

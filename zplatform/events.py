@@ -3,8 +3,8 @@
 An :class:`Event` is one record (severity, id, text, time) published on
 ``{vehicle}/{node}/events`` (DESIGN.md §3). Node logic never publishes: it
 calls :meth:`EventLog.emit`, which appends to a bounded in-memory queue, and
-the runtime :meth:`~EventLog.drain`\\ s the queue after the loop and publishes
-what it took. So emitting is sans-IO, never blocks and never raises.
+the runtime takes the queue after the loop (:meth:`~EventLog.drain`) and
+publishes what it took. So emitting is sans-IO, never blocks and never raises.
 
 The log is bounded (``capacity`` events between two drains). When it is full
 the *oldest* pending events are kept and new ones are counted in

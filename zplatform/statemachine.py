@@ -65,6 +65,7 @@ __all__ = [
     "StateMachine",
     "check_config",
     "check_structure",
+    "config_value",
     "logic_writable",
     "platform_element_names",
     "unreachable_states",

@@ -33,7 +33,7 @@ import zenoh
 from .codec import RegionCodec
 from .datavector import DataVector
 from .errors import CodecError
-from .transport import KeySpace
+from .transport import KeySpace, is_matching
 
 # A query stamped this much later than the last one served, yet with a lower
 # loop number, comes from a restarted control node.
@@ -51,7 +51,7 @@ class TapPublisher:
 
     def __init__(self, session: zenoh.Session, key: str) -> None:
         self.pub = session.declare_publisher(key, congestion_control=zenoh.CongestionControl.DROP)
-        self.matching = bool(self.pub.matching_status.matching)
+        self.matching = is_matching(self.pub)
         self._listener = self.pub.declare_matching_listener(
             zenoh.handlers.Callback(self._on_matching, indirect=False)
         )
@@ -138,15 +138,15 @@ class ControlSync:
         n = len(self.dns)
         for i in range(n):
             got[i] = False
-            frame = self._out[i].encode(loop, t_ns)
+            out = self._out[i].encode(loop, t_ns)
             self.session.get(
                 self._keys[i],
                 self._callbacks[i],
-                payload=frame,
+                payload=out,
                 consolidation=self._consolidation,
                 timeout=self._query_timeout,
             )
-            self._taps[i].put(frame)
+            self._taps[i].put(out)
         pending = n
         q = self._q
         while pending:

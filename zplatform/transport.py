@@ -38,6 +38,7 @@ __all__ = [
     "KeySpace",
     "NodeSession",
     "free_port",
+    "is_matching",
     "open_session",
     "rewrite_endpoints",
     "wait_for_nodes",
@@ -228,6 +229,16 @@ def wait_for_nodes(
         return alive
     finally:
         sub.undeclare()
+
+
+def is_matching(entity: zenoh.Publisher | zenoh.Querier) -> bool:
+    """Whether anyone matches this publisher/querier now.
+
+    zenoh-python 1.10's stub says ``matching_status`` is a bool; at run time
+    it is a ``MatchingStatus`` with a ``matching`` attribute. Accept both.
+    """
+    status: Any = entity.matching_status
+    return bool(getattr(status, "matching", status))
 
 
 def free_port() -> int:

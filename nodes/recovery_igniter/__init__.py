@@ -80,7 +80,11 @@ class ApogeeDetector(Controller):
         self._passed = False
 
     def run_enabled(self, t_ns: int) -> None:
-        est = min(h.get() for h in self._alts)
+        est = float("inf")
+        for h in self._alts:
+            v = h.get()
+            if v < est:
+                est = v
         self._estimate.set(est)
         if est > self._max:
             self._max = est
@@ -129,8 +133,10 @@ class IgnitionController(Controller):
         for cmd, stamp in zip(self._cmds, self._stamps, strict=True):
             cmd.set(command)
             stamp.set(loop)
-        if all(fb.get() for fb in self._fbs):
-            self._fired.set(True)
+        for fb in self._fbs:
+            if not fb.get():
+                return
+        self._fired.set(True)
 
     def run_enabled(self, t_ns: int) -> None:
         self._common(True)

@@ -37,14 +37,28 @@ class Cluster:
         self._rx: TelemetryReceiver | None = None
 
     # -- processes ---------------------------------------------------------
-    def spawn(self, name: str, *extra: str, env: dict[str, str] | None = None) -> subprocess.Popen[bytes]:
+    def spawn(
+        self, name: str, *extra: str, env: dict[str, str] | None = None
+    ) -> subprocess.Popen[bytes]:
         e = dict(os.environ, PYTHONUNBUFFERED="1")
         e.update(env or {})
         log = open(self.tmp / f"{name}.log", "ab")  # noqa: SIM115 - closed with the process
         p = subprocess.Popen(
-            [sys.executable, "-m", "zplatform", "node", str(self.path), name,
-             "--summary", str(self.tmp / f"{name}.json"), *extra],
-            stdout=log, stderr=subprocess.STDOUT, env=e, cwd=ROOT,
+            [
+                sys.executable,
+                "-m",
+                "zplatform",
+                "node",
+                str(self.path),
+                name,
+                "--summary",
+                str(self.tmp / f"{name}.json"),
+                *extra,
+            ],
+            stdout=log,
+            stderr=subprocess.STDOUT,
+            env=e,
+            cwd=ROOT,
         )
         self.procs[name] = p
         return p
@@ -95,7 +109,9 @@ class Cluster:
     def tm(self) -> DataVector:
         return self.rx.dv
 
-    def wait_for(self, pred: Callable[[DataVector], bool], timeout_s: float = 30.0, what: str = "") -> None:
+    def wait_for(
+        self, pred: Callable[[DataVector], bool], timeout_s: float = 30.0, what: str = ""
+    ) -> None:
         """Read telemetry until ``pred(dv)`` holds; fail with the last values."""
         deadline = time.monotonic() + timeout_s
         while time.monotonic() < deadline:
@@ -113,4 +129,6 @@ class Cluster:
         """Wait until the CN ran ``loops`` more loops."""
         self.wait_for(lambda dv: True, timeout_s, "telemetry")
         target = int(self.tm.get("cn_loop")) + loops
-        self.wait_for(lambda dv: int(dv.get("cn_loop")) >= target, timeout_s, f"cn_loop >= {target}")
+        self.wait_for(
+            lambda dv: int(dv.get("cn_loop")) >= target, timeout_s, f"cn_loop >= {target}"
+        )

@@ -5,12 +5,15 @@ Sections are independent; add new ones at the end.
 
 from __future__ import annotations
 
+import struct
 from typing import Any
 
 import msgspec
 from hypothesis import strategies as st
 
 from zplatform.config import CMD_NAMES
+from zplatform.datavector import ElementSpec, RegionSpec
+from zplatform.types import SCALAR_TYPES, ScalarType
 
 # ---------------------------------------------------------------------------
 # State machines and operator commands (statemachine.py, commands.py)
@@ -134,3 +137,137 @@ def loop_inputs(draw: st.DrawFn) -> LoopInput:
         el = draw(st.sampled_from(sorted(SM_ELEMENTS)))
         write = (el, draw(element_values(el)))
     return cmd, seq_step, idx, value, write
+
+
+# ---------------------------------------------------------------------------
+# Data Vector layouts, region bytes and frame headers (datavector.py, codec.py)
+
+_SCALARS = list(SCALAR_TYPES)
+# Float bit patterns worth forcing: zeros, infinities, quiet and signalling
+# NaNs with payloads, the smallest subnormal, the largest finite value.
+_F32_SPECIAL = [
+    0x0,
+    0x80000000,
+    0x7F800000,
+    0xFF800000,
+    0x7FC00000,
+    0x7FC12345,
+    0xFFC00001,
+    0x7F800001,
+    0xFFBFFFFF,
+    0x00000001,
+    0x7F7FFFFF,
+]
+_F64_SPECIAL = [
+    0x0,
+    0x8000000000000000,
+    0x7FF0000000000000,
+    0xFFF0000000000000,
+    0x7FF8000000000000,
+    0x7FF8000000012345,
+    0xFFF0000000000001,
+    0x7FF0000000000001,
+    0x0000000000000001,
+    0x7FEFFFFFFFFFFFFF,
+]
+_IDENT = st.from_regex(r"\A[A-Z][A-Z0-9_]{0,5}\Z")
+
+
+@st.composite
+def element_types(draw: st.DrawFn) -> dict[str, Any]:
+    """The type part of one element config: ``{"type": ...}`` or ``{"enum": [...]}``:
+    a scalar of any of the 11 types, a fixed array of one, or an enum (rarely
+    with more than 256 names, so stored as u16)."""
+    kind = draw(st.sampled_from(["scalar", "scalar", "array", "enum"]))
+    if kind == "enum":
+        if draw(st.integers(0, 9)) == 0:
+            return {"enum": [f"V{i}" for i in range(draw(st.integers(257, 300)))]}
+        return {"enum": draw(st.lists(_IDENT, min_size=1, max_size=5, unique=True))}
+    scalar = draw(st.sampled_from(_SCALARS))
+    if kind == "array":
+        return {"type": f"{scalar}[{draw(st.integers(1, 9))}]"}
+    return {"type": scalar}
+
+
+@st.composite
+def vector_missions(draw: st.DrawFn) -> str:
+    """YAML text of a random valid mission for Data Vector and codec tests:
+    0-2 device nodes, maybe a ground node, and 1-6 random elements in a random
+    subset of the valid regions (``cn`` always)."""
+    n_dn = draw(st.integers(0, 2))
+    ground = draw(st.booleans())
+    nodes: dict[str, Any] = {"cn": {}, **{f"dn{i}": {} for i in range(n_dn)}}
+    valid = ["cn"] + [r for i in range(n_dn) for r in (f"cn_to_dn{i}", f"dn{i}_to_cn")]
+    if ground:
+        nodes["gn"] = {}
+        valid.append("gn_to_cn")
+    chosen = ["cn"] + [r for r in valid[1:] if draw(st.booleans())]
+    regions: dict[str, list[dict[str, Any]]] = {}
+    k = 0
+    for region in chosen:
+        elements = []
+        for _ in range(draw(st.integers(1, 6))):
+            elements.append({"name": f"e{k}", **draw(element_types())})
+            k += 1
+        regions[region] = elements
+    mission = {"mission": "prop", "nodes": nodes, "regions": regions}
+    return msgspec.yaml.encode(mission).decode()
+
+
+def _pack(fmt: str) -> Any:
+    s = struct.Struct("<" + fmt)
+    return s.pack
+
+
+def scalar_item_bytes(scalar: ScalarType, enum: tuple[str, ...] | None) -> st.SearchStrategy[bytes]:
+    """The little-endian bytes of one valid item: ints in range, bool 0/1, an
+    enum index below its name count, and floats as *any* bit pattern
+    (NaN payloads included)."""
+    if enum is not None:
+        return st.integers(0, len(enum) - 1).map(_pack(scalar.struct))
+    if scalar.kind == "bool":
+        return st.sampled_from([b"\x00", b"\x01"])
+    if scalar.kind == "int":
+        assert scalar.lo is not None and scalar.hi is not None
+        return st.integers(scalar.lo, scalar.hi).map(_pack(scalar.struct))
+    bits = 8 * scalar.size
+    special = _F32_SPECIAL if bits == 32 else _F64_SPECIAL
+    raw = st.integers(0, (1 << bits) - 1) | st.sampled_from(special)
+    return raw.map(_pack("I" if bits == 32 else "Q"))
+
+
+def element_bytes(spec: ElementSpec) -> st.SearchStrategy[bytes]:
+    """The bytes of one element: ``count`` items back to back (1 for a scalar)."""
+    n = max(spec.count, 1)
+    item = scalar_item_bytes(spec.scalar, spec.enum)
+    return st.lists(item, min_size=n, max_size=n).map(b"".join)
+
+
+def region_bytes(region: RegionSpec) -> st.SearchStrategy[bytes]:
+    """A valid value for every element of ``region``, as the region's bytes."""
+    return st.tuples(*(element_bytes(e) for e in region.elements)).map(b"".join)
+
+
+frame_headers = st.tuples(
+    st.integers(0, 2**32 - 1), st.integers(0, 2**64 - 1), st.integers(-(2**63), 2**63 - 1)
+)
+"""``(layout_id, seq, t_ns)`` anywhere in their ranges."""
+
+
+@st.composite
+def mutated(draw: st.DrawFn, frame: bytes) -> bytes:
+    """``frame`` with a few random edits: byte flips, cuts, insertions, appends."""
+    buf = bytearray(frame)
+    for _ in range(draw(st.integers(1, 4))):
+        op = draw(st.sampled_from(["flip", "flip", "cut", "insert", "append"]))
+        if op == "append" or not buf:
+            buf += draw(st.binary(min_size=1, max_size=8))
+            continue
+        i = draw(st.integers(0, len(buf) - 1))
+        if op == "flip":
+            buf[i] ^= draw(st.integers(1, 255))
+        elif op == "cut":
+            del buf[i : i + draw(st.integers(1, 16))]
+        else:
+            buf[i:i] = draw(st.binary(min_size=1, max_size=8))
+    return bytes(buf)

@@ -39,9 +39,21 @@ class Mission:
         self.csv = tmp / "ground.csv"
         self.summary = tmp / "summary.json"
         self.up = subprocess.Popen(
-            [sys.executable, "-m", "zplatform", "up", str(self.path), "--log", str(self.csv),
-             "--summary", str(self.summary), "--quiet"],
-            cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+            [
+                sys.executable,
+                "-m",
+                "zplatform",
+                "up",
+                str(self.path),
+                "--log",
+                str(self.csv),
+                "--summary",
+                str(self.summary),
+                "--quiet",
+            ],
+            cwd=ROOT,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.STDOUT,
         )
         self.ns = NodeSession(self.mission, None)
         self.rx = TelemetryReceiver(self.ns.session, self.mission, NodeClock().now_ns)
@@ -53,15 +65,22 @@ class Mission:
                 raise AssertionError(f"up exited early: {self.up.stdout.read().decode()[-3000:]}")  # type: ignore[union-attr]
             if self.rx.next(0.2) is not None and pred(self.rx.dv):
                 return
-        raise AssertionError(f"timed out waiting for {what}; state {self.rx.dv.get_name('cn_state')}")
+        raise AssertionError(
+            f"timed out waiting for {what}; state {self.rx.dv.get_name('cn_state')}"
+        )
 
     def await_state(self, state: str, timeout_s: float = 60.0) -> None:
-        self.await_telemetry(lambda dv: dv.get_name("cn_state") == state, f"state {state}", timeout_s)
+        self.await_telemetry(
+            lambda dv: dv.get_name("cn_state") == state, f"state {state}", timeout_s
+        )
 
     def cmd(self, *args: str) -> subprocess.CompletedProcess[str]:
         return subprocess.run(
             [sys.executable, "-m", "zplatform", "cmd", str(self.path), *args],
-            cwd=ROOT, capture_output=True, text=True, timeout=60,
+            cwd=ROOT,
+            capture_output=True,
+            text=True,
+            timeout=60,
         )
 
     def stop(self) -> dict:  # type: ignore[type-arg]
@@ -138,7 +157,10 @@ def test_cmd_refuses_unknown_before_sending(tmp_path: Path) -> None:
     ):
         r = subprocess.run(
             [sys.executable, "-m", "zplatform", "cmd", str(path), *args, "--timeout", "2"],
-            cwd=ROOT, capture_output=True, text=True, timeout=60,
+            cwd=ROOT,
+            capture_output=True,
+            text=True,
+            timeout=60,
         )
         assert r.returncode == 2, r.stdout + r.stderr
         assert msg in r.stderr, r.stderr

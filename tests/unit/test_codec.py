@@ -139,9 +139,7 @@ def test_bin_boundaries(n: int, header: bytes) -> None:
 def test_worked_example_bytes() -> None:
     # The example of codecs/FORMAT.md.
     frame = encode_frame(0x409E051D, 1, 1_700_000_000_000_000_000, b"\x01\x00\x00\x80\x3f")
-    assert frame.hex() == (
-        "94" "ce409e051d" "cf0000000000000001" "d317979cfe362a0000" "c405" "010000803f"
-    )
+    assert frame.hex() == ("94ce409e051dcf0000000000000001d317979cfe362a0000c405010000803f")
 
 
 def test_encoder_reuses_its_buffer() -> None:
@@ -176,9 +174,7 @@ def test_encoder_refuses_non_int_header(bad: Any) -> None:
 
 @pytest.mark.parametrize("n", [0, 3, 255, 256, 65536])
 @pytest.mark.parametrize(("layout_id", "seq", "t_ns"), HEADERS)
-def test_decoder_accepts_minimal_msgspec_frame(
-    layout_id: int, seq: int, t_ns: int, n: int
-) -> None:
+def test_decoder_accepts_minimal_msgspec_frame(layout_id: int, seq: int, t_ns: int, n: int) -> None:
     data = bytes(i % 7 for i in range(n))
     wire = msgspec.msgpack.encode((layout_id, seq, t_ns, data))
     f = decode_frame(wire)
@@ -189,7 +185,9 @@ def test_decoder_accepts_minimal_msgspec_frame(
 
 def test_decoder_accepts_any_valid_encoding() -> None:
     # array16 holding 4 items, u8/i8 int markers, bin32 for 3 bytes.
-    wire = b"\xdc\x00\x04" + b"\xcc\xc8" + b"\xcd\x01\x00" + b"\xd0\x80" + b"\xc6\x00\x00\x00\x03abc"
+    wire = (
+        b"\xdc\x00\x04" + b"\xcc\xc8" + b"\xcd\x01\x00" + b"\xd0\x80" + b"\xc6\x00\x00\x00\x03abc"
+    )
     f = decode_frame(wire)
     assert (f.layout_id, f.seq, f.t_ns, bytes(f.data)) == (200, 256, -128, b"abc")
     # positive t_ns written with an unsigned marker is still an i64
@@ -333,7 +331,9 @@ def test_region_codec_round_trip(cn: DataVector, dn: DataVector) -> None:
     assert list(dn.get("gains")) == [1.0, -2.0, 0.5]
     assert dn.get_name("valve") == "CLOSED"
     # the other region of dn is untouched
-    assert bytes(dn.region_view("dn0_to_cn")) == bytes(DataVector(dn.layout).region_view("dn0_to_cn"))
+    assert bytes(dn.region_view("dn0_to_cn")) == bytes(
+        DataVector(dn.layout).region_view("dn0_to_cn")
+    )
 
 
 def test_region_codec_encode_reuses_buffer(cn: DataVector) -> None:

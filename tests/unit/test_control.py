@@ -462,3 +462,11 @@ def test_igniter_safety_rules(armed: bool, age: int, alt: float, fires: bool) ->
     dv.set("safety_mode", "safed")
     cs.run(loop, 0)
     assert dv.get("ok") is False and dv.get("out") is False
+
+
+def test_invalid_mode_with_failing_safed_is_disabled_without_a_second_call() -> None:
+    r = Rig(mission(recorder(fail_safed="true")))
+    r.dv.handle("a_mode").set(9)
+    r.run()
+    assert r.set.disabled("a")
+    assert [c for c, _ in r.ctl().calls] == ["safed"]

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 import math
 import struct
 import zlib
@@ -382,7 +383,7 @@ def test_layout_contiguous(layout: Layout) -> None:
 def test_layout_no_padding(layout: Layout) -> None:
     # u8 then u16 then u32: packed, no alignment padding.
     offs = [layout.element(n).offset for n in ("v_u8", "v_u16", "v_u32", "v_u64")]
-    assert [b - a for a, b in zip(offs, offs[1:], strict=False)] == [1, 2, 4]
+    assert [b - a for a, b in itertools.pairwise(offs)] == [1, 2, 4]
     assert layout.element("a_f32").size == 12
 
 
@@ -414,9 +415,7 @@ def test_layout_id_pinned() -> None:
     descriptor = b"zplatform-region-v1;r;a:u8;b:f32[3];c:enum(u8:A,B)"
     assert L.regions["r"].layout_id == zlib.crc32(descriptor) == 0x409E051D
     assert L.regions["s"].layout_id == zlib.crc32(b"zplatform-region-v1;s;d:bool")
-    vector = b"\n".join(
-        [b"zplatform-vector-v1", descriptor, b"zplatform-region-v1;s;d:bool"]
-    )
+    vector = b"\n".join([b"zplatform-vector-v1", descriptor, b"zplatform-region-v1;s;d:bool"])
     assert L.layout_id == zlib.crc32(vector) == 0xA4E8E770
     assert (LAYOUT_MAGIC, VECTOR_MAGIC) == ("zplatform-region-v1", "zplatform-vector-v1")
     assert [e.type_text for e in L.regions["r"].elements] == ["u8", "f32[3]", "enum(u8:A,B)"]

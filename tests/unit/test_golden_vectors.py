@@ -30,7 +30,9 @@ def layout() -> Layout:
 
 
 def load(name: str) -> tuple[dict[str, Any], bytes]:
-    return json.loads((VECTORS / f"{name}.json").read_text()), (VECTORS / f"{name}.bin").read_bytes()
+    return json.loads((VECTORS / f"{name}.json").read_text()), (
+        VECTORS / f"{name}.bin"
+    ).read_bytes()
 
 
 def is_bits(item: Any) -> bool:
@@ -89,6 +91,11 @@ def test_header_and_layout(name: str) -> None:
     assert (lid, seq, t_ns, len(data)) == (r.layout_id, meta["seq"], meta["t_ns"], r.size)
     f = decode_frame(frame)
     assert (f.layout_id, f.seq, f.t_ns, bytes(f.data)) == (lid, seq, t_ns, data)
+    # The minimal encoding of the same items (another encoder's) reads the same.
+    minimal = msgspec.msgpack.encode((lid, seq, t_ns, data))
+    assert len(minimal) <= len(frame)
+    g = RegionCodec(DataVector(layout()), meta["region"]).check(minimal)
+    assert (g.layout_id, g.seq, g.t_ns, bytes(g.data)) == (lid, seq, t_ns, data)
 
 
 @pytest.mark.parametrize("name", NAMES)

@@ -82,9 +82,7 @@ class ControlNode:
             self._gcodec = RegionCodec(self.dv, "gn_to_cn")
             self._gsub = s.declare_subscriber(
                 keys.gn_to_cn,
-                zenoh.handlers.Callback(
-                    lambda sample: self._gq.put(sample.payload.to_bytes()), indirect=False
-                ),
+                zenoh.handlers.Callback(self._on_ground, indirect=False),
             )
         self._tm = VectorCodec(self.dv)
         self._tm_pub = s.declare_publisher(
@@ -98,6 +96,9 @@ class ControlNode:
         self.first_loop_ns = 0
         self.last_loop_ns = 0
         self.loops = 0
+
+    def _on_ground(self, sample: zenoh.Sample) -> None:
+        self._gq.put(sample.payload.to_bytes())  # zenoh's thread: hand off only
 
     # -- start-up --------------------------------------------------------
     def wait_ready(self, timeout_s: float = 60.0) -> dict[str, int]:

@@ -24,13 +24,13 @@ import zenoh
 
 from ..codec import RegionCodec, VectorCodec
 from ..commands import fill_request
-from ..lockstep import ScriptCommand, resolve_write
 from ..config import CMD_NAMES, Mission
 from ..datavector import DataVector, Layout
-from ..errors import CodecError, CommandError, DataVectorError
+from ..errors import CodecError, CommandError
+from ..lockstep import ScriptCommand, resolve_write
 from ..telemetry import CsvLogger
 from ..timebase import NodeClock
-from ..transport import NodeSession
+from ..transport import NodeSession, is_matching
 from .runtime import StopFlag
 
 __all__ = [
@@ -65,10 +65,11 @@ class TelemetryReceiver:
         self.first_seq = -1
         self._sub = session.declare_subscriber(
             f"{mission.vehicle}/cn/telemetry",
-            zenoh.handlers.Callback(
-                lambda s: self._q.put((s.payload.to_bytes(), self._now())), indirect=False
-            ),
+            zenoh.handlers.Callback(self._on_sample, indirect=False),
         )
+
+    def _on_sample(self, sample: zenoh.Sample) -> None:
+        self._q.put((sample.payload.to_bytes(), self._now()))  # hand off only
 
     def next(self, timeout_s: float) -> int | None:
         while True:
@@ -229,7 +230,7 @@ class ScriptPlayer:
             return
         if not self.script or t - self._t0 < self.script[0].at_ns:
             return
-        if not self._pub.matching_status.matching:
+        if not is_matching(self._pub):
             return  # the CN is not subscribed yet: try again next snapshot
         sc = self.script.pop(0)
         cmd, index, num = validate_command(self.mission, sc.command, sc.element, sc.value)
@@ -292,7 +293,7 @@ class CommandSender:
 
     def _wait_cn_subscribed(self) -> None:
         deadline = time.monotonic() + self.timeout_s
-        while not self._pub.matching_status.matching:
+        while not is_matching(self._pub):
             if time.monotonic() > deadline:
                 raise CommandError("the control node does not subscribe to ground commands")
             self.rx.next(0.01)
