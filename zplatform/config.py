@@ -307,8 +307,12 @@ def _check_duplicate_keys(text: bytes | str) -> None:
     loader = getattr(yaml, "CSafeLoader", yaml.SafeLoader)
     root = yaml.compose(text, Loader=loader)  # already parsed once: no YAMLError here
     stack: list[tuple[yaml.Node, str]] = [(root, "$")] if root is not None else []
+    seen_nodes: set[int] = set()  # aliases share nodes, and may even be recursive
     while stack:
         node, path = stack.pop()
+        if id(node) in seen_nodes:
+            continue
+        seen_nodes.add(id(node))
         if isinstance(node, yaml.MappingNode):
             seen: set[object] = set()
             for k, v in node.value:

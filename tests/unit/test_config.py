@@ -272,6 +272,15 @@ def test_duplicate_key_in_element() -> None:
     assert "key 'name' is given twice" in err.reason
 
 
+def test_yaml_aliases_checked_once() -> None:
+    # A recursive alias must not hang the duplicate-key walk; a shared one is
+    # fine, and an element repeated through an alias is a duplicate element.
+    assert fails("a: &x [*x]\n").path == "$"
+    base = yaml.safe_dump(mission(regions={}), sort_keys=False).replace("regions: {}\n", "")
+    err = fails(base + "regions:\n  cn: [&e {name: a, type: u8}, *e]\n")
+    assert err.path == "$.regions.cn[1].name"
+
+
 # -- elements --------------------------------------------------------------------
 
 

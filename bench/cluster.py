@@ -1,0 +1,165 @@
+"""A zplatform cluster for benchmarks: DNs as processes, the CN in-process.
+
+:func:`make_mission` writes a mission YAML with N device nodes on free
+loopback ports and regions of a chosen size. :class:`BenchCluster` spawns the
+DNs (``python -m zplatform node``), builds a
+:class:`~zplatform.node.control.ControlNode` in this process, waits for the
+DNs (liveliness plus warm-up sync, never sleeps), and runs the CN's real loop
+with a hook called after every loop, so a benchmark can read the CN's Data
+Vector and the sync statistics of that loop. Every child is killed on close.
+"""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from zplatform.config import Mission, load_mission
+from zplatform.node.control import ControlNode
+from zplatform.node.runtime import PARENT_ENV, StopFlag
+from zplatform.scheduler import PeriodicLoop
+from zplatform.transport import free_port
+
+from .common import REPO_ROOT, terminate_all
+
+__all__ = ["BenchCluster", "make_mission"]
+
+
+def make_mission(
+    path: Path,
+    *,
+    n_dn: int,
+    loop_hz: float = 100.0,
+    sync_timeout_ms: float = 2.0,
+    region_bytes: int = 256,
+    lowlatency: bool = False,
+    priority: int | None = None,
+    controllers: list[dict[str, Any]] | None = None,
+    devices: list[dict[str, Any]] | None = None,
+    extra: dict[str, list[dict[str, Any]]] | None = None,
+    name: str = "bench",
+) -> Path:
+    """Write a benchmark mission to ``path`` and return it.
+
+    Each ``cn_to_dnX`` and ``dnX_to_cn`` region is padded with a ``u8``
+    array so its size is ``region_bytes`` (at least the platform elements).
+    ``extra`` appends elements to regions by name.
+    """
+    ports = {n: free_port() for n in ["cn", *[f"dn{i}" for i in range(n_dn)]]}
+    cn_ep = f"tcp/127.0.0.1:{ports['cn']}"
+    nodes: dict[str, Any] = {"cn": {"listen": [cn_ep]}}
+    for i in range(n_dn):
+        nodes[f"dn{i}"] = {"listen": [f"tcp/127.0.0.1:{ports[f'dn{i}']}"], "connect": [cn_ep]}
+    if priority is not None:
+        for n in nodes.values():
+            n["priority"] = priority
+    regions: dict[str, list[dict[str, Any]]] = {"cn": [{"name": "bench_pad", "type": "u8"}]}
+    # dnX_to_cn carries 49 B of platform elements; cn_to_dnX none.
+    for i in range(n_dn):
+        down = max(1, region_bytes)
+        up = max(1, region_bytes - 49)
+        regions[f"cn_to_dn{i}"] = [{"name": f"down_pad_{i}", "type": f"u8[{down}]"}]
+        regions[f"dn{i}_to_cn"] = [{"name": f"up_pad_{i}", "type": f"u8[{up}]"}]
+    for region, elements in (extra or {}).items():
+        regions.setdefault(region, []).extend(elements)
+    doc: dict[str, Any] = {
+        "mission": name,
+        "vehicle": "bench",
+        "loop_hz": loop_hz,
+        "sync_timeout_ms": sync_timeout_ms,
+        "transport": {"lowlatency": lowlatency},
+        "clock": {"exchanges": 50, "resync_s": 0},
+        "nodes": nodes,
+        "regions": regions,
+    }
+    if controllers:
+        doc["controllers"] = controllers
+    if devices:
+        doc["devices"] = devices
+    path.write_text(yaml.safe_dump(doc, sort_keys=False))
+    return path
+
+
+class BenchCluster:
+    """DN processes plus an in-process CN. Use as a context manager.
+
+    ``realtime``: apply SCHED_FIFO/affinity from the mission (and pass
+    ``--no-realtime`` to the DNs otherwise).
+    """
+
+    def __init__(
+        self,
+        mission_path: Path,
+        *,
+        realtime: bool = True,
+        dn_env: dict[str, dict[str, str]] | None = None,
+        log_dir: Path | None = None,
+    ) -> None:
+        self.path = mission_path
+        self.mission: Mission = load_mission(mission_path)
+        self.realtime = realtime
+        self.procs: list[subprocess.Popen[bytes]] = []
+        self.log_dir = log_dir or mission_path.parent
+        env = dict(os.environ, PYTHONUNBUFFERED="1")
+        env[PARENT_ENV] = str(os.getpid())
+        for dn in self.mission.device_nodes:
+            e = dict(env, **(dn_env or {}).get(dn, {}))
+            args = [sys.executable, "-m", "zplatform", "node", str(mission_path), dn]
+            if not realtime:
+                args.append("--no-realtime")
+            with open(self.log_dir / f"{dn}.log", "ab") as log:
+                self.procs.append(
+                    subprocess.Popen(
+                        args, stdout=log, stderr=subprocess.STDOUT, env=e, cwd=REPO_ROOT
+                    )
+                )
+        self.cn = ControlNode(self.mission, stop=StopFlag(install=False))
+
+    def start(self, timeout_s: float = 60.0) -> dict[str, int]:
+        """Wait for every DN (clock-synced, answering); returns clock offsets."""
+        return self.cn.wait_ready(timeout_s)
+
+    def run(
+        self,
+        loops: int,
+        on_loop: Callable[[int, ControlNode], None] | None = None,
+        *,
+        record: int = 0,
+    ) -> PeriodicLoop:
+        """Run the CN's real loop for ``loops`` loops; ``on_loop(loop, cn)`` after each.
+
+        Returns the PeriodicLoop (its ``stats()`` and ``lateness_ns()``).
+        """
+        cn = self.cn
+        if on_loop is not None:
+            step = cn.step
+
+            def hooked(k: int, deadline_ns: int) -> bool:
+                go = step(k, deadline_ns)
+                on_loop(k + 1, cn)
+                return go
+
+            cn.step = hooked  # type: ignore[method-assign]
+        try:
+            return cn.run(max_loops=loops, realtime=self.realtime, record=record)
+        finally:
+            if on_loop is not None:
+                del cn.step
+
+    def close(self) -> None:
+        try:
+            self.cn.close()
+        finally:
+            terminate_all(self.procs)
+
+    def __enter__(self) -> BenchCluster:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
