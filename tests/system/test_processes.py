@@ -164,3 +164,71 @@ def test_cmd_refuses_unknown_before_sending(tmp_path: Path) -> None:
         )
         assert r.returncode == 2, r.stdout + r.stderr
         assert msg in r.stderr, r.stderr
+
+
+def _fired_rows(rows: list[dict[str, str]]) -> list[dict[str, str]]:
+    return [r for r in rows if r["dn0_ign_fb"] == "1" and r["dn1_ign_fb"] == "1"]
+
+
+def test_recovery_igniter_fires_when_both_nodes_agree(tmp_path: Path) -> None:
+    """Thesis 5.1.3.2 as processes: ARM + LAUNCH sent with `zplatform cmd`, both DNs fire."""
+    m = Mission("recovery_igniter.yaml", tmp_path)
+    try:
+        m.await_state("SAFE")
+        # LAUNCH is hazardous: alone it is refused, ARM n then LAUNCH n+1 is accepted.
+        r = m.cmd("launch")
+        assert r.returncode == 1 and "REJECTED_NOT_ARMED" in r.stdout, r.stdout + r.stderr
+        r = m.cmd("launch", "--arm")
+        assert r.returncode == 0, r.stdout + r.stderr
+        assert "ARM" in r.stdout and "LAUNCH" in r.stdout and "ACCEPTED" in r.stdout
+        m.await_state("DEPLOYED", timeout_s=60)
+        summary = m.stop()
+    finally:
+        m.kill()
+    rows = read_csv(m.csv)
+    fired = _fired_rows(rows)
+    assert fired, "the igniter never fired"
+    # Neither DN drove its output before the CN commanded ignition in FIRE.
+    first_out = next(i for i, r in enumerate(rows) if "1" in (r["dn0_ign_out"], r["dn1_ign_out"]))
+    assert rows[first_out]["cn_state"] in ("FIRE", "DEPLOYED")
+    assert all(r["cn_state"] in ("FIRE", "DEPLOYED") for r in fired)
+    assert summary["final_state"] == "DEPLOYED"
+    assert summary["errors"] == 0
+    assert all(v == 0 for v in summary["missed"].values()), summary["missed"]
+
+
+def test_recovery_igniter_holds_fire_when_one_node_disagrees(tmp_path: Path) -> None:
+    """dn1 disarmed by a WRITE in flight: dn0 alone cannot fire the igniter -> NO_FIRE."""
+    path = tmp_path / "mission.yaml"
+    rewrite_endpoints(ROOT / "configs" / "recovery_igniter.yaml", path)
+    csv_path, summary_path = tmp_path / "g.csv", tmp_path / "s.json"
+    r = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "zplatform",
+            "up",
+            str(path),
+            "--duration",
+            "17",
+            "--commands",
+            str(ROOT / "configs" / "recovery_igniter_disarm.commands"),
+            "--log",
+            str(csv_path),
+            "--summary",
+            str(summary_path),
+            "--quiet",
+        ],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=180,
+    )
+    assert r.returncode == 0, r.stdout[-2000:] + r.stderr[-2000:]
+    summary = json.loads(summary_path.read_text())
+    assert [c["status"] for c in summary["commands"]] == ["ACCEPTED"] * 3
+    rows = read_csv(csv_path)
+    assert not _fired_rows(rows)
+    assert all(r["dn1_ign_out"] == "0" for r in rows)
+    assert "FIRE" in {r["cn_state"] for r in rows}
+    assert summary["final_state"] == "NO_FIRE"
