@@ -64,7 +64,7 @@ def test_plot_writes_png(tmp_path: Path) -> None:
                 "sim",
                 str(CONFIGS / "led_test.yaml"),
                 "--duration",
-                "3",
+                "16",
                 "--commands",
                 str(CONFIGS / "led_test.commands"),
                 "--log",
