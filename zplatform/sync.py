@@ -96,8 +96,10 @@ class ControlSync:
         query_timeout_s: float,
         *,
         monotonic: Callable[[], int] = time.monotonic_ns,
+        on_bad: Callable[[str, str], None] | None = None,
     ) -> None:
         self.session = session
+        self._on_bad = on_bad
         self.dv = dv
         self.dns = list(dns)
         self.timeout_ns = timeout_ns
@@ -159,11 +161,15 @@ class ControlSync:
                 break
             if payload is None:  # a reply_err: the DN refused the query
                 self._bad.set(self._bad.get() + 1)
+                if self._on_bad is not None:
+                    self._on_bad(self.dns[i], "the device node answered with an error")
                 continue
             try:
                 frame = self._in[i].check(payload)
-            except CodecError:
+            except CodecError as exc:
                 self._bad.set(self._bad.get() + 1)
+                if self._on_bad is not None:
+                    self._on_bad(self.dns[i], str(exc))
                 continue
             if frame.seq != loop or got[i]:
                 # an answer to an older loop (or a duplicate): counted, dropped
@@ -209,7 +215,7 @@ class DeviceSync:
     :meth:`wait` blocks until a valid query for a *new* loop arrives (or the
     timeout passes), applies its ``cn_to_dnX`` region, replies at once with
     ``dnX_to_cn``, and returns the loop number. Malformed queries are counted
-    in ``dnX_bad_frames`` and answered with an error; queries for a loop not
+    in ``dnX_bad_frames``, reported to ``on_bad`` and answered with an error; queries for a loop not
     newer than the last one served are answered but not applied, and do not
     trigger a loop.
     """
@@ -221,8 +227,10 @@ class DeviceSync:
         dv: DataVector,
         dn: str,
         now_ns: Callable[[], int],
+        on_bad: Callable[[str], None] | None = None,
     ) -> None:
         self.dn = dn
+        self._on_bad = on_bad
         self.dv = dv
         self._now = now_ns
         self._key = keys.dn_to_cn(dn)
@@ -258,6 +266,8 @@ class DeviceSync:
                 except CodecError as exc:
                     self._bad.set(self._bad.get() + 1)
                     query.reply_err(str(exc).encode())
+                    if self._on_bad is not None:
+                        self._on_bad(str(exc))
                     continue
                 # A lower seq with a later timestamp is a restarted CN, not
                 # an old query: follow it rather than stall forever.

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import queue
 import random
 import subprocess
 import sys
@@ -11,6 +12,7 @@ from pathlib import Path
 import pytest
 
 from zplatform.codec import encode_frame
+from zplatform.events import Event, decode_event
 from zplatform.telemetry import read_csv
 
 from .harness import CONFIGS, ROOT, Cluster
@@ -23,10 +25,25 @@ def test_minimal_mission_runs_at_rate_with_zero_misses(tmp_path: Path) -> None:
     csv_path = tmp_path / "tm.csv"
     summary_path = tmp_path / "summary.json"
     r = subprocess.run(
-        [sys.executable, "-m", "zplatform", "up", str(CONFIGS / "minimal.yaml"), "--free-ports",
-         "--duration", "3", "--log", str(csv_path), "--summary", str(summary_path),
-         "--quiet"],
-        cwd=ROOT, capture_output=True, text=True, timeout=120,
+        [
+            sys.executable,
+            "-m",
+            "zplatform",
+            "up",
+            str(CONFIGS / "minimal.yaml"),
+            "--free-ports",
+            "--duration",
+            "3",
+            "--log",
+            str(csv_path),
+            "--summary",
+            str(summary_path),
+            "--quiet",
+        ],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=120,
     )
     assert r.returncode == 0, r.stderr[-3000:]
     s = json.loads(summary_path.read_text())
@@ -76,6 +93,10 @@ def test_bad_frames_are_counted_never_applied(tmp_path: Path) -> None:
         c.advance(20)
         s = c.session
         v = c.mission.vehicle
+        events: queue.SimpleQueue[Event] = queue.SimpleQueue()
+        sub = s.declare_subscriber(
+            f"{v}/*/events", lambda sample: events.put(decode_event(sample.payload.to_bytes()))
+        )
         rng = random.Random(7)
         junk = [bytes(rng.getrandbits(8) for _ in range(rng.randint(0, 64))) for _ in range(5)]
         wrong_layout = encode_frame(0xDEADBEEF, 10**6, 0, b"\x00" * 4)
@@ -101,6 +122,14 @@ def test_bad_frames_are_counted_never_applied(tmp_path: Path) -> None:
         # The loop kept its rate.
         c.advance(50)
         assert int(c.tm.get("cn_missed_dn0")) == 0
+        # Each rejection was logged as an event by the node that rejected it.
+        seen: dict[str, int] = {}
+        while len(seen) < 2 or min(seen.values()) < n:
+            e = events.get(timeout=10)
+            if e.id == "bad_frame":
+                seen[e.node] = seen.get(e.node, 0) + 1
+        assert seen == {"cn": n, "dn0": n}
+        sub.undeclare()
 
 
 @pytest.mark.parametrize("skew_ms", [50.0, -30.0])

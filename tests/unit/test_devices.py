@@ -280,15 +280,27 @@ def test_analog_output_scales_and_clamps() -> None:
         (LED.replace("pin: 2", "pin: 4"), "$.devices[0].config.pin", "digital pin 4 out of range"),
         (LED.replace("pin: 2", "pin: -1"), "$.devices[0].config.pin", "Expected `int` >= 0"),
         (LED.replace("command: led_cmd", "command: nope"), "$.devices[0].config.command", "nope"),
-        (LED.replace("feedback: led_fb", "feedback: led_cmd"), "$.devices[0].config.feedback",
-         "does not write"),
+        (
+            LED.replace("feedback: led_fb", "feedback: led_cmd"),
+            "$.devices[0].config.feedback",
+            "does not write",
+        ),
         (LED.replace("feedback: led_fb", "feedbak: led_fb"), "$.devices[0].config", "feedbak"),
-        (LED.replace("command: led_cmd", "command: volts"), "$.devices[0].config.command",
-         "expected bool"),
-        (LED.replace("zplatform.devices:DigitalOutput", f"{HERE}:PlainDevice"),
-         "$.devices[0].class", "must subclass"),
-        (LED.replace("zplatform.devices:DigitalOutput", "zplatform.control:Controller"),
-         "$.devices[0].class", "is not a zplatform.devices.Device subclass"),
+        (
+            LED.replace("command: led_cmd", "command: volts"),
+            "$.devices[0].config.command",
+            "expected bool",
+        ),
+        (
+            LED.replace("zplatform.devices:DigitalOutput", f"{HERE}:PlainDevice"),
+            "$.devices[0].class",
+            "must subclass",
+        ),
+        (
+            LED.replace("zplatform.devices:DigitalOutput", "zplatform.control:Controller"),
+            "$.devices[0].class",
+            "is not a zplatform.devices.Device subclass",
+        ),
     ],
 )
 def test_device_config_errors_name_the_path(device: str, path: str, match: str) -> None:

@@ -30,6 +30,7 @@ from ..codec import RegionCodec, VectorCodec
 from ..config import Mission
 from ..datavector import DataVector
 from ..errors import CodecError, NodeError, TransportError
+from ..events import Severity
 from ..scheduler import GcGuard, PeriodicLoop
 from ..sync import ControlSync
 from ..timebase import NodeClock
@@ -74,6 +75,7 @@ class ControlNode:
             mission.device_nodes,
             mission.sync_timeout_ns,
             query_timeout_s=max(mission.period_ns / 1e9, 0.01),
+            on_bad=self._on_bad_reply,
         )
         self._gq: queue.SimpleQueue[bytes] = queue.SimpleQueue()
         self._gsub: zenoh.Subscriber[Any] | None = None
@@ -96,6 +98,15 @@ class ControlNode:
         self.first_loop_ns = 0
         self.last_loop_ns = 0
         self.loops = 0
+
+    def _on_bad_reply(self, dn: str, reason: str) -> None:
+        # Rare by definition: an event per bad frame is affordable and wanted.
+        self.logic.events.emit(
+            Severity.WARNING,
+            "bad_frame",
+            f"reply from {dn} rejected: {reason}",
+            self.clock.now_ns(),
+        )
 
     def _on_ground(self, sample: zenoh.Sample) -> None:
         self._gq.put(sample.payload.to_bytes())  # zenoh's thread: hand off only
@@ -151,18 +162,18 @@ class ControlNode:
             self.first_loop_ns = t
         self.sync.sync(loop, t)
         new_request = False
-        if self._gcodec is not None:
+        # empty() first: raising queue.Empty every loop would allocate.
+        if self._gcodec is not None and not self._gq.empty():
+            payload = self._gq.get_nowait()
             try:
-                payload = self._gq.get_nowait()
-            except queue.Empty:
-                pass
-            else:
-                try:
-                    self._gcodec.apply(payload)
-                    new_request = True
-                except CodecError as exc:
-                    self._bad.set(self._bad.get() + 1)
-                    self.logic.faults.error(1, f"bad ground frame: {exc}", t)
+                self._gcodec.apply(payload)
+                new_request = True
+            except CodecError as exc:
+                # Not our software failing: counted as a bad frame, not an error.
+                self._bad.set(self._bad.get() + 1)
+                self.logic.events.emit(
+                    Severity.WARNING, "bad_frame", f"ground frame rejected: {exc}", t
+                )
         self.logic.step(loop, t, new_request)
         if loop % self._divisor == 0:
             self._tm_pub.put(self._tm.encode(loop, t))

@@ -21,6 +21,7 @@ from typing import Any
 from ..clocksync import estimate_offset
 from ..config import Mission
 from ..errors import ClockSyncError, NodeError, TransportError
+from ..events import Severity
 from ..sync import DeviceSync
 from ..timebase import NodeClock
 from ..transport import NodeSession, wait_for_nodes
@@ -90,13 +91,20 @@ class DeviceNode:
             est.kept,
             est.exchanges,
         )
-        self.sync = DeviceSync(s, keys, self.dv, self.name, self.clock.now_ns)
+        self.sync = DeviceSync(
+            s, keys, self.dv, self.name, self.clock.now_ns, on_bad=self._on_bad_query
+        )
         self._events = EventPublisher(s, keys.events(self.name), self.logic.events)
         if m.clock.resync_s > 0:
             self._resync = threading.Thread(target=self._resync_loop, daemon=True)
             self._resync.start()
         self.ns.announce()
         return est.offset_ns
+
+    def _on_bad_query(self, reason: str) -> None:
+        self.logic.events.emit(
+            Severity.WARNING, "bad_frame", f"sync query rejected: {reason}", self.clock.now_ns()
+        )
 
     def _resync_loop(self) -> None:
         # Background: measure, never step the clock; the loop publishes it.
