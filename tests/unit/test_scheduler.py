@@ -608,6 +608,7 @@ def _recording_collect(generations: list[int]) -> Callable[..., int]:
 def test_collect_in_slack_only_with_enough_slack(monkeypatch: pytest.MonkeyPatch) -> None:
     generations: list[int] = []
     monkeypatch.setattr(gc, "collect", _recording_collect(generations))
+    monkeypatch.setattr(gc, "get_count", lambda: (10_000, 0, 0))  # work pending
     guard = GcGuard(threshold_ns=2 * MS)
     assert guard.collect_in_slack(5 * MS, 2 * MS) is True
     assert guard.collect_in_slack(1 * MS, 2 * MS) is False
@@ -617,9 +618,19 @@ def test_collect_in_slack_only_with_enough_slack(monkeypatch: pytest.MonkeyPatch
     assert guard.collections == 2
 
 
+def test_collect_in_slack_skips_an_empty_generation(monkeypatch: pytest.MonkeyPatch) -> None:
+    generations: list[int] = []
+    monkeypatch.setattr(gc, "collect", _recording_collect(generations))
+    monkeypatch.setattr(gc, "get_count", lambda: (3, 0, 0))  # almost nothing new
+    guard = GcGuard(threshold_ns=MS)
+    assert guard.collect_in_slack(9 * MS, MS) is False
+    assert generations == [] and guard.collections == 0
+
+
 def test_gc_guard_plugs_into_the_loop_as_slack_hook(monkeypatch: pytest.MonkeyPatch) -> None:
     generations: list[int] = []
     monkeypatch.setattr(gc, "collect", _recording_collect(generations))
+    monkeypatch.setattr(gc, "get_count", lambda: (10_000, 0, 0))  # work pending
     clock = FakeClock()
     guard = GcGuard(threshold_ns=5 * MS)
 

@@ -22,6 +22,7 @@ from ..clocksync import estimate_offset
 from ..config import Mission
 from ..errors import ClockSyncError, NodeError, TransportError
 from ..events import Severity
+from ..scheduler import GcGuard
 from ..sync import DeviceSync
 from ..timebase import NodeClock
 from ..transport import NodeSession, wait_for_nodes
@@ -133,19 +134,28 @@ class DeviceNode:
         wait = self.sync.wait
         step = self.logic.step
         now = self.clock.now_ns
-        while not self.stop.is_set():
-            loop = wait(0.2)
-            if loop is None:
-                continue
-            t = now()
-            self._drift_h.set(self.drift_ns)
-            step(loop, t)
-            self._events.flush()
-            if now() - t > period:
-                self._overruns.set(self._overruns.get() + 1)
-            self.loops += 1
-            if max_loops is not None and self.loops >= max_loops:
-                break
+        gc_guard = GcGuard()
+        gc_guard.freeze_after_startup()
+        try:
+            while not self.stop.is_set():
+                loop = wait(0.2)
+                if loop is None:
+                    continue
+                t = now()
+                self._drift_h.set(self.drift_ns)
+                step(loop, t)
+                self._events.flush()
+                # Slack until the next trigger is due: gc only runs there.
+                slack = t + period - now()
+                if slack < 0:
+                    self._overruns.set(self._overruns.get() + 1)
+                else:
+                    gc_guard.on_slack(slack)
+                self.loops += 1
+                if max_loops is not None and self.loops >= max_loops:
+                    break
+        finally:
+            gc_guard.restore()
 
     def summary(self) -> dict[str, Any]:
         return {
