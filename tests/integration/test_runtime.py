@@ -153,3 +153,44 @@ def test_cn_refuses_to_start_beyond_offset_bound(tmp_path: Path) -> None:
         assert rc != 0
         out = c.log("cn")
         assert "dn0" in out and "refuses to start" in out, out[-2000:]
+
+
+def test_up_stops_every_node_when_one_dies(tmp_path: Path) -> None:
+    """`zplatform up`: a child's death stops the run, exits non-zero, leaves no process."""
+    import psutil
+
+    from zplatform.config import load_mission
+    from zplatform.node.ground import TelemetryReceiver
+    from zplatform.timebase import NodeClock
+    from zplatform.transport import NodeSession, rewrite_endpoints
+
+    path = tmp_path / "m.yaml"
+    rewrite_endpoints(CONFIGS / "minimal.yaml", path)
+    up = subprocess.Popen(
+        [sys.executable, "-m", "zplatform", "up", str(path), "--quiet"],
+        cwd=ROOT,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+    )
+    ns = NodeSession(load_mission(path), None)
+    rx = TelemetryReceiver(ns.session, load_mission(path), NodeClock().now_ns)
+    try:
+        while rx.received < 20:
+            assert up.poll() is None, up.stdout.read().decode()[-2000:]  # type: ignore[union-attr]
+            rx.next(1.0)
+        children = psutil.Process(up.pid).children()
+        assert len(children) == 3  # dn0, gn, cn
+        dn0 = next(p for p in children if "dn0" in p.cmdline())
+        dn0.kill()
+        rc = up.wait(timeout=60)
+        out = up.stdout.read().decode()  # type: ignore[union-attr]
+        assert rc == 1, out
+        assert "dn0 died" in out
+        _, alive = psutil.wait_procs(children, timeout=15)
+        assert not alive, alive
+    finally:
+        rx.close()
+        ns.close()
+        if up.poll() is None:
+            up.kill()
+            up.wait()
