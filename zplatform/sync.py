@@ -24,6 +24,7 @@ instead of vanishing inside zenoh. It is never applied.
 from __future__ import annotations
 
 import queue
+import threading
 import time
 from collections.abc import Callable
 from typing import Any
@@ -116,11 +117,31 @@ class ControlSync:
         self._taps = [TapPublisher(session, keys.cn_to_dn(dn)) for dn in dns]
         self._q: queue.SimpleQueue[tuple[int, Any]] = queue.SimpleQueue()
         self._got = [False] * len(dns)
+        # Issued vs finalised queries (zenoh calls `drop` once per query when
+        # it is done): lets start-up wait until no warm-up reply can still come.
+        self._issued = 0
+        self._finalised = 0
+        self._idle = threading.Event()
+        self._idle.set()
         self._callbacks = [
-            zenoh.handlers.Callback(self._make_handoff(i), indirect=False) for i in range(len(dns))
+            zenoh.handlers.Callback(self._make_handoff(i), self._on_finalised, indirect=False)
+            for i in range(len(dns))
         ]
         self._consolidation = zenoh.ConsolidationMode.NONE
         self.stats = SyncStats()
+
+    def _on_finalised(self) -> None:
+        self._finalised += 1  # zenoh's thread is the only writer
+        if self._finalised == self._issued:
+            self._idle.set()
+
+    def quiesce(self, timeout_s: float) -> bool:
+        """Wait until every query issued so far is finalised, then count any
+        reply still queued as late. Returns False on timeout. Not for the loop:
+        start-up uses it so warm-up replies never land in flight counters."""
+        ok = self._idle.wait(timeout_s)
+        self.drain_late()
+        return ok
 
     def _make_handoff(self, i: int) -> Callable[[zenoh.Reply], None]:
         q = self._q
@@ -128,7 +149,14 @@ class ControlSync:
         def handoff(reply: zenoh.Reply) -> None:
             # zenoh's thread: extract the bytes and hand off, nothing more.
             ok = reply.ok
-            q.put((i, ok.payload.to_bytes() if ok is not None else None))
+            if ok is not None:
+                q.put((i, ok.payload.to_bytes()))
+                return
+            err = reply.err
+            # zenoh's own "Timeout" comes one period after a miss that the
+            # loop has already counted; any other error is the DN refusing.
+            if err is None or err.payload.to_bytes() != b"Timeout":
+                q.put((i, None))
 
         return handoff
 
@@ -138,6 +166,8 @@ class ControlSync:
         deadline = start + self.timeout_ns
         got = self._got
         n = len(self.dns)
+        self._idle.clear()
+        self._issued += n
         for i in range(n):
             got[i] = False
             out = self._out[i].encode(loop, t_ns)

@@ -143,7 +143,9 @@ class ControlNode:
                     f"control node refuses to start: {dn}'s clock is off by {off / 1e6:.3f} ms, "
                     f"beyond the mission bound of {m.clock.offset_bound_ms:g} ms"
                 )
-        # The warm-up counted rx/missed; the flight loop starts from zero.
+        # The warm-up counted rx/missed; the flight loop starts from zero,
+        # once no warm-up reply can still arrive.
+        self.sync.quiesce(timeout_s=max(2 * m.period_ns / 1e9, 1.0))
         for dn in dns:
             for name in (f"cn_rx_{dn}", f"cn_missed_{dn}", f"cn_late_{dn}"):
                 self.dv.set(name, 0)
