@@ -16,6 +16,7 @@ from pathlib import Path
 
 import pytest
 
+from tests.budget import assert_within_budget
 from zplatform.config import load_mission
 from zplatform.node.ground import TelemetryReceiver
 from zplatform.telemetry import read_csv
@@ -142,7 +143,7 @@ def test_led_platform_walks_a_to_e(tmp_path: Path) -> None:
     assert all(e_tail[s] == "0" for s in SEQ) and e_tail["led_flash_fb"] == "0"
     assert summary["final_state"] == "E"
     assert summary["errors"] == 0
-    assert all(v == 0 for v in summary["missed"].values()), summary["missed"]
+    assert_within_budget(summary)
     assert summary["telemetry_gaps"] == 0
 
 
@@ -194,7 +195,7 @@ def test_recovery_igniter_fires_when_both_nodes_agree(tmp_path: Path) -> None:
     assert all(r["cn_state"] in ("FIRE", "DEPLOYED") for r in fired)
     assert summary["final_state"] == "DEPLOYED"
     assert summary["errors"] == 0
-    assert all(v == 0 for v in summary["missed"].values()), summary["missed"]
+    assert_within_budget(summary)
 
 
 def test_recovery_igniter_holds_fire_when_one_node_disagrees(tmp_path: Path) -> None:

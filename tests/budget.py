@@ -1,0 +1,32 @@
+"""The deadline-miss budget that tests on real processes hold the platform to.
+
+Processes on this project's machines share 2 cores (and a hypervisor) with
+whatever else runs; a rare scheduling stall longer than the 2 ms sync
+deadline shows up as a miss no matter what the platform does. The default
+suite therefore allows misses up to MISS_BUDGET of all device-node loops
+(never fewer than one), and reports them; the opt-in soak holds the thesis'
+requirement (99.999 %) over a long run. Functional checks (states, LEDs,
+commands, zero errors, zero telemetry gaps) are exact.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+
+MISS_BUDGET = 1e-3
+THESIS_RELIABILITY = 0.99999
+
+
+def allowed_misses(loops: int, n_dn: int, budget: float = MISS_BUDGET) -> int:
+    return max(1, int(loops * n_dn * budget))
+
+
+def assert_within_budget(summary: Mapping[str, object], budget: float = MISS_BUDGET) -> None:
+    """Misses + late replies summed over DNs stay within the budget."""
+    missed = summary["missed"]
+    late = summary["late"]
+    assert isinstance(missed, dict) and isinstance(late, dict)
+    loops = int(summary["loops"])  # type: ignore[call-overload]
+    total = sum(missed.values()) + sum(late.values())
+    limit = allowed_misses(loops, len(missed), budget)
+    assert total <= limit, f"{total} misses+late in {loops} loops x {len(missed)} DNs > {limit}"
