@@ -1,0 +1,551 @@
+"""Turn ``bench/results/*.json`` into ``bench/REPORT.md`` and PNG plots in ``bench/plots/``.
+
+Measures nothing: it reads the result files the benchmarks wrote
+(DESIGN.md §7: ``{"bench", "machine", "params", "variants"}``) and writes one
+report section per file: what the bench measures (the first paragraph of
+``bench/<name>.py``'s docstring, read without importing it), the machine, the
+params, a table of variants × figures, the ratios against baselines where the
+result has them, and the verdict on each target. Plots (matplotlib, Agg
+backend; the project's optional ``plot`` extra):
+
+* ``sync``, ``baselines`` and any other latency bench: p50/p99 bars per variant;
+* ``rate``: miss rate vs loop rate per topology, with the 1e-4 limit, and the
+  sync p50/p99 vs loop rate;
+* ``codec``: time vs data size, log-log, against the plain-copy floor;
+* any variant carrying a ``samples`` list or a ``histogram``
+  (``{"edges"|"bins", "counts"}``): a histogram per bench.
+
+Robust by design: a missing results directory gives a report that says so; an
+unknown bench gets the generic table; a file that cannot be read or drawn gets
+a note in its section instead of stopping the report; without matplotlib the
+report is written without plots.
+
+Blocks for about a second (matplotlib's import and the PNG writes). Run
+``python -m bench.report [--results DIR] [--out FILE] [--plots DIR]``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import ast
+import json
+import math
+from collections.abc import Iterable, Sequence
+from pathlib import Path
+from typing import Any
+
+from bench.common import BENCH_DIR, RESULTS_DIR
+
+#: Sections come in this order; any other bench follows, alphabetically.
+ORDER = ("sync", "rate", "jitter", "overhead", "reaction", "baselines", "codec")
+#: The DESIGN.md §7 figures, the first columns of every variants table.
+STANDARD = ("p50_us", "p99_us", "max_us", "deadline_miss_rate", "msgs")
+#: Figures that are long arrays or nested: plotted, never tabled.
+BULKY = ("samples", "samples_ns", "samples_us", "histogram")
+#: Params shown in their own tables instead of the params list.
+STRUCTURED_PARAMS = ("targets", "ratios_p50")
+
+
+# ----------------------------------------------------------------------------- loading
+
+
+def load_results(results_dir: Path) -> list[tuple[str, dict[str, Any] | None, str | None]]:
+    """Every ``*.json`` in ``results_dir`` as ``(bench, doc or None, error or None)``, in order."""
+    out: list[tuple[str, dict[str, Any] | None, str | None]] = []
+    if not results_dir.is_dir():
+        return out
+    for path in sorted(results_dir.glob("*.json")):
+        try:
+            doc = json.loads(path.read_text(encoding="utf-8"))
+            if not isinstance(doc, dict):
+                raise ValueError("not a JSON object")
+            name = str(doc.get("bench") or path.stem)
+            out.append((name, doc, None))
+        except (OSError, ValueError) as exc:
+            out.append((path.stem, None, f"{path.name}: cannot read ({exc})"))
+
+    def key(item: tuple[str, dict[str, Any] | None, str | None]) -> tuple[int, str]:
+        name = item[0]
+        return (ORDER.index(name) if name in ORDER else len(ORDER), name)
+
+    return sorted(out, key=key)
+
+
+def bench_description(name: str) -> str:
+    """The first paragraph of ``bench/<name>.py``'s docstring (parsed, not imported), or ''."""
+    path = BENCH_DIR / f"{name}.py"
+    try:
+        doc = ast.get_docstring(ast.parse(path.read_text(encoding="utf-8")))
+    except (OSError, SyntaxError, ValueError):
+        return ""
+    if not doc:
+        return ""
+    return " ".join(doc.split("\n\n", 1)[0].split())
+
+
+# ----------------------------------------------------------------------------- formatting
+
+
+def fmt(value: Any) -> str:
+    """A cell: None as '-', floats compactly (rates in scientific notation), bools as yes/no."""
+    if value is None:
+        return "-"
+    if isinstance(value, bool):
+        return "yes" if value else "no"
+    if isinstance(value, float):
+        if math.isnan(value):
+            return "nan"
+        if value == 0.0:
+            return "0"
+        if abs(value) < 0.01 or abs(value) >= 1e7:
+            return f"{value:.2e}"
+        if abs(value) >= 100:
+            return f"{value:.1f}"
+        return f"{value:.3g}" if abs(value) < 1 else f"{value:.2f}"
+    if isinstance(value, dict | list):
+        return "`" + json.dumps(value, separators=(",", ":")) + "`"
+    return str(value).replace("|", "\\|")
+
+
+def is_scalar(value: Any) -> bool:
+    return value is None or isinstance(value, bool | int | float | str)
+
+
+def md_table(header: Sequence[str], rows: Iterable[Sequence[Any]]) -> list[str]:
+    """A Markdown table; the first column left-aligned, the others right-aligned."""
+    lines = ["| " + " | ".join(header) + " |"]
+    lines.append("|" + "|".join([":---", *["---:"] * (len(header) - 1)]) + "|")
+    for row in rows:
+        lines.append("| " + " | ".join(fmt(c) if i else str(c) for i, c in enumerate(row)) + " |")
+    return lines
+
+
+def verdict(met: Any) -> str:
+    return {True: "**met**", False: "**NOT met**"}.get(met, "not run")
+
+
+# ----------------------------------------------------------------------------- sections
+
+
+def variant_tables(variants: dict[str, dict[str, Any]], *, vs_best: bool = True) -> list[str]:
+    """The standard-figures table (with p50 vs the best p50 when ``vs_best``: variants
+    that do the same work) and tables of the other scalar figures."""
+    lines: list[str] = []
+    std = [k for k in STANDARD if any(k in f for f in variants.values())]
+    p50s = [f["p50_us"] for f in variants.values() if isinstance(f.get("p50_us"), int | float)]
+    best = min(p50s) if p50s and vs_best else None
+    header = ["variant", *std]
+    if best:
+        header.append("p50 vs best")
+    rows = []
+    for name, fig in variants.items():
+        row: list[Any] = [name, *(fig.get(k) for k in std)]
+        if best:
+            p50 = fig.get("p50_us")
+            row.append(f"{p50 / best:.2f}x" if isinstance(p50, int | float) else None)
+        rows.append(row)
+    if std:
+        lines += md_table(header, rows)
+    extra: list[str] = []
+    for fig in variants.values():
+        for k, v in fig.items():
+            if k not in STANDARD and k not in BULKY and k not in extra and is_scalar(v):
+                extra.append(k)
+    extra = [k for k in extra if k not in ("min_us", "mean_us")] + [
+        k for k in ("min_us", "mean_us") if k in extra
+    ]
+    if extra:
+        # Wide results are split into tables of at most 8 figure columns.
+        for i in range(0, len(extra), 8):
+            cols = extra[i : i + 8]
+            lines += [
+                "",
+                *md_table(
+                    ["variant", *cols],
+                    ([n, *(f.get(k) for k in cols)] for n, f in variants.items()),
+                ),
+            ]
+    return lines
+
+
+def targets_section(params: dict[str, Any], variants: dict[str, dict[str, Any]]) -> list[str]:
+    """Targets from ``params.targets`` (a list of {name, value, limit, unit, met}) and
+    from variants carrying ``target_met``."""
+    rows: list[list[Any]] = []
+    for t in params.get("targets") or []:
+        if isinstance(t, dict):
+            value = t.get("value")
+            unit = t.get("unit", "")
+            rows.append(
+                [
+                    t.get("name", "?"),
+                    f"{fmt(value)} {unit}".strip(),
+                    f"{fmt(t.get('limit'))} {unit}".strip(),
+                    verdict(t.get("met")),
+                ]
+            )
+    for name, fig in variants.items():
+        if "target_met" in fig:
+            limits = {k: v for k, v in fig.items() if k.startswith("target_") and k != "target_met"}
+            limit = ", ".join(f"{k[7:]} {fmt(v)}" for k, v in limits.items()) or "-"
+            value = fig.get("vs_copy_p50") if "target_vs_copy" in fig else fig.get("p50_us")
+            rows.append([name, fmt(value), limit, verdict(fig.get("target_met"))])
+    if not rows:
+        return []
+    return ["", "**Targets**", "", *md_table(["target", "measured", "limit", "verdict"], rows)]
+
+
+def ratios_section(params: dict[str, Any], variants: dict[str, dict[str, Any]]) -> list[str]:
+    """Ratios vs baselines: ``params.ratios_p50`` and any ``vs_*`` figure of the variants."""
+    rows: list[list[Any]] = []
+    for k, r in (params.get("ratios_p50") or {}).items():
+        rows.append([k, f"{r:.2f}x" if isinstance(r, int | float) else "-"])
+    for name, fig in variants.items():
+        for k, v in fig.items():
+            if k.startswith("vs_") and isinstance(v, int | float) and v != 1.0:
+                rows.append([f"{name} {k}", f"{v:.2f}x"])
+    if not rows:
+        return []
+    return ["", "**Ratios (p50)**", "", *md_table(["ratio", "value"], rows)]
+
+
+def rate_section(params: dict[str, Any], variants: dict[str, dict[str, Any]]) -> list[str]:
+    """The rate ladder per topology, then the highest passing rate of each."""
+    lines: list[str] = [
+        "",
+        "_miss rate_ = DN replies not in by the sync deadline / (loops × DNs); "
+        "_overrun rate_ = loop overruns / loops; a rate passes when both are under "
+        f"{fmt(params.get('max_miss_rate'))}. `deadline_miss_rate` above is per loop "
+        "(a loop whose sync hit its deadline).",
+    ]
+    topos: dict[str, list[tuple[str, dict[str, Any]]]] = {}
+    for name, fig in variants.items():
+        topos.setdefault(str(fig.get("topology", "?")), []).append((name, fig))
+    for topo, items in topos.items():
+        lines += ["", f"**Ladder, {topo}**", ""]
+        lines += md_table(
+            [
+                "rate (Hz)",
+                "sync deadline (us)",
+                "loops",
+                "miss rate",
+                "overrun rate",
+                "sync p50 (us)",
+                "sync p99 (us)",
+                "result",
+            ],
+            (
+                [
+                    fmt(f.get("rate_hz")),
+                    f.get("sync_timeout_us"),
+                    f.get("loops"),
+                    f.get("miss_rate"),
+                    f.get("overrun_rate"),
+                    f.get("p50_us"),
+                    f.get("p99_us"),
+                    "pass" if f.get("passed") else "FAIL",
+                ]
+                for _, f in items
+            ),
+        )
+    highest = params.get("highest_passing_hz") or {}
+    fails = params.get("first_failing_hz") or {}
+    if highest:
+        lines += ["", "**Highest rate held**", ""]
+        lines += md_table(
+            ["topology", "highest passing (Hz)", "first failing (Hz)"],
+            (
+                [t, h, fails.get(t) if fails.get(t) is not None else "none (ladder exhausted)"]
+                for t, h in highest.items()
+            ),
+        )
+    return lines
+
+
+def params_section(params: dict[str, Any]) -> list[str]:
+    items = [(k, v) for k, v in params.items() if k not in STRUCTURED_PARAMS]
+    if not items:
+        return []
+    return ["", "**Params:** " + "; ".join(f"`{k}` = {fmt(v)}" for k, v in items)]
+
+
+def machine_line(machine: dict[str, Any]) -> str:
+    if not machine:
+        return ""
+    keys = ("cpu_model", "cores_logical", "python", "zenoh", "kernel", "loadavg_1m", "time_utc")
+    return "**Machine:** " + ", ".join(f"{k} {machine[k]}" for k in keys if k in machine)
+
+
+# ----------------------------------------------------------------------------- plots
+
+
+def _plt() -> Any:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def plot_latency_bars(bench: str, variants: dict[str, dict[str, Any]], out: Path) -> Path | None:
+    """Grouped p50/p99 bars per variant (µs, log scale when the spread is wide)."""
+    names = [n for n, f in variants.items() if isinstance(f.get("p50_us"), int | float)]
+    if not names:
+        return None
+    plt = _plt()
+    p50 = [float(variants[n]["p50_us"]) for n in names]
+    p99 = [float(variants[n].get("p99_us") or 0.0) for n in names]
+    fig, ax = plt.subplots(figsize=(max(6.0, 0.9 * len(names) + 2), 4.5))
+    xs = range(len(names))
+    w = 0.4
+    ax.bar([x - w / 2 for x in xs], p50, w, label="p50")
+    ax.bar([x + w / 2 for x in xs], p99, w, label="p99")
+    ax.set_xticks(list(xs))
+    ax.set_xticklabels(names, rotation=30, ha="right", fontsize=8)
+    ax.set_ylabel("µs")
+    ax.set_title(f"{bench}: p50 / p99 per variant")
+    if max(p99 + p50) / max(min(p50), 1e-9) > 50:
+        ax.set_yscale("log")
+    ax.grid(axis="y", alpha=0.3)
+    ax.legend()
+    fig.tight_layout()
+    path = out / f"{bench}_latency.png"
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def plot_rate(
+    variants: dict[str, dict[str, Any]], params: dict[str, Any], out: Path
+) -> Path | None:
+    """Miss and overrun rate vs loop rate per topology (log y; zero drawn at the floor),
+    beside the sync p50/p99 vs loop rate."""
+    topos: dict[str, list[dict[str, Any]]] = {}
+    for fig in variants.values():
+        if isinstance(fig.get("rate_hz"), int | float):
+            topos.setdefault(str(fig.get("topology", "?")), []).append(fig)
+    if not topos:
+        return None
+    plt = _plt()
+    limit = float(params.get("max_miss_rate") or 1e-4)
+    floor = limit / 100
+    fig, (ax, ax2) = plt.subplots(1, 2, figsize=(11, 4.5))
+    for topo, figs in sorted(topos.items()):
+        figs.sort(key=lambda f: float(f["rate_hz"]))
+        rates = [float(f["rate_hz"]) for f in figs]
+        miss = [max(float(f.get("miss_rate") or 0.0), floor) for f in figs]
+        over = [max(float(f.get("overrun_rate") or 0.0), floor) for f in figs]
+        (line,) = ax.plot(rates, miss, "o-", label=f"{topo} miss rate")
+        ax.plot(rates, over, "x--", color=line.get_color(), alpha=0.6, label=f"{topo} overrun rate")
+        ax2.plot(
+            rates,
+            [f.get("p50_us") for f in figs],
+            "o-",
+            color=line.get_color(),
+            label=f"{topo} sync p50",
+        )
+        ax2.plot(
+            rates,
+            [f.get("p99_us") for f in figs],
+            "x--",
+            color=line.get_color(),
+            label=f"{topo} sync p99",
+        )
+        ax2.plot(rates, [f.get("sync_timeout_us") for f in figs], ":", color="grey")
+    ax.axhline(limit, color="red", lw=1, label=f"limit {limit:g}")
+    ax.set_yscale("log")
+    ax.set_xlabel("loop rate (Hz)")
+    ax.set_ylabel(f"rate (0 drawn at {floor:g})")
+    ax.set_title("deadline misses vs loop rate")
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8)
+    ax2.set_xlabel("loop rate (Hz)")
+    ax2.set_ylabel("sync duration (µs); dotted: deadline")
+    ax2.set_title("sync step vs loop rate")
+    ax2.grid(alpha=0.3)
+    ax2.legend(fontsize=8)
+    fig.tight_layout()
+    path = out / "rate.png"
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def plot_codec(variants: dict[str, dict[str, Any]], out: Path) -> Path | None:
+    """p50 time vs data size (log-log) per codec family; the copy is the floor."""
+    families: dict[str, list[tuple[float, float, float]]] = {}
+    for name, fig in variants.items():
+        size, p50 = fig.get("size_bytes"), fig.get("p50_us")
+        if isinstance(size, int | float) and isinstance(p50, int | float):
+            fam = name.rsplit("_", 1)[0]
+            families.setdefault(fam, []).append(
+                (float(size), float(p50), float(fig.get("p99_us") or p50))
+            )
+    if not families:
+        return None
+    plt = _plt()
+    fig, ax = plt.subplots(figsize=(7, 5))
+    for fam, pts in sorted(families.items(), key=lambda kv: kv[0] != "copy"):
+        pts.sort()
+        style = {"color": "black", "ls": "--"} if fam == "copy" else {}
+        ax.plot(
+            [p[0] for p in pts],
+            [p[1] for p in pts],
+            marker="o",
+            label=f"{fam} p50" + (" (floor)" if fam == "copy" else ""),
+            **style,
+        )
+    ax.set_xscale("log")
+    ax.set_yscale("log")
+    ax.set_xlabel("data bytes")
+    ax.set_ylabel("µs per frame (p50)")
+    ax.set_title("codec: encode + apply vs the plain copy")
+    ax.grid(which="both", alpha=0.3)
+    ax.legend()
+    fig.tight_layout()
+    path = out / "codec.png"
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def plot_distributions(bench: str, variants: dict[str, dict[str, Any]], out: Path) -> Path | None:
+    """Histograms of any ``samples*`` list or ``histogram`` dict the variants carry."""
+    series: list[tuple[str, Any]] = []
+    for name, fig in variants.items():
+        for key in BULKY:
+            v = fig.get(key)
+            if isinstance(v, list) and v and all(isinstance(x, int | float) for x in v):
+                scale = 1e-3 if key == "samples_ns" else 1.0
+                series.append((name, ("samples", [float(x) * scale for x in v])))
+            elif isinstance(v, dict):
+                edges = v.get("edges") or v.get("bins") or v.get("edges_us")
+                counts = v.get("counts")
+                if isinstance(edges, list) and isinstance(counts, list) and counts:
+                    series.append((name, ("hist", (edges, counts))))
+    if not series:
+        return None
+    plt = _plt()
+    fig, ax = plt.subplots(figsize=(8, 4.5))
+    for name, (kind, data) in series:
+        if kind == "samples":
+            ax.hist(data, bins=100, histtype="step", label=name)
+        else:
+            edges, counts = data
+            if len(edges) == len(counts) + 1:
+                ax.stairs(counts, edges, label=name)
+            else:
+                ax.step(edges[: len(counts)], counts, where="post", label=name)
+    ax.set_yscale("log")
+    ax.set_xlabel("µs (as recorded)")
+    ax.set_ylabel("count")
+    ax.set_title(f"{bench}: distribution")
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    path = out / f"{bench}_distribution.png"
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def make_plots(bench: str, doc: dict[str, Any], out: Path) -> list[Path]:
+    """The plots for one result; raises whatever matplotlib raises."""
+    variants = doc.get("variants") or {}
+    params = doc.get("params") or {}
+    paths: list[Path | None] = []
+    if bench == "rate":
+        paths.append(plot_rate(variants, params, out))
+    elif bench == "codec":
+        paths.append(plot_codec(variants, out))
+    else:
+        paths.append(plot_latency_bars(bench, variants, out))
+    paths.append(plot_distributions(bench, variants, out))
+    return [p for p in paths if p is not None]
+
+
+# ----------------------------------------------------------------------------- report
+
+
+def section(bench: str, doc: dict[str, Any], plots_dir: Path | None, report_dir: Path) -> list[str]:
+    """One report section: description, machine, params, tables, targets, plots."""
+    lines = [f"## {bench}", ""]
+    desc = bench_description(bench)
+    if desc:
+        lines += [desc, ""]
+    machine = machine_line(doc.get("machine") or {})
+    if machine:
+        lines.append(machine)
+    params = doc.get("params") or {}
+    variants = doc.get("variants") or {}
+    lines += params_section(params)
+    lines.append("")
+    if variants:
+        # Variants that differ in size or rate do different work: no "vs best".
+        lines += variant_tables(variants, vs_best=bench not in ("codec", "rate"))
+    else:
+        lines.append("_No variants in this result._")
+    if bench == "rate":
+        lines += rate_section(params, variants)
+    lines += ratios_section(params, variants)
+    lines += targets_section(params, variants)
+    if plots_dir is not None:
+        try:
+            for p in make_plots(bench, doc, plots_dir):
+                rel = p.relative_to(report_dir) if p.is_relative_to(report_dir) else p
+                lines += ["", f"![{p.stem}]({rel.as_posix()})"]
+        except Exception as exc:  # a plot must not take the report down
+            lines += ["", f"_Plot failed: {type(exc).__name__}: {exc}_"]
+    lines.append("")
+    return lines
+
+
+def build_report(results_dir: Path, out: Path, plots_dir: Path | None) -> str:
+    """Write the report (and plots) and return its text."""
+    results = load_results(results_dir)
+    lines = [
+        "# zplatform benchmark report",
+        "",
+        f"Generated by `python -m bench.report` from `{results_dir.name}/*.json` "
+        "(DESIGN.md §7). Latencies are in µs; miss rates are fractions of loops.",
+        "",
+    ]
+    if plots_dir is not None:
+        try:
+            _plt()
+            plots_dir.mkdir(parents=True, exist_ok=True)
+        except ImportError:
+            lines += ["_matplotlib is not installed (`pip install .[plot]`): no plots._", ""]
+            plots_dir = None
+    if not results:
+        lines += [f"_No results in `{results_dir}`: run the benchmarks first._", ""]
+    else:
+        lines += ["Contents: " + ", ".join(f"[{n}](#{n})" for n, _, _ in results), ""]
+    for name, doc, error in results:
+        if doc is None:
+            lines += [f"## {name}", "", f"_{error}_", ""]
+            continue
+        try:
+            lines += section(name, doc, plots_dir, out.parent)
+        except Exception as exc:  # an odd file gets a note, the rest still reports
+            lines += [f"## {name}", "", f"_Cannot report: {type(exc).__name__}: {exc}_", ""]
+    text = "\n".join(lines).rstrip() + "\n"
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(text, encoding="utf-8")
+    return text
+
+
+def main(argv: list[str] | None = None) -> None:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0] if __doc__ else "report")
+    p.add_argument("--results", type=Path, default=RESULTS_DIR)
+    p.add_argument("--out", type=Path, default=BENCH_DIR / "REPORT.md")
+    p.add_argument("--plots", type=Path, default=BENCH_DIR / "plots")
+    p.add_argument("--no-plots", action="store_true")
+    a = p.parse_args(argv)
+    build_report(a.results, a.out, None if a.no_plots else a.plots)
+    print(f"wrote {a.out}" + ("" if a.no_plots else f" and plots in {a.plots}"))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,356 @@
+"""The control node's sync step, beside raw zenoh and raw UDP doing the same exchange.
+
+Variants, run one after the other in one invocation, all at the same loop
+rate (100 Hz), with the same 256 B regions, the same 2 ms deadline and the
+same scheduling (see *Scheduling* below):
+
+* ``zplatform_1dn`` / ``zplatform_3dn``: a real zplatform cluster
+  (:class:`bench.cluster.BenchCluster`): 1 or 3 device-node processes and the
+  control node in this process, running its real loop
+  (:meth:`ControlNode.run`). The figure per loop is the CN's own
+  ``ControlSync.stats.duration_ns`` (``time.monotonic_ns`` from just before
+  the first region is encoded and queried until every reply has been checked
+  and applied, or the sync deadline passed);
+* ``zplatform_lowlatency_1dn`` / ``zplatform_lowlatency_3dn``: the same with
+  zenoh's ``transport/unicast/lowlatency`` (QoS off) on every node;
+* ``raw_zenoh_1`` / ``raw_zenoh_3`` / ``raw_zenoh_lowlatency_3``: bare zenoh
+  ``get``/``reply`` (:func:`bench.baselines.run_baseline`);
+* ``raw_udp_1`` / ``raw_udp_3``: Python UDP request/response, the thesis'
+  transport.
+
+What is measured, per loop: the sync exchange's duration. A loop that missed
+its deadline (a DN did not answer in time, or the step ended at or past the
+deadline) is recorded as exactly the deadline, as the baselines do, so
+``deadline_miss_rate`` counts it; the uncapped maximum of the zplatform
+variants is ``max_raw_us``. Figures come from :func:`bench.common.summarize`
+(``p50_us``, ``p99_us``, ``max_us``, ``deadline_miss_rate``, ``msgs``); the
+zplatform variants add the CN's own counters (``missed``, ``late``,
+``sync_overruns``, ``loop_overruns``) and the start lateness of its loop
+(``loop_lateness_p50_us`` / ``_p99_us``).
+
+Targets (reported in ``params.targets``, never asserted): the sync step's p99
+under 1 ms with 3 DNs, and zplatform's p50 within 1.5x of raw zenoh's with 1
+and with 3 DNs (``ratio`` = zplatform p50 / raw_zenoh p50).
+
+Scheduling: with ``--priority P`` (default 20; ``--priority 0`` turns it
+off), every node of a zplatform cluster runs SCHED_FIFO P on all its threads
+(the mission's ``priority``). So that the baselines are not at a
+disadvantage, this process switches its main thread to SCHED_FIFO P before
+anything starts: the threads zenoh creates later and the responder processes
+the baselines spawn inherit the policy.
+
+What blocks: :func:`main` blocks for the sum of the variants' durations (10 s
+each with ``--quick``, 30 s otherwise) plus the start-up of each variant's
+processes (about 1-3 s: DN processes are waited for by liveliness and a
+warm-up sync, never by sleeping). ``--minutes M`` runs only
+``zplatform_3dn`` for M minutes (the soak) and merges it into the existing
+result file as ``zplatform_3dn_soak``.
+
+Run ``python -m bench.sync [--quick] [--json PATH] [--minutes M]``; results go
+to ``bench/results/sync.json``.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+
+from bench.baselines import run_baseline
+from bench.cluster import BenchCluster, make_mission
+from bench.common import RESULTS_DIR, bench_argparser, summarize, write_result
+
+RATE_HZ = 100.0
+REGION_BYTES = 256
+DEADLINE_MS = 2.0
+PRIORITY = 20
+QUICK_S = 10.0
+FULL_S = 30.0
+TARGET_P99_3DN_US = 1000.0
+TARGET_P50_VS_ZENOH = 1.5
+
+
+@dataclass(frozen=True)
+class Variant:
+    """One row of the benchmark: which transport, how many responders, low-latency or not."""
+
+    name: str
+    kind: str  # "zplatform" | "zenoh" | "udp"
+    n: int
+    lowlatency: bool = False
+
+
+VARIANTS: tuple[Variant, ...] = (
+    Variant("zplatform_1dn", "zplatform", 1),
+    Variant("zplatform_3dn", "zplatform", 3),
+    Variant("zplatform_lowlatency_1dn", "zplatform", 1, True),
+    Variant("zplatform_lowlatency_3dn", "zplatform", 3, True),
+    Variant("raw_zenoh_1", "zenoh", 1),
+    Variant("raw_zenoh_3", "zenoh", 3),
+    Variant("raw_zenoh_lowlatency_3", "zenoh", 3, True),
+    Variant("raw_udp_1", "udp", 1),
+    Variant("raw_udp_3", "udp", 3),
+)
+
+
+def _us(ns: float) -> float:
+    return round(float(ns) / 1e3, 2)
+
+
+def inherit_fifo(priority: int) -> str:
+    """Put the calling thread in SCHED_FIFO ``priority`` so threads and children inherit it.
+
+    Returns a note for the result's params ("SCHED_FIFO 20", or why not).
+    Does not block. ``priority`` 0 means: leave the policy alone.
+    """
+    if priority <= 0:
+        return "SCHED_OTHER (realtime off)"
+    try:
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
+    except (OSError, AttributeError) as exc:
+        return f"SCHED_OTHER (SCHED_FIFO refused: {exc})"
+    return f"SCHED_FIFO {priority}"
+
+
+def run_zplatform(
+    n_dn: int,
+    *,
+    rate_hz: float,
+    duration_s: float,
+    sync_timeout_ms: float,
+    region_bytes: int = REGION_BYTES,
+    lowlatency: bool = False,
+    priority: int = PRIORITY,
+) -> dict[str, Any]:
+    """Run a zplatform cluster (``n_dn`` DN processes, CN here) for ``duration_s``.
+
+    Blocks for the start-up of the DNs plus ``rate_hz × duration_s`` loops of
+    the CN's real loop. Returns the :func:`bench.common.summarize` figures of
+    the per-loop sync durations (a missed loop counts as the deadline) plus
+    the CN's counters: ``loops``, ``missed`` and ``late`` (summed over the
+    DNs), ``sync_overruns``, ``loop_overruns``, ``skipped_periods``, the
+    uncapped ``max_raw_us`` and the loop's start lateness p50/p99. On failure
+    the DN logs are printed before the exception propagates.
+    """
+    loops = max(1, round(duration_s * rate_hz))
+    deadline_ns = round(sync_timeout_ms * 1e6)
+    with tempfile.TemporaryDirectory(prefix="zp-bench-") as tmp:
+        tmpdir = Path(tmp)
+        mission = make_mission(
+            tmpdir / "m.yaml",
+            n_dn=n_dn,
+            loop_hz=rate_hz,
+            sync_timeout_ms=sync_timeout_ms,
+            region_bytes=region_bytes,
+            lowlatency=lowlatency,
+            priority=priority if priority > 0 else None,
+        )
+        dur: npt.NDArray[np.int64] = np.zeros(loops, np.int64)
+        replied: npt.NDArray[np.int64] = np.zeros(loops, np.int64)
+        count = [0]
+
+        def hook(loop: int, cn: Any) -> None:
+            # Called after every step, on the loop thread: two stores, no allocation.
+            i = count[0]
+            if i < loops:
+                st = cn.sync.stats
+                dur[i] = st.duration_ns
+                replied[i] = st.replied
+                count[0] = i + 1
+
+        try:
+            with BenchCluster(mission, realtime=priority > 0) as c:
+                c.start()
+                periodic = c.run(loops, hook, record=loops)
+                summary = c.cn.summary()
+                lateness = periodic.lateness_ns()
+                skipped = periodic.stats().skipped_periods
+        except BaseException:
+            for log in sorted(tmpdir.glob("*.log")):
+                print(f"--- {log.name}\n{log.read_text(errors='replace')[-4000:]}", flush=True)
+            raise
+    got = count[0]
+    d = dur[:got]
+    ok = (replied[:got] == n_dn) & (d < deadline_ns)
+    samples = np.where(ok, d, deadline_ns)
+    fig = summarize(samples.tolist(), deadline_ns)
+    fig["max_raw_us"] = _us(d.max()) if got else None
+    fig["responders"] = n_dn
+    fig["loops"] = int(summary["loops"])
+    fig["missed"] = int(sum(summary["missed"].values()))
+    fig["late"] = int(sum(summary["late"].values()))
+    fig["sync_overruns"] = int(summary["sync_overruns"])
+    fig["loop_overruns"] = int(summary["loop_overruns"])
+    fig["skipped_periods"] = int(skipped)
+    fig["bad_frames"] = int(summary["bad_frames"])
+    fig["rate_hz_measured"] = round(float(summary["rate_hz"]), 2)
+    if lateness.size:
+        p50, p99 = np.percentile(lateness, [50.0, 99.0])
+        fig["loop_lateness_p50_us"] = _us(p50)
+        fig["loop_lateness_p99_us"] = _us(p99)
+    return fig
+
+
+def run_variant(v: Variant, *, duration_s: float, priority: int) -> dict[str, Any]:
+    """Run one variant at :data:`RATE_HZ` for ``duration_s`` (blocks that long plus start-up)."""
+    deadline_ns = round(DEADLINE_MS * 1e6)
+    if v.kind == "zplatform":
+        fig = run_zplatform(
+            v.n,
+            rate_hz=RATE_HZ,
+            duration_s=duration_s,
+            sync_timeout_ms=DEADLINE_MS,
+            lowlatency=v.lowlatency,
+            priority=priority,
+        )
+    else:
+        res = run_baseline(
+            v.kind, v.n, REGION_BYTES, RATE_HZ, duration_s, deadline_ns, v.lowlatency
+        )
+        fig = summarize(res["samples_ns"], deadline_ns)
+        fig["missed"] = res["missed"]
+        fig["responders"] = v.n
+    fig["transport"] = v.kind
+    fig["lowlatency"] = v.lowlatency
+    return fig
+
+
+def _ratio(variants: dict[str, dict[str, Any]], num: str, den: str) -> float | None:
+    a = variants.get(num, {}).get("p50_us")
+    b = variants.get(den, {}).get("p50_us")
+    if a is None or not b:
+        return None
+    return round(float(a) / float(b), 3)
+
+
+def targets(variants: dict[str, dict[str, Any]]) -> list[dict[str, Any]]:
+    """The sync targets, each ``{name, value, limit, unit, met}`` (``met`` None if not run)."""
+    out: list[dict[str, Any]] = []
+    p99 = variants.get("zplatform_3dn", {}).get("p99_us")
+    out.append(
+        {
+            "name": "zplatform_3dn sync p99 < 1 ms",
+            "value": p99,
+            "limit": TARGET_P99_3DN_US,
+            "unit": "us",
+            "met": None if p99 is None else bool(p99 < TARGET_P99_3DN_US),
+        }
+    )
+    for n in (1, 3):
+        r = _ratio(variants, f"zplatform_{n}dn", f"raw_zenoh_{n}")
+        out.append(
+            {
+                "name": f"zplatform_{n}dn p50 within 1.5x of raw_zenoh_{n}",
+                "value": r,
+                "limit": TARGET_P50_VS_ZENOH,
+                "unit": "x",
+                "met": None if r is None else bool(r <= TARGET_P50_VS_ZENOH),
+            }
+        )
+    return out
+
+
+def ratios(variants: dict[str, dict[str, Any]]) -> dict[str, float | None]:
+    """p50 ratios of each zplatform variant over its baselines (None where one was not run)."""
+    pairs = {
+        "zplatform_1dn/raw_zenoh_1": ("zplatform_1dn", "raw_zenoh_1"),
+        "zplatform_3dn/raw_zenoh_3": ("zplatform_3dn", "raw_zenoh_3"),
+        "zplatform_lowlatency_3dn/raw_zenoh_lowlatency_3": (
+            "zplatform_lowlatency_3dn",
+            "raw_zenoh_lowlatency_3",
+        ),
+        "zplatform_1dn/raw_udp_1": ("zplatform_1dn", "raw_udp_1"),
+        "zplatform_3dn/raw_udp_3": ("zplatform_3dn", "raw_udp_3"),
+        "raw_zenoh_3/raw_udp_3": ("raw_zenoh_3", "raw_udp_3"),
+    }
+    return {k: _ratio(variants, a, b) for k, (a, b) in pairs.items()}
+
+
+def main(argv: list[str] | None = None) -> dict[str, Any]:
+    """Run the variants in sequence, write ``bench/results/sync.json`` and print the tables."""
+    parser = bench_argparser(__doc__.splitlines()[0] if __doc__ else "sync")
+    parser.add_argument(
+        "--minutes",
+        type=float,
+        default=None,
+        help="soak: run only zplatform_3dn for this many minutes, merged into the result file",
+    )
+    parser.add_argument(
+        "--variants",
+        default=None,
+        help="comma-separated subset of: " + ",".join(v.name for v in VARIANTS),
+    )
+    parser.add_argument(
+        "--priority", type=int, default=PRIORITY, help="SCHED_FIFO priority (0: off)"
+    )
+    args = parser.parse_args(argv)
+    by_name = {v.name: v for v in VARIANTS}
+    if args.minutes is not None:
+        plan = [by_name["zplatform_3dn"]]
+        duration_s = args.minutes * 60.0
+    else:
+        names = args.variants.split(",") if args.variants else list(by_name)
+        unknown = [n for n in names if n not in by_name]
+        if unknown:
+            parser.error(f"unknown variants: {unknown}")
+        plan = [by_name[n] for n in names]
+        duration_s = QUICK_S if args.quick else FULL_S
+    sched = inherit_fifo(args.priority)
+
+    variants: dict[str, dict[str, Any]] = {}
+    for v in plan:
+        print(f"running {v.name} ({duration_s:.0f} s) ...", flush=True)
+        variants[v.name] = run_variant(v, duration_s=duration_s, priority=args.priority)
+
+    params: dict[str, Any] = {
+        "rate_hz": RATE_HZ,
+        "region_bytes": REGION_BYTES,
+        "deadline_us": DEADLINE_MS * 1e3,
+        "duration_s": duration_s,
+        "quick": bool(args.quick),
+        "scheduling": sched,
+        "zplatform_figure": "ControlSync.stats.duration_ns (monotonic_ns), CN loop thread",
+        "baseline_figure": "perf_counter_ns first send -> last reply copied out",
+    }
+    path = Path(args.json) if args.json else RESULTS_DIR / "sync.json"
+    if args.minutes is not None:
+        # The soak joins the last full run's file instead of replacing it.
+        soak = variants.pop("zplatform_3dn")
+        soak["minutes"] = args.minutes
+        soak["scheduling"] = sched
+        previous: dict[str, Any] = {}
+        if path.exists():
+            previous = json.loads(path.read_text(encoding="utf-8"))
+        if previous.get("bench") == "sync":
+            params = dict(previous.get("params", {}))
+            variants = dict(previous.get("variants", {}))
+        variants["zplatform_3dn_soak"] = soak
+        params["soak_minutes"] = args.minutes
+    params["ratios_p50"] = ratios(variants)
+    params["targets"] = targets(variants)
+    doc = write_result("sync", params, variants, str(path))
+
+    print("\nratios (p50):")
+    for k, r in params["ratios_p50"].items():
+        print(f"  {k:<50} {'-' if r is None else f'{r:.2f}x'}")
+    for t in params["targets"]:
+        verdict = {True: "met", False: "NOT met", None: "not run"}[t["met"]]
+        print(f"target {t['name']}: {verdict} ({t['value']} {t['unit']})")
+    for name, fig in variants.items():
+        if "sync_overruns" in fig:
+            print(
+                f"{name}: missed {fig['missed']}, late {fig['late']}, "
+                f"sync_overruns {fig['sync_overruns']}, loop_overruns {fig['loop_overruns']}, "
+                f"max_raw {fig['max_raw_us']} us"
+            )
+    return doc
+
+
+if __name__ == "__main__":
+    main()
