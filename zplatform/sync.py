@@ -258,9 +258,13 @@ class DeviceSync:
         dn: str,
         now_ns: Callable[[], int],
         on_bad: Callable[[str], None] | None = None,
+        stale_after_ns: int | None = None,
     ) -> None:
         self.dn = dn
         self._on_bad = on_bad
+        # A query stamped (CN's synchronized time) more than this long ago
+        # belongs to a loop the CN has already closed: answer, do not run it.
+        self._stale_after = stale_after_ns
         self.dv = dv
         self._now = now_ns
         self._key = keys.dn_to_cn(dn)
@@ -277,7 +281,14 @@ class DeviceSync:
         )
 
     def wait(self, timeout_s: float) -> int | None:
-        """Block for the next trigger; returns its loop number or None on timeout."""
+        """Block for the next trigger; returns its loop number or None on timeout.
+
+        If queries piled up while this node was not scheduled, every one but
+        the newest is answered as stale (the CN counts those replies late),
+        and so is any query stamped more than ``stale_after_ns`` ago: like the
+        CN's scheduler, a stalled DN skips missed loops and never runs a
+        burst of old ones.
+        """
         q = self._q
         deadline = time.monotonic() + timeout_s
         while True:
@@ -288,31 +299,44 @@ class DeviceSync:
                 query = q.get(timeout=left)
             except queue.Empty:
                 return None
-            with query:
-                payload = query.payload
-                data = payload.to_bytes() if payload is not None else b""
-                try:
-                    frame = self._in.check(data)
-                except CodecError as exc:
-                    self._bad.set(self._bad.get() + 1)
-                    query.reply_err(str(exc).encode())
-                    if self._on_bad is not None:
-                        self._on_bad(str(exc))
-                    continue
-                # A lower seq with a later timestamp is a restarted CN, not
-                # an old query: follow it rather than stall forever.
-                new = frame.seq > self.last_loop or frame.t_ns > self.last_t_ns + _RESTART_NS
-                if new:
-                    self._in.apply(data)
-                    self.last_loop = frame.seq
-                    self.last_t_ns = frame.t_ns
-                else:
-                    self.stale += 1
-                reply = self._out.encode(frame.seq, self._now())
-                query.reply(self._key, reply)
-            self._tap.put(reply)
+            while not q.empty():  # a backlog: answer the older query, keep the newest
+                self._serve(query, trigger=False)
+                query = q.get_nowait()
+            loop = self._serve(query, trigger=True)
+            if loop is not None:
+                return loop
+
+    def _serve(self, query: zenoh.Query, *, trigger: bool) -> int | None:
+        """Check, (maybe) apply and answer one query; the loop number if it triggers."""
+        with query:
+            payload = query.payload
+            data = payload.to_bytes() if payload is not None else b""
+            try:
+                frame = self._in.check(data)
+            except CodecError as exc:
+                self._bad.set(self._bad.get() + 1)
+                query.reply_err(str(exc).encode())
+                if self._on_bad is not None:
+                    self._on_bad(str(exc))
+                return None
+            # A lower seq with a later timestamp is a restarted CN, not an
+            # old query: follow it rather than stall forever.
+            now = self._now()
+            new = (
+                trigger
+                and (frame.seq > self.last_loop or frame.t_ns > self.last_t_ns + _RESTART_NS)
+                and (self._stale_after is None or now - frame.t_ns <= self._stale_after)
+            )
             if new:
-                return frame.seq
+                self._in.apply(data)
+                self.last_loop = frame.seq
+                self.last_t_ns = frame.t_ns
+            else:
+                self.stale += 1
+            reply = self._out.encode(frame.seq, now)
+            query.reply(self._key, reply)
+        self._tap.put(reply)
+        return frame.seq if new else None
 
     def close(self) -> None:
         self.queryable.undeclare()

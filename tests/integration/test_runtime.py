@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 import queue
 import random
 import subprocess
@@ -198,3 +199,27 @@ def test_up_stops_every_node_when_one_dies(tmp_path: Path) -> None:
         if up.poll() is None:
             up.kill()
             up.wait()
+
+
+def test_stalled_device_node_skips_missed_loops(tmp_path: Path) -> None:
+    """A DN frozen for ~30 loops answers the queued queries as stale and runs none of them."""
+    import signal
+
+    with Cluster(CONFIGS / "minimal.yaml", tmp_path) as c:
+        dn = c.spawn("dn0")
+        c.spawn("cn")
+        c.advance(20)
+        os.kill(dn.pid, signal.SIGSTOP)
+        try:
+            c.advance(30)
+        finally:
+            os.kill(dn.pid, signal.SIGCONT)
+        rx = int(c.tm.get("cn_rx_dn0"))
+        c.wait_for(lambda dv: int(dv.get("cn_rx_dn0")) >= rx + 20, 30, "dn0 back in sync")
+        cn_loop = int(c.tm.get("cn_loop"))
+        dn.terminate()
+        assert dn.wait(timeout=30) == 0
+        s = json.loads((tmp_path / "dn0.json").read_text())
+        # The backlog was answered (stale) rather than run as a burst of loops.
+        assert s["stale_queries"] >= 15, s
+        assert s["loops"] <= cn_loop - 15, (s, cn_loop)

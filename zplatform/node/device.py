@@ -93,7 +93,13 @@ class DeviceNode:
             est.exchanges,
         )
         self.sync = DeviceSync(
-            s, keys, self.dv, self.name, self.clock.now_ns, on_bad=self._on_bad_query
+            s,
+            keys,
+            self.dv,
+            self.name,
+            self.clock.now_ns,
+            on_bad=self._on_bad_query,
+            stale_after_ns=m.period_ns,
         )
         self._events = EventPublisher(s, keys.events(self.name), self.logic.events)
         if m.clock.resync_s > 0:
