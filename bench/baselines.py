@@ -84,7 +84,8 @@ class BaselineError(RuntimeError):
 def zenoh_config(
     *, listen_port: int | None, connect_port: int | None, lowlatency: bool
 ) -> zenoh.Config:
-    """A loopback peer config: no multicast, no gossip (the requester is the hub), 1 s lease.
+    """A loopback peer config: no multicast, no gossip (the requester is the hub), 1 s lease,
+    no tx batching (as zplatform's nodes).
 
     Also makes ``open`` return at once and reconnects quickly (see ZENOH_API.md §1).
     """
@@ -105,6 +106,9 @@ def zenoh_config(
         "connect/retry", "{period_init_ms: 50, period_max_ms: 200, period_increase_factor: 2}"
     )
     c.insert_json5("transport/link/tx/lease", "1000")
+    # Same transport tuning as zplatform's nodes (no tx batching), so the
+    # baseline isolates the platform's own cost, not a config difference.
+    c.insert_json5("transport/link/tx/queue/batching/enabled", "false")
     if lowlatency:
         c.insert_json5("transport/unicast/lowlatency", "true")
         c.insert_json5("transport/unicast/qos/enabled", "false")

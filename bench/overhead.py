@@ -37,8 +37,16 @@ first-miss figure is reported too (``first_miss_*``).
 Each ramp runs on a fresh cluster after a 3 s warm-up, starts from
 ``safed`` (the hook sets ``spin_mode``) and stops at the sustained miss or
 ``max_ms``; ``--quick`` runs 1 ramp per variant, the full run 3 (variants
-interleaved), and the medians are reported (each ramp in ``runs``). The thesis' Table 5 is in
-``params.thesis_table5``. Target (issue): CN overhead under 10 % with 3 DNs.
+interleaved), and the medians are reported (each ramp in ``runs``).
+
+Also reported: ``sync_p50_us`` (the CN's sync duration during the ramps)
+and ``sync_idle_p50_us`` (the same with the spin controller safed), which
+make up most of the CN's share; ``bench_hook_p50_us``, the time of this
+benchmark's own per-loop hook, which runs inside the CN's step and so is
+counted as platform time (about 0.1-0.2 % of the loop); it is fixed work,
+so it also shows how fast the shared host was during the run. The thesis'
+Table 5 is in ``params.thesis_table5``. Target (issue): CN overhead under
+10 % with 3 DNs.
 
 Blocks for about 20 s (quick) to 60 s (full), cluster start-ups included. Run it
 under ``flock /tmp/zplatform-bench.lock`` so benchmarks never overlap.

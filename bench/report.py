@@ -42,6 +42,8 @@ ORDER = ("sync", "rate", "jitter", "overhead", "reaction", "baselines", "codec")
 STANDARD = ("p50_us", "p99_us", "max_us", "deadline_miss_rate", "msgs")
 #: Figures that are long arrays or nested: plotted, never tabled.
 BULKY = ("samples", "samples_ns", "samples_us", "histogram")
+#: Benches whose variants all do the same work, so "p50 vs the best p50" means something.
+VS_BEST = ("sync", "baselines")
 #: Params shown in their own tables instead of the params list.
 STRUCTURED_PARAMS = ("targets", "ratios_p50")
 
@@ -263,10 +265,31 @@ def rate_section(params: dict[str, Any], variants: dict[str, dict[str, Any]]) ->
 
 
 def params_section(params: dict[str, Any]) -> list[str]:
-    items = [(k, v) for k, v in params.items() if k not in STRUCTURED_PARAMS]
-    if not items:
-        return []
-    return ["", "**Params:** " + "; ".join(f"`{k}` = {fmt(v)}" for k, v in items)]
+    """Short params inline; long nested ones (over 100 characters of JSON) folded away."""
+    short: list[tuple[str, Any]] = []
+    long: dict[str, Any] = {}
+    for k, v in params.items():
+        if k in STRUCTURED_PARAMS:
+            continue
+        if isinstance(v, dict | list) and len(json.dumps(v)) > 100:
+            long[k] = v
+        else:
+            short.append((k, v))
+    lines: list[str] = []
+    if short:
+        lines += ["", "**Params:** " + "; ".join(f"`{k}` = {fmt(v)}" for k, v in short)]
+    if long:
+        lines += [
+            "",
+            f"<details><summary>More params: {', '.join(long)}</summary>",
+            "",
+            "```json",
+            json.dumps(long, indent=1),
+            "```",
+            "",
+            "</details>",
+        ]
+    return lines
 
 
 def machine_line(machine: dict[str, Any]) -> str:
@@ -482,8 +505,8 @@ def section(bench: str, doc: dict[str, Any], plots_dir: Path | None, report_dir:
     lines += params_section(params)
     lines.append("")
     if variants:
-        # Variants that differ in size or rate do different work: no "vs best".
-        lines += variant_tables(variants, vs_best=bench not in ("codec", "rate"))
+        # "vs best" only where every variant does the same work (one exchange).
+        lines += variant_tables(variants, vs_best=bench in VS_BEST)
     else:
         lines.append("_No variants in this result._")
     if bench == "rate":

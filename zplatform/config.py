@@ -114,6 +114,10 @@ class TransportConfig(_Struct):
     gossip_scouting: bool = True
     lease_ms: Annotated[int, Meta(ge=100, le=60_000)] = 1000
     lowlatency: bool = False
+    # zenoh batches small messages for up to 1 ms by default: good for
+    # throughput, bad for a 2 ms sync deadline (bench/REPORT.md). Off unless
+    # a mission asks for it.
+    batching: bool = False
     shared_memory: bool = True
 
 

@@ -134,6 +134,7 @@ def zenoh_config(
         # lowlatency needs QoS off (zenoh refuses the pair otherwise).
         _insert(cfg, "transport/unicast/lowlatency", True)
         _insert(cfg, "transport/unicast/qos/enabled", False)
+    _insert(cfg, "transport/link/tx/queue/batching/enabled", t.batching)
     shm = t.shared_memory if shared_memory is None else shared_memory
     _insert(cfg, "transport/shared_memory/enabled", shm)
     return cfg
