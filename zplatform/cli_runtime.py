@@ -49,6 +49,12 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p.add_argument("--summary", help="write this node's summary JSON here")
     p.add_argument("--no-realtime", action="store_true")
     p.add_argument("--ready-timeout", type=float, default=60.0)
+    p.add_argument(
+        "--ground-wait",
+        type=float,
+        help="CN: seconds to wait for the ground node before the first loop (default: "
+        "the ready timeout); the CN starts without it after that",
+    )
     p.add_argument("-v", "--verbose", action="store_true")
     p.set_defaults(func=cmd_node)
 
@@ -93,6 +99,7 @@ def cmd_node(args: argparse.Namespace) -> int:
             duration_s=args.duration,
             realtime=realtime,
             ready_timeout_s=args.ready_timeout,
+            ground_wait_s=args.ground_wait,
         )
     elif name == "gn":
         from .lockstep import load_commands

@@ -53,6 +53,8 @@ class Cluster:
                 name,
                 "--summary",
                 str(self.tmp / f"{name}.json"),
+                # These clusters run no ground node: the CN must not wait for one.
+                *(["--ground-wait", "0"] if name == "cn" else []),
                 *extra,
             ],
             stdout=log,

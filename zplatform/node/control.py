@@ -112,7 +112,9 @@ class ControlNode:
         self._gq.put(sample.payload.to_bytes())  # zenoh's thread: hand off only
 
     # -- start-up --------------------------------------------------------
-    def wait_ready(self, timeout_s: float = 60.0) -> dict[str, int]:
+    def wait_ready(
+        self, timeout_s: float = 60.0, ground_wait_s: float | None = None
+    ) -> dict[str, int]:
         """Wait for every DN, then read their clock offsets; returns them.
 
         Raises NodeError naming the node whose offset exceeds the bound, or
@@ -120,12 +122,27 @@ class ControlNode:
         """
         m = self.mission
         dns = m.device_nodes
+        start = time.monotonic()
+        if dns:
+            try:
+                wait_for_nodes(self.ns.session, self.ns.keys, dns, timeout_s, self.stop.event)
+            except TransportError as exc:
+                raise NodeError(f"control node cannot start: {exc}") from exc
+        if m.has_ground:
+            # Wait for the ground (alive = subscribed to telemetry) so its log
+            # starts at loop 1; but never make flight depend on the ground link.
+            if ground_wait_s is None:
+                ground_wait_s = max(0.0, timeout_s - (time.monotonic() - start))
+            try:
+                wait_for_nodes(
+                    self.ns.session, self.ns.keys, ["gn"], ground_wait_s, self.stop.event
+                )
+            except TransportError:
+                log.warning(
+                    "ground node not alive after %.1f s: starting without it", ground_wait_s
+                )
         if not dns:
             return {}
-        try:
-            wait_for_nodes(self.ns.session, self.ns.keys, dns, timeout_s, self.stop.event)
-        except TransportError as exc:
-            raise NodeError(f"control node cannot start: {exc}") from exc
         # Warm-up syncs with loop 0: DNs answer (not applied as a loop) and
         # the replies carry each DN's measured clock offset.
         deadline = time.monotonic() + timeout_s
@@ -253,12 +270,13 @@ def run_control_node(
     duration_s: float | None = None,
     realtime: bool = True,
     ready_timeout_s: float = 60.0,
+    ground_wait_s: float | None = None,
 ) -> dict[str, Any]:
     """Entry function: build, wait for DNs, loop until SIGTERM/duration. Blocks."""
     stop = StopFlag()
     node = ControlNode(mission, stop=stop)
     try:
-        offsets = node.wait_ready(ready_timeout_s)
+        offsets = node.wait_ready(ready_timeout_s, ground_wait_s)
         log.info("device nodes ready; clock offsets (ns): %s", offsets)
         if duration_s is not None:
             n = max(1, round(duration_s * mission.loop_hz))

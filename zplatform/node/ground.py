@@ -116,10 +116,13 @@ def run_ground_logger(
     stop = stop or StopFlag()
     clock = NodeClock()
     node = "gn" if as_node and mission.has_ground else None
-    ns = NodeSession(mission, node)
+    ns = NodeSession(mission, node, announce=False)
     rx = TelemetryReceiver(ns.session, mission, clock.now_ns)
     logger = CsvLogger(out_csv, rx.dv.layout) if out_csv else None
     player = ScriptPlayer(ns.session, mission, script) if script else None
+    # Alive only once subscribed: the CN waits for this token before its
+    # first loop, so the log starts at loop 1.
+    ns.announce()
     start = time.monotonic()
     last_rx = start
     try:
