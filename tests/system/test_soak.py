@@ -3,7 +3,7 @@
 The thesis' verification ran the platform for twice the mission time and
 required 99.999 % network reliability (000 ch. 2.2, 5.2.1). This run holds
 the LED mission at 100 Hz as real processes and requires that reliability
-(misses + late replies over all sync messages), no loop overrun, no error and
+(missed syncs over all sync exchanges), no loop overrun, no error and
 no gap in the ground's telemetry.
 """
 
@@ -55,7 +55,7 @@ def test_led_mission_soak_has_no_misses(tmp_path: Path) -> None:
     s = json.loads(summary_path.read_text())
     loops = round(MINUTES * 60 * 100)
     assert s["loops"] == loops
-    lost = sum(s["missed"].values()) + sum(s["late"].values())
+    lost = sum(s["missed"].values())  # a late reply is its miss's answer, not another loss
     assert 1 - lost / (loops * 3) >= THESIS_RELIABILITY, (s["missed"], s["late"])
     assert s["loop_overruns"] == 0
     assert s["telemetry_received"] == loops and s["telemetry_gaps"] == 0
