@@ -436,18 +436,14 @@ class DeviceSet:
 
     def run_sensors(self, loop: int, t_ns: int) -> None:
         """Run the sensors due on ``loop``."""
-        for s in self._sensors.due(loop):
-            try:
-                s.device.run(t_ns)
-            except Exception as exc:
-                self._failed(s, exc, t_ns)
-                continue
-            if s.streak:
-                s.streak = 0
+        self._run(self._sensors, loop, t_ns)
 
     def run_actuators(self, loop: int, t_ns: int) -> None:
         """Run the actuators due on ``loop``."""
-        for s in self._actuators.due(loop):
+        self._run(self._actuators, loop, t_ns)
+
+    def _run(self, group: RateGroups[_DevSlot], loop: int, t_ns: int) -> None:
+        for s in group.due(loop):
             try:
                 s.device.run(t_ns)
             except Exception as exc:
