@@ -29,7 +29,7 @@ def _mission_report(m: Mission) -> dict[str, object]:
     regions = []
     per_loop = 0
     for r in layout.regions.values():
-        frame = r.size + 24 + (2 if r.size < 256 else 3 if r.size < 65536 else 5)
+        frame = r.size + frame_overhead(r.size)
         if r.name != "cn":
             per_loop += frame
         regions.append(

@@ -22,7 +22,7 @@ from .datavector import DataVector, Layout
 from .errors import CodecError, CommandError, NodeError
 from .events import decode_event
 from .node.runtime import PARENT_ENV, setup_logging, write_summary
-from .transport import NodeSession, rewrite_endpoints
+from .transport import KeySpace, NodeSession, rewrite_endpoints
 
 __all__ = ["register"]
 
@@ -166,22 +166,15 @@ class _TapDecoder:
 
     def __init__(self, mission: Mission) -> None:
         self.mission = mission
-        v = mission.vehicle
+        keys = KeySpace(mission.vehicle)
         self._by_key: dict[str, Any] = {}
         cn = DataVector(Layout.for_node(mission, "cn"))
-        self._by_key[f"{v}/cn/telemetry"] = (VectorCodec(cn), cn)
+        self._by_key[keys.telemetry] = (VectorCodec(cn), cn)
         for region in mission.region_names():
             if region == "cn":
                 continue
             dv = DataVector(Layout.for_regions(mission, [region]))
-            codec = RegionCodec(dv, region)
-            if region.startswith("cn_to_"):
-                key = f"{v}/cn/to_{region[6:]}"
-            elif region == "gn_to_cn":
-                key = f"{v}/gn/to_cn"
-            else:
-                key = f"{v}/{region[:-6]}/to_cn"
-            self._by_key[key] = (codec, dv)
+            self._by_key[keys.region(region)] = (RegionCodec(dv, region), dv)
 
     def decode(self, key: str, payload: bytes) -> dict[str, Any]:
         if key.endswith("/events"):
@@ -221,7 +214,7 @@ class _TapDecoder:
 def cmd_tap(args: argparse.Namespace) -> int:
     mission = load_mission(args.mission)
     dec = _TapDecoder(mission)
-    keyexpr = args.keyexpr or f"{mission.vehicle}/**"
+    keyexpr = args.keyexpr or KeySpace(mission.vehicle).everything
     q: queue.SimpleQueue[tuple[str, bytes]] = queue.SimpleQueue()
     ns = NodeSession(mission, None)
 

@@ -66,9 +66,10 @@ class Frame(msgspec.Struct, array_like=True, gc=False, frozen=True, forbid_unkno
 
 
 def frame_overhead(size: int) -> int:
-    """Bytes a frame adds around ``size`` data bytes (at most 34)."""
-    # fixarray(1) + u32(5) + u64(9) + i64(9) + bin header (2, 3 or 5)
-    return 1 + 5 + 9 + 9 + (2 if size < 256 else 3 if size < 65536 else 5)
+    """Bytes a frame adds around ``size`` data bytes (26, 27 or 29)."""
+    # fixarray(1) + u32(5) + u64(9) + i64(9) = the 24-byte header, then the
+    # bin header (2, 3 or 5 bytes, by the data length).
+    return _HDR_LEN + (2 if size < 256 else 3 if size < 65536 else 5)
 
 
 class FrameEncoder:
@@ -91,7 +92,7 @@ class FrameEncoder:
     def _resize(self, n: int) -> None:
         # A bytearray cannot be resized while a memoryview is exported.
         self._mv.release()
-        need = _HDR_LEN + (2 if n < 256 else 3 if n < 65536 else 5) + n
+        need = frame_overhead(n) + n
         self._buf = bytearray(need)
         if n < 256:
             _BIN8.pack_into(self._buf, _HDR_LEN, 0xC4, n)

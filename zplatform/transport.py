@@ -84,6 +84,14 @@ class KeySpace:
     def all_alive(self) -> str:
         return f"{self.vehicle}/*/alive"
 
+    def region(self, region: str) -> str:
+        """The key a region travels on (DESIGN.md §3): ``cn_to_dnX`` ->
+        ``cn/to_dnX``, ``dnX_to_cn`` -> ``dnX/to_cn``, ``gn_to_cn`` -> ``gn/to_cn``."""
+        src, sep, dst = region.partition("_to_")
+        if not sep or not src or not dst:
+            raise TransportError(f"{region!r} is not a sync region (src_to_dst)")
+        return f"{self.vehicle}/{src}/to_{dst}"
+
     @property
     def everything(self) -> str:
         return f"{self.vehicle}/**"

@@ -30,7 +30,7 @@ from ..errors import CodecError, CommandError
 from ..lockstep import ScriptCommand, resolve_write
 from ..telemetry import CsvLogger
 from ..timebase import NodeClock
-from ..transport import NodeSession, is_matching
+from ..transport import KeySpace, NodeSession, is_matching
 from .runtime import StopFlag
 
 __all__ = [
@@ -64,7 +64,7 @@ class TelemetryReceiver:
         self.last_seq = -1
         self.first_seq = -1
         self._sub = session.declare_subscriber(
-            f"{mission.vehicle}/cn/telemetry",
+            KeySpace(mission.vehicle).telemetry,
             zenoh.handlers.Callback(self._on_sample, indirect=False),
         )
 
@@ -210,7 +210,7 @@ class ScriptPlayer:
         self.script = list(script)
         self.req = DataVector(Layout.for_regions(mission, ["gn_to_cn"]))
         self._codec = RegionCodec(self.req, "gn_to_cn")
-        self._pub = session.declare_publisher(f"{mission.vehicle}/gn/to_cn")
+        self._pub = session.declare_publisher(KeySpace(mission.vehicle).gn_to_cn)
         self._t0: int | None = None
         self._waiting: tuple[int, ScriptCommand] | None = None
         self.results: list[CommandResult] = []
@@ -276,7 +276,7 @@ class CommandSender:
         self.rx = TelemetryReceiver(self.ns.session, mission, self.clock.now_ns)
         self.req = DataVector(Layout.for_regions(mission, ["gn_to_cn"]))
         self._codec = RegionCodec(self.req, "gn_to_cn")
-        self._pub = self.ns.session.declare_publisher(f"{mission.vehicle}/gn/to_cn")
+        self._pub = self.ns.session.declare_publisher(self.ns.keys.gn_to_cn)
 
     def validate(
         self, command: str, element: str | None, value: str | None
@@ -305,10 +305,13 @@ class CommandSender:
         self, command: str, element: str | None = None, value: str | None = None
     ) -> CommandResult:
         cmd, index, num = self.validate(command, element, value)
+        return self._send(cmd, self._next_seq(), index, num)
+
+    def _next_seq(self) -> int:
+        """Wait until the CN is up and listening; the number after its last verdict."""
         self.wait_telemetry()
         self._wait_cn_subscribed()
-        seq = int(self.rx.dv.get("cn_cmd_seq")) + 1
-        return self._send(cmd, seq, index, num)
+        return int(self.rx.dv.get("cn_cmd_seq")) + 1
 
     def _send(self, cmd: str, seq: int, index: int, num: float) -> CommandResult:
         fill_request(self.req, cmd, seq, index, num)
@@ -327,9 +330,7 @@ class CommandSender:
     def send_armed(self, command: str) -> list[CommandResult]:
         """ARM n then COMMAND n+1 (seed 003's double confirmation)."""
         cmd, index, num = self.validate(command, None, None)
-        self.wait_telemetry()
-        self._wait_cn_subscribed()
-        seq = int(self.rx.dv.get("cn_cmd_seq")) + 1
+        seq = self._next_seq()
         arm = self._send("ARM", seq, 0, 0.0)
         if not arm.accepted:
             return [arm]
