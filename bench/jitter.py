@@ -384,7 +384,7 @@ def run_segment(tmp: Path, realtime: bool, duration_s: float) -> tuple[Series, d
         "bad_frames": counts.get("cn_bad_frames"),
         "loops": stats.loops - WARMUP_LOOPS,
         "skipped_periods": stats.skipped_periods,
-        "rate_hz": round(summary["rate_hz"], 3),
+        "rate_hz": round(summary.rate_hz, 3),
         "host_stalled_loops": len(stalled),
         "host_probe": probe.summary(),
         "host_stalls_while_measuring": sum(

@@ -166,7 +166,7 @@ class Ramp:
     cn_time: dict[int, int] = field(default_factory=dict)
     """CN loop -> cn_time_ns (the CN loop top)."""
     sync_ns: list[int] = field(default_factory=list)
-    """the CN's sync duration (``cn.sync.stats.duration_ns``) of every loop of the ramp."""
+    """the CN's sync duration (``cn.sync.duration_ns``) of every loop of the ramp."""
     hook_ns: list[int] = field(default_factory=list)
     """this hook's own time per loop (it runs inside the CN's step: counted as platform)."""
 
@@ -234,7 +234,7 @@ class RampDriver:
         self.phase_loops += 1
         if self.phase in ("warmup", "cooldown"):
             if self.phase_loops > WARMUP_LOOPS // 2 or self.phase == "cooldown":
-                self.idle_sync_ns.append(cn.sync.stats.duration_ns)
+                self.idle_sync_ns.append(cn.sync.duration_ns)
             limit = WARMUP_LOOPS if self.phase == "warmup" else COOLDOWN_LOOPS
             if self.phase_loops >= limit:
                 if len(self.ramps) >= self.repeats:
@@ -251,7 +251,7 @@ class RampDriver:
         assert r is not None
         cn_loop = int(h["cn_loop"].get())
         r.cn_time[cn_loop] = int(h["cn_time_ns"].get())
-        r.sync_ns.append(cn.sync.stats.duration_ns)
+        r.sync_ns.append(cn.sync.duration_ns)
         c = self._counters()
         d = {k: c[k] - self.prev[k] for k in c}
         self.prev = c

@@ -346,10 +346,10 @@ def run_variant(tmp: Path, variant: str, toggles: int) -> dict[str, Any]:
     fig["reactions"] = len(ns)
     fig["disturbed"] = len(ns) - len(clean)
     fig["unpaired"] = pairer.unpaired
-    fig["missed"] = summary["missed"]
-    fig["late"] = summary["late"]
-    fig["cn_loop_overruns"] = summary["loop_overruns"]
-    fig["cn_sync_overruns"] = summary["sync_overruns"]
+    fig["missed"] = summary.missed
+    fig["late"] = summary.late
+    fig["cn_loop_overruns"] = summary.loop_overruns
+    fig["cn_sync_overruns"] = summary.sync_overruns
     for prefix in ("", "clean_"):
         if variant == "dn":
             mx = fig.get(f"{prefix}max_ms")

@@ -8,7 +8,7 @@ same scheduling (see *Scheduling* below):
   (:class:`bench.cluster.BenchCluster`): 1 or 3 device-node processes and the
   control node in this process, running its real loop
   (:meth:`ControlNode.run`). The figure per loop is the CN's own
-  ``ControlSync.stats.duration_ns`` (``time.monotonic_ns`` from just before
+  ``ControlSync.duration_ns`` (``time.monotonic_ns`` from just before
   the first region is encoded and queried until every reply has been checked
   and applied, or the sync deadline passed);
 * ``zplatform_lowlatency_1dn`` / ``zplatform_lowlatency_3dn``: the same with
@@ -159,9 +159,8 @@ def run_zplatform(
             # Called after every step, on the loop thread: two stores, no allocation.
             i = count[0]
             if i < loops:
-                st = cn.sync.stats
-                dur[i] = st.duration_ns
-                replied[i] = st.replied
+                dur[i] = cn.sync.duration_ns
+                replied[i] = len(cn.logic.dns) - cn.logic.pending
                 count[0] = i + 1
 
         try:
@@ -182,14 +181,14 @@ def run_zplatform(
     fig = summarize(samples.tolist(), deadline_ns)
     fig["max_raw_us"] = _us(d.max()) if got else None
     fig["responders"] = n_dn
-    fig["loops"] = int(summary["loops"])
-    fig["missed"] = int(sum(summary["missed"].values()))
-    fig["late"] = int(sum(summary["late"].values()))
-    fig["sync_overruns"] = int(summary["sync_overruns"])
-    fig["loop_overruns"] = int(summary["loop_overruns"])
+    fig["loops"] = int(summary.loops)
+    fig["missed"] = int(sum(summary.missed.values()))
+    fig["late"] = int(sum(summary.late.values()))
+    fig["sync_overruns"] = int(summary.sync_overruns)
+    fig["loop_overruns"] = int(summary.loop_overruns)
     fig["skipped_periods"] = int(skipped)
-    fig["bad_frames"] = int(summary["bad_frames"])
-    fig["rate_hz_measured"] = round(float(summary["rate_hz"]), 2)
+    fig["bad_frames"] = int(summary.bad_frames)
+    fig["rate_hz_measured"] = round(float(summary.rate_hz), 2)
     if lateness.size:
         p50, p99 = np.percentile(lateness, [50.0, 99.0])
         fig["loop_lateness_p50_us"] = _us(p50)
@@ -315,7 +314,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         "duration_s": duration_s,
         "quick": bool(args.quick),
         "scheduling": sched,
-        "zplatform_figure": "ControlSync.stats.duration_ns (monotonic_ns), CN loop thread",
+        "zplatform_figure": "ControlSync.duration_ns (monotonic_ns), CN loop thread",
         "baseline_figure": "perf_counter_ns first send -> last reply copied out",
     }
     path = Path(args.json) if args.json else RESULTS_DIR / "sync.json"

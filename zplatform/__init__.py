@@ -11,11 +11,10 @@ from .codec import (
     FrameDecoder,
     FrameEncoder,
     RegionCodec,
-    VectorCodec,
     decode_frame,
     encode_frame,
 )
-from .commands import CommandHandler, fill_request
+from .commands import CommandHandler
 from .config import Mission, decode_mission, load_mission
 from .control import Controller, ControllerSet
 from .datavector import DataVector, ElementSpec, Handle, Layout, RegionSpec
@@ -31,6 +30,7 @@ from .errors import (
     FrameSizeError,
     LayoutMismatchError,
     NodeError,
+    RecordingError,
     SchedulerError,
     StateMachineError,
     TimebaseError,
@@ -39,13 +39,15 @@ from .errors import (
 )
 from .events import Event, EventLog, Severity
 from .faults import FaultMonitor
-from .lockstep import LockstepRunner, SimResult
-from .node.logic import ControlLogic, DeviceLogic
+from .lockstep import LockstepRunner, ReplayResult, SimResult, replay
+from .loop import ControlLogic, DeviceLogic
+from .recording import Recorder
 from .scheduler import GcGuard, LoopStats, PeriodicLoop, RateGroups, setup_realtime
 from .statemachine import StateMachine
 from .telemetry import CsvLogger, read_csv
 from .timebase import NodeClock, VirtualClock
 from .transport import KeySpace
+from .uplink import ScriptCommand, ScriptPlayer, fill_request, load_commands, parse_commands
 
 __version__ = "0.1.0"
 
@@ -88,9 +90,14 @@ __all__ = [
     "NodeError",
     "PeriodicLoop",
     "RateGroups",
+    "Recorder",
+    "RecordingError",
     "RegionCodec",
     "RegionSpec",
+    "ReplayResult",
     "SchedulerError",
+    "ScriptCommand",
+    "ScriptPlayer",
     "Sensor",
     "Severity",
     "SimBoard",
@@ -99,7 +106,6 @@ __all__ = [
     "StateMachineError",
     "TimebaseError",
     "TransportError",
-    "VectorCodec",
     "VirtualClock",
     "ZPlatformError",
     "__version__",
@@ -107,7 +113,10 @@ __all__ = [
     "decode_mission",
     "encode_frame",
     "fill_request",
+    "load_commands",
     "load_mission",
+    "parse_commands",
     "read_csv",
+    "replay",
     "setup_realtime",
 ]

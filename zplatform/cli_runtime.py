@@ -16,12 +16,13 @@ from typing import Any
 
 import zenoh
 
-from .codec import RegionCodec, VectorCodec
+from .codec import RegionCodec
 from .config import Mission, load_mission
 from .datavector import DataVector, Layout
 from .errors import CodecError, CommandError, NodeError
 from .events import decode_event
-from .node.runtime import PARENT_ENV, setup_logging, write_summary
+from .node.runtime import PARENT_ENV, setup_logging
+from .summary import CnSummary, DnSummary, GnSummary, RunSummary, read_summary, write_summary
 from .transport import KeySpace, NodeSession, rewrite_endpoints
 
 __all__ = ["register"]
@@ -38,6 +39,11 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p.add_argument("--no-realtime", action="store_true", help="skip SCHED_FIFO/affinity set-up")
     p.add_argument("--quiet", action="store_true", help="no live status line")
     p.add_argument("--ready-timeout", type=float, default=60.0)
+    p.add_argument(
+        "--record",
+        metavar="DIR",
+        help="record every input of the CN's loop into DIR, for `zplatform replay DIR`",
+    )
     p.set_defaults(func=cmd_up)
 
     p = sub.add_parser("node", help="run one node of a mission (multi-host deployments)")
@@ -54,6 +60,11 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         type=float,
         help="CN: seconds to wait for the ground node before the first loop (default: "
         "the ready timeout); the CN starts without it after that",
+    )
+    p.add_argument(
+        "--record",
+        metavar="DIR",
+        help="CN: record every input of the loop into DIR, for `zplatform replay DIR`",
     )
     p.add_argument("-v", "--verbose", action="store_true")
     p.set_defaults(func=cmd_node)
@@ -90,7 +101,7 @@ def cmd_node(args: argparse.Namespace) -> int:
     mission = load_mission(args.mission)
     name = args.name
     realtime = not args.no_realtime
-    summary: dict[str, Any]
+    summary: CnSummary | DnSummary | GnSummary
     if name == "cn":
         from .node.control import run_control_node
 
@@ -100,10 +111,14 @@ def cmd_node(args: argparse.Namespace) -> int:
             realtime=realtime,
             ready_timeout_s=args.ready_timeout,
             ground_wait_s=args.ground_wait,
+            record=args.record,
+            mission_source=args.mission,
         )
+    elif args.record is not None:
+        raise NodeError("--record records the control node's loop: use it with `node MISSION cn`")
     elif name == "gn":
-        from .lockstep import load_commands
         from .node.ground import run_ground_logger
+        from .uplink import load_commands
 
         script = load_commands(args.commands) if args.commands else None
         summary = run_ground_logger(
@@ -135,7 +150,8 @@ def cmd_log(args: argparse.Namespace) -> int:
 
 
 def cmd_cmd(args: argparse.Namespace) -> int:
-    from .node.ground import CommandSender, validate_command
+    from .node.ground import CommandSender
+    from .uplink import validate_command
 
     mission = load_mission(args.mission)
     element = args.args[0] if len(args.args) > 0 else None
@@ -169,7 +185,7 @@ class _TapDecoder:
         keys = KeySpace(mission.vehicle)
         self._by_key: dict[str, Any] = {}
         cn = DataVector(Layout.for_node(mission, "cn"))
-        self._by_key[keys.telemetry] = (VectorCodec(cn), cn)
+        self._by_key[keys.telemetry] = (RegionCodec(cn), cn)
         for region in mission.region_names():
             if region == "cn":
                 continue
@@ -296,7 +312,7 @@ class _Children:
 def cmd_up(args: argparse.Namespace) -> int:
     mission = load_mission(args.mission)  # refuse a bad mission before spawning
     if args.commands:
-        from .lockstep import load_commands
+        from .uplink import load_commands
 
         load_commands(args.commands)  # and a bad script
     tmp = Path(tempfile.mkdtemp(prefix="zplatform-up-"))
@@ -332,6 +348,8 @@ def cmd_up(args: argparse.Namespace) -> int:
                 gn += ["--commands", str(Path(args.commands).resolve())]
             children.spawn("gn", gn)
         cn = ["node", path, "cn", "--summary", str(summaries["cn"]), *common]
+        if args.record:
+            cn += ["--record", str(Path(args.record).resolve())]
         if args.duration is not None:
             cn += ["--duration", str(args.duration)]
         children.spawn("cn", cn)
@@ -342,8 +360,7 @@ def cmd_up(args: argparse.Namespace) -> int:
         if code not in (0, -signal.SIGTERM) and rc == 0:
             print(f"zplatform up: node {name} exited with code {code}", file=sys.stderr)
             rc = 1
-    summary = _merge_summaries(mission, summaries)
-    summary["exit_codes"] = codes
+    summary = _merge_summaries(mission, summaries, codes)
     write_summary(args.summary, summary)
     if not args.quiet:
         _print_summary(summary)
@@ -399,38 +416,43 @@ def _watch(mission: Mission, children: _Children, args: argparse.Namespace, stop
         ns.close()
 
 
-def _merge_summaries(mission: Mission, paths: dict[str, Path]) -> dict[str, Any]:
-    per: dict[str, Any] = {}
+def _merge_summaries(
+    mission: Mission, paths: dict[str, Path], codes: dict[str, int]
+) -> RunSummary:
+    nodes: dict[str, CnSummary | DnSummary | GnSummary | None] = {}
+    cn = read_summary(paths["cn"], CnSummary)
+    gn = read_summary(paths["gn"], GnSummary) if "gn" in paths else None
     for name, p in paths.items():
-        try:
-            per[name] = json.loads(p.read_text())
-        except (OSError, ValueError):
-            per[name] = None
-    cn = per.get("cn") or {}
-    gn = per.get("gn") or {}
-    return {
-        "mission": mission.mission,
-        "loops": cn.get("loops", 0),
-        "duration_s": cn.get("duration_s", 0.0),
-        "rate_hz": cn.get("rate_hz", 0.0),
-        "loop_overruns": cn.get("loop_overruns"),
-        "sync_overruns": cn.get("sync_overruns"),
-        "missed": cn.get("missed", {}),
-        "late": cn.get("late", {}),
-        "bad_frames": cn.get("bad_frames"),
-        "telemetry_received": gn.get("telemetry_received"),
-        "telemetry_gaps": gn.get("telemetry_gaps"),
-        "commands": gn.get("commands", []),
-        "errors": cn.get("errors"),
-        "final_state": cn.get("final_state"),
-        "nodes": per,
-    }
+        if name == "cn":
+            nodes[name] = cn
+        elif name == "gn":
+            nodes[name] = gn
+        else:
+            nodes[name] = read_summary(p, DnSummary)
+    return RunSummary(
+        mission=mission.mission,
+        loops=cn.loops if cn else 0,
+        duration_s=cn.duration_s if cn else 0.0,
+        rate_hz=cn.rate_hz if cn else 0.0,
+        loop_overruns=cn.loop_overruns if cn else None,
+        sync_overruns=cn.sync_overruns if cn else None,
+        missed=cn.missed if cn else {},
+        late=cn.late if cn else {},
+        bad_frames=cn.bad_frames if cn else None,
+        telemetry_received=gn.telemetry_received if gn else None,
+        telemetry_gaps=gn.telemetry_gaps if gn else None,
+        commands=gn.commands if gn else [],
+        errors=cn.errors if cn else None,
+        final_state=cn.final_state if cn else None,
+        nodes=nodes,
+        exit_codes=codes,
+    )
 
 
-def _print_summary(s: dict[str, Any]) -> None:
+def _print_summary(s: RunSummary) -> None:
     print(
-        f"{s['mission']}: {s['loops']} loops in {s['duration_s']:.2f} s "
-        f"({s['rate_hz']:.2f} Hz); overruns loop {s['loop_overruns']} sync {s['sync_overruns']}; "
-        f"missed {s['missed']}; late {s['late']}; telemetry {s['telemetry_received']} "
-        f"(gaps {s['telemetry_gaps']}); errors {s['errors']}; final state {s['final_state']}"
+        f"{s.mission}: {s.loops} loops in {s.duration_s:.2f} s "
+        f"({s.rate_hz:.2f} Hz); overruns loop {s.loop_overruns} sync {s.sync_overruns}; "
+        f"missed {s.missed}; late {s.late}; telemetry {s.telemetry_received} "
+        f"(gaps {s.telemetry_gaps}); errors {s.errors}; final state {s.final_state}"
     )

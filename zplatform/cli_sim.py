@@ -1,4 +1,4 @@
-"""``zplatform sim``: a lockstep run of a whole mission in virtual time (DESIGN.md §6).
+"""``zplatform sim`` and ``replay``: the lockstep runner's verbs (DESIGN.md §6).
 
 ``zplatform sim MISSION [--duration S] [--commands FILE] --log CSV
 [--summary JSON]`` runs every node in this process
@@ -6,6 +6,11 @@
 to CSV, prints the states visited and each command's verdict, and exits 0
 on a clean run (no errors, no fault, every scripted command accepted), 1
 otherwise, 2 for a bad mission or script.
+
+``zplatform replay DIR [--log CSV]`` feeds a recording made by ``up --record
+DIR`` through the control loop and checks that the telemetry is
+bit-identical to what was recorded live; exits 0 when it is, 1 (naming the
+first differing loop and element) when it is not, 2 for a bad recording.
 """
 
 from __future__ import annotations
@@ -15,12 +20,15 @@ import json
 import sys
 from pathlib import Path
 
+import msgspec
+
 from .config import load_mission
 from .errors import CommandError
-from .lockstep import LockstepRunner, ScriptCommand, load_commands
+from .lockstep import LockstepRunner, replay
 from .telemetry import CsvLogger
+from .uplink import ScriptCommand, load_commands
 
-__all__ = ["cmd_sim", "register"]
+__all__ = ["cmd_replay", "cmd_sim", "register"]
 
 
 def _default_duration(script: list[ScriptCommand]) -> float:
@@ -57,6 +65,42 @@ def cmd_sim(args: argparse.Namespace) -> int:
     return 0 if res.clean else 1
 
 
+def cmd_replay(args: argparse.Namespace) -> int:
+    if args.log:
+        from .config import load_mission as _load
+        from .datavector import Layout
+        from .recording import MISSION_FILE
+
+        layout = Layout.for_node(_load(Path(args.directory) / MISSION_FILE), "cn")
+        with CsvLogger(args.log, layout) as log:
+            res = replay(args.directory, log=log)
+    else:
+        res = replay(args.directory)
+    print(
+        f"replay {res.mission}: loops {res.first_loop}..{res.last_loop} ({res.loops} loops, "
+        f"{res.telemetry_frames} telemetry frames compared); final state {res.final_state}"
+    )
+    if not res.complete:
+        print(
+            f"  the recording is incomplete (dropped loops: {res.dropped_loops}); "
+            "replayed up to the gap"
+        )
+    if args.summary:
+        Path(args.summary).write_text(json.dumps(msgspec.to_builtins(res), indent=2) + "\n")
+    d = res.first_difference
+    if d is not None:
+        print(
+            f"  DIFFERS at loop {d.loop}: {d.element} recorded {d.recorded}, "
+            f"replayed {d.replayed}"
+        )
+        return 1
+    if res.loops == 0:
+        print("  the recording holds no complete loop")
+        return 1
+    print("  telemetry bit-identical to the live run")
+    return 0
+
+
 def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p = sub.add_parser(
         "sim",
@@ -75,3 +119,12 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p.add_argument("--log", metavar="CSV", required=True, help="telemetry CSV to write")
     p.add_argument("--summary", metavar="JSON", help="write a JSON summary of the run")
     p.set_defaults(func=cmd_sim)
+
+    p = sub.add_parser(
+        "replay",
+        help="replay a recorded live run through the lockstep runner; check it bit for bit",
+    )
+    p.add_argument("directory", metavar="DIR", help="a recording made by `up --record DIR`")
+    p.add_argument("--log", metavar="CSV", help="also write the replayed telemetry as CSV")
+    p.add_argument("--summary", metavar="JSON", help="write the replay result as JSON")
+    p.set_defaults(func=cmd_replay)

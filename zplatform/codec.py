@@ -182,23 +182,41 @@ class FrameDecoder:
 
 
 class RegionCodec:
-    """Encoder and decoder bound to one region of one Data Vector.
+    """Encoder and decoder bound to one region of one Data Vector, or to the
+    whole vector (``region=None``: the telemetry frame).
 
     ``encode(seq, t_ns)`` frames the region's current bytes (one copy, into
-    the encoder's buffer); ``apply(frame)`` checks a received frame and copies
-    its data into the region (one copy), returning the decoded header.
+    the encoder's buffer). Receiving is decode once, then copy once:
+    :meth:`check` decodes and checks a frame without touching the vector and
+    :meth:`write` copies a checked frame's data in; :meth:`apply` does both.
     """
 
-    __slots__ = ("_dec", "_enc", "_view", "dv", "layout_id", "region")
+    __slots__ = ("_dec", "_enc", "_view", "dv", "layout_id", "region", "size")
 
-    def __init__(self, dv: DataVector, region: str) -> None:
-        spec = dv.layout.region(region)
+    def __init__(self, dv: DataVector, region: str | None = None) -> None:
+        if region is None:
+            layout_id, size, view, name = (
+                dv.layout.layout_id,
+                dv.layout.size,
+                dv.view(),
+                "telemetry",
+            )
+        else:
+            spec = dv.layout.region(region)
+            layout_id, size, view, name = spec.layout_id, spec.size, dv.region_view(region), region
         self.dv = dv
         self.region = region
-        self.layout_id = spec.layout_id
-        self._view = dv.region_view(region)
-        self._enc = FrameEncoder(spec.size)
-        self._dec = FrameDecoder(spec.layout_id, spec.size, region)
+        self.layout_id = layout_id
+        self.size = size
+        self._view = view
+        self._enc = FrameEncoder(size)
+        self._dec = FrameDecoder(layout_id, size, name)
+
+    @property
+    def max_frame_len(self) -> int:
+        """The longest valid frame of this region: the fixed-width header and
+        the widest bin header a peer may use. Anything longer is malformed."""
+        return _HDR_LEN + 5 + self.size
 
     def encode(self, seq: int, t_ns: int) -> bytearray:
         """Frame the region now; the returned buffer is reused by the next call."""
@@ -208,6 +226,13 @@ class RegionCodec:
         """Decode and check without applying (raises CodecError)."""
         return self._dec.decode(frame)
 
+    def write(self, frame: Frame) -> None:
+        """Copy the data of a frame returned by :meth:`check` into the region.
+
+        The frame's data is a view into the received buffer, so call this
+        before that buffer is reused."""
+        self._view[:] = frame.data
+
     def apply(self, frame: bytes | bytearray | memoryview) -> Frame:
         """Decode, check, then copy the data into the region (raises CodecError;
         the region is untouched when it does)."""
@@ -216,30 +241,4 @@ class RegionCodec:
         return f
 
 
-def vector_codec_ids(dv: DataVector) -> tuple[int, int]:
-    """``(layout_id, size)`` of a whole-vector (telemetry) frame."""
-    return dv.layout.layout_id, dv.layout.size
-
-
-class VectorCodec:
-    """Like :class:`RegionCodec` for the whole Data Vector (telemetry)."""
-
-    __slots__ = ("_dec", "_enc", "_view", "dv", "layout_id")
-
-    def __init__(self, dv: DataVector) -> None:
-        self.dv = dv
-        self.layout_id = dv.layout.layout_id
-        self._view = dv.view()
-        self._enc = FrameEncoder(dv.layout.size)
-        self._dec = FrameDecoder(self.layout_id, dv.layout.size, "telemetry")
-
-    def encode(self, seq: int, t_ns: int) -> bytearray:
-        return self._enc.encode(self.layout_id, seq, t_ns, self._view)
-
-    def apply(self, frame: bytes | bytearray | memoryview) -> Frame:
-        f = self._dec.decode(frame)
-        self._view[:] = f.data
-        return f
-
-
-__all__ += ["CodecError", "VectorCodec", "vector_codec_ids"]
+__all__ += ["CodecError"]

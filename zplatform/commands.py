@@ -39,7 +39,7 @@ RESUME call the state machine) and becomes Active. Every request writes
 request can make :meth:`CommandHandler.step` raise.
 
 The numbers are remembered for the CN's life: a ground tool continues from
-the ``cn_cmd_seq`` it reads in telemetry (see :func:`fill_request`).
+the ``cn_cmd_seq`` it reads in telemetry (see :func:`zplatform.uplink.fill_request`).
 """
 
 from __future__ import annotations
@@ -51,7 +51,7 @@ import math
 from typing import TYPE_CHECKING, Any
 
 from .config import CMD_NAMES, CMD_STATUS_NAMES
-from .errors import CommandError, ConfigError, DataVectorError
+from .errors import ConfigError
 from .events import EventLog, Severity
 from .statemachine import logic_writable
 
@@ -66,8 +66,6 @@ __all__ = [
     "CommandHandler",
     "CommandStatus",
     "check_config",
-    "element_index",
-    "fill_request",
     "writable_elements",
 ]
 
@@ -219,50 +217,6 @@ def check_config(mission: Mission, *, warn: bool = True) -> None:
                         state,
                         i,
                     )
-
-
-# ---------------------------------------------------------------------------
-# ground side
-
-
-def element_index(mission: Mission, name: str) -> int:
-    """The ``gn_cmd_element`` value naming element ``name`` (its index in the
-    CN's element list). Raises CommandError for an unknown name."""
-    names = _all_element_names(mission)
-    try:
-        return names.index(name)
-    except ValueError:
-        close = difflib.get_close_matches(name, names, n=3)
-        hint = f"; did you mean {', '.join(close)}?" if close else ""
-        raise CommandError(f"no element named {name!r}{hint}") from None
-
-
-def fill_request(
-    dv: DataVector, command: str, seq: int, element_index: int = 0, value: float = 0.0
-) -> None:
-    """Write one command request into the ``gn_to_cn`` elements of ``dv``.
-
-    ``command`` is a name of :data:`~zplatform.config.CMD_NAMES` (any case,
-    not ``NONE``); ``seq`` must be above every number the CN has seen (read
-    ``cn_cmd_seq`` from telemetry and add one). Raises CommandError for an
-    unknown command, a ``seq`` outside 1..2**32-1, an ``element_index``
-    outside 0..65535, or a ``dv`` without the ``gn_to_cn`` region. The value
-    itself is checked by the CN (a bad one is rejected there).
-    """
-    name = command.upper()
-    if name not in CMD_NAMES or name == "NONE":
-        raise CommandError(f"unknown command {command!r}; commands: {', '.join(CMD_NAMES[1:])}")
-    if not 1 <= seq <= 0xFFFF_FFFF:
-        raise CommandError(f"command number {seq} is outside 1..4294967295")
-    if not 0 <= element_index <= 0xFFFF:
-        raise CommandError(f"element index {element_index} is outside 0..65535")
-    try:
-        dv.handle("gn_cmd").set(CMD_NAMES.index(name))
-        dv.handle("gn_cmd_seq").set(seq)
-        dv.handle("gn_cmd_element").set(element_index)
-        dv.handle("gn_cmd_value").set(float(value))
-    except DataVectorError as exc:
-        raise CommandError(f"cannot fill a command request: {exc}") from exc
 
 
 # ---------------------------------------------------------------------------

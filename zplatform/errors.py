@@ -31,7 +31,8 @@ The tree::
     ├── StateMachineError        state-machine misuse at run time
     ├── CommandError             a command refused before it was sent (CLI)
     ├── ControlError             controller/device construction or wiring
-    └── NodeError                a node main cannot start or run
+    ├── NodeError                a node main cannot start or run
+    └── RecordingError           a loop recording cannot be written or read back
 """
 
 from __future__ import annotations
@@ -47,6 +48,7 @@ __all__ = [
     "FrameSizeError",
     "LayoutMismatchError",
     "NodeError",
+    "RecordingError",
     "SchedulerError",
     "StateMachineError",
     "TimebaseError",
@@ -122,3 +124,7 @@ class ControlError(ZPlatformError):
 
 class NodeError(ZPlatformError):
     """A node main could not start, or stopped on an unrecoverable error."""
+
+
+class RecordingError(ZPlatformError):
+    """A loop recording cannot be written, or read back for a replay."""

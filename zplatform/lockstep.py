@@ -1,105 +1,61 @@
 """The lockstep runner: every node of a mission in one process, in virtual time.
 
-:class:`LockstepRunner` drives the same sans-IO node logic as the zenoh
-runtime (:class:`~zplatform.node.logic.ControlLogic`,
-:class:`~zplatform.node.logic.DeviceLogic`) and moves the same region
-frames (:class:`~zplatform.codec.RegionCodec`, encoded and decoded, not
-copied around the codec), in the protocol's order. Each loop, at virtual time
-``t = start_ns + loop * period_ns``:
+:class:`LockstepRunner` is the second driver of the sans-IO loop
+(:mod:`zplatform.loop`): it moves the same region frames, encoded and
+decoded, between :class:`~zplatform.loop.ControlLogic`, every
+:class:`~zplatform.loop.DeviceLogic` and a ground side that plays a command
+script with the same :class:`~zplatform.uplink.ScriptPlayer` as the live
+ground node. It has no protocol order of its own. Loop ``n`` (from 1, as
+live) runs at virtual time ``t = start_ns + (n - 1) * period_ns``:
 
-1. for each device node in order: the CN encodes ``cn_to_dnX``; the DN
-   applies it and replies at once with ``dnX_to_cn`` as it stood *before* its
-   step; the CN applies the reply (``cn_rx_dnX += 1``); the DN runs its step;
-2. the ground node sends at most one scripted command that has come due
-   (``gn_to_cn`` filled with :func:`~zplatform.commands.fill_request`, numbers
-   1, 2, 3, ...), which the CN applies (``new_request=True``);
-3. the CN runs its step;
-4. on telemetry loops (``loop % telemetry_divisor == 0``) the CN encodes its
-   whole vector, the ground side applies it and, given a
-   :class:`~zplatform.telemetry.CsvLogger`, logs it with
-   ``rx_time_ns = t``.
+1. ``frames = cn.begin(n, t)``; each DN in order takes its frame and
+   replies (:meth:`~zplatform.loop.DeviceLogic.step`), and the reply goes
+   back to ``cn.reply``;
+2. ``cn.finish(ground)`` with the request frame the script player produced
+   from the previous loop's telemetry (if any);
+3. on telemetry loops the ground side applies the telemetry frame, logs it
+   (``rx_time_ns = t``) and lets the script player answer.
 
 No frame is ever lost or late here, so ``cn_missed_dnX`` and ``cn_late_dnX``
 stay 0. Nothing reads the wall clock except the speed figure of
 :class:`SimResult`, and nothing iterates a set or hashes into the output: the
 same mission and the same command script give a byte-identical CSV log.
 
-Command scripts (:func:`parse_commands`, :func:`load_commands`) have one
-command per line, ``#`` starts a comment::
-
-    at 0.5 arm
-    at 1.0 launch
-    at 2.0 write seq_leds_mode manual
-    at 9.0 abort
-
-Times are seconds from the start of the run (decimal, read exactly).
-Commands run in time order (file order for equal times), at most one per
-loop: one due while another is being sent waits for the next loop.
+:func:`replay` feeds a live run's recorded loop inputs
+(:mod:`zplatform.recording`) through a fresh control loop and checks that
+its telemetry is bit-identical to what was recorded.
 """
 
 from __future__ import annotations
 
-import re
 import time
-from decimal import Decimal, InvalidOperation
 from pathlib import Path
 from typing import Any
 
 import msgspec
+import numpy as np
 
-from .codec import RegionCodec, VectorCodec
-from .commands import fill_request
-from .config import CMD_NAMES, Mission
-from .datavector import DataVector, Handle, Layout
+from .codec import RegionCodec
+from .config import Mission
+from .datavector import DataVector, Layout
 from .devices import Board
-from .errors import CommandError, DataVectorError
 from .events import Event
-from .node.logic import ControlLogic, DeviceLogic
+from .loop import ControlLogic, DeviceLogic
 from .telemetry import CsvLogger
 from .timebase import VirtualClock
+from .uplink import CommandOutcome, ScriptCommand, ScriptPlayer
 
 __all__ = [
     "DEFAULT_START_NS",
-    "CommandOutcome",
+    "Difference",
     "LockstepRunner",
-    "ScriptCommand",
+    "ReplayResult",
     "SimResult",
-    "load_commands",
-    "parse_commands",
+    "replay",
 ]
 
 DEFAULT_START_NS = 1_700_000_000_000_000_000
-"""Virtual time of loop 0 (2023-11-14T22:13:20Z): fixed, so runs repeat exactly."""
-
-_COMMANDS = tuple(c.lower() for c in CMD_NAMES if c != "NONE")
-_LINE_RE = re.compile(r"^at\s+(\S+)\s+(\S+)(?:\s+(.*))?$")
-
-
-class ScriptCommand(msgspec.Struct, frozen=True):
-    """One scripted operator command.
-
-    ``at_ns`` is the time from the start of the run; ``command`` the upper
-    case command name; ``element`` and ``value`` (text as written) for
-    WRITE; ``source`` is ``file:line`` for messages.
-    """
-
-    at_ns: int
-    command: str
-    element: str | None = None
-    value: str | None = None
-    source: str = "<script>"
-
-
-class CommandOutcome(msgspec.Struct, frozen=True):
-    """What became of a scripted command: sent at ``t_ns`` (virtual, since start)
-    with number ``seq`` in loop ``loop``; ``status`` is the CN's verdict."""
-
-    source: str
-    command: str
-    seq: int
-    loop: int
-    t_ns: int
-    status: str
+"""Virtual time of loop 1 (2023-11-14T22:13:20Z): fixed, so runs repeat exactly."""
 
 
 class SimResult(msgspec.Struct):
@@ -181,119 +137,7 @@ class SimResult(msgspec.Struct):
 
 
 # ---------------------------------------------------------------------------
-# command scripts
-
-
-def _seconds_to_ns(text: str, where: str) -> int:
-    try:
-        d = Decimal(text)
-    except InvalidOperation:
-        raise CommandError(f"{where}: time {text!r} is not a number of seconds") from None
-    if not d.is_finite() or d < 0:
-        raise CommandError(f"{where}: time {text!r} must be a finite number >= 0")
-    return int((d * 1_000_000_000).to_integral_value())
-
-
-def parse_commands(text: str, source: str = "<string>") -> list[ScriptCommand]:
-    """Parse a command script (module doc); raises CommandError naming ``source:line``.
-
-    Checks the syntax and command names only; elements and values of WRITE
-    are checked against the mission by :class:`LockstepRunner`. The result is
-    in time order (stable: file order for equal times).
-    """
-    out: list[ScriptCommand] = []
-    for n, raw in enumerate(text.splitlines(), start=1):
-        line = raw.split("#", 1)[0].strip()
-        if not line:
-            continue
-        where = f"{source}:{n}"
-        m = _LINE_RE.match(line)
-        if m is None:
-            raise CommandError(f"{where}: expected 'at SECONDS COMMAND [ARGS]', got {line!r}")
-        at_ns = _seconds_to_ns(m.group(1), where)
-        cmd = m.group(2).lower()
-        args = (m.group(3) or "").split()
-        if cmd not in _COMMANDS:
-            raise CommandError(
-                f"{where}: unknown command {m.group(2)!r}; expected one of {', '.join(_COMMANDS)}"
-            )
-        if cmd == "write":
-            if len(args) != 2:
-                raise CommandError(f"{where}: write takes ELEMENT VALUE, got {args}")
-            out.append(ScriptCommand(at_ns, "WRITE", args[0], args[1], where))
-            continue
-        if args:
-            raise CommandError(f"{where}: {cmd} takes no arguments, got {' '.join(args)!r}")
-        out.append(ScriptCommand(at_ns, cmd.upper(), source=where))
-    out.sort(key=lambda c: c.at_ns)  # stable
-    return out
-
-
-def load_commands(path: str | Path) -> list[ScriptCommand]:
-    """Read and parse a command script file (CommandError on a bad line or file)."""
-    p = Path(path)
-    try:
-        text = p.read_text(encoding="utf-8")
-    except OSError as exc:
-        raise CommandError(f"cannot read command script {str(p)!r}: {exc.strerror}") from exc
-    except UnicodeDecodeError as exc:
-        raise CommandError(f"{p}: not UTF-8 text: {exc}") from exc
-    return parse_commands(text, str(p))
-
-
-def resolve_write(layout: Layout, element: str, value: str, where: str) -> tuple[int, float]:
-    """``(gn_cmd_element, gn_cmd_value)`` of ``write element value``.
-
-    ``value`` may be a number, an enum name, or true/false/on/off for a
-    bool. Raises CommandError naming ``where`` for an unknown element, an
-    array, or a value that does not fit (the CN checks again).
-    """
-    try:
-        spec = layout.element(element)
-    except DataVectorError as exc:
-        raise CommandError(f"{where}: {exc}") from None
-    if spec.count:
-        raise CommandError(f"{where}: {element} is an array; WRITE sets one scalar")
-    v: Any = value
-    if spec.enum is not None and value in spec.enum:
-        v = spec.enum.index(value)
-    elif spec.scalar.kind == "bool" and value.lower() in ("true", "on", "false", "off"):
-        v = 1 if value.lower() in ("true", "on") else 0
-    try:
-        num = float(v)
-    except ValueError:
-        raise CommandError(f"{where}: {value!r} is not a valid value for {element}") from None
-    try:
-        DataVector.coerce(spec, int(num) if num.is_integer() else num)
-    except DataVectorError as exc:
-        raise CommandError(f"{where}: {exc}") from None
-    return spec.index, num
-
-
-# ---------------------------------------------------------------------------
 # the runner
-
-
-class _Link:
-    """The CN <-> one DN sync path: four codecs and the rx counter."""
-
-    __slots__ = ("cn_rx", "cn_tx", "dev", "dn_rx", "dn_tx", "rx")
-
-    def __init__(self, cn_dv: DataVector, dev: DeviceLogic) -> None:
-        dn = dev.node
-        self.dev = dev
-        self.cn_tx = RegionCodec(cn_dv, f"cn_to_{dn}")
-        self.dn_rx = RegionCodec(dev.dv, f"cn_to_{dn}")
-        self.dn_tx = RegionCodec(dev.dv, f"{dn}_to_cn")
-        self.cn_rx = RegionCodec(cn_dv, f"{dn}_to_cn")
-        self.rx: Handle = cn_dv.handle(f"cn_rx_{dn}")
-
-
-class _Due(msgspec.Struct, frozen=True):
-    loop: int
-    command: ScriptCommand
-    element_index: int
-    value: float
 
 
 class LockstepRunner:
@@ -326,103 +170,48 @@ class LockstepRunner:
         self.devices = [
             DeviceLogic(mission, dn, board=boards.get(dn)) for dn in mission.device_nodes
         ]
-        cn_dv = self.control.dv
-        self._links = tuple(_Link(cn_dv, d) for d in self.devices)
-        # The ground side: a command request vector and a telemetry receiver.
-        self.ground_dv: DataVector | None = None
-        self._gn_tx: RegionCodec | None = None
-        self._gn_rx: RegionCodec | None = None
-        if mission.has_ground:
-            self.ground_dv = DataVector(Layout.for_regions(mission, ["gn_to_cn"]))
-            self._gn_tx = RegionCodec(self.ground_dv, "gn_to_cn")
-            self._gn_rx = RegionCodec(cn_dv, "gn_to_cn")
+        # The ground side: a telemetry receiver and the script player.
         self.telemetry_dv = DataVector(Layout.for_node(mission, "cn"))
-        self._tm_tx = VectorCodec(cn_dv)
-        self._tm_rx = VectorCodec(self.telemetry_dv)
-        self._script = self._resolve(commands or [])
-        self._next_cmd = 0
-        self._seq = 0
+        self._tm_rx = RegionCodec(self.telemetry_dv)
+        self.player = ScriptPlayer(mission, commands or [])
+        self._ground: bytearray | None = None
         self.loop = 0
+        """Loops run so far (the number of the last one)."""
         self.telemetry_received = 0
-        self._state_h = cn_dv.handle("cn_state")
-        self._status_h = cn_dv.handle("cn_cmd_status")
+        self._state_h = self.control.dv.handle("cn_state")
         self._states: list[str] = []
         self._last_state = -1
         self._events: list[Event] = []
-        self._outcomes: list[CommandOutcome] = []
         self._wall_s = 0.0
-
-    def _resolve(self, script: list[ScriptCommand]) -> tuple[_Due, ...]:
-        if script and not self.mission.has_ground:
-            raise CommandError(
-                f"{script[0].source}: mission {self.mission.mission!r} has no ground node 'gn' "
-                "to send commands"
-            )
-        layout = self.control.layout
-        out = []
-        for c in sorted(script, key=lambda c: c.at_ns):
-            index, value = 0, 0.0
-            if c.command == "WRITE":
-                if c.element is None or c.value is None:
-                    raise CommandError(f"{c.source}: write needs ELEMENT VALUE")
-                index, value = resolve_write(layout, c.element, c.value, c.source)
-            # First loop whose time is at or after the command's time.
-            due = -(-c.at_ns // self.period_ns)
-            out.append(_Due(due, c, index, value))
-        return tuple(out)
 
     # -- running -----------------------------------------------------------
     def step(self, log: CsvLogger | None = None) -> None:
         """Run one loop (module doc order) and advance the virtual clock."""
-        loop = self.loop
+        loop = self.loop + 1
         t = self.clock.now_ns()
-        for link in self._links:
-            link.dn_rx.apply(link.cn_tx.encode(loop, t))
-            link.cn_rx.apply(link.dn_tx.encode(loop, t))
-            link.rx.set(link.rx.get() + 1)
-            link.dev.step(loop, t)
-        sent: _Due | None = None
-        script = self._script
-        if self._next_cmd < len(script) and script[self._next_cmd].loop <= loop:
-            sent = script[self._next_cmd]
-            self._next_cmd += 1
-            self._send(sent, t)
-        control = self.control
-        control.step(loop, t, sent is not None)
-        if sent is not None:
-            self._outcomes.append(
-                CommandOutcome(
-                    sent.command.source,
-                    sent.command.command,
-                    self._seq,
-                    loop,
-                    t - self.start_ns,
-                    self._status_h.spec.name_of(self._status_h.get()),
-                )
-            )
-        if loop % self.mission.telemetry_divisor == 0:
-            self._tm_rx.apply(self._tm_tx.encode(loop, t))
+        cn = self.control
+        frames = cn.begin(loop, t)
+        for i, dev in enumerate(self.devices):
+            cn.reply(i, dev.step(frames[i], t))
+        ground, self._ground = self._ground, None
+        tm = cn.finish(ground)
+        if tm is not None:
+            self._tm_rx.apply(tm)
             self.telemetry_received += 1
             if log is not None:
                 log.write(t, self.telemetry_dv)
+            self._ground = self.player.on_telemetry(self.telemetry_dv)
         state = self._state_h.get()
         if state != self._last_state:
             self._last_state = state
             self._states.append(self._state_h.spec.name_of(state))
-        if control.events.pending:
-            self._events.extend(control.events.drain())
+        if cn.events.pending:
+            self._events.extend(cn.events.drain())
         for d in self.devices:
             if d.events.pending:
                 self._events.extend(d.events.drain())
-        self.loop = loop + 1
+        self.loop = loop
         self.clock.advance(self.period_ns)
-
-    def _send(self, due: _Due, t: int) -> None:
-        assert self.ground_dv is not None and self._gn_tx is not None
-        assert self._gn_rx is not None
-        self._seq += 1
-        fill_request(self.ground_dv, due.command.command, self._seq, due.element_index, due.value)
-        self._gn_rx.apply(self._gn_tx.encode(self._seq, t))
 
     def run(self, duration_s: float, *, log: CsvLogger | None = None) -> SimResult:
         """Run ``round(duration_s * loop_hz)`` loops (continuing from any
@@ -447,6 +236,7 @@ class LockstepRunner:
         for d in self.devices:  # the DN's own count (the CN's copy is a loop old)
             errors_by_node[d.node] = int(d.dv.get(f"{d.node}_errors"))
         loops = self.loop
+        pending = self.player.pending
         return SimResult(
             mission=self.mission.mission,
             loops=loops,
@@ -455,8 +245,8 @@ class LockstepRunner:
             final_state=dv.get_name("cn_state"),
             states=list(self._states),
             events=list(self._events),
-            commands=list(self._outcomes),
-            pending_commands=[d.command.source for d in self._script[self._next_cmd :]],
+            commands=list(self.player.results),
+            pending_commands=pending,
             errors=sum(errors_by_node.values()),
             errors_by_node=errors_by_node,
             rx={dn: int(dv.get(f"cn_rx_{dn}")) for dn in dns},
@@ -469,3 +259,118 @@ class LockstepRunner:
             wall_s=self._wall_s,
             loops_per_s=loops / self._wall_s if self._wall_s > 0 else 0.0,
         )
+
+
+# ---------------------------------------------------------------------------
+# replay
+
+
+class Difference(msgspec.Struct, frozen=True):
+    """The first telemetry value a replay did not reproduce."""
+
+    loop: int
+    element: str
+    recorded: str
+    replayed: str
+
+
+class ReplayResult(msgspec.Struct, frozen=True):
+    """The outcome of :func:`replay`.
+
+    ``identical``: every recorded telemetry frame was reproduced byte for
+    byte; otherwise ``first_difference`` names the loop and element.
+    ``complete`` is False when the recorder had to drop loops (its ring was
+    full) or the record ends mid-loop; the replay then stops at the gap.
+    """
+
+    mission: str
+    loops: int
+    first_loop: int
+    last_loop: int
+    telemetry_frames: int
+    identical: bool
+    complete: bool
+    dropped_loops: int
+    first_difference: Difference | None
+    final_state: str
+
+
+def _first_difference(
+    layout: Layout, loop: int, recorded: bytes, replayed: bytes | bytearray
+) -> Difference:
+    a, b = DataVector(layout), DataVector(layout)
+    ca, cb = RegionCodec(a), RegionCodec(b)
+    try:
+        ca.apply(recorded)
+    except Exception as exc:  # a damaged record: say so rather than crash
+        return Difference(loop, "<frame>", f"undecodable ({exc})", "")
+    cb.apply(replayed)
+    for name, spec in layout.elements.items():
+        va, vb = a.get(name), b.get(name)
+        if np.asarray(va).tobytes() != np.asarray(vb).tobytes():
+            if spec.enum is not None:
+                return Difference(loop, name, a.get_name(name), b.get_name(name))
+            return Difference(loop, name, repr(va), repr(vb))
+    return Difference(loop, "<frame header>", recorded[:24].hex(), bytes(replayed[:24]).hex())
+
+
+def replay(directory: str | Path, *, log: CsvLogger | None = None) -> ReplayResult:
+    """Replay a recording made by ``zplatform up --record DIR`` (or ``node
+    --record``) through a fresh control loop; compare the telemetry.
+
+    Loads the mission recorded beside the inputs, so only the directory is
+    needed. Raises :class:`~zplatform.errors.RecordingError` for a missing or
+    malformed recording; a difference is a result, not an error.
+    """
+    from .config import load_mission
+    from .recording import RecordReader
+
+    reader = RecordReader(directory)
+    mission = load_mission(reader.mission_path)
+    reader.check_layout(Layout.for_node(mission, "cn"))
+    cn = ControlLogic(mission)
+    cn.dv.write_all(reader.initial)
+    state_dv = cn.dv
+    frames = 0
+    loops = 0
+    first = last = 0
+    diff: Difference | None = None
+    for rec in reader.loops():
+        cn.begin(rec.loop, rec.t_ns)
+        for i, payload in rec.replies:
+            cn.reply(i, payload)
+        tm = cn.finish(rec.ground, sync_overrun=rec.sync_overrun, loop_overruns=rec.loop_overruns)
+        loops += 1
+        first = first or rec.loop
+        last = rec.loop
+        if log is not None and tm is not None:
+            log.write(rec.t_ns, cn.dv)
+        if (tm is None) != (rec.telemetry is None):
+            diff = Difference(
+                rec.loop,
+                "<telemetry>",
+                "sent" if rec.telemetry is not None else "not sent",
+                "sent" if tm is not None else "not sent",
+            )
+            break
+        if tm is not None and rec.telemetry is not None:
+            frames += 1
+            if bytes(tm) != rec.telemetry:
+                diff = _first_difference(cn.layout, rec.loop, rec.telemetry, tm)
+                break
+        if cn.events.pending:
+            cn.events.drain()
+    if log is not None:
+        log.flush()
+    return ReplayResult(
+        mission=mission.mission,
+        loops=loops,
+        first_loop=first,
+        last_loop=last,
+        telemetry_frames=frames,
+        identical=diff is None and loops > 0,
+        complete=reader.complete,
+        dropped_loops=reader.dropped_loops,
+        first_difference=diff,
+        final_state=state_dv.get_name("cn_state"),
+    )

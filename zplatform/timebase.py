@@ -82,6 +82,11 @@ class NodeClock:
         """Synchronised epoch time in ns (monotonic, linear)."""
         return self._base + self._mono()
 
+    def at(self, monotonic_ns: int) -> int:
+        """This clock's time at the instant ``monotonic_ns`` of the monotonic
+        clock it runs on (a scheduler deadline, say). Pure arithmetic."""
+        return self._base + monotonic_ns
+
     @property
     def offset_ns(self) -> int:
         """The clock-sync correction applied so far (ns added to the anchor)."""

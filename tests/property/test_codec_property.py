@@ -16,7 +16,6 @@ from zplatform import (
     DataVector,
     Layout,
     RegionCodec,
-    VectorCodec,
     decode_frame,
     decode_mission,
     encode_frame,
@@ -156,7 +155,7 @@ def test_region_copy_out_then_in_is_identity(text: str, data: Any) -> None:
     assert bytes(whole) == bytes(src.view())
     # and through the telemetry frame
     tm = DataVector(layout)
-    VectorCodec(tm).apply(VectorCodec(src).encode(1, 2))
+    RegionCodec(tm).apply(RegionCodec(src).encode(1, 2))
     assert bytes(tm.view()) == bytes(src.view())
 
 

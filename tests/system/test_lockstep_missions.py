@@ -19,15 +19,9 @@ import pytest
 from zplatform import load_mission
 from zplatform.config import Mission
 from zplatform.errors import CommandError
-from zplatform.lockstep import (
-    DEFAULT_START_NS,
-    LockstepRunner,
-    ScriptCommand,
-    SimResult,
-    load_commands,
-    parse_commands,
-)
+from zplatform.lockstep import DEFAULT_START_NS, LockstepRunner, SimResult
 from zplatform.telemetry import CsvLogger, read_csv
+from zplatform.uplink import ScriptCommand, load_commands, parse_commands
 
 ROOT = Path(__file__).resolve().parents[2]
 CONFIGS = ROOT / "configs"
@@ -370,10 +364,12 @@ def test_commands_due_together_go_one_per_loop(tmp_path: Path) -> None:
     m = load_mission(LED_YAML)
     script = parse_commands("at 0.004 noop\nat 0 noop\nat 0 noop\n")
     res, _ = run(m, script, 0.1, tmp_path / "x.csv")
+    # The ground answers telemetry, so nothing can reach loop 1: commands due
+    # then go in loop 2, then one per loop (each after the last verdict).
     assert [(c.seq, c.loop, c.status) for c in res.commands] == [
-        (1, 0, "ACCEPTED"),
-        (2, 1, "ACCEPTED"),
-        (3, 2, "ACCEPTED"),
+        (1, 2, "ACCEPTED"),
+        (2, 3, "ACCEPTED"),
+        (3, 4, "ACCEPTED"),
     ]
 
 

@@ -20,7 +20,6 @@ from zplatform import (
     Layout,
     LayoutMismatchError,
     RegionCodec,
-    VectorCodec,
     decode_frame,
     decode_mission,
     encode_frame,
@@ -313,7 +312,7 @@ def test_error_classes() -> None:
         assert issubclass(cls, CodecError)
 
 
-# -- RegionCodec / VectorCodec ----------------------------------------------------
+# -- RegionCodec: regions and the whole vector -------------------------------------------------
 
 
 def test_region_codec_round_trip(cn: DataVector, dn: DataVector) -> None:
@@ -411,11 +410,11 @@ def test_vector_codec_round_trip(mission: Any) -> None:
     src.set("c_u32", 0xFFFF_FFFF)
     src.set("temp", -1.5)
     src.set("cn_loop", 2**64 - 1)
-    vc = VectorCodec(src)
+    vc = RegionCodec(src)
     assert vc.layout_id == layout.layout_id
     frame = vc.encode(3, 4)
     assert len(frame) == frame_overhead(layout.size) + layout.size
-    f = VectorCodec(dst).apply(frame)
+    f = RegionCodec(dst).apply(frame)
     assert (f.layout_id, f.seq, f.t_ns) == (layout.layout_id, 3, 4)
     assert dst.values() == src.values()
     assert bytes(dst.view()) == bytes(src.view())
@@ -427,10 +426,10 @@ def test_vector_codec_refuses_region_frames(cn: DataVector) -> None:
     dst.set("c_u32", 5)
     before = bytes(dst.buf)
     with pytest.raises(LayoutMismatchError, match="telemetry"):
-        VectorCodec(dst).apply(region_frame)
+        RegionCodec(dst).apply(region_frame)
     lid = cn.layout.layout_id
     with pytest.raises(FrameSizeError, match="telemetry"):
-        VectorCodec(dst).apply(encode_frame(lid, 1, 1, bytes(cn.size - 1)))
+        RegionCodec(dst).apply(encode_frame(lid, 1, 1, bytes(cn.size - 1)))
     assert bytes(dst.buf) == before
 
 

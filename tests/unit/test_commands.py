@@ -15,14 +15,13 @@ from zplatform.commands import (
     Command,
     CommandHandler,
     CommandStatus,
-    element_index,
-    fill_request,
     writable_elements,
 )
 from zplatform.config import Mission
 from zplatform.errors import CommandError, ConfigError
 from zplatform.events import EventLog, Severity
 from zplatform.statemachine import StateMachine
+from zplatform.uplink import element_index, fill_request
 
 MS = 1_000_000
 S = 1_000_000_000

@@ -21,7 +21,7 @@ from zplatform.control import (
 from zplatform.errors import ConfigError, ControlError
 from zplatform.events import EventLog, Severity
 from zplatform.faults import ErrorCode, FaultMonitor
-from zplatform.node.logic import ControlLogic
+from zplatform.loop import ControlLogic
 
 PERIOD = 10_000_000
 HERE = __name__
@@ -274,9 +274,10 @@ def test_dn_controller_failure_latches_safed_while_cn_keeps_commanding() -> None
 def test_failure_in_control_logic_does_not_stop_the_loop() -> None:
     m = mission(recorder(fail_enabled="true"))
     logic = ControlLogic(m)
-    for k in range(5):
-        logic.step(k, 1_000 * PERIOD + k * PERIOD, False)
-    assert logic.dv.get("cn_loop") == 4
+    for k in range(1, 6):
+        logic.begin(k, 1_000 * PERIOD + k * PERIOD)
+        logic.finish()
+    assert logic.dv.get("cn_loop") == 5
     assert logic.dv.get("cn_errors") == 1
 
 

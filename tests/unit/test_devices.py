@@ -8,7 +8,7 @@ import textwrap
 import msgspec
 import pytest
 
-from zplatform import DataVector, Layout, decode_mission
+from zplatform import DataVector, Layout, RegionCodec, decode_mission
 from zplatform.config import Mission
 from zplatform.control import Controller
 from zplatform.devices import (
@@ -23,10 +23,17 @@ from zplatform.devices import (
 )
 from zplatform.errors import ConfigError, ControlError
 from zplatform.events import EventLog, Severity
-from zplatform.node.logic import DeviceLogic
+from zplatform.loop import DeviceLogic
 
 PERIOD = 10_000_000
 HERE = __name__
+
+
+def trigger(logic: DeviceLogic, loop: int, t_ns: int) -> None:
+    """Run one DN loop the way a driver does: the CN's trigger frame for ``loop``."""
+    cn = DataVector(Layout.for_node(logic.mission, "cn"))
+    reply = logic.step(RegionCodec(cn, f"cn_to_{logic.node}").encode(loop, t_ns), t_ns)
+    assert reply is not None and logic.triggered == loop
 
 # -- helpers importable by "module:name" ----------------------------------------
 
@@ -379,13 +386,14 @@ def test_device_logic_order_board_sensors_controllers_actuators() -> None:
     logic = DeviceLogic(m, "dn0")
     t0 = 100 * PERIOD
     fired_at = None
-    for k in range(100):
-        logic.step(k, t0 + k * PERIOD)
+    for k in range(1, 101):  # loop 1 at t0
+        trigger(logic, k, t0 + (k - 1) * PERIOD)
         if fired_at is None and logic.dv.get("button"):
             fired_at = k
-    # physics says volts > 0.5 from loop 51 (0.51 s); the pin follows in that same loop
-    assert fired_at == 51
-    assert logic.dv.get("dn0_loop") == 99
+    # physics says volts > 0.5 from 0.51 s after loop 1 (loop 52); the pin
+    # follows in that same loop
+    assert fired_at == 52
+    assert logic.dv.get("dn0_loop") == 100
     assert logic.dv.get("dn0_time_ns") == t0 + 99 * PERIOD
     assert logic.dv.get("dn0_errors") == 0
 
@@ -393,10 +401,10 @@ def test_device_logic_order_board_sensors_controllers_actuators() -> None:
 def test_device_logic_counts_a_broken_board_and_goes_on() -> None:
     m = mission(FLAKY, board=f", physics: '{HERE}:broken_physics'")
     logic = DeviceLogic(m, "dn0")
-    for k in range(3):
-        logic.step(k, k * PERIOD)
+    for k in range(1, 4):
+        trigger(logic, k, k * PERIOD)
     assert logic.dv.get("dn0_errors") == 3
-    assert logic.dv.get("dn0_loop") == 2
+    assert logic.dv.get("dn0_loop") == 3
     assert [e.id for e in logic.events.drain()] == ["board_failed"]
 
 

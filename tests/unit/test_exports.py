@@ -43,7 +43,6 @@ FOUNDATION = {
     "FrameDecoder",
     "FrameEncoder",
     "RegionCodec",
-    "VectorCodec",
     "decode_frame",
     "encode_frame",
     # timebase

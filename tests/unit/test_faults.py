@@ -8,10 +8,11 @@ import textwrap
 import pytest
 
 from zplatform import DataVector, Layout, decode_mission
-from zplatform.commands import CommandHandler, element_index, fill_request
+from zplatform.commands import CommandHandler
 from zplatform.config import Mission
 from zplatform.events import EventLog, Severity
 from zplatform.faults import ErrorCode, Fault, FaultMonitor
+from zplatform.uplink import element_index, fill_request
 
 PERIOD = 10_000_000
 

@@ -10,7 +10,7 @@ from typing import Any
 import pytest
 
 from zplatform import DataVector, Layout, decode_mission
-from zplatform.commands import CommandHandler, fill_request
+from zplatform.commands import CommandHandler
 from zplatform.config import Mission, StateConfig
 from zplatform.errors import ConfigError
 from zplatform.events import EventLog, Severity
@@ -20,6 +20,7 @@ from zplatform.statemachine import (
     logic_writable,
     unreachable_states,
 )
+from zplatform.uplink import fill_request
 
 MS = 1_000_000
 S = 1_000_000_000

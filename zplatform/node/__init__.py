@@ -1,14 +1,6 @@
-"""The nodes of a mission: per-loop logic and the zenoh runtime around it.
+"""The zenoh runtime of each node kind: ``control``, ``device``, ``ground``.
 
-:mod:`zplatform.node.logic` holds each node's sans-IO loop step
-(:class:`~zplatform.node.logic.ControlLogic`,
-:class:`~zplatform.node.logic.DeviceLogic`), driven both by the zenoh runtime
-(``control``, ``device``, ``ground``) and by the lockstep runner
-(:mod:`zplatform.lockstep`). Importing this package does not import zenoh.
+Each module is a driver of the sans-IO loop in :mod:`zplatform.loop`: it
+opens the session, moves frames between zenoh and the loop, and keeps the
+time. None of them holds protocol logic of its own.
 """
-
-from __future__ import annotations
-
-from .logic import ControlLogic, DeviceLogic
-
-__all__ = ["ControlLogic", "DeviceLogic"]

@@ -7,13 +7,15 @@ errors raise :class:`~zplatform.errors.NodeError` (the CLI prints and exits
 non-zero); errors after start are counted in the Data Vector and the loop
 goes on.
 
-Loop (one timestamp per loop)::
+Loop (one timestamp per loop), the order of :mod:`zplatform.loop`::
 
-    t = clock.now_ns()
-    sync every DN (2 ms deadline)
-    take at most one ground command frame
-    logic: faults -> commands -> state machine -> controllers
-    telemetry (every Nth loop), events
+    t = the loop's scheduled start, on the node clock
+    frames = logic.begin(loop, t); sync every DN with them (2 ms deadline)
+    tm = logic.finish(at most one ground frame, overrun flags)
+    publish tm (every Nth loop), events
+
+``record`` attaches a :class:`~zplatform.recording.Recorder` after the
+warm-up: every input of every loop goes to disk for ``zplatform replay``.
 """
 
 from __future__ import annotations
@@ -21,21 +23,23 @@ from __future__ import annotations
 import logging
 import queue
 import time
+from pathlib import Path
 from typing import Any
 
+import numpy as np
 import zenoh
 
 from ..clocksync import ClockServer
-from ..codec import RegionCodec, VectorCodec
 from ..config import Mission
 from ..datavector import DataVector
-from ..errors import CodecError, NodeError, TransportError
-from ..events import Severity
+from ..errors import NodeError, TransportError
+from ..loop import ControlLogic
+from ..recording import Recorder
 from ..scheduler import GcGuard, PeriodicLoop
+from ..summary import CnSummary, LoopWork
 from ..sync import ControlSync
 from ..timebase import NodeClock
 from ..transport import NodeSession, wait_for_nodes
-from .logic import ControlLogic
 from .runtime import EventPublisher, StopFlag, realtime_setup
 
 __all__ = ["ControlNode", "run_control_node"]
@@ -71,45 +75,41 @@ class ControlNode:
         self.sync = ControlSync(
             s,
             keys,
-            self.dv,
             mission.device_nodes,
             mission.sync_timeout_ns,
             query_timeout_s=max(mission.period_ns / 1e9, 0.01),
-            on_bad=self._on_bad_reply,
         )
         self._gq: queue.SimpleQueue[bytes] = queue.SimpleQueue()
         self._gsub: zenoh.Subscriber[Any] | None = None
-        self._gcodec: RegionCodec | None = None
         if mission.has_ground:
-            self._gcodec = RegionCodec(self.dv, "gn_to_cn")
             self._gsub = s.declare_subscriber(
                 keys.gn_to_cn,
                 zenoh.handlers.Callback(self._on_ground, indirect=False),
             )
-        self._tm = VectorCodec(self.dv)
         self._tm_pub = s.declare_publisher(
             keys.telemetry, congestion_control=zenoh.CongestionControl.DROP
         )
         self._events = EventPublisher(s, keys.events("cn"), self.logic.events)
-        self._bad = self.dv.handle("cn_bad_frames")
-        self._overruns = self.dv.handle("cn_loop_overruns")
-        self._divisor = mission.telemetry_divisor
+        self._skipped = 0
         self.ns.announce()
         self.first_loop_ns = 0
         self.last_loop_ns = 0
         self.loops = 0
-
-    def _on_bad_reply(self, dn: str, reason: str) -> None:
-        # Rare by definition: an event per bad frame is affordable and wanted.
-        self.logic.events.emit(
-            Severity.WARNING,
-            "bad_frame",
-            f"reply from {dn} rejected: {reason}",
-            self.clock.now_ns(),
-        )
+        self.recorder: Recorder | None = None
+        # Work time of each loop (sync and logic, not the sleep), for the
+        # summary: a preallocated ring, one int store per loop.
+        self._work = np.zeros(1 << 16, dtype=np.int64)
+        self._mono = time.monotonic_ns
 
     def _on_ground(self, sample: zenoh.Sample) -> None:
         self._gq.put(sample.payload.to_bytes())  # zenoh's thread: hand off only
+
+    def record(self, directory: str | Path, mission_source: str | Path) -> Recorder:
+        """Record every loop's inputs into ``directory`` from now on (call
+        after :meth:`wait_ready`). RecordingError if it cannot start."""
+        self.recorder = Recorder(directory, self.mission, mission_source, self.dv)
+        self.logic.recorder = self.recorder
+        return self.recorder
 
     # -- start-up --------------------------------------------------------
     def wait_ready(
@@ -146,9 +146,10 @@ class ControlNode:
         # Warm-up syncs with loop 0: DNs answer (not applied as a loop) and
         # the replies carry each DN's measured clock offset.
         deadline = time.monotonic() + timeout_s
+        logic = self.logic
         while True:
-            st = self.sync.sync(0, self.clock.now_ns())
-            if st.replied == len(dns):
+            self.sync.sync(logic.begin(0, self.clock.now_ns()), logic)
+            if logic.pending == 0:
                 break
             if time.monotonic() > deadline or self.stop.is_set():
                 raise NodeError("control node cannot start: device nodes do not answer sync")
@@ -162,41 +163,37 @@ class ControlNode:
                 )
         # The warm-up counted rx/missed; the flight loop starts from zero,
         # once no warm-up reply can still arrive.
-        self.sync.quiesce(timeout_s=max(2 * m.period_ns / 1e9, 1.0))
-        for dn in dns:
-            for name in (f"cn_rx_{dn}", f"cn_missed_{dn}", f"cn_late_{dn}"):
-                self.dv.set(name, 0)
-        self.dv.set("cn_sync_overruns", 0)
+        self.sync.quiesce(logic, timeout_s=max(2 * m.period_ns / 1e9, 1.0))
+        logic.reset_sync_counters()
+        logic.events.drain()  # warm-up bad frames were logged; flight starts clean
         return offsets
 
     # -- the loop ------------------------------------------------------------
     def _on_overrun(self, k: int, lateness_ns: int) -> None:
-        self._overruns.set(self._overruns.get() + 1)
+        self._skipped += 1  # an input of the next loop (replayed as such)
 
     def step(self, k: int, deadline_ns: int) -> bool:
         """One loop; returns False to stop."""
+        m0 = self._mono()
         loop = k + 1
-        t = self.clock.now_ns()
+        # The loop's one timestamp is its scheduled start, not the moment the
+        # thread woke: loop n is then at t1 + (n - 1) * period exactly, as in
+        # the lockstep runner, so timers and rate phases fire in the same loop
+        # live and in sim (wake-up jitter would move a 3 s timer by a loop
+        # about half the time).
+        t = self.clock.at(deadline_ns)
         if self.loops == 0:
             self.first_loop_ns = t
-        self.sync.sync(loop, t)
-        new_request = False
+        logic = self.logic
+        overrun = self.sync.sync(logic.begin(loop, t), logic)
         # empty() first: raising queue.Empty every loop would allocate.
-        if self._gcodec is not None and not self._gq.empty():
-            payload = self._gq.get_nowait()
-            try:
-                self._gcodec.apply(payload)
-                new_request = True
-            except CodecError as exc:
-                # Not our software failing: counted as a bad frame, not an error.
-                self._bad.set(self._bad.get() + 1)
-                self.logic.events.emit(
-                    Severity.WARNING, "bad_frame", f"ground frame rejected: {exc}", t
-                )
-        self.logic.step(loop, t, new_request)
-        if loop % self._divisor == 0:
-            self._tm_pub.put(self._tm.encode(loop, t))
+        ground = self._gq.get_nowait() if not self._gq.empty() else None
+        skipped, self._skipped = self._skipped, 0
+        tm = logic.finish(ground, sync_overrun=overrun, loop_overruns=skipped)
+        if tm is not None:
+            self._tm_pub.put(tm)
         self._events.flush()
+        self._work[self.loops & 0xFFFF] = self._mono() - m0
         self.loops += 1
         self.last_loop_ns = t
         return not self.stop.is_set()
@@ -226,33 +223,45 @@ class ControlNode:
             gc_guard.restore()
         return loop
 
-    def summary(self) -> dict[str, Any]:
+    def summary(self) -> CnSummary:
         dv = self.dv
         dur = (self.last_loop_ns - self.first_loop_ns) / 1e9
         dns = self.mission.device_nodes
-        return {
-            "node": "cn",
-            "loops": self.loops,
-            "duration_s": dur,
-            "rate_hz": (self.loops - 1) / dur if dur > 0 else 0.0,
-            "loop_overruns": int(dv.get("cn_loop_overruns")),
-            "sync_overruns": int(dv.get("cn_sync_overruns")),
-            "missed": {dn: int(dv.get(f"cn_missed_{dn}")) for dn in dns},
-            "late": {dn: int(dv.get(f"cn_late_{dn}")) for dn in dns},
-            "rx": {dn: int(dv.get(f"cn_rx_{dn}")) for dn in dns},
-            "bad_frames": int(dv.get("cn_bad_frames")),
-            "errors": int(dv.get("cn_errors")) + sum(int(dv.get(f"{dn}_errors")) for dn in dns),
-            "final_state": dv.get_name("cn_state"),
-        }
+        work = self._work[: min(self.loops, len(self._work))]
+        rec = self.recorder
+        return CnSummary(
+            loops=self.loops,
+            duration_s=dur,
+            rate_hz=(self.loops - 1) / dur if dur > 0 else 0.0,
+            loop_overruns=int(dv.get("cn_loop_overruns")),
+            sync_overruns=int(dv.get("cn_sync_overruns")),
+            missed={dn: int(dv.get(f"cn_missed_{dn}")) for dn in dns},
+            late={dn: int(dv.get(f"cn_late_{dn}")) for dn in dns},
+            rx={dn: int(dv.get(f"cn_rx_{dn}")) for dn in dns},
+            bad_frames=int(dv.get("cn_bad_frames")),
+            errors=int(dv.get("cn_errors")) + sum(int(dv.get(f"{dn}_errors")) for dn in dns),
+            final_state=dv.get_name("cn_state"),
+            fault=dv.get_name("cn_fault"),
+            loop_work_us=LoopWork(
+                float(np.percentile(work, 50)) / 1e3,
+                float(np.percentile(work, 99)) / 1e3,
+                float(work.max()) / 1e3,
+            )
+            if len(work)
+            else LoopWork(),
+            recorded_loops=rec.loops if rec is not None else None,
+            recording_dropped_loops=rec.dropped_loops if rec is not None else None,
+        )
 
     def close(self) -> None:
-        """Publish the final snapshot if the divisor skipped it; release zenoh (idempotent)."""
+        """Publish the final snapshot if the divisor skipped it; release zenoh;
+        flush the recording (idempotent)."""
         if self.ns._closed:
             return
         try:
             last = int(self.dv.get("cn_loop"))
-            if last % self._divisor:  # the last loop's snapshot was not sent yet
-                self._tm_pub.put(self._tm.encode(last, self.clock.now_ns()))
+            if last % self.mission.telemetry_divisor:  # the last snapshot was not sent yet
+                self._tm_pub.put(self.logic.telemetry())
             self._events.undeclare()
             self.sync.close()
             self.clock_server.close()
@@ -260,6 +269,8 @@ class ControlNode:
                 self._gsub.undeclare()
             self._tm_pub.undeclare()
         finally:
+            if self.recorder is not None:
+                self.recorder.close()
             self.ns.close()
 
 
@@ -271,13 +282,23 @@ def run_control_node(
     realtime: bool = True,
     ready_timeout_s: float = 60.0,
     ground_wait_s: float | None = None,
-) -> dict[str, Any]:
-    """Entry function: build, wait for DNs, loop until SIGTERM/duration. Blocks."""
+    record: str | Path | None = None,
+    mission_source: str | Path | None = None,
+) -> CnSummary:
+    """Entry function: build, wait for DNs, loop until SIGTERM/duration. Blocks.
+
+    ``record``: a directory to record every loop's inputs into (needs
+    ``mission_source``, the mission file, which the recording keeps)."""
     stop = StopFlag()
     node = ControlNode(mission, stop=stop)
     try:
         offsets = node.wait_ready(ready_timeout_s, ground_wait_s)
         log.info("device nodes ready; clock offsets (ns): %s", offsets)
+        if record is not None:
+            if mission_source is None:
+                raise NodeError("recording needs the mission file's path")
+            node.record(record, mission_source)
+            log.info("recording loop inputs into %s", record)
         if duration_s is not None:
             n = max(1, round(duration_s * mission.loop_hz))
             max_loops = n if max_loops is None else min(max_loops, n)

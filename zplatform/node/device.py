@@ -5,9 +5,10 @@ Entry: open the session, wait for the CN, measure the clock offset to it
 the clock, declare the sync queryable, then announce liveliness: from that
 moment the CN may trigger loops.
 
-Loop: block on the CN's query (the trigger), which applies ``cn_to_dnX`` and
-replies with ``dnX_to_cn`` at once; then sensors -> controllers -> actuators
-with the query's loop number and one local timestamp. A background thread
+Loop: block on the CN's query (the trigger); :meth:`DeviceLogic.trigger
+<zplatform.loop.DeviceLogic.trigger>` checks it and frames the reply, sent at
+once; then :meth:`~zplatform.loop.DeviceLogic.run` (sensors -> controllers
+-> actuators) with the query's loop number and one local timestamp. A background thread
 re-estimates the offset every ``clock.resync_s`` and reports the drift in
 ``dnX_clock_drift_ns`` without stepping the clock (thesis 4.10.1).
 """
@@ -16,17 +17,16 @@ from __future__ import annotations
 
 import logging
 import threading
-from typing import Any
 
 from ..clocksync import estimate_offset
 from ..config import Mission
 from ..errors import ClockSyncError, NodeError, TransportError
-from ..events import Severity
+from ..loop import DeviceLogic
 from ..scheduler import GcGuard
+from ..summary import DnSummary
 from ..sync import DeviceSync
 from ..timebase import NodeClock
 from ..transport import NodeSession, wait_for_nodes
-from .logic import DeviceLogic
 from .runtime import EventPublisher, StopFlag, realtime_setup
 
 __all__ = ["DeviceNode", "run_device_node"]
@@ -52,7 +52,9 @@ class DeviceNode:
         self.name = name
         self.stop = stop or StopFlag(install=False)
         self.clock = clock or NodeClock()
-        self.logic = DeviceLogic(mission, name)
+        # A trigger stamped (CN time) more than a period ago belongs to a loop
+        # the CN has already closed: answer it, do not run it.
+        self.logic = DeviceLogic(mission, name, stale_after_ns=mission.period_ns)
         self.dv = self.logic.dv
         self.ns = NodeSession(mission, name, announce=False, lowlatency=lowlatency)
         self._offset_h = self.dv.handle(f"{name}_clock_offset_ns")
@@ -92,26 +94,13 @@ class DeviceNode:
             est.kept,
             est.exchanges,
         )
-        self.sync = DeviceSync(
-            s,
-            keys,
-            self.dv,
-            self.name,
-            self.clock.now_ns,
-            on_bad=self._on_bad_query,
-            stale_after_ns=m.period_ns,
-        )
+        self.sync = DeviceSync(s, keys, self.name, self.clock.now_ns)
         self._events = EventPublisher(s, keys.events(self.name), self.logic.events)
         if m.clock.resync_s > 0:
             self._resync = threading.Thread(target=self._resync_loop, daemon=True)
             self._resync.start()
         self.ns.announce()
         return est.offset_ns
-
-    def _on_bad_query(self, reason: str) -> None:
-        self.logic.events.emit(
-            Severity.WARNING, "bad_frame", f"sync query rejected: {reason}", self.clock.now_ns()
-        )
 
     def _resync_loop(self) -> None:
         # Background: measure, never step the clock; the loop publishes it.
@@ -137,19 +126,19 @@ class DeviceNode:
         if realtime:
             realtime_setup(nc.priority, nc.cpu)
         period = self.mission.period_ns
+        logic = self.logic
         wait = self.sync.wait
-        step = self.logic.step
+        run = logic.run
         now = self.clock.now_ns
         gc_guard = GcGuard()
         gc_guard.freeze_after_startup()
         try:
             while not self.stop.is_set():
-                loop = wait(0.2)
-                if loop is None:
+                if not wait(logic, 0.2):
                     continue
                 t = now()
                 self._drift_h.set(self.drift_ns)
-                step(loop, t)
+                run(t)
                 self._events.flush()
                 # Slack until the next trigger is due: gc only runs there.
                 slack = t + period - now()
@@ -163,16 +152,16 @@ class DeviceNode:
         finally:
             gc_guard.restore()
 
-    def summary(self) -> dict[str, Any]:
-        return {
-            "node": self.name,
-            "loops": self.loops,
-            "clock_offset_ns": int(self._offset_h.get()),
-            "clock_drift_ns": self.drift_ns,
-            "bad_frames": int(self.dv.get(f"{self.name}_bad_frames")),
-            "errors": int(self.dv.get(f"{self.name}_errors")),
-            "stale_queries": self.sync.stale if self.sync else 0,
-        }
+    def summary(self) -> DnSummary:
+        return DnSummary(
+            node=self.name,
+            loops=self.loops,
+            clock_offset_ns=int(self._offset_h.get()),
+            clock_drift_ns=self.drift_ns,
+            bad_frames=int(self.dv.get(f"{self.name}_bad_frames")),
+            errors=int(self.dv.get(f"{self.name}_errors")),
+            stale_queries=self.logic.stale,
+        )
 
     def close(self) -> None:
         self.stop.set()
@@ -187,7 +176,7 @@ class DeviceNode:
 
 def run_device_node(
     mission: Mission, name: str, *, realtime: bool = True, ready_timeout_s: float = 60.0
-) -> dict[str, Any]:
+) -> DnSummary:
     """Entry function: start, serve until SIGTERM. Blocks; returns the summary."""
     stop = StopFlag()
     node = DeviceNode(mission, name, stop=stop)

@@ -9,6 +9,9 @@
 * :class:`CommandSender` sends one operator command on ``{vehicle}/gn/to_cn``
   (the GN's second Data Vector holds the request) and waits for the CN's
   verdict in telemetry (``cn_cmd_seq``/``cn_cmd_status``).
+
+What a request holds, how a script is timed and how a verdict is read are
+:mod:`zplatform.uplink`'s; this module only moves the frames.
 """
 
 from __future__ import annotations
@@ -17,29 +20,21 @@ import logging
 import queue
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
-from typing import Any
 
 import zenoh
 
-from ..codec import RegionCodec, VectorCodec
-from ..commands import fill_request
-from ..config import CMD_NAMES, Mission
+from ..codec import RegionCodec
+from ..config import Mission
 from ..datavector import DataVector, Layout
 from ..errors import CodecError, CommandError
-from ..lockstep import ScriptCommand, resolve_write
+from ..summary import GnSummary
 from ..telemetry import CsvLogger
 from ..timebase import NodeClock
 from ..transport import KeySpace, NodeSession, is_matching
+from ..uplink import CommandOutcome, ScriptCommand, ScriptPlayer, Uplink, validate_command, verdict
 from .runtime import StopFlag
 
-__all__ = [
-    "CommandResult",
-    "CommandSender",
-    "TelemetryReceiver",
-    "run_ground_logger",
-    "validate_command",
-]
+__all__ = ["CommandSender", "TelemetryReceiver", "run_ground_logger"]
 
 log = logging.getLogger("zplatform.gn")
 
@@ -55,7 +50,7 @@ class TelemetryReceiver:
     def __init__(self, session: zenoh.Session, mission: Mission, now_ns: Callable[[], int]):
         self.mission = mission
         self.dv = DataVector(Layout.for_node(mission, "cn"))
-        self._codec = VectorCodec(self.dv)
+        self._codec = RegionCodec(self.dv)
         self._now = now_ns
         self._q: queue.SimpleQueue[tuple[bytes, int]] = queue.SimpleQueue()
         self.received = 0
@@ -105,7 +100,7 @@ def run_ground_logger(
     stop: StopFlag | None = None,
     idle_exit_s: float | None = None,
     script: list[ScriptCommand] | None = None,
-) -> dict[str, Any]:
+) -> GnSummary:
     """Log telemetry snapshots to CSV until stopped or ``duration_s``. Blocks.
 
     ``as_node``: run as the mission's ``gn`` node (its endpoints, its
@@ -119,7 +114,8 @@ def run_ground_logger(
     ns = NodeSession(mission, node, announce=False)
     rx = TelemetryReceiver(ns.session, mission, clock.now_ns)
     logger = CsvLogger(out_csv, rx.dv.layout) if out_csv else None
-    player = ScriptPlayer(ns.session, mission, script) if script else None
+    player = ScriptPlayer(mission, script) if script else None
+    cmd_pub = ns.session.declare_publisher(ns.keys.gn_to_cn) if player is not None else None
     # Alive only once subscribed: the CN waits for this token before its
     # first loop, so the log starts at loop 1.
     ns.announce()
@@ -141,8 +137,11 @@ def run_ground_logger(
             last_rx = time.monotonic()
             if logger is not None:
                 logger.write(t, rx.dv)
-            if player is not None:
-                player.on_telemetry(rx.dv)
+            if player is not None and cmd_pub is not None:
+                # A command goes out only while the CN listens (else it waits).
+                frame = player.on_telemetry(rx.dv, can_send=is_matching(cmd_pub))
+                if frame is not None:
+                    cmd_pub.put(bytes(frame))
         # Drain what is already queued so nothing received is dropped.
         while (t := rx.next(0.0)) is not None:
             if logger is not None:
@@ -150,111 +149,20 @@ def run_ground_logger(
     finally:
         if logger is not None:
             logger.close()
-        if player is not None:
-            player.close()
+        if cmd_pub is not None:
+            cmd_pub.undeclare()
         rx.close()
         ns.close()
-    return {
-        "node": "gn",
-        "telemetry_received": rx.received,
-        "telemetry_gaps": rx.gaps,
-        "telemetry_bad": rx.bad,
-        "first_seq": rx.first_seq,
-        "last_seq": rx.last_seq,
-        "final_state": rx.dv.get_name("cn_state") if rx.received else None,
-        "commands": [
-            {"command": r.command, "seq": r.seq, "status": r.status}
-            for r in (player.results if player is not None else [])
-        ],
-    }
-
-
-def validate_command(
-    mission: Mission, command: str, element: str | None = None, value: str | None = None
-) -> tuple[str, int, float]:
-    """Check an operator command against the mission before anything is sent.
-
-    Returns ``(COMMAND, element index, value)`` as they go into ``gn_to_cn``.
-    Raises CommandError for an unknown command, element, or a value that
-    does not fit the element (enum names and true/false accepted).
-    """
-    cmd = command.upper()
-    if cmd not in CMD_NAMES or cmd == "NONE":
-        raise CommandError(
-            f"unknown command {command!r}; expected one of "
-            f"{', '.join(c.lower() for c in CMD_NAMES[1:])}"
-        )
-    if cmd != "WRITE":
-        if element is not None:
-            raise CommandError(f"{command} takes no arguments")
-        return cmd, 0, 0.0
-    if element is None or value is None:
-        raise CommandError("write needs ELEMENT VALUE")
-    index, num = resolve_write(Layout.for_node(mission, "cn"), element, value, "write")
-    return cmd, index, num
-
-
-class ScriptPlayer:
-    """Plays a command script (``at 1.0 launch``) from the ground node.
-
-    Times count from the first telemetry snapshot, on the CN's clock (its
-    ``cn_time_ns``), so a script means the same thing live and in the
-    lockstep runner. Commands go out one at a time: the next is sent only
-    after the CN's verdict on the previous one is seen, so numbers stay
-    consecutive (ARM n, LAUNCH n+1). Call :meth:`on_telemetry` after each
-    snapshot; it never blocks.
-    """
-
-    def __init__(self, session: zenoh.Session, mission: Mission, script: list[ScriptCommand]):
-        self.mission = mission
-        self.script = list(script)
-        self.req = DataVector(Layout.for_regions(mission, ["gn_to_cn"]))
-        self._codec = RegionCodec(self.req, "gn_to_cn")
-        self._pub = session.declare_publisher(KeySpace(mission.vehicle).gn_to_cn)
-        self._t0: int | None = None
-        self._waiting: tuple[int, ScriptCommand] | None = None
-        self.results: list[CommandResult] = []
-
-    @property
-    def done(self) -> bool:
-        return not self.script and self._waiting is None
-
-    def on_telemetry(self, dv: DataVector) -> None:
-        t = int(dv.get("cn_time_ns"))
-        if self._t0 is None:
-            self._t0 = t
-        if self._waiting is not None:
-            seq, sc = self._waiting
-            if int(dv.get("cn_cmd_seq")) == seq and dv.get_name("cn_cmd_status") != "NONE":
-                r = CommandResult(sc.command, seq, dv.get_name("cn_cmd_status"))
-                self.results.append(r)
-                log.info("%s: %s #%d %s", sc.source, sc.command, seq, r.status)
-                self._waiting = None
-            return
-        if not self.script or t - self._t0 < self.script[0].at_ns:
-            return
-        if not is_matching(self._pub):
-            return  # the CN is not subscribed yet: try again next snapshot
-        sc = self.script.pop(0)
-        cmd, index, num = validate_command(self.mission, sc.command, sc.element, sc.value)
-        seq = int(dv.get("cn_cmd_seq")) + 1
-        fill_request(self.req, cmd, seq, index, num)
-        self._pub.put(bytes(self._codec.encode(seq, t)))
-        self._waiting = (seq, sc)
-
-    def close(self) -> None:
-        self._pub.undeclare()
-
-
-@dataclass(frozen=True, slots=True)
-class CommandResult:
-    command: str
-    seq: int
-    status: str
-
-    @property
-    def accepted(self) -> bool:
-        return self.status == "ACCEPTED"
+    return GnSummary(
+        telemetry_received=rx.received,
+        telemetry_gaps=rx.gaps,
+        telemetry_bad=rx.bad,
+        first_seq=rx.first_seq,
+        last_seq=rx.last_seq,
+        final_state=rx.dv.get_name("cn_state") if rx.received else None,
+        commands=list(player.results) if player is not None else [],
+        pending_commands=player.pending if player is not None else [],
+    )
 
 
 class CommandSender:
@@ -274,8 +182,7 @@ class CommandSender:
         self.clock = NodeClock()
         self.ns = NodeSession(mission, None)
         self.rx = TelemetryReceiver(self.ns.session, mission, self.clock.now_ns)
-        self.req = DataVector(Layout.for_regions(mission, ["gn_to_cn"]))
-        self._codec = RegionCodec(self.req, "gn_to_cn")
+        self._uplink = Uplink(mission)
         self._pub = self.ns.session.declare_publisher(self.ns.keys.gn_to_cn)
 
     def validate(
@@ -303,7 +210,7 @@ class CommandSender:
 
     def send(
         self, command: str, element: str | None = None, value: str | None = None
-    ) -> CommandResult:
+    ) -> CommandOutcome:
         cmd, index, num = self.validate(command, element, value)
         return self._send(cmd, self._next_seq(), index, num)
 
@@ -313,9 +220,8 @@ class CommandSender:
         self._wait_cn_subscribed()
         return int(self.rx.dv.get("cn_cmd_seq")) + 1
 
-    def _send(self, cmd: str, seq: int, index: int, num: float) -> CommandResult:
-        fill_request(self.req, cmd, seq, index, num)
-        self._pub.put(bytes(self._codec.encode(seq, self.clock.now_ns())))
+    def _send(self, cmd: str, seq: int, index: int, num: float) -> CommandOutcome:
+        self._pub.put(bytes(self._uplink.frame(cmd, seq, index, num, self.clock.now_ns())))
         deadline = time.monotonic() + self.timeout_s
         dv = self.rx.dv
         while True:
@@ -324,10 +230,11 @@ class CommandSender:
                 raise CommandError(f"no verdict for {cmd} #{seq} within {self.timeout_s:g} s")
             if self.rx.next(left) is None:
                 continue
-            if int(dv.get("cn_cmd_seq")) == seq and dv.get_name("cn_cmd_status") != "NONE":
-                return CommandResult(cmd, seq, dv.get_name("cn_cmd_status"))
+            status = verdict(dv, seq)
+            if status is not None:
+                return CommandOutcome(cmd, seq, status, int(dv.get("cn_loop")))
 
-    def send_armed(self, command: str) -> list[CommandResult]:
+    def send_armed(self, command: str) -> list[CommandOutcome]:
         """ARM n then COMMAND n+1 (seed 003's double confirmation)."""
         cmd, index, num = self.validate(command, None, None)
         seq = self._next_seq()

@@ -5,22 +5,19 @@ Kept apart from the per-node mains so each main reads as its loop.
 
 from __future__ import annotations
 
-import json
 import logging
 import os
 import signal
 import sys
 import threading
-from pathlib import Path
 from types import FrameType
-from typing import Any
 
 import zenoh
 
 from ..events import EventLog, encode_event
 from ..scheduler import RealtimeStatus, setup_realtime
 
-__all__ = ["PARENT_ENV", "EventPublisher", "StopFlag", "realtime_setup", "write_summary"]
+__all__ = ["PARENT_ENV", "EventPublisher", "StopFlag", "realtime_setup", "setup_logging"]
 
 # Set by `zplatform up` for its children: if that process goes away (even by
 # SIGKILL, which it cannot forward), the node stops by itself.
@@ -130,17 +127,6 @@ def _promote_threads(priority: int) -> int:
         except OSError:
             pass
     return n
-
-
-def write_summary(path: str | None, summary: dict[str, Any]) -> None:
-    """Write a run summary as JSON to ``path`` ('-' = stdout); no-op for None."""
-    if path is None:
-        return
-    text = json.dumps(summary, indent=2, sort_keys=True)
-    if path == "-":
-        sys.stdout.write(text + "\n")
-    else:
-        Path(path).write_text(text + "\n")
 
 
 def setup_logging(verbose: bool = False) -> None:

@@ -1,0 +1,363 @@
+"""The sans-IO loop of each node (DESIGN.md §1): regions in, frames out.
+
+:class:`ControlLogic` and :class:`DeviceLogic` own a node's Data Vector, its
+codecs and everything that runs on it each loop, *and the protocol order*.
+They never touch zenoh or the wall clock. Two drivers move their frames:
+the zenoh runtime (:mod:`zplatform.node`) and the lockstep runner
+(:mod:`zplatform.lockstep`); neither has a protocol order of its own.
+
+One CN loop ``n`` (numbered from 1 in every driver) with its one timestamp::
+
+    frames = cn.begin(n, t)          # cn_to_dnX query frames, stamped (n, t)
+    ...the driver sends frame i to DN i and hands back whatever comes:
+    cn.reply(i, payload)             # True once DN i's reply for loop n is in
+    ...until every DN replied or the sync deadline passed, then
+    tm = cn.finish(ground_frame, sync_overrun=..., loop_overruns=...)
+    ...the driver publishes tm (the whole vector) when it is not None.
+
+:meth:`ControlLogic.finish` counts the misses, applies at most one ground
+command frame, runs faults -> commands -> state machine -> controllers,
+and frames the telemetry. Replies that are not for loop ``n`` (an older
+loop's, a duplicate) are counted late and never applied; malformed replies
+are counted in ``cn_bad_frames`` and reported as events. Every input that
+changes the Data Vector passes through these three calls, so a recorder
+attached to them (:attr:`ControlLogic.recorder`) captures everything a
+replay needs to reproduce the telemetry bit for bit.
+
+One DN trigger::
+
+    reply = dn.trigger(payload, now)   # check the CN's frame, frame the reply
+    ...the driver answers the query with reply (an error when it is None)
+    if dn.triggered: dn.run(t)         # sensors -> controllers -> actuators
+
+The reply carries ``dnX_to_cn`` as it stood *before* this loop's run, so
+what a DN's run writes reaches the CN one loop later (thesis 3.4.5.3).
+``loop`` on a DN is the CN's loop number (the trigger frame's ``seq``).
+"""
+
+from __future__ import annotations
+
+from typing import Protocol
+
+from .codec import RegionCodec
+from .commands import CommandHandler
+from .config import Mission
+from .control import ControllerSet
+from .datavector import DataVector, Layout
+from .devices import Board, DeviceSet, SimBoard
+from .errors import CodecError, ConfigError
+from .events import EventLog, Severity
+from .faults import FaultMonitor
+from .statemachine import StateMachine
+
+__all__ = ["ControlLogic", "DeviceLogic", "LoopRecorder"]
+
+# A trigger stamped this much later than the last one served, yet with a
+# lower loop number, comes from a restarted control node.
+_RESTART_NS = 1_000_000_000
+
+
+class LoopRecorder(Protocol):
+    """What :class:`ControlLogic` tells a recorder, in call order, per loop.
+
+    Implementations must not block or allocate per call
+    (:class:`zplatform.recording.Recorder` copies into preallocated chunks).
+    """
+
+    def begin(self, loop: int, t_ns: int) -> None: ...
+
+    def reply(self, i: int, payload: bytes | bytearray | memoryview | None) -> None: ...
+
+    def finish(
+        self,
+        ground: bytes | bytearray | memoryview | None,
+        sync_overrun: bool,
+        loop_overruns: int,
+        telemetry: bytearray | None,
+    ) -> None: ...
+
+
+class ControlLogic:
+    """The control node's loop (module doc).
+
+    Construction builds the CN's Data Vector (every region), its codecs and
+    every component, checking the mission (ConfigError naming the YAML
+    path). No method raises for a valid mission: bad frames are counted,
+    controller exceptions are caught by the
+    :class:`~zplatform.control.ControllerSet`. Not thread-safe: one loop
+    thread calls ``begin``, ``reply`` and ``finish`` in that order.
+    Buffers returned by ``begin`` and ``finish`` are the codecs' own and are
+    overwritten by the next loop: hand them to the transport (which copies)
+    first.
+    """
+
+    def __init__(self, mission: Mission, *, events: EventLog | None = None) -> None:
+        self.mission = mission
+        self.layout = Layout.for_node(mission, "cn")
+        self.dv = dv = DataVector(self.layout)
+        self.events = events if events is not None else EventLog("cn")
+        self.faults = FaultMonitor(mission, dv, self.events)
+        self.statemachine = StateMachine(mission, dv, self.events)
+        self.commands = CommandHandler(mission, dv, self.events, self.statemachine)
+        self.controllers = ControllerSet(mission, "cn", dv, self.events, self.faults)
+        self.dns: tuple[str, ...] = tuple(mission.device_nodes)
+        dns = self.dns
+        self._to_dn = tuple(RegionCodec(dv, f"cn_to_{dn}") for dn in dns)
+        self._from_dn = tuple(RegionCodec(dv, f"{dn}_to_cn") for dn in dns)
+        self._ground = RegionCodec(dv, "gn_to_cn") if mission.has_ground else None
+        self._tm = RegionCodec(dv)
+        self._frames: list[bytearray] = [bytearray() for _ in dns]
+        self._rx = tuple(dv.handle(f"cn_rx_{dn}") for dn in dns)
+        self._missed = tuple(dv.handle(f"cn_missed_{dn}") for dn in dns)
+        self._late = tuple(dv.handle(f"cn_late_{dn}") for dn in dns)
+        self._bad = dv.handle("cn_bad_frames")
+        self._sync_overruns = dv.handle("cn_sync_overruns")
+        self._loop_overruns = dv.handle("cn_loop_overruns")
+        self._h_loop = dv.handle("cn_loop")
+        self._h_time = dv.handle("cn_time_ns")
+        self._got = [False] * len(dns)
+        self._divisor = mission.telemetry_divisor
+        self.loop = 0
+        self.t_ns = 0
+        self.pending = 0
+        """DNs whose reply for the current loop has not been applied yet."""
+        self.recorder: LoopRecorder | None = None
+
+    # -- the loop ------------------------------------------------------------
+    def begin(self, loop: int, t_ns: int) -> list[bytearray]:
+        """Open loop ``loop`` at ``t_ns``; returns the query frame of each DN
+        (in ``mission.device_nodes`` order), stamped ``(loop, t_ns)``."""
+        self.loop = loop
+        self.t_ns = t_ns
+        got = self._got
+        frames = self._frames
+        for i, codec in enumerate(self._to_dn):
+            got[i] = False
+            frames[i] = codec.encode(loop, t_ns)
+        self.pending = len(got)
+        if self.recorder is not None:
+            self.recorder.begin(loop, t_ns)
+        return frames
+
+    def reply(self, i: int, payload: bytes | bytearray | memoryview | None) -> bool:
+        """Take one reply from DN ``i`` (``None``: the DN answered with an error).
+
+        Returns True when it is DN ``i``'s reply for the current loop and was
+        applied; anything else is counted (late or bad frame) and dropped.
+        """
+        if self.recorder is not None:
+            self.recorder.reply(i, payload)
+        if payload is None:
+            self._bad_frame(self.dns[i], "the device node answered with an error")
+            return False
+        codec = self._from_dn[i]
+        try:
+            frame = codec.check(payload)
+        except CodecError as exc:
+            self._bad_frame(self.dns[i], str(exc))
+            return False
+        if frame.seq != self.loop or self._got[i]:
+            # an answer to an older loop (or a duplicate): counted, dropped
+            self._late[i].set(self._late[i].get() + 1)
+            return False
+        codec.write(frame)
+        self._got[i] = True
+        self._rx[i].set(self._rx[i].get() + 1)
+        self.pending -= 1
+        return True
+
+    def finish(
+        self,
+        ground: bytes | bytearray | memoryview | None = None,
+        *,
+        sync_overrun: bool = False,
+        loop_overruns: int = 0,
+    ) -> bytearray | None:
+        """Close the loop: count misses, apply ``ground`` (at most one command
+        request frame), run the logic; returns the telemetry frame on
+        telemetry loops (``loop % telemetry_divisor == 0``), else None.
+
+        ``sync_overrun``: the driver's sync step ran past its deadline;
+        ``loop_overruns``: periods the driver's scheduler skipped since the
+        last loop. Both are inputs, not measured here, so a replay repeats
+        them.
+        """
+        loop, t = self.loop, self.t_ns
+        for i, got in enumerate(self._got):
+            if not got:
+                self._missed[i].set(self._missed[i].get() + 1)
+        if sync_overrun:
+            self._sync_overruns.set(self._sync_overruns.get() + 1)
+        if loop_overruns:
+            self._loop_overruns.set(min(self._loop_overruns.get() + loop_overruns, 0xFFFF_FFFF))
+        new_request = False
+        if ground is not None and self._ground is not None:
+            try:
+                self._ground.apply(ground)
+                new_request = True
+            except CodecError as exc:
+                self._bad_frame("the ground", str(exc))
+        self._h_loop.set(loop)
+        self._h_time.set(t)
+        self.faults.step(t)
+        self.commands.step(new_request, t)
+        self.statemachine.step(t)
+        self.controllers.run(loop, t)
+        tm = self._tm.encode(loop, t) if loop % self._divisor == 0 else None
+        if self.recorder is not None:
+            self.recorder.finish(ground, sync_overrun, loop_overruns, tm)
+        return tm
+
+    def telemetry(self) -> bytearray:
+        """The whole vector framed now (for a final snapshot off the divisor)."""
+        return self._tm.encode(self.loop, self.t_ns)
+
+    def reset_sync_counters(self) -> None:
+        """Zero rx/missed/late per DN and the sync overruns (after a warm-up)."""
+        for hs in (self._rx, self._missed, self._late):
+            for h in hs:
+                h.set(0)
+        self._sync_overruns.set(0)
+
+    def _bad_frame(self, source: str, reason: str) -> None:
+        # Not our software failing: counted as a bad frame, not an error.
+        # Rare by definition, so an event per frame is affordable and wanted.
+        self._bad.set(min(self._bad.get() + 1, 0xFFFF_FFFF))
+        self.events.emit(
+            Severity.WARNING, "bad_frame", f"frame from {source} rejected: {reason}", self.t_ns
+        )
+
+
+class DeviceLogic:
+    """A device node's loop (module doc): trigger check, then board, sensors,
+    controllers, actuators.
+
+    ``board`` defaults to a :class:`~zplatform.devices.SimBoard` built from
+    the node's ``board`` config. ``stale_after_ns``: a trigger stamped (CN
+    time) more than this long before ``now_ns`` belongs to a loop the CN has
+    already closed; it is answered but does not run (None: never stale).
+    Construction raises ConfigError (YAML path) for a bad device or
+    controller. No method raises: device and controller exceptions are
+    caught by their sets, and an exception of the board's own ``step`` (a
+    physics hook bug, a board that cannot latch its inputs) is counted in
+    ``dnX_errors`` and reported once per streak.
+    """
+
+    def __init__(
+        self,
+        mission: Mission,
+        node: str,
+        *,
+        board: Board | None = None,
+        events: EventLog | None = None,
+        stale_after_ns: int | None = None,
+    ) -> None:
+        if node not in mission.device_nodes:
+            raise ConfigError(
+                f"{node!r} is not a device node of mission {mission.mission!r}; device nodes: "
+                f"{mission.device_nodes}",
+                "$.nodes",
+            )
+        self.mission = mission
+        self.node = node
+        self.layout = Layout.for_node(mission, node)
+        self.dv = dv = DataVector(self.layout)
+        self.events = events if events is not None else EventLog(node)
+        self.board: Board = (
+            board
+            if board is not None
+            else SimBoard(mission.nodes[node].board, where=f"$.nodes.{node}.board")
+        )
+        self.devices = DeviceSet(mission, node, dv, self.board, self.events)
+        self.controllers = ControllerSet(mission, node, dv, self.events)
+        self._in = RegionCodec(dv, f"cn_to_{node}")
+        self._out = RegionCodec(dv, f"{node}_to_cn")
+        self._loop = dv.handle(f"{node}_loop")
+        self._time = dv.handle(f"{node}_time_ns")
+        self._errors = dv.handle(f"{node}_errors")
+        self._bad = dv.handle(f"{node}_bad_frames")
+        self._stale_after = stale_after_ns
+        self._board_streak = 0
+        self.last_loop = 0
+        self.last_t_ns = 0
+        self.stale = 0
+        """Triggers answered but not run (older loop, stale, or not newest)."""
+        self.triggered = 0
+        """The loop the last :meth:`trigger` started, or 0 if it started none."""
+        self.reject_reason = ""
+        """Why the last :meth:`trigger` returned None."""
+
+    def trigger(
+        self, payload: bytes | bytearray | memoryview, now_ns: int, *, may_run: bool = True
+    ) -> bytearray | None:
+        """Check one CN query frame and frame the reply.
+
+        Returns the reply (``dnX_to_cn`` before this loop's run, stamped with
+        the trigger's loop and ``now_ns``), or None for a malformed frame
+        (counted in ``dnX_bad_frames``, reason in :attr:`reject_reason`; the
+        driver answers with an error). Sets :attr:`triggered` to the loop to
+        run, or 0: a query for a loop not newer than the last one served, a
+        stale one, or one the driver says may not run (``may_run=False``: a
+        backlog the DN skips) is answered but not applied.
+        """
+        self.triggered = 0
+        try:
+            frame = self._in.check(payload)
+        except CodecError as exc:
+            self._bad.set(min(self._bad.get() + 1, 0xFFFF_FFFF))
+            self.reject_reason = str(exc)
+            self.events.emit(
+                Severity.WARNING, "bad_frame", f"sync query rejected: {exc}", now_ns
+            )
+            return None
+        # A lower seq with a later timestamp is a restarted CN, not an old
+        # query: follow it rather than stall forever.
+        new = (
+            may_run
+            and (frame.seq > self.last_loop or frame.t_ns > self.last_t_ns + _RESTART_NS)
+            and (self._stale_after is None or now_ns - frame.t_ns <= self._stale_after)
+        )
+        if new:
+            self._in.write(frame)
+            self.last_loop = frame.seq
+            self.last_t_ns = frame.t_ns
+            self.triggered = frame.seq
+        else:
+            self.stale += 1
+        return self._out.encode(frame.seq, now_ns)
+
+    def run(self, t_ns: int) -> None:
+        """Run the loop :meth:`trigger` started, at ``t_ns``."""
+        loop = self.triggered
+        self._loop.set(loop)
+        self._time.set(t_ns)
+        try:
+            self.board.step(t_ns)
+            if self._board_streak:
+                self._board_streak = 0
+        except Exception as exc:
+            self._board_failed(exc, t_ns)
+        self.devices.run_sensors(loop, t_ns)
+        self.controllers.run(loop, t_ns)
+        self.devices.run_actuators(loop, t_ns)
+
+    def step(self, payload: bytes | bytearray | memoryview, now_ns: int) -> bytearray | None:
+        """:meth:`trigger` then, if it started a loop, :meth:`run` at ``now_ns``;
+        returns the reply (the lockstep runner's one call per DN and loop)."""
+        reply = self.trigger(payload, now_ns)
+        if self.triggered:
+            self.run(now_ns)
+        return reply
+
+    def _board_failed(self, exc: Exception, t_ns: int) -> None:
+        self._board_streak += 1
+        n = self._errors.get()
+        if n < 0xFFFF_FFFF:
+            self._errors.set(n + 1)
+        if self._board_streak == 1:
+            self.events.emit(
+                Severity.ERROR,
+                "board_failed",
+                f"{self.node} board step raised {type(exc).__name__}: {exc}",
+                t_ns,
+            )

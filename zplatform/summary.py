@@ -1,0 +1,129 @@
+"""Run summaries: what each node and ``zplatform up`` report when they stop.
+
+Frozen ``msgspec.Struct``\\ s (snapshots, like trio's statistics objects), so
+every field is named, typed and documented once, and the ``--summary`` JSON
+of DESIGN.md §6 is their encoding. Node processes write theirs
+(:func:`write_summary`); ``up`` reads them back (:func:`read_summary`) and
+merges them into a :class:`RunSummary`.
+"""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+from typing import TypeVar
+
+import msgspec
+
+from .uplink import CommandOutcome
+
+__all__ = [
+    "CnSummary",
+    "DnSummary",
+    "GnSummary",
+    "LoopWork",
+    "RunSummary",
+    "read_summary",
+    "write_summary",
+]
+
+
+class LoopWork(msgspec.Struct, frozen=True):
+    """CN work time per loop (sync wait and logic, not the sleep), in us."""
+
+    p50: float = 0.0
+    p99: float = 0.0
+    max: float = 0.0
+
+
+class CnSummary(msgspec.Struct, frozen=True):
+    """The control node's run: counters as its last telemetry showed them."""
+
+    loops: int
+    duration_s: float
+    rate_hz: float
+    loop_overruns: int
+    sync_overruns: int
+    missed: dict[str, int]
+    late: dict[str, int]
+    rx: dict[str, int]
+    bad_frames: int
+    errors: int
+    final_state: str
+    fault: str = "NONE"
+    loop_work_us: LoopWork = LoopWork()
+    recorded_loops: int | None = None
+    recording_dropped_loops: int | None = None
+    node: str = "cn"
+
+
+class DnSummary(msgspec.Struct, frozen=True):
+    """A device node's run."""
+
+    node: str
+    loops: int
+    clock_offset_ns: int
+    clock_drift_ns: int
+    bad_frames: int
+    errors: int
+    stale_queries: int
+
+
+class GnSummary(msgspec.Struct, frozen=True):
+    """The ground node's (or ``zplatform log``'s) run: telemetry and commands."""
+
+    telemetry_received: int
+    telemetry_gaps: int
+    telemetry_bad: int
+    first_seq: int
+    last_seq: int
+    final_state: str | None
+    commands: list[CommandOutcome] = []
+    pending_commands: list[str] = []
+    node: str = "gn"
+
+
+class RunSummary(msgspec.Struct, frozen=True):
+    """``zplatform up``'s summary (DESIGN.md §6): the CN's figures, the
+    ground's telemetry and command verdicts, every node's own summary
+    (``None`` for a node that wrote none) and exit code."""
+
+    mission: str
+    loops: int
+    duration_s: float
+    rate_hz: float
+    loop_overruns: int | None
+    sync_overruns: int | None
+    missed: dict[str, int]
+    late: dict[str, int]
+    bad_frames: int | None
+    telemetry_received: int | None
+    telemetry_gaps: int | None
+    commands: list[CommandOutcome]
+    errors: int | None
+    final_state: str | None
+    nodes: dict[str, CnSummary | DnSummary | GnSummary | None]
+    exit_codes: dict[str, int]
+
+
+S = TypeVar("S", CnSummary, DnSummary, GnSummary)
+
+
+def write_summary(path: str | Path | None, summary: msgspec.Struct) -> None:
+    """Write a summary as indented JSON to ``path`` ('-' = stdout); no-op for None."""
+    if path is None:
+        return
+    text = msgspec.json.format(msgspec.json.encode(summary), indent=2).decode()
+    if str(path) == "-":
+        sys.stdout.write(text + "\n")
+    else:
+        Path(path).write_text(text + "\n")
+
+
+def read_summary(path: str | Path, kind: type[S]) -> S | None:
+    """A node's summary file, or None when it is missing or unreadable (the
+    node died before writing it)."""
+    try:
+        return msgspec.json.decode(Path(path).read_bytes(), type=kind)
+    except (OSError, msgspec.DecodeError, msgspec.ValidationError):
+        return None

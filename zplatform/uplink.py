@@ -1,0 +1,388 @@
+"""The ground side of operator commands, sans-IO: scripts, element
+resolution, request framing, and reading the verdict.
+
+Everything that turns an operator's ``launch`` or ``write led_a_cmd true``
+into a ``gn_to_cn`` frame lives here, and so does the one rule for reading
+the CN's answer (:func:`verdict`). The zenoh tools (``zplatform cmd``,
+``ground``, the ground node playing a script) and the lockstep runner use
+these same pieces, so a script means the same thing live and in ``sim``.
+
+Command scripts (:func:`parse_commands`, :func:`load_commands`) have one
+command per line, ``#`` starts a comment::
+
+    at 0.5 arm
+    at 1.0 launch
+    at 2.0 write seq_leds_mode manual
+    at 9.0 abort
+
+Times are seconds (decimal, read exactly) from the start of loop 1. A
+command at time ``T`` is due in the first loop ``n`` whose start
+``(n - 1) * period`` is at or after ``T``: :class:`ScriptPlayer` sends it
+when it sees the telemetry of loop ``n - 1``, so the CN applies it in loop
+``n`` in every driver (loop numbers, not wall-clock times, so live runs and
+``sim`` agree). The ground answers telemetry, so a command due in loop 1
+goes in loop 2. Commands go out one at a time: the next is sent only after
+the CN's verdict on the previous one is seen, so numbers stay consecutive
+(ARM n, LAUNCH n+1), and two commands due together go in consecutive loops.
+"""
+
+from __future__ import annotations
+
+import difflib
+import re
+from decimal import Decimal, InvalidOperation
+from pathlib import Path
+from typing import Any
+
+import msgspec
+
+from .codec import RegionCodec
+from .config import CMD_NAMES, Mission
+from .datavector import DataVector, Layout
+from .errors import CommandError, DataVectorError
+
+__all__ = [
+    "CommandOutcome",
+    "ScriptCommand",
+    "ScriptPlayer",
+    "element_index",
+    "fill_request",
+    "load_commands",
+    "parse_commands",
+    "resolve_write",
+    "validate_command",
+    "verdict",
+]
+
+_COMMANDS = tuple(c.lower() for c in CMD_NAMES if c != "NONE")
+_LINE_RE = re.compile(r"^at\s+(\S+)\s+(\S+)(?:\s+(.*))?$")
+
+
+class ScriptCommand(msgspec.Struct, frozen=True):
+    """One scripted operator command.
+
+    ``at_ns`` is the time from the start of loop 1; ``command`` the upper
+    case command name; ``element`` and ``value`` (text as written) for
+    WRITE; ``source`` is ``file:line`` for messages.
+    """
+
+    at_ns: int
+    command: str
+    element: str | None = None
+    value: str | None = None
+    source: str = "<script>"
+
+
+class CommandOutcome(msgspec.Struct, frozen=True):
+    """The CN's verdict on one command: number ``seq``, seen in the telemetry
+    of loop ``loop`` (the loop that applied it), ``t_ns`` after the start of
+    loop 1; ``status`` is a ``cn_cmd_status`` name, or ``NO_VERDICT`` when the
+    CN never answered. ``source`` is the script line (``file:line``) if any."""
+
+    command: str
+    seq: int
+    status: str
+    loop: int = 0
+    t_ns: int = 0
+    source: str = ""
+
+    @property
+    def accepted(self) -> bool:
+        return self.status == "ACCEPTED"
+
+
+# ---------------------------------------------------------------------------
+# scripts
+
+
+def _seconds_to_ns(text: str, where: str) -> int:
+    try:
+        d = Decimal(text)
+    except InvalidOperation:
+        raise CommandError(f"{where}: time {text!r} is not a number of seconds") from None
+    if not d.is_finite() or d < 0:
+        raise CommandError(f"{where}: time {text!r} must be a finite number >= 0")
+    return int((d * 1_000_000_000).to_integral_value())
+
+
+def parse_commands(text: str, source: str = "<string>") -> list[ScriptCommand]:
+    """Parse a command script (module doc); raises CommandError naming ``source:line``.
+
+    Checks the syntax and command names only; elements and values of WRITE
+    are checked against the mission by :class:`ScriptPlayer`. The result is
+    in time order (stable: file order for equal times).
+    """
+    out: list[ScriptCommand] = []
+    for n, raw in enumerate(text.splitlines(), start=1):
+        line = raw.split("#", 1)[0].strip()
+        if not line:
+            continue
+        where = f"{source}:{n}"
+        m = _LINE_RE.match(line)
+        if m is None:
+            raise CommandError(f"{where}: expected 'at SECONDS COMMAND [ARGS]', got {line!r}")
+        at_ns = _seconds_to_ns(m.group(1), where)
+        cmd = m.group(2).lower()
+        args = (m.group(3) or "").split()
+        if cmd not in _COMMANDS:
+            raise CommandError(
+                f"{where}: unknown command {m.group(2)!r}; expected one of {', '.join(_COMMANDS)}"
+            )
+        if cmd == "write":
+            if len(args) != 2:
+                raise CommandError(f"{where}: write takes ELEMENT VALUE, got {args}")
+            out.append(ScriptCommand(at_ns, "WRITE", args[0], args[1], where))
+            continue
+        if args:
+            raise CommandError(f"{where}: {cmd} takes no arguments, got {' '.join(args)!r}")
+        out.append(ScriptCommand(at_ns, cmd.upper(), source=where))
+    out.sort(key=lambda c: c.at_ns)  # stable
+    return out
+
+
+def load_commands(path: str | Path) -> list[ScriptCommand]:
+    """Read and parse a command script file (CommandError on a bad line or file)."""
+    p = Path(path)
+    try:
+        text = p.read_text(encoding="utf-8")
+    except OSError as exc:
+        raise CommandError(f"cannot read command script {str(p)!r}: {exc.strerror}") from exc
+    except UnicodeDecodeError as exc:
+        raise CommandError(f"{p}: not UTF-8 text: {exc}") from exc
+    return parse_commands(text, str(p))
+
+
+# ---------------------------------------------------------------------------
+# requests
+
+
+def _all_element_names(mission: Mission) -> list[str]:
+    """The CN's element list, in ``ElementSpec.index`` order."""
+    return [e.name for r in mission.region_names() for e in mission.regions[r]]
+
+
+def element_index(mission: Mission, name: str) -> int:
+    """The ``gn_cmd_element`` value naming element ``name`` (its index in the
+    CN's element list). Raises CommandError for an unknown name."""
+    names = _all_element_names(mission)
+    try:
+        return names.index(name)
+    except ValueError:
+        close = difflib.get_close_matches(name, names, n=3)
+        hint = f"; did you mean {', '.join(close)}?" if close else ""
+        raise CommandError(f"no element named {name!r}{hint}") from None
+
+
+def resolve_write(layout: Layout, element: str, value: str, where: str) -> tuple[int, float]:
+    """``(gn_cmd_element, gn_cmd_value)`` of ``write element value``.
+
+    ``value`` may be a number, an enum name, or true/false/on/off for a
+    bool. Raises CommandError naming ``where`` for an unknown element, an
+    array, or a value that does not fit (the CN checks again).
+    """
+    try:
+        spec = layout.element(element)
+    except DataVectorError as exc:
+        raise CommandError(f"{where}: {exc}") from None
+    if spec.count:
+        raise CommandError(f"{where}: {element} is an array; WRITE sets one scalar")
+    v: Any = value
+    if spec.enum is not None and value in spec.enum:
+        v = spec.enum.index(value)
+    elif spec.scalar.kind == "bool" and value.lower() in ("true", "on", "false", "off"):
+        v = 1 if value.lower() in ("true", "on") else 0
+    try:
+        num = float(v)
+    except ValueError:
+        raise CommandError(f"{where}: {value!r} is not a valid value for {element}") from None
+    try:
+        DataVector.coerce(spec, int(num) if num.is_integer() else num)
+    except DataVectorError as exc:
+        raise CommandError(f"{where}: {exc}") from None
+    return spec.index, num
+
+
+def validate_command(
+    mission: Mission,
+    command: str,
+    element: str | None = None,
+    value: str | None = None,
+    where: str = "write",
+) -> tuple[str, int, float]:
+    """Check an operator command against the mission before anything is sent.
+
+    Returns ``(COMMAND, element index, value)`` as they go into ``gn_to_cn``.
+    Raises CommandError for an unknown command, element, or a value that
+    does not fit the element (enum names and true/false accepted).
+    """
+    cmd = command.upper()
+    if cmd not in CMD_NAMES or cmd == "NONE":
+        raise CommandError(
+            f"unknown command {command!r}; expected one of "
+            f"{', '.join(c.lower() for c in CMD_NAMES[1:])}"
+        )
+    if cmd != "WRITE":
+        if element is not None:
+            raise CommandError(f"{command} takes no arguments")
+        return cmd, 0, 0.0
+    if element is None or value is None:
+        raise CommandError("write needs ELEMENT VALUE")
+    index, num = resolve_write(Layout.for_node(mission, "cn"), element, value, where)
+    return cmd, index, num
+
+
+def fill_request(
+    dv: DataVector, command: str, seq: int, element_index: int = 0, value: float = 0.0
+) -> None:
+    """Write one command request into the ``gn_to_cn`` elements of ``dv``.
+
+    ``command`` is a name of :data:`~zplatform.config.CMD_NAMES` (any case,
+    not ``NONE``); ``seq`` must be above every number the CN has seen (read
+    ``cn_cmd_seq`` from telemetry and add one). Raises CommandError for an
+    unknown command, a ``seq`` outside 1..2**32-1, an ``element_index``
+    outside 0..65535, or a ``dv`` without the ``gn_to_cn`` region. The value
+    itself is checked by the CN (a bad one is rejected there).
+    """
+    name = command.upper()
+    if name not in CMD_NAMES or name == "NONE":
+        raise CommandError(f"unknown command {command!r}; commands: {', '.join(CMD_NAMES[1:])}")
+    if not 1 <= seq <= 0xFFFF_FFFF:
+        raise CommandError(f"command number {seq} is outside 1..4294967295")
+    if not 0 <= element_index <= 0xFFFF:
+        raise CommandError(f"element index {element_index} is outside 0..65535")
+    try:
+        dv.handle("gn_cmd").set(CMD_NAMES.index(name))
+        dv.handle("gn_cmd_seq").set(seq)
+        dv.handle("gn_cmd_element").set(element_index)
+        dv.handle("gn_cmd_value").set(float(value))
+    except DataVectorError as exc:
+        raise CommandError(f"cannot fill a command request: {exc}") from exc
+
+
+def verdict(telemetry: DataVector, seq: int) -> str | None:
+    """The CN's verdict on request ``seq`` as a telemetry snapshot shows it
+    (a ``cn_cmd_status`` name), or None while the snapshot does not answer
+    that number yet."""
+    if int(telemetry.get("cn_cmd_seq")) == seq and telemetry.get_name("cn_cmd_status") != "NONE":
+        return telemetry.get_name("cn_cmd_status")
+    return None
+
+
+class Uplink:
+    """Frames command requests: one ``gn_to_cn`` vector and its codec.
+
+    :meth:`frame` returns the codec's own buffer (reused by the next call).
+    """
+
+    def __init__(self, mission: Mission) -> None:
+        if not mission.has_ground:
+            raise CommandError(f"mission {mission.mission!r} has no ground node 'gn'")
+        self.mission = mission
+        self.req = DataVector(Layout.for_regions(mission, ["gn_to_cn"]))
+        self._codec = RegionCodec(self.req, "gn_to_cn")
+
+    def frame(self, command: str, seq: int, index: int, value: float, t_ns: int) -> bytearray:
+        """The request frame (CommandError as :func:`fill_request`)."""
+        fill_request(self.req, command, seq, index, value)
+        return self._codec.encode(seq, t_ns)
+
+
+class _Entry(msgspec.Struct, frozen=True):
+    due_loop: int
+    command: ScriptCommand
+    cmd: str
+    index: int
+    value: float
+
+
+class ScriptPlayer:
+    """Plays a command script from the ground side (module doc), sans-IO.
+
+    Construction resolves every line against the mission (CommandError
+    naming ``file:line``). Call :meth:`on_telemetry` with each telemetry
+    snapshot (a CN-layout Data Vector); it returns a request frame to send
+    now, or None. ``can_send=False`` (the CN is not listening yet) holds
+    the next command back. A command whose verdict does not show within
+    ``resend_loops`` loops (a lost frame) is sent again with the same number
+    (a duplicate that did arrive is refused as a replay, and its first
+    verdict still shows), at most ``tries`` times, then recorded as
+    ``NO_VERDICT``. Never blocks.
+    """
+
+    def __init__(
+        self,
+        mission: Mission,
+        script: list[ScriptCommand],
+        *,
+        resend_loops: int = 100,
+        tries: int = 3,
+    ) -> None:
+        if script and not mission.has_ground:
+            raise CommandError(
+                f"{script[0].source}: mission {mission.mission!r} has no ground node 'gn' "
+                "to send commands"
+            )
+        self.mission = mission
+        period = mission.period_ns
+        self._period = period
+        entries = []
+        for c in sorted(script, key=lambda c: c.at_ns):
+            cmd, index, value = validate_command(mission, c.command, c.element, c.value, c.source)
+            entries.append(_Entry(1 + -(-c.at_ns // period), c, cmd, index, value))
+        self._script = entries
+        self._next = 0
+        self._uplink = Uplink(mission) if mission.has_ground else None
+        self._waiting: _Entry | None = None
+        self._seq = 0
+        self._sent_loop = 0
+        self._tries = 0
+        self._resend = resend_loops
+        self._max_tries = tries
+        self.results: list[CommandOutcome] = []
+
+    @property
+    def done(self) -> bool:
+        """Every command was sent and has its verdict."""
+        return self._next == len(self._script) and self._waiting is None
+
+    @property
+    def pending(self) -> list[str]:
+        """Sources (``file:line``) of the commands not sent yet."""
+        return [e.command.source for e in self._script[self._next :]]
+
+    def on_telemetry(self, tm: DataVector, *, can_send: bool = True) -> bytearray | None:
+        loop = int(tm.get("cn_loop"))
+        w = self._waiting
+        if w is not None:
+            status = verdict(tm, self._seq)
+            if status is None and loop - self._sent_loop >= self._resend:
+                if self._tries >= self._max_tries:
+                    status = "NO_VERDICT"
+                elif can_send:
+                    return self._send(w, loop, tm, resend=True)
+            if status is None:
+                return None
+            self.results.append(
+                CommandOutcome(
+                    w.cmd, self._seq, status, loop, (loop - 1) * self._period, w.command.source
+                )
+            )
+            self._waiting = None
+        if self._next == len(self._script) or not can_send:
+            return None
+        e = self._script[self._next]
+        if e.due_loop > loop + 1:
+            return None
+        self._next += 1
+        return self._send(e, loop, tm, resend=False)
+
+    def _send(self, e: _Entry, loop: int, tm: DataVector, *, resend: bool) -> bytearray:
+        assert self._uplink is not None
+        if resend:
+            self._tries += 1
+        else:
+            self._seq = int(tm.get("cn_cmd_seq")) + 1
+            self._tries = 1
+            self._waiting = e
+        self._sent_loop = loop
+        return self._uplink.frame(e.cmd, self._seq, e.index, e.value, int(tm.get("cn_time_ns")))
