@@ -310,6 +310,7 @@ class _Children:
 
 
 def cmd_up(args: argparse.Namespace) -> int:
+    """Run every node; see :func:`_watch` for what a node's death does."""
     mission = load_mission(args.mission)  # refuse a bad mission before spawning
     if args.commands:
         from .uplink import load_commands
@@ -334,7 +335,7 @@ def cmd_up(args: argparse.Namespace) -> int:
 
     signal.signal(signal.SIGINT, on_signal)
     signal.signal(signal.SIGTERM, on_signal)
-    rc = 0
+    watch = _Watch()
     try:
         # Spawn everything before opening our own zenoh session: never fork
         # a process that holds one (DESIGN.md §8).
@@ -353,46 +354,112 @@ def cmd_up(args: argparse.Namespace) -> int:
         if args.duration is not None:
             cn += ["--duration", str(args.duration)]
         children.spawn("cn", cn)
-        rc = _watch(mission, children, args, lambda: stopping)
+        _watch(mission, children, args, lambda: stopping, watch)
     finally:
         codes = children.stop_all()
+    rc = 0 if watch.ok else 1
     for name, code in codes.items():
-        if code not in (0, -signal.SIGTERM) and rc == 0:
+        if code not in (0, -signal.SIGTERM) and name not in watch.died:
             print(f"zplatform up: node {name} exited with code {code}", file=sys.stderr)
             rc = 1
-    summary = _merge_summaries(mission, summaries, codes)
+    summary = _merge_summaries(mission, summaries, codes, watch.last_cn)
     write_summary(args.summary, summary)
     if not args.quiet:
         _print_summary(summary)
     return rc
 
 
-def _watch(mission: Mission, children: _Children, args: argparse.Namespace, stopping: Any) -> int:
-    """Live status until the CN finishes, a node dies, or Ctrl-C. Returns rc."""
+class _Watch:
+    """What :func:`_watch` saw: nodes that died, and the CN's last telemetry."""
+
+    def __init__(self) -> None:
+        self.died: dict[str, int] = {}
+        self.ok = True
+        self.last_cn: CnSummary | None = None
+
+
+def _cn_from_telemetry(mission: Mission, dv: DataVector, first_t: int) -> CnSummary:
+    """The CN's figures as its last telemetry showed them (for a CN that died
+    before it could write its summary)."""
+    dns = mission.device_nodes
+    loops = int(dv.get("cn_loop"))
+    dur = (int(dv.get("cn_time_ns")) - first_t) / 1e9
+    return CnSummary(
+        loops=loops,
+        duration_s=dur,
+        rate_hz=(loops - 1) / dur if dur > 0 else 0.0,
+        loop_overruns=int(dv.get("cn_loop_overruns")),
+        sync_overruns=int(dv.get("cn_sync_overruns")),
+        missed={dn: int(dv.get(f"cn_missed_{dn}")) for dn in dns},
+        late={dn: int(dv.get(f"cn_late_{dn}")) for dn in dns},
+        rx={dn: int(dv.get(f"cn_rx_{dn}")) for dn in dns},
+        bad_frames=int(dv.get("cn_bad_frames")),
+        errors=int(dv.get("cn_errors")) + sum(int(dv.get(f"{dn}_errors")) for dn in dns),
+        final_state=dv.get_name("cn_state"),
+        fault=dv.get_name("cn_fault"),
+    )
+
+
+def _watch(
+    mission: Mission,
+    children: _Children,
+    args: argparse.Namespace,
+    stopping: Any,
+    watch: _Watch,
+) -> None:
+    """Live status until the CN finishes or Ctrl-C.
+
+    The flight never depends on the ground link, and a lost DN is the CN's
+    to handle (DN_LOST and the mission's fault response): when a DN or the
+    ground node dies, ``up`` says so and keeps the rest running (the run
+    then ends non-zero). When the CN dies, the flight is over: ``up`` says
+    so, stops the rest, and fills the summary from the CN's last telemetry.
+    """
     from .node.ground import TelemetryReceiver
     from .timebase import NodeClock
 
     ns = NodeSession(mission, None)
     rx = TelemetryReceiver(ns.session, mission, NodeClock().now_ns)
     tty = sys.stdout.isatty()
+    first_t = 0
     try:
         last_print = time.monotonic()
         last_loop = 0
         ready_deadline = time.monotonic() + args.ready_timeout + 30
         while not stopping():
-            dead = children.dead()
-            if any(n == "cn" for n, _ in dead):
-                code = dict(dead)["cn"]
-                return 0 if code == 0 else 1
-            others = [(n, c) for n, c in dead if n != "cn"]
-            if others:
-                for n, c in others:
-                    print(f"zplatform up: node {n} died (exit code {c}); stopping", file=sys.stderr)
-                return 1
+            for n, c in children.dead():
+                if n in watch.died:
+                    continue
+                watch.died[n] = c
+                if n == "cn":
+                    # Drain what the CN sent before it went: the summary's figures.
+                    while rx.next(0.0) is not None:
+                        pass
+                    if c != 0:
+                        watch.ok = False
+                        print(
+                            f"\nzplatform up: the control node died (exit code {c}): the flight "
+                            f"is over; last telemetry: loop {int(rx.dv.get('cn_loop'))}, state "
+                            f"{rx.dv.get_name('cn_state') if rx.received else 'none'}",
+                            file=sys.stderr,
+                        )
+                        if rx.received:
+                            watch.last_cn = _cn_from_telemetry(mission, rx.dv, first_t)
+                    return
+                watch.ok = False
+                what = (
+                    "the vehicle flies on without the ground link"
+                    if n == "gn"
+                    else "the control node carries on (DN_LOST and the mission's fault response)"
+                )
+                print(f"\nzplatform up: node {n} died (exit code {c}); {what}", file=sys.stderr)
             got = rx.next(0.2)
+            if got is not None and first_t == 0:
+                first_t = int(rx.dv.get("cn_time_ns"))
             if rx.received == 0 and got is None and time.monotonic() > ready_deadline:
                 print("zplatform up: no telemetry from the control node", file=sys.stderr)
-                return 1
+                watch.ok = False
+                return
             now = time.monotonic()
             if not args.quiet and rx.received and now - last_print >= 1.0:
                 dv = rx.dv
@@ -404,11 +471,11 @@ def _watch(mission: Mission, children: _Children, args: argparse.Namespace, stop
                 line = (
                     f"loop {loop:>8}  {rate:6.1f} Hz  missed {misses or '-'}  "
                     f"overruns {int(dv.get('cn_loop_overruns'))}/{int(dv.get('cn_sync_overruns'))}"
-                    f"  state {dv.get_name('cn_state')}  cmd {dv.get_name('cn_cmd_status')}"
+                    f"  state {dv.get_name('cn_state')}  fault {dv.get_name('cn_fault')}"
+                    f"  cmd {dv.get_name('cn_cmd_status')}"
                 )
                 print(("\r" + line) if tty else line, end="" if tty else "\n", flush=True)
                 last_print, last_loop = now, loop
-        return 0
     finally:
         if tty and not args.quiet:
             print()
@@ -417,10 +484,13 @@ def _watch(mission: Mission, children: _Children, args: argparse.Namespace, stop
 
 
 def _merge_summaries(
-    mission: Mission, paths: dict[str, Path], codes: dict[str, int]
+    mission: Mission,
+    paths: dict[str, Path],
+    codes: dict[str, int],
+    cn_fallback: CnSummary | None = None,
 ) -> RunSummary:
     nodes: dict[str, CnSummary | DnSummary | GnSummary | None] = {}
-    cn = read_summary(paths["cn"], CnSummary)
+    cn = read_summary(paths["cn"], CnSummary) or cn_fallback
     gn = read_summary(paths["gn"], GnSummary) if "gn" in paths else None
     for name, p in paths.items():
         if name == "cn":

@@ -6,8 +6,10 @@ import json
 import os
 import queue
 import random
+import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -160,8 +162,19 @@ def test_cn_refuses_to_start_beyond_offset_bound(tmp_path: Path) -> None:
         assert "dn0" in out and "refuses to start" in out, out[-2000:]
 
 
-def test_up_stops_every_node_when_one_dies(tmp_path: Path) -> None:
-    """`zplatform up`: a child's death stops the run, exits non-zero, leaves no process."""
+def _up(path: Path, *extra: str) -> subprocess.Popen[bytes]:
+    return subprocess.Popen(
+        [sys.executable, "-m", "zplatform", "up", str(path), "--quiet", *extra],
+        cwd=ROOT,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+    )
+
+
+def test_up_flies_on_when_a_device_node_dies(tmp_path: Path) -> None:
+    """`zplatform up`: a DN's death does not end the flight: the CN keeps its
+    loop, latches DN_LOST; Ctrl-C then ends the run non-zero, naming the DN,
+    with every child reaped (issue 9, defect 9)."""
     import psutil
 
     from zplatform.config import load_mission
@@ -171,12 +184,7 @@ def test_up_stops_every_node_when_one_dies(tmp_path: Path) -> None:
 
     path = tmp_path / "m.yaml"
     rewrite_endpoints(CONFIGS / "minimal.yaml", path)
-    up = subprocess.Popen(
-        [sys.executable, "-m", "zplatform", "up", str(path), "--quiet"],
-        cwd=ROOT,
-        stdout=subprocess.PIPE,
-        stderr=subprocess.STDOUT,
-    )
+    up = _up(path, "--summary", str(tmp_path / "s.json"))
     ns = NodeSession(load_mission(path), None)
     rx = TelemetryReceiver(ns.session, load_mission(path), NodeClock().now_ns)
     try:
@@ -187,15 +195,62 @@ def test_up_stops_every_node_when_one_dies(tmp_path: Path) -> None:
         assert len(children) == 3  # dn0, gn, cn
         dn0 = next(p for p in children if "dn0" in p.cmdline())
         dn0.kill()
+        deadline = time.monotonic() + 30
+        while rx.dv.get_name("cn_fault") != "DN_LOST":
+            assert time.monotonic() < deadline, "DN_LOST never latched"
+            assert up.poll() is None, up.stdout.read().decode()[-2000:]  # type: ignore[union-attr]
+            rx.next(1.0)
+        loop = int(rx.dv.get("cn_loop"))
+        while int(rx.dv.get("cn_loop")) < loop + 50:  # still flying
+            rx.next(1.0)
+        up.send_signal(signal.SIGINT)
         rc = up.wait(timeout=60)
         out = up.stdout.read().decode()  # type: ignore[union-attr]
         assert rc == 1, out
-        assert "dn0 died" in out
+        assert "node dn0 died" in out and "carries on" in out
+        s = json.loads((tmp_path / "s.json").read_text())
+        assert s["nodes"]["cn"]["fault"] == "DN_LOST"
         _, alive = psutil.wait_procs(children, timeout=15)
         assert not alive, alive
     finally:
         rx.close()
         ns.close()
+        if up.poll() is None:
+            up.kill()
+
+
+def test_up_reports_a_dead_control_node(tmp_path: Path) -> None:
+    """`zplatform up`: when the CN is killed the run ends with a message, a
+    non-zero exit and a summary filled from its last telemetry."""
+    import psutil
+
+    from zplatform.transport import rewrite_endpoints
+
+    path = tmp_path / "m.yaml"
+    rewrite_endpoints(CONFIGS / "minimal.yaml", path)
+    up = _up(path, "--summary", str(tmp_path / "s.json"), "--log", str(tmp_path / "tm.csv"))
+    try:
+        # The ground log fills once the CN flies: wait on it, not on time.
+        deadline = time.monotonic() + 60
+        while True:
+            assert up.poll() is None, up.stdout.read().decode()[-2000:]  # type: ignore[union-attr]
+            assert time.monotonic() < deadline, "no telemetry logged"
+            p = tmp_path / "tm.csv"
+            if p.exists() and p.read_text().count("\n") > 50:
+                break
+            time.sleep(0.2)  # polling a file another process writes; no peer to wait on
+        children = psutil.Process(up.pid).children()
+        cn = next(p for p in children if p.cmdline()[-1:] != [] and " cn " in " ".join(p.cmdline()))
+        cn.kill()
+        rc = up.wait(timeout=60)
+        out = up.stdout.read().decode()  # type: ignore[union-attr]
+        assert rc == 1, out
+        assert "control node died" in out
+        s = json.loads((tmp_path / "s.json").read_text())
+        assert s["loops"] > 50 and s["final_state"] == "IDLE", s
+        _, alive = psutil.wait_procs(children, timeout=15)
+        assert not alive, alive
+    finally:
         if up.poll() is None:
             up.kill()
             up.wait()
