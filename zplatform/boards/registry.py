@@ -30,6 +30,7 @@ __all__ = [
 ]
 
 BUILTIN_DRIVERS = ("sim", "serial", "gpiod")
+_BOARD_METHODS = ("step", "set_digital", "get_digital", "set_analog", "get_analog")
 
 
 def _split(spec: Mapping[str, Any] | None, where: str) -> tuple[str, dict[str, Any]]:
@@ -117,9 +118,10 @@ def check_board(spec: Mapping[str, Any] | None, where: str) -> None:
     """Validate a ``board:`` mapping at mission load, opening no hardware.
 
     Built-in drivers are built and dropped (their constructors are pure).
-    For a ``package.module:Class`` driver the class is imported and, if it
-    has a ``Config`` attribute that is a ``msgspec.Struct`` type, the config
-    is decoded into it; the class itself is not instantiated, since a
+    For a ``package.module:Class`` driver the class is imported and checked
+    for the Board methods and, if it has a ``Config`` attribute that is a
+    ``msgspec.Struct`` type, the config is decoded into it; the class itself
+    is not instantiated, since a
     team's constructor may not be pure. Raises ConfigError with the path.
     """
     driver, config = _split(spec, where)
@@ -127,6 +129,12 @@ def check_board(spec: Mapping[str, Any] | None, where: str) -> None:
         make_board(spec, where=where)
         return
     cls = _load_class(driver, f"{where}.driver")
+    missing = [m for m in _BOARD_METHODS if not callable(getattr(cls, m, None))]
+    if missing:
+        raise ConfigError(
+            f"{driver!r} does not implement zplatform.devices.Board (no {', '.join(missing)})",
+            f"{where}.driver",
+        )
     cfg_type = getattr(cls, "Config", None)
     if isinstance(cfg_type, type) and issubclass(cfg_type, msgspec.Struct):
         decode_component_config(cfg_type, config, where)
