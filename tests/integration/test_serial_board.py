@@ -116,6 +116,7 @@ def test_cable_pull_safes_and_reconnects(tmp_path: Path, sims: list[SimProcess])
             "analog_pins": 1,
             "reconnect_min_ms": 10,
             "reconnect_max_ms": 100,
+            "safe_after": 1,
         }
     )
     board.open()
@@ -160,7 +161,9 @@ def test_timeout_counts_as_error_and_step_stays_bounded(
 ) -> None:
     link = tmp_path / "ttyBOARD"
     sim = start(sims, link)
-    board = SerialBoard({"port": str(link), "digital_pins": 2, "reply_timeout_ms": 2.0})
+    board = SerialBoard(
+        {"port": str(link), "digital_pins": 2, "reply_timeout_ms": 2.0, "safe_after": 1}
+    )
     board.open()
     try:
         assert board.wait_connected(10)

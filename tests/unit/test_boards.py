@@ -346,6 +346,7 @@ def test_serial_board_step_fails_until_linked_and_safes() -> None:
             "digital_pins": 2,
             "safe_digital": {1: True},
             "handshake_timeout_ms": 20,
+            "safe_after": 2,
         },
         where=WHERE,
         serial_factory=DeadPort,

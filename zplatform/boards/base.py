@@ -35,8 +35,10 @@ class BoardHealth(msgspec.Struct, frozen=True, gc=False):
     link to the hardware is up (always true for boards without a link).
     ``safe_active``: the outputs are forced to their safe values because of
     errors (the serial board holds them until the device answers again).
-    Counters only grow (until :meth:`ManagedBoard.open` of a closed board,
-    which keeps them: they count over the board object's life).
+    Counters only grow, over the board object's life (close and open keep
+    them). ``frames_*`` count link frames (serial) or I/O cycles (gpiod: one
+    write and one read per step); ``late_replies`` are answers that came
+    after their step gave up on them.
     """
 
     ok: bool

@@ -21,7 +21,7 @@ import importlib.util
 import struct
 import threading
 import time
-from typing import Annotated, Any
+from typing import Annotated, Any, NoReturn
 
 import msgspec
 from msgspec import Meta
@@ -40,8 +40,10 @@ class SerialBoardConfig(msgspec.Struct, forbid_unknown_fields=True):
     ``digital_pins`` / ``analog_pins`` are what the devices may use; the
     device must announce at least as many in its HELLO_ACK. ``safe_digital``
     / ``safe_analog`` map a pin to its safe value (others: off, 0 V).
-    ``safe_after``: consecutive failed steps after which the board forces the
-    safe values on every write until the device answers again.
+    ``safe_after``: consecutive failed steps (3 = 30 ms at 100 Hz, so one
+    late reply on a loaded host does not glitch the outputs) after which the
+    board forces the safe values on every write until the device answers
+    again.
     """
 
     port: str
@@ -52,7 +54,7 @@ class SerialBoardConfig(msgspec.Struct, forbid_unknown_fields=True):
     handshake_timeout_ms: Annotated[float, Meta(gt=0, le=10_000)] = 500.0
     reconnect_min_ms: Annotated[float, Meta(gt=0, le=60_000)] = 50.0
     reconnect_max_ms: Annotated[float, Meta(gt=0, le=60_000)] = 2_000.0
-    safe_after: Annotated[int, Meta(ge=1)] = 1
+    safe_after: Annotated[int, Meta(ge=1)] = 3
     safe_digital: dict[int, bool] = msgspec.field(default_factory=dict)
     safe_analog: dict[int, float] = msgspec.field(default_factory=dict)
 
@@ -242,6 +244,7 @@ class SerialBoard:
         if port is None:
             return
         self._seq = (self._seq + 1) & 0xFFFF
+        self._want = self._seq  # its INPUTS is latched by the next step, not counted late
         n = self._pack_write(self._seq, True)
         try:
             port.write(self._txview[:n])
@@ -265,7 +268,7 @@ class SerialBoard:
 
     # -- loop thread helpers -------------------------------------------------------
 
-    def _fail(self, message: str) -> Any:
+    def _fail(self, message: str) -> NoReturn:
         self.counters.failed(message)
         if self.counters.consecutive_errors >= self.config.safe_after:
             self._faulted = True
