@@ -69,13 +69,17 @@ def start(sims: list[SimProcess], link: Path, *extra: str) -> SimProcess:
     return s
 
 
+# The functional tests are not timing tests: the simulator is a Python process on
+# a shared machine, whose round trip over the pty is usually well under 1 ms
+# but sometimes above 2 ms. The timeout test below keeps the 2 ms default.
+SLACK = {"reply_timeout_ms": 50.0}
 INJECT = ("--inject-digital", "4=1", "--inject-analog", "1=1.25")
 
 
 def test_outputs_inputs_and_garbage(tmp_path: Path, sims: list[SimProcess]) -> None:
     link = tmp_path / "ttyBOARD"
     sim = start(sims, link, *INJECT)
-    board = SerialBoard({"port": str(link), "digital_pins": 8, "analog_pins": 2})
+    board = SerialBoard({"port": str(link), "digital_pins": 8, "analog_pins": 2, **SLACK})
     board.open()
     try:
         assert board.wait_connected(10), board.health()
@@ -117,6 +121,7 @@ def test_cable_pull_safes_and_reconnects(tmp_path: Path, sims: list[SimProcess])
             "reconnect_min_ms": 10,
             "reconnect_max_ms": 100,
             "safe_after": 1,
+            **SLACK,
         }
     )
     board.open()
@@ -167,7 +172,6 @@ def test_timeout_counts_as_error_and_step_stays_bounded(
     board.open()
     try:
         assert board.wait_connected(10)
-        board.step(0)
         sim.signal(signal.SIGSTOP)  # a hung device: the port stays, no replies
         t0 = time.perf_counter()
         with pytest.raises(BoardError, match="no INPUTS"):
@@ -186,7 +190,7 @@ mission: serialtest
 nodes:
   cn: {}
   dn0:
-    board: {driver: serial, port: "%s", digital_pins: 8, analog_pins: 2, reply_timeout_ms: 20}
+    board: {driver: serial, port: "%s", digital_pins: 8, analog_pins: 2, reply_timeout_ms: 50}
 regions:
   cn_to_dn0:
     - {name: led_cmd, type: bool}

@@ -139,6 +139,7 @@ def test_sim_config_is_passed_without_driver() -> None:
         ({"driver": "serial", "port": "x", "reply_timeout_ms": 0}, f"{WHERE}.reply_timeout_ms", ""),
         ({"driver": "serial", "port": "x", "safe_digital": {9: True}}, WHERE, "out of range"),
         ({"driver": "serial", "port": "x", "analog_pins": 17}, f"{WHERE}.analog_pins", ""),
+        ({"driver": "serial", "port": "x", "baudrate": 115200}, WHERE, "2.78 ms"),
         (
             {"driver": "gpiod", "inputs": {0: 1}, "outputs": {0: 2}},
             WHERE,

@@ -31,12 +31,16 @@ from ..errors import ConfigError, ControlError
 from . import wire
 from .base import BoardError, BoardHealth, HealthCounters
 
-__all__ = ["SerialBoard", "SerialBoardConfig"]
+__all__ = ["SerialBoard", "SerialBoardConfig", "round_trip_ms"]
 
 
 class SerialBoardConfig(msgspec.Struct, forbid_unknown_fields=True):
     """The ``board:`` mapping of ``driver: serial`` (all times in milliseconds).
 
+    ``reply_timeout_ms`` must exceed the frames' time on the wire at
+    ``baudrate`` (checked at load: at 115200 baud a WRITE and its INPUTS
+    alone take 2.8 ms or more, so the default is 921600; USB CDC-ACM ignores
+    the baud rate and answers within a USB frame or two).
     ``digital_pins`` / ``analog_pins`` are what the devices may use; the
     device must announce at least as many in its HELLO_ACK. ``safe_digital``
     / ``safe_analog`` map a pin to its safe value (others: off, 0 V).
@@ -47,7 +51,7 @@ class SerialBoardConfig(msgspec.Struct, forbid_unknown_fields=True):
     """
 
     port: str
-    baudrate: Annotated[int, Meta(ge=300, le=12_000_000)] = 115_200
+    baudrate: Annotated[int, Meta(ge=300, le=12_000_000)] = 921_600
     digital_pins: Annotated[int, Meta(ge=0, le=wire.MAX_DIGITAL)] = 8
     analog_pins: Annotated[int, Meta(ge=0, le=wire.MAX_ANALOG)] = 0
     reply_timeout_ms: Annotated[float, Meta(gt=0, le=50)] = 2.0
@@ -59,6 +63,13 @@ class SerialBoardConfig(msgspec.Struct, forbid_unknown_fields=True):
     safe_analog: dict[int, float] = msgspec.field(default_factory=dict)
 
     def __post_init__(self) -> None:
+        wire_ms = round_trip_ms(self.baudrate, self.analog_pins)
+        if self.reply_timeout_ms <= wire_ms:
+            raise ValueError(
+                f"reply_timeout_ms {self.reply_timeout_ms} is shorter than the {wire_ms:.2f} ms "
+                f"that a WRITE and its INPUTS take on the wire at {self.baudrate} baud; "
+                "raise the baud rate or the timeout"
+            )
         if self.reconnect_min_ms > self.reconnect_max_ms:
             raise ValueError("reconnect_min_ms must not exceed reconnect_max_ms")
         for pin in self.safe_digital:
@@ -67,6 +78,15 @@ class SerialBoardConfig(msgspec.Struct, forbid_unknown_fields=True):
         for pin in self.safe_analog:
             if not 0 <= pin < self.analog_pins:
                 raise ValueError(f"safe_analog pin {pin} out of range 0..{self.analog_pins - 1}")
+
+
+def round_trip_ms(baudrate: int, analog_pins: int) -> float:
+    """Time on the wire of one WRITE and its INPUTS (8N1: 10 bits a byte), no stuffing.
+
+    Each frame is COBS(4 + 8 + 4A + 2) + 0x00 = 16 + 4A bytes.
+    """
+    frame_bytes = 4 + 8 + 4 * analog_pins + 2 + 2
+    return 2 * frame_bytes * 10 * 1000.0 / baudrate
 
 
 _U64 = struct.Struct("<Q")
