@@ -376,3 +376,34 @@ def test_gpiod_board_not_open_raises() -> None:
     with pytest.raises(BoardError, match="not open"):
         b.step(0)
     assert not b.health().ok
+
+
+# -- the device node's default board -------------------------------------------------
+
+GPIO_MISSION = """
+mission: boardwiring
+nodes:
+  cn: {}
+  dn0: {board: {driver: gpiod, chip: /dev/gpiochip9, inputs: {0: 3}, outputs: {1: 4}}}
+regions:
+  dn0_to_cn:
+    - {name: button, type: bool}
+devices:
+  - {name: button, class: 'zplatform.devices:DigitalInput', node: dn0,
+     config: {pin: 0, element: button}}
+"""
+
+
+def test_device_logic_builds_the_mission_board() -> None:
+    """Once DeviceLogic builds its default board with make_board, the mission alone picks it."""
+    from zplatform import decode_mission
+    from zplatform.node.logic import DeviceLogic
+
+    mission = decode_mission(GPIO_MISSION)
+    try:
+        logic = DeviceLogic(mission, "dn0")
+    except ConfigError as exc:
+        if "driver" not in str(exc):
+            raise
+        pytest.skip("DeviceLogic still builds a SimBoard; wire it to zplatform.boards.make_board")
+    assert isinstance(logic.board, GpiodBoard)
