@@ -79,6 +79,8 @@ def test_exports() -> None:
         "BUILTIN_DRIVERS",
         "BoardError",
         "BoardHealth",
+        "GpiodBoard",
+        "GpiodBoardConfig",
         "HealthCounters",
         "ManagedBoard",
         "board_health",
@@ -87,6 +89,8 @@ def test_exports() -> None:
         "make_board",
         "open_board",
         "safe_board",
+        "SerialBoard",
+        "SerialBoardConfig",
     }
     assert issubclass(BoardError, ZPlatformError)
 

@@ -62,6 +62,12 @@ The device loop's side (:class:`~zplatform.node.logic.DeviceLogic`): count a
 exception there), call :func:`safe_board` on it, and read
 :func:`board_health` for telemetry or events.
 
+Drivers: :class:`SerialBoard` (``serialboard``, needs ``pyserial``, the
+``serial`` extra) and :class:`GpiodBoard` (``gpio``, needs ``gpiod``, the
+``gpio`` extra) import their libraries only when used, so this package
+imports without them. ``python -m zplatform.boards.serial_sim`` is a
+simulated serial device behind a pty, for tests and bench setups.
+
 Errors::
 
     ZPlatformError
@@ -71,6 +77,7 @@ Errors::
 from __future__ import annotations
 
 from .base import BoardError, BoardHealth, HealthCounters, ManagedBoard
+from .gpio import GpiodBoard, GpiodBoardConfig
 from .registry import (
     BUILTIN_DRIVERS,
     board_health,
@@ -80,13 +87,18 @@ from .registry import (
     open_board,
     safe_board,
 )
+from .serialboard import SerialBoard, SerialBoardConfig
 
 __all__ = [
     "BUILTIN_DRIVERS",
     "BoardError",
     "BoardHealth",
+    "GpiodBoard",
+    "GpiodBoardConfig",
     "HealthCounters",
     "ManagedBoard",
+    "SerialBoard",
+    "SerialBoardConfig",
     "board_health",
     "check_board",
     "close_board",
