@@ -230,3 +230,22 @@ def test_device_node_drives_a_serial_board_from_the_mission(
     finally:
         close_board(board)
     assert os.path.islink(link)
+
+
+def test_a_second_host_cannot_share_the_port(tmp_path: Path, sims: list[SimProcess]) -> None:
+    link = tmp_path / "ttyBOARD"
+    start(sims, link)
+    first = SerialBoard({"port": str(link), **SLACK})
+    second = SerialBoard({"port": str(link), "reconnect_min_ms": 20, **SLACK})
+    first.open()
+    try:
+        assert first.wait_connected(10)
+        second.open()
+        assert not second.wait_connected(0.3)
+        with pytest.raises(BoardError, match="cannot open"):
+            second.step(0)
+        first.step(0)
+        assert first.health().ok
+    finally:
+        second.close()
+        first.close()

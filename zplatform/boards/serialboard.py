@@ -41,6 +41,7 @@ class SerialBoardConfig(msgspec.Struct, forbid_unknown_fields=True):
     ``baudrate`` (checked at load: at 115200 baud a WRITE and its INPUTS
     alone take 2.8 ms or more, so the default is 921600; USB CDC-ACM ignores
     the baud rate and answers within a USB frame or two).
+    ``exclusive`` locks the port (flock) against a second opener.
     ``digital_pins`` / ``analog_pins`` are what the devices may use; the
     device must announce at least as many in its HELLO_ACK. ``safe_digital``
     / ``safe_analog`` map a pin to its safe value (others: off, 0 V).
@@ -59,6 +60,7 @@ class SerialBoardConfig(msgspec.Struct, forbid_unknown_fields=True):
     reconnect_min_ms: Annotated[float, Meta(gt=0, le=60_000)] = 50.0
     reconnect_max_ms: Annotated[float, Meta(gt=0, le=60_000)] = 2_000.0
     safe_after: Annotated[int, Meta(ge=1)] = 3
+    exclusive: bool = True
     safe_digital: dict[int, bool] = msgspec.field(default_factory=dict)
     safe_analog: dict[int, float] = msgspec.field(default_factory=dict)
 
@@ -320,8 +322,14 @@ class SerialBoard:
             factory = serial.Serial
         # timeout: how long a read may wait, so the thread notices close();
         # write_timeout=0: writes never block the loop (they return what fit).
+        # exclusive: an advisory lock (flock), so a second node or a terminal
+        # program cannot share the port and steal replies.
         return factory(
-            self.config.port, baudrate=self.config.baudrate, timeout=0.05, write_timeout=0
+            self.config.port,
+            baudrate=self.config.baudrate,
+            timeout=0.05,
+            write_timeout=0,
+            exclusive=self.config.exclusive,
         )
 
     def _run(self) -> None:
