@@ -213,6 +213,29 @@ class SimBoard:
         """What was last set on ``pin`` (ignores injection): for tests and physics."""
         return self._dout[self._dpin(pin)]
 
+    # -- the board contract (zplatform.boards): the reference implementation --
+
+    def open(self) -> None:
+        """Nothing to acquire (idempotent)."""
+
+    def close(self) -> None:
+        """Apply :meth:`safe` (idempotent, never raises)."""
+        self.safe()
+
+    def safe(self) -> None:
+        """Drive every output to its safe value: digital off, 0 V (injections stay)."""
+        for i in range(self._n_dig):
+            self._dout[i] = False
+        for i in range(self._n_ana):
+            self._aout[i] = 0.0
+
+    def health(self) -> Any:
+        """Always ok: a :class:`zplatform.boards.BoardHealth` (typed Any here:
+        ``zplatform.boards`` imports this module)."""
+        from .boards.base import BoardHealth
+
+        return BoardHealth(ok=True)
+
 
 class Device(Component):
     """Base class of sensor and actuator drivers (thesis Figure 17).

@@ -1,0 +1,130 @@
+"""The board contract: :class:`ManagedBoard`, :class:`BoardHealth`, :class:`BoardError`.
+
+The contract is stated once in :mod:`zplatform.boards` (the package
+docstring); this module holds its types so that drivers and the device loop
+share them without importing each other.
+"""
+
+from __future__ import annotations
+
+from typing import Protocol, runtime_checkable
+
+import msgspec
+
+from ..devices import Board
+from ..errors import ZPlatformError
+
+__all__ = ["BoardError", "BoardHealth", "HealthCounters", "ManagedBoard"]
+
+
+class BoardError(ZPlatformError):
+    """A board could not latch its inputs or flush its outputs this loop.
+
+    Raised by :meth:`ManagedBoard.step` (a timeout, a link that is down, a
+    kernel error on a GPIO request) and by :meth:`ManagedBoard.open` (the
+    hardware is absent or refuses). The device loop counts it in
+    ``dnX_errors`` and goes on; the board has already recorded it in
+    :meth:`ManagedBoard.health`.
+    """
+
+
+class BoardHealth(msgspec.Struct, frozen=True, gc=False):
+    """A snapshot of a board's health (trio's statistics objects: frozen, cheap).
+
+    ``ok``: open, linked, and the last step succeeded. ``connected``: the
+    link to the hardware is up (always true for boards without a link).
+    ``safe_active``: the outputs are forced to their safe values because of
+    errors (the serial board holds them until the device answers again).
+    Counters only grow, over the board object's life (close and open keep
+    them). ``frames_*`` count link frames (serial) or I/O cycles (gpiod: one
+    write and one read per step); ``late_replies`` are answers that came
+    after their step gave up on them.
+    """
+
+    ok: bool
+    connected: bool = True
+    safe_active: bool = False
+    consecutive_errors: int = 0
+    errors: int = 0
+    last_error: str = ""
+    frames_sent: int = 0
+    frames_received: int = 0
+    bad_frames: int = 0
+    timeouts: int = 0
+    reconnects: int = 0
+    device_errors: int = 0
+    late_replies: int = 0
+
+
+class HealthCounters:
+    """The mutable counters behind :class:`BoardHealth` (one writer per counter).
+
+    Drivers with an I/O thread let the thread own the receive-side counters
+    (``frames_received``, ``bad_frames``, ``reconnects``, ``device_errors``,
+    ``late_replies``) and the loop thread own the rest, so no lock is needed:
+    each attribute has a single writer and reads of an int are atomic.
+    """
+
+    __slots__ = (
+        "bad_frames",
+        "consecutive_errors",
+        "device_errors",
+        "errors",
+        "frames_received",
+        "frames_sent",
+        "last_error",
+        "late_replies",
+        "reconnects",
+        "timeouts",
+    )
+
+    def __init__(self) -> None:
+        self.consecutive_errors = 0
+        self.errors = 0
+        self.last_error = ""
+        self.frames_sent = 0
+        self.frames_received = 0
+        self.bad_frames = 0
+        self.timeouts = 0
+        self.reconnects = 0
+        self.device_errors = 0
+        self.late_replies = 0
+
+    def failed(self, message: str) -> None:
+        """Record one failed step (``message`` becomes ``last_error``)."""
+        self.consecutive_errors += 1
+        self.errors += 1
+        self.last_error = message
+
+    def snapshot(self, *, ok: bool, connected: bool, safe_active: bool) -> BoardHealth:
+        return BoardHealth(
+            ok=ok,
+            connected=connected,
+            safe_active=safe_active,
+            consecutive_errors=self.consecutive_errors,
+            errors=self.errors,
+            last_error=self.last_error,
+            frames_sent=self.frames_sent,
+            frames_received=self.frames_received,
+            bad_frames=self.bad_frames,
+            timeouts=self.timeouts,
+            reconnects=self.reconnects,
+            device_errors=self.device_errors,
+            late_replies=self.late_replies,
+        )
+
+
+@runtime_checkable
+class ManagedBoard(Board, Protocol):
+    """A :class:`~zplatform.devices.Board` with a life cycle, a safe state and health.
+
+    See :mod:`zplatform.boards` for the full contract of each method.
+    """
+
+    def open(self) -> None: ...
+
+    def close(self) -> None: ...
+
+    def safe(self) -> None: ...
+
+    def health(self) -> BoardHealth: ...
