@@ -7,7 +7,7 @@ electrical to engineering units, calibrates and writes the Data Vector; an
 mode: an actuator is safed by safing the controller that feeds it.
 
 Each loop of a device node runs, in order (:class:`DeviceSet` and
-:class:`~zplatform.node.logic.DeviceLogic`): the board's :meth:`Board.step`
+:class:`~zplatform.loop.DeviceLogic`): the board's :meth:`Board.step`
 (latch inputs; the simulated board's physics), the sensors, the node's
 controllers, the actuators. A device that raises is counted in
 ``dnX_errors`` and reported by an ``ERROR`` event once per failure streak;
@@ -491,15 +491,17 @@ class DeviceSet:
 
 
 def check_config(mission: Mission) -> None:
-    """Build every device node's devices on a scratch vector and a SimBoard.
+    """Build every device node's devices on a scratch vector and its board
+    (built from the mission, not opened).
 
     Raises ConfigError with the YAML path of the first bad device class,
     config field, pin or element name, or board config.
     """
+    from .boards import make_board  # the boards package imports this module
     from .datavector import Layout
 
     for node in mission.device_nodes:
-        board = SimBoard(mission.nodes[node].board, where=f"$.nodes.{node}.board")
+        board = make_board(mission.nodes[node].board, where=f"$.nodes.{node}.board")
         if not _component_indices(mission, "devices", node):
             continue
         dv = DataVector(Layout.for_node(mission, node))

@@ -39,12 +39,13 @@ from __future__ import annotations
 
 from typing import Protocol
 
+from .boards import make_board
 from .codec import RegionCodec
 from .commands import CommandHandler
 from .config import Mission
 from .control import ControllerSet
 from .datavector import DataVector, Layout
-from .devices import Board, DeviceSet, SimBoard
+from .devices import Board, DeviceSet
 from .errors import CodecError, ConfigError
 from .events import EventLog, Severity
 from .faults import FaultMonitor
@@ -232,8 +233,9 @@ class DeviceLogic:
     """A device node's loop (module doc): trigger check, then board, sensors,
     controllers, actuators.
 
-    ``board`` defaults to a :class:`~zplatform.devices.SimBoard` built from
-    the node's ``board`` config. ``stale_after_ns``: a trigger stamped (CN
+    ``board`` defaults to the board the node's ``board:`` config names
+    (:func:`zplatform.boards.make_board`; built, not opened: the runtime
+    opens it). ``stale_after_ns``: a trigger stamped (CN
     time) more than this long before ``now_ns`` belongs to a loop the CN has
     already closed; it is answered but does not run (None: never stale).
     Construction raises ConfigError (YAML path) for a bad device or
@@ -266,7 +268,7 @@ class DeviceLogic:
         self.board: Board = (
             board
             if board is not None
-            else SimBoard(mission.nodes[node].board, where=f"$.nodes.{node}.board")
+            else make_board(mission.nodes[node].board, where=f"$.nodes.{node}.board")
         )
         self.devices = DeviceSet(mission, node, dv, self.board, self.events)
         self.controllers = ControllerSet(mission, node, dv, self.events)

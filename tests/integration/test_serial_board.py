@@ -23,10 +23,11 @@ import pytest
 
 pytest.importorskip("serial")
 
-from zplatform import decode_mission
+from tests.drive import run_dn_loop
+from zplatform import DataVector, Layout, decode_mission
 from zplatform.boards import BoardError, close_board, make_board, open_board
 from zplatform.boards.serialboard import SerialBoard
-from zplatform.node.logic import DeviceLogic
+from zplatform.loop import DeviceLogic
 
 pytestmark = pytest.mark.timeout(60)
 
@@ -220,9 +221,10 @@ def test_device_node_drives_a_serial_board_from_the_mission(
     open_board(board)
     try:
         assert board.wait_connected(10)
-        logic.dv.handle("led_cmd").set(True)
+        cn = DataVector(Layout.for_node(mission, "cn"))
+        cn.handle("led_cmd").set(True)  # the CN commands it
         for loop in range(1, 4):  # set in loop 1, sent in 2, read back in 2's actuators
-            logic.step(loop, loop * 10_000_000)
+            run_dn_loop(logic, loop, loop * 10_000_000, cn)
         assert logic.dv.handle("dn0_errors").get() == 0
         assert logic.dv.handle("led_fb").get() is True or logic.dv.handle("led_fb").get() == 1
         assert bool(logic.dv.handle("button").get())

@@ -401,7 +401,7 @@ devices:
 def test_device_logic_builds_the_mission_board() -> None:
     """Once DeviceLogic builds its default board with make_board, the mission alone picks it."""
     from zplatform import decode_mission
-    from zplatform.node.logic import DeviceLogic
+    from zplatform.loop import DeviceLogic
 
     mission = decode_mission(GPIO_MISSION)
     try:

@@ -15,11 +15,12 @@ from typing import Any
 
 import pytest
 
-from zplatform import decode_mission
+from tests.drive import run_dn_loop
+from zplatform import DataVector, Layout, decode_mission
 from zplatform.boards import BoardError, close_board, make_board, open_board
 from zplatform.boards.gpio import GpiodBoard
 from zplatform.errors import ControlError
-from zplatform.node.logic import DeviceLogic
+from zplatform.loop import DeviceLogic
 
 WHERE = "$.nodes.dn0.board"
 
@@ -223,9 +224,10 @@ def test_device_node_drives_a_gpio_board_from_the_mission(
     logic = DeviceLogic(mission, "dn0", board=board)
     open_board(board)
     chip.physical[17] = True
-    logic.dv.handle("led_cmd").set(True)
+    cn = DataVector(Layout.for_node(mission, "cn"))
+    cn.handle("led_cmd").set(True)  # the CN commands it
     for loop in range(1, 4):
-        logic.step(loop, loop * 10_000_000)
+        run_dn_loop(logic, loop, loop * 10_000_000, cn)
     assert chip.physical[27] is True
     assert bool(logic.dv.handle("button").get()) and bool(logic.dv.handle("led_fb").get())
     assert logic.dv.handle("dn0_errors").get() == 0

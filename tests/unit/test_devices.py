@@ -8,7 +8,8 @@ import textwrap
 import msgspec
 import pytest
 
-from zplatform import DataVector, Layout, RegionCodec, decode_mission
+from tests.drive import run_dn_loop
+from zplatform import DataVector, Layout, decode_mission
 from zplatform.config import Mission
 from zplatform.control import Controller
 from zplatform.devices import (
@@ -27,13 +28,6 @@ from zplatform.loop import DeviceLogic
 
 PERIOD = 10_000_000
 HERE = __name__
-
-
-def trigger(logic: DeviceLogic, loop: int, t_ns: int) -> None:
-    """Run one DN loop the way a driver does: the CN's trigger frame for ``loop``."""
-    cn = DataVector(Layout.for_node(logic.mission, "cn"))
-    reply = logic.step(RegionCodec(cn, f"cn_to_{logic.node}").encode(loop, t_ns), t_ns)
-    assert reply is not None and logic.triggered == loop
 
 # -- helpers importable by "module:name" ----------------------------------------
 
@@ -387,7 +381,7 @@ def test_device_logic_order_board_sensors_controllers_actuators() -> None:
     t0 = 100 * PERIOD
     fired_at = None
     for k in range(1, 101):  # loop 1 at t0
-        trigger(logic, k, t0 + (k - 1) * PERIOD)
+        run_dn_loop(logic, k, t0 + (k - 1) * PERIOD)
         if fired_at is None and logic.dv.get("button"):
             fired_at = k
     # physics says volts > 0.5 from 0.51 s after loop 1 (loop 52); the pin
@@ -402,7 +396,7 @@ def test_device_logic_counts_a_broken_board_and_goes_on() -> None:
     m = mission(FLAKY, board=f", physics: '{HERE}:broken_physics'")
     logic = DeviceLogic(m, "dn0")
     for k in range(1, 4):
-        trigger(logic, k, k * PERIOD)
+        run_dn_loop(logic, k, k * PERIOD)
     assert logic.dv.get("dn0_errors") == 3
     assert logic.dv.get("dn0_loop") == 3
     assert [e.id for e in logic.events.drain()] == ["board_failed"]

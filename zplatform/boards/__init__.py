@@ -57,7 +57,7 @@ is the reference implementation.
     ``safe_active``, ``consecutive_errors``, ``last_error`` and counters
     (frames sent/received/bad, timeouts, reconnects, device errors).
 
-The device loop's side (:class:`~zplatform.node.logic.DeviceLogic`): count a
+The device loop's side (:class:`~zplatform.loop.DeviceLogic`): count a
 :class:`BoardError` from ``step`` in ``dnX_errors`` (it already counts any
 exception there), call :func:`safe_board` on it, and read
 :func:`board_health` for telemetry or events.

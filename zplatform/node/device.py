@@ -18,9 +18,10 @@ from __future__ import annotations
 import logging
 import threading
 
+from ..boards import close_board, open_board
 from ..clocksync import estimate_offset
 from ..config import Mission
-from ..errors import ClockSyncError, NodeError, TransportError
+from ..errors import ClockSyncError, NodeError, TransportError, ZPlatformError
 from ..loop import DeviceLogic
 from ..scheduler import GcGuard
 from ..summary import DnSummary
@@ -83,6 +84,10 @@ class DeviceNode:
             )
         except (TransportError, ClockSyncError) as exc:
             raise NodeError(f"{self.name} cannot start: {exc}") from exc
+        try:
+            open_board(self.logic.board)
+        except ZPlatformError as exc:
+            raise NodeError(f"{self.name} cannot start: its board: {exc}") from exc
         self.clock.apply_offset(est.offset_ns)
         self.clock.lock()
         self._offset_h.set(est.offset_ns)
@@ -171,6 +176,7 @@ class DeviceNode:
             self.sync.close()
         if self._resync is not None:
             self._resync.join(timeout=2)
+        close_board(self.logic.board)  # safes the outputs first
         self.ns.close()
 
 
