@@ -1,4 +1,4 @@
-"""Ground-side subcommands: ``ground`` (live view + command prompt) and ``plot``."""
+"""Ground-side subcommands: ``ground`` (console or prompt), ``plot``, ``xtce``."""
 
 from __future__ import annotations
 
@@ -32,6 +32,13 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p.add_argument("elements", nargs="+")
     p.add_argument("--out", required=True, help="PNG path")
     p.set_defaults(func=cmd_plot)
+
+    p = sub.add_parser(
+        "xtce", help="write the mission's telemetry packets and commands as XTCE (Yamcs)"
+    )
+    p.add_argument("mission")
+    p.add_argument("--out", help="XML path (default: MISSION_NAME.xtce.xml)")
+    p.set_defaults(func=cmd_xtce)
 
 
 def cmd_ground(args: argparse.Namespace) -> int:
@@ -138,4 +145,19 @@ def cmd_plot(args: argparse.Namespace) -> int:
     fig.tight_layout()
     fig.savefig(Path(args.out), dpi=100)
     print(f"wrote {args.out}")
+    return 0
+
+
+def cmd_xtce(args: argparse.Namespace) -> int:
+    """Write the XTCE database of the mission's CCSDS downlink and commands."""
+    try:
+        from .xtce import write_xtce
+    except ImportError:
+        raise CommandError("xtce needs yamcs-pymdb: pip install 'zplatform[ground]'") from None
+    mission = load_mission(args.mission)
+    out = args.out or f"{mission.mission}.xtce.xml"
+    x = write_xtce(mission, out)
+    print(f"wrote {out}")
+    if x.unplaced:
+        print(f"not in any packet (straddle a segment boundary): {', '.join(x.unplaced)}")
     return 0

@@ -1,0 +1,132 @@
+"""XTCE export: every Data Vector element, with its type and bit position."""
+
+from __future__ import annotations
+
+import xml.etree.ElementTree as ET
+from pathlib import Path
+
+import pytest
+
+from zplatform import load_mission
+from zplatform.ccsds import packet_plan
+from zplatform.cli import main
+from zplatform.config import CMD_NAMES, Mission, decode_mission
+from zplatform.datavector import ElementSpec, Layout
+from zplatform.xtce import HEADER_BITS, mission_xtce
+
+CONFIGS = Path(__file__).resolve().parents[2] / "configs"
+NS = {"x": "http://www.omg.org/spec/XTCE/20180204"}
+
+ALL_TYPES = """
+mission: all_types
+nodes:
+  cn: {listen: ["tcp/127.0.0.1:7999"]}
+  dn0: {listen: ["tcp/127.0.0.1:7998"], connect: ["tcp/127.0.0.1:7999"]}
+  gn: {listen: ["tcp/127.0.0.1:7997"], connect: ["tcp/127.0.0.1:7999"]}
+regions:
+  cn:
+    - {name: a_u8, type: u8}
+    - {name: a_i16, type: i16}
+    - {name: a_u32, type: u32}
+    - {name: a_i64, type: i64}
+    - {name: a_f32, type: f32}
+    - {name: a_f64, type: f64}
+    - {name: a_bool, type: bool}
+    - {name: a_vec, type: "f32[3]"}
+    - {name: a_ints, type: "i8[4]"}
+    - {name: a_mode, type: enum, enum: [IDLE_M, RUN_M, AUTO_M]}
+  dn0_to_cn:
+    - {name: d_u64, type: u64}
+"""
+
+
+def _missions() -> list[Mission]:
+    return [
+        load_mission(CONFIGS / "led_test.yaml"),
+        load_mission(CONFIGS / "recovery_igniter.yaml"),
+        decode_mission(ALL_TYPES),
+    ]
+
+
+def _check_type(t: ET.Element, spec: ElementSpec) -> None:
+    """The XTCE parameter type ``t`` describes one value of ``spec``."""
+    st = spec.scalar
+    bits = str(st.size * 8)
+    tag = t.tag.split("}")[1]
+    if spec.enum is not None:
+        assert tag == "EnumeratedParameterType", spec.name
+        labels = {
+            int(e.get("value", "")): e.get("label") for e in t.iterfind(".//x:Enumeration", NS)
+        }
+        assert labels == dict(enumerate(spec.enum))
+        enc = t.find("x:IntegerDataEncoding", NS)
+    elif st.kind == "bool":
+        assert tag == "BooleanParameterType", spec.name
+        enc = t.find("x:IntegerDataEncoding", NS)
+        bits = "8"
+    elif st.kind == "float":
+        assert tag == "FloatParameterType", spec.name
+        enc = t.find("x:FloatDataEncoding", NS)
+    else:
+        assert tag == "IntegerParameterType", spec.name
+        assert t.get("signed") == ("true" if st.name.startswith("i") else "false"), spec.name
+        enc = t.find("x:IntegerDataEncoding", NS)
+        assert enc is not None
+        want = "twosComplement" if st.name.startswith("i") else "unsigned"
+        assert enc.get("encoding") == want, spec.name
+    assert enc is not None, spec.name
+    assert enc.get("sizeInBits") == bits, spec.name
+    if bits != "8":  # byte order means nothing for one byte; pymdb leaves it out
+        assert enc.get("byteOrder") == "leastSignificantByteFirst", spec.name
+
+
+@pytest.mark.parametrize("mission", _missions(), ids=lambda m: m.mission)
+def test_every_element_has_name_type_and_bit_position(mission: Mission) -> None:
+    layout = Layout.for_node(mission, "cn")
+    root = ET.fromstring(mission_xtce(mission).xml)
+    tm = root.find("x:TelemetryMetaData", NS)
+    assert tm is not None
+    types = {t.get("name"): t for t in tm.find("x:ParameterTypeSet", NS) or []}
+    params = {p.get("name"): p for p in tm.iterfind("x:ParameterSet/x:Parameter", NS)}
+    containers = {c.get("name"): c for c in tm.iterfind("x:ContainerSet/x:SequenceContainer", NS)}
+    apids = {p.region: p.apid for p in packet_plan(mission)}
+
+    for spec in layout.elements.values():
+        p = params[spec.name]
+        t = types[p.get("parameterTypeRef")]
+        if spec.count:
+            assert t.tag.endswith("ArrayParameterType"), spec.name
+            dim = t.find(".//x:Dimension/x:EndingIndex/x:FixedValue", NS)
+            assert dim is not None and int(dim.text or "") == spec.count - 1
+            t = types[t.get("arrayTypeRef")]
+        _check_type(t, spec)
+
+        region = layout.region(spec.region)
+        c = containers[spec.region]
+        refs = {
+            e.get("parameterRef"): int(e.findtext(".//x:FixedValue", "", NS))
+            for e in c.iterfind("x:EntryList/x:ParameterRefEntry", NS)
+        }
+        assert refs[spec.name] == HEADER_BITS + (spec.offset - region.offset) * 8, spec.name
+        apid = c.find(".//x:Condition/x:Value", NS)
+        assert apid is not None and int(apid.text or "") == apids[spec.region]
+
+
+def test_commands_are_meta_commands() -> None:
+    mission = load_mission(CONFIGS / "recovery_igniter.yaml")
+    root = ET.fromstring(mission_xtce(mission).xml)
+    cmds = {c.get("name"): c for c in root.iterfind(".//x:MetaCommand", NS)}
+    assert set(CMD_NAMES[1:]) <= set(cmds)
+    launch = cmds["LAUNCH"].find("x:DefaultSignificance", NS)
+    assert launch is not None and launch.get("consequenceLevel") == "critical"
+    assert cmds["NOOP"].find("x:DefaultSignificance", NS) is None or (
+        cmds["NOOP"].find("x:DefaultSignificance", NS).get("consequenceLevel") == "normal"  # type: ignore[union-attr]
+    )
+
+
+def test_xtce_verb_writes_file(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    out = tmp_path / "led.xml"
+    assert main(["xtce", str(CONFIGS / "led_test.yaml"), "--out", str(out)]) == 0
+    ET.parse(out)
+    assert main(["xtce", str(tmp_path / "missing.yaml")]) == 2
+    assert "error" in capsys.readouterr().err
