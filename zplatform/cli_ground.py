@@ -20,11 +20,24 @@ HELP = """commands: launch | abort | noop | hold | resume | arm | write ELEMENT 
 
 
 def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
-    p = sub.add_parser("ground", help="live telemetry view and operator command prompt")
+    p = sub.add_parser(
+        "ground",
+        help="the ground console (terminal or --web PORT); a line prompt when stdin is no TTY",
+    )
     p.add_argument("mission")
+    mode = p.add_mutually_exclusive_group()
+    mode.add_argument(
+        "--console", action="store_true", help="the full-screen console even without a TTY"
+    )
+    mode.add_argument("--prompt", action="store_true", help="the line prompt even on a TTY")
+    mode.add_argument("--web", type=int, metavar="PORT", help="serve the console to browsers")
+    p.add_argument("--host", default="127.0.0.1", help="address --web listens on")
     p.add_argument("--watch", nargs="*", default=[], help="elements to show on the status line")
     p.add_argument("--interval", type=float, default=1.0, help="status line period (s)")
     p.add_argument("--timeout", type=float, default=10.0, help="verdict timeout per command (s)")
+    p.add_argument(
+        "--los", type=float, default=0.3, help="console: seconds of silence that mean LOS"
+    )
     p.set_defaults(func=cmd_ground)
 
     p = sub.add_parser("plot", help="plot logged elements against time")
@@ -42,6 +55,23 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
 
 
 def cmd_ground(args: argparse.Namespace) -> int:
+    """The console on a TTY (or ``--console``), served with ``--web``, else the prompt."""
+    if args.web is not None or args.console or (sys.stdin.isatty() and not args.prompt):
+        try:
+            from .console import run_console, serve_console
+        except ImportError as exc:
+            raise CommandError(
+                f"the console needs the ground extra ({exc.name}): pip install 'zplatform[ground]'"
+            ) from None
+        if args.web is not None:
+            load_mission(args.mission)  # a bad file fails here, with its message
+            serve_console(args.mission, args.web, host=args.host, timeout_s=args.timeout)
+            return 0
+        return run_console(args.mission, timeout_s=args.timeout, los_s=args.los)
+    return cmd_prompt(args)
+
+
+def cmd_prompt(args: argparse.Namespace) -> int:
     """Status line every ``--interval`` s; one command per stdin line.
 
     The prompt runs in a reader thread that only queues lines; the main
