@@ -153,54 +153,137 @@ def _wait_port(port: int, proc: subprocess.Popen[bytes], timeout_s: float = 30) 
     raise AssertionError(f"nothing listens on {port}")
 
 
+# Textual-serve draws the terminal on a canvas: the page's DOM has no text.
+# So the page is read through the DevTools protocol: a script installed
+# before the page loads keeps every byte the console sends to the page's
+# terminal, and the test reads them back.
+_KEEP_TERMINAL_BYTES = """
+(() => {
+  const Native = window.WebSocket;
+  window.__zp = [];
+  window.WebSocket = function (url, protocols) {
+    const ws = new Native(url, protocols);
+    ws.addEventListener("message", (e) => {
+      if (typeof e.data !== "string")
+        window.__zp.push(new TextDecoder().decode(new Uint8Array(e.data)));
+    });
+    return ws;
+  };
+  window.WebSocket.prototype = Native.prototype;
+})();
+"""
+
+
+async def _read_page(devtools_port: int, url: str, want: list[str], timeout_s: float) -> str:
+    """Open ``url`` in the browser; return the terminal text once it has every ``want``."""
+    import aiohttp
+
+    async with aiohttp.ClientSession() as http:
+        async with http.put(f"http://127.0.0.1:{devtools_port}/json/new?about:blank") as r:
+            target = await r.json(content_type=None)
+        async with http.ws_connect(target["webSocketDebuggerUrl"], max_msg_size=0) as ws:
+            ids = iter(range(1, 1_000_000))
+
+            async def call(method: str, **params: object) -> dict[str, object]:
+                n = next(ids)
+                await ws.send_json({"id": n, "method": method, "params": params})
+                while True:
+                    msg = await ws.receive_json()
+                    if msg.get("id") == n:
+                        return msg.get("result", {})  # type: ignore[no-any-return]
+
+            await call("Page.enable")
+            await call("Page.addScriptToEvaluateOnNewDocument", source=_KEEP_TERMINAL_BYTES)
+            await call("Page.navigate", url=url)
+            deadline = time.monotonic() + timeout_s
+            text = ""
+            while time.monotonic() < deadline:
+                res = await call(
+                    "Runtime.evaluate",
+                    expression="window.__zp ? window.__zp.join('') : ''",
+                    returnByValue=True,
+                )
+                text = str(res.get("result", {}).get("value", ""))  # type: ignore[attr-defined]
+                if all(w in text for w in want):
+                    return text
+                await asyncio.sleep(0.2)  # polling the page, not waiting on a peer
+            raise AssertionError(f"the page never showed {want}; it showed {text[-2000:]!r}")
+
+
+def _stop(p: subprocess.Popen[bytes]) -> None:
+    if p.poll() is None:
+        os.killpg(p.pid, 15)
+    try:
+        p.wait(timeout=10)
+    except subprocess.TimeoutExpired:
+        os.killpg(p.pid, 9)
+        p.wait()
+
+
 def test_console_in_browser(tmp_path: Path) -> None:
+    """`zplatform ground MISSION --web PORT`, opened in headless Chromium, shows the console."""
     chromium = shutil.which("chromium") or shutil.which("chromium-browser")
     if chromium is None:
-        pytest.skip("chromium is not installed (apt-get install -y chromium)")
+        pytest.skip("chromium is not installed (Debian: apt-get install -y chromium)")
     pytest.importorskip("textual_serve")
+    pytest.importorskip("aiohttp")
     port = free_port()
-    log = open(tmp_path / "serve.log", "wb")  # noqa: SIM115 - closed below
-    server = subprocess.Popen(
-        [
-            sys.executable,
-            "-m",
-            "zplatform",
-            "ground",
-            str(CONFIGS / "led_test.yaml"),
-            "--web",
-            str(port),
-        ],
-        cwd=ROOT,
-        stdout=log,
-        stderr=subprocess.STDOUT,
-        env=dict(os.environ, PYTHONUNBUFFERED="1"),
-        start_new_session=True,
-    )
+    procs: list[subprocess.Popen[bytes]] = []
+    logs = [open(tmp_path / n, "wb") for n in ("serve.log", "chromium.log")]  # noqa: SIM115
     try:
-        _wait_port(port, server)
-        r = subprocess.run(
-            [
-                chromium,
-                *CHROMIUM_FLAGS,
-                f"--user-data-dir={tmp_path / 'chromium'}",
-                "--virtual-time-budget=20000",
-                "--run-all-compositor-stages-before-draw",
-                "--dump-dom",
-                f"http://127.0.0.1:{port}/",
-            ],
-            capture_output=True,
-            text=True,
-            timeout=90,
+        procs.append(
+            subprocess.Popen(
+                [
+                    sys.executable,
+                    "-m",
+                    "zplatform",
+                    "ground",
+                    str(CONFIGS / "led_test.yaml"),
+                    "--web",
+                    str(port),
+                ],
+                cwd=ROOT,
+                stdout=logs[0],
+                stderr=subprocess.STDOUT,
+                env=dict(os.environ, PYTHONUNBUFFERED="1"),
+                start_new_session=True,  # the server's console children go with it
+            )
         )
-        assert r.returncode == 0, r.stderr[-2000:]
-        page = r.stdout
-        assert "zplatform ground - led_test" in page, page[:2000]
-        assert "textual-terminal" in page
+        _wait_port(port, procs[0])
+        profile = tmp_path / "chromium"
+        procs.append(
+            subprocess.Popen(
+                [
+                    chromium,
+                    *CHROMIUM_FLAGS,
+                    f"--user-data-dir={profile}",
+                    "--remote-debugging-port=0",
+                    "--window-size=1200,800",
+                    "about:blank",
+                ],
+                stdout=logs[1],
+                stderr=subprocess.STDOUT,
+                start_new_session=True,
+            )
+        )
+        active = profile / "DevToolsActivePort"
+        deadline = time.monotonic() + 30
+        while not (active.exists() and active.read_text().strip()):
+            assert procs[1].poll() is None, (tmp_path / "chromium.log").read_text()[-2000:]
+            assert time.monotonic() < deadline, "chromium never opened its DevTools port"
+            time.sleep(0.05)
+        devtools = int(active.read_text().split()[0])
+        text = asyncio.run(
+            _read_page(
+                devtools,
+                f"http://127.0.0.1:{port}/",
+                ["NO SIGNAL", "waiting for telemetry", "cn_loop"],
+                60,
+            )
+        )
+        assert "b_timer_done" in text  # a mission element, from the Data Vector pane
     finally:
-        os.killpg(server.pid, 15)
-        try:
-            server.wait(timeout=10)
-        except subprocess.TimeoutExpired:
-            os.killpg(server.pid, 9)
-            server.wait()
-        log.close()
+        for p in reversed(procs):
+            _stop(p)
+        for f in logs:
+            f.close()
