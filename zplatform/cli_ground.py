@@ -53,6 +53,21 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p.add_argument("--out", help="XML path (default: MISSION_NAME.xtce.xml)")
     p.set_defaults(func=cmd_xtce)
 
+    p = sub.add_parser(
+        "ccsds", help="record live telemetry as CCSDS space packets, or decode them to CSV"
+    )
+    p.add_argument("mission")
+    what = p.add_mutually_exclusive_group(required=True)
+    what.add_argument("--record", metavar="FILE", help="append the downlink's packets to FILE")
+    what.add_argument("--decode", metavar="FILE", help="decode a packet file to CSV (--out)")
+    p.add_argument("--out", help="CSV path for --decode")
+    p.add_argument("--duration", type=float, help="--record: stop after S seconds")
+    p.add_argument("--divisor", type=int, default=1, help="downlink every Nth snapshot")
+    p.add_argument("--budget", type=int, help="downlink byte budget per second")
+    p.add_argument("--max-data", type=int, default=65536, help="packet data field size (bytes)")
+    p.add_argument("--timeout", type=float, default=10.0, help="--record: wait for the CN (s)")
+    p.set_defaults(func=cmd_ccsds)
+
 
 def cmd_ground(args: argparse.Namespace) -> int:
     """The console on a TTY (or ``--console``), served with ``--web``, else the prompt."""
@@ -190,4 +205,60 @@ def cmd_xtce(args: argparse.Namespace) -> int:
     print(f"wrote {out}")
     if x.unplaced:
         print(f"not in any packet (straddle a segment boundary): {', '.join(x.unplaced)}")
+    return 0
+
+
+def cmd_ccsds(args: argparse.Namespace) -> int:
+    """``--record``: telemetry -> packets (the radio path, on the ground); ``--decode``: -> CSV."""
+    try:
+        from . import ccsds
+    except ImportError:
+        raise CommandError("ccsds needs spacepackets: pip install 'zplatform[ground]'") from None
+    mission = load_mission(args.mission)
+    if args.decode:
+        if not args.out:
+            raise CommandError("--decode needs --out CSV")
+        try:
+            data = Path(args.decode).read_bytes()
+        except OSError as exc:
+            raise CommandError(f"cannot read {args.decode}: {exc.strerror}") from None
+        dec = ccsds.decode_to_csv(mission, data, args.out, max_data=args.max_data)
+        print(
+            f"wrote {args.out}: {dec.snapshots} snapshots from {dec.packets} packets; "
+            f"refused {sum(dec.bad.values())}{f' {dec.bad}' if dec.bad else ''}, "
+            f"incomplete {dec.incomplete}, "
+            f"sequence gaps {dec.seq_gaps}"
+        )
+        return 0
+    from .node.ground import TelemetryReceiver
+    from .timebase import NodeClock
+    from .transport import NodeSession
+
+    enc = ccsds.CcsdsEncoder(
+        mission, divisor=args.divisor, budget_bps=args.budget, max_data=args.max_data
+    )
+    ns = NodeSession(mission, None)
+    rx = TelemetryReceiver(ns.session, mission, NodeClock().now_ns)
+    start = time.monotonic()
+    try:
+        with open(args.record, "ab") as f:
+            while args.duration is None or time.monotonic() - start < args.duration:
+                if rx.next(0.2) is None:
+                    if not rx.received and time.monotonic() - start > args.timeout:
+                        raise CommandError(
+                            f"no telemetry from the control node within {args.timeout:g} s"
+                        )
+                    continue
+                dv = rx.dv
+                for pkt in enc.encode(dv, int(dv.get("cn_loop")), int(dv.get("cn_time_ns"))):
+                    f.write(pkt)
+    except KeyboardInterrupt:
+        pass
+    finally:
+        rx.close()
+        ns.close()
+    print(
+        f"wrote {args.record}: {enc.sent_snapshots} snapshots, {enc.sent_packets} packets, "
+        f"{enc.sent_bytes} bytes; decimated {enc.decimated}, over budget {enc.dropped_budget}"
+    )
     return 0

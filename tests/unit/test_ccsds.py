@@ -138,3 +138,25 @@ def test_decoder_refuses_and_counts() -> None:
     assert dec.incomplete == 1
     with pytest.raises(CcsdsError, match="truncated"):
         list(split_stream(bytes(pkts[0])[:-3]))
+
+
+def test_decode_verb_writes_the_same_csv(tmp_path: Path) -> None:
+    """`zplatform ccsds --decode` turns a packet file into the telemetry CSV."""
+    from zplatform.cli import main
+
+    enc = CcsdsEncoder(LED)
+    src = DataVector(enc.layout)
+    direct = io.StringIO()
+    log = CsvLogger(direct, src.layout)
+    stream = bytearray()
+    for i, snap in enumerate(_snapshots(5, [b"\x01\x02", b"\x00\xff\x10"])):
+        src.write_all(snap)
+        log.write(i * 10_000_000, src)
+        for p in enc.encode(src, i, i * 10_000_000):
+            stream += p
+    (tmp_path / "down.bin").write_bytes(bytes(stream))
+    out = tmp_path / "down.csv"
+    cfg = str(CONFIGS / "led_test.yaml")
+    assert main(["ccsds", cfg, "--decode", str(tmp_path / "down.bin"), "--out", str(out)]) == 0
+    assert out.read_text() == direct.getvalue()
+    assert main(["ccsds", cfg, "--decode", str(tmp_path / "none.bin"), "--out", str(out)]) == 2
