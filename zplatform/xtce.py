@@ -14,7 +14,8 @@ them without zplatform:
   Data Vector element at its absolute bit position from the start of the
   packet, little-endian, with its own type: unsigned/signed integers of the
   element's width, IEEE floats, booleans (one byte), enums with their names,
-  arrays of those.
+  arrays of those; element limits as threshold alarms (yellow: warning,
+  red: critical).
 
 An element that straddles two segments of a segmented region cannot be
 read from one packet: it is declared as a parameter but placed in no
@@ -57,6 +58,7 @@ from yamcs.pymdb import (
     Parameter,
     ParameterEntry,
     System,
+    ThresholdAlarm,
     ccsds,
     eq,
 )
@@ -67,6 +69,7 @@ from .ccsds import APID_BASE, MAX_DATA, SECONDARY_HEADER, packet_plan
 from .config import CMD_NAMES, Mission
 from .datavector import ElementSpec, Layout
 from .errors import ConfigError
+from .limits import Limits, mission_limits
 
 __all__ = ["HEADER_BITS", "XtceExport", "mission_xtce", "write_xtce"]
 
@@ -106,7 +109,21 @@ def _element_type(spec: ElementSpec) -> DataType:
     return IntegerDataType(signed=signed, bits=bits, encoding=_int_encoding(bits, signed))
 
 
-def _parameter(system: System, spec: ElementSpec, doc: str) -> Parameter:
+def _alarm(lim: Limits | None) -> ThresholdAlarm | None:
+    """Yellow -> XTCE warning range, red -> critical range (bounds inclusive, as ours)."""
+    if lim is None:
+        return None
+    return ThresholdAlarm(
+        warning_low=lim.yellow[0],
+        warning_high=lim.yellow[1],
+        critical_low=lim.red[0],
+        critical_high=lim.red[1],
+    )
+
+
+def _parameter(
+    system: System, spec: ElementSpec, doc: str, limits: Limits | None = None
+) -> Parameter:
     st = spec.scalar
     bits = st.size * 8
     desc = doc or None
@@ -137,6 +154,7 @@ def _parameter(system: System, spec: ElementSpec, doc: str) -> Parameter:
             bits=32 if bits == 32 else 64,
             encoding=FloatEncoding(bits=bits, little_endian=True),
             short_description=desc,
+            alarm=_alarm(limits),
         )
     signed = st.name.startswith("i")
     return IntegerParameter(
@@ -146,17 +164,24 @@ def _parameter(system: System, spec: ElementSpec, doc: str) -> Parameter:
         bits=bits,
         encoding=_int_encoding(bits, signed),
         short_description=desc,
+        alarm=_alarm(limits),
     )
 
 
 def mission_xtce(
-    mission: Mission, *, apid_base: int = APID_BASE, max_data: int = MAX_DATA
+    mission: Mission,
+    *,
+    apid_base: int = APID_BASE,
+    max_data: int = MAX_DATA,
+    limits: dict[str, object] | None = None,
 ) -> XtceExport:
     """The mission's telemetry packets and commands as an XTCE 1.2 document.
 
     ``apid_base`` and ``max_data`` must be those of the downlink's
-    :class:`~zplatform.ccsds.CcsdsEncoder`. Raises ConfigError when an
-    element name clashes with a name the export itself uses.
+    :class:`~zplatform.ccsds.CcsdsEncoder`. Element limits (the mission's,
+    and ``limits`` over them; :mod:`zplatform.limits`) become threshold
+    alarms: yellow the warning range, red the critical one. Raises
+    ConfigError when an element name clashes with a name the export uses.
     """
     layout = Layout.for_node(mission, "cn")
     clash = sorted(set(layout.elements) & {*SECONDARY_NAMES, "zplatform_packet"})
@@ -204,8 +229,9 @@ def mission_xtce(
         entries=[ParameterEntry(p, bitpos=48 + 64 * i) for i, p in enumerate(sec)],
     )
 
+    lims = mission_limits(mission, limits)
     params = {
-        spec.name: _parameter(system, spec, docs.get(spec.name, ""))
+        spec.name: _parameter(system, spec, docs.get(spec.name, ""), lims.get(spec.name))
         for spec in layout.elements.values()
     }
     plan = packet_plan(mission, apid_base=apid_base, max_data=max_data)

@@ -130,3 +130,20 @@ def test_xtce_verb_writes_file(tmp_path: Path, capsys: pytest.CaptureFixture[str
     ET.parse(out)
     assert main(["xtce", str(tmp_path / "missing.yaml")]) == 2
     assert "error" in capsys.readouterr().err
+
+
+def test_limits_become_alarms() -> None:
+    mission = decode_mission(ALL_TYPES)
+    xml = mission_xtce(
+        mission, limits={"a_f32": {"yellow": [-1, 1], "red": [None, 5]}, "a_i16": {"red": [0, 9]}}
+    ).xml
+    root = ET.fromstring(xml)
+    types = {t.get("name"): t for t in root.iterfind(".//x:ParameterTypeSet/*", NS)}
+    warn = types["a_f32"].find(".//x:WarningRange", NS)
+    crit = types["a_f32"].find(".//x:CriticalRange", NS)
+    assert warn is not None and crit is not None
+    assert float(warn.get("minInclusive", "nan")) == -1.0
+    assert float(warn.get("maxInclusive", "nan")) == 1.0
+    assert crit.get("minInclusive") is None and float(crit.get("maxInclusive", "nan")) == 5.0
+    assert types["a_i16"].find(".//x:CriticalRange", NS) is not None
+    assert types["a_u8"].find(".//x:DefaultAlarm", NS) is None

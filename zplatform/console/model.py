@@ -13,11 +13,8 @@ Not thread-safe: the owner (:class:`~zplatform.console.link.Link`) holds
 :attr:`lock` around every call from its threads and the screen holds it
 while it reads.
 
-**Limits.** An element may declare ``limits: {yellow: [lo, hi], red: [lo,
-hi]}`` in the mission (read with ``getattr`` so a mission schema without the
-field works too), or the caller passes ``limits={name: {...}}``. A value
-outside ``red`` is red, outside ``yellow`` yellow; either bound may be
-null (open).
+**Limits** come from :func:`zplatform.limits.mission_limits` (the mission's
+per-element ``limits`` and the caller's ``limits={name: {...}}``).
 
 **Severities** are handled by member *name*, so the console works with the
 old five (DEBUG..CRITICAL) and F Prime's seven (FATAL..DIAGNOSTIC):
@@ -35,8 +32,9 @@ from typing import Any
 
 from ..config import CMD_NAMES, Mission
 from ..datavector import DataVector, ElementSpec, Layout
-from ..errors import CommandError, DataVectorError
+from ..errors import CommandError
 from ..events import Event, Severity
+from ..limits import Limits, mission_limits
 
 __all__ = [
     "ConsoleModel",
@@ -94,48 +92,6 @@ def severity_style(name: str) -> str:
 
 
 @dataclass(frozen=True, slots=True)
-class Limits:
-    """Yellow and red ranges of one element; ``None`` bounds are open."""
-
-    yellow: tuple[float | None, float | None] = (None, None)
-    red: tuple[float | None, float | None] = (None, None)
-
-    @staticmethod
-    def _outside(v: float, rng: tuple[float | None, float | None]) -> bool:
-        lo, hi = rng
-        return (lo is not None and v < lo) or (hi is not None and v > hi)
-
-    def level(self, value: float) -> str:
-        """``"red"``, ``"yellow"`` or ``""``."""
-        if self._outside(value, self.red):
-            return "red"
-        if self._outside(value, self.yellow):
-            return "yellow"
-        return ""
-
-    @classmethod
-    def parse(cls, raw: Any, where: str) -> Limits:
-        """From ``{yellow: [lo, hi], red: [lo, hi]}`` (a mapping or a Struct)."""
-
-        def rng(key: str) -> tuple[float | None, float | None]:
-            v = raw.get(key) if isinstance(raw, Mapping) else getattr(raw, key, None)
-            if v is None:
-                return (None, None)
-            try:
-                lo, hi = v
-                return (
-                    None if lo is None else float(lo),
-                    None if hi is None else float(hi),
-                )
-            except (TypeError, ValueError):
-                raise DataVectorError(
-                    f"limits.{key} of {where} must be [lo, hi] (null for open), got {v!r}"
-                ) from None
-
-        return cls(yellow=rng("yellow"), red=rng("red"))
-
-
-@dataclass(frozen=True, slots=True)
 class LogLine:
     """One line of the event pane: an event, a command verdict or a console note."""
 
@@ -183,15 +139,7 @@ class ConsoleModel:
         self.layout = Layout.for_node(mission, "cn")
         self.dv = DataVector(self.layout)
         self.los_ns = int(los_s * 1e9)
-        self.limits: dict[str, Limits] = {}
-        for region in mission.regions.values():
-            for ec in region:
-                raw = getattr(ec, "limits", None)
-                if raw is not None:
-                    self.limits[ec.name] = Limits.parse(raw, ec.name)
-        for name, raw in (limits or {}).items():
-            self.layout.element(name)
-            self.limits[name] = Limits.parse(raw, name)
+        self.limits: dict[str, Limits] = mission_limits(mission, limits)
         self.hazardous = {c.upper() for c in mission.commands.hazardous}
         writable = mission.commands.writable
         self.writable = [
