@@ -38,6 +38,11 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p.add_argument(
         "--los", type=float, default=0.3, help="console: seconds of silence that mean LOS"
     )
+    p.add_argument(
+        "--limits",
+        metavar="YAML",
+        help="console: element limits {NAME: {yellow: [lo, hi], red: [lo, hi]}} over the mission's",
+    )
     p.set_defaults(func=cmd_ground)
 
     p = sub.add_parser("plot", help="plot logged elements against time")
@@ -78,12 +83,36 @@ def cmd_ground(args: argparse.Namespace) -> int:
             raise CommandError(
                 f"the console needs the ground extra ({exc.name}): pip install 'zplatform[ground]'"
             ) from None
+        limits = _read_limits(args.limits)
         if args.web is not None:
             load_mission(args.mission)  # a bad file fails here, with its message
-            serve_console(args.mission, args.web, host=args.host, timeout_s=args.timeout)
+            serve_console(
+                args.mission,
+                args.web,
+                host=args.host,
+                timeout_s=args.timeout,
+                limits_path=args.limits,
+            )
             return 0
-        return run_console(args.mission, timeout_s=args.timeout, los_s=args.los)
+        return run_console(args.mission, timeout_s=args.timeout, los_s=args.los, limits=limits)
     return cmd_prompt(args)
+
+
+def _read_limits(path: str | None) -> dict[str, object] | None:
+    """A limits file: ``{element: {yellow: [lo, hi], red: [lo, hi]}}`` (YAML)."""
+    if path is None:
+        return None
+    import yaml
+
+    try:
+        raw = yaml.safe_load(Path(path).read_text())
+    except OSError as exc:
+        raise CommandError(f"cannot read {path}: {exc.strerror}") from None
+    except yaml.YAMLError as exc:
+        raise CommandError(f"{path} is not valid YAML: {exc}") from None
+    if not isinstance(raw, dict):
+        raise CommandError(f"{path} must map element names to {{yellow: .., red: ..}}")
+    return raw
 
 
 def cmd_prompt(args: argparse.Namespace) -> int:

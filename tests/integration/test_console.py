@@ -86,10 +86,10 @@ async def _big_screen(c: Cluster) -> None:
         )
         events = _text(app, "#events-text")
         assert "ARM #1 ACCEPTED" in events
-        # The CN's own event about the command, with a severity name.
+        # The CN's own event about the command: time, severity name, node, id.
         await _until(pilot, lambda: "cmd_accepted" in _text(app, "#events-text"), "the CN's event")
         line = next(x for x in _text(app, "#events-text").splitlines() if "cmd_accepted" in x)
-        assert line.split()[0] in Severity.__members__, line
+        assert line.split()[1] in Severity.__members__, line
         await _until(pilot, lambda: "ARMED" in _text(app, "#status"), "state ARMED")
 
         # Completion and history on the command line.

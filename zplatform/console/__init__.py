@@ -27,18 +27,32 @@ __all__ = [
 ]
 
 
-def run_console(mission_path: str, *, timeout_s: float = 10.0, los_s: float = 0.3) -> int:
-    """Run the console in this terminal until the operator quits. Blocks."""
+def run_console(
+    mission_path: str,
+    *,
+    timeout_s: float = 10.0,
+    los_s: float = 0.3,
+    limits: dict[str, object] | None = None,
+) -> int:
+    """Run the console in this terminal until the operator quits. Blocks.
+
+    ``limits``: extra element limits (:mod:`zplatform.limits`) over the mission's.
+    """
     from ..config import load_mission
 
     mission = load_mission(mission_path)
-    model = ConsoleModel(mission, los_s=los_s)
+    model = ConsoleModel(mission, los_s=los_s, limits=limits)
     app = ConsoleApp(model, Link(model, timeout_s=timeout_s))
     return app.run() or 0
 
 
 def serve_console(
-    mission_path: str, port: int, *, host: str = "127.0.0.1", timeout_s: float = 10.0
+    mission_path: str,
+    port: int,
+    *,
+    host: str = "127.0.0.1",
+    timeout_s: float = 10.0,
+    limits_path: str | None = None,
 ) -> None:
     """Serve the console to browsers on ``http://host:port`` until Ctrl-C. Blocks.
 
@@ -65,6 +79,7 @@ def serve_console(
             "--console",
             "--timeout",
             str(timeout_s),
+            *(["--limits", str(Path(limits_path).resolve())] if limits_path else []),
         )
     )
     Server(cmd, host=host, port=port, title=f"zplatform ground - {mission.mission}").serve()

@@ -187,11 +187,13 @@ class ConsoleApp(App[int]):
         if not changed:
             return
         self.query_one("#dv-table", Static).update(_dv_table(rows))
-        text = Text()
+        text = Text(no_wrap=False)
         for x in lines:
+            text.append(f"{_clock(x.t_ns)} ", style="dim")
             text.append(f"{x.severity:<11} ", style=severity_style(x.severity) or None)
             text.append(f"{x.source:<7} {x.text}\n")
         self.query_one("#events-text", Static).update(text)
+        self.query_one("#events", VerticalScroll).scroll_end(animate=False)
         plot = self.query_one("#plot", PlotextPlot)
         plot.set_class(bool(plotted), "shown")
         if plotted:
@@ -303,12 +305,19 @@ def _status_text(s: Status) -> Text:
     if s.fault != "NONE":
         t.append(f"FAULT {s.fault}  ", style="bold red")
     t.append(f"cmd #{s.cmd_seq} {s.cmd_status}  last: {s.last_command}\n")
-    t.append(f"tm {s.received} gaps {s.gaps} bad {s.bad}")
+    t.append(f"tm {s.received} gap {s.gaps} bad {s.bad}")
     for dn, rx, missed, late, off in s.per_dn:
         style = "yellow" if missed or late else None
-        t.append(f"  {dn} rx {rx} miss {missed} late {late} ", style=style)
-        t.append(f"off {off / 1e6:+.3f} ms")
+        # rx/missed/late counts, then the clock offset the CN applies.
+        t.append(f"  {dn} {rx}/{missed}/{late}", style=style)
+        t.append(f" {off / 1e6:+.2f}ms")
     return t
+
+
+def _clock(t_ns: int) -> str:
+    """UTC time of day to the tenth of a second (event and note times are epoch ns)."""
+    s, ns = divmod(t_ns, 1_000_000_000)
+    return f"{(s // 3600) % 24:02d}:{(s // 60) % 60:02d}:{s % 60:02d}.{ns // 100_000_000}"
 
 
 def _dv_table(rows: list[tuple[str, list[tuple[str, str, str]]]]) -> Table:
