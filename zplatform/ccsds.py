@@ -169,8 +169,13 @@ class CcsdsEncoder:
     Every packet buffer is allocated at construction; :meth:`encode` fills
     them in place and returns the same list object each time (views into
     those buffers, valid until the next call), or an empty tuple when the
-    snapshot is decimated or over budget. Not thread-safe (the loop thread
-    owns it).
+    snapshot is decimated or over budget. Per packet it allocates only
+    spacepackets' 6-byte packed header and a few memoryview slices. Not
+    thread-safe (the loop thread owns it).
+
+    The runtime calls ``encode(dv, loop, t_ns)`` once per telemetry loop
+    with the frame's loop number and time and hands each returned packet to
+    the radio (or writes them to a file, as ``zplatform ccsds --record``).
     """
 
     def __init__(

@@ -147,3 +147,31 @@ def test_limits_become_alarms() -> None:
     assert crit.get("minInclusive") is None and float(crit.get("maxInclusive", "nan")) == 5.0
     assert types["a_i16"].find(".//x:CriticalRange", NS) is not None
     assert types["a_u8"].find(".//x:DefaultAlarm", NS) is None
+
+
+def test_segmented_regions_get_a_container_per_segment() -> None:
+    """With a small packet, elements sit in their segment's container, offset from it."""
+    mission = load_mission(CONFIGS / "led_test.yaml")
+    layout = Layout.for_node(mission, "cn")
+    x = mission_xtce(mission, max_data=40)  # 22 region bytes per packet
+    root = ET.fromstring(x.xml)
+    containers = {c.get("name"): c for c in root.iterfind(".//x:SequenceContainer", NS)}
+    plan = [p for p in packet_plan(mission, max_data=40) if p.region == "cn"]
+    assert len(plan) > 1
+    for p in plan:
+        c = containers[f"cn_seg{p.offset}"]
+        for e in c.iterfind("x:EntryList/x:ParameterRefEntry", NS):
+            spec = layout.element(e.get("parameterRef", ""))
+            rel = spec.offset - layout.region("cn").offset - p.offset
+            assert rel >= 0 and rel + spec.size <= p.length
+            assert int(e.findtext(".//x:FixedValue", "", NS)) == HEADER_BITS + rel * 8
+    placed = {e.get("parameterRef") for e in root.iterfind(".//x:ParameterRefEntry", NS)}
+    # Every element is either in a packet or reported as straddling a boundary.
+    assert set(layout.elements) == (placed - {None}) - {
+        "ccsds_packet_id",
+        "ccsds_packet_sequence",
+        "ccsds_packet_length",
+        "ccsds_loop",
+        "ccsds_time_ns",
+        "ccsds_segment_offset",
+    } | set(x.unplaced)
