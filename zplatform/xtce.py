@@ -293,13 +293,10 @@ def _add_commands(
         encoding=_int_encoding(spec("gn_cmd_seq").scalar.size * 8, False),
         short_description="command number: one more than the CN's last verdict",
     )
-    writable = [
-        e
-        for e in layout.elements.values()
-        if e.region != "gn_to_cn"
-        and (mission.commands.writable is None or e.name in mission.commands.writable)
-        and not e.count
-    ]
+    # The same list the CN accepts (imported lazily: it needs no textual).
+    from .console.model import writable_names
+
+    writable = [layout.element(n) for n in writable_names(mission, layout)]
     el_arg = EnumeratedArgument(
         name="gn_cmd_element",
         choices=[(0, "none")] + [(e.index, e.name) for e in writable if e.index],

@@ -5,14 +5,19 @@
 * :mod:`.app`: :class:`ConsoleApp`, the textual screen (terminal, or a browser
   through ``textual-serve``).
 
-Importing this package needs ``textual`` (the ``ground`` extra).
+The screen needs ``textual`` (the ``ground`` extra); the model does not, so
+the screen and the link are imported on first use.
 """
 
 from __future__ import annotations
 
-from .app import ConfirmScreen, ConsoleApp
-from .link import Link
+from typing import TYPE_CHECKING, Any
+
 from .model import ConsoleModel, Limits, LogLine, Status
+
+if TYPE_CHECKING:
+    from .app import ConfirmScreen, ConsoleApp
+    from .link import Link
 
 __all__ = [
     "ConfirmScreen",
@@ -27,6 +32,18 @@ __all__ = [
 ]
 
 
+def __getattr__(name: str) -> Any:
+    if name in ("ConfirmScreen", "ConsoleApp"):
+        from . import app
+
+        return getattr(app, name)
+    if name == "Link":
+        from .link import Link
+
+        return Link
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
+
 def run_console(
     mission_path: str,
     *,
@@ -39,6 +56,8 @@ def run_console(
     ``limits``: extra element limits (:mod:`zplatform.limits`) over the mission's.
     """
     from ..config import load_mission
+    from .app import ConsoleApp
+    from .link import Link
 
     mission = load_mission(mission_path)
     model = ConsoleModel(mission, los_s=los_s, limits=limits)

@@ -32,7 +32,7 @@ from typing import Any
 
 from ..config import CMD_NAMES, Mission
 from ..datavector import DataVector, ElementSpec, Layout
-from ..errors import CommandError
+from ..errors import CommandError, ZPlatformError
 from ..events import Event, Severity
 from ..limits import Limits, mission_limits
 
@@ -44,6 +44,7 @@ __all__ = [
     "severity_name",
     "severity_rank",
     "severity_style",
+    "writable_names",
 ]
 
 # Rank by name: higher is worse. Old and new names side by side.
@@ -141,12 +142,7 @@ class ConsoleModel:
         self.los_ns = int(los_s * 1e9)
         self.limits: dict[str, Limits] = mission_limits(mission, limits)
         self.hazardous = {c.upper() for c in mission.commands.hazardous}
-        writable = mission.commands.writable
-        self.writable = [
-            e.name
-            for e in self.layout.elements.values()
-            if e.region != "gn_to_cn" and not e.count and (writable is None or e.name in writable)
-        ]
+        self.writable = writable_names(mission, self.layout)
         self.log: deque[LogLine] = deque(maxlen=max_events)
         self.min_rank = 0
         self.received = 0
@@ -343,6 +339,25 @@ class ConsoleModel:
             if cand.lower().startswith(last.lower()) and cand != last:
                 return " ".join([*words[:-1], cand])
         return None
+
+
+def writable_names(mission: Mission, layout: Layout) -> list[str]:
+    """Elements a WRITE may target, for completion (the CN checks again).
+
+    The platform's own list (``zplatform.commands.writable_elements``) when
+    it is there; else ``commands.writable`` or every scalar outside ``gn_to_cn``.
+    """
+    try:
+        from ..commands import writable_elements
+
+        return list(writable_elements(mission))
+    except (ImportError, ZPlatformError):
+        chosen = mission.commands.writable
+        return [
+            e.name
+            for e in layout.elements.values()
+            if e.region != "gn_to_cn" and not e.count and (chosen is None or e.name in chosen)
+        ]
 
 
 def _fmt(v: Any) -> str:
