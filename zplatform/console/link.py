@@ -21,7 +21,6 @@ from __future__ import annotations
 import logging
 import queue
 import threading
-import time
 from collections.abc import Callable
 
 import zenoh
@@ -161,13 +160,3 @@ class Link:
         finally:
             if sender is not None:
                 sender.close()
-
-    def wait_connected(self, timeout_s: float) -> bool:
-        """For tests and scripts: block until one snapshot arrived."""
-        deadline = time.monotonic() + timeout_s
-        while time.monotonic() < deadline:
-            with self.model.lock:
-                if self.model.last_rx_ns is not None:
-                    return True
-            time.sleep(0.02)
-        return False
