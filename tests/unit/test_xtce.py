@@ -86,7 +86,7 @@ def test_every_element_has_name_type_and_bit_position(mission: Mission) -> None:
     root = ET.fromstring(mission_xtce(mission).xml)
     tm = root.find("x:TelemetryMetaData", NS)
     assert tm is not None
-    types = {t.get("name"): t for t in tm.find("x:ParameterTypeSet", NS) or []}
+    types = {t.get("name"): t for t in tm.iterfind("x:ParameterTypeSet/*", NS)}
     params = {p.get("name"): p for p in tm.iterfind("x:ParameterSet/x:Parameter", NS)}
     containers = {c.get("name"): c for c in tm.iterfind("x:ContainerSet/x:SequenceContainer", NS)}
     apids = {p.region: p.apid for p in packet_plan(mission)}
@@ -175,3 +175,88 @@ def test_segmented_regions_get_a_container_per_segment() -> None:
         "ccsds_time_ns",
         "ccsds_segment_offset",
     } | set(x.unplaced)
+
+
+def _decode_by_xtce(t: ET.Element, types: dict[str | None, ET.Element], raw: bytes) -> object:
+    """Decode one parameter from ``raw`` (its bytes) the way an XTCE tool reads the type."""
+    import struct
+
+    tag = t.tag.split("}")[1]
+    if tag == "ArrayParameterType":
+        item = types[t.get("arrayTypeRef")]
+        enc = item.find("x:IntegerDataEncoding", NS)
+        if enc is None:  # (an Element without children is falsy: no `or` here)
+            enc = item.find("x:FloatDataEncoding", NS)
+        assert enc is not None
+        n = int(enc.get("sizeInBits", "0")) // 8
+        return [_decode_by_xtce(item, types, raw[i : i + n]) for i in range(0, len(raw), n)]
+    fenc = t.find("x:FloatDataEncoding", NS)
+    if fenc is not None:
+        assert fenc.get("byteOrder") == "leastSignificantByteFirst"
+        return struct.unpack("<f" if fenc.get("sizeInBits") == "32" else "<d", raw)[0]
+    ienc = t.find("x:IntegerDataEncoding", NS)
+    assert ienc is not None
+    order = "big" if ienc.get("byteOrder") == "mostSignificantByteFirst" else "little"
+    signed = ienc.get("encoding") == "twosComplement"
+    v = int.from_bytes(raw, order, signed=signed)
+    if tag == "BooleanParameterType":
+        return bool(v)
+    if tag == "EnumeratedParameterType":
+        labels = {
+            int(e.get("value", "")): e.get("label") for e in t.iterfind(".//x:Enumeration", NS)
+        }
+        return labels.get(v, v)
+    return v
+
+
+@pytest.mark.parametrize("mission", _missions(), ids=lambda m: m.mission)
+def test_packets_decode_by_the_xtce_alone(mission: Mission) -> None:
+    """Reading our CCSDS packets with nothing but the XTCE gives the Data Vector's values."""
+    import random
+
+    from zplatform.ccsds import CcsdsEncoder
+    from zplatform.datavector import DataVector
+
+    rnd = random.Random(7)
+    enc = CcsdsEncoder(mission)
+    dv = DataVector(enc.layout)
+    dv.write_all(bytes(rnd.randrange(256) for _ in range(enc.layout.size)))
+    for spec in enc.layout.elements.values():  # bools and enums hold what they can name
+        if spec.scalar.kind == "bool":
+            dv.write_all(
+                dv.buf[: spec.offset] + bytes([rnd.randrange(2)]) + dv.buf[spec.offset + 1 :]
+            )
+        elif spec.enum is not None and not spec.count:
+            dv.set(spec.name, rnd.randrange(len(spec.enum)))
+    packets = [bytes(p) for p in enc.encode(dv, 12345, 678)]
+
+    root = ET.fromstring(mission_xtce(mission).xml)
+    tm = root.find("x:TelemetryMetaData", NS)
+    assert tm is not None
+    types = {t.get("name"): t for t in tm.iterfind("x:ParameterTypeSet/*", NS)}
+    ptype = {p.get("name"): p.get("parameterTypeRef") for p in tm.iterfind(".//x:Parameter", NS)}
+    by_apid = {}
+    for c in tm.iterfind("x:ContainerSet/x:SequenceContainer", NS):
+        v = c.find(".//x:Condition/x:Value", NS)
+        if v is not None:
+            by_apid[int(v.text or "")] = c
+    seen = set()
+    for pkt in packets:
+        apid = ((pkt[0] & 0x07) << 8) | pkt[1]
+        c = by_apid[apid]
+        for e in c.iterfind("x:EntryList/x:ParameterRefEntry", NS):
+            name = e.get("parameterRef", "")
+            spec = enc.layout.element(name)
+            pos = int(e.findtext(".//x:FixedValue", "", NS)) // 8
+            got = _decode_by_xtce(types[ptype[name]], types, pkt[pos : pos + spec.size])
+            want = dv.values()[name] if spec.count else dv.get(name)
+            if spec.enum is not None and not spec.count:
+                want = dv.get_name(name)
+            if spec.scalar.kind == "float":
+                import numpy as np
+
+                assert np.array_equal(np.array(got), np.array(want), equal_nan=True), name
+            else:
+                assert got == want, name
+            seen.add(name)
+    assert seen == {n for n, s in enc.layout.elements.items() if s.size}
