@@ -1,4 +1,4 @@
-"""Ground-side subcommands: ``ground`` (live view + command prompt) and ``plot``."""
+"""Ground-side subcommands: ``ground`` (console or prompt), ``plot``, ``xtce``."""
 
 from __future__ import annotations
 
@@ -20,11 +20,29 @@ HELP = """commands: launch | abort | noop | hold | resume | arm | write ELEMENT 
 
 
 def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
-    p = sub.add_parser("ground", help="live telemetry view and operator command prompt")
+    p = sub.add_parser(
+        "ground",
+        help="the ground console (terminal or --web PORT); a line prompt when stdin is no TTY",
+    )
     p.add_argument("mission")
+    mode = p.add_mutually_exclusive_group()
+    mode.add_argument(
+        "--console", action="store_true", help="the full-screen console even without a TTY"
+    )
+    mode.add_argument("--prompt", action="store_true", help="the line prompt even on a TTY")
+    mode.add_argument("--web", type=int, metavar="PORT", help="serve the console to browsers")
+    p.add_argument("--host", default="127.0.0.1", help="address --web listens on")
     p.add_argument("--watch", nargs="*", default=[], help="elements to show on the status line")
     p.add_argument("--interval", type=float, default=1.0, help="status line period (s)")
     p.add_argument("--timeout", type=float, default=10.0, help="verdict timeout per command (s)")
+    p.add_argument(
+        "--los", type=float, default=0.3, help="console: seconds of silence that mean LOS"
+    )
+    p.add_argument(
+        "--limits",
+        metavar="YAML",
+        help="console: element limits {NAME: {yellow: [lo, hi], red: [lo, hi]}} over the mission's",
+    )
     p.set_defaults(func=cmd_ground)
 
     p = sub.add_parser("plot", help="plot logged elements against time")
@@ -33,8 +51,71 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p.add_argument("--out", required=True, help="PNG path")
     p.set_defaults(func=cmd_plot)
 
+    p = sub.add_parser(
+        "xtce", help="write the mission's telemetry packets and commands as XTCE (Yamcs)"
+    )
+    p.add_argument("mission")
+    p.add_argument("--out", help="XML path (default: MISSION_NAME.xtce.xml)")
+    p.set_defaults(func=cmd_xtce)
+
+    p = sub.add_parser(
+        "ccsds", help="record live telemetry as CCSDS space packets, or decode them to CSV"
+    )
+    p.add_argument("mission")
+    what = p.add_mutually_exclusive_group(required=True)
+    what.add_argument("--record", metavar="FILE", help="append the downlink's packets to FILE")
+    what.add_argument("--decode", metavar="FILE", help="decode a packet file to CSV (--out)")
+    p.add_argument("--out", help="CSV path for --decode")
+    p.add_argument("--duration", type=float, help="--record: stop after S seconds")
+    p.add_argument("--divisor", type=int, default=1, help="downlink every Nth snapshot")
+    p.add_argument("--budget", type=int, help="downlink byte budget per second")
+    p.add_argument("--max-data", type=int, default=65536, help="packet data field size (bytes)")
+    p.add_argument("--timeout", type=float, default=10.0, help="--record: wait for the CN (s)")
+    p.set_defaults(func=cmd_ccsds)
+
 
 def cmd_ground(args: argparse.Namespace) -> int:
+    """The console on a TTY (or ``--console``), served with ``--web``, else the prompt."""
+    if args.web is not None or args.console or (sys.stdin.isatty() and not args.prompt):
+        try:
+            from .console import run_console, serve_console
+        except ImportError as exc:
+            raise CommandError(
+                f"the console needs the ground extra ({exc.name}): pip install 'zplatform[ground]'"
+            ) from None
+        limits = _read_limits(args.limits)
+        if args.web is not None:
+            load_mission(args.mission)  # a bad file fails here, with its message
+            serve_console(
+                args.mission,
+                args.web,
+                host=args.host,
+                timeout_s=args.timeout,
+                limits_path=args.limits,
+            )
+            return 0
+        return run_console(args.mission, timeout_s=args.timeout, los_s=args.los, limits=limits)
+    return cmd_prompt(args)
+
+
+def _read_limits(path: str | None) -> dict[str, object] | None:
+    """A limits file: ``{element: {yellow: [lo, hi], red: [lo, hi]}}`` (YAML)."""
+    if path is None:
+        return None
+    import yaml
+
+    try:
+        raw = yaml.safe_load(Path(path).read_text())
+    except OSError as exc:
+        raise CommandError(f"cannot read {path}: {exc.strerror}") from None
+    except yaml.YAMLError as exc:
+        raise CommandError(f"{path} is not valid YAML: {exc}") from None
+    if not isinstance(raw, dict):
+        raise CommandError(f"{path} must map element names to {{yellow: .., red: ..}}")
+    return raw
+
+
+def cmd_prompt(args: argparse.Namespace) -> int:
     """Status line every ``--interval`` s; one command per stdin line.
 
     The prompt runs in a reader thread that only queues lines; the main
@@ -138,4 +219,75 @@ def cmd_plot(args: argparse.Namespace) -> int:
     fig.tight_layout()
     fig.savefig(Path(args.out), dpi=100)
     print(f"wrote {args.out}")
+    return 0
+
+
+def cmd_xtce(args: argparse.Namespace) -> int:
+    """Write the XTCE database of the mission's CCSDS downlink and commands."""
+    try:
+        from .xtce import write_xtce
+    except ImportError:
+        raise CommandError("xtce needs yamcs-pymdb: pip install 'zplatform[ground]'") from None
+    mission = load_mission(args.mission)
+    out = args.out or f"{mission.mission}.xtce.xml"
+    x = write_xtce(mission, out)
+    print(f"wrote {out}")
+    if x.unplaced:
+        print(f"not in any packet (straddle a segment boundary): {', '.join(x.unplaced)}")
+    return 0
+
+
+def cmd_ccsds(args: argparse.Namespace) -> int:
+    """``--record``: telemetry -> packets (the radio path, on the ground); ``--decode``: -> CSV."""
+    try:
+        from . import ccsds
+    except ImportError:
+        raise CommandError("ccsds needs spacepackets: pip install 'zplatform[ground]'") from None
+    mission = load_mission(args.mission)
+    if args.decode:
+        if not args.out:
+            raise CommandError("--decode needs --out CSV")
+        try:
+            data = Path(args.decode).read_bytes()
+        except OSError as exc:
+            raise CommandError(f"cannot read {args.decode}: {exc.strerror}") from None
+        dec = ccsds.decode_to_csv(mission, data, args.out, max_data=args.max_data)
+        print(
+            f"wrote {args.out}: {dec.snapshots} snapshots from {dec.packets} packets; "
+            f"refused {sum(dec.bad.values())}{f' {dec.bad}' if dec.bad else ''}, "
+            f"incomplete {dec.incomplete}, "
+            f"sequence gaps {dec.seq_gaps}"
+        )
+        return 0
+    from .node.ground import TelemetryReceiver
+    from .timebase import NodeClock
+    from .transport import NodeSession
+
+    enc = ccsds.CcsdsEncoder(
+        mission, divisor=args.divisor, budget_bps=args.budget, max_data=args.max_data
+    )
+    ns = NodeSession(mission, None)
+    rx = TelemetryReceiver(ns.session, mission, NodeClock().now_ns)
+    start = time.monotonic()
+    try:
+        with open(args.record, "ab") as f:
+            while args.duration is None or time.monotonic() - start < args.duration:
+                if rx.next(0.2) is None:
+                    if not rx.received and time.monotonic() - start > args.timeout:
+                        raise CommandError(
+                            f"no telemetry from the control node within {args.timeout:g} s"
+                        )
+                    continue
+                dv = rx.dv
+                for pkt in enc.encode(dv, int(dv.get("cn_loop")), int(dv.get("cn_time_ns"))):
+                    f.write(pkt)
+    except KeyboardInterrupt:
+        pass
+    finally:
+        rx.close()
+        ns.close()
+    print(
+        f"wrote {args.record}: {enc.sent_snapshots} snapshots, {enc.sent_packets} packets, "
+        f"{enc.sent_bytes} bytes; decimated {enc.decimated}, over budget {enc.dropped_budget}"
+    )
     return 0

@@ -1,0 +1,113 @@
+"""The console's model without zenoh or a screen: fed snapshots, events, times."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+pytest.importorskip("textual")
+
+from zplatform import load_mission
+from zplatform.console.model import (
+    ConsoleModel,
+    Limits,
+    severity_rank,
+    severity_style,
+)
+from zplatform.datavector import DataVector
+from zplatform.errors import CommandError, DataVectorError
+from zplatform.events import Event, Severity
+
+CONFIGS = Path(__file__).resolve().parents[2] / "configs"
+MISSION = load_mission(CONFIGS / "recovery_igniter.yaml")
+MS = 1_000_000
+
+
+def _feed(model: ConsoleModel, loop: int, rx_ns: int) -> DataVector:
+    dv = DataVector(model.layout)
+    dv.set("cn_loop", loop)
+    dv.set("cn_time_ns", loop * 10 * MS)
+    model.on_snapshot(dv, rx_ns)
+    return dv
+
+
+def test_snapshot_is_copied_and_rate_is_measured() -> None:
+    m = ConsoleModel(MISSION)
+    for i in range(1, 101):
+        dv = _feed(m, i, i * 10 * MS)
+    dv.set("cn_loop", 999)  # the caller's vector; the model kept its own copy
+    s = m.status()
+    assert s.loop == 100 and s.received == 100
+    assert s.loop_hz == pytest.approx(100.0)
+    assert s.state == "SAFE"
+    assert m.region_rows()[0][0] == "cn"
+
+
+def test_loss_of_signal_after_silence_and_back() -> None:
+    m = ConsoleModel(MISSION, los_s=0.3)
+    assert m.tick(0)  # nothing received yet: no signal
+    _feed(m, 1, 1_000 * MS)
+    assert not m.tick(1_200 * MS)
+    assert m.tick(1_301 * MS)
+    assert m.status().los
+    assert [x.text for x in m.log][-1] == "LOSS OF SIGNAL"
+    _feed(m, 2, 1_400 * MS)
+    assert not m.tick(1_400 * MS)
+    assert [x.text for x in m.log][-1] == "signal acquired"
+
+
+def test_limits_from_caller_and_from_mission_field() -> None:
+    m = ConsoleModel(MISSION, limits={"cn_loop": {"yellow": [None, 10], "red": [None, 20]}})
+    _feed(m, 5, 0)
+    assert dict((n, lv) for n, _, lv in m.region_rows()[0][1])["cn_loop"] == ""
+    _feed(m, 15, 0)
+    assert dict((n, lv) for n, _, lv in m.region_rows()[0][1])["cn_loop"] == "yellow"
+    _feed(m, 25, 0)
+    assert dict((n, lv) for n, _, lv in m.region_rows()[0][1])["cn_loop"] == "red"
+    assert Limits.parse({"red": [-1, 1]}, "x").level(-2) == "red"
+    with pytest.raises(DataVectorError, match=r"limits\.red"):
+        Limits.parse({"red": 3}, "x")
+    with pytest.raises(DataVectorError, match="no element"):
+        ConsoleModel(MISSION, limits={"nope": {"red": [0, 1]}})
+
+
+def test_events_by_severity_name_and_filter() -> None:
+    m = ConsoleModel(MISSION)
+    for i, sev in enumerate(Severity):
+        m.on_event(Event("cn", i, 0, int(sev), "id", sev.name))
+    assert [x.severity for x in m.events()] == [s.name for s in Severity]
+    worst = max(Severity, key=lambda s: severity_rank(s.name))
+    m.set_filter([worst.name])
+    assert [x.severity for x in m.events()] == [worst.name]
+    m.set_filter(["all"])
+    assert len(m.events()) == len(Severity)
+    with pytest.raises(CommandError, match="unknown severity"):
+        m.set_filter(["LOUD"])
+    # Old and new names both rank and colour.
+    assert severity_rank("FATAL") == severity_rank("CRITICAL") > severity_rank("WARNING_LO")
+    assert severity_rank("DIAGNOSTIC") == severity_rank("DEBUG") == 0
+    assert severity_style("WARNING_HI") and severity_style("FATAL")
+
+
+def test_completion_of_commands_and_elements() -> None:
+    m = ConsoleModel(MISSION)
+    assert m.complete("lau") == "launch"
+    assert m.complete("fil") == "filter"
+    some = m.writable[-1]
+    assert m.complete(f"write {some[:-1]}") is not None
+    assert (m.complete(f"write {some[:-1]}") or "").startswith("write ")
+    assert m.complete("launch x") is None
+    assert m.complete("") is None
+
+
+def test_plot_series_keeps_a_window() -> None:
+    m = ConsoleModel(MISSION, plot_window_s=1.0)
+    m.set_plot(["cn_loop"])
+    for i in range(1, 200):
+        _feed(m, i, i * 10 * MS)
+    xs, ys = m.plot_series()["cn_loop"]
+    assert len(xs) == 20  # one point per 50 ms, one second kept
+    assert ys[-1] >= 190
+    with pytest.raises(DataVectorError):
+        m.set_plot(["nope"])

@@ -1,0 +1,332 @@
+"""The ground console: a textual App over :class:`ConsoleModel` (terminal or browser).
+
+Layout (fits 80x24, uses more room when there is more): a status bar (link,
+loop, state and time in state, loop rate, fault, last command, per-DN
+misses/late and clock offsets), the Data Vector grouped by region with
+limit colours, the event pane (filtered by severity), an optional live
+plot, and the command line (history on up/down, completion on tab).
+
+The screen redraws at :data:`REFRESH_HZ` whatever the loop rate: it reads
+the model under its lock, which the link's threads update at the telemetry
+rate. Hazardous commands (``commands.hazardous``) open a confirmation dialog;
+confirmed, they go ARM n then COMMAND n+1.
+"""
+
+from __future__ import annotations
+
+from typing import Any, ClassVar
+
+from rich.table import Table
+from rich.text import Text
+from textual import events
+from textual.app import App, ComposeResult
+from textual.binding import Binding, BindingType
+from textual.containers import Horizontal, Vertical, VerticalScroll
+from textual.screen import ModalScreen
+from textual.suggester import Suggester
+from textual.widgets import Button, Input, Label, Static
+from textual_plotext import PlotextPlot
+
+from ..errors import CommandError, DataVectorError
+from .link import Link
+from .model import HELP, LOCAL_COMMANDS, ConsoleModel, Status, severity_style
+
+__all__ = ["REFRESH_HZ", "ConfirmScreen", "ConsoleApp"]
+
+REFRESH_HZ = 10.0
+
+
+class _Suggest(Suggester):
+    def __init__(self, model: ConsoleModel) -> None:
+        super().__init__(use_cache=False, case_sensitive=True)
+        self.model = model
+
+    async def get_suggestion(self, value: str) -> str | None:
+        return self.model.complete(value)
+
+
+class CommandLine(Input):
+    """An Input with history (up/down) and tab completion."""
+
+    BINDINGS: ClassVar[list[BindingType]] = [
+        Binding("up", "history(-1)", "previous", show=False),
+        Binding("down", "history(1)", "next", show=False),
+        Binding("tab", "complete", "complete", show=False, priority=True),
+    ]
+
+    def __init__(self, model: ConsoleModel, **kw: Any) -> None:
+        super().__init__(suggester=_Suggest(model), **kw)
+        self.model = model
+        self.history: list[str] = []
+        self._pos = 0
+
+    def remember(self, line: str) -> None:
+        if line and (not self.history or self.history[-1] != line):
+            self.history.append(line)
+        self._pos = len(self.history)
+
+    def action_history(self, step: int) -> None:
+        if not self.history:
+            return
+        self._pos = max(0, min(len(self.history), self._pos + step))
+        self.value = self.history[self._pos] if self._pos < len(self.history) else ""
+        self.cursor_position = len(self.value)
+
+    def action_complete(self) -> None:
+        done = self.model.complete(self.value)
+        if done is not None:
+            self.value = done + " "
+            self.cursor_position = len(self.value)
+
+
+class ConfirmScreen(ModalScreen[bool]):
+    """Asks before a hazardous command: y / Enter confirms, n / Esc cancels."""
+
+    BINDINGS: ClassVar[list[BindingType]] = [
+        Binding("y", "answer(True)", "yes"),
+        Binding("n,escape", "answer(False)", "no"),
+    ]
+    DEFAULT_CSS = """
+    ConfirmScreen { align: center middle; }
+    #dialog { width: 60; height: auto; border: thick $error; padding: 1 2; background: $panel; }
+    #dialog Horizontal { height: auto; align: center middle; }
+    #dialog Button { margin: 1 2 0 2; }
+    """
+
+    def __init__(self, question: str) -> None:
+        super().__init__()
+        self.question = question
+
+    def compose(self) -> ComposeResult:
+        with Vertical(id="dialog"):
+            yield Label(self.question, id="question")
+            with Horizontal():
+                yield Button("Yes (y)", variant="error", id="yes")
+                yield Button("No (n)", variant="primary", id="no")
+
+    def on_mount(self) -> None:
+        self.query_one("#no", Button).focus()
+
+    def on_button_pressed(self, event: Button.Pressed) -> None:
+        self.dismiss(event.button.id == "yes")
+
+    def action_answer(self, yes: bool) -> None:
+        self.dismiss(yes)
+
+
+class ConsoleApp(App[int]):
+    """The console. ``link`` is None for a model fed by someone else (tests)."""
+
+    TITLE = "zplatform ground"
+    CSS = """
+    #status { height: auto; background: $boost; padding: 0 1; }
+    #status.los { background: $error; color: $text; }
+    #body { height: 1fr; }
+    #dv { width: 1fr; min-width: 30; border-right: solid $primary-darken-2; }
+    #right { width: 1fr; }
+    #events { height: 1fr; }
+    #plot { height: 1fr; display: none; }
+    #plot.shown { display: block; }
+    #cmd { dock: bottom; height: 1; border: none; padding: 0 1; }
+    """
+    BINDINGS: ClassVar[list[BindingType]] = [Binding("ctrl+q", "quit", "quit")]
+
+    def __init__(self, model: ConsoleModel, link: Link | None = None) -> None:
+        super().__init__()
+        self.model = model
+        self.link = link
+        self._drawn = -1
+        self.title = f"zplatform ground - {model.mission.mission}"
+
+    # -- layout --------------------------------------------------------------
+    def compose(self) -> ComposeResult:
+        yield Static("connecting...", id="status")
+        with Horizontal(id="body"):
+            with VerticalScroll(id="dv"):
+                yield Static("", id="dv-table")
+            with Vertical(id="right"):
+                with VerticalScroll(id="events"):
+                    yield Static("", id="events-text")
+                yield PlotextPlot(id="plot")
+        yield CommandLine(self.model, id="cmd", placeholder="command (tab completes, help)")
+
+    def on_mount(self) -> None:
+        if self.link is not None:
+            self.link.start()
+        self.query_one("#cmd", CommandLine).focus()
+        self.set_interval(1.0 / REFRESH_HZ, self.refresh_view)
+        self.refresh_view()
+
+    def on_unmount(self) -> None:
+        if self.link is not None:
+            self.link.close()
+
+    def now_ns(self) -> int:
+        if self.link is not None:
+            return self.link.now_ns()
+        import time
+
+        return time.time_ns()
+
+    # -- drawing -------------------------------------------------------------
+    def refresh_view(self) -> None:
+        m = self.model
+        with m.lock:
+            m.tick(self.now_ns())
+            status = m.status()
+            changed = m.version != self._drawn
+            if changed:
+                self._drawn = m.version
+                rows = m.region_rows()
+                lines = m.events()[-200:]
+                series = m.plot_series()
+                plotted = list(m.plotted)
+        bar = self.query_one("#status", Static)
+        bar.update(_status_text(status))
+        bar.set_class(status.los, "los")
+        if not changed:
+            return
+        self.query_one("#dv-table", Static).update(_dv_table(rows))
+        text = Text(no_wrap=False)
+        for x in lines:
+            text.append(f"{_clock(x.t_ns)} ", style="dim")
+            text.append(f"{x.severity:<11} ", style=severity_style(x.severity) or None)
+            text.append(f"{x.source:<7} {x.text}\n")
+        self.query_one("#events-text", Static).update(text)
+        self.query_one("#events", VerticalScroll).scroll_end(animate=False)
+        plot = self.query_one("#plot", PlotextPlot)
+        plot.set_class(bool(plotted), "shown")
+        if plotted:
+            plt = plot.plt
+            plt.clear_data()
+            for name in plotted:
+                xs, ys = series.get(name, ([], []))
+                if xs:
+                    x0 = xs[-1]
+                    plt.plot([x - x0 for x in xs], ys, label=name)
+            plt.xlabel("s before now")
+            plot.refresh()
+
+    # -- commands ------------------------------------------------------------
+    def on_input_submitted(self, event: Input.Submitted) -> None:
+        line = event.value.strip()
+        cmdline = self.query_one("#cmd", CommandLine)
+        cmdline.remember(line)
+        cmdline.value = ""
+        if line:
+            self.run_command(line)
+
+    def _note(self, text: str, severity: str = "ACTIVITY_LO") -> None:
+        with self.model.lock:
+            self.model.note(self.now_ns(), text, severity)
+        self.refresh_view()
+
+    def run_command(self, line: str) -> None:
+        """One command line: a console command, or a command for the vehicle."""
+        from ..uplink import validate_command
+
+        words = line.split()
+        head = words[0].lower()
+        try:
+            if head in LOCAL_COMMANDS:
+                self._local(head, words[1:])
+                return
+            cmd, _, _ = validate_command(
+                self.model.mission,
+                head,
+                words[1] if len(words) > 1 else None,
+                words[2] if len(words) > 2 else None,
+            )
+            if len(words) > 3:
+                raise CommandError(f"{head} takes at most ELEMENT VALUE")
+        except (CommandError, DataVectorError) as exc:
+            self._note(f"refused: {exc}", "WARNING_HI")
+            return
+        if cmd in self.model.hazardous:
+
+            def answered(yes: bool | None) -> None:
+                if not yes:
+                    self._note(f"{cmd} cancelled", "ACTIVITY_HI")
+                elif self.link is None:
+                    self._note(f"no link: {cmd} not sent", "WARNING_HI")
+                else:
+                    self._note(f"sending ARM then {cmd}", "COMMAND")
+                    self.link.send(head, [], True)
+
+            self.push_screen(ConfirmScreen(f"{cmd} is hazardous. Send ARM, then {cmd}?"), answered)
+            return
+        if self.link is None:
+            self._note(f"no link: {cmd} not sent", "WARNING_HI")
+            return
+        self._note(f"sending {' '.join(words).upper()}", "COMMAND")
+        self.link.send(head, words[1:], False)
+
+    def _local(self, head: str, args: list[str]) -> None:
+        m = self.model
+        if head == "quit":
+            self.exit(0)
+            return
+        if head == "help":
+            self._note(HELP)
+            return
+        with m.lock:
+            if head == "filter":
+                msg = m.set_filter(args)
+            elif head == "plot":
+                msg = m.set_plot(args)
+            else:  # clear
+                m.log.clear()
+                m.version += 1
+                msg = "events cleared"
+        self._note(msg)
+
+    async def on_key(self, event: events.Key) -> None:
+        # Typing anywhere goes to the command line.
+        cmd = self.query_one("#cmd", CommandLine)
+        if not cmd.has_focus and event.is_printable and not isinstance(self.screen, ModalScreen):
+            cmd.focus()
+
+
+def _status_text(s: Status) -> Text:
+    t = Text()
+    if not s.connected:
+        t.append(" NO SIGNAL ", style="bold white on red")
+        t.append(" waiting for telemetry")
+        return t
+    if s.los:
+        t.append(" LOSS OF SIGNAL ", style="bold white on red")
+        t.append(f" {s.silence_s or 0:.1f} s ")
+    else:
+        t.append(" LINK ", style="bold black on green")
+    hz = "-" if s.loop_hz is None else f"{s.loop_hz:.1f}"
+    t.append(f" loop {s.loop} {hz} Hz  ")
+    t.append(f"{s.state}", style="bold")
+    t.append(f" {s.time_in_state_s:.1f} s  ")
+    if s.fault != "NONE":
+        t.append(f"FAULT {s.fault}  ", style="bold red")
+    t.append(f"cmd #{s.cmd_seq} {s.cmd_status}  last: {s.last_command}\n")
+    t.append(f"tm {s.received} gap {s.gaps} bad {s.bad}")
+    for dn, rx, missed, late, off in s.per_dn:
+        style = "yellow" if missed or late else None
+        # rx/missed/late counts, then the clock offset the CN applies.
+        t.append(f"  {dn} {rx}/{missed}/{late}", style=style)
+        t.append(f" {off / 1e6:+.2f}ms")
+    return t
+
+
+def _clock(t_ns: int) -> str:
+    """UTC time of day to the tenth of a second (event and note times are epoch ns)."""
+    s, ns = divmod(t_ns, 1_000_000_000)
+    return f"{(s // 3600) % 24:02d}:{(s // 60) % 60:02d}:{s % 60:02d}.{ns // 100_000_000}"
+
+
+def _dv_table(rows: list[tuple[str, list[tuple[str, str, str]]]]) -> Table:
+    table = Table.grid(padding=(0, 1), expand=True)
+    table.add_column("element", no_wrap=True, overflow="ellipsis", ratio=3)
+    table.add_column("value", no_wrap=True, overflow="ellipsis", ratio=2)
+    styles = {"red": "bold white on red", "yellow": "black on yellow", "": ""}
+    for region, elements in rows:
+        table.add_row(Text(region, style="bold underline"), "")
+        for name, value, level in elements:
+            table.add_row(name, Text(value, style=styles[level]))
+    return table

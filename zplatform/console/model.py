@@ -1,0 +1,368 @@
+"""The console's state, without zenoh and without textual (sans-IO).
+
+:class:`ConsoleModel` is fed by a telemetry source: :meth:`on_snapshot`
+after each decoded snapshot (a CN-layout Data Vector), :meth:`on_event` per
+event record, :meth:`on_result` per command verdict. The screen asks it
+what to draw at a human rate (:meth:`status`, :meth:`region_rows`,
+:meth:`events`, :meth:`plot_series`); :meth:`tick` with the current time
+decides loss of signal. Nothing here blocks, allocates per snapshot beyond
+one buffer copy and, for plotted elements, one tuple, or reads a clock:
+every time comes in as an argument (ns), so tests drive it directly.
+
+Not thread-safe: the owner (:class:`~zplatform.console.link.Link`) holds
+:attr:`lock` around every call from its threads and the screen holds it
+while it reads.
+
+**Limits** come from :func:`zplatform.limits.mission_limits` (the mission's
+per-element ``limits`` and the caller's ``limits={name: {...}}``).
+
+**Severities** are handled by member *name*, so the console works with the
+old five (DEBUG..CRITICAL) and F Prime's seven (FATAL..DIAGNOSTIC):
+:func:`severity_rank` orders them for filtering and :func:`severity_style`
+colours them; an unknown name ranks as informational.
+"""
+
+from __future__ import annotations
+
+import threading
+from collections import deque
+from collections.abc import Iterable, Mapping
+from dataclasses import dataclass
+from typing import Any
+
+from ..config import CMD_NAMES, Mission
+from ..datavector import DataVector, ElementSpec, Layout
+from ..errors import CommandError, ZPlatformError
+from ..events import Event, Severity
+from ..limits import Limits, mission_limits
+
+__all__ = [
+    "ConsoleModel",
+    "Limits",
+    "LogLine",
+    "Status",
+    "severity_name",
+    "severity_rank",
+    "severity_style",
+    "writable_names",
+]
+
+# Rank by name: higher is worse. Old and new names side by side.
+_RANKS = {
+    "FATAL": 6,
+    "CRITICAL": 6,
+    "ERROR": 5,
+    "WARNING_HI": 5,
+    "WARNING": 4,
+    "WARNING_LO": 4,
+    "COMMAND": 3,
+    "ACTIVITY_HI": 2,
+    "INFO": 2,
+    "ACTIVITY_LO": 1,
+    "DIAGNOSTIC": 0,
+    "DEBUG": 0,
+}
+_STYLES = {6: "bold white on red", 5: "bold red", 4: "yellow", 3: "cyan", 2: "", 1: "dim", 0: "dim"}
+
+#: Console-side commands (not sent to the vehicle).
+LOCAL_COMMANDS = ("filter", "plot", "clear", "help", "quit")
+OPERATOR_COMMANDS = tuple(c.lower() for c in CMD_NAMES[1:])
+
+HELP = (
+    "vehicle: " + " | ".join(OPERATOR_COMMANDS) + " (write ELEMENT VALUE); "
+    "console: filter [SEVERITY|all] | plot ELEMENT... | clear | quit"
+)
+
+
+def severity_name(value: int) -> str:
+    """The :class:`~zplatform.events.Severity` member name of ``value``, or the number."""
+    try:
+        return Severity(value).name
+    except ValueError:
+        return str(value)
+
+
+def severity_rank(name: str) -> int:
+    """How bad a severity is (0 diagnostic .. 6 fatal), by member name."""
+    return _RANKS.get(name.upper(), 2)
+
+
+def severity_style(name: str) -> str:
+    """A rich style for a severity name."""
+    return _STYLES[severity_rank(name)]
+
+
+@dataclass(frozen=True, slots=True)
+class LogLine:
+    """One line of the event pane: an event, a command verdict or a console note."""
+
+    t_ns: int
+    severity: str
+    source: str
+    text: str
+
+
+@dataclass(frozen=True, slots=True)
+class Status:
+    """The header line's facts, at one moment."""
+
+    connected: bool
+    los: bool
+    silence_s: float | None
+    loop: int
+    state: str
+    time_in_state_s: float
+    fault: str
+    loop_hz: float | None
+    received: int
+    gaps: int
+    bad: int
+    per_dn: tuple[tuple[str, int, int, int, int], ...]  # dn, rx, missed, late, clock offset ns
+    cmd_seq: int
+    cmd_status: str
+    last_command: str
+
+
+class ConsoleModel:
+    """See the module doc. ``los_s``: silence after which the link is lost."""
+
+    def __init__(
+        self,
+        mission: Mission,
+        *,
+        los_s: float = 0.3,
+        limits: Mapping[str, Any] | None = None,
+        max_events: int = 500,
+        plot_window_s: float = 30.0,
+    ) -> None:
+        self.mission = mission
+        self.lock = threading.Lock()
+        self.layout = Layout.for_node(mission, "cn")
+        self.dv = DataVector(self.layout)
+        self.los_ns = int(los_s * 1e9)
+        self.limits: dict[str, Limits] = mission_limits(mission, limits)
+        self.hazardous = {c.upper() for c in mission.commands.hazardous}
+        self.writable = writable_names(mission, self.layout)
+        self.log: deque[LogLine] = deque(maxlen=max_events)
+        self.min_rank = 0
+        self.received = 0
+        self.gaps = 0
+        self.bad = 0
+        self.bad_events = 0
+        self.last_rx_ns: int | None = None
+        self.now_ns: int | None = None
+        self.last_command = "-"
+        self._los = False
+        self._rate: deque[tuple[int, int]] = deque(maxlen=64)  # (cn_time_ns, cn_loop)
+        self.plotted: list[str] = []
+        self._plot_step_ns = 50_000_000
+        self._plot_len = int(plot_window_s * 1e9 / self._plot_step_ns)
+        self._series: dict[str, deque[tuple[float, float]]] = {}
+        self._last_plot_ns = 0
+        self.version = 0  # bumped on every change the screen should redraw for
+
+    # -- feeding ------------------------------------------------------------
+    def on_snapshot(
+        self, dv: DataVector, rx_ns: int, *, received: int = 0, gaps: int = 0, bad: int = 0
+    ) -> None:
+        """Take a decoded snapshot (copied; ``dv`` stays the caller's)."""
+        self.dv.write_all(dv.view())
+        self.received, self.gaps, self.bad = received or self.received + 1, gaps, bad
+        self.last_rx_ns = rx_ns
+        if self._los:
+            self._los = False
+            self._note(rx_ns, "ACTIVITY_HI", "link", "signal acquired")
+        t = int(self.dv.get("cn_time_ns"))
+        loop = int(self.dv.get("cn_loop"))
+        if not self._rate or t - self._rate[-1][0] >= 50_000_000:
+            self._rate.append((t, loop))
+        if self.plotted and rx_ns - self._last_plot_ns >= self._plot_step_ns:
+            self._last_plot_ns = rx_ns
+            ts = t / 1e9
+            for name in self.plotted:
+                self._series[name].append((ts, float(self.dv.get(name))))
+        self.version += 1
+
+    def on_event(self, e: Event) -> None:
+        sev = severity_name(e.severity)
+        self.log.append(LogLine(e.t_ns, sev, e.node, f"{e.id}: {e.text}"))
+        self.version += 1
+
+    def on_bad_event(self) -> None:
+        self.bad_events += 1
+
+    def on_result(self, t_ns: int, command: str, seq: int, status: str) -> None:
+        """A command verdict (ACCEPTED, REJECTED_...) or a local refusal."""
+        self.last_command = f"{command} #{seq} {status}" if seq >= 0 else f"{command}: {status}"
+        sev = "COMMAND" if status == "ACCEPTED" else "WARNING_HI"
+        self._note(t_ns, sev, "cmd", self.last_command)
+
+    def note(self, t_ns: int, text: str, severity: str = "ACTIVITY_LO") -> None:
+        """A console message in the event pane."""
+        self._note(t_ns, severity, "console", text)
+
+    def _note(self, t_ns: int, sev: str, source: str, text: str) -> None:
+        self.log.append(LogLine(t_ns, sev, source, text))
+        self.version += 1
+
+    def tick(self, now_ns: int) -> bool:
+        """Advance the model's clock; returns whether the link is lost now."""
+        self.now_ns = now_ns
+        lost = self.last_rx_ns is None or now_ns - self.last_rx_ns > self.los_ns
+        if lost and not self._los and self.last_rx_ns is not None:
+            self._note(now_ns, "WARNING_HI", "link", "LOSS OF SIGNAL")
+        self._los = lost
+        return lost
+
+    # -- reading ------------------------------------------------------------
+    def status(self) -> Status:
+        dv = self.dv
+        los = self._los or self.last_rx_ns is None
+        silence = (
+            None
+            if self.last_rx_ns is None or self.now_ns is None
+            else (self.now_ns - self.last_rx_ns) / 1e9
+        )
+        rate = None
+        if len(self._rate) >= 2:
+            (t0, l0), (t1, l1) = self._rate[0], self._rate[-1]
+            if t1 > t0:
+                rate = (l1 - l0) * 1e9 / (t1 - t0)
+        dns = tuple(
+            (
+                dn,
+                int(dv.get(f"cn_rx_{dn}")),
+                int(dv.get(f"cn_missed_{dn}")),
+                int(dv.get(f"cn_late_{dn}")),
+                int(dv.get(f"{dn}_clock_offset_ns")),
+            )
+            for dn in self.mission.device_nodes
+        )
+        return Status(
+            connected=self.last_rx_ns is not None,
+            los=los,
+            silence_s=silence,
+            loop=int(dv.get("cn_loop")),
+            state=dv.get_name("cn_state"),
+            time_in_state_s=int(dv.get("cn_time_in_state_ns")) / 1e9,
+            fault=dv.get_name("cn_fault"),
+            loop_hz=rate,
+            received=self.received,
+            gaps=self.gaps,
+            bad=self.bad,
+            per_dn=dns,
+            cmd_seq=int(dv.get("cn_cmd_seq")),
+            cmd_status=dv.get_name("cn_cmd_status"),
+            last_command=self.last_command,
+        )
+
+    def format_value(self, spec: ElementSpec) -> str:
+        v = self.dv.get(spec.name)
+        if spec.enum is not None:
+            return spec.name_of(int(v))
+        if spec.count:
+            items = v[:8].tolist()
+            text = ", ".join(_fmt(x) for x in items)
+            return f"[{text}{', ...' if spec.count > 8 else ''}]"
+        return _fmt(v)
+
+    def level(self, spec: ElementSpec) -> str:
+        lim = self.limits.get(spec.name)
+        if lim is None or spec.count or spec.enum is not None:
+            return ""
+        return lim.level(float(self.dv.get(spec.name)))
+
+    def region_rows(self) -> list[tuple[str, list[tuple[str, str, str]]]]:
+        """``[(region, [(element, value text, limit level), ...]), ...]`` in buffer order."""
+        return [
+            (r.name, [(e.name, self.format_value(e), self.level(e)) for e in r.elements])
+            for r in self.layout.regions.values()
+            if r.elements
+        ]
+
+    def events(self) -> list[LogLine]:
+        """The log lines that pass the severity filter, oldest first."""
+        return [x for x in self.log if severity_rank(x.severity) >= self.min_rank]
+
+    def plot_series(self) -> dict[str, tuple[list[float], list[float]]]:
+        return {n: ([p[0] for p in s], [p[1] for p in s]) for n, s in self._series.items() if s}
+
+    # -- operator input -----------------------------------------------------
+    def set_filter(self, words: list[str]) -> str:
+        """``filter`` (show all) or ``filter NAME``: NAME and worse."""
+        if not words or words[0].lower() == "all":
+            self.min_rank = 0
+            return "showing every event"
+        name = words[0].upper()
+        if name not in _RANKS and name not in Severity.__members__:
+            names = [s.name for s in Severity]
+            raise CommandError(f"unknown severity {words[0]!r}; one of {names} or all")
+        self.min_rank = severity_rank(name)
+        self.version += 1
+        return f"showing {name} and worse"
+
+    def set_plot(self, names: Iterable[str]) -> str:
+        names = list(names)
+        for n in names:
+            spec = self.layout.element(n)
+            if spec.count:
+                raise CommandError(f"{n} is an array; plot scalars")
+        self.plotted = names
+        self._series = {n: deque(maxlen=self._plot_len) for n in names}
+        self.version += 1
+        return f"plotting {', '.join(names)}" if names else "plot cleared"
+
+    def complete(self, text: str) -> str | None:
+        """The completion of ``text`` (the whole line) or None.
+
+        Completes the first word against operator and console commands, the
+        element of ``write`` against writable elements, ``plot`` against every
+        scalar element and ``filter`` against severity names.
+        """
+        words = text.split(" ")
+        if len(words) == 1:
+            pool: Iterable[str] = (*OPERATOR_COMMANDS, *LOCAL_COMMANDS)
+        else:
+            head = words[0].lower()
+            if head == "write" and len(words) == 2:
+                pool = self.writable
+            elif head == "plot":
+                pool = [e.name for e in self.layout.elements.values() if not e.count]
+            elif head == "filter" and len(words) == 2:
+                pool = [*(s.name for s in Severity), "all"]
+            else:
+                return None
+        last = words[-1]
+        if not last:
+            return None
+        for cand in pool:
+            if cand.lower().startswith(last.lower()) and cand != last:
+                return " ".join([*words[:-1], cand])
+        return None
+
+
+def writable_names(mission: Mission, layout: Layout) -> list[str]:
+    """Elements a WRITE may target, for completion (the CN checks again).
+
+    The platform's own list (``zplatform.commands.writable_elements``) when
+    it is there; else ``commands.writable`` or every scalar outside ``gn_to_cn``.
+    """
+    try:
+        from ..commands import writable_elements
+
+        return list(writable_elements(mission))
+    except (ImportError, ZPlatformError):
+        chosen = mission.commands.writable
+        return [
+            e.name
+            for e in layout.elements.values()
+            if e.region != "gn_to_cn" and not e.count and (chosen is None or e.name in chosen)
+        ]
+
+
+def _fmt(v: Any) -> str:
+    if isinstance(v, bool):
+        return "1" if v else "0"
+    if isinstance(v, float):
+        return f"{v:.6g}"
+    return str(v)
