@@ -45,12 +45,12 @@ the ``cn_cmd_seq`` it reads in telemetry (see :func:`fill_request`).
 from __future__ import annotations
 
 import difflib
-import enum
 import logging
 import math
 from typing import TYPE_CHECKING, Any
 
-from .config import CMD_NAMES, CMD_STATUS_NAMES
+from .codes import Command, CommandStatus
+from .config import CMD_NAMES
 from .errors import CommandError, ConfigError, DataVectorError
 from .events import EventLog, Severity
 from .statemachine import logic_writable
@@ -76,34 +76,6 @@ log = logging.getLogger("zplatform.commands")
 ARM_WINDOW_NS = 10_000_000_000
 """How long an accepted ARM confirms the next (hazardous) command: 10 s."""
 
-
-class Command(enum.IntEnum):
-    """Operator commands; the values of ``gn_cmd`` and ``cn_cmd``."""
-
-    NONE = 0
-    NOOP = 1
-    LAUNCH = 2
-    ABORT = 3
-    WRITE = 4
-    HOLD = 5
-    RESUME = 6
-    ARM = 7
-
-
-class CommandStatus(enum.IntEnum):
-    """Outcome of the last request; the values of ``cn_cmd_status``."""
-
-    NONE = 0
-    ACCEPTED = 1
-    REJECTED_UNKNOWN = 2
-    REJECTED_NOT_ALLOWED = 3
-    REJECTED_BAD_ARGUMENT = 4
-    REJECTED_REPLAY = 5
-    REJECTED_NOT_ARMED = 6
-
-
-assert tuple(c.name for c in Command) == CMD_NAMES, "Command must mirror config.CMD_NAMES"
-assert tuple(s.name for s in CommandStatus) == CMD_STATUS_NAMES, "mirror CMD_STATUS_NAMES"
 
 _N_CMDS = len(CMD_NAMES)
 _F32_MAX = 3.4028234663852886e38
@@ -376,7 +348,7 @@ class CommandHandler:
             text = f"command {name} #{seq} accepted{detail}"
             self._events.emit(Severity.INFO, "cmd_accepted", text, t_ns)
         else:
-            text = f"command {name} #{seq} rejected ({CMD_STATUS_NAMES[status]}): {detail}"
+            text = f"command {name} #{seq} rejected ({CommandStatus(status).name}): {detail}"
             self._events.emit(Severity.WARNING, "cmd_rejected", text, t_ns)
 
     def _validate(self, cmd: int, seq: int, t_ns: int) -> tuple[int, str]:

@@ -22,6 +22,7 @@ from typing import Annotated, Any, Literal
 import msgspec
 from msgspec import Meta
 
+from .codes import Command, CommandStatus, Fault
 from .errors import ConfigError
 from .types import SCALAR_TYPES, ScalarType, parse_type
 
@@ -49,26 +50,12 @@ __all__ = [
 Scalar = int | float | bool | str
 Value = Scalar | list[Scalar]
 
-# Operator commands carried in gn_cmd / cn_cmd (thesis 4.8, seed 003 ARM).
-CMD_NAMES: tuple[str, ...] = ("NONE", "NOOP", "LAUNCH", "ABORT", "WRITE", "HOLD", "RESUME", "ARM")
-CMD_STATUS_NAMES: tuple[str, ...] = (
-    "NONE",
-    "ACCEPTED",
-    "REJECTED_UNKNOWN",
-    "REJECTED_NOT_ALLOWED",
-    "REJECTED_BAD_ARGUMENT",
-    "REJECTED_REPLAY",
-    "REJECTED_NOT_ARMED",
-)
+# Enum names of the platform elements cn_cmd/gn_cmd, cn_cmd_status and
+# cn_fault, derived from the one definition of the codes (zplatform.codes).
+CMD_NAMES: tuple[str, ...] = tuple(m.name for m in Command)
+CMD_STATUS_NAMES: tuple[str, ...] = tuple(m.name for m in CommandStatus)
 CONTROLLER_MODES: tuple[str, ...] = ("enabled", "safed", "manual")
-# Critical-error flag values (thesis 4.11.1: a flag the state machine reads).
-FAULT_NAMES: tuple[str, ...] = (
-    "NONE",
-    "DN_LOST",
-    "CONTROLLER_FAILED",
-    "SYNC_OVERRUNS",
-    "LOOP_OVERRUNS",
-)
+FAULT_NAMES: tuple[str, ...] = tuple(m.name for m in Fault)
 
 _NAME_RE = re.compile(r"^[a-z][a-z0-9_]*$")
 _ENUM_NAME_RE = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*$")

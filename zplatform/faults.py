@@ -5,7 +5,7 @@ The thesis' node mains handle an error after start in one of two ways:
 * **critical**: set a flag the state machine reads, so a configured
   transition (``cn_fault != NONE -> ABORT``) takes the vehicle to a safe
   state. The flag is ``cn_fault``, an enum of
-  :data:`~zplatform.config.FAULT_NAMES`;
+  :class:`~zplatform.codes.Fault`;
 * **non-critical**: count it in the Data Vector (``cn_errors``, with the
   code in ``cn_last_error``) and publish an event; the loop keeps its rate.
 
@@ -32,10 +32,9 @@ raised fault emits one CRITICAL event.
 
 from __future__ import annotations
 
-import enum
 from typing import TYPE_CHECKING
 
-from .config import FAULT_NAMES
+from .codes import ErrorCode, Fault
 from .events import EventLog, Severity
 
 if TYPE_CHECKING:
@@ -45,36 +44,6 @@ if TYPE_CHECKING:
 __all__ = ["ErrorCode", "Fault", "FaultMonitor"]
 
 _U32_MAX = 0xFFFF_FFFF
-
-
-class Fault(enum.IntEnum):
-    """Values of ``cn_fault``."""
-
-    NONE = 0
-    DN_LOST = 1
-    CONTROLLER_FAILED = 2
-    SYNC_OVERRUNS = 3
-    LOOP_OVERRUNS = 4
-
-
-assert tuple(f.name for f in Fault) == FAULT_NAMES, "Fault must mirror config.FAULT_NAMES"
-
-
-class ErrorCode(enum.IntEnum):
-    """Codes for ``cn_last_error`` (non-critical errors). 0 = none yet.
-
-    Missions may use their own codes from 1000 up.
-    """
-
-    NONE = 0
-    SYNC_TIMEOUT = 1
-    BAD_FRAME = 2
-    LOOP_OVERRUN = 3
-    CONTROLLER_ERROR = 4
-    DEVICE_ERROR = 5
-    CLOCK_SYNC = 6
-    TELEMETRY = 7
-    EVENTS_DROPPED = 8
 
 
 class _Watch:
@@ -155,7 +124,7 @@ class FaultMonitor:
     def fault(self) -> str:
         """The current ``cn_fault`` value's name."""
         v = self._h_fault.get()
-        return FAULT_NAMES[v] if v < len(FAULT_NAMES) else str(v)
+        return Fault(v).name if v < len(Fault) else str(v)
 
     def step(self, t_ns: int) -> None:
         """Update the consecutive-growth runs; raise the first fault due.
