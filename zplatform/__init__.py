@@ -41,7 +41,8 @@ from .events import Event, EventLog, Severity
 from .faults import FaultMonitor
 from .lockstep import LockstepRunner, SimResult
 from .node.logic import ControlLogic, DeviceLogic
-from .scheduler import GcGuard, LoopStats, PeriodicLoop, RateGroups, setup_realtime
+from .rategroups import RateGroups
+from .scheduler import GcGuard, LoopStats, PeriodicLoop, setup_realtime
 from .statemachine import StateMachine
 from .telemetry import CsvLogger, read_csv
 from .timebase import NodeClock, VirtualClock

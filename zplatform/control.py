@@ -54,7 +54,7 @@ from .datavector import DataVector, Handle
 from .errors import ConfigError, ControlError, SchedulerError, ZPlatformError
 from .events import EventLog, Severity
 from .faults import ErrorCode
-from .scheduler import RateGroups
+from .rategroups import RateGroups
 
 if TYPE_CHECKING:
     from .faults import FaultMonitor

@@ -45,7 +45,7 @@ from .control import (
 from .datavector import DataVector
 from .errors import ConfigError, ControlError, SchedulerError, ZPlatformError
 from .events import EventLog, Severity
-from .scheduler import RateGroups
+from .rategroups import RateGroups
 
 __all__ = [
     "Actuator",
