@@ -17,7 +17,7 @@ from .codec import (
 )
 from .commands import CommandHandler, fill_request
 from .config import Mission, decode_mission, load_mission
-from .control import Controller, ControllerSet
+from .controllers import Controller, ControllerSet
 from .datavector import DataVector, ElementSpec, Handle, Layout, RegionSpec
 from .devices import Actuator, Board, Device, DeviceSet, Sensor, SimBoard
 from .errors import (

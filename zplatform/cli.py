@@ -71,9 +71,9 @@ def cmd_check(args: argparse.Namespace) -> int:
     m = load_mission(args.mission)
     # The runtime builds controllers and devices at start; `check` does it
     # now, so a bad class path or component config fails here, not on the pad.
-    from . import control, devices
+    from . import controllers, devices
 
-    control.check_config(m)
+    controllers.check_config(m)
     devices.check_config(m)
     rep = _mission_report(m)
     if args.json:

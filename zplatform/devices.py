@@ -34,14 +34,16 @@ from typing import Annotated, Any, Protocol, runtime_checkable
 import msgspec
 from msgspec import Meta
 
-from .config import ComponentConfig, Mission
-from .control import (
+from .components import (
     Component,
-    _component_indices,
-    _errors_element,
+    Streak,
+    component_indices,
     decode_component_config,
+    errors_element,
     load_component_class,
+    load_function,
 )
+from .config import ComponentConfig, Mission
 from .datavector import DataVector
 from .errors import ConfigError, ControlError, SchedulerError, ZPlatformError
 from .events import EventLog, Severity
@@ -61,8 +63,6 @@ __all__ = [
     "SimBoardConfig",
     "check_config",
 ]
-
-_U32_MAX = 0xFFFF_FFFF
 
 
 @runtime_checkable
@@ -111,23 +111,6 @@ class SimBoardConfig(msgspec.Struct, forbid_unknown_fields=True):
 Physics = Callable[["SimBoard", int], None]
 
 
-def _load_physics(spec: str, where: str) -> Physics:
-    import importlib
-
-    mod_name, sep, fn_name = spec.partition(":")
-    if not sep or not mod_name or not fn_name:
-        raise ConfigError(f"physics {spec!r} must be 'package.module:function'", where)
-    try:
-        module = importlib.import_module(mod_name)
-    except ImportError as exc:
-        raise ConfigError(f"cannot import physics module {mod_name!r}: {exc}", where) from exc
-    fn = getattr(module, fn_name, None)
-    if not callable(fn):
-        raise ConfigError(f"module {mod_name!r} has no function {fn_name!r}", where)
-    physics: Physics = fn
-    return physics
-
-
 class SimBoard:
     """A simulated I/O board: pins in lists, inputs injectable, optional physics.
 
@@ -149,7 +132,9 @@ class SimBoard:
         self._aout: list[float] = [0.0] * cfg.analog_pins
         self._ain: list[float | None] = [None] * cfg.analog_pins
         self._physics: Physics | None = (
-            _load_physics(cfg.physics, f"{where}.physics") if cfg.physics else None
+            load_function(cfg.physics, f"{where}.physics", args=("board", "t_ns"), what="physics")
+            if cfg.physics
+            else None
         )
         params_type = getattr(self._physics, "Params", None)
         self.params: Any = (
@@ -376,7 +361,7 @@ class _DevSlot:
 
     def __init__(self, device: Device) -> None:
         self.device = device
-        self.streak = 0
+        self.streak = Streak()
 
 
 class DeviceSet:
@@ -406,8 +391,8 @@ class DeviceSet:
         self.devices: list[Device] = []
         self._sensors: RateGroups[_DevSlot] = RateGroups()
         self._actuators: RateGroups[_DevSlot] = RateGroups()
-        self._errors = dv.handle(_errors_element(node))
-        for i in _component_indices(mission, "devices", node):
+        self._errors = dv.handle(errors_element(node))
+        for i in component_indices(mission, "devices", node):
             c = mission.devices[i]
             where = f"$.devices[{i}]"
             cls = load_component_class(c.cls, Device, f"{where}.class")
@@ -449,15 +434,11 @@ class DeviceSet:
             except Exception as exc:
                 self._failed(s, exc, t_ns)
                 continue
-            if s.streak:
-                s.streak = 0
+            s.streak.ok()
 
     def _failed(self, s: _DevSlot, exc: Exception, t_ns: int) -> None:
-        s.streak += 1
-        n = self._errors.get()
-        if n < _U32_MAX:
-            self._errors.set(n + 1)
-        if s.streak == 1 and self.events is not None:
+        self._errors.bump()
+        if s.streak.fail() == 1 and self.events is not None:
             d = s.device
             self.events.emit(
                 Severity.ERROR,
@@ -477,7 +458,7 @@ def check_config(mission: Mission) -> None:
 
     for node in mission.device_nodes:
         board = SimBoard(mission.nodes[node].board, where=f"$.nodes.{node}.board")
-        if not _component_indices(mission, "devices", node):
+        if not component_indices(mission, "devices", node):
             continue
         dv = DataVector(Layout.for_node(mission, node))
         DeviceSet(mission, node, dv, board)

@@ -43,8 +43,6 @@ if TYPE_CHECKING:
 
 __all__ = ["ErrorCode", "Fault", "FaultMonitor"]
 
-_U32_MAX = 0xFFFF_FFFF
-
 
 class _Watch:
     """A counter element and how many consecutive loops it has grown."""
@@ -171,8 +169,6 @@ class FaultMonitor:
     def error(self, code: int, text: str, t_ns: int) -> None:
         """A non-critical error: ``cn_errors += 1`` (saturating),
         ``cn_last_error = code`` (clamped to 0..65535), a WARNING event."""
-        n = self._h_errors.get()
-        if n < _U32_MAX:
-            self._h_errors.set(n + 1)
+        self._h_errors.bump()
         self._h_last.set(min(max(int(code), 0), 0xFFFF))
         self._events.emit(Severity.WARNING, "error", text, t_ns)

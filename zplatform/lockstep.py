@@ -379,7 +379,7 @@ class LockstepRunner:
         for link in self._links:
             link.dn_rx.apply(link.cn_tx.encode(loop, t))
             link.cn_rx.apply(link.dn_tx.encode(loop, t))
-            link.rx.set(link.rx.get() + 1)
+            link.rx.bump()
             link.dev.step(loop, t)
         sent: _Due | None = None
         script = self._script

@@ -190,28 +190,28 @@ class ControlSync:
             except queue.Empty:
                 break
             if payload is None:  # a reply_err: the DN refused the query
-                self._bad.set(self._bad.get() + 1)
+                self._bad.bump()
                 if self._on_bad is not None:
                     self._on_bad(self.dns[i], "the device node answered with an error")
                 continue
             try:
                 frame = self._in[i].check(payload)
             except CodecError as exc:
-                self._bad.set(self._bad.get() + 1)
+                self._bad.bump()
                 if self._on_bad is not None:
                     self._on_bad(self.dns[i], str(exc))
                 continue
             if frame.seq != loop or got[i]:
                 # an answer to an older loop (or a duplicate): counted, dropped
-                self._late[i].set(self._late[i].get() + 1)
+                self._late[i].bump()
                 continue
             self._in[i].apply(payload)
             got[i] = True
-            self._rx[i].set(self._rx[i].get() + 1)
+            self._rx[i].bump()
             pending -= 1
         for i in range(n):
             if not got[i]:
-                self._missed[i].set(self._missed[i].get() + 1)
+                self._missed[i].bump()
         end = self._mono()
         st = self.stats
         st.replied = n - pending
@@ -221,7 +221,7 @@ class ControlSync:
         # than half a deadline late (the thread was not scheduled).
         st.overrun = end > deadline + (self.timeout_ns // 2 if pending else 0)
         if st.overrun:
-            self._overruns.set(self._overruns.get() + 1)
+            self._overruns.bump()
         return st
 
     def drain_late(self) -> None:
@@ -232,7 +232,7 @@ class ControlSync:
                 i, _ = q.get_nowait()
             except queue.Empty:
                 return
-            self._late[i].set(self._late[i].get() + 1)
+            self._late[i].bump()
 
     def close(self) -> None:
         for t in self._taps:
@@ -314,7 +314,7 @@ class DeviceSync:
             try:
                 frame = self._in.check(data)
             except CodecError as exc:
-                self._bad.set(self._bad.get() + 1)
+                self._bad.bump()
                 query.reply_err(str(exc).encode())
                 if self._on_bad is not None:
                     self._on_bad(str(exc))

@@ -10,7 +10,7 @@ import pytest
 
 from zplatform import DataVector, Layout, decode_mission
 from zplatform.config import Mission
-from zplatform.control import Controller
+from zplatform.controllers import Controller
 from zplatform.devices import (
     Actuator,
     AnalogInput,
@@ -297,7 +297,7 @@ def test_analog_output_scales_and_clamps() -> None:
             "must subclass",
         ),
         (
-            LED.replace("zplatform.devices:DigitalOutput", "zplatform.control:Controller"),
+            LED.replace("zplatform.devices:DigitalOutput", "zplatform.controllers:Controller"),
             "$.devices[0].class",
             "is not a zplatform.devices.Device subclass",
         ),

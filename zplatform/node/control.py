@@ -171,7 +171,7 @@ class ControlNode:
 
     # -- the loop ------------------------------------------------------------
     def _on_overrun(self, k: int, lateness_ns: int) -> None:
-        self._overruns.set(self._overruns.get() + 1)
+        self._overruns.bump()
 
     def step(self, k: int, deadline_ns: int) -> bool:
         """One loop; returns False to stop."""
@@ -189,7 +189,7 @@ class ControlNode:
                 new_request = True
             except CodecError as exc:
                 # Not our software failing: counted as a bad frame, not an error.
-                self._bad.set(self._bad.get() + 1)
+                self._bad.bump()
                 self.logic.events.emit(
                     Severity.WARNING, "bad_frame", f"ground frame rejected: {exc}", t
                 )

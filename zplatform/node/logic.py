@@ -24,8 +24,9 @@ triggered the step), so loop numbers agree across the nodes.
 from __future__ import annotations
 
 from ..commands import CommandHandler
+from ..components import Streak
 from ..config import Mission
-from ..control import ControllerSet
+from ..controllers import ControllerSet
 from ..datavector import DataVector, Layout
 from ..devices import Board, DeviceSet, SimBoard
 from ..errors import ConfigError
@@ -42,7 +43,7 @@ class ControlLogic:
     Construction builds the CN's Data Vector (every region) and every
     component, checking the mission (ConfigError naming the YAML path).
     :meth:`step` never raises for a valid mission: controller exceptions are
-    caught by the :class:`~zplatform.control.ControllerSet`.
+    caught by the :class:`~zplatform.controllers.ControllerSet`.
     """
 
     def __init__(self, mission: Mission, *, events: EventLog | None = None) -> None:
@@ -109,7 +110,7 @@ class DeviceLogic:
         self._loop = self.dv.handle(f"{node}_loop")
         self._time = self.dv.handle(f"{node}_time_ns")
         self._errors = self.dv.handle(f"{node}_errors")
-        self._board_streak = 0
+        self._board_streak = Streak()
 
     def step(self, loop: int, t_ns: int) -> None:
         """One DN loop at time ``t_ns``, after the CN's region was applied and replied to."""
@@ -117,8 +118,7 @@ class DeviceLogic:
         self._time.set(t_ns)
         try:
             self.board.step(t_ns)
-            if self._board_streak:
-                self._board_streak = 0
+            self._board_streak.ok()
         except Exception as exc:
             self._board_failed(exc, t_ns)
         self.devices.run_sensors(loop, t_ns)
@@ -126,11 +126,8 @@ class DeviceLogic:
         self.devices.run_actuators(loop, t_ns)
 
     def _board_failed(self, exc: Exception, t_ns: int) -> None:
-        self._board_streak += 1
-        n = self._errors.get()
-        if n < 0xFFFF_FFFF:
-            self._errors.set(n + 1)
-        if self._board_streak == 1:
+        self._errors.bump()
+        if self._board_streak.fail() == 1:
             self.events.emit(
                 Severity.ERROR,
                 "board_failed",

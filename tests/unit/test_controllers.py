@@ -1,4 +1,4 @@
-"""Tests of zplatform.control: modes, failure handling, typed configs, rate groups,
+"""Tests of zplatform.controllers: modes, failure handling, typed configs, rate groups,
 and the shipped missions' controllers in isolation."""
 
 from __future__ import annotations
@@ -10,7 +10,7 @@ import pytest
 
 from zplatform import DataVector, Layout, decode_mission
 from zplatform.config import Mission
-from zplatform.control import (
+from zplatform.controllers import (
     ENABLED,
     MANUAL,
     SAFED,
@@ -331,7 +331,7 @@ def test_element_kind_is_checked() -> None:
     [
         ("no_such_module_zp:X", "cannot import module 'no_such_module_zp'"),
         (f"{HERE}:Missing", "has no attribute 'Missing'"),
-        (f"{HERE}:NotAController", "is not a zplatform.control.Controller subclass"),
+        (f"{HERE}:NotAController", "is not a zplatform.controllers.Controller subclass"),
         (f"{HERE}:Abstract", "is abstract"),
     ],
 )
