@@ -16,7 +16,7 @@ from .codec import (
     encode_frame,
 )
 from .commands import CommandHandler, fill_request
-from .config import Mission, decode_mission, load_mission
+from .config import Mission
 from .controllers import Controller, ControllerSet
 from .datavector import DataVector, ElementSpec, Handle, Layout, RegionSpec
 from .devices import Actuator, Board, Device, DeviceSet, Sensor, SimBoard
@@ -40,6 +40,7 @@ from .errors import (
 from .events import Event, EventLog, Severity
 from .faults import FaultMonitor
 from .lockstep import LockstepRunner, SimResult
+from .mission import decode_mission, load_mission
 from .node.logic import ControlLogic, DeviceLogic
 from .rategroups import RateGroups
 from .scheduler import GcGuard, LoopStats, PeriodicLoop, setup_realtime

@@ -15,9 +15,9 @@ import json
 import sys
 from pathlib import Path
 
-from .config import load_mission
 from .errors import CommandError
 from .lockstep import LockstepRunner, ScriptCommand, load_commands
+from .mission import load_mission
 from .telemetry import CsvLogger
 
 __all__ = ["cmd_sim", "register"]

@@ -1,22 +1,28 @@
-"""The mission configuration: YAML decoded into typed, checked structs.
+"""The mission configuration's schema: YAML decoded into typed, structurally checked structs.
 
-``load_mission(path)`` is the only way in. It decodes the YAML with msgspec
-(``forbid_unknown_fields``, so a typo fails at load), then checks every rule
-of thesis 000 ch. 4.1.1 (Data Vector), 4.2.1 (network) and the topology rules
-of DESIGN.md, and finally adds the platform elements of DESIGN.md §5 to the
-regions. Every failure is a :class:`~zplatform.errors.ConfigError` whose
+This module is the schema and nothing more: the :class:`Mission` struct tree
+(``msgspec.Struct`` with ``forbid_unknown_fields``, so a typo fails at
+decode), the structural checks of thesis 000 ch. 4.1.1 (Data Vector), 4.2.1
+(network) and the topology rules of DESIGN.md, the size limits that keep a
+mission from exhausting memory (:data:`MAX_ARRAY_COUNT`,
+:data:`MAX_REGION_BYTES`, :data:`MAX_VECTOR_BYTES`), and the platform
+elements of DESIGN.md §5 added to the regions. :func:`parse_mission` does
+all of that; every failure is a :class:`~zplatform.errors.ConfigError` whose
 message names the YAML path of the bad field and what was expected.
 
+It imports none of the modules that give the sections their meaning (state
+machine, commands, controllers, devices): those import *it*. The semantic
+checks live with them and are run by :func:`zplatform.mission.load_mission`
+/ :func:`zplatform.mission.decode_mission`, the way in for everyone else. A
+mission that only passed :func:`parse_mission` is not fit to fly.
+
 After loading, a :class:`Mission` is treated as immutable: the runtime reads
-it, never writes it. Checks of the control sections (state machine,
-controllers, commands) that need the whole Data Vector live with the modules
-that own those sections and are run by ``load_mission`` too.
+it, never writes it.
 """
 
 from __future__ import annotations
 
 import re
-from pathlib import Path
 from typing import Annotated, Any, Literal
 
 import msgspec
@@ -43,8 +49,7 @@ __all__ = [
     "StateMachineConfig",
     "TransitionConfig",
     "TransportConfig",
-    "decode_mission",
-    "load_mission",
+    "parse_mission",
 ]
 
 Scalar = int | float | bool | str
@@ -246,22 +251,14 @@ class Mission(_Struct):
 # loading
 
 
-def load_mission(path: str | Path) -> Mission:
-    """Read, decode and check a mission YAML file.
+def parse_mission(text: bytes | str, source: str = "<string>") -> Mission:
+    """Decode YAML text into a :class:`Mission`: schema, structural checks, platform elements.
 
-    Blocks on file I/O only. Raises :class:`ConfigError` naming the YAML path
-    of the first bad field; never returns a partially valid mission.
+    Raises :class:`ConfigError` naming the YAML path of the first bad field.
+    Runs no semantic check (state machine, commands, controller and device
+    classes): use :func:`zplatform.mission.decode_mission`, which calls this
+    and then those, unless you are one of those checks.
     """
-    p = Path(path)
-    try:
-        text = p.read_bytes()
-    except OSError as exc:
-        raise ConfigError(f"cannot read mission file {str(p)!r}: {exc.strerror}", "$") from exc
-    return decode_mission(text, source=str(p))
-
-
-def decode_mission(text: bytes | str, source: str = "<string>") -> Mission:
-    """Decode and check a mission from YAML text (see :func:`load_mission`)."""
     try:
         raw = msgspec.yaml.decode(text)
     except msgspec.DecodeError as exc:
@@ -283,10 +280,6 @@ def decode_mission(text: bytes | str, source: str = "<string>") -> Mission:
     _check_control_sections(mission)
     n_platform = _add_platform_elements(mission)
     _check_elements(mission, n_platform)
-    # Imported here: those modules import this one.
-    from . import _checks
-
-    _checks.run_all(mission)
     return mission
 
 
@@ -594,7 +587,7 @@ def _check_initial(e: ElementConfig, where: str) -> Value:
 def _check_control_sections(m: Mission) -> None:
     """Structural checks of the control sections; semantic checks that need
     the whole Data Vector are done by the owning modules' ``check_config``
-    (``_checks.run_all``, called by :func:`decode_mission` afterwards)."""
+    (run by :func:`zplatform.mission.check_mission` afterwards)."""
     for section in ("controllers", "devices"):
         names: set[str] = set()
         for i, c in enumerate(getattr(m, section)):

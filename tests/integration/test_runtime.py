@@ -164,7 +164,7 @@ def test_up_stops_every_node_when_one_dies(tmp_path: Path) -> None:
     """`zplatform up`: a child's death stops the run, exits non-zero, leaves no process."""
     import psutil
 
-    from zplatform.config import load_mission
+    from zplatform.mission import load_mission
     from zplatform.node.ground import TelemetryReceiver
     from zplatform.timebase import NodeClock
     from zplatform.transport import NodeSession, rewrite_endpoints

@@ -523,7 +523,9 @@ def test_state_machine_initial_not_a_state() -> None:
 # -- controllers and devices ------------------------------------------------------
 
 
-def component(name: str = "c", node: str = "cn", cls: str = "pkg.mod:Cls") -> dict[str, Any]:
+def component(
+    name: str = "c", node: str = "cn", cls: str = "stub_components:Idle"
+) -> dict[str, Any]:
     return {"name": name, "class": cls, "node": node}
 
 

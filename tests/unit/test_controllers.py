@@ -9,7 +9,7 @@ import msgspec
 import pytest
 
 from zplatform import DataVector, Layout, decode_mission
-from zplatform.config import Mission
+from zplatform.config import Mission, parse_mission
 from zplatform.controllers import (
     ENABLED,
     MANUAL,
@@ -366,8 +366,12 @@ def test_rate_divisor_and_phase() -> None:
 
 
 def test_rate_phase_out_of_range_is_a_config_error() -> None:
-    m = mission(recorder(rate=", rate_divisor: 2, rate_phase: 2"))
+    body = recorder(rate=", rate_divisor: 2, rate_phase: 2")
     with pytest.raises(ConfigError) as ei:
+        mission(body)  # refused at load ...
+    assert ei.value.path == "$.controllers[0].rate_phase"
+    m = parse_mission(BASE + "controllers:\n" + body)
+    with pytest.raises(ConfigError) as ei:  # ... and by the set itself
         ControllerSet(m, "cn", DataVector(Layout.for_node(m, "cn")))
     assert ei.value.path == "$.controllers[0].rate_phase"
 
@@ -397,7 +401,7 @@ def test_sequential_leds_light_cumulatively_from_enable_time() -> None:
 
 
 def test_led_test_config_errors_have_paths() -> None:
-    m = decode_mission(
+    m = parse_mission(
         BASE + "controllers:\n  - {name: s, class: 'nodes.led_test:StateLedController',"
         " node: cn, config: {leds: {Z: out_a}}}\n"
     )

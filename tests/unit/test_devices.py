@@ -9,7 +9,7 @@ import msgspec
 import pytest
 
 from zplatform import DataVector, Layout, decode_mission
-from zplatform.config import Mission
+from zplatform.config import Mission, parse_mission
 from zplatform.controllers import Controller
 from zplatform.devices import (
     Actuator,
@@ -111,13 +111,17 @@ regions:
 """
 
 
-def mission(devices: str = "", controllers: str = "", board: str = "") -> Mission:
+def mission(
+    devices: str = "", controllers: str = "", board: str = "", *, check: bool = True
+) -> Mission:
+    """The mission of BASE with these sections; ``check=False``: schema only
+    (for tests of what DeviceSet itself refuses)."""
     text = BASE % board
     if devices:
         text += "devices:\n" + textwrap.indent(textwrap.dedent(devices), "  ")
     if controllers:
         text += "controllers:\n" + textwrap.indent(textwrap.dedent(controllers), "  ")
-    return decode_mission(text)
+    return decode_mission(text) if check else parse_mission(text)
 
 
 def devset(m: Mission, board: Board | None = None) -> tuple[DeviceSet, DataVector, EventLog]:
@@ -304,8 +308,11 @@ def test_analog_output_scales_and_clamps() -> None:
     ],
 )
 def test_device_config_errors_name_the_path(device: str, path: str, match: str) -> None:
-    m = mission(device)
     with pytest.raises(ConfigError, match=match) as ei:
+        mission(device)  # refused at load ...
+    assert ei.value.path == path
+    m = mission(device, check=False)
+    with pytest.raises(ConfigError, match=match) as ei:  # ... and by the set itself
         devset(m)
     assert ei.value.path == path
 
@@ -313,7 +320,8 @@ def test_device_config_errors_name_the_path(device: str, path: str, match: str) 
 def test_analog_input_pin_checked_against_board() -> None:
     m = mission(
         "- {name: a, class: 'zplatform.devices:AnalogInput', node: dn0,"
-        " config: {pin: 2, element: temp}}\n"
+        " config: {pin: 2, element: temp}}\n",
+        check=False,
     )
     with pytest.raises(ConfigError, match="analog pin 2 out of range"):
         devset(m)

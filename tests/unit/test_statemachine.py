@@ -43,7 +43,7 @@ regions:
   dn0_to_cn:
     - {name: pressure, type: f32}
 controllers:
-  - {name: ctl, class: "x.y:Z", node: cn}
+  - {name: ctl, class: "stub_components:Idle", node: cn}
 """
 
 
