@@ -15,7 +15,9 @@ from .codec import (
     decode_frame,
     encode_frame,
 )
+from .codes import Command, CommandStatus, Fault
 from .commands import CommandHandler, fill_request
+from .components import Component
 from .config import Mission
 from .controllers import Controller, ControllerSet
 from .datavector import DataVector, ElementSpec, Handle, Layout, RegionSpec
@@ -27,6 +29,7 @@ from .errors import (
     ConfigError,
     ControlError,
     DataVectorError,
+    EventError,
     FrameFormatError,
     FrameSizeError,
     LayoutMismatchError,
@@ -37,10 +40,10 @@ from .errors import (
     TransportError,
     ZPlatformError,
 )
-from .events import Event, EventLog, Severity
+from .events import EV, Event, EventLog, EventType, Severity
 from .faults import FaultMonitor
 from .lockstep import LockstepRunner, SimResult
-from .mission import decode_mission, load_mission
+from .mission import check_mission, decode_mission, load_mission
 from .node.logic import ControlLogic, DeviceLogic
 from .rategroups import RateGroups
 from .scheduler import GcGuard, LoopStats, PeriodicLoop, setup_realtime
@@ -52,12 +55,16 @@ from .transport import KeySpace
 __version__ = "0.1.0"
 
 __all__ = [
+    "EV",
     "Actuator",
     "Board",
     "ClockSyncError",
     "CodecError",
+    "Command",
     "CommandError",
     "CommandHandler",
+    "CommandStatus",
+    "Component",
     "ConfigError",
     "ControlError",
     "ControlLogic",
@@ -71,7 +78,10 @@ __all__ = [
     "DeviceSet",
     "ElementSpec",
     "Event",
+    "EventError",
     "EventLog",
+    "EventType",
+    "Fault",
     "FaultMonitor",
     "Frame",
     "FrameDecoder",
@@ -105,6 +115,7 @@ __all__ = [
     "VirtualClock",
     "ZPlatformError",
     "__version__",
+    "check_mission",
     "decode_frame",
     "decode_mission",
     "encode_frame",

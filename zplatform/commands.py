@@ -34,8 +34,8 @@ Validation, first failure wins (the status goes to ``cn_cmd_status``):
 
 An accepted command sets ``cn_cmd`` (WRITE also writes the element; HOLD and
 RESUME call the state machine) and becomes Active. Every request writes
-``cn_cmd_seq = gn_cmd_seq`` and ``cn_cmd_status`` and emits an event: INFO
-``cmd_accepted`` or WARNING ``cmd_rejected`` with the reason. Nothing in a
+``cn_cmd_seq = gn_cmd_seq`` and ``cn_cmd_status`` and emits an event: COMMAND
+``cmd_accepted`` or WARNING_LO ``cmd_rejected`` with the reason. Nothing in a
 request can make :meth:`CommandHandler.step` raise.
 
 The numbers are remembered for the CN's life: a ground tool continues from
@@ -52,7 +52,7 @@ from typing import TYPE_CHECKING, Any
 from .codes import Command, CommandStatus
 from .config import CMD_NAMES
 from .errors import CommandError, ConfigError, DataVectorError
-from .events import EventLog, Severity
+from .events import EV, EventLog
 from .statemachine import logic_writable
 
 if TYPE_CHECKING:
@@ -345,11 +345,16 @@ class CommandHandler:
         if status == CommandStatus.ACCEPTED:
             self._h_cmd.set(cmd)
             self._active = True
-            text = f"command {name} #{seq} accepted{detail}"
-            self._events.emit(Severity.INFO, "cmd_accepted", text, t_ns)
+            self._events.emit(EV.CMD_ACCEPTED, t_ns, name=name, seq=seq, detail=detail)
         else:
-            text = f"command {name} #{seq} rejected ({CommandStatus(status).name}): {detail}"
-            self._events.emit(Severity.WARNING, "cmd_rejected", text, t_ns)
+            self._events.emit(
+                EV.CMD_REJECTED,
+                t_ns,
+                name=name,
+                seq=seq,
+                status=CommandStatus(status).name,
+                detail=detail,
+            )
 
     def _validate(self, cmd: int, seq: int, t_ns: int) -> tuple[int, str]:
         """``(status, detail)``; performs the command when it is accepted."""

@@ -25,17 +25,17 @@ taken once in :meth:`Controller.bind`, never by name in the loop.
 :class:`ControllerSet` builds and runs one node's controllers. A controller
 that raises does not stop the loop (thesis 4.11.1, non-critical error after
 start): the exception is counted in ``cn_errors`` (with ``cn_last_error =
-CONTROLLER_ERROR``) or ``dnX_errors``, one ``ERROR`` event
+CONTROLLER_ERROR``) or ``dnX_errors``, one ``WARNING_HI`` event
 (``controller_failed``) is emitted per failure streak (not every loop; the
 set counts itself rather than calling ``FaultMonitor.error``, which would
-add a WARNING event per failure), and the
+add a WARNING_LO event per failure), and the
 controller is safed: its mode element is set to ``safed`` and
 :meth:`~Controller.run_safed` is called at once. It stays safed until the
 mode it failed in is commanded again after a change (on a device node the CN
 keeps re-sending the old mode, so the set latches the safing locally until
 the CN's commanded mode changes). If ``run_safed`` raises too, the
 controller cannot be made safe by software: it is disabled for good and a
-``CRITICAL`` event is emitted. On the CN every failing loop (and every due
+``FATAL`` event (``controller_disabled``) is emitted. On the CN every failing loop (and every due
 loop of a disabled controller) is reported to the
 :class:`~zplatform.faults.FaultMonitor` with the length of the streak, which
 decides when that becomes a critical fault.
@@ -56,7 +56,7 @@ from .components import (
 from .config import CONTROLLER_MODES, Mission
 from .datavector import DataVector, Handle
 from .errors import ConfigError, ControlError, SchedulerError, ZPlatformError
-from .events import EventLog, Severity
+from .events import EV, EventLog, EventType
 from .faults import ErrorCode
 from .rategroups import RateGroups
 
@@ -219,9 +219,9 @@ class ControllerSet:
         if self._last_error is not None:
             self._last_error.set(_CONTROLLER_ERROR)
 
-    def _emit(self, severity: Severity, id: str, text: str, t_ns: int) -> None:
+    def _emit(self, ev: EventType, t_ns: int, **args: object) -> None:
         if self.events is not None:
-            self.events.emit(severity, id, text, t_ns)
+            self.events.emit(ev, t_ns, **args)
 
     def _failed(self, s: _Slot, commanded: int, mode: int, exc: Exception, t_ns: int) -> None:
         c = s.controller
@@ -230,10 +230,12 @@ class ControllerSet:
         mode_name = CONTROLLER_MODES[mode] if 0 <= mode < len(CONTROLLER_MODES) else str(mode)
         if streak == 1:
             self._emit(
-                Severity.ERROR,
-                "controller_failed",
-                f"controller {c.name} raised {type(exc).__name__} in {mode_name}: {exc}; safed",
+                EV.CONTROLLER_FAILED,
                 t_ns,
+                name=c.name,
+                exc_type=type(exc).__name__,
+                mode=mode_name,
+                exc=exc,
             )
         if self._latch:
             s.latched = commanded
@@ -248,13 +250,7 @@ class ControllerSet:
             except Exception as exc2:
                 exc = exc2
         s.disabled = True
-        self._emit(
-            Severity.CRITICAL,
-            "controller_disabled",
-            f"controller {c.name} cannot be safed ({type(exc).__name__} in safed: {exc}); "
-            "disabled, its outputs are left as they are",
-            t_ns,
-        )
+        self._emit(EV.CONTROLLER_DISABLED, t_ns, name=c.name, exc_type=type(exc).__name__, exc=exc)
 
     def _still_disabled(self, s: _Slot, t_ns: int) -> None:
         streak = s.streak.fail()

@@ -10,7 +10,8 @@ Each loop of a device node runs, in order (:class:`DeviceSet` and
 :class:`~zplatform.node.logic.DeviceLogic`): the board's :meth:`Board.step`
 (latch inputs; the simulated board's physics), the sensors, the node's
 controllers, the actuators. A device that raises is counted in
-``dnX_errors`` and reported by an ``ERROR`` event once per failure streak;
+``dnX_errors`` and reported by a ``WARNING_HI`` event (``EV.DEVICE_FAILED``)
+once per failure streak;
 the loop goes on and the device runs again next loop.
 
 :class:`SimBoard` is the board of the lockstep runner and of tests: pins held
@@ -46,7 +47,7 @@ from .components import (
 from .config import ComponentConfig, Mission
 from .datavector import DataVector
 from .errors import ConfigError, ControlError, SchedulerError, ZPlatformError
-from .events import EventLog, Severity
+from .events import EV, EventLog
 from .rategroups import RateGroups
 
 __all__ = [
@@ -373,7 +374,7 @@ class DeviceSet:
     :meth:`run_sensors` and :meth:`run_actuators` run the devices due on the
     loop (rate groups), in configuration order, and never raise for a
     device's exception: it is counted in ``dnX_errors`` and reported by one
-    ``ERROR`` event per failure streak.
+    ``WARNING_HI`` event (``EV.DEVICE_FAILED``) per failure streak.
     """
 
     def __init__(
@@ -441,10 +442,7 @@ class DeviceSet:
         if s.streak.fail() == 1 and self.events is not None:
             d = s.device
             self.events.emit(
-                Severity.ERROR,
-                "device_failed",
-                f"device {d.name} raised {type(exc).__name__}: {exc}",
-                t_ns,
+                EV.DEVICE_FAILED, t_ns, name=d.name, exc_type=type(exc).__name__, exc=exc
             )
 
 

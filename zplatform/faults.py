@@ -27,7 +27,8 @@ LOOP_OVERRUNS      ``cn_loop_overruns`` grew            ``loop_overrun_loops``
 Only the first fault latches: once ``cn_fault`` is not ``NONE`` it stays
 until someone writes it back (a WRITE command of ``cn_fault = NONE``, or a
 state-machine action); a symptom still present then raises it again. A
-raised fault emits one CRITICAL event.
+raised fault emits one ``WARNING_HI`` event (``EV.FAULT``): the platform acted,
+and the state machine answers it.
 """
 
 from __future__ import annotations
@@ -35,7 +36,7 @@ from __future__ import annotations
 from typing import TYPE_CHECKING
 
 from .codes import ErrorCode, Fault
-from .events import EventLog, Severity
+from .events import EV, EventLog
 
 if TYPE_CHECKING:
     from .config import Mission
@@ -157,18 +158,18 @@ class FaultMonitor:
     def raise_fault(self, fault: Fault, text: str, t_ns: int) -> bool:
         """Set ``cn_fault`` unless a fault is already latched.
 
-        Returns True and emits a CRITICAL ``fault`` event when it was set;
+        Returns True and emits a WARNING_HI ``fault`` event when it was set;
         False (silently) when another fault was latched already.
         """
         if self._h_fault.get() != Fault.NONE or fault == Fault.NONE:
             return False
         self._h_fault.set(int(fault))
-        self._events.emit(Severity.CRITICAL, "fault", f"fault {fault.name}: {text}", t_ns)
+        self._events.emit(EV.FAULT, t_ns, fault=fault.name, text=text)
         return True
 
     def error(self, code: int, text: str, t_ns: int) -> None:
         """A non-critical error: ``cn_errors += 1`` (saturating),
-        ``cn_last_error = code`` (clamped to 0..65535), a WARNING event."""
+        ``cn_last_error = code`` (clamped to 0..65535), a WARNING_LO ``error`` event."""
         self._h_errors.bump()
         self._h_last.set(min(max(int(code), 0), 0xFFFF))
-        self._events.emit(Severity.WARNING, "error", text, t_ns)
+        self._events.emit(EV.ERROR, t_ns, text=text)

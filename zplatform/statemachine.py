@@ -54,7 +54,7 @@ from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
 from .errors import ConfigError
-from .events import EventLog, Severity
+from .events import EV, EventLog
 from .types import ScalarType
 
 if TYPE_CHECKING:
@@ -359,19 +359,24 @@ def unreachable_states(mission: Mission) -> list[str]:
 class _Transition:
     """One resolved transition. ``after_ns < 0`` means a condition one."""
 
-    __slots__ = ("after_ns", "get", "op", "target", "text", "value")
+    __slots__ = ("after_ns", "dst", "get", "op", "src", "target", "value", "why")
 
     def __init__(
         self,
         target: int,
-        text: str,
+        src: str,
+        dst: str,
+        why: str,
         after_ns: int = -1,
         get: Callable[[], Any] | None = None,
         op: Callable[[Any, Any], bool] = operator.eq,
         value: Any = None,
     ) -> None:
         self.target = target
-        self.text = text
+        # The state_change event's arguments, built once at configure time.
+        self.src = src
+        self.dst = dst
+        self.why = why
         self.after_ns = after_ns
         self.get = get
         self.op = op
@@ -445,16 +450,20 @@ class StateMachine:
                 for t in st.transitions:
                     target = index[t.to]
                     if t.after_s is not None:
-                        text = f"state {name} -> {t.to} (after {_fmt_s(t.after_s)})"
-                        trs.append(_Transition(target, text, after_ns=round(t.after_s * 1e9)))
+                        why = f"after {_fmt_s(t.after_s)}"
+                        trs.append(
+                            _Transition(target, name, t.to, why, after_ns=round(t.after_s * 1e9))
+                        )
                         continue
                     assert t.element is not None and t.op is not None
                     e = table[t.element][1]
                     value = config_value(e, element_spec(e)[0], t.value, allow_nan=False)
                     shown = t.value if isinstance(t.value, str) else repr(t.value).lower()
-                    text = f"state {name} -> {t.to} ({t.element} {t.op} {shown})"
+                    why = f"{t.element} {t.op} {shown}"
                     get = dv.handle(t.element).get
-                    trs.append(_Transition(target, text, get=get, op=OPS[t.op], value=value))
+                    trs.append(
+                        _Transition(target, name, t.to, why, get=get, op=OPS[t.op], value=value)
+                    )
                 for a in sorted(st.actions, key=lambda a: a.at_s):  # stable: config order ties
                     h = dv.handle(a.element)
                     e = table[a.element][1]
@@ -536,10 +545,10 @@ class StateMachine:
             self._held_ns = 0
             self._next_action = 0
             tis = 0
-            self._events.emit(Severity.INFO, "state_change", tr.text, t_ns)
+            self._events.emit(EV.STATE_CHANGE, t_ns, src=tr.src, dst=tr.dst, why=tr.why)
             if self._hold_start is not None:
                 self._hold_start = None
-                self._events.emit(Severity.INFO, "hold_ended", "hold ended by a transition", t_ns)
+                self._events.emit(EV.HOLD_ENDED, t_ns)
             break
         self._run_due(tis)
         self._tis = tis
@@ -556,9 +565,7 @@ class StateMachine:
             return False
         self._hold_start = t_ns
         tis = self._time_in_state(t_ns) if self._started else 0
-        self._events.emit(
-            Severity.INFO, "hold", f"hold in state {self.state} at {tis / 1e9:.3f} s", t_ns
-        )
+        self._events.emit(EV.HOLD, t_ns, state=self.state, tis_s=tis / 1e9)
         return True
 
     def resume(self, t_ns: int) -> bool:
@@ -569,7 +576,5 @@ class StateMachine:
         self._held_ns += t_ns - self._hold_start
         self._hold_start = None
         tis = self._time_in_state(t_ns) if self._started else 0
-        self._events.emit(
-            Severity.INFO, "resume", f"resume in state {self.state} at {tis / 1e9:.3f} s", t_ns
-        )
+        self._events.emit(EV.RESUME, t_ns, state=self.state, tis_s=tis / 1e9)
         return True

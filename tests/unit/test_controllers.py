@@ -203,7 +203,7 @@ def test_raising_controller_is_counted_safed_and_reported_once() -> None:
     # the loop went on: the next controller ran
     assert b.calls[-1] == ("enabled", r.t - PERIOD)
     events = r.severities()
-    assert events == [("ERROR", "controller_failed")]
+    assert events == [("WARNING_HI", "controller_failed")]
     # stays safed (no retry) until the state machine enables it again
     r.run(10)
     assert r.dv.get("cn_errors") == 1
@@ -217,7 +217,7 @@ def test_safing_failure_disables_controller_and_raises_fault() -> None:
     r.run()
     assert r.set.disabled("a")
     assert r.dv.get("cn_errors") == 1
-    assert r.severities() == [("ERROR", "controller_failed"), ("CRITICAL", "controller_disabled")]
+    assert r.severities() == [("WARNING_HI", "controller_failed"), ("FATAL", "controller_disabled")]
     n = len(r.ctl().calls)
     r.run(5)
     assert len(r.ctl().calls) == n  # never called again
@@ -231,7 +231,7 @@ def test_controller_failing_in_safed_mode_is_disabled() -> None:
     r.dv.set("a_mode", "safed")
     r.run()
     assert r.set.disabled("a")
-    assert [s for s, _ in r.severities()] == ["ERROR", "CRITICAL"]
+    assert [s for s, _ in r.severities()] == ["WARNING_HI", "FATAL"]
 
 
 def test_reenabled_controller_runs_again_and_failures_count_each_time() -> None:
@@ -260,7 +260,7 @@ def test_dn_controller_failure_latches_safed_while_cn_keeps_commanding() -> None
         r.run()
     assert r.dv.get("dn0_errors") == 1  # not retried: latched safe
     assert r.ctl().calls[-1][0] == "safed"
-    assert r.severities() == [("ERROR", "controller_failed")]
+    assert r.severities() == [("WARNING_HI", "controller_failed")]
     # the CN safes and re-enables it: the latch is released
     r.ctl().fail_enabled = False
     r.dv.set("d_mode", "safed")

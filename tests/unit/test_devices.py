@@ -350,7 +350,7 @@ def test_failing_device_is_counted_reported_once_per_streak_and_loop_goes_on() -
     assert dv.get("dn0_errors") == 5
     assert dv.get("temp") == 0.5  # the next device still ran
     events = ev.drain()
-    assert [(Severity(e.severity).name, e.id) for e in events] == [("ERROR", "device_failed")]
+    assert [(Severity(e.severity).name, e.id) for e in events] == [("WARNING_HI", "device_failed")]
     assert "OSError: bus error" in events[0].text
     flaky.fail = False
     ds.run_sensors(5, 5 * PERIOD)

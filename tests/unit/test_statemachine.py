@@ -683,7 +683,7 @@ def test_state_change_event_is_info_and_names_the_cause() -> None:
     r = Rig(mission("initial: A\nstates:\n  A: {transitions: [{after_s: 0.01, to: B}]}\n  B: {}\n"))
     r.loop(2)
     (e,) = r.events.drain()
-    assert e.severity == Severity.INFO
+    assert e.severity == Severity.ACTIVITY_HI
     assert e.id == "state_change"
     assert e.text.startswith("state A -> B")
     assert e.text == "state A -> B (after 0.01 s)"

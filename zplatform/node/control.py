@@ -30,7 +30,7 @@ from ..codec import RegionCodec, VectorCodec
 from ..config import Mission
 from ..datavector import DataVector
 from ..errors import CodecError, NodeError, TransportError
-from ..events import Severity
+from ..events import EV
 from ..scheduler import GcGuard, PeriodicLoop
 from ..sync import ControlSync
 from ..timebase import NodeClock
@@ -102,10 +102,7 @@ class ControlNode:
     def _on_bad_reply(self, dn: str, reason: str) -> None:
         # Rare by definition: an event per bad frame is affordable and wanted.
         self.logic.events.emit(
-            Severity.WARNING,
-            "bad_frame",
-            f"reply from {dn} rejected: {reason}",
-            self.clock.now_ns(),
+            EV.BAD_FRAME, self.clock.now_ns(), source=f"reply from {dn}", reason=reason
         )
 
     def _on_ground(self, sample: zenoh.Sample) -> None:
@@ -190,9 +187,7 @@ class ControlNode:
             except CodecError as exc:
                 # Not our software failing: counted as a bad frame, not an error.
                 self._bad.bump()
-                self.logic.events.emit(
-                    Severity.WARNING, "bad_frame", f"ground frame rejected: {exc}", t
-                )
+                self.logic.events.emit(EV.BAD_FRAME, t, source="ground frame", reason=exc)
         self.logic.step(loop, t, new_request)
         if loop % self._divisor == 0:
             self._tm_pub.put(self._tm.encode(loop, t))

@@ -21,7 +21,7 @@ from typing import Any
 from ..clocksync import estimate_offset
 from ..config import Mission
 from ..errors import ClockSyncError, NodeError, TransportError
-from ..events import Severity
+from ..events import EV
 from ..scheduler import GcGuard
 from ..sync import DeviceSync
 from ..timebase import NodeClock
@@ -110,7 +110,7 @@ class DeviceNode:
 
     def _on_bad_query(self, reason: str) -> None:
         self.logic.events.emit(
-            Severity.WARNING, "bad_frame", f"sync query rejected: {reason}", self.clock.now_ns()
+            EV.BAD_FRAME, self.clock.now_ns(), source="sync query", reason=reason
         )
 
     def _resync_loop(self) -> None:

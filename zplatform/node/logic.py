@@ -30,7 +30,7 @@ from ..controllers import ControllerSet
 from ..datavector import DataVector, Layout
 from ..devices import Board, DeviceSet, SimBoard
 from ..errors import ConfigError
-from ..events import EventLog, Severity
+from ..events import EV, EventLog
 from ..faults import FaultMonitor
 from ..statemachine import StateMachine
 
@@ -129,8 +129,5 @@ class DeviceLogic:
         self._errors.bump()
         if self._board_streak.fail() == 1:
             self.events.emit(
-                Severity.ERROR,
-                "board_failed",
-                f"{self.node} board step raised {type(exc).__name__}: {exc}",
-                t_ns,
+                EV.BOARD_FAILED, t_ns, node=self.node, exc_type=type(exc).__name__, exc=exc
             )
