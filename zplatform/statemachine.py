@@ -211,7 +211,7 @@ def check_structure(mission: Mission) -> None:
     if not sm.states:
         raise ConfigError("a state machine needs at least one state", "$.state_machine.states")
     for name in sm.states:
-        if not _STATE_NAME_RE.match(name):
+        if not _STATE_NAME_RE.fullmatch(name):
             raise ConfigError(
                 f"state name {name!r} is not an identifier (letters, digits, _)",
                 f"$.state_machine.states.{name}",
@@ -230,6 +230,46 @@ def check_structure(mission: Mission) -> None:
                 raise ConfigError(
                     f"target state {t.to!r} is not a state; states: {states}", f"{w}.to"
                 )
+    _check_zero_time_cycles(mission)
+
+
+def _check_zero_time_cycles(mission: Mission) -> None:
+    """Refuse a cycle of transitions that fire without time passing (``after_s: 0``).
+
+    Such transitions always hold, so a cycle of them would change state on
+    every loop forever (A -> B -> A ...) and never run a state's actions with
+    time in it. A condition transition can be true forever too, but whether
+    it is depends on the data: only the unconditional ones are refused.
+    ConfigError names the states of the cycle, at the transition closing it.
+    """
+    sm = mission.state_machine
+    assert sm is not None
+    # The first zero-time transition out of each state (one per state is all
+    # a cycle needs: the state machine takes the first one that holds).
+    edges: dict[str, tuple[str, int]] = {}
+    for name, st in sm.states.items():
+        for i, t in enumerate(st.transitions):
+            if t.after_s == 0:
+                edges[name] = (t.to, i)
+                break
+    done: set[str] = set()
+    for start in edges:
+        path: list[str] = []
+        on_path: set[str] = set()
+        node: str | None = start
+        while node is not None and node in edges and node not in done:
+            if node in on_path:
+                cycle = [*path[path.index(node) :], node]
+                last = cycle[-2]
+                raise ConfigError(
+                    "transitions with after_s: 0 form a cycle "
+                    f"{' -> '.join(cycle)}: the state would change on every loop without end",
+                    f"$.state_machine.states.{last}.transitions[{edges[last][1]}]",
+                )
+            path.append(node)
+            on_path.add(node)
+            node = edges[node][0]
+        done.update(path)
 
 
 def _check_transition_shape(t: TransitionConfig, w: str) -> None:

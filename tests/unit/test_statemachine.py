@@ -310,7 +310,7 @@ def test_rule_action_value_fits_the_element_type(element: str, value: str, messa
 
 def test_rule_times_are_not_negative() -> None:
     e = config_error("initial: A\nstates:\n  A: {transitions: [{after_s: -1, to: A}]}\n")
-    # msgspec's own check: it writes a mapping key as [...] in the path
+    # msgspec writes a mapping key as [...]; parse_mission names it
     assert e.path.startswith("$.state_machine.states")
     assert e.path.endswith(".transitions[0].after_s")
     assert ">= 0" in e.reason
