@@ -1,7 +1,7 @@
 """The operator command handler (thesis 000 ch. 4.8, 6.1; seed 003), sans-IO.
 
 The ground node sends one request per ``gn_to_cn`` frame: ``gn_cmd`` (a
-command of :data:`~zplatform.config.CMD_NAMES`), ``gn_cmd_seq`` (a number
+command of :class:`~zplatform.codes.Command`), ``gn_cmd_seq`` (a number
 that must grow with every request), and for WRITE ``gn_cmd_element`` (the
 element's index in the CN's element list, ``ElementSpec.index``) and
 ``gn_cmd_value``. The handler has the thesis' three internal states:
@@ -53,7 +53,7 @@ from .codes import Command, CommandStatus
 from .config import CMD_NAMES
 from .errors import CommandError, ConfigError, DataVectorError
 from .events import EV, EventLog
-from .statemachine import logic_writable
+from .statemachine import logic_writable, why_not_writable
 
 if TYPE_CHECKING:
     from .config import Mission
@@ -127,8 +127,6 @@ def check_config(mission: Mission, *, warn: bool = True) -> None:
     With ``warn``, logs a warning for a ``cn_cmd == X`` transition in a
     state whose whitelist refuses ``X`` (the transition can never fire).
     """
-    from .statemachine import _why_not_writable
-
     cfg = mission.commands
     states = _state_names(mission)
     commands = [c for c in CMD_NAMES if c != "NONE"]
@@ -169,7 +167,7 @@ def check_config(mission: Mission, *, warn: bool = True) -> None:
                     f"element {name!r} is an array ({e.type}); WRITE sets one scalar", w
                 )
             if name not in can:
-                raise ConfigError(_why_not_writable(mission, region, name), w)
+                raise ConfigError(why_not_writable(mission, region, name), w)
     sm = mission.state_machine
     if warn and sm is not None:
         for state, st in sm.states.items():

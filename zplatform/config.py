@@ -54,7 +54,9 @@ __all__ = [
     "StateMachineConfig",
     "TransitionConfig",
     "TransportConfig",
+    "element_spec",
     "parse_mission",
+    "platform_elements",
 ]
 
 Scalar = int | float | bool | str
@@ -464,7 +466,7 @@ def _check_endpoint(ep: str, where: str) -> None:
             raise ConfigError(f"endpoint {ep!r} needs host:port with a port 0-65535", where)
 
 
-def _platform_elements(m: Mission) -> dict[str, list[ElementConfig]]:
+def platform_elements(m: Mission) -> dict[str, list[ElementConfig]]:
     """The elements every mission has (DESIGN.md §5), per region."""
     states = list(m.state_machine.states) if m.state_machine else ["IDLE"]
     initial = m.state_machine.initial if m.state_machine else "IDLE"
@@ -525,7 +527,7 @@ def _platform_elements(m: Mission) -> dict[str, list[ElementConfig]]:
 
 def _add_platform_elements(m: Mission) -> dict[str, int]:
     """Prepend the platform elements; returns how many each region got."""
-    platform = _platform_elements(m)
+    platform = platform_elements(m)
     regions: dict[str, list[ElementConfig]] = {}
     for region in m.region_names():
         regions[region] = platform.get(region, []) + list(m.regions.get(region, []))

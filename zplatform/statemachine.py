@@ -53,6 +53,7 @@ import struct
 from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
+from .config import element_spec, platform_elements
 from .errors import ConfigError
 from .events import EV, EventLog
 from .types import ScalarType
@@ -69,6 +70,7 @@ __all__ = [
     "logic_writable",
     "platform_element_names",
     "unreachable_states",
+    "why_not_writable",
 ]
 
 log = logging.getLogger("zplatform.statemachine")
@@ -99,9 +101,7 @@ _LOGIC_WRITABLE_PLATFORM = ("cn_fault",)
 
 def platform_element_names(mission: Mission) -> frozenset[str]:
     """Names of every element the platform adds (DESIGN.md §5), modes included."""
-    from .config import _platform_elements
-
-    return frozenset(e.name for es in _platform_elements(mission).values() for e in es)
+    return frozenset(e.name for es in platform_elements(mission).values() for e in es)
 
 
 def _received_regions(mission: Mission) -> frozenset[str]:
@@ -131,7 +131,8 @@ def logic_writable(mission: Mission) -> frozenset[str]:
     return frozenset(out)
 
 
-def _why_not_writable(mission: Mission, region: str, name: str) -> str:
+def why_not_writable(mission: Mission, region: str, name: str) -> str:
+    """Why CN logic may not write element ``name`` of ``region`` (for error messages)."""
     if region in _received_regions(mission):
         peer = region[: -len("_to_cn")]
         return (
@@ -317,8 +318,6 @@ def check_config(mission: Mission, *, warn: bool = True) -> None:
     if sm is None:
         return
     check_structure(mission)
-    from .config import element_spec
-
     table = _element_table(mission)
     writable = logic_writable(mission)
     for name, st in sm.states.items():
@@ -330,7 +329,7 @@ def check_config(mission: Mission, *, warn: bool = True) -> None:
             region, e = table[a.element]
             if a.element not in writable:
                 raise ConfigError(
-                    _why_not_writable(mission, region, a.element) + " by an action",
+                    why_not_writable(mission, region, a.element) + " by an action",
                     f"{w}.element",
                 )
             scalar, _ = element_spec(e)
@@ -469,8 +468,6 @@ class StateMachine:
 
     def __init__(self, mission: Mission, dv: DataVector, events: EventLog) -> None:
         check_config(mission, warn=False)
-        from .config import element_spec
-
         self._events = events
         self._h_state = dv.handle("cn_state")
         self._h_tis = dv.handle("cn_time_in_state_ns")
