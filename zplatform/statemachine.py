@@ -30,13 +30,14 @@ ABORT must work during a hold). RESUME continues the clock where it stopped.
 Any transition ends a hold: the new state starts with a running clock.
 
 Everything is resolved at construction: element handles, comparison
-functions, values converted to the element's stored form, event texts. A
+functions, values converted to the element's stored form, event arguments. A
 step only reads handles, compares and writes; it never raises for a valid
 config and builds no containers or strings (it emits one event, and so
 allocates one, only when the state changes).
 
 :func:`check_config` checks the ``state_machine`` section against the whole
-Data Vector (thesis 4.5.1 and the rules below), raising
+Data Vector (thesis 4.5.1 and the rules below; a cycle of ``after_s: 0``
+transitions, which would change state on every loop, is refused), raising
 :class:`~zplatform.errors.ConfigError` with the YAML path of the first bad
 field; unreachable states are logged as warnings on the
 ``zplatform.statemachine`` logger, not errors.
@@ -303,6 +304,7 @@ def check_config(mission: Mission, *, warn: bool = True) -> None:
       state (thesis 4.5.1: no duplicate states is enforced by the mapping);
     * a transition has exactly one of a condition (``element``, ``op``,
       ``value``, all three) or ``after_s``; its target ``to`` is a state;
+      ``after_s: 0`` transitions form no cycle;
     * an action's or condition's element exists in the Data Vector;
     * a condition's element is a scalar; bools and enums compare only with
       ``==`` and ``!=``; the value fits the element's type (enum names or
