@@ -229,8 +229,8 @@ class Handle:
 
         For scalar integer elements only (DataVectorError otherwise, raised
         before anything is written). Saturation, not wrap-around: a counter
-        that reads its maximum means "at least that many". Allocates nothing
-        for counters below 2**30 (CPython's small-int range aside, one int).
+        that reads its maximum means "at least that many". Costs what
+        ``set(get() + n)`` costs: one unpack, one add, one pack.
         """
         hi = self._max
         if hi is None:
