@@ -9,8 +9,8 @@ import threading
 import time
 from pathlib import Path
 
-from .config import load_mission
 from .errors import CommandError, ZPlatformError
+from .mission import load_mission
 from .telemetry import read_csv
 
 __all__ = ["register"]

@@ -17,10 +17,11 @@ from typing import Any
 import zenoh
 
 from .codec import RegionCodec
-from .config import Mission, load_mission
+from .config import Mission
 from .datavector import DataVector, Layout
 from .errors import CodecError, CommandError, NodeError
 from .events import decode_event
+from .mission import load_mission
 from .node.runtime import PARENT_ENV, setup_logging
 from .summary import CnSummary, DnSummary, GnSummary, RunSummary, read_summary, write_summary
 from .transport import KeySpace, NodeSession, rewrite_endpoints

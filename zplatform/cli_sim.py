@@ -22,9 +22,9 @@ from pathlib import Path
 
 import msgspec
 
-from .config import load_mission
 from .errors import CommandError
 from .lockstep import LockstepRunner, replay
+from .mission import load_mission
 from .telemetry import CsvLogger
 from .uplink import ScriptCommand, load_commands
 
@@ -67,11 +67,10 @@ def cmd_sim(args: argparse.Namespace) -> int:
 
 def cmd_replay(args: argparse.Namespace) -> int:
     if args.log:
-        from .config import load_mission as _load
         from .datavector import Layout
         from .recording import MISSION_FILE
 
-        layout = Layout.for_node(_load(Path(args.directory) / MISSION_FILE), "cn")
+        layout = Layout.for_node(load_mission(Path(args.directory) / MISSION_FILE), "cn")
         with CsvLogger(args.log, layout) as log:
             res = replay(args.directory, log=log)
     else:
