@@ -5,9 +5,10 @@
   mission file. Gossip scouting is switched off in the file, so no node can
   learn the CN's real endpoint and bypass the relay (DESIGN.md §8: with
   gossip on, peers connect to each other by themselves).
-* :func:`netns_mission`: every node listens on ``tcp/<its host's address>:PORT``
-  of a bridged :class:`~tests.faults.netns.NetnsLab`; each non-CN node
-  connects to the CN. Run the nodes with ``host.popen(["python", "-m",
+* :func:`netns_mission`: node number ``k`` (in the file's order) listens on
+  ``tcp/<its host's address>:PORT+k`` of a bridged
+  :class:`~tests.faults.netns.NetnsLab` (hosts may be shared); each non-CN
+  node connects to the CN. Run the nodes with ``host.popen(["python", "-m",
   "zplatform", "node", path, name])``.
 """
 
@@ -54,10 +55,11 @@ def netns_mission(
     missing = set(raw["nodes"]) - set(hosts)
     if missing:
         raise ValueError(f"no host for nodes {sorted(missing)}")
-    cn_ep = hosts["cn"].endpoint(port)
+    ports = {name: port + k for k, name in enumerate(raw["nodes"])}
+    cn_ep = hosts["cn"].endpoint(ports["cn"])
     for name, node in raw["nodes"].items():
         node = node or {}
-        node["listen"] = [hosts[name].endpoint(port)]
+        node["listen"] = [hosts[name].endpoint(ports[name])]
         node["connect"] = [] if name == "cn" else [cn_ep]
         raw["nodes"][name] = node
     Path(dst).write_text(yaml.safe_dump(raw, sort_keys=False))

@@ -3,6 +3,7 @@ down partitions them and set up heals them. The namespaces go away after."""
 
 from __future__ import annotations
 
+import json
 import select
 import subprocess
 import sys
@@ -13,6 +14,8 @@ from typing import Any
 
 import pytest
 
+from tests.budget import allowed_misses
+from tests.faults.missions import netns_mission
 from tests.faults.netns import NetnsHost, NetnsLab, netns_unavailable
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -93,3 +96,36 @@ def test_lab_removes_its_namespaces_and_processes() -> None:
     assert p.poll() is not None
     listed = subprocess.run(["ip", "netns", "list"], capture_output=True, text=True).stdout
     assert not any(n in listed for n in names)
+
+
+@pytest.mark.timeout(120)
+def test_mission_nodes_sync_across_namespaces(
+    netns_hosts: Callable[..., list[NetnsHost]], tmp_path: Path
+) -> None:
+    """`zplatform node` processes in two namespaces: the CN syncs with dn0
+    over the bridge at its rate (DN first, then a 2 s CN run)."""
+    h0, h1 = netns_hosts(2)
+    path = netns_mission(
+        ROOT / "configs" / "minimal.yaml", tmp_path / "m.yaml", {"cn": h0, "dn0": h1, "gn": h0}
+    )
+    node = [sys.executable, "-m", "zplatform", "node", str(path)]
+    dn = h1.popen([*node, "dn0"], log=tmp_path / "dn0.log", cwd=ROOT)
+    cn = h0.popen(
+        [
+            *node,
+            "cn",
+            "--duration",
+            "2",
+            "--ground-wait",
+            "0",
+            "--summary",
+            str(tmp_path / "cn.json"),
+        ],
+        log=tmp_path / "cn.log",
+        cwd=ROOT,
+    )
+    assert cn.wait(timeout=90) == 0, (tmp_path / "cn.log").read_text()[-3000:]
+    assert dn.poll() is None, (tmp_path / "dn0.log").read_text()[-3000:]
+    s = json.loads((tmp_path / "cn.json").read_text())
+    assert s["loops"] == 200
+    assert s["rx"]["dn0"] >= s["loops"] - allowed_misses(s["loops"], 1), s
