@@ -19,7 +19,8 @@ from tests.faults.conftest import ZenohPair
 from tests.faults.peers import ECHO_KEY, get_once
 from tests.faults.relay import DirStats, FaultPlan, FaultRelay
 
-GET_TIMEOUT_S = 0.05
+LOSSY_TIMEOUT_S = 0.05  # a lost get costs little while faults are on
+SURE_TIMEOUT_S = 1.0  # gets that must be answered: room for a loaded box
 
 
 def wait_ready(s: zenoh.Session, timeout_s: float = 10.0) -> float:
@@ -31,7 +32,9 @@ def wait_ready(s: zenoh.Session, timeout_s: float = 10.0) -> float:
     raise AssertionError(f"no reply within {timeout_s} s")
 
 
-def burst(s: zenoh.Session, n: int, in_flight: int = 4) -> list[float | None]:
+def burst(
+    s: zenoh.Session, n: int, in_flight: int = 4, timeout_s: float = LOSSY_TIMEOUT_S
+) -> list[float | None]:
     """``n`` gets, ``in_flight`` at a time; each one's round trip (s) or None."""
     out: list[float | None] = []
     while len(out) < n:
@@ -42,7 +45,7 @@ def burst(s: zenoh.Session, n: int, in_flight: int = 4) -> list[float | None]:
             h = s.get(
                 ECHO_KEY,
                 payload=str(len(out) + i).encode(),
-                timeout=GET_TIMEOUT_S,
+                timeout=timeout_s,
                 consolidation=zenoh.ConsolidationMode.NONE,
             )
             pending.append((t0, h))
@@ -83,7 +86,7 @@ def test_drop_loses_gets_session_survives_counts_exact(
 ) -> None:
     p = zenoh_pair(proto, seed=7)
     wait_ready(p.b)
-    assert all(r is not None for r in burst(p.b, 20))
+    assert all(r is not None for r in burst(p.b, 20, timeout_s=SURE_TIMEOUT_S))
     p.relay.arm(drop=0.1)
     res = burst(p.b, 200)
     c = assert_exact(p.relay)
@@ -95,7 +98,7 @@ def test_drop_loses_gets_session_survives_counts_exact(
     assert lost <= 4 * dropped, (lost, c)
     p.relay.disarm()
     # The transport survived: no reconnect, every get answered again.
-    assert all(r is not None for r in burst(p.b, 50))
+    assert all(r is not None for r in burst(p.b, 50, timeout_s=SURE_TIMEOUT_S))
     assert p.relay.connections == 1
 
 
@@ -107,7 +110,7 @@ def test_delay_adds_at_least_its_minimum_each_way(
     p = zenoh_pair(proto, seed=11)
     wait_ready(p.b)
     p.relay.arm(delay_s=0.001, jitter_s=0.0005)
-    res = burst(p.b, 60, in_flight=1)
+    res = burst(p.b, 60, in_flight=1, timeout_s=SURE_TIMEOUT_S)
     c = assert_exact(p.relay)
     assert all(r is not None for r in res), res
     # Each way waits 1 ms +- 0.5 ms: no round trip can beat 2 x 0.5 ms.
@@ -132,7 +135,7 @@ def test_reorder_swaps_batches_zenoh_discards_the_late_one(
     # sequence number is older than one it has already taken.
     assert any(r is None for r in res), c
     p.relay.disarm()
-    assert all(r is not None for r in burst(p.b, 50))
+    assert all(r is not None for r in burst(p.b, 50, timeout_s=SURE_TIMEOUT_S))
     assert p.relay.connections == 1
 
 
