@@ -22,7 +22,8 @@ decisions (:meth:`FaultPlan.expected` replays them):
 * ``delay_s``/``jitter_s``: every message waits ``delay_s +- jitter_s``
   (uniform) before it is written; delivery order stays FIFO;
 * ``reorder``: probability a message is held back and written just after the
-  next one of the same direction (a swap);
+  next one of the same direction (a swap); if none comes within
+  ``hold_flush_s`` (50 ms) it is written alone, late but in order;
 * :meth:`FaultRelay.partition`/:meth:`FaultRelay.heal`: while partitioned
   every message is discarded (counted as ``blocked``, no random draw), in both
   directions; with ``reset=True`` the open TCP connections are also closed.
@@ -143,6 +144,7 @@ class _Pipe:
         self.send = send
         self.held: bytes | None = None  # a message waiting to be swapped
         self.held_delay = 0.0
+        self.held_at = 0.0
         self.last_due = 0.0
 
     def on_message(self, msg: bytes) -> None:
@@ -169,6 +171,8 @@ class _Pipe:
                 st.reordered += 1
                 if self.held is None:
                     self.held, self.held_delay = msg, delay
+                    self.held_at = time.monotonic()
+                    self.relay.wake()
                     return
                 # Already holding one: release the older behind this one.
             self._schedule(msg, delay)
@@ -352,21 +356,28 @@ class FaultRelay:
             heapq.heappush(self._heap, (due, self._heap_seq, sender, msg))
             self._cv.notify()
 
+    def wake(self) -> None:
+        with self.lock:
+            self._cv.notify()
+
     def _writer_loop(self) -> None:
         while not self._stop.is_set():
             with self.lock:
-                if not self._heap:
-                    self._cv.wait(timeout=self.hold_flush_s)
-                    pipes = [p for p in self._pipes if p.held is not None]
-                    for p in pipes:
-                        p.flush_held()
-                    continue
-                due, _, sender, msg = self._heap[0]
                 now = time.monotonic()
-                if due > now:
-                    self._cv.wait(timeout=due - now)
+                # A held message whose successor did not come within
+                # hold_flush_s is written alone (late, but not swapped).
+                wake = now + self.hold_flush_s
+                for p in self._pipes:
+                    if p.held is not None:
+                        if now - p.held_at >= self.hold_flush_s:
+                            p.flush_held()
+                        else:
+                            wake = min(wake, p.held_at + self.hold_flush_s)
+                if not self._heap or self._heap[0][0] > now:
+                    due = self._heap[0][0] if self._heap else wake
+                    self._cv.wait(timeout=max(0.0, min(due, wake) - now))
                     continue
-                heapq.heappop(self._heap)
+                _, _, sender, msg = heapq.heappop(self._heap)
             sender.write(msg)
 
     # TCP: one thread per direction per connection, reading whole batches.

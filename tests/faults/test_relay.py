@@ -178,7 +178,7 @@ def test_partition_shorter_than_lease_keeps_the_session(
     assert all(r is None for r in res)
     assert c["up"].blocked > 0 and c["up"].forwarded == 0
     p.relay.heal()
-    assert get_once(p.b, 0.5) is not None  # at once, same transport
+    assert get_once(p.b, SURE_TIMEOUT_S) is not None  # at once, same transport
     assert p.relay.connections == 1
 
 
