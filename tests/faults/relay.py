@@ -52,9 +52,9 @@ import threading
 import time
 from collections.abc import Iterator
 from dataclasses import dataclass, field
-from typing import Literal
+from typing import Any, Literal
 
-__all__ = ["DirStats", "FaultPlan", "FaultRelay", "parse_endpoint"]
+__all__ = ["DirStats", "FaultPlan", "FaultRelay", "RelayProcess", "parse_endpoint"]
 
 Direction = Literal["up", "down"]
 _LEN = struct.Struct("<H")
@@ -470,3 +470,117 @@ def _read_batches(sock: socket.socket) -> Iterator[bytes]:
                 break
             yield bytes(buf[2 : 2 + n])
             del buf[: 2 + n]
+
+
+# -- subprocess mode ---------------------------------------------------------
+#
+# ``python -m tests.faults.relay UPSTREAM [--seed N] [--listen-host H]`` runs a
+# relay in its own process (e.g. inside a namespace with ``NetnsHost.popen(...,
+# pipe_stdio=True)``). It prints ``ready <endpoint>``, then answers one line
+# per command read on stdin:
+#
+#   arm [drop=P] [delay_s=S] [jitter_s=S] [reorder=P]   -> ok
+#   disarm | partition | partition reset | heal | reset  -> ok
+#   counts   -> one JSON line {"up": {...}, "down": {...}, "connections": N, "refused": N}
+#
+# and exits when stdin closes. :class:`RelayProcess` drives it.
+
+
+def _serve(argv: list[str] | None = None) -> int:
+    import argparse
+    import json
+    import sys
+
+    ap = argparse.ArgumentParser(prog="python -m tests.faults.relay")
+    ap.add_argument("upstream")
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--listen-host", default="127.0.0.1")
+    a = ap.parse_args(argv)
+    with FaultRelay(a.upstream, seed=a.seed, listen_host=a.listen_host) as r:
+        print(f"ready {r.endpoint}", flush=True)
+        for line in sys.stdin:
+            cmd, *args = line.split()
+            out = "ok"
+            try:
+                if cmd == "arm":
+                    r.arm(**{k: float(v) for k, v in (x.split("=", 1) for x in args)})
+                elif cmd == "disarm":
+                    r.disarm()
+                elif cmd == "partition":
+                    r.partition(reset=args == ["reset"])
+                elif cmd == "heal":
+                    r.heal()
+                elif cmd == "reset":
+                    r.reset_counts()
+                elif cmd == "counts":
+                    c = {d: st.as_dict() for d, st in r.counts().items()}
+                    out = json.dumps({**c, "connections": r.connections, "refused": r.refused})
+                else:
+                    out = f"error unknown command {cmd!r}"
+            except (TypeError, ValueError) as exc:
+                out = f"error {exc}"
+            print(out, flush=True)
+    return 0
+
+
+class RelayProcess:
+    """Drives a relay subprocess (``python -m tests.faults.relay``) over its
+    stdin/stdout. ``popen`` starts the process (e.g. ``NetnsHost.popen`` with
+    ``pipe_stdio=True``, or :func:`subprocess.Popen` with text pipes)."""
+
+    def __init__(self, proc: Any, timeout_s: float = 20.0) -> None:
+        self.proc = proc
+        self.timeout_s = timeout_s
+        word, _, self.endpoint = self._line().partition(" ")
+        if word != "ready":
+            raise RuntimeError(f"relay process said {word!r}")
+
+    def _line(self) -> str:
+        ready, _, _ = select.select([self.proc.stdout], [], [], self.timeout_s)
+        if not ready:
+            raise TimeoutError(f"relay process silent for {self.timeout_s} s")
+        line = str(self.proc.stdout.readline())
+        if not line:
+            raise RuntimeError(f"relay process exited ({self.proc.wait()})")
+        return line.strip()
+
+    def command(self, *words: str) -> str:
+        self.proc.stdin.write(" ".join(words) + "\n")
+        self.proc.stdin.flush()
+        out = self._line()
+        if out.startswith("error"):
+            raise ValueError(out)
+        return out
+
+    def arm(self, **plan: float) -> None:
+        self.command("arm", *(f"{k}={v}" for k, v in plan.items()))
+
+    def disarm(self) -> None:
+        self.command("disarm")
+
+    def partition(self, *, reset: bool = False) -> None:
+        self.command("partition", *(["reset"] if reset else []))
+
+    def heal(self) -> None:
+        self.command("heal")
+
+    def counts(self) -> dict[str, Any]:
+        import json
+
+        c: dict[str, Any] = json.loads(self.command("counts"))
+        for d in ("up", "down"):
+            c[d] = DirStats(**c[d])
+        return c
+
+    def close(self) -> None:
+        with contextlib.suppress(OSError):
+            self.proc.stdin.close()
+        try:
+            self.proc.wait(timeout=5)
+        except Exception:
+            self.proc.kill()
+            self.proc.wait()
+
+
+if __name__ == "__main__":
+    raise SystemExit(_serve())

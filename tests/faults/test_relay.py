@@ -8,16 +8,22 @@ Readiness is always a reply (or a liveliness sample), never a sleep.
 from __future__ import annotations
 
 import queue
+import subprocess
+import sys
 import time
 from collections.abc import Callable
+from pathlib import Path
 from typing import Any
 
 import pytest
 import zenoh
 
 from tests.faults.conftest import ZenohPair
-from tests.faults.peers import ECHO_KEY, get_once
-from tests.faults.relay import DirStats, FaultPlan, FaultRelay
+from tests.faults.peers import ECHO_KEY, echo, get_once, peer_config
+from tests.faults.relay import DirStats, FaultPlan, FaultRelay, RelayProcess
+from zplatform.transport import free_port
+
+ROOT = Path(__file__).resolve().parents[2]
 
 LOSSY_TIMEOUT_S = 0.05  # a lost get costs little while faults are on
 SURE_TIMEOUT_S = 1.0  # gets that must be answered: room for a loaded box
@@ -211,3 +217,46 @@ def test_partition_longer_than_lease_closes_then_heal_reconnects(
     finally:
         sub.undeclare()
         tok.undeclare()
+
+
+@pytest.mark.timeout(60)
+def test_relay_subprocess_driven_over_stdio() -> None:
+    """The same relay as a process (for use inside a namespace)."""
+    ep = f"tcp/127.0.0.1:{free_port()}"
+    a = zenoh.open(peer_config([ep]))
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "tests.faults.relay", ep, "--seed", "9"],
+        stdin=subprocess.PIPE,
+        stdout=subprocess.PIPE,
+        text=True,
+        bufsize=1,
+        cwd=ROOT,
+    )
+    rp = RelayProcess(proc)
+    b = None
+    try:
+        q = a.declare_queryable(ECHO_KEY, echo)
+        b = zenoh.open(peer_config(connect=[rp.endpoint]))
+        wait_ready(b)
+        rp.arm(drop=0.5)
+        res = burst(b, 40)
+        c = rp.counts()
+        plan = FaultPlan(seed=9, drop=0.5)
+        for d in ("up", "down"):
+            assert c[d].decisions() == plan.expected(c[d].seen, d).decisions(), d
+        assert any(r is None for r in res)
+        rp.partition()
+        assert get_once(b, LOSSY_TIMEOUT_S) is None
+        rp.heal()
+        rp.disarm()
+        assert all(r is not None for r in burst(b, 20, timeout_s=SURE_TIMEOUT_S))
+        assert rp.counts()["connections"] == 1
+        q.undeclare()
+    finally:
+        if b is not None:
+            b.close()
+        rp.close()
+        a.close()
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
