@@ -42,6 +42,8 @@ class CommandStatus(enum.IntEnum):
     REJECTED_BAD_ARGUMENT = 4
     REJECTED_REPLAY = 5
     REJECTED_NOT_ARMED = 6
+    REJECTED_AUTH = 7
+    REJECTED_EPOCH = 8
 
 
 class Fault(enum.IntEnum):

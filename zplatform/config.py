@@ -170,10 +170,15 @@ class StateConfig(_Struct):
 
 
 class StateMachineConfig(_Struct):
-    """States in order; ``initial`` becomes ``cn_state``'s initial value."""
+    """States in order; ``initial`` becomes ``cn_state``'s initial value.
+
+    ``priority``: commands whose transitions are tried before every other
+    transition of a state (ABORT-class: an ABORT wins over a timer or a data
+    transition due in the same loop), in this order."""
 
     initial: str
     states: dict[str, StateConfig]
+    priority: list[str] = msgspec.field(default_factory=lambda: ["ABORT"])
 
 
 class ComponentConfig(_Struct):
@@ -194,6 +199,20 @@ class CommandsConfig(_Struct):
     whitelist: dict[str, list[str]] = msgspec.field(default_factory=dict)
     hazardous: list[str] = msgspec.field(default_factory=list)
     writable: list[str] | None = None
+    # Elements a WRITE may set only as a hazardous command (ARM n, WRITE n+1).
+    # None: every controller mode when the mission has hazardous commands.
+    protected: list[str] | None = None
+
+
+class SecurityConfig(_Struct):
+    """Authentication of every frame a node takes from the network.
+
+    ``auth``: every region frame, telemetry snapshot and command request
+    carries an HMAC-SHA256 tag keyed by the mission key, which never lives
+    in the YAML (:mod:`zplatform.auth`: a key file or the environment).
+    Turning it off is for benchmarks and closed test benches only."""
+
+    auth: bool = True
 
 
 class FaultsConfig(_Struct):
@@ -203,6 +222,11 @@ class FaultsConfig(_Struct):
     controller_fail_loops: Annotated[int, Meta(ge=0)] = 3
     sync_overrun_loops: Annotated[int, Meta(ge=0)] = 10
     loop_overrun_loops: Annotated[int, Meta(ge=0)] = 0
+    # A DN with no valid trigger for this many periods writes its actuators'
+    # safe values and stays safed until the CN re-enables it, which the CN
+    # does once the DN has answered this many loops in a row again.
+    dn_watchdog_loops: Annotated[int, Meta(ge=1, le=1_000_000)] = 10
+    dn_reenable_loops: Annotated[int, Meta(ge=1, le=1_000_000)] = 10
 
 
 class Mission(_Struct):
@@ -222,6 +246,7 @@ class Mission(_Struct):
     devices: list[ComponentConfig] = msgspec.field(default_factory=list)
     commands: CommandsConfig = msgspec.field(default_factory=CommandsConfig)
     faults: FaultsConfig = msgspec.field(default_factory=FaultsConfig)
+    security: SecurityConfig = msgspec.field(default_factory=SecurityConfig)
     doc: str = ""
 
     # -- derived views (cheap; computed from the checked fields) -----------
@@ -481,8 +506,12 @@ def platform_elements(m: Mission) -> dict[str, list[ElementConfig]]:
         E("cn_last_error", "u16", 0),
         E("cn_bad_frames", "u32", 0),
         E("cn_cmd", "enum", "NONE", list(CMD_NAMES)),
-        E("cn_cmd_seq", "u32", 0),
+        E("cn_cmd_seq", "u64", 0),
         E("cn_cmd_status", "enum", "NONE", list(CMD_STATUS_NAMES)),
+        E("cn_cmd_rejects", "u32", 0),
+        E("cn_cmd_reject_status", "enum", "NONE", list(CMD_STATUS_NAMES)),
+        E("cn_cmd_dropped", "u32", 0),
+        E("cn_epoch", "u64", 0),
         E("cn_fault", "enum", "NONE", list(FAULT_NAMES)),
         E("cn_time_in_state_ns", "i64", 0),
     ]
@@ -494,7 +523,7 @@ def platform_elements(m: Mission) -> dict[str, list[ElementConfig]]:
         ]
     out: dict[str, list[ElementConfig]] = {"cn": cn}
     for dn in m.device_nodes:
-        out[f"cn_to_{dn}"] = []
+        out[f"cn_to_{dn}"] = [E(f"{dn}_enable_gen", "u32", 0)]
         out[f"{dn}_to_cn"] = [
             E(f"{dn}_loop", "u64", 0),
             E(f"{dn}_time_ns", "i64", 0),
@@ -503,11 +532,13 @@ def platform_elements(m: Mission) -> dict[str, list[ElementConfig]]:
             E(f"{dn}_bad_frames", "u32", 0),
             E(f"{dn}_clock_offset_ns", "i64", 0),
             E(f"{dn}_clock_drift_ns", "i64", 0),
+            E(f"{dn}_safed", "bool", False),
         ]
     if m.has_ground:
         out["gn_to_cn"] = [
             E("gn_cmd", "enum", "NONE", list(CMD_NAMES)),
-            E("gn_cmd_seq", "u32", 0),
+            E("gn_cmd_seq", "u64", 0),
+            E("gn_cmd_epoch", "u64", 0),
             E("gn_cmd_element", "u16", 0),
             E("gn_cmd_value", "f64", 0.0),
         ]
