@@ -16,6 +16,7 @@ from typing import Any
 
 import zenoh
 
+from .auth import TAG_LEN, load_key, mission_channels
 from .codec import RegionCodec
 from .config import Mission
 from .datavector import DataVector, Layout
@@ -179,19 +180,31 @@ def cmd_cmd(args: argparse.Namespace) -> int:
 
 
 class _TapDecoder:
-    """Decodes any sample of the key space into named values."""
+    """Decodes any sample of the key space into named values.
+
+    Frames of an authenticating mission are checked with the mission key
+    when it is at hand; without it they are still decoded, marked
+    ``"verified": false``."""
 
     def __init__(self, mission: Mission) -> None:
+        from .auth import KeyError_, load_key
+
         self.mission = mission
         keys = KeySpace(mission.vehicle)
+        self._auth = mission.security.auth
+        try:
+            key = load_key(mission)
+        except KeyError_:
+            key = None
+        ch = mission_channels(mission, key)
         self._by_key: dict[str, Any] = {}
         cn = DataVector(Layout.for_node(mission, "cn"))
-        self._by_key[keys.telemetry] = (RegionCodec(cn), cn)
+        self._by_key[keys.telemetry] = (RegionCodec(cn), cn, ch["telemetry"])
         for region in mission.region_names():
             if region == "cn":
                 continue
             dv = DataVector(Layout.for_regions(mission, [region]))
-            self._by_key[keys.region(region)] = (RegionCodec(dv, region), dv)
+            self._by_key[keys.region(region)] = (RegionCodec(dv, region), dv, ch.get(region))
 
     def decode(self, key: str, payload: bytes) -> dict[str, Any]:
         if key.endswith("/events"):
@@ -213,9 +226,15 @@ class _TapDecoder:
         entry = self._by_key.get(key)
         if entry is None:
             return {"key": key, "bytes": len(payload), "hex": payload[:64].hex()}
-        codec, dv = entry
+        codec, dv, channel = entry
+        verified = None
         try:
-            frame = codec.apply(payload)
+            body: bytes | memoryview = payload
+            if channel is not None:
+                body, verified = channel.open(payload), True
+            elif self._auth:
+                body, verified = payload[:-TAG_LEN], False
+            frame = codec.apply(body)
         except CodecError as exc:
             return {"key": key, "error": str(exc)}
         values: dict[str, Any] = {}
@@ -225,7 +244,11 @@ class _TapDecoder:
                 if spec.enum is not None
                 else (dv.get(name).tolist() if spec.count else dv.get(name))
             )
-        return {"key": key, "seq": frame.seq, "t_ns": frame.t_ns, "values": values}
+        out: dict[str, Any] = {"key": key, "seq": frame.seq, "t_ns": frame.t_ns}
+        if verified is not None:
+            out["verified"] = verified
+        out["values"] = values
+        return out
 
 
 def cmd_tap(args: argparse.Namespace) -> int:
@@ -313,6 +336,8 @@ class _Children:
 def cmd_up(args: argparse.Namespace) -> int:
     """Run every node; see :func:`_watch` for what a node's death does."""
     mission = load_mission(args.mission)  # refuse a bad mission before spawning
+    # First use on this host: make the mission key (every node finds it).
+    load_key(mission, create=True)
     if args.commands:
         from .uplink import load_commands
 

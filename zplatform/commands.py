@@ -66,6 +66,7 @@ __all__ = [
     "CommandHandler",
     "CommandStatus",
     "check_config",
+    "protected_elements",
     "writable_elements",
 ]
 
@@ -73,6 +74,11 @@ log = logging.getLogger("zplatform.commands")
 
 ARM_WINDOW_NS = 10_000_000_000
 """How long an accepted ARM confirms the next (hazardous) command: 10 s."""
+
+SEQ_WINDOW = 1 << 20
+"""How far past the last number a request may jump. Numbers are u64, so
+even a forger walking them up by this much per request would need 2**44
+requests to exhaust them."""
 
 
 _N_CMDS = len(CMD_NAMES)
@@ -86,6 +92,20 @@ _F32_MAX = 3.4028234663852886e38
 def _all_element_names(mission: Mission) -> list[str]:
     """The CN's element list, in ``ElementSpec.index`` order."""
     return [e.name for r in mission.region_names() for e in mission.regions[r]]
+
+
+def protected_elements(mission: Mission) -> list[str]:
+    """Elements a WRITE may set only as a hazardous command (ARM n, WRITE n+1).
+
+    ``commands.protected`` when given; otherwise every controller mode when
+    the mission has hazardous commands (switching a safety controller off is
+    as hazardous as the command it guards), else none."""
+    cfg = mission.commands
+    if cfg.protected is not None:
+        return list(cfg.protected)
+    if not cfg.hazardous:
+        return []
+    return [f"{c.name}_mode" for c in mission.controllers]
 
 
 def writable_elements(mission: Mission) -> list[str]:
@@ -150,6 +170,22 @@ def check_config(mission: Mission, *, warn: bool = True) -> None:
                     "allow ARM",
                     w,
                 )
+    if cfg.protected is not None:
+        allowed_w = set(writable_elements(mission))
+        for i, name in enumerate(cfg.protected):
+            if name not in allowed_w:
+                raise ConfigError(
+                    f"{name!r} is not an element WRITE may set, so protecting it means nothing; "
+                    f"writable: {sorted(allowed_w)}",
+                    f"$.commands.protected[{i}]",
+                )
+        if cfg.protected and "ARM" not in {c for v in cfg.whitelist.values() for c in v} | (
+            {"ARM"} if set(states) - set(cfg.whitelist) else set()
+        ):
+            raise ConfigError(
+                "protected elements need an ARM first, but no state allows ARM",
+                "$.commands.protected",
+            )
     if cfg.writable is not None:
         table = {e.name: (r, e) for r, es in mission.regions.items() for e in es}
         can = logic_writable(mission)
@@ -243,11 +279,15 @@ class CommandHandler:
         self._h_cmd = dv.handle("cn_cmd")
         self._h_seq = dv.handle("cn_cmd_seq")
         self._h_status = dv.handle("cn_cmd_status")
+        self._h_rejects = dv.handle("cn_cmd_rejects")
+        self._h_reject_status = dv.handle("cn_cmd_reject_status")
+        self._h_epoch = dv.handle("cn_epoch")
         self._h_state = dv.handle("cn_state")
         self._has_ground = "gn_to_cn" in dv.layout.regions
         if self._has_ground:
             self._g_cmd = dv.handle("gn_cmd")
             self._g_seq = dv.handle("gn_cmd_seq")
+            self._g_epoch = dv.handle("gn_cmd_epoch")
             self._g_elem = dv.handle("gn_cmd_element")
             self._g_value = dv.handle("gn_cmd_value")
         states = self._h_state.spec.enum or ()
@@ -262,6 +302,10 @@ class CommandHandler:
             h = dv.handle(name)
             targets[h.spec.index] = h
         self._targets = tuple(targets)
+        protected = [False] * len(dv.layout.elements)
+        for name in protected_elements(mission):
+            protected[dv.layout.element(name).index] = True
+        self._protected = tuple(protected)
         self._names_by_index = tuple(
             sorted(dv.layout.elements, key=lambda n: dv.layout.elements[n].index)
         )
@@ -281,20 +325,34 @@ class CommandHandler:
         return self._last_seq
 
     def step(self, new_request: bool, t_ns: int) -> None:
-        """One loop: clear last loop's active command, then handle the request
-        the runtime applied this loop (``new_request``). Never raises."""
+        """One loop, before the state machine's step: settle last loop's
+        pending command (module doc), then handle the request the runtime
+        applied this loop (``new_request``). Never raises."""
         if self._active:
-            self._h_cmd.set(0)
-            self._active = False
+            sm = self._sm
+            # Pending until a transition consumed it, or a step left the state
+            # unchanged (that state does not handle it). A state change by
+            # another transition keeps it for the new state's next step.
+            if sm is None or sm.consumed_cmd or not sm.changed:
+                self._h_cmd.set(0)
+                self._active = False
         if not new_request or not self._has_ground:
             return
         cmd = self._g_cmd.get()
         seq = self._g_seq.get()
+        name = CMD_NAMES[cmd] if cmd < _N_CMDS else f"code {cmd}"
+        refused = self._refuse(cmd, seq)
+        if refused is not None:
+            self.reject(refused[0], t_ns, name=name, seq=seq, detail=refused[1])
+            return
+        self._last_seq = seq
         status, detail = self._validate(cmd, seq, t_ns)
         self._h_seq.set(seq)
         self._h_status.set(status)
-        name = CMD_NAMES[cmd] if cmd < _N_CMDS else f"code {cmd}"
         if status == CommandStatus.ACCEPTED:
+            if self._active:
+                prev = CMD_NAMES[self._h_cmd.get()]
+                self._events.emit(EV.CMD_SUPERSEDED, t_ns, name=prev, by=name)
             self._h_cmd.set(cmd)
             self._active = True
             self._events.emit(EV.CMD_ACCEPTED, t_ns, name=name, seq=seq, detail=detail)
@@ -308,25 +366,59 @@ class CommandHandler:
                 detail=detail,
             )
 
-    def _validate(self, cmd: int, seq: int, t_ns: int) -> tuple[int, str]:
-        """``(status, detail)``; performs the command when it is accepted."""
-        if cmd == Command.NONE or cmd >= _N_CMDS:
-            if seq > self._last_seq:
-                self._last_seq = seq
-            return CommandStatus.REJECTED_UNKNOWN, f"{cmd} is not a command code"
+    def reject(
+        self, status: int, t_ns: int, *, name: str = "request", seq: int = 0, detail: str = ""
+    ) -> None:
+        """Refuse a request without consuming a number: counted in
+        ``cn_cmd_rejects``, reason in ``cn_cmd_reject_status``, an event;
+        ``cn_cmd_seq`` and ``cn_cmd_status`` keep the last real verdict (so a
+        replayed or forged frame cannot disturb the operator's numbering).
+        Also what the loop calls for a request frame that fails
+        authentication."""
+        self._h_rejects.bump()
+        self._h_reject_status.set(status)
+        self._events.emit(
+            EV.CMD_REJECTED,
+            t_ns,
+            name=name,
+            seq=seq,
+            status=CommandStatus(status).name,
+            detail=detail,
+        )
+
+    def _refuse(self, cmd: int, seq: int) -> tuple[int, str] | None:
+        """The checks that do not consume a number: epoch, then sequence."""
+        epoch = self._g_epoch.get()
+        if epoch != self._h_epoch.get():
+            return (
+                CommandStatus.REJECTED_EPOCH,
+                f"epoch {epoch} is not this control node's ({self._h_epoch.get()}): "
+                "a request for an earlier run",
+            )
         if seq <= self._last_seq:
             return (
                 CommandStatus.REJECTED_REPLAY,
                 f"number {seq} is not above the last one seen ({self._last_seq})",
             )
-        self._last_seq = seq
+        if seq - self._last_seq > SEQ_WINDOW:
+            return (
+                CommandStatus.REJECTED_REPLAY,
+                f"number {seq} jumps more than {SEQ_WINDOW} past the last one ({self._last_seq})",
+            )
+        return None
+
+    def _validate(self, cmd: int, seq: int, t_ns: int) -> tuple[int, str]:
+        """``(status, detail)``; performs the command when it is accepted."""
+        if cmd == Command.NONE or cmd >= _N_CMDS:
+            return CommandStatus.REJECTED_UNKNOWN, f"{cmd} is not a command code"
         state = self._h_state.get()
         if state < len(self._allowed) and not self._allowed[state][cmd]:
             return (
                 CommandStatus.REJECTED_NOT_ALLOWED,
                 f"not allowed in state {self._states[state]}",
             )
-        if self._hazardous[cmd]:
+        hazardous = self._hazardous[cmd] or (cmd == Command.WRITE and self._protected_write())
+        if hazardous:
             armed = self._arm_seq == seq - 1 and 0 <= t_ns - self._arm_t_ns <= ARM_WINDOW_NS
             self._arm_seq = -1
             if not armed:
@@ -347,6 +439,10 @@ class CommandHandler:
             self._arm_seq = seq
             self._arm_t_ns = t_ns
         return CommandStatus.ACCEPTED, ""
+
+    def _protected_write(self) -> bool:
+        idx = self._g_elem.get()
+        return idx < len(self._protected) and self._protected[idx]
 
     def _write(self) -> tuple[int, str]:
         idx = self._g_elem.get()

@@ -223,8 +223,8 @@ class FaultsConfig(_Struct):
     sync_overrun_loops: Annotated[int, Meta(ge=0)] = 10
     loop_overrun_loops: Annotated[int, Meta(ge=0)] = 0
     # A DN with no valid trigger for this many periods writes its actuators'
-    # safe values and stays safed until the CN re-enables it, which the CN
-    # does once the DN has answered this many loops in a row again.
+    # safe values and stays safed until the CN is back: this many valid
+    # triggers in a row.
     dn_watchdog_loops: Annotated[int, Meta(ge=1, le=1_000_000)] = 10
     dn_reenable_loops: Annotated[int, Meta(ge=1, le=1_000_000)] = 10
 
@@ -523,7 +523,7 @@ def platform_elements(m: Mission) -> dict[str, list[ElementConfig]]:
         ]
     out: dict[str, list[ElementConfig]] = {"cn": cn}
     for dn in m.device_nodes:
-        out[f"cn_to_{dn}"] = [E(f"{dn}_enable_gen", "u32", 0)]
+        out[f"cn_to_{dn}"] = []
         out[f"{dn}_to_cn"] = [
             E(f"{dn}_loop", "u64", 0),
             E(f"{dn}_time_ns", "i64", 0),

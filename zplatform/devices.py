@@ -268,7 +268,15 @@ class Sensor(Device):
 
 
 class Actuator(Device):
-    """A device that reads the Data Vector and drives the board (runs after controllers)."""
+    """A device that reads the Data Vector and drives the board (runs after controllers).
+
+    :meth:`safe` drives the output to its declared safe value: a device node
+    that lost its control node calls it (and on a clean exit). Subclasses
+    that drive hardware must override it; the default leaves the output to
+    the board's own safe state (:func:`zplatform.boards.safe_board`)."""
+
+    def safe(self, t_ns: int) -> None:
+        """Drive the output to its safe value now. Must not block."""
 
 
 Pin = Annotated[int, Meta(ge=0)]
@@ -288,6 +296,7 @@ class DigitalOutput(Actuator):
         command: str
         feedback: str | None = None
         invert: bool = False
+        safe: bool = False  # the level ("on" terms) a lost control node leaves
 
     config: Config
 
@@ -305,6 +314,12 @@ class DigitalOutput(Actuator):
     def run(self, t_ns: int) -> None:
         inv = self._inv
         self.board.set_digital(self._pin, bool(self._cmd.get()) is not inv)
+        if self._fb is not None:
+            self._fb.set(self.board.get_digital(self._pin) is not inv)
+
+    def safe(self, t_ns: int) -> None:
+        inv = self._inv
+        self.board.set_digital(self._pin, self.config.safe is not inv)
         if self._fb is not None:
             self._fb.set(self.board.get_digital(self._pin) is not inv)
 
@@ -359,12 +374,15 @@ class AnalogOutput(Actuator):
         offset: float = 0.0
         min_volts: float = -10.0
         max_volts: float = 10.0
+        safe_volts: float = 0.0  # what a lost control node leaves on the pin
 
         def __post_init__(self) -> None:
             if self.scale == 0.0:
                 raise ValueError("scale must not be 0")
             if self.min_volts > self.max_volts:
                 raise ValueError("min_volts must not exceed max_volts")
+            if not self.min_volts <= self.safe_volts <= self.max_volts:
+                raise ValueError("safe_volts must lie within [min_volts, max_volts]")
 
     config: Config
 
@@ -378,6 +396,9 @@ class AnalogOutput(Actuator):
     def run(self, t_ns: int) -> None:
         v = (self._cmd.get() - self._offset) / self._scale
         self.board.set_analog(self._pin, min(max(v, self._lo), self._hi))
+
+    def safe(self, t_ns: int) -> None:
+        self.board.set_analog(self._pin, self.config.safe_volts)
 
 
 class _DevSlot:
@@ -450,6 +471,17 @@ class DeviceSet:
     def run_actuators(self, loop: int, t_ns: int) -> None:
         """Run the actuators due on ``loop``."""
         self._run(self._actuators, loop, t_ns)
+
+    def safe_actuators(self, t_ns: int) -> None:
+        """Every actuator's :meth:`Actuator.safe`, whatever its rate group; a
+        failure is counted and reported like a run's, and the others still go."""
+        for g in self._actuators:
+            s = g.member
+            try:
+                assert isinstance(s.device, Actuator)
+                s.device.safe(t_ns)
+            except Exception as exc:
+                self._failed(s, exc, t_ns)
 
     def _run(self, group: RateGroups[_DevSlot], loop: int, t_ns: int) -> None:
         for s in group.due(loop):

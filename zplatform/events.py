@@ -136,6 +136,18 @@ class EV:
         Severity.WARNING_LO,
         "command {name} #{seq} rejected ({status}): {detail}",
     )
+    CMD_SUPERSEDED = EventType(
+        12,
+        "cmd_superseded",
+        Severity.WARNING_LO,
+        "pending command {name} superseded by {by} before a transition took it",
+    )
+    CMD_DROPPED = EventType(
+        13,
+        "cmd_dropped",
+        Severity.WARNING_LO,
+        "{n} command request frame(s) dropped: {why}",
+    )
     # errors after start (thesis 4.11.1)
     FAULT = EventType(20, "fault", Severity.WARNING_HI, "fault {fault}: {text}")
     ERROR = EventType(21, "error", Severity.WARNING_LO, "{text}")
@@ -161,6 +173,19 @@ class EV:
     )
     # transport
     BAD_FRAME = EventType(40, "bad_frame", Severity.WARNING_LO, "{source} rejected: {reason}")
+    # fail safe (a node without its control node)
+    DN_SAFED = EventType(
+        50,
+        "dn_safed",
+        Severity.WARNING_HI,
+        "{node} safed its actuators: {why}",
+    )
+    DN_REENABLED = EventType(
+        51,
+        "dn_reenabled",
+        Severity.ACTIVITY_HI,
+        "{node} re-enabled: the control node triggered it {n} loops in a row",
+    )
 
     ALL: ClassVar[tuple[EventType, ...]]
     """Every entry, in declaration order."""

@@ -35,6 +35,7 @@ from typing import Any
 import msgspec
 import numpy as np
 
+from .auth import TAG_LEN, mission_channels
 from .codec import RegionCodec
 from .config import Mission
 from .datavector import DataVector, Layout
@@ -56,6 +57,11 @@ __all__ = [
 
 DEFAULT_START_NS = 1_700_000_000_000_000_000
 """Virtual time of loop 1 (2023-11-14T22:13:20Z): fixed, so runs repeat exactly."""
+
+SIM_KEY = bytes(32)
+"""The key a lockstep run authenticates its frames with (every node is in
+this process, so the key protects nothing; it keeps the frames and the code
+paths those of a live run)."""
 
 
 class SimResult(msgspec.Struct):
@@ -162,18 +168,20 @@ class LockstepRunner:
         self.start_ns = start_ns
         self.period_ns = mission.period_ns
         self.clock = VirtualClock(start_ns)
-        self.control = ControlLogic(mission)
+        key = SIM_KEY if mission.security.auth else None
+        self.control = ControlLogic(mission, key=key, epoch=start_ns)
         boards = boards or {}
         unknown = sorted(set(boards) - set(mission.device_nodes))
         if unknown:
             raise ValueError(f"boards given for nodes that are not device nodes: {unknown}")
         self.devices = [
-            DeviceLogic(mission, dn, board=boards.get(dn)) for dn in mission.device_nodes
+            DeviceLogic(mission, dn, board=boards.get(dn), key=key) for dn in mission.device_nodes
         ]
         # The ground side: a telemetry receiver and the script player.
         self.telemetry_dv = DataVector(Layout.for_node(mission, "cn"))
         self._tm_rx = RegionCodec(self.telemetry_dv)
-        self.player = ScriptPlayer(mission, commands or [])
+        self._tm_open = mission_channels(mission, key)["telemetry"]
+        self.player = ScriptPlayer(mission, commands or [], key=key)
         self._ground: bytearray | None = None
         self.loop = 0
         """Loops run so far (the number of the last one)."""
@@ -194,9 +202,9 @@ class LockstepRunner:
         for i, dev in enumerate(self.devices):
             cn.reply(i, dev.step(frames[i], t))
         ground, self._ground = self._ground, None
-        tm = cn.finish(ground)
+        tm = cn.finish((ground,) if ground is not None else ())
         if tm is not None:
-            self._tm_rx.apply(tm)
+            self._tm_rx.apply(self._tm_open.open(tm) if self._tm_open is not None else tm)
             self.telemetry_received += 1
             if log is not None:
                 log.write(t, self.telemetry_dv)
@@ -296,15 +304,15 @@ class ReplayResult(msgspec.Struct, frozen=True):
 
 
 def _first_difference(
-    layout: Layout, loop: int, recorded: bytes, replayed: bytes | bytearray
+    layout: Layout, loop: int, recorded: bytes, replayed: bytes | bytearray, tag_len: int
 ) -> Difference:
     a, b = DataVector(layout), DataVector(layout)
     ca, cb = RegionCodec(a), RegionCodec(b)
     try:
-        ca.apply(recorded)
+        ca.apply(recorded[: len(recorded) - tag_len])
     except Exception as exc:  # a damaged record: say so rather than crash
         return Difference(loop, "<frame>", f"undecodable ({exc})", "")
-    cb.apply(replayed)
+    cb.apply(replayed[: len(replayed) - tag_len])
     for name, spec in layout.elements.items():
         va, vb = a.get(name), b.get(name)
         if np.asarray(va).tobytes() != np.asarray(vb).tobytes():
@@ -314,22 +322,28 @@ def _first_difference(
     return Difference(loop, "<frame header>", recorded[:24].hex(), bytes(replayed[:24]).hex())
 
 
-def replay(directory: str | Path, *, log: CsvLogger | None = None) -> ReplayResult:
+def replay(
+    directory: str | Path, *, log: CsvLogger | None = None, key_file: str | Path | None = None
+) -> ReplayResult:
     """Replay a recording made by ``zplatform up --record DIR`` (or ``node
     --record``) through a fresh control loop; compare the telemetry.
 
     Loads the mission recorded beside the inputs, so only the directory is
-    needed. Raises :class:`~zplatform.errors.RecordingError` for a missing or
-    malformed recording; a difference is a result, not an error.
+    needed, and the mission key when the mission authenticates (the
+    recorded frames carry their tags and are checked again). Raises
+    :class:`~zplatform.errors.RecordingError` for a missing or malformed
+    recording (KeyError_ for a missing key); a difference is a result, not
+    an error.
     """
+    from .auth import load_key
     from .mission import load_mission
     from .recording import RecordReader
 
     reader = RecordReader(directory)
     mission = load_mission(reader.mission_path)
     reader.check_layout(Layout.for_node(mission, "cn"))
-    cn = ControlLogic(mission)
-    cn.dv.write_all(reader.initial)
+    cn = ControlLogic(mission, key=load_key(mission, key_file))
+    cn.dv.write_all(reader.initial)  # epoch included
     state_dv = cn.dv
     frames = 0
     loops = 0
@@ -339,7 +353,13 @@ def replay(directory: str | Path, *, log: CsvLogger | None = None) -> ReplayResu
         cn.begin(rec.loop, rec.t_ns)
         for i, payload in rec.replies:
             cn.reply(i, payload)
-        tm = cn.finish(rec.ground, sync_overrun=rec.sync_overrun, loop_overruns=rec.loop_overruns)
+        tm = cn.finish(
+            rec.grounds,
+            sync_overrun=rec.sync_overrun,
+            loop_overruns=rec.loop_overruns,
+            inbox_dropped=rec.inbox_dropped,
+            inbox_oversize=rec.inbox_oversize,
+        )
         loops += 1
         first = first or rec.loop
         last = rec.loop
@@ -356,7 +376,8 @@ def replay(directory: str | Path, *, log: CsvLogger | None = None) -> ReplayResu
         if tm is not None and rec.telemetry is not None:
             frames += 1
             if bytes(tm) != rec.telemetry:
-                diff = _first_difference(cn.layout, rec.loop, rec.telemetry, tm)
+                tag = TAG_LEN if mission.security.auth else 0
+                diff = _first_difference(cn.layout, rec.loop, rec.telemetry, tm, tag)
                 break
         if cn.events.pending:
             cn.events.drain()

@@ -37,10 +37,13 @@ what a DN's run writes reaches the CN one loop later (thesis 3.4.5.3).
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from typing import Protocol
 
-from .boards import make_board
-from .codec import RegionCodec
+from .auth import TAG_LEN, AuthError, Channel, mission_channels
+from .boards import make_board, safe_board
+from .codec import Frame, RegionCodec
+from .codes import CommandStatus
 from .commands import CommandHandler
 from .components import Streak
 from .config import Mission
@@ -72,9 +75,11 @@ class LoopRecorder(Protocol):
 
     def finish(
         self,
-        ground: bytes | bytearray | memoryview | None,
+        grounds: Sequence[bytes | bytearray | memoryview],
         sync_overrun: bool,
         loop_overruns: int,
+        inbox_dropped: int,
+        inbox_oversize: int,
         telemetry: bytearray | None,
     ) -> None: ...
 
@@ -93,10 +98,20 @@ class ControlLogic:
     first.
     """
 
-    def __init__(self, mission: Mission, *, events: EventLog | None = None) -> None:
+    def __init__(
+        self,
+        mission: Mission,
+        *,
+        events: EventLog | None = None,
+        key: bytes | None = None,
+        epoch: int = 0,
+    ) -> None:
         self.mission = mission
         self.layout = Layout.for_node(mission, "cn")
         self.dv = dv = DataVector(self.layout)
+        # This run's epoch: command requests must carry it (a request made
+        # for an earlier run of the CN is refused, not replayed).
+        dv.set("cn_epoch", epoch)
         self.events = events if events is not None else EventLog("cn")
         self.faults = FaultMonitor(mission, dv, self.events)
         self.statemachine = StateMachine(mission, dv, self.events)
@@ -108,7 +123,19 @@ class ControlLogic:
         self._from_dn = tuple(RegionCodec(dv, f"{dn}_to_cn") for dn in dns)
         self._ground = RegionCodec(dv, "gn_to_cn") if mission.has_ground else None
         self._tm = RegionCodec(dv)
+        ch = mission_channels(mission, key)
+        self._seal_to_dn = tuple(ch[f"cn_to_{dn}"] for dn in dns)
+        self._open_from_dn = tuple(ch[f"{dn}_to_cn"] for dn in dns)
+        self._open_ground = ch.get("gn_to_cn")
+        self._seal_tm = ch["telemetry"]
         self._frames: list[bytearray] = [bytearray() for _ in dns]
+        self._dropped = dv.handle("cn_cmd_dropped")
+        self.max_request_len = (
+            self._ground.max_frame_len + (TAG_LEN if self._open_ground is not None else 0)
+            if self._ground is not None
+            else 0
+        )
+        """The longest command request frame that can be valid (bytes)."""
         self._rx = tuple(dv.handle(f"cn_rx_{dn}") for dn in dns)
         self._missed = tuple(dv.handle(f"cn_missed_{dn}") for dn in dns)
         self._late = tuple(dv.handle(f"cn_late_{dn}") for dn in dns)
@@ -135,7 +162,9 @@ class ControlLogic:
         frames = self._frames
         for i, codec in enumerate(self._to_dn):
             got[i] = False
-            frames[i] = codec.encode(loop, t_ns)
+            seal = self._seal_to_dn[i]
+            frame = codec.encode(loop, t_ns)
+            frames[i] = seal.seal(frame) if seal is not None else frame
         self.pending = len(got)
         if self.recorder is not None:
             self.recorder.begin(loop, t_ns)
@@ -154,7 +183,8 @@ class ControlLogic:
             return False
         codec = self._from_dn[i]
         try:
-            frame = codec.check(payload)
+            ch = self._open_from_dn[i]
+            frame = codec.check(ch.open(payload) if ch is not None else payload)
         except CodecError as exc:
             self._bad_frame(self.dns[i], str(exc))
             return False
@@ -170,19 +200,27 @@ class ControlLogic:
 
     def finish(
         self,
-        ground: bytes | bytearray | memoryview | None = None,
+        grounds: Sequence[bytes | bytearray | memoryview] = (),
         *,
         sync_overrun: bool = False,
         loop_overruns: int = 0,
+        inbox_dropped: int = 0,
+        inbox_oversize: int = 0,
     ) -> bytearray | None:
-        """Close the loop: count misses, apply ``ground`` (at most one command
-        request frame), run the logic; returns the telemetry frame on
-        telemetry loops (``loop % telemetry_divisor == 0``), else None.
+        """Close the loop: count misses, take one command request from
+        ``grounds`` (the frames that arrived since the last loop, oldest
+        first; the newest valid one wins, older valid ones are counted in
+        ``cn_cmd_dropped``, invalid ones as bad frames), run the logic;
+        returns the telemetry frame on telemetry loops (``loop %
+        telemetry_divisor == 0``), else None.
 
         ``sync_overrun``: the driver's sync step ran past its deadline;
         ``loop_overruns``: periods the driver's scheduler skipped since the
-        last loop. Both are inputs, not measured here, so a replay repeats
-        them.
+        last loop; ``inbox_dropped``: request frames the driver's bounded
+        inbox had to drop since the last loop (counted in ``cn_cmd_dropped``);
+        ``inbox_oversize``: frames it refused unread for their size (counted
+        as bad frames). All are inputs, not measured here, so a replay
+        repeats them.
         """
         loop, t = self.loop, self.t_ns
         for i, got in enumerate(self._got):
@@ -192,27 +230,70 @@ class ControlLogic:
             self._sync_overruns.bump()
         if loop_overruns:
             self._loop_overruns.bump(loop_overruns)
+        if inbox_dropped:
+            self._dropped.bump(inbox_dropped)
+            self.events.emit(EV.CMD_DROPPED, t, n=inbox_dropped, why="the command inbox was full")
+        if inbox_oversize:
+            self._bad.bump(inbox_oversize)
+            self.events.emit(
+                EV.BAD_FRAME,
+                t,
+                source=f"{inbox_oversize} command frame(s)",
+                reason="longer than any valid request; refused unread",
+            )
         new_request = False
-        if ground is not None and self._ground is not None:
-            try:
-                self._ground.apply(ground)
-                new_request = True
-            except CodecError as exc:
-                self._bad_frame("the ground", str(exc))
+        if grounds and self._ground is not None:
+            new_request = self._take_request(grounds)
         self._h_loop.set(loop)
         self._h_time.set(t)
         self.faults.step(t)
         self.commands.step(new_request, t)
         self.statemachine.step(t)
         self.controllers.run(loop, t)
-        tm = self._tm.encode(loop, t) if loop % self._divisor == 0 else None
+        tm: bytearray | None = None
+        if loop % self._divisor == 0:
+            tm = self._tm.encode(loop, t)
+            if self._seal_tm is not None:
+                tm = self._seal_tm.seal(tm)
         if self.recorder is not None:
-            self.recorder.finish(ground, sync_overrun, loop_overruns, tm)
+            self.recorder.finish(
+                grounds, sync_overrun, loop_overruns, inbox_dropped, inbox_oversize, tm
+            )
         return tm
+
+    def _take_request(self, grounds: Sequence[bytes | bytearray | memoryview]) -> bool:
+        """Check every request frame; apply the newest valid one. Returns
+        whether one was applied."""
+        assert self._ground is not None
+        best: Frame | None = None
+        valid = 0
+        for payload in grounds:
+            try:
+                ch = self._open_ground
+                frame = self._ground.check(ch.open(payload) if ch is not None else payload)
+            except AuthError as exc:
+                self._bad_frame("the ground", str(exc))
+                self.commands.reject(CommandStatus.REJECTED_AUTH, self.t_ns, detail=str(exc))
+                continue
+            except CodecError as exc:
+                self._bad_frame("the ground", str(exc))
+                continue
+            best = frame
+            valid += 1
+        if valid > 1:
+            self._dropped.bump(valid - 1)
+            self.events.emit(
+                EV.CMD_DROPPED, self.t_ns, n=valid - 1, why="more than one in a loop; newest wins"
+            )
+        if best is None:
+            return False
+        self._ground.write(best)
+        return True
 
     def telemetry(self) -> bytearray:
         """The whole vector framed now (for a final snapshot off the divisor)."""
-        return self._tm.encode(self.loop, self.t_ns)
+        tm = self._tm.encode(self.loop, self.t_ns)
+        return self._seal_tm.seal(tm) if self._seal_tm is not None else tm
 
     def reset_sync_counters(self) -> None:
         """Zero rx/missed/late per DN and the sync overruns (after a warm-up)."""
@@ -234,9 +315,25 @@ class DeviceLogic:
 
     ``board`` defaults to the board the node's ``board:`` config names
     (:func:`zplatform.boards.make_board`; built, not opened: the runtime
-    opens it). ``stale_after_ns``: a trigger stamped (CN
-    time) more than this long before ``now_ns`` belongs to a loop the CN has
-    already closed; it is answered but does not run (None: never stale).
+    opens it). ``key``: the mission key (None: the mission does not
+    authenticate). ``stale_after_ns``: a trigger stamped (CN time) more than
+    this long before ``now_ns`` belongs to a loop the CN has already closed;
+    it is answered but does not run (None: never stale).
+
+    A trigger must also be believable (so that no single frame can freeze
+    the node): stamped no further ahead of this node's clock than the
+    mission's clock-offset bound plus a period, and with a loop number no
+    further ahead of the last one than the time between them allows. Such a
+    frame is a bad frame, answered with an error.
+
+    Fail safe: :meth:`watchdog` (the driver calls it whenever it waited
+    without a trigger) safes the node after ``faults.dn_watchdog_loops``
+    periods with no valid trigger: every actuator's safe value, the board's
+    safe state, ``dnX_safed`` true, an event. The node stays safed (its
+    actuators do not run) until the CN is back: ``faults.dn_reenable_loops``
+    valid triggers in a row, whose regions then carry what the CN commands
+    now. :meth:`safe` does the same on demand (clean exit).
+
     Construction raises ConfigError (YAML path) for a bad device or
     controller. No method raises: device and controller exceptions are
     caught by their sets, and an exception of the board's own ``step`` (a
@@ -252,6 +349,7 @@ class DeviceLogic:
         board: Board | None = None,
         events: EventLog | None = None,
         stale_after_ns: int | None = None,
+        key: bytes | None = None,
     ) -> None:
         if node not in mission.device_nodes:
             raise ConfigError(
@@ -273,14 +371,26 @@ class DeviceLogic:
         self.controllers = ControllerSet(mission, node, dv, self.events)
         self._in = RegionCodec(dv, f"cn_to_{node}")
         self._out = RegionCodec(dv, f"{node}_to_cn")
+        ch = mission_channels(mission, key)
+        self._open: Channel | None = ch[f"cn_to_{node}"]
+        self._seal: Channel | None = ch[f"{node}_to_cn"]
         self._loop = dv.handle(f"{node}_loop")
         self._time = dv.handle(f"{node}_time_ns")
         self._errors = dv.handle(f"{node}_errors")
         self._bad = dv.handle(f"{node}_bad_frames")
+        self._h_safed = dv.handle(f"{node}_safed")
+        self._reenable_after = mission.faults.dn_reenable_loops
+        self._back = 0  # valid triggers in a row while safed
         self._stale_after = stale_after_ns
+        self._period = mission.period_ns
+        self._max_ahead = round(mission.clock.offset_bound_ms * 1e6) + mission.period_ns
+        self._watchdog_ns = mission.faults.dn_watchdog_loops * mission.period_ns
         self._board_streak = Streak()
         self.last_loop = 0
         self.last_t_ns = 0
+        self.last_trigger_ns: int | None = None
+        """This node's time at the last valid trigger (None before the first)."""
+        self.safed = False
         self.stale = 0
         """Triggers answered but not run (older loop, stale, or not newest)."""
         self.triggered = 0
@@ -294,16 +404,18 @@ class DeviceLogic:
         """Check one CN query frame and frame the reply.
 
         Returns the reply (``dnX_to_cn`` before this loop's run, stamped with
-        the trigger's loop and ``now_ns``), or None for a malformed frame
-        (counted in ``dnX_bad_frames``, reason in :attr:`reject_reason`; the
-        driver answers with an error). Sets :attr:`triggered` to the loop to
-        run, or 0: a query for a loop not newer than the last one served, a
-        stale one, or one the driver says may not run (``may_run=False``: a
-        backlog the DN skips) is answered but not applied.
+        the trigger's loop and ``now_ns``), or None for a malformed,
+        unauthentic or unbelievable frame (counted in ``dnX_bad_frames``,
+        reason in :attr:`reject_reason`; the driver answers with an error).
+        Sets :attr:`triggered` to the loop to run, or 0: a query for a loop
+        not newer than the last one served, a stale one, or one the driver
+        says may not run (``may_run=False``: a backlog the DN skips) is
+        answered but not applied.
         """
         self.triggered = 0
         try:
-            frame = self._in.check(payload)
+            frame = self._in.check(self._open.open(payload) if self._open else payload)
+            self._believable(frame, now_ns)
         except CodecError as exc:
             self._bad.bump()
             self.reject_reason = str(exc)
@@ -320,16 +432,40 @@ class DeviceLogic:
             self._in.write(frame)
             self.last_loop = frame.seq
             self.last_t_ns = frame.t_ns
+            self.last_trigger_ns = now_ns
             self.triggered = frame.seq
         else:
             self.stale += 1
-        return self._out.encode(frame.seq, now_ns)
+        reply = self._out.encode(frame.seq, now_ns)
+        return self._seal.seal(reply) if self._seal is not None else reply
+
+    def _believable(self, frame: Frame, now_ns: int) -> None:
+        ahead = frame.t_ns - now_ns
+        if ahead > self._max_ahead:
+            raise CodecError(
+                f"stamped {ahead / 1e6:.3f} ms ahead of this node's clock (at most "
+                f"{self._max_ahead / 1e6:.3f} ms is believable)"
+            )
+        if self.last_loop and frame.seq > self.last_loop:
+            # Loop numbers advance with time (skipped periods included).
+            allowed = max(frame.t_ns - self.last_t_ns, 0) // self._period + 2
+            if frame.seq - self.last_loop > allowed:
+                raise CodecError(
+                    f"loop {frame.seq} is {frame.seq - self.last_loop} loops past the last one "
+                    f"({self.last_loop}) but only {allowed} periods later"
+                )
 
     def run(self, t_ns: int) -> None:
         """Run the loop :meth:`trigger` started, at ``t_ns``."""
         loop = self.triggered
         self._loop.set(loop)
         self._time.set(t_ns)
+        if self.safed:
+            self._back += 1
+            if self._back >= self._reenable_after:
+                self.safed = False
+                self._h_safed.set(False)
+                self.events.emit(EV.DN_REENABLED, t_ns, node=self.node, n=self._back)
         try:
             self.board.step(t_ns)
             self._board_streak.ok()
@@ -337,6 +473,8 @@ class DeviceLogic:
             self._board_failed(exc, t_ns)
         self.devices.run_sensors(loop, t_ns)
         self.controllers.run(loop, t_ns)
+        if self.safed:
+            return  # outputs stay at their safe values until re-enabled
         self.devices.run_actuators(loop, t_ns)
 
     def step(self, payload: bytes | bytearray | memoryview, now_ns: int) -> bytearray | None:
@@ -346,6 +484,30 @@ class DeviceLogic:
         if self.triggered:
             self.run(now_ns)
         return reply
+
+    def watchdog(self, now_ns: int) -> bool:
+        """Safe the node if it has had no valid trigger for
+        ``faults.dn_watchdog_loops`` periods (armed by the first trigger).
+        Returns whether the node is safed. Cheap: call it whenever the driver waited in vain."""
+        if self.safed:
+            return True
+        if self.last_trigger_ns is None:
+            return False  # armed by the first trigger: nothing was driven before it
+        quiet = now_ns - self.last_trigger_ns
+        if quiet > self._watchdog_ns:
+            self.safe(now_ns, f"no valid trigger from the control node for {quiet / 1e6:.0f} ms")
+        return self.safed
+
+    def safe(self, t_ns: int, why: str) -> None:
+        """Write every actuator's safe value and the board's safe state;
+        stay safed until the CN re-enables this node. Never raises."""
+        self.devices.safe_actuators(t_ns)
+        safe_board(self.board)
+        self._back = 0
+        if not self.safed:
+            self.safed = True
+            self._h_safed.set(True)
+            self.events.emit(EV.DN_SAFED, t_ns, node=self.node, why=why)
 
     def _board_failed(self, exc: Exception, t_ns: int) -> None:
         self._errors.bump()

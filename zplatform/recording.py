@@ -18,10 +18,11 @@ must reproduce). ``DIR`` holds ``mission.yaml`` (the effective mission) and
                2 REPLY      the reply frame of DN ``dn``
                3 REPLY_ERR  DN ``dn`` answered with an error (length 0)
                4 OVERSIZE   a reply longer than any valid frame: u32 its length
-               5 GROUND     the ground frame the loop applied
+               5 GROUND     a command request frame the loop took (any number)
                6 GROUND_OVERSIZE  u32 its length
                7 TELEMETRY  the telemetry frame the loop produced
-               8 FINISH     u8 sync_overrun, u32 loop_overruns (ends a loop)
+               8 FINISH     u8 sync_overrun, u32 loop_overruns, u32 inbox_dropped,
+                            u32 inbox_oversize (ends a loop)
                9 DROPPED    u64 loops the recorder could not keep (ring full)
 
 An oversize frame cannot decode (it is longer than the widest valid
@@ -44,12 +45,13 @@ import shutil
 import struct
 import threading
 import time
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import BinaryIO
 
 import msgspec
 
+from .auth import TAG_LEN
 from .codec import RegionCodec
 from .config import Mission
 from .datavector import DataVector, Layout
@@ -68,7 +70,7 @@ BEGIN, REPLY, REPLY_ERR, OVERSIZE, GROUND, GROUND_OVERSIZE, TELEMETRY, FINISH, D
 
 _ITEM = struct.Struct("<BBI")  # type, dn, length
 _BEGIN = struct.Struct("<Qq")
-_FINISH = struct.Struct("<BI")
+_FINISH = struct.Struct("<BIII")
 _U32 = struct.Struct("<I")
 _U64 = struct.Struct("<Q")
 _HEAD = struct.Struct("<6sHI")
@@ -101,9 +103,12 @@ class Recorder:
         dns = mission.device_nodes
         # The longest loop record with one reply per DN and the telemetry;
         # a loop with late replies on top simply spans chunks.
-        reply_max = [RegionCodec(dv, f"{dn}_to_cn").max_frame_len for dn in dns]
-        ground_max = RegionCodec(dv, "gn_to_cn").max_frame_len if mission.has_ground else 0
-        tm_max = RegionCodec(dv).max_frame_len
+        reply_max = [RegionCodec(dv, f"{dn}_to_cn").max_frame_len + TAG_LEN for dn in dns]
+        # Frames as they came off the wire: with an authentication tag.
+        ground_max = (
+            RegionCodec(dv, "gn_to_cn").max_frame_len + TAG_LEN if mission.has_ground else 0
+        )
+        tm_max = RegionCodec(dv).max_frame_len + TAG_LEN
         item = _ITEM.size
         loop_max = (
             item * (4 + 2 * len(dns))
@@ -239,21 +244,28 @@ class Recorder:
 
     def finish(
         self,
-        ground: bytes | bytearray | memoryview | None,
+        grounds: Sequence[bytes | bytearray | memoryview],
         sync_overrun: bool,
         loop_overruns: int,
+        inbox_dropped: int,
+        inbox_oversize: int,
         telemetry: bytearray | None,
     ) -> None:
         if self._dropping:
             return
-        if ground is not None:
+        for ground in grounds:
             if len(ground) > self._max_ground:
                 self._put(GROUND_OVERSIZE, 0, _U32.pack(min(len(ground), 0xFFFF_FFFF)), 4)
             else:
                 self._put(GROUND, 0, ground, len(ground))
         if telemetry is not None:
             self._put(TELEMETRY, 0, telemetry, len(telemetry))
-        self._put(FINISH, 0, _FINISH.pack(bool(sync_overrun), loop_overruns), _FINISH.size)
+        self._put(
+            FINISH,
+            0,
+            _FINISH.pack(bool(sync_overrun), loop_overruns, inbox_dropped, inbox_oversize),
+            _FINISH.size,
+        )
         if not self._dropping:
             self.loops += 1
 
@@ -282,9 +294,11 @@ class LoopRecord(msgspec.Struct, frozen=True):
     loop: int
     t_ns: int
     replies: list[tuple[int, bytes | None]]
-    ground: bytes | None
+    grounds: list[bytes]
     sync_overrun: bool
     loop_overruns: int
+    inbox_dropped: int
+    inbox_oversize: int
     telemetry: bytes | None
 
 
@@ -341,7 +355,7 @@ class RecordReader:
         end = len(d)
         in_loop = False
         loop = t = 0
-        ground: bytes | None = None
+        grounds: list[bytes] = []
         telemetry: bytes | None = None
         replies: list[tuple[int, bytes | None]] = []
         while off < end:
@@ -358,7 +372,8 @@ class RecordReader:
             if typ == BEGIN:
                 loop, t = _BEGIN.unpack(body)
                 in_loop = True
-                ground = telemetry = None
+                telemetry = None
+                grounds = []
                 replies = []
             elif typ == DROPPED:
                 self.dropped_loops += _U64.unpack(body)[0]
@@ -374,14 +389,14 @@ class RecordReader:
             elif typ == OVERSIZE:
                 replies.append((dn, b""))
             elif typ == GROUND:
-                ground = body
+                grounds.append(body)
             elif typ == GROUND_OVERSIZE:
-                ground = b""
+                grounds.append(b"")
             elif typ == TELEMETRY:
                 telemetry = body
             elif typ == FINISH:
-                so, lo = _FINISH.unpack(body)
-                yield LoopRecord(loop, t, replies, ground, bool(so), lo, telemetry)
+                so, lo, dr, ov = _FINISH.unpack(body)
+                yield LoopRecord(loop, t, replies, grounds, bool(so), lo, dr, ov, telemetry)
                 in_loop = False
             else:
                 self.complete = False

@@ -54,7 +54,7 @@ import struct
 from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
-from .config import element_spec, platform_elements
+from .config import CMD_NAMES, element_spec, platform_elements
 from .errors import ConfigError
 from .events import EV, EventLog
 from .types import ScalarType
@@ -320,6 +320,12 @@ def check_config(mission: Mission, *, warn: bool = True) -> None:
     if sm is None:
         return
     check_structure(mission)
+    for i, c in enumerate(sm.priority):
+        if c not in CMD_NAMES or c == "NONE":
+            raise ConfigError(
+                f"{c!r} is not a command; commands: {', '.join(CMD_NAMES[1:])}",
+                f"$.state_machine.priority[{i}]",
+            )
     table = _element_table(mission)
     writable = logic_writable(mission)
     for name, st in sm.states.items():
@@ -400,7 +406,7 @@ def unreachable_states(mission: Mission) -> list[str]:
 class _Transition:
     """One resolved transition. ``after_ns < 0`` means a condition one."""
 
-    __slots__ = ("after_ns", "dst", "get", "op", "src", "target", "value", "why")
+    __slots__ = ("after_ns", "dst", "get", "on_cmd", "op", "src", "target", "value", "why")
 
     def __init__(
         self,
@@ -414,6 +420,7 @@ class _Transition:
         value: Any = None,
     ) -> None:
         self.target = target
+        self.on_cmd = False  # tests cn_cmd: firing consumes the pending command
         # The state_change event's arguments, built once at configure time.
         self.src = src
         self.dst = dst
@@ -465,6 +472,8 @@ class StateMachine:
         "_state",
         "_tis",
         "_transitions",
+        "changed",
+        "consumed_cmd",
         "states",
     )
 
@@ -481,6 +490,13 @@ class StateMachine:
         sm = mission.state_machine
         transitions: list[tuple[_Transition, ...]] = []
         actions: list[tuple[_Action, ...]] = []
+        # cn_cmd == X compares against X's code (config_value resolves names).
+        priority = sm.priority if sm is not None else []
+        prio = {(True, CMD_NAMES.index(c)): i for i, c in enumerate(priority)}
+        self.changed = False
+        """Whether the last :meth:`step` changed the state."""
+        self.consumed_cmd = False
+        """Whether the transition the last :meth:`step` fired tests ``cn_cmd``."""
         for name in names:
             st = sm.states[name] if sm is not None else None
             trs: list[_Transition] = []
@@ -500,14 +516,17 @@ class StateMachine:
                     shown = t.value if isinstance(t.value, str) else repr(t.value).lower()
                     why = f"{t.element} {t.op} {shown}"
                     get = dv.handle(t.element).get
-                    trs.append(
-                        _Transition(target, name, t.to, why, get=get, op=OPS[t.op], value=value)
-                    )
+                    tr = _Transition(target, name, t.to, why, get=get, op=OPS[t.op], value=value)
+                    tr.on_cmd = t.element == "cn_cmd"
+                    trs.append(tr)
                 for a in sorted(st.actions, key=lambda a: a.at_s):  # stable: config order ties
                     h = dv.handle(a.element)
                     e = table[a.element][1]
                     v = config_value(e, h.spec.scalar, a.value)
                     acts.append(_Action(round(a.at_s * 1e9), h.set, v))
+            # ABORT-class first (sm.priority order), then config order: an
+            # ABORT due in the same loop as a timer or a data transition wins.
+            trs.sort(key=lambda tr: prio.get((tr.on_cmd, tr.value), len(prio)))
             transitions.append(tuple(trs))
             actions.append(tuple(acts))
         self._transitions = tuple(transitions)
@@ -573,6 +592,7 @@ class StateMachine:
                 self._hold_start = t_ns
             self._run_due(0)
         tis = self._time_in_state(t_ns)
+        self.changed = self.consumed_cmd = False
         for tr in self._transitions[self._state]:
             if tr.after_ns >= 0:
                 if tis < tr.after_ns:
@@ -580,6 +600,8 @@ class StateMachine:
             elif not tr.op(tr.get(), tr.value):  # type: ignore[misc]
                 continue
             self._state = tr.target
+            self.changed = True
+            self.consumed_cmd = tr.on_cmd
             self._entered_ns = t_ns
             self._held_ns = 0
             self._next_action = 0

@@ -36,6 +36,7 @@ from typing import Any
 
 import msgspec
 
+from .auth import mission_channels
 from .codec import RegionCodec
 from .config import CMD_NAMES, Mission
 from .datavector import DataVector, Layout
@@ -232,27 +233,37 @@ def validate_command(
 
 
 def fill_request(
-    dv: DataVector, command: str, seq: int, element_index: int = 0, value: float = 0.0
+    dv: DataVector,
+    command: str,
+    seq: int,
+    element_index: int = 0,
+    value: float = 0.0,
+    epoch: int = 0,
 ) -> None:
     """Write one command request into the ``gn_to_cn`` elements of ``dv``.
 
     ``command`` is a name of :data:`~zplatform.config.CMD_NAMES` (any case,
     not ``NONE``); ``seq`` must be above every number the CN has seen (read
-    ``cn_cmd_seq`` from telemetry and add one). Raises CommandError for an
-    unknown command, a ``seq`` outside 1..2**32-1, an ``element_index``
+    ``cn_cmd_seq`` from telemetry and add one); ``epoch`` is the CN's
+    ``cn_epoch`` from telemetry (a request for another run is refused).
+    Raises CommandError for an unknown command, a ``seq`` outside
+    1..2**64-1, an ``element_index``
     outside 0..65535, or a ``dv`` without the ``gn_to_cn`` region. The value
     itself is checked by the CN (a bad one is rejected there).
     """
     name = command.upper()
     if name not in CMD_NAMES or name == "NONE":
         raise CommandError(f"unknown command {command!r}; commands: {', '.join(CMD_NAMES[1:])}")
-    if not 1 <= seq <= 0xFFFF_FFFF:
-        raise CommandError(f"command number {seq} is outside 1..4294967295")
+    if not 1 <= seq < 1 << 64:
+        raise CommandError(f"command number {seq} is outside 1..2**64-1")
+    if not 0 <= epoch < 1 << 64:
+        raise CommandError(f"epoch {epoch} is outside 0..2**64-1")
     if not 0 <= element_index <= 0xFFFF:
         raise CommandError(f"element index {element_index} is outside 0..65535")
     try:
         dv.handle("gn_cmd").set(CMD_NAMES.index(name))
         dv.handle("gn_cmd_seq").set(seq)
+        dv.handle("gn_cmd_epoch").set(epoch)
         dv.handle("gn_cmd_element").set(element_index)
         dv.handle("gn_cmd_value").set(float(value))
     except DataVectorError as exc:
@@ -269,22 +280,28 @@ def verdict(telemetry: DataVector, seq: int) -> str | None:
 
 
 class Uplink:
-    """Frames command requests: one ``gn_to_cn`` vector and its codec.
+    """Frames command requests: one ``gn_to_cn`` vector, its codec, and the
+    mission key's ``gn_to_cn`` channel (None: the mission does not
+    authenticate).
 
-    :meth:`frame` returns the codec's own buffer (reused by the next call).
+    :meth:`frame` returns a buffer of its own (reused by the next call).
     """
 
-    def __init__(self, mission: Mission) -> None:
+    def __init__(self, mission: Mission, key: bytes | None = None) -> None:
         if not mission.has_ground:
             raise CommandError(f"mission {mission.mission!r} has no ground node 'gn'")
         self.mission = mission
         self.req = DataVector(Layout.for_regions(mission, ["gn_to_cn"]))
         self._codec = RegionCodec(self.req, "gn_to_cn")
+        self._seal = mission_channels(mission, key).get("gn_to_cn")
 
-    def frame(self, command: str, seq: int, index: int, value: float, t_ns: int) -> bytearray:
-        """The request frame (CommandError as :func:`fill_request`)."""
-        fill_request(self.req, command, seq, index, value)
-        return self._codec.encode(seq, t_ns)
+    def frame(
+        self, command: str, seq: int, index: int, value: float, t_ns: int, epoch: int = 0
+    ) -> bytearray:
+        """The request frame, authenticated (CommandError as :func:`fill_request`)."""
+        fill_request(self.req, command, seq, index, value, epoch)
+        frame = self._codec.encode(seq, t_ns)
+        return self._seal.seal(frame) if self._seal is not None else frame
 
 
 class _Entry(msgspec.Struct, frozen=True):
@@ -316,6 +333,7 @@ class ScriptPlayer:
         *,
         resend_loops: int = 100,
         tries: int = 3,
+        key: bytes | None = None,
     ) -> None:
         if script and not mission.has_ground:
             raise CommandError(
@@ -331,7 +349,7 @@ class ScriptPlayer:
             entries.append(_Entry(1 + -(-c.at_ns // period), c, cmd, index, value))
         self._script = entries
         self._next = 0
-        self._uplink = Uplink(mission) if mission.has_ground else None
+        self._uplink = Uplink(mission, key) if mission.has_ground else None
         self._waiting: _Entry | None = None
         self._seq = 0
         self._sent_loop = 0
@@ -385,4 +403,11 @@ class ScriptPlayer:
             self._tries = 1
             self._waiting = e
         self._sent_loop = loop
-        return self._uplink.frame(e.cmd, self._seq, e.index, e.value, int(tm.get("cn_time_ns")))
+        return self._uplink.frame(
+            e.cmd,
+            self._seq,
+            e.index,
+            e.value,
+            int(tm.get("cn_time_ns")),
+            int(tm.get("cn_epoch")),
+        )

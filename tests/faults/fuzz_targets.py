@@ -113,11 +113,15 @@ def command_target(data: bytes) -> None:
             applied = True
         except CodecError:
             applied = False
+        rejects = int(dv.get("cn_cmd_rejects"))
         ch.step(applied, t)
         sm.step(t)
         status = int(dv.get("cn_cmd_status"))
         assert 0 <= status < len(CommandStatus), status
-        assert not applied or status != CommandStatus.NONE
+        # Every applied request gets a verdict: a status, or a refusal that
+        # consumes no number (replay, another run's epoch), counted.
+        refused = int(dv.get("cn_cmd_rejects")) == rejects + 1
+        assert not applied or status != CommandStatus.NONE or refused
         events.drain()
         t += fdp.ConsumeIntInRange(0, 20_000_000_000)
 

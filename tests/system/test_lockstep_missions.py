@@ -16,6 +16,7 @@ from pathlib import Path
 
 import pytest
 
+from tests.drive import igniter_bench_copy
 from zplatform import load_mission
 from zplatform.config import Mission
 from zplatform.errors import CommandError
@@ -226,7 +227,7 @@ def test_igniter_fires_when_both_device_nodes_agree(tmp_path: Path) -> None:
 
 
 def test_igniter_does_not_fire_when_dn1_is_disarmed(tmp_path: Path) -> None:
-    m = load_mission(IGN_YAML)
+    m = load_mission(igniter_bench_copy(tmp_path))
     res, rows = run(m, IGN_DISARM, IGN_DURATION, tmp_path / "ign.csv")
     assert visited(rows) == ["SAFE", "ARMED", "FIRE", "NO_FIRE"]
     assert_clean(res, rows, m)

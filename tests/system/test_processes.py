@@ -17,6 +17,7 @@ from pathlib import Path
 import pytest
 
 from tests.budget import assert_within_budget
+from tests.drive import igniter_bench_copy
 from zplatform.mission import load_mission
 from zplatform.node.ground import TelemetryReceiver
 from zplatform.telemetry import read_csv
@@ -199,9 +200,10 @@ def test_recovery_igniter_fires_when_both_nodes_agree(tmp_path: Path) -> None:
 
 
 def test_recovery_igniter_holds_fire_when_one_node_disagrees(tmp_path: Path) -> None:
-    """dn1 disarmed by a WRITE in flight: dn0 alone cannot fire the igniter -> NO_FIRE."""
+    """dn1 disarmed by a WRITE in flight (on a bench copy that allows it):
+    dn0 alone cannot fire the igniter -> NO_FIRE."""
     path = tmp_path / "mission.yaml"
-    rewrite_endpoints(ROOT / "configs" / "recovery_igniter.yaml", path)
+    rewrite_endpoints(igniter_bench_copy(tmp_path), path)
     csv_path, summary_path = tmp_path / "g.csv", tmp_path / "s.json"
     r = subprocess.run(
         [
@@ -227,7 +229,7 @@ def test_recovery_igniter_holds_fire_when_one_node_disagrees(tmp_path: Path) -> 
     )
     assert r.returncode == 0, r.stdout[-2000:] + r.stderr[-2000:]
     summary = json.loads(summary_path.read_text())
-    assert [c["status"] for c in summary["commands"]] == ["ACCEPTED"] * 3
+    assert [c["status"] for c in summary["commands"]] == ["ACCEPTED"] * 4
     rows = read_csv(csv_path)
     assert not _fired_rows(rows)
     assert all(r["dn1_ign_out"] == "0" for r in rows)

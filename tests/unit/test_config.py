@@ -671,8 +671,15 @@ def test_dn_and_gn_platform_elements() -> None:
     assert in_order(dn_platform("dn0"), dn0)
     assert dn0[-1] == "y"
     assert in_order(dn_platform("dn1"), names(m, "dn1_to_cn"))
-    assert names(m, "gn_to_cn") == ["gn_cmd", "gn_cmd_seq", "gn_cmd_element", "gn_cmd_value"]
-    assert [e.type for e in m.regions["gn_to_cn"]] == ["enum", "u32", "u16", "f64"]
+    assert names(m, "gn_to_cn") == [
+        "gn_cmd",
+        "gn_cmd_seq",
+        "gn_cmd_epoch",
+        "gn_cmd_element",
+        "gn_cmd_value",
+    ]
+    # u64 numbers and the CN's epoch: a sequence space no request can exhaust
+    assert [e.type for e in m.regions["gn_to_cn"]] == ["enum", "u64", "u64", "u16", "f64"]
 
 
 def test_controller_mode_placement() -> None:

@@ -20,8 +20,8 @@ warm-up: every input of every loop goes to disk for ``zplatform replay``.
 
 from __future__ import annotations
 
+import collections
 import logging
-import queue
 import time
 from pathlib import Path
 from typing import Any
@@ -29,6 +29,7 @@ from typing import Any
 import numpy as np
 import zenoh
 
+from ..auth import load_key
 from ..clocksync import ClockServer
 from ..config import Mission
 from ..datavector import DataVector
@@ -46,6 +47,9 @@ __all__ = ["ControlNode", "run_control_node"]
 
 log = logging.getLogger("zplatform.cn")
 
+INBOX = 16
+"""Command request frames kept between two loops (the newest ones)."""
+
 
 class ControlNode:
     """The CN process: session, sync, ground input, telemetry, logic.
@@ -61,12 +65,14 @@ class ControlNode:
         stop: StopFlag | None = None,
         lowlatency: bool | None = None,
         clock: NodeClock | None = None,
+        key: bytes | None = None,
     ) -> None:
         self.mission = mission
         self.stop = stop or StopFlag(install=False)
         self.clock = clock or NodeClock()
         self.clock.lock()  # the CN is the reference clock: never adjusted
-        self.logic = ControlLogic(mission)
+        # The run's epoch: this clock's start, unique per run of the CN.
+        self.logic = ControlLogic(mission, key=key, epoch=self.clock.now_ns())
         self.dv: DataVector = self.logic.dv
         self.ns = NodeSession(mission, "cn", announce=False, lowlatency=lowlatency)
         s = self.ns.session
@@ -79,7 +85,16 @@ class ControlNode:
             mission.sync_timeout_ns,
             query_timeout_s=max(mission.period_ns / 1e9, 0.01),
         )
-        self._gq: queue.SimpleQueue[bytes] = queue.SimpleQueue()
+        # The command inbox: bounded, newest kept; a frame's size is checked
+        # before its bytes are copied out of zenoh, so a flood of junk costs
+        # neither memory nor a valid command more than a loop.
+        self._inbox: collections.deque[bytes] = collections.deque(maxlen=INBOX)
+        self._inbox_max = self.logic.max_request_len
+        self._inbox_dropped = 0
+        self._inbox_oversize = 0
+        self._seen_dropped = 0
+        self._seen_oversize = 0
+        self._grounds: list[bytes] = []
         self._gsub: zenoh.Subscriber[Any] | None = None
         if mission.has_ground:
             self._gsub = s.declare_subscriber(
@@ -102,7 +117,14 @@ class ControlNode:
         self._mono = time.monotonic_ns
 
     def _on_ground(self, sample: zenoh.Sample) -> None:
-        self._gq.put(sample.payload.to_bytes())  # zenoh's thread: hand off only
+        # zenoh's thread: check the size, hand off, nothing more.
+        payload = sample.payload
+        if len(payload) > self._inbox_max:
+            self._inbox_oversize += 1
+            return
+        if len(self._inbox) == INBOX:
+            self._inbox_dropped += 1  # the deque drops the oldest
+        self._inbox.append(payload.to_bytes())
 
     def record(self, directory: str | Path, mission_source: str | Path) -> Recorder:
         """Record every loop's inputs into ``directory`` from now on (call
@@ -186,10 +208,23 @@ class ControlNode:
             self.first_loop_ns = t
         logic = self.logic
         overrun = self.sync.sync(logic.begin(loop, t), logic)
-        # empty() first: raising queue.Empty every loop would allocate.
-        ground = self._gq.get_nowait() if not self._gq.empty() else None
+        grounds = self._grounds
+        grounds.clear()
+        inbox = self._inbox
+        while inbox:
+            grounds.append(inbox.popleft())
         skipped, self._skipped = self._skipped, 0
-        tm = logic.finish(ground, sync_overrun=overrun, loop_overruns=skipped)
+        # Totals only zenoh's thread writes; the loop keeps what it has seen.
+        d_total, o_total = self._inbox_dropped, self._inbox_oversize
+        dropped, oversize = d_total - self._seen_dropped, o_total - self._seen_oversize
+        self._seen_dropped, self._seen_oversize = d_total, o_total
+        tm = logic.finish(
+            grounds,
+            sync_overrun=overrun,
+            loop_overruns=skipped,
+            inbox_dropped=dropped,
+            inbox_oversize=oversize,
+        )
         if tm is not None:
             self._tm_pub.put(tm)
         self._events.flush()
@@ -284,13 +319,14 @@ def run_control_node(
     ground_wait_s: float | None = None,
     record: str | Path | None = None,
     mission_source: str | Path | None = None,
+    key_file: str | Path | None = None,
 ) -> CnSummary:
     """Entry function: build, wait for DNs, loop until SIGTERM/duration. Blocks.
 
     ``record``: a directory to record every loop's inputs into (needs
     ``mission_source``, the mission file, which the recording keeps)."""
     stop = StopFlag()
-    node = ControlNode(mission, stop=stop)
+    node = ControlNode(mission, stop=stop, key=load_key(mission, key_file))
     try:
         offsets = node.wait_ready(ready_timeout_s, ground_wait_s)
         log.info("device nodes ready; clock offsets (ns): %s", offsets)

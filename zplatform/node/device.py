@@ -18,6 +18,7 @@ from __future__ import annotations
 import logging
 import threading
 
+from ..auth import load_key
 from ..boards import close_board, open_board
 from ..clocksync import estimate_offset
 from ..config import Mission
@@ -46,6 +47,7 @@ class DeviceNode:
         stop: StopFlag | None = None,
         clock: NodeClock | None = None,
         lowlatency: bool | None = None,
+        key: bytes | None = None,
     ) -> None:
         if name not in mission.device_nodes:
             raise NodeError(f"{name!r} is not a device node of mission {mission.mission!r}")
@@ -55,7 +57,7 @@ class DeviceNode:
         self.clock = clock or NodeClock()
         # A trigger stamped (CN time) more than a period ago belongs to a loop
         # the CN has already closed: answer it, do not run it.
-        self.logic = DeviceLogic(mission, name, stale_after_ns=mission.period_ns)
+        self.logic = DeviceLogic(mission, name, stale_after_ns=mission.period_ns, key=key)
         self.dv = self.logic.dv
         self.ns = NodeSession(mission, name, announce=False, lowlatency=lowlatency)
         self._offset_h = self.dv.handle(f"{name}_clock_offset_ns")
@@ -138,8 +140,13 @@ class DeviceNode:
         gc_guard = GcGuard()
         gc_guard.freeze_after_startup()
         try:
+            # Wake at least once a period without a trigger: the watchdog
+            # safes the node when the control node has gone quiet.
+            idle_s = min(0.2, period / 1e9)
             while not self.stop.is_set():
-                if not wait(logic, 0.2):
+                if not wait(logic, idle_s):
+                    if logic.watchdog(now()):
+                        self._events.flush()
                     continue
                 t = now()
                 self._drift_h.set(self.drift_ns)
@@ -169,23 +176,31 @@ class DeviceNode:
         )
 
     def close(self) -> None:
+        """Safe the outputs, publish the last events, release everything."""
         self.stop.set()
+        # A clean exit leaves the vehicle safe: actuators, then the board.
+        self.logic.safe(self.clock.now_ns(), "the node is stopping")
         if self._events is not None:
-            self._events.undeclare()
+            self._events.undeclare()  # flushes the dn_safed event first
         if self.sync is not None:
             self.sync.close()
         if self._resync is not None:
             self._resync.join(timeout=2)
-        close_board(self.logic.board)  # safes the outputs first
+        close_board(self.logic.board)
         self.ns.close()
 
 
 def run_device_node(
-    mission: Mission, name: str, *, realtime: bool = True, ready_timeout_s: float = 60.0
+    mission: Mission,
+    name: str,
+    *,
+    realtime: bool = True,
+    ready_timeout_s: float = 60.0,
+    key_file: str | None = None,
 ) -> DnSummary:
     """Entry function: start, serve until SIGTERM. Blocks; returns the summary."""
     stop = StopFlag()
-    node = DeviceNode(mission, name, stop=stop)
+    node = DeviceNode(mission, name, stop=stop, key=load_key(mission, key_file))
     try:
         node.start(ready_timeout_s)
         node.run(realtime=realtime)

@@ -18,11 +18,14 @@ from __future__ import annotations
 
 import logging
 import queue
+import struct
 import time
 from collections.abc import Callable
+from typing import Literal
 
 import zenoh
 
+from ..auth import load_key, mission_channels
 from ..codec import RegionCodec
 from ..config import Mission
 from ..datavector import DataVector, Layout
@@ -38,6 +41,8 @@ __all__ = ["CommandSender", "TelemetryReceiver", "run_ground_logger"]
 
 log = logging.getLogger("zplatform.gn")
 
+_U64 = struct.Struct("<Q")
+
 
 class TelemetryReceiver:
     """Decodes CN telemetry into ``self.dv``; counts received, gaps, bad frames.
@@ -45,12 +50,31 @@ class TelemetryReceiver:
     :meth:`next` blocks up to ``timeout_s`` for one snapshot and returns the
     receive time (ns, this node's clock) or None. The zenoh callback only
     queues the bytes (a FIFO: every snapshot is kept until read).
+
+    Nothing unchecked is applied: a snapshot must carry the telemetry
+    channel's tag (``key``; None when the mission does not authenticate), be
+    newer than the last one of the same CN run (``cn_epoch``; a restarted CN
+    starts a new run), and not jump further ahead than the time since the
+    last one allows. Anything else is counted in :attr:`bad` and dropped.
     """
 
-    def __init__(self, session: zenoh.Session, mission: Mission, now_ns: Callable[[], int]):
+    def __init__(
+        self,
+        session: zenoh.Session,
+        mission: Mission,
+        now_ns: Callable[[], int],
+        key: bytes | Literal["mission"] | None = "mission",
+    ):
         self.mission = mission
         self.dv = DataVector(Layout.for_node(mission, "cn"))
         self._codec = RegionCodec(self.dv)
+        if key == "mission":  # the mission's own key, from where the mission keeps it
+            key = load_key(mission)
+        self._open = mission_channels(mission, key)["telemetry"]
+        self._epoch_at = self.dv.layout.element("cn_epoch").offset
+        self._epoch = -1
+        self._last_rx = 0
+        self._period = mission.period_ns
         self._now = now_ns
         self._q: queue.SimpleQueue[tuple[bytes, int]] = queue.SimpleQueue()
         self.received = 0
@@ -73,11 +97,18 @@ class TelemetryReceiver:
             except queue.Empty:
                 return None
             try:
-                frame = self._codec.apply(payload)
+                frame = self._codec.check(self._open.open(payload) if self._open else payload)
+                epoch = _U64.unpack_from(frame.data, self._epoch_at)[0]
+                self._believable(frame.seq, epoch, rx)
             except CodecError as exc:
                 self.bad += 1
                 log.warning("bad telemetry frame: %s", exc)
                 continue
+            self._codec.write(frame)
+            if epoch != self._epoch:  # a (re)started CN: a new run of loop numbers
+                self._epoch = epoch
+                self.last_seq = -1
+            self._last_rx = rx
             div = self.mission.telemetry_divisor
             if self.last_seq >= 0 and frame.seq > self.last_seq + div:
                 self.gaps += (frame.seq - self.last_seq) // div - 1
@@ -86,6 +117,18 @@ class TelemetryReceiver:
             self.received += 1
             self.last_seq = frame.seq
             return rx
+
+    def _believable(self, seq: int, epoch: int, rx: int) -> None:
+        if epoch != self._epoch or self.last_seq < 0:
+            return
+        if seq <= self.last_seq:
+            raise CodecError(f"snapshot of loop {seq} is not newer than loop {self.last_seq}")
+        allowed = 2 * (max(rx - self._last_rx, 0) // self._period + 1) + 100
+        if seq - self.last_seq > allowed:
+            raise CodecError(
+                f"snapshot of loop {seq} jumps {seq - self.last_seq} loops past loop "
+                f"{self.last_seq} in {(rx - self._last_rx) / 1e6:.1f} ms"
+            )
 
     def close(self) -> None:
         self._sub.undeclare()
@@ -100,6 +143,7 @@ def run_ground_logger(
     stop: StopFlag | None = None,
     idle_exit_s: float | None = None,
     script: list[ScriptCommand] | None = None,
+    key_file: str | None = None,
 ) -> GnSummary:
     """Log telemetry snapshots to CSV until stopped or ``duration_s``. Blocks.
 
@@ -112,9 +156,10 @@ def run_ground_logger(
     clock = NodeClock()
     node = "gn" if as_node and mission.has_ground else None
     ns = NodeSession(mission, node, announce=False)
-    rx = TelemetryReceiver(ns.session, mission, clock.now_ns)
+    key = load_key(mission, key_file)
+    rx = TelemetryReceiver(ns.session, mission, clock.now_ns, key)
     logger = CsvLogger(out_csv, rx.dv.layout) if out_csv else None
-    player = ScriptPlayer(mission, script) if script else None
+    player = ScriptPlayer(mission, script, key=key) if script else None
     cmd_pub = ns.session.declare_publisher(ns.keys.gn_to_cn) if player is not None else None
     # Alive only once subscribed: the CN waits for this token before its
     # first loop, so the log starts at loop 1.
@@ -174,15 +219,18 @@ class CommandSender:
     before anything is sent.
     """
 
-    def __init__(self, mission: Mission, *, timeout_s: float = 10.0) -> None:
+    def __init__(
+        self, mission: Mission, *, timeout_s: float = 10.0, key_file: str | None = None
+    ) -> None:
         if not mission.has_ground:
             raise CommandError(f"mission {mission.mission!r} has no ground node 'gn'")
         self.mission = mission
         self.timeout_s = timeout_s
+        key = load_key(mission, key_file)  # before any session: a clear error first
         self.clock = NodeClock()
         self.ns = NodeSession(mission, None)
-        self.rx = TelemetryReceiver(self.ns.session, mission, self.clock.now_ns)
-        self._uplink = Uplink(mission)
+        self.rx = TelemetryReceiver(self.ns.session, mission, self.clock.now_ns, key)
+        self._uplink = Uplink(mission, key)
         self._pub = self.ns.session.declare_publisher(self.ns.keys.gn_to_cn)
 
     def validate(
@@ -221,7 +269,9 @@ class CommandSender:
         return int(self.rx.dv.get("cn_cmd_seq")) + 1
 
     def _send(self, cmd: str, seq: int, index: int, num: float) -> CommandOutcome:
-        self._pub.put(bytes(self._uplink.frame(cmd, seq, index, num, self.clock.now_ns())))
+        epoch = int(self.rx.dv.get("cn_epoch"))
+        frame = self._uplink.frame(cmd, seq, index, num, self.clock.now_ns(), epoch)
+        self._pub.put(bytes(frame))
         deadline = time.monotonic() + self.timeout_s
         dv = self.rx.dv
         while True:
