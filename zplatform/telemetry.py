@@ -324,7 +324,7 @@ def plot_telemetry(
     t = [(int(r["rx_time_ns"]) - t0) / 1e9 for r in rows]
     markers = plot_markers(rows)
     fig, axes = plt.subplots(
-        len(elements), 1, sharex=True, squeeze=False, figsize=(10, 1.0 + 2.0 * len(elements))
+        len(elements), 1, sharex=True, squeeze=False, figsize=(10, 1.5 + 2.0 * len(elements))
     )
     try:
         for ax, name in zip(axes[:, 0], elements, strict=True):
@@ -352,16 +352,26 @@ def plot_telemetry(
                     label=m.label,
                 )
         top = axes[0, 0]
+        # Markers closer than 2 % of the run share one label, so they stay legible.
+        near = 0.02 * (t[-1] - t[0] if len(t) > 1 else 1.0)
+        groups: list[list[Marker]] = []
         for m in markers:
+            if groups and m.t_s - groups[-1][0].t_s <= near:
+                groups[-1].append(m)
+            else:
+                groups.append([m])
+        for g in groups:
             top.annotate(
-                m.label,
-                xy=(m.t_s, 1.0),
+                "\n".join(m.label for m in g),
+                xy=(g[0].t_s, 0.97),
                 xycoords=("data", "axes fraction"),
-                rotation=90,
-                va="bottom",
-                ha="center",
+                xytext=(2, 0),
+                textcoords="offset points",
+                va="top",
+                ha="left",
                 fontsize=7,
-                color="tab:red" if m.kind == "state" else "tab:green",
+                bbox={"boxstyle": "round,pad=0.15", "fc": "white", "ec": "none", "alpha": 0.8},
+                color="tab:red" if all(m.kind == "state" for m in g) else "black",
             )
         axes[-1, 0].set_xlabel("time since first snapshot (s)")
         fig.suptitle(title or ", ".join(elements))
