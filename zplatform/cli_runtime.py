@@ -503,6 +503,13 @@ def _run_up(args: argparse.Namespace, mission: Mission, reg: Any, tmp: Path) -> 
         endpoints={n: list(node.listen) for n, node in mission.nodes.items()},
         logs=logs,
     )
+    if not args.quiet:
+        where = f" (remapped mission {path})" if args.free_ports else ""
+        print(
+            f"zplatform up: running as {reg.name!r}{where}; other verbs take that name "
+            f"as MISSION (`zplatform ground {reg.name}`), `zplatform ps` lists it",
+            flush=True,
+        )
     children = _Children()
     common = ["--ready-timeout", str(args.ready_timeout)]
     if args.no_realtime:
