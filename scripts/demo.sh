@@ -6,8 +6,8 @@ PY=${PYTHON:-python3}
 if [ ! -x .venv/bin/python ]; then
   "$PY" -m venv .venv
 fi
-.venv/bin/python -m pip install --quiet --upgrade pip
-.venv/bin/python -m pip install --quiet -e .
+.venv/bin/python -m pip install -qq --upgrade pip
+.venv/bin/python -m pip install -qq -e .
 .venv/bin/zplatform check configs/led_test.yaml >/dev/null
 # The thesis' LED platform test: A -LAUNCH-> B -3 s-> C -LED4-> D -ABORT-> E,
 # commands played by the ground node, telemetry logged to led_test.csv (events

@@ -287,6 +287,7 @@ def cmd_xtce(args: argparse.Namespace) -> int:
         raise CommandError("xtce needs yamcs-pymdb: pip install 'zplatform[ground]'") from None
     mission = load_mission(args.mission)
     out = args.out or f"{mission.mission}.xtce.xml"
+    check_output(out, "XTCE file")
     x = write_xtce(mission, out)
     print(f"wrote {out}")
     if x.unplaced:
@@ -304,6 +305,7 @@ def cmd_ccsds(args: argparse.Namespace) -> int:
     if args.decode:
         if not args.out:
             raise CommandError("--decode needs --out CSV")
+        check_output(args.out, "CSV")
         try:
             data = Path(args.decode).read_bytes()
         except OSError as exc:
@@ -320,6 +322,7 @@ def cmd_ccsds(args: argparse.Namespace) -> int:
     from .timebase import NodeClock
     from .transport import NodeSession
 
+    check_output(args.record, "packet file")
     enc = ccsds.CcsdsEncoder(
         mission, divisor=args.divisor, budget_bps=args.budget, max_data=args.max_data
     )

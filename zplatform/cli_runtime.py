@@ -479,6 +479,9 @@ def cmd_up(args: argparse.Namespace) -> int:
     _check_outputs(args, "log", "summary", "record")
     if not args.free_ports:
         check_ports(mission)  # another `up` of this mission, or anything else, on its ports
+    # Until the nodes run (then _run_up takes SIGTERM over), a SIGTERM ends
+    # `up` like Ctrl-C: through the finally below, which unregisters.
+    signal.signal(signal.SIGTERM, _interrupt)
     reg = registry.register(mission.mission, args.mission)
     tmp = Path(tempfile.mkdtemp(prefix="zplatform-up-"))
     try:
@@ -486,6 +489,10 @@ def cmd_up(args: argparse.Namespace) -> int:
     finally:
         reg.remove()
         shutil.rmtree(tmp, ignore_errors=True)
+
+
+def _interrupt(signum: int, frame: Any) -> None:
+    raise KeyboardInterrupt
 
 
 def _run_up(args: argparse.Namespace, mission: Mission, reg: Any, tmp: Path) -> int:
@@ -711,6 +718,9 @@ def _merge_summaries(
 
 
 def _print_summary(s: RunSummary) -> None:
+    if s.loops == 0:
+        print(f"{s.mission}: no loop ran (see the messages above)")
+        return
     print(
         f"{s.mission}: {s.loops} loops in {s.duration_s:.2f} s "
         f"({s.rate_hz:.2f} Hz); overruns loop {s.loop_overruns} sync {s.sync_overruns}; "
