@@ -10,7 +10,6 @@ for numbers (``--duration -1`` is refused by argparse, exit 2) and
 from __future__ import annotations
 
 import argparse
-import contextlib
 import errno
 import os
 import socket
@@ -120,5 +119,3 @@ def check_ports(mission: Mission) -> None:
                             "to run beside it"
                         ) from None
                     continue
-                with contextlib.suppress(OSError):
-                    s.close()

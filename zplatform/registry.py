@@ -32,8 +32,10 @@ import msgspec
 from .errors import CommandError
 
 __all__ = [
+    "ENV_DIR",
     "Entry",
     "Registration",
+    "entries_json",
     "register",
     "resolve_mission",
     "running",
@@ -201,11 +203,7 @@ def resolve_mission(arg: str) -> str:
             return e.mission_file
     looks_like_path = os.sep in arg or arg.endswith((".yaml", ".yml"))
     what = "no such mission file" if looks_like_path else "no such file or running mission"
-    return _fail(f"{what}: {arg!r}; {_describe(entries)}")
-
-
-def _fail(msg: str) -> str:
-    raise CommandError(msg)
+    raise CommandError(f"{what}: {arg!r}; {_describe(entries)}")
 
 
 def entries_json(entries: list[Entry]) -> str:
