@@ -134,7 +134,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="zplatform",
         description=__doc__.splitlines()[0] if __doc__ else None,
-        epilog="`zplatform VERB --help` describes a verb; MISSION is " + MISSION_HELP + ".",
+        epilog="`zplatform VERB --help` describes a verb; MISSION is a " + MISSION_HELP + ".",
     )
     p.add_argument("--version", action="version", version=f"zplatform {__version__}")
     sub = p.add_subparsers(dest="command", required=True, metavar="VERB")

@@ -146,7 +146,7 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         help="print every sample on matching keys, decoded (events included)",
         description="Print every sample on matching keys, decoded to named values; events "
         "({vehicle}/NODE/events) as severity, id and text. Exits 1 when nothing at all "
-        f"arrived within --timeout (default {TAP_SILENCE_S:g} s without --count).",
+        f"arrived within --timeout (without --timeout: within {TAP_SILENCE_S:g} s).",
     )
     p.add_argument("mission", help=mission_help)
     p.add_argument("keyexpr", nargs="?", help="zenoh key expression (default: {vehicle}/**)")
@@ -155,8 +155,8 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         "--timeout",
         type=positive_float,
         metavar="S",
-        help="stop after S seconds; with neither --count nor --timeout, tap runs until Ctrl-C "
-        f"but gives up (exit 1) if nothing arrives in the first {TAP_SILENCE_S:g} s",
+        help="stop after S seconds (default: until --count or Ctrl-C, but give up, exit 1, "
+        f"if nothing at all arrives in the first {TAP_SILENCE_S:g} s)",
     )
     p.add_argument("--json", action="store_true", help="one JSON object per line")
     p.set_defaults(func=cmd_tap)
@@ -367,8 +367,8 @@ def cmd_tap(args: argparse.Namespace) -> int:
     """Print samples until --count, --timeout or Ctrl-C.
 
     Exit 0 after at least one sample; exit 1 when nothing arrived before
-    the deadline (--timeout, or :data:`TAP_SILENCE_S` when neither --count
-    nor --timeout is given), with a line saying so on stderr.
+    the deadline (--timeout, or :data:`TAP_SILENCE_S` without it), with a
+    line saying so on stderr.
     """
     mission = load_mission(args.mission)
     dec = _TapDecoder(mission)
