@@ -177,7 +177,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         if getattr(args, "mission", None) is not None:
             args.mission = resolve_mission(args.mission)
-        return func(args)
+        rc = func(args)
+        sys.stdout.flush()  # here, not at exit, so a closed pipe is caught below
+        return rc
     except ZPlatformError as exc:
         print(f"zplatform: error: {exc}", file=sys.stderr)
         return 2
