@@ -20,7 +20,8 @@ from typing import Any
 
 import yaml
 
-from zplatform.config import Mission, load_mission
+from zplatform.config import Mission
+from zplatform.mission import load_mission
 from zplatform.node.control import ControlNode
 from zplatform.node.runtime import PARENT_ENV, StopFlag
 from zplatform.scheduler import PeriodicLoop

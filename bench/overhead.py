@@ -64,7 +64,7 @@ from typing import Annotated, Any
 import msgspec
 from msgspec import Meta
 
-from zplatform.control import Controller
+from zplatform.controllers import Controller
 from zplatform.datavector import DataVector
 from zplatform.node.control import ControlNode
 

@@ -51,7 +51,7 @@ import msgspec
 import yaml
 from msgspec import Meta
 
-from zplatform.control import Controller
+from zplatform.controllers import Controller
 from zplatform.datavector import DataVector
 from zplatform.devices import Actuator, Sensor, SimBoard
 from zplatform.node.control import ControlNode

@@ -14,9 +14,11 @@ from .codec import (
     decode_frame,
     encode_frame,
 )
+from .codes import Command, CommandStatus, Fault
 from .commands import CommandHandler
-from .config import Mission, decode_mission, load_mission
-from .control import Controller, ControllerSet
+from .components import Component
+from .config import Mission
+from .controllers import Controller, ControllerSet
 from .datavector import DataVector, ElementSpec, Handle, Layout, RegionSpec
 from .devices import Actuator, Board, Device, DeviceSet, Sensor, SimBoard
 from .errors import (
@@ -26,6 +28,7 @@ from .errors import (
     ConfigError,
     ControlError,
     DataVectorError,
+    EventError,
     FrameFormatError,
     FrameSizeError,
     LayoutMismatchError,
@@ -37,12 +40,14 @@ from .errors import (
     TransportError,
     ZPlatformError,
 )
-from .events import Event, EventLog, Severity
+from .events import EV, Event, EventLog, EventType, Severity
 from .faults import FaultMonitor
 from .lockstep import LockstepRunner, ReplayResult, SimResult, replay
 from .loop import ControlLogic, DeviceLogic
+from .mission import check_mission, decode_mission, load_mission
+from .rategroups import RateGroups
 from .recording import Recorder
-from .scheduler import GcGuard, LoopStats, PeriodicLoop, RateGroups, setup_realtime
+from .scheduler import GcGuard, LoopStats, PeriodicLoop, setup_realtime
 from .statemachine import StateMachine
 from .telemetry import CsvLogger, read_csv
 from .timebase import NodeClock, VirtualClock
@@ -52,12 +57,16 @@ from .uplink import ScriptCommand, ScriptPlayer, fill_request, load_commands, pa
 __version__ = "0.1.0"
 
 __all__ = [
+    "EV",
     "Actuator",
     "Board",
     "ClockSyncError",
     "CodecError",
+    "Command",
     "CommandError",
     "CommandHandler",
+    "CommandStatus",
+    "Component",
     "ConfigError",
     "ControlError",
     "ControlLogic",
@@ -71,7 +80,10 @@ __all__ = [
     "DeviceSet",
     "ElementSpec",
     "Event",
+    "EventError",
     "EventLog",
+    "EventType",
+    "Fault",
     "FaultMonitor",
     "Frame",
     "FrameDecoder",
@@ -109,6 +121,7 @@ __all__ = [
     "VirtualClock",
     "ZPlatformError",
     "__version__",
+    "check_mission",
     "decode_frame",
     "decode_mission",
     "encode_frame",

@@ -10,8 +10,8 @@ import time
 from pathlib import Path
 
 from .cli_args import check_output, positive_float, positive_int
-from .config import load_mission
 from .errors import CommandError, ZPlatformError
+from .mission import load_mission
 from .telemetry import read_csv
 
 MISSION_HELP = "mission YAML file, or the name of a running mission (`zplatform ps`)"

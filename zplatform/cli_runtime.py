@@ -19,10 +19,11 @@ import zenoh
 
 from .cli_args import check_output, check_ports, nonnegative_float, positive_float, positive_int
 from .codec import RegionCodec
-from .config import Mission, load_mission
+from .config import Mission
 from .datavector import DataVector, Layout
 from .errors import CodecError, CommandError, NodeError
 from .events import decode_event
+from .mission import load_mission
 from .node.runtime import PARENT_ENV, setup_logging
 from .summary import CnSummary, DnSummary, GnSummary, RunSummary, read_summary, write_summary
 from .telemetry import events_path

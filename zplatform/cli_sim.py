@@ -28,8 +28,8 @@ from pathlib import Path
 import msgspec
 
 from .cli_args import check_output, positive_float
-from .config import load_mission
 from .lockstep import LockstepRunner, replay
+from .mission import load_mission
 from .telemetry import CsvLogger, EventWriter, events_path
 from .uplink import ScriptCommand, load_commands
 
@@ -88,11 +88,10 @@ def cmd_replay(args: argparse.Namespace) -> int:
     if args.summary:
         check_output(args.summary, "summary")
     if args.log:
-        from .config import load_mission as _load
         from .datavector import Layout
         from .recording import MISSION_FILE
 
-        layout = Layout.for_node(_load(Path(args.directory) / MISSION_FILE), "cn")
+        layout = Layout.for_node(load_mission(Path(args.directory) / MISSION_FILE), "cn")
         with CsvLogger(args.log, layout) as log:
             res = replay(args.directory, log=log)
     else:

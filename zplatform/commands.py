@@ -1,7 +1,7 @@
 """The operator command handler (thesis 000 ch. 4.8, 6.1; seed 003), sans-IO.
 
 The ground node sends one request per ``gn_to_cn`` frame: ``gn_cmd`` (a
-command of :data:`~zplatform.config.CMD_NAMES`), ``gn_cmd_seq`` (a number
+command of :class:`~zplatform.codes.Command`), ``gn_cmd_seq`` (a number
 that must grow with every request), and for WRITE ``gn_cmd_element`` (the
 element's index in the CN's element list, ``ElementSpec.index``) and
 ``gn_cmd_value``. The handler has the thesis' three internal states:
@@ -34,8 +34,8 @@ Validation, first failure wins (the status goes to ``cn_cmd_status``):
 
 An accepted command sets ``cn_cmd`` (WRITE also writes the element; HOLD and
 RESUME call the state machine) and becomes Active. Every request writes
-``cn_cmd_seq = gn_cmd_seq`` and ``cn_cmd_status`` and emits an event: INFO
-``cmd_accepted`` or WARNING ``cmd_rejected`` with the reason. Nothing in a
+``cn_cmd_seq = gn_cmd_seq`` and ``cn_cmd_status`` and emits an event: COMMAND
+``cmd_accepted`` or WARNING_LO ``cmd_rejected`` with the reason. Nothing in a
 request can make :meth:`CommandHandler.step` raise.
 
 The numbers are remembered for the CN's life: a ground tool continues from
@@ -45,15 +45,15 @@ the ``cn_cmd_seq`` it reads in telemetry (see :func:`zplatform.uplink.fill_reque
 from __future__ import annotations
 
 import difflib
-import enum
 import logging
 import math
 from typing import TYPE_CHECKING, Any
 
-from .config import CMD_NAMES, CMD_STATUS_NAMES
+from .codes import Command, CommandStatus
+from .config import CMD_NAMES
 from .errors import ConfigError
-from .events import EventLog, Severity
-from .statemachine import logic_writable
+from .events import EV, EventLog
+from .statemachine import logic_writable, why_not_writable
 
 if TYPE_CHECKING:
     from .config import Mission
@@ -74,34 +74,6 @@ log = logging.getLogger("zplatform.commands")
 ARM_WINDOW_NS = 10_000_000_000
 """How long an accepted ARM confirms the next (hazardous) command: 10 s."""
 
-
-class Command(enum.IntEnum):
-    """Operator commands; the values of ``gn_cmd`` and ``cn_cmd``."""
-
-    NONE = 0
-    NOOP = 1
-    LAUNCH = 2
-    ABORT = 3
-    WRITE = 4
-    HOLD = 5
-    RESUME = 6
-    ARM = 7
-
-
-class CommandStatus(enum.IntEnum):
-    """Outcome of the last request; the values of ``cn_cmd_status``."""
-
-    NONE = 0
-    ACCEPTED = 1
-    REJECTED_UNKNOWN = 2
-    REJECTED_NOT_ALLOWED = 3
-    REJECTED_BAD_ARGUMENT = 4
-    REJECTED_REPLAY = 5
-    REJECTED_NOT_ARMED = 6
-
-
-assert tuple(c.name for c in Command) == CMD_NAMES, "Command must mirror config.CMD_NAMES"
-assert tuple(s.name for s in CommandStatus) == CMD_STATUS_NAMES, "mirror CMD_STATUS_NAMES"
 
 _N_CMDS = len(CMD_NAMES)
 _F32_MAX = 3.4028234663852886e38
@@ -153,8 +125,6 @@ def check_config(mission: Mission, *, warn: bool = True) -> None:
     With ``warn``, logs a warning for a ``cn_cmd == X`` transition in a
     state whose whitelist refuses ``X`` (the transition can never fire).
     """
-    from .statemachine import _why_not_writable
-
     cfg = mission.commands
     states = _state_names(mission)
     commands = [c for c in CMD_NAMES if c != "NONE"]
@@ -195,7 +165,7 @@ def check_config(mission: Mission, *, warn: bool = True) -> None:
                     f"element {name!r} is an array ({e.type}); WRITE sets one scalar", w
                 )
             if name not in can:
-                raise ConfigError(_why_not_writable(mission, region, name), w)
+                raise ConfigError(why_not_writable(mission, region, name), w)
     sm = mission.state_machine
     if warn and sm is not None:
         for state, st in sm.states.items():
@@ -327,11 +297,16 @@ class CommandHandler:
         if status == CommandStatus.ACCEPTED:
             self._h_cmd.set(cmd)
             self._active = True
-            text = f"command {name} #{seq} accepted{detail}"
-            self._events.emit(Severity.INFO, "cmd_accepted", text, t_ns)
+            self._events.emit(EV.CMD_ACCEPTED, t_ns, name=name, seq=seq, detail=detail)
         else:
-            text = f"command {name} #{seq} rejected ({CMD_STATUS_NAMES[status]}): {detail}"
-            self._events.emit(Severity.WARNING, "cmd_rejected", text, t_ns)
+            self._events.emit(
+                EV.CMD_REJECTED,
+                t_ns,
+                name=name,
+                seq=seq,
+                status=CommandStatus(status).name,
+                detail=detail,
+            )
 
     def _validate(self, cmd: int, seq: int, t_ns: int) -> tuple[int, str]:
         """``(status, detail)``; performs the command when it is accepted."""

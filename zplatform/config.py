@@ -1,27 +1,35 @@
-"""The mission configuration: YAML decoded into typed, checked structs.
+"""The mission configuration's schema: YAML decoded into typed, structurally checked structs.
 
-``load_mission(path)`` is the only way in. It decodes the YAML with msgspec
-(``forbid_unknown_fields``, so a typo fails at load), then checks every rule
-of thesis 000 ch. 4.1.1 (Data Vector), 4.2.1 (network) and the topology rules
-of DESIGN.md, and finally adds the platform elements of DESIGN.md §5 to the
-regions. Every failure is a :class:`~zplatform.errors.ConfigError` whose
+This module is the schema and nothing more: the :class:`Mission` struct tree
+(``msgspec.Struct`` with ``forbid_unknown_fields``, so a typo fails at
+decode), the structural checks of thesis 000 ch. 4.1.1 (Data Vector), 4.2.1
+(network) and the topology rules of DESIGN.md, the size limits that keep a
+mission from exhausting memory (:data:`MAX_ARRAY_COUNT`,
+:data:`MAX_REGION_BYTES`, :data:`MAX_VECTOR_BYTES`), and the platform
+elements of DESIGN.md §5 added to the regions. :func:`parse_mission` does
+all of that; every failure is a :class:`~zplatform.errors.ConfigError` whose
 message names the YAML path of the bad field and what was expected.
 
+It imports none of the modules that give the sections their meaning (state
+machine, commands, controllers, devices): those import *it*. The semantic
+checks live with them and are run by :func:`zplatform.mission.load_mission`
+/ :func:`zplatform.mission.decode_mission`, the way in for everyone else. A
+mission that only passed :func:`parse_mission` is not fit to fly.
+
 After loading, a :class:`Mission` is treated as immutable: the runtime reads
-it, never writes it. Checks of the control sections (state machine,
-controllers, commands) that need the whole Data Vector live with the modules
-that own those sections and are run by ``load_mission`` too.
+it, never writes it.
 """
 
 from __future__ import annotations
 
 import re
-from pathlib import Path
+import unicodedata
 from typing import Annotated, Any, Literal
 
 import msgspec
 from msgspec import Meta
 
+from .codes import Command, CommandStatus, Fault
 from .errors import ConfigError
 from .types import SCALAR_TYPES, ScalarType, parse_type
 
@@ -30,6 +38,10 @@ __all__ = [
     "CMD_STATUS_NAMES",
     "CONTROLLER_MODES",
     "FAULT_NAMES",
+    "MAX_ARRAY_COUNT",
+    "MAX_REGION_BYTES",
+    "MAX_VECTOR_BYTES",
+    "MISSION_NAME_MAX",
     "ActionConfig",
     "ClockConfig",
     "CommandsConfig",
@@ -42,37 +54,39 @@ __all__ = [
     "StateMachineConfig",
     "TransitionConfig",
     "TransportConfig",
-    "decode_mission",
-    "load_mission",
+    "element_spec",
+    "parse_mission",
+    "platform_elements",
 ]
 
 Scalar = int | float | bool | str
 Value = Scalar | list[Scalar]
 
-# Operator commands carried in gn_cmd / cn_cmd (thesis 4.8, seed 003 ARM).
-CMD_NAMES: tuple[str, ...] = ("NONE", "NOOP", "LAUNCH", "ABORT", "WRITE", "HOLD", "RESUME", "ARM")
-CMD_STATUS_NAMES: tuple[str, ...] = (
-    "NONE",
-    "ACCEPTED",
-    "REJECTED_UNKNOWN",
-    "REJECTED_NOT_ALLOWED",
-    "REJECTED_BAD_ARGUMENT",
-    "REJECTED_REPLAY",
-    "REJECTED_NOT_ARMED",
-)
+# Enum names of the platform elements cn_cmd/gn_cmd, cn_cmd_status and
+# cn_fault, derived from the one definition of the codes (zplatform.codes).
+CMD_NAMES: tuple[str, ...] = tuple(m.name for m in Command)
+CMD_STATUS_NAMES: tuple[str, ...] = tuple(m.name for m in CommandStatus)
 CONTROLLER_MODES: tuple[str, ...] = ("enabled", "safed", "manual")
-# Critical-error flag values (thesis 4.11.1: a flag the state machine reads).
-FAULT_NAMES: tuple[str, ...] = (
-    "NONE",
-    "DN_LOST",
-    "CONTROLLER_FAILED",
-    "SYNC_OVERRUNS",
-    "LOOP_OVERRUNS",
-)
+FAULT_NAMES: tuple[str, ...] = tuple(m.name for m in Fault)
 
+# Names checked with fullmatch, never match: `$` also matches before a
+# trailing newline, so "cn_loop\n" would pass a match().
 _NAME_RE = re.compile(r"^[a-z][a-z0-9_]*$")
 _ENUM_NAME_RE = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*$")
 _DN_RE = re.compile(r"^dn([0-9]+)$")
+MAX_ARRAY_COUNT = 16 * 1024 * 1024
+"""Most items in one array element (16 Mi: ``u8[16777216]``, ``f64[16777216]``)."""
+MAX_REGION_BYTES = 256 * 1024 * 1024
+"""Most bytes in one region (256 MiB): a region travels whole in one frame per loop."""
+MAX_VECTOR_BYTES = 256 * 1024 * 1024
+"""Most bytes in a Data Vector (256 MiB); the CN's holds every region."""
+MISSION_NAME_MAX = 128
+"""Longest mission name, in characters."""
+# Characters with a meaning in zenoh key expressions (wildcards, separators,
+# the `$*` chunk syntax, `#` reserved): never part of a name that may go
+# into a key or a file name.
+_KEY_SPECIALS = frozenset("*$?#/")
+
 _FLOAT_WORDS = ("nan", "inf", "+inf", "-inf", "infinity", "-infinity")
 _EXP_FLOAT_RE = re.compile(r"^[-+]?(?:[0-9]+\.?[0-9]*|\.[0-9]+)e[-+]?[0-9]+$")
 
@@ -101,7 +115,8 @@ class NodeConfig(_Struct):
 
     listen: list[str] = msgspec.field(default_factory=list)
     connect: list[str] = msgspec.field(default_factory=list)
-    cpu: int | None = None
+    # Only >= 0, not < os.cpu_count(): the mission may target another host.
+    cpu: Annotated[int, Meta(ge=0)] | None = None
     priority: Annotated[int, Meta(ge=1, le=99)] | None = None
     host: str = ""
     board: dict[str, Any] = msgspec.field(default_factory=dict)
@@ -155,10 +170,15 @@ class StateConfig(_Struct):
 
 
 class StateMachineConfig(_Struct):
-    """States in order; ``initial`` becomes ``cn_state``'s initial value."""
+    """States in order; ``initial`` becomes ``cn_state``'s initial value.
+
+    ``priority``: commands whose transitions are tried before every other
+    transition of a state (ABORT-class: an ABORT wins over a timer or a data
+    transition due in the same loop), in this order."""
 
     initial: str
     states: dict[str, StateConfig]
+    priority: list[str] = msgspec.field(default_factory=lambda: ["ABORT"])
 
 
 class ComponentConfig(_Struct):
@@ -179,6 +199,20 @@ class CommandsConfig(_Struct):
     whitelist: dict[str, list[str]] = msgspec.field(default_factory=dict)
     hazardous: list[str] = msgspec.field(default_factory=list)
     writable: list[str] | None = None
+    # Elements a WRITE may set only as a hazardous command (ARM n, WRITE n+1).
+    # None: every controller mode when the mission has hazardous commands.
+    protected: list[str] | None = None
+
+
+class SecurityConfig(_Struct):
+    """Authentication of every frame a node takes from the network.
+
+    ``auth``: every region frame, telemetry snapshot and command request
+    carries an HMAC-SHA256 tag keyed by the mission key, which never lives
+    in the YAML (:mod:`zplatform.auth`: a key file or the environment).
+    Turning it off is for benchmarks and closed test benches only."""
+
+    auth: bool = True
 
 
 class FaultsConfig(_Struct):
@@ -188,6 +222,11 @@ class FaultsConfig(_Struct):
     controller_fail_loops: Annotated[int, Meta(ge=0)] = 3
     sync_overrun_loops: Annotated[int, Meta(ge=0)] = 10
     loop_overrun_loops: Annotated[int, Meta(ge=0)] = 0
+    # A DN with no valid trigger for this many periods writes its actuators'
+    # safe values and stays safed until the CN re-enables it, which the CN
+    # does once the DN has answered this many loops in a row again.
+    dn_watchdog_loops: Annotated[int, Meta(ge=1, le=1_000_000)] = 10
+    dn_reenable_loops: Annotated[int, Meta(ge=1, le=1_000_000)] = 10
 
 
 class Mission(_Struct):
@@ -207,13 +246,14 @@ class Mission(_Struct):
     devices: list[ComponentConfig] = msgspec.field(default_factory=list)
     commands: CommandsConfig = msgspec.field(default_factory=CommandsConfig)
     faults: FaultsConfig = msgspec.field(default_factory=FaultsConfig)
+    security: SecurityConfig = msgspec.field(default_factory=SecurityConfig)
     doc: str = ""
 
     # -- derived views (cheap; computed from the checked fields) -----------
     @property
     def device_nodes(self) -> list[str]:
         """Device node names in index order (``dn0``, ``dn1``, ...)."""
-        return sorted((n for n in self.nodes if _DN_RE.match(n)), key=lambda n: int(n[2:]))
+        return sorted((n for n in self.nodes if _DN_RE.fullmatch(n)), key=lambda n: int(n[2:]))
 
     @property
     def has_ground(self) -> bool:
@@ -242,7 +282,7 @@ class Mission(_Struct):
             return self.region_names()
         if node == "gn":
             return ["gn_to_cn"]
-        if node in self.nodes and _DN_RE.match(node):
+        if node in self.nodes and _DN_RE.fullmatch(node):
             return [f"cn_to_{node}", f"{node}_to_cn"]
         raise ConfigError(f"no node named {node!r}; nodes: {sorted(self.nodes)}", "$.nodes")
 
@@ -259,22 +299,14 @@ class Mission(_Struct):
 # loading
 
 
-def load_mission(path: str | Path) -> Mission:
-    """Read, decode and check a mission YAML file.
+def parse_mission(text: bytes | str, source: str = "<string>") -> Mission:
+    """Decode YAML text into a :class:`Mission`: schema, structural checks, platform elements.
 
-    Blocks on file I/O only. Raises :class:`ConfigError` naming the YAML path
-    of the first bad field; never returns a partially valid mission.
+    Raises :class:`ConfigError` naming the YAML path of the first bad field.
+    Runs no semantic check (state machine, commands, controller and device
+    classes): use :func:`zplatform.mission.decode_mission`, which calls this
+    and then those, unless you are one of those checks.
     """
-    p = Path(path)
-    try:
-        text = p.read_bytes()
-    except OSError as exc:
-        raise ConfigError(f"cannot read mission file {str(p)!r}: {exc.strerror}", "$") from exc
-    return decode_mission(text, source=str(p))
-
-
-def decode_mission(text: bytes | str, source: str = "<string>") -> Mission:
-    """Decode and check a mission from YAML text (see :func:`load_mission`)."""
     try:
         raw = msgspec.yaml.decode(text)
     except msgspec.DecodeError as exc:
@@ -288,7 +320,7 @@ def decode_mission(text: bytes | str, source: str = "<string>") -> Mission:
         mission = msgspec.convert(raw, type=Mission)
     except msgspec.ValidationError as exc:
         msg, _, where = str(exc).partition(" - at `")
-        raise ConfigError(msg, where.rstrip("`") or "$") from exc
+        raise ConfigError(msg, _name_the_key(raw, where.rstrip("`") or "$")) from exc
     _check_mission(mission)
     # Structural checks of controllers/devices come before the platform
     # elements are added: a repeated controller name must be reported as
@@ -296,11 +328,44 @@ def decode_mission(text: bytes | str, source: str = "<string>") -> Mission:
     _check_control_sections(mission)
     n_platform = _add_platform_elements(mission)
     _check_elements(mission, n_platform)
-    # Imported here: those modules import this one.
-    from . import _checks
-
-    _checks.run_all(mission)
     return mission
+
+
+def _keyed_sections() -> tuple[tuple[tuple[str, ...], Any], ...]:
+    """The mappings of the schema keyed by user names, and their value types."""
+    return (
+        (("nodes",), NodeConfig),
+        (("regions",), list[ElementConfig]),
+        (("state_machine", "states"), StateConfig),
+        (("commands", "whitelist"), list[str]),
+    )
+
+
+def _name_the_key(raw: dict[str, Any], where: str) -> str:
+    """Replace msgspec's ``[...]`` (a key it does not name) with the key at fault.
+
+    msgspec reports an error inside a ``dict`` value as ``$.nodes[...].cpu``;
+    the user needs ``$.nodes.cn.cpu``. The values of that mapping are
+    converted one by one, and the first that fails names the key (and the
+    path inside it). Returns ``where`` unchanged when it cannot tell.
+    """
+    for keys, value_type in _keyed_sections():
+        prefix = "$." + ".".join(keys)
+        if not where.startswith(prefix + "[...]"):
+            continue
+        mapping: Any = raw
+        for k in keys:
+            mapping = mapping.get(k) if isinstance(mapping, dict) else None
+        if not isinstance(mapping, dict):
+            return where
+        for key, value in mapping.items():
+            try:
+                msgspec.convert(value, type=value_type)
+            except msgspec.ValidationError as exc:
+                at = str(exc).partition(" - at `")[2].rstrip("`")
+                return f"{prefix}.{key}{at[1:] if at.startswith('$') else ''}"
+        return where
+    return where
 
 
 def _check_duplicate_keys(text: bytes | str) -> None:
@@ -332,8 +397,28 @@ def _check_duplicate_keys(text: bytes | str) -> None:
             stack += [(v, f"{path}[{i}]") for i, v in enumerate(node.value)]
 
 
+def _unsafe_name_reason(name: str) -> str | None:
+    """Why ``name`` cannot be a name (empty, control characters, key specials), or None."""
+    if not name:
+        return "is empty"
+    for ch in name:
+        if unicodedata.category(ch)[0] == "C":  # Cc control (NUL, \n), Cf, Cs, Co, Cn
+            return f"contains the control character {ch!r}"
+        if ch in _KEY_SPECIALS:
+            return f"contains {ch!r}, which has a meaning in zenoh key expressions"
+    return None
+
+
 def _check_mission(m: Mission) -> None:
-    if not _NAME_RE.match(m.vehicle):
+    why = _unsafe_name_reason(m.mission)
+    if why is not None:
+        raise ConfigError(f"mission name {m.mission!r} {why}", "$.mission")
+    if len(m.mission) > MISSION_NAME_MAX:
+        raise ConfigError(
+            f"mission name is {len(m.mission)} characters long; at most {MISSION_NAME_MAX}",
+            "$.mission",
+        )
+    if not _NAME_RE.fullmatch(m.vehicle):
         raise ConfigError(
             f"vehicle key prefix must match {_NAME_RE.pattern}, got {m.vehicle!r}", "$.vehicle"
         )
@@ -342,7 +427,7 @@ def _check_mission(m: Mission) -> None:
     if "cn" not in m.nodes:
         raise ConfigError("the control node 'cn' is missing", "$.nodes")
     for name in m.nodes:
-        if name not in ("cn", "gn") and not _DN_RE.match(name):
+        if name not in ("cn", "gn") and not _DN_RE.fullmatch(name):
             raise ConfigError(
                 f"node name {name!r} is not one of cn, gn, dn0, dn1, ...", f"$.nodes.{name}"
             )
@@ -385,10 +470,20 @@ _ENDPOINT_RE = re.compile(r"^(tcp|udp|tls|quic|unixsock-stream|ws)/(.+)$")
 
 
 def _check_endpoint(ep: str, where: str) -> None:
-    m = _ENDPOINT_RE.match(ep)
+    m = _ENDPOINT_RE.fullmatch(ep)
     if m is None:
         raise ConfigError(
             f"endpoint {ep!r} is not '<proto>/<address>' (e.g. tcp/10.0.0.1:7447)", where
+        )
+    if m.group(1) in ("tls", "quic"):
+        # Both need certificates and keys, which must not live in the mission
+        # YAML (it is shared and versioned); they would come from a per-host
+        # deployment file, which zplatform does not support yet.
+        raise ConfigError(
+            f"endpoint {ep!r}: {m.group(1)}/ needs TLS certificate settings, which belong in "
+            "a deployment file that zplatform does not support yet; use tcp/ or udp/ on a "
+            "trusted network",
+            where,
         )
     if m.group(1) in ("tcp", "udp", "tls", "quic", "ws"):
         host, sep, port = m.group(2).rpartition(":")
@@ -396,7 +491,7 @@ def _check_endpoint(ep: str, where: str) -> None:
             raise ConfigError(f"endpoint {ep!r} needs host:port with a port 0-65535", where)
 
 
-def _platform_elements(m: Mission) -> dict[str, list[ElementConfig]]:
+def platform_elements(m: Mission) -> dict[str, list[ElementConfig]]:
     """The elements every mission has (DESIGN.md §5), per region."""
     states = list(m.state_machine.states) if m.state_machine else ["IDLE"]
     initial = m.state_machine.initial if m.state_machine else "IDLE"
@@ -411,8 +506,12 @@ def _platform_elements(m: Mission) -> dict[str, list[ElementConfig]]:
         E("cn_last_error", "u16", 0),
         E("cn_bad_frames", "u32", 0),
         E("cn_cmd", "enum", "NONE", list(CMD_NAMES)),
-        E("cn_cmd_seq", "u32", 0),
+        E("cn_cmd_seq", "u64", 0),
         E("cn_cmd_status", "enum", "NONE", list(CMD_STATUS_NAMES)),
+        E("cn_cmd_rejects", "u32", 0),
+        E("cn_cmd_reject_status", "enum", "NONE", list(CMD_STATUS_NAMES)),
+        E("cn_cmd_dropped", "u32", 0),
+        E("cn_epoch", "u64", 0),
         E("cn_fault", "enum", "NONE", list(FAULT_NAMES)),
         E("cn_time_in_state_ns", "i64", 0),
     ]
@@ -424,7 +523,7 @@ def _platform_elements(m: Mission) -> dict[str, list[ElementConfig]]:
         ]
     out: dict[str, list[ElementConfig]] = {"cn": cn}
     for dn in m.device_nodes:
-        out[f"cn_to_{dn}"] = []
+        out[f"cn_to_{dn}"] = [E(f"{dn}_enable_gen", "u32", 0)]
         out[f"{dn}_to_cn"] = [
             E(f"{dn}_loop", "u64", 0),
             E(f"{dn}_time_ns", "i64", 0),
@@ -433,11 +532,13 @@ def _platform_elements(m: Mission) -> dict[str, list[ElementConfig]]:
             E(f"{dn}_bad_frames", "u32", 0),
             E(f"{dn}_clock_offset_ns", "i64", 0),
             E(f"{dn}_clock_drift_ns", "i64", 0),
+            E(f"{dn}_safed", "bool", False),
         ]
     if m.has_ground:
         out["gn_to_cn"] = [
             E("gn_cmd", "enum", "NONE", list(CMD_NAMES)),
-            E("gn_cmd_seq", "u32", 0),
+            E("gn_cmd_seq", "u64", 0),
+            E("gn_cmd_epoch", "u64", 0),
             E("gn_cmd_element", "u16", 0),
             E("gn_cmd_value", "f64", 0.0),
         ]
@@ -457,7 +558,7 @@ def _platform_elements(m: Mission) -> dict[str, list[ElementConfig]]:
 
 def _add_platform_elements(m: Mission) -> dict[str, int]:
     """Prepend the platform elements; returns how many each region got."""
-    platform = _platform_elements(m)
+    platform = platform_elements(m)
     regions: dict[str, list[ElementConfig]] = {}
     for region in m.region_names():
         regions[region] = platform.get(region, []) + list(m.regions.get(region, []))
@@ -492,11 +593,13 @@ def _element_path(m: Mission, region: str, i: int, n_platform: int, name: str) -
 
 def _check_elements(m: Mission, n_platform: dict[str, int]) -> None:
     seen: dict[str, tuple[str, str]] = {}
+    vector_bytes = 0
     for region, elements in m.regions.items():
         n = n_platform.get(region, 0)
+        region_bytes = 0
         for i, e in enumerate(elements):
             where = _element_path(m, region, i, n, e.name)
-            if not _NAME_RE.match(e.name):
+            if not _NAME_RE.fullmatch(e.name):
                 raise ConfigError(
                     f"element name {e.name!r} must match {_NAME_RE.pattern}", f"{where}.name"
                 )
@@ -513,6 +616,24 @@ def _check_elements(m: Mission, n_platform: dict[str, int]) -> None:
                 )
             seen[e.name] = (region, where)
             _check_element_type(e, where)
+            # Sizes before initial values: `u8[99999999999]` must fail here
+            # with its path, not in a list of that many initial values.
+            st, count = element_spec(e)
+            size = st.size * max(count, 1)
+            region_bytes += size
+            vector_bytes += size
+            if region_bytes > MAX_REGION_BYTES:
+                raise ConfigError(
+                    f"region {region!r} grows to {region_bytes} bytes with element {e.name!r}; "
+                    f"a region holds at most {MAX_REGION_BYTES} bytes (256 MiB)",
+                    f"{where}.type",
+                )
+            if vector_bytes > MAX_VECTOR_BYTES:
+                raise ConfigError(
+                    f"the control node's Data Vector (every region) grows to {vector_bytes} "
+                    f"bytes with element {e.name!r}; at most {MAX_VECTOR_BYTES} bytes (256 MiB)",
+                    f"{where}.type",
+                )
             e.initial = _check_initial(e, where)
 
 
@@ -536,17 +657,24 @@ def _check_element_type(e: ElementConfig, where: str) -> None:
             e.type = "enum"
         names = e.enum
         for j, n in enumerate(names):
-            if not _ENUM_NAME_RE.match(n):
+            if not _ENUM_NAME_RE.fullmatch(n):
                 raise ConfigError(f"enum name {n!r} is not an identifier", f"{where}.enum[{j}]")
         if len(set(names)) != len(names):
             raise ConfigError(f"enum names repeat: {names}", f"{where}.enum")
         if len(names) > 65536:
             raise ConfigError("an enum holds at most 65536 names", f"{where}.enum")
         return
-    if parse_type(e.type) is None:
+    parsed = parse_type(e.type)
+    if parsed is None:
         raise ConfigError(
             f"invalid element type {e.type!r}; expected one of "
             f"{', '.join(SCALAR_TYPES)}, an array like 'f32[3]', or 'enum'",
+            f"{where}.type",
+        )
+    if parsed[1] > MAX_ARRAY_COUNT:
+        raise ConfigError(
+            f"array {e.type!r} has {parsed[1]} items; an array holds at most "
+            f"{MAX_ARRAY_COUNT} (16 Mi)",
             f"{where}.type",
         )
 
@@ -607,12 +735,12 @@ def _check_initial(e: ElementConfig, where: str) -> Value:
 def _check_control_sections(m: Mission) -> None:
     """Structural checks of the control sections; semantic checks that need
     the whole Data Vector are done by the owning modules' ``check_config``
-    (``_checks.run_all``, called by :func:`decode_mission` afterwards)."""
+    (run by :func:`zplatform.mission.check_mission` afterwards)."""
     for section in ("controllers", "devices"):
         names: set[str] = set()
         for i, c in enumerate(getattr(m, section)):
             where = f"$.{section}[{i}]"
-            if not _NAME_RE.match(c.name):
+            if not _NAME_RE.fullmatch(c.name):
                 raise ConfigError(f"name {c.name!r} must match {_NAME_RE.pattern}", f"{where}.name")
             if c.name in names:
                 raise ConfigError(f"duplicate {section[:-1]} name {c.name!r}", f"{where}.name")

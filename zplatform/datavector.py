@@ -191,9 +191,11 @@ class Handle:
     raise :class:`DataVectorError`, and the element then reads 0: ``struct``
     clears the bytes before it converts); use :meth:`DataVector.set` for
     checked writes of untrusted values, which leaves the vector unchanged.
+    ``bump(n)`` adds to a scalar integer counter and saturates at the type's
+    maximum (a u32 error counter sticks at 4294967295, it never wraps to 0).
     """
 
-    __slots__ = ("_buf", "_fmt", "_off", "_view", "spec")
+    __slots__ = ("_buf", "_fmt", "_max", "_off", "_view", "spec")
 
     def __init__(self, dv: DataVector, spec: ElementSpec):
         self.spec = spec
@@ -201,6 +203,10 @@ class Handle:
         self._off = spec.offset
         self._fmt = struct.Struct("<" + spec.scalar.struct)
         self._view: np.ndarray | None = dv.array[spec.name][0] if spec.count else None
+        # Only scalar integer elements (enums included) can be counters.
+        self._max: int | None = (
+            spec.scalar.hi if spec.scalar.kind == "int" and not spec.count else None
+        )
 
     def get(self) -> Any:
         if self._view is not None:
@@ -217,6 +223,25 @@ class Handle:
             raise DataVectorError(
                 f"cannot store {value!r} in {self.spec.name} ({self.spec.type_text}): {exc}"
             ) from exc
+
+    def bump(self, n: int = 1) -> int:
+        """Add ``n`` (>= 0) to a counter, saturating at the type's maximum; return the new value.
+
+        For scalar integer elements only (DataVectorError otherwise, raised
+        before anything is written). Saturation, not wrap-around: a counter
+        that reads its maximum means "at least that many". Costs what
+        ``set(get() + n)`` costs: one unpack, one add, one pack.
+        """
+        hi = self._max
+        if hi is None:
+            raise DataVectorError(
+                f"bump() needs a scalar integer element; {self.spec.name} is {self.spec.type_text}"
+            )
+        v = self._fmt.unpack_from(self._buf, self._off)[0] + n
+        if v > hi:
+            v = hi
+        self._fmt.pack_into(self._buf, self._off, v)
+        return int(v)
 
 
 class DataVector:

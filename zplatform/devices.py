@@ -10,7 +10,8 @@ Each loop of a device node runs, in order (:class:`DeviceSet` and
 :class:`~zplatform.loop.DeviceLogic`): the board's :meth:`Board.step`
 (latch inputs; the simulated board's physics), the sensors, the node's
 controllers, the actuators. A device that raises is counted in
-``dnX_errors`` and reported by an ``ERROR`` event once per failure streak;
+``dnX_errors`` and reported by a ``WARNING_HI`` event (``EV.DEVICE_FAILED``)
+once per failure streak;
 the loop goes on and the device runs again next loop.
 
 :class:`SimBoard` is the board of the lockstep runner and of tests: pins held
@@ -34,18 +35,20 @@ from typing import Annotated, Any, Protocol, runtime_checkable
 import msgspec
 from msgspec import Meta
 
-from .config import ComponentConfig, Mission
-from .control import (
+from .components import (
     Component,
-    _component_indices,
-    _errors_element,
+    Streak,
+    component_indices,
     decode_component_config,
+    errors_element,
     load_component_class,
+    load_function,
 )
+from .config import ComponentConfig, Mission
 from .datavector import DataVector
 from .errors import ConfigError, ControlError, SchedulerError, ZPlatformError
-from .events import EventLog, Severity
-from .scheduler import RateGroups
+from .events import EV, EventLog
+from .rategroups import RateGroups
 
 __all__ = [
     "Actuator",
@@ -61,8 +64,6 @@ __all__ = [
     "SimBoardConfig",
     "check_config",
 ]
-
-_U32_MAX = 0xFFFF_FFFF
 
 
 @runtime_checkable
@@ -111,23 +112,6 @@ class SimBoardConfig(msgspec.Struct, forbid_unknown_fields=True):
 Physics = Callable[["SimBoard", int], None]
 
 
-def _load_physics(spec: str, where: str) -> Physics:
-    import importlib
-
-    mod_name, sep, fn_name = spec.partition(":")
-    if not sep or not mod_name or not fn_name:
-        raise ConfigError(f"physics {spec!r} must be 'package.module:function'", where)
-    try:
-        module = importlib.import_module(mod_name)
-    except ImportError as exc:
-        raise ConfigError(f"cannot import physics module {mod_name!r}: {exc}", where) from exc
-    fn = getattr(module, fn_name, None)
-    if not callable(fn):
-        raise ConfigError(f"module {mod_name!r} has no function {fn_name!r}", where)
-    physics: Physics = fn
-    return physics
-
-
 class SimBoard:
     """A simulated I/O board: pins in lists, inputs injectable, optional physics.
 
@@ -149,7 +133,9 @@ class SimBoard:
         self._aout: list[float] = [0.0] * cfg.analog_pins
         self._ain: list[float | None] = [None] * cfg.analog_pins
         self._physics: Physics | None = (
-            _load_physics(cfg.physics, f"{where}.physics") if cfg.physics else None
+            load_function(cfg.physics, f"{where}.physics", args=("board", "t_ns"), what="physics")
+            if cfg.physics
+            else None
         )
         params_type = getattr(self._physics, "Params", None)
         self.params: Any = (
@@ -399,7 +385,7 @@ class _DevSlot:
 
     def __init__(self, device: Device) -> None:
         self.device = device
-        self.streak = 0
+        self.streak = Streak()
 
 
 class DeviceSet:
@@ -411,7 +397,7 @@ class DeviceSet:
     :meth:`run_sensors` and :meth:`run_actuators` run the devices due on the
     loop (rate groups), in configuration order, and never raise for a
     device's exception: it is counted in ``dnX_errors`` and reported by one
-    ``ERROR`` event per failure streak.
+    ``WARNING_HI`` event (``EV.DEVICE_FAILED``) per failure streak.
     """
 
     def __init__(
@@ -429,8 +415,8 @@ class DeviceSet:
         self.devices: list[Device] = []
         self._sensors: RateGroups[_DevSlot] = RateGroups()
         self._actuators: RateGroups[_DevSlot] = RateGroups()
-        self._errors = dv.handle(_errors_element(node))
-        for i in _component_indices(mission, "devices", node):
+        self._errors = dv.handle(errors_element(node))
+        for i in component_indices(mission, "devices", node):
             c = mission.devices[i]
             where = f"$.devices[{i}]"
             cls = load_component_class(c.cls, Device, f"{where}.class")
@@ -472,21 +458,14 @@ class DeviceSet:
             except Exception as exc:
                 self._failed(s, exc, t_ns)
                 continue
-            if s.streak:
-                s.streak = 0
+            s.streak.ok()
 
     def _failed(self, s: _DevSlot, exc: Exception, t_ns: int) -> None:
-        s.streak += 1
-        n = self._errors.get()
-        if n < _U32_MAX:
-            self._errors.set(n + 1)
-        if s.streak == 1 and self.events is not None:
+        self._errors.bump()
+        if s.streak.fail() == 1 and self.events is not None:
             d = s.device
             self.events.emit(
-                Severity.ERROR,
-                "device_failed",
-                f"device {d.name} raised {type(exc).__name__}: {exc}",
-                t_ns,
+                EV.DEVICE_FAILED, t_ns, name=d.name, exc_type=type(exc).__name__, exc=exc
             )
 
 
@@ -502,7 +481,7 @@ def check_config(mission: Mission) -> None:
 
     for node in mission.device_nodes:
         board = make_board(mission.nodes[node].board, where=f"$.nodes.{node}.board")
-        if not _component_indices(mission, "devices", node):
+        if not component_indices(mission, "devices", node):
             continue
         dv = DataVector(Layout.for_node(mission, node))
         DeviceSet(mission, node, dv, board)

@@ -31,6 +31,7 @@ The tree::
     ├── StateMachineError        state-machine misuse at run time
     ├── CommandError             a command refused before it was sent (CLI)
     ├── ControlError             controller/device construction or wiring
+    ├── EventError               an event that is not in the catalogue (a bug)
     ├── NodeError                a node main cannot start or run
     └── RecordingError           a loop recording cannot be written or read back
 """
@@ -44,6 +45,7 @@ __all__ = [
     "ConfigError",
     "ControlError",
     "DataVectorError",
+    "EventError",
     "FrameFormatError",
     "FrameSizeError",
     "LayoutMismatchError",
@@ -120,6 +122,10 @@ class CommandError(ZPlatformError):
 
 class ControlError(ZPlatformError):
     """A controller or device could not be built or wired to the Data Vector."""
+
+
+class EventError(ZPlatformError):
+    """An event emitted that is not an entry of the catalogue (``zplatform.events.EV``)."""
 
 
 class NodeError(ZPlatformError):

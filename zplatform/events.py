@@ -1,10 +1,25 @@
-"""Event records: what a node tells the operator, apart from telemetry.
+"""Event records and the event catalogue: what a node tells the operator, apart from telemetry.
+
+Every event the platform can emit is declared once, in the catalogue
+(:class:`EV`), F Prime style: a stable numeric ``id`` (never reused), a
+``name`` (the machine-readable key records carry: ``state_change``,
+``cmd_rejected``, ...), a :class:`Severity` and a ``str.format`` format
+string. Call sites name the entry and pass the format arguments::
+
+    events.emit(EV.CMD_REJECTED, t_ns, name="LAUNCH", seq=4, status="REJECTED_REPLAY",
+                detail="...")
+
+so a severity is never picked at the call site, and a catalogue test proves
+every entry formats and that ids and names are unique.
 
 An :class:`Event` is one record (severity, id, text, time) published on
 ``{vehicle}/{node}/events`` (DESIGN.md §3). Node logic never publishes: it
 calls :meth:`EventLog.emit`, which appends to a bounded in-memory queue, and
 the runtime takes the queue after the loop (:meth:`~EventLog.drain`) and
-publishes what it took. So emitting is sans-IO, never blocks and never raises.
+publishes what it took. So emitting is sans-IO and never blocks; it raises
+only :class:`~zplatform.errors.EventError` for an entry that is not in the
+catalogue (a programming error, found by the first test that reaches the call
+site), never for what happens in flight.
 
 The log is bounded (``capacity`` events between two drains). When it is full
 the *oldest* pending events are kept and new ones are counted in
@@ -13,7 +28,8 @@ wrong, the rest repeat it. Every emitted event takes the next ``seq`` number,
 dropped ones included, so a receiver sees a drop as a gap in ``seq``.
 
 Wire form: MessagePack of the struct as a map (``{"node": ..., "seq": ...}``),
-self-describing so a tap in any language can print it.
+self-describing so a tap in any language can print it. ``id`` on the wire is
+the entry's *name* (a string), ``severity`` the :class:`Severity` value.
 :func:`decode_event` raises :class:`~zplatform.errors.FrameFormatError` on
 anything that is not an event record.
 """
@@ -21,27 +37,139 @@ anything that is not an event record.
 from __future__ import annotations
 
 import enum
-from typing import Annotated
+from typing import Annotated, Any, ClassVar
 
 import msgspec
 from msgspec import Meta
 
-from .errors import FrameFormatError
+from .errors import EventError, FrameFormatError
 
-__all__ = ["Event", "EventLog", "Severity", "decode_event", "encode_event"]
+__all__ = [
+    "EV",
+    "Event",
+    "EventLog",
+    "EventType",
+    "Severity",
+    "decode_event",
+    "encode_event",
+]
 
 
 class Severity(enum.IntEnum):
-    """How much an event matters (the ``severity`` of an :class:`Event`)."""
+    """How much an event matters (F Prime's seven severities), least to most.
 
-    DEBUG = 0
-    INFO = 1
-    WARNING = 2
-    ERROR = 3
-    CRITICAL = 4
+    A higher value is more important, so ``severity >= Severity.WARNING_LO``
+    selects the warnings and worse. The values are the wire encoding.
+
+    * ``DIAGNOSTIC``: for developers, not shown to the operator by default;
+    * ``ACTIVITY_LO`` / ``ACTIVITY_HI``: the system doing its job (a hold
+      ended; a state change);
+    * ``COMMAND``: an operator command was executed;
+    * ``WARNING_LO``: something was refused or went wrong and was absorbed
+      (a rejected command, a bad frame, a counted error);
+    * ``WARNING_HI``: something failed and the platform acted (a component
+      safed, a fault latched, which the state machine answers);
+    * ``FATAL``: software could not make a part of the system safe.
+    """
+
+    DIAGNOSTIC = 0
+    ACTIVITY_LO = 1
+    ACTIVITY_HI = 2
+    COMMAND = 3
+    WARNING_LO = 4
+    WARNING_HI = 5
+    FATAL = 6
 
 
 _SEVERITY_NAMES = tuple(s.name for s in Severity)
+_MAX_SEVERITY = len(_SEVERITY_NAMES) - 1
+
+
+class EventType(msgspec.Struct, frozen=True):
+    """One catalogue entry: ``id`` (stable number), ``name``, ``severity``, ``format``.
+
+    ``format`` is a :meth:`str.format` string with named fields only; the
+    keyword arguments given to :meth:`EventLog.emit` fill it.
+    """
+
+    id: int
+    name: str
+    severity: Severity
+    format: str
+
+    def text(self, **args: Any) -> str:
+        """The record text for ``args``; never raises.
+
+        A missing or unformattable argument does not raise (an event in a
+        failure path must not take the loop down with it): the text is then
+        the format string followed by the arguments as given.
+        """
+        try:
+            return self.format.format(**args)
+        except (KeyError, IndexError, ValueError, TypeError, AttributeError):
+            return f"{self.format} {args!r}"
+
+
+class EV:
+    """The event catalogue: every event the platform emits, declared once.
+
+    Ids are stable (records, logs and ground tools may key on them): add new
+    entries with new ids, never renumber or reuse one.
+    """
+
+    # state machine (ACTIVITY: the system doing what the mission says)
+    STATE_CHANGE = EventType(
+        1, "state_change", Severity.ACTIVITY_HI, "state {src} -> {dst} ({why})"
+    )
+    HOLD = EventType(2, "hold", Severity.ACTIVITY_HI, "hold in state {state} at {tis_s:.3f} s")
+    RESUME = EventType(
+        3, "resume", Severity.ACTIVITY_HI, "resume in state {state} at {tis_s:.3f} s"
+    )
+    HOLD_ENDED = EventType(4, "hold_ended", Severity.ACTIVITY_LO, "hold ended by a transition")
+    # operator commands
+    CMD_ACCEPTED = EventType(
+        10, "cmd_accepted", Severity.COMMAND, "command {name} #{seq} accepted{detail}"
+    )
+    CMD_REJECTED = EventType(
+        11,
+        "cmd_rejected",
+        Severity.WARNING_LO,
+        "command {name} #{seq} rejected ({status}): {detail}",
+    )
+    # errors after start (thesis 4.11.1)
+    FAULT = EventType(20, "fault", Severity.WARNING_HI, "fault {fault}: {text}")
+    ERROR = EventType(21, "error", Severity.WARNING_LO, "{text}")
+    # components
+    CONTROLLER_FAILED = EventType(
+        30,
+        "controller_failed",
+        Severity.WARNING_HI,
+        "controller {name} raised {exc_type} in {mode}: {exc}; safed",
+    )
+    CONTROLLER_DISABLED = EventType(
+        31,
+        "controller_disabled",
+        Severity.FATAL,
+        "controller {name} cannot be safed ({exc_type} in safed: {exc}); "
+        "disabled, its outputs are left as they are",
+    )
+    DEVICE_FAILED = EventType(
+        32, "device_failed", Severity.WARNING_HI, "device {name} raised {exc_type}: {exc}"
+    )
+    BOARD_FAILED = EventType(
+        33, "board_failed", Severity.WARNING_HI, "{node} board step raised {exc_type}: {exc}"
+    )
+    # transport
+    BAD_FRAME = EventType(40, "bad_frame", Severity.WARNING_LO, "{source} rejected: {reason}")
+
+    ALL: ClassVar[tuple[EventType, ...]]
+    """Every entry, in declaration order."""
+
+
+EV.ALL = tuple(v for v in vars(EV).values() if isinstance(v, EventType))
+# Keyed by identity: an EventType built elsewhere with the same fields is
+# still not a catalogue entry.
+_CATALOGUE = frozenset(id(e) for e in EV.ALL)
 
 
 class Event(msgspec.Struct, frozen=True, gc=False):
@@ -49,21 +177,21 @@ class Event(msgspec.Struct, frozen=True, gc=False):
 
     ``node`` is the emitting node (``cn``, ``dn0``, ...), ``seq`` its event
     number (0, 1, 2, ... per node, gaps are drops), ``t_ns`` the loop time
-    of the emitting node, ``severity`` a :class:`Severity` value, ``id`` a
-    stable machine-readable key (``state_change``, ``cmd_rejected``, ...)
-    and ``text`` the human-readable message.
+    of the emitting node, ``severity`` a :class:`Severity` value, ``id`` the
+    catalogue entry's name (``state_change``, ``cmd_rejected``, ...) and
+    ``text`` the formatted message.
     """
 
     node: str
     seq: Annotated[int, Meta(ge=0)]
     t_ns: int
-    severity: Annotated[int, Meta(ge=0, le=4)]
+    severity: Annotated[int, Meta(ge=0, le=_MAX_SEVERITY)]
     id: str
     text: str
 
     @property
     def severity_name(self) -> str:
-        """``"INFO"``, ``"WARNING"``, ... (``str(severity)`` if out of range)."""
+        """``"COMMAND"``, ``"WARNING_HI"``, ... (``str(severity)`` if out of range)."""
         if 0 <= self.severity < len(_SEVERITY_NAMES):
             return _SEVERITY_NAMES[self.severity]
         return str(self.severity)
@@ -108,18 +236,26 @@ class EventLog:
         self._seq = 0
         self._dropped = 0
 
-    def emit(self, severity: Severity, id: str, text: str, t_ns: int) -> None:
-        """Queue one event. Never blocks, never raises.
+    def emit(self, ev: EventType, t_ns: int, **args: Any) -> None:
+        """Queue one event of catalogue entry ``ev`` at ``t_ns``; ``args`` fill its format.
 
-        When ``capacity`` events are already pending, the new event is not
-        kept and :attr:`dropped` grows by one (its ``seq`` is still used).
+        Never blocks. Raises :class:`~zplatform.errors.EventError` if ``ev``
+        is not an entry of :class:`EV` (nothing is queued or numbered then);
+        never raises for ``args`` (see :meth:`EventType.text`). When
+        ``capacity`` events are already pending, the new event is not kept
+        (nor formatted) and :attr:`dropped` grows by one (its ``seq`` is
+        still used).
         """
+        if id(ev) not in _CATALOGUE:
+            raise EventError(f"{ev!r} is not an entry of the event catalogue (zplatform.events.EV)")
         seq = self._seq
         self._seq = seq + 1
         if len(self._pending) >= self.capacity:
             self._dropped += 1
             return
-        self._pending.append(Event(self.node, seq, t_ns, int(severity), id, text))
+        self._pending.append(
+            Event(self.node, seq, t_ns, int(ev.severity), ev.name, ev.text(**args))
+        )
 
     def drain(self) -> list[Event]:
         """Take every pending event, oldest first; the log is empty afterwards.

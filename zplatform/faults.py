@@ -5,7 +5,7 @@ The thesis' node mains handle an error after start in one of two ways:
 * **critical**: set a flag the state machine reads, so a configured
   transition (``cn_fault != NONE -> ABORT``) takes the vehicle to a safe
   state. The flag is ``cn_fault``, an enum of
-  :data:`~zplatform.config.FAULT_NAMES`;
+  :class:`~zplatform.codes.Fault`;
 * **non-critical**: count it in the Data Vector (``cn_errors``, with the
   code in ``cn_last_error``) and publish an event; the loop keeps its rate.
 
@@ -27,54 +27,22 @@ LOOP_OVERRUNS      ``cn_loop_overruns`` grew            ``loop_overrun_loops``
 Only the first fault latches: once ``cn_fault`` is not ``NONE`` it stays
 until someone writes it back (a WRITE command of ``cn_fault = NONE``, or a
 state-machine action); a symptom still present then raises it again. A
-raised fault emits one CRITICAL event.
+raised fault emits one ``WARNING_HI`` event (``EV.FAULT``): the platform acted,
+and the state machine answers it.
 """
 
 from __future__ import annotations
 
-import enum
 from typing import TYPE_CHECKING
 
-from .config import FAULT_NAMES
-from .events import EventLog, Severity
+from .codes import ErrorCode, Fault
+from .events import EV, EventLog
 
 if TYPE_CHECKING:
     from .config import Mission
     from .datavector import DataVector, Handle
 
 __all__ = ["ErrorCode", "Fault", "FaultMonitor"]
-
-_U32_MAX = 0xFFFF_FFFF
-
-
-class Fault(enum.IntEnum):
-    """Values of ``cn_fault``."""
-
-    NONE = 0
-    DN_LOST = 1
-    CONTROLLER_FAILED = 2
-    SYNC_OVERRUNS = 3
-    LOOP_OVERRUNS = 4
-
-
-assert tuple(f.name for f in Fault) == FAULT_NAMES, "Fault must mirror config.FAULT_NAMES"
-
-
-class ErrorCode(enum.IntEnum):
-    """Codes for ``cn_last_error`` (non-critical errors). 0 = none yet.
-
-    Missions may use their own codes from 1000 up.
-    """
-
-    NONE = 0
-    SYNC_TIMEOUT = 1
-    BAD_FRAME = 2
-    LOOP_OVERRUN = 3
-    CONTROLLER_ERROR = 4
-    DEVICE_ERROR = 5
-    CLOCK_SYNC = 6
-    TELEMETRY = 7
-    EVENTS_DROPPED = 8
 
 
 class _Watch:
@@ -155,7 +123,7 @@ class FaultMonitor:
     def fault(self) -> str:
         """The current ``cn_fault`` value's name."""
         v = self._h_fault.get()
-        return FAULT_NAMES[v] if v < len(FAULT_NAMES) else str(v)
+        return Fault(v).name if v < len(Fault) else str(v)
 
     def step(self, t_ns: int) -> None:
         """Update the consecutive-growth runs; raise the first fault due.
@@ -190,20 +158,18 @@ class FaultMonitor:
     def raise_fault(self, fault: Fault, text: str, t_ns: int) -> bool:
         """Set ``cn_fault`` unless a fault is already latched.
 
-        Returns True and emits a CRITICAL ``fault`` event when it was set;
+        Returns True and emits a WARNING_HI ``fault`` event when it was set;
         False (silently) when another fault was latched already.
         """
         if self._h_fault.get() != Fault.NONE or fault == Fault.NONE:
             return False
         self._h_fault.set(int(fault))
-        self._events.emit(Severity.CRITICAL, "fault", f"fault {fault.name}: {text}", t_ns)
+        self._events.emit(EV.FAULT, t_ns, fault=fault.name, text=text)
         return True
 
     def error(self, code: int, text: str, t_ns: int) -> None:
         """A non-critical error: ``cn_errors += 1`` (saturating),
-        ``cn_last_error = code`` (clamped to 0..65535), a WARNING event."""
-        n = self._h_errors.get()
-        if n < _U32_MAX:
-            self._h_errors.set(n + 1)
+        ``cn_last_error = code`` (clamped to 0..65535), a WARNING_LO ``error`` event."""
+        self._h_errors.bump()
         self._h_last.set(min(max(int(code), 0), 0xFFFF))
-        self._events.emit(Severity.WARNING, "error", text, t_ns)
+        self._events.emit(EV.ERROR, t_ns, text=text)

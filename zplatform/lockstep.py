@@ -322,7 +322,7 @@ def replay(directory: str | Path, *, log: CsvLogger | None = None) -> ReplayResu
     needed. Raises :class:`~zplatform.errors.RecordingError` for a missing or
     malformed recording; a difference is a result, not an error.
     """
-    from .config import load_mission
+    from .mission import load_mission
     from .recording import RecordReader
 
     reader = RecordReader(directory)

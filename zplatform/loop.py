@@ -42,12 +42,13 @@ from typing import Protocol
 from .boards import make_board
 from .codec import RegionCodec
 from .commands import CommandHandler
+from .components import Streak
 from .config import Mission
-from .control import ControllerSet
+from .controllers import ControllerSet
 from .datavector import DataVector, Layout
 from .devices import Board, DeviceSet
 from .errors import CodecError, ConfigError
-from .events import EventLog, Severity
+from .events import EV, EventLog
 from .faults import FaultMonitor
 from .statemachine import StateMachine
 
@@ -85,7 +86,7 @@ class ControlLogic:
     every component, checking the mission (ConfigError naming the YAML
     path). No method raises for a valid mission: bad frames are counted,
     controller exceptions are caught by the
-    :class:`~zplatform.control.ControllerSet`. Not thread-safe: one loop
+    :class:`~zplatform.controllers.ControllerSet`. Not thread-safe: one loop
     thread calls ``begin``, ``reply`` and ``finish`` in that order.
     Buffers returned by ``begin`` and ``finish`` are the codecs' own and are
     overwritten by the next loop: hand them to the transport (which copies)
@@ -159,11 +160,11 @@ class ControlLogic:
             return False
         if frame.seq != self.loop or self._got[i]:
             # an answer to an older loop (or a duplicate): counted, dropped
-            self._late[i].set(self._late[i].get() + 1)
+            self._late[i].bump()
             return False
         codec.write(frame)
         self._got[i] = True
-        self._rx[i].set(self._rx[i].get() + 1)
+        self._rx[i].bump()
         self.pending -= 1
         return True
 
@@ -186,11 +187,11 @@ class ControlLogic:
         loop, t = self.loop, self.t_ns
         for i, got in enumerate(self._got):
             if not got:
-                self._missed[i].set(self._missed[i].get() + 1)
+                self._missed[i].bump()
         if sync_overrun:
-            self._sync_overruns.set(self._sync_overruns.get() + 1)
+            self._sync_overruns.bump()
         if loop_overruns:
-            self._loop_overruns.set(min(self._loop_overruns.get() + loop_overruns, 0xFFFF_FFFF))
+            self._loop_overruns.bump(loop_overruns)
         new_request = False
         if ground is not None and self._ground is not None:
             try:
@@ -223,10 +224,8 @@ class ControlLogic:
     def _bad_frame(self, source: str, reason: str) -> None:
         # Not our software failing: counted as a bad frame, not an error.
         # Rare by definition, so an event per frame is affordable and wanted.
-        self._bad.set(min(self._bad.get() + 1, 0xFFFF_FFFF))
-        self.events.emit(
-            Severity.WARNING, "bad_frame", f"frame from {source} rejected: {reason}", self.t_ns
-        )
+        self._bad.bump()
+        self.events.emit(EV.BAD_FRAME, self.t_ns, source=f"frame from {source}", reason=reason)
 
 
 class DeviceLogic:
@@ -279,7 +278,7 @@ class DeviceLogic:
         self._errors = dv.handle(f"{node}_errors")
         self._bad = dv.handle(f"{node}_bad_frames")
         self._stale_after = stale_after_ns
-        self._board_streak = 0
+        self._board_streak = Streak()
         self.last_loop = 0
         self.last_t_ns = 0
         self.stale = 0
@@ -306,11 +305,9 @@ class DeviceLogic:
         try:
             frame = self._in.check(payload)
         except CodecError as exc:
-            self._bad.set(min(self._bad.get() + 1, 0xFFFF_FFFF))
+            self._bad.bump()
             self.reject_reason = str(exc)
-            self.events.emit(
-                Severity.WARNING, "bad_frame", f"sync query rejected: {exc}", now_ns
-            )
+            self.events.emit(EV.BAD_FRAME, now_ns, source="sync query", reason=exc)
             return None
         # A lower seq with a later timestamp is a restarted CN, not an old
         # query: follow it rather than stall forever.
@@ -335,8 +332,7 @@ class DeviceLogic:
         self._time.set(t_ns)
         try:
             self.board.step(t_ns)
-            if self._board_streak:
-                self._board_streak = 0
+            self._board_streak.ok()
         except Exception as exc:
             self._board_failed(exc, t_ns)
         self.devices.run_sensors(loop, t_ns)
@@ -352,14 +348,8 @@ class DeviceLogic:
         return reply
 
     def _board_failed(self, exc: Exception, t_ns: int) -> None:
-        self._board_streak += 1
-        n = self._errors.get()
-        if n < 0xFFFF_FFFF:
-            self._errors.set(n + 1)
-        if self._board_streak == 1:
+        self._errors.bump()
+        if self._board_streak.fail() == 1:
             self.events.emit(
-                Severity.ERROR,
-                "board_failed",
-                f"{self.node} board step raised {type(exc).__name__}: {exc}",
-                t_ns,
+                EV.BOARD_FAILED, t_ns, node=self.node, exc_type=type(exc).__name__, exc=exc
             )

@@ -1,4 +1,4 @@
-"""Periodic loops, rate groups and real-time set-up (thesis 000, ch. 4.12, made Pythonic).
+"""Periodic loops and real-time set-up (thesis 000, ch. 4.12, made Pythonic).
 
 The thesis' Thread Manager creates a SCHED_FIFO thread per node, pins it to a
 CPU, and runs the loop function from a ``timerfd`` with a callback for missed
@@ -6,7 +6,9 @@ deadlines. Here the same duties are split into small pieces that the node
 mains compose:
 
 * :class:`PeriodicLoop` runs a step function on absolute deadlines;
-* :class:`RateGroups` (with :func:`rate_due`) runs members every Nth loop;
+* :class:`~zplatform.rategroups.RateGroups` (in :mod:`zplatform.rategroups`,
+  which the sans-IO core imports without this OS-facing module) runs members
+  every Nth loop;
 * :func:`setup_realtime` asks for SCHED_FIFO, CPU affinity and locked memory,
   and falls back gracefully when the process is not allowed to;
 * :class:`GcGuard` keeps the cyclic garbage collector out of the loop, and
@@ -69,14 +71,11 @@ import ctypes
 import ctypes.util
 import gc
 import logging
-import math
 import os
 import threading
 import time
-from collections.abc import Callable, Iterable, Iterator
-from dataclasses import dataclass
+from collections.abc import Callable, Iterable
 from types import TracebackType
-from typing import Generic, TypeVar
 
 import msgspec
 import numpy as np
@@ -84,30 +83,17 @@ import numpy.typing as npt
 
 from zplatform.errors import SchedulerError
 
+from .rategroups import check_int
+
 __all__ = [
     "GcGuard",
     "LoopStats",
     "PeriodicLoop",
-    "RateGroup",
-    "RateGroups",
     "RealtimeStatus",
-    "rate_due",
     "setup_realtime",
 ]
 
 _log = logging.getLogger("zplatform.scheduler")
-
-T = TypeVar("T")
-
-
-def _check_int(name: str, value: object, *, minimum: int) -> int:
-    """Return ``value`` if it is an ``int`` (not a ``bool``) of at least ``minimum``."""
-    if isinstance(value, bool) or not isinstance(value, int):
-        raise SchedulerError(f"{name} must be an int, got {type(value).__name__} {value!r}")
-    if value < minimum:
-        raise SchedulerError(f"{name} must be >= {minimum}, got {value}")
-    return value
-
 
 # --------------------------------------------------------------------------- periodic loop
 
@@ -165,9 +151,9 @@ class PeriodicLoop:
         slack_hook: Callable[[int], None] | None = None,
         record: int = 0,
     ) -> None:
-        self._period_ns = _check_int("period_ns", period_ns, minimum=1)
-        self._spin_ns = _check_int("spin_ns", spin_ns, minimum=0)
-        record = _check_int("record", record, minimum=0)
+        self._period_ns = check_int("period_ns", period_ns, minimum=1)
+        self._spin_ns = check_int("spin_ns", spin_ns, minimum=0)
+        record = check_int("record", record, minimum=0)
         if not callable(clock):
             raise SchedulerError(f"clock must be callable, got {clock!r}")
         if not callable(sleep):
@@ -262,7 +248,7 @@ class PeriodicLoop:
         the step or a hook raises propagates.
         """
         if max_loops is not None:
-            _check_int("max_loops", max_loops, minimum=0)
+            check_int("max_loops", max_loops, minimum=0)
         if start_ns is not None and (isinstance(start_ns, bool) or not isinstance(start_ns, int)):
             raise SchedulerError(f"start_ns must be an int or None, got {start_ns!r}")
         if not callable(step):
@@ -366,124 +352,6 @@ class PeriodicLoop:
                     slack_hook(next_deadline - end)
 
 
-# --------------------------------------------------------------------------- rate groups
-
-
-def rate_due(loop: int, divisor: int, phase: int = 0) -> bool:
-    """Whether a member with ``divisor`` and ``phase`` runs on loop ``loop``.
-
-    True when ``loop % divisor == phase``: every loop for divisor 1, every
-    other loop for 2 (odd loops with phase 1), and so on. Raises
-    :class:`SchedulerError` if ``divisor < 1`` or ``phase`` is not in
-    ``[0, divisor)``.
-    """
-    if divisor < 1:
-        raise SchedulerError(f"rate-group divisor must be >= 1, got {divisor}")
-    if not 0 <= phase < divisor:
-        raise SchedulerError(f"rate-group phase must be in [0, {divisor}), got {phase}")
-    return loop % divisor == phase
-
-
-@dataclass(frozen=True, slots=True)
-class RateGroup(Generic[T]):
-    """One rate-group member: ``member`` runs on loops where ``loop % divisor == phase``.
-
-    Raises :class:`SchedulerError` for a divisor below 1 or a phase outside
-    ``[0, divisor)``.
-    """
-
-    member: T
-    divisor: int = 1
-    phase: int = 0
-
-    def __post_init__(self) -> None:
-        _check_int("rate-group divisor", self.divisor, minimum=1)
-        _check_int("rate-group phase", self.phase, minimum=0)
-        if self.phase >= self.divisor:
-            raise SchedulerError(
-                f"rate-group phase must be in [0, {self.divisor}), got {self.phase}"
-                f" (member {self.member!r})"
-            )
-
-    def due(self, loop: int) -> bool:
-        """Whether this member runs on loop ``loop``."""
-        return loop % self.divisor == self.phase
-
-
-class RateGroups(Generic[T]):
-    """Members run every Nth loop, F Prime RateGroupDriver style.
-
-    Members are registered at configure time with :meth:`add`; each
-    registration rebuilds a table over the hyperperiod (the least common
-    multiple of the divisors) holding, for each loop in it, the tuple of
-    members due, in registration order. :meth:`due` is then one modulo and one
-    index: no allocation, no per-member test.
-
-    If the hyperperiod exceeds ``max_table`` entries (divisors with no common
-    structure, like 7, 11, 13, 17), no table is built and :meth:`due` tests
-    each member and builds its tuple per call instead; choose harmonic
-    divisors (1, 2, 5, 10, …) to stay on the table.
-    """
-
-    def __init__(self, members: Iterable[RateGroup[T]] = (), *, max_table: int = 65_536) -> None:
-        self._max_table = _check_int("max_table", max_table, minimum=1)
-        self._groups: list[RateGroup[T]] = []
-        self._hyperperiod = 1
-        self._table: tuple[tuple[T, ...], ...] | None = ((),)
-        for group in members:
-            if not isinstance(group, RateGroup):
-                raise SchedulerError(f"RateGroups takes RateGroup entries, got {group!r}")
-            self._groups.append(group)
-        self._rebuild()
-
-    def add(self, member: T, divisor: int = 1, phase: int = 0) -> RateGroup[T]:
-        """Register ``member`` to run when ``loop % divisor == phase``; return its entry.
-
-        Raises :class:`SchedulerError` for a divisor below 1 or a phase
-        outside ``[0, divisor)``.
-        """
-        group = RateGroup(member, divisor, phase)
-        self._groups.append(group)
-        self._rebuild()
-        return group
-
-    def _rebuild(self) -> None:
-        hyperperiod = 1
-        for group in self._groups:
-            hyperperiod = math.lcm(hyperperiod, group.divisor)
-        self._hyperperiod = hyperperiod
-        if hyperperiod > self._max_table:
-            self._table = None
-            return
-        self._table = tuple(
-            tuple(g.member for g in self._groups if t % g.divisor == g.phase)
-            for t in range(hyperperiod)
-        )
-
-    @property
-    def hyperperiod(self) -> int:
-        """The least common multiple of the divisors: the due pattern repeats after it."""
-        return self._hyperperiod
-
-    @property
-    def tabled(self) -> bool:
-        """Whether :meth:`due` answers from the precomputed table."""
-        return self._table is not None
-
-    def due(self, loop: int) -> tuple[T, ...]:
-        """The members due on loop ``loop``, in registration order."""
-        table = self._table
-        if table is not None:
-            return table[loop % self._hyperperiod]
-        return tuple(g.member for g in self._groups if loop % g.divisor == g.phase)
-
-    def __iter__(self) -> Iterator[RateGroup[T]]:
-        return iter(tuple(self._groups))
-
-    def __len__(self) -> int:
-        return len(self._groups)
-
-
 # --------------------------------------------------------------------------- real-time set-up
 
 
@@ -561,10 +429,10 @@ def setup_realtime(
         if not cpus:
             raise SchedulerError("cpu must name at least one CPU")
         for c in cpus:
-            _check_int("cpu", c, minimum=0)
+            check_int("cpu", c, minimum=0)
 
     if priority is not None:
-        _check_int("priority", priority, minimum=1)
+        check_int("priority", priority, minimum=1)
         setscheduler = getattr(os, "sched_setscheduler", None)
         policy = getattr(os, "SCHED_FIFO", None)
         if setscheduler is None or policy is None:
@@ -647,7 +515,7 @@ class GcGuard:
     """
 
     def __init__(self, threshold_ns: int = 1_000_000) -> None:
-        self.threshold_ns = _check_int("threshold_ns", threshold_ns, minimum=0)
+        self.threshold_ns = check_int("threshold_ns", threshold_ns, minimum=0)
         self.collections = 0
         """Generation-0 collections run by :meth:`collect_in_slack`."""
         self._was_enabled: bool | None = None

@@ -30,13 +30,14 @@ ABORT must work during a hold). RESUME continues the clock where it stopped.
 Any transition ends a hold: the new state starts with a running clock.
 
 Everything is resolved at construction: element handles, comparison
-functions, values converted to the element's stored form, event texts. A
+functions, values converted to the element's stored form, event arguments. A
 step only reads handles, compares and writes; it never raises for a valid
 config and builds no containers or strings (it emits one event, and so
 allocates one, only when the state changes).
 
 :func:`check_config` checks the ``state_machine`` section against the whole
-Data Vector (thesis 4.5.1 and the rules below), raising
+Data Vector (thesis 4.5.1 and the rules below; a cycle of ``after_s: 0``
+transitions, which would change state on every loop, is refused), raising
 :class:`~zplatform.errors.ConfigError` with the YAML path of the first bad
 field; unreachable states are logged as warnings on the
 ``zplatform.statemachine`` logger, not errors.
@@ -53,8 +54,9 @@ import struct
 from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
+from .config import element_spec, platform_elements
 from .errors import ConfigError
-from .events import EventLog, Severity
+from .events import EV, EventLog
 from .types import ScalarType
 
 if TYPE_CHECKING:
@@ -69,6 +71,7 @@ __all__ = [
     "logic_writable",
     "platform_element_names",
     "unreachable_states",
+    "why_not_writable",
 ]
 
 log = logging.getLogger("zplatform.statemachine")
@@ -99,9 +102,7 @@ _LOGIC_WRITABLE_PLATFORM = ("cn_fault",)
 
 def platform_element_names(mission: Mission) -> frozenset[str]:
     """Names of every element the platform adds (DESIGN.md §5), modes included."""
-    from .config import _platform_elements
-
-    return frozenset(e.name for es in _platform_elements(mission).values() for e in es)
+    return frozenset(e.name for es in platform_elements(mission).values() for e in es)
 
 
 def _received_regions(mission: Mission) -> frozenset[str]:
@@ -131,7 +132,8 @@ def logic_writable(mission: Mission) -> frozenset[str]:
     return frozenset(out)
 
 
-def _why_not_writable(mission: Mission, region: str, name: str) -> str:
+def why_not_writable(mission: Mission, region: str, name: str) -> str:
+    """Why CN logic may not write element ``name`` of ``region`` (for error messages)."""
     if region in _received_regions(mission):
         peer = region[: -len("_to_cn")]
         return (
@@ -211,7 +213,7 @@ def check_structure(mission: Mission) -> None:
     if not sm.states:
         raise ConfigError("a state machine needs at least one state", "$.state_machine.states")
     for name in sm.states:
-        if not _STATE_NAME_RE.match(name):
+        if not _STATE_NAME_RE.fullmatch(name):
             raise ConfigError(
                 f"state name {name!r} is not an identifier (letters, digits, _)",
                 f"$.state_machine.states.{name}",
@@ -230,6 +232,46 @@ def check_structure(mission: Mission) -> None:
                 raise ConfigError(
                     f"target state {t.to!r} is not a state; states: {states}", f"{w}.to"
                 )
+    _check_zero_time_cycles(mission)
+
+
+def _check_zero_time_cycles(mission: Mission) -> None:
+    """Refuse a cycle of transitions that fire without time passing (``after_s: 0``).
+
+    Such transitions always hold, so a cycle of them would change state on
+    every loop forever (A -> B -> A ...) and never run a state's actions with
+    time in it. A condition transition can be true forever too, but whether
+    it is depends on the data: only the unconditional ones are refused.
+    ConfigError names the states of the cycle, at the transition closing it.
+    """
+    sm = mission.state_machine
+    assert sm is not None
+    # The first zero-time transition out of each state (one per state is all
+    # a cycle needs: the state machine takes the first one that holds).
+    edges: dict[str, tuple[str, int]] = {}
+    for name, st in sm.states.items():
+        for i, t in enumerate(st.transitions):
+            if t.after_s == 0:
+                edges[name] = (t.to, i)
+                break
+    done: set[str] = set()
+    for start in edges:
+        path: list[str] = []
+        on_path: set[str] = set()
+        node: str | None = start
+        while node is not None and node in edges and node not in done:
+            if node in on_path:
+                cycle = [*path[path.index(node) :], node]
+                last = cycle[-2]
+                raise ConfigError(
+                    "transitions with after_s: 0 form a cycle "
+                    f"{' -> '.join(cycle)}: the state would change on every loop without end",
+                    f"$.state_machine.states.{last}.transitions[{edges[last][1]}]",
+                )
+            path.append(node)
+            on_path.add(node)
+            node = edges[node][0]
+        done.update(path)
 
 
 def _check_transition_shape(t: TransitionConfig, w: str) -> None:
@@ -262,6 +304,7 @@ def check_config(mission: Mission, *, warn: bool = True) -> None:
       state (thesis 4.5.1: no duplicate states is enforced by the mapping);
     * a transition has exactly one of a condition (``element``, ``op``,
       ``value``, all three) or ``after_s``; its target ``to`` is a state;
+      ``after_s: 0`` transitions form no cycle;
     * an action's or condition's element exists in the Data Vector;
     * a condition's element is a scalar; bools and enums compare only with
       ``==`` and ``!=``; the value fits the element's type (enum names or
@@ -277,8 +320,6 @@ def check_config(mission: Mission, *, warn: bool = True) -> None:
     if sm is None:
         return
     check_structure(mission)
-    from .config import element_spec
-
     table = _element_table(mission)
     writable = logic_writable(mission)
     for name, st in sm.states.items():
@@ -290,7 +331,7 @@ def check_config(mission: Mission, *, warn: bool = True) -> None:
             region, e = table[a.element]
             if a.element not in writable:
                 raise ConfigError(
-                    _why_not_writable(mission, region, a.element) + " by an action",
+                    why_not_writable(mission, region, a.element) + " by an action",
                     f"{w}.element",
                 )
             scalar, _ = element_spec(e)
@@ -359,19 +400,24 @@ def unreachable_states(mission: Mission) -> list[str]:
 class _Transition:
     """One resolved transition. ``after_ns < 0`` means a condition one."""
 
-    __slots__ = ("after_ns", "get", "op", "target", "text", "value")
+    __slots__ = ("after_ns", "dst", "get", "op", "src", "target", "value", "why")
 
     def __init__(
         self,
         target: int,
-        text: str,
+        src: str,
+        dst: str,
+        why: str,
         after_ns: int = -1,
         get: Callable[[], Any] | None = None,
         op: Callable[[Any, Any], bool] = operator.eq,
         value: Any = None,
     ) -> None:
         self.target = target
-        self.text = text
+        # The state_change event's arguments, built once at configure time.
+        self.src = src
+        self.dst = dst
+        self.why = why
         self.after_ns = after_ns
         self.get = get
         self.op = op
@@ -424,8 +470,6 @@ class StateMachine:
 
     def __init__(self, mission: Mission, dv: DataVector, events: EventLog) -> None:
         check_config(mission, warn=False)
-        from .config import element_spec
-
         self._events = events
         self._h_state = dv.handle("cn_state")
         self._h_tis = dv.handle("cn_time_in_state_ns")
@@ -445,16 +489,20 @@ class StateMachine:
                 for t in st.transitions:
                     target = index[t.to]
                     if t.after_s is not None:
-                        text = f"state {name} -> {t.to} (after {_fmt_s(t.after_s)})"
-                        trs.append(_Transition(target, text, after_ns=round(t.after_s * 1e9)))
+                        why = f"after {_fmt_s(t.after_s)}"
+                        trs.append(
+                            _Transition(target, name, t.to, why, after_ns=round(t.after_s * 1e9))
+                        )
                         continue
                     assert t.element is not None and t.op is not None
                     e = table[t.element][1]
                     value = config_value(e, element_spec(e)[0], t.value, allow_nan=False)
                     shown = t.value if isinstance(t.value, str) else repr(t.value).lower()
-                    text = f"state {name} -> {t.to} ({t.element} {t.op} {shown})"
+                    why = f"{t.element} {t.op} {shown}"
                     get = dv.handle(t.element).get
-                    trs.append(_Transition(target, text, get=get, op=OPS[t.op], value=value))
+                    trs.append(
+                        _Transition(target, name, t.to, why, get=get, op=OPS[t.op], value=value)
+                    )
                 for a in sorted(st.actions, key=lambda a: a.at_s):  # stable: config order ties
                     h = dv.handle(a.element)
                     e = table[a.element][1]
@@ -536,10 +584,10 @@ class StateMachine:
             self._held_ns = 0
             self._next_action = 0
             tis = 0
-            self._events.emit(Severity.INFO, "state_change", tr.text, t_ns)
+            self._events.emit(EV.STATE_CHANGE, t_ns, src=tr.src, dst=tr.dst, why=tr.why)
             if self._hold_start is not None:
                 self._hold_start = None
-                self._events.emit(Severity.INFO, "hold_ended", "hold ended by a transition", t_ns)
+                self._events.emit(EV.HOLD_ENDED, t_ns)
             break
         self._run_due(tis)
         self._tis = tis
@@ -556,9 +604,7 @@ class StateMachine:
             return False
         self._hold_start = t_ns
         tis = self._time_in_state(t_ns) if self._started else 0
-        self._events.emit(
-            Severity.INFO, "hold", f"hold in state {self.state} at {tis / 1e9:.3f} s", t_ns
-        )
+        self._events.emit(EV.HOLD, t_ns, state=self.state, tis_s=tis / 1e9)
         return True
 
     def resume(self, t_ns: int) -> bool:
@@ -569,7 +615,5 @@ class StateMachine:
         self._held_ns += t_ns - self._hold_start
         self._hold_start = None
         tis = self._time_in_state(t_ns) if self._started else 0
-        self._events.emit(
-            Severity.INFO, "resume", f"resume in state {self.state} at {tis / 1e9:.3f} s", t_ns
-        )
+        self._events.emit(EV.RESUME, t_ns, state=self.state, tis_s=tis / 1e9)
         return True

@@ -18,7 +18,7 @@ from typing import Annotated
 import msgspec
 from msgspec import Meta
 
-from zplatform.control import Controller
+from zplatform.controllers import Controller
 from zplatform.datavector import DataVector, Handle
 from zplatform.errors import ConfigError
 

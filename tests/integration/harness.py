@@ -16,8 +16,9 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from zplatform.config import Mission, load_mission
+from zplatform.config import Mission
 from zplatform.datavector import DataVector
+from zplatform.mission import load_mission
 from zplatform.node.ground import TelemetryReceiver
 from zplatform.timebase import NodeClock
 from zplatform.transport import NodeSession, rewrite_endpoints

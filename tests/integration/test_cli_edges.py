@@ -23,7 +23,7 @@ import yaml
 
 from zplatform import cli_runtime, registry
 from zplatform.cli import build_parser, main
-from zplatform.events import Event, encode_event
+from zplatform.events import Event, Severity, encode_event
 from zplatform.transport import rewrite_endpoints
 
 from .harness import CONFIGS, ROOT
@@ -126,14 +126,15 @@ def test_tap_without_bounds_gives_up_on_silence(
 
 
 def test_tap_prints_events_decoded(capsys: pytest.CaptureFixture[str]) -> None:
-    from zplatform.config import load_mission
+    from zplatform.mission import load_mission
 
     dec = cli_runtime._TapDecoder(load_mission(CONFIGS / "minimal.yaml"))
-    ev = Event("cn", 3, 1_000, 2, "cmd_rejected", "command LAUNCH #4 rejected: NOT_ARMED")
+    sev = max(Severity)  # whatever the most severe is called
+    ev = Event("cn", 3, 1_000, int(sev), "cmd_rejected", "command LAUNCH #4 rejected")
     d = dec.decode("rocket/cn/events", encode_event(ev))
     cli_runtime._print_tap(d, as_json=False)
     out = capsys.readouterr().out
-    assert "rocket/cn/events EVENT WARNING  cmd_rejected: command LAUNCH #4" in out
+    assert f"rocket/cn/events EVENT {sev.name:<8} cmd_rejected: command LAUNCH #4" in out
 
 
 # ---------------------------------------------------------------- output

@@ -177,7 +177,7 @@ def test_up_flies_on_when_a_device_node_dies(tmp_path: Path) -> None:
     with every child reaped (issue 9, defect 9)."""
     import psutil
 
-    from zplatform.config import load_mission
+    from zplatform.mission import load_mission
     from zplatform.node.ground import TelemetryReceiver
     from zplatform.timebase import NodeClock
     from zplatform.transport import NodeSession, rewrite_endpoints

@@ -65,7 +65,8 @@ def state_machine_missions(draw: st.DrawFn) -> str:
     """YAML text of a valid mission with a random state machine.
 
     2-6 states ``S0..``; each with 0-3 actions on mission elements (at 0-0.1 s)
-    and 0-4 transitions (conditions or ``after_s`` 0-0.1 s) to random states;
+    and 0-4 transitions (conditions or ``after_s`` 0-0.1 s) to random states
+    (``after_s: 0`` only to a later state: a cycle of those is refused at load);
     a random whitelist (ARM always allowed where a hazardous command is) and
     hazardous set.
     """
@@ -87,9 +88,10 @@ def state_machine_missions(draw: st.DrawFn) -> str:
         for _ in range(draw(st.integers(0, 4))):
             to = draw(st.sampled_from(names))
             if draw(st.integers(0, 3)) == 0:
-                transitions.append(
-                    {"after_s": draw(st.sampled_from([0, 0.01, 0.05, 0.1])), "to": to}
-                )
+                after = draw(st.sampled_from([0, 0.01, 0.05, 0.1]))
+                if after == 0 and names.index(to) <= names.index(s):
+                    after = 0.01
+                transitions.append({"after_s": after, "to": to})
             else:
                 transitions.append({**draw(conditions()), "to": to})
         states[s] = {"actions": actions, "transitions": transitions}

@@ -17,7 +17,7 @@ from pathlib import Path
 import pytest
 
 from tests.budget import assert_within_budget
-from zplatform.config import load_mission
+from zplatform.mission import load_mission
 from zplatform.node.ground import TelemetryReceiver
 from zplatform.telemetry import read_csv
 from zplatform.timebase import NodeClock

@@ -45,7 +45,7 @@ regions:
   dn0_to_cn:
     - {name: pressure, type: f32}
 controllers:
-  - {name: ctl, class: "x.y:Z", node: cn}
+  - {name: ctl, class: "stub_components:Idle", node: cn}
 state_machine:
   initial: A
   states:
@@ -283,7 +283,7 @@ def test_write_accepted(element: str, value: float, expected: object) -> None:
     assert r.cmd == "WRITE"
     assert r.dv.get(element) == expected
     (e,) = r.events.drain()
-    assert e.severity == Severity.INFO and e.id == "cmd_accepted"
+    assert e.severity == Severity.COMMAND and e.id == "cmd_accepted"
     assert e.text.startswith(f"command WRITE #1 accepted ({element} = ")
 
 
@@ -320,7 +320,7 @@ def test_write_rejected_bad_argument(element: str | int, value: float, reason: s
         if not k.startswith(("cn_cmd", "gn_", "cn_time_in", "cn_state")):
             assert after[k] == before[k], k
     (e,) = r.events.drain()
-    assert e.severity == Severity.WARNING and e.id == "cmd_rejected"
+    assert e.severity == Severity.WARNING_LO and e.id == "cmd_rejected"
     assert "(REJECTED_BAD_ARGUMENT)" in e.text and reason in e.text
 
 
@@ -367,9 +367,9 @@ def test_events_name_the_outcome_and_the_reason() -> None:
     r.send("LAUNCH", 1)
     r.send("NOOP", 2)
     texts = [(e.severity, e.id, e.text) for e in r.events.drain()]
-    assert (Severity.INFO, "cmd_accepted", "command LAUNCH #1 accepted") in texts
+    assert (Severity.COMMAND, "cmd_accepted", "command LAUNCH #1 accepted") in texts
     assert (
-        Severity.WARNING,
+        Severity.WARNING_LO,
         "cmd_rejected",
         "command NOOP #2 rejected (REJECTED_NOT_ALLOWED): not allowed in state B",
     ) in texts

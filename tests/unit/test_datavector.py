@@ -507,3 +507,24 @@ def test_nan_payloads_in_arrays_bit_exact(dv: DataVector) -> None:
     bits64 = [0x7FF0000000000001, 0xFFF8000000000002]
     dv.handle("a_f64").get()[:] = np.array(bits64, dtype="<u8").view("<f8")
     assert raw(dv, "a_f64") == struct.pack("<2Q", *bits64)
+
+
+def test_bump_adds_and_saturates_at_the_type_maximum(dv: DataVector) -> None:
+    h = dv.handle("v_u32")
+    assert h.bump() == 1 and h.bump(4) == 5 and dv.get("v_u32") == 5
+    h.set(2**32 - 2)
+    assert h.bump() == 2**32 - 1
+    assert h.bump() == 2**32 - 1  # a u32 counter sticks, it never wraps to 0
+    assert h.bump(10) == 2**32 - 1
+    u8 = dv.handle("v_u8")
+    u8.set(250)
+    assert u8.bump(100) == 255
+    assert dv.handle("mode").bump() == 3  # enums are integers too
+
+
+@pytest.mark.parametrize("name", ["v_f64", "v_bool", "a_u8"])
+def test_bump_refuses_what_is_no_integer_counter(dv: DataVector, name: str) -> None:
+    before = bytes(dv.buf)
+    with pytest.raises(DataVectorError, match="scalar integer"):
+        dv.handle(name).bump()
+    assert bytes(dv.buf) == before

@@ -28,10 +28,19 @@ FOUNDATION = {
     "CommandError",
     "ControlError",
     "NodeError",
-    # config
+    # config (the schema) and mission (loading with every check)
     "Mission",
+    "check_mission",
     "decode_mission",
     "load_mission",
+    # codes, components, events
+    "Command",
+    "CommandStatus",
+    "Fault",
+    "Component",
+    "EV",
+    "EventType",
+    "EventError",
     # data vector
     "DataVector",
     "ElementSpec",
@@ -48,7 +57,7 @@ FOUNDATION = {
     # timebase
     "NodeClock",
     "VirtualClock",
-    # scheduler
+    # scheduler and rate groups
     "GcGuard",
     "LoopStats",
     "PeriodicLoop",

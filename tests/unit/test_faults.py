@@ -50,7 +50,7 @@ class Rig:
         return self.dv.get_name("cn_fault")
 
     def critical(self) -> list[str]:
-        return [e.text for e in self.events.drain() if e.severity == Severity.CRITICAL]
+        return [e.text for e in self.events.drain() if e.severity == Severity.WARNING_HI]
 
 
 def test_dn_lost_after_consecutive_missed_syncs() -> None:
@@ -116,7 +116,7 @@ def test_report_controller_failure() -> None:
     r.fm.report_controller_failure("guidance", 3, 6)
     assert r.dv.get_name("cn_fault") == "CONTROLLER_FAILED"
     (e,) = r.events.drain()
-    assert e.severity == Severity.CRITICAL and e.id == "fault" and e.t_ns == 6
+    assert e.severity == Severity.WARNING_HI and e.id == "fault" and e.t_ns == 6
     assert e.text == "fault CONTROLLER_FAILED: controller guidance failed in 3 loops in a row"
 
 
@@ -161,8 +161,8 @@ def test_non_critical_error_counts_and_reports() -> None:
     assert r.dv.get_name("cn_fault") == "NONE"
     evs = r.events.drain()
     assert [(e.severity, e.id, e.text, e.t_ns) for e in evs] == [
-        (Severity.WARNING, "error", "dn0 missed the sync deadline", 42),
-        (Severity.WARNING, "error", "mission code", 43),
+        (Severity.WARNING_LO, "error", "dn0 missed the sync deadline", 42),
+        (Severity.WARNING_LO, "error", "mission code", 43),
     ]
 
 

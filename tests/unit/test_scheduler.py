@@ -13,14 +13,12 @@ import pytest
 
 from zplatform import scheduler
 from zplatform.errors import SchedulerError
+from zplatform.rategroups import RateGroup, RateGroups, rate_due
 from zplatform.scheduler import (
     GcGuard,
     LoopStats,
     PeriodicLoop,
-    RateGroup,
-    RateGroups,
     RealtimeStatus,
-    rate_due,
     setup_realtime,
 )
 

@@ -44,7 +44,7 @@ regions:
   dn0_to_cn:
     - {name: pressure, type: f32}
 controllers:
-  - {name: ctl, class: "x.y:Z", node: cn}
+  - {name: ctl, class: "stub_components:Idle", node: cn}
 """
 
 
@@ -311,7 +311,7 @@ def test_rule_action_value_fits_the_element_type(element: str, value: str, messa
 
 def test_rule_times_are_not_negative() -> None:
     e = config_error("initial: A\nstates:\n  A: {transitions: [{after_s: -1, to: A}]}\n")
-    # msgspec's own check: it writes a mapping key as [...] in the path
+    # msgspec writes a mapping key as [...]; parse_mission names it
     assert e.path.startswith("$.state_machine.states")
     assert e.path.endswith(".transitions[0].after_s")
     assert ">= 0" in e.reason
@@ -684,7 +684,7 @@ def test_state_change_event_is_info_and_names_the_cause() -> None:
     r = Rig(mission("initial: A\nstates:\n  A: {transitions: [{after_s: 0.01, to: B}]}\n  B: {}\n"))
     r.loop(2)
     (e,) = r.events.drain()
-    assert e.severity == Severity.INFO
+    assert e.severity == Severity.ACTIVITY_HI
     assert e.id == "state_change"
     assert e.text.startswith("state A -> B")
     assert e.text == "state A -> B (after 0.01 s)"

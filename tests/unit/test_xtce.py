@@ -10,8 +10,9 @@ import pytest
 from zplatform import load_mission
 from zplatform.ccsds import packet_plan
 from zplatform.cli import main
-from zplatform.config import CMD_NAMES, Mission, decode_mission
+from zplatform.config import CMD_NAMES, Mission
 from zplatform.datavector import ElementSpec, Layout
+from zplatform.mission import decode_mission
 from zplatform.xtce import HEADER_BITS, mission_xtce
 
 CONFIGS = Path(__file__).resolve().parents[2] / "configs"

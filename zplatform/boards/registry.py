@@ -14,7 +14,7 @@ from typing import Any
 
 import msgspec
 
-from ..control import decode_component_config
+from ..components import decode_component_config
 from ..devices import Board, SimBoard
 from ..errors import ConfigError
 from .base import BoardHealth

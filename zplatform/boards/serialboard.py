@@ -26,7 +26,7 @@ from typing import Annotated, Any, NoReturn
 import msgspec
 from msgspec import Meta
 
-from ..control import decode_component_config
+from ..components import decode_component_config
 from ..errors import ConfigError, ControlError
 from . import wire
 from .base import BoardError, BoardHealth, HealthCounters

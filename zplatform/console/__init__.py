@@ -55,7 +55,7 @@ def run_console(
 
     ``limits``: extra element limits (:mod:`zplatform.limits`) over the mission's.
     """
-    from ..config import load_mission
+    from ..mission import load_mission
     from .app import ConsoleApp
     from .link import Link
 
@@ -84,7 +84,7 @@ def serve_console(
 
     from textual_serve.server import Server
 
-    from ..config import load_mission
+    from ..mission import load_mission
 
     mission = load_mission(mission_path)  # fail here, not in every browser tab
     cmd = " ".join(

@@ -148,7 +148,7 @@ class DeviceNode:
                 # Slack until the next trigger is due: gc only runs there.
                 slack = t + period - now()
                 if slack < 0:
-                    self._overruns.set(self._overruns.get() + 1)
+                    self._overruns.bump()
                 else:
                     gc_guard.on_slack(slack)
                 self.loops += 1

@@ -14,7 +14,7 @@ from types import FrameType
 
 import zenoh
 
-from ..events import EventLog, encode_event
+from ..events import EventLog, Severity, encode_event
 from ..scheduler import RealtimeStatus, setup_realtime
 
 __all__ = ["PARENT_ENV", "EventPublisher", "StopFlag", "realtime_setup", "setup_logging"]
@@ -89,12 +89,14 @@ class EventPublisher:
         self._pub.undeclare()
 
 
-_LEVELS = {
-    0: logging.DEBUG,
-    1: logging.INFO,
-    2: logging.WARNING,
-    3: logging.ERROR,
-    4: logging.CRITICAL,
+_LEVELS: dict[int, int] = {
+    Severity.DIAGNOSTIC: logging.DEBUG,
+    Severity.ACTIVITY_LO: logging.INFO,
+    Severity.ACTIVITY_HI: logging.INFO,
+    Severity.COMMAND: logging.INFO,
+    Severity.WARNING_LO: logging.WARNING,
+    Severity.WARNING_HI: logging.ERROR,
+    Severity.FATAL: logging.CRITICAL,
 }
 
 

@@ -1,4 +1,4 @@
-"""Tests of zplatform.control: modes, failure handling, typed configs, rate groups,
+"""Tests of zplatform.controllers: modes, failure handling, typed configs, rate groups,
 and the shipped missions' controllers in isolation."""
 
 from __future__ import annotations
@@ -9,8 +9,8 @@ import msgspec
 import pytest
 
 from zplatform import DataVector, Layout, decode_mission
-from zplatform.config import Mission
-from zplatform.control import (
+from zplatform.config import Mission, parse_mission
+from zplatform.controllers import (
     ENABLED,
     MANUAL,
     SAFED,
@@ -203,7 +203,7 @@ def test_raising_controller_is_counted_safed_and_reported_once() -> None:
     # the loop went on: the next controller ran
     assert b.calls[-1] == ("enabled", r.t - PERIOD)
     events = r.severities()
-    assert events == [("ERROR", "controller_failed")]
+    assert events == [("WARNING_HI", "controller_failed")]
     # stays safed (no retry) until the state machine enables it again
     r.run(10)
     assert r.dv.get("cn_errors") == 1
@@ -217,7 +217,7 @@ def test_safing_failure_disables_controller_and_raises_fault() -> None:
     r.run()
     assert r.set.disabled("a")
     assert r.dv.get("cn_errors") == 1
-    assert r.severities() == [("ERROR", "controller_failed"), ("CRITICAL", "controller_disabled")]
+    assert r.severities() == [("WARNING_HI", "controller_failed"), ("FATAL", "controller_disabled")]
     n = len(r.ctl().calls)
     r.run(5)
     assert len(r.ctl().calls) == n  # never called again
@@ -231,7 +231,7 @@ def test_controller_failing_in_safed_mode_is_disabled() -> None:
     r.dv.set("a_mode", "safed")
     r.run()
     assert r.set.disabled("a")
-    assert [s for s, _ in r.severities()] == ["ERROR", "CRITICAL"]
+    assert [s for s, _ in r.severities()] == ["WARNING_HI", "FATAL"]
 
 
 def test_reenabled_controller_runs_again_and_failures_count_each_time() -> None:
@@ -260,7 +260,7 @@ def test_dn_controller_failure_latches_safed_while_cn_keeps_commanding() -> None
         r.run()
     assert r.dv.get("dn0_errors") == 1  # not retried: latched safe
     assert r.ctl().calls[-1][0] == "safed"
-    assert r.severities() == [("ERROR", "controller_failed")]
+    assert r.severities() == [("WARNING_HI", "controller_failed")]
     # the CN safes and re-enables it: the latch is released
     r.ctl().fail_enabled = False
     r.dv.set("d_mode", "safed")
@@ -332,7 +332,7 @@ def test_element_kind_is_checked() -> None:
     [
         ("no_such_module_zp:X", "cannot import module 'no_such_module_zp'"),
         (f"{HERE}:Missing", "has no attribute 'Missing'"),
-        (f"{HERE}:NotAController", "is not a zplatform.control.Controller subclass"),
+        (f"{HERE}:NotAController", "is not a zplatform.controllers.Controller subclass"),
         (f"{HERE}:Abstract", "is abstract"),
     ],
 )
@@ -367,8 +367,12 @@ def test_rate_divisor_and_phase() -> None:
 
 
 def test_rate_phase_out_of_range_is_a_config_error() -> None:
-    m = mission(recorder(rate=", rate_divisor: 2, rate_phase: 2"))
+    body = recorder(rate=", rate_divisor: 2, rate_phase: 2")
     with pytest.raises(ConfigError) as ei:
+        mission(body)  # refused at load ...
+    assert ei.value.path == "$.controllers[0].rate_phase"
+    m = parse_mission(BASE + "controllers:\n" + body)
+    with pytest.raises(ConfigError) as ei:  # ... and by the set itself
         ControllerSet(m, "cn", DataVector(Layout.for_node(m, "cn")))
     assert ei.value.path == "$.controllers[0].rate_phase"
 
@@ -398,7 +402,7 @@ def test_sequential_leds_light_cumulatively_from_enable_time() -> None:
 
 
 def test_led_test_config_errors_have_paths() -> None:
-    m = decode_mission(
+    m = parse_mission(
         BASE + "controllers:\n  - {name: s, class: 'nodes.led_test:StateLedController',"
         " node: cn, config: {leds: {Z: out_a}}}\n"
     )

@@ -1,0 +1,66 @@
+"""Mission files rewired for fault tests.
+
+* :func:`relay_links`: put a :class:`~tests.faults.relay.FaultRelay` on the
+  link from each chosen node to the CN of an (already port-rewritten)
+  mission file. Gossip scouting is switched off in the file, so no node can
+  learn the CN's real endpoint and bypass the relay (DESIGN.md §8: with
+  gossip on, peers connect to each other by themselves).
+* :func:`netns_mission`: node number ``k`` (in the file's order) listens on
+  ``tcp/<its host's address>:PORT+k`` of a bridged
+  :class:`~tests.faults.netns.NetnsLab` (hosts may be shared); each non-CN
+  node connects to the CN. Run the nodes with ``host.popen(["python", "-m",
+  "zplatform", "node", path, name])``.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Iterable, Mapping
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from tests.faults.netns import NetnsHost
+from tests.faults.relay import FaultRelay
+
+PORT = 7447
+
+
+def relay_links(
+    path: str | Path,
+    relay_factory: Callable[..., FaultRelay],
+    nodes: Iterable[str],
+    **plan: Any,
+) -> dict[str, FaultRelay]:
+    """Rewrite ``path`` in place: each node of ``nodes`` connects to the CN
+    through a relay of its own (made by ``relay_factory(cn_endpoint, **plan)``).
+    Returns ``{node: relay}``."""
+    p = Path(path)
+    raw = yaml.safe_load(p.read_text())
+    cn_ep = raw["nodes"]["cn"]["listen"][0]
+    relays: dict[str, FaultRelay] = {}
+    for name in nodes:
+        relays[name] = relay_factory(cn_ep, **plan)
+        raw["nodes"][name]["connect"] = [relays[name].endpoint]
+    raw.setdefault("transport", {})["gossip_scouting"] = False
+    p.write_text(yaml.safe_dump(raw, sort_keys=False))
+    return relays
+
+
+def netns_mission(
+    src: str | Path, dst: str | Path, hosts: Mapping[str, NetnsHost], port: int = PORT
+) -> Path:
+    """Copy mission ``src`` to ``dst`` with node ``n`` on ``hosts[n]``."""
+    raw = yaml.safe_load(Path(src).read_text())
+    missing = set(raw["nodes"]) - set(hosts)
+    if missing:
+        raise ValueError(f"no host for nodes {sorted(missing)}")
+    ports = {name: port + k for k, name in enumerate(raw["nodes"])}
+    cn_ep = hosts["cn"].endpoint(ports["cn"])
+    for name, node in raw["nodes"].items():
+        node = node or {}
+        node["listen"] = [hosts[name].endpoint(ports[name])]
+        node["connect"] = [] if name == "cn" else [cn_ep]
+        raw["nodes"][name] = node
+    Path(dst).write_text(yaml.safe_dump(raw, sort_keys=False))
+    return Path(dst)

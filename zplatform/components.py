@@ -1,0 +1,292 @@
+"""What controllers and devices share: the component base, typed config, loading.
+
+A *component* is mission code placed on one node (a controller of
+:mod:`zplatform.controllers` or a device of :mod:`zplatform.devices`). This
+module holds what both kinds need, so neither imports the other's internals:
+
+* :class:`Component`: name, node, typed ``Config`` decoded from the YAML
+  ``config:`` mapping, element handles taken once in :meth:`Component.bind`;
+* :func:`decode_component_config`: YAML mapping -> ``msgspec.Struct``, with
+  the error path continuing the component's YAML path;
+* :func:`load_component_class` and :func:`load_function`: import a
+  ``"package.module:Name"`` path, refusing at load (ConfigError naming the
+  YAML path) anything that is not what the mission says it is;
+* :class:`Streak`: the failure-streak counter behind "one event per failure
+  streak" (controllers, devices, a device node's board).
+
+Everything here raises :class:`~zplatform.errors.ConfigError` for a bad
+mission and never runs in the loop, except :class:`Streak`, which allocates
+nothing.
+"""
+
+from __future__ import annotations
+
+import abc
+import importlib
+import inspect
+from collections.abc import Callable
+from typing import TYPE_CHECKING, Any, ClassVar, TypeVar
+
+import msgspec
+
+from .errors import ConfigError
+
+if TYPE_CHECKING:
+    from .config import ComponentConfig, Mission
+    from .datavector import DataVector, Handle
+
+__all__ = [
+    "Component",
+    "NoConfig",
+    "Streak",
+    "component_indices",
+    "decode_component_config",
+    "errors_element",
+    "load_component_class",
+    "load_function",
+    "owned_regions",
+]
+
+
+class NoConfig(msgspec.Struct, forbid_unknown_fields=True):
+    """The ``Config`` of a component that takes no configuration."""
+
+
+S = TypeVar("S", bound=msgspec.Struct)
+
+
+def decode_component_config(cfg_type: type[S], raw: dict[str, Any], where: str) -> S:
+    """Convert a YAML ``config:`` mapping into ``cfg_type``.
+
+    Raises ConfigError whose path continues ``where`` (msgspec's ``$.x`` ->
+    ``{where}.x``).
+    """
+    try:
+        return msgspec.convert(raw, type=cfg_type)
+    except msgspec.ValidationError as exc:
+        msg, _, at = str(exc).partition(" - at `")
+        at = at.rstrip("`")
+        path = where + at[1:] if at.startswith("$") else where
+        raise ConfigError(msg, path) from exc
+
+
+def _import_attr(spec: str, where: str, *, what: str, form: str, module_noun: str) -> object:
+    """Import ``"package.module:name"`` and return the attribute (ConfigError at ``where``).
+
+    ``what`` names the kind of thing for messages (``class``, ``physics``),
+    ``form`` the expected spelling of the name (``ClassName``, ``function``),
+    and ``module_noun`` how the module is called in an import error.
+    """
+    mod_name, sep, name = spec.partition(":")
+    if not sep or not mod_name or not name:
+        raise ConfigError(f"{what} {spec!r} must be 'package.module:{form}'", where)
+    try:
+        module = importlib.import_module(mod_name)
+    except ImportError as exc:
+        raise ConfigError(
+            f"cannot import {module_noun} {mod_name!r} for {what} {spec!r}: {exc}", where
+        ) from exc
+    except Exception as exc:  # a bug in the mission module: say where it came from
+        raise ConfigError(
+            f"importing module {mod_name!r} for {what} {spec!r} raised {type(exc).__name__}: {exc}",
+            where,
+        ) from exc
+    obj = getattr(module, name, None)
+    if obj is None:
+        noun = "attribute" if form == "ClassName" else form
+        raise ConfigError(f"module {mod_name!r} has no {noun} {name!r}", where)
+    return obj
+
+
+def load_component_class(spec: str, base: type[Any], where: str) -> type[Any]:
+    """Import ``"package.module:ClassName"`` and check it subclasses ``base``.
+
+    Raises ConfigError (path ``where``) when the module or class cannot be
+    imported, is not a class, is not a ``base`` subclass, or is abstract.
+    """
+    obj = _import_attr(spec, where, what="class", form="ClassName", module_noun="module")
+    if not isinstance(obj, type) or not issubclass(obj, base):
+        raise ConfigError(
+            f"{spec!r} is not a {base.__module__}.{base.__qualname__} subclass", where
+        )
+    abstract = getattr(obj, "__abstractmethods__", None)
+    if abstract:
+        missing = ", ".join(sorted(abstract))
+        raise ConfigError(f"{spec!r} is abstract (does not implement {missing})", where)
+    return obj
+
+
+def load_function(
+    spec: str, where: str, *, args: tuple[str, ...], what: str = "function"
+) -> Callable[..., Any]:
+    """Import ``"package.module:function"`` and check it can be called with ``args``.
+
+    ``args`` names the positional parameters the caller will pass (for a
+    SimBoard physics hook ``("board", "t_ns")``). Raises ConfigError (path
+    ``where``) when the module cannot be imported, the name is missing, is a
+    class or not callable, or its signature cannot take ``len(args)``
+    positional arguments (``os:getcwd`` is refused here, at load, not in the
+    first loop). A callable whose signature Python cannot inspect (some
+    builtins) is accepted: the check is made where it can be.
+    """
+    obj = _import_attr(spec, where, what=what, form="function", module_noun=f"{what} module")
+    if isinstance(obj, type) or not callable(obj):
+        raise ConfigError(
+            f"{spec!r} is a {type(obj).__name__}, not a function taking ({', '.join(args)})",
+            where,
+        )
+    try:
+        sig = inspect.signature(obj)
+    except (TypeError, ValueError):  # no signature to check (some builtins)
+        return obj
+    try:
+        sig.bind(*([None] * len(args)))
+    except TypeError as exc:
+        raise ConfigError(
+            f"{spec!r} cannot be called as {what}({', '.join(args)}): its signature is "
+            f"{sig} ({exc})",
+            where,
+        ) from exc
+    return obj
+
+
+def owned_regions(dv: DataVector, node: str) -> tuple[str, ...]:
+    """The regions of ``node``'s Data Vector that ``node`` writes.
+
+    The CN owns ``cn`` and every ``cn_to_dnX``; a device node owns its
+    ``dnX_to_cn``. Anything written elsewhere is overwritten by the next sync.
+    """
+    if node == "cn":
+        return tuple(r for r in dv.layout.regions if r == "cn" or r.startswith("cn_to_"))
+    return tuple(r for r in dv.layout.regions if r == f"{node}_to_cn")
+
+
+def component_indices(mission: Mission, section: str, node: str) -> list[int]:
+    """Indices into ``mission.<section>`` (``controllers``/``devices``) placed on ``node``."""
+    return [i for i, c in enumerate(getattr(mission, section)) if c.node == node]
+
+
+def errors_element(node: str) -> str:
+    """The element counting ``node``'s non-critical errors (``cn_errors``, ``dnX_errors``)."""
+    return "cn_errors" if node == "cn" else f"{node}_errors"
+
+
+class Streak:
+    """Consecutive failures of one thing (a controller, a device, a board).
+
+    The loop calls :meth:`fail` on each failing run and :meth:`ok` on each
+    good one. Events are reported once per streak (when :meth:`fail` returns
+    1), the fault monitor reads the length. Allocates nothing.
+    """
+
+    __slots__ = ("length",)
+
+    def __init__(self) -> None:
+        self.length = 0
+
+    def fail(self) -> int:
+        """Count one more failure; return the streak's new length (1 = a new streak)."""
+        self.length += 1
+        return self.length
+
+    def ok(self) -> bool:
+        """A good run: end the streak. Returns whether a streak was running."""
+        if self.length:
+            self.length = 0
+            return True
+        return False
+
+
+class Component(abc.ABC):
+    """What controllers and devices share: name, node, typed config, handles.
+
+    Subclasses set ``Config`` to a ``msgspec.Struct`` with
+    ``forbid_unknown_fields=True`` and take their element handles in
+    :meth:`bind` with :meth:`input` / :meth:`output`. Construction raises
+    ConfigError naming ``where`` (``$.controllers[i]``) for a bad config.
+    """
+
+    Config: ClassVar[type[msgspec.Struct]] = NoConfig
+    config: Any
+
+    def __init__(self, spec: ComponentConfig, dv: DataVector, *, where: str = "$") -> None:
+        self.spec = spec
+        self.name = spec.name
+        self.node = spec.node
+        self.dv = dv
+        self.where = where
+        self._owned = owned_regions(dv, spec.node)
+        self.config = decode_component_config(type(self).Config, spec.config, f"{where}.config")
+        self.bind(dv)
+
+    def bind(self, dv: DataVector) -> None:  # noqa: B027 - optional hook, default no-op
+        """Take element handles (override). Called once, after ``config`` is set."""
+
+    # -- bind-time helpers ---------------------------------------------------
+    def _lookup(self, name: str, field: str, kinds: tuple[str, ...] | None, array: bool) -> Handle:
+        where = f"{self.where}.config.{field}" if field else f"{self.where}.config"
+        if not isinstance(name, str) or name not in self.dv.layout.elements:
+            regions = ", ".join(self.dv.layout.regions)
+            raise ConfigError(
+                f"{self.name}: element {name!r} is not in node {self.node}'s Data Vector "
+                f"(regions {regions})",
+                where,
+            )
+        h = self.dv.handle(name)
+        spec = h.spec
+        if spec.count and not array:
+            raise ConfigError(
+                f"{self.name}: element {name!r} is an array ({spec.type_text}); a scalar is needed",
+                where,
+            )
+        if kinds is not None:
+            kind = "enum" if spec.enum is not None else spec.scalar.kind
+            if kind not in kinds:
+                raise ConfigError(
+                    f"{self.name}: element {name!r} is {spec.type_text}; expected "
+                    f"{' or '.join(kinds)}",
+                    where,
+                )
+        return h
+
+    def input(
+        self,
+        name: str,
+        field: str = "",
+        *,
+        kinds: tuple[str, ...] | None = None,
+        array: bool = False,
+    ) -> Handle:
+        """A handle on element ``name`` to read (any region of this node's vector).
+
+        ``field`` is the config field that named the element (for the error
+        path); ``kinds`` limits the element's kind (``bool``, ``int``,
+        ``float``, ``enum``). Raises ConfigError.
+        """
+        return self._lookup(name, field, kinds, array)
+
+    def output(
+        self,
+        name: str,
+        field: str = "",
+        *,
+        kinds: tuple[str, ...] | None = None,
+        array: bool = False,
+    ) -> Handle:
+        """Like :meth:`input`, and the element must be in a region this node owns.
+
+        Writing an element of a region the node receives (a DN writing
+        ``cn_to_dnX``) would be undone by the next sync, so it is refused here.
+        """
+        h = self._lookup(name, field, kinds, array)
+        if h.spec.region not in self._owned:
+            where = f"{self.where}.config.{field}" if field else f"{self.where}.config"
+            raise ConfigError(
+                f"{self.name}: element {name!r} is in region {h.spec.region}, which node "
+                f"{self.node} does not write (it writes {', '.join(self._owned) or 'nothing'})",
+                where,
+            )
+        return h
+
+    def __repr__(self) -> str:
+        return f"<{type(self).__name__} {self.name!r} on {self.node}>"

@@ -1,0 +1,86 @@
+"""Loading a mission: the schema, then every semantic check, before anything runs.
+
+:func:`load_mission` (a file) and :func:`decode_mission` (YAML text) are the
+way in for every caller: the runtime, the lockstep runner, the tools, the
+tests. They return a :class:`~zplatform.config.Mission` that passed
+
+1. the schema and structural checks of :func:`zplatform.config.parse_mission`
+   (types, names, topology, sizes, endpoints; platform elements added), then
+2. :func:`check_mission`: every check that needs the whole Data Vector or
+   the mission's code, in this order:
+
+   * controllers' ``initial_mode``;
+   * the state machine (:func:`zplatform.statemachine.check_config`):
+     elements, values, writability, zero-time cycles;
+   * the commands (:func:`zplatform.commands.check_config`);
+   * the controllers (:func:`zplatform.controllers.check_config`): every
+     ``class`` imported, checked to be a concrete Controller, its typed
+     ``config`` decoded and its element handles bound on a scratch Data
+     Vector of its node;
+   * the devices and boards (:func:`zplatform.devices.check_config`): every
+     node's ``board`` config (a SimBoard's ``physics`` function imported and
+     its signature checked), every device class, config and pin.
+
+So a bad class path, a typo in a component's config or a physics function
+that cannot take ``(board, t_ns)`` fails here, at load, with its YAML path,
+never in the first loop on the pad. Every failure is a
+:class:`~zplatform.errors.ConfigError`; a controller or device whose own
+constructor raises is a :class:`~zplatform.errors.ControlError`.
+
+Checking imports mission code (controllers, devices, physics) and runs their
+constructors and ``bind``: it must have no side effects beyond that. This
+module sits above the control modules (it imports them, none imports it), so
+``config`` stays free of import cycles.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from . import commands, controllers, devices, statemachine
+from .config import CONTROLLER_MODES, Mission, parse_mission
+from .errors import ConfigError
+
+__all__ = ["check_mission", "decode_mission", "load_mission"]
+
+
+def check_mission(mission: Mission) -> None:
+    """Run every semantic check on a parsed mission; raises on the first failure.
+
+    ``mission`` comes from :func:`zplatform.config.parse_mission` (platform
+    elements added). Raises ConfigError naming the YAML path, or ControlError
+    for a component constructor that raised. Logs unreachable states as
+    warnings.
+    """
+    for i, c in enumerate(mission.controllers):
+        if c.initial_mode not in CONTROLLER_MODES:
+            raise ConfigError(
+                f"initial_mode {c.initial_mode!r} is not one of {list(CONTROLLER_MODES)}",
+                f"$.controllers[{i}].initial_mode",
+            )
+    statemachine.check_config(mission)
+    commands.check_config(mission)
+    controllers.check_config(mission)
+    devices.check_config(mission)
+
+
+def decode_mission(text: bytes | str, source: str = "<string>") -> Mission:
+    """Decode and fully check a mission from YAML text (see :func:`load_mission`)."""
+    mission = parse_mission(text, source=source)
+    check_mission(mission)
+    return mission
+
+
+def load_mission(path: str | Path) -> Mission:
+    """Read, decode and check a mission YAML file.
+
+    Blocks on file I/O and on importing the mission's modules. Raises
+    :class:`ConfigError` naming the YAML path of the first bad field (see the
+    module docstring for the order); never returns a partially valid mission.
+    """
+    p = Path(path)
+    try:
+        text = p.read_bytes()
+    except OSError as exc:
+        raise ConfigError(f"cannot read mission file {str(p)!r}: {exc.strerror}", "$") from exc
+    return decode_mission(text, source=str(p))
