@@ -1,22 +1,29 @@
-"""The ``zplatform`` command (DESIGN.md §6).
+"""zplatform: run, watch and command Zenoh flight-software missions.
 
 Each subcommand is a small function that parses its arguments, calls the
 library, prints, and returns an exit code. Errors of the ZPlatformError tree
-print one line (``zplatform: error: ...``) and exit 2; nothing prints a
-traceback for a user mistake.
+and OS errors on the user's paths print one line (``zplatform: error: ...``)
+and exit 2; a closed stdout (``zplatform check --json | head``) ends quietly.
+Nothing prints a traceback for a user mistake.
+
+Every MISSION argument is a mission file or the name of a running mission
+(``zplatform ps``): :func:`zplatform.registry.resolve_mission`.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 from collections.abc import Callable, Sequence
 
+from . import __version__
 from .config import Mission
 from .datavector import Layout
 from .errors import ZPlatformError
 from .mission import load_mission
+from .registry import resolve_mission
 
 __all__ = ["main"]
 
@@ -96,13 +103,45 @@ def cmd_check(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_ps(args: argparse.Namespace) -> int:
+    """The running missions ``up`` registered (stale entries are dropped)."""
+    import time
+
+    from .registry import entries_json, running
+
+    entries = running()
+    if args.json:
+        print(entries_json(entries))
+        return 0
+    if not entries:
+        print("no mission is running")
+        return 0
+    print(f"{'NAME':<20} {'PID':>8} {'UP':>8}  {'MISSION FILE':<40} LOGS")
+    now = time.time()
+    for e in entries:
+        logs = " ".join(e.logs.values()) or "-"
+        print(f"{e.name:<20} {e.pid:>8} {now - e.started:>7.0f}s  {e.mission_file:<40} {logs}")
+    return 0
+
+
+MISSION_HELP = "mission YAML file, or the name of a running mission (`zplatform ps`)"
+
+
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="zplatform", description=__doc__.splitlines()[0])
-    sub = p.add_subparsers(dest="command", required=True)
+    p = argparse.ArgumentParser(
+        prog="zplatform",
+        description=__doc__.splitlines()[0] if __doc__ else None,
+        epilog="`zplatform VERB --help` describes a verb; MISSION is a " + MISSION_HELP + ".",
+    )
+    p.add_argument("--version", action="version", version=f"zplatform {__version__}")
+    sub = p.add_subparsers(dest="command", required=True, metavar="VERB")
     c = sub.add_parser("check", help="validate a mission; print regions, offsets, bandwidth")
-    c.add_argument("mission")
+    c.add_argument("mission", help=MISSION_HELP)
     c.add_argument("--json", action="store_true", help="machine-readable report")
     c.set_defaults(func=cmd_check)
+    c = sub.add_parser("ps", help="list the running missions (registered by `up`)")
+    c.add_argument("--json", action="store_true", help="the registry entries as JSON")
+    c.set_defaults(func=cmd_ps)
     for register in _EXTRA:
         register(sub)
     return p
@@ -133,9 +172,27 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = parser.parse_args(argv)
     func: Handler = args.func
     try:
-        return func(args)
+        if getattr(args, "mission", None) is not None:
+            args.mission = resolve_mission(args.mission)
+        rc = func(args)
+        sys.stdout.flush()  # here, not at exit, so a closed pipe is caught below
+        return rc
     except ZPlatformError as exc:
         print(f"zplatform: error: {exc}", file=sys.stderr)
+        return 2
+    except BrokenPipeError:
+        # The reader went away (`| head`): stop quietly, like any Unix tool.
+        # Point stdout at /dev/null so the interpreter's final flush is silent.
+        try:
+            devnull = os.open(os.devnull, os.O_WRONLY)
+            os.dup2(devnull, sys.stdout.fileno())
+        except (OSError, ValueError):
+            pass
+        return 141
+    except OSError as exc:
+        # A path the user gave that cannot be read or written.
+        where = f" {exc.filename!r}" if exc.filename else ""
+        print(f"zplatform: error: cannot use{where}: {exc.strerror or exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         return 130

@@ -9,9 +9,24 @@ import threading
 import time
 from pathlib import Path
 
+from .cli_args import check_output, positive_float, positive_int
 from .errors import CommandError, ZPlatformError
 from .mission import load_mission
 from .telemetry import read_csv
+
+MISSION_HELP = "mission YAML file, or the name of a running mission (`zplatform ps`)"
+
+
+def _port(text: str) -> int:
+    """argparse type: a TCP port, 0..65535 (0: any free port)."""
+    try:
+        v = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a port number, got {text!r}") from None
+    if not 0 <= v <= 65535:
+        raise argparse.ArgumentTypeError(f"must be a port number 0..65535, got {text}")
+    return v
+
 
 __all__ = ["register"]
 
@@ -24,19 +39,23 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         "ground",
         help="the ground console (terminal or --web PORT); a line prompt when stdin is no TTY",
     )
-    p.add_argument("mission")
+    p.add_argument("mission", help=MISSION_HELP)
     mode = p.add_mutually_exclusive_group()
     mode.add_argument(
         "--console", action="store_true", help="the full-screen console even without a TTY"
     )
     mode.add_argument("--prompt", action="store_true", help="the line prompt even on a TTY")
-    mode.add_argument("--web", type=int, metavar="PORT", help="serve the console to browsers")
+    mode.add_argument(
+        "--web", type=_port, metavar="PORT", help="serve the console to browsers on PORT"
+    )
     p.add_argument("--host", default="127.0.0.1", help="address --web listens on")
     p.add_argument("--watch", nargs="*", default=[], help="elements to show on the status line")
-    p.add_argument("--interval", type=float, default=1.0, help="status line period (s)")
-    p.add_argument("--timeout", type=float, default=10.0, help="verdict timeout per command (s)")
+    p.add_argument("--interval", type=positive_float, default=1.0, help="status line period (s)")
     p.add_argument(
-        "--los", type=float, default=0.3, help="console: seconds of silence that mean LOS"
+        "--timeout", type=positive_float, default=10.0, help="verdict timeout per command (s)"
+    )
+    p.add_argument(
+        "--los", type=positive_float, default=0.3, help="console: seconds of silence that mean LOS"
     )
     p.add_argument(
         "--limits",
@@ -45,32 +64,49 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     )
     p.set_defaults(func=cmd_ground)
 
-    p = sub.add_parser("plot", help="plot logged elements against time")
-    p.add_argument("csv")
-    p.add_argument("elements", nargs="+")
-    p.add_argument("--out", required=True, help="PNG path")
+    p = sub.add_parser(
+        "plot",
+        help="plot logged elements against time, state changes and commands marked",
+        description="Plot telemetry CSV columns against time: numbers as lines, booleans "
+        "and enums as labelled steps; state changes (cn_state) and commands (cn_cmd_seq) "
+        "as named vertical lines.",
+    )
+    p.add_argument("csv", help="telemetry CSV written by up --log, log or sim")
+    p.add_argument("elements", nargs="+", help="column names (see the CSV's header)")
+    p.add_argument("--out", required=True, help="image path (PNG, SVG, PDF by extension)")
+    p.add_argument("--title", help="figure title (default: the CSV name and the elements)")
     p.set_defaults(func=cmd_plot)
 
     p = sub.add_parser(
         "xtce", help="write the mission's telemetry packets and commands as XTCE (Yamcs)"
     )
-    p.add_argument("mission")
+    p.add_argument("mission", help=MISSION_HELP)
     p.add_argument("--out", help="XML path (default: MISSION_NAME.xtce.xml)")
     p.set_defaults(func=cmd_xtce)
 
     p = sub.add_parser(
         "ccsds", help="record live telemetry as CCSDS space packets, or decode them to CSV"
     )
-    p.add_argument("mission")
+    p.add_argument("mission", help=MISSION_HELP)
     what = p.add_mutually_exclusive_group(required=True)
     what.add_argument("--record", metavar="FILE", help="append the downlink's packets to FILE")
     what.add_argument("--decode", metavar="FILE", help="decode a packet file to CSV (--out)")
     p.add_argument("--out", help="CSV path for --decode")
-    p.add_argument("--duration", type=float, help="--record: stop after S seconds")
-    p.add_argument("--divisor", type=int, default=1, help="downlink every Nth snapshot")
-    p.add_argument("--budget", type=int, help="downlink byte budget per second")
-    p.add_argument("--max-data", type=int, default=65536, help="packet data field size (bytes)")
-    p.add_argument("--timeout", type=float, default=10.0, help="--record: wait for the CN (s)")
+    p.add_argument(
+        "--duration", type=positive_float, metavar="S", help="--record: stop after S seconds"
+    )
+    p.add_argument("--divisor", type=positive_int, default=1, help="downlink every Nth snapshot")
+    p.add_argument("--budget", type=positive_int, help="downlink byte budget per second")
+    p.add_argument(
+        "--max-data", type=positive_int, default=65536, help="packet data field size (bytes)"
+    )
+    p.add_argument(
+        "--timeout",
+        type=positive_float,
+        default=10.0,
+        metavar="S",
+        help="--record: wait for the CN (s)",
+    )
     p.set_defaults(func=cmd_ccsds)
 
 
@@ -120,7 +156,11 @@ def cmd_prompt(args: argparse.Namespace) -> int:
 
     The prompt runs in a reader thread that only queues lines; the main
     thread owns the zenoh session, receives telemetry and sends commands.
+    Every node's events are printed as they come (``EVENT cn WARNING id: text``).
     """
+    import zenoh
+
+    from .events import decode_event
     from .node.ground import CommandSender
 
     mission = load_mission(args.mission)
@@ -128,6 +168,27 @@ def cmd_prompt(args: argparse.Namespace) -> int:
     for name in args.watch:
         sender.rx.dv.layout.element(name)  # unknown elements fail now, with their name
     lines: queue.SimpleQueue[str | None] = queue.SimpleQueue()
+    ev_q: queue.SimpleQueue[bytes] = queue.SimpleQueue()
+
+    def on_event(sample: zenoh.Sample) -> None:
+        ev_q.put(sample.payload.to_bytes())  # hand off only
+
+    ev_sub = sender.ns.session.declare_subscriber(
+        sender.ns.keys.all_events, zenoh.handlers.Callback(on_event, indirect=False)
+    )
+
+    def print_events() -> None:
+        while True:
+            try:
+                payload = ev_q.get_nowait()
+            except queue.Empty:
+                return
+            try:
+                e = decode_event(payload)
+            except ZPlatformError as exc:
+                print(f"EVENT (undecodable: {exc})", flush=True)
+                continue
+            print(f"EVENT {e.node} {e.severity_name} {e.id}: {e.text}", flush=True)
 
     def reader() -> None:
         for line in sys.stdin:
@@ -143,6 +204,7 @@ def cmd_prompt(args: argparse.Namespace) -> int:
                 line = lines.get_nowait()
             except queue.Empty:
                 line = ""
+            print_events()
             if line is None:
                 return 0
             words = line.split()
@@ -182,43 +244,38 @@ def cmd_prompt(args: argparse.Namespace) -> int:
     except KeyboardInterrupt:
         return 0
     finally:
+        print_events()
+        ev_sub.undeclare()
         sender.close()
 
 
 def cmd_plot(args: argparse.Namespace) -> int:
-    """Plot CSV columns against time since the first row; enums as their codes."""
+    """Plot CSV columns against time since the first row (see telemetry.plot_telemetry)."""
     try:
-        import matplotlib
-
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
+        import matplotlib  # noqa: F401
     except ImportError:
         raise CommandError("plot needs matplotlib: pip install 'zplatform[plot]'") from None
-    rows = read_csv(args.csv)
+    from .telemetry import plot_telemetry
+
+    try:
+        rows = read_csv(args.csv)
+    except FileNotFoundError:
+        raise CommandError(f"no such telemetry CSV: {args.csv!r}") from None
+    except IsADirectoryError:
+        raise CommandError(f"{args.csv!r} is a directory, not a telemetry CSV") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise CommandError(f"cannot read telemetry CSV {args.csv!r}: {exc}") from None
     if not rows:
         raise CommandError(f"{args.csv} has no rows")
+    if "rx_time_ns" not in rows[0]:
+        raise CommandError(f"{args.csv} is not a telemetry CSV (no rx_time_ns column)")
     missing = [e for e in args.elements if e not in rows[0]]
     if missing:
         raise CommandError(f"not in {args.csv}: {missing}")
-    t0 = int(rows[0]["rx_time_ns"])
-    t = [(int(r["rx_time_ns"]) - t0) / 1e9 for r in rows]
-    fig, axes = plt.subplots(
-        len(args.elements), 1, sharex=True, squeeze=False, figsize=(10, 2.2 * len(args.elements))
-    )
-    for ax, name in zip(axes[:, 0], args.elements, strict=True):
-        raw = [r[name] for r in rows]
-        try:
-            ax.plot(t, [float(v) for v in raw], drawstyle="steps-post")
-        except ValueError:  # an enum written by name: plot its codes, label the axis
-            names = sorted(set(raw), key=raw.index)
-            ax.plot(t, [names.index(v) for v in raw], drawstyle="steps-post")
-            ax.set_yticks(range(len(names)), names)
-        ax.set_ylabel(name)
-        ax.grid(True, alpha=0.3)
-    axes[-1, 0].set_xlabel("time since first snapshot (s)")
-    fig.tight_layout()
-    fig.savefig(Path(args.out), dpi=100)
-    print(f"wrote {args.out}")
+    check_output(args.out, "plot")
+    title = args.title or f"{Path(args.csv).name}: {', '.join(args.elements)}"
+    markers = plot_telemetry(rows, args.elements, args.out, title=title)
+    print(f"wrote {args.out} ({len(rows)} rows, {len(markers)} state/command markers)")
     return 0
 
 
@@ -230,6 +287,7 @@ def cmd_xtce(args: argparse.Namespace) -> int:
         raise CommandError("xtce needs yamcs-pymdb: pip install 'zplatform[ground]'") from None
     mission = load_mission(args.mission)
     out = args.out or f"{mission.mission}.xtce.xml"
+    check_output(out, "XTCE file")
     x = write_xtce(mission, out)
     print(f"wrote {out}")
     if x.unplaced:
@@ -247,6 +305,7 @@ def cmd_ccsds(args: argparse.Namespace) -> int:
     if args.decode:
         if not args.out:
             raise CommandError("--decode needs --out CSV")
+        check_output(args.out, "CSV")
         try:
             data = Path(args.decode).read_bytes()
         except OSError as exc:
@@ -263,6 +322,7 @@ def cmd_ccsds(args: argparse.Namespace) -> int:
     from .timebase import NodeClock
     from .transport import NodeSession
 
+    check_output(args.record, "packet file")
     enc = ccsds.CcsdsEncoder(
         mission, divisor=args.divisor, budget_bps=args.budget, max_data=args.max_data
     )

@@ -6,6 +6,7 @@ import argparse
 import json
 import os
 import queue
+import shutil
 import signal
 import subprocess
 import sys
@@ -17,6 +18,7 @@ from typing import Any
 import zenoh
 
 from .auth import TAG_LEN, load_key, mission_channels
+from .cli_args import check_output, check_ports, nonnegative_float, positive_float, positive_int
 from .codec import RegionCodec
 from .config import Mission
 from .datavector import DataVector, Layout
@@ -25,22 +27,50 @@ from .events import decode_event
 from .mission import load_mission
 from .node.runtime import PARENT_ENV, setup_logging
 from .summary import CnSummary, DnSummary, GnSummary, RunSummary, read_summary, write_summary
+from .telemetry import events_path
 from .transport import KeySpace, NodeSession, rewrite_endpoints
 
 __all__ = ["register"]
 
+TAP_SILENCE_S = 5.0  # `tap` gives up when nothing at all arrived this long
+
 
 def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
+    mission_help = "mission YAML file, or the name of a running mission (`zplatform ps`)"
     p = sub.add_parser("up", help="spawn every node of a mission as its own process")
-    p.add_argument("mission")
-    p.add_argument("--duration", type=float, help="seconds of loops (default: until Ctrl-C)")
-    p.add_argument("--log", help="ground telemetry CSV")
-    p.add_argument("--summary", help="write the run summary JSON here ('-' = stdout)")
-    p.add_argument("--free-ports", action="store_true", help="remap every endpoint to a free port")
-    p.add_argument("--commands", help="command script the ground node plays (at 1.0 launch)")
+    p.add_argument("mission", help=mission_help)
+    p.add_argument(
+        "--duration",
+        type=positive_float,
+        metavar="S",
+        help="seconds of loops (default: until Ctrl-C)",
+    )
+    p.add_argument(
+        "--log",
+        metavar="CSV",
+        help="ground telemetry CSV; events go beside it (tm.csv -> tm.events.jsonl)",
+    )
+    p.add_argument(
+        "--summary", metavar="JSON", help="write the run summary JSON here ('-' = stdout)"
+    )
+    p.add_argument(
+        "--free-ports",
+        action="store_true",
+        help="remap every endpoint to a free port (to run beside another mission); the "
+        "remapped mission is registered under the run's name (`zplatform ps`)",
+    )
+    p.add_argument(
+        "--commands", metavar="FILE", help="command script the ground node plays (at 1.0 launch)"
+    )
     p.add_argument("--no-realtime", action="store_true", help="skip SCHED_FIFO/affinity set-up")
-    p.add_argument("--quiet", action="store_true", help="no live status line")
-    p.add_argument("--ready-timeout", type=float, default=60.0)
+    p.add_argument("--quiet", action="store_true", help="no live status line, no summary line")
+    p.add_argument(
+        "--ready-timeout",
+        type=positive_float,
+        default=60.0,
+        metavar="S",
+        help="seconds the nodes wait for their peers at start (default 60)",
+    )
     p.add_argument(
         "--record",
         metavar="DIR",
@@ -49,17 +79,31 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p.set_defaults(func=cmd_up)
 
     p = sub.add_parser("node", help="run one node of a mission (multi-host deployments)")
-    p.add_argument("mission")
+    p.add_argument("mission", help=mission_help)
     p.add_argument("name", help="cn, dnX or gn")
-    p.add_argument("--duration", type=float, help="CN: seconds of loops; GN: seconds of logging")
-    p.add_argument("--log", help="GN: telemetry CSV")
-    p.add_argument("--commands", help="GN: command script to play (at 1.0 launch)")
-    p.add_argument("--summary", help="write this node's summary JSON here")
-    p.add_argument("--no-realtime", action="store_true")
-    p.add_argument("--ready-timeout", type=float, default=60.0)
+    p.add_argument(
+        "--duration",
+        type=positive_float,
+        metavar="S",
+        help="CN: seconds of loops; GN: seconds of logging",
+    )
+    p.add_argument(
+        "--log", metavar="CSV", help="GN: telemetry CSV; events beside it (NAME.events.jsonl)"
+    )
+    p.add_argument("--commands", metavar="FILE", help="GN: command script to play (at 1.0 launch)")
+    p.add_argument("--summary", metavar="JSON", help="write this node's summary JSON here")
+    p.add_argument("--no-realtime", action="store_true", help="skip SCHED_FIFO/affinity set-up")
+    p.add_argument(
+        "--ready-timeout",
+        type=positive_float,
+        default=60.0,
+        metavar="S",
+        help="seconds to wait for the peers at start (default 60)",
+    )
     p.add_argument(
         "--ground-wait",
-        type=float,
+        type=nonnegative_float,
+        metavar="S",
         help="CN: seconds to wait for the ground node before the first loop (default: "
         "the ready timeout); the CN starts without it after that",
     )
@@ -68,29 +112,54 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         metavar="DIR",
         help="CN: record every input of the loop into DIR, for `zplatform replay DIR`",
     )
-    p.add_argument("-v", "--verbose", action="store_true")
+    p.add_argument("-v", "--verbose", action="store_true", help="debug logging")
     p.set_defaults(func=cmd_node)
 
-    p = sub.add_parser("log", help="log telemetry snapshots to CSV")
-    p.add_argument("mission")
-    p.add_argument("--out", required=True)
-    p.add_argument("--duration", type=float)
-    p.add_argument("--summary")
+    p = sub.add_parser("log", help="log telemetry snapshots to CSV (events beside it)")
+    p.add_argument("mission", help=mission_help)
+    p.add_argument(
+        "--out",
+        required=True,
+        metavar="CSV",
+        help="telemetry CSV; events go beside it (tm.csv -> tm.events.jsonl)",
+    )
+    p.add_argument(
+        "--duration", type=positive_float, metavar="S", help="seconds (default: until Ctrl-C)"
+    )
+    p.add_argument("--summary", metavar="JSON", help="write the logger's summary JSON here")
     p.set_defaults(func=cmd_log)
 
     p = sub.add_parser("cmd", help="send one operator command and wait for its verdict")
-    p.add_argument("mission")
+    p.add_argument("mission", help=mission_help)
     p.add_argument("command", help="launch|abort|noop|hold|resume|arm|write")
     p.add_argument("args", nargs="*", help="write: ELEMENT VALUE")
     p.add_argument("--arm", action="store_true", help="send ARM n first, then the command as n+1")
-    p.add_argument("--timeout", type=float, default=10.0)
+    p.add_argument(
+        "--timeout",
+        type=positive_float,
+        default=10.0,
+        metavar="S",
+        help="seconds to wait for the CN and its verdict (default 10)",
+    )
     p.set_defaults(func=cmd_cmd)
 
-    p = sub.add_parser("tap", help="print every sample on matching keys, decoded")
-    p.add_argument("mission")
-    p.add_argument("keyexpr", nargs="?", help="default: {vehicle}/**")
-    p.add_argument("--count", type=int, help="stop after N samples")
-    p.add_argument("--timeout", type=float, help="stop after S seconds")
+    p = sub.add_parser(
+        "tap",
+        help="print every sample on matching keys, decoded (events included)",
+        description="Print every sample on matching keys, decoded to named values; events "
+        "({vehicle}/NODE/events) as severity, id and text. Exits 1 when nothing at all "
+        f"arrived within --timeout (without --timeout: within {TAP_SILENCE_S:g} s).",
+    )
+    p.add_argument("mission", help=mission_help)
+    p.add_argument("keyexpr", nargs="?", help="zenoh key expression (default: {vehicle}/**)")
+    p.add_argument("--count", type=positive_int, metavar="N", help="stop after N samples")
+    p.add_argument(
+        "--timeout",
+        type=positive_float,
+        metavar="S",
+        help="stop after S seconds (default: until --count or Ctrl-C, but give up, exit 1, "
+        f"if nothing at all arrives in the first {TAP_SILENCE_S:g} s)",
+    )
     p.add_argument("--json", action="store_true", help="one JSON object per line")
     p.set_defaults(func=cmd_tap)
 
@@ -98,9 +167,33 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
 # ---------------------------------------------------------------- node / log
 
 
+def _check_outputs(args: argparse.Namespace, *names: str) -> None:
+    """Refuse unwritable output paths among ``args.<name>`` before starting."""
+    what = {
+        "log": "telemetry log",
+        "out": "telemetry log",
+        "summary": "summary",
+        "record": "recording directory",
+    }
+    for n in names:
+        v = getattr(args, n, None)
+        if v is None or (n == "summary" and v == "-"):
+            continue
+        if n == "record":
+            # The recording directory is created: its parent must be writable.
+            p = Path(v)
+            if not p.is_dir():
+                check_output(p, what[n])
+            continue
+        check_output(v, what[n])
+        if n in ("log", "out"):
+            check_output(events_path(v), "event log")
+
+
 def cmd_node(args: argparse.Namespace) -> int:
     setup_logging(args.verbose)
     mission = load_mission(args.mission)
+    _check_outputs(args, "log", "summary", "record")
     name = args.name
     realtime = not args.no_realtime
     summary: CnSummary | DnSummary | GnSummary
@@ -124,7 +217,12 @@ def cmd_node(args: argparse.Namespace) -> int:
 
         script = load_commands(args.commands) if args.commands else None
         summary = run_ground_logger(
-            mission, args.log, as_node=True, duration_s=args.duration, script=script
+            mission,
+            args.log,
+            as_node=True,
+            duration_s=args.duration,
+            script=script,
+            events_out=events_path(args.log) if args.log else None,
         )
     elif name in mission.device_nodes:
         from .node.device import run_device_node
@@ -143,7 +241,14 @@ def cmd_log(args: argparse.Namespace) -> int:
     from .node.ground import run_ground_logger
 
     mission = load_mission(args.mission)
-    summary = run_ground_logger(mission, args.out, as_node=False, duration_s=args.duration)
+    _check_outputs(args, "out", "summary")
+    summary = run_ground_logger(
+        mission,
+        args.out,
+        as_node=False,
+        duration_s=args.duration,
+        events_out=events_path(args.out),
+    )
     write_summary(args.summary, summary)
     return 0
 
@@ -219,6 +324,7 @@ class _TapDecoder:
                     "seq": e.seq,
                     "t_ns": e.t_ns,
                     "severity": e.severity,
+                    "severity_name": e.severity_name,
                     "id": e.id,
                     "text": e.text,
                 },
@@ -251,10 +357,47 @@ class _TapDecoder:
         return out
 
 
+def _check_keyexpr(keyexpr: str) -> None:
+    """CommandError for a key expression zenoh refuses, with zenoh's reason."""
+    try:
+        zenoh.KeyExpr(keyexpr)
+    except zenoh.ZError as exc:
+        reason = str(exc).split(" at /", 1)[0]  # drop the Rust source location
+        raise CommandError(
+            f"{keyexpr!r} is not a zenoh key expression ({reason}); e.g. 'rocket/**', "
+            "'rocket/dn0/*', 'rocket/*/events'"
+        ) from None
+
+
+def _print_tap(d: dict[str, Any], as_json: bool) -> None:
+    key = d["key"]
+    if as_json:
+        print(json.dumps(d, default=str), flush=True)
+    elif "values" in d:
+        vals = " ".join(f"{k}={v}" for k, v in d["values"].items())
+        print(f"{key} seq={d['seq']} t_ns={d['t_ns']} {vals}", flush=True)
+    elif "event" in d:
+        e = d["event"]
+        print(
+            f"{key} EVENT {e['severity_name']:<8} {e['id']}: {e['text']}  "
+            f"(seq={e['seq']} t_ns={e['t_ns']})",
+            flush=True,
+        )
+    else:
+        print(f"{key} {json.dumps({k: v for k, v in d.items() if k != 'key'})}", flush=True)
+
+
 def cmd_tap(args: argparse.Namespace) -> int:
+    """Print samples until --count, --timeout or Ctrl-C.
+
+    Exit 0 after at least one sample; exit 1 when nothing arrived before
+    the deadline (--timeout, or :data:`TAP_SILENCE_S` without it), with a
+    line saying so on stderr.
+    """
     mission = load_mission(args.mission)
     dec = _TapDecoder(mission)
     keyexpr = args.keyexpr or KeySpace(mission.vehicle).everything
+    _check_keyexpr(keyexpr)
     q: queue.SimpleQueue[tuple[str, bytes]] = queue.SimpleQueue()
     ns = NodeSession(mission, None)
 
@@ -263,30 +406,37 @@ def cmd_tap(args: argparse.Namespace) -> int:
 
     sub = ns.session.declare_subscriber(keyexpr, zenoh.handlers.Callback(on_sample, indirect=False))
     n = 0
-    deadline = time.monotonic() + args.timeout if args.timeout else None
+    start = time.monotonic()
+    deadline = start + args.timeout if args.timeout else None
+    # With no bound at all, silence still ends the tap: a typo in the key or
+    # a mission that is not running must not look like a quiet vehicle.
+    silence = args.timeout or TAP_SILENCE_S
     try:
         while args.count is None or n < args.count:
-            left = None if deadline is None else deadline - time.monotonic()
+            now = time.monotonic()
+            if n == 0 and now - start >= silence:
+                break
+            left = None if deadline is None else deadline - now
             if left is not None and left <= 0:
                 break
             try:
                 key, payload = q.get(timeout=min(left, 0.5) if left is not None else 0.5)
             except queue.Empty:
                 continue
-            d = dec.decode(key, payload)
             n += 1
-            if args.json:
-                print(json.dumps(d, default=str), flush=True)
-            elif "values" in d:
-                vals = " ".join(f"{k}={v}" for k, v in d["values"].items())
-                print(f"{key} seq={d['seq']} t_ns={d['t_ns']} {vals}", flush=True)
-            else:
-                print(f"{key} {json.dumps({k: v for k, v in d.items() if k != 'key'})}", flush=True)
+            _print_tap(dec.decode(key, payload), args.json)
     except KeyboardInterrupt:
         pass
     finally:
         sub.undeclare()
         ns.close()
+    if n == 0:
+        print(
+            f"zplatform tap: no sample on {keyexpr} within {silence:g} s (is the mission "
+            "running? `zplatform ps`)",
+            file=sys.stderr,
+        )
+        return 1
     return 0
 
 
@@ -334,7 +484,17 @@ class _Children:
 
 
 def cmd_up(args: argparse.Namespace) -> int:
-    """Run every node; see :func:`_watch` for what a node's death does."""
+    """Run every node; see :func:`_watch` for what a node's death does.
+
+    Everything a user can get wrong is refused before any node is spawned
+    (exit 2): the mission, the command script, unwritable output paths,
+    listen ports already in use. While it runs, the mission is registered
+    (:mod:`zplatform.registry`) so ``ps`` lists it and every verb finds it by
+    name; the entry, the remapped mission of ``--free-ports`` and the
+    scratch folder of the nodes' summaries are removed on exit.
+    """
+    from . import registry
+
     mission = load_mission(args.mission)  # refuse a bad mission before spawning
     # First use on this host: make the mission key (every node finds it).
     load_key(mission, create=True)
@@ -342,12 +502,47 @@ def cmd_up(args: argparse.Namespace) -> int:
         from .uplink import load_commands
 
         load_commands(args.commands)  # and a bad script
+    _check_outputs(args, "log", "summary", "record")
+    if not args.free_ports:
+        check_ports(mission)  # another `up` of this mission, or anything else, on its ports
+    # Until the nodes run (then _run_up takes SIGTERM over), a SIGTERM ends
+    # `up` like Ctrl-C: through the finally below, which unregisters.
+    signal.signal(signal.SIGTERM, _interrupt)
+    reg = registry.register(mission.mission, args.mission)
     tmp = Path(tempfile.mkdtemp(prefix="zplatform-up-"))
-    path = str(args.mission)
+    try:
+        return _run_up(args, mission, reg, tmp)
+    finally:
+        reg.remove()
+        shutil.rmtree(tmp, ignore_errors=True)
+
+
+def _interrupt(signum: int, frame: Any) -> None:
+    raise KeyboardInterrupt
+
+
+def _run_up(args: argparse.Namespace, mission: Mission, reg: Any, tmp: Path) -> int:
+    path = str(Path(args.mission).resolve())
     if args.free_ports:
-        path = str(tmp / "mission.yaml")
+        path = reg.mission_file
         rewrite_endpoints(args.mission, path)
         mission = load_mission(path)
+    logs: dict[str, str] = {}
+    if args.log:
+        logs["telemetry"] = str(Path(args.log).resolve())
+        logs["events"] = str(events_path(args.log).resolve())
+    reg.update(
+        mission_file=path,
+        endpoints={n: list(node.listen) for n, node in mission.nodes.items()},
+        logs=logs,
+    )
+    if not args.quiet:
+        where = f" (remapped mission {path})" if args.free_ports else ""
+        print(
+            f"zplatform up: running as {reg.name!r}{where}; other verbs take that name "
+            f"as MISSION (`zplatform ground {reg.name}`), `zplatform ps` lists it",
+            flush=True,
+        )
     children = _Children()
     common = ["--ready-timeout", str(args.ready_timeout)]
     if args.no_realtime:
@@ -370,7 +565,7 @@ def cmd_up(args: argparse.Namespace) -> int:
         if mission.has_ground:
             gn = ["node", path, "gn", "--summary", str(summaries["gn"])]
             if args.log:
-                gn += ["--log", args.log]
+                gn += ["--log", str(Path(args.log).resolve())]
             if args.commands:
                 gn += ["--commands", str(Path(args.commands).resolve())]
             children.spawn("gn", gn)
@@ -380,6 +575,7 @@ def cmd_up(args: argparse.Namespace) -> int:
         if args.duration is not None:
             cn += ["--duration", str(args.duration)]
         children.spawn("cn", cn)
+        reg.update(nodes={n: p.pid for n, p in children.procs.items()})
         _watch(mission, children, args, lambda: stopping, watch)
     finally:
         codes = children.stop_all()
@@ -392,6 +588,8 @@ def cmd_up(args: argparse.Namespace) -> int:
     write_summary(args.summary, summary)
     if not args.quiet:
         _print_summary(summary)
+    if args.log and not args.quiet:
+        print(f"telemetry -> {args.log}; events -> {events_path(args.log)}")
     return rc
 
 
@@ -546,6 +744,9 @@ def _merge_summaries(
 
 
 def _print_summary(s: RunSummary) -> None:
+    if s.loops == 0:
+        print(f"{s.mission}: no loop ran (see the messages above)")
+        return
     print(
         f"{s.mission}: {s.loops} loops in {s.duration_s:.2f} s "
         f"({s.rate_hz:.2f} Hz); overruns loop {s.loop_overruns} sync {s.sync_overruns}; "

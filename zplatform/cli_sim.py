@@ -1,11 +1,16 @@
-"""``zplatform sim`` and ``replay``: the lockstep runner's verbs (DESIGN.md §6).
+"""Lockstep runs in virtual time: ``zplatform sim`` and ``zplatform replay``.
 
 ``zplatform sim MISSION [--duration S] [--commands FILE] --log CSV
 [--summary JSON]`` runs every node in this process
 (:class:`~zplatform.lockstep.LockstepRunner`), logs every telemetry snapshot
 to CSV, prints the states visited and each command's verdict, and exits 0
 on a clean run (no errors, no fault, every scripted command accepted), 1
-otherwise, 2 for a bad mission or script.
+otherwise, 2 for a bad mission or script. Without ``--duration`` it runs
+:data:`SETTLE_S` virtual seconds past the script's last command (at least
+:data:`MIN_DURATION_S`), so the consequences of the last command play out:
+the recovery igniter's ``at 0.6 launch`` reaches DEPLOYED at ~11.7 s.
+Events go beside the CSV (``sim.csv`` -> ``sim.events.jsonl``) when the
+runner reports them.
 
 ``zplatform replay DIR [--log CSV]`` feeds a recording made by ``up --record
 DIR`` through the control loop and checks that the telemetry is
@@ -22,29 +27,40 @@ from pathlib import Path
 
 import msgspec
 
-from .errors import CommandError
+from .cli_args import check_output, positive_float
 from .lockstep import LockstepRunner, replay
 from .mission import load_mission
-from .telemetry import CsvLogger
+from .telemetry import CsvLogger, EventWriter, events_path
 from .uplink import ScriptCommand, load_commands
 
 __all__ = ["cmd_replay", "cmd_sim", "register"]
 
 
+MIN_DURATION_S = 10.0
+SETTLE_S = 15.0
+
+
 def _default_duration(script: list[ScriptCommand]) -> float:
+    """Last command + :data:`SETTLE_S`, at least :data:`MIN_DURATION_S` (virtual s)."""
     last = max((c.at_ns for c in script), default=0) / 1e9
-    return max(10.0, last + 5.0)
+    return max(MIN_DURATION_S, last + SETTLE_S)
 
 
 def cmd_sim(args: argparse.Namespace) -> int:
     mission = load_mission(args.mission)
     script = load_commands(args.commands) if args.commands else []
     duration = args.duration if args.duration is not None else _default_duration(script)
-    if duration < 0:
-        raise CommandError(f"--duration must be >= 0, got {duration:g}")
+    check_output(args.log, "telemetry log")
+    if args.summary:
+        check_output(args.summary, "summary")
     runner = LockstepRunner(mission, commands=script)
+    ev_path = events_path(args.log)
+    check_output(ev_path, "event log")
     with CsvLogger(args.log, runner.control.layout) as log:
         res = runner.run(duration, log=log)
+    with EventWriter(ev_path) as ev:
+        for e in res.events:  # virtual time: the event's own loop time is its "receive" time
+            ev.write(e.t_ns, e)
     out = sys.stdout
     print(
         f"sim {res.mission}: {res.loops} loops ({res.duration_s:g} s virtual) in "
@@ -58,7 +74,8 @@ def cmd_sim(args: argparse.Namespace) -> int:
     print(f"states: {' -> '.join(res.states)}; final state {res.final_state}")
     print(
         f"errors {res.errors} {res.errors_by_node}; fault {res.fault}; "
-        f"telemetry rows {res.telemetry_received} -> {args.log}"
+        f"telemetry rows {res.telemetry_received} -> {args.log}; "
+        f"events {len(res.events)} -> {ev_path}"
     )
     if args.summary:
         Path(args.summary).write_text(json.dumps(res.summary(), indent=2) + "\n")
@@ -66,6 +83,10 @@ def cmd_sim(args: argparse.Namespace) -> int:
 
 
 def cmd_replay(args: argparse.Namespace) -> int:
+    if args.log:
+        check_output(args.log, "telemetry log")
+    if args.summary:
+        check_output(args.summary, "summary")
     if args.log:
         from .datavector import Layout
         from .recording import MISSION_FILE
@@ -89,8 +110,7 @@ def cmd_replay(args: argparse.Namespace) -> int:
     d = res.first_difference
     if d is not None:
         print(
-            f"  DIFFERS at loop {d.loop}: {d.element} recorded {d.recorded}, "
-            f"replayed {d.replayed}"
+            f"  DIFFERS at loop {d.loop}: {d.element} recorded {d.recorded}, replayed {d.replayed}"
         )
         return 1
     if res.loops == 0:
@@ -106,13 +126,16 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         help="lockstep run of every node in virtual time (deterministic)",
         description=__doc__.splitlines()[0] if __doc__ else None,
     )
-    p.add_argument("mission", help="mission YAML")
+    p.add_argument(
+        "mission", help="mission YAML file, or the name of a running mission (`zplatform ps`)"
+    )
     p.add_argument(
         "--duration",
-        type=float,
+        type=positive_float,
         default=None,
         metavar="S",
-        help="virtual seconds to run (default: last command + 5 s, at least 10 s)",
+        help=f"virtual seconds to run (default: last command + {SETTLE_S:g} s, "
+        f"at least {MIN_DURATION_S:g} s)",
     )
     p.add_argument("--commands", metavar="FILE", help="command script ('at 1.0 launch' lines)")
     p.add_argument("--log", metavar="CSV", required=True, help="telemetry CSV to write")

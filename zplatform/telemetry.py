@@ -24,18 +24,31 @@ formatter per column, chosen at construction.
 from __future__ import annotations
 
 import csv
+import json
 import struct
 from collections.abc import Callable
 from pathlib import Path
 from types import TracebackType
-from typing import Any, TextIO
+from typing import Any, NamedTuple, TextIO
 
 import numpy as np
 
 from .datavector import DataVector, ElementSpec, Layout
 from .errors import DataVectorError
+from .events import Event
 
-__all__ = ["MAX_ARRAY_COLUMNS", "CsvLogger", "csv_columns", "read_csv"]
+__all__ = [
+    "MAX_ARRAY_COLUMNS",
+    "CsvLogger",
+    "EventWriter",
+    "Marker",
+    "csv_columns",
+    "events_path",
+    "plot_markers",
+    "plot_telemetry",
+    "read_csv",
+    "read_events",
+]
 
 MAX_ARRAY_COLUMNS = 16
 
@@ -181,3 +194,189 @@ def read_csv(source: str | Path | TextIO) -> list[dict[str, str]]:
         with open(source, encoding="ascii", newline="") as f:
             return list(csv.DictReader(f))
     return list(csv.DictReader(source))
+
+
+# ---------------------------------------------------------------- events
+
+
+def events_path(csv_path: str | Path) -> Path:
+    """Where the events of a telemetry log go: ``tm.csv`` -> ``tm.events.jsonl``.
+
+    A path that ends in ``.csv`` loses that suffix; any other gets
+    ``.events.jsonl`` appended.
+    """
+    p = Path(csv_path)
+    base = p.name[: -len(".csv")] if p.name.lower().endswith(".csv") else p.name
+    return p.with_name(base + ".events.jsonl")
+
+
+class EventWriter:
+    """Writes event records as JSON lines, one object per event, in arrival order.
+
+    Each line: ``rx_time_ns`` (the receiver's clock, as in the CSV), then the
+    event's ``node``, ``seq``, ``t_ns``, ``severity`` (its name), ``id`` and
+    ``text``. Flushed after each event: events are rare and an operator may
+    ``tail -f`` the file.
+    """
+
+    def __init__(self, target: str | Path) -> None:
+        self.path = Path(target)
+        self._f: TextIO = open(self.path, "w", encoding="utf-8")  # noqa: SIM115
+        self.count = 0
+
+    def write(self, rx_time_ns: int, e: Event) -> None:
+        rec = {
+            "rx_time_ns": rx_time_ns,
+            "node": e.node,
+            "seq": e.seq,
+            "t_ns": e.t_ns,
+            "severity": e.severity_name,
+            "id": e.id,
+            "text": e.text,
+        }
+        self._f.write(json.dumps(rec, ensure_ascii=False) + "\n")
+        self._f.flush()
+        self.count += 1
+
+    def close(self) -> None:
+        """Close the file. Idempotent."""
+        if not self._f.closed:
+            self._f.close()
+
+    def __enter__(self) -> EventWriter:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+def read_events(path: str | Path) -> list[dict[str, Any]]:
+    """Read an events JSONL file (blank lines skipped)."""
+    with open(path, encoding="utf-8") as f:
+        return [json.loads(line) for line in f if line.strip()]
+
+
+# ---------------------------------------------------------------- plots
+
+
+class Marker(NamedTuple):
+    """A vertical line on a plot: ``t_s`` since the first row, its ``label``, its ``kind``."""
+
+    t_s: float
+    label: str
+    kind: str  # "state" or "command"
+
+
+def plot_markers(rows: list[dict[str, str]]) -> list[Marker]:
+    """State changes and command verdicts found in a telemetry log.
+
+    A state change is a row whose ``cn_state`` differs from the row before
+    (label: the new state). A command is a row whose ``cn_cmd_seq`` differs
+    from the row before (label: ``cn_cmd`` and ``cn_cmd_status``, e.g.
+    ``LAUNCH ACCEPTED``). Columns that are missing give no markers.
+    """
+    if not rows or "rx_time_ns" not in rows[0]:
+        return []
+    t0 = int(rows[0]["rx_time_ns"])
+    out: list[Marker] = []
+    prev: dict[str, str] | None = None
+    for r in rows:
+        t = (int(r["rx_time_ns"]) - t0) / 1e9
+        if prev is not None:
+            if "cn_state" in r and r["cn_state"] != prev["cn_state"]:
+                out.append(Marker(t, r["cn_state"], "state"))
+            if "cn_cmd_seq" in r and r["cn_cmd_seq"] != prev["cn_cmd_seq"]:
+                what = " ".join(x for x in (r.get("cn_cmd"), r.get("cn_cmd_status")) if x)
+                out.append(Marker(t, what or f"command #{r['cn_cmd_seq']}", "command"))
+        prev = r
+    return out
+
+
+def _as_numbers(raw: list[str]) -> list[float] | None:
+    try:
+        return [float(v) for v in raw]
+    except ValueError:
+        return None
+
+
+def plot_telemetry(
+    rows: list[dict[str, str]],
+    elements: list[str],
+    out: str | Path,
+    *,
+    title: str | None = None,
+) -> list[Marker]:
+    """Draw ``elements`` of a telemetry log against time into ``out`` (PNG, ...).
+
+    Numbers are lines; booleans (columns holding only ``0``/``1``) and enums
+    (names) are steps with labelled levels (``False``/``True``, the enum
+    names in order of first appearance). State changes and commands
+    (:func:`plot_markers`) are vertical lines on every axis, named on the
+    top one. Needs matplotlib (the ``plot`` extra); uses the Agg backend.
+    Returns the markers drawn.
+    """
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    t0 = int(rows[0]["rx_time_ns"])
+    t = [(int(r["rx_time_ns"]) - t0) / 1e9 for r in rows]
+    markers = plot_markers(rows)
+    fig, axes = plt.subplots(
+        len(elements), 1, sharex=True, squeeze=False, figsize=(10, 1.5 + 2.0 * len(elements))
+    )
+    try:
+        for ax, name in zip(axes[:, 0], elements, strict=True):
+            raw = [r[name] for r in rows]
+            nums = _as_numbers(raw)
+            if nums is not None and set(raw) <= {"0", "1"}:
+                ax.step(t, nums, where="post")
+                ax.set_yticks([0, 1], ["False", "True"])
+                ax.set_ylim(-0.2, 1.2)
+            elif nums is not None:
+                ax.plot(t, nums)
+            else:  # an enum written by name: its levels in order of appearance
+                names = sorted(set(raw), key=raw.index)
+                ax.step(t, [names.index(v) for v in raw], where="post")
+                ax.set_yticks(range(len(names)), names)
+                ax.set_ylim(-0.5, len(names) - 0.5)
+            ax.set_ylabel(name)
+            ax.grid(True, alpha=0.3)
+            for m in markers:
+                ax.axvline(
+                    m.t_s,
+                    color="tab:red" if m.kind == "state" else "tab:green",
+                    linestyle="--" if m.kind == "state" else ":",
+                    linewidth=1,
+                    label=m.label,
+                )
+        top = axes[0, 0]
+        # Markers closer than 2 % of the run share one label, so they stay legible.
+        near = 0.02 * (t[-1] - t[0] if len(t) > 1 else 1.0)
+        groups: list[list[Marker]] = []
+        for m in markers:
+            if groups and m.t_s - groups[-1][0].t_s <= near:
+                groups[-1].append(m)
+            else:
+                groups.append([m])
+        for g in groups:
+            top.annotate(
+                "\n".join(m.label for m in g),
+                xy=(g[0].t_s, 0.97),
+                xycoords=("data", "axes fraction"),
+                xytext=(2, 0),
+                textcoords="offset points",
+                va="top",
+                ha="left",
+                fontsize=7,
+                bbox={"boxstyle": "round,pad=0.15", "fc": "white", "ec": "none", "alpha": 0.8},
+                color="tab:red" if all(m.kind == "state" for m in g) else "black",
+            )
+        axes[-1, 0].set_xlabel("time since first snapshot (s)")
+        fig.suptitle(title or ", ".join(elements))
+        fig.tight_layout()
+        fig.savefig(Path(out), dpi=100)
+    finally:
+        plt.close(fig)
+    return markers

@@ -18,6 +18,7 @@ wait for a peer.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import queue
 import socket
@@ -268,7 +269,14 @@ def rewrite_endpoints(src: str | Path, dst: str | Path, host: str = "127.0.0.1")
     """
     raw = yaml.safe_load(Path(src).read_text())
     nodes = raw.get("nodes") or {}
-    ports = {name: free_port() for name in nodes}
+    # Hold every socket until all are bound: ports picked one after the other
+    # (each socket closed at once) may come back twice from the OS.
+    with contextlib.ExitStack() as stack:
+        ports = {}
+        for name in nodes:
+            s = stack.enter_context(socket.socket(socket.AF_INET, socket.SOCK_STREAM))
+            s.bind(("127.0.0.1", 0))
+            ports[name] = int(s.getsockname()[1])
     cn_ep = f"tcp/{host}:{ports['cn']}" if "cn" in ports else None
     for name, node in nodes.items():
         node = node or {}

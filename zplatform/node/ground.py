@@ -4,8 +4,9 @@
   snapshot into a CN-layout Data Vector (the GN's first Data Vector, thesis
   4.15), counting gaps (missing loop numbers) and bad frames: nothing is
   lost silently.
-* :func:`run_ground_logger` logs every snapshot to CSV (``zplatform log`` and
-  the GN process that ``zplatform up`` starts).
+* :func:`run_ground_logger` logs every snapshot to CSV and every event
+  (``{vehicle}/*/events``) to JSON lines beside it (``zplatform log`` and the
+  GN process that ``zplatform up`` starts).
 * :class:`CommandSender` sends one operator command on ``{vehicle}/gn/to_cn``
   (the GN's second Data Vector holds the request) and waits for the CN's
   verdict in telemetry (``cn_cmd_seq``/``cn_cmd_status``).
@@ -21,6 +22,7 @@ import queue
 import struct
 import time
 from collections.abc import Callable
+from pathlib import Path
 from typing import Literal
 
 import zenoh
@@ -30,8 +32,9 @@ from ..codec import RegionCodec
 from ..config import Mission
 from ..datavector import DataVector, Layout
 from ..errors import CodecError, CommandError
+from ..events import decode_event
 from ..summary import GnSummary
-from ..telemetry import CsvLogger
+from ..telemetry import CsvLogger, EventWriter
 from ..timebase import NodeClock
 from ..transport import KeySpace, NodeSession, is_matching
 from ..uplink import CommandOutcome, ScriptCommand, ScriptPlayer, Uplink, validate_command, verdict
@@ -144,8 +147,13 @@ def run_ground_logger(
     idle_exit_s: float | None = None,
     script: list[ScriptCommand] | None = None,
     key_file: str | None = None,
+    events_out: str | Path | None = None,
 ) -> GnSummary:
     """Log telemetry snapshots to CSV until stopped or ``duration_s``. Blocks.
+
+    ``events_out``: also write every event of every node there, as JSON
+    lines (:class:`~zplatform.telemetry.EventWriter`); an undecodable event
+    is logged as a warning and skipped.
 
     ``as_node``: run as the mission's ``gn`` node (its endpoints, its
     liveliness token); otherwise as a tool connected to every node.
@@ -159,6 +167,30 @@ def run_ground_logger(
     key = load_key(mission, key_file)
     rx = TelemetryReceiver(ns.session, mission, clock.now_ns, key)
     logger = CsvLogger(out_csv, rx.dv.layout) if out_csv else None
+    events = EventWriter(events_out) if events_out else None
+    ev_q: queue.SimpleQueue[tuple[bytes, int]] = queue.SimpleQueue()
+    ev_sub = None
+    if events is not None:
+
+        def on_event(sample: zenoh.Sample) -> None:
+            ev_q.put((sample.payload.to_bytes(), clock.now_ns()))  # hand off only
+
+        ev_sub = ns.session.declare_subscriber(
+            ns.keys.all_events, zenoh.handlers.Callback(on_event, indirect=False)
+        )
+
+    def drain_events() -> None:
+        if events is None:
+            return
+        while True:
+            try:
+                payload, t_rx = ev_q.get_nowait()
+            except queue.Empty:
+                return
+            try:
+                events.write(t_rx, decode_event(payload))
+            except CodecError as exc:
+                log.warning("bad event record: %s", exc)
     player = ScriptPlayer(mission, script, key=key) if script else None
     cmd_pub = ns.session.declare_publisher(ns.keys.gn_to_cn) if player is not None else None
     # Alive only once subscribed: the CN waits for this token before its
@@ -171,6 +203,7 @@ def run_ground_logger(
             if duration_s is not None and time.monotonic() - start >= duration_s:
                 break
             t = rx.next(0.2)
+            drain_events()
             if t is None:
                 if (
                     idle_exit_s is not None
@@ -191,7 +224,12 @@ def run_ground_logger(
         while (t := rx.next(0.0)) is not None:
             if logger is not None:
                 logger.write(t, rx.dv)
+        drain_events()
     finally:
+        if ev_sub is not None:
+            ev_sub.undeclare()
+        if events is not None:
+            events.close()
         if logger is not None:
             logger.close()
         if cmd_pub is not None:

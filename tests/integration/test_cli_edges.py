@@ -1,0 +1,358 @@
+"""The command line as a new user meets it: clear errors, no tracebacks, `ps`.
+
+One test per rough edge: each checks the message a user sees, the exit
+code, and that no traceback reaches stderr. The two tests that run a
+mission (`up` registered in `ps`, found by name, events logged) wait on
+files and telemetry, never on sleeps, and kill what they start.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import pytest
+import yaml
+
+from zplatform import cli_runtime, registry
+from zplatform.cli import build_parser, main
+from zplatform.events import Event, Severity, encode_event
+from zplatform.transport import rewrite_endpoints
+
+from .harness import CONFIGS, ROOT
+
+pytestmark = pytest.mark.timeout(120)
+
+
+def _zp(
+    *args: str, env: dict[str, str] | None = None, timeout: float = 60
+) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
+        [sys.executable, "-m", "zplatform", *args],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+        env=dict(os.environ, **(env or {})),
+    )
+
+
+def _clear_error(r: subprocess.CompletedProcess[str], code: int, *phrases: str) -> None:
+    assert r.returncode == code, (r.returncode, r.stdout, r.stderr)
+    assert "Traceback" not in r.stderr, r.stderr
+    assert ".rs:" not in r.stderr, r.stderr  # no Rust source paths
+    for p in phrases:
+        assert p in r.stderr, (p, r.stderr)
+
+
+def _wait_until(pred: Callable[[], bool], timeout_s: float, what: str) -> None:
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if pred():
+            return
+        time.sleep(0.05)  # polling a file, not waiting for a peer
+    raise AssertionError(f"timed out waiting for {what}")
+
+
+@pytest.fixture
+def runtime(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Path:
+    """A private registry directory (this process and its children)."""
+    d = tmp_path / "run"
+    monkeypatch.setenv(registry.ENV_DIR, str(d))
+    return d
+
+
+# ---------------------------------------------------------------- paths
+
+
+def test_up_log_to_a_missing_directory_is_refused_before_spawning() -> None:
+    r = _zp("up", "configs/minimal.yaml", "--log", "/nonexistent/x.csv", "--duration", "1")
+    _clear_error(r, 2, "cannot write telemetry log '/nonexistent/x.csv'", "no directory")
+    assert "not alive" not in r.stderr and "loops" not in r.stdout
+
+
+def test_sim_log_to_a_bad_path(tmp_path: Path) -> None:
+    r = _zp("sim", "configs/minimal.yaml", "--log", str(tmp_path / "no" / "x.csv"))
+    _clear_error(r, 2, "cannot write telemetry log", "no directory")
+    r = _zp("sim", "configs/minimal.yaml", "--log", str(tmp_path))
+    _clear_error(r, 2, "it is a directory")
+
+
+def test_plot_of_a_missing_csv(tmp_path: Path) -> None:
+    r = _zp("plot", str(tmp_path / "missing.csv"), "cn_state", "--out", str(tmp_path / "p.png"))
+    _clear_error(r, 2, "no such telemetry CSV")
+
+
+def test_unknown_mission_names_what_is_running(runtime: Path) -> None:
+    r = _zp("ground", "no_such_mission")
+    _clear_error(
+        r, 2, "no such file or running mission: 'no_such_mission'", "no mission is running"
+    )
+    r = _zp("check", "configs/nope.yaml")
+    _clear_error(r, 2, "no such mission file")
+
+
+# ---------------------------------------------------------------- tap
+
+
+def test_tap_rejects_a_bad_key_expression() -> None:
+    r = _zp("tap", "configs/minimal.yaml", "rocket/**/")
+    _clear_error(r, 2, "'rocket/**/' is not a zenoh key expression")
+
+
+def test_tap_with_no_publisher_says_so(tmp_path: Path) -> None:
+    mission = tmp_path / "m.yaml"
+    rewrite_endpoints(CONFIGS / "minimal.yaml", mission)  # nobody runs there
+    r = _zp("tap", str(mission), "rocket/nothing/here", "--timeout", "1")
+    _clear_error(r, 1, "no sample on rocket/nothing/here within 1 s", "zplatform ps")
+    assert r.stdout == ""
+
+
+def test_tap_without_bounds_gives_up_on_silence(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    mission = tmp_path / "m.yaml"
+    rewrite_endpoints(CONFIGS / "minimal.yaml", mission)
+    monkeypatch.setattr(cli_runtime, "TAP_SILENCE_S", 0.5)
+    assert main(["tap", str(mission)]) == 1
+    assert "no sample on rocket/** within 0.5 s" in capsys.readouterr().err
+
+
+def test_tap_prints_events_decoded(capsys: pytest.CaptureFixture[str]) -> None:
+    from zplatform.mission import load_mission
+
+    dec = cli_runtime._TapDecoder(load_mission(CONFIGS / "minimal.yaml"))
+    sev = max(Severity)  # whatever the most severe is called
+    ev = Event("cn", 3, 1_000, int(sev), "cmd_rejected", "command LAUNCH #4 rejected")
+    d = dec.decode("rocket/cn/events", encode_event(ev))
+    cli_runtime._print_tap(d, as_json=False)
+    out = capsys.readouterr().out
+    assert f"rocket/cn/events EVENT {sev.name:<8} cmd_rejected: command LAUNCH #4" in out
+
+
+# ---------------------------------------------------------------- output
+
+
+def test_check_json_into_a_closed_pipe_is_quiet() -> None:
+    # Many rounds of output so the pipe really breaks (more than its buffer).
+    script = (
+        "for i in $(seq 30); do echo configs/led_test.yaml; done | "
+        f"xargs -n1 {sys.executable} -m zplatform check --json | head -c 100 >/dev/null; "
+        f"{sys.executable} -m zplatform check configs/led_test.yaml --json | head -n 1"
+    )
+    r = subprocess.run(["bash", "-c", script], cwd=ROOT, capture_output=True, text=True, timeout=90)
+    assert "Traceback" not in r.stderr and "BrokenPipe" not in r.stderr, r.stderr
+    assert r.stdout.strip() == "{"
+
+
+def test_broken_pipe_in_process(monkeypatch: pytest.MonkeyPatch) -> None:
+    class Closed:
+        def write(self, s: str) -> int:
+            raise BrokenPipeError(32, "Broken pipe")
+
+        def flush(self) -> None:
+            raise BrokenPipeError(32, "Broken pipe")
+
+        def fileno(self) -> int:
+            raise OSError("no fileno")
+
+    monkeypatch.setattr(sys, "stdout", Closed())
+    assert main(["check", str(CONFIGS / "minimal.yaml"), "--json"]) == 141
+
+
+# ---------------------------------------------------------------- options
+
+
+@pytest.mark.parametrize(
+    ("argv", "phrase"),
+    [
+        (["up", "configs/minimal.yaml", "--duration", "-1"], "--duration: must be > 0, got -1"),
+        (["up", "configs/minimal.yaml", "--duration", "0"], "--duration: must be > 0"),
+        (["up", "configs/minimal.yaml", "--ready-timeout", "0"], "--ready-timeout: must be > 0"),
+        (["sim", "configs/minimal.yaml", "--log", "x.csv", "--duration", "nan"], "must be > 0"),
+        (["tap", "configs/minimal.yaml", "--count", "0"], "--count: must be >= 1"),
+        (["cmd", "configs/minimal.yaml", "noop", "--timeout", "abc"], "expected a number"),
+    ],
+)
+def test_numeric_options_are_validated(
+    argv: list[str], phrase: str, capsys: pytest.CaptureFixture[str]
+) -> None:
+    with pytest.raises(SystemExit) as exc:
+        main(argv)
+    assert exc.value.code == 2
+    assert phrase in capsys.readouterr().err
+
+
+def test_version_and_help(capsys: pytest.CaptureFixture[str]) -> None:
+    from zplatform import __version__
+
+    with pytest.raises(SystemExit) as exc:
+        main(["--version"])
+    assert exc.value.code == 0
+    assert capsys.readouterr().out.strip() == f"zplatform {__version__}"
+    parser = build_parser()
+    texts = [parser.format_help()]
+    missing = []
+    sub = next(a for a in parser._actions if a.dest == "command")
+    for verb, p in sub.choices.items():  # type: ignore[union-attr]
+        texts.append(p.format_help())
+        for a in p._actions:
+            if a.help is None and a.dest != "help":
+                missing.append(f"{verb} {'/'.join(a.option_strings) or a.dest}")
+    assert not missing, f"options without help: {missing}"
+    assert not any("DESIGN" in t for t in texts)
+
+
+# ---------------------------------------------------------------- up
+
+
+def test_second_up_on_the_same_ports_is_refused(tmp_path: Path) -> None:
+    with socket.socket() as busy:
+        busy.bind(("127.0.0.1", 0))
+        busy.listen()
+        port = busy.getsockname()[1]
+        raw = yaml.safe_load((CONFIGS / "minimal.yaml").read_text())
+        raw["nodes"]["cn"]["listen"] = [f"tcp/127.0.0.1:{port}"]
+        mission = tmp_path / "m.yaml"
+        mission.write_text(yaml.safe_dump(raw, sort_keys=False))
+        r = _zp("up", str(mission), "--duration", "1")
+    _clear_error(
+        r,
+        2,
+        f"port {port} (cn's listen endpoint tcp/127.0.0.1:{port}) is in use",
+        "zplatform ps",
+        "--free-ports",
+    )
+    assert "loops" not in r.stdout
+
+
+def test_sim_default_duration_covers_the_script(tmp_path: Path) -> None:
+    from zplatform.telemetry import read_csv
+
+    out = tmp_path / "sim.csv"
+    rc = main(
+        [
+            "sim",
+            str(CONFIGS / "recovery_igniter.yaml"),
+            "--commands",
+            str(CONFIGS / "recovery_igniter.commands"),
+            "--log",
+            str(out),
+        ]
+    )
+    assert rc == 0
+    assert read_csv(out)[-1]["cn_state"] == "DEPLOYED"
+    events = [json.loads(x) for x in (tmp_path / "sim.events.jsonl").read_text().splitlines()]
+    assert any(e["id"] == "state_change" and "DEPLOYED" in e["text"] for e in events)
+
+
+def test_up_registers_is_found_by_name_logs_events_and_cleans_up(
+    tmp_path: Path, runtime: Path
+) -> None:
+    """`up --free-ports` registers; `ps`, `tap NAME` find it; SIGTERM removes it all."""
+    script = tmp_path / "s.commands"
+    script.write_text("at 0.3 launch\n")
+    scratch = tmp_path / "scratch"  # TMPDIR of `up`: its scratch folder must not stay
+    scratch.mkdir()
+    log = tmp_path / "tm.csv"
+    events = tmp_path / "tm.events.jsonl"
+    env = dict(os.environ, TMPDIR=str(scratch), PYTHONUNBUFFERED="1")
+    up = subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "zplatform",
+            "up",
+            "configs/minimal.yaml",
+            "--free-ports",
+            "--no-realtime",
+            "--quiet",
+            "--log",
+            str(log),
+            "--commands",
+            str(script),
+        ],
+        cwd=ROOT,
+        env=env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        entry = runtime / "minimal.json"
+        _wait_until(lambda: entry.exists() and b'"nodes":{"' in entry.read_bytes(), 30, "entry")
+        r = _zp("ps", "--json")
+        assert r.returncode == 0, r.stderr
+        (e,) = json.loads(r.stdout)
+        assert e["name"] == "minimal" and e["pid"] == up.pid
+        assert Path(e["mission_file"]).is_file() and Path(e["mission_file"]).parent == runtime
+        assert e["logs"] == {"telemetry": str(log), "events": str(events)}
+        assert set(e["nodes"]) == {"cn", "dn0", "gn"}
+        # Any verb takes the running mission's name.
+        r = _zp("tap", "minimal", "rocket/cn/telemetry", "--count", "2", "--json")
+        assert r.returncode == 0, r.stderr
+        assert all(json.loads(x)["key"] == "rocket/cn/telemetry" for x in r.stdout.splitlines())
+        # The ground node logs the events of the scripted LAUNCH beside the CSV.
+        _wait_until(lambda: events.exists() and "state_change" in events.read_text(), 60, "events")
+        up.send_signal(signal.SIGTERM)
+        _out, err = up.communicate(timeout=30)
+    finally:
+        if up.poll() is None:
+            up.kill()
+            up.communicate()
+    assert "Traceback" not in err, err
+    recs = [json.loads(x) for x in events.read_text().splitlines()]
+    ids = {(r["node"], r["id"]) for r in recs}
+    assert ("cn", "cmd_accepted") in ids and ("cn", "state_change") in ids, recs
+    assert {"rx_time_ns", "seq", "t_ns", "severity", "text"} <= set(recs[0])
+    assert list(runtime.iterdir()) == []  # entry and remapped mission gone
+    assert list(scratch.iterdir()) == []  # no zplatform-up-* left behind
+    r = _zp("ps")
+    assert r.stdout.strip() == "no mission is running"
+
+
+# ---------------------------------------------------------------- registry
+
+
+def test_registry_names_stale_entries_and_resolution(runtime: Path, tmp_path: Path) -> None:
+    a = registry.register("led_test", str(CONFIGS / "led_test.yaml"))
+    b = registry.register("led_test", str(CONFIGS / "led_test.yaml"))
+    try:
+        assert (a.name, b.name) == ("led_test", "led_test-2")
+        assert [e.name for e in registry.running()] == ["led_test", "led_test-2"]
+        assert registry.resolve_mission("led_test-2") == str((CONFIGS / "led_test.yaml").resolve())
+        # An existing file wins over a running name.
+        f = tmp_path / "led_test"
+        f.write_text("x")
+        assert registry.resolve_mission(str(f)) == str(f)
+        # A dead `up` leaves a stale entry: reading the registry drops it.
+        stale = runtime / "ghost.json"
+        dead = subprocess.Popen([sys.executable, "-c", "pass"])
+        dead.wait()
+        stale.write_bytes(
+            json.dumps(
+                {
+                    "name": "ghost",
+                    "mission": "ghost",
+                    "pid": dead.pid,
+                    "mission_file": "/x",
+                    "source_file": "/x",
+                    "started": 0.0,
+                }
+            ).encode()
+        )
+        assert "ghost" not in [e.name for e in registry.running()]
+        assert not stale.exists()
+        with pytest.raises(Exception, match="running: led_test, led_test-2"):
+            registry.resolve_mission("ghost")
+    finally:
+        a.remove()
+        b.remove()
+    assert registry.running() == []

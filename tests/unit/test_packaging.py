@@ -1,0 +1,49 @@
+"""Packaging metadata: what a wheel of zplatform installs and requires."""
+
+from __future__ import annotations
+
+import ast
+import tomllib
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def _pyproject() -> dict:  # type: ignore[type-arg]
+    return tomllib.loads((ROOT / "pyproject.toml").read_text())
+
+
+def test_license_is_an_spdx_expression_with_its_file() -> None:
+    p = _pyproject()
+    assert p["project"]["license"] == "Apache-2.0"
+    for f in p["project"]["license-files"]:
+        assert (ROOT / f).is_file()
+    req = p["build-system"]["requires"]
+    assert any(
+        r.startswith("setuptools>=") and int(r.split(">=")[1].split(".")[0]) >= 77 for r in req
+    )
+
+
+def test_bench_is_not_installed_and_types_ship() -> None:
+    p = _pyproject()
+    include = p["tool"]["setuptools"]["packages"]["find"]["include"]
+    assert not any(i.startswith("bench") for i in include)
+    assert "py.typed" in p["tool"]["setuptools"]["package-data"]["zplatform"]
+    assert (ROOT / "zplatform" / "py.typed").is_file()
+
+
+def test_psutil_is_no_runtime_dependency() -> None:
+    p = _pyproject()
+    assert not any(d.startswith("psutil") for d in p["project"]["dependencies"])
+    assert any(d.startswith("psutil") for d in p["project"]["optional-dependencies"]["bench"])
+    for f in (ROOT / "zplatform").rglob("*.py"):
+        for node in ast.walk(ast.parse(f.read_text())):
+            if isinstance(node, ast.Import):
+                assert all(a.name.split(".")[0] != "psutil" for a in node.names), f
+            elif isinstance(node, ast.ImportFrom):
+                assert (node.module or "").split(".")[0] != "psutil", f
+
+
+def test_demo_prints_no_json() -> None:
+    demo = (ROOT / "scripts" / "demo.sh").read_text()
+    assert "--summary -" not in demo and "--summary led_test.summary.json" in demo
