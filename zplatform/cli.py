@@ -127,6 +127,21 @@ def cmd_ps(args: argparse.Namespace) -> int:
 MISSION_HELP = "mission YAML file, or the name of a running mission (`zplatform ps`)"
 
 
+def cmd_keygen(args: argparse.Namespace) -> int:
+    """Write a new random mission key (mode 0600); refuses to overwrite one."""
+    from .auth import KEY_FILE_ENV, default_key_path, write_key
+    from .mission import load_mission
+
+    mission = load_mission(args.mission)
+    path = write_key(args.out or default_key_path(mission))
+    print(f"wrote the key of mission {mission.mission!r} to {path}")
+    if args.out:
+        print(f"nodes and tools find it with {KEY_FILE_ENV}={path}")
+    else:
+        print("copy it to the same place on every host of the mission and the ground station")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="zplatform",
@@ -139,6 +154,15 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("mission", help=MISSION_HELP)
     c.add_argument("--json", action="store_true", help="machine-readable report")
     c.set_defaults(func=cmd_check)
+    c = sub.add_parser(
+        "keygen",
+        help="make the mission key that authenticates every frame (copy it to every host)",
+    )
+    c.add_argument("mission", help=MISSION_HELP)
+    c.add_argument(
+        "--out", metavar="PATH", help="where to write it (default: the mission's key file)"
+    )
+    c.set_defaults(func=cmd_keygen)
     c = sub.add_parser("ps", help="list the running missions (registered by `up`)")
     c.add_argument("--json", action="store_true", help="the registry entries as JSON")
     c.set_defaults(func=cmd_ps)

@@ -26,7 +26,15 @@ from .errors import CodecError, CommandError, NodeError
 from .events import decode_event
 from .mission import load_mission
 from .node.runtime import PARENT_ENV, setup_logging
-from .summary import CnSummary, DnSummary, GnSummary, RunSummary, read_summary, write_summary
+from .summary import (
+    CnSummary,
+    DnSummary,
+    GnSummary,
+    RunSummary,
+    cn_summary,
+    read_summary,
+    write_summary,
+)
 from .telemetry import events_path
 from .transport import KeySpace, NodeSession, rewrite_endpoints
 
@@ -605,23 +613,8 @@ class _Watch:
 def _cn_from_telemetry(mission: Mission, dv: DataVector, first_t: int) -> CnSummary:
     """The CN's figures as its last telemetry showed them (for a CN that died
     before it could write its summary)."""
-    dns = mission.device_nodes
-    loops = int(dv.get("cn_loop"))
     dur = (int(dv.get("cn_time_ns")) - first_t) / 1e9
-    return CnSummary(
-        loops=loops,
-        duration_s=dur,
-        rate_hz=(loops - 1) / dur if dur > 0 else 0.0,
-        loop_overruns=int(dv.get("cn_loop_overruns")),
-        sync_overruns=int(dv.get("cn_sync_overruns")),
-        missed={dn: int(dv.get(f"cn_missed_{dn}")) for dn in dns},
-        late={dn: int(dv.get(f"cn_late_{dn}")) for dn in dns},
-        rx={dn: int(dv.get(f"cn_rx_{dn}")) for dn in dns},
-        bad_frames=int(dv.get("cn_bad_frames")),
-        errors=int(dv.get("cn_errors")) + sum(int(dv.get(f"{dn}_errors")) for dn in dns),
-        final_state=dv.get_name("cn_state"),
-        fault=dv.get_name("cn_fault"),
-    )
+    return cn_summary(mission, dv, loops=int(dv.get("cn_loop")), duration_s=dur)
 
 
 def _watch(

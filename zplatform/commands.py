@@ -357,14 +357,7 @@ class CommandHandler:
             self._active = True
             self._events.emit(EV.CMD_ACCEPTED, t_ns, name=name, seq=seq, detail=detail)
         else:
-            self._events.emit(
-                EV.CMD_REJECTED,
-                t_ns,
-                name=name,
-                seq=seq,
-                status=CommandStatus(status).name,
-                detail=detail,
-            )
+            self._emit_rejected(status, t_ns, name, seq, detail)
 
     def reject(
         self, status: int, t_ns: int, *, name: str = "request", seq: int = 0, detail: str = ""
@@ -377,6 +370,9 @@ class CommandHandler:
         authentication."""
         self._h_rejects.bump()
         self._h_reject_status.set(status)
+        self._emit_rejected(status, t_ns, name, seq, detail)
+
+    def _emit_rejected(self, status: int, t_ns: int, name: str, seq: int, detail: str) -> None:
         self._events.emit(
             EV.CMD_REJECTED,
             t_ns,

@@ -15,6 +15,8 @@ from typing import TypeVar
 
 import msgspec
 
+from .config import Mission
+from .datavector import DataVector
 from .uplink import CommandOutcome
 
 __all__ = [
@@ -23,6 +25,7 @@ __all__ = [
     "GnSummary",
     "LoopWork",
     "RunSummary",
+    "cn_summary",
     "read_summary",
     "write_summary",
 ]
@@ -107,6 +110,38 @@ class RunSummary(msgspec.Struct, frozen=True):
 
 
 S = TypeVar("S", CnSummary, DnSummary, GnSummary)
+
+
+def cn_summary(
+    mission: Mission,
+    dv: DataVector,
+    *,
+    loops: int,
+    duration_s: float,
+    loop_work_us: LoopWork | None = None,
+    recorded_loops: int | None = None,
+    recording_dropped_loops: int | None = None,
+) -> CnSummary:
+    """The CN's summary from a CN-layout vector: its own, or the last
+    telemetry snapshot of a CN that died before it could write one."""
+    dns = mission.device_nodes
+    return CnSummary(
+        loops=loops,
+        duration_s=duration_s,
+        rate_hz=(loops - 1) / duration_s if duration_s > 0 else 0.0,
+        loop_overruns=int(dv.get("cn_loop_overruns")),
+        sync_overruns=int(dv.get("cn_sync_overruns")),
+        missed={dn: int(dv.get(f"cn_missed_{dn}")) for dn in dns},
+        late={dn: int(dv.get(f"cn_late_{dn}")) for dn in dns},
+        rx={dn: int(dv.get(f"cn_rx_{dn}")) for dn in dns},
+        bad_frames=int(dv.get("cn_bad_frames")),
+        errors=int(dv.get("cn_errors")) + sum(int(dv.get(f"{dn}_errors")) for dn in dns),
+        final_state=dv.get_name("cn_state"),
+        fault=dv.get_name("cn_fault"),
+        loop_work_us=loop_work_us or LoopWork(),
+        recorded_loops=recorded_loops,
+        recording_dropped_loops=recording_dropped_loops,
+    )
 
 
 def write_summary(path: str | Path | None, summary: msgspec.Struct) -> None:

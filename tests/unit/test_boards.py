@@ -153,7 +153,7 @@ def test_sim_config_is_passed_without_driver() -> None:
         ({"driver": "gpiod", "outputs": {0: 1}, "bias": "up"}, f"{WHERE}.bias", ""),
         ({"driver": "gpiod", "inputs": {0: 1}, "safe": {0: True}}, WHERE, "not outputs"),
         ({"driver": "nosuch.module:Board"}, f"{WHERE}.driver", "cannot import"),
-        ({"driver": f"{HERE}:Nope"}, f"{WHERE}.driver", "has no class"),
+        ({"driver": f"{HERE}:Nope"}, f"{WHERE}.driver", "has no attribute 'Nope'"),
         ({"driver": f"{HERE}:NotABoard"}, f"{WHERE}.driver", "does not implement"),
     ],
 )

@@ -8,13 +8,12 @@ existed (``{digital_pins: 4, physics: ...}``) still mean a
 
 from __future__ import annotations
 
-import importlib
 from collections.abc import Mapping
 from typing import Any
 
 import msgspec
 
-from ..components import decode_component_config
+from ..components import decode_component_config, load_component_class
 from ..devices import Board, SimBoard
 from ..errors import ConfigError
 from .base import BoardHealth
@@ -55,19 +54,8 @@ def _split(spec: Mapping[str, Any] | None, where: str) -> tuple[str, dict[str, A
 
 
 def _load_class(driver: str, where: str) -> type[Any]:
-    mod_name, _, cls_name = driver.partition(":")
-    if not mod_name or not cls_name:
-        raise ConfigError(f"driver {driver!r} must be 'package.module:Class'", where)
-    try:
-        module = importlib.import_module(mod_name)
-    except Exception as exc:
-        raise ConfigError(
-            f"cannot import board module {mod_name!r}: {type(exc).__name__}: {exc}", where
-        ) from exc
-    cls = getattr(module, cls_name, None)
-    if not isinstance(cls, type):
-        raise ConfigError(f"module {mod_name!r} has no class {cls_name!r}", where)
-    return cls
+    # The one class loader of the platform (controllers, devices, boards).
+    return load_component_class(driver, object, where)
 
 
 def make_board(spec: Mapping[str, Any] | None, *, where: str) -> Board:

@@ -37,7 +37,7 @@ from ..errors import NodeError, TransportError
 from ..loop import ControlLogic
 from ..recording import Recorder
 from ..scheduler import GcGuard, PeriodicLoop
-from ..summary import CnSummary, LoopWork
+from ..summary import CnSummary, LoopWork, cn_summary
 from ..sync import ControlSync
 from ..timebase import NodeClock
 from ..transport import NodeSession, wait_for_nodes
@@ -261,29 +261,20 @@ class ControlNode:
     def summary(self) -> CnSummary:
         dv = self.dv
         dur = (self.last_loop_ns - self.first_loop_ns) / 1e9
-        dns = self.mission.device_nodes
         work = self._work[: min(self.loops, len(self._work))]
         rec = self.recorder
-        return CnSummary(
+        return cn_summary(
+            self.mission,
+            dv,
             loops=self.loops,
             duration_s=dur,
-            rate_hz=(self.loops - 1) / dur if dur > 0 else 0.0,
-            loop_overruns=int(dv.get("cn_loop_overruns")),
-            sync_overruns=int(dv.get("cn_sync_overruns")),
-            missed={dn: int(dv.get(f"cn_missed_{dn}")) for dn in dns},
-            late={dn: int(dv.get(f"cn_late_{dn}")) for dn in dns},
-            rx={dn: int(dv.get(f"cn_rx_{dn}")) for dn in dns},
-            bad_frames=int(dv.get("cn_bad_frames")),
-            errors=int(dv.get("cn_errors")) + sum(int(dv.get(f"{dn}_errors")) for dn in dns),
-            final_state=dv.get_name("cn_state"),
-            fault=dv.get_name("cn_fault"),
             loop_work_us=LoopWork(
                 float(np.percentile(work, 50)) / 1e3,
                 float(np.percentile(work, 99)) / 1e3,
                 float(work.max()) / 1e3,
             )
             if len(work)
-            else LoopWork(),
+            else None,
             recorded_loops=rec.loops if rec is not None else None,
             recording_dropped_loops=rec.dropped_loops if rec is not None else None,
         )
