@@ -95,8 +95,16 @@ class _Struct(msgspec.Struct, forbid_unknown_fields=True, omit_defaults=True):
     pass
 
 
+class LimitsConfig(_Struct):
+    """Yellow and red ranges of a numeric element, for the ground console and
+    the XTCE alarms: ``[lo, hi]`` each, null for an open bound."""
+
+    yellow: tuple[float | None, float | None] | None = None
+    red: tuple[float | None, float | None] | None = None
+
+
 class ElementConfig(_Struct):
-    """One Data Vector element: ``{name, type, initial, enum}``.
+    """One Data Vector element: ``{name, type, initial, enum, limits}``.
 
     ``type`` is a scalar (``f32``), a fixed array (``f32[3]``) or ``enum``
     (an unsigned integer sized to the names). ``enum`` lists the names of an
@@ -108,6 +116,7 @@ class ElementConfig(_Struct):
     initial: Value | None = None
     enum: list[str] | None = None
     doc: str = ""
+    limits: LimitsConfig | None = None
 
 
 class NodeConfig(_Struct):

@@ -38,7 +38,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from . import commands, controllers, devices, statemachine
-from .config import CONTROLLER_MODES, Mission, parse_mission
+from .config import CONTROLLER_MODES, Mission, parse_mission, platform_elements
 from .errors import ConfigError
 
 __all__ = ["check_mission", "decode_mission", "load_mission"]
@@ -62,6 +62,28 @@ def check_mission(mission: Mission) -> None:
     commands.check_config(mission)
     controllers.check_config(mission)
     devices.check_config(mission)
+    _check_limits(mission)
+
+
+def _check_limits(mission: Mission) -> None:
+    """Limits only on numeric scalars, each range in order (``lo <= hi``)."""
+    from .datavector import Layout
+
+    layout = Layout.for_node(mission, "cn")
+    platform = platform_elements(mission)
+    for region, elements in mission.regions.items():
+        first = len(platform.get(region, ()))  # the YAML's own list starts after them
+        for i, e in enumerate(elements):
+            if e.limits is None:
+                continue
+            w = f"$.regions.{region}[{i - first}].limits"
+            spec = layout.element(e.name)
+            if spec.count or spec.enum is not None or spec.scalar.kind == "bool":
+                raise ConfigError(f"{e.name} is {spec.type_text}: only numbers have limits", w)
+            for key in ("yellow", "red"):
+                lo, hi = getattr(e.limits, key) or (None, None)
+                if lo is not None and hi is not None and lo > hi:
+                    raise ConfigError(f"{key} range [{lo}, {hi}] is not [lo, hi]", f"{w}.{key}")
 
 
 def decode_mission(text: bytes | str, source: str = "<string>") -> Mission:

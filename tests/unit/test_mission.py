@@ -12,6 +12,8 @@ from zplatform.config import parse_mission
 from zplatform.errors import ConfigError
 from zplatform.mission import check_mission, decode_mission, load_mission
 
+ROOT = Path(__file__).resolve().parents[2]
+
 PKG = Path(zplatform.__file__).parent
 
 BASE = """
@@ -228,3 +230,20 @@ def test_errors_inside_named_mappings_name_the_key() -> None:
         "    A: {}\n    B: {transitions: [{after_s: -1, to: A}]}\n"
     )
     assert err.path == "$.state_machine.states.B.transitions[0].after_s"
+
+
+def test_limits_are_checked_at_load() -> None:
+    base = (ROOT / "configs" / "minimal.yaml").read_text()
+    ok = base.replace(
+        "- {name: heartbeat, type: u32, initial: 0}",
+        "- {name: heartbeat, type: u32, initial: 0, limits: {yellow: [0, 100], red: [null, 200]}}",
+    )
+    m = decode_mission(ok)
+    assert m.element("heartbeat")[1].limits is not None
+    bad = base.replace(
+        "- {name: heartbeat, type: u32, initial: 0}",
+        "- {name: heartbeat, type: u32, initial: 0, limits: {red: [5, 1]}}",
+    )
+    with pytest.raises(ConfigError) as ei:
+        decode_mission(bad)
+    assert ei.value.path == "$.regions.cn[0].limits.red"
