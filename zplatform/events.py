@@ -180,6 +180,9 @@ class EV:
         Severity.WARNING_HI,
         "{node} safed its actuators: {why}",
     )
+    DN_SAFED_AT_EXIT = EventType(
+        53, "dn_safed_at_exit", Severity.ACTIVITY_HI, "{node} safed its actuators: {why}"
+    )
     DN_REENABLED = EventType(
         51,
         "dn_reenabled",

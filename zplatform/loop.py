@@ -498,16 +498,18 @@ class DeviceLogic:
             self.safe(now_ns, f"no valid trigger from the control node for {quiet / 1e6:.0f} ms")
         return self.safed
 
-    def safe(self, t_ns: int, why: str) -> None:
+    def safe(self, t_ns: int, why: str, *, exiting: bool = False) -> None:
         """Write every actuator's safe value and the board's safe state;
-        stay safed until the CN re-enables this node. Never raises."""
+        stay safed until the CN is back (class doc). ``exiting``: a clean
+        exit (an activity, not a warning). Never raises."""
         self.devices.safe_actuators(t_ns)
         safe_board(self.board)
         self._back = 0
         if not self.safed:
             self.safed = True
             self._h_safed.set(True)
-            self.events.emit(EV.DN_SAFED, t_ns, node=self.node, why=why)
+            ev = EV.DN_SAFED_AT_EXIT if exiting else EV.DN_SAFED
+            self.events.emit(ev, t_ns, node=self.node, why=why)
 
     def _board_failed(self, exc: Exception, t_ns: int) -> None:
         self._errors.bump()

@@ -179,7 +179,7 @@ class DeviceNode:
         """Safe the outputs, publish the last events, release everything."""
         self.stop.set()
         # A clean exit leaves the vehicle safe: actuators, then the board.
-        self.logic.safe(self.clock.now_ns(), "the node is stopping")
+        self.logic.safe(self.clock.now_ns(), "the node is stopping", exiting=True)
         if self._events is not None:
             self._events.undeclare()  # flushes the dn_safed event first
         if self.sync is not None:
