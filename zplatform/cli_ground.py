@@ -8,6 +8,7 @@ import sys
 import threading
 import time
 from pathlib import Path
+from typing import Any
 
 from .cli_args import check_output, positive_float, positive_int
 from .errors import CommandError, ZPlatformError
@@ -295,6 +296,46 @@ def cmd_xtce(args: argparse.Namespace) -> int:
     return 0
 
 
+def _record_radio(mission: Any, args: argparse.Namespace) -> int:
+    """The mission's CN packs its own downlink: record the packets it sends."""
+    import zenoh
+
+    from .transport import NodeSession
+
+    q: queue.SimpleQueue[bytes] = queue.SimpleQueue()
+
+    def on_packet(sample: zenoh.Sample) -> None:
+        q.put(sample.payload.to_bytes())  # zenoh's thread: hand off only
+
+    ns = NodeSession(mission, None)
+    sub = ns.session.declare_subscriber(
+        ns.keys.downlink, zenoh.handlers.Callback(on_packet, indirect=False)
+    )
+    n = size = 0
+    start = time.monotonic()
+    try:
+        with open(args.record, "ab") as f:
+            while args.duration is None or time.monotonic() - start < args.duration:
+                try:
+                    pkt = q.get(timeout=0.2)
+                except queue.Empty:
+                    if not n and time.monotonic() - start > args.timeout:
+                        raise CommandError(
+                            f"no downlink packet from the control node within {args.timeout:g} s"
+                        ) from None
+                    continue
+                f.write(pkt)
+                n += 1
+                size += len(pkt)
+    except KeyboardInterrupt:
+        pass
+    finally:
+        sub.undeclare()
+        ns.close()
+    print(f"wrote {args.record}: {n} packets, {size} bytes from the CN's downlink")
+    return 0
+
+
 def cmd_ccsds(args: argparse.Namespace) -> int:
     """``--record``: telemetry -> packets (the radio path, on the ground); ``--decode``: -> CSV."""
     try:
@@ -323,6 +364,8 @@ def cmd_ccsds(args: argparse.Namespace) -> int:
     from .transport import NodeSession
 
     check_output(args.record, "packet file")
+    if mission.downlink.ccsds:
+        return _record_radio(mission, args)
     enc = ccsds.CcsdsEncoder(
         mission, divisor=args.divisor, budget_bps=args.budget, max_data=args.max_data
     )

@@ -213,6 +213,20 @@ class CommandsConfig(_Struct):
     protected: list[str] | None = None
 
 
+class DownlinkConfig(_Struct):
+    """The radio downlink: telemetry packed into CCSDS space packets by the CN
+    (:mod:`zplatform.ccsds`), published on ``{vehicle}/cn/downlink``.
+
+    ``divisor``: every Nth telemetry snapshot; ``budget_bps``: bytes per
+    second the radio carries (snapshots over it are dropped whole, counted);
+    ``max_data``: packet data field size (larger regions are segmented)."""
+
+    ccsds: bool = False
+    divisor: Annotated[int, Meta(ge=1)] = 10
+    budget_bps: Annotated[int, Meta(ge=1)] | None = None
+    max_data: Annotated[int, Meta(ge=64, le=65_536)] = 4096
+
+
 class SecurityConfig(_Struct):
     """Authentication of every frame a node takes from the network.
 
@@ -256,6 +270,7 @@ class Mission(_Struct):
     commands: CommandsConfig = msgspec.field(default_factory=CommandsConfig)
     faults: FaultsConfig = msgspec.field(default_factory=FaultsConfig)
     security: SecurityConfig = msgspec.field(default_factory=SecurityConfig)
+    downlink: DownlinkConfig = msgspec.field(default_factory=DownlinkConfig)
     doc: str = ""
 
     # -- derived views (cheap; computed from the checked fields) -----------

@@ -63,6 +63,25 @@ def check_mission(mission: Mission) -> None:
     controllers.check_config(mission)
     devices.check_config(mission)
     _check_limits(mission)
+    _check_downlink(mission)
+
+
+def _check_downlink(mission: Mission) -> None:
+    """The radio downlink can be built (its packets fit, its budget holds one snapshot)."""
+    if not mission.downlink.ccsds:
+        return
+    try:
+        from .ccsds import CcsdsEncoder
+    except ImportError:
+        raise ConfigError(
+            "the CCSDS downlink needs spacepackets: pip install 'zplatform[ground]'",
+            "$.downlink.ccsds",
+        ) from None
+    d = mission.downlink
+    try:
+        CcsdsEncoder(mission, divisor=d.divisor, budget_bps=d.budget_bps, max_data=d.max_data)
+    except ConfigError as exc:
+        raise ConfigError(exc.reason, "$.downlink." + exc.path.split(".")[-1]) from exc
 
 
 def _check_limits(mission: Mission) -> None:

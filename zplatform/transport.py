@@ -64,6 +64,11 @@ class KeySpace:
         return f"{self.vehicle}/cn/telemetry"
 
     @property
+    def downlink(self) -> str:
+        """CCSDS space packets of the radio downlink (one sample per packet)."""
+        return f"{self.vehicle}/cn/downlink"
+
+    @property
     def gn_to_cn(self) -> str:
         return f"{self.vehicle}/gn/to_cn"
 

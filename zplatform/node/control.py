@@ -105,6 +105,7 @@ class ControlNode:
             keys.telemetry, congestion_control=zenoh.CongestionControl.DROP
         )
         self._events = EventPublisher(s, keys.events("cn"), self.logic.events)
+        self._radio = _Radio(mission, s, keys.downlink) if mission.downlink.ccsds else None
         self._skipped = 0
         self.ns.announce()
         self.first_loop_ns = 0
@@ -227,6 +228,8 @@ class ControlNode:
         )
         if tm is not None:
             self._tm_pub.put(tm)
+            if self._radio is not None:
+                self._radio.send(self.dv, loop, t)
         self._events.flush()
         self._work[self.loops & 0xFFFF] = self._mono() - m0
         self.loops += 1
@@ -293,11 +296,37 @@ class ControlNode:
             self.clock_server.close()
             if self._gsub is not None:
                 self._gsub.undeclare()
+            if self._radio is not None:
+                self._radio.pub.undeclare()
             self._tm_pub.undeclare()
         finally:
             if self.recorder is not None:
                 self.recorder.close()
             self.ns.close()
+
+
+class _Radio:
+    """The CCSDS downlink: packs telemetry snapshots and publishes each packet.
+
+    Packets are plain CCSDS (CRC, no HMAC): a radio downlink is read-only
+    telemetry and its receivers check the CRC and the sequence counts."""
+
+    def __init__(self, mission: Mission, session: zenoh.Session, key: str) -> None:
+        try:
+            from ..ccsds import CcsdsEncoder
+        except ImportError as exc:
+            raise NodeError(
+                "the mission's downlink needs spacepackets: pip install 'zplatform[ground]'"
+            ) from exc
+        d = mission.downlink
+        self.enc = CcsdsEncoder(
+            mission, divisor=d.divisor, budget_bps=d.budget_bps, max_data=d.max_data
+        )
+        self.pub = session.declare_publisher(key, congestion_control=zenoh.CongestionControl.DROP)
+
+    def send(self, dv: DataVector, loop: int, t_ns: int) -> None:
+        for packet in self.enc.encode(dv, loop, t_ns):
+            self.pub.put(bytes(packet))
 
 
 def run_control_node(
