@@ -120,14 +120,17 @@ class ElementConfig(_Struct):
 
 
 class NodeConfig(_Struct):
-    """A zenoh peer: where it listens and whom it connects to."""
+    """A zenoh peer: where it listens and whom it connects to.
+
+    The endpoints carry the host: a node on another host listens on that
+    host's address (``tcp/10.0.0.2:7461``) and the others connect to it; the
+    same file then runs on every host (``zplatform node MISSION NAME``)."""
 
     listen: list[str] = msgspec.field(default_factory=list)
     connect: list[str] = msgspec.field(default_factory=list)
     # Only >= 0, not < os.cpu_count(): the mission may target another host.
     cpu: Annotated[int, Meta(ge=0)] | None = None
     priority: Annotated[int, Meta(ge=1, le=99)] | None = None
-    host: str = ""
     board: dict[str, Any] = msgspec.field(default_factory=dict)
 
 
