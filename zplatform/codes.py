@@ -54,6 +54,7 @@ class Fault(enum.IntEnum):
     CONTROLLER_FAILED = 2
     SYNC_OVERRUNS = 3
     LOOP_OVERRUNS = 4
+    CLOCK_DRIFT = 5
 
 
 class ErrorCode(enum.IntEnum):

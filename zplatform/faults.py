@@ -22,6 +22,8 @@ CONTROLLER_FAILED  ``dnX_errors`` grew (any dnX), or a  ``controller_fail_loops`
                    (:meth:`~FaultMonitor.report_controller_failure`)
 SYNC_OVERRUNS      ``cn_sync_overruns`` grew            ``sync_overrun_loops``
 LOOP_OVERRUNS      ``cn_loop_overruns`` grew            ``loop_overrun_loops``
+CLOCK_DRIFT        ``|dnX_clock_drift_ns|`` beyond the   1 (one reading)
+                   clock bound (``clock.offset_bound_ms``)
 ================== ==================================== ======================
 
 Only the first fault latches: once ``cn_fault`` is not ``NONE`` it stays
@@ -118,6 +120,11 @@ class FaultMonitor:
                 )
             )
         self._watches = tuple(watches)
+        # The clock bound (thesis 4.9) holds for the whole run: the DNs'
+        # periodic re-sync measures what is left after the start-up
+        # correction (dnX_clock_drift_ns).
+        self._clock_bound = round(mission.clock.offset_bound_ms * 1e6)
+        self._drift = tuple((dn, dv.handle(f"{dn}_clock_drift_ns")) for dn in dns)
 
     @property
     def fault(self) -> str:
@@ -129,7 +136,8 @@ class FaultMonitor:
         """Update the consecutive-growth runs; raise the first fault due.
 
         Watches are checked in order DN_LOST, CONTROLLER_FAILED,
-        SYNC_OVERRUNS, LOOP_OVERRUNS; every run is updated every loop.
+        SYNC_OVERRUNS, LOOP_OVERRUNS, then CLOCK_DRIFT; every run is updated
+        every loop.
         """
         for w in self._watches:
             v = w.get()
@@ -140,6 +148,16 @@ class FaultMonitor:
             w.last = v
             if w.run >= w.limit:
                 self.raise_fault(w.fault, w.text, t_ns)
+        bound = self._clock_bound
+        for dn, h in self._drift:
+            d = h.get()
+            if d > bound or d < -bound:
+                self.raise_fault(
+                    Fault.CLOCK_DRIFT,
+                    f"{dn}'s clock drifted {d / 1e6:+.3f} ms from the CN's, beyond the "
+                    f"bound of {bound / 1e6:g} ms",
+                    t_ns,
+                )
 
     def report_controller_failure(self, name: str, consecutive: int, t_ns: int) -> None:
         """A CN controller raised in ``consecutive`` loops in a row (the

@@ -173,3 +173,17 @@ def test_error_never_raises_on_odd_codes_and_saturates(code: int, stored: int) -
     r.fm.error(code, "odd", 0)
     assert r.dv.get("cn_errors") == 0xFFFF_FFFF
     assert r.dv.get("cn_last_error") == stored
+
+
+def test_clock_drift_beyond_the_bound_during_the_run_is_a_fault() -> None:
+    """The clock bound holds for the whole run: the DNs' re-sync reports what
+    is left after the start-up correction (thesis 4.9)."""
+    r = Rig(mission())
+    r.dv.set("dn0_clock_drift_ns", 99_000_000)  # within 100 ms
+    assert r.loop() == "NONE"
+    r.dv.set("dn0_clock_drift_ns", -101_000_000)
+    assert r.loop() == "CLOCK_DRIFT"
+    assert r.critical() == [
+        "fault CLOCK_DRIFT: dn0's clock drifted -101.000 ms from the CN's, beyond the bound "
+        "of 100 ms"
+    ]
