@@ -502,16 +502,17 @@ def _check_endpoint(ep: str, where: str) -> None:
         raise ConfigError(
             f"endpoint {ep!r} is not '<proto>/<address>' (e.g. tcp/10.0.0.1:7447)", where
         )
-    if m.group(1) in ("tls", "quic"):
-        # Both need certificates and keys, which must not live in the mission
-        # YAML (it is shared and versioned); they would come from a per-host
-        # deployment file, which zplatform does not support yet.
+    if m.group(1) == "quic":
+        # quic needs the same certificate settings as tls; zplatform's
+        # deployment file (zplatform.deploy) is tested with tls/ only.
         raise ConfigError(
-            f"endpoint {ep!r}: {m.group(1)}/ needs TLS certificate settings, which belong in "
-            "a deployment file that zplatform does not support yet; use tcp/ or udp/ on a "
-            "trusted network",
+            f"endpoint {ep!r}: quic/ needs TLS certificate settings from a deployment file, "
+            "which zplatform does not support for quic yet; use tls/ (with a deployment "
+            "file, see zplatform.deploy) or tcp/ on a trusted network",
             where,
         )
+    # A tls/ endpoint is structurally fine here; its certificate settings come
+    # from the deployment file, checked by zplatform.mission.check_mission.
     if m.group(1) in ("tcp", "udp", "tls", "quic", "ws"):
         host, sep, port = m.group(2).rpartition(":")
         if not sep or not host or not port.isdigit() or not 0 <= int(port) <= 65535:

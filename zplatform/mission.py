@@ -19,7 +19,10 @@ tests. They return a :class:`~zplatform.config.Mission` that passed
      Vector of its node;
    * the devices and boards (:func:`zplatform.devices.check_config`): every
      node's ``board`` config (a SimBoard's ``physics`` function imported and
-     its signature checked), every device class, config and pin.
+     its signature checked), every device class, config and pin;
+   * the deployment (:func:`zplatform.deploy.require_deployment`): a mission
+     with ``tls/`` endpoints needs the deployment file named by
+     ``ZPLATFORM_DEPLOYMENT``, with a cert and key for each tls node.
 
 So a bad class path, a typo in a component's config or a physics function
 that cannot take ``(board, t_ns)`` fails here, at load, with its YAML path,
@@ -37,7 +40,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from . import commands, controllers, devices, statemachine
+from . import commands, controllers, deploy, devices, statemachine
 from .config import CONTROLLER_MODES, Mission, parse_mission, platform_elements
 from .errors import ConfigError
 
@@ -64,6 +67,9 @@ def check_mission(mission: Mission) -> None:
     devices.check_config(mission)
     _check_limits(mission)
     _check_downlink(mission)
+    # Last: it reads the environment and files, and only matters for a
+    # mission that is otherwise fine.
+    deploy.require_deployment(mission)
 
 
 def _check_downlink(mission: Mission) -> None:

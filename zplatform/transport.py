@@ -10,6 +10,11 @@ listens nowhere and connects to *every* node's listen endpoints. Zenoh peers
 do not forward for each other (DESIGN.md §8), so this full fan-out is what
 lets a tap see keys put by any node.
 
+TLS and access control come from a deployment file (:mod:`zplatform.deploy`),
+not the mission: :func:`zenoh_config` takes one, and :class:`NodeSession`
+reads the one named by ``ZPLATFORM_DEPLOYMENT`` when none is passed, so every
+tool runs a tls mission without a flag of its own.
+
 Readiness is explicit: each node declares a liveliness token on
 ``{vehicle}/{node}/alive`` and :func:`wait_for_nodes` blocks on a liveliness
 subscriber (with history) until the wanted nodes are alive. Nobody sleeps to
@@ -33,11 +38,13 @@ import yaml
 import zenoh
 
 from .config import Mission
+from .deploy import Deployment, deployment_from_env, zenoh_settings
 from .errors import TransportError
 
 __all__ = [
     "KeySpace",
     "NodeSession",
+    "apply_deployment",
     "free_port",
     "is_matching",
     "open_session",
@@ -116,11 +123,15 @@ def zenoh_config(
     *,
     lowlatency: bool | None = None,
     shared_memory: bool | None = None,
+    deployment: Deployment | None = None,
 ) -> zenoh.Config:
     """A peer config for ``node`` (``None``: a tool connecting to every node).
 
     ``lowlatency``/``shared_memory`` override the mission's transport section
-    (benchmark variants). Raises TransportError if zenoh rejects a setting.
+    (benchmark variants). ``deployment``: TLS and access control
+    (:func:`apply_deployment`); this function never reads the environment.
+    Raises TransportError if zenoh rejects a setting, DeploymentError if the
+    deployment has no identity for ``node``.
     """
     t = mission.transport
     cfg = zenoh.Config()
@@ -151,7 +162,20 @@ def zenoh_config(
     _insert(cfg, "transport/link/tx/queue/batching/enabled", t.batching)
     shm = t.shared_memory if shared_memory is None else shared_memory
     _insert(cfg, "transport/shared_memory/enabled", shm)
+    if deployment is not None:
+        apply_deployment(cfg, mission, node, deployment)
     return cfg
+
+
+def apply_deployment(
+    cfg: zenoh.Config, mission: Mission, node: str | None, deployment: Deployment
+) -> None:
+    """Add the deployment's zenoh pieces for ``node`` to ``cfg``: mutual TLS
+    with the node's cert (or the tool's, for ``None``) and the access-control
+    list (:func:`zplatform.deploy.zenoh_settings`). Nothing for a mission
+    without tls endpoints."""
+    for key, value in zenoh_settings(mission, deployment, node).items():
+        _insert(cfg, key, value)
 
 
 def open_session(cfg: zenoh.Config) -> zenoh.Session:
@@ -167,15 +191,26 @@ class NodeSession:
 
     ``close()`` undeclares the token first so peers see the node leave at
     once, then closes the session; it is idempotent.
+
+    ``deployment``: TLS and access control; when not given, the deployment
+    file named by ``ZPLATFORM_DEPLOYMENT`` (if set) is loaded and checked
+    against the mission (DeploymentError if it does not fit).
     """
 
     def __init__(
-        self, mission: Mission, node: str | None, *, announce: bool = True, **overrides: Any
+        self,
+        mission: Mission,
+        node: str | None,
+        *,
+        announce: bool = True,
+        deployment: Deployment | None = None,
+        **overrides: Any,
     ) -> None:
         self.mission = mission
         self.node = node
         self.keys = KeySpace(mission.vehicle)
-        self.session = open_session(zenoh_config(mission, node, **overrides))
+        dep = deployment if deployment is not None else deployment_from_env(mission)
+        self.session = open_session(zenoh_config(mission, node, deployment=dep, **overrides))
         self._token: zenoh.LivelinessToken | None = None
         self._closed = False
         if announce:

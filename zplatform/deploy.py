@@ -1,0 +1,474 @@
+"""Deployment files: the host-specific TLS settings a mission's zenoh links need.
+
+A mission YAML is shared and versioned; certificate and key *paths* are not
+(they differ per host, and point at secrets). They live in a separate
+**deployment file**::
+
+    # deployment.yaml (relative paths are relative to this file)
+    ca: pki/ca.pem                 # the mission CA: every peer's cert must chain to it
+    nodes:
+      cn:  {cert: pki/cn.pem,  key: pki/cn.key}
+      dn0: {cert: pki/dn0.pem, key: pki/dn0.key}
+      gn:  {cert: pki/gn.pem,  key: pki/gn.key}
+    tool: {cert: pki/tool.pem, key: pki/tool.key, may_command: false}   # optional
+    access_control: true           # optional, default true
+
+Contract:
+
+* A mission whose endpoints use ``tls/`` is valid only together with a
+  deployment that names a cert and key for every node that listens or
+  connects over tls (:func:`check_deployment`). Loading a mission
+  (:func:`zplatform.mission.load_mission`) therefore reads the deployment
+  named by :data:`DEPLOYMENT_ENV` (``ZPLATFORM_DEPLOYMENT``) when the mission
+  has tls endpoints, and refuses the mission when there is none: ``zplatform
+  check`` never accepts a tls endpoint that could not start.
+* Every node runs **mutual TLS** (``enable_mtls``): a peer without a cert
+  signed by the mission CA cannot open a link at all, neither to a node's
+  listener nor as the listener a node connects to.
+* Every node enforces an **access-control list** (zenoh ``access_control``,
+  ``default_permission: deny``) keyed by the remote's certificate common
+  name. A cert's common name is its node name (``cn``, ``dn0``, ``gn``) or
+  ``tool``. The rules follow DESIGN.md §3 (:func:`access_control`):
+
+  - node ``X`` may put, reply on and declare queryables and liveliness tokens
+    only under its own prefix ``{vehicle}/X/**``; so only ``cn`` puts
+    ``{vehicle}/cn/telemetry``, only ``gn`` puts ``{vehicle}/gn/to_cn``, and
+    ``dnX`` replies only on ``{vehicle}/dnX/to_cn``;
+  - only ``cn`` may query ``{vehicle}/dnX/to_cn``; any node may query the
+    CN's clock ``{vehicle}/cn/clock``;
+  - every identity may subscribe to ``{vehicle}/**`` and watch liveliness;
+  - ``tool`` (``tap``, ``log``, ``cmd``) only subscribes and watches, and
+    puts ``{vehicle}/gn/to_cn`` (operator commands) only with
+    ``may_command: true``.
+
+  A node egresses only to identities it knows (the node names and ``tool``):
+  a cert from the mission CA with any other common name gets nothing.
+
+The files named are only checked to exist at load; zenoh reads them when
+the session opens. The deployment says nothing for ``tcp/`` and ``udp/``
+endpoints: those links stay unauthenticated at the link level (frames are
+still HMAC-authenticated, :mod:`zplatform.auth`).
+
+:func:`make_test_pki` makes a throwaway CA and node certs with ``openssl``
+for tests and demos. It is **not for flight**: keys are unencrypted, the CA
+key sits next to the certs, and nothing is revocable.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import subprocess
+from collections.abc import Iterable
+from pathlib import Path
+from typing import Any, TypeVar
+
+import msgspec
+
+from .config import Mission
+from .errors import ConfigError
+
+__all__ = [
+    "DEPLOYMENT_ENV",
+    "TOOL",
+    "Deployment",
+    "DeploymentError",
+    "Identity",
+    "ToolIdentity",
+    "access_control",
+    "check_deployment",
+    "decode_deployment",
+    "deployment_from_env",
+    "load_deployment",
+    "make_test_pki",
+    "require_deployment",
+    "tls_nodes",
+    "tls_settings",
+    "zenoh_settings",
+]
+
+DEPLOYMENT_ENV = "ZPLATFORM_DEPLOYMENT"
+"""Environment variable naming the deployment file when none is passed."""
+_T = TypeVar("_T")
+TOOL = "tool"
+"""Common name (and ACL subject) of the identity non-node tools present."""
+
+_TLS_PROTOS = ("tls/",)
+
+
+class DeploymentError(ConfigError):
+    """The deployment file is missing, invalid, or does not fit the mission.
+
+    A :class:`~zplatform.errors.ConfigError` (so every caller that reports a
+    bad configuration reports this one too); ``path`` is the YAML path of the
+    offending field in the deployment file (``$.nodes.cn.key``), or, for a
+    mission that needs a deployment and has none, of the mission's first tls
+    endpoint.
+    """
+
+
+class _Struct(msgspec.Struct, forbid_unknown_fields=True):
+    pass
+
+
+class Identity(_Struct):
+    """One node's certificate and private key (PEM files)."""
+
+    cert: str
+    key: str
+
+
+class ToolIdentity(_Struct):
+    """The identity of tools (``tap``, ``log``, ``cmd``): cert, key, and
+    whether it may put operator commands on ``{vehicle}/gn/to_cn``."""
+
+    cert: str
+    key: str
+    may_command: bool = False
+
+
+class Deployment(_Struct):
+    """A decoded deployment file; paths are absolute after :func:`load_deployment`."""
+
+    ca: str
+    nodes: dict[str, Identity] = msgspec.field(default_factory=dict)
+    tool: ToolIdentity | None = None
+    access_control: bool = True
+
+    def identity(self, node: str | None) -> Identity | ToolIdentity | None:
+        """The identity ``node`` presents (``None``: the tool identity)."""
+        return self.tool if node is None else self.nodes.get(node)
+
+
+def tls_nodes(mission: Mission) -> list[str]:
+    """Nodes that listen or connect over ``tls/`` (and so need an identity)."""
+    return [
+        name
+        for name, n in mission.nodes.items()
+        if any(ep.startswith(_TLS_PROTOS) for ep in [*n.listen, *n.connect])
+    ]
+
+
+def _absolute(raw: Any, base: Path) -> Any:
+    """``raw`` with every relative ``ca``/``cert``/``key`` string made absolute."""
+    if isinstance(raw, dict):
+        return {
+            k: (
+                str((base / v).resolve())
+                if k in ("ca", "cert", "key") and isinstance(v, str) and v
+                else _absolute(v, base)
+            )
+            for k, v in raw.items()
+        }
+    return raw
+
+
+def _convert(raw: Any, type_: type[_T], source: str, prefix: str) -> _T:
+    try:
+        return msgspec.convert(raw, type=type_)
+    except msgspec.ValidationError as exc:
+        # msgspec says "... - at `$.tool.cert`" (or nothing for the top level).
+        msg, _, where = str(exc).rpartition(" - at `")
+        if not msg:
+            msg, where = str(exc), "$`"
+        raise DeploymentError(f"{source}: {msg}", prefix + where.rstrip("`")[1:]) from exc
+
+
+def decode_deployment(
+    text: bytes | str, base: str | Path = ".", source: str = "<string>"
+) -> Deployment:
+    """Decode deployment YAML; relative paths are taken from ``base``.
+
+    Raises DeploymentError naming the YAML path. Checks the schema and that
+    every named file exists; not the fit with a mission (see
+    :func:`check_deployment`).
+    """
+    try:
+        raw = msgspec.yaml.decode(text)
+    except msgspec.DecodeError as exc:
+        raise DeploymentError(f"{source}: not valid YAML: {exc}") from exc
+    if not isinstance(raw, dict):
+        raise DeploymentError(f"{source}: expected a mapping at the top level")
+    raw = _absolute(raw, Path(base))
+    # msgspec names a dict value `$.nodes[...]`: check each node on its own
+    # first, so the error names the node.
+    nodes = raw.get("nodes")
+    if isinstance(nodes, dict):
+        for name, ident in nodes.items():
+            _convert(ident, Identity, source, f"$.nodes.{name}")
+    dep = _convert(raw, Deployment, source, "$")
+    files = [("$.ca", dep.ca)]
+    for name, ident in dep.nodes.items():
+        files += [(f"$.nodes.{name}.cert", ident.cert), (f"$.nodes.{name}.key", ident.key)]
+    if dep.tool is not None:
+        files += [("$.tool.cert", dep.tool.cert), ("$.tool.key", dep.tool.key)]
+    for where, path in files:
+        if not Path(path).is_file():
+            raise DeploymentError(f"{source}: no such file {path!r}", where)
+    return dep
+
+
+def check_deployment(dep: Deployment, mission: Mission, source: str = "<deployment>") -> None:
+    """Raise DeploymentError unless ``dep`` fits ``mission``: every node it
+    names is a mission node, and every node with a tls endpoint has an identity."""
+    for name in dep.nodes:
+        if name not in mission.nodes:
+            raise DeploymentError(
+                f"{source}: node {name!r} is not in mission {mission.mission!r} "
+                f"(nodes: {sorted(mission.nodes)})",
+                f"$.nodes.{name}",
+            )
+    for name in tls_nodes(mission):
+        if name not in dep.nodes:
+            raise DeploymentError(
+                f"{source}: node {name!r} has tls/ endpoints but no cert and key here",
+                "$.nodes",
+            )
+    if dep.access_control and tls_nodes(mission):
+        # The ACL names peers by their certificate: a peer on a tcp/ link has
+        # none and would be denied everything.
+        plain = [
+            f"{name}: {ep}"
+            for name, n in mission.nodes.items()
+            for ep in [*n.listen, *n.connect]
+            if not ep.startswith(_TLS_PROTOS)
+        ]
+        if plain:
+            raise DeploymentError(
+                f"{source}: access_control needs every endpoint on tls/ (peers are known by "
+                f"their certificate), but {plain} are not; set access_control: false",
+                "$.access_control",
+            )
+
+
+def load_deployment(path: str | Path, mission: Mission | None = None) -> Deployment:
+    """Read a deployment file (relative paths relative to it) and, given a
+    mission, check that it fits (:func:`check_deployment`).
+
+    Blocks on file I/O. Raises DeploymentError naming the YAML path.
+    """
+    p = Path(path)
+    try:
+        text = p.read_bytes()
+    except OSError as exc:
+        raise DeploymentError(f"cannot read deployment file {str(p)!r}: {exc.strerror}") from exc
+    dep = decode_deployment(text, base=p.resolve().parent, source=str(p))
+    if mission is not None:
+        check_deployment(dep, mission, source=str(p))
+    return dep
+
+
+def deployment_from_env(mission: Mission) -> Deployment | None:
+    """The deployment named by ``ZPLATFORM_DEPLOYMENT`` (None if unset or empty)."""
+    path = os.environ.get(DEPLOYMENT_ENV)
+    return load_deployment(path, mission) if path else None
+
+
+def require_deployment(mission: Mission) -> Deployment | None:
+    """The deployment a mission runs with, from ``ZPLATFORM_DEPLOYMENT``.
+
+    For a mission with tls endpoints it must exist and fit (DeploymentError
+    at the first tls endpoint's YAML path otherwise: a tls endpoint without
+    certificate settings can never start). For other missions: the
+    deployment if one is named (then also checked), else None.
+    """
+    dep = deployment_from_env(mission)
+    if dep is None:
+        for name, n in mission.nodes.items():
+            for field in ("listen", "connect"):
+                for i, ep in enumerate(getattr(n, field)):
+                    if ep.startswith(_TLS_PROTOS):
+                        raise DeploymentError(
+                            f"endpoint {ep!r}: tls/ needs TLS certificate settings, which "
+                            f"belong in a deployment file named by {DEPLOYMENT_ENV} (see "
+                            "zplatform.deploy); use tcp/ on a trusted network otherwise",
+                            f"$.nodes.{name}.{field}[{i}]",
+                        )
+    return dep
+
+
+# ---------------------------------------------------------------------------
+# zenoh config pieces
+
+
+def tls_settings(dep: Deployment, node: str | None) -> dict[str, Any]:
+    """The ``transport/link/tls`` section for ``node`` (None: a tool).
+
+    mTLS both ways: the node presents its cert when listening and when
+    connecting, and asks every peer for one signed by the mission CA. Names
+    are not verified on connect: endpoints are addresses, and identity is the
+    CA signature plus the common name, which the ACL checks.
+    Raises DeploymentError if the deployment has no identity for ``node``.
+    """
+    ident = dep.identity(node)
+    if ident is None:
+        who = f"node {node!r}" if node is not None else "tools (tap, log, cmd)"
+        raise DeploymentError(
+            f"the deployment gives no cert and key for {who}",
+            "$.tool" if node is None else "$.nodes",
+        )
+    return {
+        "root_ca_certificate": dep.ca,
+        "listen_certificate": ident.cert,
+        "listen_private_key": ident.key,
+        "connect_certificate": ident.cert,
+        "connect_private_key": ident.key,
+        "enable_mtls": True,
+        "verify_name_on_connect": False,
+        # An expired cert ends the link, not only new handshakes.
+        "close_link_on_expiration": True,
+    }
+
+
+_ALL_MESSAGES = [
+    "put",
+    "delete",
+    "declare_subscriber",
+    "query",
+    "declare_queryable",
+    "reply",
+    "liveliness_token",
+    "declare_liveliness_subscriber",
+    "liveliness_query",
+]
+
+
+def access_control(mission: Mission, dep: Deployment) -> dict[str, Any]:
+    """The zenoh ``access_control`` section every node of ``mission`` runs.
+
+    Subjects are certificate common names (module doc for the rules). Ingress
+    rules say what a node accepts from each identity; egress is allowed to
+    every known identity (a node's own sends are its code, not a peer's).
+    """
+    v = mission.vehicle
+    nodes = list(mission.nodes)
+    known = [*nodes, TOOL]
+    rules: list[dict[str, Any]] = []
+    policies: list[dict[str, Any]] = []
+
+    def rule(rid: str, messages: list[str], keys: list[str], flow: str = "ingress") -> str:
+        rules.append(
+            {
+                "id": rid,
+                "permission": "allow",
+                "flows": [flow],
+                "messages": messages,
+                "key_exprs": keys,
+            }
+        )
+        return rid
+
+    common = [
+        rule("egress-all", _ALL_MESSAGES, [f"{v}/**"], flow="egress"),
+        rule("watch", ["declare_subscriber"], [f"{v}/**"]),
+        rule(
+            "liveliness-watch",
+            ["declare_liveliness_subscriber", "liveliness_query"],
+            [f"{v}/*/alive"],
+        ),
+    ]
+    for n in nodes:
+        own = [f"{v}/{n}/**"]
+        ids = [
+            *common,
+            rule(f"{n}-own", ["put", "delete", "declare_queryable", "reply"], own),
+            rule(f"{n}-alive", ["liveliness_token"], [f"{v}/{n}/alive"]),
+        ]
+        if n == "cn":
+            dn_keys = [f"{v}/{d}/to_cn" for d in mission.device_nodes]
+            if dn_keys:
+                ids.append(rule("cn-sync", ["query"], dn_keys))
+        else:
+            ids.append(rule(f"{n}-clock", ["query"], [f"{v}/cn/clock"]))
+        policies.append({"id": f"p-{n}", "rules": ids, "subjects": [f"s-{n}"]})
+    tool_rules = list(common)
+    if dep.tool is not None and dep.tool.may_command and mission.has_ground:
+        tool_rules.append(rule("tool-command", ["put"], [f"{v}/gn/to_cn"]))
+    policies.append({"id": f"p-{TOOL}", "rules": tool_rules, "subjects": [f"s-{TOOL}"]})
+    subjects = [{"id": f"s-{k}", "cert_common_names": [k]} for k in known]
+    return {
+        "enabled": True,
+        "default_permission": "deny",
+        "rules": rules,
+        "subjects": subjects,
+        "policies": policies,
+    }
+
+
+def zenoh_settings(mission: Mission, dep: Deployment, node: str | None) -> dict[str, Any]:
+    """The zenoh config pieces for ``node`` (None: a tool), as
+    ``{config key: value}``: ``transport/link/tls`` and, when the deployment
+    asks for it, ``access_control``. Empty for a mission without tls
+    endpoints (the deployment has nothing to secure there).
+    """
+    if not tls_nodes(mission):
+        return {}
+    out: dict[str, Any] = {"transport/link/tls": tls_settings(dep, node)}
+    if dep.access_control:
+        out["access_control"] = access_control(mission, dep)
+    return out
+
+
+# ---------------------------------------------------------------------------
+# test PKI
+
+
+def _openssl(*args: str, cwd: Path) -> None:
+    r = subprocess.run(
+        ["openssl", *args], cwd=cwd, capture_output=True, text=True, check=False, timeout=60
+    )
+    if r.returncode != 0:
+        raise DeploymentError(f"openssl {args[0]} failed: {r.stderr.strip()[-500:]}")
+
+
+def make_test_pki(
+    directory: str | Path,
+    nodes: Iterable[str],
+    *,
+    tool: bool = True,
+    may_command: bool = False,
+    ca_name: str = "zplatform test CA",
+) -> Deployment:
+    """Make a CA and one cert per node (common name = node name) in
+    ``directory``, write ``deployment.yaml`` there and return it loaded.
+
+    ``tool``: also a ``tool`` identity. **Tests and demos only, never for
+    flight**: unencrypted keys, the CA key beside the certs, 30-day certs,
+    no revocation. Needs the ``openssl`` command; raises DeploymentError
+    without it or if it fails. Call again with another ``directory`` and
+    ``ca_name`` for a second, foreign CA.
+    """
+    if shutil.which("openssl") is None:
+        raise DeploymentError("make_test_pki needs the openssl command")
+    d = Path(directory)
+    d.mkdir(parents=True, exist_ok=True)
+    ec = ["-newkey", "ec", "-pkeyopt", "ec_paramgen_curve:prime256v1", "-nodes"]
+    _openssl(
+        "req", "-x509", *ec, "-keyout", "ca.key", "-out", "ca.pem", "-days", "30",
+        "-subj", f"/CN={ca_name}",
+        "-addext", "basicConstraints=critical,CA:TRUE",
+        "-addext", "keyUsage=critical,keyCertSign,cRLSign",
+        cwd=d,
+    )  # fmt: skip
+    # rustls (zenoh's TLS) wants v3 end-entity certs with a SAN and both
+    # server and client auth: a peer is both.
+    names = [*nodes, *([TOOL] if tool else [])]
+    for n in names:
+        (d / f"{n}.ext").write_text(
+            f"subjectAltName=DNS:{n}\nbasicConstraints=critical,CA:FALSE\n"
+            "keyUsage=critical,digitalSignature\nextendedKeyUsage=serverAuth,clientAuth\n"
+        )
+        _openssl("req", *ec, "-keyout", f"{n}.key", "-out", f"{n}.csr", "-subj", f"/CN={n}", cwd=d)
+        _openssl(
+            "x509", "-req", "-in", f"{n}.csr", "-CA", "ca.pem", "-CAkey", "ca.key",
+            "-CAcreateserial", "-out", f"{n}.pem", "-days", "30", "-extfile", f"{n}.ext",
+            cwd=d,
+        )  # fmt: skip
+    raw: dict[str, Any] = {
+        "ca": "ca.pem",
+        "nodes": {n: {"cert": f"{n}.pem", "key": f"{n}.key"} for n in names if n != TOOL},
+    }
+    if tool:
+        raw["tool"] = {"cert": f"{TOOL}.pem", "key": f"{TOOL}.key", "may_command": may_command}
+    (d / "deployment.yaml").write_bytes(msgspec.yaml.encode(raw))
+    return load_deployment(d / "deployment.yaml")
