@@ -18,6 +18,18 @@ pytest.importorskip("spacepackets")
 pytestmark = pytest.mark.timeout(120)
 
 
+def _record(mission: Path, out: Path, *extra: str) -> subprocess.CompletedProcess[str]:
+    """`zplatform ccsds MISSION --record OUT` for 1.5 s."""
+    return subprocess.run(
+        [sys.executable, "-m", "zplatform", "ccsds", str(mission), "--record", str(out)]
+        + ["--duration", "1.5", *extra],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+
+
 def test_record_and_decode_live_downlink(tmp_path: Path) -> None:
     """Every other snapshot (divisor 2) goes down and decodes without a refusal."""
     with Cluster(CONFIGS / "minimal.yaml", tmp_path) as c:
@@ -25,25 +37,7 @@ def test_record_and_decode_live_downlink(tmp_path: Path) -> None:
         c.spawn("cn")
         c.advance(5)
         down = tmp_path / "down.bin"
-        r = subprocess.run(
-            [
-                sys.executable,
-                "-m",
-                "zplatform",
-                "ccsds",
-                str(c.path),
-                "--record",
-                str(down),
-                "--duration",
-                "1.5",
-                "--divisor",
-                "2",
-            ],
-            cwd=ROOT,
-            capture_output=True,
-            text=True,
-            timeout=60,
-        )
+        r = _record(c.path, down, "--divisor", "2")
         assert r.returncode == 0, r.stderr
     out = tmp_path / "down.csv"
     assert main(["ccsds", str(c.path), "--decode", str(down), "--out", str(out)]) == 0
@@ -69,23 +63,7 @@ def test_the_control_node_sends_its_own_radio_downlink(tmp_path: Path) -> None:
         c.spawn("cn")
         c.advance(5)
         down = tmp_path / "radio.bin"
-        r = subprocess.run(
-            [
-                sys.executable,
-                "-m",
-                "zplatform",
-                "ccsds",
-                str(c.path),
-                "--record",
-                str(down),
-                "--duration",
-                "1.5",
-            ],
-            cwd=ROOT,
-            capture_output=True,
-            text=True,
-            timeout=60,
-        )
+        r = _record(c.path, down)
         assert r.returncode == 0, r.stderr
         assert "from the CN's downlink" in r.stdout
     out = tmp_path / "radio.csv"
