@@ -21,8 +21,8 @@ pytestmark = pytest.mark.timeout(120)
 def _record(mission: Path, out: Path, *extra: str) -> subprocess.CompletedProcess[str]:
     """`zplatform ccsds MISSION --record OUT` for 1.5 s."""
     return subprocess.run(
-        [sys.executable, "-m", "zplatform", "ccsds", str(mission), "--record", str(out)]
-        + ["--duration", "1.5", *extra],
+        [sys.executable, "-m", "zplatform", "ccsds", str(mission), "--record", str(out),
+         "--duration", "1.5", *extra],
         cwd=ROOT,
         capture_output=True,
         text=True,
