@@ -393,7 +393,11 @@ def max_miss_run(vs: list[dict[str, Any]]) -> int:
 
 def expected_fault(c: Live, vs: list[dict[str, Any]]) -> str:
     """The configured outcome: DN_LOST iff dn0 missed ``dn_lost_loops`` in a row."""
-    return "DN_LOST" if max_miss_run(vs) >= c.mission.faults.dn_lost_loops else "NONE"
+    return expected_fault_of(vs, c.mission.faults.dn_lost_loops)
+
+
+def expected_fault_of(vs: list[dict[str, Any]], dn_lost_loops: int) -> str:
+    return "DN_LOST" if max_miss_run(vs) >= dn_lost_loops else "NONE"
 
 
 # --------------------------------------------------------------------------- cases
@@ -1019,11 +1023,185 @@ def case_rogue(tmp: Path, quick: bool) -> CaseResult:
     return r
 
 
+# --------------------------------------------------------------------------- namespaces
+class NetWatch:
+    """A telemetry watcher running inside a namespace
+    (``python -m tests.faults.live watch MISSION``): one JSON line per CN
+    snapshot, ``_t`` = the watcher's ``time.monotonic()`` (one kernel, one
+    monotonic clock across namespaces)."""
+
+    def __init__(self, proc: subprocess.Popen[Any]) -> None:
+        self.proc = proc
+        self.snaps: list[Snap] = []
+        self._lock = threading.Lock()
+        self._th = threading.Thread(target=self._read, daemon=True)
+        self._th.start()
+
+    def _read(self) -> None:
+        assert self.proc.stdout is not None
+        for line in self.proc.stdout:
+            with suppress(ValueError):
+                v = json.loads(line)
+                with self._lock:
+                    self.snaps.append(Snap(v.pop("_t"), v))
+
+    def last(self) -> dict[str, Any]:
+        with self._lock:
+            return self.snaps[-1].v if self.snaps else {}
+
+    def wait_for(self, pred: Callable[[dict[str, Any]], bool], timeout_s: float, what: str) -> Snap:
+        deadline = time.monotonic() + timeout_s
+        seen = 0
+        while time.monotonic() < deadline:
+            with self._lock:
+                new = self.snaps[seen:]
+                seen = len(self.snaps)
+            for sn in new:
+                if pred(sn.v):
+                    return sn
+            if self.proc.poll() is not None:
+                raise AssertionError(f"watcher exited ({self.proc.returncode})")
+            time.sleep(0.02)  # polling our own reader thread, not a peer
+        raise AssertionError(f"timed out waiting for {what}; last: {self.last()}")
+
+
+def watch_main(mission_path: str) -> int:
+    """Print the CN's telemetry as JSON lines until stdin closes."""
+    import sys
+
+    from zplatform.node.ground import TelemetryReceiver
+    from zplatform.timebase import NodeClock
+    from zplatform.transport import zenoh_config
+
+    m = load_mission(mission_path)
+    cfg = zenoh_config(m, None)
+    if os.environ.get("ZP_WATCH_ONLY_CN"):
+        # connect to the CN only (a tool connects to every node)
+        cfg.insert_json5("connect/endpoints", json.dumps(m.nodes["cn"].listen))
+    session = zenoh.open(cfg)
+    rx = TelemetryReceiver(session, m, NodeClock().now_ns)
+    done = threading.Event()
+
+    def until_eof() -> None:
+        sys.stdin.read()
+        done.set()
+
+    threading.Thread(target=until_eof, daemon=True).start()
+    try:
+        while not done.is_set():
+            if rx.next(0.1) is None:
+                continue
+            v: dict[str, Any] = {k: _get(rx.dv, k) for k in WATCH}
+            v["_t"] = time.monotonic()
+            print(json.dumps(v), flush=True)
+    finally:
+        rx.close()
+        session.close()
+    return 0
+
+
+def case_partition_netns(tmp: Path, quick: bool, down_s: float = 5.0) -> CaseResult:
+    """A cable cut on real kernel links: the CN (and the watcher) on one
+    namespace host, dn0 on another; dn0's bridge port is set down for
+    ``down_s`` then up again. The CN must keep its rate, see dn0 lost (DN_LOST
+    when the cut lasts ``dn_lost_loops``), and dn0 must rejoin and re-enable."""
+    from tests.faults.missions import netns_mission
+    from tests.faults.netns import NetnsLab, netns_unavailable
+    from tests.integration.harness import ROOT
+
+    r = CaseResult(f"cable_cut_{down_s:g}s_netns")
+    why = netns_unavailable()
+    if why is not None:
+        r.figures["skipped"] = why
+        return r
+    import sys
+
+    with NetnsLab(2) as lab:
+        h0, h1 = lab.hosts
+        path = netns_mission(MISSION, tmp / "m.yaml", {"cn": h0, "dn0": h1, "gn": h0})
+        node = [sys.executable, "-m", "zplatform", "node", str(path)]
+        h1.popen([*node, "dn0"], log=tmp / "dn0.log", cwd=ROOT)
+        h0.popen([*node, "cn", "--ground-wait", "0"], log=tmp / "cn.log", cwd=ROOT)
+        w = NetWatch(
+            h0.popen(
+                [sys.executable, "-m", "tests.faults.live", "watch", str(path)],
+                log=tmp / "watch.log",
+                pipe_stdio=True,
+                cwd=ROOT,
+            )
+        )
+        r.figures.update(
+            forged_applied=0, expected_state="IDLE/DN_LOST" if down_s >= 1 else "IDLE/-"
+        )
+        try:
+            w.wait_for(lambda v: v["cn_rx_dn0"] >= 20, 60, "dn0 in sync")
+            m0 = w.last()["cn_missed_dn0"]
+            t0 = time.monotonic()
+            h1.link_down()
+            miss = w.wait_for(lambda v: v["cn_missed_dn0"] > m0, 5, "first miss")
+            r.figures["detect_ms"] = ms(t0, miss.t)
+            if down_s >= 1:
+                lost = w.wait_for(lambda v: v["cn_fault"] == "DN_LOST", 5, "DN_LOST")
+                r.figures["dn_lost_ms"] = ms(t0, lost.t)
+                r.check("dn_lost_within_lease", lost.t - t0 <= 1.0, ms(t0, lost.t))
+            time.sleep(max(0.0, down_s - (time.monotonic() - t0)))  # the cut lasts down_s
+            rx = w.last()["cn_rx_dn0"]
+            loop_at_heal = w.last()["cn_loop"]
+            t_heal = time.monotonic()
+            h1.link_up()
+            r.check(
+                "cn_kept_looping_during_cut",
+                loop_at_heal - miss.v["cn_loop"] >= 0.8 * 100 * down_s - 20,
+                (miss.v["cn_loop"], loop_at_heal),
+            )
+            back = w.wait_for(lambda v: v["cn_rx_dn0"] > rx, 10, "dn0 rejoins")
+            r.figures["rejoin_after_heal_ms"] = ms(t_heal, back.t)
+            w.wait_for(
+                lambda v: v["cn_rx_dn0"] >= rx + 30 and not v["dn0_safed"], 10, "dn0 re-enabled"
+            )
+            with w._lock:
+                snaps = list(w.snaps)
+            after = [sn.v for sn in snaps if sn.t >= t_heal and sn.v["cn_rx_dn0"] > rx]
+            r.check(
+                "safed_in_reply_after_heal",
+                any(v["dn0_safed"] for v in after),
+                [v["dn0_safed"] for v in after[:3]],
+            )
+            last = w.last()
+            r.check("rejoined", last["cn_rx_dn0"] >= rx + 30)
+            r.check("rejoined_within_2s", back.t - t_heal <= 2.0, ms(t_heal, back.t))
+            gaps = [b.t - a.t for a, b in itertools.pairwise(snaps) if b.t >= t0 - 0.1]
+            r.figures["max_tm_gap_ms"] = round(max(gaps, default=0.0) * 1e3, 1)
+            # telemetry every loop: a gap is the CN's loop not running
+            r.check("cn_never_froze", max(gaps, default=0.0) <= 0.2, r.figures["max_tm_gap_ms"])
+            vs = [sn.v for sn in snaps]
+            want = expected_fault_of(vs, 50)
+            got = (last["cn_state"], last["cn_fault"])
+            r.figures["loops_missed"] = last["cn_missed_dn0"] - m0
+            r.figures["final_state"] = f"{got[0]}/{got[1]}"
+            r.figures["expected_state"] = f"IDLE/{want}"
+            r.check("final_state_as_configured", got == ("IDLE", want), got)
+        except AssertionError as exc:
+            last = w.last()
+            r.figures["final_state"] = f"{last.get('cn_state')}/{last.get('cn_fault')}"
+            r.figures["loops_missed"] = last.get("cn_missed_dn0")
+            r.check("completed", False, f"{exc}"[:600])
+        finally:
+            if w.proc.stdin is not None:
+                with suppress(OSError):
+                    w.proc.stdin.close()
+            with suppress(subprocess.TimeoutExpired):
+                w.proc.wait(5)
+    return r
+
+
 CASES: dict[str, Callable[[Path, bool], CaseResult]] = {
     "loss_1pct": lambda t, q: case_loss(t, q, 0.01),
     "loss_10pct": lambda t, q: case_loss(t, q, 0.10),
     "delay_1ms": case_delay,
     "partition_5s": case_partition,
+    "cable_cut_0.5s_netns": lambda t, q: case_partition_netns(t, q, 0.5),
+    "cable_cut_5s_netns": lambda t, q: case_partition_netns(t, q, 5.0),
     "dn0_kill9": lambda t, q: case_dn_dies(t, q, signal.SIGKILL),
     "dn0_sigstop": lambda t, q: case_dn_dies(t, q, signal.SIGSTOP),
     "gn_kill9": lambda t, q: case_gn_dies(t, q, signal.SIGKILL),
@@ -1035,3 +1213,11 @@ CASES: dict[str, Callable[[Path, bool], CaseResult]] = {
     "junk_flood": case_flood,
     "rogue_dn0_and_forged_tm": case_rogue,
 }
+
+
+if __name__ == "__main__":
+    import sys
+
+    if len(sys.argv) == 3 and sys.argv[1] == "watch":
+        raise SystemExit(watch_main(sys.argv[2]))
+    raise SystemExit("usage: python -m tests.faults.live watch MISSION")
