@@ -1100,7 +1100,9 @@ def watch_main(mission_path: str) -> int:
     return 0
 
 
-def case_partition_netns(tmp: Path, quick: bool, down_s: float = 5.0) -> CaseResult:
+def case_partition_netns(
+    tmp: Path, quick: bool, down_s: float = 5.0, cut: str = "dn0"
+) -> CaseResult:
     """A cable cut on real kernel links: the CN (and the watcher) on one
     namespace host, dn0 on another; dn0's bridge port is set down for
     ``down_s`` then up again. The CN must keep its rate, see dn0 lost (DN_LOST
@@ -1109,7 +1111,9 @@ def case_partition_netns(tmp: Path, quick: bool, down_s: float = 5.0) -> CaseRes
     from tests.faults.netns import NetnsLab, netns_unavailable
     from tests.integration.harness import ROOT
 
-    r = CaseResult(f"cable_cut_{down_s:g}s_netns")
+    r = CaseResult(f"cable_cut_{cut}_{down_s:g}s_netns")
+    if cut == "gn":
+        return _gn_cable_cut(tmp, down_s)
     why = netns_unavailable()
     if why is not None:
         r.figures["skipped"] = why
@@ -1121,7 +1125,11 @@ def case_partition_netns(tmp: Path, quick: bool, down_s: float = 5.0) -> CaseRes
         path = netns_mission(MISSION, tmp / "m.yaml", {"cn": h0, "dn0": h1, "gn": h0})
         node = [sys.executable, "-m", "zplatform", "node", str(path)]
         h1.popen([*node, "dn0"], log=tmp / "dn0.log", cwd=ROOT)
-        h0.popen([*node, "cn", "--ground-wait", "0"], log=tmp / "cn.log", cwd=ROOT)
+        cn_cmd = node
+        if os.environ.get("ZP_FAULTS_CN_DROP_PATCH"):
+            cn_cmd = [sys.executable, "-m", "tests.faults.cn_drop_patch", "node", str(path)]
+            r.figures["cn_drop_patch"] = True
+        h0.popen([*cn_cmd, "cn", "--ground-wait", "0"], log=tmp / "cn.log", cwd=ROOT)
         w = NetWatch(
             h0.popen(
                 [sys.executable, "-m", "tests.faults.live", "watch", str(path)],
@@ -1195,13 +1203,70 @@ def case_partition_netns(tmp: Path, quick: bool, down_s: float = 5.0) -> CaseRes
     return r
 
 
+def _gn_cable_cut(tmp: Path, down_s: float) -> CaseResult:
+    """The ground's cable cut for ``down_s``: nothing changes on the vehicle."""
+    import sys
+
+    from tests.faults.missions import netns_mission
+    from tests.faults.netns import NetnsLab
+    from tests.integration.harness import ROOT
+
+    r = CaseResult(f"cable_cut_gn_{down_s:g}s_netns")
+    with NetnsLab(2) as lab:
+        h0, h1 = lab.hosts
+        path = netns_mission(MISSION, tmp / "m.yaml", {"cn": h0, "dn0": h0, "gn": h1})
+        node = [sys.executable, "-m", "zplatform", "node", str(path)]
+        h0.popen([*node, "dn0"], log=tmp / "dn0.log", cwd=ROOT)
+        h1.popen([*node, "gn", "--log", str(tmp / "gn.csv")], log=tmp / "gn.log", cwd=ROOT)
+        h0.popen([*node, "cn"], log=tmp / "cn.log", cwd=ROOT)  # waits for the GN
+        w = NetWatch(
+            h0.popen(
+                [sys.executable, "-m", "tests.faults.live", "watch", str(path)],
+                log=tmp / "watch.log",
+                pipe_stdio=True,
+                cwd=ROOT,
+            )
+        )
+        r.figures.update(detect_ms=None, forged_applied=0, expected_state="IDLE/NONE")
+        try:
+            w.wait_for(lambda v: v["cn_rx_dn0"] >= 20, 60, "dn0 in sync")
+            first = w.last()
+            t0 = time.monotonic()
+            h1.link_down()
+            time.sleep(down_s)  # the cut lasts down_s
+            h1.link_up()
+            w.wait_for(lambda v: v["cn_loop"] >= first["cn_loop"] + 100 * down_s + 50, 10, "loops")
+            with w._lock:
+                snaps = [sn for sn in w.snaps if sn.t >= t0 - 0.1]
+            gaps = [b.t - a.t for a, b in itertools.pairwise(snaps)]
+            last = w.last()
+            r.figures.update(
+                max_tm_gap_ms=round(max(gaps, default=0.0) * 1e3, 1),
+                loops_missed=last["cn_missed_dn0"] - first["cn_missed_dn0"],
+                final_state=f"{last['cn_state']}/{last['cn_fault']}",
+            )
+            r.check("cn_never_froze", max(gaps, default=0.0) <= 0.2, r.figures["max_tm_gap_ms"])
+            r.check("no_fault", all(sn.v["cn_fault"] == "NONE" for sn in snaps))
+            r.check("final_state_as_configured", r.figures["final_state"] == "IDLE/NONE")
+        except AssertionError as exc:
+            r.check("completed", False, f"{exc}"[:600])
+        finally:
+            if w.proc.stdin is not None:
+                with suppress(OSError):
+                    w.proc.stdin.close()
+            with suppress(subprocess.TimeoutExpired):
+                w.proc.wait(5)
+    return r
+
+
 CASES: dict[str, Callable[[Path, bool], CaseResult]] = {
     "loss_1pct": lambda t, q: case_loss(t, q, 0.01),
     "loss_10pct": lambda t, q: case_loss(t, q, 0.10),
     "delay_1ms": case_delay,
     "partition_5s": case_partition,
-    "cable_cut_0.5s_netns": lambda t, q: case_partition_netns(t, q, 0.5),
-    "cable_cut_5s_netns": lambda t, q: case_partition_netns(t, q, 5.0),
+    "cable_cut_dn0_0.5s_netns": lambda t, q: case_partition_netns(t, q, 0.5),
+    "cable_cut_dn0_5s_netns": lambda t, q: case_partition_netns(t, q, 5.0),
+    "cable_cut_gn_5s_netns": lambda t, q: case_partition_netns(t, q, 5.0, "gn"),
     "dn0_kill9": lambda t, q: case_dn_dies(t, q, signal.SIGKILL),
     "dn0_sigstop": lambda t, q: case_dn_dies(t, q, signal.SIGSTOP),
     "gn_kill9": lambda t, q: case_gn_dies(t, q, signal.SIGKILL),
