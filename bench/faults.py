@@ -5,8 +5,12 @@ assert on) on the minimal mission (1 CN, dn0, a GN where the case needs it) on
 loopback, dn0 behind a frame-tapping fault relay where the case needs the
 link: 1 % and 10 % batch loss, 1 +- 0.5 ms delay each way, a 5 s partition,
 kill -9 / SIGSTOP of dn0 and of the GN, SIGSTOP/SIGCONT of the CN, kill -9
-and restart of the CN, 50 ms and 500 ms clock skew on dn0, a 2 s junk flood
-on every key, a rogue dn0 queryable plus forged telemetry.
+and restart of the CN, 50 ms and 500 ms clock skew on dn0, a junk flood on
+every key (2 s, ``--quick``; 5 s), a rogue dn0 queryable plus forged
+telemetry; and, in network namespaces (root only, else reported skipped),
+cable cuts of dn0 (0.5 s, 5 s) and of the GN (5 s) on real kernel links.
+``ZP_FAULTS_CN_DROP_PATCH=1`` runs the CN of the dn0 cable cuts with the
+proposed fix (``tests/faults/cn_drop_patch.py``).
 
 Figures per case (``variants[case]``):
 
@@ -25,7 +29,7 @@ Targets (issue): node loss detected within 0.5 s; every case ends in its
 configured state; zero forged inputs applied. Also prints a Markdown table
 (one row per case) for the report.
 
-Blocks for about 2 minutes (``--quick``: ~1.5). Run it under ``flock
+Blocks for about 2 minutes (``--quick``: a bit less). Run it under ``flock
 /tmp/zplatform-bench.lock`` so benchmarks never overlap.
 """
 
@@ -43,7 +47,13 @@ from typing import Any
 from .common import bench_argparser, write_result
 
 TARGET_DETECT_MS = 500.0
-NODE_LOSS = ("partition_5s", "dn0_kill9", "dn0_sigstop")
+NODE_LOSS = (
+    "partition_5s",
+    "dn0_kill9",
+    "dn0_sigstop",
+    "cable_cut_dn0_0.5s_netns",
+    "cable_cut_dn0_5s_netns",
+)
 
 
 def run_cases(quick: bool, only: list[str] | None = None) -> dict[str, dict[str, Any]]:

@@ -838,7 +838,7 @@ def _plausible(data_len: int, layout_id: int, seq: int, t_ns: int, rng: random.R
 
 def case_flood(tmp: Path, quick: bool) -> CaseResult:
     r = CaseResult("junk_flood")
-    flood_s = 2.0
+    flood_s = 2.0 if quick else 5.0
     rate_hz = 200  # per key
     with live(tmp) as c:
         c.spawn_node("dn0")
@@ -876,6 +876,7 @@ def case_flood(tmp: Path, quick: bool) -> CaseResult:
                 stop.wait(max(0.0, nxt - time.monotonic()))
 
         th = threading.Thread(target=flood, daemon=True)
+        rss_samples: list[float] = [round(rss0 / 2**20, 1)]
         bad_rx0 = c.rx.bad
         t0 = time.monotonic()
         th.start()
@@ -886,7 +887,9 @@ def case_flood(tmp: Path, quick: bool) -> CaseResult:
                 outcome = sender.send("NOOP")
             finally:
                 sender.close()
-            c.pump_for(max(0.0, flood_s - (time.monotonic() - t0)))
+            while (left := flood_s - (time.monotonic() - t0)) > 0:
+                c.pump_for(min(left, 0.5))
+                rss_samples.append(round(proc.memory_info().rss / 2**20, 1))
         finally:
             stop.set()
             th.join(5)
@@ -924,6 +927,7 @@ def case_flood(tmp: Path, quick: bool) -> CaseResult:
             test_rx_bad=c.rx.bad - bad_rx0,
             noop=outcome.status if outcome else None,
             cn_rss_growth_mb=round((rss1 - rss0) / 2**20, 1),
+            cn_rss_mb_samples=rss_samples,
             loops_missed=misses(s1, s2),
             forged_applied=0 if c.now("cn_state") == "IDLE" else 1,
         )
