@@ -628,19 +628,31 @@ def case_dn_dies(tmp: Path, quick: bool, sig: int) -> CaseResult:
         c.spawn_node("dn0")
         c.spawn_node("cn")
         c.ready()
+        ref = _rate(c, 1.0)  # this box, now, without the fault
         m0 = c.now("cn_missed_dn0")
         t0 = time.monotonic()
         c.signal("dn0", sig)
         c.wait_for(lambda dv: int(dv.get("cn_missed_dn0")) > m0, 5, "first miss")
-        t_miss = c.snaps[-1].t
+        miss = c.snaps[-1]
         c.wait_for(lambda dv: dv.get_name("cn_fault") == "DN_LOST", 5, "DN_LOST")
-        t_lost = c.snaps[-1].t
+        lost = c.snaps[-1]
         rate = _rate(c, 1.0)
+        n_lost = c.mission.faults.dn_lost_loops
         r.figures.update(
-            detect_ms=ms(t0, t_miss), dn_lost_ms=ms(t0, t_lost), cn_rate_hz=round(rate, 1)
+            detect_ms=ms(t0, miss.t),
+            dn_lost_ms=ms(t0, lost.t),
+            dn_lost_loops=lost.v["cn_loop"] - miss.v["cn_loop"] + 1,
+            cn_rate_hz=round(rate, 1),
+            cn_rate_ref_hz=round(ref, 1),
         )
-        r.check("dn_lost_within_0.5s_plus_margin", t_lost - t0 <= 1.0, ms(t0, t_lost))
-        r.check("cn_keeps_rate", rate >= 90, rate)
+        # DN_LOST latches after dn_lost_loops missed loops (500 ms at 100 Hz);
+        # counted in loops, so a stall of the shared box does not fail it.
+        r.check(
+            "dn_lost_after_dn_lost_loops",
+            lost.v["cn_loop"] - miss.v["cn_loop"] + 1 <= n_lost + 2,
+            r.figures["dn_lost_loops"],
+        )
+        r.check("cn_keeps_rate", rate >= 0.9 * ref, (rate, ref))
         if sig == signal.SIGSTOP:
             rx = c.now("cn_rx_dn0")
             t_cont = time.monotonic()
@@ -670,6 +682,7 @@ def case_gn_dies(tmp: Path, quick: bool, sig: int) -> CaseResult:
         c.spawn_node("gn")
         c.spawn_node("cn")
         c.ready()
+        ref = _rate(c, 1.0)  # this box, now, without the fault
         state0, m0 = c.now("cn_state"), c.now("cn_missed_dn0")
         c.signal("gn", sig)
         rate = _rate(c, 2.0)
@@ -677,10 +690,11 @@ def case_gn_dies(tmp: Path, quick: bool, sig: int) -> CaseResult:
         r.figures.update(
             detect_ms=None,
             cn_rate_hz=round(rate, 1),
+            cn_rate_ref_hz=round(ref, 1),
             loops_missed=c.now("cn_missed_dn0") - m0,
             forged_applied=0,
         )
-        r.check("cn_keeps_rate", rate >= 90, rate)
+        r.check("cn_keeps_rate", rate >= 0.9 * ref, (rate, ref))
         r.check("no_fault", all(v["cn_fault"] == "NONE" for v in after))
         r.check("state_unchanged", all(v["cn_state"] == state0 for v in after))
         if sig == signal.SIGSTOP:
