@@ -1249,7 +1249,11 @@ def _gn_cable_cut(tmp: Path, down_s: float) -> CaseResult:
         node = [sys.executable, "-m", "zplatform", "node", str(path)]
         h0.popen([*node, "dn0"], log=tmp / "dn0.log", cwd=ROOT)
         h1.popen([*node, "gn", "--log", str(tmp / "gn.csv")], log=tmp / "gn.log", cwd=ROOT)
-        h0.popen([*node, "cn"], log=tmp / "cn.log", cwd=ROOT)  # waits for the GN
+        cn_cmd = node
+        if os.environ.get("ZP_FAULTS_CN_DROP_PATCH"):
+            cn_cmd = [sys.executable, "-m", "tests.faults.cn_drop_patch", "node", str(path)]
+            r.figures["cn_drop_patch"] = True
+        h0.popen([*cn_cmd, "cn"], log=tmp / "cn.log", cwd=ROOT)  # waits for the GN
         w = NetWatch(
             h0.popen(
                 [sys.executable, "-m", "tests.faults.live", "watch", str(path)],
