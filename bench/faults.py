@@ -1,0 +1,162 @@
+"""Fault injection on live node processes: detection, misses, end state, forged inputs.
+
+Runs every case of ``tests/faults/live.py`` (the same code the fault tests
+assert on) on the minimal mission (1 CN, dn0, a GN where the case needs it) on
+loopback, dn0 behind a frame-tapping fault relay where the case needs the
+link: 1 % and 10 % batch loss, 1 +- 0.5 ms delay each way, a 5 s partition,
+kill -9 / SIGSTOP of dn0 and of the GN, SIGSTOP/SIGCONT of the CN, kill -9
+and restart of the CN, 50 ms and 500 ms clock skew on dn0, a junk flood on
+every key (2 s, ``--quick``; 5 s), a rogue dn0 queryable plus forged
+telemetry; and, in network namespaces (root only, else reported skipped),
+cable cuts of dn0 (0.5 s, 5 s) and of the GN (5 s) on real kernel links.
+``ZP_FAULTS_CN_DROP_PATCH=1`` runs the CN of the dn0 cable cuts with the
+proposed fix (``tests/faults/cn_drop_patch.py``).
+
+Figures per case (``variants[case]``):
+
+* ``detect_ms``: fault injection -> first CN telemetry snapshot showing it
+  (a missed sync, a late reply, ``cn_fault``), or the ``dn_safed`` event /
+  the CN's exit when that is the symptom; ``None`` when the fault must
+  change nothing (GN cases) or is the flood. ``dn_lost_ms``: injection ->
+  ``cn_fault = DN_LOST`` (configured: ``faults.dn_lost_loops`` = 50 loops);
+* ``loops_missed``: ``cn_missed_dn0`` growth;
+* ``final_state`` / ``expected_state``: ``cn_state/cn_fault`` at the end vs
+  what the mission configures for the fault; ``ends_as_configured``;
+* ``forged_applied``: forged or junk inputs that changed the vehicle;
+* ``passed``: every check of the case (``checks`` has each one).
+
+Targets (issue): node loss detected within 0.5 s; every case ends in its
+configured state; zero forged inputs applied. Also prints a Markdown table
+(one row per case) for the report.
+
+Blocks for about 2 minutes (``--quick``: a bit less). Run it under ``flock
+/tmp/zplatform-bench.lock`` so benchmarks never overlap.
+"""
+
+from __future__ import annotations
+
+import importlib
+import os
+import secrets
+import tempfile
+import time
+import traceback
+from pathlib import Path
+from typing import Any
+
+from .common import bench_argparser, write_result
+
+TARGET_DETECT_MS = 500.0
+NODE_LOSS = (
+    "partition_5s",
+    "dn0_kill9",
+    "dn0_sigstop",
+    "cable_cut_dn0_0.5s_netns",
+    "cable_cut_dn0_5s_netns",
+)
+
+
+def run_cases(quick: bool, only: list[str] | None = None) -> dict[str, dict[str, Any]]:
+    # Node processes inherit the mission key from the environment (as in tests/conftest.py).
+    os.environ.setdefault("ZPLATFORM_KEY", secrets.token_hex(32))
+    os.environ.pop("ZPLATFORM_KEY_FILE", None)
+    # Imported by name: the cases live with the tests (tests/ is not in
+    # mypy's packages; its helpers are checked by running them).
+    cases: dict[str, Any] = importlib.import_module("tests.faults.live").CASES
+
+    out: dict[str, dict[str, Any]] = {}
+    for name, fn in cases.items():
+        if only and name not in only:
+            continue
+        t0 = time.monotonic()
+        with tempfile.TemporaryDirectory(prefix=f"zp-faults-{name}-") as td:
+            try:
+                fig = fn(Path(td), quick).as_dict()
+            except Exception as exc:  # one case failing must not hide the others
+                fig = {"passed": False, "error": f"{type(exc).__name__}: {exc}"[:2000]}
+                traceback.print_exc()
+        fig["ends_as_configured"] = fig.get("final_state") is not None and fig.get(
+            "final_state"
+        ) == fig.get("expected_state")
+        fig["case_s"] = round(time.monotonic() - t0, 1)
+        out[name] = fig
+        print(f"{name}: passed={fig['passed']} detect_ms={fig.get('detect_ms')}", flush=True)
+    return out
+
+
+def markdown(variants: dict[str, dict[str, Any]]) -> str:
+    rows = [
+        "| case | detect ms | DN_LOST ms | loops missed | final state | configured | "
+        "forged applied | checks |",
+        "|---|---:|---:|---:|---|---|---:|---|",
+    ]
+    for name, f in variants.items():
+        checks = f.get("checks", {})
+        failed = [k for k, v in checks.items() if not v["ok"]]
+        verdict = (
+            "error"
+            if "error" in f
+            else ("all pass" if not failed else "FAIL: " + ", ".join(failed))
+        )
+        rows.append(
+            f"| {name} | {_v(f.get('detect_ms'))} | {_v(f.get('dn_lost_ms'))} | "
+            f"{_v(f.get('loops_missed'))} | {_v(f.get('final_state'))} | "
+            f"{_v(f.get('expected_state'))} | {_v(f.get('forged_applied'))} | {verdict} |"
+        )
+    return "\n".join(rows)
+
+
+def _v(x: Any) -> str:
+    return "-" if x is None else str(x)
+
+
+def main(argv: list[str] | None = None) -> None:
+    p = bench_argparser(__doc__.splitlines()[0] if __doc__ else "faults")
+    p.add_argument("--case", action="append", help="run only this case (repeatable)")
+    args = p.parse_args(argv)
+    variants = run_cases(args.quick, args.case)
+    loss = [variants[c].get("detect_ms") for c in NODE_LOSS if c in variants]
+    forged = sum(int(f.get("forged_applied") or 0) for f in variants.values())
+    params: dict[str, Any] = {
+        "quick": bool(args.quick),
+        "mission": "configs/minimal.yaml (100 Hz, 2 ms sync deadline, dn_lost_loops 50, "
+        "dn_watchdog_loops 10, dn_reenable_loops 10)",
+        "detect": "fault injection (test process, time.monotonic) -> receipt of the first CN "
+        "telemetry snapshot / event showing it",
+        "targets": [
+            {
+                "name": "node loss detected (first missed sync in telemetry), max",
+                "value": max((x for x in loss if x is not None), default=None),
+                "limit": TARGET_DETECT_MS,
+                "unit": "ms",
+                "met": bool(loss) and all(x is not None and x <= TARGET_DETECT_MS for x in loss),
+            },
+            {
+                "name": "cases ending in their configured state",
+                "value": sum(bool(f.get("ends_as_configured")) for f in variants.values()),
+                "limit": len(variants),
+                "unit": "cases",
+                "met": all(f.get("ends_as_configured") for f in variants.values()),
+            },
+            {
+                "name": "forged inputs applied",
+                "value": forged,
+                "limit": 0,
+                "unit": "inputs",
+                "met": forged == 0,
+            },
+        ],
+    }
+    write_result("faults", params, variants, args.json)
+    print()
+    print(markdown(variants))
+    print()
+    for t in params["targets"]:
+        print(
+            f"target {t['name']}: {t['value']} (limit {t['limit']} {t['unit']}): "
+            f"{'met' if t['met'] else 'MISSED'}"
+        )
+
+
+if __name__ == "__main__":
+    main()

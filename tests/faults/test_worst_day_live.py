@@ -1,0 +1,49 @@
+"""The worst day on real node processes (tests/faults/live.py has the cases
+and what each proves). Loopback, dn0 behind a frame-tapping fault relay
+where the case needs the link; every case is bounded in time and cleans up
+its processes (``Live.close``) and relays."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from tests.faults.live import CASES
+
+pytestmark = [pytest.mark.faults, pytest.mark.timeout(150)]
+
+
+# Product bug found by these cases (reported): the CN's sync get() uses
+# zenoh's default congestion control (BLOCK) for queries, so a DN link whose
+# TCP stops draining blocks the CN's loop thread inside Session.get
+# (StageIn::push_network_message); the CN freezes (0.5 s and 2 s cuts) or
+# dn0 never rejoins (5 s cut). congestion_control=DROP on that get fixes both.
+_CN_BLOCKS = pytest.mark.xfail(
+    reason="CN loop blocks in Session.get on a cut DN link (congestion control BLOCK)",
+    strict=False,
+)
+# Not root-caused (reported): with the GN's cable cut, the CN sometimes
+# misses every dn0 sync for ~4 s (DN_LOST) although its loop runs on
+# (2 runs of 5 here); dn0 and the CN share a host, gossip connects both to gn.
+_GN_CUT = pytest.mark.xfail(
+    reason="a GN cable cut sometimes costs dn0's syncs for ~4 s (DN_LOST); reported",
+    strict=False,
+)
+PARAMS = [
+    pytest.param(c, marks=_CN_BLOCKS)
+    if c.startswith("cable_cut_dn0")
+    else pytest.param(c, marks=_GN_CUT)
+    if c.startswith("cable_cut_gn")
+    else c
+    for c in CASES
+]
+
+
+@pytest.mark.parametrize("case", PARAMS)
+def test_worst_day(case: str, tmp_path: Path) -> None:
+    r = CASES[case](tmp_path, True)
+    if "skipped" in r.figures:
+        pytest.skip(r.figures["skipped"])
+    print(case, r.figures)
+    assert r.ok, f"{case}: {r.failures()} figures={r.figures}"
