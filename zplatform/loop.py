@@ -413,6 +413,11 @@ class DeviceLogic:
         answered but not applied.
         """
         self.triggered = 0
+        last = self.last_trigger_ns
+        if last is not None and not self.safed and now_ns - last > self._watchdog_ns:
+            # This node was not running (stopped, starved) for longer than
+            # the watchdog: whatever it drove meanwhile was unsupervised.
+            self.safe(now_ns, f"no valid trigger for {(now_ns - last) / 1e6:.0f} ms")
         try:
             frame = self._in.check(self._open.open(payload) if self._open else payload)
             self._believable(frame, now_ns)

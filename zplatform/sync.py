@@ -39,6 +39,8 @@ from .transport import KeySpace, is_matching
 
 __all__ = ["ControlSync", "DeviceSync", "TapPublisher"]
 
+_DROP = zenoh.CongestionControl.DROP
+
 
 class TapPublisher:
     """A put for taps that costs (almost) nothing when nobody subscribes.
@@ -140,12 +142,16 @@ class ControlSync:
         self._issued += n
         for i in range(n):
             out = frames[i]
+            # DROP: on a link that stopped draining (a cut cable) a BLOCKing
+            # get would freeze the CN's loop for seconds; a dropped query is
+            # a missed sync, counted like any other (tests/faults, cable cut).
             self.session.get(
                 self._keys[i],
                 self._callbacks[i],
                 payload=out,
                 consolidation=self._consolidation,
                 timeout=self._query_timeout,
+                congestion_control=_DROP,
             )
             self._taps[i].put(out)
         q = self._q
@@ -235,7 +241,7 @@ class DeviceSync:
             if reply is None:
                 query.reply_err(logic.reject_reason.encode())
                 return
-            query.reply(self._key, reply)
+            query.reply(self._key, reply, congestion_control=_DROP)
         self._tap.put(reply)
 
     def close(self) -> None:

@@ -805,31 +805,25 @@ def case_skew(tmp: Path, quick: bool, skew_ms: int) -> CaseResult:
     with live(tmp) as c:
         c.spawn_node("dn0", env=env)
         t0 = time.monotonic()
-        cn = c.spawn_node("cn")
-        if skew_ms <= 100:
-            c.ready()
-            off = c.now("dn0_clock_offset_ns") / 1e6
-            l0 = c.now("dn0_loop")
-            c.advance(50)
-            r.figures.update(
-                detect_ms=None,
-                offset_ms=round(off, 3),
-                loops_missed=c.now("cn_missed_dn0"),
-                forged_applied=0,
-            )
-            r.check("offset_corrected", abs(off + skew_ms) <= 5, off)
-            r.check("loop_runs", c.now("dn0_loop") >= l0 + 40)
-            _final(r, c, "IDLE", "NONE")
-        else:
-            rc = cn.wait(timeout=60)
-            t1 = time.monotonic()
-            log = c.log("cn")
-            r.figures.update(detect_ms=ms(t0, t1), exit_code=rc, loops_missed=0, forged_applied=0)
-            r.figures["final_state"] = "refused" if rc else "ran"
-            r.figures["expected_state"] = "refused"
-            r.check("cn_refuses", rc != 0, rc)
-            r.check("names_the_dn", "refuses to start: dn0's clock" in log, log[-400:])
-            r.check("no_telemetry", c.rx.next(0.3) is None)
+        c.spawn_node("cn")
+        # The bound (100 ms) is on the residual after correction (thesis
+        # 4.9): every skew is corrected, the residual measured, and it flies.
+        c.ready()
+        off = c.now("dn0_clock_offset_ns") / 1e6
+        res = c.now("dn0_clock_drift_ns") / 1e6
+        l0 = c.now("dn0_loop")
+        c.advance(50)
+        r.figures.update(
+            detect_ms=round((time.monotonic() - t0) * 1e3, 1),
+            offset_ms=round(off, 3),
+            residual_ms=round(res, 3),
+            loops_missed=c.now("cn_missed_dn0"),
+            forged_applied=0,
+        )
+        r.check("offset_corrected", abs(off + skew_ms) <= 5, off)
+        r.check("residual_within_bound", abs(res) < 1.0, res)
+        r.check("loop_runs", c.now("dn0_loop") >= l0 + 40)
+        _final(r, c, "IDLE", "NONE")
     return r
 
 

@@ -299,3 +299,18 @@ def test_frames_are_exactly_tag_longer() -> None:
     assert len(cn.begin(1, 1)[0]) == len(plain.begin(1, 1)[0]) + 16
     frame = encode_frame(1, 1, 1, b"")
     assert struct.unpack_from(">I", frame, 2)[0] == 1
+
+
+def test_a_dn_that_was_stopped_safes_before_it_runs_again() -> None:
+    """A SIGSTOPped DN wakes to a trigger, not to a quiet wait: it must safe
+    first (its outputs were unsupervised) and re-enable like after a loss."""
+    dn = DeviceLogic(LED, "dn0", key=None)
+    cn = DataVector(Layout.for_node(LED, "cn"))
+    cn.set("led_a_cmd", True)
+    codec = RegionCodec(cn, "cn_to_dn0")
+    t = 1_000 * PERIOD
+    dn.step(bytes(codec.encode(1, t)), t)
+    assert dn.dv.get("led_a_fb") is True
+    t += 150 * PERIOD  # stopped for 1.5 s
+    dn.step(bytes(codec.encode(151, t)), t)
+    assert dn.safed and dn.dv.get("led_a_fb") is False

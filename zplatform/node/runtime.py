@@ -73,7 +73,9 @@ class EventPublisher:
 
     def __init__(self, session: zenoh.Session, key: str, events: EventLog) -> None:
         self.events = events
-        self._pub = session.declare_publisher(key)
+        # DROP: a subscriber on a stalled link must never block the loop
+        # that flushes events; each event is also in this node's own log.
+        self._pub = session.declare_publisher(key, congestion_control=zenoh.CongestionControl.DROP)
         self._seen = 0
 
     def flush(self) -> None:
