@@ -5,6 +5,7 @@ writer/reader pair on one local zenoh session."""
 from __future__ import annotations
 
 from collections.abc import Iterator
+from pathlib import Path
 from typing import Any
 
 import msgspec
@@ -271,3 +272,22 @@ def test_write_counters_into_data_vector(session: zenoh.Session) -> None:
     owner.write_counters(dv)
     assert dv.h["bulk_cam_published"].value == 1
     owner.close()
+
+
+def test_camera_mission_declares_valid_channels() -> None:
+    """configs/camera.yaml: the mission part loads, the bulk part checks.
+
+    Until ``Mission`` has ``bulk: list[BulkChannelConfig]`` the two are
+    decoded separately here."""
+    import yaml
+
+    from zplatform.config import decode_mission
+
+    path = Path(__file__).resolve().parents[2] / "configs" / "camera.yaml"
+    raw = yaml.safe_load(path.read_text())
+    bulk = msgspec.convert(raw.pop("bulk"), type=list[BulkChannelConfig])
+    mission = decode_mission(yaml.safe_dump(raw))
+    check_bulk_channels(bulk, mission.nodes)
+    assert [c.name for c in bulk] == ["frame", "flat_field"]
+    assert pool_size(bulk, "dn0") == 3 * (4 << 20) + 3 * 4096  # header pushes into a 4 KiB page
+    assert bulk[1].shape == (1024, 1024)
