@@ -353,7 +353,7 @@ class _Receiver:
                     mv = sample.payload().as_memory_view()
                     np.copyto(dst, np.frombuffer(mv, np.uint8))
                     now = time.monotonic_ns()
-                    (t,) = TS.unpack_from(dst, 0)
+                    (t,) = TS.unpack_from(dst.data, 0)
                     del mv, sample
                     lat.append(now - t)
                     rx_bytes += n
