@@ -60,10 +60,20 @@ import numpy as np
 
 from bench.common import REPO_ROOT, bench_argparser, free_port, summarize, write_result
 
-SIZES = {"1KB": 1 << 10, "64KB": 64 << 10, "1MB": 1 << 20, "4MB": 4 << 20, "16MB": 16 << 20}
-LAT_N = {"1KB": 2000, "64KB": 2000, "1MB": 1000, "4MB": 400, "16MB": 120}
-PERIOD_S = {"1KB": 0.001, "64KB": 0.001, "1MB": 0.003, "4MB": 0.008, "16MB": 0.03}
-BURST_N = {"1KB": 5000, "64KB": 2000, "1MB": 300, "4MB": 100, "16MB": 30}
+SIZES = {
+    "1KB": 1 << 10,
+    "64KB": 64 << 10,
+    "256KB": 256 << 10,
+    "1MB": 1 << 20,
+    "4MB": 4 << 20,
+    "16MB": 16 << 20,
+}
+LAT_N = {"1KB": 2000, "64KB": 2000, "256KB": 1000, "1MB": 1000, "4MB": 400, "16MB": 120}
+PERIOD_S = {"1KB": 0.001, "64KB": 0.001, "256KB": 0.002, "1MB": 0.003, "4MB": 0.008, "16MB": 0.03}
+BURST_N = {"1KB": 5000, "64KB": 2000, "256KB": 600, "1MB": 300, "4MB": 100, "16MB": 30}
+# Sync-frame sizes for the query round trip (raw zenoh get/reply, shm on/off).
+RTT_SIZES = {"1KB": 1 << 10, "4KB": 4 << 10, "16KB": 16 << 10, "64KB": 64 << 10, "256KB": 256 << 10}
+RTT_N = 1000
 ROUNDS = 4
 VARIANTS = ("zplatform_shm", "zplatform", "raw_zenoh_shm", "raw_zenoh", "iceoryx2")
 TS = struct.Struct("<q")  # raw/iceoryx2 header: sender monotonic ns at offset 0
@@ -136,6 +146,13 @@ class _Sender:
             self.pubs = {
                 n: self.session.declare_publisher(f"bench/raw/{n}") for n in SIZES.values()
             }
+            self.replies = {n: bytes(n) for n in RTT_SIZES.values()}
+            self.queryables = [
+                self.session.declare_queryable(
+                    f"bench/q/{n}", zenoh.handlers.Callback(self._on_query, indirect=False)
+                )
+                for n in RTT_SIZES.values()
+            ]
             self.provider: Any = None
             if shm:
                 pool = sum(3 * (-(-n // 4096) * 4096) for n in SIZES.values())
@@ -173,6 +190,12 @@ class _Sender:
                     .create()
                 )
                 self.iox_pubs[n] = (svc, ev, pub, ev.notifier_builder().create())
+
+    def _on_query(self, query: Any) -> None:
+        # Reply at once, then let go of the query (DESIGN.md §8).
+        with query:
+            n = int(str(query.key_expr).rsplit("/", 1)[1])
+            query.reply(query.key_expr, self.replies[n])
 
     @staticmethod
     def _wait(pred: Any) -> None:
@@ -304,6 +327,33 @@ class _Receiver:
         if len(self.lat) >= self.want:
             self.event.set()
 
+    def rtt(self, cmd: dict[str, Any]) -> dict[str, Any]:
+        """``n`` sync-style round trips: get with a ``size`` payload, reply of ``size``."""
+        import zenoh
+
+        n, count = cmd["size"], cmd["n"]
+        req = bytes(n)
+        out: list[int] = []
+        shm = 0
+        for _ in range(count):
+            t = time.monotonic_ns()
+            replies = self.session.get(
+                f"bench/q/{n}",
+                payload=req,
+                consolidation=zenoh.ConsolidationMode.NONE,
+                timeout=1.0,
+            )
+            for reply in replies:
+                if reply.ok is None:
+                    break
+                payload = reply.ok.payload
+                shm += payload.as_shm() is not None
+                payload.to_bytes()
+                out.append(time.monotonic_ns() - t)
+                break
+            time.sleep(0.001)
+        return {"lat": out, "shm": shm}
+
     def run(self, cmd: dict[str, Any]) -> dict[str, Any]:
         """Receive up to ``n`` samples of ``size``; stop after ``idle`` s with none."""
         n, count, idle = cmd["size"], cmd["n"], cmd["idle"]
@@ -373,7 +423,7 @@ def _receiver_main(variant: str, mission_text: str) -> None:
     for cmd in _commands():
         if cmd["cmd"] == "quit":
             break
-        _say(r.run(cmd))
+        _say(r.rtt(cmd) if cmd["cmd"] == "rtt" else r.run(cmd))
 
 
 # -- orchestrator ----------------------------------------------------------
@@ -512,6 +562,15 @@ def main() -> None:
                 span = res["span_ns"]
                 fig["throughput_MBps"] = round(res["rx_bytes"] / span * 1e3, 1) if span else None
                 fig["delivered"] = round(len(res["lat"]) / count, 3)
+        # Sync-frame sizes: query round trip with and without shared memory.
+        for s, n in RTT_SIZES.items():
+            for v in ("raw_zenoh_shm", "raw_zenoh"):
+                rx, _tx = procs[v]
+                rx.send({"cmd": "rtt", "size": n, "n": max(50, RTT_N // div)})
+                res = rx.read()
+                fig = summarize(res["lat"])
+                fig["via_shm"] = round(res["shm"] / max(1, len(res["lat"])), 3)
+                result[f"sync_rtt_{v}_{s}"] = fig
     finally:
         for rx, tx in procs.values():
             tx.close()
