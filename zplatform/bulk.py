@@ -72,7 +72,9 @@ __all__ = [
     "bulk_key",
     "check_bulk_channels",
     "counter_elements",
+    "counter_region",
     "decode_sample",
+    "describe_sample",
     "parse_bulk_type",
     "pool_size",
 ]
@@ -266,6 +268,17 @@ def counter_elements(channels: Sequence[BulkChannelConfig], node: str) -> list[d
     return out
 
 
+def counter_region(node: str) -> str | None:
+    """The region that carries ``node``'s bulk counters to the CN's telemetry:
+    ``cn`` for the CN, ``dnX_to_cn`` for a device node, ``None`` for the
+    ground node (its counters stay local; ``zplatform tap`` shows its own)."""
+    if node == "cn":
+        return "cn"
+    if node.startswith("dn"):
+        return f"{node}_to_cn"
+    return None
+
+
 @dataclass(frozen=True, slots=True)
 class BulkStats:
     """Counters of one channel end, a frozen snapshot."""
@@ -305,6 +318,25 @@ def decode_sample(
         )
     arr = np.frombuffer(data, channel.dtype, math.prod(channel.shape), HEADER.size)
     return BulkHeader(layout, seq, loop, t_ns), arr.reshape(channel.shape)
+
+
+def describe_sample(payload: zenoh.ZBytes, channel: BulkChannelConfig) -> dict[str, Any]:
+    """One bulk sample as ``zplatform tap`` prints it: ``via`` (``"shm"`` or
+    ``"copied"``, how it reached this process), header fields, ``bytes`` and
+    the array's ``min``/``max``/``mean``; ``error`` instead of the header and
+    stats when the sample does not match ``channel``. Copies the payload once.
+    """
+    via = "shm" if payload.as_shm() is not None else "copied"
+    data = payload.to_bytes()
+    out: dict[str, Any] = {"channel": channel.name, "via": via, "bytes": len(data)}
+    try:
+        hdr, arr = decode_sample(data, channel)
+    except TransportError as exc:
+        out["error"] = str(exc)
+        return out
+    out.update(seq=hdr.seq, loop=hdr.loop, t_ns=hdr.t_ns)
+    out.update(min=arr.min().item(), max=arr.max().item(), mean=float(arr.mean()))
+    return out
 
 
 class BulkWriter:

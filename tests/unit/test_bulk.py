@@ -21,7 +21,9 @@ from zplatform.bulk import (
     bulk_key,
     check_bulk_channels,
     counter_elements,
+    counter_region,
     decode_sample,
+    describe_sample,
     parse_bulk_type,
     pool_size,
 )
@@ -291,3 +293,19 @@ def test_camera_mission_declares_valid_channels() -> None:
     assert [c.name for c in bulk] == ["frame", "flat_field"]
     assert pool_size(bulk, "dn0") == 3 * (4 << 20) + 3 * 4096  # header pushes into a 4 KiB page
     assert bulk[1].shape == (1024, 1024)
+
+
+def test_counter_region() -> None:
+    assert [counter_region(n) for n in ("cn", "dn3", "gn")] == ["cn", "dn3_to_cn", None]
+
+
+def test_describe_sample_for_tap() -> None:
+    ch = _ch(type="u8[4]")
+    data = bytearray(ch.sample_bytes)
+    HEADER.pack_into(data, 0, ch.layout_id, 0, 3, 30, 5)
+    data[-4:] = bytes([1, 2, 3, 6])
+    d = describe_sample(zenoh.ZBytes(bytes(data)), ch)
+    assert d["via"] == "copied" and d["seq"] == 3 and d["loop"] == 30
+    assert (d["min"], d["max"], d["mean"]) == (1, 6, 3.0)
+    bad = describe_sample(zenoh.ZBytes(b"x"), ch)
+    assert "error" in bad and bad["via"] == "copied"
