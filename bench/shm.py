@@ -78,6 +78,7 @@ ROUNDS = 4
 VARIANTS = ("zplatform_shm", "zplatform", "raw_zenoh_shm", "raw_zenoh", "iceoryx2")
 TS = struct.Struct("<q")  # raw/iceoryx2 header: sender monotonic ns at offset 0
 TAG = "@@"  # our protocol lines on stdout (libraries may print there too)
+IOX_BUFFER = 8  # iceoryx2 subscriber queue (its default, 2, loses most of a burst)
 
 
 def _mission_text(cn_port: int, dn_port: int) -> str:
@@ -176,6 +177,7 @@ class _Sender:
                 svc = (
                     node.service_builder(iox2.ServiceName.new(f"zpbench/{os.getppid()}/{n}"))
                     .publish_subscribe(iox2.Slice[ctypes.c_uint8])
+                    .subscriber_max_buffer_size(IOX_BUFFER)
                     .open_or_create()
                 )
                 ev = (
@@ -301,6 +303,7 @@ class _Receiver:
                 svc = (
                     node.service_builder(iox2.ServiceName.new(f"zpbench/{os.getppid()}/{n}"))
                     .publish_subscribe(iox2.Slice[ctypes.c_uint8])
+                    .subscriber_max_buffer_size(IOX_BUFFER)
                     .open_or_create()
                 )
                 ev = (
@@ -308,7 +311,7 @@ class _Receiver:
                     .event()
                     .open_or_create()
                 )
-                sub = svc.subscriber_builder().create()
+                sub = svc.subscriber_builder().buffer_size(IOX_BUFFER).create()
                 self.iox_subs[n] = (svc, ev, sub, ev.listener_builder().create())
 
     def _on_raw(self, sample: Any) -> None:

@@ -31,6 +31,22 @@ and ``bench/shm.py``):
   array); ``poll(copy=False)`` skips the second and leaves a read-only view
   over the received bytes in :attr:`BulkReader.view`.
 
+Mission schema (to be added to ``zplatform/config.py`` by its owner)::
+
+    from .bulk import BulkChannelConfig, check_bulk_channels
+    class Mission(_Struct):
+        ...
+        bulk: list[BulkChannelConfig] = msgspec.field(default_factory=list)
+    # in _check_mission(m):
+        check_bulk_channels(m.bulk, m.nodes)          # "$.bulk[i]...." paths
+    # in _add_platform_elements: for each node n with counter_region(n),
+    #   append counter_elements(m.bulk, n) to that region.
+
+Why the copies stay on the loop thread: ``bytes(shm)`` holds the GIL for
+the whole copy (about 0.3 ms per 4 MB here); done in zenoh's callback it
+would stall the loop at a random moment, done in :meth:`BulkReader.poll` it
+happens where the loop schedules it, after the sync step.
+
 Nothing here allocates per sample except the ``bytes`` zenoh returns on the
 receiving side (freed when the next sample replaces it; glibc reuses the
 block, see the RSS test in ``tests/integration/test_bulk_shm.py``).
