@@ -42,10 +42,11 @@ Mission schema (to be added to ``zplatform/config.py`` by its owner)::
     # in _add_platform_elements: for each node n with counter_region(n),
     #   append counter_elements(m.bulk, n) to that region.
 
-Why the copies stay on the loop thread: ``bytes(shm)`` holds the GIL for
-the whole copy (about 0.3 ms per 4 MB here); done in zenoh's callback it
-would stall the loop at a random moment, done in :meth:`BulkReader.poll` it
-happens where the loop schedules it, after the sync step.
+Why the copies stay on the loop thread: ``bytes(shm)`` costs about 0.3 ms
+per 4 MB here; done in zenoh's callback thread it would compete with the loop
+thread for the GIL at a random moment (in the middle of a sync exchange),
+done in :meth:`BulkReader.poll` it happens where the loop schedules it, after
+the sync step.
 
 Nothing here allocates per sample except the ``bytes`` zenoh returns on the
 receiving side (freed when the next sample replaces it; glibc reuses the
