@@ -86,6 +86,7 @@ __all__ = [
     "BulkStats",
     "BulkWriter",
     "NodeBulk",
+    "ViaCounter",
     "bulk_key",
     "check_bulk_channels",
     "counter_elements",
@@ -354,6 +355,26 @@ def describe_sample(payload: zenoh.ZBytes, channel: BulkChannelConfig) -> dict[s
     out.update(seq=hdr.seq, loop=hdr.loop, t_ns=hdr.t_ns)
     out.update(min=arr.min().item(), max=arr.max().item(), mean=float(arr.mean()))
     return out
+
+
+class ViaCounter:
+    """Per key, how many samples reached this process through shared memory
+    and how many were copied: for ``zplatform tap`` over ``{vehicle}/**``
+    (any key, not only bulk ones). Call :meth:`add` from the loop or
+    printing thread, not from a zenoh callback that must stay short."""
+
+    def __init__(self) -> None:
+        self._counts: dict[str, list[int]] = {}
+
+    def add(self, key: str, payload: zenoh.ZBytes) -> str:
+        """Count one sample; returns ``"shm"`` or ``"copied"``."""
+        shm = payload.as_shm() is not None
+        c = self._counts.setdefault(key, [0, 0])
+        c[0 if shm else 1] += 1
+        return "shm" if shm else "copied"
+
+    def snapshot(self) -> dict[str, dict[str, int]]:
+        return {k: {"shm": v[0], "copied": v[1]} for k, v in sorted(self._counts.items())}
 
 
 class BulkWriter:

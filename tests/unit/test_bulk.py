@@ -18,6 +18,7 @@ from zplatform.bulk import (
     BulkChannelConfig,
     BulkWriter,
     NodeBulk,
+    ViaCounter,
     bulk_key,
     check_bulk_channels,
     counter_elements,
@@ -309,3 +310,17 @@ def test_describe_sample_for_tap() -> None:
     assert (d["min"], d["max"], d["mean"]) == (1, 6, 3.0)
     bad = describe_sample(zenoh.ZBytes(b"x"), ch)
     assert "error" in bad and bad["via"] == "copied"
+
+
+def test_via_counter() -> None:
+    vc = ViaCounter()
+    assert vc.add("r/dn0/bulk/a", zenoh.ZBytes(b"x")) == "copied"
+    vc.add("r/dn0/bulk/a", zenoh.ZBytes(b"y"))
+    prov = zenoh.shm.ShmProvider.default_backend(1 << 16)
+    chunk = prov.alloc(16)
+    chunk[:] = bytes(16)
+    assert vc.add("r/cn/telemetry", zenoh.ZBytes(chunk)) == "shm"
+    assert vc.snapshot() == {
+        "r/cn/telemetry": {"shm": 1, "copied": 0},
+        "r/dn0/bulk/a": {"shm": 0, "copied": 2},
+    }
