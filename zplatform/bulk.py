@@ -486,6 +486,8 @@ class BulkReader:
         self._size = channel.sample_bytes
         self._layout = channel.layout_id
         self._count = math.prod(channel.shape)
+        self._dtype = channel.dtype  # parsed once: poll must not re-parse the type
+        self._shape = channel.shape
         self._latest: zenoh.Sample | None = None
         self._event = threading.Event()
         self._last_seq: int | None = None
@@ -537,12 +539,12 @@ class BulkReader:
             self.missed += seq - self._last_seq - 1
         self._last_seq = seq
         self.header = BulkHeader(layout, seq, loop, t_ns)
-        src = np.frombuffer(data, self.channel.dtype, self._count, HEADER.size)
+        src = np.frombuffer(data, self._dtype, self._count, HEADER.size)
         if copy:
             np.copyto(self.array.reshape(-1), src)
             self.view = None
         else:
-            self.view = src.reshape(self.channel.shape)
+            self.view = src.reshape(self._shape)
         return True
 
     def wait(self, timeout_s: float, *, copy: bool = True) -> bool:
