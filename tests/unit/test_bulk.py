@@ -324,3 +324,22 @@ def test_via_counter() -> None:
         "r/cn/telemetry": {"shm": 1, "copied": 0},
         "r/dn0/bulk/a": {"shm": 0, "copied": 2},
     }
+
+
+def test_real_pool_exhausted_by_a_holding_reader_drops_then_recovers(
+    session: zenoh.Session,
+) -> None:
+    # One chunk in the pool; the reader's unread sample holds it.
+    ch = _ch(type="u8[65536]", slots=1, alloc_timeout_ms=2.0)
+    owner = NodeBulk(session, "t", [ch], "dn0", shared_memory=True)
+    reader = NodeBulk(session, "t", [ch], "cn", shared_memory=True)
+    w, r = owner.writers["cam"], reader.readers["cam"]
+    assert w.publish(0, 0)
+    assert r._latest is not None and r._latest.payload.as_shm() is not None
+    assert w.publish(1, 0) is False  # waited ~2 ms, then dropped: no raise, no heap copy
+    assert (w.published, w.dropped) == (1, 1)
+    assert r.poll()  # releases the chunk
+    assert w.publish(2, 0)
+    assert r.poll() and r.header is not None and r.header.loop == 2
+    owner.close()
+    reader.close()
