@@ -604,6 +604,17 @@ def main() -> None:
             "vs_iceoryx2_max": 2.0,
         },
         "checks": checks,
+        "notes": [
+            "latency: one way, sender clock before its copy in to receiver clock after the "
+            "data is in its array (zplatform_shm_view: in a read-only view)",
+            "throughput_MBps: a back-to-back burst, bytes that reached the receiver's array "
+            "over first send to last receive; zplatform readers keep the latest sample only, "
+            "so 'delivered' < 1 there by design",
+            "sync_rtt_*: get/reply of a payload of that size each way (a sync frame), "
+            "raw zenoh, shared memory on (implicit, >= 3 KB) or off",
+            "zplatform receivers hand off from zenoh's callback to the reading thread "
+            "(BulkReader.wait); raw_zenoh receivers work inside the callback",
+        ],
     }
     write_result("shm", params, result, args.json)
     print(json.dumps(checks, indent=1))
