@@ -585,8 +585,9 @@ class NodeBulk:
                 use(r.array)
         bulk.write_counters(dv)        # or bulk.counters() into telemetry
 
-    Blocks at construction for the pool's first touch (about 0.1 s per
-    GB). Raises TransportError if the pool cannot be created.
+    Blocks at construction for the pool's first touch (one write of every
+    chunk: proportional to the pool). Raises TransportError if the pool
+    cannot be created.
     """
 
     def __init__(
