@@ -20,6 +20,7 @@ import os
 import subprocess
 import sys
 import time
+from collections import deque
 from pathlib import Path
 from typing import Any
 
@@ -48,6 +49,22 @@ def _memory() -> tuple[int, int]:
             if key in ("RssAnon", "RssShmem"):
                 fields[key] = int(rest.split()[0]) * 1024
     return fields["RssAnon"], fields["RssShmem"]
+
+
+class _Got:
+    """What the reader saw: a count, pattern mismatches, the last 100 records
+    (a bounded store, so a 10-minute soak measures the reader, not the test)."""
+
+    def __init__(self) -> None:
+        self.count = 0
+        self.bad_pattern = 0
+        self.records: deque[tuple[int, np.ndarray[Any, Any], int]] = deque(maxlen=100)
+
+    def add(self, seq: int, flat: np.ndarray[Any, Any]) -> None:
+        self.count += 1
+        if not (np.array_equal(flat[:8], np.arange(seq, seq + 8) % 256) and flat[-1] == seq % 200):
+            self.bad_pattern += 1
+        self.records.append((seq, flat[:8].copy(), int(flat[-1])))
 
 
 def _mission(tmp: Path) -> Path:
@@ -120,14 +137,14 @@ def _reader(
     owner_shm: bool,
     count: int,
     period_s: float = 0.02,
-) -> tuple[NodeBulk, list[Any], dict[str, Any], list[tuple[int, int]]]:
+) -> tuple[NodeBulk, _Got, dict[str, Any], list[tuple[int, int]]]:
     path = _mission(tmp)
     mission: Mission = decode_mission(path.read_text())
     ns = NodeSession(mission, "cn", shared_memory=reader_shm)
     bulk = NodeBulk(ns.session, mission.vehicle, [ch], "cn", shared_memory=reader_shm)
     r = bulk.readers[ch.name]
     child = _spawn_owner(path, ch, shm=owner_shm, count=count, period_s=period_s)
-    got: list[Any] = []
+    got = _Got()
     rss: list[tuple[int, int]] = []
     last_mark = -1
     try:
@@ -135,9 +152,7 @@ def _reader(
         while child.poll() is None and time.monotonic() < deadline:
             if r.wait(0.1):
                 assert r.header is not None
-                got.append(
-                    (r.header.seq, r.array.reshape(-1)[:8].copy(), int(r.array.reshape(-1)[-1]))
-                )
+                got.add(r.header.seq, r.array.reshape(-1))
                 if r.header.seq // 100 != last_mark:  # about every 100 samples
                     last_mark = r.header.seq // 100
                     rss.append(_memory())
@@ -159,10 +174,11 @@ def _u8(n: int) -> BulkChannelConfig:
 def test_same_host_1mb_comes_through_shared_memory(tmp_path: Path) -> None:
     bulk, got, owner, _ = _reader(tmp_path, _u8(MB), reader_shm=True, owner_shm=True, count=20)
     c = bulk.counters()
-    assert got, "no sample arrived"
+    assert got.count, "no sample arrived"
+    assert got.bad_pattern == 0
     assert c["bulk_frame_shm"] >= 1 and c["bulk_frame_copied"] == 0, c
     assert c["bulk_frame_bad"] == 0
-    for seq, head, last in got:
+    for seq, head, last in got.records:
         np.testing.assert_array_equal(head, np.arange(seq, seq + 8) % 256)
         assert last == seq % 200
     assert owner["bulk_frame_published"] == 20 and owner["bulk_frame_dropped"] == 0
@@ -173,9 +189,9 @@ def test_shared_memory_off_in_one_peer_falls_back_to_copies(tmp_path: Path) -> N
     # link because the reader's session has shared memory off.
     bulk, got, _, _ = _reader(tmp_path, _u8(MB), reader_shm=False, owner_shm=True, count=10)
     c = bulk.counters()
-    assert got
-    assert c["bulk_frame_shm"] == 0 and c["bulk_frame_copied"] == len(got), c
-    for seq, head, _last in got:
+    assert got.count and got.bad_pattern == 0
+    assert c["bulk_frame_shm"] == 0 and c["bulk_frame_copied"] == got.count, c
+    for seq, head, _last in got.records:
         np.testing.assert_array_equal(head, np.arange(seq, seq + 8) % 256)
 
 
@@ -183,8 +199,8 @@ def test_f32_matrix_arrives_with_its_shape(tmp_path: Path) -> None:
     ch = BulkChannelConfig(name="frame", node="dn0", type="f32[512,512]", readers=["cn"])
     bulk, got, _, _ = _reader(tmp_path, ch, reader_shm=True, owner_shm=True, count=5)
     r = bulk.readers["frame"]
-    assert got and r.array.shape == (512, 512) and r.array.dtype == np.float32
-    assert bulk.counters()["bulk_frame_shm"] == len(got)
+    assert got.count and r.array.shape == (512, 512) and r.array.dtype == np.float32
+    assert bulk.counters()["bulk_frame_shm"] == got.count
 
 
 @pytest.mark.slow
@@ -196,8 +212,9 @@ def test_rss_flat_over_10_minutes_of_4mb_at_100hz(tmp_path: Path) -> None:
         tmp_path, _u8(4 * MB), reader_shm=True, owner_shm=True, count=count, period_s=0.01
     )
     c = bulk.counters()
-    assert c["bulk_frame_copied"] == 0 and c["bulk_frame_shm"] == len(got)
-    assert len(got) >= 0.9 * count, (len(got), count)
+    assert c["bulk_frame_copied"] == 0 and c["bulk_frame_shm"] == got.count
+    assert got.bad_pattern == 0
+    assert got.count >= 0.9 * count, (got.count, count)
     # Flat after warm-up: skip the first 10 % of the run; then the private
     # heap grows less than 8 MB, and shared-memory pages stay within the pool.
     pool = owner["pool"]
