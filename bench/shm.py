@@ -122,7 +122,7 @@ class _Sender:
         self.drops = 0
         if variant.startswith("zplatform"):
             from zplatform.bulk import NodeBulk
-            from zplatform.config import decode_mission
+            from zplatform.mission import decode_mission
             from zplatform.transport import NodeSession, is_matching
 
             m = decode_mission(mission_text)
@@ -138,7 +138,7 @@ class _Sender:
         elif variant.startswith("raw_zenoh"):
             import zenoh
 
-            from zplatform.config import decode_mission
+            from zplatform.mission import decode_mission
             from zplatform.transport import is_matching, open_session, zenoh_config
 
             m = decode_mission(mission_text)
@@ -261,7 +261,7 @@ class _Receiver:
         self.dst = {n: np.empty(n, np.uint8) for n in SIZES.values()}
         if variant.startswith("zplatform"):
             from zplatform.bulk import NodeBulk
-            from zplatform.config import decode_mission
+            from zplatform.mission import decode_mission
             from zplatform.transport import NodeSession
 
             m = decode_mission(mission_text)
@@ -272,7 +272,7 @@ class _Receiver:
         elif variant.startswith("raw_zenoh"):
             import zenoh
 
-            from zplatform.config import decode_mission
+            from zplatform.mission import decode_mission
             from zplatform.transport import open_session, zenoh_config
 
             m = decode_mission(mission_text)

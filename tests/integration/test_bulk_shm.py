@@ -29,7 +29,8 @@ import numpy as np
 import pytest
 
 from zplatform.bulk import BulkChannelConfig, NodeBulk
-from zplatform.config import Mission, decode_mission
+from zplatform.config import Mission
+from zplatform.mission import decode_mission
 from zplatform.transport import NodeSession, free_port, is_matching
 
 ROOT = Path(__file__).resolve().parents[2]

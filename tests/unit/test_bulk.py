@@ -284,7 +284,7 @@ def test_camera_mission_declares_valid_channels() -> None:
     decoded separately here."""
     import yaml
 
-    from zplatform.config import decode_mission
+    from zplatform.mission import decode_mission
 
     path = Path(__file__).resolve().parents[2] / "configs" / "camera.yaml"
     raw = yaml.safe_load(path.read_text())
