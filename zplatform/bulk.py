@@ -78,6 +78,7 @@ from .errors import ConfigError, TransportError
 from .types import SCALAR_TYPES, ScalarType
 
 __all__ = [
+    "BULK_HEADER_BYTES",
     "HEADER",
     "MAX_CHANNEL_BYTES",
     "BulkChannelConfig",
@@ -97,16 +98,15 @@ __all__ = [
     "pool_size",
 ]
 
-MAX_CHANNEL_BYTES = 1 << 30  # 1 GiB: a typo guard, not a zenoh limit
-# Sample header, little-endian: layout_id u32, flags u32 (0), seq u64 (the
-# channel's own sample counter: gaps are missed samples), loop u64 (the
-# owner's loop number), t_ns i64 (the owner's clock when it published).
-# 32 bytes keeps the array 8-byte aligned inside the chunk.
-HEADER = struct.Struct("<IIQQq")
-assert HEADER.size == 32
+# -- schema ----------------------------------------------------------------
+# Pure (msgspec, errors, types; no zenoh, no numpy): this block moves verbatim
+# into zplatform/config.py when ``Mission`` gains ``bulk`` (config.py may not
+# import runtime modules); bulk.py then imports these names from there.
 
-_NAME_RE = re.compile(r"^[a-z][a-z0-9_]*$")
-_TYPE_RE = re.compile(r"^\s*([a-z0-9]+)\s*\[\s*([0-9]+(?:\s*,\s*[0-9]+)*)\s*\]\s*$")
+BULK_HEADER_BYTES = 32  # see HEADER below
+MAX_CHANNEL_BYTES = 1 << 30  # 1 GiB: a typo guard, not a zenoh limit
+_BULK_NAME_RE = re.compile(r"^[a-z][a-z0-9_]*$")
+_BULK_TYPE_RE = re.compile(r"^\s*([a-z0-9]+)\s*\[\s*([0-9]+(?:\s*,\s*[0-9]+)*)\s*\]\s*$")
 
 
 class BulkChannelConfig(msgspec.Struct, forbid_unknown_fields=True, omit_defaults=True):
@@ -142,8 +142,9 @@ class BulkChannelConfig(msgspec.Struct, forbid_unknown_fields=True, omit_default
         return _parse_or_raise(self.type, "$.bulk[?].type")[1]
 
     @property
-    def dtype(self) -> np.dtype[Any]:
-        return np.dtype(self.scalar.numpy)
+    def dtype(self) -> str:
+        """The little-endian numpy dtype string (``"<f4"``)."""
+        return self.scalar.numpy
 
     @property
     def nbytes(self) -> int:
@@ -153,7 +154,7 @@ class BulkChannelConfig(msgspec.Struct, forbid_unknown_fields=True, omit_default
     @property
     def sample_bytes(self) -> int:
         """Bytes of one sample on the wire: header + array."""
-        return HEADER.size + self.nbytes
+        return BULK_HEADER_BYTES + self.nbytes
 
     @property
     def layout_id(self) -> int:
@@ -171,7 +172,7 @@ def parse_bulk_type(text: str) -> tuple[ScalarType, tuple[int, ...]] | None:
     """``"f32[1024,1024]"`` -> ``(f32, (1024, 1024))``; ``None`` if invalid
     (no shape, unknown scalar, a zero dimension). Bulk arrays always have a
     shape: a scalar is a Data Vector element, not a bulk channel."""
-    m = _TYPE_RE.match(text)
+    m = _BULK_TYPE_RE.match(text)
     if m is None:
         return None
     scalar = SCALAR_TYPES.get(m.group(1))
@@ -207,8 +208,8 @@ def check_bulk_channels(
     seen: set[str] = set()
     for i, ch in enumerate(channels):
         w = f"{where}[{i}]"
-        if not _NAME_RE.match(ch.name):
-            raise ConfigError(f"name {ch.name!r} must match {_NAME_RE.pattern}", f"{w}.name")
+        if not _BULK_NAME_RE.match(ch.name):
+            raise ConfigError(f"name {ch.name!r} must match {_BULK_NAME_RE.pattern}", f"{w}.name")
         if ch.name in seen:
             raise ConfigError(f"duplicate bulk channel name {ch.name!r}", f"{w}.name")
         seen.add(ch.name)
@@ -240,23 +241,6 @@ def check_bulk_channels(
             if r in readers:
                 raise ConfigError(f"reader {r!r} is listed twice", f"{w}.readers[{j}]")
             readers.add(r)
-
-
-def bulk_key(vehicle: str, channel: BulkChannelConfig) -> str:
-    """``{vehicle}/{owner}/bulk/{name}`` (DESIGN.md §3)."""
-    return f"{vehicle}/{channel.node}/bulk/{channel.name}"
-
-
-def pool_size(channels: Sequence[BulkChannelConfig], node: str) -> int:
-    """Bytes of ``node``'s shared-memory pool: every channel it owns times its
-    :attr:`~BulkChannelConfig.slot_count`, each sample rounded up to 4 KiB
-    pages (chunks are page-aligned in practice). 0 when it owns none."""
-    page = 4096
-    total = 0
-    for ch in channels:
-        if ch.node == node:
-            total += ch.slot_count * (-(-ch.sample_bytes // page) * page)
-    return total
 
 
 def counter_elements(channels: Sequence[BulkChannelConfig], node: str) -> list[dict[str, Any]]:
@@ -295,6 +279,33 @@ def counter_region(node: str) -> str | None:
     if node.startswith("dn"):
         return f"{node}_to_cn"
     return None
+
+
+# -- end of schema ---------------------------------------------------------
+
+# Sample header, little-endian: layout_id u32, flags u32 (0), seq u64 (the
+# channel's own sample counter: gaps are missed samples), loop u64 (the
+# owner's loop number), t_ns i64 (the owner's clock when it published).
+# 32 bytes keeps the array 8-byte aligned inside the chunk.
+HEADER = struct.Struct("<IIQQq")
+assert HEADER.size == BULK_HEADER_BYTES
+
+
+def bulk_key(vehicle: str, channel: BulkChannelConfig) -> str:
+    """``{vehicle}/{owner}/bulk/{name}`` (DESIGN.md §3)."""
+    return f"{vehicle}/{channel.node}/bulk/{channel.name}"
+
+
+def pool_size(channels: Sequence[BulkChannelConfig], node: str) -> int:
+    """Bytes of ``node``'s shared-memory pool: every channel it owns times its
+    :attr:`~BulkChannelConfig.slot_count`, each sample rounded up to 4 KiB
+    pages (chunks are page-aligned in practice). 0 when it owns none."""
+    page = 4096
+    total = 0
+    for ch in channels:
+        if ch.node == node:
+            total += ch.slot_count * (-(-ch.sample_bytes // page) * page)
+    return total
 
 
 @dataclass(frozen=True, slots=True)
