@@ -1,0 +1,345 @@
+"""Bulk channels without a second process: config checks, pool sizing, the
+sample header, pool exhaustion (a fake provider and a fake clock) and a
+writer/reader pair on one local zenoh session."""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import msgspec
+import numpy as np
+import pytest
+import zenoh
+
+from zplatform.bulk import (
+    HEADER,
+    BulkChannelConfig,
+    BulkWriter,
+    NodeBulk,
+    ViaCounter,
+    bulk_key,
+    check_bulk_channels,
+    counter_elements,
+    counter_region,
+    decode_sample,
+    describe_sample,
+    parse_bulk_type,
+    pool_size,
+)
+from zplatform.errors import ConfigError, TransportError
+
+NODES = ("cn", "dn0", "dn1", "gn")
+
+
+def _ch(**kw: Any) -> BulkChannelConfig:
+    base: dict[str, Any] = {"name": "cam", "node": "dn0", "type": "u8[4194304]", "readers": ["cn"]}
+    base.update(kw)
+    return msgspec.convert(base, type=BulkChannelConfig)
+
+
+# -- config ------------------------------------------------------------------
+
+
+def test_parse_bulk_type() -> None:
+    s, shape = parse_bulk_type("f32[1024, 1024]") or (None, None)
+    assert s is not None and s.name == "f32" and shape == (1024, 1024)
+    assert parse_bulk_type("u8[4194304]") is not None
+    for bad in ("u8", "u8[]", "u8[0]", "q8[3]", "f32[2,0]", "f32[1024x1024]"):
+        assert parse_bulk_type(bad) is None, bad
+
+
+def test_derived_sizes() -> None:
+    ch = _ch(type="f32[1024,1024]")
+    assert ch.shape == (1024, 1024) and ch.dtype == np.dtype("<f4")
+    assert ch.nbytes == 4 << 20 and ch.sample_bytes == HEADER.size + (4 << 20)
+    assert ch.layout_id != _ch(type="f32[1024,1023]").layout_id
+
+
+def test_unknown_field_is_refused_at_decode() -> None:
+    with pytest.raises(msgspec.ValidationError, match="rate"):
+        msgspec.convert({"name": "a", "node": "dn0", "type": "u8[4]", "rate": 2}, BulkChannelConfig)
+
+
+@pytest.mark.parametrize(
+    ("channels", "path", "text"),
+    [
+        ([_ch(type="u8")], "$.bulk[0].type", "shape"),
+        ([_ch(type="f32[1024,0]")], "$.bulk[0].type", "shape"),
+        ([_ch(type="u8[2000000000]")], "$.bulk[0].type", "at most"),
+        ([_ch(name="Cam")], "$.bulk[0].name", "must match"),
+        ([_ch(), _ch()], "$.bulk[1].name", "duplicate"),
+        ([_ch(node="dn7")], "$.bulk[0].node", "no node"),
+        ([_ch(readers=["cn", "dn9"])], "$.bulk[0].readers[1]", "no node"),
+        ([_ch(readers=["dn0"])], "$.bulk[0].readers[0]", "owns"),
+        ([_ch(readers=["cn", "cn"])], "$.bulk[0].readers[1]", "twice"),
+        ([_ch(rate_divisor=4, rate_phase=4)], "$.bulk[0].rate_phase", "below"),
+    ],
+)
+def test_check_names_the_yaml_path(channels: list[BulkChannelConfig], path: str, text: str) -> None:
+    with pytest.raises(ConfigError, match=text) as ei:
+        check_bulk_channels(channels, NODES)
+    assert ei.value.path == path
+
+
+def test_valid_channels_pass() -> None:
+    check_bulk_channels(
+        [_ch(), _ch(name="depth", node="cn", type="f32[1024,1024]", readers=["dn0", "dn1"])],
+        NODES,
+    )
+
+
+def test_pool_size_counts_owned_channels_and_slots() -> None:
+    chans = [
+        _ch(type="u8[4096]", readers=["cn"]),  # 3 slots of 4096+32 -> 2 pages each
+        _ch(name="b", type="u8[100]", readers=["cn", "dn1", "gn"]),  # 7 slots, 1 page
+        _ch(name="c", node="cn", type="u8[100]", readers=["dn0"]),  # not dn0's
+        _ch(name="d", type="u8[100]", slots=2),
+    ]
+    assert pool_size(chans, "dn0") == 3 * 8192 + 7 * 4096 + 2 * 4096
+    assert pool_size(chans, "gn") == 0
+
+
+def test_counter_elements_by_role() -> None:
+    chans = [_ch()]
+    assert [e["name"] for e in counter_elements(chans, "dn0")] == [
+        "bulk_cam_published",
+        "bulk_cam_dropped",
+    ]
+    assert [e["name"] for e in counter_elements(chans, "cn")] == [
+        "bulk_cam_shm",
+        "bulk_cam_copied",
+        "bulk_cam_missed",
+        "bulk_cam_bad",
+    ]
+    assert counter_elements(chans, "dn1") == []
+    assert all(e["type"] == "u32" for e in counter_elements(chans, "cn"))
+
+
+def test_key() -> None:
+    assert bulk_key("rocket", _ch()) == "rocket/dn0/bulk/cam"
+
+
+def test_decode_sample_checks_length_and_layout() -> None:
+    ch = _ch(type="u16[2,3]")
+    data = bytearray(ch.sample_bytes)
+    HEADER.pack_into(data, 0, ch.layout_id, 0, 7, 70, 123)
+    np.frombuffer(data, "<u2", 6, HEADER.size)[:] = np.arange(6)
+    hdr, arr = decode_sample(bytes(data), ch)
+    assert (hdr.seq, hdr.loop, hdr.t_ns) == (7, 70, 123)
+    assert arr.shape == (2, 3) and arr[1, 2] == 5
+    with pytest.raises(TransportError, match="bytes"):
+        decode_sample(bytes(data[:-1]), ch)
+    HEADER.pack_into(data, 0, ch.layout_id ^ 1, 0, 7, 70, 123)
+    with pytest.raises(TransportError, match="layout"):
+        decode_sample(bytes(data), ch)
+
+
+# -- zenoh, one local session ---------------------------------------------------
+
+
+@pytest.fixture
+def session() -> Iterator[zenoh.Session]:
+    cfg = zenoh.Config()
+    cfg.insert_json5("mode", '"peer"')
+    cfg.insert_json5("listen/endpoints", "[]")
+    cfg.insert_json5("scouting/multicast/enabled", "false")
+    s = zenoh.open(cfg)
+    yield s
+    s.close()
+
+
+class _FullProvider:
+    """Always out of memory, like a pool whose chunks readers still hold."""
+
+    def __init__(self) -> None:
+        self.calls = 0
+
+    def alloc(self, size: int, policy: Any = None) -> Any:
+        self.calls += 1
+        raise zenoh.ZError("out of memory")
+
+
+def test_exhausted_pool_waits_until_deadline_then_counts_a_drop(session: zenoh.Session) -> None:
+    now = [0]
+
+    def clock() -> int:
+        now[0] += 200_000  # each reading advances 0.2 ms
+        return now[0]
+
+    prov = _FullProvider()
+    w = BulkWriter(session, "t/dn0/bulk/cam", _ch(alloc_timeout_ms=1.0), prov, monotonic=clock)
+    assert w.publish(0, 0) is False
+    assert (w.published, w.dropped) == (0, 1)
+    assert 3 <= prov.calls <= 6  # retried until the 1 ms deadline, then gave up
+    assert w.publish(1, 0) is False and w.dropped == 2
+    w.undeclare()
+
+
+def test_zero_timeout_drops_after_one_try(session: zenoh.Session) -> None:
+    prov = _FullProvider()
+    w = BulkWriter(session, "t/dn0/bulk/cam", _ch(alloc_timeout_ms=0), prov)
+    assert w.publish(0, 0) is False and prov.calls == 1 and w.dropped == 1
+    w.undeclare()
+
+
+def test_due_follows_divisor_and_phase(session: zenoh.Session) -> None:
+    w = BulkWriter(session, "t/dn0/bulk/cam", _ch(type="u8[8]", rate_divisor=4, rate_phase=1), None)
+    assert [i for i in range(10) if w.due(i)] == [1, 5, 9]
+    w.undeclare()
+
+
+@pytest.mark.parametrize("shm", [True, False])
+def test_local_roundtrip_into_preallocated_array(session: zenoh.Session, shm: bool) -> None:
+    ch = _ch(type="f32[64,32]", node="dn0", readers=["cn"])
+    owner = NodeBulk(session, "t", [ch], "dn0", shared_memory=shm)
+    reader = NodeBulk(session, "t", [ch], "cn", shared_memory=shm)
+    w, r = owner.writers["cam"], reader.readers["cam"]
+    assert (owner.provider is not None) == shm and owner.pool_bytes == (
+        pool_size([ch], "dn0") if shm else 0
+    )
+    target = r.array
+    for i in range(3):
+        w.array[:] = np.float32(i) + np.arange(64 * 32, dtype=np.float32).reshape(64, 32)
+        assert w.publish(10 + i, 1000 + i)
+        assert r.wait(5.0)
+        assert r.array is target  # preallocated, filled in place
+        np.testing.assert_array_equal(r.array, w.array)
+        assert r.header is not None and (r.header.seq, r.header.loop) == (i, 10 + i)
+    assert not r.poll()  # nothing new
+    c = owner.counters() | reader.counters()
+    assert c["bulk_cam_published"] == 3 and c["bulk_cam_dropped"] == 0
+    assert c["bulk_cam_shm"] + c["bulk_cam_copied"] == 3 and c["bulk_cam_missed"] == 0
+    # view mode: no second copy, read-only
+    w.publish(20, 0)
+    assert r.wait(5.0, copy=False) and r.view is not None
+    assert not r.view.flags.writeable and r.view.shape == (64, 32)
+    owner.close()
+    reader.close()
+
+
+def test_reader_keeps_the_latest_and_counts_missed(session: zenoh.Session) -> None:
+    ch = _ch(type="u8[16]")
+    owner = NodeBulk(session, "t", [ch], "dn0", shared_memory=False)
+    reader = NodeBulk(session, "t", [ch], "cn", shared_memory=False)
+    w, r = owner.writers["cam"], reader.readers["cam"]
+    for i in range(5):
+        w.array[0] = i
+        w.publish(i, 0)
+    # Local delivery is synchronous: all five arrived, only the last is kept.
+    assert r.wait(5.0) and r.array[0] == 4
+    assert r.header is not None and r.header.seq == 4
+    w.publish(5, 0)
+    assert r.wait(5.0)
+    w.publish(6, 0)
+    w.publish(7, 0)
+    assert r.wait(5.0) and r.missed == 1
+    owner.close()
+    reader.close()
+
+
+def test_wrong_layout_is_counted_bad(session: zenoh.Session) -> None:
+    ch = _ch(type="u8[16]")
+    reader = NodeBulk(session, "t", [ch], "cn", shared_memory=False)
+    r = reader.readers["cam"]
+    session.put(bulk_key("t", ch), bytes(ch.sample_bytes))  # layout 0
+    assert not r.wait(5.0) and r.bad == 1
+    session.put(bulk_key("t", ch), b"short")
+    assert not r.wait(5.0) and r.bad == 2
+    assert r.array.sum() == 0
+    reader.close()
+
+
+class _FakeHandle:
+    def __init__(self) -> None:
+        self.value = -1
+
+    def set(self, v: int) -> None:
+        self.value = v
+
+
+class _FakeDV:
+    def __init__(self, names: list[str]) -> None:
+        self.h = {n: _FakeHandle() for n in names}
+
+    def handle(self, name: str) -> _FakeHandle:
+        return self.h[name]
+
+
+def test_write_counters_into_data_vector(session: zenoh.Session) -> None:
+    ch = _ch(type="u8[16]")
+    owner = NodeBulk(session, "t", [ch], "dn0", shared_memory=False)
+    dv = _FakeDV(["bulk_cam_published"])  # dropped not in this layout: skipped
+    owner.writers["cam"].publish(0, 0)
+    owner.write_counters(dv)
+    assert dv.h["bulk_cam_published"].value == 1
+    owner.close()
+
+
+def test_camera_mission_declares_valid_channels() -> None:
+    """configs/camera.yaml: the mission part loads, the bulk part checks.
+
+    Until ``Mission`` has ``bulk: list[BulkChannelConfig]`` the two are
+    decoded separately here."""
+    import yaml
+
+    from zplatform.mission import decode_mission
+
+    path = Path(__file__).resolve().parents[2] / "configs" / "camera.yaml"
+    raw = yaml.safe_load(path.read_text())
+    bulk = msgspec.convert(raw.pop("bulk"), type=list[BulkChannelConfig])
+    mission = decode_mission(yaml.safe_dump(raw))
+    check_bulk_channels(bulk, mission.nodes)
+    assert [c.name for c in bulk] == ["frame", "flat_field"]
+    assert pool_size(bulk, "dn0") == 3 * (4 << 20) + 3 * 4096  # header pushes into a 4 KiB page
+    assert bulk[1].shape == (1024, 1024)
+
+
+def test_counter_region() -> None:
+    assert [counter_region(n) for n in ("cn", "dn3", "gn")] == ["cn", "dn3_to_cn", None]
+
+
+def test_describe_sample_for_tap() -> None:
+    ch = _ch(type="u8[4]")
+    data = bytearray(ch.sample_bytes)
+    HEADER.pack_into(data, 0, ch.layout_id, 0, 3, 30, 5)
+    data[-4:] = bytes([1, 2, 3, 6])
+    d = describe_sample(zenoh.ZBytes(bytes(data)), ch)
+    assert d["via"] == "copied" and d["seq"] == 3 and d["loop"] == 30
+    assert (d["min"], d["max"], d["mean"]) == (1, 6, 3.0)
+    bad = describe_sample(zenoh.ZBytes(b"x"), ch)
+    assert "error" in bad and bad["via"] == "copied"
+
+
+def test_via_counter() -> None:
+    vc = ViaCounter()
+    assert vc.add("r/dn0/bulk/a", zenoh.ZBytes(b"x")) == "copied"
+    vc.add("r/dn0/bulk/a", zenoh.ZBytes(b"y"))
+    prov = zenoh.shm.ShmProvider.default_backend(1 << 16)
+    chunk = prov.alloc(16)
+    chunk[:] = bytes(16)
+    assert vc.add("r/cn/telemetry", zenoh.ZBytes(chunk)) == "shm"
+    assert vc.snapshot() == {
+        "r/cn/telemetry": {"shm": 1, "copied": 0},
+        "r/dn0/bulk/a": {"shm": 0, "copied": 2},
+    }
+
+
+def test_real_pool_exhausted_by_a_holding_reader_drops_then_recovers(
+    session: zenoh.Session,
+) -> None:
+    # One chunk in the pool; the reader's unread sample holds it.
+    ch = _ch(type="u8[65536]", slots=1, alloc_timeout_ms=2.0)
+    owner = NodeBulk(session, "t", [ch], "dn0", shared_memory=True)
+    reader = NodeBulk(session, "t", [ch], "cn", shared_memory=True)
+    w, r = owner.writers["cam"], reader.readers["cam"]
+    assert w.publish(0, 0)
+    assert r._latest is not None and r._latest.payload.as_shm() is not None
+    assert w.publish(1, 0) is False  # waited ~2 ms, then dropped: no raise, no heap copy
+    assert (w.published, w.dropped) == (1, 1)
+    assert r.poll()  # releases the chunk
+    assert w.publish(2, 0)
+    assert r.poll() and r.header is not None and r.header.loop == 2
+    owner.close()
+    reader.close()

@@ -1,0 +1,692 @@
+"""Bulk channels: large fixed arrays between nodes, outside the sync loop.
+
+A bulk channel is a named, fixed-size array (``u8[4194304]``,
+``f32[1024,1024]``) that one node (its *owner*) publishes every
+``rate_divisor``-th loop on ``{vehicle}/{owner}/bulk/{name}`` (DESIGN.md §3)
+and that its *readers* receive. Bulk data never travels in the sync query:
+a camera frame must not delay the 2 ms exchange.
+
+Transport (DESIGN.md §8, re-checked in ``tests/integration/test_bulk_shm.py``
+and ``bench/shm.py``):
+
+* The owner allocates every sample from a zenoh ``ShmProvider`` whose pool is
+  sized from the mission (:func:`pool_size`) and pre-touched at start, so no
+  page fault lands in the loop. zenoh-python has no zero-copy write: the
+  owner's :attr:`BulkWriter.array` is a numpy view over a ``bytearray`` and
+  :meth:`BulkWriter.publish` copies it into the shared-memory chunk once.
+* Between same-host peers with shared memory enabled the chunk itself is
+  handed over; to a peer on another host (or one with shared memory off)
+  zenoh copies it onto the network by itself: the same mission, no code
+  change. Receivers count which path each sample took
+  (``payload.as_shm() is not None``): a silent fallback is visible.
+* Pool exhausted (readers still hold every chunk): :meth:`BulkWriter.publish`
+  retries for at most the channel's ``alloc_timeout_ms``, then counts a drop
+  and returns ``False``. It never raises for that and never falls back to a
+  heap copy behind the caller's back.
+* Receiver: the zenoh callback only stores the sample in a one-slot mailbox
+  (latest wins; a superseded sample is counted in ``missed``). The loop thread
+  calls :meth:`BulkReader.poll`, which copies the payload into the
+  preallocated :attr:`BulkReader.array`. zenoh-python cannot read shared
+  memory in place, so that is two copies (shared memory -> ``bytes`` ->
+  array); ``poll(copy=False)`` skips the second and leaves a read-only view
+  over the received bytes in :attr:`BulkReader.view`.
+
+Mission schema (to be added to ``zplatform/config.py`` by its owner)::
+
+    from .bulk import BulkChannelConfig, check_bulk_channels
+    class Mission(_Struct):
+        ...
+        bulk: list[BulkChannelConfig] = msgspec.field(default_factory=list)
+    # in _check_mission(m):
+        check_bulk_channels(m.bulk, m.nodes)          # "$.bulk[i]...." paths
+    # in _add_platform_elements: for each node n with counter_region(n),
+    #   append counter_elements(m.bulk, n) to that region.
+
+Why the copies stay on the loop thread: ``bytes(shm)`` costs about 0.3 ms
+per 4 MB here; done in zenoh's callback thread it would compete with the loop
+thread for the GIL at a random moment (in the middle of a sync exchange),
+done in :meth:`BulkReader.poll` it happens where the loop schedules it, after
+the sync step.
+
+Nothing here allocates per sample except the ``bytes`` zenoh returns on the
+receiving side (freed when the next sample replaces it; glibc reuses the
+block, see the RSS test in ``tests/integration/test_bulk_shm.py``).
+
+Thread safety: a writer and a reader are each used from one thread (the
+loop). Counters are plain ints written by that thread (``missed`` also by the
+zenoh callback thread, under the GIL); :meth:`stats` returns a frozen snapshot.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+import struct
+import threading
+import time
+import zlib
+from collections.abc import Callable, Collection, Sequence
+from dataclasses import dataclass
+from typing import Annotated, Any
+
+import msgspec
+import numpy as np
+import zenoh
+from msgspec import Meta
+
+from .errors import ConfigError, TransportError
+from .types import SCALAR_TYPES, ScalarType
+
+__all__ = [
+    "BULK_HEADER_BYTES",
+    "HEADER",
+    "MAX_CHANNEL_BYTES",
+    "BulkChannelConfig",
+    "BulkHeader",
+    "BulkReader",
+    "BulkStats",
+    "BulkWriter",
+    "NodeBulk",
+    "ViaCounter",
+    "bulk_key",
+    "check_bulk_channels",
+    "counter_elements",
+    "counter_region",
+    "decode_sample",
+    "describe_sample",
+    "parse_bulk_type",
+    "pool_size",
+]
+
+# -- schema ----------------------------------------------------------------
+# Pure (msgspec, errors, types; no zenoh, no numpy): this block moves verbatim
+# into zplatform/config.py when ``Mission`` gains ``bulk`` (config.py may not
+# import runtime modules); bulk.py then imports these names from there.
+
+BULK_HEADER_BYTES = 32  # see HEADER below
+MAX_CHANNEL_BYTES = 1 << 30  # 1 GiB: a typo guard, not a zenoh limit
+_BULK_NAME_RE = re.compile(r"^[a-z][a-z0-9_]*$")
+_BULK_TYPE_RE = re.compile(r"^\s*([a-z0-9]+)\s*\[\s*([0-9]+(?:\s*,\s*[0-9]+)*)\s*\]\s*$")
+
+
+class BulkChannelConfig(msgspec.Struct, forbid_unknown_fields=True, omit_defaults=True):
+    """One bulk channel of the mission's ``bulk:`` list.
+
+    ``type`` is a scalar type with a shape, as in the issue's notation:
+    ``u8[4194304]``, ``f32[1024,1024]``. ``node`` owns (publishes) it every
+    ``rate_divisor``-th loop (phase ``rate_phase``); ``readers`` subscribe.
+    ``alloc_timeout_ms`` bounds how long a publish waits for a free
+    shared-memory chunk before it counts a drop; ``slots`` overrides the
+    number of chunks in the owner's pool for this channel (default
+    ``1 + 2 * len(readers)``, at least 3: one being filled, and per reader
+    one held and one in flight).
+    """
+
+    name: str
+    node: str
+    type: str
+    readers: list[str] = msgspec.field(default_factory=list)
+    rate_divisor: Annotated[int, Meta(ge=1)] = 1
+    rate_phase: Annotated[int, Meta(ge=0)] = 0
+    alloc_timeout_ms: Annotated[float, Meta(ge=0, le=1000)] = 1.0
+    slots: Annotated[int, Meta(ge=1, le=64)] | None = None
+    doc: str = ""
+
+    # -- derived (the config is checked before these are used) -------------
+    @property
+    def scalar(self) -> ScalarType:
+        return _parse_or_raise(self.type, "$.bulk[?].type")[0]
+
+    @property
+    def shape(self) -> tuple[int, ...]:
+        return _parse_or_raise(self.type, "$.bulk[?].type")[1]
+
+    @property
+    def dtype(self) -> str:
+        """The little-endian numpy dtype string (``"<f4"``)."""
+        return self.scalar.numpy
+
+    @property
+    def nbytes(self) -> int:
+        """Array bytes (without the header)."""
+        return self.scalar.size * math.prod(self.shape)
+
+    @property
+    def sample_bytes(self) -> int:
+        """Bytes of one sample on the wire: header + array."""
+        return BULK_HEADER_BYTES + self.nbytes
+
+    @property
+    def layout_id(self) -> int:
+        """A stable hash of name, element type and shape: a reader built for
+        another declaration refuses the sample instead of misreading it."""
+        shape = ",".join(map(str, self.shape))
+        return zlib.crc32(f"bulk:{self.name}:{self.scalar.name}[{shape}]".encode())
+
+    @property
+    def slot_count(self) -> int:
+        return self.slots if self.slots is not None else max(3, 1 + 2 * len(self.readers))
+
+
+def parse_bulk_type(text: str) -> tuple[ScalarType, tuple[int, ...]] | None:
+    """``"f32[1024,1024]"`` -> ``(f32, (1024, 1024))``; ``None`` if invalid
+    (no shape, unknown scalar, a zero dimension). Bulk arrays always have a
+    shape: a scalar is a Data Vector element, not a bulk channel."""
+    m = _BULK_TYPE_RE.match(text)
+    if m is None:
+        return None
+    scalar = SCALAR_TYPES.get(m.group(1))
+    if scalar is None:
+        return None
+    shape = tuple(int(d) for d in m.group(2).split(","))
+    if any(d < 1 for d in shape):
+        return None
+    return scalar, shape
+
+
+def _parse_or_raise(text: str, where: str) -> tuple[ScalarType, tuple[int, ...]]:
+    parsed = parse_bulk_type(text)
+    if parsed is None:
+        raise ConfigError(
+            f"bulk type {text!r} must be a scalar type with a shape, like 'u8[4194304]' "
+            f"or 'f32[1024,1024]' (types: {', '.join(SCALAR_TYPES)})",
+            where,
+        )
+    return parsed
+
+
+def check_bulk_channels(
+    channels: Sequence[BulkChannelConfig], nodes: Collection[str], where: str = "$.bulk"
+) -> None:
+    """Check the mission's ``bulk`` list against its ``nodes``.
+
+    Raises :class:`ConfigError` naming the YAML path of the first bad field
+    (``$.bulk[0].type``): a bad or duplicate name, an unknown owner or reader,
+    the owner among its readers, a repeated reader, an invalid type or one
+    larger than :data:`MAX_CHANNEL_BYTES`. Pure: touches no zenoh.
+    """
+    seen: set[str] = set()
+    for i, ch in enumerate(channels):
+        w = f"{where}[{i}]"
+        if not _BULK_NAME_RE.match(ch.name):
+            raise ConfigError(f"name {ch.name!r} must match {_BULK_NAME_RE.pattern}", f"{w}.name")
+        if ch.name in seen:
+            raise ConfigError(f"duplicate bulk channel name {ch.name!r}", f"{w}.name")
+        seen.add(ch.name)
+        if ch.node not in nodes:
+            raise ConfigError(f"no node named {ch.node!r}; nodes: {sorted(nodes)}", f"{w}.node")
+        scalar, shape = _parse_or_raise(ch.type, f"{w}.type")
+        nbytes = scalar.size * math.prod(shape)
+        if nbytes > MAX_CHANNEL_BYTES:
+            raise ConfigError(
+                f"{ch.type} is {nbytes} bytes; a bulk channel holds at most "
+                f"{MAX_CHANNEL_BYTES} bytes",
+                f"{w}.type",
+            )
+        if ch.rate_phase >= ch.rate_divisor:
+            raise ConfigError(
+                f"rate_phase {ch.rate_phase} must be below rate_divisor {ch.rate_divisor}",
+                f"{w}.rate_phase",
+            )
+        readers: set[str] = set()
+        for j, r in enumerate(ch.readers):
+            if r not in nodes:
+                raise ConfigError(
+                    f"no node named {r!r}; nodes: {sorted(nodes)}", f"{w}.readers[{j}]"
+                )
+            if r == ch.node:
+                raise ConfigError(
+                    f"{r!r} owns channel {ch.name!r} and cannot also read it", f"{w}.readers[{j}]"
+                )
+            if r in readers:
+                raise ConfigError(f"reader {r!r} is listed twice", f"{w}.readers[{j}]")
+            readers.add(r)
+
+
+def counter_elements(channels: Sequence[BulkChannelConfig], node: str) -> list[dict[str, Any]]:
+    """The u32 Data Vector elements that carry ``node``'s bulk counters into
+    telemetry, as ElementConfig-shaped dicts (``{"name", "type", "doc"}``).
+
+    Owner of a channel: ``bulk_<ch>_published``, ``bulk_<ch>_dropped``.
+    Reader: ``bulk_<ch>_shm``, ``bulk_<ch>_copied``, ``bulk_<ch>_missed``,
+    ``bulk_<ch>_bad``. The names match :meth:`NodeBulk.counters`.
+    """
+    out: list[dict[str, Any]] = []
+    for ch in channels:
+        names: tuple[tuple[str, str], ...] = ()
+        if ch.node == node:
+            names = (("published", "samples sent"), ("dropped", "no free chunk in time"))
+        elif node in ch.readers:
+            names = (
+                ("shm", "samples received through shared memory"),
+                ("copied", "samples received copied (network or shm off)"),
+                ("missed", "samples superseded or lost (seq gaps)"),
+                ("bad", "samples refused (size or layout)"),
+            )
+        out += [
+            {"name": f"bulk_{ch.name}_{n}", "type": "u32", "doc": f"{ch.name}: {d}"}
+            for n, d in names
+        ]
+    return out
+
+
+def counter_region(node: str) -> str | None:
+    """The region that carries ``node``'s bulk counters to the CN's telemetry:
+    ``cn`` for the CN, ``dnX_to_cn`` for a device node, ``None`` for the
+    ground node (its counters stay local; ``zplatform tap`` shows its own)."""
+    if node == "cn":
+        return "cn"
+    if node.startswith("dn"):
+        return f"{node}_to_cn"
+    return None
+
+
+# -- end of schema ---------------------------------------------------------
+
+# Sample header, little-endian: layout_id u32, flags u32 (0), seq u64 (the
+# channel's own sample counter: gaps are missed samples), loop u64 (the
+# owner's loop number), t_ns i64 (the owner's clock when it published).
+# 32 bytes keeps the array 8-byte aligned inside the chunk.
+HEADER = struct.Struct("<IIQQq")
+assert HEADER.size == BULK_HEADER_BYTES
+
+
+def bulk_key(vehicle: str, channel: BulkChannelConfig) -> str:
+    """``{vehicle}/{owner}/bulk/{name}`` (DESIGN.md §3)."""
+    return f"{vehicle}/{channel.node}/bulk/{channel.name}"
+
+
+def pool_size(channels: Sequence[BulkChannelConfig], node: str) -> int:
+    """Bytes of ``node``'s shared-memory pool: every channel it owns times its
+    :attr:`~BulkChannelConfig.slot_count`, each sample rounded up to 4 KiB
+    pages (chunks are page-aligned in practice). 0 when it owns none."""
+    page = 4096
+    total = 0
+    for ch in channels:
+        if ch.node == node:
+            total += ch.slot_count * (-(-ch.sample_bytes // page) * page)
+    return total
+
+
+@dataclass(frozen=True, slots=True)
+class BulkStats:
+    """Counters of one channel end, a frozen snapshot."""
+
+    published: int = 0
+    dropped: int = 0
+    received_shm: int = 0
+    received_copied: int = 0
+    missed: int = 0
+    bad: int = 0
+
+
+@dataclass(frozen=True, slots=True)
+class BulkHeader:
+    layout_id: int
+    seq: int
+    loop: int
+    t_ns: int
+
+
+def decode_sample(
+    data: bytes, channel: BulkChannelConfig
+) -> tuple[BulkHeader, np.ndarray[Any, Any]]:
+    """Header and a read-only array view of one sample's bytes (no copy).
+
+    Raises TransportError if the length or layout does not match ``channel``.
+    For ``zplatform tap`` and tests; the loop uses :class:`BulkReader`.
+    """
+    if len(data) != channel.sample_bytes:
+        raise TransportError(
+            f"bulk {channel.name}: sample of {len(data)} bytes, expected {channel.sample_bytes}"
+        )
+    layout, _flags, seq, loop, t_ns = HEADER.unpack_from(data, 0)
+    if layout != channel.layout_id:
+        raise TransportError(
+            f"bulk {channel.name}: layout {layout:#x} is not {channel.layout_id:#x}"
+        )
+    arr = np.frombuffer(data, channel.dtype, math.prod(channel.shape), HEADER.size)
+    return BulkHeader(layout, seq, loop, t_ns), arr.reshape(channel.shape)
+
+
+def describe_sample(payload: zenoh.ZBytes, channel: BulkChannelConfig) -> dict[str, Any]:
+    """One bulk sample as ``zplatform tap`` prints it: ``via`` (``"shm"`` or
+    ``"copied"``, how it reached this process), header fields, ``bytes`` and
+    the array's ``min``/``max``/``mean``; ``error`` instead of the header and
+    stats when the sample does not match ``channel``. Copies the payload once.
+    """
+    via = "shm" if payload.as_shm() is not None else "copied"
+    data = payload.to_bytes()
+    out: dict[str, Any] = {"channel": channel.name, "via": via, "bytes": len(data)}
+    try:
+        hdr, arr = decode_sample(data, channel)
+    except TransportError as exc:
+        out["error"] = str(exc)
+        return out
+    out.update(seq=hdr.seq, loop=hdr.loop, t_ns=hdr.t_ns)
+    out.update(min=arr.min().item(), max=arr.max().item(), mean=float(arr.mean()))
+    return out
+
+
+class ViaCounter:
+    """Per key, how many samples reached this process through shared memory
+    and how many were copied: for ``zplatform tap`` over ``{vehicle}/**``
+    (any key, not only bulk ones). Call :meth:`add` from the loop or
+    printing thread, not from a zenoh callback that must stay short."""
+
+    def __init__(self) -> None:
+        self._counts: dict[str, list[int]] = {}
+
+    def add(self, key: str, payload: zenoh.ZBytes) -> str:
+        """Count one sample; returns ``"shm"`` or ``"copied"``."""
+        shm = payload.as_shm() is not None
+        c = self._counts.setdefault(key, [0, 0])
+        c[0 if shm else 1] += 1
+        return "shm" if shm else "copied"
+
+    def snapshot(self) -> dict[str, dict[str, int]]:
+        return {k: {"shm": v[0], "copied": v[1]} for k, v in sorted(self._counts.items())}
+
+
+class BulkWriter:
+    """The owner's end of one channel.
+
+    Write the frame into :attr:`array` (preallocated, the channel's dtype and
+    shape), then call :meth:`publish` on the loops where :meth:`due` is true.
+    """
+
+    def __init__(
+        self,
+        session: zenoh.Session,
+        key: str,
+        channel: BulkChannelConfig,
+        provider: Any | None,
+        *,
+        monotonic: Callable[[], int] = time.monotonic_ns,
+    ) -> None:
+        self.channel = channel
+        self.key = key
+        self._provider = provider
+        self._mono = monotonic
+        self._timeout_ns = round(channel.alloc_timeout_ms * 1e6)
+        self._size = channel.sample_bytes
+        self._layout = channel.layout_id
+        # ZShmMut[:] accepts only bytes/bytearray (not a memoryview or an
+        # ndarray), so the frame lives in a bytearray and the array views it.
+        self._buf = bytearray(self._size)
+        self.array: np.ndarray[Any, Any] = np.frombuffer(
+            self._buf, channel.dtype, math.prod(channel.shape), HEADER.size
+        ).reshape(channel.shape)
+        self._gc = zenoh.shm.GarbageCollect() if provider is not None else None
+        # DROP: a slow link or reader loses samples, it never blocks the loop.
+        # DATA_LOW: queued behind the sync frames when QoS is on.
+        self._pub = session.declare_publisher(
+            key,
+            congestion_control=zenoh.CongestionControl.DROP,
+            priority=zenoh.Priority.DATA_LOW,
+            express=True,
+        )
+        self._seq = 0
+        self.published = 0
+        self.dropped = 0
+
+    def due(self, loop: int) -> bool:
+        """Whether ``loop`` is one of this channel's publishing loops."""
+        return loop % self.channel.rate_divisor == self.channel.rate_phase
+
+    def publish(self, loop: int, t_ns: int) -> bool:
+        """Send :attr:`array` with ``loop`` and ``t_ns`` in its header.
+
+        With a provider: one copy into a shared-memory chunk. If none is free,
+        retry (garbage-collecting released chunks) for at most the channel's
+        ``alloc_timeout_ms``, then count a drop and return ``False``; never
+        raises for an exhausted pool. Without a provider (shared memory off):
+        one copy into a zenoh buffer. Returns ``True`` when the sample was put.
+        Raises TransportError only if zenoh refuses the put itself.
+        """
+        HEADER.pack_into(self._buf, 0, self._layout, 0, self._seq, loop, t_ns)
+        if self._provider is None:
+            payload: Any = self._buf
+        else:
+            chunk = self._alloc()
+            if chunk is None:
+                self.dropped += 1
+                return False
+            chunk[:] = self._buf
+            payload = chunk
+        try:
+            self._pub.put(payload)
+        except zenoh.ZError as exc:
+            raise TransportError(f"bulk put on {self.key} failed: {exc}") from exc
+        self._seq += 1
+        self.published += 1
+        return True
+
+    def _alloc(self) -> Any | None:
+        deadline = self._mono() + self._timeout_ns
+        while True:
+            try:
+                return self._provider.alloc(self._size, policy=self._gc)  # type: ignore[union-attr]
+            except zenoh.ZError:
+                pass  # "out of memory": every chunk is still held by a reader
+            if self._mono() >= deadline:
+                return None
+            time.sleep(50e-6)
+
+    def stats(self) -> BulkStats:
+        return BulkStats(published=self.published, dropped=self.dropped)
+
+    def undeclare(self) -> None:
+        self._pub.undeclare()
+
+
+class BulkReader:
+    """A reader's end of one channel.
+
+    :meth:`poll` (non-blocking) or :meth:`wait` (blocking, bounded) takes the
+    newest sample, if any, into :attr:`array`. Older unread samples are
+    superseded, never queued: a slow reader never stalls the session.
+    """
+
+    def __init__(self, session: zenoh.Session, key: str, channel: BulkChannelConfig) -> None:
+        self.channel = channel
+        self.key = key
+        self.array: np.ndarray[Any, Any] = np.zeros(channel.shape, channel.dtype)
+        self.view: np.ndarray[Any, Any] | None = None
+        self.header: BulkHeader | None = None
+        self._size = channel.sample_bytes
+        self._layout = channel.layout_id
+        self._count = math.prod(channel.shape)
+        self._dtype = channel.dtype  # parsed once: poll must not re-parse the type
+        self._shape = channel.shape
+        self._latest: zenoh.Sample | None = None
+        self._event = threading.Event()
+        self._last_seq: int | None = None
+        self.received_shm = 0
+        self.received_copied = 0
+        self.missed = 0
+        self.bad = 0
+        self._sub = session.declare_subscriber(
+            key, zenoh.handlers.Callback(self._on_sample, indirect=False)
+        )
+
+    def _on_sample(self, sample: zenoh.Sample) -> None:
+        # zenoh's thread: hand off only (DESIGN.md §8). Replacing the slot
+        # releases the superseded sample (and its shared-memory chunk).
+        self._latest = sample
+        self._event.set()
+
+    def poll(self, *, copy: bool = True) -> bool:
+        """Take the newest sample if one arrived since the last call.
+
+        Returns ``True`` when :attr:`array` (``copy=True``) or :attr:`view`
+        (``copy=False``: read-only, valid until the next poll) holds a new,
+        checked sample; ``False`` when none arrived or it was refused
+        (counted in ``bad``). Never blocks; copies once out of zenoh and,
+        with ``copy=True``, once into :attr:`array`.
+        """
+        sample = self._latest
+        if sample is None:
+            return False
+        self._latest = None
+        self._event.clear()
+        payload = sample.payload
+        shm = payload.as_shm()
+        if shm is not None:
+            data = bytes(shm)  # faster than payload.to_bytes() for shm (bench.shm)
+            self.received_shm += 1
+        else:
+            data = payload.to_bytes()
+            self.received_copied += 1
+        del sample, payload, shm  # release the chunk now, not at the next poll
+        if len(data) != self._size:
+            self.bad += 1
+            return False
+        layout, _flags, seq, loop, t_ns = HEADER.unpack_from(data, 0)
+        if layout != self._layout:
+            self.bad += 1
+            return False
+        if self._last_seq is not None and seq > self._last_seq + 1:
+            self.missed += seq - self._last_seq - 1
+        self._last_seq = seq
+        self.header = BulkHeader(layout, seq, loop, t_ns)
+        src = np.frombuffer(data, self._dtype, self._count, HEADER.size)
+        if copy:
+            np.copyto(self.array.reshape(-1), src)
+            self.view = None
+        else:
+            self.view = src.reshape(self._shape)
+        return True
+
+    def wait(self, timeout_s: float, *, copy: bool = True) -> bool:
+        """Block up to ``timeout_s`` for a sample, then :meth:`poll`."""
+        if self._latest is None:
+            self._event.wait(timeout_s)
+        return self.poll(copy=copy)
+
+    def stats(self) -> BulkStats:
+        return BulkStats(
+            received_shm=self.received_shm,
+            received_copied=self.received_copied,
+            missed=self.missed,
+            bad=self.bad,
+        )
+
+    def undeclare(self) -> None:
+        self._sub.undeclare()
+        self._latest = None
+
+
+class NodeBulk:
+    """Every bulk channel end of one node, declared from the mission.
+
+    ``NodeBulk(session, vehicle, channels, node, shared_memory=...)`` creates
+    one shared-memory pool (:func:`pool_size`; pre-touched, so the first
+    frames pay no page faults) when the node owns a channel and shared memory
+    is on, a :class:`BulkWriter` per owned channel (:attr:`writers`) and a
+    :class:`BulkReader` per channel it reads (:attr:`readers`).
+
+    Per loop, after the sync step::
+
+        for w in bulk.writers.values():
+            if w.due(loop):
+                fill(w.array); w.publish(loop, t_ns)
+        for name, r in bulk.readers.items():
+            if r.poll():
+                use(r.array)
+        bulk.write_counters(dv)        # or bulk.counters() into telemetry
+
+    Blocks at construction for the pool's first touch (one write of every
+    chunk: proportional to the pool). Raises TransportError if the pool
+    cannot be created.
+    """
+
+    def __init__(
+        self,
+        session: zenoh.Session,
+        vehicle: str,
+        channels: Sequence[BulkChannelConfig],
+        node: str,
+        *,
+        shared_memory: bool = True,
+        prefault: bool = True,
+    ) -> None:
+        self.node = node
+        self.pool_bytes = pool_size(channels, node) if shared_memory else 0
+        self.provider: Any | None = None
+        if self.pool_bytes:
+            try:
+                self.provider = zenoh.shm.ShmProvider.default_backend(self.pool_bytes)
+            except Exception as exc:  # ZError: /dev/shm too small, no permission
+                raise TransportError(
+                    f"cannot create a {self.pool_bytes}-byte shared-memory pool for {node}: {exc}"
+                ) from exc
+            if prefault:
+                self._prefault(channels)
+        self.writers: dict[str, BulkWriter] = {}
+        self.readers: dict[str, BulkReader] = {}
+        for ch in channels:
+            key = bulk_key(vehicle, ch)
+            if ch.node == node:
+                self.writers[ch.name] = BulkWriter(session, key, ch, self.provider)
+            elif node in ch.readers:
+                self.readers[ch.name] = BulkReader(session, key, ch)
+        self._handles: list[tuple[Any, Callable[[], int]]] = []
+
+    def _prefault(self, channels: Sequence[BulkChannelConfig]) -> None:
+        # Allocate every chunk once and write it whole, so the kernel maps the
+        # pool's pages now; then give them back to the pool.
+        assert self.provider is not None
+        held = []
+        for ch in channels:
+            if ch.node != self.node:
+                continue
+            zeros = bytes(ch.sample_bytes)
+            for _ in range(ch.slot_count):
+                try:
+                    chunk = self.provider.alloc(ch.sample_bytes)
+                except zenoh.ZError:
+                    break
+                chunk[:] = zeros
+                held.append(chunk)
+        del held
+        self.provider.garbage_collect()
+
+    def counters(self) -> dict[str, int]:
+        """Current counters under the names of :func:`counter_elements`."""
+        out: dict[str, int] = {}
+        for name, w in self.writers.items():
+            out[f"bulk_{name}_published"] = w.published
+            out[f"bulk_{name}_dropped"] = w.dropped
+        for name, r in self.readers.items():
+            out[f"bulk_{name}_shm"] = r.received_shm
+            out[f"bulk_{name}_copied"] = r.received_copied
+            out[f"bulk_{name}_missed"] = r.missed
+            out[f"bulk_{name}_bad"] = r.bad
+        return out
+
+    def write_counters(self, dv: Any) -> None:
+        """Write :meth:`counters` into Data Vector ``dv`` (u32, wrapping);
+        elements the layout lacks are skipped. Handles are built once."""
+        if not self._handles:
+            for name in self.counters():
+                try:
+                    self._handles.append((dv.handle(name), _getter(self, name)))
+                except Exception:  # the runtime has not added this element
+                    continue
+        for h, get in self._handles:
+            h.set(get() & 0xFFFF_FFFF)
+
+    def close(self) -> None:
+        for w in self.writers.values():
+            w.undeclare()
+        for r in self.readers.values():
+            r.undeclare()
+
+
+def _getter(bulk: NodeBulk, element: str) -> Callable[[], int]:
+    _, rest = element.split("_", 1)
+    name, field = rest.rsplit("_", 1)
+    attr = {"shm": "received_shm", "copied": "received_copied"}.get(field, field)
+    end: Any = bulk.writers[name] if name in bulk.writers else bulk.readers[name]
+    return lambda: int(getattr(end, attr))
