@@ -22,8 +22,11 @@ it, never writes it.
 
 from __future__ import annotations
 
+import math
 import re
 import unicodedata
+import zlib
+from collections.abc import Collection, Sequence
 from typing import Annotated, Any, Literal
 
 import msgspec
@@ -255,6 +258,188 @@ class FaultsConfig(_Struct):
     dn_reenable_loops: Annotated[int, Meta(ge=1, le=1_000_000)] = 10
 
 
+# -- bulk channels (zplatform.bulk moves them) --------------------------------
+
+BULK_HEADER_BYTES = 32  # see HEADER below
+MAX_CHANNEL_BYTES = 1 << 30  # 1 GiB: a typo guard, not a zenoh limit
+_BULK_NAME_RE = re.compile(r"^[a-z][a-z0-9_]*$")
+_BULK_TYPE_RE = re.compile(r"^\s*([a-z0-9]+)\s*\[\s*([0-9]+(?:\s*,\s*[0-9]+)*)\s*\]\s*$")
+
+
+class BulkChannelConfig(msgspec.Struct, forbid_unknown_fields=True, omit_defaults=True):
+    """One bulk channel of the mission's ``bulk:`` list.
+
+    ``type`` is a scalar type with a shape, as in the issue's notation:
+    ``u8[4194304]``, ``f32[1024,1024]``. ``node`` owns (publishes) it every
+    ``rate_divisor``-th loop (phase ``rate_phase``); ``readers`` subscribe.
+    ``alloc_timeout_ms`` bounds how long a publish waits for a free
+    shared-memory chunk before it counts a drop; ``slots`` overrides the
+    number of chunks in the owner's pool for this channel (default
+    ``1 + 2 * len(readers)``, at least 3: one being filled, and per reader
+    one held and one in flight).
+    """
+
+    name: str
+    node: str
+    type: str
+    readers: list[str] = msgspec.field(default_factory=list)
+    rate_divisor: Annotated[int, Meta(ge=1)] = 1
+    rate_phase: Annotated[int, Meta(ge=0)] = 0
+    alloc_timeout_ms: Annotated[float, Meta(ge=0, le=1000)] = 1.0
+    slots: Annotated[int, Meta(ge=1, le=64)] | None = None
+    doc: str = ""
+
+    # -- derived (the config is checked before these are used) -------------
+    @property
+    def scalar(self) -> ScalarType:
+        return _parse_or_raise(self.type, "$.bulk[?].type")[0]
+
+    @property
+    def shape(self) -> tuple[int, ...]:
+        return _parse_or_raise(self.type, "$.bulk[?].type")[1]
+
+    @property
+    def dtype(self) -> str:
+        """The little-endian numpy dtype string (``"<f4"``)."""
+        return self.scalar.numpy
+
+    @property
+    def nbytes(self) -> int:
+        """Array bytes (without the header)."""
+        return self.scalar.size * math.prod(self.shape)
+
+    @property
+    def sample_bytes(self) -> int:
+        """Bytes of one sample on the wire: header + array."""
+        return BULK_HEADER_BYTES + self.nbytes
+
+    @property
+    def layout_id(self) -> int:
+        """A stable hash of name, element type and shape: a reader built for
+        another declaration refuses the sample instead of misreading it."""
+        shape = ",".join(map(str, self.shape))
+        return zlib.crc32(f"bulk:{self.name}:{self.scalar.name}[{shape}]".encode())
+
+    @property
+    def slot_count(self) -> int:
+        return self.slots if self.slots is not None else max(3, 1 + 2 * len(self.readers))
+
+
+def parse_bulk_type(text: str) -> tuple[ScalarType, tuple[int, ...]] | None:
+    """``"f32[1024,1024]"`` -> ``(f32, (1024, 1024))``; ``None`` if invalid
+    (no shape, unknown scalar, a zero dimension). Bulk arrays always have a
+    shape: a scalar is a Data Vector element, not a bulk channel."""
+    m = _BULK_TYPE_RE.match(text)
+    if m is None:
+        return None
+    scalar = SCALAR_TYPES.get(m.group(1))
+    if scalar is None:
+        return None
+    shape = tuple(int(d) for d in m.group(2).split(","))
+    if any(d < 1 for d in shape):
+        return None
+    return scalar, shape
+
+
+def _parse_or_raise(text: str, where: str) -> tuple[ScalarType, tuple[int, ...]]:
+    parsed = parse_bulk_type(text)
+    if parsed is None:
+        raise ConfigError(
+            f"bulk type {text!r} must be a scalar type with a shape, like 'u8[4194304]' "
+            f"or 'f32[1024,1024]' (types: {', '.join(SCALAR_TYPES)})",
+            where,
+        )
+    return parsed
+
+
+def check_bulk_channels(
+    channels: Sequence[BulkChannelConfig], nodes: Collection[str], where: str = "$.bulk"
+) -> None:
+    """Check the mission's ``bulk`` list against its ``nodes``.
+
+    Raises :class:`ConfigError` naming the YAML path of the first bad field
+    (``$.bulk[0].type``): a bad or duplicate name, an unknown owner or reader,
+    the owner among its readers, a repeated reader, an invalid type or one
+    larger than :data:`MAX_CHANNEL_BYTES`. Pure: touches no zenoh.
+    """
+    seen: set[str] = set()
+    for i, ch in enumerate(channels):
+        w = f"{where}[{i}]"
+        if not _BULK_NAME_RE.match(ch.name):
+            raise ConfigError(f"name {ch.name!r} must match {_BULK_NAME_RE.pattern}", f"{w}.name")
+        if ch.name in seen:
+            raise ConfigError(f"duplicate bulk channel name {ch.name!r}", f"{w}.name")
+        seen.add(ch.name)
+        if ch.node not in nodes:
+            raise ConfigError(f"no node named {ch.node!r}; nodes: {sorted(nodes)}", f"{w}.node")
+        scalar, shape = _parse_or_raise(ch.type, f"{w}.type")
+        nbytes = scalar.size * math.prod(shape)
+        if nbytes > MAX_CHANNEL_BYTES:
+            raise ConfigError(
+                f"{ch.type} is {nbytes} bytes; a bulk channel holds at most "
+                f"{MAX_CHANNEL_BYTES} bytes",
+                f"{w}.type",
+            )
+        if ch.rate_phase >= ch.rate_divisor:
+            raise ConfigError(
+                f"rate_phase {ch.rate_phase} must be below rate_divisor {ch.rate_divisor}",
+                f"{w}.rate_phase",
+            )
+        readers: set[str] = set()
+        for j, r in enumerate(ch.readers):
+            if r not in nodes:
+                raise ConfigError(
+                    f"no node named {r!r}; nodes: {sorted(nodes)}", f"{w}.readers[{j}]"
+                )
+            if r == ch.node:
+                raise ConfigError(
+                    f"{r!r} owns channel {ch.name!r} and cannot also read it", f"{w}.readers[{j}]"
+                )
+            if r in readers:
+                raise ConfigError(f"reader {r!r} is listed twice", f"{w}.readers[{j}]")
+            readers.add(r)
+
+
+def counter_elements(channels: Sequence[BulkChannelConfig], node: str) -> list[dict[str, Any]]:
+    """The u32 Data Vector elements that carry ``node``'s bulk counters into
+    telemetry, as ElementConfig-shaped dicts (``{"name", "type", "doc"}``).
+
+    Owner of a channel: ``bulk_<ch>_published``, ``bulk_<ch>_dropped``.
+    Reader: ``bulk_<ch>_shm``, ``bulk_<ch>_copied``, ``bulk_<ch>_missed``,
+    ``bulk_<ch>_bad``. The names match :meth:`NodeBulk.counters`.
+    """
+    out: list[dict[str, Any]] = []
+    for ch in channels:
+        names: tuple[tuple[str, str], ...] = ()
+        if ch.node == node:
+            names = (("published", "samples sent"), ("dropped", "no free chunk in time"))
+        elif node in ch.readers:
+            names = (
+                ("shm", "samples received through shared memory"),
+                ("copied", "samples received copied (network or shm off)"),
+                ("missed", "samples superseded or lost (seq gaps)"),
+                ("bad", "samples refused (size or layout)"),
+            )
+        out += [
+            {"name": f"bulk_{ch.name}_{n}", "type": "u32", "doc": f"{ch.name}: {d}"}
+            for n, d in names
+        ]
+    return out
+
+
+def counter_region(node: str) -> str | None:
+    """The region that carries ``node``'s bulk counters to the CN's telemetry:
+    ``cn`` for the CN, ``dnX_to_cn`` for a device node, ``None`` for the
+    ground node (its counters stay local; ``zplatform tap`` shows its own)."""
+    if node == "cn":
+        return "cn"
+    if node.startswith("dn"):
+        return f"{node}_to_cn"
+    return None
+
+
+
+
 class Mission(_Struct):
     """A whole mission file. See ``configs/*.yaml`` for examples."""
 
@@ -274,6 +459,7 @@ class Mission(_Struct):
     faults: FaultsConfig = msgspec.field(default_factory=FaultsConfig)
     security: SecurityConfig = msgspec.field(default_factory=SecurityConfig)
     downlink: DownlinkConfig = msgspec.field(default_factory=DownlinkConfig)
+    bulk: list[BulkChannelConfig] = msgspec.field(default_factory=list)
     doc: str = ""
 
     # -- derived views (cheap; computed from the checked fields) -----------
@@ -491,6 +677,7 @@ def _check_mission(m: Mission) -> None:
             )
         if not elements:
             raise ConfigError("a region must have at least one element", where)
+    check_bulk_channels(m.bulk, m.nodes)
 
 
 _ENDPOINT_RE = re.compile(r"^(tcp|udp|tls|quic|unixsock-stream|ws)/(.+)$")
@@ -581,6 +768,11 @@ def platform_elements(m: Mission) -> dict[str, list[ElementConfig]]:
                 f"$.controllers[{i}].node",
             )
         out[region].append(E(f"{c.name}_mode", "enum", c.initial_mode, list(CONTROLLER_MODES)))
+    # Bulk channel counters live where their node reports them.
+    for node in m.nodes:
+        counters_at = counter_region(node)
+        if counters_at is not None and counters_at in out:
+            out[counters_at] += [msgspec.convert(e, E) for e in counter_elements(m.bulk, node)]
     return out
 
 
