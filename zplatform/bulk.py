@@ -510,3 +510,24 @@ def _getter(bulk: NodeBulk, element: str) -> Callable[[], int]:
     attr = {"shm": "received_shm", "copied": "received_copied"}.get(field, field)
     end: Any = bulk.writers[name] if name in bulk.writers else bulk.readers[name]
     return lambda: int(getattr(end, attr))
+
+
+def open_bulk(session: zenoh.Session, mission: Any, node: str, logic: Any) -> NodeBulk | None:
+    """The node's bulk channel ends (None when it has none), their arrays
+    handed to the node's components (``logic.attach_bulk``): writers' arrays
+    are filled by the components and published by the runtime, readers'
+    arrays hold the latest sample. Raises TransportError as :class:`NodeBulk`."""
+    mine = [ch for ch in mission.bulk if ch.node == node or node in ch.readers]
+    if not mine:
+        return None
+    bulk = NodeBulk(
+        session,
+        mission.vehicle,
+        mission.bulk,
+        node,
+        shared_memory=mission.transport.shared_memory,
+    )
+    arrays: dict[str, Any] = {n: w.array for n, w in bulk.writers.items()}
+    arrays.update({n: r.array for n, r in bulk.readers.items()})
+    logic.attach_bulk(arrays)
+    return bulk

@@ -24,7 +24,7 @@ from __future__ import annotations
 import abc
 import importlib
 import inspect
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from typing import TYPE_CHECKING, Any, ClassVar, TypeVar
 
 import msgspec
@@ -208,6 +208,11 @@ class Component(abc.ABC):
 
     Config: ClassVar[type[msgspec.Struct]] = NoConfig
     config: Any
+    bulk: Mapping[str, Any] = {}
+    """The node's bulk channel arrays by channel name (numpy arrays of the
+    channel's dtype and shape): the ones this node publishes, which a
+    component fills, and the ones it reads, which hold the latest sample.
+    Set by the node's loop before the first run; read them in ``run``."""
 
     def __init__(self, spec: ComponentConfig, dv: DataVector, *, where: str = "$") -> None:
         self.spec = spec

@@ -191,6 +191,27 @@ class LockstepRunner:
         self._last_state = -1
         self._events: list[Event] = []
         self._wall_s = 0.0
+        # Bulk channels: each node's own arrays; a sample published in loop
+        # n reaches its readers at the start of loop n+1 (as live: readers
+        # take the newest sample before their loop's logic).
+        logics: dict[str, ControlLogic | DeviceLogic] = {"cn": self.control}
+        logics.update({d.node: d for d in self.devices})
+        arrays: dict[str, dict[str, Any]] = {n: {} for n in logics}
+        self._bulk: list[tuple[Any, Any, list[Any]]] = []
+        for ch in mission.bulk:
+            if ch.node not in logics:
+                continue
+            own = np.zeros(ch.shape, ch.dtype)
+            arrays[ch.node][ch.name] = own
+            outs = []
+            for r in ch.readers:
+                if r in logics:
+                    arrays[r][ch.name] = np.zeros(ch.shape, ch.dtype)
+                    outs.append(arrays[r][ch.name])
+            self._bulk.append((ch, own, outs))
+        for n, logic in logics.items():
+            if arrays[n]:
+                logic.attach_bulk(arrays[n])
 
     # -- running -----------------------------------------------------------
     def step(self, log: CsvLogger | None = None) -> None:
@@ -198,6 +219,10 @@ class LockstepRunner:
         loop = self.loop + 1
         t = self.clock.now_ns()
         cn = self.control
+        for ch, own, outs in self._bulk:  # last loop's samples arrive
+            if self.loop and ch.rate_divisor and self.loop % ch.rate_divisor == ch.rate_phase:
+                for out in outs:
+                    np.copyto(out, own)
         frames = cn.begin(loop, t)
         for i, dev in enumerate(self.devices):
             cn.reply(i, dev.step(frames[i], t))
@@ -336,11 +361,17 @@ def replay(
     an error.
     """
     from .auth import load_key
+    from .errors import RecordingError
     from .mission import load_mission
     from .recording import RecordReader
 
     reader = RecordReader(directory)
     mission = load_mission(reader.mission_path)
+    if mission.bulk:
+        raise RecordingError(
+            f"mission {mission.mission!r} has bulk channels: their samples (megabytes per "
+            "loop) are not recorded, so its loop cannot be replayed bit for bit"
+        )
     reader.check_layout(Layout.for_node(mission, "cn"))
     cn = ControlLogic(mission, key=load_key(mission, key_file))
     cn.dv.write_all(reader.initial)  # epoch included

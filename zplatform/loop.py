@@ -38,7 +38,7 @@ what a DN's run writes reaches the CN one loop later (thesis 3.4.5.3).
 from __future__ import annotations
 
 from collections.abc import Sequence
-from typing import Protocol
+from typing import Any, Protocol
 
 from .auth import TAG_LEN, AuthError, Channel, mission_channels
 from .boards import make_board, safe_board
@@ -295,6 +295,11 @@ class ControlLogic:
         tm = self._tm.encode(self.loop, self.t_ns)
         return self._seal_tm.seal(tm) if self._seal_tm is not None else tm
 
+    def attach_bulk(self, arrays: dict[str, Any]) -> None:
+        """Give every component the node's bulk channel arrays (by channel)."""
+        for c in self.controllers.controllers:
+            c.bulk = arrays
+
     def reset_sync_counters(self) -> None:
         """Zero rx/missed/late per DN and the sync overruns (after a warm-up)."""
         for hs in (self._rx, self._missed, self._late):
@@ -489,6 +494,11 @@ class DeviceLogic:
         if self.triggered:
             self.run(now_ns)
         return reply
+
+    def attach_bulk(self, arrays: dict[str, Any]) -> None:
+        """Give every component the node's bulk channel arrays (by channel)."""
+        for c in [*self.controllers.controllers, *self.devices.devices]:
+            c.bulk = arrays
 
     def watchdog(self, now_ns: int) -> bool:
         """Safe the node if it has had no valid trigger for

@@ -30,6 +30,7 @@ import numpy as np
 import zenoh
 
 from ..auth import load_key
+from ..bulk import open_bulk
 from ..clocksync import ClockServer
 from ..config import Mission
 from ..datavector import DataVector
@@ -106,6 +107,7 @@ class ControlNode:
         )
         self._events = EventPublisher(s, keys.events("cn"), self.logic.events)
         self._radio = _Radio(mission, s, keys.downlink) if mission.downlink.ccsds else None
+        self.bulk = open_bulk(s, mission, "cn", self.logic)
         self._skipped = 0
         self.ns.announce()
         self.first_loop_ns = 0
@@ -205,6 +207,11 @@ class ControlNode:
             self.first_loop_ns = t
         logic = self.logic
         overrun = self.sync.sync(logic.begin(loop, t), logic)
+        bulk = self.bulk
+        if bulk is not None:  # latest samples in, before the controllers read them
+            for r in bulk.readers.values():
+                r.poll()
+            bulk.write_counters(self.dv)
         grounds = self._grounds
         grounds.clear()
         inbox = self._inbox
@@ -226,6 +233,10 @@ class ControlNode:
             self._tm_pub.put(tm)
             if self._radio is not None:
                 self._radio.send(self.dv, loop, t)
+        if bulk is not None:
+            for w in bulk.writers.values():
+                if w.due(loop):
+                    w.publish(loop, t)
         self._events.flush()
         self._work[self.loops & 0xFFFF] = self._mono() - m0
         self.loops += 1
@@ -294,6 +305,8 @@ class ControlNode:
                 self._gsub.undeclare()
             if self._radio is not None:
                 self._radio.pub.undeclare()
+            if self.bulk is not None:
+                self.bulk.close()
             self._tm_pub.undeclare()
         finally:
             if self.recorder is not None:

@@ -20,6 +20,7 @@ import threading
 
 from ..auth import load_key
 from ..boards import close_board, open_board
+from ..bulk import NodeBulk, open_bulk
 from ..clocksync import estimate_offset
 from ..config import Mission
 from ..errors import ClockSyncError, NodeError, TransportError, ZPlatformError
@@ -66,6 +67,7 @@ class DeviceNode:
         self.drift_ns = 0
         self.loops = 0
         self.sync: DeviceSync | None = None
+        self.bulk: NodeBulk | None = None
         self._events: EventPublisher | None = None
         self._resync: threading.Thread | None = None
 
@@ -120,6 +122,7 @@ class DeviceNode:
             res.offset_ns / 1e3,
         )
         self.sync = DeviceSync(s, keys, self.name, self.clock.now_ns)
+        self.bulk = open_bulk(s, m, self.name, self.logic)
         self._events = EventPublisher(s, keys.events(self.name), self.logic.events)
         if m.clock.resync_s > 0:
             self._resync = threading.Thread(target=self._resync_loop, daemon=True)
@@ -168,7 +171,16 @@ class DeviceNode:
                     continue
                 t = now()
                 self._drift_h.set(self.drift_ns)
+                bulk = self.bulk
+                if bulk is not None:  # latest samples in, before the run reads them
+                    for r in bulk.readers.values():
+                        r.poll()
                 run(t)
+                if bulk is not None:  # outside the sync: the reply has gone already
+                    for w in bulk.writers.values():
+                        if w.due(logic.triggered):
+                            w.publish(logic.triggered, t)
+                    bulk.write_counters(self.dv)
                 self._events.flush()
                 # Slack until the next trigger is due: gc only runs there.
                 slack = t + period - now()
@@ -202,6 +214,8 @@ class DeviceNode:
             self._events.undeclare()  # flushes the dn_safed event first
         if self.sync is not None:
             self.sync.close()
+        if self.bulk is not None:
+            self.bulk.close()
         if self._resync is not None:
             self._resync.join(timeout=2)
         close_board(self.logic.board)
