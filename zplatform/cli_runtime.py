@@ -18,11 +18,12 @@ from typing import Any
 import zenoh
 
 from .auth import TAG_LEN, load_key, mission_channels
+from .bulk import bulk_key, decode_sample
 from .cli_args import check_output, check_ports, nonnegative_float, positive_float, positive_int
 from .codec import RegionCodec
 from .config import Mission
 from .datavector import DataVector, Layout
-from .errors import CodecError, CommandError, NodeError
+from .errors import CodecError, CommandError, NodeError, TransportError
 from .events import decode_event
 from .mission import load_mission
 from .node.runtime import PARENT_ENV, setup_logging
@@ -311,6 +312,7 @@ class _TapDecoder:
             key = None
         ch = mission_channels(mission, key)
         self._by_key: dict[str, Any] = {}
+        self._bulk = {bulk_key(mission.vehicle, ch): ch for ch in mission.bulk}
         cn = DataVector(Layout.for_node(mission, "cn"))
         self._by_key[keys.telemetry] = (RegionCodec(cn), cn, ch["telemetry"])
         for region in mission.region_names():
@@ -335,6 +337,25 @@ class _TapDecoder:
                     "severity_name": e.severity_name,
                     "id": e.id,
                     "text": e.text,
+                },
+            }
+        ch = self._bulk.get(key)
+        if ch is not None:
+            try:
+                hdr, arr = decode_sample(payload, ch)
+            except TransportError as exc:
+                return {"key": key, "error": str(exc)}
+            return {
+                "key": key,
+                "seq": hdr.seq,
+                "loop": hdr.loop,
+                "t_ns": hdr.t_ns,
+                "bulk": {
+                    "channel": ch.name,
+                    "bytes": len(payload),
+                    "min": float(arr.min()),
+                    "max": float(arr.max()),
+                    "mean": float(arr.mean()),
                 },
             }
         entry = self._by_key.get(key)
@@ -383,7 +404,7 @@ def _print_tap(d: dict[str, Any], as_json: bool) -> None:
         print(json.dumps(d, default=str), flush=True)
     elif "values" in d:
         vals = " ".join(f"{k}={v}" for k, v in d["values"].items())
-        print(f"{key} seq={d['seq']} t_ns={d['t_ns']} {vals}", flush=True)
+        print(f"{key} seq={d['seq']} t_ns={d['t_ns']} via={d.get('via')} {vals}", flush=True)
     elif "event" in d:
         e = d["event"]
         print(
@@ -406,11 +427,13 @@ def cmd_tap(args: argparse.Namespace) -> int:
     dec = _TapDecoder(mission)
     keyexpr = args.keyexpr or KeySpace(mission.vehicle).everything
     _check_keyexpr(keyexpr)
-    q: queue.SimpleQueue[tuple[str, bytes]] = queue.SimpleQueue()
+    q: queue.SimpleQueue[tuple[str, bytes, bool]] = queue.SimpleQueue()
     ns = NodeSession(mission, None)
+    via: dict[str, list[int]] = {}  # per key: [through shared memory, copied]
 
     def on_sample(sample: zenoh.Sample) -> None:
-        q.put((str(sample.key_expr), sample.payload.to_bytes()))  # hand off only
+        p = sample.payload  # hand off only (and whether shared memory carried it)
+        q.put((str(sample.key_expr), p.to_bytes(), p.as_shm() is not None))
 
     sub = ns.session.declare_subscriber(keyexpr, zenoh.handlers.Callback(on_sample, indirect=False))
     n = 0
@@ -428,11 +451,16 @@ def cmd_tap(args: argparse.Namespace) -> int:
             if left is not None and left <= 0:
                 break
             try:
-                key, payload = q.get(timeout=min(left, 0.5) if left is not None else 0.5)
+                key, payload, shm = q.get(timeout=min(left, 0.5) if left is not None else 0.5)
             except queue.Empty:
                 continue
             n += 1
-            _print_tap(dec.decode(key, payload), args.json)
+            counts = via.setdefault(key, [0, 0])
+            counts[0 if shm else 1] += 1
+            d = dec.decode(key, payload)
+            d["via"] = "shm" if shm else "copied"
+            d["shm_copied"] = counts
+            _print_tap(d, args.json)
     except KeyboardInterrupt:
         pass
     finally:
