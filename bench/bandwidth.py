@@ -278,7 +278,7 @@ def run_floor(kind: str, n: int, size: int, rate_hz: float, duration_s: float) -
     return fig
 
 
-def _plot(variants: dict[str, dict[str, Any]], out_dir: Path) -> list[str]:
+def plot_bandwidth(variants: dict[str, dict[str, Any]], out_dir: Path) -> Path:
     """Log-log sync p99 and CPU against element count, one line per DN split."""
     import matplotlib
 
@@ -313,7 +313,7 @@ def _plot(variants: dict[str, dict[str, Any]], out_dir: Path) -> list[str]:
     path = out_dir / "bandwidth.png"
     fig.savefig(path, dpi=110)
     plt.close(fig)
-    return [str(path)]
+    return path
 
 
 def main(argv: list[str] | None = None) -> dict[str, Any]:
@@ -452,7 +452,9 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     }
     if not args.no_plot:
         try:
-            params["plots"] = _plot(variants, Path(__file__).resolve().parent / "plots")
+            params["plots"] = [
+                str(plot_bandwidth(variants, Path(__file__).resolve().parent / "plots"))
+            ]
         except Exception as exc:  # plotting never loses the measurement
             params["plot_error"] = repr(exc)
     doc = write_result("bandwidth", params, variants, args.json)
