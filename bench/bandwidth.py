@@ -321,6 +321,9 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     parser.add_argument("--seconds", type=float, default=None, help="per point")
     parser.add_argument("--counts", default=None, help="comma-separated element counts")
     parser.add_argument("--splits", default=None, help="comma-separated DN counts")
+    parser.add_argument(
+        "--regions", default=None, help="comma-separated region sizes in bytes ('' for none)"
+    )
     parser.add_argument("--no-rates", action="store_true", help="skip the highest-rate search")
     parser.add_argument("--no-floors", action="store_true", help="skip raw zenoh/UDP floors")
     parser.add_argument("--no-plot", action="store_true")
@@ -378,7 +381,12 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
                 flush=True,
             )
             floors(d, int(fig["frame_bytes_max"]))
-    for rb in REGIONS_QUICK if quick else REGIONS_FULL:
+    regions = (
+        [int(x) for x in args.regions.split(",") if x]
+        if args.regions is not None
+        else list(REGIONS_QUICK if quick else REGIONS_FULL)
+    )
+    for rb in regions:
         name = f"zp_region_{rb}B_3dn"
         print(f"running {name} ...", flush=True)
         try:
