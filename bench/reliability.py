@@ -23,7 +23,10 @@ added to the floor's count when it has none, so the ratio is bounded and
 ``ratio_note`` says so), and each miss listed with its loop number, the CN
 loop's start lateness, which DNs answered, the sync time, and what the host
 and nodes were doing in that 100 ms window (CPU steal and run queue from
-/proc/stat, each node's CPU use), from a 10 Hz sampler thread.
+/proc/stat, each node's CPU use; psutil's CPU times tick every 10 ms, so a
+node's share in a 100 ms window is coarse), from a 10 Hz sampler thread.
+Periods the CN's scheduler skipped (it woke too late) run no loop in either
+system: they are reported as ``params.skipped_periods``, not as messages.
 
 Telemetry latency: CN ``put`` (node clock, read just before the put) to the
 ground's decode (the ground's node clock plus its clock-sync offset to the
@@ -390,6 +393,11 @@ class HostSampler:
 # ------------------------------------------------------------------ the run
 
 
+def summary_skipped(cn: Any) -> int:
+    """Periods the CN's scheduler skipped (loop overruns) so far."""
+    return int(cn.summary().loop_overruns)
+
+
 def _lat_fig(lat_ns: npt.NDArray[np.int64], prefix: str) -> dict[str, Any]:
     if lat_ns.size == 0:
         return {f"{prefix}_p50_us": None, f"{prefix}_p99_us": None, f"{prefix}_max_us": None}
@@ -436,6 +444,7 @@ def run(minutes: float, priority: int) -> tuple[dict[str, Any], dict[str, dict[s
                     zp_got = np.zeros(loops, np.int64)
                     zp_late = np.zeros(loops, np.int64)
                     zp_mono = np.zeros(loops, np.int64)
+                    zp_loop = np.zeros(loops, np.int64)
                     raw_dur = np.zeros(loops, np.int64)
                     raw_got = np.zeros(loops, np.int64)
                     tm_put: dict[int, int] = {}
@@ -465,6 +474,7 @@ def run(minutes: float, priority: int) -> tuple[dict[str, Any], dict[str, dict[s
                         if i < loops:
                             zp_late[i] = m0 - dl
                             zp_mono[i] = m0
+                            zp_loop[i] = cn.logic.loop
                             zp_dur[i] = cn.sync.duration_ns
                             zp_got[i] = sum(1 << j for j, g in enumerate(got_list) if g)
                             half = dl + period // 2 - time.monotonic_ns()
@@ -483,7 +493,7 @@ def run(minutes: float, priority: int) -> tuple[dict[str, Any], dict[str, dict[s
                         del cn.step
                         sampler.stop()
                     wall_s = time.monotonic() - t_start
-                    first_loop = int(cn.logic.loop) - count[0] + 1
+                    skipped = int(summary_skipped(cn))
                     summary = cn.summary()
                 finally:
                     raw_sink = raw.close()
@@ -504,7 +514,9 @@ def run(minutes: float, priority: int) -> tuple[dict[str, Any], dict[str, dict[s
     # zplatform telemetry: per loop, decoded on the ground within the deadline?
     rx_cn = dict(zip(gn.get("seq", []), gn.get("rx_cn_ns", []), strict=False))
     rx_mono = dict(zip(gn.get("seq", []), gn.get("rx_mono", []), strict=False))
-    loops_run = range(first_loop, first_loop + n)
+    # The loops that ran (a period the CN skipped has no loop number in it:
+    # counted apart, as it idles both systems alike).
+    loops_run = [int(x) for x in zp_loop[:n]]
     zp_tm_lat = np.array(
         [rx_cn[k] - tm_put[k] for k in loops_run if k in rx_cn and k in tm_put], np.int64
     )
@@ -537,7 +549,7 @@ def run(minutes: float, priority: int) -> tuple[dict[str, Any], dict[str, dict[s
         host = sampler.at(int(zp_mono[i]))
         miss_list.append(
             {
-                "loop": first_loop + i,
+                "loop": int(zp_loop[i]),
                 "what": "sync",
                 "answered": [
                     dn for j, dn in enumerate(m.device_nodes) if (int(zp_got[i]) >> j) & 1
@@ -547,7 +559,7 @@ def run(minutes: float, priority: int) -> tuple[dict[str, Any], dict[str, dict[s
                 "host": host,
             }
         )
-    idx_of = {first_loop + i: i for i in range(n)}
+    idx_of = {int(zp_loop[i]): i for i in range(n)}
     for k in zp_tm_miss_loops:
         i = idx_of[k]
         miss_list.append(
@@ -619,6 +631,9 @@ def run(minutes: float, priority: int) -> tuple[dict[str, Any], dict[str, dict[s
             else "raw zenoh had 0 misses: ratio = zplatform misses / 1 (floor counted as 1 miss)"
         ),
         "host_steal_mean_pct": sampler.steal_total_pct(),
+        "skipped_periods": skipped,
+        "skipped_note": "periods the CN's scheduler skipped (late wake-ups): neither system "
+        "ran a loop in them; not counted as messages for either",
         "host_rows": len(sampler.rows),
         "misses": miss_list[:200],
         "misses_listed": min(len(miss_list), 200),
