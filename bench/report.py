@@ -307,6 +307,16 @@ def bandwidth_section(params: dict[str, Any], variants: dict[str, dict[str, Any]
         )
     if not rows:
         return []
+    loose: dict[str, int | None] = {}
+    for v in variants.values():
+        if v.get("elements") and v.get("rate_hz") == 100.0 and "deadline_miss_rate" in v:
+            key = f"{v.get('n_dn')}dn"
+            ok = v["deadline_miss_rate"] < 1e-3 and (v.get("rate_hz_measured") or 0) >= 98.0
+            cur = loose.get(key)
+            if ok and (cur is None or v["elements"] > cur):
+                loose[key] = int(v["elements"])
+            else:
+                loose.setdefault(key, None)
     header = [
         "point",
         "elements",
@@ -333,7 +343,8 @@ def bandwidth_section(params: dict[str, Any], variants: dict[str, dict[str, Any]
         "",
         f"Largest element count holding 100 Hz with < 1e-4 misses, per DN split: "
         f"{fmt(params.get('largest_holding_100hz'))}; highest rate held with 3 DNs: "
-        f"{fmt(params.get('highest_rate_held_3dn'))}.",
+        f"{fmt(params.get('highest_rate_held_3dn'))}. Looser, for a noisy shared box: "
+        f"largest count with < 1e-3 misses at 100 Hz, per DN split: {fmt(loose)}.",
     ]
 
 
