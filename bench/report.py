@@ -37,7 +37,19 @@ from typing import Any
 from bench.common import BENCH_DIR, RESULTS_DIR
 
 #: Sections come in this order; any other bench follows, alphabetically.
-ORDER = ("sync", "rate", "jitter", "overhead", "reaction", "baselines", "codec")
+ORDER = (
+    "sync",
+    "rate",
+    "bandwidth",
+    "reliability",
+    "telemetry_latency",
+    "clock",
+    "jitter",
+    "overhead",
+    "reaction",
+    "baselines",
+    "codec",
+)
 #: The DESIGN.md §7 figures, the first columns of every variants table.
 STANDARD = ("p50_us", "p99_us", "max_us", "deadline_miss_rate", "msgs")
 #: Figures that are long arrays or nested: plotted, never tabled.
@@ -45,7 +57,7 @@ BULKY = ("samples", "samples_ns", "samples_us", "histogram")
 #: Benches whose variants all do the same work, so "p50 vs the best p50" means something.
 VS_BEST = ("sync", "baselines")
 #: Params shown in their own tables instead of the params list.
-STRUCTURED_PARAMS = ("targets", "ratios_p50")
+STRUCTURED_PARAMS = ("targets", "ratios_p50", "misses")
 
 
 # ----------------------------------------------------------------------------- loading
@@ -262,6 +274,183 @@ def rate_section(params: dict[str, Any], variants: dict[str, dict[str, Any]]) ->
             ),
         )
     return lines
+
+
+def bandwidth_section(params: dict[str, Any], variants: dict[str, dict[str, Any]]) -> list[str]:
+    """Element count x DN split at 100 Hz, each beside its raw floors; the headline count."""
+    rows: list[list[Any]] = []
+    for name, v in variants.items():
+        if not name.startswith("zp_"):
+            continue
+        floor_z = variants.get(f"raw_zenoh_{v.get('n_dn')}x{v.get('frame_bytes_max')}B", {})
+        floor_u = variants.get(f"raw_udp_{v.get('n_dn')}x{v.get('frame_bytes_max')}B", {})
+        rows.append(
+            [
+                name,
+                v.get("elements")
+                or (f"{v.get('region_bytes')} B" if v.get("region_bytes") else None),
+                v.get("n_dn"),
+                v.get("rate_hz"),
+                v.get("bytes_per_loop"),
+                v.get("mbit_s"),
+                v.get("p50_us"),
+                v.get("p99_us"),
+                v.get("max_us"),
+                v.get("deadline_miss_rate"),
+                v.get("cpu_cn_pct"),
+                v.get("cpu_dn_pct"),
+                v.get("shm_reply_fraction"),
+                floor_z.get("p99_us"),
+                floor_u.get("p99_us"),
+                verdict(v.get("holds")) if "holds" in v else v.get("error"),
+            ]
+        )
+    if not rows:
+        return []
+    loose: dict[str, int | None] = {}
+    for v in variants.values():
+        if v.get("elements") and v.get("rate_hz") == 100.0 and "deadline_miss_rate" in v:
+            key = f"{v.get('n_dn')}dn"
+            ok = v["deadline_miss_rate"] < 1e-3 and (v.get("rate_hz_measured") or 0) >= 98.0
+            cur = loose.get(key)
+            if ok and (cur is None or v["elements"] > cur):
+                loose[key] = int(v["elements"])
+            else:
+                loose.setdefault(key, None)
+    header = [
+        "point",
+        "elements",
+        "DNs",
+        "Hz",
+        "B/loop",
+        "Mbit/s",
+        "p50 us",
+        "p99 us",
+        "max us",
+        "miss rate",
+        "CPU CN %",
+        "CPU DN %",
+        "SHM replies",
+        "raw zenoh p99",
+        "raw UDP p99",
+        "holds",
+    ]
+    return [
+        "",
+        "**Sweep** (floors: the same bytes by bare zenoh and Python UDP, same run)",
+        "",
+        *md_table(header, rows),
+        "",
+        f"Largest element count holding 100 Hz with < 1e-4 misses, per DN split: "
+        f"{fmt(params.get('largest_holding_100hz'))}; highest rate held with 3 DNs: "
+        f"{fmt(params.get('highest_rate_held_3dn'))}. Looser, for a noisy shared box: "
+        f"largest count with < 1e-3 misses at 100 Hz, per DN split: {fmt(loose)}.",
+    ]
+
+
+def reliability_section(params: dict[str, Any], variants: dict[str, dict[str, Any]]) -> list[str]:
+    """Misses per million beside the floor, the thesis' figure, and every miss (first 40)."""
+    lines = ["", "**Reliability**", ""]
+    rows = [
+        [
+            n,
+            v.get("messages"),
+            v.get("misses"),
+            v.get("sync_misses"),
+            v.get("tm_misses"),
+            v.get("misses_per_million"),
+            f"{v['in_deadline_pct']:.4f}"
+            if isinstance(v.get("in_deadline_pct"), int | float)
+            else None,
+            v.get("tm_latency_p50_us"),
+            v.get("tm_latency_p99_us"),
+        ]
+        for n, v in variants.items()
+    ]
+    lines += md_table(
+        [
+            "system",
+            "messages",
+            "misses",
+            "sync",
+            "telemetry",
+            "per million",
+            "in deadline %",
+            "tm p50 us",
+            "tm p99 us",
+        ],
+        rows,
+    )
+    lines += [
+        "",
+        f"Ratio to the raw-zenoh floor: {fmt(params.get('ratio_to_floor'))} "
+        f"({params.get('ratio_note', '')}). Beside it, {params.get('thesis', '')}. "
+        f"Mean host CPU steal over the run: {fmt(params.get('host_steal_mean_pct'))} %.",
+    ]
+    misses = params.get("misses") or []
+    if misses:
+        mrows = []
+        for m in misses[:40]:
+            h = m.get("host") or {}
+            mrows.append(
+                [
+                    m.get("loop"),
+                    m.get("what"),
+                    ",".join(m.get("answered", [])) if "answered" in m else "-",
+                    m.get("sync_us", m.get("latency_us")),
+                    m.get("cn_lateness_us"),
+                    h.get("steal_pct"),
+                    h.get("idle_pct"),
+                    h.get("procs_running"),
+                    fmt(h.get("cpu_pct")),
+                ]
+            )
+        lines += [
+            "",
+            f"Each loop with a zplatform miss (first 40 of {len(misses)}; a loop where two DNs "
+            "missed is one row), with the host's 100 ms window:",
+            "",
+            *md_table(
+                [
+                    "loop",
+                    "what",
+                    "answered",
+                    "sync/latency us",
+                    "CN lateness us",
+                    "steal %",
+                    "idle %",
+                    "run queue",
+                    "CPU % per node",
+                ],
+                mrows,
+            ),
+        ]
+    return lines
+
+
+def clock_section(params: dict[str, Any], variants: dict[str, dict[str, Any]]) -> list[str]:
+    """Residual error per case and estimator; which one is more accurate."""
+    cases = [c["case"] for c in params.get("cases") or []]
+    ests = sorted({str(v["estimator"]) for v in variants.values() if v.get("estimator")})
+    rows = []
+    for c in cases:
+        row: list[Any] = [c]
+        for e in ests:
+            v = variants.get(f"{e}_{c}", {})
+            row += [v.get("err_p50_us"), v.get("abs_err_max_us")]
+        rows.append(row)
+    header = ["case"]
+    for e in ests:
+        header += [f"{e} bias us", f"{e} worst us"]
+    return [
+        "",
+        "**Residual error after correction** (estimate minus truth)",
+        "",
+        *md_table(header, rows),
+        "",
+        f"Median |error| over all cases: {fmt(params.get('abs_err_p50_us'))} us; "
+        f"more accurate here: **{params.get('more_accurate')}**.",
+    ]
 
 
 def params_section(params: dict[str, Any]) -> list[str]:
@@ -482,6 +671,11 @@ def make_plots(bench: str, doc: dict[str, Any], out: Path) -> list[Path]:
         paths.append(plot_rate(variants, params, out))
     elif bench == "codec":
         paths.append(plot_codec(variants, out))
+    elif bench == "bandwidth":
+        from bench.bandwidth import plot_bandwidth
+
+        paths.append(plot_bandwidth(variants, out))
+        paths.append(plot_latency_bars(bench, variants, out))
     else:
         paths.append(plot_latency_bars(bench, variants, out))
     paths.append(plot_distributions(bench, variants, out))
@@ -511,6 +705,12 @@ def section(bench: str, doc: dict[str, Any], plots_dir: Path | None, report_dir:
         lines.append("_No variants in this result._")
     if bench == "rate":
         lines += rate_section(params, variants)
+    elif bench == "bandwidth":
+        lines += bandwidth_section(params, variants)
+    elif bench == "reliability":
+        lines += reliability_section(params, variants)
+    elif bench == "clock":
+        lines += clock_section(params, variants)
     lines += ratios_section(params, variants)
     lines += targets_section(params, variants)
     if plots_dir is not None:

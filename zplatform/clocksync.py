@@ -34,7 +34,7 @@ import zenoh
 from .errors import ClockSyncError
 from .transport import KeySpace
 
-__all__ = ["ClockEstimate", "ClockServer", "estimate_offset"]
+__all__ = ["ClockEstimate", "ClockServer", "estimate_offset", "estimate_offset_zenoh"]
 
 _REQ = struct.Struct("<q")
 _REP = struct.Struct("<qqq")
@@ -146,4 +146,114 @@ def estimate_offset(
         exchanges=len(samples),
         kept=len(kept),
         spread_ns=offsets[-1] - offsets[0],
+    )
+
+
+def estimate_offset_zenoh(
+    session: zenoh.Session,
+    keys: KeySpace,
+    now_ns: Callable[[], int],
+    *,
+    exchanges: int = 200,
+    keep_fraction: float = 0.1,
+    timeout_s: float = 1.0,
+) -> ClockEstimate:
+    """The same estimate as :func:`estimate_offset`, from zenoh's own four time points.
+
+    Each exchange is a query to the CN's :class:`ClockServer` with zenoh 1.10's
+    ``TimestampInstrumentation`` (send and receive records, DESIGN.md §8): the
+    reply carries ``t1z..t4z``, stamped by zenoh on the host clocks of both
+    sides at the moments the query and the reply cross zenoh. Per exchange::
+
+        offset_z = ((t2z - t1z) + (t3z - t4z)) / 2     # zenoh clocks, CN - DN
+        delay_z  = (t4z - t1z) - (t3z - t2z)
+
+    the fastest ``keep_fraction`` by ``delay_z`` are kept and their median
+    ``offset_z`` is the zenoh-clock offset. It is mapped into node time with
+    each side's node-minus-zenoh clock difference, bracketed over all the
+    exchanges by the node-clock reads next to zenoh's stamps (a read *before*
+    a stamp gives a lower bound, one *after* it an upper bound)::
+
+        map_cn in [max(t3 - t3z), min(t2 - t2z)]   # t3 read before reply, t2 after receive
+        map_dn in [max(t1 - t1z), min(t4 - t4z)]   # t1 read before get, t4 after receive
+        offset = offset_z + mid(map_cn) - mid(map_dn)   # CN node - DN node
+
+    (``t1..t4`` are the node-clock times of :func:`estimate_offset`'s
+    exchange, from the unchanged :class:`ClockServer`.) Averaging each
+    exchange's two mapping terms instead would cancel zenoh's stamps and
+    give back :func:`estimate_offset` exactly; the brackets keep only the
+    tightest reads, so Python's callback and thread hand-off latency drops
+    out of both the network part and the mapping. ``spread_ns`` is the sum
+    of the two bracket widths plus the kept offsets' spread. It assumes each
+    side's node clock and zenoh clock run at the same rate during the
+    exchanges (a 100 ppm drift over 200 exchanges moves the DN's mapping by
+    about 6 us).
+
+    Blocks for the exchanges. Raises ClockSyncError when fewer than half of
+    them get a valid reply with four timestamps.
+    """
+    ti = zenoh.TimestampInstrumentationBuilder().set_send(True).set_receive(True).build()
+    samples: list[tuple[int, int]] = []
+    cn_lo, cn_hi, dn_lo, dn_hi = -(1 << 63), 1 << 63, -(1 << 63), 1 << 63
+    replies: queue.SimpleQueue[tuple[bytes, list[int], int] | None] = queue.SimpleQueue()
+
+    def on_reply(r: zenoh.Reply) -> None:
+        t4 = now_ns()
+        ok = r.ok
+        if ok is None:
+            replies.put(None)
+            return
+        stack = getattr(ok, "timestamp_stack", None)
+        stamps: list[int] = []
+        if stack is not None:
+            for rec in stack.records:
+                ts = rec.timestamp()
+                if isinstance(ts, bytes | bytearray):
+                    continue
+                stamps.append(ts.get_time_as_ntp64().as_nanos())
+        replies.put((ok.payload.to_bytes(), stamps, t4))
+
+    cb = zenoh.handlers.Callback(on_reply, indirect=False)
+    for _ in range(exchanges):
+        t1 = now_ns()
+        session.get(
+            keys.clock,
+            cb,
+            payload=_REQ.pack(t1),
+            consolidation=zenoh.ConsolidationMode.NONE,
+            timeout=timeout_s,
+            timestamp_instrumentation=ti,
+        )
+        try:
+            item = replies.get(timeout=timeout_s)
+        except queue.Empty:
+            continue
+        if item is None:
+            continue
+        raw, stamps, t4 = item
+        if len(raw) != _REP.size or len(stamps) != 4:
+            continue
+        e1, t2, t3 = _REP.unpack(raw)
+        if e1 != t1:
+            continue
+        t1z, t2z, t3z, t4z = stamps
+        cn_lo, cn_hi = max(cn_lo, t3 - t3z), min(cn_hi, t2 - t2z)
+        dn_lo, dn_hi = max(dn_lo, t1 - t1z), min(dn_hi, t4 - t4z)
+        samples.append((((t2z - t1z) + (t3z - t4z)) // 2, (t4z - t1z) - (t3z - t2z)))
+    if len(samples) < exchanges // 2:
+        raise ClockSyncError(
+            f"zenoh-timestamp clock sync got {len(samples)} of {exchanges} "
+            f"instrumented replies from {keys.clock}"
+        )
+    samples.sort(key=lambda s: s[1])
+    kept = samples[: max(3, int(len(samples) * keep_fraction))]
+    offsets = sorted(o for o, _ in kept)
+    map_cn = (cn_lo + cn_hi) // 2
+    map_dn = (dn_lo + dn_hi) // 2
+    return ClockEstimate(
+        offset_ns=offsets[len(offsets) // 2] + map_cn - map_dn,
+        delay_ns=kept[len(kept) // 2][1],
+        exchanges=len(samples),
+        kept=len(kept),
+        spread_ns=offsets[-1] - offsets[0] + abs(cn_hi - cn_lo) + abs(dn_hi - dn_lo),
     )

@@ -1,0 +1,104 @@
+"""Smoke tests of the bandwidth, reliability, telemetry-latency and clock benches.
+
+Each runs its bench's ``main`` briefly (realtime scheduling off, so the test
+process is never put in SCHED_FIFO) and checks the result file's shape and
+that :mod:`bench.report` renders it: they prove the benches run, not what
+they measure. The ``--quick`` runs as shipped are marked slow.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+from bench import bandwidth, clock, reliability, report, telemetry_latency
+
+pytestmark = pytest.mark.timeout(180)
+
+
+def _doc(path: Path, bench: str) -> dict:  # type: ignore[type-arg]
+    doc = json.loads(path.read_text())
+    assert doc["bench"] == bench
+    assert doc["variants"] and doc["machine"]
+    return doc  # type: ignore[no-any-return]
+
+
+def _renders(tmp_path: Path) -> str:
+    out = tmp_path / "REPORT.md"
+    return report.build_report(tmp_path, out, None)
+
+
+def test_bandwidth_smoke(tmp_path: Path) -> None:
+    out = tmp_path / "bandwidth.json"
+    bandwidth.main(
+        [
+            "--counts",
+            "10",
+            "--splits",
+            "1",
+            "--regions",
+            "",
+            "--no-rates",
+            "--seconds",
+            "1",
+            "--no-plot",
+            "--priority",
+            "0",
+            "--json",
+            str(out),
+        ]
+    )
+    doc = _doc(out, "bandwidth")
+    v = doc["variants"]["zp_10el_1dn"]
+    assert v["elements"] == 10 and v["bytes_per_loop"] > 0 and v["p50_us"] is not None
+    assert "raw_zenoh_1x" + str(v["frame_bytes_max"]) + "B" in doc["variants"]
+    assert "**Sweep**" in _renders(tmp_path)
+
+
+def test_reliability_smoke(tmp_path: Path) -> None:
+    out = tmp_path / "reliability.json"
+    reliability.main(["--minutes", "0.05", "--priority", "0", "--json", str(out)])
+    doc = _doc(out, "reliability")
+    zp = doc["variants"]["zplatform_led_test"]
+    raw = doc["variants"]["raw_zenoh_replica"]
+    assert zp["messages"] == raw["messages"] > 0
+    assert zp["tm_received"] > 0 and zp["tm_latency_p50_us"] is not None
+    assert "ratio_to_floor" in doc["params"]
+    assert "**Reliability**" in _renders(tmp_path)
+
+
+def test_telemetry_latency_smoke(tmp_path: Path) -> None:
+    src = Path(telemetry_latency.REPO_ROOT) / "configs" / "led_test.yaml"
+    fig = telemetry_latency.run_mission(
+        telemetry_latency.mission_copy(src, tmp_path / "led.yaml"), 1.0, 0
+    )
+    assert fig["msgs"] > 50 and fig["p99_us"] is not None and fig["lost"] <= 2
+
+
+def test_clock_smoke(tmp_path: Path) -> None:
+    out = tmp_path / "clock.json"
+    clock.main(["--quick", "--json", str(out)])
+    doc = _doc(out, "clock")
+    assert set(doc["params"]["abs_err_p50_us"]) == {"node_clock", "zenoh_ts"}
+    assert doc["params"]["more_accurate"] in ("node_clock", "zenoh_ts")
+    assert "Residual error" in _renders(tmp_path)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("bench", ["bandwidth", "reliability", "telemetry_latency", "clock"])
+def test_quick_as_shipped(bench: str, tmp_path: Path) -> None:
+    mod = {
+        "bandwidth": bandwidth,
+        "reliability": reliability,
+        "telemetry_latency": telemetry_latency,
+        "clock": clock,
+    }[bench]
+    out = tmp_path / f"{bench}.json"
+    mod.main(
+        ["--quick", "--priority", "0", "--json", str(out)]
+        if bench != "clock"
+        else ["--quick", "--json", str(out)]
+    )
+    _doc(out, bench)
