@@ -3,7 +3,9 @@
 Each runs its bench's ``main`` briefly (realtime scheduling off, so the test
 process is never put in SCHED_FIFO) and checks the result file's shape and
 that :mod:`bench.report` renders it: they prove the benches run, not what
-they measure. The ``--quick`` runs as shipped are marked slow.
+they measure. They start node processes and take 3-45 s each, so the whole
+module is in the slow suite (``./scripts/test.sh -m slow``), with the
+``--quick`` runs as shipped.
 """
 
 from __future__ import annotations
@@ -15,7 +17,7 @@ import pytest
 
 from bench import bandwidth, clock, reliability, report, telemetry_latency
 
-pytestmark = pytest.mark.timeout(180)
+pytestmark = [pytest.mark.slow, pytest.mark.timeout(180)]
 
 
 def _doc(path: Path, bench: str) -> dict:  # type: ignore[type-arg]
