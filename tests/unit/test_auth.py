@@ -97,3 +97,16 @@ def test_keygen_verb(no_env_key: Path) -> None:
     assert r.returncode == 0 and "wrote the key" in r.stdout
     r = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=60)
     assert r.returncode == 2 and "exists" in r.stderr and "Traceback" not in r.stderr
+
+
+def test_the_tag_is_what_format_md_says() -> None:
+    """codecs/FORMAT.md §6.1, computed by hand: a peer in another language
+    can implement it from the document."""
+    import hashlib
+    import hmac
+
+    key = bytes(range(32))
+    frame = b"\x94\xce\x00\x00\x00\x01" + b"rest of a frame"
+    ch_key = hmac.new(key, b"zplatform/1/rocket/telemetry", hashlib.sha256).digest()
+    tag = hmac.new(ch_key, frame, hashlib.sha256).digest()[:16]
+    assert bytes(Channel(key, "rocket", "telemetry").seal(frame)) == frame + tag
