@@ -44,7 +44,6 @@ Run ``python -m bench.bandwidth [--quick] [--json PATH]``.
 
 from __future__ import annotations
 
-import functools
 import os
 import secrets
 import tempfile
@@ -62,8 +61,6 @@ from bench.baselines import run_baseline
 from bench.cluster import BenchCluster, make_mission
 from bench.common import bench_argparser, summarize, write_result
 from bench.sync import PRIORITY, inherit_fifo
-from zplatform.auth import load_key
-from zplatform.mission import load_mission
 
 TYPES = ("f32", "i32", "u16", "bool", "f64", "u8", "i16", "u32")
 COUNTS_FULL = (10, 100, 1_000, 10_000, 100_000)
@@ -97,22 +94,9 @@ def element_extra(n_elements: int, n_dn: int) -> dict[str, list[dict[str, Any]]]
 
 
 def auth_cluster(mission_path: Path, **kw: Any) -> BenchCluster:
-    """A :class:`BenchCluster` whose in-process CN authenticates like its DNs.
-
-    ``BenchCluster`` builds its ControlNode without a key (auth off on the CN)
-    while the DN processes read ``ZPLATFORM_KEY``: every frame would then be
-    rejected. Here the CN gets the mission's key (:func:`zplatform.auth.load_key`)
-    so zplatform is measured as shipped, auth on. Spawns the DNs (no blocking).
-    """
-    import bench.cluster as bc
-
-    key = load_key(load_mission(mission_path))
-    orig = bc.ControlNode
-    bc.ControlNode = functools.partial(orig, key=key)  # type: ignore[misc,assignment]
-    try:
-        return BenchCluster(mission_path, **kw)
-    finally:
-        bc.ControlNode = orig  # type: ignore[misc]
+    """A :class:`BenchCluster` (its CN and DNs share the run's mission key,
+    so zplatform is measured as shipped, auth on). Spawns the DNs."""
+    return BenchCluster(mission_path, **kw)
 
 
 def _cpu_s(procs: list[psutil.Process]) -> list[float]:

@@ -12,6 +12,7 @@ Vector and the sync statistics of that loop. Every child is killed on close.
 from __future__ import annotations
 
 import os
+import secrets
 import subprocess
 import sys
 from collections.abc import Callable
@@ -20,6 +21,7 @@ from typing import Any
 
 import yaml
 
+from zplatform.auth import KEY_ENV, KEY_FILE_ENV, load_key
 from zplatform.config import Mission
 from zplatform.mission import load_mission
 from zplatform.node.control import ControlNode
@@ -107,6 +109,11 @@ class BenchCluster:
         self.realtime = realtime
         self.procs: list[subprocess.Popen[bytes]] = []
         self.log_dir = log_dir or mission_path.parent
+        # Measured as shipped: authenticated. This process's key, or a
+        # run's own; the DN processes and the in-process CN share it.
+        if not (os.environ.get(KEY_ENV) or os.environ.get(KEY_FILE_ENV)):
+            os.environ[KEY_ENV] = secrets.token_hex(32)
+        key = load_key(self.mission)
         env = dict(os.environ, PYTHONUNBUFFERED="1")
         env[PARENT_ENV] = str(os.getpid())
         for dn in self.mission.device_nodes:
@@ -120,7 +127,7 @@ class BenchCluster:
                         args, stdout=log, stderr=subprocess.STDOUT, env=e, cwd=REPO_ROOT
                     )
                 )
-        self.cn = ControlNode(self.mission, stop=StopFlag(install=False))
+        self.cn = ControlNode(self.mission, stop=StopFlag(install=False), key=key)
 
     def start(self, timeout_s: float = 60.0) -> dict[str, int]:
         """Wait for every DN (clock-synced, answering); returns clock offsets."""
