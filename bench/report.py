@@ -453,6 +453,32 @@ def clock_section(params: dict[str, Any], variants: dict[str, dict[str, Any]]) -
     ]
 
 
+def faults_section(params: dict[str, Any], variants: dict[str, dict[str, Any]]) -> list[str]:
+    """Issue 9's table: per fault case, detection, misses, end state, forgeries."""
+    rows = []
+    for case, v in variants.items():
+        failed = [k for k, c in (v.get("checks") or {}).items() if not c.get("ok")]
+        rows.append(
+            [
+                case,
+                v.get("detect_ms"),
+                v.get("dn_lost_ms"),
+                v.get("loops_missed"),
+                v.get("final_state"),
+                v.get("expected_state"),
+                v.get("forged_applied"),
+                "all pass" if not failed else "FAIL: " + ", ".join(failed),
+            ]
+        )
+    head = ["case", "detect ms", "DN_LOST ms", "loops missed", "final", "configured"]
+    return [
+        "",
+        "**Fault cases** (each on live node processes; `tests/faults/live.py`)",
+        "",
+        *md_table([*head, "forged applied", "checks"], rows),
+    ]
+
+
 def params_section(params: dict[str, Any]) -> list[str]:
     """Short params inline; long nested ones (over 100 characters of JSON) folded away."""
     short: list[tuple[str, Any]] = []
@@ -711,6 +737,8 @@ def section(bench: str, doc: dict[str, Any], plots_dir: Path | None, report_dir:
         lines += reliability_section(params, variants)
     elif bench == "clock":
         lines += clock_section(params, variants)
+    elif bench == "faults":
+        lines += faults_section(params, variants)
     lines += ratios_section(params, variants)
     lines += targets_section(params, variants)
     if plots_dir is not None:
