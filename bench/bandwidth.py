@@ -53,12 +53,11 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import numpy.typing as npt
 import psutil
 import zenoh
 
 from bench.baselines import run_baseline
-from bench.cluster import BenchCluster, make_mission
+from bench.cluster import BenchCluster, SyncSamples, make_mission
 from bench.common import bench_argparser, summarize, write_result
 from bench.sync import PRIORITY, inherit_fifo
 
@@ -91,12 +90,6 @@ def element_extra(n_elements: int, n_dn: int) -> dict[str, list[dict[str, Any]]]
             {"name": f"a{i}", "type": TYPES[(i + 3) % len(TYPES)]}
         )
     return extra
-
-
-def auth_cluster(mission_path: Path, **kw: Any) -> BenchCluster:
-    """A :class:`BenchCluster` (its CN and DNs share the run's mission key,
-    so zplatform is measured as shipped, auth on). Spawns the DNs."""
-    return BenchCluster(mission_path, **kw)
 
 
 def _cpu_s(procs: list[psutil.Process]) -> list[float]:
@@ -176,20 +169,11 @@ def run_point(
             priority=priority if priority > 0 else None,
             extra=element_extra(n_elements, n_dn) if region_bytes is None else None,
         )
-        dur: npt.NDArray[np.int64] = np.zeros(loops, np.int64)
-        replied: npt.NDArray[np.int64] = np.zeros(loops, np.int64)
-        count = [0]
-
-        def hook(loop: int, cn: Any) -> None:
-            i = count[0]
-            if i < loops:
-                dur[i] = cn.sync.duration_ns
-                replied[i] = len(cn.logic.dns) - cn.logic.pending
-                count[0] = i + 1
+        hook = SyncSamples(loops)
 
         counts: dict[str, Any] = {"replies": 0, "shm": 0}
         try:
-            with auth_cluster(mission, realtime=priority > 0) as c:
+            with BenchCluster(mission, realtime=priority > 0) as c:
                 c.start(timeout_s=300.0)
                 startup_s = time.monotonic() - t0
                 _instrument(c.cn, counts)
@@ -205,9 +189,9 @@ def run_point(
             for log in sorted(tmpdir.glob("*.log")):
                 print(f"--- {log.name}\n{log.read_text(errors='replace')[-3000:]}", flush=True)
             raise
-    got = count[0]
-    d = dur[:got]
-    ok = (replied[:got] == n_dn) & (d < deadline_ns)
+    got = hook.count
+    d = hook.duration_ns[:got]
+    ok = (hook.replied[:got] == n_dn) & (d < deadline_ns)
     samples = np.where(ok, d, deadline_ns)
     fig = summarize(samples.tolist(), deadline_ns)
     missed_loops = int(np.count_nonzero(~ok))

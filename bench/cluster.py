@@ -19,6 +19,8 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+import numpy.typing as npt
 import yaml
 
 from zplatform.auth import KEY_ENV, KEY_FILE_ENV, load_key
@@ -171,3 +173,22 @@ class BenchCluster:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+
+class SyncSamples:
+    """Per-loop sync figures for :meth:`BenchCluster.run`'s hook: how long the
+    CN's sync step took and how many DNs had answered. Preallocated; the hook
+    runs on the loop thread and only stores two ints."""
+
+    def __init__(self, loops: int) -> None:
+        self.loops = loops
+        self.duration_ns: npt.NDArray[np.int64] = np.zeros(loops, np.int64)
+        self.replied: npt.NDArray[np.int64] = np.zeros(loops, np.int64)
+        self.count = 0
+
+    def __call__(self, loop: int, cn: ControlNode) -> None:
+        i = self.count
+        if i < self.loops:
+            self.duration_ns[i] = cn.sync.duration_ns
+            self.replied[i] = len(cn.logic.dns) - cn.logic.pending
+            self.count = i + 1

@@ -64,7 +64,6 @@ import psutil
 import yaml
 import zenoh
 
-from bench.bandwidth import auth_cluster
 from bench.baselines import (
     HEADER,
     KEY_PREFIX,
@@ -73,6 +72,7 @@ from bench.baselines import (
     _token_key,
     zenoh_config,
 )
+from bench.cluster import BenchCluster
 from bench.common import REPO_ROOT, bench_argparser, free_port, spawn, summarize, terminate_all
 from bench.common import write_result as _write
 from bench.sync import PRIORITY, inherit_fifo
@@ -414,7 +414,7 @@ def run(minutes: float, priority: int) -> tuple[dict[str, Any], dict[str, dict[s
     with tempfile.TemporaryDirectory(prefix="zp-rel-") as tmp:
         tmpdir = Path(tmp)
         mpath = led_mission(tmpdir / "led_test.yaml")
-        with auth_cluster(mpath, realtime=priority > 0) as c:
+        with BenchCluster(mpath, realtime=priority > 0) as c:
             cn = c.cn
             m = c.mission
             period = m.period_ns

@@ -60,10 +60,9 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import numpy.typing as npt
 
 from bench.baselines import run_baseline
-from bench.cluster import BenchCluster, make_mission
+from bench.cluster import BenchCluster, SyncSamples, make_mission
 from bench.common import RESULTS_DIR, bench_argparser, summarize, write_result
 
 RATE_HZ = 100.0
@@ -151,17 +150,7 @@ def run_zplatform(
             lowlatency=lowlatency,
             priority=priority if priority > 0 else None,
         )
-        dur: npt.NDArray[np.int64] = np.zeros(loops, np.int64)
-        replied: npt.NDArray[np.int64] = np.zeros(loops, np.int64)
-        count = [0]
-
-        def hook(loop: int, cn: Any) -> None:
-            # Called after every step, on the loop thread: two stores, no allocation.
-            i = count[0]
-            if i < loops:
-                dur[i] = cn.sync.duration_ns
-                replied[i] = len(cn.logic.dns) - cn.logic.pending
-                count[0] = i + 1
+        hook = SyncSamples(loops)
 
         try:
             with BenchCluster(mission, realtime=priority > 0) as c:
@@ -174,9 +163,9 @@ def run_zplatform(
             for log in sorted(tmpdir.glob("*.log")):
                 print(f"--- {log.name}\n{log.read_text(errors='replace')[-4000:]}", flush=True)
             raise
-    got = count[0]
-    d = dur[:got]
-    ok = (replied[:got] == n_dn) & (d < deadline_ns)
+    got = hook.count
+    d = hook.duration_ns[:got]
+    ok = (hook.replied[:got] == n_dn) & (d < deadline_ns)
     samples = np.where(ok, d, deadline_ns)
     fig = summarize(samples.tolist(), deadline_ns)
     fig["max_raw_us"] = _us(d.max()) if got else None

@@ -34,8 +34,8 @@ from typing import Any
 import numpy as np
 import yaml
 
-from bench.bandwidth import auth_cluster, element_extra
-from bench.cluster import make_mission
+from bench.bandwidth import element_extra
+from bench.cluster import BenchCluster, make_mission
 from bench.common import REPO_ROOT, bench_argparser, free_port, summarize, write_result
 from bench.reliability import _finish_child, _spawn_child, _wait_ready
 from bench.sync import PRIORITY, inherit_fifo
@@ -76,7 +76,7 @@ def run_mission(mpath: Path, seconds: float, priority: int) -> dict[str, Any]:
     """One mission for ``seconds``: per-snapshot put->decode latency (blocks that long)."""
     tmpdir = mpath.parent
     gn_out = tmpdir / f"{mpath.stem}.gn.json"
-    with auth_cluster(mpath, realtime=priority > 0) as c:
+    with BenchCluster(mpath, realtime=priority > 0) as c:
         cn = c.cn
         loops = max(1, round(seconds * c.mission.loop_hz))
         ground = _spawn_child(["ground", str(mpath), str(gn_out)])

@@ -23,6 +23,7 @@ so cancels out of the delay.
 
 from __future__ import annotations
 
+import dataclasses
 import queue
 import struct
 import threading
@@ -137,6 +138,12 @@ def estimate_offset(
         raise ClockSyncError(
             f"clock sync got {len(samples)} of {exchanges} replies from {keys.clock}"
         )
+    return _fastest(samples, keep_fraction)
+
+
+def _fastest(samples: list[tuple[int, int]], keep_fraction: float) -> ClockEstimate:
+    """The estimate from ``(offset, delay)`` samples: the median offset of the
+    fastest ``keep_fraction`` (at least 3), which the network delayed least."""
     samples.sort(key=lambda s: s[1])
     kept = samples[: max(3, int(len(samples) * keep_fraction))]
     offsets = sorted(o for o, _ in kept)
@@ -245,15 +252,11 @@ def estimate_offset_zenoh(
             f"zenoh-timestamp clock sync got {len(samples)} of {exchanges} "
             f"instrumented replies from {keys.clock}"
         )
-    samples.sort(key=lambda s: s[1])
-    kept = samples[: max(3, int(len(samples) * keep_fraction))]
-    offsets = sorted(o for o, _ in kept)
+    est = _fastest(samples, keep_fraction)
     map_cn = (cn_lo + cn_hi) // 2
     map_dn = (dn_lo + dn_hi) // 2
-    return ClockEstimate(
-        offset_ns=offsets[len(offsets) // 2] + map_cn - map_dn,
-        delay_ns=kept[len(kept) // 2][1],
-        exchanges=len(samples),
-        kept=len(kept),
-        spread_ns=offsets[-1] - offsets[0] + abs(cn_hi - cn_lo) + abs(dn_hi - dn_lo),
+    return dataclasses.replace(
+        est,
+        offset_ns=est.offset_ns + map_cn - map_dn,
+        spread_ns=est.spread_ns + abs(cn_hi - cn_lo) + abs(dn_hi - dn_lo),
     )
