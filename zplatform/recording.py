@@ -133,7 +133,7 @@ class Recorder:
         self._mv = self._views[0]
         self._off = 0
         self._dropping = False
-        self._drop_begun = False
+        self._open_loop = False  # a BEGIN is written and its FINISH is not yet
         self.loops = 0
         self.dropped_loops = 0
         self._pending_drops = 0
@@ -227,6 +227,7 @@ class Recorder:
         _ITEM.pack_into(self._mv, off, BEGIN, 0, _BEGIN.size)
         _BEGIN.pack_into(self._mv, off + _ITEM.size, loop, t_ns)
         self._off = off + _ITEM.size + _BEGIN.size
+        self._open_loop = True
 
     def _put_u64(self, typ: int, v: int) -> None:
         off = self._off
@@ -251,8 +252,27 @@ class Recorder:
         inbox_oversize: int,
         telemetry: bytearray | None,
     ) -> None:
-        if self._dropping:
-            return
+        if not self._dropping:
+            self._finish(
+                grounds, sync_overrun, loop_overruns, inbox_dropped, inbox_oversize, telemetry
+            )
+        if self._open_loop:
+            self._open_loop = False
+            if self._dropping:  # begun, then the ring filled: the loop is lost
+                self.dropped_loops += 1
+                self._pending_drops += 1
+            else:
+                self.loops += 1
+
+    def _finish(
+        self,
+        grounds: Sequence[bytes | bytearray | memoryview],
+        sync_overrun: bool,
+        loop_overruns: int,
+        inbox_dropped: int,
+        inbox_oversize: int,
+        telemetry: bytearray | None,
+    ) -> None:
         for ground in grounds:
             if len(ground) > self._max_ground:
                 self._put(GROUND_OVERSIZE, 0, _U32.pack(min(len(ground), 0xFFFF_FFFF)), 4)
@@ -266,8 +286,6 @@ class Recorder:
             _FINISH.pack(bool(sync_overrun), loop_overruns, inbox_dropped, inbox_oversize),
             _FINISH.size,
         )
-        if not self._dropping:
-            self.loops += 1
 
     def close(self) -> None:
         """Flush every chunk to the file and stop the writer (idempotent)."""

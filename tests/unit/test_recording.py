@@ -1,0 +1,61 @@
+"""The recorder's worst day: a disk that stalls. Loops that do not fit are
+dropped and counted, the record says so, and a replay stops at the gap."""
+
+from __future__ import annotations
+
+import threading
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from zplatform import ControlLogic, Recorder, load_mission, recording
+from zplatform.recording import RecordReader
+
+ROOT = Path(__file__).resolve().parents[2]
+MISSION = ROOT / "configs" / "minimal.yaml"
+
+
+class _StallingFile:
+    """A file whose writes block while ``stalled`` (a disk that stops)."""
+
+    def __init__(self, real: Any) -> None:
+        self.real = real
+        self.go = threading.Event()
+        self.go.set()
+
+    def write(self, b: Any) -> int:
+        self.go.wait()
+        return int(self.real.write(b))
+
+    def close(self) -> None:
+        self.real.close()
+
+
+def test_a_stalled_disk_drops_whole_loops_counted_and_marked(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    files: list[_StallingFile] = []
+
+    def stalling_open(path: Any, mode: str) -> _StallingFile:
+        files.append(_StallingFile(open(path, mode)))  # noqa: SIM115 - closed by close()
+        return files[-1]
+
+    monkeypatch.setattr(recording, "open", stalling_open, raising=False)
+    m = load_mission(MISSION)
+    cn = ControlLogic(m, key=None, epoch=1)
+    rec = Recorder(tmp_path / "rec", m, MISSION, cn.dv, seconds=0.0)
+    stalled = files[0]
+    stalled.go.clear()  # the disk stops
+    cn.recorder = rec
+    loops = 3 * len(rec._chunks) * (rec.chunk_size // 64)  # far more than the ring holds
+    for n in range(1, loops + 1):
+        cn.begin(n, n * m.period_ns)
+        cn.finish()  # the DN never answers: a miss, recorded like any input
+    assert rec.dropped_loops > 0 and rec.loops + rec.dropped_loops == loops
+    stalled.go.set()
+    rec.close()
+    reader = RecordReader(tmp_path / "rec")
+    kept = list(reader.loops())
+    assert kept and [r.loop for r in kept] == list(range(1, len(kept) + 1))  # no hole inside
+    assert not reader.complete and reader.dropped_loops > 0  # the gap is in the record
