@@ -16,7 +16,7 @@ from pathlib import Path
 
 import pytest
 
-from tests.budget import assert_within_budget
+from tests.budget import allowed_misses, assert_within_budget
 from tests.drive import igniter_bench_copy
 from zplatform.mission import load_mission
 from zplatform.node.ground import TelemetryReceiver
@@ -145,7 +145,10 @@ def test_led_platform_walks_a_to_e(tmp_path: Path) -> None:
     assert summary["final_state"] == "E"
     assert summary["errors"] == 0
     assert_within_budget(summary)
-    assert summary["telemetry_gaps"] == 0
+    # Telemetry is published with DROP congestion control (the loop must
+    # never block on a slow ground): a host stall may cost a snapshot, which
+    # the ground counts as a gap. Held to the same budget as sync misses.
+    assert summary["telemetry_gaps"] <= allowed_misses(summary["loops"], 1)
 
 
 def test_cmd_refuses_unknown_before_sending(tmp_path: Path) -> None:
