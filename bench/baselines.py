@@ -308,6 +308,7 @@ def _run_zenoh(
     duration_s: float,
     deadline_ns: int,
     lowlatency: bool,
+    wildcard: bool = False,
 ) -> BaselineResult:
     procs: list[subprocess.Popen[bytes]] = []
     port = free_port()
@@ -361,6 +362,10 @@ def _run_zenoh(
         live.undeclare()
 
         request = bytearray(max(size, HEADER.size))
+        # wildcard: one query to every responder at once, carrying every
+        # responder's frame (each reads its own slice), as one get per loop.
+        wide = bytearray(len(request) * n_responders)
+        wild_key = f"{KEY_PREFIX}/*/to_cn"
         timeout_s = max(deadline_ns / 1e9, 0.001)
         samples: list[int] = []
         missed = 0
@@ -372,7 +377,17 @@ def _run_zenoh(
             pending = set(range(n_responders))
             t_start = time.perf_counter_ns()
             t_deadline = t_start + deadline_ns
-            for i, key in enumerate(keys):
+            if wildcard:
+                for i in range(n_responders):
+                    HEADER.pack_into(wide, i * len(request), seq, i)
+                session.get(
+                    wild_key,
+                    callback,
+                    payload=bytes(wide),
+                    consolidation=zenoh.ConsolidationMode.NONE,
+                    timeout=timeout_s,
+                )
+            for i, key in enumerate(keys if not wildcard else ()):
                 HEADER.pack_into(request, 0, seq, i)
                 session.get(
                     key,
@@ -422,10 +437,13 @@ def run_baseline(
     duration_s: float,
     deadline_ns: int,
     lowlatency: bool = False,
+    wildcard: bool = False,
 ) -> BaselineResult:
     """Spawn ``n_responders`` responders and run ``rate_hz`` × ``duration_s`` timed loops.
 
-    ``kind`` is ``"udp"`` or ``"zenoh"``. ``lowlatency`` applies to zenoh only.
+    ``kind`` is ``"udp"`` or ``"zenoh"``. ``lowlatency`` and ``wildcard`` (one
+    query per loop to every responder, carrying every responder's frame,
+    instead of one get each) apply to zenoh only.
     Blocks for the whole run and returns the per-loop times (ns) of all replies,
     with each missed loop recorded as ``deadline_ns``, and the count of missed
     loops. Raises :class:`BaselineError` if the responders never become ready.
@@ -437,7 +455,9 @@ def run_baseline(
     if kind == "udp":
         return _run_udp(n_responders, size, rate_hz, duration_s, deadline_ns)
     if kind == "zenoh":
-        return _run_zenoh(n_responders, size, rate_hz, duration_s, deadline_ns, lowlatency)
+        return _run_zenoh(
+            n_responders, size, rate_hz, duration_s, deadline_ns, lowlatency, wildcard
+        )
     raise ValueError(f"unknown baseline kind {kind!r} (udp|zenoh)")
 
 

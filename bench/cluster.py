@@ -95,7 +95,8 @@ class BenchCluster:
     """DN processes plus an in-process CN. Use as a context manager.
 
     ``realtime``: apply SCHED_FIFO/affinity from the mission (and pass
-    ``--no-realtime`` to the DNs otherwise).
+    ``--no-realtime`` to the DNs otherwise). ``trace_dir``: run each DN under
+    :mod:`bench.sync_trace`, which writes ``<dn>.trace.json`` there on exit.
     """
 
     def __init__(
@@ -105,6 +106,7 @@ class BenchCluster:
         realtime: bool = True,
         dn_env: dict[str, dict[str, str]] | None = None,
         log_dir: Path | None = None,
+        trace_dir: Path | None = None,
     ) -> None:
         self.path = mission_path
         self.mission: Mission = load_mission(mission_path)
@@ -121,6 +123,9 @@ class BenchCluster:
         for dn in self.mission.device_nodes:
             e = dict(env, **(dn_env or {}).get(dn, {}))
             args = [sys.executable, "-m", "zplatform", "node", str(mission_path), dn]
+            if trace_dir is not None:  # bench.sync_trace: the same node, its hops stamped
+                out = str(trace_dir / f"{dn}.trace.json")
+                args = [sys.executable, "-m", "bench.sync_trace", "dn", *args[4:], out]
             if not realtime:
                 args.append("--no-realtime")
             with open(self.log_dir / f"{dn}.log", "ab") as log:

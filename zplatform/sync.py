@@ -241,7 +241,7 @@ class DeviceSync:
             if reply is None:
                 query.reply_err(logic.reject_reason.encode())
                 return
-            query.reply(self._key, reply, congestion_control=_DROP)
+            query.reply(self._key, reply)
         self._tap.put(reply)
 
     def close(self) -> None:

@@ -1,0 +1,304 @@
+"""Where a sync's time goes: every hop of every DN exchange, stamped on one clock.
+
+The CN (in this process) and each DN process stamp ``CLOCK_MONOTONIC`` (one
+clock for every process on a host) at each hop of the exchange, per loop
+and DN:
+
+===========  ==========================================================
+``issued``   CN loop thread, just before ``session.get`` for this DN
+``arrive``   DN, zenoh's thread: the query handed to the loop's queue
+``serve``    DN loop thread: the query taken from the queue
+``replied``  DN loop thread: ``query.reply`` returned
+``back``     CN, zenoh's thread: the reply handed to the loop's queue
+``taken``    CN loop thread: the reply taken from the queue
+===========  ==========================================================
+
+Reported per hop (the difference of consecutive stamps): p50/p99 over the
+run, and the same over the loops whose sync missed its deadline, so a
+lever can be aimed at the hop that costs the time. The stamps are taken by
+wrapping the platform's own hand-off points (``zplatform.sync``), in the
+traced processes only; the shipped code has no tracing in it.
+
+The mission is configs/led_test.yaml on free ports (``--ground`` adds its
+ground node, as in ``bench.reliability``), or ``--bare N``: ``bench.sync``'s
+mission with N DNs. Variants for levers: ``--lowlatency``, ``--env K=V`` (to
+every process: ``ZENOH_RUNTIME`` and the like).
+
+Run ``python -m bench.sync_trace [--quick] [--seconds S] [--ground] ...``.
+Blocks about ``--seconds`` (default 30, ``--quick`` 5) plus start-up.
+"""
+
+from __future__ import annotations
+
+import atexit
+import json
+import os
+import queue
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+
+from bench.common import bench_argparser, summarize
+from bench.common import write_result as _write
+
+HOPS = ["issued", "arrive", "serve", "replied", "back", "taken"]
+_MAX = 1 << 17  # loops traced per process (a 20 min run at 100 Hz)
+
+
+class _Stamps:
+    """Preallocated per-loop stamps for one node; ``dump`` writes them as JSON."""
+
+    def __init__(self, width: int) -> None:
+        self.t: npt.NDArray[np.int64] = np.zeros((_MAX, width), np.int64)
+
+    def set(self, loop: int, col: int, ns: int) -> None:
+        if 0 < loop < _MAX:
+            self.t[loop, col] = ns
+
+    def dump(self, path: str) -> None:
+        rows = np.nonzero(self.t.any(axis=1))[0]
+        Path(path).write_text(json.dumps({"loops": rows.tolist(), "t": self.t[rows].tolist()}))
+
+
+def dn_main(argv: list[str]) -> None:
+    """``dn <mission> <name> <out.json>``: a DN process with its hops stamped."""
+    import zplatform.sync as zsync
+    from zplatform.cli import main as cli_main
+
+    mission, name, out = argv
+    st = _Stamps(3)  # arrive, serve, replied
+    atexit.register(st.dump, out)
+    arrivals: queue.SimpleQueue[int] = queue.SimpleQueue()
+    mono = time.monotonic_ns
+
+    class StampedQueue(queue.SimpleQueue):  # type: ignore[type-arg]
+        def put(self, item: Any, block: bool = True, timeout: float | None = None) -> None:
+            arrivals.put(mono())  # zenoh's thread, at the hand-off
+            super().put(item)
+
+    orig_init = zsync.DeviceSync.__init__
+    orig_serve = zsync.DeviceSync._serve
+
+    def init(self: Any, *a: Any, **kw: Any) -> None:
+        saved = zsync.queue.SimpleQueue
+        zsync.queue.SimpleQueue = StampedQueue  # type: ignore[misc]
+        try:
+            orig_init(self, *a, **kw)
+        finally:
+            zsync.queue.SimpleQueue = saved  # type: ignore[misc]
+
+    def serve(self: Any, query: Any, logic: Any, *, may_run: bool) -> None:
+        t_arrive = arrivals.get_nowait()
+        t_serve = mono()
+        orig_serve(self, query, logic, may_run=may_run)
+        t_rep = mono()
+        loop = int(logic.last_loop)
+        st.set(loop, 0, t_arrive)
+        st.set(loop, 1, t_serve)
+        st.set(loop, 2, t_rep)
+
+    zsync.DeviceSync.__init__ = init  # type: ignore[method-assign]
+    zsync.DeviceSync._serve = serve  # type: ignore[method-assign]
+    try:
+        cli_main(["node", mission, name])
+    finally:
+        st.dump(out)
+
+
+def _trace_cn(cn: Any, n_dn: int) -> _Stamps:
+    """Wrap the in-process CN's ControlSync: issued, back, taken per DN."""
+    st = _Stamps(3 * n_dn)
+    sync = cn.sync
+    logic = cn.logic
+    mono = time.monotonic_ns
+    session = sync.session
+
+    class StampedSession:
+        def __init__(self) -> None:
+            self.i = 0
+
+        def get(self, key: str, *a: Any, **kw: Any) -> Any:
+            i = self.i
+            self.i = (i + 1) % n_dn
+            st.set(int(logic.loop), 3 * i, mono())
+            return session.get(key, *a, **kw)
+
+    sync.session = StampedSession()
+    q = sync._q
+
+    class StampedQueue:
+        def get(self, timeout: float | None = None) -> Any:
+            item = q.get(timeout=timeout)
+            i, payload = item[0], item[1]
+            st.set(int(logic.loop), 3 * i + 1, item[2])
+            st.set(int(logic.loop), 3 * i + 2, mono())
+            return i, payload
+
+        def put(self, item: Any) -> None:
+            q.put((item[0], item[1], mono()))
+
+        def empty(self) -> bool:
+            return q.empty()
+
+        def get_nowait(self) -> Any:
+            item = q.get_nowait()
+            return item[0], item[1]
+
+    sq = StampedQueue()
+    sync._q = sq
+    # The hand-off closures captured the old queue: rebuild them on the new one.
+    import zenoh
+
+    def make(i: int) -> Any:
+        def handoff(reply: Any) -> None:
+            ok = reply.ok
+            if ok is not None:
+                sq.put((i, ok.payload.to_bytes()))
+                return
+            err = reply.err
+            if err is None or err.payload.to_bytes() != b"Timeout":
+                sq.put((i, None))
+
+        return handoff
+
+    sync._callbacks = [
+        zenoh.handlers.Callback(make(i), sync._on_finalised, indirect=False) for i in range(n_dn)
+    ]
+    return st
+
+
+def _hops(
+    cn: dict[int, list[int]], dns: list[dict[int, list[int]]], misses: set[int]
+) -> dict[str, dict[str, Any]]:
+    """Per-hop durations (us) over all loops, and over the missed ones."""
+    names = [f"{a}->{b}" for a, b in zip(HOPS, HOPS[1:], strict=False)] + ["sync_total"]
+    per: dict[str, list[float]] = {n: [] for n in names}
+    per_miss: dict[str, list[float]] = {n: [] for n in names}
+    for loop, row in cn.items():
+        for i, dn in enumerate(dns):
+            d = dn.get(loop)
+            issued, back, taken = row[3 * i : 3 * i + 3]
+            if d is None or not (issued and back and taken and all(d)):
+                continue
+            t = [issued, d[0], d[1], d[2], back, taken]
+            vals = [(b - a) / 1e3 for a, b in zip(t, t[1:], strict=False)] + [
+                (taken - issued) / 1e3
+            ]
+            for n, v in zip(names, vals, strict=True):
+                per[n].append(v)
+                if loop in misses:
+                    per_miss[n].append(v)
+    out: dict[str, dict[str, Any]] = {}
+    for n in names:
+        a = np.array(per[n]) if per[n] else np.zeros(0)
+        m = np.array(per_miss[n]) if per_miss[n] else np.zeros(0)
+        out[n] = {
+            "p50_us": round(float(np.median(a)), 1) if a.size else None,
+            "p99_us": round(float(np.percentile(a, 99)), 1) if a.size else None,
+            "max_us": round(float(a.max()), 1) if a.size else None,
+            "missed_loops_p50_us": round(float(np.median(m)), 1) if m.size else None,
+            "n": int(a.size),
+        }
+    return out
+
+
+def run(
+    seconds: float, *, ground: bool, bare: int | None, lowlatency: bool, env: dict[str, str]
+) -> tuple[dict[str, Any], dict[str, dict[str, Any]]]:
+    from bench.cluster import BenchCluster, SyncSamples, make_mission
+    from bench.reliability import _finish_child, _spawn_child, _wait_ready, led_mission
+    from bench.sync import PRIORITY
+
+    os.environ.update(env)
+    with tempfile.TemporaryDirectory(prefix="zp-trace-") as tmp:
+        tmpdir = Path(tmp)
+        if bare:
+            mpath = make_mission(
+                tmpdir / "m.yaml", n_dn=bare, lowlatency=lowlatency, priority=PRIORITY
+            )
+        else:
+            mpath = led_mission(tmpdir / "m.yaml", lowlatency=lowlatency)
+        with BenchCluster(mpath, realtime=True, trace_dir=tmpdir, log_dir=Path("/tmp")) as c:
+            m = c.mission
+            n_dn = len(m.device_nodes)
+            gpath = tmpdir / "gn.json"
+            gn = _spawn_child(["ground", str(mpath), str(gpath)]) if ground else None
+            try:
+                c.start(timeout_s=60.0)
+                if gn is not None:
+                    _wait_ready(gn, "ground node")
+                st = _trace_cn(c.cn, n_dn)
+                loops = max(1, round(seconds * m.loop_hz))
+                samples = SyncSamples(loops)
+                c.run(loops, samples)
+            finally:
+                if gn is not None:
+                    _finish_child(gn, gpath)
+        dn_rows = []
+        for dn in m.device_nodes:
+            doc = json.loads((tmpdir / f"{dn}.trace.json").read_text())
+            dn_rows.append({int(k): v for k, v in zip(doc["loops"], doc["t"], strict=True)})
+        rows = np.nonzero(st.t.any(axis=1))[0]
+        cn_rows = {int(r): st.t[r].tolist() for r in rows}
+    n = samples.count
+    dur = samples.duration_ns[:n]
+    missed_idx = np.nonzero(
+        (dur >= m.sync_timeout_ns) | (samples.replied[:n] < n_dn)
+    )[0]
+    first = min(cn_rows) if cn_rows else 0
+    misses = {first + int(k) for k in missed_idx}
+    params: dict[str, Any] = {
+        "mission": f"bench.sync bare, {bare} DNs" if bare else "configs/led_test.yaml",
+        "ground": ground,
+        "lowlatency": lowlatency,
+        "env": env,
+        "seconds": seconds,
+        "loops": n,
+        "missed_loops": len(misses),
+        "clock": "CLOCK_MONOTONIC in every process (one host)",
+    }
+    variant = summarize(dur, deadline_ns=m.sync_timeout_ns)
+    variant["hops"] = _hops(cn_rows, dn_rows, misses)
+    return params, {"trace": variant}
+
+
+def main(argv: list[str] | None = None) -> dict[str, Any]:
+    args_list = sys.argv[1:] if argv is None else argv
+    if args_list[:1] == ["dn"]:
+        dn_main(args_list[1:])
+        return {}
+    parser = bench_argparser(__doc__.splitlines()[0] if __doc__ else "sync_trace")
+    parser.add_argument("--seconds", type=float, default=None)
+    parser.add_argument("--ground", action="store_true")
+    parser.add_argument("--bare", type=int, default=None)
+    parser.add_argument("--lowlatency", action="store_true")
+    parser.add_argument("--env", action="append", default=[])
+    args = parser.parse_args(args_list)
+    seconds = args.seconds if args.seconds is not None else (5.0 if args.quick else 30.0)
+    env = dict(kv.split("=", 1) for kv in args.env)
+    from bench.sync import PRIORITY, inherit_fifo
+
+    sched = inherit_fifo(PRIORITY)
+    params, variants = run(
+        seconds, ground=args.ground, bare=args.bare, lowlatency=args.lowlatency, env=env
+    )
+    params["scheduling"] = sched
+    params["quick"] = bool(args.quick)
+    doc = _write("sync_trace", params, variants, args.json)
+    v = variants["trace"]
+    print(f"sync p50 {v['p50_us']} us p99 {v['p99_us']} us, missed loops {params['missed_loops']}")
+    for hop, h in v["hops"].items():
+        print(
+            f"  {hop:18s} p50 {h['p50_us']!s:>8} p99 {h['p99_us']!s:>8} max {h['max_us']!s:>8}"
+            f"  (missed loops p50 {h['missed_loops_p50_us']})"
+        )
+    return doc
+
+
+if __name__ == "__main__":
+    main()
