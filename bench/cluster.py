@@ -43,7 +43,7 @@ def make_mission(
     loop_hz: float = 100.0,
     sync_timeout_ms: float = 2.0,
     region_bytes: int = 256,
-    lowlatency: bool = False,
+    lowlatency: bool | str = "auto",
     priority: int | None = None,
     controllers: list[dict[str, Any]] | None = None,
     devices: list[dict[str, Any]] | None = None,

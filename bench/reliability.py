@@ -86,8 +86,9 @@ RAW_TM_KEY = f"{KEY_PREFIX}/telemetry"
 TM_HDR = HEADER  # seq (u64), index (u32)
 
 
-def led_mission(path: Path, *, lowlatency: bool = False) -> Path:
-    """configs/led_test.yaml with free loopback ports (and no ground wait)."""
+def led_mission(path: Path, *, lowlatency: bool | str | None = None) -> Path:
+    """configs/led_test.yaml with free loopback ports (and no ground wait);
+    ``lowlatency`` overrides the mission's ``transport.lowlatency``."""
     doc = yaml.safe_load((REPO_ROOT / "configs" / "led_test.yaml").read_text())
     ports = {n: free_port() for n in doc["nodes"]}
     cn_ep = f"tcp/127.0.0.1:{ports['cn']}"
@@ -95,8 +96,8 @@ def led_mission(path: Path, *, lowlatency: bool = False) -> Path:
         spec["listen"] = [f"tcp/127.0.0.1:{ports[n]}"]
         if n != "cn":
             spec["connect"] = [cn_ep]
-    if lowlatency:
-        doc.setdefault("transport", {})["lowlatency"] = True
+    if lowlatency is not None:
+        doc.setdefault("transport", {})["lowlatency"] = lowlatency
     path.write_text(yaml.safe_dump(doc, sort_keys=False))
     return path
 

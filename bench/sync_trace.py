@@ -21,8 +21,10 @@ traced processes only; the shipped code has no tracing in it.
 
 The mission is configs/led_test.yaml on free ports (``--ground`` adds its
 ground node, as in ``bench.reliability``), or ``--bare N``: ``bench.sync``'s
-mission with N DNs. Variants for levers: ``--lowlatency``, ``--env K=V`` (to
-every process: ``ZENOH_RUNTIME`` and the like).
+mission with N DNs. Variants for levers: ``--lowlatency auto|true|false``
+(the mission's ``transport.lowlatency``), ``--env K=V`` (set in this process
+before its first session, and inherited by every child: ``ZENOH_RUNTIME``
+and the like).
 
 Run ``python -m bench.sync_trace [--quick] [--seconds S] [--ground] ...``.
 Blocks about ``--seconds`` (default 30, ``--quick`` 5) plus start-up.
@@ -31,6 +33,7 @@ Blocks about ``--seconds`` (default 30, ``--quick`` 5) plus start-up.
 from __future__ import annotations
 
 import atexit
+import itertools
 import json
 import os
 import queue
@@ -176,7 +179,7 @@ def _hops(
     cn: dict[int, list[int]], dns: list[dict[int, list[int]]], misses: set[int]
 ) -> dict[str, dict[str, Any]]:
     """Per-hop durations (us) over all loops, and over the missed ones."""
-    names = [f"{a}->{b}" for a, b in zip(HOPS, HOPS[1:], strict=False)] + ["sync_total"]
+    names = [f"{a}->{b}" for a, b in itertools.pairwise(HOPS)] + ["sync_total"]
     per: dict[str, list[float]] = {n: [] for n in names}
     per_miss: dict[str, list[float]] = {n: [] for n in names}
     for loop, row in cn.items():
@@ -186,9 +189,7 @@ def _hops(
             if d is None or not (issued and back and taken and all(d)):
                 continue
             t = [issued, d[0], d[1], d[2], back, taken]
-            vals = [(b - a) / 1e3 for a, b in zip(t, t[1:], strict=False)] + [
-                (taken - issued) / 1e3
-            ]
+            vals = [(b - a) / 1e3 for a, b in itertools.pairwise(t)] + [(taken - issued) / 1e3]
             for n, v in zip(names, vals, strict=True):
                 per[n].append(v)
                 if loop in misses:
@@ -208,7 +209,12 @@ def _hops(
 
 
 def run(
-    seconds: float, *, ground: bool, bare: int | None, lowlatency: bool, env: dict[str, str]
+    seconds: float,
+    *,
+    ground: bool,
+    bare: int | None,
+    lowlatency: bool | str,
+    env: dict[str, str],
 ) -> tuple[dict[str, Any], dict[str, dict[str, Any]]]:
     from bench.cluster import BenchCluster, SyncSamples, make_mission
     from bench.reliability import _finish_child, _spawn_child, _wait_ready, led_mission
@@ -223,7 +229,7 @@ def run(
             )
         else:
             mpath = led_mission(tmpdir / "m.yaml", lowlatency=lowlatency)
-        with BenchCluster(mpath, realtime=True, trace_dir=tmpdir, log_dir=Path("/tmp")) as c:
+        with BenchCluster(mpath, realtime=True, trace_dir=tmpdir) as c:
             m = c.mission
             n_dn = len(m.device_nodes)
             gpath = tmpdir / "gn.json"
@@ -247,9 +253,7 @@ def run(
         cn_rows = {int(r): st.t[r].tolist() for r in rows}
     n = samples.count
     dur = samples.duration_ns[:n]
-    missed_idx = np.nonzero(
-        (dur >= m.sync_timeout_ns) | (samples.replied[:n] < n_dn)
-    )[0]
+    missed_idx = np.nonzero((dur >= m.sync_timeout_ns) | (samples.replied[:n] < n_dn))[0]
     first = min(cn_rows) if cn_rows else 0
     misses = {first + int(k) for k in missed_idx}
     params: dict[str, Any] = {
@@ -276,7 +280,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     parser.add_argument("--seconds", type=float, default=None)
     parser.add_argument("--ground", action="store_true")
     parser.add_argument("--bare", type=int, default=None)
-    parser.add_argument("--lowlatency", action="store_true")
+    parser.add_argument("--lowlatency", choices=["auto", "true", "false"], default="auto")
     parser.add_argument("--env", action="append", default=[])
     args = parser.parse_args(args_list)
     seconds = args.seconds if args.seconds is not None else (5.0 if args.quick else 30.0)
@@ -285,7 +289,11 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
 
     sched = inherit_fifo(PRIORITY)
     params, variants = run(
-        seconds, ground=args.ground, bare=args.bare, lowlatency=args.lowlatency, env=env
+        seconds,
+        ground=args.ground,
+        bare=args.bare,
+        lowlatency={"auto": "auto", "true": True, "false": False}[args.lowlatency],
+        env=env,
     )
     params["scheduling"] = sched
     params["quick"] = bool(args.quick)

@@ -143,7 +143,19 @@ class TransportConfig(_Struct):
     multicast_scouting: bool = False
     gossip_scouting: bool = True
     lease_ms: Annotated[int, Meta(ge=100, le=60_000)] = 1000
-    lowlatency: bool = False
+    # zenoh's lowlatency transport (QoS off, no tx batching task) cut the
+    # 3-DN sync p50 by about 10 % here (bench/REPORT.md#sync_trace), but it
+    # cannot fragment: a bigger message is dropped without a word. "auto"
+    # turns it on only when every message the mission sends fits
+    # (zplatform.transport.lowlatency_for); true on a mission where one may
+    # not fit is a config error.
+    lowlatency: bool | Literal["auto"] = "auto"
+    # Threads in zenoh's receive pool (ZENOH_RUNTIME rx worker_threads; zenoh's
+    # default is 2). One thread serving every link is faster on a small box:
+    # fewer wake-ups per message (bench/REPORT.md#sync_trace). Set before
+    # the process opens its first session; ZENOH_RUNTIME in the environment
+    # wins over it.
+    rx_threads: Annotated[int, Meta(ge=1, le=64)] = 1
     # zenoh batches small messages for up to 1 ms by default: good for
     # throughput, bad for a 2 ms sync deadline (bench/REPORT.md). Off unless
     # a mission asks for it.
@@ -436,8 +448,6 @@ def counter_region(node: str) -> str | None:
     if node.startswith("dn"):
         return f"{node}_to_cn"
     return None
-
-
 
 
 class Mission(_Struct):

@@ -46,6 +46,7 @@ from .errors import EventError, FrameFormatError
 
 __all__ = [
     "EV",
+    "MAX_TEXT",
     "Event",
     "EventLog",
     "EventType",
@@ -102,12 +103,23 @@ class EventType(msgspec.Struct, frozen=True):
 
         A missing or unformattable argument does not raise (an event in a
         failure path must not take the loop down with it): the text is then
-        the format string followed by the arguments as given.
+        the format string followed by the arguments as given. Text longer
+        than :data:`MAX_TEXT` characters is cut there and marked, so every
+        event fits one small message (the lowlatency transport cannot
+        fragment; :mod:`zplatform.transport`).
         """
         try:
-            return self.format.format(**args)
+            text = self.format.format(**args)
         except (KeyError, IndexError, ValueError, TypeError, AttributeError):
-            return f"{self.format} {args!r}"
+            text = f"{self.format} {args!r}"
+        if len(text) > MAX_TEXT:
+            text = text[: MAX_TEXT - len(_CUT)] + _CUT
+        return text
+
+
+#: Longest event text (characters); longer text is cut and ends in ``_CUT``.
+MAX_TEXT = 2048
+_CUT = " ...(cut)"
 
 
 class EV:

@@ -43,6 +43,7 @@ from pathlib import Path
 from . import commands, controllers, deploy, devices, statemachine
 from .config import CONTROLLER_MODES, Mission, parse_mission, platform_elements
 from .errors import ConfigError
+from .transport import check_lowlatency
 
 __all__ = ["check_mission", "decode_mission", "load_mission"]
 
@@ -67,6 +68,7 @@ def check_mission(mission: Mission) -> None:
     devices.check_config(mission)
     _check_limits(mission)
     _check_downlink(mission)
+    check_lowlatency(mission)
     # Last: it reads the environment and files, and only matters for a
     # mission that is otherwise fine.
     deploy.require_deployment(mission)

@@ -99,9 +99,14 @@ class ControlSync:
         self._finalised = 0
         self._idle = threading.Event()
         self._idle.set()
-        self._callbacks = [
-            zenoh.handlers.Callback(self._make_handoff(i), self._on_finalised, indirect=False)
-            for i in range(len(dns))
+        handoffs = [self._make_handoff(i) for i in range(len(dns))]
+        # Flight queries have no drop callback: zenoh finalises every query
+        # (one more message per DN and loop), and a Python callback there
+        # would take the GIL on zenoh's thread for nothing. Warm-up queries
+        # count their finalisations so start-up can wait them out.
+        self._callbacks = [zenoh.handlers.Callback(h, indirect=False) for h in handoffs]
+        self._counted = [
+            zenoh.handlers.Callback(h, self._on_finalised, indirect=False) for h in handoffs
         ]
         self._consolidation = zenoh.ConsolidationMode.NONE
         self.duration_ns = 0
@@ -129,17 +134,23 @@ class ControlSync:
 
         return handoff
 
-    def sync(self, frames: Sequence[bytearray], logic: ControlLogic) -> bool:
+    def sync(
+        self, frames: Sequence[bytearray], logic: ControlLogic, *, warmup: bool = False
+    ) -> bool:
         """Send each DN its frame and hand replies to ``logic.reply`` until
         none is pending or the deadline passed. Returns whether the step
         overran: with every reply in, any lateness; while waiting for a
         missing DN, waking more than half a deadline late (the thread was
-        not scheduled)."""
+        not scheduled). ``warmup``: a start-up sync, whose queries
+        :meth:`quiesce` waits for."""
         start = self._mono()
         deadline = start + self.timeout_ns
         n = len(self.dns)
-        self._idle.clear()
-        self._issued += n
+        callbacks = self._callbacks
+        if warmup:
+            callbacks = self._counted
+            self._idle.clear()
+            self._issued += n
         for i in range(n):
             out = frames[i]
             # DROP: on a link that stopped draining (a cut cable) a BLOCKing
@@ -147,7 +158,7 @@ class ControlSync:
             # a missed sync, counted like any other (tests/faults, cable cut).
             self.session.get(
                 self._keys[i],
-                self._callbacks[i],
+                callbacks[i],
                 payload=out,
                 consolidation=self._consolidation,
                 timeout=self._query_timeout,
@@ -170,7 +181,7 @@ class ControlSync:
         return end > deadline + (self.timeout_ns // 2 if logic.pending else 0)
 
     def quiesce(self, logic: ControlLogic, timeout_s: float) -> bool:
-        """Wait until every query issued so far is finalised, then hand any
+        """Wait until every warm-up query issued so far is finalised, then hand any
         reply still queued to ``logic.reply``. Returns False on timeout. Not
         for the loop: start-up uses it so warm-up replies never land in
         flight counters."""

@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import contextlib
 import json
+import os
 import queue
 import socket
 import threading
@@ -39,16 +40,28 @@ import zenoh
 
 from .config import Mission
 from .deploy import Deployment, deployment_from_env, zenoh_settings
-from .errors import TransportError
+from .errors import ConfigError, TransportError
+
+#: The largest message a lowlatency mission may send. zenoh's lowlatency
+#: transport cannot fragment: on zenoh 1.10 a put above about 48 KiB is
+#: dropped without an error (tests/integration/test_lowlatency.py measures
+#: the edge); a third of that leaves room for protocol overhead and a
+#: future zenoh with a smaller buffer.
+LOWLATENCY_MAX_MESSAGE = 16 * 1024
 
 __all__ = [
+    "LOWLATENCY_MAX_MESSAGE",
     "KeySpace",
     "NodeSession",
     "apply_deployment",
+    "check_lowlatency",
     "free_port",
     "is_matching",
+    "largest_message",
+    "lowlatency_for",
     "open_session",
     "rewrite_endpoints",
+    "runtime_env",
     "wait_for_nodes",
     "zenoh_config",
 ]
@@ -117,6 +130,76 @@ def _insert(cfg: zenoh.Config, key: str, value: Any) -> None:
         raise TransportError(f"zenoh config {key}={value!r} rejected: {exc}") from exc
 
 
+def largest_message(mission: Mission) -> int:
+    """Bytes of the largest message the mission's nodes send (an upper bound).
+
+    Telemetry (the CN's whole Data Vector in one frame) and every region
+    frame, with frame overhead and authentication tag; a CCSDS downlink
+    packet; an event record (text capped at :data:`zplatform.events.MAX_TEXT`).
+    Bulk channels are unbounded here (their samples can be megabytes).
+    """
+    from .auth import TAG_LEN
+    from .codec import frame_overhead
+    from .datavector import Layout
+    from .events import MAX_TEXT
+
+    if mission.bulk:
+        return max(ch.nbytes for ch in mission.bulk)
+    sizes = [Layout.for_node(mission, "cn").size]
+    sizes += [Layout.for_regions(mission, [r]).size for r in mission.region_names()]
+    largest = max(n + frame_overhead(n) + TAG_LEN for n in sizes)
+    if mission.downlink.ccsds:
+        largest = max(largest, mission.downlink.max_data + 16)  # + primary and secondary headers
+    return max(largest, 4 * MAX_TEXT + 512)  # an event: UTF-8 text, node, name, numbers
+
+
+def lowlatency_for(mission: Mission) -> bool:
+    """Whether the mission's sessions use zenoh's lowlatency transport.
+
+    ``transport.lowlatency: auto`` (the default): on when no bulk channel is
+    configured and :func:`largest_message` is within
+    :data:`LOWLATENCY_MAX_MESSAGE`; off otherwise. ``true``/``false`` as
+    given (:func:`check_lowlatency` refuses ``true`` where a message may not
+    fit).
+    """
+    ll = mission.transport.lowlatency
+    if ll == "auto":
+        return not mission.bulk and largest_message(mission) <= LOWLATENCY_MAX_MESSAGE
+    return bool(ll)
+
+
+def check_lowlatency(mission: Mission) -> None:
+    """Raise ConfigError at ``transport.lowlatency`` for ``true`` on a mission
+    with a message the lowlatency transport would drop."""
+    if mission.transport.lowlatency is not True:
+        return
+    if mission.bulk:
+        raise ConfigError(
+            "lowlatency cannot carry bulk channels (zenoh's lowlatency transport does not"
+            " fragment): use auto or false",
+            "$.transport.lowlatency",
+        )
+    n = largest_message(mission)
+    if n > LOWLATENCY_MAX_MESSAGE:
+        raise ConfigError(
+            f"lowlatency cannot carry this mission: its largest message is {n} B, over"
+            f" {LOWLATENCY_MAX_MESSAGE} B (zenoh's lowlatency transport does not fragment"
+            " and drops bigger ones): use auto or false",
+            "$.transport.lowlatency",
+        )
+
+
+def runtime_env(mission: Mission) -> None:
+    """Size zenoh's receive pool for this process (``transport.rx_threads``).
+
+    zenoh reads ``ZENOH_RUNTIME`` once, when the process opens its first
+    session: later calls change nothing. A ``ZENOH_RUNTIME`` already in the
+    environment (an operator's own tuning) is left as it is.
+    """
+    if "ZENOH_RUNTIME" not in os.environ:
+        os.environ["ZENOH_RUNTIME"] = f"(rx:(worker_threads:{mission.transport.rx_threads}))"
+
+
 def zenoh_config(
     mission: Mission,
     node: str | None,
@@ -154,7 +237,7 @@ def zenoh_config(
     _insert(cfg, "scouting/multicast/enabled", t.multicast_scouting)
     _insert(cfg, "scouting/gossip/enabled", t.gossip_scouting)
     _insert(cfg, "transport/link/tx/lease", t.lease_ms)
-    ll = t.lowlatency if lowlatency is None else lowlatency
+    ll = lowlatency_for(mission) if lowlatency is None else lowlatency
     if ll:
         # lowlatency needs QoS off (zenoh refuses the pair otherwise).
         _insert(cfg, "transport/unicast/lowlatency", True)
@@ -210,6 +293,7 @@ class NodeSession:
         self.node = node
         self.keys = KeySpace(mission.vehicle)
         dep = deployment if deployment is not None else deployment_from_env(mission)
+        runtime_env(mission)
         self.session = open_session(zenoh_config(mission, node, deployment=dep, **overrides))
         self._token: zenoh.LivelinessToken | None = None
         self._closed = False

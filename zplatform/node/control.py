@@ -174,7 +174,7 @@ class ControlNode:
         deadline = time.monotonic() + timeout_s
         logic = self.logic
         while True:
-            self.sync.sync(logic.begin(0, self.clock.now_ns()), logic)
+            self.sync.sync(logic.begin(0, self.clock.now_ns()), logic, warmup=True)
             if logic.pending == 0:
                 break
             if time.monotonic() > deadline or self.stop.is_set():

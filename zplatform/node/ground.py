@@ -191,6 +191,7 @@ def run_ground_logger(
                 events.write(t_rx, decode_event(payload))
             except CodecError as exc:
                 log.warning("bad event record: %s", exc)
+
     player = ScriptPlayer(mission, script, key=key) if script else None
     cmd_pub = ns.session.declare_publisher(ns.keys.gn_to_cn) if player is not None else None
     # Alive only once subscribed: the CN waits for this token before its
