@@ -49,6 +49,7 @@ import numpy.typing as npt
 from bench.common import bench_argparser, summarize
 from bench.common import write_result as _write
 
+LOWLATENCY_ARG: dict[str, bool | str] = {"auto": "auto", "true": True, "false": False}
 HOPS = ["issued", "arrive", "serve", "replied", "back", "taken"]
 _MAX = 1 << 17  # loops traced per process (a 20 min run at 100 Hz)
 
@@ -79,7 +80,7 @@ def dn_main(argv: list[str]) -> None:
     arrivals: queue.SimpleQueue[int] = queue.SimpleQueue()
     mono = time.monotonic_ns
 
-    class StampedQueue(queue.SimpleQueue):  # type: ignore[type-arg]
+    class StampedQueue(queue.SimpleQueue[Any]):
         def put(self, item: Any, block: bool = True, timeout: float | None = None) -> None:
             arrivals.put(mono())  # zenoh's thread, at the hand-off
             super().put(item)
@@ -266,7 +267,7 @@ def run(
         "missed_loops": len(misses),
         "clock": "CLOCK_MONOTONIC in every process (one host)",
     }
-    variant = summarize(dur, deadline_ns=m.sync_timeout_ns)
+    variant = summarize(dur.tolist(), deadline_ns=m.sync_timeout_ns)
     variant["hops"] = _hops(cn_rows, dn_rows, misses)
     return params, {"trace": variant}
 
@@ -292,7 +293,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         seconds,
         ground=args.ground,
         bare=args.bare,
-        lowlatency={"auto": "auto", "true": True, "false": False}[args.lowlatency],
+        lowlatency=LOWLATENCY_ARG[args.lowlatency],
         env=env,
     )
     params["scheduling"] = sched
