@@ -60,6 +60,7 @@ from bench.baselines import run_baseline
 from bench.cluster import BenchCluster, SyncSamples, make_mission
 from bench.common import bench_argparser, summarize, write_result
 from bench.sync import PRIORITY, inherit_fifo
+from zplatform.transport import lowlatency_for
 
 TYPES = ("f32", "i32", "u16", "bool", "f64", "u8", "i16", "u32")
 COUNTS_FULL = (10, 100, 1_000, 10_000, 100_000)
@@ -185,6 +186,7 @@ def run_point(
                 summary = c.cn.summary()
                 lateness = periodic.lateness_ns()
                 skipped = int(periodic.stats().skipped_periods)
+                lowlatency = lowlatency_for(c.mission)
         except BaseException:
             for log in sorted(tmpdir.glob("*.log")):
                 print(f"--- {log.name}\n{log.read_text(errors='replace')[-3000:]}", flush=True)
@@ -220,6 +222,7 @@ def run_point(
         round(counts["shm"] / counts["replies"], 4) if counts["replies"] else None
     )
     fig["startup_s"] = round(startup_s, 1)
+    fig["lowlatency"] = lowlatency  # transport.lowlatency auto: on only while every message fits
     fig["bad_frames"] = int(summary.bad_frames)
     fig["holds"] = bool(
         fig["deadline_miss_rate"] < MISS_LIMIT and summary.rate_hz >= 0.98 * rate_hz

@@ -45,7 +45,7 @@ FULL_S = 30.0
 
 
 def try_rate(
-    n_dn: int, rate_hz: float, duration_s: float, *, priority: int, lowlatency: bool
+    n_dn: int, rate_hz: float, duration_s: float, *, priority: int, lowlatency: bool | str
 ) -> dict[str, Any]:
     """Run ``n_dn`` DNs at ``rate_hz`` for ``duration_s``; return the figures and ``passed``.
 
@@ -83,11 +83,17 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     parser.add_argument(
         "--topologies", default="1,3", help="comma-separated DN counts (default 1,3)"
     )
-    parser.add_argument("--lowlatency", action="store_true", help="zenoh low-latency transport")
+    parser.add_argument(
+        "--lowlatency",
+        choices=["auto", "true", "false"],
+        default="auto",
+        help="the mission's transport.lowlatency (default: auto, as shipped)",
+    )
     parser.add_argument(
         "--priority", type=int, default=PRIORITY, help="SCHED_FIFO priority (0: off)"
     )
     args = parser.parse_args(argv)
+    ll: bool | str = {"auto": "auto", "true": True, "false": False}[args.lowlatency]
     rates = sorted(float(r) for r in args.rates.split(","))
     topologies = [int(n) for n in args.topologies.split(",")]
     duration_s = QUICK_S if args.quick else FULL_S
@@ -103,7 +109,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         for rate in rates:
             name = f"zplatform_{topo}_{rate:g}hz"
             print(f"running {name} ({duration_s:.0f} s) ...", flush=True)
-            fig = try_rate(n, rate, duration_s, priority=args.priority, lowlatency=args.lowlatency)
+            fig = try_rate(n, rate, duration_s, priority=args.priority, lowlatency=ll)
             fig["topology"] = topo
             variants[name] = fig
             print(
@@ -127,7 +133,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         "sync_timeout_fraction_of_period": TIMEOUT_FRACTION,
         "max_miss_rate": MAX_MISS_RATE,
         "max_overrun_rate": MAX_OVERRUN_RATE,
-        "lowlatency": bool(args.lowlatency),
+        "lowlatency": args.lowlatency,
         "scheduling": sched,
         "highest_passing_hz": highest,
         "first_failing_hz": first_fail,

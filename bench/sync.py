@@ -11,10 +11,16 @@ same scheduling (see *Scheduling* below):
   ``ControlSync.duration_ns`` (``time.monotonic_ns`` from just before
   the first region is encoded and queried until every reply has been checked
   and applied, or the sync deadline passed);
-* ``zplatform_lowlatency_1dn`` / ``zplatform_lowlatency_3dn``: the same with
-  zenoh's ``transport/unicast/lowlatency`` (QoS off) on every node;
-* ``raw_zenoh_1`` / ``raw_zenoh_3`` / ``raw_zenoh_lowlatency_3``: bare zenoh
-  ``get``/``reply`` (:func:`bench.baselines.run_baseline`);
+  These run the mission defaults: ``transport.lowlatency: auto`` turns
+  zenoh's lowlatency transport on for these small regions;
+* ``zplatform_no_lowlatency_3dn``: the same with ``lowlatency: false`` (the
+  lever, measured);
+* ``raw_zenoh_1`` / ``raw_zenoh_3``: bare zenoh ``get``/``reply`` with zenoh's
+  default transport (:func:`bench.baselines.run_baseline`): the floor;
+  ``raw_zenoh_lowlatency_3``: the same on the lowlatency transport;
+* ``raw_zenoh_wildcard_3`` / ``raw_zenoh_wildcard_lowlatency_3``: one
+  wildcard query per loop to every responder, carrying every responder's
+  frame, instead of one get each (a lever zplatform does not use yet);
 * ``raw_udp_1`` / ``raw_udp_3``: Python UDP request/response, the thesis'
   transport.
 
@@ -64,6 +70,7 @@ import numpy as np
 from bench.baselines import run_baseline
 from bench.cluster import BenchCluster, SyncSamples, make_mission
 from bench.common import RESULTS_DIR, bench_argparser, summarize, write_result
+from zplatform.config import TransportConfig
 
 RATE_HZ = 100.0
 REGION_BYTES = 256
@@ -77,22 +84,25 @@ TARGET_P50_VS_ZENOH = 1.5
 
 @dataclass(frozen=True)
 class Variant:
-    """One row of the benchmark: which transport, how many responders, low-latency or not."""
+    """One row of the benchmark: which transport, how many responders, low-latency
+    or not (``"auto"``: the mission's default), one wildcard query or one get each."""
 
     name: str
     kind: str  # "zplatform" | "zenoh" | "udp"
     n: int
-    lowlatency: bool = False
+    lowlatency: bool | str = False
+    wildcard: bool = False
 
 
 VARIANTS: tuple[Variant, ...] = (
-    Variant("zplatform_1dn", "zplatform", 1),
-    Variant("zplatform_3dn", "zplatform", 3),
-    Variant("zplatform_lowlatency_1dn", "zplatform", 1, True),
-    Variant("zplatform_lowlatency_3dn", "zplatform", 3, True),
+    Variant("zplatform_1dn", "zplatform", 1, "auto"),
+    Variant("zplatform_3dn", "zplatform", 3, "auto"),
+    Variant("zplatform_no_lowlatency_3dn", "zplatform", 3, False),
     Variant("raw_zenoh_1", "zenoh", 1),
     Variant("raw_zenoh_3", "zenoh", 3),
     Variant("raw_zenoh_lowlatency_3", "zenoh", 3, True),
+    Variant("raw_zenoh_wildcard_3", "zenoh", 3, False, True),
+    Variant("raw_zenoh_wildcard_lowlatency_3", "zenoh", 3, True, True),
     Variant("raw_udp_1", "udp", 1),
     Variant("raw_udp_3", "udp", 3),
 )
@@ -105,16 +115,23 @@ def _us(ns: float) -> float:
 def inherit_fifo(priority: int) -> str:
     """Put the calling thread in SCHED_FIFO ``priority`` so threads and children inherit it.
 
-    Returns a note for the result's params ("SCHED_FIFO 20", or why not).
-    Does not block. ``priority`` 0 means: leave the policy alone.
+    Also sizes zenoh's receive pool as zplatform does (``transport.rx_threads``,
+    default 1) for this process and its children, unless ``ZENOH_RUNTIME`` is
+    set: zenoh reads it once per process, and this process hosts the CN and
+    the raw baselines' requesters alike, so every system measured runs the
+    same pool. Returns a note for the result's params ("SCHED_FIFO 20; ...",
+    or why not). Does not block. ``priority`` 0 means: leave the policy alone.
     """
+    rx = TransportConfig().rx_threads
+    os.environ.setdefault("ZENOH_RUNTIME", f"(rx:(worker_threads:{rx}))")
+    pool = f"ZENOH_RUNTIME={os.environ['ZENOH_RUNTIME']} in every process"
     if priority <= 0:
-        return "SCHED_OTHER (realtime off)"
+        return f"SCHED_OTHER (realtime off); {pool}"
     try:
         os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
     except (OSError, AttributeError) as exc:
-        return f"SCHED_OTHER (SCHED_FIFO refused: {exc})"
-    return f"SCHED_FIFO {priority}"
+        return f"SCHED_OTHER (SCHED_FIFO refused: {exc}); {pool}"
+    return f"SCHED_FIFO {priority}; {pool}"
 
 
 def run_zplatform(
@@ -124,7 +141,7 @@ def run_zplatform(
     duration_s: float,
     sync_timeout_ms: float,
     region_bytes: int = REGION_BYTES,
-    lowlatency: bool = False,
+    lowlatency: bool | str = "auto",
     priority: int = PRIORITY,
 ) -> dict[str, Any]:
     """Run a zplatform cluster (``n_dn`` DN processes, CN here) for ``duration_s``.
@@ -199,13 +216,21 @@ def run_variant(v: Variant, *, duration_s: float, priority: int) -> dict[str, An
         )
     else:
         res = run_baseline(
-            v.kind, v.n, REGION_BYTES, RATE_HZ, duration_s, deadline_ns, v.lowlatency
+            v.kind,
+            v.n,
+            REGION_BYTES,
+            RATE_HZ,
+            duration_s,
+            deadline_ns,
+            v.lowlatency is True,
+            wildcard=v.wildcard,
         )
         fig = summarize(res["samples_ns"], deadline_ns)
         fig["missed"] = res["missed"]
         fig["responders"] = v.n
     fig["transport"] = v.kind
     fig["lowlatency"] = v.lowlatency
+    fig["wildcard"] = v.wildcard
     return fig
 
 
@@ -249,8 +274,11 @@ def ratios(variants: dict[str, dict[str, Any]]) -> dict[str, float | None]:
     pairs = {
         "zplatform_1dn/raw_zenoh_1": ("zplatform_1dn", "raw_zenoh_1"),
         "zplatform_3dn/raw_zenoh_3": ("zplatform_3dn", "raw_zenoh_3"),
-        "zplatform_lowlatency_3dn/raw_zenoh_lowlatency_3": (
-            "zplatform_lowlatency_3dn",
+        "zplatform_3dn/raw_zenoh_lowlatency_3": ("zplatform_3dn", "raw_zenoh_lowlatency_3"),
+        "zplatform_no_lowlatency_3dn/raw_zenoh_3": ("zplatform_no_lowlatency_3dn", "raw_zenoh_3"),
+        "raw_zenoh_wildcard_3/raw_zenoh_3": ("raw_zenoh_wildcard_3", "raw_zenoh_3"),
+        "raw_zenoh_wildcard_lowlatency_3/raw_zenoh_lowlatency_3": (
+            "raw_zenoh_wildcard_lowlatency_3",
             "raw_zenoh_lowlatency_3",
         ),
         "zplatform_1dn/raw_udp_1": ("zplatform_1dn", "raw_udp_1"),
