@@ -4,11 +4,12 @@ Two estimators of the CN-minus-DN node-clock offset (both in
 :mod:`zplatform.clocksync`, both against the same, unchanged
 :class:`~zplatform.clocksync.ClockServer`):
 
-* ``node_clock``: :func:`~zplatform.clocksync.estimate_offset` (today's; the
-  four times read from the node clocks in Python);
+* ``node_clock``: :func:`~zplatform.clocksync.estimate_offset` (the four
+  times read from the node clocks in Python);
 * ``zenoh_ts``: :func:`~zplatform.clocksync.estimate_offset_zenoh` (the four
   times from zenoh 1.10's timestamp instrumentation on the query, mapped into
-  node time on each side).
+  node time on each side); the platform's default ``clock.estimator`` since
+  this benchmark found it the more accurate.
 
 The CN's clock server runs in a child process (its own zenoh session, its own
 :class:`~zplatform.timebase.NodeClock`), on TCP loopback. The DN side runs

@@ -10,32 +10,61 @@ stamps ``t4`` on receipt. Per exchange::
 Over many exchanges the fastest ``keep_fraction`` (smallest delay, least
 queueing asymmetry) are kept and their median offset is the estimate.
 
-Why the node clocks and not zenoh's timestamps: what must agree across
-nodes is each node's :class:`~zplatform.timebase.NodeClock`, the clock that
-stamps loops and frames. Zenoh's timestamp stack reads zenoh's own clock
-(the host's), which knows nothing of the node clock's anchor; and its HLC is
-pulled forward by peers (DESIGN.md §8). Stamping with the node clocks at
-both ends measures the quantity we correct, with the same four-time method.
-``t2`` is taken in the zenoh callback (a clock read, no blocking); the reply
+What must agree across nodes is each node's
+:class:`~zplatform.timebase.NodeClock`, the clock that stamps loops and
+frames. Two estimators measure it, against the same :class:`ClockServer`
+(``t2`` is taken in the zenoh callback, a clock read, no blocking; the reply
 is sent from a server thread, whose queueing shows up between t2 and t3 and
-so cancels out of the delay.
+so cancels out of the delay):
+
+* ``node_clock``, :func:`estimate_offset`: the four times read from the node
+  clocks in Python. It measures the corrected quantity directly, but the
+  DN's ``t4`` is read after the reply callback's hand-off to the waiting
+  thread, so that latency sits in the return path only.
+* ``zenoh_ts``, :func:`estimate_offset_zenoh`: the four time points zenoh
+  stamps itself (timestamp instrumentation) as the query and the reply cross
+  it, on each host's zenoh clock, mapped into node time by the node-clock
+  reads next to them. Zenoh's clock knows nothing of the node clock's anchor,
+  hence the mapping; Python's callback and hand-off latency drops out.
+
+``zenoh_ts`` is the default (``clock.estimator`` in the mission) because it
+measured more accurate: median |error| 6.94 us vs 7.36 us, worst 17.3 us vs
+26.6 us, over injected skews of 0, 50 ms and 500 ms and a 100 ppm drift
+(``python -m bench.clock``, bench/REPORT.md, section "clock").
+:func:`estimator_for` gives the mission's choice as one callable; its
+fallback from ``zenoh_ts`` to ``node_clock`` is described there.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import logging
 import queue
 import struct
 import threading
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Protocol
 
 import zenoh
 
+from .config import ClockConfig
 from .errors import ClockSyncError
 from .transport import KeySpace
 
-__all__ = ["ClockEstimate", "ClockServer", "estimate_offset", "estimate_offset_zenoh"]
+__all__ = [
+    "ESTIMATORS",
+    "ClockEstimate",
+    "ClockEstimator",
+    "ClockServer",
+    "Estimator",
+    "ZenohTimestampsError",
+    "estimate_offset",
+    "estimate_offset_zenoh",
+    "estimator_for",
+]
+
+log = logging.getLogger("zplatform.clocksync")
 
 _REQ = struct.Struct("<q")
 _REP = struct.Struct("<qqq")
@@ -43,13 +72,28 @@ _REP = struct.Struct("<qqq")
 
 @dataclass(frozen=True, slots=True)
 class ClockEstimate:
-    """Result of :func:`estimate_offset` (ns; ``offset_ns`` = CN - DN)."""
+    """Result of :func:`estimate_offset` (ns; ``offset_ns`` = CN - DN).
+
+    ``estimator``: which estimator produced it (``node_clock`` or ``zenoh_ts``).
+    """
 
     offset_ns: int
     delay_ns: int
     exchanges: int
     kept: int
     spread_ns: int
+    estimator: str = "node_clock"
+
+
+class ZenohTimestampsError(ClockSyncError):
+    """The CN answered, but zenoh's timestamps cannot give the offset.
+
+    Raised by :func:`estimate_offset_zenoh` where :func:`estimate_offset`
+    would have succeeded: the replies lack zenoh's four timestamps (the CN's
+    zenoh does not stamp), or zenoh's clock and the node clock disagree over
+    the exchanges (a host clock stepped). :class:`ClockEstimator` falls back
+    to :func:`estimate_offset` on it.
+    """
 
 
 class ClockServer:
@@ -164,6 +208,7 @@ def estimate_offset_zenoh(
     exchanges: int = 200,
     keep_fraction: float = 0.1,
     timeout_s: float = 1.0,
+    max_inversion_ns: int = 100_000,
 ) -> ClockEstimate:
     """The same estimate as :func:`estimate_offset`, from zenoh's own four time points.
 
@@ -197,10 +242,18 @@ def estimate_offset_zenoh(
     about 6 us).
 
     Blocks for the exchanges. Raises ClockSyncError when fewer than half of
-    them get a valid reply with four timestamps.
+    them get a valid reply (the CN's clock server is unreachable), and its
+    subclass :class:`ZenohTimestampsError` where :func:`estimate_offset`
+    would have succeeded: when at least half got a valid reply but fewer
+    than half of the replies carried zenoh's four timestamps, or when a
+    bracket is inverted by more than ``max_inversion_ns`` (its lower bound
+    above its upper bound: zenoh's clock, the host's real-time clock, was
+    stepped during the exchanges, and the mapping is unknown; a small
+    inversion is what a rate difference over the exchanges gives).
     """
     ti = zenoh.TimestampInstrumentationBuilder().set_send(True).set_receive(True).build()
     samples: list[tuple[int, int]] = []
+    answered = 0  # valid replies to their own exchange, stamped or not
     cn_lo, cn_hi, dn_lo, dn_hi = -(1 << 63), 1 << 63, -(1 << 63), 1 << 63
     replies: queue.SimpleQueue[tuple[bytes, list[int], int] | None] = queue.SimpleQueue()
 
@@ -238,19 +291,36 @@ def estimate_offset_zenoh(
         if item is None:
             continue
         raw, stamps, t4 = item
-        if len(raw) != _REP.size or len(stamps) != 4:
+        if len(raw) != _REP.size:
             continue
         e1, t2, t3 = _REP.unpack(raw)
         if e1 != t1:
+            continue
+        answered += 1
+        if len(stamps) != 4:
             continue
         t1z, t2z, t3z, t4z = stamps
         cn_lo, cn_hi = max(cn_lo, t3 - t3z), min(cn_hi, t2 - t2z)
         dn_lo, dn_hi = max(dn_lo, t1 - t1z), min(dn_hi, t4 - t4z)
         samples.append((((t2z - t1z) + (t3z - t4z)) // 2, (t4z - t1z) - (t3z - t2z)))
     if len(samples) < exchanges // 2:
+        if answered >= exchanges // 2:
+            raise ZenohTimestampsError(
+                f"zenoh-timestamp clock sync: {keys.clock} answered {answered} of "
+                f"{exchanges} exchanges, but only {len(samples)} replies carried zenoh's "
+                "four timestamps (does the CN's zenoh stamp instrumented queries?)"
+            )
         raise ClockSyncError(
             f"zenoh-timestamp clock sync got {len(samples)} of {exchanges} "
             f"instrumented replies from {keys.clock}"
+        )
+    inversion = max(cn_lo - cn_hi, dn_lo - dn_hi)
+    if inversion > max_inversion_ns:
+        side = "CN" if cn_lo - cn_hi >= dn_lo - dn_hi else "DN"
+        raise ZenohTimestampsError(
+            f"zenoh-timestamp clock sync: the {side}'s zenoh clock and node clock "
+            f"disagree by {inversion / 1e3:.1f} us over the exchanges (a host clock "
+            "stepped?): zenoh's times cannot be mapped into node time"
         )
     est = _fastest(samples, keep_fraction)
     map_cn = (cn_lo + cn_hi) // 2
@@ -259,4 +329,106 @@ def estimate_offset_zenoh(
         est,
         offset_ns=est.offset_ns + map_cn - map_dn,
         spread_ns=est.spread_ns + abs(cn_hi - cn_lo) + abs(dn_hi - dn_lo),
+        estimator="zenoh_ts",
     )
+
+
+class Estimator(Protocol):
+    """The signature :func:`estimate_offset` and :func:`estimate_offset_zenoh` share."""
+
+    def __call__(
+        self,
+        session: zenoh.Session,
+        keys: KeySpace,
+        now_ns: Callable[[], int],
+        *,
+        exchanges: int = ...,
+        keep_fraction: float = ...,
+        timeout_s: float = ...,
+    ) -> ClockEstimate: ...
+
+
+#: ``clock.estimator`` names (:class:`~zplatform.config.ClockConfig`) to functions.
+ESTIMATORS: dict[str, Estimator] = {
+    "zenoh_ts": estimate_offset_zenoh,
+    "node_clock": estimate_offset,
+}
+
+
+class ClockEstimator:
+    """The mission's offset estimator, called like :func:`estimate_offset`.
+
+    Made by :func:`estimator_for`. ``primary`` is the chosen function;
+    ``fallback`` (``zenoh_ts`` only: :func:`estimate_offset`) is what a call
+    runs instead when the primary raises :class:`ZenohTimestampsError`, i.e.
+    when the CN answered but zenoh's timestamps could not give the offset
+    (the CN's zenoh does not stamp; a host clock stepped during the
+    exchanges). The fallback is per call: the next call tries ``zenoh_ts``
+    again. A WARNING is logged when calls start falling back, an INFO line
+    when ``zenoh_ts`` works again; ``fallbacks`` counts them, and the
+    estimate's ``estimator`` field names the one that produced it. Any other
+    ClockSyncError (the CN unreachable: fewer than half the exchanges
+    answered) is raised as is, with no second attempt.
+    """
+
+    def __init__(self, name: str, primary: Estimator, fallback: Estimator | None = None) -> None:
+        self.name = name
+        self.primary = primary
+        self.fallback = fallback
+        self.fallbacks = 0
+        self._falling_back = False
+
+    def __repr__(self) -> str:
+        return f"ClockEstimator({self.name!r})"
+
+    def __call__(
+        self,
+        session: zenoh.Session,
+        keys: KeySpace,
+        now_ns: Callable[[], int],
+        *,
+        exchanges: int = 200,
+        keep_fraction: float = 0.1,
+        timeout_s: float = 1.0,
+    ) -> ClockEstimate:
+        def run(fn: Estimator) -> ClockEstimate:
+            return fn(
+                session,
+                keys,
+                now_ns,
+                exchanges=exchanges,
+                keep_fraction=keep_fraction,
+                timeout_s=timeout_s,
+            )
+
+        if self.fallback is None:
+            return run(self.primary)
+        try:
+            est = run(self.primary)
+        except ZenohTimestampsError as exc:
+            self.fallbacks += 1
+            if not self._falling_back:
+                log.warning("%s; falling back to the node-clock estimator", exc)
+                self._falling_back = True
+            try:
+                return run(self.fallback)
+            except ClockSyncError as exc2:
+                raise ClockSyncError(f"{exc2} (after the {self.name} estimator: {exc})") from exc2
+        if self._falling_back:
+            log.info("the %s clock estimator works again", self.name)
+            self._falling_back = False
+        return est
+
+
+def estimator_for(clock: ClockConfig) -> ClockEstimator:
+    """The offset estimator ``clock.estimator`` names (default ``zenoh_ts``).
+
+    ``zenoh_ts``: :func:`estimate_offset_zenoh`, falling back to
+    :func:`estimate_offset` with a warning when the CN answers without usable
+    zenoh timestamps (:class:`ClockEstimator`); ``node_clock``:
+    :func:`estimate_offset` alone. Either raises ClockSyncError when the CN
+    does not answer.
+    """
+    if clock.estimator == "zenoh_ts":
+        return ClockEstimator("zenoh_ts", estimate_offset_zenoh, fallback=estimate_offset)
+    return ClockEstimator(clock.estimator, ESTIMATORS[clock.estimator])

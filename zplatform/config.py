@@ -170,6 +170,15 @@ class ClockConfig(_Struct):
     exchanges: Annotated[int, Meta(ge=8, le=10_000)] = 200
     keep_fraction: Annotated[float, Meta(gt=0, le=1)] = 0.1
     resync_s: Annotated[float, Meta(ge=0)] = 10.0
+    # Which offset estimator a DN uses (zplatform.clocksync.estimator_for).
+    # zenoh_ts by default: its four time points are stamped inside zenoh, as
+    # the query and reply cross it, rather than read in Python after a
+    # callback's thread hand-off, and it measured more accurate (python -m
+    # bench.clock, bench/REPORT.md#clock: median |error| 6.94 us vs 7.36 us,
+    # worst 17.3 us vs 26.6 us, over 0/50 ms/500 ms skew and 100 ppm drift).
+    # When the CN answers without usable zenoh timestamps, zenoh_ts falls
+    # back to node_clock with a warning. node_clock: the node clocks alone.
+    estimator: Literal["zenoh_ts", "node_clock"] = "zenoh_ts"
 
 
 class ActionConfig(_Struct):

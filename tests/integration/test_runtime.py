@@ -13,6 +13,7 @@ import time
 from pathlib import Path
 
 import pytest
+import yaml
 
 from tests.budget import allowed_misses, assert_within_budget
 from zplatform.codec import encode_frame
@@ -149,6 +150,26 @@ def test_clock_sync_measures_injected_offset(tmp_path: Path, skew_ms: float) -> 
         measured_ms = int(c.tm.get("dn0_clock_offset_ns")) / 1e6
         # offset = CN - DN: a DN ahead by +50 ms is corrected by -50 ms.
         assert abs(measured_ms + skew_ms) < 1.0, measured_ms
+        # The default estimator did the measuring: no fallback to node_clock.
+        log = c.log("dn0")
+        assert "(zenoh_ts estimator," in log and "falling back" not in log, log[-3000:]
+
+
+def test_clock_sync_with_the_node_clock_estimator(tmp_path: Path) -> None:
+    """`clock: {estimator: node_clock}` starts the DN on the node-clock
+    estimator, which measures the injected offset too."""
+    src = yaml.safe_load((CONFIGS / "minimal.yaml").read_text())
+    src["clock"] = {"estimator": "node_clock"}
+    (tmp_path / "node_clock.yaml").write_text(yaml.safe_dump(src, sort_keys=False))
+    with Cluster(tmp_path / "node_clock.yaml", tmp_path) as c:
+        assert c.mission.clock.estimator == "node_clock"
+        c.spawn("dn0", env={"ZPLATFORM_CLOCK_SKEW_NS": str(40_000_000)})
+        c.spawn("cn")
+        c.advance(10)
+        assert abs(int(c.tm.get("dn0_clock_offset_ns")) + 40_000_000) < 1_000_000
+        assert abs(int(c.tm.get("dn0_clock_drift_ns"))) < 1_000_000
+        log = c.log("dn0")
+        assert "(node_clock estimator," in log and "residual" in log, log[-3000:]
 
 
 def test_a_skew_beyond_the_bound_is_corrected_and_the_residual_checked(tmp_path: Path) -> None:

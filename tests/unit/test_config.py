@@ -15,7 +15,13 @@ import pytest
 import yaml
 
 from zplatform import ConfigError, Mission, decode_mission, load_mission
-from zplatform.config import CMD_NAMES, CMD_STATUS_NAMES, CONTROLLER_MODES, FAULT_NAMES
+from zplatform.config import (
+    CMD_NAMES,
+    CMD_STATUS_NAMES,
+    CONTROLLER_MODES,
+    FAULT_NAMES,
+    ClockConfig,
+)
 
 CONFIGS = Path(__file__).resolve().parents[2] / "configs"
 
@@ -154,6 +160,25 @@ def test_wrong_type_nested() -> None:
     err = fails(d)
     assert err.path == "$.nodes.cn.cpu"
     assert "got `str`" in err.reason
+
+
+# -- clock -----------------------------------------------------------------------
+
+
+def test_clock_estimator_defaults_to_zenoh_ts() -> None:
+    assert load(mission()).clock.estimator == "zenoh_ts"
+    assert ClockConfig().estimator == "zenoh_ts"
+
+
+@pytest.mark.parametrize("name", ["zenoh_ts", "node_clock"])
+def test_clock_estimator_chosen(name: str) -> None:
+    assert load(mission(clock={"estimator": name})).clock.estimator == name
+
+
+def test_unknown_clock_estimator_names_path() -> None:
+    err = fails(mission(clock={"estimator": "ptp"}))
+    assert err.path == "$.clock.estimator"
+    assert "ptp" in err.reason
 
 
 # -- nodes -----------------------------------------------------------------------

@@ -3,7 +3,9 @@
 Entry: open the session, wait for the CN, measure the clock offset to it
 (NTP-style over zenoh, :mod:`zplatform.clocksync`), apply it once and lock
 the clock, declare the sync queryable, then announce liveliness: from that
-moment the CN may trigger loops.
+moment the CN may trigger loops. Every offset measurement (this one, the
+residual after it, the re-syncs) uses the estimator the mission's
+``clock.estimator`` names (:func:`~zplatform.clocksync.estimator_for`).
 
 Loop: block on the CN's query (the trigger); :meth:`DeviceLogic.trigger
 <zplatform.loop.DeviceLogic.trigger>` checks it and frames the reply, sent at
@@ -21,7 +23,7 @@ import threading
 from ..auth import load_key
 from ..boards import close_board, open_board
 from ..bulk import NodeBulk, open_bulk
-from ..clocksync import estimate_offset
+from ..clocksync import estimator_for
 from ..config import Mission
 from ..errors import ClockSyncError, NodeError, TransportError, ZPlatformError
 from ..loop import DeviceLogic
@@ -61,6 +63,8 @@ class DeviceNode:
         self.logic = DeviceLogic(mission, name, stale_after_ns=mission.period_ns, key=key)
         self.dv = self.logic.dv
         self.ns = NodeSession(mission, name, announce=False, lowlatency=lowlatency)
+        # One estimator for the start-up sync, its residual and the re-syncs.
+        self.estimate_offset = estimator_for(mission.clock)
         self._offset_h = self.dv.handle(f"{name}_clock_offset_ns")
         self._drift_h = self.dv.handle(f"{name}_clock_drift_ns")
         self._overruns = self.dv.handle(f"{name}_loop_overruns")
@@ -79,7 +83,7 @@ class DeviceNode:
         s, keys, m = self.ns.session, self.ns.keys, self.mission
         try:
             wait_for_nodes(s, keys, ["cn"], ready_timeout_s, self.stop.event)
-            est = estimate_offset(
+            est = self.estimate_offset(
                 s,
                 keys,
                 self.clock.now_ns,
@@ -100,7 +104,7 @@ class DeviceNode:
         # checks it before loop 1 and the background re-sync keeps it in
         # telemetry (dnX_clock_drift_ns) for the whole run.
         try:
-            res = estimate_offset(
+            res = self.estimate_offset(
                 s,
                 keys,
                 self.clock.now_ns,
@@ -112,14 +116,16 @@ class DeviceNode:
         self.drift_ns = res.offset_ns
         self._drift_h.set(res.offset_ns)
         log.info(
-            "%s clock corrected by %+.3f ms (delay %.0f us, %d of %d exchanges kept); "
-            "residual %+.3f us",
+            "%s clock corrected by %+.3f ms (%s estimator, delay %.0f us, %d of %d exchanges "
+            "kept); residual %+.3f us (%s)",
             self.name,
             est.offset_ns / 1e6,
+            est.estimator,
             est.delay_ns / 1e3,
             est.kept,
             est.exchanges,
             res.offset_ns / 1e3,
+            res.estimator,
         )
         self.sync = DeviceSync(s, keys, self.name, self.clock.now_ns)
         self.bulk = open_bulk(s, m, self.name, self.logic)
@@ -135,7 +141,7 @@ class DeviceNode:
         m = self.mission
         while not self.stop.event.wait(m.clock.resync_s):
             try:
-                est = estimate_offset(
+                est = self.estimate_offset(
                     self.ns.session,
                     self.ns.keys,
                     self.clock.now_ns,
