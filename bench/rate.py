@@ -33,6 +33,7 @@ from typing import Any
 
 from bench.common import bench_argparser, write_result
 from bench.sync import PRIORITY, REGION_BYTES, inherit_fifo, run_zplatform
+from bench.sync_trace import LOWLATENCY_ARG
 
 LADDER_HZ: tuple[float, ...] = (100, 200, 300, 500, 700, 1000, 1500, 2000)
 TOPOLOGIES = (1, 3)
@@ -93,7 +94,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         "--priority", type=int, default=PRIORITY, help="SCHED_FIFO priority (0: off)"
     )
     args = parser.parse_args(argv)
-    ll: bool | str = {"auto": "auto", "true": True, "false": False}[args.lowlatency]
+    ll = LOWLATENCY_ARG[args.lowlatency]
     rates = sorted(float(r) for r in args.rates.split(","))
     topologies = [int(n) for n in args.topologies.split(",")]
     duration_s = QUICK_S if args.quick else FULL_S
