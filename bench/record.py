@@ -45,6 +45,9 @@ def _inputs(loops: int) -> list[tuple[int, int, list[bytes], list[bytes]]]:
         def reply(self, i: int, payload: Any) -> None:
             captured.append(bytes(payload))
 
+        def foreign(self, source: str) -> None:
+            pass  # a lockstep run has no foreign repliers
+
         def finish(self, grounds: Any, *a: Any) -> None:
             loop, t = cn.loop, cn.t_ns
             out.append((loop, t, list(captured), [bytes(g) for g in grounds]))

@@ -20,6 +20,7 @@ anything touches a Data Vector; every failure raises a
 from __future__ import annotations
 
 import struct
+from collections.abc import Sequence
 from typing import Annotated
 
 import msgspec
@@ -29,13 +30,18 @@ from .datavector import DataVector
 from .errors import CodecError, FrameFormatError, FrameSizeError, LayoutMismatchError
 
 __all__ = [
+    "BUNDLE_MAGIC",
+    "BundleEncoder",
     "Frame",
     "FrameDecoder",
     "FrameEncoder",
     "RegionCodec",
+    "bundle_entry",
+    "bundle_size",
     "decode_frame",
     "encode_frame",
     "frame_overhead",
+    "is_bundle",
 ]
 
 U32 = Annotated[int, Meta(ge=0, le=0xFFFF_FFFF)]
@@ -242,3 +248,87 @@ class RegionCodec:
 
 
 __all__ += ["CodecError"]
+
+
+# -- the sync bundle (codecs/FORMAT.md §6.2) ---------------------------------
+
+#: First bytes of a sync bundle: "ZB", version 1. A frame starts 0x94
+#: (fixarray of 4), so the two never mix up.
+BUNDLE_MAGIC = b"ZB\x01"
+_BUNDLE_HDR = struct.Struct("<3sB")  # magic and version, frame count
+_BUNDLE_LEN = struct.Struct("<I")
+_BUNDLE_MAX = 255
+
+
+def bundle_size(frame_sizes: list[int]) -> int:
+    """Bytes of a bundle of frames of these sizes."""
+    return _BUNDLE_HDR.size + sum(_BUNDLE_LEN.size + n for n in frame_sizes)
+
+
+class BundleEncoder:
+    """Packs every DN's query frame into one sync bundle, for one wildcard
+    query per loop (:class:`zplatform.sync.ControlSync`).
+
+    ``pack`` copies the frames into a buffer owned by the encoder (no
+    allocation once it has the bundle's size) and returns it; the next call
+    overwrites it. Raises ValueError for more than 255 frames.
+    """
+
+    def __init__(self) -> None:
+        self._buf = bytearray()
+
+    def pack(self, frames: Sequence[bytes | bytearray | memoryview]) -> bytearray:
+        n = len(frames)
+        if n > _BUNDLE_MAX:
+            raise ValueError(f"a sync bundle holds at most {_BUNDLE_MAX} frames, got {n}")
+        size = _BUNDLE_HDR.size
+        for f in frames:
+            size += _BUNDLE_LEN.size + len(f)
+        if len(self._buf) != size:
+            self._buf = bytearray(size)
+        buf = self._buf
+        _BUNDLE_HDR.pack_into(buf, 0, BUNDLE_MAGIC, n)
+        o = _BUNDLE_HDR.size
+        for f in frames:
+            m = len(f)
+            _BUNDLE_LEN.pack_into(buf, o, m)
+            o += _BUNDLE_LEN.size
+            buf[o : o + m] = f
+            o += m
+        return buf
+
+
+def is_bundle(payload: bytes | bytearray | memoryview) -> bool:
+    """Whether ``payload`` starts like a sync bundle (cheap: two byte reads)."""
+    return len(payload) >= _BUNDLE_HDR.size and payload[0] == 0x5A and payload[1] == 0x42
+
+
+def bundle_entry(payload: bytes | bytearray | memoryview, i: int) -> memoryview:
+    """Frame ``i`` of a sync bundle, as a zero-copy view into ``payload``.
+
+    Checks the magic, the version, that the bundle holds frame ``i`` and
+    that every length up to it stays inside the payload; frames after ``i``
+    are not examined (they are other nodes'). Raises FrameFormatError (a
+    CodecError) for anything else; never anything else.
+    """
+    mv = memoryview(payload)
+    if len(mv) < _BUNDLE_HDR.size or not (mv[0] == 0x5A and mv[1] == 0x42 and mv[2] == 1):
+        raise FrameFormatError("not a sync bundle (magic 'ZB', version 1)")
+    count = mv[3]
+    if not 0 <= i < count:
+        raise FrameFormatError(f"the sync bundle holds {count} frames, none for node number {i}")
+    o = _BUNDLE_HDR.size
+    end = len(mv)
+    for k in range(i + 1):
+        if o + _BUNDLE_LEN.size > end:
+            raise FrameFormatError(f"the sync bundle ends inside the length of frame {k}")
+        (n,) = _BUNDLE_LEN.unpack_from(mv, o)
+        o += _BUNDLE_LEN.size
+        if n > end - o:
+            raise FrameFormatError(
+                f"frame {k} of the sync bundle says {n} bytes, {end - o} are left"
+            )
+        if k == i:
+            return mv[o : o + n]
+        o += n
+    raise FrameFormatError("unreachable")  # pragma: no cover

@@ -156,6 +156,13 @@ class TransportConfig(_Struct):
     # the process opens its first session; ZENOH_RUNTIME in the environment
     # wins over it.
     rx_threads: Annotated[int, Meta(ge=1, le=64)] = 1
+    # How the CN queries its DNs each loop: "per_node" is one get per DN;
+    # "wildcard" is one get on {vehicle}/*/to_cn carrying a bundle of every
+    # DN's frame (codecs/FORMAT.md §6.2), which cut raw zenoh's 3-responder
+    # exchange p50 by about 12 % here (bench/REPORT.md#sync) but sends every
+    # DN every DN's frame. "auto": wildcard for 2 or more DNs while the
+    # bundle stays small (zplatform.transport.wildcard_sync_for).
+    sync_query: Literal["auto", "wildcard", "per_node"] = "auto"
     # zenoh batches small messages for up to 1 ms by default: good for
     # throughput, bad for a 2 ms sync deadline (bench/REPORT.md). Off unless
     # a mission asks for it.

@@ -34,7 +34,8 @@ Contract:
     only under its own prefix ``{vehicle}/X/**``; so only ``cn`` puts
     ``{vehicle}/cn/telemetry``, only ``gn`` puts ``{vehicle}/gn/to_cn``, and
     ``dnX`` replies only on ``{vehicle}/dnX/to_cn``;
-  - only ``cn`` may query ``{vehicle}/dnX/to_cn``; any node may query the
+  - only ``cn`` may query ``{vehicle}/dnX/to_cn`` (and ``{vehicle}/*/to_cn``,
+    the wildcard sync query); any node may query the
     CN's clock ``{vehicle}/cn/clock``;
   - every identity may subscribe to ``{vehicle}/**`` and watch liveliness;
   - ``tool`` (``tap``, ``log``, ``cmd``) only subscribes and watches, and
@@ -377,6 +378,9 @@ def access_control(mission: Mission, dep: Deployment) -> dict[str, Any]:
         if n == "cn":
             dn_keys = [f"{v}/{d}/to_cn" for d in mission.device_nodes]
             if dn_keys:
+                # The wildcard sync query (transport.sync_query) is one get on
+                # {vehicle}/*/to_cn; only dnX answer it (their own keys).
+                dn_keys.append(f"{v}/*/to_cn")
                 ids.append(rule("cn-sync", ["query"], dn_keys))
         else:
             ids.append(rule(f"{n}-clock", ["query"], [f"{v}/cn/clock"]))

@@ -36,12 +36,14 @@ import msgspec
 import numpy as np
 
 from .auth import TAG_LEN, mission_channels
-from .codec import RegionCodec
+from .codec import BundleEncoder, RegionCodec
 from .config import Mission
 from .datavector import DataVector, Layout
 from .devices import Board
 from .events import Event
 from .loop import ControlLogic, DeviceLogic
+from .messages import wildcard_sync_for
+from .recording import FOREIGN_DN
 from .telemetry import CsvLogger
 from .timebase import VirtualClock
 from .uplink import CommandOutcome, ScriptCommand, ScriptPlayer
@@ -182,6 +184,8 @@ class LockstepRunner:
         self._tm_rx = RegionCodec(self.telemetry_dv)
         self._tm_open = mission_channels(mission, key)["telemetry"]
         self.player = ScriptPlayer(mission, commands or [], key=key)
+        # The sync query's form, as the live CN chooses it (transport.sync_query).
+        self._bundle = BundleEncoder() if wildcard_sync_for(mission) else None
         self._ground: bytearray | None = None
         self.loop = 0
         """Loops run so far (the number of the last one)."""
@@ -224,8 +228,13 @@ class LockstepRunner:
                 for out in outs:
                     np.copyto(out, own)
         frames = cn.begin(loop, t)
-        for i, dev in enumerate(self.devices):
-            cn.reply(i, dev.step(frames[i], t))
+        if self._bundle is not None:  # as live: one wildcard query, every DN takes its frame
+            bundle = self._bundle.pack(frames)
+            for i, dev in enumerate(self.devices):
+                cn.reply(i, dev.step(bundle, t))
+        else:
+            for i, dev in enumerate(self.devices):
+                cn.reply(i, dev.step(frames[i], t))
         ground, self._ground = self._ground, None
         tm = cn.finish((ground,) if ground is not None else ())
         if tm is not None:
@@ -383,7 +392,10 @@ def replay(
     for rec in reader.loops():
         cn.begin(rec.loop, rec.t_ns)
         for i, payload in rec.replies:
-            cn.reply(i, payload)
+            if i == FOREIGN_DN:
+                cn.foreign_reply(bytes(payload or b"").decode(errors="replace"))
+            else:
+                cn.reply(i, payload)
         tm = cn.finish(
             rec.grounds,
             sync_overrun=rec.sync_overrun,

@@ -42,7 +42,7 @@ from typing import Any, Protocol
 
 from .auth import TAG_LEN, AuthError, Channel, mission_channels
 from .boards import make_board, safe_board
-from .codec import Frame, RegionCodec
+from .codec import Frame, RegionCodec, bundle_entry, is_bundle
 from .codes import CommandStatus
 from .commands import CommandHandler
 from .components import Streak
@@ -72,6 +72,8 @@ class LoopRecorder(Protocol):
     def begin(self, loop: int, t_ns: int) -> None: ...
 
     def reply(self, i: int, payload: bytes | bytearray | memoryview | None) -> None: ...
+
+    def foreign(self, source: str) -> None: ...
 
     def finish(
         self,
@@ -307,6 +309,14 @@ class ControlLogic:
                 h.set(0)
         self._sync_overruns.set(0)
 
+    def foreign_reply(self, source: str) -> None:
+        """Count a sync reply from ``source``, a key that is no DN's (a
+        wildcard query reaches any queryable on ``{vehicle}/*/to_cn``): a bad
+        frame, never applied."""
+        if self.recorder is not None:
+            self.recorder.foreign(source)
+        self._bad_frame(source, "a sync reply from a key that is no device node's")
+
     def _bad_frame(self, source: str, reason: str) -> None:
         # Not our software failing: counted as a bad frame, not an error.
         # Rare by definition, so an event per frame is affordable and wanted.
@@ -375,6 +385,8 @@ class DeviceLogic:
         self.devices = DeviceSet(mission, node, dv, self.board, self.events)
         self.controllers = ControllerSet(mission, node, dv, self.events)
         self._in = RegionCodec(dv, f"cn_to_{node}")
+        # This node's place in a sync bundle (one wildcard query for every DN).
+        self._index = mission.device_nodes.index(node)
         self._out = RegionCodec(dv, f"{node}_to_cn")
         ch = mission_channels(mission, key)
         self._open: Channel | None = ch[f"cn_to_{node}"]
@@ -406,7 +418,7 @@ class DeviceLogic:
     def trigger(
         self, payload: bytes | bytearray | memoryview, now_ns: int, *, may_run: bool = True
     ) -> bytearray | None:
-        """Check one CN query frame and frame the reply.
+        """Check one CN query frame (or a sync bundle holding it) and frame the reply.
 
         Returns the reply (``dnX_to_cn`` before this loop's run, stamped with
         the trigger's loop and ``now_ns``), or None for a malformed,
@@ -424,6 +436,8 @@ class DeviceLogic:
             # the watchdog: whatever it drove meanwhile was unsupervised.
             self.safe(now_ns, f"no valid trigger for {(now_ns - last) / 1e6:.0f} ms")
         try:
+            if is_bundle(payload):  # a wildcard query: this node's frame from the bundle
+                payload = bundle_entry(payload, self._index)
             frame = self._in.check(self._open.open(payload) if self._open else payload)
             self._believable(frame, now_ns)
         except CodecError as exc:

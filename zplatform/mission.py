@@ -43,7 +43,7 @@ from pathlib import Path
 from . import commands, controllers, deploy, devices, statemachine
 from .config import CONTROLLER_MODES, Mission, parse_mission, platform_elements
 from .errors import ConfigError
-from .transport import check_lowlatency
+from .messages import check_lowlatency
 
 __all__ = ["check_mission", "decode_mission", "load_mission"]
 

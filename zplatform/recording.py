@@ -24,6 +24,8 @@ must reproduce). ``DIR`` holds ``mission.yaml`` (the effective mission) and
                8 FINISH     u8 sync_overrun, u32 loop_overruns, u32 inbox_dropped,
                             u32 inbox_oversize (ends a loop)
                9 DROPPED    u64 loops the recorder could not keep (ring full)
+              10 FOREIGN    a sync reply from a key that is no DN's: the key
+                            (UTF-8, at most 256 bytes; ``dn`` 255)
 
 An oversize frame cannot decode (it is longer than the widest valid
 encoding), so a replay feeds an empty payload in its place: the same bad
@@ -57,16 +59,18 @@ from .config import Mission
 from .datavector import DataVector, Layout
 from .errors import RecordingError
 
-__all__ = ["LoopRecord", "RecordReader", "Recorder"]
+__all__ = ["FOREIGN_DN", "LoopRecord", "RecordReader", "Recorder"]
 
 MAGIC = b"ZPREC\x00"
 VERSION = 1
 RECORD_FILE = "cn.zrec"
 MISSION_FILE = "mission.yaml"
 
-BEGIN, REPLY, REPLY_ERR, OVERSIZE, GROUND, GROUND_OVERSIZE, TELEMETRY, FINISH, DROPPED = range(
-    1, 10
+BEGIN, REPLY, REPLY_ERR, OVERSIZE, GROUND, GROUND_OVERSIZE, TELEMETRY, FINISH, DROPPED, FOREIGN = (
+    range(1, 11)
 )
+#: ``LoopRecord.replies`` entry index of a FOREIGN reply (its payload is the key).
+FOREIGN_DN = -1
 
 _ITEM = struct.Struct("<BBI")  # type, dn, length
 _BEGIN = struct.Struct("<Qq")
@@ -243,6 +247,10 @@ class Recorder:
         else:
             self._put(REPLY, i, payload, len(payload))
 
+    def foreign(self, source: str) -> None:
+        src = source.encode(errors="replace")[:256]
+        self._put(FOREIGN, 255, src, len(src))
+
     def finish(
         self,
         grounds: Sequence[bytes | bytearray | memoryview],
@@ -404,6 +412,8 @@ class RecordReader:
                 replies.append((dn, body))
             elif typ == REPLY_ERR:
                 replies.append((dn, None))
+            elif typ == FOREIGN:
+                replies.append((FOREIGN_DN, body))
             elif typ == OVERSIZE:
                 replies.append((dn, b""))
             elif typ == GROUND:

@@ -10,6 +10,14 @@ Control node (:class:`ControlSync`), at the top of every loop::
     for each DN, in parallel:  get {vehicle}/dnX/to_cn  payload = the loop's cn_to_dnX frame
     hand every reply to ControlLogic.reply until none is pending or the deadline passed
 
+or, with ``transport.sync_query`` wildcard (:func:`zplatform.messages.wildcard_sync_for`)::
+
+    get {vehicle}/*/to_cn  payload = a bundle of every DN's frame (codecs/FORMAT.md §6.2)
+
+Each DN takes its own frame from the bundle; a reply is the DN's by its key.
+One get instead of one per DN: fewer calls on the loop thread and one
+routing pass in zenoh (bench/REPORT.md#sync).
+
 Device node (:class:`DeviceSync`)::
 
     block on the CN's query (the loop trigger, thesis 3.4.5.3)
@@ -34,12 +42,15 @@ from typing import Any
 
 import zenoh
 
+from .codec import BundleEncoder
 from .loop import ControlLogic, DeviceLogic
 from .transport import KeySpace, is_matching
 
 __all__ = ["ControlSync", "DeviceSync", "TapPublisher"]
 
 _DROP = zenoh.CongestionControl.DROP
+_ALL = zenoh.QueryTarget.ALL
+_FOREIGN = -1  # a reply whose key is no DN's: counted as a bad frame
 
 
 class TapPublisher:
@@ -83,16 +94,25 @@ class ControlSync:
         timeout_ns: int,
         query_timeout_s: float,
         *,
+        wildcard: bool = False,
         monotonic: Callable[[], int] = time.monotonic_ns,
     ) -> None:
         self.session = session
         self.dns = list(dns)
+        self.wildcard = wildcard and bool(dns)
         self.timeout_ns = timeout_ns
         self._mono = monotonic
         self._query_timeout = query_timeout_s
         self._keys = [keys.dn_to_cn(dn) for dn in dns]
         self._taps = [TapPublisher(session, keys.cn_to_dn(dn)) for dn in dns]
         self._q: queue.SimpleQueue[tuple[int, Any]] = queue.SimpleQueue()
+        # Wildcard: one get on {vehicle}/*/to_cn with every DN's frame in a
+        # bundle; a reply says whose it is by its key (an error reply by the
+        # "dnX: " its DN puts in front of the reason).
+        self._all = keys.sync_all
+        self._bundle = BundleEncoder()
+        self._index = {k: i for i, k in enumerate(self._keys)}
+        self._names = {dn.encode(): i for i, dn in enumerate(self.dns)}
         # Issued vs finalised queries (zenoh calls `drop` once per query when
         # it is done): lets start-up wait until no warm-up reply can still come.
         self._issued = 0
@@ -108,6 +128,10 @@ class ControlSync:
         self._counted = [
             zenoh.handlers.Callback(h, self._on_finalised, indirect=False) for h in handoffs
         ]
+        self._any = zenoh.handlers.Callback(self._handoff_any, indirect=False)
+        self._any_counted = zenoh.handlers.Callback(
+            self._handoff_any, self._on_finalised, indirect=False
+        )
         self._consolidation = zenoh.ConsolidationMode.NONE
         self.duration_ns = 0
         """How long the last :meth:`sync` took."""
@@ -134,6 +158,28 @@ class ControlSync:
 
         return handoff
 
+    def _handoff_any(self, reply: zenoh.Reply) -> None:
+        # zenoh's thread: find whose reply it is, extract the bytes, hand off.
+        ok = reply.ok
+        if ok is not None:
+            key = str(ok.key_expr)
+            i = self._index.get(key)
+            if i is None:
+                self._q.put((_FOREIGN, key))
+            else:
+                self._q.put((i, ok.payload.to_bytes()))
+            return
+        err = reply.err
+        if err is None:
+            return
+        reason = err.payload.to_bytes()
+        if reason == b"Timeout":
+            return  # zenoh's own, a period after a miss already counted
+        i = self._names.get(reason.split(b":", 1)[0])
+        self._q.put(
+            (i, None) if i is not None else (_FOREIGN, reason[:64].decode(errors="replace"))
+        )
+
     def sync(
         self, frames: Sequence[bytearray], logic: ControlLogic, *, warmup: bool = False
     ) -> bool:
@@ -150,7 +196,20 @@ class ControlSync:
         if warmup:
             callbacks = self._counted
             self._idle.clear()
-            self._issued += n
+            self._issued += 1 if self.wildcard else n
+        if self.wildcard:
+            self.session.get(
+                self._all,
+                self._any_counted if warmup else self._any,
+                payload=self._bundle.pack(frames),
+                target=_ALL,
+                consolidation=self._consolidation,
+                timeout=self._query_timeout,
+                congestion_control=_DROP,
+            )
+            n = 0  # the per-DN loop below only publishes the taps
+            for i in range(len(frames)):
+                self._taps[i].put(frames[i])
         for i in range(n):
             out = frames[i]
             # DROP: on a link that stopped draining (a cut cable) a BLOCKing
@@ -175,7 +234,10 @@ class ControlSync:
                 i, payload = q.get(timeout=left / 1e9)
             except queue.Empty:
                 break
-            reply(i, payload)
+            if i == _FOREIGN:
+                logic.foreign_reply(payload)
+            else:
+                reply(i, payload)
         end = self._mono()
         self.duration_ns = end - start
         return end > deadline + (self.timeout_ns // 2 if logic.pending else 0)
@@ -189,7 +251,10 @@ class ControlSync:
         q = self._q
         while not q.empty():
             i, payload = q.get_nowait()
-            logic.reply(i, payload)
+            if i == _FOREIGN:
+                logic.foreign_reply(payload)
+            else:
+                logic.reply(i, payload)
         return ok
 
     def close(self) -> None:
@@ -219,6 +284,7 @@ class DeviceSync:
         self.dn = dn
         self._now = now_ns
         self._key = keys.dn_to_cn(dn)
+        self._err_prefix = f"{dn}: ".encode()
         self._q: queue.SimpleQueue[zenoh.Query] = queue.SimpleQueue()
         self._tap = TapPublisher(session, self._key)
         self.queryable = session.declare_queryable(
@@ -250,7 +316,8 @@ class DeviceSync:
             data = payload.to_bytes() if payload is not None else b""
             reply = logic.trigger(data, self._now(), may_run=may_run)
             if reply is None:
-                query.reply_err(logic.reject_reason.encode())
+                # "dnX: reason": a wildcard query's error replies carry no key.
+                query.reply_err(self._err_prefix + logic.reject_reason.encode())
                 return
             query.reply(self._key, reply)
         self._tap.put(reply)

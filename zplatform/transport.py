@@ -40,17 +40,20 @@ import zenoh
 
 from .config import Mission
 from .deploy import Deployment, deployment_from_env, zenoh_settings
-from .errors import ConfigError, TransportError
-
-#: The largest message a lowlatency mission may send. zenoh's lowlatency
-#: transport cannot fragment: on zenoh 1.10 a put above about 48 KiB is
-#: dropped without an error (tests/integration/test_lowlatency.py measures
-#: the edge); a third of that leaves room for protocol overhead and a
-#: future zenoh with a smaller buffer.
-LOWLATENCY_MAX_MESSAGE = 16 * 1024
+from .errors import TransportError
+from .messages import (
+    LOWLATENCY_MAX_MESSAGE,
+    WILDCARD_MAX_BUNDLE,
+    check_lowlatency,
+    largest_message,
+    lowlatency_for,
+    sync_bundle_size,
+    wildcard_sync_for,
+)
 
 __all__ = [
     "LOWLATENCY_MAX_MESSAGE",
+    "WILDCARD_MAX_BUNDLE",
     "KeySpace",
     "NodeSession",
     "apply_deployment",
@@ -62,7 +65,9 @@ __all__ = [
     "open_session",
     "rewrite_endpoints",
     "runtime_env",
+    "sync_bundle_size",
     "wait_for_nodes",
+    "wildcard_sync_for",
     "zenoh_config",
 ]
 
@@ -75,6 +80,11 @@ class KeySpace:
 
     def dn_to_cn(self, dn: str) -> str:
         return f"{self.vehicle}/{dn}/to_cn"
+
+    @property
+    def sync_all(self) -> str:
+        """The wildcard sync query's key: every ``dnX/to_cn`` at once."""
+        return f"{self.vehicle}/*/to_cn"
 
     def cn_to_dn(self, dn: str) -> str:
         return f"{self.vehicle}/cn/to_{dn}"
@@ -128,65 +138,6 @@ def _insert(cfg: zenoh.Config, key: str, value: Any) -> None:
         cfg.insert_json5(key, json.dumps(value))
     except Exception as exc:  # zenoh raises ZError; keep the key in the message
         raise TransportError(f"zenoh config {key}={value!r} rejected: {exc}") from exc
-
-
-def largest_message(mission: Mission) -> int:
-    """Bytes of the largest message the mission's nodes send (an upper bound).
-
-    Telemetry (the CN's whole Data Vector in one frame) and every region
-    frame, with frame overhead and authentication tag; a CCSDS downlink
-    packet; an event record (text capped at :data:`zplatform.events.MAX_TEXT`).
-    Bulk channels are unbounded here (their samples can be megabytes).
-    """
-    from .auth import TAG_LEN
-    from .codec import frame_overhead
-    from .datavector import Layout
-    from .events import MAX_TEXT
-
-    if mission.bulk:
-        return max(ch.nbytes for ch in mission.bulk)
-    sizes = [Layout.for_node(mission, "cn").size]
-    sizes += [Layout.for_regions(mission, [r]).size for r in mission.region_names()]
-    largest = max(n + frame_overhead(n) + TAG_LEN for n in sizes)
-    if mission.downlink.ccsds:
-        largest = max(largest, mission.downlink.max_data + 16)  # + primary and secondary headers
-    return max(largest, 4 * MAX_TEXT + 512)  # an event: UTF-8 text, node, name, numbers
-
-
-def lowlatency_for(mission: Mission) -> bool:
-    """Whether the mission's sessions use zenoh's lowlatency transport.
-
-    ``transport.lowlatency: auto`` (the default): on when no bulk channel is
-    configured and :func:`largest_message` is within
-    :data:`LOWLATENCY_MAX_MESSAGE`; off otherwise. ``true``/``false`` as
-    given (:func:`check_lowlatency` refuses ``true`` where a message may not
-    fit).
-    """
-    ll = mission.transport.lowlatency
-    if ll == "auto":
-        return not mission.bulk and largest_message(mission) <= LOWLATENCY_MAX_MESSAGE
-    return bool(ll)
-
-
-def check_lowlatency(mission: Mission) -> None:
-    """Raise ConfigError at ``transport.lowlatency`` for ``true`` on a mission
-    with a message the lowlatency transport would drop."""
-    if mission.transport.lowlatency is not True:
-        return
-    if mission.bulk:
-        raise ConfigError(
-            "lowlatency cannot carry bulk channels (zenoh's lowlatency transport does not"
-            " fragment): use auto or false",
-            "$.transport.lowlatency",
-        )
-    n = largest_message(mission)
-    if n > LOWLATENCY_MAX_MESSAGE:
-        raise ConfigError(
-            f"lowlatency cannot carry this mission: its largest message is {n} B, over"
-            f" {LOWLATENCY_MAX_MESSAGE} B (zenoh's lowlatency transport does not fragment"
-            " and drops bigger ones): use auto or false",
-            "$.transport.lowlatency",
-        )
 
 
 def runtime_env(mission: Mission) -> None:

@@ -77,12 +77,17 @@ class ZenohPair:
 
 
 def open_pair(relay_factory: Callable[..., FaultRelay], proto: str, **plan: Any) -> ZenohPair:
+    """``proto``: ``tcp``, ``udp``, or ``tcp+lowlatency`` (zenoh's lowlatency transport)."""
+    proto, _, variant = proto.partition("+")
+    ll = variant == "lowlatency"
+    if ll:
+        plan["lowlatency"] = True
     ep = f"{proto}/127.0.0.1:{free_port()}"
-    a = zenoh.open(peer_config([ep]))
+    a = zenoh.open(peer_config([ep], lowlatency=ll))
     try:
         q = a.declare_queryable(ECHO_KEY, echo)
         relay = relay_factory(ep, **plan)
-        b = zenoh.open(peer_config(connect=[relay.endpoint]))
+        b = zenoh.open(peer_config(connect=[relay.endpoint], lowlatency=ll))
     except BaseException:
         a.close()
         raise

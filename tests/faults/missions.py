@@ -22,6 +22,8 @@ import yaml
 
 from tests.faults.netns import NetnsHost
 from tests.faults.relay import FaultRelay
+from zplatform.messages import lowlatency_for
+from zplatform.mission import load_mission
 
 PORT = 7447
 
@@ -39,6 +41,8 @@ def relay_links(
     raw = yaml.safe_load(p.read_text())
     cn_ep = raw["nodes"]["cn"]["listen"][0]
     relays: dict[str, FaultRelay] = {}
+    # The relay frames messages as the mission's transport does.
+    plan.setdefault("lowlatency", lowlatency_for(load_mission(p)))
     for name in nodes:
         relays[name] = relay_factory(cn_ep, **plan)
         raw["nodes"][name]["connect"] = [relays[name].endpoint]

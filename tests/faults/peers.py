@@ -29,9 +29,16 @@ ECHO_KEY = "faults/echo"
 
 
 def peer_config(
-    listen: Sequence[str] = (), connect: Sequence[str] = (), *, lease_ms: int = 1000
+    listen: Sequence[str] = (),
+    connect: Sequence[str] = (),
+    *,
+    lease_ms: int = 1000,
+    lowlatency: bool = False,
 ) -> zenoh.Config:
     c = zenoh.Config()
+    if lowlatency:  # as zplatform.transport sets it (QoS off: zenoh refuses the pair)
+        c.insert_json5("transport/unicast/lowlatency", "true")
+        c.insert_json5("transport/unicast/qos/enabled", "false")
     for key, value in (
         ("mode", "peer"),
         ("listen/endpoints", list(listen)),

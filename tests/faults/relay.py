@@ -9,7 +9,10 @@ A *message* is the unit zenoh hands to its link:
 
 * ``proto="tcp"``: one zenoh batch, framed on TCP by a 2-byte little-endian
   length prefix. The relay reassembles whole batches from the byte stream and
-  drops, delays or reorders whole batches, never bytes.
+  drops, delays or reorders whole batches, never bytes. On zenoh's lowlatency
+  transport (``lowlatency=True``) only the two handshake messages each way
+  have that prefix; every later message has a 4-byte one (seen on the wire
+  with zenoh 1.10).
 * ``proto="udp"``: one datagram (zenoh's UDP unicast link sends one batch per
   datagram, no prefix).
 
@@ -58,6 +61,8 @@ __all__ = ["DirStats", "FaultPlan", "FaultRelay", "RelayProcess", "parse_endpoin
 
 Direction = Literal["up", "down"]
 _LEN = struct.Struct("<H")
+_LEN32 = struct.Struct("<I")
+_HANDSHAKE = 2  # messages each way before a lowlatency link switches to _LEN32
 
 
 def parse_endpoint(ep: str) -> tuple[str, str, int]:
@@ -197,10 +202,18 @@ class _Pipe:
 class _Sender:
     """Writes messages to one socket (TCP: with the length prefix)."""
 
-    def __init__(self, sock: socket.socket, addr: tuple[str, int] | None, framed: bool) -> None:
+    def __init__(
+        self,
+        sock: socket.socket,
+        addr: tuple[str, int] | None,
+        framed: bool,
+        lowlatency: bool = False,
+    ) -> None:
         self.sock = sock
         self.addr = addr
         self.framed = framed
+        self.lowlatency = lowlatency
+        self.written = 0
         self.closed = False
 
     def write(self, msg: bytes) -> None:
@@ -210,7 +223,9 @@ class _Sender:
             if self.addr is not None:
                 self.sock.sendto(msg, self.addr)
             elif self.framed:
-                self.sock.sendall(_LEN.pack(len(msg)) + msg)
+                wide = self.lowlatency and self.written >= _HANDSHAKE
+                self.written += 1
+                self.sock.sendall((_LEN32 if wide else _LEN).pack(len(msg)) + msg)
             else:
                 self.sock.sendall(msg)
         except OSError:
@@ -236,8 +251,10 @@ class FaultRelay:
         armed: bool = False,
         listen_host: str = "127.0.0.1",
         hold_flush_s: float = 0.05,
+        lowlatency: bool = False,
     ) -> None:
         proto, host, port = parse_endpoint(upstream)
+        self.lowlatency = lowlatency
         if proto not in ("tcp", "udp"):
             raise ValueError(f"relay supports tcp and udp endpoints, not {upstream!r}")
         self.proto = proto
@@ -406,15 +423,16 @@ class FaultRelay:
             with self.lock:
                 self.connections += 1
                 self._socks += [client, up]
-                p_up = _Pipe(self, "up", _Sender(up, None, True))
-                p_down = _Pipe(self, "down", _Sender(client, None, True))
+                ll = self.lowlatency
+                p_up = _Pipe(self, "up", _Sender(up, None, True, ll))
+                p_down = _Pipe(self, "down", _Sender(client, None, True, ll))
                 self._pipes += [p_up, p_down]
             self._start(self._tcp_pump, "relay-up", client, up, p_up)
             self._start(self._tcp_pump, "relay-down", up, client, p_down)
 
     def _tcp_pump(self, src: socket.socket, dst: socket.socket, pipe: _Pipe) -> None:
         try:
-            for msg in _read_batches(src):
+            for msg in _read_batches(src, self.lowlatency):
                 pipe.on_message(msg)
         finally:
             pipe.send.closed = True
@@ -453,9 +471,11 @@ class FaultRelay:
                     back[s][1].on_message(msg)
 
 
-def _read_batches(sock: socket.socket) -> Iterator[bytes]:
-    """Whole zenoh batches from a TCP stream (2-byte LE length prefix)."""
+def _read_batches(sock: socket.socket, lowlatency: bool = False) -> Iterator[bytes]:
+    """Whole zenoh batches from a TCP stream (2-byte LE length prefix; a
+    4-byte one after the handshake on a lowlatency link)."""
     buf = bytearray()
+    seen = 0
     while True:
         try:
             chunk = sock.recv(65536)
@@ -464,12 +484,16 @@ def _read_batches(sock: socket.socket) -> Iterator[bytes]:
         if not chunk:
             return
         buf += chunk
-        while len(buf) >= 2:
-            (n,) = _LEN.unpack_from(buf)
-            if len(buf) < 2 + n:
+        while True:
+            hdr = _LEN32 if lowlatency and seen >= _HANDSHAKE else _LEN
+            if len(buf) < hdr.size:
                 break
-            yield bytes(buf[2 : 2 + n])
-            del buf[: 2 + n]
+            (n,) = hdr.unpack_from(buf)
+            if len(buf) < hdr.size + n:
+                break
+            yield bytes(buf[hdr.size : hdr.size + n])
+            del buf[: hdr.size + n]
+            seen += 1
 
 
 # -- subprocess mode ---------------------------------------------------------
@@ -495,8 +519,11 @@ def _serve(argv: list[str] | None = None) -> int:
     ap.add_argument("upstream")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--listen-host", default="127.0.0.1")
+    ap.add_argument("--lowlatency", action="store_true", help="zenoh's lowlatency framing")
     a = ap.parse_args(argv)
-    with FaultRelay(a.upstream, seed=a.seed, listen_host=a.listen_host) as r:
+    with FaultRelay(
+        a.upstream, seed=a.seed, listen_host=a.listen_host, lowlatency=a.lowlatency
+    ) as r:
         print(f"ready {r.endpoint}", flush=True)
         for line in sys.stdin:
             cmd, *args = line.split()

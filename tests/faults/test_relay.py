@@ -86,7 +86,7 @@ def test_plan_replays_identically_for_a_seed() -> None:
 
 
 @pytest.mark.timeout(60)
-@pytest.mark.parametrize("proto", ["tcp", "udp"])
+@pytest.mark.parametrize("proto", ["tcp", "udp", "tcp+lowlatency"])
 def test_drop_loses_gets_session_survives_counts_exact(
     zenoh_pair: Callable[..., ZenohPair], proto: str
 ) -> None:

@@ -36,6 +36,7 @@ from ..config import Mission
 from ..datavector import DataVector
 from ..errors import NodeError, TransportError
 from ..loop import ControlLogic
+from ..messages import wildcard_sync_for
 from ..recording import Recorder
 from ..scheduler import GcGuard, PeriodicLoop
 from ..summary import CnSummary, LoopWork, cn_summary
@@ -85,6 +86,7 @@ class ControlNode:
             mission.device_nodes,
             mission.sync_timeout_ns,
             query_timeout_s=max(mission.period_ns / 1e9, 0.01),
+            wildcard=wildcard_sync_for(mission),
         )
         # The command inbox: bounded, newest kept; a frame's size is checked
         # before its bytes are copied out of zenoh, so a flood of junk costs
