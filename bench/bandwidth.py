@@ -222,7 +222,7 @@ def run_point(
         round(counts["shm"] / counts["replies"], 4) if counts["replies"] else None
     )
     fig["startup_s"] = round(startup_s, 1)
-    fig["lowlatency"] = lowlatency  # transport.lowlatency auto: on only while every message fits
+    fig["lowlatency"] = lowlatency
     fig["bad_frames"] = int(summary.bad_frames)
     fig["holds"] = bool(
         fig["deadline_miss_rate"] < MISS_LIMIT and summary.rate_hz >= 0.98 * rate_hz

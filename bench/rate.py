@@ -87,8 +87,8 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     parser.add_argument(
         "--lowlatency",
         choices=["auto", "true", "false"],
-        default="auto",
-        help="the mission's transport.lowlatency (default: auto, as shipped)",
+        default="false",
+        help="the mission's transport.lowlatency (default: false, as shipped)",
     )
     parser.add_argument(
         "--priority", type=int, default=PRIORITY, help="SCHED_FIFO priority (0: off)"

@@ -86,9 +86,11 @@ RAW_TM_KEY = f"{KEY_PREFIX}/telemetry"
 TM_HDR = HEADER  # seq (u64), index (u32)
 
 
-def led_mission(path: Path, *, lowlatency: bool | str | None = None) -> Path:
+def led_mission(
+    path: Path, *, lowlatency: bool | str | None = None, sync_query: str | None = None
+) -> Path:
     """configs/led_test.yaml with free loopback ports (and no ground wait);
-    ``lowlatency`` overrides the mission's ``transport.lowlatency``."""
+    ``lowlatency``/``sync_query`` override the mission's ``transport`` ones."""
     doc = yaml.safe_load((REPO_ROOT / "configs" / "led_test.yaml").read_text())
     ports = {n: free_port() for n in doc["nodes"]}
     cn_ep = f"tcp/127.0.0.1:{ports['cn']}"
@@ -98,6 +100,8 @@ def led_mission(path: Path, *, lowlatency: bool | str | None = None) -> Path:
             spec["connect"] = [cn_ep]
     if lowlatency is not None:
         doc.setdefault("transport", {})["lowlatency"] = lowlatency
+    if sync_query is not None:
+        doc.setdefault("transport", {})["sync_query"] = sync_query
     path.write_text(yaml.safe_dump(doc, sort_keys=False))
     return path
 

@@ -11,16 +11,18 @@ same scheduling (see *Scheduling* below):
   ``ControlSync.duration_ns`` (``time.monotonic_ns`` from just before
   the first region is encoded and queried until every reply has been checked
   and applied, or the sync deadline passed);
-  These run the mission defaults: ``transport.lowlatency: auto`` turns
-  zenoh's lowlatency transport on for these small regions;
-* ``zplatform_no_lowlatency_3dn``: the same with ``lowlatency: false`` (the
-  lever, measured);
+  These run the mission defaults (``transport.lowlatency`` off: module doc
+  of :mod:`zplatform.messages`).
+  With 3 DNs ``sync_query: auto`` sends one wildcard query per loop;
+* ``zplatform_per_node_3dn``: the same with ``sync_query: per_node`` (one get
+  per DN), and ``zplatform_lowlatency_3dn`` with ``lowlatency: true``: the
+  levers, measured;
 * ``raw_zenoh_1`` / ``raw_zenoh_3``: bare zenoh ``get``/``reply`` with zenoh's
   default transport (:func:`bench.baselines.run_baseline`): the floor;
   ``raw_zenoh_lowlatency_3``: the same on the lowlatency transport;
 * ``raw_zenoh_wildcard_3`` / ``raw_zenoh_wildcard_lowlatency_3``: one
   wildcard query per loop to every responder, carrying every responder's
-  frame, instead of one get each (a lever zplatform does not use yet);
+  frame, instead of one get each;
 * ``raw_udp_1`` / ``raw_udp_3``: Python UDP request/response, the thesis'
   transport.
 
@@ -85,19 +87,21 @@ TARGET_P50_VS_ZENOH = 1.5
 @dataclass(frozen=True)
 class Variant:
     """One row of the benchmark: which transport, how many responders, low-latency
-    or not (``"auto"``: the mission's default), one wildcard query or one get each."""
+    or not, one wildcard query or one get each (raw) / the mission's ``sync_query``."""
 
     name: str
     kind: str  # "zplatform" | "zenoh" | "udp"
     n: int
     lowlatency: bool | str = False
     wildcard: bool = False
+    sync_query: str = "auto"
 
 
 VARIANTS: tuple[Variant, ...] = (
-    Variant("zplatform_1dn", "zplatform", 1, "auto"),
-    Variant("zplatform_3dn", "zplatform", 3, "auto"),
-    Variant("zplatform_no_lowlatency_3dn", "zplatform", 3, False),
+    Variant("zplatform_1dn", "zplatform", 1),
+    Variant("zplatform_3dn", "zplatform", 3),
+    Variant("zplatform_per_node_3dn", "zplatform", 3, sync_query="per_node"),
+    Variant("zplatform_lowlatency_3dn", "zplatform", 3, True),
     Variant("raw_zenoh_1", "zenoh", 1),
     Variant("raw_zenoh_3", "zenoh", 3),
     Variant("raw_zenoh_lowlatency_3", "zenoh", 3, True),
@@ -141,7 +145,8 @@ def run_zplatform(
     duration_s: float,
     sync_timeout_ms: float,
     region_bytes: int = REGION_BYTES,
-    lowlatency: bool | str = "auto",
+    lowlatency: bool | str = False,
+    sync_query: str = "auto",
     priority: int = PRIORITY,
 ) -> dict[str, Any]:
     """Run a zplatform cluster (``n_dn`` DN processes, CN here) for ``duration_s``.
@@ -165,6 +170,7 @@ def run_zplatform(
             sync_timeout_ms=sync_timeout_ms,
             region_bytes=region_bytes,
             lowlatency=lowlatency,
+            sync_query=sync_query,
             priority=priority if priority > 0 else None,
         )
         hook = SyncSamples(loops)
@@ -176,6 +182,7 @@ def run_zplatform(
                 summary = c.cn.summary()
                 lateness = periodic.lateness_ns()
                 skipped = periodic.stats().skipped_periods
+                wildcard = c.cn.sync.wildcard
         except BaseException:
             for log in sorted(tmpdir.glob("*.log")):
                 print(f"--- {log.name}\n{log.read_text(errors='replace')[-4000:]}", flush=True)
@@ -195,6 +202,7 @@ def run_zplatform(
     fig["skipped_periods"] = int(skipped)
     fig["bad_frames"] = int(summary.bad_frames)
     fig["rate_hz_measured"] = round(float(summary.rate_hz), 2)
+    fig["wildcard"] = wildcard
     if lateness.size:
         p50, p99 = np.percentile(lateness, [50.0, 99.0])
         fig["loop_lateness_p50_us"] = _us(p50)
@@ -212,6 +220,7 @@ def run_variant(v: Variant, *, duration_s: float, priority: int) -> dict[str, An
             duration_s=duration_s,
             sync_timeout_ms=DEADLINE_MS,
             lowlatency=v.lowlatency,
+            sync_query=v.sync_query,
             priority=priority,
         )
     else:
@@ -230,7 +239,7 @@ def run_variant(v: Variant, *, duration_s: float, priority: int) -> dict[str, An
         fig["responders"] = v.n
     fig["transport"] = v.kind
     fig["lowlatency"] = v.lowlatency
-    fig["wildcard"] = v.wildcard
+    fig.setdefault("wildcard", v.wildcard)
     return fig
 
 
@@ -274,8 +283,13 @@ def ratios(variants: dict[str, dict[str, Any]]) -> dict[str, float | None]:
     pairs = {
         "zplatform_1dn/raw_zenoh_1": ("zplatform_1dn", "raw_zenoh_1"),
         "zplatform_3dn/raw_zenoh_3": ("zplatform_3dn", "raw_zenoh_3"),
-        "zplatform_3dn/raw_zenoh_lowlatency_3": ("zplatform_3dn", "raw_zenoh_lowlatency_3"),
-        "zplatform_no_lowlatency_3dn/raw_zenoh_3": ("zplatform_no_lowlatency_3dn", "raw_zenoh_3"),
+        "zplatform_lowlatency_3dn/raw_zenoh_lowlatency_3": (
+            "zplatform_lowlatency_3dn",
+            "raw_zenoh_lowlatency_3",
+        ),
+        "zplatform_lowlatency_3dn/zplatform_3dn": ("zplatform_lowlatency_3dn", "zplatform_3dn"),
+        "zplatform_3dn/zplatform_per_node_3dn": ("zplatform_3dn", "zplatform_per_node_3dn"),
+        "zplatform_3dn/raw_zenoh_wildcard_3": ("zplatform_3dn", "raw_zenoh_wildcard_3"),
         "raw_zenoh_wildcard_3/raw_zenoh_3": ("raw_zenoh_wildcard_3", "raw_zenoh_3"),
         "raw_zenoh_wildcard_lowlatency_3/raw_zenoh_lowlatency_3": (
             "raw_zenoh_wildcard_lowlatency_3",

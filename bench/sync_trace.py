@@ -5,7 +5,8 @@ clock for every process on a host) at each hop of the exchange, per loop
 and DN:
 
 ===========  ==========================================================
-``issued``   CN loop thread, just before ``session.get`` for this DN
+``issued``   CN loop thread, just before ``session.get`` for this DN (the
+             wildcard query: for every DN)
 ``arrive``   DN, zenoh's thread: the query handed to the loop's queue
 ``serve``    DN loop thread: the query taken from the queue
 ``replied``  DN loop thread: ``query.reply`` returned
@@ -22,7 +23,8 @@ traced processes only; the shipped code has no tracing in it.
 The mission is configs/led_test.yaml on free ports (``--ground`` adds its
 ground node, as in ``bench.reliability``), or ``--bare N``: ``bench.sync``'s
 mission with N DNs. Variants for levers: ``--lowlatency auto|true|false``
-(the mission's ``transport.lowlatency``), ``--env K=V`` (set in this process
+(the mission's ``transport.lowlatency``), ``--sync-query
+auto|wildcard|per_node`` (``transport.sync_query``), ``--env K=V`` (set in this process
 before its first session, and inherited by every child: ``ZENOH_RUNTIME``
 and the like).
 
@@ -127,9 +129,14 @@ def _trace_cn(cn: Any, n_dn: int) -> _Stamps:
             self.i = 0
 
         def get(self, key: str, *a: Any, **kw: Any) -> Any:
-            i = self.i
-            self.i = (i + 1) % n_dn
-            st.set(int(logic.loop), 3 * i, mono())
+            t = mono()
+            if sync.wildcard:  # one query for every DN
+                for i in range(n_dn):
+                    st.set(int(logic.loop), 3 * i, t)
+            else:
+                i = self.i
+                self.i = (i + 1) % n_dn
+                st.set(int(logic.loop), 3 * i, t)
             return session.get(key, *a, **kw)
 
     sync.session = StampedSession()
@@ -139,8 +146,9 @@ def _trace_cn(cn: Any, n_dn: int) -> _Stamps:
         def get(self, timeout: float | None = None) -> Any:
             item = q.get(timeout=timeout)
             i, payload = item[0], item[1]
-            st.set(int(logic.loop), 3 * i + 1, item[2])
-            st.set(int(logic.loop), 3 * i + 2, mono())
+            if i >= 0:
+                st.set(int(logic.loop), 3 * i + 1, item[2])
+                st.set(int(logic.loop), 3 * i + 2, mono())
             return i, payload
 
         def put(self, item: Any) -> None:
@@ -154,8 +162,8 @@ def _trace_cn(cn: Any, n_dn: int) -> _Stamps:
             return item[0], item[1]
 
     sq = StampedQueue()
-    sync._q = sq
-    # The hand-off closures captured the old queue: rebuild them on the new one.
+    sync._q = sq  # the wildcard hand-off reads sync._q at each call
+    # The per-DN hand-off closures captured the old queue: rebuild them on the new one.
     import zenoh
 
     def make(i: int) -> Any:
@@ -215,6 +223,7 @@ def run(
     ground: bool,
     bare: int | None,
     lowlatency: bool | str,
+    sync_query: str = "auto",
     env: dict[str, str],
 ) -> tuple[dict[str, Any], dict[str, dict[str, Any]]]:
     from bench.cluster import BenchCluster, SyncSamples, make_mission
@@ -226,10 +235,14 @@ def run(
         tmpdir = Path(tmp)
         if bare:
             mpath = make_mission(
-                tmpdir / "m.yaml", n_dn=bare, lowlatency=lowlatency, priority=PRIORITY
+                tmpdir / "m.yaml",
+                n_dn=bare,
+                lowlatency=lowlatency,
+                sync_query=sync_query,
+                priority=PRIORITY,
             )
         else:
-            mpath = led_mission(tmpdir / "m.yaml", lowlatency=lowlatency)
+            mpath = led_mission(tmpdir / "m.yaml", lowlatency=lowlatency, sync_query=sync_query)
         with BenchCluster(mpath, realtime=True, trace_dir=tmpdir) as c:
             m = c.mission
             n_dn = len(m.device_nodes)
@@ -261,6 +274,8 @@ def run(
         "mission": f"bench.sync bare, {bare} DNs" if bare else "configs/led_test.yaml",
         "ground": ground,
         "lowlatency": lowlatency,
+        "sync_query": sync_query,
+        "wildcard": c.cn.sync.wildcard,
         "env": env,
         "seconds": seconds,
         "loops": n,
@@ -281,7 +296,8 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     parser.add_argument("--seconds", type=float, default=None)
     parser.add_argument("--ground", action="store_true")
     parser.add_argument("--bare", type=int, default=None)
-    parser.add_argument("--lowlatency", choices=["auto", "true", "false"], default="auto")
+    parser.add_argument("--lowlatency", choices=["auto", "true", "false"], default="false")
+    parser.add_argument("--sync-query", choices=["auto", "wildcard", "per_node"], default="auto")
     parser.add_argument("--env", action="append", default=[])
     args = parser.parse_args(args_list)
     seconds = args.seconds if args.seconds is not None else (5.0 if args.quick else 30.0)
@@ -294,6 +310,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         ground=args.ground,
         bare=args.bare,
         lowlatency=LOWLATENCY_ARG[args.lowlatency],
+        sync_query=args.sync_query,
         env=env,
     )
     params["scheduling"] = sched

@@ -144,12 +144,16 @@ class TransportConfig(_Struct):
     gossip_scouting: bool = True
     lease_ms: Annotated[int, Meta(ge=100, le=60_000)] = 1000
     # zenoh's lowlatency transport (QoS off, no tx batching task) cut the
-    # 3-DN sync p50 by about 10 % here (bench/REPORT.md#sync_trace), but it
-    # cannot fragment: a bigger message is dropped without a word. "auto"
-    # turns it on only when every message the mission sends fits
-    # (zplatform.transport.lowlatency_for); true on a mission where one may
+    # 3-DN sync p50 by about 10 % here (bench/REPORT.md#sync), but it is off
+    # by default, for two reasons measured here: it writes to the socket
+    # from the sending thread, so a stalled link (a cut cable) froze the
+    # CN's loop for 271 ms in tests/faults (with it off, DROP congestion
+    # control drops the query and the loop runs on); and it cannot
+    # fragment: a bigger message is dropped without a word. "auto" turns it
+    # on only when every message the mission sends fits
+    # (zplatform.messages.lowlatency_for); true on a mission where one may
     # not fit is a config error.
-    lowlatency: bool | Literal["auto"] = "auto"
+    lowlatency: bool | Literal["auto"] = False
     # Threads in zenoh's receive pool (ZENOH_RUNTIME rx worker_threads; zenoh's
     # default is 2). One thread serving every link is faster on a small box:
     # fewer wake-ups per message (bench/REPORT.md#sync_trace). Set before

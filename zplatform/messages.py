@@ -89,11 +89,12 @@ def wildcard_sync_for(mission: Mission) -> bool:
 def lowlatency_for(mission: Mission) -> bool:
     """Whether the mission's sessions use zenoh's lowlatency transport.
 
-    ``transport.lowlatency: auto`` (the default): on when no bulk channel is
-    configured and :func:`largest_message` is within
-    :data:`LOWLATENCY_MAX_MESSAGE`; off otherwise. ``true``/``false`` as
-    given (:func:`check_lowlatency` refuses ``true`` where a message may not
-    fit).
+    ``transport.lowlatency`` is off by default (a stalled link blocks the
+    sending thread: :class:`zplatform.config.TransportConfig`). ``auto``: on
+    when no bulk channel is configured and :func:`largest_message` is
+    within :data:`LOWLATENCY_MAX_MESSAGE`; off otherwise. ``true``/``false``
+    as given (:func:`check_lowlatency` refuses ``true`` where a message may
+    not fit).
     """
     ll = mission.transport.lowlatency
     if ll == "auto":

@@ -1,0 +1,57 @@
+"""The wildcard sync query live (led_test: 3 DNs, so ``sync_query: auto``
+sends one bundle query per loop): every DN runs from it; a foreign
+queryable on ``{vehicle}/*/to_cn`` is counted, never applied; a malformed
+bundle is refused by every DN with an error reply that names it."""
+
+from __future__ import annotations
+
+import queue
+from pathlib import Path
+
+import zenoh
+
+from zplatform.messages import wildcard_sync_for
+
+from .harness import CONFIGS, Cluster
+
+
+def test_one_query_runs_every_dn_and_foreign_replies_are_counted(tmp_path: Path) -> None:
+    with Cluster(CONFIGS / "led_test.yaml", tmp_path) as c:
+        assert wildcard_sync_for(c.mission)
+        dns = c.mission.device_nodes
+        for dn in dns:
+            c.spawn(dn)
+        c.spawn("cn")
+        c.advance(30)
+        rx0 = {dn: int(c.tm.get(f"cn_rx_{dn}")) for dn in dns}
+        bad0 = int(c.tm.get("cn_bad_frames"))
+        v = c.mission.vehicle
+        answered: queue.SimpleQueue[int] = queue.SimpleQueue()
+
+        def rogue(q: zenoh.Query) -> None:
+            with q:
+                q.reply(f"{v}/evil/to_cn", b"\x94junk")
+            answered.put(1)
+
+        qbl = c.session.declare_queryable(f"{v}/evil/to_cn", rogue)
+        try:
+            c.wait_for(lambda dv: int(dv.get("cn_bad_frames")) >= bad0 + 20, 20, "foreign counted")
+        finally:
+            qbl.undeclare()
+        c.advance(30)
+        # Every DN kept syncing through it; nothing of the rogue's was applied.
+        for dn in dns:
+            assert int(c.tm.get(f"cn_rx_{dn}")) >= rx0[dn] + 50, dn
+        assert answered.qsize() >= 20
+        # A malformed bundle to every DN at once: each refuses it, by name.
+        errors: list[bytes] = []
+        for r in c.session.get(f"{v}/*/to_cn", payload=b"ZB\x01\x01\xff\xff", timeout=2.0):
+            if r.err is not None:
+                errors.append(r.err.payload.to_bytes())
+        assert sorted(e.split(b":")[0] for e in errors) == [dn.encode() for dn in dns]
+        assert all(b"bundle" in e for e in errors), errors
+        c.wait_for(
+            lambda dv: all(int(dv.get(f"{dn}_bad_frames")) >= 1 for dn in dns),
+            10,
+            "every DN counted the bad bundle",
+        )
