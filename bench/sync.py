@@ -72,7 +72,6 @@ import numpy as np
 from bench.baselines import run_baseline
 from bench.cluster import BenchCluster, SyncSamples, make_mission
 from bench.common import RESULTS_DIR, bench_argparser, summarize, write_result
-from zplatform.config import TransportConfig
 
 RATE_HZ = 100.0
 REGION_BYTES = 256
@@ -119,23 +118,16 @@ def _us(ns: float) -> float:
 def inherit_fifo(priority: int) -> str:
     """Put the calling thread in SCHED_FIFO ``priority`` so threads and children inherit it.
 
-    Also sizes zenoh's receive pool as zplatform does (``transport.rx_threads``,
-    default 1) for this process and its children, unless ``ZENOH_RUNTIME`` is
-    set: zenoh reads it once per process, and this process hosts the CN and
-    the raw baselines' requesters alike, so every system measured runs the
-    same pool. Returns a note for the result's params ("SCHED_FIFO 20; ...",
-    or why not). Does not block. ``priority`` 0 means: leave the policy alone.
+    Returns a note for the result's params ("SCHED_FIFO 20", or why not).
+    Does not block. ``priority`` 0 means: leave the policy alone.
     """
-    rx = TransportConfig().rx_threads
-    os.environ.setdefault("ZENOH_RUNTIME", f"(rx:(worker_threads:{rx}))")
-    pool = f"ZENOH_RUNTIME={os.environ['ZENOH_RUNTIME']} in every process"
     if priority <= 0:
-        return f"SCHED_OTHER (realtime off); {pool}"
+        return "SCHED_OTHER (realtime off)"
     try:
         os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
     except (OSError, AttributeError) as exc:
-        return f"SCHED_OTHER (SCHED_FIFO refused: {exc}); {pool}"
-    return f"SCHED_FIFO {priority}; {pool}"
+        return f"SCHED_OTHER (SCHED_FIFO refused: {exc})"
+    return f"SCHED_FIFO {priority}"
 
 
 def run_zplatform(

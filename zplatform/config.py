@@ -154,12 +154,6 @@ class TransportConfig(_Struct):
     # (zplatform.messages.lowlatency_for); true on a mission where one may
     # not fit is a config error.
     lowlatency: bool | Literal["auto"] = False
-    # Threads in zenoh's receive pool (ZENOH_RUNTIME rx worker_threads; zenoh's
-    # default is 2). One thread serving every link is faster on a small box:
-    # fewer wake-ups per message (bench/REPORT.md#sync_trace). Set before
-    # the process opens its first session; ZENOH_RUNTIME in the environment
-    # wins over it.
-    rx_threads: Annotated[int, Meta(ge=1, le=64)] = 1
     # How the CN queries its DNs each loop: "per_node" is one get per DN;
     # "wildcard" is one get on {vehicle}/*/to_cn carrying a bundle of every
     # DN's frame (codecs/FORMAT.md §6.2), which cut raw zenoh's 3-responder

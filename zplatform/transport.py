@@ -25,7 +25,6 @@ from __future__ import annotations
 
 import contextlib
 import json
-import os
 import queue
 import socket
 import threading
@@ -64,7 +63,6 @@ __all__ = [
     "lowlatency_for",
     "open_session",
     "rewrite_endpoints",
-    "runtime_env",
     "sync_bundle_size",
     "wait_for_nodes",
     "wildcard_sync_for",
@@ -138,17 +136,6 @@ def _insert(cfg: zenoh.Config, key: str, value: Any) -> None:
         cfg.insert_json5(key, json.dumps(value))
     except Exception as exc:  # zenoh raises ZError; keep the key in the message
         raise TransportError(f"zenoh config {key}={value!r} rejected: {exc}") from exc
-
-
-def runtime_env(mission: Mission) -> None:
-    """Size zenoh's receive pool for this process (``transport.rx_threads``).
-
-    zenoh reads ``ZENOH_RUNTIME`` once, when the process opens its first
-    session: later calls change nothing. A ``ZENOH_RUNTIME`` already in the
-    environment (an operator's own tuning) is left as it is.
-    """
-    if "ZENOH_RUNTIME" not in os.environ:
-        os.environ["ZENOH_RUNTIME"] = f"(rx:(worker_threads:{mission.transport.rx_threads}))"
 
 
 def zenoh_config(
@@ -244,7 +231,6 @@ class NodeSession:
         self.node = node
         self.keys = KeySpace(mission.vehicle)
         dep = deployment if deployment is not None else deployment_from_env(mission)
-        runtime_env(mission)
         self.session = open_session(zenoh_config(mission, node, deployment=dep, **overrides))
         self._token: zenoh.LivelinessToken | None = None
         self._closed = False

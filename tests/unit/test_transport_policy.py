@@ -4,7 +4,6 @@ how big a message gets, zenoh's receive pool, the event text cap."""
 from __future__ import annotations
 
 import json
-import os
 from pathlib import Path
 
 import pytest
@@ -18,7 +17,6 @@ from zplatform.transport import (
     LOWLATENCY_MAX_MESSAGE,
     largest_message,
     lowlatency_for,
-    runtime_env,
     zenoh_config,
 )
 
@@ -90,21 +88,6 @@ def test_the_largest_message_counts_telemetry_regions_and_the_downlink() -> None
     assert largest_message(ten_k) >= 40_000 + 16  # data + the authentication tag
     ccsds = decode_mission(BIG % ("auto", 10) + "downlink: {ccsds: true, max_data: 60000}\n")
     assert largest_message(ccsds) > 60_000 and not lowlatency_for(ccsds)
-
-
-def test_rx_threads_sizes_zenohs_receive_pool_unless_the_operator_did(
-    monkeypatch: pytest.MonkeyPatch,
-) -> None:
-    m = decode_mission(BIG % ("auto", 10))
-    monkeypatch.delenv("ZENOH_RUNTIME", raising=False)
-    runtime_env(m)
-    assert os.environ["ZENOH_RUNTIME"] == "(rx:(worker_threads:1))"
-    monkeypatch.setenv("ZENOH_RUNTIME", "(rx:(worker_threads:3))")
-    runtime_env(m)
-    assert os.environ["ZENOH_RUNTIME"] == "(rx:(worker_threads:3))"
-    with pytest.raises(ConfigError) as ei:
-        parse_mission((BIG % ("auto", 10)).replace("transport: {", "transport: {rx_threads: 0, "))
-    assert ei.value.path == "$.transport.rx_threads"
 
 
 def test_event_text_is_capped_so_every_event_fits_a_small_message() -> None:
