@@ -13,10 +13,10 @@ same scheduling (see *Scheduling* below):
   and applied, or the sync deadline passed);
   These run the mission defaults (``transport.lowlatency`` off: module doc
   of :mod:`zplatform.messages`).
-  With 3 DNs ``sync_query: auto`` sends one wildcard query per loop;
-* ``zplatform_per_node_3dn``: the same with ``sync_query: per_node`` (one get
-  per DN), and ``zplatform_lowlatency_3dn`` with ``lowlatency: true``: the
-  levers, measured;
+  (one get per DN);
+* ``zplatform_wildcard_3dn``: the same with ``sync_query: wildcard`` (one
+  query per loop with every DN's frame), and ``zplatform_lowlatency_3dn``
+  with ``lowlatency: true``: the levers, measured;
 * ``raw_zenoh_1`` / ``raw_zenoh_3``: bare zenoh ``get``/``reply`` with zenoh's
   default transport (:func:`bench.baselines.run_baseline`): the floor;
   ``raw_zenoh_lowlatency_3``: the same on the lowlatency transport;
@@ -99,7 +99,7 @@ class Variant:
 VARIANTS: tuple[Variant, ...] = (
     Variant("zplatform_1dn", "zplatform", 1),
     Variant("zplatform_3dn", "zplatform", 3),
-    Variant("zplatform_per_node_3dn", "zplatform", 3, sync_query="per_node"),
+    Variant("zplatform_wildcard_3dn", "zplatform", 3, sync_query="wildcard"),
     Variant("zplatform_lowlatency_3dn", "zplatform", 3, True),
     Variant("raw_zenoh_1", "zenoh", 1),
     Variant("raw_zenoh_3", "zenoh", 3),
@@ -280,8 +280,11 @@ def ratios(variants: dict[str, dict[str, Any]]) -> dict[str, float | None]:
             "raw_zenoh_lowlatency_3",
         ),
         "zplatform_lowlatency_3dn/zplatform_3dn": ("zplatform_lowlatency_3dn", "zplatform_3dn"),
-        "zplatform_3dn/zplatform_per_node_3dn": ("zplatform_3dn", "zplatform_per_node_3dn"),
-        "zplatform_3dn/raw_zenoh_wildcard_3": ("zplatform_3dn", "raw_zenoh_wildcard_3"),
+        "zplatform_wildcard_3dn/zplatform_3dn": ("zplatform_wildcard_3dn", "zplatform_3dn"),
+        "zplatform_wildcard_3dn/raw_zenoh_wildcard_3": (
+            "zplatform_wildcard_3dn",
+            "raw_zenoh_wildcard_3",
+        ),
         "raw_zenoh_wildcard_3/raw_zenoh_3": ("raw_zenoh_wildcard_3", "raw_zenoh_3"),
         "raw_zenoh_wildcard_lowlatency_3/raw_zenoh_lowlatency_3": (
             "raw_zenoh_wildcard_lowlatency_3",

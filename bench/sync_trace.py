@@ -24,7 +24,10 @@ The mission is configs/led_test.yaml on free ports (``--ground`` adds its
 ground node, as in ``bench.reliability``), or ``--bare N``: ``bench.sync``'s
 mission with N DNs. Variants for levers: ``--lowlatency auto|true|false``
 (the mission's ``transport.lowlatency``), ``--sync-query
-auto|wildcard|per_node`` (``transport.sync_query``), ``--env K=V`` (set in this process
+auto|wildcard|per_node`` (``transport.sync_query``), ``--pin cn=0,dn=1``
+(nodes' ``cpu``), ``--zenoh-priority P`` (every thread of the CN and DNs but
+the loop thread at SCHED_FIFO P, the loop threads at the mission's 20),
+``--env K=V`` (set in this process
 before its first session, and inherited by every child: ``ZENOH_RUNTIME``
 and the like).
 
@@ -47,6 +50,7 @@ from typing import Any
 
 import numpy as np
 import numpy.typing as npt
+import yaml
 
 from bench.common import bench_argparser, summarize
 from bench.common import write_result as _write
@@ -71,12 +75,45 @@ class _Stamps:
         Path(path).write_text(json.dumps({"loops": rows.tolist(), "t": self.t[rows].tolist()}))
 
 
+_PRIO_ENV = "ZP_TRACE_ZENOH_PRIORITY"
+
+
+def _split_priorities() -> None:
+    """With ``ZP_TRACE_ZENOH_PRIORITY=P``: when a node promotes its threads to
+    SCHED_FIFO, every thread but the calling (loop) thread gets P instead."""
+    p = os.environ.get(_PRIO_ENV)
+    if not p:
+        return
+    import threading
+
+    import zplatform.node.runtime as rt
+
+    others = int(p)
+
+    def promote(priority: int) -> int:
+        me = threading.get_native_id()
+        n = 0
+        for t in os.listdir("/proc/self/task"):
+            tid = int(t)
+            prio = priority if tid == me else others
+            try:
+                os.sched_setscheduler(tid, os.SCHED_FIFO, os.sched_param(prio))
+                n += 1
+            except OSError:
+                pass
+        return n
+
+    rt._promote_threads = promote
+
+
 def dn_main(argv: list[str]) -> None:
-    """``dn <mission> <name> <out.json>``: a DN process with its hops stamped."""
+    """``dn <mission> <name> <out.json> [node options]``: a DN process with its hops stamped."""
     import zplatform.sync as zsync
     from zplatform.cli import main as cli_main
 
-    mission, name, out = argv
+    _split_priorities()
+
+    mission, name, out, *extra = argv
     st = _Stamps(3)  # arrive, serve, replied
     atexit.register(st.dump, out)
     arrivals: queue.SimpleQueue[int] = queue.SimpleQueue()
@@ -111,7 +148,7 @@ def dn_main(argv: list[str]) -> None:
     zsync.DeviceSync.__init__ = init  # type: ignore[method-assign]
     zsync.DeviceSync._serve = serve  # type: ignore[method-assign]
     try:
-        cli_main(["node", mission, name])
+        cli_main(["node", mission, name, *extra])
     finally:
         st.dump(out)
 
@@ -224,6 +261,8 @@ def run(
     bare: int | None,
     lowlatency: bool | str,
     sync_query: str = "auto",
+    pin: str = "",
+    priority: int = 20,
     env: dict[str, str],
 ) -> tuple[dict[str, Any], dict[str, dict[str, Any]]]:
     from bench.cluster import BenchCluster, SyncSamples, make_mission
@@ -231,6 +270,7 @@ def run(
     from bench.sync import PRIORITY
 
     os.environ.update(env)
+    _split_priorities()
     with tempfile.TemporaryDirectory(prefix="zp-trace-") as tmp:
         tmpdir = Path(tmp)
         if bare:
@@ -243,7 +283,15 @@ def run(
             )
         else:
             mpath = led_mission(tmpdir / "m.yaml", lowlatency=lowlatency, sync_query=sync_query)
-        with BenchCluster(mpath, realtime=True, trace_dir=tmpdir) as c:
+        if pin:  # "cn=0,dn=1": the node (or every dnX for "dn") on that CPU
+            doc = yaml.safe_load(mpath.read_text())
+            for item in pin.split(","):
+                who, cpu = item.split("=")
+                for name, spec in doc["nodes"].items():
+                    if name == who or (who == "dn" and name.startswith("dn")):
+                        spec["cpu"] = int(cpu)
+            mpath.write_text(yaml.safe_dump(doc, sort_keys=False))
+        with BenchCluster(mpath, realtime=priority > 0, trace_dir=tmpdir) as c:
             m = c.mission
             n_dn = len(m.device_nodes)
             gpath = tmpdir / "gn.json"
@@ -276,6 +324,8 @@ def run(
         "lowlatency": lowlatency,
         "sync_query": sync_query,
         "wildcard": c.cn.sync.wildcard,
+        "pin": pin,
+        "zenoh_thread_priority": os.environ.get(_PRIO_ENV),
         "env": env,
         "seconds": seconds,
         "loops": n,
@@ -298,19 +348,32 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     parser.add_argument("--bare", type=int, default=None)
     parser.add_argument("--lowlatency", choices=["auto", "true", "false"], default="false")
     parser.add_argument("--sync-query", choices=["auto", "wildcard", "per_node"], default="auto")
+    parser.add_argument("--pin", default="", help="CPU per node: cn=0,dn=1 (dn: every DN)")
+    parser.add_argument("--priority", type=int, default=None, help="SCHED_FIFO (0: off)")
+    parser.add_argument(
+        "--zenoh-priority",
+        type=int,
+        default=None,
+        help="SCHED_FIFO priority of every thread but the loop thread (nodes' own is 20)",
+    )
     parser.add_argument("--env", action="append", default=[])
     args = parser.parse_args(args_list)
     seconds = args.seconds if args.seconds is not None else (5.0 if args.quick else 30.0)
     env = dict(kv.split("=", 1) for kv in args.env)
+    if args.zenoh_priority is not None:
+        env[_PRIO_ENV] = str(args.zenoh_priority)
     from bench.sync import PRIORITY, inherit_fifo
 
-    sched = inherit_fifo(PRIORITY)
+    prio = PRIORITY if args.priority is None else args.priority
+    sched = inherit_fifo(prio)
     params, variants = run(
         seconds,
         ground=args.ground,
         bare=args.bare,
         lowlatency=LOWLATENCY_ARG[args.lowlatency],
         sync_query=args.sync_query,
+        pin=args.pin,
+        priority=prio,
         env=env,
     )
     params["scheduling"] = sched

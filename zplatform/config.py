@@ -156,11 +156,12 @@ class TransportConfig(_Struct):
     lowlatency: bool | Literal["auto"] = False
     # How the CN queries its DNs each loop: "per_node" is one get per DN;
     # "wildcard" is one get on {vehicle}/*/to_cn carrying a bundle of every
-    # DN's frame (codecs/FORMAT.md §6.2), which cut raw zenoh's 3-responder
-    # exchange p50 by about 12 % here (bench/REPORT.md#sync) but sends every
-    # DN every DN's frame. "auto": wildcard for 2 or more DNs while the
-    # bundle stays small (zplatform.transport.wildcard_sync_for).
-    sync_query: Literal["auto", "wildcard", "per_node"] = "auto"
+    # DN's frame (codecs/FORMAT.md §6.2); "auto" picks wildcard for 2 or more
+    # DNs while the bundle stays small (zplatform.messages.wildcard_sync_for).
+    # per_node is the default because it measured faster here: the wildcard
+    # cut raw zenoh's 3-responder p50 by 15 % but made zplatform's 12 %
+    # slower (bench/REPORT.md#sync), and it sends every DN every DN's frame.
+    sync_query: Literal["auto", "wildcard", "per_node"] = "per_node"
     # zenoh batches small messages for up to 1 ms by default: good for
     # throughput, bad for a 2 ms sync deadline (bench/REPORT.md). Off unless
     # a mission asks for it.

@@ -76,9 +76,11 @@ def sync_bundle_size(mission: Mission) -> int:
 def wildcard_sync_for(mission: Mission) -> bool:
     """Whether the CN sends one wildcard sync query per loop (else one per DN).
 
-    ``transport.sync_query: auto`` (the default): wildcard for two or more
-    DNs while :func:`sync_bundle_size` is within :data:`WILDCARD_MAX_BUNDLE`.
-    ``wildcard``/``per_node`` as given (a DN accepts either form always).
+    ``transport.sync_query`` is ``per_node`` by default (it measured faster:
+    :class:`zplatform.config.TransportConfig`). ``auto``: wildcard for two or
+    more DNs while :func:`sync_bundle_size` is within
+    :data:`WILDCARD_MAX_BUNDLE`. ``wildcard``/``per_node`` as given (a DN
+    accepts either form always).
     """
     mode = mission.transport.sync_query
     if mode == "auto":

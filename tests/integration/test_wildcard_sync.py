@@ -1,5 +1,5 @@
-"""The wildcard sync query live (led_test: 3 DNs, so ``sync_query: auto``
-sends one bundle query per loop): every DN runs from it; a foreign
+"""The wildcard sync query live (led_test's 3 DNs with ``sync_query:
+wildcard``: one bundle query per loop): every DN runs from it; a foreign
 queryable on ``{vehicle}/*/to_cn`` is counted, never applied; a malformed
 bundle is refused by every DN with an error reply that names it."""
 
@@ -8,6 +8,7 @@ from __future__ import annotations
 import queue
 from pathlib import Path
 
+import yaml
 import zenoh
 
 from zplatform.messages import wildcard_sync_for
@@ -16,7 +17,11 @@ from .harness import CONFIGS, Cluster
 
 
 def test_one_query_runs_every_dn_and_foreign_replies_are_counted(tmp_path: Path) -> None:
-    with Cluster(CONFIGS / "led_test.yaml", tmp_path) as c:
+    src = tmp_path / "led_wild.yaml"
+    doc = yaml.safe_load((CONFIGS / "led_test.yaml").read_text())
+    doc["transport"] = {"sync_query": "wildcard"}
+    src.write_text(yaml.safe_dump(doc, sort_keys=False))
+    with Cluster(src, tmp_path) as c:
         assert wildcard_sync_for(c.mission)
         dns = c.mission.device_nodes
         for dn in dns:

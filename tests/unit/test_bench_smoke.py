@@ -15,7 +15,7 @@ from pathlib import Path
 
 import pytest
 
-from bench import bandwidth, clock, reliability, report, telemetry_latency
+from bench import bandwidth, clock, levers, reliability, report, telemetry_latency
 
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(180)]
 
@@ -105,3 +105,15 @@ def test_quick_as_shipped(bench: str, tmp_path: Path) -> None:
         args.append("--no-plot")  # the repository's plot is the full run's
     mod.main(args)
     _doc(out, bench)
+
+
+def test_levers_and_sync_trace_smoke(tmp_path: Path) -> None:
+    out = tmp_path / "levers.json"
+    args = ["--rounds", "1", "--seconds", "1", "--only", "shipped,wildcard"]
+    levers.main([*args, "--priority", "0", "--json", str(out)])
+    doc = _doc(out, "levers")
+    for name in ("shipped", "wildcard"):
+        v = doc["variants"][name]
+        assert v["p50_us"] > 0 and v["hop_issued->arrive_p50_us"] > 0, v
+    assert "wildcard/shipped p50" in doc["params"]["ratios"]
+    assert "levers" in _renders(tmp_path)

@@ -7,6 +7,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import pytest
+import yaml
 from hypothesis import given
 from hypothesis import strategies as st
 
@@ -104,7 +105,10 @@ regions:
 
 
 def test_the_policy_chooses_wildcard_for_small_bundles_of_two_or_more() -> None:
-    assert wildcard_sync_for(load_mission(LED))  # 3 DNs, a few bytes each
+    assert not wildcard_sync_for(load_mission(LED))  # per_node unless asked
+    doc = yaml.safe_load(LED.read_text())
+    doc["transport"] = {"sync_query": "auto"}
+    assert wildcard_sync_for(decode_mission(yaml.safe_dump(doc)))  # 3 DNs, a few bytes each
     assert not wildcard_sync_for(load_mission(ROOT / "configs" / "minimal.yaml"))  # 1 DN
     small = decode_mission(BASE % ("auto", 10))
     assert wildcard_sync_for(small)
