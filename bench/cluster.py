@@ -44,7 +44,7 @@ def make_mission(
     sync_timeout_ms: float = 2.0,
     region_bytes: int = 256,
     lowlatency: bool | str = False,
-    sync_query: str = "auto",
+    sync_query: str | None = None,
     priority: int | None = None,
     controllers: list[dict[str, Any]] | None = None,
     devices: list[dict[str, Any]] | None = None,
@@ -79,7 +79,7 @@ def make_mission(
         "vehicle": "bench",
         "loop_hz": loop_hz,
         "sync_timeout_ms": sync_timeout_ms,
-        "transport": {"lowlatency": lowlatency, "sync_query": sync_query},
+        "transport": {"lowlatency": lowlatency},
         "clock": {"exchanges": 50, "resync_s": 0},
         "nodes": nodes,
         "regions": regions,
@@ -88,6 +88,8 @@ def make_mission(
         doc["controllers"] = controllers
     if devices:
         doc["devices"] = devices
+    if sync_query is not None:  # else the mission default (per_node)
+        doc["transport"]["sync_query"] = sync_query
     path.write_text(yaml.safe_dump(doc, sort_keys=False))
     return path
 

@@ -39,6 +39,8 @@ from bench.common import BENCH_DIR, RESULTS_DIR
 #: Sections come in this order; any other bench follows, alphabetically.
 ORDER = (
     "sync",
+    "levers",
+    "sync_trace",
     "rate",
     "bandwidth",
     "reliability",
@@ -428,6 +430,23 @@ def reliability_section(params: dict[str, Any], variants: dict[str, dict[str, An
     return lines
 
 
+def sync_trace_section(params: dict[str, Any], variants: dict[str, dict[str, Any]]) -> list[str]:
+    """The hop table: where a sync's time goes, per exchange (bench.sync_trace)."""
+    hops = (variants.get("trace") or {}).get("hops") or {}
+    if not hops:
+        return []
+    rows = [
+        [hop, h.get("p50_us"), h.get("p99_us"), h.get("max_us"), h.get("missed_loops_p50_us")]
+        for hop, h in hops.items()
+    ]
+    return [
+        "",
+        "**Hops** (per DN exchange; `sync_total` = issued -> taken)",
+        "",
+        *md_table(["hop", "p50 us", "p99 us", "max us", "p50 us in missed loops"], rows),
+    ]
+
+
 def clock_section(params: dict[str, Any], variants: dict[str, dict[str, Any]]) -> list[str]:
     """Residual error per case and estimator; which one is more accurate."""
     cases = [c["case"] for c in params.get("cases") or []]
@@ -737,6 +756,8 @@ def section(bench: str, doc: dict[str, Any], plots_dir: Path | None, report_dir:
         lines += reliability_section(params, variants)
     elif bench == "clock":
         lines += clock_section(params, variants)
+    elif bench == "sync_trace":
+        lines += sync_trace_section(params, variants)
     elif bench == "faults":
         lines += faults_section(params, variants)
     lines += ratios_section(params, variants)

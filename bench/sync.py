@@ -93,7 +93,7 @@ class Variant:
     n: int
     lowlatency: bool | str = False
     wildcard: bool = False
-    sync_query: str = "auto"
+    sync_query: str | None = None
 
 
 VARIANTS: tuple[Variant, ...] = (
@@ -138,7 +138,7 @@ def run_zplatform(
     sync_timeout_ms: float,
     region_bytes: int = REGION_BYTES,
     lowlatency: bool | str = False,
-    sync_query: str = "auto",
+    sync_query: str | None = None,
     priority: int = PRIORITY,
 ) -> dict[str, Any]:
     """Run a zplatform cluster (``n_dn`` DN processes, CN here) for ``duration_s``.

@@ -260,7 +260,7 @@ def run(
     ground: bool,
     bare: int | None,
     lowlatency: bool | str,
-    sync_query: str = "auto",
+    sync_query: str | None = None,
     pin: str = "",
     priority: int = 20,
     env: dict[str, str],
@@ -347,7 +347,12 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     parser.add_argument("--ground", action="store_true")
     parser.add_argument("--bare", type=int, default=None)
     parser.add_argument("--lowlatency", choices=["auto", "true", "false"], default="false")
-    parser.add_argument("--sync-query", choices=["auto", "wildcard", "per_node"], default="auto")
+    parser.add_argument(
+        "--sync-query",
+        choices=["auto", "wildcard", "per_node"],
+        default=None,
+        help="transport.sync_query (default: the mission's own)",
+    )
     parser.add_argument("--pin", default="", help="CPU per node: cn=0,dn=1 (dn: every DN)")
     parser.add_argument("--priority", type=int, default=None, help="SCHED_FIFO (0: off)")
     parser.add_argument(

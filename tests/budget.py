@@ -5,7 +5,9 @@ whatever else runs; a rare scheduling stall longer than the 2 ms sync
 deadline shows up as a miss no matter what the platform does (measured: 0 to
 ~3 misses per 6000 device-node loops, the same at an older commit, so the
 box and not the code). The default suite therefore allows misses up to
-MISS_BUDGET of all device-node loops (never fewer than one) and reports
+MISS_BUDGET of all device-node loops (never fewer than one host stall's
+worth, STALL_LOOPS per DN; it was 0.5 % before bench.reliability measured
+the platform against that floor) and reports
 them; the opt-in soak holds the thesis' requirement (99.999 %) over a long
 run. Functional checks (states, LEDs, commands, zero errors, zero telemetry
 gaps) are exact. A late reply is the same event as its miss (the answer that
@@ -16,12 +18,23 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 
-MISS_BUDGET = 5e-3
+#: Three times the sync miss rate `python -m bench.reliability` measured for
+#: the full led_test mission over 10 min on this box, twice (180 and 145 of
+#: 180 000 DN syncs, 1.0e-3 and 0.8e-3; the raw-zenoh replica of the same
+#: traffic missed 147 and 162): room for a short test's run-to-run spread,
+#: not for a regression.
+MISS_BUDGET = 3e-3
 THESIS_RELIABILITY = 0.99999
 
 
+#: Loops one host stall may cost every DN at once, whatever the run's length:
+#: this VM's vCPUs stop for 1-200 ms every few seconds (bench/jitter.py); a
+#: 300-loop run under `up` lost 11 syncs of 900 to one such stall.
+STALL_LOOPS = 5
+
+
 def allowed_misses(loops: int, n_dn: int, budget: float = MISS_BUDGET) -> int:
-    return max(1, int(loops * n_dn * budget))
+    return max(STALL_LOOPS * n_dn, int(loops * n_dn * budget))
 
 
 def assert_within_budget(summary: Mapping[str, object], budget: float = MISS_BUDGET) -> None:

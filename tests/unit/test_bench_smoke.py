@@ -115,5 +115,5 @@ def test_levers_and_sync_trace_smoke(tmp_path: Path) -> None:
     for name in ("shipped", "wildcard"):
         v = doc["variants"][name]
         assert v["p50_us"] > 0 and v["hop_issued->arrive_p50_us"] > 0, v
-    assert "wildcard/shipped p50" in doc["params"]["ratios"]
+    assert "wildcard/shipped" in doc["params"]["ratios_p50"]
     assert "levers" in _renders(tmp_path)
