@@ -431,9 +431,11 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     }
     if not args.no_plot:
         try:
-            params["plots"] = [
-                str(plot_bandwidth(variants, Path(__file__).resolve().parent / "plots"))
-            ]
+            # Relative to bench/, so the result and the report name the same
+            # file on any checkout.
+            bench_dir = Path(__file__).resolve().parent
+            plot = plot_bandwidth(variants, bench_dir / "plots")
+            params["plots"] = [str(plot.relative_to(bench_dir))]
         except Exception as exc:  # plotting never loses the measurement
             params["plot_error"] = repr(exc)
     doc = write_result("bandwidth", params, variants, args.json)

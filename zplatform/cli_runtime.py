@@ -114,7 +114,7 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         type=nonnegative_float,
         metavar="S",
         help="CN: seconds to wait for the ground node before the first loop (default: "
-        "the ready timeout); the CN starts without it after that",
+        "the ready timeout; 0: do not wait); the CN starts without it after that",
     )
     p.add_argument(
         "--record",

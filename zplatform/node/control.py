@@ -144,6 +144,10 @@ class ControlNode:
     ) -> dict[str, int]:
         """Wait for every DN, then read their clock offsets; returns them.
 
+        Blocks up to ``timeout_s`` for the DNs; then, if the mission has a
+        ground node, up to ``ground_wait_s`` for it (None: what is left of
+        ``timeout_s``; 0: not at all) and starts without it after a warning.
+
         Raises NodeError naming the node whose clock error after correction
         exceeds the bound (:func:`check_clocks`), or the nodes that never
         came up.
@@ -156,9 +160,11 @@ class ControlNode:
                 wait_for_nodes(self.ns.session, self.ns.keys, dns, timeout_s, self.stop.event)
             except TransportError as exc:
                 raise NodeError(f"control node cannot start: {exc}") from exc
-        if m.has_ground:
+        if m.has_ground and ground_wait_s != 0:
             # Wait for the ground (alive = subscribed to telemetry) so its log
             # starts at loop 1; but never make flight depend on the ground link.
+            # An explicit 0 means the caller does not wait (benches, or an
+            # operator's --ground-wait 0), so it is not worth a warning.
             if ground_wait_s is None:
                 ground_wait_s = max(0.0, timeout_s - (time.monotonic() - start))
             try:
