@@ -60,7 +60,7 @@ from bench.baselines import run_baseline
 from bench.cluster import BenchCluster, SyncSamples, make_mission
 from bench.common import bench_argparser, summarize, write_result
 from bench.sync import PRIORITY, inherit_fifo
-from zplatform.transport import lowlatency_for
+from zplatform.messages import lowlatency_for
 
 TYPES = ("f32", "i32", "u16", "bool", "f64", "u8", "i16", "u32")
 COUNTS_FULL = (10, 100, 1_000, 10_000, 100_000)

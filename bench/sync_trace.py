@@ -199,25 +199,9 @@ def _trace_cn(cn: Any, n_dn: int) -> _Stamps:
             return item[0], item[1]
 
     sq = StampedQueue()
-    sync._q = sq  # the wildcard hand-off reads sync._q at each call
-    # The per-DN hand-off closures captured the old queue: rebuild them on the new one.
-    import zenoh
-
-    def make(i: int) -> Any:
-        def handoff(reply: Any) -> None:
-            ok = reply.ok
-            if ok is not None:
-                sq.put((i, ok.payload.to_bytes()))
-                return
-            err = reply.err
-            if err is None or err.payload.to_bytes() != b"Timeout":
-                sq.put((i, None))
-
-        return handoff
-
-    sync._callbacks = [
-        zenoh.handlers.Callback(make(i), sync._on_finalised, indirect=False) for i in range(n_dn)
-    ]
+    sync._q = sq
+    # The hand-offs capture the queue: rebuild them on the stamped one, as shipped.
+    sync._build_callbacks()
     return st
 
 

@@ -310,12 +310,12 @@ class ControlLogic:
         self._sync_overruns.set(0)
 
     def foreign_reply(self, source: str) -> None:
-        """Count a sync reply from ``source``, a key that is no DN's (a
-        wildcard query reaches any queryable on ``{vehicle}/*/to_cn``): a bad
-        frame, never applied."""
+        """Count a sync reply that is no DN's (a wildcard query reaches any
+        queryable on ``{vehicle}/*/to_cn``): ``source`` is its key, or an
+        error reply's text. A bad frame, never applied."""
         if self.recorder is not None:
             self.recorder.foreign(source)
-        self._bad_frame(source, "a sync reply from a key that is no device node's")
+        self._bad_frame(source, "a sync reply from no device node")
 
     def _bad_frame(self, source: str, reason: str) -> None:
         # Not our software failing: counted as a bad frame, not an error.

@@ -8,8 +8,12 @@ nodes); :mod:`zplatform.transport` applies the answers to zenoh's config.
 
 from __future__ import annotations
 
+from .auth import TAG_LEN
+from .codec import bundle_size, frame_overhead
 from .config import Mission
+from .datavector import Layout
 from .errors import ConfigError
+from .events import MAX_TEXT
 
 __all__ = [
     "LOWLATENCY_MAX_MESSAGE",
@@ -37,10 +41,6 @@ def largest_message(mission: Mission) -> int:
     packet; an event record (text capped at :data:`zplatform.events.MAX_TEXT`).
     Bulk channels are unbounded here (their samples can be megabytes).
     """
-    from .auth import TAG_LEN
-    from .codec import frame_overhead
-    from .datavector import Layout
-    from .events import MAX_TEXT
 
     if mission.bulk:
         return max(ch.nbytes for ch in mission.bulk)
@@ -61,9 +61,6 @@ WILDCARD_MAX_BUNDLE = 4 * 1024
 
 def sync_bundle_size(mission: Mission) -> int:
     """Bytes of the mission's sync bundle (every ``cn_to_dnX`` frame, authenticated)."""
-    from .auth import TAG_LEN
-    from .codec import bundle_size, frame_overhead
-    from .datavector import Layout
 
     tag = TAG_LEN if mission.security.auth else 0
     sizes = []

@@ -107,23 +107,35 @@ class ControlSync:
         self._taps = [TapPublisher(session, keys.cn_to_dn(dn)) for dn in dns]
         self._q: queue.SimpleQueue[tuple[int, Any]] = queue.SimpleQueue()
         # Wildcard: one get on {vehicle}/*/to_cn with every DN's frame in a
-        # bundle; a reply says whose it is by its key (an error reply by the
-        # "dnX: " its DN puts in front of the reason).
+        # bundle; a reply says whose it is by its key. An error reply has no
+        # key: it names its DN ("dnX: reason"), and counts as that DN's only
+        # if it comes from the zenoh session that answers on dnX's key (the
+        # ACL lets only dnX reply there); any other is foreign. A peer whose
+        # queryable matches the wildcard cannot pin errors on a DN.
         self._all = keys.sync_all
         self._bundle = BundleEncoder()
         self._index = {k: i for i, k in enumerate(self._keys)}
         self._names = {dn.encode(): i for i, dn in enumerate(self.dns)}
+        self._zids: list[Any] = [None] * len(self.dns)  # zenoh.ZenohId per DN, once it answered
         # Issued vs finalised queries (zenoh calls `drop` once per query when
         # it is done): lets start-up wait until no warm-up reply can still come.
         self._issued = 0
         self._finalised = 0
         self._idle = threading.Event()
         self._idle.set()
-        handoffs = [self._make_handoff(i) for i in range(len(dns))]
+        self._build_callbacks()
+        self._consolidation = zenoh.ConsolidationMode.NONE
+        self.duration_ns = 0
+        """How long the last :meth:`sync` took."""
+
+    def _build_callbacks(self) -> None:
         # Flight queries have no drop callback: zenoh finalises every query
         # (one more message per DN and loop), and a Python callback there
         # would take the GIL on zenoh's thread for nothing. Warm-up queries
-        # count their finalisations so start-up can wait them out.
+        # count their finalisations so start-up can wait them out. The
+        # hand-offs capture self._q (bench.sync_trace swaps it, then calls
+        # this again).
+        handoffs = [self._make_handoff(i) for i in range(len(self.dns))]
         self._callbacks = [zenoh.handlers.Callback(h, indirect=False) for h in handoffs]
         self._counted = [
             zenoh.handlers.Callback(h, self._on_finalised, indirect=False) for h in handoffs
@@ -132,9 +144,6 @@ class ControlSync:
         self._any_counted = zenoh.handlers.Callback(
             self._handoff_any, self._on_finalised, indirect=False
         )
-        self._consolidation = zenoh.ConsolidationMode.NONE
-        self.duration_ns = 0
-        """How long the last :meth:`sync` took."""
 
     def _on_finalised(self) -> None:
         self._finalised += 1  # zenoh's thread is the only writer
@@ -160,6 +169,7 @@ class ControlSync:
 
     def _handoff_any(self, reply: zenoh.Reply) -> None:
         # zenoh's thread: find whose reply it is, extract the bytes, hand off.
+        rid = reply.replier_id
         ok = reply.ok
         if ok is not None:
             key = str(ok.key_expr)
@@ -167,6 +177,8 @@ class ControlSync:
             if i is None:
                 self._q.put((_FOREIGN, key))
             else:
+                if rid is not None:
+                    self._zids[i] = rid.zid  # who answers for DN i (a restart changes it)
                 self._q.put((i, ok.payload.to_bytes()))
             return
         err = reply.err
@@ -176,9 +188,10 @@ class ControlSync:
         if reason == b"Timeout":
             return  # zenoh's own, a period after a miss already counted
         i = self._names.get(reason.split(b":", 1)[0])
-        self._q.put(
-            (i, None) if i is not None else (_FOREIGN, reason[:64].decode(errors="replace"))
-        )
+        if i is not None and rid is not None and rid.zid == self._zids[i]:
+            self._q.put((i, None))
+        else:
+            self._q.put((_FOREIGN, reason[:64].decode(errors="replace")))
 
     def sync(
         self, frames: Sequence[bytearray], logic: ControlLogic, *, warmup: bool = False
@@ -207,23 +220,24 @@ class ControlSync:
                 timeout=self._query_timeout,
                 congestion_control=_DROP,
             )
-            n = 0  # the per-DN loop below only publishes the taps
-            for i in range(len(frames)):
-                self._taps[i].put(frames[i])
+        else:
+            for i in range(n):
+                # DROP: on a link that stopped draining (a cut cable) a
+                # BLOCKing get would freeze the CN's loop for seconds; a
+                # dropped query is a missed sync, counted like any other
+                # (tests/faults, cable cut).
+                self.session.get(
+                    self._keys[i],
+                    callbacks[i],
+                    payload=frames[i],
+                    consolidation=self._consolidation,
+                    timeout=self._query_timeout,
+                    congestion_control=_DROP,
+                )
+        # The taps after the queries: tools may wait, the DNs may not.
+        taps = self._taps
         for i in range(n):
-            out = frames[i]
-            # DROP: on a link that stopped draining (a cut cable) a BLOCKing
-            # get would freeze the CN's loop for seconds; a dropped query is
-            # a missed sync, counted like any other (tests/faults, cable cut).
-            self.session.get(
-                self._keys[i],
-                callbacks[i],
-                payload=out,
-                consolidation=self._consolidation,
-                timeout=self._query_timeout,
-                congestion_control=_DROP,
-            )
-            self._taps[i].put(out)
+            taps[i].put(frames[i])
         q = self._q
         reply = logic.reply
         while logic.pending:

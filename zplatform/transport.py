@@ -40,32 +40,17 @@ import zenoh
 from .config import Mission
 from .deploy import Deployment, deployment_from_env, zenoh_settings
 from .errors import TransportError
-from .messages import (
-    LOWLATENCY_MAX_MESSAGE,
-    WILDCARD_MAX_BUNDLE,
-    check_lowlatency,
-    largest_message,
-    lowlatency_for,
-    sync_bundle_size,
-    wildcard_sync_for,
-)
+from .messages import lowlatency_for
 
 __all__ = [
-    "LOWLATENCY_MAX_MESSAGE",
-    "WILDCARD_MAX_BUNDLE",
     "KeySpace",
     "NodeSession",
     "apply_deployment",
-    "check_lowlatency",
     "free_port",
     "is_matching",
-    "largest_message",
-    "lowlatency_for",
     "open_session",
     "rewrite_endpoints",
-    "sync_bundle_size",
     "wait_for_nodes",
-    "wildcard_sync_for",
     "zenoh_config",
 ]
 

@@ -1,7 +1,9 @@
 """The wildcard sync query live (led_test's 3 DNs with ``sync_query:
 wildcard``: one bundle query per loop): every DN runs from it; a foreign
 queryable on ``{vehicle}/*/to_cn`` is counted, never applied; a malformed
-bundle is refused by every DN with an error reply that names it."""
+bundle is refused by every DN with an error reply that names it; a rogue's
+error replies in a DN's name are foreign, not the DN's; a dead DN is missed
+while the others run on."""
 
 from __future__ import annotations
 
@@ -11,6 +13,7 @@ from pathlib import Path
 import yaml
 import zenoh
 
+from zplatform.events import decode_event
 from zplatform.messages import wildcard_sync_for
 
 from .harness import CONFIGS, Cluster
@@ -60,3 +63,35 @@ def test_one_query_runs_every_dn_and_foreign_replies_are_counted(tmp_path: Path)
             10,
             "every DN counted the bad bundle",
         )
+        # A rogue answering with errors in dn0's name: foreign bad frames.
+        texts: queue.SimpleQueue[str] = queue.SimpleQueue()
+        sub = c.session.declare_subscriber(
+            f"{v}/cn/events", lambda s: texts.put(decode_event(s.payload.to_bytes()).text)
+        )
+
+        def liar(q: zenoh.Query) -> None:
+            with q:
+                q.reply_err(b"dn0: forged by a rogue")
+
+        bad1 = int(c.tm.get("cn_bad_frames"))
+        rx1 = int(c.tm.get("cn_rx_dn0"))
+        qbl = c.session.declare_queryable(f"{v}/evil/to_cn", liar)
+        try:
+            c.wait_for(lambda dv: int(dv.get("cn_bad_frames")) >= bad1 + 20, 20, "rogue counted")
+        finally:
+            qbl.undeclare()
+            sub.undeclare()
+        seen = []
+        while not texts.empty():
+            seen.append(texts.get_nowait())
+        forged = [t for t in seen if "forged by a rogue" in t]
+        assert forged and all("from no device node" in t for t in forged), forged[:3]
+        assert not any(t.startswith("dn0 rejected") for t in seen), seen[:5]
+        assert int(c.tm.get("cn_rx_dn0")) >= rx1 + 20
+        # A dead DN: missed loop after loop, the others run on.
+        missed0 = int(c.tm.get("cn_missed_dn2"))
+        rx2 = {dn: int(c.tm.get(f"cn_rx_{dn}")) for dn in ("dn0", "dn1")}
+        c.kill("dn2")
+        c.wait_for(lambda dv: int(dv.get("cn_missed_dn2")) >= missed0 + 50, 20, "dn2 missed")
+        for dn in ("dn0", "dn1"):
+            assert int(c.tm.get(f"cn_rx_{dn}")) >= rx2[dn] + 50, dn
