@@ -6,6 +6,7 @@ here; module paths below ``zplatform.`` are implementation detail.
 
 from __future__ import annotations
 
+from .boards import Board, SimBoard
 from .codec import (
     Frame,
     FrameDecoder,
@@ -20,7 +21,7 @@ from .components import Component
 from .config import Mission
 from .controllers import Controller, ControllerSet
 from .datavector import DataVector, ElementSpec, Handle, Layout, RegionSpec
-from .devices import Actuator, Board, Device, DeviceSet, Sensor, SimBoard
+from .devices import Actuator, Device, DeviceSet, Sensor
 from .errors import (
     ClockSyncError,
     CodecError,

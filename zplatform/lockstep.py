@@ -36,10 +36,10 @@ import msgspec
 import numpy as np
 
 from .auth import TAG_LEN, mission_channels
+from .boards import Board
 from .codec import BundleEncoder, RegionCodec
 from .config import Mission
 from .datavector import DataVector, Layout
-from .devices import Board
 from .events import Event
 from .loop import ControlLogic, DeviceLogic
 from .messages import wildcard_sync_for
@@ -152,7 +152,7 @@ class LockstepRunner:
     """Every node of ``mission`` in one process, in virtual time (module doc).
 
     ``commands`` is the ground's script; ``boards`` replaces the default
-    :class:`~zplatform.devices.SimBoard` of some device nodes (tests inject
+    :class:`~zplatform.boards.SimBoard` of some device nodes (tests inject
     faults through them). Construction builds every node (ConfigError for a
     bad mission) and resolves the script against the mission (CommandError
     naming ``file:line``). Not thread-safe.

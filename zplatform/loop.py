@@ -41,7 +41,7 @@ from collections.abc import Sequence
 from typing import Any, Protocol
 
 from .auth import TAG_LEN, AuthError, Channel, mission_channels
-from .boards import make_board, safe_board
+from .boards import Board, make_board, safe_board
 from .codec import Frame, RegionCodec, bundle_entry, is_bundle
 from .codes import CommandStatus
 from .commands import CommandHandler
@@ -49,7 +49,7 @@ from .components import Streak
 from .config import Mission
 from .controllers import ControllerSet
 from .datavector import DataVector, Layout
-from .devices import Board, DeviceSet
+from .devices import DeviceSet
 from .errors import CodecError, ConfigError
 from .events import EV, EventLog
 from .faults import FaultMonitor

@@ -10,17 +10,16 @@ import pytest
 
 from tests.drive import run_dn_loop
 from zplatform import DataVector, Layout, decode_mission
+from zplatform.boards import Board, SimBoard
 from zplatform.config import Mission, parse_mission
 from zplatform.controllers import Controller
 from zplatform.devices import (
     Actuator,
     AnalogInput,
-    Board,
     Device,
     DeviceSet,
     DigitalOutput,
     Sensor,
-    SimBoard,
 )
 from zplatform.errors import ConfigError, ControlError
 from zplatform.events import EventLog, Severity

@@ -3,7 +3,7 @@
 A node's ``board:`` mapping is ``{driver: NAME, ...the driver's own config}``.
 ``driver`` defaults to ``sim``, so the mappings written before drivers
 existed (``{digital_pins: 4, physics: ...}``) still mean a
-:class:`~zplatform.devices.SimBoard`.
+:class:`~zplatform.boards.SimBoard`.
 """
 
 from __future__ import annotations
@@ -14,9 +14,9 @@ from typing import Any
 import msgspec
 
 from ..components import decode_component_config, load_component_class
-from ..devices import Board, SimBoard
 from ..errors import ConfigError
-from .base import BoardHealth
+from .base import Board, BoardHealth
+from .sim import SimBoard
 
 __all__ = [
     "BUILTIN_DRIVERS",
@@ -71,7 +71,7 @@ def make_board(spec: Mapping[str, Any] | None, *, where: str) -> Board:
     with the mapping minus ``driver`` (a plain dict); it should decode it
     into its own typed config (``decode_component_config``) and raise
     ConfigError, and must not touch hardware before ``open()``. The result
-    must satisfy :class:`~zplatform.devices.Board` (ConfigError otherwise).
+    must satisfy :class:`~zplatform.boards.Board` (ConfigError otherwise).
     """
     driver, config = _split(spec, where)
     if driver == "sim":
@@ -95,7 +95,7 @@ def make_board(spec: Mapping[str, Any] | None, *, where: str) -> Board:
         ) from exc
     if not isinstance(board, Board):
         raise ConfigError(
-            f"{driver!r} does not implement zplatform.devices.Board "
+            f"{driver!r} does not implement zplatform.boards.Board "
             "(digital_pins, analog_pins, step, get/set_digital, get/set_analog)",
             f"{where}.driver",
         )
@@ -120,7 +120,7 @@ def check_board(spec: Mapping[str, Any] | None, where: str) -> None:
     missing = [m for m in _BOARD_METHODS if not callable(getattr(cls, m, None))]
     if missing:
         raise ConfigError(
-            f"{driver!r} does not implement zplatform.devices.Board (no {', '.join(missing)})",
+            f"{driver!r} does not implement zplatform.boards.Board (no {', '.join(missing)})",
             f"{where}.driver",
         )
     cfg_type = getattr(cls, "Config", None)
