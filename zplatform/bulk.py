@@ -31,16 +31,9 @@ and ``bench/shm.py``):
   array); ``poll(copy=False)`` skips the second and leaves a read-only view
   over the received bytes in :attr:`BulkReader.view`.
 
-Mission schema (to be added to ``zplatform/config.py`` by its owner)::
-
-    from .bulk import BulkChannelConfig, check_bulk_channels
-    class Mission(_Struct):
-        ...
-        bulk: list[BulkChannelConfig] = msgspec.field(default_factory=list)
-    # in _check_mission(m):
-        check_bulk_channels(m.bulk, m.nodes)          # "$.bulk[i]...." paths
-    # in _add_platform_elements: for each node n with counter_region(n),
-    #   append counter_elements(m.bulk, n) to that region.
+The mission schema of a channel (:class:`BulkChannelConfig`, the ``bulk:``
+list) and its counter elements live in :mod:`zplatform.config`, re-exported
+here.
 
 Why the copies stay on the loop thread: ``bytes(shm)`` costs about 0.3 ms
 per 4 MB here; done in zenoh's callback thread it would compete with the loop
@@ -82,13 +75,11 @@ __all__ = [
     "BulkStats",
     "BulkWriter",
     "NodeBulk",
-    "ViaCounter",
     "bulk_key",
     "check_bulk_channels",
     "counter_elements",
     "counter_region",
     "decode_sample",
-    "describe_sample",
     "parse_bulk_type",
     "pool_size",
 ]
@@ -167,45 +158,6 @@ def decode_sample(
         )
     arr = np.frombuffer(data, channel.dtype, math.prod(channel.shape), HEADER.size)
     return BulkHeader(layout, seq, loop, t_ns), arr.reshape(channel.shape)
-
-
-def describe_sample(payload: zenoh.ZBytes, channel: BulkChannelConfig) -> dict[str, Any]:
-    """One bulk sample as ``zplatform tap`` prints it: ``via`` (``"shm"`` or
-    ``"copied"``, how it reached this process), header fields, ``bytes`` and
-    the array's ``min``/``max``/``mean``; ``error`` instead of the header and
-    stats when the sample does not match ``channel``. Copies the payload once.
-    """
-    via = "shm" if payload.as_shm() is not None else "copied"
-    data = payload.to_bytes()
-    out: dict[str, Any] = {"channel": channel.name, "via": via, "bytes": len(data)}
-    try:
-        hdr, arr = decode_sample(data, channel)
-    except TransportError as exc:
-        out["error"] = str(exc)
-        return out
-    out.update(seq=hdr.seq, loop=hdr.loop, t_ns=hdr.t_ns)
-    out.update(min=arr.min().item(), max=arr.max().item(), mean=float(arr.mean()))
-    return out
-
-
-class ViaCounter:
-    """Per key, how many samples reached this process through shared memory
-    and how many were copied: for ``zplatform tap`` over ``{vehicle}/**``
-    (any key, not only bulk ones). Call :meth:`add` from the loop or
-    printing thread, not from a zenoh callback that must stay short."""
-
-    def __init__(self) -> None:
-        self._counts: dict[str, list[int]] = {}
-
-    def add(self, key: str, payload: zenoh.ZBytes) -> str:
-        """Count one sample; returns ``"shm"`` or ``"copied"``."""
-        shm = payload.as_shm() is not None
-        c = self._counts.setdefault(key, [0, 0])
-        c[0 if shm else 1] += 1
-        return "shm" if shm else "copied"
-
-    def snapshot(self) -> dict[str, dict[str, int]]:
-        return {k: {"shm": v[0], "copied": v[1]} for k, v in sorted(self._counts.items())}
 
 
 class BulkWriter:

@@ -18,13 +18,11 @@ from zplatform.bulk import (
     BulkChannelConfig,
     BulkWriter,
     NodeBulk,
-    ViaCounter,
     bulk_key,
     check_bulk_channels,
     counter_elements,
     counter_region,
     decode_sample,
-    describe_sample,
     parse_bulk_type,
     pool_size,
 )
@@ -298,32 +296,6 @@ def test_camera_mission_declares_valid_channels() -> None:
 
 def test_counter_region() -> None:
     assert [counter_region(n) for n in ("cn", "dn3", "gn")] == ["cn", "dn3_to_cn", None]
-
-
-def test_describe_sample_for_tap() -> None:
-    ch = _ch(type="u8[4]")
-    data = bytearray(ch.sample_bytes)
-    HEADER.pack_into(data, 0, ch.layout_id, 0, 3, 30, 5)
-    data[-4:] = bytes([1, 2, 3, 6])
-    d = describe_sample(zenoh.ZBytes(bytes(data)), ch)
-    assert d["via"] == "copied" and d["seq"] == 3 and d["loop"] == 30
-    assert (d["min"], d["max"], d["mean"]) == (1, 6, 3.0)
-    bad = describe_sample(zenoh.ZBytes(b"x"), ch)
-    assert "error" in bad and bad["via"] == "copied"
-
-
-def test_via_counter() -> None:
-    vc = ViaCounter()
-    assert vc.add("r/dn0/bulk/a", zenoh.ZBytes(b"x")) == "copied"
-    vc.add("r/dn0/bulk/a", zenoh.ZBytes(b"y"))
-    prov = zenoh.shm.ShmProvider.default_backend(1 << 16)
-    chunk = prov.alloc(16)
-    chunk[:] = bytes(16)
-    assert vc.add("r/cn/telemetry", zenoh.ZBytes(chunk)) == "shm"
-    assert vc.snapshot() == {
-        "r/cn/telemetry": {"shm": 1, "copied": 0},
-        "r/dn0/bulk/a": {"shm": 0, "copied": 2},
-    }
 
 
 def test_real_pool_exhausted_by_a_holding_reader_drops_then_recovers(
