@@ -38,13 +38,15 @@ from .boards import Board, make_board
 from .components import (
     Component,
     Streak,
+    build_component,
     component_indices,
     errors_element,
     load_component_class,
+    mission_code_path,
 )
 from .config import ComponentConfig, Mission
 from .datavector import DataVector
-from .errors import ConfigError, ControlError, SchedulerError, ZPlatformError
+from .errors import ConfigError, SchedulerError
 from .events import EV, EventLog
 from .rategroups import RateGroups
 
@@ -84,7 +86,7 @@ class Device(Component):
         """Check a digital pin number against the board (ConfigError)."""
         if not 0 <= pin < self.board.digital_pins:
             raise ConfigError(
-                f"{self.name}: digital pin {pin} out of range; node {self.node}'s board has "
+                f"digital pin {pin} out of range; node {self.node}'s board has "
                 f"{self.board.digital_pins}",
                 f"{self.where}.config.{field}",
             )
@@ -94,7 +96,7 @@ class Device(Component):
         """Check an analog pin number against the board (ConfigError)."""
         if not 0 <= pin < self.board.analog_pins:
             raise ConfigError(
-                f"{self.name}: analog pin {pin} out of range; node {self.node}'s board has "
+                f"analog pin {pin} out of range; node {self.node}'s board has "
                 f"{self.board.analog_pins}",
                 f"{self.where}.config.{field}",
             )
@@ -275,23 +277,17 @@ class DeviceSet:
         self._sensors: RateGroups[_DevSlot] = RateGroups()
         self._actuators: RateGroups[_DevSlot] = RateGroups()
         self._errors = dv.handle(errors_element(node))
+        code = mission_code_path(mission)
         for i in component_indices(mission, "devices", node):
             c = mission.devices[i]
             where = f"$.devices[{i}]"
-            cls = load_component_class(c.cls, Device, f"{where}.class")
+            cls = load_component_class(c.cls, Device, f"{where}.class", pythonpath=code)
             if not issubclass(cls, Sensor | Actuator):
                 raise ConfigError(
                     f"{c.cls!r} must subclass zplatform.devices.Sensor or Actuator",
                     f"{where}.class",
                 )
-            try:
-                dev: Device = cls(c, dv, board, where=where)
-            except ZPlatformError:
-                raise
-            except Exception as exc:
-                raise ControlError(
-                    f"device {c.name!r} ({c.cls}) failed to build: {type(exc).__name__}: {exc}"
-                ) from exc
+            dev: Device = build_component("device", c, where, cls, c, dv, board)
             groups = self._sensors if isinstance(dev, Sensor) else self._actuators
             try:
                 groups.add(_DevSlot(dev), c.rate_divisor, c.rate_phase)
@@ -349,7 +345,11 @@ def check_config(mission: Mission) -> None:
     from .datavector import Layout
 
     for node in mission.device_nodes:
-        board = make_board(mission.nodes[node].board, where=f"$.nodes.{node}.board")
+        board = make_board(
+            mission.nodes[node].board,
+            where=f"$.nodes.{node}.board",
+            pythonpath=mission_code_path(mission),
+        )
         if not component_indices(mission, "devices", node):
             continue
         dv = DataVector(Layout.for_node(mission, node))

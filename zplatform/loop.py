@@ -45,7 +45,7 @@ from .boards import Board, make_board, safe_board
 from .codec import Frame, RegionCodec, bundle_entry, is_bundle
 from .codes import CommandStatus
 from .commands import CommandHandler
-from .components import Streak
+from .components import Streak, mission_code_path
 from .config import Mission
 from .controllers import ControllerSet
 from .datavector import DataVector, Layout
@@ -380,7 +380,11 @@ class DeviceLogic:
         self.board: Board = (
             board
             if board is not None
-            else make_board(mission.nodes[node].board, where=f"$.nodes.{node}.board")
+            else make_board(
+                mission.nodes[node].board,
+                where=f"$.nodes.{node}.board",
+                pythonpath=mission_code_path(mission),
+            )
         )
         self.devices = DeviceSet(mission, node, dv, self.board, self.events)
         self.controllers = ControllerSet(mission, node, dv, self.events)

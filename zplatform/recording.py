@@ -43,7 +43,6 @@ from __future__ import annotations
 
 import json
 import queue
-import shutil
 import struct
 import threading
 import time
@@ -52,10 +51,11 @@ from pathlib import Path
 from typing import BinaryIO
 
 import msgspec
+import yaml
 
 from .auth import TAG_LEN
 from .codec import RegionCodec
-from .config import Mission
+from .config import Mission, relocate_mission
 from .datavector import DataVector, Layout
 from .errors import RecordingError
 
@@ -84,7 +84,8 @@ class Recorder:
     """Records a CN's loop inputs into ``directory`` (module doc).
 
     Construction creates the directory, copies ``mission_source`` (the
-    mission file the CN loaded) into it, writes the header with ``dv``'s
+    mission file the CN loaded; its ``pythonpath`` made absolute, so the copy
+    finds the mission's code from anywhere) into it, writes the header with ``dv``'s
     bytes as they are now (call it after the warm-up, before loop 1) and
     starts the writer thread; RecordingError if any of that fails. The
     ``begin``/``reply``/``finish`` methods implement
@@ -145,7 +146,11 @@ class Recorder:
         self.error: str | None = None
         try:
             self.directory.mkdir(parents=True, exist_ok=True)
-            shutil.copyfile(mission_source, self.directory / MISSION_FILE)
+            # The recorded mission must find its code from the recording's
+            # directory too: its pythonpath is made absolute.
+            raw = yaml.safe_load(Path(mission_source).read_text())
+            relocate_mission(raw, mission_source)
+            (self.directory / MISSION_FILE).write_text(yaml.safe_dump(raw, sort_keys=False))
             self._file: BinaryIO = open(self.directory / RECORD_FILE, "wb")  # noqa: SIM115
             meta = json.dumps(
                 {
@@ -162,7 +167,7 @@ class Recorder:
             init = bytearray(dv.size)
             dv.read_all(init)
             self._file.write(_U32.pack(len(init)) + init)
-        except OSError as exc:
+        except (OSError, yaml.YAMLError) as exc:
             raise RecordingError(f"cannot record into {str(self.directory)!r}: {exc}") from exc
         self._writer = threading.Thread(target=self._write_loop, name="recorder", daemon=True)
         self._writer.start()

@@ -10,7 +10,7 @@ force an input (a stuck pin, a given voltage) from a test.
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from typing import Annotated, Any
 
 import msgspec
@@ -50,10 +50,17 @@ class SimBoard:
     the node's ``board`` mapping (:class:`SimBoardConfig`); construction
     raises ConfigError naming ``where`` for a bad one. ``start_ns`` is the
     time of the first :meth:`step` (``None`` before), for physics that model
-    time since start.
+    time since start. ``pythonpath``: where the physics module is imported
+    from (the mission's code directories).
     """
 
-    def __init__(self, config: dict[str, Any] | None = None, *, where: str = "$.board") -> None:
+    def __init__(
+        self,
+        config: dict[str, Any] | None = None,
+        *,
+        where: str = "$.board",
+        pythonpath: Sequence[str] = (),
+    ) -> None:
         cfg = decode_component_config(SimBoardConfig, dict(config or {}), where)
         self.config = cfg
         self._n_dig = cfg.digital_pins
@@ -63,7 +70,13 @@ class SimBoard:
         self._aout: list[float] = [0.0] * cfg.analog_pins
         self._ain: list[float | None] = [None] * cfg.analog_pins
         self._physics: Physics | None = (
-            load_function(cfg.physics, f"{where}.physics", args=("board", "t_ns"), what="physics")
+            load_function(
+                cfg.physics,
+                f"{where}.physics",
+                args=("board", "t_ns"),
+                what="physics",
+                pythonpath=pythonpath,
+            )
             if cfg.physics
             else None
         )
