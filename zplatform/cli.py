@@ -127,14 +127,35 @@ def cmd_ps(args: argparse.Namespace) -> int:
 MISSION_HELP = "mission YAML file, or the name of a running mission (`zplatform ps`)"
 
 
+def _keygen_mission_name(arg: str) -> str:
+    """The mission name ``keygen MISSION`` means: a mission file's ``mission:``
+    (its code is not imported), a running mission's, or ``arg`` itself when it
+    is neither a file nor running but a valid mission name (a key is often
+    made before the mission first runs). CommandError (or the loader's
+    ConfigError) otherwise."""
+    from .config import check_mission_name
+    from .errors import CommandError, ConfigError
+
+    try:
+        path = resolve_mission(arg)
+    except CommandError:
+        if os.sep in arg or arg.endswith((".yaml", ".yml")):
+            raise  # meant as a file: say there is none
+        try:
+            check_mission_name(arg)
+        except ConfigError as exc:
+            raise CommandError(f"{exc.reason}, and it is no file or running mission") from None
+        return arg
+    return load_mission(path, code=False).mission
+
+
 def cmd_keygen(args: argparse.Namespace) -> int:
     """Write a new random mission key (mode 0600); refuses to overwrite one."""
     from .auth import KEY_FILE_ENV, default_key_path, write_key
-    from .mission import load_mission
 
-    mission = load_mission(args.mission)
-    path = write_key(args.out or default_key_path(mission))
-    print(f"wrote the key of mission {mission.mission!r} to {path}")
+    name = _keygen_mission_name(args.target)
+    path = write_key(args.out or default_key_path(name))
+    print(f"wrote the key of mission {name!r} to {path}")
     if args.out:
         print(f"nodes and tools find it with {KEY_FILE_ENV}={path}")
     else:
@@ -158,7 +179,10 @@ def build_parser() -> argparse.ArgumentParser:
         "keygen",
         help="make the mission key that authenticates every frame (copy it to every host)",
     )
-    c.add_argument("mission", help=MISSION_HELP)
+    # Not `mission`: main() would resolve it, and keygen also takes a bare name.
+    c.add_argument(
+        "target", metavar="MISSION", help=MISSION_HELP + ", or a mission name (led_test)"
+    )
     c.add_argument(
         "--out", metavar="PATH", help="where to write it (default: the mission's key file)"
     )
