@@ -48,6 +48,7 @@ from .loop import ControlLogic, DeviceLogic
 from .mission import check_mission, decode_mission, load_mission
 from .rategroups import RateGroups
 from .recording import Recorder
+from .safety import SafetyWarning, safety_warnings
 from .scheduler import GcGuard, LoopStats, PeriodicLoop, setup_realtime
 from .statemachine import StateMachine
 from .telemetry import CsvLogger, read_csv
@@ -108,6 +109,7 @@ __all__ = [
     "RegionCodec",
     "RegionSpec",
     "ReplayResult",
+    "SafetyWarning",
     "SchedulerError",
     "ScriptCommand",
     "ScriptPlayer",
@@ -132,5 +134,6 @@ __all__ = [
     "parse_commands",
     "read_csv",
     "replay",
+    "safety_warnings",
     "setup_realtime",
 ]

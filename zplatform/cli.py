@@ -18,6 +18,8 @@ import os
 import sys
 from collections.abc import Callable, Sequence
 
+import msgspec
+
 from . import __version__
 from .config import Mission
 from .datavector import Layout
@@ -76,15 +78,31 @@ def _mission_report(m: Mission) -> dict[str, object]:
 
 
 def cmd_check(args: argparse.Namespace) -> int:
+    """Validate; print the report and the safety warnings (:mod:`zplatform.safety`).
+
+    Exit 0 with warnings, 2 with ``--strict`` (each warning printed as an
+    error line), 2 for a mission that does not load."""
+    from .safety import safety_warnings
+
     # load_mission builds every controller and device on scratch vectors,
     # so a bad class path or component config fails here, not on the pad.
     m = load_mission(args.mission)
+    warnings = safety_warnings(m)
     rep = _mission_report(m)
+    rc = 2 if args.strict and warnings else 0
     if args.json:
+        rep["warnings"] = [msgspec.to_builtins(w) for w in warnings]
+        rep["ok"] = rc == 0
         print(json.dumps(rep, indent=2))
-        return 0
+        return rc
+    level = "error" if args.strict else "warning"
+    for w in warnings:
+        print(f"zplatform: {level}: {w}", file=sys.stderr)
+    if rc:
+        return rc
+    flagged = f", {len(warnings)} safety warning(s) (above)" if warnings else ""
     print(
-        f"mission {rep['mission']}: OK  ({len(m.nodes)} nodes, {m.loop_hz:g} Hz, "
+        f"mission {rep['mission']}: OK{flagged}  ({len(m.nodes)} nodes, {m.loop_hz:g} Hz, "
         f"sync deadline {m.sync_timeout_ms:g} ms)"
     )
     for r in rep["regions"]:  # type: ignore[attr-defined]
@@ -171,9 +189,19 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--version", action="version", version=f"zplatform {__version__}")
     sub = p.add_subparsers(dest="command", required=True, metavar="VERB")
-    c = sub.add_parser("check", help="validate a mission; print regions, offsets, bandwidth")
+    c = sub.add_parser(
+        "check",
+        help="validate a mission; print regions, offsets, bandwidth and safety warnings",
+    )
     c.add_argument("mission", help=MISSION_HELP)
-    c.add_argument("--json", action="store_true", help="machine-readable report")
+    c.add_argument(
+        "--json", action="store_true", help="machine-readable report (with its warnings)"
+    )
+    c.add_argument(
+        "--strict",
+        action="store_true",
+        help="safety warnings are errors (exit 2): for CI and flight missions",
+    )
     c.set_defaults(func=cmd_check)
     c = sub.add_parser(
         "keygen",

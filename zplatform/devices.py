@@ -29,7 +29,7 @@ proves the pin really changed), :class:`DigitalInput`, :class:`AnalogInput`
 from __future__ import annotations
 
 import abc
-from typing import Annotated
+from typing import Annotated, ClassVar
 
 import msgspec
 from msgspec import Meta
@@ -113,7 +113,16 @@ class Actuator(Device):
     :meth:`safe` drives the output to its declared safe value: a device node
     that lost its control node calls it (and on a clean exit). Subclasses
     that drive hardware must override it; the default leaves the output to
-    the board's own safe state (:func:`zplatform.boards.safe_board`)."""
+    the board's own safe state (:func:`zplatform.boards.safe_board`), and
+    ``zplatform check`` warns about it (:mod:`zplatform.safety`).
+
+    ``pyrotechnic``: the output fires something that cannot be undone (an
+    igniter, a pyro cutter). A class that always does sets it True; a
+    generic driver may take it from its config instead (``DigitalOutput``'s
+    ``pyrotechnic: true``). ``zplatform check`` warns about a mission with a
+    pyrotechnic output and no hazardous command."""
+
+    pyrotechnic: ClassVar[bool] = False
 
     def safe(self, t_ns: int) -> None:
         """Drive the output to its safe value now. Must not block."""
@@ -132,11 +141,23 @@ class DigitalOutput(Actuator):
     """
 
     class Config(msgspec.Struct, forbid_unknown_fields=True):
+        """A digital output: ``pin``, driven from element ``command``, read
+        back into ``feedback``."""
+
         pin: Pin
         command: str
         feedback: str | None = None
         invert: bool = False
         safe: bool = False  # the level ("on" terms) a lost control node leaves
+        # The pin fires something that cannot be undone (an igniter): the
+        # mission then needs hazardous commands (zplatform.safety).
+        pyrotechnic: Annotated[
+            bool,
+            Meta(
+                description="The pin fires something that cannot be undone (an igniter); "
+                "`zplatform check` warns when such a mission has no hazardous command."
+            ),
+        ] = False
 
     config: Config
 
