@@ -40,7 +40,7 @@ from ..messages import wildcard_sync_for
 from ..recording import Recorder
 from ..scheduler import GcGuard, PeriodicLoop
 from ..summary import CnSummary, LoopWork, cn_summary
-from ..sync import ControlSync
+from ..sync import ControlSync, SyncTrace
 from ..timebase import NodeClock
 from ..transport import NodeSession, wait_for_nodes
 from .runtime import EventPublisher, StopFlag, realtime_setup
@@ -57,7 +57,8 @@ class ControlNode:
     """The CN process: session, sync, ground input, telemetry, logic.
 
     Build, then :meth:`run`; :meth:`close` releases every zenoh entity. Not
-    thread-safe: one loop thread.
+    thread-safe: one loop thread. ``sync_trace``: a
+    :data:`~zplatform.sync.SyncTrace` for the sync's hops (benchmarks).
     """
 
     def __init__(
@@ -68,6 +69,7 @@ class ControlNode:
         lowlatency: bool | None = None,
         clock: NodeClock | None = None,
         key: bytes | None = None,
+        sync_trace: SyncTrace | None = None,
     ) -> None:
         self.mission = mission
         self.stop = stop or StopFlag(install=False)
@@ -87,6 +89,7 @@ class ControlNode:
             mission.sync_timeout_ns,
             query_timeout_s=max(mission.period_ns / 1e9, 0.01),
             wildcard=wildcard_sync_for(mission),
+            trace=sync_trace,
         )
         # The command inbox: bounded, newest kept; a frame's size is checked
         # before its bytes are copied out of zenoh, so a flood of junk costs
