@@ -358,14 +358,15 @@ class NodeBulk:
     is on, a :class:`BulkWriter` per owned channel (:attr:`writers`) and a
     :class:`BulkReader` per channel it reads (:attr:`readers`).
 
-    Per loop, after the sync step::
+    It is the node loop's :class:`~zplatform.loop.BulkPort`: the loop
+    (:class:`~zplatform.loop.ControlLogic`, :class:`~zplatform.loop.DeviceLogic`)
+    calls :meth:`receive` before its logic, :meth:`write_counters`, and
+    :meth:`publish` after its logic; the components fill and read
+    :attr:`arrays`. By hand, per loop::
 
-        for w in bulk.writers.values():
-            if w.due(loop):
-                fill(w.array); w.publish(loop, t_ns)
-        for name, r in bulk.readers.items():
-            if r.poll():
-                use(r.array)
+        bulk.receive(loop)             # readers: the newest samples into their arrays
+        ...the logic reads bulk.arrays[name] and fills the owned ones...
+        bulk.publish(loop, t_ns)       # writers due on this loop
         bulk.write_counters(dv)        # or bulk.counters() into telemetry
 
     Blocks at construction for the pool's first touch (one write of every
@@ -404,6 +405,25 @@ class NodeBulk:
             elif node in ch.readers:
                 self.readers[ch.name] = BulkReader(session, key, ch)
         self._handles: list[tuple[Any, Callable[[], int]]] = []
+        self.arrays: dict[str, Any] = {n: w.array for n, w in self.writers.items()}
+        """Every channel's array by name: the owned ones (filled by the node's
+        components, published from) and the read ones (the newest sample)."""
+        self.arrays.update({n: r.array for n, r in self.readers.items()})
+        self._writers = tuple(self.writers.values())
+        self._readers = tuple(self.readers.values())
+
+    def receive(self, loop: int) -> None:
+        """Take the newest sample of every read channel into its array
+        (:meth:`BulkReader.poll`); never blocks."""
+        for r in self._readers:
+            r.poll()
+
+    def publish(self, loop: int, t_ns: int) -> None:
+        """Publish every owned channel due on ``loop`` (:meth:`BulkWriter.publish`:
+        a full pool counts a drop after ``alloc_timeout_ms``)."""
+        for w in self._writers:
+            if w.due(loop):
+                w.publish(loop, t_ns)
 
     def _prefault(self, channels: Sequence[BulkChannelConfig]) -> None:
         # Allocate every chunk once and write it whole, so the kernel maps the
@@ -465,10 +485,10 @@ def _getter(bulk: NodeBulk, element: str) -> Callable[[], int]:
 
 
 def open_bulk(session: zenoh.Session, mission: Any, node: str, logic: Any) -> NodeBulk | None:
-    """The node's bulk channel ends (None when it has none), their arrays
-    handed to the node's components (``logic.attach_bulk``): writers' arrays
-    are filled by the components and published by the runtime, readers'
-    arrays hold the latest sample. Raises TransportError as :class:`NodeBulk`."""
+    """The node's bulk channel ends (None when it has none), attached to the
+    node's loop (``logic.attach_bulk``), which receives, publishes and counts
+    them in its protocol order and hands :attr:`NodeBulk.arrays` to its
+    components. Raises TransportError as :class:`NodeBulk`."""
     mine = [ch for ch in mission.bulk if ch.node == node or node in ch.readers]
     if not mine:
         return None
@@ -479,7 +499,5 @@ def open_bulk(session: zenoh.Session, mission: Any, node: str, logic: Any) -> No
         node,
         shared_memory=mission.transport.shared_memory,
     )
-    arrays: dict[str, Any] = {n: w.array for n, w in bulk.writers.items()}
-    arrays.update({n: r.array for n, r in bulk.readers.items()})
-    logic.attach_bulk(arrays)
+    logic.attach_bulk(bulk)
     return bulk

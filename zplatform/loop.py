@@ -33,6 +33,15 @@ One DN trigger::
 The reply carries ``dnX_to_cn`` as it stood *before* this loop's run, so
 what a DN's run writes reaches the CN one loop later (thesis 3.4.5.3).
 ``loop`` on a DN is the CN's loop number (the trigger frame's ``seq``).
+
+Bulk channels (large arrays outside the sync, :mod:`zplatform.bulk`) are
+part of the same order: a node with a :class:`BulkPort` attached
+(:meth:`ControlLogic.attach_bulk`, :meth:`DeviceLogic.attach_bulk`) takes the
+newest samples of the channels it reads before its logic (the CN at the top
+of ``finish``, a DN at the top of ``run``), writes the channel counters, and
+publishes the channels it owns that are due after its logic. The drivers
+only supply the port: zenoh's (:class:`zplatform.bulk.NodeBulk`) or the
+lockstep runner's in-memory one.
 """
 
 from __future__ import annotations
@@ -55,7 +64,7 @@ from .events import EV, EventLog
 from .faults import FaultMonitor
 from .statemachine import StateMachine
 
-__all__ = ["ControlLogic", "DeviceLogic", "LoopRecorder"]
+__all__ = ["BulkPort", "ControlLogic", "DeviceLogic", "LoopRecorder"]
 
 # A trigger stamped this much later than the last one served, yet with a
 # lower loop number, comes from a restarted control node.
@@ -84,6 +93,28 @@ class LoopRecorder(Protocol):
         inbox_oversize: int,
         telemetry: bytearray | None,
     ) -> None: ...
+
+
+class BulkPort(Protocol):
+    """A node's bulk channel ends as its loop uses them (module doc).
+
+    ``arrays``: every channel's array by name, handed to the components (the
+    owned ones they fill, the read ones holding the newest sample). The
+    methods are called on the loop thread, in the loop's order; none may
+    block beyond a channel's ``alloc_timeout_ms`` or raise for a lost
+    sample (it is counted).
+    """
+
+    arrays: dict[str, Any]
+
+    def receive(self, loop: int) -> None:
+        """Take the newest sample of every read channel into its array."""
+
+    def publish(self, loop: int, t_ns: int) -> None:
+        """Publish every owned channel due on ``loop``."""
+
+    def write_counters(self, dv: DataVector) -> None:
+        """Write the channels' counters into the node's Data Vector."""
 
 
 class ControlLogic:
@@ -153,6 +184,7 @@ class ControlLogic:
         self.pending = 0
         """DNs whose reply for the current loop has not been applied yet."""
         self.recorder: LoopRecorder | None = None
+        self._bulk: BulkPort | None = None
 
     # -- the loop ------------------------------------------------------------
     def begin(self, loop: int, t_ns: int) -> list[bytearray]:
@@ -216,6 +248,10 @@ class ControlLogic:
         returns the telemetry frame on telemetry loops (``loop %
         telemetry_divisor == 0``), else None.
 
+        With a bulk port attached, the newest samples of the channels the CN
+        reads are taken (and the counters written) before the logic, and the
+        owned channels due on this loop are published after it.
+
         ``sync_overrun``: the driver's sync step ran past its deadline;
         ``loop_overruns``: periods the driver's scheduler skipped since the
         last loop; ``inbox_dropped``: request frames the driver's bounded
@@ -243,6 +279,10 @@ class ControlLogic:
                 source=f"{inbox_oversize} command frame(s)",
                 reason="longer than any valid request; refused unread",
             )
+        bulk = self._bulk
+        if bulk is not None:  # the newest samples in, before any logic reads them
+            bulk.receive(loop)
+            bulk.write_counters(self.dv)
         new_request = False
         if grounds and self._ground is not None:
             new_request = self._take_request(grounds)
@@ -257,6 +297,8 @@ class ControlLogic:
             tm = self._tm.encode(loop, t)
             if self._seal_tm is not None:
                 tm = self._seal_tm.seal(tm)
+        if bulk is not None:  # what the controllers filled goes out
+            bulk.publish(loop, t)
         if self.recorder is not None:
             self.recorder.finish(
                 grounds, sync_overrun, loop_overruns, inbox_dropped, inbox_oversize, tm
@@ -297,10 +339,12 @@ class ControlLogic:
         tm = self._tm.encode(self.loop, self.t_ns)
         return self._seal_tm.seal(tm) if self._seal_tm is not None else tm
 
-    def attach_bulk(self, arrays: dict[str, Any]) -> None:
-        """Give every component the node's bulk channel arrays (by channel)."""
+    def attach_bulk(self, port: BulkPort) -> None:
+        """Move the CN's bulk channels through ``port`` from the next loop on
+        (module doc) and give every controller its arrays (by channel)."""
+        self._bulk = port
         for c in self.controllers.controllers:
-            c.bulk = arrays
+            c.bulk = port.arrays
 
     def reset_sync_counters(self) -> None:
         """Zero rx/missed/late per DN and the sync overruns (after a warm-up)."""
@@ -407,6 +451,7 @@ class DeviceLogic:
         self._max_ahead = round(mission.clock.offset_bound_ms * 1e6) + mission.period_ns
         self._watchdog_ns = mission.faults.dn_watchdog_loops * mission.period_ns
         self._board_streak = Streak()
+        self._bulk: BulkPort | None = None
         self.last_loop = 0
         self.last_t_ns = 0
         self.last_trigger_ns: int | None = None
@@ -484,8 +529,13 @@ class DeviceLogic:
                 )
 
     def run(self, t_ns: int) -> None:
-        """Run the loop :meth:`trigger` started, at ``t_ns``."""
+        """Run the loop :meth:`trigger` started, at ``t_ns``: bulk samples in,
+        board, sensors, controllers, actuators (not while safed), then the owned
+        bulk channels out and their counters."""
         loop = self.triggered
+        bulk = self._bulk
+        if bulk is not None:  # the newest samples in, before the run reads them
+            bulk.receive(loop)
         self._loop.set(loop)
         self._time.set(t_ns)
         if self.safed:
@@ -501,9 +551,11 @@ class DeviceLogic:
             self._board_failed(exc, t_ns)
         self.devices.run_sensors(loop, t_ns)
         self.controllers.run(loop, t_ns)
-        if self.safed:
-            return  # outputs stay at their safe values until re-enabled
-        self.devices.run_actuators(loop, t_ns)
+        if not self.safed:  # while safed, outputs stay at their safe values
+            self.devices.run_actuators(loop, t_ns)
+        if bulk is not None:  # after the run: the reply has gone already
+            bulk.publish(loop, t_ns)
+            bulk.write_counters(self.dv)
 
     def step(self, payload: bytes | bytearray | memoryview, now_ns: int) -> bytearray | None:
         """:meth:`trigger` then, if it started a loop, :meth:`run` at ``now_ns``;
@@ -513,10 +565,12 @@ class DeviceLogic:
             self.run(now_ns)
         return reply
 
-    def attach_bulk(self, arrays: dict[str, Any]) -> None:
-        """Give every component the node's bulk channel arrays (by channel)."""
+    def attach_bulk(self, port: BulkPort) -> None:
+        """Move the node's bulk channels through ``port`` from the next run on
+        (module doc) and give every component its arrays (by channel)."""
+        self._bulk = port
         for c in [*self.controllers.controllers, *self.devices.devices]:
-            c.bulk = arrays
+            c.bulk = port.arrays
 
     def watchdog(self, now_ns: int) -> bool:
         """Safe the node if it has had no valid trigger for

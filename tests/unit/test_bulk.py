@@ -315,3 +315,58 @@ def test_real_pool_exhausted_by_a_holding_reader_drops_then_recovers(
     assert r.poll() and r.header is not None and r.header.loop == 2
     owner.close()
     reader.close()
+
+
+# -- the loop's order (zplatform.loop owns it; drivers only supply the port) --
+
+
+class _Port:
+    """A BulkPort that notes each call with the loop counter the node's Data
+    Vector shows at that moment (set by the logic, so it tells before from after)."""
+
+    def __init__(self, element: str, calls: list[tuple[str, int]]) -> None:
+        self.arrays: dict[str, Any] = {}
+        self._element = element
+        self._calls = calls
+        self.dv: Any = None
+
+    def _note(self, what: str) -> None:
+        self._calls.append((what, int(self.dv.get(self._element))))
+
+    def receive(self, loop: int) -> None:
+        self._note(f"receive {loop}")
+
+    def publish(self, loop: int, t_ns: int) -> None:
+        self._note(f"publish {loop}")
+
+    def write_counters(self, dv: Any) -> None:
+        self._note("counters")
+
+
+def test_the_loop_receives_before_its_logic_and_publishes_after() -> None:
+    from tests.drive import run_dn_loop
+    from zplatform.lockstep import SIM_KEY
+    from zplatform.loop import ControlLogic, DeviceLogic
+    from zplatform.mission import load_mission
+
+    m = load_mission(Path(__file__).resolve().parents[2] / "configs" / "minimal.yaml")
+    calls: list[tuple[str, int]] = []
+    cn = ControlLogic(m, key=SIM_KEY)
+    port = _Port("cn_loop", calls)
+    port.dv = cn.dv
+    cn.attach_bulk(port)
+    cn.begin(1, 10**9)
+    cn.finish()
+    # cn_loop is 0 until the logic of loop 1 ran: receive and counters before it.
+    assert calls == [("receive 1", 0), ("counters", 0), ("publish 1", 1)]
+    calls.clear()
+    dn = DeviceLogic(m, "dn0")
+    port = _Port("dn0_loop", calls)
+    port.dv = dn.dv
+    dn.attach_bulk(port)
+    run_dn_loop(dn, 1, 10**9)
+    assert calls == [("receive 1", 0), ("publish 1", 1), ("counters", 1)]
+    calls.clear()
+    dn.safe(2 * 10**9, "test")  # a safed DN runs no actuators, but its channels go on
+    run_dn_loop(dn, 2, 2 * 10**9)
+    assert calls == [("receive 2", 1), ("publish 2", 2), ("counters", 2)]

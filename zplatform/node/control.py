@@ -218,11 +218,6 @@ class ControlNode:
             self.first_loop_ns = t
         logic = self.logic
         overrun = self.sync.sync(logic.begin(loop, t), logic)
-        bulk = self.bulk
-        if bulk is not None:  # latest samples in, before the controllers read them
-            for r in bulk.readers.values():
-                r.poll()
-            bulk.write_counters(self.dv)
         grounds = self._grounds
         grounds.clear()
         inbox = self._inbox
@@ -244,10 +239,6 @@ class ControlNode:
             self._tm_pub.put(tm)
             if self._radio is not None:
                 self._radio.send(self.dv, loop, t)
-        if bulk is not None:
-            for w in bulk.writers.values():
-                if w.due(loop):
-                    w.publish(loop, t)
         self._events.flush()
         self._work[self.loops & 0xFFFF] = self._mono() - m0
         self.loops += 1

@@ -182,16 +182,7 @@ class DeviceNode:
                     continue
                 t = now()
                 self._drift_h.set(self.drift_ns)
-                bulk = self.bulk
-                if bulk is not None:  # latest samples in, before the run reads them
-                    for r in bulk.readers.values():
-                        r.poll()
-                run(t)
-                if bulk is not None:  # outside the sync: the reply has gone already
-                    for w in bulk.writers.values():
-                        if w.due(logic.triggered):
-                            w.publish(logic.triggered, t)
-                    bulk.write_counters(self.dv)
+                run(t)  # with the bulk channels, in the loop's order
                 self._events.flush()
                 # Slack until the next trigger is due: gc only runs there.
                 slack = t + period - now()
