@@ -823,7 +823,9 @@ def platform_elements(m: Mission) -> dict[str, list[ElementConfig]]:
         ]
     out: dict[str, list[ElementConfig]] = {"cn": cn}
     for dn in m.device_nodes:
-        out[f"cn_to_{dn}"] = []
+        # Set by the CN in the trigger of its planned last loop: the DN then
+        # safes its actuators as the run's end, not as a lost control node.
+        out[f"cn_to_{dn}"] = [E(f"{dn}_final", "bool", False)]
         out[f"{dn}_to_cn"] = [
             E(f"{dn}_loop", "u64", 0),
             E(f"{dn}_time_ns", "i64", 0),

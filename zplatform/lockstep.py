@@ -17,9 +17,16 @@ live) runs at virtual time ``t = start_ns + (n - 1) * period_ns``:
    (``rx_time_ns = t``) and lets the script player answer.
 
 No frame is ever lost or late here, so ``cn_missed_dnX`` and ``cn_late_dnX``
-stay 0. Nothing reads the wall clock except the speed figure of
-:class:`SimResult`, and nothing iterates a set or hashes into the output: the
-same mission and the same command script give a byte-identical CSV log.
+stay 0. No loop is flagged final (``dnX_final``, :mod:`zplatform.loop`): a
+runner may be run on (:meth:`LockstepRunner.run` continues from the last
+loop), so it never knows which loop is the last, and a flag it guessed
+would make the same mission's output depend on how the run was cut; the
+DNs of a sim are never safed by a run's end, nor by a watchdog (nothing
+waits in virtual time). A replay repeats the recorded flags.
+
+Nothing reads the wall clock except the speed figure of :class:`SimResult`,
+and nothing iterates a set or hashes into the output: the same mission and
+the same command script give a byte-identical CSV log.
 
 :func:`replay` feeds a live run's recorded loop inputs
 (:mod:`zplatform.recording`) through a fresh control loop and checks that
@@ -441,7 +448,7 @@ def replay(
     first = last = 0
     diff: Difference | None = None
     for rec in reader.loops():
-        cn.begin(rec.loop, rec.t_ns)
+        cn.begin(rec.loop, rec.t_ns, final=rec.final)
         for i, payload in rec.replies:
             if i == FOREIGN_DN:
                 cn.foreign_reply(bytes(payload or b"").decode(errors="replace"))

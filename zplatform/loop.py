@@ -8,7 +8,7 @@ the zenoh runtime (:mod:`zplatform.node`) and the lockstep runner
 
 One CN loop ``n`` (numbered from 1 in every driver) with its one timestamp::
 
-    frames = cn.begin(n, t)          # cn_to_dnX query frames, stamped (n, t)
+    frames = cn.begin(n, t, final=f) # cn_to_dnX query frames, stamped (n, t)
     ...the driver sends frame i to DN i and hands back whatever comes:
     cn.reply(i, payload)             # True once DN i's reply for loop n is in
     ...until every DN replied or the sync deadline passed, then
@@ -33,6 +33,18 @@ One DN trigger::
 The reply carries ``dnX_to_cn`` as it stood *before* this loop's run, so
 what a DN's run writes reaches the CN one loop later (thesis 3.4.5.3).
 ``loop`` on a DN is the CN's loop number (the trigger frame's ``seq``).
+
+The last loop of a run: a driver that knows a loop is the CN's last (the
+run's planned end, or one more loop after a stop was asked for) passes
+``final=True`` to :meth:`ControlLogic.begin`, which sets the platform
+element ``dnX_final`` in every ``cn_to_dnX`` frame of that loop. A DN that
+runs a final trigger runs its loop, then safes its actuators with an
+activity event (``dn_safed_run_ended``): the run ended, no control node was
+lost. Its watchdog then stays quiet, and it stays safed until a control node
+triggers it again ``faults.dn_reenable_loops`` times in a row. A DN that
+stops getting triggers without one is safed by its watchdog, with a warning
+(the control node is lost). ``final`` is an input of the loop, recorded and
+replayed like the others.
 
 Bulk channels (large arrays outside the sync, :mod:`zplatform.bulk`) are
 part of the same order: a node with a :class:`BulkPort` attached
@@ -60,7 +72,7 @@ from .controllers import ControllerSet
 from .datavector import DataVector, Layout
 from .devices import DeviceSet
 from .errors import CodecError, ConfigError
-from .events import EV, EventLog
+from .events import EV, EventLog, EventType
 from .faults import FaultMonitor
 from .statemachine import StateMachine
 
@@ -78,7 +90,7 @@ class LoopRecorder(Protocol):
     (:class:`zplatform.recording.Recorder` copies into preallocated chunks).
     """
 
-    def begin(self, loop: int, t_ns: int) -> None: ...
+    def begin(self, loop: int, t_ns: int, final: bool) -> None: ...
 
     def reply(self, i: int, payload: bytes | bytearray | memoryview | None) -> None: ...
 
@@ -177,6 +189,7 @@ class ControlLogic:
         self._loop_overruns = dv.handle("cn_loop_overruns")
         self._h_loop = dv.handle("cn_loop")
         self._h_time = dv.handle("cn_time_ns")
+        self._final = tuple(dv.handle(f"{dn}_final") for dn in dns)
         self._got = [False] * len(dns)
         self._divisor = mission.telemetry_divisor
         self.loop = 0
@@ -187,21 +200,26 @@ class ControlLogic:
         self._bulk: BulkPort | None = None
 
     # -- the loop ------------------------------------------------------------
-    def begin(self, loop: int, t_ns: int) -> list[bytearray]:
+    def begin(self, loop: int, t_ns: int, *, final: bool = False) -> list[bytearray]:
         """Open loop ``loop`` at ``t_ns``; returns the query frame of each DN
-        (in ``mission.device_nodes`` order), stamped ``(loop, t_ns)``."""
+        (in ``mission.device_nodes`` order), stamped ``(loop, t_ns)``.
+
+        ``final``: this is the run's last loop (module doc): every frame
+        carries ``dnX_final`` true. The platform owns that element: it is
+        written here every loop, whatever a component wrote into it."""
         self.loop = loop
         self.t_ns = t_ns
         got = self._got
         frames = self._frames
         for i, codec in enumerate(self._to_dn):
             got[i] = False
+            self._final[i].set(final)
             seal = self._seal_to_dn[i]
             frame = codec.encode(loop, t_ns)
             frames[i] = seal.seal(frame) if seal is not None else frame
         self.pending = len(got)
         if self.recorder is not None:
-            self.recorder.begin(loop, t_ns)
+            self.recorder.begin(loop, t_ns, final)
         return frames
 
     def reply(self, i: int, payload: bytes | bytearray | memoryview | None) -> bool:
@@ -388,10 +406,12 @@ class DeviceLogic:
     Fail safe: :meth:`watchdog` (the driver calls it whenever it waited
     without a trigger) safes the node after ``faults.dn_watchdog_loops``
     periods with no valid trigger: every actuator's safe value, the board's
-    safe state, ``dnX_safed`` true, an event. The node stays safed (its
-    actuators do not run) until the CN is back: ``faults.dn_reenable_loops``
-    valid triggers in a row, whose regions then carry what the CN commands
-    now. :meth:`safe` does the same on demand (clean exit).
+    safe state, ``dnX_safed`` true, a warning event. The node stays safed
+    (its actuators do not run) until the CN is back:
+    ``faults.dn_reenable_loops`` valid triggers in a row, whose regions then
+    carry what the CN commands now. A final trigger (``dnX_final``, the CN's
+    last loop) safes the node the same way after its run, with an activity
+    event: the run ended. :meth:`safe` does the same on demand (clean exit).
 
     Construction raises ConfigError (YAML path) for a bad device or
     controller. No method raises: device and controller exceptions are
@@ -444,6 +464,10 @@ class DeviceLogic:
         self._errors = dv.handle(f"{node}_errors")
         self._bad = dv.handle(f"{node}_bad_frames")
         self._h_safed = dv.handle(f"{node}_safed")
+        self._h_final = dv.handle(f"{node}_final")
+        # Where the flag sits in a trigger's data: read there in a trigger
+        # too late to run, whose data is not applied.
+        self._final_at = self._h_final.spec.offset - self.layout.region(f"cn_to_{node}").offset
         self._reenable_after = mission.faults.dn_reenable_loops
         self._back = 0  # valid triggers in a row while safed
         self._stale_after = stale_after_ns
@@ -457,6 +481,8 @@ class DeviceLogic:
         self.last_trigger_ns: int | None = None
         """This node's time at the last valid trigger (None before the first)."""
         self.safed = False
+        self.safed_why = ""
+        """Why the node was last safed ("" if it never was)."""
         self.stale = 0
         """Triggers answered but not run (older loop, stale, or not newest)."""
         self.triggered = 0
@@ -509,6 +535,14 @@ class DeviceLogic:
             self.triggered = frame.seq
         else:
             self.stale += 1
+            if frame.seq > self.last_loop and frame.data[self._final_at]:
+                # The CN's last loop, come too late to run: the run ended all the same.
+                self._safe(
+                    now_ns,
+                    f"the control node's run ended (its last loop, {frame.seq}, came too "
+                    "late to run here)",
+                    EV.DN_SAFED_RUN_ENDED,
+                )
         reply = self._out.encode(frame.seq, now_ns)
         return self._seal.seal(reply) if self._seal is not None else reply
 
@@ -531,7 +565,8 @@ class DeviceLogic:
     def run(self, t_ns: int) -> None:
         """Run the loop :meth:`trigger` started, at ``t_ns``: bulk samples in,
         board, sensors, controllers, actuators (not while safed), then the owned
-        bulk channels out and their counters."""
+        bulk channels out and their counters; after the CN's last loop (a
+        final trigger), the node safes itself (class doc)."""
         loop = self.triggered
         bulk = self._bulk
         if bulk is not None:  # the newest samples in, before the run reads them
@@ -556,6 +591,12 @@ class DeviceLogic:
         if bulk is not None:  # after the run: the reply has gone already
             bulk.publish(loop, t_ns)
             bulk.write_counters(self.dv)
+        if self._h_final.get():
+            self._safe(
+                t_ns,
+                f"the control node's run ended (its last loop was {loop})",
+                EV.DN_SAFED_RUN_ENDED,
+            )
 
     def step(self, payload: bytes | bytearray | memoryview, now_ns: int) -> bytearray | None:
         """:meth:`trigger` then, if it started a loop, :meth:`run` at ``now_ns``;
@@ -589,13 +630,16 @@ class DeviceLogic:
         """Write every actuator's safe value and the board's safe state;
         stay safed until the CN is back (class doc). ``exiting``: a clean
         exit (an activity, not a warning). Never raises."""
+        self._safe(t_ns, why, EV.DN_SAFED_AT_EXIT if exiting else EV.DN_SAFED)
+
+    def _safe(self, t_ns: int, why: str, ev: EventType) -> None:
         self.devices.safe_actuators(t_ns)
         safe_board(self.board)
         self._back = 0
         if not self.safed:
             self.safed = True
+            self.safed_why = why
             self._h_safed.set(True)
-            ev = EV.DN_SAFED_AT_EXIT if exiting else EV.DN_SAFED
             self.events.emit(ev, t_ns, node=self.node, why=why)
 
     def _board_failed(self, exc: Exception, t_ns: int) -> None:

@@ -2,19 +2,20 @@
 
 ``zplatform up --record DIR`` (and ``node MISSION cn --record DIR``) attaches
 a :class:`Recorder` to the CN's :class:`~zplatform.loop.ControlLogic`: every
-input its loop consumed is written, per loop, in call order: the loop number
-and timestamp, each DN reply as it arrived (its bytes, or that the DN
-answered with an error), the ground frame, the sync-overrun flag and the
-skipped periods, and the telemetry frame the loop produced (what a replay
-must reproduce). ``DIR`` holds ``mission.yaml`` (the effective mission) and
-``cn.zrec``; ``zplatform replay DIR`` needs nothing else.
+input its loop consumed is written, per loop, in call order: the loop number,
+timestamp and whether it was the run's last (``final``), each DN reply as it
+arrived (its bytes, or that the DN answered with an error), the ground
+frame, the sync-overrun flag and the skipped periods, and the telemetry
+frame the loop produced (what a replay must reproduce). ``DIR`` holds
+``mission.yaml`` (the effective mission) and ``cn.zrec``; ``zplatform replay
+DIR`` needs nothing else.
 
 ``cn.zrec``, all integers little-endian::
 
-    header:  b"ZPREC\\0"  u16 version (1)  u32 n  n bytes of JSON metadata
+    header:  b"ZPREC\\0"  u16 version (2)  u32 n  n bytes of JSON metadata
              u32 m  m bytes: the CN's Data Vector when recording started
     items:   u8 type  u8 dn  u32 length  length bytes
-               1 BEGIN      u64 loop, i64 t_ns
+               1 BEGIN      u64 loop, i64 t_ns, u8 final (1: the run's last loop)
                2 REPLY      the reply frame of DN ``dn``
                3 REPLY_ERR  DN ``dn`` answered with an error (length 0)
                4 OVERSIZE   a reply longer than any valid frame: u32 its length
@@ -62,7 +63,7 @@ from .errors import RecordingError
 __all__ = ["FOREIGN_DN", "LoopRecord", "RecordReader", "Recorder"]
 
 MAGIC = b"ZPREC\x00"
-VERSION = 1
+VERSION = 2  # 2: BEGIN carries the final-loop flag
 RECORD_FILE = "cn.zrec"
 MISSION_FILE = "mission.yaml"
 
@@ -73,7 +74,7 @@ BEGIN, REPLY, REPLY_ERR, OVERSIZE, GROUND, GROUND_OVERSIZE, TELEMETRY, FINISH, D
 FOREIGN_DN = -1
 
 _ITEM = struct.Struct("<BBI")  # type, dn, length
-_BEGIN = struct.Struct("<Qq")
+_BEGIN = struct.Struct("<QqB")
 _FINISH = struct.Struct("<BIII")
 _U32 = struct.Struct("<I")
 _U64 = struct.Struct("<Q")
@@ -213,7 +214,7 @@ class Recorder:
             self._mv[off : off + n] = payload
         self._off = off + n
 
-    def begin(self, loop: int, t_ns: int) -> None:
+    def begin(self, loop: int, t_ns: int, final: bool = False) -> None:
         if self._dropping:
             # Resume only at a loop boundary, with a chunk free.
             if self._free.empty():
@@ -234,7 +235,7 @@ class Recorder:
                 return
         off = self._off
         _ITEM.pack_into(self._mv, off, BEGIN, 0, _BEGIN.size)
-        _BEGIN.pack_into(self._mv, off + _ITEM.size, loop, t_ns)
+        _BEGIN.pack_into(self._mv, off + _ITEM.size, loop, t_ns, final)
         self._off = off + _ITEM.size + _BEGIN.size
         self._open_loop = True
 
@@ -324,6 +325,7 @@ class LoopRecord(msgspec.Struct, frozen=True):
 
     loop: int
     t_ns: int
+    final: bool
     replies: list[tuple[int, bytes | None]]
     grounds: list[bytes]
     sync_overrun: bool
@@ -386,6 +388,7 @@ class RecordReader:
         end = len(d)
         in_loop = False
         loop = t = 0
+        final = False
         grounds: list[bytes] = []
         telemetry: bytes | None = None
         replies: list[tuple[int, bytes | None]] = []
@@ -401,7 +404,8 @@ class RecordReader:
             body = d[off : off + n]
             off += n
             if typ == BEGIN:
-                loop, t = _BEGIN.unpack(body)
+                loop, t, final_byte = _BEGIN.unpack(body)
+                final = bool(final_byte)
                 in_loop = True
                 telemetry = None
                 grounds = []
@@ -429,7 +433,9 @@ class RecordReader:
                 telemetry = body
             elif typ == FINISH:
                 so, lo, dr, ov = _FINISH.unpack(body)
-                yield LoopRecord(loop, t, replies, grounds, bool(so), lo, dr, ov, telemetry)
+                yield LoopRecord(
+                    loop, t, final, replies, grounds, bool(so), lo, dr, ov, telemetry
+                )
                 in_loop = False
             else:
                 self.complete = False

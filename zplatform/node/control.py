@@ -10,9 +10,14 @@ goes on.
 Loop (one timestamp per loop), the order of :mod:`zplatform.loop`::
 
     t = the loop's scheduled start, on the node clock
-    frames = logic.begin(loop, t); sync every DN with them (2 ms deadline)
+    frames = logic.begin(loop, t, final=...); sync every DN with them (2 ms deadline)
     tm = logic.finish(at most one ground frame, overrun flags)
     publish tm (every Nth loop), events
+
+The run's last loop is flagged final (``dnX_final``, so the DNs safe
+themselves as the run's end, not as a lost CN): the last of ``max_loops``
+(``--duration``), or, once a stop is asked for (SIGTERM, Ctrl-C under
+``up``), one more loop after it, after which the node stops.
 
 ``record`` attaches a :class:`~zplatform.recording.Recorder` after the
 warm-up: every input of every loop goes to disk for ``zplatform replay``.
@@ -114,6 +119,7 @@ class ControlNode:
         self._radio = _Radio(mission, s, keys.downlink) if mission.downlink.ccsds else None
         self.bulk = open_bulk(s, mission, "cn", self.logic)
         self._skipped = 0
+        self._last_step: int | None = None  # self.loops after the run's planned last loop
         self.ns.announce()
         self.first_loop_ns = 0
         self.last_loop_ns = 0
@@ -205,7 +211,8 @@ class ControlNode:
         self._skipped += 1  # an input of the next loop (replayed as such)
 
     def step(self, k: int, deadline_ns: int) -> bool:
-        """One loop; returns False to stop."""
+        """One loop; returns False to stop: after the run's final loop (the
+        last of ``max_loops``, or the loop after a stop was asked for)."""
         m0 = self._mono()
         loop = k + 1
         # The loop's one timestamp is its scheduled start, not the moment the
@@ -217,7 +224,8 @@ class ControlNode:
         if self.loops == 0:
             self.first_loop_ns = t
         logic = self.logic
-        overrun = self.sync.sync(logic.begin(loop, t), logic)
+        final = self.loops + 1 == self._last_step or self.stop.is_set()
+        overrun = self.sync.sync(logic.begin(loop, t, final=final), logic)
         grounds = self._grounds
         grounds.clear()
         inbox = self._inbox
@@ -243,7 +251,7 @@ class ControlNode:
         self._work[self.loops & 0xFFFF] = self._mono() - m0
         self.loops += 1
         self.last_loop_ns = t
-        return not self.stop.is_set()
+        return not final
 
     def run(
         self,
@@ -252,8 +260,12 @@ class ControlNode:
         realtime: bool = True,
         record: int = 0,
     ) -> PeriodicLoop:
-        """Run the loop until stopped or ``max_loops``; returns the loop (stats)."""
+        """Run the loop until stopped or ``max_loops``; returns the loop (stats).
+
+        The last loop of the call (the ``max_loops``-th, or the one after a
+        stop) is the run's final loop (module doc)."""
         nc = self.mission.nodes["cn"]
+        self._last_step = None if max_loops is None else self.loops + max_loops
         if realtime:
             realtime_setup(nc.priority, nc.cpu)
         gc_guard = GcGuard()

@@ -205,6 +205,7 @@ class DeviceNode:
             bad_frames=int(self.dv.get(f"{self.name}_bad_frames")),
             errors=int(self.dv.get(f"{self.name}_errors")),
             stale_queries=self.logic.stale,
+            safed_why=self.logic.safed_why if self.logic.safed else "",
         )
 
     def close(self) -> None:
