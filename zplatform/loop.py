@@ -481,6 +481,7 @@ class DeviceLogic:
         self.last_trigger_ns: int | None = None
         """This node's time at the last valid trigger (None before the first)."""
         self.safed = False
+        self._safed_by: EventType | None = None
         self.safed_why = ""
         """Why the node was last safed ("" if it never was)."""
         self.stale = 0
@@ -636,11 +637,15 @@ class DeviceLogic:
         self.devices.safe_actuators(t_ns)
         safe_board(self.board)
         self._back = 0
-        if not self.safed:
-            self.safed = True
-            self.safed_why = why
-            self._h_safed.set(True)
-            self.events.emit(ev, t_ns, node=self.node, why=why)
+        # One event per safing; but the run's end is told even to a node a
+        # stall had safed already: from now on it is safed because the run ended.
+        if self.safed and (ev is not EV.DN_SAFED_RUN_ENDED or self._safed_by is ev):
+            return
+        self.safed = True
+        self._safed_by = ev
+        self.safed_why = why
+        self._h_safed.set(True)
+        self.events.emit(ev, t_ns, node=self.node, why=why)
 
     def _board_failed(self, exc: Exception, t_ns: int) -> None:
         self._errors.bump()

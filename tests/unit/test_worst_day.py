@@ -216,6 +216,24 @@ def test_the_cn_s_last_loop_safes_a_dn_as_the_run_s_end_not_as_a_lost_cn() -> No
     assert "dn_reenabled" in [e.id for e in dn.events.drain()]
 
 
+def test_the_run_s_end_is_told_to_a_dn_a_stall_had_safed() -> None:
+    """A DN the watchdog safed (the CN stalled) that then runs the final
+    loop is safed because the run ended (one activity event), not still
+    because the CN was lost."""
+    cn = ControlLogic(LED, key=None)
+    dn = DeviceLogic(LED, "dn0", key=None)
+    t = 1_000 * PERIOD
+    dn.step(bytes(cn.begin(1, t)[0]), t)
+    assert dn.watchdog(t + 20 * PERIOD)  # the CN stalled
+    t += 21 * PERIOD
+    dn.step(bytes(cn.begin(2, t, final=True)[0]), t)
+    ids = [e.id for e in dn.events.drain()]
+    assert ids == ["dn_safed", "dn_safed_run_ended"]
+    assert dn.safed_why.startswith("the control node's run ended")
+    dn.safe(t + PERIOD, "the node is stopping", exiting=True)  # a clean exit: nothing new
+    assert dn.events.drain() == [] and dn.safed_why.startswith("the control node's run ended")
+
+
 def test_a_last_loop_too_late_to_run_still_ends_the_run_for_the_dn() -> None:
     """Under load the CN's last trigger may reach a DN after its time (a
     stale query: answered, not run); it still says the run ended. A replayed
