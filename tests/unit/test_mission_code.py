@@ -105,13 +105,19 @@ def pkg_name(tmp_path: Path) -> str:
     return "hotfire_" + "".join(c for c in tmp_path.name if c.isalnum())
 
 
+def team_dir(tmp_path: Path) -> tuple[str, Path]:
+    """``(package, directory)``: tmp_path/team holding the team's package."""
+    pkg = pkg_name(tmp_path)
+    team = tmp_path / "team"
+    team.mkdir()
+    write_code(team, pkg)
+    return pkg, team
+
+
 def test_a_mission_finds_its_package_next_to_it_from_any_directory(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    pkg = pkg_name(tmp_path)
-    mission_dir = tmp_path / "team"
-    mission_dir.mkdir()
-    write_code(mission_dir, pkg)
+    pkg, mission_dir = team_dir(tmp_path)
     path = team_mission(mission_dir, pkg)
     elsewhere = tmp_path / "elsewhere"
     elsewhere.mkdir()
@@ -206,10 +212,7 @@ def test_resolve_pythonpath() -> None:
 def test_copies_of_a_mission_keep_finding_its_code(tmp_path: Path) -> None:
     """`up --free-ports` (rewrite_endpoints) and a recording copy the mission
     elsewhere: the copy's pythonpath is absolute, against the source's directory."""
-    pkg = pkg_name(tmp_path)
-    team = tmp_path / "team"
-    team.mkdir()
-    write_code(team, pkg)
+    pkg, team = team_dir(tmp_path)
     src = team_mission(team, pkg)
     out = tmp_path / "runtime"
     out.mkdir()
