@@ -578,6 +578,7 @@ class DeviceLogic:
             self._back += 1
             if self._back >= self._reenable_after:
                 self.safed = False
+                self._safed_by = None
                 self._h_safed.set(False)
                 self.events.emit(EV.DN_REENABLED, t_ns, node=self.node, n=self._back)
         try:
