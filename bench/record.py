@@ -39,7 +39,7 @@ def _inputs(loops: int) -> list[tuple[int, int, list[bytes], list[bytes]]]:
     cn = r.control
 
     class Tap:
-        def begin(self, loop: int, t_ns: int) -> None:
+        def begin(self, loop: int, t_ns: int, final: bool) -> None:
             captured.clear()
 
         def reply(self, i: int, payload: Any) -> None:

@@ -76,6 +76,7 @@ from bench.cluster import BenchCluster
 from bench.common import REPO_ROOT, bench_argparser, free_port, spawn, summarize, terminate_all
 from bench.common import write_result as _write
 from bench.sync import PRIORITY, inherit_fifo
+from zplatform.config import relocate_mission
 from zplatform.transport import is_matching
 
 TM_DEADLINE_MS = 30.0
@@ -91,7 +92,9 @@ def led_mission(
 ) -> Path:
     """configs/led_test.yaml with free loopback ports (and no ground wait);
     ``lowlatency``/``sync_query`` override the mission's ``transport`` ones."""
-    doc = yaml.safe_load((REPO_ROOT / "configs" / "led_test.yaml").read_text())
+    src = REPO_ROOT / "configs" / "led_test.yaml"
+    doc = yaml.safe_load(src.read_text())
+    relocate_mission(doc, src)  # the copy finds nodes/ from anywhere
     ports = {n: free_port() for n in doc["nodes"]}
     cn_ep = f"tcp/127.0.0.1:{ports['cn']}"
     for n, spec in doc["nodes"].items():

@@ -209,7 +209,7 @@ VECTOR_LIST = [
         1000,
         T0 + 2_000_000_000,
         "255 data bytes: the largest frame with a bin8 header (c4 ff)",
-        {"b8_bytes": list(range(254)), "b8_flag": True},
+        {"dn2_final": True, "b8_bytes": list(range(253)), "b8_flag": True},
     ),
     Vector(
         "bin16_min_256",
@@ -217,7 +217,11 @@ VECTOR_LIST = [
         1001,
         T0 + 2_010_000_000,
         "256 data bytes: the smallest frame with a bin16 header (c5 01 00)",
-        {"b16_count": 2**40 + 5, "b16_samples": [i * 0.25 - 7.0 for i in range(62)]},
+        {
+            "b16_count": 2**40 + 5,
+            "b16_samples": [i * 0.25 - 7.0 for i in range(61)],
+            "b16_tail": [1, 2, 3],
+        },
     ),
     Vector(
         "bin16_max_65535",
@@ -225,7 +229,7 @@ VECTOR_LIST = [
         1002,
         T0 + 2_020_000_000,
         "65535 data bytes: the largest frame with a bin16 header (c5 ff ff)",
-        {"b16max_bytes": [1, 2, 3] + [0] * 65531 + [255]},
+        {"b16max_bytes": [1, 2, 3] + [0] * 65530 + [255]},
     ),
     Vector(
         "bin32_min_65536",
@@ -233,9 +237,16 @@ VECTOR_LIST = [
         1003,
         T0 + 2_030_000_000,
         "65536 data bytes: the smallest frame with a bin32 header (c6 00 01 00 00)",
-        {"b32_words": list(range(16)) + [0] * 32751 + [65535]},
+        {"b32_words": list(range(16)) + [0] * 32750 + [65535], "b32_tail": 7},
     ),
-    Vector("tiny_1", "cn_to_dn6", 1004, T0 + 2_040_000_000, "one data byte", {"tiny": True}),
+    Vector(
+        "tiny_1",
+        "cn_to_dn6",
+        1004,
+        T0 + 2_040_000_000,
+        "one data byte: a region of the platform's final-loop flag alone",
+        {"dn6_final": True},
+    ),
 ]
 
 

@@ -6,6 +6,7 @@ here; module paths below ``zplatform.`` are implementation detail.
 
 from __future__ import annotations
 
+from .boards import Board, SimBoard
 from .codec import (
     Frame,
     FrameDecoder,
@@ -20,7 +21,7 @@ from .components import Component
 from .config import Mission
 from .controllers import Controller, ControllerSet
 from .datavector import DataVector, ElementSpec, Handle, Layout, RegionSpec
-from .devices import Actuator, Board, Device, DeviceSet, Sensor, SimBoard
+from .devices import Actuator, Device, DeviceSet, Sensor
 from .errors import (
     ClockSyncError,
     CodecError,
@@ -47,6 +48,7 @@ from .loop import ControlLogic, DeviceLogic
 from .mission import check_mission, decode_mission, load_mission
 from .rategroups import RateGroups
 from .recording import Recorder
+from .safety import SafetyWarning, safety_warnings
 from .scheduler import GcGuard, LoopStats, PeriodicLoop, setup_realtime
 from .statemachine import StateMachine
 from .telemetry import CsvLogger, read_csv
@@ -107,6 +109,7 @@ __all__ = [
     "RegionCodec",
     "RegionSpec",
     "ReplayResult",
+    "SafetyWarning",
     "SchedulerError",
     "ScriptCommand",
     "ScriptPlayer",
@@ -131,5 +134,6 @@ __all__ = [
     "parse_commands",
     "read_csv",
     "replay",
+    "safety_warnings",
     "setup_realtime",
 ]

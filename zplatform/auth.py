@@ -67,10 +67,12 @@ class KeyError_(ZPlatformError):
     """The mission key is missing or unreadable; the message says how to make one."""
 
 
-def default_key_path(mission: Mission) -> Path:
-    """``~/.config/zplatform/keys/<mission>.key`` (XDG_CONFIG_HOME respected)."""
+def default_key_path(mission: Mission | str) -> Path:
+    """``~/.config/zplatform/keys/<mission>.key`` (XDG_CONFIG_HOME respected)
+    of a mission, or of a mission name (checked by the caller)."""
+    name = mission if isinstance(mission, str) else mission.mission
     base = os.environ.get("XDG_CONFIG_HOME") or str(Path.home() / ".config")
-    return Path(base) / "zplatform" / "keys" / f"{mission.mission}.key"
+    return Path(base) / "zplatform" / "keys" / f"{name}.key"
 
 
 def _parse(text: str, where: str) -> bytes:

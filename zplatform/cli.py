@@ -18,6 +18,8 @@ import os
 import sys
 from collections.abc import Callable, Sequence
 
+import msgspec
+
 from . import __version__
 from .config import Mission
 from .datavector import Layout
@@ -76,15 +78,31 @@ def _mission_report(m: Mission) -> dict[str, object]:
 
 
 def cmd_check(args: argparse.Namespace) -> int:
+    """Validate; print the report and the safety warnings (:mod:`zplatform.safety`).
+
+    Exit 0 with warnings, 2 with ``--strict`` (each warning printed as an
+    error line), 2 for a mission that does not load."""
+    from .safety import safety_warnings
+
     # load_mission builds every controller and device on scratch vectors,
     # so a bad class path or component config fails here, not on the pad.
     m = load_mission(args.mission)
+    warnings = safety_warnings(m)
     rep = _mission_report(m)
+    rc = 2 if args.strict and warnings else 0
     if args.json:
+        rep["warnings"] = [msgspec.to_builtins(w) for w in warnings]
+        rep["ok"] = rc == 0
         print(json.dumps(rep, indent=2))
-        return 0
+        return rc
+    level = "error" if args.strict else "warning"
+    for w in warnings:
+        print(f"zplatform: {level}: {w}", file=sys.stderr)
+    if rc:
+        return rc
+    flagged = f", {len(warnings)} safety warning(s) (above)" if warnings else ""
     print(
-        f"mission {rep['mission']}: OK  ({len(m.nodes)} nodes, {m.loop_hz:g} Hz, "
+        f"mission {rep['mission']}: OK{flagged}  ({len(m.nodes)} nodes, {m.loop_hz:g} Hz, "
         f"sync deadline {m.sync_timeout_ms:g} ms)"
     )
     for r in rep["regions"]:  # type: ignore[attr-defined]
@@ -127,14 +145,35 @@ def cmd_ps(args: argparse.Namespace) -> int:
 MISSION_HELP = "mission YAML file, or the name of a running mission (`zplatform ps`)"
 
 
+def _keygen_mission_name(arg: str) -> str:
+    """The mission name ``keygen MISSION`` means: a mission file's ``mission:``
+    (its code is not imported), a running mission's, or ``arg`` itself when it
+    is neither a file nor running but a valid mission name (a key is often
+    made before the mission first runs). CommandError (or the loader's
+    ConfigError) otherwise."""
+    from .config import check_mission_name
+    from .errors import CommandError, ConfigError
+
+    try:
+        path = resolve_mission(arg)
+    except CommandError:
+        if os.sep in arg or arg.endswith((".yaml", ".yml")):
+            raise  # meant as a file: say there is none
+        try:
+            check_mission_name(arg)
+        except ConfigError as exc:
+            raise CommandError(f"{exc.reason}, and it is no file or running mission") from None
+        return arg
+    return load_mission(path, code=False).mission
+
+
 def cmd_keygen(args: argparse.Namespace) -> int:
     """Write a new random mission key (mode 0600); refuses to overwrite one."""
     from .auth import KEY_FILE_ENV, default_key_path, write_key
-    from .mission import load_mission
 
-    mission = load_mission(args.mission)
-    path = write_key(args.out or default_key_path(mission))
-    print(f"wrote the key of mission {mission.mission!r} to {path}")
+    name = _keygen_mission_name(args.target)
+    path = write_key(args.out or default_key_path(name))
+    print(f"wrote the key of mission {name!r} to {path}")
     if args.out:
         print(f"nodes and tools find it with {KEY_FILE_ENV}={path}")
     else:
@@ -150,15 +189,28 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--version", action="version", version=f"zplatform {__version__}")
     sub = p.add_subparsers(dest="command", required=True, metavar="VERB")
-    c = sub.add_parser("check", help="validate a mission; print regions, offsets, bandwidth")
+    c = sub.add_parser(
+        "check",
+        help="validate a mission; print regions, offsets, bandwidth and safety warnings",
+    )
     c.add_argument("mission", help=MISSION_HELP)
-    c.add_argument("--json", action="store_true", help="machine-readable report")
+    c.add_argument(
+        "--json", action="store_true", help="machine-readable report (with its warnings)"
+    )
+    c.add_argument(
+        "--strict",
+        action="store_true",
+        help="safety warnings are errors (exit 2): for CI and flight missions",
+    )
     c.set_defaults(func=cmd_check)
     c = sub.add_parser(
         "keygen",
         help="make the mission key that authenticates every frame (copy it to every host)",
     )
-    c.add_argument("mission", help=MISSION_HELP)
+    # Not `mission`: main() would resolve it, and keygen also takes a bare name.
+    c.add_argument(
+        "target", metavar="MISSION", help=MISSION_HELP + ", or a mission name (led_test)"
+    )
     c.add_argument(
         "--out", metavar="PATH", help="where to write it (default: the mission's key file)"
     )

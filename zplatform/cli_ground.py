@@ -122,7 +122,7 @@ def cmd_ground(args: argparse.Namespace) -> int:
             ) from None
         limits = _read_limits(args.limits)
         if args.web is not None:
-            load_mission(args.mission)  # a bad file fails here, with its message
+            load_mission(args.mission, code=False)  # a bad file fails here, with its message
             serve_console(
                 args.mission,
                 args.web,
@@ -164,7 +164,7 @@ def cmd_prompt(args: argparse.Namespace) -> int:
     from .events import decode_event
     from .node.ground import CommandSender
 
-    mission = load_mission(args.mission)
+    mission = load_mission(args.mission, code=False)
     sender = CommandSender(mission, timeout_s=args.timeout)
     for name in args.watch:
         sender.rx.dv.layout.element(name)  # unknown elements fail now, with their name
@@ -286,7 +286,7 @@ def cmd_xtce(args: argparse.Namespace) -> int:
         from .xtce import write_xtce
     except ImportError:
         raise CommandError("xtce needs yamcs-pymdb: pip install 'zplatform[ground]'") from None
-    mission = load_mission(args.mission)
+    mission = load_mission(args.mission, code=False)
     out = args.out or f"{mission.mission}.xtce.xml"
     check_output(out, "XTCE file")
     x = write_xtce(mission, out)
@@ -342,7 +342,7 @@ def cmd_ccsds(args: argparse.Namespace) -> int:
         from . import ccsds
     except ImportError:
         raise CommandError("ccsds needs spacepackets: pip install 'zplatform[ground]'") from None
-    mission = load_mission(args.mission)
+    mission = load_mission(args.mission, code=False)
     if args.decode:
         if not args.out:
             raise CommandError("--decode needs --out CSV")

@@ -201,7 +201,8 @@ def _check_outputs(args: argparse.Namespace, *names: str) -> None:
 
 def cmd_node(args: argparse.Namespace) -> int:
     setup_logging(args.verbose)
-    mission = load_mission(args.mission)
+    # The ground node runs no mission code: it needs the mission file only.
+    mission = load_mission(args.mission, code=args.name != "gn")
     _check_outputs(args, "log", "summary", "record")
     name = args.name
     realtime = not args.no_realtime
@@ -249,7 +250,7 @@ def cmd_log(args: argparse.Namespace) -> int:
     setup_logging()
     from .node.ground import run_ground_logger
 
-    mission = load_mission(args.mission)
+    mission = load_mission(args.mission, code=False)
     _check_outputs(args, "out", "summary")
     summary = run_ground_logger(
         mission,
@@ -269,7 +270,7 @@ def cmd_cmd(args: argparse.Namespace) -> int:
     from .node.ground import CommandSender
     from .uplink import validate_command
 
-    mission = load_mission(args.mission)
+    mission = load_mission(args.mission, code=False)
     element = args.args[0] if len(args.args) > 0 else None
     value = args.args[1] if len(args.args) > 1 else None
     if len(args.args) > 2:
@@ -423,7 +424,7 @@ def cmd_tap(args: argparse.Namespace) -> int:
     the deadline (--timeout, or :data:`TAP_SILENCE_S` without it), with a
     line saying so on stderr.
     """
-    mission = load_mission(args.mission)
+    mission = load_mission(args.mission, code=False)
     dec = _TapDecoder(mission)
     keyexpr = args.keyexpr or KeySpace(mission.vehicle).everything
     _check_keyexpr(keyexpr)

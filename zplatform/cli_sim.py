@@ -91,7 +91,8 @@ def cmd_replay(args: argparse.Namespace) -> int:
         from .datavector import Layout
         from .recording import MISSION_FILE
 
-        layout = Layout.for_node(load_mission(Path(args.directory) / MISSION_FILE), "cn")
+        recorded = load_mission(Path(args.directory) / MISSION_FILE, code=False)
+        layout = Layout.for_node(recorded, "cn")
         with CsvLogger(args.log, layout) as log:
             res = replay(args.directory, log=log)
     else:

@@ -23,10 +23,12 @@ it, never writes it.
 from __future__ import annotations
 
 import math
+import os
 import re
 import unicodedata
 import zlib
 from collections.abc import Collection, Sequence
+from pathlib import Path
 from typing import Annotated, Any, Literal
 
 import msgspec
@@ -57,9 +59,12 @@ __all__ = [
     "StateMachineConfig",
     "TransitionConfig",
     "TransportConfig",
+    "check_mission_name",
     "element_spec",
     "parse_mission",
     "platform_elements",
+    "relocate_mission",
+    "resolve_pythonpath",
 ]
 
 Scalar = int | float | bool | str
@@ -485,6 +490,24 @@ class Mission(_Struct):
     security: SecurityConfig = msgspec.field(default_factory=SecurityConfig)
     downlink: DownlinkConfig = msgspec.field(default_factory=DownlinkConfig)
     bulk: list[BulkChannelConfig] = msgspec.field(default_factory=list)
+    # Where the mission's own Python code is found: directories put at the
+    # front of sys.path while the verbs that run flight code (check, sim, up,
+    # node, replay) import its controllers, devices, boards and physics.
+    pythonpath: (
+        Annotated[
+            list[str],
+            Meta(
+                description=(
+                    "Directories (relative to the mission file, or absolute) put at the "
+                    "front of Python's import path while the mission's code (controller, "
+                    "device, board and physics classes) is imported. Default: the mission "
+                    "file's own directory. Verbs that only talk to a running mission "
+                    "(cmd, tap, log, ground, xtce, ccsds) import no mission code."
+                )
+            ),
+        ]
+        | None
+    ) = None
     doc: str = ""
 
     # -- derived views (cheap; computed from the checked fields) -----------
@@ -647,15 +670,52 @@ def _unsafe_name_reason(name: str) -> str | None:
     return None
 
 
-def _check_mission(m: Mission) -> None:
-    why = _unsafe_name_reason(m.mission)
+def check_mission_name(name: str) -> None:
+    """Refuse a mission name that cannot name keys, files and registry
+    entries (ConfigError at ``$.mission``): the rule every mission file's
+    ``mission:`` obeys, for tools that take a bare name (``keygen``)."""
+    why = _unsafe_name_reason(name)
     if why is not None:
-        raise ConfigError(f"mission name {m.mission!r} {why}", "$.mission")
-    if len(m.mission) > MISSION_NAME_MAX:
+        raise ConfigError(f"mission name {name!r} {why}", "$.mission")
+    if len(name) > MISSION_NAME_MAX:
         raise ConfigError(
-            f"mission name is {len(m.mission)} characters long; at most {MISSION_NAME_MAX}",
+            f"mission name is {len(name)} characters long; at most {MISSION_NAME_MAX}",
             "$.mission",
         )
+
+
+def resolve_pythonpath(entries: Sequence[str] | None, base_dir: str | Path | None) -> list[str]:
+    """The absolute directories a mission's ``pythonpath`` names.
+
+    Relative entries are relative to ``base_dir`` (the mission file's
+    directory; None: the current directory). ``entries`` None (the key not
+    given) means ``[base_dir]``, or nothing without a ``base_dir`` (a mission
+    decoded from text). Pure: checks no directory.
+    """
+    if entries is None:
+        return [] if base_dir is None else [os.path.abspath(base_dir)]
+    base = os.path.abspath(base_dir if base_dir is not None else os.curdir)
+    return [os.path.normpath(os.path.join(base, e)) for e in entries]
+
+
+def relocate_mission(raw: dict[str, Any], source: str | Path) -> None:
+    """Make a mission mapping read from file ``source`` mean the same from
+    any other directory: its ``pythonpath`` (or the default, ``source``'s
+    directory) becomes absolute. For copies of a mission file (``up
+    --free-ports``, a recording). A malformed ``pythonpath`` is left for the
+    loader to refuse with its YAML path."""
+    entries = raw.get("pythonpath")
+    if entries is None or (isinstance(entries, list) and all(isinstance(e, str) for e in entries)):
+        raw["pythonpath"] = resolve_pythonpath(entries, Path(source).parent)
+
+
+def _check_mission(m: Mission) -> None:
+    check_mission_name(m.mission)
+    for i, d in enumerate(m.pythonpath or ()):
+        if not d or "\x00" in d:
+            raise ConfigError(
+                "a pythonpath entry must be a non-empty directory path", f"$.pythonpath[{i}]"
+            )
     if not _NAME_RE.fullmatch(m.vehicle):
         raise ConfigError(
             f"vehicle key prefix must match {_NAME_RE.pattern}, got {m.vehicle!r}", "$.vehicle"
@@ -763,7 +823,9 @@ def platform_elements(m: Mission) -> dict[str, list[ElementConfig]]:
         ]
     out: dict[str, list[ElementConfig]] = {"cn": cn}
     for dn in m.device_nodes:
-        out[f"cn_to_{dn}"] = []
+        # Set by the CN in the trigger of its planned last loop: the DN then
+        # safes its actuators as the run's end, not as a lost control node.
+        out[f"cn_to_{dn}"] = [E(f"{dn}_final", "bool", False)]
         out[f"{dn}_to_cn"] = [
             E(f"{dn}_loop", "u64", 0),
             E(f"{dn}_time_ns", "i64", 0),

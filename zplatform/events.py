@@ -195,6 +195,9 @@ class EV:
     DN_SAFED_AT_EXIT = EventType(
         53, "dn_safed_at_exit", Severity.ACTIVITY_HI, "{node} safed its actuators: {why}"
     )
+    DN_SAFED_RUN_ENDED = EventType(
+        54, "dn_safed_run_ended", Severity.ACTIVITY_HI, "{node} safed its actuators: {why}"
+    )
     DN_REENABLED = EventType(
         51,
         "dn_reenabled",

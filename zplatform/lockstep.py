@@ -17,9 +17,16 @@ live) runs at virtual time ``t = start_ns + (n - 1) * period_ns``:
    (``rx_time_ns = t``) and lets the script player answer.
 
 No frame is ever lost or late here, so ``cn_missed_dnX`` and ``cn_late_dnX``
-stay 0. Nothing reads the wall clock except the speed figure of
-:class:`SimResult`, and nothing iterates a set or hashes into the output: the
-same mission and the same command script give a byte-identical CSV log.
+stay 0. No loop is flagged final (``dnX_final``, :mod:`zplatform.loop`): a
+runner may be run on (:meth:`LockstepRunner.run` continues from the last
+loop), so it never knows which loop is the last, and a flag it guessed
+would make the same mission's output depend on how the run was cut; the
+DNs of a sim are never safed by a run's end, nor by a watchdog (nothing
+waits in virtual time). A replay repeats the recorded flags.
+
+Nothing reads the wall clock except the speed figure of :class:`SimResult`,
+and nothing iterates a set or hashes into the output: the same mission and
+the same command script give a byte-identical CSV log.
 
 :func:`replay` feeds a live run's recorded loop inputs
 (:mod:`zplatform.recording`) through a fresh control loop and checks that
@@ -36,10 +43,10 @@ import msgspec
 import numpy as np
 
 from .auth import TAG_LEN, mission_channels
+from .boards import Board
 from .codec import BundleEncoder, RegionCodec
-from .config import Mission
+from .config import BulkChannelConfig, Mission
 from .datavector import DataVector, Layout
-from .devices import Board
 from .events import Event
 from .loop import ControlLogic, DeviceLogic
 from .messages import wildcard_sync_for
@@ -145,6 +152,71 @@ class SimResult(msgspec.Struct):
 
 
 # ---------------------------------------------------------------------------
+# bulk channels in memory
+
+
+class _SimChannel:
+    """One bulk channel moved in memory, as the network would: a sample the
+    owner publishes in loop n is delivered at the start of loop n+1 and taken
+    by each reader's :meth:`_SimBulkPort.receive` in that loop (live, readers
+    take the newest sample before their loop's logic, and a sample of loop n
+    cannot reach a loop that started before it was published)."""
+
+    def __init__(self, ch: BulkChannelConfig) -> None:
+        self.ch = ch
+        self._sent = np.zeros(ch.shape, ch.dtype)
+        self.delivered = np.zeros(ch.shape, ch.dtype)
+        self._pending = False
+        self.fresh: dict[str, bool] = dict.fromkeys(ch.readers, False)
+
+    def send(self, loop: int, own: np.ndarray[Any, Any]) -> None:
+        if loop % self.ch.rate_divisor == self.ch.rate_phase:
+            np.copyto(self._sent, own)
+            self._pending = True
+
+    def deliver(self) -> None:
+        if self._pending:
+            self._sent, self.delivered = self.delivered, self._sent
+            self._pending = False
+            for r in self.fresh:
+                self.fresh[r] = True
+
+
+class _SimBulkPort:
+    """A node's :class:`~zplatform.loop.BulkPort` in the lockstep runner.
+
+    Moves samples through :class:`_SimChannel`; counts nothing (the bulk
+    counters describe zenoh's transport, shared memory or copied, which a
+    run in one process does not have: they stay 0 in sim)."""
+
+    def __init__(self, node: str, channels: list[_SimChannel]) -> None:
+        self.node = node
+        self.arrays: dict[str, Any] = {}
+        self._own: list[tuple[_SimChannel, np.ndarray[Any, Any]]] = []
+        self._read: list[tuple[_SimChannel, np.ndarray[Any, Any]]] = []
+        for c in channels:
+            if c.ch.node == node:
+                self.arrays[c.ch.name] = a = np.zeros(c.ch.shape, c.ch.dtype)
+                self._own.append((c, a))
+            elif node in c.fresh:
+                self.arrays[c.ch.name] = a = np.zeros(c.ch.shape, c.ch.dtype)
+                self._read.append((c, a))
+
+    def receive(self, loop: int) -> None:
+        for c, a in self._read:
+            if c.fresh[self.node]:
+                np.copyto(a, c.delivered)
+                c.fresh[self.node] = False
+
+    def publish(self, loop: int, t_ns: int) -> None:
+        for c, a in self._own:
+            c.send(loop, a)
+
+    def write_counters(self, dv: DataVector) -> None:
+        pass
+
+
+# ---------------------------------------------------------------------------
 # the runner
 
 
@@ -152,7 +224,7 @@ class LockstepRunner:
     """Every node of ``mission`` in one process, in virtual time (module doc).
 
     ``commands`` is the ground's script; ``boards`` replaces the default
-    :class:`~zplatform.devices.SimBoard` of some device nodes (tests inject
+    :class:`~zplatform.boards.SimBoard` of some device nodes (tests inject
     faults through them). Construction builds every node (ConfigError for a
     bad mission) and resolves the script against the mission (CommandError
     naming ``file:line``). Not thread-safe.
@@ -195,27 +267,15 @@ class LockstepRunner:
         self._last_state = -1
         self._events: list[Event] = []
         self._wall_s = 0.0
-        # Bulk channels: each node's own arrays; a sample published in loop
-        # n reaches its readers at the start of loop n+1 (as live: readers
-        # take the newest sample before their loop's logic).
+        # Bulk channels move in memory (each node's loop receives and
+        # publishes them in its own order, zplatform.loop).
         logics: dict[str, ControlLogic | DeviceLogic] = {"cn": self.control}
         logics.update({d.node: d for d in self.devices})
-        arrays: dict[str, dict[str, Any]] = {n: {} for n in logics}
-        self._bulk: list[tuple[Any, Any, list[Any]]] = []
-        for ch in mission.bulk:
-            if ch.node not in logics:
-                continue
-            own = np.zeros(ch.shape, ch.dtype)
-            arrays[ch.node][ch.name] = own
-            outs = []
-            for r in ch.readers:
-                if r in logics:
-                    arrays[r][ch.name] = np.zeros(ch.shape, ch.dtype)
-                    outs.append(arrays[r][ch.name])
-            self._bulk.append((ch, own, outs))
+        self._channels = [_SimChannel(ch) for ch in mission.bulk if ch.node in logics]
         for n, logic in logics.items():
-            if arrays[n]:
-                logic.attach_bulk(arrays[n])
+            port = _SimBulkPort(n, self._channels)
+            if port.arrays:
+                logic.attach_bulk(port)
 
     # -- running -----------------------------------------------------------
     def step(self, log: CsvLogger | None = None) -> None:
@@ -223,10 +283,8 @@ class LockstepRunner:
         loop = self.loop + 1
         t = self.clock.now_ns()
         cn = self.control
-        for ch, own, outs in self._bulk:  # last loop's samples arrive
-            if self.loop and ch.rate_divisor and self.loop % ch.rate_divisor == ch.rate_phase:
-                for out in outs:
-                    np.copyto(out, own)
+        for ch in self._channels:  # what was published last loop arrives
+            ch.deliver()
         frames = cn.begin(loop, t)
         if self._bundle is not None:  # as live: one wildcard query, every DN takes its frame
             bundle = self._bundle.pack(frames)
@@ -390,7 +448,7 @@ def replay(
     first = last = 0
     diff: Difference | None = None
     for rec in reader.loops():
-        cn.begin(rec.loop, rec.t_ns)
+        cn.begin(rec.loop, rec.t_ns, final=rec.final)
         for i, payload in rec.replies:
             if i == FOREIGN_DN:
                 cn.foreign_reply(bytes(payload or b"").decode(errors="replace"))

@@ -8,7 +8,7 @@ the zenoh runtime (:mod:`zplatform.node`) and the lockstep runner
 
 One CN loop ``n`` (numbered from 1 in every driver) with its one timestamp::
 
-    frames = cn.begin(n, t)          # cn_to_dnX query frames, stamped (n, t)
+    frames = cn.begin(n, t, final=f) # cn_to_dnX query frames, stamped (n, t)
     ...the driver sends frame i to DN i and hands back whatever comes:
     cn.reply(i, payload)             # True once DN i's reply for loop n is in
     ...until every DN replied or the sync deadline passed, then
@@ -33,6 +33,27 @@ One DN trigger::
 The reply carries ``dnX_to_cn`` as it stood *before* this loop's run, so
 what a DN's run writes reaches the CN one loop later (thesis 3.4.5.3).
 ``loop`` on a DN is the CN's loop number (the trigger frame's ``seq``).
+
+The last loop of a run: a driver that knows a loop is the CN's last (the
+run's planned end, or one more loop after a stop was asked for) passes
+``final=True`` to :meth:`ControlLogic.begin`, which sets the platform
+element ``dnX_final`` in every ``cn_to_dnX`` frame of that loop. A DN that
+runs a final trigger runs its loop, then safes its actuators with an
+activity event (``dn_safed_run_ended``): the run ended, no control node was
+lost. Its watchdog then stays quiet, and it stays safed until a control node
+triggers it again ``faults.dn_reenable_loops`` times in a row. A DN that
+stops getting triggers without one is safed by its watchdog, with a warning
+(the control node is lost). ``final`` is an input of the loop, recorded and
+replayed like the others.
+
+Bulk channels (large arrays outside the sync, :mod:`zplatform.bulk`) are
+part of the same order: a node with a :class:`BulkPort` attached
+(:meth:`ControlLogic.attach_bulk`, :meth:`DeviceLogic.attach_bulk`) takes the
+newest samples of the channels it reads before its logic (the CN at the top
+of ``finish``, a DN at the top of ``run``), writes the channel counters, and
+publishes the channels it owns that are due after its logic. The drivers
+only supply the port: zenoh's (:class:`zplatform.bulk.NodeBulk`) or the
+lockstep runner's in-memory one.
 """
 
 from __future__ import annotations
@@ -41,21 +62,21 @@ from collections.abc import Sequence
 from typing import Any, Protocol
 
 from .auth import TAG_LEN, AuthError, Channel, mission_channels
-from .boards import make_board, safe_board
+from .boards import Board, make_board, safe_board
 from .codec import Frame, RegionCodec, bundle_entry, is_bundle
 from .codes import CommandStatus
 from .commands import CommandHandler
-from .components import Streak
+from .components import Streak, mission_code_path
 from .config import Mission
 from .controllers import ControllerSet
 from .datavector import DataVector, Layout
-from .devices import Board, DeviceSet
+from .devices import DeviceSet
 from .errors import CodecError, ConfigError
-from .events import EV, EventLog
+from .events import EV, EventLog, EventType
 from .faults import FaultMonitor
 from .statemachine import StateMachine
 
-__all__ = ["ControlLogic", "DeviceLogic", "LoopRecorder"]
+__all__ = ["BulkPort", "ControlLogic", "DeviceLogic", "LoopRecorder"]
 
 # A trigger stamped this much later than the last one served, yet with a
 # lower loop number, comes from a restarted control node.
@@ -69,7 +90,7 @@ class LoopRecorder(Protocol):
     (:class:`zplatform.recording.Recorder` copies into preallocated chunks).
     """
 
-    def begin(self, loop: int, t_ns: int) -> None: ...
+    def begin(self, loop: int, t_ns: int, final: bool) -> None: ...
 
     def reply(self, i: int, payload: bytes | bytearray | memoryview | None) -> None: ...
 
@@ -84,6 +105,28 @@ class LoopRecorder(Protocol):
         inbox_oversize: int,
         telemetry: bytearray | None,
     ) -> None: ...
+
+
+class BulkPort(Protocol):
+    """A node's bulk channel ends as its loop uses them (module doc).
+
+    ``arrays``: every channel's array by name, handed to the components (the
+    owned ones they fill, the read ones holding the newest sample). The
+    methods are called on the loop thread, in the loop's order; none may
+    block beyond a channel's ``alloc_timeout_ms`` or raise for a lost
+    sample (it is counted).
+    """
+
+    arrays: dict[str, Any]
+
+    def receive(self, loop: int) -> None:
+        """Take the newest sample of every read channel into its array."""
+
+    def publish(self, loop: int, t_ns: int) -> None:
+        """Publish every owned channel due on ``loop``."""
+
+    def write_counters(self, dv: DataVector) -> None:
+        """Write the channels' counters into the node's Data Vector."""
 
 
 class ControlLogic:
@@ -146,6 +189,7 @@ class ControlLogic:
         self._loop_overruns = dv.handle("cn_loop_overruns")
         self._h_loop = dv.handle("cn_loop")
         self._h_time = dv.handle("cn_time_ns")
+        self._final = tuple(dv.handle(f"{dn}_final") for dn in dns)
         self._got = [False] * len(dns)
         self._divisor = mission.telemetry_divisor
         self.loop = 0
@@ -153,23 +197,29 @@ class ControlLogic:
         self.pending = 0
         """DNs whose reply for the current loop has not been applied yet."""
         self.recorder: LoopRecorder | None = None
+        self._bulk: BulkPort | None = None
 
     # -- the loop ------------------------------------------------------------
-    def begin(self, loop: int, t_ns: int) -> list[bytearray]:
+    def begin(self, loop: int, t_ns: int, *, final: bool = False) -> list[bytearray]:
         """Open loop ``loop`` at ``t_ns``; returns the query frame of each DN
-        (in ``mission.device_nodes`` order), stamped ``(loop, t_ns)``."""
+        (in ``mission.device_nodes`` order), stamped ``(loop, t_ns)``.
+
+        ``final``: this is the run's last loop (module doc): every frame
+        carries ``dnX_final`` true. The platform owns that element: it is
+        written here every loop, whatever a component wrote into it."""
         self.loop = loop
         self.t_ns = t_ns
         got = self._got
         frames = self._frames
         for i, codec in enumerate(self._to_dn):
             got[i] = False
+            self._final[i].set(final)
             seal = self._seal_to_dn[i]
             frame = codec.encode(loop, t_ns)
             frames[i] = seal.seal(frame) if seal is not None else frame
         self.pending = len(got)
         if self.recorder is not None:
-            self.recorder.begin(loop, t_ns)
+            self.recorder.begin(loop, t_ns, final)
         return frames
 
     def reply(self, i: int, payload: bytes | bytearray | memoryview | None) -> bool:
@@ -216,6 +266,10 @@ class ControlLogic:
         returns the telemetry frame on telemetry loops (``loop %
         telemetry_divisor == 0``), else None.
 
+        With a bulk port attached, the newest samples of the channels the CN
+        reads are taken (and the counters written) before the logic, and the
+        owned channels due on this loop are published after it.
+
         ``sync_overrun``: the driver's sync step ran past its deadline;
         ``loop_overruns``: periods the driver's scheduler skipped since the
         last loop; ``inbox_dropped``: request frames the driver's bounded
@@ -243,6 +297,10 @@ class ControlLogic:
                 source=f"{inbox_oversize} command frame(s)",
                 reason="longer than any valid request; refused unread",
             )
+        bulk = self._bulk
+        if bulk is not None:  # the newest samples in, before any logic reads them
+            bulk.receive(loop)
+            bulk.write_counters(self.dv)
         new_request = False
         if grounds and self._ground is not None:
             new_request = self._take_request(grounds)
@@ -257,6 +315,8 @@ class ControlLogic:
             tm = self._tm.encode(loop, t)
             if self._seal_tm is not None:
                 tm = self._seal_tm.seal(tm)
+        if bulk is not None:  # what the controllers filled goes out
+            bulk.publish(loop, t)
         if self.recorder is not None:
             self.recorder.finish(
                 grounds, sync_overrun, loop_overruns, inbox_dropped, inbox_oversize, tm
@@ -297,10 +357,12 @@ class ControlLogic:
         tm = self._tm.encode(self.loop, self.t_ns)
         return self._seal_tm.seal(tm) if self._seal_tm is not None else tm
 
-    def attach_bulk(self, arrays: dict[str, Any]) -> None:
-        """Give every component the node's bulk channel arrays (by channel)."""
+    def attach_bulk(self, port: BulkPort) -> None:
+        """Move the CN's bulk channels through ``port`` from the next loop on
+        (module doc) and give every controller its arrays (by channel)."""
+        self._bulk = port
         for c in self.controllers.controllers:
-            c.bulk = arrays
+            c.bulk = port.arrays
 
     def reset_sync_counters(self) -> None:
         """Zero rx/missed/late per DN and the sync overruns (after a warm-up)."""
@@ -344,10 +406,12 @@ class DeviceLogic:
     Fail safe: :meth:`watchdog` (the driver calls it whenever it waited
     without a trigger) safes the node after ``faults.dn_watchdog_loops``
     periods with no valid trigger: every actuator's safe value, the board's
-    safe state, ``dnX_safed`` true, an event. The node stays safed (its
-    actuators do not run) until the CN is back: ``faults.dn_reenable_loops``
-    valid triggers in a row, whose regions then carry what the CN commands
-    now. :meth:`safe` does the same on demand (clean exit).
+    safe state, ``dnX_safed`` true, a warning event. The node stays safed
+    (its actuators do not run) until the CN is back:
+    ``faults.dn_reenable_loops`` valid triggers in a row, whose regions then
+    carry what the CN commands now. A final trigger (``dnX_final``, the CN's
+    last loop) safes the node the same way after its run, with an activity
+    event: the run ended. :meth:`safe` does the same on demand (clean exit).
 
     Construction raises ConfigError (YAML path) for a bad device or
     controller. No method raises: device and controller exceptions are
@@ -380,7 +444,11 @@ class DeviceLogic:
         self.board: Board = (
             board
             if board is not None
-            else make_board(mission.nodes[node].board, where=f"$.nodes.{node}.board")
+            else make_board(
+                mission.nodes[node].board,
+                where=f"$.nodes.{node}.board",
+                pythonpath=mission_code_path(mission),
+            )
         )
         self.devices = DeviceSet(mission, node, dv, self.board, self.events)
         self.controllers = ControllerSet(mission, node, dv, self.events)
@@ -396,6 +464,10 @@ class DeviceLogic:
         self._errors = dv.handle(f"{node}_errors")
         self._bad = dv.handle(f"{node}_bad_frames")
         self._h_safed = dv.handle(f"{node}_safed")
+        self._h_final = dv.handle(f"{node}_final")
+        # Where the flag sits in a trigger's data: read there in a trigger
+        # too late to run, whose data is not applied.
+        self._final_at = self._h_final.spec.offset - self.layout.region(f"cn_to_{node}").offset
         self._reenable_after = mission.faults.dn_reenable_loops
         self._back = 0  # valid triggers in a row while safed
         self._stale_after = stale_after_ns
@@ -403,11 +475,15 @@ class DeviceLogic:
         self._max_ahead = round(mission.clock.offset_bound_ms * 1e6) + mission.period_ns
         self._watchdog_ns = mission.faults.dn_watchdog_loops * mission.period_ns
         self._board_streak = Streak()
+        self._bulk: BulkPort | None = None
         self.last_loop = 0
         self.last_t_ns = 0
         self.last_trigger_ns: int | None = None
         """This node's time at the last valid trigger (None before the first)."""
         self.safed = False
+        self._safed_by: EventType | None = None
+        self.safed_why = ""
+        """Why the node was last safed ("" if it never was)."""
         self.stale = 0
         """Triggers answered but not run (older loop, stale, or not newest)."""
         self.triggered = 0
@@ -460,6 +536,14 @@ class DeviceLogic:
             self.triggered = frame.seq
         else:
             self.stale += 1
+            if frame.seq > self.last_loop and frame.data[self._final_at]:
+                # The CN's last loop, come too late to run: the run ended all the same.
+                self._safe(
+                    now_ns,
+                    f"the control node's run ended (its last loop, {frame.seq}, came too "
+                    "late to run here)",
+                    EV.DN_SAFED_RUN_ENDED,
+                )
         reply = self._out.encode(frame.seq, now_ns)
         return self._seal.seal(reply) if self._seal is not None else reply
 
@@ -480,14 +564,21 @@ class DeviceLogic:
                 )
 
     def run(self, t_ns: int) -> None:
-        """Run the loop :meth:`trigger` started, at ``t_ns``."""
+        """Run the loop :meth:`trigger` started, at ``t_ns``: bulk samples in,
+        board, sensors, controllers, actuators (not while safed), then the owned
+        bulk channels out and their counters; after the CN's last loop (a
+        final trigger), the node safes itself (class doc)."""
         loop = self.triggered
+        bulk = self._bulk
+        if bulk is not None:  # the newest samples in, before the run reads them
+            bulk.receive(loop)
         self._loop.set(loop)
         self._time.set(t_ns)
         if self.safed:
             self._back += 1
             if self._back >= self._reenable_after:
                 self.safed = False
+                self._safed_by = None
                 self._h_safed.set(False)
                 self.events.emit(EV.DN_REENABLED, t_ns, node=self.node, n=self._back)
         try:
@@ -497,9 +588,17 @@ class DeviceLogic:
             self._board_failed(exc, t_ns)
         self.devices.run_sensors(loop, t_ns)
         self.controllers.run(loop, t_ns)
-        if self.safed:
-            return  # outputs stay at their safe values until re-enabled
-        self.devices.run_actuators(loop, t_ns)
+        if not self.safed:  # while safed, outputs stay at their safe values
+            self.devices.run_actuators(loop, t_ns)
+        if bulk is not None:  # after the run: the reply has gone already
+            bulk.publish(loop, t_ns)
+            bulk.write_counters(self.dv)
+        if self._h_final.get():
+            self._safe(
+                t_ns,
+                f"the control node's run ended (its last loop was {loop})",
+                EV.DN_SAFED_RUN_ENDED,
+            )
 
     def step(self, payload: bytes | bytearray | memoryview, now_ns: int) -> bytearray | None:
         """:meth:`trigger` then, if it started a loop, :meth:`run` at ``now_ns``;
@@ -509,10 +608,12 @@ class DeviceLogic:
             self.run(now_ns)
         return reply
 
-    def attach_bulk(self, arrays: dict[str, Any]) -> None:
-        """Give every component the node's bulk channel arrays (by channel)."""
+    def attach_bulk(self, port: BulkPort) -> None:
+        """Move the node's bulk channels through ``port`` from the next run on
+        (module doc) and give every component its arrays (by channel)."""
+        self._bulk = port
         for c in [*self.controllers.controllers, *self.devices.devices]:
-            c.bulk = arrays
+            c.bulk = port.arrays
 
     def watchdog(self, now_ns: int) -> bool:
         """Safe the node if it has had no valid trigger for
@@ -531,14 +632,21 @@ class DeviceLogic:
         """Write every actuator's safe value and the board's safe state;
         stay safed until the CN is back (class doc). ``exiting``: a clean
         exit (an activity, not a warning). Never raises."""
+        self._safe(t_ns, why, EV.DN_SAFED_AT_EXIT if exiting else EV.DN_SAFED)
+
+    def _safe(self, t_ns: int, why: str, ev: EventType) -> None:
         self.devices.safe_actuators(t_ns)
         safe_board(self.board)
         self._back = 0
-        if not self.safed:
-            self.safed = True
-            self._h_safed.set(True)
-            ev = EV.DN_SAFED_AT_EXIT if exiting else EV.DN_SAFED
-            self.events.emit(ev, t_ns, node=self.node, why=why)
+        # One event per safing; but the run's end is told even to a node a
+        # stall had safed already: from now on it is safed because the run ended.
+        if self.safed and (ev is not EV.DN_SAFED_RUN_ENDED or self._safed_by is ev):
+            return
+        self.safed = True
+        self._safed_by = ev
+        self.safed_why = why
+        self._h_safed.set(True)
+        self.events.emit(ev, t_ns, node=self.node, why=why)
 
     def _board_failed(self, exc: Exception, t_ns: int) -> None:
         self._errors.bump()

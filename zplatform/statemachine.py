@@ -548,11 +548,6 @@ class StateMachine:
         return self.states[self._state]
 
     @property
-    def state_index(self) -> int:
-        """The current state's index (the value of ``cn_state``)."""
-        return self._state
-
-    @property
     def time_in_state_ns(self) -> int:
         """Time in the current state at the last step, holds excluded."""
         return self._tis

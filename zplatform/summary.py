@@ -70,6 +70,11 @@ class DnSummary(msgspec.Struct, frozen=True):
     bad_frames: int
     errors: int
     stale_queries: int
+    safed_why: str = ""
+    """Why the node's actuators were safed when it stopped serving triggers
+    ("" when they were not): the control node's run ended (its final loop),
+    or no valid trigger came (a lost control node). A clean exit safes them
+    after this summary is taken."""
 
 
 class GnSummary(msgspec.Struct, frozen=True):

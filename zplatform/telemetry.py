@@ -47,7 +47,6 @@ __all__ = [
     "plot_markers",
     "plot_telemetry",
     "read_csv",
-    "read_events",
 ]
 
 MAX_ARRAY_COLUMNS = 16
@@ -248,12 +247,6 @@ class EventWriter:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
-
-
-def read_events(path: str | Path) -> list[dict[str, Any]]:
-    """Read an events JSONL file (blank lines skipped)."""
-    with open(path, encoding="utf-8") as f:
-        return [json.loads(line) for line in f if line.strip()]
 
 
 # ---------------------------------------------------------------- plots

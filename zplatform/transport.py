@@ -37,7 +37,7 @@ from typing import Any
 import yaml
 import zenoh
 
-from .config import Mission
+from .config import Mission, relocate_mission
 from .deploy import Deployment, deployment_from_env, zenoh_settings
 from .errors import TransportError
 from .messages import lowlatency_for
@@ -310,10 +310,14 @@ def rewrite_endpoints(src: str | Path, dst: str | Path, host: str = "127.0.0.1")
     """Copy mission ``src`` to ``dst`` with every node on a fresh free port.
 
     Each node listens on ``tcp/{host}:{port}``; each non-CN node connects to
-    the CN. Returns ``{node: port}``. For running a shipped mission beside
-    another one (tests, benchmarks) without port clashes.
+    the CN. The copy's ``pythonpath`` is made absolute
+    (:func:`~zplatform.config.relocate_mission`), so it finds the mission's
+    code wherever ``dst`` is. Returns ``{node: port}``. For running a
+    shipped mission beside another one (tests, benchmarks) without port
+    clashes.
     """
     raw = yaml.safe_load(Path(src).read_text())
+    relocate_mission(raw, src)
     nodes = raw.get("nodes") or {}
     # Hold every socket until all are bound: ports picked one after the other
     # (each socket closed at once) may come back twice from the OS.

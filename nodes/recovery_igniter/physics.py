@@ -1,6 +1,6 @@
 """Simulated flight for the recovery igniter test's barometers.
 
-:func:`flight` is a :class:`~zplatform.devices.SimBoard` physics hook. It
+:func:`flight` is a :class:`~zplatform.boards.SimBoard` physics hook. It
 writes the voltage a barometric altimeter would give on ``baro_pin`` for a
 simple flight: on the pad until ``launch_s`` after the board's first step,
 then a ballistic coast from ``v0_mps`` to apogee, then a descent under
@@ -19,7 +19,7 @@ from typing import Annotated
 import msgspec
 from msgspec import Meta
 
-from zplatform.devices import SimBoard
+from zplatform.boards import SimBoard
 
 __all__ = ["FlightParams", "altitude_m", "flight"]
 

@@ -13,6 +13,7 @@ from pathlib import Path
 import yaml
 import zenoh
 
+from zplatform.config import relocate_mission
 from zplatform.events import decode_event
 from zplatform.messages import wildcard_sync_for
 
@@ -22,6 +23,7 @@ from .harness import CONFIGS, Cluster
 def test_one_query_runs_every_dn_and_foreign_replies_are_counted(tmp_path: Path) -> None:
     src = tmp_path / "led_wild.yaml"
     doc = yaml.safe_load((CONFIGS / "led_test.yaml").read_text())
+    relocate_mission(doc, CONFIGS / "led_test.yaml")
     doc["transport"] = {"sync_query": "wildcard"}
     src.write_text(yaml.safe_dump(doc, sort_keys=False))
     with Cluster(src, tmp_path) as c:

@@ -99,6 +99,34 @@ def test_keygen_verb(no_env_key: Path) -> None:
     assert r.returncode == 2 and "exists" in r.stderr and "Traceback" not in r.stderr
 
 
+def test_keygen_takes_a_bare_mission_name(
+    no_env_key: Path,
+    tmp_path: Path,
+    monkeypatch: pytest.MonkeyPatch,
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    """The README's form, ``zplatform keygen led_test``, before the mission
+    ever ran: the key of that name goes to the mission's key file, and the
+    command says where; nodes then find it there."""
+    from zplatform.cli import main
+
+    monkeypatch.chdir(tmp_path)  # no file named like the mission here
+    assert main(["keygen", "led_test"]) == 0
+    out = capsys.readouterr().out
+    path = no_env_key / "zplatform" / "keys" / "led_test.key"
+    assert f"wrote the key of mission 'led_test' to {path}" in out
+    assert path.stat().st_mode & 0o777 == 0o600
+    assert default_key_path(load_mission(ROOT / "configs" / "led_test.yaml")) == path
+    assert load_key(load_mission(ROOT / "configs" / "led_test.yaml")) == bytes.fromhex(
+        path.read_text()
+    )
+    # A name the config would refuse, or a path that is not there: one error line.
+    for bad, says in (("bad*name", "contains '*'"), ("missions/nope.yaml", "no such mission file")):
+        assert main(["keygen", bad]) == 2
+        err = capsys.readouterr().err
+        assert err.startswith("zplatform: error: ") and says in err and err.count("\n") == 1, err
+
+
 def test_the_tag_is_what_format_md_says() -> None:
     """codecs/FORMAT.md §6.1, computed by hand: a peer in another language
     can implement it from the document."""

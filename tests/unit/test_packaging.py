@@ -24,10 +24,19 @@ def test_license_is_an_spdx_expression_with_its_file() -> None:
     )
 
 
-def test_bench_is_not_installed_and_types_ship() -> None:
+def test_the_wheel_installs_only_zplatform_and_its_types() -> None:
+    """No top-level package but zplatform (not `nodes`, not `bench`: names
+    another project may own): the packages setuptools finds with the
+    project's own settings (pyproject's find is namespace-aware)."""
+    from setuptools import find_namespace_packages
+
     p = _pyproject()
-    include = p["tool"]["setuptools"]["packages"]["find"]["include"]
-    assert not any(i.startswith("bench") for i in include)
+    find = p["tool"]["setuptools"]["packages"]["find"]
+    packages = find_namespace_packages(
+        where=str(ROOT), include=find["include"], exclude=find.get("exclude", ())
+    )
+    assert "zplatform" in packages and "zplatform.boards" in packages
+    assert {name.split(".")[0] for name in packages} == {"zplatform"}, packages
     assert "py.typed" in p["tool"]["setuptools"]["package-data"]["zplatform"]
     assert (ROOT / "zplatform" / "py.typed").is_file()
 

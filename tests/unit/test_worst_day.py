@@ -174,6 +174,86 @@ def test_defect_3_dn_without_triggers_writes_safe_values_and_waits_for_the_cn() 
     assert "dn_reenabled" in [e.id for e in dn.events.drain()]
 
 
+def test_the_cn_s_last_loop_safes_a_dn_as_the_run_s_end_not_as_a_lost_cn() -> None:
+    """The CN flags its planned last loop (dnX_final): the DN runs that loop,
+    then safes its actuators with an activity event, its watchdog stays
+    quiet however long no trigger comes, and a new run's triggers re-enable
+    it after dn_reenable_loops, as after a lost CN."""
+    cn = ControlLogic(LED, key=None)
+    dn = DeviceLogic(LED, "dn0", key=None)
+    cn.dv.set("led_a_cmd", True)
+    t = 1_000 * PERIOD
+    for k in (1, 2, 3):
+        t += PERIOD
+        frames = cn.begin(k, t, final=k == 3)
+        assert cn.dv.get("dn0_final") is (k == 3) and cn.dv.get("dn2_final") is (k == 3)
+        dn.step(bytes(frames[0]), t)
+        cn.finish()
+        if k < 3:
+            assert not dn.safed and dn.dv.get("led_a_fb") is True
+    assert dn.safed and dn.dv.get("dn0_safed") is True and dn.dv.get("led_a_fb") is False
+    events = dn.events.drain()
+    (ended,) = [e for e in events if e.id.startswith("dn_safed")]
+    assert ended.id == "dn_safed_run_ended" and ended.severity_name == "ACTIVITY_HI"
+    assert "run ended (its last loop was 3)" in ended.text
+    assert dn.safed_why.startswith("the control node's run ended")
+    # No warning, however long the silence after the last loop.
+    assert dn.watchdog(t + 1_000 * PERIOD)
+    assert not [e for e in dn.events.drain() if e.id == "dn_safed"]
+    # The platform owns the flag: written every loop, whatever a component wrote.
+    cn.dv.set("dn0_final", True)
+    frames = cn.begin(4, t + PERIOD)
+    assert cn.dv.get("dn0_final") is False
+    # A new run of the CN (a later stamp): re-enabled after dn_reenable_loops.
+    t += 1_000 * PERIOD
+    for k in range(1, LED.faults.dn_reenable_loops + 1):
+        t += PERIOD
+        frames = cn.begin(k, t)
+        dn.step(bytes(frames[0]), t)
+        cn.finish()
+        assert dn.safed is (k < LED.faults.dn_reenable_loops)
+    assert dn.dv.get("led_a_fb") is True
+    assert "dn_reenabled" in [e.id for e in dn.events.drain()]
+
+
+def test_the_run_s_end_is_told_to_a_dn_a_stall_had_safed() -> None:
+    """A DN the watchdog safed (the CN stalled) that then runs the final
+    loop is safed because the run ended (one activity event), not still
+    because the CN was lost."""
+    cn = ControlLogic(LED, key=None)
+    dn = DeviceLogic(LED, "dn0", key=None)
+    t = 1_000 * PERIOD
+    dn.step(bytes(cn.begin(1, t)[0]), t)
+    assert dn.watchdog(t + 20 * PERIOD)  # the CN stalled
+    t += 21 * PERIOD
+    dn.step(bytes(cn.begin(2, t, final=True)[0]), t)
+    ids = [e.id for e in dn.events.drain()]
+    assert ids == ["dn_safed", "dn_safed_run_ended"]
+    assert dn.safed_why.startswith("the control node's run ended")
+    dn.safe(t + PERIOD, "the node is stopping", exiting=True)  # a clean exit: nothing new
+    assert dn.events.drain() == [] and dn.safed_why.startswith("the control node's run ended")
+
+
+def test_a_last_loop_too_late_to_run_still_ends_the_run_for_the_dn() -> None:
+    """Under load the CN's last trigger may reach a DN after its time (a
+    stale query: answered, not run); it still says the run ended. A replayed
+    older final frame does not."""
+    cn = ControlLogic(LED, key=None)
+    dn = DeviceLogic(LED, "dn0", key=None, stale_after_ns=PERIOD)
+    t = 1_000 * PERIOD
+    t += PERIOD
+    old_final = bytes(cn.begin(1, t, final=True)[0])
+    t += PERIOD
+    dn.step(bytes(cn.begin(2, t)[0]), t)  # a later loop ran: the old final is a replay
+    dn.trigger(old_final, t + PERIOD)
+    assert not dn.safed
+    late = bytes(cn.begin(3, t + PERIOD, final=True)[0])
+    assert dn.trigger(late, t + 5 * PERIOD) is not None and dn.triggered == 0
+    assert dn.safed
+    (e,) = [e for e in dn.events.drain() if e.id.startswith("dn_safed")]
+    assert e.id == "dn_safed_run_ended" and "came too late to run" in e.text
+
+
 def test_dn_safes_on_a_clean_exit() -> None:
     dn = DeviceLogic(LED, "dn0")
     dn.safe(0, "the node is stopping")

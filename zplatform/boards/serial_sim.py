@@ -4,7 +4,7 @@
 pair, points the symlink ``PATH`` at its slave side (atomically, like udev's
 ``/dev/serial/by-id/...`` links for a USB serial device) and then behaves as
 the device side of ``docs/serial-protocol.md``, in Python, over a
-:class:`~zplatform.devices.SimBoard`: digital pins read back their output
+:class:`~zplatform.boards.SimBoard`: digital pins read back their output
 unless an input is injected (``--inject-digital 4=1``), analog pins likewise
 (``--inject-analog 0=1.25``). It prints ``READY <slave path>`` once the link
 is in place.
@@ -28,8 +28,8 @@ import sys
 import time
 import tty
 
-from ..devices import SimBoard
 from . import wire
+from .sim import SimBoard
 
 __all__ = ["SimDevice", "main"]
 

@@ -59,7 +59,7 @@ def run_console(
     from .app import ConsoleApp
     from .link import Link
 
-    mission = load_mission(mission_path)
+    mission = load_mission(mission_path, code=False)
     model = ConsoleModel(mission, los_s=los_s, limits=limits)
     app = ConsoleApp(model, Link(model, timeout_s=timeout_s))
     return app.run() or 0
@@ -86,7 +86,7 @@ def serve_console(
 
     from ..mission import load_mission
 
-    mission = load_mission(mission_path)  # fail here, not in every browser tab
+    mission = load_mission(mission_path, code=False)  # fail here, not in every browser tab
     cmd = " ".join(
         shlex.quote(a)
         for a in (

@@ -10,9 +10,14 @@ goes on.
 Loop (one timestamp per loop), the order of :mod:`zplatform.loop`::
 
     t = the loop's scheduled start, on the node clock
-    frames = logic.begin(loop, t); sync every DN with them (2 ms deadline)
+    frames = logic.begin(loop, t, final=...); sync every DN with them (2 ms deadline)
     tm = logic.finish(at most one ground frame, overrun flags)
     publish tm (every Nth loop), events
+
+The run's last loop is flagged final (``dnX_final``, so the DNs safe
+themselves as the run's end, not as a lost CN): the last of ``max_loops``
+(``--duration``), or, once a stop is asked for (SIGTERM, Ctrl-C under
+``up``), one more loop after it, after which the node stops.
 
 ``record`` attaches a :class:`~zplatform.recording.Recorder` after the
 warm-up: every input of every loop goes to disk for ``zplatform replay``.
@@ -40,7 +45,7 @@ from ..messages import wildcard_sync_for
 from ..recording import Recorder
 from ..scheduler import GcGuard, PeriodicLoop
 from ..summary import CnSummary, LoopWork, cn_summary
-from ..sync import ControlSync
+from ..sync import ControlSync, SyncTrace
 from ..timebase import NodeClock
 from ..transport import NodeSession, wait_for_nodes
 from .runtime import EventPublisher, StopFlag, realtime_setup
@@ -57,7 +62,8 @@ class ControlNode:
     """The CN process: session, sync, ground input, telemetry, logic.
 
     Build, then :meth:`run`; :meth:`close` releases every zenoh entity. Not
-    thread-safe: one loop thread.
+    thread-safe: one loop thread. ``sync_trace``: a
+    :data:`~zplatform.sync.SyncTrace` for the sync's hops (benchmarks).
     """
 
     def __init__(
@@ -68,6 +74,7 @@ class ControlNode:
         lowlatency: bool | None = None,
         clock: NodeClock | None = None,
         key: bytes | None = None,
+        sync_trace: SyncTrace | None = None,
     ) -> None:
         self.mission = mission
         self.stop = stop or StopFlag(install=False)
@@ -87,6 +94,7 @@ class ControlNode:
             mission.sync_timeout_ns,
             query_timeout_s=max(mission.period_ns / 1e9, 0.01),
             wildcard=wildcard_sync_for(mission),
+            trace=sync_trace,
         )
         # The command inbox: bounded, newest kept; a frame's size is checked
         # before its bytes are copied out of zenoh, so a flood of junk costs
@@ -111,6 +119,7 @@ class ControlNode:
         self._radio = _Radio(mission, s, keys.downlink) if mission.downlink.ccsds else None
         self.bulk = open_bulk(s, mission, "cn", self.logic)
         self._skipped = 0
+        self._last_step: int | None = None  # self.loops after the run's planned last loop
         self.ns.announce()
         self.first_loop_ns = 0
         self.last_loop_ns = 0
@@ -202,7 +211,8 @@ class ControlNode:
         self._skipped += 1  # an input of the next loop (replayed as such)
 
     def step(self, k: int, deadline_ns: int) -> bool:
-        """One loop; returns False to stop."""
+        """One loop; returns False to stop: after the run's final loop (the
+        last of ``max_loops``, or the loop after a stop was asked for)."""
         m0 = self._mono()
         loop = k + 1
         # The loop's one timestamp is its scheduled start, not the moment the
@@ -214,12 +224,8 @@ class ControlNode:
         if self.loops == 0:
             self.first_loop_ns = t
         logic = self.logic
-        overrun = self.sync.sync(logic.begin(loop, t), logic)
-        bulk = self.bulk
-        if bulk is not None:  # latest samples in, before the controllers read them
-            for r in bulk.readers.values():
-                r.poll()
-            bulk.write_counters(self.dv)
+        final = self.loops + 1 == self._last_step or self.stop.is_set()
+        overrun = self.sync.sync(logic.begin(loop, t, final=final), logic)
         grounds = self._grounds
         grounds.clear()
         inbox = self._inbox
@@ -241,15 +247,11 @@ class ControlNode:
             self._tm_pub.put(tm)
             if self._radio is not None:
                 self._radio.send(self.dv, loop, t)
-        if bulk is not None:
-            for w in bulk.writers.values():
-                if w.due(loop):
-                    w.publish(loop, t)
         self._events.flush()
         self._work[self.loops & 0xFFFF] = self._mono() - m0
         self.loops += 1
         self.last_loop_ns = t
-        return not self.stop.is_set()
+        return not final
 
     def run(
         self,
@@ -258,8 +260,12 @@ class ControlNode:
         realtime: bool = True,
         record: int = 0,
     ) -> PeriodicLoop:
-        """Run the loop until stopped or ``max_loops``; returns the loop (stats)."""
+        """Run the loop until stopped or ``max_loops``; returns the loop (stats).
+
+        The last loop of the call (the ``max_loops``-th, or the one after a
+        stop) is the run's final loop (module doc)."""
         nc = self.mission.nodes["cn"]
+        self._last_step = None if max_loops is None else self.loops + max_loops
         if realtime:
             realtime_setup(nc.priority, nc.cpu)
         gc_guard = GcGuard()

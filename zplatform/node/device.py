@@ -29,7 +29,7 @@ from ..errors import ClockSyncError, NodeError, TransportError, ZPlatformError
 from ..loop import DeviceLogic
 from ..scheduler import GcGuard
 from ..summary import DnSummary
-from ..sync import DeviceSync
+from ..sync import DeviceSync, SyncTrace
 from ..timebase import NodeClock
 from ..transport import NodeSession, wait_for_nodes
 from .runtime import EventPublisher, StopFlag, realtime_setup
@@ -40,7 +40,10 @@ log = logging.getLogger("zplatform.dn")
 
 
 class DeviceNode:
-    """One DN process. Build, :meth:`start` (blocks for clock sync), :meth:`run`."""
+    """One DN process. Build, :meth:`start` (blocks for clock sync), :meth:`run`.
+
+    ``sync_trace``: a :data:`~zplatform.sync.SyncTrace` for the sync's hops
+    (benchmarks)."""
 
     def __init__(
         self,
@@ -51,6 +54,7 @@ class DeviceNode:
         clock: NodeClock | None = None,
         lowlatency: bool | None = None,
         key: bytes | None = None,
+        sync_trace: SyncTrace | None = None,
     ) -> None:
         if name not in mission.device_nodes:
             raise NodeError(f"{name!r} is not a device node of mission {mission.mission!r}")
@@ -71,6 +75,7 @@ class DeviceNode:
         self.drift_ns = 0
         self.loops = 0
         self.sync: DeviceSync | None = None
+        self._sync_trace = sync_trace
         self.bulk: NodeBulk | None = None
         self._events: EventPublisher | None = None
         self._resync: threading.Thread | None = None
@@ -127,7 +132,7 @@ class DeviceNode:
             res.offset_ns / 1e3,
             res.estimator,
         )
-        self.sync = DeviceSync(s, keys, self.name, self.clock.now_ns)
+        self.sync = DeviceSync(s, keys, self.name, self.clock.now_ns, trace=self._sync_trace)
         self.bulk = open_bulk(s, m, self.name, self.logic)
         self._events = EventPublisher(s, keys.events(self.name), self.logic.events)
         if m.clock.resync_s > 0:
@@ -177,16 +182,7 @@ class DeviceNode:
                     continue
                 t = now()
                 self._drift_h.set(self.drift_ns)
-                bulk = self.bulk
-                if bulk is not None:  # latest samples in, before the run reads them
-                    for r in bulk.readers.values():
-                        r.poll()
-                run(t)
-                if bulk is not None:  # outside the sync: the reply has gone already
-                    for w in bulk.writers.values():
-                        if w.due(logic.triggered):
-                            w.publish(logic.triggered, t)
-                    bulk.write_counters(self.dv)
+                run(t)  # with the bulk channels, in the loop's order
                 self._events.flush()
                 # Slack until the next trigger is due: gc only runs there.
                 slack = t + period - now()
@@ -209,6 +205,7 @@ class DeviceNode:
             bad_frames=int(self.dv.get(f"{self.name}_bad_frames")),
             errors=int(self.dv.get(f"{self.name}_errors")),
             stale_queries=self.logic.stale,
+            safed_why=self.logic.safed_why if self.logic.safed else "",
         )
 
     def close(self) -> None:
