@@ -48,6 +48,7 @@ from .mission import check_mission, decode_mission, load_mission
 from .rategroups import RateGroups
 from .recording import Recorder
 from .scheduler import GcGuard, LoopStats, PeriodicLoop, setup_realtime
+from .schema import mission_schema, reference_markdown
 from .statemachine import StateMachine
 from .telemetry import CsvLogger, read_csv
 from .timebase import NodeClock, VirtualClock
@@ -128,8 +129,10 @@ __all__ = [
     "fill_request",
     "load_commands",
     "load_mission",
+    "mission_schema",
     "parse_commands",
     "read_csv",
+    "reference_markdown",
     "replay",
     "setup_realtime",
 ]

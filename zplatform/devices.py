@@ -94,19 +94,34 @@ class Board(Protocol):
 
 
 class SimBoardConfig(msgspec.Struct, forbid_unknown_fields=True):
-    """The ``board:`` mapping of a node that runs on a :class:`SimBoard`.
-
-    ``physics`` names a ``"module:function"`` called as ``function(board,
-    t_ns)`` once per loop; ``params`` is its data (read as
-    ``board.params``). If the function has a ``Params`` attribute (a
-    ``msgspec.Struct`` type), ``params`` is decoded into it at construction,
-    so a typo fails at load with its YAML path.
+    """The `board:` mapping of `driver: sim` (the default): a simulated board
+    whose outputs read back what was set, unless a physics hook decides what
+    the inputs see. Every mission runs on it without hardware.
     """
 
-    digital_pins: Annotated[int, Meta(ge=0, le=65_536)] = 16
-    analog_pins: Annotated[int, Meta(ge=0, le=65_536)] = 8
-    physics: str | None = None
-    params: dict[str, Any] = msgspec.field(default_factory=dict)
+    digital_pins: Annotated[
+        int, Meta(ge=0, le=65_536, description="Digital pins, numbered from 0.")
+    ] = 16
+    analog_pins: Annotated[
+        int, Meta(ge=0, le=65_536, description="Analog pins (volts), numbered from 0.")
+    ] = 8
+    physics: Annotated[
+        str | None,
+        Meta(
+            description="`package.module:function` called as `function(board, t_ns)` once per "
+            "loop before the sensors: it reads outputs (`board.output_digital(pin)`), keeps "
+            "its state in `board.state` and sets what the inputs read "
+            "(`board.inject_analog(pin, volts)`, `board.inject_digital(pin, level)`)."
+        ),
+    ] = None
+    params: Annotated[
+        dict[str, Any],
+        Meta(
+            description="The physics' data, read as `board.params`. When the function has a "
+            "`Params` attribute (a `msgspec.Struct` type), `params` is decoded into it at "
+            "load, so a typo fails with its YAML path."
+        ),
+    ] = msgspec.field(default_factory=dict)
 
 
 Physics = Callable[["SimBoard", int], None]
@@ -292,11 +307,26 @@ class DigitalOutput(Actuator):
     """
 
     class Config(msgspec.Struct, forbid_unknown_fields=True):
-        pin: Pin
-        command: str
-        feedback: str | None = None
-        invert: bool = False
-        safe: bool = False  # the level ("on" terms) a lost control node leaves
+        pin: Annotated[Pin, Meta(description="The board's digital pin.")]
+        command: Annotated[
+            str,
+            Meta(description="Element that commands the pin (bool, int or enum: non-zero is on)."),
+        ]
+        feedback: Annotated[
+            str | None,
+            Meta(
+                description="Element (bool or int, in this node's `dnX_to_cn`) that receives "
+                "the pin's level read back from the board."
+            ),
+        ] = None
+        invert: Annotated[
+            bool,
+            Meta(description="Active low: command and feedback stay in \"on\" terms."),
+        ] = False
+        safe: Annotated[
+            bool,
+            Meta(description="The level (in \"on\" terms) a device node that lost its CN leaves."),
+        ] = False
 
     config: Config
 
@@ -328,9 +358,11 @@ class DigitalInput(Sensor):
     """Reads a digital pin into ``element`` (``invert`` for active-low inputs)."""
 
     class Config(msgspec.Struct, forbid_unknown_fields=True):
-        pin: Pin
-        element: str
-        invert: bool = False
+        pin: Annotated[Pin, Meta(description="The board's digital pin.")]
+        element: Annotated[
+            str, Meta(description="Element (bool or int, in this node's `dnX_to_cn`) to write.")
+        ]
+        invert: Annotated[bool, Meta(description="Active low: a low pin reads `true`.")] = False
 
     config: Config
 
@@ -347,10 +379,12 @@ class AnalogInput(Sensor):
     """Reads an analog pin: ``element = volts * scale + offset`` (a linear calibration)."""
 
     class Config(msgspec.Struct, forbid_unknown_fields=True):
-        pin: Pin
-        element: str
-        scale: float = 1.0
-        offset: float = 0.0
+        pin: Annotated[Pin, Meta(description="The board's analog pin.")]
+        element: Annotated[
+            str, Meta(description="Float element (in this node's `dnX_to_cn`) to write.")
+        ]
+        scale: Annotated[float, Meta(description="Engineering units per volt.")] = 1.0
+        offset: Annotated[float, Meta(description="Engineering units at 0 V.")] = 0.0
 
     config: Config
 
@@ -368,13 +402,23 @@ class AnalogOutput(Actuator):
     """Drives an analog pin: ``volts = (command - offset) / scale``, clamped to [lo, hi]."""
 
     class Config(msgspec.Struct, forbid_unknown_fields=True):
-        pin: Pin
-        command: str
-        scale: float = 1.0
-        offset: float = 0.0
-        min_volts: float = -10.0
-        max_volts: float = 10.0
-        safe_volts: float = 0.0  # what a lost control node leaves on the pin
+        pin: Annotated[Pin, Meta(description="The board's analog pin.")]
+        command: Annotated[
+            str, Meta(description="Element (float or int) holding the commanded value.")
+        ]
+        scale: Annotated[
+            float, Meta(description="Engineering units per volt (not 0).")
+        ] = 1.0
+        offset: Annotated[float, Meta(description="Engineering units at 0 V.")] = 0.0
+        min_volts: Annotated[float, Meta(description="Lowest voltage driven.")] = -10.0
+        max_volts: Annotated[float, Meta(description="Highest voltage driven.")] = 10.0
+        safe_volts: Annotated[
+            float,
+            Meta(
+                description="What a device node that lost its CN leaves on the pin (within "
+                "`min_volts`..`max_volts`)."
+            ),
+        ] = 0.0
 
         def __post_init__(self) -> None:
             if self.scale == 0.0:
