@@ -255,8 +255,10 @@ class _Section(msgspec.Struct):
 
 
 def _anchor(path: str) -> str:
+    """The anchor of a key table: ``$.nodes.<node>`` -> ``key-nodes-node`` (a
+    prefix no heading's own slug has, so no id is given twice)."""
     slug = re.sub(r"[^a-z0-9]+", "-", path.lower()).strip("-")
-    return slug or "mission-file"
+    return "key-" + (slug or "top")
 
 
 def _cell(text: str) -> str:
@@ -606,8 +608,6 @@ def reference_markdown() -> str:
         "",
         *_platform_rows(),
         "",
-        '<a id="boards"></a>',
-        "",
         "## Boards",
         "",
         "A device node's `board:` mapping names a `driver` (default `sim`); its "
@@ -627,8 +627,6 @@ def reference_markdown() -> str:
             *_table(section.rows[1:]),  # less the `driver` row: the heading says it
         ]
     out += [
-        "",
-        '<a id="built-in-devices"></a>',
         "",
         "## Built-in devices",
         "",
