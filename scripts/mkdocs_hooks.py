@@ -2,7 +2,7 @@
 
 The site is built from docs/ plus pages that live elsewhere in the
 repository, where they belong: README.md (the home page), codecs/FORMAT.md,
-bench/REPORT.md and the plots it shows. :func:`on_files` adds them, read
+bench/REPORT.md and the plots it shows, bench/ZENOH_API.md. :func:`on_files` adds them, read
 from the repository at build time (never copied, so never stale), and
 :func:`on_page_markdown` rewrites every relative link of a page from the
 page's place in the repository to its place in the site, so the same
@@ -27,6 +27,7 @@ PAGES = {
     "README.md": "index.md",
     "codecs/FORMAT.md": "codecs/FORMAT.md",
     "bench/REPORT.md": "bench/REPORT.md",
+    "bench/ZENOH_API.md": "bench/ZENOH_API.md",
 }
 ASSETS = ("bench/plots/*.png",)
 

@@ -28,6 +28,7 @@ PAGES = (
     "serial-protocol/index.html",
     "codecs/FORMAT/index.html",
     "bench/REPORT/index.html",
+    "bench/ZENOH_API/index.html",
 )
 
 
