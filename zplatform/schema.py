@@ -36,11 +36,11 @@ from typing import Any
 
 import msgspec
 
+from . import devices as _devices
 from .boards import GpiodBoardConfig, SerialBoardConfig
 from .config import CONTROLLER_MODES, BulkChannelConfig, ComponentConfig, Mission, NodeConfig
 from .config import platform_elements as _platform_elements
 from .devices import Actuator, Sensor, SimBoardConfig
-from .devices import __all__ as _device_names
 
 __all__ = [
     "BOARD_CONFIGS",
@@ -87,11 +87,9 @@ _SCALARS = ("integer", "number", "bool", "string")
 def builtin_devices() -> dict[str, type[Sensor | Actuator]]:
     """The shipped device classes by the class path a mission names them with
     (``zplatform.devices:DigitalOutput``), in export order."""
-    import zplatform.devices as devices
-
     out: dict[str, type[Sensor | Actuator]] = {}
-    for name in _device_names:
-        obj = getattr(devices, name)
+    for name in _devices.__all__:
+        obj = getattr(_devices, name)
         if (
             isinstance(obj, type)
             and issubclass(obj, Sensor | Actuator)
@@ -249,7 +247,6 @@ def mission_schema_json() -> str:
 
 class _Section(msgspec.Struct):
     path: str
-    title: str
     description: str
     rows: list[tuple[str, str, str, str, str]]  # path, type, default, bounds, meaning
 
@@ -277,6 +274,8 @@ class _Walker:
         self.sections: list[_Section] = []
 
     def resolve(self, node: dict[str, Any]) -> dict[str, Any]:
+        """``node`` with its ``$ref`` followed: the struct's own keys and
+        description, the outer keys (a default) over them."""
         while "$ref" in node:
             outer = {k: v for k, v in node.items() if k not in ("$ref", "description")}
             node = {**self.defs[_def_name(node)], **outer}
@@ -285,7 +284,7 @@ class _Walker:
         return node
 
     def non_null(self, node: dict[str, Any]) -> dict[str, Any]:
-        """``X | None`` -> X (with the outer description and default)."""
+        """``X | None`` -> X, resolved, with the outer default."""
         node = self.resolve(node)
         options = node.get("anyOf")
         if options:
@@ -347,20 +346,20 @@ class _Walker:
             parts.append(f"≥ {node['minItems']} items")
         return ", ".join(parts)
 
-    def walk(self, node: dict[str, Any], path: str, title: str) -> None:
+    def walk(self, node: dict[str, Any], path: str) -> None:
         """Add the section of struct ``node`` at ``path``, then its sub-structs'."""
         struct = self.resolve(node)
-        section = _Section(path, title, _clean(struct.get("description", "")), [])
+        section = _Section(path, _clean(struct.get("description", "")), [])
         self.sections.append(section)
         required = set(struct.get("required", []))
-        later: list[tuple[dict[str, Any], str, str]] = []
+        later: list[tuple[dict[str, Any], str]] = []
         for key, prop in struct["properties"].items():
             kpath = f"{path}.{key}"
             value = self.non_null(prop)
             sub, sub_path = self._nested(value, kpath)
             link = f"#{_anchor(sub_path)}" if sub is not None else _LINKS.get(kpath, "")
             if sub is not None:
-                later.append((sub, sub_path, key))
+                later.append((sub, sub_path))
             default = (
                 "required"
                 if key in required
@@ -385,8 +384,8 @@ class _Walker:
                     _cell(_clean(meaning)),
                 )
             )
-        for sub, sub_path, key in later:
-            self.walk(sub, sub_path, key)
+        for sub, sub_path in later:
+            self.walk(sub, sub_path)
 
     def _nested(self, value: dict[str, Any], path: str) -> tuple[dict[str, Any] | None, str]:
         """The struct inside ``value`` (itself, a list's item, a mapping's value),
@@ -415,20 +414,12 @@ def _table(rows: list[tuple[str, str, str, str, str]]) -> list[str]:
     return out
 
 
-def _render(sections: list[_Section], level: str) -> list[str]:
-    out: list[str] = []
-    for s in sections:
-        out += [
-            "",
-            f'<a id="{_anchor(s.path)}"></a>',
-            "",
-            f"{level} `{s.path}`",
-            "",
-        ]
-        if s.description:
-            out += [s.description, ""]
-        out += _table(s.rows)
-    return out
+def _block(anchor: str, heading: str, section: _Section, rows: slice = slice(None)) -> list[str]:
+    """One key table under its anchor, heading and description."""
+    out = ["", f'<a id="{anchor}"></a>', "", heading, ""]
+    if section.description:
+        out += [section.description, ""]
+    return out + _table(section.rows[rows])
 
 
 def _platform_rows() -> list[str]:
@@ -476,8 +467,9 @@ _INTRO = f"""\
 # Mission file reference
 
 <!-- Generated from the typed config (zplatform/config.py, the built-in
-boards and devices) by `{REGENERATE}`. Do not edit by hand: change the
-descriptions in the structs and regenerate. -->
+boards and devices); do not edit by hand. Change the descriptions in the
+structs, then regenerate from the repository root:
+{REGENERATE} -->
 
 A mission is one YAML file: its nodes and their zenoh endpoints, the Data
 Vector, the state machine, the controllers and devices, and the command
@@ -592,9 +584,10 @@ def reference_markdown() -> str:
     :func:`mission_schema` (see the module docstring)."""
     schema = mission_schema()
     walker = _Walker(schema)
-    walker.walk(schema, "$", "mission")
+    walker.walk(schema, "$")
     out = [_INTRO, "## The mission file"]
-    out += _render(walker.sections, "###")
+    for s in walker.sections:
+        out += _block(_anchor(s.path), f"### `{s.path}`", s)
     out += [
         "",
         "## Platform elements",
@@ -604,7 +597,8 @@ def reference_markdown() -> str:
         "`dnX`, a `<controller>_mode` per controller (in `cn` for a controller on "
         "the CN, in `cn_to_dnX` for one on dnX), bulk counters per channel on its "
         "owner and readers, and `gn_to_cn` when the mission has a ground node. "
-        "Counters are unsigned and wrap; times are nanoseconds.",
+        "Counters saturate at their type's maximum (they never wrap); times are "
+        "nanoseconds.",
         "",
         *_platform_rows(),
         "",
@@ -616,16 +610,8 @@ def reference_markdown() -> str:
     ]
     for driver in BOARD_CONFIGS:
         section = _struct_section(schema, f"{driver} board", "$.nodes.<dnX>.board")
-        out += [
-            "",
-            f'<a id="board-{driver}"></a>',
-            "",
-            f"### `driver: {driver}`",
-            "",
-            section.description,
-            "",
-            *_table(section.rows[1:]),  # less the `driver` row: the heading says it
-        ]
+        # Less the `driver` row (the first): the heading says it.
+        out += _block(f"board-{driver}", f"### `driver: {driver}`", section, slice(1, None))
     out += [
         "",
         "## Built-in devices",
@@ -636,16 +622,7 @@ def reference_markdown() -> str:
     ]
     for path in builtin_devices():
         section = _struct_section(schema, f"{path} config", "$.devices[i].config")
-        out += [
-            "",
-            f'<a id="{_anchor(path)}"></a>',
-            "",
-            f"### `class: {path}`",
-            "",
-            section.description,
-            "",
-            *_table(section.rows),
-        ]
+        out += _block(_anchor(path), f"### `class: {path}`", section)
     out += ["", _OWN_CODE]
     return "\n".join(out).rstrip() + "\n"
 
@@ -654,5 +631,5 @@ def _struct_section(schema: dict[str, Any], title: str, path: str) -> _Section:
     """The key table of the ``$defs`` struct titled ``title``, at ``path``."""
     (name,) = (n for n, d in schema["$defs"].items() if d.get("title") == title)
     walker = _Walker(schema)
-    walker.walk({"$ref": _DEFS + name}, path, title)
+    walker.walk({"$ref": _DEFS + name}, path)
     return walker.sections[0]
