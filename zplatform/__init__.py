@@ -50,6 +50,7 @@ from .rategroups import RateGroups
 from .recording import Recorder
 from .safety import SafetyWarning, safety_warnings
 from .scheduler import GcGuard, LoopStats, PeriodicLoop, setup_realtime
+from .schema import mission_schema, reference_markdown
 from .statemachine import StateMachine
 from .telemetry import CsvLogger, read_csv
 from .timebase import NodeClock, VirtualClock
@@ -131,8 +132,10 @@ __all__ = [
     "fill_request",
     "load_commands",
     "load_mission",
+    "mission_schema",
     "parse_commands",
     "read_csv",
+    "reference_markdown",
     "replay",
     "safety_warnings",
     "setup_realtime",

@@ -181,6 +181,24 @@ def cmd_keygen(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_schema(args: argparse.Namespace) -> int:
+    """The mission file's JSON Schema (or its markdown reference), to stdout or a file."""
+    from pathlib import Path
+
+    from .cli_args import check_output
+    from .schema import mission_schema_json, reference_markdown
+
+    text = reference_markdown() if args.markdown else mission_schema_json()
+    if args.out is None:
+        sys.stdout.write(text)
+        return 0
+    what = "the mission reference" if args.markdown else "the mission schema"
+    check_output(args.out, what)
+    Path(args.out).write_text(text, encoding="utf-8")
+    print(f"wrote {what} to {args.out}")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="zplatform",
@@ -215,6 +233,18 @@ def build_parser() -> argparse.ArgumentParser:
         "--out", metavar="PATH", help="where to write it (default: the mission's key file)"
     )
     c.set_defaults(func=cmd_keygen)
+    c = sub.add_parser(
+        "schema",
+        help="print the mission file's JSON Schema (for editor completion and validation)",
+        description="Print the JSON Schema of a mission file, or with --markdown the mission "
+        "reference (docs/mission-reference.md). Point an editor at the schema with a first "
+        "line `# yaml-language-server: $schema=mission.schema.json` in the mission file.",
+    )
+    c.add_argument("--out", metavar="FILE", help="write it to FILE instead of stdout")
+    c.add_argument(
+        "--markdown", action="store_true", help="the mission reference (markdown) instead"
+    )
+    c.set_defaults(func=cmd_schema)
     c = sub.add_parser("ps", help="list the running missions (registered by `up`)")
     c.add_argument("--json", action="store_true", help="the registry entries as JSON")
     c.set_defaults(func=cmd_ps)

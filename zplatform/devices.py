@@ -141,14 +141,26 @@ class DigitalOutput(Actuator):
     """
 
     class Config(msgspec.Struct, forbid_unknown_fields=True):
-        """A digital output: ``pin``, driven from element ``command``, read
-        back into ``feedback``."""
-
-        pin: Pin
-        command: str
-        feedback: str | None = None
-        invert: bool = False
-        safe: bool = False  # the level ("on" terms) a lost control node leaves
+        pin: Annotated[Pin, Meta(description="The board's digital pin.")]
+        command: Annotated[
+            str,
+            Meta(description="Element that commands the pin (bool, int or enum: non-zero is on)."),
+        ]
+        feedback: Annotated[
+            str | None,
+            Meta(
+                description="Element (bool or int, in this node's `dnX_to_cn`) that receives "
+                "the pin's level read back from the board."
+            ),
+        ] = None
+        invert: Annotated[
+            bool,
+            Meta(description="Active low: command and feedback stay in \"on\" terms."),
+        ] = False
+        safe: Annotated[
+            bool,
+            Meta(description="The level (in \"on\" terms) a device node that lost its CN leaves."),
+        ] = False
         # The pin fires something that cannot be undone (an igniter): the
         # mission then needs hazardous commands (zplatform.safety).
         pyrotechnic: Annotated[
@@ -189,9 +201,11 @@ class DigitalInput(Sensor):
     """Reads a digital pin into ``element`` (``invert`` for active-low inputs)."""
 
     class Config(msgspec.Struct, forbid_unknown_fields=True):
-        pin: Pin
-        element: str
-        invert: bool = False
+        pin: Annotated[Pin, Meta(description="The board's digital pin.")]
+        element: Annotated[
+            str, Meta(description="Element (bool or int, in this node's `dnX_to_cn`) to write.")
+        ]
+        invert: Annotated[bool, Meta(description="Active low: a low pin reads `true`.")] = False
 
     config: Config
 
@@ -208,10 +222,12 @@ class AnalogInput(Sensor):
     """Reads an analog pin: ``element = volts * scale + offset`` (a linear calibration)."""
 
     class Config(msgspec.Struct, forbid_unknown_fields=True):
-        pin: Pin
-        element: str
-        scale: float = 1.0
-        offset: float = 0.0
+        pin: Annotated[Pin, Meta(description="The board's analog pin.")]
+        element: Annotated[
+            str, Meta(description="Float element (in this node's `dnX_to_cn`) to write.")
+        ]
+        scale: Annotated[float, Meta(description="Engineering units per volt.")] = 1.0
+        offset: Annotated[float, Meta(description="Engineering units at 0 V.")] = 0.0
 
     config: Config
 
@@ -229,13 +245,23 @@ class AnalogOutput(Actuator):
     """Drives an analog pin: ``volts = (command - offset) / scale``, clamped to [lo, hi]."""
 
     class Config(msgspec.Struct, forbid_unknown_fields=True):
-        pin: Pin
-        command: str
-        scale: float = 1.0
-        offset: float = 0.0
-        min_volts: float = -10.0
-        max_volts: float = 10.0
-        safe_volts: float = 0.0  # what a lost control node leaves on the pin
+        pin: Annotated[Pin, Meta(description="The board's analog pin.")]
+        command: Annotated[
+            str, Meta(description="Element (float or int) holding the commanded value.")
+        ]
+        scale: Annotated[
+            float, Meta(description="Engineering units per volt (not 0).")
+        ] = 1.0
+        offset: Annotated[float, Meta(description="Engineering units at 0 V.")] = 0.0
+        min_volts: Annotated[float, Meta(description="Lowest voltage driven.")] = -10.0
+        max_volts: Annotated[float, Meta(description="Highest voltage driven.")] = 10.0
+        safe_volts: Annotated[
+            float,
+            Meta(
+                description="What a device node that lost its CN leaves on the pin (within "
+                "`min_volts`..`max_volts`)."
+            ),
+        ] = 0.0
 
         def __post_init__(self) -> None:
             if self.scale == 0.0:

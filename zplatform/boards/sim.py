@@ -24,19 +24,34 @@ __all__ = ["Physics", "SimBoard", "SimBoardConfig"]
 
 
 class SimBoardConfig(msgspec.Struct, forbid_unknown_fields=True):
-    """The ``board:`` mapping of a node that runs on a :class:`SimBoard`.
-
-    ``physics`` names a ``"module:function"`` called as ``function(board,
-    t_ns)`` once per loop; ``params`` is its data (read as
-    ``board.params``). If the function has a ``Params`` attribute (a
-    ``msgspec.Struct`` type), ``params`` is decoded into it at construction,
-    so a typo fails at load with its YAML path.
+    """The `board:` mapping of `driver: sim` (the default): a simulated board
+    whose outputs read back what was set, unless a physics hook decides what
+    the inputs see. Every mission runs on it without hardware.
     """
 
-    digital_pins: Annotated[int, Meta(ge=0, le=65_536)] = 16
-    analog_pins: Annotated[int, Meta(ge=0, le=65_536)] = 8
-    physics: str | None = None
-    params: dict[str, Any] = msgspec.field(default_factory=dict)
+    digital_pins: Annotated[
+        int, Meta(ge=0, le=65_536, description="Digital pins, numbered from 0.")
+    ] = 16
+    analog_pins: Annotated[
+        int, Meta(ge=0, le=65_536, description="Analog pins (volts), numbered from 0.")
+    ] = 8
+    physics: Annotated[
+        str | None,
+        Meta(
+            description="`package.module:function` called as `function(board, t_ns)` once per "
+            "loop before the sensors: it reads outputs (`board.output_digital(pin)`), keeps "
+            "its state in `board.state` and sets what the inputs read "
+            "(`board.inject_analog(pin, volts)`, `board.inject_digital(pin, level)`)."
+        ),
+    ] = None
+    params: Annotated[
+        dict[str, Any],
+        Meta(
+            description="The physics' data, read as `board.params`. When the function has a "
+            "`Params` attribute (a `msgspec.Struct` type), `params` is decoded into it at "
+            "load, so a typo fails with its YAML path."
+        ),
+    ] = msgspec.field(default_factory=dict)
 
 
 Physics = Callable[["SimBoard", int], None]
