@@ -202,6 +202,22 @@ def test_no_console_without_the_token_right_host_and_same_origin(served: Served)
     for why in ("no session", "DNS rebinding", "cross-origin", "without an Origin"):
         assert re.search(rf"zplatform\.console\.web WARNING refused GET /\S* .*{why}", log), why
     assert s.token not in log  # the log never shows the token
+    assert "warning: the web console listens" not in log  # 127.0.0.1: no warning
+
+
+def test_listening_beyond_loopback_warns_once(tmp_path: Path) -> None:
+    s = Served(_mission(tmp_path), tmp_path, "--host", "0.0.0.0")
+    try:
+        assert s.base.startswith("http://127.0.0.1:")  # the address printed works here
+
+        async def go() -> None:
+            async with aiohttp.ClientSession() as http:
+                await _session(http, s)
+
+        asyncio.run(go())
+        assert s.err().count("zplatform: warning: the web console listens on 0.0.0.0:") == 1
+    finally:
+        s.close()
 
 
 def _upgrade(headers: dict[str, str]) -> dict[str, str]:
