@@ -47,9 +47,15 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     )
     mode.add_argument("--prompt", action="store_true", help="the line prompt even on a TTY")
     mode.add_argument(
-        "--web", type=_port, metavar="PORT", help="serve the console to browsers on PORT"
+        "--web",
+        type=_port,
+        metavar="PORT",
+        help="serve the console to the operator's browser on PORT (0: any free port); "
+        "prints the address to open, with its one-time token",
     )
-    p.add_argument("--host", default="127.0.0.1", help="address --web listens on")
+    p.add_argument(
+        "--host", default="127.0.0.1", help="address --web listens on (warns beyond loopback)"
+    )
     p.add_argument("--watch", nargs="*", default=[], help="elements to show on the status line")
     p.add_argument("--interval", type=positive_float, default=1.0, help="status line period (s)")
     p.add_argument(
@@ -128,6 +134,7 @@ def cmd_ground(args: argparse.Namespace) -> int:
                 args.web,
                 host=args.host,
                 timeout_s=args.timeout,
+                los_s=args.los,
                 limits_path=args.limits,
             )
             return 0
