@@ -164,6 +164,7 @@ class ControllerSet:
                 raise ControlError(
                     f"controller {c.name!r} ({c.cls}) failed to build: {type(exc).__name__}: {exc}"
                 ) from exc
+            inst.events = events
             slot = _Slot(inst, dv.handle(f"{c.name}_mode"))
             try:
                 self._groups.add(slot, c.rate_divisor, c.rate_phase)
