@@ -57,6 +57,8 @@ __all__ = [
     "StateMachineConfig",
     "TransitionConfig",
     "TransportConfig",
+    "WorldBoardConfig",
+    "WorldConfig",
     "element_spec",
     "parse_mission",
     "platform_elements",
@@ -285,6 +287,41 @@ class FaultsConfig(_Struct):
     dn_reenable_loops: Annotated[int, Meta(ge=1, le=1_000_000)] = 10
 
 
+class WorldBoardConfig(_Struct):
+    """One device node's board as the vehicle world sees it: its pin counts.
+
+    At most 64 digital and 16 analog pins, the serial board protocol's
+    limits, so any world board can also be served over the serial protocol
+    for hardware in the loop (``world.serve_serial``)."""
+
+    digital_pins: Annotated[int, Meta(ge=0, le=64)] = 8
+    analog_pins: Annotated[int, Meta(ge=0, le=16)] = 8
+
+
+class WorldConfig(_Struct):
+    """The vehicle world (:mod:`zplatform.world`): one physical state that the
+    boards of several device nodes read and drive.
+
+    ``physics`` is a ``"module:function"`` called as ``function(world,
+    t_ns)``; ``params`` its data (decoded into ``function.Params`` when it
+    has one). ``boards``: the device nodes whose pins the world holds (a
+    node uses one with ``board: {driver: world}``). Live, the world is its
+    own process (``zplatform world MISSION``, started by ``up``), listening
+    on ``listen`` (UDP, loopback only: simulation plumbing, not
+    authenticated); a board waits ``reply_timeout_ms`` for each answer.
+    ``serve_serial`` maps a node to a pty symlink path at which the world
+    process plays that node's board firmware over the serial board protocol
+    (hardware in the loop: the node's ``board`` is then ``driver: serial``
+    with that ``port``)."""
+
+    physics: str
+    boards: dict[str, WorldBoardConfig]
+    params: dict[str, Any] = msgspec.field(default_factory=dict)
+    listen: str = "127.0.0.1:7479"
+    reply_timeout_ms: Annotated[float, Meta(gt=0, le=100)] = 5.0
+    serve_serial: dict[str, str] = msgspec.field(default_factory=dict)
+
+
 # -- bulk channels (zplatform.bulk moves them) --------------------------------
 
 BULK_HEADER_BYTES = 32  # see HEADER below
@@ -485,6 +522,7 @@ class Mission(_Struct):
     security: SecurityConfig = msgspec.field(default_factory=SecurityConfig)
     downlink: DownlinkConfig = msgspec.field(default_factory=DownlinkConfig)
     bulk: list[BulkChannelConfig] = msgspec.field(default_factory=list)
+    world: WorldConfig | None = None
     doc: str = ""
 
     # -- derived views (cheap; computed from the checked fields) -----------

@@ -199,6 +199,10 @@ class SimBoard:
         """What was last set on ``pin`` (ignores injection): for tests and physics."""
         return self._dout[self._dpin(pin)]
 
+    def output_analog(self, pin: int) -> float:
+        """The voltage last set on ``pin`` (ignores injection): for tests and physics."""
+        return self._aout[self._apin(pin)]
+
     # -- the board contract (zplatform.boards): the reference implementation --
 
     def open(self) -> None:
@@ -454,6 +458,7 @@ class DeviceSet:
                 raise ControlError(
                     f"device {c.name!r} ({c.cls}) failed to build: {type(exc).__name__}: {exc}"
                 ) from exc
+            dev.events = events
             groups = self._sensors if isinstance(dev, Sensor) else self._actuators
             try:
                 groups.add(_DevSlot(dev), c.rate_divisor, c.rate_phase)
@@ -508,11 +513,11 @@ def check_config(mission: Mission) -> None:
     Raises ConfigError with the YAML path of the first bad device class,
     config field, pin or element name, or board config.
     """
-    from .boards import make_board  # the boards package imports this module
     from .datavector import Layout
+    from .world import node_board  # the boards package (under it) imports this module
 
     for node in mission.device_nodes:
-        board = make_board(mission.nodes[node].board, where=f"$.nodes.{node}.board")
+        board = node_board(mission, node)
         if not component_indices(mission, "devices", node):
             continue
         dv = DataVector(Layout.for_node(mission, node))

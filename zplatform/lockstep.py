@@ -47,6 +47,7 @@ from .recording import FOREIGN_DN
 from .telemetry import CsvLogger
 from .timebase import VirtualClock
 from .uplink import CommandOutcome, ScriptCommand, ScriptPlayer
+from .world import World
 
 __all__ = [
     "DEFAULT_START_NS",
@@ -153,9 +154,13 @@ class LockstepRunner:
 
     ``commands`` is the ground's script; ``boards`` replaces the default
     :class:`~zplatform.devices.SimBoard` of some device nodes (tests inject
-    faults through them). Construction builds every node (ConfigError for a
-    bad mission) and resolves the script against the mission (CommandError
-    naming ``file:line``). Not thread-safe.
+    faults through them). A mission with a vehicle world gets one
+    :class:`~zplatform.world.World` in this process (:attr:`world`), and
+    every node it spans a port onto it, whatever that node's board driver
+    (a hardware-in-the-loop mission's serial board included: the world is
+    what that board would reach). Construction builds every node
+    (ConfigError for a bad mission) and resolves the script against the
+    mission (CommandError naming ``file:line``). Not thread-safe.
     """
 
     def __init__(
@@ -172,10 +177,15 @@ class LockstepRunner:
         self.clock = VirtualClock(start_ns)
         key = SIM_KEY if mission.security.auth else None
         self.control = ControlLogic(mission, key=key, epoch=start_ns)
-        boards = boards or {}
+        boards = dict(boards or {})
         unknown = sorted(set(boards) - set(mission.device_nodes))
         if unknown:
             raise ValueError(f"boards given for nodes that are not device nodes: {unknown}")
+        self.world: World | None = World(mission) if mission.world is not None else None
+        """The vehicle world, if the mission has one (its ``truth`` is the physics' state)."""
+        if self.world is not None:
+            for n in self.world.nodes:
+                boards.setdefault(n, self.world.board(n))
         self.devices = [
             DeviceLogic(mission, dn, board=boards.get(dn), key=key) for dn in mission.device_nodes
         ]

@@ -41,7 +41,7 @@ from collections.abc import Sequence
 from typing import Any, Protocol
 
 from .auth import TAG_LEN, AuthError, Channel, mission_channels
-from .boards import make_board, safe_board
+from .boards import safe_board
 from .codec import Frame, RegionCodec, bundle_entry, is_bundle
 from .codes import CommandStatus
 from .commands import CommandHandler
@@ -54,6 +54,7 @@ from .errors import CodecError, ConfigError
 from .events import EV, EventLog
 from .faults import FaultMonitor
 from .statemachine import StateMachine
+from .world import node_board
 
 __all__ = ["ControlLogic", "DeviceLogic", "LoopRecorder"]
 
@@ -329,7 +330,7 @@ class DeviceLogic:
     controllers, actuators.
 
     ``board`` defaults to the board the node's ``board:`` config names
-    (:func:`zplatform.boards.make_board`; built, not opened: the runtime
+    (:func:`zplatform.world.node_board`; built, not opened: the runtime
     opens it). ``key``: the mission key (None: the mission does not
     authenticate). ``stale_after_ns``: a trigger stamped (CN time) more than
     this long before ``now_ns`` belongs to a loop the CN has already closed;
@@ -380,7 +381,7 @@ class DeviceLogic:
         self.board: Board = (
             board
             if board is not None
-            else make_board(mission.nodes[node].board, where=f"$.nodes.{node}.board")
+            else node_board(mission, node)
         )
         self.devices = DeviceSet(mission, node, dv, self.board, self.events)
         self.controllers = ControllerSet(mission, node, dv, self.events)
