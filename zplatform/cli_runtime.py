@@ -134,6 +134,7 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         "`zplatform node ... dnX` on one host.",
     )
     p.add_argument("mission", help=mission_help)
+    p.add_argument("--no-realtime", action="store_true", help="skip SCHED_FIFO set-up")
     p.set_defaults(func=cmd_world)
 
     p = sub.add_parser("log", help="log telemetry snapshots to CSV (events beside it)")
@@ -260,7 +261,7 @@ def cmd_node(args: argparse.Namespace) -> int:
 def cmd_world(args: argparse.Namespace) -> int:
     from .world import main as world_main
 
-    return world_main(args.mission)
+    return world_main(args.mission, realtime=not args.no_realtime)
 
 
 def cmd_log(args: argparse.Namespace) -> int:
@@ -640,7 +641,8 @@ def _run_up(args: argparse.Namespace, mission: Mission, reg: Any, tmp: Path) -> 
         # a process that holds one (DESIGN.md §8). The vehicle world first:
         # the device nodes' boards step it from their first loop.
         if mission.world is not None:
-            children.spawn("world", ["world", path], ready=args.ready_timeout)
+            world = ["world", path, *(["--no-realtime"] if args.no_realtime else [])]
+            children.spawn("world", world, ready=args.ready_timeout)
         for dn in mission.device_nodes:
             children.spawn(dn, ["node", path, dn, "--summary", str(summaries[dn]), *common])
         if mission.has_ground:

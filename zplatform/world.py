@@ -553,15 +553,22 @@ def serve(mission: Mission, *, stop: Any = None, ready: Any = None) -> int:
     return bad[0]
 
 
-def main(mission_path: str) -> int:
-    """``zplatform world MISSION``: serve the mission's world until SIGTERM/SIGINT."""
+def main(mission_path: str, *, realtime: bool = True) -> int:
+    """``zplatform world MISSION``: serve the mission's world until SIGTERM/SIGINT,
+    at the highest real-time priority the mission gives a node (``realtime``)."""
     from .mission import load_mission
-    from .node.runtime import StopFlag, setup_logging
+    from .node.runtime import StopFlag, realtime_setup, setup_logging
 
     setup_logging()
     mission = load_mission(mission_path)
     if mission.world is None:
         raise ConfigError(f"mission {mission.mission!r} has no world section", "$.world")
+    # The world is the nodes' hardware: it runs at their real-time priority
+    # (the highest the mission gives a node), or SCHED_FIFO device nodes
+    # would starve it and their boards would time out.
+    prios = [n.priority for n in mission.nodes.values() if n.priority is not None]
+    if realtime and prios:
+        realtime_setup(max(prios), None)
     stop = StopFlag()
     bad = serve(mission, stop=stop.event, ready=lambda: print("READY", flush=True))
     if bad:
