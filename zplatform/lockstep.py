@@ -17,7 +17,8 @@ live) runs at virtual time ``t = start_ns + (n - 1) * period_ns``:
    (``rx_time_ns = t``) and lets the script player answer.
 
 No frame is ever lost or late here, so ``cn_missed_dnX`` and ``cn_late_dnX``
-stay 0. Nothing reads the wall clock except the speed figure of
+stay 0, unless a test declares a node dead (:attr:`LockstepRunner.lost`).
+Nothing reads the wall clock except the speed figure of
 :class:`SimResult`, and nothing iterates a set or hashes into the output: the
 same mission and the same command script give a byte-identical CSV log.
 
@@ -197,6 +198,10 @@ class LockstepRunner:
         # The sync query's form, as the live CN chooses it (transport.sync_query).
         self._bundle = BundleEncoder() if wildcard_sync_for(mission) else None
         self._ground: bytearray | None = None
+        self.lost: set[str] = set()
+        """Device nodes that are gone (a test kills one mid-run by adding it):
+        they are neither triggered nor answer, so the CN counts their misses
+        as it would a dead node's (DN_LOST after ``faults.dn_lost_loops``)."""
         self.loop = 0
         """Loops run so far (the number of the last one)."""
         self.telemetry_received = 0
@@ -238,13 +243,16 @@ class LockstepRunner:
                 for out in outs:
                     np.copyto(out, own)
         frames = cn.begin(loop, t)
+        lost = self.lost
         if self._bundle is not None:  # as live: one wildcard query, every DN takes its frame
             bundle = self._bundle.pack(frames)
             for i, dev in enumerate(self.devices):
-                cn.reply(i, dev.step(bundle, t))
+                if dev.node not in lost:
+                    cn.reply(i, dev.step(bundle, t))
         else:
             for i, dev in enumerate(self.devices):
-                cn.reply(i, dev.step(frames[i], t))
+                if dev.node not in lost:
+                    cn.reply(i, dev.step(frames[i], t))
         ground, self._ground = self._ground, None
         tm = cn.finish((ground,) if ground is not None else ())
         if tm is not None:
