@@ -306,9 +306,11 @@ class WorldConfig(_Struct):
     t_ns)``; ``params`` its data (decoded into ``function.Params`` when it
     has one). ``boards``: the device nodes whose pins the world holds (a
     node uses one with ``board: {driver: world}``). Live, the world is its
-    own process (``zplatform world MISSION``, started by ``up``), listening
-    on ``listen`` (UDP, loopback only: simulation plumbing, not
-    authenticated); a board waits ``reply_timeout_ms`` for each answer.
+    own process (``zplatform world MISSION``, started by ``up``) that
+    advances on its own clock at ``rate_hz`` and sends every board its
+    inputs each time, listening on ``listen`` (UDP, loopback only:
+    simulation plumbing, not authenticated); a board whose newest inputs
+    are older than ``stale_ms`` fails its step (the world is gone).
     ``serve_serial`` maps a node to a pty symlink path at which the world
     process plays that node's board firmware over the serial board protocol
     (hardware in the loop: the node's ``board`` is then ``driver: serial``
@@ -318,7 +320,8 @@ class WorldConfig(_Struct):
     boards: dict[str, WorldBoardConfig]
     params: dict[str, Any] = msgspec.field(default_factory=dict)
     listen: str = "127.0.0.1:7479"
-    reply_timeout_ms: Annotated[float, Meta(gt=0, le=100)] = 5.0
+    rate_hz: Annotated[float, Meta(gt=0, le=10_000)] = 400.0
+    stale_ms: Annotated[float, Meta(gt=0, le=10_000)] = 100.0
     serve_serial: dict[str, str] = msgspec.field(default_factory=dict)
 
 

@@ -17,27 +17,34 @@ Three ways in, one world (PX4/ArduPilot SITL's simulator bridge, in small):
   boards step at that time, so the run is deterministic;
 * **live** (``zplatform up``): the world is its own process
   (``zplatform world MISSION``, :func:`serve`, started by ``up`` before the
-  device nodes), advancing on its own monotonic clock; a node's board
-  (``board: {driver: world}``) is a :class:`WorldLink` that exchanges its
-  pins with it over UDP on loopback (below);
+  device nodes) that advances on its own monotonic clock at
+  ``world.rate_hz``, as the physical world does, and after each advance
+  sends every board it has heard from its inputs; a node's board
+  (``board: {driver: world}``) is a :class:`WorldLink` that sends its
+  outputs over UDP on loopback and latches the newest inputs it received
+  (below). Nothing waits on anything: a late datagram is older sensor
+  data, as on real hardware, and only inputs older than
+  ``world.stale_ms`` fail a step;
 * **hardware in the loop**: the same process also plays a node's board
   firmware over the serial board protocol on a pty
   (``world.serve_serial``, :class:`~zplatform.boards.serial_sim.SimDevice`),
   so that node runs the real :class:`~zplatform.boards.SerialBoard` and
-  reads its sensors through the wire protocol.
+  reads its sensors through the wire protocol (each WRITE is answered from
+  the world brought up to that moment).
 
 Semantics shared by all three: outputs reach the world when they are set
-(a :class:`WorldLink` sends a changed output at once); a board's step
-advances the world to the step's time (lockstep: the loop's time; live and
-HIL: the world process's clock) and latches that board's inputs.
+(a :class:`WorldLink` sends a changed output at once, and all of them with
+every step); a board's step latches that board's inputs as the world last
+made them (lockstep: after advancing the world to the loop's time).
 
 World link datagrams (little-endian; ``A`` is the node's analog pin count,
 ``node`` its index in ``world.boards``)::
 
     b"ZW" type:u8 node:u8 seq:u16 | dout:u64 | A x aout:f32
-      type 1 STEP   (board -> world: outputs, advance, answer INPUTS)
-      type 2 OUT    (board -> world: outputs changed, no answer)
-      type 3 INPUTS (world -> board: din:u64 levels, A x f32 volts)
+      type 2 OUTPUTS (board -> world: its outputs; the world answers to
+                      this address from then on)
+      type 3 INPUTS  (world -> board, after each advance: din:u64 levels,
+                      A x f32 volts)
 
 The link is simulation plumbing: unauthenticated, loopback only (checked at
 load). Malformed datagrams are counted by the server and dropped.
@@ -77,7 +84,7 @@ log = logging.getLogger("zplatform.world")
 
 _HEADER = struct.Struct("<2sBBH")
 _MAGIC = b"ZW"
-_STEP, _OUT, _INPUTS = 1, 2, 3
+_OUT, _INPUTS = 2, 3
 _U64 = struct.Struct("<Q")
 
 
@@ -207,12 +214,13 @@ class WorldBoard:
 class WorldLink:
     """A node's board, live: its pins exchanged with the world process over UDP.
 
-    Construction touches nothing; :meth:`open` makes the socket (no
-    handshake: the world answers any STEP). Outputs are kept here and sent
-    when one changes (OUT) and with every :meth:`step` (STEP), which waits
-    at most ``reply_timeout_ms`` for the INPUTS and latches them; a timeout
-    or a dead world is a :class:`~zplatform.boards.BoardError` (the inputs
-    keep their last values). Allocates no buffers per step. Loop thread only.
+    Construction touches nothing; :meth:`open` makes the socket and sends
+    the outputs (so the world knows where to send the inputs). Outputs are
+    kept here and sent when one changes and with every :meth:`step`, which
+    never waits: it takes every INPUTS datagram that arrived and latches the
+    newest. Inputs older than ``world.stale_ms`` (or none yet) are a
+    :class:`~zplatform.boards.BoardError` (the inputs keep their last
+    values). Allocates no buffers per step. Loop thread only.
     """
 
     def __init__(self, mission: Mission, node: str, *, where: str) -> None:
@@ -225,7 +233,7 @@ class WorldLink:
         self.node = node
         self.index = world_nodes(mission).index(node)
         self.address = _address(cfg.listen, "$.world.listen")
-        self._timeout_s = cfg.reply_timeout_ms / 1000.0
+        self._stale_ns = round(cfg.stale_ms * 1e6)
         bc = cfg.boards[node]
         self._n_dig, self._n_ana = bc.digital_pins, bc.analog_pins
         self._dout = 0
@@ -238,6 +246,7 @@ class WorldLink:
         self._rx = bytearray(self._len + 64)
         self._seq = 0
         self._sock: socket.socket | None = None
+        self._latched_ns: int | None = None  # when the newest inputs arrived
         self.counters = HealthCounters()
         self._ok = False
 
@@ -262,7 +271,7 @@ class WorldLink:
         new = self._dout | (1 << pin) if value else self._dout & ~(1 << pin)
         if new != self._dout:
             self._dout = new
-            self._send(_OUT)
+            self._send()
 
     def get_digital(self, pin: int) -> bool:
         self._dpin(pin)
@@ -273,18 +282,18 @@ class WorldLink:
         v = float(volts)
         if v != self._aout[pin]:
             self._aout[pin] = v
-            self._send(_OUT)
+            self._send()
 
     def get_analog(self, pin: int) -> float:
         self._apin(pin)
         return self._ain[pin]
 
-    def _send(self, kind: int) -> None:
+    def _send(self) -> None:
         sock = self._sock
         if sock is None:
             return
         self._seq = (self._seq + 1) & 0xFFFF
-        _HEADER.pack_into(self._tx, 0, _MAGIC, kind, self.index, self._seq)
+        _HEADER.pack_into(self._tx, 0, _MAGIC, _OUT, self.index, self._seq)
         _U64.pack_into(self._tx, _HEADER.size, self._dout)
         self._ana.pack_into(self._tx, _HEADER.size + 8, *self._aout)
         try:
@@ -294,37 +303,39 @@ class WorldLink:
             self.counters.last_error = f"send failed: {exc}"
 
     def step(self, t_ns: int) -> None:
-        """Send the outputs, advance the world, latch the inputs (BoardError on failure)."""
+        """Send the outputs, latch the newest inputs (BoardError if stale). Never waits."""
         sock = self._sock
         if sock is None:
             raise self._fail("board is not open")
-        self._send(_STEP)
-        want = self._seq
-        deadline = time.monotonic() + self._timeout_s
+        self._send()
+        got = False
         while True:
-            left = deadline - time.monotonic()
-            if left <= 0 or not select.select([sock], [], [], left)[0]:
-                self.counters.timeouts += 1
-                raise self._fail(f"the world at {self.address} did not answer within "
-                           f"{self._timeout_s * 1000:.1f} ms")
             try:
                 n = sock.recv_into(self._rx)
-            except OSError as exc:
+            except BlockingIOError:
+                break
+            except OSError as exc:  # ECONNREFUSED: nobody listens on the world's port
                 raise self._fail(f"the world at {self.address} is not there: {exc}") from exc
             if n != self._len:
                 self.counters.bad_frames += 1
                 continue
-            magic, kind, node, seq = _HEADER.unpack_from(self._rx, 0)
+            magic, kind, node, _ = _HEADER.unpack_from(self._rx, 0)
             if magic != _MAGIC or kind != _INPUTS or node != self.index:
                 self.counters.bad_frames += 1
                 continue
-            if seq != want:
-                self.counters.late_replies += 1
-                continue
-            break
-        self.counters.frames_received += 1
-        (self._din,) = _U64.unpack_from(self._rx, _HEADER.size)
-        self._ain[:] = self._ana.unpack_from(self._rx, _HEADER.size + 8)
+            self.counters.frames_received += 1
+            got = True
+            (self._din,) = _U64.unpack_from(self._rx, _HEADER.size)
+            self._ain[:] = self._ana.unpack_from(self._rx, _HEADER.size + 8)
+        now = time.monotonic_ns()
+        if got:
+            self._latched_ns = now
+        elif self._latched_ns is None or now - self._latched_ns > self._stale_ns:
+            self.counters.timeouts += 1
+            age = "none yet" if self._latched_ns is None else (
+                f"the newest is {(now - self._latched_ns) / 1e6:.0f} ms old"
+            )
+            raise self._fail(f"no inputs from the world at {self.address} ({age})")
         self.counters.consecutive_errors = 0
         self._ok = True
 
@@ -335,13 +346,15 @@ class WorldLink:
         return BoardError(message)
 
     def open(self) -> None:
-        """Make the UDP socket (idempotent; never raises for an absent world)."""
+        """Make the UDP socket and announce the outputs (idempotent; never
+        raises for an absent world)."""
         if self._sock is None:
-            s = socket.socket(socket.AF_INET6 if ":" in self.address[0] else socket.AF_INET,
-                              socket.SOCK_DGRAM)
+            family = socket.AF_INET6 if ":" in self.address[0] else socket.AF_INET
+            s = socket.socket(family, socket.SOCK_DGRAM)
             s.connect(self.address)
             s.setblocking(False)
             self._sock = s
+            self._send()
 
     def close(self) -> None:
         """Send the safe outputs, close the socket (idempotent, never raises)."""
@@ -354,7 +367,7 @@ class WorldLink:
         """Every output off / 0 V, sent at once (never blocks, never raises)."""
         self._dout = 0
         self._aout[:] = [0.0] * self._n_ana
-        self._send(_OUT)
+        self._send()
 
     def health(self) -> BoardHealth:
         return self.counters.snapshot(
@@ -438,6 +451,7 @@ class _Peer:
     def __init__(self, node: str, pins: SimBoard) -> None:
         self.node = node
         self.pins = pins
+        self.address: Any = None  # where its board last spoke from
         self.ana = struct.Struct(f"<{pins.analog_pins}f")
         self.length = _HEADER.size + 8 + self.ana.size
         self.tx = bytearray(self.length)
@@ -450,13 +464,13 @@ class _Peer:
         for i, v in enumerate(self.ana.unpack_from(data, _HEADER.size + 8)):
             p.set_analog(i, v)
 
-    def inputs(self, index: int, seq: int) -> bytearray:
+    def inputs(self, index: int) -> bytearray:
         p = self.pins
         mask = 0
         for i in range(p.digital_pins):
             if p.get_digital(i):
                 mask |= 1 << i
-        _HEADER.pack_into(self.tx, 0, _MAGIC, _INPUTS, index, seq)
+        _HEADER.pack_into(self.tx, 0, _MAGIC, _INPUTS, index, 0)
         _U64.pack_into(self.tx, _HEADER.size, mask)
         self.ana.pack_into(
             self.tx, _HEADER.size + 8, *(p.get_analog(i) for i in range(p.analog_pins))
@@ -467,10 +481,13 @@ class _Peer:
 def serve(mission: Mission, *, stop: Any = None, ready: Any = None) -> int:
     """Run the mission's world in real time until ``stop`` is set (the world process).
 
-    Listens on ``world.listen`` and serves every ``serve_serial`` pty; calls
-    ``ready()`` once both are in place (``zplatform world`` prints
-    ``READY``). Blocks. Returns the number of malformed datagrams and
-    frames it dropped. Raises OSError when the port is taken.
+    Advances the world on this process's monotonic clock at
+    ``world.rate_hz`` and after each advance sends every board it has heard
+    from (an OUTPUTS datagram) its inputs; takes outputs whenever they come;
+    serves every ``serve_serial`` pty. Calls ``ready()`` once the port and
+    the ptys are in place (``zplatform world`` prints ``READY``). Blocks.
+    Returns the number of malformed datagrams and frames it dropped.
+    Raises OSError when the port is taken.
     """
     from .boards import wire
     from .boards.serial_sim import SimDevice, open_pty_link
@@ -482,6 +499,7 @@ def serve(mission: Mission, *, stop: Any = None, ready: Any = None) -> int:
     addr = _address(cfg.listen, "$.world.listen")
     sock = socket.socket(socket.AF_INET6 if ":" in addr[0] else socket.AF_INET, socket.SOCK_DGRAM)
     sock.bind(addr)
+    sock.setblocking(False)
     clock = time.monotonic_ns
     bad = [0]
     ptys: dict[int, tuple[SimDevice, wire.Deframer, list[bytes]]] = {}
@@ -506,28 +524,15 @@ def serve(mission: Mission, *, stop: Any = None, ready: Any = None) -> int:
         ready()
     buf = bytearray(2048)
     fds = [sock.fileno(), *ptys]
+    tick = round(1e9 / cfg.rate_hz)
+    due = clock()
     try:
         while stop is None or not stop.is_set():
-            readable, _, _ = select.select(fds, [], [], 0.05)
+            wait = max(0.0, (due - clock()) / 1e9)
+            readable, _, _ = select.select(fds, [], [], min(wait, 0.05))
             for fd in readable:
                 if fd == sock.fileno():
-                    got, src = sock.recvfrom_into(buf)
-                    if got < _HEADER.size:
-                        bad[0] += 1
-                        continue
-                    magic, kind, index, seq = _HEADER.unpack_from(buf, 0)
-                    if magic != _MAGIC or index >= len(peers) or got != peers[index].length:
-                        bad[0] += 1
-                        continue
-                    peer = peers[index]
-                    if kind == _OUT:
-                        peer.apply(buf)
-                    elif kind == _STEP:
-                        peer.apply(buf)
-                        world.advance(clock())
-                        sock.sendto(peer.inputs(index, seq), src)
-                    else:
-                        bad[0] += 1
+                    _take_outputs(sock, buf, peers, bad)
                     continue
                 dev, deframer, out = ptys[fd]
                 try:
@@ -539,8 +544,20 @@ def serve(mission: Mission, *, stop: Any = None, ready: Any = None) -> int:
                     os.write(fd, b"".join(out))
                     out.clear()
             now = clock()
+            if now < due:
+                continue
+            world.advance(now)
+            for i, peer in enumerate(peers):
+                if peer.address is not None:
+                    try:
+                        sock.sendto(peer.inputs(i), peer.address)
+                    except OSError:
+                        pass  # the board went away; it is sent again next tick
             for dev, _, _ in ptys.values():
                 dev.tick(now)
+            due += tick
+            if now - due > 100 * tick:  # stalled far behind: catch up, do not burst
+                due = now + tick
     finally:
         sock.close()
         for fd in [*ptys, *slaves]:
@@ -553,9 +570,29 @@ def serve(mission: Mission, *, stop: Any = None, ready: Any = None) -> int:
     return bad[0]
 
 
+def _take_outputs(
+    sock: socket.socket, buf: bytearray, peers: list[_Peer], bad: list[int]
+) -> None:
+    """Apply every OUTPUTS datagram waiting on ``sock``; count malformed ones."""
+    while True:
+        try:
+            got, src = sock.recvfrom_into(buf)
+        except BlockingIOError:
+            return
+        if got < _HEADER.size:
+            bad[0] += 1
+            continue
+        magic, kind, index, _ = _HEADER.unpack_from(buf, 0)
+        if magic != _MAGIC or kind != _OUT or index >= len(peers) or got != peers[index].length:
+            bad[0] += 1
+            continue
+        peers[index].apply(buf)
+        peers[index].address = src
+
+
 def main(mission_path: str, *, realtime: bool = True) -> int:
     """``zplatform world MISSION``: serve the mission's world until SIGTERM/SIGINT,
-    at the highest real-time priority the mission gives a node (``realtime``)."""
+    one real-time priority above the mission's nodes (``realtime``)."""
     from .mission import load_mission
     from .node.runtime import StopFlag, realtime_setup, setup_logging
 
@@ -563,12 +600,13 @@ def main(mission_path: str, *, realtime: bool = True) -> int:
     mission = load_mission(mission_path)
     if mission.world is None:
         raise ConfigError(f"mission {mission.mission!r} has no world section", "$.world")
-    # The world is the nodes' hardware: it runs at their real-time priority
-    # (the highest the mission gives a node), or SCHED_FIFO device nodes
-    # would starve it and their boards would time out.
+    # The world is the nodes' hardware, which real hardware never waits for
+    # the flight software: it runs one real-time priority above the highest
+    # the mission gives a node, or SCHED_FIFO nodes (and their zenoh threads)
+    # starve it and the boards waiting on it time out.
     prios = [n.priority for n in mission.nodes.values() if n.priority is not None]
     if realtime and prios:
-        realtime_setup(max(prios), None)
+        realtime_setup(min(max(prios) + 1, 99), None)
     stop = StopFlag()
     bad = serve(mission, stop=stop.event, ready=lambda: print("READY", flush=True))
     if bad:
