@@ -25,8 +25,9 @@ Model (SI units, z up, x downwind):
   slewing at ``airbrake_rate`` (fraction per second), adding up to
   ``airbrake_cda_m2``.
 * **Wind**: ``wind_mps`` plus a seeded gust (a first-order random process).
-* **Ground**: on the pad until thrust exceeds weight; after lift-off,
-  landed at ``z <= 0``.
+* **Ground**: on the pad until thrust exceeds weight; after lift-off, at
+  ``z <= 0`` the airframe stops at ``crush_mps2`` (the impact the
+  accelerometer feels), then it has landed.
 
 The vehicle is integrated with RK4 on a fixed 400 Hz grid (:data:`STEP_NS`)
 aligned to the world's first step; every grid point also samples the
@@ -235,6 +236,7 @@ class VehicleParams(msgspec.Struct, forbid_unknown_fields=True):
     pad_altitude_m: float = 0.0
     g_mps2: Annotated[float, Meta(gt=0)] = 9.80665
     weathercock_s: Annotated[float, Meta(gt=0)] = 0.3
+    crush_mps2: Annotated[float, Meta(gt=0)] = 100.0
     drogue_cda_m2: Annotated[float, Meta(ge=0)] = 0.1
     drogue_inflation_s: Annotated[float, Meta(ge=0)] = 0.5
     main_cda_m2: Annotated[float, Meta(ge=0)] = 1.2
@@ -387,9 +389,23 @@ class Flight:
         self._turn(dt)
         self._gust(dt)
         if self.z <= 0.0 and self.t > 0.5:
-            self.z = 0.0
-            self.vx = self.vz = 0.0
+            self._touchdown(dt)
+
+    def _touchdown(self, dt: float) -> None:
+        """Ground contact: the airframe stops at ``crush_mps2`` (the impact the
+        accelerometer feels), then stands on the ground (landed)."""
+        p = self.p
+        self.z = 0.0
+        self.vx = 0.0
+        self.axis = (0.0, 1.0)
+        self.pitch_rate = 0.0
+        if self.vz < 0.0:
+            self.vz = min(0.0, self.vz + p.crush_mps2 * dt)
+            self.specific_force = p.crush_mps2 + p.g_mps2
+        if self.vz >= 0.0:
+            self.vz = 0.0
             self.landed = True
+            self.specific_force = p.g_mps2
 
     def _turn(self, dt: float) -> None:
         """Weathercock the axis toward the air-relative velocity (or hang under a chute)."""

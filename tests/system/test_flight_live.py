@@ -29,7 +29,7 @@ pytest.importorskip("serial")
 ROOT = Path(__file__).resolve().parents[2]
 CONFIGS = ROOT / "configs"
 CMDS = CONFIGS / "flight.commands"
-DURATION_S = 58  # landed at about 54 s (mission time)
+DURATION_S = 54  # landed at about 48 s (mission time)
 FLIGHT = ["SAFE", "ARMED", "BOOST", "COAST", "DROGUE", "MAIN", "LANDED"]
 pytestmark = pytest.mark.timeout(300)
 
