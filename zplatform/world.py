@@ -490,7 +490,7 @@ def serve(mission: Mission, *, stop: Any = None, ready: Any = None) -> int:
     Raises OSError when the port is taken.
     """
     from .boards import wire
-    from .boards.serial_sim import SimDevice, open_pty_link
+    from .boards.serial_sim import SimDevice, open_pty_link, pump
 
     world = World(mission)
     assert mission.world is not None
@@ -534,15 +534,8 @@ def serve(mission: Mission, *, stop: Any = None, ready: Any = None) -> int:
                 if fd == sock.fileno():
                     _take_outputs(sock, buf, peers, bad)
                     continue
-                dev, deframer, out = ptys[fd]
-                try:
-                    data = os.read(fd, 4096)
-                except OSError:
-                    data = b""
-                deframer.feed(data)
-                if out:
-                    os.write(fd, b"".join(out))
-                    out.clear()
+                _, deframer, out = ptys[fd]
+                pump(fd, deframer, out)
             now = clock()
             if now < due:
                 continue

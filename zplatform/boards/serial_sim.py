@@ -36,7 +36,7 @@ from collections.abc import Callable
 from ..devices import SimBoard
 from . import wire
 
-__all__ = ["SimDevice", "main", "open_pty_link"]
+__all__ = ["SimDevice", "main", "open_pty_link", "pump"]
 
 _U64 = struct.Struct("<Q")
 
@@ -176,6 +176,20 @@ def open_pty_link(link: str) -> tuple[int, int]:
     return master, slave
 
 
+def pump(master: int, deframer: wire.Deframer, out: list[bytes]) -> None:
+    """Read what the host sent on pty ``master`` (ready to read), feed it to
+    ``deframer`` (whose callbacks append replies to ``out``), write the
+    replies. A read error (the host side closed) reads as nothing."""
+    try:
+        data = os.read(master, 4096)
+    except OSError:
+        data = b""
+    deframer.feed(data)
+    if out:
+        os.write(master, b"".join(out))
+        out.clear()
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python -m zplatform.boards.serial_sim")
     ap.add_argument("--link", required=True, help="symlink to point at the pty's slave side")
@@ -217,14 +231,7 @@ def main(argv: list[str] | None = None) -> int:
     while True:
         ready, _, _ = select.select([master], [], [], 0.02)
         if ready:
-            try:
-                data = os.read(master, 4096)
-            except OSError:
-                data = b""
-            deframer.feed(data)
-            if out:
-                os.write(master, b"".join(out))
-                out.clear()
+            pump(master, deframer, out)
         device.tick(time.monotonic_ns())
 
 
