@@ -117,8 +117,12 @@ class World:
     Attributes the physics hook uses: ``boards`` (node -> SimBoard: read
     outputs with ``output_digital``/``output_analog``, write inputs with
     ``inject_*``), ``params`` (decoded), ``state`` (scratch, for the hook),
-    ``start_ns`` (the first advance), ``t_ns`` (the last). Construction
-    raises ConfigError (path under ``$.world``) for a bad world section.
+    ``start_ns`` (the first advance), ``t_ns`` (the last). A hook with a
+    ``check`` attribute has ``check(world)`` called here, at load: it
+    raises ValueError (or KeyError, OSError) for params the types cannot
+    catch (pins that are not on the boards, a missing data file).
+    Construction raises ConfigError (path under ``$.world``) for a bad
+    world section.
     """
 
     def __init__(self, mission: Mission) -> None:
@@ -140,6 +144,12 @@ class World:
             if isinstance(params_type, type) and issubclass(params_type, msgspec.Struct)
             else cfg.params
         )
+        check = getattr(self._physics, "check", None)
+        if callable(check):  # the hook's own load-time check (its wiring, its files)
+            try:
+                check(self)
+            except (ValueError, KeyError, OSError) as exc:
+                raise ConfigError(f"{cfg.physics}: {exc}", "$.world.params") from exc
         self.state: dict[str, Any] = {}
         self.truth: Any = None
         """What the physics chooses to expose of its state (tests, plots)."""

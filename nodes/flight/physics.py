@@ -54,6 +54,7 @@ __all__ = [
     "Sensors",
     "VehicleParams",
     "atmosphere",
+    "check",
     "vehicle",
 ]
 
@@ -513,9 +514,11 @@ class _World:
     def __init__(self, params: VehicleParams) -> None:
         self.flight = Flight(params)
         self.sensors = Sensors(params.sensors)
-        self.baros = [Sensors(msgspec.structs.replace(params.sensors, seed=params.sensors.seed
-                                                      + 101 * (i + 1)))
-                      for i in range(len(params.wiring.baro))]
+        # each barometer its own noise (and lag state): seeds apart
+        self.baros = [
+            Sensors(msgspec.structs.replace(params.sensors, seed=params.sensors.seed + 101 * i))
+            for i in range(1, len(params.wiring.baro) + 1)
+        ]
         self.next_ns: int | None = None
         self.baro_pa = [0.0] * len(params.wiring.baro)
 
@@ -577,4 +580,28 @@ def vehicle(world: Any, t_ns: int) -> None:
     world.truth = f
 
 
+def check(world: Any) -> None:
+    """Load-time check of the world (:mod:`zplatform.world`): the motor file
+    reads, and every wired pin is on its board (ValueError otherwise)."""
+    p: VehicleParams = world.params
+    Motor(p.motor)
+    w = p.wiring
+    digital = [w.ignition, *w.drogue, *w.main]
+    if w.gps_fix is not None:
+        digital.append(w.gps_fix)
+    analog = [*w.accel_fifo, *w.baro]
+    analog += [x for x in (w.airbrake, w.gyro, w.gps_alt) if x is not None]
+    for pins, kind in ((digital, "digital"), (analog, "analog")):
+        for node, pin in pins:
+            board = world.boards.get(node)
+            if board is None:
+                raise ValueError(
+                    f"wiring names board {node!r}; the world has {sorted(world.boards)}"
+                )
+            n = board.digital_pins if kind == "digital" else board.analog_pins
+            if not 0 <= pin < n:
+                raise ValueError(f"wiring: {kind} pin {pin} is not on {node} ({n} {kind} pins)")
+
+
 vehicle.Params = VehicleParams  # type: ignore[attr-defined]
+vehicle.check = check  # type: ignore[attr-defined]

@@ -22,7 +22,7 @@ from typing import Annotated, Any
 import msgspec
 from msgspec import Meta
 
-__all__ = ["FlightParams", "altitude_m", "flight"]
+__all__ = ["FlightParams", "altitude_m", "check", "flight"]
 
 
 class FlightParams(msgspec.Struct, forbid_unknown_fields=True):
@@ -61,4 +61,18 @@ def flight(world: Any, t_ns: int) -> None:
         world.boards[n].inject_analog(baro, reading * p.volts_per_m)
 
 
+def check(world: Any) -> None:
+    """Load-time check (:mod:`zplatform.world`): every pin named is on its board."""
+    p: FlightParams = world.params
+    pins = [(p.launch_pin, "digital"), *(((n, pin), "analog") for n, pin in p.baro_pins.items())]
+    for (node, pin), kind in pins:
+        board = world.boards.get(node)
+        if board is None:
+            raise ValueError(f"no board {node!r} in the world ({sorted(world.boards)})")
+        n = board.digital_pins if kind == "digital" else board.analog_pins
+        if not 0 <= pin < n:
+            raise ValueError(f"{kind} pin {pin} is not on {node} ({n} {kind} pins)")
+
+
 flight.Params = FlightParams  # type: ignore[attr-defined]
+flight.check = check  # type: ignore[attr-defined]

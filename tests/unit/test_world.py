@@ -34,6 +34,18 @@ def lamp(world: Any, t_ns: int) -> None:
         b[n].inject_digital(1, lit)
 
 
+def checked(world: Any, t_ns: int) -> None:
+    """Toy physics with a load-time check of its params."""
+
+
+def _check_board_named(world: Any) -> None:
+    if world.params["board"] not in world.boards:
+        raise ValueError(f"no board {world.params['board']!r}")
+
+
+checked.check = _check_board_named  # type: ignore[attr-defined]
+
+
 def mission_text(port: int = 7499, board: str = "{driver: world}", world: str = "") -> str:
     return f"""
 mission: lamp
@@ -120,6 +132,14 @@ def test_bad_worlds_are_refused_with_their_path(text: str, path: str, match: str
         decode_mission(text)
     assert exc.value.path.startswith(path), exc.value
     assert match in str(exc.value)
+
+
+def test_the_physics_checks_its_params_at_load() -> None:
+    text = mission_text().replace(f"{HERE}:lamp", f"{HERE}:checked")
+    decode_mission(text.replace("boards:\n", "params: {board: dn1}\n  boards:\n", 1))
+    with pytest.raises(ConfigError, match="no board 'dn9'") as exc:
+        decode_mission(text.replace("boards:\n", "params: {board: dn9}\n  boards:\n", 1))
+    assert exc.value.path == "$.world.params"
 
 
 def test_a_world_board_without_a_world_is_refused() -> None:
