@@ -132,8 +132,11 @@ class World:
         self.config: WorldConfig = cfg
         self.nodes = world_nodes(mission)
         self.boards: dict[str, SimBoard] = {
-            n: SimBoard(msgspec.to_builtins(cfg.boards[n]), where=f"$.world.boards.{n}")
-            for n in self.nodes
+            n: SimBoard(
+                {"digital_pins": b.digital_pins, "analog_pins": b.analog_pins},
+                where=f"$.world.boards.{n}",
+            )
+            for n, b in ((n, cfg.boards[n]) for n in self.nodes)
         }
         self._physics = load_function(
             cfg.physics, "$.world.physics", args=("world", "t_ns"), what="physics"

@@ -102,6 +102,12 @@ def test_the_world_advances_once_per_time_and_both_nodes_share_it() -> None:
     assert b1.get_analog(0) == 0.0
 
 
+def test_the_world_boards_have_the_pins_the_world_section_gives() -> None:
+    text = mission_text().replace("dn1: {digital_pins: 2, analog_pins: 1}", "dn1: {}")
+    world = World(decode_mission(text.replace("pin: 0, command: sw1", "pin: 7, command: sw1")))
+    assert (world.boards["dn1"].digital_pins, world.boards["dn1"].analog_pins) == (8, 8)
+
+
 def test_lockstep_runs_the_world_in_process() -> None:
     m = decode_mission(mission_text())
     r = LockstepRunner(m)
