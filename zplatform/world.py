@@ -158,7 +158,6 @@ class World:
         """What the physics chooses to expose of its state (tests, plots)."""
         self.start_ns: int | None = None
         self.t_ns: int | None = None
-        self.advances = 0
 
     def advance(self, t_ns: int) -> None:
         """Run the physics up to ``t_ns`` once; a time not after the last does nothing."""
@@ -167,7 +166,6 @@ class World:
         if self.start_ns is None:
             self.start_ns = t_ns
         self.t_ns = t_ns
-        self.advances += 1
         self._physics(self, t_ns)
 
     def board(self, node: str) -> WorldBoard:
