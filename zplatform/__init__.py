@@ -56,6 +56,7 @@ from .telemetry import CsvLogger, read_csv
 from .timebase import NodeClock, VirtualClock
 from .transport import KeySpace
 from .uplink import ScriptCommand, ScriptPlayer, fill_request, load_commands, parse_commands
+from .world import World, WorldBoard, WorldLink
 
 __version__ = "0.1.0"
 
@@ -123,6 +124,9 @@ __all__ = [
     "TimebaseError",
     "TransportError",
     "VirtualClock",
+    "World",
+    "WorldBoard",
+    "WorldLink",
     "ZPlatformError",
     "__version__",
     "check_mission",

@@ -93,12 +93,25 @@ def _tcp_host_port(endpoint: str) -> tuple[str, int] | None:
 
 
 def check_ports(mission: Mission) -> None:
-    """Refuse to start when a node's TCP listen port is already taken.
+    """Refuse to start when a node's TCP listen port (or the vehicle world's UDP port) is taken.
 
     Binds each port once (and lets go): a busy port means another ``up`` of
     this mission, or another program, holds it. Only "address in use" is
     reported; any other bind error is zenoh's to report.
     """
+    if mission.world is not None:  # the vehicle world's UDP port
+        host, _, port_text = mission.world.listen.rpartition(":")
+        family = socket.AF_INET6 if ":" in host else socket.AF_INET
+        with socket.socket(family, socket.SOCK_DGRAM) as s:
+            try:
+                s.bind((host.strip("[]"), int(port_text)))
+            except OSError as exc:
+                if exc.errno == errno.EADDRINUSE:
+                    raise CommandError(
+                        f"port {port_text} (the vehicle world's UDP listen) is in use: is this "
+                        "mission already running? see `zplatform ps`; use --free-ports to run "
+                        "beside it"
+                    ) from None
     for name, node in mission.nodes.items():
         for ep in node.listen:
             hp = _tcp_host_port(ep)

@@ -124,6 +124,19 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p.add_argument("-v", "--verbose", action="store_true", help="debug logging")
     p.set_defaults(func=cmd_node)
 
+    p = sub.add_parser(
+        "world",
+        help="serve a mission's vehicle world (its physics) for the device nodes' boards",
+        description="Run the mission's vehicle world (the `world:` section) in real time: "
+        "device nodes with `board: {driver: world}` exchange their pins with it over UDP on "
+        "loopback, and `serve_serial` nodes reach it through the serial board protocol on a "
+        "pty. Prints READY once it serves. `up` starts it by itself; start it by hand before "
+        "`zplatform node ... dnX` on one host.",
+    )
+    p.add_argument("mission", help=mission_help)
+    p.add_argument("--no-realtime", action="store_true", help="skip SCHED_FIFO set-up")
+    p.set_defaults(func=cmd_world)
+
     p = sub.add_parser("log", help="log telemetry snapshots to CSV (events beside it)")
     p.add_argument("mission", help=mission_help)
     p.add_argument(
@@ -244,6 +257,12 @@ def cmd_node(args: argparse.Namespace) -> int:
         raise NodeError(f"no node {name!r} in mission {mission.mission!r}: {sorted(mission.nodes)}")
     write_summary(args.summary, summary)
     return 0
+
+
+def cmd_world(args: argparse.Namespace) -> int:
+    from .world import main as world_main
+
+    return world_main(args.mission, realtime=not args.no_realtime)
 
 
 def cmd_log(args: argparse.Namespace) -> int:
@@ -486,14 +505,32 @@ class _Children:
     def __init__(self) -> None:
         self.procs: dict[str, subprocess.Popen[bytes]] = {}
 
-    def spawn(self, name: str, argv: list[str]) -> None:
+    def spawn(self, name: str, argv: list[str], *, ready: float | None = None) -> None:
+        """Start ``zplatform ARGV``; with ``ready`` (seconds), wait for its
+        first output line to be ``READY`` (NodeError if it is not, in time)."""
         env = dict(os.environ, PYTHONUNBUFFERED="1")
         env[PARENT_ENV] = str(os.getpid())
         # A new session: a Ctrl-C in the terminal reaches `up` alone, which
         # then stops the nodes in order (CN first, so the ground logs the end).
-        self.procs[name] = subprocess.Popen(
-            [sys.executable, "-m", "zplatform", *argv], env=env, start_new_session=True
+        proc = subprocess.Popen(
+            [sys.executable, "-m", "zplatform", *argv],
+            env=env,
+            start_new_session=True,
+            stdout=subprocess.PIPE if ready is not None else None,
         )
+        self.procs[name] = proc
+        if ready is not None:
+            assert proc.stdout is not None
+            import select
+
+            got = select.select([proc.stdout], [], [], ready)[0]
+            line = proc.stdout.readline().decode(errors="replace").strip() if got else ""
+            if line != "READY":
+                raise NodeError(
+                    f"{name} did not start (exit code {proc.poll()}; said {line!r})"
+                    if got
+                    else f"{name} was not ready within {ready:g} s"
+                )
 
     def dead(self) -> list[tuple[str, int]]:
         return [(n, p.returncode) for n, p in self.procs.items() if p.poll() is not None]
@@ -516,7 +553,13 @@ class _Children:
         return codes
 
     def stop_all(self) -> dict[str, int]:
-        order = [n for n in self.procs if n == "cn"] + [n for n in self.procs if n != "cn"]
+        # CN first (the ground logs the end), the world last (the DNs safe
+        # their outputs into it as they stop).
+        order = (
+            [n for n in self.procs if n == "cn"]
+            + [n for n in self.procs if n not in ("cn", "world")]
+            + [n for n in self.procs if n == "world"]
+        )
         return self.stop(order)
 
 
@@ -596,7 +639,11 @@ def _run_up(args: argparse.Namespace, mission: Mission, reg: Any, tmp: Path) -> 
     watch = _Watch()
     try:
         # Spawn everything before opening our own zenoh session: never fork
-        # a process that holds one (DESIGN.md §8).
+        # a process that holds one (DESIGN.md §8). The vehicle world first:
+        # the device nodes' boards step it from their first loop.
+        if mission.world is not None:
+            world = ["world", path, *(["--no-realtime"] if args.no_realtime else [])]
+            children.spawn("world", world, ready=args.ready_timeout)
         for dn in mission.device_nodes:
             children.spawn(dn, ["node", path, dn, "--summary", str(summaries[dn]), *common])
         if mission.has_ground:
@@ -696,6 +743,8 @@ def _watch(
                 what = (
                     "the vehicle flies on without the ground link"
                     if n == "gn"
+                    else "the simulated vehicle is gone: its boards fail (counted errors)"
+                    if n == "world"
                     else "the control node carries on (DN_LOST and the mission's fault response)"
                 )
                 print(f"\nzplatform up: node {n} died (exit code {c}); {what}", file=sys.stderr)

@@ -42,6 +42,7 @@ from .errors import ConfigError, ControlError
 if TYPE_CHECKING:
     from .config import ComponentConfig, Mission
     from .datavector import DataVector, Handle
+    from .events import EventLog
 
 __all__ = [
     "Component",
@@ -305,6 +306,9 @@ class Component(abc.ABC):
 
     Config: ClassVar[type[msgspec.Struct]] = NoConfig
     config: Any
+    events: EventLog | None = None
+    """The node's event log (set by the set that built the component;
+    None in a bare construction). Use :meth:`report`."""
     bulk: Mapping[str, Any] = {}
     """The node's bulk channel arrays by channel name (numpy arrays of the
     channel's dtype and shape): the ones this node publishes, which a
@@ -389,6 +393,20 @@ class Component(abc.ABC):
                 where,
             )
         return h
+
+    def report(self, t_ns: int, text: str, *, warning: bool = False) -> None:
+        """Tell the operator something in the mission's words: an event
+        ``component_warning`` (WARNING_HI: something failed and the component
+        acted) or ``component_activity`` (ACTIVITY_HI), text ``"<name>: text"``.
+
+        For rare moments (a change of mode), not every loop: it allocates.
+        Never raises; does nothing without an event log.
+        """
+        if self.events is not None:
+            from .events import EV
+
+            ev = EV.COMPONENT_WARNING if warning else EV.COMPONENT_ACTIVITY
+            self.events.emit(ev, t_ns, name=self.name, text=text)
 
     def __repr__(self) -> str:
         return f"<{type(self).__name__} {self.name!r} on {self.node}>"

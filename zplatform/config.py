@@ -59,6 +59,8 @@ __all__ = [
     "StateMachineConfig",
     "TransitionConfig",
     "TransportConfig",
+    "WorldBoardConfig",
+    "WorldConfig",
     "check_mission_name",
     "element_spec",
     "parse_mission",
@@ -602,6 +604,90 @@ class FaultsConfig(_Struct):
     ] = 10
 
 
+class WorldBoardConfig(_Struct):
+    """One device node's board as the vehicle world sees it: its pin counts.
+
+    At most 64 digital and 16 analog pins, the serial board protocol's
+    limits, so any world board can also be served over the serial protocol
+    for hardware in the loop (``world.serve_serial``)."""
+
+    digital_pins: Annotated[
+        int, Meta(ge=0, le=64, description="Digital pins of this node's board, from 0.")
+    ] = 8
+    analog_pins: Annotated[
+        int, Meta(ge=0, le=16, description="Analog pins (volts) of this node's board, from 0.")
+    ] = 8
+
+
+class WorldConfig(_Struct):
+    """The vehicle world (:mod:`zplatform.world`): one physical state that the
+    boards of several device nodes read and drive.
+
+    ``physics`` is a ``"module:function"`` called as ``function(world,
+    t_ns)``; ``params`` its data (decoded into ``function.Params`` when it
+    has one). ``boards``: the device nodes whose pins the world holds (a
+    node uses one with ``board: {driver: world}``). Live, the world is its
+    own process (``zplatform world MISSION``, started by ``up``) that
+    advances on its own clock at ``rate_hz`` and sends every board its
+    inputs each time, listening on ``listen`` (UDP, loopback only:
+    simulation plumbing, not authenticated); a board whose newest inputs
+    are older than ``stale_ms`` fails its step (the world is gone).
+    ``serve_serial`` maps a node to a pty symlink path at which the world
+    process plays that node's board firmware over the serial board protocol
+    (hardware in the loop: the node's ``board`` is then ``driver: serial``
+    with that ``port``)."""
+
+    physics: Annotated[
+        str,
+        Meta(
+            description="`package.module:function` called as `function(world, t_ns)`: reads "
+            "every board's outputs (`world.boards[node].output_digital(pin)`) and sets what "
+            "their inputs read (`inject_analog`, `inject_digital`)."
+        ),
+    ]
+    boards: Annotated[
+        dict[str, WorldBoardConfig],
+        Meta(
+            description="The device nodes whose pins the world holds, by node name; such a "
+            "node's board is `{driver: world}` (or a serial board the world serves)."
+        ),
+    ]
+    params: Annotated[
+        dict[str, Any],
+        Meta(
+            description="The physics' data, read as `world.params`; decoded into the "
+            "function's `Params` struct when it has one (a typo fails at load)."
+        ),
+    ] = msgspec.field(default_factory=dict)
+    listen: Annotated[
+        str,
+        Meta(
+            description="Loopback `host:port` (UDP) of the world process under `up`: "
+            "simulation plumbing, not authenticated, so never beyond loopback."
+        ),
+    ] = "127.0.0.1:7479"
+    rate_hz: Annotated[
+        float,
+        Meta(gt=0, le=10_000, description="How often the live world process advances (Hz)."),
+    ] = 400.0
+    stale_ms: Annotated[
+        float,
+        Meta(
+            gt=0,
+            le=10_000,
+            description="A board whose newest inputs are older than this fails its step "
+            "(the world process is gone).",
+        ),
+    ] = 100.0
+    serve_serial: Annotated[
+        dict[str, str],
+        Meta(
+            description="Node -> pty symlink path at which the world process plays that "
+            "node's board firmware over the serial board protocol (hardware in the loop)."
+        ),
+    ] = msgspec.field(default_factory=dict)
+
+
 # -- bulk channels (zplatform.bulk moves them) --------------------------------
 
 BULK_HEADER_BYTES = 32  # see HEADER below
@@ -895,6 +981,13 @@ class Mission(_Struct):
                 "file's own directory. Verbs that only talk to a running mission "
                 "(cmd, tap, log, ground, xtce, ccsds) import no mission code."
             )
+        ),
+    ] = None
+    world: Annotated[
+        WorldConfig | None,
+        Meta(
+            description="One vehicle world shared by the boards of several device nodes "
+            "(physics that every board's outputs change): see zplatform.world."
         ),
     ] = None
     doc: Annotated[str, Meta(description="What the mission is for.")] = ""

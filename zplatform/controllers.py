@@ -162,6 +162,7 @@ class ControllerSet:
             where = f"$.controllers[{i}]"
             cls = load_component_class(c.cls, Controller, f"{where}.class", pythonpath=code)
             inst: Controller = build_component("controller", c, where, cls, c, dv)
+            inst.events = events
             slot = _Slot(inst, dv.handle(f"{c.name}_mode"))
             try:
                 self._groups.add(slot, c.rate_divisor, c.rate_phase)

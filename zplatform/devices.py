@@ -34,7 +34,7 @@ from typing import Annotated, ClassVar
 import msgspec
 from msgspec import Meta
 
-from .boards import Board, make_board
+from .boards import Board
 from .components import (
     Component,
     Streak,
@@ -335,6 +335,7 @@ class DeviceSet:
                     f"{where}.class",
                 )
             dev: Device = build_component("device", c, where, cls, c, dv, board)
+            dev.events = events
             groups = self._sensors if isinstance(dev, Sensor) else self._actuators
             try:
                 groups.add(_DevSlot(dev), c.rate_divisor, c.rate_phase)
@@ -390,13 +391,10 @@ def check_config(mission: Mission) -> None:
     config field, pin or element name, or board config.
     """
     from .datavector import Layout
+    from .world import node_board  # the boards package (under it) imports this module
 
     for node in mission.device_nodes:
-        board = make_board(
-            mission.nodes[node].board,
-            where=f"$.nodes.{node}.board",
-            pythonpath=mission_code_path(mission),
-        )
+        board = node_board(mission, node)
         if not component_indices(mission, "devices", node):
             continue
         dv = DataVector(Layout.for_node(mission, node))

@@ -183,6 +183,9 @@ class EV:
     BOARD_FAILED = EventType(
         33, "board_failed", Severity.WARNING_HI, "{node} board step raised {exc_type}: {exc}"
     )
+    # a component's own report (Component.report): its text, in the mission's words
+    COMPONENT_ACTIVITY = EventType(34, "component_activity", Severity.ACTIVITY_HI, "{name}: {text}")
+    COMPONENT_WARNING = EventType(35, "component_warning", Severity.WARNING_HI, "{name}: {text}")
     # transport
     BAD_FRAME = EventType(40, "bad_frame", Severity.WARNING_LO, "{source} rejected: {reason}")
     # fail safe (a node without its control node)

@@ -17,7 +17,8 @@ live) runs at virtual time ``t = start_ns + (n - 1) * period_ns``:
    (``rx_time_ns = t``) and lets the script player answer.
 
 No frame is ever lost or late here, so ``cn_missed_dnX`` and ``cn_late_dnX``
-stay 0. No loop is flagged final (``dnX_final``, :mod:`zplatform.loop`): a
+stay 0, unless a test declares a node dead (:attr:`LockstepRunner.lost`).
+No loop is flagged final (``dnX_final``, :mod:`zplatform.loop`): a
 runner may be run on (:meth:`LockstepRunner.run` continues from the last
 loop), so it never knows which loop is the last, and a flag it guessed
 would make the same mission's output depend on how the run was cut; the
@@ -54,6 +55,7 @@ from .recording import FOREIGN_DN
 from .telemetry import CsvLogger
 from .timebase import VirtualClock
 from .uplink import CommandOutcome, ScriptCommand, ScriptPlayer
+from .world import World
 
 __all__ = [
     "DEFAULT_START_NS",
@@ -225,9 +227,13 @@ class LockstepRunner:
 
     ``commands`` is the ground's script; ``boards`` replaces the default
     :class:`~zplatform.boards.SimBoard` of some device nodes (tests inject
-    faults through them). Construction builds every node (ConfigError for a
-    bad mission) and resolves the script against the mission (CommandError
-    naming ``file:line``). Not thread-safe.
+    faults through them). A mission with a vehicle world gets one
+    :class:`~zplatform.world.World` in this process (:attr:`world`), and
+    every node it spans a port onto it, whatever that node's board driver
+    (a hardware-in-the-loop mission's serial board included: the world is
+    what that board would reach). Construction builds every node
+    (ConfigError for a bad mission) and resolves the script against the
+    mission (CommandError naming ``file:line``). Not thread-safe.
     """
 
     def __init__(
@@ -244,10 +250,15 @@ class LockstepRunner:
         self.clock = VirtualClock(start_ns)
         key = SIM_KEY if mission.security.auth else None
         self.control = ControlLogic(mission, key=key, epoch=start_ns)
-        boards = boards or {}
+        boards = dict(boards or {})
         unknown = sorted(set(boards) - set(mission.device_nodes))
         if unknown:
             raise ValueError(f"boards given for nodes that are not device nodes: {unknown}")
+        self.world: World | None = World(mission) if mission.world is not None else None
+        """The vehicle world, if the mission has one (its ``truth`` is the physics' state)."""
+        if self.world is not None:
+            for n in self.world.nodes:
+                boards.setdefault(n, self.world.board(n))
         self.devices = [
             DeviceLogic(mission, dn, board=boards.get(dn), key=key) for dn in mission.device_nodes
         ]
@@ -259,6 +270,10 @@ class LockstepRunner:
         # The sync query's form, as the live CN chooses it (transport.sync_query).
         self._bundle = BundleEncoder() if wildcard_sync_for(mission) else None
         self._ground: bytearray | None = None
+        self.lost: set[str] = set()
+        """Device nodes that are gone (a test kills one mid-run by adding it):
+        they are neither triggered nor answer, so the CN counts their misses
+        as it would a dead node's (DN_LOST after ``faults.dn_lost_loops``)."""
         self.loop = 0
         """Loops run so far (the number of the last one)."""
         self.telemetry_received = 0
@@ -286,13 +301,16 @@ class LockstepRunner:
         for ch in self._channels:  # what was published last loop arrives
             ch.deliver()
         frames = cn.begin(loop, t)
+        lost = self.lost
         if self._bundle is not None:  # as live: one wildcard query, every DN takes its frame
             bundle = self._bundle.pack(frames)
             for i, dev in enumerate(self.devices):
-                cn.reply(i, dev.step(bundle, t))
+                if dev.node not in lost:
+                    cn.reply(i, dev.step(bundle, t))
         else:
             for i, dev in enumerate(self.devices):
-                cn.reply(i, dev.step(frames[i], t))
+                if dev.node not in lost:
+                    cn.reply(i, dev.step(frames[i], t))
         ground, self._ground = self._ground, None
         tm = cn.finish((ground,) if ground is not None else ())
         if tm is not None:

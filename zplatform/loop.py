@@ -62,11 +62,11 @@ from collections.abc import Sequence
 from typing import Any, Protocol
 
 from .auth import TAG_LEN, AuthError, Channel, mission_channels
-from .boards import Board, make_board, safe_board
+from .boards import Board, safe_board
 from .codec import Frame, RegionCodec, bundle_entry, is_bundle
 from .codes import CommandStatus
 from .commands import CommandHandler
-from .components import Streak, mission_code_path
+from .components import Streak
 from .config import Mission
 from .controllers import ControllerSet
 from .datavector import DataVector, Layout
@@ -75,6 +75,7 @@ from .errors import CodecError, ConfigError
 from .events import EV, EventLog, EventType
 from .faults import FaultMonitor
 from .statemachine import StateMachine
+from .world import node_board
 
 __all__ = ["BulkPort", "ControlLogic", "DeviceLogic", "LoopRecorder"]
 
@@ -391,7 +392,7 @@ class DeviceLogic:
     controllers, actuators.
 
     ``board`` defaults to the board the node's ``board:`` config names
-    (:func:`zplatform.boards.make_board`; built, not opened: the runtime
+    (:func:`zplatform.world.node_board`; built, not opened: the runtime
     opens it). ``key``: the mission key (None: the mission does not
     authenticate). ``stale_after_ns``: a trigger stamped (CN time) more than
     this long before ``now_ns`` belongs to a loop the CN has already closed;
@@ -444,11 +445,7 @@ class DeviceLogic:
         self.board: Board = (
             board
             if board is not None
-            else make_board(
-                mission.nodes[node].board,
-                where=f"$.nodes.{node}.board",
-                pythonpath=mission_code_path(mission),
-            )
+            else node_board(mission, node)
         )
         self.devices = DeviceSet(mission, node, dv, self.board, self.events)
         self.controllers = ControllerSet(mission, node, dv, self.events)

@@ -17,6 +17,8 @@ tests. They return a :class:`~zplatform.config.Mission` that passed
      ``class`` imported, checked to be a concrete Controller, its typed
      ``config`` decoded and its element handles bound on a scratch Data
      Vector of its node;
+   * the vehicle world (:func:`zplatform.world.check_config`): its boards,
+     physics function and params, and the nodes that use it;
    * the devices and boards (:func:`zplatform.devices.check_config`): every
      node's ``board`` config (a SimBoard's ``physics`` function imported and
      its signature checked), every device class, config and pin;
@@ -56,7 +58,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from . import commands, controllers, deploy, devices, statemachine
+from . import commands, controllers, deploy, devices, statemachine, world
 from .config import (
     CONTROLLER_MODES,
     Mission,
@@ -88,6 +90,10 @@ def check_mission(mission: Mission, *, code: bool = True) -> None:
     commands.check_config(mission)
     if code:
         _check_pythonpath(mission)
+    # The world before the devices: a node's `driver: world` board is built
+    # from it, so a bad world section is reported as itself.
+    world.check_config(mission, code=code)
+    if code:
         controllers.check_config(mission)
         devices.check_config(mission)
     _check_limits(mission)

@@ -158,6 +158,17 @@ def mission_schema() -> dict[str, Any]:
         branches.append(ref)
     branches.append(
         {
+            "title": "world board",
+            "description": "A port onto the mission's vehicle world (`$.world`): the "
+            "node's pins are declared in `$.world.boards.<dnX>`, so no other key.",
+            "type": "object",
+            "properties": {"driver": {"const": "world", "description": "The `world` board."}},
+            "required": ["driver"],
+            "additionalProperties": False,
+        }
+    )
+    branches.append(
+        {
             "title": "a team's own board",
             "description": "A `package.module:Class` driver; the other keys are its own "
             "config (its `Config` struct, checked at load).",
@@ -612,6 +623,16 @@ def reference_markdown() -> str:
         section = _struct_section(schema, f"{driver} board", "$.nodes.<dnX>.board")
         # Less the `driver` row (the first): the heading says it.
         out += _block(f"board-{driver}", f"### `driver: {driver}`", section, slice(1, None))
+    out += [
+        "",
+        '<a id="board-world"></a>',
+        "",
+        "### `driver: world`",
+        "",
+        "A port onto the mission's vehicle world (`$.world`, see `zplatform.world`): "
+        "one physics shared by every board of the vehicle. It takes no other key; the "
+        "node's pins are declared in `$.world.boards.<dnX>`.",
+    ]
     out += [
         "",
         "## Built-in devices",

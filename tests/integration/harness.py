@@ -44,16 +44,18 @@ class Cluster:
         e = dict(os.environ, PYTHONUNBUFFERED="1")
         e.update(env or {})
         log = open(self.tmp / f"{name}.log", "ab")  # noqa: SIM115 - closed with the process
+        # "world": the mission's vehicle world process (zplatform world), not a node.
+        argv = (
+            ["world", str(self.path)]
+            if name == "world"
+            else ["node", str(self.path), name, "--summary", str(self.tmp / f"{name}.json")]
+        )
         p = subprocess.Popen(
             [
                 sys.executable,
                 "-m",
                 "zplatform",
-                "node",
-                str(self.path),
-                name,
-                "--summary",
-                str(self.tmp / f"{name}.json"),
+                *argv,
                 # These clusters run no ground node: the CN must not wait for one.
                 *(["--ground-wait", "0"] if name == "cn" else []),
                 *extra,

@@ -121,7 +121,7 @@ async def _small_screen(c: Cluster) -> None:
 
 def test_console_against_running_mission(tmp_path: Path) -> None:
     with Cluster(CONFIGS / "recovery_igniter.yaml", tmp_path) as c:
-        for n in ("dn0", "dn1", "cn"):
+        for n in ("world", "dn0", "dn1", "cn"):
             c.spawn(n)
         c.advance(5)
         asyncio.run(_big_screen(c))

@@ -28,7 +28,7 @@ __all__ = [
     "safe_board",
 ]
 
-BUILTIN_DRIVERS = ("sim", "serial", "gpiod")
+BUILTIN_DRIVERS = ("sim", "serial", "gpiod", "world")
 _BOARD_METHODS = ("step", "set_digital", "get_digital", "set_analog", "get_analog")
 
 
@@ -80,6 +80,12 @@ def make_board(
     driver, config = _split(spec, where)
     if driver == "sim":
         return SimBoard(config, where=where, pythonpath=pythonpath)
+    if driver == "world":
+        raise ConfigError(
+            "driver 'world' is a port onto the mission's vehicle world: build it with "
+            "zplatform.world.node_board(mission, node)",
+            f"{where}.driver",
+        )
     if driver == "serial":
         from .serialboard import SerialBoard
 
@@ -119,6 +125,8 @@ def check_board(
     team's constructor may not be pure. Raises ConfigError with the path.
     """
     driver, config = _split(spec, where)
+    if driver == "world":
+        return  # checked against the mission's world (zplatform.world.check_config)
     if driver in BUILTIN_DRIVERS:
         make_board(spec, where=where, pythonpath=pythonpath)
         return

@@ -157,6 +157,10 @@ class SimBoard:
         """What was last set on ``pin`` (ignores injection): for tests and physics."""
         return self._dout[self._dpin(pin)]
 
+    def output_analog(self, pin: int) -> float:
+        """The voltage last set on ``pin`` (ignores injection): for tests and physics."""
+        return self._aout[self._apin(pin)]
+
     # -- the board contract (zplatform.boards): the reference implementation --
 
     def open(self) -> None:
