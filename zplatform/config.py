@@ -750,6 +750,7 @@ def platform_elements(m: Mission) -> dict[str, list[ElementConfig]]:
         E("cn_cmd_status", "enum", "NONE", list(CMD_STATUS_NAMES)),
         E("cn_cmd_rejects", "u32", 0),
         E("cn_cmd_reject_status", "enum", "NONE", list(CMD_STATUS_NAMES)),
+        E("cn_cmd_reject_seq", "u64", 0),
         E("cn_cmd_dropped", "u32", 0),
         E("cn_epoch", "u64", 0),
         E("cn_fault", "enum", "NONE", list(FAULT_NAMES)),
