@@ -42,6 +42,10 @@ from .errors import (
 )
 from .events import EV, Event, EventLog, EventType, Severity
 from .faults import FaultMonitor
+from .ground.link import GroundLink
+from .ground.logic import GroundLogic
+from .ground.records import CommandOutcome, EventRecord, TelemetryCounters
+from .ground.script import ScriptPlayer
 from .lockstep import LockstepRunner, ReplayResult, SimResult, replay
 from .loop import ControlLogic, DeviceLogic
 from .mission import check_mission, decode_mission, load_mission
@@ -52,7 +56,7 @@ from .statemachine import StateMachine
 from .telemetry import CsvLogger, read_csv
 from .timebase import NodeClock, VirtualClock
 from .transport import KeySpace
-from .uplink import ScriptCommand, ScriptPlayer, fill_request, load_commands, parse_commands
+from .uplink import ScriptCommand, fill_request, load_commands, parse_commands
 
 __version__ = "0.1.0"
 
@@ -65,6 +69,7 @@ __all__ = [
     "Command",
     "CommandError",
     "CommandHandler",
+    "CommandOutcome",
     "CommandStatus",
     "Component",
     "ConfigError",
@@ -82,6 +87,7 @@ __all__ = [
     "Event",
     "EventError",
     "EventLog",
+    "EventRecord",
     "EventType",
     "Fault",
     "FaultMonitor",
@@ -91,6 +97,8 @@ __all__ = [
     "FrameFormatError",
     "FrameSizeError",
     "GcGuard",
+    "GroundLink",
+    "GroundLogic",
     "Handle",
     "KeySpace",
     "Layout",
@@ -116,6 +124,7 @@ __all__ = [
     "SimResult",
     "StateMachine",
     "StateMachineError",
+    "TelemetryCounters",
     "TimebaseError",
     "TransportError",
     "VirtualClock",

@@ -5,13 +5,12 @@ from __future__ import annotations
 import argparse
 import queue
 import sys
-import threading
 import time
 from pathlib import Path
 from typing import Any
 
 from .cli_args import check_output, positive_float, positive_int
-from .errors import CommandError, ZPlatformError
+from .errors import CommandError
 from .mission import load_mission
 from .telemetry import read_csv
 
@@ -30,10 +29,6 @@ def _port(text: str) -> int:
 
 
 __all__ = ["register"]
-
-HELP = """commands: launch | abort | noop | hold | resume | arm | write ELEMENT VALUE |
-          armed COMMAND (ARM n, then COMMAND n+1) | quit"""
-
 
 def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p = sub.add_parser(
@@ -118,7 +113,8 @@ def cmd_ground(args: argparse.Namespace) -> int:
             from .console import run_console, serve_console
         except ImportError as exc:
             raise CommandError(
-                f"the console needs the ground extra ({exc.name}): pip install 'zplatform[ground]'"
+                f"the console needs {exc.name}, a dependency of zplatform that is not "
+                "installed here: reinstall zplatform (pip install --force-reinstall zplatform)"
             ) from None
         limits = _read_limits(args.limits)
         if args.web is not None:
@@ -153,101 +149,15 @@ def _read_limits(path: str | None) -> dict[str, object] | None:
 
 
 def cmd_prompt(args: argparse.Namespace) -> int:
-    """Status line every ``--interval`` s; one command per stdin line.
+    """The line prompt (:func:`zplatform.ground.tools.run_prompt`)."""
+    from .ground.tools import run_prompt
 
-    The prompt runs in a reader thread that only queues lines; the main
-    thread owns the zenoh session, receives telemetry and sends commands.
-    Every node's events are printed as they come (``EVENT cn WARNING id: text``).
-    """
-    import zenoh
-
-    from .events import decode_event
-    from .node.ground import CommandSender
-
-    mission = load_mission(args.mission)
-    sender = CommandSender(mission, timeout_s=args.timeout)
-    for name in args.watch:
-        sender.rx.dv.layout.element(name)  # unknown elements fail now, with their name
-    lines: queue.SimpleQueue[str | None] = queue.SimpleQueue()
-    ev_q: queue.SimpleQueue[bytes] = queue.SimpleQueue()
-
-    def on_event(sample: zenoh.Sample) -> None:
-        ev_q.put(sample.payload.to_bytes())  # hand off only
-
-    ev_sub = sender.ns.session.declare_subscriber(
-        sender.ns.keys.all_events, zenoh.handlers.Callback(on_event, indirect=False)
+    return run_prompt(
+        load_mission(args.mission),
+        watch=args.watch,
+        interval_s=args.interval,
+        timeout_s=args.timeout,
     )
-
-    def print_events() -> None:
-        while True:
-            try:
-                payload = ev_q.get_nowait()
-            except queue.Empty:
-                return
-            try:
-                e = decode_event(payload)
-            except ZPlatformError as exc:
-                print(f"EVENT (undecodable: {exc})", flush=True)
-                continue
-            print(f"EVENT {e.node} {e.severity_name} {e.id}: {e.text}", flush=True)
-
-    def reader() -> None:
-        for line in sys.stdin:
-            lines.put(line)
-        lines.put(None)
-
-    threading.Thread(target=reader, name="prompt", daemon=True).start()
-    print(HELP, flush=True)
-    last = 0.0
-    try:
-        while True:
-            try:
-                line = lines.get_nowait()
-            except queue.Empty:
-                line = ""
-            print_events()
-            if line is None:
-                return 0
-            words = line.split()
-            if words:
-                if words[0] in ("quit", "exit"):
-                    return 0
-                try:
-                    if words[0] == "armed" and len(words) == 2:
-                        results = sender.send_armed(words[1])
-                    else:
-                        el = words[1] if len(words) > 1 else None
-                        val = words[2] if len(words) > 2 else None
-                        results = [sender.send(words[0], el, val)]
-                    for r in results:
-                        print(f"{r.command} #{r.seq}: {r.status}", flush=True)
-                except (CommandError, ZPlatformError) as exc:
-                    print(f"refused: {exc}", flush=True)
-            if sender.rx.next(0.05) is None:
-                continue
-            now = time.monotonic()
-            if now - last >= args.interval:
-                dv = sender.rx.dv
-                watched = " ".join(
-                    f"{n}={dv.get_name(n) if dv.layout.element(n).enum else dv.get(n)}"
-                    for n in args.watch
-                )
-                misses = " ".join(
-                    f"{dn}={int(dv.get(f'cn_missed_{dn}'))}" for dn in mission.device_nodes
-                )
-                print(
-                    f"loop {int(dv.get('cn_loop'))} state {dv.get_name('cn_state')} "
-                    f"fault {dv.get_name('cn_fault')} missed {misses or '-'} "
-                    f"cmd #{int(dv.get('cn_cmd_seq'))} {dv.get_name('cn_cmd_status')} {watched}",
-                    flush=True,
-                )
-                last = now
-    except KeyboardInterrupt:
-        return 0
-    finally:
-        print_events()
-        ev_sub.undeclare()
-        sender.close()
 
 
 def cmd_plot(args: argparse.Namespace) -> int:
@@ -359,9 +269,7 @@ def cmd_ccsds(args: argparse.Namespace) -> int:
             f"sequence gaps {dec.seq_gaps}"
         )
         return 0
-    from .node.ground import TelemetryReceiver
-    from .timebase import NodeClock
-    from .transport import NodeSession
+    from .ground.link import GroundLink
 
     check_output(args.record, "packet file")
     if mission.downlink.ccsds:
@@ -369,26 +277,22 @@ def cmd_ccsds(args: argparse.Namespace) -> int:
     enc = ccsds.CcsdsEncoder(
         mission, divisor=args.divisor, budget_bps=args.budget, max_data=args.max_data
     )
-    ns = NodeSession(mission, None)
-    rx = TelemetryReceiver(ns.session, mission, NodeClock().now_ns)
+    link = GroundLink(mission, events=False)
     start = time.monotonic()
     try:
         with open(args.record, "ab") as f:
             while args.duration is None or time.monotonic() - start < args.duration:
-                if rx.next(0.2) is None:
-                    if not rx.received and time.monotonic() - start > args.timeout:
-                        raise CommandError(
-                            f"no telemetry from the control node within {args.timeout:g} s"
-                        )
+                if link.next(0.2) is None:
+                    if not link.logic.received and time.monotonic() - start > args.timeout:
+                        raise CommandError(link.why_no_telemetry(args.timeout))
                     continue
-                dv = rx.dv
+                dv = link.dv
                 for pkt in enc.encode(dv, int(dv.get("cn_loop")), int(dv.get("cn_time_ns"))):
                     f.write(pkt)
     except KeyboardInterrupt:
         pass
     finally:
-        rx.close()
-        ns.close()
+        link.close()
     print(
         f"wrote {args.record}: {enc.sent_snapshots} snapshots, {enc.sent_packets} packets, "
         f"{enc.sent_bytes} bytes; decimated {enc.decimated}, over budget {enc.dropped_budget}"

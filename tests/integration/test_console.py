@@ -4,8 +4,10 @@ One recovery_igniter cluster (real node processes on free ports) serves two
 console sessions: a large screen (200x60) that sees values move, refuses
 and then confirms the hazardous LAUNCH (ARM, LAUNCH, both verdicts) and
 shows the CN's event with its severity; and a small one (80x24) that shows
-loss of signal once the CN is stopped. Every wait is on what the screen
-shows, bounded; nothing sleeps for a peer.
+loss of signal once the CN is stopped. A WRITE of a protected element asks
+first too, then goes ARM n, WRITE n+1, its verdict shown with the CN's
+detail. Every wait is on what the screen shows, bounded; nothing sleeps for
+a peer.
 
 The browser test serves the console with ``zplatform ground --web`` and
 reads the page in headless Chromium (skipped, with the reason, without it).
@@ -68,6 +70,17 @@ async def _big_screen(c: Cluster) -> None:
             rows = dict(model.region_rows())
         assert ("cn_loop", str(int(model.dv.get("cn_loop"))), "red") in rows["cn"]
 
+        # A WRITE of a protected element asks first, then goes ARM n, WRITE n+1.
+        await pilot.press(*"write dn0_ign_armed true", "enter")
+        await _until(pilot, lambda: isinstance(app.screen, ConfirmScreen), "the confirmation")
+        await pilot.press("y")
+        await _until(
+            pilot,
+            lambda: "WRITE #2: ACCEPTED (dn0_ign_armed = True)" in _text(app, "#events-text"),
+            "the protected WRITE's verdict, with the CN's detail",
+        )
+        assert "ARM #1: ACCEPTED" in _text(app, "#events-text")
+
         # A hazardous command asks first; "n" sends nothing.
         await pilot.press(*"launch", "enter")
         await _until(pilot, lambda: isinstance(app.screen, ConfirmScreen), "the confirmation")
@@ -81,11 +94,11 @@ async def _big_screen(c: Cluster) -> None:
         await pilot.press("y")
         await _until(
             pilot,
-            lambda: "LAUNCH #2 ACCEPTED" in _text(app, "#events-text"),
+            lambda: "LAUNCH #4: ACCEPTED" in _text(app, "#events-text"),
             "LAUNCH's verdict",
         )
         events = _text(app, "#events-text")
-        assert "ARM #1 ACCEPTED" in events
+        assert "ARM #3: ACCEPTED" in events
         # The CN's own event about the command: time, severity name, node, id.
         await _until(pilot, lambda: "cmd_accepted" in _text(app, "#events-text"), "the CN's event")
         line = next(x for x in _text(app, "#events-text").splitlines() if "cmd_accepted" in x)

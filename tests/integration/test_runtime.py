@@ -209,18 +209,16 @@ def test_up_flies_on_when_a_device_node_dies(tmp_path: Path) -> None:
     with every child reaped (issue 9, defect 9)."""
     import psutil
 
+    from zplatform.ground.link import GroundLink
     from zplatform.mission import load_mission
-    from zplatform.node.ground import TelemetryReceiver
-    from zplatform.timebase import NodeClock
-    from zplatform.transport import NodeSession, rewrite_endpoints
+    from zplatform.transport import rewrite_endpoints
 
     path = tmp_path / "m.yaml"
     rewrite_endpoints(CONFIGS / "minimal.yaml", path)
     up = _up(path, "--summary", str(tmp_path / "s.json"))
-    ns = NodeSession(load_mission(path), None)
-    rx = TelemetryReceiver(ns.session, load_mission(path), NodeClock().now_ns)
+    rx = GroundLink(load_mission(path), events=False)
     try:
-        while rx.received < 20:
+        while rx.logic.received < 20:
             assert up.poll() is None, up.stdout.read().decode()[-2000:]  # type: ignore[union-attr]
             rx.next(1.0)
         children = psutil.Process(up.pid).children()
@@ -246,7 +244,6 @@ def test_up_flies_on_when_a_device_node_dies(tmp_path: Path) -> None:
         assert not alive, alive
     finally:
         rx.close()
-        ns.close()
         if up.poll() is None:
             up.kill()
 

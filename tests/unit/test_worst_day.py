@@ -77,9 +77,9 @@ def _abort_at(which: str, target: int) -> tuple[str, str, list[str]]:
     # the CN applies it in loop `target`, whatever transition is due there.
     while r.loop < target - 1:
         r.step()
-    seq = int(r.telemetry_dv.get("cn_cmd_seq")) + 1
+    seq = int(r.ground.dv.get("cn_cmd_seq")) + 1
     up = Uplink(mission, SIM_KEY)
-    r._ground = bytearray(up.frame("ABORT", seq, 0, 0.0, 0, int(r.telemetry_dv.get("cn_epoch"))))
+    r._ground = bytearray(up.frame("ABORT", seq, 0, 0.0, 0, int(r.ground.dv.get("cn_epoch"))))
     r.step()
     status = r.control.dv.get_name("cn_cmd_status")
     r.step()  # within one loop
