@@ -147,6 +147,33 @@ def test_tap_prints_events_decoded() -> None:
     }
 
 
+@pytest.mark.parametrize(
+    ("argv", "blocked", "phrase"),
+    [
+        (["xtce", "configs/minimal.yaml"], ("yamcs", "zplatform.xtce"), "zplatform[ground]"),
+        (
+            ["ccsds", "configs/minimal.yaml", "--decode", "x.bin", "--out", "x.csv"],
+            ("spacepackets", "zplatform.ccsds", "zplatform.xtce"),
+            "zplatform[ground]",
+        ),
+        (["plot", "x.csv", "cn_loop", "--out", "x.png"], ("matplotlib",), "zplatform[plot]"),
+    ],
+)
+def test_verbs_that_need_an_extra_name_it(
+    argv: list[str],
+    blocked: tuple[str, ...],
+    phrase: str,
+    monkeypatch: pytest.MonkeyPatch,
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    """Without its extra a verb says which, in one line, exit 2 (no traceback)."""
+    for name in blocked:  # None in sys.modules: `import name` raises ImportError
+        monkeypatch.setitem(sys.modules, name, None)
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("zplatform: error: ") and phrase in err and err.count("\n") == 1, err
+
+
 # ---------------------------------------------------------------- output
 
 
