@@ -3,18 +3,17 @@
 from __future__ import annotations
 
 import argparse
+import importlib
 import queue
 import sys
 import time
 from pathlib import Path
 from typing import Any
 
-from .cli_args import check_output, positive_float, positive_int
+from .cli_args import check_output, mission_verb, positive_float, positive_int, timeout_option
 from .errors import CommandError
 from .mission import load_mission
 from .telemetry import read_csv
-
-MISSION_HELP = "mission YAML file, or the name of a running mission (`zplatform ps`)"
 
 
 def _port(text: str) -> int:
@@ -30,12 +29,13 @@ def _port(text: str) -> int:
 
 __all__ = ["register"]
 
+
 def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
-    p = sub.add_parser(
+    p = mission_verb(
+        sub,
         "ground",
         help="the ground console (terminal or --web PORT); a line prompt when stdin is no TTY",
     )
-    p.add_argument("mission", help=MISSION_HELP)
     mode = p.add_mutually_exclusive_group()
     mode.add_argument(
         "--console", action="store_true", help="the full-screen console even without a TTY"
@@ -47,9 +47,7 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p.add_argument("--host", default="127.0.0.1", help="address --web listens on")
     p.add_argument("--watch", nargs="*", default=[], help="elements to show on the status line")
     p.add_argument("--interval", type=positive_float, default=1.0, help="status line period (s)")
-    p.add_argument(
-        "--timeout", type=positive_float, default=10.0, help="verdict timeout per command (s)"
-    )
+    timeout_option(p, "each command's verdict")
     p.add_argument(
         "--los", type=positive_float, default=0.3, help="console: seconds of silence that mean LOS"
     )
@@ -73,17 +71,15 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p.add_argument("--title", help="figure title (default: the CSV name and the elements)")
     p.set_defaults(func=cmd_plot)
 
-    p = sub.add_parser(
-        "xtce", help="write the mission's telemetry packets and commands as XTCE (Yamcs)"
+    p = mission_verb(
+        sub, "xtce", help="write the mission's telemetry packets and commands as XTCE (Yamcs)"
     )
-    p.add_argument("mission", help=MISSION_HELP)
     p.add_argument("--out", help="XML path (default: MISSION_NAME.xtce.xml)")
     p.set_defaults(func=cmd_xtce)
 
-    p = sub.add_parser(
-        "ccsds", help="record live telemetry as CCSDS space packets, or decode them to CSV"
+    p = mission_verb(
+        sub, "ccsds", help="record live telemetry as CCSDS space packets, or decode them to CSV"
     )
-    p.add_argument("mission", help=MISSION_HELP)
     what = p.add_mutually_exclusive_group(required=True)
     what.add_argument("--record", metavar="FILE", help="append the downlink's packets to FILE")
     what.add_argument("--decode", metavar="FILE", help="decode a packet file to CSV (--out)")
@@ -96,13 +92,7 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p.add_argument(
         "--max-data", type=positive_int, default=65536, help="packet data field size (bytes)"
     )
-    p.add_argument(
-        "--timeout",
-        type=positive_float,
-        default=10.0,
-        metavar="S",
-        help="--record: wait for the CN (s)",
-    )
+    timeout_option(p, "the CN with --record")
     p.set_defaults(func=cmd_ccsds)
 
 
@@ -160,12 +150,18 @@ def cmd_prompt(args: argparse.Namespace) -> int:
     )
 
 
+def _needs(module: str, verb: str, package: str, extra: str) -> Any:
+    """``module``, imported; CommandError naming the extra that brings
+    ``package`` when it cannot be (one line, exit 2)."""
+    try:
+        return importlib.import_module(module)
+    except ImportError:
+        raise CommandError(f"{verb} needs {package}: pip install 'zplatform[{extra}]'") from None
+
+
 def cmd_plot(args: argparse.Namespace) -> int:
     """Plot CSV columns against time since the first row (see telemetry.plot_telemetry)."""
-    try:
-        import matplotlib  # noqa: F401
-    except ImportError:
-        raise CommandError("plot needs matplotlib: pip install 'zplatform[plot]'") from None
+    _needs("matplotlib", "plot", "matplotlib", "plot")
     from .telemetry import plot_telemetry
 
     try:
@@ -192,10 +188,7 @@ def cmd_plot(args: argparse.Namespace) -> int:
 
 def cmd_xtce(args: argparse.Namespace) -> int:
     """Write the XTCE database of the mission's CCSDS downlink and commands."""
-    try:
-        from .xtce import write_xtce
-    except ImportError:
-        raise CommandError("xtce needs yamcs-pymdb: pip install 'zplatform[ground]'") from None
+    write_xtce = _needs("zplatform.xtce", "xtce", "yamcs-pymdb", "ground").write_xtce
     mission = load_mission(args.mission)
     out = args.out or f"{mission.mission}.xtce.xml"
     check_output(out, "XTCE file")
@@ -248,10 +241,7 @@ def _record_radio(mission: Any, args: argparse.Namespace) -> int:
 
 def cmd_ccsds(args: argparse.Namespace) -> int:
     """``--record``: telemetry -> packets (the radio path, on the ground); ``--decode``: -> CSV."""
-    try:
-        from . import ccsds
-    except ImportError:
-        raise CommandError("ccsds needs spacepackets: pip install 'zplatform[ground]'") from None
+    ccsds = _needs("zplatform.ccsds", "ccsds", "spacepackets", "ground")
     mission = load_mission(args.mission)
     if args.decode:
         if not args.out:

@@ -13,7 +13,15 @@ import argparse
 import sys
 from pathlib import Path
 
-from .cli_args import check_output, check_ports, nonnegative_float, positive_float, positive_int
+from .cli_args import (
+    check_output,
+    check_ports,
+    mission_verb,
+    nonnegative_float,
+    positive_float,
+    positive_int,
+    timeout_option,
+)
 from .errors import NodeError
 from .ground.tap import TAP_SILENCE_S
 from .mission import load_mission
@@ -25,15 +33,8 @@ __all__ = ["register"]
 
 
 def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
-    mission_help = "mission YAML file, or the name of a running mission (`zplatform ps`)"
-    p = sub.add_parser("up", help="spawn every node of a mission as its own process")
-    p.add_argument("mission", help=mission_help)
-    p.add_argument(
-        "--duration",
-        type=positive_float,
-        metavar="S",
-        help="seconds of loops (default: until Ctrl-C)",
-    )
+    p = mission_verb(sub, "up", help="spawn every node of a mission as its own process")
+    _duration(p, "seconds of loops (default: until Ctrl-C)")
     p.add_argument(
         "--log",
         metavar="CSV",
@@ -51,15 +52,8 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p.add_argument(
         "--commands", metavar="FILE", help="command script the ground node plays (at 1.0 launch)"
     )
-    p.add_argument("--no-realtime", action="store_true", help="skip SCHED_FIFO/affinity set-up")
     p.add_argument("--quiet", action="store_true", help="no live status line, no summary line")
-    p.add_argument(
-        "--ready-timeout",
-        type=positive_float,
-        default=60.0,
-        metavar="S",
-        help="seconds the nodes wait for their peers at start (default 60)",
-    )
+    _node_options(p, "seconds the nodes wait for their peers at start (default 60)")
     p.add_argument(
         "--record",
         metavar="DIR",
@@ -67,28 +61,15 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     )
     p.set_defaults(func=cmd_up)
 
-    p = sub.add_parser("node", help="run one node of a mission (multi-host deployments)")
-    p.add_argument("mission", help=mission_help)
+    p = mission_verb(sub, "node", help="run one node of a mission (multi-host deployments)")
     p.add_argument("name", help="cn, dnX or gn")
-    p.add_argument(
-        "--duration",
-        type=positive_float,
-        metavar="S",
-        help="CN: seconds of loops; GN: seconds of logging",
-    )
+    _duration(p, "CN: seconds of loops; GN: seconds of logging")
     p.add_argument(
         "--log", metavar="CSV", help="GN: telemetry CSV; events beside it (NAME.events.jsonl)"
     )
     p.add_argument("--commands", metavar="FILE", help="GN: command script to play (at 1.0 launch)")
     p.add_argument("--summary", metavar="JSON", help="write this node's summary JSON here")
-    p.add_argument("--no-realtime", action="store_true", help="skip SCHED_FIFO/affinity set-up")
-    p.add_argument(
-        "--ready-timeout",
-        type=positive_float,
-        default=60.0,
-        metavar="S",
-        help="seconds to wait for the peers at start (default 60)",
-    )
+    _node_options(p, "seconds to wait for the peers at start (default 60)")
     p.add_argument(
         "--ground-wait",
         type=nonnegative_float,
@@ -104,22 +85,18 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p.add_argument("-v", "--verbose", action="store_true", help="debug logging")
     p.set_defaults(func=cmd_node)
 
-    p = sub.add_parser("log", help="log telemetry snapshots to CSV (events beside it)")
-    p.add_argument("mission", help=mission_help)
+    p = mission_verb(sub, "log", help="log telemetry snapshots to CSV (events beside it)")
     p.add_argument(
         "--out",
         required=True,
         metavar="CSV",
         help="telemetry CSV; events go beside it (tm.csv -> tm.events.jsonl)",
     )
-    p.add_argument(
-        "--duration", type=positive_float, metavar="S", help="seconds (default: until Ctrl-C)"
-    )
+    _duration(p, "seconds (default: until Ctrl-C)")
     p.add_argument("--summary", metavar="JSON", help="write the logger's summary JSON here")
     p.set_defaults(func=cmd_log)
 
-    p = sub.add_parser("cmd", help="send one operator command and wait for its verdict")
-    p.add_argument("mission", help=mission_help)
+    p = mission_verb(sub, "cmd", help="send one operator command and wait for its verdict")
     p.add_argument("command", help="launch|abort|noop|hold|resume|arm|write")
     p.add_argument("args", nargs="*", help="write: ELEMENT VALUE")
     p.add_argument(
@@ -128,23 +105,17 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         help="send ARM n first, then the command as n+1 (needed for hazardous commands and "
         "WRITEs of protected elements)",
     )
-    p.add_argument(
-        "--timeout",
-        type=positive_float,
-        default=10.0,
-        metavar="S",
-        help="seconds to wait for the CN and its verdict (default 10)",
-    )
+    timeout_option(p, "the CN and for each verdict")
     p.set_defaults(func=cmd_cmd)
 
-    p = sub.add_parser(
+    p = mission_verb(
+        sub,
         "tap",
         help="print every sample on matching keys, decoded (events included)",
         description="Print every sample on matching keys, decoded to named values; events "
         "({vehicle}/NODE/events) as severity, id and text. Exits 1 when nothing at all "
         f"arrived within --timeout (without --timeout: within {TAP_SILENCE_S:g} s).",
     )
-    p.add_argument("mission", help=mission_help)
     p.add_argument("keyexpr", nargs="?", help="zenoh key expression (default: {vehicle}/**)")
     p.add_argument("--count", type=positive_int, metavar="N", help="stop after N samples")
     p.add_argument(
@@ -156,6 +127,18 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     )
     p.add_argument("--json", action="store_true", help="one JSON object per line")
     p.set_defaults(func=cmd_tap)
+
+
+def _duration(p: argparse.ArgumentParser, what: str) -> None:
+    p.add_argument("--duration", type=positive_float, metavar="S", help=what)
+
+
+def _node_options(p: argparse.ArgumentParser, ready_help: str) -> None:
+    """What every node process takes: real-time set-up, the start-up wait."""
+    p.add_argument("--no-realtime", action="store_true", help="skip SCHED_FIFO/affinity set-up")
+    p.add_argument(
+        "--ready-timeout", type=positive_float, default=60.0, metavar="S", help=ready_help
+    )
 
 
 # ---------------------------------------------------------------- node / log

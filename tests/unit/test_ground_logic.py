@@ -181,7 +181,7 @@ def test_a_replayed_earlier_run_is_stale_and_never_followed() -> None:
     assert not g.joined and g.counters.refused["stale"] == 20
     run2 = Vehicle(ground=g)
     run2.run(3)
-    assert g.epoch == RUN2 and g.counters.received == 3
+    assert g.counters.epoch == RUN2 and g.counters.received == 3
     for _, frame in run1.frames:  # interleaved with run 2's: still refused
         assert not g.on_telemetry(frame, run2.t + LATENCY)
     assert g.counters.received == 3 and g.counters.refused["stale"] == 40
@@ -195,7 +195,7 @@ def test_an_older_run_is_refused_while_the_run_followed_is_fresh() -> None:
     old.run(13)  # fresh, but of a run that started earlier
     for _, frame in old.frames[-3:]:
         assert not g.on_telemetry(frame, new.t + LATENCY)
-    assert g.counters.refused["old_epoch"] == 3 and g.epoch == RUN2
+    assert g.counters.refused["old_epoch"] == 3 and g.counters.epoch == RUN2
 
 
 def test_a_restarted_control_node_is_followed_as_a_decision() -> None:
@@ -220,7 +220,7 @@ def test_an_older_run_is_followed_once_the_run_followed_went_stale() -> None:
     b = Vehicle(epoch=RUN2 - PERIOD, ground=g)
     b.loop = 400  # 4 s later: run a has been silent past the bound
     b.step()
-    assert g.epoch == RUN2 - PERIOD and g.counters.epoch_changes == 1
+    assert g.counters.epoch == RUN2 - PERIOD and g.counters.epoch_changes == 1
 
 
 # -- command verdicts ---------------------------------------------------------------

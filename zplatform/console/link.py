@@ -107,9 +107,7 @@ class Link:
                         break
                     what = " ".join([("armed " if armed else "") + cmd, *args])
                     try:
-                        el = args[0] if args else None
-                        val = args[1] if len(args) > 1 else None
-                        ticket = link.submit(cmd, el, val, armed=armed)
+                        ticket = link.submit(cmd, args, armed=armed)
                     except ZPlatformError as exc:
                         with m.lock:
                             m.on_refusal(self.now_ns(), what, str(exc))

@@ -121,29 +121,11 @@ class GroundLink:
         self.keys = self.ns.keys
         session = self.ns.session
         self._q: queue.SimpleQueue[tuple[int, bytes, int, str, bool]] = queue.SimpleQueue()
-        now = self.clock.now_ns
-        q = self._q
         self._subs: list[zenoh.Subscriber[None]] = []
         if telemetry:
-
-            def on_tm(sample: zenoh.Sample) -> None:
-                q.put((_TM, sample.payload.to_bytes(), now(), "", False))  # hand off only
-
-            self._subs.append(
-                session.declare_subscriber(
-                    self.keys.telemetry, zenoh.handlers.Callback(on_tm, indirect=False)
-                )
-            )
+            self._subscribe(self.keys.telemetry, _TM)
         if events:
-
-            def on_ev(sample: zenoh.Sample) -> None:
-                q.put((_EV, sample.payload.to_bytes(), now(), "", False))  # hand off only
-
-            self._subs.append(
-                session.declare_subscriber(
-                    self.keys.all_events, zenoh.handlers.Callback(on_ev, indirect=False)
-                )
-            )
+            self._subscribe(self.keys.all_events, _EV)
         self._pub: zenoh.Publisher | None = None
         if commands or script:
             self._pub = session.declare_publisher(self.keys.gn_to_cn)
@@ -198,12 +180,20 @@ class GroundLink:
         until a snapshot is accepted: returns its receive time (ns), or None
         when the time ran out first. Events met on the way go to
         ``on_event``; refused snapshots are counted by the logic."""
+        got = self._pump(timeout_s, tap=False)
+        return got if isinstance(got, int) else None
+
+    def _pump(self, timeout_s: float, *, tap: bool) -> int | tuple[str, bytes, bool] | None:
+        """Take queued items until an accepted snapshot (``tap=False``: its
+        receive time) or a tapped sample (``tap=True``), or the time runs out."""
         deadline = time.monotonic() + timeout_s
         while (item := self._pop(deadline)) is not None:
             kind, payload, rx, key, shm = item
             if kind == _TAP:
+                if tap:
+                    return key, payload, shm
                 self._taps.append((key, payload, shm))
-            elif self._take(kind, payload, rx):
+            elif self._take(kind, payload, rx) and not tap:
                 return rx
         return None
 
@@ -271,20 +261,15 @@ class GroundLink:
                 raise CommandError("the control node does not subscribe to ground commands")
             self.next(0.01)
 
-    def submit(
-        self,
-        command: str,
-        element: str | None = None,
-        value: str | None = None,
-        *,
-        armed: bool = False,
-    ) -> int:
-        """Queue a command (:meth:`GroundLogic.command`) and publish it if it
-        can go now; returns its ticket. Never blocks."""
+    def submit(self, command: str, args: Sequence[str] = (), *, armed: bool = False) -> int:
+        """Queue a command with its arguments (WRITE: ELEMENT VALUE;
+        :meth:`GroundLogic.command`) and publish it if it can go now;
+        returns its ticket. Never blocks; CommandError for bad arguments."""
+        if len(args) > 2:
+            raise CommandError(f"{command} takes at most ELEMENT VALUE, got {list(args)}")
         ticket = self.logic.command(
             command,
-            element,
-            value,
+            *args,
             now_ns=self.clock.now_ns(),
             armed=armed,
             can_send=self.cn_listening,
@@ -313,7 +298,7 @@ class GroundLink:
         validate_command(self.mission, command, element, value)  # before anything waits
         self.wait_joined(timeout_s)
         self.wait_cn_listening(timeout_s)
-        ticket = self.submit(command, element, value, armed=armed)
+        ticket = self.submit(command, [a for a in (element, value) if a is not None], armed=armed)
         deadline = time.monotonic() + timeout_s
         while (done := self.logic.result(ticket)) is None:
             if time.monotonic() > deadline:
@@ -323,13 +308,13 @@ class GroundLink:
         return done
 
     # -- taps and liveliness -------------------------------------------------
-    def tap(self, keyexpr: str) -> None:
-        """Also subscribe to every sample on ``keyexpr``, raw, for
-        :meth:`next_tap`."""
+    def _subscribe(self, keyexpr: str, kind: int) -> None:
+        """Queue every sample on ``keyexpr`` as ``kind``, stamped on arrival."""
+        q, now = self._q, self.clock.now_ns
 
         def on_sample(sample: zenoh.Sample) -> None:
             p = sample.payload  # hand off only (and whether shared memory carried it)
-            self._q.put((_TAP, p.to_bytes(), 0, str(sample.key_expr), p.as_shm() is not None))
+            q.put((kind, p.to_bytes(), now(), str(sample.key_expr), p.as_shm() is not None))
 
         self._subs.append(
             self.ns.session.declare_subscriber(
@@ -337,18 +322,18 @@ class GroundLink:
             )
         )
 
+    def tap(self, keyexpr: str) -> None:
+        """Also subscribe to every sample on ``keyexpr``, raw, for
+        :meth:`next_tap`."""
+        self._subscribe(keyexpr, _TAP)
+
     def next_tap(self, timeout_s: float) -> tuple[str, bytes, bool] | None:
         """The next tapped sample ``(key, payload, came through shared
         memory)``, up to ``timeout_s``, or None."""
         if self._taps:
             return self._taps.popleft()
-        deadline = time.monotonic() + timeout_s
-        while (item := self._pop(deadline)) is not None:
-            kind, payload, rx, key, shm = item
-            if kind == _TAP:
-                return key, payload, shm
-            self._take(kind, payload, rx)
-        return None
+        got = self._pump(timeout_s, tap=True)
+        return got if isinstance(got, tuple) else None
 
     def alive_nodes(self, timeout_s: float = 1.0) -> list[str]:
         """The mission's nodes with a liveliness token now, sorted."""

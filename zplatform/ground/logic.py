@@ -67,6 +67,8 @@ import struct
 from collections import deque
 from collections.abc import Sequence
 
+import msgspec
+
 from ..auth import TAG_LEN, AuthError, mission_channels
 from ..codec import RegionCodec
 from ..commands import protected_elements
@@ -151,6 +153,18 @@ def _read_cmd_event(e: Event) -> _CmdEvent | None:
     if status == "ACCEPTED" and detail.startswith("(") and detail.endswith(")"):
         detail = detail[1:-1]  # " (led_a_cmd = True)" -> "led_a_cmd = True"
     return _CmdEvent(m.group("name"), int(m.group("seq")), status, detail, e.t_ns)
+
+
+class _Tally(msgspec.Struct):
+    """The running counts behind :class:`~.records.TelemetryCounters`."""
+
+    refused: dict[str, int]
+    received: int = 0
+    gaps: int = 0
+    bad: int = 0
+    epoch_changes: int = 0
+    first_seq: int = -1
+    bad_events: int = 0
 
 
 class _Plan:
@@ -250,15 +264,9 @@ class GroundLogic:
         # telemetry state
         self._epoch = -1
         self._last_seq = -1
-        self._first_seq = -1
         self._last_rx = 0
         self._last_t = 0
-        self._received = 0
-        self._gaps = 0
-        self._bad = 0
-        self._bad_events = 0
-        self._refused = dict.fromkeys(REFUSALS, 0)
-        self._epoch_changes = 0
+        self._n = _Tally(refused=dict.fromkeys(REFUSALS, 0))
         self._evented: set[str] = set()
         self.last_refusal = ""
         """The detail of the latest refused or bad snapshot ("" if none)."""
@@ -294,29 +302,16 @@ class GroundLogic:
         return self._epoch >= 0
 
     @property
-    def epoch(self) -> int:
-        """The CN run followed (its ``cn_epoch``), -1 before joining."""
-        return self._epoch
-
-    @property
     def received(self) -> int:
         """Snapshots accepted so far (cheap; :attr:`counters` has them all)."""
-        return self._received
+        return self._n.received
 
     @property
     def counters(self) -> TelemetryCounters:
         """A snapshot of every counter (a new object per call)."""
-        return TelemetryCounters(
-            received=self._received,
-            gaps=self._gaps,
-            bad=self._bad,
-            refused=dict(self._refused),
-            epoch=max(self._epoch, 0),
-            epoch_changes=self._epoch_changes,
-            first_seq=self._first_seq,
-            last_seq=self._last_seq,
-            bad_events=self._bad_events,
-        )
+        n = msgspec.structs.asdict(self._n)
+        n["refused"] = dict(self._n.refused)
+        return TelemetryCounters(**n, epoch=max(self._epoch, 0), last_seq=self._last_seq)
 
     def on_telemetry(
         self, payload: bytes | bytearray | memoryview, rx_ns: int, *, can_send: bool = True
@@ -384,10 +379,10 @@ class GroundLogic:
                 )
         self._codec.write(frame)
         if self._last_seq >= 0 and seq > self._last_seq + self._div:
-            self._gaps += (seq - self._last_seq) // self._div - 1
-        if self._first_seq < 0:
-            self._first_seq = seq
-        self._received += 1
+            self._n.gaps += (seq - self._last_seq) // self._div - 1
+        if self._n.first_seq < 0:
+            self._n.first_seq = seq
+        self._n.received += 1
         self._last_seq = seq
         self._last_rx = rx_ns
         self._last_t = t
@@ -395,12 +390,12 @@ class GroundLogic:
         return True
 
     def _reject_bad(self, kind: str, detail: str, rx_ns: int) -> bool:
-        self._bad += 1
+        self._n.bad += 1
         self._note(kind, detail, rx_ns)
         return False
 
     def _refuse(self, reason: str, detail: str, rx_ns: int) -> bool:
-        self._refused[reason] += 1
+        self._n.refused[reason] += 1
         self._note(reason, detail, rx_ns)
         return False
 
@@ -419,7 +414,7 @@ class GroundLogic:
         if old < 0:
             self.events.emit(EV.TM_JOINED, rx_ns, epoch=epoch, loop=seq)
             return
-        self._epoch_changes += 1
+        self._n.epoch_changes += 1
         self.events.emit(EV.CN_RESTARTED, rx_ns, old=old, new=epoch, loop=seq)
         r = self._inflight
         if r is not None:  # its CN is gone: nobody will answer it
@@ -639,7 +634,7 @@ class GroundLogic:
         try:
             e = decode_event(payload)
         except FrameFormatError:
-            self._bad_events += 1
+            self._n.bad_events += 1
             return None
         return self.on_event(e, rx_ns)
 

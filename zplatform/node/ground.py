@@ -91,14 +91,14 @@ def run_ground_logger(
     player = logic.player
     return GnSummary(
         telemetry_received=c.received,
-        telemetry_gaps=c.gaps,
-        telemetry_bad=c.rejected,
-        first_seq=c.first_seq,
-        last_seq=c.last_seq,
         final_state=logic.dv.get_name("cn_state") if c.received else None,
+        telemetry_gaps=c.gaps,
         commands=player.results(logic) if player is not None else [],
+        telemetry_bad=c.rejected,
         pending_commands=player.pending if player is not None else [],
+        first_seq=c.first_seq,
         telemetry_refused={k: n for k, n in c.refused.items() if n},
+        last_seq=c.last_seq,
         epoch_changes=c.epoch_changes,
         events_logged=tlog.event_count,
     )
