@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 import re
 import subprocess
 import sys
@@ -18,7 +19,7 @@ pytestmark = pytest.mark.timeout(180)
 
 
 def _zp(
-    *args: str, stdin: str | None = None, timeout: float = 60
+    *args: str, stdin: str | None = None, timeout: float = 60, env: dict[str, str] | None = None
 ) -> subprocess.CompletedProcess[str]:
     return subprocess.run(
         [sys.executable, "-m", "zplatform", *args],
@@ -27,6 +28,7 @@ def _zp(
         capture_output=True,
         text=True,
         timeout=timeout,
+        env=dict(os.environ, **(env or {})),
     )
 
 
@@ -64,6 +66,19 @@ def test_tap_ground_and_log(tmp_path: Path) -> None:
         assert m is not None, r.stdout
         assert int(m[1]) == rows and m[2] == str(out)
         assert m[4] == str(tmp_path / "log.events.jsonl")
+
+        # A ground host whose clock is 5 s ahead of the vehicle's believes no
+        # snapshot (each looks 5 s old: a replay, for all it knows) and says
+        # what to do; widening the bound is one way.
+        skewed = {"ZPLATFORM_CLOCK_SKEW_NS": str(5_000_000_000)}
+        r = _zp("cmd", str(c.path), "noop", "--timeout", "2", env=skewed)
+        assert r.returncode == 2 and "Traceback" not in r.stderr, r.stdout + r.stderr
+        assert "no acceptable telemetry within 2 s" in r.stderr and "stale" in r.stderr
+        assert "synchronise it (chrony, NTP)" in r.stderr
+        assert "ZPLATFORM_TELEMETRY_MAX_AGE_MS" in r.stderr
+        wide = {**skewed, "ZPLATFORM_TELEMETRY_MAX_AGE_MS": "10000"}
+        r = _zp("cmd", str(c.path), "noop", env=wide)
+        assert r.returncode == 0 and "NOOP #2: ACCEPTED" in r.stdout, r.stdout + r.stderr
 
         # A quiet key of a running mission is not a dead mission.
         r = _zp("tap", str(c.path), "rocket/nothing/here", "--timeout", "1")

@@ -482,8 +482,11 @@ class GroundLogic:
     def _plan_done(plan: _Plan) -> bool:
         return not plan.open and len(plan.outcomes) == plan.sent
 
-    def take_requests(self) -> list[bytes]:
-        """The request frames to publish now (and forget), oldest first."""
+    def take_requests(self) -> Sequence[bytes]:
+        """The request frames to publish now (and forget), oldest first.
+        Allocates nothing when there are none (the common case)."""
+        if not self._out:
+            return ()
         out, self._out = self._out, []
         return out
 
