@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import argparse
 import importlib
-import queue
 import sys
 import time
 from pathlib import Path
@@ -201,40 +200,29 @@ def cmd_xtce(args: argparse.Namespace) -> int:
 
 def _record_radio(mission: Any, args: argparse.Namespace) -> int:
     """The mission's CN packs its own downlink: record the packets it sends."""
-    import zenoh
+    from .ground.link import GroundLink
 
-    from .transport import NodeSession
-
-    q: queue.SimpleQueue[bytes] = queue.SimpleQueue()
-
-    def on_packet(sample: zenoh.Sample) -> None:
-        q.put(sample.payload.to_bytes())  # zenoh's thread: hand off only
-
-    ns = NodeSession(mission, None)
-    sub = ns.session.declare_subscriber(
-        ns.keys.downlink, zenoh.handlers.Callback(on_packet, indirect=False)
-    )
+    link = GroundLink(mission, key=None, telemetry=False, events=False)
+    link.tap(link.keys.downlink)
     n = size = 0
     start = time.monotonic()
     try:
         with open(args.record, "ab") as f:
             while args.duration is None or time.monotonic() - start < args.duration:
-                try:
-                    pkt = q.get(timeout=0.2)
-                except queue.Empty:
+                got = link.next_tap(0.2)
+                if got is None:
                     if not n and time.monotonic() - start > args.timeout:
                         raise CommandError(
                             f"no downlink packet from the control node within {args.timeout:g} s"
-                        ) from None
+                        )
                     continue
-                f.write(pkt)
+                f.write(got[1])
                 n += 1
-                size += len(pkt)
+                size += len(got[1])
     except KeyboardInterrupt:
         pass
     finally:
-        sub.undeclare()
-        ns.close()
+        link.close()
     print(f"wrote {args.record}: {n} packets, {size} bytes from the CN's downlink")
     return 0
 
