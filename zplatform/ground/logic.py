@@ -78,6 +78,7 @@ from ..errors import CodecError, CommandError, FrameFormatError
 from ..events import EV, Event, EventLog, EventType, decode_event
 from ..uplink import ScriptCommand, Uplink, validate_command
 from .records import REFUSALS, CommandOutcome, EventRecord, TelemetryCounters
+from .script import ScriptPlayer
 
 __all__ = [
     "FRESH_MARGIN_NS",
@@ -244,8 +245,6 @@ class GroundLogic:
         tries: int = 3,
         reason_grace_ns: int = REASON_GRACE_NS,
     ) -> None:
-        from .script import ScriptPlayer
-
         self.mission = mission
         self.node = node
         self.layout = Layout.for_node(mission, "cn")
@@ -271,13 +270,13 @@ class GroundLogic:
         self.last_refusal = ""
         """The detail of the latest refused or bad snapshot ("" if none)."""
         h = self.dv.handle
-        self._h_loop, self._h_seq, self._h_status = (
-            h("cn_loop"),
-            h("cn_cmd_seq"),
-            h("cn_cmd_status"),
-        )
-        self._h_rseq, self._h_rstatus = h("cn_cmd_reject_seq"), h("cn_cmd_reject_status")
-        self._h_rejects, self._h_state = h("cn_cmd_rejects"), h("cn_state")
+        self._h_loop = h("cn_loop")
+        self._h_state = h("cn_state")
+        self._h_seq = h("cn_cmd_seq")  # the last request that consumed a number
+        self._h_status = h("cn_cmd_status")
+        self._h_rseq = h("cn_cmd_reject_seq")  # the last refused without consuming one
+        self._h_rstatus = h("cn_cmd_reject_status")
+        self._h_rejects = h("cn_cmd_rejects")
         # commands
         self._uplink = Uplink(mission, key) if mission.has_ground else None
         self._plans: deque[_Plan] = deque()
