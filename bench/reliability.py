@@ -3,7 +3,7 @@
 The full led_test mission runs as five processes: three DN processes
 (``python -m zplatform node``), the CN's real loop in this process and a
 ground child (``python -m bench.reliability ground``) that decodes every
-telemetry snapshot with the platform's :class:`TelemetryReceiver`. Every
+telemetry snapshot with the platform's ground link (``GroundLink``). Every
 frame is authenticated (``ZPLATFORM_KEY``), as shipped. Ports are free ones;
 the mission is otherwise configs/led_test.yaml.
 
@@ -137,7 +137,7 @@ def ground_main(argv: list[str]) -> None:
         q: queue.SimpleQueue[bytes] = queue.SimpleQueue()
 
         def on_sample(smp: zenoh.Sample) -> None:
-            q.put(smp.payload.to_bytes())  # hand off only, as TelemetryReceiver does
+            q.put(smp.payload.to_bytes())  # hand off only, as the GroundLink does
 
         sub = s.declare_subscriber(RAW_TM_KEY, zenoh.handlers.Callback(on_sample, indirect=False))
         tok = s.liveliness().declare_token(f"{KEY_PREFIX}/tmsink/alive")
@@ -154,46 +154,42 @@ def ground_main(argv: list[str]) -> None:
         sub.undeclare()
         s.close()
     else:
-        from zplatform.auth import load_key
         from zplatform.clocksync import estimate_offset
+        from zplatform.ground.link import GroundLink
         from zplatform.mission import load_mission
-        from zplatform.node.ground import TelemetryReceiver
-        from zplatform.timebase import NodeClock
-        from zplatform.transport import NodeSession
 
         mission = load_mission(argv[0])
         out = argv[1]
-        clock = NodeClock()
-        ns = NodeSession(mission, "gn", announce=False)
+        link = GroundLink(mission, node="gn", events=False, announce=False)
+        clock = link.clock
         offset = None
         for _ in range(100):  # the CN's clock server is up before this child starts
             try:
-                offset = estimate_offset(ns.session, ns.keys, clock.now_ns, timeout_s=0.5)
+                offset = estimate_offset(link.ns.session, link.keys, clock.now_ns, timeout_s=0.5)
                 break
             except Exception:
                 continue
         off = offset.offset_ns if offset is not None else 0
-        rx = TelemetryReceiver(ns.session, mission, clock.now_ns, load_key(mission))
-        ns.announce()
+        link.announce()
         print("READY", flush=True)
         while not stop.is_set():
-            t = rx.next(0.2)
+            t = link.next(0.2)
             if t is None:
                 continue
             rx_sync.append(clock.now_ns() + off)  # decoded: the ground's clock, CN time
             rx_mono.append(time.monotonic_ns())
-            seqs.append(rx.last_seq)
+            seqs.append(int(link.dv.get("cn_loop")))
+        c = link.logic.counters
         doc = {
             "seq": seqs,
             "rx_cn_ns": rx_sync,
             "rx_mono": rx_mono,
             "offset_ns": off,
             "offset_delay_ns": offset.delay_ns if offset is not None else None,
-            "bad": rx.bad,
-            "gaps": rx.gaps,
+            "bad": c.rejected,
+            "gaps": c.gaps,
         }
-        rx.close()
-        ns.close()
+        link.close()
     Path(out).write_text(json.dumps(doc))
 
 

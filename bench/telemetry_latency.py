@@ -2,7 +2,7 @@
 
 For each mission, a zplatform cluster (DN processes, the CN's real loop in
 this process, auth on) plus a ground child (``python -m bench.reliability
-ground``: the platform's :class:`TelemetryReceiver` as node ``gn``). The
+ground``: the platform's ``GroundLink`` as node ``gn``). The
 latency of each snapshot is the ground's node clock at decode, plus its
 clock-sync offset to the CN (measured against the CN's clock server at
 start, as a DN does), minus the CN's node clock read just before its

@@ -43,6 +43,10 @@ from .errors import (
 )
 from .events import EV, Event, EventLog, EventType, Severity
 from .faults import FaultMonitor
+from .ground.link import GroundLink
+from .ground.logic import GroundLogic
+from .ground.records import CommandOutcome, EventRecord, TelemetryCounters
+from .ground.script import ScriptPlayer
 from .lockstep import LockstepRunner, ReplayResult, SimResult, replay
 from .loop import ControlLogic, DeviceLogic
 from .mission import check_mission, decode_mission, load_mission
@@ -55,7 +59,7 @@ from .statemachine import StateMachine
 from .telemetry import CsvLogger, read_csv
 from .timebase import NodeClock, VirtualClock
 from .transport import KeySpace
-from .uplink import ScriptCommand, ScriptPlayer, fill_request, load_commands, parse_commands
+from .uplink import ScriptCommand, fill_request, load_commands, parse_commands
 from .world import World, WorldBoard, WorldLink
 
 __version__ = "0.1.0"
@@ -69,6 +73,7 @@ __all__ = [
     "Command",
     "CommandError",
     "CommandHandler",
+    "CommandOutcome",
     "CommandStatus",
     "Component",
     "ConfigError",
@@ -86,6 +91,7 @@ __all__ = [
     "Event",
     "EventError",
     "EventLog",
+    "EventRecord",
     "EventType",
     "Fault",
     "FaultMonitor",
@@ -95,6 +101,8 @@ __all__ = [
     "FrameFormatError",
     "FrameSizeError",
     "GcGuard",
+    "GroundLink",
+    "GroundLogic",
     "Handle",
     "KeySpace",
     "Layout",
@@ -121,6 +129,7 @@ __all__ = [
     "SimResult",
     "StateMachine",
     "StateMachineError",
+    "TelemetryCounters",
     "TimebaseError",
     "TransportError",
     "VirtualClock",

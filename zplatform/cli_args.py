@@ -19,12 +19,43 @@ from .config import Mission
 from .errors import CommandError
 
 __all__ = [
+    "MISSION_HELP",
     "check_output",
     "check_ports",
+    "mission_verb",
     "nonnegative_float",
     "positive_float",
     "positive_int",
+    "timeout_option",
 ]
+
+
+MISSION_HELP = "mission YAML file, or the name of a running mission (`zplatform ps`)"
+
+
+def mission_verb(
+    sub: argparse._SubParsersAction[argparse.ArgumentParser],
+    name: str,
+    *,
+    help: str,
+    description: str | None = None,
+) -> argparse.ArgumentParser:
+    """A verb's parser whose first argument is MISSION (a file or a running
+    mission's name)."""
+    p = sub.add_parser(name, help=help, description=description)
+    p.add_argument("mission", help=MISSION_HELP)
+    return p
+
+
+def timeout_option(p: argparse.ArgumentParser, what: str, default: float = 10.0) -> None:
+    """``--timeout S`` (> 0, ``default`` seconds): how long to wait for ``what``."""
+    p.add_argument(
+        "--timeout",
+        type=positive_float,
+        default=default,
+        metavar="S",
+        help=f"seconds to wait for {what} (default {default:g})",
+    )
 
 
 def positive_float(text: str) -> float:

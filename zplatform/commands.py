@@ -38,6 +38,13 @@ RESUME call the state machine) and becomes Active. Every request writes
 ``cmd_accepted`` or WARNING_LO ``cmd_rejected`` with the reason. Nothing in a
 request can make :meth:`CommandHandler.step` raise.
 
+A request refused without consuming a number (``REJECTED_EPOCH``,
+``REJECTED_REPLAY``, or ``REJECTED_AUTH`` for a frame that fails its tag)
+leaves ``cn_cmd_seq``/``cn_cmd_status`` alone and writes
+``cn_cmd_rejects`` (a count), ``cn_cmd_reject_status`` and
+``cn_cmd_reject_seq`` (its number; 0 for ``REJECTED_AUTH``, whose number
+cannot be trusted), so the tool that sent it learns of the refusal at once.
+
 The numbers are remembered for the CN's life: a ground tool continues from
 the ``cn_cmd_seq`` it reads in telemetry (see :func:`zplatform.uplink.fill_request`).
 """
@@ -281,6 +288,7 @@ class CommandHandler:
         self._h_status = dv.handle("cn_cmd_status")
         self._h_rejects = dv.handle("cn_cmd_rejects")
         self._h_reject_status = dv.handle("cn_cmd_reject_status")
+        self._h_reject_seq = dv.handle("cn_cmd_reject_seq")
         self._h_epoch = dv.handle("cn_epoch")
         self._h_state = dv.handle("cn_state")
         self._has_ground = "gn_to_cn" in dv.layout.regions
@@ -363,13 +371,16 @@ class CommandHandler:
         self, status: int, t_ns: int, *, name: str = "request", seq: int = 0, detail: str = ""
     ) -> None:
         """Refuse a request without consuming a number: counted in
-        ``cn_cmd_rejects``, reason in ``cn_cmd_reject_status``, an event;
-        ``cn_cmd_seq`` and ``cn_cmd_status`` keep the last real verdict (so a
-        replayed or forged frame cannot disturb the operator's numbering).
-        Also what the loop calls for a request frame that fails
-        authentication."""
+        ``cn_cmd_rejects``, reason in ``cn_cmd_reject_status``, its number in
+        ``cn_cmd_reject_seq`` (so the ground can tell its request was
+        refused), an event; ``cn_cmd_seq`` and ``cn_cmd_status`` keep the
+        last real verdict (so a replayed or forged frame cannot disturb the
+        operator's numbering). Also what the loop calls for a request frame
+        that fails authentication, with ``seq`` 0: the number of a frame
+        that is not authentic cannot be trusted."""
         self._h_rejects.bump()
         self._h_reject_status.set(status)
+        self._h_reject_seq.set(seq)
         self._emit_rejected(status, t_ns, name, seq, detail)
 
     def _emit_rejected(self, status: int, t_ns: int, name: str, seq: int, detail: str) -> None:

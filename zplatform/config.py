@@ -1298,6 +1298,12 @@ def platform_elements(m: Mission) -> dict[str, list[ElementConfig]]:
             list(CMD_STATUS_NAMES),
             doc="why the last of those was refused",
         ),
+        E(
+            "cn_cmd_reject_seq",
+            "u64",
+            0,
+            doc="number of the last authenticated request refused that way (0: unknown)",
+        ),
         E("cn_cmd_dropped", "u32", 0, doc="requests dropped by a full inbox"),
         E("cn_epoch", "u64", 0, doc="this run of the CN; requests must carry it"),
         E("cn_fault", "enum", "NONE", list(FAULT_NAMES), doc="the latched fault"),

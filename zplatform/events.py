@@ -207,6 +207,31 @@ class EV:
         Severity.ACTIVITY_HI,
         "{node} re-enabled: the control node triggered it {n} loops in a row",
     )
+    # the ground side (zplatform.ground.GroundLogic: what the ground believes)
+    TM_JOINED = EventType(
+        70,
+        "tm_joined",
+        Severity.ACTIVITY_LO,
+        "following control node run {epoch} from loop {loop}",
+    )
+    CN_RESTARTED = EventType(
+        71,
+        "cn_restarted",
+        Severity.WARNING_HI,
+        "control node restarted: epoch {old} -> {new}; following the new run from loop {loop}",
+    )
+    TM_REFUSED = EventType(
+        72,
+        "tm_refused",
+        Severity.WARNING_LO,
+        "telemetry refused ({reason}): {detail}; further refusals are counted, not evented",
+    )
+    SCRIPT_DONE = EventType(
+        73,
+        "script_done",
+        Severity.ACTIVITY_HI,
+        "command script done: {n} command(s), {accepted} accepted; last verdict in loop {loop}",
+    )
 
     ALL: ClassVar[tuple[EventType, ...]]
     """Every entry, in declaration order."""

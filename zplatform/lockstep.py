@@ -3,9 +3,10 @@
 :class:`LockstepRunner` is the second driver of the sans-IO loop
 (:mod:`zplatform.loop`): it moves the same region frames, encoded and
 decoded, between :class:`~zplatform.loop.ControlLogic`, every
-:class:`~zplatform.loop.DeviceLogic` and a ground side that plays a command
-script with the same :class:`~zplatform.uplink.ScriptPlayer` as the live
-ground node. It has no protocol order of its own. Loop ``n`` (from 1, as
+:class:`~zplatform.loop.DeviceLogic` and the same ground logic as the live
+ground node (:class:`~zplatform.ground.logic.GroundLogic`: its checks, its
+command requests and verdicts, its script player). It has no protocol order
+of its own. Loop ``n`` (from 1, as
 live) runs at virtual time ``t = start_ns + (n - 1) * period_ns``:
 
 1. ``frames = cn.begin(n, t)``; each DN in order takes its frame and
@@ -13,8 +14,10 @@ live) runs at virtual time ``t = start_ns + (n - 1) * period_ns``:
    back to ``cn.reply``;
 2. ``cn.finish(ground)`` with the request frame the script player produced
    from the previous loop's telemetry (if any);
-3. on telemetry loops the ground side applies the telemetry frame, logs it
-   (``rx_time_ns = t``) and lets the script player answer.
+3. on telemetry loops the ground logic takes the telemetry frame (received
+   at ``t``, so it is fresh), the runner logs it (``rx_time_ns = t``) and
+   takes the request the script player made, if any, for the next loop;
+   then the ground logic reads the loop's events (the reasons of verdicts).
 
 No frame is ever lost or late here, so ``cn_missed_dnX`` and ``cn_late_dnX``
 stay 0, unless a test declares a node dead (:attr:`LockstepRunner.lost`).
@@ -43,18 +46,20 @@ from typing import Any
 import msgspec
 import numpy as np
 
-from .auth import TAG_LEN, mission_channels
+from .auth import TAG_LEN
 from .boards import Board
 from .codec import BundleEncoder, RegionCodec
 from .config import BulkChannelConfig, Mission
 from .datavector import DataVector, Layout
 from .events import Event
+from .ground.logic import GroundLogic
+from .ground.records import CommandOutcome, EventRecord
 from .loop import ControlLogic, DeviceLogic
 from .messages import wildcard_sync_for
 from .recording import FOREIGN_DN
 from .telemetry import CsvLogger
 from .timebase import VirtualClock
-from .uplink import CommandOutcome, ScriptCommand, ScriptPlayer
+from .uplink import ScriptCommand
 from .world import World
 
 __all__ = [
@@ -137,17 +142,8 @@ class SimResult(msgspec.Struct):
             "states": self.states,
             "commands": [msgspec.to_builtins(c) for c in self.commands],
             "pending_commands": self.pending_commands,
-            "events": [
-                {
-                    "node": e.node,
-                    "seq": e.seq,
-                    "t_ns": e.t_ns,
-                    "severity": e.severity_name,
-                    "id": e.id,
-                    "text": e.text,
-                }
-                for e in self.events
-            ],
+            # As the events file has them; received at the event's own loop time.
+            "events": [msgspec.to_builtins(EventRecord.of(e, e.t_ns)) for e in self.events],
             "wall_s": self.wall_s,
             "loops_per_s": self.loops_per_s,
         }
@@ -262,11 +258,8 @@ class LockstepRunner:
         self.devices = [
             DeviceLogic(mission, dn, board=boards.get(dn), key=key) for dn in mission.device_nodes
         ]
-        # The ground side: a telemetry receiver and the script player.
-        self.telemetry_dv = DataVector(Layout.for_node(mission, "cn"))
-        self._tm_rx = RegionCodec(self.telemetry_dv)
-        self._tm_open = mission_channels(mission, key)["telemetry"]
-        self.player = ScriptPlayer(mission, commands or [], key=key)
+        # The ground side: the live ground node's logic, in virtual time.
+        self.ground = GroundLogic(mission, key=key, script=commands or [])
         # The sync query's form, as the live CN chooses it (transport.sync_query).
         self._bundle = BundleEncoder() if wildcard_sync_for(mission) else None
         self._ground: bytearray | None = None
@@ -276,7 +269,6 @@ class LockstepRunner:
         as it would a dead node's (DN_LOST after ``faults.dn_lost_loops``)."""
         self.loop = 0
         """Loops run so far (the number of the last one)."""
-        self.telemetry_received = 0
         self._state_h = self.control.dv.handle("cn_state")
         self._states: list[str] = []
         self._last_state = -1
@@ -313,21 +305,27 @@ class LockstepRunner:
                     cn.reply(i, dev.step(frames[i], t))
         ground, self._ground = self._ground, None
         tm = cn.finish((ground,) if ground is not None else ())
-        if tm is not None:
-            self._tm_rx.apply(self._tm_open.open(tm) if self._tm_open is not None else tm)
-            self.telemetry_received += 1
+        gl = self.ground
+        if tm is not None and gl.on_telemetry(tm, t):
             if log is not None:
-                log.write(t, self.telemetry_dv)
-            self._ground = self.player.on_telemetry(self.telemetry_dv)
+                log.write(t, gl.dv)
+            requests = gl.take_requests()
+            if requests:  # the script player sends at most one per snapshot
+                self._ground = bytearray(requests[-1])
         state = self._state_h.get()
         if state != self._last_state:
             self._last_state = state
             self._states.append(self._state_h.spec.name_of(state))
         if cn.events.pending:
-            self._events.extend(cn.events.drain())
+            drained = cn.events.drain()
+            self._events.extend(drained)
+            for e in drained:  # the reasons of verdicts, as live from the event intake
+                gl.on_event(e, t)
         for d in self.devices:
             if d.events.pending:
                 self._events.extend(d.events.drain())
+        if gl.events.pending:  # what the ground believes: nothing new in virtual time
+            gl.events.drain()
         self.loop = loop
         self.clock.advance(self.period_ns)
 
@@ -354,7 +352,9 @@ class LockstepRunner:
         for d in self.devices:  # the DN's own count (the CN's copy is a loop old)
             errors_by_node[d.node] = int(d.dv.get(f"{d.node}_errors"))
         loops = self.loop
-        pending = self.player.pending
+        gl = self.ground
+        gl.finish(self.clock.now_ns())
+        player = gl.player
         return SimResult(
             mission=self.mission.mission,
             loops=loops,
@@ -363,8 +363,8 @@ class LockstepRunner:
             final_state=dv.get_name("cn_state"),
             states=list(self._states),
             events=list(self._events),
-            commands=list(self.player.results),
-            pending_commands=pending,
+            commands=player.results(gl) if player is not None else [],
+            pending_commands=player.pending if player is not None else [],
             errors=sum(errors_by_node.values()),
             errors_by_node=errors_by_node,
             rx={dn: int(dv.get(f"cn_rx_{dn}")) for dn in dns},
@@ -372,7 +372,7 @@ class LockstepRunner:
             late={dn: int(dv.get(f"cn_late_{dn}")) for dn in dns},
             loop_overruns=int(dv.get("cn_loop_overruns")),
             sync_overruns=int(dv.get("cn_sync_overruns")),
-            telemetry_received=self.telemetry_received,
+            telemetry_received=gl.received,
             fault=dv.get_name("cn_fault"),
             wall_s=self._wall_s,
             loops_per_s=loops / self._wall_s if self._wall_s > 0 else 0.0,

@@ -17,7 +17,7 @@ import msgspec
 
 from .config import Mission
 from .datavector import DataVector
-from .uplink import CommandOutcome
+from .ground.records import CommandOutcome
 
 __all__ = [
     "CnSummary",
@@ -78,7 +78,13 @@ class DnSummary(msgspec.Struct, frozen=True):
 
 
 class GnSummary(msgspec.Struct, frozen=True):
-    """The ground node's (or ``zplatform log``'s) run: telemetry and commands."""
+    """The ground node's (or ``zplatform log``'s) run: telemetry and commands.
+
+    ``telemetry_bad`` counts every snapshot not applied (malformed,
+    unauthenticated or refused); ``telemetry_refused`` breaks the refusals
+    down by reason (:data:`zplatform.ground.records.REFUSALS`);
+    ``epoch_changes``: control node restarts the ground followed;
+    ``events_logged``: event records written to the events file."""
 
     telemetry_received: int
     telemetry_gaps: int
@@ -89,6 +95,9 @@ class GnSummary(msgspec.Struct, frozen=True):
     commands: list[CommandOutcome] = []
     pending_commands: list[str] = []
     node: str = "gn"
+    telemetry_refused: dict[str, int] = {}
+    epoch_changes: int = 0
+    events_logged: int = 0
 
 
 class RunSummary(msgspec.Struct, frozen=True):

@@ -18,10 +18,9 @@ from typing import Any
 
 from zplatform.config import Mission
 from zplatform.datavector import DataVector
+from zplatform.ground.link import GroundLink
 from zplatform.mission import load_mission
-from zplatform.node.ground import TelemetryReceiver
-from zplatform.timebase import NodeClock
-from zplatform.transport import NodeSession, rewrite_endpoints
+from zplatform.transport import rewrite_endpoints
 
 ROOT = Path(__file__).resolve().parents[2]
 CONFIGS = ROOT / "configs"
@@ -34,8 +33,7 @@ class Cluster:
         self.mission: Mission = load_mission(self.path)
         self.tmp = tmp
         self.procs: dict[str, subprocess.Popen[bytes]] = {}
-        self._ns: NodeSession | None = None
-        self._rx: TelemetryReceiver | None = None
+        self._rx: GroundLink | None = None
 
     # -- processes ---------------------------------------------------------
     def spawn(
@@ -79,8 +77,6 @@ class Cluster:
     def close(self) -> None:
         if self._rx is not None:
             self._rx.close()
-        if self._ns is not None:
-            self._ns.close()
         for p in self.procs.values():
             if p.poll() is None:
                 p.terminate()
@@ -99,16 +95,16 @@ class Cluster:
 
     # -- telemetry ---------------------------------------------------------
     @property
-    def session(self) -> Any:
-        if self._ns is None:
-            self._ns = NodeSession(self.mission, None)
-        return self._ns.session
+    def rx(self) -> GroundLink:
+        """The test's ground: a tool's link, checking telemetry as every ground does."""
+        if self._rx is None:
+            self._rx = GroundLink(self.mission, events=False)
+        return self._rx
 
     @property
-    def rx(self) -> TelemetryReceiver:
-        if self._rx is None:
-            self._rx = TelemetryReceiver(self.session, self.mission, NodeClock().now_ns)
-        return self._rx
+    def session(self) -> Any:
+        """The test's zenoh session (the ground link's)."""
+        return self.rx.ns.session
 
     @property
     def tm(self) -> DataVector:

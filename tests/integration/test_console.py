@@ -4,8 +4,10 @@ One recovery_igniter cluster (real node processes on free ports) serves two
 console sessions: a large screen (200x60) that sees values move, refuses
 and then confirms the hazardous LAUNCH (ARM, LAUNCH, both verdicts) and
 shows the CN's event with its severity; and a small one (80x24) that shows
-loss of signal once the CN is stopped. Every wait is on what the screen
-shows, bounded; nothing sleeps for a peer.
+loss of signal once the CN is stopped. A WRITE of a protected element asks
+first too, then goes ARM n, WRITE n+1, its verdict shown with the CN's
+detail. Every wait is on what the screen shows, bounded; nothing sleeps for
+a peer.
 
 The browser test serves the console with ``zplatform ground --web``, opens
 the address it prints (with its token) in headless Chromium and reads the
@@ -24,6 +26,7 @@ import sys
 import time
 from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -59,6 +62,13 @@ def _loop_shown(app: ConsoleApp) -> int:
     return int(words[words.index("loop") + 1]) if "loop" in words else -1
 
 
+async def _answer(pilot: Any, app: ConsoleApp, line: str, key: str) -> None:
+    """Type ``line``; the console asks first: answer ``key`` (y or n)."""
+    await pilot.press(*line, "enter")
+    await _until(pilot, lambda: isinstance(app.screen, ConfirmScreen), "the confirmation")
+    await pilot.press(key)
+
+
 async def _big_screen(c: Cluster) -> None:
     model = ConsoleModel(c.mission, limits={"cn_loop": {"yellow": [None, 1], "red": [None, 2]}})
     app = ConsoleApp(model, Link(model, timeout_s=20))
@@ -70,24 +80,26 @@ async def _big_screen(c: Cluster) -> None:
             rows = dict(model.region_rows())
         assert ("cn_loop", str(int(model.dv.get("cn_loop"))), "red") in rows["cn"]
 
+        # A WRITE of a protected element asks first, then goes ARM n, WRITE n+1.
+        await _answer(pilot, app, "write dn0_ign_armed true", "y")
+        await _until(
+            pilot,
+            lambda: "WRITE #2: ACCEPTED (dn0_ign_armed = True)" in _text(app, "#events-text"),
+            "the protected WRITE's verdict, with the CN's detail",
+        )
+        assert "ARM #1: ACCEPTED" in _text(app, "#events-text")
+
         # A hazardous command asks first; "n" sends nothing.
-        await pilot.press(*"launch", "enter")
-        await _until(pilot, lambda: isinstance(app.screen, ConfirmScreen), "the confirmation")
-        await pilot.press("n")
+        await _answer(pilot, app, "launch", "n")
         await _until(pilot, lambda: "LAUNCH cancelled" in _text(app, "#events-text"), "cancel")
         assert c.tm.get_name("cn_state") == "SAFE"
 
         # Confirmed: ARM n, LAUNCH n+1, both accepted, the state moves on.
-        await pilot.press(*"launch", "enter")
-        await _until(pilot, lambda: isinstance(app.screen, ConfirmScreen), "the confirmation")
-        await pilot.press("y")
+        await _answer(pilot, app, "launch", "y")
         await _until(
-            pilot,
-            lambda: "LAUNCH #2 ACCEPTED" in _text(app, "#events-text"),
-            "LAUNCH's verdict",
+            pilot, lambda: "LAUNCH #4: ACCEPTED" in _text(app, "#events-text"), "LAUNCH's verdict"
         )
-        events = _text(app, "#events-text")
-        assert "ARM #1 ACCEPTED" in events
+        assert "ARM #3: ACCEPTED" in _text(app, "#events-text")
         # The CN's own event about the command: time, severity name, node, id.
         await _until(pilot, lambda: "cmd_accepted" in _text(app, "#events-text"), "the CN's event")
         line = next(x for x in _text(app, "#events-text").splitlines() if "cmd_accepted" in x)

@@ -447,4 +447,4 @@ def test_cli_sim_exit_codes(tmp_path: Path) -> None:
 def test_default_duration_follows_the_script(tmp_path: Path) -> None:
     log = tmp_path / "led.csv"
     assert sim(str(LED_YAML), "--commands", str(LED_CMDS), "--log", str(log)).returncode == 0
-    assert len(read_csv(log)) == 2900  # last command at 14 s, plus 15 s (cli_sim.SETTLE_S)
+    assert len(read_csv(log)) == 2900  # last command at 14 s, plus 15 s (ground.script.SETTLE_S)

@@ -56,3 +56,13 @@ def test_psutil_is_no_runtime_dependency() -> None:
 def test_demo_prints_no_json() -> None:
     demo = (ROOT / "scripts" / "demo.sh").read_text()
     assert "--summary -" not in demo and "--summary led_test.summary.json" in demo
+
+
+def test_the_console_runs_on_the_base_install_and_extras_are_named() -> None:
+    """`zplatform ground` is the ground station's daily tool: its libraries are
+    base dependencies; the radio side (CCSDS, XTCE) stays in the `ground` extra."""
+    p = _pyproject()
+    base = {d.split(">=")[0] for d in p["project"]["dependencies"]}
+    assert {"textual", "textual-serve", "textual-plotext"} <= base
+    ground = {d.split(">=")[0] for d in p["project"]["optional-dependencies"]["ground"]}
+    assert ground == {"spacepackets", "yamcs-pymdb"}

@@ -77,9 +77,9 @@ def _abort_at(which: str, target: int) -> tuple[str, str, list[str]]:
     # the CN applies it in loop `target`, whatever transition is due there.
     while r.loop < target - 1:
         r.step()
-    seq = int(r.telemetry_dv.get("cn_cmd_seq")) + 1
+    seq = int(r.ground.dv.get("cn_cmd_seq")) + 1
     up = Uplink(mission, SIM_KEY)
-    r._ground = bytearray(up.frame("ABORT", seq, 0, 0.0, 0, int(r.telemetry_dv.get("cn_epoch"))))
+    r._ground = bytearray(up.frame("ABORT", seq, 0, 0.0, 0, int(r.ground.dv.get("cn_epoch"))))
     r.step()
     status = r.control.dv.get_name("cn_cmd_status")
     r.step()  # within one loop
@@ -299,6 +299,23 @@ def test_defect_5_replayed_or_foreign_frames_do_not_move_the_numbering() -> None
     # The operator's next command (numbered from telemetry) is accepted.
     _loop(cn, 5, bytes(up.frame("ABORT", 2, 0, 0.0, 0, 77)))
     assert cn.dv.get_name("cn_cmd_status") == "ACCEPTED" and cn.dv.get_name("cn_state") == "E"
+
+
+def test_a_refusal_that_consumes_no_number_names_the_request() -> None:
+    """``cn_cmd_reject_seq`` echoes the number of a request refused without
+    consuming one, so its sender learns at once; an unauthenticated frame's
+    number is not trusted (0)."""
+    cn, up = _cn_with_ground(LED, b"k" * 32)
+    _loop(cn, 1, bytes(up.frame("NOOP", 4, 0, 0.0, 0, 76)))  # an earlier run's epoch
+    assert cn.dv.get_name("cn_cmd_reject_status") == "REJECTED_EPOCH"
+    assert cn.dv.get("cn_cmd_reject_seq") == 4 and cn.dv.get("cn_cmd_seq") == 0
+    _loop(cn, 2, bytes(up.frame("NOOP", 6, 0, 0.0, 0, 77)))
+    _loop(cn, 3, bytes(up.frame("NOOP", 5, 0, 0.0, 0, 77)))  # below the last: a replay
+    assert cn.dv.get_name("cn_cmd_reject_status") == "REJECTED_REPLAY"
+    assert cn.dv.get("cn_cmd_reject_seq") == 5 and cn.dv.get("cn_cmd_seq") == 6
+    _loop(cn, 4, bytes(Uplink(LED, b"x" * 32).frame("NOOP", 9, 0, 0.0, 0, 77)))
+    assert cn.dv.get_name("cn_cmd_reject_status") == "REJECTED_AUTH"
+    assert cn.dv.get("cn_cmd_reject_seq") == 0
 
 
 # -- 6. WRITE cannot bypass ARM-then-fire ----------------------------------------------

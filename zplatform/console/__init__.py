@@ -1,13 +1,14 @@
 """The ground console (``zplatform ground MISSION [--web PORT]``).
 
 * :mod:`.model`: :class:`ConsoleModel`, the console's state, sans-IO;
-* :mod:`.link`: :class:`Link`, zenoh threads feeding the model and sending commands;
+* :mod:`.link`: :class:`Link`, a thread over the ground link feeding the model
+  and sending commands;
 * :mod:`.app`: :class:`ConsoleApp`, the textual screen (terminal, or a browser);
 * :mod:`.web`: the web server that gives each operator's browser session its
   own console process; :mod:`.webdriver`: that process's textual driver.
 
-The screen needs ``textual`` (the ``ground`` extra); the model does not, so
-the screen and the link are imported on first use.
+The screen needs ``textual`` (a dependency of zplatform); the model does
+not, so the screen and the link are imported on first use.
 """
 
 from __future__ import annotations

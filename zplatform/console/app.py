@@ -8,8 +8,9 @@ plot, and the command line (history on up/down, completion on tab).
 
 The screen redraws at :data:`REFRESH_HZ` whatever the loop rate: it reads
 the model under its lock, which the link's threads update at the telemetry
-rate. Hazardous commands (``commands.hazardous``) open a confirmation dialog;
-confirmed, they go ARM n then COMMAND n+1.
+rate. Hazardous commands (``commands.hazardous``) and WRITEs of protected
+elements (``commands.protected``) open a confirmation dialog; confirmed,
+they go ARM n then COMMAND n+1.
 """
 
 from __future__ import annotations
@@ -80,7 +81,7 @@ class CommandLine(Input):
 
 
 class ConfirmScreen(ModalScreen[bool]):
-    """Asks before a hazardous command: y / Enter confirms, n / Esc cancels."""
+    """Asks before a command that needs ARM first: y confirms, n / Esc cancels."""
 
     BINDINGS: ClassVar[list[BindingType]] = [
         Binding("y", "answer(True)", "yes"),
@@ -223,43 +224,45 @@ class ConsoleApp(App[int]):
 
     def run_command(self, line: str) -> None:
         """One command line: a console command, or a command for the vehicle."""
+        from ..ground.logic import needs_arm
         from ..uplink import validate_command
 
         words = line.split()
         head = words[0].lower()
+        args = words[1:]
         try:
             if head in LOCAL_COMMANDS:
-                self._local(head, words[1:])
+                self._local(head, args)
                 return
-            cmd, _, _ = validate_command(
-                self.model.mission,
-                head,
-                words[1] if len(words) > 1 else None,
-                words[2] if len(words) > 2 else None,
-            )
-            if len(words) > 3:
+            if len(args) > 2:
                 raise CommandError(f"{head} takes at most ELEMENT VALUE")
+            element = args[0] if args else None
+            cmd, _, _ = validate_command(
+                self.model.mission, head, element, args[1] if len(args) > 1 else None
+            )
         except (CommandError, DataVectorError) as exc:
             self._note(f"refused: {exc}", "WARNING_HI")
             return
-        if cmd in self.model.hazardous:
+        shown = " ".join([cmd, *args])
+        why = needs_arm(self.model.mission, cmd, element)
+        if why is not None:
 
             def answered(yes: bool | None) -> None:
                 if not yes:
-                    self._note(f"{cmd} cancelled", "ACTIVITY_HI")
+                    self._note(f"{shown} cancelled", "ACTIVITY_HI")
                 elif self.link is None:
-                    self._note(f"no link: {cmd} not sent", "WARNING_HI")
+                    self._note(f"no link: {shown} not sent", "WARNING_HI")
                 else:
-                    self._note(f"sending ARM then {cmd}", "COMMAND")
-                    self.link.send(head, [], True)
+                    self._note(f"sending ARM then {shown}", "COMMAND")
+                    self.link.send(head, args, True)
 
-            self.push_screen(ConfirmScreen(f"{cmd} is hazardous. Send ARM, then {cmd}?"), answered)
+            self.push_screen(ConfirmScreen(f"{why}. Send ARM, then {shown}?"), answered)
             return
         if self.link is None:
-            self._note(f"no link: {cmd} not sent", "WARNING_HI")
+            self._note(f"no link: {shown} not sent", "WARNING_HI")
             return
-        self._note(f"sending {' '.join(words).upper()}", "COMMAND")
-        self.link.send(head, words[1:], False)
+        self._note(f"sending {shown}", "COMMAND")
+        self.link.send(head, args, False)
 
     def _local(self, head: str, args: list[str]) -> None:
         m = self.model
