@@ -38,7 +38,14 @@ import msgspec
 
 from . import devices as _devices
 from .boards import GpiodBoardConfig, SerialBoardConfig, SimBoardConfig
-from .config import CONTROLLER_MODES, BulkChannelConfig, ComponentConfig, Mission, NodeConfig
+from .config import (
+    CONTROLLER_MODES,
+    BulkChannelConfig,
+    ComponentConfig,
+    Mission,
+    NodeConfig,
+    RecorderConfig,
+)
 from .config import platform_elements as _platform_elements
 from .devices import Actuator, Sensor
 
@@ -435,13 +442,15 @@ def _block(anchor: str, heading: str, section: _Section, rows: slice = slice(Non
 
 def _platform_rows() -> list[str]:
     """The platform elements of every region, for a mission with a device
-    node (``dnX``), a ground node, a controller and a bulk channel."""
+    node (``dnX``), a ground node, a controller, a bulk channel and a flight
+    recorder."""
     example = Mission(
         mission="m",
         nodes={"cn": NodeConfig(), "dn0": NodeConfig(), "gn": NodeConfig()},
         regions={},
         controllers=[ComponentConfig(name="ctl", cls="m:C", node="cn")],
         bulk=[BulkChannelConfig(name="chan", node="dn0", type="u8[8]", readers=["cn"])],
+        recorder=RecorderConfig(),
     )
     names = (
         ("dn0", "dnX"),
@@ -607,7 +616,8 @@ def reference_markdown() -> str:
         "before the mission's own (do not declare them): one set per device node "
         "`dnX`, a `<controller>_mode` per controller (in `cn` for a controller on "
         "the CN, in `cn_to_dnX` for one on dnX), bulk counters per channel on its "
-        "owner and readers, and `gn_to_cn` when the mission has a ground node. "
+        "owner and readers, flight recorder counters on each node that records "
+        "(`recorder`), and `gn_to_cn` when the mission has a ground node. "
         "Counters saturate at their type's maximum (they never wrap); times are "
         "nanoseconds.",
         "",

@@ -350,6 +350,9 @@ class DeviceSync:
         self._err_prefix = f"{dn}: ".encode()
         self._q: queue.SimpleQueue[zenoh.Query] = queue.SimpleQueue()
         self._tap = TapPublisher(session, self._key)
+        self.reply: bytearray | None = None
+        """The last reply frame sent (None: an error reply), the logic's own
+        buffer: valid until the next query is served."""
         handoff: Callable[[zenoh.Query], None] = self._q.put
         if trace is not None:
             q = self._q
@@ -389,6 +392,7 @@ class DeviceSync:
             payload = query.payload
             data = payload.to_bytes() if payload is not None else b""
             reply = logic.trigger(data, self._now(), may_run=may_run)
+            self.reply = reply
             if reply is None:
                 # "dnX: reason": a wildcard query's error replies carry no key.
                 query.reply_err(self._err_prefix + logic.reject_reason.encode())

@@ -21,6 +21,13 @@ themselves as the run's end, not as a lost CN): the last of ``max_loops``
 
 ``record`` attaches a :class:`~zplatform.recording.Recorder` after the
 warm-up: every input of every loop goes to disk for ``zplatform replay``.
+
+With a ``recorder`` section naming the CN (the flight recorder,
+:mod:`zplatform.recorder`), every telemetry frame the loop publishes and
+every event is also copied to the CN's flight recorder (never blocking the
+loop; its counters go into ``cn_rec_*`` before each loop's logic), and a
+:class:`~zplatform.recorder.server.RecorderServer` answers the ground's
+gap-fill requests on ``{vehicle}/cn/recorder`` from its own thread.
 """
 
 from __future__ import annotations
@@ -34,14 +41,17 @@ from typing import Any
 import numpy as np
 import zenoh
 
-from ..auth import load_key
+from ..auth import load_key, mission_channels
 from ..bulk import open_bulk
 from ..clocksync import ClockServer
 from ..config import Mission
 from ..datavector import DataVector
-from ..errors import NodeError, TransportError
+from ..errors import NodeError, RecordingError, TransportError
+from ..ground.logic import default_max_age_ns
 from ..loop import ControlLogic
 from ..messages import wildcard_sync_for
+from ..recorder import FlightRecorder, open_recorder, summary_line
+from ..recorder.server import RecorderServer
 from ..recording import Recorder
 from ..scheduler import GcGuard, PeriodicLoop
 from ..summary import CnSummary, LoopWork, cn_summary
@@ -81,7 +91,8 @@ class ControlNode:
         self.clock = clock or NodeClock()
         self.clock.lock()  # the CN is the reference clock: never adjusted
         # The run's epoch: this clock's start, unique per run of the CN.
-        self.logic = ControlLogic(mission, key=key, epoch=self.clock.now_ns())
+        self.clock_epoch = self.clock.now_ns()
+        self.logic = ControlLogic(mission, key=key, epoch=self.clock_epoch)
         self.dv: DataVector = self.logic.dv
         self.ns = NodeSession(mission, "cn", announce=False, lowlatency=lowlatency)
         s = self.ns.session
@@ -115,7 +126,35 @@ class ControlNode:
         self._tm_pub = s.declare_publisher(
             keys.telemetry, congestion_control=zenoh.CongestionControl.DROP
         )
-        self._events = EventPublisher(s, keys.events("cn"), self.logic.events)
+        # The flight recorder: opened before anything runs, so a directory it
+        # cannot use (or one another CN holds) stops the node on the pad.
+        self.flight_recorder: FlightRecorder | None = None
+        self._rec_server: RecorderServer | None = None
+        if "cn" in mission.recording_nodes:
+            try:
+                rec = open_recorder(
+                    mission, "cn", self.dv, run=self.clock_epoch, authenticated=key is not None
+                )
+            except RecordingError as exc:
+                self.ns.close()
+                raise NodeError(f"control node cannot start its flight recorder: {exc}") from exc
+            rec.attach(self.dv, self.logic.events)
+            self.flight_recorder = rec
+            log.info("flight recorder: %s", rec.directory)
+            assert mission.recorder is not None
+            self._rec_server = RecorderServer(
+                s,
+                keys.recorder,
+                rec,
+                mission_channels(mission, key)["telemetry"],
+                now_ns=self.clock.now_ns,
+                max_age_ns=default_max_age_ns(mission),
+                serve_bps=mission.recorder.serve_bps,
+                divisor=mission.telemetry_divisor,
+            )
+        self._events = EventPublisher(
+            s, keys.events("cn"), self.logic.events, recorder=self.flight_recorder
+        )
         self._radio = _Radio(mission, s, keys.downlink) if mission.downlink.ccsds else None
         self.bulk = open_bulk(s, mission, "cn", self.logic)
         self._skipped = 0
@@ -232,6 +271,9 @@ class ControlNode:
         while inbox:
             grounds.append(inbox.popleft())
         skipped, self._skipped = self._skipped, 0
+        rec = self.flight_recorder
+        if rec is not None:  # its counters into this loop's telemetry
+            rec.tick(t)
         # Totals only zenoh's thread writes; the loop keeps what it has seen.
         d_total, o_total = self._inbox_dropped, self._inbox_oversize
         dropped, oversize = d_total - self._seen_dropped, o_total - self._seen_oversize
@@ -245,6 +287,8 @@ class ControlNode:
         )
         if tm is not None:
             self._tm_pub.put(tm)
+            if rec is not None:
+                rec.frame(loop, tm, t)
             if self._radio is not None:
                 self._radio.send(self.dv, loop, t)
         self._events.flush()
@@ -310,8 +354,14 @@ class ControlNode:
             return
         try:
             last = int(self.dv.get("cn_loop"))
+            rec = self.flight_recorder
             if last % self.mission.telemetry_divisor:  # the last snapshot was not sent yet
-                self._tm_pub.put(self.logic.telemetry())
+                tm = self.logic.telemetry()
+                self._tm_pub.put(tm)
+                if rec is not None:
+                    rec.frame(last, tm, self.logic.t_ns)
+            if self._rec_server is not None:
+                self._rec_server.close()
             self._events.undeclare()
             self.sync.close()
             self.clock_server.close()
@@ -325,6 +375,9 @@ class ControlNode:
         finally:
             if self.recorder is not None:
                 self.recorder.close()
+            if self.flight_recorder is not None:
+                self.flight_recorder.close()
+                log.info("flight recorder: %s", summary_line(self.flight_recorder))
             self.ns.close()
 
 

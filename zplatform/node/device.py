@@ -13,6 +13,12 @@ once; then :meth:`~zplatform.loop.DeviceLogic.run` (sensors -> controllers
 -> actuators) with the query's loop number and one local timestamp. A background thread
 re-estimates the offset every ``clock.resync_s`` and reports the drift in
 ``dnX_clock_drift_ns`` without stepping the clock (thesis 4.10.1).
+
+With a ``recorder`` section naming the node (the flight recorder,
+:mod:`zplatform.recorder`), the reply frame of every loop the node runs and
+every event are also copied to its flight recorder, never blocking the
+loop; its counters go into ``dnX_rec_*`` before each run, so the next reply
+carries them.
 """
 
 from __future__ import annotations
@@ -25,8 +31,9 @@ from ..boards import close_board, open_board
 from ..bulk import NodeBulk, open_bulk
 from ..clocksync import estimator_for
 from ..config import Mission
-from ..errors import ClockSyncError, NodeError, TransportError, ZPlatformError
+from ..errors import ClockSyncError, NodeError, RecordingError, TransportError, ZPlatformError
 from ..loop import DeviceLogic
+from ..recorder import FlightRecorder, open_recorder, summary_line
 from ..scheduler import GcGuard
 from ..summary import DnSummary
 from ..sync import DeviceSync, SyncTrace
@@ -78,6 +85,8 @@ class DeviceNode:
         self._sync_trace = sync_trace
         self.bulk: NodeBulk | None = None
         self._events: EventPublisher | None = None
+        self._key = key is not None
+        self.flight_recorder: FlightRecorder | None = None
         self._resync: threading.Thread | None = None
 
     def start(self, ready_timeout_s: float = 60.0) -> int:
@@ -134,7 +143,19 @@ class DeviceNode:
         )
         self.sync = DeviceSync(s, keys, self.name, self.clock.now_ns, trace=self._sync_trace)
         self.bulk = open_bulk(s, m, self.name, self.logic)
-        self._events = EventPublisher(s, keys.events(self.name), self.logic.events)
+        if self.name in m.recording_nodes:
+            try:
+                rec = open_recorder(
+                    m, self.name, self.dv, run=self.clock.now_ns(), authenticated=self._key
+                )
+            except RecordingError as exc:
+                raise NodeError(f"{self.name} cannot start its flight recorder: {exc}") from exc
+            rec.attach(self.dv, self.logic.events)
+            self.flight_recorder = rec
+            log.info("%s flight recorder: %s", self.name, rec.directory)
+        self._events = EventPublisher(
+            s, keys.events(self.name), self.logic.events, recorder=self.flight_recorder
+        )
         if m.clock.resync_s > 0:
             self._resync = threading.Thread(target=self._resync_loop, daemon=True)
             self._resync.start()
@@ -182,7 +203,12 @@ class DeviceNode:
                     continue
                 t = now()
                 self._drift_h.set(self.drift_ns)
+                rec = self.flight_recorder
+                if rec is not None:  # its counters into the next reply
+                    rec.tick(t)
                 run(t)  # with the bulk channels, in the loop's order
+                if rec is not None and self.sync.reply is not None:
+                    rec.frame(logic.triggered, self.sync.reply, t)
                 self._events.flush()
                 # Slack until the next trigger is due: gc only runs there.
                 slack = t + period - now()
@@ -222,6 +248,9 @@ class DeviceNode:
         if self._resync is not None:
             self._resync.join(timeout=2)
         close_board(self.logic.board)
+        if self.flight_recorder is not None:
+            self.flight_recorder.close()
+            log.info("%s flight recorder: %s", self.name, summary_line(self.flight_recorder))
         self.ns.close()
 
 

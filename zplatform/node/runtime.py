@@ -15,6 +15,7 @@ from types import FrameType
 import zenoh
 
 from ..events import EventLog, Severity, encode_event
+from ..recorder.writer import FlightRecorder
 from ..scheduler import RealtimeStatus, setup_realtime
 
 __all__ = ["PARENT_ENV", "EventPublisher", "StopFlag", "realtime_setup", "setup_logging"]
@@ -68,11 +69,19 @@ class EventPublisher:
 
     Call :meth:`flush` once per loop: it costs one int compare when nothing
     was emitted, and events are rare (state changes, verdicts, failures).
-    Events are also written to the node's log (stderr) for the operator.
+    Events are also written to the node's log (stderr) for the operator,
+    and, given a ``recorder`` (the node's flight recorder), kept on board.
     """
 
-    def __init__(self, session: zenoh.Session, key: str, events: EventLog) -> None:
+    def __init__(
+        self,
+        session: zenoh.Session,
+        key: str,
+        events: EventLog,
+        recorder: FlightRecorder | None = None,
+    ) -> None:
         self.events = events
+        self.recorder = recorder
         # DROP: a subscriber on a stalled link must never block the loop
         # that flushes events; each event is also in this node's own log.
         self._pub = session.declare_publisher(key, congestion_control=zenoh.CongestionControl.DROP)
@@ -82,8 +91,12 @@ class EventPublisher:
         if self.events.emitted == self._seen:
             return
         self._seen = self.events.emitted
+        rec = self.recorder
         for e in self.events.drain():
-            self._pub.put(encode_event(e))
+            data = encode_event(e)
+            self._pub.put(data)
+            if rec is not None:
+                rec.event(data)
             log.log(_LEVELS.get(e.severity, logging.INFO), "%s %s: %s", e.node, e.id, e.text)
 
     def undeclare(self) -> None:
