@@ -43,6 +43,7 @@ from .errors import (
 )
 from .events import EV, Event, EventLog, EventType, Severity
 from .faults import FaultMonitor
+from .ground.gapfill import GapFill
 from .ground.link import GroundLink
 from .ground.logic import GroundLogic
 from .ground.records import CommandOutcome, EventRecord, TelemetryCounters
@@ -51,6 +52,7 @@ from .lockstep import LockstepRunner, ReplayResult, SimResult, replay
 from .loop import ControlLogic, DeviceLogic
 from .mission import check_mission, decode_mission, load_mission
 from .rategroups import RateGroups
+from .recorder import FlightRecorder, RecorderReader
 from .recording import Recorder
 from .safety import SafetyWarning, safety_warnings
 from .scheduler import GcGuard, LoopStats, PeriodicLoop, setup_realtime
@@ -95,11 +97,13 @@ __all__ = [
     "EventType",
     "Fault",
     "FaultMonitor",
+    "FlightRecorder",
     "Frame",
     "FrameDecoder",
     "FrameEncoder",
     "FrameFormatError",
     "FrameSizeError",
+    "GapFill",
     "GcGuard",
     "GroundLink",
     "GroundLogic",
@@ -115,6 +119,7 @@ __all__ = [
     "PeriodicLoop",
     "RateGroups",
     "Recorder",
+    "RecorderReader",
     "RecordingError",
     "RegionCodec",
     "RegionSpec",

@@ -108,6 +108,8 @@ class GroundLink:
         self.mission = mission
         if key == "mission":
             key = load_key(mission, key_file)
+        self.key: bytes | None = key
+        """The mission key the link checks with (None: no authentication)."""
         self.clock = clock or NodeClock()
         self.logic = GroundLogic(
             mission,
@@ -334,6 +336,37 @@ class GroundLink:
             return self._taps.popleft()
         got = self._pump(timeout_s, tap=True)
         return got if isinstance(got, tuple) else None
+
+    def query(
+        self,
+        key_expr: str,
+        payload: bytes,
+        timeout_s: float,
+        into: queue.SimpleQueue[tuple[int, bytes | None]],
+        tag: int,
+    ) -> None:
+        """Send one get on ``key_expr`` (every reply kept: no consolidation)
+        and return at once: each reply's payload is queued into ``into`` as
+        ``(tag, payload)`` as it arrives (error replies are skipped), then
+        ``(tag, None)`` when the get is over (every replier done, or
+        ``timeout_s`` passed). For the gap fill from the CN's recorder."""
+
+        def on_reply(reply: zenoh.Reply) -> None:
+            ok = reply.ok  # hand off only
+            if ok is not None:
+                into.put((tag, ok.payload.to_bytes()))
+
+        self.ns.session.get(
+            key_expr,
+            zenoh.handlers.Callback(on_reply, lambda: into.put((tag, None)), indirect=False),
+            payload=payload,
+            timeout=timeout_s,
+            consolidation=zenoh.ConsolidationMode.NONE,
+            # The replies travel with these: behind live traffic, and dropped
+            # rather than blocking anyone on a stalled link.
+            priority=zenoh.Priority.BACKGROUND,
+            congestion_control=zenoh.CongestionControl.DROP,
+        )
 
     def alive_nodes(self, timeout_s: float = 1.0) -> list[str]:
         """The mission's nodes with a liveliness token now, sorted."""
