@@ -25,15 +25,19 @@ from typing import Any
 from bench.common import bench_argparser, summarize, write_result
 from zplatform import ControlLogic, LockstepRunner, Recorder, load_mission
 from zplatform.lockstep import SIM_KEY
+from zplatform.uplink import load_commands
 
 ROOT = Path(__file__).resolve().parents[1]
 MISSION = ROOT / "configs" / "led_test.yaml"
 
 
-def _inputs(loops: int) -> list[tuple[int, int, list[bytes], list[bytes]]]:
-    """(loop, t, replies, grounds) of a lockstep run, captured once."""
-    m = load_mission(MISSION)
-    r = LockstepRunner(m)
+def _inputs(
+    loops: int, mission: Path = MISSION, commands: Path | None = None
+) -> list[tuple[int, int, list[bytes], list[bytes]]]:
+    """(loop, t, replies, grounds) of a lockstep run of ``mission`` (playing
+    the script ``commands``), captured once."""
+    m = load_mission(mission)
+    r = LockstepRunner(m, commands=load_commands(commands) if commands is not None else None)
     out: list[tuple[int, int, list[bytes], list[bytes]]] = []
     captured: list[bytes] = []
     cn = r.control
