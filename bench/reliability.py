@@ -154,8 +154,8 @@ def ground_main(argv: list[str]) -> None:
         sub.undeclare()
         s.close()
     else:
-        from zplatform.auth import load_key
-        from zplatform.clocksync import estimate_offset
+        from zplatform.auth import load_keys
+        from zplatform.clocksync import ClockLink, estimate_offset
         from zplatform.mission import load_mission
         from zplatform.node.ground import TelemetryReceiver
         from zplatform.timebase import NodeClock
@@ -166,14 +166,18 @@ def ground_main(argv: list[str]) -> None:
         clock = NodeClock()
         ns = NodeSession(mission, "gn", announce=False)
         offset = None
+        # The CN's clock answers only a device node's link: this measuring
+        # ground borrows dn0's (the bench's master key derives every link).
+        dn = mission.device_nodes[0]
+        link = ClockLink(mission, dn, load_keys(mission, dn))
         for _ in range(100):  # the CN's clock server is up before this child starts
             try:
-                offset = estimate_offset(ns.session, ns.keys, clock.now_ns, timeout_s=0.5)
+                offset = estimate_offset(ns.session, ns.keys, clock.now_ns, link, timeout_s=0.5)
                 break
             except Exception:
                 continue
         off = offset.offset_ns if offset is not None else 0
-        rx = TelemetryReceiver(ns.session, mission, clock.now_ns, load_key(mission))
+        rx = TelemetryReceiver(ns.session, mission, clock.now_ns, load_keys(mission, "gn"))
         ns.announce()
         print("READY", flush=True)
         while not stop.is_set():

@@ -168,7 +168,8 @@ def cmd_prompt(args: argparse.Namespace) -> int:
     """
     import zenoh
 
-    from .events import decode_event
+    from .auth import load_keys
+    from .events import EventReader
     from .node.ground import CommandSender
 
     mission = load_mission(args.mission, code=False)
@@ -176,10 +177,11 @@ def cmd_prompt(args: argparse.Namespace) -> int:
     for name in args.watch:
         sender.rx.dv.layout.element(name)  # unknown elements fail now, with their name
     lines: queue.SimpleQueue[str | None] = queue.SimpleQueue()
-    ev_q: queue.SimpleQueue[bytes] = queue.SimpleQueue()
+    ev_q: queue.SimpleQueue[tuple[str, bytes]] = queue.SimpleQueue()
+    events = EventReader(mission, load_keys(mission, "gn"))
 
     def on_event(sample: zenoh.Sample) -> None:
-        ev_q.put(sample.payload.to_bytes())  # hand off only
+        ev_q.put((str(sample.key_expr), sample.payload.to_bytes()))  # hand off only
 
     ev_sub = sender.ns.session.declare_subscriber(
         sender.ns.keys.all_events, zenoh.handlers.Callback(on_event, indirect=False)
@@ -188,15 +190,16 @@ def cmd_prompt(args: argparse.Namespace) -> int:
     def print_events() -> None:
         while True:
             try:
-                payload = ev_q.get_nowait()
+                key, payload = ev_q.get_nowait()
             except queue.Empty:
                 return
             try:
-                e = decode_event(payload)
+                e, verified = events.read(key, payload)
             except ZPlatformError as exc:
-                print(f"EVENT (undecodable: {exc})", flush=True)
+                print(f"EVENT (refused on {key}: {exc})", flush=True)
                 continue
-            print(f"EVENT {e.node} {e.severity_name} {e.id}: {e.text}", flush=True)
+            mark = " (unverified)" if verified is False else ""
+            print(f"EVENT{mark} {e.node} {e.severity_name} {e.id}: {e.text}", flush=True)
 
     def reader() -> None:
         for line in sys.stdin:

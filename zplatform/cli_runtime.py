@@ -17,14 +17,14 @@ from typing import Any
 
 import zenoh
 
-from .auth import TAG_LEN, load_key, mission_channels
+from .auth import TAG_LEN, load_keys
 from .bulk import bulk_key, decode_sample
 from .cli_args import check_output, check_ports, nonnegative_float, positive_float, positive_int
 from .codec import RegionCodec
 from .config import Mission
 from .datavector import DataVector, Layout
 from .errors import CodecError, CommandError, NodeError, TransportError
-from .events import decode_event
+from .events import EventReader
 from .mission import load_mission
 from .node.runtime import PARENT_ENV, setup_logging
 from .summary import (
@@ -297,39 +297,46 @@ def cmd_cmd(args: argparse.Namespace) -> int:
 class _TapDecoder:
     """Decodes any sample of the key space into named values.
 
-    Frames of an authenticating mission are checked with the mission key
-    when it is at hand; without it they are still decoded, marked
-    ``"verified": false``."""
+    Frames and events of an authenticating mission are checked with the
+    keys a read-only tool holds (the downlink's and every node's event
+    keys: ``tool.keys``) when they are at hand; what they do not cover
+    (the triggers and replies of the cn<->dnX links, command requests) and
+    everything without them is still decoded, marked ``"verified": false``."""
 
     def __init__(self, mission: Mission) -> None:
-        from .auth import KeyError_, load_key
+        from .auth import KeyError_, link_of
 
         self.mission = mission
-        keys = KeySpace(mission.vehicle)
+        space = KeySpace(mission.vehicle)
         self._auth = mission.security.auth
         try:
-            key = load_key(mission)
+            keys = load_keys(mission, "tool")
         except KeyError_:
-            key = None
-        ch = mission_channels(mission, key)
+            keys = None
+
+        def chan(name: str) -> Any:
+            return keys.channel(name) if keys is not None and keys.has(link_of(name)) else None
+
+        self._events = EventReader(mission, keys)
         self._by_key: dict[str, Any] = {}
         self._bulk = {bulk_key(mission.vehicle, ch): ch for ch in mission.bulk}
         cn = DataVector(Layout.for_node(mission, "cn"))
-        self._by_key[keys.telemetry] = (RegionCodec(cn), cn, ch["telemetry"])
+        self._by_key[space.telemetry] = (RegionCodec(cn), cn, chan("telemetry"))
         for region in mission.region_names():
             if region == "cn":
                 continue
             dv = DataVector(Layout.for_regions(mission, [region]))
-            self._by_key[keys.region(region)] = (RegionCodec(dv, region), dv, ch.get(region))
+            self._by_key[space.region(region)] = (RegionCodec(dv, region), dv, chan(region))
 
     def decode(self, key: str, payload: bytes) -> dict[str, Any]:
         if key.endswith("/events"):
             try:
-                e = decode_event(payload)
+                e, verified = self._events.read(key, payload)
             except CodecError as exc:
                 return {"key": key, "error": str(exc)}
             return {
                 "key": key,
+                **({} if verified is None else {"verified": verified}),
                 "event": {
                     "node": e.node,
                     "seq": e.seq,
@@ -399,18 +406,26 @@ def _check_keyexpr(keyexpr: str) -> None:
         ) from None
 
 
+# A tap line says when its tag could not be checked (no key for that channel).
+_UNVERIFIED = {None: "", True: "", False: " (unverified)"}
+
+
 def _print_tap(d: dict[str, Any], as_json: bool) -> None:
     key = d["key"]
     if as_json:
         print(json.dumps(d, default=str), flush=True)
     elif "values" in d:
         vals = " ".join(f"{k}={v}" for k, v in d["values"].items())
-        print(f"{key} seq={d['seq']} t_ns={d['t_ns']} via={d.get('via')} {vals}", flush=True)
+        print(
+            f"{key}{_UNVERIFIED[d.get('verified')]} seq={d['seq']} t_ns={d['t_ns']} "
+            f"via={d.get('via')} {vals}",
+            flush=True,
+        )
     elif "event" in d:
         e = d["event"]
         print(
-            f"{key} EVENT {e['severity_name']:<8} {e['id']}: {e['text']}  "
-            f"(seq={e['seq']} t_ns={e['t_ns']})",
+            f"{key}{_UNVERIFIED[d.get('verified')]} EVENT {e['severity_name']:<8} {e['id']}: "
+            f"{e['text']}  (seq={e['seq']} t_ns={e['t_ns']})",
             flush=True,
         )
     else:
@@ -533,8 +548,10 @@ def cmd_up(args: argparse.Namespace) -> int:
     from . import registry
 
     mission = load_mission(args.mission)  # refuse a bad mission before spawning
-    # First use on this host: make the mission key (every node finds it).
-    load_key(mission, create=True)
+    # First use on this host: make the mission's key set (every node finds its own).
+    # Every node it spawns needs its keys: a missing one is one error line now.
+    for role in ("cn", *mission.device_nodes, *(["gn"] if mission.has_ground else [])):
+        load_keys(mission, role, create=True)
     if args.commands:
         from .uplink import load_commands
 

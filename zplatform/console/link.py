@@ -25,8 +25,8 @@ from collections.abc import Callable
 
 import zenoh
 
-from ..errors import FrameFormatError, ZPlatformError
-from ..events import decode_event
+from ..errors import CodecError, ZPlatformError
+from ..events import EventReader
 from ..timebase import NodeClock
 from ..transport import KeySpace, NodeSession
 from .model import ConsoleModel
@@ -52,7 +52,7 @@ class Link:
         self.clock = NodeClock()
         self._stop = threading.Event()
         self._cmds: queue.SimpleQueue[tuple[str, list[str], bool] | None] = queue.SimpleQueue()
-        self._events: queue.SimpleQueue[bytes] = queue.SimpleQueue()
+        self._events: queue.SimpleQueue[tuple[str, bytes]] = queue.SimpleQueue()
         self._threads: list[threading.Thread] = []
         self.busy = False  # a command is waiting for its verdict
 
@@ -88,7 +88,7 @@ class Link:
                 self.model.note(self.now_ns(), f"{what} failed: {exc!r}", "FATAL")
 
     def _on_event(self, sample: zenoh.Sample) -> None:
-        self._events.put(sample.payload.to_bytes())  # hand off only
+        self._events.put((str(sample.key_expr), sample.payload.to_bytes()))  # hand off only
 
     def _telemetry(self) -> None:
         self._guard("telemetry link", self._telemetry_loop)
@@ -96,10 +96,13 @@ class Link:
     def _telemetry_loop(self) -> None:
         # Imported here: node/ground.py pulls in the runtime, which the
         # model (and the unit tests of the model) do not need.
+        from ..auth import load_keys
         from ..node.ground import TelemetryReceiver
 
+        keys = load_keys(self.mission, "tool")  # the downlink's and the events' keys
+        reader = EventReader(self.mission, keys)
         ns = NodeSession(self.mission, None)
-        rx = TelemetryReceiver(ns.session, self.mission, self.now_ns)
+        rx = TelemetryReceiver(ns.session, self.mission, self.now_ns, keys)
         sub = ns.session.declare_subscriber(
             KeySpace(self.mission.vehicle).all_events,
             zenoh.handlers.Callback(self._on_event, indirect=False),
@@ -113,12 +116,12 @@ class Link:
                         m.on_snapshot(rx.dv, t, received=rx.received, gaps=rx.gaps, bad=rx.bad)
                 while True:
                     try:
-                        raw = self._events.get_nowait()
+                        key, raw = self._events.get_nowait()
                     except queue.Empty:
                         break
                     try:
-                        e = decode_event(raw)
-                    except FrameFormatError:
+                        e, _ = reader.read(key, raw)
+                    except CodecError:  # not a record, or a bad tag
                         with m.lock:
                             m.on_bad_event()
                         continue

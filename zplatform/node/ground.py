@@ -27,12 +27,12 @@ from typing import Literal
 
 import zenoh
 
-from ..auth import load_key, mission_channels
+from ..auth import KeySet, channel, load_keys
 from ..codec import RegionCodec
 from ..config import Mission
 from ..datavector import DataVector, Layout
 from ..errors import CodecError, CommandError
-from ..events import decode_event
+from ..events import EventReader
 from ..summary import GnSummary
 from ..telemetry import CsvLogger, EventWriter
 from ..timebase import NodeClock
@@ -55,7 +55,9 @@ class TelemetryReceiver:
     queues the bytes (a FIFO: every snapshot is kept until read).
 
     Nothing unchecked is applied: a snapshot must carry the telemetry
-    channel's tag (``key``; None when the mission does not authenticate), be
+    channel's tag (``keys``, the downlink's; "mission": a read-only tool's
+    keys from where the mission keeps them; None when the mission does not
+    authenticate), be
     newer than the last one of the same CN run (``cn_epoch``; a restarted CN
     starts a new run), and not jump further ahead than the time since the
     last one allows. Anything else is counted in :attr:`bad` and dropped.
@@ -66,14 +68,14 @@ class TelemetryReceiver:
         session: zenoh.Session,
         mission: Mission,
         now_ns: Callable[[], int],
-        key: bytes | Literal["mission"] | None = "mission",
+        keys: KeySet | Literal["mission"] | None = "mission",
     ):
         self.mission = mission
         self.dv = DataVector(Layout.for_node(mission, "cn"))
         self._codec = RegionCodec(self.dv)
-        if key == "mission":  # the mission's own key, from where the mission keeps it
-            key = load_key(mission)
-        self._open = mission_channels(mission, key)["telemetry"]
+        if keys == "mission":  # a read-only tool's keys, from where the mission keeps them
+            keys = load_keys(mission, "tool")
+        self._open = channel(keys, "telemetry")
         self._epoch_at = self.dv.layout.element("cn_epoch").offset
         self._epoch = -1
         self._last_rx = 0
@@ -164,16 +166,19 @@ def run_ground_logger(
     clock = NodeClock()
     node = "gn" if as_node and mission.has_ground else None
     ns = NodeSession(mission, node, announce=False)
-    key = load_key(mission, key_file)
-    rx = TelemetryReceiver(ns.session, mission, clock.now_ns, key)
+    # Commands need the uplink (the ground's keys); logging needs only the
+    # downlink and the events (a read-only tool's).
+    keys = load_keys(mission, "gn" if script else "tool", key_file)
+    rx = TelemetryReceiver(ns.session, mission, clock.now_ns, keys)
     logger = CsvLogger(out_csv, rx.dv.layout) if out_csv else None
     events = EventWriter(events_out) if events_out else None
-    ev_q: queue.SimpleQueue[tuple[bytes, int]] = queue.SimpleQueue()
+    ev_q: queue.SimpleQueue[tuple[str, bytes, int]] = queue.SimpleQueue()
     ev_sub = None
+    reader = EventReader(mission, keys)
     if events is not None:
 
         def on_event(sample: zenoh.Sample) -> None:
-            ev_q.put((sample.payload.to_bytes(), clock.now_ns()))  # hand off only
+            ev_q.put((str(sample.key_expr), sample.payload.to_bytes(), clock.now_ns()))
 
         ev_sub = ns.session.declare_subscriber(
             ns.keys.all_events, zenoh.handlers.Callback(on_event, indirect=False)
@@ -184,15 +189,16 @@ def run_ground_logger(
             return
         while True:
             try:
-                payload, t_rx = ev_q.get_nowait()
+                key, payload, t_rx = ev_q.get_nowait()
             except queue.Empty:
                 return
             try:
-                events.write(t_rx, decode_event(payload))
+                e, _ = reader.read(key, payload)  # the ground holds every node's event key
+                events.write(t_rx, e)
             except CodecError as exc:
-                log.warning("bad event record: %s", exc)
+                log.warning("bad event record on %s: %s", key, exc)
 
-    player = ScriptPlayer(mission, script, key=key) if script else None
+    player = ScriptPlayer(mission, script, keys=keys) if script else None
     cmd_pub = ns.session.declare_publisher(ns.keys.gn_to_cn) if player is not None else None
     # Alive only once subscribed: the CN waits for this token before its
     # first loop, so the log starts at loop 1.
@@ -265,11 +271,11 @@ class CommandSender:
             raise CommandError(f"mission {mission.mission!r} has no ground node 'gn'")
         self.mission = mission
         self.timeout_s = timeout_s
-        key = load_key(mission, key_file)  # before any session: a clear error first
+        keys = load_keys(mission, "gn", key_file)  # before any session: a clear error first
         self.clock = NodeClock()
         self.ns = NodeSession(mission, None)
-        self.rx = TelemetryReceiver(self.ns.session, mission, self.clock.now_ns, key)
-        self._uplink = Uplink(mission, key)
+        self.rx = TelemetryReceiver(self.ns.session, mission, self.clock.now_ns, keys)
+        self._uplink = Uplink(mission, keys)
         self._pub = self.ns.session.declare_publisher(self.ns.keys.gn_to_cn)
 
     def validate(
