@@ -6,6 +6,7 @@ here; module paths below ``zplatform.`` are implementation detail.
 
 from __future__ import annotations
 
+from .auth import KeySet, load_keys
 from .boards import Board, SimBoard
 from .codec import (
     Frame,
@@ -15,7 +16,7 @@ from .codec import (
     decode_frame,
     encode_frame,
 )
-from .codes import Command, CommandStatus, Fault
+from .codes import Command, CommandStatus, Fault, SafedWhy
 from .commands import CommandHandler
 from .components import Component
 from .config import Mission
@@ -41,7 +42,7 @@ from .errors import (
     TransportError,
     ZPlatformError,
 )
-from .events import EV, Event, EventLog, EventType, Severity
+from .events import EV, Event, EventLog, EventReader, EventType, Severity
 from .faults import FaultMonitor
 from .lockstep import LockstepRunner, ReplayResult, SimResult, replay
 from .loop import ControlLogic, DeviceLogic
@@ -85,6 +86,7 @@ __all__ = [
     "Event",
     "EventError",
     "EventLog",
+    "EventReader",
     "EventType",
     "Fault",
     "FaultMonitor",
@@ -95,6 +97,7 @@ __all__ = [
     "FrameSizeError",
     "GcGuard",
     "Handle",
+    "KeySet",
     "KeySpace",
     "Layout",
     "LayoutMismatchError",
@@ -110,6 +113,7 @@ __all__ = [
     "RegionCodec",
     "RegionSpec",
     "ReplayResult",
+    "SafedWhy",
     "SafetyWarning",
     "SchedulerError",
     "ScriptCommand",
@@ -131,6 +135,7 @@ __all__ = [
     "encode_frame",
     "fill_request",
     "load_commands",
+    "load_keys",
     "load_mission",
     "mission_schema",
     "parse_commands",

@@ -81,6 +81,7 @@ __all__ = ["BulkPort", "ControlLogic", "DeviceLogic", "LoopRecorder"]
 # A trigger stamped this much later than the last one served, yet with a
 # lower loop number, comes from a restarted control node.
 _RESTART_NS = 1_000_000_000
+_BACKLOG = "skipped in a backlog"
 
 
 class LoopRecorder(Protocol):
@@ -544,7 +545,7 @@ class DeviceLogic:
             self.reject_reason = str(exc)
             self.events.emit(EV.BAD_FRAME, now_ns, source="sync query", reason=exc)
             if newer:  # the CN's, but outside this node's clock window
-                self._not_run(frame.t_ns, now_ns, str(exc))
+                self._not_run(frame.t_ns, now_ns, exc)
             return None
         # A lower seq with a later timestamp is a restarted CN, not an old
         # query: follow it rather than stall forever.
@@ -564,14 +565,7 @@ class DeviceLogic:
         else:
             self.stale += 1
             if newer:
-                self._not_run(
-                    frame.t_ns,
-                    now_ns,
-                    f"stamped {(now_ns - frame.t_ns) / 1e6:.1f} ms before this node's clock "
-                    "(stale)"
-                    if late
-                    else "skipped in a backlog",
-                )
+                self._not_run(frame.t_ns, now_ns, None if late else _BACKLOG)
             if frame.seq > self.last_loop and frame.data[self._final_at]:
                 # The CN's last loop, come too late to run: the run ended all the same.
                 self._safe(
@@ -584,9 +578,10 @@ class DeviceLogic:
         reply = self._out.encode(frame.seq, now_ns)
         return self._seal.seal(reply) if self._seal is not None else reply
 
-    def _not_run(self, stamp_ns: int, now_ns: int, why: str) -> None:
+    def _not_run(self, stamp_ns: int, now_ns: int, why: object) -> None:
         """An authentic trigger newer than any seen could not run (class doc):
-        safe the node once the CN's stamps span the watchdog without a run."""
+        safe the node once the CN's stamps span the watchdog without a run.
+        ``why``: what refused it (None: stale); text is made only to safe."""
         since = self._unrun_since
         if since is None:
             self._unrun_since = stamp_ns
@@ -596,6 +591,8 @@ class DeviceLogic:
         span = stamp_ns - since
         if span < self._watchdog_ns or self._h_safed_why.get() == SafedWhy.CANNOT_RUN:
             return
+        if why is None:
+            why = f"stamped {(now_ns - stamp_ns) / 1e6:.1f} ms before this node's clock (stale)"
         self._safe(
             now_ns,
             f"{self._unrun} triggers of the control node over {span / 1e6:.0f} ms and none "
