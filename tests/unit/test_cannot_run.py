@@ -48,6 +48,16 @@ class Flight:
         self._seq = 0
 
     def step(self, *commands: str) -> None:
+        """One loop per command request (one request a loop), or one loop."""
+        requests = []
+        for c in commands:
+            self._seq += 1
+            t = T0 + self.loop * PERIOD
+            requests.append(bytes(self.up.frame(c, self._seq, 0, 0.0, t, EPOCH)))
+        for grounds in [[r] for r in requests] or [[]]:
+            self._loop(grounds)
+
+    def _loop(self, grounds: list[bytes]) -> None:
         self.loop += 1
         t = T0 + (self.loop - 1) * PERIOD
         frames = self.cn.begin(self.loop, t)
@@ -57,22 +67,7 @@ class Flight:
             if dn.triggered:
                 dn.run(now)
                 self.ran[i] += 1
-        grounds = []
-        for c in commands:
-            self._seq += 1
-            grounds.append(bytes(self.up.frame(c, self._seq, 0, 0.0, t, EPOCH)))
-        for g in grounds:  # one request per loop: the newest would win
-            self.cn.finish([g])
-            self.loop += 1
-            t = T0 + (self.loop - 1) * PERIOD
-            frames = self.cn.begin(self.loop, t)
-            for i, dn in enumerate(self.dns):
-                now = t + self.skew[i]
-                self.cn.reply(i, dn.trigger(bytes(frames[i]), now))
-                if dn.triggered:
-                    dn.run(now)
-                    self.ran[i] += 1
-        self.cn.finish()
+        self.cn.finish(grounds)
         for log in (self.cn.events, *(d.events for d in self.dns)):
             for e in log.drain():
                 self.events.append((self.loop, e.node, e.id, e.text))
