@@ -417,15 +417,15 @@ def _print_tap(d: dict[str, Any], as_json: bool) -> None:
     elif "values" in d:
         vals = " ".join(f"{k}={v}" for k, v in d["values"].items())
         print(
-            f"{key}{_UNVERIFIED[d.get('verified')]} seq={d['seq']} t_ns={d['t_ns']} "
-            f"via={d.get('via')} {vals}",
+            f"{key} seq={d['seq']} t_ns={d['t_ns']} via={d.get('via')} {vals}"
+            f"{_UNVERIFIED[d.get('verified')]}",
             flush=True,
         )
     elif "event" in d:
         e = d["event"]
         print(
-            f"{key}{_UNVERIFIED[d.get('verified')]} EVENT {e['severity_name']:<8} {e['id']}: "
-            f"{e['text']}  (seq={e['seq']} t_ns={e['t_ns']})",
+            f"{key} EVENT {e['severity_name']:<8} {e['id']}: {e['text']}  "
+            f"(seq={e['seq']} t_ns={e['t_ns']}){_UNVERIFIED[d.get('verified')]}",
             flush=True,
         )
     else:

@@ -417,11 +417,13 @@ class DeviceLogic:
     A node that answers yet cannot run is safed too: when the CN's
     triggers keep arriving, authentic and each newer than the last, but
     none could run (every one stale, or outside the clock window) over
-    ``faults.dn_watchdog_loops`` periods of the CN's own stamps, the node
-    safes with a warning naming why, and ``dnX_safed_why`` = ``CANNOT_RUN``
-    in its replies makes the CN latch ``DN_SAFED``. Measured on the
-    triggers' stamps and counting only newer ones, a replay of captured
-    triggers cannot trip it. ``dnX_safed_why`` says why the node is safed
+    ``faults.dn_watchdog_loops`` periods, of the CN's stamps and of this
+    node's clock alike, the node safes with a warning naming why, and
+    ``dnX_safed_why`` = ``CANNOT_RUN`` in its replies makes the CN latch
+    ``DN_SAFED``. Counting only newer triggers over the CN's stamps, a
+    replay of captured triggers cannot trip it; over this node's clock too,
+    nor can a burst of late triggers served at once after the node stalled
+    (a stall is the watchdog's: ``CN_LOST``, no fault). ``dnX_safed_why`` says why the node is safed
     (:class:`~zplatform.codes.SafedWhy`).
 
     Construction raises ConfigError (YAML path) for a bad device or
@@ -496,6 +498,7 @@ class DeviceLogic:
         self._seen_loop = 0
         self._seen_t = 0
         self._unrun_since: int | None = None
+        self._unrun_since_here = 0
         self._unrun = 0
         self.safed = False
         self._safed_by: EventType | None = None
@@ -585,11 +588,19 @@ class DeviceLogic:
         since = self._unrun_since
         if since is None:
             self._unrun_since = stamp_ns
+            self._unrun_since_here = now_ns
             self._unrun = 1
             return
         self._unrun += 1
         span = stamp_ns - since
-        if span < self._watchdog_ns or self._h_safed_why.get() == SafedWhy.CANNOT_RUN:
+        # Both clocks: the CN's stamps (a replay repeats its stamp) and this
+        # node's own (a burst of late triggers served at once after a stall
+        # spans no time here: the stall is the watchdog's, CN_LOST).
+        if (
+            span < self._watchdog_ns
+            or now_ns - self._unrun_since_here < self._watchdog_ns
+            or self._h_safed_why.get() == SafedWhy.CANNOT_RUN
+        ):
             return
         if why is None:
             why = f"stamped {(now_ns - stamp_ns) / 1e6:.1f} ms before this node's clock (stale)"

@@ -126,15 +126,23 @@ def test_tap_without_bounds_gives_up_on_silence(
 
 
 def test_tap_prints_events_decoded(capsys: pytest.CaptureFixture[str]) -> None:
+    from zplatform.auth import load_keys
     from zplatform.mission import load_mission
 
-    dec = cli_runtime._TapDecoder(load_mission(CONFIGS / "minimal.yaml"))
+    mission = load_mission(CONFIGS / "minimal.yaml")
+    dec = cli_runtime._TapDecoder(mission)
     sev = max(Severity)  # whatever the most severe is called
     ev = Event("cn", 3, 1_000, int(sev), "cmd_rejected", "command LAUNCH #4 rejected")
-    d = dec.decode("rocket/cn/events", encode_event(ev))
+    cn = load_keys(mission, "cn")
+    assert cn is not None  # events carry the CN's own event tag
+    d = dec.decode("rocket/cn/events", bytes(cn.channel("events_cn").seal(encode_event(ev))))
     cli_runtime._print_tap(d, as_json=False)
     out = capsys.readouterr().out
     assert f"rocket/cn/events EVENT {sev.name:<8} cmd_rejected: command LAUNCH #4" in out
+    assert "unverified" not in out
+    # Forged (untagged), it is refused, not shown as the CN's.
+    d = dec.decode("rocket/cn/events", encode_event(ev))
+    assert "tag" in d["error"]
 
 
 # ---------------------------------------------------------------- output

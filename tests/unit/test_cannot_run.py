@@ -180,3 +180,28 @@ def test_a_dn_safed_by_the_run_s_end_that_cannot_run_the_next_run_says_so() -> N
     assert dn.dv.get_name("dn0_safed_why") == "CANNOT_RUN"
     told = [e for e in dn.events.drain() if e.id == "dn_safed"]
     assert len(told) == 1 and "none could run" in told[0].text
+
+
+def test_a_burst_of_late_triggers_after_a_stall_is_no_cannot_run() -> None:
+    """A DN descheduled for 300 ms is handed the triggers that piled up one
+    by one, each stale: their stamps span 300 ms, but they are served
+    within a millisecond here. Its watchdog safes it (CN_LOST), then it runs
+    the fresh ones and re-enables; the CN sees no DN_SAFED."""
+    f = Flight(LED, {})
+    for _ in range(20):
+        f.step()
+    dn, cn = f.dns[0], f.cn
+    stalled = []
+    for _ in range(30):  # the CN runs on; dn0 serves nothing meanwhile
+        f.loop += 1
+        t = T0 + (f.loop - 1) * PERIOD
+        stalled.append((f.loop, bytes(cn.begin(f.loop, t)[0])))
+        cn.finish()
+    wake = T0 + f.loop * PERIOD + 2 * MS
+    for k, (_, frame) in enumerate(stalled):  # each alone, as zenoh hands them over
+        dn.trigger(frame, wake + k * 20_000)
+        assert not dn.triggered
+    assert dn.dv.get_name("dn0_safed_why") == "CN_LOST"
+    for _ in range(30):
+        f.step()
+    assert dn.safed is False and f.fault() == "NONE"
