@@ -6,6 +6,7 @@ here; module paths below ``zplatform.`` are implementation detail.
 
 from __future__ import annotations
 
+from .auth import KeySet, load_keys
 from .boards import Board, SimBoard
 from .codec import (
     Frame,
@@ -15,7 +16,7 @@ from .codec import (
     decode_frame,
     encode_frame,
 )
-from .codes import Command, CommandStatus, Fault
+from .codes import Command, CommandStatus, Fault, SafedWhy
 from .commands import CommandHandler
 from .components import Component
 from .config import Mission
@@ -41,7 +42,7 @@ from .errors import (
     TransportError,
     ZPlatformError,
 )
-from .events import EV, Event, EventLog, EventType, Severity
+from .events import EV, Event, EventLog, EventReader, EventType, Severity
 from .faults import FaultMonitor
 from .ground.link import GroundLink
 from .ground.logic import GroundLogic
@@ -91,6 +92,7 @@ __all__ = [
     "Event",
     "EventError",
     "EventLog",
+    "EventReader",
     "EventRecord",
     "EventType",
     "Fault",
@@ -104,6 +106,7 @@ __all__ = [
     "GroundLink",
     "GroundLogic",
     "Handle",
+    "KeySet",
     "KeySpace",
     "Layout",
     "LayoutMismatchError",
@@ -119,6 +122,7 @@ __all__ = [
     "RegionCodec",
     "RegionSpec",
     "ReplayResult",
+    "SafedWhy",
     "SafetyWarning",
     "SchedulerError",
     "ScriptCommand",
@@ -144,6 +148,7 @@ __all__ = [
     "encode_frame",
     "fill_request",
     "load_commands",
+    "load_keys",
     "load_mission",
     "mission_schema",
     "parse_commands",

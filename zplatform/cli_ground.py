@@ -209,7 +209,7 @@ def _record_radio(mission: Any, args: argparse.Namespace) -> int:
     """The mission's CN packs its own downlink: record the packets it sends."""
     from .ground.link import GroundLink
 
-    link = GroundLink(mission, key=None, telemetry=False, events=False)
+    link = GroundLink(mission, keys=None, telemetry=False, events=False)
     link.tap(link.keys.downlink)
     n = size = 0
     start = time.monotonic()

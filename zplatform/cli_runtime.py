@@ -288,12 +288,15 @@ def cmd_up(args: argparse.Namespace) -> int:
     """Refuse what a user can get wrong before any node is spawned (exit 2):
     the mission, the command script, unwritable output paths, listen ports
     already in use; then :func:`zplatform.supervisor.run_up`."""
-    from .auth import load_key
+    from .auth import load_keys
     from .supervisor import run_up
 
     mission = load_mission(args.mission)
-    # First use on this host: make the mission key (every node finds it).
-    load_key(mission, create=True)
+    # First use on this host: make the mission's key set (every node finds its
+    # own). Every node it spawns needs its keys: a missing one is one error
+    # line now, before anything runs.
+    for role in ("cn", *mission.device_nodes, *(["gn"] if mission.has_ground else [])):
+        load_keys(mission, role, create=True)
     if args.commands:
         from .uplink import load_commands
 

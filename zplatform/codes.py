@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import enum
 
-__all__ = ["Command", "CommandStatus", "ErrorCode", "Fault"]
+__all__ = ["Command", "CommandStatus", "ErrorCode", "Fault", "SafedWhy"]
 
 
 class Command(enum.IntEnum):
@@ -55,6 +55,26 @@ class Fault(enum.IntEnum):
     SYNC_OVERRUNS = 3
     LOOP_OVERRUNS = 4
     CLOCK_DRIFT = 5
+    DN_SAFED = 6
+    """A device node the CN triggers reports that it safed itself because
+    none of those triggers could run (``dnX_safed_why == CANNOT_RUN``): it
+    answers, yet runs no loop (its clock is off, every trigger stale)."""
+
+
+class SafedWhy(enum.IntEnum):
+    """Why a device node safed its actuators; the values of ``dnX_safed_why``."""
+
+    NONE = 0
+    CN_LOST = 1
+    """No valid trigger for ``faults.dn_watchdog_loops`` periods (its watchdog)."""
+    RUN_ENDED = 2
+    """The CN's last loop (``dnX_final``): the run ended."""
+    CANNOT_RUN = 3
+    """The CN's triggers arrive, authentic and new, but none could run for
+    ``faults.dn_watchdog_loops`` periods (stale, outside the node's clock
+    window): the CN latches ``DN_SAFED``."""
+    STOPPING = 4
+    """The node is stopping (a clean exit)."""
 
 
 class ErrorCode(enum.IntEnum):

@@ -34,7 +34,7 @@ from typing import Annotated, Any, Literal
 import msgspec
 from msgspec import Meta
 
-from .codes import Command, CommandStatus, Fault
+from .codes import Command, CommandStatus, Fault, SafedWhy
 from .errors import ConfigError
 from .types import SCALAR_TYPES, ScalarType, parse_type
 
@@ -47,6 +47,7 @@ __all__ = [
     "MAX_REGION_BYTES",
     "MAX_VECTOR_BYTES",
     "MISSION_NAME_MAX",
+    "SAFED_WHY_NAMES",
     "ActionConfig",
     "ClockConfig",
     "CommandsConfig",
@@ -78,6 +79,7 @@ CMD_NAMES: tuple[str, ...] = tuple(m.name for m in Command)
 CMD_STATUS_NAMES: tuple[str, ...] = tuple(m.name for m in CommandStatus)
 CONTROLLER_MODES: tuple[str, ...] = ("enabled", "safed", "manual")
 FAULT_NAMES: tuple[str, ...] = tuple(m.name for m in Fault)
+SAFED_WHY_NAMES: tuple[str, ...] = tuple(m.name for m in SafedWhy)
 
 # Names checked with fullmatch, never match: `$` also matches before a
 # trailing newline, so "cn_loop\n" would pass a match().
@@ -542,12 +544,24 @@ class SecurityConfig(_Struct):
     auth: Annotated[
         bool,
         Meta(
-            description="Every region frame, telemetry snapshot and command request carries an "
-            "HMAC-SHA256 tag keyed by the mission key, which never lives in the YAML (a key "
-            "file or the environment: `zplatform keygen`). Off only for benchmarks and "
-            "closed test benches."
+            description="Every region frame, telemetry snapshot, command request, clock-sync "
+            "exchange and event record carries a 16-byte tag keyed per link (CN<->dnX, the "
+            "ground's uplink, the telemetry downlink, each node's events); each host holds "
+            "only its own links' keys, which never live in the YAML (key files from "
+            "`zplatform keygen`, or the environment). Off only for benchmarks and closed "
+            "test benches."
         ),
     ] = True
+    mac: Annotated[
+        Literal["blake3", "hmac-sha256"],
+        Meta(
+            description="The tag's MAC: `blake3` (keyed BLAKE3, the default: about 3.5x "
+            "faster than HMAC-SHA256 on large frames, bench/REPORT.md) or `hmac-sha256`. "
+            "The name is part of every channel key (codecs/FORMAT.md §6.1), so every node "
+            "of a mission must use the same one: a peer with another refuses each frame "
+            "as a bad tag, saying so."
+        ),
+    ] = "blake3"
 
 
 class FaultsConfig(_Struct):
@@ -1328,7 +1342,20 @@ def platform_elements(m: Mission) -> dict[str, list[ElementConfig]]:
             E(f"{dn}_bad_frames", "u32", 0, doc=f"triggers {dn} refused"),
             E(f"{dn}_clock_offset_ns", "i64", 0, doc=f"{dn}'s clock correction (ns)"),
             E(f"{dn}_clock_drift_ns", "i64", 0, doc=f"{dn}'s clock error at the last re-sync"),
-            E(f"{dn}_safed", "bool", False, doc=f"{dn} lost its CN and safed its actuators"),
+            E(f"{dn}_safed", "bool", False, doc=f"{dn} safed its actuators (why: next)"),
+            E(
+                f"{dn}_safed_why",
+                "enum",
+                "NONE",
+                list(SAFED_WHY_NAMES),
+                doc=f"why {dn} safed: CN_LOST, RUN_ENDED, CANNOT_RUN (a fault), STOPPING",
+            ),
+            E(
+                f"{dn}_clock_refused",
+                "u32",
+                0,
+                doc=f"clock replies and estimates {dn} refused (bad tag, replayed, a jump)",
+            ),
         ]
     if m.has_ground:
         out["gn_to_cn"] = [

@@ -46,7 +46,7 @@ from typing import Any
 import msgspec
 import numpy as np
 
-from .auth import TAG_LEN
+from .auth import TAG_LEN, KeySet
 from .boards import Board
 from .codec import BundleEncoder, RegionCodec
 from .config import BulkChannelConfig, Mission
@@ -64,20 +64,29 @@ from .world import World
 
 __all__ = [
     "DEFAULT_START_NS",
+    "SIM_KEY",
     "Difference",
     "LockstepRunner",
     "ReplayResult",
     "SimResult",
     "replay",
+    "sim_keys",
 ]
 
 DEFAULT_START_NS = 1_700_000_000_000_000_000
 """Virtual time of loop 1 (2023-11-14T22:13:20Z): fixed, so runs repeat exactly."""
 
 SIM_KEY = bytes(32)
-"""The key a lockstep run authenticates its frames with (every node is in
-this process, so the key protects nothing; it keeps the frames and the code
-paths those of a live run)."""
+"""The master key a lockstep run derives its link keys from (every node is
+in this process, so the keys protect nothing; they keep the frames and the
+code paths those of a live run). Deliberately trivial: no key loader takes
+it (:func:`zplatform.auth.check_key`)."""
+
+
+def sim_keys(mission: Mission) -> KeySet | None:
+    """Every link key of ``mission`` derived from :data:`SIM_KEY`, or None
+    when the mission does not authenticate."""
+    return KeySet.from_master(mission, SIM_KEY, source="SIM_KEY") if mission.security.auth else None
 
 
 class SimResult(msgspec.Struct):
@@ -244,8 +253,8 @@ class LockstepRunner:
         self.start_ns = start_ns
         self.period_ns = mission.period_ns
         self.clock = VirtualClock(start_ns)
-        key = SIM_KEY if mission.security.auth else None
-        self.control = ControlLogic(mission, key=key, epoch=start_ns)
+        keys = sim_keys(mission)
+        self.control = ControlLogic(mission, keys=keys and keys.for_node("cn"), epoch=start_ns)
         boards = dict(boards or {})
         unknown = sorted(set(boards) - set(mission.device_nodes))
         if unknown:
@@ -256,10 +265,12 @@ class LockstepRunner:
             for n in self.world.nodes:
                 boards.setdefault(n, self.world.board(n))
         self.devices = [
-            DeviceLogic(mission, dn, board=boards.get(dn), key=key) for dn in mission.device_nodes
+            DeviceLogic(mission, dn, board=boards.get(dn), keys=keys and keys.for_node(dn))
+            for dn in mission.device_nodes
         ]
         # The ground side: the live ground node's logic, in virtual time.
-        self.ground = GroundLogic(mission, key=key, script=commands or [])
+        ground_keys = keys and keys.for_node("gn" if mission.has_ground else "tool")
+        self.ground = GroundLogic(mission, keys=ground_keys, script=commands or [])
         # The sync query's form, as the live CN chooses it (transport.sync_query).
         self._bundle = BundleEncoder() if wildcard_sync_for(mission) else None
         self._ground: bytearray | None = None
@@ -445,7 +456,7 @@ def replay(
     recording (KeyError_ for a missing key); a difference is a result, not
     an error.
     """
-    from .auth import load_key
+    from .auth import load_keys
     from .errors import RecordingError
     from .mission import load_mission
     from .recording import RecordReader
@@ -458,7 +469,7 @@ def replay(
             "loop) are not recorded, so its loop cannot be replayed bit for bit"
         )
     reader.check_layout(Layout.for_node(mission, "cn"))
-    cn = ControlLogic(mission, key=load_key(mission, key_file))
+    cn = ControlLogic(mission, keys=load_keys(mission, "cn", key_file))
     cn.dv.write_all(reader.initial)  # epoch included
     state_dv = cn.dv
     frames = 0

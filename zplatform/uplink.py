@@ -31,7 +31,7 @@ from typing import Any
 
 import msgspec
 
-from .auth import mission_channels
+from .auth import KeySet, channel
 from .codec import RegionCodec
 from .config import CMD_NAMES, Mission
 from .datavector import DataVector, Layout
@@ -248,19 +248,19 @@ def fill_request(
 
 class Uplink:
     """Frames command requests: one ``gn_to_cn`` vector, its codec, and the
-    mission key's ``gn_to_cn`` channel (None: the mission does not
+    uplink's ``gn_to_cn`` channel from ``keys`` (None: the mission does not
     authenticate).
 
     :meth:`frame` returns a buffer of its own (reused by the next call).
     """
 
-    def __init__(self, mission: Mission, key: bytes | None = None) -> None:
+    def __init__(self, mission: Mission, keys: KeySet | None = None) -> None:
         if not mission.has_ground:
             raise CommandError(f"mission {mission.mission!r} has no ground node 'gn'")
         self.mission = mission
         self.req = DataVector(Layout.for_regions(mission, ["gn_to_cn"]))
         self._codec = RegionCodec(self.req, "gn_to_cn")
-        self._seal = mission_channels(mission, key).get("gn_to_cn")
+        self._seal = channel(keys, "gn_to_cn")
 
     def frame(
         self, command: str, seq: int, index: int, value: float, t_ns: int, epoch: int = 0

@@ -178,7 +178,8 @@ class ConsoleModel:
         self.version += 1
 
     def on_event(self, rec: EventRecord) -> None:
-        self.log.append(LogLine(rec.t_ns, rec.severity, rec.node, f"{rec.id}: {rec.text}"))
+        mark = " (unverified)" if rec.verified is False else ""
+        self.log.append(LogLine(rec.t_ns, rec.severity, rec.node, f"{rec.id}: {rec.text}{mark}"))
         self.version += 1
 
     def on_result(self, t_ns: int, outcome: CommandOutcome) -> None:

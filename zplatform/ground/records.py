@@ -116,8 +116,11 @@ def format_outcome(o: CommandOutcome) -> str:
 class EventRecord(msgspec.Struct, frozen=True):
     """One event as the ground received it: ``rx_time_ns`` (the receiver's
     clock, as in the telemetry CSV), then the :class:`~zplatform.events.Event`'s
-    ``node``, ``seq``, ``t_ns``, ``severity`` (by name), ``id`` and ``text``.
-    One line of the events JSONL, in this field order."""
+    ``node``, ``seq``, ``t_ns``, ``severity`` (by name), ``id`` and ``text``,
+    and ``verified``: True when its node's tag checked, False when the
+    receiver holds no key for that node (shown marked unverified), None when
+    the mission does not authenticate. One line of the events JSONL, in this
+    field order."""
 
     rx_time_ns: int
     node: str
@@ -126,7 +129,8 @@ class EventRecord(msgspec.Struct, frozen=True):
     severity: str
     id: str
     text: str
+    verified: bool | None = None
 
     @classmethod
-    def of(cls, e: Event, rx_time_ns: int) -> EventRecord:
-        return cls(rx_time_ns, e.node, e.seq, e.t_ns, e.severity_name, e.id, e.text)
+    def of(cls, e: Event, rx_time_ns: int, verified: bool | None = None) -> EventRecord:
+        return cls(rx_time_ns, e.node, e.seq, e.t_ns, e.severity_name, e.id, e.text, verified)

@@ -90,7 +90,8 @@ def send_command(
 
 
 def _print_event(out: TextIO, rec: EventRecord) -> None:
-    print(f"EVENT {rec.node} {rec.severity} {rec.id}: {rec.text}", file=out, flush=True)
+    mark = " (unverified)" if rec.verified is False else ""
+    print(f"EVENT{mark} {rec.node} {rec.severity} {rec.id}: {rec.text}", file=out, flush=True)
 
 
 def run_prompt(

@@ -34,7 +34,7 @@ from typing import Any
 import numpy as np
 import zenoh
 
-from ..auth import load_key
+from ..auth import KeySet, channel, load_keys
 from ..bulk import open_bulk
 from ..clocksync import ClockServer
 from ..config import Mission
@@ -73,7 +73,7 @@ class ControlNode:
         stop: StopFlag | None = None,
         lowlatency: bool | None = None,
         clock: NodeClock | None = None,
-        key: bytes | None = None,
+        keys: KeySet | None = None,
         sync_trace: SyncTrace | None = None,
     ) -> None:
         self.mission = mission
@@ -81,15 +81,15 @@ class ControlNode:
         self.clock = clock or NodeClock()
         self.clock.lock()  # the CN is the reference clock: never adjusted
         # The run's epoch: this clock's start, unique per run of the CN.
-        self.logic = ControlLogic(mission, key=key, epoch=self.clock.now_ns())
+        self.logic = ControlLogic(mission, keys=keys, epoch=self.clock.now_ns())
         self.dv: DataVector = self.logic.dv
         self.ns = NodeSession(mission, "cn", announce=False, lowlatency=lowlatency)
         s = self.ns.session
-        keys = self.ns.keys
-        self.clock_server = ClockServer(s, keys, self.clock.now_ns)
+        space = self.ns.keys
+        self.clock_server = ClockServer(s, space, self.clock.now_ns, mission, keys)
         self.sync = ControlSync(
             s,
-            keys,
+            space,
             mission.device_nodes,
             mission.sync_timeout_ns,
             query_timeout_s=max(mission.period_ns / 1e9, 0.01),
@@ -109,14 +109,16 @@ class ControlNode:
         self._gsub: zenoh.Subscriber[Any] | None = None
         if mission.has_ground:
             self._gsub = s.declare_subscriber(
-                keys.gn_to_cn,
+                space.gn_to_cn,
                 zenoh.handlers.Callback(self._on_ground, indirect=False),
             )
         self._tm_pub = s.declare_publisher(
-            keys.telemetry, congestion_control=zenoh.CongestionControl.DROP
+            space.telemetry, congestion_control=zenoh.CongestionControl.DROP
         )
-        self._events = EventPublisher(s, keys.events("cn"), self.logic.events)
-        self._radio = _Radio(mission, s, keys.downlink) if mission.downlink.ccsds else None
+        self._events = EventPublisher(
+            s, space.events("cn"), self.logic.events, channel(keys, "events_cn")
+        )
+        self._radio = _Radio(mission, s, space.downlink) if mission.downlink.ccsds else None
         self.bulk = open_bulk(s, mission, "cn", self.logic)
         self._skipped = 0
         self._last_step: int | None = None  # self.loops after the run's planned last loop
@@ -385,7 +387,7 @@ def run_control_node(
     ``record``: a directory to record every loop's inputs into (needs
     ``mission_source``, the mission file, which the recording keeps)."""
     stop = StopFlag()
-    node = ControlNode(mission, stop=stop, key=load_key(mission, key_file))
+    node = ControlNode(mission, stop=stop, keys=load_keys(mission, "cn", key_file))
     try:
         offsets = node.wait_ready(ready_timeout_s, ground_wait_s)
         log.info("device nodes ready; clock offsets (ns): %s", offsets)
