@@ -97,6 +97,10 @@ def test_unknown_mission_names_what_is_running(runtime: Path) -> None:
     )
     r = _zp("check", "configs/nope.yaml")
     _clear_error(r, 2, "no such mission file")
+    # A bare name that is a mission file nearby (the README's verbs run from
+    # the repository): the error names the file to give.
+    r = _zp("keygen", "led_test")
+    _clear_error(r, 2, "'led_test'; did you mean the file configs/led_test.yaml?")
 
 
 # ---------------------------------------------------------------- tap
