@@ -30,6 +30,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+import yaml
 import zenoh
 
 from tests.integration.harness import CONFIGS, Cluster
@@ -76,15 +77,21 @@ def _query(c: Cluster, dn: str, payload: bytes) -> None:
 def test_a_ground_key_cannot_fire_the_igniter(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    with Cluster(MISSION, tmp_path) as c:
+    # The barometers read 150 m, inside the igniter's window (50-400 m),
+    # while the vehicle sits in SAFE (the flight itself starts only at
+    # LAUNCH): what a forged trigger needs to fire.
+    raw = yaml.safe_load(MISSION.read_text())
+    raw["world"]["params"]["stuck_m"] = {"dn0": 150.0, "dn1": 150.0}
+    raw["pythonpath"] = [str(MISSION.parent / p) for p in raw.get("pythonpath") or ["."]]
+    mission = tmp_path / "recovery_igniter_at_150m.yaml"
+    mission.write_text(yaml.safe_dump(raw, sort_keys=False))
+    with Cluster(mission, tmp_path) as c:
         keys = tmp_path / "keys"
         files = write_key_set(c.mission, keys)
         env = {KEY_FILE_ENV: str(keys)}  # each node takes its own file from the set
         monkeypatch.setenv(KEY_FILE_ENV, str(keys))  # this process: a read-only tool
         for node in ("dn0", "dn1", "cn"):
             c.spawn(node, env=env)
-        # The barometers climb into the igniter's window (50-400 m) while the
-        # vehicle stays SAFE: what a forged trigger needs to fire.
         c.wait_for(lambda dv: float(dv.get("dn0_alt_m")) > 60.0, 60, "dn0 above 60 m")
         ground = load_keys(c.mission, "gn", files["gn"])
         assert ground is not None

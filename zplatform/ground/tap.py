@@ -142,7 +142,8 @@ def format_tap(d: dict[str, Any], as_json: bool) -> str:
         return json.dumps(d, default=str)
     if "values" in d:
         vals = " ".join(f"{k}={v}" for k, v in d["values"].items())
-        return f"{key} seq={d['seq']} t_ns={d['t_ns']} via={d.get('via')} {vals}"
+        mark = " (unverified)" if d.get("verified") is False else ""
+        return f"{key} seq={d['seq']} t_ns={d['t_ns']} via={d.get('via')} {vals}{mark}"
     if "event" in d:
         e = d["event"]
         mark = " (unverified)" if e.get("verified") is False else ""
