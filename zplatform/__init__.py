@@ -15,7 +15,7 @@ from .codec import (
     decode_frame,
     encode_frame,
 )
-from .codes import Command, CommandStatus, Fault
+from .codes import Command, CommandStatus, Fault, ParamLoad, ParamSave
 from .commands import CommandHandler
 from .components import Component
 from .config import Mission
@@ -50,6 +50,14 @@ from .ground.script import ScriptPlayer
 from .lockstep import LockstepRunner, ReplayResult, SimResult, replay
 from .loop import ControlLogic, DeviceLogic
 from .mission import check_mission, decode_mission, load_mission
+from .params import (
+    ParamFileError,
+    ParamSaver,
+    ParamTable,
+    decode_params,
+    encode_params,
+    params_path,
+)
 from .rategroups import RateGroups
 from .recording import Recorder
 from .safety import SafetyWarning, safety_warnings
@@ -112,6 +120,11 @@ __all__ = [
     "Mission",
     "NodeClock",
     "NodeError",
+    "ParamFileError",
+    "ParamLoad",
+    "ParamSave",
+    "ParamSaver",
+    "ParamTable",
     "PeriodicLoop",
     "RateGroups",
     "Recorder",
@@ -141,11 +154,14 @@ __all__ = [
     "check_mission",
     "decode_frame",
     "decode_mission",
+    "decode_params",
     "encode_frame",
+    "encode_params",
     "fill_request",
     "load_commands",
     "load_mission",
     "mission_schema",
+    "params_path",
     "parse_commands",
     "read_csv",
     "reference_markdown",
