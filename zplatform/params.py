@@ -44,7 +44,8 @@ u32 length and the CRC-32 of the body, then the body, MessagePack of
 of another mission or of another parameter list is refused (``FOREIGN``).
 
 **Saving** (:func:`write_atomic`): write a temporary file beside it, fsync
-it, rename it over the old one, fsync the directory. A kill at any point
+it, rename it over the old one, fsync the directory (writers of one file take
+turns on a lock file beside it). A kill at any point
 leaves the old file or the new one, never a torn one (the temporary file
 is ignored and overwritten by the next save).
 
@@ -64,6 +65,7 @@ byte-identical.
 
 from __future__ import annotations
 
+import fcntl
 import logging
 import math
 import os
@@ -295,37 +297,44 @@ def write_atomic(
 ) -> None:
     """Replace the file at ``path`` by ``data``, atomically and durably:
     write ``.<name>.tmp`` beside it, fsync it, rename it over ``path``,
-    fsync the directory (its parent directories are made first).
+    fsync the directory (its parent directories are made first). Writers of
+    one path take turns (an exclusive ``flock`` on ``.<name>.lock``), so two
+    control nodes of one mission on a host cannot interleave their bytes.
 
     ``step`` is called with each name of :data:`SAVE_STEPS` as that point is
-    reached (tests kill the process there). Blocks on file I/O; raises
-    OSError. Whatever point a crash hits, ``path`` holds the old bytes or
-    ``data``, never a mix.
+    reached (tests kill the process there). Blocks on file I/O and on the
+    lock; raises OSError. Whatever point a crash hits, ``path`` holds the
+    old bytes or ``data``, never a mix.
     """
     p = Path(path)
     p.parent.mkdir(parents=True, exist_ok=True)
     tmp = p.with_name(f".{p.name}.tmp")
     hook = step or (lambda _: None)
-    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
+    lock = os.open(p.with_name(f".{p.name}.lock"), os.O_RDWR | os.O_CREAT, 0o600)
     try:
-        hook("opened")
-        half = len(data) // 2
-        _write_all(fd, data[:half])
-        hook("partial")
-        _write_all(fd, data[half:])
-        hook("written")
-        os.fsync(fd)
-        hook("synced")
+        fcntl.flock(lock, fcntl.LOCK_EX)  # released when closed, or with the process
+        fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
+        try:
+            hook("opened")
+            half = len(data) // 2
+            _write_all(fd, data[:half])
+            hook("partial")
+            _write_all(fd, data[half:])
+            hook("written")
+            os.fsync(fd)
+            hook("synced")
+        finally:
+            os.close(fd)
+        os.replace(tmp, p)
+        hook("renamed")
+        dfd = os.open(p.parent, os.O_RDONLY | os.O_DIRECTORY)
+        try:
+            os.fsync(dfd)
+        finally:
+            os.close(dfd)
+        hook("dir_synced")
     finally:
-        os.close(fd)
-    os.replace(tmp, p)
-    hook("renamed")
-    dfd = os.open(p.parent, os.O_RDONLY | os.O_DIRECTORY)
-    try:
-        os.fsync(dfd)
-    finally:
-        os.close(dfd)
-    hook("dir_synced")
+        os.close(lock)
 
 
 def _write_all(fd: int, data: bytes) -> None:

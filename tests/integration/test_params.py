@@ -9,6 +9,8 @@ import signal
 import subprocess
 import sys
 import textwrap
+import threading
+import time
 from pathlib import Path
 
 import pytest
@@ -91,12 +93,49 @@ def test_a_kill_at_any_step_of_a_save_leaves_the_old_file_or_the_new(
     renamed = SAVE_STEPS.index(kill_at) >= SAVE_STEPS.index("renamed")
     assert values == (NEW if renamed else OLD)
     # A torn temporary file is left at most; it never stands in for the file,
-    # and the next save writes over it.
-    assert {q.name for q in path.parent.iterdir()} <= {"prmkill.params", ".prmkill.params.tmp"}
+    # and the next save writes over it (the lock died with the process).
+    files = {"prmkill.params", ".prmkill.params.lock"}
+    assert {q.name for q in path.parent.iterdir()} <= files | {".prmkill.params.tmp"}
     p = _save_in_child(path, "never")
     assert p.returncode == 0 and p.stdout == "saved\n", p.stderr
     assert _loaded(path) == (ParamLoad.LOADED, NEW)
-    assert [q.name for q in path.parent.iterdir()] == ["prmkill.params"]
+    assert {q.name for q in path.parent.iterdir()} == files
+
+
+def test_two_writers_of_one_file_take_turns(tmp_path: Path) -> None:
+    """A writer that holds the file's lock (stopped at "partial", its temporary
+    file half written) keeps another from touching the temporary file; the
+    other writes once the first is done, and the file is whole."""
+    m = decode_mission(KILL_MISSION)
+    path = tmp_path / "prmkill.params"
+    write_atomic(path, encode_params(m, OLD, seq=1))
+    first = subprocess.Popen(
+        [sys.executable, "-c", CHILD.replace("SIGKILL", "SIGSTOP"), KILL_MISSION, str(path),
+         "partial"],
+        stdout=subprocess.PIPE, text=True, cwd=ROOT,
+    )  # fmt: skip
+    try:
+        tmp = path.with_name(".prmkill.params.tmp")
+        deadline = time.monotonic() + 60
+        while not (tmp.exists() and tmp.stat().st_size > 0):  # the first is inside its save
+            assert time.monotonic() < deadline and first.poll() is None
+            time.sleep(0.01)  # a file the child writes: no peer to wait on
+        done = threading.Event()
+        second = threading.Thread(
+            target=lambda: (write_atomic(path, encode_params(m, OLD, seq=3)), done.set())
+        )
+        second.start()
+        assert not done.wait(0.5)  # it waits for the lock, and has not truncated the file
+        assert _loaded(path) == (ParamLoad.LOADED, OLD)
+        first.send_signal(signal.SIGCONT)
+        assert first.wait(timeout=60) == 0
+        second.join(timeout=60)
+        assert done.is_set()
+        assert decode_params(m, path.read_bytes()).seq == 3  # the second wrote last, whole
+    finally:
+        if first.poll() is None:
+            first.kill()
+            first.wait()
 
 
 def test_a_kill_before_the_first_save_leaves_no_file(tmp_path: Path) -> None:

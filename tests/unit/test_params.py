@@ -428,7 +428,8 @@ def test_the_saver_writes_off_the_loop_thread_and_reports(tmp_path: Path) -> Non
         assert _finished(saver) == SaveResult(3, True, str(path))
         assert decode_params(m, path.read_bytes()).values["gain"] == 2.0
         assert steps == ["opened", "partial", "written", "synced", "renamed", "dir_synced"]
-        assert sorted(p.name for p in path.parent.iterdir()) == ["prmtest.params"]
+        names = sorted(p.name for p in path.parent.iterdir())
+        assert names == [".prmtest.params.lock", "prmtest.params"]  # no temporary file left
     finally:
         saver.close()
     (tmp_path / "file").write_text("not a directory")
