@@ -1,4 +1,4 @@
-"""The operator command handler (thesis 000 ch. 4.8, 6.1), sans-IO.
+"""The operator command handler (thesis ch. 4.8 and 6.1), sans-IO.
 
 The ground node sends one request per ``gn_to_cn`` frame: ``gn_cmd`` (a
 command of :class:`~zplatform.codes.Command`), ``gn_cmd_seq`` (a number
