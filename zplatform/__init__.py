@@ -16,7 +16,7 @@ from .codec import (
     decode_frame,
     encode_frame,
 )
-from .codes import Command, CommandStatus, Fault, SafedWhy
+from .codes import Command, CommandStatus, Fault, ParamLoad, ParamSave, SafedWhy
 from .commands import CommandHandler
 from .components import Component
 from .config import Mission
@@ -51,6 +51,14 @@ from .ground.script import ScriptPlayer
 from .lockstep import LockstepRunner, ReplayResult, SimResult, replay
 from .loop import ControlLogic, DeviceLogic
 from .mission import check_mission, decode_mission, load_mission
+from .params import (
+    ParamFileError,
+    ParamSaver,
+    ParamTable,
+    decode_params,
+    encode_params,
+    params_path,
+)
 from .rategroups import RateGroups
 from .recording import Recorder
 from .safety import SafetyWarning, safety_warnings
@@ -115,6 +123,11 @@ __all__ = [
     "Mission",
     "NodeClock",
     "NodeError",
+    "ParamFileError",
+    "ParamLoad",
+    "ParamSave",
+    "ParamSaver",
+    "ParamTable",
     "PeriodicLoop",
     "RateGroups",
     "Recorder",
@@ -145,12 +158,15 @@ __all__ = [
     "check_mission",
     "decode_frame",
     "decode_mission",
+    "decode_params",
     "encode_frame",
+    "encode_params",
     "fill_request",
     "load_commands",
     "load_keys",
     "load_mission",
     "mission_schema",
+    "params_path",
     "parse_commands",
     "read_csv",
     "reference_markdown",

@@ -110,13 +110,13 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p.set_defaults(func=cmd_log)
 
     p = mission_verb(sub, "cmd", help="send one operator command and wait for its verdict")
-    p.add_argument("command", help="launch|abort|noop|hold|resume|arm|write")
-    p.add_argument("args", nargs="*", help="write: ELEMENT VALUE")
+    p.add_argument("command", help="launch|abort|noop|hold|resume|arm|write|prm_set|prm_save")
+    p.add_argument("args", nargs="*", help="write: ELEMENT VALUE; prm_set: PARAMETER VALUE")
     p.add_argument(
         "--arm",
         action="store_true",
-        help="send ARM n first, then the command as n+1 (needed for hazardous commands and "
-        "WRITEs of protected elements)",
+        help="send ARM n first, then the command as n+1 (needed for hazardous commands, "
+        "WRITEs of protected elements and PRM_SETs of hazardous parameters)",
     )
     timeout_option(p, "the CN and for each verdict")
     p.set_defaults(func=cmd_cmd)

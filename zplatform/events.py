@@ -252,6 +252,40 @@ class EV:
         "{node} refused a clock estimate of {new_ms:+.3f} ms: {jump_ms:+.3f} ms from the last "
         "({old_ms:+.3f} ms), beyond the bound of {bound_ms:g} ms; it keeps the last",
     )
+    # mission parameters (zplatform.params)
+    PRM_LOADED = EventType(
+        90,
+        "prm_loaded",
+        Severity.ACTIVITY_HI,
+        "parameters loaded from {path}: {n} value(s), saved by PRM_SAVE #{seq}",
+    )
+    PRM_FILE_MISSING = EventType(
+        91,
+        "prm_file_missing",
+        Severity.WARNING_LO,
+        "no parameter file at {path}: every parameter at its default",
+    )
+    PRM_FILE_REFUSED = EventType(
+        92,
+        "prm_file_refused",
+        Severity.WARNING_HI,
+        "parameter file {path} refused ({status}): {why}; every parameter at its default",
+    )
+    PRM_DEFAULTED = EventType(
+        93,
+        "prm_defaulted",
+        Severity.WARNING_HI,
+        "parameter {name}: {why}; its default {default!r} is used",
+    )
+    PRM_SAVED = EventType(
+        94, "prm_saved", Severity.ACTIVITY_HI, "parameters saved (PRM_SAVE #{seq}) to {where}"
+    )
+    PRM_SAVE_FAILED = EventType(
+        95,
+        "prm_save_failed",
+        Severity.WARNING_HI,
+        "PRM_SAVE #{seq} failed: {why}; the parameter file keeps what it had",
+    )
 
     ALL: ClassVar[tuple[EventType, ...]]
     """Every entry, in declaration order."""

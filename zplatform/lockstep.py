@@ -12,8 +12,11 @@ live) runs at virtual time ``t = start_ns + (n - 1) * period_ns``:
 1. ``frames = cn.begin(n, t)``; each DN in order takes its frame and
    replies (:meth:`~zplatform.loop.DeviceLogic.step`), and the reply goes
    back to ``cn.reply``;
-2. ``cn.finish(ground)`` with the request frame the script player produced
-   from the previous loop's telemetry (if any);
+2. ``cn.finish(ground, saves=...)`` with the request frame the script
+   player produced from the previous loop's telemetry (if any) and the
+   parameter save the previous loop asked for (a PRM_SAVE, kept in memory
+   by :attr:`LockstepRunner.saver`: a sim writes no file, and its
+   parameters start from their defaults);
 3. on telemetry loops the ground logic takes the telemetry frame (received
    at ``t``, so it is fresh), the runner logs it (``rx_time_ns = t``) and
    takes the request the script player made, if any, for the next loop;
@@ -56,6 +59,7 @@ from .ground.logic import GroundLogic
 from .ground.records import CommandOutcome, EventRecord
 from .loop import ControlLogic, DeviceLogic
 from .messages import wildcard_sync_for
+from .params import MemorySaver
 from .recording import FOREIGN_DN
 from .telemetry import CsvLogger
 from .timebase import VirtualClock
@@ -255,6 +259,8 @@ class LockstepRunner:
         self.clock = VirtualClock(start_ns)
         keys = sim_keys(mission)
         self.control = ControlLogic(mission, keys=keys and keys.for_node("cn"), epoch=start_ns)
+        self.saver = MemorySaver()
+        """Where PRM_SAVE goes in a lockstep run (memory; answered next loop)."""
         boards = dict(boards or {})
         unknown = sorted(set(boards) - set(mission.device_nodes))
         if unknown:
@@ -315,7 +321,13 @@ class LockstepRunner:
                 if dev.node not in lost:
                     cn.reply(i, dev.step(frames[i], t))
         ground, self._ground = self._ground, None
-        tm = cn.finish((ground,) if ground is not None else ())
+        saved = self.saver.poll()
+        tm = cn.finish(
+            (ground,) if ground is not None else (), saves=(saved,) if saved is not None else ()
+        )
+        save = cn.params.take_save()
+        if save is not None:
+            self.saver.submit(*save)
         gl = self.ground
         if tm is not None and gl.on_telemetry(tm, t):
             if log is not None:
@@ -489,6 +501,7 @@ def replay(
             loop_overruns=rec.loop_overruns,
             inbox_dropped=rec.inbox_dropped,
             inbox_oversize=rec.inbox_oversize,
+            saves=rec.saves,
         )
         loops += 1
         first = first or rec.loop

@@ -12,13 +12,18 @@ One CN loop ``n`` (numbered from 1 in every driver) with its one timestamp::
     ...the driver sends frame i to DN i and hands back whatever comes:
     cn.reply(i, payload)             # True once DN i's reply for loop n is in
     ...until every DN replied or the sync deadline passed, then
-    tm = cn.finish(ground_frame, sync_overrun=..., loop_overruns=...)
-    ...the driver publishes tm (the whole vector) when it is not None.
+    tm = cn.finish(ground_frame, sync_overrun=..., loop_overruns=..., saves=...)
+    ...the driver publishes tm (the whole vector) when it is not None,
+    and hands cn.params.take_save() (a PRM_SAVE's file bytes) to its saver.
 
-:meth:`ControlLogic.finish` counts the misses, applies at most one ground
-command frame, runs faults -> commands -> state machine -> controllers,
-and frames the telemetry. Replies that are not for loop ``n`` (an older
-loop's, a duplicate) are counted late and never applied; malformed replies
+:meth:`ControlLogic.finish` counts the misses, applies the parameter saves
+that finished since the last loop, applies at most one ground command
+frame, runs faults -> commands -> state machine -> controllers, and frames
+the telemetry. A save's result is an input like a command frame: the
+driver's saver writes the file off the loop thread
+(:mod:`zplatform.params`), and the loop that learns of it is recorded.
+Replies that are not for loop ``n`` (an older loop's, a duplicate) are
+counted late and never applied; malformed replies
 are counted in ``cn_bad_frames`` and reported as events. Every input that
 changes the Data Vector passes through these three calls, so a recorder
 attached to them (:attr:`ControlLogic.recorder`) captures everything a
@@ -74,6 +79,7 @@ from .devices import DeviceSet
 from .errors import CodecError, ConfigError
 from .events import EV, EventLog, EventType
 from .faults import FaultMonitor
+from .params import ParamTable, SaveResult
 from .statemachine import StateMachine
 from .world import node_board
 
@@ -105,6 +111,7 @@ class LoopRecorder(Protocol):
         loop_overruns: int,
         inbox_dropped: int,
         inbox_oversize: int,
+        saves: Sequence[SaveResult],
         telemetry: bytearray | None,
     ) -> None: ...
 
@@ -162,7 +169,13 @@ class ControlLogic:
         self.events = events if events is not None else EventLog("cn")
         self.faults = FaultMonitor(mission, dv, self.events)
         self.statemachine = StateMachine(mission, dv, self.events)
-        self.commands = CommandHandler(mission, dv, self.events, self.statemachine)
+        self.params = ParamTable(mission, dv, self.events)
+        """The mission's parameters: load the file before loop 1
+        (:meth:`~zplatform.params.ParamTable.load`), take each PRM_SAVE's bytes
+        after a loop (:meth:`~zplatform.params.ParamTable.take_save`)."""
+        self.commands = CommandHandler(
+            mission, dv, self.events, self.statemachine, params=self.params
+        )
         self.controllers = ControllerSet(mission, "cn", dv, self.events, self.faults)
         self.dns: tuple[str, ...] = tuple(mission.device_nodes)
         dns = self.dns
@@ -260,6 +273,7 @@ class ControlLogic:
         loop_overruns: int = 0,
         inbox_dropped: int = 0,
         inbox_oversize: int = 0,
+        saves: Sequence[SaveResult] = (),
     ) -> bytearray | None:
         """Close the loop: count misses, take one command request from
         ``grounds`` (the frames that arrived since the last loop, oldest
@@ -277,8 +291,9 @@ class ControlLogic:
         last loop; ``inbox_dropped``: request frames the driver's bounded
         inbox had to drop since the last loop (counted in ``cn_cmd_dropped``);
         ``inbox_oversize``: frames it refused unread for their size (counted
-        as bad frames). All are inputs, not measured here, so a replay
-        repeats them.
+        as bad frames); ``saves``: parameter saves (PRM_SAVE) its saver
+        finished since the last loop. All are inputs, not measured here, so
+        a replay repeats them.
         """
         loop, t = self.loop, self.t_ns
         for i, got in enumerate(self._got):
@@ -299,6 +314,8 @@ class ControlLogic:
                 source=f"{inbox_oversize} command frame(s)",
                 reason="longer than any valid request; refused unread",
             )
+        for result in saves:
+            self.params.saved(result, t)
         bulk = self._bulk
         if bulk is not None:  # the newest samples in, before any logic reads them
             bulk.receive(loop)
@@ -321,7 +338,7 @@ class ControlLogic:
             bulk.publish(loop, t)
         if self.recorder is not None:
             self.recorder.finish(
-                grounds, sync_overrun, loop_overruns, inbox_dropped, inbox_oversize, tm
+                grounds, sync_overrun, loop_overruns, inbox_dropped, inbox_oversize, saves, tm
             )
         return tm
 

@@ -105,15 +105,19 @@ def default_max_age_ns(mission: Mission) -> int:
 
 
 def needs_arm(mission: Mission, command: str, element: str | None = None) -> str | None:
-    """Why ``command`` (with ``element`` for WRITE) must go as ARM n, then
-    the command n+1, or None when it need not: the command is hazardous
-    (``commands.hazardous``) or the WRITE sets a protected element
-    (``commands.protected``, :func:`zplatform.commands.protected_elements`)."""
+    """Why ``command`` (with ``element`` for WRITE, the parameter for
+    PRM_SET) must go as ARM n, then the command n+1, or None when it need
+    not: the command is hazardous (``commands.hazardous``), the WRITE sets a
+    protected element (``commands.protected``,
+    :func:`zplatform.commands.protected_elements`), or the PRM_SET a
+    hazardous parameter (``params[i].hazardous``)."""
     cmd = command.upper()
     if cmd in mission.commands.hazardous:
         return f"{cmd} is hazardous (commands.hazardous)"
     if cmd == "WRITE" and element is not None and element in protected_elements(mission):
         return f"{element} is protected (commands.protected)"
+    if cmd == "PRM_SET" and any(p.name == element and p.hazardous for p in mission.params):
+        return f"parameter {element} is hazardous (params: hazardous)"
     return None
 
 
@@ -469,7 +473,7 @@ class GroundLogic:
                 else "this ground holds no uplink key (a read-only tool's keys): commands "
                 "need the ground's key file (gn.keys from `zplatform keygen`)"
             )
-        cmd, index, num = validate_command(self.mission, command, element, value, source or "write")
+        cmd, index, num = validate_command(self.mission, command, element, value, source or None)
         steps = [("ARM", 0, 0.0), (cmd, index, num)] if armed else [(cmd, index, num)]
         ticket = self._next_ticket
         self._next_ticket += 1
@@ -672,5 +676,10 @@ def _derived(r: _Request) -> tuple[str, str]:
         ),
         "REJECTED_EPOCH": "the request named another run of the control node",
         "REJECTED_AUTH": "the request's tag did not verify",
+        "REJECTED_OUT_OF_BOUNDS": "the value is outside the parameter's bounds",
+        "REJECTED_PARAM_STATE": (
+            f"the parameter may not change in state {r.state} (the state its verdict showed)"
+        ),
+        "REJECTED_BUSY": "the previous PRM_SAVE was still being written",
     }.get(r.status, "")
     return why, ("derived" if why else "")
