@@ -23,12 +23,13 @@ import numpy as np
 import numpy.typing as npt
 import yaml
 
-from zplatform.auth import KEY_ENV, KEY_FILE_ENV, load_key
+from zplatform.auth import KEY_ENV, KEY_FILE_ENV, load_keys
 from zplatform.config import Mission
 from zplatform.mission import load_mission
 from zplatform.node.control import ControlNode
 from zplatform.node.runtime import PARENT_ENV, StopFlag
 from zplatform.scheduler import PeriodicLoop
+from zplatform.sync import SyncTrace
 from zplatform.transport import free_port
 
 from .common import REPO_ROOT, terminate_all
@@ -100,6 +101,8 @@ class BenchCluster:
     ``realtime``: apply SCHED_FIFO/affinity from the mission (and pass
     ``--no-realtime`` to the DNs otherwise). ``trace_dir``: run each DN under
     :mod:`bench.sync_trace`, which writes ``<dn>.trace.json`` there on exit.
+    ``cn_trace``: the in-process CN's sync trace hook
+    (:data:`zplatform.sync.SyncTrace`).
     """
 
     def __init__(
@@ -110,6 +113,7 @@ class BenchCluster:
         dn_env: dict[str, dict[str, str]] | None = None,
         log_dir: Path | None = None,
         trace_dir: Path | None = None,
+        cn_trace: SyncTrace | None = None,
     ) -> None:
         self.path = mission_path
         self.mission: Mission = load_mission(mission_path)
@@ -120,7 +124,7 @@ class BenchCluster:
         # run's own; the DN processes and the in-process CN share it.
         if not (os.environ.get(KEY_ENV) or os.environ.get(KEY_FILE_ENV)):
             os.environ[KEY_ENV] = secrets.token_hex(32)
-        key = load_key(self.mission)
+        keys = load_keys(self.mission, "cn")
         env = dict(os.environ, PYTHONUNBUFFERED="1")
         env[PARENT_ENV] = str(os.getpid())
         for dn in self.mission.device_nodes:
@@ -137,7 +141,9 @@ class BenchCluster:
                         args, stdout=log, stderr=subprocess.STDOUT, env=e, cwd=REPO_ROOT
                     )
                 )
-        self.cn = ControlNode(self.mission, stop=StopFlag(install=False), key=key)
+        self.cn = ControlNode(
+            self.mission, stop=StopFlag(install=False), keys=keys, sync_trace=cn_trace
+        )
 
     def start(self, timeout_s: float = 60.0) -> dict[str, int]:
         """Wait for every DN (clock-synced, answering); returns clock offsets."""

@@ -51,9 +51,10 @@ import msgspec
 import yaml
 from msgspec import Meta
 
+from zplatform.boards import SimBoard
 from zplatform.controllers import Controller
 from zplatform.datavector import DataVector
-from zplatform.devices import Actuator, Sensor, SimBoard
+from zplatform.devices import Actuator, Sensor
 from zplatform.node.control import ControlNode
 
 from .cluster import BenchCluster, make_mission

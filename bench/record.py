@@ -24,7 +24,7 @@ from typing import Any
 
 from bench.common import bench_argparser, summarize, write_result
 from zplatform import ControlLogic, LockstepRunner, Recorder, load_mission
-from zplatform.lockstep import SIM_KEY
+from zplatform.lockstep import sim_keys
 
 ROOT = Path(__file__).resolve().parents[1]
 MISSION = ROOT / "configs" / "led_test.yaml"
@@ -39,7 +39,7 @@ def _inputs(loops: int) -> list[tuple[int, int, list[bytes], list[bytes]]]:
     cn = r.control
 
     class Tap:
-        def begin(self, loop: int, t_ns: int) -> None:
+        def begin(self, loop: int, t_ns: int, final: bool) -> None:
             captured.clear()
 
         def reply(self, i: int, payload: Any) -> None:
@@ -62,7 +62,7 @@ def _run(
     inputs: list[tuple[int, int, list[bytes], list[bytes]]], record_dir: Path | None
 ) -> tuple[list[int], Recorder | None]:
     m = load_mission(MISSION)
-    cn = ControlLogic(m, key=SIM_KEY, epoch=1)
+    cn = ControlLogic(m, keys=sim_keys(m), epoch=1)
     rec = Recorder(record_dir, m, MISSION, cn.dv) if record_dir is not None else None
     cn.recorder = rec
     samples: list[int] = []

@@ -3,7 +3,7 @@
 The full led_test mission runs as five processes: three DN processes
 (``python -m zplatform node``), the CN's real loop in this process and a
 ground child (``python -m bench.reliability ground``) that decodes every
-telemetry snapshot with the platform's :class:`TelemetryReceiver`. Every
+telemetry snapshot with the platform's ground link (``GroundLink``). Every
 frame is authenticated (``ZPLATFORM_KEY``), as shipped. Ports are free ones;
 the mission is otherwise configs/led_test.yaml.
 
@@ -76,6 +76,7 @@ from bench.cluster import BenchCluster
 from bench.common import REPO_ROOT, bench_argparser, free_port, spawn, summarize, terminate_all
 from bench.common import write_result as _write
 from bench.sync import PRIORITY, inherit_fifo
+from zplatform.config import relocate_mission
 from zplatform.transport import is_matching
 
 TM_DEADLINE_MS = 30.0
@@ -91,7 +92,9 @@ def led_mission(
 ) -> Path:
     """configs/led_test.yaml with free loopback ports (and no ground wait);
     ``lowlatency``/``sync_query`` override the mission's ``transport`` ones."""
-    doc = yaml.safe_load((REPO_ROOT / "configs" / "led_test.yaml").read_text())
+    src = REPO_ROOT / "configs" / "led_test.yaml"
+    doc = yaml.safe_load(src.read_text())
+    relocate_mission(doc, src)  # the copy finds nodes/ from anywhere
     ports = {n: free_port() for n in doc["nodes"]}
     cn_ep = f"tcp/127.0.0.1:{ports['cn']}"
     for n, spec in doc["nodes"].items():
@@ -134,7 +137,7 @@ def ground_main(argv: list[str]) -> None:
         q: queue.SimpleQueue[bytes] = queue.SimpleQueue()
 
         def on_sample(smp: zenoh.Sample) -> None:
-            q.put(smp.payload.to_bytes())  # hand off only, as TelemetryReceiver does
+            q.put(smp.payload.to_bytes())  # hand off only, as the GroundLink does
 
         sub = s.declare_subscriber(RAW_TM_KEY, zenoh.handlers.Callback(on_sample, indirect=False))
         tok = s.liveliness().declare_token(f"{KEY_PREFIX}/tmsink/alive")
@@ -151,46 +154,49 @@ def ground_main(argv: list[str]) -> None:
         sub.undeclare()
         s.close()
     else:
-        from zplatform.auth import load_key
-        from zplatform.clocksync import estimate_offset
+        from zplatform.auth import load_keys
+        from zplatform.clocksync import ClockLink, estimate_offset
+        from zplatform.ground.link import GroundLink
         from zplatform.mission import load_mission
-        from zplatform.node.ground import TelemetryReceiver
-        from zplatform.timebase import NodeClock
-        from zplatform.transport import NodeSession
 
         mission = load_mission(argv[0])
         out = argv[1]
-        clock = NodeClock()
-        ns = NodeSession(mission, "gn", announce=False)
+        link = GroundLink(mission, node="gn", events=False, announce=False)
+        clock = link.clock
         offset = None
+        # The CN's clock answers only a device node's link: this measuring
+        # ground borrows dn0's (the bench's master key derives every link).
+        dn = mission.device_nodes[0]
+        clock_link = ClockLink(mission, dn, load_keys(mission, dn))
         for _ in range(100):  # the CN's clock server is up before this child starts
             try:
-                offset = estimate_offset(ns.session, ns.keys, clock.now_ns, timeout_s=0.5)
+                offset = estimate_offset(
+                    link.ns.session, link.keys, clock.now_ns, clock_link, timeout_s=0.5
+                )
                 break
             except Exception:
                 continue
         off = offset.offset_ns if offset is not None else 0
-        rx = TelemetryReceiver(ns.session, mission, clock.now_ns, load_key(mission))
-        ns.announce()
+        link.announce()
         print("READY", flush=True)
         while not stop.is_set():
-            t = rx.next(0.2)
+            t = link.next(0.2)
             if t is None:
                 continue
             rx_sync.append(clock.now_ns() + off)  # decoded: the ground's clock, CN time
             rx_mono.append(time.monotonic_ns())
-            seqs.append(rx.last_seq)
+            seqs.append(int(link.dv.get("cn_loop")))
+        c = link.logic.counters
         doc = {
             "seq": seqs,
             "rx_cn_ns": rx_sync,
             "rx_mono": rx_mono,
             "offset_ns": off,
             "offset_delay_ns": offset.delay_ns if offset is not None else None,
-            "bad": rx.bad,
-            "gaps": rx.gaps,
+            "bad": c.rejected,
+            "gaps": c.gaps,
         }
-        rx.close()
-        ns.close()
+        link.close()
     Path(out).write_text(json.dumps(doc))
 
 

@@ -16,9 +16,11 @@ and DN:
 
 Reported per hop (the difference of consecutive stamps): p50/p99 over the
 run, and the same over the loops whose sync missed its deadline, so a
-lever can be aimed at the hop that costs the time. The stamps are taken by
-wrapping the platform's own hand-off points (``zplatform.sync``), in the
-traced processes only; the shipped code has no tracing in it.
+lever can be aimed at the hop that costs the time. The stamps are taken
+through the sync's public trace hook (:data:`zplatform.sync.SyncTrace`,
+``ControlNode(sync_trace=...)``, ``DeviceNode(sync_trace=...)``), in the
+traced processes only: the nodes run as shipped, and untraced nodes pay
+nothing for the hook.
 
 The mission is configs/led_test.yaml on free ports (``--ground`` adds its
 ground node, as in ``bench.reliability``), or ``--bare N``: ``bench.sync``'s
@@ -107,102 +109,74 @@ def _split_priorities() -> None:
 
 
 def dn_main(argv: list[str]) -> None:
-    """``dn <mission> <name> <out.json> [node options]``: a DN process with its hops stamped."""
-    import zplatform.sync as zsync
-    from zplatform.cli import main as cli_main
+    """``dn <mission> <name> <out.json> [--no-realtime]``: a DN process
+    (``zplatform node MISSION NAME``'s) with its hops stamped."""
+    from zplatform.auth import load_keys
+    from zplatform.mission import load_mission
+    from zplatform.node.device import DeviceNode
+    from zplatform.node.runtime import StopFlag, setup_logging
 
     _split_priorities()
 
-    mission, name, out, *extra = argv
+    mission_path, name, out, *extra = argv
+    if set(extra) - {"--no-realtime"}:
+        raise SystemExit(f"sync_trace dn: unknown options {extra}")
     st = _Stamps(3)  # arrive, serve, replied
     atexit.register(st.dump, out)
     arrivals: queue.SimpleQueue[int] = queue.SimpleQueue()
     mono = time.monotonic_ns
+    served = [0, 0]  # this query's arrive and serve stamps
 
-    class StampedQueue(queue.SimpleQueue[Any]):
-        def put(self, item: Any, block: bool = True, timeout: float | None = None) -> None:
-            arrivals.put(mono())  # zenoh's thread, at the hand-off
-            super().put(item)
+    def trace(hop: str, loop: int) -> None:
+        t = mono()
+        if hop == "arrive":  # zenoh's thread: queries are served in this order
+            arrivals.put(t)
+        elif hop == "serve":
+            served[0] = arrivals.get_nowait()
+            served[1] = t
+        else:  # "replied", with the loop the query carried
+            st.set(loop, 0, served[0])
+            st.set(loop, 1, served[1])
+            st.set(loop, 2, t)
 
-    orig_init = zsync.DeviceSync.__init__
-    orig_serve = zsync.DeviceSync._serve
-
-    def init(self: Any, *a: Any, **kw: Any) -> None:
-        saved = zsync.queue.SimpleQueue
-        zsync.queue.SimpleQueue = StampedQueue  # type: ignore[misc]
-        try:
-            orig_init(self, *a, **kw)
-        finally:
-            zsync.queue.SimpleQueue = saved  # type: ignore[misc]
-
-    def serve(self: Any, query: Any, logic: Any, *, may_run: bool) -> None:
-        t_arrive = arrivals.get_nowait()
-        t_serve = mono()
-        orig_serve(self, query, logic, may_run=may_run)
-        t_rep = mono()
-        loop = int(logic.last_loop)
-        st.set(loop, 0, t_arrive)
-        st.set(loop, 1, t_serve)
-        st.set(loop, 2, t_rep)
-
-    zsync.DeviceSync.__init__ = init  # type: ignore[method-assign]
-    zsync.DeviceSync._serve = serve  # type: ignore[method-assign]
+    setup_logging()
+    mission = load_mission(mission_path)
+    node = DeviceNode(
+        mission, name, stop=StopFlag(), keys=load_keys(mission, name), sync_trace=trace
+    )
     try:
-        cli_main(["node", mission, name, *extra])
+        node.start()
+        node.run(realtime="--no-realtime" not in extra)
     finally:
+        node.close()
         st.dump(out)
 
 
-def _trace_cn(cn: Any, n_dn: int) -> _Stamps:
-    """Wrap the in-process CN's ControlSync: issued, back, taken per DN."""
-    st = _Stamps(3 * n_dn)
-    sync = cn.sync
-    logic = cn.logic
-    mono = time.monotonic_ns
-    session = sync.session
+class _CnTrace:
+    """The in-process CN's :data:`~zplatform.sync.SyncTrace`: issued, back,
+    taken per DN and loop. ``logic`` is set once the node is built (stamps
+    of loop 0, the warm-up, are not kept)."""
 
-    class StampedSession:
-        def __init__(self) -> None:
-            self.i = 0
+    def __init__(self, n_dn: int) -> None:
+        self.st = _Stamps(3 * n_dn)
+        self.logic: Any = None
+        self._back = [0] * n_dn  # zenoh's thread: the newest reply's hand-off per DN
+        self._mono = time.monotonic_ns
 
-        def get(self, key: str, *a: Any, **kw: Any) -> Any:
-            t = mono()
-            if sync.wildcard:  # one query for every DN
-                for i in range(n_dn):
-                    st.set(int(logic.loop), 3 * i, t)
-            else:
-                i = self.i
-                self.i = (i + 1) % n_dn
-                st.set(int(logic.loop), 3 * i, t)
-            return session.get(key, *a, **kw)
-
-    sync.session = StampedSession()
-    q = sync._q
-
-    class StampedQueue:
-        def get(self, timeout: float | None = None) -> Any:
-            item = q.get(timeout=timeout)
-            i, payload = item[0], item[1]
-            if i >= 0:
-                st.set(int(logic.loop), 3 * i + 1, item[2])
-                st.set(int(logic.loop), 3 * i + 2, mono())
-            return i, payload
-
-        def put(self, item: Any) -> None:
-            q.put((item[0], item[1], mono()))
-
-        def empty(self) -> bool:
-            return q.empty()
-
-        def get_nowait(self) -> Any:
-            item = q.get_nowait()
-            return item[0], item[1]
-
-    sq = StampedQueue()
-    sync._q = sq
-    # The hand-offs capture the queue: rebuild them on the stamped one, as shipped.
-    sync._build_callbacks()
-    return st
+    def __call__(self, hop: str, i: int) -> None:
+        t = self._mono()
+        if hop == "back":
+            self._back[i] = t
+            return
+        logic = self.logic
+        if logic is None:
+            return
+        loop = int(logic.loop)
+        if hop == "issued":
+            self.st.set(loop, 3 * i, t)
+        else:  # "taken"
+            self.st.set(loop, 3 * i + 1, self._back[i])
+            self.st.set(loop, 3 * i + 2, t)
 
 
 def _hops(
@@ -275,16 +249,18 @@ def run(
                     if name == who or (who == "dn" and name.startswith("dn")):
                         spec["cpu"] = int(cpu)
             mpath.write_text(yaml.safe_dump(doc, sort_keys=False))
-        with BenchCluster(mpath, realtime=priority > 0, trace_dir=tmpdir) as c:
+        n_dn = sum(1 for n in yaml.safe_load(mpath.read_text())["nodes"] if n.startswith("dn"))
+        tracer = _CnTrace(n_dn)
+        with BenchCluster(mpath, realtime=priority > 0, trace_dir=tmpdir, cn_trace=tracer) as c:
             m = c.mission
-            n_dn = len(m.device_nodes)
+            tracer.logic = c.cn.logic
+            st = tracer.st
             gpath = tmpdir / "gn.json"
             gn = _spawn_child(["ground", str(mpath), str(gpath)]) if ground else None
             try:
                 c.start(timeout_s=60.0)
                 if gn is not None:
                     _wait_ready(gn, "ground node")
-                st = _trace_cn(c.cn, n_dn)
                 loops = max(1, round(seconds * m.loop_hz))
                 samples = SyncSamples(loops)
                 c.run(loops, samples)

@@ -2,7 +2,7 @@
 
 For each mission, a zplatform cluster (DN processes, the CN's real loop in
 this process, auth on) plus a ground child (``python -m bench.reliability
-ground``: the platform's :class:`TelemetryReceiver` as node ``gn``). The
+ground``: the platform's ``GroundLink`` as node ``gn``). The
 latency of each snapshot is the ground's node clock at decode, plus its
 clock-sync offset to the CN (measured against the CN's clock server at
 start, as a DN does), minus the CN's node clock read just before its
@@ -39,6 +39,7 @@ from bench.cluster import BenchCluster, make_mission
 from bench.common import REPO_ROOT, bench_argparser, free_port, summarize, write_result
 from bench.reliability import _finish_child, _spawn_child, _wait_ready
 from bench.sync import PRIORITY, inherit_fifo
+from zplatform.config import relocate_mission
 
 TM_DEADLINE_MS = 30.0
 TARGET_P99_US = 2000.0
@@ -47,6 +48,7 @@ TARGET_P99_US = 2000.0
 def mission_copy(src: Path, dst: Path) -> Path:
     """``src`` with every endpoint on a free loopback port (gn added if missing)."""
     doc = yaml.safe_load(src.read_text())
+    relocate_mission(doc, src)  # the copy finds the mission's code from anywhere
     nodes = doc["nodes"]
     nodes.setdefault("gn", {})
     ports = {n: free_port() for n in nodes}

@@ -28,6 +28,9 @@ def igniter_bench_copy(dst_dir: Path) -> Path:
     text = src.read_text()
     flight = "    ARMED: [NOOP, ABORT]\n"
     assert flight in text, "the igniter mission's ARMED whitelist changed: update this copy"
+    code = 'pythonpath: [".."]'
+    assert code in text, "the igniter mission's pythonpath changed: update this copy"
+    text = text.replace(code, f"pythonpath: [{str(src.parent.parent)!r}]")
     dst = dst_dir / "recovery_igniter_bench.yaml"
     dst.write_text(text.replace(flight, "    ARMED: [NOOP, ABORT, ARM, WRITE]\n"))
     return dst

@@ -6,6 +6,8 @@ here; module paths below ``zplatform.`` are implementation detail.
 
 from __future__ import annotations
 
+from .auth import KeySet, load_keys
+from .boards import Board, SimBoard
 from .codec import (
     Frame,
     FrameDecoder,
@@ -14,13 +16,13 @@ from .codec import (
     decode_frame,
     encode_frame,
 )
-from .codes import Command, CommandStatus, Fault
+from .codes import Command, CommandStatus, Fault, ParamLoad, ParamSave, SafedWhy
 from .commands import CommandHandler
 from .components import Component
 from .config import Mission
 from .controllers import Controller, ControllerSet
 from .datavector import DataVector, ElementSpec, Handle, Layout, RegionSpec
-from .devices import Actuator, Board, Device, DeviceSet, Sensor, SimBoard
+from .devices import Actuator, Device, DeviceSet, Sensor
 from .errors import (
     ClockSyncError,
     CodecError,
@@ -40,19 +42,34 @@ from .errors import (
     TransportError,
     ZPlatformError,
 )
-from .events import EV, Event, EventLog, EventType, Severity
+from .events import EV, Event, EventLog, EventReader, EventType, Severity
 from .faults import FaultMonitor
+from .ground.link import GroundLink
+from .ground.logic import GroundLogic
+from .ground.records import CommandOutcome, EventRecord, TelemetryCounters
+from .ground.script import ScriptPlayer
 from .lockstep import LockstepRunner, ReplayResult, SimResult, replay
 from .loop import ControlLogic, DeviceLogic
 from .mission import check_mission, decode_mission, load_mission
+from .params import (
+    ParamFileError,
+    ParamSaver,
+    ParamTable,
+    decode_params,
+    encode_params,
+    params_path,
+)
 from .rategroups import RateGroups
 from .recording import Recorder
+from .safety import SafetyWarning, safety_warnings
 from .scheduler import GcGuard, LoopStats, PeriodicLoop, setup_realtime
+from .schema import mission_schema, reference_markdown
 from .statemachine import StateMachine
 from .telemetry import CsvLogger, read_csv
 from .timebase import NodeClock, VirtualClock
 from .transport import KeySpace
-from .uplink import ScriptCommand, ScriptPlayer, fill_request, load_commands, parse_commands
+from .uplink import ScriptCommand, fill_request, load_commands, parse_commands
+from .world import World, WorldBoard, WorldLink
 
 __version__ = "0.1.0"
 
@@ -65,6 +82,7 @@ __all__ = [
     "Command",
     "CommandError",
     "CommandHandler",
+    "CommandOutcome",
     "CommandStatus",
     "Component",
     "ConfigError",
@@ -82,6 +100,8 @@ __all__ = [
     "Event",
     "EventError",
     "EventLog",
+    "EventReader",
+    "EventRecord",
     "EventType",
     "Fault",
     "FaultMonitor",
@@ -91,7 +111,10 @@ __all__ = [
     "FrameFormatError",
     "FrameSizeError",
     "GcGuard",
+    "GroundLink",
+    "GroundLogic",
     "Handle",
+    "KeySet",
     "KeySpace",
     "Layout",
     "LayoutMismatchError",
@@ -100,6 +123,11 @@ __all__ = [
     "Mission",
     "NodeClock",
     "NodeError",
+    "ParamFileError",
+    "ParamLoad",
+    "ParamSave",
+    "ParamSaver",
+    "ParamTable",
     "PeriodicLoop",
     "RateGroups",
     "Recorder",
@@ -107,6 +135,8 @@ __all__ = [
     "RegionCodec",
     "RegionSpec",
     "ReplayResult",
+    "SafedWhy",
+    "SafetyWarning",
     "SchedulerError",
     "ScriptCommand",
     "ScriptPlayer",
@@ -116,20 +146,31 @@ __all__ = [
     "SimResult",
     "StateMachine",
     "StateMachineError",
+    "TelemetryCounters",
     "TimebaseError",
     "TransportError",
     "VirtualClock",
+    "World",
+    "WorldBoard",
+    "WorldLink",
     "ZPlatformError",
     "__version__",
     "check_mission",
     "decode_frame",
     "decode_mission",
+    "decode_params",
     "encode_frame",
+    "encode_params",
     "fill_request",
     "load_commands",
+    "load_keys",
     "load_mission",
+    "mission_schema",
+    "params_path",
     "parse_commands",
     "read_csv",
+    "reference_markdown",
     "replay",
+    "safety_warnings",
     "setup_realtime",
 ]

@@ -31,16 +31,9 @@ and ``bench/shm.py``):
   array); ``poll(copy=False)`` skips the second and leaves a read-only view
   over the received bytes in :attr:`BulkReader.view`.
 
-Mission schema (to be added to ``zplatform/config.py`` by its owner)::
-
-    from .bulk import BulkChannelConfig, check_bulk_channels
-    class Mission(_Struct):
-        ...
-        bulk: list[BulkChannelConfig] = msgspec.field(default_factory=list)
-    # in _check_mission(m):
-        check_bulk_channels(m.bulk, m.nodes)          # "$.bulk[i]...." paths
-    # in _add_platform_elements: for each node n with counter_region(n),
-    #   append counter_elements(m.bulk, n) to that region.
+The mission schema of a channel (:class:`BulkChannelConfig`, the ``bulk:``
+list) and its counter elements live in :mod:`zplatform.config`, re-exported
+here.
 
 Why the copies stay on the loop thread: ``bytes(shm)`` costs about 0.3 ms
 per 4 MB here; done in zenoh's callback thread it would compete with the loop
@@ -82,13 +75,11 @@ __all__ = [
     "BulkStats",
     "BulkWriter",
     "NodeBulk",
-    "ViaCounter",
     "bulk_key",
     "check_bulk_channels",
     "counter_elements",
     "counter_region",
     "decode_sample",
-    "describe_sample",
     "parse_bulk_type",
     "pool_size",
 ]
@@ -167,45 +158,6 @@ def decode_sample(
         )
     arr = np.frombuffer(data, channel.dtype, math.prod(channel.shape), HEADER.size)
     return BulkHeader(layout, seq, loop, t_ns), arr.reshape(channel.shape)
-
-
-def describe_sample(payload: zenoh.ZBytes, channel: BulkChannelConfig) -> dict[str, Any]:
-    """One bulk sample as ``zplatform tap`` prints it: ``via`` (``"shm"`` or
-    ``"copied"``, how it reached this process), header fields, ``bytes`` and
-    the array's ``min``/``max``/``mean``; ``error`` instead of the header and
-    stats when the sample does not match ``channel``. Copies the payload once.
-    """
-    via = "shm" if payload.as_shm() is not None else "copied"
-    data = payload.to_bytes()
-    out: dict[str, Any] = {"channel": channel.name, "via": via, "bytes": len(data)}
-    try:
-        hdr, arr = decode_sample(data, channel)
-    except TransportError as exc:
-        out["error"] = str(exc)
-        return out
-    out.update(seq=hdr.seq, loop=hdr.loop, t_ns=hdr.t_ns)
-    out.update(min=arr.min().item(), max=arr.max().item(), mean=float(arr.mean()))
-    return out
-
-
-class ViaCounter:
-    """Per key, how many samples reached this process through shared memory
-    and how many were copied: for ``zplatform tap`` over ``{vehicle}/**``
-    (any key, not only bulk ones). Call :meth:`add` from the loop or
-    printing thread, not from a zenoh callback that must stay short."""
-
-    def __init__(self) -> None:
-        self._counts: dict[str, list[int]] = {}
-
-    def add(self, key: str, payload: zenoh.ZBytes) -> str:
-        """Count one sample; returns ``"shm"`` or ``"copied"``."""
-        shm = payload.as_shm() is not None
-        c = self._counts.setdefault(key, [0, 0])
-        c[0 if shm else 1] += 1
-        return "shm" if shm else "copied"
-
-    def snapshot(self) -> dict[str, dict[str, int]]:
-        return {k: {"shm": v[0], "copied": v[1]} for k, v in sorted(self._counts.items())}
 
 
 class BulkWriter:
@@ -406,14 +358,15 @@ class NodeBulk:
     is on, a :class:`BulkWriter` per owned channel (:attr:`writers`) and a
     :class:`BulkReader` per channel it reads (:attr:`readers`).
 
-    Per loop, after the sync step::
+    It is the node loop's :class:`~zplatform.loop.BulkPort`: the loop
+    (:class:`~zplatform.loop.ControlLogic`, :class:`~zplatform.loop.DeviceLogic`)
+    calls :meth:`receive` before its logic, :meth:`write_counters`, and
+    :meth:`publish` after its logic; the components fill and read
+    :attr:`arrays`. By hand, per loop::
 
-        for w in bulk.writers.values():
-            if w.due(loop):
-                fill(w.array); w.publish(loop, t_ns)
-        for name, r in bulk.readers.items():
-            if r.poll():
-                use(r.array)
+        bulk.receive(loop)             # readers: the newest samples into their arrays
+        ...the logic reads bulk.arrays[name] and fills the owned ones...
+        bulk.publish(loop, t_ns)       # writers due on this loop
         bulk.write_counters(dv)        # or bulk.counters() into telemetry
 
     Blocks at construction for the pool's first touch (one write of every
@@ -452,6 +405,25 @@ class NodeBulk:
             elif node in ch.readers:
                 self.readers[ch.name] = BulkReader(session, key, ch)
         self._handles: list[tuple[Any, Callable[[], int]]] = []
+        self.arrays: dict[str, Any] = {n: w.array for n, w in self.writers.items()}
+        """Every channel's array by name: the owned ones (filled by the node's
+        components, published from) and the read ones (the newest sample)."""
+        self.arrays.update({n: r.array for n, r in self.readers.items()})
+        self._writers = tuple(self.writers.values())
+        self._readers = tuple(self.readers.values())
+
+    def receive(self, loop: int) -> None:
+        """Take the newest sample of every read channel into its array
+        (:meth:`BulkReader.poll`); never blocks."""
+        for r in self._readers:
+            r.poll()
+
+    def publish(self, loop: int, t_ns: int) -> None:
+        """Publish every owned channel due on ``loop`` (:meth:`BulkWriter.publish`:
+        a full pool counts a drop after ``alloc_timeout_ms``)."""
+        for w in self._writers:
+            if w.due(loop):
+                w.publish(loop, t_ns)
 
     def _prefault(self, channels: Sequence[BulkChannelConfig]) -> None:
         # Allocate every chunk once and write it whole, so the kernel maps the
@@ -513,10 +485,10 @@ def _getter(bulk: NodeBulk, element: str) -> Callable[[], int]:
 
 
 def open_bulk(session: zenoh.Session, mission: Any, node: str, logic: Any) -> NodeBulk | None:
-    """The node's bulk channel ends (None when it has none), their arrays
-    handed to the node's components (``logic.attach_bulk``): writers' arrays
-    are filled by the components and published by the runtime, readers'
-    arrays hold the latest sample. Raises TransportError as :class:`NodeBulk`."""
+    """The node's bulk channel ends (None when it has none), attached to the
+    node's loop (``logic.attach_bulk``), which receives, publishes and counts
+    them in its protocol order and hands :attr:`NodeBulk.arrays` to its
+    components. Raises TransportError as :class:`NodeBulk`."""
     mine = [ch for ch in mission.bulk if ch.node == node or node in ch.readers]
     if not mine:
         return None
@@ -527,7 +499,5 @@ def open_bulk(session: zenoh.Session, mission: Any, node: str, logic: Any) -> No
         node,
         shared_memory=mission.transport.shared_memory,
     )
-    arrays: dict[str, Any] = {n: w.array for n, w in bulk.writers.items()}
-    arrays.update({n: r.array for n, r in bulk.readers.items()})
-    logic.attach_bulk(arrays)
+    logic.attach_bulk(bulk)
     return bulk

@@ -18,6 +18,8 @@ import os
 import sys
 from collections.abc import Callable, Sequence
 
+import msgspec
+
 from . import __version__
 from .config import Mission
 from .datavector import Layout
@@ -76,15 +78,31 @@ def _mission_report(m: Mission) -> dict[str, object]:
 
 
 def cmd_check(args: argparse.Namespace) -> int:
+    """Validate; print the report and the safety warnings (:mod:`zplatform.safety`).
+
+    Exit 0 with warnings, 2 with ``--strict`` (each warning printed as an
+    error line), 2 for a mission that does not load."""
+    from .safety import safety_warnings
+
     # load_mission builds every controller and device on scratch vectors,
     # so a bad class path or component config fails here, not on the pad.
     m = load_mission(args.mission)
+    warnings = safety_warnings(m)
     rep = _mission_report(m)
+    rc = 2 if args.strict and warnings else 0
     if args.json:
+        rep["warnings"] = [msgspec.to_builtins(w) for w in warnings]
+        rep["ok"] = rc == 0
         print(json.dumps(rep, indent=2))
-        return 0
+        return rc
+    level = "error" if args.strict else "warning"
+    for w in warnings:
+        print(f"zplatform: {level}: {w}", file=sys.stderr)
+    if rc:
+        return rc
+    flagged = f", {len(warnings)} safety warning(s) (above)" if warnings else ""
     print(
-        f"mission {rep['mission']}: OK  ({len(m.nodes)} nodes, {m.loop_hz:g} Hz, "
+        f"mission {rep['mission']}: OK{flagged}  ({len(m.nodes)} nodes, {m.loop_hz:g} Hz, "
         f"sync deadline {m.sync_timeout_ms:g} ms)"
     )
     for r in rep["regions"]:  # type: ignore[attr-defined]
@@ -128,17 +146,46 @@ MISSION_HELP = "mission YAML file, or the name of a running mission (`zplatform 
 
 
 def cmd_keygen(args: argparse.Namespace) -> int:
-    """Write a new random mission key (mode 0600); refuses to overwrite one."""
-    from .auth import KEY_FILE_ENV, default_key_path, write_key
-    from .mission import load_mission
+    """Write a new key set (one file per host role, mode 0600, in a 0700
+    directory) and say which file goes to which host; refuses to overwrite one."""
+    from .auth import (
+        KEY_FILE_ENV,
+        default_key_dir,
+        host_roles,
+        role_host,
+        role_links,
+        write_key_set,
+    )
 
-    mission = load_mission(args.mission)
-    path = write_key(args.out or default_key_path(mission))
-    print(f"wrote the key of mission {mission.mission!r} to {path}")
-    if args.out:
-        print(f"nodes and tools find it with {KEY_FILE_ENV}={path}")
-    else:
-        print("copy it to the same place on every host of the mission and the ground station")
+    mission = load_mission(resolve_mission(args.target), code=False)
+    where = args.out or default_key_dir(mission)
+    files = write_key_set(mission, where)
+    print(f"wrote the key set of mission {mission.mission!r} to {where}/ (one file per host role):")
+    for role in host_roles(mission):
+        links = ", ".join(role_links(mission, role))
+        print(f"  {files[role].name:<10} -> {role_host(role):<46} {links}")
+    print(
+        "copy each file to its host only, into the same directory (or point "
+        f"{KEY_FILE_ENV} at it); a single host (zplatform up) uses the directory as it is"
+    )
+    return 0
+
+
+def cmd_schema(args: argparse.Namespace) -> int:
+    """The mission file's JSON Schema (or its markdown reference), to stdout or a file."""
+    from pathlib import Path
+
+    from .cli_args import check_output
+    from .schema import mission_schema_json, reference_markdown
+
+    text = reference_markdown() if args.markdown else mission_schema_json()
+    if args.out is None:
+        sys.stdout.write(text)
+        return 0
+    what = "the mission reference" if args.markdown else "the mission schema"
+    check_output(args.out, what)
+    Path(args.out).write_text(text, encoding="utf-8")
+    print(f"wrote {what} to {args.out}")
     return 0
 
 
@@ -150,19 +197,44 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--version", action="version", version=f"zplatform {__version__}")
     sub = p.add_subparsers(dest="command", required=True, metavar="VERB")
-    c = sub.add_parser("check", help="validate a mission; print regions, offsets, bandwidth")
-    c.add_argument("mission", help=MISSION_HELP)
-    c.add_argument("--json", action="store_true", help="machine-readable report")
-    c.set_defaults(func=cmd_check)
     c = sub.add_parser(
-        "keygen",
-        help="make the mission key that authenticates every frame (copy it to every host)",
+        "check",
+        help="validate a mission; print regions, offsets, bandwidth and safety warnings",
     )
     c.add_argument("mission", help=MISSION_HELP)
     c.add_argument(
-        "--out", metavar="PATH", help="where to write it (default: the mission's key file)"
+        "--json", action="store_true", help="machine-readable report (with its warnings)"
+    )
+    c.add_argument(
+        "--strict",
+        action="store_true",
+        help="safety warnings are errors (exit 2): for CI and flight missions",
+    )
+    c.set_defaults(func=cmd_check)
+    c = sub.add_parser(
+        "keygen",
+        help="make the mission's key set: one key file per host role (cn, each dn, gn, tool)",
+    )
+    # Not `mission`: main() would load it with its code; keygen needs only the nodes.
+    c.add_argument("target", metavar="MISSION", help=MISSION_HELP)
+    c.add_argument(
+        "--out",
+        metavar="DIR",
+        help="the directory to write the set into (default: the mission's key directory)",
     )
     c.set_defaults(func=cmd_keygen)
+    c = sub.add_parser(
+        "schema",
+        help="print the mission file's JSON Schema (for editor completion and validation)",
+        description="Print the JSON Schema of a mission file, or with --markdown the mission "
+        "reference (docs/mission-reference.md). Point an editor at the schema with a first "
+        "line `# yaml-language-server: $schema=mission.schema.json` in the mission file.",
+    )
+    c.add_argument("--out", metavar="FILE", help="write it to FILE instead of stdout")
+    c.add_argument(
+        "--markdown", action="store_true", help="the mission reference (markdown) instead"
+    )
+    c.set_defaults(func=cmd_schema)
     c = sub.add_parser("ps", help="list the running missions (registered by `up`)")
     c.add_argument("--json", action="store_true", help="the registry entries as JSON")
     c.set_defaults(func=cmd_ps)

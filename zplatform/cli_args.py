@@ -19,12 +19,43 @@ from .config import Mission
 from .errors import CommandError
 
 __all__ = [
+    "MISSION_HELP",
     "check_output",
     "check_ports",
+    "mission_verb",
     "nonnegative_float",
     "positive_float",
     "positive_int",
+    "timeout_option",
 ]
+
+
+MISSION_HELP = "mission YAML file, or the name of a running mission (`zplatform ps`)"
+
+
+def mission_verb(
+    sub: argparse._SubParsersAction[argparse.ArgumentParser],
+    name: str,
+    *,
+    help: str,
+    description: str | None = None,
+) -> argparse.ArgumentParser:
+    """A verb's parser whose first argument is MISSION (a file or a running
+    mission's name)."""
+    p = sub.add_parser(name, help=help, description=description)
+    p.add_argument("mission", help=MISSION_HELP)
+    return p
+
+
+def timeout_option(p: argparse.ArgumentParser, what: str, default: float = 10.0) -> None:
+    """``--timeout S`` (> 0, ``default`` seconds): how long to wait for ``what``."""
+    p.add_argument(
+        "--timeout",
+        type=positive_float,
+        default=default,
+        metavar="S",
+        help=f"seconds to wait for {what} (default {default:g})",
+    )
 
 
 def positive_float(text: str) -> float:
@@ -93,12 +124,25 @@ def _tcp_host_port(endpoint: str) -> tuple[str, int] | None:
 
 
 def check_ports(mission: Mission) -> None:
-    """Refuse to start when a node's TCP listen port is already taken.
+    """Refuse to start when a node's TCP listen port (or the vehicle world's UDP port) is taken.
 
     Binds each port once (and lets go): a busy port means another ``up`` of
     this mission, or another program, holds it. Only "address in use" is
     reported; any other bind error is zenoh's to report.
     """
+    if mission.world is not None:  # the vehicle world's UDP port
+        host, _, port_text = mission.world.listen.rpartition(":")
+        family = socket.AF_INET6 if ":" in host else socket.AF_INET
+        with socket.socket(family, socket.SOCK_DGRAM) as s:
+            try:
+                s.bind((host.strip("[]"), int(port_text)))
+            except OSError as exc:
+                if exc.errno == errno.EADDRINUSE:
+                    raise CommandError(
+                        f"port {port_text} (the vehicle world's UDP listen) is in use: is this "
+                        "mission already running? see `zplatform ps`; use --free-ports to run "
+                        "beside it"
+                    ) from None
     for name, node in mission.nodes.items():
         for ep in node.listen:
             hp = _tcp_host_port(ep)

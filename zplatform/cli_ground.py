@@ -1,21 +1,18 @@
-"""Ground-side subcommands: ``ground`` (console or prompt), ``plot``, ``xtce``."""
+"""Ground-side subcommands: ``ground`` (console or prompt), ``params``, ``plot``, ``xtce``."""
 
 from __future__ import annotations
 
 import argparse
-import queue
+import importlib
 import sys
-import threading
 import time
 from pathlib import Path
 from typing import Any
 
-from .cli_args import check_output, positive_float, positive_int
-from .errors import CommandError, ZPlatformError
+from .cli_args import check_output, mission_verb, positive_float, positive_int, timeout_option
+from .errors import CommandError
 from .mission import load_mission
 from .telemetry import read_csv
-
-MISSION_HELP = "mission YAML file, or the name of a running mission (`zplatform ps`)"
 
 
 def _port(text: str) -> int:
@@ -31,30 +28,31 @@ def _port(text: str) -> int:
 
 __all__ = ["register"]
 
-HELP = """commands: launch | abort | noop | hold | resume | arm | write ELEMENT VALUE |
-          armed COMMAND (ARM n, then COMMAND n+1) | quit"""
-
 
 def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
-    p = sub.add_parser(
+    p = mission_verb(
+        sub,
         "ground",
         help="the ground console (terminal or --web PORT); a line prompt when stdin is no TTY",
     )
-    p.add_argument("mission", help=MISSION_HELP)
     mode = p.add_mutually_exclusive_group()
     mode.add_argument(
         "--console", action="store_true", help="the full-screen console even without a TTY"
     )
     mode.add_argument("--prompt", action="store_true", help="the line prompt even on a TTY")
     mode.add_argument(
-        "--web", type=_port, metavar="PORT", help="serve the console to browsers on PORT"
+        "--web",
+        type=_port,
+        metavar="PORT",
+        help="serve the console to the operator's browser on PORT (0: any free port); "
+        "prints the address to open, with its one-time token",
     )
-    p.add_argument("--host", default="127.0.0.1", help="address --web listens on")
+    p.add_argument(
+        "--host", default="127.0.0.1", help="address --web listens on (warns beyond loopback)"
+    )
     p.add_argument("--watch", nargs="*", default=[], help="elements to show on the status line")
     p.add_argument("--interval", type=positive_float, default=1.0, help="status line period (s)")
-    p.add_argument(
-        "--timeout", type=positive_float, default=10.0, help="verdict timeout per command (s)"
-    )
+    timeout_option(p, "each command's verdict")
     p.add_argument(
         "--los", type=positive_float, default=0.3, help="console: seconds of silence that mean LOS"
     )
@@ -64,6 +62,29 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         help="console: element limits {NAME: {yellow: [lo, hi], red: [lo, hi]}} over the mission's",
     )
     p.set_defaults(func=cmd_ground)
+
+    p = mission_verb(
+        sub,
+        "params",
+        help="list the mission's parameters (live values when it runs), or set one",
+        description="Without NAME VALUE: every parameter with its value (from live telemetry "
+        "when the control node runs, else from this host's parameter file), default, bounds, "
+        "units, the states it may change in, and whether it is hazardous. With NAME VALUE: "
+        "PRM_SET (--arm: ARM n, then PRM_SET n+1, for a hazardous parameter), then with "
+        "--save PRM_SAVE, waiting until the control node has written its parameter file. "
+        "Exits 0 only when everything was accepted (and saved).",
+    )
+    p.add_argument("name", nargs="?", metavar="NAME", help="the parameter to set")
+    p.add_argument("value", nargs="?", metavar="VALUE", help="its new value")
+    p.add_argument(
+        "--arm", action="store_true", help="send ARM n first (a hazardous parameter needs it)"
+    )
+    p.add_argument(
+        "--save", action="store_true", help="then PRM_SAVE: write every parameter to the file"
+    )
+    p.add_argument("--json", action="store_true", help="list as JSON")
+    timeout_option(p, "telemetry and for each verdict")
+    p.set_defaults(func=cmd_params)
 
     p = sub.add_parser(
         "plot",
@@ -78,17 +99,15 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p.add_argument("--title", help="figure title (default: the CSV name and the elements)")
     p.set_defaults(func=cmd_plot)
 
-    p = sub.add_parser(
-        "xtce", help="write the mission's telemetry packets and commands as XTCE (Yamcs)"
+    p = mission_verb(
+        sub, "xtce", help="write the mission's telemetry packets and commands as XTCE (Yamcs)"
     )
-    p.add_argument("mission", help=MISSION_HELP)
     p.add_argument("--out", help="XML path (default: MISSION_NAME.xtce.xml)")
     p.set_defaults(func=cmd_xtce)
 
-    p = sub.add_parser(
-        "ccsds", help="record live telemetry as CCSDS space packets, or decode them to CSV"
+    p = mission_verb(
+        sub, "ccsds", help="record live telemetry as CCSDS space packets, or decode them to CSV"
     )
-    p.add_argument("mission", help=MISSION_HELP)
     what = p.add_mutually_exclusive_group(required=True)
     what.add_argument("--record", metavar="FILE", help="append the downlink's packets to FILE")
     what.add_argument("--decode", metavar="FILE", help="decode a packet file to CSV (--out)")
@@ -101,13 +120,7 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p.add_argument(
         "--max-data", type=positive_int, default=65536, help="packet data field size (bytes)"
     )
-    p.add_argument(
-        "--timeout",
-        type=positive_float,
-        default=10.0,
-        metavar="S",
-        help="--record: wait for the CN (s)",
-    )
+    timeout_option(p, "the CN with --record")
     p.set_defaults(func=cmd_ccsds)
 
 
@@ -118,16 +131,18 @@ def cmd_ground(args: argparse.Namespace) -> int:
             from .console import run_console, serve_console
         except ImportError as exc:
             raise CommandError(
-                f"the console needs the ground extra ({exc.name}): pip install 'zplatform[ground]'"
+                f"the console needs {exc.name}, a dependency of zplatform that is not "
+                "installed here: reinstall zplatform (pip install --force-reinstall zplatform)"
             ) from None
         limits = _read_limits(args.limits)
         if args.web is not None:
-            load_mission(args.mission)  # a bad file fails here, with its message
+            load_mission(args.mission, code=False)  # a bad file fails here, with its message
             serve_console(
                 args.mission,
                 args.web,
                 host=args.host,
                 timeout_s=args.timeout,
+                los_s=args.los,
                 limits_path=args.limits,
             )
             return 0
@@ -153,109 +168,63 @@ def _read_limits(path: str | None) -> dict[str, object] | None:
 
 
 def cmd_prompt(args: argparse.Namespace) -> int:
-    """Status line every ``--interval`` s; one command per stdin line.
+    """The line prompt (:func:`zplatform.ground.tools.run_prompt`)."""
+    from .ground.tools import run_prompt
 
-    The prompt runs in a reader thread that only queues lines; the main
-    thread owns the zenoh session, receives telemetry and sends commands.
-    Every node's events are printed as they come (``EVENT cn WARNING id: text``).
-    """
-    import zenoh
-
-    from .events import decode_event
-    from .node.ground import CommandSender
-
-    mission = load_mission(args.mission)
-    sender = CommandSender(mission, timeout_s=args.timeout)
-    for name in args.watch:
-        sender.rx.dv.layout.element(name)  # unknown elements fail now, with their name
-    lines: queue.SimpleQueue[str | None] = queue.SimpleQueue()
-    ev_q: queue.SimpleQueue[bytes] = queue.SimpleQueue()
-
-    def on_event(sample: zenoh.Sample) -> None:
-        ev_q.put(sample.payload.to_bytes())  # hand off only
-
-    ev_sub = sender.ns.session.declare_subscriber(
-        sender.ns.keys.all_events, zenoh.handlers.Callback(on_event, indirect=False)
+    return run_prompt(
+        load_mission(args.mission, code=False),
+        watch=args.watch,
+        interval_s=args.interval,
+        timeout_s=args.timeout,
     )
 
-    def print_events() -> None:
-        while True:
-            try:
-                payload = ev_q.get_nowait()
-            except queue.Empty:
-                return
-            try:
-                e = decode_event(payload)
-            except ZPlatformError as exc:
-                print(f"EVENT (undecodable: {exc})", flush=True)
-                continue
-            print(f"EVENT {e.node} {e.severity_name} {e.id}: {e.text}", flush=True)
 
-    def reader() -> None:
-        for line in sys.stdin:
-            lines.put(line)
-        lines.put(None)
+def cmd_params(args: argparse.Namespace) -> int:
+    """List (exit 0), or set and/or save (exit 0 only when all succeeded)."""
+    import json
 
-    threading.Thread(target=reader, name="prompt", daemon=True).start()
-    print(HELP, flush=True)
-    last = 0.0
-    try:
-        while True:
-            try:
-                line = lines.get_nowait()
-            except queue.Empty:
-                line = ""
-            print_events()
-            if line is None:
-                return 0
-            words = line.split()
-            if words:
-                if words[0] in ("quit", "exit"):
-                    return 0
-                try:
-                    if words[0] == "armed" and len(words) == 2:
-                        results = sender.send_armed(words[1])
-                    else:
-                        el = words[1] if len(words) > 1 else None
-                        val = words[2] if len(words) > 2 else None
-                        results = [sender.send(words[0], el, val)]
-                    for r in results:
-                        print(f"{r.command} #{r.seq}: {r.status}", flush=True)
-                except (CommandError, ZPlatformError) as exc:
-                    print(f"refused: {exc}", flush=True)
-            if sender.rx.next(0.05) is None:
-                continue
-            now = time.monotonic()
-            if now - last >= args.interval:
-                dv = sender.rx.dv
-                watched = " ".join(
-                    f"{n}={dv.get_name(n) if dv.layout.element(n).enum else dv.get(n)}"
-                    for n in args.watch
-                )
-                misses = " ".join(
-                    f"{dn}={int(dv.get(f'cn_missed_{dn}'))}" for dn in mission.device_nodes
-                )
-                print(
-                    f"loop {int(dv.get('cn_loop'))} state {dv.get_name('cn_state')} "
-                    f"fault {dv.get_name('cn_fault')} missed {misses or '-'} "
-                    f"cmd #{int(dv.get('cn_cmd_seq'))} {dv.get_name('cn_cmd_status')} {watched}",
-                    flush=True,
-                )
-                last = now
-    except KeyboardInterrupt:
+    import msgspec
+
+    from .ground.tools import list_params, set_param
+
+    mission = load_mission(args.mission, code=False)
+    if args.name is not None and args.value is None:
+        raise CommandError(f"params {args.name}: give its VALUE too")
+    if args.name is None and not (args.save or args.arm):
+        listing = list_params(mission, timeout_s=args.timeout)
+        if args.json:
+            print(json.dumps(msgspec.to_builtins(listing), indent=2))
+            return 0
+        print(f"{listing.mission}: {listing.source}")
+        header = ("NAME", "VALUE", "DEFAULT", "BOUNDS", "STATES", "")
+        rows = [header] + [
+            (r.name, r.value, r.default, r.bounds, ",".join(r.states), "hazardous" * r.hazardous)
+            for r in listing.rows
+        ]
+        widths = [max(len(row[i]) for row in rows) for i in range(len(header))]
+        for row in rows:
+            print("  ".join(c.ljust(w) for c, w in zip(row, widths, strict=True)).rstrip())
         return 0
-    finally:
-        print_events()
-        ev_sub.undeclare()
-        sender.close()
+    lines, ok = set_param(
+        mission, args.name, args.value, armed=args.arm, save=args.save, timeout_s=args.timeout
+    )
+    for line in lines:
+        print(line)
+    return 0 if ok else 1
+
+
+def _needs(module: str, verb: str, package: str, extra: str) -> Any:
+    """``module``, imported; CommandError naming the extra that brings
+    ``package`` when it cannot be (one line, exit 2)."""
+    try:
+        return importlib.import_module(module)
+    except ImportError:
+        raise CommandError(f"{verb} needs {package}: pip install 'zplatform[{extra}]'") from None
 
 
 def cmd_plot(args: argparse.Namespace) -> int:
     """Plot CSV columns against time since the first row (see telemetry.plot_telemetry)."""
-    try:
-        import matplotlib  # noqa: F401
-    except ImportError:
-        raise CommandError("plot needs matplotlib: pip install 'zplatform[plot]'") from None
+    _needs("matplotlib", "plot", "matplotlib", "plot")
     from .telemetry import plot_telemetry
 
     try:
@@ -282,11 +251,8 @@ def cmd_plot(args: argparse.Namespace) -> int:
 
 def cmd_xtce(args: argparse.Namespace) -> int:
     """Write the XTCE database of the mission's CCSDS downlink and commands."""
-    try:
-        from .xtce import write_xtce
-    except ImportError:
-        raise CommandError("xtce needs yamcs-pymdb: pip install 'zplatform[ground]'") from None
-    mission = load_mission(args.mission)
+    write_xtce = _needs("zplatform.xtce", "xtce", "yamcs-pymdb", "ground").write_xtce
+    mission = load_mission(args.mission, code=False)
     out = args.out or f"{mission.mission}.xtce.xml"
     check_output(out, "XTCE file")
     x = write_xtce(mission, out)
@@ -298,51 +264,37 @@ def cmd_xtce(args: argparse.Namespace) -> int:
 
 def _record_radio(mission: Any, args: argparse.Namespace) -> int:
     """The mission's CN packs its own downlink: record the packets it sends."""
-    import zenoh
+    from .ground.link import GroundLink
 
-    from .transport import NodeSession
-
-    q: queue.SimpleQueue[bytes] = queue.SimpleQueue()
-
-    def on_packet(sample: zenoh.Sample) -> None:
-        q.put(sample.payload.to_bytes())  # zenoh's thread: hand off only
-
-    ns = NodeSession(mission, None)
-    sub = ns.session.declare_subscriber(
-        ns.keys.downlink, zenoh.handlers.Callback(on_packet, indirect=False)
-    )
+    link = GroundLink(mission, keys=None, telemetry=False, events=False)
+    link.tap(link.keys.downlink)
     n = size = 0
     start = time.monotonic()
     try:
         with open(args.record, "ab") as f:
             while args.duration is None or time.monotonic() - start < args.duration:
-                try:
-                    pkt = q.get(timeout=0.2)
-                except queue.Empty:
+                got = link.next_tap(0.2)
+                if got is None:
                     if not n and time.monotonic() - start > args.timeout:
                         raise CommandError(
                             f"no downlink packet from the control node within {args.timeout:g} s"
-                        ) from None
+                        )
                     continue
-                f.write(pkt)
+                f.write(got[1])
                 n += 1
-                size += len(pkt)
+                size += len(got[1])
     except KeyboardInterrupt:
         pass
     finally:
-        sub.undeclare()
-        ns.close()
+        link.close()
     print(f"wrote {args.record}: {n} packets, {size} bytes from the CN's downlink")
     return 0
 
 
 def cmd_ccsds(args: argparse.Namespace) -> int:
     """``--record``: telemetry -> packets (the radio path, on the ground); ``--decode``: -> CSV."""
-    try:
-        from . import ccsds
-    except ImportError:
-        raise CommandError("ccsds needs spacepackets: pip install 'zplatform[ground]'") from None
-    mission = load_mission(args.mission)
+    ccsds = _needs("zplatform.ccsds", "ccsds", "spacepackets", "ground")
+    mission = load_mission(args.mission, code=False)
     if args.decode:
         if not args.out:
             raise CommandError("--decode needs --out CSV")
@@ -359,9 +311,7 @@ def cmd_ccsds(args: argparse.Namespace) -> int:
             f"sequence gaps {dec.seq_gaps}"
         )
         return 0
-    from .node.ground import TelemetryReceiver
-    from .timebase import NodeClock
-    from .transport import NodeSession
+    from .ground.link import GroundLink
 
     check_output(args.record, "packet file")
     if mission.downlink.ccsds:
@@ -369,26 +319,22 @@ def cmd_ccsds(args: argparse.Namespace) -> int:
     enc = ccsds.CcsdsEncoder(
         mission, divisor=args.divisor, budget_bps=args.budget, max_data=args.max_data
     )
-    ns = NodeSession(mission, None)
-    rx = TelemetryReceiver(ns.session, mission, NodeClock().now_ns)
+    link = GroundLink(mission, events=False)
     start = time.monotonic()
     try:
         with open(args.record, "ab") as f:
             while args.duration is None or time.monotonic() - start < args.duration:
-                if rx.next(0.2) is None:
-                    if not rx.received and time.monotonic() - start > args.timeout:
-                        raise CommandError(
-                            f"no telemetry from the control node within {args.timeout:g} s"
-                        )
+                if link.next(0.2) is None:
+                    if not link.logic.received and time.monotonic() - start > args.timeout:
+                        raise CommandError(link.why_no_telemetry(args.timeout))
                     continue
-                dv = rx.dv
+                dv = link.dv
                 for pkt in enc.encode(dv, int(dv.get("cn_loop")), int(dv.get("cn_time_ns"))):
                     f.write(pkt)
     except KeyboardInterrupt:
         pass
     finally:
-        rx.close()
-        ns.close()
+        link.close()
     print(
         f"wrote {args.record}: {enc.sent_snapshots} snapshots, {enc.sent_packets} packets, "
         f"{enc.sent_bytes} bytes; decimated {enc.decimated}, over budget {enc.dropped_budget}"

@@ -6,11 +6,11 @@
 to CSV, prints the states visited and each command's verdict, and exits 0
 on a clean run (no errors, no fault, every scripted command accepted), 1
 otherwise, 2 for a bad mission or script. Without ``--duration`` it runs
-:data:`SETTLE_S` virtual seconds past the script's last command (at least
-:data:`MIN_DURATION_S`), so the consequences of the last command play out:
-the recovery igniter's ``at 0.6 launch`` reaches DEPLOYED at ~11.7 s.
-Events go beside the CSV (``sim.csv`` -> ``sim.events.jsonl``) when the
-runner reports them.
+:data:`~zplatform.ground.script.SETTLE_S` virtual seconds past the script's
+last command (at least :data:`~zplatform.ground.script.MIN_DURATION_S`),
+so the consequences of the last command play out: the recovery igniter's
+``at 0.6 launch`` reaches DEPLOYED at ~11.7 s. Events go beside the CSV
+(``sim.csv`` -> ``sim.events.jsonl``) when the runner reports them.
 
 ``zplatform replay DIR [--log CSV]`` feeds a recording made by ``up --record
 DIR`` through the control loop and checks that the telemetry is
@@ -28,28 +28,20 @@ from pathlib import Path
 import msgspec
 
 from .cli_args import check_output, positive_float
+from .ground.records import EventRecord, format_outcome
+from .ground.script import MIN_DURATION_S, SETTLE_S, script_duration_s
 from .lockstep import LockstepRunner, replay
 from .mission import load_mission
 from .telemetry import CsvLogger, EventWriter, events_path
-from .uplink import ScriptCommand, load_commands
+from .uplink import load_commands
 
 __all__ = ["cmd_replay", "cmd_sim", "register"]
-
-
-MIN_DURATION_S = 10.0
-SETTLE_S = 15.0
-
-
-def _default_duration(script: list[ScriptCommand]) -> float:
-    """Last command + :data:`SETTLE_S`, at least :data:`MIN_DURATION_S` (virtual s)."""
-    last = max((c.at_ns for c in script), default=0) / 1e9
-    return max(MIN_DURATION_S, last + SETTLE_S)
 
 
 def cmd_sim(args: argparse.Namespace) -> int:
     mission = load_mission(args.mission)
     script = load_commands(args.commands) if args.commands else []
-    duration = args.duration if args.duration is not None else _default_duration(script)
+    duration = args.duration if args.duration is not None else script_duration_s(script)
     check_output(args.log, "telemetry log")
     if args.summary:
         check_output(args.summary, "summary")
@@ -60,7 +52,7 @@ def cmd_sim(args: argparse.Namespace) -> int:
         res = runner.run(duration, log=log)
     with EventWriter(ev_path) as ev:
         for e in res.events:  # virtual time: the event's own loop time is its "receive" time
-            ev.write(e.t_ns, e)
+            ev.write(EventRecord.of(e, e.t_ns))
     out = sys.stdout
     print(
         f"sim {res.mission}: {res.loops} loops ({res.duration_s:g} s virtual) in "
@@ -68,7 +60,7 @@ def cmd_sim(args: argparse.Namespace) -> int:
         file=out,
     )
     for c in res.commands:
-        print(f"  {c.t_ns / 1e9:8.3f} s  #{c.seq:<3} {c.command:<7} {c.status}  ({c.source})")
+        print(f"  {c.t_ns / 1e9:8.3f} s  {format_outcome(c)}  ({c.source})")
     for src in res.pending_commands:
         print(f"  not sent before the end of the run: {src}")
     print(f"states: {' -> '.join(res.states)}; final state {res.final_state}")
@@ -91,7 +83,8 @@ def cmd_replay(args: argparse.Namespace) -> int:
         from .datavector import Layout
         from .recording import MISSION_FILE
 
-        layout = Layout.for_node(load_mission(Path(args.directory) / MISSION_FILE), "cn")
+        recorded = load_mission(Path(args.directory) / MISSION_FILE, code=False)
+        layout = Layout.for_node(recorded, "cn")
         with CsvLogger(args.log, layout) as log:
             res = replay(args.directory, log=log)
     else:

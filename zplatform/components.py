@@ -5,12 +5,19 @@ A *component* is mission code placed on one node (a controller of
 module holds what both kinds need, so neither imports the other's internals:
 
 * :class:`Component`: name, node, typed ``Config`` decoded from the YAML
-  ``config:`` mapping, element handles taken once in :meth:`Component.bind`;
+  ``config:`` mapping, element handles taken once in :meth:`Component.bind`
+  (:meth:`Component.tunable` for a setting given as a number or as an
+  element, typically a mission parameter);
 * :func:`decode_component_config`: YAML mapping -> ``msgspec.Struct``, with
   the error path continuing the component's YAML path;
 * :func:`load_component_class` and :func:`load_function`: import a
   ``"package.module:Name"`` path, refusing at load (ConfigError naming the
-  YAML path) anything that is not what the mission says it is;
+  YAML path) anything that is not what the mission says it is. They are the
+  platform's only import of mission code: the mission's ``pythonpath``
+  directories are at the front of ``sys.path`` while they import
+  (:func:`mission_code_path`), and only then;
+* :func:`build_component`: run a component's constructor so that anything
+  it raises names its YAML path and class;
 * :class:`Streak`: the failure-streak counter behind "one event per failure
   streak" (controllers, devices, a device node's board).
 
@@ -22,28 +29,35 @@ nothing.
 from __future__ import annotations
 
 import abc
+import contextlib
 import importlib
 import inspect
-from collections.abc import Callable, Mapping
+import sys
+import threading
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from typing import TYPE_CHECKING, Any, ClassVar, TypeVar
 
 import msgspec
 
-from .errors import ConfigError
+from .errors import ConfigError, ControlError
 
 if TYPE_CHECKING:
     from .config import ComponentConfig, Mission
     from .datavector import DataVector, Handle
+    from .events import EventLog
 
 __all__ = [
     "Component",
+    "Fixed",
     "NoConfig",
     "Streak",
+    "build_component",
     "component_indices",
     "decode_component_config",
     "errors_element",
     "load_component_class",
     "load_function",
+    "mission_code_path",
     "owned_regions",
 ]
 
@@ -70,21 +84,63 @@ def decode_component_config(cfg_type: type[S], raw: dict[str, Any], where: str) 
         raise ConfigError(msg, path) from exc
 
 
-def _import_attr(spec: str, where: str, *, what: str, form: str, module_noun: str) -> object:
+def mission_code_path(mission: Mission) -> tuple[str, ...]:
+    """The directories the mission's code is imported from (its resolved
+    ``pythonpath``, see :func:`zplatform.mission.load_mission`); empty for a
+    mission that names none."""
+    return tuple(mission.pythonpath or ())
+
+
+_PATH_LOCK = threading.Lock()
+
+
+@contextlib.contextmanager
+def _on_sys_path(dirs: Sequence[str]) -> Iterator[None]:
+    """``dirs`` at the front of ``sys.path`` for the block, then taken out
+    again (a module the block imported stays imported: its package's own
+    submodules keep resolving through the package)."""
+    if not dirs:
+        yield
+        return
+    with _PATH_LOCK:
+        added = list(dirs)
+        sys.path[:0] = added
+        try:
+            yield
+        finally:
+            for d in added:
+                with contextlib.suppress(ValueError):
+                    sys.path.remove(d)
+
+
+def _import_attr(
+    spec: str,
+    where: str,
+    *,
+    what: str,
+    form: str,
+    module_noun: str,
+    pythonpath: Sequence[str] = (),
+) -> object:
     """Import ``"package.module:name"`` and return the attribute (ConfigError at ``where``).
 
     ``what`` names the kind of thing for messages (``class``, ``physics``),
     ``form`` the expected spelling of the name (``ClassName``, ``function``),
     and ``module_noun`` how the module is called in an import error.
+    ``pythonpath``: directories put at the front of ``sys.path`` while the
+    module is imported (the mission's, :func:`mission_code_path`).
     """
     mod_name, sep, name = spec.partition(":")
     if not sep or not mod_name or not name:
         raise ConfigError(f"{what} {spec!r} must be 'package.module:{form}'", where)
     try:
-        module = importlib.import_module(mod_name)
+        with _on_sys_path(pythonpath):
+            module = importlib.import_module(mod_name)
     except ImportError as exc:
+        searched = f" (the mission's pythonpath: {', '.join(pythonpath)})" if pythonpath else ""
         raise ConfigError(
-            f"cannot import {module_noun} {mod_name!r} for {what} {spec!r}: {exc}", where
+            f"cannot import {module_noun} {mod_name!r} for {what} {spec!r}: {exc}{searched}",
+            where,
         ) from exc
     except Exception as exc:  # a bug in the mission module: say where it came from
         raise ConfigError(
@@ -98,13 +154,18 @@ def _import_attr(spec: str, where: str, *, what: str, form: str, module_noun: st
     return obj
 
 
-def load_component_class(spec: str, base: type[Any], where: str) -> type[Any]:
+def load_component_class(
+    spec: str, base: type[Any], where: str, *, pythonpath: Sequence[str] = ()
+) -> type[Any]:
     """Import ``"package.module:ClassName"`` and check it subclasses ``base``.
 
+    ``pythonpath``: the mission's code directories (:func:`mission_code_path`).
     Raises ConfigError (path ``where``) when the module or class cannot be
     imported, is not a class, is not a ``base`` subclass, or is abstract.
     """
-    obj = _import_attr(spec, where, what="class", form="ClassName", module_noun="module")
+    obj = _import_attr(
+        spec, where, what="class", form="ClassName", module_noun="module", pythonpath=pythonpath
+    )
     if not isinstance(obj, type) or not issubclass(obj, base):
         raise ConfigError(
             f"{spec!r} is not a {base.__module__}.{base.__qualname__} subclass", where
@@ -117,7 +178,12 @@ def load_component_class(spec: str, base: type[Any], where: str) -> type[Any]:
 
 
 def load_function(
-    spec: str, where: str, *, args: tuple[str, ...], what: str = "function"
+    spec: str,
+    where: str,
+    *,
+    args: tuple[str, ...],
+    what: str = "function",
+    pythonpath: Sequence[str] = (),
 ) -> Callable[..., Any]:
     """Import ``"package.module:function"`` and check it can be called with ``args``.
 
@@ -127,9 +193,17 @@ def load_function(
     class or not callable, or its signature cannot take ``len(args)``
     positional arguments (``os:getcwd`` is refused here, at load, not in the
     first loop). A callable whose signature Python cannot inspect (some
-    builtins) is accepted: the check is made where it can be.
+    builtins) is accepted: the check is made where it can be. ``pythonpath``
+    as for :func:`load_component_class`.
     """
-    obj = _import_attr(spec, where, what=what, form="function", module_noun=f"{what} module")
+    obj = _import_attr(
+        spec,
+        where,
+        what=what,
+        form="function",
+        module_noun=f"{what} module",
+        pythonpath=pythonpath,
+    )
     if isinstance(obj, type) or not callable(obj):
         raise ConfigError(
             f"{spec!r} is a {type(obj).__name__}, not a function taking ({', '.join(args)})",
@@ -148,6 +222,33 @@ def load_function(
             where,
         ) from exc
     return obj
+
+
+C = TypeVar("C")
+
+
+def build_component(
+    kind: str, spec: ComponentConfig, where: str, cls: Callable[..., C], *args: Any
+) -> C:
+    """``cls(*args, where=where)``: a component's constructor (which runs its
+    ``bind``), with every exception naming the component's YAML path and class.
+
+    ``kind`` is ``controller`` or ``device``; ``where`` its YAML path
+    (``$.controllers[2]``). A ConfigError keeps its own, deeper path
+    (``$.controllers[2].config.gain``) and gains the component's name and
+    class; anything else (a ``ValueError`` in the team's ``bind``, a
+    DataVectorError) becomes a ControlError at ``where`` with the original
+    type and message, chained.
+    """
+    label = f"{kind} {spec.name!r} ({spec.cls})"
+    try:
+        return cls(*args, where=where)
+    except ConfigError as exc:
+        raise ConfigError(f"{label}: {exc.reason}", exc.path) from exc
+    except Exception as exc:
+        raise ControlError(
+            f"{label} failed to build: {type(exc).__name__}: {exc}", where
+        ) from exc
 
 
 def owned_regions(dv: DataVector, node: str) -> tuple[str, ...]:
@@ -197,6 +298,20 @@ class Streak:
         return False
 
 
+class Fixed:
+    """A setting fixed in the config, read like an element (``get()``), so a
+    component reads a number and a parameter the same way
+    (:meth:`Component.tunable`). Allocates nothing."""
+
+    __slots__ = ("value",)
+
+    def __init__(self, value: float) -> None:
+        self.value = value
+
+    def get(self) -> float:
+        return self.value
+
+
 class Component(abc.ABC):
     """What controllers and devices share: name, node, typed config, handles.
 
@@ -208,6 +323,9 @@ class Component(abc.ABC):
 
     Config: ClassVar[type[msgspec.Struct]] = NoConfig
     config: Any
+    events: EventLog | None = None
+    """The node's event log (set by the set that built the component;
+    None in a bare construction). Use :meth:`report`."""
     bulk: Mapping[str, Any] = {}
     """The node's bulk channel arrays by channel name (numpy arrays of the
     channel's dtype and shape): the ones this node publishes, which a
@@ -233,7 +351,7 @@ class Component(abc.ABC):
         if not isinstance(name, str) or name not in self.dv.layout.elements:
             regions = ", ".join(self.dv.layout.regions)
             raise ConfigError(
-                f"{self.name}: element {name!r} is not in node {self.node}'s Data Vector "
+                f"element {name!r} is not in node {self.node}'s Data Vector "
                 f"(regions {regions})",
                 where,
             )
@@ -241,14 +359,14 @@ class Component(abc.ABC):
         spec = h.spec
         if spec.count and not array:
             raise ConfigError(
-                f"{self.name}: element {name!r} is an array ({spec.type_text}); a scalar is needed",
+                f"element {name!r} is an array ({spec.type_text}); a scalar is needed",
                 where,
             )
         if kinds is not None:
             kind = "enum" if spec.enum is not None else spec.scalar.kind
             if kind not in kinds:
                 raise ConfigError(
-                    f"{self.name}: element {name!r} is {spec.type_text}; expected "
+                    f"element {name!r} is {spec.type_text}; expected "
                     f"{' or '.join(kinds)}",
                     where,
                 )
@@ -287,11 +405,45 @@ class Component(abc.ABC):
         if h.spec.region not in self._owned:
             where = f"{self.where}.config.{field}" if field else f"{self.where}.config"
             raise ConfigError(
-                f"{self.name}: element {name!r} is in region {h.spec.region}, which node "
+                f"element {name!r} is in region {h.spec.region}, which node "
                 f"{self.node} does not write (it writes {', '.join(self._owned) or 'nothing'})",
                 where,
             )
         return h
+
+    def tunable(
+        self,
+        value: float | str,
+        field: str,
+        *,
+        kinds: tuple[str, ...] = ("float", "int"),
+    ) -> Handle | Fixed:
+        """A setting the config gives as a number (fixed) or as the name of an
+        element, typically a mission parameter (``target_m:
+        apogee_target_m``), which a PRM_SET may change between two loops.
+        Read it with ``get()`` every loop, never once in :meth:`bind`.
+
+        Declare the config field ``float | str`` (bounds on the number, e.g.
+        ``Annotated[float, Meta(gt=0)] | str``: a parameter's own bounds keep
+        its values valid). ``field`` names it for errors; ``kinds`` limits the
+        element's kind. Raises ConfigError like :meth:`input`."""
+        if isinstance(value, str):
+            return self.input(value, field, kinds=kinds)
+        return Fixed(value)
+
+    def report(self, t_ns: int, text: str, *, warning: bool = False) -> None:
+        """Tell the operator something in the mission's words: an event
+        ``component_warning`` (WARNING_HI: something failed and the component
+        acted) or ``component_activity`` (ACTIVITY_HI), text ``"<name>: text"``.
+
+        For rare moments (a change of mode), not every loop: it allocates.
+        Never raises; does nothing without an event log.
+        """
+        if self.events is not None:
+            from .events import EV
+
+            ev = EV.COMPONENT_WARNING if warning else EV.COMPONENT_ACTIVITY
+            self.events.emit(ev, t_ns, name=self.name, text=text)
 
     def __repr__(self) -> str:
         return f"<{type(self).__name__} {self.name!r} on {self.node}>"

@@ -23,16 +23,18 @@ it, never writes it.
 from __future__ import annotations
 
 import math
+import os
 import re
 import unicodedata
 import zlib
 from collections.abc import Collection, Sequence
+from pathlib import Path
 from typing import Annotated, Any, Literal
 
 import msgspec
 from msgspec import Meta
 
-from .codes import Command, CommandStatus, Fault
+from .codes import Command, CommandStatus, Fault, ParamLoad, ParamSave, SafedWhy
 from .errors import ConfigError
 from .types import SCALAR_TYPES, ScalarType, parse_type
 
@@ -45,6 +47,9 @@ __all__ = [
     "MAX_REGION_BYTES",
     "MAX_VECTOR_BYTES",
     "MISSION_NAME_MAX",
+    "PRM_LOAD_NAMES",
+    "PRM_SAVE_NAMES",
+    "SAFED_WHY_NAMES",
     "ActionConfig",
     "ClockConfig",
     "CommandsConfig",
@@ -53,13 +58,19 @@ __all__ = [
     "FaultsConfig",
     "Mission",
     "NodeConfig",
+    "ParamConfig",
     "StateConfig",
     "StateMachineConfig",
     "TransitionConfig",
     "TransportConfig",
+    "WorldBoardConfig",
+    "WorldConfig",
+    "check_mission_name",
     "element_spec",
     "parse_mission",
     "platform_elements",
+    "relocate_mission",
+    "resolve_pythonpath",
 ]
 
 Scalar = int | float | bool | str
@@ -71,6 +82,9 @@ CMD_NAMES: tuple[str, ...] = tuple(m.name for m in Command)
 CMD_STATUS_NAMES: tuple[str, ...] = tuple(m.name for m in CommandStatus)
 CONTROLLER_MODES: tuple[str, ...] = ("enabled", "safed", "manual")
 FAULT_NAMES: tuple[str, ...] = tuple(m.name for m in Fault)
+PRM_LOAD_NAMES: tuple[str, ...] = tuple(m.name for m in ParamLoad)
+PRM_SAVE_NAMES: tuple[str, ...] = tuple(m.name for m in ParamSave)
+SAFED_WHY_NAMES: tuple[str, ...] = tuple(m.name for m in SafedWhy)
 
 # Names checked with fullmatch, never match: `$` also matches before a
 # trailing newline, so "cn_loop\n" would pass a match().
@@ -100,189 +114,665 @@ class _Struct(msgspec.Struct, forbid_unknown_fields=True, omit_defaults=True):
 
 class LimitsConfig(_Struct):
     """Yellow and red ranges of a numeric element, for the ground console and
-    the XTCE alarms: ``[lo, hi]`` each, null for an open bound."""
+    the XTCE alarms: a value outside ``yellow`` is a warning, outside ``red``
+    an alarm. They are shown, never enforced on the vehicle."""
 
-    yellow: tuple[float | None, float | None] | None = None
-    red: tuple[float | None, float | None] | None = None
+    yellow: Annotated[
+        tuple[float | None, float | None] | None,
+        Meta(description="`[lo, hi]`: the warning range; `null` for an open bound."),
+    ] = None
+    red: Annotated[
+        tuple[float | None, float | None] | None,
+        Meta(description="`[lo, hi]`: the alarm range; `null` for an open bound."),
+    ] = None
 
 
 class ElementConfig(_Struct):
-    """One Data Vector element: ``{name, type, initial, enum, limits}``.
+    """One Data Vector element of the mission: a named, typed value that
+    every node holding its region sees (`{name, type, initial, enum, doc,
+    limits}`)."""
 
-    ``type`` is a scalar (``f32``), a fixed array (``f32[3]``) or ``enum``
-    (an unsigned integer sized to the names). ``enum`` lists the names of an
-    enum's values 0, 1, 2, ...; ``initial`` may then be a name.
-    """
-
-    name: str
-    type: str = "enum"
-    initial: Value | None = None
-    enum: list[str] | None = None
-    doc: str = ""
-    limits: LimitsConfig | None = None
+    name: Annotated[
+        str,
+        Meta(
+            description="Unique in the whole Data Vector: a lowercase letter, then lowercase "
+            "letters, digits or `_`. Platform element names are taken."
+        ),
+    ]
+    type: Annotated[
+        str,
+        Meta(
+            description="`u8`, `u16`, `u32`, `u64`, `i8`, `i16`, `i32`, `i64`, `f32`, `f64`, "
+            "`bool`; a fixed array of one (`f32[3]`, at most 16 Mi items); or `enum`, an "
+            "unsigned integer with the names in `enum` (u8 up to 256 names, else u16). "
+            "Required unless `enum` names are given."
+        ),
+    ] = "enum"
+    initial: Annotated[
+        Value | None,
+        Meta(
+            description="Value before the first loop (default 0, `false`, or an enum's first "
+            "name). An enum's may be a name; an array takes a list of its length or one "
+            "value for every item; floats also take `nan`, `inf`, `-inf`."
+        ),
+    ] = None
+    enum: Annotated[
+        list[str] | None,
+        Meta(description="The names of an enum's values 0, 1, 2, ... (identifiers, no repeats)."),
+    ] = None
+    doc: Annotated[
+        str,
+        Meta(description="What the element means; shown by the ground tools and in XTCE."),
+    ] = ""
+    limits: Annotated[
+        LimitsConfig | None,
+        Meta(description="Warning and alarm ranges for the ground (numeric elements)."),
+    ] = None
 
 
 class NodeConfig(_Struct):
     """A zenoh peer: where it listens and whom it connects to.
 
     The endpoints carry the host: a node on another host listens on that
-    host's address (``tcp/10.0.0.2:7461``) and the others connect to it; the
-    same file then runs on every host (``zplatform node MISSION NAME``)."""
+    host's address (`tcp/10.0.0.2:7461`) and the others connect to it; the
+    same file then runs on every host (`zplatform node MISSION NAME`)."""
 
-    listen: list[str] = msgspec.field(default_factory=list)
-    connect: list[str] = msgspec.field(default_factory=list)
+    listen: Annotated[
+        list[str],
+        Meta(
+            description="Endpoints this node listens on, `<proto>/<host>:<port>` (`tcp`, "
+            "`udp`, `tls` with a deployment file, `ws`; `unixsock-stream/<path>`). An "
+            "endpoint is listened on by one node only."
+        ),
+    ] = msgspec.field(default_factory=list)
+    connect: Annotated[
+        list[str],
+        Meta(description="Endpoints this node connects to: usually the control node's `listen`."),
+    ] = msgspec.field(default_factory=list)
     # Only >= 0, not < os.cpu_count(): the mission may target another host.
-    cpu: Annotated[int, Meta(ge=0)] | None = None
-    priority: Annotated[int, Meta(ge=1, le=99)] | None = None
-    board: dict[str, Any] = msgspec.field(default_factory=dict)
+    cpu: Annotated[
+        Annotated[int, Meta(ge=0)] | None,
+        Meta(
+            description="CPU to pin the node's loop thread to. Best effort: where it is not "
+            "permitted, the node logs why and runs unpinned."
+        ),
+    ] = None
+    priority: Annotated[
+        Annotated[int, Meta(ge=1, le=99)] | None,
+        Meta(
+            description="SCHED_FIFO priority of the node's loop thread. Best effort: without "
+            "the right to it, the node logs why and runs with normal scheduling."
+        ),
+    ] = None
+    board: Annotated[
+        dict[str, Any],
+        Meta(
+            description="Device nodes: the I/O board the devices use, `{driver: NAME, ...}` "
+            "with the driver's own keys (see Boards). Default: a simulated board."
+        ),
+    ] = msgspec.field(default_factory=dict)
 
 
 class TransportConfig(_Struct):
     """Zenoh session settings shared by every node of the mission."""
 
-    multicast_scouting: bool = False
-    gossip_scouting: bool = True
-    lease_ms: Annotated[int, Meta(ge=100, le=60_000)] = 1000
-    # zenoh's lowlatency transport (QoS off, no tx batching task) cut the
-    # 3-DN sync p50 by about 10 % here (bench/REPORT.md#sync), but it is off
-    # by default, for two reasons measured here: it writes to the socket
-    # from the sending thread, so a stalled link (a cut cable) froze the
-    # CN's loop for 271 ms in tests/faults (with it off, DROP congestion
-    # control drops the query and the loop runs on); and it cannot
-    # fragment: a bigger message is dropped without a word. "auto" turns it
-    # on only when every message the mission sends fits
-    # (zplatform.messages.lowlatency_for); true on a mission where one may
-    # not fit is a config error.
-    lowlatency: bool | Literal["auto"] = False
-    # How the CN queries its DNs each loop: "per_node" is one get per DN;
-    # "wildcard" is one get on {vehicle}/*/to_cn carrying a bundle of every
-    # DN's frame (codecs/FORMAT.md §6.2); "auto" picks wildcard for 2 or more
-    # DNs while the bundle stays small (zplatform.messages.wildcard_sync_for).
-    # per_node is the default because it measured faster here: the wildcard
-    # cut raw zenoh's 3-responder p50 by 15 % but made zplatform's 12 %
-    # slower (bench/REPORT.md#sync), and it sends every DN every DN's frame.
-    sync_query: Literal["auto", "wildcard", "per_node"] = "per_node"
-    # zenoh batches small messages for up to 1 ms by default: good for
-    # throughput, bad for a 2 ms sync deadline (bench/REPORT.md). Off unless
-    # a mission asks for it.
-    batching: bool = False
-    shared_memory: bool = True
+    multicast_scouting: Annotated[
+        bool,
+        Meta(description="Find peers by UDP multicast; off: peers meet only through endpoints."),
+    ] = False
+    gossip_scouting: Annotated[
+        bool,
+        Meta(
+            description="Peers tell each other about the peers they know over their links, "
+            "so nodes that connect only to the CN (and tools) still reach each other."
+        ),
+    ] = True
+    lease_ms: Annotated[
+        int,
+        Meta(
+            ge=100,
+            le=60_000,
+            description="Zenoh link lease (ms): how soon a hung or cut-off peer is declared "
+            "gone (a killed one is seen at once).",
+        ),
+    ] = 1000
+    # "auto" is resolved by zplatform.messages.lowlatency_for.
+    lowlatency: Annotated[
+        bool | Literal["auto"],
+        Meta(
+            description="Zenoh's lowlatency transport (QoS off, no tx batching task). About "
+            "10 % faster syncs here (bench/REPORT.md, sync), but off by default: it writes to "
+            "the socket from the sending thread, so a cut cable froze the CN's loop for "
+            "271 ms in the fault tests (off, the query is dropped and the loop runs on), and "
+            "it cannot fragment (a message over about 48 KiB is dropped without a word). "
+            "`auto` turns it on only when every message the mission sends fits in 16 KiB and "
+            "there are no bulk channels; `true` on a mission where one may not fit is a "
+            "config error."
+        ),
+    ] = False
+    # "auto" is resolved by zplatform.messages.wildcard_sync_for.
+    sync_query: Annotated[
+        Literal["auto", "wildcard", "per_node"],
+        Meta(
+            description="How the CN queries its DNs each loop: `per_node`, one query per DN; "
+            "`wildcard`, one query on `{vehicle}/*/to_cn` carrying a bundle of every DN's "
+            "frame (codecs/FORMAT.md §6.2); `auto`, wildcard for two or more DNs while the "
+            "bundle is at most 4 KiB. `per_node` is the default because it measured faster "
+            "in zplatform (bench/REPORT.md, sync and levers), and the wildcard sends every DN "
+            "every DN's frame."
+        ),
+    ] = "per_node"
+    batching: Annotated[
+        bool,
+        Meta(
+            description="Zenoh's tx batching (holds small messages up to 1 ms): good for "
+            "throughput, bad for a 2 ms sync deadline."
+        ),
+    ] = False
+    shared_memory: Annotated[
+        bool,
+        Meta(
+            description="Zenoh shared memory between the processes of one host (bulk "
+            "channels travel through it; large messages too)."
+        ),
+    ] = True
 
 
 class ClockConfig(_Struct):
-    """Clock synchronisation (thesis 4.9)."""
+    """Clock synchronisation: each DN measures its clock's offset to the CN's
+    over zenoh (four time points per exchange, the fastest exchanges kept),
+    applies it at start-up and re-measures it in flight."""
 
-    offset_bound_ms: Annotated[float, Meta(gt=0)] = 100.0
-    exchanges: Annotated[int, Meta(ge=8, le=10_000)] = 200
-    keep_fraction: Annotated[float, Meta(gt=0, le=1)] = 0.1
-    resync_s: Annotated[float, Meta(ge=0)] = 10.0
-    # Which offset estimator a DN uses (zplatform.clocksync.estimator_for).
-    # zenoh_ts by default: its four time points are stamped inside zenoh, as
-    # the query and reply cross it, rather than read in Python after a
-    # callback's thread hand-off, and it measured more accurate (python -m
-    # bench.clock, bench/REPORT.md#clock: median |error| 6.94 us vs 7.36 us,
-    # worst 17.3 us vs 26.6 us, over 0/50 ms/500 ms skew and 100 ppm drift).
-    # When the CN answers without usable zenoh timestamps, zenoh_ts falls
-    # back to node_clock with a warning. node_clock: the node clocks alone.
-    estimator: Literal["zenoh_ts", "node_clock"] = "zenoh_ts"
+    offset_bound_ms: Annotated[
+        float,
+        Meta(
+            gt=0,
+            description="Largest clock error (ms) left after correction: beyond it at "
+            "start-up the CN refuses to start; in flight a DN whose drift exceeds it raises "
+            "the CLOCK_DRIFT fault.",
+        ),
+    ] = 100.0
+    exchanges: Annotated[
+        int, Meta(ge=8, le=10_000, description="Exchanges per start-up measurement.")
+    ] = 200
+    keep_fraction: Annotated[
+        float,
+        Meta(
+            gt=0,
+            le=1,
+            description="Fraction of the exchanges, the fastest (least delayed), that the "
+            "estimate uses.",
+        ),
+    ] = 0.1
+    resync_s: Annotated[
+        float,
+        Meta(
+            ge=0,
+            description="Re-measure the offset in flight every this many seconds (0: never); "
+            "the drift goes to `dnX_clock_drift_ns`.",
+        ),
+    ] = 10.0
+    # zplatform.clocksync.estimator_for builds the one named here.
+    estimator: Annotated[
+        Literal["zenoh_ts", "node_clock"],
+        Meta(
+            description="Where the four time points come from. `zenoh_ts`: stamped inside "
+            "zenoh as the query and the reply cross it, mapped into node time; it measured "
+            "more accurate (bench/REPORT.md, clock: median |error| 6.94 us vs 7.36 us, worst "
+            "17.3 us vs 26.6 us) and falls back to `node_clock`, with a warning, when the CN "
+            "answers without usable zenoh timestamps. `node_clock`: the node clocks alone."
+        ),
+    ] = "zenoh_ts"
 
 
 class ActionConfig(_Struct):
-    """A timed write: ``at_s`` seconds into the state, ``element = value``."""
+    """A timed write: `at_s` seconds into the state, `element = value`. An
+    action runs at most once per visit of its state; actions at 0 s run in
+    the loop the state is entered, however soon it is left."""
 
-    element: str
-    value: Scalar
-    at_s: Annotated[float, Meta(ge=0)] = 0.0
+    element: Annotated[
+        str,
+        Meta(
+            description="An element CN logic may write: the mission's own elements of `cn` "
+            "and `cn_to_dnX`, a controller's `<name>_mode`, or `cn_fault` (written `NONE` to "
+            "clear a fault)."
+        ),
+    ]
+    value: Annotated[
+        Scalar,
+        Meta(
+            description="The value, fitting the element's type: an enum name (`enabled`, "
+            "`safed`, `manual` for a mode), `true`/`false`, a number; an array element gets "
+            "every item set."
+        ),
+    ]
+    at_s: Annotated[
+        float, Meta(ge=0, description="Seconds after the state was entered (a HOLD pauses it).")
+    ] = 0.0
 
 
 class TransitionConfig(_Struct):
-    """Go to state ``to`` when ``element op value`` holds, or after ``after_s``."""
+    """Go to state `to` when `element op value` holds, or after `after_s`
+    seconds in the state: give the three condition keys or `after_s`, not
+    both. A state's transitions are tried in order (commands in
+    `state_machine.priority` first), the first that holds fires, at most one
+    per loop."""
 
-    to: str
-    element: str | None = None
-    op: Literal["==", "!=", "<", "<=", ">", ">="] | None = None
-    value: Scalar | None = None
-    after_s: Annotated[float, Meta(ge=0)] | None = None
+    to: Annotated[str, Meta(description="The state to go to.")]
+    element: Annotated[
+        str | None,
+        Meta(
+            description="The condition's element: any scalar element of the CN's Data Vector "
+            "(`cn_cmd` for commands, `cn_fault` for faults, a sensor reading, ...)."
+        ),
+    ] = None
+    op: Annotated[
+        Literal["==", "!=", "<", "<=", ">", ">="] | None,
+        Meta(description="The comparison; bools and enums take only `==` and `!=`."),
+    ] = None
+    value: Annotated[
+        Scalar | None,
+        Meta(
+            description="What the element is compared with: a command (`LAUNCH`), a fault "
+            "(`NONE`), an enum name, `true`/`false`, a number (never `nan`)."
+        ),
+    ] = None
+    after_s: Annotated[
+        Annotated[float, Meta(ge=0)] | None,
+        Meta(
+            description="Fire after this many seconds in the state (a HOLD pauses the "
+            "clock). `after_s: 0` transitions may not form a cycle."
+        ),
+    ] = None
 
 
 class StateConfig(_Struct):
-    actions: list[ActionConfig] = msgspec.field(default_factory=list)
-    transitions: list[TransitionConfig] = msgspec.field(default_factory=list)
-    doc: str = ""
+    """One state: what it does on a timer and how it is left."""
+
+    actions: Annotated[
+        list[ActionConfig],
+        Meta(description="Timed writes, run in `at_s` order (config order for equal times)."),
+    ] = msgspec.field(default_factory=list)
+    transitions: Annotated[
+        list[TransitionConfig],
+        Meta(description="Ways out of the state, tried in order each loop."),
+    ] = msgspec.field(default_factory=list)
+    doc: Annotated[str, Meta(description="What the state is for.")] = ""
 
 
 class StateMachineConfig(_Struct):
-    """States in order; ``initial`` becomes ``cn_state``'s initial value.
+    """The vehicle's states (thesis: they live in the configuration, not in
+    code). The current state is the platform element `cn_state`, the time
+    in it `cn_time_in_state_ns`. An accepted command stays in `cn_cmd` until
+    a transition takes it, or for one loop in a state that does not handle
+    it."""
 
-    ``priority``: commands whose transitions are tried before every other
-    transition of a state (ABORT-class: an ABORT wins over a timer or a data
-    transition due in the same loop), in this order."""
-
-    initial: str
-    states: dict[str, StateConfig]
-    priority: list[str] = msgspec.field(default_factory=lambda: ["ABORT"])
+    initial: Annotated[str, Meta(description="The state of the first loop (`cn_state`'s initial).")]
+    states: Annotated[
+        dict[str, StateConfig],
+        Meta(
+            description="Every state by name (identifiers), in the order `cn_state` numbers "
+            "them."
+        ),
+    ]
+    priority: Annotated[
+        list[str],
+        Meta(
+            description="Commands whose transitions are tried before every other transition "
+            "of a state, in this order (ABORT-class: an ABORT wins over a timer or a data "
+            "transition due in the same loop)."
+        ),
+    ] = msgspec.field(default_factory=lambda: ["ABORT"])
 
 
 class ComponentConfig(_Struct):
-    """A controller or device instance: class, node, rate group, own config."""
+    """A controller or a device: mission code placed on one node, with its
+    own typed configuration."""
 
-    name: str
-    cls: str = msgspec.field(name="class")
-    node: str
-    rate_divisor: Annotated[int, Meta(ge=1)] = 1
-    rate_phase: Annotated[int, Meta(ge=0)] = 0
-    initial_mode: Literal["enabled", "safed", "manual"] = "safed"
-    config: dict[str, Any] = msgspec.field(default_factory=dict)
+    name: Annotated[
+        str,
+        Meta(
+            description="Unique among the section's names: `[a-z][a-z0-9_]*`. A controller's "
+            "mode is the platform element `<name>_mode`."
+        ),
+    ]
+    cls: Annotated[
+        str,
+        Meta(
+            description="`package.module:ClassName`: a `zplatform.Controller` subclass for a "
+            "controller, a `zplatform.Sensor` or `zplatform.Actuator` subclass for a device "
+            "(built-ins: `zplatform.devices:DigitalOutput`, ...)."
+        ),
+    ] = msgspec.field(name="class")
+    node: Annotated[
+        str,
+        Meta(
+            description="Where it runs: `cn` or a device node for a controller, a device "
+            "node for a device."
+        ),
+    ]
+    rate_divisor: Annotated[
+        int, Meta(ge=1, description="Its rate group: run every Nth loop of the node.")
+    ] = 1
+    rate_phase: Annotated[
+        int,
+        Meta(
+            ge=0,
+            description="Run in the loops where `loop % rate_divisor == rate_phase` (below "
+            "`rate_divisor`).",
+        ),
+    ] = 0
+    initial_mode: Annotated[
+        Literal["enabled", "safed", "manual"],
+        Meta(
+            description="Controllers: the mode before the state machine's first action "
+            "(`<name>_mode`'s initial value)."
+        ),
+    ] = "safed"
+    config: Annotated[
+        dict[str, Any],
+        Meta(
+            description="The class's own typed configuration, decoded into its `Config` "
+            "struct: unknown keys and wrong types fail at load with their YAML path."
+        ),
+    ] = msgspec.field(default_factory=dict)
 
 
 class CommandsConfig(_Struct):
-    """Command rules: per-state whitelist and hazardous commands (seed 003)."""
+    """Which operator commands each state accepts, which need ARM first, and
+    what a WRITE may write. Commands: `NOOP`, `LAUNCH`, `ABORT`, `WRITE`,
+    `HOLD`, `RESUME`, `ARM`, `PRM_SET`, `PRM_SAVE` (parameters: `params`). A
+    request is checked in this order, the first failure giving its verdict:
+    a known command, a number above the last (`REJECTED_REPLAY`), the
+    state's whitelist (`REJECTED_NOT_ALLOWED`), an ARM just before a
+    hazardous command, a protected WRITE or a hazardous parameter's PRM_SET
+    (`REJECTED_NOT_ARMED`), a WRITE's element and value or a PRM_SET's
+    parameter and value (`REJECTED_BAD_ARGUMENT`), then for PRM_SET the
+    parameter's states (`REJECTED_PARAM_STATE`) and bounds
+    (`REJECTED_OUT_OF_BOUNDS`), for PRM_SAVE a save still being written
+    (`REJECTED_BUSY`)."""
 
-    whitelist: dict[str, list[str]] = msgspec.field(default_factory=dict)
-    hazardous: list[str] = msgspec.field(default_factory=list)
-    writable: list[str] | None = None
-    # Elements a WRITE may set only as a hazardous command (ARM n, WRITE n+1).
-    # None: every controller mode when the mission has hazardous commands.
-    protected: list[str] | None = None
+    whitelist: Annotated[
+        dict[str, list[str]],
+        Meta(
+            description="Per state, the commands it accepts (ARM and NOOP included); a "
+            "state not listed accepts every command."
+        ),
+    ] = msgspec.field(default_factory=dict)
+    hazardous: Annotated[
+        list[str],
+        Meta(
+            description="Commands accepted only right after an accepted ARM numbered one "
+            "less, within 10 s (`zplatform cmd MISSION launch --arm`); one ARM confirms "
+            "one command."
+        ),
+    ] = msgspec.field(default_factory=list)
+    writable: Annotated[
+        list[str] | None,
+        Meta(
+            description="Elements a WRITE may set. Default: every scalar element CN logic may "
+            "write (the mission's own in `cn` and `cn_to_dnX`, controller modes, `cn_fault`). "
+            "Never a parameter (PRM_SET sets those)."
+        ),
+    ] = None
+    protected: Annotated[
+        list[str] | None,
+        Meta(
+            description="Elements a WRITE may set only as a hazardous command (ARM n, then "
+            "WRITE n+1). Default: every controller mode when the mission has hazardous "
+            "commands, else none."
+        ),
+    ] = None
+
+
+class ParamConfig(_Struct):
+    """One mission parameter: a value the ground crew tunes without a rebuild
+    (a controller gain, a target, a deployment altitude). Its value is a Data
+    Vector element of region `cn` named after the parameter, so it travels in
+    telemetry and is logged, recorded and replayed like any element;
+    controllers read it each loop. It starts at `default`, or at the value the
+    control node saved (PRM_SAVE) in its parameter file, and changes only by a
+    PRM_SET command accepted in one of `states`, within `[min, max]`. A plain
+    WRITE cannot change it, nor can a state-machine action."""
+
+    name: Annotated[
+        str,
+        Meta(
+            description="The parameter's name and its element's: `[a-z][a-z0-9_]*`, unique "
+            "in the whole Data Vector (an element of that name is refused)."
+        ),
+    ]
+    type: Annotated[
+        str,
+        Meta(
+            description="A scalar type: `u8`, `u16`, `u32`, `u64`, `i8`, `i16`, `i32`, `i64`, "
+            "`f32`, `f64`, `bool` (no arrays, no enums)."
+        ),
+    ]
+    default: Annotated[
+        int | float | bool,
+        Meta(
+            description="The value without a saved one (and in place of a saved one that is "
+            "out of bounds): fits the type, within `[min, max]`, a finite number."
+        ),
+    ]
+    min: Annotated[
+        int | float | None,
+        Meta(
+            description="The lowest value PRM_SET may set; required for numbers, finite, "
+            "fitting the type (not for `bool`)."
+        ),
+    ] = None
+    max: Annotated[
+        int | float | None,
+        Meta(description="The highest value PRM_SET may set; as `min`, and `min <= max`."),
+    ] = None
+    units: Annotated[str, Meta(description="Units shown by the ground tools (`m`, `1/s`).")] = ""
+    states: Annotated[
+        list[str] | None,
+        Meta(
+            description="The states in which PRM_SET may change it (the whitelist must "
+            "also allow PRM_SET there). Default: every state the whitelist allows."
+        ),
+    ] = None
+    hazardous: Annotated[
+        bool,
+        Meta(
+            description="PRM_SET of this parameter needs an accepted ARM numbered one less "
+            "(ARM n, then PRM_SET n+1), like a hazardous command."
+        ),
+    ] = False
+    doc: Annotated[
+        str, Meta(description="What the parameter means; shown by the ground tools.")
+    ] = ""
 
 
 class DownlinkConfig(_Struct):
     """The radio downlink: telemetry packed into CCSDS space packets by the CN
-    (:mod:`zplatform.ccsds`), published on ``{vehicle}/cn/downlink``.
+    (APID per region, sequence counts, CRC-16), published on
+    `{vehicle}/cn/downlink`; `zplatform ccsds` records and decodes them."""
 
-    ``divisor``: every Nth telemetry snapshot; ``budget_bps``: bytes per
-    second the radio carries (snapshots over it are dropped whole, counted);
-    ``max_data``: packet data field size (larger regions are segmented)."""
-
-    ccsds: bool = False
-    divisor: Annotated[int, Meta(ge=1)] = 10
-    budget_bps: Annotated[int, Meta(ge=1)] | None = None
-    max_data: Annotated[int, Meta(ge=64, le=65_536)] = 4096
+    ccsds: Annotated[bool, Meta(description="Send the downlink.")] = False
+    divisor: Annotated[int, Meta(ge=1, description="Downlink every Nth telemetry snapshot.")] = 10
+    budget_bps: Annotated[
+        Annotated[int, Meta(ge=1)] | None,
+        Meta(
+            description="Bytes per second the radio carries: snapshots over it are dropped "
+            "whole, and counted. Default: no budget."
+        ),
+    ] = None
+    max_data: Annotated[
+        int,
+        Meta(
+            ge=64,
+            le=65_536,
+            description="Packet data field size (bytes); larger regions are segmented.",
+        ),
+    ] = 4096
 
 
 class SecurityConfig(_Struct):
-    """Authentication of every frame a node takes from the network.
+    """Authentication of every frame a node takes from the network."""
 
-    ``auth``: every region frame, telemetry snapshot and command request
-    carries an HMAC-SHA256 tag keyed by the mission key, which never lives
-    in the YAML (:mod:`zplatform.auth`: a key file or the environment).
-    Turning it off is for benchmarks and closed test benches only."""
-
-    auth: bool = True
+    auth: Annotated[
+        bool,
+        Meta(
+            description="Every region frame, telemetry snapshot, command request, clock-sync "
+            "exchange and event record carries a 16-byte tag keyed per link (CN<->dnX, the "
+            "ground's uplink, the telemetry downlink, each node's events); each host holds "
+            "only its own links' keys, which never live in the YAML (key files from "
+            "`zplatform keygen`, or the environment). Off only for benchmarks and closed "
+            "test benches."
+        ),
+    ] = True
+    mac: Annotated[
+        Literal["blake3", "hmac-sha256"],
+        Meta(
+            description="The tag's MAC: `blake3` (keyed BLAKE3, the default: about 3.5x "
+            "faster than HMAC-SHA256 on large frames, bench/REPORT.md) or `hmac-sha256`. "
+            "The name is part of every channel key (codecs/FORMAT.md §6.1), so every node "
+            "of a mission must use the same one: a peer with another refuses each frame "
+            "as a bad tag, saying so."
+        ),
+    ] = "blake3"
 
 
 class FaultsConfig(_Struct):
-    """Which errors after start are critical (thesis 4.11.1)."""
+    """Which errors after start are critical: a symptom that persists for N
+    loops latches a fault in `cn_fault` (the first one only, until written
+    back to `NONE`), for the state machine to answer (`cn_fault != NONE`).
+    N = 0 turns a check off. Other errors are counted and reported as
+    events, and the loop goes on."""
 
-    dn_lost_loops: Annotated[int, Meta(ge=0)] = 50
-    controller_fail_loops: Annotated[int, Meta(ge=0)] = 3
-    sync_overrun_loops: Annotated[int, Meta(ge=0)] = 10
-    loop_overrun_loops: Annotated[int, Meta(ge=0)] = 0
-    # A DN with no valid trigger for this many periods writes its actuators'
-    # safe values and stays safed until the CN is back: this many valid
-    # triggers in a row.
-    dn_watchdog_loops: Annotated[int, Meta(ge=1, le=1_000_000)] = 10
-    dn_reenable_loops: Annotated[int, Meta(ge=1, le=1_000_000)] = 10
+    dn_lost_loops: Annotated[
+        int,
+        Meta(ge=0, description="DN_LOST after a device node missed this many syncs in a row."),
+    ] = 50
+    controller_fail_loops: Annotated[
+        int,
+        Meta(
+            ge=0,
+            description="CONTROLLER_FAILED after a CN controller raised, or a device node's "
+            "error count grew, in this many loops in a row.",
+        ),
+    ] = 3
+    sync_overrun_loops: Annotated[
+        int,
+        Meta(
+            ge=0,
+            description="SYNC_OVERRUNS after this many loops in a row in which the sync "
+            "overran its deadline.",
+        ),
+    ] = 10
+    loop_overrun_loops: Annotated[
+        int,
+        Meta(
+            ge=0,
+            description="LOOP_OVERRUNS after this many loops in a row that overran the period.",
+        ),
+    ] = 0
+    dn_watchdog_loops: Annotated[
+        int,
+        Meta(
+            ge=1,
+            le=1_000_000,
+            description="A device node without a valid trigger for this many periods writes "
+            "every actuator's safe value and the board's safe state (`dnX_safed`).",
+        ),
+    ] = 10
+    dn_reenable_loops: Annotated[
+        int,
+        Meta(
+            ge=1,
+            le=1_000_000,
+            description="A safed device node runs its devices again after this many valid "
+            "triggers in a row.",
+        ),
+    ] = 10
+
+
+class WorldBoardConfig(_Struct):
+    """One device node's board as the vehicle world sees it: its pin counts.
+
+    At most 64 digital and 16 analog pins, the serial board protocol's
+    limits, so any world board can also be served over the serial protocol
+    for hardware in the loop (``world.serve_serial``)."""
+
+    digital_pins: Annotated[
+        int, Meta(ge=0, le=64, description="Digital pins of this node's board, from 0.")
+    ] = 8
+    analog_pins: Annotated[
+        int, Meta(ge=0, le=16, description="Analog pins (volts) of this node's board, from 0.")
+    ] = 8
+
+
+class WorldConfig(_Struct):
+    """The vehicle world (:mod:`zplatform.world`): one physical state that the
+    boards of several device nodes read and drive.
+
+    ``physics`` is a ``"module:function"`` called as ``function(world,
+    t_ns)``; ``params`` its data (decoded into ``function.Params`` when it
+    has one). ``boards``: the device nodes whose pins the world holds (a
+    node uses one with ``board: {driver: world}``). Live, the world is its
+    own process (``zplatform world MISSION``, started by ``up``) that
+    advances on its own clock at ``rate_hz`` and sends every board its
+    inputs each time, listening on ``listen`` (UDP, loopback only:
+    simulation plumbing, not authenticated); a board whose newest inputs
+    are older than ``stale_ms`` fails its step (the world is gone).
+    ``serve_serial`` maps a node to a pty symlink path at which the world
+    process plays that node's board firmware over the serial board protocol
+    (hardware in the loop: the node's ``board`` is then ``driver: serial``
+    with that ``port``)."""
+
+    physics: Annotated[
+        str,
+        Meta(
+            description="`package.module:function` called as `function(world, t_ns)`: reads "
+            "every board's outputs (`world.boards[node].output_digital(pin)`) and sets what "
+            "their inputs read (`inject_analog`, `inject_digital`)."
+        ),
+    ]
+    boards: Annotated[
+        dict[str, WorldBoardConfig],
+        Meta(
+            description="The device nodes whose pins the world holds, by node name; such a "
+            "node's board is `{driver: world}` (or a serial board the world serves)."
+        ),
+    ]
+    params: Annotated[
+        dict[str, Any],
+        Meta(
+            description="The physics' data, read as `world.params`; decoded into the "
+            "function's `Params` struct when it has one (a typo fails at load)."
+        ),
+    ] = msgspec.field(default_factory=dict)
+    listen: Annotated[
+        str,
+        Meta(
+            description="Loopback `host:port` (UDP) of the world process under `up`: "
+            "simulation plumbing, not authenticated, so never beyond loopback."
+        ),
+    ] = "127.0.0.1:7479"
+    rate_hz: Annotated[
+        float,
+        Meta(gt=0, le=10_000, description="How often the live world process advances (Hz)."),
+    ] = 400.0
+    stale_ms: Annotated[
+        float,
+        Meta(
+            gt=0,
+            le=10_000,
+            description="A board whose newest inputs are older than this fails its step "
+            "(the world process is gone).",
+        ),
+    ] = 100.0
+    serve_serial: Annotated[
+        dict[str, str],
+        Meta(
+            description="Node -> pty symlink path at which the world process plays that "
+            "node's board firmware over the serial board protocol (hardware in the loop)."
+        ),
+    ] = msgspec.field(default_factory=dict)
 
 
 # -- bulk channels (zplatform.bulk moves them) --------------------------------
@@ -294,27 +784,52 @@ _BULK_TYPE_RE = re.compile(r"^\s*([a-z0-9]+)\s*\[\s*([0-9]+(?:\s*,\s*[0-9]+)*)\s
 
 
 class BulkChannelConfig(msgspec.Struct, forbid_unknown_fields=True, omit_defaults=True):
-    """One bulk channel of the mission's ``bulk:`` list.
-
-    ``type`` is a scalar type with a shape, as in the issue's notation:
-    ``u8[4194304]``, ``f32[1024,1024]``. ``node`` owns (publishes) it every
-    ``rate_divisor``-th loop (phase ``rate_phase``); ``readers`` subscribe.
-    ``alloc_timeout_ms`` bounds how long a publish waits for a free
-    shared-memory chunk before it counts a drop; ``slots`` overrides the
-    number of chunks in the owner's pool for this channel (default
-    ``1 + 2 * len(readers)``, at least 3: one being filled, and per reader
-    one held and one in flight).
+    """One bulk channel: a large array (a camera frame, a spectrum) that its
+    owner publishes outside the 2 ms sync, through zenoh shared memory
+    between the processes of one host (over the network across hosts). The
+    owner's components fill `self.bulk[name]` and the runtime publishes it
+    after the loop's logic; readers' components find the newest sample
+    there. Per channel, counters go to telemetry
+    (`bulk_<name>_published`, `_dropped` on the owner; `_shm`, `_copied`,
+    `_missed`, `_bad` on each reader).
     """
 
-    name: str
-    node: str
-    type: str
-    readers: list[str] = msgspec.field(default_factory=list)
-    rate_divisor: Annotated[int, Meta(ge=1)] = 1
-    rate_phase: Annotated[int, Meta(ge=0)] = 0
-    alloc_timeout_ms: Annotated[float, Meta(ge=0, le=1000)] = 1.0
-    slots: Annotated[int, Meta(ge=1, le=64)] | None = None
-    doc: str = ""
+    name: Annotated[str, Meta(description="Unique channel name: `[a-z][a-z0-9_]*`.")]
+    node: Annotated[str, Meta(description="The node that owns (publishes) it.")]
+    type: Annotated[
+        str,
+        Meta(
+            description="A scalar type with a shape: `u8[4194304]`, `f32[1024,1024]` (at "
+            "most 1 GiB)."
+        ),
+    ]
+    readers: Annotated[
+        list[str],
+        Meta(description="The nodes that subscribe to it (not the owner)."),
+    ] = msgspec.field(default_factory=list)
+    rate_divisor: Annotated[int, Meta(ge=1, description="Publish every Nth loop of the owner.")] = 1
+    rate_phase: Annotated[
+        int,
+        Meta(ge=0, description="Publish in the loops where `loop % rate_divisor == rate_phase`."),
+    ] = 0
+    alloc_timeout_ms: Annotated[
+        float,
+        Meta(
+            ge=0,
+            le=1000,
+            description="How long a publish waits for a free shared-memory chunk before it "
+            "counts a drop (ms).",
+        ),
+    ] = 1.0
+    slots: Annotated[
+        Annotated[int, Meta(ge=1, le=64)] | None,
+        Meta(
+            description="Chunks in the owner's pool for this channel. Default `1 + 2 * "
+            "len(readers)`, at least 3: one being filled and, per reader, one held and one "
+            "in flight."
+        ),
+    ] = None
+    doc: Annotated[str, Meta(description="What the channel carries.")] = ""
 
     # -- derived (the config is checked before these are used) -------------
     @property
@@ -466,26 +981,111 @@ def counter_region(node: str) -> str | None:
 
 
 class Mission(_Struct):
-    """A whole mission file. See ``configs/*.yaml`` for examples."""
+    """A whole mission file: the nodes, the Data Vector, the state machine,
+    controllers, devices and command rules. See `configs/*.yaml` for
+    examples; every key below is checked at load, and an error names its
+    YAML path."""
 
-    mission: str
-    nodes: dict[str, NodeConfig]
-    regions: dict[str, list[ElementConfig]]
-    vehicle: str = "rocket"
-    loop_hz: Annotated[float, Meta(gt=0, le=10_000)] = 100.0
-    sync_timeout_ms: Annotated[float, Meta(gt=0)] = 2.0
-    telemetry_divisor: Annotated[int, Meta(ge=1)] = 1
+    mission: Annotated[
+        str,
+        Meta(
+            description="The mission's name: its key file (`~/.config/zplatform/keys/"
+            "<mission>.key`), its name while `up` runs (`zplatform ps`). At most 128 "
+            "characters; no control characters, no `* $ ? # /`."
+        ),
+    ]
+    nodes: Annotated[
+        dict[str, NodeConfig],
+        Meta(
+            description="The zenoh peers by name: `cn`, the control node (required); device "
+            "nodes `dn0`, `dn1`, ... numbered without gaps; `gn`, the ground node (optional)."
+        ),
+    ]
+    regions: Annotated[
+        dict[str, list[ElementConfig]],
+        Meta(
+            description="The mission's own Data Vector elements, per region. The nodes decide "
+            "the regions: `cn` (the CN's own), `cn_to_dnX` (written by the CN, sent to dnX "
+            "with each loop's trigger), `dnX_to_cn` (written by dnX, sent back in its reply), "
+            "`gn_to_cn` (the ground's command requests). Every region needs at least one "
+            "element. Platform elements are added; do not declare them."
+        ),
+    ]
+    vehicle: Annotated[
+        str,
+        Meta(
+            description="The first level of every zenoh key of the mission "
+            "(`{vehicle}/cn/telemetry`): `[a-z][a-z0-9_]*`."
+        ),
+    ] = "rocket"
+    loop_hz: Annotated[
+        float,
+        Meta(gt=0, le=10_000, description="The base loop rate of every node (Hz)."),
+    ] = 100.0
+    sync_timeout_ms: Annotated[
+        float,
+        Meta(
+            gt=0,
+            description="How long the CN waits each loop for the DNs' replies (ms), shorter "
+            "than the loop period; a reply later than that is a miss (`cn_missed_dnX`).",
+        ),
+    ] = 2.0
+    telemetry_divisor: Annotated[
+        int, Meta(ge=1, description="The CN publishes telemetry every Nth loop.")
+    ] = 1
     transport: TransportConfig = msgspec.field(default_factory=TransportConfig)
     clock: ClockConfig = msgspec.field(default_factory=ClockConfig)
-    state_machine: StateMachineConfig | None = None
-    controllers: list[ComponentConfig] = msgspec.field(default_factory=list)
-    devices: list[ComponentConfig] = msgspec.field(default_factory=list)
+    state_machine: Annotated[
+        StateMachineConfig | None,
+        Meta(description="The vehicle's states; without it the CN stays in state `IDLE`."),
+    ] = None
+    controllers: Annotated[
+        list[ComponentConfig],
+        Meta(description="The control logic: `zplatform.Controller` subclasses."),
+    ] = msgspec.field(default_factory=list)
+    devices: Annotated[
+        list[ComponentConfig],
+        Meta(description="Sensor and actuator drivers on the device nodes."),
+    ] = msgspec.field(default_factory=list)
     commands: CommandsConfig = msgspec.field(default_factory=CommandsConfig)
     faults: FaultsConfig = msgspec.field(default_factory=FaultsConfig)
     security: SecurityConfig = msgspec.field(default_factory=SecurityConfig)
     downlink: DownlinkConfig = msgspec.field(default_factory=DownlinkConfig)
-    bulk: list[BulkChannelConfig] = msgspec.field(default_factory=list)
-    doc: str = ""
+    bulk: Annotated[
+        list[BulkChannelConfig],
+        Meta(description="Bulk channels: large arrays moved outside the sync."),
+    ] = msgspec.field(default_factory=list)
+    params: Annotated[
+        list[ParamConfig],
+        Meta(
+            description="Parameters the ground tunes without a rebuild (PRM_SET, saved by "
+            "PRM_SAVE into the control node's parameter file and loaded at its start): "
+            "each is an element of region `cn` named after it."
+        ),
+    ] = msgspec.field(default_factory=list)
+    # Where the mission's own Python code is found: directories put at the
+    # front of sys.path while the verbs that run flight code (check, sim, up,
+    # node, replay) import its controllers, devices, boards and physics.
+    pythonpath: Annotated[
+        list[str] | None,
+        Meta(
+            description=(
+                "Directories (relative to the mission file, or absolute) put at the "
+                "front of Python's import path while the mission's code (controller, "
+                "device, board and physics classes) is imported. Default: the mission "
+                "file's own directory. Verbs that only talk to a running mission "
+                "(cmd, tap, log, ground, xtce, ccsds) import no mission code."
+            )
+        ),
+    ] = None
+    world: Annotated[
+        WorldConfig | None,
+        Meta(
+            description="One vehicle world shared by the boards of several device nodes "
+            "(physics that every board's outputs change): see zplatform.world."
+        ),
+    ] = None
+    doc: Annotated[str, Meta(description="What the mission is for.")] = ""
 
     # -- derived views (cheap; computed from the checked fields) -----------
     @property
@@ -564,6 +1164,7 @@ def parse_mission(text: bytes | str, source: str = "<string>") -> Mission:
     # elements are added: a repeated controller name must be reported as
     # such, not as the repeated `<name>_mode` element it would create.
     _check_control_sections(mission)
+    _check_params(mission)
     n_platform = _add_platform_elements(mission)
     _check_elements(mission, n_platform)
     return mission
@@ -647,15 +1248,52 @@ def _unsafe_name_reason(name: str) -> str | None:
     return None
 
 
-def _check_mission(m: Mission) -> None:
-    why = _unsafe_name_reason(m.mission)
+def check_mission_name(name: str) -> None:
+    """Refuse a mission name that cannot name keys, files and registry
+    entries (ConfigError at ``$.mission``): the rule every mission file's
+    ``mission:`` obeys, for tools that take a bare name (``keygen``)."""
+    why = _unsafe_name_reason(name)
     if why is not None:
-        raise ConfigError(f"mission name {m.mission!r} {why}", "$.mission")
-    if len(m.mission) > MISSION_NAME_MAX:
+        raise ConfigError(f"mission name {name!r} {why}", "$.mission")
+    if len(name) > MISSION_NAME_MAX:
         raise ConfigError(
-            f"mission name is {len(m.mission)} characters long; at most {MISSION_NAME_MAX}",
+            f"mission name is {len(name)} characters long; at most {MISSION_NAME_MAX}",
             "$.mission",
         )
+
+
+def resolve_pythonpath(entries: Sequence[str] | None, base_dir: str | Path | None) -> list[str]:
+    """The absolute directories a mission's ``pythonpath`` names.
+
+    Relative entries are relative to ``base_dir`` (the mission file's
+    directory; None: the current directory). ``entries`` None (the key not
+    given) means ``[base_dir]``, or nothing without a ``base_dir`` (a mission
+    decoded from text). Pure: checks no directory.
+    """
+    if entries is None:
+        return [] if base_dir is None else [os.path.abspath(base_dir)]
+    base = os.path.abspath(base_dir if base_dir is not None else os.curdir)
+    return [os.path.normpath(os.path.join(base, e)) for e in entries]
+
+
+def relocate_mission(raw: dict[str, Any], source: str | Path) -> None:
+    """Make a mission mapping read from file ``source`` mean the same from
+    any other directory: its ``pythonpath`` (or the default, ``source``'s
+    directory) becomes absolute. For copies of a mission file (``up
+    --free-ports``, a recording). A malformed ``pythonpath`` is left for the
+    loader to refuse with its YAML path."""
+    entries = raw.get("pythonpath")
+    if entries is None or (isinstance(entries, list) and all(isinstance(e, str) for e in entries)):
+        raw["pythonpath"] = resolve_pythonpath(entries, Path(source).parent)
+
+
+def _check_mission(m: Mission) -> None:
+    check_mission_name(m.mission)
+    for i, d in enumerate(m.pythonpath or ()):
+        if not d or "\x00" in d:
+            raise ConfigError(
+                "a pythonpath entry must be a non-empty directory path", f"$.pythonpath[{i}]"
+            )
     if not _NAME_RE.fullmatch(m.vehicle):
         raise ConfigError(
             f"vehicle key prefix must match {_NAME_RE.pattern}, got {m.vehicle!r}", "$.vehicle"
@@ -737,50 +1375,99 @@ def platform_elements(m: Mission) -> dict[str, list[ElementConfig]]:
     initial = m.state_machine.initial if m.state_machine else "IDLE"
     E = ElementConfig
     cn = [
-        E("cn_loop", "u64", 0),
-        E("cn_time_ns", "i64", 0),
-        E("cn_state", "enum", initial, states),
-        E("cn_loop_overruns", "u32", 0),
-        E("cn_sync_overruns", "u32", 0),
-        E("cn_errors", "u32", 0),
-        E("cn_last_error", "u16", 0),
-        E("cn_bad_frames", "u32", 0),
-        E("cn_cmd", "enum", "NONE", list(CMD_NAMES)),
-        E("cn_cmd_seq", "u64", 0),
-        E("cn_cmd_status", "enum", "NONE", list(CMD_STATUS_NAMES)),
-        E("cn_cmd_rejects", "u32", 0),
-        E("cn_cmd_reject_status", "enum", "NONE", list(CMD_STATUS_NAMES)),
-        E("cn_cmd_dropped", "u32", 0),
-        E("cn_epoch", "u64", 0),
-        E("cn_fault", "enum", "NONE", list(FAULT_NAMES)),
-        E("cn_time_in_state_ns", "i64", 0),
+        E("cn_loop", "u64", 0, doc="loop number, from 1"),
+        E("cn_time_ns", "i64", 0, doc="the loop's scheduled start, CN time (ns)"),
+        E("cn_state", "enum", initial, states, doc="the state machine's state"),
+        E("cn_loop_overruns", "u32", 0, doc="loops that overran their period"),
+        E("cn_sync_overruns", "u32", 0, doc="loops whose sync passed the deadline"),
+        E("cn_errors", "u32", 0, doc="non-critical errors counted"),
+        E("cn_last_error", "u16", 0, doc="code of the last non-critical error"),
+        E("cn_bad_frames", "u32", 0, doc="frames refused (shape, layout, tag)"),
+        E("cn_cmd", "enum", "NONE", list(CMD_NAMES), doc="the accepted command, until taken"),
+        E("cn_cmd_seq", "u64", 0, doc="number of the last request judged"),
+        E("cn_cmd_status", "enum", "NONE", list(CMD_STATUS_NAMES), doc="its verdict"),
+        E("cn_cmd_rejects", "u32", 0, doc="requests refused without a number"),
+        E(
+            "cn_cmd_reject_status",
+            "enum",
+            "NONE",
+            list(CMD_STATUS_NAMES),
+            doc="why the last of those was refused",
+        ),
+        E(
+            "cn_cmd_reject_seq",
+            "u64",
+            0,
+            doc="number of the last authenticated request refused that way (0: unknown)",
+        ),
+        E("cn_cmd_dropped", "u32", 0, doc="requests dropped by a full inbox"),
+        E("cn_epoch", "u64", 0, doc="this run of the CN; requests must carry it"),
+        E("cn_fault", "enum", "NONE", list(FAULT_NAMES), doc="the latched fault"),
+        E("cn_time_in_state_ns", "i64", 0, doc="time in the current state (ns)"),
     ]
+    if m.params:
+        # The parameters and their store's state (zplatform.params).
+        cn += [
+            E(p.name, p.type, p.default, doc=p.doc or f"parameter {p.name}") for p in m.params
+        ] + [
+            E(
+                "cn_prm_load_status",
+                "enum",
+                "DEFAULTS",
+                list(PRM_LOAD_NAMES),
+                doc="what the start made of the parameter file",
+            ),
+            E("cn_prm_save_seq", "u64", 0, doc="number of the last PRM_SAVE accepted"),
+            E(
+                "cn_prm_save_status",
+                "enum",
+                "NONE",
+                list(PRM_SAVE_NAMES),
+                doc="that save: pending, saved or failed",
+            ),
+            E("cn_prm_unsaved", "bool", False, doc="a PRM_SET since the last load or save"),
+        ]
     for dn in m.device_nodes:
         cn += [
-            E(f"cn_rx_{dn}", "u32", 0),
-            E(f"cn_missed_{dn}", "u32", 0),
-            E(f"cn_late_{dn}", "u32", 0),
+            E(f"cn_rx_{dn}", "u32", 0, doc=f"replies from {dn} applied"),
+            E(f"cn_missed_{dn}", "u32", 0, doc=f"loops without {dn}'s reply in time"),
+            E(f"cn_late_{dn}", "u32", 0, doc=f"replies from {dn} for an older loop"),
         ]
     out: dict[str, list[ElementConfig]] = {"cn": cn}
     for dn in m.device_nodes:
-        out[f"cn_to_{dn}"] = []
+        # Set by the CN in the trigger of its planned last loop: the DN then
+        # safes its actuators as the run's end, not as a lost control node.
+        out[f"cn_to_{dn}"] = [E(f"{dn}_final", "bool", False)]
         out[f"{dn}_to_cn"] = [
-            E(f"{dn}_loop", "u64", 0),
-            E(f"{dn}_time_ns", "i64", 0),
-            E(f"{dn}_loop_overruns", "u32", 0),
-            E(f"{dn}_errors", "u32", 0),
-            E(f"{dn}_bad_frames", "u32", 0),
-            E(f"{dn}_clock_offset_ns", "i64", 0),
-            E(f"{dn}_clock_drift_ns", "i64", 0),
-            E(f"{dn}_safed", "bool", False),
+            E(f"{dn}_loop", "u64", 0, doc=f"the CN loop {dn} last ran"),
+            E(f"{dn}_time_ns", "i64", 0, doc=f"{dn}'s time of that loop (ns)"),
+            E(f"{dn}_loop_overruns", "u32", 0, doc=f"{dn}'s loops that overran"),
+            E(f"{dn}_errors", "u32", 0, doc=f"{dn}'s non-critical errors"),
+            E(f"{dn}_bad_frames", "u32", 0, doc=f"triggers {dn} refused"),
+            E(f"{dn}_clock_offset_ns", "i64", 0, doc=f"{dn}'s clock correction (ns)"),
+            E(f"{dn}_clock_drift_ns", "i64", 0, doc=f"{dn}'s clock error at the last re-sync"),
+            E(f"{dn}_safed", "bool", False, doc=f"{dn} safed its actuators (why: next)"),
+            E(
+                f"{dn}_safed_why",
+                "enum",
+                "NONE",
+                list(SAFED_WHY_NAMES),
+                doc=f"why {dn} safed: CN_LOST, RUN_ENDED, CANNOT_RUN (a fault), STOPPING",
+            ),
+            E(
+                f"{dn}_clock_refused",
+                "u32",
+                0,
+                doc=f"clock replies and estimates {dn} refused (bad tag, replayed, a jump)",
+            ),
         ]
     if m.has_ground:
         out["gn_to_cn"] = [
-            E("gn_cmd", "enum", "NONE", list(CMD_NAMES)),
-            E("gn_cmd_seq", "u64", 0),
-            E("gn_cmd_epoch", "u64", 0),
-            E("gn_cmd_element", "u16", 0),
-            E("gn_cmd_value", "f64", 0.0),
+            E("gn_cmd", "enum", "NONE", list(CMD_NAMES), doc="the requested command"),
+            E("gn_cmd_seq", "u64", 0, doc="the request's number: above the last"),
+            E("gn_cmd_epoch", "u64", 0, doc="the CN run it is for (`cn_epoch`)"),
+            E("gn_cmd_element", "u16", 0, doc="WRITE, PRM_SET: the element's index"),
+            E("gn_cmd_value", "f64", 0.0, doc="WRITE, PRM_SET: the value"),
         ]
     # A controller's mode lives where its node reads it: in `cn` for CN
     # controllers, in `cn_to_dnX` for DN controllers (the CN's state machine
@@ -792,7 +1479,15 @@ def platform_elements(m: Mission) -> dict[str, list[ElementConfig]]:
                 f"controller {c.name!r} is placed on {c.node!r}, which is not a cn or device node",
                 f"$.controllers[{i}].node",
             )
-        out[region].append(E(f"{c.name}_mode", "enum", c.initial_mode, list(CONTROLLER_MODES)))
+        out[region].append(
+            E(
+                f"{c.name}_mode",
+                "enum",
+                c.initial_mode,
+                list(CONTROLLER_MODES),
+                doc=f"controller {c.name}'s mode",
+            )
+        )
     # Bulk channel counters live where their node reports them.
     for node in m.nodes:
         counters_at = counter_region(node)
@@ -830,10 +1525,67 @@ def _element_path(m: Mission, region: str, i: int, n_platform: int, name: str) -
         return f"$.regions.{region}[{i - n_platform}]"
     if name == "cn_state":
         return "$.state_machine"
+    if any(p.name == name for p in m.params):
+        return _param_path(m, name)
     for j, c in enumerate(m.controllers):
         if name == f"{c.name}_mode":
             return f"$.controllers[{j}]"
     return f"$.regions.{region}"
+
+
+def _param_path(m: Mission, name: str) -> str:
+    """The YAML path of parameter ``name`` (``$.params[i]``)."""
+    return f"$.params[{next(j for j, p in enumerate(m.params) if p.name == name)}]"
+
+
+def _check_params(m: Mission) -> None:
+    """Structural checks of ``params`` (each entry alone): name, a scalar
+    type, bounds for numbers (finite, fitting the type, in order), a default
+    that fits and lies within them. States and the whitelist are checked by
+    :func:`zplatform.params.check_config`."""
+    names: set[str] = set()
+    for i, p in enumerate(m.params):
+        w = f"$.params[{i}]"
+        if not _NAME_RE.fullmatch(p.name):
+            raise ConfigError(
+                f"parameter name {p.name!r} must match {_NAME_RE.pattern}", f"{w}.name"
+            )
+        if p.name in names:
+            raise ConfigError(f"duplicate parameter name {p.name!r}", f"{w}.name")
+        names.add(p.name)
+        st = SCALAR_TYPES.get(p.type)
+        if st is None:
+            raise ConfigError(
+                f"parameter type {p.type!r} is not a scalar type; expected one of "
+                f"{', '.join(SCALAR_TYPES)}",
+                f"{w}.type",
+            )
+        if st.kind == "bool":
+            for key in ("min", "max"):
+                if getattr(p, key) is not None:
+                    raise ConfigError("a bool parameter has no bounds", f"{w}.{key}")
+            if not isinstance(p.default, bool):
+                raise ConfigError(f"expected true or false, got {p.default!r}", f"{w}.default")
+            continue
+        for key in ("min", "max", "default"):
+            v = getattr(p, key)
+            if v is None:
+                raise ConfigError(
+                    f"a {p.type} parameter needs `{key}`: PRM_SET may set only values "
+                    "within [min, max]",
+                    f"{w}.{key}",
+                )
+            not_finite = isinstance(v, float) and not math.isfinite(v)
+            if isinstance(v, bool) or not_finite or not st.fits(v):
+                rng = f" (range {st.lo}..{st.hi})" if st.kind == "int" else ""
+                raise ConfigError(f"{v!r} is not a finite {p.type}{rng}", f"{w}.{key}")
+        assert p.min is not None and p.max is not None
+        if p.min > p.max:
+            raise ConfigError(f"min {p.min!r} is above max {p.max!r}", f"{w}.min")
+        if not p.min <= p.default <= p.max:
+            raise ConfigError(
+                f"default {p.default!r} is outside [{p.min!r}, {p.max!r}]", f"{w}.default"
+            )
 
 
 def _check_elements(m: Mission, n_platform: dict[str, int]) -> None:
@@ -847,6 +1599,12 @@ def _check_elements(m: Mission, n_platform: dict[str, int]) -> None:
             if not _NAME_RE.fullmatch(e.name):
                 raise ConfigError(
                     f"element name {e.name!r} must match {_NAME_RE.pattern}", f"{where}.name"
+                )
+            if e.name in seen and any(p.name == e.name for p in m.params):
+                raise ConfigError(
+                    f"parameter {e.name!r} has the name of an element; a parameter is an "
+                    "element of its own (region cn): rename one of them",
+                    f"{_param_path(m, e.name)}.name",
                 )
             if e.name in seen:
                 first_region, first_where = seen[e.name]

@@ -49,13 +49,15 @@ from typing import TYPE_CHECKING
 from .components import (
     Component,
     Streak,
+    build_component,
     component_indices,
     errors_element,
     load_component_class,
+    mission_code_path,
 )
 from .config import CONTROLLER_MODES, Mission
 from .datavector import DataVector, Handle
-from .errors import ConfigError, ControlError, SchedulerError, ZPlatformError
+from .errors import ConfigError, SchedulerError
 from .events import EV, EventLog, EventType
 from .faults import ErrorCode
 from .rategroups import RateGroups
@@ -122,9 +124,11 @@ class _Slot:
 class ControllerSet:
     """One node's controllers, built from the mission and run every loop.
 
-    Construction imports each ``class``, decodes its config and binds its
-    handles; it raises ConfigError naming ``$.controllers[i]...`` for any
-    problem and ControlError when a controller's own constructor fails. The
+    Construction imports each ``class`` (from the mission's ``pythonpath``),
+    decodes its config and binds its handles; it raises ConfigError naming
+    ``$.controllers[i]...`` for any problem and ControlError naming
+    ``$.controllers[i]`` and the class when a controller's own constructor
+    or ``bind`` raises anything else (:func:`~zplatform.components.build_component`). The
     rate groups come from ``rate_divisor`` / ``rate_phase``.
 
     :meth:`run` never raises for a controller's exception (see the module
@@ -152,18 +156,13 @@ class ControllerSet:
         # On the CN the mode element holds the safed write; on a DN the CN's
         # next frame overwrites it, so the safing is latched locally.
         self._latch = node != "cn"
+        code = mission_code_path(mission)
         for i in component_indices(mission, "controllers", node):
             c = mission.controllers[i]
             where = f"$.controllers[{i}]"
-            cls = load_component_class(c.cls, Controller, f"{where}.class")
-            try:
-                inst: Controller = cls(c, dv, where=where)
-            except ZPlatformError:
-                raise
-            except Exception as exc:
-                raise ControlError(
-                    f"controller {c.name!r} ({c.cls}) failed to build: {type(exc).__name__}: {exc}"
-                ) from exc
+            cls = load_component_class(c.cls, Controller, f"{where}.class", pythonpath=code)
+            inst: Controller = build_component("controller", c, where, cls, c, dv)
+            inst.events = events
             slot = _Slot(inst, dv.handle(f"{c.name}_mode"))
             try:
                 self._groups.add(slot, c.rate_divisor, c.rate_phase)

@@ -1,24 +1,24 @@
 """Devices: sensor and actuator drivers on the device nodes (thesis 000, ch. 4.7).
 
-A :class:`Device` connects the Data Vector to an I/O :class:`Board` (the
+A :class:`Device` connects the Data Vector to an I/O
+:class:`~zplatform.boards.Board` (the
 thesis' FPGA interface). A :class:`Sensor` reads the board, converts
 electrical to engineering units, calibrates and writes the Data Vector; an
 :class:`Actuator` reads the Data Vector and drives the board. Devices have no
 mode: an actuator is safed by safing the controller that feeds it.
 
 Each loop of a device node runs, in order (:class:`DeviceSet` and
-:class:`~zplatform.loop.DeviceLogic`): the board's :meth:`Board.step`
+:class:`~zplatform.loop.DeviceLogic`): the board's
+:meth:`~zplatform.boards.Board.step`
 (latch inputs; the simulated board's physics), the sensors, the node's
 controllers, the actuators. A device that raises is counted in
 ``dnX_errors`` and reported by a ``WARNING_HI`` event (``EV.DEVICE_FAILED``)
 once per failure streak;
 the loop goes on and the device runs again next loop.
 
-:class:`SimBoard` is the board of the lockstep runner and of tests: pins held
-in lists, an optional physics hook (``physics: "module:function"`` in the
-node's ``board`` config, called as ``function(board, t_ns)`` once per loop
-before the sensors) that decides what the sensors see, and ``inject_*`` to
-force an input (a stuck pin, a given voltage) from a test.
+Boards live in :mod:`zplatform.boards` (this module imports them, never the
+reverse): the contract :class:`~zplatform.boards.Board` and the simulated
+:class:`~zplatform.boards.SimBoard`, the default of every device node.
 
 Shipped drivers: :class:`DigitalOutput` (the thesis' LED driver: sets a pin
 from a command element and reads the pin back into a feedback element, which
@@ -29,24 +29,24 @@ proves the pin really changed), :class:`DigitalInput`, :class:`AnalogInput`
 from __future__ import annotations
 
 import abc
-from collections.abc import Callable
-from typing import Annotated, Any, Protocol, runtime_checkable
+from typing import Annotated, ClassVar
 
 import msgspec
 from msgspec import Meta
 
+from .boards import Board
 from .components import (
     Component,
     Streak,
+    build_component,
     component_indices,
-    decode_component_config,
     errors_element,
     load_component_class,
-    load_function,
+    mission_code_path,
 )
 from .config import ComponentConfig, Mission
 from .datavector import DataVector
-from .errors import ConfigError, ControlError, SchedulerError, ZPlatformError
+from .errors import ConfigError, SchedulerError
 from .events import EV, EventLog
 from .rategroups import RateGroups
 
@@ -54,173 +54,13 @@ __all__ = [
     "Actuator",
     "AnalogInput",
     "AnalogOutput",
-    "Board",
     "Device",
     "DeviceSet",
     "DigitalInput",
     "DigitalOutput",
     "Sensor",
-    "SimBoard",
-    "SimBoardConfig",
     "check_config",
 ]
-
-
-@runtime_checkable
-class Board(Protocol):
-    """An I/O board: digital and analog pins, numbered from 0.
-
-    ``digital_pins`` / ``analog_pins`` are the pin counts (devices check their
-    pin numbers against them at construction). Every pin method raises
-    :class:`~zplatform.errors.ControlError` for a pin out of range. ``step``
-    is called once per loop before the sensors run.
-    """
-
-    @property
-    def digital_pins(self) -> int: ...
-
-    @property
-    def analog_pins(self) -> int: ...
-
-    def step(self, t_ns: int) -> None: ...
-
-    def set_digital(self, pin: int, value: bool) -> None: ...
-
-    def get_digital(self, pin: int) -> bool: ...
-
-    def set_analog(self, pin: int, volts: float) -> None: ...
-
-    def get_analog(self, pin: int) -> float: ...
-
-
-class SimBoardConfig(msgspec.Struct, forbid_unknown_fields=True):
-    """The ``board:`` mapping of a node that runs on a :class:`SimBoard`.
-
-    ``physics`` names a ``"module:function"`` called as ``function(board,
-    t_ns)`` once per loop; ``params`` is its data (read as
-    ``board.params``). If the function has a ``Params`` attribute (a
-    ``msgspec.Struct`` type), ``params`` is decoded into it at construction,
-    so a typo fails at load with its YAML path.
-    """
-
-    digital_pins: Annotated[int, Meta(ge=0, le=65_536)] = 16
-    analog_pins: Annotated[int, Meta(ge=0, le=65_536)] = 8
-    physics: str | None = None
-    params: dict[str, Any] = msgspec.field(default_factory=dict)
-
-
-Physics = Callable[["SimBoard", int], None]
-
-
-class SimBoard:
-    """A simulated I/O board: pins in lists, inputs injectable, optional physics.
-
-    A digital pin reads back what was last set on it unless an input is
-    injected (:meth:`inject_digital`); the same for analog pins. ``config`` is
-    the node's ``board`` mapping (:class:`SimBoardConfig`); construction
-    raises ConfigError naming ``where`` for a bad one. ``start_ns`` is the
-    time of the first :meth:`step` (``None`` before), for physics that model
-    time since start.
-    """
-
-    def __init__(self, config: dict[str, Any] | None = None, *, where: str = "$.board") -> None:
-        cfg = decode_component_config(SimBoardConfig, dict(config or {}), where)
-        self.config = cfg
-        self._n_dig = cfg.digital_pins
-        self._n_ana = cfg.analog_pins
-        self._dout: list[bool] = [False] * cfg.digital_pins
-        self._din: list[bool | None] = [None] * cfg.digital_pins
-        self._aout: list[float] = [0.0] * cfg.analog_pins
-        self._ain: list[float | None] = [None] * cfg.analog_pins
-        self._physics: Physics | None = (
-            load_function(cfg.physics, f"{where}.physics", args=("board", "t_ns"), what="physics")
-            if cfg.physics
-            else None
-        )
-        params_type = getattr(self._physics, "Params", None)
-        self.params: Any = (
-            decode_component_config(params_type, cfg.params, f"{where}.params")
-            if isinstance(params_type, type) and issubclass(params_type, msgspec.Struct)
-            else cfg.params
-        )
-        self.start_ns: int | None = None
-        self.steps = 0
-        self.state: dict[str, Any] = {}  # scratch space for the physics hook
-
-    @property
-    def digital_pins(self) -> int:
-        return self._n_dig
-
-    @property
-    def analog_pins(self) -> int:
-        return self._n_ana
-
-    def step(self, t_ns: int) -> None:
-        """Advance the simulated world to ``t_ns`` (calls the physics hook)."""
-        if self.start_ns is None:
-            self.start_ns = t_ns
-        self.steps += 1
-        if self._physics is not None:
-            self._physics(self, t_ns)
-
-    def _dpin(self, pin: int) -> int:
-        if not 0 <= pin < self._n_dig:
-            raise ControlError(f"digital pin {pin} out of range (board has {self._n_dig})")
-        return pin
-
-    def _apin(self, pin: int) -> int:
-        if not 0 <= pin < self._n_ana:
-            raise ControlError(f"analog pin {pin} out of range (board has {self._n_ana})")
-        return pin
-
-    def set_digital(self, pin: int, value: bool) -> None:
-        self._dout[self._dpin(pin)] = bool(value)
-
-    def get_digital(self, pin: int) -> bool:
-        forced = self._din[self._dpin(pin)]
-        return self._dout[pin] if forced is None else forced
-
-    def set_analog(self, pin: int, volts: float) -> None:
-        self._aout[self._apin(pin)] = float(volts)
-
-    def get_analog(self, pin: int) -> float:
-        forced = self._ain[self._apin(pin)]
-        return self._aout[pin] if forced is None else forced
-
-    def inject_digital(self, pin: int, value: bool | None) -> None:
-        """Force what ``pin`` reads (``None``: release, read back the output)."""
-        self._din[self._dpin(pin)] = None if value is None else bool(value)
-
-    def inject_analog(self, pin: int, volts: float | None) -> None:
-        """Force the voltage ``pin`` reads (``None``: release)."""
-        self._ain[self._apin(pin)] = None if volts is None else float(volts)
-
-    def output_digital(self, pin: int) -> bool:
-        """What was last set on ``pin`` (ignores injection): for tests and physics."""
-        return self._dout[self._dpin(pin)]
-
-    # -- the board contract (zplatform.boards): the reference implementation --
-
-    def open(self) -> None:
-        """Nothing to acquire (idempotent)."""
-
-    def close(self) -> None:
-        """Apply :meth:`safe` (idempotent, never raises)."""
-        self.safe()
-
-    def safe(self) -> None:
-        """Drive every output to its safe value: digital off, 0 V (injections stay)."""
-        for i in range(self._n_dig):
-            self._dout[i] = False
-        for i in range(self._n_ana):
-            self._aout[i] = 0.0
-
-    def health(self) -> Any:
-        """Always ok: a :class:`zplatform.boards.BoardHealth` (typed Any here:
-        ``zplatform.boards`` imports this module)."""
-        from .boards.base import BoardHealth
-
-        return BoardHealth(ok=True)
 
 
 class Device(Component):
@@ -246,7 +86,7 @@ class Device(Component):
         """Check a digital pin number against the board (ConfigError)."""
         if not 0 <= pin < self.board.digital_pins:
             raise ConfigError(
-                f"{self.name}: digital pin {pin} out of range; node {self.node}'s board has "
+                f"digital pin {pin} out of range; node {self.node}'s board has "
                 f"{self.board.digital_pins}",
                 f"{self.where}.config.{field}",
             )
@@ -256,7 +96,7 @@ class Device(Component):
         """Check an analog pin number against the board (ConfigError)."""
         if not 0 <= pin < self.board.analog_pins:
             raise ConfigError(
-                f"{self.name}: analog pin {pin} out of range; node {self.node}'s board has "
+                f"analog pin {pin} out of range; node {self.node}'s board has "
                 f"{self.board.analog_pins}",
                 f"{self.where}.config.{field}",
             )
@@ -273,7 +113,16 @@ class Actuator(Device):
     :meth:`safe` drives the output to its declared safe value: a device node
     that lost its control node calls it (and on a clean exit). Subclasses
     that drive hardware must override it; the default leaves the output to
-    the board's own safe state (:func:`zplatform.boards.safe_board`)."""
+    the board's own safe state (:func:`zplatform.boards.safe_board`), and
+    ``zplatform check`` warns about it (:mod:`zplatform.safety`).
+
+    ``pyrotechnic``: the output fires something that cannot be undone (an
+    igniter, a pyro cutter). A class that always does sets it True; a
+    generic driver may take it from its config instead (``DigitalOutput``'s
+    ``pyrotechnic: true``). ``zplatform check`` warns about a mission with a
+    pyrotechnic output and no hazardous command."""
+
+    pyrotechnic: ClassVar[bool] = False
 
     def safe(self, t_ns: int) -> None:
         """Drive the output to its safe value now. Must not block."""
@@ -292,11 +141,35 @@ class DigitalOutput(Actuator):
     """
 
     class Config(msgspec.Struct, forbid_unknown_fields=True):
-        pin: Pin
-        command: str
-        feedback: str | None = None
-        invert: bool = False
-        safe: bool = False  # the level ("on" terms) a lost control node leaves
+        pin: Annotated[Pin, Meta(description="The board's digital pin.")]
+        command: Annotated[
+            str,
+            Meta(description="Element that commands the pin (bool, int or enum: non-zero is on)."),
+        ]
+        feedback: Annotated[
+            str | None,
+            Meta(
+                description="Element (bool or int, in this node's `dnX_to_cn`) that receives "
+                "the pin's level read back from the board."
+            ),
+        ] = None
+        invert: Annotated[
+            bool,
+            Meta(description="Active low: command and feedback stay in \"on\" terms."),
+        ] = False
+        safe: Annotated[
+            bool,
+            Meta(description="The level (in \"on\" terms) a device node that lost its CN leaves."),
+        ] = False
+        # The pin fires something that cannot be undone (an igniter): the
+        # mission then needs hazardous commands (zplatform.safety).
+        pyrotechnic: Annotated[
+            bool,
+            Meta(
+                description="The pin fires something that cannot be undone (an igniter); "
+                "`zplatform check` warns when such a mission has no hazardous command."
+            ),
+        ] = False
 
     config: Config
 
@@ -328,9 +201,11 @@ class DigitalInput(Sensor):
     """Reads a digital pin into ``element`` (``invert`` for active-low inputs)."""
 
     class Config(msgspec.Struct, forbid_unknown_fields=True):
-        pin: Pin
-        element: str
-        invert: bool = False
+        pin: Annotated[Pin, Meta(description="The board's digital pin.")]
+        element: Annotated[
+            str, Meta(description="Element (bool or int, in this node's `dnX_to_cn`) to write.")
+        ]
+        invert: Annotated[bool, Meta(description="Active low: a low pin reads `true`.")] = False
 
     config: Config
 
@@ -347,10 +222,12 @@ class AnalogInput(Sensor):
     """Reads an analog pin: ``element = volts * scale + offset`` (a linear calibration)."""
 
     class Config(msgspec.Struct, forbid_unknown_fields=True):
-        pin: Pin
-        element: str
-        scale: float = 1.0
-        offset: float = 0.0
+        pin: Annotated[Pin, Meta(description="The board's analog pin.")]
+        element: Annotated[
+            str, Meta(description="Float element (in this node's `dnX_to_cn`) to write.")
+        ]
+        scale: Annotated[float, Meta(description="Engineering units per volt.")] = 1.0
+        offset: Annotated[float, Meta(description="Engineering units at 0 V.")] = 0.0
 
     config: Config
 
@@ -368,13 +245,23 @@ class AnalogOutput(Actuator):
     """Drives an analog pin: ``volts = (command - offset) / scale``, clamped to [lo, hi]."""
 
     class Config(msgspec.Struct, forbid_unknown_fields=True):
-        pin: Pin
-        command: str
-        scale: float = 1.0
-        offset: float = 0.0
-        min_volts: float = -10.0
-        max_volts: float = 10.0
-        safe_volts: float = 0.0  # what a lost control node leaves on the pin
+        pin: Annotated[Pin, Meta(description="The board's analog pin.")]
+        command: Annotated[
+            str, Meta(description="Element (float or int) holding the commanded value.")
+        ]
+        scale: Annotated[
+            float, Meta(description="Engineering units per volt (not 0).")
+        ] = 1.0
+        offset: Annotated[float, Meta(description="Engineering units at 0 V.")] = 0.0
+        min_volts: Annotated[float, Meta(description="Lowest voltage driven.")] = -10.0
+        max_volts: Annotated[float, Meta(description="Highest voltage driven.")] = 10.0
+        safe_volts: Annotated[
+            float,
+            Meta(
+                description="What a device node that lost its CN leaves on the pin (within "
+                "`min_volts`..`max_volts`)."
+            ),
+        ] = 0.0
 
         def __post_init__(self) -> None:
             if self.scale == 0.0:
@@ -437,23 +324,18 @@ class DeviceSet:
         self._sensors: RateGroups[_DevSlot] = RateGroups()
         self._actuators: RateGroups[_DevSlot] = RateGroups()
         self._errors = dv.handle(errors_element(node))
+        code = mission_code_path(mission)
         for i in component_indices(mission, "devices", node):
             c = mission.devices[i]
             where = f"$.devices[{i}]"
-            cls = load_component_class(c.cls, Device, f"{where}.class")
+            cls = load_component_class(c.cls, Device, f"{where}.class", pythonpath=code)
             if not issubclass(cls, Sensor | Actuator):
                 raise ConfigError(
                     f"{c.cls!r} must subclass zplatform.devices.Sensor or Actuator",
                     f"{where}.class",
                 )
-            try:
-                dev: Device = cls(c, dv, board, where=where)
-            except ZPlatformError:
-                raise
-            except Exception as exc:
-                raise ControlError(
-                    f"device {c.name!r} ({c.cls}) failed to build: {type(exc).__name__}: {exc}"
-                ) from exc
+            dev: Device = build_component("device", c, where, cls, c, dv, board)
+            dev.events = events
             groups = self._sensors if isinstance(dev, Sensor) else self._actuators
             try:
                 groups.add(_DevSlot(dev), c.rate_divisor, c.rate_phase)
@@ -508,11 +390,11 @@ def check_config(mission: Mission) -> None:
     Raises ConfigError with the YAML path of the first bad device class,
     config field, pin or element name, or board config.
     """
-    from .boards import make_board  # the boards package imports this module
     from .datavector import Layout
+    from .world import node_board  # the boards package (under it) imports this module
 
     for node in mission.device_nodes:
-        board = make_board(mission.nodes[node].board, where=f"$.nodes.{node}.board")
+        board = node_board(mission, node)
         if not component_indices(mission, "devices", node):
             continue
         dv = DataVector(Layout.for_node(mission, node))

@@ -121,7 +121,16 @@ class CommandError(ZPlatformError):
 
 
 class ControlError(ZPlatformError):
-    """A controller or device could not be built or wired to the Data Vector."""
+    """A controller or device could not be built or wired to the Data Vector.
+
+    ``path``, when given, is the YAML path of the component (``$.devices[3]``)
+    and ends the message as in :class:`ConfigError`.
+    """
+
+    def __init__(self, message: str, path: str | None = None) -> None:
+        self.path = path
+        self.reason = message
+        super().__init__(message if path is None else f"{message} - at `{path}`")
 
 
 class EventError(ZPlatformError):

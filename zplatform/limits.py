@@ -5,17 +5,9 @@ mission; either bound may be null (open). A value below ``lo`` or above
 ``hi`` of ``red`` is red, else of ``yellow`` yellow; inside both it is
 nominal. Limits apply to scalar numeric elements (not enums, not arrays).
 
-The field is read with ``getattr`` so this works whether or not the mission
-schema (``ElementConfig``) has it yet; the proposed schema is::
-
-    class LimitsConfig(_Struct):
-        yellow: tuple[float | None, float | None] | None = None
-        red: tuple[float | None, float | None] | None = None
-
-    class ElementConfig(_Struct):
-        ...
-        limits: LimitsConfig | None = None
-
+The mission's limits are ``ElementConfig.limits``
+(:class:`~zplatform.config.LimitsConfig`), checked at load by
+:func:`zplatform.mission.check_mission`.
 Callers may add or override limits with a ``{name: {yellow: .., red: ..}}``
 mapping (a console option, tests).
 """
@@ -85,9 +77,8 @@ def mission_limits(mission: Mission, extra: Mapping[str, Any] | None = None) -> 
     raw: dict[str, Any] = {}
     for region in mission.regions.values():
         for ec in region:
-            v = getattr(ec, "limits", None)
-            if v is not None:
-                raw[ec.name] = v
+            if ec.limits is not None:
+                raw[ec.name] = ec.limits
     raw.update(extra or {})
     out: dict[str, Limits] = {}
     for name, v in raw.items():

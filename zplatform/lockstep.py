@@ -3,23 +3,37 @@
 :class:`LockstepRunner` is the second driver of the sans-IO loop
 (:mod:`zplatform.loop`): it moves the same region frames, encoded and
 decoded, between :class:`~zplatform.loop.ControlLogic`, every
-:class:`~zplatform.loop.DeviceLogic` and a ground side that plays a command
-script with the same :class:`~zplatform.uplink.ScriptPlayer` as the live
-ground node. It has no protocol order of its own. Loop ``n`` (from 1, as
+:class:`~zplatform.loop.DeviceLogic` and the same ground logic as the live
+ground node (:class:`~zplatform.ground.logic.GroundLogic`: its checks, its
+command requests and verdicts, its script player). It has no protocol order
+of its own. Loop ``n`` (from 1, as
 live) runs at virtual time ``t = start_ns + (n - 1) * period_ns``:
 
 1. ``frames = cn.begin(n, t)``; each DN in order takes its frame and
    replies (:meth:`~zplatform.loop.DeviceLogic.step`), and the reply goes
    back to ``cn.reply``;
-2. ``cn.finish(ground)`` with the request frame the script player produced
-   from the previous loop's telemetry (if any);
-3. on telemetry loops the ground side applies the telemetry frame, logs it
-   (``rx_time_ns = t``) and lets the script player answer.
+2. ``cn.finish(ground, saves=...)`` with the request frame the script
+   player produced from the previous loop's telemetry (if any) and the
+   parameter save the previous loop asked for (a PRM_SAVE, kept in memory
+   by :attr:`LockstepRunner.saver`: a sim writes no file, and its
+   parameters start from their defaults);
+3. on telemetry loops the ground logic takes the telemetry frame (received
+   at ``t``, so it is fresh), the runner logs it (``rx_time_ns = t``) and
+   takes the request the script player made, if any, for the next loop;
+   then the ground logic reads the loop's events (the reasons of verdicts).
 
 No frame is ever lost or late here, so ``cn_missed_dnX`` and ``cn_late_dnX``
-stay 0. Nothing reads the wall clock except the speed figure of
-:class:`SimResult`, and nothing iterates a set or hashes into the output: the
-same mission and the same command script give a byte-identical CSV log.
+stay 0, unless a test declares a node dead (:attr:`LockstepRunner.lost`).
+No loop is flagged final (``dnX_final``, :mod:`zplatform.loop`): a
+runner may be run on (:meth:`LockstepRunner.run` continues from the last
+loop), so it never knows which loop is the last, and a flag it guessed
+would make the same mission's output depend on how the run was cut; the
+DNs of a sim are never safed by a run's end, nor by a watchdog (nothing
+waits in virtual time). A replay repeats the recorded flags.
+
+Nothing reads the wall clock except the speed figure of :class:`SimResult`,
+and nothing iterates a set or hashes into the output: the same mission and
+the same command script give a byte-identical CSV log.
 
 :func:`replay` feeds a live run's recorded loop inputs
 (:mod:`zplatform.recording`) through a fresh control loop and checks that
@@ -35,35 +49,48 @@ from typing import Any
 import msgspec
 import numpy as np
 
-from .auth import TAG_LEN, mission_channels
+from .auth import TAG_LEN, KeySet
+from .boards import Board
 from .codec import BundleEncoder, RegionCodec
-from .config import Mission
+from .config import BulkChannelConfig, Mission
 from .datavector import DataVector, Layout
-from .devices import Board
 from .events import Event
+from .ground.logic import GroundLogic
+from .ground.records import CommandOutcome, EventRecord
 from .loop import ControlLogic, DeviceLogic
 from .messages import wildcard_sync_for
+from .params import MemorySaver
 from .recording import FOREIGN_DN
 from .telemetry import CsvLogger
 from .timebase import VirtualClock
-from .uplink import CommandOutcome, ScriptCommand, ScriptPlayer
+from .uplink import ScriptCommand
+from .world import World
 
 __all__ = [
     "DEFAULT_START_NS",
+    "SIM_KEY",
     "Difference",
     "LockstepRunner",
     "ReplayResult",
     "SimResult",
     "replay",
+    "sim_keys",
 ]
 
 DEFAULT_START_NS = 1_700_000_000_000_000_000
 """Virtual time of loop 1 (2023-11-14T22:13:20Z): fixed, so runs repeat exactly."""
 
 SIM_KEY = bytes(32)
-"""The key a lockstep run authenticates its frames with (every node is in
-this process, so the key protects nothing; it keeps the frames and the code
-paths those of a live run)."""
+"""The master key a lockstep run derives its link keys from (every node is
+in this process, so the keys protect nothing; they keep the frames and the
+code paths those of a live run). Deliberately trivial: no key loader takes
+it (:func:`zplatform.auth.check_key`)."""
+
+
+def sim_keys(mission: Mission) -> KeySet | None:
+    """Every link key of ``mission`` derived from :data:`SIM_KEY`, or None
+    when the mission does not authenticate."""
+    return KeySet.from_master(mission, SIM_KEY, source="SIM_KEY") if mission.security.auth else None
 
 
 class SimResult(msgspec.Struct):
@@ -128,20 +155,76 @@ class SimResult(msgspec.Struct):
             "states": self.states,
             "commands": [msgspec.to_builtins(c) for c in self.commands],
             "pending_commands": self.pending_commands,
-            "events": [
-                {
-                    "node": e.node,
-                    "seq": e.seq,
-                    "t_ns": e.t_ns,
-                    "severity": e.severity_name,
-                    "id": e.id,
-                    "text": e.text,
-                }
-                for e in self.events
-            ],
+            # As the events file has them; received at the event's own loop time.
+            "events": [msgspec.to_builtins(EventRecord.of(e, e.t_ns)) for e in self.events],
             "wall_s": self.wall_s,
             "loops_per_s": self.loops_per_s,
         }
+
+
+# ---------------------------------------------------------------------------
+# bulk channels in memory
+
+
+class _SimChannel:
+    """One bulk channel moved in memory, as the network would: a sample the
+    owner publishes in loop n is delivered at the start of loop n+1 and taken
+    by each reader's :meth:`_SimBulkPort.receive` in that loop (live, readers
+    take the newest sample before their loop's logic, and a sample of loop n
+    cannot reach a loop that started before it was published)."""
+
+    def __init__(self, ch: BulkChannelConfig) -> None:
+        self.ch = ch
+        self._sent = np.zeros(ch.shape, ch.dtype)
+        self.delivered = np.zeros(ch.shape, ch.dtype)
+        self._pending = False
+        self.fresh: dict[str, bool] = dict.fromkeys(ch.readers, False)
+
+    def send(self, loop: int, own: np.ndarray[Any, Any]) -> None:
+        if loop % self.ch.rate_divisor == self.ch.rate_phase:
+            np.copyto(self._sent, own)
+            self._pending = True
+
+    def deliver(self) -> None:
+        if self._pending:
+            self._sent, self.delivered = self.delivered, self._sent
+            self._pending = False
+            for r in self.fresh:
+                self.fresh[r] = True
+
+
+class _SimBulkPort:
+    """A node's :class:`~zplatform.loop.BulkPort` in the lockstep runner.
+
+    Moves samples through :class:`_SimChannel`; counts nothing (the bulk
+    counters describe zenoh's transport, shared memory or copied, which a
+    run in one process does not have: they stay 0 in sim)."""
+
+    def __init__(self, node: str, channels: list[_SimChannel]) -> None:
+        self.node = node
+        self.arrays: dict[str, Any] = {}
+        self._own: list[tuple[_SimChannel, np.ndarray[Any, Any]]] = []
+        self._read: list[tuple[_SimChannel, np.ndarray[Any, Any]]] = []
+        for c in channels:
+            if c.ch.node == node:
+                self.arrays[c.ch.name] = a = np.zeros(c.ch.shape, c.ch.dtype)
+                self._own.append((c, a))
+            elif node in c.fresh:
+                self.arrays[c.ch.name] = a = np.zeros(c.ch.shape, c.ch.dtype)
+                self._read.append((c, a))
+
+    def receive(self, loop: int) -> None:
+        for c, a in self._read:
+            if c.fresh[self.node]:
+                np.copyto(a, c.delivered)
+                c.fresh[self.node] = False
+
+    def publish(self, loop: int, t_ns: int) -> None:
+        for c, a in self._own:
+            c.send(loop, a)
+
+    def write_counters(self, dv: DataVector) -> None:
+        pass
 
 
 # ---------------------------------------------------------------------------
@@ -152,10 +235,14 @@ class LockstepRunner:
     """Every node of ``mission`` in one process, in virtual time (module doc).
 
     ``commands`` is the ground's script; ``boards`` replaces the default
-    :class:`~zplatform.devices.SimBoard` of some device nodes (tests inject
-    faults through them). Construction builds every node (ConfigError for a
-    bad mission) and resolves the script against the mission (CommandError
-    naming ``file:line``). Not thread-safe.
+    :class:`~zplatform.boards.SimBoard` of some device nodes (tests inject
+    faults through them). A mission with a vehicle world gets one
+    :class:`~zplatform.world.World` in this process (:attr:`world`), and
+    every node it spans a port onto it, whatever that node's board driver
+    (a hardware-in-the-loop mission's serial board included: the world is
+    what that board would reach). Construction builds every node
+    (ConfigError for a bad mission) and resolves the script against the
+    mission (CommandError naming ``file:line``). Not thread-safe.
     """
 
     def __init__(
@@ -170,52 +257,49 @@ class LockstepRunner:
         self.start_ns = start_ns
         self.period_ns = mission.period_ns
         self.clock = VirtualClock(start_ns)
-        key = SIM_KEY if mission.security.auth else None
-        self.control = ControlLogic(mission, key=key, epoch=start_ns)
-        boards = boards or {}
+        keys = sim_keys(mission)
+        self.control = ControlLogic(mission, keys=keys and keys.for_node("cn"), epoch=start_ns)
+        self.saver = MemorySaver()
+        """Where PRM_SAVE goes in a lockstep run (memory; answered next loop)."""
+        boards = dict(boards or {})
         unknown = sorted(set(boards) - set(mission.device_nodes))
         if unknown:
             raise ValueError(f"boards given for nodes that are not device nodes: {unknown}")
+        self.world: World | None = World(mission) if mission.world is not None else None
+        """The vehicle world, if the mission has one (its ``truth`` is the physics' state)."""
+        if self.world is not None:
+            for n in self.world.nodes:
+                boards.setdefault(n, self.world.board(n))
         self.devices = [
-            DeviceLogic(mission, dn, board=boards.get(dn), key=key) for dn in mission.device_nodes
+            DeviceLogic(mission, dn, board=boards.get(dn), keys=keys and keys.for_node(dn))
+            for dn in mission.device_nodes
         ]
-        # The ground side: a telemetry receiver and the script player.
-        self.telemetry_dv = DataVector(Layout.for_node(mission, "cn"))
-        self._tm_rx = RegionCodec(self.telemetry_dv)
-        self._tm_open = mission_channels(mission, key)["telemetry"]
-        self.player = ScriptPlayer(mission, commands or [], key=key)
+        # The ground side: the live ground node's logic, in virtual time.
+        ground_keys = keys and keys.for_node("gn" if mission.has_ground else "tool")
+        self.ground = GroundLogic(mission, keys=ground_keys, script=commands or [])
         # The sync query's form, as the live CN chooses it (transport.sync_query).
         self._bundle = BundleEncoder() if wildcard_sync_for(mission) else None
         self._ground: bytearray | None = None
+        self.lost: set[str] = set()
+        """Device nodes that are gone (a test kills one mid-run by adding it):
+        they are neither triggered nor answer, so the CN counts their misses
+        as it would a dead node's (DN_LOST after ``faults.dn_lost_loops``)."""
         self.loop = 0
         """Loops run so far (the number of the last one)."""
-        self.telemetry_received = 0
         self._state_h = self.control.dv.handle("cn_state")
         self._states: list[str] = []
         self._last_state = -1
         self._events: list[Event] = []
         self._wall_s = 0.0
-        # Bulk channels: each node's own arrays; a sample published in loop
-        # n reaches its readers at the start of loop n+1 (as live: readers
-        # take the newest sample before their loop's logic).
+        # Bulk channels move in memory (each node's loop receives and
+        # publishes them in its own order, zplatform.loop).
         logics: dict[str, ControlLogic | DeviceLogic] = {"cn": self.control}
         logics.update({d.node: d for d in self.devices})
-        arrays: dict[str, dict[str, Any]] = {n: {} for n in logics}
-        self._bulk: list[tuple[Any, Any, list[Any]]] = []
-        for ch in mission.bulk:
-            if ch.node not in logics:
-                continue
-            own = np.zeros(ch.shape, ch.dtype)
-            arrays[ch.node][ch.name] = own
-            outs = []
-            for r in ch.readers:
-                if r in logics:
-                    arrays[r][ch.name] = np.zeros(ch.shape, ch.dtype)
-                    outs.append(arrays[r][ch.name])
-            self._bulk.append((ch, own, outs))
+        self._channels = [_SimChannel(ch) for ch in mission.bulk if ch.node in logics]
         for n, logic in logics.items():
-            if arrays[n]:
-                logic.attach_bulk(arrays[n])
+            port = _SimBulkPort(n, self._channels)
+            if port.arrays:
+                logic.attach_bulk(port)
 
     # -- running -----------------------------------------------------------
     def step(self, log: CsvLogger | None = None) -> None:
@@ -223,35 +307,48 @@ class LockstepRunner:
         loop = self.loop + 1
         t = self.clock.now_ns()
         cn = self.control
-        for ch, own, outs in self._bulk:  # last loop's samples arrive
-            if self.loop and ch.rate_divisor and self.loop % ch.rate_divisor == ch.rate_phase:
-                for out in outs:
-                    np.copyto(out, own)
+        for ch in self._channels:  # what was published last loop arrives
+            ch.deliver()
         frames = cn.begin(loop, t)
+        lost = self.lost
         if self._bundle is not None:  # as live: one wildcard query, every DN takes its frame
             bundle = self._bundle.pack(frames)
             for i, dev in enumerate(self.devices):
-                cn.reply(i, dev.step(bundle, t))
+                if dev.node not in lost:
+                    cn.reply(i, dev.step(bundle, t))
         else:
             for i, dev in enumerate(self.devices):
-                cn.reply(i, dev.step(frames[i], t))
+                if dev.node not in lost:
+                    cn.reply(i, dev.step(frames[i], t))
         ground, self._ground = self._ground, None
-        tm = cn.finish((ground,) if ground is not None else ())
-        if tm is not None:
-            self._tm_rx.apply(self._tm_open.open(tm) if self._tm_open is not None else tm)
-            self.telemetry_received += 1
+        saved = self.saver.poll()
+        tm = cn.finish(
+            (ground,) if ground is not None else (), saves=(saved,) if saved is not None else ()
+        )
+        save = cn.params.take_save()
+        if save is not None:
+            self.saver.submit(*save)
+        gl = self.ground
+        if tm is not None and gl.on_telemetry(tm, t):
             if log is not None:
-                log.write(t, self.telemetry_dv)
-            self._ground = self.player.on_telemetry(self.telemetry_dv)
+                log.write(t, gl.dv)
+            requests = gl.take_requests()
+            if requests:  # the script player sends at most one per snapshot
+                self._ground = bytearray(requests[-1])
         state = self._state_h.get()
         if state != self._last_state:
             self._last_state = state
             self._states.append(self._state_h.spec.name_of(state))
         if cn.events.pending:
-            self._events.extend(cn.events.drain())
+            drained = cn.events.drain()
+            self._events.extend(drained)
+            for e in drained:  # the reasons of verdicts, as live from the event intake
+                gl.on_event(e, t)
         for d in self.devices:
             if d.events.pending:
                 self._events.extend(d.events.drain())
+        if gl.events.pending:  # what the ground believes: nothing new in virtual time
+            gl.events.drain()
         self.loop = loop
         self.clock.advance(self.period_ns)
 
@@ -278,7 +375,9 @@ class LockstepRunner:
         for d in self.devices:  # the DN's own count (the CN's copy is a loop old)
             errors_by_node[d.node] = int(d.dv.get(f"{d.node}_errors"))
         loops = self.loop
-        pending = self.player.pending
+        gl = self.ground
+        gl.finish(self.clock.now_ns())
+        player = gl.player
         return SimResult(
             mission=self.mission.mission,
             loops=loops,
@@ -287,8 +386,8 @@ class LockstepRunner:
             final_state=dv.get_name("cn_state"),
             states=list(self._states),
             events=list(self._events),
-            commands=list(self.player.results),
-            pending_commands=pending,
+            commands=player.results(gl) if player is not None else [],
+            pending_commands=player.pending if player is not None else [],
             errors=sum(errors_by_node.values()),
             errors_by_node=errors_by_node,
             rx={dn: int(dv.get(f"cn_rx_{dn}")) for dn in dns},
@@ -296,7 +395,7 @@ class LockstepRunner:
             late={dn: int(dv.get(f"cn_late_{dn}")) for dn in dns},
             loop_overruns=int(dv.get("cn_loop_overruns")),
             sync_overruns=int(dv.get("cn_sync_overruns")),
-            telemetry_received=self.telemetry_received,
+            telemetry_received=gl.received,
             fault=dv.get_name("cn_fault"),
             wall_s=self._wall_s,
             loops_per_s=loops / self._wall_s if self._wall_s > 0 else 0.0,
@@ -369,7 +468,7 @@ def replay(
     recording (KeyError_ for a missing key); a difference is a result, not
     an error.
     """
-    from .auth import load_key
+    from .auth import load_keys
     from .errors import RecordingError
     from .mission import load_mission
     from .recording import RecordReader
@@ -382,7 +481,7 @@ def replay(
             "loop) are not recorded, so its loop cannot be replayed bit for bit"
         )
     reader.check_layout(Layout.for_node(mission, "cn"))
-    cn = ControlLogic(mission, key=load_key(mission, key_file))
+    cn = ControlLogic(mission, keys=load_keys(mission, "cn", key_file))
     cn.dv.write_all(reader.initial)  # epoch included
     state_dv = cn.dv
     frames = 0
@@ -390,7 +489,7 @@ def replay(
     first = last = 0
     diff: Difference | None = None
     for rec in reader.loops():
-        cn.begin(rec.loop, rec.t_ns)
+        cn.begin(rec.loop, rec.t_ns, final=rec.final)
         for i, payload in rec.replies:
             if i == FOREIGN_DN:
                 cn.foreign_reply(bytes(payload or b"").decode(errors="replace"))
@@ -402,6 +501,7 @@ def replay(
             loop_overruns=rec.loop_overruns,
             inbox_dropped=rec.inbox_dropped,
             inbox_oversize=rec.inbox_oversize,
+            saves=rec.saves,
         )
         loops += 1
         first = first or rec.loop

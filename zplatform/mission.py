@@ -13,13 +13,18 @@ tests. They return a :class:`~zplatform.config.Mission` that passed
    * the state machine (:func:`zplatform.statemachine.check_config`):
      elements, values, writability, zero-time cycles;
    * the commands (:func:`zplatform.commands.check_config`);
+   * the parameters (:func:`zplatform.params.check_config`): their states,
+     and ARM wherever a hazardous one may change;
    * the controllers (:func:`zplatform.controllers.check_config`): every
      ``class`` imported, checked to be a concrete Controller, its typed
      ``config`` decoded and its element handles bound on a scratch Data
      Vector of its node;
+   * the vehicle world (:func:`zplatform.world.check_config`): its boards,
+     physics function and params, and the nodes that use it;
    * the devices and boards (:func:`zplatform.devices.check_config`): every
      node's ``board`` config (a SimBoard's ``physics`` function imported and
      its signature checked), every device class, config and pin;
+   * the limits, the radio downlink and the lowlatency transport;
    * the deployment (:func:`zplatform.deploy.require_deployment`): a mission
      with ``tls/`` endpoints needs the deployment file named by
      ``ZPLATFORM_DEPLOYMENT``, with a cert and key for each tls node.
@@ -28,33 +33,54 @@ So a bad class path, a typo in a component's config or a physics function
 that cannot take ``(board, t_ns)`` fails here, at load, with its YAML path,
 never in the first loop on the pad. Every failure is a
 :class:`~zplatform.errors.ConfigError`; a controller or device whose own
-constructor raises is a :class:`~zplatform.errors.ControlError`.
+constructor raises is a :class:`~zplatform.errors.ControlError` naming its
+YAML path and class.
 
-Checking imports mission code (controllers, devices, physics) and runs their
-constructors and ``bind``: it must have no side effects beyond that. This
-module sits above the control modules (it imports them, none imports it), so
-``config`` stays free of import cycles.
+Mission code and ``code=False``
+-------------------------------
+Checking imports mission code (controllers, devices, boards, physics) and
+runs their constructors and ``bind``: it must have no side effects beyond
+that. The code is found through the mission's ``pythonpath`` (directories
+relative to the mission file; by default the mission file's own directory),
+which loading resolves to absolute directories, each checked to exist.
+
+The verbs that only talk to a running mission (``cmd``, ``tap``, ``log``,
+``ground``, ``xtce``, ``ccsds``) need the layouts and rules, never the code:
+they load with ``code=False``, which runs every check above except the
+controllers', the devices' and boards' and the ``pythonpath`` directories'
+and imports nothing of the mission's. The Data Vector layout is the same
+either way: it comes from the YAML alone (a controller's ``<name>_mode``
+element from its entry in ``controllers``), never from a class.
+
+This module sits above the control modules (it imports them, none imports
+it), so ``config`` stays free of import cycles.
 """
 
 from __future__ import annotations
 
 from pathlib import Path
 
-from . import commands, controllers, deploy, devices, statemachine
-from .config import CONTROLLER_MODES, Mission, parse_mission, platform_elements
+from . import commands, controllers, deploy, devices, params, statemachine, world
+from .config import (
+    CONTROLLER_MODES,
+    Mission,
+    parse_mission,
+    platform_elements,
+    resolve_pythonpath,
+)
 from .errors import ConfigError
 from .messages import check_lowlatency
 
 __all__ = ["check_mission", "decode_mission", "load_mission"]
 
 
-def check_mission(mission: Mission) -> None:
+def check_mission(mission: Mission, *, code: bool = True) -> None:
     """Run every semantic check on a parsed mission; raises on the first failure.
 
     ``mission`` comes from :func:`zplatform.config.parse_mission` (platform
-    elements added). Raises ConfigError naming the YAML path, or ControlError
-    for a component constructor that raised. Logs unreachable states as
-    warnings.
+    elements added). ``code=False``: import no mission code (module doc).
+    Raises ConfigError naming the YAML path, or ControlError for a component
+    constructor that raised. Logs unreachable states as warnings.
     """
     for i, c in enumerate(mission.controllers):
         if c.initial_mode not in CONTROLLER_MODES:
@@ -64,14 +90,32 @@ def check_mission(mission: Mission) -> None:
             )
     statemachine.check_config(mission)
     commands.check_config(mission)
-    controllers.check_config(mission)
-    devices.check_config(mission)
+    params.check_config(mission)
+    if code:
+        _check_pythonpath(mission)
+    # The world before the devices: a node's `driver: world` board is built
+    # from it, so a bad world section is reported as itself.
+    world.check_config(mission, code=code)
+    if code:
+        controllers.check_config(mission)
+        devices.check_config(mission)
     _check_limits(mission)
     _check_downlink(mission)
     check_lowlatency(mission)
     # Last: it reads the environment and files, and only matters for a
     # mission that is otherwise fine.
     deploy.require_deployment(mission)
+
+
+def _check_pythonpath(mission: Mission) -> None:
+    """Every directory the mission's code is imported from exists."""
+    for i, d in enumerate(mission.pythonpath or ()):
+        if not Path(d).is_dir():
+            raise ConfigError(
+                f"pythonpath directory {d!r} does not exist (entries are relative to the "
+                "mission file)",
+                f"$.pythonpath[{i}]",
+            )
 
 
 def _check_downlink(mission: Mission) -> None:
@@ -113,17 +157,34 @@ def _check_limits(mission: Mission) -> None:
                     raise ConfigError(f"{key} range [{lo}, {hi}] is not [lo, hi]", f"{w}.{key}")
 
 
-def decode_mission(text: bytes | str, source: str = "<string>") -> Mission:
-    """Decode and fully check a mission from YAML text (see :func:`load_mission`)."""
+def decode_mission(
+    text: bytes | str,
+    source: str = "<string>",
+    *,
+    code: bool = True,
+    base_dir: str | Path | None = None,
+) -> Mission:
+    """Decode and fully check a mission from YAML text (see :func:`load_mission`).
+
+    ``base_dir``: the directory the text's file lives in, which relative
+    ``pythonpath`` entries are relative to and which is the default
+    ``pythonpath``. None: relative entries are relative to the current
+    directory and the default is no directory at all (mission code is then
+    imported from ``sys.path`` as it stands).
+    """
     mission = parse_mission(text, source=source)
-    check_mission(mission)
+    mission.pythonpath = resolve_pythonpath(mission.pythonpath, base_dir)
+    check_mission(mission, code=code)
     return mission
 
 
-def load_mission(path: str | Path) -> Mission:
+def load_mission(path: str | Path, *, code: bool = True) -> Mission:
     """Read, decode and check a mission YAML file.
 
-    Blocks on file I/O and on importing the mission's modules. Raises
+    Its ``pythonpath`` comes back absolute (default: the file's directory).
+    ``code=False`` imports no mission code (module doc): for the tools that
+    only need the layouts; the Data Vector layout is the same. Blocks on
+    file I/O and (``code=True``) on importing the mission's modules. Raises
     :class:`ConfigError` naming the YAML path of the first bad field (see the
     module docstring for the order); never returns a partially valid mission.
     """
@@ -132,4 +193,4 @@ def load_mission(path: str | Path) -> Mission:
         text = p.read_bytes()
     except OSError as exc:
         raise ConfigError(f"cannot read mission file {str(p)!r}: {exc.strerror}", "$") from exc
-    return decode_mission(text, source=str(p))
+    return decode_mission(text, source=str(p), code=code, base_dir=p.parent)

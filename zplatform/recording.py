@@ -2,19 +2,21 @@
 
 ``zplatform up --record DIR`` (and ``node MISSION cn --record DIR``) attaches
 a :class:`Recorder` to the CN's :class:`~zplatform.loop.ControlLogic`: every
-input its loop consumed is written, per loop, in call order: the loop number
-and timestamp, each DN reply as it arrived (its bytes, or that the DN
-answered with an error), the ground frame, the sync-overrun flag and the
-skipped periods, and the telemetry frame the loop produced (what a replay
-must reproduce). ``DIR`` holds ``mission.yaml`` (the effective mission) and
-``cn.zrec``; ``zplatform replay DIR`` needs nothing else.
+input its loop consumed is written, per loop, in call order: the loop number,
+timestamp and whether it was the run's last (``final``), each DN reply as it
+arrived (its bytes, or that the DN answered with an error), the ground
+frame, the sync-overrun flag and the skipped periods, the parameter saves
+that finished (:mod:`zplatform.params`), and the telemetry frame the loop
+produced (what a replay must reproduce). ``DIR`` holds
+``mission.yaml`` (the effective mission) and ``cn.zrec``; ``zplatform replay
+DIR`` needs nothing else.
 
 ``cn.zrec``, all integers little-endian::
 
-    header:  b"ZPREC\\0"  u16 version (1)  u32 n  n bytes of JSON metadata
+    header:  b"ZPREC\\0"  u16 version (3)  u32 n  n bytes of JSON metadata
              u32 m  m bytes: the CN's Data Vector when recording started
     items:   u8 type  u8 dn  u32 length  length bytes
-               1 BEGIN      u64 loop, i64 t_ns
+               1 BEGIN      u64 loop, i64 t_ns, u8 final (1: the run's last loop)
                2 REPLY      the reply frame of DN ``dn``
                3 REPLY_ERR  DN ``dn`` answered with an error (length 0)
                4 OVERSIZE   a reply longer than any valid frame: u32 its length
@@ -26,6 +28,10 @@ must reproduce). ``DIR`` holds ``mission.yaml`` (the effective mission) and
                9 DROPPED    u64 loops the recorder could not keep (ring full)
               10 FOREIGN    a sync reply from a key that is no DN's: the key
                             (UTF-8, at most 256 bytes; ``dn`` 255)
+              11 PRM_SAVED  a parameter save finished: u64 its PRM_SAVE number,
+                            u8 ok, then its detail (UTF-8, at most 512 bytes)
+
+Version 2 files (without PRM_SAVED items) are read too.
 
 An oversize frame cannot decode (it is longer than the widest valid
 encoding), so a replay feeds an empty payload in its place: the same bad
@@ -43,7 +49,6 @@ from __future__ import annotations
 
 import json
 import queue
-import shutil
 import struct
 import threading
 import time
@@ -52,31 +57,45 @@ from pathlib import Path
 from typing import BinaryIO
 
 import msgspec
+import yaml
 
 from .auth import TAG_LEN
 from .codec import RegionCodec
-from .config import Mission
+from .config import Mission, relocate_mission
 from .datavector import DataVector, Layout
 from .errors import RecordingError
+from .params import SaveResult
 
 __all__ = ["FOREIGN_DN", "LoopRecord", "RecordReader", "Recorder"]
 
 MAGIC = b"ZPREC\x00"
-VERSION = 1
+VERSION = 3  # 2: BEGIN carries the final-loop flag; 3: PRM_SAVED items
+_READABLE = (2, 3)
 RECORD_FILE = "cn.zrec"
 MISSION_FILE = "mission.yaml"
 
-BEGIN, REPLY, REPLY_ERR, OVERSIZE, GROUND, GROUND_OVERSIZE, TELEMETRY, FINISH, DROPPED, FOREIGN = (
-    range(1, 11)
-)
+(
+    BEGIN,
+    REPLY,
+    REPLY_ERR,
+    OVERSIZE,
+    GROUND,
+    GROUND_OVERSIZE,
+    TELEMETRY,
+    FINISH,
+    DROPPED,
+    FOREIGN,
+    PRM_SAVED,
+) = range(1, 12)
 #: ``LoopRecord.replies`` entry index of a FOREIGN reply (its payload is the key).
 FOREIGN_DN = -1
 
 _ITEM = struct.Struct("<BBI")  # type, dn, length
-_BEGIN = struct.Struct("<Qq")
+_BEGIN = struct.Struct("<QqB")
 _FINISH = struct.Struct("<BIII")
 _U32 = struct.Struct("<I")
 _U64 = struct.Struct("<Q")
+_SAVED = struct.Struct("<QB")
 _HEAD = struct.Struct("<6sHI")
 
 
@@ -84,7 +103,8 @@ class Recorder:
     """Records a CN's loop inputs into ``directory`` (module doc).
 
     Construction creates the directory, copies ``mission_source`` (the
-    mission file the CN loaded) into it, writes the header with ``dv``'s
+    mission file the CN loaded; its ``pythonpath`` made absolute, so the copy
+    finds the mission's code from anywhere) into it, writes the header with ``dv``'s
     bytes as they are now (call it after the warm-up, before loop 1) and
     starts the writer thread; RecordingError if any of that fails. The
     ``begin``/``reply``/``finish`` methods implement
@@ -145,7 +165,11 @@ class Recorder:
         self.error: str | None = None
         try:
             self.directory.mkdir(parents=True, exist_ok=True)
-            shutil.copyfile(mission_source, self.directory / MISSION_FILE)
+            # The recorded mission must find its code from the recording's
+            # directory too: its pythonpath is made absolute.
+            raw = yaml.safe_load(Path(mission_source).read_text())
+            relocate_mission(raw, mission_source)
+            (self.directory / MISSION_FILE).write_text(yaml.safe_dump(raw, sort_keys=False))
             self._file: BinaryIO = open(self.directory / RECORD_FILE, "wb")  # noqa: SIM115
             meta = json.dumps(
                 {
@@ -162,7 +186,7 @@ class Recorder:
             init = bytearray(dv.size)
             dv.read_all(init)
             self._file.write(_U32.pack(len(init)) + init)
-        except OSError as exc:
+        except (OSError, yaml.YAMLError) as exc:
             raise RecordingError(f"cannot record into {str(self.directory)!r}: {exc}") from exc
         self._writer = threading.Thread(target=self._write_loop, name="recorder", daemon=True)
         self._writer.start()
@@ -208,7 +232,7 @@ class Recorder:
             self._mv[off : off + n] = payload
         self._off = off + n
 
-    def begin(self, loop: int, t_ns: int) -> None:
+    def begin(self, loop: int, t_ns: int, final: bool = False) -> None:
         if self._dropping:
             # Resume only at a loop boundary, with a chunk free.
             if self._free.empty():
@@ -229,7 +253,7 @@ class Recorder:
                 return
         off = self._off
         _ITEM.pack_into(self._mv, off, BEGIN, 0, _BEGIN.size)
-        _BEGIN.pack_into(self._mv, off + _ITEM.size, loop, t_ns)
+        _BEGIN.pack_into(self._mv, off + _ITEM.size, loop, t_ns, final)
         self._off = off + _ITEM.size + _BEGIN.size
         self._open_loop = True
 
@@ -258,11 +282,18 @@ class Recorder:
         loop_overruns: int,
         inbox_dropped: int,
         inbox_oversize: int,
+        saves: Sequence[SaveResult],
         telemetry: bytearray | None,
     ) -> None:
         if not self._dropping:
             self._finish(
-                grounds, sync_overrun, loop_overruns, inbox_dropped, inbox_oversize, telemetry
+                grounds,
+                sync_overrun,
+                loop_overruns,
+                inbox_dropped,
+                inbox_oversize,
+                saves,
+                telemetry,
             )
         if self._open_loop:
             self._open_loop = False
@@ -279,8 +310,13 @@ class Recorder:
         loop_overruns: int,
         inbox_dropped: int,
         inbox_oversize: int,
+        saves: Sequence[SaveResult],
         telemetry: bytearray | None,
     ) -> None:
+        for save in saves:  # rare: a PRM_SAVE finished
+            detail = save.detail.encode(errors="replace")[:512]
+            body = _SAVED.pack(save.seq, save.ok) + detail
+            self._put(PRM_SAVED, 0, body, len(body))
         for ground in grounds:
             if len(ground) > self._max_ground:
                 self._put(GROUND_OVERSIZE, 0, _U32.pack(min(len(ground), 0xFFFF_FFFF)), 4)
@@ -319,6 +355,7 @@ class LoopRecord(msgspec.Struct, frozen=True):
 
     loop: int
     t_ns: int
+    final: bool
     replies: list[tuple[int, bytes | None]]
     grounds: list[bytes]
     sync_overrun: bool
@@ -326,6 +363,7 @@ class LoopRecord(msgspec.Struct, frozen=True):
     inbox_dropped: int
     inbox_oversize: int
     telemetry: bytes | None
+    saves: list[SaveResult] = []
 
 
 class RecordReader:
@@ -350,8 +388,10 @@ class RecordReader:
             magic, version, n = _HEAD.unpack_from(d, 0)
             if magic != MAGIC:
                 raise RecordingError(f"{path} is not a zplatform recording")
-            if version != VERSION:
-                raise RecordingError(f"{path}: recording version {version}, expected {VERSION}")
+            if version not in _READABLE:
+                raise RecordingError(
+                    f"{path}: recording version {version}, expected one of {_READABLE}"
+                )
             off = _HEAD.size
             self.meta = json.loads(d[off : off + n])
             off += n
@@ -381,9 +421,11 @@ class RecordReader:
         end = len(d)
         in_loop = False
         loop = t = 0
+        final = False
         grounds: list[bytes] = []
         telemetry: bytes | None = None
         replies: list[tuple[int, bytes | None]] = []
+        saves: list[SaveResult] = []
         while off < end:
             if off + _ITEM.size > end:
                 self.complete = False
@@ -396,11 +438,13 @@ class RecordReader:
             body = d[off : off + n]
             off += n
             if typ == BEGIN:
-                loop, t = _BEGIN.unpack(body)
+                loop, t, final_byte = _BEGIN.unpack(body)
+                final = bool(final_byte)
                 in_loop = True
                 telemetry = None
                 grounds = []
                 replies = []
+                saves = []
             elif typ == DROPPED:
                 self.dropped_loops += _U64.unpack(body)[0]
                 self.complete = False
@@ -422,9 +466,15 @@ class RecordReader:
                 grounds.append(b"")
             elif typ == TELEMETRY:
                 telemetry = body
+            elif typ == PRM_SAVED and n >= _SAVED.size:
+                seq, ok = _SAVED.unpack_from(body)
+                detail = body[_SAVED.size :].decode(errors="replace")
+                saves.append(SaveResult(seq, bool(ok), detail))
             elif typ == FINISH:
                 so, lo, dr, ov = _FINISH.unpack(body)
-                yield LoopRecord(loop, t, replies, grounds, bool(so), lo, dr, ov, telemetry)
+                yield LoopRecord(
+                    loop, t, final, replies, grounds, bool(so), lo, dr, ov, telemetry, saves
+                )
                 in_loop = False
             else:
                 self.complete = False

@@ -17,7 +17,7 @@ import msgspec
 
 from .config import Mission
 from .datavector import DataVector
-from .uplink import CommandOutcome
+from .ground.records import CommandOutcome
 
 __all__ = [
     "CnSummary",
@@ -70,10 +70,21 @@ class DnSummary(msgspec.Struct, frozen=True):
     bad_frames: int
     errors: int
     stale_queries: int
+    safed_why: str = ""
+    """Why the node's actuators were safed when it stopped serving triggers
+    ("" when they were not): the control node's run ended (its final loop),
+    or no valid trigger came (a lost control node). A clean exit safes them
+    after this summary is taken."""
 
 
 class GnSummary(msgspec.Struct, frozen=True):
-    """The ground node's (or ``zplatform log``'s) run: telemetry and commands."""
+    """The ground node's (or ``zplatform log``'s) run: telemetry and commands.
+
+    ``telemetry_bad`` counts every snapshot not applied (malformed,
+    unauthenticated or refused); ``telemetry_refused`` breaks the refusals
+    down by reason (:data:`zplatform.ground.records.REFUSALS`);
+    ``epoch_changes``: control node restarts the ground followed;
+    ``events_logged``: event records written to the events file."""
 
     telemetry_received: int
     telemetry_gaps: int
@@ -84,6 +95,9 @@ class GnSummary(msgspec.Struct, frozen=True):
     commands: list[CommandOutcome] = []
     pending_commands: list[str] = []
     node: str = "gn"
+    telemetry_refused: dict[str, int] = {}
+    epoch_changes: int = 0
+    events_logged: int = 0
 
 
 class RunSummary(msgspec.Struct, frozen=True):

@@ -30,6 +30,13 @@ Why the query stays open one loop period (not just the sync deadline): a
 reply that misses the deadline still arrives and is handed to the next
 loop's ``reply``, which counts it late (``cn_late_dnX``) instead of it
 vanishing inside zenoh. It is never applied.
+
+Tracing (:data:`SyncTrace`): both ends take an optional ``trace`` callable,
+called at each hop of an exchange with the hop's name, so a benchmark
+(``python -m bench.sync_trace``) can stamp where a sync's time goes without
+touching the classes' insides. Without one (the default, and every flight
+node) the hand-offs are the untraced ones and the loop pays one ``is None``
+test per query and reply.
 """
 
 from __future__ import annotations
@@ -46,11 +53,30 @@ from .codec import BundleEncoder
 from .loop import ControlLogic, DeviceLogic
 from .transport import KeySpace, is_matching
 
-__all__ = ["ControlSync", "DeviceSync", "TapPublisher"]
+__all__ = ["ControlSync", "DeviceSync", "SyncTrace", "TapPublisher"]
 
 _DROP = zenoh.CongestionControl.DROP
 _ALL = zenoh.QueryTarget.ALL
 _FOREIGN = -1  # a reply whose key is no DN's: counted as a bad frame
+
+SyncTrace = Callable[[str, int], None]
+"""``trace(hop, n)``: one hop of a sync exchange, called where it happens
+(stamp the time inside; return at once, never block, never raise).
+
+Control node (:class:`ControlSync`), ``n`` the DN's index:
+
+* ``"issued"``: loop thread, just before the query to DN ``n`` is sent (a
+  wildcard query: once per DN, before the one query);
+* ``"back"``: zenoh's thread, DN ``n``'s reply being handed to the loop;
+* ``"taken"``: loop thread, DN ``n``'s reply taken from the hand-off.
+
+Device node (:class:`DeviceSync`):
+
+* ``"arrive"``: zenoh's thread, a query being handed to the loop (``n`` 0);
+* ``"serve"``: loop thread, the query taken from the hand-off (``n`` 0);
+* ``"replied"``: loop thread, the reply sent; ``n`` is the CN loop the
+  query carried (``DeviceLogic.last_loop``).
+"""
 
 
 class TapPublisher:
@@ -83,7 +109,8 @@ class ControlSync:
     """The CN end: query every DN with its frame, hand replies to the loop.
 
     Not thread-safe: call :meth:`sync` from the loop thread only. Blocks for
-    at most ``timeout_ns`` (plus scheduling latency).
+    at most ``timeout_ns`` (plus scheduling latency). ``trace``: a
+    :data:`SyncTrace` for benchmarks (None: no tracing).
     """
 
     def __init__(
@@ -96,8 +123,10 @@ class ControlSync:
         *,
         wildcard: bool = False,
         monotonic: Callable[[], int] = time.monotonic_ns,
+        trace: SyncTrace | None = None,
     ) -> None:
         self.session = session
+        self._trace = trace
         self.dns = list(dns)
         self.wildcard = wildcard and bool(dns)
         self.timeout_ns = timeout_ns
@@ -132,9 +161,7 @@ class ControlSync:
         # Flight queries have no drop callback: zenoh finalises every query
         # (one more message per DN and loop), and a Python callback there
         # would take the GIL on zenoh's thread for nothing. Warm-up queries
-        # count their finalisations so start-up can wait them out. The
-        # hand-offs capture self._q (bench.sync_trace swaps it, then calls
-        # this again).
+        # count their finalisations so start-up can wait them out.
         handoffs = [self._make_handoff(i) for i in range(len(self.dns))]
         self._callbacks = [zenoh.handlers.Callback(h, indirect=False) for h in handoffs]
         self._counted = [
@@ -165,7 +192,15 @@ class ControlSync:
             if err is None or err.payload.to_bytes() != b"Timeout":
                 q.put((i, None))
 
-        return handoff
+        trace = self._trace
+        if trace is None:
+            return handoff
+
+        def traced(reply: zenoh.Reply) -> None:
+            trace("back", i)
+            handoff(reply)
+
+        return traced
 
     def _handoff_any(self, reply: zenoh.Reply) -> None:
         # zenoh's thread: find whose reply it is, extract the bytes, hand off.
@@ -177,6 +212,8 @@ class ControlSync:
             if i is None:
                 self._q.put((_FOREIGN, key))
             else:
+                if self._trace is not None:
+                    self._trace("back", i)
                 if rid is not None:
                     self._zids[i] = rid.zid  # who answers for DN i (a restart changes it)
                 self._q.put((i, ok.payload.to_bytes()))
@@ -206,11 +243,15 @@ class ControlSync:
         deadline = start + self.timeout_ns
         n = len(self.dns)
         callbacks = self._callbacks
+        trace = self._trace
         if warmup:
             callbacks = self._counted
             self._idle.clear()
             self._issued += 1 if self.wildcard else n
         if self.wildcard:
+            if trace is not None:
+                for i in range(n):
+                    trace("issued", i)
             self.session.get(
                 self._all,
                 self._any_counted if warmup else self._any,
@@ -226,6 +267,8 @@ class ControlSync:
                 # BLOCKing get would freeze the CN's loop for seconds; a
                 # dropped query is a missed sync, counted like any other
                 # (tests/faults, cable cut).
+                if trace is not None:
+                    trace("issued", i)
                 self.session.get(
                     self._keys[i],
                     callbacks[i],
@@ -251,6 +294,8 @@ class ControlSync:
             if i == _FOREIGN:
                 logic.foreign_reply(payload)
             else:
+                if trace is not None:
+                    trace("taken", i)
                 reply(i, payload)
         end = self._mono()
         self.duration_ns = end - start
@@ -285,7 +330,8 @@ class DeviceSync:
     (``logic.triggered``). If queries piled up while this node was not
     scheduled, every one but the newest is answered with ``may_run=False``:
     like the CN's scheduler, a stalled DN skips missed loops and never runs
-    a burst of old ones.
+    a burst of old ones. ``trace``: a :data:`SyncTrace` for benchmarks
+    (None: no tracing).
     """
 
     def __init__(
@@ -294,15 +340,26 @@ class DeviceSync:
         keys: KeySpace,
         dn: str,
         now_ns: Callable[[], int],
+        *,
+        trace: SyncTrace | None = None,
     ) -> None:
         self.dn = dn
         self._now = now_ns
+        self._trace = trace
         self._key = keys.dn_to_cn(dn)
         self._err_prefix = f"{dn}: ".encode()
         self._q: queue.SimpleQueue[zenoh.Query] = queue.SimpleQueue()
         self._tap = TapPublisher(session, self._key)
+        handoff: Callable[[zenoh.Query], None] = self._q.put
+        if trace is not None:
+            q = self._q
+
+            def handoff(query: zenoh.Query) -> None:
+                trace("arrive", 0)
+                q.put(query)
+
         self.queryable = session.declare_queryable(
-            self._key, zenoh.handlers.Callback(self._q.put, indirect=False)
+            self._key, zenoh.handlers.Callback(handoff, indirect=False)
         )
 
     def wait(self, logic: DeviceLogic, timeout_s: float) -> bool:
@@ -325,6 +382,9 @@ class DeviceSync:
                 return True
 
     def _serve(self, query: zenoh.Query, logic: DeviceLogic, *, may_run: bool) -> None:
+        trace = self._trace
+        if trace is not None:
+            trace("serve", 0)
         with query:
             payload = query.payload
             data = payload.to_bytes() if payload is not None else b""
@@ -332,9 +392,12 @@ class DeviceSync:
             if reply is None:
                 # "dnX: reason": a wildcard query's error replies carry no key.
                 query.reply_err(self._err_prefix + logic.reject_reason.encode())
-                return
-            query.reply(self._key, reply)
-        self._tap.put(reply)
+            else:
+                query.reply(self._key, reply)
+        if trace is not None:
+            trace("replied", logic.last_loop)
+        if reply is not None:
+            self._tap.put(reply)
 
     def close(self) -> None:
         self.queryable.undeclare()

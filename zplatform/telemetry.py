@@ -31,11 +31,12 @@ from pathlib import Path
 from types import TracebackType
 from typing import Any, NamedTuple, TextIO
 
+import msgspec
 import numpy as np
 
 from .datavector import DataVector, ElementSpec, Layout
 from .errors import DataVectorError
-from .events import Event
+from .ground.records import EventRecord
 
 __all__ = [
     "MAX_ARRAY_COLUMNS",
@@ -47,7 +48,6 @@ __all__ = [
     "plot_markers",
     "plot_telemetry",
     "read_csv",
-    "read_events",
 ]
 
 MAX_ARRAY_COLUMNS = 16
@@ -213,8 +213,9 @@ def events_path(csv_path: str | Path) -> Path:
 class EventWriter:
     """Writes event records as JSON lines, one object per event, in arrival order.
 
-    Each line: ``rx_time_ns`` (the receiver's clock, as in the CSV), then the
-    event's ``node``, ``seq``, ``t_ns``, ``severity`` (its name), ``id`` and
+    Each line is a :class:`~zplatform.ground.records.EventRecord`:
+    ``rx_time_ns`` (the receiver's clock, as in the CSV), then the event's
+    ``node``, ``seq``, ``t_ns``, ``severity`` (its name), ``id`` and
     ``text``. Flushed after each event: events are rare and an operator may
     ``tail -f`` the file.
     """
@@ -224,17 +225,8 @@ class EventWriter:
         self._f: TextIO = open(self.path, "w", encoding="utf-8")  # noqa: SIM115
         self.count = 0
 
-    def write(self, rx_time_ns: int, e: Event) -> None:
-        rec = {
-            "rx_time_ns": rx_time_ns,
-            "node": e.node,
-            "seq": e.seq,
-            "t_ns": e.t_ns,
-            "severity": e.severity_name,
-            "id": e.id,
-            "text": e.text,
-        }
-        self._f.write(json.dumps(rec, ensure_ascii=False) + "\n")
+    def write(self, rec: EventRecord) -> None:
+        self._f.write(json.dumps(msgspec.to_builtins(rec), ensure_ascii=False) + "\n")
         self._f.flush()
         self.count += 1
 
@@ -248,12 +240,6 @@ class EventWriter:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
-
-
-def read_events(path: str | Path) -> list[dict[str, Any]]:
-    """Read an events JSONL file (blank lines skipped)."""
-    with open(path, encoding="utf-8") as f:
-        return [json.loads(line) for line in f if line.strip()]
 
 
 # ---------------------------------------------------------------- plots

@@ -37,7 +37,7 @@ from typing import Any
 import yaml
 import zenoh
 
-from .config import Mission
+from .config import Mission, relocate_mission
 from .deploy import Deployment, deployment_from_env, zenoh_settings
 from .errors import TransportError
 from .messages import lowlatency_for
@@ -310,11 +310,18 @@ def rewrite_endpoints(src: str | Path, dst: str | Path, host: str = "127.0.0.1")
     """Copy mission ``src`` to ``dst`` with every node on a fresh free port.
 
     Each node listens on ``tcp/{host}:{port}``; each non-CN node connects to
-    the CN. Returns ``{node: port}``. For running a shipped mission beside
-    another one (tests, benchmarks) without port clashes.
+    the CN. The copy's ``pythonpath`` is made absolute
+    (:func:`~zplatform.config.relocate_mission`), so it finds the mission's
+    code wherever ``dst`` is. A vehicle world gets a free UDP port (``world``
+    in the result), and each pty it serves (``serve_serial``) a path beside
+    ``dst``, which the node's serial board follows. Returns ``{node: port}``.
+    For running a shipped mission beside another one (tests, benchmarks)
+    without clashes.
     """
     raw = yaml.safe_load(Path(src).read_text())
+    relocate_mission(raw, src)
     nodes = raw.get("nodes") or {}
+    world = raw.get("world")
     # Hold every socket until all are bound: ports picked one after the other
     # (each socket closed at once) may come back twice from the OS.
     with contextlib.ExitStack() as stack:
@@ -323,6 +330,16 @@ def rewrite_endpoints(src: str | Path, dst: str | Path, host: str = "127.0.0.1")
             s = stack.enter_context(socket.socket(socket.AF_INET, socket.SOCK_STREAM))
             s.bind(("127.0.0.1", 0))
             ports[name] = int(s.getsockname()[1])
+        if isinstance(world, dict):
+            s = stack.enter_context(socket.socket(socket.AF_INET, socket.SOCK_DGRAM))
+            s.bind(("127.0.0.1", 0))
+            ports["world"] = int(s.getsockname()[1])
+            world["listen"] = f"127.0.0.1:{ports['world']}"
+            for n in list(world.get("serve_serial") or {}):
+                link = str(Path(dst).resolve().parent / f"{Path(dst).stem}-{n}.pty")
+                world["serve_serial"][n] = link
+                if isinstance(nodes.get(n), dict) and isinstance(nodes[n].get("board"), dict):
+                    nodes[n]["board"]["port"] = link
     cn_ep = f"tcp/{host}:{ports['cn']}" if "cn" in ports else None
     for name, node in nodes.items():
         node = node or {}

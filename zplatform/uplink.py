@@ -1,11 +1,12 @@
 """The ground side of operator commands, sans-IO: scripts, element
-resolution, request framing, and reading the verdict.
+resolution and request framing.
 
 Everything that turns an operator's ``launch`` or ``write led_a_cmd true``
-into a ``gn_to_cn`` frame lives here, and so does the one rule for reading
-the CN's answer (:func:`verdict`). The zenoh tools (``zplatform cmd``,
-``ground``, the ground node playing a script) and the lockstep runner use
-these same pieces, so a script means the same thing live and in ``sim``.
+into a ``gn_to_cn`` frame lives here. Reading the CN's answer, numbering
+requests and playing scripts over time are the ground logic's
+(:mod:`zplatform.ground.logic`, :mod:`zplatform.ground.script`), which the
+zenoh tools and the lockstep runner share, so a script means the same thing
+live and in ``sim``.
 
 Command scripts (:func:`parse_commands`, :func:`load_commands`) have one
 command per line, ``#`` starts a comment::
@@ -13,17 +14,13 @@ command per line, ``#`` starts a comment::
     at 0.5 arm
     at 1.0 launch
     at 2.0 write seq_leds_mode manual
+    at 3.0 prm_set apogee_target_m 550
+    at 3.1 prm_save
     at 9.0 abort
 
-Times are seconds (decimal, read exactly) from the start of loop 1. A
-command at time ``T`` is due in the first loop ``n`` whose start
-``(n - 1) * period`` is at or after ``T``: :class:`ScriptPlayer` sends it
-when it sees the telemetry of loop ``n - 1``, so the CN applies it in loop
-``n`` in every driver (loop numbers, not wall-clock times, so live runs and
-``sim`` agree). The ground answers telemetry, so a command due in loop 1
-goes in loop 2. Commands go out one at a time: the next is sent only after
-the CN's verdict on the previous one is seen, so numbers stay consecutive
-(ARM n, LAUNCH n+1), and two commands due together go in consecutive loops.
+Times are seconds (decimal, read exactly) from the start of loop 1; when a
+command is due and how commands follow each other is
+:mod:`zplatform.ground.script`'s to say.
 """
 
 from __future__ import annotations
@@ -36,26 +33,26 @@ from typing import Any
 
 import msgspec
 
-from .auth import mission_channels
+from .auth import KeySet, channel
 from .codec import RegionCodec
 from .config import CMD_NAMES, Mission
 from .datavector import DataVector, Layout
 from .errors import CommandError, DataVectorError
 
 __all__ = [
-    "CommandOutcome",
     "ScriptCommand",
-    "ScriptPlayer",
+    "Uplink",
     "element_index",
     "fill_request",
     "load_commands",
     "parse_commands",
+    "resolve_param",
     "resolve_write",
     "validate_command",
-    "verdict",
 ]
 
 _COMMANDS = tuple(c.lower() for c in CMD_NAMES if c != "NONE")
+_TWO_ARGS = {"write": "ELEMENT VALUE", "prm_set": "PARAMETER VALUE"}
 _LINE_RE = re.compile(r"^at\s+(\S+)\s+(\S+)(?:\s+(.*))?$")
 
 
@@ -64,7 +61,8 @@ class ScriptCommand(msgspec.Struct, frozen=True):
 
     ``at_ns`` is the time from the start of loop 1; ``command`` the upper
     case command name; ``element`` and ``value`` (text as written) for
-    WRITE; ``source`` is ``file:line`` for messages.
+    WRITE, and for PRM_SET the parameter and its value; ``source`` is
+    ``file:line`` for messages.
     """
 
     at_ns: int
@@ -72,24 +70,6 @@ class ScriptCommand(msgspec.Struct, frozen=True):
     element: str | None = None
     value: str | None = None
     source: str = "<script>"
-
-
-class CommandOutcome(msgspec.Struct, frozen=True):
-    """The CN's verdict on one command: number ``seq``, seen in the telemetry
-    of loop ``loop`` (the loop that applied it), ``t_ns`` after the start of
-    loop 1; ``status`` is a ``cn_cmd_status`` name, or ``NO_VERDICT`` when the
-    CN never answered. ``source`` is the script line (``file:line``) if any."""
-
-    command: str
-    seq: int
-    status: str
-    loop: int = 0
-    t_ns: int = 0
-    source: str = ""
-
-    @property
-    def accepted(self) -> bool:
-        return self.status == "ACCEPTED"
 
 
 # ---------------------------------------------------------------------------
@@ -110,8 +90,9 @@ def parse_commands(text: str, source: str = "<string>") -> list[ScriptCommand]:
     """Parse a command script (module doc); raises CommandError naming ``source:line``.
 
     Checks the syntax and command names only; elements and values of WRITE
-    are checked against the mission by :class:`ScriptPlayer`. The result is
-    in time order (stable: file order for equal times).
+    (parameters and values of PRM_SET) are checked against the mission by the player
+    (:class:`~zplatform.ground.script.ScriptPlayer`). The result is in time
+    order (stable: file order for equal times).
     """
     out: list[ScriptCommand] = []
     for n, raw in enumerate(text.splitlines(), start=1):
@@ -129,10 +110,10 @@ def parse_commands(text: str, source: str = "<string>") -> list[ScriptCommand]:
             raise CommandError(
                 f"{where}: unknown command {m.group(2)!r}; expected one of {', '.join(_COMMANDS)}"
             )
-        if cmd == "write":
+        if cmd in _TWO_ARGS:
             if len(args) != 2:
-                raise CommandError(f"{where}: write takes ELEMENT VALUE, got {args}")
-            out.append(ScriptCommand(at_ns, "WRITE", args[0], args[1], where))
+                raise CommandError(f"{where}: {cmd} takes {_TWO_ARGS[cmd]}, got {args}")
+            out.append(ScriptCommand(at_ns, cmd.upper(), args[0], args[1], where))
             continue
         if args:
             raise CommandError(f"{where}: {cmd} takes no arguments, got {' '.join(args)!r}")
@@ -203,32 +184,66 @@ def resolve_write(layout: Layout, element: str, value: str, where: str) -> tuple
     return spec.index, num
 
 
+def resolve_param(mission: Mission, name: str, value: str, where: str) -> tuple[int, float]:
+    """``(gn_cmd_element, gn_cmd_value)`` of ``prm_set name value``.
+
+    ``value`` is a number, or true/false/on/off for a bool parameter.
+    Raises CommandError naming ``where`` for an unknown parameter, a value
+    that does not fit its type or lies outside its ``[min, max]`` (the CN
+    checks again)."""
+    params = {p.name: p for p in mission.params}
+    if not params:
+        raise CommandError(f"{where}: mission {mission.mission!r} has no parameters")
+    p = params.get(name)
+    if p is None:
+        close = difflib.get_close_matches(name, list(params), n=3)
+        listed = ", ".join(close) if close else ""
+        hint = f"; did you mean {listed}?" if close else f"; parameters: {', '.join(params)}"
+        raise CommandError(f"{where}: no parameter named {name!r}{hint}")
+    index, num = resolve_write(Layout.for_node(mission, "cn"), name, value, where)
+    if p.min is not None and p.max is not None and not p.min <= num <= p.max:
+        units = f" {p.units}" if p.units else ""
+        raise CommandError(
+            f"{where}: {value} is outside {name}'s bounds [{p.min!r}, {p.max!r}]{units}"
+        )
+    return index, num
+
+
 def validate_command(
     mission: Mission,
     command: str,
     element: str | None = None,
     value: str | None = None,
-    where: str = "write",
+    where: str | None = None,
 ) -> tuple[str, int, float]:
     """Check an operator command against the mission before anything is sent.
 
     Returns ``(COMMAND, element index, value)`` as they go into ``gn_to_cn``.
-    Raises CommandError for an unknown command, element, or a value that
-    does not fit the element (enum names and true/false accepted).
+    Raises CommandError for an unknown command, element or parameter, or a
+    value that does not fit the element (enum names and true/false
+    accepted) or the parameter's bounds. ``where`` starts the messages
+    (default: the command's name).
     """
     cmd = command.upper()
+    where = where or cmd.lower()
     if cmd not in CMD_NAMES or cmd == "NONE":
         raise CommandError(
             f"unknown command {command!r}; expected one of "
             f"{', '.join(c.lower() for c in CMD_NAMES[1:])}"
         )
-    if cmd != "WRITE":
+    args = _TWO_ARGS.get(cmd.lower())
+    if args is None:
         if element is not None:
             raise CommandError(f"{command} takes no arguments")
+        if cmd == "PRM_SAVE" and not mission.params:
+            raise CommandError(f"mission {mission.mission!r} has no parameters to save")
         return cmd, 0, 0.0
     if element is None or value is None:
-        raise CommandError("write needs ELEMENT VALUE")
-    index, num = resolve_write(Layout.for_node(mission, "cn"), element, value, where)
+        raise CommandError(f"{cmd.lower()} needs {args}")
+    if cmd == "PRM_SET":
+        index, num = resolve_param(mission, element, value, where)
+    else:
+        index, num = resolve_write(Layout.for_node(mission, "cn"), element, value, where)
     return cmd, index, num
 
 
@@ -270,30 +285,21 @@ def fill_request(
         raise CommandError(f"cannot fill a command request: {exc}") from exc
 
 
-def verdict(telemetry: DataVector, seq: int) -> str | None:
-    """The CN's verdict on request ``seq`` as a telemetry snapshot shows it
-    (a ``cn_cmd_status`` name), or None while the snapshot does not answer
-    that number yet."""
-    if int(telemetry.get("cn_cmd_seq")) == seq and telemetry.get_name("cn_cmd_status") != "NONE":
-        return telemetry.get_name("cn_cmd_status")
-    return None
-
-
 class Uplink:
     """Frames command requests: one ``gn_to_cn`` vector, its codec, and the
-    mission key's ``gn_to_cn`` channel (None: the mission does not
+    uplink's ``gn_to_cn`` channel from ``keys`` (None: the mission does not
     authenticate).
 
     :meth:`frame` returns a buffer of its own (reused by the next call).
     """
 
-    def __init__(self, mission: Mission, key: bytes | None = None) -> None:
+    def __init__(self, mission: Mission, keys: KeySet | None = None) -> None:
         if not mission.has_ground:
             raise CommandError(f"mission {mission.mission!r} has no ground node 'gn'")
         self.mission = mission
         self.req = DataVector(Layout.for_regions(mission, ["gn_to_cn"]))
         self._codec = RegionCodec(self.req, "gn_to_cn")
-        self._seal = mission_channels(mission, key).get("gn_to_cn")
+        self._seal = channel(keys, "gn_to_cn")
 
     def frame(
         self, command: str, seq: int, index: int, value: float, t_ns: int, epoch: int = 0
@@ -302,112 +308,3 @@ class Uplink:
         fill_request(self.req, command, seq, index, value, epoch)
         frame = self._codec.encode(seq, t_ns)
         return self._seal.seal(frame) if self._seal is not None else frame
-
-
-class _Entry(msgspec.Struct, frozen=True):
-    due_loop: int
-    command: ScriptCommand
-    cmd: str
-    index: int
-    value: float
-
-
-class ScriptPlayer:
-    """Plays a command script from the ground side (module doc), sans-IO.
-
-    Construction resolves every line against the mission (CommandError
-    naming ``file:line``). Call :meth:`on_telemetry` with each telemetry
-    snapshot (a CN-layout Data Vector); it returns a request frame to send
-    now, or None. ``can_send=False`` (the CN is not listening yet) holds
-    the next command back. A command whose verdict does not show within
-    ``resend_loops`` loops (a lost frame) is sent again with the same number
-    (a duplicate that did arrive is refused as a replay, and its first
-    verdict still shows), at most ``tries`` times, then recorded as
-    ``NO_VERDICT``. Never blocks.
-    """
-
-    def __init__(
-        self,
-        mission: Mission,
-        script: list[ScriptCommand],
-        *,
-        resend_loops: int = 100,
-        tries: int = 3,
-        key: bytes | None = None,
-    ) -> None:
-        if script and not mission.has_ground:
-            raise CommandError(
-                f"{script[0].source}: mission {mission.mission!r} has no ground node 'gn' "
-                "to send commands"
-            )
-        self.mission = mission
-        period = mission.period_ns
-        self._period = period
-        entries = []
-        for c in sorted(script, key=lambda c: c.at_ns):
-            cmd, index, value = validate_command(mission, c.command, c.element, c.value, c.source)
-            entries.append(_Entry(1 + -(-c.at_ns // period), c, cmd, index, value))
-        self._script = entries
-        self._next = 0
-        self._uplink = Uplink(mission, key) if mission.has_ground else None
-        self._waiting: _Entry | None = None
-        self._seq = 0
-        self._sent_loop = 0
-        self._tries = 0
-        self._resend = resend_loops
-        self._max_tries = tries
-        self.results: list[CommandOutcome] = []
-
-    @property
-    def done(self) -> bool:
-        """Every command was sent and has its verdict."""
-        return self._next == len(self._script) and self._waiting is None
-
-    @property
-    def pending(self) -> list[str]:
-        """Sources (``file:line``) of the commands not sent yet."""
-        return [e.command.source for e in self._script[self._next :]]
-
-    def on_telemetry(self, tm: DataVector, *, can_send: bool = True) -> bytearray | None:
-        loop = int(tm.get("cn_loop"))
-        w = self._waiting
-        if w is not None:
-            status = verdict(tm, self._seq)
-            if status is None and loop - self._sent_loop >= self._resend:
-                if self._tries >= self._max_tries:
-                    status = "NO_VERDICT"
-                elif can_send:
-                    return self._send(w, loop, tm, resend=True)
-            if status is None:
-                return None
-            self.results.append(
-                CommandOutcome(
-                    w.cmd, self._seq, status, loop, (loop - 1) * self._period, w.command.source
-                )
-            )
-            self._waiting = None
-        if self._next == len(self._script) or not can_send:
-            return None
-        e = self._script[self._next]
-        if e.due_loop > loop + 1:
-            return None
-        self._next += 1
-        return self._send(e, loop, tm, resend=False)
-
-    def _send(self, e: _Entry, loop: int, tm: DataVector, *, resend: bool) -> bytearray:
-        assert self._uplink is not None
-        if resend:
-            self._tries += 1
-        else:
-            self._seq = int(tm.get("cn_cmd_seq")) + 1
-            self._tries = 1
-            self._waiting = e
-        self._sent_loop = loop
-        return self._uplink.frame(
-            e.cmd,
-            self._seq,
-            e.index,
-            e.value,
-            int(tm.get("cn_time_ns")),
-            int(tm.get("cn_epoch")),
-        )

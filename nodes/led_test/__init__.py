@@ -46,7 +46,7 @@ class StateLedController(Controller):
         for state, element in self.config.leds.items():
             if state not in names:
                 raise ConfigError(
-                    f"{self.name}: {state!r} is not a state; states: {list(names)}",
+                    f"{state!r} is not a state; states: {list(names)}",
                     f"{self.where}.config.leds.{state}",
                 )
             pairs.append((names.index(state), self.output(element, f"leds.{state}", kinds=_BOOL)))

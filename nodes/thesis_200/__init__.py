@@ -17,9 +17,9 @@ import math
 
 import msgspec
 
+from zplatform.boards import SimBoard
 from zplatform.controllers import Controller
 from zplatform.datavector import DataVector
-from zplatform.devices import SimBoard
 
 __all__ = ["Mirror", "waves"]
 

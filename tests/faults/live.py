@@ -66,10 +66,11 @@ import zenoh
 from tests.faults.missions import relay_links
 from tests.faults.relay import FaultRelay
 from tests.integration.harness import CONFIGS, Cluster
+from zplatform.auth import load_keys
 from zplatform.datavector import DataVector, Layout
-from zplatform.events import decode_event
+from zplatform.events import EventReader
+from zplatform.ground.link import GroundLink
 from zplatform.mission import load_mission
-from zplatform.node.ground import CommandSender
 
 MISSION = CONFIGS / "minimal.yaml"
 PERIOD_S = 0.01
@@ -244,7 +245,8 @@ class Live(Cluster):
             self.mission = load_mission(self.path)
         self.snaps: list[Snap] = []
         self.events: list[tuple[float, dict[str, Any]]] = []
-        self._ev_q: queue.SimpleQueue[tuple[float, bytes]] = queue.SimpleQueue()
+        self._ev_q: queue.SimpleQueue[tuple[float, str, bytes]] = queue.SimpleQueue()
+        self._ev_reader = EventReader(self.mission, load_keys(self.mission, "tool"))
         self._ev_sub: Any = None
 
     # -- processes ---------------------------------------------------------
@@ -274,18 +276,19 @@ class Live(Cluster):
             self._ev_sub = self.session.declare_subscriber(
                 f"{self.mission.vehicle}/*/events",
                 zenoh.handlers.Callback(
-                    lambda s: q.put((time.monotonic(), s.payload.to_bytes())), indirect=False
+                    lambda s: q.put((time.monotonic(), str(s.key_expr), s.payload.to_bytes())),
+                    indirect=False,
                 ),
             )
 
     def drain_events(self) -> list[tuple[float, dict[str, Any]]]:
         while True:
             try:
-                t, payload = self._ev_q.get_nowait()
+                t, key, payload = self._ev_q.get_nowait()
             except queue.Empty:
                 return self.events
             with suppress(Exception):
-                ev = decode_event(payload)
+                ev, _ = self._ev_reader.read(key, payload)
                 self.events.append((t, {"node": ev.node, "id": ev.id, "text": ev.text}))
 
     def event_since(self, name: str, node: str, since: float) -> float | None:
@@ -308,9 +311,10 @@ class Live(Cluster):
 
     def _record(self) -> None:
         dv = self.rx.dv
-        if self.rx.received and (not self.snaps or self.snaps[-1].v["_n"] != self.rx.received):
+        received = self.rx.logic.received
+        if received and (not self.snaps or self.snaps[-1].v["_n"] != received):
             v = {k: _get(dv, k) for k in WATCH}
-            v["_n"] = self.rx.received
+            v["_n"] = received
             self.snaps.append(Snap(time.monotonic(), v))
 
     def wait_for(
@@ -964,14 +968,14 @@ def case_flood(tmp: Path, quick: bool) -> CaseResult:
 
         th = threading.Thread(target=flood, daemon=True)
         rss_samples: list[float] = [round(rss0 / 2**20, 1)]
-        bad_rx0 = c.rx.bad
+        bad_rx0 = c.rx.logic.counters.rejected
         t0 = time.monotonic()
         th.start()
         outcome = None
         try:
-            sender = CommandSender(c.mission, timeout_s=10)
+            sender = GroundLink(c.mission, commands=True)
             try:
-                outcome = sender.send("NOOP")
+                (outcome,) = sender.command("NOOP", timeout_s=10)
             finally:
                 sender.close()
             while (left := flood_s - (time.monotonic() - t0)) > 0:
@@ -1011,7 +1015,7 @@ def case_flood(tmp: Path, quick: bool) -> CaseResult:
             cn_bad_frames=c.now("cn_bad_frames") - s1["cn_bad_frames"],
             dn0_bad_frames=c.now("dn0_bad_frames") - s1["dn0_bad_frames"],
             gn_telemetry_bad=gn_bad,
-            test_rx_bad=c.rx.bad - bad_rx0,
+            test_rx_bad=c.rx.logic.counters.rejected - bad_rx0,
             noop=outcome.status if outcome else None,
             cn_rss_growth_mb=round((rss1 - rss0) / 2**20, 1),
             cn_rss_mb_samples=rss_samples,
@@ -1094,7 +1098,7 @@ def case_rogue(tmp: Path, quick: bool) -> CaseResult:
         forged = _frame(lay.layout_id, forged_loop, time.time_ns(), rng.randbytes(lay.size))
         forged += rng.randbytes(32)  # a made-up tag
         pub = c.session.declare_publisher(f"{c.mission.vehicle}/cn/telemetry")
-        bad_rx0 = c.rx.bad
+        bad_rx0 = c.rx.logic.counters.rejected
         for _ in range(5):
             pub.put(forged)
         pub.undeclare()
@@ -1115,7 +1119,7 @@ def case_rogue(tmp: Path, quick: bool) -> CaseResult:
             cn_bad_frames=c.now("cn_bad_frames") - bad0,
             forged_tm_sent=5,
             gn_telemetry_bad=gn.get("telemetry_bad"),
-            test_rx_bad=c.rx.bad - bad_rx0,
+            test_rx_bad=c.rx.logic.counters.rejected - bad_rx0,
             loops_missed=None,
             forged_applied=(rx1 - rx0) + dup,
         )
@@ -1184,7 +1188,7 @@ def watch_main(mission_path: str) -> int:
     """Print the CN's telemetry as JSON lines until stdin closes."""
     import sys
 
-    from zplatform.node.ground import TelemetryReceiver
+    from zplatform.ground.logic import GroundLogic
     from zplatform.timebase import NodeClock
     from zplatform.transport import zenoh_config
 
@@ -1194,7 +1198,16 @@ def watch_main(mission_path: str) -> int:
         # connect to the CN only (a tool connects to every node)
         cfg.insert_json5("connect/endpoints", json.dumps(m.nodes["cn"].listen))
     session = zenoh.open(cfg)
-    rx = TelemetryReceiver(session, m, NodeClock().now_ns)
+    # The ground's own logic on a session of this watcher's (a driver of its own).
+    ground = GroundLogic(m, keys=load_keys(m, "tool"))
+    clock = NodeClock()
+    q: queue.SimpleQueue[tuple[bytes, int]] = queue.SimpleQueue()
+    sub = session.declare_subscriber(
+        f"{m.vehicle}/cn/telemetry",
+        zenoh.handlers.Callback(
+            lambda s: q.put((s.payload.to_bytes(), clock.now_ns())), indirect=False
+        ),
+    )
     done = threading.Event()
 
     def until_eof() -> None:
@@ -1204,13 +1217,17 @@ def watch_main(mission_path: str) -> int:
     threading.Thread(target=until_eof, daemon=True).start()
     try:
         while not done.is_set():
-            if rx.next(0.1) is None:
+            try:
+                payload, rx = q.get(timeout=0.1)
+            except queue.Empty:
                 continue
-            v: dict[str, Any] = {k: _get(rx.dv, k) for k in WATCH}
+            if not ground.on_telemetry(payload, rx):
+                continue
+            v: dict[str, Any] = {k: _get(ground.dv, k) for k in WATCH}
             v["_t"] = time.monotonic()
             print(json.dumps(v), flush=True)
     finally:
-        rx.close()
+        sub.undeclare()
         session.close()
     return 0
 

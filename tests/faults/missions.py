@@ -22,6 +22,7 @@ import yaml
 
 from tests.faults.netns import NetnsHost
 from tests.faults.relay import FaultRelay
+from zplatform.config import relocate_mission
 from zplatform.messages import lowlatency_for
 from zplatform.mission import load_mission
 
@@ -56,6 +57,7 @@ def netns_mission(
 ) -> Path:
     """Copy mission ``src`` to ``dst`` with node ``n`` on ``hosts[n]``."""
     raw = yaml.safe_load(Path(src).read_text())
+    relocate_mission(raw, src)  # the copy finds the mission's code from its own directory
     missing = set(raw["nodes"]) - set(hosts)
     if missing:
         raise ValueError(f"no host for nodes {sorted(missing)}")

@@ -44,7 +44,8 @@ import yaml
 from tests.faults.missions import netns_mission
 from tests.faults.netns import NetnsHost
 from tests.faults.test_netns import readline
-from zplatform.deploy import DEPLOYMENT_ENV, make_test_pki
+from tests.pki import make_test_pki
+from zplatform.deploy import DEPLOYMENT_ENV
 
 ROOT = Path(__file__).resolve().parents[2]
 PY = sys.executable

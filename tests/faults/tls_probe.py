@@ -7,8 +7,9 @@ Run inside a namespace::
 It opens a tool session (listens nowhere, connects to every node's listen
 endpoint) presenting ``CERT``/``KEY`` and trusting ``CA``, or with no TLS
 settings at all when ``--cert`` is left out, and subscribes to the CN's
-telemetry through :class:`~zplatform.node.ground.TelemetryReceiver` (checked
-and decoded with the mission key from the environment). It prints
+telemetry, checked and decoded by the ground's own logic
+(:class:`~zplatform.ground.logic.GroundLogic`, with the mission key from the
+environment). It prints
 ``ready``, then answers one JSON request per stdin line with one JSON line:
 
 * ``{"op": "telemetry", "timeout": s, "count": n}``: wait (at most ``s``)
@@ -28,16 +29,19 @@ from __future__ import annotations
 
 import argparse
 import json
+import queue
 import sys
 import time
 from typing import Any
 
 import zenoh
 
+from zplatform.auth import load_keys
 from zplatform.deploy import Deployment, ToolIdentity
+from zplatform.ground.logic import GroundLogic
 from zplatform.mission import load_mission
-from zplatform.node.ground import TelemetryReceiver
-from zplatform.transport import open_session, zenoh_config
+from zplatform.timebase import NodeClock
+from zplatform.transport import KeySpace, open_session, zenoh_config
 
 GARBAGE = b"\x93intruder\x00not-a-frame"
 
@@ -55,28 +59,45 @@ def main() -> None:
         # The chosen cert, whatever its common name, as the tool identity.
         dep = Deployment(ca=a.ca, tool=ToolIdentity(cert=a.cert, key=a.key))
     session = open_session(zenoh_config(mission, None, deployment=dep))
-    rx = TelemetryReceiver(session, mission, time.monotonic_ns)
+    ground = GroundLogic(mission, keys=load_keys(mission, "tool"))
+    clock = NodeClock()
+    q: queue.SimpleQueue[tuple[bytes, int]] = queue.SimpleQueue()
+    sub = session.declare_subscriber(
+        KeySpace(mission.vehicle).telemetry,
+        zenoh.handlers.Callback(
+            lambda s: q.put((s.payload.to_bytes(), clock.now_ns())), indirect=False
+        ),
+    )
+
+    def next_snapshot(timeout_s: float) -> bool:
+        """One queued frame through the ground logic: True when accepted."""
+        try:
+            payload, rx = q.get(timeout=timeout_s) if timeout_s > 0 else q.get_nowait()
+        except queue.Empty:
+            return False
+        return ground.on_telemetry(payload, rx)
+
     print("ready", flush=True)
     for line in sys.stdin:
         req = json.loads(line)
         op = req["op"]
         out: dict[str, Any]
         if op == "telemetry":
-            # The receiver keeps every snapshot (a FIFO): skip the backlog so
+            # The queue keeps every snapshot (a FIFO): skip the backlog so
             # the values reported are from snapshots taken after the request.
-            while rx.next(0.0) is not None:
-                pass
+            while not q.empty():
+                next_snapshot(0.0)
             deadline = time.monotonic() + float(req["timeout"])
             new = 0
             while new < int(req.get("count", 1)) and (left := deadline - time.monotonic()) > 0:
-                if rx.next(min(left, 0.2)) is not None:
+                if next_snapshot(min(left, 0.2)):
                     new += 1
-            out = {"received": rx.received, "new": new}
-            if rx.received:
+            out = {"received": ground.received, "new": new}
+            if ground.received:
                 out.update(
-                    cn_bad_frames=int(rx.dv.get("cn_bad_frames")),
-                    cn_cmd_rejects=int(rx.dv.get("cn_cmd_rejects")),
-                    dn0_bad_frames=int(rx.dv.get("dn0_bad_frames")),
+                    cn_bad_frames=int(ground.dv.get("cn_bad_frames")),
+                    cn_cmd_rejects=int(ground.dv.get("cn_cmd_rejects")),
+                    dn0_bad_frames=int(ground.dv.get("dn0_bad_frames")),
                 )
         elif op == "get":
             replies = session.get(
@@ -102,7 +123,7 @@ def main() -> None:
         else:
             out = {"error": f"unknown op {op!r}"}
         print(json.dumps(out), flush=True)
-    rx.close()
+    sub.undeclare()
     session.close()
 
 

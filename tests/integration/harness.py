@@ -18,10 +18,9 @@ from typing import Any
 
 from zplatform.config import Mission
 from zplatform.datavector import DataVector
+from zplatform.ground.link import GroundLink
 from zplatform.mission import load_mission
-from zplatform.node.ground import TelemetryReceiver
-from zplatform.timebase import NodeClock
-from zplatform.transport import NodeSession, rewrite_endpoints
+from zplatform.transport import rewrite_endpoints
 
 ROOT = Path(__file__).resolve().parents[2]
 CONFIGS = ROOT / "configs"
@@ -34,26 +33,42 @@ class Cluster:
         self.mission: Mission = load_mission(self.path)
         self.tmp = tmp
         self.procs: dict[str, subprocess.Popen[bytes]] = {}
-        self._ns: NodeSession | None = None
-        self._rx: TelemetryReceiver | None = None
+        self._rx: GroundLink | None = None
 
     # -- processes ---------------------------------------------------------
     def spawn(
         self, name: str, *extra: str, env: dict[str, str] | None = None
     ) -> subprocess.Popen[bytes]:
+        """Start node ``name`` (or ``"world"``, the mission's vehicle world).
+
+        A device node of a mission with a vehicle world needs that world:
+        the first one spawned starts it and waits for it to serve (its
+        ``READY`` line), as ``zplatform up`` does. Spawning ``"world"``
+        again returns the running one."""
+        if name == "world" and "world" in self.procs:
+            return self.procs["world"]
+        if (
+            name in self.mission.device_nodes
+            and self.mission.world is not None
+            and "world" not in self.procs
+        ):
+            self.spawn("world")
+            self._wait_ready("world")
         e = dict(os.environ, PYTHONUNBUFFERED="1")
         e.update(env or {})
         log = open(self.tmp / f"{name}.log", "ab")  # noqa: SIM115 - closed with the process
+        # "world": the mission's vehicle world process (zplatform world), not a node.
+        argv = (
+            ["world", str(self.path)]
+            if name == "world"
+            else ["node", str(self.path), name, "--summary", str(self.tmp / f"{name}.json")]
+        )
         p = subprocess.Popen(
             [
                 sys.executable,
                 "-m",
                 "zplatform",
-                "node",
-                str(self.path),
-                name,
-                "--summary",
-                str(self.tmp / f"{name}.json"),
+                *argv,
                 # These clusters run no ground node: the CN must not wait for one.
                 *(["--ground-wait", "0"] if name == "cn" else []),
                 *extra,
@@ -66,6 +81,15 @@ class Cluster:
         self.procs[name] = p
         return p
 
+    def _wait_ready(self, name: str, timeout_s: float = 60.0) -> None:
+        """Block until process ``name`` printed ``READY`` (or fail with its log)."""
+        deadline = time.monotonic() + timeout_s
+        p = self.procs[name]
+        while "READY" not in self.log(name):
+            if p.poll() is not None or time.monotonic() > deadline:
+                raise AssertionError(f"{name} did not get ready:\n{self.log(name)[-3000:]}")
+            time.sleep(0.05)  # polling a file the child writes: no peer to wait on
+
     def log(self, name: str) -> str:
         return (self.tmp / f"{name}.log").read_text(errors="replace")
 
@@ -77,8 +101,6 @@ class Cluster:
     def close(self) -> None:
         if self._rx is not None:
             self._rx.close()
-        if self._ns is not None:
-            self._ns.close()
         for p in self.procs.values():
             if p.poll() is None:
                 p.terminate()
@@ -97,16 +119,16 @@ class Cluster:
 
     # -- telemetry ---------------------------------------------------------
     @property
-    def session(self) -> Any:
-        if self._ns is None:
-            self._ns = NodeSession(self.mission, None)
-        return self._ns.session
+    def rx(self) -> GroundLink:
+        """The test's ground: a tool's link, checking telemetry as every ground does."""
+        if self._rx is None:
+            self._rx = GroundLink(self.mission, events=False)
+        return self._rx
 
     @property
-    def rx(self) -> TelemetryReceiver:
-        if self._rx is None:
-            self._rx = TelemetryReceiver(self.session, self.mission, NodeClock().now_ns)
-        return self._rx
+    def session(self) -> Any:
+        """The test's zenoh session (the ground link's)."""
+        return self.rx.ns.session
 
     @property
     def tm(self) -> DataVector:

@@ -4,35 +4,44 @@ One recovery_igniter cluster (real node processes on free ports) serves two
 console sessions: a large screen (200x60) that sees values move, refuses
 and then confirms the hazardous LAUNCH (ARM, LAUNCH, both verdicts) and
 shows the CN's event with its severity; and a small one (80x24) that shows
-loss of signal once the CN is stopped. Every wait is on what the screen
-shows, bounded; nothing sleeps for a peer.
+loss of signal once the CN is stopped. A WRITE of a protected element asks
+first too, then goes ARM n, WRITE n+1, its verdict shown with the CN's
+detail; so does a PRM_SET of a hazardous parameter, shown in the parameter
+view (``params``). Every wait is on what the screen shows, bounded; nothing sleeps for
+a peer.
 
-The browser test serves the console with ``zplatform ground --web`` and
-reads the page in headless Chromium (skipped, with the reason, without it).
+The browser test serves the console with ``zplatform ground --web``, opens
+the address it prints (with its token) in headless Chromium and reads the
+page, and every request it makes (skipped, with the reason, without
+Chromium). The web server's admission and lifetime: test_console_web.py.
 """
 
 from __future__ import annotations
 
 import asyncio
+import io
 import os
+import re
 import shutil
-import socket
 import subprocess
 import sys
 import time
 from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import pytest
 
 pytest.importorskip("textual")
 pytest.importorskip("textual_plotext")
 
+from rich.console import Console
+from rich.table import Table
 from textual.widgets import Static
 
 from zplatform.console import ConfirmScreen, ConsoleApp, ConsoleModel, Link
 from zplatform.events import Severity
-from zplatform.transport import free_port
+from zplatform.transport import rewrite_endpoints
 
 from .harness import CONFIGS, ROOT, Cluster
 
@@ -40,7 +49,12 @@ pytestmark = pytest.mark.timeout(240)
 
 
 def _text(app: ConsoleApp, wid: str) -> str:
-    return str(app.query_one(wid, Static).content)
+    content = app.query_one(wid, Static).content
+    if isinstance(content, Table):  # drawn as the screen would
+        console = Console(width=200, record=True, file=io.StringIO())
+        console.print(content)
+        return console.export_text()
+    return str(content)
 
 
 async def _until(pilot: object, pred: Callable[[], bool], what: str, timeout_s: float = 30) -> None:
@@ -62,6 +76,13 @@ def _loop_shown(app: ConsoleApp) -> int:
     return int(words[words.index("loop") + 1]) if "loop" in words else -1
 
 
+async def _answer(pilot: Any, app: ConsoleApp, line: str, key: str) -> None:
+    """Type ``line``; the console asks first: answer ``key`` (y or n)."""
+    await pilot.press(*line, "enter")
+    await _until(pilot, lambda: isinstance(app.screen, ConfirmScreen), "the confirmation")
+    await pilot.press(key)
+
+
 async def _big_screen(c: Cluster) -> None:
     model = ConsoleModel(c.mission, limits={"cn_loop": {"yellow": [None, 1], "red": [None, 2]}})
     app = ConsoleApp(model, Link(model, timeout_s=20))
@@ -73,24 +94,46 @@ async def _big_screen(c: Cluster) -> None:
             rows = dict(model.region_rows())
         assert ("cn_loop", str(int(model.dv.get("cn_loop"))), "red") in rows["cn"]
 
-        # A hazardous command asks first; "n" sends nothing.
-        await pilot.press(*"launch", "enter")
-        await _until(pilot, lambda: isinstance(app.screen, ConfirmScreen), "the confirmation")
-        await pilot.press("n")
-        await _until(pilot, lambda: "LAUNCH cancelled" in _text(app, "#events-text"), "cancel")
-        assert c.tm.get_name("cn_state") == "SAFE"
+        # A WRITE of a protected element asks first, then goes ARM n, WRITE n+1.
+        await _answer(pilot, app, "write dn0_ign_armed true", "y")
+        await _until(
+            pilot,
+            lambda: "WRITE #2: ACCEPTED (dn0_ign_armed = True)" in _text(app, "#events-text"),
+            "the protected WRITE's verdict, with the CN's detail",
+        )
+        assert "ARM #1: ACCEPTED" in _text(app, "#events-text")
 
-        # Confirmed: ARM n, LAUNCH n+1, both accepted, the state moves on.
-        await pilot.press(*"launch", "enter")
+        # The parameter view; a hazardous parameter's PRM_SET asks first too.
+        await pilot.press(*"params", "enter")
+        await _until(pilot, lambda: app.query_one("#params").has_class("shown"), "parameters")
+        await _until(pilot, lambda: "deploy_altitude_m (ARM)" in _text(app, "#params-table"),
+                     "the parameter, marked hazardous")  # fmt: skip
+        table = _text(app, "#params-table")
+        assert "[60, 390] m" in table and "SAFE" in table, table
+        await pilot.press(*"prm_set depl", "tab")
+        assert app.query_one("#cmd").value == "prm_set deploy_altitude_m "  # type: ignore[attr-defined]
+        await pilot.press(*"300", "enter")
         await _until(pilot, lambda: isinstance(app.screen, ConfirmScreen), "the confirmation")
         await pilot.press("y")
         await _until(
             pilot,
-            lambda: "LAUNCH #2 ACCEPTED" in _text(app, "#events-text"),
-            "LAUNCH's verdict",
+            lambda: "PRM_SET #4: ACCEPTED (deploy_altitude_m = 300.0, was 250.0)"
+            in _text(app, "#events-text"),
+            "the PRM_SET's verdict",
         )
-        events = _text(app, "#events-text")
-        assert "ARM #1 ACCEPTED" in events
+        await _until(pilot, lambda: " 300 " in _text(app, "#params-table"), "the new value")
+
+        # A hazardous command asks first; "n" sends nothing.
+        await _answer(pilot, app, "launch", "n")
+        await _until(pilot, lambda: "LAUNCH cancelled" in _text(app, "#events-text"), "cancel")
+        assert c.tm.get_name("cn_state") == "SAFE"
+
+        # Confirmed: ARM n, LAUNCH n+1, both accepted, the state moves on.
+        await _answer(pilot, app, "launch", "y")
+        await _until(
+            pilot, lambda: "LAUNCH #6: ACCEPTED" in _text(app, "#events-text"), "LAUNCH's verdict"
+        )
+        assert "ARM #5: ACCEPTED" in _text(app, "#events-text")
         # The CN's own event about the command: time, severity name, node, id.
         await _until(pilot, lambda: "cmd_accepted" in _text(app, "#events-text"), "the CN's event")
         line = next(x for x in _text(app, "#events-text").splitlines() if "cmd_accepted" in x)
@@ -129,7 +172,7 @@ async def _small_screen(c: Cluster) -> None:
 
 def test_console_against_running_mission(tmp_path: Path) -> None:
     with Cluster(CONFIGS / "recovery_igniter.yaml", tmp_path) as c:
-        for n in ("dn0", "dn1", "cn"):
+        for n in ("world", "dn0", "dn1", "cn"):
             c.spawn(n)
         c.advance(5)
         asyncio.run(_big_screen(c))
@@ -148,19 +191,6 @@ CHROMIUM_FLAGS = [
     "--disable-component-update",
     "--disable-sync",
 ]
-
-
-def _wait_port(port: int, proc: subprocess.Popen[bytes], timeout_s: float = 30) -> None:
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        if proc.poll() is not None:
-            raise AssertionError(f"server exited ({proc.returncode})")
-        try:
-            with socket.create_connection(("127.0.0.1", port), timeout=0.2):
-                return
-        except OSError:
-            time.sleep(0.05)  # a port, not a peer: nothing else to wait on
-    raise AssertionError(f"nothing listens on {port}")
 
 
 # Textual-serve draws the terminal on a canvas: the page's DOM has no text.
@@ -184,10 +214,17 @@ _KEEP_TERMINAL_BYTES = """
 """
 
 
-async def _read_page(devtools_port: int, url: str, want: list[str], timeout_s: float) -> str:
-    """Open ``url`` in the browser; return the terminal text once it has every ``want``."""
+async def _read_page(
+    devtools_port: int, url: str, want: list[str], timeout_s: float
+) -> tuple[str, list[tuple[str, str]]]:
+    """Open ``url`` in the browser; the terminal text once it has every ``want``.
+
+    Also every network event of the page: (``request``, URL) for each request
+    and WebSocket, (``failed``, reason) and (``status``, code and URL).
+    """
     import aiohttp
 
+    events: list[tuple[str, str]] = []
     async with aiohttp.ClientSession() as http:
         async with http.put(f"http://127.0.0.1:{devtools_port}/json/new?about:blank") as r:
             target = await r.json(content_type=None)
@@ -201,7 +238,20 @@ async def _read_page(devtools_port: int, url: str, want: list[str], timeout_s: f
                     msg = await ws.receive_json()
                     if msg.get("id") == n:
                         return msg.get("result", {})  # type: ignore[no-any-return]
+                    p = msg.get("params", {})
+                    match msg.get("method"):
+                        case "Network.requestWillBeSent":
+                            events.append(("request", p["request"]["url"]))
+                        case "Network.webSocketCreated":
+                            events.append(("request", p["url"]))
+                        case "Network.loadingFailed":
+                            why = f"{p.get('errorText')} {p.get('blockedReason')}"
+                            events.append(("failed", why))
+                        case "Network.responseReceived":
+                            r = p["response"]
+                            events.append(("status", f"{r['status']} {r['url']}"))
 
+            await call("Network.enable")
             await call("Page.enable")
             await call("Page.addScriptToEvaluateOnNewDocument", source=_KEEP_TERMINAL_BYTES)
             await call("Page.navigate", url=url)
@@ -215,7 +265,7 @@ async def _read_page(devtools_port: int, url: str, want: list[str], timeout_s: f
                 )
                 text = str(res.get("result", {}).get("value", ""))  # type: ignore[attr-defined]
                 if all(w in text for w in want):
-                    return text
+                    return text, events
                 await asyncio.sleep(0.2)  # polling the page, not waiting on a peer
             raise AssertionError(f"the page never showed {want}; it showed {text[-2000:]!r}")
 
@@ -231,27 +281,25 @@ def _stop(p: subprocess.Popen[bytes]) -> None:
 
 
 def test_console_in_browser(tmp_path: Path) -> None:
-    """`zplatform ground MISSION --web PORT`, opened in headless Chromium, shows the console."""
+    """`zplatform ground MISSION --web 0`, opened in headless Chromium at the printed address.
+
+    The console shows; every request the page makes goes to the server
+    itself and succeeds (no font or script from the internet, nothing
+    refused); the token leaves the address bar.
+    """
     chromium = shutil.which("chromium") or shutil.which("chromium-browser")
     if chromium is None:
         pytest.skip("chromium is not installed (Debian: apt-get install -y chromium)")
     pytest.importorskip("textual_serve")
     pytest.importorskip("aiohttp")
-    port = free_port()
+    mission = tmp_path / "mission.yaml"
+    rewrite_endpoints(CONFIGS / "led_test.yaml", mission)
     procs: list[subprocess.Popen[bytes]] = []
     logs = [open(tmp_path / n, "wb") for n in ("serve.log", "chromium.log")]  # noqa: SIM115
     try:
         procs.append(
             subprocess.Popen(
-                [
-                    sys.executable,
-                    "-m",
-                    "zplatform",
-                    "ground",
-                    str(CONFIGS / "led_test.yaml"),
-                    "--web",
-                    str(port),
-                ],
+                [sys.executable, "-m", "zplatform", "ground", str(mission), "--web", "0"],
                 cwd=ROOT,
                 stdout=logs[0],
                 stderr=subprocess.STDOUT,
@@ -259,7 +307,13 @@ def test_console_in_browser(tmp_path: Path) -> None:
                 start_new_session=True,  # the server's console children go with it
             )
         )
-        _wait_port(port, procs[0])
+        deadline = time.monotonic() + 60
+        address = re.compile(r"(http://[^/\s]+)/\?token=\S+")
+        while (m := address.search(_read(tmp_path / "serve.log"))) is None:
+            assert procs[0].poll() is None, _read(tmp_path / "serve.log")
+            assert time.monotonic() < deadline, "the server printed no address"
+            time.sleep(0.05)  # polling the server's output, not waiting on a peer
+        url, origin = m.group(0), m.group(1)
         profile = tmp_path / "chromium"
         procs.append(
             subprocess.Popen(
@@ -279,21 +333,29 @@ def test_console_in_browser(tmp_path: Path) -> None:
         active = profile / "DevToolsActivePort"
         deadline = time.monotonic() + 30
         while not (active.exists() and active.read_text().strip()):
-            assert procs[1].poll() is None, (tmp_path / "chromium.log").read_text()[-2000:]
+            assert procs[1].poll() is None, _read(tmp_path / "chromium.log")[-2000:]
             assert time.monotonic() < deadline, "chromium never opened its DevTools port"
             time.sleep(0.05)
         devtools = int(active.read_text().split()[0])
-        text = asyncio.run(
-            _read_page(
-                devtools,
-                f"http://127.0.0.1:{port}/",
-                ["NO SIGNAL", "waiting for telemetry", "cn_loop"],
-                60,
-            )
+        text, events = asyncio.run(
+            _read_page(devtools, url, ["NO SIGNAL", "waiting for telemetry", "cn_loop"], 60)
         )
         assert "b_timer_done" in text  # a mission element, from the Data Vector pane
+        requests = [u for kind, u in events if kind == "request"]
+        assert requests[0] == url and f"{origin}/" in requests  # the token, then the page
+        ws = "ws" + origin.removeprefix("http")
+        assert any(u.startswith(f"{ws}/ws?") for u in requests), requests
+        outside = [u for u in requests if not u.startswith((f"{origin}/", f"{ws}/"))]
+        assert outside == [], outside
+        assert [e for e in events if e[0] == "failed"] == []
+        refused = [e for e in events if e[0] == "status" and not e[1].startswith(("200", "303"))]
+        assert refused == [], refused
     finally:
         for p in reversed(procs):
             _stop(p)
         for f in logs:
             f.close()
+
+
+def _read(path: Path) -> str:
+    return path.read_text(errors="replace")

@@ -23,8 +23,9 @@ from tests.budget import (
     later_than_now,
     sync_counts,
 )
+from zplatform.auth import load_keys
 from zplatform.codec import encode_frame
-from zplatform.events import Event, decode_event
+from zplatform.events import Event, EventReader
 from zplatform.telemetry import read_csv
 
 from .harness import CONFIGS, ROOT, Cluster
@@ -119,8 +120,12 @@ def test_bad_frames_are_counted_never_applied(tmp_path: Path) -> None:
         s = c.session
         v = c.mission.vehicle
         events: queue.SimpleQueue[Event] = queue.SimpleQueue()
+        reader = EventReader(c.mission, load_keys(c.mission, "tool"))
         sub = s.declare_subscriber(
-            f"{v}/*/events", lambda sample: events.put(decode_event(sample.payload.to_bytes()))
+            f"{v}/*/events",
+            lambda sample: events.put(
+                reader.read(str(sample.key_expr), sample.payload.to_bytes())[0]
+            ),
         )
         rng = random.Random(7)
         junk = [bytes(rng.getrandbits(8) for _ in range(rng.randint(0, 64))) for _ in range(5)]
@@ -228,18 +233,16 @@ def test_up_flies_on_when_a_device_node_dies(tmp_path: Path) -> None:
     with every child reaped (issue 9, defect 9)."""
     import psutil
 
+    from zplatform.ground.link import GroundLink
     from zplatform.mission import load_mission
-    from zplatform.node.ground import TelemetryReceiver
-    from zplatform.timebase import NodeClock
-    from zplatform.transport import NodeSession, rewrite_endpoints
+    from zplatform.transport import rewrite_endpoints
 
     path = tmp_path / "m.yaml"
     rewrite_endpoints(CONFIGS / "minimal.yaml", path)
     up = _up(path, "--summary", str(tmp_path / "s.json"))
-    ns = NodeSession(load_mission(path), None)
-    rx = TelemetryReceiver(ns.session, load_mission(path), NodeClock().now_ns)
+    rx = GroundLink(load_mission(path), events=False)
     try:
-        while rx.received < 20:
+        while rx.logic.received < 20:
             assert up.poll() is None, up.stdout.read().decode()[-2000:]  # type: ignore[union-attr]
             rx.next(1.0)
         children = psutil.Process(up.pid).children()
@@ -265,7 +268,6 @@ def test_up_flies_on_when_a_device_node_dies(tmp_path: Path) -> None:
         assert not alive, alive
     finally:
         rx.close()
-        ns.close()
         if up.poll() is None:
             up.kill()
 
@@ -329,3 +331,40 @@ def test_stalled_device_node_skips_missed_loops(tmp_path: Path) -> None:
         # The backlog was answered (stale) rather than run as a burst of loops.
         assert s["stale_queries"] >= 15, s
         assert s["loops"] <= cn_loop - 15, (s, cn_loop)
+
+
+def test_up_with_a_script_and_no_duration_ends_after_the_last_verdict(tmp_path: Path) -> None:
+    """`up --commands FILE` without `--duration` runs SETTLE_S past the
+    script's last verdict (the ground node's script_done event), then stops
+    by itself: every node stopped cleanly, exit 0."""
+    from zplatform.ground.script import SETTLE_S
+    from zplatform.transport import rewrite_endpoints
+
+    path = tmp_path / "m.yaml"
+    rewrite_endpoints(CONFIGS / "minimal.yaml", path)
+    script = tmp_path / "s.commands"
+    script.write_text("at 0.2 noop\nat 0.4 noop\n")
+    log = tmp_path / "tm.csv"
+    up = subprocess.Popen(
+        [sys.executable, "-m", "zplatform", "up", str(path), "--commands", str(script),
+         "--summary", str(tmp_path / "s.json"), "--log", str(log)],
+        cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+    )  # fmt: skip
+    try:
+        out, _ = up.communicate(timeout=120)  # it ends by itself
+    finally:
+        if up.poll() is None:
+            up.kill()
+            up.communicate()
+    text = out.decode()
+    assert up.returncode == 0, text[-3000:]
+    assert "the script's last verdict came" in text and "stopping" in text
+    s = json.loads((tmp_path / "s.json").read_text())
+    assert [c["status"] for c in s["commands"]] == ["ACCEPTED", "ACCEPTED"]
+    assert s["exit_codes"] == {"dn0": 0, "gn": 0, "cn": 0}
+    # SETTLE_S past the last verdict: the CN's loops (scheduled times, so a
+    # skipped period on a busy host does not count against it) ran that long.
+    verdict_s = s["commands"][-1]["t_ns"] / 1e9
+    assert s["duration_s"] >= verdict_s + SETTLE_S - 0.1, (s["duration_s"], verdict_s)
+    events = (tmp_path / "tm.events.jsonl").read_text()
+    assert '"id": "script_done"' in events

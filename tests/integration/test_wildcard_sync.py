@@ -14,7 +14,9 @@ import yaml
 import zenoh
 
 from tests.budget import assert_kept_syncing, sync_counts
-from zplatform.events import decode_event
+from zplatform.auth import load_keys
+from zplatform.config import relocate_mission
+from zplatform.events import EventReader
 from zplatform.messages import wildcard_sync_for
 
 from .harness import CONFIGS, Cluster
@@ -23,6 +25,7 @@ from .harness import CONFIGS, Cluster
 def test_one_query_runs_every_dn_and_foreign_replies_are_counted(tmp_path: Path) -> None:
     src = tmp_path / "led_wild.yaml"
     doc = yaml.safe_load((CONFIGS / "led_test.yaml").read_text())
+    relocate_mission(doc, CONFIGS / "led_test.yaml")
     doc["transport"] = {"sync_query": "wildcard"}
     src.write_text(yaml.safe_dump(doc, sort_keys=False))
     with Cluster(src, tmp_path) as c:
@@ -65,8 +68,10 @@ def test_one_query_runs_every_dn_and_foreign_replies_are_counted(tmp_path: Path)
         )
         # A rogue answering with errors in dn0's name: foreign bad frames.
         texts: queue.SimpleQueue[str] = queue.SimpleQueue()
+        reader = EventReader(c.mission, load_keys(c.mission, "tool"))
         sub = c.session.declare_subscriber(
-            f"{v}/cn/events", lambda s: texts.put(decode_event(s.payload.to_bytes()).text)
+            f"{v}/cn/events",
+            lambda s: texts.put(reader.read(str(s.key_expr), s.payload.to_bytes())[0].text),
         )
 
         def liar(q: zenoh.Query) -> None:

@@ -241,13 +241,57 @@ def test_igniter_does_not_fire_when_dn1_is_disarmed(tmp_path: Path) -> None:
 
 def test_igniter_does_not_fire_when_dn1_reads_a_bad_altitude(tmp_path: Path) -> None:
     m = load_mission(IGN_YAML)
-    m.nodes["dn1"].board["params"]["bias_m"] = 5000.0  # dn1's barometer reads far too high
+    assert m.world is not None
+    m.world.params["bias_m"] = {"dn1": 5000.0}  # dn1's barometer reads far too high
     res, rows = run(m, IGN_CMDS, IGN_DURATION, tmp_path / "ign.csv")
     assert visited(rows) == ["SAFE", "ARMED", "FIRE", "NO_FIRE"]
     assert_clean(res, rows, m)
     assert_outputs_need_verdicts(rows)
     assert not any(on(r, "igniter_fired") or on(r, "dn1_ign_fb") for r in rows)
     assert float(rows[entered(rows, "FIRE")]["dn1_alt_m"]) > 5000.0
+
+
+def test_igniter_deploy_altitude_is_a_parameter_set_armed_on_the_pad(tmp_path: Path) -> None:
+    """``deploy_altitude_m`` (a hazardous parameter) moved from 250 m to 300 m
+    before launch: the CN fires higher, and earlier, on the same flight. An
+    unarmed PRM_SET of it is refused; after launch it cannot change."""
+    m = load_mission(IGN_YAML)
+    script = parse_commands(
+        "at 0.1 prm_set deploy_altitude_m 300\n"  # hazardous: refused without ARM
+        "at 0.2 arm\nat 0.3 prm_set deploy_altitude_m 300\n"
+        "at 0.5 arm\nat 0.6 launch\n"
+        "at 3.0 arm\n"  # ARMED: the whitelist refuses ARM and PRM_SET in flight
+        "at 3.1 prm_set deploy_altitude_m 200\n"
+    )
+    res, rows = run(m, script, IGN_DURATION, tmp_path / "ign.csv")
+    assert [c.status for c in res.commands] == [
+        "REJECTED_NOT_ARMED", "ACCEPTED", "ACCEPTED", "ACCEPTED", "ACCEPTED",
+        "REJECTED_NOT_ALLOWED", "REJECTED_NOT_ALLOWED",
+    ]  # fmt: skip
+    assert visited(rows) == ["SAFE", "ARMED", "FIRE", "DEPLOYED"]
+    fire = rows[entered(rows, "FIRE")]
+    assert float(rows[-1]["deploy_altitude_m"]) == 300.0
+    assert 250.0 < float(fire["alt_est_m"]) < 300.0
+    assert t_s(fire) < 11.0  # the nominal flight passes 250 m after 11 s
+
+
+def test_igniter_flight_starts_at_launch_not_at_node_start(tmp_path: Path) -> None:
+    """The flight is the vehicle world's, started by dn0's launch output: a
+    LAUNCH sent 20 s after start lifts off then, and the mission still ends
+    DEPLOYED (it used to be at 325 m on the pad, and stay ARMED for good)."""
+    m = load_mission(IGN_YAML)
+    script = parse_commands("at 19.9 arm\nat 20 launch\n")
+    res, rows = run(m, script, 36.0, tmp_path / "ign.csv")
+    assert visited(rows) == ["SAFE", "ARMED", "FIRE", "DEPLOYED"]
+    assert_clean(res, rows, m)
+    i_armed = entered(rows, "ARMED")
+    assert t_s(rows[i_armed]) == pytest.approx(20.0, abs=2 * LOOP_S)
+    pad = rows[: i_armed + 2]  # the launch output needs a loop, the reading one more
+    assert all(float(r["dn0_alt_m"]) == 0.0 and float(r["dn1_alt_m"]) == 0.0 for r in pad)
+    assert float(rows[i_armed + 100]["dn0_alt_m"]) > 50.0  # climbing a second later
+    fire = rows[entered(rows, "FIRE")]
+    assert 30.5 < t_s(fire) < 31.5  # 250 m on the drogue, ~10.7 s after lift-off
+    assert float(fire["apogee_m"]) == pytest.approx(326.2, abs=0.5)
 
 
 def test_launch_without_arm_is_refused(tmp_path: Path) -> None:
@@ -427,4 +471,4 @@ def test_cli_sim_exit_codes(tmp_path: Path) -> None:
 def test_default_duration_follows_the_script(tmp_path: Path) -> None:
     log = tmp_path / "led.csv"
     assert sim(str(LED_YAML), "--commands", str(LED_CMDS), "--log", str(log)).returncode == 0
-    assert len(read_csv(log)) == 2900  # last command at 14 s, plus 15 s (cli_sim.SETTLE_S)
+    assert len(read_csv(log)) == 2900  # last command at 14 s, plus 15 s (ground.script.SETTLE_S)

@@ -18,11 +18,10 @@ import pytest
 
 from tests.budget import assert_every_loop_counted, assert_telemetry_counted
 from tests.drive import igniter_bench_copy
+from zplatform.ground.link import GroundLink
 from zplatform.mission import load_mission
-from zplatform.node.ground import TelemetryReceiver
 from zplatform.telemetry import read_csv
-from zplatform.timebase import NodeClock
-from zplatform.transport import NodeSession, rewrite_endpoints
+from zplatform.transport import rewrite_endpoints
 
 ROOT = Path(__file__).resolve().parents[2]
 pytestmark = pytest.mark.timeout(240)
@@ -57,8 +56,7 @@ class Mission:
             stdout=subprocess.PIPE,
             stderr=subprocess.STDOUT,
         )
-        self.ns = NodeSession(self.mission, None)
-        self.rx = TelemetryReceiver(self.ns.session, self.mission, NodeClock().now_ns)
+        self.rx = GroundLink(self.mission, events=False)
 
     def await_telemetry(self, pred, what: str, timeout_s: float = 60.0) -> None:  # type: ignore[no-untyped-def]
         deadline = time.monotonic() + timeout_s
@@ -87,7 +85,6 @@ class Mission:
 
     def stop(self) -> dict:  # type: ignore[type-arg]
         self.rx.close()
-        self.ns.close()
         self.up.send_signal(signal.SIGINT)
         out, _ = self.up.communicate(timeout=60)
         assert self.up.returncode == 0, out.decode()[-3000:]
@@ -180,9 +177,10 @@ def test_recovery_igniter_fires_when_both_nodes_agree(tmp_path: Path) -> None:
     m = Mission("recovery_igniter.yaml", tmp_path)
     try:
         m.await_state("SAFE")
-        # LAUNCH is hazardous: alone it is refused, ARM n then LAUNCH n+1 is accepted.
+        # LAUNCH is hazardous: alone it is refused before anything is sent, with
+        # how to send it; ARM n then LAUNCH n+1 is accepted.
         r = m.cmd("launch")
-        assert r.returncode == 1 and "REJECTED_NOT_ARMED" in r.stdout, r.stdout + r.stderr
+        assert r.returncode == 2 and "--arm" in r.stderr, r.stdout + r.stderr
         r = m.cmd("launch", "--arm")
         assert r.returncode == 0, r.stdout + r.stderr
         assert "ARM" in r.stdout and "LAUNCH" in r.stdout and "ACCEPTED" in r.stdout

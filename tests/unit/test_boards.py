@@ -14,9 +14,11 @@ from hypothesis import strategies as st
 
 import zplatform.boards as boards
 from zplatform.boards import (
+    Board,
     BoardError,
     BoardHealth,
     ManagedBoard,
+    SimBoard,
     board_health,
     check_board,
     close_board,
@@ -28,7 +30,6 @@ from zplatform.boards import (
 from zplatform.boards.gpio import GpiodBoard
 from zplatform.boards.serial_sim import SimDevice
 from zplatform.boards.serialboard import SerialBoard
-from zplatform.devices import Board, SimBoard
 from zplatform.errors import ConfigError, ControlError, ZPlatformError
 
 WHERE = "$.nodes.dn0.board"
@@ -91,8 +92,30 @@ def test_exports() -> None:
         "safe_board",
         "SerialBoard",
         "SerialBoardConfig",
+        "Board",
+        "Physics",
+        "SimBoard",
+        "SimBoardConfig",
     }
     assert issubclass(BoardError, ZPlatformError)
+
+
+def test_boards_never_import_devices() -> None:
+    """The boards package sits below the devices (devices import boards, never
+    the reverse): no module of zplatform/boards imports zplatform.devices."""
+    import ast
+    from pathlib import Path
+
+    for f in Path(boards.__file__).parent.glob("*.py"):
+        for node in ast.walk(ast.parse(f.read_text())):
+            if isinstance(node, ast.ImportFrom):
+                name = "." * node.level + (node.module or "")
+                assert name not in ("..devices", "zplatform.devices"), f
+                assert not (
+                    node.level == 2
+                    and node.module is None
+                    and any(a.name == "devices" for a in node.names)
+                ), f
 
 
 def test_simboard_is_the_reference_managed_board() -> None:

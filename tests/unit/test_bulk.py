@@ -18,13 +18,11 @@ from zplatform.bulk import (
     BulkChannelConfig,
     BulkWriter,
     NodeBulk,
-    ViaCounter,
     bulk_key,
     check_bulk_channels,
     counter_elements,
     counter_region,
     decode_sample,
-    describe_sample,
     parse_bulk_type,
     pool_size,
 )
@@ -300,32 +298,6 @@ def test_counter_region() -> None:
     assert [counter_region(n) for n in ("cn", "dn3", "gn")] == ["cn", "dn3_to_cn", None]
 
 
-def test_describe_sample_for_tap() -> None:
-    ch = _ch(type="u8[4]")
-    data = bytearray(ch.sample_bytes)
-    HEADER.pack_into(data, 0, ch.layout_id, 0, 3, 30, 5)
-    data[-4:] = bytes([1, 2, 3, 6])
-    d = describe_sample(zenoh.ZBytes(bytes(data)), ch)
-    assert d["via"] == "copied" and d["seq"] == 3 and d["loop"] == 30
-    assert (d["min"], d["max"], d["mean"]) == (1, 6, 3.0)
-    bad = describe_sample(zenoh.ZBytes(b"x"), ch)
-    assert "error" in bad and bad["via"] == "copied"
-
-
-def test_via_counter() -> None:
-    vc = ViaCounter()
-    assert vc.add("r/dn0/bulk/a", zenoh.ZBytes(b"x")) == "copied"
-    vc.add("r/dn0/bulk/a", zenoh.ZBytes(b"y"))
-    prov = zenoh.shm.ShmProvider.default_backend(1 << 16)
-    chunk = prov.alloc(16)
-    chunk[:] = bytes(16)
-    assert vc.add("r/cn/telemetry", zenoh.ZBytes(chunk)) == "shm"
-    assert vc.snapshot() == {
-        "r/cn/telemetry": {"shm": 1, "copied": 0},
-        "r/dn0/bulk/a": {"shm": 0, "copied": 2},
-    }
-
-
 def test_real_pool_exhausted_by_a_holding_reader_drops_then_recovers(
     session: zenoh.Session,
 ) -> None:
@@ -343,3 +315,58 @@ def test_real_pool_exhausted_by_a_holding_reader_drops_then_recovers(
     assert r.poll() and r.header is not None and r.header.loop == 2
     owner.close()
     reader.close()
+
+
+# -- the loop's order (zplatform.loop owns it; drivers only supply the port) --
+
+
+class _Port:
+    """A BulkPort that notes each call with the loop counter the node's Data
+    Vector shows at that moment (set by the logic, so it tells before from after)."""
+
+    def __init__(self, element: str, calls: list[tuple[str, int]]) -> None:
+        self.arrays: dict[str, Any] = {}
+        self._element = element
+        self._calls = calls
+        self.dv: Any = None
+
+    def _note(self, what: str) -> None:
+        self._calls.append((what, int(self.dv.get(self._element))))
+
+    def receive(self, loop: int) -> None:
+        self._note(f"receive {loop}")
+
+    def publish(self, loop: int, t_ns: int) -> None:
+        self._note(f"publish {loop}")
+
+    def write_counters(self, dv: Any) -> None:
+        self._note("counters")
+
+
+def test_the_loop_receives_before_its_logic_and_publishes_after() -> None:
+    from tests.drive import run_dn_loop
+    from zplatform.lockstep import sim_keys
+    from zplatform.loop import ControlLogic, DeviceLogic
+    from zplatform.mission import load_mission
+
+    m = load_mission(Path(__file__).resolve().parents[2] / "configs" / "minimal.yaml")
+    calls: list[tuple[str, int]] = []
+    cn = ControlLogic(m, keys=sim_keys(m))
+    port = _Port("cn_loop", calls)
+    port.dv = cn.dv
+    cn.attach_bulk(port)
+    cn.begin(1, 10**9)
+    cn.finish()
+    # cn_loop is 0 until the logic of loop 1 ran: receive and counters before it.
+    assert calls == [("receive 1", 0), ("counters", 0), ("publish 1", 1)]
+    calls.clear()
+    dn = DeviceLogic(m, "dn0")
+    port = _Port("dn0_loop", calls)
+    port.dv = dn.dv
+    dn.attach_bulk(port)
+    run_dn_loop(dn, 1, 10**9)
+    assert calls == [("receive 1", 0), ("publish 1", 1), ("counters", 1)]
+    calls.clear()
+    dn.safe(2 * 10**9, "test")  # a safed DN runs no actuators, but its channels go on
+    run_dn_loop(dn, 2, 2 * 10**9)
+    assert calls == [("receive 2", 1), ("publish 2", 2), ("counters", 2)]

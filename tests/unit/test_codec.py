@@ -323,7 +323,8 @@ def test_region_codec_round_trip(cn: DataVector, dn: DataVector) -> None:
     rx = RegionCodec(dn, "cn_to_dn0")
     assert tx.layout_id == rx.layout_id == cn.layout.region("cn_to_dn0").layout_id
     frame = tx.encode(77, 123_456)
-    assert len(frame) == frame_overhead(cn.layout.region("cn_to_dn0").size) + 21
+    region = cn.layout.region("cn_to_dn0")
+    assert len(frame) == frame_overhead(region.size) + region.size == 26 + 22  # dn0_final + 21 B
     f = rx.apply(frame)
     assert (f.layout_id, f.seq, f.t_ns) == (tx.layout_id, 77, 123_456)
     assert dn.get("setpoint") == -42.25
@@ -342,7 +343,8 @@ def test_region_codec_encode_reuses_buffer(cn: DataVector) -> None:
     b = rc.encode(2, 2)
     assert a is b
     f = decode_frame(b)
-    assert f.seq == 2 and struct.unpack_from("<d", f.data, 0)[0] == 9.0
+    setpoint = cn.layout.element("setpoint").offset - cn.layout.region("cn_to_dn0").offset
+    assert f.seq == 2 and struct.unpack_from("<d", f.data, setpoint)[0] == 9.0
 
 
 def test_region_codec_check_does_not_apply(cn: DataVector, dn: DataVector) -> None:

@@ -709,8 +709,10 @@ def test_dn_and_gn_platform_elements() -> None:
 
 def test_controller_mode_placement() -> None:
     m = full_mission()
-    assert names(m, "cn_to_dn0") == []  # nothing declared, no controller there
-    assert names(m, "cn_to_dn1") == ["beta_mode", "valve"]
+    # The platform's final-loop flag, then the modes, then the mission's own.
+    assert names(m, "cn_to_dn0") == ["dn0_final"]  # nothing declared, no controller there
+    assert names(m, "cn_to_dn1") == ["dn1_final", "beta_mode", "valve"]
+    assert m.element("dn1_final")[1].type == "bool"
     modes = {n: m.element(f"{n}_mode")[1] for n in ("alpha", "beta", "gamma")}
     assert all(e.enum == list(CONTROLLER_MODES) for e in modes.values())
     assert modes["alpha"].initial == CONTROLLER_MODES.index("enabled")

@@ -17,7 +17,8 @@ from zplatform.console.model import (
 )
 from zplatform.datavector import DataVector
 from zplatform.errors import CommandError, DataVectorError
-from zplatform.events import Event, Severity
+from zplatform.events import Severity
+from zplatform.ground.records import CommandOutcome, EventRecord
 
 CONFIGS = Path(__file__).resolve().parents[2] / "configs"
 MISSION = load_mission(CONFIGS / "recovery_igniter.yaml")
@@ -75,7 +76,7 @@ def test_limits_from_caller_and_from_mission_field() -> None:
 def test_events_by_severity_name_and_filter() -> None:
     m = ConsoleModel(MISSION)
     for i, sev in enumerate(Severity):
-        m.on_event(Event("cn", i, 0, int(sev), "id", sev.name))
+        m.on_event(EventRecord(0, "cn", i, 0, sev.name, "id", sev.name))
     assert [x.severity for x in m.events()] == [s.name for s in Severity]
     worst = max(Severity, key=lambda s: severity_rank(s.name))
     m.set_filter([worst.name])
@@ -111,3 +112,13 @@ def test_plot_series_keeps_a_window() -> None:
     assert ys[-1] >= 190
     with pytest.raises(DataVectorError):
         m.set_plot(["nope"])
+
+
+def test_command_outcomes_show_with_their_reason() -> None:
+    m = ConsoleModel(MISSION)
+    why = "not allowed in state X"
+    m.on_result(0, CommandOutcome("NOOP", 3, "REJECTED_NOT_ALLOWED", reason=why, reason_from="cn"))
+    assert m.status().last_command == "NOOP #3: REJECTED_NOT_ALLOWED: not allowed in state X"
+    assert [(x.severity, x.source) for x in m.log] == [("WARNING_HI", "cmd")]
+    m.on_refusal(1, "LAUNCH", "not sent (ARM not accepted)")
+    assert m.status().last_command == "LAUNCH: not sent (ARM not accepted)"

@@ -76,6 +76,19 @@ class BadBind(Controller):
         pass
 
 
+class IndexBind(Controller):
+    """A team's bind that looks a name up the Python way (the issue's case)."""
+
+    def bind(self, dv: DataVector) -> None:
+        ("A", "B").index("C")
+
+    def run_enabled(self, t_ns: int) -> None:
+        pass
+
+    def run_safed(self, t_ns: int) -> None:
+        pass
+
+
 BASE = """
 mission: ctltest
 nodes: {cn: {}, dn0: {}, gn: {}}
@@ -343,8 +356,32 @@ def test_class_errors_name_the_class_field(cls: str, match: str) -> None:
 
 
 def test_constructor_bug_is_a_control_error() -> None:
-    with pytest.raises(ControlError, match="failed to build: ZeroDivisionError"):
+    with pytest.raises(ControlError, match="failed to build: ZeroDivisionError") as ei:
         build(f"- {{name: x, class: '{HERE}:BadBind', node: cn}}\n")
+    assert ei.value.path == "$.controllers[0]"
+
+
+def test_every_build_error_names_the_yaml_path_and_the_class() -> None:
+    """A constructor's ValueError comes out naming where the controller is in
+    the YAML and its class, with the original message; a config that names a
+    missing element names the field, the controller and its class."""
+    with pytest.raises(ControlError) as ei:
+        build(recorder() + f"- {{name: pick, class: '{HERE}:IndexBind', node: cn}}\n")
+    assert ei.value.path == "$.controllers[1]"
+    msg = str(ei.value)
+    assert msg == (
+        f"controller 'pick' ({HERE}:IndexBind) failed to build: ValueError: "
+        "tuple.index(x): x not in tuple - at `$.controllers[1]`"
+    )
+    assert isinstance(ei.value.__cause__, ValueError)
+    with pytest.raises(ConfigError) as ei2:
+        build(recorder() + recorder("b", out="nope"))
+    assert ei2.value.path == "$.controllers[1].config.out"
+    assert str(ei2.value).startswith(f"controller 'b' ({HERE}:Recorder): element 'nope' is not")
+    # Through the loader, as `zplatform check` reports it.
+    at = r"IndexBind\) failed to build.* - at `\$\.controllers\[0\]`"
+    with pytest.raises(ControlError, match=at):
+        check_config(mission(f"- {{name: pick, class: '{HERE}:IndexBind', node: cn}}\n"))
 
 
 def test_check_config_builds_every_node() -> None:

@@ -15,13 +15,13 @@ from typing import Any
 import msgspec
 import pytest
 
+from tests.pki import make_test_pki
 from zplatform.deploy import (
     DEPLOYMENT_ENV,
     Deployment,
     DeploymentError,
     access_control,
     load_deployment,
-    make_test_pki,
     tls_settings,
     zenoh_settings,
 )

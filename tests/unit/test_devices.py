@@ -10,17 +10,16 @@ import pytest
 
 from tests.drive import run_dn_loop
 from zplatform import DataVector, Layout, decode_mission
+from zplatform.boards import Board, SimBoard
 from zplatform.config import Mission, parse_mission
 from zplatform.controllers import Controller
 from zplatform.devices import (
     Actuator,
     AnalogInput,
-    Board,
     Device,
     DeviceSet,
     DigitalOutput,
     Sensor,
-    SimBoard,
 )
 from zplatform.errors import ConfigError, ControlError
 from zplatform.events import EventLog, Severity
@@ -77,6 +76,16 @@ class Flaky(Sensor):
 
 
 class PlainDevice(Device):
+    def run(self, t_ns: int) -> None:
+        pass
+
+
+class HandleBind(Sensor):
+    """A team's bind that takes a handle by a name the vector lacks, directly."""
+
+    def bind(self, dv: DataVector) -> None:
+        self.out = dv.handle("no_such_element")
+
     def run(self, t_ns: int) -> None:
         pass
 
@@ -316,6 +325,20 @@ def test_device_config_errors_name_the_path(device: str, path: str, match: str) 
     with pytest.raises(ConfigError, match=match) as ei:  # ... and by the set itself
         devset(m)
     assert ei.value.path == path
+
+
+def test_a_device_that_raises_in_bind_names_its_yaml_path_and_class() -> None:
+    """Anything a device's constructor raises (here the Data Vector's own
+    error for an unknown name) comes out naming ``$.devices[i]`` and the class."""
+    dev = f"- {{name: gauge, class: '{HERE}:HandleBind', node: dn0}}\n"
+    for build in (lambda: mission(LED + dev), lambda: devset(mission(LED + dev, check=False))):
+        with pytest.raises(ControlError) as ei:
+            build()
+        assert ei.value.path == "$.devices[1]"
+        assert str(ei.value).startswith(
+            f"device 'gauge' ({HERE}:HandleBind) failed to build: DataVectorError: "
+        )
+        assert "no_such_element" in str(ei.value)
 
 
 def test_analog_input_pin_checked_against_board() -> None:

@@ -24,10 +24,19 @@ def test_license_is_an_spdx_expression_with_its_file() -> None:
     )
 
 
-def test_bench_is_not_installed_and_types_ship() -> None:
+def test_the_wheel_installs_only_zplatform_and_its_types() -> None:
+    """No top-level package but zplatform (not `nodes`, not `bench`: names
+    another project may own): the packages setuptools finds with the
+    project's own settings (pyproject's find is namespace-aware)."""
+    from setuptools import find_namespace_packages
+
     p = _pyproject()
-    include = p["tool"]["setuptools"]["packages"]["find"]["include"]
-    assert not any(i.startswith("bench") for i in include)
+    find = p["tool"]["setuptools"]["packages"]["find"]
+    packages = find_namespace_packages(
+        where=str(ROOT), include=find["include"], exclude=find.get("exclude", ())
+    )
+    assert "zplatform" in packages and "zplatform.boards" in packages
+    assert {name.split(".")[0] for name in packages} == {"zplatform"}, packages
     assert "py.typed" in p["tool"]["setuptools"]["package-data"]["zplatform"]
     assert (ROOT / "zplatform" / "py.typed").is_file()
 
@@ -47,3 +56,13 @@ def test_psutil_is_no_runtime_dependency() -> None:
 def test_demo_prints_no_json() -> None:
     demo = (ROOT / "scripts" / "demo.sh").read_text()
     assert "--summary -" not in demo and "--summary led_test.summary.json" in demo
+
+
+def test_the_console_runs_on_the_base_install_and_extras_are_named() -> None:
+    """`zplatform ground` is the ground station's daily tool: its libraries are
+    base dependencies; the radio side (CCSDS, XTCE) stays in the `ground` extra."""
+    p = _pyproject()
+    base = {d.split(">=")[0] for d in p["project"]["dependencies"]}
+    assert {"textual", "textual-serve", "textual-plotext"} <= base
+    ground = {d.split(">=")[0] for d in p["project"]["optional-dependencies"]["ground"]}
+    assert ground == {"spacepackets", "yamcs-pymdb"}

@@ -43,7 +43,7 @@ def test_a_stalled_disk_drops_whole_loops_counted_and_marked(
 
     monkeypatch.setattr(recording, "open", stalling_open, raising=False)
     m = load_mission(MISSION)
-    cn = ControlLogic(m, key=None, epoch=1)
+    cn = ControlLogic(m, keys=None, epoch=1)
     rec = Recorder(tmp_path / "rec", m, MISSION, cn.dv, seconds=0.0)
     stalled = files[0]
     stalled.go.clear()  # the disk stops
@@ -59,3 +59,22 @@ def test_a_stalled_disk_drops_whole_loops_counted_and_marked(
     kept = list(reader.loops())
     assert kept and [r.loop for r in kept] == list(range(1, len(kept) + 1))  # no hole inside
     assert not reader.complete and reader.dropped_loops > 0  # the gap is in the record
+
+
+def test_the_final_loop_flag_is_recorded_and_replayed(tmp_path: Path) -> None:
+    """A run's last loop (dnX_final in its frames and telemetry) is an input
+    of the loop like the others: the replay repeats it, bit for bit."""
+    from zplatform import replay
+    from zplatform.auth import load_keys
+
+    m = load_mission(MISSION)
+    cn = ControlLogic(m, keys=load_keys(m, "cn"), epoch=1)
+    rec = Recorder(tmp_path / "rec", m, MISSION, cn.dv)
+    cn.recorder = rec
+    for n in (1, 2, 3):
+        cn.begin(n, n * m.period_ns, final=n == 3)
+        cn.finish()
+    rec.close()
+    assert [r.final for r in RecordReader(tmp_path / "rec").loops()] == [False, False, True]
+    res = replay(tmp_path / "rec")
+    assert res.identical and res.loops == 3, res

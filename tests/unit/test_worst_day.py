@@ -10,9 +10,9 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from zplatform import DataVector, Layout, RegionCodec, load_mission
-from zplatform.auth import AuthError, Channel, mission_channels
+from zplatform.auth import AuthError, Channel, KeySet, channel
 from zplatform.codec import encode_frame
-from zplatform.lockstep import SIM_KEY, LockstepRunner
+from zplatform.lockstep import LockstepRunner, sim_keys
 from zplatform.loop import ControlLogic, DeviceLogic
 from zplatform.uplink import Uplink, element_index, parse_commands
 
@@ -77,9 +77,9 @@ def _abort_at(which: str, target: int) -> tuple[str, str, list[str]]:
     # the CN applies it in loop `target`, whatever transition is due there.
     while r.loop < target - 1:
         r.step()
-    seq = int(r.telemetry_dv.get("cn_cmd_seq")) + 1
-    up = Uplink(mission, SIM_KEY)
-    r._ground = bytearray(up.frame("ABORT", seq, 0, 0.0, 0, int(r.telemetry_dv.get("cn_epoch"))))
+    seq = int(r.ground.dv.get("cn_cmd_seq")) + 1
+    up = Uplink(mission, sim_keys(mission))
+    r._ground = bytearray(up.frame("ABORT", seq, 0, 0.0, 0, int(r.ground.dv.get("cn_epoch"))))
     r.step()
     status = r.control.dv.get_name("cn_cmd_status")
     r.step()  # within one loop
@@ -116,16 +116,21 @@ def test_abort_always_takes_effect_within_one_loop(which: str, target: int) -> N
 # -- 2. a forged trigger cannot freeze a DN ------------------------------------------
 
 
+def _ks(mission: object, master: bytes | None) -> KeySet | None:
+    """Every link's key derived from ``master`` (None: no authentication)."""
+    return KeySet.from_master(mission, master) if master is not None else None  # type: ignore[arg-type]
+
+
 def _trigger(mission: object, dn: str, seq: int, t_ns: int, key: bytes | None) -> bytes:
     cn = DataVector(Layout.for_node(mission, "cn"))  # type: ignore[arg-type]
     frame = bytes(RegionCodec(cn, f"cn_to_{dn}").encode(seq, t_ns))
-    ch = mission_channels(mission, key)[f"cn_to_{dn}"]  # type: ignore[arg-type]
+    ch = channel(_ks(mission, key), f"cn_to_{dn}")
     return bytes(ch.seal(frame)) if ch is not None else frame
 
 
 def test_defect_2_forged_trigger_is_refused_and_real_ones_still_run() -> None:
     key = b"k" * 32
-    dn = DeviceLogic(LED, "dn0", key=key, stale_after_ns=PERIOD)
+    dn = DeviceLogic(LED, "dn0", keys=_ks(LED, key), stale_after_ns=PERIOD)
     now = 1_000 * PERIOD
     assert dn.step(_trigger(LED, "dn0", 1, now, key), now) is not None and dn.triggered == 1
     # Without the key: refused as a bad frame, never applied.
@@ -149,7 +154,7 @@ def test_defect_2_forged_trigger_is_refused_and_real_ones_still_run() -> None:
 
 
 def test_defect_3_dn_without_triggers_writes_safe_values_and_waits_for_the_cn() -> None:
-    dn = DeviceLogic(LED, "dn0", key=None)
+    dn = DeviceLogic(LED, "dn0", keys=None)
     cn = DataVector(Layout.for_node(LED, "cn"))
     cn.set("led_a_cmd", True)  # the CN lights an LED
     codec = RegionCodec(cn, "cn_to_dn0")
@@ -174,6 +179,86 @@ def test_defect_3_dn_without_triggers_writes_safe_values_and_waits_for_the_cn() 
     assert "dn_reenabled" in [e.id for e in dn.events.drain()]
 
 
+def test_the_cn_s_last_loop_safes_a_dn_as_the_run_s_end_not_as_a_lost_cn() -> None:
+    """The CN flags its planned last loop (dnX_final): the DN runs that loop,
+    then safes its actuators with an activity event, its watchdog stays
+    quiet however long no trigger comes, and a new run's triggers re-enable
+    it after dn_reenable_loops, as after a lost CN."""
+    cn = ControlLogic(LED, keys=None)
+    dn = DeviceLogic(LED, "dn0", keys=None)
+    cn.dv.set("led_a_cmd", True)
+    t = 1_000 * PERIOD
+    for k in (1, 2, 3):
+        t += PERIOD
+        frames = cn.begin(k, t, final=k == 3)
+        assert cn.dv.get("dn0_final") is (k == 3) and cn.dv.get("dn2_final") is (k == 3)
+        dn.step(bytes(frames[0]), t)
+        cn.finish()
+        if k < 3:
+            assert not dn.safed and dn.dv.get("led_a_fb") is True
+    assert dn.safed and dn.dv.get("dn0_safed") is True and dn.dv.get("led_a_fb") is False
+    events = dn.events.drain()
+    (ended,) = [e for e in events if e.id.startswith("dn_safed")]
+    assert ended.id == "dn_safed_run_ended" and ended.severity_name == "ACTIVITY_HI"
+    assert "run ended (its last loop was 3)" in ended.text
+    assert dn.safed_why.startswith("the control node's run ended")
+    # No warning, however long the silence after the last loop.
+    assert dn.watchdog(t + 1_000 * PERIOD)
+    assert not [e for e in dn.events.drain() if e.id == "dn_safed"]
+    # The platform owns the flag: written every loop, whatever a component wrote.
+    cn.dv.set("dn0_final", True)
+    frames = cn.begin(4, t + PERIOD)
+    assert cn.dv.get("dn0_final") is False
+    # A new run of the CN (a later stamp): re-enabled after dn_reenable_loops.
+    t += 1_000 * PERIOD
+    for k in range(1, LED.faults.dn_reenable_loops + 1):
+        t += PERIOD
+        frames = cn.begin(k, t)
+        dn.step(bytes(frames[0]), t)
+        cn.finish()
+        assert dn.safed is (k < LED.faults.dn_reenable_loops)
+    assert dn.dv.get("led_a_fb") is True
+    assert "dn_reenabled" in [e.id for e in dn.events.drain()]
+
+
+def test_the_run_s_end_is_told_to_a_dn_a_stall_had_safed() -> None:
+    """A DN the watchdog safed (the CN stalled) that then runs the final
+    loop is safed because the run ended (one activity event), not still
+    because the CN was lost."""
+    cn = ControlLogic(LED, keys=None)
+    dn = DeviceLogic(LED, "dn0", keys=None)
+    t = 1_000 * PERIOD
+    dn.step(bytes(cn.begin(1, t)[0]), t)
+    assert dn.watchdog(t + 20 * PERIOD)  # the CN stalled
+    t += 21 * PERIOD
+    dn.step(bytes(cn.begin(2, t, final=True)[0]), t)
+    ids = [e.id for e in dn.events.drain()]
+    assert ids == ["dn_safed", "dn_safed_run_ended"]
+    assert dn.safed_why.startswith("the control node's run ended")
+    dn.safe(t + PERIOD, "the node is stopping", exiting=True)  # a clean exit: nothing new
+    assert dn.events.drain() == [] and dn.safed_why.startswith("the control node's run ended")
+
+
+def test_a_last_loop_too_late_to_run_still_ends_the_run_for_the_dn() -> None:
+    """Under load the CN's last trigger may reach a DN after its time (a
+    stale query: answered, not run); it still says the run ended. A replayed
+    older final frame does not."""
+    cn = ControlLogic(LED, keys=None)
+    dn = DeviceLogic(LED, "dn0", keys=None, stale_after_ns=PERIOD)
+    t = 1_000 * PERIOD
+    t += PERIOD
+    old_final = bytes(cn.begin(1, t, final=True)[0])
+    t += PERIOD
+    dn.step(bytes(cn.begin(2, t)[0]), t)  # a later loop ran: the old final is a replay
+    dn.trigger(old_final, t + PERIOD)
+    assert not dn.safed
+    late = bytes(cn.begin(3, t + PERIOD, final=True)[0])
+    assert dn.trigger(late, t + 5 * PERIOD) is not None and dn.triggered == 0
+    assert dn.safed
+    (e,) = [e for e in dn.events.drain() if e.id.startswith("dn_safed")]
+    assert e.id == "dn_safed_run_ended" and "came too late to run" in e.text
+
+
 def test_dn_safes_on_a_clean_exit() -> None:
     dn = DeviceLogic(LED, "dn0")
     dn.safe(0, "the node is stopping")
@@ -184,8 +269,8 @@ def test_dn_safes_on_a_clean_exit() -> None:
 
 
 def _cn_with_ground(mission: object, key: bytes | None) -> tuple[ControlLogic, Uplink]:
-    cn = ControlLogic(mission, key=key, epoch=77)  # type: ignore[arg-type]
-    return cn, Uplink(mission, key)  # type: ignore[arg-type]
+    cn = ControlLogic(mission, keys=_ks(mission, key), epoch=77)  # type: ignore[arg-type]
+    return cn, Uplink(mission, _ks(mission, key))  # type: ignore[arg-type]
 
 
 def _loop(cn: ControlLogic, loop: int, *grounds: bytes) -> None:
@@ -211,7 +296,7 @@ def test_defect_5_replayed_or_foreign_frames_do_not_move_the_numbering() -> None
     assert cn.dv.get("cn_cmd_seq") == 1
     _loop(cn, 2, launch)  # a replay
     _loop(cn, 3, bytes(up.frame("ABORT", 9, 0, 0.0, 0, 76)))  # an earlier run's epoch
-    forged = bytes(Uplink(LED, b"x" * 32).frame("ABORT", 5, 0, 0.0, 0, 77))
+    forged = bytes(Uplink(LED, _ks(LED, b"x" * 32)).frame("ABORT", 5, 0, 0.0, 0, 77))
     _loop(cn, 4, forged)  # the wrong key
     assert cn.dv.get("cn_cmd_seq") == 1 and cn.dv.get_name("cn_cmd_status") == "ACCEPTED"
     assert cn.dv.get("cn_cmd_rejects") == 3
@@ -219,6 +304,23 @@ def test_defect_5_replayed_or_foreign_frames_do_not_move_the_numbering() -> None
     # The operator's next command (numbered from telemetry) is accepted.
     _loop(cn, 5, bytes(up.frame("ABORT", 2, 0, 0.0, 0, 77)))
     assert cn.dv.get_name("cn_cmd_status") == "ACCEPTED" and cn.dv.get_name("cn_state") == "E"
+
+
+def test_a_refusal_that_consumes_no_number_names_the_request() -> None:
+    """``cn_cmd_reject_seq`` echoes the number of a request refused without
+    consuming one, so its sender learns at once; an unauthenticated frame's
+    number is not trusted (0)."""
+    cn, up = _cn_with_ground(LED, b"k" * 32)
+    _loop(cn, 1, bytes(up.frame("NOOP", 4, 0, 0.0, 0, 76)))  # an earlier run's epoch
+    assert cn.dv.get_name("cn_cmd_reject_status") == "REJECTED_EPOCH"
+    assert cn.dv.get("cn_cmd_reject_seq") == 4 and cn.dv.get("cn_cmd_seq") == 0
+    _loop(cn, 2, bytes(up.frame("NOOP", 6, 0, 0.0, 0, 77)))
+    _loop(cn, 3, bytes(up.frame("NOOP", 5, 0, 0.0, 0, 77)))  # below the last: a replay
+    assert cn.dv.get_name("cn_cmd_reject_status") == "REJECTED_REPLAY"
+    assert cn.dv.get("cn_cmd_reject_seq") == 5 and cn.dv.get("cn_cmd_seq") == 6
+    _loop(cn, 4, bytes(Uplink(LED, _ks(LED, b"x" * 32)).frame("NOOP", 9, 0, 0.0, 0, 77)))
+    assert cn.dv.get_name("cn_cmd_reject_status") == "REJECTED_AUTH"
+    assert cn.dv.get("cn_cmd_reject_seq") == 0
 
 
 # -- 6. WRITE cannot bypass ARM-then-fire ----------------------------------------------
@@ -272,7 +374,7 @@ def test_defect_7_junk_and_extra_requests_are_counted_and_never_block_a_command(
 
 def test_defect_8_forged_replies_are_never_applied() -> None:
     key = b"k" * 32
-    cn = ControlLogic(LED, key=key, epoch=1)
+    cn = ControlLogic(LED, keys=_ks(LED, key), epoch=1)
     frames = cn.begin(1, PERIOD)
     assert len(frames) == 3
     rogue = DataVector(Layout.for_node(LED, "dn0"))
@@ -288,7 +390,7 @@ def test_defect_8_forged_replies_are_never_applied() -> None:
 def test_channels_do_not_accept_each_others_frames() -> None:
     key = b"k" * 32
     q = Channel(key, "rocket", "cn_to_dn0")
-    r = Channel(key, "rocket", "dn0_to_cn")
+    r = Channel(key, "rocket", "dn0_to_cn")  # the same link's key, the other direction
     sealed = bytes(q.seal(b"frame"))
     assert bytes(q.open(sealed)) == b"frame"
     try:
@@ -301,8 +403,8 @@ def test_channels_do_not_accept_each_others_frames() -> None:
 
 def test_frames_are_exactly_tag_longer() -> None:
     key = b"k" * 32
-    cn = ControlLogic(LED, key=key, epoch=1)
-    plain = ControlLogic(LED, key=None, epoch=1)
+    cn = ControlLogic(LED, keys=_ks(LED, key), epoch=1)
+    plain = ControlLogic(LED, keys=None, epoch=1)
     assert len(cn.begin(1, 1)[0]) == len(plain.begin(1, 1)[0]) + 16
     frame = encode_frame(1, 1, 1, b"")
     assert struct.unpack_from(">I", frame, 2)[0] == 1
@@ -311,7 +413,7 @@ def test_frames_are_exactly_tag_longer() -> None:
 def test_a_dn_that_was_stopped_safes_before_it_runs_again() -> None:
     """A SIGSTOPped DN wakes to a trigger, not to a quiet wait: it must safe
     first (its outputs were unsupervised) and re-enable like after a loss."""
-    dn = DeviceLogic(LED, "dn0", key=None)
+    dn = DeviceLogic(LED, "dn0", keys=None)
     cn = DataVector(Layout.for_node(LED, "cn"))
     cn.set("led_a_cmd", True)
     codec = RegionCodec(cn, "cn_to_dn0")

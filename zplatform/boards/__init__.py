@@ -18,9 +18,9 @@ validates one at mission load. The node runtime then calls
 
 The contract
 ------------
-Every board satisfies :class:`~zplatform.devices.Board`; the managed ones
-(every built-in) also :class:`ManagedBoard`. :class:`~zplatform.devices.SimBoard`
-is the reference implementation.
+Every board satisfies :class:`Board`; the managed ones (every built-in)
+also :class:`ManagedBoard`. :class:`SimBoard` (``sim``) is the reference
+implementation.
 
 ``digital_pins``, ``analog_pins``
     Pin counts, fixed at construction (devices check pin numbers against them).
@@ -76,7 +76,7 @@ Errors::
 
 from __future__ import annotations
 
-from .base import BoardError, BoardHealth, HealthCounters, ManagedBoard
+from .base import Board, BoardError, BoardHealth, HealthCounters, ManagedBoard
 from .gpio import GpiodBoard, GpiodBoardConfig
 from .registry import (
     BUILTIN_DRIVERS,
@@ -88,17 +88,22 @@ from .registry import (
     safe_board,
 )
 from .serialboard import SerialBoard, SerialBoardConfig
+from .sim import Physics, SimBoard, SimBoardConfig
 
 __all__ = [
     "BUILTIN_DRIVERS",
+    "Board",
     "BoardError",
     "BoardHealth",
     "GpiodBoard",
     "GpiodBoardConfig",
     "HealthCounters",
     "ManagedBoard",
+    "Physics",
     "SerialBoard",
     "SerialBoardConfig",
+    "SimBoard",
+    "SimBoardConfig",
     "board_health",
     "check_board",
     "close_board",

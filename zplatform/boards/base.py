@@ -1,4 +1,5 @@
-"""The board contract: :class:`ManagedBoard`, :class:`BoardHealth`, :class:`BoardError`.
+"""The board contract's types: :class:`Board`, :class:`ManagedBoard`,
+:class:`BoardHealth`, :class:`BoardError`.
 
 The contract is stated once in :mod:`zplatform.boards` (the package
 docstring); this module holds its types so that drivers and the device loop
@@ -11,10 +12,36 @@ from typing import Protocol, runtime_checkable
 
 import msgspec
 
-from ..devices import Board
 from ..errors import ZPlatformError
 
-__all__ = ["BoardError", "BoardHealth", "HealthCounters", "ManagedBoard"]
+__all__ = ["Board", "BoardError", "BoardHealth", "HealthCounters", "ManagedBoard"]
+
+
+@runtime_checkable
+class Board(Protocol):
+    """An I/O board: digital and analog pins, numbered from 0.
+
+    ``digital_pins`` / ``analog_pins`` are the pin counts (devices check their
+    pin numbers against them at construction). Every pin method raises
+    :class:`~zplatform.errors.ControlError` for a pin out of range. ``step``
+    is called once per loop before the sensors run.
+    """
+
+    @property
+    def digital_pins(self) -> int: ...
+
+    @property
+    def analog_pins(self) -> int: ...
+
+    def step(self, t_ns: int) -> None: ...
+
+    def set_digital(self, pin: int, value: bool) -> None: ...
+
+    def get_digital(self, pin: int) -> bool: ...
+
+    def set_analog(self, pin: int, volts: float) -> None: ...
+
+    def get_analog(self, pin: int) -> float: ...
 
 
 class BoardError(ZPlatformError):
@@ -116,7 +143,7 @@ class HealthCounters:
 
 @runtime_checkable
 class ManagedBoard(Board, Protocol):
-    """A :class:`~zplatform.devices.Board` with a life cycle, a safe state and health.
+    """A :class:`Board` with a life cycle, a safe state and health.
 
     See :mod:`zplatform.boards` for the full contract of each method.
     """

@@ -34,20 +34,37 @@ MAX_PIN = 255
 
 
 class GpiodBoardConfig(msgspec.Struct, forbid_unknown_fields=True):
-    """The ``board:`` mapping of ``driver: gpiod`` (see the module docstring).
-
-    ``digital_pins`` of the board is the highest mapped pin + 1; pins in
-    between that are not mapped raise ControlError when used, like pins out
-    of range. The gpiod board has no analog pins.
+    """The `board:` mapping of `driver: gpiod`: digital lines of one Linux
+    gpiochip through libgpiod v2 (needs the `gpio` extra). Board pins map to
+    line offsets; the board has no analog pins, and its `digital_pins` is
+    the highest mapped pin + 1 (an unmapped pin in between is refused like
+    one out of range).
     """
 
-    chip: str = "/dev/gpiochip0"
-    inputs: dict[int, Annotated[int, Meta(ge=0)]] = msgspec.field(default_factory=dict)
-    outputs: dict[int, Annotated[int, Meta(ge=0)]] = msgspec.field(default_factory=dict)
-    active_low: list[int] = msgspec.field(default_factory=list)
-    bias: Literal["as-is", "pull-up", "pull-down", "disabled"] = "as-is"
-    safe: dict[int, bool] = msgspec.field(default_factory=dict)
-    consumer: str = "zplatform"
+    chip: Annotated[str, Meta(description="The GPIO chip device.")] = "/dev/gpiochip0"
+    inputs: Annotated[
+        dict[int, Annotated[int, Meta(ge=0)]],
+        Meta(description="Input pins: board pin (0-255) -> line offset."),
+    ] = msgspec.field(default_factory=dict)
+    outputs: Annotated[
+        dict[int, Annotated[int, Meta(ge=0)]],
+        Meta(description="Output pins: board pin (0-255) -> line offset."),
+    ] = msgspec.field(default_factory=dict)
+    active_low: Annotated[
+        list[int],
+        Meta(description="Board pins whose level the kernel inverts."),
+    ] = msgspec.field(default_factory=list)
+    bias: Annotated[
+        Literal["as-is", "pull-up", "pull-down", "disabled"],
+        Meta(description="Bias of the input lines."),
+    ] = "as-is"
+    safe: Annotated[
+        dict[int, bool],
+        Meta(description="Safe level per output pin (others: off); outputs start at it."),
+    ] = msgspec.field(default_factory=dict)
+    consumer: Annotated[
+        str, Meta(description="The consumer name the lines are requested under.")
+    ] = "zplatform"
 
     def __post_init__(self) -> None:
         for kind, pins in (("inputs", self.inputs), ("outputs", self.outputs)):

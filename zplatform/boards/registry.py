@@ -3,20 +3,20 @@
 A node's ``board:`` mapping is ``{driver: NAME, ...the driver's own config}``.
 ``driver`` defaults to ``sim``, so the mappings written before drivers
 existed (``{digital_pins: 4, physics: ...}``) still mean a
-:class:`~zplatform.devices.SimBoard`.
+:class:`~zplatform.boards.SimBoard`.
 """
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from typing import Any
 
 import msgspec
 
 from ..components import decode_component_config, load_component_class
-from ..devices import Board, SimBoard
 from ..errors import ConfigError
-from .base import BoardHealth
+from .base import Board, BoardHealth
+from .sim import SimBoard
 
 __all__ = [
     "BUILTIN_DRIVERS",
@@ -28,7 +28,7 @@ __all__ = [
     "safe_board",
 ]
 
-BUILTIN_DRIVERS = ("sim", "serial", "gpiod")
+BUILTIN_DRIVERS = ("sim", "serial", "gpiod", "world")
 _BOARD_METHODS = ("step", "set_digital", "get_digital", "set_analog", "get_analog")
 
 
@@ -53,12 +53,14 @@ def _split(spec: Mapping[str, Any] | None, where: str) -> tuple[str, dict[str, A
     return driver, config
 
 
-def _load_class(driver: str, where: str) -> type[Any]:
+def _load_class(driver: str, where: str, pythonpath: Sequence[str]) -> type[Any]:
     # The one class loader of the platform (controllers, devices, boards).
-    return load_component_class(driver, object, where)
+    return load_component_class(driver, object, where, pythonpath=pythonpath)
 
 
-def make_board(spec: Mapping[str, Any] | None, *, where: str) -> Board:
+def make_board(
+    spec: Mapping[str, Any] | None, *, where: str, pythonpath: Sequence[str] = ()
+) -> Board:
     """Build (not open) the board a node's ``board:`` mapping asks for.
 
     ``where`` is the mapping's YAML path (``$.nodes.dn0.board``); every
@@ -71,11 +73,19 @@ def make_board(spec: Mapping[str, Any] | None, *, where: str) -> Board:
     with the mapping minus ``driver`` (a plain dict); it should decode it
     into its own typed config (``decode_component_config``) and raise
     ConfigError, and must not touch hardware before ``open()``. The result
-    must satisfy :class:`~zplatform.devices.Board` (ConfigError otherwise).
+    must satisfy :class:`~zplatform.boards.Board` (ConfigError otherwise).
+    ``pythonpath``: the mission's code directories, for a team's driver
+    class or a physics hook (:func:`~zplatform.components.mission_code_path`).
     """
     driver, config = _split(spec, where)
     if driver == "sim":
-        return SimBoard(config, where=where)
+        return SimBoard(config, where=where, pythonpath=pythonpath)
+    if driver == "world":
+        raise ConfigError(
+            "driver 'world' is a port onto the mission's vehicle world: build it with "
+            "zplatform.world.node_board(mission, node)",
+            f"{where}.driver",
+        )
     if driver == "serial":
         from .serialboard import SerialBoard
 
@@ -84,7 +94,7 @@ def make_board(spec: Mapping[str, Any] | None, *, where: str) -> Board:
         from .gpio import GpiodBoard
 
         return GpiodBoard(config, where=where)
-    cls = _load_class(driver, f"{where}.driver")
+    cls = _load_class(driver, f"{where}.driver", pythonpath)
     try:
         board = cls(config, where=where)
     except ConfigError:
@@ -95,14 +105,16 @@ def make_board(spec: Mapping[str, Any] | None, *, where: str) -> Board:
         ) from exc
     if not isinstance(board, Board):
         raise ConfigError(
-            f"{driver!r} does not implement zplatform.devices.Board "
+            f"{driver!r} does not implement zplatform.boards.Board "
             "(digital_pins, analog_pins, step, get/set_digital, get/set_analog)",
             f"{where}.driver",
         )
     return board
 
 
-def check_board(spec: Mapping[str, Any] | None, where: str) -> None:
+def check_board(
+    spec: Mapping[str, Any] | None, where: str, *, pythonpath: Sequence[str] = ()
+) -> None:
     """Validate a ``board:`` mapping at mission load, opening no hardware.
 
     Built-in drivers are built and dropped (their constructors are pure).
@@ -113,14 +125,16 @@ def check_board(spec: Mapping[str, Any] | None, where: str) -> None:
     team's constructor may not be pure. Raises ConfigError with the path.
     """
     driver, config = _split(spec, where)
+    if driver == "world":
+        return  # checked against the mission's world (zplatform.world.check_config)
     if driver in BUILTIN_DRIVERS:
-        make_board(spec, where=where)
+        make_board(spec, where=where, pythonpath=pythonpath)
         return
-    cls = _load_class(driver, f"{where}.driver")
+    cls = _load_class(driver, f"{where}.driver", pythonpath)
     missing = [m for m in _BOARD_METHODS if not callable(getattr(cls, m, None))]
     if missing:
         raise ConfigError(
-            f"{driver!r} does not implement zplatform.devices.Board (no {', '.join(missing)})",
+            f"{driver!r} does not implement zplatform.boards.Board (no {', '.join(missing)})",
             f"{where}.driver",
         )
     cfg_type = getattr(cls, "Config", None)

@@ -4,7 +4,7 @@
 pair, points the symlink ``PATH`` at its slave side (atomically, like udev's
 ``/dev/serial/by-id/...`` links for a USB serial device) and then behaves as
 the device side of ``docs/serial-protocol.md``, in Python, over a
-:class:`~zplatform.devices.SimBoard`: digital pins read back their output
+:class:`~zplatform.boards.SimBoard`: digital pins read back their output
 unless an input is injected (``--inject-digital 4=1``), analog pins likewise
 (``--inject-analog 0=1.25``). It prints ``READY <slave path>`` once the link
 is in place.
@@ -15,6 +15,10 @@ and count); killing the process is a cable pull (the pty vanishes).
 
 The device safes itself like a firmware would: with no valid WRITE for
 ``--watchdog-ms`` it drives every output off / 0 V.
+
+:class:`SimDevice` and :func:`open_pty_link` are also what the vehicle
+world process (:mod:`zplatform.world`) uses to play a board's firmware over
+a pty for hardware in the loop, with the world's physics behind the pins.
 """
 
 from __future__ import annotations
@@ -27,11 +31,12 @@ import struct
 import sys
 import time
 import tty
+from collections.abc import Callable
 
-from ..devices import SimBoard
 from . import wire
+from .sim import SimBoard
 
-__all__ = ["SimDevice", "main"]
+__all__ = ["SimDevice", "main", "open_pty_link", "pump"]
 
 _U64 = struct.Struct("<Q")
 
@@ -41,10 +46,19 @@ class SimDevice:
 
     :meth:`handle` takes one decoded frame body and returns the reply bytes
     to send (already framed), or ``b""``. :meth:`tick` applies the watchdog.
+    ``on_write(now_ns)``, when given, runs after a WRITE's outputs are
+    applied and before its INPUTS are sampled (a physics step: what the
+    inputs answer then follows the outputs, as on a real board).
     """
 
-    def __init__(self, board: SimBoard, watchdog_ms: int = 200) -> None:
+    def __init__(
+        self,
+        board: SimBoard,
+        watchdog_ms: int = 200,
+        on_write: Callable[[int], None] | None = None,
+    ) -> None:
         self.board = board
+        self.on_write = on_write
         self.watchdog_ns = watchdog_ms * 1_000_000
         self.ready = False
         self.last_write_ns: int | None = None
@@ -101,6 +115,8 @@ class SimDevice:
                 b.set_analog(pin, v)
             self.last_write_ns = now_ns
             self.writes += 1
+            if self.on_write is not None:
+                self.on_write(now_ns)
             return self.inputs(seq)
         if msg_type == wire.MSG_READ:
             if not self.ready:
@@ -144,6 +160,36 @@ def _pins(items: list[str], cast: type) -> dict[int, object]:
     return out
 
 
+def open_pty_link(link: str) -> tuple[int, int]:
+    """Open a pty pair in raw mode and point the symlink ``link`` at its slave
+    side (atomically); returns ``(master, slave)`` file descriptors.
+
+    The slave fd is meant to stay open for the process's life, so that reads
+    on the master never see EIO between two host sessions.
+    """
+    master, slave = os.openpty()
+    # Raw mode on the slave: no echo, no line discipline, before the host opens it.
+    tty.setraw(slave)
+    tmp = f"{link}.{os.getpid()}.tmp"
+    os.symlink(os.ttyname(slave), tmp)
+    os.replace(tmp, link)
+    return master, slave
+
+
+def pump(master: int, deframer: wire.Deframer, out: list[bytes]) -> None:
+    """Read what the host sent on pty ``master`` (ready to read), feed it to
+    ``deframer`` (whose callbacks append replies to ``out``), write the
+    replies. A read error (the host side closed) reads as nothing."""
+    try:
+        data = os.read(master, 4096)
+    except OSError:
+        data = b""
+    deframer.feed(data)
+    if out:
+        os.write(master, b"".join(out))
+        out.clear()
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python -m zplatform.boards.serial_sim")
     ap.add_argument("--link", required=True, help="symlink to point at the pty's slave side")
@@ -161,14 +207,7 @@ def main(argv: list[str] | None = None) -> int:
         board.inject_analog(pin, float(v))  # type: ignore[arg-type]
     device = SimDevice(board, args.watchdog_ms)
 
-    master, slave = os.openpty()
-    # Raw mode on the slave: no echo, no line discipline, before the host opens
-    # it. The slave fd stays open for the process's life so that reads on the
-    # master never see EIO between two host sessions.
-    tty.setraw(slave)
-    tmp = f"{args.link}.{os.getpid()}.tmp"
-    os.symlink(os.ttyname(slave), tmp)
-    os.replace(tmp, args.link)
+    master, slave = open_pty_link(args.link)
 
     noise = [False]
     signal.signal(signal.SIGUSR1, lambda *_: noise.__setitem__(0, True))
@@ -192,14 +231,7 @@ def main(argv: list[str] | None = None) -> int:
     while True:
         ready, _, _ = select.select([master], [], [], 0.02)
         if ready:
-            try:
-                data = os.read(master, 4096)
-            except OSError:
-                data = b""
-            deframer.feed(data)
-            if out:
-                os.write(master, b"".join(out))
-                out.clear()
+            pump(master, deframer, out)
         device.tick(time.monotonic_ns())
 
 

@@ -41,34 +41,88 @@ __all__ = ["SerialBoard", "SerialBoardConfig", "round_trip_ms"]
 
 
 class SerialBoardConfig(msgspec.Struct, forbid_unknown_fields=True):
-    """The ``board:`` mapping of ``driver: serial`` (all times in milliseconds).
-
-    ``reply_timeout_ms`` must exceed the frames' time on the wire at
-    ``baudrate`` (checked at load: at 115200 baud a WRITE and its INPUTS
-    alone take 2.8 ms or more, so the default is 921600; USB CDC-ACM ignores
-    the baud rate and answers within a USB frame or two).
-    ``exclusive`` locks the port (flock) against a second opener.
-    ``digital_pins`` / ``analog_pins`` are what the devices may use; the
-    device must announce at least as many in its HELLO_ACK. ``safe_digital``
-    / ``safe_analog`` map a pin to its safe value (others: off, 0 V).
-    ``safe_after``: consecutive failed steps (3 = 30 ms at 100 Hz, so one
-    late reply on a loaded host does not glitch the outputs) after which the
-    board forces the safe values on every write until the device answers
-    again.
+    """The `board:` mapping of `driver: serial`: a microcontroller on a
+    serial port speaking the framed, CRC-checked protocol of
+    docs/serial-protocol.md (needs the `serial` extra). The link is opened
+    in the background and re-opened when lost; the loop never waits on it
+    longer than `reply_timeout_ms`.
     """
 
-    port: str
-    baudrate: Annotated[int, Meta(ge=300, le=12_000_000)] = 921_600
-    digital_pins: Annotated[int, Meta(ge=0, le=wire.MAX_DIGITAL)] = 8
-    analog_pins: Annotated[int, Meta(ge=0, le=wire.MAX_ANALOG)] = 0
-    reply_timeout_ms: Annotated[float, Meta(gt=0, le=50)] = 2.0
-    handshake_timeout_ms: Annotated[float, Meta(gt=0, le=10_000)] = 500.0
-    reconnect_min_ms: Annotated[float, Meta(gt=0, le=60_000)] = 50.0
-    reconnect_max_ms: Annotated[float, Meta(gt=0, le=60_000)] = 2_000.0
-    safe_after: Annotated[int, Meta(ge=1)] = 3
-    exclusive: bool = True
-    safe_digital: dict[int, bool] = msgspec.field(default_factory=dict)
-    safe_analog: dict[int, float] = msgspec.field(default_factory=dict)
+    port: Annotated[
+        str, Meta(description="The serial device: `/dev/serial/by-id/...`, `/dev/ttyACM0`.")
+    ]
+    baudrate: Annotated[
+        int,
+        Meta(
+            ge=300,
+            le=12_000_000,
+            description="Line speed. USB CDC-ACM ignores it and answers within a USB frame or "
+            "two; a real UART must be fast enough for `reply_timeout_ms` (checked at load: "
+            "at 115200 baud a WRITE and its INPUTS alone take 2.8 ms or more).",
+        ),
+    ] = 921_600
+    digital_pins: Annotated[
+        int,
+        Meta(
+            ge=0,
+            le=wire.MAX_DIGITAL,
+            description="Digital pins the devices may use; the device must announce at least "
+            "as many in its HELLO_ACK.",
+        ),
+    ] = 8
+    analog_pins: Annotated[
+        int,
+        Meta(
+            ge=0,
+            le=wire.MAX_ANALOG,
+            description="Analog pins the devices may use (announced like `digital_pins`).",
+        ),
+    ] = 0
+    reply_timeout_ms: Annotated[
+        float,
+        Meta(
+            gt=0,
+            le=50,
+            description="How long a loop's step waits for the device's INPUTS (ms); longer "
+            "than the frames' time on the wire.",
+        ),
+    ] = 2.0
+    handshake_timeout_ms: Annotated[
+        float,
+        Meta(gt=0, le=10_000, description="How long a HELLO waits for its HELLO_ACK (ms)."),
+    ] = 500.0
+    reconnect_min_ms: Annotated[
+        float,
+        Meta(gt=0, le=60_000, description="First wait before re-opening a lost link (ms)."),
+    ] = 50.0
+    reconnect_max_ms: Annotated[
+        float,
+        Meta(
+            gt=0,
+            le=60_000,
+            description="Longest wait between re-open attempts (ms); the wait doubles up to it.",
+        ),
+    ] = 2_000.0
+    safe_after: Annotated[
+        int,
+        Meta(
+            ge=1,
+            description="Consecutive failed steps (3 = 30 ms at 100 Hz, so one late reply on a "
+            "loaded host does not glitch the outputs) after which the board forces the safe "
+            "values on every write until the device answers again.",
+        ),
+    ] = 3
+    exclusive: Annotated[
+        bool, Meta(description="Lock the port (flock) against a second opener.")
+    ] = True
+    safe_digital: Annotated[
+        dict[int, bool],
+        Meta(description="Safe level per digital pin (others: off)."),
+    ] = msgspec.field(default_factory=dict)
+    safe_analog: Annotated[
+        dict[int, float],
+        Meta(description="Safe voltage per analog pin (others: 0 V)."),
+    ] = msgspec.field(default_factory=dict)
 
     def __post_init__(self) -> None:
         wire_ms = round_trip_ms(self.baudrate, self.analog_pins)

@@ -1,12 +1,14 @@
 """The ground console (``zplatform ground MISSION [--web PORT]``).
 
 * :mod:`.model`: :class:`ConsoleModel`, the console's state, sans-IO;
-* :mod:`.link`: :class:`Link`, zenoh threads feeding the model and sending commands;
-* :mod:`.app`: :class:`ConsoleApp`, the textual screen (terminal, or a browser
-  through ``textual-serve``).
+* :mod:`.link`: :class:`Link`, a thread over the ground link feeding the model
+  and sending commands;
+* :mod:`.app`: :class:`ConsoleApp`, the textual screen (terminal, or a browser);
+* :mod:`.web`: the web server that gives each operator's browser session its
+  own console process; :mod:`.webdriver`: that process's textual driver.
 
-The screen needs ``textual`` (the ``ground`` extra); the model does not, so
-the screen and the link are imported on first use.
+The screen needs ``textual`` (a dependency of zplatform); the model does
+not, so the screen and the link are imported on first use.
 """
 
 from __future__ import annotations
@@ -59,7 +61,7 @@ def run_console(
     from .app import ConsoleApp
     from .link import Link
 
-    mission = load_mission(mission_path)
+    mission = load_mission(mission_path, code=False)
     model = ConsoleModel(mission, los_s=los_s, limits=limits)
     app = ConsoleApp(model, Link(model, timeout_s=timeout_s))
     return app.run() or 0
@@ -71,34 +73,35 @@ def serve_console(
     *,
     host: str = "127.0.0.1",
     timeout_s: float = 10.0,
+    los_s: float = 0.3,
     limits_path: str | None = None,
 ) -> None:
-    """Serve the console to browsers on ``http://host:port`` until Ctrl-C. Blocks.
+    """Serve the console to the operator's browser on ``http://host:port`` until Ctrl-C. Blocks.
 
-    ``textual-serve`` starts one console process per browser tab (the same
-    ``zplatform ground MISSION`` command), so each viewer has its own session.
+    Prints the address to open, with its one-time token; every browser
+    session is its own ``zplatform ground MISSION --console`` process, which
+    ends with the session and with the server (:mod:`.web`).
     """
-    import shlex
     import sys
     from pathlib import Path
 
-    from textual_serve.server import Server
-
     from ..mission import load_mission
+    from ..node.runtime import setup_logging
+    from .web import WebConsole
 
-    mission = load_mission(mission_path)  # fail here, not in every browser tab
-    cmd = " ".join(
-        shlex.quote(a)
-        for a in (
-            sys.executable,
-            "-m",
-            "zplatform",
-            "ground",
-            str(Path(mission_path).resolve()),
-            "--console",
-            "--timeout",
-            str(timeout_s),
-            *(["--limits", str(Path(limits_path).resolve())] if limits_path else []),
-        )
-    )
-    Server(cmd, host=host, port=port, title=f"zplatform ground - {mission.mission}").serve()
+    mission = load_mission(mission_path, code=False)  # fail here, not in every browser tab
+    argv = [
+        sys.executable,
+        "-m",
+        "zplatform",
+        "ground",
+        str(Path(mission_path).resolve()),
+        "--console",
+        "--timeout",
+        str(timeout_s),
+        "--los",
+        str(los_s),
+        *(["--limits", str(Path(limits_path).resolve())] if limits_path else []),
+    ]
+    setup_logging()
+    WebConsole(argv, host=host, port=port, title=f"zplatform ground - {mission.mission}").serve()

@@ -4,12 +4,15 @@ Layout (fits 80x24, uses more room when there is more): a status bar (link,
 loop, state and time in state, loop rate, fault, last command, per-DN
 misses/late and clock offsets), the Data Vector grouped by region with
 limit colours, the event pane (filtered by severity), an optional live
-plot, and the command line (history on up/down, completion on tab).
+plot, an optional parameter view (``params``: every parameter's value,
+default, bounds, the states it may change in, hazardous ones marked), and
+the command line (history on up/down, completion on tab).
 
 The screen redraws at :data:`REFRESH_HZ` whatever the loop rate: it reads
 the model under its lock, which the link's threads update at the telemetry
-rate. Hazardous commands (``commands.hazardous``) open a confirmation dialog;
-confirmed, they go ARM n then COMMAND n+1.
+rate. Hazardous commands (``commands.hazardous``), WRITEs of protected
+elements (``commands.protected``) and PRM_SETs of hazardous parameters open
+a confirmation dialog; confirmed, they go ARM n then COMMAND n+1.
 """
 
 from __future__ import annotations
@@ -28,6 +31,7 @@ from textual.widgets import Button, Input, Label, Static
 from textual_plotext import PlotextPlot
 
 from ..errors import CommandError, DataVectorError
+from ..ground.records import ParamRow
 from .link import Link
 from .model import HELP, LOCAL_COMMANDS, ConsoleModel, Status, severity_style
 
@@ -80,7 +84,7 @@ class CommandLine(Input):
 
 
 class ConfirmScreen(ModalScreen[bool]):
-    """Asks before a hazardous command: y / Enter confirms, n / Esc cancels."""
+    """Asks before a command that needs ARM first: y confirms, n / Esc cancels."""
 
     BINDINGS: ClassVar[list[BindingType]] = [
         Binding("y", "answer(True)", "yes"),
@@ -127,6 +131,8 @@ class ConsoleApp(App[int]):
     #events { height: 1fr; }
     #plot { height: 1fr; display: none; }
     #plot.shown { display: block; }
+    #params { height: auto; max-height: 50%; display: none; border-top: solid $primary-darken-2; }
+    #params.shown { display: block; }
     #cmd { dock: bottom; height: 1; border: none; padding: 0 1; }
     """
     BINDINGS: ClassVar[list[BindingType]] = [Binding("ctrl+q", "quit", "quit")]
@@ -148,6 +154,8 @@ class ConsoleApp(App[int]):
                 with VerticalScroll(id="events"):
                     yield Static("", id="events-text")
                 yield PlotextPlot(id="plot")
+                with VerticalScroll(id="params"):
+                    yield Static("", id="params-table")
         yield CommandLine(self.model, id="cmd", placeholder="command (tab completes, help)")
 
     def on_mount(self) -> None:
@@ -181,6 +189,7 @@ class ConsoleApp(App[int]):
                 lines = m.events()[-200:]
                 series = m.plot_series()
                 plotted = list(m.plotted)
+                params = m.param_rows() if m.show_params else None
         bar = self.query_one("#status", Static)
         bar.update(_status_text(status))
         bar.set_class(status.los, "los")
@@ -194,6 +203,9 @@ class ConsoleApp(App[int]):
             text.append(f"{x.source:<7} {x.text}\n")
         self.query_one("#events-text", Static).update(text)
         self.query_one("#events", VerticalScroll).scroll_end(animate=False)
+        self.query_one("#params", VerticalScroll).set_class(params is not None, "shown")
+        if params is not None:
+            self.query_one("#params-table", Static).update(_params_table(params))
         plot = self.query_one("#plot", PlotextPlot)
         plot.set_class(bool(plotted), "shown")
         if plotted:
@@ -223,43 +235,45 @@ class ConsoleApp(App[int]):
 
     def run_command(self, line: str) -> None:
         """One command line: a console command, or a command for the vehicle."""
+        from ..ground.logic import needs_arm
         from ..uplink import validate_command
 
         words = line.split()
         head = words[0].lower()
+        args = words[1:]
         try:
             if head in LOCAL_COMMANDS:
-                self._local(head, words[1:])
+                self._local(head, args)
                 return
-            cmd, _, _ = validate_command(
-                self.model.mission,
-                head,
-                words[1] if len(words) > 1 else None,
-                words[2] if len(words) > 2 else None,
-            )
-            if len(words) > 3:
+            if len(args) > 2:
                 raise CommandError(f"{head} takes at most ELEMENT VALUE")
+            element = args[0] if args else None
+            cmd, _, _ = validate_command(
+                self.model.mission, head, element, args[1] if len(args) > 1 else None
+            )
         except (CommandError, DataVectorError) as exc:
             self._note(f"refused: {exc}", "WARNING_HI")
             return
-        if cmd in self.model.hazardous:
+        shown = " ".join([cmd, *args])
+        why = needs_arm(self.model.mission, cmd, element)
+        if why is not None:
 
             def answered(yes: bool | None) -> None:
                 if not yes:
-                    self._note(f"{cmd} cancelled", "ACTIVITY_HI")
+                    self._note(f"{shown} cancelled", "ACTIVITY_HI")
                 elif self.link is None:
-                    self._note(f"no link: {cmd} not sent", "WARNING_HI")
+                    self._note(f"no link: {shown} not sent", "WARNING_HI")
                 else:
-                    self._note(f"sending ARM then {cmd}", "COMMAND")
-                    self.link.send(head, [], True)
+                    self._note(f"sending ARM then {shown}", "COMMAND")
+                    self.link.send(head, args, True)
 
-            self.push_screen(ConfirmScreen(f"{cmd} is hazardous. Send ARM, then {cmd}?"), answered)
+            self.push_screen(ConfirmScreen(f"{why}. Send ARM, then {shown}?"), answered)
             return
         if self.link is None:
-            self._note(f"no link: {cmd} not sent", "WARNING_HI")
+            self._note(f"no link: {shown} not sent", "WARNING_HI")
             return
-        self._note(f"sending {' '.join(words).upper()}", "COMMAND")
-        self.link.send(head, words[1:], False)
+        self._note(f"sending {shown}", "COMMAND")
+        self.link.send(head, args, False)
 
     def _local(self, head: str, args: list[str]) -> None:
         m = self.model
@@ -274,6 +288,8 @@ class ConsoleApp(App[int]):
                 msg = m.set_filter(args)
             elif head == "plot":
                 msg = m.set_plot(args)
+            elif head == "params":
+                msg = m.toggle_params()
             else:  # clear
                 m.log.clear()
                 m.version += 1
@@ -312,6 +328,18 @@ def _status_text(s: Status) -> Text:
         t.append(f"  {dn} {rx}/{missed}/{late}", style=style)
         t.append(f" {off / 1e6:+.2f}ms")
     return t
+
+
+def _params_table(rows: list[ParamRow]) -> Table:
+    table = Table(expand=True, box=None, padding=(0, 1), show_edge=False)
+    for col in ("parameter", "value", "default", "bounds", "states"):
+        table.add_column(col, no_wrap=True, overflow="ellipsis")
+    for r in rows:
+        name = Text(r.name, style="bold red" if r.hazardous else "")
+        if r.hazardous:
+            name.append(" (ARM)", style="red")
+        table.add_row(name, r.value, r.default, r.bounds, ",".join(r.states))
+    return table
 
 
 def _clock(t_ns: int) -> str:

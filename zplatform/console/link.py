@@ -1,18 +1,17 @@
 """The console's zenoh side: telemetry and events in, operator commands out.
 
-:class:`Link` runs two daemon threads and owns every zenoh object, so the
-textual event loop never blocks on the network:
+:class:`Link` runs one daemon thread that owns a
+:class:`~zplatform.ground.link.GroundLink` (one session, the telemetry
+subscriber, the event intake, the command publisher), so the textual event
+loop never blocks on the network. The thread feeds the
+:class:`~zplatform.console.model.ConsoleModel` under its lock: every
+accepted snapshot with the ground's counters, every event, every command
+outcome with its reason. Commands queued by the screen go to the ground
+logic at once (:meth:`~zplatform.ground.link.GroundLink.submit`) and never
+stall the telemetry: the logic sends each when the one before has its
+verdict (ARM n, then COMMAND n+1 for an armed one).
 
-* the **telemetry thread** opens a tool session (connected to every node),
-  a :class:`~zplatform.node.ground.TelemetryReceiver` and a subscriber on
-  every node's events (whose callback only queues the bytes), and feeds the
-  :class:`~zplatform.console.model.ConsoleModel` under its lock;
-* the **command thread** takes requests from a queue and sends them with a
-  :class:`~zplatform.node.ground.CommandSender` (its own session, created
-  on first use), which blocks until the CN's verdict or its timeout; verdicts
-  go to the model. A hazardous command goes ARM n, then COMMAND n+1.
-
-Only the mission file is needed: the sessions connect to the endpoints the
+Only the mission file is needed: the session connects to the endpoints the
 mission lists, so the console runs on any host that can reach them.
 """
 
@@ -21,14 +20,12 @@ from __future__ import annotations
 import logging
 import queue
 import threading
+import time
 from collections.abc import Callable
 
-import zenoh
-
-from ..errors import FrameFormatError, ZPlatformError
-from ..events import decode_event
+from ..errors import ZPlatformError
+from ..ground.records import EventRecord
 from ..timebase import NodeClock
-from ..transport import KeySpace, NodeSession
 from .model import ConsoleModel
 
 __all__ = ["Link"]
@@ -39,10 +36,10 @@ log = logging.getLogger("zplatform.console")
 class Link:
     """Connects a :class:`ConsoleModel` to a running mission (see the module doc).
 
-    :meth:`start` returns at once; the threads connect in the background (a
-    failure to open a session is shown in the model's event pane, not raised).
-    :meth:`send` queues a command and returns at once. :meth:`close` stops
-    both threads and closes every session; it is idempotent.
+    :meth:`start` returns at once; the thread connects in the background (a
+    failure to open the session is shown in the model's event pane, not
+    raised). :meth:`send` queues a command and returns at once. :meth:`close`
+    stops the thread and closes the session; it is idempotent.
     """
 
     def __init__(self, model: ConsoleModel, *, timeout_s: float = 10.0) -> None:
@@ -51,31 +48,29 @@ class Link:
         self.timeout_s = timeout_s
         self.clock = NodeClock()
         self._stop = threading.Event()
-        self._cmds: queue.SimpleQueue[tuple[str, list[str], bool] | None] = queue.SimpleQueue()
-        self._events: queue.SimpleQueue[bytes] = queue.SimpleQueue()
-        self._threads: list[threading.Thread] = []
-        self.busy = False  # a command is waiting for its verdict
+        self._cmds: queue.SimpleQueue[tuple[str, list[str], bool]] = queue.SimpleQueue()
+        self._thread: threading.Thread | None = None
+        self.busy = False  # a command waits for its verdict
 
     def now_ns(self) -> int:
         return self.clock.now_ns()
 
     def start(self) -> None:
-        for target, name in ((self._telemetry, "console-tm"), (self._commands, "console-cmd")):
-            t = threading.Thread(target=target, name=name, daemon=True)
-            t.start()
-            self._threads.append(t)
+        self._thread = threading.Thread(
+            target=self._guard, args=("ground link", self._run), name="console-link", daemon=True
+        )
+        self._thread.start()
 
     def send(self, command: str, args: list[str], armed: bool) -> None:
-        """Queue ``command`` (validated already); ``armed``: ARM first."""
+        """Queue ``command`` (checked already); ``armed``: ARM n first, then it as n+1."""
         self._cmds.put((command, args, armed))
 
     def close(self) -> None:
         self._stop.set()
-        self._cmds.put(None)
-        for t in self._threads:
-            t.join(timeout=5)
+        if self._thread is not None:
+            self._thread.join(timeout=5)
 
-    # -- threads -------------------------------------------------------------
+    # -- the thread ----------------------------------------------------------
     def _guard(self, what: str, fn: Callable[[], None]) -> None:
         try:
             fn()
@@ -87,76 +82,60 @@ class Link:
             with self.model.lock:
                 self.model.note(self.now_ns(), f"{what} failed: {exc!r}", "FATAL")
 
-    def _on_event(self, sample: zenoh.Sample) -> None:
-        self._events.put(sample.payload.to_bytes())  # hand off only
+    def _on_event(self, rec: EventRecord) -> None:
+        with self.model.lock:
+            self.model.on_event(rec)
 
-    def _telemetry(self) -> None:
-        self._guard("telemetry link", self._telemetry_loop)
+    def _run(self) -> None:
+        from ..ground.link import GroundLink
 
-    def _telemetry_loop(self) -> None:
-        # Imported here: node/ground.py pulls in the runtime, which the
-        # model (and the unit tests of the model) do not need.
-        from ..node.ground import TelemetryReceiver
-
-        ns = NodeSession(self.mission, None)
-        rx = TelemetryReceiver(ns.session, self.mission, self.now_ns)
-        sub = ns.session.declare_subscriber(
-            KeySpace(self.mission.vehicle).all_events,
-            zenoh.handlers.Callback(self._on_event, indirect=False),
-        )
+        link = GroundLink(self.mission, commands=True, clock=self.clock, on_event=self._on_event)
+        logic = link.logic
         m = self.model
+        waiting: dict[int, tuple[str, float]] = {}  # ticket -> (what, deadline)
         try:
             while not self._stop.is_set():
-                t = rx.next(0.05)
+                t = link.next(0.05)
                 if t is not None:
+                    counters = logic.counters
                     with m.lock:
-                        m.on_snapshot(rx.dv, t, received=rx.received, gaps=rx.gaps, bad=rx.bad)
+                        m.on_snapshot(link.dv, t, counters)
                 while True:
                     try:
-                        raw = self._events.get_nowait()
+                        cmd, args, armed = self._cmds.get_nowait()
                     except queue.Empty:
                         break
+                    what = " ".join([("armed " if armed else "") + cmd, *args])
                     try:
-                        e = decode_event(raw)
-                    except FrameFormatError:
+                        ticket = link.submit(cmd, args, armed=armed)
+                    except ZPlatformError as exc:
                         with m.lock:
-                            m.on_bad_event()
+                            m.on_refusal(self.now_ns(), what, str(exc))
                         continue
-                    with m.lock:
-                        m.on_event(e)
+                    waiting[ticket] = (what, time.monotonic() + self.timeout_s)
+                for ticket, (what, deadline) in list(waiting.items()):
+                    done = logic.result(ticket)
+                    if done is not None:
+                        del waiting[ticket]
+                        with m.lock:
+                            for o in done:
+                                m.on_result(self.now_ns(), o)
+                            for cmd in logic.steps(ticket)[len(done) :]:
+                                m.on_refusal(self.now_ns(), cmd, "not sent (ARM not accepted)")
+                    elif time.monotonic() > deadline:
+                        # Still waiting (the logic resends, then says NO_VERDICT): say so once.
+                        waiting[ticket] = (what, float("inf"))
+                        why = (
+                            "still waiting"
+                            if logic.joined
+                            else link.why_no_telemetry(self.timeout_s)
+                        )
+                        with m.lock:
+                            m.note(
+                                self.now_ns(),
+                                f"{what}: no verdict within {self.timeout_s:g} s ({why})",
+                                "WARNING_HI",
+                            )
+                self.busy = bool(waiting)
         finally:
-            sub.undeclare()
-            rx.close()
-            ns.close()
-
-    def _commands(self) -> None:
-        from ..node.ground import CommandSender
-
-        sender: CommandSender | None = None
-        try:
-            while True:
-                item = self._cmds.get()
-                if item is None or self._stop.is_set():
-                    return
-                cmd, args, armed = item
-                self.busy = True
-                try:
-                    if sender is None:
-                        sender = CommandSender(self.mission, timeout_s=self.timeout_s)
-                    if armed:
-                        results = sender.send_armed(cmd)
-                    else:
-                        el = args[0] if args else None
-                        val = args[1] if len(args) > 1 else None
-                        results = [sender.send(cmd, el, val)]
-                    with self.model.lock:
-                        for r in results:
-                            self.model.on_result(self.now_ns(), r.command, r.seq, r.status)
-                except ZPlatformError as exc:
-                    with self.model.lock:
-                        self.model.on_result(self.now_ns(), cmd.upper(), -1, str(exc))
-                finally:
-                    self.busy = False
-        finally:
-            if sender is not None:
-                sender.close()
+            link.close()

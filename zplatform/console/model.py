@@ -1,8 +1,9 @@
 """The console's state, without zenoh and without textual (sans-IO).
 
 :class:`ConsoleModel` is fed by a telemetry source: :meth:`on_snapshot`
-after each decoded snapshot (a CN-layout Data Vector), :meth:`on_event` per
-event record, :meth:`on_result` per command verdict. The screen asks it
+after each accepted snapshot (a CN-layout Data Vector, with the ground's
+counters), :meth:`on_event` per event record, :meth:`on_result` per command
+outcome (:class:`~zplatform.ground.records.CommandOutcome`, with its reason). The screen asks it
 what to draw at a human rate (:meth:`status`, :meth:`region_rows`,
 :meth:`events`, :meth:`plot_series`); :meth:`tick` with the current time
 decides loss of signal. Nothing here blocks, allocates per snapshot beyond
@@ -33,7 +34,16 @@ from typing import Any
 from ..config import CMD_NAMES, Mission
 from ..datavector import DataVector, ElementSpec, Layout
 from ..errors import CommandError, ZPlatformError
-from ..events import Event, Severity
+from ..events import Severity
+from ..ground.records import (
+    CommandOutcome,
+    EventRecord,
+    ParamRow,
+    TelemetryCounters,
+    format_outcome,
+    param_rows,
+)
+from ..ground.status import RateMeter
 from ..limits import Limits, mission_limits
 
 __all__ = [
@@ -41,7 +51,6 @@ __all__ = [
     "Limits",
     "LogLine",
     "Status",
-    "severity_name",
     "severity_rank",
     "severity_style",
     "writable_names",
@@ -65,21 +74,14 @@ _RANKS = {
 _STYLES = {6: "bold white on red", 5: "bold red", 4: "yellow", 3: "cyan", 2: "", 1: "dim", 0: "dim"}
 
 #: Console-side commands (not sent to the vehicle).
-LOCAL_COMMANDS = ("filter", "plot", "clear", "help", "quit")
+LOCAL_COMMANDS = ("filter", "plot", "params", "clear", "help", "quit")
 OPERATOR_COMMANDS = tuple(c.lower() for c in CMD_NAMES[1:])
 
 HELP = (
-    "vehicle: " + " | ".join(OPERATOR_COMMANDS) + " (write ELEMENT VALUE); "
-    "console: filter [SEVERITY|all] | plot ELEMENT... | clear | quit"
+    "vehicle: " + " | ".join(OPERATOR_COMMANDS) + " (write ELEMENT VALUE, "
+    "prm_set PARAMETER VALUE); console: filter [SEVERITY|all] | plot ELEMENT... | "
+    "params (show/hide the parameters) | clear | quit"
 )
-
-
-def severity_name(value: int) -> str:
-    """The :class:`~zplatform.events.Severity` member name of ``value``, or the number."""
-    try:
-        return Severity(value).name
-    except ValueError:
-        return str(value)
 
 
 def severity_rank(name: str) -> int:
@@ -141,20 +143,20 @@ class ConsoleModel:
         self.dv = DataVector(self.layout)
         self.los_ns = int(los_s * 1e9)
         self.limits: dict[str, Limits] = mission_limits(mission, limits)
-        self.hazardous = {c.upper() for c in mission.commands.hazardous}
         self.writable = writable_names(mission, self.layout)
         self.log: deque[LogLine] = deque(maxlen=max_events)
         self.min_rank = 0
         self.received = 0
         self.gaps = 0
         self.bad = 0
-        self.bad_events = 0
         self.last_rx_ns: int | None = None
         self.now_ns: int | None = None
         self.last_command = "-"
         self._los = False
-        self._rate: deque[tuple[int, int]] = deque(maxlen=64)  # (cn_time_ns, cn_loop)
+        self._rate = RateMeter()
         self.plotted: list[str] = []
+        self.show_params = False
+        """Whether the parameter view is shown (the ``params`` command)."""
         self._plot_step_ns = 50_000_000
         self._plot_len = int(plot_window_s * 1e9 / self._plot_step_ns)
         self._series: dict[str, deque[tuple[float, float]]] = {}
@@ -163,19 +165,21 @@ class ConsoleModel:
 
     # -- feeding ------------------------------------------------------------
     def on_snapshot(
-        self, dv: DataVector, rx_ns: int, *, received: int = 0, gaps: int = 0, bad: int = 0
+        self, dv: DataVector, rx_ns: int, counters: TelemetryCounters | None = None
     ) -> None:
-        """Take a decoded snapshot (copied; ``dv`` stays the caller's)."""
+        """Take an accepted snapshot (copied; ``dv`` stays the caller's) and
+        the ground's counters (None: count it here)."""
         self.dv.write_all(dv.view())
-        self.received, self.gaps, self.bad = received or self.received + 1, gaps, bad
+        if counters is None:
+            self.received += 1
+        else:
+            self.received, self.gaps, self.bad = counters.received, counters.gaps, counters.rejected
         self.last_rx_ns = rx_ns
         if self._los:
             self._los = False
             self._note(rx_ns, "ACTIVITY_HI", "link", "signal acquired")
+        self._rate.add_snapshot(self.dv)
         t = int(self.dv.get("cn_time_ns"))
-        loop = int(self.dv.get("cn_loop"))
-        if not self._rate or t - self._rate[-1][0] >= 50_000_000:
-            self._rate.append((t, loop))
         if self.plotted and rx_ns - self._last_plot_ns >= self._plot_step_ns:
             self._last_plot_ns = rx_ns
             ts = t / 1e9
@@ -183,19 +187,21 @@ class ConsoleModel:
                 self._series[name].append((ts, float(self.dv.get(name))))
         self.version += 1
 
-    def on_event(self, e: Event) -> None:
-        sev = severity_name(e.severity)
-        self.log.append(LogLine(e.t_ns, sev, e.node, f"{e.id}: {e.text}"))
+    def on_event(self, rec: EventRecord) -> None:
+        mark = " (unverified)" if rec.verified is False else ""
+        self.log.append(LogLine(rec.t_ns, rec.severity, rec.node, f"{rec.id}: {rec.text}{mark}"))
         self.version += 1
 
-    def on_bad_event(self) -> None:
-        self.bad_events += 1
-
-    def on_result(self, t_ns: int, command: str, seq: int, status: str) -> None:
-        """A command verdict (ACCEPTED, REJECTED_...) or a local refusal."""
-        self.last_command = f"{command} #{seq} {status}" if seq >= 0 else f"{command}: {status}"
-        sev = "COMMAND" if status == "ACCEPTED" else "WARNING_HI"
+    def on_result(self, t_ns: int, outcome: CommandOutcome) -> None:
+        """A command outcome: the CN's verdict with its reason."""
+        self.last_command = format_outcome(outcome)
+        sev = "COMMAND" if outcome.accepted else "WARNING_HI"
         self._note(t_ns, sev, "cmd", self.last_command)
+
+    def on_refusal(self, t_ns: int, command: str, text: str) -> None:
+        """A command the ground did not send, and why."""
+        self.last_command = f"{command}: {text}"
+        self._note(t_ns, "WARNING_HI", "cmd", self.last_command)
 
     def note(self, t_ns: int, text: str, severity: str = "ACTIVITY_LO") -> None:
         """A console message in the event pane."""
@@ -223,11 +229,6 @@ class ConsoleModel:
             if self.last_rx_ns is None or self.now_ns is None
             else (self.now_ns - self.last_rx_ns) / 1e9
         )
-        rate = None
-        if len(self._rate) >= 2:
-            (t0, l0), (t1, l1) = self._rate[0], self._rate[-1]
-            if t1 > t0:
-                rate = (l1 - l0) * 1e9 / (t1 - t0)
         dns = tuple(
             (
                 dn,
@@ -246,7 +247,7 @@ class ConsoleModel:
             state=dv.get_name("cn_state"),
             time_in_state_s=int(dv.get("cn_time_in_state_ns")) / 1e9,
             fault=dv.get_name("cn_fault"),
-            loop_hz=rate,
+            loop_hz=self._rate.hz,
             received=self.received,
             gaps=self.gaps,
             bad=self.bad,
@@ -279,6 +280,21 @@ class ConsoleModel:
             for r in self.layout.regions.values()
             if r.elements
         ]
+
+    def param_rows(self) -> list[ParamRow]:
+        """Every parameter of the mission with its value in the last
+        snapshot ("-" before the first)."""
+        if self.last_rx_ns is None:
+            return param_rows(self.mission, None)
+        return param_rows(self.mission, {p.name: self.dv.get(p.name) for p in self.mission.params})
+
+    def toggle_params(self) -> str:
+        """Show or hide the parameter view."""
+        if not self.mission.params:
+            raise CommandError(f"mission {self.mission.mission!r} has no parameters")
+        self.show_params = not self.show_params
+        self.version += 1
+        return "parameters shown" if self.show_params else "parameters hidden"
 
     def events(self) -> list[LogLine]:
         """The log lines that pass the severity filter, oldest first."""
@@ -316,7 +332,8 @@ class ConsoleModel:
         """The completion of ``text`` (the whole line) or None.
 
         Completes the first word against operator and console commands, the
-        element of ``write`` against writable elements, ``plot`` against every
+        element of ``write`` against writable elements, the parameter of
+        ``prm_set`` against the mission's parameters, ``plot`` against every
         scalar element and ``filter`` against severity names.
         """
         words = text.split(" ")
@@ -326,6 +343,8 @@ class ConsoleModel:
             head = words[0].lower()
             if head == "write" and len(words) == 2:
                 pool = self.writable
+            elif head == "prm_set" and len(words) == 2:
+                pool = [p.name for p in self.mission.params]
             elif head == "plot":
                 pool = [e.name for e in self.layout.elements.values() if not e.count]
             elif head == "filter" and len(words) == 2:

@@ -10,12 +10,23 @@ goes on.
 Loop (one timestamp per loop), the order of :mod:`zplatform.loop`::
 
     t = the loop's scheduled start, on the node clock
-    frames = logic.begin(loop, t); sync every DN with them (2 ms deadline)
+    frames = logic.begin(loop, t, final=...); sync every DN with them (2 ms deadline)
     tm = logic.finish(at most one ground frame, overrun flags)
     publish tm (every Nth loop), events
 
+The run's last loop is flagged final (``dnX_final``, so the DNs safe
+themselves as the run's end, not as a lost CN): the last of ``max_loops``
+(``--duration``), or, once a stop is asked for (SIGTERM, Ctrl-C under
+``up``), one more loop after it, after which the node stops.
+
 ``record`` attaches a :class:`~zplatform.recording.Recorder` after the
 warm-up: every input of every loop goes to disk for ``zplatform replay``.
+
+Parameters (:mod:`zplatform.params`): :meth:`ControlNode.wait_ready` ends by
+loading the parameter file (before loop 1, so a recording starts with the
+values loaded); each loop hands an accepted PRM_SAVE to a
+:class:`~zplatform.params.ParamSaver` (a writer thread) and passes the saves
+it finished to the next loop.
 """
 
 from __future__ import annotations
@@ -29,7 +40,7 @@ from typing import Any
 import numpy as np
 import zenoh
 
-from ..auth import load_key
+from ..auth import KeySet, channel, load_keys
 from ..bulk import open_bulk
 from ..clocksync import ClockServer
 from ..config import Mission
@@ -37,10 +48,11 @@ from ..datavector import DataVector
 from ..errors import NodeError, TransportError
 from ..loop import ControlLogic
 from ..messages import wildcard_sync_for
+from ..params import ParamSaver, params_path, read_params_file
 from ..recording import Recorder
 from ..scheduler import GcGuard, PeriodicLoop
 from ..summary import CnSummary, LoopWork, cn_summary
-from ..sync import ControlSync
+from ..sync import ControlSync, SyncTrace
 from ..timebase import NodeClock
 from ..transport import NodeSession, wait_for_nodes
 from .runtime import EventPublisher, StopFlag, realtime_setup
@@ -57,7 +69,10 @@ class ControlNode:
     """The CN process: session, sync, ground input, telemetry, logic.
 
     Build, then :meth:`run`; :meth:`close` releases every zenoh entity. Not
-    thread-safe: one loop thread.
+    thread-safe: one loop thread. ``sync_trace``: a
+    :data:`~zplatform.sync.SyncTrace` for the sync's hops (benchmarks).
+    ``params_file``: the parameter file (default
+    :func:`~zplatform.params.params_path`; unused without ``params``).
     """
 
     def __init__(
@@ -67,26 +82,29 @@ class ControlNode:
         stop: StopFlag | None = None,
         lowlatency: bool | None = None,
         clock: NodeClock | None = None,
-        key: bytes | None = None,
+        keys: KeySet | None = None,
+        sync_trace: SyncTrace | None = None,
+        params_file: str | Path | None = None,
     ) -> None:
         self.mission = mission
         self.stop = stop or StopFlag(install=False)
         self.clock = clock or NodeClock()
         self.clock.lock()  # the CN is the reference clock: never adjusted
         # The run's epoch: this clock's start, unique per run of the CN.
-        self.logic = ControlLogic(mission, key=key, epoch=self.clock.now_ns())
+        self.logic = ControlLogic(mission, keys=keys, epoch=self.clock.now_ns())
         self.dv: DataVector = self.logic.dv
         self.ns = NodeSession(mission, "cn", announce=False, lowlatency=lowlatency)
         s = self.ns.session
-        keys = self.ns.keys
-        self.clock_server = ClockServer(s, keys, self.clock.now_ns)
+        space = self.ns.keys
+        self.clock_server = ClockServer(s, space, self.clock.now_ns, mission, keys)
         self.sync = ControlSync(
             s,
-            keys,
+            space,
             mission.device_nodes,
             mission.sync_timeout_ns,
             query_timeout_s=max(mission.period_ns / 1e9, 0.01),
             wildcard=wildcard_sync_for(mission),
+            trace=sync_trace,
         )
         # The command inbox: bounded, newest kept; a frame's size is checked
         # before its bytes are copied out of zenoh, so a flood of junk costs
@@ -101,16 +119,21 @@ class ControlNode:
         self._gsub: zenoh.Subscriber[Any] | None = None
         if mission.has_ground:
             self._gsub = s.declare_subscriber(
-                keys.gn_to_cn,
+                space.gn_to_cn,
                 zenoh.handlers.Callback(self._on_ground, indirect=False),
             )
         self._tm_pub = s.declare_publisher(
-            keys.telemetry, congestion_control=zenoh.CongestionControl.DROP
+            space.telemetry, congestion_control=zenoh.CongestionControl.DROP
         )
-        self._events = EventPublisher(s, keys.events("cn"), self.logic.events)
-        self._radio = _Radio(mission, s, keys.downlink) if mission.downlink.ccsds else None
+        self._events = EventPublisher(
+            s, space.events("cn"), self.logic.events, channel(keys, "events_cn")
+        )
+        self._radio = _Radio(mission, s, space.downlink) if mission.downlink.ccsds else None
         self.bulk = open_bulk(s, mission, "cn", self.logic)
+        self.params_file = Path(params_file) if params_file else params_path(mission)
+        self._saver = ParamSaver(self.params_file) if mission.params else None
         self._skipped = 0
+        self._last_step: int | None = None  # self.loops after the run's planned last loop
         self.ns.announce()
         self.first_loop_ns = 0
         self.last_loop_ns = 0
@@ -176,6 +199,7 @@ class ControlNode:
                     "ground node not alive after %.1f s: starting without it", ground_wait_s
                 )
         if not dns:
+            self._load_params()
             return {}
         # Warm-up syncs with loop 0: DNs answer (not applied as a loop) and
         # the replies carry each DN's measured clock offset.
@@ -195,14 +219,26 @@ class ControlNode:
         self.sync.quiesce(logic, timeout_s=max(2 * m.period_ns / 1e9, 1.0))
         logic.reset_sync_counters()
         logic.events.drain()  # warm-up bad frames were logged; flight starts clean
+        self._load_params()
         return offsets
+
+    def _load_params(self) -> None:
+        """Load the parameter file into the Data Vector (its events go out
+        with loop 1's). Blocks on one small file read, before the loop."""
+        if self._saver is None:
+            return
+        status = self.logic.params.load(
+            read_params_file(self.params_file), self.clock.now_ns(), source=str(self.params_file)
+        )
+        log.info("parameters: %s (%s)", status.name, self.params_file)
 
     # -- the loop ------------------------------------------------------------
     def _on_overrun(self, k: int, lateness_ns: int) -> None:
         self._skipped += 1  # an input of the next loop (replayed as such)
 
     def step(self, k: int, deadline_ns: int) -> bool:
-        """One loop; returns False to stop."""
+        """One loop; returns False to stop: after the run's final loop (the
+        last of ``max_loops``, or the loop after a stop was asked for)."""
         m0 = self._mono()
         loop = k + 1
         # The loop's one timestamp is its scheduled start, not the moment the
@@ -214,12 +250,8 @@ class ControlNode:
         if self.loops == 0:
             self.first_loop_ns = t
         logic = self.logic
-        overrun = self.sync.sync(logic.begin(loop, t), logic)
-        bulk = self.bulk
-        if bulk is not None:  # latest samples in, before the controllers read them
-            for r in bulk.readers.values():
-                r.poll()
-            bulk.write_counters(self.dv)
+        final = self.loops + 1 == self._last_step or self.stop.is_set()
+        overrun = self.sync.sync(logic.begin(loop, t, final=final), logic)
         grounds = self._grounds
         grounds.clear()
         inbox = self._inbox
@@ -230,26 +262,29 @@ class ControlNode:
         d_total, o_total = self._inbox_dropped, self._inbox_oversize
         dropped, oversize = d_total - self._seen_dropped, o_total - self._seen_oversize
         self._seen_dropped, self._seen_oversize = d_total, o_total
+        saver = self._saver
+        saved = saver.poll() if saver is not None else None
         tm = logic.finish(
             grounds,
             sync_overrun=overrun,
             loop_overruns=skipped,
             inbox_dropped=dropped,
             inbox_oversize=oversize,
+            saves=(saved,) if saved is not None else (),
         )
+        if saver is not None:
+            save = logic.params.take_save()
+            if save is not None:
+                saver.submit(*save)
         if tm is not None:
             self._tm_pub.put(tm)
             if self._radio is not None:
                 self._radio.send(self.dv, loop, t)
-        if bulk is not None:
-            for w in bulk.writers.values():
-                if w.due(loop):
-                    w.publish(loop, t)
         self._events.flush()
         self._work[self.loops & 0xFFFF] = self._mono() - m0
         self.loops += 1
         self.last_loop_ns = t
-        return not self.stop.is_set()
+        return not final
 
     def run(
         self,
@@ -258,8 +293,12 @@ class ControlNode:
         realtime: bool = True,
         record: int = 0,
     ) -> PeriodicLoop:
-        """Run the loop until stopped or ``max_loops``; returns the loop (stats)."""
+        """Run the loop until stopped or ``max_loops``; returns the loop (stats).
+
+        The last loop of the call (the ``max_loops``-th, or the one after a
+        stop) is the run's final loop (module doc)."""
         nc = self.mission.nodes["cn"]
+        self._last_step = None if max_loops is None else self.loops + max_loops
         if realtime:
             realtime_setup(nc.priority, nc.cpu)
         gc_guard = GcGuard()
@@ -319,6 +358,8 @@ class ControlNode:
         finally:
             if self.recorder is not None:
                 self.recorder.close()
+            if self._saver is not None:  # a save in progress is finished, not torn
+                self._saver.close()
             self.ns.close()
 
 
@@ -379,7 +420,7 @@ def run_control_node(
     ``record``: a directory to record every loop's inputs into (needs
     ``mission_source``, the mission file, which the recording keeps)."""
     stop = StopFlag()
-    node = ControlNode(mission, stop=stop, key=load_key(mission, key_file))
+    node = ControlNode(mission, stop=stop, keys=load_keys(mission, "cn", key_file))
     try:
         offsets = node.wait_ready(ready_timeout_s, ground_wait_s)
         log.info("device nodes ready; clock offsets (ns): %s", offsets)

@@ -1,0 +1,331 @@
+"""The flight mission in lockstep (issue 19): recovery, airbrakes, faults, determinism.
+
+Every check compares the flight software's decisions with the physics'
+truth (the vehicle world's :class:`~nodes.flight.physics.Flight`), which the
+flight software never sees: the drogue deploys after the true apogee, the
+main at its altitude, the airbrakes land the apogee on the target.
+"""
+
+from __future__ import annotations
+
+import math
+import subprocess
+import sys
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import msgspec
+import pytest
+from hypothesis import HealthCheck, assume, given, settings
+from hypothesis import strategies as st
+
+from nodes.flight.physics import STEP_NS, Flight, VehicleParams
+from zplatform import load_mission
+from zplatform.config import Mission
+from zplatform.lockstep import LockstepRunner, SimResult
+from zplatform.telemetry import CsvLogger
+from zplatform.uplink import load_commands, parse_commands
+
+ROOT = Path(__file__).resolve().parents[2]
+FLIGHT_YAML = ROOT / "configs" / "flight.yaml"
+FLIGHT_CMDS = ROOT / "configs" / "flight.commands"
+MAIN_M = 150.0
+TARGET_M = 600.0
+
+
+@dataclass
+class Flown:
+    """What a lockstep flight did, against the truth."""
+
+    result: SimResult
+    truth: Flight
+    states: list[tuple[float, str]] = field(default_factory=list)  # (mission s, state)
+    drogue_alt: float | None = None
+    main_alt: float | None = None
+    runner: Any = None
+
+    def entered(self, state: str) -> float:
+        return next(t for t, s in self.states if s == state)
+
+
+def fly(
+    mission: Mission,
+    script: str | None = None,
+    *,
+    seconds: float = 70.0,
+    until_landed: bool = True,
+    lose: tuple[float, str] | None = None,
+) -> Flown:
+    """Fly ``mission`` in lockstep (the shipped script unless ``script``),
+    loop by loop, recording the truth at each chute's deployment."""
+    cmds = load_commands(FLIGHT_CMDS) if script is None else parse_commands(script)
+    r = LockstepRunner(mission, commands=cmds)
+    assert r.world is not None
+    state = r.control.dv.handle("cn_state")
+    out = Flown(result=r.result(), truth=None, runner=r)  # type: ignore[arg-type]
+    last = -1
+    for _ in range(round(seconds * mission.loop_hz)):
+        if lose is not None and r.loop * 0.01 >= lose[0]:
+            r.lost.add(lose[1])
+        r.step()
+        f = r.world.truth
+        s = state.get()
+        if s != last:
+            out.states.append((r.loop * 0.01, state.spec.name_of(s)))
+            last = s
+        if f is None:
+            continue
+        if f.drogue_at is not None and out.drogue_alt is None:
+            out.drogue_alt = f.z
+        if f.main_at is not None and out.main_alt is None:
+            out.main_alt = f.z
+        if until_landed and out.states[-1][1] == "LANDED":
+            break
+    out.result = r.result()
+    out.truth = r.world.truth
+    return out
+
+
+def flight(**params: Any) -> Mission:
+    """The shipped mission with world params replaced (``sensors`` merged)."""
+    m = load_mission(FLIGHT_YAML)
+    assert m.world is not None
+    sensors = {**m.world.params.get("sensors", {}), **params.pop("sensors", {})}
+    m.world.params.update(params, sensors=sensors)
+    return m
+
+
+@pytest.fixture(scope="module")
+def nominal() -> Flown:
+    return fly(load_mission(FLIGHT_YAML))
+
+
+def test_the_shipped_flight_flies_every_state_and_lands_under_both_chutes(nominal: Flown) -> None:
+    f, res = nominal.truth, nominal.result
+    assert [s for _, s in nominal.states] == [
+        "SAFE", "ARMED", "BOOST", "COAST", "DROGUE", "MAIN", "LANDED",
+    ]  # fmt: skip
+    assert res.errors == 0 and res.fault == "NONE"
+    assert [c.status for c in res.commands] == ["ACCEPTED"] * 3
+    assert f.landed and f.drogue_at is not None and f.main_at is not None
+    dv = nominal.runner.control.dv
+    assert dv.get("drogue_fired") and dv.get("main_fired")
+    # The motor lit when the countdown ended, not at node start.
+    assert nominal.entered("ARMED") == pytest.approx(1.11, abs=0.02)
+    assert nominal.entered("BOOST") == pytest.approx(3.1, abs=0.15)
+
+
+def test_recovery_and_airbrakes_meet_their_marks_on_the_shipped_flight(nominal: Flown) -> None:
+    f = nominal.truth
+    assert f.apogee_t is not None and f.drogue_at is not None
+    assert 0.0 < f.drogue_at - f.apogee_t <= 0.5
+    assert nominal.main_alt is not None and abs(nominal.main_alt - MAIN_M) <= 10.0
+    assert abs(f.apogee_m - TARGET_M) <= 0.03 * TARGET_M
+
+
+def _free_and_braked_apogee(params: dict[str, Any]) -> tuple[float, float]:
+    """The truth model alone: apogee with the brakes in, and fully out after burnout."""
+    out = []
+    for brake in (0.0, 1.0):
+        p = msgspec.convert(params, VehicleParams)
+        f = Flight(p)
+        f.ignited = True
+        dt = STEP_NS / 1e9
+        while f.apogee_t is None and f.t < 60:
+            f.set_actuators(False, False, brake if f.t > f.motor.burn_time else 0.0, dt)
+            f.step(dt)
+        out.append(f.apogee_m)
+    return out[0], out[1]
+
+
+@settings(
+    max_examples=8,
+    deadline=None,
+    derandomize=True,
+    suppress_health_check=[HealthCheck.too_slow],
+)
+@given(
+    seed=st.integers(1, 10_000),
+    wind=st.floats(0.0, 8.0),
+    gust=st.floats(0.0, 2.0),
+    dry=st.floats(5.5, 7.5),
+    aim=st.floats(0.15, 0.85),
+)
+def test_recovery_and_airbrakes_over_seeded_noise_and_wind(
+    seed: int, wind: float, gust: float, dry: float, aim: float
+) -> None:
+    """Drogue within 0.5 s after the true apogee, never before; main within
+    10 m of its altitude; apogee within 3 % of any target the rocket (its
+    dry mass drawn too, and known to its airbrake controller) can reach."""
+    m = flight(wind_mps=wind, gust_mps=gust, dry_mass_kg=dry, sensors={"seed": seed})
+    assert m.world is not None
+    free, braked = _free_and_braked_apogee({**m.world.params, "gust_mps": 0.0})
+    target = braked + aim * (free - braked)  # a target the rocket can reach, in this wind
+    assume(braked + 15.0 < target < free - 15.0)  # with a margin for the gusts
+    brakes = next(c for c in m.controllers if c.name == "airbrakes")
+    brakes.config["target_m"] = target
+    brakes.config["mass_kg"] = dry + 0.498  # the motor's case (Cesaroni_J360.eng)
+    fl = fly(m, seconds=40.0, until_landed=False)
+    f = fl.truth
+    assert f.apogee_t is not None and f.drogue_at is not None, fl.states
+    assert 0.0 < f.drogue_at - f.apogee_t <= 0.5
+    assert fl.main_alt is not None and abs(fl.main_alt - MAIN_M) <= 10.0
+    assert abs(f.apogee_m - target) <= 0.03 * target, (f.apogee_m, target)
+
+
+PARAM_SCRIPT = """\
+at 0.3 prm_set apogee_target_m 550
+at 0.4 arm
+at 0.5 prm_set main_deploy_m 250
+at 0.6 prm_save
+at 1.0 arm
+at 1.1 launch
+at 5.0 prm_set apogee_target_m 700
+at 55 prm_set apogee_target_m 650
+"""
+
+
+def test_a_script_that_sets_parameters_changes_the_flight(nominal: Flown) -> None:
+    """The apogee target and the main-chute altitude are parameters: set on
+    the pad (the main's armed, it is hazardous) and saved, they move the
+    apogee to 550 m and the main to 250 m; in flight and after landing
+    PRM_SET is refused (the whitelist in BOOST, the parameter's states once
+    LANDED), and nothing changes."""
+    fl = fly(load_mission(FLIGHT_YAML), PARAM_SCRIPT, seconds=56.0, until_landed=False)
+    f, res = fl.truth, fl.result
+    assert [(c.command, c.status) for c in res.commands] == [
+        ("PRM_SET", "ACCEPTED"), ("ARM", "ACCEPTED"), ("PRM_SET", "ACCEPTED"),
+        ("PRM_SAVE", "ACCEPTED"), ("ARM", "ACCEPTED"), ("LAUNCH", "ACCEPTED"),
+        ("PRM_SET", "REJECTED_NOT_ALLOWED"), ("PRM_SET", "REJECTED_PARAM_STATE"),
+    ]  # fmt: skip
+    assert [s for _, s in fl.states] == [
+        "SAFE", "ARMED", "BOOST", "COAST", "DROGUE", "MAIN", "LANDED",
+    ]  # fmt: skip
+    assert abs(f.apogee_m - 550.0) <= 0.03 * 550.0
+    assert nominal.truth.apogee_m - f.apogee_m > 30.0  # the default flight's is ~600 m
+    assert fl.main_alt is not None and abs(fl.main_alt - 250.0) <= 10.0
+    dv = fl.runner.control.dv
+    assert dv.get("apogee_target_m") == 550.0 and dv.get("main_deploy_m") == 250.0
+    assert dv.get_name("cn_prm_save_status") == "SAVED"  # in memory: a sim writes no file
+    saved = fl.runner.saver.data
+    assert saved is not None
+    from zplatform.params import decode_params
+
+    assert decode_params(fl.runner.mission, saved).values["main_deploy_m"] == 250.0
+
+
+def test_a_parameter_script_is_byte_identical_run_to_run(tmp_path: Path) -> None:
+    paths = [tmp_path / "a.csv", tmp_path / "b.csv"]
+    for path in paths:
+        r = LockstepRunner(load_mission(FLIGHT_YAML), commands=parse_commands(PARAM_SCRIPT))
+        with CsvLogger(path, r.control.layout) as log:
+            r.run(20.0, log=log)
+    assert paths[0].read_bytes() == paths[1].read_bytes()
+    assert "apogee_target_m" in paths[0].read_text().splitlines()[0]
+
+
+def test_sim_is_byte_identical_run_to_run_and_from_the_command_line(tmp_path: Path) -> None:
+    a, b, c = tmp_path / "a.csv", tmp_path / "b.csv", tmp_path / "c.csv"
+    for path in (a, b):
+        r = LockstepRunner(load_mission(FLIGHT_YAML), commands=load_commands(FLIGHT_CMDS))
+        with CsvLogger(path, r.control.layout) as log:
+            r.run(60.0, log=log)
+    assert a.read_bytes() == b.read_bytes()
+    p = subprocess.run(
+        [sys.executable, "-m", "zplatform", "sim", str(FLIGHT_YAML), "--commands",
+         str(FLIGHT_CMDS), "--log", str(c)],
+        cwd=ROOT, capture_output=True, text=True, timeout=120, check=False,
+    )  # fmt: skip
+    assert p.returncode == 0, p.stdout + p.stderr
+    assert "SAFE -> ARMED -> BOOST -> COAST -> DROGUE -> MAIN -> LANDED" in p.stdout
+    assert c.read_bytes() == a.read_bytes()  # the default duration (60 s) ends the same
+
+
+def test_a_lost_imu_in_flight_falls_back_to_the_barometers_and_says_so() -> None:
+    """The IMU freezes 2 s after ignition (in boost): the EKF falls back to
+    barometers and GPS (an event, nav_mode BARO), and the flight goes on:
+    the drogue still never fires before the true apogee."""
+    fl = fly(flight(sensors={"imu_fail_s": 2.0}))
+    f, res = fl.truth, fl.result
+    warn = [e for e in res.events if e.id == "component_warning"]
+    assert len(warn) == 1 and "IMU lost" in warn[0].text and warn[0].severity_name == "WARNING_HI"
+    assert fl.runner.control.dv.get_name("nav_mode") == "BARO"
+    assert [s for _, s in fl.states][-4:] == ["COAST", "DROGUE", "MAIN", "LANDED"]
+    assert f.apogee_t is not None and f.drogue_at is not None
+    assert 0.0 < f.drogue_at - f.apogee_t <= 1.5  # barometers alone: later, never early
+    assert f.main_at is not None and f.landed
+
+
+def test_a_dead_barometer_keeps_navigation_but_its_node_refuses_to_fire() -> None:
+    """dn0's barometer reads nan from 1 s after ignition. The EKF outvotes it
+    (the other barometer and the GPS; it stays on the accelerometer) and
+    detects apogee as usual; but dn0's igniter rule checks dn0's *own*
+    altitude (configs/recovery_igniter.yaml's agreement), which is no
+    number: dn0 refuses, so the drogue cannot open. Each node's barometer is
+    part of its vote: that is the agreement's price, shown, not hidden."""
+    fl = fly(flight(sensors={"baro_fail_s": 1.0}), seconds=25.0, until_landed=False)
+    f, dv = fl.truth, fl.runner.control.dv
+    assert dv.get_name("nav_mode") == "ACCEL"
+    assert math.isnan(dv.get("dn0_baro_m"))
+    assert [s for _, s in fl.states][:5] == ["SAFE", "ARMED", "BOOST", "COAST", "DROGUE"]
+    assert f.apogee_t is not None and fl.entered("DROGUE") > f.apogee_t + 3.1  # mission time
+    assert f.drogue_at is None and not dv.get("drogue_fired")
+    assert not dv.get("dn0_drogue_ok") and not dv.get("dn0_drogue_out")
+
+
+def test_a_device_node_lost_in_coast_ends_in_the_configured_response() -> None:
+    """dn1 (barometer, GPS, airbrakes, one switch of each chute) dies 6 s
+    after launch: the CN latches DN_LOST and goes to ABORTED (airbrakes
+    safed); the recovery still runs from there on dn0's sensors (apogee ->
+    DROGUE), though no chute can open with one switch of its pair gone."""
+    fl = fly(load_mission(FLIGHT_YAML), lose=(9.0, "dn1"), seconds=30.0, until_landed=False)
+    res, dv = fl.result, fl.runner.control.dv
+    names = [s for _, s in fl.states]
+    assert names[:5] == ["SAFE", "ARMED", "BOOST", "COAST", "ABORTED"]
+    assert res.fault == "DN_LOST"
+    lost_at = fl.entered("ABORTED")
+    assert 9.0 < lost_at <= 9.0 + 0.6  # faults.dn_lost_loops (50) + a loop or two
+    assert names[5] == "DROGUE"  # recovery goes on from ABORTED at apogee
+    assert dv.get_name("airbrakes_mode") == "safed"
+    assert fl.truth.drogue_at is None  # dn1's switch never closed
+
+
+def test_abort_in_coast_safes_the_airbrakes_and_still_recovers() -> None:
+    fl = fly(load_mission(FLIGHT_YAML), "at 1.0 arm\nat 1.1 launch\nat 8 abort\n")
+    names = [s for _, s in fl.states]
+    assert names == ["SAFE", "ARMED", "BOOST", "COAST", "ABORTED", "DROGUE", "MAIN", "LANDED"]
+    f = fl.truth
+    assert f.drogue_at is not None and f.main_at is not None and f.landed
+    assert f.apogee_t is not None and f.drogue_at > f.apogee_t
+
+
+def test_abort_in_the_countdown_never_lights_the_motor() -> None:
+    fl = fly(load_mission(FLIGHT_YAML), "at 1.0 arm\nat 1.1 launch\nat 2.5 abort\n", seconds=10.0)
+    assert [s for _, s in fl.states] == ["SAFE", "ARMED", "ABORTED"]
+    assert not fl.truth.ignited and fl.truth.z == 0.0
+    assert not fl.runner.control.dv.get("dn0_pyro_armed")
+
+
+def test_the_controllers_keep_their_state_in_the_data_vector() -> None:
+    """A standby CN that mirrors the Data Vector can take over (issue 17): a
+    fresh control logic given a copy of the vector mid-coast computes the
+    same next loop as the one it replaces."""
+    from zplatform.loop import ControlLogic
+
+    m = load_mission(FLIGHT_YAML)
+    r = LockstepRunner(m, commands=load_commands(FLIGHT_CMDS))
+    r.run(8.0)
+    assert r.control.dv.get_name("cn_state") == "COAST"
+    twin = ControlLogic(m, epoch=r.start_ns)
+    twin.dv.write_all(bytes(r.control.dv.buf))
+    a, b = r.control, twin
+    t = r.start_ns + r.loop * r.period_ns
+    for logic in (a, b):
+        logic.begin(r.loop + 1, t)
+        logic.controllers.run(r.loop + 1, t)
+    watch = ("nav_h_m", "nav_v_mps", "nav_bias_mps2", "dn1_airbrake_cmd", "apogee_pred_m")
+    for name in watch:
+        assert a.dv.get(name) == b.dv.get(name), name
+    assert list(a.dv.get("nav_cov")) == list(b.dv.get("nav_cov"))
+    assert math.isfinite(a.dv.get("nav_h_m"))

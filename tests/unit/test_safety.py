@@ -1,0 +1,169 @@
+"""Safety smells that `zplatform check` reports (zplatform.safety)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+import yaml
+
+from zplatform import SafetyWarning, decode_mission, load_mission, safety_warnings
+from zplatform.cli import main
+from zplatform.datavector import DataVector
+from zplatform.devices import Actuator
+
+ROOT = Path(__file__).resolve().parents[2]
+HERE = __name__
+
+
+class NoSafe(Actuator):
+    """An actuator that never says what a lost control node should leave."""
+
+    def run(self, t_ns: int) -> None:
+        pass
+
+
+class Squib(Actuator):
+    """A pyrotechnic by its class, with a safe value."""
+
+    pyrotechnic = True
+
+    def bind(self, dv: DataVector) -> None:
+        self.board.set_digital(1, False)
+
+    def run(self, t_ns: int) -> None:
+        pass
+
+    def safe(self, t_ns: int) -> None:
+        self.board.set_digital(1, False)
+
+
+def mission(**sections: object) -> dict[str, object]:
+    doc: dict[str, object] = {
+        "mission": "smells",
+        "nodes": {"cn": {}, "dn0": {}, "gn": {}},
+        "regions": {
+            "cn": [{"name": "valve", "type": "bool"}],
+            "cn_to_dn0": [{"name": "fire", "type": "bool"}],
+        },
+        "state_machine": {"initial": "SAFE", "states": {"SAFE": {}, "FLIGHT": {}}},
+        "controllers": [
+            {
+                "name": "vent",
+                "class": "tests.unit.test_controllers:Recorder",
+                "node": "cn",
+                "config": {"out": "valve"},
+            },
+        ],
+        "devices": [
+            {
+                "name": "ign",
+                "class": "zplatform.devices:DigitalOutput",
+                "node": "dn0",
+                "config": {"pin": 0, "command": "fire"},
+            },
+        ],
+    }
+    doc.update(sections)
+    return doc
+
+
+def warnings_of(doc: dict[str, object]) -> list[SafetyWarning]:
+    return safety_warnings(decode_mission(yaml.safe_dump(doc)))
+
+
+def test_a_plain_write_that_can_enable_a_controller_is_reported() -> None:
+    """The issue's case: no `hazardous:` list, so controller modes are not
+    protected and one unconfirmed WRITE enables the controller in SAFE."""
+    (w,) = warnings_of(mission())
+    assert (w.kind, w.path) == ("unprotected_mode", "$.controllers[0]")
+    assert "vent_mode" in w.message and "commands.protected" in w.message
+    assert str(w).endswith(" - at `$.controllers[0]`")
+
+
+@pytest.mark.parametrize(
+    "commands",
+    [
+        {"hazardous": ["LAUNCH"]},  # modes are protected by default then
+        {"protected": ["vent_mode"], "whitelist": {"SAFE": ["ARM", "WRITE"]}},
+        {"whitelist": {"SAFE": ["NOOP"], "FLIGHT": ["ABORT"]}},  # no WRITE anywhere
+        {"writable": ["valve"]},  # the mode is not writable at all
+    ],
+)
+def test_protected_or_unwritable_modes_are_fine(commands: dict[str, object]) -> None:
+    assert warnings_of(mission(commands=commands)) == []
+
+
+def test_without_a_ground_node_no_command_smell() -> None:
+    doc = mission()
+    doc["nodes"] = {"cn": {}, "dn0": {}}
+    assert warnings_of(doc) == []
+
+
+def test_an_actuator_without_a_safe_value() -> None:
+    doc = mission(commands={"hazardous": ["LAUNCH"]})
+    doc["devices"] = [
+        {
+            "name": "ign",
+            "class": "zplatform.devices:DigitalOutput",
+            "node": "dn0",
+            "config": {"pin": 0, "command": "fire"},
+        },
+        {"name": "heater", "class": f"{HERE}:NoSafe", "node": "dn0"},
+    ]
+    (w,) = warnings_of(doc)
+    assert (w.kind, w.path) == ("no_safe_value", "$.devices[1]")
+    assert f"'heater' ({HERE}:NoSafe)" in w.message
+
+
+def test_pyrotechnic_outputs_need_hazardous_commands() -> None:
+    doc = mission(commands={"protected": ["vent_mode"], "whitelist": {"SAFE": ["ARM", "WRITE"]}})
+    doc["devices"][0]["config"]["pyrotechnic"] = True  # type: ignore[index]
+    doc["devices"].append({"name": "cutter", "class": f"{HERE}:Squib", "node": "dn0"})  # type: ignore[attr-defined]
+    (w,) = warnings_of(doc)
+    assert (w.kind, w.path) == ("pyrotechnic_without_hazardous", "$.commands.hazardous")
+    assert "(ign, cutter)" in w.message
+    doc["commands"] = {"hazardous": ["LAUNCH"]}
+    assert warnings_of(doc) == []
+
+
+def test_the_igniter_mission_is_clean_and_its_igniters_are_pyrotechnic() -> None:
+    path = ROOT / "configs" / "recovery_igniter.yaml"
+    assert safety_warnings(load_mission(path)) == []
+    doc = yaml.safe_load(path.read_text())
+    del doc["commands"]["hazardous"]
+    doc["commands"].pop("protected", None)
+    reduced = decode_mission(yaml.safe_dump(doc), base_dir=path.parent)
+    kinds = {(w.kind, w.path) for w in safety_warnings(reduced)}
+    assert ("pyrotechnic_without_hazardous", "$.commands.hazardous") in kinds
+    assert ("unprotected_mode", "$.controllers[2]") in kinds  # safety0: the igniter's guard
+
+
+def test_check_prints_warnings_lists_them_in_json_and_strict_fails(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    path = tmp_path / "m.yaml"
+    path.write_text(yaml.safe_dump(mission()))
+    assert main(["check", str(path)]) == 0
+    out, err = capsys.readouterr()
+    assert "mission smells: OK, 1 safety warning(s)" in out
+    assert err.startswith("zplatform: warning: controller 'vent': a plain WRITE") and err.endswith(
+        " - at `$.controllers[0]`\n"
+    )
+    assert main(["check", str(path), "--json"]) == 0
+    rep = json.loads(capsys.readouterr().out)
+    assert rep["ok"] is True
+    assert [(w["kind"], w["path"]) for w in rep["warnings"]] == [
+        ("unprotected_mode", "$.controllers[0]")
+    ]
+    assert main(["check", str(path), "--strict"]) == 2
+    out, err = capsys.readouterr()
+    assert out == "" and err.startswith("zplatform: error: controller 'vent'")
+    assert main(["check", str(path), "--strict", "--json"]) == 2
+    assert json.loads(capsys.readouterr().out)["ok"] is False
+    clean = tmp_path / "clean.yaml"
+    clean.write_text(yaml.safe_dump(mission(commands={"hazardous": ["LAUNCH"]})))
+    assert main(["check", str(clean), "--strict"]) == 0
+    out, err = capsys.readouterr()
+    assert err == "" and "mission smells: OK  (" in out

@@ -1,0 +1,372 @@
+"""The ground's zenoh driver: one session feeding a :class:`~.logic.GroundLogic`.
+
+:class:`GroundLink` is the only place a ground tool meets zenoh: the ground
+node, ``cmd``, ``tap``, ``log``, the line prompt, the console and ``up``'s
+watcher all use it. It holds one session (the ground node's own, or a tool's
+connected to every node), and at most one of each:
+
+* a **telemetry** subscriber on ``{vehicle}/cn/telemetry``;
+* an **event intake** on ``{vehicle}/*/events``;
+* a **command publisher** on ``{vehicle}/gn/to_cn``;
+* a raw **tap** subscriber on any key expression (``zplatform tap``).
+
+Every zenoh callback only queues the bytes with the receive time (one FIFO,
+so telemetry and events are taken in arrival order); the caller's thread
+takes them (:meth:`GroundLink.next`), runs them through the logic, publishes
+the requests it makes, and hands every event record to ``on_event``. The
+ground's own events (joined, restarted, refused, script done) go to
+``on_event`` too: a ground *node* publishes them on ``{vehicle}/gn/events``
+and takes them back through its intake, a tool hands them over directly.
+
+The clock is a :class:`~zplatform.timebase.NodeClock` (realtime-anchored,
+like every node's), read in the callbacks: a snapshot's age is measured at
+its arrival, not when the caller got round to it. The freshness bound is the
+mission's (:func:`~.logic.default_max_age_ns`) unless
+``ZPLATFORM_TELEMETRY_MAX_AGE_MS`` says otherwise.
+
+Not thread-safe: one thread calls everything after construction.
+"""
+
+from __future__ import annotations
+
+import os
+import queue
+import time
+from collections import deque
+from collections.abc import Callable, Sequence
+from typing import Literal
+
+import zenoh
+
+from ..auth import KeySet, channel, load_keys
+from ..config import Mission
+from ..datavector import DataVector
+from ..errors import CommandError, TransportError
+from ..events import Event
+from ..node.runtime import EventPublisher
+from ..timebase import NodeClock
+from ..transport import NodeSession, is_matching
+from ..uplink import ScriptCommand, validate_command
+from .logic import GroundLogic, default_max_age_ns
+from .records import CommandOutcome, EventRecord
+
+__all__ = ["MAX_AGE_ENV", "GroundLink", "max_age_ns_from_env"]
+
+MAX_AGE_ENV = "ZPLATFORM_TELEMETRY_MAX_AGE_MS"
+
+_TM, _EV, _TAP = 0, 1, 2
+
+
+def max_age_ns_from_env(mission: Mission) -> int:
+    """The freshness bound: ``ZPLATFORM_TELEMETRY_MAX_AGE_MS`` when set,
+    else the mission's (TransportError for a value that is not a positive
+    number)."""
+    text = os.environ.get(MAX_AGE_ENV, "")
+    if not text:
+        return default_max_age_ns(mission)
+    try:
+        ms = float(text)
+    except ValueError:
+        ms = 0.0
+    if not 0 < ms < float("inf"):
+        raise TransportError(f"{MAX_AGE_ENV}={text!r} is not a positive number of milliseconds")
+    return int(ms * 1_000_000)
+
+
+class GroundLink:
+    """One zenoh session driving one :class:`GroundLogic` (module doc).
+
+    ``node``: run as that node of the mission (``gn``: its endpoints and
+    liveliness token, declared once everything is subscribed); None: a
+    tool connected to every node. ``keys``: the ground's keys, or
+    ``"mission"`` to load them (:func:`zplatform.auth.load_keys`: host role
+    ``gn`` when it runs as the ground node or may command, else ``tool``,
+    from ``key_file``, the environment or the default key set) before any
+    session opens, so a missing key is the first and only error.
+    ``telemetry``/``events``/``commands``: which of the three to declare
+    (a ``script`` implies ``commands``). ``on_event`` gets every event record
+    in the caller's thread. ``announce=False``: declare the node's liveliness
+    token later (:meth:`announce`), after some set-up of the caller's.
+
+    Raises KeyError_ for a missing key, TransportError when the session
+    cannot open, CommandError for a script that does not fit the mission.
+    """
+
+    def __init__(
+        self,
+        mission: Mission,
+        *,
+        node: str | None = None,
+        keys: KeySet | Literal["mission"] | None = "mission",
+        key_file: str | None = None,
+        telemetry: bool = True,
+        events: bool = True,
+        commands: bool = False,
+        script: Sequence[ScriptCommand] = (),
+        on_event: Callable[[EventRecord], None] | None = None,
+        clock: NodeClock | None = None,
+        announce: bool = True,
+    ) -> None:
+        self.mission = mission
+        if keys == "mission":
+            role = "gn" if node == "gn" or commands or script else "tool"
+            keys = load_keys(mission, role, key_file)
+        self.clock = clock or NodeClock()
+        self.logic = GroundLogic(
+            mission,
+            keys=keys,
+            node=node or "ground",
+            max_age_ns=max_age_ns_from_env(mission),
+            script=script,
+        )
+        self.on_event = on_event
+        self.ns = NodeSession(mission, node, announce=False)
+        self.keys = self.ns.keys
+        session = self.ns.session
+        self._q: queue.SimpleQueue[tuple[int, bytes, int, str, bool]] = queue.SimpleQueue()
+        self._subs: list[zenoh.Subscriber[None]] = []
+        if telemetry:
+            self._subscribe(self.keys.telemetry, _TM)
+        if events:
+            self._subscribe(self.keys.all_events, _EV)
+        self._pub: zenoh.Publisher | None = None
+        if commands or script:
+            self._pub = session.declare_publisher(self.keys.gn_to_cn)
+        # A node publishes its own events (and takes them back through its
+        # intake); a tool hands them to on_event itself.
+        self._ev_pub = (
+            EventPublisher(
+                session, self.keys.events(node), self.logic.events, channel(keys, f"events_{node}")
+            )
+            if node is not None
+            else None
+        )
+        self._taps: deque[tuple[str, bytes, bool]] = deque()
+        self._closed = False
+        if announce:
+            self.announce()
+
+    def announce(self) -> None:
+        """Declare the node's liveliness token (once; nothing for a tool).
+        Alive only once subscribed: the CN waits for the ground node's token
+        before its first loop, so a log starts at loop 1."""
+        self.ns.announce()
+
+    # -- reading -------------------------------------------------------------
+    @property
+    def dv(self) -> DataVector:
+        """The last accepted snapshot (:attr:`GroundLogic.dv`)."""
+        return self.logic.dv
+
+    def _pop(self, deadline: float) -> tuple[int, bytes, int, str, bool] | None:
+        left = deadline - time.monotonic()
+        try:
+            return self._q.get(timeout=left) if left > 0 else self._q.get_nowait()
+        except queue.Empty:
+            self._after(self.clock.now_ns())
+            return None
+
+    def _take(self, kind: int, payload: bytes, rx: int, key: str) -> bool:
+        """One telemetry frame or event (that came on ``key``) through the
+        logic; True when a snapshot was accepted."""
+        logic = self.logic
+        if kind == _TM:
+            ok = logic.on_telemetry(payload, rx, can_send=self.cn_listening)
+            self._after(rx)
+            return ok
+        rec = logic.on_event_bytes(key, payload, rx)
+        if rec is not None and self.on_event is not None:
+            self.on_event(rec)
+        self._after(rx)
+        return False
+
+    def next(self, timeout_s: float) -> int | None:
+        """Take what arrived, up to ``timeout_s`` (0: only what is queued),
+        until a snapshot is accepted: returns its receive time (ns), or None
+        when the time ran out first. Events met on the way go to
+        ``on_event``; refused snapshots are counted by the logic."""
+        got = self._pump(timeout_s, tap=False)
+        return got if isinstance(got, int) else None
+
+    def _pump(self, timeout_s: float, *, tap: bool) -> int | tuple[str, bytes, bool] | None:
+        """Take queued items until an accepted snapshot (``tap=False``: its
+        receive time) or a tapped sample (``tap=True``), or the time runs out."""
+        deadline = time.monotonic() + timeout_s
+        while (item := self._pop(deadline)) is not None:
+            kind, payload, rx, key, shm = item
+            if kind == _TAP:
+                if tap:
+                    return key, payload, shm
+                self._taps.append((key, payload, shm))
+            elif self._take(kind, payload, rx, key) and not tap:
+                return rx
+        return None
+
+    def _after(self, now_ns: int) -> None:
+        """Publish the logic's requests, hand over its events, let time pass."""
+        logic = self.logic
+        logic.tick(now_ns)
+        if self._pub is not None:
+            for frame in logic.take_requests():
+                self._pub.put(frame)
+        if self._ev_pub is not None:
+            self._ev_pub.flush()
+        elif logic.events.pending:
+            for e in logic.events.drain():
+                self._own_event(e)
+
+    def _own_event(self, e: Event) -> None:
+        if self.on_event is not None:
+            self.on_event(EventRecord.of(e, e.t_ns))
+
+    @property
+    def cn_listening(self) -> bool:
+        """Whether the control node subscribes to command requests now."""
+        return self._pub is not None and is_matching(self._pub)
+
+    def wait_joined(self, timeout_s: float) -> None:
+        """Block until a snapshot was accepted (the ground follows a CN run).
+
+        Raises CommandError after ``timeout_s``, saying why: nothing came,
+        or what came was refused (stale stamps name the clock bound and how
+        to widen it when this host's clock is off)."""
+        deadline = time.monotonic() + timeout_s
+        while not self.logic.joined:
+            left = deadline - time.monotonic()
+            if left <= 0:
+                raise CommandError(self.why_no_telemetry(timeout_s))
+            self.next(min(left, 0.2))
+
+    def why_no_telemetry(self, waited_s: float) -> str:
+        """What to tell an operator when no snapshot was accepted."""
+        c = self.logic.counters
+        refused = sum(c.refused.values())
+        if not c.bad and not refused:
+            return f"no telemetry from the control node within {waited_s:g} s"
+        what = ", ".join(f"{n} {k}" for k, n in (("bad", c.bad), *c.refused.items()) if n)
+        hint = ""
+        if c.refused["stale"] or c.refused["ahead"]:
+            hint = (
+                "; if this host's clock is off from the vehicle's, synchronise it (chrony, "
+                f"NTP) or widen the bound with {MAX_AGE_ENV}=MILLISECONDS"
+            )
+        return (
+            f"no acceptable telemetry within {waited_s:g} s: {what} snapshot(s) refused; "
+            f"last: {self.logic.last_refusal}{hint}"
+        )
+
+    # -- commanding ----------------------------------------------------------
+    def wait_cn_listening(self, timeout_s: float) -> None:
+        """Block until the control node subscribes to command requests."""
+        if self._pub is None:
+            raise CommandError("this link was opened without a command publisher")
+        deadline = time.monotonic() + timeout_s
+        while not self.cn_listening:
+            if time.monotonic() > deadline:
+                raise CommandError("the control node does not subscribe to ground commands")
+            self.next(0.01)
+
+    def submit(self, command: str, args: Sequence[str] = (), *, armed: bool = False) -> int:
+        """Queue a command with its arguments (WRITE: ELEMENT VALUE;
+        :meth:`GroundLogic.command`) and publish it if it can go now;
+        returns its ticket. Never blocks; CommandError for bad arguments."""
+        if len(args) > 2:
+            raise CommandError(f"{command} takes at most ELEMENT VALUE, got {list(args)}")
+        ticket = self.logic.command(
+            command,
+            *args,
+            now_ns=self.clock.now_ns(),
+            armed=armed,
+            can_send=self.cn_listening,
+        )
+        self._after(self.clock.now_ns())
+        return ticket
+
+    def command(
+        self,
+        command: str,
+        element: str | None = None,
+        value: str | None = None,
+        *,
+        armed: bool = False,
+        timeout_s: float = 10.0,
+    ) -> list[CommandOutcome]:
+        """Send one operator command and wait for its outcome(s). Blocks.
+
+        Refuses before sending (CommandError) an unknown command or element
+        and a value that does not fit (whether a command needs ``armed`` is
+        the caller's to ask: :func:`~.logic.needs_arm`). Waits up to
+        ``timeout_s`` for telemetry
+        and the CN to listen, and as long again for the verdicts (and their
+        reasons); raises CommandError when one does not come.
+        """
+        validate_command(self.mission, command, element, value)  # before anything waits
+        self.wait_joined(timeout_s)
+        self.wait_cn_listening(timeout_s)
+        ticket = self.submit(command, [a for a in (element, value) if a is not None], armed=armed)
+        deadline = time.monotonic() + timeout_s
+        while (done := self.logic.result(ticket)) is None:
+            if time.monotonic() > deadline:
+                steps = " then ".join(self.logic.steps(ticket))
+                raise CommandError(f"no verdict for {steps} within {timeout_s:g} s")
+            self.next(0.05)
+        return done
+
+    # -- taps and liveliness -------------------------------------------------
+    def _subscribe(self, keyexpr: str, kind: int) -> None:
+        """Queue every sample on ``keyexpr`` as ``kind``, stamped on arrival."""
+        q, now = self._q, self.clock.now_ns
+
+        def on_sample(sample: zenoh.Sample) -> None:
+            p = sample.payload  # hand off only (and whether shared memory carried it)
+            q.put((kind, p.to_bytes(), now(), str(sample.key_expr), p.as_shm() is not None))
+
+        self._subs.append(
+            self.ns.session.declare_subscriber(
+                keyexpr, zenoh.handlers.Callback(on_sample, indirect=False)
+            )
+        )
+
+    def tap(self, keyexpr: str) -> None:
+        """Also subscribe to every sample on ``keyexpr``, raw, for
+        :meth:`next_tap`."""
+        self._subscribe(keyexpr, _TAP)
+
+    def next_tap(self, timeout_s: float) -> tuple[str, bytes, bool] | None:
+        """The next tapped sample ``(key, payload, came through shared
+        memory)``, up to ``timeout_s``, or None."""
+        if self._taps:
+            return self._taps.popleft()
+        got = self._pump(timeout_s, tap=True)
+        return got if isinstance(got, tuple) else None
+
+    def alive_nodes(self, timeout_s: float = 1.0) -> list[str]:
+        """The mission's nodes with a liveliness token now, sorted."""
+        names = set()
+        for reply in self.ns.session.liveliness().get(self.keys.all_alive, timeout=timeout_s):
+            if reply.ok is not None:
+                parts = str(reply.ok.key_expr).split("/")
+                if len(parts) >= 2:
+                    names.add(parts[-2])
+        return sorted(names)
+
+    def close(self) -> None:
+        """Undeclare everything and close the session; idempotent."""
+        if self._closed:
+            return
+        self._closed = True
+        try:
+            if self._ev_pub is not None:
+                self._ev_pub.undeclare()
+            for s in self._subs:
+                s.undeclare()
+            if self._pub is not None:
+                self._pub.undeclare()
+        finally:
+            self.ns.close()
+
+    def __enter__(self) -> GroundLink:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()

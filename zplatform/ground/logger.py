@@ -1,0 +1,76 @@
+"""The ground's logs: telemetry snapshots as CSV, events as JSON lines beside it.
+
+:class:`TelemetryLog` writes what a :class:`~.link.GroundLink` accepts: one
+CSV row per snapshot (:class:`~zplatform.telemetry.CsvLogger`: the CSV
+format is :mod:`zplatform.telemetry`'s) and one JSON line per event
+(:class:`~zplatform.telemetry.EventWriter`), in ``tm.csv`` and
+``tm.events.jsonl``. :func:`log_summary_line` says what a run
+logged, for ``zplatform log`` and ``up``.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from ..datavector import DataVector, Layout
+from ..summary import GnSummary
+from ..telemetry import CsvLogger, EventWriter, events_path
+from .records import EventRecord
+
+__all__ = ["TelemetryLog", "log_summary_line"]
+
+
+class TelemetryLog:
+    """A telemetry CSV (``csv``, optional) and an events file (``events``,
+    optional; :func:`~zplatform.telemetry.events_path` beside the CSV is the
+    convention). Files are created (truncated) at construction; :meth:`close`
+    flushes and closes them, idempotent."""
+
+    def __init__(self, layout: Layout, csv: str | Path | None, events: str | Path | None) -> None:
+        self.csv_path = Path(csv) if csv is not None else None
+        self.events_path = Path(events) if events is not None else None
+        self._csv = CsvLogger(csv, layout) if csv is not None else None
+        self._events = EventWriter(events) if events is not None else None
+
+    @classmethod
+    def beside(cls, layout: Layout, csv: str | Path | None) -> TelemetryLog:
+        """The CSV and its events file beside it (``tm.csv``, ``tm.events.jsonl``)."""
+        return cls(layout, csv, events_path(csv) if csv is not None else None)
+
+    @property
+    def rows(self) -> int:
+        return self._csv.rows if self._csv is not None else 0
+
+    @property
+    def event_count(self) -> int:
+        return self._events.count if self._events is not None else 0
+
+    def snapshot(self, rx_ns: int, dv: DataVector) -> None:
+        if self._csv is not None:
+            self._csv.write(rx_ns, dv)
+
+    def event(self, rec: EventRecord) -> None:
+        if self._events is not None:
+            self._events.write(rec)
+
+    def close(self) -> None:
+        if self._csv is not None:
+            self._csv.close()
+        if self._events is not None:
+            self._events.close()
+
+
+def log_summary_line(s: GnSummary, csv: str | Path | None, events: str | Path | None) -> str:
+    """``logged 1000 snapshot(s) (loops 1..1000), 0 gap(s), 0 bad or refused ->
+    tm.csv; 12 event(s) -> tm.events.jsonl``."""
+    loops = f" (loops {s.first_seq}..{s.last_seq})" if s.telemetry_received else ""
+    refused = ", ".join(f"{k} {n}" for k, n in s.telemetry_refused.items() if n)
+    text = (
+        f"logged {s.telemetry_received} snapshot(s){loops}, {s.telemetry_gaps} gap(s), "
+        f"{s.telemetry_bad} bad or refused{f' ({refused})' if refused else ''}"
+    )
+    if csv is not None:
+        text += f" -> {csv}"
+    if events is not None:
+        text += f"; {s.events_logged} event(s) -> {events}"
+    return text

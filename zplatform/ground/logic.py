@@ -1,0 +1,685 @@
+"""The ground's sans-IO logic: telemetry in, every check, requests out.
+
+:class:`GroundLogic` is to the ground what :class:`~zplatform.loop.ControlLogic`
+is to the control node: it owns the ground's Data Vector (the CN layout, as
+the last accepted snapshot showed it), every check a snapshot passes before
+it touches that vector, the counters, the command requests and the reading
+of their verdicts, and the command-script player. It never touches zenoh or
+a clock: every input comes with its receive time on the caller's clock.
+Drivers: the zenoh link (:mod:`zplatform.ground.link`: the ground node,
+``cmd``, ``tap``, ``log``, ``ground``, ``up``'s watcher) and the lockstep
+runner, so a script means the same thing live and in ``sim``.
+
+**Telemetry** (:meth:`GroundLogic.on_telemetry`), each check in this order,
+the first failure wins and is counted (:class:`~.records.TelemetryCounters`):
+
+1. size: longer than any telemetry frame -> ``bad``, before any work;
+2. the telemetry channel's tag (:mod:`zplatform.auth`) -> ``bad``;
+3. layout and encoding (:class:`~zplatform.codec.RegionCodec`) -> ``bad``;
+4. freshness: the frame's stamp must be within :attr:`GroundLogic.max_age_ns`
+   of the receive time (node clocks are realtime-anchored,
+   :mod:`zplatform.timebase`, so a ground and a CN agree to the clock bound)
+   -> refused ``stale`` or ``ahead``. A recording of an earlier run,
+   replayed on the telemetry key, is stale: it can never be believed;
+5. the run: the ground follows one CN run (its ``cn_epoch``). It joins the
+   first fresh run it sees; a fresh snapshot of a *newer* run means the CN
+   restarted: the ground follows it, counts the change and emits
+   ``cn_restarted`` (pending requests of the old run end ``NO_VERDICT``).
+   A snapshot of an older run is refused (``old_epoch``), unless the run
+   followed has gone stale itself (then the fresh one is the newest alive);
+6. order within the run: newer than the last snapshot (``not_newer``), and
+   not further ahead than the time since allows (``jump``).
+
+Only then is the snapshot written into :attr:`GroundLogic.dv`; missing loop
+numbers count as ``gaps``. The first refusal of each kind is an event
+(``tm_refused``); the rest are counted.
+
+**Commands** (:meth:`GroundLogic.command`): a request is numbered after the
+CN's last verdict (``cn_cmd_seq + 1``, or after the ground's own last
+request), carries the run followed, and goes out only while no other
+request waits for its verdict (numbers stay consecutive: ARM n, COMMAND
+n+1; an armed command is one call). Its verdict is read only from a snapshot
+*provably after it*: the same run, a loop after the one the ground had seen
+when it sent it, with the number echoed in ``cn_cmd_seq`` (``cn_cmd_status``)
+or in ``cn_cmd_reject_seq`` (``cn_cmd_reject_status``, a refusal that
+consumed no number, with ``cn_cmd_rejects`` grown since). A request whose
+verdict does not show within ``resend_loops`` loops is sent again with the
+same number, at most ``tries`` times, then ends ``NO_VERDICT``.
+
+The reason of a verdict comes from the CN's ``cmd_accepted`` /
+``cmd_rejected`` event (:meth:`GroundLogic.on_event`), matched by node
+``cn``, number, command, status and run; events are not authenticated, so
+an event never decides a verdict, it only explains the one telemetry
+showed. When none arrives within ``reason_grace_ns`` of the verdict, the
+reason is derived from the verdict snapshot and marked so. Outcomes are
+released in verdict order (:attr:`GroundLogic.outcomes`); the script player
+moves on at the verdict, not at its reason, so timing never depends on the
+event channel.
+
+Nothing here blocks or raises for what arrives: bad input is counted. Not
+thread-safe: one driver thread calls everything.
+"""
+
+from __future__ import annotations
+
+import re
+import struct
+from collections import deque
+from collections.abc import Sequence
+
+import msgspec
+
+from ..auth import TAG_LEN, AuthError, KeySet, channel, link_of
+from ..codec import RegionCodec
+from ..commands import protected_elements
+from ..config import Mission
+from ..datavector import DataVector, Layout
+from ..errors import CodecError, CommandError
+from ..events import EV, Event, EventLog, EventReader, EventType
+from ..uplink import ScriptCommand, Uplink, validate_command
+from .records import REFUSALS, CommandOutcome, EventRecord, TelemetryCounters
+from .script import ScriptPlayer
+
+__all__ = [
+    "FRESH_MARGIN_NS",
+    "REASON_GRACE_NS",
+    "GroundLogic",
+    "default_max_age_ns",
+    "needs_arm",
+]
+
+FRESH_MARGIN_NS = 1_000_000_000
+"""Added to the mission's clock bound to make the freshness bound: room for
+the network, a loaded host and the hand-off to the ground's thread."""
+
+REASON_GRACE_NS = 500_000_000
+"""How long a verdict waits for the CN's event that gives its reason."""
+
+_U64 = struct.Struct("<Q")
+_CMD_EVENTS = 64  # recent cmd_accepted/cmd_rejected events kept for matching
+
+
+def default_max_age_ns(mission: Mission) -> int:
+    """The freshness bound: ``clock.offset_bound_ms`` plus :data:`FRESH_MARGIN_NS`."""
+    return int(mission.clock.offset_bound_ms * 1_000_000) + FRESH_MARGIN_NS
+
+
+def needs_arm(mission: Mission, command: str, element: str | None = None) -> str | None:
+    """Why ``command`` (with ``element`` for WRITE, the parameter for
+    PRM_SET) must go as ARM n, then the command n+1, or None when it need
+    not: the command is hazardous (``commands.hazardous``), the WRITE sets a
+    protected element (``commands.protected``,
+    :func:`zplatform.commands.protected_elements`), or the PRM_SET a
+    hazardous parameter (``params[i].hazardous``)."""
+    cmd = command.upper()
+    if cmd in mission.commands.hazardous:
+        return f"{cmd} is hazardous (commands.hazardous)"
+    if cmd == "WRITE" and element is not None and element in protected_elements(mission):
+        return f"{element} is protected (commands.protected)"
+    if cmd == "PRM_SET" and any(p.name == element and p.hazardous for p in mission.params):
+        return f"parameter {element} is hazardous (params: hazardous)"
+    return None
+
+
+def _pattern(ev: EventType) -> re.Pattern[str]:
+    """A regular expression that reads an event text back into its fields."""
+    parts = re.split(r"\{(\w+)[^}]*\}", ev.format)
+    rx = "".join(f"(?P<{p}>.*?)" if i % 2 else re.escape(p) for i, p in enumerate(parts))
+    return re.compile(f"^{rx}$", re.S)
+
+
+_ACCEPTED = _pattern(EV.CMD_ACCEPTED)
+_REJECTED = _pattern(EV.CMD_REJECTED)
+
+
+class _CmdEvent:
+    """A ``cmd_accepted``/``cmd_rejected`` event of the CN, read back."""
+
+    __slots__ = ("detail", "name", "seq", "status", "t_ns")
+
+    def __init__(self, name: str, seq: int, status: str, detail: str, t_ns: int) -> None:
+        self.name, self.seq, self.status, self.detail, self.t_ns = name, seq, status, detail, t_ns
+
+
+def _read_cmd_event(e: Event) -> _CmdEvent | None:
+    if e.node != "cn":
+        return None
+    if e.id == EV.CMD_ACCEPTED.name:
+        m = _ACCEPTED.match(e.text)
+        status = "ACCEPTED"
+    elif e.id == EV.CMD_REJECTED.name:
+        m = _REJECTED.match(e.text)
+        status = m.group("status") if m else ""
+    else:
+        return None
+    if m is None or not m.group("seq").isdigit():
+        return None
+    detail = m.group("detail").strip()
+    if status == "ACCEPTED" and detail.startswith("(") and detail.endswith(")"):
+        detail = detail[1:-1]  # " (led_a_cmd = True)" -> "led_a_cmd = True"
+    return _CmdEvent(m.group("name"), int(m.group("seq")), status, detail, e.t_ns)
+
+
+class _Tally(msgspec.Struct):
+    """The running counts behind :class:`~.records.TelemetryCounters`."""
+
+    refused: dict[str, int]
+    received: int = 0
+    gaps: int = 0
+    bad: int = 0
+    epoch_changes: int = 0
+    first_seq: int = -1
+    bad_events: int = 0
+
+
+class _Plan:
+    """One operator command: its steps (ARM first when armed), its outcomes."""
+
+    __slots__ = ("open", "outcomes", "sent", "source", "steps", "ticket")
+
+    def __init__(self, ticket: int, steps: list[tuple[str, int, float]], source: str) -> None:
+        self.ticket = ticket
+        self.steps = steps
+        self.source = source
+        self.sent = 0  # steps sent so far
+        self.open = True  # more steps may still be sent
+        self.outcomes: list[CommandOutcome] = []
+
+
+class _Request:
+    """One request on the wire, from sending to its released outcome."""
+
+    __slots__ = (
+        "cmd",
+        "epoch",
+        "index",
+        "loop",
+        "plan",
+        "reason",
+        "reason_from",
+        "rejects0",
+        "rx",
+        "sent_loop",
+        "seq",
+        "shown_seq",
+        "state",
+        "status",
+        "tries",
+        "value",
+    )
+
+    def __init__(
+        self, plan: _Plan, step: tuple[str, int, float], seq: int, epoch: int, loop: int
+    ) -> None:
+        self.plan = plan
+        self.cmd, self.index, self.value = step
+        self.seq = seq
+        self.epoch = epoch
+        self.sent_loop = loop  # the loop seen when sent: a verdict must come from a later one
+        self.rejects0 = 0
+        self.tries = 1
+        self.status = ""
+        self.loop = 0
+        self.rx = 0
+        self.state = ""
+        self.shown_seq = 0
+        self.reason = ""
+        self.reason_from = ""
+
+
+class GroundLogic:
+    """The ground's logic (module doc). Construction resolves the script
+    against the mission (CommandError naming ``file:line``).
+
+    ``keys``: the ground's keys (:func:`zplatform.auth.load_keys`: a ground
+    node's or a commanding tool's hold the downlink, the uplink and every
+    node's event key; a read-only tool's no uplink, so it frames no
+    request); None: the mission does not authenticate. Only events whose
+    tag verified (or any, when the mission does not authenticate) explain
+    a verdict. ``node``: the name the ground's own events carry. ``max_age_ns``: the
+    freshness bound (default :func:`default_max_age_ns`). ``script``: a
+    command script to play (:class:`~.script.ScriptPlayer`).
+    """
+
+    def __init__(
+        self,
+        mission: Mission,
+        *,
+        keys: KeySet | None,
+        node: str = "gn",
+        max_age_ns: int | None = None,
+        script: Sequence[ScriptCommand] = (),
+        resend_loops: int = 100,
+        tries: int = 3,
+        reason_grace_ns: int = REASON_GRACE_NS,
+    ) -> None:
+        self.mission = mission
+        self.node = node
+        self.layout = Layout.for_node(mission, "cn")
+        self.dv = DataVector(self.layout)
+        """The last accepted snapshot (all zero before the first)."""
+        self._codec = RegionCodec(self.dv)
+        self._open = channel(keys, "telemetry")
+        self._events_in = EventReader(mission, keys)
+        self._max_len = self._codec.max_frame_len + (TAG_LEN if self._open is not None else 0)
+        self._epoch_at = self.layout.element("cn_epoch").offset
+        self.max_age_ns = default_max_age_ns(mission) if max_age_ns is None else max_age_ns
+        self._period = mission.period_ns
+        self._div = mission.telemetry_divisor
+        self.events = EventLog(node)
+        """The ground's own events (joined, restarted, refused, script done);
+        the driver drains them."""
+        # telemetry state
+        self._epoch = -1
+        self._last_seq = -1
+        self._last_rx = 0
+        self._last_t = 0
+        self._n = _Tally(refused=dict.fromkeys(REFUSALS, 0))
+        self._evented: set[str] = set()
+        self.last_refusal = ""
+        """The detail of the latest refused or bad snapshot ("" if none)."""
+        h = self.dv.handle
+        self._h_loop = h("cn_loop")
+        self._h_state = h("cn_state")
+        self._h_seq = h("cn_cmd_seq")  # the last request that consumed a number
+        self._h_status = h("cn_cmd_status")
+        self._h_rseq = h("cn_cmd_reject_seq")  # the last refused without consuming one
+        self._h_rstatus = h("cn_cmd_reject_status")
+        self._h_rejects = h("cn_cmd_rejects")
+        # commands
+        self._uplink = (
+            Uplink(mission, keys)
+            if mission.has_ground and (keys is None or keys.has(link_of("gn_to_cn")))
+            else None
+        )
+        self._plans: deque[_Plan] = deque()
+        self._tickets: dict[int, _Plan] = {}
+        self._next_ticket = 1
+        self._inflight: _Request | None = None
+        self._deciding: deque[_Request] = deque()
+        self._last_sent = 0  # the last number sent in the run followed
+        self._resend = resend_loops
+        self._tries = tries
+        self._grace = reason_grace_ns
+        self._cmd_events: deque[_CmdEvent] = deque(maxlen=_CMD_EVENTS)
+        self._out: list[bytes] = []
+        self.outcomes: list[CommandOutcome] = []
+        """Every released outcome, in verdict order."""
+        self.player = ScriptPlayer(mission, script) if script else None
+
+    # -- telemetry -----------------------------------------------------------
+    @property
+    def joined(self) -> bool:
+        """Whether a snapshot was accepted (a CN run is followed)."""
+        return self._epoch >= 0
+
+    @property
+    def received(self) -> int:
+        """Snapshots accepted so far (cheap; :attr:`counters` has them all)."""
+        return self._n.received
+
+    @property
+    def counters(self) -> TelemetryCounters:
+        """A snapshot of every counter (a new object per call)."""
+        n = msgspec.structs.asdict(self._n)
+        n["refused"] = dict(self._n.refused)
+        return TelemetryCounters(**n, epoch=max(self._epoch, 0), last_seq=self._last_seq)
+
+    def on_telemetry(
+        self, payload: bytes | bytearray | memoryview, rx_ns: int, *, can_send: bool = True
+    ) -> bool:
+        """Check one telemetry frame received at ``rx_ns`` (module doc);
+        returns whether it was accepted into :attr:`dv`. On acceptance,
+        verdicts are read, the script player runs, and requests may be
+        queued for :meth:`take_requests`. ``can_send``: the CN listens for
+        requests now (else they wait). Never raises for the payload."""
+        if len(payload) > self._max_len:
+            return self._reject_bad(
+                "size",
+                f"{len(payload)} bytes, longer than any telemetry frame ({self._max_len})",
+                rx_ns,
+            )
+        try:
+            body = self._open.open(payload) if self._open is not None else payload
+            frame = self._codec.check(body)
+        except AuthError as exc:
+            return self._reject_bad("tag", str(exc), rx_ns)
+        except CodecError as exc:
+            return self._reject_bad("format", str(exc), rx_ns)
+        epoch = _U64.unpack_from(frame.data, self._epoch_at)[0]
+        seq, t = frame.seq, frame.t_ns
+        age = rx_ns - t
+        if age > self.max_age_ns:
+            return self._refuse(
+                "stale",
+                f"snapshot of loop {seq} stamped {age / 1e9:.3f} s before this ground's clock "
+                f"(bound {self.max_age_ns / 1e9:g} s): a replay of an earlier run, or this "
+                "host's clock is ahead of the vehicle's",
+                rx_ns,
+            )
+        if -age > self.max_age_ns:
+            return self._refuse(
+                "ahead",
+                f"snapshot of loop {seq} stamped {-age / 1e9:.3f} s after this ground's clock "
+                f"(bound {self.max_age_ns / 1e9:g} s): this host's clock is behind the "
+                "vehicle's",
+                rx_ns,
+            )
+        if epoch != self._epoch:
+            if self._epoch >= 0 and epoch < self._epoch and rx_ns - self._last_t <= self.max_age_ns:
+                return self._refuse(
+                    "old_epoch",
+                    f"snapshot of control node run {epoch}, older than run {self._epoch}, "
+                    "which this ground follows",
+                    rx_ns,
+                )
+            self._follow(epoch, seq, rx_ns)
+        elif seq <= self._last_seq:
+            return self._refuse(
+                "not_newer",
+                f"snapshot of loop {seq} is not newer than loop {self._last_seq}",
+                rx_ns,
+            )
+        else:
+            allowed = 2 * (max(rx_ns - self._last_rx, 0) // self._period + 1) + 100
+            if seq - self._last_seq > allowed:
+                return self._refuse(
+                    "jump",
+                    f"snapshot of loop {seq} jumps {seq - self._last_seq} loops past loop "
+                    f"{self._last_seq} in {(rx_ns - self._last_rx) / 1e6:.1f} ms",
+                    rx_ns,
+                )
+        self._codec.write(frame)
+        if self._last_seq >= 0 and seq > self._last_seq + self._div:
+            self._n.gaps += (seq - self._last_seq) // self._div - 1
+        if self._n.first_seq < 0:
+            self._n.first_seq = seq
+        self._n.received += 1
+        self._last_seq = seq
+        self._last_rx = rx_ns
+        self._last_t = t
+        self._on_snapshot(rx_ns, can_send)
+        return True
+
+    def _reject_bad(self, kind: str, detail: str, rx_ns: int) -> bool:
+        self._n.bad += 1
+        self._note(kind, detail, rx_ns)
+        return False
+
+    def _refuse(self, reason: str, detail: str, rx_ns: int) -> bool:
+        self._n.refused[reason] += 1
+        self._note(reason, detail, rx_ns)
+        return False
+
+    def _note(self, kind: str, detail: str, rx_ns: int) -> None:
+        self.last_refusal = detail
+        if kind not in self._evented:  # the first of each kind; the rest are counted
+            self._evented.add(kind)
+            self.events.emit(EV.TM_REFUSED, rx_ns, reason=kind, detail=detail)
+
+    def _follow(self, epoch: int, seq: int, rx_ns: int) -> None:
+        """Follow CN run ``epoch`` from loop ``seq``: the first, or a restart."""
+        old = self._epoch
+        self._epoch = epoch
+        self._last_seq = -1
+        self._last_sent = 0
+        if old < 0:
+            self.events.emit(EV.TM_JOINED, rx_ns, epoch=epoch, loop=seq)
+            return
+        self._n.epoch_changes += 1
+        self.events.emit(EV.CN_RESTARTED, rx_ns, old=old, new=epoch, loop=seq)
+        r = self._inflight
+        if r is not None:  # its CN is gone: nobody will answer it
+            self._inflight = None
+            self._decide(
+                r,
+                "NO_VERDICT",
+                seq,
+                rx_ns,
+                f"the control node restarted (run {old} -> {epoch}) before its verdict "
+                "showed; it may or may not have taken effect in the old run",
+            )
+
+    # -- commands ------------------------------------------------------------
+    @property
+    def idle(self) -> bool:
+        """No request waits for its verdict and none is queued."""
+        return self._inflight is None and not self._plans
+
+    def command(
+        self,
+        command: str,
+        element: str | None = None,
+        value: str | None = None,
+        *,
+        now_ns: int,
+        armed: bool = False,
+        source: str = "",
+        can_send: bool = True,
+    ) -> int:
+        """Queue one operator command; returns its ticket (:meth:`result`).
+
+        ``armed``: ARM n first, then the command n+1 once the ARM is
+        accepted (one ticket). It goes out at once when the ground follows a
+        run, nothing else waits for a verdict and ``can_send``; otherwise
+        with a later snapshot (:meth:`take_requests`). Raises CommandError
+        for an unknown command, element or value (nothing is queued) or a
+        mission without a ground node.
+        """
+        if self._uplink is None:
+            raise CommandError(
+                f"mission {self.mission.mission!r} has no ground node 'gn'"
+                if not self.mission.has_ground
+                else "this ground holds no uplink key (a read-only tool's keys): commands "
+                "need the ground's key file (gn.keys from `zplatform keygen`)"
+            )
+        cmd, index, num = validate_command(self.mission, command, element, value, source or None)
+        steps = [("ARM", 0, 0.0), (cmd, index, num)] if armed else [(cmd, index, num)]
+        ticket = self._next_ticket
+        self._next_ticket += 1
+        plan = _Plan(ticket, steps, source)
+        self._plans.append(plan)
+        self._tickets[ticket] = plan
+        self._dispatch(now_ns, can_send)
+        return ticket
+
+    def result(self, ticket: int) -> list[CommandOutcome] | None:
+        """The outcomes of ``ticket`` once all are released (an armed command
+        whose ARM was refused has only the ARM's), else None."""
+        plan = self._tickets.get(ticket)
+        if plan is None or not self._plan_done(plan):
+            return None
+        return list(plan.outcomes)
+
+    def steps(self, ticket: int) -> list[str]:
+        """The commands ``ticket`` sends, in order (``["ARM", "LAUNCH"]``)."""
+        return [s[0] for s in self._tickets[ticket].steps]
+
+    @staticmethod
+    def _plan_done(plan: _Plan) -> bool:
+        return not plan.open and len(plan.outcomes) == plan.sent
+
+    def take_requests(self) -> Sequence[bytes]:
+        """The request frames to publish now (and forget), oldest first.
+        Allocates nothing when there are none (the common case)."""
+        if not self._out:
+            return ()
+        out, self._out = self._out, []
+        return out
+
+    def _dispatch(self, rx_ns: int, can_send: bool) -> None:
+        """Send the next queued step when nothing waits for a verdict."""
+        if self._inflight is not None or not self._plans or not can_send or self._epoch < 0:
+            return
+        plan = self._plans[0]
+        step = plan.steps[plan.sent]
+        plan.sent += 1
+        if plan.sent == len(plan.steps):
+            self._plans.popleft()
+            plan.open = False
+        seq = max(int(self._h_seq.get()), self._last_sent) + 1
+        r = _Request(plan, step, seq, self._epoch, int(self._h_loop.get()))
+        r.rejects0 = int(self._h_rejects.get())
+        self._last_sent = seq
+        self._inflight = r
+        self._send(r, rx_ns)
+
+    def _send(self, r: _Request, rx_ns: int) -> None:
+        assert self._uplink is not None
+        frame = self._uplink.frame(r.cmd, r.seq, r.index, r.value, rx_ns, r.epoch)
+        self._out.append(bytes(frame))
+
+    def _on_snapshot(self, rx_ns: int, can_send: bool) -> None:
+        """After an accepted snapshot: verdicts, reasons due, the player, sends."""
+        r = self._inflight
+        if r is not None and r.epoch == self._epoch:
+            loop = int(self._h_loop.get())
+            if loop > r.sent_loop:
+                if self._h_seq.get() == r.seq and self._h_status.get() != 0:
+                    self._inflight = None
+                    self._decide(r, self._h_status.spec.name_of(self._h_status.get()), loop, rx_ns)
+                elif self._h_rseq.get() == r.seq and self._h_rejects.get() != r.rejects0:
+                    self._inflight = None
+                    status = self._h_rstatus.spec.name_of(self._h_rstatus.get())
+                    self._decide(r, status, loop, rx_ns)
+                elif loop - r.sent_loop >= self._resend:
+                    if r.tries >= self._tries:
+                        self._inflight = None
+                        self._decide(
+                            r,
+                            "NO_VERDICT",
+                            loop,
+                            rx_ns,
+                            f"no verdict after {r.tries} send(s) over {loop - r.sent_loop} loops",
+                        )
+                    elif can_send:  # a lost frame: again, same number (a duplicate is a replay)
+                        r.tries += 1
+                        r.sent_loop = loop
+                        self._send(r, rx_ns)
+        self._release(rx_ns)
+        if self.player is not None:
+            self.player.step(self, int(self._h_loop.get()), rx_ns, can_send)
+        self._dispatch(rx_ns, can_send)
+
+    def _decide(
+        self, r: _Request, status: str, loop: int, rx_ns: int, ground_reason: str = ""
+    ) -> None:
+        r.status, r.loop, r.rx = status, loop, rx_ns
+        r.state = self._h_state.spec.name_of(self._h_state.get())
+        r.shown_seq = int(self._h_seq.get())
+        if ground_reason:
+            r.reason, r.reason_from = ground_reason, "ground"
+        else:
+            self._match(r)
+        plan = r.plan
+        if status != "ACCEPTED" and plan.open:
+            # An ARM not accepted: the armed command is not sent.
+            plan.open = False
+            self._plans.remove(plan)
+        self._deciding.append(r)
+
+    def _match(self, r: _Request) -> None:
+        for e in self._cmd_events:
+            if (
+                e.seq == r.seq
+                and e.name == r.cmd
+                and e.status == r.status
+                and e.t_ns >= r.epoch  # this run's: its loops are after its start
+            ):
+                r.reason, r.reason_from = e.detail, "cn"
+                return
+
+    def _release(self, now_ns: int, *, all_: bool = False) -> None:
+        """Release decided outcomes, in verdict order, once their reason is
+        known or their grace has passed (then derived); ``all_``: all now."""
+        released = False
+        while self._deciding:
+            r = self._deciding[0]
+            if not r.reason_from:
+                if not all_ and now_ns - r.rx < self._grace:
+                    break
+                r.reason, r.reason_from = _derived(r)
+            self._deciding.popleft()
+            o = CommandOutcome(
+                r.cmd,
+                r.seq,
+                r.status,
+                r.loop,
+                (r.loop - 1) * self._period,
+                r.plan.source,
+                r.reason,
+                r.reason_from,  # type: ignore[arg-type]
+            )
+            r.plan.outcomes.append(o)
+            self.outcomes.append(o)
+            released = True
+        player = self.player
+        if released and player is not None and player.done(self):
+            results = player.results(self)
+            self.events.emit(
+                EV.SCRIPT_DONE,
+                now_ns,
+                n=len(results),
+                accepted=sum(o.accepted for o in results),
+                loop=results[-1].loop if results else 0,
+            )
+
+    def tick(self, now_ns: int) -> None:
+        """Let time pass (the caller's clock): reasons whose grace ran out
+        are derived and their outcomes released."""
+        self._release(now_ns)
+
+    def finish(self, now_ns: int) -> None:
+        """Release every decided outcome now (derived where the CN's event
+        did not come): at the end of a run."""
+        self._release(now_ns, all_=True)
+
+    # -- events --------------------------------------------------------------
+    def on_event(self, e: Event, rx_ns: int, verified: bool | None = None) -> EventRecord:
+        """Take one event received at ``rx_ns``: a CN command event whose tag
+        verified (``verified`` True, or None when the mission does not
+        authenticate) explains a verdict (module doc). Returns the record to
+        show or log."""
+        ce = _read_cmd_event(e) if verified is not False else None
+        if ce is not None:
+            self._cmd_events.append(ce)
+            for r in self._deciding:
+                if not r.reason_from:
+                    self._match(r)
+            self._release(rx_ns)
+        return EventRecord.of(e, rx_ns, verified)
+
+    def on_event_bytes(
+        self, key_expr: str, payload: bytes | bytearray | memoryview, rx_ns: int
+    ) -> EventRecord | None:
+        """Check and take one event record that came on ``key_expr``
+        (``{vehicle}/<node>/events``: whose key checks its tag); None
+        (counted) if it is not one, or its tag fails."""
+        try:
+            e, verified = self._events_in.read(key_expr, payload)
+        except CodecError:
+            self._n.bad_events += 1
+            return None
+        return self.on_event(e, rx_ns, verified)
+
+
+def _derived(r: _Request) -> tuple[str, str]:
+    """A verdict's reason from the verdict snapshot, when the CN's event did not come."""
+    why = {
+        "ACCEPTED": "",
+        "REJECTED_NOT_ALLOWED": f"not allowed in state {r.state} (the state its verdict showed)",
+        "REJECTED_NOT_ARMED": f"{r.cmd} needs an accepted ARM #{r.seq - 1} just before it",
+        "REJECTED_BAD_ARGUMENT": "the control node refused the element or the value",
+        "REJECTED_UNKNOWN": "not a command the control node knows",
+        "REJECTED_REPLAY": (
+            f"number {r.seq} is not above the last the control node saw (#{r.shown_seq})"
+        ),
+        "REJECTED_EPOCH": "the request named another run of the control node",
+        "REJECTED_AUTH": "the request's tag did not verify",
+        "REJECTED_OUT_OF_BOUNDS": "the value is outside the parameter's bounds",
+        "REJECTED_PARAM_STATE": (
+            f"the parameter may not change in state {r.state} (the state its verdict showed)"
+        ),
+        "REJECTED_BUSY": "the previous PRM_SAVE was still being written",
+    }.get(r.status, "")
+    return why, ("derived" if why else "")

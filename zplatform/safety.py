@@ -1,0 +1,126 @@
+"""Safety smells: a mission that loads fine but leaves a door open.
+
+:func:`safety_warnings` looks at a mission that passed
+:func:`zplatform.mission.load_mission` for what the loader cannot refuse
+(each is legal, and sometimes meant) but an operator should know before
+flight. ``zplatform check`` prints them (``--json`` lists them, ``--strict``
+makes them errors). Each is a :class:`SafetyWarning` naming its YAML path:
+
+``unprotected_mode``
+    A controller's mode element can be set by a plain WRITE: one
+    unconfirmed command can enable (or disable) the controller in any state
+    whose whitelist allows WRITE. Protected elements (``commands.protected``;
+    by default every controller mode once the mission has a hazardous
+    command) need ARM n, WRITE n+1. At ``$.controllers[i]``.
+``no_safe_value``
+    An actuator class that does not override
+    :meth:`~zplatform.devices.Actuator.safe`: a device node that loses its
+    control node leaves that output to the board's own safe state instead of
+    a value the device declares. At ``$.devices[i]``.
+``pyrotechnic_without_hazardous``
+    The mission has a pyrotechnic output (an actuator whose class sets
+    ``pyrotechnic = True``, or whose config says ``pyrotechnic: true``, as
+    :class:`~zplatform.devices.DigitalOutput`'s may) but no hazardous
+    command: no operator command of it needs ARM first. At
+    ``$.commands.hazardous``.
+
+The command smells apply only to a mission with a ground node (without one
+no command reaches the vehicle). The device smells import the devices'
+classes (from the mission's ``pythonpath``), so they need the mission's
+code: :func:`safety_warnings` is for the verbs that have it (``check``).
+"""
+
+from __future__ import annotations
+
+from typing import Literal
+
+import msgspec
+
+from .commands import protected_elements, writable_elements
+from .components import decode_component_config, load_component_class, mission_code_path
+from .config import CMD_NAMES, Mission
+from .devices import Actuator
+
+__all__ = ["SafetyWarning", "safety_warnings"]
+
+WarningKind = Literal["unprotected_mode", "no_safe_value", "pyrotechnic_without_hazardous"]
+
+
+class SafetyWarning(msgspec.Struct, frozen=True):
+    """One safety smell: what (``kind``), where (``path``, the YAML path),
+    and ``message`` (what it means and how to close it)."""
+
+    kind: WarningKind
+    path: str
+    message: str
+
+    def __str__(self) -> str:
+        return f"{self.message} - at `{self.path}`"
+
+
+def _write_allowed_somewhere(mission: Mission) -> bool:
+    """Whether some state's whitelist lets WRITE through (an unlisted state
+    allows every command)."""
+    states = list(mission.state_machine.states) if mission.state_machine else ["IDLE"]
+    wl = mission.commands.whitelist
+    return any(s not in wl or "WRITE" in wl[s] for s in states)
+
+
+def safety_warnings(mission: Mission) -> list[SafetyWarning]:
+    """Every safety smell of ``mission`` (module doc), in YAML order:
+    controllers, then devices, then the commands section.
+
+    ``mission`` must have loaded with its code (``load_mission(code=True)``):
+    the actuators' classes are imported again here (already in
+    ``sys.modules``) and their configs decoded. Raises nothing for a mission
+    that loaded.
+    """
+    out: list[SafetyWarning] = []
+    has_commands = mission.has_ground
+    if has_commands and _write_allowed_somewhere(mission):
+        writable = set(writable_elements(mission))
+        protected = set(protected_elements(mission))
+        for i, c in enumerate(mission.controllers):
+            mode = f"{c.name}_mode"
+            if mode in writable and mode not in protected:
+                out.append(
+                    SafetyWarning(
+                        "unprotected_mode",
+                        f"$.controllers[{i}]",
+                        f"controller {c.name!r}: a plain WRITE of {mode} can enable or safe it "
+                        "without confirmation; list it in commands.protected (or give the "
+                        "mission a hazardous command: controller modes are then protected)",
+                    )
+                )
+    code = mission_code_path(mission)
+    pyros: list[str] = []
+    for i, d in enumerate(mission.devices):
+        where = f"$.devices[{i}]"
+        cls = load_component_class(d.cls, object, f"{where}.class", pythonpath=code)
+        if not issubclass(cls, Actuator):
+            continue
+        if cls.safe is Actuator.safe:
+            out.append(
+                SafetyWarning(
+                    "no_safe_value",
+                    where,
+                    f"actuator {d.name!r} ({d.cls}) declares no safe value (its class does not "
+                    "override Actuator.safe): a device node that loses its control node leaves "
+                    "this output to the board's safe state",
+                )
+            )
+        cfg = decode_component_config(cls.Config, d.config, f"{where}.config")
+        if cls.pyrotechnic or getattr(cfg, "pyrotechnic", False) is True:
+            pyros.append(d.name)
+    if has_commands and pyros and not mission.commands.hazardous:
+        commands = ", ".join(c for c in CMD_NAMES if c not in ("NONE", "ARM"))
+        out.append(
+            SafetyWarning(
+                "pyrotechnic_without_hazardous",
+                "$.commands.hazardous",
+                f"the mission drives pyrotechnic outputs ({', '.join(pyros)}) but no command "
+                f"is hazardous: none needs an ARM first; list the ones that can fire them "
+                f"(of {commands})",
+            )
+        )
+    return out

@@ -1,0 +1,434 @@
+"""``zplatform up``: every node of a mission as a process of this host, supervised.
+
+:func:`run_up` registers the run (:mod:`zplatform.registry`), spawns the
+device nodes, the ground node and the control node (``python -m zplatform
+node ...``, each in a session of its own, never forked from a process that
+holds a zenoh session), watches them (:func:`watch`) through a
+:class:`~zplatform.ground.link.GroundLink` of its own, stops them in order
+(the CN first, so the ground logs the end), and merges their summaries into
+the ``--summary`` JSON (:class:`~zplatform.summary.RunSummary`).
+
+What a node's death does: the flight never depends on the ground link, and
+a lost DN is the CN's to handle (DN_LOST and the mission's fault response),
+so when a DN or the ground node dies, ``up`` says so and keeps the rest
+running (the run then ends non-zero). When the CN dies, the flight is over:
+``up`` says so, stops the rest, and fills the summary from the CN's last
+telemetry.
+
+With a command script and no duration, the run ends
+:data:`~zplatform.ground.script.SETTLE_S` after the script's last verdict
+(the ground node's ``script_done`` event; at least
+:data:`~zplatform.ground.script.MIN_DURATION_S` in all), so the last
+command's consequences play out and ``up`` still ends by itself.
+"""
+
+from __future__ import annotations
+
+import os
+import select
+import shutil
+import signal
+import subprocess
+import sys
+import tempfile
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+from .config import Mission
+from .datavector import DataVector
+from .errors import NodeError
+from .events import EV
+from .ground.link import GroundLink
+from .ground.records import EventRecord
+from .ground.script import MIN_DURATION_S, SETTLE_S
+from .ground.status import RateMeter, status_line
+from .mission import load_mission
+from .node.runtime import PARENT_ENV
+from .summary import (
+    CnSummary,
+    DnSummary,
+    GnSummary,
+    RunSummary,
+    cn_summary,
+    read_summary,
+    write_summary,
+)
+from .telemetry import events_path
+from .transport import rewrite_endpoints
+
+__all__ = ["Children", "Watch", "format_run_summary", "merge_summaries", "run_up", "watch"]
+
+
+class Children:
+    """The node processes ``up`` spawned; every one is reaped on exit."""
+
+    def __init__(self) -> None:
+        self.procs: dict[str, subprocess.Popen[bytes]] = {}
+
+    def spawn(self, name: str, argv: list[str], *, ready: float | None = None) -> None:
+        """Start ``zplatform ARGV``; with ``ready`` (seconds), wait for its
+        first output line to be ``READY`` (NodeError if it is not, in time)."""
+        env = dict(os.environ, PYTHONUNBUFFERED="1")
+        env[PARENT_ENV] = str(os.getpid())
+        # A new session: a Ctrl-C in the terminal reaches `up` alone, which
+        # then stops the nodes in order (CN first, so the ground logs the end).
+        proc = subprocess.Popen(
+            [sys.executable, "-m", "zplatform", *argv],
+            env=env,
+            start_new_session=True,
+            stdout=subprocess.PIPE if ready is not None else None,
+        )
+        self.procs[name] = proc
+        if ready is not None:
+            assert proc.stdout is not None
+            got = select.select([proc.stdout], [], [], ready)[0]
+            line = proc.stdout.readline().decode(errors="replace").strip() if got else ""
+            if line != "READY":
+                raise NodeError(
+                    f"{name} did not start (exit code {proc.poll()}; said {line!r})"
+                    if got
+                    else f"{name} was not ready within {ready:g} s"
+                )
+
+    def dead(self) -> list[tuple[str, int]]:
+        return [(n, p.returncode) for n, p in self.procs.items() if p.poll() is not None]
+
+    def stop(self, names: list[str], timeout_s: float = 10.0) -> dict[str, int]:
+        codes: dict[str, int] = {}
+        for n in names:
+            p = self.procs.get(n)
+            if p is not None and p.poll() is None:
+                p.send_signal(signal.SIGTERM)
+        for n in names:
+            p = self.procs.get(n)
+            if p is None:
+                continue
+            try:
+                codes[n] = p.wait(timeout=timeout_s)
+            except subprocess.TimeoutExpired:
+                p.kill()
+                codes[n] = p.wait()
+        return codes
+
+    def stop_all(self) -> dict[str, int]:
+        """Stop the CN first and wait for it: its last loop is flagged final
+        (``dnX_final``), so the DNs, still running, see the run end rather
+        than a lost CN, and the ground logs the end. Then the DNs and the
+        ground; the vehicle world last (the DNs safe their outputs into it
+        as they stop)."""
+        codes = self.stop([n for n in self.procs if n == "cn"])
+        codes.update(self.stop([n for n in self.procs if n not in ("cn", "world")]))
+        codes.update(self.stop([n for n in self.procs if n == "world"]))
+        return codes
+
+
+class Watch:
+    """What :func:`watch` saw: nodes that died, and the CN's last telemetry."""
+
+    def __init__(self) -> None:
+        self.died: dict[str, int] = {}
+        self.ok = True
+        self.last_cn: CnSummary | None = None
+        self.script_done = False
+
+
+def _cn_from_telemetry(mission: Mission, dv: DataVector, first_t: int) -> CnSummary:
+    """The CN's figures as its last telemetry showed them (for a CN that died
+    before it could write its summary)."""
+    dur = (int(dv.get("cn_time_ns")) - first_t) / 1e9
+    return cn_summary(mission, dv, loops=int(dv.get("cn_loop")), duration_s=dur)
+
+
+def watch(
+    mission: Mission,
+    children: Children,
+    stopping: Callable[[], bool],
+    *,
+    quiet: bool = False,
+    ready_timeout_s: float = 60.0,
+    end_after_script: bool = False,
+) -> Watch:
+    """Live status until the CN finishes, ``stopping()`` or (with
+    ``end_after_script``) the script's end (module doc). Blocks."""
+    w = Watch()
+    done_at: list[float] = []
+
+    def on_event(rec: EventRecord) -> None:
+        if rec.node == "gn" and rec.id == EV.SCRIPT_DONE.name and not done_at:
+            done_at.append(time.monotonic())
+
+    link = GroundLink(mission, keys="mission", on_event=on_event)
+    tty = sys.stdout.isatty()
+    rate = RateMeter()
+    first_t = 0
+    start = time.monotonic()
+    try:
+        last_print = time.monotonic()
+        ready_deadline = time.monotonic() + ready_timeout_s + 30
+        while not stopping():
+            for n, c in children.dead():
+                if n in w.died:
+                    continue
+                w.died[n] = c
+                if n == "cn":
+                    # Take what the CN sent before it went: the summary's figures.
+                    while link.next(0.0) is not None:
+                        pass
+                    dv = link.dv
+                    if c != 0:
+                        w.ok = False
+                        state = dv.get_name("cn_state") if link.logic.received else "none"
+                        print(
+                            f"\nzplatform up: the control node died (exit code {c}): the flight "
+                            f"is over; last telemetry: loop {int(dv.get('cn_loop'))}, state "
+                            f"{state}",
+                            file=sys.stderr,
+                        )
+                        if link.logic.received:
+                            w.last_cn = _cn_from_telemetry(mission, dv, first_t)
+                    return w
+                w.ok = False
+                what = (
+                    "the vehicle flies on without the ground link"
+                    if n == "gn"
+                    else "the simulated vehicle is gone: its boards fail (counted errors)"
+                    if n == "world"
+                    else "the control node carries on (DN_LOST and the mission's fault response)"
+                )
+                print(f"\nzplatform up: node {n} died (exit code {c}); {what}", file=sys.stderr)
+            got = link.next(0.2)
+            if got is not None:
+                rate.add_snapshot(link.dv)
+                if first_t == 0:
+                    first_t = int(link.dv.get("cn_time_ns"))
+            elif not link.logic.received and time.monotonic() > ready_deadline:
+                print(
+                    f"zplatform up: {link.why_no_telemetry(ready_timeout_s + 30)}", file=sys.stderr
+                )
+                w.ok = False
+                return w
+            now = time.monotonic()
+            if end_after_script and done_at:
+                w.script_done = True
+                if now >= max(done_at[0] + SETTLE_S, start + MIN_DURATION_S):
+                    if not quiet:
+                        print(
+                            f"\nzplatform up: the script's last verdict came {now - done_at[0]:.0f}"
+                            " s ago; stopping",
+                            flush=True,
+                        )
+                    return w
+            if not quiet and link.logic.received and now - last_print >= 1.0:
+                line = status_line(mission, link.dv, rate.hz)
+                print(("\r" + line) if tty else line, end="" if tty else "\n", flush=True)
+                last_print = now
+        return w
+    finally:
+        if tty and not quiet:
+            print()
+        link.close()
+
+
+def merge_summaries(
+    mission: Mission,
+    paths: dict[str, Path],
+    codes: dict[str, int],
+    cn_fallback: CnSummary | None = None,
+) -> RunSummary:
+    """The run's summary from the nodes' summary files (``cn_fallback`` when
+    the CN wrote none)."""
+    nodes: dict[str, CnSummary | DnSummary | GnSummary | None] = {}
+    cn = read_summary(paths["cn"], CnSummary) or cn_fallback
+    gn = read_summary(paths["gn"], GnSummary) if "gn" in paths else None
+    for name, p in paths.items():
+        if name == "cn":
+            nodes[name] = cn
+        elif name == "gn":
+            nodes[name] = gn
+        else:
+            nodes[name] = read_summary(p, DnSummary)
+    return RunSummary(
+        mission=mission.mission,
+        loops=cn.loops if cn else 0,
+        duration_s=cn.duration_s if cn else 0.0,
+        rate_hz=cn.rate_hz if cn else 0.0,
+        loop_overruns=cn.loop_overruns if cn else None,
+        sync_overruns=cn.sync_overruns if cn else None,
+        missed=cn.missed if cn else {},
+        late=cn.late if cn else {},
+        bad_frames=cn.bad_frames if cn else None,
+        telemetry_received=gn.telemetry_received if gn else None,
+        telemetry_gaps=gn.telemetry_gaps if gn else None,
+        commands=gn.commands if gn else [],
+        errors=cn.errors if cn else None,
+        final_state=cn.final_state if cn else None,
+        nodes=nodes,
+        exit_codes=codes,
+    )
+
+
+def format_run_summary(s: RunSummary) -> str:
+    """The one-line account ``up`` prints at the end."""
+    if s.loops == 0:
+        return f"{s.mission}: no loop ran (see the messages above)"
+    return (
+        f"{s.mission}: {s.loops} loops in {s.duration_s:.2f} s "
+        f"({s.rate_hz:.2f} Hz); overruns loop {s.loop_overruns} sync {s.sync_overruns}; "
+        f"missed {s.missed}; late {s.late}; telemetry {s.telemetry_received} "
+        f"(gaps {s.telemetry_gaps}); errors {s.errors}; final state {s.final_state}"
+    )
+
+
+def _interrupt(signum: int, frame: Any) -> None:
+    raise KeyboardInterrupt
+
+
+def run_up(
+    mission: Mission,
+    source: str,
+    *,
+    duration_s: float | None = None,
+    log: str | None = None,
+    summary: str | None = None,
+    free_ports: bool = False,
+    commands: str | None = None,
+    realtime: bool = True,
+    quiet: bool = False,
+    ready_timeout_s: float = 60.0,
+    record: str | None = None,
+) -> int:
+    """Run every node of ``mission`` (loaded from ``source``) until the CN
+    finishes (``duration_s``), the script's end (module doc) or Ctrl-C /
+    SIGTERM. Blocks; returns the exit code (0: a clean run).
+
+    The caller has refused what a user can get wrong (the mission, the
+    script, output paths, busy ports). While it runs the mission is
+    registered so ``ps`` lists it and every verb finds it by name; the entry,
+    the remapped mission of ``free_ports`` and the scratch folder of the
+    nodes' summaries are removed on exit.
+    """
+    from . import registry
+
+    # Until the nodes run (then _supervise takes SIGTERM over), a SIGTERM ends
+    # `up` like Ctrl-C: through the finally below, which unregisters.
+    signal.signal(signal.SIGTERM, _interrupt)
+    reg = registry.register(mission.mission, source)
+    tmp = Path(tempfile.mkdtemp(prefix="zplatform-up-"))
+    try:
+        path = str(Path(source).resolve())
+        if free_ports:
+            path = reg.mission_file
+            rewrite_endpoints(source, path)
+            mission = load_mission(path)
+        logs: dict[str, str] = {}
+        if log:
+            logs["telemetry"] = str(Path(log).resolve())
+            logs["events"] = str(events_path(log).resolve())
+        reg.update(
+            mission_file=path,
+            endpoints={n: list(node.listen) for n, node in mission.nodes.items()},
+            logs=logs,
+        )
+        if not quiet:
+            where = f" (remapped mission {path})" if free_ports else ""
+            print(
+                f"zplatform up: running as {reg.name!r}{where}; other verbs take that name "
+                f"as MISSION (`zplatform ground {reg.name}`), `zplatform ps` lists it",
+                flush=True,
+            )
+        common = ["--ready-timeout", str(ready_timeout_s)]
+        if not realtime:
+            common.append("--no-realtime")
+        spawn: dict[str, list[str]] = {}
+        for dn in mission.device_nodes:
+            spawn[dn] = ["node", path, dn, *common]
+        if mission.has_ground:
+            gn = ["node", path, "gn"]
+            if log:
+                gn += ["--log", str(Path(log).resolve())]
+            if commands:
+                gn += ["--commands", str(Path(commands).resolve())]
+            spawn["gn"] = gn
+        cn = ["node", path, "cn", *common]
+        if record:
+            cn += ["--record", str(Path(record).resolve())]
+        if duration_s is not None:
+            cn += ["--duration", str(duration_s)]
+        spawn["cn"] = cn
+        # The vehicle world (zplatform.world), when the mission has one: a
+        # process of its own that the device nodes' boards reach.
+        world = ["world", path, *common[2:]] if mission.world is not None else None
+        return _supervise(
+            mission,
+            spawn,
+            tmp,
+            reg,
+            world=world,
+            summary=summary,
+            log=log,
+            quiet=quiet,
+            ready_timeout_s=ready_timeout_s,
+            end_after_script=bool(commands) and duration_s is None,
+        )
+    finally:
+        reg.remove()
+        shutil.rmtree(tmp, ignore_errors=True)
+
+
+def _supervise(
+    mission: Mission,
+    spawn: dict[str, list[str]],
+    tmp: Path,
+    reg: Any,
+    *,
+    world: list[str] | None,
+    summary: str | None,
+    log: str | None,
+    quiet: bool,
+    ready_timeout_s: float,
+    end_after_script: bool,
+) -> int:
+    children = Children()
+    summaries = {n: tmp / f"{n}.json" for n in spawn}
+    stopping = False
+
+    def on_signal(signum: int, frame: Any) -> None:
+        nonlocal stopping
+        stopping = True
+
+    signal.signal(signal.SIGINT, on_signal)
+    signal.signal(signal.SIGTERM, on_signal)
+    w = Watch()
+    try:
+        # Spawn everything before opening our own zenoh session: never fork
+        # a process that holds one. The vehicle world first: the device
+        # nodes' boards step it from their first loop.
+        if world is not None:
+            children.spawn("world", world, ready=ready_timeout_s)
+        for name, argv in spawn.items():
+            children.spawn(name, [*argv, "--summary", str(summaries[name])])
+        reg.update(nodes={n: p.pid for n, p in children.procs.items()})
+        w = watch(
+            mission,
+            children,
+            lambda: stopping,
+            quiet=quiet,
+            ready_timeout_s=ready_timeout_s,
+            end_after_script=end_after_script,
+        )
+    finally:
+        codes = children.stop_all()
+    rc = 0 if w.ok else 1
+    for name, code in codes.items():
+        if code not in (0, -signal.SIGTERM) and name not in w.died:
+            print(f"zplatform up: node {name} exited with code {code}", file=sys.stderr)
+            rc = 1
+    s = merge_summaries(mission, summaries, codes, w.last_cn)
+    write_summary(summary, s)
+    if not quiet:
+        print(format_run_summary(s))
+        if log:
+            print(f"telemetry -> {log}; events -> {events_path(log)}")
+    return rc
