@@ -48,9 +48,9 @@ import zenoh
 from bench.common import REPO_ROOT, bench_argparser, summarize, write_result
 from bench.record import _inputs
 from zplatform import ControlLogic, load_mission
-from zplatform.auth import mission_channels
+from zplatform.auth import channel
 from zplatform.ground.logic import default_max_age_ns
-from zplatform.lockstep import SIM_KEY
+from zplatform.lockstep import sim_keys
 from zplatform.recorder import RECORDER_DIR_ENV, open_recorder
 from zplatform.recorder.format import REQUEST, REQUEST_MAGIC
 from zplatform.recorder.server import RecorderServer
@@ -66,7 +66,7 @@ class _Asker:
 
     def __init__(self, session: zenoh.Session, mission: Any, now: Any) -> None:
         self.session = session
-        self.channel = mission_channels(mission, SIM_KEY)["telemetry"]
+        self.channel = channel(sim_keys(mission), "telemetry")
         self.now = now
         self.loop = 0
         self.stop = threading.Event()
@@ -97,7 +97,8 @@ def _run(
     period_s: float,
 ) -> tuple[list[int], dict[str, Any]]:
     m = load_mission(MISSION)
-    cn = ControlLogic(m, key=SIM_KEY, epoch=EPOCH)
+    keys = sim_keys(m)
+    cn = ControlLogic(m, keys=keys, epoch=EPOCH)
     rec = server = asker = session = None
     if variant != "cn_loop":
         os.environ[RECORDER_DIR_ENV] = str(directory)
@@ -112,7 +113,7 @@ def _run(
             session,
             KEYEXPR,
             rec,
-            mission_channels(m, SIM_KEY)["telemetry"],
+            channel(keys, "telemetry"),
             now_ns=time.time_ns,
             max_age_ns=default_max_age_ns(m),
             serve_bps=m.recorder.serve_bps,

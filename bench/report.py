@@ -51,6 +51,7 @@ ORDER = (
     "reaction",
     "baselines",
     "codec",
+    "mac",
 )
 #: The DESIGN.md §7 figures, the first columns of every variants table.
 STANDARD = ("p50_us", "p99_us", "max_us", "deadline_miss_rate", "msgs")
@@ -477,6 +478,8 @@ def faults_section(params: dict[str, Any], variants: dict[str, dict[str, Any]]) 
     rows = []
     for case, v in variants.items():
         failed = [k for k, c in (v.get("checks") or {}).items() if not c.get("ok")]
+        targets = v.get("targets") or {}
+        missed = [k for k, t in targets.items() if not t.get("met")]
         rows.append(
             [
                 case,
@@ -487,6 +490,7 @@ def faults_section(params: dict[str, Any], variants: dict[str, dict[str, Any]]) 
                 v.get("expected_state"),
                 v.get("forged_applied"),
                 "all pass" if not failed else "FAIL: " + ", ".join(failed),
+                "-" if not targets else "all met" if not missed else "missed: " + ", ".join(missed),
             ]
         )
     head = ["case", "detect ms", "DN_LOST ms", "loops missed", "final", "configured"]
@@ -494,7 +498,7 @@ def faults_section(params: dict[str, Any], variants: dict[str, dict[str, Any]]) 
         "",
         "**Fault cases** (each on live node processes; `tests/faults/live.py`)",
         "",
-        *md_table([*head, "forged applied", "checks"], rows),
+        *md_table([*head, "forged applied", "checks", "targets"], rows),
     ]
 
 

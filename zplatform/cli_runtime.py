@@ -118,19 +118,20 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         "--from-recorder",
         metavar="DIR",
         help="read this node's flight recorder directory (e.g. .../recorder/MISSION/cn) "
-        "instead of listening: recorded rows carry the frame's own stamp as rx_time_ns",
+        "instead of listening: recorded rows carry the frame's own stamp as rx_time_ns; "
+        "the CN's frames are checked with a tool's keys, a device node's with its own key file",
     )
     p.add_argument("--summary", metavar="JSON", help="write the logger's summary JSON here")
     p.set_defaults(func=cmd_log)
 
     p = mission_verb(sub, "cmd", help="send one operator command and wait for its verdict")
-    p.add_argument("command", help="launch|abort|noop|hold|resume|arm|write")
-    p.add_argument("args", nargs="*", help="write: ELEMENT VALUE")
+    p.add_argument("command", help="launch|abort|noop|hold|resume|arm|write|prm_set|prm_save")
+    p.add_argument("args", nargs="*", help="write: ELEMENT VALUE; prm_set: PARAMETER VALUE")
     p.add_argument(
         "--arm",
         action="store_true",
-        help="send ARM n first, then the command as n+1 (needed for hazardous commands and "
-        "WRITEs of protected elements)",
+        help="send ARM n first, then the command as n+1 (needed for hazardous commands, "
+        "WRITEs of protected elements and PRM_SETs of hazardous parameters)",
     )
     timeout_option(p, "the CN and for each verdict")
     p.set_defaults(func=cmd_cmd)
@@ -277,9 +278,9 @@ def _log_from_recorder(args: argparse.Namespace) -> int:
     files (:func:`zplatform.recorder.export`). Exit 0 when the files were
     written (every record skipped is named on stderr and counted), 2 when
     nothing could be read."""
-    from .auth import load_key
+    from .auth import load_keys
     from .errors import CommandError
-    from .recorder import export
+    from .recorder import export, reader_role, recorded_node
 
     if args.duration is not None:
         raise CommandError("--duration is for a live log, not --from-recorder")
@@ -288,7 +289,10 @@ def _log_from_recorder(args: argparse.Namespace) -> int:
     mission = load_mission(args.mission, code=False)
     _check_outputs(args, "out")
     ev = events_path(args.out)
-    s = export(args.from_recorder, mission, load_key(mission), args.out, ev)
+    # Checked with the keys of the host role that holds the frames' link:
+    # the CN's telemetry with a tool's, a DN's replies with that DN's.
+    keys = load_keys(mission, reader_role(mission, recorded_node(args.from_recorder)))
+    s = export(args.from_recorder, mission, keys, args.out, ev)
     for line in s.problems[:MAX_PROBLEM_LINES]:
         print(f"zplatform log: {line}", file=sys.stderr)
     if len(s.problems) > MAX_PROBLEM_LINES:
@@ -342,12 +346,15 @@ def cmd_up(args: argparse.Namespace) -> int:
     """Refuse what a user can get wrong before any node is spawned (exit 2):
     the mission, the command script, unwritable output paths, listen ports
     already in use; then :func:`zplatform.supervisor.run_up`."""
-    from .auth import load_key
+    from .auth import load_keys
     from .supervisor import run_up
 
     mission = load_mission(args.mission)
-    # First use on this host: make the mission key (every node finds it).
-    load_key(mission, create=True)
+    # First use on this host: make the mission's key set (every node finds its
+    # own). Every node it spawns needs its keys: a missing one is one error
+    # line now, before anything runs.
+    for role in ("cn", *mission.device_nodes, *(["gn"] if mission.has_ground else [])):
+        load_keys(mission, role, create=True)
     if args.commands:
         from .uplink import load_commands
 

@@ -13,7 +13,7 @@ import pytest
 import zenoh
 
 from tests.faults.peers import peer_config
-from zplatform.auth import mission_channels
+from zplatform.auth import KeySet
 from zplatform.loop import ControlLogic
 from zplatform.mission import decode_mission
 from zplatform.recorder import RECORDER_DIR_ENV, open_recorder
@@ -33,7 +33,7 @@ ROOT = Path(__file__).resolve().parents[2]
 MISSION = decode_mission(
     (ROOT / "configs" / "minimal.yaml").read_text() + "\nrecorder: {}\n", code=False
 )
-KEY = bytes(range(32))
+KEYS = KeySet.from_master(MISSION, bytes(range(32)))  # every link, from one master key
 EPOCH = 1_700_000_000_000_000_000
 KEYEXPR = "rocket/cn/recorder"
 NOT_RUN = (50, 51, 52)  # periods the CN "skipped": never recorded, never dropped
@@ -43,11 +43,10 @@ class Rig:
     def __init__(self, server: RecorderServer, client: zenoh.Session, frames: dict[int, bytes]):
         self.server, self.client, self.frames = server, client, frames
         self.now = EPOCH + 10**9
-        self.channel = mission_channels(MISSION, KEY)["telemetry"]
+        self.channel = KEYS.for_node("tool").channel("telemetry")  # a read-only tool asks
 
     def request(self, first: int, last: int, *, run: int = EPOCH, t_ns: int | None = None) -> bytes:
         body = REQUEST.pack(REQUEST_MAGIC, run, first, last, self.now if t_ns is None else t_ns)
-        assert self.channel is not None
         return bytes(self.channel.seal(body))
 
     def ask(self, payload: bytes, timeout_s: float = 10.0) -> list[bytes]:
@@ -83,7 +82,7 @@ def rig(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Iterator[Any]:
     monkeypatch.setenv(RECORDER_DIR_ENV, str(tmp_path))
 
     def make(serve_bps: int = 10_000_000) -> Rig:
-        cn = ControlLogic(MISSION, key=KEY, epoch=EPOCH)
+        cn = ControlLogic(MISSION, keys=KEYS, epoch=EPOCH)
         rec = open_recorder(MISSION, "cn", cn.dv, run=EPOCH, authenticated=True)
         frames = {}
         for n in range(1, 101):
@@ -103,7 +102,7 @@ def rig(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Iterator[Any]:
             a,
             KEYEXPR,
             rec,
-            mission_channels(MISSION, KEY)["telemetry"],
+            KEYS.channel("telemetry"),
             now_ns=lambda: EPOCH + 10**9,
             max_age_ns=2 * 10**9,
             serve_bps=serve_bps,

@@ -6,7 +6,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
-from zplatform.auth import mission_channels
+from zplatform.auth import KeySet
 from zplatform.datavector import DataVector
 from zplatform.events import Event
 from zplatform.ground.gapfill import GapFill
@@ -26,14 +26,15 @@ ROOT = Path(__file__).resolve().parents[2]
 MISSION = decode_mission(
     (ROOT / "configs" / "minimal.yaml").read_text() + "\nrecorder: {}\n", code=False
 )
-KEY = bytes(range(32))
+KEYS = KeySet.from_master(MISSION, bytes(range(32)))
+GROUND_KEYS = KEYS.for_node("gn")  # what a ground node holds
 EPOCH = 1_700_000_000_000_000_000
 PERIOD = 10_000_000
 S = 1_000_000_000
 
 
-def frames(epoch: int = EPOCH, key: bytes = KEY, last: int = 40) -> dict[int, bytes]:
-    cn = ControlLogic(MISSION, key=key, epoch=epoch)
+def frames(epoch: int = EPOCH, keys: KeySet = KEYS, last: int = 40) -> dict[int, bytes]:
+    cn = ControlLogic(MISSION, keys=keys, epoch=epoch)
     out = {}
     for n in range(1, last + 1):
         cn.begin(n, EPOCH + n * PERIOD)
@@ -50,9 +51,9 @@ class Ground:
     """A GroundLogic and a GapFill writing rows into a list."""
 
     def __init__(self, **kw: Any) -> None:
-        self.logic = GroundLogic(MISSION, key=KEY)
+        self.logic = GroundLogic(MISSION, keys=GROUND_KEYS)
         self.rows: list[tuple[int, int]] = []  # (rx_time_ns, cn_loop)
-        self.fill = GapFill(MISSION, KEY, self.logic.events, self.write, **kw)
+        self.fill = GapFill(MISSION, GROUND_KEYS, self.logic.events, self.write, **kw)
 
     def write(self, rx_ns: int, dv: DataVector) -> None:
         self.rows.append((rx_ns, int(dv.get("cn_loop"))))
@@ -89,12 +90,11 @@ def test_a_gap_is_asked_for_exactly_and_written_in_loop_order() -> None:
     req = g.fill.take_request(now)
     assert req is not None and g.fill.take_request(now) is None  # one at a time
     rid, payload, timeout_s = req
-    ch = mission_channels(MISSION, KEY)["telemetry"]
-    assert ch is not None
+    ch = KEYS.channel("telemetry")
     assert REQUEST.unpack(ch.open(payload)) == (REQUEST_MAGIC, EPOCH, 11, 20, now)
     assert 3 <= timeout_s < 10
     forged = frames(epoch=EPOCH + 1)[15]  # another run of the CN
-    bad_tag = frames(key=bytes(32))[16]
+    bad_tag = frames(keys=KeySet.from_master(MISSION, bytes(32)))[16]
     g.fill.on_reply(rid, reply(*(TM[n] for n in range(11, 16)), forged, bad_tag, TM[30]))
     g.fill.on_reply(rid, reply(*(TM[n] for n in range(16, 21)), TM[12]))  # 12 again: once
     g.fill.on_reply(rid, end(10, 0))
@@ -203,7 +203,7 @@ def test_the_log_ending_writes_everything_held() -> None:
 
 
 def test_the_ground_logic_queues_each_gap() -> None:
-    logic = GroundLogic(MISSION, key=KEY)
+    logic = GroundLogic(MISSION, keys=GROUND_KEYS)
     for n in (1, 2, 5, 6, 9):
         assert logic.on_telemetry(TM[n], EPOCH + n * PERIOD)
     assert list(logic.gaps) == [Gap(EPOCH, 3, 4), Gap(EPOCH, 7, 8)]

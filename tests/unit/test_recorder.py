@@ -18,7 +18,7 @@ from typing import Any, BinaryIO
 
 import pytest
 
-from zplatform.auth import mission_channels
+from zplatform.auth import KeyError_, KeySet
 from zplatform.config import relocate_mission
 from zplatform.datavector import Layout
 from zplatform.errors import ConfigError, RecordingError
@@ -31,6 +31,8 @@ from zplatform.recorder import (
     RecorderReader,
     export,
     open_recorder,
+    reader_role,
+    recorded_node,
     recorder_dir,
 )
 from zplatform.recorder.format import DROPPED, END, EVENT, FRAME, HEADER_LEN
@@ -39,7 +41,8 @@ from zplatform.telemetry import CsvLogger
 
 ROOT = Path(__file__).resolve().parents[2]
 MINIMAL = (ROOT / "configs" / "minimal.yaml").read_text()
-KEY = bytes(range(32))
+KEY = bytes.fromhex("85521353c82a2b84575ac3e990e6eebcb7e03704cce11384abb08bf990012529")
+"""A master key (every link's key derived from it), as ``ZPLATFORM_KEY`` gives."""
 EPOCH = 1_700_000_000_000_000_000
 PERIOD = 10_000_000
 
@@ -48,12 +51,18 @@ def mission(extra: str = "recorder: {}", base: Path | None = None) -> Any:
     return decode_mission(MINIMAL + "\n" + extra + "\n", code=False, base_dir=base)
 
 
+def keys(m: Any, role: str | None = None) -> KeySet:
+    """Every link key of ``m`` from :data:`KEY`, or host role ``role``'s."""
+    ks = KeySet.from_master(m, KEY)
+    return ks.for_node(role) if role is not None else ks
+
+
 class Telemetry:
     """The CN of the minimal mission, framing telemetry loop by loop."""
 
     def __init__(self, extra: str = "recorder: {}") -> None:
         self.mission = mission(extra)
-        self.cn = ControlLogic(self.mission, key=KEY, epoch=EPOCH)
+        self.cn = ControlLogic(self.mission, keys=keys(self.mission), epoch=EPOCH)
 
     def frame(self, loop: int) -> bytes:
         t = EPOCH + loop * PERIOD
@@ -138,11 +147,13 @@ def test_export_writes_the_ground_logs_rows_with_the_frame_stamp(tmp_path: Path)
         ground.write(tm.cn.t_ns, tm.cn.dv)  # a ground that received it at its stamp
     rec.close()
     ground.close()
-    s = export(tmp_path / "cn", tm.mission, KEY, tmp_path / "rec.csv", tmp_path / "rec.jsonl")
+    tool = keys(tm.mission, "tool")  # a read-only tool's keys check the CN's record
+    s = export(tmp_path / "cn", tm.mission, tool, tmp_path / "rec.csv", tmp_path / "rec.jsonl")
     assert (s.rows, s.first_loop, s.last_loop, s.damaged, s.refused) == (50, 1, 50, 0, 0)
     assert (tmp_path / "rec.csv").read_bytes() == (tmp_path / "ground.csv").read_bytes()
     # Without the key the tags do not check: every frame refused, each said.
-    s = export(tmp_path / "cn", tm.mission, bytes(32), tmp_path / "x.csv", None)
+    other = KeySet.from_master(tm.mission, bytes(32))
+    s = export(tmp_path / "cn", tm.mission, other, tmp_path / "x.csv", None)
     assert s.rows == 0 and s.refused == 50
     assert "bad authentication tag" in s.problems[0]
 
@@ -294,7 +305,7 @@ def test_a_stalled_disk_drops_whole_loops_counted_never_blocking(tmp_path: Path)
     assert frame_loops(recs) == [*range(1, 11), 31]
     (dropped,) = [counts(p) for t, _, p in recs if t == DROPPED]
     assert dropped == (11, 30, 20)
-    s = export(tmp_path, tm.mission, KEY, tmp_path / "x.csv", None)
+    s = export(tmp_path, tm.mission, keys(tm.mission), tmp_path / "x.csv", None)
     assert s.not_recorded == 20 and "dropped 20 loop(s) (11..30)" in "\n".join(s.problems)
 
 
@@ -389,7 +400,7 @@ def test_export_refuses_another_missions_layout(tmp_path: Path) -> None:
     rec.close()
     other = decode_mission(MINIMAL.replace("name: heartbeat", "name: beat") + "\nrecorder: {}\n")
     with pytest.raises(RecordingError, match="another Data Vector layout"):
-        export(tmp_path, other, KEY, tmp_path / "x.csv", None)
+        export(tmp_path, other, keys(other), tmp_path / "x.csv", None)
 
 
 def test_a_device_nodes_directory_reads_as_its_region(
@@ -399,7 +410,7 @@ def test_a_device_nodes_directory_reads_as_its_region(
 
     monkeypatch.setenv(RECORDER_DIR_ENV, str(tmp_path))
     m = mission()
-    dn = DeviceLogic(m, "dn0", key=KEY)
+    dn = DeviceLogic(m, "dn0", keys=keys(m, "dn0"))
     cn = Telemetry().cn
     rec = open_recorder(m, "dn0", dn.dv, run=EPOCH, authenticated=True)
     assert rec.directory == tmp_path / "minimal" / "dn0"
@@ -409,7 +420,12 @@ def test_a_device_nodes_directory_reads_as_its_region(
         assert reply is not None
         rec.frame(n, reply, t)
     rec.close()
-    s = export(rec.directory, m, KEY, tmp_path / "dn0.csv", None)
+    # Its replies are tagged with the key of its link to the CN: a tool
+    # holds none, the DN's own key file does.
+    with pytest.raises(KeyError_, match="no key for link cn-dn0"):
+        export(rec.directory, m, keys(m, "tool"), tmp_path / "dn0.csv", None)
+    assert (recorded_node(rec.directory), reader_role(m, "dn0")) == ("dn0", "dn0")
+    s = export(rec.directory, m, keys(m, "dn0"), tmp_path / "dn0.csv", None)
     assert (s.node, s.rows, s.first_loop, s.last_loop) == ("dn0", 10, 1, 10)
     with open(tmp_path / "dn0.csv", newline="") as f:
         rows = list(csv.DictReader(f))
@@ -480,9 +496,7 @@ def test_where_a_node_records(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -
 def test_recorded_frames_are_the_telemetry_channels() -> None:
     # What the ground checks them with: the telemetry channel's tag.
     tm = Telemetry()
-    ch = mission_channels(tm.mission, KEY)["telemetry"]
-    assert ch is not None
-    ch.open(tm.frame(1))
+    keys(tm.mission, "tool").channel("telemetry").open(tm.frame(1))
 
 
 # ---------------------------------------------------------------- the command

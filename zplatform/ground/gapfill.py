@@ -46,7 +46,7 @@ from collections import deque
 from collections.abc import Callable
 from typing import NamedTuple
 
-from ..auth import TAG_LEN, mission_channels
+from ..auth import TAG_LEN, KeySet, channel
 from ..codec import RegionCodec
 from ..config import Mission
 from ..datavector import DataVector, Layout
@@ -96,15 +96,17 @@ class GapFill:
     ``write(rx_ns, dv)`` writes one row (the log's
     :meth:`~zplatform.ground.logger.TelemetryLog.snapshot`); ``events`` gets
     the ``gap_filled``/``gap_unfilled`` events (the ground's own log,
-    :attr:`GroundLogic.events`). ``key``: the mission key (None: the mission
-    does not authenticate). Not thread-safe: the driver's thread calls
+    :attr:`GroundLogic.events`). ``keys``: the ground's keys (a ground
+    node's or a tool's: both hold the downlink's, which tags the requests
+    and the frames; None: the mission does not authenticate); KeyError_
+    when they do not hold it. Not thread-safe: the driver's thread calls
     everything.
     """
 
     def __init__(
         self,
         mission: Mission,
-        key: bytes | None,
+        keys: KeySet | None,
         events: EventLog,
         write: Callable[[int, DataVector], None],
         *,
@@ -117,7 +119,7 @@ class GapFill:
         self._layout = Layout.for_node(mission, "cn")
         self._dv = DataVector(self._layout)
         self._codec = RegionCodec(self._dv)
-        self._channel = mission_channels(mission, key)["telemetry"]
+        self._channel = channel(keys, "telemetry")
         self._frame_max = self._codec.max_frame_len + (TAG_LEN if self._channel else 0)
         self._epoch_at = self._layout.element("cn_epoch").offset
         self._loop_at = self._layout.element("cn_loop").offset

@@ -22,6 +22,12 @@ themselves as the run's end, not as a lost CN): the last of ``max_loops``
 ``record`` attaches a :class:`~zplatform.recording.Recorder` after the
 warm-up: every input of every loop goes to disk for ``zplatform replay``.
 
+Parameters (:mod:`zplatform.params`): :meth:`ControlNode.wait_ready` ends by
+loading the parameter file (before loop 1, so a recording starts with the
+values loaded); each loop hands an accepted PRM_SAVE to a
+:class:`~zplatform.params.ParamSaver` (a writer thread) and passes the saves
+it finished to the next loop.
+
 With a ``recorder`` section naming the CN (the flight recorder,
 :mod:`zplatform.recorder`), every telemetry frame the loop publishes and
 every event is also copied to the CN's flight recorder (never blocking the
@@ -41,7 +47,7 @@ from typing import Any
 import numpy as np
 import zenoh
 
-from ..auth import load_key, mission_channels
+from ..auth import KeySet, channel, load_keys
 from ..bulk import open_bulk
 from ..clocksync import ClockServer
 from ..config import Mission
@@ -50,6 +56,7 @@ from ..errors import NodeError, RecordingError, TransportError
 from ..ground.logic import default_max_age_ns
 from ..loop import ControlLogic
 from ..messages import wildcard_sync_for
+from ..params import ParamSaver, params_path, read_params_file
 from ..recorder import FlightRecorder, open_recorder, summary_line
 from ..recorder.server import RecorderServer
 from ..recording import Recorder
@@ -74,6 +81,8 @@ class ControlNode:
     Build, then :meth:`run`; :meth:`close` releases every zenoh entity. Not
     thread-safe: one loop thread. ``sync_trace``: a
     :data:`~zplatform.sync.SyncTrace` for the sync's hops (benchmarks).
+    ``params_file``: the parameter file (default
+    :func:`~zplatform.params.params_path`; unused without ``params``).
     """
 
     def __init__(
@@ -83,8 +92,9 @@ class ControlNode:
         stop: StopFlag | None = None,
         lowlatency: bool | None = None,
         clock: NodeClock | None = None,
-        key: bytes | None = None,
+        keys: KeySet | None = None,
         sync_trace: SyncTrace | None = None,
+        params_file: str | Path | None = None,
     ) -> None:
         self.mission = mission
         self.stop = stop or StopFlag(install=False)
@@ -92,15 +102,15 @@ class ControlNode:
         self.clock.lock()  # the CN is the reference clock: never adjusted
         # The run's epoch: this clock's start, unique per run of the CN.
         self.clock_epoch = self.clock.now_ns()
-        self.logic = ControlLogic(mission, key=key, epoch=self.clock_epoch)
+        self.logic = ControlLogic(mission, keys=keys, epoch=self.clock_epoch)
         self.dv: DataVector = self.logic.dv
         self.ns = NodeSession(mission, "cn", announce=False, lowlatency=lowlatency)
         s = self.ns.session
-        keys = self.ns.keys
-        self.clock_server = ClockServer(s, keys, self.clock.now_ns)
+        space = self.ns.keys
+        self.clock_server = ClockServer(s, space, self.clock.now_ns, mission, keys)
         self.sync = ControlSync(
             s,
-            keys,
+            space,
             mission.device_nodes,
             mission.sync_timeout_ns,
             query_timeout_s=max(mission.period_ns / 1e9, 0.01),
@@ -120,11 +130,11 @@ class ControlNode:
         self._gsub: zenoh.Subscriber[Any] | None = None
         if mission.has_ground:
             self._gsub = s.declare_subscriber(
-                keys.gn_to_cn,
+                space.gn_to_cn,
                 zenoh.handlers.Callback(self._on_ground, indirect=False),
             )
         self._tm_pub = s.declare_publisher(
-            keys.telemetry, congestion_control=zenoh.CongestionControl.DROP
+            space.telemetry, congestion_control=zenoh.CongestionControl.DROP
         )
         # The flight recorder: opened before anything runs, so a directory it
         # cannot use (or one another CN holds) stops the node on the pad.
@@ -133,7 +143,7 @@ class ControlNode:
         if "cn" in mission.recording_nodes:
             try:
                 rec = open_recorder(
-                    mission, "cn", self.dv, run=self.clock_epoch, authenticated=key is not None
+                    mission, "cn", self.dv, run=self.clock_epoch, authenticated=keys is not None
                 )
             except RecordingError as exc:
                 self.ns.close()
@@ -144,19 +154,25 @@ class ControlNode:
             assert mission.recorder is not None
             self._rec_server = RecorderServer(
                 s,
-                keys.recorder,
+                space.recorder,
                 rec,
-                mission_channels(mission, key)["telemetry"],
+                channel(keys, "telemetry"),
                 now_ns=self.clock.now_ns,
                 max_age_ns=default_max_age_ns(mission),
                 serve_bps=mission.recorder.serve_bps,
                 divisor=mission.telemetry_divisor,
             )
         self._events = EventPublisher(
-            s, keys.events("cn"), self.logic.events, recorder=self.flight_recorder
+            s,
+            space.events("cn"),
+            self.logic.events,
+            channel(keys, "events_cn"),
+            recorder=self.flight_recorder,
         )
-        self._radio = _Radio(mission, s, keys.downlink) if mission.downlink.ccsds else None
+        self._radio = _Radio(mission, s, space.downlink) if mission.downlink.ccsds else None
         self.bulk = open_bulk(s, mission, "cn", self.logic)
+        self.params_file = Path(params_file) if params_file else params_path(mission)
+        self._saver = ParamSaver(self.params_file) if mission.params else None
         self._skipped = 0
         self._last_step: int | None = None  # self.loops after the run's planned last loop
         self.ns.announce()
@@ -224,6 +240,7 @@ class ControlNode:
                     "ground node not alive after %.1f s: starting without it", ground_wait_s
                 )
         if not dns:
+            self._load_params()
             return {}
         # Warm-up syncs with loop 0: DNs answer (not applied as a loop) and
         # the replies carry each DN's measured clock offset.
@@ -243,7 +260,18 @@ class ControlNode:
         self.sync.quiesce(logic, timeout_s=max(2 * m.period_ns / 1e9, 1.0))
         logic.reset_sync_counters()
         logic.events.drain()  # warm-up bad frames were logged; flight starts clean
+        self._load_params()
         return offsets
+
+    def _load_params(self) -> None:
+        """Load the parameter file into the Data Vector (its events go out
+        with loop 1's). Blocks on one small file read, before the loop."""
+        if self._saver is None:
+            return
+        status = self.logic.params.load(
+            read_params_file(self.params_file), self.clock.now_ns(), source=str(self.params_file)
+        )
+        log.info("parameters: %s (%s)", status.name, self.params_file)
 
     # -- the loop ------------------------------------------------------------
     def _on_overrun(self, k: int, lateness_ns: int) -> None:
@@ -278,13 +306,20 @@ class ControlNode:
         d_total, o_total = self._inbox_dropped, self._inbox_oversize
         dropped, oversize = d_total - self._seen_dropped, o_total - self._seen_oversize
         self._seen_dropped, self._seen_oversize = d_total, o_total
+        saver = self._saver
+        saved = saver.poll() if saver is not None else None
         tm = logic.finish(
             grounds,
             sync_overrun=overrun,
             loop_overruns=skipped,
             inbox_dropped=dropped,
             inbox_oversize=oversize,
+            saves=(saved,) if saved is not None else (),
         )
+        if saver is not None:
+            save = logic.params.take_save()
+            if save is not None:
+                saver.submit(*save)
         if tm is not None:
             self._tm_pub.put(tm)
             if rec is not None:
@@ -375,6 +410,8 @@ class ControlNode:
         finally:
             if self.recorder is not None:
                 self.recorder.close()
+            if self._saver is not None:  # a save in progress is finished, not torn
+                self._saver.close()
             if self.flight_recorder is not None:
                 self.flight_recorder.close()
                 log.info("flight recorder: %s", summary_line(self.flight_recorder))
@@ -438,7 +475,7 @@ def run_control_node(
     ``record``: a directory to record every loop's inputs into (needs
     ``mission_source``, the mission file, which the recording keeps)."""
     stop = StopFlag()
-    node = ControlNode(mission, stop=stop, key=load_key(mission, key_file))
+    node = ControlNode(mission, stop=stop, keys=load_keys(mission, "cn", key_file))
     try:
         offsets = node.wait_ready(ready_timeout_s, ground_wait_s)
         log.info("device nodes ready; clock offsets (ns): %s", offsets)

@@ -139,7 +139,7 @@ class _Filler:
 
     def __init__(self, link: GroundLink, tlog: TelemetryLog) -> None:
         self.link = link
-        self.fill = GapFill(link.mission, link.key, link.logic.events, tlog.snapshot)
+        self.fill = GapFill(link.mission, link.link_keys, link.logic.events, tlog.snapshot)
         self._q: queue.SimpleQueue[tuple[int, bytes | None]] = queue.SimpleQueue()
 
     @property

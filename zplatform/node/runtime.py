@@ -14,6 +14,7 @@ from types import FrameType
 
 import zenoh
 
+from ..auth import Channel
 from ..events import EventLog, Severity, encode_event
 from ..recorder.writer import FlightRecorder
 from ..scheduler import RealtimeStatus, setup_realtime
@@ -69,8 +70,11 @@ class EventPublisher:
 
     Call :meth:`flush` once per loop: it costs one int compare when nothing
     was emitted, and events are rare (state changes, verdicts, failures).
-    Events are also written to the node's log (stderr) for the operator,
-    and, given a ``recorder`` (the node's flight recorder), kept on board.
+    Events are also written to the node's log (stderr) for the operator.
+    ``seal``: the node's ``events_<node>`` channel, which tags each record
+    (None: the mission does not authenticate). Given a ``recorder`` (the
+    node's flight recorder), each record is also kept on board, untagged:
+    the recorder's own checksums guard it there.
     """
 
     def __init__(
@@ -78,9 +82,11 @@ class EventPublisher:
         session: zenoh.Session,
         key: str,
         events: EventLog,
+        seal: Channel | None,
         recorder: FlightRecorder | None = None,
     ) -> None:
         self.events = events
+        self._seal = seal
         self.recorder = recorder
         # DROP: a subscriber on a stalled link must never block the loop
         # that flushes events; each event is also in this node's own log.
@@ -91,12 +97,13 @@ class EventPublisher:
         if self.events.emitted == self._seen:
             return
         self._seen = self.events.emitted
+        seal = self._seal
         rec = self.recorder
         for e in self.events.drain():
-            data = encode_event(e)
-            self._pub.put(data)
+            record = encode_event(e)
+            self._pub.put(bytes(seal.seal(record)) if seal is not None else record)
             if rec is not None:
-                rec.event(data)
+                rec.event(record)
             log.log(_LEVELS.get(e.severity, logging.INFO), "%s %s: %s", e.node, e.id, e.text)
 
     def undeclare(self) -> None:

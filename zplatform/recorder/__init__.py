@@ -38,7 +38,7 @@ from ..codec import RegionCodec
 from ..config import Mission
 from ..datavector import DataVector
 from ..errors import RecordingError
-from .export import ExportSummary, export, frames_of
+from .export import ExportSummary, export, frames_of, reader_role, recorded_node
 from .format import HEADER_LEN
 from .reader import RecorderReader
 from .writer import FlightRecorder
@@ -50,6 +50,8 @@ __all__ = [
     "RecorderReader",
     "export",
     "open_recorder",
+    "reader_role",
+    "recorded_node",
     "recorder_dir",
     "summary_line",
 ]

@@ -34,7 +34,7 @@ from pathlib import Path
 
 import msgspec
 
-from ..auth import Channel, mission_channels
+from ..auth import Channel, KeySet, channel
 from ..codec import RegionCodec
 from ..config import Mission
 from ..datavector import DataVector, Layout
@@ -45,7 +45,7 @@ from ..telemetry import CsvLogger, EventWriter
 from .format import DROPPED, END, EVENT, FRAME
 from .reader import RecorderReader, SegmentHead, counts
 
-__all__ = ["ExportSummary", "export", "frames_of"]
+__all__ = ["ExportSummary", "export", "frames_of", "reader_role", "recorded_node"]
 
 
 class ExportSummary(msgspec.Struct, frozen=True):
@@ -75,29 +75,54 @@ class ExportSummary(msgspec.Struct, frozen=True):
 
 
 def frames_of(
-    mission: Mission, node: str, key: bytes | None
+    mission: Mission, node: str, keys: KeySet | None
 ) -> tuple[Layout, str | None, Channel | None]:
     """What a node's recorder holds, for ``mission``: the layout of the
     frames (the CN: its whole vector; device node ``dnX``: its region
     ``dnX_to_cn``), the region (None: the whole vector) and the channel
     whose tag they carry (None without authentication). RecordingError for
-    a node that does not record frames of this mission."""
-    ch = mission_channels(mission, key)
+    a node that does not record frames of this mission; KeyError_ when
+    ``keys`` does not hold that channel's link (:func:`reader_role`)."""
     if node == "cn":
-        return Layout.for_node(mission, "cn"), None, ch["telemetry"]
+        return Layout.for_node(mission, "cn"), None, channel(keys, "telemetry")
     if node in mission.device_nodes:
         region = f"{node}_to_cn"
-        return Layout.for_regions(mission, [region]), region, ch[region]
+        return Layout.for_regions(mission, [region]), region, channel(keys, region)
     raise RecordingError(
         f"the recorder directory is node {node!r}'s, which is not the control node or a device "
         f"node of mission {mission.mission!r}"
     )
 
 
+def reader_role(mission: Mission, node: str) -> str:
+    """The host role whose keys check node ``node``'s recorded frames
+    (:func:`zplatform.auth.load_keys`): ``tool`` for the CN's (telemetry,
+    the downlink's key, which every ground holds), the device node itself
+    for a DN's (its replies, tagged with the key of its link to the CN,
+    which only the DN and the CN hold), ``tool`` for any other name, which
+    :func:`export` refuses."""
+    return node if node in mission.device_nodes else "tool"
+
+
+def recorded_node(directory: str | Path) -> str:
+    """The node whose recorder directory ``directory`` is (its first
+    readable segment header); RecordingError when no segment has one."""
+    return _first_head(RecorderReader(directory), directory).node
+
+
+def _first_head(reader: RecorderReader, directory: str | Path) -> SegmentHead:
+    first = reader.first_head()
+    if first is None:
+        raise RecordingError(
+            f"{str(directory)!r}: no segment has a readable header: nothing to read"
+        )
+    return first
+
+
 def export(
     directory: str | Path,
     mission: Mission,
-    key: bytes | None,
+    keys: KeySet | None,
     csv_path: str | Path,
     events_path: str | Path | None,
 ) -> ExportSummary:
@@ -106,14 +131,12 @@ def export(
 
     RecordingError before anything is written when the directory holds no
     readable segment or is of a node (or a layout) that is not
-    ``mission``'s; everything else is counted in the summary."""
+    ``mission``'s, KeyError_ when ``keys`` cannot check its frames
+    (:func:`reader_role` says whose keys can); everything else is counted
+    in the summary."""
     reader = RecorderReader(directory)
-    first = reader.first_head()
-    if first is None:
-        raise RecordingError(
-            f"{str(directory)!r}: no segment has a readable header: nothing to read"
-        )
-    layout, region, channel = frames_of(mission, first.node, key)
+    first = _first_head(reader, directory)
+    layout, region, ch = frames_of(mission, first.node, keys)
     dv = DataVector(layout)
     codec = RegionCodec(dv, region)
     if first.layout_id != codec.layout_id:
@@ -157,7 +180,7 @@ def export(
             where = f"{head.path.name}: offset {rec.offset}"
             if rec.type == FRAME:
                 try:
-                    body = channel.open(rec.payload) if channel is not None else rec.payload
+                    body = ch.open(rec.payload) if ch is not None else rec.payload
                     frame = codec.check(body)
                 except CodecError as exc:
                     refuse(f"{where}: frame of loop {rec.loop} refused: {exc}")
