@@ -1,5 +1,9 @@
 """zplatform: distributed avionics flight software on Eclipse Zenoh.
 
+"The thesis" in these docstrings is the M.S. thesis the platform follows,
+*A Distributed Avionics Software Platform for a Liquid-Fueled Rocket*;
+"ch. N" and "§N" are its chapters.
+
 The public API, re-exported from the modules that define it. Import from
 here; module paths below ``zplatform.`` are implementation detail.
 """

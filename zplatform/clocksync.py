@@ -415,7 +415,7 @@ def estimate_offset_zenoh(
     """The same estimate as :func:`estimate_offset`, from zenoh's own four time points.
 
     Each exchange is a query to the CN's :class:`ClockServer` with zenoh 1.10's
-    ``TimestampInstrumentation`` (send and receive records, DESIGN.md §8): the
+    ``TimestampInstrumentation`` (send and receive records, docs/architecture.md#zenoh): the
     reply carries ``t1z..t4z``, stamped by zenoh on the host clocks of both
     sides at the moments the query and the reply cross zenoh. Per exchange::
 

@@ -2,11 +2,11 @@
 
 This module is the schema and nothing more: the :class:`Mission` struct tree
 (``msgspec.Struct`` with ``forbid_unknown_fields``, so a typo fails at
-decode), the structural checks of thesis 000 ch. 4.1.1 (Data Vector), 4.2.1
-(network) and the topology rules of DESIGN.md, the size limits that keep a
+decode), the structural checks of the thesis, ch. 4.1.1 (Data Vector), 4.2.1
+(network) and the topology rules of docs/architecture.md, the size limits that keep a
 mission from exhausting memory (:data:`MAX_ARRAY_COUNT`,
 :data:`MAX_REGION_BYTES`, :data:`MAX_VECTOR_BYTES`), and the platform
-elements of DESIGN.md §5 added to the regions. :func:`parse_mission` does
+elements of docs/architecture.md#data-vector added to the regions. :func:`parse_mission` does
 all of that; every failure is a :class:`~zplatform.errors.ConfigError` whose
 message names the YAML path of the bad field and what was expected.
 
@@ -1370,7 +1370,7 @@ def _check_endpoint(ep: str, where: str) -> None:
 
 
 def platform_elements(m: Mission) -> dict[str, list[ElementConfig]]:
-    """The elements every mission has (DESIGN.md §5), per region."""
+    """The elements every mission has (docs/architecture.md#data-vector), per region."""
     states = list(m.state_machine.states) if m.state_machine else ["IDLE"]
     initial = m.state_machine.initial if m.state_machine else "IDLE"
     E = ElementConfig

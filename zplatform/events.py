@@ -13,7 +13,7 @@ so a severity is never picked at the call site, and a catalogue test proves
 every entry formats and that ids and names are unique.
 
 An :class:`Event` is one record (severity, id, text, time) published on
-``{vehicle}/{node}/events`` (DESIGN.md §3). Node logic never publishes: it
+``{vehicle}/{node}/events`` (docs/architecture.md#key-space). Node logic never publishes: it
 calls :meth:`EventLog.emit`, which appends to a bounded in-memory queue, and
 the runtime takes the queue after the loop (:meth:`~EventLog.drain`) and
 publishes what it took. So emitting is sans-IO and never blocks; it raises

@@ -1,4 +1,4 @@
-"""Error handling after start (thesis 000 ch. 4.11.1), sans-IO.
+"""Error handling after start (the thesis, ch. 4.11.1), sans-IO.
 
 The thesis' node mains handle an error after start in one of two ways:
 

@@ -1,4 +1,4 @@
-"""The sans-IO loop of each node (DESIGN.md §1): regions in, frames out.
+"""The sans-IO loop of each node (docs/architecture.md#the-loop): regions in, frames out.
 
 :class:`ControlLogic` and :class:`DeviceLogic` own a node's Data Vector, its
 codecs and everything that runs on it each loop, *and the protocol order*.

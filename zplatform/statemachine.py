@@ -1,4 +1,4 @@
-"""The mission state machine (thesis 000 ch. 4.5), sans-IO.
+"""The mission state machine (the thesis, ch. 4.5), sans-IO.
 
 A state has a timed *action sequence* (writes of Data Vector elements at
 given seconds into the state) and an ordered list of *transitions*. A
@@ -101,7 +101,8 @@ _LOGIC_WRITABLE_PLATFORM = ("cn_fault",)
 
 
 def platform_element_names(mission: Mission) -> frozenset[str]:
-    """Names of every element the platform adds (DESIGN.md §5), modes included."""
+    """Names of every element the platform adds, modes included
+    (docs/architecture.md#data-vector)."""
     return frozenset(e.name for es in platform_elements(mission).values() for e in es)
 
 
