@@ -48,6 +48,9 @@ def _inputs(loops: int) -> list[tuple[int, int, list[bytes], list[bytes]]]:
         def foreign(self, source: str) -> None:
             pass  # a lockstep run has no foreign repliers
 
+        def health(self, block: Any) -> None:
+            pass  # led_test has no health section
+
         def finish(self, grounds: Any, *a: Any) -> None:
             loop, t = cn.loop, cn.t_ns
             out.append((loop, t, list(captured), [bytes(g) for g in grounds]))

@@ -15,7 +15,7 @@ from .codec import (
     decode_frame,
     encode_frame,
 )
-from .codes import Command, CommandStatus, Fault
+from .codes import Command, CommandStatus, Fault, Thread
 from .commands import CommandHandler
 from .components import Component
 from .config import Mission
@@ -47,9 +47,11 @@ from .ground.link import GroundLink
 from .ground.logic import GroundLogic
 from .ground.records import CommandOutcome, EventRecord, TelemetryCounters
 from .ground.script import ScriptPlayer
+from .health import FakeHealth, HealthPort, Heartbeat, Liveness
 from .lockstep import LockstepRunner, ReplayResult, SimResult, replay
 from .loop import ControlLogic, DeviceLogic
 from .mission import check_mission, decode_mission, load_mission
+from .monitors import MonitorSet
 from .rategroups import RateGroups
 from .recording import Recorder
 from .safety import SafetyWarning, safety_warnings
@@ -60,6 +62,7 @@ from .telemetry import CsvLogger, read_csv
 from .timebase import NodeClock, VirtualClock
 from .transport import KeySpace
 from .uplink import ScriptCommand, fill_request, load_commands, parse_commands
+from .watchdog import Watchdog
 from .world import World, WorldBoard, WorldLink
 
 __version__ = "0.1.0"
@@ -93,6 +96,7 @@ __all__ = [
     "EventLog",
     "EventRecord",
     "EventType",
+    "FakeHealth",
     "Fault",
     "FaultMonitor",
     "Frame",
@@ -104,12 +108,16 @@ __all__ = [
     "GroundLink",
     "GroundLogic",
     "Handle",
+    "HealthPort",
+    "Heartbeat",
     "KeySpace",
     "Layout",
     "LayoutMismatchError",
+    "Liveness",
     "LockstepRunner",
     "LoopStats",
     "Mission",
+    "MonitorSet",
     "NodeClock",
     "NodeError",
     "PeriodicLoop",
@@ -130,9 +138,11 @@ __all__ = [
     "StateMachine",
     "StateMachineError",
     "TelemetryCounters",
+    "Thread",
     "TimebaseError",
     "TransportError",
     "VirtualClock",
+    "Watchdog",
     "World",
     "WorldBoard",
     "WorldLink",

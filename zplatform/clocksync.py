@@ -50,6 +50,7 @@ import zenoh
 
 from .config import ClockConfig
 from .errors import ClockSyncError
+from .health import Heartbeat
 from .transport import KeySpace
 
 __all__ = [
@@ -97,10 +98,15 @@ class ZenohTimestampsError(ClockSyncError):
 
 
 class ClockServer:
-    """The CN's clock queryable. Runs its own reply thread; ``close()`` stops it."""
+    """The CN's clock queryable. Runs its own reply thread; ``close()`` stops it.
+
+    The thread checks in through :attr:`heartbeat` (``clock``,
+    :mod:`zplatform.health`): idle while it waits for a query, beating while
+    it serves one."""
 
     def __init__(self, session: zenoh.Session, keys: KeySpace, now_ns: Callable[[], int]) -> None:
         self._now = now_ns
+        self.heartbeat = Heartbeat("clock")
         self._q: queue.SimpleQueue[tuple[zenoh.Query, int] | None] = queue.SimpleQueue()
         self._key = keys.clock
         self.served = 0
@@ -114,10 +120,13 @@ class ClockServer:
         self._q.put((query, self._now()))  # t2, then hand off
 
     def _serve(self) -> None:
+        hb = self.heartbeat
         while True:
+            hb.idle()
             item = self._q.get()
             if item is None:
                 return
+            hb.beat()
             query, t2 = item
             with query:
                 p = query.payload

@@ -2,7 +2,8 @@
 
 These enums are the values of the platform elements ``gn_cmd`` / ``cn_cmd``
 (:class:`Command`), ``cn_cmd_status`` (:class:`CommandStatus`), ``cn_fault``
-(:class:`Fault`) and ``cn_last_error`` (:class:`ErrorCode`). The config
+(:class:`Fault`) and ``cn_last_error`` (:class:`ErrorCode`), and the bits of
+each node's ``<node>_threads_stalled`` (:class:`Thread`). The config
 derives the enum names of those elements from them
 (:data:`zplatform.config.CMD_NAMES` ...), the command handler and the fault
 monitor compare against them: one definition, so the two can never disagree.
@@ -16,7 +17,7 @@ from __future__ import annotations
 
 import enum
 
-__all__ = ["Command", "CommandStatus", "ErrorCode", "Fault"]
+__all__ = ["Command", "CommandStatus", "ErrorCode", "Fault", "Thread"]
 
 
 class Command(enum.IntEnum):
@@ -55,6 +56,10 @@ class Fault(enum.IntEnum):
     SYNC_OVERRUNS = 3
     LOOP_OVERRUNS = 4
     CLOCK_DRIFT = 5
+    MONITOR = 6
+    """A mission monitor's response (``monitors:``), unless it names another fault."""
+    THREAD_STALLED = 7
+    """A thread of a node stopped checking in (a monitor on ``<node>_threads_stalled``)."""
 
 
 class ErrorCode(enum.IntEnum):
@@ -72,3 +77,24 @@ class ErrorCode(enum.IntEnum):
     CLOCK_SYNC = 6
     TELEMETRY = 7
     EVENTS_DROPPED = 8
+
+
+class Thread(enum.IntEnum):
+    """The threads whose liveness a node reports: bit ``1 << value`` of
+    ``<node>_threads_stalled``; the lowercase names are what missions and
+    events use (``health.deadlines_ms.zenoh``). See :mod:`zplatform.health`."""
+
+    LOOP = 0
+    """The node's loop thread."""
+    ZENOH = 1
+    """Zenoh's runtime running the node's callbacks (the health thread's probe)."""
+    HEALTH = 2
+    """The health thread."""
+    CLOCK = 3
+    """The CN's clock server; a DN's clock re-sync."""
+    BOARD = 4
+    """The board's I/O thread (the serial board's, or a board with a ``heartbeat``)."""
+    RECORD = 5
+    """The CN's ``--record`` writer."""
+    RECORDER = 6
+    """The on-board flight recorder's writer."""

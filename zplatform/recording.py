@@ -12,7 +12,7 @@ DIR`` needs nothing else.
 
 ``cn.zrec``, all integers little-endian::
 
-    header:  b"ZPREC\\0"  u16 version (2)  u32 n  n bytes of JSON metadata
+    header:  b"ZPREC\\0"  u16 version (3)  u32 n  n bytes of JSON metadata
              u32 m  m bytes: the CN's Data Vector when recording started
     items:   u8 type  u8 dn  u32 length  length bytes
                1 BEGIN      u64 loop, i64 t_ns, u8 final (1: the run's last loop)
@@ -27,6 +27,8 @@ DIR`` needs nothing else.
                9 DROPPED    u64 loops the recorder could not keep (ring full)
               10 FOREIGN    a sync reply from a key that is no DN's: the key
                             (UTF-8, at most 256 bytes; ``dn`` 255)
+              11 HEALTH     the CN's health block the loop copied in
+                            (health loops of a mission with ``health:``)
 
 An oversize frame cannot decode (it is longer than the widest valid
 encoding), so a replay feeds an empty payload in its place: the same bad
@@ -59,17 +61,29 @@ from .codec import RegionCodec
 from .config import Mission, relocate_mission
 from .datavector import DataVector, Layout
 from .errors import RecordingError
+from .health import BLOCK_SIZE, Heartbeat
 
 __all__ = ["FOREIGN_DN", "LoopRecord", "RecordReader", "Recorder"]
 
 MAGIC = b"ZPREC\x00"
-VERSION = 2  # 2: BEGIN carries the final-loop flag
+VERSION = 3  # 2: BEGIN carries the final-loop flag; 3: HEALTH items
+_READABLE = (2, 3)  # a version 2 recording has no HEALTH items, and reads the same
 RECORD_FILE = "cn.zrec"
 MISSION_FILE = "mission.yaml"
 
-BEGIN, REPLY, REPLY_ERR, OVERSIZE, GROUND, GROUND_OVERSIZE, TELEMETRY, FINISH, DROPPED, FOREIGN = (
-    range(1, 11)
-)
+(
+    BEGIN,
+    REPLY,
+    REPLY_ERR,
+    OVERSIZE,
+    GROUND,
+    GROUND_OVERSIZE,
+    TELEMETRY,
+    FINISH,
+    DROPPED,
+    FOREIGN,
+    HEALTH,
+) = range(1, 12)
 #: ``LoopRecord.replies`` entry index of a FOREIGN reply (its payload is the key).
 FOREIGN_DN = -1
 
@@ -117,7 +131,8 @@ class Recorder:
         tm_max = RegionCodec(dv).max_frame_len + TAG_LEN
         item = _ITEM.size
         loop_max = (
-            item * (4 + 2 * len(dns))
+            item * (5 + 2 * len(dns))
+            + BLOCK_SIZE
             + _BEGIN.size
             + _FINISH.size
             + 2 * sum(reply_max)
@@ -170,16 +185,23 @@ class Recorder:
             self._file.write(_U32.pack(len(init)) + init)
         except (OSError, yaml.YAMLError) as exc:
             raise RecordingError(f"cannot record into {str(self.directory)!r}: {exc}") from exc
+        self.heartbeat = Heartbeat("record")
+        """The writer thread's check-in (zplatform.health), for the node's liveness."""
         self._writer = threading.Thread(target=self._write_loop, name="recorder", daemon=True)
         self._writer.start()
 
     # -- the writer thread -------------------------------------------------
     def _write_loop(self) -> None:
+        # Idle while it waits for a chunk; a write that hangs (a stuck disk)
+        # is a stall (zplatform.health).
         f = self._file
+        hb = self.heartbeat
         while True:
+            hb.idle()
             i = self._full.get()
             if i < 0:
                 return
+            hb.beat()
             try:
                 f.write(self._views[i][: self._used[i]])
             except OSError as exc:  # disk full: keep draining, report once
@@ -257,6 +279,9 @@ class Recorder:
         src = source.encode(errors="replace")[:256]
         self._put(FOREIGN, 255, src, len(src))
 
+    def health(self, block: bytes | bytearray | memoryview) -> None:
+        self._put(HEALTH, 0, block, len(block))
+
     def finish(
         self,
         grounds: Sequence[bytes | bytearray | memoryview],
@@ -333,6 +358,8 @@ class LoopRecord(msgspec.Struct, frozen=True):
     inbox_dropped: int
     inbox_oversize: int
     telemetry: bytes | None
+    health: bytes | None = None
+    """The health block the loop copied in (None: not a health loop)."""
 
 
 class RecordReader:
@@ -357,8 +384,10 @@ class RecordReader:
             magic, version, n = _HEAD.unpack_from(d, 0)
             if magic != MAGIC:
                 raise RecordingError(f"{path} is not a zplatform recording")
-            if version != VERSION:
-                raise RecordingError(f"{path}: recording version {version}, expected {VERSION}")
+            if version not in _READABLE:
+                raise RecordingError(
+                    f"{path}: recording version {version}, expected one of {_READABLE}"
+                )
             off = _HEAD.size
             self.meta = json.loads(d[off : off + n])
             off += n
@@ -391,6 +420,7 @@ class RecordReader:
         final = False
         grounds: list[bytes] = []
         telemetry: bytes | None = None
+        health: bytes | None = None
         replies: list[tuple[int, bytes | None]] = []
         while off < end:
             if off + _ITEM.size > end:
@@ -408,6 +438,7 @@ class RecordReader:
                 final = bool(final_byte)
                 in_loop = True
                 telemetry = None
+                health = None
                 grounds = []
                 replies = []
             elif typ == DROPPED:
@@ -431,10 +462,12 @@ class RecordReader:
                 grounds.append(b"")
             elif typ == TELEMETRY:
                 telemetry = body
+            elif typ == HEALTH:
+                health = body
             elif typ == FINISH:
                 so, lo, dr, ov = _FINISH.unpack(body)
                 yield LoopRecord(
-                    loop, t, final, replies, grounds, bool(so), lo, dr, ov, telemetry
+                    loop, t, final, replies, grounds, bool(so), lo, dr, ov, telemetry, health
                 )
                 in_loop = False
             else:

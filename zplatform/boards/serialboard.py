@@ -28,6 +28,7 @@ from msgspec import Meta
 
 from ..components import decode_component_config
 from ..errors import ConfigError, ControlError
+from ..health import Heartbeat
 from . import wire
 from .base import BoardError, BoardHealth, HealthCounters
 
@@ -212,6 +213,9 @@ class SerialBoard:
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self._opened = False
+        self.heartbeat = Heartbeat("board")
+        """The I/O thread's check-in (zplatform.health): beats per read (at
+        least every 50 ms), idle while it waits to reconnect."""
 
     # -- the Board protocol ------------------------------------------------------
 
@@ -387,14 +391,23 @@ class SerialBoard:
         )
 
     def _run(self) -> None:
+        try:
+            self._io()
+        finally:
+            self.heartbeat.idle()
+
+    def _io(self) -> None:
         backoff = self.config.reconnect_min_ms / 1000.0
         first = True
         deframer = wire.Deframer(self._on_body, self._on_bad)
+        hb = self.heartbeat
         while not self._stop.is_set():
+            hb.beat()
             try:
                 port = self._open_port()
             except Exception as exc:
                 self._link_error = f"cannot open {self.config.port}: {exc}"
+                hb.idle()  # waiting to reconnect is not a stall
                 self._stop.wait(backoff)
                 backoff = min(backoff * 2, self.config.reconnect_max_ms / 1000.0)
                 continue
@@ -403,6 +416,7 @@ class SerialBoard:
             except Exception as exc:
                 self._link_error = f"handshake with {self.config.port} failed: {exc}"
                 _close_quietly(port)
+                hb.idle()
                 self._stop.wait(backoff)
                 backoff = min(backoff * 2, self.config.reconnect_max_ms / 1000.0)
                 continue
@@ -414,6 +428,7 @@ class SerialBoard:
             self._connected.set()
             try:
                 while not self._stop.is_set():
+                    hb.beat()
                     data = port.read(port.in_waiting or 1)
                     if data:
                         deframer.feed(data)
@@ -434,6 +449,7 @@ class SerialBoard:
         port.write(b"\x00" + bytes(tx[:n]))
         deadline = time.monotonic() + self.config.handshake_timeout_ms / 1000.0
         while self._hello is None:
+            self.heartbeat.beat()
             if time.monotonic() > deadline:
                 raise BoardError(f"no HELLO_ACK within {self.config.handshake_timeout_ms} ms")
             data = port.read(port.in_waiting or 1)

@@ -40,6 +40,7 @@ from ..clocksync import ClockServer
 from ..config import Mission
 from ..datavector import DataVector
 from ..errors import NodeError, TransportError
+from ..health import Heartbeat, Liveness, thread_deadlines_ns
 from ..loop import ControlLogic
 from ..messages import wildcard_sync_for
 from ..recording import Recorder
@@ -48,6 +49,8 @@ from ..summary import CnSummary, LoopWork, cn_summary
 from ..sync import ControlSync, SyncTrace
 from ..timebase import NodeClock
 from ..transport import NodeSession, wait_for_nodes
+from ..watchdog import Watchdog
+from .health import NodeHealth
 from .runtime import EventPublisher, StopFlag, realtime_setup
 
 __all__ = ["ControlNode", "run_control_node"]
@@ -86,7 +89,11 @@ class ControlNode:
         self.ns = NodeSession(mission, "cn", announce=False, lowlatency=lowlatency)
         s = self.ns.session
         keys = self.ns.keys
+        # Every thread this node runs checks in (zplatform.health).
+        self.liveness = Liveness(thread_deadlines_ns(mission))
+        self._loop_hb = self.liveness.add(Heartbeat("loop"))
         self.clock_server = ClockServer(s, keys, self.clock.now_ns)
+        self.liveness.add(self.clock_server.heartbeat)
         self.sync = ControlSync(
             s,
             keys,
@@ -118,7 +125,16 @@ class ControlNode:
         self._events = EventPublisher(s, keys.events("cn"), self.logic.events)
         self._radio = _Radio(mission, s, keys.downlink) if mission.downlink.ccsds else None
         self.bulk = open_bulk(s, mission, "cn", self.logic)
+        self.health: NodeHealth | None = None
+        if mission.health is not None:
+            self.health = NodeHealth(mission, "cn", self.liveness, session=s)
+            self.logic.attach_health(self.health)
+        wd = mission.nodes["cn"].watchdog
+        self.watchdog = (
+            Watchdog(wd, "cn", self.liveness, self.logic.events) if wd is not None else None
+        )
         self._skipped = 0
+        self._stopped_cleanly = False
         self._last_step: int | None = None  # self.loops after the run's planned last loop
         self.ns.announce()
         self.first_loop_ns = 0
@@ -145,6 +161,7 @@ class ControlNode:
         after :meth:`wait_ready`). RecordingError if it cannot start."""
         self.recorder = Recorder(directory, self.mission, mission_source, self.dv)
         self.logic.recorder = self.recorder
+        self.liveness.add(self.recorder.heartbeat)
         return self.recorder
 
     # -- start-up --------------------------------------------------------
@@ -209,11 +226,16 @@ class ControlNode:
     # -- the loop ------------------------------------------------------------
     def _on_overrun(self, k: int, lateness_ns: int) -> None:
         self._skipped += 1  # an input of the next loop (replayed as such)
+        if self.health is not None:
+            self.health.overran()
 
     def step(self, k: int, deadline_ns: int) -> bool:
         """One loop; returns False to stop: after the run's final loop (the
         last of ``max_loops``, or the loop after a stop was asked for)."""
         m0 = self._mono()
+        self._loop_hb.beat_at(m0)
+        if self.health is not None:
+            self.health.note(m0 - deadline_ns)
         loop = k + 1
         # The loop's one timestamp is its scheduled start, not the moment the
         # thread woke: loop n is then at t1 + (n - 1) * period exactly, as in
@@ -247,8 +269,11 @@ class ControlNode:
             self._tm_pub.put(tm)
             if self._radio is not None:
                 self._radio.send(self.dv, loop, t)
+        end = self._mono()
+        if self.watchdog is not None:
+            self.watchdog.stroke(end, t)
         self._events.flush()
-        self._work[self.loops & 0xFFFF] = self._mono() - m0
+        self._work[self.loops & 0xFFFF] = end - m0
         self.loops += 1
         self.last_loop_ns = t
         return not final
@@ -268,6 +293,11 @@ class ControlNode:
         self._last_step = None if max_loops is None else self.loops + max_loops
         if realtime:
             realtime_setup(nc.priority, nc.cpu)
+        self._loop_hb.beat()
+        if self.health is not None:
+            self.health.start()
+        if self.watchdog is not None:
+            self.watchdog.open()
         gc_guard = GcGuard()
         loop = PeriodicLoop(
             self.mission.period_ns,
@@ -280,6 +310,7 @@ class ControlNode:
             loop.run(self.step, max_loops=max_loops)
         finally:
             gc_guard.restore()
+        self._stopped_cleanly = True
         return loop
 
     def summary(self) -> CnSummary:
@@ -323,6 +354,11 @@ class ControlNode:
                 self.bulk.close()
             self._tm_pub.undeclare()
         finally:
+            if self.watchdog is not None:
+                # A loop that ended in an exception leaves the watchdog armed.
+                self.watchdog.close(clean=self._stopped_cleanly)
+            if self.health is not None:
+                self.health.close()
             if self.recorder is not None:
                 self.recorder.close()
             self.ns.close()
