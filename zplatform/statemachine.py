@@ -382,20 +382,30 @@ def check_config(mission: Mission, *, warn: bool = True) -> None:
 
 
 def unreachable_states(mission: Mission) -> list[str]:
-    """States no chain of transitions reaches from the initial one, in config order."""
+    """States no chain of transitions reaches from the initial one, in config
+    order; a monitor's ``transition`` response (:mod:`zplatform.monitors`) is
+    a transition from each state it runs in."""
     sm = mission.state_machine
     if sm is None or sm.initial not in sm.states:
         return []
+    requested = [
+        (set(m.states) if m.states is not None else None, m.to)
+        for m in mission.monitors
+        if m.response == "transition" and m.to is not None
+    ]
     seen = {sm.initial}
     todo = [sm.initial]
     while todo:
-        st = sm.states.get(todo.pop())
+        name = todo.pop()
+        st = sm.states.get(name)
         if st is None:
             continue
-        for t in st.transitions:
-            if t.to not in seen:
-                seen.add(t.to)
-                todo.append(t.to)
+        targets = [t.to for t in st.transitions]
+        targets += [to for states, to in requested if states is None or name in states]
+        for to in targets:
+            if to not in seen:
+                seen.add(to)
+                todo.append(to)
     return [s for s in sm.states if s not in seen]
 
 

@@ -318,3 +318,13 @@ def test_a_mission_without_a_state_machine_monitors_in_idle() -> None:
     cn.dv.set("x", 2.0)
     cn.finish()
     assert [e.id for e in cn.events.drain()] == [EV.MONITOR_WARNING.name]
+
+
+def test_a_state_reached_only_by_a_monitor_is_reachable() -> None:
+    from zplatform.statemachine import unreachable_states
+
+    assert unreachable_states(mission()) == ["B"]
+    go_b = {"name": "m", "element": "x", "kind": "limit", "hi": 1, "response": "transition"}
+    assert unreachable_states(mission({**go_b, "to": "B"})) == []
+    assert unreachable_states(mission({**go_b, "to": "B", "states": ["C"]})) == []  # A -> C -> B
+    assert unreachable_states(mission({**go_b, "to": "C", "states": ["B"]})) == ["B"]

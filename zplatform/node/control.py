@@ -276,6 +276,8 @@ class ControlNode:
         self._work[self.loops & 0xFFFF] = end - m0
         self.loops += 1
         self.last_loop_ns = t
+        if self.health is not None:
+            self.health.kick()  # sample now, in the slack before the next loop
         return not final
 
     def run(

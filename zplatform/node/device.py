@@ -238,6 +238,8 @@ class DeviceNode:
                 if wd is not None:
                     wd.stroke(m0, t)
                 self._events.flush()
+                if health is not None:
+                    health.kick()  # sample now, in the slack before the next trigger
                 # Slack until the next trigger is due: gc only runs there.
                 slack = t + period - now()
                 if slack < 0:

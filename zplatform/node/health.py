@@ -2,7 +2,7 @@
 
 :class:`NodeHealth` is the zenoh runtime's :class:`~zplatform.health.HealthPort`
 (:mod:`zplatform.health` has the elements and the contract). It runs one
-thread, ``health``, at the mission's ``health.rate_hz``, which
+thread, ``health``, which once per health period
 
 * samples the process and the host through psutil (:class:`ResourceSampler`:
   CPU, RSS, available memory, free disk at ``health.disk_path``, the
@@ -21,6 +21,16 @@ pauses are timed by a ``gc.callbacks`` hook. On health loops the logic calls
 :meth:`NodeHealth.take`, which packs those window figures and the stalled
 threads into the block, resets the window and returns the block for the
 logic's one copy.
+
+**When it samples.** The sampling thread holds the GIL for parts of a sample
+(psutil parses ``/proc`` in Python): sampling while the loop thread wants to
+run would delay the loop by up to the interpreter's switch interval. So the
+driver calls :meth:`NodeHealth.kick` when the loop's work is done (one flag
+test per loop), and after a health loop that wakes the thread, which samples
+in the loop's slack; the next health loop copies that sample (a period old).
+A loop that stops kicking (stalled, or a device node without triggers)
+does not stop the thread: it samples on its own every two periods, and so
+keeps latching stalled threads.
 
 psutil is a runtime dependency: it reads ``/proc`` and ``/sys`` (and other
 systems' equivalents) with fewer surprises than parsing them by hand.
@@ -154,6 +164,8 @@ class NodeHealth:
         self._gc_count = 0
         self._gc_t0 = 0
         self._stop = threading.Event()
+        self._go = threading.Event()
+        self._due = False
         self._thread: threading.Thread | None = None
         self._sampler_ident = -1
         self._probe: Any = None
@@ -190,6 +202,7 @@ class NodeHealth:
     def close(self) -> None:
         """Stop the thread, remove the gc hook, undeclare the probe (idempotent)."""
         self._stop.set()
+        self._go.set()
         if self._thread is not None:
             self._thread.join(timeout=2)
             self._thread = None
@@ -229,16 +242,24 @@ class NodeHealth:
             stalled & 0xFFFF,
         )
         self._late_max = self._overruns = self._gc_max = self._gc_count = 0
+        self._due = True
         return self._view
+
+    def kick(self) -> None:
+        """The loop's work is done: after a health loop, wake the sampling
+        thread now, in the loop's slack (module doc). One flag test otherwise."""
+        if self._due:
+            self._due = False
+            self._go.set()
 
     # -- the health thread and zenoh's ---------------------------------------------
     def _run(self) -> None:
         self._sampler_ident = threading.get_ident()
         hb = self.heartbeat
-        period = self._period_ns
         clock = self._clock
-        due = clock()
-        while not self._stop.wait(max(0, due - clock()) / 1e9):
+        on_its_own = 2 * self._period_ns / 1e9  # the loop stopped kicking
+        stop, go = self._stop, self._go
+        while not stop.is_set():  # the first sample at once, then per kick
             hb.beat()
             t0 = clock()
             try:
@@ -260,9 +281,8 @@ class NodeHealth:
                     )
                 except zenoh.ZError as exc:  # the session is closing
                     log.debug("%s zenoh probe not sent: %s", self.node, exc)
-            due += period
-            if due < clock():  # fell behind (the host stalled): no burst of samples
-                due = clock() + period
+            go.wait(on_its_own)
+            go.clear()
 
     def _hold(self, query: zenoh.Query) -> None:
         # Keep the newest probe unanswered, so zenoh's timer finalises it on
