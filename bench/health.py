@@ -32,7 +32,8 @@ import numpy as np
 import zenoh
 
 from bench.common import bench_argparser, summarize, write_result
-from zplatform import ControlLogic, GcGuard, LockstepRunner, PeriodicLoop, load_mission
+from bench.record import loop_inputs
+from zplatform import ControlLogic, GcGuard, PeriodicLoop, load_mission
 from zplatform.config import Mission
 from zplatform.health import Heartbeat, Liveness, health_divisor, thread_deadlines_ns
 from zplatform.lockstep import SIM_KEY
@@ -40,35 +41,6 @@ from zplatform.node.health import NodeHealth
 
 ROOT = Path(__file__).resolve().parents[1]
 MISSION = ROOT / "configs" / "recovery_igniter.yaml"
-
-
-def _replies(m: Mission, loops: int) -> list[list[bytes]]:
-    """Each loop's DN replies of a lockstep run, captured once."""
-    r = LockstepRunner(m)
-    out: list[list[bytes]] = []
-    captured: list[bytes] = []
-    cn = r.control
-
-    class Tap:
-        def begin(self, loop: int, t_ns: int, final: bool) -> None:
-            captured.clear()
-
-        def reply(self, i: int, payload: Any) -> None:
-            captured.append(bytes(payload))
-
-        def foreign(self, source: str) -> None:
-            pass  # a lockstep run has no foreign repliers
-
-        def health(self, block: Any) -> None:
-            pass  # a lockstep run without health ports copies none
-
-        def finish(self, *a: Any) -> None:
-            out.append(list(captured))
-
-    cn.recorder = Tap()
-    for _ in range(loops):
-        r.step()
-    return out
 
 
 def _with_rate(m: Mission, rate_hz: float | None) -> Mission:
@@ -142,7 +114,7 @@ def main() -> None:
     m = load_mission(MISSION)
     loops = round(seconds * m.loop_hz)
     warm = loops // 10
-    replies = _replies(m, loops)
+    replies = [r for _, _, r, _ in loop_inputs(m, loops)]
     conf = zenoh.Config()
     conf.insert_json5("scouting/multicast/enabled", "false")
     session = zenoh.open(conf)

@@ -26,6 +26,10 @@ CLOCK_DRIFT        ``|dnX_clock_drift_ns|`` beyond the   1 (one reading)
                    clock bound (``clock.offset_bound_ms``)
 ================== ==================================== ======================
 
+The mission's monitors (:mod:`zplatform.monitors`) latch faults too, through
+:meth:`FaultMonitor.raise_fault`: ``MONITOR`` or the fault a monitor names
+(``THREAD_STALLED`` for a node's stalled thread, say).
+
 Only the first fault latches: once ``cn_fault`` is not ``NONE`` it stays
 until someone writes it back (a WRITE command of ``cn_fault = NONE``, or a
 state-machine action); a symptom still present then raises it again. A

@@ -11,9 +11,11 @@ Per loop, :meth:`StateMachine.step` does, with the loop's one timestamp:
 
 1. on the very first step, enter the initial state and run its actions due
    at 0 s;
-2. evaluate the current state's transitions in config order: the first that
-   holds fires, at most one per step; the new state is entered at this
-   step's time (time in state 0);
+2. evaluate the current state's transitions in config order (ABORT-class
+   command transitions first, ``priority``; then a transition a monitor's
+   response requested, :meth:`StateMachine.request`; then the rest): the
+   first that holds fires, at most one per step; the new state is entered
+   at this step's time (time in state 0);
 3. run the actions of the (possibly new) state that have come due and not
    yet run, in ``at_s`` order (config order for equal times): an action at
    0 s runs in the loop its state is entered, every action runs at most once

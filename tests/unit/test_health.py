@@ -460,3 +460,40 @@ def test_the_health_api_is_exported() -> None:
 
     names = {"FakeHealth", "HealthPort", "Heartbeat", "Liveness", "MonitorSet", "Thread"}
     assert names | {"Watchdog"} <= set(zplatform.__all__)
+
+
+def test_the_console_colours_health_and_names_stalled_threads() -> None:
+    from zplatform.console.model import ConsoleModel
+
+    m = load_mission(CONFIGS / "recovery_igniter.yaml", code=False)
+    model = ConsoleModel(m)
+    dv = model.dv
+    dv.set("dn0_threads_stalled", (1 << Thread.ZENOH) | (1 << Thread.BOARD))
+    dv.set("cn_cpu_pct", 97.0)
+    dv.set("dn1_disk_free_mb", 300.0)
+    rows = {name: (text, level) for _, r in model.region_rows() for name, text, level in r}
+    assert rows["dn0_threads_stalled"] == ("18 (zenoh, board)", "red")
+    assert rows["dn1_threads_stalled"] == ("0", "")
+    assert rows["cn_cpu_pct"] == ("97", "red")
+    assert rows["dn1_disk_free_mb"] == ("300", "yellow")
+    assert rows["cn_cpu_temp_c"] == ("nan", "")  # no sensor: no colour
+
+
+def test_health_elements_are_in_the_xtce_export_with_their_alarms() -> None:
+    import xml.etree.ElementTree as ET
+
+    from zplatform.xtce import mission_xtce
+
+    m = load_mission(CONFIGS / "flight.yaml", code=False)
+    xml = mission_xtce(m).xml
+    root = ET.fromstring(xml)
+    ns = {"x": root.tag.split("}")[0][1:]}
+    params = {p.get("name"): p for p in root.iter(f"{{{ns['x']}}}Parameter")}
+    for node in ("cn", "dn0", "dn1"):
+        p = params[f"{node}_threads_stalled"]
+        assert "0 loop, 1 zenoh, 2 health, 3 clock, 4 board" in (p.get("shortDescription") or "")
+    ptype = next(
+        t for t in root.iter(f"{{{ns['x']}}}FloatParameterType") if t.get("name") == "dn1_cpu_pct"
+    )
+    crit = next(ptype.iter(f"{{{ns['x']}}}CriticalRange"))
+    assert float(crit.get("maxInclusive") or 0) == 95.0

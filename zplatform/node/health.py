@@ -86,9 +86,13 @@ class ResourceSampler:
         # cpu_percent(None) measures since the last call: prime both.
         self._proc.cpu_percent(None)
         psutil.cpu_percent(None)
+        # A host without a temperature sensor does not grow one: ask once
+        # (a scan of /sys/class/hwmon, the costliest read of a sample).
         self._temps: Callable[[], dict[str, list[Any]]] | None = getattr(
             psutil, "sensors_temperatures", None
         )
+        if self._temps is not None and math.isnan(self._temperature()):
+            self._temps = None
 
     def sample(self) -> Sample:
         ps = self._psutil
