@@ -36,7 +36,7 @@ from bench.record import loop_inputs
 from zplatform import ControlLogic, GcGuard, PeriodicLoop, load_mission
 from zplatform.config import Mission
 from zplatform.health import Heartbeat, Liveness, health_divisor, thread_deadlines_ns
-from zplatform.lockstep import SIM_KEY
+from zplatform.lockstep import sim_keys
 from zplatform.node.health import NodeHealth
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -55,7 +55,7 @@ def _run(
 ) -> tuple[list[int], list[int], list[int]]:
     """One paced run; returns (work ns per loop, work ns of health loops, sample ns)."""
     m = _with_rate(load_mission(MISSION), rate_hz)
-    cn = ControlLogic(m, key=SIM_KEY, epoch=1)
+    cn = ControlLogic(m, keys=sim_keys(m), epoch=1)
     health: NodeHealth | None = None
     if rate_hz is not None:
         live = Liveness(thread_deadlines_ns(m))

@@ -6,6 +6,7 @@ here; module paths below ``zplatform.`` are implementation detail.
 
 from __future__ import annotations
 
+from .auth import KeySet, load_keys
 from .boards import Board, SimBoard
 from .codec import (
     Frame,
@@ -15,7 +16,7 @@ from .codec import (
     decode_frame,
     encode_frame,
 )
-from .codes import Command, CommandStatus, Fault, Thread
+from .codes import Command, CommandStatus, Fault, ParamLoad, ParamSave, SafedWhy, Thread
 from .commands import CommandHandler
 from .components import Component
 from .config import Mission
@@ -41,7 +42,7 @@ from .errors import (
     TransportError,
     ZPlatformError,
 )
-from .events import EV, Event, EventLog, EventType, Severity
+from .events import EV, Event, EventLog, EventReader, EventType, Severity
 from .faults import FaultMonitor
 from .ground.link import GroundLink
 from .ground.logic import GroundLogic
@@ -52,6 +53,14 @@ from .lockstep import LockstepRunner, ReplayResult, SimResult, replay
 from .loop import ControlLogic, DeviceLogic
 from .mission import check_mission, decode_mission, load_mission
 from .monitors import MonitorSet
+from .params import (
+    ParamFileError,
+    ParamSaver,
+    ParamTable,
+    decode_params,
+    encode_params,
+    params_path,
+)
 from .rategroups import RateGroups
 from .recording import Recorder
 from .safety import SafetyWarning, safety_warnings
@@ -94,6 +103,7 @@ __all__ = [
     "Event",
     "EventError",
     "EventLog",
+    "EventReader",
     "EventRecord",
     "EventType",
     "FakeHealth",
@@ -110,6 +120,7 @@ __all__ = [
     "Handle",
     "HealthPort",
     "Heartbeat",
+    "KeySet",
     "KeySpace",
     "Layout",
     "LayoutMismatchError",
@@ -120,6 +131,11 @@ __all__ = [
     "MonitorSet",
     "NodeClock",
     "NodeError",
+    "ParamFileError",
+    "ParamLoad",
+    "ParamSave",
+    "ParamSaver",
+    "ParamTable",
     "PeriodicLoop",
     "RateGroups",
     "Recorder",
@@ -127,6 +143,7 @@ __all__ = [
     "RegionCodec",
     "RegionSpec",
     "ReplayResult",
+    "SafedWhy",
     "SafetyWarning",
     "SchedulerError",
     "ScriptCommand",
@@ -151,11 +168,15 @@ __all__ = [
     "check_mission",
     "decode_frame",
     "decode_mission",
+    "decode_params",
     "encode_frame",
+    "encode_params",
     "fill_request",
     "load_commands",
+    "load_keys",
     "load_mission",
     "mission_schema",
+    "params_path",
     "parse_commands",
     "read_csv",
     "reference_markdown",

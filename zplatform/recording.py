@@ -5,14 +5,16 @@ a :class:`Recorder` to the CN's :class:`~zplatform.loop.ControlLogic`: every
 input its loop consumed is written, per loop, in call order: the loop number,
 timestamp and whether it was the run's last (``final``), each DN reply as it
 arrived (its bytes, or that the DN answered with an error), the ground
-frame, the sync-overrun flag and the skipped periods, and the telemetry
-frame the loop produced (what a replay must reproduce). ``DIR`` holds
+frame, the sync-overrun flag and the skipped periods, the parameter saves
+that finished (:mod:`zplatform.params`), the node's health block on health
+loops (:mod:`zplatform.health`), and the telemetry frame the loop
+produced (what a replay must reproduce). ``DIR`` holds
 ``mission.yaml`` (the effective mission) and ``cn.zrec``; ``zplatform replay
 DIR`` needs nothing else.
 
 ``cn.zrec``, all integers little-endian::
 
-    header:  b"ZPREC\\0"  u16 version (3)  u32 n  n bytes of JSON metadata
+    header:  b"ZPREC\\0"  u16 version (4)  u32 n  n bytes of JSON metadata
              u32 m  m bytes: the CN's Data Vector when recording started
     items:   u8 type  u8 dn  u32 length  length bytes
                1 BEGIN      u64 loop, i64 t_ns, u8 final (1: the run's last loop)
@@ -27,8 +29,13 @@ DIR`` needs nothing else.
                9 DROPPED    u64 loops the recorder could not keep (ring full)
               10 FOREIGN    a sync reply from a key that is no DN's: the key
                             (UTF-8, at most 256 bytes; ``dn`` 255)
-              11 HEALTH     the CN's health block the loop copied in
+              11 PRM_SAVED  a parameter save finished: u64 its PRM_SAVE number,
+                            u8 ok, then its detail (UTF-8, at most 512 bytes)
+              12 HEALTH     the CN's health block the loop copied in
                             (health loops of a mission with ``health:``)
+
+Version 2 files (without PRM_SAVED and HEALTH items) and version 3 files
+(without HEALTH items) are read too.
 
 An oversize frame cannot decode (it is longer than the widest valid
 encoding), so a replay feeds an empty payload in its place: the same bad
@@ -62,12 +69,13 @@ from .config import Mission, relocate_mission
 from .datavector import DataVector, Layout
 from .errors import RecordingError
 from .health import BLOCK_SIZE, Heartbeat
+from .params import SaveResult
 
 __all__ = ["FOREIGN_DN", "LoopRecord", "RecordReader", "Recorder"]
 
 MAGIC = b"ZPREC\x00"
-VERSION = 3  # 2: BEGIN carries the final-loop flag; 3: HEALTH items
-_READABLE = (2, 3)  # a version 2 recording has no HEALTH items, and reads the same
+VERSION = 4  # 2: BEGIN carries the final-loop flag; 3: PRM_SAVED items; 4: HEALTH items
+_READABLE = (2, 3, 4)
 RECORD_FILE = "cn.zrec"
 MISSION_FILE = "mission.yaml"
 
@@ -82,8 +90,9 @@ MISSION_FILE = "mission.yaml"
     FINISH,
     DROPPED,
     FOREIGN,
+    PRM_SAVED,
     HEALTH,
-) = range(1, 12)
+) = range(1, 13)
 #: ``LoopRecord.replies`` entry index of a FOREIGN reply (its payload is the key).
 FOREIGN_DN = -1
 
@@ -92,6 +101,7 @@ _BEGIN = struct.Struct("<QqB")
 _FINISH = struct.Struct("<BIII")
 _U32 = struct.Struct("<I")
 _U64 = struct.Struct("<Q")
+_SAVED = struct.Struct("<QB")
 _HEAD = struct.Struct("<6sHI")
 
 
@@ -289,11 +299,18 @@ class Recorder:
         loop_overruns: int,
         inbox_dropped: int,
         inbox_oversize: int,
+        saves: Sequence[SaveResult],
         telemetry: bytearray | None,
     ) -> None:
         if not self._dropping:
             self._finish(
-                grounds, sync_overrun, loop_overruns, inbox_dropped, inbox_oversize, telemetry
+                grounds,
+                sync_overrun,
+                loop_overruns,
+                inbox_dropped,
+                inbox_oversize,
+                saves,
+                telemetry,
             )
         if self._open_loop:
             self._open_loop = False
@@ -310,8 +327,13 @@ class Recorder:
         loop_overruns: int,
         inbox_dropped: int,
         inbox_oversize: int,
+        saves: Sequence[SaveResult],
         telemetry: bytearray | None,
     ) -> None:
+        for save in saves:  # rare: a PRM_SAVE finished
+            detail = save.detail.encode(errors="replace")[:512]
+            body = _SAVED.pack(save.seq, save.ok) + detail
+            self._put(PRM_SAVED, 0, body, len(body))
         for ground in grounds:
             if len(ground) > self._max_ground:
                 self._put(GROUND_OVERSIZE, 0, _U32.pack(min(len(ground), 0xFFFF_FFFF)), 4)
@@ -358,6 +380,7 @@ class LoopRecord(msgspec.Struct, frozen=True):
     inbox_dropped: int
     inbox_oversize: int
     telemetry: bytes | None
+    saves: list[SaveResult] = []
     health: bytes | None = None
     """The health block the loop copied in (None: not a health loop)."""
 
@@ -422,6 +445,7 @@ class RecordReader:
         telemetry: bytes | None = None
         health: bytes | None = None
         replies: list[tuple[int, bytes | None]] = []
+        saves: list[SaveResult] = []
         while off < end:
             if off + _ITEM.size > end:
                 self.complete = False
@@ -441,6 +465,7 @@ class RecordReader:
                 health = None
                 grounds = []
                 replies = []
+                saves = []
             elif typ == DROPPED:
                 self.dropped_loops += _U64.unpack(body)[0]
                 self.complete = False
@@ -462,12 +487,27 @@ class RecordReader:
                 grounds.append(b"")
             elif typ == TELEMETRY:
                 telemetry = body
+            elif typ == PRM_SAVED and n >= _SAVED.size:
+                seq, ok = _SAVED.unpack_from(body)
+                detail = body[_SAVED.size :].decode(errors="replace")
+                saves.append(SaveResult(seq, bool(ok), detail))
             elif typ == HEALTH:
                 health = body
             elif typ == FINISH:
                 so, lo, dr, ov = _FINISH.unpack(body)
                 yield LoopRecord(
-                    loop, t, final, replies, grounds, bool(so), lo, dr, ov, telemetry, health
+                    loop,
+                    t,
+                    final,
+                    replies,
+                    grounds,
+                    bool(so),
+                    lo,
+                    dr,
+                    ov,
+                    telemetry,
+                    saves,
+                    health,
                 )
                 in_loop = False
             else:

@@ -26,8 +26,9 @@ from typing import Any
 import pytest
 import yaml
 
+from zplatform.auth import load_keys
 from zplatform.codes import Thread
-from zplatform.events import Event, decode_event
+from zplatform.events import Event, EventReader
 
 from .harness import ROOT, Cluster
 
@@ -72,14 +73,16 @@ def _mission(tmp: Path, *, monitors: list[dict[str, Any]], **health: Any) -> Pat
 
 class _Events:
     """Every event of the mission's nodes from now on (a subscription of the
-    test's session), kept in arrival order."""
+    test's session), kept in arrival order; each record's tag is checked
+    with the tool's keys (a record that does not verify fails the test)."""
 
     def __init__(self, c: Cluster) -> None:
-        self._q: queue.SimpleQueue[Event] = queue.SimpleQueue()
+        self._q: queue.SimpleQueue[tuple[str, bytes]] = queue.SimpleQueue()
+        self._reader = EventReader(c.mission, load_keys(c.mission, "tool"))
         self.seen: list[Event] = []
         self._sub = c.session.declare_subscriber(
             f"{c.mission.vehicle}/*/events",
-            lambda s: self._q.put(decode_event(s.payload.to_bytes())),
+            lambda s: self._q.put((str(s.key_expr), s.payload.to_bytes())),
         )
 
     def wait(self, node: str, id_: str, timeout_s: float = 30) -> Event:
@@ -90,10 +93,13 @@ class _Events:
                 if e.node == node and e.id == id_:
                     return e
             try:
-                self.seen.append(self._q.get(timeout=max(0.0, deadline - time.monotonic())))
+                key, raw = self._q.get(timeout=max(0.0, deadline - time.monotonic()))
             except queue.Empty:
                 texts = [f"{e.node} {e.id}: {e.text}" for e in self.seen]
                 raise AssertionError(f"no {id_} event from {node}; saw {texts}") from None
+            e, verified = self._reader.read(key, raw)
+            assert verified, f"an event on {key} that the tool's keys cannot verify"
+            self.seen.append(e)
 
     def close(self) -> None:
         self._sub.undeclare()

@@ -25,7 +25,7 @@ from zplatform import (
     recording,
     replay,
 )
-from zplatform.auth import KEY_ENV
+from zplatform.auth import load_keys
 from zplatform.codes import Thread
 from zplatform.config import Mission
 from zplatform.datavector import Layout
@@ -204,7 +204,7 @@ def test_the_recorders_writer_checks_in_and_a_hung_disk_is_a_stall(
 
     monkeypatch.setattr(recording, "open", lambda p, mode: Hung(open(p, mode)), raising=False)  # noqa: SIM115
     m = load_mission(MINIMAL)
-    cn = ControlLogic(m, key=None, epoch=1)
+    cn = ControlLogic(m, keys=None, epoch=1)
     go.set()  # the header goes out; then the disk hangs
     rec = Recorder(tmp_path / "rec", m, MINIMAL, cn.dv, seconds=0.0)
     go.clear()
@@ -236,7 +236,7 @@ def test_the_recorders_writer_checks_in_and_a_hung_disk_is_a_stall(
 
 def test_the_block_is_copied_on_health_loops_and_stalls_are_named(tmp_path: Path) -> None:
     m = load_mission(_with_health(MINIMAL, tmp_path, {"rate_hz": 10}))
-    cn = ControlLogic(m, key=None, epoch=1)
+    cn = ControlLogic(m, keys=None, epoch=1)
     fake = FakeHealth(cpu_pct=12.5, disk_free_mb=900.0)
     cn.attach_health(fake)
     dv = cn.dv
@@ -270,7 +270,7 @@ def test_the_block_is_copied_on_health_loops_and_stalls_are_named(tmp_path: Path
 
 
 def test_attaching_health_to_a_mission_without_it_is_refused() -> None:
-    cn = ControlLogic(load_mission(MINIMAL), key=None)
+    cn = ControlLogic(load_mission(MINIMAL), keys=None)
     with pytest.raises(ConfigError, match="no `health:` section"):
         cn.attach_health(FakeHealth())
 
@@ -315,8 +315,7 @@ def test_an_injected_stall_in_lockstep_is_named_and_its_monitor_responds() -> No
 def test_the_cns_health_block_is_recorded_and_replayed_bit_for_bit(tmp_path: Path) -> None:
     mission = _with_health(MINIMAL, tmp_path, {"rate_hz": 10})
     m = load_mission(mission)
-    key = bytes.fromhex(os.environ[KEY_ENV])
-    cn = ControlLogic(m, key=key, epoch=1)
+    cn = ControlLogic(m, keys=load_keys(m, "cn"), epoch=1)
     fake = FakeHealth()
     cn.attach_health(fake)
     rec = Recorder(tmp_path / "rec", m, mission, cn.dv)

@@ -51,7 +51,7 @@ class Rig:
 
     def __init__(self, *monitors: dict[str, Any]) -> None:
         self.m = mission(*monitors)
-        self.cn = ControlLogic(self.m, key=None, epoch=1)
+        self.cn = ControlLogic(self.m, keys=None, epoch=1)
         self.dv = self.cn.dv
         self.loop = 0
 
@@ -313,7 +313,7 @@ def test_a_mission_without_a_state_machine_monitors_in_idle() -> None:
             """
         )
     )
-    cn = ControlLogic(m, key=None)
+    cn = ControlLogic(m, keys=None)
     cn.begin(1, 1)
     cn.dv.set("x", 2.0)
     cn.finish()
