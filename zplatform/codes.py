@@ -144,6 +144,8 @@ class Thread(enum.IntEnum):
     """The CN's ``--record`` writer."""
     RECORDER = 6
     """The on-board flight recorder's writer."""
+    PARAMS = 7
+    """The CN's parameter saver (PRM_SAVE's file writes, :mod:`zplatform.params`)."""
 
 
 class ParamLoad(enum.IntEnum):

@@ -231,6 +231,41 @@ def test_the_recorders_writer_checks_in_and_a_hung_disk_is_a_stall(
     assert rec.heartbeat.age_ns(time.monotonic_ns()) == -1  # ended: idle
 
 
+def test_the_param_savers_thread_checks_in_and_a_hung_write_is_a_stall(tmp_path: Path) -> None:
+    from zplatform.params import ParamSaver
+
+    go = threading.Event()
+
+    def step(name: str) -> None:
+        if name == "written":
+            go.wait()  # the fsync of a hung disk
+
+    saver = ParamSaver(tmp_path / "p.prm", step=step)
+    live = Liveness({n: 50_000_000 for n in THREAD_NAMES})
+    live.add(saver.heartbeat)
+    try:
+        # Idle while it waits for a save: not stalled, however long.
+        deadline = time.monotonic() + 10
+        while saver.heartbeat.age_ns(time.monotonic_ns()) != -1:
+            assert time.monotonic() < deadline
+            time.sleep(0.001)
+        saver.submit(1, b"new")
+        while not live.stalled(time.monotonic_ns()):  # the saver is inside a hung write
+            assert time.monotonic() < deadline, "a hung write was never a stall"
+            time.sleep(0.001)
+        assert stalled_names(live.stalled(time.monotonic_ns())) == ["params"]
+        go.set()
+        while (done := saver.poll()) is None:  # the disk came back: the save ends
+            assert time.monotonic() < deadline
+            time.sleep(0.001)
+        assert done.ok and done.seq == 1
+        assert saver.heartbeat.age_ns(time.monotonic_ns()) == -1  # waiting again: idle
+        assert live.stalled(time.monotonic_ns()) == 0
+    finally:
+        go.set()
+        saver.close()
+
+
 # -- the logic's side: one copy, stalled events -----------------------------------------
 
 

@@ -147,6 +147,8 @@ class ControlNode:
         )
         self.params_file = Path(params_file) if params_file else params_path(mission)
         self._saver = ParamSaver(self.params_file) if mission.params else None
+        if self._saver is not None:
+            self.liveness.add(self._saver.heartbeat)
         self._skipped = 0
         self._stopped_cleanly = False
         self._last_step: int | None = None  # self.loops after the run's planned last loop
