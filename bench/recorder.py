@@ -27,7 +27,7 @@ files over the loops kept), ``dropped_loops`` (must be 0), and for the
 serving variant ``served_frames``. Writes go to a temporary directory
 (``params.storage`` says which filesystem).
 
-Takes about ``3 * rounds * loops / 100`` seconds (about 90 s; ``--quick``
+Takes about ``3 * rounds * loops / 100`` seconds (about 4.5 min; ``--quick``
 about 15 s). Run ``python -m bench.recorder [--quick] [--json PATH]``;
 results go to ``bench/results/recorder.json``.
 """
@@ -46,7 +46,7 @@ from typing import Any
 import zenoh
 
 from bench.common import REPO_ROOT, bench_argparser, summarize, write_result
-from bench.record import _inputs
+from bench.record import loop_inputs
 from zplatform import ControlLogic, load_mission
 from zplatform.auth import channel
 from zplatform.ground.logic import default_max_age_ns
@@ -186,7 +186,7 @@ def main() -> None:
     loops = 500 if args.quick else 3000
     rounds = 1 if args.quick else 3
     m = load_mission(MISSION)
-    inputs = _inputs(loops, MISSION, COMMANDS)
+    inputs = loop_inputs(m, loops, COMMANDS)
     period_s = m.period_ns / 1e9
     variants = ("cn_loop", "cn_loop_recording", "cn_loop_recording_serving")
     samples: dict[str, list[int]] = {v: [] for v in variants}

@@ -6,14 +6,15 @@ input its loop consumed is written, per loop, in call order: the loop number,
 timestamp and whether it was the run's last (``final``), each DN reply as it
 arrived (its bytes, or that the DN answered with an error), the ground
 frame, the sync-overrun flag and the skipped periods, the parameter saves
-that finished (:mod:`zplatform.params`), and the telemetry frame the loop
+that finished (:mod:`zplatform.params`), the node's health block on health
+loops (:mod:`zplatform.health`), and the telemetry frame the loop
 produced (what a replay must reproduce). ``DIR`` holds
 ``mission.yaml`` (the effective mission) and ``cn.zrec``; ``zplatform replay
 DIR`` needs nothing else.
 
 ``cn.zrec``, all integers little-endian::
 
-    header:  b"ZPREC\\0"  u16 version (3)  u32 n  n bytes of JSON metadata
+    header:  b"ZPREC\\0"  u16 version (4)  u32 n  n bytes of JSON metadata
              u32 m  m bytes: the CN's Data Vector when recording started
     items:   u8 type  u8 dn  u32 length  length bytes
                1 BEGIN      u64 loop, i64 t_ns, u8 final (1: the run's last loop)
@@ -30,8 +31,11 @@ DIR`` needs nothing else.
                             (UTF-8, at most 256 bytes; ``dn`` 255)
               11 PRM_SAVED  a parameter save finished: u64 its PRM_SAVE number,
                             u8 ok, then its detail (UTF-8, at most 512 bytes)
+              12 HEALTH     the CN's health block the loop copied in
+                            (health loops of a mission with ``health:``)
 
-Version 2 files (without PRM_SAVED items) are read too.
+Version 2 files (without PRM_SAVED and HEALTH items) and version 3 files
+(without HEALTH items) are read too.
 
 An oversize frame cannot decode (it is longer than the widest valid
 encoding), so a replay feeds an empty payload in its place: the same bad
@@ -64,13 +68,14 @@ from .codec import RegionCodec
 from .config import Mission, relocate_mission
 from .datavector import DataVector, Layout
 from .errors import RecordingError
+from .health import BLOCK_SIZE, Heartbeat
 from .params import SaveResult
 
 __all__ = ["FOREIGN_DN", "LoopRecord", "RecordReader", "Recorder"]
 
 MAGIC = b"ZPREC\x00"
-VERSION = 3  # 2: BEGIN carries the final-loop flag; 3: PRM_SAVED items
-_READABLE = (2, 3)
+VERSION = 4  # 2: BEGIN carries the final-loop flag; 3: PRM_SAVED items; 4: HEALTH items
+_READABLE = (2, 3, 4)
 RECORD_FILE = "cn.zrec"
 MISSION_FILE = "mission.yaml"
 
@@ -86,7 +91,8 @@ MISSION_FILE = "mission.yaml"
     DROPPED,
     FOREIGN,
     PRM_SAVED,
-) = range(1, 12)
+    HEALTH,
+) = range(1, 13)
 #: ``LoopRecord.replies`` entry index of a FOREIGN reply (its payload is the key).
 FOREIGN_DN = -1
 
@@ -135,7 +141,8 @@ class Recorder:
         tm_max = RegionCodec(dv).max_frame_len + TAG_LEN
         item = _ITEM.size
         loop_max = (
-            item * (4 + 2 * len(dns))
+            item * (5 + 2 * len(dns))
+            + BLOCK_SIZE
             + _BEGIN.size
             + _FINISH.size
             + 2 * sum(reply_max)
@@ -188,16 +195,23 @@ class Recorder:
             self._file.write(_U32.pack(len(init)) + init)
         except (OSError, yaml.YAMLError) as exc:
             raise RecordingError(f"cannot record into {str(self.directory)!r}: {exc}") from exc
+        self.heartbeat = Heartbeat("record")
+        """The writer thread's check-in (zplatform.health), for the node's liveness."""
         self._writer = threading.Thread(target=self._write_loop, name="recorder", daemon=True)
         self._writer.start()
 
     # -- the writer thread -------------------------------------------------
     def _write_loop(self) -> None:
+        # Idle while it waits for a chunk; a write that hangs (a stuck disk)
+        # is a stall (zplatform.health).
         f = self._file
+        hb = self.heartbeat
         while True:
+            hb.idle()
             i = self._full.get()
             if i < 0:
                 return
+            hb.beat()
             try:
                 f.write(self._views[i][: self._used[i]])
             except OSError as exc:  # disk full: keep draining, report once
@@ -274,6 +288,9 @@ class Recorder:
     def foreign(self, source: str) -> None:
         src = source.encode(errors="replace")[:256]
         self._put(FOREIGN, 255, src, len(src))
+
+    def health(self, block: bytes | bytearray | memoryview) -> None:
+        self._put(HEALTH, 0, block, len(block))
 
     def finish(
         self,
@@ -364,6 +381,8 @@ class LoopRecord(msgspec.Struct, frozen=True):
     inbox_oversize: int
     telemetry: bytes | None
     saves: list[SaveResult] = []
+    health: bytes | None = None
+    """The health block the loop copied in (None: not a health loop)."""
 
 
 class RecordReader:
@@ -424,6 +443,7 @@ class RecordReader:
         final = False
         grounds: list[bytes] = []
         telemetry: bytes | None = None
+        health: bytes | None = None
         replies: list[tuple[int, bytes | None]] = []
         saves: list[SaveResult] = []
         while off < end:
@@ -442,6 +462,7 @@ class RecordReader:
                 final = bool(final_byte)
                 in_loop = True
                 telemetry = None
+                health = None
                 grounds = []
                 replies = []
                 saves = []
@@ -470,10 +491,23 @@ class RecordReader:
                 seq, ok = _SAVED.unpack_from(body)
                 detail = body[_SAVED.size :].decode(errors="replace")
                 saves.append(SaveResult(seq, bool(ok), detail))
+            elif typ == HEALTH:
+                health = body
             elif typ == FINISH:
                 so, lo, dr, ov = _FINISH.unpack(body)
                 yield LoopRecord(
-                    loop, t, final, replies, grounds, bool(so), lo, dr, ov, telemetry, saves
+                    loop,
+                    t,
+                    final,
+                    replies,
+                    grounds,
+                    bool(so),
+                    lo,
+                    dr,
+                    ov,
+                    telemetry,
+                    saves,
+                    health,
                 )
                 in_loop = False
             else:

@@ -1,4 +1,4 @@
-"""Bulk channels between two real processes on this host (DESIGN.md §8).
+"""Bulk channels between two real processes on this host (docs/architecture.md#zenoh).
 
 The owner runs in a child process (``subprocess``: spawned, never forked
 after ``zenoh.open``); the reader is this test process. Verified here:

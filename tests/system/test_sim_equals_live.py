@@ -1,4 +1,4 @@
-"""One loop for sim and live (DESIGN.md §1): the same mission and script give
+"""One loop for sim and live (docs/architecture.md#the-loop): the same mission and script give
 the same states at the same loop numbers and the same verdicts under ``up``
 (five processes) and ``sim``; and a live run recorded with ``up --record``
 replays bit for bit through the lockstep runner."""

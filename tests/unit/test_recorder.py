@@ -12,7 +12,7 @@ import errno
 import os
 import threading
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any, BinaryIO
 
@@ -23,6 +23,7 @@ from zplatform.config import relocate_mission
 from zplatform.datavector import Layout
 from zplatform.errors import ConfigError, RecordingError
 from zplatform.events import EV, EventLog, encode_event
+from zplatform.health import Liveness, stalled_names
 from zplatform.loop import ControlLogic
 from zplatform.mission import decode_mission
 from zplatform.recorder import (
@@ -74,6 +75,16 @@ class Telemetry:
     def frames(self, first: int, last: int) -> Iterator[tuple[int, bytes]]:
         for n in range(first, last + 1):
             yield n, self.frame(n)
+
+
+def wait_for(ok: Callable[[], bool], timeout_s: float = 10.0) -> bool:
+    """Poll ``ok`` until it holds (True) or ``timeout_s`` passes (False)."""
+    deadline = time.monotonic() + timeout_s
+    while not ok():
+        if time.monotonic() > deadline:
+            return False
+        time.sleep(0.001)
+    return True
 
 
 def head(node: str = "cn", run: int = EPOCH) -> dict[str, Any]:
@@ -285,10 +296,14 @@ def test_a_stalled_disk_drops_whole_loops_counted_never_blocking(tmp_path: Path)
     assert kept == [True] * 10 + [False] * 20
     rec.tick(30)
     assert rec.dropped == 20 and tm.cn.dv.get("cn_rec_dropped") == 20
+    # The writer stuck in its write stops checking in: named stalled
+    # (zplatform.health), and checks in again once the write returns.
+    live = Liveness({"recorder": 50_000_000})
+    live.add(rec.heartbeat)
+    assert wait_for(lambda: stalled_names(live.stalled(time.monotonic_ns())) == ["recorder"])
     gate.set()
-    deadline = time.monotonic() + 10
-    while rec.backlog and time.monotonic() < deadline:
-        time.sleep(0.001)
+    assert wait_for(lambda: not rec.backlog)
+    assert wait_for(lambda: live.stalled(time.monotonic_ns()) == 0)
     assert rec.frame(31, frames[31], 31)  # kept again, after a DROPPED record
     rec.close()
     said = [(e.id, e.text) for e in events.drain()]

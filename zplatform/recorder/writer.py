@@ -53,6 +53,7 @@ from typing import Any, BinaryIO
 from ..datavector import DataVector
 from ..errors import RecordingError
 from ..events import EV, EventLog
+from ..health import Heartbeat
 from .format import (
     COUNTS,
     DROPPED,
@@ -103,9 +104,10 @@ class FlightRecorder:
     ``period_ns``, ``telemetry_divisor``); ``max_record``: the longest
     payload the node will hand over (its frame with the tag; events are
     shorter). ``opener`` makes each segment file (default
-    :func:`default_opener`; tests pass slow or failing fakes). ``heartbeat``:
-    called by the writer thread each time it wakes, for a thread-liveness
-    monitor (the health check-in hook).
+    :func:`default_opener`; tests pass slow or failing fakes). The writer
+    thread checks in through :attr:`heartbeat` (``recorder``,
+    :mod:`zplatform.health`) each time it wakes, at least every
+    ``interval_s``: one stuck in a write to a hung storage is named stalled.
 
     Construction creates and locks the directory and opens the first
     segment (removing the oldest ones if the ring is full), then starts the
@@ -126,7 +128,6 @@ class FlightRecorder:
         max_record: int,
         interval_s: float = 0.01,
         opener: Callable[[Path], BinaryIO] = default_opener,
-        heartbeat: Callable[[], None] | None = None,
     ) -> None:
         self.directory = Path(directory)
         self._head_meta = dict(head)
@@ -136,7 +137,8 @@ class FlightRecorder:
         self.file_bytes = file_bytes
         self._fsync_ns = None if fsync_ms is None else int(fsync_ms * 1e6)
         self._opener = opener
-        self.heartbeat = heartbeat
+        self.heartbeat = Heartbeat("recorder")
+        """The writer thread's check-in, for the node's :class:`~zplatform.health.Liveness`."""
         self._interval = interval_s
         rec = HEADER_LEN + max_record
         if file_bytes < HEADER_LEN * 2 + 4096 + 4 * rec:
@@ -357,12 +359,11 @@ class FlightRecorder:
             stop = self._stop
             self._wake.wait(self._interval)
             self._wake.clear()
-            hb = self.heartbeat
-            if hb is not None:
-                hb()
+            self.heartbeat.beat()
             self._drain()
             self._sync_due(time.monotonic_ns())
             if stop:
+                self.heartbeat.idle()  # ended: not stalled
                 return
 
     def _drain(self) -> None:
