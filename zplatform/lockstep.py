@@ -54,9 +54,9 @@ from .datavector import DataVector, Layout
 from .events import Event
 from .ground.logic import GroundLogic
 from .ground.records import CommandOutcome, EventRecord
+from .intake import CnRefusals
 from .loop import ControlLogic, DeviceLogic
 from .messages import wildcard_sync_for
-from .recording import FOREIGN_DN
 from .telemetry import CsvLogger
 from .timebase import VirtualClock
 from .uplink import ScriptCommand
@@ -459,6 +459,7 @@ def replay(
         )
     reader.check_layout(Layout.for_node(mission, "cn"))
     cn = ControlLogic(mission, key=load_key(mission, key_file))
+    refused = CnRefusals()
     cn.dv.write_all(reader.initial)  # epoch included
     state_dv = cn.dv
     frames = 0
@@ -468,16 +469,13 @@ def replay(
     for rec in reader.loops():
         cn.begin(rec.loop, rec.t_ns, final=rec.final)
         for i, payload in rec.replies:
-            if i == FOREIGN_DN:
-                cn.foreign_reply(bytes(payload or b"").decode(errors="replace"))
-            else:
-                cn.reply(i, payload)
+            cn.reply(i, payload)
         tm = cn.finish(
             rec.grounds,
             sync_overrun=rec.sync_overrun,
             loop_overruns=rec.loop_overruns,
             inbox_dropped=rec.inbox_dropped,
-            inbox_oversize=rec.inbox_oversize,
+            refused=refused.set_fields(rec.refused),
         )
         loops += 1
         first = first or rec.loop

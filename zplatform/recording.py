@@ -12,7 +12,7 @@ DIR`` needs nothing else.
 
 ``cn.zrec``, all integers little-endian::
 
-    header:  b"ZPREC\\0"  u16 version (2)  u32 n  n bytes of JSON metadata
+    header:  b"ZPREC\\0"  u16 version (3)  u32 n  n bytes of JSON metadata
              u32 m  m bytes: the CN's Data Vector when recording started
     items:   u8 type  u8 dn  u32 length  length bytes
                1 BEGIN      u64 loop, i64 t_ns, u8 final (1: the run's last loop)
@@ -23,10 +23,15 @@ DIR`` needs nothing else.
                6 GROUND_OVERSIZE  u32 its length
                7 TELEMETRY  the telemetry frame the loop produced
                8 FINISH     u8 sync_overrun, u32 loop_overruns, u32 inbox_dropped,
-                            u32 inbox_oversize (ends a loop)
+                            then what the intake refused (zplatform.intake.CnRefusals,
+                            in its field order): u32 reply_size, reply_bad,
+                            reply_stale, reply_foreign, cmd_size, cmd_bad, cmd_stale,
+                            u8 cmd_status, u64 cmd_seq (ends a loop)
                9 DROPPED    u64 loops the recorder could not keep (ring full)
-              10 FOREIGN    a sync reply from a key that is no DN's: the key
-                            (UTF-8, at most 256 bytes; ``dn`` 255)
+
+Version 3: the intake's refusals in FINISH (counts: a flood is not
+recorded frame by frame); version 2 had an ``inbox_oversize`` count there
+and an item per reply from no DN. A version 2 recording is refused by name.
 
 An oversize frame cannot decode (it is longer than the widest valid
 encoding), so a replay feeds an empty payload in its place: the same bad
@@ -59,24 +64,24 @@ from .codec import RegionCodec
 from .config import Mission, relocate_mission
 from .datavector import DataVector, Layout
 from .errors import RecordingError
+from .intake import CnRefusals
 
-__all__ = ["FOREIGN_DN", "LoopRecord", "RecordReader", "Recorder"]
+__all__ = ["LoopRecord", "RecordReader", "Recorder"]
 
 MAGIC = b"ZPREC\x00"
-VERSION = 2  # 2: BEGIN carries the final-loop flag
+VERSION = 3  # 2: BEGIN carries the final-loop flag; 3: FINISH the intake's refusals
 RECORD_FILE = "cn.zrec"
 MISSION_FILE = "mission.yaml"
 
-BEGIN, REPLY, REPLY_ERR, OVERSIZE, GROUND, GROUND_OVERSIZE, TELEMETRY, FINISH, DROPPED, FOREIGN = (
-    range(1, 11)
+BEGIN, REPLY, REPLY_ERR, OVERSIZE, GROUND, GROUND_OVERSIZE, TELEMETRY, FINISH, DROPPED = (
+    range(1, 10)
 )
-#: ``LoopRecord.replies`` entry index of a FOREIGN reply (its payload is the key).
-FOREIGN_DN = -1
 
 _ITEM = struct.Struct("<BBI")  # type, dn, length
 _BEGIN = struct.Struct("<QqB")
-_FINISH = struct.Struct("<BIII")
+_FINISH = struct.Struct("<BII" + "I" * 7 + "BQ")
 _U32 = struct.Struct("<I")
+_NONE_REFUSED = CnRefusals().fields()
 _U64 = struct.Struct("<Q")
 _HEAD = struct.Struct("<6sHI")
 
@@ -253,23 +258,17 @@ class Recorder:
         else:
             self._put(REPLY, i, payload, len(payload))
 
-    def foreign(self, source: str) -> None:
-        src = source.encode(errors="replace")[:256]
-        self._put(FOREIGN, 255, src, len(src))
-
     def finish(
         self,
         grounds: Sequence[bytes | bytearray | memoryview],
         sync_overrun: bool,
         loop_overruns: int,
         inbox_dropped: int,
-        inbox_oversize: int,
+        refused: CnRefusals | None,
         telemetry: bytearray | None,
     ) -> None:
         if not self._dropping:
-            self._finish(
-                grounds, sync_overrun, loop_overruns, inbox_dropped, inbox_oversize, telemetry
-            )
+            self._finish(grounds, sync_overrun, loop_overruns, inbox_dropped, refused, telemetry)
         if self._open_loop:
             self._open_loop = False
             if self._dropping:  # begun, then the ring filled: the loop is lost
@@ -284,7 +283,7 @@ class Recorder:
         sync_overrun: bool,
         loop_overruns: int,
         inbox_dropped: int,
-        inbox_oversize: int,
+        refused: CnRefusals | None,
         telemetry: bytearray | None,
     ) -> None:
         for ground in grounds:
@@ -297,7 +296,12 @@ class Recorder:
         self._put(
             FINISH,
             0,
-            _FINISH.pack(bool(sync_overrun), loop_overruns, inbox_dropped, inbox_oversize),
+            _FINISH.pack(
+                bool(sync_overrun),
+                loop_overruns,
+                inbox_dropped,
+                *(refused.fields() if refused is not None else _NONE_REFUSED),
+            ),
             _FINISH.size,
         )
 
@@ -331,7 +335,8 @@ class LoopRecord(msgspec.Struct, frozen=True):
     sync_overrun: bool
     loop_overruns: int
     inbox_dropped: int
-    inbox_oversize: int
+    refused: tuple[int, ...]
+    """:meth:`zplatform.intake.CnRefusals.fields` of the loop."""
     telemetry: bytes | None
 
 
@@ -421,8 +426,6 @@ class RecordReader:
                 replies.append((dn, body))
             elif typ == REPLY_ERR:
                 replies.append((dn, None))
-            elif typ == FOREIGN:
-                replies.append((FOREIGN_DN, body))
             elif typ == OVERSIZE:
                 replies.append((dn, b""))
             elif typ == GROUND:
@@ -432,9 +435,9 @@ class RecordReader:
             elif typ == TELEMETRY:
                 telemetry = body
             elif typ == FINISH:
-                so, lo, dr, ov = _FINISH.unpack(body)
+                so, lo, dr, *refused = _FINISH.unpack(body)
                 yield LoopRecord(
-                    loop, t, final, replies, grounds, bool(so), lo, dr, ov, telemetry
+                    loop, t, final, replies, grounds, bool(so), lo, dr, tuple(refused), telemetry
                 )
                 in_loop = False
             else:

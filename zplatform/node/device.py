@@ -20,12 +20,13 @@ from __future__ import annotations
 import logging
 import threading
 
-from ..auth import load_key
+from ..auth import load_key, mission_channels
 from ..boards import close_board, open_board
 from ..bulk import NodeBulk, open_bulk
 from ..clocksync import estimator_for
 from ..config import Mission
 from ..errors import ClockSyncError, NodeError, TransportError, ZPlatformError
+from ..intake import TriggerIntake
 from ..loop import DeviceLogic
 from ..scheduler import GcGuard
 from ..summary import DnSummary
@@ -66,6 +67,8 @@ class DeviceNode:
         # the CN has already closed: answer it, do not run it.
         self.logic = DeviceLogic(mission, name, stale_after_ns=mission.period_ns, key=key)
         self.dv = self.logic.dv
+        # The trigger intake's own channel: zenoh's thread checks tags with it.
+        self._intake_ch = mission_channels(mission, key)[f"cn_to_{name}"]
         self.ns = NodeSession(mission, name, announce=False, lowlatency=lowlatency)
         # One estimator for the start-up sync, its residual and the re-syncs.
         self.estimate_offset = estimator_for(mission.clock)
@@ -132,7 +135,14 @@ class DeviceNode:
             res.offset_ns / 1e3,
             res.estimator,
         )
-        self.sync = DeviceSync(s, keys, self.name, self.clock.now_ns, trace=self._sync_trace)
+        self.sync = DeviceSync(
+            s,
+            keys,
+            self.name,
+            self.clock.now_ns,
+            intake=TriggerIntake(m, self.name, self._intake_ch),
+            trace=self._sync_trace,
+        )
         self.bulk = open_bulk(s, m, self.name, self.logic)
         self._events = EventPublisher(s, keys.events(self.name), self.logic.events)
         if m.clock.resync_s > 0:
@@ -177,8 +187,8 @@ class DeviceNode:
             idle_s = min(0.2, period / 1e9)
             while not self.stop.is_set():
                 if not wait(logic, idle_s):
-                    if logic.watchdog(now()):
-                        self._events.flush()
+                    logic.watchdog(now())
+                    self._events.flush()  # a safing, refused queries: cheap when none
                     continue
                 t = now()
                 self._drift_h.set(self.drift_ns)
