@@ -23,6 +23,9 @@ Modes:
   ``{vehicle}/DN/to_cn`` that answers the CN's sync queries at ``--rate``
   replies per second in all (junk as above, of a reply's size; DN's own
   replies captured from its tap; both, alternately);
+* ``tm-junk`` / ``tm-replay`` / ``tm-mixed``: puts on ``{vehicle}/cn/telemetry``
+  (junk, half of a snapshot's size; the CN's own snapshots captured from
+  that key; both, alternately): the ground node is the victim;
 * ``cmd-replay``: publishes command request frames on ``{vehicle}/gn/to_cn``,
   round robin: the operator's own, captured on the wire (a zenoh peer cannot
   subscribe to another tool's puts: tools listen nowhere) and given on
@@ -59,7 +62,7 @@ from zplatform.mission import load_mission
 from zplatform.transport import KeySpace, open_session, zenoh_config
 
 MODES = (
-    *(f"{k}-{p}" for k in ("query", "reply") for p in ("junk", "replay", "mixed")),
+    *(f"{k}-{p}" for k in ("query", "reply", "tm") for p in ("junk", "replay", "mixed")),
     "cmd-replay",
 )
 TICK_S = 0.002  # pacing granularity: rate * TICK_S frames per tick
@@ -182,8 +185,10 @@ def main(argv: list[str] | None = None) -> int:
     ).size + tag
     session = open_session(zenoh_config(m, None))
     dn_key = keys.dn_to_cn(a.dn)
+    tm_len = frame_overhead(lay.size) + lay.size + tag
+    exact = {"query": trigger_len, "reply": reply_len, "tm": tm_len}.get(a.mode.split("-")[0], 0)
     junk = [rng.randbytes(rng.randrange(0, 2000)) for _ in range(64)]
-    junk += [rng.randbytes(trigger_len if a.mode.startswith("query") else reply_len)] * 64
+    junk += [rng.randbytes(exact) for _ in range(64)]
     rng.shuffle(junk)
     send: Any
     cleanup: list[Any] = []
@@ -224,6 +229,21 @@ def main(argv: list[str] | None = None) -> int:
         def send() -> None:
             k[0] += 1
             rogue.reply(payloads[k[0] % len(payloads)])
+
+    elif kind == "tm":
+        payloads = []
+        if what != "junk":
+            cap = Capture(session, keys.telemetry, keep=len(junk))
+            cap.wait(50, 60)
+            cap.close()
+            payloads = list(cap.frames)
+        payloads = _mix(junk if what != "replay" else [], payloads)
+        tm_pub = session.declare_publisher(keys.telemetry)
+        cleanup.append(tm_pub.undeclare)
+
+        def send() -> None:
+            k[0] += 1
+            tm_pub.put(payloads[k[0] % len(payloads)])
 
     else:  # cmd-replay: the frames come on stdin, captured on the wire
         words = sys.stdin.readline().split()

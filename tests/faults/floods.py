@@ -13,6 +13,9 @@ zenoh peer of its own without any key) attack one after the other:
 * ``rogue_replier``: a queryable on ``rocket/dn0/to_cn`` answering the CN's
   sync queries at ``RATE`` replies per second, junk and dn0's own captured
   replies;
+* ``telemetry_flood``: puts on ``rocket/cn/telemetry`` at ``RATE`` per
+  second, junk and the CN's own captured snapshots replayed: the ground
+  node (``gn``, logging) is the victim;
 * ``cmd_replay``: the operator's own ARM and LAUNCH frames, captured on
   the wire (a :class:`Wiretap` on the operator's link to the CN), replayed
   at ``RATE`` per second while the operator sends ``zplatform cmd ... noop``.
@@ -208,6 +211,7 @@ def flight(tmp: Path, *, realtime: bool = True) -> Iterator[Live]:
         c.watch_events()
         for name in ("world", "dn0", "dn1", "cn"):
             c.spawn(name, *(() if realtime else ("--no-realtime",)))
+        c.spawn_node("gn")  # the ground node, logging (it never runs SCHED_FIFO)
         c.ready()
         yield c
 
@@ -280,9 +284,10 @@ def _attack(
     """Run attacker ``a`` (armed already) through its window; figures under
     ``name``; checks: its rate, memory flat, every frame counted by the
     victim, none answered, one event a second at most."""
-    counter = f"{victim}_bad_frames"
+    counter = f"{victim}_bad_frames" if victim != "gn" else None  # gn: _ground_after
     _caught_up(c)
-    before = c.now(counter)
+    before = c.now(counter) if counter else 0
+    loop0 = c.now("cn_loop")
     a.go()
     w = _window(c, FLOOD_S, procs)
     res = a.finish()
@@ -291,7 +296,7 @@ def _attack(
     t_end = time.monotonic()
     after = {n: _usage(p)[0] for n, p in procs.items()}
     sent = int(res["sent"])
-    counted = c.now(counter) - before
+    counted = c.now(counter) - before if counter else None
     khz = res["rate"] / 1000
     ref_rate = ref["missed"] / ref["loops"]
     fl_rate = w["missed"] / w["loops"]
@@ -312,6 +317,7 @@ def _attack(
         "cpu_us_per_frame": round((w["cpu_s"][victim] - cpu_ref) / max(sent, 1) * 1e6, 2),
         "victim": victim,
         "rss_growth_mb": growth,
+        "loops": (loop0, c.now("cn_loop")),
     }
     r.figures[name] = fig
     r.check(f"{name}_reached_half_its_rate", res["rate"] >= RATE / 2, res["rate"])
@@ -319,7 +325,8 @@ def _attack(
         r.check(f"{name}_{n}_memory_flat", g <= RSS_MARGIN_MB, (g, w["rss_mb"][n], after[n]))
     # Every frame that reached the victim is refused and counted, once (a
     # reply that came after the CN's query had closed never reaches it).
-    r.check(f"{name}_every_frame_counted", 0 < counted <= sent, (counted, sent))
+    if counted is not None:
+        r.check(f"{name}_every_frame_counted", 0 < counted <= sent, (counted, sent))
     r.check(f"{name}_events_once_a_second", events <= FLOOD_S + 2, events)
     if res.get("answered") is not None:  # a forged or replayed trigger gets no reply
         r.check(f"{name}_nothing_answered", res["answered"] == 0, res["answered"])
@@ -332,8 +339,14 @@ def _attack(
     return fig
 
 
-ATTACKS = ("query_flood", "rogue_replier", "cmd_replay")
-_MODES = {"query_flood": "query-mixed", "rogue_replier": "reply-mixed", "cmd_replay": "cmd-replay"}
+ATTACKS = ("query_flood", "rogue_replier", "telemetry_flood", "cmd_replay")
+_MODES = {
+    "query_flood": "query-mixed",
+    "rogue_replier": "reply-mixed",
+    "telemetry_flood": "tm-mixed",
+    "cmd_replay": "cmd-replay",
+}
+_VICTIM = {"query_flood": "dn0", "rogue_replier": "cn", "telemetry_flood": "gn"}
 
 
 def _intact(r: CaseResult, c: Live, after: str) -> None:
@@ -377,14 +390,14 @@ def case_floods(
                 armed["cmd_replay"].give(tap.frames)
             for a in armed.values():
                 a.expect("ready")
-            procs = {n: psutil.Process(c.procs[n].pid) for n in ("cn", "dn0")}
+            procs = {n: psutil.Process(c.procs[n].pid) for n in ("cn", "dn0", "gn")}
             ref = _window(c, 1.0 if quick else FLOOD_S, procs)
             r.figures["reference"] = {k: ref[k] for k in ("loops", "missed")}
             for what, a in armed.items():
                 if what == "cmd_replay":
                     _cmd_replay(r, c, a, op)
                 else:
-                    _attack(r, c, what, a, ref, "dn0" if what == "query_flood" else "cn", procs)
+                    _attack(r, c, what, a, ref, _VICTIM[what], procs)
                 _intact(r, c, what)
             c.wait_for(
                 lambda dv: dv.get_name("cn_state") in ("DEPLOYED", "ABORTED", "NO_FIRE"),
@@ -393,6 +406,8 @@ def case_floods(
             )
             _intact(r, c, "flight")
             _check_in_order(r, [s.v for s in c.snaps])  # no forged trigger ran, no reply applied
+            if "telemetry_flood" in attacks:
+                _ground_after(r, c)
             r.figures["final_state"] = f"{c.now('cn_state')}/{c.now('cn_fault')}"
             r.figures["expected_state"] = "DEPLOYED/NONE"
             r.check("final_state_as_configured", r.figures["final_state"] == "DEPLOYED/NONE")
@@ -401,6 +416,30 @@ def case_floods(
         for a in started:
             a.close()
     return r
+
+
+def _ground_after(r: CaseResult, c: Live) -> None:
+    """The ground node through the telemetry flood: it logged the CN's
+    snapshots all along (the newest valid frame wins its intake), refused
+    and counted the flood's frames, and logged none of them."""
+    fig = r.figures["telemetry_flood"]
+    c.procs["gn"].terminate()
+    c.procs["gn"].wait(30)
+    gn = json.loads((c.tmp / "gn.json").read_text())
+    rows = (c.tmp / "gn.csv").read_text().splitlines()
+    col = rows[0].split(",").index("cn_loop")
+    logged = [int(x.split(",")[col]) for x in rows[1:] if x]
+    lo, hi = fig["loops"]
+    during = [n for n in logged if lo <= n <= hi]
+    refused = gn["telemetry_bad"]
+    fig.update(counted=refused, gn_logged_in_window=len(during), gn_refused=gn["telemetry_refused"])
+    r.check("telemetry_flood_every_frame_counted", 0 < refused <= fig["sent"], (refused, fig))
+    # Telemetry every loop (divisor 1): the flood cost the log no more than a
+    # loaded box's gaps, and never a replayed or repeated row.
+    kept = len(during) >= (hi - lo) // 2
+    r.check("telemetry_flood_ground_kept_logging", kept, (len(during), lo, hi))
+    r.check("telemetry_flood_nothing_logged_twice", len(logged) == len(set(logged)))
+    r.check("telemetry_flood_rows_in_order", logged == sorted(logged))
 
 
 def _cmd_replay(r: CaseResult, c: Live, a: Attacker, op: Path) -> None:
