@@ -44,6 +44,12 @@ leaves ``cn_cmd_seq``/``cn_cmd_status`` alone and writes
 ``cn_cmd_rejects`` (a count), ``cn_cmd_reject_status`` and
 ``cn_cmd_reject_seq`` (its number; 0 for ``REJECTED_AUTH``, whose number
 cannot be trusted), so the tool that sent it learns of the refusal at once.
+The epoch and number rules are :func:`request_refusal`'s: the CN's intake
+(:class:`zplatform.intake.RequestIntake`) applies them to every request as
+it arrives, so a replayed frame never reaches the loop, and counts the
+refused ones together (:meth:`CommandHandler.count_refused`: when several
+were refused in one loop, ``cn_cmd_reject_seq`` shows the highest number,
+an operator's fresh one rather than a replay's).
 
 The numbers are remembered for the CN's life: a ground tool continues from
 the ``cn_cmd_seq`` it reads in telemetry (see :func:`zplatform.uplink.fill_request`).

@@ -78,6 +78,7 @@ from .messages import wildcard_sync_for
 
 __all__ = [
     "BACKLOG",
+    "CN_REFUSALS",
     "EVENT_PERIOD_NS",
     "CnRefusals",
     "Intake",
@@ -472,7 +473,7 @@ class CnRefusals:
         "reply_foreign",
         "reply_size",
         "reply_stale",
-    )
+    )  # CN_REFUSALS: their recorded order
 
     def __init__(self) -> None:
         self.clear()
@@ -495,33 +496,28 @@ class CnRefusals:
         )
 
     def fields(self) -> tuple[int, ...]:
-        """Every count, in :attr:`__slots__`' documented order (for a recorder)."""
-        return (
-            self.reply_size,
-            self.reply_bad,
-            self.reply_stale,
-            self.reply_foreign,
-            self.cmd_size,
-            self.cmd_bad,
-            self.cmd_stale,
-            self.cmd_status,
-            self.cmd_seq,
-        )
+        """Every count, in :data:`CN_REFUSALS` order (for a recorder)."""
+        return tuple(getattr(self, k) for k in CN_REFUSALS)
 
     def set_fields(self, values: tuple[int, ...]) -> CnRefusals:
         """The inverse of :meth:`fields`; returns self."""
-        (
-            self.reply_size,
-            self.reply_bad,
-            self.reply_stale,
-            self.reply_foreign,
-            self.cmd_size,
-            self.cmd_bad,
-            self.cmd_stale,
-            self.cmd_status,
-            self.cmd_seq,
-        ) = values
+        for k, v in zip(CN_REFUSALS, values, strict=True):
+            setattr(self, k, v)
         return self
+
+
+CN_REFUSALS = (
+    "reply_size",
+    "reply_bad",
+    "reply_stale",
+    "reply_foreign",
+    "cmd_size",
+    "cmd_bad",
+    "cmd_stale",
+    "cmd_status",
+    "cmd_seq",
+)
+""":class:`CnRefusals`' fields in their recorded order."""
 
 
 class RefusalLog:

@@ -42,7 +42,7 @@ import struct
 import subprocess
 import sys
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager, suppress
 from pathlib import Path
 from typing import IO, Any
@@ -51,7 +51,7 @@ import psutil
 import yaml
 
 from tests.faults.attacker import attacker_env
-from tests.faults.live import CaseResult, Live, _check_in_order, live
+from tests.faults.live import CaseResult, Live, _check_in_order, _final, live
 from tests.faults.missions import plain_tcp_mission
 from tests.faults.relay import FaultRelay
 from tests.integration.harness import CONFIGS, ROOT
@@ -66,6 +66,10 @@ MINIMAL = CONFIGS / "minimal.yaml"
 RATE = 6000.0
 """Frames per second of every attack (the issue's figure)."""
 FLOOD_S = 3.0
+"""How long each attack lasts in the tests (``quick``); the bench's last
+:data:`BENCH_FLOOD_S`, for a finer miss rate (one miss in a 3 s window is
+already 5e-4 per 1,000 frames/s at 6,000 frames/s)."""
+BENCH_FLOOD_S = 10.0
 RSS_MARGIN_MB = 16.0
 """How much a node's RSS may grow over an attack: a fixed margin (allocator
 and zenoh buffer noise), not a proportion of the attack."""
@@ -246,23 +250,42 @@ def _caught_up(c: Live) -> None:
     c.wait_for(lambda dv: int(dv.get("cn_time_ns")) >= now, 60, "telemetry of now")
 
 
+class _Mark:
+    """The CN's counters (as of now: :func:`_caught_up`) and the nodes' usage
+    at one moment of the flight."""
+
+    def __init__(self, c: Live, procs: dict[str, psutil.Process]) -> None:
+        _caught_up(c)
+        self.t = time.monotonic()
+        self.usage = {n: _usage(p) for n, p in procs.items()}
+        self.counts = _counts(c)
+
+
 def _window(c: Live, seconds: float, procs: dict[str, psutil.Process]) -> dict[str, Any]:
-    """Telemetry counters and node usage over ``seconds`` of the flight."""
-    _caught_up(c)
-    u0 = {n: _usage(p) for n, p in procs.items()}
-    s0 = _counts(c)
+    """The reference window: misses and the nodes' CPU over ``seconds``."""
+    a = _Mark(c, procs)
     c.pump_for(seconds)
-    u1 = {n: _usage(p) for n, p in procs.items()}
-    _caught_up(c)
-    s1 = _counts(c)
-    loops = max(1, s1["cn_loop"] - s0["cn_loop"])
+    return _between(a, _Mark(c, procs))
+
+
+def _between(a: _Mark, b: _Mark) -> dict[str, Any]:
+    loops = max(1, b.counts["cn_loop"] - a.counts["cn_loop"])
     return {
         "loops": loops,
-        "missed": sum(s1[k] - s0[k] for k in _SYNC),
-        "bad": {k: s1[k] - s0[k] for k in ("cn_bad_frames", "dn0_bad_frames")},
-        "cpu_s": {n: u1[n][1] - u0[n][1] for n in procs},
-        "rss_mb": {n: (round(u0[n][0], 1), round(u1[n][0], 1)) for n in procs},
+        "missed": sum(b.counts[k] - a.counts[k] for k in _SYNC),
+        "cpu_s": {n: b.usage[n][1] - a.usage[n][1] for n in a.usage},
+        "rss_mb": {n: (round(a.usage[n][0], 1), round(b.usage[n][0], 1)) for n in a.usage},
     }
+
+
+def _lasts(c: Live, a: Attacker) -> Callable[[], None]:
+    """Read telemetry while attacker ``a`` attacks (it ends by itself)."""
+
+    def read() -> None:
+        while a.running():
+            c.pump_for(0.1)
+
+    return read
 
 
 def _events(c: Live, node: str, kind: str, t0: float, t1: float) -> int:
@@ -280,29 +303,34 @@ def _attack(
     ref: dict[str, Any],
     victim: str,
     procs: dict[str, psutil.Process],
+    during: Callable[[], None] = lambda: None,
 ) -> dict[str, Any]:
-    """Run attacker ``a`` (armed already) through its window; figures under
-    ``name``; checks: its rate, memory flat, every frame counted by the
-    victim, none answered, one event a second at most."""
-    counter = f"{victim}_bad_frames" if victim != "gn" else None  # gn: _ground_after
-    _caught_up(c)
+    """Run attacker ``a`` (armed already) to its end, ``during()`` meanwhile
+    (by default, only telemetry is read); figures under ``name``: the
+    misses in the window against the reference ``ref``, the victim's CPU
+    per frame beyond its reference, every node's RSS growth. Checks: the
+    attack's rate, memory flat, its frames counted where they landed
+    (``counted``: the victim's bad frames, or what ``name``'s own checks
+    count), none answered, one event a second at most."""
+    counter = {"dn0": "dn0_bad_frames", "cn": "cn_bad_frames"}.get(victim)
+    if name == "cmd_replay":
+        counter = "cn_cmd_rejects"
+    m0 = _Mark(c, procs)
     before = c.now(counter) if counter else 0
-    loop0 = c.now("cn_loop")
     a.go()
-    w = _window(c, FLOOD_S, procs)
+    during()
     res = a.finish()
     c.pump_for(0.5)  # what the attack left in flight arrives and is counted
-    _caught_up(c)
-    t_end = time.monotonic()
-    after = {n: _usage(p)[0] for n, p in procs.items()}
+    w = _between(m0, m1 := _Mark(c, procs))
     sent = int(res["sent"])
     counted = c.now(counter) - before if counter else None
     khz = res["rate"] / 1000
     ref_rate = ref["missed"] / ref["loops"]
     fl_rate = w["missed"] / w["loops"]
     cpu_ref = ref["cpu_s"][victim] / ref["loops"] * w["loops"]
-    growth = {n: round(after[n] - w["rss_mb"][n][0], 1) for n in procs}
-    events = _events(c, victim, "bad_frame", a.t_go, t_end)
+    growth = {n: round(m1.usage[n][0] - m0.usage[n][0], 1) for n in procs}
+    event = "cmd_rejected" if name == "cmd_replay" else "bad_frame"
+    events = _events(c, victim, event, m0.t, m1.t)
     fig = {
         "sent": sent,
         "rate_hz": round(res["rate"]),
@@ -317,17 +345,17 @@ def _attack(
         "cpu_us_per_frame": round((w["cpu_s"][victim] - cpu_ref) / max(sent, 1) * 1e6, 2),
         "victim": victim,
         "rss_growth_mb": growth,
-        "loops": (loop0, c.now("cn_loop")),
+        "loops": (m0.counts["cn_loop"], m1.counts["cn_loop"]),
     }
     r.figures[name] = fig
     r.check(f"{name}_reached_half_its_rate", res["rate"] >= RATE / 2, res["rate"])
     for n, g in growth.items():
-        r.check(f"{name}_{n}_memory_flat", g <= RSS_MARGIN_MB, (g, w["rss_mb"][n], after[n]))
+        r.check(f"{name}_{n}_memory_flat", g <= RSS_MARGIN_MB, (g, w["rss_mb"][n]))
     # Every frame that reached the victim is refused and counted, once (a
     # reply that came after the CN's query had closed never reaches it).
     if counted is not None:
         r.check(f"{name}_every_frame_counted", 0 < counted <= sent, (counted, sent))
-    r.check(f"{name}_events_once_a_second", events <= FLOOD_S + 2, events)
+    r.check(f"{name}_events_once_a_second", events <= (m1.t - m0.t) + 2, events)
     if res.get("answered") is not None:  # a forged or replayed trigger gets no reply
         r.check(f"{name}_nothing_answered", res["answered"] == 0, res["answered"])
     # A rate figure, held to its target by the bench, asserted by no test:
@@ -369,8 +397,10 @@ def case_floods(
     try:
         with flight(tmp, realtime=realtime) as c:
 
+            flood_s = FLOOD_S if quick else BENCH_FLOOD_S
+
             def attacker(what: str) -> Attacker:
-                dur = 2 * FLOOD_S if what == "cmd_replay" else FLOOD_S
+                dur = 2 * flood_s if what == "cmd_replay" else flood_s
                 a = Attacker(c.path, _MODES[what], tmp / f"{what}.log", rate=RATE, duration=dur)
                 started.append(a)
                 return a
@@ -391,13 +421,13 @@ def case_floods(
             for a in armed.values():
                 a.expect("ready")
             procs = {n: psutil.Process(c.procs[n].pid) for n in ("cn", "dn0", "gn")}
-            ref = _window(c, 1.0 if quick else FLOOD_S, procs)
+            ref = _window(c, 1.0 if quick else flood_s, procs)
             r.figures["reference"] = {k: ref[k] for k in ("loops", "missed")}
             for what, a in armed.items():
                 if what == "cmd_replay":
-                    _cmd_replay(r, c, a, op)
+                    _cmd_replay(r, c, a, op, ref, procs)
                 else:
-                    _attack(r, c, what, a, ref, _VICTIM[what], procs)
+                    _attack(r, c, what, a, ref, _VICTIM[what], procs, during=_lasts(c, a))
                 _intact(r, c, what)
             c.wait_for(
                 lambda dv: dv.get_name("cn_state") in ("DEPLOYED", "ABORTED", "NO_FIRE"),
@@ -442,40 +472,40 @@ def _ground_after(r: CaseResult, c: Live) -> None:
     r.check("telemetry_flood_rows_in_order", logged == sorted(logged))
 
 
-def _cmd_replay(r: CaseResult, c: Live, a: Attacker, op: Path) -> None:
+def _cmd_replay(
+    r: CaseResult,
+    c: Live,
+    a: Attacker,
+    op: Path,
+    ref: dict[str, Any],
+    procs: dict[str, psutil.Process],
+) -> None:
     """The replay stream, and the operator's ``zplatform cmd ... noop`` in it:
-    answered, ACCEPTED; every replay refused and counted as a reject that
-    consumes no number, evented once a second at most."""
-    _caught_up(c)
-    rej0, seq0 = c.now("cn_cmd_rejects"), c.now("cn_cmd_seq")
-    a.go()
-    c.wait_for(lambda dv: int(dv.get("cn_cmd_rejects")) > rej0, 30, "replays refused")
-    noop = operator(op, "noop", timeout_s=10)
-    out, _ = noop.communicate(timeout=120)
-    replaying = a.running()
-    res = a.finish()
-    c.pump_for(0.5)
-    _caught_up(c)
-    t_end = time.monotonic()
-    rejects = c.now("cn_cmd_rejects") - rej0
-    events = _events(c, "cn", "cmd_rejected", a.t_go, t_end)
-    r.figures["cmd_replay"] = {
-        "sent": res["sent"],
-        "rate_hz": round(res["rate"]),
-        "counted": rejects,
-        "events": events,
-        "noop": out.strip().splitlines()[-1:] if out else [],
-    }
-    r.check("cmd_replay_noop_answered", noop.returncode == 0 and "ACCEPTED" in out, out)
-    r.check("cmd_replay_still_running_at_verdict", replaying)
-    r.check("cmd_replay_every_frame_counted", 0 < rejects <= res["sent"], (rejects, res["sent"]))
+    answered, ACCEPTED, numbered on from the last verdict; every replay
+    refused and counted as a reject that consumes no number (``cn_cmd_rejects``)."""
+    seq0 = c.now("cn_cmd_seq")
+    out: list[str] = []
+    replaying: list[bool] = []
+
+    def noop() -> None:  # the operator, once the CN refuses replays
+        rej0 = c.now("cn_cmd_rejects")
+        c.wait_for(lambda dv: int(dv.get("cn_cmd_rejects")) > rej0, 30, "replays refused")
+        p = operator(op, "noop", timeout_s=10)
+        out.append(p.communicate(timeout=120)[0])
+        out.append(str(p.returncode))
+        replaying.append(a.running())
+
+    fig = _attack(r, c, "cmd_replay", a, ref, "cn", procs, during=noop)
+    text, code = out
+    fig["noop"] = text.strip().splitlines()[-1:]
+    r.check("cmd_replay_noop_answered", code == "0" and "ACCEPTED" in text, text)
+    r.check("cmd_replay_still_running_at_verdict", replaying == [True])
     status = c.tm.get_name("cn_cmd_status")
     r.check(
         "cmd_replay_numbering_kept",
         c.now("cn_cmd_seq") == seq0 + 1 and status == "ACCEPTED",
         (seq0, c.now("cn_cmd_seq"), status),
     )
-    r.check("cmd_replay_events_once_a_second", events <= 2 * FLOOD_S + 2, events)
 
 
 def case_restart_beside_rogue(tmp: Path, quick: bool) -> CaseResult:
@@ -517,6 +547,7 @@ def case_restart_beside_rogue(tmp: Path, quick: bool) -> CaseResult:
             r.check("nothing_applied_while_dead", rx2 == rx1, rx2 - rx1)
             r.check("rogue_counted_while_dead", bad2 > bad1, bad2 - bad1)
             _check_in_order(r, [s.v for s in c.snaps if s.v["cn_rx_dn0"] > rx2])
+            _final(r, c, "IDLE", "DN_LOST")  # minimal.yaml latches DN_LOST, and stays IDLE
     finally:
         if a is not None:
             a.close()

@@ -14,6 +14,7 @@ from typing import Any
 import pytest
 import zenoh
 
+from tests.faults.peers import peer_config
 from zplatform.auth import mission_channels
 from zplatform.codes import CommandStatus
 from zplatform.commands import SEQ_WINDOW, request_refusal
@@ -272,17 +273,9 @@ class _Reply:
         self.err = err
 
 
-def _session() -> zenoh.Session:
-    cfg = zenoh.Config()
-    cfg.insert_json5("mode", '"peer"')
-    cfg.insert_json5("listen/endpoints", "[]")
-    cfg.insert_json5("scouting/multicast/enabled", "false")
-    return zenoh.open(cfg)
-
-
 @pytest.fixture
 def sync() -> Any:
-    session = _session()
+    session = zenoh.open(peer_config())
     ch = mission_channels(M, KEY)
     cs = ControlSync(
         session,
