@@ -14,8 +14,9 @@ proposed fix (``tests/faults/cn_drop_patch.py``). Then the floods of
 ``tests/faults/floods.py``: a recovery_igniter flight on plain TCP through
 which a keyless attacker process floods dn0's sync key with queries, answers
 the CN's sync queries as a rogue, floods the ground's telemetry key and
-replays the operator's command frames, each at 6,000 frames/s (3 s; the
-replay 6 s), once with the nodes as configured (SCHED_FIFO) and once without
+replays the operator's command frames, each at 6,000 frames/s (10 s each
+here, 3 s in the tests; the replay until the operator's command has its
+verdict), once with the nodes as configured (SCHED_FIFO) and once without
 real-time priority; and dn0 restarted beside a rogue replier.
 
 Figures per case (``variants[case]``):

@@ -476,14 +476,8 @@ class DeviceSync:
             # zenoh's thread: the intake's checks; a refused query is
             # released here, unanswered (zenoh finalises it at once).
             p = query.payload
-            admit(p if p is not None else _NO_PAYLOAD, query)
-
-        if trace is not None:
-
-            def handoff(query: zenoh.Query) -> None:
-                p = query.payload
-                if admit(p if p is not None else _NO_PAYLOAD, query):
-                    trace("arrive", 0)
+            if admit(p if p is not None else _NO_PAYLOAD, query) and trace is not None:
+                trace("arrive", 0)
 
         self.queryable = session.declare_queryable(
             self._key, zenoh.handlers.Callback(handoff, indirect=False)

@@ -34,7 +34,7 @@ Modes:
 Protocol: prints ``ready`` once connected and armed (replay modes: once it
 captured what it replays; reply modes: once the CN's queries reach its
 queryable), waits for a line ``go`` on stdin, attacks for ``--duration``
-seconds at ``--rate`` per second, prints one JSON line (``sent``,
+seconds (or until a line ``stop``) at ``--rate`` per second, prints one JSON line (``sent``,
 ``seconds``, ``rate``; query modes: ``answered``, the replies its queries
 got) and exits. It asks for niceness -10 (where the user may): a real attacker has a
 machine of its own, this one must keep its rate beside a CPU hog.
@@ -106,15 +106,15 @@ def _mix(a: list[bytes], b: list[bytes]) -> list[bytes]:
     return out + a[n:] + b[n:]
 
 
-def paced(rate: float, duration_s: float, send: Any) -> tuple[int, float]:
-    """Call ``send()`` ``rate`` times a second for ``duration_s``; returns
-    (calls, seconds taken)."""
+def paced(rate: float, duration_s: float, send: Any, stop: threading.Event) -> tuple[int, float]:
+    """Call ``send()`` ``rate`` times a second for ``duration_s`` or until
+    ``stop`` is set; returns (calls, seconds taken)."""
     per_tick = rate * TICK_S
     t0 = time.monotonic()
     sent = 0
     owed = 0.0
     nxt = t0
-    while (now := time.monotonic()) - t0 < duration_s:
+    while (now := time.monotonic()) - t0 < duration_s and not stop.is_set():
         owed += per_tick
         while owed >= 1.0:
             send()
@@ -260,7 +260,14 @@ def main(argv: list[str] | None = None) -> int:
     print("ready", flush=True)
     if sys.stdin.readline().strip() != "go":
         return 0
-    sent, seconds = paced(a.rate, a.duration, send)
+    stop = threading.Event()
+
+    def until_stop() -> None:  # a line `stop` (or stdin's end) ends the attack early
+        sys.stdin.readline()
+        stop.set()
+
+    threading.Thread(target=until_stop, daemon=True).start()
+    sent, seconds = paced(a.rate, a.duration, send, stop)
     time.sleep(0.1)  # the last gets' answers, if any, come in (their timeout is 50 ms)
     for c in cleanup:
         c()

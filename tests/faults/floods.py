@@ -18,7 +18,8 @@ zenoh peer of its own without any key) attack one after the other:
   node (``gn``, logging) is the victim;
 * ``cmd_replay``: the operator's own ARM and LAUNCH frames, captured on
   the wire (a :class:`Wiretap` on the operator's link to the CN), replayed
-  at ``RATE`` per second while the operator sends ``zplatform cmd ... noop``.
+  at ``RATE`` per second from before the operator sends ``zplatform cmd ...
+  noop`` until it has its verdict.
 
 Behaviour checked (the tests assert every check): the flight reaches
 DEPLOYED, no DN safes (no ``dn_safed`` event, ``dnX_safed`` never set), no
@@ -70,6 +71,8 @@ FLOOD_S = 3.0
 :data:`BENCH_FLOOD_S`, for a finer miss rate (one miss in a 3 s window is
 already 5e-4 per 1,000 frames/s at 6,000 frames/s)."""
 BENCH_FLOOD_S = 10.0
+REPLAY_MAX_S = 120.0
+"""The longest the command replay may go on: the operator's command ends it."""
 RSS_MARGIN_MB = 16.0
 """How much a node's RSS may grow over an attack: a fixed margin (allocator
 and zenoh buffer noise), not a proportion of the attack."""
@@ -176,6 +179,12 @@ class Attacker:
 
     def running(self) -> bool:
         return self.proc.poll() is None
+
+    def stop(self) -> None:
+        """End the attack now (before its duration)."""
+        assert self.proc.stdin is not None
+        self.proc.stdin.write("stop\n")
+        self.proc.stdin.flush()
 
     def finish(self, timeout_s: float = 60.0) -> dict[str, Any]:
         """Wait for the attack to end; its JSON line (sent, seconds, rate)."""
@@ -400,7 +409,9 @@ def case_floods(
             flood_s = FLOOD_S if quick else BENCH_FLOOD_S
 
             def attacker(what: str) -> Attacker:
-                dur = 2 * flood_s if what == "cmd_replay" else flood_s
+                # The replay goes on until the operator's command has its
+                # verdict (it is stopped then); the duration only bounds it.
+                dur = REPLAY_MAX_S if what == "cmd_replay" else flood_s
                 a = Attacker(c.path, _MODES[what], tmp / f"{what}.log", rate=RATE, duration=dur)
                 started.append(a)
                 return a
@@ -494,6 +505,7 @@ def _cmd_replay(
         out.append(p.communicate(timeout=120)[0])
         out.append(str(p.returncode))
         replaying.append(a.running())
+        a.stop()
 
     fig = _attack(r, c, "cmd_replay", a, ref, "cn", procs, during=noop)
     text, code = out
