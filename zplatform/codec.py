@@ -44,6 +44,7 @@ __all__ = [
     "frame_overhead",
     "frame_stamp",
     "is_bundle",
+    "max_frame_length",
 ]
 
 U32 = Annotated[int, Meta(ge=0, le=0xFFFF_FFFF)]
@@ -172,6 +173,12 @@ def _fixed_width(frame: bytes | bytearray | memoryview) -> bool:
     )
 
 
+def max_frame_length(size: int) -> int:
+    """The longest valid frame of ``size`` data bytes: the fixed-width header
+    and the widest bin header a peer may use. Anything longer is malformed."""
+    return _HDR_LEN + 5 + size
+
+
 def frame_stamp(frame: bytes | bytearray | memoryview) -> tuple[int, int]:
     """``(seq, t_ns)`` of a frame, read without decoding it when it has the
     fixed-width header (FORMAT.md §2: the fields at offsets 7 and 16, what
@@ -263,9 +270,8 @@ class RegionCodec:
 
     @property
     def max_frame_len(self) -> int:
-        """The longest valid frame of this region: the fixed-width header and
-        the widest bin header a peer may use. Anything longer is malformed."""
-        return _HDR_LEN + 5 + self.size
+        """The longest valid frame of this region (:func:`max_frame_length`)."""
+        return max_frame_length(self.size)
 
     def encode(self, seq: int, t_ns: int) -> bytearray:
         """Frame the region now; the returned buffer is reused by the next call."""

@@ -49,8 +49,8 @@ and, once per loop, the counts (:meth:`Intake.take_counts`), which it
 writes into its Data Vector and reports in events a flood cannot multiply
 (:class:`RefusalLog`).
 
-Why a zenoh callback may do this much (it otherwise only hands off, DESIGN
-rule): every step is bounded and constant time (one copy of at most the
+Why a zenoh callback may do this much (the rule is that a callback only
+hands off): every step is bounded and constant time (one copy of at most the
 longest valid frame, one tag, a few integer compares, a counter bump), none
 blocks (the intake's lock is held only for these steps, by zenoh's threads,
 and by the consumer for a pop), and a frame refused here is never queued,
@@ -69,7 +69,14 @@ from collections.abc import Callable
 from typing import Generic, Protocol, TypeVar
 
 from .auth import TAG_LEN, Channel
-from .codec import bundle_entry, bundle_size, frame_data, frame_stamp, is_bundle
+from .codec import (
+    bundle_entry,
+    bundle_size,
+    frame_data,
+    frame_stamp,
+    is_bundle,
+    max_frame_length,
+)
 from .commands import RequestNumber, request_refusal
 from .config import Mission
 from .datavector import Layout
@@ -113,9 +120,9 @@ class Payload(Protocol):
 
 
 def max_frame_len(size: int, channel: Channel | None) -> int:
-    """The longest valid frame of a region of ``size`` bytes as it travels:
-    the fixed-width header, the widest bin header a peer may use, the tag."""
-    return 24 + 5 + size + (TAG_LEN if channel is not None else 0)
+    """The longest valid frame of a region of ``size`` bytes as it travels
+    (:func:`zplatform.codec.max_frame_length`), with its tag."""
+    return max_frame_length(size) + (TAG_LEN if channel is not None else 0)
 
 
 class Waker:
