@@ -30,7 +30,12 @@ Figures per case (``variants[case]``):
 * ``final_state`` / ``expected_state``: ``cn_state/cn_fault`` at the end vs
   what the mission configures for the fault; ``ends_as_configured``;
 * ``forged_applied``: forged or junk inputs that changed the vehicle;
-* ``passed``: every check of the case (``checks`` has each one).
+* ``passed``: every check of the case (``checks`` has each one): behaviour,
+  which the fault tests assert too;
+* ``targets``: the case's timing and rate figures against their limits
+  (DN_LOST within the lease, the CN's rate under the fault, misses a drop
+  does not explain, ...): reported here, asserted by no test, since they
+  measure how promptly the box runs the processes (tests/budget.py).
 
 Flood figures (``params.floods``, one row per flight and attack): the
 rate the attacker reached and the frames it sent, how many the node under
@@ -96,9 +101,10 @@ def run_cases(quick: bool, only: list[str] | None = None) -> dict[str, dict[str,
             except Exception as exc:  # one case failing must not hide the others
                 fig = {"passed": False, "error": f"{type(exc).__name__}: {exc}"[:2000]}
                 traceback.print_exc()
-        fig["ends_as_configured"] = fig.get("final_state") is not None and fig.get(
-            "final_state"
-        ) == fig.get("expected_state")
+        # The case's own check: the expected fault may be "either" where
+        # telemetry gaps leave a run of misses open (tests/faults/live.py).
+        final_check = (fig.get("checks") or {}).get("final_state_as_configured")
+        fig["ends_as_configured"] = bool(final_check and final_check["ok"])
         fig["case_s"] = round(time.monotonic() - t0, 1)
         out[name] = fig
         print(f"{name}: passed={fig['passed']} detect_ms={fig.get('detect_ms')}", flush=True)
@@ -108,8 +114,8 @@ def run_cases(quick: bool, only: list[str] | None = None) -> dict[str, dict[str,
 def markdown(variants: dict[str, dict[str, Any]]) -> str:
     rows = [
         "| case | detect ms | DN_LOST ms | loops missed | final state | configured | "
-        "forged applied | checks |",
-        "|---|---:|---:|---:|---|---|---:|---|",
+        "forged applied | checks | targets |",
+        "|---|---:|---:|---:|---|---|---:|---|---|",
     ]
     for name, f in variants.items():
         checks = f.get("checks", {})
@@ -119,10 +125,14 @@ def markdown(variants: dict[str, dict[str, Any]]) -> str:
             if "error" in f
             else ("all pass" if not failed else "FAIL: " + ", ".join(failed))
         )
+        targets = f.get("targets", {})
+        missed = [k for k, v in targets.items() if not v["met"]]
+        met = "-" if not targets else "all met" if not missed else "missed: " + ", ".join(missed)
         rows.append(
             f"| {name} | {_v(f.get('detect_ms'))} | {_v(f.get('dn_lost_ms'))} | "
             f"{_v(f.get('loops_missed'))} | {_v(f.get('final_state'))} | "
-            f"{_v(f.get('expected_state'))} | {_v(f.get('forged_applied'))} | {verdict} |"
+            f"{_v(f.get('expected_state'))} | {_v(f.get('forged_applied'))} | {verdict} | "
+            f"{met} |"
         )
     return "\n".join(rows)
 

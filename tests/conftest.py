@@ -4,12 +4,33 @@ Every mission authenticates its traffic by default, so every node process a
 test starts needs the mission key. The tests run with one random key in the
 environment (``ZPLATFORM_KEY``), which the processes they spawn inherit;
 nothing is written to the user's key directory.
+
+Hypothesis runs without its per-example deadline (200 ms by default): the
+suite must pass on a busy 2-core box beside a CPU hog, where one example may
+wait that long for a CPU, and a test asserts behaviour, not the box's speed
+(tests/budget.py).
+
+Likewise a control node loads (and PRM_SAVE writes) its mission's parameter
+file: the tests keep them in a directory of their own
+(``ZPLATFORM_PARAMS_DIR``), removed at exit, never in the user's.
 """
 
 from __future__ import annotations
 
+import atexit
 import os
 import secrets
+import shutil
+import tempfile
+
+from hypothesis import settings
 
 os.environ.setdefault("ZPLATFORM_KEY", secrets.token_hex(32))
 os.environ.pop("ZPLATFORM_KEY_FILE", None)
+
+settings.register_profile("zplatform", deadline=None)
+settings.load_profile("zplatform")
+
+_PARAMS_DIR = tempfile.mkdtemp(prefix="zplatform-test-params-")
+os.environ["ZPLATFORM_PARAMS_DIR"] = _PARAMS_DIR
+atexit.register(shutil.rmtree, _PARAMS_DIR, True)

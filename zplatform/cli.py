@@ -145,39 +145,29 @@ def cmd_ps(args: argparse.Namespace) -> int:
 MISSION_HELP = "mission YAML file, or the name of a running mission (`zplatform ps`)"
 
 
-def _keygen_mission_name(arg: str) -> str:
-    """The mission name ``keygen MISSION`` means: a mission file's ``mission:``
-    (its code is not imported), a running mission's, or ``arg`` itself when it
-    is neither a file nor running but a valid mission name (a key is often
-    made before the mission first runs). CommandError (or the loader's
-    ConfigError) otherwise."""
-    from .config import check_mission_name
-    from .errors import CommandError, ConfigError
-
-    try:
-        path = resolve_mission(arg)
-    except CommandError:
-        if os.sep in arg or arg.endswith((".yaml", ".yml")):
-            raise  # meant as a file: say there is none
-        try:
-            check_mission_name(arg)
-        except ConfigError as exc:
-            raise CommandError(f"{exc.reason}, and it is no file or running mission") from None
-        return arg
-    return load_mission(path, code=False).mission
-
-
 def cmd_keygen(args: argparse.Namespace) -> int:
-    """Write a new random mission key (mode 0600); refuses to overwrite one."""
-    from .auth import KEY_FILE_ENV, default_key_path, write_key
+    """Write a new key set (one file per host role, mode 0600, in a 0700
+    directory) and say which file goes to which host; refuses to overwrite one."""
+    from .auth import (
+        KEY_FILE_ENV,
+        default_key_dir,
+        host_roles,
+        role_host,
+        role_links,
+        write_key_set,
+    )
 
-    name = _keygen_mission_name(args.target)
-    path = write_key(args.out or default_key_path(name))
-    print(f"wrote the key of mission {name!r} to {path}")
-    if args.out:
-        print(f"nodes and tools find it with {KEY_FILE_ENV}={path}")
-    else:
-        print("copy it to the same place on every host of the mission and the ground station")
+    mission = load_mission(resolve_mission(args.target), code=False)
+    where = args.out or default_key_dir(mission)
+    files = write_key_set(mission, where)
+    print(f"wrote the key set of mission {mission.mission!r} to {where}/ (one file per host role):")
+    for role in host_roles(mission):
+        links = ", ".join(role_links(mission, role))
+        print(f"  {files[role].name:<10} -> {role_host(role):<46} {links}")
+    print(
+        "copy each file to its host only, into the same directory (or point "
+        f"{KEY_FILE_ENV} at it); a single host (zplatform up) uses the directory as it is"
+    )
     return 0
 
 
@@ -223,14 +213,14 @@ def build_parser() -> argparse.ArgumentParser:
     c.set_defaults(func=cmd_check)
     c = sub.add_parser(
         "keygen",
-        help="make the mission key that authenticates every frame (copy it to every host)",
+        help="make the mission's key set: one key file per host role (cn, each dn, gn, tool)",
     )
-    # Not `mission`: main() would resolve it, and keygen also takes a bare name.
+    # Not `mission`: main() would load it with its code; keygen needs only the nodes.
+    c.add_argument("target", metavar="MISSION", help=MISSION_HELP)
     c.add_argument(
-        "target", metavar="MISSION", help=MISSION_HELP + ", or a mission name (led_test)"
-    )
-    c.add_argument(
-        "--out", metavar="PATH", help="where to write it (default: the mission's key file)"
+        "--out",
+        metavar="DIR",
+        help="the directory to write the set into (default: the mission's key directory)",
     )
     c.set_defaults(func=cmd_keygen)
     c = sub.add_parser(

@@ -28,7 +28,7 @@ Contract:
 * Every node enforces an **access-control list** (zenoh ``access_control``,
   ``default_permission: deny``) keyed by the remote's certificate common
   name. A cert's common name is its node name (``cn``, ``dn0``, ``gn``) or
-  ``tool``. The rules follow DESIGN.md §3 (:func:`access_control`):
+  ``tool``. The rules follow docs/architecture.md#key-space (:func:`access_control`):
 
   - node ``X`` may put, reply on and declare queryables and liveliness tokens
     only under its own prefix ``{vehicle}/X/**``; so only ``cn`` puts

@@ -1,4 +1,4 @@
-"""The zplatform error tree (thesis 000, ch. 4.11, made Pythonic).
+"""The zplatform error tree (the thesis, ch. 4.11, made Pythonic).
 
 The thesis' C++ platform returns an ``Error_t`` status from every function and
 has the node mains decide what to do with it. In Python the same contract is

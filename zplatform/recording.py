@@ -5,14 +5,15 @@ a :class:`Recorder` to the CN's :class:`~zplatform.loop.ControlLogic`: every
 input its loop consumed is written, per loop, in call order: the loop number,
 timestamp and whether it was the run's last (``final``), each DN reply as it
 arrived (its bytes, or that the DN answered with an error), the ground
-frame, the sync-overrun flag and the skipped periods, and the telemetry
-frame the loop produced (what a replay must reproduce). ``DIR`` holds
+frame, the sync-overrun flag and the skipped periods, the parameter saves
+that finished (:mod:`zplatform.params`), and the telemetry frame the loop
+produced (what a replay must reproduce). ``DIR`` holds
 ``mission.yaml`` (the effective mission) and ``cn.zrec``; ``zplatform replay
 DIR`` needs nothing else.
 
 ``cn.zrec``, all integers little-endian::
 
-    header:  b"ZPREC\\0"  u16 version (3)  u32 n  n bytes of JSON metadata
+    header:  b"ZPREC\\0"  u16 version (4)  u32 n  n bytes of JSON metadata
              u32 m  m bytes: the CN's Data Vector when recording started
     items:   u8 type  u8 dn  u32 length  length bytes
                1 BEGIN      u64 loop, i64 t_ns, u8 final (1: the run's last loop)
@@ -28,10 +29,14 @@ DIR`` needs nothing else.
                             reply_stale, reply_foreign, cmd_size, cmd_bad, cmd_stale,
                             u8 cmd_status, u64 cmd_seq (ends a loop)
                9 DROPPED    u64 loops the recorder could not keep (ring full)
+              11 PRM_SAVED  a parameter save finished: u64 its PRM_SAVE number,
+                            u8 ok, then its detail (UTF-8, at most 512 bytes)
 
-Version 3: the intake's refusals in FINISH (counts: a flood is not
-recorded frame by frame); version 2 had an ``inbox_oversize`` count there
-and an item per reply from no DN. A version 2 recording is refused by name.
+Version 4: the intake's refusals in FINISH (counts: a flood is not
+recorded frame by frame). Versions 2 and 3 had an ``inbox_oversize`` count
+there and an item (10, FOREIGN) per reply from no DN, which this loop no
+longer takes: such a recording is refused by name (replay it with the
+zplatform that made it).
 
 An oversize frame cannot decode (it is longer than the widest valid
 encoding), so a replay feeds an empty payload in its place: the same bad
@@ -65,17 +70,20 @@ from .config import Mission, relocate_mission
 from .datavector import DataVector, Layout
 from .errors import RecordingError
 from .intake import CnRefusals
+from .params import SaveResult
 
 __all__ = ["LoopRecord", "RecordReader", "Recorder"]
 
 MAGIC = b"ZPREC\x00"
-VERSION = 3  # 2: BEGIN carries the final-loop flag; 3: FINISH the intake's refusals
+VERSION = 4  # 2: BEGIN carries the final-loop flag; 3: PRM_SAVED items; 4: FINISH the refusals
+_EARLIER = (2, 3)  # FINISH without the intake's refusals, FOREIGN items: not replayable here
 RECORD_FILE = "cn.zrec"
 MISSION_FILE = "mission.yaml"
 
 BEGIN, REPLY, REPLY_ERR, OVERSIZE, GROUND, GROUND_OVERSIZE, TELEMETRY, FINISH, DROPPED = (
     range(1, 10)
 )
+PRM_SAVED = 11  # 10 was FOREIGN (version 3 and before)
 
 _ITEM = struct.Struct("<BBI")  # type, dn, length
 _BEGIN = struct.Struct("<QqB")
@@ -83,6 +91,7 @@ _FINISH = struct.Struct("<BII" + "I" * 7 + "BQ")
 _U32 = struct.Struct("<I")
 _NONE_REFUSED = CnRefusals().fields()
 _U64 = struct.Struct("<Q")
+_SAVED = struct.Struct("<QB")
 _HEAD = struct.Struct("<6sHI")
 
 
@@ -265,10 +274,13 @@ class Recorder:
         loop_overruns: int,
         inbox_dropped: int,
         refused: CnRefusals | None,
+        saves: Sequence[SaveResult],
         telemetry: bytearray | None,
     ) -> None:
         if not self._dropping:
-            self._finish(grounds, sync_overrun, loop_overruns, inbox_dropped, refused, telemetry)
+            self._finish(
+                grounds, sync_overrun, loop_overruns, inbox_dropped, refused, saves, telemetry
+            )
         if self._open_loop:
             self._open_loop = False
             if self._dropping:  # begun, then the ring filled: the loop is lost
@@ -284,8 +296,13 @@ class Recorder:
         loop_overruns: int,
         inbox_dropped: int,
         refused: CnRefusals | None,
+        saves: Sequence[SaveResult],
         telemetry: bytearray | None,
     ) -> None:
+        for save in saves:  # rare: a PRM_SAVE finished
+            detail = save.detail.encode(errors="replace")[:512]
+            body = _SAVED.pack(save.seq, save.ok) + detail
+            self._put(PRM_SAVED, 0, body, len(body))
         for ground in grounds:
             if len(ground) > self._max_ground:
                 self._put(GROUND_OVERSIZE, 0, _U32.pack(min(len(ground), 0xFFFF_FFFF)), 4)
@@ -338,6 +355,7 @@ class LoopRecord(msgspec.Struct, frozen=True):
     refused: tuple[int, ...]
     """:meth:`zplatform.intake.CnRefusals.fields` of the loop."""
     telemetry: bytes | None
+    saves: list[SaveResult] = []
 
 
 class RecordReader:
@@ -362,6 +380,12 @@ class RecordReader:
             magic, version, n = _HEAD.unpack_from(d, 0)
             if magic != MAGIC:
                 raise RecordingError(f"{path} is not a zplatform recording")
+            if version in _EARLIER:
+                raise RecordingError(
+                    f"{path}: recording version {version}, made by an earlier zplatform "
+                    f"(before the intake's refusals in version {VERSION}): replay it with "
+                    "the zplatform that recorded it"
+                )
             if version != VERSION:
                 raise RecordingError(f"{path}: recording version {version}, expected {VERSION}")
             off = _HEAD.size
@@ -397,6 +421,7 @@ class RecordReader:
         grounds: list[bytes] = []
         telemetry: bytes | None = None
         replies: list[tuple[int, bytes | None]] = []
+        saves: list[SaveResult] = []
         while off < end:
             if off + _ITEM.size > end:
                 self.complete = False
@@ -415,6 +440,7 @@ class RecordReader:
                 telemetry = None
                 grounds = []
                 replies = []
+                saves = []
             elif typ == DROPPED:
                 self.dropped_loops += _U64.unpack(body)[0]
                 self.complete = False
@@ -434,10 +460,24 @@ class RecordReader:
                 grounds.append(b"")
             elif typ == TELEMETRY:
                 telemetry = body
+            elif typ == PRM_SAVED and n >= _SAVED.size:
+                seq, ok = _SAVED.unpack_from(body)
+                detail = body[_SAVED.size :].decode(errors="replace")
+                saves.append(SaveResult(seq, bool(ok), detail))
             elif typ == FINISH:
                 so, lo, dr, *refused = _FINISH.unpack(body)
                 yield LoopRecord(
-                    loop, t, final, replies, grounds, bool(so), lo, dr, tuple(refused), telemetry
+                    loop,
+                    t,
+                    final,
+                    replies,
+                    grounds,
+                    bool(so),
+                    lo,
+                    dr,
+                    tuple(refused),
+                    telemetry,
+                    saves,
                 )
                 in_loop = False
             else:

@@ -1,4 +1,4 @@
-"""The mission state machine (thesis 000 ch. 4.5), sans-IO.
+"""The mission state machine (the thesis, ch. 4.5), sans-IO.
 
 A state has a timed *action sequence* (writes of Data Vector elements at
 given seconds into the state) and an ordered list of *transitions*. A
@@ -101,7 +101,8 @@ _LOGIC_WRITABLE_PLATFORM = ("cn_fault",)
 
 
 def platform_element_names(mission: Mission) -> frozenset[str]:
-    """Names of every element the platform adds (DESIGN.md §5), modes included."""
+    """Names of every element the platform adds, modes included
+    (docs/architecture.md#data-vector)."""
     return frozenset(e.name for es in platform_elements(mission).values() for e in es)
 
 
@@ -134,6 +135,11 @@ def logic_writable(mission: Mission) -> frozenset[str]:
 
 def why_not_writable(mission: Mission, region: str, name: str) -> str:
     """Why CN logic may not write element ``name`` of ``region`` (for error messages)."""
+    if any(p.name == name for p in mission.params):
+        return (
+            f"element {name!r} is a parameter: it changes only by an accepted PRM_SET "
+            "(and at the control node's start, from its parameter file)"
+        )
     if region in _received_regions(mission):
         peer = region[: -len("_to_cn")]
         return (

@@ -2,7 +2,7 @@
 
 Frozen ``msgspec.Struct``\\ s (snapshots, like trio's statistics objects), so
 every field is named, typed and documented once, and the ``--summary`` JSON
-of DESIGN.md §6 is their encoding. Node processes write theirs
+of docs/architecture.md#files is their encoding. Node processes write theirs
 (:func:`write_summary`); ``up`` reads them back (:func:`read_summary`) and
 merges them into a :class:`RunSummary`.
 """
@@ -101,7 +101,7 @@ class GnSummary(msgspec.Struct, frozen=True):
 
 
 class RunSummary(msgspec.Struct, frozen=True):
-    """``zplatform up``'s summary (DESIGN.md §6): the CN's figures, the
+    """``zplatform up``'s summary (docs/architecture.md#files): the CN's figures, the
     ground's telemetry and command verdicts, every node's own summary
     (``None`` for a node that wrote none) and exit code."""
 

@@ -3,7 +3,7 @@
 * :func:`relay_links`: put a :class:`~tests.faults.relay.FaultRelay` on the
   link from each chosen node to the CN of an (already port-rewritten)
   mission file. Gossip scouting is switched off in the file, so no node can
-  learn the CN's real endpoint and bypass the relay (DESIGN.md §8: with
+  learn the CN's real endpoint and bypass the relay (docs/architecture.md#zenoh: with
   gossip on, peers connect to each other by themselves).
 * :func:`plain_tcp_mission`: a copy of a mission on plain TCP, which the
   flood cases need (``floods.py``): the transport every flood test states,

@@ -6,6 +6,7 @@ replays it."""
 
 from __future__ import annotations
 
+import os
 import threading
 import time
 from pathlib import Path
@@ -15,7 +16,7 @@ import pytest
 import zenoh
 
 from tests.faults.peers import peer_config
-from zplatform.auth import mission_channels
+from zplatform.auth import KEY_ENV, KeySet, channel
 from zplatform.codes import CommandStatus
 from zplatform.commands import SEQ_WINDOW, request_refusal
 from zplatform.intake import (
@@ -40,7 +41,9 @@ from zplatform.uplink import Uplink
 ROOT = Path(__file__).resolve().parents[2]
 LED = ROOT / "configs" / "led_test.yaml"
 M = load_mission(LED)
-KEY = b"k" * 32
+# Every link of the mission, from the suite's master key (tests/conftest.py):
+# what a replay loads without a key file.
+KEYS = KeySet.from_master(M, bytes.fromhex(os.environ[KEY_ENV]))
 PERIOD = M.period_ns
 T0 = 1_700_000_000_000_000_000
 
@@ -63,7 +66,7 @@ class Bytes:
 
 
 def trigger(loop: int, t: int, dn: int = 0) -> bytes:
-    cn = ControlLogic(M, key=KEY, epoch=T0)
+    cn = ControlLogic(M, keys=KEYS, epoch=T0)
     return bytes(cn.begin(loop, t)[dn])
 
 
@@ -110,7 +113,7 @@ def test_a_waker_never_holds_more_than_one_token() -> None:
 
 
 def test_a_dn_admits_only_authentic_triggers_newer_than_every_one_before() -> None:
-    ch = mission_channels(M, KEY)["cn_to_dn0"]
+    ch = channel(KEYS, "cn_to_dn0")
     intake: TriggerIntake[str] = TriggerIntake(M, "dn0", ch)
     t1 = trigger(1, T0 + PERIOD)
     t2 = trigger(2, T0 + 2 * PERIOD)
@@ -132,7 +135,7 @@ def test_a_dn_admits_only_authentic_triggers_newer_than_every_one_before() -> No
 
 
 def test_a_dn_keeps_a_bounded_backlog_of_valid_triggers() -> None:
-    intake: TriggerIntake[int] = TriggerIntake(M, "dn0", mission_channels(M, KEY)["cn_to_dn0"])
+    intake: TriggerIntake[int] = TriggerIntake(M, "dn0", channel(KEYS, "cn_to_dn0"))
     for n in range(1, 20):
         assert intake.admit(Bytes(trigger(n, T0 + n * PERIOD)), n)
     box = intake.box
@@ -145,12 +148,12 @@ def test_a_dn_keeps_a_bounded_backlog_of_valid_triggers() -> None:
 def test_a_dn_takes_its_own_trigger_from_a_sync_bundle() -> None:
     text = LED.read_text() + "\ntransport: {sync_query: wildcard}\n"
     m = decode_mission(text)
-    cn = ControlLogic(m, key=KEY, epoch=T0)
+    cn = ControlLogic(m, keys=KEYS, epoch=T0)
     from zplatform.codec import BundleEncoder
 
     bundle = bytes(BundleEncoder().pack(cn.begin(1, T0 + PERIOD)))
     for i, dn in enumerate(m.device_nodes):
-        intake: TriggerIntake[None] = TriggerIntake(m, dn, mission_channels(m, KEY)[f"cn_to_{dn}"])
+        intake: TriggerIntake[None] = TriggerIntake(m, dn, channel(KEYS, f"cn_to_{dn}"))
         assert intake.admit(Bytes(bundle), None), dn
         assert not intake.admit(Bytes(bundle), None)  # the same bundle again: a replay
         assert intake.take_counts() == (0, 0, 1), i
@@ -180,16 +183,16 @@ def test_request_refusal_is_the_command_handlers_rule() -> None:
         (7, 5 + SEQ_WINDOW, 5),
         (7, 6 + SEQ_WINDOW, 5),
     ]:
-        cn = ControlLogic(M, key=KEY, epoch=7)
+        cn = ControlLogic(M, keys=KEYS, epoch=7)
         cn.commands._last_seq = last
         got = cn.commands.refusal(epoch, seq)
         assert (got[0] if got else 0) == request_refusal(epoch, seq, 7, last), (epoch, seq, last)
 
 
 def test_a_replayed_request_never_reaches_the_inbox() -> None:
-    up = Uplink(M, KEY)
+    up = Uplink(M, KEYS)
     last = [0]
-    intake = RequestIntake(M, mission_channels(M, KEY)["gn_to_cn"], 77, lambda: last[0], 16)
+    intake = RequestIntake(M, channel(KEYS, "gn_to_cn"), 77, lambda: last[0], 16)
 
     def req(cmd: str, seq: int, epoch: int = 77) -> Bytes:
         return Bytes(bytes(up.frame(cmd, seq, 0, 0.0, 0, epoch)))
@@ -214,8 +217,8 @@ def test_the_loop_refuses_replays_before_choosing_so_a_fresh_request_wins() -> N
     """Without any intake (the lockstep runner, a replay), the loop itself
     refuses a replayed frame before it picks one: the fresh one is applied
     whatever came after it."""
-    cn = ControlLogic(M, key=KEY, epoch=77)
-    up = Uplink(M, KEY)
+    cn = ControlLogic(M, keys=KEYS, epoch=77)
+    up = Uplink(M, KEYS)
     launch = bytes(up.frame("LAUNCH", 1, 0, 0.0, 0, 77))
     cn.begin(1, T0)
     cn.finish([launch])
@@ -233,12 +236,12 @@ def test_the_loop_refuses_replays_before_choosing_so_a_fresh_request_wins() -> N
 
 
 def test_the_ground_admits_only_telemetry_newer_than_it_has() -> None:
-    cn = ControlLogic(M, key=KEY, epoch=T0)
+    cn = ControlLogic(M, keys=KEYS, epoch=T0)
     frames = []
     for n in (1, 2, 3):
         cn.begin(n, T0 + n * PERIOD)
         frames.append(bytes(cn.telemetry()))
-    intake = TelemetryIntake(M, mission_channels(M, KEY)["telemetry"], 8, 10**9)
+    intake = TelemetryIntake(M, channel(KEYS, "telemetry"), 8, 10**9)
     assert intake.admit(Bytes(frames[1]), 2)
     assert not intake.admit(Bytes(frames[0]), 1)  # older
     assert not intake.admit(Bytes(frames[1]), 2)  # again
@@ -276,14 +279,13 @@ class _Reply:
 @pytest.fixture
 def sync() -> Any:
     session = zenoh.open(peer_config())
-    ch = mission_channels(M, KEY)
     cs = ControlSync(
         session,
         KeySpace(M.vehicle),
         M.device_nodes,
         2_000_000,
         0.01,
-        checks=[ReplyCheck(M, dn, ch[f"{dn}_to_cn"]) for dn in M.device_nodes],
+        checks=[ReplyCheck(M, dn, channel(KEYS, f"{dn}_to_cn")) for dn in M.device_nodes],
         wildcard=True,
     )
     yield cs
@@ -298,9 +300,9 @@ def _drain(cs: ControlSync) -> list[tuple[int, object]]:
     return out
 
 
-def _reply(loop: int, t: int, dn: str = "dn0", key: bytes = KEY) -> bytes:
-    cn = ControlLogic(M, key=key, epoch=T0)
-    d = DeviceLogic(M, dn, key=key)
+def _reply(loop: int, t: int, dn: str = "dn0", keys: KeySet | None = KEYS) -> bytes:
+    cn = ControlLogic(M, keys=keys, epoch=T0)
+    d = DeviceLogic(M, dn, keys=keys)
     i = M.device_nodes.index(dn)
     out = d.trigger(bytes(cn.begin(loop, t)[i]), t)
     assert out is not None
@@ -371,7 +373,7 @@ def test_a_restarted_dn_is_accepted_once_the_one_known_goes_quiet(sync: Any) -> 
 def test_refusals_are_counted_evented_once_a_second_recorded_and_replayed(
     tmp_path: Path,
 ) -> None:
-    cn = ControlLogic(M, key=KEY, epoch=T0)
+    cn = ControlLogic(M, keys=KEYS, epoch=T0)
     rec = Recorder(tmp_path / "rec", M, LED, cn.dv)
     cn.recorder = rec
     r = CnRefusals()
@@ -396,14 +398,12 @@ def test_refusals_are_counted_evented_once_a_second_recorded_and_replayed(
     assert sum(int(e.text.split()[0]) for e in bad) == 200 * 61
     (loop,) = [x for x in RecordReader(tmp_path / "rec").loops() if x.loop == 7]
     assert CnRefusals().set_fields(loop.refused).reply_foreign == 60
-    key_file = tmp_path / "key"
-    key_file.write_text(KEY.hex())
-    res = replay(tmp_path / "rec", key_file=key_file)
+    res = replay(tmp_path / "rec")  # the keys from the suite's master key
     assert res.identical and res.loops == 300, res.first_difference
 
 
 def test_a_dn_counts_refused_queries_and_events_them_once_a_second() -> None:
-    dn = DeviceLogic(M, "dn0", key=KEY)
+    dn = DeviceLogic(M, "dn0", keys=KEYS)
     for k in range(300):
         dn.refused(40, 10, 10, T0 + k * PERIOD)
     dn.refused(0, 0, 0, T0 + 400 * PERIOD)

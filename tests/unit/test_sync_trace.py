@@ -8,9 +8,9 @@ from pathlib import Path
 
 import zenoh
 
-from zplatform.auth import mission_channels
+from zplatform.auth import channel
 from zplatform.intake import ReplyCheck, TriggerIntake
-from zplatform.lockstep import SIM_KEY
+from zplatform.lockstep import sim_keys
 from zplatform.loop import ControlLogic, DeviceLogic
 from zplatform.mission import load_mission
 from zplatform.sync import ControlSync, DeviceSync
@@ -29,21 +29,21 @@ def _session() -> zenoh.Session:
 
 def test_both_ends_report_every_hop_in_order() -> None:
     m = load_mission(MINIMAL)
-    cn = ControlLogic(m, key=SIM_KEY)
-    dn = DeviceLogic(m, "dn0", key=SIM_KEY)
+    cn = ControlLogic(m, keys=sim_keys(m))
+    dn = DeviceLogic(m, "dn0", keys=sim_keys(m))
     cn_hops: list[tuple[str, int]] = []
     dn_hops: list[tuple[str, int]] = []
     session = _session()
     try:
         keys = KeySpace(m.vehicle)
         now = iter(range(10**9, 2 * 10**9, 10**7)).__next__
-        ch = mission_channels(m, SIM_KEY)
+        sim = sim_keys(m)
         ds = DeviceSync(
             session,
             keys,
             "dn0",
             now,
-            intake=TriggerIntake(m, "dn0", ch["cn_to_dn0"]),
+            intake=TriggerIntake(m, "dn0", channel(sim, "cn_to_dn0")),
             trace=lambda h, n: dn_hops.append((h, n)),
         )
         # A generous deadline: this checks the hooks, not the timing.
@@ -53,7 +53,7 @@ def test_both_ends_report_every_hop_in_order() -> None:
             ["dn0"],
             2_000_000_000,
             2.0,
-            checks=[ReplyCheck(m, "dn0", ch["dn0_to_cn"])],
+            checks=[ReplyCheck(m, "dn0", channel(sim, "dn0_to_cn"))],
             trace=lambda h, n: cn_hops.append((h, n)),
         )
         try:

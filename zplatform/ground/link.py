@@ -52,7 +52,7 @@ from typing import Literal
 
 import zenoh
 
-from ..auth import load_key, mission_channels
+from ..auth import KeySet, channel, load_keys
 from ..config import Mission
 from ..datavector import DataVector
 from ..errors import CommandError, TransportError
@@ -86,7 +86,7 @@ EVENT_BACKLOG = 4096
 TAP_BACKLOG = 4096
 _BACKLOG_BYTES = 64 * 2**20
 
-_TM, _EV, _TAP = 0, 1, 2
+_TM, _EV = 0, 1
 
 
 def max_age_ns_from_env(mission: Mission) -> int:
@@ -110,8 +110,10 @@ class GroundLink:
 
     ``node``: run as that node of the mission (``gn``: its endpoints and
     liveliness token, declared once everything is subscribed); None: a
-    tool connected to every node. ``key``: the mission key, ``"mission"``
-    to load it (``key_file``, the environment, the default file) before any
+    tool connected to every node. ``keys``: the ground's keys, or
+    ``"mission"`` to load them (:func:`zplatform.auth.load_keys`: host role
+    ``gn`` when it runs as the ground node or may command, else ``tool``,
+    from ``key_file``, the environment or the default key set) before any
     session opens, so a missing key is the first and only error.
     ``telemetry``/``events``/``commands``: which of the three to declare
     (a ``script`` implies ``commands``). ``on_event`` gets every event record
@@ -127,7 +129,7 @@ class GroundLink:
         mission: Mission,
         *,
         node: str | None = None,
-        key: bytes | Literal["mission"] | None = "mission",
+        keys: KeySet | Literal["mission"] | None = "mission",
         key_file: str | None = None,
         telemetry: bool = True,
         events: bool = True,
@@ -138,12 +140,13 @@ class GroundLink:
         announce: bool = True,
     ) -> None:
         self.mission = mission
-        if key == "mission":
-            key = load_key(mission, key_file)
+        if keys == "mission":
+            role = "gn" if node == "gn" or commands or script else "tool"
+            keys = load_keys(mission, role, key_file)
         self.clock = clock or NodeClock()
         self.logic = GroundLogic(
             mission,
-            key=key,
+            keys=keys,
             node=node or "ground",
             max_age_ns=max_age_ns_from_env(mission),
             script=script,
@@ -156,14 +159,14 @@ class GroundLink:
         self._waker = Waker()
         self._tm = TelemetryIntake(
             mission,
-            mission_channels(mission, key)["telemetry"],
+            channel(keys, "telemetry"),
             max(2, min(TELEMETRY_BACKLOG, _BACKLOG_BYTES // self.logic.max_frame_len)),
             self.logic.max_age_ns,
             self._waker,
         )
         assert self._tm.box is not None
         self._tm_box = self._tm.box
-        self._ev_box: Mailbox[tuple[bytes, int]] = Mailbox(EVENT_BACKLOG, self._waker)
+        self._ev_box: Mailbox[tuple[str, bytes, int]] = Mailbox(EVENT_BACKLOG, self._waker)
         self._tap_box: Mailbox[tuple[str, bytes, bool]] = Mailbox(TAP_BACKLOG, self._waker)
         self._ev_oversize = 0  # zenoh's thread writes, the caller's reads (a total)
         self._ev_oversize_seen = 0
@@ -178,7 +181,9 @@ class GroundLink:
         # A node publishes its own events (and takes them back through its
         # intake); a tool hands them to on_event itself.
         self._ev_pub = (
-            EventPublisher(session, self.keys.events(node), self.logic.events)
+            EventPublisher(
+                session, self.keys.events(node), self.logic.events, channel(keys, f"events_{node}")
+            )
             if node is not None
             else None
         )
@@ -198,31 +203,32 @@ class GroundLink:
         """The last accepted snapshot (:attr:`GroundLogic.dv`)."""
         return self.logic.dv
 
-    def _pop_any(self) -> tuple[int, bytes, int] | None:
-        """The next item of any kind (telemetry first), or None at once."""
+    def _pop_any(self) -> tuple[int, bytes, int, str] | None:
+        """The next item of any kind (telemetry first), or None at once:
+        kind, payload, receive time, the key it came on ("" for telemetry)."""
         tm = self._tm_box.pop()
         if tm is not None:
-            return _TM, tm[1], tm[0]
+            return _TM, tm[1], tm[0], ""
         ev = self._ev_box.pop()
         if ev is not None:
-            return _EV, ev[0], ev[1]
+            return _EV, ev[1], ev[2], ev[0]
         return None
 
-    def _pop(self, deadline: float) -> tuple[int, bytes, int] | None:
+    def _pop(self, deadline: float) -> tuple[int, bytes, int, str] | None:
         got = self._waker.wait_for(self._pop_any, deadline - time.monotonic())
         if got is None:
             self._after(self.clock.now_ns())
         return got
 
-    def _take(self, kind: int, payload: bytes, rx: int) -> bool:
-        """One telemetry frame or event through the logic; True when a
-        snapshot was accepted."""
+    def _take(self, kind: int, payload: bytes, rx: int, key: str) -> bool:
+        """One telemetry frame or event (that came on ``key``) through the
+        logic; True when a snapshot was accepted."""
         logic = self.logic
         if kind == _TM:
             ok = logic.on_telemetry(payload, rx, can_send=self.cn_listening)
             self._after(rx)
             return ok
-        rec = logic.on_event_bytes(payload, rx)
+        rec = logic.on_event_bytes(key, payload, rx)
         if rec is not None and self.on_event is not None:
             self.on_event(rec)
         self._after(rx)
@@ -240,8 +246,8 @@ class GroundLink:
         or the time runs out."""
         deadline = time.monotonic() + timeout_s
         while (item := self._pop(deadline)) is not None:
-            kind, payload, rx = item
-            if self._take(kind, payload, rx):
+            kind, payload, rx, key = item
+            if self._take(kind, payload, rx, key):
                 return rx
         return None
 
@@ -373,7 +379,7 @@ class GroundLink:
         if len(p) > EVENT_MAX:
             self._ev_oversize += 1  # this callback is the only writer
             return
-        self._ev_box.put((p.to_bytes(), self.clock.now_ns()))
+        self._ev_box.put((str(sample.key_expr), p.to_bytes(), self.clock.now_ns()))
 
     def _on_tap(self, sample: zenoh.Sample) -> None:
         p = sample.payload  # and whether shared memory carried it
