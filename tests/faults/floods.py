@@ -357,7 +357,9 @@ def _attack(
         "loops": (m0.counts["cn_loop"], m1.counts["cn_loop"]),
     }
     r.figures[name] = fig
-    r.check(f"{name}_reached_half_its_rate", res["rate"] >= RATE / 2, res["rate"])
+    # The attacker's rate is the box's to give (beside a CPU hog it may fall
+    # short): a target, while every check below holds at any rate.
+    r.target(f"{name}_reached_half_its_rate", res["rate"] >= RATE / 2, round(res["rate"]))
     for n, g in growth.items():
         r.check(f"{name}_{n}_memory_flat", g <= RSS_MARGIN_MB, (g, w["rss_mb"][n]))
     # Every frame that reached the victim is refused and counted, once (a
@@ -369,9 +371,11 @@ def _attack(
         r.check(f"{name}_nothing_answered", res["answered"] == 0, res["answered"])
     # A rate figure, held to its target by the bench, asserted by no test:
     # on a shared box the misses depend on how promptly it runs the nodes.
-    fig["misses_target_met"] = (
+    fig["misses_target_met"] = r.target(
+        f"{name}_misses_added",
         fig["misses_added_per_khz"] is not None
-        and fig["misses_added_per_khz"] < TARGET_MISSES_PER_KHZ
+        and fig["misses_added_per_khz"] < TARGET_MISSES_PER_KHZ,
+        fig["misses_added_per_khz"],
     )
     return fig
 
