@@ -20,7 +20,7 @@ from .codec import (
     decode_frame,
     encode_frame,
 )
-from .codes import Command, CommandStatus, Fault, ParamLoad, ParamSave, SafedWhy
+from .codes import Command, CommandStatus, Fault, ParamLoad, ParamSave, SafedWhy, Thread
 from .commands import CommandHandler
 from .components import Component
 from .config import Mission
@@ -52,9 +52,11 @@ from .ground.link import GroundLink
 from .ground.logic import GroundLogic
 from .ground.records import CommandOutcome, EventRecord, TelemetryCounters
 from .ground.script import ScriptPlayer
+from .health import FakeHealth, HealthPort, Heartbeat, Liveness
 from .lockstep import LockstepRunner, ReplayResult, SimResult, replay
 from .loop import ControlLogic, DeviceLogic
 from .mission import check_mission, decode_mission, load_mission
+from .monitors import MonitorSet
 from .params import (
     ParamFileError,
     ParamSaver,
@@ -73,6 +75,7 @@ from .telemetry import CsvLogger, read_csv
 from .timebase import NodeClock, VirtualClock
 from .transport import KeySpace
 from .uplink import ScriptCommand, fill_request, load_commands, parse_commands
+from .watchdog import Watchdog
 from .world import World, WorldBoard, WorldLink
 
 __version__ = "0.1.0"
@@ -107,6 +110,7 @@ __all__ = [
     "EventReader",
     "EventRecord",
     "EventType",
+    "FakeHealth",
     "Fault",
     "FaultMonitor",
     "Frame",
@@ -118,13 +122,17 @@ __all__ = [
     "GroundLink",
     "GroundLogic",
     "Handle",
+    "HealthPort",
+    "Heartbeat",
     "KeySet",
     "KeySpace",
     "Layout",
     "LayoutMismatchError",
+    "Liveness",
     "LockstepRunner",
     "LoopStats",
     "Mission",
+    "MonitorSet",
     "NodeClock",
     "NodeError",
     "ParamFileError",
@@ -151,9 +159,11 @@ __all__ = [
     "StateMachine",
     "StateMachineError",
     "TelemetryCounters",
+    "Thread",
     "TimebaseError",
     "TransportError",
     "VirtualClock",
+    "Watchdog",
     "World",
     "WorldBoard",
     "WorldLink",

@@ -34,7 +34,7 @@ from typing import Annotated, Any, Literal
 import msgspec
 from msgspec import Meta
 
-from .codes import Command, CommandStatus, Fault, ParamLoad, ParamSave, SafedWhy
+from .codes import Command, CommandStatus, Fault, ParamLoad, ParamSave, SafedWhy, Thread
 from .errors import ConfigError
 from .types import SCALAR_TYPES, ScalarType, parse_type
 
@@ -43,6 +43,7 @@ __all__ = [
     "CMD_STATUS_NAMES",
     "CONTROLLER_MODES",
     "FAULT_NAMES",
+    "HEALTH_METRICS",
     "MAX_ARRAY_COUNT",
     "MAX_REGION_BYTES",
     "MAX_VECTOR_BYTES",
@@ -50,23 +51,29 @@ __all__ = [
     "PRM_LOAD_NAMES",
     "PRM_SAVE_NAMES",
     "SAFED_WHY_NAMES",
+    "THREAD_NAMES",
     "ActionConfig",
     "ClockConfig",
     "CommandsConfig",
     "ComponentConfig",
     "ElementConfig",
     "FaultsConfig",
+    "HealthConfig",
+    "HealthMetric",
     "Mission",
+    "MonitorConfig",
     "NodeConfig",
     "ParamConfig",
     "StateConfig",
     "StateMachineConfig",
     "TransitionConfig",
     "TransportConfig",
+    "WatchdogConfig",
     "WorldBoardConfig",
     "WorldConfig",
     "check_mission_name",
     "element_spec",
+    "health_elements",
     "parse_mission",
     "platform_elements",
     "relocate_mission",
@@ -85,6 +92,9 @@ FAULT_NAMES: tuple[str, ...] = tuple(m.name for m in Fault)
 PRM_LOAD_NAMES: tuple[str, ...] = tuple(m.name for m in ParamLoad)
 PRM_SAVE_NAMES: tuple[str, ...] = tuple(m.name for m in ParamSave)
 SAFED_WHY_NAMES: tuple[str, ...] = tuple(m.name for m in SafedWhy)
+THREAD_NAMES: tuple[str, ...] = tuple(t.name.lower() for t in Thread)
+"""The threads whose liveness a node reports, by bit of ``<node>_threads_stalled``
+(:class:`~zplatform.codes.Thread`, :mod:`zplatform.health`)."""
 
 # Names checked with fullmatch, never match: `$` also matches before a
 # trailing newline, so "cn_loop\n" would pass a match().
@@ -170,6 +180,46 @@ class ElementConfig(_Struct):
     ] = None
 
 
+class WatchdogConfig(_Struct):
+    """A node's watchdog: the loop strokes systemd's watchdog or a watchdog
+    device while every watched thread checks in, and stops the moment one
+    does not (so the host is reset); strokes resume if it recovers first.
+    See zplatform.watchdog."""
+
+    kind: Annotated[
+        Literal["systemd", "device"],
+        Meta(
+            description="`systemd`: `WATCHDOG=1` to `$NOTIFY_SOCKET` (sd_notify; the unit "
+            "sets `WatchdogSec=`, and the node refuses to start without the variable); "
+            "`device`: a byte to `device` (the kernel's `/dev/watchdog`)."
+        ),
+    ]
+    device: Annotated[
+        str,
+        Meta(
+            description="`kind: device`: the watchdog device. On a clean stop the node writes "
+            "`V` (the magic close), so an orderly exit does not reset the host."
+        ),
+    ] = "/dev/watchdog"
+    interval_ms: Annotated[
+        float,
+        Meta(
+            ge=10,
+            le=60_000,
+            description="Stroke (and check the threads) every this many ms: well under the "
+            "watchdog's timeout (systemd: under half of `WatchdogSec`).",
+        ),
+    ] = 100.0
+    threads: Annotated[
+        list[str] | None,
+        Meta(
+            description="The threads that must be alive (names of `<node>_threads_stalled`: "
+            + ", ".join(f"`{n}`" for n in THREAD_NAMES)
+            + "). Default: every thread the node runs."
+        ),
+    ] = None
+
+
 class NodeConfig(_Struct):
     """A zenoh peer: where it listens and whom it connects to.
 
@@ -211,6 +261,10 @@ class NodeConfig(_Struct):
             "with the driver's own keys (see Boards). Default: a simulated board."
         ),
     ] = msgspec.field(default_factory=dict)
+    watchdog: Annotated[
+        WatchdogConfig | None,
+        Meta(description="A watchdog the node's loop strokes while its threads are alive."),
+    ] = None
 
 
 class TransportConfig(_Struct):
@@ -691,6 +745,251 @@ class FaultsConfig(_Struct):
     ] = 10
 
 
+class HealthConfig(_Struct):
+    """Each node's health in telemetry: CPU, memory, disk, temperature, loop
+    lateness, overruns, garbage-collector pauses and the liveness of its
+    threads, as platform elements `<node>_...` in `cn` (the CN) and
+    `dnX_to_cn` (each DN), with limits; see zplatform.health. Without this
+    section a mission has no health elements."""
+
+    rate_hz: Annotated[
+        float,
+        Meta(
+            ge=1,
+            le=10,
+            description="How often each node samples and reports its health (Hz); sampling "
+            "runs on a thread of its own, the loop only copies the result.",
+        ),
+    ] = 2.0
+    disk_path: Annotated[
+        str,
+        Meta(
+            description="The directory whose free space is `<node>_disk_free_mb`: where the "
+            "node logs (its flight recorder's directory, say). Relative paths are relative "
+            "to the node's working directory."
+        ),
+    ] = "."
+    deadlines_ms: Annotated[
+        dict[str, Annotated[float, Meta(ge=10, le=600_000)]],
+        Meta(
+            description="Check-in deadline (ms) per thread name ("
+            + ", ".join(f"`{n}`" for n in THREAD_NAMES)
+            + "); a thread silent for longer is reported stalled. Defaults: `loop` 1000, "
+            "`zenoh` and `health` three health periods (at least 2000), `clock` 3000, the "
+            "rest 2000."
+        ),
+    ] = msgspec.field(default_factory=dict)
+    limits: Annotated[
+        dict[str, LimitsConfig],
+        Meta(
+            description="Yellow/red limits per health element, by its name after `<node>_` "
+            "(`cpu_pct: {red: [null, 90]}`), for every node; a band given replaces the "
+            "default band (`[null, null]` removes it)."
+        ),
+    ] = msgspec.field(default_factory=dict)
+
+
+class HealthMetric(msgspec.Struct, frozen=True):
+    """One health element (:mod:`zplatform.health`): its name after
+    ``<node>_``, type, meaning and default limits (``per_period``: the limits
+    are in loop periods)."""
+
+    name: str
+    type: str
+    doc: str
+    yellow: tuple[float | None, float | None] | None = None
+    red: tuple[float | None, float | None] | None = None
+    per_period: bool = False
+
+
+HEALTH_METRICS: tuple[HealthMetric, ...] = (
+    # sampled by the health thread, in this order (zplatform.health.SAMPLED)
+    HealthMetric(
+        "cpu_pct", "f32", "the node process's CPU, % of one core", (None, 80), (None, 95)
+    ),
+    HealthMetric("sys_cpu_pct", "f32", "the host's CPU, % of all cores", (None, 85), (None, 95)),
+    HealthMetric(
+        "rss_mb", "f32", "the process's resident memory (MiB)", (None, 512), (None, 1024)
+    ),
+    HealthMetric(
+        "mem_free_mb", "f32", "the host's available memory (MiB)", (256, None), (64, None)
+    ),
+    HealthMetric(
+        "disk_free_mb",
+        "f32",
+        "free disk where the node logs (health.disk_path, MiB)",
+        (512, None),
+        (64, None),
+    ),
+    HealthMetric(
+        "cpu_temp_c",
+        "f32",
+        "the hottest CPU temperature (deg C); NaN: the host has no sensor",
+        (None, 75),
+        (None, 85),
+    ),
+    HealthMetric("health_seq", "u32", "samples the node's health thread has taken"),
+    # measured by the loop, in this order (zplatform.health.LOOP_FIELDS)
+    HealthMetric(
+        "late_max_ms",
+        "f32",
+        "the loop's worst start lateness in the last health period (ms; default limits "
+        "half a period, a period)",
+        (None, 0.5),
+        (None, 1.0),
+        per_period=True,
+    ),
+    HealthMetric(
+        "overruns_recent",
+        "u32",
+        "loops that overran their period in the last health period",
+        (None, 0),
+        (None, 10),
+    ),
+    HealthMetric(
+        "gc_max_ms",
+        "f32",
+        "the longest garbage-collector pause in the last health period (ms)",
+        (None, 2),
+        (None, 5),
+    ),
+    HealthMetric("gc_count", "u32", "garbage collections in the last health period"),
+    HealthMetric(
+        "threads_stalled",
+        "u16",
+        "threads past their check-in deadline, bit i: "
+        + ", ".join(f"{i} {n}" for i, n in enumerate(THREAD_NAMES)),
+        None,
+        (None, 0),
+    ),
+)
+"""Every health element, in block order (:mod:`zplatform.health`)."""
+_HEALTH_READINGS = 6  # the first six are readings: NaN until the first sample
+
+
+def _health_limits(
+    m: HealthMetric, period_ms: float, override: LimitsConfig | None
+) -> dict[str, list[float | None]] | None:
+    out: dict[str, list[float | None]] = {}
+    for band in ("yellow", "red"):
+        rng = getattr(override, band, None) if override is not None else None
+        if rng is None:
+            rng = getattr(m, band)
+            if rng is not None and m.per_period:
+                rng = tuple(None if x is None else x * period_ms for x in rng)
+        if rng is not None and tuple(rng) != (None, None):
+            out[band] = list(rng)
+    return out or None
+
+
+def health_elements(mission: Mission, node: str) -> list[dict[str, Any]]:
+    """``node``'s health elements as ElementConfig-shaped dicts (``name``,
+    ``type``, ``initial``, ``doc``, ``limits``), in block order; ``[]`` when
+    the mission has no ``health:`` section. The readings start as NaN (no
+    reading yet, inside every limit). Pure."""
+    cfg = mission.health
+    if cfg is None:
+        return []
+    period_ms = 1000.0 / mission.loop_hz
+    out = []
+    for i, m in enumerate(HEALTH_METRICS):
+        e: dict[str, Any] = {"name": f"{node}_{m.name}", "type": m.type, "doc": m.doc}
+        if i < _HEALTH_READINGS:
+            e["initial"] = "nan"
+        lim = _health_limits(m, period_ms, cfg.limits.get(m.name))
+        if lim is not None:
+            e["limits"] = lim
+        out.append(e)
+    return out
+
+
+class MonitorConfig(_Struct):
+    """A monitor (fault detection and response, as F Prime splits them): a
+    condition on one element of the CN's Data Vector that, holding for
+    `persistence` loops in a row, trips once and runs its response; it
+    clears when the condition stops holding. Monitors run every loop on the
+    CN, after the fault monitor and before the state machine, so a response
+    takes effect in the loop it trips. See zplatform.monitors."""
+
+    name: Annotated[str, Meta(description="Unique monitor name: `[a-z][a-z0-9_]*`.")]
+    element: Annotated[
+        str,
+        Meta(
+            description="Any scalar element of the CN's Data Vector (a DN's arrive one loop "
+            "after the DN wrote them)."
+        ),
+    ]
+    kind: Annotated[
+        Literal["limit", "stale", "rate"],
+        Meta(
+            description="`limit`: the value is outside `[lo, hi]` or the element's `band`; "
+            "`stale`: unchanged for `unchanged_loops` loops, or (a time stamp in ns, "
+            "`dnX_time_ns`) older than `max_age_ms` in CN time; `rate`: its change per "
+            "second over `window_loops` loops is outside `[lo, hi]`."
+        ),
+    ]
+    lo: Annotated[
+        float | None,
+        Meta(description="`limit`, `rate`: the lowest value (per second for `rate`) allowed."),
+    ] = None
+    hi: Annotated[
+        float | None,
+        Meta(description="`limit`, `rate`: the highest value (per second for `rate`) allowed."),
+    ] = None
+    band: Annotated[
+        Literal["yellow", "red"] | None,
+        Meta(description="`limit`: use the element's own yellow or red limits instead of lo/hi."),
+    ] = None
+    unchanged_loops: Annotated[
+        Annotated[int, Meta(ge=1, le=1_000_000)] | None,
+        Meta(description="`stale`: trip when the value has not changed for this many loops."),
+    ] = None
+    max_age_ms: Annotated[
+        Annotated[float, Meta(gt=0)] | None,
+        Meta(
+            description="`stale`: the element is a time stamp (ns, an integer); trip when it "
+            "is older than this in CN time. Armed once the stamp first changes."
+        ),
+    ] = None
+    window_loops: Annotated[
+        int, Meta(ge=1, le=10_000, description="`rate`: the loops the change is taken over.")
+    ] = 1
+    persistence: Annotated[
+        int,
+        Meta(
+            ge=1,
+            le=1_000_000,
+            description="Loops in a row the condition must hold before the monitor trips.",
+        ),
+    ] = 1
+    states: Annotated[
+        list[str] | None,
+        Meta(
+            description="The states in which the monitor runs (default: every state); outside "
+            "them it neither trips nor clears, and its persistence count starts over."
+        ),
+    ] = None
+    response: Annotated[
+        Literal["event", "fault", "transition", "safe"],
+        Meta(
+            description="What tripping does (besides its event): `event` only "
+            "(`monitor_warning`); `fault`: latch `fault` in `cn_fault`; `transition`: go "
+            "to state `to` this loop (after a pending ABORT-class command's transition, "
+            "before the state's others); `safe`: set controller `controller`'s mode to "
+            "`safed`."
+        ),
+    ] = "event"
+    fault: Annotated[
+        str | None,
+        Meta(description="`response: fault`: the fault to latch (default `MONITOR`)."),
+    ] = None
+    to: Annotated[str | None, Meta(description="`response: transition`: the target state.")] = None
+    controller: Annotated[
+        str | None, Meta(description="`response: safe`: the controller to safe.")
+    ] = None
+    doc: Annotated[str, Meta(description="What the monitor guards against.")] = ""
+
+
 class WorldBoardConfig(_Struct):
     """One device node's board as the vehicle world sees it: its pin counts.
 
@@ -1085,6 +1384,17 @@ class Mission(_Struct):
             "(physics that every board's outputs change): see zplatform.world."
         ),
     ] = None
+    health: Annotated[
+        HealthConfig | None,
+        Meta(
+            description="Each node's health (CPU, memory, disk, temperature, loop timing, "
+            "thread liveness) in telemetry; without it, no health elements."
+        ),
+    ] = None
+    monitors: Annotated[
+        list[MonitorConfig],
+        Meta(description="Conditions on the CN's Data Vector and their responses."),
+    ] = msgspec.field(default_factory=list)
     doc: Annotated[str, Meta(description="What the mission is for.")] = ""
 
     # -- derived views (cheap; computed from the checked fields) -----------
@@ -1493,6 +1803,12 @@ def platform_elements(m: Mission) -> dict[str, list[ElementConfig]]:
         counters_at = counter_region(node)
         if counters_at is not None and counters_at in out:
             out[counters_at] += [msgspec.convert(e, E) for e in counter_elements(m.bulk, node)]
+    # Health, last: one contiguous block per node (zplatform.health), only
+    # in a mission with a `health:` section.
+    for node in ["cn", *m.device_nodes]:
+        out["cn" if node == "cn" else f"{node}_to_cn"] += [
+            msgspec.convert(e, E) for e in health_elements(m, node)
+        ]
     return out
 
 
@@ -1527,6 +1843,8 @@ def _element_path(m: Mission, region: str, i: int, n_platform: int, name: str) -
         return "$.state_machine"
     if any(p.name == name for p in m.params):
         return _param_path(m, name)
+    if m.health is not None and any(name.endswith(f"_{t.name}") for t in HEALTH_METRICS):
+        return "$.health"
     for j, c in enumerate(m.controllers):
         if name == f"{c.name}_mode":
             return f"$.controllers[{j}]"

@@ -212,6 +212,34 @@ class EV:
         Severity.ACTIVITY_HI,
         "{node} re-enabled: the control node triggered it {n} loops in a row",
     )
+    # health and monitors (zplatform.health, zplatform.monitors, zplatform.watchdog)
+    THREAD_STALLED = EventType(
+        100,
+        "thread_stalled",
+        Severity.WARNING_HI,
+        "{node}: thread {thread} has not checked in within its deadline ({deadline_ms:g} ms)",
+    )
+    THREAD_RESUMED = EventType(
+        101, "thread_resumed", Severity.ACTIVITY_HI, "{node}: thread {thread} checks in again"
+    )
+    MONITOR_WARNING = EventType(
+        102, "monitor_warning", Severity.WARNING_LO, "monitor {name}: {what}"
+    )
+    MONITOR_TRIPPED = EventType(
+        103, "monitor_tripped", Severity.WARNING_HI, "monitor {name}: {what}; {response}"
+    )
+    MONITOR_CLEARED = EventType(
+        104, "monitor_cleared", Severity.ACTIVITY_LO, "monitor {name}: clear ({what})"
+    )
+    WATCHDOG_WITHHELD = EventType(
+        105,
+        "watchdog_withheld",
+        Severity.WARNING_HI,
+        "{node}: watchdog no longer stroked, thread(s) {threads} stalled; {consequence}",
+    )
+    WATCHDOG_RESUMED = EventType(
+        106, "watchdog_resumed", Severity.ACTIVITY_HI, "{node}: watchdog stroked again"
+    )
     # the ground side (zplatform.ground.GroundLogic: what the ground believes)
     TM_JOINED = EventType(
         70,

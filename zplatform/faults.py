@@ -39,6 +39,10 @@ any fault (``cn_fault != NONE``): the shipped igniter mission aborts from
 ARMED and FIRE, so a DN that cannot run ends a flight ABORTED, visibly,
 instead of ARMED with a healthy-looking link.
 
+The mission's monitors (:mod:`zplatform.monitors`) latch faults too, through
+:meth:`FaultMonitor.raise_fault`: ``MONITOR`` or the fault a monitor names
+(``THREAD_STALLED`` for a node's stalled thread, say).
+
 Only the first fault latches: once ``cn_fault`` is not ``NONE`` it stays
 until someone writes it back (a WRITE command of ``cn_fault = NONE``, or a
 state-machine action); a symptom still present then raises it again. A

@@ -57,6 +57,7 @@ from .datavector import DataVector, Layout
 from .events import Event
 from .ground.logic import GroundLogic
 from .ground.records import CommandOutcome, EventRecord
+from .health import BLOCK_SIZE, HealthPort
 from .intake import CnRefusals
 from .loop import ControlLogic, DeviceLogic
 from .messages import wildcard_sync_for
@@ -236,7 +237,10 @@ class LockstepRunner:
 
     ``commands`` is the ground's script; ``boards`` replaces the default
     :class:`~zplatform.boards.SimBoard` of some device nodes (tests inject
-    faults through them). A mission with a vehicle world gets one
+    faults through them); ``health`` gives some nodes a health port (a
+    :class:`~zplatform.health.FakeHealth`: deterministic values, an injected
+    stall; without one a node's health elements keep their initial values).
+    A mission with a vehicle world gets one
     :class:`~zplatform.world.World` in this process (:attr:`world`), and
     every node it spans a port onto it, whatever that node's board driver
     (a hardware-in-the-loop mission's serial board included: the world is
@@ -252,6 +256,7 @@ class LockstepRunner:
         commands: list[ScriptCommand] | None = None,
         start_ns: int = DEFAULT_START_NS,
         boards: dict[str, Board] | None = None,
+        health: dict[str, HealthPort] | None = None,
     ) -> None:
         self.mission = mission
         self.start_ns = start_ns
@@ -300,6 +305,10 @@ class LockstepRunner:
             port = _SimBulkPort(n, self._channels)
             if port.arrays:
                 logic.attach_bulk(port)
+        for n, hp in (health or {}).items():
+            if n not in logics:
+                raise ValueError(f"health given for {n!r}, which is not a cn or device node")
+            logics[n].attach_health(hp)
 
     # -- running -----------------------------------------------------------
     def step(self, log: CsvLogger | None = None) -> None:
@@ -455,6 +464,19 @@ def _first_difference(
     return Difference(loop, "<frame header>", recorded[:24].hex(), bytes(replayed[:24]).hex())
 
 
+class _RecordedHealth:
+    """The health port of a replay: the loop's recorded block. A health loop
+    without one (a damaged record) gets zeros, and the telemetry then says
+    where the replay departs from the recording."""
+
+    def __init__(self) -> None:
+        self.block: bytes | None = None
+        self._zeros = bytes(BLOCK_SIZE)
+
+    def take(self, t_ns: int) -> bytes:
+        return self.block if self.block is not None else self._zeros
+
+
 def replay(
     directory: str | Path, *, log: CsvLogger | None = None, key_file: str | Path | None = None
 ) -> ReplayResult:
@@ -484,12 +506,16 @@ def replay(
     cn = ControlLogic(mission, keys=load_keys(mission, "cn", key_file))
     refused = CnRefusals()
     cn.dv.write_all(reader.initial)  # epoch included
+    recorded = _RecordedHealth()
+    if mission.health is not None:  # the recorded blocks, on the recorded loops
+        cn.attach_health(recorded)
     state_dv = cn.dv
     frames = 0
     loops = 0
     first = last = 0
     diff: Difference | None = None
     for rec in reader.loops():
+        recorded.block = rec.health
         cn.begin(rec.loop, rec.t_ns, final=rec.final)
         for i, payload in rec.replies:
             cn.reply(i, payload)

@@ -18,9 +18,9 @@ One CN loop ``n`` (numbered from 1 in every driver) with its one timestamp::
 
 :meth:`ControlLogic.finish` counts the misses, applies the parameter saves
 that finished since the last loop, applies at most one ground command
-frame, runs faults -> commands -> state machine -> controllers, and frames
-the telemetry. A save's result is an input like a command frame: the
-driver's saver writes the file off the loop thread
+frame, runs faults -> monitors -> commands -> state machine -> controllers,
+and frames the telemetry. A save's result is an input like a command frame:
+the driver's saver writes the file off the loop thread
 (:mod:`zplatform.params`), and the loop that learns of it is recorded.
 Replies that are not for loop ``n`` (an older loop's, a duplicate) are
 counted late and never applied; malformed replies are counted in
@@ -63,6 +63,22 @@ of ``finish``, a DN at the top of ``run``), writes the channel counters, and
 publishes the channels it owns that are due after its logic. The drivers
 only supply the port: zenoh's (:class:`zplatform.bulk.NodeBulk`) or the
 lockstep runner's in-memory one.
+
+Health (:mod:`zplatform.health`), for a mission with a ``health:`` section,
+follows the same pattern: a driver attaches a
+:class:`~zplatform.health.HealthPort` (:meth:`ControlLogic.attach_health`,
+:meth:`DeviceLogic.attach_health`; live, :class:`zplatform.node.health.NodeHealth`
+with its sampling thread), and on health loops (``loop %
+health_divisor == 0``) the logic takes the node's health block from it and
+copies it into its health elements in one copy: the CN in ``finish`` before
+the fault monitor (so the monitors see it), a DN at the top of ``run``. The
+CN's block is an input like the others: its recorder gets it
+(:meth:`LoopRecorder.health`) and a replay feeds it back. Without a port (the
+lockstep runner's default) the health elements keep their initial values,
+so a ``sim`` is byte-identical run to run. The CN's monitors
+(:mod:`zplatform.monitors`) run in ``finish`` after the fault monitor and
+before the command handler and the state machine, so a response takes
+effect in the loop its monitor trips.
 """
 
 from __future__ import annotations
@@ -83,7 +99,9 @@ from .devices import DeviceSet
 from .errors import CodecError, ConfigError
 from .events import EV, EventLog, EventType
 from .faults import FaultMonitor
+from .health import HealthInput, HealthPort
 from .intake import CnRefusals, RefusalLog
+from .monitors import MonitorSet
 from .params import ParamTable, SaveResult
 from .statemachine import StateMachine
 from .world import node_board
@@ -106,6 +124,9 @@ class LoopRecorder(Protocol):
     def begin(self, loop: int, t_ns: int, final: bool) -> None: ...
 
     def reply(self, i: int, payload: bytes | bytearray | memoryview | None) -> None: ...
+
+    def health(self, block: bytes | bytearray | memoryview) -> None:
+        """The health block the loop copied in (health loops only, before ``finish``)."""
 
     def finish(
         self,
@@ -180,6 +201,10 @@ class ControlLogic:
             mission, dv, self.events, self.statemachine, params=self.params
         )
         self.controllers = ControllerSet(mission, "cn", dv, self.events, self.faults)
+        self.monitors = MonitorSet(mission, dv, self.events, self.faults, self.statemachine)
+        self._health = (
+            HealthInput(mission, "cn", dv, self.events) if mission.health is not None else None
+        )
         self.dns: tuple[str, ...] = tuple(mission.device_nodes)
         dns = self.dns
         self._to_dn = tuple(RegionCodec(dv, f"cn_to_{dn}") for dn in dns)
@@ -320,7 +345,15 @@ class ControlLogic:
             new_request = self._take_request(grounds)
         self._h_loop.set(loop)
         self._h_time.set(t)
+        health = self._health
+        if health is not None and health.port is not None and loop % health.divisor == 0:
+            block = health.port.take(t)
+            health.apply(block, t)
+            if self.recorder is not None:
+                self.recorder.health(block)
         self.faults.step(t)
+        if self.monitors.monitors:
+            self.monitors.step(t)
         self.commands.step(new_request, t)
         self.statemachine.step(t)
         self.controllers.run(loop, t)
@@ -434,6 +467,11 @@ class ControlLogic:
         for c in self.controllers.controllers:
             c.bulk = port.arrays
 
+    def attach_health(self, port: HealthPort) -> None:
+        """Take the CN's health block from ``port`` on health loops from the next
+        loop on (module doc); ConfigError when the mission has no ``health:``."""
+        _attach_health(self._health, port)
+
     def reset_sync_counters(self) -> None:
         """Zero rx/missed/late per DN and the sync overruns (after a warm-up)."""
         for hs in (self._rx, self._missed, self._late):
@@ -522,6 +560,9 @@ class DeviceLogic:
         )
         self.devices = DeviceSet(mission, node, dv, self.board, self.events)
         self.controllers = ControllerSet(mission, node, dv, self.events)
+        self._health = (
+            HealthInput(mission, node, dv, self.events) if mission.health is not None else None
+        )
         self._in = RegionCodec(dv, f"cn_to_{node}")
         # This node's place in a sync bundle (one wildcard query for every DN).
         self._index = mission.device_nodes.index(node)
@@ -716,6 +757,9 @@ class DeviceLogic:
             bulk.receive(loop)
         self._loop.set(loop)
         self._time.set(t_ns)
+        health = self._health
+        if health is not None and health.port is not None and loop % health.divisor == 0:
+            health.apply(health.port.take(t_ns), t_ns)
         if self.safed:
             self._back += 1
             if self._back >= self._reenable_after:
@@ -758,6 +802,11 @@ class DeviceLogic:
         self._bulk = port
         for c in [*self.controllers.controllers, *self.devices.devices]:
             c.bulk = port.arrays
+
+    def attach_health(self, port: HealthPort) -> None:
+        """Take the node's health block from ``port`` on health loops from the
+        next run on (module doc); ConfigError when the mission has no ``health:``."""
+        _attach_health(self._health, port)
 
     def watchdog(self, now_ns: int) -> bool:
         """Safe the node if it has had no valid trigger for
@@ -806,3 +855,9 @@ class DeviceLogic:
             self.events.emit(
                 EV.BOARD_FAILED, t_ns, node=self.node, exc_type=type(exc).__name__, exc=exc
             )
+
+
+def _attach_health(health: HealthInput | None, port: HealthPort) -> None:
+    if health is None:
+        raise ConfigError("the mission has no `health:` section: no health elements", "$.health")
+    health.port = port

@@ -24,7 +24,11 @@ tests. They return a :class:`~zplatform.config.Mission` that passed
    * the devices and boards (:func:`zplatform.devices.check_config`): every
      node's ``board`` config (a SimBoard's ``physics`` function imported and
      its signature checked), every device class, config and pin;
-   * the limits, the radio downlink and the lowlatency transport;
+   * the ``health`` section (:func:`zplatform.health.check_config`), the
+     limits, the ``monitors`` (:func:`zplatform.monitors.check_config`:
+     elements, kinds, states, responses), every node's ``watchdog``
+     (:func:`zplatform.watchdog.check_config`), the radio downlink and the
+     lowlatency transport;
    * the deployment (:func:`zplatform.deploy.require_deployment`): a mission
      with ``tls/`` endpoints needs the deployment file named by
      ``ZPLATFORM_DEPLOYMENT``, with a cert and key for each tls node.
@@ -60,7 +64,18 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from . import commands, controllers, deploy, devices, params, statemachine, world
+from . import (
+    commands,
+    controllers,
+    deploy,
+    devices,
+    health,
+    monitors,
+    params,
+    statemachine,
+    watchdog,
+    world,
+)
 from .config import (
     CONTROLLER_MODES,
     Mission,
@@ -99,7 +114,10 @@ def check_mission(mission: Mission, *, code: bool = True) -> None:
     if code:
         controllers.check_config(mission)
         devices.check_config(mission)
+    health.check_config(mission)
     _check_limits(mission)
+    monitors.check_config(mission)
+    watchdog.check_config(mission)
     _check_downlink(mission)
     check_lowlatency(mission)
     # Last: it reads the environment and files, and only matters for a

@@ -6,14 +6,15 @@ input its loop consumed is written, per loop, in call order: the loop number,
 timestamp and whether it was the run's last (``final``), each DN reply as it
 arrived (its bytes, or that the DN answered with an error), the ground
 frame, the sync-overrun flag and the skipped periods, the parameter saves
-that finished (:mod:`zplatform.params`), and the telemetry frame the loop
+that finished (:mod:`zplatform.params`), the node's health block on health
+loops (:mod:`zplatform.health`), and the telemetry frame the loop
 produced (what a replay must reproduce). ``DIR`` holds
 ``mission.yaml`` (the effective mission) and ``cn.zrec``; ``zplatform replay
 DIR`` needs nothing else.
 
 ``cn.zrec``, all integers little-endian::
 
-    header:  b"ZPREC\\0"  u16 version (4)  u32 n  n bytes of JSON metadata
+    header:  b"ZPREC\\0"  u16 version (5)  u32 n  n bytes of JSON metadata
              u32 m  m bytes: the CN's Data Vector when recording started
     items:   u8 type  u8 dn  u32 length  length bytes
                1 BEGIN      u64 loop, i64 t_ns, u8 final (1: the run's last loop)
@@ -31,9 +32,11 @@ DIR`` needs nothing else.
                9 DROPPED    u64 loops the recorder could not keep (ring full)
               11 PRM_SAVED  a parameter save finished: u64 its PRM_SAVE number,
                             u8 ok, then its detail (UTF-8, at most 512 bytes)
+              12 HEALTH     the CN's health block the loop copied in
+                            (health loops of a mission with ``health:``)
 
-Version 4: the intake's refusals in FINISH (counts: a flood is not
-recorded frame by frame). Versions 2 and 3 had an ``inbox_oversize`` count
+Version 5: the intake's refusals in FINISH (counts: a flood is not
+recorded frame by frame). Versions 2 to 4 had an ``inbox_oversize`` count
 there and an item (10, FOREIGN) per reply from no DN, which this loop no
 longer takes: such a recording is refused by name (replay it with the
 zplatform that made it).
@@ -69,21 +72,22 @@ from .codec import RegionCodec
 from .config import Mission, relocate_mission
 from .datavector import DataVector, Layout
 from .errors import RecordingError
+from .health import BLOCK_SIZE, Heartbeat
 from .intake import CnRefusals
 from .params import SaveResult
 
 __all__ = ["LoopRecord", "RecordReader", "Recorder"]
 
 MAGIC = b"ZPREC\x00"
-VERSION = 4  # 2: BEGIN carries the final-loop flag; 3: PRM_SAVED items; 4: FINISH the refusals
-_EARLIER = (2, 3)  # FINISH without the intake's refusals, FOREIGN items: not replayable here
+VERSION = 5  # 2: BEGIN's final flag; 3: PRM_SAVED; 4: HEALTH; 5: FINISH the refusals
+_EARLIER = (2, 3, 4)  # FINISH without the intake's refusals, FOREIGN items: not replayable
 RECORD_FILE = "cn.zrec"
 MISSION_FILE = "mission.yaml"
 
 BEGIN, REPLY, REPLY_ERR, OVERSIZE, GROUND, GROUND_OVERSIZE, TELEMETRY, FINISH, DROPPED = (
     range(1, 10)
 )
-PRM_SAVED = 11  # 10 was FOREIGN (version 3 and before)
+PRM_SAVED, HEALTH = 11, 12  # 10 was FOREIGN (version 4 and before)
 
 _ITEM = struct.Struct("<BBI")  # type, dn, length
 _BEGIN = struct.Struct("<QqB")
@@ -131,7 +135,8 @@ class Recorder:
         tm_max = RegionCodec(dv).max_frame_len + TAG_LEN
         item = _ITEM.size
         loop_max = (
-            item * (4 + 2 * len(dns))
+            item * (5 + 2 * len(dns))
+            + BLOCK_SIZE
             + _BEGIN.size
             + _FINISH.size
             + 2 * sum(reply_max)
@@ -184,16 +189,23 @@ class Recorder:
             self._file.write(_U32.pack(len(init)) + init)
         except (OSError, yaml.YAMLError) as exc:
             raise RecordingError(f"cannot record into {str(self.directory)!r}: {exc}") from exc
+        self.heartbeat = Heartbeat("record")
+        """The writer thread's check-in (zplatform.health), for the node's liveness."""
         self._writer = threading.Thread(target=self._write_loop, name="recorder", daemon=True)
         self._writer.start()
 
     # -- the writer thread -------------------------------------------------
     def _write_loop(self) -> None:
+        # Idle while it waits for a chunk; a write that hangs (a stuck disk)
+        # is a stall (zplatform.health).
         f = self._file
+        hb = self.heartbeat
         while True:
+            hb.idle()
             i = self._full.get()
             if i < 0:
                 return
+            hb.beat()
             try:
                 f.write(self._views[i][: self._used[i]])
             except OSError as exc:  # disk full: keep draining, report once
@@ -267,6 +279,8 @@ class Recorder:
         else:
             self._put(REPLY, i, payload, len(payload))
 
+    def health(self, block: bytes | bytearray | memoryview) -> None:
+        self._put(HEALTH, 0, block, len(block))
     def finish(
         self,
         grounds: Sequence[bytes | bytearray | memoryview],
@@ -356,6 +370,8 @@ class LoopRecord(msgspec.Struct, frozen=True):
     """:meth:`zplatform.intake.CnRefusals.fields` of the loop."""
     telemetry: bytes | None
     saves: list[SaveResult] = []
+    health: bytes | None = None
+    """The health block the loop copied in (None: not a health loop)."""
 
 
 class RecordReader:
@@ -420,6 +436,7 @@ class RecordReader:
         final = False
         grounds: list[bytes] = []
         telemetry: bytes | None = None
+        health: bytes | None = None
         replies: list[tuple[int, bytes | None]] = []
         saves: list[SaveResult] = []
         while off < end:
@@ -438,6 +455,7 @@ class RecordReader:
                 final = bool(final_byte)
                 in_loop = True
                 telemetry = None
+                health = None
                 grounds = []
                 replies = []
                 saves = []
@@ -464,6 +482,8 @@ class RecordReader:
                 seq, ok = _SAVED.unpack_from(body)
                 detail = body[_SAVED.size :].decode(errors="replace")
                 saves.append(SaveResult(seq, bool(ok), detail))
+            elif typ == HEALTH:
+                health = body
             elif typ == FINISH:
                 so, lo, dr, *refused = _FINISH.unpack(body)
                 yield LoopRecord(
@@ -478,6 +498,7 @@ class RecordReader:
                     tuple(refused),
                     telemetry,
                     saves,
+                    health,
                 )
                 in_loop = False
             else:

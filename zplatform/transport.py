@@ -99,6 +99,10 @@ class KeySpace:
     def alive(self, node: str) -> str:
         return f"{self.vehicle}/{node}/alive"
 
+    def health_probe(self, node: str) -> str:
+        """The node's own zenoh probe (zplatform.node.health): local to its session."""
+        return f"{self.vehicle}/{node}/health/probe"
+
     @property
     def all_alive(self) -> str:
         return f"{self.vehicle}/*/alive"

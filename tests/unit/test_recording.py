@@ -81,9 +81,9 @@ def test_the_final_loop_flag_is_recorded_and_replayed(tmp_path: Path) -> None:
     assert res.identical and res.loops == 3, res
 
 
-@pytest.mark.parametrize("version", [2, 3])
+@pytest.mark.parametrize("version", [2, 3, 4])
 def test_a_recording_of_an_earlier_format_is_refused_by_name(tmp_path: Path, version: int) -> None:
-    """Versions 2 and 3 end a loop without the intake's refusals: refused with
+    """Versions 2 to 4 end a loop without the intake's refusals: refused with
     one error that says so, never misread."""
     m = load_mission(MISSION)
     cn = ControlLogic(m, keys=None, epoch=1)

@@ -34,6 +34,7 @@ from msgspec import Meta
 
 from ..components import decode_component_config
 from ..errors import ConfigError, ControlError
+from ..health import Heartbeat
 from . import wire
 from .base import BoardError, BoardHealth, HealthCounters
 
@@ -219,6 +220,9 @@ class SerialBoard:
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self._opened = False
+        self.heartbeat = Heartbeat("board")
+        """The I/O thread's check-in (zplatform.health): beats per read (at
+        least every 50 ms), idle while it waits to reconnect."""
 
     # -- the Board protocol ------------------------------------------------------
 
@@ -416,14 +420,23 @@ class SerialBoard:
         )
 
     def _run(self) -> None:
+        try:
+            self._io()
+        finally:
+            self.heartbeat.idle()
+
+    def _io(self) -> None:
         backoff = self.config.reconnect_min_ms / 1000.0
         first = True
         deframer = wire.Deframer(self._on_body, self._on_bad)
+        hb = self.heartbeat
         while not self._stop.is_set():
+            hb.beat()
             try:
                 port = self._open_port()
             except Exception as exc:
                 self._link_error = f"cannot open {self.config.port}: {exc}"
+                hb.idle()  # waiting to reconnect is not a stall
                 self._stop.wait(backoff)
                 backoff = min(backoff * 2, self.config.reconnect_max_ms / 1000.0)
                 continue
@@ -432,6 +445,7 @@ class SerialBoard:
             except Exception as exc:
                 self._link_error = f"handshake with {self.config.port} failed: {exc}"
                 _close_quietly(port)
+                hb.idle()
                 self._stop.wait(backoff)
                 backoff = min(backoff * 2, self.config.reconnect_max_ms / 1000.0)
                 continue
@@ -446,6 +460,7 @@ class SerialBoard:
                 # Until stopped, or until the loop thread took the link down
                 # after a failed write (it cancels this read to say so).
                 while not self._stop.is_set() and self._port is port:
+                    hb.beat()
                     data = port.read(port.in_waiting or 1)
                     if data:
                         deframer.feed(data)
@@ -468,6 +483,7 @@ class SerialBoard:
         port.write(b"\x00" + bytes(tx[:n]))
         deadline = time.monotonic() + self.config.handshake_timeout_ms / 1000.0
         while self._hello is None:
+            self.heartbeat.beat()
             if time.monotonic() > deadline:
                 raise BoardError(f"no HELLO_ACK within {self.config.handshake_timeout_ms} ms")
             data = port.read(port.in_waiting or 1)

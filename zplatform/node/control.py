@@ -46,6 +46,7 @@ from ..codes import CommandStatus
 from ..config import Mission
 from ..datavector import DataVector
 from ..errors import NodeError, TransportError
+from ..health import Heartbeat, Liveness, thread_deadlines_ns
 from ..intake import CnRefusals, ReplyCheck, RequestIntake
 from ..loop import ControlLogic
 from ..messages import wildcard_sync_for
@@ -56,6 +57,8 @@ from ..summary import CnSummary, LoopWork, cn_summary
 from ..sync import ControlSync, SyncTrace
 from ..timebase import NodeClock
 from ..transport import NodeSession, wait_for_nodes
+from ..watchdog import Watchdog
+from .health import NodeHealth
 from .runtime import EventPublisher, StopFlag, realtime_setup
 
 __all__ = ["ControlNode", "run_control_node"]
@@ -99,7 +102,11 @@ class ControlNode:
         self.ns = NodeSession(mission, "cn", announce=False, lowlatency=lowlatency)
         s = self.ns.session
         space = self.ns.keys
+        # Every thread this node runs checks in (zplatform.health).
+        self.liveness = Liveness(thread_deadlines_ns(mission))
+        self._loop_hb = self.liveness.add(Heartbeat("loop"))
         self.clock_server = ClockServer(s, space, self.clock.now_ns, mission, keys)
+        self.liveness.add(self.clock_server.heartbeat)
         # The intakes get channels of their own (zenoh's threads check tags
         # with them; the loop's are not shared across threads).
         self.sync = ControlSync(
@@ -147,9 +154,20 @@ class ControlNode:
         )
         self._radio = _Radio(mission, s, space.downlink) if mission.downlink.ccsds else None
         self.bulk = open_bulk(s, mission, "cn", self.logic)
+        self.health: NodeHealth | None = None
+        if mission.health is not None:
+            self.health = NodeHealth(mission, "cn", self.liveness, session=s)
+            self.logic.attach_health(self.health)
+        wd = mission.nodes["cn"].watchdog
+        self.watchdog = (
+            Watchdog(wd, "cn", self.liveness, self.logic.events) if wd is not None else None
+        )
         self.params_file = Path(params_file) if params_file else params_path(mission)
         self._saver = ParamSaver(self.params_file) if mission.params else None
+        if self._saver is not None:
+            self.liveness.add(self._saver.heartbeat)
         self._skipped = 0
+        self._stopped_cleanly = False
         self._last_step: int | None = None  # self.loops after the run's planned last loop
         self.ns.announce()
         self.first_loop_ns = 0
@@ -170,6 +188,7 @@ class ControlNode:
         after :meth:`wait_ready`). RecordingError if it cannot start."""
         self.recorder = Recorder(directory, self.mission, mission_source, self.dv)
         self.logic.recorder = self.recorder
+        self.liveness.add(self.recorder.heartbeat)
         return self.recorder
 
     # -- start-up --------------------------------------------------------
@@ -246,11 +265,16 @@ class ControlNode:
     # -- the loop ------------------------------------------------------------
     def _on_overrun(self, k: int, lateness_ns: int) -> None:
         self._skipped += 1  # an input of the next loop (replayed as such)
+        if self.health is not None:
+            self.health.overran()
 
     def step(self, k: int, deadline_ns: int) -> bool:
         """One loop; returns False to stop: after the run's final loop (the
         last of ``max_loops``, or the loop after a stop was asked for)."""
         m0 = self._mono()
+        self._loop_hb.beat_at(m0)
+        if self.health is not None:
+            self.health.note(m0 - deadline_ns)
         loop = k + 1
         # The loop's one timestamp is its scheduled start, not the moment the
         # thread woke: loop n is then at t1 + (n - 1) * period exactly, as in
@@ -293,10 +317,15 @@ class ControlNode:
             self._tm_pub.put(tm)
             if self._radio is not None:
                 self._radio.send(self.dv, loop, t)
+        end = self._mono()
+        if self.watchdog is not None:
+            self.watchdog.stroke(end, t)
         self._events.flush()
-        self._work[self.loops & 0xFFFF] = self._mono() - m0
+        self._work[self.loops & 0xFFFF] = end - m0
         self.loops += 1
         self.last_loop_ns = t
+        if self.health is not None:
+            self.health.kick()  # sample now, in the slack before the next loop
         return not final
 
     def _take_refusals(self) -> CnRefusals:
@@ -328,6 +357,11 @@ class ControlNode:
         self._last_step = None if max_loops is None else self.loops + max_loops
         if realtime:
             realtime_setup(nc.priority, nc.cpu)
+        self._loop_hb.beat()
+        if self.health is not None:
+            self.health.start()
+        if self.watchdog is not None:
+            self.watchdog.open()
         gc_guard = GcGuard()
         loop = PeriodicLoop(
             self.mission.period_ns,
@@ -340,6 +374,7 @@ class ControlNode:
             loop.run(self.step, max_loops=max_loops)
         finally:
             gc_guard.restore()
+        self._stopped_cleanly = True
         return loop
 
     def summary(self) -> CnSummary:
@@ -383,6 +418,11 @@ class ControlNode:
                 self.bulk.close()
             self._tm_pub.undeclare()
         finally:
+            if self.watchdog is not None:
+                # A loop that ended in an exception leaves the watchdog armed.
+                self.watchdog.close(clean=self._stopped_cleanly)
+            if self.health is not None:
+                self.health.close()
             if self.recorder is not None:
                 self.recorder.close()
             if self._saver is not None:  # a save in progress is finished, not torn

@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import logging
 import threading
+import time
 
 from ..auth import KeySet, channel, load_keys
 from ..boards import close_board, open_board
@@ -34,6 +35,7 @@ from ..clocksync import ClockEstimate, ClockLink, estimator_for
 from ..config import Mission
 from ..errors import ClockSyncError, NodeError, TransportError, ZPlatformError
 from ..events import EV
+from ..health import Heartbeat, Liveness, thread_deadlines_ns
 from ..intake import TriggerIntake
 from ..loop import DeviceLogic
 from ..scheduler import GcGuard
@@ -41,6 +43,8 @@ from ..summary import DnSummary
 from ..sync import DeviceSync, SyncTrace
 from ..timebase import NodeClock
 from ..transport import NodeSession, wait_for_nodes
+from ..watchdog import Watchdog
+from .health import NodeHealth
 from .runtime import EventPublisher, StopFlag, realtime_setup
 
 __all__ = ["DeviceNode", "run_device_node"]
@@ -100,6 +104,22 @@ class DeviceNode:
         self.bulk: NodeBulk | None = None
         self._events: EventPublisher | None = None
         self._resync: threading.Thread | None = None
+        # Every thread this node runs checks in (zplatform.health).
+        self.liveness = Liveness(thread_deadlines_ns(mission))
+        self._loop_hb = self.liveness.add(Heartbeat("loop"))
+        self._resync_hb = Heartbeat("clock")
+        board_hb = getattr(self.logic.board, "heartbeat", None)
+        if isinstance(board_hb, Heartbeat):  # a board with an I/O thread of its own
+            self.liveness.add(board_hb)
+        self.health: NodeHealth | None = None
+        if mission.health is not None:
+            self.health = NodeHealth(mission, name, self.liveness, session=self.ns.session)
+            self.logic.attach_health(self.health)
+        wd = mission.nodes[name].watchdog
+        self.watchdog = (
+            Watchdog(wd, name, self.liveness, self.logic.events) if wd is not None else None
+        )
+        self._stopped_cleanly = False
 
     def start(self, ready_timeout_s: float = 60.0) -> int:
         """Wait for the CN, sync the clock, declare the queryable, announce.
@@ -170,6 +190,7 @@ class DeviceNode:
             s, keys.events(self.name), self.logic.events, channel(self._keys, f"events_{self.name}")
         )
         if m.clock.resync_s > 0:
+            self.liveness.add(self._resync_hb)
             self._resync = threading.Thread(target=self._resync_loop, daemon=True)
             self._resync.start()
         self.ns.announce()
@@ -178,19 +199,32 @@ class DeviceNode:
     def _resync_loop(self) -> None:
         # Background: measure, never step the clock, never write what the
         # loop uses: the loop thread judges each measurement (_take_measured).
+        # Idle between measurements; during one it checks in at every clock
+        # read, i.e. every exchange (each waits at most its timeout).
         m = self.mission
+        hb = self._resync_hb
+        now_ns = self.clock.now_ns
+
+        def now() -> int:
+            hb.beat()
+            return now_ns()
+
+        hb.idle()
         while not self.stop.event.wait(m.clock.resync_s):
+            hb.beat()
             try:
                 self._measured = self.estimate_offset(
                     self.ns.session,
                     self.ns.keys,
-                    self.clock.now_ns,
+                    now,
                     self.clock_link,
                     exchanges=50,
                     keep_fraction=m.clock.keep_fraction,
                 )
             except Exception as exc:  # the CN may be gone; report and keep trying
                 log.warning("%s clock re-sync failed: %s", self.name, exc)
+            finally:
+                hb.idle()
             self._resynced = True
 
     def _take_measured(self, t_ns: int) -> None:
@@ -246,6 +280,15 @@ class DeviceNode:
         wait = self.sync.wait
         run = logic.run
         now = self.clock.now_ns
+        mono = time.monotonic_ns
+        loop_hb = self._loop_hb
+        health = self.health
+        wd = self.watchdog
+        loop_hb.beat()
+        if health is not None:
+            health.start()
+        if wd is not None:
+            wd.open()
         gc_guard = GcGuard()
         gc_guard.freeze_after_startup()
         try:
@@ -254,18 +297,32 @@ class DeviceNode:
             idle_s = min(0.2, period / 1e9)
             while not self.stop.is_set():
                 if not wait(logic, idle_s):
+                    m0 = mono()
+                    loop_hb.beat_at(m0)  # alive, if idle: no trigger came
                     logic.watchdog(now())
+                    if wd is not None:
+                        wd.stroke(m0, now())
                     self._events.flush()  # a safing, refused queries: cheap when none
                     continue
                 t = now()
+                m0 = mono()
+                loop_hb.beat_at(m0)
+                if health is not None:  # lateness: from the CN's scheduled start
+                    health.note(t - logic.last_t_ns)
                 if self._resynced:  # a re-sync attempt ended: judge it here
                     self._take_measured(t)
                 run(t)  # with the bulk channels, in the loop's order
+                if wd is not None:
+                    wd.stroke(m0, t)
                 self._events.flush()
+                if health is not None:
+                    health.kick()  # sample now, in the slack before the next trigger
                 # Slack until the next trigger is due: gc only runs there.
                 slack = t + period - now()
                 if slack < 0:
                     self._overruns.bump()
+                    if health is not None:
+                        health.overran()
                 else:
                     gc_guard.on_slack(slack)
                 self.loops += 1
@@ -273,6 +330,7 @@ class DeviceNode:
                     break
         finally:
             gc_guard.restore()
+        self._stopped_cleanly = True
 
     def summary(self) -> DnSummary:
         return DnSummary(
@@ -299,6 +357,11 @@ class DeviceNode:
             self.bulk.close()
         if self._resync is not None:
             self._resync.join(timeout=2)
+        if self.watchdog is not None:
+            # A loop that ended in an exception leaves the watchdog armed.
+            self.watchdog.close(clean=self._stopped_cleanly)
+        if self.health is not None:
+            self.health.close()
         close_board(self.logic.board)
         self.ns.close()
 
