@@ -147,18 +147,16 @@ def test_a_hung_thread_is_named_its_monitor_responds_and_its_watchdog_stops(
         assert wd_file.stat().st_size > size > 0  # dn0 strokes its watchdog
         q = _Events(c)
         try:
-            hung = time.monotonic()
             (tmp_path / "hang").touch()
             board = 1 << Thread.BOARD
+            # Named within its deadline is the unit tests' (a fake clock:
+            # tests/unit/test_health.py); a live test on a loaded box asserts
+            # that it is named, and by which thread, not how fast.
             c.wait_for(
                 lambda dv: int(dv.get("dn0_threads_stalled")) & board != 0,
                 30,
                 "dn0's board thread named stalled",
             )
-            named_after = time.monotonic() - hung
-            # Named within its deadline plus a health period and the loop's copy
-            # (and a second for a loaded shared box).
-            assert named_after < (BOARD_DEADLINE_MS / 1000 + 1 / HEALTH_HZ + 1.0), named_after
             e = q.wait("dn0", "thread_stalled")
             assert e.text == (
                 f"dn0: thread board has not checked in within its deadline "
