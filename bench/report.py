@@ -60,7 +60,7 @@ BULKY = ("samples", "samples_ns", "samples_us", "histogram")
 #: Benches whose variants all do the same work, so "p50 vs the best p50" means something.
 VS_BEST = ("sync", "baselines")
 #: Params shown in their own tables instead of the params list.
-STRUCTURED_PARAMS = ("targets", "ratios_p50", "misses")
+STRUCTURED_PARAMS = ("targets", "ratios_p50", "misses", "floods")
 
 
 # ----------------------------------------------------------------------------- loading
@@ -494,12 +494,28 @@ def faults_section(params: dict[str, Any], variants: dict[str, dict[str, Any]]) 
             ]
         )
     head = ["case", "detect ms", "DN_LOST ms", "loops missed", "final", "configured"]
-    return [
+    lines = [
         "",
         "**Fault cases** (each on live node processes; `tests/faults/live.py`)",
         "",
         *md_table([*head, "forged applied", "checks", "targets"], rows),
     ]
+    floods = params.get("floods") or []
+    if floods:
+        lines += [
+            "",
+            "**Floods from a keyless peer** (a recovery_igniter flight each; "
+            "`tests/faults/floods.py`): misses in the attack's window and in a reference "
+            "window of the same flight without one; misses added per 1,000 frames/s (target "
+            "under 1e-4); the CPU the node under attack spent per flood frame beyond its "
+            "reference; the largest RSS growth of any node over the attack",
+            "",
+            *md_table(
+                list(floods[0]),
+                ([r.get(k) for k in floods[0]] for r in floods),
+            ),
+        ]
+    return lines
 
 
 def params_section(params: dict[str, Any]) -> list[str]:

@@ -58,10 +58,10 @@ from .events import Event
 from .ground.logic import GroundLogic
 from .ground.records import CommandOutcome, EventRecord
 from .health import BLOCK_SIZE, HealthPort
+from .intake import CnRefusals
 from .loop import ControlLogic, DeviceLogic
 from .messages import wildcard_sync_for
 from .params import MemorySaver
-from .recording import FOREIGN_DN
 from .telemetry import CsvLogger
 from .timebase import VirtualClock
 from .uplink import ScriptCommand
@@ -504,6 +504,7 @@ def replay(
         )
     reader.check_layout(Layout.for_node(mission, "cn"))
     cn = ControlLogic(mission, keys=load_keys(mission, "cn", key_file))
+    refused = CnRefusals()
     cn.dv.write_all(reader.initial)  # epoch included
     recorded = _RecordedHealth()
     if mission.health is not None:  # the recorded blocks, on the recorded loops
@@ -517,16 +518,13 @@ def replay(
         recorded.block = rec.health
         cn.begin(rec.loop, rec.t_ns, final=rec.final)
         for i, payload in rec.replies:
-            if i == FOREIGN_DN:
-                cn.foreign_reply(bytes(payload or b"").decode(errors="replace"))
-            else:
-                cn.reply(i, payload)
+            cn.reply(i, payload)
         tm = cn.finish(
             rec.grounds,
             sync_overrun=rec.sync_overrun,
             loop_overruns=rec.loop_overruns,
             inbox_dropped=rec.inbox_dropped,
-            inbox_oversize=rec.inbox_oversize,
+            refused=refused.set_fields(rec.refused),
             saves=rec.saves,
         )
         loops += 1

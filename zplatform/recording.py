@@ -14,7 +14,7 @@ DIR`` needs nothing else.
 
 ``cn.zrec``, all integers little-endian::
 
-    header:  b"ZPREC\\0"  u16 version (4)  u32 n  n bytes of JSON metadata
+    header:  b"ZPREC\\0"  u16 version (5)  u32 n  n bytes of JSON metadata
              u32 m  m bytes: the CN's Data Vector when recording started
     items:   u8 type  u8 dn  u32 length  length bytes
                1 BEGIN      u64 loop, i64 t_ns, u8 final (1: the run's last loop)
@@ -25,17 +25,21 @@ DIR`` needs nothing else.
                6 GROUND_OVERSIZE  u32 its length
                7 TELEMETRY  the telemetry frame the loop produced
                8 FINISH     u8 sync_overrun, u32 loop_overruns, u32 inbox_dropped,
-                            u32 inbox_oversize (ends a loop)
+                            then what the intake refused (zplatform.intake.CnRefusals,
+                            in its field order): u32 reply_size, reply_bad,
+                            reply_stale, reply_foreign, cmd_size, cmd_bad, cmd_stale,
+                            u8 cmd_status, u64 cmd_seq (ends a loop)
                9 DROPPED    u64 loops the recorder could not keep (ring full)
-              10 FOREIGN    a sync reply from a key that is no DN's: the key
-                            (UTF-8, at most 256 bytes; ``dn`` 255)
               11 PRM_SAVED  a parameter save finished: u64 its PRM_SAVE number,
                             u8 ok, then its detail (UTF-8, at most 512 bytes)
               12 HEALTH     the CN's health block the loop copied in
                             (health loops of a mission with ``health:``)
 
-Version 2 files (without PRM_SAVED and HEALTH items) and version 3 files
-(without HEALTH items) are read too.
+Version 5: the intake's refusals in FINISH (counts: a flood is not
+recorded frame by frame). Versions 2 to 4 had an ``inbox_oversize`` count
+there and an item (10, FOREIGN) per reply from no DN, which this loop no
+longer takes: such a recording is refused by name (replay it with the
+zplatform that made it).
 
 An oversize frame cannot decode (it is longer than the widest valid
 encoding), so a replay feeds an empty payload in its place: the same bad
@@ -69,37 +73,27 @@ from .config import Mission, relocate_mission
 from .datavector import DataVector, Layout
 from .errors import RecordingError
 from .health import BLOCK_SIZE, Heartbeat
+from .intake import CnRefusals
 from .params import SaveResult
 
-__all__ = ["FOREIGN_DN", "LoopRecord", "RecordReader", "Recorder"]
+__all__ = ["LoopRecord", "RecordReader", "Recorder"]
 
 MAGIC = b"ZPREC\x00"
-VERSION = 4  # 2: BEGIN carries the final-loop flag; 3: PRM_SAVED items; 4: HEALTH items
-_READABLE = (2, 3, 4)
+VERSION = 5  # 2: BEGIN's final flag; 3: PRM_SAVED; 4: HEALTH; 5: FINISH the refusals
+_EARLIER = (2, 3, 4)  # FINISH without the intake's refusals, FOREIGN items: not replayable
 RECORD_FILE = "cn.zrec"
 MISSION_FILE = "mission.yaml"
 
-(
-    BEGIN,
-    REPLY,
-    REPLY_ERR,
-    OVERSIZE,
-    GROUND,
-    GROUND_OVERSIZE,
-    TELEMETRY,
-    FINISH,
-    DROPPED,
-    FOREIGN,
-    PRM_SAVED,
-    HEALTH,
-) = range(1, 13)
-#: ``LoopRecord.replies`` entry index of a FOREIGN reply (its payload is the key).
-FOREIGN_DN = -1
+BEGIN, REPLY, REPLY_ERR, OVERSIZE, GROUND, GROUND_OVERSIZE, TELEMETRY, FINISH, DROPPED = (
+    range(1, 10)
+)
+PRM_SAVED, HEALTH = 11, 12  # 10 was FOREIGN (version 4 and before)
 
 _ITEM = struct.Struct("<BBI")  # type, dn, length
 _BEGIN = struct.Struct("<QqB")
-_FINISH = struct.Struct("<BIII")
+_FINISH = struct.Struct("<BII" + "I" * 7 + "BQ")
 _U32 = struct.Struct("<I")
+_NONE_REFUSED = CnRefusals().fields()
 _U64 = struct.Struct("<Q")
 _SAVED = struct.Struct("<QB")
 _HEAD = struct.Struct("<6sHI")
@@ -285,32 +279,21 @@ class Recorder:
         else:
             self._put(REPLY, i, payload, len(payload))
 
-    def foreign(self, source: str) -> None:
-        src = source.encode(errors="replace")[:256]
-        self._put(FOREIGN, 255, src, len(src))
-
     def health(self, block: bytes | bytearray | memoryview) -> None:
         self._put(HEALTH, 0, block, len(block))
-
     def finish(
         self,
         grounds: Sequence[bytes | bytearray | memoryview],
         sync_overrun: bool,
         loop_overruns: int,
         inbox_dropped: int,
-        inbox_oversize: int,
+        refused: CnRefusals | None,
         saves: Sequence[SaveResult],
         telemetry: bytearray | None,
     ) -> None:
         if not self._dropping:
             self._finish(
-                grounds,
-                sync_overrun,
-                loop_overruns,
-                inbox_dropped,
-                inbox_oversize,
-                saves,
-                telemetry,
+                grounds, sync_overrun, loop_overruns, inbox_dropped, refused, saves, telemetry
             )
         if self._open_loop:
             self._open_loop = False
@@ -326,7 +309,7 @@ class Recorder:
         sync_overrun: bool,
         loop_overruns: int,
         inbox_dropped: int,
-        inbox_oversize: int,
+        refused: CnRefusals | None,
         saves: Sequence[SaveResult],
         telemetry: bytearray | None,
     ) -> None:
@@ -344,7 +327,12 @@ class Recorder:
         self._put(
             FINISH,
             0,
-            _FINISH.pack(bool(sync_overrun), loop_overruns, inbox_dropped, inbox_oversize),
+            _FINISH.pack(
+                bool(sync_overrun),
+                loop_overruns,
+                inbox_dropped,
+                *(refused.fields() if refused is not None else _NONE_REFUSED),
+            ),
             _FINISH.size,
         )
 
@@ -378,7 +366,8 @@ class LoopRecord(msgspec.Struct, frozen=True):
     sync_overrun: bool
     loop_overruns: int
     inbox_dropped: int
-    inbox_oversize: int
+    refused: tuple[int, ...]
+    """:meth:`zplatform.intake.CnRefusals.fields` of the loop."""
     telemetry: bytes | None
     saves: list[SaveResult] = []
     health: bytes | None = None
@@ -407,10 +396,14 @@ class RecordReader:
             magic, version, n = _HEAD.unpack_from(d, 0)
             if magic != MAGIC:
                 raise RecordingError(f"{path} is not a zplatform recording")
-            if version not in _READABLE:
+            if version in _EARLIER:
                 raise RecordingError(
-                    f"{path}: recording version {version}, expected one of {_READABLE}"
+                    f"{path}: recording version {version}, made by an earlier zplatform "
+                    f"(before the intake's refusals in version {VERSION}): replay it with "
+                    "the zplatform that recorded it"
                 )
+            if version != VERSION:
+                raise RecordingError(f"{path}: recording version {version}, expected {VERSION}")
             off = _HEAD.size
             self.meta = json.loads(d[off : off + n])
             off += n
@@ -477,8 +470,6 @@ class RecordReader:
                 replies.append((dn, body))
             elif typ == REPLY_ERR:
                 replies.append((dn, None))
-            elif typ == FOREIGN:
-                replies.append((FOREIGN_DN, body))
             elif typ == OVERSIZE:
                 replies.append((dn, b""))
             elif typ == GROUND:
@@ -494,7 +485,7 @@ class RecordReader:
             elif typ == HEALTH:
                 health = body
             elif typ == FINISH:
-                so, lo, dr, ov = _FINISH.unpack(body)
+                so, lo, dr, *refused = _FINISH.unpack(body)
                 yield LoopRecord(
                     loop,
                     t,
@@ -504,7 +495,7 @@ class RecordReader:
                     bool(so),
                     lo,
                     dr,
-                    ov,
+                    tuple(refused),
                     telemetry,
                     saves,
                     health,

@@ -228,8 +228,8 @@ class Live(Cluster):
     """:class:`Cluster` that keeps every telemetry snapshot it reads
     (:attr:`snaps`) and every event of every node (:attr:`events`)."""
 
-    def __init__(self, tmp: Path, *, relay_dn0: bool = False) -> None:
-        super().__init__(MISSION, tmp)
+    def __init__(self, tmp: Path, *, relay_dn0: bool = False, mission: Path = MISSION) -> None:
+        super().__init__(mission, tmp)
         self.relay: FrameTap | None = None
         self._relays: list[FaultRelay] = []
         if relay_dn0:
@@ -368,8 +368,8 @@ def _get(dv: DataVector, k: str) -> Any:
 
 
 @contextmanager
-def live(tmp: Path, *, relay_dn0: bool = False) -> Iterator[Live]:
-    c = Live(tmp, relay_dn0=relay_dn0)
+def live(tmp: Path, *, relay_dn0: bool = False, mission: Path = MISSION) -> Iterator[Live]:
+    c = Live(tmp, relay_dn0=relay_dn0, mission=mission)
     try:
         yield c
     finally:

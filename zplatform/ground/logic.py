@@ -34,7 +34,11 @@ Only then is the snapshot written into :attr:`GroundLogic.dv`; missing loop
 numbers count as ``gaps``, and each run of them is queued in
 :attr:`GroundLogic.gaps` for whoever fills them (the gap fill from the CN's
 flight recorder, :mod:`zplatform.ground.gapfill`). The first refusal of
-each kind is an event (``tm_refused``); the rest are counted.
+each kind is an event (``tm_refused``); the rest are counted. A driver
+whose intake refuses snapshots as they arrive
+(:class:`~zplatform.intake.TelemetryIntake`: the size, the tag, and a
+replay, not newer than the newest it let through) hands over its counts
+(:meth:`GroundLogic.refused`), counted the same way.
 
 **Commands** (:meth:`GroundLogic.command`): a request is numbered after the
 CN's last verdict (``cn_cmd_seq + 1``, or after the ground's own last
@@ -334,6 +338,43 @@ class GroundLogic:
     def received(self) -> int:
         """Snapshots accepted so far (cheap; :attr:`counters` has them all)."""
         return self._n.received
+
+    @property
+    def max_frame_len(self) -> int:
+        """The longest telemetry frame that can be valid (bytes, tag included)."""
+        return self._max_len
+
+    def refused(self, size: int, bad: int, stale: int, aged: int, rx_ns: int) -> None:
+        """Count snapshots the driver's intake refused as they arrived (module
+        doc): ``size`` too long and ``bad`` with a bad tag count as bad;
+        ``stale`` replays (authentic, not newer than the newest let through)
+        as refused ``stale`` (``aged`` of them, stamped beyond the freshness
+        bound) or ``not_newer`` (the rest). The first of each kind is an
+        event, as for :meth:`on_telemetry`'s own."""
+        n = self._n
+        if size:
+            n.bad += size
+            self._note("size", f"{size} snapshot(s) longer than any telemetry frame", rx_ns)
+        if bad:
+            n.bad += bad
+            self._note("tag", f"{bad} snapshot(s) with a bad authentication tag", rx_ns)
+        if aged:
+            n.refused["stale"] += aged
+            self._note(
+                "stale",
+                f"{aged} replayed snapshot(s) stamped more than {self.max_age_ns / 1e9:g} s "
+                "before they arrived",
+                rx_ns,
+            )
+        if stale - aged:
+            n.refused["not_newer"] += stale - aged
+            self._note(
+                "not_newer", f"{stale - aged} replayed snapshot(s), not newer than one taken", rx_ns
+            )
+
+    def refused_events(self, n: int) -> None:
+        """Count ``n`` event records the driver refused unread for their size."""
+        self._n.bad_events += n
 
     @property
     def counters(self) -> TelemetryCounters:

@@ -38,7 +38,6 @@ gap-fill requests on ``{vehicle}/cn/recorder`` from its own thread.
 
 from __future__ import annotations
 
-import collections
 import logging
 import time
 from pathlib import Path
@@ -50,11 +49,13 @@ import zenoh
 from ..auth import KeySet, channel, load_keys
 from ..bulk import open_bulk
 from ..clocksync import ClockServer
+from ..codes import CommandStatus
 from ..config import Mission
 from ..datavector import DataVector
 from ..errors import NodeError, RecordingError, TransportError
 from ..ground.logic import default_max_age_ns
 from ..health import Heartbeat, Liveness, thread_deadlines_ns
+from ..intake import CnRefusals, ReplyCheck, RequestIntake
 from ..loop import ControlLogic
 from ..messages import wildcard_sync_for
 from ..params import ParamSaver, params_path, read_params_file
@@ -75,7 +76,9 @@ __all__ = ["ControlNode", "run_control_node"]
 log = logging.getLogger("zplatform.cn")
 
 INBOX = 16
-"""Command request frames kept between two loops (the newest ones)."""
+"""Command request frames kept between two loops (the newest ones): only
+authentic requests of this run, numbered above every number seen, get
+this far (:class:`~zplatform.intake.RequestIntake`)."""
 
 
 class ControlNode:
@@ -115,24 +118,38 @@ class ControlNode:
         self._loop_hb = self.liveness.add(Heartbeat("loop"))
         self.clock_server = ClockServer(s, space, self.clock.now_ns, mission, keys)
         self.liveness.add(self.clock_server.heartbeat)
+        # The intakes get channels of their own (zenoh's threads check tags
+        # with them; the loop's are not shared across threads).
         self.sync = ControlSync(
             s,
             space,
             mission.device_nodes,
             mission.sync_timeout_ns,
             query_timeout_s=max(mission.period_ns / 1e9, 0.01),
+            checks=[
+                ReplyCheck(mission, dn, channel(keys, f"{dn}_to_cn"))
+                for dn in mission.device_nodes
+            ],
             wildcard=wildcard_sync_for(mission),
             trace=sync_trace,
         )
-        # The command inbox: bounded, newest kept; a frame's size is checked
-        # before its bytes are copied out of zenoh, so a flood of junk costs
-        # neither memory nor a valid command more than a loop.
-        self._inbox: collections.deque[bytes] = collections.deque(maxlen=INBOX)
-        self._inbox_max = self.logic.max_request_len
-        self._inbox_dropped = 0
-        self._inbox_oversize = 0
+        # The command inbox (zplatform.intake): size, tag, this run, a number
+        # above every one seen, then bounded, newest kept. A flood of junk or
+        # of replayed requests is refused as it arrives and counted; it costs
+        # neither memory nor the operator's fresh command.
+        commands = self.logic.commands
+        self._requests = RequestIntake(
+            mission,
+            channel(keys, "gn_to_cn") if mission.has_ground else None,
+            int(self.dv.get("cn_epoch")),
+            lambda: commands.last_seq,
+            INBOX,
+        )
+        assert self._requests.box is not None
+        self._inbox = self._requests.box
+        self._taken: list[tuple[None, bytes]] = []
         self._seen_dropped = 0
-        self._seen_oversize = 0
+        self._refused = CnRefusals()
         self._grounds: list[bytes] = []
         self._gsub: zenoh.Subscriber[Any] | None = None
         if mission.has_ground:
@@ -205,14 +222,8 @@ class ControlNode:
         self._mono = time.monotonic_ns
 
     def _on_ground(self, sample: zenoh.Sample) -> None:
-        # zenoh's thread: check the size, hand off, nothing more.
-        payload = sample.payload
-        if len(payload) > self._inbox_max:
-            self._inbox_oversize += 1
-            return
-        if len(self._inbox) == INBOX:
-            self._inbox_dropped += 1  # the deque drops the oldest
-        self._inbox.append(payload.to_bytes())
+        # zenoh's thread: the intake's checks and the hand-off, nothing more.
+        self._requests.admit(sample.payload, None)
 
     def record(self, directory: str | Path, mission_source: str | Path) -> Recorder:
         """Record every loop's inputs into ``directory`` from now on (call
@@ -320,17 +331,19 @@ class ControlNode:
         overrun = self.sync.sync(logic.begin(loop, t, final=final), logic)
         grounds = self._grounds
         grounds.clear()
-        inbox = self._inbox
-        while inbox:
-            grounds.append(inbox.popleft())
+        taken = self._taken
+        if len(self._inbox):
+            taken.clear()
+            self._inbox.drain(taken)
+            for _, frame in taken:
+                grounds.append(frame)
         skipped, self._skipped = self._skipped, 0
         rec = self.flight_recorder
         if rec is not None:  # its counters into this loop's telemetry
             rec.tick(t)
-        # Totals only zenoh's thread writes; the loop keeps what it has seen.
-        d_total, o_total = self._inbox_dropped, self._inbox_oversize
-        dropped, oversize = d_total - self._seen_dropped, o_total - self._seen_oversize
-        self._seen_dropped, self._seen_oversize = d_total, o_total
+        # A total only zenoh's thread writes; the loop keeps what it has seen.
+        d_total = self._inbox.dropped
+        dropped, self._seen_dropped = d_total - self._seen_dropped, d_total
         saver = self._saver
         saved = saver.poll() if saver is not None else None
         tm = logic.finish(
@@ -338,7 +351,7 @@ class ControlNode:
             sync_overrun=overrun,
             loop_overruns=skipped,
             inbox_dropped=dropped,
-            inbox_oversize=oversize,
+            refused=self._take_refusals(),
             saves=(saved,) if saved is not None else (),
         )
         if saver is not None:
@@ -361,6 +374,20 @@ class ControlNode:
         if self.health is not None:
             self.health.kick()  # sample now, in the slack before the next loop
         return not final
+
+    def _take_refusals(self) -> CnRefusals:
+        """What the intakes refused since the last loop (an input of the loop)."""
+        r = self._refused
+        self.sync.take_refusals(r)
+        req = self._requests
+        r.cmd_size, r.cmd_bad, r.cmd_stale = req.take_counts()
+        if r.cmd_stale:
+            r.cmd_status, r.cmd_seq = req.reported
+        elif r.cmd_bad:
+            r.cmd_status, r.cmd_seq = CommandStatus.REJECTED_AUTH, 0
+        else:
+            r.cmd_status = r.cmd_seq = 0
+        return r
 
     def run(
         self,

@@ -42,6 +42,7 @@ from ..config import Mission
 from ..errors import ClockSyncError, NodeError, RecordingError, TransportError, ZPlatformError
 from ..events import EV
 from ..health import Heartbeat, Liveness, thread_deadlines_ns
+from ..intake import TriggerIntake
 from ..loop import DeviceLogic
 from ..recorder import FlightRecorder, open_recorder, summary_line
 from ..scheduler import GcGuard
@@ -183,7 +184,15 @@ class DeviceNode:
             res.offset_ns / 1e3,
             res.estimator,
         )
-        self.sync = DeviceSync(s, keys, self.name, self.clock.now_ns, trace=self._sync_trace)
+        self.sync = DeviceSync(
+            s,
+            keys,
+            self.name,
+            self.clock.now_ns,
+            # The intake's own channel: zenoh's thread checks tags with it.
+            intake=TriggerIntake(m, self.name, channel(self._keys, f"cn_to_{self.name}")),
+            trace=self._sync_trace,
+        )
         self.bulk = open_bulk(s, m, self.name, self.logic)
         if self.name in m.recording_nodes:
             try:
@@ -317,11 +326,10 @@ class DeviceNode:
                 if not wait(logic, idle_s):
                     m0 = mono()
                     loop_hb.beat_at(m0)  # alive, if idle: no trigger came
-                    if logic.watchdog(now()):
-                        self._events.flush()
+                    logic.watchdog(now())
                     if wd is not None:
                         wd.stroke(m0, now())
-                        self._events.flush()
+                    self._events.flush()  # a safing, refused queries: cheap when none
                     continue
                 t = now()
                 m0 = mono()

@@ -21,7 +21,6 @@ snapshots that arrived meanwhile. At the end, fills still open get up to
 from __future__ import annotations
 
 import logging
-import queue
 import time
 from pathlib import Path
 
@@ -29,6 +28,7 @@ from ..config import Mission
 from ..ground.gapfill import GapFill
 from ..ground.link import GroundLink
 from ..ground.logger import TelemetryLog
+from ..intake import Mailbox
 from ..summary import GnSummary
 from ..uplink import ScriptCommand
 from .runtime import StopFlag
@@ -131,6 +131,8 @@ def run_ground_logger(
 
 FILL_GRACE_S = 10.0
 """How long a log that ends waits for gap fills still in flight."""
+FILL_BACKLOG = 1024
+"""Gap-fill replies (chunks of frames) waiting for the ground's thread, at most."""
 
 
 class _Filler:
@@ -140,7 +142,10 @@ class _Filler:
     def __init__(self, link: GroundLink, tlog: TelemetryLog) -> None:
         self.link = link
         self.fill = GapFill(link.mission, link.link_keys, link.logic.events, tlog.snapshot)
-        self._q: queue.SimpleQueue[tuple[int, bytes | None]] = queue.SimpleQueue()
+        # Bounded like every hand-off from zenoh: a peer flooding replies
+        # lets the oldest go, and the loops they held are asked for again
+        # or told unfilled by the gap fill, never lost silently.
+        self._q: Mailbox[tuple[int, bytes | None]] = Mailbox(FILL_BACKLOG)
 
     @property
     def busy(self) -> bool:
@@ -149,11 +154,8 @@ class _Filler:
     def pump(self) -> None:
         """Replies in, requests out, time on; never blocks."""
         fill, now = self.fill, self.link.clock.now_ns
-        while True:
-            try:
-                rid, payload = self._q.get_nowait()
-            except queue.Empty:
-                break
+        while (item := self._q.pop()) is not None:
+            rid, payload = item
             if payload is None:
                 fill.on_done(rid, now())
             else:
