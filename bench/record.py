@@ -26,15 +26,19 @@ from bench.common import bench_argparser, summarize, write_result
 from zplatform import ControlLogic, LockstepRunner, Recorder, load_mission
 from zplatform.config import Mission
 from zplatform.lockstep import sim_keys
+from zplatform.uplink import load_commands
 
 ROOT = Path(__file__).resolve().parents[1]
 MISSION = ROOT / "configs" / "led_test.yaml"
 
 
-def loop_inputs(m: Mission, loops: int) -> list[tuple[int, int, list[bytes], list[bytes]]]:
+def loop_inputs(
+    m: Mission, loops: int, commands: Path | None = None
+) -> list[tuple[int, int, list[bytes], list[bytes]]]:
     """(loop, t, replies, grounds) of ``loops`` loops of a lockstep run of
-    ``m``, captured once (``bench.health`` feeds them too)."""
-    r = LockstepRunner(m)
+    ``m`` (playing the script ``commands``), captured once (``bench.health``
+    and ``bench.recorder`` feed them too)."""
+    r = LockstepRunner(m, commands=load_commands(commands) if commands is not None else None)
     out: list[tuple[int, int, list[bytes], list[bytes]]] = []
     captured: list[bytes] = []
     cn = r.control

@@ -13,6 +13,11 @@ wait that long for a CPU, and a test asserts behaviour, not the box's speed
 Likewise a control node loads (and PRM_SAVE writes) its mission's parameter
 file: the tests keep them in a directory of their own
 (``ZPLATFORM_PARAMS_DIR``), removed at exit, never in the user's.
+
+Missions with a flight recorder (the shipped flight and recovery_igniter
+ones) record into a temporary directory of the session
+(``ZPLATFORM_RECORDER_DIR``, inherited too), removed at exit: nothing is
+written to the user's state directory.
 """
 
 from __future__ import annotations
@@ -34,3 +39,7 @@ settings.load_profile("zplatform")
 _PARAMS_DIR = tempfile.mkdtemp(prefix="zplatform-test-params-")
 os.environ["ZPLATFORM_PARAMS_DIR"] = _PARAMS_DIR
 atexit.register(shutil.rmtree, _PARAMS_DIR, True)
+
+_RECORDER_DIR = tempfile.mkdtemp(prefix="zplatform-test-recorder-")
+os.environ["ZPLATFORM_RECORDER_DIR"] = _RECORDER_DIR
+atexit.register(shutil.rmtree, _RECORDER_DIR, True)

@@ -48,6 +48,7 @@ from .errors import (
 )
 from .events import EV, Event, EventLog, EventReader, EventType, Severity
 from .faults import FaultMonitor
+from .ground.gapfill import GapFill
 from .ground.link import GroundLink
 from .ground.logic import GroundLogic
 from .ground.records import CommandOutcome, EventRecord, TelemetryCounters
@@ -66,6 +67,7 @@ from .params import (
     params_path,
 )
 from .rategroups import RateGroups
+from .recorder import FlightRecorder, RecorderReader
 from .recording import Recorder
 from .safety import SafetyWarning, safety_warnings
 from .scheduler import GcGuard, LoopStats, PeriodicLoop, setup_realtime
@@ -113,11 +115,13 @@ __all__ = [
     "FakeHealth",
     "Fault",
     "FaultMonitor",
+    "FlightRecorder",
     "Frame",
     "FrameDecoder",
     "FrameEncoder",
     "FrameFormatError",
     "FrameSizeError",
+    "GapFill",
     "GcGuard",
     "GroundLink",
     "GroundLogic",
@@ -143,6 +147,7 @@ __all__ = [
     "PeriodicLoop",
     "RateGroups",
     "Recorder",
+    "RecorderReader",
     "RecordingError",
     "RegionCodec",
     "RegionSpec",

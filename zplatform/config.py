@@ -64,6 +64,7 @@ __all__ = [
     "MonitorConfig",
     "NodeConfig",
     "ParamConfig",
+    "RecorderConfig",
     "StateConfig",
     "StateMachineConfig",
     "TransitionConfig",
@@ -663,6 +664,87 @@ class DownlinkConfig(_Struct):
             description="Packet data field size (bytes); larger regions are segmented.",
         ),
     ] = 4096
+
+
+class RecorderConfig(_Struct):
+    """The on-board flight recorder (`zplatform.recorder`): each recording node
+    keeps its own telemetry and events on its own storage, whatever the radio
+    link does. The CN records every telemetry frame it publishes, a device node
+    every reply frame it sends (its region), each with its events, in a ring of
+    files under `DIR/<node>/`: when the ring is full, the oldest file is removed
+    (counted in `<node>_rec_evicted`, with a `recorder_evicted` event). The loop
+    only copies into a RAM buffer; a writer thread does the I/O, and a loop the
+    buffer cannot take is dropped whole and counted (`<node>_rec_dropped`, a
+    `recorder_dropping` event). Every record is checksummed, so a torn tail
+    (kill -9, power loss) is detected and skipped by the reader, never misread.
+    `zplatform log MISSION --from-recorder DIR --out CSV` reads a node's
+    directory; the ground fills telemetry gaps from the CN's recorder over
+    zenoh (`{vehicle}/cn/recorder`)."""
+
+    dir: Annotated[
+        str | None,
+        Meta(
+            description="Directory of the recorder files; node `X` writes `DIR/X/`. Relative to "
+            "the mission file. Default: `zplatform/recorder/<mission>` in the state directory "
+            "(`$XDG_STATE_HOME`, else `~/.local/state`; `/var/lib` for root). The environment "
+            "variable `ZPLATFORM_RECORDER_DIR`, when set, replaces it (`$ZPLATFORM_RECORDER_DIR"
+            "/<mission>/X/`): for tests and for a flight data partition."
+        ),
+    ] = None
+    nodes: Annotated[
+        list[str] | None,
+        Meta(
+            description="The nodes that record: `cn` and device nodes (the ground node has "
+            "its own log). Default: the CN and every device node."
+        ),
+    ] = None
+    max_bytes: Annotated[
+        int,
+        Meta(
+            ge=128 * 1024,
+            le=1 << 50,
+            description="Most bytes a node's recorder directory holds (every file, earlier "
+            "runs included); the oldest file is removed to stay within it. At least twice "
+            "`file_bytes`.",
+        ),
+    ] = 256 * 1024 * 1024
+    file_bytes: Annotated[
+        int,
+        Meta(
+            ge=64 * 1024,
+            le=1 << 30,
+            description="Size of one file of the ring: a new file is started when the next "
+            "record would not fit. Must hold several loops' records.",
+        ),
+    ] = 8 * 1024 * 1024
+    fsync_ms: Annotated[
+        Annotated[float, Meta(ge=0, le=3_600_000)] | None,
+        Meta(
+            description="Flush the file to the storage (fsync) at most this often (ms); 0: "
+            "after every write; `null`: never (the operating system writes back when it "
+            "wants). What was written survives a kill -9 of the node in any case; a power "
+            "loss keeps everything up to the last fsync."
+        ),
+    ] = 1000.0
+    buffer_ms: Annotated[
+        float,
+        Meta(
+            ge=50,
+            le=600_000,
+            description="How long the storage may stall (ms of loops) before the recorder "
+            "drops loops: sizes the RAM buffer between the loop and the writer thread.",
+        ),
+    ] = 2000.0
+    serve_bps: Annotated[
+        int,
+        Meta(
+            ge=10_000,
+            le=1_000_000_000,
+            description="Bytes per second the CN's recorder sends when the ground asks it for "
+            "a telemetry gap (`{vehicle}/cn/recorder`): answered by a thread of its own, "
+            "rate-limited so that no asker can starve the control loop.",
+        ),
+    ] = 2_000_000
 
 
 class SecurityConfig(_Struct):
@@ -1350,6 +1432,13 @@ class Mission(_Struct):
     faults: FaultsConfig = msgspec.field(default_factory=FaultsConfig)
     security: SecurityConfig = msgspec.field(default_factory=SecurityConfig)
     downlink: DownlinkConfig = msgspec.field(default_factory=DownlinkConfig)
+    recorder: Annotated[
+        RecorderConfig | None,
+        Meta(
+            description="The on-board flight recorder: each vehicle node keeps its telemetry "
+            "and events on local storage (`{}` turns it on with the defaults). Off when absent."
+        ),
+    ] = None
     bulk: Annotated[
         list[BulkChannelConfig],
         Meta(description="Bulk channels: large arrays moved outside the sync."),
@@ -1406,6 +1495,15 @@ class Mission(_Struct):
     @property
     def has_ground(self) -> bool:
         return "gn" in self.nodes
+
+    @property
+    def recording_nodes(self) -> list[str]:
+        """The nodes whose flight recorder runs (``recorder.nodes``, by default
+        the CN and every device node); empty without a ``recorder`` section."""
+        r = self.recorder
+        if r is None:
+            return []
+        return list(r.nodes) if r.nodes is not None else ["cn", *self.device_nodes]
 
     @property
     def period_ns(self) -> int:
@@ -1474,6 +1572,7 @@ def parse_mission(text: bytes | str, source: str = "<string>") -> Mission:
     # elements are added: a repeated controller name must be reported as
     # such, not as the repeated `<name>_mode` element it would create.
     _check_control_sections(mission)
+    _check_recorder(mission)
     _check_params(mission)
     n_platform = _add_platform_elements(mission)
     _check_elements(mission, n_platform)
@@ -1589,12 +1688,15 @@ def resolve_pythonpath(entries: Sequence[str] | None, base_dir: str | Path | Non
 def relocate_mission(raw: dict[str, Any], source: str | Path) -> None:
     """Make a mission mapping read from file ``source`` mean the same from
     any other directory: its ``pythonpath`` (or the default, ``source``'s
-    directory) becomes absolute. For copies of a mission file (``up
+    directory) and its recorder ``dir`` become absolute. For copies of a mission file (``up
     --free-ports``, a recording). A malformed ``pythonpath`` is left for the
     loader to refuse with its YAML path."""
     entries = raw.get("pythonpath")
     if entries is None or (isinstance(entries, list) and all(isinstance(e, str) for e in entries)):
         raw["pythonpath"] = resolve_pythonpath(entries, Path(source).parent)
+    rec = raw.get("recorder")
+    if isinstance(rec, dict) and isinstance(rec.get("dir"), str) and rec["dir"]:
+        rec["dir"] = os.path.join(os.path.abspath(Path(source).parent), rec["dir"])
 
 
 def _check_mission(m: Mission) -> None:
@@ -1803,6 +1905,15 @@ def platform_elements(m: Mission) -> dict[str, list[ElementConfig]]:
         counters_at = counter_region(node)
         if counters_at is not None and counters_at in out:
             out[counters_at] += [msgspec.convert(e, E) for e in counter_elements(m.bulk, node)]
+    # Flight recorder counters, where the recording node reports them.
+    for node in m.recording_nodes:
+        at = counter_region(node)
+        if at is not None and at in out:
+            out[at] += [
+                E(f"{node}_rec_dropped", "u32", 0, doc=f"loops {node}'s recorder could not keep"),
+                E(f"{node}_rec_evicted", "u32", 0, doc=f"files {node}'s recorder ring removed"),
+                E(f"{node}_rec_errors", "u32", 0, doc=f"{node}'s recorder storage errors"),
+            ]
     # Health, last: one contiguous block per node (zplatform.health), only
     # in a mission with a `health:` section.
     for node in ["cn", *m.device_nodes]:
@@ -2051,6 +2162,30 @@ def _check_initial(e: ElementConfig, where: str) -> Value:
             raise ConfigError(f"expected {count} initial values for {e.type}, got {len(v)}", w)
         return [_coerce_scalar(st, x, f"{w}[{j}]", None) for j, x in enumerate(v)]
     return [_coerce_scalar(st, v, w, None)] * count
+
+
+def _check_recorder(m: Mission) -> None:
+    """The recorder's nodes exist and record, and its ring holds two files."""
+    r = m.recorder
+    if r is None:
+        return
+    if r.dir is not None and (not r.dir or "\x00" in r.dir):
+        raise ConfigError("the recorder directory must be a non-empty path", "$.recorder.dir")
+    for i, n in enumerate(r.nodes or ()):
+        if n not in m.nodes or n == "gn":
+            raise ConfigError(
+                f"{n!r} is not the control node or a device node of this mission "
+                "(the ground node keeps its own log)",
+                f"$.recorder.nodes[{i}]",
+            )
+    if r.nodes is not None and len(set(r.nodes)) != len(r.nodes):
+        raise ConfigError("a node is listed twice", "$.recorder.nodes")
+    if r.max_bytes < 2 * r.file_bytes:
+        raise ConfigError(
+            f"max_bytes ({r.max_bytes}) must hold at least two files of file_bytes "
+            f"({r.file_bytes}): the ring removes the oldest file to start a new one",
+            "$.recorder.max_bytes",
+        )
 
 
 def _check_control_sections(m: Mission) -> None:

@@ -33,7 +33,7 @@ The tree::
     ├── ControlError             controller/device construction or wiring
     ├── EventError               an event that is not in the catalogue (a bug)
     ├── NodeError                a node main cannot start or run
-    └── RecordingError           a loop recording cannot be written or read back
+    └── RecordingError           a loop recording or flight recorder cannot be written or read
 """
 
 from __future__ import annotations

@@ -265,6 +265,43 @@ class EV:
         Severity.ACTIVITY_HI,
         "command script done: {n} command(s), {accepted} accepted; last verdict in loop {loop}",
     )
+    GAP_FILLED = EventType(
+        74,
+        "gap_filled",
+        Severity.ACTIVITY_LO,
+        "filled loops {first}..{last} ({n} snapshot(s)) from the control node's recorder",
+    )
+    GAP_UNFILLED = EventType(
+        75,
+        "gap_unfilled",
+        Severity.WARNING_LO,
+        "loops {first}..{last}: {n} snapshot(s) not filled from the control node's recorder: "
+        "{why}",
+    )
+    # the flight recorder (zplatform.recorder), on the node that records
+    RECORDER_DROPPING = EventType(
+        80,
+        "recorder_dropping",
+        Severity.WARNING_LO,
+        "{node}'s recorder drops loops from loop {loop}: {why}",
+    )
+    RECORDER_RESUMED = EventType(
+        81,
+        "recorder_resumed",
+        Severity.ACTIVITY_LO,
+        "{node}'s recorder keeps loops again from loop {loop}; {n} loop(s) dropped "
+        "({first}..{last})",
+    )
+    RECORDER_EVICTED = EventType(
+        82,
+        "recorder_evicted",
+        Severity.ACTIVITY_LO,
+        "{node}'s recorder ring is full: removed its oldest file {file} ({size} bytes); "
+        "{n} file(s) removed so far",
+    )
+    RECORDER_FAILED = EventType(
+        83, "recorder_failed", Severity.WARNING_LO, "{node}'s recorder cannot {what}: {error}"
+    )
     # clock sync (a device node's re-syncs, zplatform.clocksync)
     CLOCK_REFUSED = EventType(
         60,

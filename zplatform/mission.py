@@ -62,6 +62,7 @@ it), so ``config`` stays free of import cycles.
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 from . import (
@@ -185,13 +186,18 @@ def decode_mission(
     """Decode and fully check a mission from YAML text (see :func:`load_mission`).
 
     ``base_dir``: the directory the text's file lives in, which relative
-    ``pythonpath`` entries are relative to and which is the default
+    ``pythonpath`` entries and a relative recorder ``dir`` are relative to and which is the default
     ``pythonpath``. None: relative entries are relative to the current
     directory and the default is no directory at all (mission code is then
     imported from ``sys.path`` as it stands).
     """
     mission = parse_mission(text, source=source)
     mission.pythonpath = resolve_pythonpath(mission.pythonpath, base_dir)
+    if mission.recorder is not None and mission.recorder.dir is not None:
+        # Like pythonpath: relative to the mission file (the current directory without one).
+        mission.recorder.dir = os.path.join(
+            os.path.abspath(base_dir if base_dir is not None else os.curdir), mission.recorder.dir
+        )
     check_mission(mission, code=code)
     return mission
 

@@ -84,7 +84,10 @@ class GnSummary(msgspec.Struct, frozen=True):
     unauthenticated or refused); ``telemetry_refused`` breaks the refusals
     down by reason (:data:`zplatform.ground.records.REFUSALS`);
     ``epoch_changes``: control node restarts the ground followed;
-    ``events_logged``: event records written to the events file."""
+    ``events_logged``: event records written to the events file;
+    ``telemetry_filled``/``telemetry_unfilled``: gap loops written from the
+    CN's flight recorder / given up; ``telemetry_not_run``: gap loops the
+    CN never ran (skipped periods: no loss) (:mod:`zplatform.ground.gapfill`)."""
 
     telemetry_received: int
     telemetry_gaps: int
@@ -98,6 +101,9 @@ class GnSummary(msgspec.Struct, frozen=True):
     telemetry_refused: dict[str, int] = {}
     epoch_changes: int = 0
     events_logged: int = 0
+    telemetry_filled: int = 0
+    telemetry_unfilled: int = 0
+    telemetry_not_run: int = 0
 
 
 class RunSummary(msgspec.Struct, frozen=True):

@@ -470,6 +470,9 @@ class DeviceSync:
         assert box is not None
         self._box = box
         self._tap = TapPublisher(session, self._key)
+        self.reply: bytearray | None = None
+        """The last reply frame sent (None: an error reply), the logic's own
+        buffer: valid until the next query is served."""
         admit = intake.admit
 
         def handoff(query: zenoh.Query) -> None:
@@ -514,6 +517,7 @@ class DeviceSync:
         query, data = item
         with query:
             reply = logic.trigger(data, self._now(), may_run=may_run)
+            self.reply = reply
             if reply is None:
                 # "dnX: reason": a wildcard query's error replies carry no key.
                 query.reply_err(self._err_prefix + logic.reject_reason.encode())

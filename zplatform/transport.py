@@ -85,6 +85,11 @@ class KeySpace:
     def gn_to_cn(self) -> str:
         return f"{self.vehicle}/gn/to_cn"
 
+    @property
+    def recorder(self) -> str:
+        """The CN's flight recorder: a queryable answering gap-fill requests."""
+        return f"{self.vehicle}/cn/recorder"
+
     def events(self, node: str) -> str:
         return f"{self.vehicle}/{node}/events"
 

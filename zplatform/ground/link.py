@@ -143,6 +143,8 @@ class GroundLink:
         if keys == "mission":
             role = "gn" if node == "gn" or commands or script else "tool"
             keys = load_keys(mission, role, key_file)
+        self.link_keys: KeySet | None = keys
+        """The keys the link checks with (None: the mission does not authenticate)."""
         self.clock = clock or NodeClock()
         self.logic = GroundLogic(
             mission,
@@ -407,6 +409,37 @@ class GroundLink:
     def taps_dropped(self) -> int:
         """Tapped samples let go because :data:`TAP_BACKLOG` were waiting."""
         return self._tap_box.dropped
+
+    def query(
+        self,
+        key_expr: str,
+        payload: bytes,
+        timeout_s: float,
+        into: Mailbox[tuple[int, bytes | None]],
+        tag: int,
+    ) -> None:
+        """Send one get on ``key_expr`` (every reply kept: no consolidation)
+        and return at once: each reply's payload is queued into ``into`` as
+        ``(tag, payload)`` as it arrives (error replies are skipped), then
+        ``(tag, None)`` when the get is over (every replier done, or
+        ``timeout_s`` passed). For the gap fill from the CN's recorder."""
+
+        def on_reply(reply: zenoh.Reply) -> None:
+            ok = reply.ok  # hand off only
+            if ok is not None:
+                into.put((tag, ok.payload.to_bytes()))
+
+        self.ns.session.get(
+            key_expr,
+            zenoh.handlers.Callback(on_reply, lambda: into.put((tag, None)), indirect=False),
+            payload=payload,
+            timeout=timeout_s,
+            consolidation=zenoh.ConsolidationMode.NONE,
+            # The replies travel with these: behind live traffic, and dropped
+            # rather than blocking anyone on a stalled link.
+            priority=zenoh.Priority.BACKGROUND,
+            congestion_control=zenoh.CongestionControl.DROP,
+        )
 
     def alive_nodes(self, timeout_s: float = 1.0) -> list[str]:
         """The mission's nodes with a liveliness token now, sorted."""

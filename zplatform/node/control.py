@@ -27,6 +27,13 @@ loading the parameter file (before loop 1, so a recording starts with the
 values loaded); each loop hands an accepted PRM_SAVE to a
 :class:`~zplatform.params.ParamSaver` (a writer thread) and passes the saves
 it finished to the next loop.
+
+With a ``recorder`` section naming the CN (the flight recorder,
+:mod:`zplatform.recorder`), every telemetry frame the loop publishes and
+every event is also copied to the CN's flight recorder (never blocking the
+loop; its counters go into ``cn_rec_*`` before each loop's logic), and a
+:class:`~zplatform.recorder.server.RecorderServer` answers the ground's
+gap-fill requests on ``{vehicle}/cn/recorder`` from its own thread.
 """
 
 from __future__ import annotations
@@ -45,12 +52,15 @@ from ..clocksync import ClockServer
 from ..codes import CommandStatus
 from ..config import Mission
 from ..datavector import DataVector
-from ..errors import NodeError, TransportError
+from ..errors import NodeError, RecordingError, TransportError
+from ..ground.logic import default_max_age_ns
 from ..health import Heartbeat, Liveness, thread_deadlines_ns
 from ..intake import CnRefusals, ReplyCheck, RequestIntake
 from ..loop import ControlLogic
 from ..messages import wildcard_sync_for
 from ..params import ParamSaver, params_path, read_params_file
+from ..recorder import FlightRecorder, open_recorder, summary_line
+from ..recorder.server import RecorderServer
 from ..recording import Recorder
 from ..scheduler import GcGuard, PeriodicLoop
 from ..summary import CnSummary, LoopWork, cn_summary
@@ -97,7 +107,8 @@ class ControlNode:
         self.clock = clock or NodeClock()
         self.clock.lock()  # the CN is the reference clock: never adjusted
         # The run's epoch: this clock's start, unique per run of the CN.
-        self.logic = ControlLogic(mission, keys=keys, epoch=self.clock.now_ns())
+        self.clock_epoch = self.clock.now_ns()
+        self.logic = ControlLogic(mission, keys=keys, epoch=self.clock_epoch)
         self.dv: DataVector = self.logic.dv
         self.ns = NodeSession(mission, "cn", announce=False, lowlatency=lowlatency)
         s = self.ns.session
@@ -149,8 +160,39 @@ class ControlNode:
         self._tm_pub = s.declare_publisher(
             space.telemetry, congestion_control=zenoh.CongestionControl.DROP
         )
+        # The flight recorder: opened before anything runs, so a directory it
+        # cannot use (or one another CN holds) stops the node on the pad.
+        self.flight_recorder: FlightRecorder | None = None
+        self._rec_server: RecorderServer | None = None
+        if "cn" in mission.recording_nodes:
+            try:
+                rec = open_recorder(
+                    mission, "cn", self.dv, run=self.clock_epoch, authenticated=keys is not None
+                )
+            except RecordingError as exc:
+                self.ns.close()
+                raise NodeError(f"control node cannot start its flight recorder: {exc}") from exc
+            rec.attach(self.dv, self.logic.events)
+            self.flight_recorder = rec
+            self.liveness.add(rec.heartbeat)
+            log.info("flight recorder: %s", rec.directory)
+            assert mission.recorder is not None
+            self._rec_server = RecorderServer(
+                s,
+                space.recorder,
+                rec,
+                channel(keys, "telemetry"),
+                now_ns=self.clock.now_ns,
+                max_age_ns=default_max_age_ns(mission),
+                serve_bps=mission.recorder.serve_bps,
+                divisor=mission.telemetry_divisor,
+            )
         self._events = EventPublisher(
-            s, space.events("cn"), self.logic.events, channel(keys, "events_cn")
+            s,
+            space.events("cn"),
+            self.logic.events,
+            channel(keys, "events_cn"),
+            recorder=self.flight_recorder,
         )
         self._radio = _Radio(mission, s, space.downlink) if mission.downlink.ccsds else None
         self.bulk = open_bulk(s, mission, "cn", self.logic)
@@ -296,6 +338,9 @@ class ControlNode:
             for _, frame in taken:
                 grounds.append(frame)
         skipped, self._skipped = self._skipped, 0
+        rec = self.flight_recorder
+        if rec is not None:  # its counters into this loop's telemetry
+            rec.tick(t)
         # A total only zenoh's thread writes; the loop keeps what it has seen.
         d_total = self._inbox.dropped
         dropped, self._seen_dropped = d_total - self._seen_dropped, d_total
@@ -315,6 +360,8 @@ class ControlNode:
                 saver.submit(*save)
         if tm is not None:
             self._tm_pub.put(tm)
+            if rec is not None:
+                rec.frame(loop, tm, t)
             if self._radio is not None:
                 self._radio.send(self.dv, loop, t)
         end = self._mono()
@@ -405,8 +452,14 @@ class ControlNode:
             return
         try:
             last = int(self.dv.get("cn_loop"))
+            rec = self.flight_recorder
             if last % self.mission.telemetry_divisor:  # the last snapshot was not sent yet
-                self._tm_pub.put(self.logic.telemetry())
+                tm = self.logic.telemetry()
+                self._tm_pub.put(tm)
+                if rec is not None:
+                    rec.frame(last, tm, self.logic.t_ns)
+            if self._rec_server is not None:
+                self._rec_server.close()
             self._events.undeclare()
             self.sync.close()
             self.clock_server.close()
@@ -427,6 +480,9 @@ class ControlNode:
                 self.recorder.close()
             if self._saver is not None:  # a save in progress is finished, not torn
                 self._saver.close()
+            if self.flight_recorder is not None:
+                self.flight_recorder.close()
+                log.info("flight recorder: %s", summary_line(self.flight_recorder))
             self.ns.close()
 
 

@@ -20,6 +20,12 @@ to ``dnX_clock_drift_ns``. The clock itself is never stepped (thesis
 4.10.1). Clock replies refused for a bad tag or another exchange's nonce
 (:class:`~zplatform.clocksync.ClockLink`) are counted there too, with a
 ``clock_refused`` event per measurement that met any.
+
+With a ``recorder`` section naming the node (the flight recorder,
+:mod:`zplatform.recorder`), the reply frame of every loop the node runs and
+every event are also copied to its flight recorder, never blocking the
+loop; its counters go into ``dnX_rec_*`` before each run, so the next reply
+carries them.
 """
 
 from __future__ import annotations
@@ -33,11 +39,12 @@ from ..boards import close_board, open_board
 from ..bulk import NodeBulk, open_bulk
 from ..clocksync import ClockEstimate, ClockLink, estimator_for
 from ..config import Mission
-from ..errors import ClockSyncError, NodeError, TransportError, ZPlatformError
+from ..errors import ClockSyncError, NodeError, RecordingError, TransportError, ZPlatformError
 from ..events import EV
 from ..health import Heartbeat, Liveness, thread_deadlines_ns
 from ..intake import TriggerIntake
 from ..loop import DeviceLogic
+from ..recorder import FlightRecorder, open_recorder, summary_line
 from ..scheduler import GcGuard
 from ..summary import DnSummary
 from ..sync import DeviceSync, SyncTrace
@@ -103,6 +110,7 @@ class DeviceNode:
         self._sync_trace = sync_trace
         self.bulk: NodeBulk | None = None
         self._events: EventPublisher | None = None
+        self.flight_recorder: FlightRecorder | None = None
         self._resync: threading.Thread | None = None
         # Every thread this node runs checks in (zplatform.health).
         self.liveness = Liveness(thread_deadlines_ns(mission))
@@ -186,8 +194,27 @@ class DeviceNode:
             trace=self._sync_trace,
         )
         self.bulk = open_bulk(s, m, self.name, self.logic)
+        if self.name in m.recording_nodes:
+            try:
+                rec = open_recorder(
+                    m,
+                    self.name,
+                    self.dv,
+                    run=self.clock.now_ns(),
+                    authenticated=self._keys is not None,
+                )
+            except RecordingError as exc:
+                raise NodeError(f"{self.name} cannot start its flight recorder: {exc}") from exc
+            rec.attach(self.dv, self.logic.events)
+            self.flight_recorder = rec
+            self.liveness.add(rec.heartbeat)
+            log.info("%s flight recorder: %s", self.name, rec.directory)
         self._events = EventPublisher(
-            s, keys.events(self.name), self.logic.events, channel(self._keys, f"events_{self.name}")
+            s,
+            keys.events(self.name),
+            self.logic.events,
+            channel(self._keys, f"events_{self.name}"),
+            recorder=self.flight_recorder,
         )
         if m.clock.resync_s > 0:
             self.liveness.add(self._resync_hb)
@@ -311,7 +338,12 @@ class DeviceNode:
                     health.note(t - logic.last_t_ns)
                 if self._resynced:  # a re-sync attempt ended: judge it here
                     self._take_measured(t)
+                rec = self.flight_recorder
+                if rec is not None:  # its counters into the next reply
+                    rec.tick(t)
                 run(t)  # with the bulk channels, in the loop's order
+                if rec is not None and self.sync.reply is not None:
+                    rec.frame(logic.triggered, self.sync.reply, t)
                 if wd is not None:
                     wd.stroke(m0, t)
                 self._events.flush()
@@ -363,6 +395,9 @@ class DeviceNode:
         if self.health is not None:
             self.health.close()
         close_board(self.logic.board)
+        if self.flight_recorder is not None:
+            self.flight_recorder.close()
+            log.info("%s flight recorder: %s", self.name, summary_line(self.flight_recorder))
         self.ns.close()
 
 
