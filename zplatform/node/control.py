@@ -55,7 +55,7 @@ from ..datavector import DataVector
 from ..errors import NodeError, RecordingError, TransportError
 from ..ground.logic import default_max_age_ns
 from ..health import Heartbeat, Liveness, thread_deadlines_ns
-from ..intake import CnRefusals, ReplyCheck, RequestIntake
+from ..intake import CnRefusals, Mailbox, ReplyCheck, RequestIntake
 from ..loop import ControlLogic
 from ..messages import wildcard_sync_for
 from ..params import ParamSaver, params_path, read_params_file
@@ -137,16 +137,21 @@ class ControlNode:
         # above every one seen, then bounded, newest kept. A flood of junk or
         # of replayed requests is refused as it arrives and counted; it costs
         # neither memory nor the operator's fresh command.
+        # A mission without a ground node has no request region: no intake,
+        # and an inbox that stays empty.
         commands = self.logic.commands
-        self._requests = RequestIntake(
-            mission,
-            channel(keys, "gn_to_cn") if mission.has_ground else None,
-            int(self.dv.get("cn_epoch")),
-            lambda: commands.last_seq,
-            INBOX,
-        )
-        assert self._requests.box is not None
-        self._inbox = self._requests.box
+        self._requests: RequestIntake | None = None
+        self._inbox: Mailbox[tuple[None, bytes]] = Mailbox(1)
+        if mission.has_ground:
+            self._requests = RequestIntake(
+                mission,
+                channel(keys, "gn_to_cn"),
+                int(self.dv.get("cn_epoch")),
+                lambda: commands.last_seq,
+                INBOX,
+            )
+            assert self._requests.box is not None
+            self._inbox = self._requests.box
         self._taken: list[tuple[None, bytes]] = []
         self._seen_dropped = 0
         self._refused = CnRefusals()
@@ -223,6 +228,7 @@ class ControlNode:
 
     def _on_ground(self, sample: zenoh.Sample) -> None:
         # zenoh's thread: the intake's checks and the hand-off, nothing more.
+        assert self._requests is not None  # subscribed only with a ground node
         self._requests.admit(sample.payload, None)
 
     def record(self, directory: str | Path, mission_source: str | Path) -> Recorder:
@@ -380,6 +386,9 @@ class ControlNode:
         r = self._refused
         self.sync.take_refusals(r)
         req = self._requests
+        if req is None:
+            r.cmd_size = r.cmd_bad = r.cmd_stale = r.cmd_status = r.cmd_seq = 0
+            return r
         r.cmd_size, r.cmd_bad, r.cmd_stale = req.take_counts()
         if r.cmd_stale:
             r.cmd_status, r.cmd_seq = req.reported
