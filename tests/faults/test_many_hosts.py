@@ -25,6 +25,9 @@ ROOT = Path(__file__).resolve().parents[2]
 pytestmark = pytest.mark.faults
 
 
+# Five namespaces, 18 s: with the soaks (-m slow). The default suite syncs
+# a mission across namespaces in tests/faults/test_netns.py.
+@pytest.mark.slow
 @pytest.mark.timeout(180)
 def test_led_test_across_five_hosts(
     netns_hosts: Callable[..., list[NetnsHost]], tmp_path: Path

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import json
 import os
+import signal
 import subprocess
 import sys
 from pathlib import Path
@@ -87,7 +88,7 @@ def test_a_team_mission_runs_without_pythonpath_and_the_ground_needs_only_the_fi
     up = subprocess.Popen(
         [
             *(sys.executable, "-m", "zplatform", "up", str(mission)),
-            *("--duration", "20", "--quiet", "--summary", str(tmp_path / "up.json")),
+            *("--duration", "90", "--quiet", "--summary", str(tmp_path / "up.json")),
         ],
         cwd=cwd,
         env=_env(),
@@ -116,6 +117,7 @@ def test_a_team_mission_runs_without_pythonpath_and_the_ground_needs_only_the_fi
         r = _zp(cwd, "log", str(ground_copy), "--out", str(out), "--duration", "1")
         assert r.returncode == 0, r.stderr
         assert len(out.read_text().splitlines()) > 10
+        up.send_signal(signal.SIGINT)  # the operator's Ctrl-C: a clean stop
         _, err = up.communicate(timeout=120)
     finally:
         if up.poll() is None:

@@ -89,6 +89,11 @@ def runs(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
     return dirs
 
 
+# Two whole flights in real time (about a minute): with the soaks (-m
+# slow). The default suite flies the same mission in lockstep
+# (tests/system/test_flight.py) and runs sim against live on led_test
+# (tests/system/test_sim_equals_live.py).
+@pytest.mark.slow
 @pytest.mark.parametrize("name", ["flight", "flight_hil"])
 def test_up_lands_under_both_chutes_with_the_states_of_sim(
     runs: dict[str, Path], name: str

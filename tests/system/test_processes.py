@@ -200,6 +200,9 @@ def test_recovery_igniter_fires_when_both_nodes_agree(tmp_path: Path) -> None:
     assert_every_loop_counted(summary)
 
 
+# The disagreement itself is tested in lockstep in the default suite
+# (tests/system/test_lockstep_missions.py); this live run of it is a soak.
+@pytest.mark.slow
 def test_recovery_igniter_holds_fire_when_one_node_disagrees(tmp_path: Path) -> None:
     """dn1 disarmed by a WRITE in flight (on a bench copy that allows it):
     dn0 alone cannot fire the igniter -> NO_FIRE."""

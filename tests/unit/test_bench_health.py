@@ -11,6 +11,7 @@ import pytest
 from bench import health
 
 
+@pytest.mark.slow  # a benchmark as a test, like tests/unit/test_bench_smoke.py
 def test_health_bench_quick(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     out = tmp_path / "health.json"
     monkeypatch.setattr(sys, "argv", ["bench.health", "--quick", "--json", str(out)])
