@@ -77,11 +77,36 @@ def _mission_report(m: Mission) -> dict[str, object]:
     }
 
 
+def _links_report(m: Mission) -> tuple[dict[str, object], str]:
+    """How the mission's links are secured, and the deployment a session on
+    this host would use (checked to fit: DeploymentError otherwise), as
+    report fields and one line of text."""
+    from .config import transport_reason
+    from .deploy import find_deployment, require_deployment
+
+    why = transport_reason(m)
+    if not m.mtls:
+        return {"transport": "plain", "deployment": None}, f"links: plain ({why})"
+    path = find_deployment(m)
+    if path is None:
+        where = (
+            "no deployment on this host yet (`zplatform keygen MISSION_FILE` makes the "
+            "mission's PKI; `up` does on first use)"
+        )
+    else:
+        require_deployment(m)
+        where = f"deployment {path}"
+    text = f"links: mutual TLS with access control ({why}); {where}"
+    return {"transport": "mtls", "deployment": None if path is None else str(path)}, text
+
+
 def cmd_check(args: argparse.Namespace) -> int:
-    """Validate; print the report and the safety warnings (:mod:`zplatform.safety`).
+    """Validate; print the report, the links' security and the safety
+    warnings (:mod:`zplatform.safety`).
 
     Exit 0 with warnings, 2 with ``--strict`` (each warning printed as an
-    error line), 2 for a mission that does not load."""
+    error line), 2 for a mission that does not load or a deployment that
+    does not fit it."""
     from .safety import safety_warnings
 
     # load_mission builds every controller and device on scratch vectors,
@@ -89,6 +114,8 @@ def cmd_check(args: argparse.Namespace) -> int:
     m = load_mission(args.mission)
     warnings = safety_warnings(m)
     rep = _mission_report(m)
+    links, links_text = _links_report(m)
+    rep.update(links)
     rc = 2 if args.strict and warnings else 0
     if args.json:
         rep["warnings"] = [msgspec.to_builtins(w) for w in warnings]
@@ -105,6 +132,7 @@ def cmd_check(args: argparse.Namespace) -> int:
         f"mission {rep['mission']}: OK{flagged}  ({len(m.nodes)} nodes, {m.loop_hz:g} Hz, "
         f"sync deadline {m.sync_timeout_ms:g} ms)"
     )
+    print(links_text)
     for r in rep["regions"]:  # type: ignore[attr-defined]
         print(
             f"\nregion {r['region']}  {r['size']} B  frame {r['frame_bytes']} B  "
@@ -167,11 +195,44 @@ def _keygen_mission_name(arg: str) -> str:
     return load_mission(path, code=False).mission
 
 
+def _keygen_pki(target: str) -> None:
+    """keygen's PKI step (:mod:`zplatform.pki`): for a mission whose links run
+    mutual TLS, make what its PKI lacks and say which file goes to which
+    host. A bare mission name has no nodes to make certificates for."""
+    from .deploy import DEPLOYMENT_ENV
+    from .errors import CommandError
+    from .pki import ensure_mission_pki, host_files
+
+    try:
+        path = resolve_mission(target)
+    except CommandError:
+        print("no certificates: pass the mission file to make its PKI (its nodes name them)")
+        return
+    m = load_mission(path, code=False)
+    if not m.mtls:
+        print(f"no certificates: mission {m.mission!r} runs plain links (security.transport)")
+        return
+    pki = ensure_mission_pki(m)
+    if pki.made:
+        print(f"made the PKI of mission {m.mission!r} in {pki.directory}: {', '.join(pki.made)}")
+    else:
+        print(f"the PKI of mission {m.mission!r} in {pki.directory} has every certificate")
+    print(
+        "copy each host its files into the same directory, mode 0600 (or name its "
+        f"deployment.yaml with {DEPLOYMENT_ENV}):"
+    )
+    for who, files in host_files(m):
+        print(f"  {who + ':':<46} {' '.join(files)}")
+
+
 def cmd_keygen(args: argparse.Namespace) -> int:
-    """Write a new random mission key (mode 0600); refuses to overwrite one."""
+    """Make the mission's PKI if its links run mutual TLS (only what is
+    missing), then write a new random mission key (mode 0600); refuses to
+    overwrite a key."""
     from .auth import KEY_FILE_ENV, default_key_path, write_key
 
     name = _keygen_mission_name(args.target)
+    _keygen_pki(args.target)
     path = write_key(args.out or default_key_path(name))
     print(f"wrote the key of mission {name!r} to {path}")
     if args.out:
@@ -223,7 +284,8 @@ def build_parser() -> argparse.ArgumentParser:
     c.set_defaults(func=cmd_check)
     c = sub.add_parser(
         "keygen",
-        help="make the mission key that authenticates every frame (copy it to every host)",
+        help="make the mission key that authenticates every frame, and the certificates of "
+        "a mission whose links run mutual TLS (says which file goes to which host)",
     )
     # Not `mission`: main() would resolve it, and keygen also takes a bare name.
     c.add_argument(

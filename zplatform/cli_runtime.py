@@ -10,6 +10,7 @@ and prints.
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 from pathlib import Path
 
@@ -289,11 +290,22 @@ def cmd_up(args: argparse.Namespace) -> int:
     the mission, the command script, unwritable output paths, listen ports
     already in use; then :func:`zplatform.supervisor.run_up`."""
     from .auth import load_key
+    from .deploy import DEPLOYMENT_ENV
+    from .pki import ensure_mission_pki
     from .supervisor import run_up
 
     mission = load_mission(args.mission)
-    # First use on this host: make the mission key (every node finds it).
+    # First use on this host: make the mission key (every node finds it)...
     load_key(mission, create=True)
+    # ...and, for links that run mutual TLS, the mission's PKI where every
+    # node's session looks for it (unless ZPLATFORM_DEPLOYMENT names another).
+    if mission.mtls and not os.environ.get(DEPLOYMENT_ENV):
+        pki = ensure_mission_pki(mission)
+        if pki.made:
+            print(
+                f"zplatform up: made the certificates of {mission.mission!r} for mutual TLS "
+                f"({', '.join(pki.made)}) in {pki.directory}"
+            )
     if args.commands:
         from .uplink import load_commands
 

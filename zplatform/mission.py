@@ -22,10 +22,13 @@ tests. They return a :class:`~zplatform.config.Mission` that passed
    * the devices and boards (:func:`zplatform.devices.check_config`): every
      node's ``board`` config (a SimBoard's ``physics`` function imported and
      its signature checked), every device class, config and pin;
-   * the limits, the radio downlink and the lowlatency transport;
-   * the deployment (:func:`zplatform.deploy.require_deployment`): a mission
-     with ``tls/`` endpoints needs the deployment file named by
-     ``ZPLATFORM_DEPLOYMENT``, with a cert and key for each tls node.
+   * the limits, the radio downlink and the lowlatency transport.
+
+The deployment (the TLS certificates of a mission whose links run mutual
+TLS) is not part of loading: it is per host, and the verbs that never open
+a session (``check``, ``sim``, ``replay``) run without it. Every session
+finds it (:func:`zplatform.deploy.require_deployment`), and ``check``
+reports the one a session would use.
 
 So a bad class path, a typo in a component's config or a physics function
 that cannot take ``(board, t_ns)`` fails here, at load, with its YAML path,
@@ -58,7 +61,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from . import commands, controllers, deploy, devices, statemachine, world
+from . import commands, controllers, devices, statemachine, world
 from .config import (
     CONTROLLER_MODES,
     Mission,
@@ -99,9 +102,6 @@ def check_mission(mission: Mission, *, code: bool = True) -> None:
     _check_limits(mission)
     _check_downlink(mission)
     check_lowlatency(mission)
-    # Last: it reads the environment and files, and only matters for a
-    # mission that is otherwise fine.
-    deploy.require_deployment(mission)
 
 
 def _check_pythonpath(mission: Mission) -> None:

@@ -117,7 +117,7 @@ class GroundLink:
             script=script,
         )
         self.on_event = on_event
-        self.ns = NodeSession(mission, node, announce=False)
+        self.ns = NodeSession(mission, node, announce=False, commands=bool(commands or script))
         self.keys = self.ns.keys
         session = self.ns.session
         self._q: queue.SimpleQueue[tuple[int, bytes, int, str, bool]] = queue.SimpleQueue()
