@@ -78,5 +78,5 @@ def test_the_final_loop_flag_is_recorded_and_replayed(tmp_path: Path) -> None:
         cn.finish()
     rec.close()
     assert [r.final for r in RecordReader(tmp_path / "rec").loops()] == [False, False, True]
-    res = replay(tmp_path / "rec")
+    res = replay(tmp_path / "rec", MISSION)
     assert res.identical and res.loops == 3, res
