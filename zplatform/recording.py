@@ -175,20 +175,27 @@ def mission_digest(mission: Mission) -> str:
     return hashlib.sha256(msgspec.json.encode(_loop_content(mission), order="sorted")).hexdigest()
 
 
+_ABSENT = "<absent>"
+
+
 def _first_mission_difference(a: Any, b: Any, path: str = "$") -> tuple[str, Any, Any] | None:
-    """The YAML path and the two values where ``a`` and ``b`` first differ."""
+    """The YAML path and the two values where ``a`` and ``b`` first differ
+    (``<absent>`` for a key or item only one side has)."""
     if isinstance(a, dict) and isinstance(b, dict):
         for k in sorted(set(a) | set(b), key=str):
-            d = _first_mission_difference(a.get(k), b.get(k), f"{path}.{k}")
+            d = _first_mission_difference(a.get(k, _ABSENT), b.get(k, _ABSENT), f"{path}.{k}")
             if d is not None:
                 return d
         return None
-    if isinstance(a, list) and isinstance(b, list) and len(a) == len(b):
-        for i, (x, y) in enumerate(zip(a, b, strict=True)):
+    if isinstance(a, list) and isinstance(b, list):
+        for i, (x, y) in enumerate(zip(a, b, strict=False)):
             d = _first_mission_difference(x, y, f"{path}[{i}]")
             if d is not None:
                 return d
-        return None
+        n = min(len(a), len(b))
+        if len(a) == len(b):
+            return None
+        return f"{path}[{n}]", a[n] if n < len(a) else _ABSENT, b[n] if n < len(b) else _ABSENT
     return None if a == b else (path, a, b)
 
 
@@ -724,6 +731,12 @@ def _decode_recorded_mission(text: bytes, path: Path) -> Mission:
         raise RecordingError(f"{path} is not valid YAML: {exc}") from exc
 
 
+def _short(value: Any, limit: int = 120) -> str:
+    """``repr(value)``, cut to ``limit`` characters (a recorded value is anyone's)."""
+    text = value if value is _ABSENT else repr(value)
+    return text if len(text) <= limit else text[: limit - 3] + "..."
+
+
 def _check_same_mission(recorded: Mission, mission: Mission, directory: Path) -> None:
     """RecordingError unless ``mission`` (the operator's) is the recorded
     one: the same Data Vector layout and loop content, else the first
@@ -733,7 +746,7 @@ def _check_same_mission(recorded: Mission, mission: Mission, directory: Path) ->
         return
     diff = _first_mission_difference(_loop_content(recorded), _loop_content(mission))
     what = (
-        f"first at `{diff[0]}`: recorded {diff[1]!r}, the mission file {diff[2]!r}"
+        f"first at `{diff[0]}`: recorded {_short(diff[1])}, the mission file {_short(diff[2])}"
         if diff is not None
         else f"Data Vector layout {a.layout_id:#x} recorded, {b.layout_id:#x} in the mission file"
     )

@@ -225,7 +225,7 @@ class NodeSession:
         self.node = node
         self.keys = KeySpace(mission.vehicle)
         dep = deployment if deployment is not None else require_deployment(mission)
-        if commands and node is None and dep is not None and zenoh_settings(mission, dep, None):
+        if commands and node is None and dep is not None and mission.mtls:
             check_tool_may_command(dep)
         self.session = open_session(zenoh_config(mission, node, deployment=dep, **overrides))
         self._token: zenoh.LivelinessToken | None = None
