@@ -36,6 +36,8 @@ Run ``python -m bench.clock [--quick] [--json PATH]``.
 
 from __future__ import annotations
 
+import os
+import secrets
 import subprocess
 import sys
 import time
@@ -47,12 +49,17 @@ import zenoh
 
 from bench.baselines import zenoh_config
 from bench.common import REPO_ROOT, bench_argparser, free_port, terminate_all, write_result
-from zplatform.clocksync import ClockServer, estimate_offset, estimate_offset_zenoh
+from zplatform.auth import KEY_ENV, load_keys
+from zplatform.clocksync import ClockLink, ClockServer, estimate_offset, estimate_offset_zenoh
 from zplatform.errors import ClockSyncError
+from zplatform.mission import load_mission
 from zplatform.timebase import NodeClock
 from zplatform.transport import KeySpace
 
 KEYS = KeySpace("clockbench")
+# The exchanges are authenticated as shipped: the minimal mission's dn0 link,
+# its key derived from a master this run makes (the server inherits it).
+MISSION = load_mission(REPO_ROOT / "configs" / "minimal.yaml")
 EXCHANGES = 200
 TARGET_RESIDUAL_US = 100.0
 CASES: tuple[tuple[str, int, float], ...] = (
@@ -74,7 +81,7 @@ def server_main(port: int) -> None:
     """
     session = zenoh.open(zenoh_config(listen_port=port, connect_port=None, lowlatency=False))
     clock = NodeClock(skew_ns=0)
-    server = ClockServer(session, KEYS, clock.now_ns)
+    server = ClockServer(session, KEYS, clock.now_ns, MISSION, load_keys(MISSION, "cn"))
     print(f"READY {clock.now_ns() - time.monotonic_ns()}", flush=True)
     sys.stdin.read()
     server.close()
@@ -92,11 +99,15 @@ def drifting_clock(skew_ns: int, drift: float) -> NodeClock:
 
 
 def one_estimate(
-    session: zenoh.Session, fn: Callable[..., Any], clock: NodeClock, cn_minus_mono: int
+    session: zenoh.Session,
+    fn: Callable[..., Any],
+    clock: NodeClock,
+    cn_minus_mono: int,
+    link: ClockLink,
 ) -> dict[str, int]:
     """Run one estimate; returns its error against the truth at its midpoint (ns)."""
     m_a, d_a = time.monotonic_ns(), clock.now_ns()
-    est = fn(session, KEYS, clock.now_ns, exchanges=EXCHANGES)
+    est = fn(session, KEYS, clock.now_ns, link, exchanges=EXCHANGES)
     m_b, d_b = time.monotonic_ns(), clock.now_ns()
     truth = cn_minus_mono + (m_a + m_b) // 2 - (d_a + d_b) // 2
     return {
@@ -118,6 +129,8 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     parser = bench_argparser(__doc__.splitlines()[0] if __doc__ else "clock")
     args = parser.parse_args(args_list)
     repeats = 3 if args.quick else 10
+    os.environ.setdefault(KEY_ENV, secrets.token_hex(32))
+    link = ClockLink(MISSION, "dn0", load_keys(MISSION, "dn0"))
     port = free_port()
     child = subprocess.Popen(
         [sys.executable, "-m", "bench.clock", "server", str(port)],
@@ -141,7 +154,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
             deadline = time.monotonic() + 20
             while True:  # ready = the server answers (no sleep: each try blocks on replies)
                 try:
-                    estimate_offset(session, KEYS, warm.now_ns, exchanges=20, timeout_s=0.5)
+                    estimate_offset(session, KEYS, warm.now_ns, link, exchanges=20, timeout_s=0.5)
                     break
                 except ClockSyncError:
                     if time.monotonic() > deadline:
@@ -152,7 +165,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
                     order = list(ESTIMATORS) if r % 2 == 0 else list(reversed(ESTIMATORS))
                     for name in order:
                         results[case][name].append(
-                            one_estimate(session, ESTIMATORS[name], clock, cn_minus_mono)
+                            one_estimate(session, ESTIMATORS[name], clock, cn_minus_mono, link)
                         )
                 print(f"repeat {r + 1}/{repeats} done", flush=True)
         finally:

@@ -23,7 +23,7 @@ import numpy as np
 import numpy.typing as npt
 import yaml
 
-from zplatform.auth import KEY_ENV, KEY_FILE_ENV, load_key
+from zplatform.auth import KEY_ENV, KEY_FILE_ENV, load_keys
 from zplatform.config import Mission
 from zplatform.mission import load_mission
 from zplatform.node.control import ControlNode
@@ -129,7 +129,7 @@ class BenchCluster:
         # run's own; the DN processes and the in-process CN share it.
         if not (os.environ.get(KEY_ENV) or os.environ.get(KEY_FILE_ENV)):
             os.environ[KEY_ENV] = secrets.token_hex(32)
-        key = load_key(self.mission)
+        keys = load_keys(self.mission, "cn")
         env = dict(os.environ, PYTHONUNBUFFERED="1")
         env[PARENT_ENV] = str(os.getpid())
         for dn in self.mission.device_nodes:
@@ -147,7 +147,7 @@ class BenchCluster:
                     )
                 )
         self.cn = ControlNode(
-            self.mission, stop=StopFlag(install=False), key=key, sync_trace=cn_trace
+            self.mission, stop=StopFlag(install=False), keys=keys, sync_trace=cn_trace
         )
 
     def start(self, timeout_s: float = 60.0) -> dict[str, int]:

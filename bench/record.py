@@ -24,7 +24,7 @@ from typing import Any
 
 from bench.common import bench_argparser, summarize, write_result
 from zplatform import ControlLogic, LockstepRunner, Recorder, load_mission
-from zplatform.lockstep import SIM_KEY
+from zplatform.lockstep import sim_keys
 
 ROOT = Path(__file__).resolve().parents[1]
 MISSION = ROOT / "configs" / "led_test.yaml"
@@ -62,7 +62,7 @@ def _run(
     inputs: list[tuple[int, int, list[bytes], list[bytes]]], record_dir: Path | None
 ) -> tuple[list[int], Recorder | None]:
     m = load_mission(MISSION)
-    cn = ControlLogic(m, key=SIM_KEY, epoch=1)
+    cn = ControlLogic(m, keys=sim_keys(m), epoch=1)
     rec = Recorder(record_dir, m, MISSION, cn.dv) if record_dir is not None else None
     cn.recorder = rec
     samples: list[int] = []

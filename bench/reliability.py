@@ -154,7 +154,8 @@ def ground_main(argv: list[str]) -> None:
         sub.undeclare()
         s.close()
     else:
-        from zplatform.clocksync import estimate_offset
+        from zplatform.auth import load_keys
+        from zplatform.clocksync import ClockLink, estimate_offset
         from zplatform.ground.link import GroundLink
         from zplatform.mission import load_mission
 
@@ -163,9 +164,15 @@ def ground_main(argv: list[str]) -> None:
         link = GroundLink(mission, node="gn", events=False, announce=False)
         clock = link.clock
         offset = None
+        # The CN's clock answers only a device node's link: this measuring
+        # ground borrows dn0's (the bench's master key derives every link).
+        dn = mission.device_nodes[0]
+        clock_link = ClockLink(mission, dn, load_keys(mission, dn))
         for _ in range(100):  # the CN's clock server is up before this child starts
             try:
-                offset = estimate_offset(link.ns.session, link.keys, clock.now_ns, timeout_s=0.5)
+                offset = estimate_offset(
+                    link.ns.session, link.keys, clock.now_ns, clock_link, timeout_s=0.5
+                )
                 break
             except Exception:
                 continue

@@ -51,6 +51,7 @@ ORDER = (
     "reaction",
     "baselines",
     "codec",
+    "mac",
 )
 #: The DESIGN.md §7 figures, the first columns of every variants table.
 STANDARD = ("p50_us", "p99_us", "max_us", "deadline_miss_rate", "msgs")

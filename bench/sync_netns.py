@@ -49,14 +49,14 @@ REGION_BYTES = 256
 
 def cn_main(argv: list[str]) -> None:
     """``cn <mission> <loops> <out.json>``: the CN's real loop; per-loop sync figures to JSON."""
-    from zplatform.auth import load_key
+    from zplatform.auth import load_keys
     from zplatform.mission import load_mission
     from zplatform.node.control import ControlNode
     from zplatform.node.runtime import StopFlag
 
     path, loops, out = argv[0], int(argv[1]), argv[2]
     m = load_mission(path)
-    cn = ControlNode(m, stop=StopFlag(install=False), key=load_key(m))
+    cn = ControlNode(m, stop=StopFlag(install=False), keys=load_keys(m, "cn"))
     try:
         cn.wait_ready(120.0, ground_wait_s=0)
         dur = np.zeros(loops, np.int64)

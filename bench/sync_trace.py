@@ -111,7 +111,7 @@ def _split_priorities() -> None:
 def dn_main(argv: list[str]) -> None:
     """``dn <mission> <name> <out.json> [--no-realtime]``: a DN process
     (``zplatform node MISSION NAME``'s) with its hops stamped."""
-    from zplatform.auth import load_key
+    from zplatform.auth import load_keys
     from zplatform.mission import load_mission
     from zplatform.node.device import DeviceNode
     from zplatform.node.runtime import StopFlag, setup_logging
@@ -141,7 +141,9 @@ def dn_main(argv: list[str]) -> None:
 
     setup_logging()
     mission = load_mission(mission_path)
-    node = DeviceNode(mission, name, stop=StopFlag(), key=load_key(mission), sync_trace=trace)
+    node = DeviceNode(
+        mission, name, stop=StopFlag(), keys=load_keys(mission, name), sync_trace=trace
+    )
     try:
         node.start()
         node.run(realtime="--no-realtime" not in extra)

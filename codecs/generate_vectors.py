@@ -9,6 +9,12 @@ The frames come from ``vectors/mission.yaml`` through the platform's own
 ``RegionCodec``; the JSON values are read back from the frame bytes here,
 element by element, with ``struct``, not from the Data Vector.
 
+``vectors/auth/`` holds the tags (FORMAT.md §6.1, §6.3, §8.1): a region
+frame, a clock query and its reply, and an event record, each tagged under
+both MACs with keys derived from a published master key (never a real
+key: the platform refuses it). Each ``<mac>_<what>.bin`` is the message
+with its tag; its ``.json`` gives every key and context string on the way.
+
 ``tests/unit/test_golden_vectors.py`` decodes and re-encodes every vector and
 never regenerates them. Regenerating changes pinned bytes: do it only for a
 deliberate wire-format change, and say so where the change is recorded.
@@ -33,7 +39,9 @@ MISSION = VECTORS / "mission.yaml"
 sys.path.insert(0, str(HERE.parent))  # run from a checkout without installing
 
 from zplatform import DataVector, ElementSpec, Layout, RegionCodec, load_mission  # noqa: E402
+from zplatform.auth import MACS, Channel, KeySet, channel_key, link_of  # noqa: E402
 from zplatform.datavector import _region_descriptor  # noqa: E402
+from zplatform.events import Event, Severity, encode_event  # noqa: E402
 
 T0 = 1_700_000_000_000_000_000  # 2023-11-14T22:13:20Z in ns
 
@@ -328,6 +336,73 @@ def to_json(v: Vector, layout: Layout, frame: bytes, data: bytes) -> str:
     return "{\n" + "\n".join(lines) + '\n  "values": {\n' + ",\n".join(vals) + "\n  }\n}\n"
 
 
+# -- tags (vectors/auth/) ----------------------------------------------------------------
+
+AUTH = VECTORS / "auth"
+MASTER = bytes.fromhex("5a9c4e1f0b7d3a6e82c5f19d4b07e3a8c6d2f5910e8b4a7c3d6f1e0b9a5c8d27")
+NONCE = bytes(range(0xA0, 0xB0))
+CLOCK_QUERY = struct.Struct("<2sBB16sq")
+CLOCK_REPLY = struct.Struct("<2sBB16sqqq")
+
+
+def auth_messages(frame: bytes) -> list[tuple[str, str, str, bytes]]:
+    """``(what, channel, description, message)`` of every tagged vector."""
+    event = Event("cn", 0, T0, int(Severity.COMMAND), "cmd_accepted", "command LAUNCH #2 accepted")
+    return [
+        ("cn_to_dn0", "cn_to_dn0", "vector scalars_typical as a trigger to dn0", frame),
+        (
+            "clock_query_dn0",
+            "clock_dn0_to_cn",
+            "dn0's clock query: nonce a0..af, t1 = T0",
+            CLOCK_QUERY.pack(b"ZQ", 1, 0, NONCE, T0),
+        ),
+        (
+            "clock_reply_dn0",
+            "clock_cn_to_dn0",
+            "the CN's reply to it: t2 = T0 + 1.5 ms, t3 = T0 + 1.52 ms",
+            CLOCK_REPLY.pack(b"ZR", 1, 0, NONCE, T0, T0 + 1_500_000, T0 + 1_520_000),
+        ),
+        ("events_cn", "events_cn", "an event record of the CN", encode_event(event)),
+    ]
+
+
+def write_auth_vectors(mission: object, frame: bytes) -> None:
+    AUTH.mkdir(exist_ok=True)
+    vehicle = mission.vehicle  # type: ignore[attr-defined]
+    keys = KeySet.from_master(mission, MASTER)  # type: ignore[arg-type]
+    written = set()
+    for mac in MACS:
+        for what, name, description, body in auth_messages(frame):
+            link = link_of(name)
+            link_key = keys.link_key(link)
+            ch_key = channel_key(link_key, vehicle, mac, name)
+            sealed = bytes(Channel(link_key, vehicle, name, mac).seal(body))
+            vec = f"{mac}_{what}"
+            doc = {
+                "name": vec,
+                "description": description,
+                "mac": mac,
+                "vehicle": vehicle,
+                "master_hex": MASTER.hex(),
+                "link": link,
+                "link_context": f"zplatform/2/link/{vehicle}/{link}",
+                "link_key_hex": link_key.hex(),
+                "channel": name,
+                "channel_context": f"zplatform/2/{vehicle}/{mac}/{name}",
+                "channel_key_hex": ch_key.hex(),
+                "message_size": len(body),
+                "message_hex": body.hex(),
+                "tag_hex": sealed[len(body) :].hex(),
+            }
+            (AUTH / f"{vec}.bin").write_bytes(sealed)
+            (AUTH / f"{vec}.json").write_text(json.dumps(doc, indent=2) + "\n")
+            written.add(vec)
+            print(f"auth/{vec:30} {len(sealed):6} bytes  tag {doc['tag_hex']}")
+    for old in [*AUTH.glob("*.bin"), *AUTH.glob("*.json")]:
+        if old.stem not in written:
+            old.unlink()
+
+
 def main() -> None:
     mission = load_mission(MISSION)
     layout = Layout.for_node(mission, "cn")
@@ -350,6 +425,7 @@ def main() -> None:
         (VECTORS / f"{v.name}.bin").write_bytes(frame)
         (VECTORS / f"{v.name}.json").write_text(to_json(v, layout, frame, data))
         print(f"{v.name:24} {v.region:10} {len(frame):6} bytes  layout_id 0x{region.layout_id:08x}")
+    write_auth_vectors(mission, (VECTORS / "scalars_typical.bin").read_bytes())
 
 
 if __name__ == "__main__":

@@ -5,9 +5,13 @@ test starts needs the mission key. The tests run with one random key in the
 environment (``ZPLATFORM_KEY``), which the processes they spawn inherit.
 
 Nothing is written to the user's configuration: ``XDG_CONFIG_HOME`` points
-at a directory of this session's own (removed at exit), so a mission PKI
-that ``up`` (or a test) makes for an mTLS mission lands there, and no
-deployment named by the user's environment is used.
+at a directory of this session's own (removed at exit), so a key set and
+mission PKI that ``up`` (or a test) makes land there, and no deployment
+named by the user's environment is used.
+
+Likewise a control node loads (and PRM_SAVE writes) its mission's parameter
+file: the tests keep them in a directory of their own
+(``ZPLATFORM_PARAMS_DIR``), removed at exit, never in the user's.
 """
 
 from __future__ import annotations
@@ -24,3 +28,6 @@ os.environ.pop("ZPLATFORM_DEPLOYMENT", None)
 _CONFIG_HOME = tempfile.mkdtemp(prefix="zplatform-test-config-")
 os.environ["XDG_CONFIG_HOME"] = _CONFIG_HOME
 atexit.register(shutil.rmtree, _CONFIG_HOME, ignore_errors=True)
+_PARAMS_DIR = tempfile.mkdtemp(prefix="zplatform-test-params-")
+os.environ["ZPLATFORM_PARAMS_DIR"] = _PARAMS_DIR
+atexit.register(shutil.rmtree, _PARAMS_DIR, True)

@@ -6,6 +6,7 @@ here; module paths below ``zplatform.`` are implementation detail.
 
 from __future__ import annotations
 
+from .auth import KeySet, load_keys
 from .boards import Board, SimBoard
 from .codec import (
     Frame,
@@ -15,7 +16,7 @@ from .codec import (
     decode_frame,
     encode_frame,
 )
-from .codes import Command, CommandStatus, Fault
+from .codes import Command, CommandStatus, Fault, ParamLoad, ParamSave, SafedWhy
 from .commands import CommandHandler
 from .components import Component
 from .config import Mission
@@ -41,7 +42,7 @@ from .errors import (
     TransportError,
     ZPlatformError,
 )
-from .events import EV, Event, EventLog, EventType, Severity
+from .events import EV, Event, EventLog, EventReader, EventType, Severity
 from .faults import FaultMonitor
 from .ground.link import GroundLink
 from .ground.logic import GroundLogic
@@ -50,6 +51,14 @@ from .ground.script import ScriptPlayer
 from .lockstep import LockstepRunner, ReplayResult, SimResult, replay
 from .loop import ControlLogic, DeviceLogic
 from .mission import check_mission, decode_mission, load_mission
+from .params import (
+    ParamFileError,
+    ParamSaver,
+    ParamTable,
+    decode_params,
+    encode_params,
+    params_path,
+)
 from .rategroups import RateGroups
 from .recording import Recorder
 from .safety import SafetyWarning, safety_warnings
@@ -91,6 +100,7 @@ __all__ = [
     "Event",
     "EventError",
     "EventLog",
+    "EventReader",
     "EventRecord",
     "EventType",
     "Fault",
@@ -104,6 +114,7 @@ __all__ = [
     "GroundLink",
     "GroundLogic",
     "Handle",
+    "KeySet",
     "KeySpace",
     "Layout",
     "LayoutMismatchError",
@@ -112,6 +123,11 @@ __all__ = [
     "Mission",
     "NodeClock",
     "NodeError",
+    "ParamFileError",
+    "ParamLoad",
+    "ParamSave",
+    "ParamSaver",
+    "ParamTable",
     "PeriodicLoop",
     "RateGroups",
     "Recorder",
@@ -119,6 +135,7 @@ __all__ = [
     "RegionCodec",
     "RegionSpec",
     "ReplayResult",
+    "SafedWhy",
     "SafetyWarning",
     "SchedulerError",
     "ScriptCommand",
@@ -141,11 +158,15 @@ __all__ = [
     "check_mission",
     "decode_frame",
     "decode_mission",
+    "decode_params",
     "encode_frame",
+    "encode_params",
     "fill_request",
     "load_commands",
+    "load_keys",
     "load_mission",
     "mission_schema",
+    "params_path",
     "parse_commands",
     "read_csv",
     "reference_markdown",

@@ -1,39 +1,81 @@
-"""Authentication of every frame a node takes from the network (DESIGN.md §1).
+"""Authentication of every frame a node takes from the network: per-link keys and tags.
 
 With ``security.auth`` on (the default), every region frame, telemetry
-snapshot and command request travels as ``frame || tag``: ``tag`` is the
-first :data:`TAG_LEN` bytes of HMAC-SHA256 over the frame, keyed by a
-*channel key* derived from the mission key and the channel's name::
+snapshot, command request, clock-sync exchange and event record travels as
+``frame || tag`` (codecs/FORMAT.md §6.1). A receiver checks the tag, in
+constant time, before it decodes anything.
 
-    channel_key = HMAC-SHA256(mission_key, "zplatform/1/" + vehicle + "/" + channel)
+**Links, and who holds what.** Keys are per *link*, not per mission: each
+link has its own 32-byte key, and each host holds only the links it
+speaks on (least privilege)::
 
-Channels are directions of the key space: ``cn_to_dnX`` (the sync query),
-``dnX_to_cn`` (its reply), ``telemetry`` and ``gn_to_cn`` (command
-requests). A frame tagged for one channel fails on every other, so a reply
-cannot be replayed as a query, nor telemetry as a command. Replays *within*
-a channel are the receivers' to refuse, and they do: a DN runs a trigger
-only for a newer loop stamped within a window of its own clock, the CN
-applies a reply only for the loop it asked, the ground only newer
-telemetry, and commands carry the CN's epoch and a growing number.
+    link        channels it tags                              held by host roles
+    cn-dnX      cn_to_dnX (triggers), dnX_to_cn (replies),    cn, dnX
+                clock_dnX_to_cn, clock_cn_to_dnX (clock sync)
+    uplink      gn_to_cn (command requests)                   cn, gn
+    downlink    telemetry                                      cn, gn, tool
+    events-N    events_N (node N's event records)              N, gn, tool
 
-The mission key is 32 random bytes, never in the mission YAML. It is read,
-first match wins, from: an explicit path (``--key-file``), the file named
-by ``ZPLATFORM_KEY_FILE``, hex in ``ZPLATFORM_KEY``, or the mission's
-default key file ``~/.config/zplatform/keys/<mission>.key``.
-``zplatform keygen MISSION`` writes that file (mode 0600); ``zplatform up``
-creates it on first use, so a single-host run needs no set-up. Copy it to
-every host of a multi-host mission and to the ground station.
+Host roles: ``cn``; each device node ``dnX``; ``gn``, the ground station
+that commands (ground node, console, ``cmd``); ``tool``, a read-only tool
+(``tap``, ``log``). So a ground's keys cannot make a trigger any DN runs
+(it commands only through the CN's checks); a DN's keys cannot pose as
+another DN, as the CN, or as the telemetry; a tool cannot command. The
+symmetric downlink and event keys are shared by every ground: a
+compromised ground could forge telemetry or events to other grounds, never
+command the vehicle (README, "Authentication", weighs this against
+signatures).
 
-Cost: one ``hmac.digest`` per frame (about 1-2 us for a few hundred bytes)
-and :data:`TAG_LEN` bytes on the wire.
+**The tag.** Each channel's key is derived from its link's key and names
+the vehicle, the MAC and the channel; the tag is the first
+:data:`TAG_LEN` bytes of a MAC over the whole frame::
+
+    channel_key = HMAC-SHA256(link_key, "zplatform/2/" + vehicle + "/" + mac + "/" + channel)
+    tag         = BLAKE3-keyed(channel_key, frame)[0:16]      # security.mac: blake3 (default)
+                | HMAC-SHA256(channel_key, frame)[0:16]       # security.mac: hmac-sha256
+
+A frame tagged for one channel fails on every other (a reply is no
+trigger, telemetry no command), and two nodes configured with different
+MACs refuse each other's frames as bad tags, saying so. Replays *within* a
+channel are the receivers' to refuse (a newer loop, the loop asked for,
+the CN's epoch, a clock nonce).
+
+**Where keys come from**, first match wins (:func:`load_keys`):
+
+1. an explicit path (``key_file``), else the file named by
+   ``ZPLATFORM_KEY_FILE``: a host's key file (``<role>.keys``), or a key
+   set directory (the host role's file in it);
+2. ``ZPLATFORM_KEY``: hex of a *master* key from which every link key is
+   derived (``HMAC-SHA256(master, "zplatform/2/link/" + vehicle + "/" +
+   link)``): a single-host and test convenience (whoever has it has every
+   link), never for a vehicle whose hosts are apart;
+3. the mission's key set directory ``~/.config/zplatform/keys/<mission>/``,
+   which ``zplatform keygen MISSION`` writes (one file per host role, each
+   holding independent random keys: a file lets its host derive nothing
+   else) and ``zplatform up`` creates on first use.
+
+Keys are checked as ssh checks a private key: a key file readable or
+writable by group or others is refused (naming the file, its mode and the
+``chmod`` that fixes it), and so is a weak key (:func:`check_key`).
+
+Cost per frame (``python -m bench.mac``, bench/REPORT.md, p50 on the
+shared 2-core box): keyed BLAKE3 0.8 us per 256 B frame and 40 us per
+325 KB; HMAC-SHA256 1.8 us and 160 us. The BLAKE3 hasher of a channel is
+built once and reset per frame (``reset()`` measured 0.9 us per 256 B
+against 1.4 us for a new hasher and 1.0 us for ``copy()``).
 """
 
 from __future__ import annotations
 
 import hmac
 import os
+import re
 import secrets
+import stat
+from collections.abc import Mapping
 from pathlib import Path
+
+import blake3
 
 from .config import Mission
 from .errors import CodecError, ZPlatformError
@@ -41,21 +83,45 @@ from .errors import CodecError, ZPlatformError
 __all__ = [
     "KEY_ENV",
     "KEY_FILE_ENV",
+    "MACS",
     "TAG_LEN",
     "AuthError",
     "Channel",
     "KeyError_",
-    "default_key_path",
-    "load_key",
-    "mission_channels",
-    "write_key",
+    "KeySet",
+    "channel",
+    "channel_key",
+    "check_key",
+    "default_key_dir",
+    "host_roles",
+    "key_file_name",
+    "link_of",
+    "load_keys",
+    "read_key_file",
+    "role_host",
+    "role_links",
+    "write_key_set",
 ]
 
 TAG_LEN = 16
-"""HMAC-SHA256 truncated to 128 bits (as in RFC 4868's HMAC-SHA-256-128)."""
+"""Bytes of tag per frame (a MAC truncated to 128 bits, as RFC 4868's HMAC-SHA-256-128)."""
 KEY_ENV = "ZPLATFORM_KEY"
 KEY_FILE_ENV = "ZPLATFORM_KEY_FILE"
-_KEY_LEN = 32
+KEY_LEN = 32
+"""Bytes of every key zplatform makes, and the least it accepts."""
+MACS: tuple[str, ...] = ("blake3", "hmac-sha256")
+"""The MACs ``security.mac`` may name."""
+
+_PREFIX = "zplatform/2/"
+_MAX_FILE = 64 * 1024  # far more than any key set; a bound on what is read
+# Keys published in the repository (the golden vectors of codecs/vectors/auth,
+# BLAKE3's own test key): anyone can read them, so they are never a real key.
+_KNOWN_TEST_KEYS = frozenset(
+    {
+        bytes.fromhex("5a9c4e1f0b7d3a6e82c5f19d4b07e3a8c6d2f5910e8b4a7c3d6f1e0b9a5c8d27"),
+        b"whats the Elvish word for friend",
+    }
+)
 
 
 class AuthError(CodecError):
@@ -64,95 +130,164 @@ class AuthError(CodecError):
 
 
 class KeyError_(ZPlatformError):
-    """The mission key is missing or unreadable; the message says how to make one."""
+    """A key is missing, unreadable, exposed or weak; the message names the
+    link or the file and says what to do."""
 
 
-def default_key_path(mission: Mission | str) -> Path:
-    """``~/.config/zplatform/keys/<mission>.key`` (XDG_CONFIG_HOME respected)
-    of a mission, or of a mission name (checked by the caller)."""
-    name = mission if isinstance(mission, str) else mission.mission
-    base = os.environ.get("XDG_CONFIG_HOME") or str(Path.home() / ".config")
-    return Path(base) / "zplatform" / "keys" / f"{name}.key"
+# -- links and host roles -------------------------------------------------------
 
 
-def _parse(text: str, where: str) -> bytes:
-    try:
-        key = bytes.fromhex(text.strip())
-    except ValueError:
-        raise KeyError_(f"{where}: the mission key must be hex (64 hex digits)") from None
-    if len(key) < 16:
-        raise KeyError_(f"{where}: the mission key is {len(key)} bytes; at least 16 are needed")
+def link_of(channel_name: str) -> str:
+    """The link whose key tags ``channel_name`` (module doc); ValueError for
+    a name that is no channel."""
+    if channel_name == "telemetry":
+        return "downlink"
+    if channel_name == "gn_to_cn":
+        return "uplink"
+    if channel_name.startswith("events_"):
+        return "events-" + channel_name[len("events_") :]
+    name = channel_name.removeprefix("clock_")
+    src, sep, dst = name.partition("_to_")
+    if sep and src == "cn" and dst:
+        return f"cn-{dst}"
+    if sep and dst == "cn" and src:
+        return f"cn-{src}"
+    raise ValueError(f"{channel_name!r} is not a channel")
+
+
+def _event_links(mission: Mission) -> list[str]:
+    nodes = ["cn", *mission.device_nodes, *(["gn"] if mission.has_ground else [])]
+    return [f"events-{n}" for n in nodes]
+
+
+def host_roles(mission: Mission) -> tuple[str, ...]:
+    """The mission's host roles, one key file each: ``cn``, every device
+    node, ``gn`` (when the mission has a ground node) and ``tool``."""
+    return ("cn", *mission.device_nodes, *(("gn",) if mission.has_ground else ()), "tool")
+
+
+def role_links(mission: Mission, role: str) -> tuple[str, ...]:
+    """The links host role ``role`` holds (module doc); KeyError_ for a role
+    the mission does not have."""
+    dns = mission.device_nodes
+    if role == "cn":
+        up = ["uplink"] if mission.has_ground else []
+        return (*(f"cn-{dn}" for dn in dns), *up, "downlink", "events-cn")
+    if role in dns:
+        return (f"cn-{role}", f"events-{role}")
+    if role == "gn" and mission.has_ground:
+        return ("uplink", "downlink", *_event_links(mission))
+    if role == "tool":
+        return ("downlink", *_event_links(mission))
+    raise KeyError_(
+        f"mission {mission.mission!r} has no host role {role!r}; its roles: "
+        f"{', '.join(host_roles(mission))}"
+    )
+
+
+def _mission_links(mission: Mission) -> tuple[str, ...]:
+    seen: dict[str, None] = {}
+    for role in host_roles(mission):
+        seen.update(dict.fromkeys(role_links(mission, role)))
+    return tuple(seen)
+
+
+_ROLE_HOSTS = {
+    "cn": "the control node's host",
+    "gn": "the ground station (ground node, console, cmd)",
+    "tool": "read-only tools (tap, log)",
+}
+
+
+def role_host(role: str) -> str:
+    """Where host role ``role``'s key file belongs, in words."""
+    return _ROLE_HOSTS.get(role, f"{role}'s host")
+
+
+# -- keys ---------------------------------------------------------------------------
+
+
+def check_key(key: bytes, where: str) -> bytes:
+    """Return ``key`` if it can be a secret; KeyError_ naming ``where`` if not.
+
+    Refused: shorter than :data:`KEY_LEN` bytes; one repeated byte; a
+    repeated pattern (period up to half the key); bytes counting up or down
+    by a fixed step; every byte printable ASCII (a passphrase, not a random
+    key: 32 random bytes are all printable with probability 2e-14); a key
+    published as a test key (:data:`_KNOWN_TEST_KEYS`). A key from
+    ``zplatform keygen`` (``secrets.token_bytes``) passes.
+    """
+    n = len(key)
+    if n < KEY_LEN:
+        raise KeyError_(
+            f"{where}: the key is {n} bytes; at least {KEY_LEN} random bytes are needed "
+            "(make keys with `zplatform keygen`)"
+        )
+    weak = ""
+    step = (key[1] - key[0]) % 256
+    if all((key[i + 1] - key[i]) % 256 == step for i in range(n - 1)):
+        weak = "one repeated byte" if step == 0 else "bytes counting by a fixed step"
+    elif any(key[p:] == key[:-p] for p in range(2, n // 2 + 1)):
+        weak = "a repeated pattern"
+    elif all(0x20 <= b < 0x7F for b in key):
+        weak = "printable text (a passphrase, not random bytes)"
+    elif key in _KNOWN_TEST_KEYS:
+        weak = "a published test key"
+    if weak:
+        raise KeyError_(f"{where}: the key is {weak}: refused; make keys with `zplatform keygen`")
     return key
 
 
-def write_key(path: str | Path) -> Path:
-    """Write a new random mission key to ``path`` (mode 0600, parents made).
-
-    Refuses to overwrite an existing file (KeyError_): a new key locks
-    every node that still has the old one out."""
-    p = Path(path)
+def _parse_hex(text: str, where: str) -> bytes:
     try:
-        p.parent.mkdir(parents=True, exist_ok=True)
-        fd = os.open(p, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
-    except FileExistsError:
-        raise KeyError_(f"{p} exists; remove it first to make a new key") from None
-    except OSError as exc:
-        raise KeyError_(f"cannot write a key to {p}: {exc.strerror}") from exc
-    with os.fdopen(fd, "w") as f:
-        f.write(secrets.token_hex(_KEY_LEN) + "\n")
-    return p
+        key = bytes.fromhex(text.strip())
+    except ValueError:
+        raise KeyError_(f"{where}: a key must be hex ({2 * KEY_LEN} hex digits)") from None
+    return check_key(key, where)
 
 
-def load_key(
-    mission: Mission, key_file: str | Path | None = None, *, create: bool = False
-) -> bytes | None:
-    """The mission key (module doc for where it is looked up), or None when
-    the mission turns authentication off.
+def _derive(key: bytes, context: str) -> bytes:
+    return hmac.digest(key, context.encode(), "sha256")
 
-    ``create``: make the default key file if no key is found anywhere (what
-    ``zplatform up`` does on first use). Raises KeyError_ naming every
-    place it looked when there is none."""
-    if not mission.security.auth:
-        return None
-    if key_file is not None:
-        p = Path(key_file)
-    elif os.environ.get(KEY_FILE_ENV):
-        p = Path(os.environ[KEY_FILE_ENV])
-    elif os.environ.get(KEY_ENV):
-        return _parse(os.environ[KEY_ENV], KEY_ENV)
-    else:
-        p = default_key_path(mission)
-        if create and not p.exists():
-            write_key(p)
-    try:
-        return _parse(p.read_text(), str(p))
-    except FileNotFoundError:
-        raise KeyError_(
-            f"mission {mission.mission!r} authenticates its traffic and no key was found at "
-            f"{p}: make one with `zplatform keygen {mission.mission}` (or point "
-            f"{KEY_FILE_ENV} at a key file) and copy it to every host"
-        ) from None
-    except OSError as exc:
-        raise KeyError_(f"cannot read the mission key {p}: {exc.strerror}") from exc
+
+def channel_key(link_key: bytes, vehicle: str, mac: str, name: str) -> bytes:
+    """The key of channel ``name`` (codecs/FORMAT.md §6.1): the MAC's name is
+    part of it, so peers configured with different MACs never agree on a tag."""
+    return _derive(link_key, f"{_PREFIX}{vehicle}/{mac}/{name}")
 
 
 class Channel:
     """Tags and checks the frames of one channel (module doc).
 
-    :meth:`seal` returns this channel's own buffer (overwritten by the next
-    call; resized only if the frame length changes). :meth:`open` returns a
-    view of the frame inside ``payload`` (no copy) or raises AuthError. Not
-    thread-safe: one per sending or receiving loop.
+    ``link_key``: the key of the channel's link; ``mac``: ``blake3`` or
+    ``hmac-sha256``. :meth:`seal` returns this channel's own buffer
+    (overwritten by the next call; resized only if the frame length
+    changes). :meth:`open` returns a view of the frame inside ``payload``
+    (no copy) or raises AuthError. :meth:`tag` allocates only the tag's 16
+    bytes. Not thread-safe (the BLAKE3 hasher is kept and reset per frame):
+    one per sending or receiving thread.
     """
 
-    __slots__ = ("_buf", "_key", "name")
+    __slots__ = ("_buf", "_hasher", "_key", "mac", "name", "tag")
 
-    def __init__(self, key: bytes, vehicle: str, name: str) -> None:
+    def __init__(self, link_key: bytes, vehicle: str, name: str, mac: str = "blake3") -> None:
+        if mac not in MACS:
+            raise ValueError(f"unknown MAC {mac!r}; one of {', '.join(MACS)}")
         self.name = name
-        self._key = hmac.digest(key, f"zplatform/1/{vehicle}/{name}".encode(), "sha256")
+        self.mac = mac
+        self._key = channel_key(link_key, vehicle, mac, name)
         self._buf = bytearray()
+        self._hasher = blake3.blake3(key=self._key) if mac == "blake3" else None
+        self.tag = self._tag_blake3 if mac == "blake3" else self._tag_hmac
 
-    def tag(self, frame: bytes | bytearray | memoryview) -> bytes:
+    def _tag_blake3(self, frame: bytes | bytearray | memoryview) -> bytes:
+        h = self._hasher
+        assert h is not None
+        h.reset()
+        h.update(frame)
+        return h.digest(TAG_LEN)
+
+    def _tag_hmac(self, frame: bytes | bytearray | memoryview) -> bytes:
         return hmac.digest(self._key, frame, "sha256")[:TAG_LEN]
 
     def seal(self, frame: bytes | bytearray | memoryview) -> bytearray:
@@ -171,15 +306,261 @@ class Channel:
             raise AuthError(f"{self.name}: {len(mv)} bytes, too short to carry a tag")
         body = mv[:n]
         if not hmac.compare_digest(self.tag(body), mv[n:]):
-            raise AuthError(f"{self.name}: bad authentication tag (wrong key, or forged)")
+            raise AuthError(
+                f"{self.name}: bad authentication tag (wrong key, forged, or a peer with "
+                f"another security.mac; this node's is {self.mac})"
+            )
         return body
 
 
-def mission_channels(mission: Mission, key: bytes | None) -> dict[str, Channel | None]:
-    """Every channel of the mission, by name; all None when ``key`` is None."""
-    names = ["telemetry"]
-    if mission.has_ground:
-        names.append("gn_to_cn")
-    for dn in mission.device_nodes:
-        names += [f"cn_to_{dn}", f"{dn}_to_cn"]
-    return {n: (Channel(key, mission.vehicle, n) if key is not None else None) for n in names}
+class KeySet:
+    """The link keys one host holds, and the channels they tag (module doc).
+
+    Made by :func:`load_keys` (a host's keys), :meth:`from_master` (every
+    link, derived from one master key) or :meth:`generate` (every link,
+    independent random keys, for :func:`write_key_set`). ``source`` says
+    where the keys came from, for error messages; ``role`` the host role
+    whose keys they are (None: not one role's). Immutable after construction.
+    """
+
+    __slots__ = ("_keys", "_mission", "mac", "role", "source", "vehicle")
+
+    def __init__(
+        self, mission: Mission, keys: Mapping[str, bytes], *, source: str, role: str | None = None
+    ) -> None:
+        self._mission = mission
+        self.vehicle = mission.vehicle
+        self.mac: str = mission.security.mac
+        self.source = source
+        self.role = role
+        self._keys = dict(keys)
+
+    @classmethod
+    def from_master(cls, mission: Mission, master: bytes, *, source: str = KEY_ENV) -> KeySet:
+        """Every link of ``mission``, each key derived from ``master`` (module
+        doc). ``master`` is not checked here (the lockstep runner's fixed key
+        is deliberately trivial); :func:`load_keys` checks what it reads."""
+        v = mission.vehicle
+        keys = {ln: _derive(master, f"{_PREFIX}link/{v}/{ln}") for ln in _mission_links(mission)}
+        return cls(mission, keys, source=source)
+
+    @classmethod
+    def generate(cls, mission: Mission) -> KeySet:
+        """Every link of ``mission`` with its own random key."""
+        keys = {ln: secrets.token_bytes(KEY_LEN) for ln in _mission_links(mission)}
+        return cls(mission, keys, source="zplatform keygen")
+
+    @property
+    def links(self) -> tuple[str, ...]:
+        """The links held, in the mission's order."""
+        return tuple(self._keys)
+
+    def has(self, link: str) -> bool:
+        return link in self._keys
+
+    def link_key(self, link: str) -> bytes:
+        """The key of ``link``; KeyError_ naming the link and the source if not held."""
+        try:
+            return self._keys[link]
+        except KeyError:
+            held = f"host role {self.role}'s keys" if self.role else "its keys"
+            raise KeyError_(
+                f"no key for link {link}: {self.source} has none ({held}: "
+                f"{', '.join(self._keys) or 'none'})"
+            ) from None
+
+    def channel(self, name: str) -> Channel:
+        """A new :class:`Channel` for ``name``, keyed by its link; KeyError_
+        when the link is not held."""
+        return Channel(self.link_key(link_of(name)), self.vehicle, name, self.mac)
+
+    def for_node(self, role: str) -> KeySet:
+        """The keys host role ``role`` holds, taken from these; KeyError_ (one
+        line: the role, the first missing link, where it was looked for) when
+        one is missing."""
+        need = role_links(self._mission, role)
+        missing = [ln for ln in need if ln not in self._keys]
+        if missing:
+            mine = f" (the key file of host role {self.role})" if self.role else ""
+            raise KeyError_(
+                f"{role} needs the key of link {missing[0]}, and {self.source}{mine} has none: "
+                f"give {role} its own key file, {role}.keys from `zplatform keygen`"
+            )
+        return KeySet(
+            self._mission, {ln: self._keys[ln] for ln in need}, source=self.source, role=role
+        )
+
+
+def channel(keys: KeySet | None, name: str) -> Channel | None:
+    """``keys.channel(name)``, or None when the mission does not authenticate
+    (``keys`` None): what every node builds its channels with."""
+    return keys.channel(name) if keys is not None else None
+
+
+# -- key files ------------------------------------------------------------------------
+
+
+def default_key_dir(mission: Mission | str) -> Path:
+    """``~/.config/zplatform/keys/<mission>/`` (XDG_CONFIG_HOME respected): the
+    key set directory of a mission, or of a mission name."""
+    name = mission if isinstance(mission, str) else mission.mission
+    base = os.environ.get("XDG_CONFIG_HOME") or str(Path.home() / ".config")
+    return Path(base) / "zplatform" / "keys" / name
+
+
+def key_file_name(role: str) -> str:
+    """The file of host role ``role`` in a key set directory."""
+    return f"{role}.keys"
+
+
+def write_key_set(mission: Mission, directory: str | Path) -> dict[str, Path]:
+    """Write a new key set for ``mission`` into ``directory``: one file per
+    host role (:func:`host_roles`), each holding that role's links with
+    independent random keys; files mode 0600, the directory 0700 (made, with
+    its parents, if missing). Returns ``{role: path}``.
+
+    Refuses (KeyError_) to overwrite a key file: a new key set locks out
+    every host that still has the old one."""
+    d = Path(directory)
+    keys = KeySet.generate(mission)
+    try:
+        d.mkdir(parents=True, exist_ok=True, mode=0o700)
+        os.chmod(d, 0o700)
+    except OSError as exc:
+        raise KeyError_(f"cannot make the key directory {d}: {exc.strerror}") from exc
+    out: dict[str, Path] = {}
+    roles = host_roles(mission)
+    for role in roles:
+        p = d / key_file_name(role)
+        if p.exists():
+            raise KeyError_(f"{p} exists; remove the old key set first to make a new one")
+    for role in roles:
+        p = d / key_file_name(role)
+        mine = keys.for_node(role)
+        lines = [
+            f"# zplatform key set of mission {mission.mission!r}: host role {role!r}, "
+            f"for {role_host(role)}.",
+            "# Secret: keep it mode 0600, on that host only. Made by `zplatform keygen`.",
+            f"mission {mission.mission}",
+            f"role {role}",
+            *(f"{ln} {mine.link_key(ln).hex()}" for ln in mine.links),
+        ]
+        try:
+            fd = os.open(p, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+        except OSError as exc:
+            raise KeyError_(f"cannot write a key file {p}: {exc.strerror}") from exc
+        with os.fdopen(fd, "w") as f:
+            f.write("\n".join(lines) + "\n")
+        out[role] = p
+    return out
+
+
+_LINE_RE = re.compile(r"^([a-z][a-z0-9_-]*)\s+(\S+)$")
+
+
+def read_key_file(path: str | Path, mission: Mission) -> KeySet:
+    """The keys in one host's key file (format: README, "Authentication").
+
+    KeyError_ (one line, naming the file) when it is missing, not a regular
+    file, readable or writable by group or others (with the ``chmod`` that
+    fixes it), malformed, another mission's, or holds a weak key."""
+    p = Path(path)
+    try:
+        st = os.stat(p)
+    except FileNotFoundError:
+        raise KeyError_(f"no key file at {p}") from None
+    except OSError as exc:
+        raise KeyError_(f"cannot read the key file {p}: {exc.strerror}") from exc
+    if not stat.S_ISREG(st.st_mode):
+        raise KeyError_(f"{p} is not a regular file, so it is no key file")
+    mode = stat.S_IMODE(st.st_mode)
+    if mode & 0o077:
+        raise KeyError_(
+            f"{p} is open to others (mode {mode:04o}): keys must be private to their owner; "
+            f"run `chmod 600 {p}`"
+        )
+    if st.st_size > _MAX_FILE:
+        raise KeyError_(f"{p} is {st.st_size} bytes, too large for a key file")
+    try:
+        with open(p, "rb") as f:
+            raw = f.read(_MAX_FILE + 1)
+        text = raw.decode("ascii")
+    except UnicodeDecodeError:
+        raise KeyError_(f"{p} is not a key file (not ASCII text)") from None
+    except OSError as exc:
+        raise KeyError_(f"cannot read the key file {p}: {exc.strerror}") from exc
+    keys: dict[str, bytes] = {}
+    role: str | None = None
+    known = set(_mission_links(mission))
+    for n, line in enumerate(text.splitlines(), 1):
+        line = line.strip()
+        if not line or line.startswith("#"):
+            continue
+        m = _LINE_RE.fullmatch(line)
+        if m is None:
+            if re.fullmatch(r"[0-9a-fA-F]+", line):
+                raise KeyError_(
+                    f"{p}: a single mission key (an earlier zplatform's, which opened every "
+                    "link): make a key set with `zplatform keygen MISSION`"
+                )
+            raise KeyError_(f"{p}:{n}: expected `LINK HEXKEY`, `mission NAME` or `role ROLE`")
+        name, value = m.groups()
+        if name == "mission":
+            if value != mission.mission:
+                raise KeyError_(
+                    f"{p} is a key file of mission {value!r}, not of {mission.mission!r}"
+                )
+        elif name == "role":
+            role = value
+        elif name in known:
+            keys[name] = _parse_hex(value, f"{p}:{n} ({name})")
+        else:
+            raise KeyError_(f"{p}:{n}: {name!r} is no link of mission {mission.mission!r}")
+    return KeySet(mission, keys, source=str(p), role=role)
+
+
+def load_keys(
+    mission: Mission,
+    role: str,
+    key_file: str | Path | None = None,
+    *,
+    create: bool = False,
+) -> KeySet | None:
+    """The keys of host role ``role`` (module doc for where they are looked
+    up), or None when the mission turns authentication off.
+
+    ``create``: make the mission's key set directory when no key is found
+    anywhere (what ``zplatform up`` does on first use). A ``tool`` without
+    its own file in a key set directory takes the ground's (``gn.keys``).
+    Raises KeyError_ (one line) when a key the role needs is missing
+    (naming the link and the file looked in), or a file or key is refused."""
+    if not mission.security.auth:
+        return None
+    role_links(mission, role)  # an unknown role fails first, whatever the keys
+    src = key_file if key_file is not None else os.environ.get(KEY_FILE_ENV) or None
+    if src is None and os.environ.get(KEY_ENV):
+        master = _parse_hex(os.environ[KEY_ENV], KEY_ENV)
+        return KeySet.from_master(mission, master).for_node(role)
+    if src is not None:
+        path = Path(src)
+        if path.is_dir():
+            path = _role_file(path, role)
+    else:
+        d = default_key_dir(mission)
+        if create and not d.exists():
+            write_key_set(mission, d)
+        path = _role_file(d, role)
+        if not path.exists():
+            raise KeyError_(
+                f"mission {mission.mission!r} authenticates its traffic and {role} has no key "
+                f"file at {path}: make a key set with `zplatform keygen MISSION_FILE` and copy "
+                f"{path.name} to this host (or point {KEY_FILE_ENV} at it)"
+            )
+    return read_key_file(path, mission).for_node(role)
+
+
+def _role_file(directory: Path, role: str) -> Path:
+    p = directory / key_file_name(role)
+    if role == "tool" and not p.exists() and (directory / key_file_name("gn")).exists():
+        return directory / key_file_name("gn")
+    return p

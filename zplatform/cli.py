@@ -17,6 +17,7 @@ import json
 import os
 import sys
 from collections.abc import Callable, Sequence
+from pathlib import Path
 
 import msgspec
 
@@ -173,72 +174,52 @@ def cmd_ps(args: argparse.Namespace) -> int:
 MISSION_HELP = "mission YAML file, or the name of a running mission (`zplatform ps`)"
 
 
-def _keygen_mission_name(arg: str) -> str:
-    """The mission name ``keygen MISSION`` means: a mission file's ``mission:``
-    (its code is not imported), a running mission's, or ``arg`` itself when it
-    is neither a file nor running but a valid mission name (a key is often
-    made before the mission first runs). CommandError (or the loader's
-    ConfigError) otherwise."""
-    from .config import check_mission_name
-    from .errors import CommandError, ConfigError
-
-    try:
-        path = resolve_mission(arg)
-    except CommandError:
-        if os.sep in arg or arg.endswith((".yaml", ".yml")):
-            raise  # meant as a file: say there is none
-        try:
-            check_mission_name(arg)
-        except ConfigError as exc:
-            raise CommandError(f"{exc.reason}, and it is no file or running mission") from None
-        return arg
-    return load_mission(path, code=False).mission
-
-
-def _keygen_pki(target: str) -> None:
+def _keygen_pki(mission: Mission, where: Path) -> None:
     """keygen's PKI step (:mod:`zplatform.pki`): for a mission whose links run
-    mutual TLS, make what its PKI lacks and say which file goes to which
-    host. A bare mission name has no nodes to make certificates for."""
-    from .deploy import DEPLOYMENT_ENV
-    from .errors import CommandError
+    mutual TLS, make what its PKI in ``where`` (beside the key set) lacks and
+    say which file goes to which host."""
+    from .config import transport_reason
     from .pki import ensure_mission_pki, host_files
 
-    try:
-        path = resolve_mission(target)
-    except CommandError:
-        print("no certificates: pass the mission file to make its PKI (its nodes name them)")
+    if not mission.mtls:
+        print(f"no certificates: its links are plain ({transport_reason(mission)})")
         return
-    m = load_mission(path, code=False)
-    if not m.mtls:
-        print(f"no certificates: mission {m.mission!r} runs plain links (security.transport)")
-        return
-    pki = ensure_mission_pki(m)
-    if pki.made:
-        print(f"made the PKI of mission {m.mission!r} in {pki.directory}: {', '.join(pki.made)}")
-    else:
-        print(f"the PKI of mission {m.mission!r} in {pki.directory} has every certificate")
+    pki = ensure_mission_pki(mission, where)
+    made = f"made {', '.join(pki.made)}" if pki.made else "every certificate was there"
     print(
-        "copy each host its files into the same directory, mode 0600 (or name its "
-        f"deployment.yaml with {DEPLOYMENT_ENV}):"
+        f"the PKI of its mutual TLS links ({transport_reason(mission)}) is beside it "
+        f"({made}):"
     )
-    for who, files in host_files(m):
-        print(f"  {who + ':':<46} {' '.join(files)}")
+    for who, files in host_files(mission):
+        print(f"  {' '.join(files):<32} -> {who}")
 
 
 def cmd_keygen(args: argparse.Namespace) -> int:
-    """Make the mission's PKI if its links run mutual TLS (only what is
-    missing), then write a new random mission key (mode 0600); refuses to
-    overwrite a key."""
-    from .auth import KEY_FILE_ENV, default_key_path, write_key
+    """Write a new key set (one file per host role, mode 0600, in a 0700
+    directory) and, for a mission whose links run mutual TLS, the mission's
+    PKI beside it (only what is missing); say which file goes to which host.
+    Refuses to overwrite a key set."""
+    from .auth import (
+        KEY_FILE_ENV,
+        default_key_dir,
+        host_roles,
+        role_host,
+        role_links,
+        write_key_set,
+    )
 
-    name = _keygen_mission_name(args.target)
-    _keygen_pki(args.target)
-    path = write_key(args.out or default_key_path(name))
-    print(f"wrote the key of mission {name!r} to {path}")
-    if args.out:
-        print(f"nodes and tools find it with {KEY_FILE_ENV}={path}")
-    else:
-        print("copy it to the same place on every host of the mission and the ground station")
+    mission = load_mission(resolve_mission(args.target), code=False)
+    where = Path(args.out) if args.out else default_key_dir(mission)
+    files = write_key_set(mission, where)
+    print(f"wrote the key set of mission {mission.mission!r} to {where}/ (one file per host role):")
+    for role in host_roles(mission):
+        links = ", ".join(role_links(mission, role))
+        print(f"  {files[role].name:<10} -> {role_host(role):<46} {links}")
+    _keygen_pki(mission, where)
+    print(
+        "copy each file to its host only, into the same directory (or point "
+        f"{KEY_FILE_ENV} at it); a single host (zplatform up) uses the directory as it is"
+    )
     return 0
 
 
@@ -284,15 +265,15 @@ def build_parser() -> argparse.ArgumentParser:
     c.set_defaults(func=cmd_check)
     c = sub.add_parser(
         "keygen",
-        help="make the mission key that authenticates every frame, and the certificates of "
-        "a mission whose links run mutual TLS (says which file goes to which host)",
+        help="make the mission's key set (one key file per host role: cn, each dn, gn, "
+        "tool) and the certificates of a mission whose links run mutual TLS",
     )
-    # Not `mission`: main() would resolve it, and keygen also takes a bare name.
+    # Not `mission`: main() would load it with its code; keygen needs only the nodes.
+    c.add_argument("target", metavar="MISSION", help=MISSION_HELP)
     c.add_argument(
-        "target", metavar="MISSION", help=MISSION_HELP + ", or a mission name (led_test)"
-    )
-    c.add_argument(
-        "--out", metavar="PATH", help="where to write it (default: the mission's key file)"
+        "--out",
+        metavar="DIR",
+        help="the directory to write the set into (default: the mission's key directory)",
     )
     c.set_defaults(func=cmd_keygen)
     c = sub.add_parser(

@@ -1,4 +1,4 @@
-"""Ground-side subcommands: ``ground`` (console or prompt), ``plot``, ``xtce``."""
+"""Ground-side subcommands: ``ground`` (console or prompt), ``params``, ``plot``, ``xtce``."""
 
 from __future__ import annotations
 
@@ -62,6 +62,29 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         help="console: element limits {NAME: {yellow: [lo, hi], red: [lo, hi]}} over the mission's",
     )
     p.set_defaults(func=cmd_ground)
+
+    p = mission_verb(
+        sub,
+        "params",
+        help="list the mission's parameters (live values when it runs), or set one",
+        description="Without NAME VALUE: every parameter with its value (from live telemetry "
+        "when the control node runs, else from this host's parameter file), default, bounds, "
+        "units, the states it may change in, and whether it is hazardous. With NAME VALUE: "
+        "PRM_SET (--arm: ARM n, then PRM_SET n+1, for a hazardous parameter), then with "
+        "--save PRM_SAVE, waiting until the control node has written its parameter file. "
+        "Exits 0 only when everything was accepted (and saved).",
+    )
+    p.add_argument("name", nargs="?", metavar="NAME", help="the parameter to set")
+    p.add_argument("value", nargs="?", metavar="VALUE", help="its new value")
+    p.add_argument(
+        "--arm", action="store_true", help="send ARM n first (a hazardous parameter needs it)"
+    )
+    p.add_argument(
+        "--save", action="store_true", help="then PRM_SAVE: write every parameter to the file"
+    )
+    p.add_argument("--json", action="store_true", help="list as JSON")
+    timeout_option(p, "telemetry and for each verdict")
+    p.set_defaults(func=cmd_params)
 
     p = sub.add_parser(
         "plot",
@@ -156,6 +179,40 @@ def cmd_prompt(args: argparse.Namespace) -> int:
     )
 
 
+def cmd_params(args: argparse.Namespace) -> int:
+    """List (exit 0), or set and/or save (exit 0 only when all succeeded)."""
+    import json
+
+    import msgspec
+
+    from .ground.tools import list_params, set_param
+
+    mission = load_mission(args.mission, code=False)
+    if args.name is not None and args.value is None:
+        raise CommandError(f"params {args.name}: give its VALUE too")
+    if args.name is None and not (args.save or args.arm):
+        listing = list_params(mission, timeout_s=args.timeout)
+        if args.json:
+            print(json.dumps(msgspec.to_builtins(listing), indent=2))
+            return 0
+        print(f"{listing.mission}: {listing.source}")
+        header = ("NAME", "VALUE", "DEFAULT", "BOUNDS", "STATES", "")
+        rows = [header] + [
+            (r.name, r.value, r.default, r.bounds, ",".join(r.states), "hazardous" * r.hazardous)
+            for r in listing.rows
+        ]
+        widths = [max(len(row[i]) for row in rows) for i in range(len(header))]
+        for row in rows:
+            print("  ".join(c.ljust(w) for c, w in zip(row, widths, strict=True)).rstrip())
+        return 0
+    lines, ok = set_param(
+        mission, args.name, args.value, armed=args.arm, save=args.save, timeout_s=args.timeout
+    )
+    for line in lines:
+        print(line)
+    return 0 if ok else 1
+
+
 def _needs(module: str, verb: str, package: str, extra: str) -> Any:
     """``module``, imported; CommandError naming the extra that brings
     ``package`` when it cannot be (one line, exit 2)."""
@@ -209,7 +266,7 @@ def _record_radio(mission: Any, args: argparse.Namespace) -> int:
     """The mission's CN packs its own downlink: record the packets it sends."""
     from .ground.link import GroundLink
 
-    link = GroundLink(mission, key=None, telemetry=False, events=False)
+    link = GroundLink(mission, keys=None, telemetry=False, events=False)
     link.tap(link.keys.downlink)
     n = size = 0
     start = time.monotonic()

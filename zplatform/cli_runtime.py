@@ -111,13 +111,13 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p.set_defaults(func=cmd_log)
 
     p = mission_verb(sub, "cmd", help="send one operator command and wait for its verdict")
-    p.add_argument("command", help="launch|abort|noop|hold|resume|arm|write")
-    p.add_argument("args", nargs="*", help="write: ELEMENT VALUE")
+    p.add_argument("command", help="launch|abort|noop|hold|resume|arm|write|prm_set|prm_save")
+    p.add_argument("args", nargs="*", help="write: ELEMENT VALUE; prm_set: PARAMETER VALUE")
     p.add_argument(
         "--arm",
         action="store_true",
-        help="send ARM n first, then the command as n+1 (needed for hazardous commands and "
-        "WRITEs of protected elements)",
+        help="send ARM n first, then the command as n+1 (needed for hazardous commands, "
+        "WRITEs of protected elements and PRM_SETs of hazardous parameters)",
     )
     timeout_option(p, "the CN and for each verdict")
     p.set_defaults(func=cmd_cmd)
@@ -289,18 +289,22 @@ def cmd_up(args: argparse.Namespace) -> int:
     """Refuse what a user can get wrong before any node is spawned (exit 2):
     the mission, the command script, unwritable output paths, listen ports
     already in use; then :func:`zplatform.supervisor.run_up`."""
-    from .auth import load_key
-    from .deploy import DEPLOYMENT_ENV
+    from .auth import load_keys
+    from .deploy import DEPLOYMENT_ENV, default_deployment_path
     from .pki import ensure_mission_pki
     from .supervisor import run_up
 
     mission = load_mission(args.mission)
-    # First use on this host: make the mission key (every node finds it)...
-    load_key(mission, create=True)
-    # ...and, for links that run mutual TLS, the mission's PKI where every
-    # node's session looks for it (unless ZPLATFORM_DEPLOYMENT names another).
+    # First use on this host: make the mission's key set (every node finds its
+    # own). Every node it spawns needs its keys: a missing one is one error
+    # line now, before anything runs...
+    for role in ("cn", *mission.device_nodes, *(["gn"] if mission.has_ground else [])):
+        load_keys(mission, role, create=True)
+    # ...and, for links that run mutual TLS, the mission's PKI beside the key
+    # set, where every node's session looks for it (unless ZPLATFORM_DEPLOYMENT
+    # names another deployment).
     if mission.mtls and not os.environ.get(DEPLOYMENT_ENV):
-        pki = ensure_mission_pki(mission)
+        pki = ensure_mission_pki(mission, default_deployment_path(mission).parent)
         if pki.made:
             print(
                 f"zplatform up: made the certificates of {mission.mission!r} for mutual TLS "

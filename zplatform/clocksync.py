@@ -27,6 +27,19 @@ so cancels out of the delay):
   reads next to them. Zenoh's clock knows nothing of the node clock's anchor,
   hence the mapping; Python's callback and hand-off latency drops out.
 
+**Authenticated, and bound to the exchange** (codecs/FORMAT.md §6.3). A
+DN's query carries a fresh random nonce and is tagged with its cn<->dnX
+link key (channel ``clock_dnX_to_cn``); the CN answers only a query whose
+tag checks, echoing the nonce, tagged on the reverse channel
+(``clock_cn_to_dnX``). The DN asks every queryable on the clock key
+(``QueryTarget.ALL``, so a rogue cannot take the real CN's place) and
+takes, per exchange, the first reply whose tag checks and whose nonce is
+this exchange's: a reply from a peer without the key, or a real reply
+replayed into another exchange, is refused and counted
+(:class:`ClockLink`). The sans-IO ends are :class:`ClockLink` (the DN's)
+and :class:`ClockResponder` (the CN's); :class:`ClockServer` serves the
+latter on zenoh.
+
 ``zenoh_ts`` is the default (``clock.estimator`` in the mission) because it
 measured more accurate: median |error| 6.94 us vs 7.36 us, worst 17.3 us vs
 26.6 us, over injected skews of 0, 50 ms and 500 ms and a 100 ppm drift
@@ -40,15 +53,18 @@ from __future__ import annotations
 import dataclasses
 import logging
 import queue
+import secrets
 import struct
 import threading
+import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Protocol
 
 import zenoh
 
-from .config import ClockConfig
+from .auth import TAG_LEN, AuthError, Channel, KeySet, channel
+from .config import ClockConfig, Mission
 from .errors import ClockSyncError
 from .transport import KeySpace
 
@@ -56,6 +72,8 @@ __all__ = [
     "ESTIMATORS",
     "ClockEstimate",
     "ClockEstimator",
+    "ClockLink",
+    "ClockResponder",
     "ClockServer",
     "Estimator",
     "ZenohTimestampsError",
@@ -66,8 +84,11 @@ __all__ = [
 
 log = logging.getLogger("zplatform.clocksync")
 
-_REQ = struct.Struct("<q")
-_REP = struct.Struct("<qqq")
+# codecs/FORMAT.md §6.3: magic, version, the DN's index, the nonce, then times.
+_QUERY = struct.Struct("<2sBB16sq")
+_REPLY = struct.Struct("<2sBB16sqqq")
+_Q_MAGIC, _R_MAGIC, _VERSION = b"ZQ", b"ZR", 1
+NONCE_LEN = 16
 
 
 @dataclass(frozen=True, slots=True)
@@ -96,13 +117,115 @@ class ZenohTimestampsError(ClockSyncError):
     """
 
 
-class ClockServer:
-    """The CN's clock queryable. Runs its own reply thread; ``close()`` stops it."""
+class ClockLink:
+    """A DN's end of the clock exchange (module doc), sans-IO.
 
-    def __init__(self, session: zenoh.Session, keys: KeySpace, now_ns: Callable[[], int]) -> None:
+    :meth:`query` frames one query with a fresh nonce; :meth:`check` takes
+    one reply and returns the CN's times if it is the answer to that query.
+    ``keys``: the DN's keys (None: the mission does not authenticate, and
+    the nonce alone binds a reply to its query). Counts what it refuses:
+    :attr:`refused_bad` (a bad tag, or not a reply: a peer without the key)
+    and :attr:`refused_other` (authentic, but for another exchange: a
+    replay, or a reply late beyond its exchange). Not thread-safe: one
+    estimating thread at a time; the counters may be read from any thread.
+    """
+
+    def __init__(self, mission: Mission, dn: str, keys: KeySet | None) -> None:
+        self.dn = dn
+        self.index = mission.device_nodes.index(dn)
+        self._seal = channel(keys, f"clock_{dn}_to_cn")
+        self._open = channel(keys, f"clock_cn_to_{dn}")
+        self.refused_bad = 0
+        self.refused_other = 0
+
+    def query(self, t1: int) -> tuple[bytes, bytes]:
+        """``(payload, nonce)`` of a new query stamped ``t1`` (this node's clock)."""
+        nonce = secrets.token_bytes(NONCE_LEN)
+        body = _QUERY.pack(_Q_MAGIC, _VERSION, self.index, nonce, t1)
+        seal = self._seal
+        return (bytes(seal.seal(body)) if seal is not None else body), nonce
+
+    def check(self, raw: bytes, nonce: bytes) -> tuple[int, int, int] | None:
+        """``(t1, t2, t3)`` of the CN's reply to the query with ``nonce``;
+        None (counted) for anything else."""
+        try:
+            body = self._open.open(raw) if self._open is not None else memoryview(raw)
+            if len(body) != _REPLY.size:
+                raise AuthError(f"{len(body)} bytes, not a clock reply")
+        except AuthError:
+            self.refused_bad += 1
+            return None
+        magic, version, index, echo, t1, t2, t3 = _REPLY.unpack(body)
+        if magic != _R_MAGIC or version != _VERSION or index != self.index:
+            self.refused_bad += 1
+            return None
+        if echo != nonce:
+            self.refused_other += 1
+            return None
+        return t1, t2, t3
+
+    @property
+    def refused(self) -> int:
+        return self.refused_bad + self.refused_other
+
+
+class ClockResponder:
+    """The CN's end of the clock exchange (module doc), sans-IO: answers a
+    DN's query if its tag checks with that DN's link key. ``keys``: the
+    CN's keys (None: the mission does not authenticate). Not thread-safe:
+    one serving thread."""
+
+    def __init__(self, mission: Mission, keys: KeySet | None) -> None:
+        dns = mission.device_nodes
+        self._open: list[Channel | None] = [channel(keys, f"clock_{dn}_to_cn") for dn in dns]
+        self._seal: list[Channel | None] = [channel(keys, f"clock_cn_to_{dn}") for dn in dns]
+        self._auth = keys is not None
+        self.refused = 0
+        """Queries refused (malformed, an unknown DN, a bad tag)."""
+        self.reason = ""
+        """Why the last query was refused."""
+
+    def answer(self, raw: bytes, t2: int, t3: int) -> bytes | None:
+        """The reply to query ``raw`` received at ``t2``, sent at ``t3``; None
+        (counted, :attr:`reason` set) for a query to refuse."""
+        want = _QUERY.size + (TAG_LEN if self._auth else 0)
+        try:
+            if len(raw) != want or raw[:3] != _Q_MAGIC + bytes((_VERSION,)):
+                raise AuthError(f"{len(raw)} bytes: not a clock query of version {_VERSION}")
+            index = raw[3]
+            if index >= len(self._open):
+                raise AuthError(f"no device node number {index}")
+            ch = self._open[index]
+            body = ch.open(raw) if ch is not None else memoryview(raw)
+        except AuthError as exc:
+            self.refused += 1
+            self.reason = str(exc)
+            return None
+        _, _, _, nonce, t1 = _QUERY.unpack(body)
+        reply = _REPLY.pack(_R_MAGIC, _VERSION, index, nonce, t1, t2, t3)
+        seal = self._seal[index]
+        return bytes(seal.seal(reply)) if seal is not None else reply
+
+
+class ClockServer:
+    """The CN's clock queryable. Runs its own reply thread; ``close()`` stops it.
+
+    Each query is answered by a :class:`ClockResponder` (``mission``,
+    ``auth``: the CN's keys); a refused one gets an error reply, is counted
+    (:attr:`refused`) and logged (the first, then every 1000th)."""
+
+    def __init__(
+        self,
+        session: zenoh.Session,
+        keys: KeySpace,
+        now_ns: Callable[[], int],
+        mission: Mission,
+        auth: KeySet | None,
+    ) -> None:
         self._now = now_ns
         self._q: queue.SimpleQueue[tuple[zenoh.Query, int] | None] = queue.SimpleQueue()
         self._key = keys.clock
+        self._responder = ClockResponder(mission, auth)
         self.served = 0
         self._queryable = session.declare_queryable(
             self._key, zenoh.handlers.Callback(self._on_query, indirect=False)
@@ -110,10 +233,15 @@ class ClockServer:
         self._thread = threading.Thread(target=self._serve, name="clock-server", daemon=True)
         self._thread.start()
 
+    @property
+    def refused(self) -> int:
+        return self._responder.refused
+
     def _on_query(self, query: zenoh.Query) -> None:
         self._q.put((query, self._now()))  # t2, then hand off
 
     def _serve(self) -> None:
+        responder = self._responder
         while True:
             item = self._q.get()
             if item is None:
@@ -122,11 +250,17 @@ class ClockServer:
             with query:
                 p = query.payload
                 raw = p.to_bytes() if p is not None else b""
-                if len(raw) != _REQ.size:
-                    query.reply_err(b"clock request must be one little-endian i64")
+                reply = responder.answer(raw, t2, self._now())
+                if reply is None:
+                    query.reply_err(b"clock query refused")
+                    if responder.refused % 1000 == 1:
+                        log.warning(
+                            "clock query refused (%d so far): %s",
+                            responder.refused,
+                            responder.reason,
+                        )
                     continue
-                (t1,) = _REQ.unpack(raw)
-                query.reply(self._key, _REP.pack(t1, t2, self._now()))
+                query.reply(self._key, reply)
             self.served += 1
 
     def close(self) -> None:
@@ -135,10 +269,86 @@ class ClockServer:
         self._thread.join(timeout=2)
 
 
+@dataclass(frozen=True, slots=True)
+class Exchange:
+    """The times of one clock exchange (ns): ``t1`` query sent, ``t2`` / ``t3``
+    the CN's receive and reply times, ``t4_cb`` read in zenoh's reply
+    callback, ``t4`` read by the waiting thread after the hand-off;
+    ``stamps``: zenoh's four time points when the query was instrumented."""
+
+    t1: int
+    t2: int
+    t3: int
+    t4_cb: int
+    t4: int
+    stamps: list[int]
+
+
+def _exchange(
+    session: zenoh.Session,
+    keys: KeySpace,
+    link: ClockLink,
+    now_ns: Callable[[], int],
+    timeout_s: float,
+    instrumentation: zenoh.TimestampInstrumentation | None = None,
+) -> Exchange | None:
+    """One exchange: the times of the first reply that is this query's
+    answer (:meth:`ClockLink.check`), or None when none came within
+    ``timeout_s``. Every queryable on the clock key is asked (a rogue cannot
+    hide the CN); replies are checked in arrival order, and the exchange
+    ends at the first valid one."""
+    # (payload, t4 read in the callback, zenoh's stamps); None: the query ended.
+    replies: queue.SimpleQueue[tuple[bytes, int, list[int]] | None] = queue.SimpleQueue()
+
+    def on_reply(r: zenoh.Reply) -> None:
+        t4 = now_ns()  # in zenoh's thread, before any hand-off
+        ok = r.ok
+        if ok is None:
+            return
+        stack = getattr(ok, "timestamp_stack", None)
+        stamps: list[int] = []
+        if stack is not None:
+            for rec in stack.records:
+                ts = rec.timestamp()
+                if isinstance(ts, bytes | bytearray):
+                    continue
+                stamps.append(ts.get_time_as_ntp64().as_nanos())
+        replies.put((ok.payload.to_bytes(), t4, stamps))
+
+    cb = zenoh.handlers.Callback(on_reply, lambda: replies.put(None), indirect=False)
+    t1 = now_ns()
+    payload, nonce = link.query(t1)
+    session.get(
+        keys.clock,
+        cb,
+        payload=payload,
+        consolidation=zenoh.ConsolidationMode.NONE,
+        target=zenoh.QueryTarget.ALL,
+        timeout=timeout_s,
+        timestamp_instrumentation=instrumentation,
+    )
+    deadline = time.monotonic() + timeout_s
+    while (left := deadline - time.monotonic()) > 0:
+        try:
+            item = replies.get(timeout=left)
+        except queue.Empty:
+            return None
+        if item is None:
+            return None
+        t4 = now_ns()
+        raw, t4_cb, stamps = item
+        got = link.check(raw, nonce)
+        if got is not None:  # the CN's answer to this very query
+            _, t2, t3 = got
+            return Exchange(t1, t2, t3, t4_cb, t4, stamps)
+    return None
+
+
 def estimate_offset(
     session: zenoh.Session,
     keys: KeySpace,
     now_ns: Callable[[], int],
+    link: ClockLink,
     *,
     exchanges: int = 200,
     keep_fraction: float = 0.1,
@@ -146,43 +356,34 @@ def estimate_offset(
 ) -> ClockEstimate:
     """Measure the CN-minus-local clock offset over ``exchanges`` round trips.
 
-    Blocks for the exchanges (about 0.3 ms each on loopback). Raises
-    ClockSyncError when fewer than half the exchanges get a valid reply
-    (the CN's clock server is unreachable).
+    Each exchange is :class:`ClockLink`'s (authenticated, nonce-bound);
+    replies it refuses are counted there. Blocks for the exchanges (about
+    0.3 ms each on loopback). Raises ClockSyncError when fewer than half the
+    exchanges get a valid reply (the CN's clock server is unreachable, or
+    only peers without the key answer).
     """
     samples: list[tuple[int, int]] = []
-    replies: queue.SimpleQueue[bytes | None] = queue.SimpleQueue()
-
-    def on_reply(r: zenoh.Reply) -> None:
-        ok = r.ok
-        replies.put(ok.payload.to_bytes() if ok is not None else None)
-
-    cb = zenoh.handlers.Callback(on_reply, indirect=False)
     for _ in range(exchanges):
-        t1 = now_ns()
-        session.get(
-            keys.clock,
-            cb,
-            payload=_REQ.pack(t1),
-            consolidation=zenoh.ConsolidationMode.NONE,
-            timeout=timeout_s,
-        )
-        try:
-            raw = replies.get(timeout=timeout_s)
-        except queue.Empty:
+        x = _exchange(session, keys, link, now_ns, timeout_s)
+        if x is None:
             continue
-        t4 = now_ns()
-        if raw is None or len(raw) != _REP.size:
-            continue
-        e1, t2, t3 = _REP.unpack(raw)
-        if e1 != t1:  # a late reply to an earlier exchange
-            continue
+        t1, t2, t3, t4 = x.t1, x.t2, x.t3, x.t4
         samples.append((((t2 - t1) + (t3 - t4)) // 2, (t4 - t1) - (t3 - t2)))
     if len(samples) < exchanges // 2:
         raise ClockSyncError(
-            f"clock sync got {len(samples)} of {exchanges} replies from {keys.clock}"
+            f"clock sync got {len(samples)} of {exchanges} valid replies from {keys.clock}"
+            + _refusals(link)
         )
     return _fastest(samples, keep_fraction)
+
+
+def _refusals(link: ClockLink) -> str:
+    if not link.refused:
+        return ""
+    return (
+        f" ({link.refused_bad} replies refused for a bad tag, {link.refused_other} for "
+        "another exchange: a peer without the key answers?)"
+    )
 
 
 def _fastest(samples: list[tuple[int, int]], keep_fraction: float) -> ClockEstimate:
@@ -204,6 +405,7 @@ def estimate_offset_zenoh(
     session: zenoh.Session,
     keys: KeySpace,
     now_ns: Callable[[], int],
+    link: ClockLink,
     *,
     exchanges: int = 200,
     keep_fraction: float = 0.1,
@@ -255,51 +457,15 @@ def estimate_offset_zenoh(
     samples: list[tuple[int, int]] = []
     answered = 0  # valid replies to their own exchange, stamped or not
     cn_lo, cn_hi, dn_lo, dn_hi = -(1 << 63), 1 << 63, -(1 << 63), 1 << 63
-    replies: queue.SimpleQueue[tuple[bytes, list[int], int] | None] = queue.SimpleQueue()
-
-    def on_reply(r: zenoh.Reply) -> None:
-        t4 = now_ns()
-        ok = r.ok
-        if ok is None:
-            replies.put(None)
-            return
-        stack = getattr(ok, "timestamp_stack", None)
-        stamps: list[int] = []
-        if stack is not None:
-            for rec in stack.records:
-                ts = rec.timestamp()
-                if isinstance(ts, bytes | bytearray):
-                    continue
-                stamps.append(ts.get_time_as_ntp64().as_nanos())
-        replies.put((ok.payload.to_bytes(), stamps, t4))
-
-    cb = zenoh.handlers.Callback(on_reply, indirect=False)
     for _ in range(exchanges):
-        t1 = now_ns()
-        session.get(
-            keys.clock,
-            cb,
-            payload=_REQ.pack(t1),
-            consolidation=zenoh.ConsolidationMode.NONE,
-            timeout=timeout_s,
-            timestamp_instrumentation=ti,
-        )
-        try:
-            item = replies.get(timeout=timeout_s)
-        except queue.Empty:
-            continue
-        if item is None:
-            continue
-        raw, stamps, t4 = item
-        if len(raw) != _REP.size:
-            continue
-        e1, t2, t3 = _REP.unpack(raw)
-        if e1 != t1:
+        x = _exchange(session, keys, link, now_ns, timeout_s, ti)
+        if x is None:
             continue
         answered += 1
-        if len(stamps) != 4:
+        if len(x.stamps) != 4:
             continue
-        t1z, t2z, t3z, t4z = stamps
+        t1, t2, t3, t4 = x.t1, x.t2, x.t3, x.t4_cb
+        t1z, t2z, t3z, t4z = x.stamps
         cn_lo, cn_hi = max(cn_lo, t3 - t3z), min(cn_hi, t2 - t2z)
         dn_lo, dn_hi = max(dn_lo, t1 - t1z), min(dn_hi, t4 - t4z)
         samples.append((((t2z - t1z) + (t3z - t4z)) // 2, (t4z - t1z) - (t3z - t2z)))
@@ -312,7 +478,7 @@ def estimate_offset_zenoh(
             )
         raise ClockSyncError(
             f"zenoh-timestamp clock sync got {len(samples)} of {exchanges} "
-            f"instrumented replies from {keys.clock}"
+            f"instrumented replies from {keys.clock}" + _refusals(link)
         )
     inversion = max(cn_lo - cn_hi, dn_lo - dn_hi)
     if inversion > max_inversion_ns:
@@ -341,6 +507,7 @@ class Estimator(Protocol):
         session: zenoh.Session,
         keys: KeySpace,
         now_ns: Callable[[], int],
+        link: ClockLink,
         *,
         exchanges: int = ...,
         keep_fraction: float = ...,
@@ -386,6 +553,7 @@ class ClockEstimator:
         session: zenoh.Session,
         keys: KeySpace,
         now_ns: Callable[[], int],
+        link: ClockLink,
         *,
         exchanges: int = 200,
         keep_fraction: float = 0.1,
@@ -396,6 +564,7 @@ class ClockEstimator:
                 session,
                 keys,
                 now_ns,
+                link,
                 exchanges=exchanges,
                 keep_fraction=keep_fraction,
                 timeout_s=timeout_s,

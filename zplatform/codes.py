@@ -2,7 +2,9 @@
 
 These enums are the values of the platform elements ``gn_cmd`` / ``cn_cmd``
 (:class:`Command`), ``cn_cmd_status`` (:class:`CommandStatus`), ``cn_fault``
-(:class:`Fault`) and ``cn_last_error`` (:class:`ErrorCode`). The config
+(:class:`Fault`), ``cn_last_error`` (:class:`ErrorCode`), and of a mission
+with parameters ``cn_prm_load_status`` (:class:`ParamLoad`) and
+``cn_prm_save_status`` (:class:`ParamSave`). The config
 derives the enum names of those elements from them
 (:data:`zplatform.config.CMD_NAMES` ...), the command handler and the fault
 monitor compare against them: one definition, so the two can never disagree.
@@ -16,11 +18,16 @@ from __future__ import annotations
 
 import enum
 
-__all__ = ["Command", "CommandStatus", "ErrorCode", "Fault"]
+__all__ = ["Command", "CommandStatus", "ErrorCode", "Fault", "ParamLoad", "ParamSave", "SafedWhy"]
 
 
 class Command(enum.IntEnum):
-    """Operator commands (thesis 4.8, seed 003 ARM); the values of ``gn_cmd`` and ``cn_cmd``."""
+    """Operator commands (thesis 4.8, ARM-then-command); the values of ``gn_cmd`` and ``cn_cmd``.
+
+    ``PRM_SET`` sets a mission parameter (``gn_cmd_element``: the
+    parameter's element index, ``gn_cmd_value``: its value); ``PRM_SAVE``
+    has the control node write every parameter to its parameter file
+    (:mod:`zplatform.params`)."""
 
     NONE = 0
     NOOP = 1
@@ -30,10 +37,17 @@ class Command(enum.IntEnum):
     HOLD = 5
     RESUME = 6
     ARM = 7
+    PRM_SET = 8
+    PRM_SAVE = 9
 
 
 class CommandStatus(enum.IntEnum):
-    """Outcome of the last request; the values of ``cn_cmd_status``."""
+    """Outcome of the last request; the values of ``cn_cmd_status``.
+
+    ``REJECTED_OUT_OF_BOUNDS``: a PRM_SET value outside the parameter's
+    ``[min, max]``; ``REJECTED_PARAM_STATE``: the parameter may not change in
+    the current state (its ``states``); ``REJECTED_BUSY``: a PRM_SAVE while
+    the previous save is still being written."""
 
     NONE = 0
     ACCEPTED = 1
@@ -44,6 +58,9 @@ class CommandStatus(enum.IntEnum):
     REJECTED_NOT_ARMED = 6
     REJECTED_AUTH = 7
     REJECTED_EPOCH = 8
+    REJECTED_OUT_OF_BOUNDS = 9
+    REJECTED_PARAM_STATE = 10
+    REJECTED_BUSY = 11
 
 
 class Fault(enum.IntEnum):
@@ -55,6 +72,26 @@ class Fault(enum.IntEnum):
     SYNC_OVERRUNS = 3
     LOOP_OVERRUNS = 4
     CLOCK_DRIFT = 5
+    DN_SAFED = 6
+    """A device node the CN triggers reports that it safed itself because
+    none of those triggers could run (``dnX_safed_why == CANNOT_RUN``): it
+    answers, yet runs no loop (its clock is off, every trigger stale)."""
+
+
+class SafedWhy(enum.IntEnum):
+    """Why a device node safed its actuators; the values of ``dnX_safed_why``."""
+
+    NONE = 0
+    CN_LOST = 1
+    """No valid trigger for ``faults.dn_watchdog_loops`` periods (its watchdog)."""
+    RUN_ENDED = 2
+    """The CN's last loop (``dnX_final``): the run ended."""
+    CANNOT_RUN = 3
+    """The CN's triggers arrive, authentic and new, but none could run for
+    ``faults.dn_watchdog_loops`` periods (stale, outside the node's clock
+    window): the CN latches ``DN_SAFED``."""
+    STOPPING = 4
+    """The node is stopping (a clean exit)."""
 
 
 class ErrorCode(enum.IntEnum):
@@ -72,3 +109,31 @@ class ErrorCode(enum.IntEnum):
     CLOCK_SYNC = 6
     TELEMETRY = 7
     EVENTS_DROPPED = 8
+
+
+class ParamLoad(enum.IntEnum):
+    """What the control node's start made of its parameter file; the values
+    of ``cn_prm_load_status`` (:mod:`zplatform.params`).
+
+    Every status but ``LOADED`` and ``PARTIAL`` means every parameter is at
+    its default; ``PARTIAL``: the file was read, and the values it held out
+    of bounds (or not at all) are at their defaults (an event names each).
+    """
+
+    DEFAULTS = 0  # no file consulted (a lockstep run, or before the start)
+    LOADED = 1
+    PARTIAL = 2
+    MISSING = 3
+    CORRUPT = 4  # bad magic, version, checksum, length or encoding
+    FOREIGN = 5  # another mission's file, or another parameter list's
+    UNREADABLE = 6  # an OS error reading it
+
+
+class ParamSave(enum.IntEnum):
+    """The last PRM_SAVE (numbered by ``cn_prm_save_seq``); the values of
+    ``cn_prm_save_status``."""
+
+    NONE = 0
+    PENDING = 1  # accepted, being written off the loop thread
+    SAVED = 2  # in the file: written, synced, renamed, directory synced
+    FAILED = 3  # not written; the file keeps what it had

@@ -1,4 +1,4 @@
-"""The operator command handler (thesis 000 ch. 4.8, 6.1; seed 003), sans-IO.
+"""The operator command handler (thesis ch. 4.8 and 6.1), sans-IO.
 
 The ground node sends one request per ``gn_to_cn`` frame: ``gn_cmd`` (a
 command of :class:`~zplatform.codes.Command`), ``gn_cmd_seq`` (a number
@@ -13,6 +13,10 @@ element's index in the CN's element list, ``ElementSpec.index``) and
   the state machine's transitions (``cn_cmd == LAUNCH``) see it once; the
   next loop clears it to ``NONE``.
 
+PRM_SET carries a parameter's element index in ``gn_cmd_element`` and its
+value in ``gn_cmd_value``; PRM_SAVE nothing (parameters:
+:mod:`zplatform.params`).
+
 Validation, first failure wins (the status goes to ``cn_cmd_status``):
 
 1. ``REJECTED_UNKNOWN``: the code is not a command (``NONE`` included);
@@ -23,16 +27,24 @@ Validation, first failure wins (the status goes to ``cn_cmd_status``):
    whitelist (``commands.whitelist``; a state not listed allows every
    command). NOOP and ARM follow the whitelist like the others. HOLD and
    RESUME are also refused when there is no state machine to hold;
-4. ``REJECTED_NOT_ARMED``: a hazardous command (``commands.hazardous``)
-   needs double confirmation (seed 003): an accepted ARM numbered exactly
+4. ``REJECTED_NOT_ARMED``: a hazardous command (``commands.hazardous``), a
+   WRITE of a protected element or a PRM_SET of a hazardous parameter needs
+   double confirmation: an accepted ARM numbered exactly
    ``gn_cmd_seq - 1``, accepted at most :data:`ARM_WINDOW_NS` before. An
    ARM confirms one command only;
 5. ``REJECTED_BAD_ARGUMENT``: for WRITE, the element index names no
    writable element, or the value does not fit its type (enum: an index in
    range; ints: integral and in range; bool: 0 or 1; floats: finite and in
-   range).
+   range); for PRM_SET, the index names no parameter, or the value does not
+   fit its type;
+6. PRM_SET only: ``REJECTED_PARAM_STATE``, the parameter may not change in
+   this state (its ``states``); ``REJECTED_OUT_OF_BOUNDS``, the value is
+   outside its ``[min, max]``;
+7. PRM_SAVE only: ``REJECTED_BUSY``, the previous save is still being
+   written; ``REJECTED_NOT_ALLOWED`` in a mission without parameters.
 
-An accepted command sets ``cn_cmd`` (WRITE also writes the element; HOLD and
+An accepted command sets ``cn_cmd`` (WRITE also writes the element, PRM_SET
+the parameter; PRM_SAVE queues the save, :mod:`zplatform.params`; HOLD and
 RESUME call the state machine) and becomes Active. Every request writes
 ``cn_cmd_seq = gn_cmd_seq`` and ``cn_cmd_status`` and emits an event: COMMAND
 ``cmd_accepted`` or WARNING_LO ``cmd_rejected`` with the reason. Nothing in a
@@ -60,6 +72,7 @@ from .codes import Command, CommandStatus
 from .config import CMD_NAMES
 from .errors import ConfigError
 from .events import EV, EventLog
+from .params import ParamSlot, ParamTable
 from .statemachine import logic_writable, why_not_writable
 
 if TYPE_CHECKING:
@@ -123,7 +136,9 @@ def writable_elements(mission: Mission) -> list[str]:
     own elements of ``cn`` and ``cn_to_dnX``, controller modes, ``cn_fault``).
     """
     if mission.commands.writable is not None:
-        chosen = set(mission.commands.writable)
+        # Never a parameter: check_config refuses one here, and this list
+        # must not let one through whoever calls it before that check.
+        chosen = set(mission.commands.writable) - {p.name for p in mission.params}
         return [n for n in _all_element_names(mission) if n in chosen]
     allowed = logic_writable(mission)
     out = []
@@ -177,9 +192,16 @@ def check_config(mission: Mission, *, warn: bool = True) -> None:
                     "allow ARM",
                     w,
                 )
+    params = {p.name for p in mission.params}
     if cfg.protected is not None:
         allowed_w = set(writable_elements(mission))
         for i, name in enumerate(cfg.protected):
+            if name in params:
+                raise ConfigError(
+                    f"{name!r} is a parameter: WRITE never sets it; make it hazardous in "
+                    "`params` instead (ARM n, then PRM_SET n+1)",
+                    f"$.commands.protected[{i}]",
+                )
             if name not in allowed_w:
                 raise ConfigError(
                     f"{name!r} is not an element WRITE may set, so protecting it means nothing; "
@@ -264,7 +286,8 @@ class CommandHandler:
     """Validates and applies operator command requests on the CN (module doc).
 
     ``dv`` is the CN's Data Vector. ``statemachine`` receives HOLD and
-    RESUME (without one, they are refused). Construction runs
+    RESUME (without one, they are refused). ``params``: the CN's parameter
+    table (PRM_SET, PRM_SAVE; default: one of its own). Construction runs
     :func:`check_config` and resolves the whitelist, the hazardous set and
     the writable elements into tables indexed by state and command code, so
     a loop without a request costs one attribute test.
@@ -279,10 +302,12 @@ class CommandHandler:
         dv: DataVector,
         events: EventLog,
         statemachine: StateMachine | None = None,
+        params: ParamTable | None = None,
     ) -> None:
         check_config(mission, warn=False)
         self._events = events
         self._sm = statemachine
+        self.params = params if params is not None else ParamTable(mission, dv, events)
         self._h_cmd = dv.handle("cn_cmd")
         self._h_seq = dv.handle("cn_cmd_seq")
         self._h_status = dv.handle("cn_cmd_status")
@@ -424,7 +449,12 @@ class CommandHandler:
                 CommandStatus.REJECTED_NOT_ALLOWED,
                 f"not allowed in state {self._states[state]}",
             )
-        hazardous = self._hazardous[cmd] or (cmd == Command.WRITE and self._protected_write())
+        slot = self.params.slot(self._g_elem.get()) if cmd == Command.PRM_SET else None
+        hazardous = (
+            self._hazardous[cmd]
+            or (cmd == Command.WRITE and self._protected_write())
+            or (slot is not None and slot.hazardous)
+        )
         if hazardous:
             armed = self._arm_seq == seq - 1 and 0 <= t_ns - self._arm_t_ns <= ARM_WINDOW_NS
             self._arm_seq = -1
@@ -436,6 +466,10 @@ class CommandHandler:
                 )
         if cmd == Command.WRITE:
             return self._write()
+        if cmd == Command.PRM_SET:
+            return self._prm_set(slot, state)
+        if cmd == Command.PRM_SAVE:
+            return self._prm_save(seq, t_ns)
         if cmd == Command.HOLD or cmd == Command.RESUME:
             if self._sm is None:
                 return CommandStatus.REJECTED_NOT_ALLOWED, "no state machine to hold or resume"
@@ -468,3 +502,49 @@ class CommandHandler:
         target.set(v)
         shown = target.spec.name_of(v) if target.spec.enum is not None else repr(v)
         return CommandStatus.ACCEPTED, f" ({target.spec.name} = {shown})"
+
+    def _prm_set(self, slot: ParamSlot | None, state: int) -> tuple[int, str]:
+        if slot is None:
+            idx = self._g_elem.get()
+            if not self.params.slots:
+                return CommandStatus.REJECTED_NOT_ALLOWED, "this mission has no parameters"
+            what = (
+                f"element {self._names_by_index[idx]}"
+                if idx < len(self._names_by_index)
+                else f"index {idx}"
+            )
+            return CommandStatus.REJECTED_BAD_ARGUMENT, f"{what} is not a parameter"
+        v, reason = _write_value(slot.handle.spec, self._g_value.get())
+        if reason:
+            return CommandStatus.REJECTED_BAD_ARGUMENT, reason
+        if state < len(slot.allowed) and not slot.allowed[state]:
+            allowed = [s for s, ok in zip(self._states, slot.allowed, strict=False) if ok]
+            return (
+                CommandStatus.REJECTED_PARAM_STATE,
+                f"parameter {slot.name} may not change in state {self._states[state]} "
+                f"(only in {', '.join(allowed) or 'no state'})",
+            )
+        if not slot.in_bounds(v):
+            return (
+                CommandStatus.REJECTED_OUT_OF_BOUNDS,
+                f"{v!r} is outside {slot.name}'s bounds {slot.bounds_text()}",
+            )
+        was = slot.handle.get()
+        slot.handle.set(v)
+        self.params.changed()
+        now = slot.handle.get()
+        return CommandStatus.ACCEPTED, f" ({slot.name} = {slot.text(now)}, was {slot.text(was)})"
+
+    def _prm_save(self, seq: int, t_ns: int) -> tuple[int, str]:
+        params = self.params
+        if not params.slots:
+            return CommandStatus.REJECTED_NOT_ALLOWED, "this mission has no parameters"
+        busy = params.saving
+        if busy:
+            return (
+                CommandStatus.REJECTED_BUSY,
+                f"PRM_SAVE #{busy} is still being written; send it again when "
+                "cn_prm_save_status is no longer PENDING",
+            )
+        params.request_save(seq, t_ns)
+        return CommandStatus.ACCEPTED, " (queued: cn_prm_save_status tells when it is written)"

@@ -5,7 +5,9 @@ A *component* is mission code placed on one node (a controller of
 module holds what both kinds need, so neither imports the other's internals:
 
 * :class:`Component`: name, node, typed ``Config`` decoded from the YAML
-  ``config:`` mapping, element handles taken once in :meth:`Component.bind`;
+  ``config:`` mapping, element handles taken once in :meth:`Component.bind`
+  (:meth:`Component.tunable` for a setting given as a number or as an
+  element, typically a mission parameter);
 * :func:`decode_component_config`: YAML mapping -> ``msgspec.Struct``, with
   the error path continuing the component's YAML path;
 * :func:`load_component_class` and :func:`load_function`: import a
@@ -46,6 +48,7 @@ if TYPE_CHECKING:
 
 __all__ = [
     "Component",
+    "Fixed",
     "NoConfig",
     "Streak",
     "build_component",
@@ -295,6 +298,20 @@ class Streak:
         return False
 
 
+class Fixed:
+    """A setting fixed in the config, read like an element (``get()``), so a
+    component reads a number and a parameter the same way
+    (:meth:`Component.tunable`). Allocates nothing."""
+
+    __slots__ = ("value",)
+
+    def __init__(self, value: float) -> None:
+        self.value = value
+
+    def get(self) -> float:
+        return self.value
+
+
 class Component(abc.ABC):
     """What controllers and devices share: name, node, typed config, handles.
 
@@ -393,6 +410,26 @@ class Component(abc.ABC):
                 where,
             )
         return h
+
+    def tunable(
+        self,
+        value: float | str,
+        field: str,
+        *,
+        kinds: tuple[str, ...] = ("float", "int"),
+    ) -> Handle | Fixed:
+        """A setting the config gives as a number (fixed) or as the name of an
+        element, typically a mission parameter (``target_m:
+        apogee_target_m``), which a PRM_SET may change between two loops.
+        Read it with ``get()`` every loop, never once in :meth:`bind`.
+
+        Declare the config field ``float | str`` (bounds on the number, e.g.
+        ``Annotated[float, Meta(gt=0)] | str``: a parameter's own bounds keep
+        its values valid). ``field`` names it for errors; ``kinds`` limits the
+        element's kind. Raises ConfigError like :meth:`input`."""
+        if isinstance(value, str):
+            return self.input(value, field, kinds=kinds)
+        return Fixed(value)
 
     def report(self, t_ns: int, text: str, *, warning: bool = False) -> None:
         """Tell the operator something in the mission's words: an event

@@ -34,7 +34,7 @@ from typing import Annotated, Any, Literal
 import msgspec
 from msgspec import Meta
 
-from .codes import Command, CommandStatus, Fault
+from .codes import Command, CommandStatus, Fault, ParamLoad, ParamSave, SafedWhy
 from .errors import ConfigError
 from .types import SCALAR_TYPES, ScalarType, parse_type
 
@@ -47,6 +47,9 @@ __all__ = [
     "MAX_REGION_BYTES",
     "MAX_VECTOR_BYTES",
     "MISSION_NAME_MAX",
+    "PRM_LOAD_NAMES",
+    "PRM_SAVE_NAMES",
+    "SAFED_WHY_NAMES",
     "ActionConfig",
     "ClockConfig",
     "CommandsConfig",
@@ -55,6 +58,7 @@ __all__ = [
     "FaultsConfig",
     "Mission",
     "NodeConfig",
+    "ParamConfig",
     "StateConfig",
     "StateMachineConfig",
     "TransitionConfig",
@@ -79,6 +83,9 @@ CMD_NAMES: tuple[str, ...] = tuple(m.name for m in Command)
 CMD_STATUS_NAMES: tuple[str, ...] = tuple(m.name for m in CommandStatus)
 CONTROLLER_MODES: tuple[str, ...] = ("enabled", "safed", "manual")
 FAULT_NAMES: tuple[str, ...] = tuple(m.name for m in Fault)
+PRM_LOAD_NAMES: tuple[str, ...] = tuple(m.name for m in ParamLoad)
+PRM_SAVE_NAMES: tuple[str, ...] = tuple(m.name for m in ParamSave)
+SAFED_WHY_NAMES: tuple[str, ...] = tuple(m.name for m in SafedWhy)
 
 # Names checked with fullmatch, never match: `$` also matches before a
 # trailing newline, so "cn_loop\n" would pass a match().
@@ -476,11 +483,16 @@ class ComponentConfig(_Struct):
 class CommandsConfig(_Struct):
     """Which operator commands each state accepts, which need ARM first, and
     what a WRITE may write. Commands: `NOOP`, `LAUNCH`, `ABORT`, `WRITE`,
-    `HOLD`, `RESUME`, `ARM`. A request is checked in this order, the first
-    failure giving its verdict: a known command, a number above the last
-    (`REJECTED_REPLAY`), the state's whitelist (`REJECTED_NOT_ALLOWED`), an
-    ARM just before a hazardous command (`REJECTED_NOT_ARMED`), a WRITE's
-    element and value (`REJECTED_BAD_ARGUMENT`)."""
+    `HOLD`, `RESUME`, `ARM`, `PRM_SET`, `PRM_SAVE` (parameters: `params`). A
+    request is checked in this order, the first failure giving its verdict:
+    a known command, a number above the last (`REJECTED_REPLAY`), the
+    state's whitelist (`REJECTED_NOT_ALLOWED`), an ARM just before a
+    hazardous command, a protected WRITE or a hazardous parameter's PRM_SET
+    (`REJECTED_NOT_ARMED`), a WRITE's element and value or a PRM_SET's
+    parameter and value (`REJECTED_BAD_ARGUMENT`), then for PRM_SET the
+    parameter's states (`REJECTED_PARAM_STATE`) and bounds
+    (`REJECTED_OUT_OF_BOUNDS`), for PRM_SAVE a save still being written
+    (`REJECTED_BUSY`)."""
 
     whitelist: Annotated[
         dict[str, list[str]],
@@ -501,7 +513,8 @@ class CommandsConfig(_Struct):
         list[str] | None,
         Meta(
             description="Elements a WRITE may set. Default: every scalar element CN logic may "
-            "write (the mission's own in `cn` and `cn_to_dnX`, controller modes, `cn_fault`)."
+            "write (the mission's own in `cn` and `cn_to_dnX`, controller modes, `cn_fault`). "
+            "Never a parameter (PRM_SET sets those)."
         ),
     ] = None
     protected: Annotated[
@@ -512,6 +525,68 @@ class CommandsConfig(_Struct):
             "commands, else none."
         ),
     ] = None
+
+
+class ParamConfig(_Struct):
+    """One mission parameter: a value the ground crew tunes without a rebuild
+    (a controller gain, a target, a deployment altitude). Its value is a Data
+    Vector element of region `cn` named after the parameter, so it travels in
+    telemetry and is logged, recorded and replayed like any element;
+    controllers read it each loop. It starts at `default`, or at the value the
+    control node saved (PRM_SAVE) in its parameter file, and changes only by a
+    PRM_SET command accepted in one of `states`, within `[min, max]`. A plain
+    WRITE cannot change it, nor can a state-machine action."""
+
+    name: Annotated[
+        str,
+        Meta(
+            description="The parameter's name and its element's: `[a-z][a-z0-9_]*`, unique "
+            "in the whole Data Vector (an element of that name is refused)."
+        ),
+    ]
+    type: Annotated[
+        str,
+        Meta(
+            description="A scalar type: `u8`, `u16`, `u32`, `u64`, `i8`, `i16`, `i32`, `i64`, "
+            "`f32`, `f64`, `bool` (no arrays, no enums)."
+        ),
+    ]
+    default: Annotated[
+        int | float | bool,
+        Meta(
+            description="The value without a saved one (and in place of a saved one that is "
+            "out of bounds): fits the type, within `[min, max]`, a finite number."
+        ),
+    ]
+    min: Annotated[
+        int | float | None,
+        Meta(
+            description="The lowest value PRM_SET may set; required for numbers, finite, "
+            "fitting the type (not for `bool`)."
+        ),
+    ] = None
+    max: Annotated[
+        int | float | None,
+        Meta(description="The highest value PRM_SET may set; as `min`, and `min <= max`."),
+    ] = None
+    units: Annotated[str, Meta(description="Units shown by the ground tools (`m`, `1/s`).")] = ""
+    states: Annotated[
+        list[str] | None,
+        Meta(
+            description="The states in which PRM_SET may change it (the whitelist must "
+            "also allow PRM_SET there). Default: every state the whitelist allows."
+        ),
+    ] = None
+    hazardous: Annotated[
+        bool,
+        Meta(
+            description="PRM_SET of this parameter needs an accepted ARM numbered one less "
+            "(ARM n, then PRM_SET n+1), like a hazardous command."
+        ),
+    ] = False
+    doc: Annotated[
+        str, Meta(description="What the parameter means; shown by the ground tools.")
+    ] = ""
 
 
 class DownlinkConfig(_Struct):
@@ -545,10 +620,12 @@ class SecurityConfig(_Struct):
     auth: Annotated[
         bool,
         Meta(
-            description="Every region frame, telemetry snapshot and command request carries an "
-            "HMAC-SHA256 tag keyed by the mission key, which never lives in the YAML (a key "
-            "file or the environment: `zplatform keygen`). Off only for benchmarks and "
-            "closed test benches."
+            description="Every region frame, telemetry snapshot, command request, clock-sync "
+            "exchange and event record carries a 16-byte tag keyed per link (CN<->dnX, the "
+            "ground's uplink, the telemetry downlink, each node's events); each host holds "
+            "only its own links' keys, which never live in the YAML (key files from "
+            "`zplatform keygen`, or the environment). Off only for benchmarks and closed "
+            "test benches."
         ),
     ] = True
     transport: Annotated[
@@ -565,6 +642,16 @@ class SecurityConfig(_Struct):
             "commands (`commands.hazardous`) or a `tls/` endpoint, else `plain`."
         ),
     ] = "auto"
+    mac: Annotated[
+        Literal["blake3", "hmac-sha256"],
+        Meta(
+            description="The tag's MAC: `blake3` (keyed BLAKE3, the default: about 3.5x "
+            "faster than HMAC-SHA256 on large frames, bench/REPORT.md) or `hmac-sha256`. "
+            "The name is part of every channel key (codecs/FORMAT.md §6.1), so every node "
+            "of a mission must use the same one: a peer with another refuses each frame "
+            "as a bad tag, saying so."
+        ),
+    ] = "blake3"
 
 
 class FaultsConfig(_Struct):
@@ -985,6 +1072,14 @@ class Mission(_Struct):
         list[BulkChannelConfig],
         Meta(description="Bulk channels: large arrays moved outside the sync."),
     ] = msgspec.field(default_factory=list)
+    params: Annotated[
+        list[ParamConfig],
+        Meta(
+            description="Parameters the ground tunes without a rebuild (PRM_SET, saved by "
+            "PRM_SAVE into the control node's parameter file and loaded at its start): "
+            "each is an element of region `cn` named after it."
+        ),
+    ] = msgspec.field(default_factory=list)
     # Where the mission's own Python code is found: directories put at the
     # front of sys.path while the verbs that run flight code (check, sim, up,
     # node, replay) import its controllers, devices, boards and physics.
@@ -1098,6 +1193,7 @@ def parse_mission(text: bytes | str, source: str = "<string>") -> Mission:
     # elements are added: a repeated controller name must be reported as
     # such, not as the repeated `<name>_mode` element it would create.
     _check_control_sections(mission)
+    _check_params(mission)
     n_platform = _add_platform_elements(mission)
     _check_elements(mission, n_platform)
     return mission
@@ -1380,6 +1476,28 @@ def platform_elements(m: Mission) -> dict[str, list[ElementConfig]]:
         E("cn_fault", "enum", "NONE", list(FAULT_NAMES), doc="the latched fault"),
         E("cn_time_in_state_ns", "i64", 0, doc="time in the current state (ns)"),
     ]
+    if m.params:
+        # The parameters and their store's state (zplatform.params).
+        cn += [
+            E(p.name, p.type, p.default, doc=p.doc or f"parameter {p.name}") for p in m.params
+        ] + [
+            E(
+                "cn_prm_load_status",
+                "enum",
+                "DEFAULTS",
+                list(PRM_LOAD_NAMES),
+                doc="what the start made of the parameter file",
+            ),
+            E("cn_prm_save_seq", "u64", 0, doc="number of the last PRM_SAVE accepted"),
+            E(
+                "cn_prm_save_status",
+                "enum",
+                "NONE",
+                list(PRM_SAVE_NAMES),
+                doc="that save: pending, saved or failed",
+            ),
+            E("cn_prm_unsaved", "bool", False, doc="a PRM_SET since the last load or save"),
+        ]
     for dn in m.device_nodes:
         cn += [
             E(f"cn_rx_{dn}", "u32", 0, doc=f"replies from {dn} applied"),
@@ -1399,15 +1517,28 @@ def platform_elements(m: Mission) -> dict[str, list[ElementConfig]]:
             E(f"{dn}_bad_frames", "u32", 0, doc=f"triggers {dn} refused"),
             E(f"{dn}_clock_offset_ns", "i64", 0, doc=f"{dn}'s clock correction (ns)"),
             E(f"{dn}_clock_drift_ns", "i64", 0, doc=f"{dn}'s clock error at the last re-sync"),
-            E(f"{dn}_safed", "bool", False, doc=f"{dn} lost its CN and safed its actuators"),
+            E(f"{dn}_safed", "bool", False, doc=f"{dn} safed its actuators (why: next)"),
+            E(
+                f"{dn}_safed_why",
+                "enum",
+                "NONE",
+                list(SAFED_WHY_NAMES),
+                doc=f"why {dn} safed: CN_LOST, RUN_ENDED, CANNOT_RUN (a fault), STOPPING",
+            ),
+            E(
+                f"{dn}_clock_refused",
+                "u32",
+                0,
+                doc=f"clock replies and estimates {dn} refused (bad tag, replayed, a jump)",
+            ),
         ]
     if m.has_ground:
         out["gn_to_cn"] = [
             E("gn_cmd", "enum", "NONE", list(CMD_NAMES), doc="the requested command"),
             E("gn_cmd_seq", "u64", 0, doc="the request's number: above the last"),
             E("gn_cmd_epoch", "u64", 0, doc="the CN run it is for (`cn_epoch`)"),
-            E("gn_cmd_element", "u16", 0, doc="WRITE: the element's index"),
-            E("gn_cmd_value", "f64", 0.0, doc="WRITE: the value"),
+            E("gn_cmd_element", "u16", 0, doc="WRITE, PRM_SET: the element's index"),
+            E("gn_cmd_value", "f64", 0.0, doc="WRITE, PRM_SET: the value"),
         ]
     # A controller's mode lives where its node reads it: in `cn` for CN
     # controllers, in `cn_to_dnX` for DN controllers (the CN's state machine
@@ -1465,10 +1596,67 @@ def _element_path(m: Mission, region: str, i: int, n_platform: int, name: str) -
         return f"$.regions.{region}[{i - n_platform}]"
     if name == "cn_state":
         return "$.state_machine"
+    if any(p.name == name for p in m.params):
+        return _param_path(m, name)
     for j, c in enumerate(m.controllers):
         if name == f"{c.name}_mode":
             return f"$.controllers[{j}]"
     return f"$.regions.{region}"
+
+
+def _param_path(m: Mission, name: str) -> str:
+    """The YAML path of parameter ``name`` (``$.params[i]``)."""
+    return f"$.params[{next(j for j, p in enumerate(m.params) if p.name == name)}]"
+
+
+def _check_params(m: Mission) -> None:
+    """Structural checks of ``params`` (each entry alone): name, a scalar
+    type, bounds for numbers (finite, fitting the type, in order), a default
+    that fits and lies within them. States and the whitelist are checked by
+    :func:`zplatform.params.check_config`."""
+    names: set[str] = set()
+    for i, p in enumerate(m.params):
+        w = f"$.params[{i}]"
+        if not _NAME_RE.fullmatch(p.name):
+            raise ConfigError(
+                f"parameter name {p.name!r} must match {_NAME_RE.pattern}", f"{w}.name"
+            )
+        if p.name in names:
+            raise ConfigError(f"duplicate parameter name {p.name!r}", f"{w}.name")
+        names.add(p.name)
+        st = SCALAR_TYPES.get(p.type)
+        if st is None:
+            raise ConfigError(
+                f"parameter type {p.type!r} is not a scalar type; expected one of "
+                f"{', '.join(SCALAR_TYPES)}",
+                f"{w}.type",
+            )
+        if st.kind == "bool":
+            for key in ("min", "max"):
+                if getattr(p, key) is not None:
+                    raise ConfigError("a bool parameter has no bounds", f"{w}.{key}")
+            if not isinstance(p.default, bool):
+                raise ConfigError(f"expected true or false, got {p.default!r}", f"{w}.default")
+            continue
+        for key in ("min", "max", "default"):
+            v = getattr(p, key)
+            if v is None:
+                raise ConfigError(
+                    f"a {p.type} parameter needs `{key}`: PRM_SET may set only values "
+                    "within [min, max]",
+                    f"{w}.{key}",
+                )
+            not_finite = isinstance(v, float) and not math.isfinite(v)
+            if isinstance(v, bool) or not_finite or not st.fits(v):
+                rng = f" (range {st.lo}..{st.hi})" if st.kind == "int" else ""
+                raise ConfigError(f"{v!r} is not a finite {p.type}{rng}", f"{w}.{key}")
+        assert p.min is not None and p.max is not None
+        if p.min > p.max:
+            raise ConfigError(f"min {p.min!r} is above max {p.max!r}", f"{w}.min")
+        if not p.min <= p.default <= p.max:
+            raise ConfigError(
+                f"default {p.default!r} is outside [{p.min!r}, {p.max!r}]", f"{w}.default"
+            )
 
 
 def _check_elements(m: Mission, n_platform: dict[str, int]) -> None:
@@ -1482,6 +1670,12 @@ def _check_elements(m: Mission, n_platform: dict[str, int]) -> None:
             if not _NAME_RE.fullmatch(e.name):
                 raise ConfigError(
                     f"element name {e.name!r} must match {_NAME_RE.pattern}", f"{where}.name"
+                )
+            if e.name in seen and any(p.name == e.name for p in m.params):
+                raise ConfigError(
+                    f"parameter {e.name!r} has the name of an element; a parameter is an "
+                    "element of its own (region cn): rename one of them",
+                    f"{_param_path(m, e.name)}.name",
                 )
             if e.name in seen:
                 first_region, first_where = seen[e.name]

@@ -23,10 +23,11 @@ Contract:
   ``ground``, the console, through :class:`zplatform.transport.NodeSession`)
   takes its deployment from :func:`require_deployment`, the one way to find
   it: the file named by :data:`DEPLOYMENT_ENV` (``ZPLATFORM_DEPLOYMENT``),
-  else the mission's default deployment
-  (:func:`default_deployment_path`, ``~/.config/zplatform/pki/<mission>/
-  deployment.yaml``), which ``zplatform keygen MISSION`` writes with the
-  mission's PKI (:mod:`zplatform.pki`) and ``zplatform up`` on first use.
+  else the deployment beside the host's key set
+  (:func:`default_deployment_path`, ``~/.config/zplatform/keys/<mission>/
+  deployment.yaml`` by default), which ``zplatform keygen MISSION`` writes
+  with the key set and the mission's PKI (:mod:`zplatform.pki`) and
+  ``zplatform up`` on first use.
   A mission that needs one and has none never opens a session: the error
   says how to make one. Loading a mission does not need the deployment
   (``check``, ``sim`` and ``replay`` run on any host); ``check`` says which
@@ -277,12 +278,21 @@ def load_deployment(path: str | Path, mission: Mission | None = None) -> Deploym
 
 
 def default_deployment_path(mission: Mission | str) -> Path:
-    """``~/.config/zplatform/pki/<mission>/deployment.yaml`` (XDG_CONFIG_HOME
-    respected): where ``keygen`` and ``up`` put the mission's PKI
-    (:mod:`zplatform.pki`), beside the mission key's directory."""
-    name = mission if isinstance(mission, str) else mission.mission
-    base = os.environ.get("XDG_CONFIG_HOME") or str(Path.home() / ".config")
-    return Path(base) / "zplatform" / "pki" / name / "deployment.yaml"
+    """``deployment.yaml`` beside this host's key set: in the directory
+    ``ZPLATFORM_KEY_FILE`` names (or the directory of the key file it
+    names), else in the mission's key set directory
+    (:func:`zplatform.auth.default_key_dir`, ``~/.config/zplatform/keys/
+    <mission>/``). ``keygen`` and ``up`` put the mission's PKI there
+    (:mod:`zplatform.pki`), each role's certificate beside its key file.
+    Reads nothing but the environment and whether the named path is a
+    directory."""
+    from .auth import KEY_FILE_ENV, default_key_dir
+
+    named = os.environ.get(KEY_FILE_ENV)
+    if named:
+        p = Path(named)
+        return (p if p.is_dir() else p.parent) / "deployment.yaml"
+    return default_key_dir(mission) / "deployment.yaml"
 
 
 def find_deployment(mission: Mission) -> Path | None:

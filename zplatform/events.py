@@ -37,18 +37,23 @@ anything that is not an event record.
 from __future__ import annotations
 
 import enum
-from typing import Annotated, Any, ClassVar
+from typing import TYPE_CHECKING, Annotated, Any, ClassVar
 
 import msgspec
 from msgspec import Meta
 
 from .errors import EventError, FrameFormatError
 
+if TYPE_CHECKING:
+    from .auth import Channel, KeySet
+    from .config import Mission
+
 __all__ = [
     "EV",
     "MAX_TEXT",
     "Event",
     "EventLog",
+    "EventReader",
     "EventType",
     "Severity",
     "decode_event",
@@ -232,6 +237,55 @@ class EV:
         Severity.ACTIVITY_HI,
         "command script done: {n} command(s), {accepted} accepted; last verdict in loop {loop}",
     )
+    # clock sync (a device node's re-syncs, zplatform.clocksync)
+    CLOCK_REFUSED = EventType(
+        60,
+        "clock_refused",
+        Severity.WARNING_LO,
+        "{node} refused {n} clock-sync replies ({auth} with a bad tag, {replay} for another "
+        "exchange): a peer without the link key answers on the clock key, or replays",
+    )
+    CLOCK_JUMP_REFUSED = EventType(
+        61,
+        "clock_jump_refused",
+        Severity.WARNING_LO,
+        "{node} refused a clock estimate of {new_ms:+.3f} ms: {jump_ms:+.3f} ms from the last "
+        "({old_ms:+.3f} ms), beyond the bound of {bound_ms:g} ms; it keeps the last",
+    )
+    # mission parameters (zplatform.params)
+    PRM_LOADED = EventType(
+        90,
+        "prm_loaded",
+        Severity.ACTIVITY_HI,
+        "parameters loaded from {path}: {n} value(s), saved by PRM_SAVE #{seq}",
+    )
+    PRM_FILE_MISSING = EventType(
+        91,
+        "prm_file_missing",
+        Severity.WARNING_LO,
+        "no parameter file at {path}: every parameter at its default",
+    )
+    PRM_FILE_REFUSED = EventType(
+        92,
+        "prm_file_refused",
+        Severity.WARNING_HI,
+        "parameter file {path} refused ({status}): {why}; every parameter at its default",
+    )
+    PRM_DEFAULTED = EventType(
+        93,
+        "prm_defaulted",
+        Severity.WARNING_HI,
+        "parameter {name}: {why}; its default {default!r} is used",
+    )
+    PRM_SAVED = EventType(
+        94, "prm_saved", Severity.ACTIVITY_HI, "parameters saved (PRM_SAVE #{seq}) to {where}"
+    )
+    PRM_SAVE_FAILED = EventType(
+        95,
+        "prm_save_failed",
+        Severity.WARNING_HI,
+        "PRM_SAVE #{seq} failed: {why}; the parameter file keeps what it had",
+    )
 
     ALL: ClassVar[tuple[EventType, ...]]
     """Every entry, in declaration order."""
@@ -285,6 +339,56 @@ def decode_event(b: bytes | bytearray | memoryview) -> Event:
         raise FrameFormatError(f"not an event record: {exc}") from exc
     except (TypeError, ValueError, OverflowError) as exc:  # defensive: never leak others
         raise FrameFormatError(f"not an event record: {exc}") from exc
+
+
+class EventReader:
+    """Takes the event records of every node off the network, checking each
+    node's tag (codecs/FORMAT.md §6.1, channel ``events_<node>``).
+
+    ``keys``: the receiver's keys (None: it holds none). Records carry a tag
+    when the mission authenticates (``security.auth``). :meth:`read` takes
+    the sample's key expression (``{vehicle}/<node>/events``: whose key
+    checks the tag) and payload, and returns ``(event, verified)``:
+    ``verified`` True when the tag checked, False when this receiver holds
+    no key for that node (the record is decoded from the bytes before the
+    tag, unchecked: show it marked so), None when the mission does not
+    authenticate. Raises
+    :class:`~zplatform.errors.FrameFormatError` for anything that is not a
+    record, :class:`~zplatform.auth.AuthError` (a FrameFormatError's
+    sibling, both CodecErrors) for a bad tag, or a record that names
+    another node than the key it came on. Channels are made once per node.
+    Not thread-safe.
+    """
+
+    def __init__(self, mission: Mission, keys: KeySet | None) -> None:
+        self._auth = mission.security.auth
+        # Made once, for the nodes whose event keys are held: a flood on
+        # made-up keys costs no memory.
+        self._channels: dict[str, Channel] = {}
+        if keys is not None:
+            for link in keys.links:
+                if link.startswith("events-"):
+                    node = link[len("events-") :]
+                    self._channels[node] = keys.channel(f"events_{node}")
+
+    def read(
+        self, key_expr: str, payload: bytes | bytearray | memoryview
+    ) -> tuple[Event, bool | None]:
+        from .auth import TAG_LEN, AuthError
+
+        if not self._auth:
+            return decode_event(payload), None
+        parts = str(key_expr).rsplit("/", 2)
+        node = parts[-2] if len(parts) == 3 and parts[-1] == "events" else ""
+        ch = self._channels.get(node)
+        if ch is None:
+            if len(payload) <= TAG_LEN:
+                raise FrameFormatError(f"{len(payload)} bytes: too short for a tagged record")
+            return decode_event(memoryview(payload)[:-TAG_LEN]), False
+        e = decode_event(ch.open(payload))
+        if e.node != node:
+            raise AuthError(f"a record of {e.node!r} on {node!r}'s key")
+        return e, True
 
 
 class EventLog:

@@ -24,7 +24,20 @@ SYNC_OVERRUNS      ``cn_sync_overruns`` grew            ``sync_overrun_loops``
 LOOP_OVERRUNS      ``cn_loop_overruns`` grew            ``loop_overrun_loops``
 CLOCK_DRIFT        ``|dnX_clock_drift_ns|`` beyond the   1 (one reading)
                    clock bound (``clock.offset_bound_ms``)
+DN_SAFED           ``dnX_safed_why`` is ``CANNOT_RUN``   1 (one reading)
+                   (any dnX)
 ================== ==================================== ======================
+
+``DN_SAFED`` is a device node that answers the CN's triggers yet runs none
+of them (its clock off, every trigger stale): the node has safed itself
+after ``faults.dn_watchdog_loops`` periods of that and says so in its
+replies (:class:`~zplatform.loop.DeviceLogic`). A node safed because the CN
+went quiet (``CN_LOST``) or because the run ended (``RUN_ENDED``) is no
+fault here: it re-enables once the CN triggers it again, and a CN that
+stops hearing it latches ``DN_LOST``. Missions answer ``DN_SAFED`` like
+any fault (``cn_fault != NONE``): the shipped igniter mission aborts from
+ARMED and FIRE, so a DN that cannot run ends a flight ABORTED, visibly,
+instead of ARMED with a healthy-looking link.
 
 Only the first fault latches: once ``cn_fault`` is not ``NONE`` it stays
 until someone writes it back (a WRITE command of ``cn_fault = NONE``, or a
@@ -37,7 +50,7 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING
 
-from .codes import ErrorCode, Fault
+from .codes import ErrorCode, Fault, SafedWhy
 from .events import EV, EventLog
 
 if TYPE_CHECKING:
@@ -125,6 +138,7 @@ class FaultMonitor:
         # correction (dnX_clock_drift_ns).
         self._clock_bound = round(mission.clock.offset_bound_ms * 1e6)
         self._drift = tuple((dn, dv.handle(f"{dn}_clock_drift_ns")) for dn in dns)
+        self._safed_why = tuple((dn, dv.handle(f"{dn}_safed_why")) for dn in dns)
 
     @property
     def fault(self) -> str:
@@ -136,8 +150,8 @@ class FaultMonitor:
         """Update the consecutive-growth runs; raise the first fault due.
 
         Watches are checked in order DN_LOST, CONTROLLER_FAILED,
-        SYNC_OVERRUNS, LOOP_OVERRUNS, then CLOCK_DRIFT; every run is updated
-        every loop.
+        SYNC_OVERRUNS, LOOP_OVERRUNS, CLOCK_DRIFT, then DN_SAFED; every run
+        is updated every loop.
         """
         for w in self._watches:
             v = w.get()
@@ -156,6 +170,14 @@ class FaultMonitor:
                     Fault.CLOCK_DRIFT,
                     f"{dn}'s clock drifted {d / 1e6:+.3f} ms from the CN's, beyond the "
                     f"bound of {bound / 1e6:g} ms",
+                    t_ns,
+                )
+        for dn, h in self._safed_why:
+            if h.get() == SafedWhy.CANNOT_RUN:
+                self.raise_fault(
+                    Fault.DN_SAFED,
+                    f"{dn} safed itself: it answers the triggers but none can run (its "
+                    "clock off? see its dn_safed event)",
                     t_ns,
                 )
 

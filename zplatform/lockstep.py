@@ -12,8 +12,11 @@ live) runs at virtual time ``t = start_ns + (n - 1) * period_ns``:
 1. ``frames = cn.begin(n, t)``; each DN in order takes its frame and
    replies (:meth:`~zplatform.loop.DeviceLogic.step`), and the reply goes
    back to ``cn.reply``;
-2. ``cn.finish(ground)`` with the request frame the script player produced
-   from the previous loop's telemetry (if any);
+2. ``cn.finish(ground, saves=...)`` with the request frame the script
+   player produced from the previous loop's telemetry (if any) and the
+   parameter save the previous loop asked for (a PRM_SAVE, kept in memory
+   by :attr:`LockstepRunner.saver`: a sim writes no file, and its
+   parameters start from their defaults);
 3. on telemetry loops the ground logic takes the telemetry frame (received
    at ``t``, so it is fresh), the runner logs it (``rx_time_ns = t``) and
    takes the request the script player made, if any, for the next loop;
@@ -46,7 +49,7 @@ from typing import Any
 import msgspec
 import numpy as np
 
-from .auth import TAG_LEN
+from .auth import TAG_LEN, KeySet
 from .boards import Board
 from .codec import BundleEncoder, RegionCodec
 from .config import BulkChannelConfig, Mission
@@ -56,6 +59,7 @@ from .ground.logic import GroundLogic
 from .ground.records import CommandOutcome, EventRecord
 from .loop import ControlLogic, DeviceLogic
 from .messages import wildcard_sync_for
+from .params import MemorySaver
 from .recording import FOREIGN_DN, RecordReader
 from .telemetry import CsvLogger
 from .timebase import VirtualClock
@@ -64,20 +68,29 @@ from .world import World
 
 __all__ = [
     "DEFAULT_START_NS",
+    "SIM_KEY",
     "Difference",
     "LockstepRunner",
     "ReplayResult",
     "SimResult",
     "replay",
+    "sim_keys",
 ]
 
 DEFAULT_START_NS = 1_700_000_000_000_000_000
 """Virtual time of loop 1 (2023-11-14T22:13:20Z): fixed, so runs repeat exactly."""
 
 SIM_KEY = bytes(32)
-"""The key a lockstep run authenticates its frames with (every node is in
-this process, so the key protects nothing; it keeps the frames and the code
-paths those of a live run)."""
+"""The master key a lockstep run derives its link keys from (every node is
+in this process, so the keys protect nothing; they keep the frames and the
+code paths those of a live run). Deliberately trivial: no key loader takes
+it (:func:`zplatform.auth.check_key`)."""
+
+
+def sim_keys(mission: Mission) -> KeySet | None:
+    """Every link key of ``mission`` derived from :data:`SIM_KEY`, or None
+    when the mission does not authenticate."""
+    return KeySet.from_master(mission, SIM_KEY, source="SIM_KEY") if mission.security.auth else None
 
 
 class SimResult(msgspec.Struct):
@@ -244,8 +257,10 @@ class LockstepRunner:
         self.start_ns = start_ns
         self.period_ns = mission.period_ns
         self.clock = VirtualClock(start_ns)
-        key = SIM_KEY if mission.security.auth else None
-        self.control = ControlLogic(mission, key=key, epoch=start_ns)
+        keys = sim_keys(mission)
+        self.control = ControlLogic(mission, keys=keys and keys.for_node("cn"), epoch=start_ns)
+        self.saver = MemorySaver()
+        """Where PRM_SAVE goes in a lockstep run (memory; answered next loop)."""
         boards = dict(boards or {})
         unknown = sorted(set(boards) - set(mission.device_nodes))
         if unknown:
@@ -256,10 +271,12 @@ class LockstepRunner:
             for n in self.world.nodes:
                 boards.setdefault(n, self.world.board(n))
         self.devices = [
-            DeviceLogic(mission, dn, board=boards.get(dn), key=key) for dn in mission.device_nodes
+            DeviceLogic(mission, dn, board=boards.get(dn), keys=keys and keys.for_node(dn))
+            for dn in mission.device_nodes
         ]
         # The ground side: the live ground node's logic, in virtual time.
-        self.ground = GroundLogic(mission, key=key, script=commands or [])
+        ground_keys = keys and keys.for_node("gn" if mission.has_ground else "tool")
+        self.ground = GroundLogic(mission, keys=ground_keys, script=commands or [])
         # The sync query's form, as the live CN chooses it (transport.sync_query).
         self._bundle = BundleEncoder() if wildcard_sync_for(mission) else None
         self._ground: bytearray | None = None
@@ -304,7 +321,13 @@ class LockstepRunner:
                 if dev.node not in lost:
                     cn.reply(i, dev.step(frames[i], t))
         ground, self._ground = self._ground, None
-        tm = cn.finish((ground,) if ground is not None else ())
+        saved = self.saver.poll()
+        tm = cn.finish(
+            (ground,) if ground is not None else (), saves=(saved,) if saved is not None else ()
+        )
+        save = cn.params.take_save()
+        if save is not None:
+            self.saver.submit(*save)
         gl = self.ground
         if tm is not None and gl.on_telemetry(tm, t):
             if log is not None:
@@ -453,7 +476,7 @@ def replay(
     ConfigError for a mission file that does not load, KeyError_ for a
     missing key; a difference is a result, not an error.
     """
-    from .auth import load_key
+    from .auth import load_keys
     from .errors import RecordingError
     from .mission import load_mission
 
@@ -464,13 +487,13 @@ def replay(
             "loop) are not recorded, so its loop cannot be replayed bit for bit"
         )
     with RecordReader(directory, mission) as reader:
-        return _replay(reader, mission, load_key(mission, key_file), log)
+        return _replay(reader, mission, load_keys(mission, "cn", key_file), log)
 
 
 def _replay(
-    reader: RecordReader, mission: Mission, key: bytes | None, log: CsvLogger | None
+    reader: RecordReader, mission: Mission, keys: KeySet | None, log: CsvLogger | None
 ) -> ReplayResult:
-    cn = ControlLogic(mission, key=key)
+    cn = ControlLogic(mission, keys=keys)
     cn.dv.write_all(reader.initial)  # epoch included
     state_dv = cn.dv
     frames = 0
@@ -490,6 +513,7 @@ def _replay(
             loop_overruns=rec.loop_overruns,
             inbox_dropped=rec.inbox_dropped,
             inbox_oversize=rec.inbox_oversize,
+            saves=rec.saves,
         )
         loops += 1
         first = first or rec.loop

@@ -12,13 +12,18 @@ One CN loop ``n`` (numbered from 1 in every driver) with its one timestamp::
     ...the driver sends frame i to DN i and hands back whatever comes:
     cn.reply(i, payload)             # True once DN i's reply for loop n is in
     ...until every DN replied or the sync deadline passed, then
-    tm = cn.finish(ground_frame, sync_overrun=..., loop_overruns=...)
-    ...the driver publishes tm (the whole vector) when it is not None.
+    tm = cn.finish(ground_frame, sync_overrun=..., loop_overruns=..., saves=...)
+    ...the driver publishes tm (the whole vector) when it is not None,
+    and hands cn.params.take_save() (a PRM_SAVE's file bytes) to its saver.
 
-:meth:`ControlLogic.finish` counts the misses, applies at most one ground
-command frame, runs faults -> commands -> state machine -> controllers,
-and frames the telemetry. Replies that are not for loop ``n`` (an older
-loop's, a duplicate) are counted late and never applied; malformed replies
+:meth:`ControlLogic.finish` counts the misses, applies the parameter saves
+that finished since the last loop, applies at most one ground command
+frame, runs faults -> commands -> state machine -> controllers, and frames
+the telemetry. A save's result is an input like a command frame: the
+driver's saver writes the file off the loop thread
+(:mod:`zplatform.params`), and the loop that learns of it is recorded.
+Replies that are not for loop ``n`` (an older loop's, a duplicate) are
+counted late and never applied; malformed replies
 are counted in ``cn_bad_frames`` and reported as events. Every input that
 changes the Data Vector passes through these three calls, so a recorder
 attached to them (:attr:`ControlLogic.recorder`) captures everything a
@@ -61,10 +66,10 @@ from __future__ import annotations
 from collections.abc import Sequence
 from typing import Any, Protocol
 
-from .auth import TAG_LEN, AuthError, Channel, mission_channels
+from .auth import TAG_LEN, AuthError, Channel, KeySet, channel
 from .boards import Board, safe_board
 from .codec import Frame, RegionCodec, bundle_entry, is_bundle
-from .codes import CommandStatus
+from .codes import CommandStatus, SafedWhy
 from .commands import CommandHandler
 from .components import Streak
 from .config import Mission
@@ -74,6 +79,7 @@ from .devices import DeviceSet
 from .errors import CodecError, ConfigError
 from .events import EV, EventLog, EventType
 from .faults import FaultMonitor
+from .params import ParamTable, SaveResult
 from .statemachine import StateMachine
 from .world import node_board
 
@@ -82,6 +88,7 @@ __all__ = ["BulkPort", "ControlLogic", "DeviceLogic", "LoopRecorder"]
 # A trigger stamped this much later than the last one served, yet with a
 # lower loop number, comes from a restarted control node.
 _RESTART_NS = 1_000_000_000
+_BACKLOG = "skipped in a backlog"
 
 
 class LoopRecorder(Protocol):
@@ -104,6 +111,7 @@ class LoopRecorder(Protocol):
         loop_overruns: int,
         inbox_dropped: int,
         inbox_oversize: int,
+        saves: Sequence[SaveResult],
         telemetry: bytearray | None,
     ) -> None: ...
 
@@ -149,7 +157,7 @@ class ControlLogic:
         mission: Mission,
         *,
         events: EventLog | None = None,
-        key: bytes | None = None,
+        keys: KeySet | None = None,
         epoch: int = 0,
     ) -> None:
         self.mission = mission
@@ -161,7 +169,13 @@ class ControlLogic:
         self.events = events if events is not None else EventLog("cn")
         self.faults = FaultMonitor(mission, dv, self.events)
         self.statemachine = StateMachine(mission, dv, self.events)
-        self.commands = CommandHandler(mission, dv, self.events, self.statemachine)
+        self.params = ParamTable(mission, dv, self.events)
+        """The mission's parameters: load the file before loop 1
+        (:meth:`~zplatform.params.ParamTable.load`), take each PRM_SAVE's bytes
+        after a loop (:meth:`~zplatform.params.ParamTable.take_save`)."""
+        self.commands = CommandHandler(
+            mission, dv, self.events, self.statemachine, params=self.params
+        )
         self.controllers = ControllerSet(mission, "cn", dv, self.events, self.faults)
         self.dns: tuple[str, ...] = tuple(mission.device_nodes)
         dns = self.dns
@@ -169,11 +183,11 @@ class ControlLogic:
         self._from_dn = tuple(RegionCodec(dv, f"{dn}_to_cn") for dn in dns)
         self._ground = RegionCodec(dv, "gn_to_cn") if mission.has_ground else None
         self._tm = RegionCodec(dv)
-        ch = mission_channels(mission, key)
-        self._seal_to_dn = tuple(ch[f"cn_to_{dn}"] for dn in dns)
-        self._open_from_dn = tuple(ch[f"{dn}_to_cn"] for dn in dns)
-        self._open_ground = ch.get("gn_to_cn")
-        self._seal_tm = ch["telemetry"]
+        # The CN's links (auth.py): every cn<->dnX, the uplink, the downlink.
+        self._seal_to_dn = tuple(channel(keys, f"cn_to_{dn}") for dn in dns)
+        self._open_from_dn = tuple(channel(keys, f"{dn}_to_cn") for dn in dns)
+        self._open_ground = channel(keys, "gn_to_cn") if mission.has_ground else None
+        self._seal_tm = channel(keys, "telemetry")
         self._frames: list[bytearray] = [bytearray() for _ in dns]
         self._dropped = dv.handle("cn_cmd_dropped")
         self.max_request_len = (
@@ -259,6 +273,7 @@ class ControlLogic:
         loop_overruns: int = 0,
         inbox_dropped: int = 0,
         inbox_oversize: int = 0,
+        saves: Sequence[SaveResult] = (),
     ) -> bytearray | None:
         """Close the loop: count misses, take one command request from
         ``grounds`` (the frames that arrived since the last loop, oldest
@@ -276,8 +291,9 @@ class ControlLogic:
         last loop; ``inbox_dropped``: request frames the driver's bounded
         inbox had to drop since the last loop (counted in ``cn_cmd_dropped``);
         ``inbox_oversize``: frames it refused unread for their size (counted
-        as bad frames). All are inputs, not measured here, so a replay
-        repeats them.
+        as bad frames); ``saves``: parameter saves (PRM_SAVE) its saver
+        finished since the last loop. All are inputs, not measured here, so
+        a replay repeats them.
         """
         loop, t = self.loop, self.t_ns
         for i, got in enumerate(self._got):
@@ -298,6 +314,8 @@ class ControlLogic:
                 source=f"{inbox_oversize} command frame(s)",
                 reason="longer than any valid request; refused unread",
             )
+        for result in saves:
+            self.params.saved(result, t)
         bulk = self._bulk
         if bulk is not None:  # the newest samples in, before any logic reads them
             bulk.receive(loop)
@@ -320,7 +338,7 @@ class ControlLogic:
             bulk.publish(loop, t)
         if self.recorder is not None:
             self.recorder.finish(
-                grounds, sync_overrun, loop_overruns, inbox_dropped, inbox_oversize, tm
+                grounds, sync_overrun, loop_overruns, inbox_dropped, inbox_oversize, saves, tm
             )
         return tm
 
@@ -393,8 +411,8 @@ class DeviceLogic:
 
     ``board`` defaults to the board the node's ``board:`` config names
     (:func:`zplatform.world.node_board`; built, not opened: the runtime
-    opens it). ``key``: the mission key (None: the mission does not
-    authenticate). ``stale_after_ns``: a trigger stamped (CN time) more than
+    opens it). ``keys``: the node's keys, its cn<->dnX link (None: the
+    mission does not authenticate). ``stale_after_ns``: a trigger stamped (CN time) more than
     this long before ``now_ns`` belongs to a loop the CN has already closed;
     it is answered but does not run (None: never stale).
 
@@ -414,6 +432,18 @@ class DeviceLogic:
     last loop) safes the node the same way after its run, with an activity
     event: the run ended. :meth:`safe` does the same on demand (clean exit).
 
+    A node that answers yet cannot run is safed too: when the CN's
+    triggers keep arriving, authentic and each newer than the last, but
+    none could run (every one stale, or outside the clock window) over
+    ``faults.dn_watchdog_loops`` periods, of the CN's stamps and of this
+    node's clock alike, the node safes with a warning naming why, and
+    ``dnX_safed_why`` = ``CANNOT_RUN`` in its replies makes the CN latch
+    ``DN_SAFED``. Counting only newer triggers over the CN's stamps, a
+    replay of captured triggers cannot trip it; over this node's clock too,
+    nor can a burst of late triggers served at once after the node stalled
+    (a stall is the watchdog's: ``CN_LOST``, no fault). ``dnX_safed_why`` says why the node is safed
+    (:class:`~zplatform.codes.SafedWhy`).
+
     Construction raises ConfigError (YAML path) for a bad device or
     controller. No method raises: device and controller exceptions are
     caught by their sets, and an exception of the board's own ``step`` (a
@@ -429,7 +459,7 @@ class DeviceLogic:
         board: Board | None = None,
         events: EventLog | None = None,
         stale_after_ns: int | None = None,
-        key: bytes | None = None,
+        keys: KeySet | None = None,
     ) -> None:
         if node not in mission.device_nodes:
             raise ConfigError(
@@ -453,14 +483,14 @@ class DeviceLogic:
         # This node's place in a sync bundle (one wildcard query for every DN).
         self._index = mission.device_nodes.index(node)
         self._out = RegionCodec(dv, f"{node}_to_cn")
-        ch = mission_channels(mission, key)
-        self._open: Channel | None = ch[f"cn_to_{node}"]
-        self._seal: Channel | None = ch[f"{node}_to_cn"]
+        self._open: Channel | None = channel(keys, f"cn_to_{node}")
+        self._seal: Channel | None = channel(keys, f"{node}_to_cn")
         self._loop = dv.handle(f"{node}_loop")
         self._time = dv.handle(f"{node}_time_ns")
         self._errors = dv.handle(f"{node}_errors")
         self._bad = dv.handle(f"{node}_bad_frames")
         self._h_safed = dv.handle(f"{node}_safed")
+        self._h_safed_why = dv.handle(f"{node}_safed_why")
         self._h_final = dv.handle(f"{node}_final")
         # Where the flag sits in a trigger's data: read there in a trigger
         # too late to run, whose data is not applied.
@@ -477,6 +507,13 @@ class DeviceLogic:
         self.last_t_ns = 0
         self.last_trigger_ns: int | None = None
         """This node's time at the last valid trigger (None before the first)."""
+        # The newest authentic trigger seen, run or not; and, since the last
+        # one that ran, the CN stamp of the first newer one that could not.
+        self._seen_loop = 0
+        self._seen_t = 0
+        self._unrun_since: int | None = None
+        self._unrun_since_here = 0
+        self._unrun = 0
         self.safed = False
         self._safed_by: EventType | None = None
         self.safed_why = ""
@@ -508,22 +545,32 @@ class DeviceLogic:
             # This node was not running (stopped, starved) for longer than
             # the watchdog: whatever it drove meanwhile was unsupervised.
             self.safe(now_ns, f"no valid trigger for {(now_ns - last) / 1e6:.0f} ms")
+        newer = False
         try:
             if is_bundle(payload):  # a wildcard query: this node's frame from the bundle
                 payload = bundle_entry(payload, self._index)
             frame = self._in.check(self._open.open(payload) if self._open else payload)
+            # Authentic from here on. Loop 0 is the CN's warm-up, never a loop.
+            newer = frame.seq > 0 and (
+                frame.seq > self._seen_loop or frame.t_ns > self._seen_t + _RESTART_NS
+            )
+            if newer:
+                self._seen_loop, self._seen_t = frame.seq, frame.t_ns
             self._believable(frame, now_ns)
         except CodecError as exc:
             self._bad.bump()
             self.reject_reason = str(exc)
             self.events.emit(EV.BAD_FRAME, now_ns, source="sync query", reason=exc)
+            if newer:  # the CN's, but outside this node's clock window
+                self._not_run(frame.t_ns, now_ns, exc)
             return None
         # A lower seq with a later timestamp is a restarted CN, not an old
         # query: follow it rather than stall forever.
+        late = self._stale_after is not None and now_ns - frame.t_ns > self._stale_after
         new = (
             may_run
             and (frame.seq > self.last_loop or frame.t_ns > self.last_t_ns + _RESTART_NS)
-            and (self._stale_after is None or now_ns - frame.t_ns <= self._stale_after)
+            and not late
         )
         if new:
             self._in.write(frame)
@@ -531,8 +578,11 @@ class DeviceLogic:
             self.last_t_ns = frame.t_ns
             self.last_trigger_ns = now_ns
             self.triggered = frame.seq
+            self._unrun_since = None
         else:
             self.stale += 1
+            if newer:
+                self._not_run(frame.t_ns, now_ns, None if late else _BACKLOG)
             if frame.seq > self.last_loop and frame.data[self._final_at]:
                 # The CN's last loop, come too late to run: the run ended all the same.
                 self._safe(
@@ -540,9 +590,41 @@ class DeviceLogic:
                     f"the control node's run ended (its last loop, {frame.seq}, came too "
                     "late to run here)",
                     EV.DN_SAFED_RUN_ENDED,
+                    SafedWhy.RUN_ENDED,
                 )
         reply = self._out.encode(frame.seq, now_ns)
         return self._seal.seal(reply) if self._seal is not None else reply
+
+    def _not_run(self, stamp_ns: int, now_ns: int, why: object) -> None:
+        """An authentic trigger newer than any seen could not run (class doc):
+        safe the node once the CN's stamps span the watchdog without a run.
+        ``why``: what refused it (None: stale); text is made only to safe."""
+        since = self._unrun_since
+        if since is None:
+            self._unrun_since = stamp_ns
+            self._unrun_since_here = now_ns
+            self._unrun = 1
+            return
+        self._unrun += 1
+        span = stamp_ns - since
+        # Both clocks: the CN's stamps (a replay repeats its stamp) and this
+        # node's own (a burst of late triggers served at once after a stall
+        # spans no time here: the stall is the watchdog's, CN_LOST).
+        if (
+            span < self._watchdog_ns
+            or now_ns - self._unrun_since_here < self._watchdog_ns
+            or self._h_safed_why.get() == SafedWhy.CANNOT_RUN
+        ):
+            return
+        if why is None:
+            why = f"stamped {(now_ns - stamp_ns) / 1e6:.1f} ms before this node's clock (stale)"
+        self._safe(
+            now_ns,
+            f"{self._unrun} triggers of the control node over {span / 1e6:.0f} ms and none "
+            f"could run, the last {why}: is this node's clock off?",
+            EV.DN_SAFED,
+            SafedWhy.CANNOT_RUN,
+        )
 
     def _believable(self, frame: Frame, now_ns: int) -> None:
         ahead = frame.t_ns - now_ns
@@ -577,6 +659,7 @@ class DeviceLogic:
                 self.safed = False
                 self._safed_by = None
                 self._h_safed.set(False)
+                self._h_safed_why.set(SafedWhy.NONE)
                 self.events.emit(EV.DN_REENABLED, t_ns, node=self.node, n=self._back)
         try:
             self.board.step(t_ns)
@@ -595,6 +678,7 @@ class DeviceLogic:
                 t_ns,
                 f"the control node's run ended (its last loop was {loop})",
                 EV.DN_SAFED_RUN_ENDED,
+                SafedWhy.RUN_ENDED,
             )
 
     def step(self, payload: bytes | bytearray | memoryview, now_ns: int) -> bytearray | None:
@@ -629,20 +713,28 @@ class DeviceLogic:
         """Write every actuator's safe value and the board's safe state;
         stay safed until the CN is back (class doc). ``exiting``: a clean
         exit (an activity, not a warning). Never raises."""
-        self._safe(t_ns, why, EV.DN_SAFED_AT_EXIT if exiting else EV.DN_SAFED)
+        if exiting:
+            self._safe(t_ns, why, EV.DN_SAFED_AT_EXIT, SafedWhy.STOPPING)
+        else:
+            self._safe(t_ns, why, EV.DN_SAFED, SafedWhy.CN_LOST)
 
-    def _safe(self, t_ns: int, why: str, ev: EventType) -> None:
+    def _safe(self, t_ns: int, why: str, ev: EventType, code: SafedWhy) -> None:
         self.devices.safe_actuators(t_ns)
         safe_board(self.board)
         self._back = 0
-        # One event per safing; but the run's end is told even to a node a
-        # stall had safed already: from now on it is safed because the run ended.
-        if self.safed and (ev is not EV.DN_SAFED_RUN_ENDED or self._safed_by is ev):
+        # One event per safing; but a new reason is told even to a node
+        # safed already (a stall, then the run's end; a run's end, then
+        # triggers that cannot run): from now on it is safed for that one.
+        if self.safed and not (
+            (ev is EV.DN_SAFED_RUN_ENDED and self._safed_by is not ev)
+            or (code is SafedWhy.CANNOT_RUN and self._h_safed_why.get() != code)
+        ):
             return
         self.safed = True
         self._safed_by = ev
         self.safed_why = why
         self._h_safed.set(True)
+        self._h_safed_why.set(code)
         self.events.emit(ev, t_ns, node=self.node, why=why)
 
     def _board_failed(self, exc: Exception, t_ns: int) -> None:

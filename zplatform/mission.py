@@ -13,6 +13,8 @@ tests. They return a :class:`~zplatform.config.Mission` that passed
    * the state machine (:func:`zplatform.statemachine.check_config`):
      elements, values, writability, zero-time cycles;
    * the commands (:func:`zplatform.commands.check_config`);
+   * the parameters (:func:`zplatform.params.check_config`): their states,
+     and ARM wherever a hazardous one may change;
    * the controllers (:func:`zplatform.controllers.check_config`): every
      ``class`` imported, checked to be a concrete Controller, its typed
      ``config`` decoded and its element handles bound on a scratch Data
@@ -61,7 +63,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from . import commands, controllers, devices, statemachine, world
+from . import commands, controllers, devices, params, statemachine, world
 from .config import (
     CONTROLLER_MODES,
     Mission,
@@ -91,6 +93,7 @@ def check_mission(mission: Mission, *, code: bool = True) -> None:
             )
     statemachine.check_config(mission)
     commands.check_config(mission)
+    params.check_config(mission)
     if code:
         _check_pythonpath(mission)
     # The world before the devices: a node's `driver: world` board is built

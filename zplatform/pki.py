@@ -3,15 +3,18 @@
 A mission whose links run mutual TLS (:attr:`zplatform.config.Mission.mtls`)
 needs, on each host, a deployment file (:mod:`zplatform.deploy`) naming the
 mission CA and that host's certificate and key. :func:`ensure_mission_pki`
-makes all of it in the mission's default place
-(:func:`zplatform.deploy.default_deployment_path`, ``~/.config/zplatform/pki/
-<mission>/``): ``zplatform keygen MISSION`` calls it and says which files go
-to which host (:func:`host_files`); ``zplatform up`` calls it on first use,
-so a single-host run needs no set-up. The directory holds::
+makes all of it beside the host's key set (:mod:`zplatform.auth`; the
+place is :func:`zplatform.deploy.default_deployment_path`,
+``~/.config/zplatform/keys/<mission>/`` by default), one identity per host
+role, so each host's files sit beside its ``ROLE.keys``: ``zplatform keygen
+MISSION`` calls it after writing the key set and says which files go to
+which host (:func:`host_files`); ``zplatform up`` calls it on first use, so
+a single-host run needs no set-up. The directory then holds::
 
+    cn.keys dn0.keys ...     the key set (zplatform.auth), one file per host role
     ca.pem ca.key            the mission CA (ca.key signs; it never leaves this host)
-    cn.pem cn.key ...        one per node: the certificate's common name is the node name
-    tool.pem tool.key        the operator's tools (tap, log, cmd, ground): common name "tool"
+    cn.pem cn.tls.key ...    one per node: the certificate's common name is the node name
+    tool.pem tool.tls.key    the operator's tools (tap, log, cmd, ground): common name "tool"
     deployment.yaml          names them all, paths relative to itself
 
 Contract:
@@ -48,7 +51,14 @@ import msgspec
 from .config import Mission
 from .deploy import TOOL, DeploymentError, default_deployment_path
 
-__all__ = ["DEPLOYMENT_FILE", "MissionPki", "ensure_mission_pki", "ensure_pki", "host_files"]
+__all__ = [
+    "DEPLOYMENT_FILE",
+    "MissionPki",
+    "ensure_mission_pki",
+    "ensure_pki",
+    "host_files",
+    "leaf_files",
+]
 
 DEPLOYMENT_FILE = "deployment.yaml"
 _NOT_BEFORE = datetime.datetime(2000, 1, 1, tzinfo=datetime.UTC)
@@ -194,8 +204,17 @@ def _make_leaf(d: Path, name: str, ca_key: Any, ca_cert: Any) -> None:
         )
         .sign(ca_key, hashes.SHA256())
     )
-    _write_private(d / f"{name}.key", _key_pem(key))
-    _write_private(d / f"{name}.pem", cert.public_bytes(serialization.Encoding.PEM))
+    cert_file, key_file = leaf_files(name)
+    _write_private(d / key_file, _key_pem(key))
+    _write_private(d / cert_file, cert.public_bytes(serialization.Encoding.PEM))
+
+
+def leaf_files(name: str) -> tuple[str, str]:
+    """The certificate's and the private key's file names of identity
+    ``name`` (a node or ``tool``) in a PKI directory: ``NAME.pem`` and
+    ``NAME.tls.key`` (not ``NAME.key``, which would sit confusably beside
+    the role's key file ``NAME.keys``)."""
+    return f"{name}.pem", f"{name}.tls.key"
 
 
 def _read_deployment(path: Path) -> dict[str, Any]:
@@ -232,7 +251,7 @@ def ensure_pki(
     names = [*nodes, *([TOOL] if tool else [])]
     try:
         if not d.is_dir():
-            d.mkdir(parents=True, mode=0o700)
+            d.mkdir(parents=True, mode=0o700, exist_ok=True)  # another caller may race us
             os.chmod(d, 0o700)  # whatever the umask
         lock_fd = os.open(d / ".lock", os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW, 0o600)
     except OSError as exc:
@@ -253,7 +272,7 @@ def _ensure_locked(
     if not (d / "ca.pem").exists():
         _make_ca(d, ca_name)
         made.append("ca")
-    missing = [n for n in names if not ((d / f"{n}.pem").exists() and (d / f"{n}.key").exists())]
+    missing = [n for n in names if not all((d / f).exists() for f in leaf_files(n))]
     if missing:
         ca_key, ca_cert = _load_ca(d)
         for n in missing:
@@ -265,23 +284,28 @@ def _ensure_locked(
     raw.setdefault("ca", "ca.pem")
     known = raw.setdefault("nodes", {})
     for n in names:
+        cert, key = leaf_files(n)
         if n != TOOL:
-            known.setdefault(n, {"cert": f"{n}.pem", "key": f"{n}.key"})
-    if tool:
-        raw.setdefault(
-            "tool", {"cert": f"{TOOL}.pem", "key": f"{TOOL}.key", "may_command": may_command}
-        )
+            known.setdefault(n, {"cert": cert, "key": key})
+        else:
+            raw.setdefault("tool", {"cert": cert, "key": key, "may_command": may_command})
     after = msgspec.yaml.encode(raw)
     if after != before:
         _write_private(dep_path, after)
     return made
 
 
-def ensure_mission_pki(mission: Mission) -> MissionPki:
-    """The PKI of ``mission`` in its default place (:func:`ensure_pki` with
-    every mission node and the tool, which may command: the operator's
-    ``cmd`` and console present it). Raises DeploymentError (see there)."""
-    path = default_deployment_path(mission)
+def ensure_mission_pki(mission: Mission, directory: str | Path | None = None) -> MissionPki:
+    """The PKI of ``mission`` in ``directory`` (default: beside this host's
+    key set, :func:`~zplatform.deploy.default_deployment_path`):
+    :func:`ensure_pki` with every mission node and the tool, which may
+    command (the operator's ``cmd`` and console present it). Raises
+    DeploymentError (see there)."""
+    path = (
+        Path(directory) / DEPLOYMENT_FILE
+        if directory is not None
+        else default_deployment_path(mission)
+    )
     made = ensure_pki(
         path.parent, list(mission.nodes), ca_name=f"zplatform {mission.mission} CA"
     )
@@ -297,12 +321,16 @@ def ensure_mission_pki(mission: Mission) -> MissionPki:
 
 def host_files(mission: Mission) -> list[tuple[str, list[str]]]:
     """Which files of the mission's PKI go where, as ``(who, files)`` rows:
-    every host, each node's host, the operator's tools, and the CA key,
-    which stays on the host that made it."""
+    every host, each host role's host (:func:`zplatform.auth.host_roles`,
+    in words :func:`~zplatform.auth.role_host`) its certificate and key,
+    and the CA key, which stays on the host that made it."""
+    from .auth import host_roles, role_host
+
     rows: list[tuple[str, list[str]]] = [("every host", [DEPLOYMENT_FILE, "ca.pem"])]
-    for n in mission.nodes:
-        who = "the ground station (gn)" if n == "gn" else f"the host of {n}"
-        rows.append((who, [f"{n}.pem", f"{n}.key"]))
-    rows.append(("the operator's tools (cmd, tap, log, ground)", [f"{TOOL}.pem", f"{TOOL}.key"]))
+    for r in host_roles(mission):
+        # Every operator's tool presents the tool certificate (cmd and the
+        # console too, whose frames the gn key set signs): it may command.
+        who = "the operator's tools (tap, log, cmd, console)" if r == TOOL else role_host(r)
+        rows.append((who, list(leaf_files(r))))
     rows.append(("no other host (it signs certificates)", ["ca.key"]))
     return rows

@@ -5,14 +5,15 @@ a :class:`Recorder` to the CN's :class:`~zplatform.loop.ControlLogic`: every
 input its loop consumed is written, per loop, in call order: the loop number,
 timestamp and whether it was the run's last (``final``), each DN reply as it
 arrived (its bytes, or that the DN answered with an error), the ground
-frame, the sync-overrun flag and the skipped periods, and the telemetry
-frame the loop produced (what a replay must reproduce). ``DIR`` holds
+frame, the sync-overrun flag and the skipped periods, the parameter saves
+that finished (:mod:`zplatform.params`), and the telemetry frame the loop
+produced (what a replay must reproduce). ``DIR`` holds
 ``mission.yaml`` (the effective mission) and ``cn.zrec``; ``zplatform replay
 DIR`` needs nothing else.
 
 ``cn.zrec``, all integers little-endian::
 
-    header:  b"ZPREC\\0"  u16 version (3)  u32 n  n bytes of JSON metadata
+    header:  b"ZPREC\\0"  u16 version (4)  u32 n  n bytes of JSON metadata
              (:class:`RecordMeta`: the mission's name, Data Vector layout id
              and size, and content digest, :func:`mission_digest`)
              u32 m  m bytes: the CN's Data Vector when recording started
@@ -29,6 +30,11 @@ DIR`` needs nothing else.
                9 DROPPED    u64 loops the recorder could not keep (ring full)
               10 FOREIGN    a sync reply from a key that is no DN's: the key
                             (UTF-8, at most 256 bytes; ``dn`` 255)
+              11 PRM_SAVED  a parameter save finished: u64 its PRM_SAVE number,
+                            u8 ok, then its detail (UTF-8, at most 512 bytes)
+
+Only version 4 is read: an earlier recording has no mission digest to
+check its header against its ``mission.yaml``; record it again.
 
 An oversize frame cannot decode (it is longer than the widest valid
 encoding), so a replay feeds an empty payload in its place: the same bad
@@ -82,6 +88,7 @@ from .codec import RegionCodec
 from .config import Mission, relocate_mission
 from .datavector import DataVector, Layout
 from .errors import CodecError, ConfigError, RecordingError
+from .params import SaveResult
 
 if TYPE_CHECKING:
     from .telemetry import CsvLogger
@@ -100,7 +107,7 @@ __all__ = [
 ]
 
 MAGIC = b"ZPREC\x00"
-VERSION = 3  # 2: BEGIN carries the final-loop flag; 3: the metadata the mission's digest
+VERSION = 4  # 2: BEGIN's final-loop flag; 3: PRM_SAVED items; 4: the mission's digest
 RECORD_FILE = "cn.zrec"
 MISSION_FILE = "mission.yaml"
 MAX_META_BYTES = 64 * 1024
@@ -109,6 +116,7 @@ MAX_MISSION_BYTES = 64 * 1024 * 1024
 """The longest recorded ``mission.yaml`` a reader takes (a 100,000-element
 mission is about 4 MB)."""
 _MAX_FOREIGN = 256  # bytes of a FOREIGN item's key (the recorder truncates to it)
+_MAX_SAVE_DETAIL = 512  # bytes of a PRM_SAVED item's detail (likewise)
 # Items a loop may hold: the live CN takes one reply per DN and query (a
 # few more from late or rogue repliers), the frames of its command inbox,
 # and a bounded number of foreign replies. A recording over these is not
@@ -117,9 +125,19 @@ _MAX_REPLIES_PER_DN = 64
 _MAX_FOREIGN_PER_LOOP = 256
 _MAX_GROUNDS_PER_LOOP = 1024
 
-BEGIN, REPLY, REPLY_ERR, OVERSIZE, GROUND, GROUND_OVERSIZE, TELEMETRY, FINISH, DROPPED, FOREIGN = (
-    range(1, 11)
-)
+(
+    BEGIN,
+    REPLY,
+    REPLY_ERR,
+    OVERSIZE,
+    GROUND,
+    GROUND_OVERSIZE,
+    TELEMETRY,
+    FINISH,
+    DROPPED,
+    FOREIGN,
+    PRM_SAVED,
+) = range(1, 12)
 #: ``LoopRecord.replies`` entry index of a FOREIGN reply (its payload is the key).
 FOREIGN_DN = -1
 
@@ -128,6 +146,7 @@ _BEGIN = struct.Struct("<QqB")
 _FINISH = struct.Struct("<BIII")
 _U32 = struct.Struct("<I")
 _U64 = struct.Struct("<Q")
+_SAVED = struct.Struct("<QB")
 _HEAD = struct.Struct("<6sHI")
 
 
@@ -392,11 +411,18 @@ class Recorder:
         loop_overruns: int,
         inbox_dropped: int,
         inbox_oversize: int,
+        saves: Sequence[SaveResult],
         telemetry: bytearray | None,
     ) -> None:
         if not self._dropping:
             self._finish(
-                grounds, sync_overrun, loop_overruns, inbox_dropped, inbox_oversize, telemetry
+                grounds,
+                sync_overrun,
+                loop_overruns,
+                inbox_dropped,
+                inbox_oversize,
+                saves,
+                telemetry,
             )
         if self._open_loop:
             self._open_loop = False
@@ -413,8 +439,13 @@ class Recorder:
         loop_overruns: int,
         inbox_dropped: int,
         inbox_oversize: int,
+        saves: Sequence[SaveResult],
         telemetry: bytearray | None,
     ) -> None:
+        for save in saves:  # rare: a PRM_SAVE finished
+            detail = save.detail.encode(errors="replace")[:_MAX_SAVE_DETAIL]
+            body = _SAVED.pack(save.seq, save.ok) + detail
+            self._put(PRM_SAVED, 0, body, len(body))
         for ground in grounds:
             if len(ground) > self._max_ground:
                 self._put(GROUND_OVERSIZE, 0, _U32.pack(min(len(ground), 0xFFFF_FFFF)), 4)
@@ -461,6 +492,7 @@ class LoopRecord(msgspec.Struct, frozen=True):
     inbox_dropped: int
     inbox_oversize: int
     telemetry: bytes | None
+    saves: list[SaveResult] = []
 
 
 class RecordReader:
@@ -523,7 +555,11 @@ class RecordReader:
         if magic != MAGIC:
             raise self._fail("not a zplatform recording")
         if version != VERSION:
-            raise self._fail(f"recording version {version}, expected {VERSION}")
+            raise self._fail(
+                f"recording version {version}, expected {VERSION}"
+                + (" (an earlier zplatform's, without the mission digest: record again)"
+                   if version < VERSION else "")
+            )
         if n > MAX_META_BYTES:
             raise self._fail(f"metadata of {n} bytes (at most {MAX_META_BYTES})")
         try:
@@ -572,6 +608,12 @@ class RecordReader:
             limit, exact = self._tm_max, False
         elif typ == FOREIGN:
             limit, exact = _MAX_FOREIGN, False
+        elif typ == PRM_SAVED:
+            if n < _SAVED.size:
+                raise self._fail(
+                    f"item at byte {off}: PRM_SAVED of {n} bytes (at least {_SAVED.size})"
+                )
+            limit, exact = _SAVED.size + _MAX_SAVE_DETAIL, False
         elif typ in _EXACT:
             limit, exact = _EXACT[typ], True
         else:
@@ -597,6 +639,7 @@ class RecordReader:
         grounds: list[bytes] = []
         telemetry: bytes | None = None
         replies: list[tuple[int, bytes | None]] = []
+        saves: list[SaveResult] = []
         n_replies = n_foreign = 0
         max_replies = _MAX_REPLIES_PER_DN * len(self._reply_max)
         while True:
@@ -620,6 +663,7 @@ class RecordReader:
                 telemetry = None
                 grounds = []
                 replies = []
+                saves = []
                 n_replies = n_foreign = 0
                 continue
             if typ == DROPPED:
@@ -632,7 +676,9 @@ class RecordReader:
                 )
             if typ == FINISH:
                 so, lo, dr, ov = _FINISH.unpack(body)
-                yield LoopRecord(loop, t, final, replies, grounds, bool(so), lo, dr, ov, telemetry)
+                yield LoopRecord(
+                    loop, t, final, replies, grounds, bool(so), lo, dr, ov, telemetry, saves
+                )
                 in_loop = False
             elif typ == TELEMETRY:
                 if telemetry is not None:
@@ -642,6 +688,12 @@ class RecordReader:
                 if len(grounds) >= _MAX_GROUNDS_PER_LOOP:
                     raise self._fail(f"loop {loop}: over {_MAX_GROUNDS_PER_LOOP} command frames")
                 grounds.append(body if typ == GROUND else b"")
+            elif typ == PRM_SAVED:
+                if len(saves) >= _MAX_GROUNDS_PER_LOOP:  # a save answers a command frame
+                    raise self._fail(f"loop {loop}: over {_MAX_GROUNDS_PER_LOOP} parameter saves")
+                seq, ok = _SAVED.unpack_from(body)
+                detail = body[_SAVED.size :].decode(errors="replace")
+                saves.append(SaveResult(seq, bool(ok), detail))
             elif typ == FOREIGN:
                 n_foreign += 1
                 if n_foreign > _MAX_FOREIGN_PER_LOOP:
@@ -676,6 +728,7 @@ _NAMES = {
     FINISH: "FINISH",
     DROPPED: "DROPPED",
     FOREIGN: "FOREIGN",
+    PRM_SAVED: "PRM_SAVED",
 }
 
 

@@ -203,7 +203,21 @@ def resolve_mission(arg: str) -> str:
             return e.mission_file
     looks_like_path = os.sep in arg or arg.endswith((".yaml", ".yml"))
     what = "no such mission file" if looks_like_path else "no such file or running mission"
-    raise CommandError(f"{what}: {arg!r}; {_describe(entries)}")
+    # A bare name that is a mission file nearby (`led_test` for
+    # configs/led_test.yaml, the form a new user types first): say which.
+    near = [] if looks_like_path else _nearby_files(arg)
+    hint = f"; did you mean the file {near[0]}?" if near else ""
+    raise CommandError(f"{what}: {arg!r}{hint}; {_describe(entries)}")
+
+
+def _nearby_files(name: str) -> list[str]:
+    """Mission files named ``name`` in the current directory or its ``configs/``."""
+    return [
+        str(p)
+        for d in (Path("."), Path("configs"))
+        for p in (d / f"{name}.yaml", d / f"{name}.yml")
+        if p.is_file()
+    ]
 
 
 def entries_json(entries: list[Entry]) -> str:

@@ -38,7 +38,14 @@ import msgspec
 
 from . import devices as _devices
 from .boards import GpiodBoardConfig, SerialBoardConfig, SimBoardConfig
-from .config import CONTROLLER_MODES, BulkChannelConfig, ComponentConfig, Mission, NodeConfig
+from .config import (
+    CONTROLLER_MODES,
+    BulkChannelConfig,
+    ComponentConfig,
+    Mission,
+    NodeConfig,
+    ParamConfig,
+)
 from .config import platform_elements as _platform_elements
 from .devices import Actuator, Sensor
 
@@ -435,15 +442,27 @@ def _block(anchor: str, heading: str, section: _Section, rows: slice = slice(Non
 
 def _platform_rows() -> list[str]:
     """The platform elements of every region, for a mission with a device
-    node (``dnX``), a ground node, a controller and a bulk channel."""
+    node (``dnX``), a ground node, a controller, a bulk channel and a
+    parameter."""
     example = Mission(
         mission="m",
         nodes={"cn": NodeConfig(), "dn0": NodeConfig(), "gn": NodeConfig()},
         regions={},
         controllers=[ComponentConfig(name="ctl", cls="m:C", node="cn")],
         bulk=[BulkChannelConfig(name="chan", node="dn0", type="u8[8]", readers=["cn"])],
+        params=[
+            ParamConfig(
+                name="param_x",
+                type="f32",
+                default=0.0,
+                min=0.0,
+                max=1.0,
+                doc="the parameter's value (a mission with `params`; so are the `cn_prm_*`)",
+            )
+        ],
     )
     names = (
+        ("param_x", "<parameter>"),
         ("dn0", "dnX"),
         ("ctl_mode", "<controller>_mode"),
         ("controller ctl's", "the controller's"),
@@ -461,6 +480,8 @@ def _platform_rows() -> list[str]:
         for e in elements:
             if e.name == "cn_state":
                 kind = "enum: the states, in order"
+            elif e.name == "param_x":
+                kind = "its `type`"
             elif e.type == "enum" and e.enum == list(CONTROLLER_MODES):
                 kind = "enum: " + ", ".join(CONTROLLER_MODES)
             elif e.type == "enum":

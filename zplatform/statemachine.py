@@ -134,6 +134,11 @@ def logic_writable(mission: Mission) -> frozenset[str]:
 
 def why_not_writable(mission: Mission, region: str, name: str) -> str:
     """Why CN logic may not write element ``name`` of ``region`` (for error messages)."""
+    if any(p.name == name for p in mission.params):
+        return (
+            f"element {name!r} is a parameter: it changes only by an accepted PRM_SET "
+            "(and at the control node's start, from its parameter file)"
+        )
     if region in _received_regions(mission):
         peer = region[: -len("_to_cn")]
         return (

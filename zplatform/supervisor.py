@@ -159,7 +159,7 @@ def watch(
         if rec.node == "gn" and rec.id == EV.SCRIPT_DONE.name and not done_at:
             done_at.append(time.monotonic())
 
-    link = GroundLink(mission, key="mission", on_event=on_event)
+    link = GroundLink(mission, keys="mission", on_event=on_event)
     tty = sys.stdout.isatty()
     rate = RateMeter()
     first_t = 0

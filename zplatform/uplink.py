@@ -14,6 +14,8 @@ command per line, ``#`` starts a comment::
     at 0.5 arm
     at 1.0 launch
     at 2.0 write seq_leds_mode manual
+    at 3.0 prm_set apogee_target_m 550
+    at 3.1 prm_save
     at 9.0 abort
 
 Times are seconds (decimal, read exactly) from the start of loop 1; when a
@@ -31,7 +33,7 @@ from typing import Any
 
 import msgspec
 
-from .auth import mission_channels
+from .auth import KeySet, channel
 from .codec import RegionCodec
 from .config import CMD_NAMES, Mission
 from .datavector import DataVector, Layout
@@ -44,11 +46,13 @@ __all__ = [
     "fill_request",
     "load_commands",
     "parse_commands",
+    "resolve_param",
     "resolve_write",
     "validate_command",
 ]
 
 _COMMANDS = tuple(c.lower() for c in CMD_NAMES if c != "NONE")
+_TWO_ARGS = {"write": "ELEMENT VALUE", "prm_set": "PARAMETER VALUE"}
 _LINE_RE = re.compile(r"^at\s+(\S+)\s+(\S+)(?:\s+(.*))?$")
 
 
@@ -57,7 +61,8 @@ class ScriptCommand(msgspec.Struct, frozen=True):
 
     ``at_ns`` is the time from the start of loop 1; ``command`` the upper
     case command name; ``element`` and ``value`` (text as written) for
-    WRITE; ``source`` is ``file:line`` for messages.
+    WRITE, and for PRM_SET the parameter and its value; ``source`` is
+    ``file:line`` for messages.
     """
 
     at_ns: int
@@ -85,7 +90,7 @@ def parse_commands(text: str, source: str = "<string>") -> list[ScriptCommand]:
     """Parse a command script (module doc); raises CommandError naming ``source:line``.
 
     Checks the syntax and command names only; elements and values of WRITE
-    are checked against the mission by the player
+    (parameters and values of PRM_SET) are checked against the mission by the player
     (:class:`~zplatform.ground.script.ScriptPlayer`). The result is in time
     order (stable: file order for equal times).
     """
@@ -105,10 +110,10 @@ def parse_commands(text: str, source: str = "<string>") -> list[ScriptCommand]:
             raise CommandError(
                 f"{where}: unknown command {m.group(2)!r}; expected one of {', '.join(_COMMANDS)}"
             )
-        if cmd == "write":
+        if cmd in _TWO_ARGS:
             if len(args) != 2:
-                raise CommandError(f"{where}: write takes ELEMENT VALUE, got {args}")
-            out.append(ScriptCommand(at_ns, "WRITE", args[0], args[1], where))
+                raise CommandError(f"{where}: {cmd} takes {_TWO_ARGS[cmd]}, got {args}")
+            out.append(ScriptCommand(at_ns, cmd.upper(), args[0], args[1], where))
             continue
         if args:
             raise CommandError(f"{where}: {cmd} takes no arguments, got {' '.join(args)!r}")
@@ -179,32 +184,66 @@ def resolve_write(layout: Layout, element: str, value: str, where: str) -> tuple
     return spec.index, num
 
 
+def resolve_param(mission: Mission, name: str, value: str, where: str) -> tuple[int, float]:
+    """``(gn_cmd_element, gn_cmd_value)`` of ``prm_set name value``.
+
+    ``value`` is a number, or true/false/on/off for a bool parameter.
+    Raises CommandError naming ``where`` for an unknown parameter, a value
+    that does not fit its type or lies outside its ``[min, max]`` (the CN
+    checks again)."""
+    params = {p.name: p for p in mission.params}
+    if not params:
+        raise CommandError(f"{where}: mission {mission.mission!r} has no parameters")
+    p = params.get(name)
+    if p is None:
+        close = difflib.get_close_matches(name, list(params), n=3)
+        listed = ", ".join(close) if close else ""
+        hint = f"; did you mean {listed}?" if close else f"; parameters: {', '.join(params)}"
+        raise CommandError(f"{where}: no parameter named {name!r}{hint}")
+    index, num = resolve_write(Layout.for_node(mission, "cn"), name, value, where)
+    if p.min is not None and p.max is not None and not p.min <= num <= p.max:
+        units = f" {p.units}" if p.units else ""
+        raise CommandError(
+            f"{where}: {value} is outside {name}'s bounds [{p.min!r}, {p.max!r}]{units}"
+        )
+    return index, num
+
+
 def validate_command(
     mission: Mission,
     command: str,
     element: str | None = None,
     value: str | None = None,
-    where: str = "write",
+    where: str | None = None,
 ) -> tuple[str, int, float]:
     """Check an operator command against the mission before anything is sent.
 
     Returns ``(COMMAND, element index, value)`` as they go into ``gn_to_cn``.
-    Raises CommandError for an unknown command, element, or a value that
-    does not fit the element (enum names and true/false accepted).
+    Raises CommandError for an unknown command, element or parameter, or a
+    value that does not fit the element (enum names and true/false
+    accepted) or the parameter's bounds. ``where`` starts the messages
+    (default: the command's name).
     """
     cmd = command.upper()
+    where = where or cmd.lower()
     if cmd not in CMD_NAMES or cmd == "NONE":
         raise CommandError(
             f"unknown command {command!r}; expected one of "
             f"{', '.join(c.lower() for c in CMD_NAMES[1:])}"
         )
-    if cmd != "WRITE":
+    args = _TWO_ARGS.get(cmd.lower())
+    if args is None:
         if element is not None:
             raise CommandError(f"{command} takes no arguments")
+        if cmd == "PRM_SAVE" and not mission.params:
+            raise CommandError(f"mission {mission.mission!r} has no parameters to save")
         return cmd, 0, 0.0
     if element is None or value is None:
-        raise CommandError("write needs ELEMENT VALUE")
-    index, num = resolve_write(Layout.for_node(mission, "cn"), element, value, where)
+        raise CommandError(f"{cmd.lower()} needs {args}")
+    if cmd == "PRM_SET":
+        index, num = resolve_param(mission, element, value, where)
+    else:
+        index, num = resolve_write(Layout.for_node(mission, "cn"), element, value, where)
     return cmd, index, num
 
 
@@ -248,19 +287,19 @@ def fill_request(
 
 class Uplink:
     """Frames command requests: one ``gn_to_cn`` vector, its codec, and the
-    mission key's ``gn_to_cn`` channel (None: the mission does not
+    uplink's ``gn_to_cn`` channel from ``keys`` (None: the mission does not
     authenticate).
 
     :meth:`frame` returns a buffer of its own (reused by the next call).
     """
 
-    def __init__(self, mission: Mission, key: bytes | None = None) -> None:
+    def __init__(self, mission: Mission, keys: KeySet | None = None) -> None:
         if not mission.has_ground:
             raise CommandError(f"mission {mission.mission!r} has no ground node 'gn'")
         self.mission = mission
         self.req = DataVector(Layout.for_regions(mission, ["gn_to_cn"]))
         self._codec = RegionCodec(self.req, "gn_to_cn")
-        self._seal = mission_channels(mission, key).get("gn_to_cn")
+        self._seal = channel(keys, "gn_to_cn")
 
     def frame(
         self, command: str, seq: int, index: int, value: float, t_ns: int, epoch: int = 0

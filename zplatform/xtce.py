@@ -25,9 +25,11 @@ Commands: an abstract ``zplatform_request`` lays out the ``gn_to_cn``
 region (``gn_cmd``, ``gn_cmd_seq``, ``gn_cmd_element``, ``gn_cmd_value``,
 little-endian) behind a CCSDS TC header on the region's APID, and one
 meta-command per operator command (LAUNCH ABORT WRITE NOOP HOLD RESUME
-ARM) fixes ``gn_cmd``. The mission's hazardous commands are CRITICAL
-(Yamcs asks before sending them); the ARM-then-fire protocol and the
-HMAC tag, when the mission requires one, are for zplatform's own uplink.
+ARM PRM_SET PRM_SAVE) fixes ``gn_cmd``; WRITE and PRM_SET leave the element
+(writable elements, then parameters) and the value to the operator. The
+mission's hazardous commands are CRITICAL (Yamcs asks before sending them);
+the ARM-then-fire protocol and the HMAC tag, when the mission requires one,
+are for zplatform's own uplink.
 """
 
 from __future__ import annotations
@@ -296,10 +298,12 @@ def _add_commands(
     # The same list the CN accepts (imported lazily: it needs no textual).
     from .console.model import writable_names
 
-    writable = [layout.element(n) for n in writable_names(mission, layout)]
+    # WRITE's elements, then PRM_SET's parameters (never WRITE's: the CN refuses them).
+    names = writable_names(mission, layout) + [p.name for p in mission.params]
+    targets = [layout.element(n) for n in names]
     el_arg = EnumeratedArgument(
         name="gn_cmd_element",
-        choices=[(0, "none")] + [(e.index, e.name) for e in writable if e.index],
+        choices=[(0, "none")] + [(e.index, e.name) for e in targets if e.index],
         default="none",
         encoding=_int_encoding(spec("gn_cmd_element").scalar.size * 8, False),
     )
@@ -325,7 +329,7 @@ def _add_commands(
     hazardous = {c.upper() for c in mission.commands.hazardous}
     for cmd in CMD_NAMES[1:]:
         assign: dict[str, object] = {"gn_cmd": cmd}
-        if cmd != "WRITE":
+        if cmd not in ("WRITE", "PRM_SET"):
             assign.update(gn_cmd_element="none", gn_cmd_value=0.0)
         Command(
             system=system,

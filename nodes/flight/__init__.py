@@ -27,6 +27,13 @@ Control node (100 Hz):
 * :class:`Airbrakes`: drives the airbrakes so that the predicted apogee
   (drag-ballistic, closed form) meets ``target_m``.
 
+Settings a ground crew tunes (the apogee target, the main-chute altitude,
+the airbrake rate, the EKF's measurement noise) are config fields that take
+a number or the name of an element: ``configs/flight.yaml`` names its
+mission parameters there (``target_m: apogee_target_m``), which the
+controllers read every loop, so a PRM_SET changes the flight without a
+rebuild (:mod:`zplatform.params`).
+
 Takeover-ready: every piece of state a controller needs from one loop to the
 next (EKF state and covariance, ground reference, persistence counts,
 event latches and times, the airbrake command) lives in Data Vector
@@ -182,8 +189,10 @@ class Ekf(Controller):
     (``v' = a - b - g``); each barometer and each new GPS fix correct
     ``h`` (innovations beyond ``gate_sigma`` are refused, so a Mach dip or a
     glitch is ignored; above ``transonic_mps`` the barometers are not used
-    at all). On the pad (before ``liftoff`` is set) the filter also takes
-    ``h = 0, v = 0`` and averages the barometers into the ground reference.
+    at all). ``baro_sigma_m`` and ``gps_sigma_m``, the measurement noises
+    that set the Kalman gains, are numbers or elements (parameters). On the
+    pad (before ``liftoff`` is set) the filter also takes ``h = 0, v = 0``
+    and averages the barometers into the ground reference.
 
     Fallback: when the IMU is lost (``imu_ok`` false, or a sample that is
     not a number, or beyond ``saturation_mps2``) the prediction runs without
@@ -216,8 +225,8 @@ class Ekf(Controller):
         accel_sigma_mps2: Annotated[float, Meta(gt=0)] = 0.5
         bias_walk: Annotated[float, Meta(ge=0)] = 0.02
         fallback_sigma_mps2: Annotated[float, Meta(gt=0)] = 20.0
-        baro_sigma_m: Annotated[float, Meta(gt=0)] = 1.0
-        gps_sigma_m: Annotated[float, Meta(gt=0)] = 3.0
+        baro_sigma_m: Annotated[float, Meta(gt=0)] | str = 1.0
+        gps_sigma_m: Annotated[float, Meta(gt=0)] | str = 3.0
         gate_sigma: Annotated[float, Meta(gt=0)] = 5.0
         saturation_mps2: Annotated[float, Meta(gt=0)] = 150.0
         transonic_mps: Annotated[float, Meta(gt=0)] = 250.0
@@ -248,6 +257,8 @@ class Ekf(Controller):
             )
         self._stamp = self.output(c.stamp, "stamp", kinds=_I)
         self._gps_used = self.output(c.gps_used, "gps_used", kinds=_I)
+        self._baro_sigma = self.tunable(c.baro_sigma_m, "baro_sigma_m", kinds=_F)
+        self._gps_sigma = self.tunable(c.gps_sigma_m, "gps_sigma_m", kinds=_F)
 
     def run_safed(self, t_ns: int) -> None:
         """Safed: the estimate is frozen (nothing to drive)."""
@@ -326,7 +337,7 @@ class Ekf(Controller):
             _update(state, 1, 0.0, 0.01**2, 1e9)
         else:
             if abs(state[1]) < c.transonic_mps:
-                r = c.baro_sigma_m**2
+                r = self._baro_sigma.get() ** 2
                 for hb in self._baros:
                     z = hb.get()
                     if math.isfinite(z):
@@ -336,7 +347,7 @@ class Ekf(Controller):
                 self._gps_used.set(seq)
                 z = self._gps.get()
                 if math.isfinite(z):
-                    _update(state, 0, z - ground, c.gps_sigma_m**2, c.gate_sigma)
+                    _update(state, 0, z - ground, self._gps_sigma.get() ** 2, c.gate_sigma)
         h, v, b, p00, p01, p02, p11, p12, p22 = state
         self._hh.set(h)
         self._hv.set(v)
@@ -384,7 +395,8 @@ class FlightEvents(Controller):
     * ``apogee``: after burnout and ``min_coast_s`` after lift-off, the
       vertical velocity below ``-apogee_mps`` (a margin over the estimate's
       noise: never before the true apogee, about ``apogee_mps / g`` after);
-    * ``below_main``: after apogee, the altitude below ``main_m``;
+    * ``below_main``: after apogee, the altitude below ``main_m`` (a number
+      or an element: a parameter, read every loop);
     * ``landed``: after apogee, ``|v|`` below ``landed_mps`` for
       ``landed_s``.
 
@@ -404,7 +416,7 @@ class FlightEvents(Controller):
         landed: str
         liftoff_ns: str
         streaks: str
-        main_m: float
+        main_m: Annotated[float, Meta(gt=0)] | str
         liftoff_g: float = 2.5
         liftoff_m: float = 30.0
         max_burn_s: float = 6.0
@@ -426,6 +438,7 @@ class FlightEvents(Controller):
             self.output(getattr(c, n), n, kinds=_B)
             for n in ("liftoff", "burnout", "apogee", "below_main", "landed")
         )
+        self._main = self.tunable(c.main_m, "main_m", kinds=_F)
         self._t0 = self.output(c.liftoff_ns, "liftoff_ns", kinds=_I)
         self._streaks = self.output(c.streaks, "streaks", kinds=_I, array=True)
         if self._streaks.spec.count != 5:
@@ -461,7 +474,7 @@ class FlightEvents(Controller):
             if self._persist(2, since > c.min_coast_s and v < -c.apogee_mps):
                 apo.set(True)
             return
-        if not main.get() and self._persist(3, h < c.main_m and v < 0.0):
+        if not main.get() and self._persist(3, h < self._main.get() and v < 0.0):
             main.set(True)
         if not land.get():
             need = max(1, round(c.landed_s * 100))
@@ -482,7 +495,8 @@ class Airbrakes(Controller):
     target: the drag area whose work removes exactly the surplus energy.
     Solved again every loop, it corrects its own model errors as the climb
     goes on. The command is rate-limited to ``rate`` per second (the servo).
-    Safed: retracted.
+    Safed: retracted. ``target_m`` and ``rate`` are numbers or elements
+    (parameters), read every loop.
 
     State in the Data Vector (takeover): only its output ``command`` (a
     ``cn_to_dnX`` element) and ``predicted``.
@@ -494,12 +508,12 @@ class Airbrakes(Controller):
         ground: str
         command: str
         predicted: str
-        target_m: Annotated[float, Meta(gt=0)]
+        target_m: Annotated[float, Meta(gt=0)] | str
         mass_kg: Annotated[float, Meta(gt=0)]
         cd_area_m2: Annotated[float, Meta(gt=0)]
         brake_cda_m2: Annotated[float, Meta(gt=0)]
         g_mps2: float = 9.80665
-        rate: Annotated[float, Meta(gt=0)] = 2.0
+        rate: Annotated[float, Meta(gt=0)] | str = 2.0
         period_s: Annotated[float, Meta(gt=0)] = 0.01
 
     config: Config
@@ -511,6 +525,8 @@ class Airbrakes(Controller):
         self._ground = self.input(c.ground, "ground", kinds=_F)
         self._cmd = self.output(c.command, "command", kinds=_F)
         self._pred = self.output(c.predicted, "predicted", kinds=_F)
+        self._target = self.tunable(c.target_m, "target_m", kinds=_F)
+        self._rate = self.tunable(c.rate, "rate", kinds=_F)
 
     def apogee(self, h: float, v: float, u: float) -> float:
         """Predicted apogee above the pad for deployment ``u`` held to the top."""
@@ -529,23 +545,24 @@ class Airbrakes(Controller):
     def run_enabled(self, t_ns: int) -> None:
         c = self.config
         h, v = self._h.get(), self._v.get()
+        target = self._target.get()
         free = self.apogee(h, v, 0.0)
         self._pred.set(free)
-        if v <= 0.0 or free <= c.target_m:
+        if v <= 0.0 or free <= target:
             want = 0.0
-        elif self.apogee(h, v, 1.0) >= c.target_m:
+        elif self.apogee(h, v, 1.0) >= target:
             want = 1.0
         else:
             lo, hi = 0.0, 1.0
             for _ in range(12):
                 mid = 0.5 * (lo + hi)
-                if self.apogee(h, v, mid) > c.target_m:
+                if self.apogee(h, v, mid) > target:
                     lo = mid
                 else:
                     hi = mid
             want = 0.5 * (lo + hi)
         last = self._cmd.get()
-        step = c.rate * c.period_s
+        step = self._rate.get() * c.period_s
         self._cmd.set(last + min(max(want - last, -step), step))
 
     def run_safed(self, t_ns: int) -> None:

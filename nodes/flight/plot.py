@@ -22,12 +22,16 @@ ROOT = Path(__file__).resolve().parents[2]
 
 
 def fly(mission: Path, commands: Path, seconds: float) -> dict[str, list[Any]]:
-    """Fly in lockstep; per loop: time, truth, estimate, airbrake; state changes."""
+    """Fly in lockstep; per loop: time, truth, estimate, airbrake, apogee
+    target (the airbrakes' element: a parameter a script may change); state
+    changes."""
     m = load_mission(mission)
     r = LockstepRunner(m, commands=load_commands(commands))
     assert r.world is not None
     dv = r.control.dv
-    out: dict[str, list[Any]] = {k: [] for k in ("t", "truth", "nav", "brake", "states", "chutes")}
+    keys = ("t", "truth", "nav", "brake", "target", "states", "chutes")
+    out: dict[str, list[Any]] = {k: [] for k in keys}
+    target = next(c.config["target_m"] for c in m.controllers if c.name == "airbrakes")
     last = ""
     for _ in range(round(seconds * m.loop_hz)):
         r.step()
@@ -37,6 +41,7 @@ def fly(mission: Path, commands: Path, seconds: float) -> dict[str, list[Any]]:
         out["truth"].append(f.z if f is not None else 0.0)
         out["nav"].append(dv.get("nav_h_m"))
         out["brake"].append(f.brake if f is not None else 0.0)
+        out["target"].append(dv.get(target) if isinstance(target, str) else target)
         state = dv.get_name("cn_state")
         if state != last:
             out["states"].append((t, state))
@@ -63,15 +68,13 @@ def main(argv: list[str] | None = None) -> None:
     import matplotlib.pyplot as plt
 
     d = fly(a.mission, a.commands, a.seconds)
-    target = next(
-        c.config["target_m"] for c in load_mission(a.mission).controllers if c.name == "airbrakes"
-    )
     fig, (ax, bx) = plt.subplots(
         2, 1, figsize=(10, 6.5), sharex=True, gridspec_kw={"height_ratios": [3, 1]}
     )
     ax.plot(d["t"], d["truth"], label="truth (physics)", lw=2.2, color="0.6")
     ax.plot(d["t"], d["nav"], label="estimate (EKF on the CN)", lw=1.0, color="C0")
-    ax.axhline(target, ls="--", color="C3", lw=1, label=f"apogee target {target:g} m")
+    ax.plot(d["t"], d["target"], ls="--", color="C3", lw=1,
+            label=f"apogee target {d['target'][-1]:g} m")
     for t, state in d["states"]:
         for x in (ax, bx):
             x.axvline(t, color="0.8", lw=0.8, zorder=0)

@@ -9,8 +9,10 @@ CN controllers:
 
 * :class:`ApogeeDetector`: from the device nodes' barometric altitudes
   (the lower of them), detects apogee (``apogee_drop_m`` below the highest
-  altitude seen) and then raises ``ready`` once below ``deploy_altitude_m``;
-  the state machine goes ARMED -> FIRE on it.
+  altitude seen) and then raises ``ready`` once below ``deploy_altitude_m``
+  (a number or an element: ``configs/recovery_igniter.yaml`` names its
+  mission parameter, read every loop); the state machine goes ARMED -> FIRE
+  on it.
 * :class:`IgnitionController`: in FIRE, commands ignition to every device
   node with the loop number it was sent in (for freshness) and records
   ``fired`` when every igniter feedback reads on.
@@ -61,7 +63,7 @@ class ApogeeDetector(Controller):
         ready: str
         estimate: str
         apogee: str
-        deploy_altitude_m: float
+        deploy_altitude_m: float | str
         apogee_drop_m: Annotated[float, Meta(gt=0)] = 10.0
 
     config: Config
@@ -74,7 +76,7 @@ class ApogeeDetector(Controller):
         self._ready = self.output(cfg.ready, "ready", kinds=_BOOL)
         self._estimate = self.output(cfg.estimate, "estimate", kinds=_FLOAT)
         self._apogee = self.output(cfg.apogee, "apogee", kinds=_FLOAT)
-        self._deploy = cfg.deploy_altitude_m
+        self._deploy = self.tunable(cfg.deploy_altitude_m, "deploy_altitude_m", kinds=_FLOAT)
         self._drop = cfg.apogee_drop_m
         self._max = float("-inf")
         self._passed = False
@@ -91,7 +93,7 @@ class ApogeeDetector(Controller):
             self._apogee.set(est)
         if not self._passed and est < self._max - self._drop:
             self._passed = True
-        if self._passed and est < self._deploy:
+        if self._passed and est < self._deploy.get():
             self._ready.set(True)
 
     def run_safed(self, t_ns: int) -> None:

@@ -56,8 +56,9 @@ import zenoh
 from tests.faults.missions import relay_links
 from tests.faults.relay import FaultRelay
 from tests.integration.harness import CONFIGS, Cluster
+from zplatform.auth import load_keys
 from zplatform.datavector import DataVector, Layout
-from zplatform.events import decode_event
+from zplatform.events import EventReader
 from zplatform.ground.link import GroundLink
 from zplatform.mission import load_mission
 
@@ -226,7 +227,8 @@ class Live(Cluster):
             self.mission = load_mission(self.path)
         self.snaps: list[Snap] = []
         self.events: list[tuple[float, dict[str, Any]]] = []
-        self._ev_q: queue.SimpleQueue[tuple[float, bytes]] = queue.SimpleQueue()
+        self._ev_q: queue.SimpleQueue[tuple[float, str, bytes]] = queue.SimpleQueue()
+        self._ev_reader = EventReader(self.mission, load_keys(self.mission, "tool"))
         self._ev_sub: Any = None
 
     # -- processes ---------------------------------------------------------
@@ -256,18 +258,19 @@ class Live(Cluster):
             self._ev_sub = self.session.declare_subscriber(
                 f"{self.mission.vehicle}/*/events",
                 zenoh.handlers.Callback(
-                    lambda s: q.put((time.monotonic(), s.payload.to_bytes())), indirect=False
+                    lambda s: q.put((time.monotonic(), str(s.key_expr), s.payload.to_bytes())),
+                    indirect=False,
                 ),
             )
 
     def drain_events(self) -> list[tuple[float, dict[str, Any]]]:
         while True:
             try:
-                t, payload = self._ev_q.get_nowait()
+                t, key, payload = self._ev_q.get_nowait()
             except queue.Empty:
                 return self.events
             with suppress(Exception):
-                ev = decode_event(payload)
+                ev, _ = self._ev_reader.read(key, payload)
                 self.events.append((t, {"node": ev.node, "id": ev.id, "text": ev.text}))
 
     def event_since(self, name: str, node: str, since: float) -> float | None:
@@ -1096,7 +1099,6 @@ def watch_main(mission_path: str) -> int:
     """Print the CN's telemetry as JSON lines until stdin closes."""
     import sys
 
-    from zplatform.auth import load_key
     from zplatform.ground.logic import GroundLogic
     from zplatform.timebase import NodeClock
     from zplatform.transport import zenoh_config
@@ -1108,7 +1110,7 @@ def watch_main(mission_path: str) -> int:
         cfg.insert_json5("connect/endpoints", json.dumps(m.nodes["cn"].listen))
     session = zenoh.open(cfg)
     # The ground's own logic on a session of this watcher's (a driver of its own).
-    ground = GroundLogic(m, key=load_key(m))
+    ground = GroundLogic(m, keys=load_keys(m, "tool"))
     clock = NodeClock()
     q: queue.SimpleQueue[tuple[bytes, int]] = queue.SimpleQueue()
     sub = session.declare_subscriber(

@@ -99,7 +99,7 @@ def _ident(pki: Path, name: str) -> list[str]:
         "--cert",
         str(pki / f"{name}.pem"),
         "--key",
-        str(pki / f"{name}.key"),
+        str(pki / f"{name}.tls.key"),
     ]
 
 

@@ -36,7 +36,7 @@ from typing import Any
 
 import zenoh
 
-from zplatform.auth import load_key
+from zplatform.auth import load_keys
 from zplatform.deploy import Deployment, ToolIdentity
 from zplatform.ground.logic import GroundLogic
 from zplatform.mission import load_mission
@@ -59,7 +59,7 @@ def main() -> None:
         # The chosen cert, whatever its common name, as the tool identity.
         dep = Deployment(ca=a.ca, tool=ToolIdentity(cert=a.cert, key=a.key))
     session = open_session(zenoh_config(mission, None, deployment=dep))
-    ground = GroundLogic(mission, key=load_key(mission))
+    ground = GroundLogic(mission, keys=load_keys(mission, "tool"))
     clock = NodeClock()
     q: queue.SimpleQueue[tuple[bytes, int]] = queue.SimpleQueue()
     sub = session.declare_subscriber(

@@ -55,6 +55,21 @@ class Cluster:
     def spawn(
         self, name: str, *extra: str, env: dict[str, str] | None = None
     ) -> subprocess.Popen[bytes]:
+        """Start node ``name`` (or ``"world"``, the mission's vehicle world).
+
+        A device node of a mission with a vehicle world needs that world:
+        the first one spawned starts it and waits for it to serve (its
+        ``READY`` line), as ``zplatform up`` does. Spawning ``"world"``
+        again returns the running one."""
+        if name == "world" and "world" in self.procs:
+            return self.procs["world"]
+        if (
+            name in self.mission.device_nodes
+            and self.mission.world is not None
+            and "world" not in self.procs
+        ):
+            self.spawn("world")
+            self._wait_ready("world")
         e = dict(os.environ, PYTHONUNBUFFERED="1")
         e.update(env or {})
         log = open(self.tmp / f"{name}.log", "ab")  # noqa: SIM115 - closed with the process
@@ -81,6 +96,15 @@ class Cluster:
         )
         self.procs[name] = p
         return p
+
+    def _wait_ready(self, name: str, timeout_s: float = 60.0) -> None:
+        """Block until process ``name`` printed ``READY`` (or fail with its log)."""
+        deadline = time.monotonic() + timeout_s
+        p = self.procs[name]
+        while "READY" not in self.log(name):
+            if p.poll() is not None or time.monotonic() > deadline:
+                raise AssertionError(f"{name} did not get ready:\n{self.log(name)[-3000:]}")
+            time.sleep(0.05)  # polling a file the child writes: no peer to wait on
 
     def log(self, name: str) -> str:
         return (self.tmp / f"{name}.log").read_text(errors="replace")

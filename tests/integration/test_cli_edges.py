@@ -97,6 +97,10 @@ def test_unknown_mission_names_what_is_running(runtime: Path) -> None:
     )
     r = _zp("check", "configs/nope.yaml")
     _clear_error(r, 2, "no such mission file")
+    # A bare name that is a mission file nearby (the README's verbs run from
+    # the repository): the error names the file to give.
+    r = _zp("keygen", "led_test")
+    _clear_error(r, 2, "'led_test'; did you mean the file configs/led_test.yaml?")
 
 
 # ---------------------------------------------------------------- tap
@@ -126,15 +130,21 @@ def test_tap_without_bounds_gives_up_on_silence(
 
 
 def test_tap_prints_events_decoded() -> None:
+    from zplatform.auth import load_keys
     from zplatform.ground.tap import TapDecoder, format_tap
     from zplatform.mission import load_mission
 
-    dec = TapDecoder(load_mission(CONFIGS / "minimal.yaml"))
+    mission = load_mission(CONFIGS / "minimal.yaml")
+    dec = TapDecoder(mission)
     sev = max(Severity)  # whatever the most severe is called
     ev = Event("cn", 3, 1_000, int(sev), "cmd_rejected", "command LAUNCH #4 rejected")
-    d = dec.decode("rocket/cn/events", encode_event(ev), rx_ns=2_000)
+    cn = load_keys(mission, "cn")
+    assert cn is not None  # events carry the CN's own event tag
+    tagged = bytes(cn.channel("events_cn").seal(encode_event(ev)))
+    d = dec.decode("rocket/cn/events", tagged, rx_ns=2_000)
     out = format_tap(d, as_json=False)
     assert f"rocket/cn/events EVENT {sev.name:<8} cmd_rejected: command LAUNCH #4" in out
+    assert "unverified" not in out
     # --json: the event as the events file has it.
     assert json.loads(format_tap(d, as_json=True))["event"] == {
         "rx_time_ns": 2_000,
@@ -144,7 +154,11 @@ def test_tap_prints_events_decoded() -> None:
         "severity": sev.name,
         "id": "cmd_rejected",
         "text": "command LAUNCH #4 rejected",
+        "verified": True,
     }
+    # Forged (untagged), it is refused, not shown as the CN's.
+    d = dec.decode("rocket/cn/events", encode_event(ev))
+    assert "tag" in d["error"]
 
 
 @pytest.mark.parametrize(

@@ -6,7 +6,8 @@ and then confirms the hazardous LAUNCH (ARM, LAUNCH, both verdicts) and
 shows the CN's event with its severity; and a small one (80x24) that shows
 loss of signal once the CN is stopped. A WRITE of a protected element asks
 first too, then goes ARM n, WRITE n+1, its verdict shown with the CN's
-detail. Every wait is on what the screen shows, bounded; nothing sleeps for
+detail; so does a PRM_SET of a hazardous parameter, shown in the parameter
+view (``params``). Every wait is on what the screen shows, bounded; nothing sleeps for
 a peer.
 
 The browser test serves the console with ``zplatform ground --web``, opens
@@ -18,6 +19,7 @@ Chromium). The web server's admission and lifetime: test_console_web.py.
 from __future__ import annotations
 
 import asyncio
+import io
 import os
 import re
 import shutil
@@ -33,6 +35,8 @@ import pytest
 pytest.importorskip("textual")
 pytest.importorskip("textual_plotext")
 
+from rich.console import Console
+from rich.table import Table
 from textual.widgets import Static
 
 from zplatform.console import ConfirmScreen, ConsoleApp, ConsoleModel, Link
@@ -45,7 +49,12 @@ pytestmark = pytest.mark.timeout(240)
 
 
 def _text(app: ConsoleApp, wid: str) -> str:
-    return str(app.query_one(wid, Static).content)
+    content = app.query_one(wid, Static).content
+    if isinstance(content, Table):  # drawn as the screen would
+        console = Console(width=200, record=True, file=io.StringIO())
+        console.print(content)
+        return console.export_text()
+    return str(content)
 
 
 async def _until(pilot: object, pred: Callable[[], bool], what: str, timeout_s: float = 30) -> None:
@@ -89,6 +98,26 @@ async def _big_screen(c: Cluster) -> None:
         )
         assert "ARM #1: ACCEPTED" in _text(app, "#events-text")
 
+        # The parameter view; a hazardous parameter's PRM_SET asks first too.
+        await pilot.press(*"params", "enter")
+        await _until(pilot, lambda: app.query_one("#params").has_class("shown"), "parameters")
+        await _until(pilot, lambda: "deploy_altitude_m (ARM)" in _text(app, "#params-table"),
+                     "the parameter, marked hazardous")  # fmt: skip
+        table = _text(app, "#params-table")
+        assert "[60, 390] m" in table and "SAFE" in table, table
+        await pilot.press(*"prm_set depl", "tab")
+        assert app.query_one("#cmd").value == "prm_set deploy_altitude_m "  # type: ignore[attr-defined]
+        await pilot.press(*"300", "enter")
+        await _until(pilot, lambda: isinstance(app.screen, ConfirmScreen), "the confirmation")
+        await pilot.press("y")
+        await _until(
+            pilot,
+            lambda: "PRM_SET #4: ACCEPTED (deploy_altitude_m = 300.0, was 250.0)"
+            in _text(app, "#events-text"),
+            "the PRM_SET's verdict",
+        )
+        await _until(pilot, lambda: " 300 " in _text(app, "#params-table"), "the new value")
+
         # A hazardous command asks first; "n" sends nothing.
         await _answer(pilot, app, "launch", "n")
         await _until(pilot, lambda: "LAUNCH cancelled" in _text(app, "#events-text"), "cancel")
@@ -97,9 +126,9 @@ async def _big_screen(c: Cluster) -> None:
         # Confirmed: ARM n, LAUNCH n+1, both accepted, the state moves on.
         await _answer(pilot, app, "launch", "y")
         await _until(
-            pilot, lambda: "LAUNCH #4: ACCEPTED" in _text(app, "#events-text"), "LAUNCH's verdict"
+            pilot, lambda: "LAUNCH #6: ACCEPTED" in _text(app, "#events-text"), "LAUNCH's verdict"
         )
-        assert "ARM #3: ACCEPTED" in _text(app, "#events-text")
+        assert "ARM #5: ACCEPTED" in _text(app, "#events-text")
         # The CN's own event about the command: time, severity name, node, id.
         await _until(pilot, lambda: "cmd_accepted" in _text(app, "#events-text"), "the CN's event")
         line = next(x for x in _text(app, "#events-text").splitlines() if "cmd_accepted" in x)

@@ -16,8 +16,9 @@ import pytest
 import yaml
 
 from tests.budget import allowed_misses, assert_within_budget
+from zplatform.auth import load_keys
 from zplatform.codec import encode_frame
-from zplatform.events import Event, decode_event
+from zplatform.events import Event, EventReader
 from zplatform.telemetry import read_csv
 
 from .harness import CONFIGS, ROOT, Cluster
@@ -102,8 +103,12 @@ def test_bad_frames_are_counted_never_applied(tmp_path: Path) -> None:
         s = c.session
         v = c.mission.vehicle
         events: queue.SimpleQueue[Event] = queue.SimpleQueue()
+        reader = EventReader(c.mission, load_keys(c.mission, "tool"))
         sub = s.declare_subscriber(
-            f"{v}/*/events", lambda sample: events.put(decode_event(sample.payload.to_bytes()))
+            f"{v}/*/events",
+            lambda sample: events.put(
+                reader.read(str(sample.key_expr), sample.payload.to_bytes())[0]
+            ),
         )
         rng = random.Random(7)
         junk = [bytes(rng.getrandbits(8) for _ in range(rng.randint(0, 64))) for _ in range(5)]

@@ -156,7 +156,7 @@ def test_up_makes_the_pki_on_first_use_and_keeps_it(tmp_path: Path) -> None:
     made = "made the certificates of 'recovery_igniter' for mutual TLS (ca, cn, dn0, dn1, gn, tool)"
     assert f"zplatform up: {made} in {d}" in r.stdout, r.stdout
     assert stat.S_IMODE(d.stat().st_mode) == 0o700
-    assert stat.S_IMODE((d / "cn.key").stat().st_mode) == 0o600
+    assert stat.S_IMODE((d / "cn.tls.key").stat().st_mode) == 0o600
     before = (d / "ca.pem").read_bytes()
     r = _zp(*up, "--quiet", "--no-realtime", env=env)
     assert r.returncode == 0 and "made the certificates" not in r.stdout, r.stdout + r.stderr

@@ -13,8 +13,9 @@ from pathlib import Path
 import yaml
 import zenoh
 
+from zplatform.auth import load_keys
 from zplatform.config import relocate_mission
-from zplatform.events import decode_event
+from zplatform.events import EventReader
 from zplatform.messages import wildcard_sync_for
 
 from .harness import CONFIGS, Cluster
@@ -67,8 +68,10 @@ def test_one_query_runs_every_dn_and_foreign_replies_are_counted(tmp_path: Path)
         )
         # A rogue answering with errors in dn0's name: foreign bad frames.
         texts: queue.SimpleQueue[str] = queue.SimpleQueue()
+        reader = EventReader(c.mission, load_keys(c.mission, "tool"))
         sub = c.session.declare_subscriber(
-            f"{v}/cn/events", lambda s: texts.put(decode_event(s.payload.to_bytes()).text)
+            f"{v}/cn/events",
+            lambda s: texts.put(reader.read(str(s.key_expr), s.payload.to_bytes())[0].text),
         )
 
         def liar(q: zenoh.Query) -> None:

@@ -174,6 +174,57 @@ def test_recovery_and_airbrakes_over_seeded_noise_and_wind(
     assert abs(f.apogee_m - target) <= 0.03 * target, (f.apogee_m, target)
 
 
+PARAM_SCRIPT = """\
+at 0.3 prm_set apogee_target_m 550
+at 0.4 arm
+at 0.5 prm_set main_deploy_m 250
+at 0.6 prm_save
+at 1.0 arm
+at 1.1 launch
+at 5.0 prm_set apogee_target_m 700
+at 55 prm_set apogee_target_m 650
+"""
+
+
+def test_a_script_that_sets_parameters_changes_the_flight(nominal: Flown) -> None:
+    """The apogee target and the main-chute altitude are parameters: set on
+    the pad (the main's armed, it is hazardous) and saved, they move the
+    apogee to 550 m and the main to 250 m; in flight and after landing
+    PRM_SET is refused (the whitelist in BOOST, the parameter's states once
+    LANDED), and nothing changes."""
+    fl = fly(load_mission(FLIGHT_YAML), PARAM_SCRIPT, seconds=56.0, until_landed=False)
+    f, res = fl.truth, fl.result
+    assert [(c.command, c.status) for c in res.commands] == [
+        ("PRM_SET", "ACCEPTED"), ("ARM", "ACCEPTED"), ("PRM_SET", "ACCEPTED"),
+        ("PRM_SAVE", "ACCEPTED"), ("ARM", "ACCEPTED"), ("LAUNCH", "ACCEPTED"),
+        ("PRM_SET", "REJECTED_NOT_ALLOWED"), ("PRM_SET", "REJECTED_PARAM_STATE"),
+    ]  # fmt: skip
+    assert [s for _, s in fl.states] == [
+        "SAFE", "ARMED", "BOOST", "COAST", "DROGUE", "MAIN", "LANDED",
+    ]  # fmt: skip
+    assert abs(f.apogee_m - 550.0) <= 0.03 * 550.0
+    assert nominal.truth.apogee_m - f.apogee_m > 30.0  # the default flight's is ~600 m
+    assert fl.main_alt is not None and abs(fl.main_alt - 250.0) <= 10.0
+    dv = fl.runner.control.dv
+    assert dv.get("apogee_target_m") == 550.0 and dv.get("main_deploy_m") == 250.0
+    assert dv.get_name("cn_prm_save_status") == "SAVED"  # in memory: a sim writes no file
+    saved = fl.runner.saver.data
+    assert saved is not None
+    from zplatform.params import decode_params
+
+    assert decode_params(fl.runner.mission, saved).values["main_deploy_m"] == 250.0
+
+
+def test_a_parameter_script_is_byte_identical_run_to_run(tmp_path: Path) -> None:
+    paths = [tmp_path / "a.csv", tmp_path / "b.csv"]
+    for path in paths:
+        r = LockstepRunner(load_mission(FLIGHT_YAML), commands=parse_commands(PARAM_SCRIPT))
+        with CsvLogger(path, r.control.layout) as log:
+            r.run(20.0, log=log)
+    assert paths[0].read_bytes() == paths[1].read_bytes()
+    assert "apogee_target_m" in paths[0].read_text().splitlines()[0]
+
+
 def test_sim_is_byte_identical_run_to_run_and_from_the_command_line(tmp_path: Path) -> None:
     a, b, c = tmp_path / "a.csv", tmp_path / "b.csv", tmp_path / "c.csv"
     for path in (a, b):

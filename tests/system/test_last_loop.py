@@ -58,7 +58,8 @@ def test_a_stopped_cn_runs_one_more_loop_flagged_final(tmp_path: Path) -> None:
     import zenoh
 
     from tests.integration.harness import CONFIGS, Cluster
-    from zplatform.events import decode_event
+    from zplatform.auth import load_keys
+    from zplatform.events import EventReader
     from zplatform.transport import KeySpace
 
     with Cluster(CONFIGS / "minimal.yaml", tmp_path) as c:
@@ -74,7 +75,9 @@ def test_a_stopped_cn_runs_one_more_loop_flagged_final(tmp_path: Path) -> None:
         assert cn.wait(timeout=60) == 0, c.log("cn")[-3000:]
         # The DN's events until it safes as the run's end (a dn_safed warning
         # before it is a stall of the loaded machine, legitimately).
-        while (e := decode_event(got.get(timeout=60))).id != "dn_safed_run_ended":
+        reader = EventReader(c.mission, load_keys(c.mission, "tool"))
+        key = KeySpace(c.mission.vehicle).events("dn0")
+        while (e := reader.read(key, got.get(timeout=60))[0]).id != "dn_safed_run_ended":
             pass
         assert e.severity_name == "ACTIVITY_HI", e
         sub.undeclare()

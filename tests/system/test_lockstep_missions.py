@@ -251,6 +251,30 @@ def test_igniter_does_not_fire_when_dn1_reads_a_bad_altitude(tmp_path: Path) -> 
     assert float(rows[entered(rows, "FIRE")]["dn1_alt_m"]) > 5000.0
 
 
+def test_igniter_deploy_altitude_is_a_parameter_set_armed_on_the_pad(tmp_path: Path) -> None:
+    """``deploy_altitude_m`` (a hazardous parameter) moved from 250 m to 300 m
+    before launch: the CN fires higher, and earlier, on the same flight. An
+    unarmed PRM_SET of it is refused; after launch it cannot change."""
+    m = load_mission(IGN_YAML)
+    script = parse_commands(
+        "at 0.1 prm_set deploy_altitude_m 300\n"  # hazardous: refused without ARM
+        "at 0.2 arm\nat 0.3 prm_set deploy_altitude_m 300\n"
+        "at 0.5 arm\nat 0.6 launch\n"
+        "at 3.0 arm\n"  # ARMED: the whitelist refuses ARM and PRM_SET in flight
+        "at 3.1 prm_set deploy_altitude_m 200\n"
+    )
+    res, rows = run(m, script, IGN_DURATION, tmp_path / "ign.csv")
+    assert [c.status for c in res.commands] == [
+        "REJECTED_NOT_ARMED", "ACCEPTED", "ACCEPTED", "ACCEPTED", "ACCEPTED",
+        "REJECTED_NOT_ALLOWED", "REJECTED_NOT_ALLOWED",
+    ]  # fmt: skip
+    assert visited(rows) == ["SAFE", "ARMED", "FIRE", "DEPLOYED"]
+    fire = rows[entered(rows, "FIRE")]
+    assert float(rows[-1]["deploy_altitude_m"]) == 300.0
+    assert 250.0 < float(fire["alt_est_m"]) < 300.0
+    assert t_s(fire) < 11.0  # the nominal flight passes 250 m after 11 s
+
+
 def test_igniter_flight_starts_at_launch_not_at_node_start(tmp_path: Path) -> None:
     """The flight is the vehicle world's, started by dn0's launch output: a
     LAUNCH sent 20 s after start lifts off then, and the mission still ends

@@ -345,13 +345,13 @@ class _Port:
 
 def test_the_loop_receives_before_its_logic_and_publishes_after() -> None:
     from tests.drive import run_dn_loop
-    from zplatform.lockstep import SIM_KEY
+    from zplatform.lockstep import sim_keys
     from zplatform.loop import ControlLogic, DeviceLogic
     from zplatform.mission import load_mission
 
     m = load_mission(Path(__file__).resolve().parents[2] / "configs" / "minimal.yaml")
     calls: list[tuple[str, int]] = []
-    cn = ControlLogic(m, key=SIM_KEY)
+    cn = ControlLogic(m, keys=sim_keys(m))
     port = _Port("cn_loop", calls)
     port.dv = cn.dv
     cn.attach_bulk(port)

@@ -13,15 +13,21 @@ from __future__ import annotations
 
 import logging
 import struct
+from collections.abc import Callable
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any, get_args, get_type_hints
 
 import pytest
+import zenoh
 
+from zplatform.auth import KeySet
 from zplatform.clocksync import (
     ESTIMATORS,
     ClockEstimate,
     ClockEstimator,
+    ClockLink,
+    ClockResponder,
     ZenohTimestampsError,
     estimate_offset,
     estimate_offset_zenoh,
@@ -29,12 +35,24 @@ from zplatform.clocksync import (
 )
 from zplatform.config import ClockConfig
 from zplatform.errors import ClockSyncError
+from zplatform.mission import load_mission
 from zplatform.transport import KeySpace
 
+ROOT = Path(__file__).resolve().parents[2]
+IGNITER = load_mission(ROOT / "configs" / "recovery_igniter.yaml")
+MASTER = bytes.fromhex("3f8a1c9e27d45b60f1e83a97c2d0456b8e19f7a3c5d2e0b4a6918f3c7e25d0b1")
+ALL_KEYS = KeySet.from_master(IGNITER, MASTER)
 KEYS = KeySpace("rocket")
-_REQ = struct.Struct("<q")
-_REP = struct.Struct("<qqq")
 US = 1_000
+MS = 1_000_000
+
+
+def _link(dn: str = "dn0") -> ClockLink:
+    return ClockLink(IGNITER, dn, ALL_KEYS.for_node(dn))
+
+
+def _responder() -> ClockResponder:
+    return ClockResponder(IGNITER, ALL_KEYS.for_node("cn"))
 
 
 @dataclass
@@ -85,14 +103,20 @@ class _Reply:
     ok: _Sample | None
 
 
+Rogue = Callable[[bytes, int], bytes | None]
+"""A peer answering the clock key too: (the DN's query, the true time) -> its reply."""
+
+
 @dataclass
 class SimSession:
-    """Clocks as offsets from a simulated true time ``t`` (ns).
+    """Clocks as offsets from a simulated true time ``t`` (ns); the CN
+    answers through the real :class:`ClockResponder`.
 
     ``stamps``: whether the CN's zenoh stamps instrumented queries.
     ``step_dn_zenoh_after``: after that many exchanges the DN's zenoh clock
     (the host's real-time clock) steps by ``step_ns``.
-    ``answer``: whether the CN answers at all.
+    ``answer``: whether the CN answers at all. ``rogues``: other peers on
+    the clock key, answering before the CN (``rogues_first``) or after it.
     """
 
     cn_node: int = 0
@@ -106,6 +130,10 @@ class SimSession:
     t: int = 1_000_000_000_000
     gets: int = 0
     instrumented: list[bool] = field(default_factory=list)
+    targets: list[Any] = field(default_factory=list)
+    rogues: list[Rogue] = field(default_factory=list)
+    rogues_first: bool = True
+    responder: ClockResponder = field(default_factory=_responder)
 
     def now_ns(self) -> int:
         """The DN's node clock."""
@@ -115,11 +143,21 @@ class SimSession:
         self.gets += 1
         ti = kw.get("timestamp_instrumentation")
         self.instrumented.append(ti is not None)
+        self.targets.append(kw.get("target"))
         if self.step_dn_zenoh_after is not None and self.gets == self.step_dn_zenoh_after + 1:
             self.dn_zenoh += self.step_ns
-        if not self.answer:
-            return
-        (t1,) = _REQ.unpack(payload)
+        rogue = [r for r in (f(payload, self.t) for f in self.rogues) if r is not None]
+        if self.rogues_first:
+            for raw in rogue:
+                handler.callback(_Reply(_Sample(_Payload(raw), None)))
+        if self.answer:
+            self._cn(handler, payload, ti)
+        if not self.rogues_first:
+            for raw in rogue:
+                handler.callback(_Reply(_Sample(_Payload(raw), None)))
+        handler.drop()
+
+    def _cn(self, handler: Any, payload: bytes, ti: Any) -> None:
         self.t += 2 * US
         t1z = self.t + self.dn_zenoh  # send stamp, after t1
         self.t += 50 * US  # network
@@ -133,10 +171,14 @@ class SimSession:
         self.t += 50 * US  # network
         t4z = self.t + self.dn_zenoh  # reply's receive stamp
         self.t += 3 * US  # then the callback reads t4
+        reply = self.responder.answer(payload, t2, t3)
+        if reply is None:
+            handler.callback(_Reply(None))  # the server's error reply
+            return
         stack = None
         if ti is not None:
             stack = _Stack([_Record(x) for x in (t1z, t2z, t3z, t4z)] if self.stamps else [])
-        handler.callback(_Reply(_Sample(_Payload(_REP.pack(t1, t2, t3)), stack)))
+        handler.callback(_Reply(_Sample(_Payload(reply), stack)))
 
 
 def _sim(**kw: Any) -> SimSession:
@@ -173,7 +215,7 @@ def test_every_config_name_has_an_estimator() -> None:
 @pytest.mark.parametrize("fn", [estimate_offset, estimate_offset_zenoh])
 def test_estimators_measure_the_node_clock_offset(fn: Any) -> None:
     s = _sim()
-    est = fn(s, KEYS, s.now_ns, exchanges=20)
+    est = fn(s, KEYS, s.now_ns, _link(), exchanges=20)
     assert est.exchanges == 20
     # CN - DN node clocks: exact on this symmetric path (to rounding).
     assert abs(est.offset_ns - (s.cn_node - s.dn_node)) <= 1, est
@@ -181,26 +223,26 @@ def test_estimators_measure_the_node_clock_offset(fn: Any) -> None:
 
 def test_estimators_label_their_estimates() -> None:
     s = _sim()
-    assert estimate_offset(s, KEYS, s.now_ns, exchanges=8).estimator == "node_clock"
-    assert estimate_offset_zenoh(s, KEYS, s.now_ns, exchanges=8).estimator == "zenoh_ts"
+    assert estimate_offset(s, KEYS, s.now_ns, _link(), exchanges=8).estimator == "node_clock"
+    assert estimate_offset_zenoh(s, KEYS, s.now_ns, _link(), exchanges=8).estimator == "zenoh_ts"
 
 
 def test_zenoh_ts_without_stamps_is_a_zenoh_timestamps_error() -> None:
     s = _sim(stamps=False)
     with pytest.raises(ZenohTimestampsError, match="answered 20 of 20 exchanges, but only 0"):
-        estimate_offset_zenoh(s, KEYS, s.now_ns, exchanges=20)
+        estimate_offset_zenoh(s, KEYS, s.now_ns, _link(), exchanges=20)
 
 
 def test_zenoh_ts_with_a_stepped_host_clock_is_a_zenoh_timestamps_error() -> None:
     s = _sim(step_dn_zenoh_after=10)
     with pytest.raises(ZenohTimestampsError, match=r"the DN's zenoh clock and node clock disagree"):
-        estimate_offset_zenoh(s, KEYS, s.now_ns, exchanges=20)
+        estimate_offset_zenoh(s, KEYS, s.now_ns, _link(), exchanges=20)
 
 
 def test_zenoh_ts_unreachable_cn_is_a_plain_clock_sync_error() -> None:
     s = _sim(answer=False)
     with pytest.raises(ClockSyncError) as info:
-        estimate_offset_zenoh(s, KEYS, s.now_ns, exchanges=8, timeout_s=0.001)
+        estimate_offset_zenoh(s, KEYS, s.now_ns, _link(), exchanges=8, timeout_s=0.001)
     assert not isinstance(info.value, ZenohTimestampsError)
 
 
@@ -213,8 +255,8 @@ def test_zenoh_ts_falls_back_to_node_clock_with_a_warning(
     s = _sim(stamps=False)
     est = estimator_for(ClockConfig())
     with caplog.at_level(logging.INFO, logger="zplatform.clocksync"):
-        first = est(s, KEYS, s.now_ns, exchanges=20)
-        second = est(s, KEYS, s.now_ns, exchanges=20)
+        first = est(s, KEYS, s.now_ns, _link(), exchanges=20)
+        second = est(s, KEYS, s.now_ns, _link(), exchanges=20)
     assert first.estimator == second.estimator == "node_clock"
     assert abs(first.offset_ns - (s.cn_node - s.dn_node)) <= 1
     assert est.fallbacks == 2
@@ -224,7 +266,7 @@ def test_zenoh_ts_falls_back_to_node_clock_with_a_warning(
     # zenoh_ts again once the CN's zenoh stamps (the fallback is per call).
     s.stamps = True
     with caplog.at_level(logging.INFO, logger="zplatform.clocksync"):
-        assert est(s, KEYS, s.now_ns, exchanges=20).estimator == "zenoh_ts"
+        assert est(s, KEYS, s.now_ns, _link(), exchanges=20).estimator == "zenoh_ts"
     assert "works again" in caplog.records[-1].getMessage()
 
 
@@ -232,7 +274,7 @@ def test_unreachable_cn_does_not_fall_back() -> None:
     s = _sim(answer=False)
     est = estimator_for(ClockConfig())
     with pytest.raises(ClockSyncError, match="instrumented replies"):
-        est(s, KEYS, s.now_ns, exchanges=8, timeout_s=0.001)
+        est(s, KEYS, s.now_ns, _link(), exchanges=8, timeout_s=0.001)
     assert est.fallbacks == 0
     assert s.gets == 8  # one series: no second attempt
 
@@ -240,7 +282,7 @@ def test_unreachable_cn_does_not_fall_back() -> None:
 def test_node_clock_never_asks_zenoh_for_timestamps() -> None:
     s = _sim()
     est = estimator_for(ClockConfig(estimator="node_clock"))
-    assert est(s, KEYS, s.now_ns, exchanges=8).estimator == "node_clock"
+    assert est(s, KEYS, s.now_ns, _link(), exchanges=8).estimator == "node_clock"
     assert s.instrumented == [False] * 8
 
 
@@ -253,4 +295,94 @@ def test_failed_fallback_names_both() -> None:
 
     est = ClockEstimator("zenoh_ts", no_stamps, fallback=unreachable)
     with pytest.raises(ClockSyncError, match=r"0 of 8 replies \(after the zenoh_ts estimator: no"):
-        est(_sim(), KEYS, _sim().now_ns, exchanges=8)
+        est(_sim(), KEYS, _sim().now_ns, _link(), exchanges=8)
+
+
+# -- authenticated exchanges (codecs/FORMAT.md §6.3) ------------------------------------
+
+_Q = struct.Struct("<2sBB16sq")
+_R = struct.Struct("<2sBB16sqqq")
+
+
+def _rogue(shift_ns: int) -> Rogue:
+    """A peer without the key: answers every query with the CN's time
+    ``+ shift_ns``, echoing the query's nonce, under a made-up tag (the best
+    it can do)."""
+
+    def answer(query: bytes, true_t: int) -> bytes:
+        _, _, index, nonce, t1 = _Q.unpack_from(query)
+        cn_t = true_t + 7_000_000 + shift_ns
+        return _R.pack(b"ZR", 1, index, nonce, t1, cn_t, cn_t + 20 * US) + bytes(16)
+
+    return answer
+
+
+@pytest.mark.parametrize("fn", [estimate_offset, estimate_offset_zenoh])
+@pytest.mark.parametrize("shift_ns", [30 * MS, 5_000 * MS])
+def test_a_rogue_clock_without_the_key_is_refused_and_counted(fn: Any, shift_ns: int) -> None:
+    s = _sim(rogues=[_rogue(shift_ns)])
+    link = _link()
+    est = fn(s, KEYS, s.now_ns, link, exchanges=20)
+    assert abs(est.offset_ns - (s.cn_node - s.dn_node)) <= 1, est  # the CN's, not the rogue's
+    assert (link.refused_bad, link.refused_other) == (20, 0)
+    # Every queryable on the clock key is asked: a rogue cannot take the CN's place.
+    assert s.targets and all(t == zenoh.QueryTarget.ALL for t in s.targets)
+
+
+def test_only_rogues_answering_is_a_clock_sync_error_that_says_so() -> None:
+    s = _sim(answer=False, rogues=[_rogue(30 * MS)])
+    with pytest.raises(ClockSyncError, match=r"0 of 8 valid replies .*8 replies refused for a bad"):
+        estimate_offset(s, KEYS, s.now_ns, _link(), exchanges=8, timeout_s=0.001)
+
+
+def test_a_replayed_real_reply_is_refused_and_counted() -> None:
+    """A captured authentic reply of an earlier exchange, replayed into every
+    later one: its nonce is another exchange's."""
+    captured: list[bytes] = []
+    real = _responder()
+
+    def replay(query: bytes, true_t: int) -> bytes | None:
+        if not captured:  # capture the CN's answer to the first query
+            captured.append(bytes(real.answer(query, true_t, true_t + 5 * MS) or b""))
+            return None
+        return captured[0]
+
+    s = _sim(rogues=[replay])
+    link = _link()
+    est = estimate_offset(s, KEYS, s.now_ns, link, exchanges=10)
+    assert abs(est.offset_ns - (s.cn_node - s.dn_node)) <= 1
+    assert (link.refused_bad, link.refused_other) == (0, 9)
+
+
+def test_a_late_rogue_is_never_read() -> None:
+    s = _sim(rogues=[_rogue(30 * MS)], rogues_first=False)
+    link = _link()
+    est = estimate_offset(s, KEYS, s.now_ns, link, exchanges=10)
+    assert abs(est.offset_ns - (s.cn_node - s.dn_node)) <= 1 and link.refused == 0
+
+
+def test_the_cn_answers_only_its_dns_queries() -> None:
+    cn = _responder()
+    dn0, dn1 = _link("dn0"), _link("dn1")
+    q, nonce = dn0.query(123)
+    reply = cn.answer(q, 1000, 2000)
+    assert reply is not None and dn0.check(reply, nonce) == (123, 1000, 2000)
+    assert dn1.check(reply, nonce) is None and dn1.refused_bad == 1  # dn0's, not dn1's
+    assert dn0.check(reply, b"\0" * 16) is None and dn0.refused_other == 1  # another exchange
+    # A query claiming to be dn1's under dn0's tag; a made-up tag; junk.
+    claim = bytearray(q)
+    claim[3] = 1
+    for bad in (bytes(claim), q[:-16] + bytes(16), b"", b"\x00" * 44, q[:-1]):
+        assert cn.answer(bad, 1, 2) is None
+    assert cn.refused == 5 and cn.reason
+    # A peer holding only the ground's keys cannot even make a query.
+    with pytest.raises(Exception, match="no key for link cn-dn0"):
+        ClockLink(IGNITER, "dn0", ALL_KEYS.for_node("gn"))
+
+
+def test_peers_with_another_mac_do_not_sync() -> None:
+    hm = load_mission(ROOT / "configs" / "recovery_igniter.yaml")  # a copy of its own
+    hm.security.mac = "hmac-sha256"
+    link = ClockLink(hm, "dn0", KeySet.from_master(hm, MASTER).for_node("dn0"))
+    q, _ = link.query(1)
+    assert _responder().answer(q, 2, 3) is None  # the CN's MAC is blake3

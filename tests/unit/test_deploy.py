@@ -16,6 +16,7 @@ import msgspec
 import pytest
 
 from tests.pki import make_test_pki
+from zplatform.auth import KEY_FILE_ENV
 from zplatform.deploy import (
     DEPLOYMENT_ENV,
     Deployment,
@@ -76,7 +77,7 @@ def test_test_pki_writes_a_deployment_with_absolute_paths(pki: Path) -> None:
     dep = load_deployment(pki / "deployment.yaml")
     assert dep.ca == str(pki / "ca.pem")
     assert set(dep.nodes) == {"cn", "dn0", "gn"}
-    assert dep.nodes["cn"].key == str(pki / "cn.key")
+    assert dep.nodes["cn"].key == str(pki / "cn.tls.key")
     assert dep.tool is not None and not dep.tool.may_command and dep.access_control
 
 
@@ -111,13 +112,22 @@ def test_the_default_deployment_is_found_and_the_named_one_comes_first(
     pki: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     monkeypatch.delenv(DEPLOYMENT_ENV, raising=False)
+    monkeypatch.delenv(KEY_FILE_ENV, raising=False)
     monkeypatch.setenv("XDG_CONFIG_HOME", str(tmp_path))
     m = decode_mission(TLS_MISSION)
-    default = tmp_path / "zplatform" / "pki" / "tlstest" / "deployment.yaml"
+    default = tmp_path / "zplatform" / "keys" / "tlstest" / "deployment.yaml"
     assert default_deployment_path(m) == default and find_deployment(m) is None
     make_test_pki(default.parent, ["cn", "dn0", "gn"])
     assert find_deployment(m) == default
     assert require_deployment(m) == load_deployment(default)
+    # Beside the key set ZPLATFORM_KEY_FILE names: its directory, or a file's.
+    monkeypatch.setenv(KEY_FILE_ENV, str(pki))
+    assert find_deployment(m) == pki / "deployment.yaml"
+    monkeypatch.setenv(KEY_FILE_ENV, str(pki / "dn0.keys"))
+    assert find_deployment(m) == pki / "deployment.yaml"
+    monkeypatch.setenv(KEY_FILE_ENV, str(tmp_path / "keys-elsewhere"))
+    assert find_deployment(m) is None
+    monkeypatch.delenv(KEY_FILE_ENV)
     monkeypatch.setenv(DEPLOYMENT_ENV, str(pki / "deployment.yaml"))
     assert find_deployment(m) == pki / "deployment.yaml"
     monkeypatch.setenv(DEPLOYMENT_ENV, str(tmp_path / "absent.yaml"))  # named: never skipped
@@ -147,14 +157,14 @@ def test_a_host_holds_only_its_own_key_and_it_must_be_private(
 ) -> None:
     """The deployment names every node; a session checks the files of the
     identity it presents, and refuses a private key others can read."""
-    for f in ("ca.pem", "deployment.yaml", "dn0.pem", "dn0.key"):
+    for f in ("ca.pem", "deployment.yaml", "dn0.pem", "dn0.tls.key"):
         shutil.copy(pki / f, tmp_path / f)
     dep = load_deployment(tmp_path / "deployment.yaml", decode_mission(TLS_MISSION))
-    assert tls_settings(dep, "dn0")["listen_private_key"] == str(tmp_path / "dn0.key")
+    assert tls_settings(dep, "dn0")["listen_private_key"] == str(tmp_path / "dn0.tls.key")
     with pytest.raises(DeploymentError, match="no such file") as ei:
         tls_settings(dep, "cn")
     assert ei.value.path == "$.nodes.cn.cert"
-    (tmp_path / "dn0.key").chmod(0o644)
+    (tmp_path / "dn0.tls.key").chmod(0o644)
     with pytest.raises(DeploymentError, match="readable by others") as ei:
         tls_settings(dep, "dn0")
     assert ei.value.path == "$.nodes.dn0.key" and "chmod 600" in str(ei.value)

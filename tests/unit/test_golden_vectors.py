@@ -145,3 +145,76 @@ def test_worked_example_in_format_md() -> None:
     _, frame = load("scalars_typical")
     text = (VECTORS.parent / "FORMAT.md").read_text()
     assert frame[:26].hex(" ") in text
+
+
+# -- the tags of codecs/vectors/auth/ (FORMAT.md §6.1, §6.3, §8.1) --------------------
+
+AUTH = VECTORS / "auth"
+AUTH_NAMES = sorted(p.stem for p in AUTH.glob("*.json"))
+
+
+def test_auth_vectors_present() -> None:
+    assert sorted(p.stem for p in AUTH.glob("*.bin")) == AUTH_NAMES
+    whats = ("cn_to_dn0", "clock_query_dn0", "clock_reply_dn0", "events_cn")
+    assert sorted(f"{mac}_{w}" for mac in ("blake3", "hmac-sha256") for w in whats) == AUTH_NAMES
+
+
+@pytest.mark.parametrize("name", AUTH_NAMES)
+def test_auth_vector_by_hand(name: str) -> None:
+    """Every key and tag from FORMAT.md's formulas alone (hashlib, hmac, blake3)."""
+    import hashlib
+    import hmac
+
+    import blake3
+
+    meta = json.loads((AUTH / f"{name}.json").read_text())
+    sealed = (AUTH / f"{name}.bin").read_bytes()
+    master = bytes.fromhex(meta["master_hex"])
+    link_ctx = f"zplatform/2/link/{meta['vehicle']}/{meta['link']}"
+    ch_ctx = f"zplatform/2/{meta['vehicle']}/{meta['mac']}/{meta['channel']}"
+    assert (meta["link_context"], meta["channel_context"]) == (link_ctx, ch_ctx)
+    link_key = hmac.new(master, link_ctx.encode(), hashlib.sha256).digest()
+    ch_key = hmac.new(link_key, ch_ctx.encode(), hashlib.sha256).digest()
+    assert (link_key.hex(), ch_key.hex()) == (meta["link_key_hex"], meta["channel_key_hex"])
+    body = bytes.fromhex(meta["message_hex"])
+    if meta["mac"] == "blake3":
+        tag = blake3.blake3(body, key=ch_key).digest(16)
+    else:
+        tag = hmac.new(ch_key, body, hashlib.sha256).digest()[:16]
+    assert tag.hex() == meta["tag_hex"] and sealed == body + tag
+    assert len(body) == meta["message_size"]
+
+
+@pytest.mark.parametrize("name", AUTH_NAMES)
+def test_auth_vector_by_the_platform(name: str) -> None:
+    """The platform opens each vector and makes it again, byte for byte."""
+    from zplatform.auth import KeySet
+    from zplatform.clocksync import ClockLink, ClockResponder
+    from zplatform.events import EventReader
+
+    meta = json.loads((AUTH / f"{name}.json").read_text())
+    sealed = (AUTH / f"{name}.bin").read_bytes()
+    mission = load_mission(VECTORS / "mission.yaml")
+    mission.security.mac = meta["mac"]
+    keys = KeySet.from_master(mission, bytes.fromhex(meta["master_hex"]))
+    ch = keys.channel(meta["channel"])
+    body = bytes(ch.open(sealed))
+    assert bytes(ch.seal(body)) == sealed
+    what = name.split("_", 1)[1]
+    if what == "cn_to_dn0":
+        assert body == (VECTORS / "scalars_typical.bin").read_bytes()
+    elif what == "clock_query_dn0":
+        reply = (AUTH / f"{meta['mac']}_clock_reply_dn0.bin").read_bytes()
+        t2, t3 = 1_700_000_000_001_500_000, 1_700_000_000_001_520_000
+        assert ClockResponder(mission, keys.for_node("cn")).answer(sealed, t2, t3) == reply
+    elif what == "clock_reply_dn0":
+        nonce = bytes(range(0xA0, 0xB0))
+        link = ClockLink(mission, "dn0", keys.for_node("dn0"))
+        assert link.check(sealed, nonce) == (
+            1_700_000_000_000_000_000,
+            1_700_000_000_001_500_000,
+            1_700_000_000_001_520_000,
+        )
+    else:
+        e, verified = EventReader(mission, keys).read("rocket/cn/events", sealed)
+        assert verified is True and (e.node, e.id) == ("cn", "cmd_accepted")

@@ -14,6 +14,7 @@ from pathlib import Path
 import pytest
 
 from zplatform import load_mission
+from zplatform.auth import KeySet
 from zplatform.events import EV, Event, Severity
 from zplatform.ground.logic import (
     REASON_GRACE_NS,
@@ -37,6 +38,11 @@ RUN1 = RUN2 - 3_600_000_000_000  # an hour earlier
 LATENCY = 1_000_000  # 1 ms from the CN's loop to the ground
 
 
+def _keys(mission: object, role: str, master: bytes = KEY) -> KeySet:
+    """Host role ``role``'s keys, every link derived from ``master``."""
+    return KeySet.from_master(mission, master).for_node(role)  # type: ignore[arg-type]
+
+
 class Vehicle:
     """A control node's loop and a ground logic; frames passed by hand.
 
@@ -53,8 +59,8 @@ class Vehicle:
         key: bytes = KEY,
     ) -> None:
         self.mission = mission
-        self.cn = ControlLogic(mission, key=key, epoch=epoch)  # type: ignore[arg-type]
-        self.ground = ground or GroundLogic(mission, key=KEY)  # type: ignore[arg-type]
+        self.cn = ControlLogic(mission, keys=_keys(mission, "cn", key), epoch=epoch)  # type: ignore[arg-type]
+        self.ground = ground or GroundLogic(mission, keys=_keys(mission, "gn"))  # type: ignore[arg-type]
         self.epoch = epoch
         self.loop = 0
         self.inbox: list[bytes] = []
@@ -116,7 +122,7 @@ def test_fresh_telemetry_is_followed_and_counted() -> None:
 
 
 def test_a_frame_without_the_telemetry_key_is_bad_and_never_applied() -> None:
-    v = Vehicle(ground=GroundLogic(LED, key=b"x" * 32))
+    v = Vehicle(ground=GroundLogic(LED, keys=_keys(LED, "gn", b"x" * 32)))
     v.run(3)
     c = v.ground.counters
     assert (c.received, c.bad) == (0, 3) and not v.ground.joined
@@ -126,7 +132,7 @@ def test_a_frame_without_the_telemetry_key_is_bad_and_never_applied() -> None:
 
 
 def test_an_oversized_frame_is_refused_by_its_size_first() -> None:
-    g = GroundLogic(LED, key=KEY)
+    g = GroundLogic(LED, keys=_keys(LED, "gn"))
     assert not g.on_telemetry(b"\x00" * 100_000, RUN2)
     assert g.counters.bad == 1 and "longer than any telemetry frame" in g.last_refusal
 
@@ -174,7 +180,7 @@ def test_a_replayed_earlier_run_is_stale_and_never_followed() -> None:
     """Issue 18's attack at the ground: run 1's telemetry, replayed during run 2."""
     run1 = Vehicle(epoch=RUN1)
     run1.run(20)
-    g = GroundLogic(LED, key=KEY)
+    g = GroundLogic(LED, keys=_keys(LED, "gn"))
     now = RUN2 + PERIOD
     for _, frame in run1.frames:
         assert not g.on_telemetry(frame, now)
@@ -191,7 +197,7 @@ def test_an_older_run_is_refused_while_the_run_followed_is_fresh() -> None:
     new = Vehicle(epoch=RUN2)
     new.run(3)
     g = new.ground
-    old = Vehicle(epoch=RUN2 - 10 * PERIOD, ground=GroundLogic(LED, key=KEY))
+    old = Vehicle(epoch=RUN2 - 10 * PERIOD, ground=GroundLogic(LED, keys=_keys(LED, "gn")))
     old.run(13)  # fresh, but of a run that started earlier
     for _, frame in old.frames[-3:]:
         assert not g.on_telemetry(frame, new.t + LATENCY)
@@ -248,14 +254,15 @@ def test_a_verdict_comes_only_from_a_later_loop_of_the_same_run() -> None:
     its number was ACCEPTED arrive from run 1 (stale) and from an older run
     (fresh); the CN refuses the request; the ground reports the refusal."""
     run1 = Vehicle(epoch=RUN1)
-    up1 = Uplink(LED, KEY)
+    up1 = Uplink(LED, _keys(LED, "gn"))
     run1.inbox.append(bytes(up1.frame("LAUNCH", 3, 0, 0.0, RUN1, RUN1)))
     run1.run(3)
     assert run1.cn.dv.get("cn_cmd_seq") == 3  # run 1's snapshots say "#3 ACCEPTED"
-    older = Vehicle(epoch=RUN2 - 5 * PERIOD, ground=GroundLogic(LED, key=KEY))
-    older.inbox.append(bytes(Uplink(LED, KEY).frame("NOOP", 3, 0, 0.0, RUN2, RUN2 - 5 * PERIOD)))
+    older = Vehicle(epoch=RUN2 - 5 * PERIOD, ground=GroundLogic(LED, keys=_keys(LED, "gn")))
+    up = Uplink(LED, _keys(LED, "gn"))
+    older.inbox.append(bytes(up.frame("NOOP", 3, 0, 0.0, RUN2, RUN2 - 5 * PERIOD)))
     v = Vehicle()
-    v.inbox.append(bytes(Uplink(LED, KEY).frame("LAUNCH", 2, 0, 0.0, RUN2, RUN2)))
+    v.inbox.append(bytes(Uplink(LED, _keys(LED, "gn")).frame("LAUNCH", 2, 0, 0.0, RUN2, RUN2)))
     v.run(3)  # run 2 in state B: cn_cmd_seq 2
     g = v.ground
     t = v.command("write", "led_a_cmd", "true")  # #3: state B refuses WRITE
@@ -280,7 +287,7 @@ def test_a_refusal_that_consumes_no_number_is_reported_at_once() -> None:
     v.run(2)
     t = v.command("noop")
     mine = v.ground.take_requests() or v.inbox
-    v.inbox = [bytes(Uplink(LED, KEY).frame("NOOP", 5, 0, 0.0, v.t, RUN2))]
+    v.inbox = [bytes(Uplink(LED, _keys(LED, "gn")).frame("NOOP", 5, 0, 0.0, v.t, RUN2))]
     v.step(requests=False)  # the other tool's #5 first
     v.inbox = list(mine)
     (o,) = v.until_done(t, loops=3)
@@ -370,7 +377,7 @@ def test_a_refused_arm_stops_the_armed_command() -> None:
 
 
 def test_a_lost_request_is_sent_again_then_ends_without_a_verdict() -> None:
-    g = GroundLogic(LED, key=KEY, resend_loops=10, tries=3)
+    g = GroundLogic(LED, keys=_keys(LED, "gn"), resend_loops=10, tries=3)
     v = Vehicle(ground=g)
     v.run(2)
     t = v.command("noop")
@@ -382,7 +389,7 @@ def test_a_lost_request_is_sent_again_then_ends_without_a_verdict() -> None:
 
 
 def test_commands_wait_for_a_followed_run_and_for_the_cn_to_listen() -> None:
-    g = GroundLogic(LED, key=KEY)
+    g = GroundLogic(LED, keys=_keys(LED, "gn"))
     t = g.command("noop", now_ns=RUN2)
     assert not g.take_requests() and g.result(t) is None  # no run followed yet
     v = Vehicle(ground=g)
@@ -428,7 +435,8 @@ def test_command_events_read_back_from_their_catalogue_format(
 
 
 def test_the_script_player_says_when_the_script_is_done() -> None:
-    g = GroundLogic(IGN, key=KEY, script=parse_commands("at 0.02 arm\nat 0.03 launch\n"))
+    script = parse_commands("at 0.02 arm\nat 0.03 launch\n")
+    g = GroundLogic(IGN, keys=_keys(IGN, "gn"), script=script)
     v = Vehicle(IGN, ground=g)
     v.run(10)
     assert [(o.command, o.status) for o in g.player.results(g)] == [  # type: ignore[union-attr]

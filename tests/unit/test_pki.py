@@ -45,7 +45,7 @@ def config_home(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Path:
 def test_a_mission_pki_certifies_every_node_by_name_privately(config_home: Path) -> None:
     m = load_mission(IGNITER)
     pki = ensure_mission_pki(m)
-    d = config_home / "zplatform" / "pki" / "recovery_igniter"
+    d = config_home / "zplatform" / "keys" / "recovery_igniter"  # beside the key set
     assert Path(pki.directory) == d and Path(pki.deployment) == default_deployment_path(m)
     assert pki.made == ["ca", "cn", "dn0", "dn1", "gn", "tool"]
     assert _mode(d) == 0o700
@@ -118,27 +118,33 @@ def _keygen(target: str, home: Path) -> subprocess.CompletedProcess[str]:
     )
 
 
-def test_keygen_makes_the_pki_and_says_which_file_goes_where(tmp_path: Path) -> None:
+def test_keygen_makes_the_pki_beside_the_key_set_and_says_which_file_goes_where(
+    tmp_path: Path,
+) -> None:
     r = _keygen(str(IGNITER), tmp_path)
     assert r.returncode == 0, r.stderr
-    d = tmp_path / "zplatform" / "pki" / "recovery_igniter"
+    d = tmp_path / "zplatform" / "keys" / "recovery_igniter"
     lines = r.stdout.splitlines()
-    made = "ca, cn, dn0, dn1, gn, tool"
-    assert lines[0] == f"made the PKI of mission 'recovery_igniter' in {d}: {made}"
-    rows = {line.split(":")[0].strip(): line.split(":", 1)[1].split() for line in lines[2:8]}
+    at = next(i for i, line in enumerate(lines) if line.startswith("the PKI of its mutual TLS"))
+    assert "hazardous commands" in lines[at] and "made ca, cn, dn0, dn1, gn, tool" in lines[at]
+    rows = {
+        line.split("->")[1].strip(): line.split("->")[0].split() for line in lines[at + 1 : at + 8]
+    }
     assert rows == {
         "every host": ["deployment.yaml", "ca.pem"],
-        "the host of cn": ["cn.pem", "cn.key"],
-        "the host of dn0": ["dn0.pem", "dn0.key"],
-        "the host of dn1": ["dn1.pem", "dn1.key"],
-        "the ground station (gn)": ["gn.pem", "gn.key"],
-        "the operator's tools (cmd, tap, log, ground)": ["tool.pem", "tool.key"],
+        "the control node's host": ["cn.pem", "cn.tls.key"],
+        "dn0's host": ["dn0.pem", "dn0.tls.key"],
+        "dn1's host": ["dn1.pem", "dn1.tls.key"],
+        "the ground station (ground node, console, cmd)": ["gn.pem", "gn.tls.key"],
+        "the operator's tools (tap, log, cmd, console)": ["tool.pem", "tool.tls.key"],
+        "no other host (it signs certificates)": ["ca.key"],
     }
-    assert "ca.key" in lines[8] and "no other host" in lines[8]
-    assert (tmp_path / "zplatform" / "keys" / "recovery_igniter.key").is_file()
-    # A mission on plain links gets no certificates; a bare name has no nodes.
+    # Each role's certificate and TLS key sit beside its key file.
+    for role in ("cn", "dn0", "dn1", "gn", "tool"):
+        assert {f"{role}.keys", f"{role}.pem", f"{role}.tls.key"} <= {p.name for p in d.iterdir()}
+    dep = load_deployment(d / "deployment.yaml", load_mission(IGNITER))
+    assert dep.nodes["dn0"].key == str(d / "dn0.tls.key")
+    # A mission on plain links gets a key set and no certificates.
     r = _keygen(str(ROOT / "configs" / "minimal.yaml"), tmp_path)
-    assert r.returncode == 0 and "no certificates: mission 'minimal' runs plain" in r.stdout
-    r = _keygen("some_mission", tmp_path)
-    assert r.returncode == 0 and "pass the mission file" in r.stdout, r.stdout + r.stderr
-    assert not (tmp_path / "zplatform" / "pki" / "minimal").exists()
+    assert r.returncode == 0 and "no certificates: its links are plain" in r.stdout
+    assert not (tmp_path / "zplatform" / "keys" / "minimal" / "deployment.yaml").exists()

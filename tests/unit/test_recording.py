@@ -3,7 +3,6 @@ dropped and counted, the record says so, and a replay stops at the gap."""
 
 from __future__ import annotations
 
-import os
 import threading
 from pathlib import Path
 from typing import Any
@@ -44,7 +43,7 @@ def test_a_stalled_disk_drops_whole_loops_counted_and_marked(
 
     monkeypatch.setattr(recording, "open", stalling_open, raising=False)
     m = load_mission(MISSION)
-    cn = ControlLogic(m, key=None, epoch=1)
+    cn = ControlLogic(m, keys=None, epoch=1)
     rec = Recorder(tmp_path / "rec", m, MISSION, cn.dv, seconds=0.0)
     stalled = files[0]
     stalled.go.clear()  # the disk stops
@@ -66,11 +65,10 @@ def test_the_final_loop_flag_is_recorded_and_replayed(tmp_path: Path) -> None:
     """A run's last loop (dnX_final in its frames and telemetry) is an input
     of the loop like the others: the replay repeats it, bit for bit."""
     from zplatform import replay
-    from zplatform.auth import KEY_ENV
+    from zplatform.auth import load_keys
 
     m = load_mission(MISSION)
-    key = bytes.fromhex(os.environ[KEY_ENV])
-    cn = ControlLogic(m, key=key, epoch=1)
+    cn = ControlLogic(m, keys=load_keys(m, "cn"), epoch=1)
     rec = Recorder(tmp_path / "rec", m, MISSION, cn.dv)
     cn.recorder = rec
     for n in (1, 2, 3):

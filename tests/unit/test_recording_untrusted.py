@@ -27,7 +27,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from zplatform import ControlLogic, Recorder, load_mission, replay
-from zplatform.auth import KEY_ENV
+from zplatform.auth import load_keys
 from zplatform.datavector import Layout
 from zplatform.errors import RecordingError
 from zplatform.loop import DeviceLogic
@@ -37,6 +37,7 @@ from zplatform.recording import (
     MAX_MISSION_BYTES,
     MISSION_FILE,
     RECORD_FILE,
+    VERSION,
     RecordMeta,
     RecordReader,
     mission_digest,
@@ -78,9 +79,8 @@ def real(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """A real recording of the minimal mission: LOOPS loops, dn0 answering."""
     d = tmp_path_factory.mktemp("real") / "rec"
     m = load_mission(MINIMAL)
-    key = bytes.fromhex(os.environ[KEY_ENV])
-    cn = ControlLogic(m, key=key, epoch=1)
-    dn = DeviceLogic(m, "dn0", key=key)
+    cn = ControlLogic(m, keys=load_keys(m, "cn"), epoch=1)
+    dn = DeviceLogic(m, "dn0", keys=load_keys(m, "dn0"))
     rec = Recorder(d, m, MINIMAL, cn.dv)
     cn.recorder = rec
     for n in range(1, LOOPS + 1):
@@ -112,7 +112,7 @@ def _header(mission_text: str, pythonpath: Path | None = None) -> tuple[bytes, s
             created_unix_s=0.0,
         )
     )
-    head = _HEAD.pack(b"ZPREC\x00", 3, len(meta)) + meta
+    head = _HEAD.pack(b"ZPREC\x00", VERSION, len(meta)) + meta
     return head + struct.pack("<I", layout.size) + bytes(layout.size), mission_text
 
 
@@ -286,6 +286,8 @@ FINISH = (8, 0, struct.pack("<BIII", 0, 0, 0, 0))
         (_items(BEGIN, BEGIN), "loop 1 never ends"),
         (_items(BEGIN, (7, 0, b"t"), (7, 0, b"t")), "loop 1: two telemetry frames"),
         (_items(BEGIN, *[(10, 255, b"k")] * 257), "over 256 foreign replies"),
+        (_items(BEGIN, (11, 0, b"\x01\x02\x03")), "PRM_SAVED of 3 bytes (at least 9)"),
+        (_items(BEGIN, (11, 0, b"s" * 600)), "PRM_SAVED of 600 bytes (at most 521 "),
     ],
 )
 def test_malformed_items_end_in_one_recording_error(

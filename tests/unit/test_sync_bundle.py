@@ -14,7 +14,7 @@ from hypothesis import strategies as st
 
 from zplatform.codec import BUNDLE_MAGIC, BundleEncoder, bundle_entry, is_bundle
 from zplatform.errors import FrameFormatError
-from zplatform.lockstep import SIM_KEY, LockstepRunner
+from zplatform.lockstep import LockstepRunner, sim_keys
 from zplatform.loop import ControlLogic, DeviceLogic
 from zplatform.messages import WILDCARD_MAX_BUNDLE, sync_bundle_size, wildcard_sync_for
 from zplatform.mission import decode_mission, load_mission
@@ -67,8 +67,8 @@ def test_any_bytes_give_a_bounded_view_or_a_format_error(payload: bytes, i: int)
 
 def _pair() -> tuple[ControlLogic, list[DeviceLogic]]:
     m = load_mission(LED)
-    cn = ControlLogic(m, key=SIM_KEY)
-    return cn, [DeviceLogic(m, dn, key=SIM_KEY) for dn in m.device_nodes]
+    cn = ControlLogic(m, keys=sim_keys(m))
+    return cn, [DeviceLogic(m, dn, keys=sim_keys(m)) for dn in m.device_nodes]
 
 
 def test_each_dn_takes_its_own_frame_from_the_bundle() -> None:
@@ -135,7 +135,7 @@ def test_sim_runs_the_same_with_either_query_form() -> None:
 
 def test_a_foreign_reply_is_a_bad_frame_recorded_and_replayed(tmp_path: Path) -> None:
     m = load_mission(LED)
-    cn = ControlLogic(m, key=SIM_KEY)
+    cn = ControlLogic(m, keys=sim_keys(m))
     rec = Recorder(tmp_path / "rec", m, LED, cn.dv)
     cn.recorder = rec
     cn.begin(1, 10**9)

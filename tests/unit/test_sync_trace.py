@@ -8,7 +8,7 @@ from pathlib import Path
 
 import zenoh
 
-from zplatform.lockstep import SIM_KEY
+from zplatform.lockstep import sim_keys
 from zplatform.loop import ControlLogic, DeviceLogic
 from zplatform.mission import load_mission
 from zplatform.sync import ControlSync, DeviceSync
@@ -27,8 +27,8 @@ def _session() -> zenoh.Session:
 
 def test_both_ends_report_every_hop_in_order() -> None:
     m = load_mission(MINIMAL)
-    cn = ControlLogic(m, key=SIM_KEY)
-    dn = DeviceLogic(m, "dn0", key=SIM_KEY)
+    cn = ControlLogic(m, keys=sim_keys(m))
+    dn = DeviceLogic(m, "dn0", keys=sim_keys(m))
     cn_hops: list[tuple[str, int]] = []
     dn_hops: list[tuple[str, int]] = []
     session = _session()

@@ -10,9 +10,9 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from zplatform import DataVector, Layout, RegionCodec, load_mission
-from zplatform.auth import AuthError, Channel, mission_channels
+from zplatform.auth import AuthError, Channel, KeySet, channel
 from zplatform.codec import encode_frame
-from zplatform.lockstep import SIM_KEY, LockstepRunner
+from zplatform.lockstep import LockstepRunner, sim_keys
 from zplatform.loop import ControlLogic, DeviceLogic
 from zplatform.uplink import Uplink, element_index, parse_commands
 
@@ -78,7 +78,7 @@ def _abort_at(which: str, target: int) -> tuple[str, str, list[str]]:
     while r.loop < target - 1:
         r.step()
     seq = int(r.ground.dv.get("cn_cmd_seq")) + 1
-    up = Uplink(mission, SIM_KEY)
+    up = Uplink(mission, sim_keys(mission))
     r._ground = bytearray(up.frame("ABORT", seq, 0, 0.0, 0, int(r.ground.dv.get("cn_epoch"))))
     r.step()
     status = r.control.dv.get_name("cn_cmd_status")
@@ -116,16 +116,21 @@ def test_abort_always_takes_effect_within_one_loop(which: str, target: int) -> N
 # -- 2. a forged trigger cannot freeze a DN ------------------------------------------
 
 
+def _ks(mission: object, master: bytes | None) -> KeySet | None:
+    """Every link's key derived from ``master`` (None: no authentication)."""
+    return KeySet.from_master(mission, master) if master is not None else None  # type: ignore[arg-type]
+
+
 def _trigger(mission: object, dn: str, seq: int, t_ns: int, key: bytes | None) -> bytes:
     cn = DataVector(Layout.for_node(mission, "cn"))  # type: ignore[arg-type]
     frame = bytes(RegionCodec(cn, f"cn_to_{dn}").encode(seq, t_ns))
-    ch = mission_channels(mission, key)[f"cn_to_{dn}"]  # type: ignore[arg-type]
+    ch = channel(_ks(mission, key), f"cn_to_{dn}")
     return bytes(ch.seal(frame)) if ch is not None else frame
 
 
 def test_defect_2_forged_trigger_is_refused_and_real_ones_still_run() -> None:
     key = b"k" * 32
-    dn = DeviceLogic(LED, "dn0", key=key, stale_after_ns=PERIOD)
+    dn = DeviceLogic(LED, "dn0", keys=_ks(LED, key), stale_after_ns=PERIOD)
     now = 1_000 * PERIOD
     assert dn.step(_trigger(LED, "dn0", 1, now, key), now) is not None and dn.triggered == 1
     # Without the key: refused as a bad frame, never applied.
@@ -149,7 +154,7 @@ def test_defect_2_forged_trigger_is_refused_and_real_ones_still_run() -> None:
 
 
 def test_defect_3_dn_without_triggers_writes_safe_values_and_waits_for_the_cn() -> None:
-    dn = DeviceLogic(LED, "dn0", key=None)
+    dn = DeviceLogic(LED, "dn0", keys=None)
     cn = DataVector(Layout.for_node(LED, "cn"))
     cn.set("led_a_cmd", True)  # the CN lights an LED
     codec = RegionCodec(cn, "cn_to_dn0")
@@ -179,8 +184,8 @@ def test_the_cn_s_last_loop_safes_a_dn_as_the_run_s_end_not_as_a_lost_cn() -> No
     then safes its actuators with an activity event, its watchdog stays
     quiet however long no trigger comes, and a new run's triggers re-enable
     it after dn_reenable_loops, as after a lost CN."""
-    cn = ControlLogic(LED, key=None)
-    dn = DeviceLogic(LED, "dn0", key=None)
+    cn = ControlLogic(LED, keys=None)
+    dn = DeviceLogic(LED, "dn0", keys=None)
     cn.dv.set("led_a_cmd", True)
     t = 1_000 * PERIOD
     for k in (1, 2, 3):
@@ -220,8 +225,8 @@ def test_the_run_s_end_is_told_to_a_dn_a_stall_had_safed() -> None:
     """A DN the watchdog safed (the CN stalled) that then runs the final
     loop is safed because the run ended (one activity event), not still
     because the CN was lost."""
-    cn = ControlLogic(LED, key=None)
-    dn = DeviceLogic(LED, "dn0", key=None)
+    cn = ControlLogic(LED, keys=None)
+    dn = DeviceLogic(LED, "dn0", keys=None)
     t = 1_000 * PERIOD
     dn.step(bytes(cn.begin(1, t)[0]), t)
     assert dn.watchdog(t + 20 * PERIOD)  # the CN stalled
@@ -238,8 +243,8 @@ def test_a_last_loop_too_late_to_run_still_ends_the_run_for_the_dn() -> None:
     """Under load the CN's last trigger may reach a DN after its time (a
     stale query: answered, not run); it still says the run ended. A replayed
     older final frame does not."""
-    cn = ControlLogic(LED, key=None)
-    dn = DeviceLogic(LED, "dn0", key=None, stale_after_ns=PERIOD)
+    cn = ControlLogic(LED, keys=None)
+    dn = DeviceLogic(LED, "dn0", keys=None, stale_after_ns=PERIOD)
     t = 1_000 * PERIOD
     t += PERIOD
     old_final = bytes(cn.begin(1, t, final=True)[0])
@@ -264,8 +269,8 @@ def test_dn_safes_on_a_clean_exit() -> None:
 
 
 def _cn_with_ground(mission: object, key: bytes | None) -> tuple[ControlLogic, Uplink]:
-    cn = ControlLogic(mission, key=key, epoch=77)  # type: ignore[arg-type]
-    return cn, Uplink(mission, key)  # type: ignore[arg-type]
+    cn = ControlLogic(mission, keys=_ks(mission, key), epoch=77)  # type: ignore[arg-type]
+    return cn, Uplink(mission, _ks(mission, key))  # type: ignore[arg-type]
 
 
 def _loop(cn: ControlLogic, loop: int, *grounds: bytes) -> None:
@@ -291,7 +296,7 @@ def test_defect_5_replayed_or_foreign_frames_do_not_move_the_numbering() -> None
     assert cn.dv.get("cn_cmd_seq") == 1
     _loop(cn, 2, launch)  # a replay
     _loop(cn, 3, bytes(up.frame("ABORT", 9, 0, 0.0, 0, 76)))  # an earlier run's epoch
-    forged = bytes(Uplink(LED, b"x" * 32).frame("ABORT", 5, 0, 0.0, 0, 77))
+    forged = bytes(Uplink(LED, _ks(LED, b"x" * 32)).frame("ABORT", 5, 0, 0.0, 0, 77))
     _loop(cn, 4, forged)  # the wrong key
     assert cn.dv.get("cn_cmd_seq") == 1 and cn.dv.get_name("cn_cmd_status") == "ACCEPTED"
     assert cn.dv.get("cn_cmd_rejects") == 3
@@ -313,7 +318,7 @@ def test_a_refusal_that_consumes_no_number_names_the_request() -> None:
     _loop(cn, 3, bytes(up.frame("NOOP", 5, 0, 0.0, 0, 77)))  # below the last: a replay
     assert cn.dv.get_name("cn_cmd_reject_status") == "REJECTED_REPLAY"
     assert cn.dv.get("cn_cmd_reject_seq") == 5 and cn.dv.get("cn_cmd_seq") == 6
-    _loop(cn, 4, bytes(Uplink(LED, b"x" * 32).frame("NOOP", 9, 0, 0.0, 0, 77)))
+    _loop(cn, 4, bytes(Uplink(LED, _ks(LED, b"x" * 32)).frame("NOOP", 9, 0, 0.0, 0, 77)))
     assert cn.dv.get_name("cn_cmd_reject_status") == "REJECTED_AUTH"
     assert cn.dv.get("cn_cmd_reject_seq") == 0
 
@@ -369,7 +374,7 @@ def test_defect_7_junk_and_extra_requests_are_counted_and_never_block_a_command(
 
 def test_defect_8_forged_replies_are_never_applied() -> None:
     key = b"k" * 32
-    cn = ControlLogic(LED, key=key, epoch=1)
+    cn = ControlLogic(LED, keys=_ks(LED, key), epoch=1)
     frames = cn.begin(1, PERIOD)
     assert len(frames) == 3
     rogue = DataVector(Layout.for_node(LED, "dn0"))
@@ -385,7 +390,7 @@ def test_defect_8_forged_replies_are_never_applied() -> None:
 def test_channels_do_not_accept_each_others_frames() -> None:
     key = b"k" * 32
     q = Channel(key, "rocket", "cn_to_dn0")
-    r = Channel(key, "rocket", "dn0_to_cn")
+    r = Channel(key, "rocket", "dn0_to_cn")  # the same link's key, the other direction
     sealed = bytes(q.seal(b"frame"))
     assert bytes(q.open(sealed)) == b"frame"
     try:
@@ -398,8 +403,8 @@ def test_channels_do_not_accept_each_others_frames() -> None:
 
 def test_frames_are_exactly_tag_longer() -> None:
     key = b"k" * 32
-    cn = ControlLogic(LED, key=key, epoch=1)
-    plain = ControlLogic(LED, key=None, epoch=1)
+    cn = ControlLogic(LED, keys=_ks(LED, key), epoch=1)
+    plain = ControlLogic(LED, keys=None, epoch=1)
     assert len(cn.begin(1, 1)[0]) == len(plain.begin(1, 1)[0]) + 16
     frame = encode_frame(1, 1, 1, b"")
     assert struct.unpack_from(">I", frame, 2)[0] == 1
@@ -408,7 +413,7 @@ def test_frames_are_exactly_tag_longer() -> None:
 def test_a_dn_that_was_stopped_safes_before_it_runs_again() -> None:
     """A SIGSTOPped DN wakes to a trigger, not to a quiet wait: it must safe
     first (its outputs were unsupervised) and re-enable like after a loss."""
-    dn = DeviceLogic(LED, "dn0", key=None)
+    dn = DeviceLogic(LED, "dn0", keys=None)
     cn = DataVector(Layout.for_node(LED, "cn"))
     cn.set("led_a_cmd", True)
     codec = RegionCodec(cn, "cn_to_dn0")

@@ -4,13 +4,15 @@ Layout (fits 80x24, uses more room when there is more): a status bar (link,
 loop, state and time in state, loop rate, fault, last command, per-DN
 misses/late and clock offsets), the Data Vector grouped by region with
 limit colours, the event pane (filtered by severity), an optional live
-plot, and the command line (history on up/down, completion on tab).
+plot, an optional parameter view (``params``: every parameter's value,
+default, bounds, the states it may change in, hazardous ones marked), and
+the command line (history on up/down, completion on tab).
 
 The screen redraws at :data:`REFRESH_HZ` whatever the loop rate: it reads
 the model under its lock, which the link's threads update at the telemetry
-rate. Hazardous commands (``commands.hazardous``) and WRITEs of protected
-elements (``commands.protected``) open a confirmation dialog; confirmed,
-they go ARM n then COMMAND n+1.
+rate. Hazardous commands (``commands.hazardous``), WRITEs of protected
+elements (``commands.protected``) and PRM_SETs of hazardous parameters open
+a confirmation dialog; confirmed, they go ARM n then COMMAND n+1.
 """
 
 from __future__ import annotations
@@ -29,6 +31,7 @@ from textual.widgets import Button, Input, Label, Static
 from textual_plotext import PlotextPlot
 
 from ..errors import CommandError, DataVectorError
+from ..ground.records import ParamRow
 from .link import Link
 from .model import HELP, LOCAL_COMMANDS, ConsoleModel, Status, severity_style
 
@@ -128,6 +131,8 @@ class ConsoleApp(App[int]):
     #events { height: 1fr; }
     #plot { height: 1fr; display: none; }
     #plot.shown { display: block; }
+    #params { height: auto; max-height: 50%; display: none; border-top: solid $primary-darken-2; }
+    #params.shown { display: block; }
     #cmd { dock: bottom; height: 1; border: none; padding: 0 1; }
     """
     BINDINGS: ClassVar[list[BindingType]] = [Binding("ctrl+q", "quit", "quit")]
@@ -149,6 +154,8 @@ class ConsoleApp(App[int]):
                 with VerticalScroll(id="events"):
                     yield Static("", id="events-text")
                 yield PlotextPlot(id="plot")
+                with VerticalScroll(id="params"):
+                    yield Static("", id="params-table")
         yield CommandLine(self.model, id="cmd", placeholder="command (tab completes, help)")
 
     def on_mount(self) -> None:
@@ -182,6 +189,7 @@ class ConsoleApp(App[int]):
                 lines = m.events()[-200:]
                 series = m.plot_series()
                 plotted = list(m.plotted)
+                params = m.param_rows() if m.show_params else None
         bar = self.query_one("#status", Static)
         bar.update(_status_text(status))
         bar.set_class(status.los, "los")
@@ -195,6 +203,9 @@ class ConsoleApp(App[int]):
             text.append(f"{x.source:<7} {x.text}\n")
         self.query_one("#events-text", Static).update(text)
         self.query_one("#events", VerticalScroll).scroll_end(animate=False)
+        self.query_one("#params", VerticalScroll).set_class(params is not None, "shown")
+        if params is not None:
+            self.query_one("#params-table", Static).update(_params_table(params))
         plot = self.query_one("#plot", PlotextPlot)
         plot.set_class(bool(plotted), "shown")
         if plotted:
@@ -277,6 +288,8 @@ class ConsoleApp(App[int]):
                 msg = m.set_filter(args)
             elif head == "plot":
                 msg = m.set_plot(args)
+            elif head == "params":
+                msg = m.toggle_params()
             else:  # clear
                 m.log.clear()
                 m.version += 1
@@ -315,6 +328,18 @@ def _status_text(s: Status) -> Text:
         t.append(f"  {dn} {rx}/{missed}/{late}", style=style)
         t.append(f" {off / 1e6:+.2f}ms")
     return t
+
+
+def _params_table(rows: list[ParamRow]) -> Table:
+    table = Table(expand=True, box=None, padding=(0, 1), show_edge=False)
+    for col in ("parameter", "value", "default", "bounds", "states"):
+        table.add_column(col, no_wrap=True, overflow="ellipsis")
+    for r in rows:
+        name = Text(r.name, style="bold red" if r.hazardous else "")
+        if r.hazardous:
+            name.append(" (ARM)", style="red")
+        table.add_row(name, r.value, r.default, r.bounds, ",".join(r.states))
+    return table
 
 
 def _clock(t_ns: int) -> str:

@@ -35,7 +35,14 @@ from ..config import CMD_NAMES, Mission
 from ..datavector import DataVector, ElementSpec, Layout
 from ..errors import CommandError, ZPlatformError
 from ..events import Severity
-from ..ground.records import CommandOutcome, EventRecord, TelemetryCounters, format_outcome
+from ..ground.records import (
+    CommandOutcome,
+    EventRecord,
+    ParamRow,
+    TelemetryCounters,
+    format_outcome,
+    param_rows,
+)
 from ..ground.status import RateMeter
 from ..limits import Limits, mission_limits
 
@@ -67,12 +74,13 @@ _RANKS = {
 _STYLES = {6: "bold white on red", 5: "bold red", 4: "yellow", 3: "cyan", 2: "", 1: "dim", 0: "dim"}
 
 #: Console-side commands (not sent to the vehicle).
-LOCAL_COMMANDS = ("filter", "plot", "clear", "help", "quit")
+LOCAL_COMMANDS = ("filter", "plot", "params", "clear", "help", "quit")
 OPERATOR_COMMANDS = tuple(c.lower() for c in CMD_NAMES[1:])
 
 HELP = (
-    "vehicle: " + " | ".join(OPERATOR_COMMANDS) + " (write ELEMENT VALUE); "
-    "console: filter [SEVERITY|all] | plot ELEMENT... | clear | quit"
+    "vehicle: " + " | ".join(OPERATOR_COMMANDS) + " (write ELEMENT VALUE, "
+    "prm_set PARAMETER VALUE); console: filter [SEVERITY|all] | plot ELEMENT... | "
+    "params (show/hide the parameters) | clear | quit"
 )
 
 
@@ -147,6 +155,8 @@ class ConsoleModel:
         self._los = False
         self._rate = RateMeter()
         self.plotted: list[str] = []
+        self.show_params = False
+        """Whether the parameter view is shown (the ``params`` command)."""
         self._plot_step_ns = 50_000_000
         self._plot_len = int(plot_window_s * 1e9 / self._plot_step_ns)
         self._series: dict[str, deque[tuple[float, float]]] = {}
@@ -178,7 +188,8 @@ class ConsoleModel:
         self.version += 1
 
     def on_event(self, rec: EventRecord) -> None:
-        self.log.append(LogLine(rec.t_ns, rec.severity, rec.node, f"{rec.id}: {rec.text}"))
+        mark = " (unverified)" if rec.verified is False else ""
+        self.log.append(LogLine(rec.t_ns, rec.severity, rec.node, f"{rec.id}: {rec.text}{mark}"))
         self.version += 1
 
     def on_result(self, t_ns: int, outcome: CommandOutcome) -> None:
@@ -270,6 +281,21 @@ class ConsoleModel:
             if r.elements
         ]
 
+    def param_rows(self) -> list[ParamRow]:
+        """Every parameter of the mission with its value in the last
+        snapshot ("-" before the first)."""
+        if self.last_rx_ns is None:
+            return param_rows(self.mission, None)
+        return param_rows(self.mission, {p.name: self.dv.get(p.name) for p in self.mission.params})
+
+    def toggle_params(self) -> str:
+        """Show or hide the parameter view."""
+        if not self.mission.params:
+            raise CommandError(f"mission {self.mission.mission!r} has no parameters")
+        self.show_params = not self.show_params
+        self.version += 1
+        return "parameters shown" if self.show_params else "parameters hidden"
+
     def events(self) -> list[LogLine]:
         """The log lines that pass the severity filter, oldest first."""
         return [x for x in self.log if severity_rank(x.severity) >= self.min_rank]
@@ -306,7 +332,8 @@ class ConsoleModel:
         """The completion of ``text`` (the whole line) or None.
 
         Completes the first word against operator and console commands, the
-        element of ``write`` against writable elements, ``plot`` against every
+        element of ``write`` against writable elements, the parameter of
+        ``prm_set`` against the mission's parameters, ``plot`` against every
         scalar element and ``filter`` against severity names.
         """
         words = text.split(" ")
@@ -316,6 +343,8 @@ class ConsoleModel:
             head = words[0].lower()
             if head == "write" and len(words) == 2:
                 pool = self.writable
+            elif head == "prm_set" and len(words) == 2:
+                pool = [p.name for p in self.mission.params]
             elif head == "plot":
                 pool = [e.name for e in self.layout.elements.values() if not e.count]
             elif head == "filter" and len(words) == 2:

@@ -38,7 +38,7 @@ from typing import Literal
 
 import zenoh
 
-from ..auth import load_key
+from ..auth import KeySet, channel, load_keys
 from ..config import Mission
 from ..datavector import DataVector
 from ..errors import CommandError, TransportError
@@ -78,8 +78,10 @@ class GroundLink:
 
     ``node``: run as that node of the mission (``gn``: its endpoints and
     liveliness token, declared once everything is subscribed); None: a
-    tool connected to every node. ``key``: the mission key, ``"mission"``
-    to load it (``key_file``, the environment, the default file) before any
+    tool connected to every node. ``keys``: the ground's keys, or
+    ``"mission"`` to load them (:func:`zplatform.auth.load_keys`: host role
+    ``gn`` when it runs as the ground node or may command, else ``tool``,
+    from ``key_file``, the environment or the default key set) before any
     session opens, so a missing key is the first and only error.
     ``telemetry``/``events``/``commands``: which of the three to declare
     (a ``script`` implies ``commands``). ``on_event`` gets every event record
@@ -95,7 +97,7 @@ class GroundLink:
         mission: Mission,
         *,
         node: str | None = None,
-        key: bytes | Literal["mission"] | None = "mission",
+        keys: KeySet | Literal["mission"] | None = "mission",
         key_file: str | None = None,
         telemetry: bool = True,
         events: bool = True,
@@ -106,12 +108,13 @@ class GroundLink:
         announce: bool = True,
     ) -> None:
         self.mission = mission
-        if key == "mission":
-            key = load_key(mission, key_file)
+        if keys == "mission":
+            role = "gn" if node == "gn" or commands or script else "tool"
+            keys = load_keys(mission, role, key_file)
         self.clock = clock or NodeClock()
         self.logic = GroundLogic(
             mission,
-            key=key,
+            keys=keys,
             node=node or "ground",
             max_age_ns=max_age_ns_from_env(mission),
             script=script,
@@ -132,7 +135,9 @@ class GroundLink:
         # A node publishes its own events (and takes them back through its
         # intake); a tool hands them to on_event itself.
         self._ev_pub = (
-            EventPublisher(session, self.keys.events(node), self.logic.events)
+            EventPublisher(
+                session, self.keys.events(node), self.logic.events, channel(keys, f"events_{node}")
+            )
             if node is not None
             else None
         )
@@ -161,15 +166,15 @@ class GroundLink:
             self._after(self.clock.now_ns())
             return None
 
-    def _take(self, kind: int, payload: bytes, rx: int) -> bool:
-        """One telemetry frame or event through the logic; True when a
-        snapshot was accepted."""
+    def _take(self, kind: int, payload: bytes, rx: int, key: str) -> bool:
+        """One telemetry frame or event (that came on ``key``) through the
+        logic; True when a snapshot was accepted."""
         logic = self.logic
         if kind == _TM:
             ok = logic.on_telemetry(payload, rx, can_send=self.cn_listening)
             self._after(rx)
             return ok
-        rec = logic.on_event_bytes(payload, rx)
+        rec = logic.on_event_bytes(key, payload, rx)
         if rec is not None and self.on_event is not None:
             self.on_event(rec)
         self._after(rx)
@@ -193,7 +198,7 @@ class GroundLink:
                 if tap:
                     return key, payload, shm
                 self._taps.append((key, payload, shm))
-            elif self._take(kind, payload, rx) and not tap:
+            elif self._take(kind, payload, rx, key) and not tap:
                 return rx
         return None
 

@@ -69,13 +69,13 @@ from collections.abc import Sequence
 
 import msgspec
 
-from ..auth import TAG_LEN, AuthError, mission_channels
+from ..auth import TAG_LEN, AuthError, KeySet, channel, link_of
 from ..codec import RegionCodec
 from ..commands import protected_elements
 from ..config import Mission
 from ..datavector import DataVector, Layout
-from ..errors import CodecError, CommandError, FrameFormatError
-from ..events import EV, Event, EventLog, EventType, decode_event
+from ..errors import CodecError, CommandError
+from ..events import EV, Event, EventLog, EventReader, EventType
 from ..uplink import ScriptCommand, Uplink, validate_command
 from .records import REFUSALS, CommandOutcome, EventRecord, TelemetryCounters
 from .script import ScriptPlayer
@@ -105,15 +105,19 @@ def default_max_age_ns(mission: Mission) -> int:
 
 
 def needs_arm(mission: Mission, command: str, element: str | None = None) -> str | None:
-    """Why ``command`` (with ``element`` for WRITE) must go as ARM n, then
-    the command n+1, or None when it need not: the command is hazardous
-    (``commands.hazardous``) or the WRITE sets a protected element
-    (``commands.protected``, :func:`zplatform.commands.protected_elements`)."""
+    """Why ``command`` (with ``element`` for WRITE, the parameter for
+    PRM_SET) must go as ARM n, then the command n+1, or None when it need
+    not: the command is hazardous (``commands.hazardous``), the WRITE sets a
+    protected element (``commands.protected``,
+    :func:`zplatform.commands.protected_elements`), or the PRM_SET a
+    hazardous parameter (``params[i].hazardous``)."""
     cmd = command.upper()
     if cmd in mission.commands.hazardous:
         return f"{cmd} is hazardous (commands.hazardous)"
     if cmd == "WRITE" and element is not None and element in protected_elements(mission):
         return f"{element} is protected (commands.protected)"
+    if cmd == "PRM_SET" and any(p.name == element and p.hazardous for p in mission.params):
+        return f"parameter {element} is hazardous (params: hazardous)"
     return None
 
 
@@ -227,8 +231,12 @@ class GroundLogic:
     """The ground's logic (module doc). Construction resolves the script
     against the mission (CommandError naming ``file:line``).
 
-    ``key``: the mission key (None: the mission does not authenticate).
-    ``node``: the name the ground's own events carry. ``max_age_ns``: the
+    ``keys``: the ground's keys (:func:`zplatform.auth.load_keys`: a ground
+    node's or a commanding tool's hold the downlink, the uplink and every
+    node's event key; a read-only tool's no uplink, so it frames no
+    request); None: the mission does not authenticate. Only events whose
+    tag verified (or any, when the mission does not authenticate) explain
+    a verdict. ``node``: the name the ground's own events carry. ``max_age_ns``: the
     freshness bound (default :func:`default_max_age_ns`). ``script``: a
     command script to play (:class:`~.script.ScriptPlayer`).
     """
@@ -237,7 +245,7 @@ class GroundLogic:
         self,
         mission: Mission,
         *,
-        key: bytes | None,
+        keys: KeySet | None,
         node: str = "gn",
         max_age_ns: int | None = None,
         script: Sequence[ScriptCommand] = (),
@@ -251,7 +259,8 @@ class GroundLogic:
         self.dv = DataVector(self.layout)
         """The last accepted snapshot (all zero before the first)."""
         self._codec = RegionCodec(self.dv)
-        self._open = mission_channels(mission, key)["telemetry"]
+        self._open = channel(keys, "telemetry")
+        self._events_in = EventReader(mission, keys)
         self._max_len = self._codec.max_frame_len + (TAG_LEN if self._open is not None else 0)
         self._epoch_at = self.layout.element("cn_epoch").offset
         self.max_age_ns = default_max_age_ns(mission) if max_age_ns is None else max_age_ns
@@ -278,7 +287,11 @@ class GroundLogic:
         self._h_rstatus = h("cn_cmd_reject_status")
         self._h_rejects = h("cn_cmd_rejects")
         # commands
-        self._uplink = Uplink(mission, key) if mission.has_ground else None
+        self._uplink = (
+            Uplink(mission, keys)
+            if mission.has_ground and (keys is None or keys.has(link_of("gn_to_cn")))
+            else None
+        )
         self._plans: deque[_Plan] = deque()
         self._tickets: dict[int, _Plan] = {}
         self._next_ticket = 1
@@ -454,8 +467,13 @@ class GroundLogic:
         mission without a ground node.
         """
         if self._uplink is None:
-            raise CommandError(f"mission {self.mission.mission!r} has no ground node 'gn'")
-        cmd, index, num = validate_command(self.mission, command, element, value, source or "write")
+            raise CommandError(
+                f"mission {self.mission.mission!r} has no ground node 'gn'"
+                if not self.mission.has_ground
+                else "this ground holds no uplink key (a read-only tool's keys): commands "
+                "need the ground's key file (gn.keys from `zplatform keygen`)"
+            )
+        cmd, index, num = validate_command(self.mission, command, element, value, source or None)
         steps = [("ARM", 0, 0.0), (cmd, index, num)] if armed else [(cmd, index, num)]
         ticket = self._next_ticket
         self._next_ticket += 1
@@ -617,28 +635,32 @@ class GroundLogic:
         self._release(now_ns, all_=True)
 
     # -- events --------------------------------------------------------------
-    def on_event(self, e: Event, rx_ns: int) -> EventRecord:
-        """Take one event received at ``rx_ns``: a CN command event explains
-        a verdict (module doc). Returns the record to show or log."""
-        ce = _read_cmd_event(e)
+    def on_event(self, e: Event, rx_ns: int, verified: bool | None = None) -> EventRecord:
+        """Take one event received at ``rx_ns``: a CN command event whose tag
+        verified (``verified`` True, or None when the mission does not
+        authenticate) explains a verdict (module doc). Returns the record to
+        show or log."""
+        ce = _read_cmd_event(e) if verified is not False else None
         if ce is not None:
             self._cmd_events.append(ce)
             for r in self._deciding:
                 if not r.reason_from:
                     self._match(r)
             self._release(rx_ns)
-        return EventRecord.of(e, rx_ns)
+        return EventRecord.of(e, rx_ns, verified)
 
     def on_event_bytes(
-        self, payload: bytes | bytearray | memoryview, rx_ns: int
+        self, key_expr: str, payload: bytes | bytearray | memoryview, rx_ns: int
     ) -> EventRecord | None:
-        """Decode and take one event record; None (counted) if it is not one."""
+        """Check and take one event record that came on ``key_expr``
+        (``{vehicle}/<node>/events``: whose key checks its tag); None
+        (counted) if it is not one, or its tag fails."""
         try:
-            e = decode_event(payload)
-        except FrameFormatError:
+            e, verified = self._events_in.read(key_expr, payload)
+        except CodecError:
             self._n.bad_events += 1
             return None
-        return self.on_event(e, rx_ns)
+        return self.on_event(e, rx_ns, verified)
 
 
 def _derived(r: _Request) -> tuple[str, str]:
@@ -654,5 +676,10 @@ def _derived(r: _Request) -> tuple[str, str]:
         ),
         "REJECTED_EPOCH": "the request named another run of the control node",
         "REJECTED_AUTH": "the request's tag did not verify",
+        "REJECTED_OUT_OF_BOUNDS": "the value is outside the parameter's bounds",
+        "REJECTED_PARAM_STATE": (
+            f"the parameter may not change in state {r.state} (the state its verdict showed)"
+        ),
+        "REJECTED_BUSY": "the previous PRM_SAVE was still being written",
     }.get(r.status, "")
     return why, ("derived" if why else "")

@@ -1,28 +1,36 @@
-"""The ground side's typed records: telemetry counters, command outcomes, events.
+"""The ground side's typed records: telemetry counters, command outcomes, events, parameters.
 
 Frozen ``msgspec.Struct``\\ s, snapshots in the manner of trio's statistics
 objects: a :class:`TelemetryCounters` is what :class:`~.logic.GroundLogic`
 counted up to the moment it was taken, a :class:`CommandOutcome` the CN's
 verdict on one request with its reason, an :class:`EventRecord` one event as
 the ground received it (the line of the events JSONL, the ``event`` of
-``tap --json``). Their encodings are the file formats: nothing else defines
-those fields.
+``tap --json``), a :class:`ParamRow` one mission parameter as ``zplatform
+params`` and the console's parameter view show it. Their encodings are the
+file formats: nothing else defines those fields.
 """
 
 from __future__ import annotations
 
-from typing import Literal
+from typing import TYPE_CHECKING, Literal
 
 import msgspec
 
 from ..events import Event
 
+if TYPE_CHECKING:
+    from collections.abc import Mapping
+
+    from ..config import Mission
+
 __all__ = [
     "REFUSALS",
     "CommandOutcome",
     "EventRecord",
+    "ParamRow",
     "TelemetryCounters",
     "format_outcome",
+    "param_rows",
 ]
 
 REFUSALS = ("stale", "ahead", "old_epoch", "not_newer", "jump")
@@ -116,8 +124,11 @@ def format_outcome(o: CommandOutcome) -> str:
 class EventRecord(msgspec.Struct, frozen=True):
     """One event as the ground received it: ``rx_time_ns`` (the receiver's
     clock, as in the telemetry CSV), then the :class:`~zplatform.events.Event`'s
-    ``node``, ``seq``, ``t_ns``, ``severity`` (by name), ``id`` and ``text``.
-    One line of the events JSONL, in this field order."""
+    ``node``, ``seq``, ``t_ns``, ``severity`` (by name), ``id`` and ``text``,
+    and ``verified``: True when its node's tag checked, False when the
+    receiver holds no key for that node (shown marked unverified), None when
+    the mission does not authenticate. One line of the events JSONL, in this
+    field order."""
 
     rx_time_ns: int
     node: str
@@ -126,7 +137,57 @@ class EventRecord(msgspec.Struct, frozen=True):
     severity: str
     id: str
     text: str
+    verified: bool | None = None
 
     @classmethod
-    def of(cls, e: Event, rx_time_ns: int) -> EventRecord:
-        return cls(rx_time_ns, e.node, e.seq, e.t_ns, e.severity_name, e.id, e.text)
+    def of(cls, e: Event, rx_time_ns: int, verified: bool | None = None) -> EventRecord:
+        return cls(rx_time_ns, e.node, e.seq, e.t_ns, e.severity_name, e.id, e.text, verified)
+
+
+class ParamRow(msgspec.Struct, frozen=True):
+    """One mission parameter as the ground shows it: ``value`` as read
+    (``"-"`` when unknown), ``default``, ``bounds`` with units
+    (``"[300, 1000] m"``; ``""`` for a bool), ``states`` in which it may
+    change, ``hazardous`` (PRM_SET needs ARM first), ``doc``."""
+
+    name: str
+    type: str
+    value: str
+    default: str
+    bounds: str
+    states: list[str]
+    hazardous: bool
+    doc: str
+
+
+def param_rows(mission: Mission, values: Mapping[str, object] | None) -> list[ParamRow]:
+    """Every parameter of ``mission`` in declaration order, with its value
+    from ``values`` (by name: a telemetry snapshot, a parameter file; None
+    or a name missing: unknown)."""
+    from ..params import param_states
+
+    rows = []
+    for p in mission.params:
+        units = f" {p.units}" if p.units else ""
+        bounds = f"[{_text(p.min)}, {_text(p.max)}]{units}" if p.min is not None else units[1:]
+        rows.append(
+            ParamRow(
+                name=p.name,
+                type=p.type,
+                value=_text(values[p.name]) if values is not None and p.name in values else "-",
+                default=_text(p.default),
+                bounds=bounds,
+                states=param_states(mission, p),
+                hazardous=p.hazardous,
+                doc=p.doc,
+            )
+        )
+    return rows
+
+
+def _text(v: object) -> str:
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, float):
+        return f"{v:.7g}"
+    return str(v)

@@ -20,13 +20,13 @@ from typing import Any, TextIO
 import msgspec
 import zenoh
 
-from ..auth import TAG_LEN, KeyError_, load_key, mission_channels
+from ..auth import TAG_LEN, Channel, KeyError_, link_of, load_keys
 from ..bulk import bulk_key, decode_sample
 from ..codec import RegionCodec
 from ..config import Mission
 from ..datavector import DataVector, Layout
 from ..errors import CodecError, CommandError, TransportError
-from ..events import decode_event
+from ..events import EventReader
 from ..transport import KeySpace
 from .records import EventRecord
 
@@ -37,35 +37,45 @@ TAP_SILENCE_S = 5.0
 
 
 class TapDecoder:
-    """Decodes any sample of the key space into named values (module doc)."""
+    """Decodes any sample of the key space into named values (module doc).
+
+    Frames and events of an authenticating mission are checked with the
+    keys a read-only tool holds (the downlink's and every node's event
+    keys: ``tool.keys``) when they are at hand; what they do not cover
+    (the triggers and replies of the cn<->dnX links, command requests) and
+    everything without them is still decoded, marked ``"verified": false``."""
 
     def __init__(self, mission: Mission) -> None:
         self.mission = mission
-        keys = KeySpace(mission.vehicle)
+        space = KeySpace(mission.vehicle)
         self._auth = mission.security.auth
         try:
-            key = load_key(mission)
+            keys = load_keys(mission, "tool")
         except KeyError_:
-            key = None
-        ch = mission_channels(mission, key)
+            keys = None
+
+        def chan(name: str) -> Channel | None:
+            return keys.channel(name) if keys is not None and keys.has(link_of(name)) else None
+
+        self._events = EventReader(mission, keys)
         self._by_key: dict[str, Any] = {}
         self._bulk = {bulk_key(mission.vehicle, c): c for c in mission.bulk}
         cn = DataVector(Layout.for_node(mission, "cn"))
-        self._by_key[keys.telemetry] = (RegionCodec(cn), cn, ch["telemetry"])
+        self._by_key[space.telemetry] = (RegionCodec(cn), cn, chan("telemetry"))
         for region in mission.region_names():
             if region == "cn":
                 continue
             dv = DataVector(Layout.for_regions(mission, [region]))
-            self._by_key[keys.region(region)] = (RegionCodec(dv, region), dv, ch.get(region))
+            self._by_key[space.region(region)] = (RegionCodec(dv, region), dv, chan(region))
 
     def decode(self, key: str, payload: bytes, rx_ns: int = 0) -> dict[str, Any]:
         """``{"key": key, ...}``: the sample's values, its event, or an ``error``."""
         if key.endswith("/events"):
             try:
-                e = decode_event(payload)
+                e, verified = self._events.read(key, payload)
             except CodecError as exc:
                 return {"key": key, "error": str(exc)}
-            return {"key": key, "event": msgspec.to_builtins(EventRecord.of(e, rx_ns))}
+            return {"key": key, "event": msgspec.to_builtins(EventRecord.of(e, rx_ns, verified))}
         ch = self._bulk.get(key)
         if ch is not None:
             try:
@@ -132,11 +142,13 @@ def format_tap(d: dict[str, Any], as_json: bool) -> str:
         return json.dumps(d, default=str)
     if "values" in d:
         vals = " ".join(f"{k}={v}" for k, v in d["values"].items())
-        return f"{key} seq={d['seq']} t_ns={d['t_ns']} via={d.get('via')} {vals}"
+        mark = " (unverified)" if d.get("verified") is False else ""
+        return f"{key} seq={d['seq']} t_ns={d['t_ns']} via={d.get('via')} {vals}{mark}"
     if "event" in d:
         e = d["event"]
+        mark = " (unverified)" if e.get("verified") is False else ""
         return (
-            f"{key} EVENT {e['severity']:<8} {e['id']}: {e['text']}  "
+            f"{key} EVENT {e['severity']:<8} {e['id']}: {e['text']}{mark}  "
             f"(seq={e['seq']} t_ns={e['t_ns']})"
         )
     return f"{key} {json.dumps({k: v for k, v in d.items() if k != 'key'})}"
@@ -166,7 +178,7 @@ def run_tap(
     keyexpr = keyexpr or KeySpace(mission.vehicle).everything
     check_keyexpr(keyexpr)
     dec = TapDecoder(mission)
-    link = GroundLink(mission, key=None, telemetry=False, events=False)
+    link = GroundLink(mission, keys=None, telemetry=False, events=False)
     link.tap(keyexpr)
     via: dict[str, list[int]] = {}  # per key: [through shared memory, copied]
     n = 0

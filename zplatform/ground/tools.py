@@ -1,9 +1,11 @@
-"""The ground tools an operator runs: ``zplatform cmd`` and the line prompt.
+"""The ground tools an operator runs: ``zplatform cmd``, ``zplatform params`` and the line prompt.
 
 Each is one function over a :class:`~.link.GroundLink` (the CLI only parses
 arguments and prints). Both refuse before anything is sent: an unknown
-command or element, a value that does not fit, and a hazardous command or a
-WRITE of a protected element that is not armed (:func:`~.logic.needs_arm`):
+command, element or parameter, a value that does not fit (or lies outside a
+parameter's bounds), and a hazardous command, a WRITE of a protected
+element or a PRM_SET of a hazardous parameter that is not armed
+(:func:`~.logic.needs_arm`):
 those go as ARM n, then the command n+1, in one step (``cmd ... --arm``,
 ``armed COMMAND [ARGS]`` at the prompt).
 """
@@ -17,18 +19,31 @@ import time
 from collections.abc import Iterable
 from typing import TextIO
 
+import msgspec
+
 from ..config import Mission
 from ..errors import CommandError, ZPlatformError
+from ..params import ParamFileError, decode_params, params_path, read_params_file
 from ..uplink import validate_command
 from .link import GroundLink
 from .logic import needs_arm
-from .records import CommandOutcome, EventRecord, format_outcome
+from .records import CommandOutcome, EventRecord, ParamRow, format_outcome, param_rows
 from .status import RateMeter, status_line
 
-__all__ = ["PROMPT_HELP", "check_command", "format_result", "run_prompt", "send_command"]
+__all__ = [
+    "PROMPT_HELP",
+    "ParamListing",
+    "check_command",
+    "format_result",
+    "list_params",
+    "run_prompt",
+    "send_command",
+    "set_param",
+]
 
 PROMPT_HELP = (
     "commands: launch | abort | noop | hold | resume | arm | write ELEMENT VALUE |\n"
+    "          prm_set PARAMETER VALUE | prm_save |\n"
     "          armed COMMAND [ARGS] (ARM n, then COMMAND n+1) | quit"
 )
 
@@ -89,8 +104,150 @@ def send_command(
         link.close()
 
 
+class ParamListing(msgspec.Struct, frozen=True):
+    """What ``zplatform params MISSION`` shows: ``source`` says where the
+    values come from (live telemetry, the parameter file on this host, or
+    nowhere), then the rows."""
+
+    mission: str
+    source: str
+    live: bool
+    rows: list[ParamRow]
+
+
+def list_params(
+    mission: Mission, *, timeout_s: float = 10.0, key_file: str | None = None
+) -> ParamListing:
+    """The mission's parameters, with their values from live telemetry
+    when its control node is alive (waiting up to ``timeout_s`` for a
+    snapshot), else from the parameter file on this host, if there is a
+    usable one. Blocks; CommandError when the CN is alive but no telemetry
+    comes."""
+    if not mission.params:
+        raise CommandError(f"mission {mission.mission!r} has no parameters")
+    link = GroundLink(mission, key_file=key_file, events=False)
+    try:
+        if "cn" in link.alive_nodes():
+            link.wait_joined(timeout_s)
+            dv = link.dv
+            values = {p.name: dv.get(p.name) for p in mission.params}
+            source = (
+                f"live telemetry, loop {dv.get('cn_loop')} in state {dv.get_name('cn_state')}; "
+                f"file: {dv.get_name('cn_prm_load_status')} at start; last save: "
+                f"#{dv.get('cn_prm_save_seq')} {dv.get_name('cn_prm_save_status')}"
+                + ("; unsaved changes" if dv.get("cn_prm_unsaved") else "")
+            )
+            return ParamListing(mission.mission, source, True, param_rows(mission, values))
+    finally:
+        link.close()
+    path = params_path(mission)
+    data = read_params_file(path)
+    if isinstance(data, bytes):
+        try:
+            f = decode_params(mission, data)
+        except ParamFileError as exc:
+            why = f"the parameter file {path} is refused ({exc.status.name}: {exc})"
+        else:
+            return ParamListing(
+                mission.mission,
+                f"not running; values saved in {path} by PRM_SAVE #{f.seq}",
+                False,
+                param_rows(mission, f.values),
+            )
+    elif data is None:
+        why = f"no parameter file at {path}"
+    else:
+        why = f"cannot read {path}: {data.strerror}"
+    return ParamListing(
+        mission.mission, f"not running; {why}: it starts at the defaults", False,
+        param_rows(mission, None),
+    )
+
+
+def set_param(
+    mission: Mission,
+    name: str | None,
+    value: str | None,
+    *,
+    armed: bool = False,
+    save: bool = False,
+    timeout_s: float = 10.0,
+    key_file: str | None = None,
+) -> tuple[list[str], bool]:
+    """``zplatform params MISSION NAME VALUE [--arm] [--save]``: PRM_SET
+    (ARM n first when ``armed``), then with ``save`` PRM_SAVE, and wait
+    until the control node has written the file. ``name`` None: only the
+    save. Returns the lines to print and whether everything succeeded
+    (every verdict ACCEPTED, the save SAVED). Refuses before sending
+    (CommandError) what :func:`check_command` refuses; CommandError when
+    telemetry or a verdict does not come within ``timeout_s``."""
+    if name is not None:
+        check_command(mission, "prm_set", [name, value or ""], armed=armed, arm_hint="--arm")
+    elif armed:
+        raise CommandError("--arm arms a PRM_SET: give NAME VALUE")
+    elif not save:
+        raise CommandError("nothing to do: give NAME VALUE, --save, or both")
+    if save:
+        validate_command(mission, "prm_save")
+    events: list[EventRecord] = []
+    link = GroundLink(mission, key_file=key_file, commands=True, on_event=events.append)
+    lines: list[str] = []
+    try:
+        if name is not None:
+            outcomes = link.command("prm_set", name, value, armed=armed, timeout_s=timeout_s)
+            steps = _steps("prm_set", armed)
+            lines += format_result(outcomes, steps)
+            if len(outcomes) != len(steps) or not all(o.accepted for o in outcomes):
+                return lines, False
+        if not save:
+            return lines, True
+        (saved,) = link.command("prm_save", timeout_s=timeout_s)
+        lines.append(format_outcome(saved))
+        if not saved.accepted:
+            return lines, False
+        line, ok = _wait_saved(link, saved, events, timeout_s)
+        lines.append(line)
+        return lines, ok
+    finally:
+        link.close()
+
+
+def _wait_saved(
+    link: GroundLink, outcome: CommandOutcome, events: list[EventRecord], timeout_s: float
+) -> tuple[str, bool]:
+    """After PRM_SAVE's verdict ``outcome``: wait for the control node to
+    finish that save (``cn_prm_save_seq``/``cn_prm_save_status``, up to
+    ``timeout_s``); returns the line that says how it ended and whether it
+    is SAVED. ``events``: the records the link's ``on_event`` collects (the
+    CN's ``prm_saved``/``prm_save_failed`` give the where and why)."""
+    dv = link.dv
+    deadline = time.monotonic() + timeout_s
+    while True:
+        if dv.get("cn_prm_save_seq") == outcome.seq and dv.get_name("cn_prm_save_status") in (
+            "SAVED",
+            "FAILED",
+        ):
+            break
+        if time.monotonic() > deadline:
+            return f"PRM_SAVE #{outcome.seq}: no result within {timeout_s:g} s", False
+        link.next(0.1)
+    status = dv.get_name("cn_prm_save_status")
+    tag = f"#{outcome.seq}"
+    end = time.monotonic() + 0.5  # the reason: the CN's event, when it comes
+    while True:
+        text = next(
+            (e.text for e in events if e.id in ("prm_saved", "prm_save_failed") and tag in e.text),
+            None,
+        )
+        if text is not None or time.monotonic() > end:
+            break
+        link.next(0.05)
+    return f"PRM_SAVE #{outcome.seq}: {status}" + (f": {text}" if text else ""), status == "SAVED"
+
+
 def _print_event(out: TextIO, rec: EventRecord) -> None:
-    print(f"EVENT {rec.node} {rec.severity} {rec.id}: {rec.text}", file=out, flush=True)
+    mark = " (unverified)" if rec.verified is False else ""
+    print(f"EVENT{mark} {rec.node} {rec.severity} {rec.id}: {rec.text}", file=out, flush=True)
 
 
 def run_prompt(

@@ -21,6 +21,12 @@ themselves as the run's end, not as a lost CN): the last of ``max_loops``
 
 ``record`` attaches a :class:`~zplatform.recording.Recorder` after the
 warm-up: every input of every loop goes to disk for ``zplatform replay``.
+
+Parameters (:mod:`zplatform.params`): :meth:`ControlNode.wait_ready` ends by
+loading the parameter file (before loop 1, so a recording starts with the
+values loaded); each loop hands an accepted PRM_SAVE to a
+:class:`~zplatform.params.ParamSaver` (a writer thread) and passes the saves
+it finished to the next loop.
 """
 
 from __future__ import annotations
@@ -34,7 +40,7 @@ from typing import Any
 import numpy as np
 import zenoh
 
-from ..auth import load_key
+from ..auth import KeySet, channel, load_keys
 from ..bulk import open_bulk
 from ..clocksync import ClockServer
 from ..config import Mission
@@ -42,6 +48,7 @@ from ..datavector import DataVector
 from ..errors import NodeError, TransportError
 from ..loop import ControlLogic
 from ..messages import wildcard_sync_for
+from ..params import ParamSaver, params_path, read_params_file
 from ..recording import Recorder
 from ..scheduler import GcGuard, PeriodicLoop
 from ..summary import CnSummary, LoopWork, cn_summary
@@ -64,6 +71,8 @@ class ControlNode:
     Build, then :meth:`run`; :meth:`close` releases every zenoh entity. Not
     thread-safe: one loop thread. ``sync_trace``: a
     :data:`~zplatform.sync.SyncTrace` for the sync's hops (benchmarks).
+    ``params_file``: the parameter file (default
+    :func:`~zplatform.params.params_path`; unused without ``params``).
     """
 
     def __init__(
@@ -73,23 +82,24 @@ class ControlNode:
         stop: StopFlag | None = None,
         lowlatency: bool | None = None,
         clock: NodeClock | None = None,
-        key: bytes | None = None,
+        keys: KeySet | None = None,
         sync_trace: SyncTrace | None = None,
+        params_file: str | Path | None = None,
     ) -> None:
         self.mission = mission
         self.stop = stop or StopFlag(install=False)
         self.clock = clock or NodeClock()
         self.clock.lock()  # the CN is the reference clock: never adjusted
         # The run's epoch: this clock's start, unique per run of the CN.
-        self.logic = ControlLogic(mission, key=key, epoch=self.clock.now_ns())
+        self.logic = ControlLogic(mission, keys=keys, epoch=self.clock.now_ns())
         self.dv: DataVector = self.logic.dv
         self.ns = NodeSession(mission, "cn", announce=False, lowlatency=lowlatency)
         s = self.ns.session
-        keys = self.ns.keys
-        self.clock_server = ClockServer(s, keys, self.clock.now_ns)
+        space = self.ns.keys
+        self.clock_server = ClockServer(s, space, self.clock.now_ns, mission, keys)
         self.sync = ControlSync(
             s,
-            keys,
+            space,
             mission.device_nodes,
             mission.sync_timeout_ns,
             query_timeout_s=max(mission.period_ns / 1e9, 0.01),
@@ -109,15 +119,19 @@ class ControlNode:
         self._gsub: zenoh.Subscriber[Any] | None = None
         if mission.has_ground:
             self._gsub = s.declare_subscriber(
-                keys.gn_to_cn,
+                space.gn_to_cn,
                 zenoh.handlers.Callback(self._on_ground, indirect=False),
             )
         self._tm_pub = s.declare_publisher(
-            keys.telemetry, congestion_control=zenoh.CongestionControl.DROP
+            space.telemetry, congestion_control=zenoh.CongestionControl.DROP
         )
-        self._events = EventPublisher(s, keys.events("cn"), self.logic.events)
-        self._radio = _Radio(mission, s, keys.downlink) if mission.downlink.ccsds else None
+        self._events = EventPublisher(
+            s, space.events("cn"), self.logic.events, channel(keys, "events_cn")
+        )
+        self._radio = _Radio(mission, s, space.downlink) if mission.downlink.ccsds else None
         self.bulk = open_bulk(s, mission, "cn", self.logic)
+        self.params_file = Path(params_file) if params_file else params_path(mission)
+        self._saver = ParamSaver(self.params_file) if mission.params else None
         self._skipped = 0
         self._last_step: int | None = None  # self.loops after the run's planned last loop
         self.ns.announce()
@@ -185,6 +199,7 @@ class ControlNode:
                     "ground node not alive after %.1f s: starting without it", ground_wait_s
                 )
         if not dns:
+            self._load_params()
             return {}
         # Warm-up syncs with loop 0: DNs answer (not applied as a loop) and
         # the replies carry each DN's measured clock offset.
@@ -204,7 +219,18 @@ class ControlNode:
         self.sync.quiesce(logic, timeout_s=max(2 * m.period_ns / 1e9, 1.0))
         logic.reset_sync_counters()
         logic.events.drain()  # warm-up bad frames were logged; flight starts clean
+        self._load_params()
         return offsets
+
+    def _load_params(self) -> None:
+        """Load the parameter file into the Data Vector (its events go out
+        with loop 1's). Blocks on one small file read, before the loop."""
+        if self._saver is None:
+            return
+        status = self.logic.params.load(
+            read_params_file(self.params_file), self.clock.now_ns(), source=str(self.params_file)
+        )
+        log.info("parameters: %s (%s)", status.name, self.params_file)
 
     # -- the loop ------------------------------------------------------------
     def _on_overrun(self, k: int, lateness_ns: int) -> None:
@@ -236,13 +262,20 @@ class ControlNode:
         d_total, o_total = self._inbox_dropped, self._inbox_oversize
         dropped, oversize = d_total - self._seen_dropped, o_total - self._seen_oversize
         self._seen_dropped, self._seen_oversize = d_total, o_total
+        saver = self._saver
+        saved = saver.poll() if saver is not None else None
         tm = logic.finish(
             grounds,
             sync_overrun=overrun,
             loop_overruns=skipped,
             inbox_dropped=dropped,
             inbox_oversize=oversize,
+            saves=(saved,) if saved is not None else (),
         )
+        if saver is not None:
+            save = logic.params.take_save()
+            if save is not None:
+                saver.submit(*save)
         if tm is not None:
             self._tm_pub.put(tm)
             if self._radio is not None:
@@ -325,6 +358,8 @@ class ControlNode:
         finally:
             if self.recorder is not None:
                 self.recorder.close()
+            if self._saver is not None:  # a save in progress is finished, not torn
+                self._saver.close()
             self.ns.close()
 
 
@@ -385,7 +420,7 @@ def run_control_node(
     ``record``: a directory to record every loop's inputs into (needs
     ``mission_source``, the mission file, which the recording keeps)."""
     stop = StopFlag()
-    node = ControlNode(mission, stop=stop, key=load_key(mission, key_file))
+    node = ControlNode(mission, stop=stop, keys=load_keys(mission, "cn", key_file))
     try:
         offsets = node.wait_ready(ready_timeout_s, ground_wait_s)
         log.info("device nodes ready; clock offsets (ns): %s", offsets)

@@ -11,8 +11,15 @@ Loop: block on the CN's query (the trigger); :meth:`DeviceLogic.trigger
 <zplatform.loop.DeviceLogic.trigger>` checks it and frames the reply, sent at
 once; then :meth:`~zplatform.loop.DeviceLogic.run` (sensors -> controllers
 -> actuators) with the query's loop number and one local timestamp. A background thread
-re-estimates the offset every ``clock.resync_s`` and reports the drift in
-``dnX_clock_drift_ns`` without stepping the clock (thesis 4.10.1).
+re-estimates the offset every ``clock.resync_s`` and hands each result to
+the loop thread, which alone decides what the node reports: an estimate
+that jumps from the last accepted one by more than the clock bound
+(``clock.offset_bound_ms``) is refused (a ``clock_jump_refused`` event,
+counted in ``dnX_clock_refused``) and changes nothing; an accepted one goes
+to ``dnX_clock_drift_ns``. The clock itself is never stepped (thesis
+4.10.1). Clock replies refused for a bad tag or another exchange's nonce
+(:class:`~zplatform.clocksync.ClockLink`) are counted there too, with a
+``clock_refused`` event per measurement that met any.
 """
 
 from __future__ import annotations
@@ -20,12 +27,13 @@ from __future__ import annotations
 import logging
 import threading
 
-from ..auth import load_key
+from ..auth import KeySet, channel, load_keys
 from ..boards import close_board, open_board
 from ..bulk import NodeBulk, open_bulk
-from ..clocksync import estimator_for
+from ..clocksync import ClockEstimate, ClockLink, estimator_for
 from ..config import Mission
 from ..errors import ClockSyncError, NodeError, TransportError, ZPlatformError
+from ..events import EV
 from ..loop import DeviceLogic
 from ..scheduler import GcGuard
 from ..summary import DnSummary
@@ -53,7 +61,7 @@ class DeviceNode:
         stop: StopFlag | None = None,
         clock: NodeClock | None = None,
         lowlatency: bool | None = None,
-        key: bytes | None = None,
+        keys: KeySet | None = None,
         sync_trace: SyncTrace | None = None,
     ) -> None:
         if name not in mission.device_nodes:
@@ -64,15 +72,27 @@ class DeviceNode:
         self.clock = clock or NodeClock()
         # A trigger stamped (CN time) more than a period ago belongs to a loop
         # the CN has already closed: answer it, do not run it.
-        self.logic = DeviceLogic(mission, name, stale_after_ns=mission.period_ns, key=key)
+        self.logic = DeviceLogic(mission, name, stale_after_ns=mission.period_ns, keys=keys)
         self.dv = self.logic.dv
+        self._keys = keys
+        # The clock exchange, tagged with this node's link key; one thread
+        # measures at a time (start-up, then the re-sync thread).
+        self.clock_link = ClockLink(mission, name, keys)
         self.ns = NodeSession(mission, name, announce=False, lowlatency=lowlatency)
         # One estimator for the start-up sync, its residual and the re-syncs.
         self.estimate_offset = estimator_for(mission.clock)
         self._offset_h = self.dv.handle(f"{name}_clock_offset_ns")
         self._drift_h = self.dv.handle(f"{name}_clock_drift_ns")
         self._overruns = self.dv.handle(f"{name}_loop_overruns")
+        self._refused_h = self.dv.handle(f"{name}_clock_refused")
+        self._bound_ns = round(mission.clock.offset_bound_ms * 1e6)
         self.drift_ns = 0
+        # The re-sync thread's newest measurement, for the loop thread to
+        # judge (a reference swap; the thread never writes what the loop uses).
+        self._measured: ClockEstimate | None = None
+        self._resynced = False  # set by the re-sync thread after every attempt
+        self._jumps_refused = 0
+        self._refused_seen = (0, 0)
         self.loops = 0
         self.sync: DeviceSync | None = None
         self._sync_trace = sync_trace
@@ -92,6 +112,7 @@ class DeviceNode:
                 s,
                 keys,
                 self.clock.now_ns,
+                self.clock_link,
                 exchanges=m.clock.exchanges,
                 keep_fraction=m.clock.keep_fraction,
             )
@@ -113,6 +134,7 @@ class DeviceNode:
                 s,
                 keys,
                 self.clock.now_ns,
+                self.clock_link,
                 exchanges=max(50, m.clock.exchanges // 4),
                 keep_fraction=m.clock.keep_fraction,
             )
@@ -120,6 +142,7 @@ class DeviceNode:
             raise NodeError(f"{self.name} cannot start: {exc}") from exc
         self.drift_ns = res.offset_ns
         self._drift_h.set(res.offset_ns)
+        self._count_refusals(self.clock.now_ns())  # events go out with the first flush
         log.info(
             "%s clock corrected by %+.3f ms (%s estimator, delay %.0f us, %d of %d exchanges "
             "kept); residual %+.3f us (%s)",
@@ -134,7 +157,9 @@ class DeviceNode:
         )
         self.sync = DeviceSync(s, keys, self.name, self.clock.now_ns, trace=self._sync_trace)
         self.bulk = open_bulk(s, m, self.name, self.logic)
-        self._events = EventPublisher(s, keys.events(self.name), self.logic.events)
+        self._events = EventPublisher(
+            s, keys.events(self.name), self.logic.events, channel(self._keys, f"events_{self.name}")
+        )
         if m.clock.resync_s > 0:
             self._resync = threading.Thread(target=self._resync_loop, daemon=True)
             self._resync.start()
@@ -142,21 +167,64 @@ class DeviceNode:
         return est.offset_ns
 
     def _resync_loop(self) -> None:
-        # Background: measure, never step the clock; the loop publishes it.
+        # Background: measure, never step the clock, never write what the
+        # loop uses: the loop thread judges each measurement (_take_measured).
         m = self.mission
         while not self.stop.event.wait(m.clock.resync_s):
             try:
-                est = self.estimate_offset(
+                self._measured = self.estimate_offset(
                     self.ns.session,
                     self.ns.keys,
                     self.clock.now_ns,
+                    self.clock_link,
                     exchanges=50,
                     keep_fraction=m.clock.keep_fraction,
                 )
             except Exception as exc:  # the CN may be gone; report and keep trying
                 log.warning("%s clock re-sync failed: %s", self.name, exc)
-                continue
-            self.drift_ns = est.offset_ns
+            self._resynced = True
+
+    def _take_measured(self, t_ns: int) -> None:
+        """Loop thread: accept or refuse the re-sync thread's newest estimate
+        (module doc), and count the clock replies it refused."""
+        self._resynced = False
+        est, self._measured = self._measured, None
+        self._count_refusals(t_ns)
+        if est is None:
+            return
+        jump = est.offset_ns - self.drift_ns
+        if abs(jump) > self._bound_ns:
+            self._jumps_refused += 1
+            self._refused_h.set(self.clock_link.refused + self._jumps_refused)
+            self.logic.events.emit(
+                EV.CLOCK_JUMP_REFUSED,
+                t_ns,
+                node=self.name,
+                new_ms=est.offset_ns / 1e6,
+                jump_ms=jump / 1e6,
+                old_ms=self.drift_ns / 1e6,
+                bound_ms=self._bound_ns / 1e6,
+            )
+            return
+        self.drift_ns = est.offset_ns
+        self._drift_h.set(est.offset_ns)
+
+    def _count_refusals(self, t_ns: int) -> None:
+        link = self.clock_link
+        bad, other = link.refused_bad, link.refused_other
+        seen_bad, seen_other = self._refused_seen
+        if (bad, other) == (seen_bad, seen_other):
+            return
+        self._refused_seen = (bad, other)
+        self._refused_h.set(bad + other + self._jumps_refused)
+        self.logic.events.emit(
+            EV.CLOCK_REFUSED,
+            t_ns,
+            node=self.name,
+            n=bad + other - seen_bad - seen_other,
+            auth=bad - seen_bad,
+            replay=other - seen_other,
+        )
 
     def run(self, *, max_loops: int | None = None, realtime: bool = True) -> None:
         """Serve triggers until stopped (or ``max_loops``). Blocks."""
@@ -181,7 +249,8 @@ class DeviceNode:
                         self._events.flush()
                     continue
                 t = now()
-                self._drift_h.set(self.drift_ns)
+                if self._resynced:  # a re-sync attempt ended: judge it here
+                    self._take_measured(t)
                 run(t)  # with the bulk channels, in the loop's order
                 self._events.flush()
                 # Slack until the next trigger is due: gc only runs there.
@@ -233,9 +302,10 @@ def run_device_node(
     ready_timeout_s: float = 60.0,
     key_file: str | None = None,
 ) -> DnSummary:
-    """Entry function: start, serve until SIGTERM. Blocks; returns the summary."""
+    """Entry function: start, serve until SIGTERM. Blocks; returns the summary.
+    KeyError_ before anything starts when this node's key is missing."""
     stop = StopFlag()
-    node = DeviceNode(mission, name, stop=stop, key=load_key(mission, key_file))
+    node = DeviceNode(mission, name, stop=stop, keys=load_keys(mission, name, key_file))
     try:
         node.start(ready_timeout_s)
         node.run(realtime=realtime)

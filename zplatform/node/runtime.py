@@ -14,6 +14,7 @@ from types import FrameType
 
 import zenoh
 
+from ..auth import Channel
 from ..events import EventLog, Severity, encode_event
 from ..scheduler import RealtimeStatus, setup_realtime
 
@@ -69,10 +70,15 @@ class EventPublisher:
     Call :meth:`flush` once per loop: it costs one int compare when nothing
     was emitted, and events are rare (state changes, verdicts, failures).
     Events are also written to the node's log (stderr) for the operator.
+    ``seal``: the node's ``events_<node>`` channel, which tags each record
+    (None: the mission does not authenticate).
     """
 
-    def __init__(self, session: zenoh.Session, key: str, events: EventLog) -> None:
+    def __init__(
+        self, session: zenoh.Session, key: str, events: EventLog, seal: Channel | None
+    ) -> None:
         self.events = events
+        self._seal = seal
         # DROP: a subscriber on a stalled link must never block the loop
         # that flushes events; each event is also in this node's own log.
         self._pub = session.declare_publisher(key, congestion_control=zenoh.CongestionControl.DROP)
@@ -82,8 +88,10 @@ class EventPublisher:
         if self.events.emitted == self._seen:
             return
         self._seen = self.events.emitted
+        seal = self._seal
         for e in self.events.drain():
-            self._pub.put(encode_event(e))
+            record = encode_event(e)
+            self._pub.put(bytes(seal.seal(record)) if seal is not None else record)
             log.log(_LEVELS.get(e.severity, logging.INFO), "%s %s: %s", e.node, e.id, e.text)
 
     def undeclare(self) -> None:
