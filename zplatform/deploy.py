@@ -7,10 +7,10 @@ A mission YAML is shared and versioned; certificate and key *paths* are not
     # deployment.yaml (relative paths are relative to this file)
     ca: ca.pem                     # the mission CA: every peer's cert must chain to it
     nodes:
-      cn:  {cert: cn.pem,  key: cn.key}
-      dn0: {cert: dn0.pem, key: dn0.key}
-      gn:  {cert: gn.pem,  key: gn.key}
-    tool: {cert: tool.pem, key: tool.key, may_command: true}   # optional
+      cn:  {cert: cn.pem,  key: cn.tls.key}
+      dn0: {cert: dn0.pem, key: dn0.tls.key}
+      gn:  {cert: gn.pem,  key: gn.tls.key}
+    tool: {cert: tool.pem, key: tool.tls.key, may_command: true}   # optional
     access_control: true           # optional, default true
 
 Contract:

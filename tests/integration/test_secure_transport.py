@@ -145,18 +145,21 @@ def test_unknown_peers_get_no_session_under_the_default_transport(tmp_path: Path
 
 def test_up_makes_the_pki_on_first_use_and_keeps_it(tmp_path: Path) -> None:
     """A single host needs no set-up: the first `up` of a hazardous mission
-    makes its PKI where every session looks (0700/0600), says so, and the
-    next `up` uses it as it is."""
+    makes its key set and, beside it, its PKI where every session looks
+    (0700/0600), says so, and the next `up` uses them as they are."""
     home = tmp_path / "config"
     up = ("up", str(CONFIGS / "recovery_igniter.yaml"), "--free-ports", "--duration", "1")
-    env = {"XDG_CONFIG_HOME": str(home)}
+    env = {"XDG_CONFIG_HOME": str(home), "ZPLATFORM_KEY": ""}  # no master key: a key set
     r = _zp(*up, "--quiet", "--no-realtime", env=env)
     assert r.returncode == 0, r.stdout[-2000:] + r.stderr[-2000:]
-    d = home / "zplatform" / "pki" / "recovery_igniter"
+    d = home / "zplatform" / "keys" / "recovery_igniter"
     made = "made the certificates of 'recovery_igniter' for mutual TLS (ca, cn, dn0, dn1, gn, tool)"
     assert f"zplatform up: {made} in {d}" in r.stdout, r.stdout
     assert stat.S_IMODE(d.stat().st_mode) == 0o700
-    assert stat.S_IMODE((d / "cn.tls.key").stat().st_mode) == 0o600
+    for role in ("cn", "dn0", "dn1", "gn", "tool"):  # each role's files side by side
+        assert stat.S_IMODE((d / f"{role}.keys").stat().st_mode) == 0o600, role
+        assert stat.S_IMODE((d / f"{role}.tls.key").stat().st_mode) == 0o600, role
+        assert (d / f"{role}.pem").is_file(), role
     before = (d / "ca.pem").read_bytes()
     r = _zp(*up, "--quiet", "--no-realtime", env=env)
     assert r.returncode == 0 and "made the certificates" not in r.stdout, r.stdout + r.stderr
