@@ -330,6 +330,8 @@ def _mutate(data: bytes, how: str, at: int, junk: bytes) -> bytes:
     if how == "truncate":
         return data[:at]
     if how == "flip":
+        if not data:  # truncated to nothing already: no byte to flip
+            return data
         b = bytearray(data)
         i = at % len(b)
         b[i] ^= junk[0] or 0xFF
