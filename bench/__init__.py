@@ -1,1 +1,4 @@
-"""Benchmarks of zplatform: ``python -m bench.<name> [--quick] [--json PATH]`` (DESIGN.md §7)."""
+"""Benchmarks of zplatform: ``python -m bench.<name> [--quick] [--json PATH]``.
+
+The result files are described in docs/architecture.md#files.
+"""

@@ -1,6 +1,6 @@
 """Baselines for every latency benchmark: the sync exchange without the platform.
 
-The exchange is the zplatform sync step (DESIGN.md §1): every loop, one
+The exchange is the zplatform sync step (docs/architecture.md#the-loop): every loop, one
 requester (the CN) sends ``size`` bytes to each of ``n_responders`` processes
 (the DNs). Each responder answers with ``size`` bytes. The requester waits for
 all the replies, up to a deadline. There are two transports:

@@ -68,7 +68,7 @@ def machine_info() -> dict[str, Any]:
 
 
 def summarize(samples_ns: Sequence[int], deadline_ns: int | None = None) -> dict[str, Any]:
-    """Reduce latency samples (ns) to the DESIGN.md §7 figures (in microseconds).
+    """Reduce latency samples (ns) to the docs/architecture.md#files figures (in microseconds).
 
     ``msgs`` is the number of samples; ``deadline_miss_rate`` is the fraction of
     samples at or above ``deadline_ns`` (``None`` without a deadline). A loop that
@@ -179,7 +179,7 @@ def spawn(args: list[str]) -> subprocess.Popen[bytes]:
     """Start ``sys.executable *args`` in its own process group, cwd = repo root.
 
     Does not block. Uses fork+exec (``subprocess``), which is safe after
-    ``zenoh.open()``; a bare ``os.fork`` is not (DESIGN.md §8).
+    ``zenoh.open()``; a bare ``os.fork`` is not (docs/architecture.md#zenoh).
     """
     return subprocess.Popen([sys.executable, *args], cwd=REPO_ROOT, process_group=0)
 

@@ -1,4 +1,4 @@
-"""Loop-start lateness and jitter on the CN and the DNs at 100 Hz (thesis 000, 5.2.2).
+"""Loop-start lateness and jitter on the CN and the DNs at 100 Hz (the thesis, 5.2.2).
 
 What is measured, per variant (3 DNs, 100 Hz, 30 s as three interleaved
 10 s segments on fresh clusters, each after a 3 s warm-up; ``--quick`` one
@@ -73,7 +73,7 @@ TARGET_P99_US = 100.0
 TARGET_MAX_US = 1000.0
 
 THESIS_TABLE3 = {
-    "note": "thesis 000 Table 3: interval jitter |interval - 10 ms| of control logic, RT kernel",
+    "note": "the thesis, Table 3: interval jitter |interval - 10 ms| of control logic, RT kernel",
     "cn": {"avg_jitter_us": 2.8, "max_jitter_us": 123.8, "max_pct": 1.2},
     "dn0": {"avg_jitter_us": 14.4, "max_jitter_us": 251.3, "max_pct": 2.5},
     "dn1": {"avg_jitter_us": 18.6, "max_jitter_us": 228.8, "max_pct": 2.3},

@@ -1,4 +1,4 @@
-"""Platform CPU overhead on the CN and a DN, the thesis' method (thesis 000, 5.2.5).
+"""Platform CPU overhead on the CN and a DN, the thesis' method (the thesis, 5.2.5).
 
 What is measured: a :class:`SpinController` busy-spins in its enabled run for
 a time that grows every loop (``start_ms``, then ``+ step_us`` per loop).
@@ -85,7 +85,7 @@ MAX_MS = 11.0
 TARGET_CN_PCT = 10.0
 
 THESIS_TABLE5 = {
-    "note": "thesis 000 Table 5, real-time kernel, 1 CN + 3 DNs at 100 Hz",
+    "note": "the thesis, Table 5, real-time kernel, 1 CN + 3 DNs at 100 Hz",
     "cn": {"max_control_logic_ms": 7.85, "overhead_pct": 21.5},
     "dn": {"max_control_logic_ms": 9.89, "overhead_pct": 1.1},
 }

@@ -1,4 +1,4 @@
-"""Reaction time, sensor change to actuator change (thesis 000, 5.2.3).
+"""Reaction time, sensor change to actuator change (the thesis, 5.2.3).
 
 What is measured: dn0's simulated board toggles digital input pin 0 every
 ``toggle_ms`` (137 ms, not a multiple of the 10 ms period, so the toggles
@@ -71,7 +71,7 @@ TARGET_DN_MS = 1.0
 TARGET_CN_LOOPS = 2
 
 THESIS_TABLE4 = {
-    "note": "thesis 000 Table 4; min measured, avg computed (full 10 ms loop used), "
+    "note": "the thesis, Table 4; min measured, avg computed (full 10 ms loop used), "
     "max computed (one dropped message)",
     "cn": {"min_ms": 20.29, "avg_ms": 25.0, "max_ms": 40.0},
     "dn": {"min_ms": 0.08, "avg_ms": 5.0, "max_ms": 10.0},

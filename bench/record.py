@@ -24,16 +24,21 @@ from typing import Any
 
 from bench.common import bench_argparser, summarize, write_result
 from zplatform import ControlLogic, LockstepRunner, Recorder, load_mission
+from zplatform.config import Mission
 from zplatform.lockstep import sim_keys
+from zplatform.uplink import load_commands
 
 ROOT = Path(__file__).resolve().parents[1]
 MISSION = ROOT / "configs" / "led_test.yaml"
 
 
-def _inputs(loops: int) -> list[tuple[int, int, list[bytes], list[bytes]]]:
-    """(loop, t, replies, grounds) of a lockstep run, captured once."""
-    m = load_mission(MISSION)
-    r = LockstepRunner(m)
+def loop_inputs(
+    m: Mission, loops: int, commands: Path | None = None
+) -> list[tuple[int, int, list[bytes], list[bytes]]]:
+    """(loop, t, replies, grounds) of ``loops`` loops of a lockstep run of
+    ``m`` (playing the script ``commands``), captured once (``bench.health``
+    and ``bench.recorder`` feed them too)."""
+    r = LockstepRunner(m, commands=load_commands(commands) if commands is not None else None)
     out: list[tuple[int, int, list[bytes], list[bytes]]] = []
     captured: list[bytes] = []
     cn = r.control
@@ -47,6 +52,9 @@ def _inputs(loops: int) -> list[tuple[int, int, list[bytes], list[bytes]]]:
 
         def foreign(self, source: str) -> None:
             pass  # a lockstep run has no foreign repliers
+
+        def health(self, block: Any) -> None:
+            pass  # a lockstep run without health ports copies none
 
         def finish(self, grounds: Any, *a: Any) -> None:
             loop, t = cn.loop, cn.t_ns
@@ -87,7 +95,7 @@ def main() -> None:
     args = bench_argparser(__doc__.splitlines()[0]).parse_args()
     loops = 2_000 if args.quick else 20_000
     rounds = 2 if args.quick else 5
-    inputs = _inputs(loops)
+    inputs = loop_inputs(load_mission(MISSION), loops)
     plain: list[int] = []
     recorded: list[int] = []
     dropped = 0

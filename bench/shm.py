@@ -194,7 +194,7 @@ class _Sender:
                 self.iox_pubs[n] = (svc, ev, pub, ev.notifier_builder().create())
 
     def _on_query(self, query: Any) -> None:
-        # Reply at once, then let go of the query (DESIGN.md §8).
+        # Reply at once, then let go of the query (docs/architecture.md#zenoh).
         with query:
             n = int(str(query.key_expr).rsplit("/", 1)[1])
             query.reply(query.key_expr, self.replies[n])

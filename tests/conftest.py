@@ -9,9 +9,19 @@ at a directory of this session's own (removed at exit), so a key set and
 mission PKI that ``up`` (or a test) makes land there, and no deployment
 named by the user's environment is used.
 
+Hypothesis runs without its per-example deadline (200 ms by default): the
+suite must pass on a busy 2-core box beside a CPU hog, where one example may
+wait that long for a CPU, and a test asserts behaviour, not the box's speed
+(tests/budget.py).
+
 Likewise a control node loads (and PRM_SAVE writes) its mission's parameter
 file: the tests keep them in a directory of their own
 (``ZPLATFORM_PARAMS_DIR``), removed at exit, never in the user's.
+
+Missions with a flight recorder (the shipped flight and recovery_igniter
+ones) record into a temporary directory of the session
+(``ZPLATFORM_RECORDER_DIR``, inherited too), removed at exit: nothing is
+written to the user's state directory.
 """
 
 from __future__ import annotations
@@ -22,12 +32,22 @@ import secrets
 import shutil
 import tempfile
 
+from hypothesis import settings
+
 os.environ.setdefault("ZPLATFORM_KEY", secrets.token_hex(32))
 os.environ.pop("ZPLATFORM_KEY_FILE", None)
 os.environ.pop("ZPLATFORM_DEPLOYMENT", None)
 _CONFIG_HOME = tempfile.mkdtemp(prefix="zplatform-test-config-")
 os.environ["XDG_CONFIG_HOME"] = _CONFIG_HOME
 atexit.register(shutil.rmtree, _CONFIG_HOME, ignore_errors=True)
+
+settings.register_profile("zplatform", deadline=None)
+settings.load_profile("zplatform")
+
 _PARAMS_DIR = tempfile.mkdtemp(prefix="zplatform-test-params-")
 os.environ["ZPLATFORM_PARAMS_DIR"] = _PARAMS_DIR
 atexit.register(shutil.rmtree, _PARAMS_DIR, True)
+
+_RECORDER_DIR = tempfile.mkdtemp(prefix="zplatform-test-recorder-")
+os.environ["ZPLATFORM_RECORDER_DIR"] = _RECORDER_DIR
+atexit.register(shutil.rmtree, _RECORDER_DIR, True)

@@ -1,5 +1,9 @@
 """zplatform: distributed avionics flight software on Eclipse Zenoh.
 
+"The thesis" in these docstrings is the M.S. thesis the platform follows,
+*A Distributed Avionics Software Platform for a Liquid-Fueled Rocket*;
+"ch. N" and "§N" are its chapters.
+
 The public API, re-exported from the modules that define it. Import from
 here; module paths below ``zplatform.`` are implementation detail.
 """
@@ -16,7 +20,7 @@ from .codec import (
     decode_frame,
     encode_frame,
 )
-from .codes import Command, CommandStatus, Fault, ParamLoad, ParamSave, SafedWhy
+from .codes import Command, CommandStatus, Fault, ParamLoad, ParamSave, SafedWhy, Thread
 from .commands import CommandHandler
 from .components import Component
 from .config import Mission
@@ -44,13 +48,16 @@ from .errors import (
 )
 from .events import EV, Event, EventLog, EventReader, EventType, Severity
 from .faults import FaultMonitor
+from .ground.gapfill import GapFill
 from .ground.link import GroundLink
 from .ground.logic import GroundLogic
 from .ground.records import CommandOutcome, EventRecord, TelemetryCounters
 from .ground.script import ScriptPlayer
+from .health import FakeHealth, HealthPort, Heartbeat, Liveness
 from .lockstep import LockstepRunner, ReplayResult, SimResult, replay
 from .loop import ControlLogic, DeviceLogic
 from .mission import check_mission, decode_mission, load_mission
+from .monitors import MonitorSet
 from .params import (
     ParamFileError,
     ParamSaver,
@@ -60,6 +67,7 @@ from .params import (
     params_path,
 )
 from .rategroups import RateGroups
+from .recorder import FlightRecorder, RecorderReader
 from .recording import Recorder
 from .safety import SafetyWarning, safety_warnings
 from .scheduler import GcGuard, LoopStats, PeriodicLoop, setup_realtime
@@ -69,6 +77,7 @@ from .telemetry import CsvLogger, read_csv
 from .timebase import NodeClock, VirtualClock
 from .transport import KeySpace
 from .uplink import ScriptCommand, fill_request, load_commands, parse_commands
+from .watchdog import Watchdog
 from .world import World, WorldBoard, WorldLink
 
 __version__ = "0.1.0"
@@ -103,24 +112,31 @@ __all__ = [
     "EventReader",
     "EventRecord",
     "EventType",
+    "FakeHealth",
     "Fault",
     "FaultMonitor",
+    "FlightRecorder",
     "Frame",
     "FrameDecoder",
     "FrameEncoder",
     "FrameFormatError",
     "FrameSizeError",
+    "GapFill",
     "GcGuard",
     "GroundLink",
     "GroundLogic",
     "Handle",
+    "HealthPort",
+    "Heartbeat",
     "KeySet",
     "KeySpace",
     "Layout",
     "LayoutMismatchError",
+    "Liveness",
     "LockstepRunner",
     "LoopStats",
     "Mission",
+    "MonitorSet",
     "NodeClock",
     "NodeError",
     "ParamFileError",
@@ -131,6 +147,7 @@ __all__ = [
     "PeriodicLoop",
     "RateGroups",
     "Recorder",
+    "RecorderReader",
     "RecordingError",
     "RegionCodec",
     "RegionSpec",
@@ -147,9 +164,11 @@ __all__ = [
     "StateMachine",
     "StateMachineError",
     "TelemetryCounters",
+    "Thread",
     "TimebaseError",
     "TransportError",
     "VirtualClock",
+    "Watchdog",
     "World",
     "WorldBoard",
     "WorldLink",

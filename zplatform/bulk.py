@@ -2,11 +2,11 @@
 
 A bulk channel is a named, fixed-size array (``u8[4194304]``,
 ``f32[1024,1024]``) that one node (its *owner*) publishes every
-``rate_divisor``-th loop on ``{vehicle}/{owner}/bulk/{name}`` (DESIGN.md §3)
+``rate_divisor``-th loop on ``{vehicle}/{owner}/bulk/{name}`` (docs/architecture.md#key-space)
 and that its *readers* receive. Bulk data never travels in the sync query:
 a camera frame must not delay the 2 ms exchange.
 
-Transport (DESIGN.md §8, re-checked in ``tests/integration/test_bulk_shm.py``
+Transport (docs/architecture.md#zenoh, re-checked in ``tests/integration/test_bulk_shm.py``
 and ``bench/shm.py``):
 
 * The owner allocates every sample from a zenoh ``ShmProvider`` whose pool is
@@ -103,7 +103,7 @@ assert HEADER.size == BULK_HEADER_BYTES
 
 
 def bulk_key(vehicle: str, channel: BulkChannelConfig) -> str:
-    """``{vehicle}/{owner}/bulk/{name}`` (DESIGN.md §3)."""
+    """``{vehicle}/{owner}/bulk/{name}`` (docs/architecture.md#key-space)."""
     return f"{vehicle}/{channel.node}/bulk/{channel.name}"
 
 
@@ -283,7 +283,7 @@ class BulkReader:
         )
 
     def _on_sample(self, sample: zenoh.Sample) -> None:
-        # zenoh's thread: hand off only (DESIGN.md §8). Replacing the slot
+        # zenoh's thread: hand off only (docs/architecture.md#zenoh). Replacing the slot
         # releases the superseded sample (and its shared-memory chunk).
         self._latest = sample
         self._event.set()

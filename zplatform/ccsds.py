@@ -397,7 +397,7 @@ def decode_to_csv(
     apid_base: int = APID_BASE,
     max_data: int = MAX_DATA,
 ) -> CcsdsDecoder:
-    """Decode a recorded packet stream into the telemetry CSV (DESIGN.md §6).
+    """Decode a recorded packet stream into the telemetry CSV (docs/architecture.md#files).
 
     One row per complete snapshot; its ``rx_time_ns`` is the snapshot's CN
     time carried in the packets (the link has no receive time of its own).

@@ -99,7 +99,15 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p.add_argument("--no-realtime", action="store_true", help="skip SCHED_FIFO set-up")
     p.set_defaults(func=cmd_world)
 
-    p = mission_verb(sub, "log", help="log telemetry snapshots to CSV (events beside it)")
+    p = mission_verb(
+        sub,
+        "log",
+        help="log telemetry snapshots to CSV (events beside it), live or from a flight recorder",
+        description="Log the CN's telemetry to CSV and every node's events beside it, live; "
+        "gaps a link loss leaves are filled from the CN's flight recorder when the mission "
+        "has one. With --from-recorder DIR, read a node's flight recorder directory (the "
+        "CN's, or a device node's) into the same files instead.",
+    )
     p.add_argument(
         "--out",
         required=True,
@@ -107,6 +115,13 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         help="telemetry CSV; events go beside it (tm.csv -> tm.events.jsonl)",
     )
     _duration(p, "seconds (default: until Ctrl-C)")
+    p.add_argument(
+        "--from-recorder",
+        metavar="DIR",
+        help="read this node's flight recorder directory (e.g. .../recorder/MISSION/cn) "
+        "instead of listening: recorded rows carry the frame's own stamp as rx_time_ns; "
+        "the CN's frames are checked with a tool's keys, a device node's with its own key file",
+    )
     p.add_argument("--summary", metavar="JSON", help="write the logger's summary JSON here")
     p.set_defaults(func=cmd_log)
 
@@ -235,6 +250,8 @@ def cmd_world(args: argparse.Namespace) -> int:
 
 
 def cmd_log(args: argparse.Namespace) -> int:
+    if args.from_recorder is not None:
+        return _log_from_recorder(args)
     setup_logging()
     from .ground.logger import log_summary_line
     from .node.ground import run_ground_logger
@@ -250,6 +267,47 @@ def cmd_log(args: argparse.Namespace) -> int:
     )
     write_summary(args.summary, summary)
     print(log_summary_line(summary, args.out, events_path(args.out)))
+    return 0
+
+
+MAX_PROBLEM_LINES = 50
+"""Lines of damage a recorder read prints before it only counts them."""
+
+
+def _log_from_recorder(args: argparse.Namespace) -> int:
+    """``log --from-recorder DIR``: a recorder directory into the ground's
+    files (:func:`zplatform.recorder.export`). Exit 0 when the files were
+    written (every record skipped is named on stderr and counted), 2 when
+    nothing could be read."""
+    from .auth import load_keys
+    from .errors import CommandError
+    from .recorder import export, reader_role, recorded_node
+
+    if args.duration is not None:
+        raise CommandError("--duration is for a live log, not --from-recorder")
+    if args.summary is not None:
+        raise CommandError("--summary is for a live log, not --from-recorder")
+    mission = load_mission(args.mission, code=False)
+    _check_outputs(args, "out")
+    ev = events_path(args.out)
+    # Checked with the keys of the host role that holds the frames' link:
+    # the CN's telemetry with a tool's, a DN's replies with that DN's.
+    keys = load_keys(mission, reader_role(mission, recorded_node(args.from_recorder)))
+    s = export(args.from_recorder, mission, keys, args.out, ev)
+    for line in s.problems[:MAX_PROBLEM_LINES]:
+        print(f"zplatform log: {line}", file=sys.stderr)
+    if len(s.problems) > MAX_PROBLEM_LINES:
+        print(
+            f"zplatform log: ... and {len(s.problems) - MAX_PROBLEM_LINES} more",
+            file=sys.stderr,
+        )
+    loops = f" (loops {s.first_loop}..{s.last_loop})" if s.rows else ""
+    print(
+        f"read {s.node}'s recorder ({s.segments} file(s), {s.runs} run(s), {s.runs_ended} "
+        f"ended cleanly): {s.rows} snapshot(s){loops} -> {args.out}; {s.events} event(s) -> "
+        f"{ev}; {s.damaged} damaged record(s) or file(s) skipped, {s.refused} refused, "
+        f"{s.not_recorded} loop(s) the recorder had dropped"
+    )
     return 0
 
 

@@ -66,6 +66,7 @@ import zenoh
 from .auth import TAG_LEN, AuthError, Channel, KeySet, channel
 from .config import ClockConfig, Mission
 from .errors import ClockSyncError
+from .health import Heartbeat
 from .transport import KeySpace
 
 __all__ = [
@@ -212,7 +213,9 @@ class ClockServer:
 
     Each query is answered by a :class:`ClockResponder` (``mission``,
     ``auth``: the CN's keys); a refused one gets an error reply, is counted
-    (:attr:`refused`) and logged (the first, then every 1000th)."""
+    (:attr:`refused`) and logged (the first, then every 1000th). The thread
+    checks in through :attr:`heartbeat` (``clock``, :mod:`zplatform.health`):
+    idle while it waits for a query, beating while it serves one."""
 
     def __init__(
         self,
@@ -223,6 +226,7 @@ class ClockServer:
         auth: KeySet | None,
     ) -> None:
         self._now = now_ns
+        self.heartbeat = Heartbeat("clock")
         self._q: queue.SimpleQueue[tuple[zenoh.Query, int] | None] = queue.SimpleQueue()
         self._key = keys.clock
         self._responder = ClockResponder(mission, auth)
@@ -241,11 +245,14 @@ class ClockServer:
         self._q.put((query, self._now()))  # t2, then hand off
 
     def _serve(self) -> None:
+        hb = self.heartbeat
         responder = self._responder
         while True:
+            hb.idle()
             item = self._q.get()
             if item is None:
                 return
+            hb.beat()
             query, t2 = item
             with query:
                 p = query.payload
@@ -415,7 +422,7 @@ def estimate_offset_zenoh(
     """The same estimate as :func:`estimate_offset`, from zenoh's own four time points.
 
     Each exchange is a query to the CN's :class:`ClockServer` with zenoh 1.10's
-    ``TimestampInstrumentation`` (send and receive records, DESIGN.md §8): the
+    ``TimestampInstrumentation`` (send and receive records, docs/architecture.md#zenoh): the
     reply carries ``t1z..t4z``, stamped by zenoh on the host clocks of both
     sides at the moments the query and the reply cross zenoh. Per exchange::
 

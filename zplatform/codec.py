@@ -40,8 +40,11 @@ __all__ = [
     "bundle_size",
     "decode_frame",
     "encode_frame",
+    "frame_data",
     "frame_overhead",
+    "frame_stamp",
     "is_bundle",
+    "max_frame_length",
 ]
 
 U32 = Annotated[int, Meta(ge=0, le=0xFFFF_FFFF)]
@@ -159,6 +162,53 @@ def encode_frame(
     return bytes(FrameEncoder(len(data)).encode(layout_id, seq, t_ns, data))
 
 
+def _fixed_width(frame: bytes | bytearray | memoryview) -> bool:
+    """Whether ``frame`` starts with the fixed-width header (codecs/FORMAT.md §2)."""
+    return (
+        len(frame) >= _HDR_LEN + 2
+        and frame[0] == 0x94
+        and frame[1] == 0xCE
+        and frame[6] == 0xCF
+        and frame[15] == 0xD3
+    )
+
+
+def max_frame_length(size: int) -> int:
+    """The longest valid frame of ``size`` data bytes: the fixed-width header
+    and the widest bin header a peer may use. Anything longer is malformed."""
+    return _HDR_LEN + 5 + size
+
+
+def frame_stamp(frame: bytes | bytearray | memoryview) -> tuple[int, int]:
+    """``(seq, t_ns)`` of a frame, read without decoding it when it has the
+    fixed-width header (FORMAT.md §2: the fields at offsets 7 and 16, what
+    zplatform always writes), else from :func:`decode_frame` (any valid
+    MessagePack form). Constant time; raises FrameFormatError (a
+    CodecError) for what is not a frame. For a receiver's intake, which
+    must tell a newer frame from a replayed one before anything else."""
+    if _fixed_width(frame):
+        _, _, _, _, seq, _, t_ns = _HDR.unpack_from(frame, 0)
+        return seq, t_ns
+    f = decode_frame(frame)
+    return f.seq, f.t_ns
+
+
+def frame_data(frame: bytes | bytearray | memoryview, size: int) -> memoryview:
+    """The ``size`` data bytes of a frame, as a zero-copy view: by offset
+    when it has the fixed-width form of a region of ``size`` bytes, else
+    from :func:`decode_frame`. Checks only the shape and the length (not the
+    layout: :meth:`RegionCodec.check` does that); raises FrameFormatError or
+    FrameSizeError (CodecErrors) otherwise. Constant time, no copy."""
+    mv = memoryview(frame)
+    at = frame_overhead(size)
+    if _fixed_width(mv) and len(mv) == at + size:
+        return mv[at:]
+    data = decode_frame(mv).data
+    if len(data) != size:
+        raise FrameSizeError(f"frame carries {len(data)} data bytes, expected {size}")
+    return data
+
+
 class FrameDecoder:
     """Decodes frames of one expected layout and size.
 
@@ -220,9 +270,8 @@ class RegionCodec:
 
     @property
     def max_frame_len(self) -> int:
-        """The longest valid frame of this region: the fixed-width header and
-        the widest bin header a peer may use. Anything longer is malformed."""
-        return _HDR_LEN + 5 + self.size
+        """The longest valid frame of this region (:func:`max_frame_length`)."""
+        return max_frame_length(self.size)
 
     def encode(self, seq: int, t_ns: int) -> bytearray:
         """Frame the region now; the returned buffer is reused by the next call."""

@@ -2,7 +2,8 @@
 
 These enums are the values of the platform elements ``gn_cmd`` / ``cn_cmd``
 (:class:`Command`), ``cn_cmd_status`` (:class:`CommandStatus`), ``cn_fault``
-(:class:`Fault`), ``cn_last_error`` (:class:`ErrorCode`), and of a mission
+(:class:`Fault`), ``cn_last_error`` (:class:`ErrorCode`), the bits of
+each node's ``<node>_threads_stalled`` (:class:`Thread`), and of a mission
 with parameters ``cn_prm_load_status`` (:class:`ParamLoad`) and
 ``cn_prm_save_status`` (:class:`ParamSave`). The config
 derives the enum names of those elements from them
@@ -18,7 +19,16 @@ from __future__ import annotations
 
 import enum
 
-__all__ = ["Command", "CommandStatus", "ErrorCode", "Fault", "ParamLoad", "ParamSave", "SafedWhy"]
+__all__ = [
+    "Command",
+    "CommandStatus",
+    "ErrorCode",
+    "Fault",
+    "ParamLoad",
+    "ParamSave",
+    "SafedWhy",
+    "Thread",
+]
 
 
 class Command(enum.IntEnum):
@@ -76,6 +86,10 @@ class Fault(enum.IntEnum):
     """A device node the CN triggers reports that it safed itself because
     none of those triggers could run (``dnX_safed_why == CANNOT_RUN``): it
     answers, yet runs no loop (its clock is off, every trigger stale)."""
+    MONITOR = 7
+    """A mission monitor's response (``monitors:``), unless it names another fault."""
+    THREAD_STALLED = 8
+    """A thread of a node stopped checking in (a monitor on ``<node>_threads_stalled``)."""
 
 
 class SafedWhy(enum.IntEnum):
@@ -109,6 +123,29 @@ class ErrorCode(enum.IntEnum):
     CLOCK_SYNC = 6
     TELEMETRY = 7
     EVENTS_DROPPED = 8
+
+
+class Thread(enum.IntEnum):
+    """The threads whose liveness a node reports: bit ``1 << value`` of
+    ``<node>_threads_stalled``; the lowercase names are what missions and
+    events use (``health.deadlines_ms.zenoh``). See :mod:`zplatform.health`."""
+
+    LOOP = 0
+    """The node's loop thread."""
+    ZENOH = 1
+    """Zenoh's runtime running the node's callbacks (the health thread's probe)."""
+    HEALTH = 2
+    """The health thread."""
+    CLOCK = 3
+    """The CN's clock server; a DN's clock re-sync."""
+    BOARD = 4
+    """The board's I/O thread (the serial board's, or a board with a ``heartbeat``)."""
+    RECORD = 5
+    """The CN's ``--record`` writer."""
+    RECORDER = 6
+    """The on-board flight recorder's writer."""
+    PARAMS = 7
+    """The CN's parameter saver (PRM_SAVE's file writes, :mod:`zplatform.params`)."""
 
 
 class ParamLoad(enum.IntEnum):

@@ -56,6 +56,12 @@ leaves ``cn_cmd_seq``/``cn_cmd_status`` alone and writes
 ``cn_cmd_rejects`` (a count), ``cn_cmd_reject_status`` and
 ``cn_cmd_reject_seq`` (its number; 0 for ``REJECTED_AUTH``, whose number
 cannot be trusted), so the tool that sent it learns of the refusal at once.
+The epoch and number rules are :func:`request_refusal`'s: the CN's intake
+(:class:`zplatform.intake.RequestIntake`) applies them to every request as
+it arrives, so a replayed frame never reaches the loop, and counts the
+refused ones together (:meth:`CommandHandler.count_refused`: when several
+were refused in one loop, ``cn_cmd_reject_seq`` shows the highest number,
+an operator's fresh one rather than a replay's).
 
 The numbers are remembered for the CN's life: a ground tool continues from
 the ``cn_cmd_seq`` it reads in telemetry (see :func:`zplatform.uplink.fill_request`).
@@ -66,6 +72,7 @@ from __future__ import annotations
 import difflib
 import logging
 import math
+import struct
 from typing import TYPE_CHECKING, Any
 
 from .codes import Command, CommandStatus
@@ -77,7 +84,7 @@ from .statemachine import logic_writable, why_not_writable
 
 if TYPE_CHECKING:
     from .config import Mission
-    from .datavector import DataVector, ElementSpec, Handle
+    from .datavector import DataVector, ElementSpec, Handle, Layout
     from .statemachine import StateMachine
 
 __all__ = [
@@ -85,8 +92,10 @@ __all__ = [
     "Command",
     "CommandHandler",
     "CommandStatus",
+    "RequestNumber",
     "check_config",
     "protected_elements",
+    "request_refusal",
     "writable_elements",
 ]
 
@@ -99,6 +108,49 @@ SEQ_WINDOW = 1 << 20
 """How far past the last number a request may jump. Numbers are u64, so
 even a forger walking them up by this much per request would need 2**44
 requests to exhaust them."""
+
+
+def request_refusal(epoch: int, seq: int, cn_epoch: int, last_seq: int) -> int:
+    """The refusal that consumes no number (module doc, checks 2 and the
+    epoch), for a request numbered ``seq`` for CN run ``epoch``, on a CN
+    whose run is ``cn_epoch`` and whose highest number seen is ``last_seq``:
+    ``REJECTED_EPOCH``, ``REJECTED_REPLAY``, or 0 when it may go on to be
+    validated. Pure and constant time: the CN's intake applies it to a
+    request as it arrives (so a replayed frame never displaces a fresh one),
+    :class:`CommandHandler` to the request it takes."""
+    if epoch != cn_epoch:
+        return CommandStatus.REJECTED_EPOCH
+    if seq <= last_seq or seq - last_seq > SEQ_WINDOW:
+        return CommandStatus.REJECTED_REPLAY
+    return 0
+
+
+class RequestNumber:
+    """Reads a request's ``gn_cmd_epoch`` and ``gn_cmd_seq`` (and its
+    ``gn_cmd``) out of a ``gn_to_cn`` region's data, at their fixed offsets:
+    what :func:`request_refusal` needs, without applying the frame."""
+
+    __slots__ = ("_cmd", "_epoch", "_seq")
+
+    def __init__(self, layout: Layout) -> None:
+        base = layout.region("gn_to_cn").offset
+
+        def field(name: str) -> struct.Struct:
+            e = layout.element(name)
+            return struct.Struct(f"<{e.offset - base}x{e.scalar.struct}")
+
+        self._epoch = field("gn_cmd_epoch")
+        self._seq = field("gn_cmd_seq")
+        self._cmd = field("gn_cmd")
+
+    def read(self, data: bytes | bytearray | memoryview) -> tuple[int, int]:
+        """``(epoch, seq)`` of one request's region data (struct.error if too short)."""
+        return self._epoch.unpack_from(data)[0], self._seq.unpack_from(data)[0]
+
+    def command(self, data: bytes | bytearray | memoryview) -> str:
+        """The name of the command a request's region data asks for."""
+        cmd = int(self._cmd.unpack_from(data)[0])
+        return CMD_NAMES[cmd] if cmd < len(CMD_NAMES) else f"code {cmd}"
 
 
 _N_CMDS = len(CMD_NAMES)
@@ -374,7 +426,7 @@ class CommandHandler:
         cmd = self._g_cmd.get()
         seq = self._g_seq.get()
         name = CMD_NAMES[cmd] if cmd < _N_CMDS else f"code {cmd}"
-        refused = self._refuse(cmd, seq)
+        refused = self.refusal(self._g_epoch.get(), seq)
         if refused is not None:
             self.reject(refused[0], t_ns, name=name, seq=seq, detail=refused[1])
             return
@@ -408,6 +460,18 @@ class CommandHandler:
         self._h_reject_seq.set(seq)
         self._emit_rejected(status, t_ns, name, seq, detail)
 
+    def count_refused(self, n: int, status: int, seq: int) -> None:
+        """Count ``n`` requests the CN's intake refused as they arrived
+        (:class:`zplatform.intake.RequestIntake`: bad tags, other runs,
+        numbers not above the last): as :meth:`reject` does, without an
+        event each (the loop reports them together): ``cn_cmd_rejects``
+        grows by ``n``, ``cn_cmd_reject_status``/``cn_cmd_reject_seq`` show
+        ``status``/``seq`` (the highest number refused; ``REJECTED_AUTH`` and
+        0 when only bad tags came)."""
+        self._h_rejects.bump(n)
+        self._h_reject_status.set(status)
+        self._h_reject_seq.set(seq)
+
     def _emit_rejected(self, status: int, t_ns: int, name: str, seq: int, detail: str) -> None:
         self._events.emit(
             EV.CMD_REJECTED,
@@ -418,24 +482,22 @@ class CommandHandler:
             detail=detail,
         )
 
-    def _refuse(self, cmd: int, seq: int) -> tuple[int, str] | None:
-        """The checks that do not consume a number: epoch, then sequence."""
-        epoch = self._g_epoch.get()
-        if epoch != self._h_epoch.get():
-            return (
-                CommandStatus.REJECTED_EPOCH,
-                f"epoch {epoch} is not this control node's ({self._h_epoch.get()}): "
-                "a request for an earlier run",
+    def refusal(self, epoch: int, seq: int) -> tuple[int, str] | None:
+        """``(status, detail)`` when a request numbered ``seq`` for CN run
+        ``epoch`` is refused without consuming a number
+        (:func:`request_refusal`: epoch, then number), else None. Changes nothing."""
+        cn_epoch = self._h_epoch.get()
+        status = request_refusal(epoch, seq, cn_epoch, self._last_seq)
+        if status == CommandStatus.REJECTED_EPOCH:
+            return status, (
+                f"epoch {epoch} is not this control node's ({cn_epoch}): a request for an "
+                "earlier run"
             )
-        if seq <= self._last_seq:
-            return (
-                CommandStatus.REJECTED_REPLAY,
-                f"number {seq} is not above the last one seen ({self._last_seq})",
-            )
-        if seq - self._last_seq > SEQ_WINDOW:
-            return (
-                CommandStatus.REJECTED_REPLAY,
-                f"number {seq} jumps more than {SEQ_WINDOW} past the last one ({self._last_seq})",
+        if status == CommandStatus.REJECTED_REPLAY:
+            if seq <= self._last_seq:
+                return status, f"number {seq} is not above the last one seen ({self._last_seq})"
+            return status, (
+                f"number {seq} jumps more than {SEQ_WINDOW} past the last one ({self._last_seq})"
             )
         return None
 

@@ -2,11 +2,11 @@
 
 This module is the schema and nothing more: the :class:`Mission` struct tree
 (``msgspec.Struct`` with ``forbid_unknown_fields``, so a typo fails at
-decode), the structural checks of thesis 000 ch. 4.1.1 (Data Vector), 4.2.1
-(network) and the topology rules of DESIGN.md, the size limits that keep a
+decode), the structural checks of the thesis, ch. 4.1.1 (Data Vector), 4.2.1
+(network) and the topology rules of docs/architecture.md, the size limits that keep a
 mission from exhausting memory (:data:`MAX_ARRAY_COUNT`,
 :data:`MAX_REGION_BYTES`, :data:`MAX_VECTOR_BYTES`), and the platform
-elements of DESIGN.md §5 added to the regions. :func:`parse_mission` does
+elements of docs/architecture.md#data-vector added to the regions. :func:`parse_mission` does
 all of that; every failure is a :class:`~zplatform.errors.ConfigError` whose
 message names the YAML path of the bad field and what was expected.
 
@@ -34,7 +34,7 @@ from typing import Annotated, Any, Literal
 import msgspec
 from msgspec import Meta
 
-from .codes import Command, CommandStatus, Fault, ParamLoad, ParamSave, SafedWhy
+from .codes import Command, CommandStatus, Fault, ParamLoad, ParamSave, SafedWhy, Thread
 from .errors import ConfigError
 from .types import SCALAR_TYPES, ScalarType, parse_type
 
@@ -43,6 +43,7 @@ __all__ = [
     "CMD_STATUS_NAMES",
     "CONTROLLER_MODES",
     "FAULT_NAMES",
+    "HEALTH_METRICS",
     "MAX_ARRAY_COUNT",
     "MAX_REGION_BYTES",
     "MAX_VECTOR_BYTES",
@@ -50,23 +51,30 @@ __all__ = [
     "PRM_LOAD_NAMES",
     "PRM_SAVE_NAMES",
     "SAFED_WHY_NAMES",
+    "THREAD_NAMES",
     "ActionConfig",
     "ClockConfig",
     "CommandsConfig",
     "ComponentConfig",
     "ElementConfig",
     "FaultsConfig",
+    "HealthConfig",
+    "HealthMetric",
     "Mission",
+    "MonitorConfig",
     "NodeConfig",
     "ParamConfig",
+    "RecorderConfig",
     "StateConfig",
     "StateMachineConfig",
     "TransitionConfig",
     "TransportConfig",
+    "WatchdogConfig",
     "WorldBoardConfig",
     "WorldConfig",
     "check_mission_name",
     "element_spec",
+    "health_elements",
     "parse_mission",
     "platform_elements",
     "relocate_mission",
@@ -86,6 +94,9 @@ FAULT_NAMES: tuple[str, ...] = tuple(m.name for m in Fault)
 PRM_LOAD_NAMES: tuple[str, ...] = tuple(m.name for m in ParamLoad)
 PRM_SAVE_NAMES: tuple[str, ...] = tuple(m.name for m in ParamSave)
 SAFED_WHY_NAMES: tuple[str, ...] = tuple(m.name for m in SafedWhy)
+THREAD_NAMES: tuple[str, ...] = tuple(t.name.lower() for t in Thread)
+"""The threads whose liveness a node reports, by bit of ``<node>_threads_stalled``
+(:class:`~zplatform.codes.Thread`, :mod:`zplatform.health`)."""
 
 # Names checked with fullmatch, never match: `$` also matches before a
 # trailing newline, so "cn_loop\n" would pass a match().
@@ -171,6 +182,46 @@ class ElementConfig(_Struct):
     ] = None
 
 
+class WatchdogConfig(_Struct):
+    """A node's watchdog: the loop strokes systemd's watchdog or a watchdog
+    device while every watched thread checks in, and stops the moment one
+    does not (so the host is reset); strokes resume if it recovers first.
+    See zplatform.watchdog."""
+
+    kind: Annotated[
+        Literal["systemd", "device"],
+        Meta(
+            description="`systemd`: `WATCHDOG=1` to `$NOTIFY_SOCKET` (sd_notify; the unit "
+            "sets `WatchdogSec=`, and the node refuses to start without the variable); "
+            "`device`: a byte to `device` (the kernel's `/dev/watchdog`)."
+        ),
+    ]
+    device: Annotated[
+        str,
+        Meta(
+            description="`kind: device`: the watchdog device. On a clean stop the node writes "
+            "`V` (the magic close), so an orderly exit does not reset the host."
+        ),
+    ] = "/dev/watchdog"
+    interval_ms: Annotated[
+        float,
+        Meta(
+            ge=10,
+            le=60_000,
+            description="Stroke (and check the threads) every this many ms: well under the "
+            "watchdog's timeout (systemd: under half of `WatchdogSec`).",
+        ),
+    ] = 100.0
+    threads: Annotated[
+        list[str] | None,
+        Meta(
+            description="The threads that must be alive (names of `<node>_threads_stalled`: "
+            + ", ".join(f"`{n}`" for n in THREAD_NAMES)
+            + "). Default: every thread the node runs."
+        ),
+    ] = None
+
+
 class NodeConfig(_Struct):
     """A zenoh peer: where it listens and whom it connects to.
 
@@ -213,6 +264,10 @@ class NodeConfig(_Struct):
             "with the driver's own keys (see Boards). Default: a simulated board."
         ),
     ] = msgspec.field(default_factory=dict)
+    watchdog: Annotated[
+        WatchdogConfig | None,
+        Meta(description="A watchdog the node's loop strokes while its threads are alive."),
+    ] = None
 
 
 class TransportConfig(_Struct):
@@ -613,6 +668,87 @@ class DownlinkConfig(_Struct):
     ] = 4096
 
 
+class RecorderConfig(_Struct):
+    """The on-board flight recorder (`zplatform.recorder`): each recording node
+    keeps its own telemetry and events on its own storage, whatever the radio
+    link does. The CN records every telemetry frame it publishes, a device node
+    every reply frame it sends (its region), each with its events, in a ring of
+    files under `DIR/<node>/`: when the ring is full, the oldest file is removed
+    (counted in `<node>_rec_evicted`, with a `recorder_evicted` event). The loop
+    only copies into a RAM buffer; a writer thread does the I/O, and a loop the
+    buffer cannot take is dropped whole and counted (`<node>_rec_dropped`, a
+    `recorder_dropping` event). Every record is checksummed, so a torn tail
+    (kill -9, power loss) is detected and skipped by the reader, never misread.
+    `zplatform log MISSION --from-recorder DIR --out CSV` reads a node's
+    directory; the ground fills telemetry gaps from the CN's recorder over
+    zenoh (`{vehicle}/cn/recorder`)."""
+
+    dir: Annotated[
+        str | None,
+        Meta(
+            description="Directory of the recorder files; node `X` writes `DIR/X/`. Relative to "
+            "the mission file. Default: `zplatform/recorder/<mission>` in the state directory "
+            "(`$XDG_STATE_HOME`, else `~/.local/state`; `/var/lib` for root). The environment "
+            "variable `ZPLATFORM_RECORDER_DIR`, when set, replaces it (`$ZPLATFORM_RECORDER_DIR"
+            "/<mission>/X/`): for tests and for a flight data partition."
+        ),
+    ] = None
+    nodes: Annotated[
+        list[str] | None,
+        Meta(
+            description="The nodes that record: `cn` and device nodes (the ground node has "
+            "its own log). Default: the CN and every device node."
+        ),
+    ] = None
+    max_bytes: Annotated[
+        int,
+        Meta(
+            ge=128 * 1024,
+            le=1 << 50,
+            description="Most bytes a node's recorder directory holds (every file, earlier "
+            "runs included); the oldest file is removed to stay within it. At least twice "
+            "`file_bytes`.",
+        ),
+    ] = 256 * 1024 * 1024
+    file_bytes: Annotated[
+        int,
+        Meta(
+            ge=64 * 1024,
+            le=1 << 30,
+            description="Size of one file of the ring: a new file is started when the next "
+            "record would not fit. Must hold several loops' records.",
+        ),
+    ] = 8 * 1024 * 1024
+    fsync_ms: Annotated[
+        Annotated[float, Meta(ge=0, le=3_600_000)] | None,
+        Meta(
+            description="Flush the file to the storage (fsync) at most this often (ms); 0: "
+            "after every write; `null`: never (the operating system writes back when it "
+            "wants). What was written survives a kill -9 of the node in any case; a power "
+            "loss keeps everything up to the last fsync."
+        ),
+    ] = 1000.0
+    buffer_ms: Annotated[
+        float,
+        Meta(
+            ge=50,
+            le=600_000,
+            description="How long the storage may stall (ms of loops) before the recorder "
+            "drops loops: sizes the RAM buffer between the loop and the writer thread.",
+        ),
+    ] = 2000.0
+    serve_bps: Annotated[
+        int,
+        Meta(
+            ge=10_000,
+            le=1_000_000_000,
+            description="Bytes per second the CN's recorder sends when the ground asks it for "
+            "a telemetry gap (`{vehicle}/cn/recorder`): answered by a thread of its own, "
+            "rate-limited so that no asker can starve the control loop.",
+        ),
+    ] = 2_000_000
+
+
 class SecurityConfig(_Struct):
     """Authentication of every frame a node takes from the network, and of
     every peer that may open a link at all."""
@@ -706,6 +842,251 @@ class FaultsConfig(_Struct):
             "triggers in a row.",
         ),
     ] = 10
+
+
+class HealthConfig(_Struct):
+    """Each node's health in telemetry: CPU, memory, disk, temperature, loop
+    lateness, overruns, garbage-collector pauses and the liveness of its
+    threads, as platform elements `<node>_...` in `cn` (the CN) and
+    `dnX_to_cn` (each DN), with limits; see zplatform.health. Without this
+    section a mission has no health elements."""
+
+    rate_hz: Annotated[
+        float,
+        Meta(
+            ge=1,
+            le=10,
+            description="How often each node samples and reports its health (Hz); sampling "
+            "runs on a thread of its own, the loop only copies the result.",
+        ),
+    ] = 2.0
+    disk_path: Annotated[
+        str,
+        Meta(
+            description="The directory whose free space is `<node>_disk_free_mb`: where the "
+            "node logs (its flight recorder's directory, say). Relative paths are relative "
+            "to the node's working directory."
+        ),
+    ] = "."
+    deadlines_ms: Annotated[
+        dict[str, Annotated[float, Meta(ge=10, le=600_000)]],
+        Meta(
+            description="Check-in deadline (ms) per thread name ("
+            + ", ".join(f"`{n}`" for n in THREAD_NAMES)
+            + "); a thread silent for longer is reported stalled. Defaults: `loop` 1000, "
+            "`zenoh` and `health` three health periods (at least 2000), `clock` 3000, the "
+            "rest 2000."
+        ),
+    ] = msgspec.field(default_factory=dict)
+    limits: Annotated[
+        dict[str, LimitsConfig],
+        Meta(
+            description="Yellow/red limits per health element, by its name after `<node>_` "
+            "(`cpu_pct: {red: [null, 90]}`), for every node; a band given replaces the "
+            "default band (`[null, null]` removes it)."
+        ),
+    ] = msgspec.field(default_factory=dict)
+
+
+class HealthMetric(msgspec.Struct, frozen=True):
+    """One health element (:mod:`zplatform.health`): its name after
+    ``<node>_``, type, meaning and default limits (``per_period``: the limits
+    are in loop periods)."""
+
+    name: str
+    type: str
+    doc: str
+    yellow: tuple[float | None, float | None] | None = None
+    red: tuple[float | None, float | None] | None = None
+    per_period: bool = False
+
+
+HEALTH_METRICS: tuple[HealthMetric, ...] = (
+    # sampled by the health thread, in this order (zplatform.health.SAMPLED)
+    HealthMetric(
+        "cpu_pct", "f32", "the node process's CPU, % of one core", (None, 80), (None, 95)
+    ),
+    HealthMetric("sys_cpu_pct", "f32", "the host's CPU, % of all cores", (None, 85), (None, 95)),
+    HealthMetric(
+        "rss_mb", "f32", "the process's resident memory (MiB)", (None, 512), (None, 1024)
+    ),
+    HealthMetric(
+        "mem_free_mb", "f32", "the host's available memory (MiB)", (256, None), (64, None)
+    ),
+    HealthMetric(
+        "disk_free_mb",
+        "f32",
+        "free disk where the node logs (health.disk_path, MiB)",
+        (512, None),
+        (64, None),
+    ),
+    HealthMetric(
+        "cpu_temp_c",
+        "f32",
+        "the hottest CPU temperature (deg C); NaN: the host has no sensor",
+        (None, 75),
+        (None, 85),
+    ),
+    HealthMetric("health_seq", "u32", "samples the node's health thread has taken"),
+    # measured by the loop, in this order (zplatform.health.LOOP_FIELDS)
+    HealthMetric(
+        "late_max_ms",
+        "f32",
+        "the loop's worst start lateness in the last health period (ms; default limits "
+        "half a period, a period)",
+        (None, 0.5),
+        (None, 1.0),
+        per_period=True,
+    ),
+    HealthMetric(
+        "overruns_recent",
+        "u32",
+        "loops that overran their period in the last health period",
+        (None, 0),
+        (None, 10),
+    ),
+    HealthMetric(
+        "gc_max_ms",
+        "f32",
+        "the longest garbage-collector pause in the last health period (ms)",
+        (None, 2),
+        (None, 5),
+    ),
+    HealthMetric("gc_count", "u32", "garbage collections in the last health period"),
+    HealthMetric(
+        "threads_stalled",
+        "u16",
+        "threads past their check-in deadline, bit i: "
+        + ", ".join(f"{i} {n}" for i, n in enumerate(THREAD_NAMES)),
+        None,
+        (None, 0),
+    ),
+)
+"""Every health element, in block order (:mod:`zplatform.health`)."""
+_HEALTH_READINGS = 6  # the first six are readings: NaN until the first sample
+
+
+def _health_limits(
+    m: HealthMetric, period_ms: float, override: LimitsConfig | None
+) -> dict[str, list[float | None]] | None:
+    out: dict[str, list[float | None]] = {}
+    for band in ("yellow", "red"):
+        rng = getattr(override, band, None) if override is not None else None
+        if rng is None:
+            rng = getattr(m, band)
+            if rng is not None and m.per_period:
+                rng = tuple(None if x is None else x * period_ms for x in rng)
+        if rng is not None and tuple(rng) != (None, None):
+            out[band] = list(rng)
+    return out or None
+
+
+def health_elements(mission: Mission, node: str) -> list[dict[str, Any]]:
+    """``node``'s health elements as ElementConfig-shaped dicts (``name``,
+    ``type``, ``initial``, ``doc``, ``limits``), in block order; ``[]`` when
+    the mission has no ``health:`` section. The readings start as NaN (no
+    reading yet, inside every limit). Pure."""
+    cfg = mission.health
+    if cfg is None:
+        return []
+    period_ms = 1000.0 / mission.loop_hz
+    out = []
+    for i, m in enumerate(HEALTH_METRICS):
+        e: dict[str, Any] = {"name": f"{node}_{m.name}", "type": m.type, "doc": m.doc}
+        if i < _HEALTH_READINGS:
+            e["initial"] = "nan"
+        lim = _health_limits(m, period_ms, cfg.limits.get(m.name))
+        if lim is not None:
+            e["limits"] = lim
+        out.append(e)
+    return out
+
+
+class MonitorConfig(_Struct):
+    """A monitor (fault detection and response, as F Prime splits them): a
+    condition on one element of the CN's Data Vector that, holding for
+    `persistence` loops in a row, trips once and runs its response; it
+    clears when the condition stops holding. Monitors run every loop on the
+    CN, after the fault monitor and before the state machine, so a response
+    takes effect in the loop it trips. See zplatform.monitors."""
+
+    name: Annotated[str, Meta(description="Unique monitor name: `[a-z][a-z0-9_]*`.")]
+    element: Annotated[
+        str,
+        Meta(
+            description="Any scalar element of the CN's Data Vector (a DN's arrive one loop "
+            "after the DN wrote them)."
+        ),
+    ]
+    kind: Annotated[
+        Literal["limit", "stale", "rate"],
+        Meta(
+            description="`limit`: the value is outside `[lo, hi]` or the element's `band`; "
+            "`stale`: unchanged for `unchanged_loops` loops, or (a time stamp in ns, "
+            "`dnX_time_ns`) older than `max_age_ms` in CN time; `rate`: its change per "
+            "second over `window_loops` loops is outside `[lo, hi]`."
+        ),
+    ]
+    lo: Annotated[
+        float | None,
+        Meta(description="`limit`, `rate`: the lowest value (per second for `rate`) allowed."),
+    ] = None
+    hi: Annotated[
+        float | None,
+        Meta(description="`limit`, `rate`: the highest value (per second for `rate`) allowed."),
+    ] = None
+    band: Annotated[
+        Literal["yellow", "red"] | None,
+        Meta(description="`limit`: use the element's own yellow or red limits instead of lo/hi."),
+    ] = None
+    unchanged_loops: Annotated[
+        Annotated[int, Meta(ge=1, le=1_000_000)] | None,
+        Meta(description="`stale`: trip when the value has not changed for this many loops."),
+    ] = None
+    max_age_ms: Annotated[
+        Annotated[float, Meta(gt=0)] | None,
+        Meta(
+            description="`stale`: the element is a time stamp (ns, an integer); trip when it "
+            "is older than this in CN time. Armed once the stamp first changes."
+        ),
+    ] = None
+    window_loops: Annotated[
+        int, Meta(ge=1, le=10_000, description="`rate`: the loops the change is taken over.")
+    ] = 1
+    persistence: Annotated[
+        int,
+        Meta(
+            ge=1,
+            le=1_000_000,
+            description="Loops in a row the condition must hold before the monitor trips.",
+        ),
+    ] = 1
+    states: Annotated[
+        list[str] | None,
+        Meta(
+            description="The states in which the monitor runs (default: every state); outside "
+            "them it neither trips nor clears, and its persistence count starts over."
+        ),
+    ] = None
+    response: Annotated[
+        Literal["event", "fault", "transition", "safe"],
+        Meta(
+            description="What tripping does (besides its event): `event` only "
+            "(`monitor_warning`); `fault`: latch `fault` in `cn_fault`; `transition`: go "
+            "to state `to` this loop (after a pending ABORT-class command's transition, "
+            "before the state's others); `safe`: set controller `controller`'s mode to "
+            "`safed`."
+        ),
+    ] = "event"
+    fault: Annotated[
+        str | None,
+        Meta(description="`response: fault`: the fault to latch (default `MONITOR`)."),
+    ] = None
+    to: Annotated[str | None, Meta(description="`response: transition`: the target state.")] = None
+    controller: Annotated[
+        str | None, Meta(description="`response: safe`: the controller to safe.")
+    ] = None
+    doc: Annotated[str, Meta(description="What the monitor guards against.")] = ""
 
 
 class WorldBoardConfig(_Struct):
@@ -1068,6 +1449,13 @@ class Mission(_Struct):
     faults: FaultsConfig = msgspec.field(default_factory=FaultsConfig)
     security: SecurityConfig = msgspec.field(default_factory=SecurityConfig)
     downlink: DownlinkConfig = msgspec.field(default_factory=DownlinkConfig)
+    recorder: Annotated[
+        RecorderConfig | None,
+        Meta(
+            description="The on-board flight recorder: each vehicle node keeps its telemetry "
+            "and events on local storage (`{}` turns it on with the defaults). Off when absent."
+        ),
+    ] = None
     bulk: Annotated[
         list[BulkChannelConfig],
         Meta(description="Bulk channels: large arrays moved outside the sync."),
@@ -1102,6 +1490,17 @@ class Mission(_Struct):
             "(physics that every board's outputs change): see zplatform.world."
         ),
     ] = None
+    health: Annotated[
+        HealthConfig | None,
+        Meta(
+            description="Each node's health (CPU, memory, disk, temperature, loop timing, "
+            "thread liveness) in telemetry; without it, no health elements."
+        ),
+    ] = None
+    monitors: Annotated[
+        list[MonitorConfig],
+        Meta(description="Conditions on the CN's Data Vector and their responses."),
+    ] = msgspec.field(default_factory=list)
     doc: Annotated[str, Meta(description="What the mission is for.")] = ""
 
     # -- derived views (cheap; computed from the checked fields) -----------
@@ -1125,6 +1524,15 @@ class Mission(_Struct):
         return bool(self.commands.hazardous) or any(
             ep.startswith("tls/") for n in self.nodes.values() for ep in [*n.listen, *n.connect]
         )
+
+    @property
+    def recording_nodes(self) -> list[str]:
+        """The nodes whose flight recorder runs (``recorder.nodes``, by default
+        the CN and every device node); empty without a ``recorder`` section."""
+        r = self.recorder
+        if r is None:
+            return []
+        return list(r.nodes) if r.nodes is not None else ["cn", *self.device_nodes]
 
     @property
     def period_ns(self) -> int:
@@ -1193,6 +1601,7 @@ def parse_mission(text: bytes | str, source: str = "<string>") -> Mission:
     # elements are added: a repeated controller name must be reported as
     # such, not as the repeated `<name>_mode` element it would create.
     _check_control_sections(mission)
+    _check_recorder(mission)
     _check_params(mission)
     n_platform = _add_platform_elements(mission)
     _check_elements(mission, n_platform)
@@ -1308,12 +1717,15 @@ def resolve_pythonpath(entries: Sequence[str] | None, base_dir: str | Path | Non
 def relocate_mission(raw: dict[str, Any], source: str | Path) -> None:
     """Make a mission mapping read from file ``source`` mean the same from
     any other directory: its ``pythonpath`` (or the default, ``source``'s
-    directory) becomes absolute. For copies of a mission file (``up
+    directory) and its recorder ``dir`` become absolute. For copies of a mission file (``up
     --free-ports``, a recording). A malformed ``pythonpath`` is left for the
     loader to refuse with its YAML path."""
     entries = raw.get("pythonpath")
     if entries is None or (isinstance(entries, list) and all(isinstance(e, str) for e in entries)):
         raw["pythonpath"] = resolve_pythonpath(entries, Path(source).parent)
+    rec = raw.get("recorder")
+    if isinstance(rec, dict) and isinstance(rec.get("dir"), str) and rec["dir"]:
+        rec["dir"] = os.path.join(os.path.abspath(Path(source).parent), rec["dir"])
 
 
 def _check_mission(m: Mission) -> None:
@@ -1441,7 +1853,7 @@ def _link_endpoint(ep: str, mtls: bool, why: str, where: str) -> str:
 
 
 def platform_elements(m: Mission) -> dict[str, list[ElementConfig]]:
-    """The elements every mission has (DESIGN.md §5), per region."""
+    """The elements every mission has (docs/architecture.md#data-vector), per region."""
     states = list(m.state_machine.states) if m.state_machine else ["IDLE"]
     initial = m.state_machine.initial if m.state_machine else "IDLE"
     E = ElementConfig
@@ -1564,6 +1976,21 @@ def platform_elements(m: Mission) -> dict[str, list[ElementConfig]]:
         counters_at = counter_region(node)
         if counters_at is not None and counters_at in out:
             out[counters_at] += [msgspec.convert(e, E) for e in counter_elements(m.bulk, node)]
+    # Flight recorder counters, where the recording node reports them.
+    for node in m.recording_nodes:
+        at = counter_region(node)
+        if at is not None and at in out:
+            out[at] += [
+                E(f"{node}_rec_dropped", "u32", 0, doc=f"loops {node}'s recorder could not keep"),
+                E(f"{node}_rec_evicted", "u32", 0, doc=f"files {node}'s recorder ring removed"),
+                E(f"{node}_rec_errors", "u32", 0, doc=f"{node}'s recorder storage errors"),
+            ]
+    # Health, last: one contiguous block per node (zplatform.health), only
+    # in a mission with a `health:` section.
+    for node in ["cn", *m.device_nodes]:
+        out["cn" if node == "cn" else f"{node}_to_cn"] += [
+            msgspec.convert(e, E) for e in health_elements(m, node)
+        ]
     return out
 
 
@@ -1598,6 +2025,8 @@ def _element_path(m: Mission, region: str, i: int, n_platform: int, name: str) -
         return "$.state_machine"
     if any(p.name == name for p in m.params):
         return _param_path(m, name)
+    if m.health is not None and any(name.endswith(f"_{t.name}") for t in HEALTH_METRICS):
+        return "$.health"
     for j, c in enumerate(m.controllers):
         if name == f"{c.name}_mode":
             return f"$.controllers[{j}]"
@@ -1804,6 +2233,30 @@ def _check_initial(e: ElementConfig, where: str) -> Value:
             raise ConfigError(f"expected {count} initial values for {e.type}, got {len(v)}", w)
         return [_coerce_scalar(st, x, f"{w}[{j}]", None) for j, x in enumerate(v)]
     return [_coerce_scalar(st, v, w, None)] * count
+
+
+def _check_recorder(m: Mission) -> None:
+    """The recorder's nodes exist and record, and its ring holds two files."""
+    r = m.recorder
+    if r is None:
+        return
+    if r.dir is not None and (not r.dir or "\x00" in r.dir):
+        raise ConfigError("the recorder directory must be a non-empty path", "$.recorder.dir")
+    for i, n in enumerate(r.nodes or ()):
+        if n not in m.nodes or n == "gn":
+            raise ConfigError(
+                f"{n!r} is not the control node or a device node of this mission "
+                "(the ground node keeps its own log)",
+                f"$.recorder.nodes[{i}]",
+            )
+    if r.nodes is not None and len(set(r.nodes)) != len(r.nodes):
+        raise ConfigError("a node is listed twice", "$.recorder.nodes")
+    if r.max_bytes < 2 * r.file_bytes:
+        raise ConfigError(
+            f"max_bytes ({r.max_bytes}) must hold at least two files of file_bytes "
+            f"({r.file_bytes}): the ring removes the oldest file to start a new one",
+            "$.recorder.max_bytes",
+        )
 
 
 def _check_control_sections(m: Mission) -> None:

@@ -1,4 +1,4 @@
-"""Controllers: the control logic of a mission (thesis 000, ch. 4.6 and 6.2).
+"""Controllers: the control logic of a mission (the thesis, ch. 4.6 and 6.2).
 
 A :class:`Controller` is mission code that runs every loop (or every Nth
 loop, its rate group) on one node and talks to the rest of the system only

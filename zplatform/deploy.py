@@ -42,8 +42,7 @@ Contract:
 * Every node enforces an **access-control list** (zenoh ``access_control``,
   ``default_permission: deny``) keyed by the remote's certificate common
   name. A cert's common name is its node name (``cn``, ``dn0``, ``gn``) or
-  ``tool``. The rules follow the key space (docs/architecture.md,
-  :func:`access_control`):
+  ``tool``. The rules follow docs/architecture.md#key-space (:func:`access_control`):
 
   - node ``X`` may put, reply on and declare queryables and liveliness tokens
     only under its own prefix ``{vehicle}/X/**``; so only ``cn`` puts
@@ -51,7 +50,9 @@ Contract:
     ``dnX`` replies only on ``{vehicle}/dnX/to_cn``;
   - only ``cn`` may query ``{vehicle}/dnX/to_cn`` (and ``{vehicle}/*/to_cn``,
     the wildcard sync query); any node may query the
-    CN's clock ``{vehicle}/cn/clock``;
+    CN's clock ``{vehicle}/cn/clock``; ``gn`` and ``tool`` may query the
+    CN's flight recorder ``{vehicle}/cn/recorder`` (gap fill), when the
+    mission has one;
   - every identity may subscribe to ``{vehicle}/**`` and watch liveliness;
   - ``tool`` (``tap``, ``log``, ``cmd``, ``ground``) only subscribes and
     watches, and puts ``{vehicle}/gn/to_cn`` (operator commands) only with
@@ -449,8 +450,12 @@ def access_control(mission: Mission, dep: Deployment) -> dict[str, Any]:
                 ids.append(rule("cn-sync", ["query"], dn_keys))
         else:
             ids.append(rule(f"{n}-clock", ["query"], [f"{v}/cn/clock"]))
+        if n == "gn" and "cn" in mission.recording_nodes:
+            ids.append(rule("gn-recorder", ["query"], [f"{v}/cn/recorder"]))
         policies.append({"id": f"p-{n}", "rules": ids, "subjects": [f"s-{n}"]})
     tool_rules = list(common)
+    if "cn" in mission.recording_nodes:  # `zplatform log` fills its gaps too
+        tool_rules.append(rule("tool-recorder", ["query"], [f"{v}/cn/recorder"]))
     if dep.tool is not None and dep.tool.may_command and mission.has_ground:
         tool_rules.append(rule("tool-command", ["put"], [f"{v}/gn/to_cn"]))
     policies.append({"id": f"p-{TOOL}", "rules": tool_rules, "subjects": [f"s-{TOOL}"]})

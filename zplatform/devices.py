@@ -1,4 +1,4 @@
-"""Devices: sensor and actuator drivers on the device nodes (thesis 000, ch. 4.7).
+"""Devices: sensor and actuator drivers on the device nodes (the thesis, ch. 4.7).
 
 A :class:`Device` connects the Data Vector to an I/O
 :class:`~zplatform.boards.Board` (the

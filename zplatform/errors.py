@@ -1,4 +1,4 @@
-"""The zplatform error tree (thesis 000, ch. 4.11, made Pythonic).
+"""The zplatform error tree (the thesis, ch. 4.11, made Pythonic).
 
 The thesis' C++ platform returns an ``Error_t`` status from every function and
 has the node mains decide what to do with it. In Python the same contract is
@@ -33,7 +33,7 @@ The tree::
     ├── ControlError             controller/device construction or wiring
     ├── EventError               an event that is not in the catalogue (a bug)
     ├── NodeError                a node main cannot start or run
-    └── RecordingError           a loop recording cannot be written or read back
+    └── RecordingError           a loop recording or flight recorder cannot be written or read
 """
 
 from __future__ import annotations

@@ -13,7 +13,7 @@ so a severity is never picked at the call site, and a catalogue test proves
 every entry formats and that ids and names are unique.
 
 An :class:`Event` is one record (severity, id, text, time) published on
-``{vehicle}/{node}/events`` (DESIGN.md §3). Node logic never publishes: it
+``{vehicle}/{node}/events`` (docs/architecture.md#key-space). Node logic never publishes: it
 calls :meth:`EventLog.emit`, which appends to a bounded in-memory queue, and
 the runtime takes the queue after the loop (:meth:`~EventLog.drain`) and
 publishes what it took. So emitting is sans-IO and never blocks; it raises
@@ -212,6 +212,34 @@ class EV:
         Severity.ACTIVITY_HI,
         "{node} re-enabled: the control node triggered it {n} loops in a row",
     )
+    # health and monitors (zplatform.health, zplatform.monitors, zplatform.watchdog)
+    THREAD_STALLED = EventType(
+        100,
+        "thread_stalled",
+        Severity.WARNING_HI,
+        "{node}: thread {thread} has not checked in within its deadline ({deadline_ms:g} ms)",
+    )
+    THREAD_RESUMED = EventType(
+        101, "thread_resumed", Severity.ACTIVITY_HI, "{node}: thread {thread} checks in again"
+    )
+    MONITOR_WARNING = EventType(
+        102, "monitor_warning", Severity.WARNING_LO, "monitor {name}: {what}"
+    )
+    MONITOR_TRIPPED = EventType(
+        103, "monitor_tripped", Severity.WARNING_HI, "monitor {name}: {what}; {response}"
+    )
+    MONITOR_CLEARED = EventType(
+        104, "monitor_cleared", Severity.ACTIVITY_LO, "monitor {name}: clear ({what})"
+    )
+    WATCHDOG_WITHHELD = EventType(
+        105,
+        "watchdog_withheld",
+        Severity.WARNING_HI,
+        "{node}: watchdog no longer stroked, thread(s) {threads} stalled; {consequence}",
+    )
+    WATCHDOG_RESUMED = EventType(
+        106, "watchdog_resumed", Severity.ACTIVITY_HI, "{node}: watchdog stroked again"
+    )
     # the ground side (zplatform.ground.GroundLogic: what the ground believes)
     TM_JOINED = EventType(
         70,
@@ -236,6 +264,43 @@ class EV:
         "script_done",
         Severity.ACTIVITY_HI,
         "command script done: {n} command(s), {accepted} accepted; last verdict in loop {loop}",
+    )
+    GAP_FILLED = EventType(
+        74,
+        "gap_filled",
+        Severity.ACTIVITY_LO,
+        "filled loops {first}..{last} ({n} snapshot(s)) from the control node's recorder",
+    )
+    GAP_UNFILLED = EventType(
+        75,
+        "gap_unfilled",
+        Severity.WARNING_LO,
+        "loops {first}..{last}: {n} snapshot(s) not filled from the control node's recorder: "
+        "{why}",
+    )
+    # the flight recorder (zplatform.recorder), on the node that records
+    RECORDER_DROPPING = EventType(
+        80,
+        "recorder_dropping",
+        Severity.WARNING_LO,
+        "{node}'s recorder drops loops from loop {loop}: {why}",
+    )
+    RECORDER_RESUMED = EventType(
+        81,
+        "recorder_resumed",
+        Severity.ACTIVITY_LO,
+        "{node}'s recorder keeps loops again from loop {loop}; {n} loop(s) dropped "
+        "({first}..{last})",
+    )
+    RECORDER_EVICTED = EventType(
+        82,
+        "recorder_evicted",
+        Severity.ACTIVITY_LO,
+        "{node}'s recorder ring is full: removed its oldest file {file} ({size} bytes); "
+        "{n} file(s) removed so far",
+    )
+    RECORDER_FAILED = EventType(
+        83, "recorder_failed", Severity.WARNING_LO, "{node}'s recorder cannot {what}: {error}"
     )
     # clock sync (a device node's re-syncs, zplatform.clocksync)
     CLOCK_REFUSED = EventType(

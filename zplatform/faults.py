@@ -1,4 +1,4 @@
-"""Error handling after start (thesis 000 ch. 4.11.1), sans-IO.
+"""Error handling after start (the thesis, ch. 4.11.1), sans-IO.
 
 The thesis' node mains handle an error after start in one of two ways:
 
@@ -38,6 +38,10 @@ stops hearing it latches ``DN_LOST``. Missions answer ``DN_SAFED`` like
 any fault (``cn_fault != NONE``): the shipped igniter mission aborts from
 ARMED and FIRE, so a DN that cannot run ends a flight ABORTED, visibly,
 instead of ARMED with a healthy-looking link.
+
+The mission's monitors (:mod:`zplatform.monitors`) latch faults too, through
+:meth:`FaultMonitor.raise_fault`: ``MONITOR`` or the fault a monitor names
+(``THREAD_STALLED`` for a node's stalled thread, say).
 
 Only the first fault latches: once ``cn_fault`` is not ``NONE`` it stays
 until someone writes it back (a WRITE command of ``cn_fault = NONE``, or a

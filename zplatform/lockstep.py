@@ -57,10 +57,12 @@ from .datavector import DataVector, Layout
 from .events import Event
 from .ground.logic import GroundLogic
 from .ground.records import CommandOutcome, EventRecord
+from .health import BLOCK_SIZE, HealthPort
+from .intake import CnRefusals
 from .loop import ControlLogic, DeviceLogic
 from .messages import wildcard_sync_for
 from .params import MemorySaver
-from .recording import FOREIGN_DN, RecordReader
+from .recording import RecordReader
 from .telemetry import CsvLogger
 from .timebase import VirtualClock
 from .uplink import ScriptCommand
@@ -236,7 +238,10 @@ class LockstepRunner:
 
     ``commands`` is the ground's script; ``boards`` replaces the default
     :class:`~zplatform.boards.SimBoard` of some device nodes (tests inject
-    faults through them). A mission with a vehicle world gets one
+    faults through them); ``health`` gives some nodes a health port (a
+    :class:`~zplatform.health.FakeHealth`: deterministic values, an injected
+    stall; without one a node's health elements keep their initial values).
+    A mission with a vehicle world gets one
     :class:`~zplatform.world.World` in this process (:attr:`world`), and
     every node it spans a port onto it, whatever that node's board driver
     (a hardware-in-the-loop mission's serial board included: the world is
@@ -252,6 +257,7 @@ class LockstepRunner:
         commands: list[ScriptCommand] | None = None,
         start_ns: int = DEFAULT_START_NS,
         boards: dict[str, Board] | None = None,
+        health: dict[str, HealthPort] | None = None,
     ) -> None:
         self.mission = mission
         self.start_ns = start_ns
@@ -300,6 +306,10 @@ class LockstepRunner:
             port = _SimBulkPort(n, self._channels)
             if port.arrays:
                 logic.attach_bulk(port)
+        for n, hp in (health or {}).items():
+            if n not in logics:
+                raise ValueError(f"health given for {n!r}, which is not a cn or device node")
+            logics[n].attach_health(hp)
 
     # -- running -----------------------------------------------------------
     def step(self, log: CsvLogger | None = None) -> None:
@@ -455,6 +465,19 @@ def _first_difference(
     return Difference(loop, "<frame header>", recorded[:24].hex(), bytes(replayed[:24]).hex())
 
 
+class _RecordedHealth:
+    """The health port of a replay: the loop's recorded block. A health loop
+    without one (a damaged record) gets zeros, and the telemetry then says
+    where the replay departs from the recording."""
+
+    def __init__(self) -> None:
+        self.block: bytes | None = None
+        self._zeros = bytes(BLOCK_SIZE)
+
+    def take(self, t_ns: int) -> bytes:
+        return self.block if self.block is not None else self._zeros
+
+
 def replay(
     directory: str | Path,
     mission_file: str | Path,
@@ -494,25 +517,27 @@ def _replay(
     reader: RecordReader, mission: Mission, keys: KeySet | None, log: CsvLogger | None
 ) -> ReplayResult:
     cn = ControlLogic(mission, keys=keys)
+    refused = CnRefusals()
     cn.dv.write_all(reader.initial)  # epoch included
+    recorded = _RecordedHealth()
+    if mission.health is not None:  # the recorded blocks, on the recorded loops
+        cn.attach_health(recorded)
     state_dv = cn.dv
     frames = 0
     loops = 0
     first = last = 0
     diff: Difference | None = None
     for rec in reader.loops():
+        recorded.block = rec.health
         cn.begin(rec.loop, rec.t_ns, final=rec.final)
         for i, payload in rec.replies:
-            if i == FOREIGN_DN:
-                cn.foreign_reply(bytes(payload or b"").decode(errors="replace"))
-            else:
-                cn.reply(i, payload)
+            cn.reply(i, payload)
         tm = cn.finish(
             rec.grounds,
             sync_overrun=rec.sync_overrun,
             loop_overruns=rec.loop_overruns,
             inbox_dropped=rec.inbox_dropped,
-            inbox_oversize=rec.inbox_oversize,
+            refused=refused.set_fields(rec.refused),
             saves=rec.saves,
         )
         loops += 1

@@ -1,4 +1,4 @@
-"""The sans-IO loop of each node (DESIGN.md §1): regions in, frames out.
+"""The sans-IO loop of each node (docs/architecture.md#the-loop): regions in, frames out.
 
 :class:`ControlLogic` and :class:`DeviceLogic` own a node's Data Vector, its
 codecs and everything that runs on it each loop, *and the protocol order*.
@@ -18,16 +18,20 @@ One CN loop ``n`` (numbered from 1 in every driver) with its one timestamp::
 
 :meth:`ControlLogic.finish` counts the misses, applies the parameter saves
 that finished since the last loop, applies at most one ground command
-frame, runs faults -> commands -> state machine -> controllers, and frames
-the telemetry. A save's result is an input like a command frame: the
-driver's saver writes the file off the loop thread
+frame, runs faults -> monitors -> commands -> state machine -> controllers,
+and frames the telemetry. A save's result is an input like a command frame:
+the driver's saver writes the file off the loop thread
 (:mod:`zplatform.params`), and the loop that learns of it is recorded.
 Replies that are not for loop ``n`` (an older loop's, a duplicate) are
-counted late and never applied; malformed replies
-are counted in ``cn_bad_frames`` and reported as events. Every input that
-changes the Data Vector passes through these three calls, so a recorder
-attached to them (:attr:`ControlLogic.recorder`) captures everything a
-replay needs to reproduce the telemetry bit for bit.
+counted late and never applied; malformed replies are counted in
+``cn_bad_frames`` and reported as events. What the driver's intake refused
+as it arrived (:mod:`zplatform.intake`: frames of a wrong size, with bad
+tags, replayed, from no DN) is an input of ``finish`` too
+(:class:`~zplatform.intake.CnRefusals`): counted the same way, evented at
+most once a second. Every input that changes the Data Vector passes
+through these three calls, so a recorder attached to them
+(:attr:`ControlLogic.recorder`) captures everything a replay needs to
+reproduce the telemetry bit for bit.
 
 One DN trigger::
 
@@ -59,6 +63,22 @@ of ``finish``, a DN at the top of ``run``), writes the channel counters, and
 publishes the channels it owns that are due after its logic. The drivers
 only supply the port: zenoh's (:class:`zplatform.bulk.NodeBulk`) or the
 lockstep runner's in-memory one.
+
+Health (:mod:`zplatform.health`), for a mission with a ``health:`` section,
+follows the same pattern: a driver attaches a
+:class:`~zplatform.health.HealthPort` (:meth:`ControlLogic.attach_health`,
+:meth:`DeviceLogic.attach_health`; live, :class:`zplatform.node.health.NodeHealth`
+with its sampling thread), and on health loops (``loop %
+health_divisor == 0``) the logic takes the node's health block from it and
+copies it into its health elements in one copy: the CN in ``finish`` before
+the fault monitor (so the monitors see it), a DN at the top of ``run``. The
+CN's block is an input like the others: its recorder gets it
+(:meth:`LoopRecorder.health`) and a replay feeds it back. Without a port (the
+lockstep runner's default) the health elements keep their initial values,
+so a ``sim`` is byte-identical run to run. The CN's monitors
+(:mod:`zplatform.monitors`) run in ``finish`` after the fault monitor and
+before the command handler and the state machine, so a response takes
+effect in the loop its monitor trips.
 """
 
 from __future__ import annotations
@@ -66,11 +86,11 @@ from __future__ import annotations
 from collections.abc import Sequence
 from typing import Any, Protocol
 
-from .auth import TAG_LEN, AuthError, Channel, KeySet, channel
+from .auth import AuthError, Channel, KeySet, channel
 from .boards import Board, safe_board
 from .codec import Frame, RegionCodec, bundle_entry, is_bundle
 from .codes import CommandStatus, SafedWhy
-from .commands import CommandHandler
+from .commands import CommandHandler, RequestNumber
 from .components import Streak
 from .config import Mission
 from .controllers import ControllerSet
@@ -79,6 +99,9 @@ from .devices import DeviceSet
 from .errors import CodecError, ConfigError
 from .events import EV, EventLog, EventType
 from .faults import FaultMonitor
+from .health import HealthInput, HealthPort
+from .intake import CnRefusals, RefusalLog
+from .monitors import MonitorSet
 from .params import ParamTable, SaveResult
 from .statemachine import StateMachine
 from .world import node_board
@@ -102,7 +125,8 @@ class LoopRecorder(Protocol):
 
     def reply(self, i: int, payload: bytes | bytearray | memoryview | None) -> None: ...
 
-    def foreign(self, source: str) -> None: ...
+    def health(self, block: bytes | bytearray | memoryview) -> None:
+        """The health block the loop copied in (health loops only, before ``finish``)."""
 
     def finish(
         self,
@@ -110,7 +134,7 @@ class LoopRecorder(Protocol):
         sync_overrun: bool,
         loop_overruns: int,
         inbox_dropped: int,
-        inbox_oversize: int,
+        refused: CnRefusals | None,
         saves: Sequence[SaveResult],
         telemetry: bytearray | None,
     ) -> None: ...
@@ -177,6 +201,10 @@ class ControlLogic:
             mission, dv, self.events, self.statemachine, params=self.params
         )
         self.controllers = ControllerSet(mission, "cn", dv, self.events, self.faults)
+        self.monitors = MonitorSet(mission, dv, self.events, self.faults, self.statemachine)
+        self._health = (
+            HealthInput(mission, "cn", dv, self.events) if mission.health is not None else None
+        )
         self.dns: tuple[str, ...] = tuple(mission.device_nodes)
         dns = self.dns
         self._to_dn = tuple(RegionCodec(dv, f"cn_to_{dn}") for dn in dns)
@@ -190,12 +218,10 @@ class ControlLogic:
         self._seal_tm = channel(keys, "telemetry")
         self._frames: list[bytearray] = [bytearray() for _ in dns]
         self._dropped = dv.handle("cn_cmd_dropped")
-        self.max_request_len = (
-            self._ground.max_frame_len + (TAG_LEN if self._open_ground is not None else 0)
-            if self._ground is not None
-            else 0
-        )
-        """The longest command request frame that can be valid (bytes)."""
+        self._number = RequestNumber(self.layout) if self._ground is not None else None
+        # Refusals at the driver's intake: one event a second at most.
+        self._refusals = RefusalLog(7)
+        self._shown = (0, 0)  # the refusal cn_cmd_reject_status/_seq show
         self._rx = tuple(dv.handle(f"cn_rx_{dn}") for dn in dns)
         self._missed = tuple(dv.handle(f"cn_missed_{dn}") for dn in dns)
         self._late = tuple(dv.handle(f"cn_late_{dn}") for dn in dns)
@@ -272,15 +298,16 @@ class ControlLogic:
         sync_overrun: bool = False,
         loop_overruns: int = 0,
         inbox_dropped: int = 0,
-        inbox_oversize: int = 0,
+        refused: CnRefusals | None = None,
         saves: Sequence[SaveResult] = (),
     ) -> bytearray | None:
         """Close the loop: count misses, take one command request from
         ``grounds`` (the frames that arrived since the last loop, oldest
-        first; the newest valid one wins, older valid ones are counted in
-        ``cn_cmd_dropped``, invalid ones as bad frames), run the logic;
-        returns the telemetry frame on telemetry loops (``loop %
-        telemetry_divisor == 0``), else None.
+        first: each is checked, and refused, before one is chosen; of the
+        valid ones the highest number wins, the others are counted in
+        ``cn_cmd_dropped``; :meth:`_take_request`), run the logic; returns
+        the telemetry frame on telemetry loops (``loop % telemetry_divisor
+        == 0``), else None.
 
         With a bulk port attached, the newest samples of the channels the CN
         reads are taken (and the counters written) before the logic, and the
@@ -290,10 +317,10 @@ class ControlLogic:
         ``loop_overruns``: periods the driver's scheduler skipped since the
         last loop; ``inbox_dropped``: request frames the driver's bounded
         inbox had to drop since the last loop (counted in ``cn_cmd_dropped``);
-        ``inbox_oversize``: frames it refused unread for their size (counted
-        as bad frames); ``saves``: parameter saves (PRM_SAVE) its saver
-        finished since the last loop. All are inputs, not measured here, so
-        a replay repeats them.
+        ``refused``: what the driver's intake refused as it arrived since the
+        last loop (:class:`~zplatform.intake.CnRefusals`; module doc);
+        ``saves``: parameter saves (PRM_SAVE) its saver finished since the
+        last loop. All are inputs, not measured here, so a replay repeats them.
         """
         loop, t = self.loop, self.t_ns
         for i, got in enumerate(self._got):
@@ -306,14 +333,7 @@ class ControlLogic:
         if inbox_dropped:
             self._dropped.bump(inbox_dropped)
             self.events.emit(EV.CMD_DROPPED, t, n=inbox_dropped, why="the command inbox was full")
-        if inbox_oversize:
-            self._bad.bump(inbox_oversize)
-            self.events.emit(
-                EV.BAD_FRAME,
-                t,
-                source=f"{inbox_oversize} command frame(s)",
-                reason="longer than any valid request; refused unread",
-            )
+        self._refused(refused, t)
         for result in saves:
             self.params.saved(result, t)
         bulk = self._bulk
@@ -325,7 +345,15 @@ class ControlLogic:
             new_request = self._take_request(grounds)
         self._h_loop.set(loop)
         self._h_time.set(t)
+        health = self._health
+        if health is not None and health.port is not None and loop % health.divisor == 0:
+            block = health.port.take(t)
+            health.apply(block, t)
+            if self.recorder is not None:
+                self.recorder.health(block)
         self.faults.step(t)
+        if self.monitors.monitors:
+            self.monitors.step(t)
         self.commands.step(new_request, t)
         self.statemachine.step(t)
         self.controllers.run(loop, t)
@@ -338,15 +366,61 @@ class ControlLogic:
             bulk.publish(loop, t)
         if self.recorder is not None:
             self.recorder.finish(
-                grounds, sync_overrun, loop_overruns, inbox_dropped, inbox_oversize, saves, tm
+                grounds, sync_overrun, loop_overruns, inbox_dropped, refused, saves, tm
             )
         return tm
 
+    def _refused(self, r: CnRefusals | None, t: int) -> None:
+        """Count what the intake refused (module doc): a frame refused for its
+        size or its tag, or a sync reply not for the loop asked or from no
+        DN, is a bad frame; a request refused for its tag, its run or its
+        number is a reject that consumes no number, as the command handler
+        counts one (:meth:`CommandHandler.count_refused`: ``cn_cmd_rejects``,
+        the highest number in ``cn_cmd_reject_seq``). Evented together, at
+        most once a second (a ``bad_frame`` and a ``cmd_rejected`` event)."""
+        if r is not None and r.total:
+            self._bad.bump(r.total - r.cmd_stale)  # a stale request is a reject, not a bad frame
+            if r.cmd_bad or r.cmd_stale:
+                self._shown = (r.cmd_status, r.cmd_seq)
+                self.commands.count_refused(r.cmd_bad + r.cmd_stale, r.cmd_status, r.cmd_seq)
+            ev = self._refusals.add(t, *r.fields()[:7])
+        else:
+            ev = self._refusals.add(t)
+        if ev is None:
+            return
+        rs, rb, rst, rf, cs, cb, cst = ev
+        if rs + rb + rst + rf + cs + cb:
+            self.events.emit(
+                EV.BAD_FRAME,
+                t,
+                source=f"{rs + rb + rst + rf + cs + cb} frame(s)",
+                reason=f"refused as they arrived: sync replies: {rs} of a wrong size, {rb} with "
+                f"bad tags, {rst} replayed (not for the loop asked), {rf} from no device node; "
+                f"command requests: {cs} of a wrong size, {cb} with bad tags",
+            )
+        if cb + cst:
+            status, seq = self._shown
+            self.events.emit(
+                EV.CMD_REJECTED,
+                t,
+                name="request",
+                seq=seq,
+                status=CommandStatus(status).name if status else "-",
+                detail=f"{cb + cst} request(s) refused as they arrived: {cb} with bad tags, "
+                f"{cst} replayed or for another run of the control node (the number and "
+                "status shown: the highest number's)",
+            )
+
     def _take_request(self, grounds: Sequence[bytes | bytearray | memoryview]) -> bool:
-        """Check every request frame; apply the newest valid one. Returns
-        whether one was applied."""
-        assert self._ground is not None
+        """Check every request frame, refuse the ones that cannot be taken
+        (a bad tag; a request for another CN run or a number not above the
+        last seen: :meth:`CommandHandler.refusal`, counted as rejects that
+        consume no number) *before* choosing, then apply the valid one with
+        the highest number: a replayed frame never displaces a fresh one.
+        Returns whether one was applied."""
+        assert self._ground is not None and self._number is not None
         best: Frame | None = None
+        best_seq = -1
         valid = 0
         for payload in grounds:
             try:
@@ -359,12 +433,22 @@ class ControlLogic:
             except CodecError as exc:
                 self._bad_frame("the ground", str(exc))
                 continue
-            best = frame
+            epoch, seq = self._number.read(frame.data)
+            refused = self.commands.refusal(epoch, seq)
+            if refused is not None:
+                name = self._number.command(frame.data)
+                self.commands.reject(refused[0], self.t_ns, name=name, seq=seq, detail=refused[1])
+                continue
             valid += 1
+            if seq > best_seq:
+                best, best_seq = frame, seq
         if valid > 1:
             self._dropped.bump(valid - 1)
             self.events.emit(
-                EV.CMD_DROPPED, self.t_ns, n=valid - 1, why="more than one in a loop; newest wins"
+                EV.CMD_DROPPED,
+                self.t_ns,
+                n=valid - 1,
+                why="more than one in a loop; the highest number wins",
             )
         if best is None:
             return False
@@ -383,20 +467,17 @@ class ControlLogic:
         for c in self.controllers.controllers:
             c.bulk = port.arrays
 
+    def attach_health(self, port: HealthPort) -> None:
+        """Take the CN's health block from ``port`` on health loops from the next
+        loop on (module doc); ConfigError when the mission has no ``health:``."""
+        _attach_health(self._health, port)
+
     def reset_sync_counters(self) -> None:
         """Zero rx/missed/late per DN and the sync overruns (after a warm-up)."""
         for hs in (self._rx, self._missed, self._late):
             for h in hs:
                 h.set(0)
         self._sync_overruns.set(0)
-
-    def foreign_reply(self, source: str) -> None:
-        """Count a sync reply that is no DN's (a wildcard query reaches any
-        queryable on ``{vehicle}/*/to_cn``): ``source`` is its key, or an
-        error reply's text. A bad frame, never applied."""
-        if self.recorder is not None:
-            self.recorder.foreign(source)
-        self._bad_frame(source, "a sync reply from no device node")
 
     def _bad_frame(self, source: str, reason: str) -> None:
         # Not our software failing: counted as a bad frame, not an error.
@@ -479,6 +560,9 @@ class DeviceLogic:
         )
         self.devices = DeviceSet(mission, node, dv, self.board, self.events)
         self.controllers = ControllerSet(mission, node, dv, self.events)
+        self._health = (
+            HealthInput(mission, node, dv, self.events) if mission.health is not None else None
+        )
         self._in = RegionCodec(dv, f"cn_to_{node}")
         # This node's place in a sync bundle (one wildcard query for every DN).
         self._index = mission.device_nodes.index(node)
@@ -503,6 +587,7 @@ class DeviceLogic:
         self._watchdog_ns = mission.faults.dn_watchdog_loops * mission.period_ns
         self._board_streak = Streak()
         self._bulk: BulkPort | None = None
+        self._refusals = RefusalLog(3)
         self.last_loop = 0
         self.last_t_ns = 0
         self.last_trigger_ns: int | None = None
@@ -595,6 +680,25 @@ class DeviceLogic:
         reply = self._out.encode(frame.seq, now_ns)
         return self._seal.seal(reply) if self._seal is not None else reply
 
+    def refused(self, size: int, bad: int, stale: int, now_ns: int) -> None:
+        """Count the sync queries the driver's intake refused as they arrived
+        (:class:`~zplatform.intake.TriggerIntake`), unanswered: ``size`` of a
+        wrong size, ``bad`` with a bad tag, ``stale`` replayed (not newer
+        than the last trigger). Each is a bad frame (``dnX_bad_frames``);
+        they are evented together, at most once a second
+        (:class:`~zplatform.intake.RefusalLog`). Call it whenever the driver
+        waited, with zeros too: the last counts of a burst go out then."""
+        if size or bad or stale:
+            self._bad.bump(size + bad + stale)
+        ev = self._refusals.add(now_ns, size, bad, stale)
+        if ev is not None:
+            self.events.emit(
+                EV.BAD_FRAME,
+                now_ns,
+                source=f"{sum(ev)} sync quer(ies)",
+                reason=f"refused as they arrived, unanswered: {ev[0]} of a wrong size, "
+                f"{ev[1]} with bad tags, {ev[2]} replayed (not newer than the last trigger)",
+            )
     def _not_run(self, stamp_ns: int, now_ns: int, why: object) -> None:
         """An authentic trigger newer than any seen could not run (class doc):
         safe the node once the CN's stamps span the watchdog without a run.
@@ -653,6 +757,9 @@ class DeviceLogic:
             bulk.receive(loop)
         self._loop.set(loop)
         self._time.set(t_ns)
+        health = self._health
+        if health is not None and health.port is not None and loop % health.divisor == 0:
+            health.apply(health.port.take(t_ns), t_ns)
         if self.safed:
             self._back += 1
             if self._back >= self._reenable_after:
@@ -695,6 +802,11 @@ class DeviceLogic:
         self._bulk = port
         for c in [*self.controllers.controllers, *self.devices.devices]:
             c.bulk = port.arrays
+
+    def attach_health(self, port: HealthPort) -> None:
+        """Take the node's health block from ``port`` on health loops from the
+        next run on (module doc); ConfigError when the mission has no ``health:``."""
+        _attach_health(self._health, port)
 
     def watchdog(self, now_ns: int) -> bool:
         """Safe the node if it has had no valid trigger for
@@ -743,3 +855,9 @@ class DeviceLogic:
             self.events.emit(
                 EV.BOARD_FAILED, t_ns, node=self.node, exc_type=type(exc).__name__, exc=exc
             )
+
+
+def _attach_health(health: HealthInput | None, port: HealthPort) -> None:
+    if health is None:
+        raise ConfigError("the mission has no `health:` section: no health elements", "$.health")
+    health.port = port

@@ -24,7 +24,11 @@ tests. They return a :class:`~zplatform.config.Mission` that passed
    * the devices and boards (:func:`zplatform.devices.check_config`): every
      node's ``board`` config (a SimBoard's ``physics`` function imported and
      its signature checked), every device class, config and pin;
-   * the limits, the radio downlink and the lowlatency transport.
+   * the ``health`` section (:func:`zplatform.health.check_config`), the
+     limits, the ``monitors`` (:func:`zplatform.monitors.check_config`:
+     elements, kinds, states, responses), every node's ``watchdog``
+     (:func:`zplatform.watchdog.check_config`), the radio downlink and the
+     lowlatency transport.
 
 The deployment (the TLS certificates of a mission whose links run mutual
 TLS) is not part of loading: it is per host, and the verbs that never open
@@ -61,9 +65,20 @@ it), so ``config`` stays free of import cycles.
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
-from . import commands, controllers, devices, params, statemachine, world
+from . import (
+    commands,
+    controllers,
+    devices,
+    health,
+    monitors,
+    params,
+    statemachine,
+    watchdog,
+    world,
+)
 from .config import (
     CONTROLLER_MODES,
     Mission,
@@ -102,7 +117,10 @@ def check_mission(mission: Mission, *, code: bool = True) -> None:
     if code:
         controllers.check_config(mission)
         devices.check_config(mission)
+    health.check_config(mission)
     _check_limits(mission)
+    monitors.check_config(mission)
+    watchdog.check_config(mission)
     _check_downlink(mission)
     check_lowlatency(mission)
 
@@ -167,13 +185,18 @@ def decode_mission(
     """Decode and fully check a mission from YAML text (see :func:`load_mission`).
 
     ``base_dir``: the directory the text's file lives in, which relative
-    ``pythonpath`` entries are relative to and which is the default
+    ``pythonpath`` entries and a relative recorder ``dir`` are relative to and which is the default
     ``pythonpath``. None: relative entries are relative to the current
     directory and the default is no directory at all (mission code is then
     imported from ``sys.path`` as it stands).
     """
     mission = parse_mission(text, source=source)
     mission.pythonpath = resolve_pythonpath(mission.pythonpath, base_dir)
+    if mission.recorder is not None and mission.recorder.dir is not None:
+        # Like pythonpath: relative to the mission file (the current directory without one).
+        mission.recorder.dir = os.path.join(
+            os.path.abspath(base_dir if base_dir is not None else os.curdir), mission.recorder.dir
+        )
     check_mission(mission, code=code)
     return mission
 

@@ -84,6 +84,7 @@ from .codes import ParamLoad, ParamSave
 from .config import Mission, ParamConfig
 from .errors import ConfigError, ZPlatformError
 from .events import EV, EventLog
+from .health import Heartbeat
 
 if TYPE_CHECKING:
     from .datavector import DataVector, Handle
@@ -364,6 +365,9 @@ class ParamSaver:
     :meth:`poll` (loop thread) returns a finished one, or None; neither
     blocks. ``step`` is passed to :func:`write_atomic` (tests). :meth:`close`
     finishes the saves queued and stops the thread (idempotent; blocks).
+    The thread checks in through :attr:`heartbeat` (``params``,
+    :mod:`zplatform.health`): idle while it waits for a save, beating while
+    it writes one, so a write stuck on a hung disk is a stalled thread.
     """
 
     def __init__(self, path: str | Path, *, step: Callable[[str], None] | None = None) -> None:
@@ -371,6 +375,7 @@ class ParamSaver:
         self._step = step
         self._todo: queue.SimpleQueue[tuple[int, bytes] | None] = queue.SimpleQueue()
         self._done: queue.SimpleQueue[SaveResult] = queue.SimpleQueue()
+        self.heartbeat = Heartbeat("params")
         self._thread = threading.Thread(target=self._run, name="param-saver", daemon=True)
         self._thread.start()
         self._closed = False
@@ -387,7 +392,10 @@ class ParamSaver:
         return self._done.get_nowait()
 
     def _run(self) -> None:
+        hb = self.heartbeat
+        hb.idle()
         while (job := self._todo.get()) is not None:
+            hb.beat()
             seq, data = job
             try:
                 write_atomic(self.path, data, step=self._step)
@@ -395,6 +403,8 @@ class ParamSaver:
             except OSError as exc:
                 why = f"{self.path}: {exc.strerror or exc}"
                 self._done.put(SaveResult(seq, False, why))
+            finally:
+                hb.idle()
 
     def close(self) -> None:
         if self._closed:

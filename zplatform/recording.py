@@ -6,14 +6,15 @@ input its loop consumed is written, per loop, in call order: the loop number,
 timestamp and whether it was the run's last (``final``), each DN reply as it
 arrived (its bytes, or that the DN answered with an error), the ground
 frame, the sync-overrun flag and the skipped periods, the parameter saves
-that finished (:mod:`zplatform.params`), and the telemetry frame the loop
+that finished (:mod:`zplatform.params`), the node's health block on health
+loops (:mod:`zplatform.health`), and the telemetry frame the loop
 produced (what a replay must reproduce). ``DIR`` holds
 ``mission.yaml`` (the effective mission) and ``cn.zrec``; ``zplatform replay
 DIR`` needs nothing else.
 
 ``cn.zrec``, all integers little-endian::
 
-    header:  b"ZPREC\\0"  u16 version (4)  u32 n  n bytes of JSON metadata
+    header:  b"ZPREC\\0"  u16 version (6)  u32 n  n bytes of JSON metadata
              (:class:`RecordMeta`: the mission's name, Data Vector layout id
              and size, and content digest, :func:`mission_digest`)
              u32 m  m bytes: the CN's Data Vector when recording started
@@ -26,15 +27,22 @@ DIR`` needs nothing else.
                6 GROUND_OVERSIZE  u32 its length
                7 TELEMETRY  the telemetry frame the loop produced
                8 FINISH     u8 sync_overrun, u32 loop_overruns, u32 inbox_dropped,
-                            u32 inbox_oversize (ends a loop)
+                            then what the intake refused (zplatform.intake.CnRefusals,
+                            in its field order): u32 reply_size, reply_bad,
+                            reply_stale, reply_foreign, cmd_size, cmd_bad, cmd_stale,
+                            u8 cmd_status, u64 cmd_seq (ends a loop)
                9 DROPPED    u64 loops the recorder could not keep (ring full)
-              10 FOREIGN    a sync reply from a key that is no DN's: the key
-                            (UTF-8, at most 256 bytes; ``dn`` 255)
               11 PRM_SAVED  a parameter save finished: u64 its PRM_SAVE number,
                             u8 ok, then its detail (UTF-8, at most 512 bytes)
+              12 HEALTH     the CN's health block the loop copied in
+                            (health loops of a mission with ``health:``)
 
-Only version 4 is read: an earlier recording has no mission digest to
-check its header against its ``mission.yaml``; record it again.
+Only version 6 is read: the intake's refusals in FINISH (counts: a flood
+is not recorded frame by frame) and the mission's content digest in the
+header, checked against the ``mission.yaml`` beside it. Earlier versions
+had no digest, an ``inbox_oversize`` count in FINISH and an item (10,
+FOREIGN) per reply from no DN, which this loop no longer takes: such a
+recording is refused by name; record it again.
 
 An oversize frame cannot decode (it is longer than the widest valid
 encoding), so a replay feeds an empty payload in its place: the same bad
@@ -88,13 +96,14 @@ from .codec import RegionCodec
 from .config import Mission, relocate_mission
 from .datavector import DataVector, Layout
 from .errors import CodecError, ConfigError, RecordingError
+from .health import BLOCK_SIZE, Heartbeat
+from .intake import CnRefusals
 from .params import SaveResult
 
 if TYPE_CHECKING:
     from .telemetry import CsvLogger
 
 __all__ = [
-    "FOREIGN_DN",
     "MAX_META_BYTES",
     "MAX_MISSION_BYTES",
     "LoopRecord",
@@ -107,7 +116,9 @@ __all__ = [
 ]
 
 MAGIC = b"ZPREC\x00"
-VERSION = 4  # 2: BEGIN's final-loop flag; 3: PRM_SAVED items; 4: the mission's digest
+# 2: BEGIN's final flag; 3: PRM_SAVED; 4: HEALTH; 5: FINISH the refusals;
+# 6: the mission's digest in the header
+VERSION = 6
 RECORD_FILE = "cn.zrec"
 MISSION_FILE = "mission.yaml"
 MAX_META_BYTES = 64 * 1024
@@ -115,36 +126,24 @@ MAX_META_BYTES = 64 * 1024
 MAX_MISSION_BYTES = 64 * 1024 * 1024
 """The longest recorded ``mission.yaml`` a reader takes (a 100,000-element
 mission is about 4 MB)."""
-_MAX_FOREIGN = 256  # bytes of a FOREIGN item's key (the recorder truncates to it)
 _MAX_SAVE_DETAIL = 512  # bytes of a PRM_SAVED item's detail (likewise)
 # Items a loop may hold: the live CN takes one reply per DN and query (a
-# few more from late or rogue repliers), the frames of its command inbox,
-# and a bounded number of foreign replies. A recording over these is not
-# one a CN made, and reading it must not grow without bound.
+# few more from late repliers) and the frames of its command inbox. A
+# recording over these is not one a CN made, and reading it must not grow
+# without bound.
 _MAX_REPLIES_PER_DN = 64
-_MAX_FOREIGN_PER_LOOP = 256
 _MAX_GROUNDS_PER_LOOP = 1024
 
-(
-    BEGIN,
-    REPLY,
-    REPLY_ERR,
-    OVERSIZE,
-    GROUND,
-    GROUND_OVERSIZE,
-    TELEMETRY,
-    FINISH,
-    DROPPED,
-    FOREIGN,
-    PRM_SAVED,
-) = range(1, 12)
-#: ``LoopRecord.replies`` entry index of a FOREIGN reply (its payload is the key).
-FOREIGN_DN = -1
+BEGIN, REPLY, REPLY_ERR, OVERSIZE, GROUND, GROUND_OVERSIZE, TELEMETRY, FINISH, DROPPED = (
+    range(1, 10)
+)
+PRM_SAVED, HEALTH = 11, 12  # 10 was FOREIGN (version 4 and before)
 
 _ITEM = struct.Struct("<BBI")  # type, dn, length
 _BEGIN = struct.Struct("<QqB")
-_FINISH = struct.Struct("<BIII")
+_FINISH = struct.Struct("<BII" + "I" * 7 + "BQ")
 _U32 = struct.Struct("<I")
+_NONE_REFUSED = CnRefusals().fields()
 _U64 = struct.Struct("<Q")
 _SAVED = struct.Struct("<QB")
 _HEAD = struct.Struct("<6sHI")
@@ -261,7 +260,8 @@ class Recorder:
         reply_max, ground_max, tm_max = _frame_bounds(mission, dv)
         item = _ITEM.size
         loop_max = (
-            item * (4 + 2 * len(dns))
+            item * (5 + 2 * len(dns))
+            + BLOCK_SIZE
             + _BEGIN.size
             + _FINISH.size
             + 2 * sum(reply_max)
@@ -317,16 +317,23 @@ class Recorder:
             self._file.write(_U32.pack(len(init)) + init)
         except (OSError, yaml.YAMLError) as exc:
             raise RecordingError(f"cannot record into {str(self.directory)!r}: {exc}") from exc
+        self.heartbeat = Heartbeat("record")
+        """The writer thread's check-in (zplatform.health), for the node's liveness."""
         self._writer = threading.Thread(target=self._write_loop, name="recorder", daemon=True)
         self._writer.start()
 
     # -- the writer thread -------------------------------------------------
     def _write_loop(self) -> None:
+        # Idle while it waits for a chunk; a write that hangs (a stuck disk)
+        # is a stall (zplatform.health).
         f = self._file
+        hb = self.heartbeat
         while True:
+            hb.idle()
             i = self._full.get()
             if i < 0:
                 return
+            hb.beat()
             try:
                 f.write(self._views[i][: self._used[i]])
             except OSError as exc:  # disk full: keep draining, report once
@@ -400,9 +407,8 @@ class Recorder:
         else:
             self._put(REPLY, i, payload, len(payload))
 
-    def foreign(self, source: str) -> None:
-        src = source.encode(errors="replace")[:256]
-        self._put(FOREIGN, 255, src, len(src))
+    def health(self, block: bytes | bytearray | memoryview) -> None:
+        self._put(HEALTH, 0, block, len(block))
 
     def finish(
         self,
@@ -410,19 +416,13 @@ class Recorder:
         sync_overrun: bool,
         loop_overruns: int,
         inbox_dropped: int,
-        inbox_oversize: int,
+        refused: CnRefusals | None,
         saves: Sequence[SaveResult],
         telemetry: bytearray | None,
     ) -> None:
         if not self._dropping:
             self._finish(
-                grounds,
-                sync_overrun,
-                loop_overruns,
-                inbox_dropped,
-                inbox_oversize,
-                saves,
-                telemetry,
+                grounds, sync_overrun, loop_overruns, inbox_dropped, refused, saves, telemetry
             )
         if self._open_loop:
             self._open_loop = False
@@ -438,7 +438,7 @@ class Recorder:
         sync_overrun: bool,
         loop_overruns: int,
         inbox_dropped: int,
-        inbox_oversize: int,
+        refused: CnRefusals | None,
         saves: Sequence[SaveResult],
         telemetry: bytearray | None,
     ) -> None:
@@ -456,7 +456,12 @@ class Recorder:
         self._put(
             FINISH,
             0,
-            _FINISH.pack(bool(sync_overrun), loop_overruns, inbox_dropped, inbox_oversize),
+            _FINISH.pack(
+                bool(sync_overrun),
+                loop_overruns,
+                inbox_dropped,
+                *(refused.fields() if refused is not None else _NONE_REFUSED),
+            ),
             _FINISH.size,
         )
 
@@ -490,9 +495,12 @@ class LoopRecord(msgspec.Struct, frozen=True):
     sync_overrun: bool
     loop_overruns: int
     inbox_dropped: int
-    inbox_oversize: int
+    refused: tuple[int, ...]
+    """:meth:`zplatform.intake.CnRefusals.fields` of the loop."""
     telemetry: bytes | None
     saves: list[SaveResult] = []
+    health: bytes | None = None
+    """The health block the loop copied in (None: not a health loop)."""
 
 
 class RecordReader:
@@ -554,12 +562,13 @@ class RecordReader:
         magic, version, n = _HEAD.unpack(self._read(_HEAD.size, "header"))
         if magic != MAGIC:
             raise self._fail("not a zplatform recording")
-        if version != VERSION:
+        if version < VERSION:
             raise self._fail(
-                f"recording version {version}, expected {VERSION}"
-                + (" (an earlier zplatform's, without the mission digest: record again)"
-                   if version < VERSION else "")
+                f"recording version {version}, made by an earlier zplatform (this one reads "
+                f"version {VERSION}: the mission digest and the intake's refusals): record again"
             )
+        if version != VERSION:
+            raise self._fail(f"recording version {version}, expected {VERSION}")
         if n > MAX_META_BYTES:
             raise self._fail(f"metadata of {n} bytes (at most {MAX_META_BYTES})")
         try:
@@ -606,8 +615,10 @@ class RecordReader:
             limit, exact = (self._ground_max, False) if typ == GROUND else (_U32.size, True)
         elif typ == TELEMETRY:
             limit, exact = self._tm_max, False
-        elif typ == FOREIGN:
-            limit, exact = _MAX_FOREIGN, False
+        elif typ == HEALTH:
+            if self.mission.health is None:
+                raise self._fail(f"item at byte {off}: a health block; the mission has no health")
+            limit, exact = BLOCK_SIZE, True
         elif typ == PRM_SAVED:
             if n < _SAVED.size:
                 raise self._fail(
@@ -638,9 +649,10 @@ class RecordReader:
         final = False
         grounds: list[bytes] = []
         telemetry: bytes | None = None
+        health: bytes | None = None
         replies: list[tuple[int, bytes | None]] = []
         saves: list[SaveResult] = []
-        n_replies = n_foreign = 0
+        n_replies = 0
         max_replies = _MAX_REPLIES_PER_DN * len(self._reply_max)
         while True:
             head = f.read(_ITEM.size)
@@ -661,10 +673,11 @@ class RecordReader:
                 final = bool(final_byte)
                 in_loop = True
                 telemetry = None
+                health = None
                 grounds = []
                 replies = []
                 saves = []
-                n_replies = n_foreign = 0
+                n_replies = 0
                 continue
             if typ == DROPPED:
                 self.dropped_loops += _U64.unpack(body)[0]
@@ -675,9 +688,20 @@ class RecordReader:
                     f"item at byte {off - n - _ITEM.size}: {_NAMES[typ]} outside a loop"
                 )
             if typ == FINISH:
-                so, lo, dr, ov = _FINISH.unpack(body)
+                so, lo, dr, *refused = _FINISH.unpack(body)
                 yield LoopRecord(
-                    loop, t, final, replies, grounds, bool(so), lo, dr, ov, telemetry, saves
+                    loop,
+                    t,
+                    final,
+                    replies,
+                    grounds,
+                    bool(so),
+                    lo,
+                    dr,
+                    tuple(refused),
+                    telemetry,
+                    saves,
+                    health,
                 )
                 in_loop = False
             elif typ == TELEMETRY:
@@ -694,11 +718,10 @@ class RecordReader:
                 seq, ok = _SAVED.unpack_from(body)
                 detail = body[_SAVED.size :].decode(errors="replace")
                 saves.append(SaveResult(seq, bool(ok), detail))
-            elif typ == FOREIGN:
-                n_foreign += 1
-                if n_foreign > _MAX_FOREIGN_PER_LOOP:
-                    raise self._fail(f"loop {loop}: over {_MAX_FOREIGN_PER_LOOP} foreign replies")
-                replies.append((FOREIGN_DN, body))
+            elif typ == HEALTH:
+                if health is not None:
+                    raise self._fail(f"loop {loop}: two health blocks")
+                health = body
             else:  # REPLY, REPLY_ERR, OVERSIZE
                 n_replies += 1
                 if n_replies > max_replies:
@@ -727,8 +750,8 @@ _NAMES = {
     TELEMETRY: "TELEMETRY",
     FINISH: "FINISH",
     DROPPED: "DROPPED",
-    FOREIGN: "FOREIGN",
     PRM_SAVED: "PRM_SAVED",
+    HEALTH: "HEALTH",
 }
 
 
@@ -863,12 +886,17 @@ def read_recording(
                     log.write(rec.t_ns, dv)
             if listing is not None:
                 replies = " ".join(
-                    "foreign"
-                    if i == FOREIGN_DN
-                    else f"{names[i]}={'err' if p is None else len(p)}"
-                    for i, p in rec.replies
+                    f"{names[i]}={'err' if p is None else len(p)}" for i, p in rec.replies
                 )
-                flags = [f for f, on in (("final", rec.final), ("overrun", rec.sync_overrun)) if on]
+                flags = [
+                    f
+                    for f, on in (
+                        ("final", rec.final),
+                        ("overrun", rec.sync_overrun),
+                        ("health", rec.health is not None),
+                    )
+                    if on
+                ]
                 print(
                     f"loop {rec.loop:>8}  t {rec.t_ns}  replies [{replies}]  "
                     f"commands {len(rec.grounds)}  telemetry "

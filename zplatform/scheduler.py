@@ -1,4 +1,4 @@
-"""Periodic loops and real-time set-up (thesis 000, ch. 4.12, made Pythonic).
+"""Periodic loops and real-time set-up (the thesis, ch. 4.12, made Pythonic).
 
 The thesis' Thread Manager creates a SCHED_FIFO thread per node, pins it to a
 CPU, and runs the loop function from a ``timerfd`` with a callback for missed

@@ -42,9 +42,11 @@ from .config import (
     CONTROLLER_MODES,
     BulkChannelConfig,
     ComponentConfig,
+    HealthConfig,
     Mission,
     NodeConfig,
     ParamConfig,
+    RecorderConfig,
 )
 from .config import platform_elements as _platform_elements
 from .devices import Actuator, Sensor
@@ -442,14 +444,16 @@ def _block(anchor: str, heading: str, section: _Section, rows: slice = slice(Non
 
 def _platform_rows() -> list[str]:
     """The platform elements of every region, for a mission with a device
-    node (``dnX``), a ground node, a controller, a bulk channel and a
-    parameter."""
+    node (``dnX``), a ground node, a controller, a bulk channel, a flight
+    recorder, a parameter and health."""
     example = Mission(
         mission="m",
         nodes={"cn": NodeConfig(), "dn0": NodeConfig(), "gn": NodeConfig()},
         regions={},
         controllers=[ComponentConfig(name="ctl", cls="m:C", node="cn")],
         bulk=[BulkChannelConfig(name="chan", node="dn0", type="u8[8]", readers=["cn"])],
+        recorder=RecorderConfig(),
+        health=HealthConfig(),
         params=[
             ParamConfig(
                 name="param_x",
@@ -488,9 +492,16 @@ def _platform_rows() -> list[str]:
                 kind = "enum: " + ", ".join(e.enum or ())
             else:
                 kind = e.type
+            doc = generic(e.doc)
+            if e.limits is not None:  # the health elements' defaults (100 Hz)
+                bands = [
+                    f"{band} [{', '.join('-' if x is None else f'{x:g}' for x in rng)}]"
+                    for band in ("yellow", "red")
+                    if (rng := getattr(e.limits, band)) is not None
+                ]
+                doc += f"; default limits {', '.join(bands)}"
             out.append(
-                f"| `{generic(region)}` | `{generic(e.name)}` | {_cell(kind)} | "
-                f"{_cell(generic(e.doc))} |"
+                f"| `{generic(region)}` | `{generic(e.name)}` | {_cell(kind)} | {_cell(doc)} |"
             )
     return out
 
@@ -628,7 +639,10 @@ def reference_markdown() -> str:
         "before the mission's own (do not declare them): one set per device node "
         "`dnX`, a `<controller>_mode` per controller (in `cn` for a controller on "
         "the CN, in `cn_to_dnX` for one on dnX), bulk counters per channel on its "
-        "owner and readers, and `gn_to_cn` when the mission has a ground node. "
+        "owner and readers, flight recorder counters on each node that records "
+        "(`recorder`), the health elements of each node when the mission has a "
+        "`health:` section (`cn_...` in `cn`, `dnX_...` in `dnX_to_cn`; see "
+        "`zplatform.health`), and `gn_to_cn` when the mission has a ground node. "
         "Counters saturate at their type's maximum (they never wrap); times are "
         "nanoseconds.",
         "",

@@ -1,4 +1,4 @@
-"""The mission state machine (thesis 000 ch. 4.5), sans-IO.
+"""The mission state machine (the thesis, ch. 4.5), sans-IO.
 
 A state has a timed *action sequence* (writes of Data Vector elements at
 given seconds into the state) and an ordered list of *transitions*. A
@@ -11,9 +11,11 @@ Per loop, :meth:`StateMachine.step` does, with the loop's one timestamp:
 
 1. on the very first step, enter the initial state and run its actions due
    at 0 s;
-2. evaluate the current state's transitions in config order: the first that
-   holds fires, at most one per step; the new state is entered at this
-   step's time (time in state 0);
+2. evaluate the current state's transitions in config order (ABORT-class
+   command transitions first, ``priority``; then a transition a monitor's
+   response requested, :meth:`StateMachine.request`; then the rest): the
+   first that holds fires, at most one per step; the new state is entered
+   at this step's time (time in state 0);
 3. run the actions of the (possibly new) state that have come due and not
    yet run, in ``at_s`` order (config order for equal times): an action at
    0 s runs in the loop its state is entered, every action runs at most once
@@ -101,7 +103,8 @@ _LOGIC_WRITABLE_PLATFORM = ("cn_fault",)
 
 
 def platform_element_names(mission: Mission) -> frozenset[str]:
-    """Names of every element the platform adds (DESIGN.md §5), modes included."""
+    """Names of every element the platform adds, modes included
+    (docs/architecture.md#data-vector)."""
     return frozenset(e.name for es in platform_elements(mission).values() for e in es)
 
 
@@ -387,20 +390,30 @@ def check_config(mission: Mission, *, warn: bool = True) -> None:
 
 
 def unreachable_states(mission: Mission) -> list[str]:
-    """States no chain of transitions reaches from the initial one, in config order."""
+    """States no chain of transitions reaches from the initial one, in config
+    order; a monitor's ``transition`` response (:mod:`zplatform.monitors`) is
+    a transition from each state it runs in."""
     sm = mission.state_machine
     if sm is None or sm.initial not in sm.states:
         return []
+    requested = [
+        (set(m.states) if m.states is not None else None, m.to)
+        for m in mission.monitors
+        if m.response == "transition" and m.to is not None
+    ]
     seen = {sm.initial}
     todo = [sm.initial]
     while todo:
-        st = sm.states.get(todo.pop())
+        name = todo.pop()
+        st = sm.states.get(name)
         if st is None:
             continue
-        for t in st.transitions:
-            if t.to not in seen:
-                seen.add(t.to)
-                todo.append(t.to)
+        targets = [t.to for t in st.transitions]
+        targets += [to for states, to in requested if states is None or name in states]
+        for to in targets:
+            if to not in seen:
+                seen.add(to)
+                todo.append(to)
     return [s for s in sm.states if s not in seen]
 
 
@@ -411,13 +424,12 @@ def unreachable_states(mission: Mission) -> list[str]:
 class _Transition:
     """One resolved transition. ``after_ns < 0`` means a condition one."""
 
-    __slots__ = ("after_ns", "dst", "get", "on_cmd", "op", "src", "target", "value", "why")
+    __slots__ = ("after_ns", "get", "on_cmd", "op", "src", "target", "value", "why")
 
     def __init__(
         self,
         target: int,
         src: str,
-        dst: str,
         why: str,
         after_ns: int = -1,
         get: Callable[[], Any] | None = None,
@@ -428,7 +440,6 @@ class _Transition:
         self.on_cmd = False  # tests cn_cmd: firing consumes the pending command
         # The state_change event's arguments, built once at configure time.
         self.src = src
-        self.dst = dst
         self.why = why
         self.after_ns = after_ns
         self.get = get
@@ -467,11 +478,14 @@ class StateMachine:
         "_actions",
         "_entered_ns",
         "_events",
+        "_forced",
+        "_forced_why",
         "_h_state",
         "_h_tis",
         "_held_ns",
         "_hold_start",
         "_initial",
+        "_n_prio",
         "_next_action",
         "_started",
         "_state",
@@ -494,6 +508,7 @@ class StateMachine:
         table = _element_table(mission)
         sm = mission.state_machine
         transitions: list[tuple[_Transition, ...]] = []
+        n_prio: list[int] = []
         actions: list[tuple[_Action, ...]] = []
         # cn_cmd == X compares against X's code (config_value resolves names).
         priority = sm.priority if sm is not None else []
@@ -512,7 +527,7 @@ class StateMachine:
                     if t.after_s is not None:
                         why = f"after {_fmt_s(t.after_s)}"
                         trs.append(
-                            _Transition(target, name, t.to, why, after_ns=round(t.after_s * 1e9))
+                            _Transition(target, name, why, after_ns=round(t.after_s * 1e9))
                         )
                         continue
                     assert t.element is not None and t.op is not None
@@ -521,7 +536,7 @@ class StateMachine:
                     shown = t.value if isinstance(t.value, str) else repr(t.value).lower()
                     why = f"{t.element} {t.op} {shown}"
                     get = dv.handle(t.element).get
-                    tr = _Transition(target, name, t.to, why, get=get, op=OPS[t.op], value=value)
+                    tr = _Transition(target, name, why, get=get, op=OPS[t.op], value=value)
                     tr.on_cmd = t.element == "cn_cmd"
                     trs.append(tr)
                 for a in sorted(st.actions, key=lambda a: a.at_s):  # stable: config order ties
@@ -533,8 +548,14 @@ class StateMachine:
             # ABORT due in the same loop as a timer or a data transition wins.
             trs.sort(key=lambda tr: prio.get((tr.on_cmd, tr.value), len(prio)))
             transitions.append(tuple(trs))
+            n_prio.append(sum(1 for tr in trs if (tr.on_cmd, tr.value) in prio))
             actions.append(tuple(acts))
         self._transitions = tuple(transitions)
+        # How many of each state's transitions are ABORT-class: a requested
+        # transition (request()) comes after them.
+        self._n_prio = tuple(n_prio)
+        self._forced = -1
+        self._forced_why = ""
         self._actions = tuple(actions)
         initial = sm.initial if sm is not None else names[0]
         self._initial = index[initial]
@@ -593,28 +614,60 @@ class StateMachine:
             self._run_due(0)
         tis = self._time_in_state(t_ns)
         self.changed = self.consumed_cmd = False
-        for tr in self._transitions[self._state]:
+        forced = self._forced
+        trs = self._transitions[self._state]
+        if forced >= 0:  # a request: after the ABORT-class transitions, before the rest
+            self._forced = -1
+            n = self._n_prio[self._state]
+            fired = self._first(trs[:n], tis, t_ns) is not None
+            if not fired and forced != self._state:
+                self._enter(forced, False, t_ns, self.states[self._state], self._forced_why)
+                fired = True
+            if not fired:
+                fired = self._first(trs[n:], tis, t_ns) is not None
+            if fired:
+                tis = 0
+        elif self._first(trs, tis, t_ns) is not None:
+            tis = 0
+        self._run_due(tis)
+        self._tis = tis
+        self._h_state.set(self._state)
+        self._h_tis.set(tis)
+
+    def _first(self, trs: tuple[_Transition, ...], tis: int, t_ns: int) -> _Transition | None:
+        """Fire the first of ``trs`` that holds (if any) and return it."""
+        for tr in trs:
             if tr.after_ns >= 0:
                 if tis < tr.after_ns:
                     continue
             elif not tr.op(tr.get(), tr.value):  # type: ignore[misc]
                 continue
-            self._state = tr.target
-            self.changed = True
-            self.consumed_cmd = tr.on_cmd
-            self._entered_ns = t_ns
-            self._held_ns = 0
-            self._next_action = 0
-            tis = 0
-            self._events.emit(EV.STATE_CHANGE, t_ns, src=tr.src, dst=tr.dst, why=tr.why)
-            if self._hold_start is not None:
-                self._hold_start = None
-                self._events.emit(EV.HOLD_ENDED, t_ns)
-            break
-        self._run_due(tis)
-        self._tis = tis
-        self._h_state.set(self._state)
-        self._h_tis.set(tis)
+            self._enter(tr.target, tr.on_cmd, t_ns, tr.src, tr.why)
+            return tr
+        return None
+
+    def _enter(self, target: int, on_cmd: bool, t_ns: int, src: str, why: str) -> None:
+        self._state = target
+        self.changed = True
+        self.consumed_cmd = on_cmd
+        self._entered_ns = t_ns
+        self._held_ns = 0
+        self._next_action = 0
+        self._events.emit(EV.STATE_CHANGE, t_ns, src=src, dst=self.states[target], why=why)
+        if self._hold_start is not None:
+            self._hold_start = None
+            self._events.emit(EV.HOLD_ENDED, t_ns)
+
+    def request(self, state: int, why: str) -> None:
+        """Ask for a transition to state index ``state`` in the next :meth:`step`
+        (a monitor's response, :mod:`zplatform.monitors`): it fires after the
+        current state's ABORT-class command transitions (``priority``; if one
+        fires, the request is dropped: the operator's ABORT wins) and before
+        its other transitions, unless the state machine is in ``state``
+        already. ``why`` ends the ``state_change`` event. One request per
+        step; a later one replaces it."""
+        self._forced = state
+        self._forced_why = why
 
     def hold(self, t_ns: int) -> bool:
         """Freeze the time in state from ``t_ns``; False if already holding.

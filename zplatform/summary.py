@@ -2,7 +2,7 @@
 
 Frozen ``msgspec.Struct``\\ s (snapshots, like trio's statistics objects), so
 every field is named, typed and documented once, and the ``--summary`` JSON
-of DESIGN.md §6 is their encoding. Node processes write theirs
+of docs/architecture.md#files is their encoding. Node processes write theirs
 (:func:`write_summary`); ``up`` reads them back (:func:`read_summary`) and
 merges them into a :class:`RunSummary`.
 """
@@ -84,7 +84,10 @@ class GnSummary(msgspec.Struct, frozen=True):
     unauthenticated or refused); ``telemetry_refused`` breaks the refusals
     down by reason (:data:`zplatform.ground.records.REFUSALS`);
     ``epoch_changes``: control node restarts the ground followed;
-    ``events_logged``: event records written to the events file."""
+    ``events_logged``: event records written to the events file;
+    ``telemetry_filled``/``telemetry_unfilled``: gap loops written from the
+    CN's flight recorder / given up; ``telemetry_not_run``: gap loops the
+    CN never ran (skipped periods: no loss) (:mod:`zplatform.ground.gapfill`)."""
 
     telemetry_received: int
     telemetry_gaps: int
@@ -98,10 +101,13 @@ class GnSummary(msgspec.Struct, frozen=True):
     telemetry_refused: dict[str, int] = {}
     epoch_changes: int = 0
     events_logged: int = 0
+    telemetry_filled: int = 0
+    telemetry_unfilled: int = 0
+    telemetry_not_run: int = 0
 
 
 class RunSummary(msgspec.Struct, frozen=True):
-    """``zplatform up``'s summary (DESIGN.md §6): the CN's figures, the
+    """``zplatform up``'s summary (docs/architecture.md#files): the CN's figures, the
     ground's telemetry and command verdicts, every node's own summary
     (``None`` for a node that wrote none) and exit code."""
 

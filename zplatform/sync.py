@@ -23,8 +23,31 @@ Device node (:class:`DeviceSync`)::
     block on the CN's query (the loop trigger, thesis 3.4.5.3)
     DeviceLogic.trigger(payload) -> reply (or an error reply), at once
 
-Zenoh callbacks only put the sample on a ``queue.SimpleQueue`` (lock-free
-put, never blocks); the loop thread does all the work.
+Zenoh callbacks only check and hand off (:mod:`zplatform.intake`: a size
+check, one tag check, a stamp compare and a counter bump, each constant
+time and bounded); the loop thread does all the work. What a peer without
+the key sends is refused there and counted, never queued:
+
+* **A DN answers only the query whose trigger verifies and is newer than
+  every trigger before it** (:class:`~zplatform.intake.TriggerIntake`): a
+  forged or replayed trigger is dropped without a reply (the querier's get
+  ends empty) and counted in ``dnX_bad_frames``. A valid trigger that comes
+  too late to run (stamped more than a period before this node's clock, or
+  skipped in a backlog) is still answered, without running: at most one per
+  CN loop can exist, so nobody can multiply them, and the CN then counts
+  the loop late rather than lost.
+* **The CN takes a reply only from the DN**: zenoh tells who answered
+  (``reply.replier_id``), and each DN's zenoh session is learned from its
+  first authenticated reply for the loop asked. A reply from any other
+  session is ignored before anything is read (``cn_bad_frames``). A
+  restarted DN has a new session: once the DN it knew has missed
+  :data:`REPIN_AFTER` loops in a row, replies from other sessions are
+  checked as they arrive (size, tag, the loop asked,
+  :class:`~zplatform.intake.ReplyCheck`) and the first that passes is the
+  DN's from then on. (``replier_id`` is what the replier's zenoh says:
+  a modified zenoh could claim the DN's; its frames still fail the tag on
+  the loop thread. Mutual TLS with the generated access control,
+  :mod:`zplatform.deploy`, leaves no such peer a session at all.)
 
 Why the query stays open one loop period (not just the sync deadline): a
 reply that misses the deadline still arrives and is handed to the next
@@ -50,14 +73,19 @@ from typing import Any
 import zenoh
 
 from .codec import BundleEncoder
+from .intake import CnRefusals, ReplyCheck, TriggerIntake
 from .loop import ControlLogic, DeviceLogic
 from .transport import KeySpace, is_matching
 
-__all__ = ["ControlSync", "DeviceSync", "SyncTrace", "TapPublisher"]
+__all__ = ["REPIN_AFTER", "ControlSync", "DeviceSync", "SyncTrace", "TapPublisher"]
 
 _DROP = zenoh.CongestionControl.DROP
 _ALL = zenoh.QueryTarget.ALL
-_FOREIGN = -1  # a reply whose key is no DN's: counted as a bad frame
+_NO_PAYLOAD = zenoh.ZBytes(b"")
+_ERR_MAX = 512  # longest error reply read: a DN's is "dnX: reason"
+REPIN_AFTER = 3
+"""Loops in a row a DN's known session must miss before the CN checks
+replies from other sessions for one of the DN's (a restarted DN)."""
 
 SyncTrace = Callable[[str, int], None]
 """``trace(hop, n)``: one hop of a sync exchange, called where it happens
@@ -109,7 +137,9 @@ class ControlSync:
     """The CN end: query every DN with its frame, hand replies to the loop.
 
     Not thread-safe: call :meth:`sync` from the loop thread only. Blocks for
-    at most ``timeout_ns`` (plus scheduling latency). ``trace``: a
+    at most ``timeout_ns`` (plus scheduling latency). ``checks``: one
+    :class:`~zplatform.intake.ReplyCheck` per DN, in ``dns`` order (module
+    doc: replies from a session not known to be the DN's). ``trace``: a
     :data:`SyncTrace` for benchmarks (None: no tracing).
     """
 
@@ -121,31 +151,46 @@ class ControlSync:
         timeout_ns: int,
         query_timeout_s: float,
         *,
+        checks: Sequence[ReplyCheck],
         wildcard: bool = False,
         monotonic: Callable[[], int] = time.monotonic_ns,
         trace: SyncTrace | None = None,
     ) -> None:
+        if len(checks) != len(dns):
+            raise ValueError(f"one reply check per device node: {len(checks)} for {len(dns)}")
         self.session = session
         self._trace = trace
         self.dns = list(dns)
+        self._checks = tuple(checks)
+        # Who answers for each DN (zenoh.ZenohId, module doc), and whether
+        # replies from other sessions are checked (nobody known yet, or the
+        # known one has gone quiet). The loop thread decides `_open`; zenoh's
+        # thread pins a session whose reply passed the check.
+        self._zids: list[Any] = [None] * len(dns)
+        self._open = [True] * len(dns)
+        self._quiet = [0] * len(dns)
+        self._got = [False] * len(dns)
+        self._max_len = tuple(c.max_len for c in checks)
+        self._count_lock = threading.Lock()
+        self._foreign = 0  # replies from no DN's session (zenoh's thread, under the lock)
+        self._oversize = 0  # replies from a DN's session longer than any frame of it
         self.wildcard = wildcard and bool(dns)
         self.timeout_ns = timeout_ns
         self._mono = monotonic
         self._query_timeout = query_timeout_s
         self._keys = [keys.dn_to_cn(dn) for dn in dns]
         self._taps = [TapPublisher(session, keys.cn_to_dn(dn)) for dn in dns]
-        self._q: queue.SimpleQueue[tuple[int, Any]] = queue.SimpleQueue()
+        self._q: queue.SimpleQueue[tuple[int, bytes | None]] = queue.SimpleQueue()
         # Wildcard: one get on {vehicle}/*/to_cn with every DN's frame in a
-        # bundle; a reply says whose it is by its key. An error reply has no
-        # key: it names its DN ("dnX: reason"), and counts as that DN's only
-        # if it comes from the zenoh session that answers on dnX's key (the
-        # ACL lets only dnX reply there); any other is foreign. A peer whose
-        # queryable matches the wildcard cannot pin errors on a DN.
+        # bundle; a reply says whose it is by its key, and counts only from
+        # the session that answers for that DN (as per DN). An error reply
+        # has no key: it names its DN ("dnX: reason"), and counts as that
+        # DN's only from that session too; any other is foreign. A peer
+        # whose queryable matches the wildcard cannot pin errors on a DN.
         self._all = keys.sync_all
         self._bundle = BundleEncoder()
         self._index = {k: i for i, k in enumerate(self._keys)}
         self._names = {dn.encode(): i for i, dn in enumerate(self.dns)}
-        self._zids: list[Any] = [None] * len(self.dns)  # zenoh.ZenohId per DN, once it answered
         # Issued vs finalised queries (zenoh calls `drop` once per query when
         # it is done): lets start-up wait until no warm-up reply can still come.
         self._issued = 0
@@ -178,19 +223,17 @@ class ControlSync:
             self._idle.set()
 
     def _make_handoff(self, i: int) -> Callable[[zenoh.Reply], None]:
-        q = self._q
+        take, error = self._take, self._error
 
         def handoff(reply: zenoh.Reply) -> None:
-            # zenoh's thread: extract the bytes and hand off, nothing more.
+            # zenoh's thread: who answered, then the bytes (module doc).
             ok = reply.ok
             if ok is not None:
-                q.put((i, ok.payload.to_bytes()))
+                take(i, reply, ok.payload)
                 return
             err = reply.err
-            # zenoh's own "Timeout" comes one period after a miss that the
-            # loop has already counted; any other error is the DN refusing.
-            if err is None or err.payload.to_bytes() != b"Timeout":
-                q.put((i, None))
+            if err is not None and error(err.payload) is not None:
+                self._dn_error(i, reply)
 
         trace = self._trace
         if trace is None:
@@ -202,33 +245,88 @@ class ControlSync:
 
         return traced
 
-    def _handoff_any(self, reply: zenoh.Reply) -> None:
-        # zenoh's thread: find whose reply it is, extract the bytes, hand off.
+    def _take(self, i: int, reply: zenoh.Reply, payload: zenoh.ZBytes) -> None:
+        """Hand DN ``i``'s reply to the loop if it comes from DN ``i``'s
+        session, or passes the check while that one is quiet (which then
+        makes its session DN ``i``'s); else count it."""
         rid = reply.replier_id
+        zid = rid.zid if rid is not None else None
+        if zid is not None and zid == self._zids[i]:
+            if len(payload) > self._max_len[i]:
+                with self._count_lock:
+                    self._oversize += 1
+                return
+            self._q.put((i, payload.to_bytes()))
+            return
+        if not self._open[i] or zid is None:
+            with self._count_lock:
+                self._foreign += 1
+            return
+        data = self._checks[i].check(payload, None)  # size, tag, the loop asked: counted if not
+        if data is not None:
+            self._zids[i] = zid
+            self._q.put((i, data))
+
+    @staticmethod
+    def _error(payload: zenoh.ZBytes) -> bytes | None:
+        """An error reply's text, or None for zenoh's own timeout (a period
+        after a miss the loop has counted already). Bounded: one longer than
+        :data:`_ERR_MAX` bytes is not read (``b"?"``: no DN's)."""
+        n = len(payload)
+        if n == 7 and payload.to_bytes() == b"Timeout":
+            return None
+        return payload.to_bytes()[:_ERR_MAX] if n <= _ERR_MAX else b"?"
+
+    def _dn_error(self, i: int, reply: zenoh.Reply) -> None:
+        """An error reply for DN ``i``: the DN refusing its trigger when it
+        comes from DN ``i``'s session, else foreign."""
+        rid = reply.replier_id
+        if rid is not None and self._zids[i] is not None and rid.zid == self._zids[i]:
+            self._q.put((i, None))
+        else:
+            with self._count_lock:
+                self._foreign += 1
+
+    def _handoff_any(self, reply: zenoh.Reply) -> None:
+        # zenoh's thread: whose reply it is by its key (or an error's name).
         ok = reply.ok
         if ok is not None:
-            key = str(ok.key_expr)
-            i = self._index.get(key)
+            i = self._index.get(str(ok.key_expr))
             if i is None:
-                self._q.put((_FOREIGN, key))
-            else:
-                if self._trace is not None:
-                    self._trace("back", i)
-                if rid is not None:
-                    self._zids[i] = rid.zid  # who answers for DN i (a restart changes it)
-                self._q.put((i, ok.payload.to_bytes()))
+                with self._count_lock:
+                    self._foreign += 1
+                return
+            if self._trace is not None:
+                self._trace("back", i)
+            self._take(i, reply, ok.payload)
             return
         err = reply.err
         if err is None:
             return
-        reason = err.payload.to_bytes()
-        if reason == b"Timeout":
-            return  # zenoh's own, a period after a miss already counted
-        i = self._names.get(reason.split(b":", 1)[0])
-        if i is not None and rid is not None and rid.zid == self._zids[i]:
-            self._q.put((i, None))
+        reason = self._error(err.payload)
+        if reason is None:
+            return
+        j = self._names.get(reason.split(b":", 1)[0])
+        if j is not None:
+            self._dn_error(j, reply)
         else:
-            self._q.put((_FOREIGN, reason[:64].decode(errors="replace")))
+            with self._count_lock:
+                self._foreign += 1
+
+    def take_refusals(self, out: CnRefusals) -> None:
+        """Write the sync replies refused since the last call into ``out``
+        (its ``reply_*`` fields; then zeroed). The loop thread, once a loop."""
+        size = bad = stale = 0
+        for c in self._checks:
+            s, b, st = c.take_counts()
+            size += s
+            bad += b
+            stale += st
+        with self._count_lock:
+            foreign, oversize = self._foreign, self._oversize
+            self._foreign = self._oversize = 0
+        out.reply_size, out.reply_bad, out.reply_stale = size + oversize, bad, stale
+        out.reply_foreign = foreign
 
     def sync(
         self, frames: Sequence[bytearray], logic: ControlLogic, *, warmup: bool = False
@@ -244,6 +342,10 @@ class ControlSync:
         n = len(self.dns)
         callbacks = self._callbacks
         trace = self._trace
+        got = self._got
+        for i, check in enumerate(self._checks):
+            check.expect(logic.loop, logic.t_ns)
+            got[i] = False
         if warmup:
             callbacks = self._counted
             self._idle.clear()
@@ -291,15 +393,26 @@ class ControlSync:
                 i, payload = q.get(timeout=left / 1e9)
             except queue.Empty:
                 break
-            if i == _FOREIGN:
-                logic.foreign_reply(payload)
-            else:
-                if trace is not None:
-                    trace("taken", i)
-                reply(i, payload)
+            if trace is not None:
+                trace("taken", i)
+            if reply(i, payload):
+                got[i] = True
         end = self._mono()
         self.duration_ns = end - start
+        self._watch(got)
         return end > deadline + (self.timeout_ns // 2 if logic.pending else 0)
+
+    def _watch(self, got: list[bool]) -> None:
+        """After a sync: a DN whose known session answered keeps it alone;
+        one quiet for :data:`REPIN_AFTER` loops lets others be checked."""
+        for i, ok in enumerate(got):
+            if ok:
+                self._quiet[i] = 0
+                self._open[i] = self._zids[i] is None
+            else:
+                self._quiet[i] += 1
+                if self._quiet[i] >= REPIN_AFTER:
+                    self._open[i] = True
 
     def quiesce(self, logic: ControlLogic, timeout_s: float) -> bool:
         """Wait until every warm-up query issued so far is finalised, then hand any
@@ -310,10 +423,7 @@ class ControlSync:
         q = self._q
         while not q.empty():
             i, payload = q.get_nowait()
-            if i == _FOREIGN:
-                logic.foreign_reply(payload)
-            else:
-                logic.reply(i, payload)
+            logic.reply(i, payload)
         return ok
 
     def close(self) -> None:
@@ -324,14 +434,20 @@ class ControlSync:
 class DeviceSync:
     """The DN end: the CN's query is the loop trigger.
 
-    :meth:`wait` blocks until a query arrives (or the timeout passes),
-    answers it at once with :meth:`DeviceLogic.trigger`'s reply (an error
-    reply for a malformed one) and returns whether it started a loop
-    (``logic.triggered``). If queries piled up while this node was not
-    scheduled, every one but the newest is answered with ``may_run=False``:
-    like the CN's scheduler, a stalled DN skips missed loops and never runs
-    a burst of old ones. ``trace``: a :data:`SyncTrace` for benchmarks
-    (None: no tracing).
+    ``intake``: the node's :class:`~zplatform.intake.TriggerIntake` (module
+    doc): zenoh's callback admits a query only if its trigger verifies and
+    is newer than every one before; any other is dropped unanswered and
+    counted. :meth:`wait` blocks until an admitted query is there (or the
+    timeout passes), answers it at once with :meth:`DeviceLogic.trigger`'s
+    reply (an error reply for one the logic refuses) and returns whether it
+    started a loop (``logic.triggered``). If admitted queries piled up while
+    this node was not scheduled (at most
+    :data:`~zplatform.intake.BACKLOG`; older ones are let go unanswered),
+    every one but the newest is answered with ``may_run=False``: like the
+    CN's scheduler, a stalled DN skips missed loops and never runs a burst
+    of old ones. Each :meth:`wait` also hands the intake's refusals to the
+    logic (:meth:`DeviceLogic.refused`). ``trace``: a :data:`SyncTrace` for
+    benchmarks (None: no tracing).
     """
 
     def __init__(
@@ -341,6 +457,7 @@ class DeviceSync:
         dn: str,
         now_ns: Callable[[], int],
         *,
+        intake: TriggerIntake[zenoh.Query],
         trace: SyncTrace | None = None,
     ) -> None:
         self.dn = dn
@@ -348,15 +465,22 @@ class DeviceSync:
         self._trace = trace
         self._key = keys.dn_to_cn(dn)
         self._err_prefix = f"{dn}: ".encode()
-        self._q: queue.SimpleQueue[zenoh.Query] = queue.SimpleQueue()
+        self.intake = intake
+        box = intake.box
+        assert box is not None
+        self._box = box
         self._tap = TapPublisher(session, self._key)
-        handoff: Callable[[zenoh.Query], None] = self._q.put
-        if trace is not None:
-            q = self._q
+        self.reply: bytearray | None = None
+        """The last reply frame sent (None: an error reply), the logic's own
+        buffer: valid until the next query is served."""
+        admit = intake.admit
 
-            def handoff(query: zenoh.Query) -> None:
+        def handoff(query: zenoh.Query) -> None:
+            # zenoh's thread: the intake's checks; a refused query is
+            # released here, unanswered (zenoh finalises it at once).
+            p = query.payload
+            if admit(p if p is not None else _NO_PAYLOAD, query) and trace is not None:
                 trace("arrive", 0)
-                q.put(query)
 
         self.queryable = session.declare_queryable(
             self._key, zenoh.handlers.Callback(handoff, indirect=False)
@@ -364,31 +488,36 @@ class DeviceSync:
 
     def wait(self, logic: DeviceLogic, timeout_s: float) -> bool:
         """Serve queries until one starts a loop (True) or ``timeout_s`` passes."""
-        q = self._q
+        box = self._box
         deadline = time.monotonic() + timeout_s
-        while True:
-            left = deadline - time.monotonic()
-            if left <= 0:
-                return False
-            try:
-                query = q.get(timeout=left)
-            except queue.Empty:
-                return False
-            while not q.empty():  # a backlog: answer the older query, keep the newest
-                self._serve(query, logic, may_run=False)
-                query = q.get_nowait()
-            self._serve(query, logic, may_run=True)
-            if logic.triggered:
-                return True
+        try:
+            while True:
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    return False
+                item = box.get(left)
+                if item is None:
+                    return False
+                while (newer := box.pop()) is not None:  # a backlog: answer, keep the newest
+                    self._serve(item, logic, may_run=False)
+                    item = newer
+                self._serve(item, logic, may_run=True)
+                if logic.triggered:
+                    return True
+        finally:
+            size, bad, stale = self.intake.take_counts()
+            logic.refused(size, bad, stale, self._now())
 
-    def _serve(self, query: zenoh.Query, logic: DeviceLogic, *, may_run: bool) -> None:
+    def _serve(
+        self, item: tuple[zenoh.Query, bytes], logic: DeviceLogic, *, may_run: bool
+    ) -> None:
         trace = self._trace
         if trace is not None:
             trace("serve", 0)
+        query, data = item
         with query:
-            payload = query.payload
-            data = payload.to_bytes() if payload is not None else b""
             reply = logic.trigger(data, self._now(), may_run=may_run)
+            self.reply = reply
             if reply is None:
                 # "dnX: reason": a wildcard query's error replies carry no key.
                 query.reply_err(self._err_prefix + logic.reject_reason.encode())

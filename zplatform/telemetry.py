@@ -1,4 +1,4 @@
-"""Telemetry logs: the CSV format of DESIGN.md §6.
+"""Telemetry logs: the CSV format of docs/architecture.md#files.
 
 :class:`CsvLogger` writes one header row and one row per telemetry snapshot:
 

@@ -7,7 +7,7 @@ across hosts with real addresses; nothing else knows which.
 
 Tools that are not mission nodes (``tap``, ``cmd``, ``log``) open a peer that
 listens nowhere and connects to *every* node's listen endpoints. Zenoh peers
-do not forward for each other (DESIGN.md §8), so this full fan-out is what
+do not forward for each other (docs/architecture.md#zenoh), so this full fan-out is what
 lets a tap see keys put by any node.
 
 TLS and access control come from a deployment file (:mod:`zplatform.deploy`),
@@ -59,7 +59,7 @@ __all__ = [
 
 @dataclass(frozen=True, slots=True)
 class KeySpace:
-    """The keys of DESIGN.md §3 for one vehicle prefix."""
+    """The keys of docs/architecture.md#key-space for one vehicle prefix."""
 
     vehicle: str
 
@@ -87,6 +87,11 @@ class KeySpace:
     def gn_to_cn(self) -> str:
         return f"{self.vehicle}/gn/to_cn"
 
+    @property
+    def recorder(self) -> str:
+        """The CN's flight recorder: a queryable answering gap-fill requests."""
+        return f"{self.vehicle}/cn/recorder"
+
     def events(self, node: str) -> str:
         return f"{self.vehicle}/{node}/events"
 
@@ -101,12 +106,16 @@ class KeySpace:
     def alive(self, node: str) -> str:
         return f"{self.vehicle}/{node}/alive"
 
+    def health_probe(self, node: str) -> str:
+        """The node's own zenoh probe (zplatform.node.health): local to its session."""
+        return f"{self.vehicle}/{node}/health/probe"
+
     @property
     def all_alive(self) -> str:
         return f"{self.vehicle}/*/alive"
 
     def region(self, region: str) -> str:
-        """The key a region travels on (DESIGN.md §3): ``cn_to_dnX`` ->
+        """The key a region travels on (docs/architecture.md#key-space): ``cn_to_dnX`` ->
         ``cn/to_dnX``, ``dnX_to_cn`` -> ``dnX/to_cn``, ``gn_to_cn`` -> ``gn/to_cn``."""
         src, sep, dst = region.partition("_to_")
         if not sep or not src or not dst:

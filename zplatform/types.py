@@ -1,4 +1,4 @@
-"""Element types of the Data Vector (thesis 000, ch. 4.1.1; DESIGN.md §5).
+"""Element types of the Data Vector (the thesis, ch. 4.1.1; docs/architecture.md#data-vector).
 
 The thesis' eleven scalar types, their little-endian wire form, and the range
 each one holds. Everything else (arrays ``f32[3]``, enums) is built on these.

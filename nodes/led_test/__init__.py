@@ -1,4 +1,4 @@
-"""Controllers of the LED platform system test (thesis 000 ch. 5.1.3.1).
+"""Controllers of the LED platform system test (the thesis, ch. 5.1.3.1).
 
 * :class:`StateLedController` (CN): lights the LED of the current state.
 * :class:`SequentialLedController` (CN): in state C, lights dn1's LEDs one

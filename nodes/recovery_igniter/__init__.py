@@ -1,4 +1,4 @@
-"""The recovery igniter system test (thesis 000 ch. 5.1.3.2).
+"""The recovery igniter system test (the thesis, ch. 5.1.3.2).
 
 The CN decides when to deploy and commands ignition; redundant safety logic
 on each of two device nodes checks the command against its own rules before

@@ -3,8 +3,11 @@
 * :func:`relay_links`: put a :class:`~tests.faults.relay.FaultRelay` on the
   link from each chosen node to the CN of an (already port-rewritten)
   mission file. Gossip scouting is switched off in the file, so no node can
-  learn the CN's real endpoint and bypass the relay (DESIGN.md §8: with
+  learn the CN's real endpoint and bypass the relay (docs/architecture.md#zenoh: with
   gossip on, peers connect to each other by themselves).
+* :func:`plain_tcp_mission`: a copy of a mission on plain TCP, which the
+  flood cases need (``floods.py``): the transport every flood test states,
+  in this one place.
 * :func:`netns_mission`: node number ``k`` (in the file's order) listens on
   ``tcp/<its host's address>:PORT+k`` of a bridged
   :class:`~tests.faults.netns.NetnsLab` (hosts may be shared); each non-CN
@@ -68,5 +71,27 @@ def netns_mission(
         node["listen"] = [hosts[name].endpoint(ports[name])]
         node["connect"] = [] if name == "cn" else [cn_ep]
         raw["nodes"][name] = node
+    Path(dst).write_text(yaml.safe_dump(raw, sort_keys=False))
+    return Path(dst)
+
+
+def plain_tcp_mission(src: str | Path, dst: str | Path) -> Path:
+    """Copy mission ``src`` to ``dst`` on plain TCP (endpoints as in ``src``;
+    ``Cluster`` moves them to free ports), its ``pythonpath`` made absolute.
+
+    The flood cases attack from a peer without any key, so they need a
+    transport that lets such a peer in: with mutual TLS and the generated
+    access control it gets no session at all, which hides what a flood
+    does to the nodes. Missions are plain TCP by default today; when a
+    secure transport becomes the default, the mission's opt-out belongs
+    here, so every flood test keeps stating its transport in one place.
+    Raises ValueError for a mission whose endpoints are not ``tcp/``.
+    """
+    raw = yaml.safe_load(Path(src).read_text())
+    relocate_mission(raw, src)
+    for name, node in raw["nodes"].items():
+        for ep in [*node.get("listen", []), *node.get("connect", [])]:
+            if not ep.startswith("tcp/"):
+                raise ValueError(f"{src}: node {name} uses {ep}; the flood cases need plain TCP")
     Path(dst).write_text(yaml.safe_dump(raw, sort_keys=False))
     return Path(dst)

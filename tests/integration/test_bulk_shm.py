@@ -1,4 +1,4 @@
-"""Bulk channels between two real processes on this host (DESIGN.md §8).
+"""Bulk channels between two real processes on this host (docs/architecture.md#zenoh).
 
 The owner runs in a child process (``subprocess``: spawned, never forked
 after ``zenoh.open``); the reader is this test process. Verified here:
@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import json
 import os
+import select
 import subprocess
 import sys
 import time
@@ -97,6 +98,7 @@ def _spawn_owner(
             str(period_s),
         ],
         cwd=ROOT,
+        stdin=subprocess.PIPE,
         stdout=subprocess.PIPE,
         env=dict(os.environ, PYTHONUNBUFFERED="1"),
     )
@@ -104,7 +106,8 @@ def _spawn_owner(
 
 def _owner_main(argv: list[str]) -> None:
     """Child: publish ``count`` samples of a known pattern once the reader matches,
-    one every ``period_s``; print its pid then a JSON line of its counters and RSS."""
+    one every ``period_s``, or fewer if a line on stdin says the reader has
+    enough; print a JSON line of its counters and RSS."""
     path, ch_json, shm, count, period = argv
     mission = decode_mission(Path(path).read_text())
     ch = msgspec.json.decode(ch_json, type=BulkChannelConfig)
@@ -120,6 +123,8 @@ def _owner_main(argv: list[str]) -> None:
         rss: list[tuple[int, int]] = []
         t0 = time.monotonic()
         for i in range(int(count)):
+            if select.select([sys.stdin], [], [], 0)[0]:
+                break  # the reader has what it waited for
             flat[:8] = np.arange(i, i + 8) % 256
             flat[-1] = i % 200
             w.publish(i, time.monotonic_ns())
@@ -139,7 +144,12 @@ def _reader(
     owner_shm: bool,
     count: int,
     period_s: float = 0.02,
+    enough: int | None = None,
 ) -> tuple[NodeBulk, _Got, dict[str, Any], list[tuple[int, int]]]:
+    """Run an owner publishing ``count`` samples to this process's reader.
+    ``enough``: stop the owner once the reader took that many (samples
+    published with DROP may be lost on the way when this process is slow to
+    read; the owner goes on until enough arrived, or ``count`` were sent)."""
     path = _mission(tmp)
     mission: Mission = decode_mission(path.read_text())
     ns = NodeSession(mission, "cn", shared_memory=reader_shm)
@@ -158,6 +168,9 @@ def _reader(
                 if r.header.seq // 100 != last_mark:  # about every 100 samples
                     last_mark = r.header.seq // 100
                     rss.append(_memory())
+                if got.count == enough and child.stdin is not None:
+                    child.stdin.write(b"enough\n")
+                    child.stdin.flush()
         out, _ = child.communicate(timeout=30)
         owner = json.loads(out.decode().strip().splitlines()[-1])
     finally:
@@ -183,15 +196,25 @@ def test_same_host_1mb_comes_through_shared_memory(tmp_path: Path) -> None:
     for seq, head, last in got.records:
         np.testing.assert_array_equal(head, np.arange(seq, seq + 8) % 256)
         assert last == seq % 200
-    assert owner["bulk_frame_published"] == 20 and owner["bulk_frame_dropped"] == 0
+    # Every sample accounted for: published, or dropped (counted) when this
+    # reader, on a busy box, still held every chunk of the owner's pool past
+    # the channel's alloc timeout; the reader took each published one or
+    # counted it superseded (the last may still be in flight).
+    published = owner["bulk_frame_published"]
+    assert published >= 1 and published + owner["bulk_frame_dropped"] == 20, owner
+    assert got.count + c["bulk_frame_missed"] <= published, (got.count, c, owner)
 
 
 def test_shared_memory_off_in_one_peer_falls_back_to_copies(tmp_path: Path) -> None:
     # The owner still allocates from its pool; zenoh copies the chunk onto the
-    # link because the reader's session has shared memory off.
-    bulk, got, _, _ = _reader(tmp_path, _u8(MB), reader_shm=False, owner_shm=True, count=10)
+    # link because the reader's session has shared memory off. Over the link
+    # a sample is dropped when this process does not read fast enough: the
+    # owner publishes until 10 arrived (at most 1000).
+    bulk, got, _, _ = _reader(
+        tmp_path, _u8(MB), reader_shm=False, owner_shm=True, count=1000, enough=10
+    )
     c = bulk.counters()
-    assert got.count and got.bad_pattern == 0
+    assert got.count >= 10 and got.bad_pattern == 0
     assert c["bulk_frame_shm"] == 0 and c["bulk_frame_copied"] == got.count, c
     for seq, head, _last in got.records:
         np.testing.assert_array_equal(head, np.arange(seq, seq + 8) % 256)

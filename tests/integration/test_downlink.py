@@ -9,6 +9,7 @@ from pathlib import Path
 
 import pytest
 
+from tests.budget import LINK_ALIVE
 from zplatform.cli import main
 from zplatform.telemetry import read_csv
 
@@ -42,11 +43,14 @@ def test_record_and_decode_live_downlink(tmp_path: Path) -> None:
     out = tmp_path / "down.csv"
     assert main(["ccsds", str(c.path), "--decode", str(down), "--out", str(out)]) == 0
     rows = read_csv(out)
-    assert len(rows) > 30
+    assert len(rows) > 10  # of ~75 in 1.5 s: enough steps to see the divisor
     loops = [int(x["cn_loop"]) for x in rows]
     steps = [b - a for a, b in pairwise(loops)]
-    # Divisor 2 over the snapshots received; a lost telemetry frame shifts the phase.
-    assert sum(s == 2 for s in steps) >= 0.9 * len(steps), steps
+    # Divisor 2 over the snapshots received: every other one goes down; a
+    # telemetry frame lost on the way to the recorder (DROP, a busy box)
+    # only lengthens a step and shifts the phase.
+    assert all(s >= 2 for s in steps), steps
+    assert sum(s == 2 for s in steps) >= LINK_ALIVE * len(steps), steps
     assert all(int(x["rx_time_ns"]) == int(x["cn_time_ns"]) for x in rows)
 
 
@@ -69,9 +73,10 @@ def test_the_control_node_sends_its_own_radio_downlink(tmp_path: Path) -> None:
     out = tmp_path / "radio.csv"
     assert main(["ccsds", str(c.path), "--decode", str(down), "--out", str(out)]) == 0
     rows = read_csv(out)
-    assert len(rows) > 15
+    assert len(rows) > 5  # of ~30 in 1.5 s: enough steps to see the divisor
     loops = [int(x["cn_loop"]) for x in rows]
     steps = [b - a for a, b in pairwise(loops)]
     assert all(s % 5 == 0 for s in steps), steps  # decimated on the vehicle
-    assert sum(s == 5 for s in steps) >= 0.9 * len(steps), steps
+    # A packet lost on the way (DROP, a busy box) is a longer step, no more.
+    assert sum(s == 5 for s in steps) >= LINK_ALIVE * len(steps), steps
     assert all(int(x["heartbeat"]) >= 0 and x["cn_state"] == "IDLE" for x in rows)

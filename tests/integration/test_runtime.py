@@ -14,8 +14,15 @@ from pathlib import Path
 
 import pytest
 import yaml
+import zenoh
 
-from tests.budget import allowed_misses, assert_within_budget
+from tests.budget import (
+    assert_every_loop_counted,
+    assert_kept_syncing,
+    assert_telemetry_counted,
+    later_than_now,
+    sync_counts,
+)
 from zplatform.auth import load_keys
 from zplatform.codec import encode_frame
 from zplatform.events import Event, EventReader
@@ -27,7 +34,8 @@ pytestmark = pytest.mark.timeout(180)
 
 
 def test_minimal_mission_runs_at_rate(tmp_path: Path) -> None:
-    """`zplatform up minimal`: at the rate, a CSV row per snapshot, misses in budget."""
+    """`zplatform up minimal`: its loops on the period grid, a CSV row per
+    snapshot received, every loop and every snapshot accounted for."""
     csv_path = tmp_path / "tm.csv"
     summary_path = tmp_path / "summary.json"
     r = subprocess.run(
@@ -54,43 +62,52 @@ def test_minimal_mission_runs_at_rate(tmp_path: Path) -> None:
     assert r.returncode == 0, r.stderr[-3000:]
     s = json.loads(summary_path.read_text())
     assert s["loops"] == 300
-    assert 95.0 < s["rate_hz"] < 105.0
-    assert_within_budget(s)
+    # Loop n starts at t1 + (n - 1) periods: 299 periods from the first loop
+    # to the last, more only when the box held the CN past a whole period,
+    # and then the overrun is counted.
+    periods = round(s["duration_s"] * 100)
+    assert periods == 299 or (periods > 299 and s["loop_overruns"] > 0), s
+    assert_every_loop_counted(s)
     assert s["final_state"] == "IDLE"
     assert s["errors"] == 0
     rows = read_csv(csv_path)
     assert len(rows) == s["telemetry_received"]
-    # Every loop's snapshot arrived (loop numbers 1..300 plus the closing frame).
+    # Every snapshot the ground received is a row; every loop number it did
+    # not receive is a counted gap (DROP telemetry may lose one on a busy box).
     loops = [int(row["cn_loop"]) for row in rows]
-    assert set(range(1, 301)) <= set(loops)
-    assert s["telemetry_gaps"] == 0
+    assert loops == sorted(set(loops))
+    assert len(set(range(loops[0], loops[-1] + 1)) - set(loops)) == s["telemetry_gaps"]
+    assert_telemetry_counted(s)
 
 
 def test_killed_device_node_is_missed_and_rejoins(tmp_path: Path) -> None:
-    """A DN killed mid-run: CN keeps its rate, its misses climb, others unaffected, it rejoins."""
+    """A DN killed mid-run: every loop is a miss for it while the others keep
+    syncing and the CN keeps looping; respawned, it rejoins and syncs again."""
+    dns = ("dn0", "dn1", "dn2")
     with Cluster(CONFIGS / "led_test.yaml", tmp_path) as c:
-        for n in ("dn0", "dn1", "dn2", "cn"):
+        for n in (*dns, "cn"):
             c.spawn(n)
         c.advance(50)
         c.kill("dn1")
-        missed0 = int(c.tm.get("cn_missed_dn1"))
-        c.wait_for(lambda dv: int(dv.get("cn_missed_dn1")) >= missed0 + 100, 30, "dn1 misses climb")
-        # The others are unaffected (beyond the shared box's miss budget).
-        budget = allowed_misses(int(c.tm.get("cn_loop")), 1)
-        assert int(c.tm.get("cn_missed_dn0")) <= budget
-        assert int(c.tm.get("cn_missed_dn2")) <= budget
-        # The CN kept its loop going while dn1 was gone.
-        loop_a = int(c.tm.get("cn_loop"))
-        c.advance(100)
-        assert int(c.tm.get("cn_loop")) - loop_a >= 100
-        rx_before = int(c.tm.get("cn_rx_dn1"))
+        c.wait_for(later_than_now(), 60, "a loop after the kill")
+        # From here on dn1 answers nothing: its replies are frozen.
+        before = sync_counts(c.tm, dns)
+        rx_dead = before["rx_dn1"]
+        c.advance(100)  # the CN kept its loop going while dn1 was gone
+        after = sync_counts(c.tm, dns)
+        assert after["cn_loop"] - before["cn_loop"] >= 100
+        assert after["rx_dn1"] == rx_dead
+        assert after["missed_dn1"] - before["missed_dn1"] == after["rx_dn0"] - before["rx_dn0"] + (
+            after["missed_dn0"] - before["missed_dn0"]
+        ), "every loop the CN ran was a miss for the dead dn1"
+        # The others are unaffected: they kept answering.
+        assert_kept_syncing(before, after, ("dn0", "dn2"))
         c.spawn("dn1")
-        c.wait_for(lambda dv: int(dv.get("cn_rx_dn1")) >= rx_before + 50, 60, "dn1 rejoins")
-        missed_after = int(c.tm.get("cn_missed_dn1"))
+        c.wait_for(lambda dv: int(dv.get("cn_rx_dn1")) >= rx_dead + 50, 120, "dn1 rejoins")
+        rejoined = sync_counts(c.tm, dns)
         c.advance(100)
-        assert int(c.tm.get("cn_missed_dn1")) - missed_after <= allowed_misses(100, 1), (
-            "dn1 misses stop after rejoining"
-        )
+        # dn1 syncs again, as the others do.
+        assert_kept_syncing(rejoined, sync_counts(c.tm, dns), dns)
         assert int(c.tm.get("dn1_loop")) > 0
 
 
@@ -118,13 +135,14 @@ def test_bad_frames_are_counted_never_applied(tmp_path: Path) -> None:
             replies = s.get(f"{v}/dn0/to_cn", payload=payload, timeout=2.0)
             for _ in replies:
                 pass
-        # To the CN's ground-command key.
+        # To the CN's ground-command key (BLOCK: a put's default, DROP, may
+        # lose one on a busy box, and then the count could not be exact).
         for payload in [*junk, wrong_layout]:
-            s.put(f"{v}/gn/to_cn", payload)
+            s.put(f"{v}/gn/to_cn", payload, congestion_control=zenoh.CongestionControl.BLOCK)
         n = len(junk) + 1
         c.wait_for(
             lambda dv: int(dv.get("dn0_bad_frames")) >= n and int(dv.get("cn_bad_frames")) >= n,
-            30,
+            60,
             "bad frames counted",
         )
         assert int(c.tm.get("dn0_bad_frames")) == n
@@ -132,15 +150,18 @@ def test_bad_frames_are_counted_never_applied(tmp_path: Path) -> None:
         # Nothing was applied: the setpoint and the command state are untouched.
         assert c.tm.get("dn0_setpoint") == 0.0
         assert c.tm.get_name("cn_cmd_status") == "NONE"
-        # The loop kept its rate.
+        # The loop kept running and dn0 kept syncing.
+        before = sync_counts(c.tm, ("dn0",))
         c.advance(50)
-        assert int(c.tm.get("cn_missed_dn0")) <= allowed_misses(int(c.tm.get("cn_loop")), 1)
-        # Each rejection was logged as an event by the node that rejected it.
+        assert_kept_syncing(before, sync_counts(c.tm, ("dn0",)), ("dn0",))
+        # The rejections were logged as events by the node that rejected
+        # them: together (at most one event a second, so a flood cannot
+        # multiply them), each event saying how many.
         seen: dict[str, int] = {}
         while len(seen) < 2 or min(seen.values()) < n:
-            e = events.get(timeout=10)
+            e = events.get(timeout=60)
             if e.id == "bad_frame":
-                seen[e.node] = seen.get(e.node, 0) + 1
+                seen[e.node] = seen.get(e.node, 0) + int(e.text.split()[0])
         assert seen == {"cn": n, "dn0": n}
         sub.undeclare()
 

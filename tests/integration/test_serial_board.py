@@ -133,18 +133,14 @@ def test_cable_pull_safes_and_reconnects(tmp_path: Path, sims: list[SimProcess])
         assert board.get_digital(0) is True
 
         sim.stop()  # cable pull
-        errors = []
-        for i in range(50):
-            try:
-                board.step(1 + i)
-            except BoardError as exc:
-                errors.append(str(exc))
-            if not board.health().connected:
-                break
+        # The first step after it fails, whichever thread sees the dead port
+        # first (the loop thread's write, or the I/O thread's read): the link
+        # is down from that step on, never reported connected.
+        with pytest.raises(BoardError, match=r"write failed|link down"):
+            board.step(1)
         h = board.health()
-        assert errors, "a pulled cable must fail the step"
         assert not h.ok and not h.connected and h.safe_active, h
-        assert h.consecutive_errors >= 1 and h.errors == len(errors)
+        assert h.consecutive_errors == 1 and h.errors == 1, h
         with pytest.raises(BoardError, match="link down"):
             board.step(100)
 
@@ -177,8 +173,10 @@ def test_timeout_counts_as_error_and_step_stays_bounded(
         t0 = time.perf_counter()
         with pytest.raises(BoardError, match="no INPUTS"):
             board.step(1)
-        # 2 ms timeout; generous slack for a shared 2-core machine.
-        assert time.perf_counter() - t0 < 0.1
+        # Bounded by its 2 ms reply timeout, not by anything the hung device
+        # holds up (the read timeout, the 500 ms handshake): the bound leaves
+        # a busy 2-core box room to run this test's thread late.
+        assert time.perf_counter() - t0 < 0.4
         h = board.health()
         assert h.timeouts == 1 and not h.ok and h.safe_active
         sim.signal(signal.SIGCONT)

@@ -1,9 +1,9 @@
 """The wildcard sync query live (led_test's 3 DNs with ``sync_query:
 wildcard``: one bundle query per loop): every DN runs from it; a foreign
 queryable on ``{vehicle}/*/to_cn`` is counted, never applied; a malformed
-bundle is refused by every DN with an error reply that names it; a rogue's
-error replies in a DN's name are foreign, not the DN's; a dead DN is missed
-while the others run on."""
+bundle is refused by every DN as it arrives, counted, and never answered; a
+rogue's error replies in a DN's name are foreign, not the DN's; a dead DN is
+missed while the others run on."""
 
 from __future__ import annotations
 
@@ -13,6 +13,7 @@ from pathlib import Path
 import yaml
 import zenoh
 
+from tests.budget import assert_kept_syncing, sync_counts
 from zplatform.auth import load_keys
 from zplatform.config import relocate_mission
 from zplatform.events import EventReader
@@ -34,7 +35,7 @@ def test_one_query_runs_every_dn_and_foreign_replies_are_counted(tmp_path: Path)
             c.spawn(dn)
         c.spawn("cn")
         c.advance(30)
-        rx0 = {dn: int(c.tm.get(f"cn_rx_{dn}")) for dn in dns}
+        before = sync_counts(c.tm, dns)
         bad0 = int(c.tm.get("cn_bad_frames"))
         v = c.mission.vehicle
         answered: queue.SimpleQueue[int] = queue.SimpleQueue()
@@ -46,24 +47,20 @@ def test_one_query_runs_every_dn_and_foreign_replies_are_counted(tmp_path: Path)
 
         qbl = c.session.declare_queryable(f"{v}/evil/to_cn", rogue)
         try:
-            c.wait_for(lambda dv: int(dv.get("cn_bad_frames")) >= bad0 + 20, 20, "foreign counted")
+            c.wait_for(lambda dv: int(dv.get("cn_bad_frames")) >= bad0 + 20, 60, "foreign counted")
         finally:
             qbl.undeclare()
         c.advance(30)
         # Every DN kept syncing through it; nothing of the rogue's was applied.
-        for dn in dns:
-            assert int(c.tm.get(f"cn_rx_{dn}")) >= rx0[dn] + 50, dn
+        assert_kept_syncing(before, sync_counts(c.tm, dns), dns)
         assert answered.qsize() >= 20
-        # A malformed bundle to every DN at once: each refuses it, by name.
-        errors: list[bytes] = []
-        for r in c.session.get(f"{v}/*/to_cn", payload=b"ZB\x01\x01\xff\xff", timeout=2.0):
-            if r.err is not None:
-                errors.append(r.err.payload.to_bytes())
-        assert sorted(e.split(b":")[0] for e in errors) == [dn.encode() for dn in dns]
-        assert all(b"bundle" in e for e in errors), errors
+        # A malformed bundle to every DN at once: each refuses it unanswered
+        # (a forged trigger gets no reply, zplatform.intake) and counts it.
+        answers = list(c.session.get(f"{v}/*/to_cn", payload=b"ZB\x01\x01\xff\xff", timeout=2.0))
+        assert [r for r in answers if r.ok is not None or r.err is not None] == [], answers
         c.wait_for(
             lambda dv: all(int(dv.get(f"{dn}_bad_frames")) >= 1 for dn in dns),
-            10,
+            60,
             "every DN counted the bad bundle",
         )
         # A rogue answering with errors in dn0's name: foreign bad frames.
@@ -79,24 +76,27 @@ def test_one_query_runs_every_dn_and_foreign_replies_are_counted(tmp_path: Path)
                 q.reply_err(b"dn0: forged by a rogue")
 
         bad1 = int(c.tm.get("cn_bad_frames"))
-        rx1 = int(c.tm.get("cn_rx_dn0"))
+        before = sync_counts(c.tm, ("dn0",))
         qbl = c.session.declare_queryable(f"{v}/evil/to_cn", liar)
+        seen: list[str] = []
         try:
-            c.wait_for(lambda dv: int(dv.get("cn_bad_frames")) >= bad1 + 20, 20, "rogue counted")
+            try:
+                c.wait_for(
+                    lambda dv: int(dv.get("cn_bad_frames")) >= bad1 + 20, 60, "rogue counted"
+                )
+            finally:
+                qbl.undeclare()
+            # Counted together as replies from no device node (evented at
+            # most once a second), never as dn0's.
+            while not any("from no device node" in t for t in seen):
+                seen.append(texts.get(timeout=60))
         finally:
-            qbl.undeclare()
             sub.undeclare()
-        seen = []
-        while not texts.empty():
-            seen.append(texts.get_nowait())
-        forged = [t for t in seen if "forged by a rogue" in t]
-        assert forged and all("from no device node" in t for t in forged), forged[:3]
-        assert not any(t.startswith("dn0 rejected") for t in seen), seen[:5]
-        assert int(c.tm.get("cn_rx_dn0")) >= rx1 + 20
+        assert not any(t.startswith("frame from dn0 rejected") for t in seen), seen[:5]
+        assert_kept_syncing(before, sync_counts(c.tm, ("dn0",)), ("dn0",))
         # A dead DN: missed loop after loop, the others run on.
         missed0 = int(c.tm.get("cn_missed_dn2"))
-        rx2 = {dn: int(c.tm.get(f"cn_rx_{dn}")) for dn in ("dn0", "dn1")}
+        before = sync_counts(c.tm, ("dn0", "dn1"))
         c.kill("dn2")
-        c.wait_for(lambda dv: int(dv.get("cn_missed_dn2")) >= missed0 + 50, 20, "dn2 missed")
-        for dn in ("dn0", "dn1"):
-            assert int(c.tm.get(f"cn_rx_{dn}")) >= rx2[dn] + 50, dn
+        c.wait_for(lambda dv: int(dv.get("cn_missed_dn2")) >= missed0 + 50, 60, "dn2 missed")
+        assert_kept_syncing(before, sync_counts(c.tm, ("dn0", "dn1")), ("dn0", "dn1"))

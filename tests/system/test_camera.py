@@ -69,10 +69,24 @@ def test_camera_frames_go_through_shared_memory_between_processes(tmp_path: Path
     samples = [json.loads(line) for line in tap.stdout.splitlines()]
     assert len(samples) == 3
     assert all(s["via"] == "shm" and s["bulk"]["bytes"] == 4194304 + 32 for s in samples), samples
-    last = read_csv(csv)[-1]
-    published = int(last["bulk_frame_published"])
-    assert published >= 500, last  # about one 4 MB frame per loop
-    assert int(last["bulk_frame_shm"]) >= 0.9 * published, last
+    rows = read_csv(csv)
+    last = rows[-1]
+    assert int(last["bulk_frame_published"]) >= 500, last  # about one 4 MB frame per loop
     assert int(last["bulk_frame_copied"]) == 0, last  # never a silent copy
+    assert int(last["bulk_frame_bad"]) == 0, last
+    # Every frame the CN's reader saw came through shared memory, and every
+    # frame it did not take before the next one came is counted superseded
+    # (how many depends on when the box ran the CN's loop, not on the code).
+    # In a loop whose dn0 reply arrived (its published count is current)
+    # the two sides agree up to the frames in flight between them; a reader
+    # that lost or double-counted frames would drift without bound.
+    fresh = next(
+        b for a, b in zip(rows[-2::-1], rows[::-1], strict=False)
+        if int(b["cn_rx_dn0"]) > int(a["cn_rx_dn0"])
+    )
+    published = int(fresh["bulk_frame_published"])
+    seen = int(fresh["bulk_frame_shm"]) + int(fresh["bulk_frame_missed"])
+    assert -1 <= published - seen <= 10, fresh
+    assert int(fresh["bulk_frame_shm"]) > 0, fresh
     assert float(last["image_mean"]) > 100.0
     assert json.loads(summary.read_text())["loops"] == 600

@@ -1,4 +1,4 @@
-"""System tests of the shipped missions, run in lockstep (thesis 000 ch. 5.1.3).
+"""System tests of the shipped missions, run in lockstep (the thesis, ch. 5.1.3).
 
 Every check reads the telemetry CSV the way the thesis' operators read the
 ground node's log: the LED states come from the *feedback* elements (the pin
@@ -313,7 +313,7 @@ def test_abort_in_flight_safes_everything(tmp_path: Path) -> None:
 
 
 # ---------------------------------------------------------------------------
-# Determinism (DESIGN.md §1)
+# Determinism (docs/architecture.md#the-loop)
 
 
 def test_led_csv_is_byte_identical_across_runs_and_processes(tmp_path: Path) -> None:

@@ -1,7 +1,7 @@
 """Long soaks, opt-in: `./scripts/test.sh -m slow`.
 
 The thesis' verification ran the platform for twice the mission time and
-required 99.999 % network reliability (000 ch. 2.2, 5.2.1). This run holds
+required 99.999 % network reliability (ch. 2.2, 5.2.1). This run holds
 the LED mission at 100 Hz as real processes and requires that reliability
 (missed syncs over all sync exchanges), no loop overrun, no error and
 no gap in the ground's telemetry.

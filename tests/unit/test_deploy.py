@@ -278,6 +278,18 @@ def test_acl_follows_the_key_space(with_deployment: Path) -> None:
     assert _allowed(access_control(m, operator), "tool", "put", "rocket/gn/to_cn")
 
 
+def test_only_the_ground_and_the_tools_may_ask_the_cn_recorder(with_deployment: Path) -> None:
+    key = "rocket/cn/recorder"
+    m = decode_mission(TLS_MISSION)  # no flight recorder: nobody may ask
+    acl = access_control(m, load_deployment(with_deployment, m))
+    assert not any(_allowed(acl, who, "query", key) for who in ("cn", "dn0", "gn", "tool"))
+    m = decode_mission(TLS_MISSION + "recorder: {}\n")
+    acl = access_control(m, load_deployment(with_deployment, m))
+    assert _allowed(acl, "gn", "query", key) and _allowed(acl, "tool", "query", key)
+    assert not _allowed(acl, "dn0", "query", key)
+    assert _allowed(acl, "cn", "reply", "rocket/cn/**")  # the CN answers on its own key
+
+
 def test_zenoh_accepts_the_generated_config(with_deployment: Path) -> None:
     m = decode_mission(TLS_MISSION)
     dep = load_deployment(with_deployment, m)

@@ -62,6 +62,8 @@ devices:
 
 _HEAD = struct.Struct("<6sHI")
 _ITEM = struct.Struct("<BBI")
+# FINISH: sync_overrun, loop_overruns, inbox_dropped, the intake's refusals
+_FINISH = struct.Struct("<BII7IBQ")
 
 
 @pytest.fixture(autouse=True)
@@ -270,14 +272,14 @@ def _items(*items: tuple[int, int, bytes]) -> bytes:
 
 
 BEGIN = (1, 0, struct.pack("<QqB", 1, 10_000_000, 0))
-FINISH = (8, 0, struct.pack("<BIII", 0, 0, 0, 0))
+FINISH = (8, 0, bytes(_FINISH.size))
 
 
 @pytest.mark.parametrize(
     ("items", "words"),
     [
         (_items((1, 0, b"\x01\x02\x03")), "BEGIN of 3 bytes (exactly 17"),
-        (_items(BEGIN, (8, 0, b"\x00")), "FINISH of 1 bytes (exactly 13"),
+        (_items(BEGIN, (8, 0, b"\x00")), f"FINISH of 1 bytes (exactly {_FINISH.size}"),
         (_items(BEGIN, (2, 7, b"x")), "a reply of DN 7; the mission has 1"),
         (_items(BEGIN, (2, 0, b"x" * 100_000)), "REPLY of 100000 bytes (at most"),
         (_ITEM.pack(7, 0, 0xFFFF_FFFF), "TELEMETRY of 4294967295 bytes (at most"),
@@ -285,7 +287,9 @@ FINISH = (8, 0, struct.pack("<BIII", 0, 0, 0, 0))
         (_items((2, 0, b"x")), "REPLY outside a loop"),
         (_items(BEGIN, BEGIN), "loop 1 never ends"),
         (_items(BEGIN, (7, 0, b"t"), (7, 0, b"t")), "loop 1: two telemetry frames"),
-        (_items(BEGIN, *[(10, 255, b"k")] * 257), "over 256 foreign replies"),
+        (_items(BEGIN, *[(2, 0, b"r")] * 65), "loop 1: over 64 DN replies"),
+        (_items(BEGIN, (10, 255, b"k")), "unknown type 10"),  # FOREIGN, before version 5
+        (_items(BEGIN, (12, 0, b"h")), "a health block; the mission has no health"),
         (_items(BEGIN, (11, 0, b"\x01\x02\x03")), "PRM_SAVED of 3 bytes (at least 9)"),
         (_items(BEGIN, (11, 0, b"s" * 600)), "PRM_SAVED of 600 bytes (at most 521 "),
     ],

@@ -1,6 +1,7 @@
 """The sync bundle (codecs/FORMAT.md §6.2): one wildcard query carries every
 DN's frame; each DN takes its own. Packing, strict parsing, the DN's use of
-it, the policy that chooses it, and a foreign replier on the CN's side."""
+it, the policy that chooses it (a foreign replier on the CN's side:
+tests/unit/test_intake.py)."""
 
 from __future__ import annotations
 
@@ -8,7 +9,6 @@ from pathlib import Path
 
 import pytest
 import yaml
-import zenoh
 from hypothesis import given
 from hypothesis import strategies as st
 
@@ -18,9 +18,6 @@ from zplatform.lockstep import LockstepRunner, sim_keys
 from zplatform.loop import ControlLogic, DeviceLogic
 from zplatform.messages import WILDCARD_MAX_BUNDLE, sync_bundle_size, wildcard_sync_for
 from zplatform.mission import decode_mission, load_mission
-from zplatform.recording import Recorder, RecordReader
-from zplatform.sync import ControlSync
-from zplatform.transport import KeySpace
 from zplatform.uplink import ScriptCommand
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -131,89 +128,3 @@ def test_sim_runs_the_same_with_either_query_form() -> None:
         results.append((res.states, res.rx, res.missed, bytes(r.control.dv.buf)))
     a, b = results
     assert a == b and a[0][:3] == ["A", "B", "C"]
-
-
-def test_a_foreign_reply_is_a_bad_frame_recorded_and_replayed(tmp_path: Path) -> None:
-    m = load_mission(LED)
-    cn = ControlLogic(m, keys=sim_keys(m))
-    rec = Recorder(tmp_path / "rec", m, LED, cn.dv)
-    cn.recorder = rec
-    cn.begin(1, 10**9)
-    cn.foreign_reply("rocket/evil/to_cn")
-    cn.finish(())
-    rec.close()
-    assert int(cn.dv.get("cn_bad_frames")) == 1
-    (ev,) = [e for e in cn.events.drain() if e.id == "bad_frame"]
-    assert "rocket/evil/to_cn" in ev.text
-    (loop,) = list(RecordReader(tmp_path / "rec").loops())
-    assert loop.replies == [(-1, b"rocket/evil/to_cn")]
-
-
-class _Id:
-    def __init__(self, zid: object) -> None:
-        self.zid = zid
-
-
-class _Ok:
-    def __init__(self, key: str, payload: bytes) -> None:
-        self.key_expr = key
-        self.payload = zenoh.ZBytes(payload)
-
-
-class _Err:
-    def __init__(self, text: bytes) -> None:
-        self.payload = zenoh.ZBytes(text)
-
-
-class _Reply:
-    def __init__(self, zid: object, ok: _Ok | None = None, err: _Err | None = None) -> None:
-        self.replier_id = _Id(zid)
-        self.ok = ok
-        self.err = err
-
-
-def test_a_wildcard_error_reply_is_a_dns_only_from_the_session_that_answers_for_it() -> None:
-    """A peer whose queryable matches ``{vehicle}/*/to_cn`` cannot pin an
-    error on a DN by naming it: an error counts as dnX's only from the zenoh
-    session that answered on dnX's key; any other is foreign."""
-    cfg = zenoh.Config()
-    cfg.insert_json5("mode", '"peer"')
-    cfg.insert_json5("listen/endpoints", "[]")
-    cfg.insert_json5("scouting/multicast/enabled", "false")
-    session = zenoh.open(cfg)
-    try:
-        keys = KeySpace("rocket")
-        cs = ControlSync(session, keys, ["dn0", "dn1"], 2_000_000, 0.01, wildcard=True)
-        try:
-            taken: list[tuple[int, object]] = []
-
-            def drain() -> list[tuple[int, object]]:
-                while not cs._q.empty():
-                    taken.append(cs._q.get_nowait())
-                out = list(taken)
-                taken.clear()
-                return out
-
-            # Before dn0 answered anything, a "dn0: ..." error is nobody's.
-            cs._handoff_any(_Reply("Z0", err=_Err(b"dn0: bad frame")))
-            assert drain() == [(-1, "dn0: bad frame")]
-            # dn0 answers on its key: that session now speaks for dn0.
-            cs._handoff_any(_Reply("Z0", ok=_Ok("rocket/dn0/to_cn", b"\x94")))
-            assert drain() == [(0, b"\x94")]
-            cs._handoff_any(_Reply("Z0", err=_Err(b"dn0: stale")))
-            assert drain() == [(0, None)]
-            # A rogue session claiming dn0's (or dn1's) name is foreign.
-            cs._handoff_any(_Reply("EVIL", err=_Err(b"dn0: forged")))
-            cs._handoff_any(_Reply("EVIL", err=_Err(b"dn1: forged")))
-            assert drain() == [(-1, "dn0: forged"), (-1, "dn1: forged")]
-            # A reply on a key that is no DN's is foreign, and teaches nothing.
-            cs._handoff_any(_Reply("EVIL", ok=_Ok("rocket/gn/to_cn", b"\x94")))
-            cs._handoff_any(_Reply("EVIL", err=_Err(b"dn1: forged")))
-            assert drain() == [(-1, "rocket/gn/to_cn"), (-1, "dn1: forged")]
-            # zenoh's own timeout is not a reply at all.
-            cs._handoff_any(_Reply("Z0", err=_Err(b"Timeout")))
-            assert drain() == []
-        finally:
-            cs.close()
-    finally:
-        session.close()

@@ -8,6 +8,8 @@ from pathlib import Path
 
 import zenoh
 
+from zplatform.auth import channel
+from zplatform.intake import ReplyCheck, TriggerIntake
 from zplatform.lockstep import sim_keys
 from zplatform.loop import ControlLogic, DeviceLogic
 from zplatform.mission import load_mission
@@ -35,10 +37,24 @@ def test_both_ends_report_every_hop_in_order() -> None:
     try:
         keys = KeySpace(m.vehicle)
         now = iter(range(10**9, 2 * 10**9, 10**7)).__next__
-        ds = DeviceSync(session, keys, "dn0", now, trace=lambda h, n: dn_hops.append((h, n)))
+        sim = sim_keys(m)
+        ds = DeviceSync(
+            session,
+            keys,
+            "dn0",
+            now,
+            intake=TriggerIntake(m, "dn0", channel(sim, "cn_to_dn0")),
+            trace=lambda h, n: dn_hops.append((h, n)),
+        )
         # A generous deadline: this checks the hooks, not the timing.
         cs = ControlSync(
-            session, keys, ["dn0"], 2_000_000_000, 2.0, trace=lambda h, n: cn_hops.append((h, n))
+            session,
+            keys,
+            ["dn0"],
+            2_000_000_000,
+            2.0,
+            checks=[ReplyCheck(m, "dn0", channel(sim, "dn0_to_cn"))],
+            trace=lambda h, n: cn_hops.append((h, n)),
         )
         try:
             for loop in (1, 2):

@@ -1,4 +1,4 @@
-"""Tests of zplatform.telemetry: the CSV log format of DESIGN.md §6."""
+"""Tests of zplatform.telemetry: the CSV log format of docs/architecture.md#files."""
 
 from __future__ import annotations
 

@@ -12,6 +12,7 @@ from hypothesis import strategies as st
 from zplatform import DataVector, Layout, RegionCodec, load_mission
 from zplatform.auth import AuthError, Channel, KeySet, channel
 from zplatform.codec import encode_frame
+from zplatform.intake import CnRefusals
 from zplatform.lockstep import LockstepRunner, sim_keys
 from zplatform.loop import ControlLogic, DeviceLogic
 from zplatform.uplink import Uplink, element_index, parse_commands
@@ -363,7 +364,9 @@ def test_defect_7_junk_and_extra_requests_are_counted_and_never_block_a_command(
     junk = [b"\x00" * 40, b"\xff" * 3] * 8
     good = bytes(up.frame("LAUNCH", 1, 0, 0.0, 0, 77))
     cn.begin(1, PERIOD)
-    cn.finish([*junk, good], inbox_dropped=500, inbox_oversize=400)
+    refused = CnRefusals()
+    refused.cmd_size = 400  # refused unread at the intake, for their size
+    cn.finish([*junk, good], inbox_dropped=500, refused=refused)
     assert cn.dv.get_name("cn_state") == "B"  # the valid command took effect
     assert cn.dv.get("cn_bad_frames") == len(junk) + 400
     assert cn.dv.get("cn_cmd_dropped") == 500

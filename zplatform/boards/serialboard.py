@@ -12,7 +12,13 @@ WRITE frame per :meth:`SerialBoard.step` and waits, at most
 Threads: :meth:`~SerialBoard.step`, the pin methods, :meth:`~SerialBoard.safe`
 and :meth:`~SerialBoard.health` belong to the loop thread; the I/O thread
 hands the latest INPUTS over as one immutable tuple (an atomic reference
-swap) and signals it with an Event.
+swap) and signals it with an Event. Two things are decided under a lock
+both threads take (briefly; the loop thread once per step): whether an
+INPUTS answers the WRITE the loop is waiting for (so an answer to an
+earlier WRITE that gave up is counted late, never latched as this step's
+inputs), and which port is the link (so a write failure seen by the loop
+thread takes the link down at once, and the I/O thread, woken, reopens it;
+a failure on a port already replaced never takes down its successor).
 """
 
 from __future__ import annotations
@@ -28,6 +34,7 @@ from msgspec import Meta
 
 from ..components import decode_component_config
 from ..errors import ConfigError, ControlError
+from ..health import Heartbeat
 from . import wire
 from .base import BoardError, BoardHealth, HealthCounters
 
@@ -199,7 +206,8 @@ class SerialBoard:
         self._seq = 0
         self._faulted = False
         self.counters = HealthCounters()
-        # Shared with the I/O thread.
+        # Shared with the I/O thread; _want and _port change under _lock.
+        self._lock = threading.Lock()
         self._want = -1  # seq of the WRITE awaiting its INPUTS
         self._rx: tuple[int, int, tuple[float, ...]] = (-1, 0, self._ain)
         self._reply = threading.Event()
@@ -212,6 +220,9 @@ class SerialBoard:
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self._opened = False
+        self.heartbeat = Heartbeat("board")
+        """The I/O thread's check-in (zplatform.health): beats per read (at
+        least every 50 ms), idle while it waits to reconnect."""
 
     # -- the Board protocol ------------------------------------------------------
 
@@ -259,13 +270,18 @@ class SerialBoard:
             self._fail(f"link down: {self._link_error}")
         seq = (self._seq + 1) & 0xFFFF
         self._seq = seq
-        self._want = seq
-        self._reply.clear()
+        with self._lock:
+            self._want = seq
+            self._reply.clear()
         n = self._pack_write(seq, self._faulted)
         try:
             sent = port.write(self._txview[:n])
-        except Exception as exc:  # the I/O thread sees the same failure and reconnects
-            self._fail(f"write failed: {type(exc).__name__}: {exc}")
+        except Exception as exc:
+            # The port is broken: the link is down from now on (health says
+            # so at once), and the I/O thread reopens it.
+            message = f"write failed: {type(exc).__name__}: {exc}"
+            self._link_down(port, message)
+            self._fail(message)
         if sent != n:
             self._fail(f"write accepted {sent} of {n} bytes (device not reading?)")
         self.counters.frames_sent += 1
@@ -320,7 +336,8 @@ class SerialBoard:
         if port is None:
             return
         self._seq = (self._seq + 1) & 0xFFFF
-        self._want = self._seq  # its INPUTS is latched by the next step, not counted late
+        with self._lock:
+            self._want = self._seq  # its INPUTS is latched by the next step, not counted late
         n = self._pack_write(self._seq, True)
         try:
             port.write(self._txview[:n])
@@ -343,6 +360,22 @@ class SerialBoard:
         return self._connected.wait(timeout)
 
     # -- loop thread helpers -------------------------------------------------------
+
+    def _link_down(self, port: Any, message: str) -> None:
+        """Take the link down if ``port`` is still it, and wake the I/O
+        thread's read so that it closes the port and reopens it."""
+        with self._lock:
+            if self._port is not port:
+                return  # the I/O thread already dropped it (and may have a new one)
+            self._port = None
+            self._connected.clear()
+            self._link_error = f"{self.config.port}: {message}"
+        cancel = getattr(port, "cancel_read", None)
+        if cancel is not None:
+            try:
+                cancel()
+            except Exception:
+                pass
 
     def _fail(self, message: str) -> NoReturn:
         self.counters.failed(message)
@@ -387,14 +420,23 @@ class SerialBoard:
         )
 
     def _run(self) -> None:
+        try:
+            self._io()
+        finally:
+            self.heartbeat.idle()
+
+    def _io(self) -> None:
         backoff = self.config.reconnect_min_ms / 1000.0
         first = True
         deframer = wire.Deframer(self._on_body, self._on_bad)
+        hb = self.heartbeat
         while not self._stop.is_set():
+            hb.beat()
             try:
                 port = self._open_port()
             except Exception as exc:
                 self._link_error = f"cannot open {self.config.port}: {exc}"
+                hb.idle()  # waiting to reconnect is not a stall
                 self._stop.wait(backoff)
                 backoff = min(backoff * 2, self.config.reconnect_max_ms / 1000.0)
                 continue
@@ -403,6 +445,7 @@ class SerialBoard:
             except Exception as exc:
                 self._link_error = f"handshake with {self.config.port} failed: {exc}"
                 _close_quietly(port)
+                hb.idle()
                 self._stop.wait(backoff)
                 backoff = min(backoff * 2, self.config.reconnect_max_ms / 1000.0)
                 continue
@@ -410,17 +453,23 @@ class SerialBoard:
             if not first:
                 self.counters.reconnects += 1
             first = False
-            self._port = port
-            self._connected.set()
+            with self._lock:
+                self._port = port
+                self._connected.set()
             try:
-                while not self._stop.is_set():
+                # Until stopped, or until the loop thread took the link down
+                # after a failed write (it cancels this read to say so).
+                while not self._stop.is_set() and self._port is port:
+                    hb.beat()
                     data = port.read(port.in_waiting or 1)
                     if data:
                         deframer.feed(data)
             except Exception as exc:
                 self._link_error = f"{self.config.port} lost: {type(exc).__name__}: {exc}"
-            self._connected.clear()
-            self._port = None
+            with self._lock:
+                if self._port is port:
+                    self._port = None
+                    self._connected.clear()
             _close_quietly(port)
 
     def _handshake(self, port: Any, deframer: wire.Deframer) -> None:
@@ -434,6 +483,7 @@ class SerialBoard:
         port.write(b"\x00" + bytes(tx[:n]))
         deadline = time.monotonic() + self.config.handshake_timeout_ms / 1000.0
         while self._hello is None:
+            self.heartbeat.beat()
             if time.monotonic() > deadline:
                 raise BoardError(f"no HELLO_ACK within {self.config.handshake_timeout_ms} ms")
             data = port.read(port.in_waiting or 1)
@@ -469,13 +519,17 @@ class SerialBoard:
         elif version != wire.VERSION:
             self.counters.bad_frames += 1
         elif msg_type == wire.MSG_INPUTS and len(payload) == 8 + 4 * self._dev_analog:
-            if seq != self._want:
-                self.counters.late_replies += 1
-                return
             (dmask,) = _U64.unpack_from(payload, 0)
             ana = struct.unpack_from(f"<{self._dev_analog}f", payload, 8)
-            self._rx = (seq, dmask, ana + (0.0,) * (wire.MAX_ANALOG - len(ana)))
-            self._reply.set()
+            rx = (seq, dmask, ana + (0.0,) * (wire.MAX_ANALOG - len(ana)))
+            # Checked and handed over in one step under the lock: a step that
+            # begins meanwhile (a new _want) can never latch this one's inputs.
+            with self._lock:
+                if seq != self._want:
+                    self.counters.late_replies += 1
+                    return
+                self._rx = rx
+                self._reply.set()
         else:
             self.counters.bad_frames += 1
 

@@ -44,6 +44,7 @@ from ..ground.records import (
     param_rows,
 )
 from ..ground.status import RateMeter
+from ..health import stalled_names
 from ..limits import Limits, mission_limits
 
 __all__ = [
@@ -143,6 +144,10 @@ class ConsoleModel:
         self.dv = DataVector(self.layout)
         self.los_ns = int(los_s * 1e9)
         self.limits: dict[str, Limits] = mission_limits(mission, limits)
+        # Health's stalled-thread masks are shown with the threads' names.
+        self._masks = frozenset(
+            f"{n}_threads_stalled" for n in ["cn", *mission.device_nodes] if mission.health
+        )
         self.writable = writable_names(mission, self.layout)
         self.log: deque[LogLine] = deque(maxlen=max_events)
         self.min_rank = 0
@@ -261,6 +266,8 @@ class ConsoleModel:
         v = self.dv.get(spec.name)
         if spec.enum is not None:
             return spec.name_of(int(v))
+        if spec.name in self._masks and v:
+            return f"{v} ({', '.join(stalled_names(int(v)))})"
         if spec.count:
             items = v[:8].tolist()
             text = ", ".join(_fmt(x) for x in items)

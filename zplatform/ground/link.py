@@ -10,13 +10,29 @@ connected to every node), and at most one of each:
 * a **command publisher** on ``{vehicle}/gn/to_cn``;
 * a raw **tap** subscriber on any key expression (``zplatform tap``).
 
-Every zenoh callback only queues the bytes with the receive time (one FIFO,
-so telemetry and events are taken in arrival order); the caller's thread
-takes them (:meth:`GroundLink.next`), runs them through the logic, publishes
-the requests it makes, and hands every event record to ``on_event``. The
-ground's own events (joined, restarted, refused, script done) go to
-``on_event`` too: a ground *node* publishes them on ``{vehicle}/gn/events``
-and takes them back through its intake, a tool hands them over directly.
+Every zenoh callback only checks and queues (:mod:`zplatform.intake`), each
+kind in a bounded mailbox of its own, so a flood on one key can displace
+nothing on another:
+
+* **telemetry** (:class:`~zplatform.intake.TelemetryIntake`): a snapshot
+  longer than any telemetry frame, or with a bad tag, is refused as it
+  arrives and counted as bad; an authentic one stamped no later than the
+  newest admitted (a replay) is refused and counted (``not_newer``, or
+  ``stale`` beyond the freshness bound); the rest wait, at most
+  :data:`TELEMETRY_BACKLOG` snapshots' worth (the newest kept, the gaps
+  counted by the logic), for the caller's thread;
+* **events**: a record longer than :data:`EVENT_MAX` is refused unread
+  (``bad_events``); at most :data:`EVENT_BACKLOG` wait (a drop shows as a
+  gap in the node's event numbers);
+* **taps**: at most :data:`TAP_BACKLOG` samples wait; older ones are let go
+  and counted (:attr:`GroundLink.taps_dropped`).
+
+The caller's thread takes them (:meth:`GroundLink.next`: telemetry first,
+then events), runs them through the logic, publishes the requests it
+makes, and hands every event record to ``on_event``. The ground's own
+events (joined, restarted, refused, script done) go to ``on_event`` too: a
+ground *node* publishes them on ``{vehicle}/gn/events`` and takes them back
+through its intake, a tool hands them over directly.
 
 The clock is a :class:`~zplatform.timebase.NodeClock` (realtime-anchored,
 like every node's), read in the callbacks: a snapshot's age is measured at
@@ -30,9 +46,7 @@ Not thread-safe: one thread calls everything after construction.
 from __future__ import annotations
 
 import os
-import queue
 import time
-from collections import deque
 from collections.abc import Callable, Sequence
 from typing import Literal
 
@@ -42,7 +56,8 @@ from ..auth import KeySet, channel, load_keys
 from ..config import Mission
 from ..datavector import DataVector
 from ..errors import CommandError, TransportError
-from ..events import Event
+from ..events import MAX_TEXT, Event
+from ..intake import Mailbox, TelemetryIntake, Waker
 from ..node.runtime import EventPublisher
 from ..timebase import NodeClock
 from ..transport import NodeSession, is_matching
@@ -50,11 +65,28 @@ from ..uplink import ScriptCommand, validate_command
 from .logic import GroundLogic, default_max_age_ns
 from .records import CommandOutcome, EventRecord
 
-__all__ = ["MAX_AGE_ENV", "GroundLink", "max_age_ns_from_env"]
+__all__ = [
+    "EVENT_BACKLOG",
+    "EVENT_MAX",
+    "MAX_AGE_ENV",
+    "TAP_BACKLOG",
+    "TELEMETRY_BACKLOG",
+    "GroundLink",
+    "max_age_ns_from_env",
+]
 
 MAX_AGE_ENV = "ZPLATFORM_TELEMETRY_MAX_AGE_MS"
+TELEMETRY_BACKLOG = 1000
+"""Admitted snapshots kept while the caller is busy: 10 s at 100 Hz. Fewer
+for a large vector: at most :data:`_BACKLOG_BYTES` of them in all."""
+EVENT_MAX = 4 * MAX_TEXT + 1024
+"""The longest event record read: its text (at most ``MAX_TEXT``
+characters, 4 bytes each in UTF-8 at worst) and the rest."""
+EVENT_BACKLOG = 4096
+TAP_BACKLOG = 4096
+_BACKLOG_BYTES = 64 * 2**20
 
-_TM, _EV, _TAP = 0, 1, 2
+_TM, _EV = 0, 1
 
 
 def max_age_ns_from_env(mission: Mission) -> int:
@@ -111,6 +143,8 @@ class GroundLink:
         if keys == "mission":
             role = "gn" if node == "gn" or commands or script else "tool"
             keys = load_keys(mission, role, key_file)
+        self.link_keys: KeySet | None = keys
+        """The keys the link checks with (None: the mission does not authenticate)."""
         self.clock = clock or NodeClock()
         self.logic = GroundLogic(
             mission,
@@ -123,12 +157,26 @@ class GroundLink:
         self.ns = NodeSession(mission, node, announce=False, commands=bool(commands or script))
         self.keys = self.ns.keys
         session = self.ns.session
-        self._q: queue.SimpleQueue[tuple[int, bytes, int, str, bool]] = queue.SimpleQueue()
+        # One mailbox per kind (module doc), one waker for the caller's thread.
+        self._waker = Waker()
+        self._tm = TelemetryIntake(
+            mission,
+            channel(keys, "telemetry"),
+            max(2, min(TELEMETRY_BACKLOG, _BACKLOG_BYTES // self.logic.max_frame_len)),
+            self.logic.max_age_ns,
+            self._waker,
+        )
+        assert self._tm.box is not None
+        self._tm_box = self._tm.box
+        self._ev_box: Mailbox[tuple[str, bytes, int]] = Mailbox(EVENT_BACKLOG, self._waker)
+        self._tap_box: Mailbox[tuple[str, bytes, bool]] = Mailbox(TAP_BACKLOG, self._waker)
+        self._ev_oversize = 0  # zenoh's thread writes, the caller's reads (a total)
+        self._ev_oversize_seen = 0
         self._subs: list[zenoh.Subscriber[None]] = []
         if telemetry:
-            self._subscribe(self.keys.telemetry, _TM)
+            self._subscribe(self.keys.telemetry, self._on_telemetry)
         if events:
-            self._subscribe(self.keys.all_events, _EV)
+            self._subscribe(self.keys.all_events, self._on_event)
         self._pub: zenoh.Publisher | None = None
         if commands or script:
             self._pub = session.declare_publisher(self.keys.gn_to_cn)
@@ -141,7 +189,6 @@ class GroundLink:
             if node is not None
             else None
         )
-        self._taps: deque[tuple[str, bytes, bool]] = deque()
         self._closed = False
         if announce:
             self.announce()
@@ -158,13 +205,22 @@ class GroundLink:
         """The last accepted snapshot (:attr:`GroundLogic.dv`)."""
         return self.logic.dv
 
-    def _pop(self, deadline: float) -> tuple[int, bytes, int, str, bool] | None:
-        left = deadline - time.monotonic()
-        try:
-            return self._q.get(timeout=left) if left > 0 else self._q.get_nowait()
-        except queue.Empty:
+    def _pop_any(self) -> tuple[int, bytes, int, str] | None:
+        """The next item of any kind (telemetry first), or None at once:
+        kind, payload, receive time, the key it came on ("" for telemetry)."""
+        tm = self._tm_box.pop()
+        if tm is not None:
+            return _TM, tm[1], tm[0], ""
+        ev = self._ev_box.pop()
+        if ev is not None:
+            return _EV, ev[1], ev[2], ev[0]
+        return None
+
+    def _pop(self, deadline: float) -> tuple[int, bytes, int, str] | None:
+        got = self._waker.wait_for(self._pop_any, deadline - time.monotonic())
+        if got is None:
             self._after(self.clock.now_ns())
-            return None
+        return got
 
     def _take(self, kind: int, payload: bytes, rx: int, key: str) -> bool:
         """One telemetry frame or event (that came on ``key``) through the
@@ -185,26 +241,29 @@ class GroundLink:
         until a snapshot is accepted: returns its receive time (ns), or None
         when the time ran out first. Events met on the way go to
         ``on_event``; refused snapshots are counted by the logic."""
-        got = self._pump(timeout_s, tap=False)
-        return got if isinstance(got, int) else None
+        return self._pump(timeout_s)
 
-    def _pump(self, timeout_s: float, *, tap: bool) -> int | tuple[str, bytes, bool] | None:
-        """Take queued items until an accepted snapshot (``tap=False``: its
-        receive time) or a tapped sample (``tap=True``), or the time runs out."""
+    def _pump(self, timeout_s: float) -> int | None:
+        """Take queued items until an accepted snapshot (its receive time),
+        or the time runs out."""
         deadline = time.monotonic() + timeout_s
         while (item := self._pop(deadline)) is not None:
-            kind, payload, rx, key, shm = item
-            if kind == _TAP:
-                if tap:
-                    return key, payload, shm
-                self._taps.append((key, payload, shm))
-            elif self._take(kind, payload, rx, key) and not tap:
+            kind, payload, rx, key = item
+            if self._take(kind, payload, rx, key):
                 return rx
         return None
 
     def _after(self, now_ns: int) -> None:
-        """Publish the logic's requests, hand over its events, let time pass."""
+        """Count what the intakes refused, publish the logic's requests, hand
+        over its events, let time pass."""
         logic = self.logic
+        size, bad, stale = self._tm.take_counts()
+        if size or bad or stale:
+            logic.refused(size, bad, stale, self._tm.aged, now_ns)
+        oversize = self._ev_oversize
+        if oversize != self._ev_oversize_seen:
+            logic.refused_events(oversize - self._ev_oversize_seen)
+            self._ev_oversize_seen = oversize
         logic.tick(now_ns)
         if self._pub is not None:
             for frame in logic.take_requests():
@@ -313,14 +372,22 @@ class GroundLink:
         return done
 
     # -- taps and liveliness -------------------------------------------------
-    def _subscribe(self, keyexpr: str, kind: int) -> None:
-        """Queue every sample on ``keyexpr`` as ``kind``, stamped on arrival."""
-        q, now = self._q, self.clock.now_ns
+    # zenoh's thread: the intakes (module doc), each stamped on arrival.
+    def _on_telemetry(self, sample: zenoh.Sample) -> None:
+        self._tm.admit(sample.payload, self.clock.now_ns())
 
-        def on_sample(sample: zenoh.Sample) -> None:
-            p = sample.payload  # hand off only (and whether shared memory carried it)
-            q.put((kind, p.to_bytes(), now(), str(sample.key_expr), p.as_shm() is not None))
+    def _on_event(self, sample: zenoh.Sample) -> None:
+        p = sample.payload
+        if len(p) > EVENT_MAX:
+            self._ev_oversize += 1  # this callback is the only writer
+            return
+        self._ev_box.put((str(sample.key_expr), p.to_bytes(), self.clock.now_ns()))
 
+    def _on_tap(self, sample: zenoh.Sample) -> None:
+        p = sample.payload  # and whether shared memory carried it
+        self._tap_box.put((str(sample.key_expr), p.to_bytes(), p.as_shm() is not None))
+
+    def _subscribe(self, keyexpr: str, on_sample: Callable[[zenoh.Sample], None]) -> None:
         self._subs.append(
             self.ns.session.declare_subscriber(
                 keyexpr, zenoh.handlers.Callback(on_sample, indirect=False)
@@ -330,15 +397,49 @@ class GroundLink:
     def tap(self, keyexpr: str) -> None:
         """Also subscribe to every sample on ``keyexpr``, raw, for
         :meth:`next_tap`."""
-        self._subscribe(keyexpr, _TAP)
+        self._subscribe(keyexpr, self._on_tap)
 
     def next_tap(self, timeout_s: float) -> tuple[str, bytes, bool] | None:
         """The next tapped sample ``(key, payload, came through shared
-        memory)``, up to ``timeout_s``, or None."""
-        if self._taps:
-            return self._taps.popleft()
-        got = self._pump(timeout_s, tap=True)
-        return got if isinstance(got, tuple) else None
+        memory)``, up to ``timeout_s``, or None. Telemetry and events that
+        arrive meanwhile are not taken (:meth:`next` takes them)."""
+        return self._tap_box.get(timeout_s)
+
+    @property
+    def taps_dropped(self) -> int:
+        """Tapped samples let go because :data:`TAP_BACKLOG` were waiting."""
+        return self._tap_box.dropped
+
+    def query(
+        self,
+        key_expr: str,
+        payload: bytes,
+        timeout_s: float,
+        into: Mailbox[tuple[int, bytes | None]],
+        tag: int,
+    ) -> None:
+        """Send one get on ``key_expr`` (every reply kept: no consolidation)
+        and return at once: each reply's payload is queued into ``into`` as
+        ``(tag, payload)`` as it arrives (error replies are skipped), then
+        ``(tag, None)`` when the get is over (every replier done, or
+        ``timeout_s`` passed). For the gap fill from the CN's recorder."""
+
+        def on_reply(reply: zenoh.Reply) -> None:
+            ok = reply.ok  # hand off only
+            if ok is not None:
+                into.put((tag, ok.payload.to_bytes()))
+
+        self.ns.session.get(
+            key_expr,
+            zenoh.handlers.Callback(on_reply, lambda: into.put((tag, None)), indirect=False),
+            payload=payload,
+            timeout=timeout_s,
+            consolidation=zenoh.ConsolidationMode.NONE,
+            # The replies travel with these: behind live traffic, and dropped
+            # rather than blocking anyone on a stalled link.
+            priority=zenoh.Priority.BACKGROUND,
+            congestion_control=zenoh.CongestionControl.DROP,
+        )
 
     def alive_nodes(self, timeout_s: float = 1.0) -> list[str]:
         """The mission's nodes with a liveliness token now, sorted."""

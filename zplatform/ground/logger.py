@@ -62,11 +62,20 @@ class TelemetryLog:
 
 def log_summary_line(s: GnSummary, csv: str | Path | None, events: str | Path | None) -> str:
     """``logged 1000 snapshot(s) (loops 1..1000), 0 gap(s), 0 bad or refused ->
-    tm.csv; 12 event(s) -> tm.events.jsonl``."""
+    tm.csv; 12 event(s) -> tm.events.jsonl``; gaps filled from the CN's flight
+    recorder are counted after the gaps (``500 gap(s) (500 filled from the
+    CN's recorder, 0 not)``)."""
     loops = f" (loops {s.first_seq}..{s.last_seq})" if s.telemetry_received else ""
     refused = ", ".join(f"{k} {n}" for k, n in s.telemetry_refused.items() if n)
+    fill = ""
+    if s.telemetry_filled or s.telemetry_unfilled or s.telemetry_not_run:
+        never = f", {s.telemetry_not_run} never ran" if s.telemetry_not_run else ""
+        fill = (
+            f" ({s.telemetry_filled} filled from the CN's recorder, "
+            f"{s.telemetry_unfilled} not{never})"
+        )
     text = (
-        f"logged {s.telemetry_received} snapshot(s){loops}, {s.telemetry_gaps} gap(s), "
+        f"logged {s.telemetry_received} snapshot(s){loops}, {s.telemetry_gaps} gap(s){fill}, "
         f"{s.telemetry_bad} bad or refused{f' ({refused})' if refused else ''}"
     )
     if csv is not None:

@@ -31,8 +31,14 @@ the first failure wins and is counted (:class:`~.records.TelemetryCounters`):
    not further ahead than the time since allows (``jump``).
 
 Only then is the snapshot written into :attr:`GroundLogic.dv`; missing loop
-numbers count as ``gaps``. The first refusal of each kind is an event
-(``tm_refused``); the rest are counted.
+numbers count as ``gaps``, and each run of them is queued in
+:attr:`GroundLogic.gaps` for whoever fills them (the gap fill from the CN's
+flight recorder, :mod:`zplatform.ground.gapfill`). The first refusal of
+each kind is an event (``tm_refused``); the rest are counted. A driver
+whose intake refuses snapshots as they arrive
+(:class:`~zplatform.intake.TelemetryIntake`: the size, the tag, and a
+replay, not newer than the newest it let through) hands over its counts
+(:meth:`GroundLogic.refused`), counted the same way.
 
 **Commands** (:meth:`GroundLogic.command`): a request is numbered after the
 CN's last verdict (``cn_cmd_seq + 1``, or after the ground's own last
@@ -66,6 +72,7 @@ import re
 import struct
 from collections import deque
 from collections.abc import Sequence
+from typing import NamedTuple
 
 import msgspec
 
@@ -83,6 +90,7 @@ from .script import ScriptPlayer
 __all__ = [
     "FRESH_MARGIN_NS",
     "REASON_GRACE_NS",
+    "Gap",
     "GroundLogic",
     "default_max_age_ns",
     "needs_arm",
@@ -97,6 +105,16 @@ REASON_GRACE_NS = 500_000_000
 
 _U64 = struct.Struct("<Q")
 _CMD_EVENTS = 64  # recent cmd_accepted/cmd_rejected events kept for matching
+_GAPS_KEPT = 256
+
+
+class Gap(NamedTuple):
+    """Telemetry loops ``first``..``last`` (every ``telemetry_divisor``-th)
+    of CN run ``epoch`` that never arrived, between two accepted snapshots."""
+
+    epoch: int
+    first: int
+    last: int
 
 
 def default_max_age_ns(mission: Mission) -> int:
@@ -276,6 +294,9 @@ class GroundLogic:
         self._last_t = 0
         self._n = _Tally(refused=dict.fromkeys(REFUSALS, 0))
         self._evented: set[str] = set()
+        self.gaps: deque[Gap] = deque(maxlen=_GAPS_KEPT)
+        """Runs of missing telemetry loops, oldest first, for a gap filler to
+        take (the oldest are forgotten past a bound: nobody is taking them)."""
         self.last_refusal = ""
         """The detail of the latest refused or bad snapshot ("" if none)."""
         h = self.dv.handle
@@ -317,6 +338,43 @@ class GroundLogic:
     def received(self) -> int:
         """Snapshots accepted so far (cheap; :attr:`counters` has them all)."""
         return self._n.received
+
+    @property
+    def max_frame_len(self) -> int:
+        """The longest telemetry frame that can be valid (bytes, tag included)."""
+        return self._max_len
+
+    def refused(self, size: int, bad: int, stale: int, aged: int, rx_ns: int) -> None:
+        """Count snapshots the driver's intake refused as they arrived (module
+        doc): ``size`` too long and ``bad`` with a bad tag count as bad;
+        ``stale`` replays (authentic, not newer than the newest let through)
+        as refused ``stale`` (``aged`` of them, stamped beyond the freshness
+        bound) or ``not_newer`` (the rest). The first of each kind is an
+        event, as for :meth:`on_telemetry`'s own."""
+        n = self._n
+        if size:
+            n.bad += size
+            self._note("size", f"{size} snapshot(s) longer than any telemetry frame", rx_ns)
+        if bad:
+            n.bad += bad
+            self._note("tag", f"{bad} snapshot(s) with a bad authentication tag", rx_ns)
+        if aged:
+            n.refused["stale"] += aged
+            self._note(
+                "stale",
+                f"{aged} replayed snapshot(s) stamped more than {self.max_age_ns / 1e9:g} s "
+                "before they arrived",
+                rx_ns,
+            )
+        if stale - aged:
+            n.refused["not_newer"] += stale - aged
+            self._note(
+                "not_newer", f"{stale - aged} replayed snapshot(s), not newer than one taken", rx_ns
+            )
+
+    def refused_events(self, n: int) -> None:
+        """Count ``n`` event records the driver refused unread for their size."""
+        self._n.bad_events += n
 
     @property
     def counters(self) -> TelemetryCounters:
@@ -392,6 +450,7 @@ class GroundLogic:
         self._codec.write(frame)
         if self._last_seq >= 0 and seq > self._last_seq + self._div:
             self._n.gaps += (seq - self._last_seq) // self._div - 1
+            self.gaps.append(Gap(epoch, self._last_seq + self._div, seq - self._div))
         if self._n.first_seq < 0:
             self._n.first_seq = seq
         self._n.received += 1

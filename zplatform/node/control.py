@@ -27,11 +27,17 @@ loading the parameter file (before loop 1, so a recording starts with the
 values loaded); each loop hands an accepted PRM_SAVE to a
 :class:`~zplatform.params.ParamSaver` (a writer thread) and passes the saves
 it finished to the next loop.
+
+With a ``recorder`` section naming the CN (the flight recorder,
+:mod:`zplatform.recorder`), every telemetry frame the loop publishes and
+every event is also copied to the CN's flight recorder (never blocking the
+loop; its counters go into ``cn_rec_*`` before each loop's logic), and a
+:class:`~zplatform.recorder.server.RecorderServer` answers the ground's
+gap-fill requests on ``{vehicle}/cn/recorder`` from its own thread.
 """
 
 from __future__ import annotations
 
-import collections
 import logging
 import time
 from pathlib import Path
@@ -43,18 +49,26 @@ import zenoh
 from ..auth import KeySet, channel, load_keys
 from ..bulk import open_bulk
 from ..clocksync import ClockServer
+from ..codes import CommandStatus
 from ..config import Mission
 from ..datavector import DataVector
-from ..errors import NodeError, TransportError
+from ..errors import NodeError, RecordingError, TransportError
+from ..ground.logic import default_max_age_ns
+from ..health import Heartbeat, Liveness, thread_deadlines_ns
+from ..intake import CnRefusals, Mailbox, ReplyCheck, RequestIntake
 from ..loop import ControlLogic
 from ..messages import wildcard_sync_for
 from ..params import ParamSaver, params_path, read_params_file
+from ..recorder import FlightRecorder, open_recorder, summary_line
+from ..recorder.server import RecorderServer
 from ..recording import Recorder
 from ..scheduler import GcGuard, PeriodicLoop
 from ..summary import CnSummary, LoopWork, cn_summary
 from ..sync import ControlSync, SyncTrace
 from ..timebase import NodeClock
 from ..transport import NodeSession, wait_for_nodes
+from ..watchdog import Watchdog
+from .health import NodeHealth
 from .runtime import EventPublisher, StopFlag, realtime_setup
 
 __all__ = ["ControlNode", "run_control_node"]
@@ -62,7 +76,9 @@ __all__ = ["ControlNode", "run_control_node"]
 log = logging.getLogger("zplatform.cn")
 
 INBOX = 16
-"""Command request frames kept between two loops (the newest ones)."""
+"""Command request frames kept between two loops (the newest ones): only
+authentic requests of this run, numbered above every number seen, get
+this far (:class:`~zplatform.intake.RequestIntake`)."""
 
 
 class ControlNode:
@@ -91,30 +107,54 @@ class ControlNode:
         self.clock = clock or NodeClock()
         self.clock.lock()  # the CN is the reference clock: never adjusted
         # The run's epoch: this clock's start, unique per run of the CN.
-        self.logic = ControlLogic(mission, keys=keys, epoch=self.clock.now_ns())
+        self.clock_epoch = self.clock.now_ns()
+        self.logic = ControlLogic(mission, keys=keys, epoch=self.clock_epoch)
         self.dv: DataVector = self.logic.dv
         self.ns = NodeSession(mission, "cn", announce=False, lowlatency=lowlatency)
         s = self.ns.session
         space = self.ns.keys
+        # Every thread this node runs checks in (zplatform.health).
+        self.liveness = Liveness(thread_deadlines_ns(mission))
+        self._loop_hb = self.liveness.add(Heartbeat("loop"))
         self.clock_server = ClockServer(s, space, self.clock.now_ns, mission, keys)
+        self.liveness.add(self.clock_server.heartbeat)
+        # The intakes get channels of their own (zenoh's threads check tags
+        # with them; the loop's are not shared across threads).
         self.sync = ControlSync(
             s,
             space,
             mission.device_nodes,
             mission.sync_timeout_ns,
             query_timeout_s=max(mission.period_ns / 1e9, 0.01),
+            checks=[
+                ReplyCheck(mission, dn, channel(keys, f"{dn}_to_cn"))
+                for dn in mission.device_nodes
+            ],
             wildcard=wildcard_sync_for(mission),
             trace=sync_trace,
         )
-        # The command inbox: bounded, newest kept; a frame's size is checked
-        # before its bytes are copied out of zenoh, so a flood of junk costs
-        # neither memory nor a valid command more than a loop.
-        self._inbox: collections.deque[bytes] = collections.deque(maxlen=INBOX)
-        self._inbox_max = self.logic.max_request_len
-        self._inbox_dropped = 0
-        self._inbox_oversize = 0
+        # The command inbox (zplatform.intake): size, tag, this run, a number
+        # above every one seen, then bounded, newest kept. A flood of junk or
+        # of replayed requests is refused as it arrives and counted; it costs
+        # neither memory nor the operator's fresh command.
+        # A mission without a ground node has no request region: no intake,
+        # and an inbox that stays empty.
+        commands = self.logic.commands
+        self._requests: RequestIntake | None = None
+        self._inbox: Mailbox[tuple[None, bytes]] = Mailbox(1)
+        if mission.has_ground:
+            self._requests = RequestIntake(
+                mission,
+                channel(keys, "gn_to_cn"),
+                int(self.dv.get("cn_epoch")),
+                lambda: commands.last_seq,
+                INBOX,
+            )
+            assert self._requests.box is not None
+            self._inbox = self._requests.box
+        self._taken: list[tuple[None, bytes]] = []
         self._seen_dropped = 0
-        self._seen_oversize = 0
+        self._refused = CnRefusals()
         self._grounds: list[bytes] = []
         self._gsub: zenoh.Subscriber[Any] | None = None
         if mission.has_ground:
@@ -125,14 +165,56 @@ class ControlNode:
         self._tm_pub = s.declare_publisher(
             space.telemetry, congestion_control=zenoh.CongestionControl.DROP
         )
+        # The flight recorder: opened before anything runs, so a directory it
+        # cannot use (or one another CN holds) stops the node on the pad.
+        self.flight_recorder: FlightRecorder | None = None
+        self._rec_server: RecorderServer | None = None
+        if "cn" in mission.recording_nodes:
+            try:
+                rec = open_recorder(
+                    mission, "cn", self.dv, run=self.clock_epoch, authenticated=keys is not None
+                )
+            except RecordingError as exc:
+                self.ns.close()
+                raise NodeError(f"control node cannot start its flight recorder: {exc}") from exc
+            rec.attach(self.dv, self.logic.events)
+            self.flight_recorder = rec
+            self.liveness.add(rec.heartbeat)
+            log.info("flight recorder: %s", rec.directory)
+            assert mission.recorder is not None
+            self._rec_server = RecorderServer(
+                s,
+                space.recorder,
+                rec,
+                channel(keys, "telemetry"),
+                now_ns=self.clock.now_ns,
+                max_age_ns=default_max_age_ns(mission),
+                serve_bps=mission.recorder.serve_bps,
+                divisor=mission.telemetry_divisor,
+            )
         self._events = EventPublisher(
-            s, space.events("cn"), self.logic.events, channel(keys, "events_cn")
+            s,
+            space.events("cn"),
+            self.logic.events,
+            channel(keys, "events_cn"),
+            recorder=self.flight_recorder,
         )
         self._radio = _Radio(mission, s, space.downlink) if mission.downlink.ccsds else None
         self.bulk = open_bulk(s, mission, "cn", self.logic)
+        self.health: NodeHealth | None = None
+        if mission.health is not None:
+            self.health = NodeHealth(mission, "cn", self.liveness, session=s)
+            self.logic.attach_health(self.health)
+        wd = mission.nodes["cn"].watchdog
+        self.watchdog = (
+            Watchdog(wd, "cn", self.liveness, self.logic.events) if wd is not None else None
+        )
         self.params_file = Path(params_file) if params_file else params_path(mission)
         self._saver = ParamSaver(self.params_file) if mission.params else None
+        if self._saver is not None:
+            self.liveness.add(self._saver.heartbeat)
         self._skipped = 0
+        self._stopped_cleanly = False
         self._last_step: int | None = None  # self.loops after the run's planned last loop
         self.ns.announce()
         self.first_loop_ns = 0
@@ -145,20 +227,16 @@ class ControlNode:
         self._mono = time.monotonic_ns
 
     def _on_ground(self, sample: zenoh.Sample) -> None:
-        # zenoh's thread: check the size, hand off, nothing more.
-        payload = sample.payload
-        if len(payload) > self._inbox_max:
-            self._inbox_oversize += 1
-            return
-        if len(self._inbox) == INBOX:
-            self._inbox_dropped += 1  # the deque drops the oldest
-        self._inbox.append(payload.to_bytes())
+        # zenoh's thread: the intake's checks and the hand-off, nothing more.
+        assert self._requests is not None  # subscribed only with a ground node
+        self._requests.admit(sample.payload, None)
 
     def record(self, directory: str | Path, mission_source: str | Path) -> Recorder:
         """Record every loop's inputs into ``directory`` from now on (call
         after :meth:`wait_ready`). RecordingError if it cannot start."""
         self.recorder = Recorder(directory, self.mission, mission_source, self.dv)
         self.logic.recorder = self.recorder
+        self.liveness.add(self.recorder.heartbeat)
         return self.recorder
 
     # -- start-up --------------------------------------------------------
@@ -235,11 +313,16 @@ class ControlNode:
     # -- the loop ------------------------------------------------------------
     def _on_overrun(self, k: int, lateness_ns: int) -> None:
         self._skipped += 1  # an input of the next loop (replayed as such)
+        if self.health is not None:
+            self.health.overran()
 
     def step(self, k: int, deadline_ns: int) -> bool:
         """One loop; returns False to stop: after the run's final loop (the
         last of ``max_loops``, or the loop after a stop was asked for)."""
         m0 = self._mono()
+        self._loop_hb.beat_at(m0)
+        if self.health is not None:
+            self.health.note(m0 - deadline_ns)
         loop = k + 1
         # The loop's one timestamp is its scheduled start, not the moment the
         # thread woke: loop n is then at t1 + (n - 1) * period exactly, as in
@@ -254,14 +337,19 @@ class ControlNode:
         overrun = self.sync.sync(logic.begin(loop, t, final=final), logic)
         grounds = self._grounds
         grounds.clear()
-        inbox = self._inbox
-        while inbox:
-            grounds.append(inbox.popleft())
+        taken = self._taken
+        if len(self._inbox):
+            taken.clear()
+            self._inbox.drain(taken)
+            for _, frame in taken:
+                grounds.append(frame)
         skipped, self._skipped = self._skipped, 0
-        # Totals only zenoh's thread writes; the loop keeps what it has seen.
-        d_total, o_total = self._inbox_dropped, self._inbox_oversize
-        dropped, oversize = d_total - self._seen_dropped, o_total - self._seen_oversize
-        self._seen_dropped, self._seen_oversize = d_total, o_total
+        rec = self.flight_recorder
+        if rec is not None:  # its counters into this loop's telemetry
+            rec.tick(t)
+        # A total only zenoh's thread writes; the loop keeps what it has seen.
+        d_total = self._inbox.dropped
+        dropped, self._seen_dropped = d_total - self._seen_dropped, d_total
         saver = self._saver
         saved = saver.poll() if saver is not None else None
         tm = logic.finish(
@@ -269,7 +357,7 @@ class ControlNode:
             sync_overrun=overrun,
             loop_overruns=skipped,
             inbox_dropped=dropped,
-            inbox_oversize=oversize,
+            refused=self._take_refusals(),
             saves=(saved,) if saved is not None else (),
         )
         if saver is not None:
@@ -278,13 +366,37 @@ class ControlNode:
                 saver.submit(*save)
         if tm is not None:
             self._tm_pub.put(tm)
+            if rec is not None:
+                rec.frame(loop, tm, t)
             if self._radio is not None:
                 self._radio.send(self.dv, loop, t)
+        end = self._mono()
+        if self.watchdog is not None:
+            self.watchdog.stroke(end, t)
         self._events.flush()
-        self._work[self.loops & 0xFFFF] = self._mono() - m0
+        self._work[self.loops & 0xFFFF] = end - m0
         self.loops += 1
         self.last_loop_ns = t
+        if self.health is not None:
+            self.health.kick()  # sample now, in the slack before the next loop
         return not final
+
+    def _take_refusals(self) -> CnRefusals:
+        """What the intakes refused since the last loop (an input of the loop)."""
+        r = self._refused
+        self.sync.take_refusals(r)
+        req = self._requests
+        if req is None:
+            r.cmd_size = r.cmd_bad = r.cmd_stale = r.cmd_status = r.cmd_seq = 0
+            return r
+        r.cmd_size, r.cmd_bad, r.cmd_stale = req.take_counts()
+        if r.cmd_stale:
+            r.cmd_status, r.cmd_seq = req.reported
+        elif r.cmd_bad:
+            r.cmd_status, r.cmd_seq = CommandStatus.REJECTED_AUTH, 0
+        else:
+            r.cmd_status = r.cmd_seq = 0
+        return r
 
     def run(
         self,
@@ -301,6 +413,11 @@ class ControlNode:
         self._last_step = None if max_loops is None else self.loops + max_loops
         if realtime:
             realtime_setup(nc.priority, nc.cpu)
+        self._loop_hb.beat()
+        if self.health is not None:
+            self.health.start()
+        if self.watchdog is not None:
+            self.watchdog.open()
         gc_guard = GcGuard()
         loop = PeriodicLoop(
             self.mission.period_ns,
@@ -313,6 +430,7 @@ class ControlNode:
             loop.run(self.step, max_loops=max_loops)
         finally:
             gc_guard.restore()
+        self._stopped_cleanly = True
         return loop
 
     def summary(self) -> CnSummary:
@@ -343,8 +461,14 @@ class ControlNode:
             return
         try:
             last = int(self.dv.get("cn_loop"))
+            rec = self.flight_recorder
             if last % self.mission.telemetry_divisor:  # the last snapshot was not sent yet
-                self._tm_pub.put(self.logic.telemetry())
+                tm = self.logic.telemetry()
+                self._tm_pub.put(tm)
+                if rec is not None:
+                    rec.frame(last, tm, self.logic.t_ns)
+            if self._rec_server is not None:
+                self._rec_server.close()
             self._events.undeclare()
             self.sync.close()
             self.clock_server.close()
@@ -356,10 +480,18 @@ class ControlNode:
                 self.bulk.close()
             self._tm_pub.undeclare()
         finally:
+            if self.watchdog is not None:
+                # A loop that ended in an exception leaves the watchdog armed.
+                self.watchdog.close(clean=self._stopped_cleanly)
+            if self.health is not None:
+                self.health.close()
             if self.recorder is not None:
                 self.recorder.close()
             if self._saver is not None:  # a save in progress is finished, not torn
                 self._saver.close()
+            if self.flight_recorder is not None:
+                self.flight_recorder.close()
+                log.info("flight recorder: %s", summary_line(self.flight_recorder))
             self.ns.close()
 
 

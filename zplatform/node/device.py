@@ -20,26 +20,38 @@ to ``dnX_clock_drift_ns``. The clock itself is never stepped (thesis
 4.10.1). Clock replies refused for a bad tag or another exchange's nonce
 (:class:`~zplatform.clocksync.ClockLink`) are counted there too, with a
 ``clock_refused`` event per measurement that met any.
+
+With a ``recorder`` section naming the node (the flight recorder,
+:mod:`zplatform.recorder`), the reply frame of every loop the node runs and
+every event are also copied to its flight recorder, never blocking the
+loop; its counters go into ``dnX_rec_*`` before each run, so the next reply
+carries them.
 """
 
 from __future__ import annotations
 
 import logging
 import threading
+import time
 
 from ..auth import KeySet, channel, load_keys
 from ..boards import close_board, open_board
 from ..bulk import NodeBulk, open_bulk
 from ..clocksync import ClockEstimate, ClockLink, estimator_for
 from ..config import Mission
-from ..errors import ClockSyncError, NodeError, TransportError, ZPlatformError
+from ..errors import ClockSyncError, NodeError, RecordingError, TransportError, ZPlatformError
 from ..events import EV
+from ..health import Heartbeat, Liveness, thread_deadlines_ns
+from ..intake import TriggerIntake
 from ..loop import DeviceLogic
+from ..recorder import FlightRecorder, open_recorder, summary_line
 from ..scheduler import GcGuard
 from ..summary import DnSummary
 from ..sync import DeviceSync, SyncTrace
 from ..timebase import NodeClock
 from ..transport import NodeSession, wait_for_nodes
+from ..watchdog import Watchdog
+from .health import NodeHealth
 from .runtime import EventPublisher, StopFlag, realtime_setup
 
 __all__ = ["DeviceNode", "run_device_node"]
@@ -98,7 +110,24 @@ class DeviceNode:
         self._sync_trace = sync_trace
         self.bulk: NodeBulk | None = None
         self._events: EventPublisher | None = None
+        self.flight_recorder: FlightRecorder | None = None
         self._resync: threading.Thread | None = None
+        # Every thread this node runs checks in (zplatform.health).
+        self.liveness = Liveness(thread_deadlines_ns(mission))
+        self._loop_hb = self.liveness.add(Heartbeat("loop"))
+        self._resync_hb = Heartbeat("clock")
+        board_hb = getattr(self.logic.board, "heartbeat", None)
+        if isinstance(board_hb, Heartbeat):  # a board with an I/O thread of its own
+            self.liveness.add(board_hb)
+        self.health: NodeHealth | None = None
+        if mission.health is not None:
+            self.health = NodeHealth(mission, name, self.liveness, session=self.ns.session)
+            self.logic.attach_health(self.health)
+        wd = mission.nodes[name].watchdog
+        self.watchdog = (
+            Watchdog(wd, name, self.liveness, self.logic.events) if wd is not None else None
+        )
+        self._stopped_cleanly = False
 
     def start(self, ready_timeout_s: float = 60.0) -> int:
         """Wait for the CN, sync the clock, declare the queryable, announce.
@@ -155,12 +184,40 @@ class DeviceNode:
             res.offset_ns / 1e3,
             res.estimator,
         )
-        self.sync = DeviceSync(s, keys, self.name, self.clock.now_ns, trace=self._sync_trace)
+        self.sync = DeviceSync(
+            s,
+            keys,
+            self.name,
+            self.clock.now_ns,
+            # The intake's own channel: zenoh's thread checks tags with it.
+            intake=TriggerIntake(m, self.name, channel(self._keys, f"cn_to_{self.name}")),
+            trace=self._sync_trace,
+        )
         self.bulk = open_bulk(s, m, self.name, self.logic)
+        if self.name in m.recording_nodes:
+            try:
+                rec = open_recorder(
+                    m,
+                    self.name,
+                    self.dv,
+                    run=self.clock.now_ns(),
+                    authenticated=self._keys is not None,
+                )
+            except RecordingError as exc:
+                raise NodeError(f"{self.name} cannot start its flight recorder: {exc}") from exc
+            rec.attach(self.dv, self.logic.events)
+            self.flight_recorder = rec
+            self.liveness.add(rec.heartbeat)
+            log.info("%s flight recorder: %s", self.name, rec.directory)
         self._events = EventPublisher(
-            s, keys.events(self.name), self.logic.events, channel(self._keys, f"events_{self.name}")
+            s,
+            keys.events(self.name),
+            self.logic.events,
+            channel(self._keys, f"events_{self.name}"),
+            recorder=self.flight_recorder,
         )
         if m.clock.resync_s > 0:
+            self.liveness.add(self._resync_hb)
             self._resync = threading.Thread(target=self._resync_loop, daemon=True)
             self._resync.start()
         self.ns.announce()
@@ -169,19 +226,32 @@ class DeviceNode:
     def _resync_loop(self) -> None:
         # Background: measure, never step the clock, never write what the
         # loop uses: the loop thread judges each measurement (_take_measured).
+        # Idle between measurements; during one it checks in at every clock
+        # read, i.e. every exchange (each waits at most its timeout).
         m = self.mission
+        hb = self._resync_hb
+        now_ns = self.clock.now_ns
+
+        def now() -> int:
+            hb.beat()
+            return now_ns()
+
+        hb.idle()
         while not self.stop.event.wait(m.clock.resync_s):
+            hb.beat()
             try:
                 self._measured = self.estimate_offset(
                     self.ns.session,
                     self.ns.keys,
-                    self.clock.now_ns,
+                    now,
                     self.clock_link,
                     exchanges=50,
                     keep_fraction=m.clock.keep_fraction,
                 )
             except Exception as exc:  # the CN may be gone; report and keep trying
                 log.warning("%s clock re-sync failed: %s", self.name, exc)
+            finally:
+                hb.idle()
             self._resynced = True
 
     def _take_measured(self, t_ns: int) -> None:
@@ -237,6 +307,15 @@ class DeviceNode:
         wait = self.sync.wait
         run = logic.run
         now = self.clock.now_ns
+        mono = time.monotonic_ns
+        loop_hb = self._loop_hb
+        health = self.health
+        wd = self.watchdog
+        loop_hb.beat()
+        if health is not None:
+            health.start()
+        if wd is not None:
+            wd.open()
         gc_guard = GcGuard()
         gc_guard.freeze_after_startup()
         try:
@@ -245,18 +324,37 @@ class DeviceNode:
             idle_s = min(0.2, period / 1e9)
             while not self.stop.is_set():
                 if not wait(logic, idle_s):
-                    if logic.watchdog(now()):
-                        self._events.flush()
+                    m0 = mono()
+                    loop_hb.beat_at(m0)  # alive, if idle: no trigger came
+                    logic.watchdog(now())
+                    if wd is not None:
+                        wd.stroke(m0, now())
+                    self._events.flush()  # a safing, refused queries: cheap when none
                     continue
                 t = now()
+                m0 = mono()
+                loop_hb.beat_at(m0)
+                if health is not None:  # lateness: from the CN's scheduled start
+                    health.note(t - logic.last_t_ns)
                 if self._resynced:  # a re-sync attempt ended: judge it here
                     self._take_measured(t)
+                rec = self.flight_recorder
+                if rec is not None:  # its counters into the next reply
+                    rec.tick(t)
                 run(t)  # with the bulk channels, in the loop's order
+                if rec is not None and self.sync.reply is not None:
+                    rec.frame(logic.triggered, self.sync.reply, t)
+                if wd is not None:
+                    wd.stroke(m0, t)
                 self._events.flush()
+                if health is not None:
+                    health.kick()  # sample now, in the slack before the next trigger
                 # Slack until the next trigger is due: gc only runs there.
                 slack = t + period - now()
                 if slack < 0:
                     self._overruns.bump()
+                    if health is not None:
+                        health.overran()
                 else:
                     gc_guard.on_slack(slack)
                 self.loops += 1
@@ -264,6 +362,7 @@ class DeviceNode:
                     break
         finally:
             gc_guard.restore()
+        self._stopped_cleanly = True
 
     def summary(self) -> DnSummary:
         return DnSummary(
@@ -290,7 +389,15 @@ class DeviceNode:
             self.bulk.close()
         if self._resync is not None:
             self._resync.join(timeout=2)
+        if self.watchdog is not None:
+            # A loop that ended in an exception leaves the watchdog armed.
+            self.watchdog.close(clean=self._stopped_cleanly)
+        if self.health is not None:
+            self.health.close()
         close_board(self.logic.board)
+        if self.flight_recorder is not None:
+            self.flight_recorder.close()
+            log.info("%s flight recorder: %s", self.name, summary_line(self.flight_recorder))
         self.ns.close()
 
 

@@ -9,6 +9,13 @@ counts gaps and refusals, and plays the command script (the GN's second
 Data Vector holds the requests). This module only logs what the logic
 accepted (:class:`~zplatform.ground.logger.TelemetryLog`) until it is told
 to stop, and reports.
+
+When the mission's CN has a flight recorder, the log goes through a
+:class:`~zplatform.ground.gapfill.GapFill`: a gap a link loss leaves is
+asked of the CN's recorder (``{vehicle}/cn/recorder``) as soon as the link
+is back, and the rows it brings are written in loop order, before the
+snapshots that arrived meanwhile. At the end, fills still open get up to
+:data:`FILL_GRACE_S` to finish.
 """
 
 from __future__ import annotations
@@ -18,8 +25,10 @@ import time
 from pathlib import Path
 
 from ..config import Mission
+from ..ground.gapfill import GapFill
 from ..ground.link import GroundLink
 from ..ground.logger import TelemetryLog
+from ..intake import Mailbox
 from ..summary import GnSummary
 from ..uplink import ScriptCommand
 from .runtime import StopFlag
@@ -63,27 +72,40 @@ def run_ground_logger(
         link.close()
         raise
     link.on_event = tlog.event  # events are handed over in this thread, by link.next
+    fill = _Filler(link, tlog) if "cn" in mission.recording_nodes else None
     start = time.monotonic()
     last_rx = start
     try:
         while not stop.is_set():
             if duration_s is not None and time.monotonic() - start >= duration_s:
                 break
-            t = link.next(0.2)
+            t = link.next(0.2 if fill is None or not fill.busy else 0.02)
+            if fill is not None:
+                fill.pump()
             if t is None:
                 if (
                     idle_exit_s is not None
                     and logic.received
                     and time.monotonic() - last_rx > idle_exit_s
+                    and (fill is None or not fill.busy)
                 ):
                     break
                 continue
             last_rx = time.monotonic()
-            tlog.snapshot(t, logic.dv)
+            if fill is not None:
+                fill.fill.snapshot(logic, t)
+            else:
+                tlog.snapshot(t, logic.dv)
         # Take what is already queued, so nothing received is dropped.
         while (t := link.next(0.0)) is not None:
-            tlog.snapshot(t, logic.dv)
+            if fill is not None:
+                fill.fill.snapshot(logic, t)
+            else:
+                tlog.snapshot(t, logic.dv)
+        if fill is not None:
+            fill.drain(FILL_GRACE_S)
         logic.finish(link.clock.now_ns())
+        link.next(0.0)  # the ground's last events (fills, verdicts) into the log
     finally:
         link.close()
         tlog.close()
@@ -101,4 +123,54 @@ def run_ground_logger(
         last_seq=c.last_seq,
         epoch_changes=c.epoch_changes,
         events_logged=tlog.event_count,
+        telemetry_filled=fill.fill.filled if fill is not None else 0,
+        telemetry_unfilled=fill.fill.unfilled if fill is not None else 0,
+        telemetry_not_run=fill.fill.not_run if fill is not None else 0,
     )
+
+
+FILL_GRACE_S = 10.0
+"""How long a log that ends waits for gap fills still in flight."""
+FILL_BACKLOG = 1024
+"""Gap-fill replies (chunks of frames) waiting for the ground's thread, at most."""
+
+
+class _Filler:
+    """Drives a :class:`GapFill` over the link: sends its requests as zenoh
+    gets, hands it their replies (queued by zenoh's callbacks)."""
+
+    def __init__(self, link: GroundLink, tlog: TelemetryLog) -> None:
+        self.link = link
+        self.fill = GapFill(link.mission, link.link_keys, link.logic.events, tlog.snapshot)
+        # Bounded like every hand-off from zenoh: a peer flooding replies
+        # lets the oldest go, and the loops they held are asked for again
+        # or told unfilled by the gap fill, never lost silently.
+        self._q: Mailbox[tuple[int, bytes | None]] = Mailbox(FILL_BACKLOG)
+
+    @property
+    def busy(self) -> bool:
+        return self.fill.busy
+
+    def pump(self) -> None:
+        """Replies in, requests out, time on; never blocks."""
+        fill, now = self.fill, self.link.clock.now_ns
+        while (item := self._q.pop()) is not None:
+            rid, payload = item
+            if payload is None:
+                fill.on_done(rid, now())
+            else:
+                fill.on_reply(rid, payload)
+        req = fill.take_request(now())
+        if req is not None:
+            rid, payload, timeout_s = req
+            self.link.query(self.link.keys.recorder, payload, timeout_s, self._q, rid)
+        fill.tick(now())
+
+    def drain(self, grace_s: float) -> None:
+        """The log ends: let open fills finish (at most ``grace_s``), then
+        write everything held."""
+        deadline = time.monotonic() + grace_s
+        while self.fill.busy and time.monotonic() < deadline:
+            self.pump()
+            self.link.next(0.02)  # the ground's own events meanwhile
+        self.fill.finish(self.link.clock.now_ns())

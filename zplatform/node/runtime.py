@@ -16,6 +16,7 @@ import zenoh
 
 from ..auth import Channel
 from ..events import EventLog, Severity, encode_event
+from ..recorder.writer import FlightRecorder
 from ..scheduler import RealtimeStatus, setup_realtime
 
 __all__ = ["PARENT_ENV", "EventPublisher", "StopFlag", "realtime_setup", "setup_logging"]
@@ -71,14 +72,22 @@ class EventPublisher:
     was emitted, and events are rare (state changes, verdicts, failures).
     Events are also written to the node's log (stderr) for the operator.
     ``seal``: the node's ``events_<node>`` channel, which tags each record
-    (None: the mission does not authenticate).
+    (None: the mission does not authenticate). Given a ``recorder`` (the
+    node's flight recorder), each record is also kept on board, untagged:
+    the recorder's own checksums guard it there.
     """
 
     def __init__(
-        self, session: zenoh.Session, key: str, events: EventLog, seal: Channel | None
+        self,
+        session: zenoh.Session,
+        key: str,
+        events: EventLog,
+        seal: Channel | None,
+        recorder: FlightRecorder | None = None,
     ) -> None:
         self.events = events
         self._seal = seal
+        self.recorder = recorder
         # DROP: a subscriber on a stalled link must never block the loop
         # that flushes events; each event is also in this node's own log.
         self._pub = session.declare_publisher(key, congestion_control=zenoh.CongestionControl.DROP)
@@ -89,9 +98,12 @@ class EventPublisher:
             return
         self._seen = self.events.emitted
         seal = self._seal
+        rec = self.recorder
         for e in self.events.drain():
             record = encode_event(e)
             self._pub.put(bytes(seal.seal(record)) if seal is not None else record)
+            if rec is not None:
+                rec.event(record)
             log.log(_LEVELS.get(e.severity, logging.INFO), "%s %s: %s", e.node, e.id, e.text)
 
     def undeclare(self) -> None:

@@ -1,0 +1,283 @@
+"""A keyless attacker on a mission's network, as a process of its own.
+
+The flood cases (``tests/faults/floods.py``) run it beside the mission's
+node processes, so a flood competes for the CPU as a real one would. It
+holds no key (its environment is stripped of ``ZPLATFORM_KEY*`` by
+:func:`attacker_env`); it opens a zenoh peer connected to every node, as any
+tool on the network can, and uses only what that gives it: the mission
+file, the taps the nodes publish (``{vehicle}/cn/to_dnX``: the CN's
+triggers; ``{vehicle}/dnX/to_cn``: dnX's replies) and the command requests
+on ``{vehicle}/gn/to_cn``, all readable without a key::
+
+    python -m tests.faults.attacker MISSION MODE [--dn dn0] [--rate 6000] [--duration 3]
+
+Modes:
+
+* ``query-junk``: gets on ``{vehicle}/DN/to_cn`` with junk payloads: half
+  random sizes (0-2000 bytes), half exactly a trigger's size (so each one
+  costs the DN a tag check, the expensive refusal);
+* ``query-replay``: the same gets, each carrying one authentic trigger
+  captured from the CN's tap;
+* ``query-mixed``: both, alternately;
+* ``reply-junk`` / ``reply-replay`` / ``reply-mixed``: a rogue queryable on
+  ``{vehicle}/DN/to_cn`` that answers the CN's sync queries at ``--rate``
+  replies per second in all (junk as above, of a reply's size; DN's own
+  replies captured from its tap; both, alternately);
+* ``tm-junk`` / ``tm-replay`` / ``tm-mixed``: puts on ``{vehicle}/cn/telemetry``
+  (junk, half of a snapshot's size; the CN's own snapshots captured from
+  that key; both, alternately): the ground node is the victim;
+* ``cmd-replay``: publishes command request frames on ``{vehicle}/gn/to_cn``,
+  round robin: the operator's own, captured on the wire (a zenoh peer cannot
+  subscribe to another tool's puts: tools listen nowhere) and given on
+  stdin as one line ``frames HEX HEX...`` before ``ready``.
+
+Protocol: prints ``ready`` once connected and armed (replay modes: once it
+captured what it replays; reply modes: once the CN's queries reach its
+queryable), waits for a line ``go`` on stdin, attacks for ``--duration``
+seconds (or until a line ``stop``) at ``--rate`` per second, prints one JSON line (``sent``,
+``seconds``, ``rate``; query modes: ``answered``, the replies its queries
+got) and exits. It asks for niceness -10 (where the user may): a real attacker has a
+machine of its own, this one must keep its rate beside a CPU hog.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import random
+import sys
+import threading
+import time
+from collections import deque
+from contextlib import suppress
+from typing import Any
+
+import zenoh
+
+from zplatform.auth import TAG_LEN
+from zplatform.codec import frame_overhead
+from zplatform.datavector import Layout
+from zplatform.mission import load_mission
+from zplatform.transport import KeySpace, open_session, zenoh_config
+
+MODES = (
+    *(f"{k}-{p}" for k in ("query", "reply", "tm") for p in ("junk", "replay", "mixed")),
+    "cmd-replay",
+)
+TICK_S = 0.002  # pacing granularity: rate * TICK_S frames per tick
+
+
+def attacker_env() -> dict[str, str]:
+    """The environment of an attacker process: the test's, without any key."""
+    return {k: v for k, v in os.environ.items() if not k.startswith("ZPLATFORM_KEY")}
+
+
+class Capture:
+    """The newest ``keep`` samples on a key (zenoh's thread appends)."""
+
+    def __init__(self, session: zenoh.Session, key: str, keep: int) -> None:
+        self.frames: deque[bytes] = deque(maxlen=keep)
+        self.seen = threading.Event()
+        self._sub = session.declare_subscriber(
+            key, zenoh.handlers.Callback(self._on, indirect=False)
+        )
+
+    def _on(self, sample: zenoh.Sample) -> None:
+        self.frames.append(sample.payload.to_bytes())
+        self.seen.set()
+
+    def wait(self, n: int, timeout_s: float) -> None:
+        deadline = time.monotonic() + timeout_s
+        while len(self.frames) < n:
+            if time.monotonic() > deadline:
+                raise SystemExit(f"captured {len(self.frames)} of {n} frames in {timeout_s} s")
+            self.seen.wait(0.1)
+            self.seen.clear()
+
+    def close(self) -> None:
+        self._sub.undeclare()
+
+
+def _mix(a: list[bytes], b: list[bytes]) -> list[bytes]:
+    """``a`` and ``b`` interleaved (either may be empty)."""
+    out = [x for pair in zip(a, b, strict=False) for x in pair]
+    n = min(len(a), len(b))
+    return out + a[n:] + b[n:]
+
+
+def paced(rate: float, duration_s: float, send: Any, stop: threading.Event) -> tuple[int, float]:
+    """Call ``send()`` ``rate`` times a second for ``duration_s`` or until
+    ``stop`` is set; returns (calls, seconds taken)."""
+    per_tick = rate * TICK_S
+    t0 = time.monotonic()
+    sent = 0
+    owed = 0.0
+    nxt = t0
+    while (now := time.monotonic()) - t0 < duration_s and not stop.is_set():
+        owed += per_tick
+        while owed >= 1.0:
+            send()
+            sent += 1
+            owed -= 1.0
+        nxt += TICK_S
+        if nxt > now:
+            time.sleep(nxt - now)
+        else:
+            nxt = now  # behind: do not burst to catch up
+    return sent, time.monotonic() - t0
+
+
+class Rogue:
+    """A queryable on a DN's key that keeps the newest query the CN sent
+    and answers it from another thread, at a rate."""
+
+    def __init__(self, session: zenoh.Session, key: str) -> None:
+        self.key = key
+        self.latest: zenoh.Query | None = None
+        self.queries = 0
+        self.seen = threading.Event()
+        self._qbl = session.declare_queryable(
+            key, zenoh.handlers.Callback(self._on, indirect=False)
+        )
+
+    def _on(self, query: zenoh.Query) -> None:
+        self.latest = query  # the older one is dropped: zenoh finalises it
+        self.queries += 1
+        self.seen.set()
+
+    def reply(self, payload: bytes) -> None:
+        q = self.latest
+        if q is not None:
+            try:
+                q.reply(self.key, payload)
+            except Exception:  # the query was finalised meanwhile: next one
+                pass
+
+    def close(self) -> None:
+        self._qbl.undeclare()
+        self.latest = None
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="python -m tests.faults.attacker")
+    p.add_argument("mission")
+    p.add_argument("mode", choices=MODES)
+    p.add_argument("--dn", default="dn0")
+    p.add_argument("--rate", type=float, default=6000.0)
+    p.add_argument("--duration", type=float, default=3.0)
+    p.add_argument("--seed", type=int, default=1)
+    a = p.parse_args(argv)
+    # A real attacker has a machine of its own: here it must keep its rate
+    # beside the nodes and whatever else loads the box (a CPU hog).
+    with suppress(OSError):
+        os.nice(-10)
+    m = load_mission(a.mission)
+    keys = KeySpace(m.vehicle)
+    rng = random.Random(a.seed)
+    lay = Layout.for_node(m, "cn")
+    tag = TAG_LEN if m.security.auth else 0
+    trigger_len = frame_overhead(lay.region(f"cn_to_{a.dn}").size) + lay.region(
+        f"cn_to_{a.dn}"
+    ).size + tag
+    reply_len = frame_overhead(lay.region(f"{a.dn}_to_cn").size) + lay.region(
+        f"{a.dn}_to_cn"
+    ).size + tag
+    session = open_session(zenoh_config(m, None))
+    dn_key = keys.dn_to_cn(a.dn)
+    tm_len = frame_overhead(lay.size) + lay.size + tag
+    exact = {"query": trigger_len, "reply": reply_len, "tm": tm_len}.get(a.mode.split("-")[0], 0)
+    junk = [rng.randbytes(rng.randrange(0, 2000)) for _ in range(64)]
+    junk += [rng.randbytes(exact) for _ in range(64)]
+    rng.shuffle(junk)
+    send: Any
+    cleanup: list[Any] = []
+    k = [0]
+    answered = [0]  # query modes: replies (or error replies) the DN sent back
+    kind, _, what = a.mode.partition("-")
+    if kind == "query":
+        payloads = []
+        if what != "junk":
+            cap = Capture(session, keys.cn_to_dn(a.dn), keep=1)
+            cap.wait(1, 60)
+            cap.close()
+            payloads = [cap.frames[-1]] * len(junk)
+        payloads = _mix(junk if what != "replay" else [], payloads)
+        def on_reply(r: zenoh.Reply) -> None:  # what the DN answered (zenoh's own timeouts aside)
+            err = r.err
+            if r.ok is not None or (err is not None and err.payload.to_bytes() != b"Timeout"):
+                answered[0] += 1
+
+        handler = zenoh.handlers.Callback(on_reply, indirect=False)
+
+        def send() -> None:
+            k[0] += 1
+            session.get(dn_key, handler, payload=payloads[k[0] % len(payloads)], timeout=0.05)
+
+    elif kind == "reply":
+        payloads = []
+        if what != "junk":
+            cap = Capture(session, dn_key, keep=len(junk))
+            cap.wait(50, 60)
+            cap.close()
+            payloads = list(cap.frames)
+        payloads = _mix(junk if what != "replay" else [], payloads)
+        rogue = Rogue(session, dn_key)
+        cleanup.append(rogue.close)
+        rogue.seen.wait(60)
+
+        def send() -> None:
+            k[0] += 1
+            rogue.reply(payloads[k[0] % len(payloads)])
+
+    elif kind == "tm":
+        payloads = []
+        if what != "junk":
+            cap = Capture(session, keys.telemetry, keep=len(junk))
+            cap.wait(50, 60)
+            cap.close()
+            payloads = list(cap.frames)
+        payloads = _mix(junk if what != "replay" else [], payloads)
+        tm_pub = session.declare_publisher(keys.telemetry)
+        cleanup.append(tm_pub.undeclare)
+
+        def send() -> None:
+            k[0] += 1
+            tm_pub.put(payloads[k[0] % len(payloads)])
+
+    else:  # cmd-replay: the frames come on stdin, captured on the wire
+        words = sys.stdin.readline().split()
+        if not words or words[0] != "frames" or len(words) < 2:
+            raise SystemExit("cmd-replay: expected a line `frames HEX...` on stdin")
+        payloads = [bytes.fromhex(w) for w in words[1:]]
+        pub = session.declare_publisher(keys.gn_to_cn)
+        cleanup.append(pub.undeclare)
+
+        def send() -> None:
+            k[0] += 1
+            pub.put(payloads[k[0] % len(payloads)])
+
+    print("ready", flush=True)
+    if sys.stdin.readline().strip() != "go":
+        return 0
+    stop = threading.Event()
+
+    def until_stop() -> None:  # a line `stop` (or stdin's end) ends the attack early
+        sys.stdin.readline()
+        stop.set()
+
+    threading.Thread(target=until_stop, daemon=True).start()
+    sent, seconds = paced(a.rate, a.duration, send, stop)
+    time.sleep(0.1)  # the last gets' answers, if any, come in (their timeout is 50 ms)
+    for c in cleanup:
+        c()
+    session.close()
+    result: dict[str, Any] = {"sent": sent, "seconds": round(seconds, 3), "rate": sent / seconds}
+    if kind == "query":
+        result["answered"] = answered[0]
+    print(json.dumps(result))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,210 @@
+"""The ground's gap fill from the CN's flight recorder, sans-IO (issue 20):
+what it asks, what it believes, and the order it writes the log in."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+from zplatform.auth import KeySet
+from zplatform.datavector import DataVector
+from zplatform.events import Event
+from zplatform.ground.gapfill import GapFill
+from zplatform.ground.logic import Gap, GroundLogic
+from zplatform.loop import ControlLogic
+from zplatform.mission import decode_mission
+from zplatform.recorder.format import (
+    REPLY_END,
+    REPLY_FRAMES,
+    REPLY_LEN,
+    REPLY_TOTALS,
+    REQUEST,
+    REQUEST_MAGIC,
+)
+
+ROOT = Path(__file__).resolve().parents[2]
+MISSION = decode_mission(
+    (ROOT / "configs" / "minimal.yaml").read_text() + "\nrecorder: {}\n", code=False
+)
+KEYS = KeySet.from_master(MISSION, bytes(range(32)))
+GROUND_KEYS = KEYS.for_node("gn")  # what a ground node holds
+EPOCH = 1_700_000_000_000_000_000
+PERIOD = 10_000_000
+S = 1_000_000_000
+
+
+def frames(epoch: int = EPOCH, keys: KeySet = KEYS, last: int = 40) -> dict[int, bytes]:
+    cn = ControlLogic(MISSION, keys=keys, epoch=epoch)
+    out = {}
+    for n in range(1, last + 1):
+        cn.begin(n, EPOCH + n * PERIOD)
+        tm = cn.finish()
+        assert tm is not None
+        out[n] = bytes(tm)
+    return out
+
+
+TM = frames(last=320)
+
+
+class Ground:
+    """A GroundLogic and a GapFill writing rows into a list."""
+
+    def __init__(self, **kw: Any) -> None:
+        self.logic = GroundLogic(MISSION, keys=GROUND_KEYS)
+        self.rows: list[tuple[int, int]] = []  # (rx_time_ns, cn_loop)
+        self.fill = GapFill(MISSION, GROUND_KEYS, self.logic.events, self.write, **kw)
+
+    def write(self, rx_ns: int, dv: DataVector) -> None:
+        self.rows.append((rx_ns, int(dv.get("cn_loop"))))
+
+    def live(self, *loops: int) -> None:
+        for n in loops:
+            rx = EPOCH + n * PERIOD + 1000  # arrived 1 us after its stamp
+            assert self.logic.on_telemetry(TM[n], rx)
+            self.fill.snapshot(self.logic, rx)
+
+    def events(self) -> list[Event]:
+        return self.logic.events.drain()
+
+
+def reply(*payloads: bytes) -> bytes:
+    out = bytearray([REPLY_FRAMES])
+    for p in payloads:
+        out += REPLY_LEN.pack(len(p)) + p
+    return bytes(out)
+
+
+def end(sent: int, not_held: int, not_run: int = 0) -> bytes:
+    return bytes([REPLY_END]) + REPLY_TOTALS.pack(sent, not_held, not_run)
+
+
+def test_a_gap_is_asked_for_exactly_and_written_in_loop_order() -> None:
+    g = Ground()
+    g.live(*range(1, 11))
+    assert g.rows == [(EPOCH + n * PERIOD + 1000, n) for n in range(1, 11)]
+    g.live(*range(21, 26))  # 11..20 lost on the way
+    assert list(g.logic.gaps) == [] and g.fill.busy  # taken by the fill; 21..25 held
+    assert len(g.rows) == 10
+    now = EPOCH + 26 * PERIOD
+    req = g.fill.take_request(now)
+    assert req is not None and g.fill.take_request(now) is None  # one at a time
+    rid, payload, timeout_s = req
+    ch = KEYS.channel("telemetry")
+    assert REQUEST.unpack(ch.open(payload)) == (REQUEST_MAGIC, EPOCH, 11, 20, now)
+    assert 3 <= timeout_s < 10
+    forged = frames(epoch=EPOCH + 1)[15]  # another run of the CN
+    bad_tag = frames(keys=KeySet.from_master(MISSION, bytes(32)))[16]
+    g.fill.on_reply(rid, reply(*(TM[n] for n in range(11, 16)), forged, bad_tag, TM[30]))
+    g.fill.on_reply(rid, reply(*(TM[n] for n in range(16, 21)), TM[12]))  # 12 again: once
+    g.fill.on_reply(rid, end(10, 0))
+    assert len(g.rows) == 10  # nothing written before the request is over
+    g.fill.on_done(rid, now + S)
+    assert [loop for _, loop in g.rows] == list(range(1, 26))
+    # The filled rows carry the frame's own stamp; the live ones their arrival.
+    assert g.rows[10:20] == [(EPOCH + n * PERIOD, n) for n in range(11, 21)]
+    assert g.rows[20] == (EPOCH + 21 * PERIOD + 1000, 21)
+    assert g.fill.refused == 3 and (g.fill.filled, g.fill.unfilled) == (10, 0)
+    assert "control node run" in g.fill.last_refusal
+    (ev,) = g.events()[-1:]
+    assert ev.id == "gap_filled" and ev.text.startswith("filled loops 11..20 (10 snapshot(s))")
+    assert not g.fill.busy
+    g.live(26)
+    assert g.rows[-1] == (EPOCH + 26 * PERIOD + 1000, 26)  # straight through again
+
+
+def test_loops_the_recorder_does_not_hold_are_given_up_and_said() -> None:
+    g = Ground()
+    g.live(*range(1, 6), *range(11, 14))
+    rid, _, _ = g.fill.take_request(EPOCH) or (0, b"", 0.0)
+    g.fill.on_reply(rid, reply(TM[6], TM[7]))
+    g.fill.on_reply(rid, end(2, 3))
+    g.fill.on_done(rid, EPOCH + S)
+    assert [loop for _, loop in g.rows] == [1, 2, 3, 4, 5, 6, 7, 11, 12, 13]
+    said = {e.id: e.text for e in g.events()}
+    assert said["gap_unfilled"] == (
+        "loops 8..10: 3 snapshot(s) not filled from the control node's recorder: the control "
+        "node's recorder does not hold them"
+    )
+    assert g.fill.take_request(EPOCH + 10 * S) is None  # not asked again
+    assert (g.fill.filled, g.fill.unfilled) == (2, 3)
+
+
+def test_loops_that_never_ran_are_no_loss() -> None:
+    g = Ground()
+    g.live(*range(1, 6), *range(11, 14))  # 6..10 missing: 9 and 10 never ran (overruns)
+    rid, _, _ = g.fill.take_request(EPOCH) or (0, b"", 0.0)
+    g.fill.on_reply(rid, reply(TM[6], TM[7], TM[8]))
+    g.fill.on_reply(rid, end(3, 0, 2))
+    g.fill.on_done(rid, EPOCH + S)
+    assert [loop for _, loop in g.rows] == [1, 2, 3, 4, 5, 6, 7, 8, 11, 12, 13]
+    assert (g.fill.filled, g.fill.unfilled, g.fill.not_run) == (3, 0, 2)
+    assert [e.id for e in g.events()][-1] == "gap_filled"  # and no gap_unfilled
+    assert g.fill.take_request(EPOCH + 10 * S) is None
+
+
+def test_an_unanswered_request_is_asked_again_later_then_given_up() -> None:
+    g = Ground(tries=3, retry_s=1.0)
+    g.live(1, 2, 5)
+    t = EPOCH
+    for attempt in range(1, 4):
+        req = g.fill.take_request(t)
+        assert req is not None, attempt
+        g.fill.on_done(req[0], t)  # no queryable answered (the link fell again)
+        assert g.fill.take_request(t) is None  # not at once: after a pause
+        t += attempt * S + 1
+    said = [e.text for e in g.events() if e.id == "gap_unfilled"]
+    assert said == [
+        "loops 3..4: 2 snapshot(s) not filled from the control node's recorder: no answer for "
+        "them after 3 request(s)"
+    ]
+    assert [loop for _, loop in g.rows] == [1, 2, 5]
+
+
+def test_a_reply_to_an_old_request_is_not_taken_for_the_new_one() -> None:
+    g = Ground(retry_s=0.0)
+    g.live(1, 2, 5)
+    old, _, _ = g.fill.take_request(EPOCH) or (0, b"", 0.0)
+    g.fill.on_done(old, EPOCH)
+    new, _, _ = g.fill.take_request(EPOCH + 1) or (0, b"", 0.0)
+    assert new != old
+    g.fill.on_reply(old, reply(TM[3], TM[4]))  # late, for the abandoned request
+    g.fill.on_done(old, EPOCH + 2)
+    assert g.fill.busy and len(g.rows) == 2
+    g.fill.on_reply(new, reply(TM[3], TM[4]))
+    g.fill.on_done(new, EPOCH + 3)
+    assert [loop for _, loop in g.rows] == [1, 2, 3, 4, 5]
+
+
+def test_rows_are_held_at_most_hold_s() -> None:
+    g = Ground(hold_s=2.0)
+    g.live(1, 2, 5)
+    req = g.fill.take_request(EPOCH)
+    assert req is not None
+    g.live(*range(6, 310))  # 3 s of snapshots while the request hangs
+    # Held past 2 s: written, the gap given up; the request's late end is ignored.
+    assert [loop for _, loop in g.rows] == [1, 2, *range(5, 310)]
+    g.fill.on_done(req[0], EPOCH + 10 * S)
+    assert g.fill.unfilled == 2 and not g.fill.busy
+    said = [e.text for e in g.events() if e.id == "gap_unfilled"]
+    assert said and said[0].endswith("not filled within 2 s")
+
+
+def test_the_log_ending_writes_everything_held() -> None:
+    g = Ground()
+    g.live(1, 2, 5, 6)
+    assert g.fill.take_request(EPOCH) is not None
+    g.fill.finish(EPOCH + S)
+    assert [loop for _, loop in g.rows] == [1, 2, 5, 6]
+    assert g.fill.unfilled == 2
+    assert [e.text.split(": ")[-1] for e in g.events() if e.id == "gap_unfilled"] == [
+        "the log ended first"
+    ]
+
+
+def test_the_ground_logic_queues_each_gap() -> None:
+    logic = GroundLogic(MISSION, keys=GROUND_KEYS)
+    for n in (1, 2, 5, 6, 9):
+        assert logic.on_telemetry(TM[n], EPOCH + n * PERIOD)
+    assert list(logic.gaps) == [Gap(EPOCH, 3, 4), Gap(EPOCH, 7, 8)]
+    assert logic.counters.gaps == 4

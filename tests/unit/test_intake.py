@@ -1,0 +1,423 @@
+"""The intake (zplatform.intake): what arrives is refused in constant time
+and counted, what passes waits in a bounded mailbox where the newest valid
+frame wins; the CN takes replies only from the DN's session and learns a
+restarted DN's; the loop counts what the intake refused, records it and
+replays it."""
+
+from __future__ import annotations
+
+import os
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+import pytest
+import zenoh
+
+from tests.faults.peers import peer_config
+from zplatform.auth import KEY_ENV, KeySet, channel
+from zplatform.codes import CommandStatus
+from zplatform.commands import SEQ_WINDOW, request_refusal
+from zplatform.intake import (
+    BACKLOG,
+    CnRefusals,
+    Mailbox,
+    RefusalLog,
+    ReplyCheck,
+    RequestIntake,
+    TelemetryIntake,
+    TriggerIntake,
+    Waker,
+)
+from zplatform.lockstep import replay
+from zplatform.loop import ControlLogic, DeviceLogic
+from zplatform.mission import decode_mission, load_mission
+from zplatform.recording import Recorder, RecordReader
+from zplatform.sync import REPIN_AFTER, ControlSync
+from zplatform.transport import KeySpace
+from zplatform.uplink import Uplink
+
+ROOT = Path(__file__).resolve().parents[2]
+LED = ROOT / "configs" / "led_test.yaml"
+M = load_mission(LED)
+# Every link of the mission, from the suite's master key (tests/conftest.py):
+# what a replay loads without a key file.
+KEYS = KeySet.from_master(M, bytes.fromhex(os.environ[KEY_ENV]))
+PERIOD = M.period_ns
+T0 = 1_700_000_000_000_000_000
+
+
+class Bytes:
+    """A payload as zenoh hands it over: the length for free; ``to_bytes``
+    counted, so a test can tell a frame was refused unread."""
+
+    copies = 0
+
+    def __init__(self, data: bytes) -> None:
+        self._data = data
+
+    def __len__(self) -> int:
+        return len(self._data)
+
+    def to_bytes(self) -> bytes:
+        Bytes.copies += 1
+        return self._data
+
+
+def trigger(loop: int, t: int, dn: int = 0) -> bytes:
+    cn = ControlLogic(M, keys=KEYS, epoch=T0)
+    return bytes(cn.begin(loop, t)[dn])
+
+
+# -- the mailbox ----------------------------------------------------------------
+
+
+def test_a_full_mailbox_lets_the_oldest_go_and_counts_it() -> None:
+    box: Mailbox[int] = Mailbox(3)
+    for i in range(10):
+        box.put(i)
+    assert len(box) == 3 and box.dropped == 7
+    out: list[int] = []
+    box.drain(out)
+    assert out == [7, 8, 9] and len(box) == 0
+    assert box.pop() is None and box.get(0) is None
+
+
+def test_get_waits_for_an_item_and_times_out_without_one() -> None:
+    box: Mailbox[str] = Mailbox(2)
+    t0 = time.monotonic()
+    assert box.get(0.05) is None
+    assert time.monotonic() - t0 >= 0.04
+    threading.Timer(0.05, box.put, args=("x",)).start()
+    assert box.get(5.0) == "x"
+
+
+def test_a_waker_never_holds_more_than_one_token() -> None:
+    """Producers that put while nobody waits leave no tokens behind: the
+    hand-off stays bounded however fast they are."""
+    w = Waker()
+    a: Mailbox[int] = Mailbox(4, w)
+    b: Mailbox[int] = Mailbox(4, w)
+    for i in range(10_000):
+        (a if i % 2 else b).put(i)
+    assert w._q.qsize() == 0  # nobody was waiting: no token at all
+    assert w.wait_for(a.pop, 0.0) is not None
+    threading.Timer(0.05, b.put, args=(-1,)).start()
+    b.drain([])
+    assert w.wait_for(b.pop, 5.0) == -1
+    assert w._q.qsize() <= 1
+
+
+# -- the DN's trigger intake --------------------------------------------------
+
+
+def test_a_dn_admits_only_authentic_triggers_newer_than_every_one_before() -> None:
+    ch = channel(KEYS, "cn_to_dn0")
+    intake: TriggerIntake[str] = TriggerIntake(M, "dn0", ch)
+    t1 = trigger(1, T0 + PERIOD)
+    t2 = trigger(2, T0 + 2 * PERIOD)
+    copies = Bytes.copies
+    assert not intake.admit(Bytes(b"x" * 5000), "huge")  # refused for its size, unread
+    assert not intake.admit(Bytes(b""), "empty")
+    assert Bytes.copies == copies
+    assert not intake.admit(Bytes(t1[:-1] + bytes([t1[-1] ^ 1])), "forged")  # bad tag
+    assert not intake.admit(Bytes(trigger(1, T0 + PERIOD, dn=1)), "dn1's")  # another channel
+    assert intake.admit(Bytes(t1), "q1")
+    assert not intake.admit(Bytes(t1), "q1 replayed")
+    assert intake.admit(Bytes(t2), "q2")
+    assert not intake.admit(Bytes(t1), "q1 replayed late")
+    assert intake.take_counts() == (2, 2, 2)
+    assert intake.take_counts() == (0, 0, 0)
+    box = intake.box
+    assert box is not None
+    assert [h for h, _ in (box.pop(), box.pop())] == ["q1", "q2"]  # type: ignore[misc]
+
+
+def test_a_dn_keeps_a_bounded_backlog_of_valid_triggers() -> None:
+    intake: TriggerIntake[int] = TriggerIntake(M, "dn0", channel(KEYS, "cn_to_dn0"))
+    for n in range(1, 20):
+        assert intake.admit(Bytes(trigger(n, T0 + n * PERIOD)), n)
+    box = intake.box
+    assert box is not None and box.dropped == 19 - BACKLOG
+    out: list[tuple[int, bytes]] = []
+    box.drain(out)
+    assert [h for h, _ in out] == list(range(20 - BACKLOG, 20))  # the newest, in order
+
+
+def test_a_dn_takes_its_own_trigger_from_a_sync_bundle() -> None:
+    text = LED.read_text() + "\ntransport: {sync_query: wildcard}\n"
+    m = decode_mission(text)
+    cn = ControlLogic(m, keys=KEYS, epoch=T0)
+    from zplatform.codec import BundleEncoder
+
+    bundle = bytes(BundleEncoder().pack(cn.begin(1, T0 + PERIOD)))
+    for i, dn in enumerate(m.device_nodes):
+        intake: TriggerIntake[None] = TriggerIntake(m, dn, channel(KEYS, f"cn_to_{dn}"))
+        assert intake.admit(Bytes(bundle), None), dn
+        assert not intake.admit(Bytes(bundle), None)  # the same bundle again: a replay
+        assert intake.take_counts() == (0, 0, 1), i
+
+
+def test_without_authentication_only_the_size_is_checked() -> None:
+    text = LED.read_text() + "\nsecurity: {auth: false}\n"
+    m = decode_mission(text)
+    intake: TriggerIntake[None] = TriggerIntake(m, "dn0", None)
+    frame = bytes(ControlLogic(m).begin(1, T0)[0])
+    assert intake.admit(Bytes(frame), None) and intake.admit(Bytes(frame), None)
+    assert not intake.admit(Bytes(b"x" * 5000), None)
+    assert intake.take_counts() == (1, 0, 0)
+
+
+# -- the CN's request intake ------------------------------------------------------
+
+
+def test_request_refusal_is_the_command_handlers_rule() -> None:
+    for epoch, seq, last in [
+        (7, 1, 0),
+        (7, 0, 0),
+        (8, 5, 0),
+        (7, 5, 5),
+        (7, 4, 5),
+        (7, 6, 5),
+        (7, 5 + SEQ_WINDOW, 5),
+        (7, 6 + SEQ_WINDOW, 5),
+    ]:
+        cn = ControlLogic(M, keys=KEYS, epoch=7)
+        cn.commands._last_seq = last
+        got = cn.commands.refusal(epoch, seq)
+        assert (got[0] if got else 0) == request_refusal(epoch, seq, 7, last), (epoch, seq, last)
+
+
+def test_a_replayed_request_never_reaches_the_inbox() -> None:
+    up = Uplink(M, KEYS)
+    last = [0]
+    intake = RequestIntake(M, channel(KEYS, "gn_to_cn"), 77, lambda: last[0], 16)
+
+    def req(cmd: str, seq: int, epoch: int = 77) -> Bytes:
+        return Bytes(bytes(up.frame(cmd, seq, 0, 0.0, 0, epoch)))
+
+    assert intake.admit(req("NOOP", 1), None)
+    assert not intake.admit(req("NOOP", 1), None)  # itself again
+    last[0] = 1  # the loop took it
+    for _ in range(100):
+        assert not intake.admit(req("LAUNCH", 1), None)
+    assert not intake.admit(req("NOOP", 9, epoch=76), None)  # an earlier run's
+    assert not intake.admit(req("NOOP", 2 + SEQ_WINDOW), None)  # too far ahead
+    assert intake.admit(req("NOOP", 2), None)  # the operator's next: in
+    assert not intake.admit(Bytes(b"\x00" * 60), None)  # bad tag
+    assert intake.take_counts() == (0, 1, 103)
+    # The refusal shown is the one with the highest number.
+    assert intake.reported == (CommandStatus.REJECTED_REPLAY, 2 + SEQ_WINDOW)
+    box = intake.box
+    assert box is not None and len(box) == 2 and box.dropped == 0
+
+
+def test_the_loop_refuses_replays_before_choosing_so_a_fresh_request_wins() -> None:
+    """Without any intake (the lockstep runner, a replay), the loop itself
+    refuses a replayed frame before it picks one: the fresh one is applied
+    whatever came after it."""
+    cn = ControlLogic(M, keys=KEYS, epoch=77)
+    up = Uplink(M, KEYS)
+    launch = bytes(up.frame("LAUNCH", 1, 0, 0.0, 0, 77))
+    cn.begin(1, T0)
+    cn.finish([launch])
+    assert cn.dv.get_name("cn_state") == "B"
+    noop = bytes(up.frame("NOOP", 2, 0, 0.0, 0, 77))
+    cn.begin(2, T0 + PERIOD)
+    cn.finish([noop, launch, launch])  # the fresh one, then two replays of #1
+    assert cn.dv.get("cn_cmd_seq") == 2 and cn.dv.get_name("cn_cmd_status") == "ACCEPTED"
+    assert cn.dv.get("cn_cmd_rejects") == 2 and cn.dv.get("cn_cmd_reject_seq") == 1
+    assert cn.dv.get_name("cn_cmd_reject_status") == "REJECTED_REPLAY"
+    assert cn.dv.get("cn_cmd_dropped") == 0
+
+
+# -- the ground's telemetry intake ------------------------------------------------
+
+
+def test_the_ground_admits_only_telemetry_newer_than_it_has() -> None:
+    cn = ControlLogic(M, keys=KEYS, epoch=T0)
+    frames = []
+    for n in (1, 2, 3):
+        cn.begin(n, T0 + n * PERIOD)
+        frames.append(bytes(cn.telemetry()))
+    intake = TelemetryIntake(M, channel(KEYS, "telemetry"), 8, 10**9)
+    assert intake.admit(Bytes(frames[1]), 2)
+    assert not intake.admit(Bytes(frames[0]), 1)  # older
+    assert not intake.admit(Bytes(frames[1]), 2)  # again
+    assert intake.admit(Bytes(frames[2]), 3)
+    assert not intake.admit(Bytes(frames[2][:-1] + b"\x00"), 3)
+    assert intake.take_counts() == (0, 1, 2)
+
+
+# -- the CN's replies: only from the DN's session ---------------------------------
+
+
+class _Id:
+    def __init__(self, zid: object) -> None:
+        self.zid = zid
+
+
+class _Ok:
+    def __init__(self, key: str, payload: bytes) -> None:
+        self.key_expr = key
+        self.payload = zenoh.ZBytes(payload)
+
+
+class _Err:
+    def __init__(self, text: bytes) -> None:
+        self.payload = zenoh.ZBytes(text)
+
+
+class _Reply:
+    def __init__(self, zid: object, ok: _Ok | None = None, err: _Err | None = None) -> None:
+        self.replier_id = _Id(zid)
+        self.ok = ok
+        self.err = err
+
+
+@pytest.fixture
+def sync() -> Any:
+    session = zenoh.open(peer_config())
+    cs = ControlSync(
+        session,
+        KeySpace(M.vehicle),
+        M.device_nodes,
+        2_000_000,
+        0.01,
+        checks=[ReplyCheck(M, dn, channel(KEYS, f"{dn}_to_cn")) for dn in M.device_nodes],
+        wildcard=True,
+    )
+    yield cs
+    cs.close()
+    session.close()
+
+
+def _drain(cs: ControlSync) -> list[tuple[int, object]]:
+    out = []
+    while not cs._q.empty():
+        out.append(cs._q.get_nowait())
+    return out
+
+
+def _reply(loop: int, t: int, dn: str = "dn0", keys: KeySet | None = KEYS) -> bytes:
+    cn = ControlLogic(M, keys=keys, epoch=T0)
+    d = DeviceLogic(M, dn, keys=keys)
+    i = M.device_nodes.index(dn)
+    out = d.trigger(bytes(cn.begin(loop, t)[i]), t)
+    assert out is not None
+    return bytes(out)
+
+
+def _expect(cs: ControlSync, loop: int, t: int) -> None:
+    for c in cs._checks:
+        c.expect(loop, t)
+
+
+def test_the_cn_takes_replies_only_from_the_session_that_proved_it_is_the_dn(sync: Any) -> None:
+    cs: ControlSync = sync
+    key = "rocket/dn0/to_cn"
+    _expect(cs, 1, T0 + PERIOD)
+    good = _reply(1, T0 + PERIOD)
+    # Before dn0 answered, its name on an error pins nothing on it.
+    cs._handoff_any(_Reply("DN0", err=_Err(b"dn0: bad frame")))
+    # A rogue's junk, a replay of an older loop's reply: checked, refused.
+    cs._handoff_any(_Reply("EVIL", ok=_Ok(key, b"\x94" * 40)))
+    cs._handoff_any(_Reply("EVIL", ok=_Ok(key, _reply(0, T0))))
+    assert _drain(cs) == []
+    cs._handoff_any(_Reply("DN0", ok=_Ok(key, good)))  # authentic, this loop: dn0's now
+    assert _drain(cs) == [(0, good)]
+    cs._watch([True, False, False])
+    # From now on anyone else is ignored unread, junk or authentic.
+    for _ in range(100):
+        cs._handoff_any(_Reply("EVIL", ok=_Ok(key, good)))
+        cs._handoff_any(_Reply("EVIL", err=_Err(b"dn0: forged")))
+    assert _drain(cs) == []
+    cs._handoff_any(_Reply("DN0", err=_Err(b"dn0: stale")))
+    cs._handoff_any(_Reply("DN0", err=_Err(b"Timeout")))  # zenoh's own: not a reply
+    assert _drain(cs) == [(0, None)]
+    cs._handoff_any(_Reply("EVIL", ok=_Ok("rocket/gn/to_cn", good)))  # no DN's key
+    r = CnRefusals()
+    cs.take_refusals(r)
+    assert (r.reply_size, r.reply_bad, r.reply_stale, r.reply_foreign) == (0, 1, 1, 202)
+
+
+def test_a_restarted_dn_is_accepted_once_the_one_known_goes_quiet(sync: Any) -> None:
+    cs: ControlSync = sync
+    key = "rocket/dn0/to_cn"
+    _expect(cs, 1, T0 + PERIOD)
+    cs._handoff_any(_Reply("OLD", ok=_Ok(key, _reply(1, T0 + PERIOD))))
+    cs._watch([True, False, False])
+    assert len(_drain(cs)) == 1
+    # dn0 restarts: a new session, authentic replies; ignored while the old
+    # one is not yet quiet for REPIN_AFTER loops ...
+    for n in range(2, 2 + REPIN_AFTER):
+        t = T0 + n * PERIOD
+        _expect(cs, n, t)
+        cs._handoff_any(_Reply("NEW", ok=_Ok(key, _reply(n, t))))
+        assert _drain(cs) == []
+        cs._watch([False, False, False])
+    # ... then the first authentic reply for the loop asked makes it dn0's.
+    n = 2 + REPIN_AFTER
+    _expect(cs, n, T0 + n * PERIOD)
+    cs._handoff_any(_Reply("NEW", ok=_Ok(key, _reply(n, T0 + n * PERIOD))))
+    assert [i for i, _ in _drain(cs)] == [0]
+    cs._watch([True, False, False])
+    cs._handoff_any(_Reply("OLD", ok=_Ok(key, _reply(n, T0 + n * PERIOD))))
+    assert _drain(cs) == []  # the old session is nobody now
+
+
+# -- the loop counts, records and replays what the intake refused -----------------
+
+
+def test_refusals_are_counted_evented_once_a_second_recorded_and_replayed(
+    tmp_path: Path,
+) -> None:
+    cn = ControlLogic(M, keys=KEYS, epoch=T0)
+    rec = Recorder(tmp_path / "rec", M, LED, cn.dv)
+    cn.recorder = rec
+    r = CnRefusals()
+    for n in range(1, 201):  # two seconds of a flood
+        cn.begin(n, T0 + n * PERIOD)
+        r.clear()
+        r.reply_foreign, r.cmd_bad, r.cmd_stale = 60, 1, 30
+        r.cmd_status, r.cmd_seq = CommandStatus.REJECTED_REPLAY, 4
+        cn.finish((), refused=r)
+    for n in range(201, 301):  # a quiet second: the rest goes out
+        cn.begin(n, T0 + n * PERIOD)
+        cn.finish((), refused=CnRefusals())
+    rec.close()
+    assert cn.dv.get("cn_bad_frames") == 200 * 61
+    assert cn.dv.get("cn_cmd_rejects") == 200 * 31
+    assert cn.dv.get("cn_cmd_reject_seq") == 4
+    assert cn.dv.get_name("cn_cmd_reject_status") == "REJECTED_REPLAY"
+    events = cn.events.drain()
+    bad = [e for e in events if e.id == "bad_frame"]
+    rejected = [e for e in events if e.id == "cmd_rejected"]
+    assert 2 <= len(bad) <= 4 and 2 <= len(rejected) <= 4  # not 200 of each
+    assert sum(int(e.text.split()[0]) for e in bad) == 200 * 61
+    (loop,) = [x for x in RecordReader(tmp_path / "rec").loops() if x.loop == 7]
+    assert CnRefusals().set_fields(loop.refused).reply_foreign == 60
+    res = replay(tmp_path / "rec", LED)  # the keys from the suite's master key
+    assert res.identical and res.loops == 300, res.first_difference
+
+
+def test_a_dn_counts_refused_queries_and_events_them_once_a_second() -> None:
+    dn = DeviceLogic(M, "dn0", keys=KEYS)
+    for k in range(300):
+        dn.refused(40, 10, 10, T0 + k * PERIOD)
+    dn.refused(0, 0, 0, T0 + 400 * PERIOD)
+    assert dn.dv.get("dn0_bad_frames") == 300 * 60
+    ev = [e for e in dn.events.drain() if e.id == "bad_frame"]
+    assert 3 <= len(ev) <= 5
+    assert sum(int(e.text.split()[0]) for e in ev) == 300 * 60
+
+
+def test_a_refusal_log_events_the_first_at_once_then_once_a_period() -> None:
+    log = RefusalLog(2, period_ns=100)
+    assert log.add(0, 0, 0) is None
+    assert log.add(5, 1, 0) == [1, 0]
+    assert log.add(50, 2, 3) is None
+    assert log.add(104, 0, 0) is None
+    assert log.add(105, 0, 1) == [2, 4]
+    assert log.add(500, 0, 0) is None

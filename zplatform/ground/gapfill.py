@@ -1,0 +1,342 @@
+"""Filling the ground log's telemetry gaps from the CN's flight recorder.
+
+A link loss leaves a hole in the ground's telemetry: the first snapshot
+accepted after it jumps ahead, and :class:`~.logic.GroundLogic` queues the
+missing loops (:attr:`~.logic.GroundLogic.gaps`). The link is back at that
+moment (a snapshot just came through it), so :class:`GapFill` asks the CN's
+flight recorder (:mod:`zplatform.recorder.server`, ``{vehicle}/cn/recorder``)
+for exactly those loops, and writes what comes back into the log **in loop
+order**: while a gap is being filled, the snapshots that keep arriving are
+held (copies, in memory) and written after the filled rows; with nothing to
+fill, each snapshot is written as it is accepted, as before (no copy).
+
+Sans-IO, like the rest of the ground: the driver (the ground node,
+``zplatform log``: :func:`zplatform.node.ground.run_ground_logger`) hands in
+every accepted snapshot (:meth:`GapFill.snapshot`), sends the requests it is
+given (:meth:`GapFill.take_request`) as zenoh gets, and hands back their
+replies and their end (:meth:`GapFill.on_reply`, :meth:`GapFill.on_done`).
+
+Every frame a reply carries is checked as live telemetry is (size, the
+telemetry channel's tag, layout and encoding), and then: of the CN run the
+gap belongs to (``cn_epoch``), a loop of the range asked, on the telemetry
+divisor, not one already filled. Freshness is not asked of it (a filled
+frame is old by definition): the run is what ties it to the telemetry the
+ground followed, so a recording of another run is refused. Refused frames
+are counted (:attr:`GapFill.refused`, the first reason in
+:attr:`GapFill.last_refusal`). A filled row's ``rx_time_ns`` is the frame's
+own stamp (nothing was received live; ``zplatform log --from-recorder``
+writes the CN recorder's rows the same way, so the two agree byte for
+byte).
+
+Requests go one at a time, at most
+:data:`~zplatform.recorder.format.MAX_REQUEST_LOOPS` loops each; what one
+did not bring is asked again, up to ``tries`` times, except the loops the
+recorder says it does not hold (it dropped them) or that never ran (the
+CN's scheduler skipped their periods: a gap in loop numbers that is no
+loss, counted in :attr:`GapFill.not_run`). Each request ends in a
+``gap_filled`` event (the rows filled) and, for what is lost, a
+``gap_unfilled`` one naming the loops and why. Bounded: held rows are
+written, and the gaps still open given up, once the oldest has been held
+``hold_s`` (or at :meth:`GapFill.finish`).
+"""
+
+from __future__ import annotations
+
+from collections import deque
+from collections.abc import Callable
+from typing import NamedTuple
+
+from ..auth import TAG_LEN, KeySet, channel
+from ..codec import RegionCodec
+from ..config import Mission
+from ..datavector import DataVector, Layout
+from ..errors import CodecError
+from ..events import EV, EventLog
+from ..recorder.format import (
+    MAX_REQUEST_LOOPS,
+    REPLY_END,
+    REPLY_FRAMES,
+    REPLY_LEN,
+    REPLY_TOTALS,
+    REQUEST,
+    REQUEST_MAGIC,
+)
+from .logic import Gap, GroundLogic
+
+__all__ = ["GapFill"]
+
+_NS = 1_000_000_000
+
+
+class _Ask:
+    """One request in flight: its number, range, tries, deadline and what came."""
+
+    __slots__ = ("deadline", "epoch", "first", "got", "id", "last", "not_held", "not_run", "tries")
+
+    def __init__(self, rid: int, gap: Gap, tries: int, deadline: int) -> None:
+        self.id = rid
+        self.epoch, self.first, self.last = gap
+        self.tries = tries
+        self.deadline = deadline
+        self.got: dict[int, tuple[int, bytes]] = {}  # loop -> (t_ns, vector bytes)
+        self.not_held: int | None = None  # from the recorder's END reply
+        self.not_run = 0
+
+
+class _Row(NamedTuple):
+    epoch: int
+    loop: int
+    rx_ns: int
+    data: bytes
+
+
+class GapFill:
+    """Fills the gaps of one ground log (module doc).
+
+    ``write(rx_ns, dv)`` writes one row (the log's
+    :meth:`~zplatform.ground.logger.TelemetryLog.snapshot`); ``events`` gets
+    the ``gap_filled``/``gap_unfilled`` events (the ground's own log,
+    :attr:`GroundLogic.events`). ``keys``: the ground's keys (a ground
+    node's or a tool's: both hold the downlink's, which tags the requests
+    and the frames; None: the mission does not authenticate); KeyError_
+    when they do not hold it. Not thread-safe: the driver's thread calls
+    everything.
+    """
+
+    def __init__(
+        self,
+        mission: Mission,
+        keys: KeySet | None,
+        events: EventLog,
+        write: Callable[[int, DataVector], None],
+        *,
+        hold_s: float = 30.0,
+        tries: int = 3,
+        retry_s: float = 1.0,
+    ) -> None:
+        rec = mission.recorder
+        self._bps = rec.serve_bps if rec is not None else 1_000_000
+        self._layout = Layout.for_node(mission, "cn")
+        self._dv = DataVector(self._layout)
+        self._codec = RegionCodec(self._dv)
+        self._channel = channel(keys, "telemetry")
+        self._frame_max = self._codec.max_frame_len + (TAG_LEN if self._channel else 0)
+        self._epoch_at = self._layout.element("cn_epoch").offset
+        self._loop_at = self._layout.element("cn_loop").offset
+        self._div = mission.telemetry_divisor
+        self._events = events
+        self._write = write
+        self._hold_ns = int(hold_s * _NS)
+        self._tries = tries
+        self._retry_ns = int(retry_s * _NS)
+        self._todo: deque[tuple[Gap, int, int]] = deque()  # (range, tries so far, not before)
+        self._ask: _Ask | None = None
+        self._next_id = 0
+        self._filled: list[_Row] = []
+        self._held: deque[_Row] = deque()
+        self.filled = 0
+        """Rows written from the recorder."""
+        self.unfilled = 0
+        """Loops given up (not held by the recorder, no answer, or held too long)."""
+        self.not_run = 0
+        """Gap loops the CN never ran (its scheduler skipped their periods):
+        no telemetry of them exists, so they are not missing from the log."""
+        self.refused = 0
+        """Frames in replies that did not check."""
+        self.last_refusal = ""
+        self.requests = 0
+
+    @property
+    def busy(self) -> bool:
+        """A gap is being filled (rows are held)."""
+        return bool(self._todo or self._ask is not None or self._held)
+
+    # -- the log -------------------------------------------------------------
+    def snapshot(self, logic: GroundLogic, rx_ns: int) -> None:
+        """Take the snapshot ``logic`` just accepted at ``rx_ns``: new gaps
+        are queued for asking; the row is written now when nothing is being
+        filled, else held (a copy) until the gaps before it are."""
+        while logic.gaps:
+            gap = logic.gaps.popleft()
+            step = MAX_REQUEST_LOOPS - MAX_REQUEST_LOOPS % self._div
+            for first in range(gap.first, gap.last + 1, step):
+                chunk = Gap(gap.epoch, first, min(first + step - 1, gap.last))
+                self._todo.append((chunk, 0, 0))
+        if not self.busy:
+            self._write(rx_ns, logic.dv)
+            return
+        buf = bytes(logic.dv.buf)
+        self._held.append(
+            _Row(self._u64(buf, self._epoch_at), self._u64(buf, self._loop_at), rx_ns, buf)
+        )
+        self.tick(rx_ns)
+
+    @staticmethod
+    def _u64(buf: bytes, at: int) -> int:
+        return int.from_bytes(buf[at : at + 8], "little")
+
+    # -- asking --------------------------------------------------------------
+    def take_request(self, now_ns: int) -> tuple[int, bytes, float] | None:
+        """The next request to send now, as ``(id, payload, timeout_s)``
+        (hand its replies and its end back with that id; ``timeout_s`` is
+        the zenoh get's), or None: one is in flight, or nothing is due (a
+        range asked again waits ``retry_s`` times its tries)."""
+        if self._ask is not None or not self._todo:
+            return None
+        gap, tries, not_before = self._todo[0]
+        if now_ns < not_before:
+            return None
+        self._todo.popleft()
+        loops = (gap.last - gap.first) // self._div + 1
+        timeout_ns = 3 * _NS + 2 * loops * (self._frame_max + REPLY_LEN.size) * _NS // self._bps
+        self._next_id += 1
+        self._ask = _Ask(self._next_id, gap, tries + 1, now_ns + timeout_ns + _NS)
+        self.requests += 1
+        body = REQUEST.pack(REQUEST_MAGIC, gap.epoch, gap.first, gap.last, now_ns)
+        ch = self._channel
+        return self._next_id, (bytes(ch.seal(body)) if ch is not None else body), timeout_ns / _NS
+
+    def on_reply(self, rid: int, payload: bytes) -> None:
+        """One reply of request ``rid``: frames (each checked, module doc)
+        or the recorder's end totals. A reply of a request no longer in
+        flight is ignored. Never raises."""
+        ask = self._ask
+        if ask is None or ask.id != rid or not payload:
+            return
+        if payload[0] == REPLY_END and len(payload) == 1 + REPLY_TOTALS.size:
+            _, ask.not_held, ask.not_run = REPLY_TOTALS.unpack_from(payload, 1)
+            return
+        if payload[0] != REPLY_FRAMES:
+            self._refuse("a reply of an unknown kind")
+            return
+        off, end = 1, len(payload)
+        while off < end:
+            if end - off < REPLY_LEN.size:
+                self._refuse("a reply cut inside a frame's length")
+                return
+            (n,) = REPLY_LEN.unpack_from(payload, off)
+            off += REPLY_LEN.size
+            if n > self._frame_max or n > end - off:
+                self._refuse(f"a frame of {n} bytes in a reply")
+                return
+            self._take(ask, payload[off : off + n])
+            off += n
+
+    def _take(self, ask: _Ask, raw: bytes) -> None:
+        try:
+            body = self._channel.open(raw) if self._channel is not None else raw
+            frame = self._codec.check(body)
+        except CodecError as exc:
+            self._refuse(str(exc))
+            return
+        data = bytes(frame.data)
+        seq = frame.seq
+        epoch = self._u64(data, self._epoch_at)
+        if epoch != ask.epoch:
+            self._refuse(f"a frame of control node run {epoch}, not {ask.epoch}")
+        elif not ask.first <= seq <= ask.last or seq % self._div:
+            self._refuse(f"a frame of loop {seq}, not asked for ({ask.first}..{ask.last})")
+        elif seq not in ask.got:
+            ask.got[seq] = (frame.t_ns, data)
+
+    def _refuse(self, why: str) -> None:
+        self.refused += 1
+        if not self.last_refusal:
+            self.last_refusal = why
+
+    def on_done(self, rid: int, now_ns: int) -> None:
+        """Request ``rid`` is over (all replies in, or its time ran out): keep
+        what came, ask again later for what did not, tell the outcome."""
+        ask = self._ask
+        if ask is None or ask.id != rid:
+            return
+        self._ask = None
+        self._keep(ask, now_ns)
+        missing = [s for s in range(ask.first, ask.last + 1, self._div) if s not in ask.got]
+        if missing:
+            if ask.not_held is not None and ask.not_held + ask.not_run >= len(missing):
+                # All explained: loops that never ran (no telemetry to fill)
+                # and loops the recorder does not hold (lost for this log).
+                never = min(ask.not_run, len(missing))
+                self.not_run += never
+                if len(missing) > never:
+                    why = "the control node's recorder does not hold them"
+                    if never:
+                        why += f" ({never} of the loops there never ran: skipped periods)"
+                    self._give_up(ask.epoch, missing, now_ns, why, len(missing) - never)
+            elif ask.tries >= self._tries:
+                why = f"no answer for them after {ask.tries} request(s)"
+                self._give_up(ask.epoch, missing, now_ns, why)
+            else:  # again later, for the loops still missing
+                again = now_ns + int(self._retry_ns * ask.tries)
+                self._todo.appendleft((Gap(ask.epoch, missing[0], missing[-1]), ask.tries, again))
+        self._release()
+
+    def _keep(self, ask: _Ask, now_ns: int) -> None:
+        """The frames a request brought, to be written; one event for them."""
+        for seq, (t_ns, data) in ask.got.items():
+            self._filled.append(_Row(ask.epoch, seq, t_ns, data))
+        if ask.got:
+            first, last = min(ask.got), max(ask.got)
+            self._events.emit(EV.GAP_FILLED, now_ns, first=first, last=last, n=len(ask.got))
+
+    def _give_up(
+        self, epoch: int, missing: list[int], now_ns: int, why: str, n: int | None = None
+    ) -> None:
+        """``n`` (default: all) of the loops ``missing`` will not be in the log."""
+        n = len(missing) if n is None else n
+        self.unfilled += n
+        self._events.emit(EV.GAP_UNFILLED, now_ns, first=missing[0], last=missing[-1], n=n, why=why)
+
+    # -- time ----------------------------------------------------------------
+    def tick(self, now_ns: int) -> None:
+        """Let time pass: a request whose end never came is over; rows held
+        longer than ``hold_s`` are written, the gaps still open given up."""
+        ask = self._ask
+        if ask is not None and now_ns > ask.deadline:
+            self.on_done(ask.id, now_ns)
+        if self._held and now_ns - self._held[0].rx_ns > self._hold_ns:
+            self._abandon(now_ns, f"not filled within {self._hold_ns / _NS:g} s")
+
+    def finish(self, now_ns: int) -> None:
+        """The log ends: whatever is still open is given up, every row written."""
+        self._abandon(now_ns, "the log ended first")
+
+    def _abandon(self, now_ns: int, why: str) -> None:
+        ask, self._ask = self._ask, None
+        open_gaps = [g for g, _, _ in self._todo]
+        self._todo.clear()
+        got: set[int] = set()
+        if ask is not None:  # what it brought so far is kept
+            self._keep(ask, now_ns)
+            got = set(ask.got)
+            open_gaps.insert(0, Gap(ask.epoch, ask.first, ask.last))
+        for g in open_gaps:
+            missing = [s for s in range(g.first, g.last + 1, self._div) if s not in got]
+            if missing:
+                self._give_up(g.epoch, missing, now_ns, why)
+        self._release()
+
+    # -- writing ---------------------------------------------------------------
+    def _release(self) -> None:
+        """With nothing left to ask, write the filled rows and the held ones,
+        merged in (run, loop) order."""
+        if self._todo or self._ask is not None:
+            return
+        filled = sorted(self._filled, key=lambda r: (r.epoch, r.loop))
+        self._filled = []
+        held = self._held
+        dv = self._dv
+        i = 0
+        while i < len(filled) or held:
+            if held and (
+                i == len(filled)
+                or (held[0].epoch, held[0].loop) < (filled[i].epoch, filled[i].loop)
+            ):
+                row = held.popleft()
+            else:
+                row = filled[i]
+                i += 1
+                self.filled += 1
+            dv.buf[:] = row.data
+            self._write(row.rx_ns, dv)

@@ -1,0 +1,555 @@
+"""The intake of frames from the network: refused in constant time, handed
+off bounded, the newest valid frame first.
+
+Whatever arrives on a key a node takes frames on meets an *intake* in the
+zenoh callback that received it, before the loop thread sees anything. A
+frame from a peer that holds no valid key is refused there and counted,
+and costs nothing more: no queue, no decode, no event of its own. What is
+admitted goes into a bounded :class:`Mailbox`. One intake per key:
+
+=============================  =============================  ================================
+key                            intake (node)                  fresh: admitted when
+=============================  =============================  ================================
+``{vehicle}/dnX/to_cn``        :class:`TriggerIntake` (dnX)   stamped later than any admitted
+``{vehicle}/gn/to_cn``         :class:`RequestIntake` (CN)    this CN run, numbered above
+                                                              every number seen
+``{vehicle}/cn/telemetry``     :class:`TelemetryIntake`       stamped later than any admitted
+                               (ground)
+the CN's sync replies          :class:`ReplyCheck` (CN)       for the loop asked
+                                                              (:class:`zplatform.sync.ControlSync`)
+=============================  =============================  ================================
+
+The checks, in this order, the first failure wins:
+
+1. **size**: ``len(payload)``, which zenoh-python gives without copying,
+   against the lengths the key can carry (at most the longest valid frame,
+   tag included): counted in ``size``, refused unread;
+2. **tag**: one bounded copy out of zenoh (``to_bytes()``: zenoh-python 1.10
+   has no buffer protocol, so reading any byte copies them all, at most the
+   length just checked) and the channel's tag
+   (:meth:`zplatform.auth.Channel.open`, compared in constant time), with the
+   intake's own :class:`~zplatform.auth.Channel` (the loop's is not shared
+   across threads): a bad tag, or an authentic frame that is no frame,
+   counts in ``bad``;
+3. **freshness**: the authentic frame's stamp (its loop number and time, read
+   at the fixed offsets of codecs/FORMAT.md §2, or a request's epoch and
+   number) against the newest admitted: an authentic frame that is not newer
+   is a replay (or a duplicate), counted in ``stale``. This check must come
+   before the mailbox: there, a replayed frame arriving after a fresh one
+   would be "newest" and displace it. Without authentication
+   (``security.auth: false``) a replay cannot be told from a forgery, so
+   this check is skipped (size and the bounds still apply).
+
+Only then is the frame put in the mailbox, with a handle (the zenoh query
+to answer, the receive time). Since each admitted frame is newer than every
+one before it, the mailbox's last item is always the newest valid frame;
+when it is full the oldest is let go (counted in :attr:`Mailbox.dropped`).
+The loop thread takes the items (:meth:`Mailbox.get`, :meth:`Mailbox.drain`)
+and, once per loop, the counts (:meth:`Intake.take_counts`), which it
+writes into its Data Vector and reports in events a flood cannot multiply
+(:class:`RefusalLog`).
+
+Why a zenoh callback may do this much (the rule is that a callback only
+hands off): every step is bounded and constant time (one copy of at most the
+longest valid frame, one tag, a few integer compares, a counter bump), none
+blocks (the intake's lock is held only for these steps, by zenoh's threads,
+and by the consumer for a pop), and a frame refused here is never queued,
+so a flood cannot grow memory or reach the loop thread. Decoding,
+applying and events stay on the loop thread.
+"""
+
+from __future__ import annotations
+
+import queue
+import threading
+import time
+from abc import ABC, abstractmethod
+from collections import deque
+from collections.abc import Callable
+from typing import Generic, Protocol, TypeVar
+
+from .auth import TAG_LEN, Channel
+from .codec import (
+    bundle_entry,
+    bundle_size,
+    frame_data,
+    frame_stamp,
+    is_bundle,
+    max_frame_length,
+)
+from .commands import RequestNumber, request_refusal
+from .config import Mission
+from .datavector import Layout
+from .errors import CodecError
+from .messages import wildcard_sync_for
+
+__all__ = [
+    "BACKLOG",
+    "CN_REFUSALS",
+    "EVENT_PERIOD_NS",
+    "CnRefusals",
+    "Intake",
+    "Mailbox",
+    "Payload",
+    "RefusalLog",
+    "ReplyCheck",
+    "RequestIntake",
+    "TelemetryIntake",
+    "TriggerIntake",
+    "Waker",
+    "max_frame_len",
+]
+
+BACKLOG = 4
+"""Valid triggers a DN keeps while its loop thread is busy: older ones are
+for loops the CN has closed, so the oldest is let go past this."""
+EVENT_PERIOD_NS = 1_000_000_000
+"""At most one refusal event per intake in this much loop time (:class:`RefusalLog`)."""
+
+T = TypeVar("T")
+H = TypeVar("H")
+
+
+class Payload(Protocol):
+    """What an intake reads a frame from: ``zenoh.ZBytes`` (its length is
+    free, ``to_bytes`` copies)."""
+
+    def __len__(self) -> int: ...
+
+    def to_bytes(self) -> bytes: ...
+
+
+def max_frame_len(size: int, channel: Channel | None) -> int:
+    """The longest valid frame of a region of ``size`` bytes as it travels
+    (:func:`zplatform.codec.max_frame_length`), with its tag."""
+    return max_frame_length(size) + (TAG_LEN if channel is not None else 0)
+
+
+class Waker:
+    """Wakes one consumer thread that waits on one or more mailboxes.
+
+    A producer's :meth:`notify` puts a token only when the consumer said it
+    is about to wait, so at most one token is ever outstanding: bounded
+    whatever the producers do. Thread-safe."""
+
+    __slots__ = ("_lock", "_q", "_waiting")
+
+    def __init__(self) -> None:
+        self._q: queue.SimpleQueue[None] = queue.SimpleQueue()
+        self._lock = threading.Lock()
+        self._waiting = False
+
+    def notify(self) -> None:
+        """Called after an item was put (any thread; never blocks)."""
+        with self._lock:
+            wake, self._waiting = self._waiting, False
+        if wake:
+            self._q.put(None)
+
+    def wait_for(self, take: Callable[[], T | None], timeout_s: float) -> T | None:
+        """``take()`` (the consumer's non-blocking pop), waiting up to
+        ``timeout_s`` for it to return an item; None when none came."""
+        item = take()
+        if item is not None or timeout_s <= 0:
+            return item
+        deadline = time.monotonic() + timeout_s
+        while True:
+            while not self._q.empty():  # a token whose item was taken already
+                self._q.get_nowait()
+            with self._lock:
+                self._waiting = True
+            item = take()  # anything put before `waiting` was set is seen here
+            left = deadline - time.monotonic()
+            if item is not None or left <= 0:
+                break
+            try:
+                self._q.get(timeout=left)
+            except queue.Empty:
+                break
+        with self._lock:
+            self._waiting = False
+        return item if item is not None else take()
+
+
+class Mailbox(Generic[T]):
+    """A bounded hand-off from zenoh's threads to one consumer thread.
+
+    :meth:`put` never blocks beyond a short lock; when ``capacity`` items are
+    waiting, the oldest is let go (counted in :attr:`dropped`). The
+    consumer pops the oldest first (:meth:`get`, :meth:`pop`) or takes all
+    (:meth:`drain`). ``waker``: shared with other mailboxes the consumer
+    waits on together (a new one by default)."""
+
+    __slots__ = ("_items", "_lock", "capacity", "dropped", "waker")
+
+    def __init__(self, capacity: int, waker: Waker | None = None) -> None:
+        if capacity < 1:
+            raise ValueError(f"a mailbox holds at least one item, not {capacity}")
+        self.capacity = capacity
+        self.waker = waker if waker is not None else Waker()
+        self._items: deque[T] = deque()
+        self._lock = threading.Lock()
+        self.dropped = 0
+        """Items let go because the mailbox was full (since construction)."""
+
+    def put(self, item: T) -> None:
+        with self._lock:
+            if len(self._items) >= self.capacity:
+                self._items.popleft()  # released: a zenoh query is finalised
+                self.dropped += 1
+            self._items.append(item)
+        self.waker.notify()
+
+    def pop(self) -> T | None:
+        """The oldest item, or None at once."""
+        with self._lock:
+            return self._items.popleft() if self._items else None
+
+    def get(self, timeout_s: float) -> T | None:
+        """The oldest item, waiting up to ``timeout_s`` for one; None if none came."""
+        return self.waker.wait_for(self.pop, timeout_s)
+
+    def drain(self, into: list[T]) -> None:
+        """Append every waiting item to ``into``, oldest first."""
+        with self._lock:
+            into.extend(self._items)
+            self._items.clear()
+
+    def __len__(self) -> int:
+        return len(self._items)
+
+
+class Intake(ABC, Generic[H]):
+    """One key's intake (module doc): size, tag, freshness, and, for a key
+    whose frames a loop takes later, a bounded mailbox of
+    ``(handle, frame bytes)``.
+
+    ``max_len``/``min_len``: the frame lengths the key can carry;
+    ``channel``: the intake's own channel for the key (None: the mission
+    does not authenticate); ``capacity``: the mailbox's (0: no mailbox,
+    :meth:`check` only). Subclasses say what a key's frame is
+    (:meth:`_frame`) and when it is fresh (:meth:`_fresh`, called with the
+    intake's lock held).
+
+    Thread-safe: :meth:`check` and :meth:`admit` from any of zenoh's
+    threads; :attr:`box` and :meth:`take_counts` from the consumer.
+    """
+
+    def __init__(
+        self,
+        name: str,
+        max_len: int,
+        channel: Channel | None,
+        capacity: int = 0,
+        *,
+        waker: Waker | None = None,
+    ) -> None:
+        self.name = name
+        self.max_len = max_len
+        self._min = TAG_LEN + 1 if channel is not None else 1
+        self._open = channel
+        self._lock = threading.Lock()
+        self.box: Mailbox[tuple[H, bytes]] | None = (
+            Mailbox(capacity, waker) if capacity else None
+        )
+        self.size = 0
+        self.bad = 0
+        self.stale = 0
+
+    def check(self, payload: Payload, handle: H) -> bytes | None:
+        """The frame's bytes when it passes every check, else None (counted)."""
+        with self._lock:
+            return self._check(payload, handle)
+
+    def admit(self, payload: Payload, handle: H) -> bool:
+        """Check ``payload``; put ``(handle, its bytes)`` in the mailbox when
+        it passes (returns True), else count why (False)."""
+        box = self.box
+        assert box is not None, "an intake without a mailbox only checks"
+        with self._lock:
+            data = self._check(payload, handle)
+            if data is None:
+                return False
+            box.put((handle, data))  # under the lock: admission order is mailbox order
+            return True
+
+    def _check(self, payload: Payload, handle: H) -> bytes | None:
+        n = len(payload)
+        if not self._min <= n <= self.max_len:
+            self.size += 1
+            return None
+        data = payload.to_bytes()
+        ch = self._open
+        if ch is None:
+            return data
+        try:
+            fresh = self._fresh(ch.open(self._frame(data)), handle)
+        except CodecError:  # a bad tag (AuthError), or an authentic frame that is none
+            self.bad += 1
+            return None
+        if not fresh:
+            self.stale += 1
+            return None
+        return data
+
+    def _frame(self, data: bytes) -> bytes | memoryview:
+        """The tagged frame in what arrived (CodecError if there is none)."""
+        return data
+
+    @abstractmethod
+    def _fresh(self, body: memoryview, handle: H) -> bool:
+        """Whether the authentic frame ``body`` (with ``handle``) is newer
+        than every admitted one; records it as the newest when it is.
+        CodecError if unreadable."""
+
+    def take_counts(self) -> tuple[int, int, int]:
+        """``(size, bad, stale)`` refusals since the last call (then zeroed)."""
+        with self._lock:
+            counts = (self.size, self.bad, self.stale)
+            self.size = self.bad = self.stale = 0
+            self._took()
+        return counts
+
+    def _took(self) -> None:
+        """What else :meth:`take_counts` zeroes (with the lock held)."""
+
+
+class _StampIntake(Intake[H]):
+    """Fresh: stamped (``t_ns``, the sender's clock) later than every frame
+    admitted so far. A sender's stamps grow with its loop, and a restarted
+    sender's start after its last run's, so only a replay (or a duplicate)
+    is not later; a stamp is authentic, so nobody without the key can push
+    it ahead."""
+
+    newest_t = -(1 << 63)
+    """The stamp of the newest admitted frame."""
+
+    def _fresh(self, body: memoryview, handle: H) -> bool:
+        _, t_ns = frame_stamp(body)
+        if t_ns <= self.newest_t:
+            self._replayed(t_ns, handle)
+            return False
+        self.newest_t = t_ns
+        return True
+
+    def _replayed(self, t_ns: int, handle: H) -> None:
+        """Note a frame refused as not newer (with the lock held)."""
+
+
+class TriggerIntake(_StampIntake[H]):
+    """A DN's sync queries (``{vehicle}/dnX/to_cn``): the CN's trigger for
+    the node, alone or in a sync bundle (``transport.sync_query``
+    wildcard). Fresh: stamped later than any trigger admitted before, so a
+    replayed trigger, however authentic, is refused (and never answered).
+    Its mailbox keeps :data:`BACKLOG` triggers."""
+
+    def __init__(self, mission: Mission, node: str, channel: Channel | None) -> None:
+        lay = Layout.for_node(mission, "cn")
+        dns = mission.device_nodes
+        lens = [max_frame_len(lay.region(f"cn_to_{dn}").size, channel) for dn in dns]
+        self._index = mission.device_nodes.index(node)
+        own = lens[self._index]
+        longest = max(own, bundle_size(lens)) if wildcard_sync_for(mission) else own
+        super().__init__(f"{node}'s sync query", longest, channel, BACKLOG)
+
+    def _frame(self, data: bytes) -> bytes | memoryview:
+        return bundle_entry(data, self._index) if is_bundle(data) else data
+
+
+class TelemetryIntake(_StampIntake[int]):
+    """The ground's telemetry (``{vehicle}/cn/telemetry``); the handle is the
+    receive time on the ground's clock. Fresh: stamped later than any
+    snapshot admitted before, so a replayed snapshot (of this run or an
+    earlier one) never displaces a new one; the
+    :class:`~zplatform.ground.logic.GroundLogic` checks the rest (its clock
+    bound, the run it follows). Of the refused replays, those stamped more
+    than ``max_age_ns`` before they arrived are also counted in
+    :attr:`aged` (what the logic calls ``stale``). ``capacity``: snapshots
+    kept while the consumer is busy."""
+
+    def __init__(
+        self,
+        mission: Mission,
+        channel: Channel | None,
+        capacity: int,
+        max_age_ns: int,
+        waker: Waker | None = None,
+    ) -> None:
+        size = Layout.for_node(mission, "cn").size
+        self._max_age = max_age_ns
+        self._aged = 0
+        self.aged = 0
+        """Replays beyond the freshness bound among those counted by the last
+        :meth:`take_counts`."""
+        super().__init__("telemetry", max_frame_len(size, channel), channel, capacity, waker=waker)
+
+    def _replayed(self, t_ns: int, handle: int) -> None:
+        if handle - t_ns > self._max_age:
+            self._aged += 1
+
+    def _took(self) -> None:
+        self.aged, self._aged = self._aged, 0
+
+
+class RequestIntake(Intake[None]):
+    """The CN's command requests (``{vehicle}/gn/to_cn``). Fresh: for this
+    CN run and numbered above every number seen, by the rules of
+    :func:`zplatform.commands.request_refusal` (``last_seq()``: the command
+    handler's highest number; the intake's own highest admitted counts
+    too). A refused request is counted in ``stale``; the one with the
+    highest number is reported with its status (:attr:`reported`), as the
+    CN's ``cn_cmd_reject_seq`` shows it."""
+
+    def __init__(
+        self,
+        mission: Mission,
+        channel: Channel | None,
+        cn_epoch: int,
+        last_seq: Callable[[], int],
+        capacity: int,
+    ) -> None:
+        lay = Layout.for_node(mission, "cn")
+        self._size = lay.region("gn_to_cn").size
+        self._number = RequestNumber(lay)
+        self._epoch = cn_epoch
+        self._last_seq = last_seq
+        self._highest = 0
+        self._reported = (0, 0)
+        self.reported = (0, 0)
+        """``(status, seq)`` of the refused request with the highest number
+        among those counted by the last :meth:`take_counts` (``(0, 0)``: none)."""
+        super().__init__("command request", max_frame_len(self._size, channel), channel, capacity)
+
+    def _fresh(self, body: memoryview, handle: None) -> bool:
+        epoch, seq = self._number.read(frame_data(body, self._size))
+        status = request_refusal(epoch, seq, self._epoch, max(self._last_seq(), self._highest))
+        if status:
+            if self._reported[0] == 0 or seq >= self._reported[1]:
+                self._reported = (status, seq)
+            return False
+        self._highest = seq
+        return True
+
+    def _took(self) -> None:
+        self.reported, self._reported = self._reported, (0, 0)
+
+
+class ReplyCheck(Intake[None]):
+    """Checks a sync reply that does not come from the zenoh session known
+    to answer for the DN (:class:`zplatform.sync.ControlSync`): a restarted
+    DN, or someone else. Fresh: for the loop the CN is asking
+    (:meth:`expect`), stamped within the clock bound plus a period of the
+    query. No mailbox: the caller hands a reply that passes to the loop."""
+
+    def __init__(self, mission: Mission, dn: str, channel: Channel | None) -> None:
+        size = Layout.for_node(mission, "cn").region(f"{dn}_to_cn").size
+        super().__init__(f"{dn}'s sync reply", max_frame_len(size, channel), channel)
+        self._window = round(mission.clock.offset_bound_ms * 1e6) + mission.period_ns
+        self.loop = -1
+        self.t_ns = 0
+
+    def expect(self, loop: int, t_ns: int) -> None:
+        """From now on, a reply is fresh only for ``loop``, asked at ``t_ns``
+        (the loop thread, before the queries go out)."""
+        self.loop, self.t_ns = loop, t_ns
+
+    def _fresh(self, body: memoryview, handle: None) -> bool:
+        seq, t_ns = frame_stamp(body)
+        return seq == self.loop and abs(t_ns - self.t_ns) <= self._window
+
+
+class CnRefusals:
+    """What a CN driver's intakes refused during one loop: an input of
+    :meth:`zplatform.loop.ControlLogic.finish`, recorded like every other.
+    Preallocated; the driver overwrites it each loop (:meth:`clear`).
+
+    Sync replies (every DN's): ``reply_size`` of a wrong size, ``reply_bad``
+    with a bad tag, ``reply_stale`` authentic but not for the loop asked (a
+    replay), ``reply_foreign`` from a replier that is no DN's. Command
+    requests: ``cmd_size``, ``cmd_bad``, ``cmd_stale`` (epoch or number), and
+    ``cmd_status``/``cmd_seq`` of the refusal to report (the stale one with
+    the highest number; ``REJECTED_AUTH``/0 when only bad tags came)."""
+
+    __slots__ = (
+        "cmd_bad",
+        "cmd_seq",
+        "cmd_size",
+        "cmd_stale",
+        "cmd_status",
+        "reply_bad",
+        "reply_foreign",
+        "reply_size",
+        "reply_stale",
+    )  # CN_REFUSALS: their recorded order
+
+    def __init__(self) -> None:
+        self.clear()
+
+    def clear(self) -> None:
+        self.reply_size = self.reply_bad = self.reply_stale = self.reply_foreign = 0
+        self.cmd_size = self.cmd_bad = self.cmd_stale = 0
+        self.cmd_status = self.cmd_seq = 0
+
+    @property
+    def total(self) -> int:
+        return (
+            self.reply_size
+            + self.reply_bad
+            + self.reply_stale
+            + self.reply_foreign
+            + self.cmd_size
+            + self.cmd_bad
+            + self.cmd_stale
+        )
+
+    def fields(self) -> tuple[int, ...]:
+        """Every count, in :data:`CN_REFUSALS` order (for a recorder)."""
+        return tuple(getattr(self, k) for k in CN_REFUSALS)
+
+    def set_fields(self, values: tuple[int, ...]) -> CnRefusals:
+        """The inverse of :meth:`fields`; returns self."""
+        for k, v in zip(CN_REFUSALS, values, strict=True):
+            setattr(self, k, v)
+        return self
+
+
+CN_REFUSALS = (
+    "reply_size",
+    "reply_bad",
+    "reply_stale",
+    "reply_foreign",
+    "cmd_size",
+    "cmd_bad",
+    "cmd_stale",
+    "cmd_status",
+    "cmd_seq",
+)
+""":class:`CnRefusals`' fields in their recorded order."""
+
+
+class RefusalLog:
+    """Turns refusal counts into events a flood cannot multiply.
+
+    :meth:`add` accumulates counts and returns them, to be evented, when
+    :data:`EVENT_PERIOD_NS` of loop time has passed since the last event
+    (or there was none yet): the first refusal after a quiet period is
+    evented at once, a flood costs one event a period with its counts, and
+    counts left at its end go out at most one period later (:meth:`add`
+    with zeros, every loop). Sans-IO and deterministic: loop time only."""
+
+    __slots__ = ("_last", "_n", "_period")
+
+    def __init__(self, fields: int, period_ns: int = EVENT_PERIOD_NS) -> None:
+        self._n = [0] * fields
+        self._last: int | None = None
+        self._period = period_ns
+
+    def add(self, t_ns: int, *counts: int) -> list[int] | None:
+        n = self._n
+        for i, c in enumerate(counts):
+            n[i] += c
+        if not any(n) or (self._last is not None and t_ns - self._last < self._period):
+            return None
+        self._last = t_ns
+        self._n = [0] * len(n)
+        return n

@@ -1,0 +1,279 @@
+"""The CN's recorder answers the ground's gap-fill requests over zenoh.
+
+:class:`RecorderServer` declares a queryable on ``{vehicle}/cn/recorder``
+(request and reply formats: :mod:`~.format`). It costs the control loop
+nothing but the GIL's share of one thread:
+
+* zenoh's callback only checks the request's size and hands the query to a
+  bounded inbox (:data:`MAX_PENDING` requests; more are dropped unanswered
+  and counted in :attr:`RecorderServer.busy`, so an asker learns nothing
+  but has to wait);
+* one serving thread checks the request (the telemetry channel's tag: only
+  whoever can read the recorded frames may ask; a stamp within the clock
+  bound of this node's clock, so a request captured earlier cannot be
+  replayed later; a range of at most :data:`~.format.MAX_REQUEST_LOOPS`
+  loops of this run), reads the recorder's segment files (never the loop's
+  buffer: loops still in it are waited for, up to :data:`WRITE_WAIT_S`),
+  and replies in chunks of at most :data:`~.format.REPLY_BYTES`
+  paced to ``serve_bps`` bytes per second, so that no asker can take more
+  from the control node than that rate (the replies travel with the
+  query's QoS: the ground asks at zenoh's lowest priority, with DROP
+  congestion control; a reply that blocks on a stalled link holds this
+  thread, never the loop, whose publishers drop);
+* a request that does not check is dropped unanswered and counted
+  (:attr:`RecorderServer.refused`), the reason kept in
+  :attr:`RecorderServer.last_refusal`.
+
+The frames are the recorded telemetry frames, each with its tag: the ground
+checks them as it checks live telemetry. The final reply (kind ``END``)
+says how many frames were sent, how many telemetry loops of the range the
+recorder does not hold (it dropped them, they left the ring, or they are of
+another run), and how many never ran: loop numbers between the recorder's
+oldest and newest that are neither recorded nor dropped are periods the
+CN's scheduler skipped (overruns), of which there never was telemetry.
+"""
+
+from __future__ import annotations
+
+import itertools
+import threading
+import time
+from collections import deque
+from collections.abc import Callable
+from typing import Any
+
+import zenoh
+
+from ..auth import TAG_LEN, AuthError, Channel
+from .format import (
+    DROPPED,
+    FRAME,
+    MAX_REQUEST_LOOPS,
+    REPLY_BYTES,
+    REPLY_END,
+    REPLY_FRAMES,
+    REPLY_LEN,
+    REPLY_TOTALS,
+    REQUEST,
+    REQUEST_MAGIC,
+)
+from .reader import counts, scan_segment
+from .writer import FlightRecorder
+
+__all__ = ["MAX_PENDING", "WRITE_WAIT_S", "RecorderServer"]
+
+MAX_PENDING = 2
+"""Requests waiting or being served; any more are dropped unanswered."""
+WRITE_WAIT_S = 1.0
+"""How long a request for loops still in the recorder's buffer waits for them
+to be written (then what is in the files is sent)."""
+
+
+class RecorderServer:
+    """Serves gap-fill requests from ``recorder``'s files (module doc).
+
+    ``channel``: the telemetry channel (its own instance: channels are not
+    thread-safe), None when the mission does not authenticate; ``now_ns``:
+    this node's clock; ``max_age_ns``: how far a request's stamp may be from
+    it; ``divisor``: the mission's telemetry divisor. Declares the
+    queryable and starts the thread at construction; :meth:`close` stops
+    both (idempotent)."""
+
+    def __init__(
+        self,
+        session: zenoh.Session,
+        key_expr: str,
+        recorder: FlightRecorder,
+        channel: Channel | None,
+        *,
+        now_ns: Callable[[], int],
+        max_age_ns: int,
+        serve_bps: int,
+        divisor: int = 1,
+    ) -> None:
+        self.recorder = recorder
+        self._channel = channel
+        self._now = now_ns
+        self._max_age = max_age_ns
+        self._bps = serve_bps
+        self._div = divisor
+        self._key = key_expr
+        self._req_len = REQUEST.size + (TAG_LEN if channel is not None else 0)
+        self._pending: deque[zenoh.Query] = deque()
+        self._cv = threading.Condition()
+        self._stop = False
+        self._closed = False
+        self.served = 0
+        """Requests answered."""
+        self.frames_sent = 0
+        self._refused_rx = 0  # counted on zenoh's thread
+        self._refused_checked = 0  # counted on the serving thread
+        self.busy = 0
+        """Requests dropped unanswered because :data:`MAX_PENDING` were in hand."""
+        self.last_refusal = ""
+        self._thread = threading.Thread(target=self._serve_loop, name="recorder-serve", daemon=True)
+        self._thread.start()
+        self.queryable = session.declare_queryable(
+            key_expr, zenoh.handlers.Callback(self._on_query, indirect=False)
+        )
+
+    # zenoh's thread: check the size, hand off, nothing more.
+    def _on_query(self, query: zenoh.Query) -> None:
+        p = query.payload
+        if p is None or len(p) != self._req_len:
+            self._refused_rx += 1
+            self.last_refusal = f"a request of {0 if p is None else len(p)} bytes"
+            query.drop()
+            return
+        with self._cv:
+            if len(self._pending) >= MAX_PENDING:
+                self.busy += 1
+                query.drop()
+                return
+            self._pending.append(query)
+            self._cv.notify()
+
+    def _serve_loop(self) -> None:
+        while True:
+            with self._cv:
+                while not self._pending and not self._stop:
+                    self._cv.wait()
+                if self._stop:
+                    return
+                query = self._pending[0]
+            try:
+                with query:
+                    self._serve(query)
+            except zenoh.ZError as exc:  # the asker went away mid-answer
+                self.last_refusal = f"a reply failed: {exc}"
+            finally:
+                with self._cv:
+                    self._pending.popleft()
+
+    @property
+    def refused(self) -> int:
+        """Requests dropped unanswered because they did not check."""
+        return self._refused_rx + self._refused_checked
+
+    def _refuse(self, why: str) -> None:
+        self._refused_checked += 1
+        self.last_refusal = why
+
+    def _serve(self, query: zenoh.Query) -> None:
+        payload = query.payload
+        data = payload.to_bytes() if payload is not None else b""
+        ch = self._channel
+        try:
+            body: Any = ch.open(data) if ch is not None else data
+        except AuthError as exc:
+            self._refuse(str(exc))
+            return
+        magic, run, first, last, t_ns = REQUEST.unpack(body)
+        if magic != REQUEST_MAGIC:
+            self._refuse("not a recorder request")
+            return
+        age = self._now() - t_ns
+        if abs(age) > self._max_age:
+            self._refuse(f"a request stamped {age / 1e9:+.3f} s from this node's clock")
+            return
+        if first < 1 or last < first or last - first >= MAX_REQUEST_LOOPS:
+            self._refuse(f"a range of loops {first}..{last}")
+            return
+        rec = self.recorder
+        div = self._div
+        asked = set(range(first + (-first) % div, last + 1, div))  # the telemetry loops
+        sent: set[int] = set()
+        dropped: set[int] = set()
+        not_run: set[int] = set()
+        if run == rec.run:
+            # The newest loops may still be in the recorder's buffer: give
+            # its writer (one interval, normally) to put them in a file.
+            deadline = time.monotonic() + WRITE_WAIT_S
+            while rec.written_loop < min(last, rec.loop) and time.monotonic() < deadline:
+                time.sleep(0.005)
+            with rec.lock:
+                # This run's segments from the first whose frames reach the
+                # range (a DROPPED record may sit after the range's last
+                # frame); size as written (the newest one is still growing).
+                ours = [s for s in rec.segments if s.run == run and s.first]
+                todo = [(s.path, s.size) for s in ours if s.last >= first]
+                oldest = ours[0].first if ours else 0
+            self._send(query, todo, first, last, sent, dropped)
+            # A loop between the oldest and the newest recorded, neither
+            # recorded nor dropped, never ran: the CN's scheduler skipped
+            # its period (an overrun), so there never was such telemetry.
+            if oldest:
+                top = rec.written_loop
+                not_run = {n for n in asked - sent - dropped if oldest <= n <= top}
+        not_held = len(asked - sent - not_run)
+        tail = bytes([REPLY_END]) + REPLY_TOTALS.pack(len(sent), not_held, len(not_run))
+        self._reply(query, tail)
+        self.served += 1
+
+    def _send(
+        self,
+        query: zenoh.Query,
+        todo: list[tuple[Any, int]],
+        first: int,
+        last: int,
+        sent: set[int],
+        dropped: set[int],
+    ) -> None:
+        """Reply with every recorded frame of ``first..last``, in chunks,
+        paced; note the loops sent and those the recorder said it dropped."""
+
+        def want(typ: int, loop: int) -> bool:
+            return typ in (FRAME, DROPPED) and loop >= first
+
+        start = time.monotonic()
+        out = bytearray([REPLY_FRAMES])
+        nbytes = 0
+        records = itertools.chain.from_iterable(
+            scan_segment(path, lambda _t: None, limit=size, want=want) for path, size in todo
+        )
+        for r in records:
+            if r.type == DROPPED:
+                c = counts(r.payload)
+                if c is not None:
+                    dropped.update(range(max(c[0], first), min(c[1], last) + 1))
+                continue
+            if r.loop > last:  # past the range, and past any DROPPED record of it
+                break
+            if len(out) > 1 and len(out) + REPLY_LEN.size + len(r.payload) > REPLY_BYTES:
+                nbytes += self._reply(query, out)
+                self._pace(start, nbytes)
+                out = bytearray([REPLY_FRAMES])
+            out += REPLY_LEN.pack(len(r.payload))
+            out += r.payload
+            sent.add(r.loop)
+        if len(out) > 1:
+            nbytes += self._reply(query, out)
+            self._pace(start, nbytes)
+        self.frames_sent += len(sent)
+
+    def _reply(self, query: zenoh.Query, payload: bytes | bytearray) -> int:
+        # A reply travels with its query's QoS (zenoh 1.x): the ground asks
+        # at the lowest priority, with DROP congestion control.
+        query.reply(self._key, bytes(payload))
+        return len(payload)
+
+    def _pace(self, start: float, nbytes: int) -> None:
+        """Sleep until ``nbytes`` since ``start`` is within ``serve_bps``."""
+        ahead = nbytes / self._bps - (time.monotonic() - start)
+        if ahead > 0:
+            time.sleep(ahead)
+
+    def close(self) -> None:
+        """Undeclare the queryable and stop the thread (after the request in
+        hand, if any). Idempotent."""
+        if self._closed:
+            return
+        self._closed = True
+        self.queryable.undeclare()
+        with self._cv:
+            self._stop = True
+            self._cv.notify()
+        self._thread.join(timeout=5)
+        with self._cv:
+            while self._pending:  # asked too late: finalised unanswered
+                self._pending.popleft().drop()
