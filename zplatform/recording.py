@@ -126,7 +126,7 @@ MAX_META_BYTES = 64 * 1024
 MAX_MISSION_BYTES = 64 * 1024 * 1024
 """The longest recorded ``mission.yaml`` a reader takes (a 100,000-element
 mission is about 4 MB)."""
-_MAX_SAVE_DETAIL = 512  # bytes of a PRM_SAVED item's detail (likewise)
+_MAX_SAVE_DETAIL = 512  # bytes of a PRM_SAVED item's detail (the recorder truncates to it)
 # Items a loop may hold: the live CN takes one reply per DN and query (a
 # few more from late repliers) and the frames of its command inbox. A
 # recording over these is not one a CN made, and reading it must not grow
