@@ -17,6 +17,10 @@ same scheduling (see *Scheduling* below):
 * ``zplatform_wildcard_3dn``: the same with ``sync_query: wildcard`` (one
   query per loop with every DN's frame), and ``zplatform_lowlatency_3dn``
   with ``lowlatency: true``: the levers, measured;
+* ``zplatform_mtls_1dn`` / ``zplatform_mtls_3dn``: the first two over mutual
+  TLS with access control (``security.transport: mtls``, the default of a
+  mission with hazardous commands), from a PKI made for the run: what the
+  secure default costs (``ratios_p50``: mtls over plain);
 * ``raw_zenoh_1`` / ``raw_zenoh_3``: bare zenoh ``get``/``reply`` with zenoh's
   default transport (:func:`bench.baselines.run_baseline`): the floor;
   ``raw_zenoh_lowlatency_3``: the same on the lowlatency transport;
@@ -72,6 +76,8 @@ import numpy as np
 from bench.baselines import run_baseline
 from bench.cluster import BenchCluster, SyncSamples, make_mission
 from bench.common import RESULTS_DIR, bench_argparser, summarize, write_result
+from zplatform.deploy import DEPLOYMENT_ENV
+from zplatform.pki import DEPLOYMENT_FILE, ensure_pki
 
 RATE_HZ = 100.0
 REGION_BYTES = 256
@@ -94,6 +100,7 @@ class Variant:
     lowlatency: bool | str = False
     wildcard: bool = False
     sync_query: str | None = None
+    transport: str | None = None  # zplatform: the mission's security.transport
 
 
 VARIANTS: tuple[Variant, ...] = (
@@ -101,6 +108,8 @@ VARIANTS: tuple[Variant, ...] = (
     Variant("zplatform_3dn", "zplatform", 3),
     Variant("zplatform_wildcard_3dn", "zplatform", 3, sync_query="wildcard"),
     Variant("zplatform_lowlatency_3dn", "zplatform", 3, True),
+    Variant("zplatform_mtls_1dn", "zplatform", 1, transport="mtls"),
+    Variant("zplatform_mtls_3dn", "zplatform", 3, transport="mtls"),
     Variant("raw_zenoh_1", "zenoh", 1),
     Variant("raw_zenoh_3", "zenoh", 3),
     Variant("raw_zenoh_lowlatency_3", "zenoh", 3, True),
@@ -140,8 +149,13 @@ def run_zplatform(
     lowlatency: bool | str = False,
     sync_query: str | None = None,
     priority: int = PRIORITY,
+    transport: str | None = None,
 ) -> dict[str, Any]:
     """Run a zplatform cluster (``n_dn`` DN processes, CN here) for ``duration_s``.
+
+    ``transport="mtls"``: over mutual TLS, with a PKI made in the run's
+    temporary directory and named by ``ZPLATFORM_DEPLOYMENT`` for the run
+    (this process and the DNs).
 
     Blocks for the start-up of the DNs plus ``rate_hz × duration_s`` loops of
     the CN's real loop. Returns the :func:`bench.common.summarize` figures of
@@ -164,8 +178,13 @@ def run_zplatform(
             lowlatency=lowlatency,
             sync_query=sync_query,
             priority=priority if priority > 0 else None,
+            transport=transport,
         )
         hook = SyncSamples(loops)
+        deployment = os.environ.get(DEPLOYMENT_ENV)
+        if transport == "mtls":
+            ensure_pki(tmpdir / "pki", ["cn", *(f"dn{i}" for i in range(n_dn))])
+            os.environ[DEPLOYMENT_ENV] = str(tmpdir / "pki" / DEPLOYMENT_FILE)
 
         try:
             with BenchCluster(mission, realtime=priority > 0) as c:
@@ -179,6 +198,11 @@ def run_zplatform(
             for log in sorted(tmpdir.glob("*.log")):
                 print(f"--- {log.name}\n{log.read_text(errors='replace')[-4000:]}", flush=True)
             raise
+        finally:
+            if deployment is None:
+                os.environ.pop(DEPLOYMENT_ENV, None)
+            else:
+                os.environ[DEPLOYMENT_ENV] = deployment
     got = hook.count
     d = hook.duration_ns[:got]
     ok = (hook.replied[:got] == n_dn) & (d < deadline_ns)
@@ -214,6 +238,7 @@ def run_variant(v: Variant, *, duration_s: float, priority: int) -> dict[str, An
             lowlatency=v.lowlatency,
             sync_query=v.sync_query,
             priority=priority,
+            transport=v.transport,
         )
     else:
         res = run_baseline(
@@ -290,6 +315,8 @@ def ratios(variants: dict[str, dict[str, Any]]) -> dict[str, float | None]:
             "raw_zenoh_wildcard_lowlatency_3",
             "raw_zenoh_lowlatency_3",
         ),
+        "zplatform_mtls_1dn/zplatform_1dn": ("zplatform_mtls_1dn", "zplatform_1dn"),
+        "zplatform_mtls_3dn/zplatform_3dn": ("zplatform_mtls_3dn", "zplatform_3dn"),
         "zplatform_1dn/raw_udp_1": ("zplatform_1dn", "raw_udp_1"),
         "zplatform_3dn/raw_udp_3": ("zplatform_3dn", "raw_udp_3"),
         "raw_zenoh_3/raw_udp_3": ("raw_zenoh_3", "raw_udp_3"),

@@ -2,8 +2,12 @@
 
 Every mission authenticates its traffic by default, so every node process a
 test starts needs the mission key. The tests run with one random key in the
-environment (``ZPLATFORM_KEY``), which the processes they spawn inherit;
-nothing is written to the user's key directory.
+environment (``ZPLATFORM_KEY``), which the processes they spawn inherit.
+
+Nothing is written to the user's configuration: ``XDG_CONFIG_HOME`` points
+at a directory of this session's own (removed at exit), so a key set and
+mission PKI that ``up`` (or a test) makes land there, and no deployment
+named by the user's environment is used.
 
 Hypothesis runs without its per-example deadline (200 ms by default): the
 suite must pass on a busy 2-core box beside a CPU hog, where one example may
@@ -32,6 +36,10 @@ from hypothesis import settings
 
 os.environ.setdefault("ZPLATFORM_KEY", secrets.token_hex(32))
 os.environ.pop("ZPLATFORM_KEY_FILE", None)
+os.environ.pop("ZPLATFORM_DEPLOYMENT", None)
+_CONFIG_HOME = tempfile.mkdtemp(prefix="zplatform-test-config-")
+os.environ["XDG_CONFIG_HOME"] = _CONFIG_HOME
+atexit.register(shutil.rmtree, _CONFIG_HOME, ignore_errors=True)
 
 settings.register_profile("zplatform", deadline=None)
 settings.load_profile("zplatform")

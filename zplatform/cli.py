@@ -17,6 +17,7 @@ import json
 import os
 import sys
 from collections.abc import Callable, Sequence
+from pathlib import Path
 
 import msgspec
 
@@ -77,11 +78,36 @@ def _mission_report(m: Mission) -> dict[str, object]:
     }
 
 
+def _links_report(m: Mission) -> tuple[dict[str, object], str]:
+    """How the mission's links are secured, and the deployment a session on
+    this host would use (checked to fit: DeploymentError otherwise), as
+    report fields and one line of text."""
+    from .config import transport_reason
+    from .deploy import find_deployment, require_deployment
+
+    why = transport_reason(m)
+    if not m.mtls:
+        return {"transport": "plain", "deployment": None}, f"links: plain ({why})"
+    path = find_deployment(m)
+    if path is None:
+        where = (
+            "no deployment on this host yet (`zplatform keygen MISSION_FILE` makes the "
+            "mission's PKI; `up` does on first use)"
+        )
+    else:
+        require_deployment(m)
+        where = f"deployment {path}"
+    text = f"links: mutual TLS with access control ({why}); {where}"
+    return {"transport": "mtls", "deployment": None if path is None else str(path)}, text
+
+
 def cmd_check(args: argparse.Namespace) -> int:
-    """Validate; print the report and the safety warnings (:mod:`zplatform.safety`).
+    """Validate; print the report, the links' security and the safety
+    warnings (:mod:`zplatform.safety`).
 
     Exit 0 with warnings, 2 with ``--strict`` (each warning printed as an
-    error line), 2 for a mission that does not load."""
+    error line), 2 for a mission that does not load or a deployment that
+    does not fit it."""
     from .safety import safety_warnings
 
     # load_mission builds every controller and device on scratch vectors,
@@ -89,6 +115,8 @@ def cmd_check(args: argparse.Namespace) -> int:
     m = load_mission(args.mission)
     warnings = safety_warnings(m)
     rep = _mission_report(m)
+    links, links_text = _links_report(m)
+    rep.update(links)
     rc = 2 if args.strict and warnings else 0
     if args.json:
         rep["warnings"] = [msgspec.to_builtins(w) for w in warnings]
@@ -105,6 +133,7 @@ def cmd_check(args: argparse.Namespace) -> int:
         f"mission {rep['mission']}: OK{flagged}  ({len(m.nodes)} nodes, {m.loop_hz:g} Hz, "
         f"sync deadline {m.sync_timeout_ms:g} ms)"
     )
+    print(links_text)
     for r in rep["regions"]:  # type: ignore[attr-defined]
         print(
             f"\nregion {r['region']}  {r['size']} B  frame {r['frame_bytes']} B  "
@@ -145,9 +174,31 @@ def cmd_ps(args: argparse.Namespace) -> int:
 MISSION_HELP = "mission YAML file, or the name of a running mission (`zplatform ps`)"
 
 
+def _keygen_pki(mission: Mission, where: Path) -> None:
+    """keygen's PKI step (:mod:`zplatform.pki`): for a mission whose links run
+    mutual TLS, make what its PKI in ``where`` (beside the key set) lacks and
+    say which file goes to which host."""
+    from .config import transport_reason
+    from .pki import ensure_mission_pki, host_files
+
+    if not mission.mtls:
+        print(f"no certificates: its links are plain ({transport_reason(mission)})")
+        return
+    pki = ensure_mission_pki(mission, where)
+    made = f"made {', '.join(pki.made)}" if pki.made else "every certificate was there"
+    print(
+        f"the PKI of its mutual TLS links ({transport_reason(mission)}) is beside it "
+        f"({made}):"
+    )
+    for who, files in host_files(mission):
+        print(f"  {' '.join(files):<32} -> {who}")
+
+
 def cmd_keygen(args: argparse.Namespace) -> int:
     """Write a new key set (one file per host role, mode 0600, in a 0700
-    directory) and say which file goes to which host; refuses to overwrite one."""
+    directory) and, for a mission whose links run mutual TLS, the mission's
+    PKI beside it (only what is missing); say which file goes to which host.
+    Refuses to overwrite a key set."""
     from .auth import (
         KEY_FILE_ENV,
         default_key_dir,
@@ -158,12 +209,13 @@ def cmd_keygen(args: argparse.Namespace) -> int:
     )
 
     mission = load_mission(resolve_mission(args.target), code=False)
-    where = args.out or default_key_dir(mission)
+    where = Path(args.out) if args.out else default_key_dir(mission)
     files = write_key_set(mission, where)
     print(f"wrote the key set of mission {mission.mission!r} to {where}/ (one file per host role):")
     for role in host_roles(mission):
         links = ", ".join(role_links(mission, role))
         print(f"  {files[role].name:<10} -> {role_host(role):<46} {links}")
+    _keygen_pki(mission, where)
     print(
         "copy each file to its host only, into the same directory (or point "
         f"{KEY_FILE_ENV} at it); a single host (zplatform up) uses the directory as it is"
@@ -213,7 +265,8 @@ def build_parser() -> argparse.ArgumentParser:
     c.set_defaults(func=cmd_check)
     c = sub.add_parser(
         "keygen",
-        help="make the mission's key set: one key file per host role (cn, each dn, gn, tool)",
+        help="make the mission's key set (one key file per host role: cn, each dn, gn, "
+        "tool) and the certificates of a mission whose links run mutual TLS",
     )
     # Not `mission`: main() would load it with its code; keygen needs only the nodes.
     c.add_argument("target", metavar="MISSION", help=MISSION_HELP)

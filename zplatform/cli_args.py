@@ -112,9 +112,10 @@ def check_output(path: str | os.PathLike[str], what: str) -> None:
 
 
 def _tcp_host_port(endpoint: str) -> tuple[str, int] | None:
-    """``tcp/HOST:PORT`` -> (host, port); None for other protocols or shapes."""
+    """``tcp/HOST:PORT`` or ``tls/HOST:PORT`` -> (host, port); None for other
+    protocols or shapes."""
     proto, _, rest = endpoint.partition("/")
-    if proto != "tcp":
+    if proto not in ("tcp", "tls"):
         return None
     rest = rest.split("#", 1)[0]
     host, sep, port = rest.rpartition(":")

@@ -10,6 +10,7 @@ and prints.
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 from pathlib import Path
 
@@ -347,14 +348,26 @@ def cmd_up(args: argparse.Namespace) -> int:
     the mission, the command script, unwritable output paths, listen ports
     already in use; then :func:`zplatform.supervisor.run_up`."""
     from .auth import load_keys
+    from .deploy import DEPLOYMENT_ENV, default_deployment_path
+    from .pki import ensure_mission_pki
     from .supervisor import run_up
 
     mission = load_mission(args.mission)
     # First use on this host: make the mission's key set (every node finds its
     # own). Every node it spawns needs its keys: a missing one is one error
-    # line now, before anything runs.
+    # line now, before anything runs...
     for role in ("cn", *mission.device_nodes, *(["gn"] if mission.has_ground else [])):
         load_keys(mission, role, create=True)
+    # ...and, for links that run mutual TLS, the mission's PKI beside the key
+    # set, where every node's session looks for it (unless ZPLATFORM_DEPLOYMENT
+    # names another deployment).
+    if mission.mtls and not os.environ.get(DEPLOYMENT_ENV):
+        pki = ensure_mission_pki(mission, default_deployment_path(mission).parent)
+        if pki.made:
+            print(
+                f"zplatform up: made the certificates of {mission.mission!r} for mutual TLS "
+                f"({', '.join(pki.made)}) in {pki.directory}"
+            )
     if args.commands:
         from .uplink import load_commands
 

@@ -12,10 +12,15 @@ so the consequences of the last command play out: the recovery igniter's
 ``at 0.6 launch`` reaches DEPLOYED at ~11.7 s. Events go beside the CSV
 (``sim.csv`` -> ``sim.events.jsonl``) when the runner reports them.
 
-``zplatform replay DIR [--log CSV]`` feeds a recording made by ``up --record
-DIR`` through the control loop and checks that the telemetry is
-bit-identical to what was recorded live; exits 0 when it is, 1 (naming the
-first differing loop and element) when it is not, 2 for a bad recording.
+``zplatform replay DIR --mission FILE [--log CSV]`` feeds a recording made
+by ``up --record DIR`` through the control loop of the mission in ``FILE``
+(which must be the recorded mission: a replay never runs code a recording
+names) and checks that the telemetry is bit-identical to what was recorded
+live; exits 0 when it is, 1 (naming the first differing loop and element)
+when it is not, 2 for a bad recording or another mission. Without
+``--mission`` only what needs no mission code runs: ``--list`` (the
+recorded loops) and ``--log CSV`` (the recorded telemetry); bare, it says
+that it needs ``--mission`` (exit 2).
 """
 
 from __future__ import annotations
@@ -28,6 +33,8 @@ from pathlib import Path
 import msgspec
 
 from .cli_args import check_output, positive_float
+from .datavector import Layout
+from .errors import CommandError
 from .ground.records import EventRecord, format_outcome
 from .ground.script import MIN_DURATION_S, SETTLE_S, script_duration_s
 from .lockstep import LockstepRunner, replay
@@ -75,20 +82,24 @@ def cmd_sim(args: argparse.Namespace) -> int:
 
 
 def cmd_replay(args: argparse.Namespace) -> int:
+    if args.mission is None and not (args.list or args.log):
+        raise CommandError(
+            "a replay runs the mission's code, which is never taken from a recording: pass "
+            "the mission file that was recorded (--mission FILE); without it, --list shows "
+            "the recorded loops and --log CSV writes the recorded telemetry"
+        )
     if args.log:
         check_output(args.log, "telemetry log")
     if args.summary:
         check_output(args.summary, "summary")
+    if args.mission is None:
+        return _read_recording(args)
+    mission = args.mission
     if args.log:
-        from .datavector import Layout
-        from .recording import MISSION_FILE
-
-        recorded = load_mission(Path(args.directory) / MISSION_FILE, code=False)
-        layout = Layout.for_node(recorded, "cn")
-        with CsvLogger(args.log, layout) as log:
-            res = replay(args.directory, log=log)
+        with CsvLogger(args.log, Layout.for_node(load_mission(mission), "cn")) as log:
+            res = replay(args.directory, mission, log=log)
     else:
-        res = replay(args.directory)
+        res = replay(args.directory, mission)
     print(
         f"replay {res.mission}: loops {res.first_loop}..{res.last_loop} ({res.loops} loops, "
         f"{res.telemetry_frames} telemetry frames compared); final state {res.final_state}"
@@ -110,6 +121,32 @@ def cmd_replay(args: argparse.Namespace) -> int:
         print("  the recording holds no complete loop")
         return 1
     print("  telemetry bit-identical to the live run")
+    return 0
+
+
+def _read_recording(args: argparse.Namespace) -> int:
+    """``replay DIR --list/--log`` without a mission file: no code runs."""
+    from .recording import RecordReader, read_recording
+
+    listing = sys.stdout if args.list else None
+    if args.log:
+        with RecordReader(args.directory) as reader:  # the layout, from the recorded mission
+            layout = reader.layout
+        with CsvLogger(args.log, layout) as log:
+            s = read_recording(args.directory, log=log, listing=listing)
+    else:
+        s = read_recording(args.directory, listing=listing)
+    print(
+        f"recording of {s.mission}: loops {s.first_loop}..{s.last_loop} ({s.loops} loops, "
+        f"{s.telemetry_frames} telemetry frames"
+        + (f" -> {args.log}" if args.log else "")
+        + f"); last recorded state {s.final_state or '-'}"
+    )
+    if not s.complete:
+        print(f"  the recording is incomplete (dropped loops: {s.dropped_loops})")
+    if args.summary:
+        Path(args.summary).write_text(json.dumps(msgspec.to_builtins(s), indent=2) + "\n")
+    print("  not replayed: pass the recorded mission's file (--mission FILE) to replay it")
     return 0
 
 
@@ -138,8 +175,26 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p = sub.add_parser(
         "replay",
         help="replay a recorded live run through the lockstep runner; check it bit for bit",
+        description="Replay a recording (`up --record DIR`) through the control loop of the "
+        "mission file given with --mission, which must be the recorded mission, and check "
+        "the telemetry bit for bit. A recording is never trusted: no code it names is "
+        "imported, and without --mission only --list and --log read it.",
     )
     p.add_argument("directory", metavar="DIR", help="a recording made by `up --record DIR`")
-    p.add_argument("--log", metavar="CSV", help="also write the replayed telemetry as CSV")
-    p.add_argument("--summary", metavar="JSON", help="write the replay result as JSON")
+    how = p.add_mutually_exclusive_group()
+    how.add_argument(
+        "--mission",
+        metavar="FILE",
+        help="the recorded mission's file, or a running mission's name (its code runs; the "
+        "recording must be of it)",
+    )
+    how.add_argument(
+        "--list", action="store_true", help="list the recorded loops (no mission code runs)"
+    )
+    p.add_argument(
+        "--log",
+        metavar="CSV",
+        help="write the telemetry as CSV: replayed with --mission, else as recorded",
+    )
+    p.add_argument("--summary", metavar="JSON", help="write the result as JSON")
     p.set_defaults(func=cmd_replay)

@@ -79,6 +79,7 @@ __all__ = [
     "platform_elements",
     "relocate_mission",
     "resolve_pythonpath",
+    "transport_reason",
 ]
 
 Scalar = int | float | bool | str
@@ -232,8 +233,9 @@ class NodeConfig(_Struct):
         list[str],
         Meta(
             description="Endpoints this node listens on, `<proto>/<host>:<port>` (`tcp`, "
-            "`udp`, `tls` with a deployment file, `ws`; `unixsock-stream/<path>`). An "
-            "endpoint is listened on by one node only."
+            "`udp`, `tls`, `ws`; `unixsock-stream/<path>`). An endpoint is listened on by one "
+            "node only. When the mission's links run mutual TLS (`security.transport`), `tcp` "
+            "runs as `tls` and only `tcp`/`tls` endpoints are allowed."
         ),
     ] = msgspec.field(default_factory=list)
     connect: Annotated[
@@ -748,7 +750,8 @@ class RecorderConfig(_Struct):
 
 
 class SecurityConfig(_Struct):
-    """Authentication of every frame a node takes from the network."""
+    """Authentication of every frame a node takes from the network, and of
+    every peer that may open a link at all."""
 
     auth: Annotated[
         bool,
@@ -761,6 +764,20 @@ class SecurityConfig(_Struct):
             "test benches."
         ),
     ] = True
+    transport: Annotated[
+        Literal["auto", "mtls", "plain"],
+        Meta(
+            description="How the nodes' links are secured. `mtls`: every `tcp/` endpoint runs "
+            "as `tls/` with mutual TLS and a zenoh access-control list keyed by each peer's "
+            "certificate (its node name): a peer without a certificate from the mission's CA "
+            "gets no session at all. The certificates live outside the mission, in a "
+            "deployment file (`zplatform keygen MISSION` makes them; `up` does on first use). "
+            "`plain`: unauthenticated links (frames are still tagged, `auth`); for closed "
+            "benches and tests, and `zplatform check` warns when a mission with hazardous "
+            "commands says so. `auto` (default): `mtls` when the mission has hazardous "
+            "commands (`commands.hazardous`) or a `tls/` endpoint, else `plain`."
+        ),
+    ] = "auto"
     mac: Annotated[
         Literal["blake3", "hmac-sha256"],
         Meta(
@@ -1497,6 +1514,18 @@ class Mission(_Struct):
         return "gn" in self.nodes
 
     @property
+    def mtls(self) -> bool:
+        """Whether the mission's links run mutual TLS (``security.transport``
+        resolved: ``auto`` is mtls with hazardous commands or a ``tls/``
+        endpoint). A loaded mission's endpoints are then all ``tls/``."""
+        t = self.security.transport
+        if t != "auto":
+            return t == "mtls"
+        return bool(self.commands.hazardous) or any(
+            ep.startswith("tls/") for n in self.nodes.values() for ep in [*n.listen, *n.connect]
+        )
+
+    @property
     def recording_nodes(self) -> list[str]:
         """The nodes whose flight recorder runs (``recorder.nodes``, by default
         the CN and every device node); empty without a ``recorder`` section."""
@@ -1725,16 +1754,21 @@ def _check_mission(m: Mission) -> None:
             f"device nodes must be numbered dn0..dn{len(dns) - 1} without gaps, got {dns}",
             "$.nodes",
         )
+    mtls = m.mtls  # before any endpoint is rewritten
+    why = transport_reason(m)
     seen: dict[str, str] = {}
     for name, node in m.nodes.items():
         for i, ep in enumerate(node.listen):
             where = f"$.nodes.{name}.listen[{i}]"
             _check_endpoint(ep, where)
+            ep = node.listen[i] = _link_endpoint(ep, mtls, why, where)
             if ep in seen:
                 raise ConfigError(f"endpoint {ep!r} is also listened on by {seen[ep]}", where)
             seen[ep] = name
         for i, ep in enumerate(node.connect):
-            _check_endpoint(ep, f"$.nodes.{name}.connect[{i}]")
+            where = f"$.nodes.{name}.connect[{i}]"
+            _check_endpoint(ep, where)
+            node.connect[i] = _link_endpoint(ep, mtls, why, where)
     if m.sync_timeout_ms * 1e6 >= m.period_ns:
         raise ConfigError(
             f"sync_timeout_ms {m.sync_timeout_ms} must be shorter than the loop period "
@@ -1769,16 +1803,53 @@ def _check_endpoint(ep: str, where: str) -> None:
         # deployment file (zplatform.deploy) is tested with tls/ only.
         raise ConfigError(
             f"endpoint {ep!r}: quic/ needs TLS certificate settings from a deployment file, "
-            "which zplatform does not support for quic yet; use tls/ (with a deployment "
-            "file, see zplatform.deploy) or tcp/ on a trusted network",
+            "which zplatform does not support for quic yet; use tcp/ (it runs as tls/ with "
+            "mutual TLS under security.transport: mtls, see zplatform.deploy)",
             where,
         )
     # A tls/ endpoint is structurally fine here; its certificate settings come
-    # from the deployment file, checked by zplatform.mission.check_mission.
+    # from the deployment file, which the session reads (zplatform.deploy).
     if m.group(1) in ("tcp", "udp", "tls", "quic", "ws"):
         host, sep, port = m.group(2).rpartition(":")
         if not sep or not host or not port.isdigit() or not 0 <= int(port) <= 65535:
             raise ConfigError(f"endpoint {ep!r} needs host:port with a port 0-65535", where)
+
+
+def transport_reason(m: Mission) -> str:
+    """Why the mission's links run mutual TLS, or plain (for messages):
+    ``security.transport is auto and the mission has hazardous commands``."""
+    if m.security.transport != "auto":
+        return f"security.transport is {m.security.transport}"
+    if not m.mtls:
+        return "security.transport is auto and the mission has no hazardous command"
+    return "security.transport is auto and the mission has " + (
+        "hazardous commands" if m.commands.hazardous else "a tls/ endpoint"
+    )
+
+
+def _link_endpoint(ep: str, mtls: bool, why: str, where: str) -> str:
+    """The endpoint a node actually uses under the mission's transport:
+    ``tcp/`` runs as ``tls/`` under mtls (zplatform.deploy supplies the
+    certificates); ConfigError for an endpoint that cannot (``udp/``, ``ws/``,
+    a unix socket) or for ``tls/`` in a mission that says ``plain``."""
+    proto = ep.partition("/")[0]
+    if not mtls:
+        if proto == "tls":
+            raise ConfigError(
+                f"endpoint {ep!r} is tls/, but security.transport is plain: say "
+                "security.transport: mtls (or auto), or use tcp/",
+                where,
+            )
+        return ep
+    if proto == "tcp":
+        return "tls/" + ep[4:]
+    if proto == "tls":
+        return ep
+    raise ConfigError(
+        f"endpoint {ep!r} cannot carry mutual TLS, which this mission's links run ({why}): "
+        "use tcp/ (it runs as tls/), or say security.transport: plain on a closed network",
+        where,
+    )
 
 
 def platform_elements(m: Mission) -> dict[str, list[ElementConfig]]:

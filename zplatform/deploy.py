@@ -5,23 +5,37 @@ A mission YAML is shared and versioned; certificate and key *paths* are not
 **deployment file**::
 
     # deployment.yaml (relative paths are relative to this file)
-    ca: pki/ca.pem                 # the mission CA: every peer's cert must chain to it
+    ca: ca.pem                     # the mission CA: every peer's cert must chain to it
     nodes:
-      cn:  {cert: pki/cn.pem,  key: pki/cn.key}
-      dn0: {cert: pki/dn0.pem, key: pki/dn0.key}
-      gn:  {cert: pki/gn.pem,  key: pki/gn.key}
-    tool: {cert: pki/tool.pem, key: pki/tool.key, may_command: false}   # optional
+      cn:  {cert: cn.pem,  key: cn.tls.key}
+      dn0: {cert: dn0.pem, key: dn0.tls.key}
+      gn:  {cert: gn.pem,  key: gn.tls.key}
+    tool: {cert: tool.pem, key: tool.tls.key, may_command: true}   # optional
     access_control: true           # optional, default true
 
 Contract:
 
-* A mission whose endpoints use ``tls/`` is valid only together with a
-  deployment that names a cert and key for every node that listens or
-  connects over tls (:func:`check_deployment`). Loading a mission
-  (:func:`zplatform.mission.load_mission`) therefore reads the deployment
-  named by :data:`DEPLOYMENT_ENV` (``ZPLATFORM_DEPLOYMENT``) when the mission
-  has tls endpoints, and refuses the mission when there is none: ``zplatform
-  check`` never accepts a tls endpoint that could not start.
+* Which missions need one: those whose links run mutual TLS
+  (:attr:`zplatform.config.Mission.mtls`, from ``security.transport``:
+  ``auto`` means mtls for a mission with hazardous commands). Loading such
+  a mission turns its ``tcp/`` endpoints into ``tls/``; every session it
+  opens (every verb: ``up``, ``node``, ``cmd``, ``tap``, ``log``,
+  ``ground``, the console, through :class:`zplatform.transport.NodeSession`)
+  takes its deployment from :func:`require_deployment`, the one way to find
+  it: the file named by :data:`DEPLOYMENT_ENV` (``ZPLATFORM_DEPLOYMENT``),
+  else the deployment beside the host's key set
+  (:func:`default_deployment_path`, ``~/.config/zplatform/keys/<mission>/
+  deployment.yaml`` by default), which ``zplatform keygen MISSION`` writes
+  with the key set and the mission's PKI (:mod:`zplatform.pki`) and
+  ``zplatform up`` on first use.
+  A mission that needs one and has none never opens a session: the error
+  says how to make one. Loading a mission does not need the deployment
+  (``check``, ``sim`` and ``replay`` run on any host); ``check`` says which
+  one a session would use, and refuses one that does not fit.
+* A deployment names every node's cert and key, but a host holds only its
+  own: the CA is checked to exist when the file is read, a node's cert and
+  key when a session presents them (:func:`tls_settings`), and a private
+  key that others may read is refused there (as ssh refuses such keys).
 * Every node runs **mutual TLS** (``enable_mtls``): a peer without a cert
   signed by the mission CA cannot open a link at all, neither to a node's
   listener nor as the listener a node connects to.
@@ -40,17 +54,17 @@ Contract:
     CN's flight recorder ``{vehicle}/cn/recorder`` (gap fill), when the
     mission has one;
   - every identity may subscribe to ``{vehicle}/**`` and watch liveliness;
-  - ``tool`` (``tap``, ``log``, ``cmd``) only subscribes and watches, and
-    puts ``{vehicle}/gn/to_cn`` (operator commands) only with
+  - ``tool`` (``tap``, ``log``, ``cmd``, ``ground``) only subscribes and
+    watches, and puts ``{vehicle}/gn/to_cn`` (operator commands) only with
     ``may_command: true``.
 
   A node egresses only to identities it knows (the node names and ``tool``):
   a cert from the mission CA with any other common name gets nothing.
 
-The files named are only checked to exist at load; zenoh reads them when
-the session opens. The deployment says nothing for ``tcp/`` and ``udp/``
-endpoints: those links stay unauthenticated at the link level (frames are
-still HMAC-authenticated, :mod:`zplatform.auth`).
+A mission whose links are plain (``security.transport: plain``, or ``auto``
+without hazardous commands) uses no deployment: those links stay
+unauthenticated at the link level (frames are still authenticated,
+:mod:`zplatform.auth`).
 """
 
 from __future__ import annotations
@@ -73,8 +87,10 @@ __all__ = [
     "ToolIdentity",
     "access_control",
     "check_deployment",
+    "check_tool_may_command",
     "decode_deployment",
-    "deployment_from_env",
+    "default_deployment_path",
+    "find_deployment",
     "load_deployment",
     "require_deployment",
     "tls_nodes",
@@ -175,8 +191,9 @@ def decode_deployment(
     """Decode deployment YAML; relative paths are taken from ``base``.
 
     Raises DeploymentError naming the YAML path. Checks the schema and that
-    every named file exists; not the fit with a mission (see
-    :func:`check_deployment`).
+    the CA file exists (a node's cert and key are checked where they are
+    used, :func:`tls_settings`: a host holds only its own); not the fit with
+    a mission (see :func:`check_deployment`).
     """
     try:
         raw = msgspec.yaml.decode(text)
@@ -192,31 +209,26 @@ def decode_deployment(
         for name, ident in nodes.items():
             _convert(ident, Identity, source, f"$.nodes.{name}")
     dep = _convert(raw, Deployment, source, "$")
-    files = [("$.ca", dep.ca)]
-    for name, ident in dep.nodes.items():
-        files += [(f"$.nodes.{name}.cert", ident.cert), (f"$.nodes.{name}.key", ident.key)]
-    if dep.tool is not None:
-        files += [("$.tool.cert", dep.tool.cert), ("$.tool.key", dep.tool.key)]
-    for where, path in files:
-        if not Path(path).is_file():
-            raise DeploymentError(f"{source}: no such file {path!r}", where)
+    if not Path(dep.ca).is_file():
+        raise DeploymentError(f"{source}: no such file {dep.ca!r}", "$.ca")
     return dep
 
 
 def check_deployment(dep: Deployment, mission: Mission, source: str = "<deployment>") -> None:
-    """Raise DeploymentError unless ``dep`` fits ``mission``: every node it
-    names is a mission node, and every node with a tls endpoint has an identity."""
-    for name in dep.nodes:
-        if name not in mission.nodes:
-            raise DeploymentError(
-                f"{source}: node {name!r} is not in mission {mission.mission!r} "
-                f"(nodes: {sorted(mission.nodes)})",
-                f"$.nodes.{name}",
-            )
+    """Raise DeploymentError unless ``dep`` fits ``mission``: every node with a
+    tls endpoint has an identity, and with access control every endpoint is
+    tls. Identities of nodes the mission does not have are unused (one PKI
+    may serve variants of a mission with fewer nodes)."""
     for name in tls_nodes(mission):
         if name not in dep.nodes:
             raise DeploymentError(
-                f"{source}: node {name!r} has tls/ endpoints but no cert and key here",
+                f"{source}: node {name!r} has tls/ endpoints but no cert and key here"
+                + (
+                    f" (`zplatform keygen {mission.mission}` adds the missing ones to the "
+                    "mission's PKI)"
+                    if Path(source) == default_deployment_path(mission)
+                    else ""
+                ),
                 "$.nodes",
             )
     if dep.access_control and tls_nodes(mission):
@@ -236,6 +248,19 @@ def check_deployment(dep: Deployment, mission: Mission, source: str = "<deployme
             )
 
 
+def check_tool_may_command(dep: Deployment) -> None:
+    """DeploymentError (at ``$.tool.may_command``) unless the deployment's
+    tool identity may put operator commands: a tool that may not would have
+    every request dropped by the nodes' access control, unanswered."""
+    if dep.access_control and (dep.tool is None or not dep.tool.may_command):
+        raise DeploymentError(
+            "this deployment's tool identity may not command (tool.may_command is not true): "
+            "the nodes' access control would drop every request; command from a host whose "
+            "deployment allows it",
+            "$.tool.may_command",
+        )
+
+
 def load_deployment(path: str | Path, mission: Mission | None = None) -> Deployment:
     """Read a deployment file (relative paths relative to it) and, given a
     mission, check that it fits (:func:`check_deployment`).
@@ -253,33 +278,56 @@ def load_deployment(path: str | Path, mission: Mission | None = None) -> Deploym
     return dep
 
 
-def deployment_from_env(mission: Mission) -> Deployment | None:
-    """The deployment named by ``ZPLATFORM_DEPLOYMENT`` (None if unset or empty)."""
-    path = os.environ.get(DEPLOYMENT_ENV)
-    return load_deployment(path, mission) if path else None
+def default_deployment_path(mission: Mission | str) -> Path:
+    """``deployment.yaml`` beside this host's key set: in the directory
+    ``ZPLATFORM_KEY_FILE`` names (or the directory of the key file it
+    names), else in the mission's key set directory
+    (:func:`zplatform.auth.default_key_dir`, ``~/.config/zplatform/keys/
+    <mission>/``). ``keygen`` and ``up`` put the mission's PKI there
+    (:mod:`zplatform.pki`), each role's certificate beside its key file.
+    Reads nothing but the environment and whether the named path is a
+    directory."""
+    from .auth import KEY_FILE_ENV, default_key_dir
+
+    named = os.environ.get(KEY_FILE_ENV)
+    if named:
+        p = Path(named)
+        return (p if p.is_dir() else p.parent) / "deployment.yaml"
+    return default_key_dir(mission) / "deployment.yaml"
+
+
+def find_deployment(mission: Mission) -> Path | None:
+    """The deployment file a session of ``mission`` would use: the one named
+    by ``ZPLATFORM_DEPLOYMENT`` (whether or not it exists: reading it says),
+    else the mission's default one if it exists, else None. Reads nothing."""
+    named = os.environ.get(DEPLOYMENT_ENV)
+    if named:
+        return Path(named)
+    default = default_deployment_path(mission)
+    return default if default.is_file() else None
 
 
 def require_deployment(mission: Mission) -> Deployment | None:
-    """The deployment a mission runs with, from ``ZPLATFORM_DEPLOYMENT``.
-
-    For a mission with tls endpoints it must exist and fit (DeploymentError
-    at the first tls endpoint's YAML path otherwise: a tls endpoint without
-    certificate settings can never start). For other missions: the
-    deployment if one is named (then also checked), else None.
-    """
-    dep = deployment_from_env(mission)
-    if dep is None:
-        for name, n in mission.nodes.items():
-            for field in ("listen", "connect"):
-                for i, ep in enumerate(getattr(n, field)):
-                    if ep.startswith(_TLS_PROTOS):
-                        raise DeploymentError(
-                            f"endpoint {ep!r}: tls/ needs TLS certificate settings, which "
-                            f"belong in a deployment file named by {DEPLOYMENT_ENV} (see "
-                            "zplatform.deploy); use tcp/ on a trusted network otherwise",
-                            f"$.nodes.{name}.{field}[{i}]",
-                        )
-    return dep
+    """The deployment every session of ``mission`` runs with (module doc):
+    None for a mission with plain links; for an mtls mission the file
+    :func:`find_deployment` names, read and checked to fit. Raises
+    DeploymentError (at ``$.security.transport``) when an mtls mission has
+    none, saying how to make one, or the YAML path of what does not fit.
+    Blocks on file I/O."""
+    if not mission.mtls:
+        return None
+    path = find_deployment(mission)
+    if path is None:
+        name = mission.mission
+        raise DeploymentError(
+            f"mission {name!r} runs its links over mutual TLS (security.transport: "
+            f"{mission.security.transport}) and this host has no deployment for it at "
+            f"{default_deployment_path(mission)}: make one with `zplatform keygen MISSION_FILE` "
+            f"(`zplatform up` does on first use) and copy each host its files, or name one "
+            f"with {DEPLOYMENT_ENV}; say security.transport: plain only on a closed network",
+            "$.security.transport",
+        )
+    return load_deployment(path, mission)
 
 
 # ---------------------------------------------------------------------------
@@ -293,15 +341,19 @@ def tls_settings(dep: Deployment, node: str | None) -> dict[str, Any]:
     connecting, and asks every peer for one signed by the mission CA. Names
     are not verified on connect: endpoints are addresses, and identity is the
     CA signature plus the common name, which the ACL checks.
-    Raises DeploymentError if the deployment has no identity for ``node``.
+    Raises DeploymentError if the deployment has no identity for ``node``,
+    if its files are missing on this host, or if its private key is readable
+    by anyone but its owner.
     """
     ident = dep.identity(node)
+    where = "$.tool" if node is None else f"$.nodes.{node}"
     if ident is None:
         who = f"node {node!r}" if node is not None else "tools (tap, log, cmd)"
         raise DeploymentError(
             f"the deployment gives no cert and key for {who}",
             "$.tool" if node is None else "$.nodes",
         )
+    _check_identity_files(ident, where)
     return {
         "root_ca_certificate": dep.ca,
         "listen_certificate": ident.cert,
@@ -313,6 +365,26 @@ def tls_settings(dep: Deployment, node: str | None) -> dict[str, Any]:
         # An expired cert ends the link, not only new handshakes.
         "close_link_on_expiration": True,
     }
+
+
+def _check_identity_files(ident: Identity | ToolIdentity, where: str) -> None:
+    """The identity's cert and key exist here, and the key is private (0600
+    or stricter, as ssh wants of its keys): another local user who can read
+    it can be this node on the network."""
+    for field, path in (("cert", ident.cert), ("key", ident.key)):
+        if not Path(path).is_file():
+            raise DeploymentError(
+                f"no such file {path!r} on this host (each host holds its own node's cert "
+                "and key, copied from where the mission's PKI was made)",
+                f"{where}.{field}",
+            )
+    mode = os.stat(ident.key).st_mode
+    if mode & 0o077:
+        raise DeploymentError(
+            f"private key {ident.key!r} is readable by others (mode {mode & 0o777:04o}): "
+            f"`chmod 600 {ident.key}`",
+            f"{where}.key",
+        )
 
 
 _ALL_MESSAGES = [

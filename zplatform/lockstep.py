@@ -62,6 +62,7 @@ from .intake import CnRefusals
 from .loop import ControlLogic, DeviceLogic
 from .messages import wildcard_sync_for
 from .params import MemorySaver
+from .recording import RecordReader
 from .telemetry import CsvLogger
 from .timebase import VirtualClock
 from .uplink import ScriptCommand
@@ -478,32 +479,44 @@ class _RecordedHealth:
 
 
 def replay(
-    directory: str | Path, *, log: CsvLogger | None = None, key_file: str | Path | None = None
+    directory: str | Path,
+    mission_file: str | Path,
+    *,
+    log: CsvLogger | None = None,
+    key_file: str | Path | None = None,
 ) -> ReplayResult:
     """Replay a recording made by ``zplatform up --record DIR`` (or ``node
     --record``) through a fresh control loop; compare the telemetry.
 
-    Loads the mission recorded beside the inputs, so only the directory is
-    needed, and the mission key when the mission authenticates (the
-    recorded frames carry their tags and are checked again). Raises
-    :class:`~zplatform.errors.RecordingError` for a missing or malformed
-    recording (KeyError_ for a missing key); a difference is a result, not
-    an error.
+    The loop runs the mission loaded from ``mission_file``, the operator's
+    (its code imported as for ``sim``), never code the recording names: the
+    recording must be of that mission (the same layout and
+    :func:`~zplatform.recording.mission_digest`), else RecordingError naming
+    the first difference. The mission key is needed when the mission
+    authenticates (the recorded frames carry their tags and are checked
+    again). Raises :class:`~zplatform.errors.RecordingError` for a missing
+    or malformed recording (:class:`~zplatform.recording.RecordReader`),
+    ConfigError for a mission file that does not load, KeyError_ for a
+    missing key; a difference is a result, not an error.
     """
     from .auth import load_keys
     from .errors import RecordingError
     from .mission import load_mission
-    from .recording import RecordReader
 
-    reader = RecordReader(directory)
-    mission = load_mission(reader.mission_path)
+    mission = load_mission(mission_file)
     if mission.bulk:
         raise RecordingError(
             f"mission {mission.mission!r} has bulk channels: their samples (megabytes per "
             "loop) are not recorded, so its loop cannot be replayed bit for bit"
         )
-    reader.check_layout(Layout.for_node(mission, "cn"))
-    cn = ControlLogic(mission, keys=load_keys(mission, "cn", key_file))
+    with RecordReader(directory, mission) as reader:
+        return _replay(reader, mission, load_keys(mission, "cn", key_file), log)
+
+
+def _replay(
+    reader: RecordReader, mission: Mission, keys: KeySet | None, log: CsvLogger | None
+) -> ReplayResult:
+    cn = ControlLogic(mission, keys=keys)
     refused = CnRefusals()
     cn.dv.write_all(reader.initial)  # epoch included
     recorded = _RecordedHealth()

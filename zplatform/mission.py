@@ -28,10 +28,13 @@ tests. They return a :class:`~zplatform.config.Mission` that passed
      limits, the ``monitors`` (:func:`zplatform.monitors.check_config`:
      elements, kinds, states, responses), every node's ``watchdog``
      (:func:`zplatform.watchdog.check_config`), the radio downlink and the
-     lowlatency transport;
-   * the deployment (:func:`zplatform.deploy.require_deployment`): a mission
-     with ``tls/`` endpoints needs the deployment file named by
-     ``ZPLATFORM_DEPLOYMENT``, with a cert and key for each tls node.
+     lowlatency transport.
+
+The deployment (the TLS certificates of a mission whose links run mutual
+TLS) is not part of loading: it is per host, and the verbs that never open
+a session (``check``, ``sim``, ``replay``) run without it. Every session
+finds it (:func:`zplatform.deploy.require_deployment`), and ``check``
+reports the one a session would use.
 
 So a bad class path, a typo in a component's config or a physics function
 that cannot take ``(board, t_ns)`` fails here, at load, with its YAML path,
@@ -68,7 +71,6 @@ from pathlib import Path
 from . import (
     commands,
     controllers,
-    deploy,
     devices,
     health,
     monitors,
@@ -121,9 +123,6 @@ def check_mission(mission: Mission, *, code: bool = True) -> None:
     watchdog.check_config(mission)
     _check_downlink(mission)
     check_lowlatency(mission)
-    # Last: it reads the environment and files, and only matters for a
-    # mission that is otherwise fine.
-    deploy.require_deployment(mission)
 
 
 def _check_pythonpath(mission: Mission) -> None:

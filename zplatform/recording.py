@@ -14,7 +14,9 @@ DIR`` needs nothing else.
 
 ``cn.zrec``, all integers little-endian::
 
-    header:  b"ZPREC\\0"  u16 version (5)  u32 n  n bytes of JSON metadata
+    header:  b"ZPREC\\0"  u16 version (6)  u32 n  n bytes of JSON metadata
+             (:class:`RecordMeta`: the mission's name, Data Vector layout id
+             and size, and content digest, :func:`mission_digest`)
              u32 m  m bytes: the CN's Data Vector when recording started
     items:   u8 type  u8 dn  u32 length  length bytes
                1 BEGIN      u64 loop, i64 t_ns, u8 final (1: the run's last loop)
@@ -35,15 +37,34 @@ DIR`` needs nothing else.
               12 HEALTH     the CN's health block the loop copied in
                             (health loops of a mission with ``health:``)
 
-Version 5: the intake's refusals in FINISH (counts: a flood is not
-recorded frame by frame). Versions 2 to 4 had an ``inbox_oversize`` count
-there and an item (10, FOREIGN) per reply from no DN, which this loop no
-longer takes: such a recording is refused by name (replay it with the
-zplatform that made it).
+Only version 6 is read: the intake's refusals in FINISH (counts: a flood
+is not recorded frame by frame) and the mission's content digest in the
+header, checked against the ``mission.yaml`` beside it. Earlier versions
+had no digest, an ``inbox_oversize`` count in FINISH and an item (10,
+FOREIGN) per reply from no DN, which this loop no longer takes: such a
+recording is refused by name; record it again.
 
 An oversize frame cannot decode (it is longer than the widest valid
 encoding), so a replay feeds an empty payload in its place: the same bad
 frame to the loop, without storing an attacker's megabytes.
+
+Reading a recording (:class:`RecordReader`) trusts nothing in it: a
+recording is a file someone handed over. It never imports code the
+recording names: the recorded ``mission.yaml`` is read without its code
+(:func:`~zplatform.mission.decode_mission` with ``code=False``), and
+whatever needs the mission's code (a replay) runs the mission file the
+operator passes, which must be the recorded mission (same layout, same
+:func:`mission_digest`), or the reader refuses and names the first
+difference. It reads with bounds: both files must be regular files in the
+directory itself (no symlink, FIFO or device), ``mission.yaml`` at most
+:data:`MAX_MISSION_BYTES` and free of YAML aliases, the metadata at most
+:data:`MAX_META_BYTES`, the initial vector exactly the layout's size, each
+item exactly or at most the length its type allows for the mission (a reply
+no longer than the widest frame of its DN's region, a known DN, at most a
+bounded number of items per loop), read one item at a time. Every malformed
+recording ends in one :class:`~zplatform.errors.RecordingError` naming the
+file, the offset and what was expected; only a tail cut off mid-item (a
+recorder that was killed) is an incomplete recording rather than an error.
 
 Hot path: :class:`Recorder` copies each item into one of a set of
 preallocated chunks (no buffer is allocated per loop, nothing blocks); a
@@ -55,14 +76,17 @@ replay stops there.
 
 from __future__ import annotations
 
-import json
+import errno
+import hashlib
+import os
 import queue
+import stat
 import struct
 import threading
 import time
 from collections.abc import Iterator, Sequence
 from pathlib import Path
-from typing import BinaryIO
+from typing import TYPE_CHECKING, Any, BinaryIO, TextIO
 
 import msgspec
 import yaml
@@ -71,18 +95,44 @@ from .auth import TAG_LEN
 from .codec import RegionCodec
 from .config import Mission, relocate_mission
 from .datavector import DataVector, Layout
-from .errors import RecordingError
+from .errors import CodecError, ConfigError, RecordingError
 from .health import BLOCK_SIZE, Heartbeat
 from .intake import CnRefusals
 from .params import SaveResult
 
-__all__ = ["LoopRecord", "RecordReader", "Recorder"]
+if TYPE_CHECKING:
+    from .telemetry import CsvLogger
+
+__all__ = [
+    "MAX_META_BYTES",
+    "MAX_MISSION_BYTES",
+    "LoopRecord",
+    "RecordMeta",
+    "RecordReader",
+    "Recorder",
+    "RecordingSummary",
+    "mission_digest",
+    "read_recording",
+]
 
 MAGIC = b"ZPREC\x00"
-VERSION = 5  # 2: BEGIN's final flag; 3: PRM_SAVED; 4: HEALTH; 5: FINISH the refusals
-_EARLIER = (2, 3, 4)  # FINISH without the intake's refusals, FOREIGN items: not replayable
+# 2: BEGIN's final flag; 3: PRM_SAVED; 4: HEALTH; 5: FINISH the refusals;
+# 6: the mission's digest in the header
+VERSION = 6
 RECORD_FILE = "cn.zrec"
 MISSION_FILE = "mission.yaml"
+MAX_META_BYTES = 64 * 1024
+"""The longest JSON metadata a recording may have."""
+MAX_MISSION_BYTES = 64 * 1024 * 1024
+"""The longest recorded ``mission.yaml`` a reader takes (a 100,000-element
+mission is about 4 MB)."""
+_MAX_SAVE_DETAIL = 512  # bytes of a PRM_SAVED item's detail (the recorder truncates to it)
+# Items a loop may hold: the live CN takes one reply per DN and query (a
+# few more from late repliers) and the frames of its command inbox. A
+# recording over these is not one a CN made, and reading it must not grow
+# without bound.
+_MAX_REPLIES_PER_DN = 64
+_MAX_GROUNDS_PER_LOOP = 1024
 
 BEGIN, REPLY, REPLY_ERR, OVERSIZE, GROUND, GROUND_OVERSIZE, TELEMETRY, FINISH, DROPPED = (
     range(1, 10)
@@ -97,6 +147,86 @@ _NONE_REFUSED = CnRefusals().fields()
 _U64 = struct.Struct("<Q")
 _SAVED = struct.Struct("<QB")
 _HEAD = struct.Struct("<6sHI")
+
+
+class _NoAliasDumper(yaml.SafeDumper):
+    """A safe dumper that writes a repeated object out again instead of an alias."""
+
+    def ignore_aliases(self, data: Any) -> bool:
+        return True
+
+
+class RecordMeta(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
+    """A recording's metadata (its header's JSON): what the CN recorded."""
+
+    mission: str
+    layout_id: int
+    size: int
+    period_ns: int
+    device_nodes: list[str]
+    telemetry_divisor: int
+    mission_digest: str
+    created_unix_s: float
+
+
+def _loop_content(mission: Mission) -> dict[str, Any]:
+    """The parts of a mission that decide what its CN's loop does: all of
+    it but where it runs (node endpoints, CPUs, priorities and boards,
+    the world's address and ptys, ``pythonpath``, the zenoh session
+    settings and the link security), which a copy of the mission run on
+    other ports or hosts (``up --free-ports``, a recording) changes."""
+    raw: dict[str, Any] = msgspec.to_builtins(mission)
+    raw["nodes"] = sorted(raw["nodes"])
+    raw.pop("pythonpath", None)
+    raw.pop("transport", None)
+    if isinstance(raw.get("security"), dict):
+        raw["security"].pop("transport", None)
+    if isinstance(raw.get("world"), dict):
+        raw["world"].pop("listen", None)
+        raw["world"]["serve_serial"] = sorted(raw["world"].get("serve_serial", {}))
+    return raw
+
+
+def mission_digest(mission: Mission) -> str:
+    """SHA-256 (hex) of the mission's loop content (:func:`_loop_content`,
+    keys sorted): two missions with the same digest run the same CN loop."""
+    return hashlib.sha256(msgspec.json.encode(_loop_content(mission), order="sorted")).hexdigest()
+
+
+_ABSENT = "<absent>"
+
+
+def _first_mission_difference(a: Any, b: Any, path: str = "$") -> tuple[str, Any, Any] | None:
+    """The YAML path and the two values where ``a`` and ``b`` first differ
+    (``<absent>`` for a key or item only one side has)."""
+    if isinstance(a, dict) and isinstance(b, dict):
+        for k in sorted(set(a) | set(b), key=str):
+            d = _first_mission_difference(a.get(k, _ABSENT), b.get(k, _ABSENT), f"{path}.{k}")
+            if d is not None:
+                return d
+        return None
+    if isinstance(a, list) and isinstance(b, list):
+        for i, (x, y) in enumerate(zip(a, b, strict=False)):
+            d = _first_mission_difference(x, y, f"{path}[{i}]")
+            if d is not None:
+                return d
+        n = min(len(a), len(b))
+        if len(a) == len(b):
+            return None
+        return f"{path}[{n}]", a[n] if n < len(a) else _ABSENT, b[n] if n < len(b) else _ABSENT
+    return None if a == b else (path, a, b)
+
+
+def _frame_bounds(mission: Mission, dv: DataVector) -> tuple[tuple[int, ...], int, int]:
+    """The longest reply of each DN, command request and telemetry frame
+    ``mission``'s CN takes or makes, as they come off the wire (with an
+    authentication tag): what the recorder sizes its chunks for and what a
+    reader allows."""
+    reply_max = tuple(
+        RegionCodec(dv, f"{dn}_to_cn").max_frame_len + TAG_LEN for dn in mission.device_nodes
+    )
+    ground_max = RegionCodec(dv, "gn_to_cn").max_frame_len + TAG_LEN if mission.has_ground else 0
+    return reply_max, ground_max, RegionCodec(dv).max_frame_len + TAG_LEN
 
 
 class Recorder:
@@ -127,12 +257,7 @@ class Recorder:
         dns = mission.device_nodes
         # The longest loop record with one reply per DN and the telemetry;
         # a loop with late replies on top simply spans chunks.
-        reply_max = [RegionCodec(dv, f"{dn}_to_cn").max_frame_len + TAG_LEN for dn in dns]
-        # Frames as they came off the wire: with an authentication tag.
-        ground_max = (
-            RegionCodec(dv, "gn_to_cn").max_frame_len + TAG_LEN if mission.has_ground else 0
-        )
-        tm_max = RegionCodec(dv).max_frame_len + TAG_LEN
+        reply_max, ground_max, tm_max = _frame_bounds(mission, dv)
         item = _ITEM.size
         loop_max = (
             item * (5 + 2 * len(dns))
@@ -143,7 +268,7 @@ class Recorder:
             + ground_max
             + tm_max
         )
-        self._max_reply = tuple(reply_max)
+        self._max_reply = reply_max
         self._max_ground = ground_max
         self.chunk_size = max(256 * 1024, 4 * loop_max)
         n_chunks = max(8, int(seconds * mission.loop_hz * loop_max / self.chunk_size) + 2)
@@ -170,19 +295,22 @@ class Recorder:
             # directory too: its pythonpath is made absolute.
             raw = yaml.safe_load(Path(mission_source).read_text())
             relocate_mission(raw, mission_source)
-            (self.directory / MISSION_FILE).write_text(yaml.safe_dump(raw, sort_keys=False))
+            # Without aliases: a reader refuses them (module doc).
+            text = yaml.dump(raw, Dumper=_NoAliasDumper, sort_keys=False)
+            (self.directory / MISSION_FILE).write_text(text)
             self._file: BinaryIO = open(self.directory / RECORD_FILE, "wb")  # noqa: SIM115
-            meta = json.dumps(
-                {
-                    "mission": mission.mission,
-                    "layout_id": dv.layout.layout_id,
-                    "size": dv.layout.size,
-                    "period_ns": mission.period_ns,
-                    "device_nodes": dns,
-                    "telemetry_divisor": mission.telemetry_divisor,
-                    "created_unix_s": time.time(),
-                }
-            ).encode()
+            meta = msgspec.json.encode(
+                RecordMeta(
+                    mission=mission.mission,
+                    layout_id=dv.layout.layout_id,
+                    size=dv.layout.size,
+                    period_ns=mission.period_ns,
+                    device_nodes=dns,
+                    telemetry_divisor=mission.telemetry_divisor,
+                    mission_digest=mission_digest(mission),
+                    created_unix_s=time.time(),
+                )
+            )
             self._file.write(_HEAD.pack(MAGIC, VERSION, len(meta)) + meta)
             init = bytearray(dv.size)
             dv.read_all(init)
@@ -281,6 +409,7 @@ class Recorder:
 
     def health(self, block: bytes | bytearray | memoryview) -> None:
         self._put(HEALTH, 0, block, len(block))
+
     def finish(
         self,
         grounds: Sequence[bytes | bytearray | memoryview],
@@ -314,7 +443,7 @@ class Recorder:
         telemetry: bytearray | None,
     ) -> None:
         for save in saves:  # rare: a PRM_SAVE finished
-            detail = save.detail.encode(errors="replace")[:512]
+            detail = save.detail.encode(errors="replace")[:_MAX_SAVE_DETAIL]
             body = _SAVED.pack(save.seq, save.ok) + detail
             self._put(PRM_SAVED, 0, body, len(body))
         for ground in grounds:
@@ -375,62 +504,146 @@ class LoopRecord(msgspec.Struct, frozen=True):
 
 
 class RecordReader:
-    """Reads a recording directory (module doc). RecordingError when it is
-    missing or its header is malformed; :meth:`loops` stops at the first gap
-    or damage and sets :attr:`complete` False."""
+    """Reads a recording directory with bounds, trusting nothing in it
+    (module doc). Context manager; :meth:`close` closes the record file.
 
-    def __init__(self, directory: str | Path) -> None:
+    ``mission``: the mission the operator vouches for (loaded from the file
+    they passed, with its code); the recording must be of it (the recorded
+    layout and :func:`mission_digest`), else RecordingError naming the first
+    difference. None: the recorded ``mission.yaml``, loaded without its
+    code (:attr:`recorded_mission`), for what needs no mission code (the
+    recorded loops and telemetry). Either way :attr:`mission` is the one
+    that bounds every item.
+
+    Construction reads the header and the initial Data Vector
+    (:attr:`initial`); :meth:`loops` then reads one loop at a time and
+    stops at the first gap (the recorder dropped loops) or at a tail cut
+    off mid-item, setting :attr:`complete` False. Raises RecordingError for
+    a missing, unreadable, oversized or malformed recording; never
+    anything else. Blocks on file I/O.
+    """
+
+    def __init__(self, directory: str | Path, mission: Mission | None = None) -> None:
         self.directory = Path(directory)
         self.mission_path = self.directory / MISSION_FILE
-        path = self.directory / RECORD_FILE
+        self._path = self.directory / RECORD_FILE
+        where = str(self.directory)
         try:
-            self._data = path.read_bytes()
+            dfd = os.open(self.directory, os.O_RDONLY | os.O_DIRECTORY | os.O_CLOEXEC)
         except OSError as exc:
-            raise RecordingError(
-                f"no recording at {str(self.directory)!r}: {exc.strerror} ({path.name})"
-            ) from exc
-        if not self.mission_path.is_file():
-            raise RecordingError(f"{str(self.directory)!r} has no {MISSION_FILE}")
-        d = self._data
+            raise RecordingError(f"no recording at {where!r}: {exc.strerror}") from exc
         try:
-            magic, version, n = _HEAD.unpack_from(d, 0)
-            if magic != MAGIC:
-                raise RecordingError(f"{path} is not a zplatform recording")
-            if version in _EARLIER:
-                raise RecordingError(
-                    f"{path}: recording version {version}, made by an earlier zplatform "
-                    f"(before the intake's refusals in version {VERSION}): replay it with "
-                    "the zplatform that recorded it"
-                )
-            if version != VERSION:
-                raise RecordingError(f"{path}: recording version {version}, expected {VERSION}")
-            off = _HEAD.size
-            self.meta = json.loads(d[off : off + n])
-            off += n
-            (m,) = _U32.unpack_from(d, off)
-            off += 4
-            self.initial = d[off : off + m]
-            if len(self.initial) != m:
-                raise RecordingError(f"{path}: truncated header")
-            self._start = off + m
-        except (struct.error, ValueError) as exc:
-            raise RecordingError(f"{path}: malformed header: {exc}") from exc
+            mission_text, _ = _read_regular(dfd, MISSION_FILE, where, MAX_MISSION_BYTES)
+            fd, self._size = _open_regular(dfd, RECORD_FILE, where)
+        finally:
+            os.close(dfd)
+        self._f: BinaryIO = os.fdopen(fd, "rb")
+        try:
+            self._read_header(mission_text, mission)
+        except BaseException:
+            self._f.close()
+            raise
         self.complete = True
         self.dropped_loops = 0
+        self._read_loops = False
 
-    def check_layout(self, layout: Layout) -> None:
-        """RecordingError unless the recorded CN vector has ``layout``."""
-        if self.meta.get("layout_id") != layout.layout_id or len(self.initial) != layout.size:
-            raise RecordingError(
-                f"{self.directory}: the recorded Data Vector layout does not match "
-                f"{MISSION_FILE} (recorded {self.meta.get('layout_id')}, mission "
-                f"{layout.layout_id})"
+    # -- the header --------------------------------------------------------
+    def _fail(self, what: str) -> RecordingError:
+        return RecordingError(f"{self._path}: {what}")
+
+    def _read(self, n: int, what: str) -> bytes:
+        """Exactly ``n`` bytes (``n`` already bounded) or RecordingError."""
+        b = self._f.read(n)
+        if len(b) != n:
+            raise self._fail(f"truncated {what} ({len(b)} of {n} bytes)")
+        return b
+
+    def _read_header(self, mission_text: bytes, mission: Mission | None) -> None:
+        magic, version, n = _HEAD.unpack(self._read(_HEAD.size, "header"))
+        if magic != MAGIC:
+            raise self._fail("not a zplatform recording")
+        if version < VERSION:
+            raise self._fail(
+                f"recording version {version}, made by an earlier zplatform (this one reads "
+                f"version {VERSION}: the mission digest and the intake's refusals): record again"
+            )
+        if version != VERSION:
+            raise self._fail(f"recording version {version}, expected {VERSION}")
+        if n > MAX_META_BYTES:
+            raise self._fail(f"metadata of {n} bytes (at most {MAX_META_BYTES})")
+        try:
+            self.meta = msgspec.json.decode(self._read(n, "metadata"), type=RecordMeta)
+        except (msgspec.DecodeError, UnicodeDecodeError) as exc:
+            raise self._fail(f"malformed metadata: {exc}") from None
+        self.recorded_mission = _decode_recorded_mission(mission_text, self.mission_path)
+        if mission_digest(self.recorded_mission) != self.meta.mission_digest:
+            raise self._fail(
+                f"the header is not of the {MISSION_FILE} beside it (their mission digests differ)"
+            )
+        if mission is not None:
+            _check_same_mission(self.recorded_mission, mission, self.directory)
+        self.mission = mission or self.recorded_mission
+        layout = Layout.for_node(self.mission, "cn")
+        if self.meta.layout_id != layout.layout_id or self.meta.size != layout.size:
+            raise self._fail(
+                f"the recorded Data Vector layout does not match {MISSION_FILE} (recorded "
+                f"{self.meta.layout_id:#x}, {self.meta.size} B; mission {layout.layout_id:#x}, "
+                f"{layout.size} B)"
+            )
+        (m,) = _U32.unpack(self._read(_U32.size, "header"))
+        if m != layout.size:
+            raise self._fail(f"initial Data Vector of {m} bytes, the layout's is {layout.size}")
+        self.initial = self._read(m, "initial Data Vector")
+        self.layout = layout
+        self._reply_max, self._ground_max, self._tm_max = _frame_bounds(
+            self.mission, DataVector(layout)
+        )
+
+    # -- the loops -----------------------------------------------------------
+    def _bound(self, typ: int, dn: int, n: int, off: int) -> None:
+        """RecordingError unless an item of type ``typ`` for DN ``dn`` may be
+        ``n`` bytes long in this mission."""
+        dns = len(self._reply_max)
+        if typ in (REPLY, REPLY_ERR, OVERSIZE):
+            if dn >= dns:
+                raise self._fail(f"item at byte {off}: a reply of DN {dn}; the mission has {dns}")
+            limit = {REPLY: self._reply_max[dn], REPLY_ERR: 0, OVERSIZE: _U32.size}[typ]
+            exact = typ != REPLY
+        elif typ in (GROUND, GROUND_OVERSIZE):
+            if not self._ground_max:
+                raise self._fail(f"item at byte {off}: a command frame; the mission has no gn")
+            limit, exact = (self._ground_max, False) if typ == GROUND else (_U32.size, True)
+        elif typ == TELEMETRY:
+            limit, exact = self._tm_max, False
+        elif typ == HEALTH:
+            if self.mission.health is None:
+                raise self._fail(f"item at byte {off}: a health block; the mission has no health")
+            limit, exact = BLOCK_SIZE, True
+        elif typ == PRM_SAVED:
+            if n < _SAVED.size:
+                raise self._fail(
+                    f"item at byte {off}: PRM_SAVED of {n} bytes (at least {_SAVED.size})"
+                )
+            limit, exact = _SAVED.size + _MAX_SAVE_DETAIL, False
+        elif typ in _EXACT:
+            limit, exact = _EXACT[typ], True
+        else:
+            raise self._fail(f"item at byte {off}: unknown type {typ}")
+        if n > limit or (exact and n != limit):
+            raise self._fail(
+                f"item at byte {off}: {_NAMES[typ]} of {n} bytes "
+                f"({'exactly' if exact else 'at most'} {limit} in this mission)"
             )
 
     def loops(self) -> Iterator[LoopRecord]:
-        d = self._data
-        off = self._start
-        end = len(d)
+        """The recorded loops in order (once: the file is read as it goes).
+        RecordingError for a malformed item or loop; stops, with
+        :attr:`complete` False, at a gap or a tail cut off mid-item."""
+        if self._read_loops:
+            raise RecordingError(f"{self._path}: its loops were read already")
+        self._read_loops = True
+        f = self._f
+        off = f.tell()
         in_loop = False
         loop = t = 0
         final = False
@@ -439,18 +652,23 @@ class RecordReader:
         health: bytes | None = None
         replies: list[tuple[int, bytes | None]] = []
         saves: list[SaveResult] = []
-        while off < end:
-            if off + _ITEM.size > end:
+        n_replies = 0
+        max_replies = _MAX_REPLIES_PER_DN * len(self._reply_max)
+        while True:
+            head = f.read(_ITEM.size)
+            if len(head) < _ITEM.size:  # the end, or a tail cut off mid-item
+                self.complete = self.complete and not head and not in_loop
+                return
+            typ, dn, n = _ITEM.unpack(head)
+            self._bound(typ, dn, n, off)
+            body = f.read(n)
+            if len(body) < n:
                 self.complete = False
                 return
-            typ, dn, n = _ITEM.unpack_from(d, off)
-            off += _ITEM.size
-            if off + n > end:
-                self.complete = False
-                return
-            body = d[off : off + n]
-            off += n
+            off += _ITEM.size + n
             if typ == BEGIN:
+                if in_loop:
+                    raise self._fail(f"item at byte {off - n - _ITEM.size}: loop {loop} never ends")
                 loop, t, final_byte = _BEGIN.unpack(body)
                 final = bool(final_byte)
                 in_loop = True
@@ -459,32 +677,17 @@ class RecordReader:
                 grounds = []
                 replies = []
                 saves = []
-            elif typ == DROPPED:
+                n_replies = 0
+                continue
+            if typ == DROPPED:
                 self.dropped_loops += _U64.unpack(body)[0]
                 self.complete = False
                 return
-            elif not in_loop:
-                self.complete = False
-                return
-            elif typ == REPLY:
-                replies.append((dn, body))
-            elif typ == REPLY_ERR:
-                replies.append((dn, None))
-            elif typ == OVERSIZE:
-                replies.append((dn, b""))
-            elif typ == GROUND:
-                grounds.append(body)
-            elif typ == GROUND_OVERSIZE:
-                grounds.append(b"")
-            elif typ == TELEMETRY:
-                telemetry = body
-            elif typ == PRM_SAVED and n >= _SAVED.size:
-                seq, ok = _SAVED.unpack_from(body)
-                detail = body[_SAVED.size :].decode(errors="replace")
-                saves.append(SaveResult(seq, bool(ok), detail))
-            elif typ == HEALTH:
-                health = body
-            elif typ == FINISH:
+            if not in_loop:
+                raise self._fail(
+                    f"item at byte {off - n - _ITEM.size}: {_NAMES[typ]} outside a loop"
+                )
+            if typ == FINISH:
                 so, lo, dr, *refused = _FINISH.unpack(body)
                 yield LoopRecord(
                     loop,
@@ -501,8 +704,215 @@ class RecordReader:
                     health,
                 )
                 in_loop = False
-            else:
-                self.complete = False
-                return
-        if in_loop:
-            self.complete = False
+            elif typ == TELEMETRY:
+                if telemetry is not None:
+                    raise self._fail(f"loop {loop}: two telemetry frames")
+                telemetry = body
+            elif typ in (GROUND, GROUND_OVERSIZE):
+                if len(grounds) >= _MAX_GROUNDS_PER_LOOP:
+                    raise self._fail(f"loop {loop}: over {_MAX_GROUNDS_PER_LOOP} command frames")
+                grounds.append(body if typ == GROUND else b"")
+            elif typ == PRM_SAVED:
+                if len(saves) >= _MAX_GROUNDS_PER_LOOP:  # a save answers a command frame
+                    raise self._fail(f"loop {loop}: over {_MAX_GROUNDS_PER_LOOP} parameter saves")
+                seq, ok = _SAVED.unpack_from(body)
+                detail = body[_SAVED.size :].decode(errors="replace")
+                saves.append(SaveResult(seq, bool(ok), detail))
+            elif typ == HEALTH:
+                if health is not None:
+                    raise self._fail(f"loop {loop}: two health blocks")
+                health = body
+            else:  # REPLY, REPLY_ERR, OVERSIZE
+                n_replies += 1
+                if n_replies > max_replies:
+                    raise self._fail(f"loop {loop}: over {max_replies} DN replies")
+                replies.append((dn, body if typ == REPLY else None if typ == REPLY_ERR else b""))
+
+    def close(self) -> None:
+        self._f.close()
+
+    def __enter__(self) -> RecordReader:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+_YAML_LOADER = getattr(yaml, "CSafeLoader", yaml.SafeLoader)
+_EXACT = {BEGIN: _BEGIN.size, FINISH: _FINISH.size, DROPPED: _U64.size}
+_NAMES = {
+    BEGIN: "BEGIN",
+    REPLY: "REPLY",
+    REPLY_ERR: "REPLY_ERR",
+    OVERSIZE: "OVERSIZE",
+    GROUND: "GROUND",
+    GROUND_OVERSIZE: "GROUND_OVERSIZE",
+    TELEMETRY: "TELEMETRY",
+    FINISH: "FINISH",
+    DROPPED: "DROPPED",
+    PRM_SAVED: "PRM_SAVED",
+    HEALTH: "HEALTH",
+}
+
+
+def _open_regular(dfd: int, name: str, where: str) -> tuple[int, int]:
+    """Open ``name`` inside the directory ``dfd`` for reading: a regular
+    file of the directory itself, never a symlink, FIFO or device (opened
+    non-blocking, so a FIFO cannot hang the open). Returns (fd, size)."""
+    try:
+        fd = os.open(
+            name, os.O_RDONLY | os.O_NOFOLLOW | os.O_NONBLOCK | os.O_CLOEXEC, dir_fd=dfd
+        )
+    except OSError as exc:
+        if exc.errno == errno.ELOOP:
+            raise RecordingError(
+                f"{where}/{name} is a symbolic link; a recording holds its files itself"
+            ) from None
+        raise RecordingError(f"no recording at {where!r}: {name}: {exc.strerror}") from exc
+    st = os.fstat(fd)
+    if not stat.S_ISREG(st.st_mode):
+        os.close(fd)
+        raise RecordingError(f"{where}/{name} is not a regular file")
+    os.set_blocking(fd, True)
+    return fd, st.st_size
+
+
+def _read_regular(dfd: int, name: str, where: str, limit: int) -> tuple[bytes, int]:
+    """The whole of regular file ``name`` (:func:`_open_regular`), at most
+    ``limit`` bytes: its size is checked before anything is read."""
+    fd, size = _open_regular(dfd, name, where)
+    with os.fdopen(fd, "rb") as f:
+        if size > limit:
+            raise RecordingError(f"{where}/{name} is {size} bytes; at most {limit} are read")
+        data = f.read(limit + 1)
+    if len(data) > limit:  # it grew while we read
+        raise RecordingError(f"{where}/{name} is over {limit} bytes")
+    return data, size
+
+
+def _decode_recorded_mission(text: bytes, path: Path) -> Mission:
+    """The recorded mission, loaded without importing any of its code;
+    RecordingError if it does not load or uses YAML aliases (a recorder
+    never writes them, and an alias bomb would expand beyond any bound)."""
+    from .mission import decode_mission
+
+    try:
+        for event in yaml.parse(text, Loader=_YAML_LOADER):
+            if isinstance(event, yaml.AliasEvent):
+                raise RecordingError(f"{path}: YAML aliases; a recorded mission has none")
+        return decode_mission(text, source=str(path), code=False)
+    except ConfigError as exc:
+        raise RecordingError(f"{path} does not load: {exc}") from exc
+    except yaml.YAMLError as exc:
+        raise RecordingError(f"{path} is not valid YAML: {exc}") from exc
+
+
+def _short(value: Any, limit: int = 120) -> str:
+    """``repr(value)``, cut to ``limit`` characters (a recorded value is anyone's)."""
+    text = value if value is _ABSENT else repr(value)
+    return text if len(text) <= limit else text[: limit - 3] + "..."
+
+
+def _check_same_mission(recorded: Mission, mission: Mission, directory: Path) -> None:
+    """RecordingError unless ``mission`` (the operator's) is the recorded
+    one: the same Data Vector layout and loop content, else the first
+    difference by its YAML path."""
+    a, b = Layout.for_node(recorded, "cn"), Layout.for_node(mission, "cn")
+    if mission_digest(recorded) == mission_digest(mission) and a.layout_id == b.layout_id:
+        return
+    diff = _first_mission_difference(_loop_content(recorded), _loop_content(mission))
+    what = (
+        f"first at `{diff[0]}`: recorded {_short(diff[1])}, the mission file {_short(diff[2])}"
+        if diff is not None
+        else f"Data Vector layout {a.layout_id:#x} recorded, {b.layout_id:#x} in the mission file"
+    )
+    raise RecordingError(
+        f"{directory} is a recording of another mission than the one given ({what}); a replay "
+        "runs only the mission that was recorded"
+    )
+
+
+class RecordingSummary(msgspec.Struct, frozen=True):
+    """What a recording holds (:func:`read_recording`): its mission's name,
+    the loops (``first_loop``..``last_loop``), the telemetry frames among
+    them, whether it is complete (``dropped_loops`` otherwise), and the
+    state of its last telemetry frame (``""`` without one)."""
+
+    mission: str
+    loops: int
+    first_loop: int
+    last_loop: int
+    telemetry_frames: int
+    complete: bool
+    dropped_loops: int
+    final_state: str
+
+
+def read_recording(
+    directory: str | Path, *, log: CsvLogger | None = None, listing: TextIO | None = None
+) -> RecordingSummary:
+    """Read a recording without its mission's code (none is imported: the
+    recorded ``mission.yaml`` gives the layout only) and summarise it.
+
+    ``log``: write each recorded telemetry frame, decoded, as a CSV row at
+    its loop's time (the frames are the recording's word: their tags are not
+    checked, a replay does that). ``listing``: one line per loop (number,
+    time, DN replies, command frames, telemetry, flags). Raises
+    RecordingError for a malformed recording or telemetry that does not
+    decode in its layout.
+    """
+    with RecordReader(directory) as reader:
+        mission = reader.mission
+        dv = DataVector(reader.layout)
+        dv.write_all(reader.initial)
+        codec = RegionCodec(dv)
+        tag = TAG_LEN if mission.security.auth else 0
+        names = mission.device_nodes
+        loops = frames = first = last = 0
+        for rec in reader.loops():
+            loops += 1
+            first = first or rec.loop
+            last = rec.loop
+            if rec.telemetry is not None:
+                frames += 1
+                try:
+                    codec.apply(rec.telemetry[: len(rec.telemetry) - tag])
+                except CodecError as exc:
+                    raise RecordingError(
+                        f"{reader.directory}: loop {rec.loop}'s recorded telemetry does not "
+                        f"decode: {exc}"
+                    ) from None
+                if log is not None:
+                    log.write(rec.t_ns, dv)
+            if listing is not None:
+                replies = " ".join(
+                    f"{names[i]}={'err' if p is None else len(p)}" for i, p in rec.replies
+                )
+                flags = [
+                    f
+                    for f, on in (
+                        ("final", rec.final),
+                        ("overrun", rec.sync_overrun),
+                        ("health", rec.health is not None),
+                    )
+                    if on
+                ]
+                print(
+                    f"loop {rec.loop:>8}  t {rec.t_ns}  replies [{replies}]  "
+                    f"commands {len(rec.grounds)}  telemetry "
+                    f"{'-' if rec.telemetry is None else len(rec.telemetry)}"
+                    + (f"  {' '.join(flags)}" if flags else ""),
+                    file=listing,
+                )
+        if log is not None:
+            log.flush()
+        return RecordingSummary(
+            mission=mission.mission,
+            loops=loops,
+            first_loop=first,
+            last_loop=last,
+            telemetry_frames=frames,
+            complete=reader.complete,
+            dropped_loops=reader.dropped_loops,
+            final_state=dv.get_name("cn_state") if frames else "",
+        )

@@ -23,6 +23,10 @@ makes them errors). Each is a :class:`SafetyWarning` naming its YAML path:
     :class:`~zplatform.devices.DigitalOutput`'s may) but no hazardous
     command: no operator command of it needs ARM first. At
     ``$.commands.hazardous``.
+``plain_transport_with_hazardous``
+    The mission has hazardous commands but says ``security.transport:
+    plain``: its links take any peer on the network (``auto`` would run
+    mutual TLS with access control). At ``$.security.transport``.
 
 The command smells apply only to a mission with a ground node (without one
 no command reaches the vehicle). The device smells import the devices'
@@ -43,7 +47,12 @@ from .devices import Actuator
 
 __all__ = ["SafetyWarning", "safety_warnings"]
 
-WarningKind = Literal["unprotected_mode", "no_safe_value", "pyrotechnic_without_hazardous"]
+WarningKind = Literal[
+    "unprotected_mode",
+    "no_safe_value",
+    "pyrotechnic_without_hazardous",
+    "plain_transport_with_hazardous",
+]
 
 
 class SafetyWarning(msgspec.Struct, frozen=True):
@@ -68,7 +77,7 @@ def _write_allowed_somewhere(mission: Mission) -> bool:
 
 def safety_warnings(mission: Mission) -> list[SafetyWarning]:
     """Every safety smell of ``mission`` (module doc), in YAML order:
-    controllers, then devices, then the commands section.
+    controllers, then devices, then the commands section, then security.
 
     ``mission`` must have loaded with its code (``load_mission(code=True)``):
     the actuators' classes are imported again here (already in
@@ -121,6 +130,17 @@ def safety_warnings(mission: Mission) -> list[SafetyWarning]:
                 f"the mission drives pyrotechnic outputs ({', '.join(pyros)}) but no command "
                 f"is hazardous: none needs an ARM first; list the ones that can fire them "
                 f"(of {commands})",
+            )
+        )
+    if mission.commands.hazardous and mission.security.transport == "plain":
+        out.append(
+            SafetyWarning(
+                "plain_transport_with_hazardous",
+                "$.security.transport",
+                f"the mission has hazardous commands ({', '.join(mission.commands.hazardous)}) "
+                "but its links are plain: any host on its network can open a session with its "
+                "nodes (watch, flood, pose as a tool); leave security.transport at auto (mutual "
+                "TLS with access control) unless the network is closed",
             )
         )
     return out

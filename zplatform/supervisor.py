@@ -8,6 +8,13 @@ holds a zenoh session), watches them (:func:`watch`) through a
 (the CN first, so the ground logs the end), and merges their summaries into
 the ``--summary`` JSON (:class:`~zplatform.summary.RunSummary`).
 
+The nodes are signalled before ``up`` closes its own zenoh session, and
+that close never decides a node's fate: closing a session can take seconds
+(a mutual-TLS link's close handshake on a busy host), and a node that waited
+for it would lose part of its stop timeout, or be killed at its end. The
+close runs last, in a thread of its own, for at most
+:data:`LINK_CLOSE_S`.
+
 What a node's death does: the flight never depends on the ground link, and
 a lost DN is the CN's to handle (DN_LOST and the mission's fault response),
 so when a DN or the ground node dies, ``up`` says so and keeps the rest
@@ -31,6 +38,7 @@ import signal
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -59,6 +67,10 @@ from .telemetry import events_path
 from .transport import rewrite_endpoints
 
 __all__ = ["Children", "Watch", "format_run_summary", "merge_summaries", "run_up", "watch"]
+
+LINK_CLOSE_S = 5.0
+"""The longest ``up`` waits for its own zenoh session to close, after every
+node has stopped; a close still under way then is left to the process's exit."""
 
 
 class Children:
@@ -125,13 +137,21 @@ class Children:
 
 
 class Watch:
-    """What :func:`watch` saw: nodes that died, and the CN's last telemetry."""
+    """What :func:`watch` saw: nodes that died, and the CN's last telemetry.
+    :meth:`on_event` is the ``on_event`` of the link it watches through."""
 
     def __init__(self) -> None:
         self.died: dict[str, int] = {}
         self.ok = True
         self.last_cn: CnSummary | None = None
         self.script_done = False
+        self.script_done_at: float | None = None
+        """When (``time.monotonic``) the ground node said its script was done."""
+
+    def on_event(self, rec: EventRecord) -> None:
+        """Note the ground node's ``script_done`` (the link's callback: no I/O)."""
+        if rec.node == "gn" and rec.id == EV.SCRIPT_DONE.name and self.script_done_at is None:
+            self.script_done_at = time.monotonic()
 
 
 def _cn_from_telemetry(mission: Mission, dv: DataVector, first_t: int) -> CnSummary:
@@ -144,6 +164,8 @@ def _cn_from_telemetry(mission: Mission, dv: DataVector, first_t: int) -> CnSumm
 def watch(
     mission: Mission,
     children: Children,
+    link: GroundLink,
+    w: Watch,
     stopping: Callable[[], bool],
     *,
     quiet: bool = False,
@@ -151,15 +173,9 @@ def watch(
     end_after_script: bool = False,
 ) -> Watch:
     """Live status until the CN finishes, ``stopping()`` or (with
-    ``end_after_script``) the script's end (module doc). Blocks."""
-    w = Watch()
-    done_at: list[float] = []
-
-    def on_event(rec: EventRecord) -> None:
-        if rec.node == "gn" and rec.id == EV.SCRIPT_DONE.name and not done_at:
-            done_at.append(time.monotonic())
-
-    link = GroundLink(mission, keys="mission", on_event=on_event)
+    ``end_after_script``) the script's end (module doc), through ``link``
+    (opened with ``on_event=w.on_event``; the caller closes it, after
+    stopping the nodes). Fills and returns ``w``. Blocks."""
     tty = sys.stdout.isatty()
     rate = RateMeter()
     first_t = 0
@@ -210,12 +226,13 @@ def watch(
                 w.ok = False
                 return w
             now = time.monotonic()
-            if end_after_script and done_at:
+            done_at = w.script_done_at
+            if end_after_script and done_at is not None:
                 w.script_done = True
-                if now >= max(done_at[0] + SETTLE_S, start + MIN_DURATION_S):
+                if now >= max(done_at + SETTLE_S, start + MIN_DURATION_S):
                     if not quiet:
                         print(
-                            f"\nzplatform up: the script's last verdict came {now - done_at[0]:.0f}"
+                            f"\nzplatform up: the script's last verdict came {now - done_at:.0f}"
                             " s ago; stopping",
                             flush=True,
                         )
@@ -228,7 +245,14 @@ def watch(
     finally:
         if tty and not quiet:
             print()
-        link.close()
+
+
+def _close_link(link: GroundLink) -> None:
+    """Close ``up``'s own session, waiting at most :data:`LINK_CLOSE_S`
+    (module doc): the nodes are stopped already, so nothing waits on it."""
+    closer = threading.Thread(target=link.close, name="link-close", daemon=True)
+    closer.start()
+    closer.join(LINK_CLOSE_S)
 
 
 def merge_summaries(
@@ -401,6 +425,7 @@ def _supervise(
     signal.signal(signal.SIGINT, on_signal)
     signal.signal(signal.SIGTERM, on_signal)
     w = Watch()
+    link: GroundLink | None = None
     try:
         # Spawn everything before opening our own zenoh session: never fork
         # a process that holds one. The vehicle world first: the device
@@ -410,16 +435,23 @@ def _supervise(
         for name, argv in spawn.items():
             children.spawn(name, [*argv, "--summary", str(summaries[name])])
         reg.update(nodes={n: p.pid for n, p in children.procs.items()})
-        w = watch(
+        link = GroundLink(mission, keys="mission", on_event=w.on_event)
+        watch(
             mission,
             children,
+            link,
+            w,
             lambda: stopping,
             quiet=quiet,
             ready_timeout_s=ready_timeout_s,
             end_after_script=end_after_script,
         )
     finally:
+        # The nodes first (CN, DNs and ground, world), then our own session:
+        # its close must not eat into a node's time to stop (module doc).
         codes = children.stop_all()
+        if link is not None:
+            _close_link(link)
     rc = 0 if w.ok else 1
     for name, code in codes.items():
         if code not in (0, -signal.SIGTERM) and name not in w.died:

@@ -12,8 +12,10 @@ lets a tap see keys put by any node.
 
 TLS and access control come from a deployment file (:mod:`zplatform.deploy`),
 not the mission: :func:`zenoh_config` takes one, and :class:`NodeSession`
-reads the one named by ``ZPLATFORM_DEPLOYMENT`` when none is passed, so every
-tool runs a tls mission without a flag of its own.
+finds the mission's own when none is passed
+(:func:`zplatform.deploy.require_deployment`: ``ZPLATFORM_DEPLOYMENT`` or the
+mission's default), so every verb runs an mTLS mission without a flag of
+its own, and none opens a session of an mTLS mission without one.
 
 Readiness is explicit: each node declares a liveliness token on
 ``{vehicle}/{node}/alive`` and :func:`wait_for_nodes` blocks on a liveliness
@@ -38,7 +40,7 @@ import yaml
 import zenoh
 
 from .config import Mission, relocate_mission
-from .deploy import Deployment, deployment_from_env, zenoh_settings
+from .deploy import Deployment, check_tool_may_command, require_deployment, zenoh_settings
 from .errors import TransportError
 from .messages import lowlatency_for
 
@@ -144,7 +146,9 @@ def zenoh_config(
 
     ``lowlatency``/``shared_memory`` override the mission's transport section
     (benchmark variants). ``deployment``: TLS and access control
-    (:func:`apply_deployment`); this function never reads the environment.
+    (:func:`apply_deployment`); this function never reads the environment,
+    and without a deployment the config of an mTLS mission presents no
+    certificate (so it can open no link: what an unknown peer gets).
     Raises TransportError if zenoh rejects a setting, DeploymentError if the
     deployment has no identity for ``node``.
     """
@@ -207,9 +211,13 @@ class NodeSession:
     ``close()`` undeclares the token first so peers see the node leave at
     once, then closes the session; it is idempotent.
 
-    ``deployment``: TLS and access control; when not given, the deployment
-    file named by ``ZPLATFORM_DEPLOYMENT`` (if set) is loaded and checked
-    against the mission (DeploymentError if it does not fit).
+    ``deployment``: TLS and access control; when not given, the mission's
+    own (:func:`zplatform.deploy.require_deployment`): DeploymentError, and
+    no session, for an mTLS mission without one or with one that does not fit.
+    ``commands``: the session will put operator commands; a tool's
+    (``node`` None) then needs a deployment whose tool may command, else
+    DeploymentError before anything opens (the nodes' access control would
+    drop every request without a word).
     """
 
     def __init__(
@@ -219,12 +227,15 @@ class NodeSession:
         *,
         announce: bool = True,
         deployment: Deployment | None = None,
+        commands: bool = False,
         **overrides: Any,
     ) -> None:
         self.mission = mission
         self.node = node
         self.keys = KeySpace(mission.vehicle)
-        dep = deployment if deployment is not None else deployment_from_env(mission)
+        dep = deployment if deployment is not None else require_deployment(mission)
+        if commands and node is None and dep is not None and mission.mtls:
+            check_tool_may_command(dep)
         self.session = open_session(zenoh_config(mission, node, deployment=dep, **overrides))
         self._token: zenoh.LivelinessToken | None = None
         self._closed = False

@@ -15,6 +15,11 @@ LAUNCH as separate processes).
   cannot run safes itself and the CN latches DN_SAFED (ABORTED, visibly),
   instead of the flight ending ARMED with a link that looks healthy.
 
+The mission runs on plain links (``security.transport: plain``): under its
+default mutual TLS the attacker, holding no node's certificate, would get no
+session (tests/integration/test_secure_transport.py) and the keys behind it
+would go untested.
+
 Waits are on telemetry predicates; every process and the rogue's session
 end with the test (``Cluster.close``).
 """
@@ -94,7 +99,7 @@ def test_a_ground_key_cannot_fire_the_igniter(
     raw["pythonpath"] = [str(MISSION.parent / p) for p in raw.get("pythonpath") or ["."]]
     mission = tmp_path / "recovery_igniter_at_150m.yaml"
     mission.write_text(yaml.safe_dump(raw, sort_keys=False))
-    with Cluster(mission, tmp_path) as c:
+    with Cluster(mission, tmp_path, transport="plain") as c:
         keys = tmp_path / "keys"
         files = write_key_set(c.mission, keys)
         env = {KEY_FILE_ENV: str(keys)}  # each node takes its own file from the set
@@ -215,7 +220,7 @@ def _fly(c: Cluster) -> None:
 
 
 def test_a_rogue_clock_is_refused_and_the_flight_deploys(tmp_path: Path) -> None:
-    with Cluster(MISSION, tmp_path) as c:
+    with Cluster(MISSION, tmp_path, transport="plain") as c:
         with rogue_clock(c, tagged=True) as rogue:
             _fly(c)
             c.wait_for(
@@ -243,9 +248,10 @@ def test_a_dn_that_cannot_run_safes_and_the_cn_faults(tmp_path: Path) -> None:
     ARMED with no fault. (With +30 ms and +5 s answering together the DNs'
     corrections disagree with their residuals and the CN refuses to start,
     which was visible already.)"""
-    with Cluster(MISSION, tmp_path) as c:
-        with c.path.open("a") as f:
-            f.write("security: {auth: false}\n")
+    with Cluster(MISSION, tmp_path, transport="plain") as c:
+        raw = yaml.safe_load(c.path.read_text())
+        raw["security"]["auth"] = False
+        c.path.write_text(yaml.safe_dump(raw, sort_keys=False))
         c.mission = load_mission(c.path)
         with rogue_clock(c, tagged=False, shifts=((30 * MS, True),)):
             _fly(c)

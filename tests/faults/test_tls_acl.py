@@ -1,9 +1,17 @@
 """mTLS and access control across network namespaces (zplatform.deploy).
 
-The minimal mission runs over ``tls/`` endpoints with a test PKI: cn, dn0
-and gn as ``zplatform node`` processes in three namespaces, every one
-reading its deployment from ``ZPLATFORM_DEPLOYMENT``. Probes
-(tests/faults/tls_probe.py) in a fourth namespace then show:
+First, the default: the recovery igniter (hazardous commands, so
+``security.transport: auto`` runs mutual TLS) with the PKI made where ``up``
+and ``keygen`` make it; every node finds it there, with no setting of its
+own. A probe with the mission's ``tool`` cert sees the flight; a probe
+without a cert, in a namespace of its own, gets no session, sees no key and
+reaches no node.
+
+Then the rules, on the minimal mission with ``security.transport: mtls``
+(its ``tcp/`` endpoints run as ``tls/``) and a test PKI named by
+``ZPLATFORM_DEPLOYMENT``: cn, dn0 and gn as ``zplatform node`` processes in
+three namespaces. Probes (tests/faults/tls_probe.py) in a fourth namespace
+then show:
 
 * a peer with the mission's ``tool`` cert connects and receives telemetry
   (the set-up works, and telemetry is how the test observes the CN);
@@ -12,11 +20,10 @@ reading its deployment from ``ZPLATFORM_DEPLOYMENT``. Probes
 * a peer with a *valid* cert the ACL does not allow is denied, and the
   same request from an identity the ACL allows shows the path works:
 
-  - ``gn``'s cert queries ``rocket/dn0/to_cn`` with a garbage payload: no
-    reply at all and ``dn0_bad_frames`` stays 0; the same query with
-    ``cn``'s cert is answered by dn0 with an error naming its frame check,
-    and ``dn0_bad_frames`` rises (dn0 answers and counts every bad query it
-    gets, so the gn probe's query never reached it);
+  - ``gn``'s cert queries ``rocket/dn0/to_cn`` with a garbage payload:
+    ``dn0_bad_frames`` stays 0; the same query with ``cn``'s cert makes it
+    rise (dn0's intake refuses every bad query it gets unread, with no
+    reply, and counts it: so the gn probe's query never reached it);
   - the ``tool`` cert (not allowed to command) puts garbage on
     ``rocket/gn/to_cn``: the CN's ``cn_cmd_rejects`` and ``cn_bad_frames``
     stay 0; the same put with ``gn``'s cert makes them rise;
@@ -46,6 +53,8 @@ from tests.faults.netns import NetnsHost
 from tests.faults.test_netns import readline
 from tests.pki import make_test_pki
 from zplatform.deploy import DEPLOYMENT_ENV
+from zplatform.mission import load_mission
+from zplatform.pki import ensure_mission_pki
 
 ROOT = Path(__file__).resolve().parents[2]
 PY = sys.executable
@@ -89,8 +98,62 @@ def _ident(pki: Path, name: str) -> list[str]:
         "--cert",
         str(pki / f"{name}.pem"),
         "--key",
-        str(pki / f"{name}.key"),
+        str(pki / f"{name}.tls.key"),
     ]
+
+
+@pytest.mark.timeout(240)
+def test_the_default_transport_gives_an_unknown_peer_no_session(
+    netns_hosts: Callable[..., list[NetnsHost]], tmp_path: Path
+) -> None:
+    h_cn, h_dn, h_gn, h_x = netns_hosts(4)
+    # The world serves both DNs' boards on loopback: they share a host.
+    path = netns_mission(
+        ROOT / "configs" / "recovery_igniter.yaml",
+        tmp_path / "m.yaml",
+        {"cn": h_cn, "dn0": h_dn, "dn1": h_dn, "gn": h_gn},
+    )
+    mission = load_mission(path)
+    assert mission.security.transport == "auto" and mission.mtls
+    # What `zplatform keygen` and the first `up` make, in the session's config
+    # directory (tests/conftest.py), where every node below looks by itself.
+    pki = Path(ensure_mission_pki(mission).directory)
+    bare = {k: v for k, v in os.environ.items() if k != DEPLOYMENT_ENV}
+    node = [PY, "-m", "zplatform", "node", str(path)]
+    world = h_dn.popen(
+        [PY, "-m", "zplatform", "world", str(path), "--no-realtime"],
+        pipe_stdio=True,
+        env=bare,
+        cwd=ROOT,
+    )
+    assert readline(world, 60) == "READY"
+    for dn in ("dn0", "dn1"):
+        h_dn.popen([*node, dn], log=tmp_path / f"{dn}.log", env=bare, cwd=ROOT)
+    h_gn.popen([*node, "gn", "--duration", "200"], log=tmp_path / "gn.log", env=bare, cwd=ROOT)
+    cn = h_cn.popen(
+        [*node, "cn", "--duration", "200", "--ground-wait", "30"],
+        log=tmp_path / "cn.log",
+        env=bare,
+        cwd=ROOT,
+    )
+
+    def logs() -> str:
+        return "\n".join(
+            f"--- {n}\n" + (tmp_path / f"{n}.log").read_text()[-2000:]
+            for n in ("cn", "dn0", "dn1", "gn")
+        )
+
+    legit = Probe(h_x, path, bare, *_ident(pki, "tool"))
+    t = legit.telemetry(90, count=20)
+    assert t["new"] == 20, logs()
+    x = Probe(h_x, path, bare)  # no certificate
+    assert x.telemetry(3)["received"] == 0
+    assert x.peers() == 0
+    assert x.get("rocket/dn0/to_cn") == {"ok": 0, "err": 0, "why": []}
+    x.put("rocket/gn/to_cn")
+    t = legit.telemetry(10, count=50)
+    assert t["new"] == 50 and t["cn_bad_frames"] == 0 and t["cn_cmd_rejects"] == 0, t
+    assert cn.poll() is None, logs()
 
 
 @pytest.mark.timeout(240)
@@ -104,9 +167,7 @@ def test_unknown_peers_cannot_connect_and_the_acl_denies_what_a_cert_may_not_do(
         {"cn": h_cn, "dn0": h_dn, "gn": h_gn},
     )
     raw = yaml.safe_load(path.read_text())
-    for node in raw["nodes"].values():
-        for f in ("listen", "connect"):
-            node[f] = [ep.replace("tcp/", "tls/", 1) for ep in node.get(f, [])]
+    raw["security"] = {"transport": "mtls"}  # the endpoints stay tcp/: they run as tls/
     path.write_text(yaml.safe_dump(raw, sort_keys=False))
     pki = tmp_path / "pki"
     make_test_pki(pki, ["cn", "dn0", "gn"])
@@ -114,15 +175,20 @@ def test_unknown_peers_cannot_connect_and_the_acl_denies_what_a_cert_may_not_do(
     make_test_pki(foreign, ["gn"], tool=False, ca_name="intruder CA")
     env = {DEPLOYMENT_ENV: str(pki / "deployment.yaml")}
 
-    # `zplatform check` (an unchanged CLI verb) needs the deployment for tls/.
+    # `zplatform check` says which deployment a session would use (none on a
+    # host without one: checking a mission needs no certificate).
     check = [PY, "-m", "zplatform", "check", str(path)]
     bare = {k: v for k, v in os.environ.items() if k != DEPLOYMENT_ENV}
+    bare["XDG_CONFIG_HOME"] = str(tmp_path / "empty")
     r = subprocess.run(check, capture_output=True, text=True, env=bare, cwd=ROOT, timeout=60)
-    assert r.returncode != 0 and DEPLOYMENT_ENV in r.stdout + r.stderr, r
+    assert r.returncode == 0 and "no deployment on this host" in r.stdout, r
     r = subprocess.run(
         check, capture_output=True, text=True, env={**bare, **env}, cwd=ROOT, timeout=60
     )
     assert r.returncode == 0, r.stdout + r.stderr
+    assert f"mutual TLS with access control (security.transport is mtls); deployment {pki}" in (
+        r.stdout
+    )
 
     node = [PY, "-m", "zplatform", "node", str(path)]
     h_dn.popen([*node, "dn0"], log=tmp_path / "dn0.log", env=env, cwd=ROOT)
@@ -169,16 +235,13 @@ def test_unknown_peers_cannot_connect_and_the_acl_denies_what_a_cert_may_not_do(
     t = legit.telemetry(10, count=50)  # half a second of loops
     assert t["cn_bad_frames"] == 0 and t["dn0_bad_frames"] == 0, t
     as_cn = Probe(h_x, path, env, *_ident(pki, "cn"))
-    answered: dict[str, Any] = {}
     for _ in range(50):  # until the probe's session has learnt dn0's queryable
-        answered = as_cn.get("rocket/dn0/to_cn", 0.5)
-        if answered["err"]:
+        # dn0's intake refuses the garbage unread (no reply) and counts it.
+        assert as_cn.get("rocket/dn0/to_cn", 0.5) == {"ok": 0, "err": 0, "why": []}
+        t = legit.telemetry(10, count=10)
+        if t["dn0_bad_frames"]:
             break
-    # dn0 answers every query it gets, a garbage one with an error naming
-    # its check: so the gn probe's empty answer means its query never got there.
-    assert answered["ok"] == 0 and answered["err"] == 1, answered
-    assert "cn_to_dn0" in answered["why"][0], answered
-    t = legit.telemetry(10, count=50)
+    # dn0 counts every bad query it gets: the gn probe's, uncounted, never got there.
     assert t["dn0_bad_frames"] >= 1 and t["cn_bad_frames"] == 0, t
 
     # Commands: the tool cert may not put them (may_command false); gn may.

@@ -16,10 +16,13 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+import yaml
+
 from zplatform.config import Mission
 from zplatform.datavector import DataVector
 from zplatform.ground.link import GroundLink
 from zplatform.mission import load_mission
+from zplatform.pki import ensure_mission_pki
 from zplatform.transport import rewrite_endpoints
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -27,10 +30,23 @@ CONFIGS = ROOT / "configs"
 
 
 class Cluster:
-    def __init__(self, mission_file: str | Path, tmp: Path) -> None:
+    """``transport``: the copy's ``security.transport`` (``"plain"`` for a
+    test whose attacker must reach the nodes); the mission's own otherwise.
+    An mTLS mission's PKI is made as ``up`` makes it (the session's config
+    directory, tests/conftest.py), so every node and the test's ground find it."""
+
+    def __init__(
+        self, mission_file: str | Path, tmp: Path, *, transport: str | None = None
+    ) -> None:
         self.path = tmp / "mission.yaml"
         rewrite_endpoints(mission_file, self.path)
+        if transport is not None:
+            raw = yaml.safe_load(self.path.read_text())
+            raw.setdefault("security", {})["transport"] = transport
+            self.path.write_text(yaml.safe_dump(raw, sort_keys=False))
         self.mission: Mission = load_mission(self.path)
+        if self.mission.mtls:
+            ensure_mission_pki(self.mission)
         self.tmp = tmp
         self.procs: dict[str, subprocess.Popen[bytes]] = {}
         self._rx: GroundLink | None = None

@@ -9,6 +9,11 @@ an ABORT the new state refuses. Before the fix the ground took the old run's
 epoch and numbers from the replay and printed ``ABORT #3: ACCEPTED`` while
 the control node refused the request and stayed ARMED, and the ground node
 logged the replayed rows as real.
+
+The mission runs on plain links (``security.transport: plain``): under the
+default mutual TLS the recorder and the replaying peer, holding no
+certificate, get no session at all (tests/integration/test_secure_transport.py),
+and the ground's own checks are what this test is about.
 """
 
 from __future__ import annotations
@@ -41,7 +46,7 @@ def _state(c: Cluster, state: str) -> None:
 def _record_run_1(tmp: Path) -> list[bytes]:
     """Run 1's telemetry around its ABORT #3, as a passive subscriber got it."""
     tmp.mkdir()
-    with Cluster(MISSION, tmp) as c:
+    with Cluster(MISSION, tmp, transport="plain") as c:
         for n in ("dn0", "dn1", "cn"):
             c.spawn(n)
         tap = zenoh.open(zenoh_config(c.mission, None))
@@ -83,7 +88,7 @@ def test_a_replayed_run_is_refused_and_verdicts_are_the_control_nodes(tmp_path: 
     recording = _record_run_1(tmp_path / "run1")
     assert len(recording) > 80
     (tmp_path / "run2").mkdir()
-    with Cluster(MISSION, tmp_path / "run2") as c:
+    with Cluster(MISSION, tmp_path / "run2", transport="plain") as c:
         for n in ("dn0", "dn1"):
             c.spawn(n)
         c.spawn("gn", "--log", str(c.tmp / "gn.csv"))

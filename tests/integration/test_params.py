@@ -277,7 +277,7 @@ def test_prm_set_from_the_command_line_changes_a_controller_live_and_persists(
         _stop(c, "cn")
 
         # The run replays bit for bit, the save's completion included.
-        result = replay(rec)
+        result = replay(rec, c.path)  # the operator names the mission: never the recording
         assert result.identical and result.complete, result.first_difference
 
         # The next start loads what was saved.

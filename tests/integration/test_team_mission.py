@@ -20,6 +20,8 @@ import pytest
 import yaml
 
 from tests.unit.test_mission_code import team_mission, write_code
+from zplatform.mission import load_mission
+from zplatform.pki import ensure_mission_pki
 from zplatform.transport import free_port
 
 pytestmark = pytest.mark.timeout(240)
@@ -85,6 +87,9 @@ def test_a_team_mission_runs_without_pythonpath_and_the_ground_needs_only_the_fi
     r = _zp(cwd, "xtce", str(ground_copy), "--out", str(tmp_path / "x.xml"))
     assert r.returncode == 0, r.stderr
 
+    # The mission's PKI, as `zplatform keygen` makes it (`up` would too, but
+    # the ground verbs below start beside it and must find it there).
+    ensure_mission_pki(load_mission(ground_copy, code=False))
     up = subprocess.Popen(
         [
             *(sys.executable, "-m", "zplatform", "up", str(mission)),

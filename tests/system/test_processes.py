@@ -20,6 +20,7 @@ from tests.budget import assert_every_loop_counted, assert_telemetry_counted
 from tests.drive import igniter_bench_copy
 from zplatform.ground.link import GroundLink
 from zplatform.mission import load_mission
+from zplatform.pki import ensure_mission_pki
 from zplatform.telemetry import read_csv
 from zplatform.transport import rewrite_endpoints
 
@@ -37,6 +38,8 @@ class Mission:
         self.path = tmp / "mission.yaml"
         rewrite_endpoints(ROOT / "configs" / config, self.path)
         self.mission = load_mission(self.path)
+        if self.mission.mtls:  # as `keygen` would: the test's ground opens while `up` starts
+            ensure_mission_pki(self.mission)
         self.csv = tmp / "ground.csv"
         self.summary = tmp / "summary.json"
         self.up = subprocess.Popen(

@@ -111,7 +111,7 @@ def test_sim_equals_live(live_run: Path, tmp_path: Path) -> None:
 
 def test_live_run_replays_bit_for_bit(live_run: Path, tmp_path: Path) -> None:
     up = json.loads((live_run / "up.json").read_text())
-    res = replay(live_run / "rec")
+    res = replay(live_run / "rec", LED_YAML)  # the shipped file: the copy ran on other ports
     assert res.complete and res.dropped_loops == 0
     assert res.first_difference is None
     assert res.identical
@@ -120,7 +120,10 @@ def test_live_run_replays_bit_for_bit(live_run: Path, tmp_path: Path) -> None:
     assert res.final_state == up["final_state"] == "E"
     # The CLI says the same, and exits 0.
     proc = subprocess.run(
-        [sys.executable, "-m", "zplatform", "replay", str(live_run / "rec")],
+        [
+            *(sys.executable, "-m", "zplatform", "replay", str(live_run / "rec")),
+            *("--mission", str(LED_YAML)),
+        ],
         cwd=ROOT,
         capture_output=True,
         text=True,
@@ -146,6 +149,6 @@ def test_replay_names_the_first_difference(live_run: Path, tmp_path: Path) -> No
     at = data.find(target.telemetry)
     data[at + len(target.telemetry) - 1] ^= 0x01
     (rec / RECORD_FILE).write_bytes(data)
-    res = replay(rec)
+    res = replay(rec, LED_YAML)
     assert not res.identical
     assert res.first_difference is not None and res.first_difference.loop == 500

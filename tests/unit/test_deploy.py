@@ -16,20 +16,22 @@ import msgspec
 import pytest
 
 from tests.pki import make_test_pki
+from zplatform.auth import KEY_FILE_ENV
 from zplatform.deploy import (
     DEPLOYMENT_ENV,
     Deployment,
     DeploymentError,
     access_control,
+    default_deployment_path,
+    find_deployment,
     load_deployment,
+    require_deployment,
     tls_settings,
     zenoh_settings,
 )
 from zplatform.errors import ConfigError
 from zplatform.mission import decode_mission
-from zplatform.transport import zenoh_config
-
-pytestmark = pytest.mark.skipif(shutil.which("openssl") is None, reason="needs openssl")
+from zplatform.transport import NodeSession, zenoh_config
 
 TLS_MISSION = """
 mission: tlstest
@@ -75,40 +77,108 @@ def test_test_pki_writes_a_deployment_with_absolute_paths(pki: Path) -> None:
     dep = load_deployment(pki / "deployment.yaml")
     assert dep.ca == str(pki / "ca.pem")
     assert set(dep.nodes) == {"cn", "dn0", "gn"}
-    assert dep.nodes["cn"].key == str(pki / "cn.key")
+    assert dep.nodes["cn"].key == str(pki / "cn.tls.key")
     assert dep.tool is not None and not dep.tool.may_command and dep.access_control
 
 
-def test_a_tls_mission_loads_only_with_a_deployment(
-    with_deployment: Path, monkeypatch: pytest.MonkeyPatch
+def test_a_tls_mission_loads_anywhere_and_opens_sessions_only_with_a_deployment(
+    with_deployment: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    decode_mission(TLS_MISSION)
+    m = decode_mission(TLS_MISSION)
+    assert require_deployment(m) == load_deployment(with_deployment, m)
     monkeypatch.delenv(DEPLOYMENT_ENV)
-    with pytest.raises(ConfigError) as ei:
-        decode_mission(TLS_MISSION)
-    assert ei.value.path == "$.nodes.cn.listen[0]" and DEPLOYMENT_ENV in str(ei.value)
+    monkeypatch.setenv("XDG_CONFIG_HOME", str(tmp_path))
+    m = decode_mission(TLS_MISSION)  # checking a mission needs no certificate
+    with pytest.raises(DeploymentError) as ei:
+        require_deployment(m)
+    assert ei.value.path == "$.security.transport"
+    for words in (DEPLOYMENT_ENV, "zplatform keygen", str(default_deployment_path(m))):
+        assert words in str(ei.value)
+    with pytest.raises(DeploymentError):  # and so no session opens
+        NodeSession(m, "cn")
 
 
-def test_a_deployment_without_a_tls_node_is_refused_at_mission_load(
+def test_a_deployment_without_a_tls_node_is_refused_when_a_session_opens(
     pki: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     p = _write(tmp_path, pki, GOOD.replace("  gn: {cert: PKI/gn.pem, key: PKI/gn.key}\n", ""))
     monkeypatch.setenv(DEPLOYMENT_ENV, str(p))
     with pytest.raises(DeploymentError) as ei:
-        decode_mission(TLS_MISSION)
+        require_deployment(decode_mission(TLS_MISSION))
     assert "'gn' has tls/ endpoints" in str(ei.value) and ei.value.path == "$.nodes"
+
+
+def test_the_default_deployment_is_found_and_the_named_one_comes_first(
+    pki: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.delenv(DEPLOYMENT_ENV, raising=False)
+    monkeypatch.delenv(KEY_FILE_ENV, raising=False)
+    monkeypatch.setenv("XDG_CONFIG_HOME", str(tmp_path))
+    m = decode_mission(TLS_MISSION)
+    default = tmp_path / "zplatform" / "keys" / "tlstest" / "deployment.yaml"
+    assert default_deployment_path(m) == default and find_deployment(m) is None
+    make_test_pki(default.parent, ["cn", "dn0", "gn"])
+    assert find_deployment(m) == default
+    assert require_deployment(m) == load_deployment(default)
+    # Beside the key set ZPLATFORM_KEY_FILE names: its directory, or a file's.
+    monkeypatch.setenv(KEY_FILE_ENV, str(pki))
+    assert find_deployment(m) == pki / "deployment.yaml"
+    monkeypatch.setenv(KEY_FILE_ENV, str(pki / "dn0.keys"))
+    assert find_deployment(m) == pki / "deployment.yaml"
+    monkeypatch.setenv(KEY_FILE_ENV, str(tmp_path / "keys-elsewhere"))
+    assert find_deployment(m) is None
+    monkeypatch.delenv(KEY_FILE_ENV)
+    monkeypatch.setenv(DEPLOYMENT_ENV, str(pki / "deployment.yaml"))
+    assert find_deployment(m) == pki / "deployment.yaml"
+    monkeypatch.setenv(DEPLOYMENT_ENV, str(tmp_path / "absent.yaml"))  # named: never skipped
+    with pytest.raises(DeploymentError, match="cannot read deployment file"):
+        require_deployment(m)
+
+
+def test_a_tool_that_may_not_command_is_refused_before_a_command_is_lost(
+    with_deployment: Path,
+) -> None:
+    """The ACL would drop its requests unanswered: `cmd` says so at once."""
+    m = decode_mission(TLS_MISSION)
+    dep = load_deployment(with_deployment, m)
+    assert dep.tool is not None and not dep.tool.may_command
+    with pytest.raises(DeploymentError, match="may not command") as ei:
+        NodeSession(m, None, deployment=dep, commands=True)
+    assert ei.value.path == "$.tool.may_command"
+
+
+def test_a_plain_mission_uses_no_deployment(with_deployment: Path) -> None:
+    m = decode_mission(TLS_MISSION.replace("tls/", "tcp/"))
+    assert not m.mtls and require_deployment(m) is None
+
+
+def test_a_host_holds_only_its_own_key_and_it_must_be_private(
+    pki: Path, tmp_path: Path
+) -> None:
+    """The deployment names every node; a session checks the files of the
+    identity it presents, and refuses a private key others can read."""
+    for f in ("ca.pem", "deployment.yaml", "dn0.pem", "dn0.tls.key"):
+        shutil.copy(pki / f, tmp_path / f)
+    dep = load_deployment(tmp_path / "deployment.yaml", decode_mission(TLS_MISSION))
+    assert tls_settings(dep, "dn0")["listen_private_key"] == str(tmp_path / "dn0.tls.key")
+    with pytest.raises(DeploymentError, match="no such file") as ei:
+        tls_settings(dep, "cn")
+    assert ei.value.path == "$.nodes.cn.cert"
+    (tmp_path / "dn0.tls.key").chmod(0o644)
+    with pytest.raises(DeploymentError, match="readable by others") as ei:
+        tls_settings(dep, "dn0")
+    assert ei.value.path == "$.nodes.dn0.key" and "chmod 600" in str(ei.value)
 
 
 @pytest.mark.parametrize(
     ("edit", "path", "words"),
     [
         (("cert: PKI/cn.pem", "certs: PKI/cn.pem"), "$.nodes.cn", "unknown field `certs`"),
-        (("key: PKI/dn0.key", "key: PKI/nope.key"), "$.nodes.dn0.key", "no such file"),
         (("ca: PKI/ca.pem", "ca: PKI/none.pem"), "$.ca", "no such file"),
         (("ca: PKI/ca.pem", "ca: 7"), "$.ca", "Expected `str`"),
         (("ca: PKI/ca.pem\n", ""), "$", "missing required field `ca`"),
         (("nodes:", "access_control: maybe\nnodes:"), "$.access_control", "Expected `bool`"),
-        (("  gn:", "  dn9:"), "$.nodes.dn9", "not in mission"),
+        (("  cn:", "  c9:"), "$.nodes", "'cn' has tls/ endpoints but no cert"),
     ],
 )
 def test_deployment_errors_name_the_yaml_path(
@@ -116,7 +186,7 @@ def test_deployment_errors_name_the_yaml_path(
 ) -> None:
     p = _write(tmp_path, pki, GOOD.replace(*edit))
     with pytest.raises(DeploymentError) as ei:
-        load_deployment(p, decode_mission(TLS_MISSION.replace("tls/", "tcp/")))
+        load_deployment(p, decode_mission(TLS_MISSION))
     assert ei.value.path == path, str(ei.value)
     assert words in str(ei.value) and str(p) in str(ei.value)
 
@@ -242,3 +312,80 @@ def test_a_mission_without_tls_gets_nothing_from_a_deployment(with_deployment: P
 def test_a_foreign_ca_makes_other_certs(pki: Path, tmp_path: Path) -> None:
     other = make_test_pki(tmp_path, ["gn"], tool=False, ca_name="intruder CA")
     assert other.tool is None and Path(other.ca).read_bytes() != (pki / "ca.pem").read_bytes()
+
+
+# ---------------------------------------------------------------------------
+# security.transport: which missions run mutual TLS, and their endpoints
+
+HAZARDOUS = """
+mission: hz
+nodes:
+  cn:  {listen: ['tcp/10.0.0.1:7447']}
+  dn0: {listen: ['tcp/10.0.0.2:7447'], connect: ['tcp/10.0.0.1:7447']}
+  gn:  {connect: ['tcp/10.0.0.1:7447']}
+regions:
+  dn0_to_cn:
+    - {name: v, type: f64}
+commands:
+  hazardous: [LAUNCH]
+"""
+
+
+def _endpoints(text: str) -> list[str]:
+    m = decode_mission(text)
+    return [ep for n in m.nodes.values() for ep in [*n.listen, *n.connect]]
+
+
+def test_hazardous_commands_run_mutual_tls_by_default() -> None:
+    m = decode_mission(HAZARDOUS)
+    assert m.security.transport == "auto" and m.mtls
+    assert _endpoints(HAZARDOUS) == ["tls/10.0.0.1:7447", "tls/10.0.0.2:7447"] + [
+        "tls/10.0.0.1:7447"
+    ] * 2
+    # Without hazardous commands auto is plain; mtls and plain say so outright.
+    no_hazard = HAZARDOUS.replace("commands:\n  hazardous: [LAUNCH]\n", "")
+    assert not decode_mission(no_hazard).mtls and _endpoints(no_hazard)[0].startswith("tcp/")
+    mtls = no_hazard + "security: {transport: mtls}\n"
+    assert decode_mission(mtls).mtls and _endpoints(mtls)[0].startswith("tls/")
+    plain = HAZARDOUS + "security: {transport: plain}\n"
+    assert not decode_mission(plain).mtls and _endpoints(plain)[0].startswith("tcp/")
+
+
+@pytest.mark.parametrize(
+    ("edit", "path", "words"),
+    [
+        (
+            ("tcp/10.0.0.2:7447'], connect", "udp/10.0.0.2:7447'], connect"),
+            "$.nodes.dn0.listen[0]",
+            "cannot carry mutual TLS, which this mission's links run (security.transport is "
+            "auto and the mission has hazardous commands)",
+        ),
+        (
+            ("  gn:  {connect: ['tcp/", "  gn:  {connect: ['ws/"),
+            "$.nodes.gn.connect[0]",
+            "say security.transport: plain on a closed network",
+        ),
+        (
+            ("commands:", "security: {transport: plain}\ncommands:"),
+            None,
+            None,
+        ),
+    ],
+)
+def test_endpoints_that_cannot_run_tls_are_refused_with_their_path(
+    edit: tuple[str, str], path: str | None, words: str | None
+) -> None:
+    text = HAZARDOUS.replace(*edit)
+    if path is None:  # plain: tls/ is the contradiction
+        text = text.replace("tcp/10.0.0.1:7447']}\n  dn0", "tls/10.0.0.1:7447']}\n  dn0")
+        path, words = "$.nodes.cn.listen[0]", "is tls/, but security.transport is plain"
+    with pytest.raises(ConfigError) as ei:
+        decode_mission(text)
+    assert ei.value.path == path and words in ei.value.reason, str(ei.value)
+
+
+def test_a_tcp_and_a_tls_listen_on_one_address_are_one_endpoint() -> None:
+    text = HAZARDOUS.replace("tcp/10.0.0.2:7447'], connect", "tls/10.0.0.1:7447'], connect")
+    with pytest.raises(ConfigError, match="also listened on by cn") as ei:
+        decode_mission(text)
+    assert ei.value.path == "$.nodes.dn0.listen[0]"

@@ -365,7 +365,7 @@ def test_the_cns_health_block_is_recorded_and_replayed_bit_for_bit(tmp_path: Pat
     blocks = [r.health for r in RecordReader(tmp_path / "rec").loops()]
     assert [i + 1 for i, b in enumerate(blocks) if b is not None] == [10, 20, 30, 40]
     assert all(len(b) == BLOCK_SIZE for b in blocks if b is not None)
-    res = replay(tmp_path / "rec")
+    res = replay(tmp_path / "rec", mission)
     assert res.identical and res.loops == 40, res
 
 

@@ -398,7 +398,7 @@ def test_refusals_are_counted_evented_once_a_second_recorded_and_replayed(
     assert sum(int(e.text.split()[0]) for e in bad) == 200 * 61
     (loop,) = [x for x in RecordReader(tmp_path / "rec").loops() if x.loop == 7]
     assert CnRefusals().set_fields(loop.refused).reply_foreign == 60
-    res = replay(tmp_path / "rec")  # the keys from the suite's master key
+    res = replay(tmp_path / "rec", LED)  # the keys from the suite's master key
     assert res.identical and res.loops == 300, res.first_difference
 
 

@@ -210,22 +210,17 @@ def test_zero_time_chains_without_a_cycle_and_timed_cycles_are_fine() -> None:
     decode_mission(ZERO.replace("{after_s: 0, to: A}", "{after_s: 0.01, to: A}"))
 
 
-@pytest.mark.parametrize("proto", ["tls", "quic"])
-def test_tls_and_quic_endpoints_need_a_deployment_file(
-    proto: str, monkeypatch: pytest.MonkeyPatch
+def test_tls_endpoints_load_without_a_deployment_and_quic_is_refused(
+    monkeypatch: pytest.MonkeyPatch,
 ) -> None:
-    # tls/ is accepted only with a deployment (tests/unit/test_deploy.py);
-    # quic/ not at all yet.
+    # A tls/ mission loads on any host; its sessions need the deployment
+    # (tests/unit/test_deploy.py). quic/ is not supported yet.
     monkeypatch.delenv("ZPLATFORM_DEPLOYMENT", raising=False)
-    text = SMALL.replace("cn: {}", f"cn: {{listen: ['{proto}/10.0.0.1:7447']}}")
-    err = _refused(text)
+    assert decode_mission(SMALL.replace("cn: {}", "cn: {listen: ['tls/10.0.0.1:7447']}")).mtls
+    err = _refused(SMALL.replace("cn: {}", "cn: {listen: ['quic/10.0.0.1:7447']}"))
     assert err.path == "$.nodes.cn.listen[0]"
-    assert "TLS certificate settings" in str(err) and "deployment file" in str(err)
-    if proto == "quic":
-        assert "not support" in str(err)
-    else:
-        assert "ZPLATFORM_DEPLOYMENT" in str(err)
-    text = SMALL.replace("dn0: {}", f"dn0: {{connect: ['{proto}/10.0.0.1:7447']}}")
+    assert "TLS certificate settings" in str(err) and "not support" in str(err)
+    text = SMALL.replace("dn0: {}", "dn0: {connect: ['quic/10.0.0.1:7447']}")
     assert _refused(text).path == "$.nodes.dn0.connect[0]"
 
 

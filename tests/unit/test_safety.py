@@ -128,6 +128,31 @@ def test_pyrotechnic_outputs_need_hazardous_commands() -> None:
     assert warnings_of(doc) == []
 
 
+def test_a_hazardous_mission_on_plain_links(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Plain links are the mission's choice (the flood tests need them), and
+    `check` says what it costs; `--strict` refuses it."""
+    doc = mission(commands={"hazardous": ["LAUNCH"]}, security={"transport": "plain"})
+    (w,) = warnings_of(doc)
+    assert (w.kind, w.path) == ("plain_transport_with_hazardous", "$.security.transport")
+    assert "hazardous commands (LAUNCH)" in w.message and "auto" in w.message
+    doc["security"] = {"transport": "auto"}  # mutual TLS: nothing to say
+    assert warnings_of(doc) == []
+    doc["security"] = {"transport": "plain"}
+    doc["commands"] = {"protected": ["vent_mode"]}  # nothing hazardous: plain is the default
+    assert warnings_of(doc) == []
+    path = tmp_path / "m.yaml"
+    path.write_text(yaml.safe_dump(mission(commands={"hazardous": ["LAUNCH"]})))
+    assert main(["check", str(path), "--json"]) == 0
+    rep = json.loads(capsys.readouterr().out)
+    assert (rep["transport"], rep["deployment"]) == ("mtls", None)
+    assert main(["check", str(path)]) == 0
+    assert "links: mutual TLS with access control (security.transport is auto and the " in (
+        capsys.readouterr().out
+    )
+
+
 def test_the_igniter_mission_is_clean_and_its_igniters_are_pyrotechnic() -> None:
     path = ROOT / "configs" / "recovery_igniter.yaml"
     assert safety_warnings(load_mission(path)) == []

@@ -154,7 +154,7 @@ class GroundLink:
             script=script,
         )
         self.on_event = on_event
-        self.ns = NodeSession(mission, node, announce=False)
+        self.ns = NodeSession(mission, node, announce=False, commands=bool(commands or script))
         self.keys = self.ns.keys
         session = self.ns.session
         # One mailbox per kind (module doc), one waker for the caller's thread.

@@ -1,0 +1,96 @@
+"""``up``'s stop: its own zenoh session never decides a node's fate.
+
+The nodes are processes (stand-ins here: a CN that ends its run, a DN that
+runs until signalled); ``up``'s link is a fake whose close hangs, as a
+mutual-TLS session's close can on a busy host. ``up`` must signal every node
+before it closes its session, and return without waiting on that close.
+"""
+
+from __future__ import annotations
+
+import signal
+import subprocess
+import sys
+import threading
+from pathlib import Path
+from types import SimpleNamespace
+from typing import Any
+
+import pytest
+
+from zplatform import load_mission, supervisor
+from zplatform.datavector import DataVector, Layout
+
+ROOT = Path(__file__).resolve().parents[2]
+MISSION = ROOT / "configs" / "minimal.yaml"
+# The CN's run ends by itself (as with --duration); the DN runs until signalled.
+PROGRAMS = {"cn": "pass", "dn0": "import time; time.sleep(120)"}
+
+
+class _Registry:
+    def update(self, **kw: Any) -> None:
+        pass
+
+
+def test_up_stops_its_nodes_before_closing_its_session_and_never_waits_on_the_close(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    mission = load_mission(MISSION)
+    release = threading.Event()  # the hung close, released at the end
+    at_close: dict[str, int | None] = {}
+
+    class HungLink:
+        def __init__(self, m: Any, **kw: Any) -> None:
+            self.dv = DataVector(Layout.for_node(m, "gn"))
+            self.logic = SimpleNamespace(received=True)  # telemetry flows
+
+        def next(self, timeout: float) -> None:
+            return None
+
+        def close(self) -> None:
+            at_close.update({n: p.poll() for n, p in children.procs.items()})
+            release.wait()
+
+    children = supervisor.Children()
+
+    def spawn(self: supervisor.Children, name: str, argv: list[str], **kw: Any) -> None:
+        self.procs[name] = subprocess.Popen([sys.executable, "-c", PROGRAMS[name]])
+
+    monkeypatch.setattr(supervisor.Children, "spawn", spawn)
+    monkeypatch.setattr(supervisor, "Children", lambda: children)
+    monkeypatch.setattr(supervisor, "GroundLink", HungLink)
+    monkeypatch.setattr(supervisor, "LINK_CLOSE_S", 0.2)
+    monkeypatch.setattr(signal, "signal", lambda *a: None)  # pytest keeps its own
+
+    result: list[int] = []
+
+    def run() -> None:
+        result.append(
+            supervisor._supervise(
+                mission,
+                {n: [] for n in PROGRAMS},
+                tmp_path,
+                _Registry(),
+                world=None,
+                summary=None,
+                log=None,
+                quiet=True,
+                ready_timeout_s=10.0,
+                end_after_script=False,
+            )
+        )
+
+    up = threading.Thread(target=run, daemon=True)
+    try:
+        up.start()
+        up.join(60)
+        assert not up.is_alive(), "up waited on its own session's close"
+    finally:
+        release.set()
+        for p in children.procs.values():
+            if p.poll() is None:
+                p.kill()
+            p.wait()
+    # Every node had been stopped when the close began: the DN by its signal.
+    assert at_close == {"cn": 0, "dn0": -signal.SIGTERM}
+    assert result == [0]
