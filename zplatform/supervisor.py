@@ -120,8 +120,19 @@ class Children:
             try:
                 codes[n] = p.wait(timeout=timeout_s)
             except subprocess.TimeoutExpired:
-                p.kill()
-                codes[n] = p.wait()
+                # Say where it is stuck before the kill: a node dumps its
+                # threads' stacks to its stderr on SIGUSR2 (zplatform node).
+                print(
+                    f"zplatform up: {n} did not stop within {timeout_s:g} s of SIGTERM; "
+                    "its threads follow, then SIGKILL",
+                    file=sys.stderr,
+                )
+                p.send_signal(signal.SIGUSR2)
+                try:
+                    codes[n] = p.wait(timeout=1.0)  # the dump's time, or a late exit
+                except subprocess.TimeoutExpired:
+                    p.kill()
+                    codes[n] = p.wait()
         return codes
 
     def stop_all(self) -> dict[str, int]:

@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import contextlib
 import json
+import logging
 import queue
 import socket
 import threading
@@ -205,11 +206,30 @@ def open_session(cfg: zenoh.Config) -> zenoh.Session:
         raise TransportError(f"cannot open zenoh session: {exc}") from exc
 
 
+SESSION_CLOSE_S = 3.0
+"""The longest :meth:`NodeSession.close` waits for zenoh's session close."""
+
+_left_open = 0
+_log = logging.getLogger("zplatform.transport")
+
+
+def sessions_left_open() -> int:
+    """Sessions whose close did not finish within :data:`SESSION_CLOSE_S`
+    in this process (a node process then ends with ``os._exit``, see
+    ``zplatform node``)."""
+    return _left_open
+
+
 class NodeSession:
     """A node's zenoh session plus its liveliness token. Context manager.
 
     ``close()`` undeclares the token first so peers see the node leave at
-    once, then closes the session; it is idempotent.
+    once, then closes the session; it is idempotent. It blocks at most
+    :data:`SESSION_CLOSE_S` for zenoh's close (a mutual-TLS close handshake
+    on a busy host can take zenoh's own 10 s timeout, eclipse-zenoh/zenoh
+    issue 2675, longer than the stop grace ``up`` gives a node); a close
+    still under way then is left running, logged, and counted by
+    :func:`sessions_left_open`, so that a node process can end without it.
 
     ``deployment``: TLS and access control; when not given, the mission's
     own (:func:`zplatform.deploy.require_deployment`): DeploymentError, and
@@ -256,7 +276,17 @@ class NodeSession:
                 self._token.undeclare()
             except Exception:  # already gone with the session: nothing to do
                 pass
-        self.session.close()
+        closer = threading.Thread(target=self.session.close, name="zenoh-close", daemon=True)
+        closer.start()
+        closer.join(SESSION_CLOSE_S)
+        if closer.is_alive():
+            global _left_open
+            _left_open += 1
+            _log.warning(
+                "%s: zenoh's session close did not finish within %g s; left to the process's exit",
+                self.node or "tool",
+                SESSION_CLOSE_S,
+            )
 
     def __enter__(self) -> NodeSession:
         return self
