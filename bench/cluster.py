@@ -51,12 +51,14 @@ def make_mission(
     devices: list[dict[str, Any]] | None = None,
     extra: dict[str, list[dict[str, Any]]] | None = None,
     name: str = "bench",
+    mac: str | None = None,
 ) -> Path:
     """Write a benchmark mission to ``path`` and return it.
 
     Each ``cn_to_dnX`` and ``dnX_to_cn`` region is padded with a ``u8``
     array so its size is ``region_bytes`` (at least the platform elements).
-    ``extra`` appends elements to regions by name.
+    ``extra`` appends elements to regions by name. ``mac``: the mission's
+    ``security.mac`` (else the mission default).
     """
     ports = {n: free_port() for n in ["cn", *[f"dn{i}" for i in range(n_dn)]]}
     cn_ep = f"tcp/127.0.0.1:{ports['cn']}"
@@ -91,6 +93,8 @@ def make_mission(
         doc["devices"] = devices
     if sync_query is not None:  # else the mission default (per_node)
         doc["transport"]["sync_query"] = sync_query
+    if mac is not None:
+        doc["security"] = {"mac": mac}
     path.write_text(yaml.safe_dump(doc, sort_keys=False))
     return path
 
