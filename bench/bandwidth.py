@@ -49,9 +49,9 @@ replaces the earlier variant of the same point (elements, DNs, region, rate,
 MAC; one that recorded no MAC is replaced by any MAC's), and floors no
 zplatform point refers to any more are dropped.
 
-Blocks for a few minutes (``--quick``: about 2 min): each point runs
-``--seconds`` (quick 5, full 15) plus its start-up (a 100k-element mission
-takes each process about 10-20 s to load).
+Blocks for a few minutes (``--quick``: about 3 min with both MACs): each
+point runs ``--seconds`` (quick 5, full 15) per MAC plus its start-up (a
+100k-element mission takes each process about 10-20 s to load).
 
 Run ``python -m bench.bandwidth [--quick] [--json PATH] [--macs blake3,hmac]
 [--counts N,...] [--splits D,...] [--regions B,...] [--seconds S] [--no-rates]

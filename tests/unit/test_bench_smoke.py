@@ -107,6 +107,7 @@ def test_clock_smoke(tmp_path: Path) -> None:
 
 
 @pytest.mark.slow
+@pytest.mark.timeout(420)  # bandwidth's --quick runs every point once per MAC: about 3 min
 @pytest.mark.parametrize("bench", ["bandwidth", "reliability", "telemetry_latency", "clock"])
 def test_quick_as_shipped(bench: str, tmp_path: Path) -> None:
     mod = {
