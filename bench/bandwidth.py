@@ -8,12 +8,15 @@ as shipped) whose regions carry ``N`` scalar elements of mixed types
 split evenly across 1, 3 or 6 DNs. The missions (up to 100,000 elements) are
 generated into a temporary directory and never committed.
 
-Variants:
+Every zplatform point runs once per MAC (``--macs``, default both: keyed
+BLAKE3 and HMAC-SHA256, the mission's ``security.mac``); ``<M>`` in a
+variant's name is ``blake3`` or ``hmac`` and its ``mac`` figure the mission's
+name. Variants:
 
-* ``zp_<N>el_<D>dn``: N elements over D DNs at 100 Hz (``N`` in 10, 100,
+* ``zp_<N>el_<D>dn_<M>``: N elements over D DNs at 100 Hz (``N`` in 10, 100,
   1k, 10k, 100k; ``--quick``: 10, 1k, 10k with 1 and 3 DNs);
-* ``zp_region_<B>B_3dn``: plain ``u8[B]`` regions of B bytes, 3 DNs;
-* ``zp_<N>el_3dn_<R>hz``: the highest-rate search at 3 DNs (200, 500, 1000
+* ``zp_region_<B>B_3dn_<M>``: plain ``u8[B]`` regions of B bytes, 3 DNs;
+* ``zp_<N>el_3dn_<R>hz_<M>``: the highest-rate search at 3 DNs (200, 500, 1000
   Hz, sync deadline min(2 ms, period / 2); stops at the first rate not held);
 * ``raw_zenoh_<D>x<S>B`` / ``raw_udp_<D>x<S>B``: the floors, the same bytes
   (S = the largest zplatform frame of that point, both ways) by bare zenoh
@@ -21,7 +24,7 @@ Variants:
   same run (:func:`bench.baselines.run_baseline`).
 
 Figures per zplatform point: ``bytes_per_loop`` (every cn_to_dnX frame plus
-every reply, as sent, HMAC included), ``mbit_s`` (at the measured loop rate),
+every reply, as sent, tags included), ``mbit_s`` (at the measured loop rate),
 the sync step's ``p50_us``/``p99_us``/``max_us`` (a missed loop counts as the
 deadline, as in :mod:`bench.sync`), ``deadline_miss_rate`` (loops whose sync
 missed, plus periods the CN skipped, over all periods), ``cpu_cn_pct`` (this
@@ -30,25 +33,40 @@ the measured loops, ``shm_reply_fraction`` (replies whose payload came
 through zenoh shared memory: ``payload.as_shm() is not None``, checked in the
 CN's reply callback) and ``holds_100hz`` (rate held within 2% and miss rate
 under 1e-4: with a few thousand loops per point, "0 misses" bounds the true
-rate only near 1e-3; the reliability bench is the long run).
+rate only near 1e-3; the reliability bench is the long run) and
+``vs_raw_zenoh_p50`` (its sync p50 over the raw-zenoh floor's p50, the same
+bytes).
 
-``params.largest_holding_100hz`` is the largest N that holds 100 Hz (per DN
-split); the target is 100,000 elements at 100 Hz (the thesis supported 200).
+``params.largest_holding_100hz`` is the largest N that holds 100 Hz (per MAC
+and DN split). The targets, per MAC and DN split, are the 100,000-element
+point's: hold 100 Hz (the thesis supported 200 elements) and a sync p50
+within 1.15x of raw zenoh moving the same bytes.
 
-Blocks for a few minutes (``--quick``: about 2 min): each point runs
-``--seconds`` (quick 5, full 15) plus its start-up (a 100k-element mission
-takes each process about 10-20 s to load).
+``--merge`` joins the existing result file instead of replacing it: its
+variants stay (each keeps the ``run_utc`` and ``run_cpu`` of its run: a merged
+file may hold more than one machine's), a point measured now
+replaces the earlier variant of the same point (elements, DNs, region, rate,
+MAC; one that recorded no MAC is replaced by any MAC's), and floors no
+zplatform point refers to any more are dropped.
 
-Run ``python -m bench.bandwidth [--quick] [--json PATH]``.
+Blocks for a few minutes (``--quick``: about 3 min with both MACs): each
+point runs ``--seconds`` (quick 5, full 15) per MAC plus its start-up (a
+100k-element mission takes each process about 10-20 s to load).
+
+Run ``python -m bench.bandwidth [--quick] [--json PATH] [--macs blake3,hmac]
+[--counts N,...] [--splits D,...] [--regions B,...] [--seconds S] [--no-rates]
+[--merge]``.
 """
 
 from __future__ import annotations
 
+import json
 import os
 import secrets
 import tempfile
 import time
 from collections.abc import Callable
+from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
@@ -58,8 +76,9 @@ import zenoh
 
 from bench.baselines import run_baseline
 from bench.cluster import BenchCluster, SyncSamples, make_mission
-from bench.common import bench_argparser, summarize, write_result
+from bench.common import RESULTS_DIR, bench_argparser, machine_info, summarize, write_result
 from bench.sync import PRIORITY, inherit_fifo
+from zplatform.auth import MACS
 from zplatform.messages import lowlatency_for
 
 TYPES = ("f32", "i32", "u16", "bool", "f64", "u8", "i16", "u32")
@@ -75,6 +94,16 @@ DEADLINE_MS = 2.0
 MISS_LIMIT = 1e-4
 UDP_MAX = 65_000
 TARGET_ELEMENTS = 100_000
+RATIO_LIMIT = 1.15
+
+
+def mac_suffix(mac: str) -> str:
+    """A ``security.mac``'s short name: the ``--macs`` name and the variants' suffix."""
+    return mac.split("-")[0]
+
+
+#: ``--macs`` names -> ``security.mac``.
+MAC_SHORT = {mac_suffix(m): m for m in MACS}
 
 
 def element_extra(n_elements: int, n_dn: int) -> dict[str, list[dict[str, Any]]]:
@@ -150,8 +179,10 @@ def run_point(
     duration_s: float,
     region_bytes: int | None = None,
     priority: int = PRIORITY,
+    mac: str = MACS[0],
 ) -> dict[str, Any]:
-    """One zplatform cluster: N elements (or plain ``region_bytes`` regions) over ``n_dn`` DNs.
+    """One zplatform cluster: N elements (or plain ``region_bytes`` regions) over ``n_dn`` DNs,
+    every frame tagged with ``mac`` (``security.mac``).
 
     Blocks for the DNs' start-up plus ``rate_hz × duration_s`` loops.
     """
@@ -169,6 +200,7 @@ def run_point(
             region_bytes=region_bytes if region_bytes is not None else 1,
             priority=priority if priority > 0 else None,
             extra=element_extra(n_elements, n_dn) if region_bytes is None else None,
+            mac=mac,
         )
         hook = SyncSamples(loops)
 
@@ -232,6 +264,7 @@ def run_point(
         fig["loop_lateness_p50_us"] = round(float(p50) / 1e3, 2)
         fig["loop_lateness_p99_us"] = round(float(p99) / 1e3, 2)
     fig["transport"] = "zplatform"
+    fig["mac"] = mac
     return fig
 
 
@@ -250,7 +283,8 @@ def run_floor(kind: str, n: int, size: int, rate_hz: float, duration_s: float) -
 
 
 def plot_bandwidth(variants: dict[str, dict[str, Any]], out_dir: Path) -> Path:
-    """Log-log sync p99 and CPU against element count, one line per DN split."""
+    """Log-log sync p99 and CPU against element count, one line per DN split and MAC
+    (``earlier run`` for merged variants measured before the MAC was recorded)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -261,14 +295,19 @@ def plot_bandwidth(variants: dict[str, dict[str, Any]], out_dir: Path) -> Path:
         for k, v in variants.items()
         if k.startswith("zp_") and v.get("elements") and v.get("rate_hz") == RATE_HZ
     ]
-    splits = sorted({v["n_dn"] for v in pts})
+    lines = sorted({(v["n_dn"], v.get("mac") or "earlier run") for v in pts})
     fig, axes = plt.subplots(1, 2, figsize=(11, 4.2))
-    for d in splits:
-        row = sorted((v for v in pts if v["n_dn"] == d), key=lambda v: v["elements"])
+    for d, mac in lines:
+        row = sorted(
+            (v for v in pts if v["n_dn"] == d and (v.get("mac") or "earlier run") == mac),
+            key=lambda v: v["elements"],
+        )
         xs = [v["elements"] for v in row]
-        axes[0].plot(xs, [v["p99_us"] for v in row], "o-", label=f"{d} DN")
-        axes[1].plot(xs, [v["cpu_cn_pct"] for v in row], "o-", label=f"CN, {d} DN")
-        axes[1].plot(xs, [v["cpu_dn_pct"] for v in row], "s--", label=f"busiest DN, {d} DN")
+        axes[0].plot(xs, [v["p99_us"] for v in row], "o-", label=f"{d} DN, {mac}")
+        axes[1].plot(xs, [v["cpu_cn_pct"] for v in row], "o-", label=f"CN, {d} DN, {mac}")
+        axes[1].plot(
+            xs, [v["cpu_dn_pct"] for v in row], "s--", label=f"busiest DN, {d} DN, {mac}"
+        )
     axes[0].axhline(DEADLINE_MS * 1e3, color="r", lw=0.8, ls=":", label="2 ms deadline")
     axes[0].set_ylabel("sync p99 (us)")
     axes[1].set_ylabel("CPU (% of one core)")
@@ -287,6 +326,100 @@ def plot_bandwidth(variants: dict[str, dict[str, Any]], out_dir: Path) -> Path:
     return path
 
 
+def parse_macs(text: str) -> list[str]:
+    """``--macs``: comma-separated short names (``blake3``, ``hmac``) or ``security.mac``
+    names, in order, each once; raises ValueError naming the bad one."""
+    out: list[str] = []
+    for x in (t.strip() for t in text.split(",")):
+        mac = MAC_SHORT.get(x, x)
+        if mac not in MACS:
+            known = ", ".join(dict.fromkeys([*MAC_SHORT, *MACS]))
+            raise ValueError(f"--macs: unknown MAC {x!r}; one of {known}")
+        if mac not in out:
+            out.append(mac)
+    return out
+
+
+def point_key(v: dict[str, Any]) -> tuple[Any, ...]:
+    """What makes two zplatform variants the same point: elements, DNs, region, rate, MAC."""
+    return tuple(v.get(k) for k in ("elements", "n_dn", "region_bytes", "rate_hz", "mac"))
+
+
+def floor_names(v: dict[str, Any]) -> list[str]:
+    """The floor variants of zplatform variant ``v``: the same bytes by bare zenoh and UDP."""
+    return [f"raw_{k}_{v.get('n_dn')}x{v.get('frame_bytes_max')}B" for k in ("zenoh", "udp")]
+
+
+def merge_previous(path: Path, variants: dict[str, dict[str, Any]]) -> dict[str, dict[str, Any]]:
+    """``variants`` joined to the result file at ``path`` (``--merge``).
+
+    The file's variants stay, stamped with its run's ``run_utc`` and
+    ``run_cpu`` (its machine's time and CPU model) unless they carry them;
+    a variant measured now replaces the file's variant of the same name or
+    of the same point (:func:`point_key`; a variant that recorded no
+    MAC, from before ``--macs``, is the same point as any MAC's); floors no
+    zplatform point refers to any more are dropped. A missing file, or another bench's, adds
+    nothing; an unreadable one raises (a merge never silently discards).
+    """
+    if not path.exists():
+        return dict(variants)
+    previous = json.loads(path.read_text(encoding="utf-8"))
+    if previous.get("bench") != "bandwidth":
+        return dict(variants)
+    machine = previous.get("machine") or {}
+    stamp = {"run_utc": machine.get("time_utc"), "run_cpu": machine.get("cpu_model")}
+    new_points = {point_key(v) for k, v in variants.items() if k.startswith("zp_")}
+    new_points |= {(*k[:-1], None) for k in new_points}
+    merged: dict[str, dict[str, Any]] = {}
+    for name, v in (previous.get("variants") or {}).items():
+        if name in variants or (name.startswith("zp_") and point_key(v) in new_points):
+            continue
+        merged[name] = v if "run_utc" in v else {**v, **stamp}
+    merged.update(variants)
+    wanted = {f for k, v in merged.items() if k.startswith("zp_") for f in floor_names(v)}
+    return {k: v for k, v in merged.items() if not k.startswith("raw_") or k in wanted}
+
+
+def add_floor_ratios(variants: dict[str, dict[str, Any]]) -> None:
+    """Set ``vs_raw_zenoh_p50`` on every zplatform variant whose raw-zenoh floor ran."""
+    for name, v in variants.items():
+        floor = variants.get(floor_names(v)[0], {})
+        if name.startswith("zp_") and v.get("p50_us") and floor.get("p50_us"):
+            v["vs_raw_zenoh_p50"] = round(v["p50_us"] / floor["p50_us"], 3)
+
+
+def targets(
+    variants: dict[str, dict[str, Any]], macs: list[str], splits: list[int]
+) -> list[dict[str, Any]]:
+    """Per MAC and DN split, the 100,000-element point: holds 100 Hz, p50 within
+    :data:`RATIO_LIMIT` of raw zenoh. ``met`` is None where the point did not run."""
+    out: list[dict[str, Any]] = []
+    for mac in macs:
+        for d in splits:
+            v = variants.get(f"zp_{TARGET_ELEMENTS}el_{d}dn_{mac_suffix(mac)}", {})
+            holds, ratio = v.get("holds"), v.get("vs_raw_zenoh_p50")
+            out.append(
+                {
+                    "name": f"{TARGET_ELEMENTS:,} elements, {d} DN, {mac}: hold 100 Hz "
+                    f"(< {MISS_LIMIT:g} misses)",
+                    "value": v.get("deadline_miss_rate"),
+                    "limit": MISS_LIMIT,
+                    "unit": "",
+                    "met": None if holds is None else bool(holds),
+                }
+            )
+            out.append(
+                {
+                    "name": f"{TARGET_ELEMENTS:,} elements, {d} DN, {mac}: sync p50 vs raw zenoh",
+                    "value": ratio,
+                    "limit": RATIO_LIMIT,
+                    "unit": "x",
+                    "met": None if ratio is None else bool(ratio <= RATIO_LIMIT),
+                }
+            )
+    return out
+
+
 def main(argv: list[str] | None = None) -> dict[str, Any]:
     parser = bench_argparser(__doc__.splitlines()[0] if __doc__ else "bandwidth")
     parser.add_argument("--seconds", type=float, default=None, help="per point")
@@ -295,11 +428,23 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     parser.add_argument(
         "--regions", default=None, help="comma-separated region sizes in bytes ('' for none)"
     )
+    parser.add_argument(
+        "--macs",
+        default=",".join(MAC_SHORT),
+        help=f"comma-separated MACs, each point once per MAC (default: {','.join(MAC_SHORT)})",
+    )
     parser.add_argument("--no-rates", action="store_true", help="skip the highest-rate search")
     parser.add_argument("--no-floors", action="store_true", help="skip raw zenoh/UDP floors")
     parser.add_argument("--no-plot", action="store_true")
+    parser.add_argument(
+        "--merge", action="store_true", help="join the existing result file instead of replacing it"
+    )
     parser.add_argument("--priority", type=int, default=PRIORITY)
     args = parser.parse_args(argv)
+    try:
+        macs = parse_macs(args.macs)
+    except ValueError as exc:
+        parser.error(str(exc))
     os.environ.setdefault("ZPLATFORM_KEY", secrets.token_hex(32))
     quick = bool(args.quick)
     seconds = args.seconds or (5.0 if quick else 15.0)
@@ -328,106 +473,131 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
             print(f"  floor raw_udp {n}x{size}B ...", flush=True)
             variants[f"raw_udp_{n}x{size}B"] = run_floor("udp", n, size, RATE_HZ, fs)
 
+    # Both MACs of a point run back to back, its floors between them: the
+    # comparison that matters is within a point, on a box whose load drifts.
     for n in counts:
         for d in splits:
-            name = f"zp_{n}el_{d}dn"
-            print(f"running {name} ({seconds:.0f} s) ...", flush=True)
-            try:
-                fig = run_point(
-                    n_elements=n,
-                    n_dn=d,
-                    rate_hz=RATE_HZ,
-                    duration_s=seconds,
-                    priority=args.priority,
+            for mac in macs:
+                name = f"zp_{n}el_{d}dn_{mac_suffix(mac)}"
+                print(f"running {name} ({seconds:.0f} s) ...", flush=True)
+                try:
+                    fig = run_point(
+                        n_elements=n,
+                        n_dn=d,
+                        rate_hz=RATE_HZ,
+                        duration_s=seconds,
+                        priority=args.priority,
+                        mac=mac,
+                    )
+                except Exception as exc:  # a point that cannot run is reported, not hidden
+                    err = {"error": repr(exc)[:300], "elements": n, "n_dn": d, "mac": mac}
+                    variants[name] = err
+                    print(f"  {name} failed: {exc!r}", flush=True)
+                    continue
+                variants[name] = fig
+                print(
+                    f"  {fig['bytes_per_loop']} B/loop, {fig['mbit_s']} Mbit/s,"
+                    f" p50 {fig['p50_us']} us, p99 {fig['p99_us']} us,"
+                    f" miss {fig['deadline_miss_rate']:.2e}, CN {fig['cpu_cn_pct']}%,"
+                    f" DN {fig['cpu_dn_pct']}%, shm {fig['shm_reply_fraction']}",
+                    flush=True,
                 )
-            except Exception as exc:  # a point that cannot run is reported, not hidden
-                variants[name] = {"error": repr(exc)[:300], "elements": n, "n_dn": d}
-                print(f"  {name} failed: {exc!r}", flush=True)
-                continue
-            variants[name] = fig
-            print(
-                f"  {fig['bytes_per_loop']} B/loop, {fig['mbit_s']} Mbit/s, p99 {fig['p99_us']} us,"
-                f" miss {fig['deadline_miss_rate']:.2e}, CN {fig['cpu_cn_pct']}%,"
-                f" DN {fig['cpu_dn_pct']}%, shm {fig['shm_reply_fraction']}",
-                flush=True,
-            )
-            floors(d, int(fig["frame_bytes_max"]))
+                floors(d, int(fig["frame_bytes_max"]))
     regions = (
         [int(x) for x in args.regions.split(",") if x]
         if args.regions is not None
         else list(REGIONS_QUICK if quick else REGIONS_FULL)
     )
     for rb in regions:
-        name = f"zp_region_{rb}B_3dn"
-        print(f"running {name} ...", flush=True)
-        try:
-            variants[name] = run_point(
-                n_elements=0,
-                n_dn=3,
-                rate_hz=RATE_HZ,
-                duration_s=seconds,
-                region_bytes=rb,
-                priority=args.priority,
-            )
-            variants[name]["region_bytes"] = rb
-            floors(3, int(variants[name]["frame_bytes_max"]))
-        except Exception as exc:
-            variants[name] = {"error": repr(exc)[:300], "region_bytes": rb, "n_dn": 3}
-    max_rate: dict[str, float | None] = {}
+        for mac in macs:
+            name = f"zp_region_{rb}B_3dn_{mac_suffix(mac)}"
+            print(f"running {name} ...", flush=True)
+            try:
+                variants[name] = run_point(
+                    n_elements=0,
+                    n_dn=3,
+                    rate_hz=RATE_HZ,
+                    duration_s=seconds,
+                    region_bytes=rb,
+                    priority=args.priority,
+                    mac=mac,
+                )
+                variants[name]["region_bytes"] = rb
+                floors(3, int(variants[name]["frame_bytes_max"]))
+            except Exception as exc:
+                err = {"error": repr(exc)[:300], "region_bytes": rb, "n_dn": 3, "mac": mac}
+                variants[name] = err
+    max_rate: dict[str, dict[str, float | None]] = {}
     if not args.no_rates:
-        for n in counts:
-            held: float | None = RATE_HZ if variants.get(f"zp_{n}el_3dn", {}).get("holds") else None
-            if held is None:
-                max_rate[str(n)] = None
-                continue
-            for r in RATES:
-                name = f"zp_{n}el_3dn_{int(r)}hz"
-                print(f"running {name} ...", flush=True)
-                try:
-                    fig = run_point(
-                        n_elements=n,
-                        n_dn=3,
-                        rate_hz=r,
-                        duration_s=min(seconds, 5.0),
-                        priority=args.priority,
-                    )
-                except Exception as exc:
-                    variants[name] = {"error": repr(exc)[:300]}
-                    break
-                variants[name] = fig
-                if not fig["holds"]:
-                    break
-                held = r
-            max_rate[str(n)] = held
+        for mac in macs:
+            short = mac_suffix(mac)
+            for n in counts:
+                base = variants.get(f"zp_{n}el_3dn_{short}", {})
+                held: float | None = RATE_HZ if base.get("holds") else None
+                if held is not None:
+                    for r in RATES:
+                        name = f"zp_{n}el_3dn_{int(r)}hz_{short}"
+                        print(f"running {name} ...", flush=True)
+                        try:
+                            fig = run_point(
+                                n_elements=n,
+                                n_dn=3,
+                                rate_hz=r,
+                                duration_s=min(seconds, 5.0),
+                                priority=args.priority,
+                                mac=mac,
+                            )
+                        except Exception as exc:
+                            variants[name] = {"error": repr(exc)[:300], "mac": mac}
+                            break
+                        variants[name] = fig
+                        if not fig["holds"]:
+                            break
+                        held = r
+                max_rate.setdefault(mac, {})[str(n)] = held
 
-    largest: dict[str, int | None] = {}
-    for d in splits:
-        ok = [n for n in counts if variants.get(f"zp_{n}el_{d}dn", {}).get("holds")]
-        largest[f"{d}dn"] = max(ok) if ok else None
-    best = max([v for v in largest.values() if v is not None], default=None)
+    path = Path(args.json) if args.json else RESULTS_DIR / "bandwidth.json"
+    stamp = {
+        "run_utc": datetime.now(UTC).strftime("%Y-%m-%dT%H:%M:%SZ"),
+        "run_cpu": machine_info().get("cpu_model"),
+    }
+    for v in variants.values():
+        v.update(stamp)
+    if args.merge:
+        variants = merge_previous(path, variants)
+    add_floor_ratios(variants)
+    largest: dict[str, dict[str, int | None]] = {}
+    for mac in macs:
+        for d in splits:
+            ok = [
+                int(v["elements"])
+                for k, v in variants.items()
+                if k.startswith("zp_")
+                and v.get("mac") == mac
+                and v.get("n_dn") == d
+                and v.get("rate_hz") == RATE_HZ
+                and v.get("elements")
+                and v.get("holds")
+            ]
+            largest.setdefault(mac, {})[f"{d}dn"] = max(ok) if ok else None
     params: dict[str, Any] = {
         "rate_hz": RATE_HZ,
         "deadline_us": DEADLINE_MS * 1e3,
         "seconds_per_point": seconds,
         "counts": counts,
         "splits": splits,
+        "macs": macs,
         "types": list(TYPES),
-        "auth": "on (HMAC, ZPLATFORM_KEY)",
+        "auth": "on: per-link keys, each variant's `mac` (security.mac)",
         "quick": quick,
+        "merged": bool(args.merge),
         "scheduling": sched,
         "miss_limit": MISS_LIMIT,
+        "ratio_limit": RATIO_LIMIT,
         "largest_holding_100hz": largest,
         "highest_rate_held_3dn": max_rate,
         "thesis_elements": 200,
-        "targets": [
-            {
-                "name": "100,000 elements hold 100 Hz with < 1e-4 misses",
-                "value": best,
-                "limit": TARGET_ELEMENTS,
-                "unit": "elements",
-                "met": bool(best is not None and best >= TARGET_ELEMENTS),
-            }
-        ],
+        "targets": targets(variants, macs, splits),
     }
     if not args.no_plot:
         try:
@@ -438,8 +608,11 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
             params["plots"] = [str(plot.relative_to(bench_dir))]
         except Exception as exc:  # plotting never loses the measurement
             params["plot_error"] = repr(exc)
-    doc = write_result("bandwidth", params, variants, args.json)
+    doc = write_result("bandwidth", params, variants, str(path))
     print(f"largest N holding 100 Hz: {largest}; highest rate held (3 DN): {max_rate}")
+    for t in params["targets"]:
+        verdict = {True: "met", False: "NOT met", None: "not run"}[t["met"]]
+        print(f"target {t['name']}: {verdict} ({t['value']} {t['unit']})")
     return doc
 
 

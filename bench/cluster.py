@@ -52,6 +52,7 @@ def make_mission(
     extra: dict[str, list[dict[str, Any]]] | None = None,
     name: str = "bench",
     transport: str | None = None,
+    mac: str | None = None,
 ) -> Path:
     """Write a benchmark mission to ``path`` and return it.
 
@@ -59,7 +60,8 @@ def make_mission(
     array so its size is ``region_bytes`` (at least the platform elements).
     ``extra`` appends elements to regions by name. ``transport``: the
     mission's ``security.transport`` (default: the mission default, plain
-    here: a benchmark mission has no hazardous command).
+    here: a benchmark mission has no hazardous command). ``mac``: the
+    mission's ``security.mac`` (else the mission default).
     """
     ports = {n: free_port() for n in ["cn", *[f"dn{i}" for i in range(n_dn)]]}
     cn_ep = f"tcp/127.0.0.1:{ports['cn']}"
@@ -95,7 +97,9 @@ def make_mission(
     if sync_query is not None:  # else the mission default (per_node)
         doc["transport"]["sync_query"] = sync_query
     if transport is not None:
-        doc["security"] = {"transport": transport}
+        doc.setdefault("security", {})["transport"] = transport
+    if mac is not None:
+        doc.setdefault("security", {})["mac"] = mac
     path.write_text(yaml.safe_dump(doc, sort_keys=False))
     return path
 

@@ -280,7 +280,8 @@ def rate_section(params: dict[str, Any], variants: dict[str, dict[str, Any]]) ->
 
 
 def bandwidth_section(params: dict[str, Any], variants: dict[str, dict[str, Any]]) -> list[str]:
-    """Element count x DN split at 100 Hz, each beside its raw floors; the headline count."""
+    """Element count x DN split (x MAC) at 100 Hz, each beside its raw floors and its p50
+    over raw zenoh's; the headline count."""
     rows: list[list[Any]] = []
     for name, v in variants.items():
         if not name.startswith("zp_"):
@@ -293,6 +294,7 @@ def bandwidth_section(params: dict[str, Any], variants: dict[str, dict[str, Any]
                 v.get("elements")
                 or (f"{v.get('region_bytes')} B" if v.get("region_bytes") else None),
                 v.get("n_dn"),
+                v.get("mac"),
                 v.get("rate_hz"),
                 v.get("bytes_per_loop"),
                 v.get("mbit_s"),
@@ -303,8 +305,10 @@ def bandwidth_section(params: dict[str, Any], variants: dict[str, dict[str, Any]
                 v.get("cpu_cn_pct"),
                 v.get("cpu_dn_pct"),
                 v.get("shm_reply_fraction"),
+                floor_z.get("p50_us"),
                 floor_z.get("p99_us"),
                 floor_u.get("p99_us"),
+                f"{v['vs_raw_zenoh_p50']:.2f}x" if v.get("vs_raw_zenoh_p50") else None,
                 verdict(v.get("holds")) if "holds" in v else v.get("error"),
             ]
         )
@@ -313,7 +317,7 @@ def bandwidth_section(params: dict[str, Any], variants: dict[str, dict[str, Any]
     loose: dict[str, int | None] = {}
     for v in variants.values():
         if v.get("elements") and v.get("rate_hz") == 100.0 and "deadline_miss_rate" in v:
-            key = f"{v.get('n_dn')}dn"
+            key = f"{v.get('n_dn')}dn" + (f" {v['mac']}" if v.get("mac") else "")
             ok = v["deadline_miss_rate"] < 1e-3 and (v.get("rate_hz_measured") or 0) >= 98.0
             cur = loose.get(key)
             if ok and (cur is None or v["elements"] > cur):
@@ -324,6 +328,7 @@ def bandwidth_section(params: dict[str, Any], variants: dict[str, dict[str, Any]
         "point",
         "elements",
         "DNs",
+        "MAC",
         "Hz",
         "B/loop",
         "Mbit/s",
@@ -334,8 +339,10 @@ def bandwidth_section(params: dict[str, Any], variants: dict[str, dict[str, Any]
         "CPU CN %",
         "CPU DN %",
         "SHM replies",
+        "raw zenoh p50",
         "raw zenoh p99",
         "raw UDP p99",
+        "p50 / raw zenoh",
         "holds",
     ]
     return [
@@ -347,7 +354,9 @@ def bandwidth_section(params: dict[str, Any], variants: dict[str, dict[str, Any]
         f"Largest element count holding 100 Hz with < 1e-4 misses, per DN split: "
         f"{fmt(params.get('largest_holding_100hz'))}; highest rate held with 3 DNs: "
         f"{fmt(params.get('highest_rate_held_3dn'))}. Looser, for a noisy shared box: "
-        f"largest count with < 1e-3 misses at 100 Hz, per DN split: {fmt(loose)}.",
+        f"largest count with < 1e-3 misses at 100 Hz, per DN split: {fmt(loose)}. "
+        "MAC `-`: a variant merged from a run that did not record its MAC; a merged "
+        "file's variants may come from other runs and machines (`run_utc`, `run_cpu`).",
     ]
 
 

@@ -53,10 +53,28 @@ def test_bandwidth_smoke(tmp_path: Path) -> None:
         ]
     )
     doc = _doc(out, "bandwidth")
-    v = doc["variants"]["zp_10el_1dn"]
+    assert doc["params"]["macs"] == ["blake3", "hmac-sha256"]  # both by default
+    v, h = doc["variants"]["zp_10el_1dn_blake3"], doc["variants"]["zp_10el_1dn_hmac"]
     assert v["elements"] == 10 and v["bytes_per_loop"] > 0 and v["p50_us"] is not None
+    assert (v["mac"], h["mac"]) == ("blake3", "hmac-sha256")
+    assert v["bad_frames"] == h["bad_frames"] == 0
+    assert h["frame_bytes_max"] == v["frame_bytes_max"]  # both tags are 16 B: one floor
     assert "raw_zenoh_1x" + str(v["frame_bytes_max"]) + "B" in doc["variants"]
+    assert v["vs_raw_zenoh_p50"] > 0 and h["vs_raw_zenoh_p50"] > 0
     assert "**Sweep**" in _renders(tmp_path)
+
+    # One MAC again, merged: it replaces its own variant and keeps the other's.
+    bandwidth.main(
+        [
+            *("--counts", "10", "--splits", "1", "--regions", "", "--no-rates"),
+            *("--seconds", "1", "--no-plot", "--priority", "0", "--no-floors"),
+            *("--macs", "blake3", "--merge", "--json", str(out)),
+        ]
+    )
+    merged = _doc(out, "bandwidth")["variants"]
+    assert merged["zp_10el_1dn_hmac"] == h
+    assert merged["zp_10el_1dn_blake3"]["mac"] == "blake3"
+    assert "raw_zenoh_1x" + str(v["frame_bytes_max"]) + "B" in merged
 
 
 def test_reliability_smoke(tmp_path: Path) -> None:
@@ -89,6 +107,7 @@ def test_clock_smoke(tmp_path: Path) -> None:
 
 
 @pytest.mark.slow
+@pytest.mark.timeout(420)  # bandwidth's --quick runs every point once per MAC: about 3 min
 @pytest.mark.parametrize("bench", ["bandwidth", "reliability", "telemetry_latency", "clock"])
 def test_quick_as_shipped(bench: str, tmp_path: Path) -> None:
     mod = {
