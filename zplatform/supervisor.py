@@ -53,7 +53,7 @@ from .ground.records import EventRecord
 from .ground.script import MIN_DURATION_S, SETTLE_S
 from .ground.status import RateMeter, status_line
 from .mission import load_mission
-from .node.runtime import PARENT_ENV
+from .node.runtime import PARENT_ENV, STOP_PIPE_ENV
 from .summary import (
     CnSummary,
     DnSummary,
@@ -84,12 +84,16 @@ class Children:
         first output line to be ``READY`` (NodeError if it is not, in time)."""
         env = dict(os.environ, PYTHONUNBUFFERED="1")
         env[PARENT_ENV] = str(os.getpid())
+        env[STOP_PIPE_ENV] = "1"
         # A new session: a Ctrl-C in the terminal reaches `up` alone, which
         # then stops the nodes in order (CN first, so the ground logs the end).
+        # stdin: a pipe `up` closes to stop the node (and the kernel closes if
+        # `up` dies), beside SIGTERM.
         proc = subprocess.Popen(
             [sys.executable, "-m", "zplatform", *argv],
             env=env,
             start_new_session=True,
+            stdin=subprocess.PIPE,
             stdout=subprocess.PIPE if ready is not None else None,
         )
         self.procs[name] = proc
@@ -113,6 +117,8 @@ class Children:
             p = self.procs.get(n)
             if p is not None and p.poll() is None:
                 p.send_signal(signal.SIGTERM)
+                if p.stdin is not None:
+                    p.stdin.close()
         for n in names:
             p = self.procs.get(n)
             if p is None:

@@ -19,11 +19,21 @@ from ..events import EventLog, Severity, encode_event
 from ..recorder.writer import FlightRecorder
 from ..scheduler import RealtimeStatus, setup_realtime
 
-__all__ = ["PARENT_ENV", "EventPublisher", "StopFlag", "realtime_setup", "setup_logging"]
+__all__ = [
+    "PARENT_ENV",
+    "STOP_PIPE_ENV",
+    "EventPublisher",
+    "StopFlag",
+    "realtime_setup",
+    "setup_logging",
+]
 
 # Set by `zplatform up` for its children: if that process goes away (even by
 # SIGKILL, which it cannot forward), the node stops by itself.
 PARENT_ENV = "ZPLATFORM_PARENT_PID"
+STOP_PIPE_ENV = "ZPLATFORM_STOP_ON_STDIN_EOF"
+"""Set to ``1`` by a supervisor that holds the write end of the node's stdin:
+closing it stops the node like SIGTERM (:class:`StopFlag`)."""
 
 log = logging.getLogger("zplatform.node")
 
@@ -41,6 +51,12 @@ class StopFlag:
         if install and threading.current_thread() is threading.main_thread():
             signal.signal(signal.SIGTERM, self._on_signal)
             signal.signal(signal.SIGINT, self._on_signal)
+        if install and os.environ.get(STOP_PIPE_ENV) == "1":
+            # A second way to be stopped, which no signal disposition can
+            # lose: `up` closes the node's stdin as it sends SIGTERM (a DN
+            # was seen, 1 run in 16 beside a CPU hog, looping on after its
+            # SIGTERM until the grace ran out).
+            threading.Thread(target=self._watch_stdin, name="stop-pipe", daemon=True).start()
         parent = os.environ.get(PARENT_ENV)
         if install and parent and parent.isdigit():
             threading.Thread(
@@ -53,6 +69,16 @@ class StopFlag:
                 log.warning("parent process %d is gone; stopping", parent)
                 self.event.set()
                 return
+
+    def _watch_stdin(self) -> None:
+        try:
+            while os.read(0, 4096):
+                pass  # nothing is ever written; only the end matters
+        except OSError:
+            pass
+        if not self.event.is_set():
+            log.info("the supervisor closed this node's stdin; stopping")
+            self.event.set()
 
     def _on_signal(self, signum: int, frame: FrameType | None) -> None:
         self.signal = signum
