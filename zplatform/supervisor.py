@@ -68,6 +68,15 @@ from .transport import rewrite_endpoints
 
 __all__ = ["Children", "Watch", "format_run_summary", "merge_summaries", "run_up", "watch"]
 
+STOP_SLOW_S = 10.0
+"""A node still running this long after SIGTERM is reported as slow to stop."""
+
+STOP_GRACE_S = 30.0
+"""How long ``up`` lets a node stop before SIGKILL. Generous: under mutual
+TLS on a busy host a device node was seen to need more than 10 s (zenoh's
+TLS link close, eclipse-zenoh/zenoh issue 2675), and a node killed is a
+node whose summary is lost."""
+
 LINK_CLOSE_S = 5.0
 """The longest ``up`` waits for its own zenoh session to close, after every
 node has stopped; a close still under way then is left to the process's exit."""
@@ -111,7 +120,7 @@ class Children:
     def dead(self) -> list[tuple[str, int]]:
         return [(n, p.returncode) for n, p in self.procs.items() if p.poll() is not None]
 
-    def stop(self, names: list[str], timeout_s: float = 10.0) -> dict[str, int]:
+    def stop(self, names: list[str], timeout_s: float = STOP_GRACE_S) -> dict[str, int]:
         codes: dict[str, int] = {}
         for n in names:
             p = self.procs.get(n)
@@ -124,7 +133,12 @@ class Children:
             if p is None:
                 continue
             try:
-                codes[n] = p.wait(timeout=timeout_s)
+                codes[n] = p.wait(timeout=STOP_SLOW_S)
+                continue
+            except subprocess.TimeoutExpired:
+                print(f"zplatform up: {n} is slow to stop ({STOP_SLOW_S:g} s)...", file=sys.stderr)
+            try:
+                codes[n] = p.wait(timeout=max(0.0, timeout_s - STOP_SLOW_S))
             except subprocess.TimeoutExpired:
                 # Say where it is stuck before the kill: a node dumps its
                 # threads' stacks to its stderr on SIGUSR2 (zplatform node).
