@@ -102,6 +102,9 @@ def _ident(pki: Path, name: str) -> list[str]:
     ]
 
 
+# The same refusal as tests/integration/test_secure_transport.py's, across
+# namespaces: with the soaks (-m slow).
+@pytest.mark.slow
 @pytest.mark.timeout(240)
 def test_the_default_transport_gives_an_unknown_peer_no_session(
     netns_hosts: Callable[..., list[NetnsHost]], tmp_path: Path

@@ -433,6 +433,9 @@ def test_console_exits_when_its_pipe_to_the_server_ends(tmp_path: Path, end: str
             p.wait()
 
 
+# Waits out the 10 s hard exit: with the soaks (-m slow); the other ends of
+# the console's life (socket, server killed, stdin) are in the default suite.
+@pytest.mark.slow
 def test_console_that_cannot_exit_is_cut_short(tmp_path: Path) -> None:
     """A quit right after a resize, as the console starts, ends it within the grace.
 
