@@ -77,6 +77,7 @@ from bench.common import REPO_ROOT, bench_argparser, free_port, spawn, summarize
 from bench.common import write_result as _write
 from bench.sync import PRIORITY, inherit_fifo
 from zplatform.config import relocate_mission
+from zplatform.handoff import Handoff
 from zplatform.transport import is_matching
 
 TM_DEADLINE_MS = 30.0
@@ -134,7 +135,7 @@ def ground_main(argv: list[str]) -> None:
     if argv[0] == "raw":
         port, out = int(argv[1]), argv[2]
         s = zenoh.open(zenoh_config(listen_port=None, connect_port=port, lowlatency=False))
-        q: queue.SimpleQueue[bytes] = queue.SimpleQueue()
+        q: Handoff[bytes] = Handoff()
 
         def on_sample(smp: zenoh.Sample) -> None:
             q.put(smp.payload.to_bytes())  # hand off only, as the GroundLink does
@@ -244,7 +245,7 @@ class RawReplica:
         self.session = zenoh.open(
             zenoh_config(listen_port=self.port, connect_port=None, lowlatency=False)
         )
-        self.inbox: queue.SimpleQueue[zenoh.Reply] = queue.SimpleQueue()
+        self.inbox: Handoff[zenoh.Reply] = Handoff()
         self.cb = zenoh.handlers.Callback(self.inbox.put, indirect=False)
         self.procs = [
             spawn(_responder_args("zenoh", i, self.port, size, lowlatency=False)) for i in range(n)

@@ -66,6 +66,7 @@ import zenoh
 from .auth import TAG_LEN, AuthError, Channel, KeySet, channel
 from .config import ClockConfig, Mission
 from .errors import ClockSyncError
+from .handoff import Handoff
 from .health import Heartbeat
 from .transport import KeySpace
 
@@ -305,7 +306,7 @@ def _exchange(
     hide the CN); replies are checked in arrival order, and the exchange
     ends at the first valid one."""
     # (payload, t4 read in the callback, zenoh's stamps); None: the query ended.
-    replies: queue.SimpleQueue[tuple[bytes, int, list[int]] | None] = queue.SimpleQueue()
+    replies: Handoff[tuple[bytes, int, list[int]] | None] = Handoff()
 
     def on_reply(r: zenoh.Reply) -> None:
         t4 = now_ns()  # in zenoh's thread, before any hand-off

@@ -60,11 +60,8 @@ applying and events stay on the loop thread.
 
 from __future__ import annotations
 
-import queue
 import threading
-import time
 from abc import ABC, abstractmethod
-from collections import deque
 from collections.abc import Callable
 from typing import Generic, Protocol, TypeVar
 
@@ -81,6 +78,7 @@ from .commands import RequestNumber, request_refusal
 from .config import Mission
 from .datavector import Layout
 from .errors import CodecError
+from .handoff import Mailbox, Waker
 from .messages import wildcard_sync_for
 
 __all__ = [
@@ -89,14 +87,12 @@ __all__ = [
     "EVENT_PERIOD_NS",
     "CnRefusals",
     "Intake",
-    "Mailbox",
     "Payload",
     "RefusalLog",
     "ReplyCheck",
     "RequestIntake",
     "TelemetryIntake",
     "TriggerIntake",
-    "Waker",
     "max_frame_len",
 ]
 
@@ -123,100 +119,6 @@ def max_frame_len(size: int, channel: Channel | None) -> int:
     """The longest valid frame of a region of ``size`` bytes as it travels
     (:func:`zplatform.codec.max_frame_length`), with its tag."""
     return max_frame_length(size) + (TAG_LEN if channel is not None else 0)
-
-
-class Waker:
-    """Wakes one consumer thread that waits on one or more mailboxes.
-
-    A producer's :meth:`notify` puts a token only when the consumer said it
-    is about to wait, so at most one token is ever outstanding: bounded
-    whatever the producers do. Thread-safe."""
-
-    __slots__ = ("_lock", "_q", "_waiting")
-
-    def __init__(self) -> None:
-        self._q: queue.SimpleQueue[None] = queue.SimpleQueue()
-        self._lock = threading.Lock()
-        self._waiting = False
-
-    def notify(self) -> None:
-        """Called after an item was put (any thread; never blocks)."""
-        with self._lock:
-            wake, self._waiting = self._waiting, False
-        if wake:
-            self._q.put(None)
-
-    def wait_for(self, take: Callable[[], T | None], timeout_s: float) -> T | None:
-        """``take()`` (the consumer's non-blocking pop), waiting up to
-        ``timeout_s`` for it to return an item; None when none came."""
-        item = take()
-        if item is not None or timeout_s <= 0:
-            return item
-        deadline = time.monotonic() + timeout_s
-        while True:
-            while not self._q.empty():  # a token whose item was taken already
-                self._q.get_nowait()
-            with self._lock:
-                self._waiting = True
-            item = take()  # anything put before `waiting` was set is seen here
-            left = deadline - time.monotonic()
-            if item is not None or left <= 0:
-                break
-            try:
-                self._q.get(timeout=left)
-            except queue.Empty:
-                break
-        with self._lock:
-            self._waiting = False
-        return item if item is not None else take()
-
-
-class Mailbox(Generic[T]):
-    """A bounded hand-off from zenoh's threads to one consumer thread.
-
-    :meth:`put` never blocks beyond a short lock; when ``capacity`` items are
-    waiting, the oldest is let go (counted in :attr:`dropped`). The
-    consumer pops the oldest first (:meth:`get`, :meth:`pop`) or takes all
-    (:meth:`drain`). ``waker``: shared with other mailboxes the consumer
-    waits on together (a new one by default)."""
-
-    __slots__ = ("_items", "_lock", "capacity", "dropped", "waker")
-
-    def __init__(self, capacity: int, waker: Waker | None = None) -> None:
-        if capacity < 1:
-            raise ValueError(f"a mailbox holds at least one item, not {capacity}")
-        self.capacity = capacity
-        self.waker = waker if waker is not None else Waker()
-        self._items: deque[T] = deque()
-        self._lock = threading.Lock()
-        self.dropped = 0
-        """Items let go because the mailbox was full (since construction)."""
-
-    def put(self, item: T) -> None:
-        with self._lock:
-            if len(self._items) >= self.capacity:
-                self._items.popleft()  # released: a zenoh query is finalised
-                self.dropped += 1
-            self._items.append(item)
-        self.waker.notify()
-
-    def pop(self) -> T | None:
-        """The oldest item, or None at once."""
-        with self._lock:
-            return self._items.popleft() if self._items else None
-
-    def get(self, timeout_s: float) -> T | None:
-        """The oldest item, waiting up to ``timeout_s`` for one; None if none came."""
-        return self.waker.wait_for(self.pop, timeout_s)
-
-    def drain(self, into: list[T]) -> None:
-        """Append every waiting item to ``into``, oldest first."""
-        with self._lock:
-            into.extend(self._items)
-            self._items.clear()
-
-    def __len__(self) -> int:
-        return len(self._items)
 
 
 class Intake(ABC, Generic[H]):

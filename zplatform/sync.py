@@ -73,6 +73,7 @@ from typing import Any
 import zenoh
 
 from .codec import BundleEncoder
+from .handoff import Handoff
 from .intake import CnRefusals, ReplyCheck, TriggerIntake
 from .loop import ControlLogic, DeviceLogic
 from .transport import KeySpace, is_matching
@@ -180,7 +181,7 @@ class ControlSync:
         self._query_timeout = query_timeout_s
         self._keys = [keys.dn_to_cn(dn) for dn in dns]
         self._taps = [TapPublisher(session, keys.cn_to_dn(dn)) for dn in dns]
-        self._q: queue.SimpleQueue[tuple[int, bytes | None]] = queue.SimpleQueue()
+        self._q: Handoff[tuple[int, bytes | None]] = Handoff()
         # Wildcard: one get on {vehicle}/*/to_cn with every DN's frame in a
         # bundle; a reply says whose it is by its key, and counts only from
         # the session that answers for that DN (as per DN). An error reply

@@ -43,6 +43,7 @@ import zenoh
 from .config import Mission, relocate_mission
 from .deploy import Deployment, check_tool_may_command, require_deployment, zenoh_settings
 from .errors import TransportError
+from .handoff import Handoff
 from .messages import lowlatency_for
 
 __all__ = [
@@ -309,7 +310,7 @@ def wait_for_nodes(
     """
     want = set(nodes)
     alive: set[str] = set()
-    q: queue.SimpleQueue[tuple[str, bool]] = queue.SimpleQueue()
+    q: Handoff[tuple[str, bool]] = Handoff()
 
     def on_sample(s: zenoh.Sample) -> None:  # hand off only
         q.put((str(s.key_expr), s.kind == zenoh.SampleKind.PUT))

@@ -7,8 +7,6 @@ replays it."""
 from __future__ import annotations
 
 import os
-import threading
-import time
 from pathlib import Path
 from typing import Any
 
@@ -22,13 +20,11 @@ from zplatform.commands import SEQ_WINDOW, request_refusal
 from zplatform.intake import (
     BACKLOG,
     CnRefusals,
-    Mailbox,
     RefusalLog,
     ReplyCheck,
     RequestIntake,
     TelemetryIntake,
     TriggerIntake,
-    Waker,
 )
 from zplatform.lockstep import replay
 from zplatform.loop import ControlLogic, DeviceLogic
@@ -68,45 +64,6 @@ class Bytes:
 def trigger(loop: int, t: int, dn: int = 0) -> bytes:
     cn = ControlLogic(M, keys=KEYS, epoch=T0)
     return bytes(cn.begin(loop, t)[dn])
-
-
-# -- the mailbox ----------------------------------------------------------------
-
-
-def test_a_full_mailbox_lets_the_oldest_go_and_counts_it() -> None:
-    box: Mailbox[int] = Mailbox(3)
-    for i in range(10):
-        box.put(i)
-    assert len(box) == 3 and box.dropped == 7
-    out: list[int] = []
-    box.drain(out)
-    assert out == [7, 8, 9] and len(box) == 0
-    assert box.pop() is None and box.get(0) is None
-
-
-def test_get_waits_for_an_item_and_times_out_without_one() -> None:
-    box: Mailbox[str] = Mailbox(2)
-    t0 = time.monotonic()
-    assert box.get(0.05) is None
-    assert time.monotonic() - t0 >= 0.04
-    threading.Timer(0.05, box.put, args=("x",)).start()
-    assert box.get(5.0) == "x"
-
-
-def test_a_waker_never_holds_more_than_one_token() -> None:
-    """Producers that put while nobody waits leave no tokens behind: the
-    hand-off stays bounded however fast they are."""
-    w = Waker()
-    a: Mailbox[int] = Mailbox(4, w)
-    b: Mailbox[int] = Mailbox(4, w)
-    for i in range(10_000):
-        (a if i % 2 else b).put(i)
-    assert w._q.qsize() == 0  # nobody was waiting: no token at all
-    assert w.wait_for(a.pop, 0.0) is not None
-    threading.Timer(0.05, b.put, args=(-1,)).start()
-    b.drain([])
-    assert w.wait_for(b.pop, 5.0) == -1
-    assert w._q.qsize() <= 1
 
 
 # -- the DN's trigger intake --------------------------------------------------

@@ -57,7 +57,8 @@ from ..config import Mission
 from ..datavector import DataVector
 from ..errors import CommandError, TransportError
 from ..events import MAX_TEXT, Event
-from ..intake import Mailbox, TelemetryIntake, Waker
+from ..handoff import Mailbox, Waker
+from ..intake import TelemetryIntake
 from ..node.runtime import EventPublisher
 from ..timebase import NodeClock
 from ..transport import NodeSession, is_matching
@@ -216,8 +217,12 @@ class GroundLink:
             return _EV, ev[1], ev[2], ev[0]
         return None
 
+    def _waiting(self) -> bool:
+        return bool(len(self._tm_box) or len(self._ev_box))
+
     def _pop(self, deadline: float) -> tuple[int, bytes, int, str] | None:
-        got = self._waker.wait_for(self._pop_any, deadline - time.monotonic())
+        self._waker.wait(self._waiting, deadline - time.monotonic())
+        got = self._pop_any()
         if got is None:
             self._after(self.clock.now_ns())
         return got

@@ -54,8 +54,9 @@ from ..config import Mission
 from ..datavector import DataVector
 from ..errors import NodeError, RecordingError, TransportError
 from ..ground.logic import default_max_age_ns
+from ..handoff import Mailbox
 from ..health import Heartbeat, Liveness, thread_deadlines_ns
-from ..intake import CnRefusals, Mailbox, ReplyCheck, RequestIntake
+from ..intake import CnRefusals, ReplyCheck, RequestIntake
 from ..loop import ControlLogic
 from ..messages import wildcard_sync_for
 from ..params import ParamSaver, params_path, read_params_file

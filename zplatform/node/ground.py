@@ -28,7 +28,7 @@ from ..config import Mission
 from ..ground.gapfill import GapFill
 from ..ground.link import GroundLink
 from ..ground.logger import TelemetryLog
-from ..intake import Mailbox
+from ..handoff import Mailbox
 from ..summary import GnSummary
 from ..uplink import ScriptCommand
 from .runtime import StopFlag
