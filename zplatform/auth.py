@@ -10,13 +10,18 @@ link has its own 32-byte key, and each host holds only the links it
 speaks on (least privilege)::
 
     link        channels it tags                              held by host roles
-    cn-dnX      cn_to_dnX (triggers), dnX_to_cn (replies),    cn, dnX
-                clock_dnX_to_cn, clock_cn_to_dnX (clock sync)
-    uplink      gn_to_cn (command requests)                   cn, gn
-    downlink    telemetry                                      cn, gn, tool
+    cn-dnX      cn_to_dnX (triggers), dnX_to_cn (replies),    cn, cn_b, dnX
+                clock_dnX_to_cn, clock_cn_to_dnX (clock sync),
+                probe_cn_to_dnX, probe_dnX_to_cn (term probes)
+    uplink      gn_to_cn (command requests)                   cn, cn_b, gn
+    downlink    telemetry                                      cn, cn_b, gn, tool
+    cn-cn_b     mirror, clock_peer_to_cn, clock_cn_to_peer    cn, cn_b
     events-N    events_N (node N's event records)              N, gn, tool
 
-Host roles: ``cn``; each device node ``dnX``; ``gn``, the ground station
+Host roles: ``cn``; ``cn_b``, a standby control node (it holds what ``cn``
+holds, since it may take command, and the link between the two control
+nodes, which nobody else holds: a ground cannot forge the mirror that a
+standby takes over from); each device node ``dnX``; ``gn``, the ground station
 that commands (ground node, console, ``cmd``); ``tool``, a read-only tool
 (``tap``, ``log``). So a ground's keys cannot make a trigger any DN runs
 (it commands only through the CN's checks); a DN's keys cannot pose as
@@ -146,7 +151,9 @@ def link_of(channel_name: str) -> str:
         return "uplink"
     if channel_name.startswith("events_"):
         return "events-" + channel_name[len("events_") :]
-    name = channel_name.removeprefix("clock_")
+    if channel_name in PEER_CHANNELS:
+        return PEER_LINK
+    name = channel_name.removeprefix("clock_").removeprefix("probe_")
     src, sep, dst = name.partition("_to_")
     if sep and src == "cn" and dst:
         return f"cn-{dst}"
@@ -155,24 +162,40 @@ def link_of(channel_name: str) -> str:
     raise ValueError(f"{channel_name!r} is not a channel")
 
 
+PEER_LINK = "cn-cn_b"
+"""The link between a mission's two control nodes (a standby's mirror and clock)."""
+PEER_CHANNELS = frozenset({"mirror", "clock_peer_to_cn", "clock_cn_to_peer"})
+"""The channels :data:`PEER_LINK` tags: the commander's whole Data Vector to
+the standby every loop (``mirror``) and the standby's clock exchange with
+the commander."""
+
+
 def _event_links(mission: Mission) -> list[str]:
-    nodes = ["cn", *mission.device_nodes, *(["gn"] if mission.has_ground else [])]
+    nodes = [*mission.control_nodes, *mission.device_nodes, *(["gn"] if mission.has_ground else [])]
     return [f"events-{n}" for n in nodes]
 
 
 def host_roles(mission: Mission) -> tuple[str, ...]:
-    """The mission's host roles, one key file each: ``cn``, every device
-    node, ``gn`` (when the mission has a ground node) and ``tool``."""
-    return ("cn", *mission.device_nodes, *(("gn",) if mission.has_ground else ()), "tool")
+    """The mission's host roles, one key file each: ``cn`` (and the standby
+    ``cn_b``), every device node, ``gn`` (when the mission has a ground
+    node) and ``tool``."""
+    return (
+        *mission.control_nodes,
+        *mission.device_nodes,
+        *(("gn",) if mission.has_ground else ()),
+        "tool",
+    )
 
 
 def role_links(mission: Mission, role: str) -> tuple[str, ...]:
     """The links host role ``role`` holds (module doc); KeyError_ for a role
     the mission does not have."""
     dns = mission.device_nodes
-    if role == "cn":
+    if role in mission.control_nodes:
+        # A standby control node holds what the commander holds: it may command.
         up = ["uplink"] if mission.has_ground else []
-        return (*(f"cn-{dn}" for dn in dns), *up, "downlink", "events-cn")
+        peer = [PEER_LINK] if mission.standby is not None else []
+        return (*(f"cn-{dn}" for dn in dns), *up, "downlink", *peer, f"events-{role}")
     if role in dns:
         return (f"cn-{role}", f"events-{role}")
     if role == "gn" and mission.has_ground:
@@ -194,6 +217,7 @@ def _mission_links(mission: Mission) -> tuple[str, ...]:
 
 _ROLE_HOSTS = {
     "cn": "the control node's host",
+    "cn_b": "the standby control node's host",
     "gn": "the ground station (ground node, console, cmd)",
     "tool": "read-only tools (tap, log)",
 }

@@ -398,6 +398,29 @@ class CommandHandler:
         self._last_seq = 0
         self._arm_seq = -1
         self._arm_t_ns = 0
+        # A redundant mission mirrors the last ARM (adopt()).
+        arm = "cn_arm_seq" in dv.layout.elements
+        self._h_arm_seq = dv.handle("cn_arm_seq") if arm else None
+        self._h_arm_t = dv.handle("cn_arm_t_ns") if arm else None
+
+    def adopt(self) -> None:
+        """Take up the handler's state from the Data Vector (a takeover,
+        :meth:`zplatform.loop.ControlLogic.adopt`): the pending command
+        (``cn_cmd``), the last number (``cn_cmd_seq``) and, in a redundant
+        mission, the last ARM (``cn_arm_seq``, ``cn_arm_t_ns``)."""
+        self._active = self._h_cmd.get() != 0
+        self._last_seq = int(self._h_seq.get())
+        if self._h_arm_seq is not None and self._h_arm_t is not None:
+            seq = int(self._h_arm_seq.get())
+            self._arm_seq = seq if seq else -1
+            self._arm_t_ns = int(self._h_arm_t.get())
+
+    def _armed_at(self, seq: int, t_ns: int) -> None:
+        self._arm_seq = seq
+        self._arm_t_ns = t_ns
+        if self._h_arm_seq is not None and self._h_arm_t is not None:
+            self._h_arm_seq.set(max(seq, 0))
+            self._h_arm_t.set(t_ns)
 
     @property
     def active(self) -> bool:
@@ -519,7 +542,7 @@ class CommandHandler:
         )
         if hazardous:
             armed = self._arm_seq == seq - 1 and 0 <= t_ns - self._arm_t_ns <= ARM_WINDOW_NS
-            self._arm_seq = -1
+            self._armed_at(-1, self._arm_t_ns)
             if not armed:
                 return (
                     CommandStatus.REJECTED_NOT_ARMED,
@@ -539,8 +562,7 @@ class CommandHandler:
             if not changed:
                 return CommandStatus.ACCEPTED, " (no change: already so)"
         elif cmd == Command.ARM:
-            self._arm_seq = seq
-            self._arm_t_ns = t_ns
+            self._armed_at(seq, t_ns)
         return CommandStatus.ACCEPTED, ""
 
     def _protected_write(self) -> bool:

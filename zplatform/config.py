@@ -842,6 +842,51 @@ class FaultsConfig(_Struct):
             "triggers in a row.",
         ),
     ] = 10
+    dn_rejoin_clears: Annotated[
+        bool,
+        Meta(
+            description="Whether a latched DN_LOST clears when the lost device node answers "
+            "again (a restarted node, a healed link) for `dn_reenable_loops` loops in a row, "
+            "with a `dn_fault_cleared` event. A transition the fault already fired stays "
+            "taken. Off (default): DN_LOST stays latched until an operator clears `cn_fault`."
+        ),
+    ] = False
+
+
+STANDBY = "cn_b"
+"""The node name of a mission's standby control node (docs/architecture.md#failover)."""
+
+
+class FailoverConfig(_Struct):
+    """A hot-standby control node, `cn_b` in `nodes` (docs/architecture.md#failover):
+    it mirrors the commanding control node's whole Data Vector every loop and
+    takes command, in a new term, when that one falls silent; each device node
+    runs triggers of the highest term only. The section is optional with a
+    `cn_b` node (the defaults below) and refused without one."""
+
+    takeover_loops: Annotated[
+        int,
+        Meta(
+            ge=1,
+            le=1000,
+            description="Loops without the commanding control node's mirror frame after "
+            "which the standby asks the device nodes whether they still hear it (and takes "
+            "command if none does). With the ask and the first loop of the new term it "
+            "must end before the device nodes' watchdog: at most "
+            "`faults.dn_watchdog_loops` - 3.",
+        ),
+    ] = 3
+    lease_loops: Annotated[
+        int,
+        Meta(
+            ge=1,
+            le=1000,
+            description="A device node follows a new term only after this many periods "
+            "without a trigger of its current term (so a standby that is only cut off "
+            "from a working control node never takes the vehicle from it). At most "
+            "`takeover_loops`.",
+        ),
+    ] = 3
 
 
 class HealthConfig(_Struct):
@@ -1396,7 +1441,8 @@ class Mission(_Struct):
         dict[str, NodeConfig],
         Meta(
             description="The zenoh peers by name: `cn`, the control node (required); device "
-            "nodes `dn0`, `dn1`, ... numbered without gaps; `gn`, the ground node (optional)."
+            "nodes `dn0`, `dn1`, ... numbered without gaps; `gn`, the ground node (optional); "
+            "`cn_b`, a hot-standby control node (optional, `failover`)."
         ),
     ]
     regions: Annotated[
@@ -1497,6 +1543,13 @@ class Mission(_Struct):
             "thread liveness) in telemetry; without it, no health elements."
         ),
     ] = None
+    failover: Annotated[
+        FailoverConfig | None,
+        Meta(
+            description="The hot-standby control node's takeover (only with a `cn_b` node; "
+            "its defaults apply when the section is absent)."
+        ),
+    ] = None
     monitors: Annotated[
         list[MonitorConfig],
         Meta(description="Conditions on the CN's Data Vector and their responses."),
@@ -1512,6 +1565,21 @@ class Mission(_Struct):
     @property
     def has_ground(self) -> bool:
         return "gn" in self.nodes
+
+    @property
+    def standby(self) -> str | None:
+        """The standby control node's name (``cn_b``), or None for a mission without one."""
+        return STANDBY if STANDBY in self.nodes else None
+
+    @property
+    def control_nodes(self) -> list[str]:
+        """The control nodes: ``cn``, then the standby ``cn_b`` if the mission has one."""
+        return ["cn", STANDBY] if STANDBY in self.nodes else ["cn"]
+
+    @property
+    def takeover(self) -> FailoverConfig:
+        """The failover settings (the defaults when the section is absent)."""
+        return self.failover if self.failover is not None else FailoverConfig()
 
     @property
     def mtls(self) -> bool:
@@ -1532,7 +1600,7 @@ class Mission(_Struct):
         r = self.recorder
         if r is None:
             return []
-        return list(r.nodes) if r.nodes is not None else ["cn", *self.device_nodes]
+        return list(r.nodes) if r.nodes is not None else [*self.control_nodes, *self.device_nodes]
 
     @property
     def period_ns(self) -> int:
@@ -1553,7 +1621,7 @@ class Mission(_Struct):
 
     def node_regions(self, node: str) -> list[str]:
         """The regions held in ``node``'s Data Vector (thesis 4.3)."""
-        if node == "cn":
+        if node == "cn" or (node == STANDBY and node in self.nodes):
             return self.region_names()
         if node == "gn":
             return ["gn_to_cn"]
@@ -1744,10 +1812,13 @@ def _check_mission(m: Mission) -> None:
     if "cn" not in m.nodes:
         raise ConfigError("the control node 'cn' is missing", "$.nodes")
     for name in m.nodes:
-        if name not in ("cn", "gn") and not _DN_RE.fullmatch(name):
+        if name not in ("cn", "gn", STANDBY) and not _DN_RE.fullmatch(name):
             raise ConfigError(
-                f"node name {name!r} is not one of cn, gn, dn0, dn1, ...", f"$.nodes.{name}"
+                f"node name {name!r} is not one of cn, {STANDBY} (a standby control node), gn, "
+                "dn0, dn1, ...",
+                f"$.nodes.{name}",
             )
+    _check_failover(m)
     dns = m.device_nodes
     if [int(d[2:]) for d in dns] != list(range(len(dns))):
         raise ConfigError(
@@ -1787,6 +1858,35 @@ def _check_mission(m: Mission) -> None:
         if not elements:
             raise ConfigError("a region must have at least one element", where)
     check_bulk_channels(m.bulk, m.nodes)
+
+
+def _check_failover(m: Mission) -> None:
+    """A `failover` section needs a standby; its takeover fits the DN watchdog."""
+    if m.standby is None:
+        if m.failover is not None:
+            raise ConfigError(
+                f"failover settings need a standby control node `{STANDBY}` in `nodes`",
+                "$.failover",
+            )
+        return
+    f = m.takeover
+    if f.lease_loops > f.takeover_loops:
+        raise ConfigError(
+            f"lease_loops ({f.lease_loops}) must be at most takeover_loops "
+            f"({f.takeover_loops}): the device nodes would refuse every takeover the standby "
+            "asks for when it asks",
+            "$.failover.lease_loops",
+        )
+    wd = m.faults.dn_watchdog_loops
+    if f.takeover_loops + 3 > wd:
+        raise ConfigError(
+            f"takeover_loops ({f.takeover_loops}) plus the ask and the new term's first loop "
+            f"must end before the device nodes' watchdog (faults.dn_watchdog_loops = {wd}): "
+            f"at most {wd - 3}",
+            "$.failover.takeover_loops",
+        )
+    if m.nodes[STANDBY].board:
+        raise ConfigError("a control node has no board", f"$.nodes.{STANDBY}.board")
 
 
 _ENDPOINT_RE = re.compile(r"^(tcp|udp|tls|quic|unixsock-stream|ws)/(.+)$")
@@ -1910,6 +2010,24 @@ def platform_elements(m: Mission) -> dict[str, list[ElementConfig]]:
             ),
             E("cn_prm_unsaved", "bool", False, doc="a PRM_SET since the last load or save"),
         ]
+    if m.standby is not None:
+        # A redundant mission (docs/architecture.md#failover): who commands in
+        # which term, and the command handler's and state machine's state that
+        # a standby must mirror to continue exactly where the other left off.
+        cn += [
+            E("cn_term", "u32", 1, doc="the term in command: raised by every takeover"),
+            E("cn_commander", "enum", "cn", m.control_nodes, doc="the control node in command"),
+            E("cn_term_loop", "u64", 0, doc="the loop this term began (0: the first term)"),
+            E(
+                "cn_standby_ready",
+                "bool",
+                False,
+                doc="the other control node is alive and mirrors this one",
+            ),
+            E("cn_arm_seq", "u64", 0, doc="number of the last ARM accepted (0: none)"),
+            E("cn_arm_t_ns", "i64", 0, doc="its loop time (ns)"),
+            E("cn_holding", "bool", False, doc="a HOLD is in effect"),
+        ]
     for dn in m.device_nodes:
         cn += [
             E(f"cn_rx_{dn}", "u32", 0, doc=f"replies from {dn} applied"),
@@ -1921,6 +2039,8 @@ def platform_elements(m: Mission) -> dict[str, list[ElementConfig]]:
         # Set by the CN in the trigger of its planned last loop: the DN then
         # safes its actuators as the run's end, not as a lost control node.
         out[f"cn_to_{dn}"] = [E(f"{dn}_final", "bool", False)]
+        if m.standby is not None:  # the term of the control node that sent the trigger
+            out[f"cn_to_{dn}"].append(E(f"{dn}_term", "u32", 1, doc=f"the term driving {dn}"))
         out[f"{dn}_to_cn"] = [
             E(f"{dn}_loop", "u64", 0, doc=f"the CN loop {dn} last ran"),
             E(f"{dn}_time_ns", "i64", 0, doc=f"{dn}'s time of that loop (ns)"),
@@ -1944,6 +2064,10 @@ def platform_elements(m: Mission) -> dict[str, list[ElementConfig]]:
                 doc=f"clock replies and estimates {dn} refused (bad tag, replayed, a jump)",
             ),
         ]
+        if m.standby is not None:
+            out[f"{dn}_to_cn"].append(
+                E(f"{dn}_term_seen", "u32", 0, doc=f"the highest term whose trigger {dn} ran")
+            )
     if m.has_ground:
         out["gn_to_cn"] = [
             E("gn_cmd", "enum", "NONE", list(CMD_NAMES), doc="the requested command"),
@@ -1971,6 +2095,11 @@ def platform_elements(m: Mission) -> dict[str, list[ElementConfig]]:
                 doc=f"controller {c.name}'s mode",
             )
         )
+        if region == "cn" and m.standby is not None:
+            # Controller.enabled_at_ns, mirrored so a takeover keeps it.
+            out[region].append(
+                E(f"{c.name}_enabled_ns", "i64", 0, doc=f"when {c.name} was last enabled (ns)")
+            )
     # Bulk channel counters live where their node reports them.
     for node in m.nodes:
         counters_at = counter_region(node)
@@ -2272,10 +2401,12 @@ def _check_control_sections(m: Mission) -> None:
             if c.name in names:
                 raise ConfigError(f"duplicate {section[:-1]} name {c.name!r}", f"{where}.name")
             names.add(c.name)
-            if c.node not in m.nodes or c.node == "gn":
+            if c.node not in m.nodes or c.node in ("gn", STANDBY):
                 raise ConfigError(
                     f"{section[:-1]} {c.name!r} is placed on {c.node!r}; "
-                    "expected cn or a device node",
+                    "expected cn or a device node"
+                    + (" (the standby runs cn's controllers when it commands)"
+                       if c.node == STANDBY else ""),
                     f"{where}.node",
                 )
             if section == "devices" and c.node == "cn":

@@ -44,7 +44,7 @@ decides when that becomes a critical fault.
 from __future__ import annotations
 
 import abc
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, ClassVar
 
 from .components import (
     Component,
@@ -95,6 +95,28 @@ class Controller(Component):
 
     enabled_at_ns: int = 0
 
+    takeover_safe: ClassVar[bool] = False
+    """Declares that the controller keeps every piece of state it carries from
+    one loop to the next in Data Vector elements (those it writes: estimates,
+    integrators, latches, counters), none in Python attributes, so that a
+    standby control node that mirrors the vector can run it from any loop on
+    (docs/architecture.md#failover). A mission with a standby refuses a
+    control-node controller that does not declare it; and there the platform
+    holds it to it: after :meth:`bind`, assigning an attribute of the
+    controller raises (a controller failure, safed and reported) instead of
+    silently keeping state a takeover would lose."""
+
+    _sealed: bool = False
+
+    def __setattr__(self, name: str, value: object) -> None:
+        if self._sealed and name not in _PLATFORM_ATTRS:
+            raise AttributeError(
+                f"controller {self.name} ({type(self).__name__}) sets self.{name} after bind: "
+                "in a mission with a standby control node a controller keeps its state in "
+                "Data Vector elements (takeover_safe; docs/architecture.md#failover)"
+            )
+        object.__setattr__(self, name, value)
+
     @abc.abstractmethod
     def run_enabled(self, t_ns: int) -> None:
         """One loop of normal control."""
@@ -107,14 +129,20 @@ class Controller(Component):
         """One loop with control logic off (thesis 6.2): outputs are left alone."""
 
 
+# What the platform itself sets on a controller after bind.
+_PLATFORM_ATTRS = frozenset({"enabled_at_ns", "events", "bulk", "_sealed"})
+
+
 class _Slot:
     """Run-time bookkeeping of one controller in a :class:`ControllerSet`."""
 
-    __slots__ = ("controller", "disabled", "last", "latched", "mode", "streak")
+    __slots__ = ("controller", "disabled", "enabled_ns", "last", "latched", "mode", "streak")
 
-    def __init__(self, controller: Controller, mode: Handle) -> None:
+    def __init__(self, controller: Controller, mode: Handle, enabled_ns: Handle | None) -> None:
         self.controller = controller
         self.mode = mode
+        # Controller.enabled_at_ns, mirrored in a redundant mission (adopt()).
+        self.enabled_ns = enabled_ns
         self.last = -1  # mode run on the previous due loop (-1: never ran)
         self.latched = -1  # commanded mode that failed; safed while it is still commanded
         self.streak = Streak()  # consecutive failing due loops
@@ -163,7 +191,15 @@ class ControllerSet:
             cls = load_component_class(c.cls, Controller, f"{where}.class", pythonpath=code)
             inst: Controller = build_component("controller", c, where, cls, c, dv)
             inst.events = events
-            slot = _Slot(inst, dv.handle(f"{c.name}_mode"))
+            if node == "cn" and mission.standby is not None:
+                _check_takeover_safe(cls, where)
+                inst._sealed = True
+            ens = f"{c.name}_enabled_ns"
+            slot = _Slot(
+                inst,
+                dv.handle(f"{c.name}_mode"),
+                dv.handle(ens) if node == "cn" and ens in dv.layout.elements else None,
+            )
             try:
                 self._groups.add(slot, c.rate_divisor, c.rate_phase)
             except SchedulerError as exc:
@@ -173,6 +209,19 @@ class ControllerSet:
 
     def __len__(self) -> int:
         return len(self.controllers)
+
+    def adopt(self) -> None:
+        """Take up where the vector says the controllers are (a takeover,
+        :meth:`zplatform.loop.ControlLogic.adopt`): each ran in the mode its
+        ``<name>_mode`` shows, enabled since ``<name>_enabled_ns`` (kept on the
+        control node of a redundant mission); failure streaks start over. A
+        controller's own state is in elements it names (Controller doc)."""
+        for s in self._slots.values():
+            s.last = s.mode.get()
+            s.latched = -1
+            s.streak = Streak()
+            if s.enabled_ns is not None:
+                s.controller.enabled_at_ns = int(s.enabled_ns.get())
 
     def disabled(self, name: str) -> bool:
         """Whether controller ``name`` was disabled after its safing failed."""
@@ -200,6 +249,8 @@ class ControllerSet:
                 if mode == ENABLED:
                     if s.last != ENABLED:
                         c.enabled_at_ns = t_ns
+                        if s.enabled_ns is not None:
+                            s.enabled_ns.set(t_ns)
                     c.run_enabled(t_ns)
                 elif mode == MANUAL:
                     c.run_manual(t_ns)
@@ -255,6 +306,17 @@ class ControllerSet:
         streak = s.streak.fail()
         if self.faults is not None:
             self.faults.report_controller_failure(s.controller.name, streak, t_ns)
+
+
+def _check_takeover_safe(cls: type[Controller], where: str) -> None:
+    if not cls.takeover_safe:
+        raise ConfigError(
+            f"{cls.__module__}:{cls.__qualname__} does not declare takeover_safe: a mission "
+            "with a standby control node (cn_b) runs only control-node controllers that keep "
+            "their state in Data Vector elements, so the standby can take over in any loop "
+            "(set takeover_safe = True once it does; docs/architecture.md#failover)",
+            f"{where}.class",
+        )
 
 
 def check_config(mission: Mission) -> None:

@@ -352,6 +352,79 @@ class EV:
         "PRM_SAVE #{seq} failed: {why}; the parameter file keeps what it had",
     )
 
+    # failover: terms, the standby control node, restarts in flight
+    # (zplatform.fencing, zplatform.failover; docs/architecture.md#failover)
+    CN_TOOK_COMMAND = EventType(
+        110,
+        "cn_took_command",
+        Severity.WARNING_HI,
+        "{node} took command in term {term} at loop {loop}: {why}",
+    )
+    CN_STOOD_DOWN = EventType(
+        111,
+        "cn_stood_down",
+        Severity.WARNING_HI,
+        "{node} stands down at loop {loop}: term {term} commands ({why}); it follows as standby",
+    )
+    CN_FOLLOWING = EventType(
+        112,
+        "cn_following",
+        Severity.ACTIVITY_HI,
+        "{node} follows {commander} (term {term}) from loop {loop}: ready to take over",
+    )
+    CN_TAKEOVER_HELD = EventType(
+        113,
+        "cn_takeover_held",
+        Severity.WARNING_LO,
+        "{node} hears nothing from the commander since loop {loop} but does not take command: "
+        "{why}",
+    )
+    DN_TERM_FENCED = EventType(
+        114,
+        "dn_term_fenced",
+        Severity.WARNING_LO,
+        "{node} answered {n} trigger(s) of term {term} without running them: it follows term "
+        "{seen} ({why})",
+    )
+    DN_NEW_TERM = EventType(
+        115,
+        "dn_new_term",
+        Severity.ACTIVITY_HI,
+        "{node} follows term {term} from loop {loop} (was term {old})",
+    )
+    CN_RESUMED = EventType(
+        116,
+        "cn_resumed",
+        Severity.WARNING_HI,
+        "{node} restarted in flight and resumed run {epoch} at loop {loop} in state {state}, "
+        "from {source}",
+    )
+    CN_RESTARTED_IN_FLIGHT = EventType(
+        117,
+        "cn_restarted_in_flight",
+        Severity.FATAL,
+        "{node} restarted while the device nodes were mid-run (their last loop {loop}) and "
+        "holds no state of that run ({why}): it starts over",
+    )
+    DN_FAULT_CLEARED = EventType(
+        118,
+        "dn_fault_cleared",
+        Severity.ACTIVITY_HI,
+        "{dn} answers again ({n} loops in a row): {fault} cleared (faults.dn_rejoin_clears)",
+    )
+    CN_STANDBY_READY = EventType(
+        119,
+        "cn_standby_ready",
+        Severity.ACTIVITY_LO,
+        "{node}: the standby {peer} is {what}",
+    )
+    TM_NEW_TERM = EventType(
+        76,
+        "tm_new_term",
+        Severity.WARNING_HI,
+        "{commander} commands from loop {loop} (term {old} -> {term}); following it",
+    )
+
     ALL: ClassVar[tuple[EventType, ...]]
     """Every entry, in declaration order."""
 

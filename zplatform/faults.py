@@ -185,6 +185,14 @@ class FaultMonitor:
                     t_ns,
                 )
 
+    def adopt(self) -> None:
+        """Take up the watched counters as they stand (a takeover,
+        :meth:`zplatform.loop.ControlLogic.adopt`): their growth runs start
+        over, so a symptom must persist for its whole count from here."""
+        for w in self._watches:
+            w.last = w.get()
+            w.run = 0
+
     def report_controller_failure(self, name: str, consecutive: int, t_ns: int) -> None:
         """A CN controller raised in ``consecutive`` loops in a row (the
         controller runner calls this every loop one raises). Raises

@@ -55,6 +55,7 @@ from .codec import BundleEncoder, RegionCodec
 from .config import BulkChannelConfig, Mission
 from .datavector import DataVector, Layout
 from .events import Event
+from .failover import Decision, MirrorReader, Standby
 from .ground.logic import GroundLogic
 from .ground.records import CommandOutcome, EventRecord
 from .health import BLOCK_SIZE, HealthPort
@@ -233,6 +234,64 @@ class _SimBulkPort:
 # the runner
 
 
+class SimControlNode:
+    """One control node of a lockstep run: its logic, and, while it does not
+    command, its :class:`~zplatform.failover.Standby`; the faults a test put
+    on it (:meth:`LockstepRunner.kill`, :meth:`LockstepRunner.stop`)."""
+
+    def __init__(
+        self,
+        name: str,
+        logic: ControlLogic,
+        keys: KeySet | None,
+        standby: Standby | None = None,
+    ) -> None:
+        self.name = name
+        self.logic = logic
+        self.keys = keys
+        self.standby = standby
+        self.reader = MirrorReader(logic, keys) if logic.redundant else None
+        self.state_h = logic.dv.handle("cn_state")
+        self.saver = MemorySaver()
+        self.dead = False
+        self.stopped_until = 0
+        self._held: tuple[bytes, int] | None = None
+
+    def runs(self, loop: int) -> bool:
+        """Whether it runs in ``loop`` (neither dead nor stopped)."""
+        return not self.dead and self.stopped_until < loop
+
+    def take_mirror(self, frame: bytes, t: int, loop: int) -> None:
+        """A mirror from the commander: applied now, or held while stopped
+        (the newest one, as a socket buffer would keep it for a stopped process)."""
+        if not self.runs(loop):
+            self._held = (frame, t)
+            return
+        self._apply_mirror(frame, t)
+
+    def deliver_held(self, t: int) -> None:
+        if self._held is not None:
+            frame, at = self._held
+            self._held = None
+            self._apply_mirror(frame, at)
+
+    def _apply_mirror(self, frame: bytes, t: int) -> None:
+        if self.standby is None:
+            # A commander hearing a newer term's mirror stands down first.
+            assert self.reader is not None
+            term, who = self.reader.newer_term(frame)
+            if not term:
+                return
+            self.logic.superseded = term
+            self.standby = Standby.stand_down(
+                self.logic.mission,
+                self.logic,
+                self.keys,
+                f"a mirror of term {term} came from {self.logic.mission.control_nodes[who]}",
+            )
+        self.standby.mirror(frame, t)
+
+
 class LockstepRunner:
     """Every node of ``mission`` in one process, in virtual time (module doc).
 
@@ -265,8 +324,28 @@ class LockstepRunner:
         self.clock = VirtualClock(start_ns)
         keys = sim_keys(mission)
         self.control = ControlLogic(mission, keys=keys and keys.for_node("cn"), epoch=start_ns)
-        self.saver = MemorySaver()
-        """Where PRM_SAVE goes in a lockstep run (memory; answered next loop)."""
+        """The control logic of the control node in command (after a takeover,
+        the standby's; with two commanders at once, the higher term's)."""
+        # Control nodes: cn commands term 1; a standby cn_b follows it
+        # (zplatform.failover). Their faults come from the tests: kill, stop,
+        # partition (module doc).
+        self.cns: dict[str, SimControlNode] = {
+            "cn": SimControlNode("cn", self.control, keys and keys.for_node("cn"))
+        }
+        if mission.standby is not None:
+            name = mission.standby
+            sb_keys = keys and keys.for_node(name)
+            sb_logic = ControlLogic(mission, keys=sb_keys, name=name)
+            self.cns[name] = SimControlNode(
+                name, sb_logic, sb_keys, Standby(mission, sb_logic, sb_keys)
+            )
+        self._cuts: dict[frozenset[str], int | None] = {}
+        self.driven: dict[int, dict[str, int]] = {}
+        """Redundant missions: per loop, the term that drove each device node
+        that ran it (the oracle of "no loop driven by two terms")."""
+        self.commanders: list[tuple[int, str, int]] = []
+        """Redundant missions: ``(loop, node, term)`` whenever the control
+        node in command (the highest term that ran a loop) changed."""
         boards = dict(boards or {})
         unknown = sorted(set(boards) - set(mission.device_nodes))
         if unknown:
@@ -311,49 +390,90 @@ class LockstepRunner:
                 raise ValueError(f"health given for {n!r}, which is not a cn or device node")
             logics[n].attach_health(hp)
 
+    @property
+    def saver(self) -> MemorySaver:
+        """Where the commander's PRM_SAVE goes in a lockstep run (memory;
+        answered next loop)."""
+        return next(c.saver for c in self.cns.values() if c.logic is self.control)
+
+    # -- faults (redundant missions) --------------------------------------------
+    def kill(self, node: str) -> None:
+        """``node`` is gone from the next loop on: a control node runs and
+        answers nothing more; a device node is :attr:`lost`."""
+        if node in self.cns:
+            self.cns[node].dead = True
+        elif node in self.mission.device_nodes:
+            self.lost.add(node)
+        else:
+            raise ValueError(f"no control or device node {node!r} to kill")
+
+    def stop(self, node: str, loops: int) -> None:
+        """Control node ``node`` is frozen for the next ``loops`` loops (as
+        SIGSTOP): it runs nothing, then resumes with the state it had, in the
+        loop its schedule is at (the loops in between skipped)."""
+        self.cns[node].stopped_until = self.loop + loops
+
+    def partition(self, a: str, b: str, loops: int | None = None) -> None:
+        """Nothing passes between nodes ``a`` and ``b`` (either way) for the
+        next ``loops`` loops (None: until :meth:`heal`)."""
+        self._cuts[frozenset((a, b))] = None if loops is None else self.loop + loops
+
+    def heal(self) -> None:
+        """End every partition."""
+        self._cuts.clear()
+
+    def reach(self, a: str, b: str) -> bool:
+        """Whether frames pass between ``a`` and ``b`` in the current loop."""
+        until = self._cuts.get(frozenset((a, b)), 0)
+        return until is not None and until <= self.loop
+
     # -- running -----------------------------------------------------------
     def step(self, log: CsvLogger | None = None) -> None:
         """Run one loop (module doc order) and advance the virtual clock."""
         loop = self.loop + 1
         t = self.clock.now_ns()
-        cn = self.control
         for ch in self._channels:  # what was published last loop arrives
             ch.deliver()
-        frames = cn.begin(loop, t)
-        lost = self.lost
-        if self._bundle is not None:  # as live: one wildcard query, every DN takes its frame
-            bundle = self._bundle.pack(frames)
-            for i, dev in enumerate(self.devices):
-                if dev.node not in lost:
-                    cn.reply(i, dev.step(bundle, t))
-        else:
-            for i, dev in enumerate(self.devices):
-                if dev.node not in lost:
-                    cn.reply(i, dev.step(frames[i], t))
+        running = [c for c in self.cns.values() if c.runs(loop)]
+        for c in running:  # a mirror held while a node was stopped arrives first
+            c.deliver_held(t)
+        commanders = [c for c in running if c.standby is None]
         ground, self._ground = self._ground, None
-        saved = self.saver.poll()
-        tm = cn.finish(
-            (ground,) if ground is not None else (), saves=(saved,) if saved is not None else ()
+        tms: list[bytearray] = []
+        for c in commanders:
+            tm = self._command(c, loop, t, ground)
+            if tm is not None:
+                tms.append(bytearray(tm))
+        if commanders:
+            self._mirror(commanders, t)
+        for c in running:
+            if c.standby is not None:
+                self._follow(c, loop, t)
+        top = max(
+            (c for c in self.cns.values() if c.standby is None and not c.dead),
+            key=lambda c: c.logic.term,
+            default=None,
         )
-        save = cn.params.take_save()
-        if save is not None:
-            self.saver.submit(*save)
+        if top is not None:
+            self.control = top.logic
         gl = self.ground
-        if tm is not None and gl.on_telemetry(tm, t):
-            if log is not None:
-                log.write(t, gl.dv)
-            requests = gl.take_requests()
-            if requests:  # the script player sends at most one per snapshot
-                self._ground = bytearray(requests[-1])
-        state = self._state_h.get()
+        for tm in tms:
+            if gl.on_telemetry(tm, t):
+                if log is not None:
+                    log.write(t, gl.dv)
+                requests = gl.take_requests()
+                if requests:  # the script player sends at most one per snapshot
+                    self._ground = bytearray(requests[-1])
+        state = (top.state_h if top is not None else self.cns["cn"].state_h).get()
         if state != self._last_state:
             self._last_state = state
             self._states.append(self._state_h.spec.name_of(state))
-        if cn.events.pending:
-            drained = cn.events.drain()
-            self._events.extend(drained)
-            for e in drained:  # the reasons of verdicts, as live from the event intake
-                gl.on_event(e, t)
+        for c in self.cns.values():
+            if c.logic.events.pending:
+                drained = c.logic.events.drain()
+                self._events.extend(drained)
+                for e in drained:  # the reasons of verdicts, as live from the event intake
+                    gl.on_event(e, t)
         for d in self.devices:
             if d.events.pending:
                 self._events.extend(d.events.drain())
@@ -361,6 +481,89 @@ class LockstepRunner:
             gl.events.drain()
         self.loop = loop
         self.clock.advance(self.period_ns)
+
+    def _command(
+        self, c: SimControlNode, loop: int, t: int, ground: bytearray | None
+    ) -> bytearray | None:
+        """Control node ``c`` runs ``loop`` as a commander; returns its telemetry."""
+        cn = c.logic
+        skipped = max(loop - 1 - cn.loop, 0) if cn.loop else 0
+        frames = cn.begin(loop, t)
+        lost = self.lost
+        reach = self.reach
+        term = cn.term
+        if self._bundle is not None:  # as live: one wildcard query, every DN takes its frame
+            bundle = self._bundle.pack(frames)
+        for i, dev in enumerate(self.devices):
+            if dev.node in lost or not reach(c.name, dev.node):
+                continue
+            reply = dev.trigger(bundle if self._bundle is not None else frames[i], t)
+            if dev.triggered:
+                dev.run(t)
+                if term:
+                    self.driven.setdefault(loop, {})[dev.node] = term
+            cn.reply(i, reply)
+        grounds = (ground,) if ground is not None and reach(c.name, "gn") else ()
+        saved = c.saver.poll()
+        tm = cn.finish(
+            grounds, loop_overruns=skipped, saves=(saved,) if saved is not None else ()
+        )
+        save = cn.params.take_save()
+        if save is not None:
+            c.saver.submit(*save)
+        if cn.superseded:  # a newer term drives the device nodes: stand down
+            c.standby = Standby.stand_down(
+                self.mission,
+                cn,
+                c.keys,
+                f"{sum(1 for d in self.devices if d.guard is not None and d.guard.term > term)} "
+                f"device node(s) follow term {cn.superseded}",
+            )
+            return None
+        if term and (not self.commanders or self.commanders[-1][1:] != (c.name, term)):
+            self.commanders.append((loop, c.name, term))
+        if tm is not None and not reach(c.name, "gn"):
+            return None
+        return tm
+
+    def _mirror(self, commanders: list[SimControlNode], t: int) -> None:
+        """Each commander's mirror to the other control node (held while it is
+        stopped, dropped when it is dead or cut off)."""
+        for c in commanders:
+            if c.standby is not None or c.logic.mirror is None:
+                continue
+            for other in self.cns.values():
+                if other is c or other.dead or not self.reach(c.name, other.name):
+                    continue
+                other.take_mirror(bytes(c.logic.mirror), t, self.loop + 1)
+
+    def _follow(self, c: SimControlNode, loop: int, t: int) -> None:
+        """A standby's turn in ``loop``, half a period in: maybe a probe round,
+        maybe a takeover from the next loop."""
+        sb = c.standby
+        assert sb is not None
+        save = sb.take_save()
+        if save is not None:
+            c.saver.submit(*save)
+        if not sb.tick(loop):
+            return
+        now = t + self.period_ns // 2
+        asks = sb.ask(loop, now)
+        for i, dev in enumerate(self.devices):
+            if dev.node in self.lost or not self.reach(c.name, dev.node):
+                continue
+            reply = dev.probe(asks[i], now)
+            if reply is not None:
+                sb.answer(i, reply)
+        if sb.decide(loop, now) == Decision.TAKE:
+            sb.take(loop + 1)
+            c.standby = None
+            return
+        for i, release in enumerate(sb.releases):
+            dev = self.devices[i]
+            if release is not None and dev.node not in self.lost and self.reach(c.name, dev.node):
+                dev.probe(release, now)
+
 
     def run(self, duration_s: float, *, log: CsvLogger | None = None) -> SimResult:
         """Run ``round(duration_s * loop_hz)`` loops (continuing from any

@@ -83,6 +83,7 @@ effect in the loop its monitor trips.
 
 from __future__ import annotations
 
+import struct
 from collections.abc import Sequence
 from typing import Any, Protocol
 
@@ -99,6 +100,7 @@ from .devices import DeviceSet
 from .errors import CodecError, ConfigError
 from .events import EV, EventLog, EventType
 from .faults import FaultMonitor
+from .fencing import ProbeReply, TermGuard, Verdict, read_ask, reply_frame
 from .health import HealthInput, HealthPort
 from .intake import CnRefusals, RefusalLog
 from .monitors import MonitorSet
@@ -108,6 +110,7 @@ from .world import node_board
 
 __all__ = ["BulkPort", "ControlLogic", "DeviceLogic", "LoopRecorder"]
 
+_U32 = struct.Struct("<I")
 # A trigger stamped this much later than the last one served, yet with a
 # lower loop number, comes from a restarted control node.
 _RESTART_NS = 1_000_000_000
@@ -183,14 +186,23 @@ class ControlLogic:
         events: EventLog | None = None,
         keys: KeySet | None = None,
         epoch: int = 0,
+        name: str = "cn",
     ) -> None:
+        if name not in mission.control_nodes:
+            raise ConfigError(
+                f"{name!r} is not a control node of mission {mission.mission!r}; control "
+                f"nodes: {mission.control_nodes}",
+                "$.nodes",
+            )
         self.mission = mission
+        self.name = name
+        """This control node's name: ``cn``, or the standby ``cn_b``."""
         self.layout = Layout.for_node(mission, "cn")
         self.dv = dv = DataVector(self.layout)
         # This run's epoch: command requests must carry it (a request made
         # for an earlier run of the CN is refused, not replayed).
         dv.set("cn_epoch", epoch)
-        self.events = events if events is not None else EventLog("cn")
+        self.events = events if events is not None else EventLog(name)
         self.faults = FaultMonitor(mission, dv, self.events)
         self.statemachine = StateMachine(mission, dv, self.events)
         self.params = ParamTable(mission, dv, self.events)
@@ -239,6 +251,35 @@ class ControlLogic:
         """DNs whose reply for the current loop has not been applied yet."""
         self.recorder: LoopRecorder | None = None
         self._bulk: BulkPort | None = None
+        # Terms (zplatform.fencing), in a mission with a standby control node.
+        self.redundant = mission.standby is not None
+        self.superseded = 0
+        """A higher term that a majority of the device nodes follow, seen in
+        this loop's replies (0: none): this control node no longer commands;
+        its driver stands it down (:mod:`zplatform.failover`)."""
+        self.mirror: bytearray | None = None
+        """The last loop's mirror frame (the whole Data Vector, tagged for the
+        standby; redundant missions only): the driver sends it every loop."""
+        self._seal_mirror: Channel | None = None
+        self._fenced = [False] * len(dns)
+        self._fenced_term = 0
+        if self.redundant:
+            self._h_term = dv.handle("cn_term")
+            self._h_commander = dv.handle("cn_commander")
+            self._h_term_loop = dv.handle("cn_term_loop")
+            self._term_dn = tuple(dv.handle(f"{dn}_term") for dn in dns)
+            self._seen_at = tuple(
+                dv.layout.element(f"{dn}_term_seen").offset
+                - dv.layout.region(f"{dn}_to_cn").offset
+                for dn in dns
+            )
+            self._seal_mirror = channel(keys, "mirror")
+
+    @property
+    def term(self) -> int:
+        """The term this control node's Data Vector is in (``cn_term``; 0
+        in a mission without a standby)."""
+        return int(self._h_term.get()) if self.redundant else 0
 
     # -- the loop ------------------------------------------------------------
     def begin(self, loop: int, t_ns: int, *, final: bool = False) -> list[bytearray]:
@@ -252,9 +293,13 @@ class ControlLogic:
         self.t_ns = t_ns
         got = self._got
         frames = self._frames
+        term = self._h_term.get() if self.redundant else 0
         for i, codec in enumerate(self._to_dn):
             got[i] = False
             self._final[i].set(final)
+            if term:  # every trigger says which term sends it (fencing)
+                self._term_dn[i].set(term)
+                self._fenced[i] = False
             seal = self._seal_to_dn[i]
             frame = codec.encode(loop, t_ns)
             frames[i] = seal.seal(frame) if seal is not None else frame
@@ -281,6 +326,13 @@ class ControlLogic:
         except CodecError as exc:
             self._bad_frame(self.dns[i], str(exc))
             return False
+        if self.redundant:
+            seen = _U32.unpack_from(frame.data, self._seen_at[i])[0]
+            if seen > self._h_term.get():
+                # DN i follows a newer term: it ran nothing of this one's.
+                self._fenced[i] = True
+                self._fenced_term = max(self._fenced_term, seen)
+                return False
         if frame.seq != self.loop or self._got[i]:
             # an answer to an older loop (or a duplicate): counted, dropped
             self._late[i].bump()
@@ -326,6 +378,16 @@ class ControlLogic:
         for i, got in enumerate(self._got):
             if not got:
                 self._missed[i].bump()
+        if self.redundant and sum(self._fenced) * 2 > len(self._fenced):
+            # A majority of the device nodes follow a newer term: another control
+            # node commands. This one runs nothing more (its driver stands it
+            # down); one device node alone cannot make it stand down.
+            self.superseded = self._fenced_term
+            if self.recorder is not None:
+                self.recorder.finish(
+                    grounds, sync_overrun, loop_overruns, inbox_dropped, refused, saves, None
+                )
+            return None
         if sync_overrun:
             self._sync_overruns.bump()
         if loop_overruns:
@@ -358,10 +420,15 @@ class ControlLogic:
         self.statemachine.step(t)
         self.controllers.run(loop, t)
         tm: bytearray | None = None
+        body: bytearray | None = None
         if loop % self._divisor == 0:
-            tm = self._tm.encode(loop, t)
+            tm = body = self._tm.encode(loop, t)
             if self._seal_tm is not None:
-                tm = self._seal_tm.seal(tm)
+                tm = self._seal_tm.seal(body)
+        if self.redundant:  # the standby mirrors the whole vector every loop
+            if body is None:
+                body = self._tm.encode(loop, t)
+            self.mirror = self._seal_mirror.seal(body) if self._seal_mirror is not None else body
         if bulk is not None:  # what the controllers filled goes out
             bulk.publish(loop, t)
         if self.recorder is not None:
@@ -471,6 +538,43 @@ class ControlLogic:
         """Take the CN's health block from ``port`` on health loops from the next
         loop on (module doc); ConfigError when the mission has no ``health:``."""
         _attach_health(self._health, port)
+
+    def adopt(self) -> None:
+        """Continue from the Data Vector as it stands (a standby's mirror, a
+        resumed control node's recorded frame, a replay's first frame): every
+        component takes up its state from it (docs/architecture.md#failover).
+
+        Exact for what a mission keeps in the vector: the state and time in
+        it, a hold, the pending command, the last request number and an ARM,
+        the latched fault, the controllers' modes and their own state
+        elements, the parameters. The persistence counts of the fault
+        monitor and of the mission's monitors start over: a symptom must
+        persist for its whole count under this control node (a later fault,
+        never a spurious one). A parameter save that was being written by
+        the node that recorded the vector is reported failed. Does nothing
+        before loop 1 (a fresh vector: every component starts as built)."""
+        self.loop = int(self._h_loop.get())
+        self.t_ns = t = int(self._h_time.get())
+        if self.loop == 0:
+            return
+        self.statemachine.adopt(t)
+        self.commands.adopt()
+        self.faults.adopt()
+        self.monitors.adopt()
+        self.controllers.adopt()
+        self.params.adopt(t)
+        self.superseded = self._fenced_term = 0
+
+    def take_command(self, term: int, loop: int) -> None:
+        """Command from ``loop`` on in ``term`` (a takeover: ``cn_term``,
+        ``cn_commander`` = this node, ``cn_term_loop``); call :meth:`adopt`
+        first. ValueError in a mission without a standby."""
+        if not self.redundant:
+            raise ValueError("a mission without a standby control node has no terms")
+        self._h_term.set(term)
+        self._h_commander.set(self.mission.control_nodes.index(self.name))
+        self._h_term_loop.set(loop)
+        self.superseded = self._fenced_term = 0
 
     def reset_sync_counters(self) -> None:
         """Zero rx/missed/late per DN and the sync overruns (after a warm-up)."""
@@ -588,6 +692,21 @@ class DeviceLogic:
         self._board_streak = Streak()
         self._bulk: BulkPort | None = None
         self._refusals = RefusalLog(3)
+        # Terms (zplatform.fencing), in a mission with a standby control node:
+        # where the trigger's term sits in its data, and this node's guard.
+        self.guard: TermGuard | None = None
+        self._term_at = 0
+        self._fenced_log = RefusalLog(2)
+        if mission.standby is not None:
+            self.guard = TermGuard(mission.takeover.lease_loops * mission.period_ns)
+            self._h_term = dv.handle(f"{node}_term")
+            self._term_at = self._h_term.spec.offset - self.layout.region(f"cn_to_{node}").offset
+            self._h_term_seen = dv.handle(f"{node}_term_seen")
+            self._open_probe = channel(keys, f"probe_cn_to_{node}")
+            self._seal_probe = channel(keys, f"probe_{node}_to_cn")
+        self.fenced = 0
+        """Triggers answered but not run because of their term (a lower term's,
+        or a higher one's while the current commander is alive)."""
         self.last_loop = 0
         self.last_t_ns = 0
         self.last_trigger_ns: int | None = None
@@ -631,11 +750,19 @@ class DeviceLogic:
             # the watchdog: whatever it drove meanwhile was unsupervised.
             self.safe(now_ns, f"no valid trigger for {(now_ns - last) / 1e6:.0f} ms")
         newer = False
+        guard = self.guard
+        verdict = Verdict.SAME
         try:
             if is_bundle(payload):  # a wildcard query: this node's frame from the bundle
                 payload = bundle_entry(payload, self._index)
             frame = self._in.check(self._open.open(payload) if self._open else payload)
-            # Authentic from here on. Loop 0 is the CN's warm-up, never a loop.
+            # Authentic from here on.
+            if guard is not None and frame.seq > 0:
+                term = _U32.unpack_from(frame.data, self._term_at)[0]
+                verdict = guard.admit(term, now_ns, self.last_trigger_ns)
+                if verdict == Verdict.FENCED or verdict == Verdict.LEASED:
+                    return self._fence(frame, term, verdict, now_ns)
+            # Loop 0 is the CN's warm-up, never a loop.
             newer = frame.seq > 0 and (
                 frame.seq > self._seen_loop or frame.t_ns > self._seen_t + _RESTART_NS
             )
@@ -664,6 +791,8 @@ class DeviceLogic:
             self.last_trigger_ns = now_ns
             self.triggered = frame.seq
             self._unrun_since = None
+            if guard is not None and verdict == Verdict.NEW:
+                self._new_term(frame.seq, now_ns)
         else:
             self.stale += 1
             if newer:
@@ -677,8 +806,89 @@ class DeviceLogic:
                     EV.DN_SAFED_RUN_ENDED,
                     SafedWhy.RUN_ENDED,
                 )
+        if guard is not None:
+            self._h_term_seen.set(guard.seen(now_ns))
         reply = self._out.encode(frame.seq, now_ns)
         return self._seal.seal(reply) if self._seal is not None else reply
+
+    def _new_term(self, loop: int, now_ns: int) -> None:
+        """The trigger just written into the region ran a higher term: follow it."""
+        guard = self.guard
+        assert guard is not None
+        old = guard.term
+        term = int(self._h_term.get())
+        guard.ran(term)
+        self.events.emit(
+            EV.DN_NEW_TERM,
+            now_ns,
+            node=self.node,
+            term=term,
+            old=old,
+            loop=loop,
+        )
+
+    def _fence(self, frame: Frame, term: int, verdict: int, now_ns: int) -> bytearray:
+        """Answer a trigger whose term this node does not run (zplatform.fencing):
+        the reply says which term it follows (``dnX_term_seen``); nothing of
+        the trigger is applied and nothing runs. Evented once a second at most."""
+        guard = self.guard
+        assert guard is not None
+        self.fenced += 1
+        self.stale += 1
+        lower = verdict == Verdict.FENCED
+        ev = self._fenced_log.add(now_ns, int(lower), int(not lower))
+        if ev is not None:
+            quiet = (
+                f"{(now_ns - self.last_trigger_ns) / 1e6:.0f} ms ago"
+                if self.last_trigger_ns is not None
+                else "never"
+            )
+            self.events.emit(
+                EV.DN_TERM_FENCED,
+                now_ns,
+                node=self.node,
+                n=sum(ev),
+                term=term,
+                seen=guard.seen(now_ns),
+                why=f"{ev[0]} of a lower term, {ev[1]} of a higher term while its own "
+                f"term still drives it (its last trigger ran {quiet})",
+            )
+        self._h_term_seen.set(guard.seen(now_ns))
+        reply = self._out.encode(frame.seq, now_ns)
+        return self._seal.seal(reply) if self._seal is not None else reply
+
+    def probe(self, payload: bytes | bytearray | memoryview, now_ns: int) -> bytes | None:
+        """Answer a control node's probe question (:mod:`zplatform.fencing`):
+        the reply frame, or None for a question that is not authentic or
+        not one (counted in ``dnX_bad_frames``; the driver answers with an
+        error). Only in a mission with a standby control node."""
+        guard = self.guard
+        if guard is None:
+            return None
+        try:
+            ask = read_ask(self._open_probe, payload, self._index)
+        except CodecError as exc:
+            self._bad.bump()
+            self.reject_reason = str(exc)
+            self.events.emit(EV.BAD_FRAME, now_ns, source="probe", reason=exc)
+            return None
+        last = self.last_trigger_ns
+        granted = guard.answer(ask.kind, ask.asker, ask.term, now_ns, last)
+        self._h_term_seen.set(guard.seen(now_ns))
+        return reply_frame(
+            self._seal_probe,
+            ProbeReply(
+                self._index,
+                ask.nonce,
+                guard.term,
+                guard.promised(now_ns),
+                granted,
+                int(self._h_safed_why.get()),
+                -1 if last is None else now_ns - last,
+                self.last_loop,
+                self.last_t_ns,
+            ),
+        )
 
     def refused(self, size: int, bad: int, stale: int, now_ns: int) -> None:
         """Count the sync queries the driver's intake refused as they arrived

@@ -235,6 +235,13 @@ class _Monitor:
     def describe(self) -> str:  # pragma: no cover - every kind overrides it
         raise NotImplementedError
 
+    def adopt(self) -> None:
+        """Start over from the element as it stands (a takeover): not
+        tripped, no persistence run; each kind resets what it remembers."""
+        self.run = 0
+        self.tripped = False
+        self.what = ""
+
 
 class _Limit(_Monitor):
     __slots__ = ("hi", "lo")
@@ -279,6 +286,11 @@ class _Unchanged(_Monitor):
     def describe(self) -> str:
         return f"{self.cfg.element} unchanged for {self.same} loops"
 
+    def adopt(self) -> None:
+        super().adopt()
+        self.last = self.get()
+        self.same = 0
+
 
 class _Age(_Monitor):
     __slots__ = ("armed", "initial", "max_age", "now")
@@ -299,6 +311,10 @@ class _Age(_Monitor):
                 return False
             self.armed = True
         return t_ns - v > self.max_age
+
+    def adopt(self) -> None:
+        super().adopt()
+        self.armed = self.get() != self.initial
 
     def describe(self) -> str:
         age = (self.now - self.get()) / 1e6
@@ -332,6 +348,11 @@ class _Rate(_Monitor):
         r = (v - old) / self.window_s
         self.last_rate = r
         return r < self.lo or r > self.hi
+
+    def adopt(self) -> None:
+        super().adopt()
+        self.i = 0
+        self.filled = 0
 
     def describe(self) -> str:
         lo = None if self.lo == -math.inf else self.lo
@@ -386,6 +407,13 @@ class MonitorSet:
 
     def __len__(self) -> int:
         return len(self.monitors)
+
+    def adopt(self) -> None:
+        """Start every monitor over from the vector as it stands (a takeover,
+        :meth:`zplatform.loop.ControlLogic.adopt`): a condition that still
+        holds trips again after its persistence, with its event and response."""
+        for m in self.monitors:
+            m.adopt()
 
     def tripped(self, name: str) -> bool:
         """Whether monitor ``name`` is tripped now."""

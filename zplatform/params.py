@@ -592,6 +592,18 @@ class ParamTable:
         self._h_save.set(ParamSave.PENDING)
         self._h_unsaved.set(False)
 
+    def adopt(self, t_ns: int) -> None:
+        """Take up the parameter store's state from the Data Vector (a
+        takeover, :meth:`zplatform.loop.ControlLogic.adopt`): a PRM_SAVE that
+        the previous commander was still writing is written again, by this
+        node, to its own file (the values are those the vector holds, which
+        the save snapshot)."""
+        self._pending = None
+        seq = self.saving
+        if seq:
+            data = encode_params(self.mission, self.values(), seq=seq, saved_ns=t_ns)
+            self._pending = (seq, data)
+
     def take_save(self) -> tuple[int, bytes] | None:
         """The save to write now ``(seq, file bytes)``, once; None when there
         is none (the common case: no allocation)."""

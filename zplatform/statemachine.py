@@ -480,6 +480,7 @@ class StateMachine:
         "_events",
         "_forced",
         "_forced_why",
+        "_h_holding",
         "_h_state",
         "_h_tis",
         "_held_ns",
@@ -501,6 +502,10 @@ class StateMachine:
         self._events = events
         self._h_state = dv.handle("cn_state")
         self._h_tis = dv.handle("cn_time_in_state_ns")
+        # A redundant mission mirrors whether a HOLD is in effect (adopt()).
+        self._h_holding = (
+            dv.handle("cn_holding") if "cn_holding" in dv.layout.elements else None
+        )
         names = self._h_state.spec.enum
         assert names is not None, "cn_state is an enum"
         self.states: tuple[str, ...] = names
@@ -633,6 +638,27 @@ class StateMachine:
         self._tis = tis
         self._h_state.set(self._state)
         self._h_tis.set(tis)
+        if self._h_holding is not None:
+            self._h_holding.set(self._hold_start is not None)
+
+    def adopt(self, t_ns: int) -> None:
+        """Take up the state the Data Vector shows after a step at ``t_ns``
+        (``cn_state``, ``cn_time_in_state_ns``, ``cn_holding``): the next
+        step continues exactly as the step that wrote it would have
+        (:meth:`zplatform.loop.ControlLogic.adopt`). Timed actions already
+        due at that time in state count as done."""
+        self._state = self._h_state.get()
+        tis = int(self._h_tis.get())
+        self._started = True
+        self._entered_ns = t_ns - tis
+        self._held_ns = 0
+        holding = self._h_holding is not None and bool(self._h_holding.get())
+        self._hold_start = t_ns if holding else None
+        acts = self._actions[self._state]
+        self._next_action = sum(1 for a in acts if a.at_ns <= tis)
+        self._tis = tis
+        self._forced = -1
+        self.changed = self.consumed_cmd = False
 
     def _first(self, trs: tuple[_Transition, ...], tis: int, t_ns: int) -> _Transition | None:
         """Fire the first of ``trs`` that holds (if any) and return it."""

@@ -206,6 +206,8 @@ class Ekf(Controller):
     last GPS fix taken).
     """
 
+    takeover_safe = True  # every state it keeps is a Data Vector element
+
     class Config(msgspec.Struct, forbid_unknown_fields=True):
         accel: str
         imu_ok: str
@@ -404,6 +406,8 @@ class FlightEvents(Controller):
     ``streaks`` (u16[5], the persistence counts).
     """
 
+    takeover_safe = True  # every state it keeps is a Data Vector element
+
     class Config(msgspec.Struct, forbid_unknown_fields=True):
         accel: str
         imu_ok: str
@@ -501,6 +505,8 @@ class Airbrakes(Controller):
     State in the Data Vector (takeover): only its output ``command`` (a
     ``cn_to_dnX`` element) and ``predicted``.
     """
+
+    takeover_safe = True  # every state it keeps is a Data Vector element
 
     class Config(msgspec.Struct, forbid_unknown_fields=True):
         h: str

@@ -105,6 +105,8 @@ class ApogeeDetector(Controller):
 class IgnitionController(Controller):
     """Commands ignition with a freshness stamp; records ``fired`` (see module doc)."""
 
+    takeover_safe = True  # stateless: every loop it writes from what it reads
+
     class Config(msgspec.Struct, forbid_unknown_fields=True):
         commands: Annotated[list[str], Meta(min_length=1)]
         command_loops: list[str]

@@ -1,0 +1,398 @@
+"""The standby control node: it mirrors the commander and takes over when it falls silent.
+
+docs/architecture.md#failover tells the whole story; in short:
+
+* A mission may declare a second control node, ``cn_b``. Whichever control
+  node commands sends, at the end of every loop, its whole Data Vector to
+  the other as a **mirror** frame (``{vehicle}/cn/mirror``, tagged with the
+  link only the two control nodes hold). The other one, the **standby**,
+  writes every fresh mirror into its own vector: state, time in state,
+  pending command, request numbers, ARM, latched fault, controller modes and
+  every controller's state elements (a redundant mission's control-node
+  controllers keep their state in the vector: ``Controller.takeover_safe``).
+* When no mirror came for ``failover.takeover_loops`` loops, the standby
+  **asks every device node** (a probe, :mod:`zplatform.fencing`) to promise
+  it the next term. A device node grants only when no trigger of its own
+  term has run for ``failover.lease_loops`` periods: a standby that is only
+  cut off from a working commander is refused by the device nodes it still
+  drives, and waits (``cn_takeover_held``). When every device node that
+  answered granted, and they are more than half of the mission's device
+  nodes, the standby **takes command** at the next loop of the commander's
+  own schedule (loop numbers follow time, as a commander's overrun skips
+  them), in the new term, from the mirror it holds (``cn_took_command``);
+  otherwise it releases the promises it got and asks again
+  ``takeover_loops`` loops later.
+* A control node whose trigger replies show that more than half of the
+  device nodes follow a newer term, or that receives a mirror of a newer
+  term, **stands down** and becomes the standby (``cn_stood_down``).
+
+Why the device nodes decide: they are what must never be driven by two
+control nodes, and each sees directly whether the commander still drives
+it. Liveliness or missing mirrors alone cannot tell a dead commander from a
+cut link between the two control nodes. The promise fences the old term at
+the device node the moment it is given, so a commander that wakes up
+between the question and the new term's first trigger drives nothing; the
+majority rule means two control nodes can never each hold most of the
+device nodes.
+
+What a takeover loses: the mirror is of the last loop the standby
+received. The commander's loop in flight when it died (at most one, more
+if mirrors were lost) is redone by the new commander from the state before
+it: a command that loop accepted but whose snapshot never reached the
+standby is not known to it (the ground sees the new term's verdicts; a
+request it sent again is judged once, by the new commander).
+
+:class:`Standby` is sans-IO, as the loop is (:mod:`zplatform.loop`): the
+zenoh runtime (:mod:`zplatform.node.control`) and the lockstep runner
+(:mod:`zplatform.lockstep`) drive it the same way::
+
+    sb.mirror(frame, now)             # every mirror frame that arrives
+    if sb.tick(slot):                 # once per loop slot of the commander's schedule
+        asks = sb.ask(slot, now)      # one probe question per device node
+        sb.answer(i, reply)           # each reply, until the deadline
+        if sb.decide(slot) == TAKE:
+            logic = sb.take(slot + 1) # the ControlLogic to run from loop slot + 1
+        else:
+            send sb.releases          # the promises it will not use
+"""
+
+from __future__ import annotations
+
+import enum
+import struct
+
+from .auth import KeySet, channel
+from .codec import Frame, RegionCodec
+from .config import Mission
+from .errors import CodecError
+from .events import EV
+from .fencing import ASK, RELEASE, ProbeReply, ask_frame, new_nonce, read_reply
+from .loop import ControlLogic
+from .params import encode_params
+
+__all__ = ["Decision", "MirrorReader", "Standby"]
+
+_U32 = struct.Struct("<I")
+
+
+class Decision(enum.IntEnum):
+    """What :meth:`Standby.decide` concluded from a probe round."""
+
+    WAIT = 0
+    TAKE = 1
+
+
+class MirrorReader:
+    """Checks mirror frames for a control node (tag, layout, shape) and reads
+    their term and commander, writing nothing. A commander keeps one to hear
+    a newer term's mirror (:meth:`newer_term`); a :class:`Standby` reads the
+    mirrors it applies with one. Not thread-safe."""
+
+    def __init__(self, logic: ControlLogic, keys: KeySet | None) -> None:
+        dv = logic.dv
+        self.logic = logic
+        self.index = logic.mission.control_nodes.index(logic.name)
+        self._open = channel(keys, "mirror")
+        self.codec = RegionCodec(dv)
+        self._term_at = dv.layout.element("cn_term").offset
+        self._commander_at = dv.layout.element("cn_commander").offset
+        self.bad = 0
+        """Frames refused: a bad tag, another layout, malformed."""
+
+    def read(self, payload: bytes | bytearray | memoryview) -> Frame | None:
+        """The checked frame, or None (counted in :attr:`bad`)."""
+        try:
+            return self.codec.check(self._open.open(payload) if self._open else payload)
+        except CodecError:
+            self.bad += 1
+            return None
+
+    def stamp(self, frame: Frame) -> tuple[int, int]:
+        """``(term, commander index)`` of a checked frame."""
+        data = frame.data
+        return int(_U32.unpack_from(data, self._term_at)[0]), int(data[self._commander_at])
+
+    def newer_term(self, payload: bytes | bytearray | memoryview) -> tuple[int, int]:
+        """``(term, commander)`` of an authentic mirror from the other control
+        node with a term above this logic's, else ``(0, -1)``: a commander
+        that hears one stands down."""
+        frame = self.read(payload)
+        if frame is None:
+            return 0, -1
+        term, who = self.stamp(frame)
+        if who == self.index or term <= self.logic.term:
+            return 0, -1
+        return term, who
+
+
+class Standby:
+    """A control node that does not command (module doc), sans-IO.
+
+    ``logic``: the :class:`~zplatform.loop.ControlLogic` it will run when it
+    takes command; its Data Vector is where mirrors go. ``keys``: the
+    node's keys (the mirror's link, each device node's probe channels).
+    Not thread-safe: the node's loop thread. Never raises for what arrives
+    (refused frames are counted: :attr:`bad`, :attr:`bad_replies`).
+    """
+
+    def __init__(self, mission: Mission, logic: ControlLogic, keys: KeySet | None) -> None:
+        if mission.standby is None:
+            raise ValueError("a mission without a standby control node has no standby")
+        self.mission = mission
+        self.logic = logic
+        self.name = logic.name
+        self.index = mission.control_nodes.index(logic.name)
+        self.events = logic.events
+        dv = logic.dv
+        self._reader = MirrorReader(logic, keys)
+        self._period = mission.period_ns
+        self._takeover = mission.takeover.takeover_loops
+        dns = mission.device_nodes
+        self.dns = tuple(dns)
+        self._ask_ch = tuple(channel(keys, f"probe_cn_to_{dn}") for dn in dns)
+        self._reply_ch = tuple(channel(keys, f"probe_{dn}_to_cn") for dn in dns)
+        self._nonces = [b""] * len(dns)
+        self.answers: list[ProbeReply | None] = [None] * len(dns)
+        """The replies of the current probe round, per device node."""
+        self.releases: list[bytes | None] = [None] * len(dns)
+        """After a round that did not take command: the RELEASE question to
+        send to each device node that granted (None: nothing to release)."""
+        self.mirrored = 0
+        """The loop of the last mirror applied (0: none yet)."""
+        self.mirrored_t = 0
+        self.term = 0
+        """The newest term known: the mirror's, or one a device node reported."""
+        self.commander = -1
+        """The index of the control node the last mirror came from (-1: none)."""
+        self.origin: int | None = None
+        """The commander's schedule: the time of loop 1 (loop n runs at
+        ``origin + (n - 1) * period``); None before the first mirror."""
+        self.bad_replies = 0
+        """Probe replies refused: a bad tag, another question's, malformed."""
+        self._asked = 0  # the term the current round asks for
+        self._kind = ASK
+        self._next_ask = 0  # the first slot a new round may start in
+        self._held = False  # a cn_takeover_held event was given for this silence
+        # Whether the commander still reaches the device nodes, from the
+        # mirrors: cn_rx_dnX grows for each reply it applied.
+        self._rx = tuple(dv.handle(f"cn_rx_{dn}") for dn in dns)
+        self._rx_last = [0] * len(dns)
+        self.cut = 0
+        """Mirrored loops in a row in which the commander applied the replies of
+        at most half of the device nodes (it is alive but cut off from them)."""
+        self._save_seq = 0
+        self._save: tuple[int, bytes] | None = None
+        self._params = bool(mission.params)
+        if self._params:
+            self._h_save_seq = dv.handle("cn_prm_save_seq")
+            self._h_save = dv.handle("cn_prm_save_status")
+
+    @property
+    def bad(self) -> int:
+        """Mirror frames refused."""
+        return self._reader.bad
+
+    # -- following --------------------------------------------------------
+    def mirror(self, payload: bytes | bytearray | memoryview, now_ns: int) -> bool:
+        """Take one mirror frame: applied (True) when it is authentic, of
+        this mission's layout, from the other control node, and newer (a
+        newer term, or a later loop of the same term) than the last one."""
+        frame = self._reader.read(payload)
+        if frame is None:
+            return False
+        term, commander = self._reader.stamp(frame)
+        if commander == self.index:  # its own, from before it stood down
+            return False
+        if (term, frame.seq) <= (self.term, self.mirrored):
+            return False
+        self._reader.codec.write(frame)
+        first = self.mirrored == 0
+        got = 0
+        for i, h in enumerate(self._rx):
+            rx = h.get()
+            got += rx != self._rx_last[i]
+            self._rx_last[i] = rx
+        self.cut = 0 if first or 2 * got > len(self._rx) or frame.seq != self.mirrored + 1 else (
+            self.cut + 1
+        )
+        self.mirrored, self.mirrored_t = frame.seq, frame.t_ns
+        self.term, self.commander = term, commander
+        self.origin = frame.t_ns - (frame.seq - 1) * self._period
+        self._held = False
+        if first:
+            self.events.emit(
+                EV.CN_FOLLOWING,
+                now_ns,
+                node=self.name,
+                commander=self.mission.control_nodes[commander],
+                term=term,
+                loop=frame.seq,
+            )
+        if self._params:
+            self._follow_save(now_ns)
+        return True
+
+    def _follow_save(self, now_ns: int) -> None:
+        """A PRM_SAVE the commander accepted is saved here too, to this node's
+        own file, with the values the mirror holds: both control nodes keep
+        the same parameters (the driver writes :meth:`take_save`)."""
+        seq = int(self._h_save_seq.get())
+        if seq and seq != self._save_seq:
+            self._save_seq = seq
+            values = self.logic.params.values()
+            self._save = (seq, encode_params(self.mission, values, seq=seq, saved_ns=now_ns))
+
+    def take_save(self) -> tuple[int, bytes] | None:
+        """A parameter save to write to this node's file, once (None: none)."""
+        save, self._save = self._save, None
+        return save
+
+    # -- deciding ------------------------------------------------------------
+    def slot(self, now_ns: int) -> int:
+        """The loop of the commander's schedule running at ``now_ns`` (0
+        before the first mirror)."""
+        if self.origin is None:
+            return 0
+        return (now_ns - self.origin) // self._period + 1
+
+    def missing(self, slot: int) -> int:
+        """Loops up to ``slot`` whose mirror has not come (the driver ticks
+        when the mirror of ``slot``'s own loop is due: half a period in)."""
+        return max(slot - self.mirrored, 0)
+
+    def tick(self, slot: int) -> bool:
+        """Whether to probe the device nodes in ``slot`` (called once per slot,
+        half a period in): no mirror for ``takeover_loops`` loops, or mirrors
+        that show the commander without most device nodes' replies for as
+        many loops (:attr:`cut`); and no round asked in the last
+        ``takeover_loops`` slots."""
+        if self.origin is None or (
+            self.missing(slot) < self._takeover and self.cut < self._takeover
+        ):
+            self._next_ask = 0
+            return False
+        return slot >= self._next_ask
+
+    def ask(self, slot: int, now_ns: int, *, kind: int = ASK) -> list[bytes]:
+        """The probe questions of a new round, one per device node: ASK for
+        the term after every term known (``kind``: STATUS, a question that
+        asks for nothing)."""
+        self._kind = kind
+        self._asked = self.term + 1 if kind == ASK else 0
+        out = []
+        for i in range(len(self.dns)):
+            self.answers[i] = None
+            self.releases[i] = None
+            nonce = self._nonces[i] = new_nonce()
+            out.append(ask_frame(self._ask_ch[i], kind, i, self.index, self._asked, nonce, now_ns))
+        self._next_ask = slot + self._takeover
+        return out
+
+    def answer(self, i: int, payload: bytes | bytearray | memoryview) -> bool:
+        """Take device node ``i``'s reply to this round (True when it is one)."""
+        try:
+            r = read_reply(self._reply_ch[i], payload, i, self._nonces[i])
+        except CodecError:
+            self.bad_replies += 1
+            return False
+        self.answers[i] = r
+        return True
+
+    def decide(self, slot: int, now_ns: int) -> Decision:
+        """The round is over: TAKE when every device node that answered
+        granted the term and they are more than half of all; else WAIT, with
+        :attr:`releases` to send and a ``cn_takeover_held`` event (once per
+        silence of the commander). Learns any newer term a device node
+        reported."""
+        answered = [a for a in self.answers if a is not None]
+        granted = [a for a in answered if a.granted]
+        for a in answered:
+            self.term = max(self.term, a.term, a.promised if not a.granted else 0)
+        majority = 2 * len(granted) > len(self.dns)
+        if self._kind == ASK and answered and len(granted) == len(answered) and majority:
+            return Decision.TAKE
+        for i, r in enumerate(self.answers):
+            if r is not None and r.granted:
+                self.releases[i] = ask_frame(
+                    self._ask_ch[i], RELEASE, i, self.index, self._asked, new_nonce(), now_ns
+                )
+        if self._kind == ASK and not self._held:
+            self._held = True
+            self.events.emit(
+                EV.CN_TAKEOVER_HELD,
+                now_ns,
+                node=self.name,
+                loop=self.mirrored,
+                why=self._why_held(answered, granted),
+            )
+        return Decision.WAIT
+
+    def _why_held(self, answered: list[ProbeReply], granted: list[ProbeReply]) -> str:
+        if not answered:
+            return "no device node answered its question"
+        busy = [
+            f"{self.dns[a.dn]} ran loop {a.last_loop} of term {a.term} "
+            f"{a.quiet_ns / 1e6:.0f} ms ago"
+            for a in answered
+            if not a.granted
+        ]
+        if busy:
+            return "the commander still drives " + "; ".join(busy)
+        return (
+            f"only {len(granted)} of {len(self.dns)} device nodes answered: a takeover needs "
+            "more than half"
+        )
+
+    def take(self, loop: int) -> ControlLogic:
+        """Take command from ``loop`` on (after a TAKE): the logic adopts the
+        mirror (:meth:`~zplatform.loop.ControlLogic.adopt`), enters the term it
+        asked for, and is returned for the driver to run; ``cn_took_command``."""
+        logic = self.logic
+        logic.adopt()
+        logic.take_command(self._asked, loop)
+        nodes = self.mission.control_nodes
+        was = nodes[self.commander] if self.commander >= 0 else "no control node"
+        t = self.origin + (loop - 1) * self._period if self.origin is not None else 0
+        what = (
+            f"silent since loop {self.mirrored}"
+            if self.cut < self._takeover
+            else f"cut off from the device nodes for {self.cut} loops"
+        )
+        self.events.emit(
+            EV.CN_TOOK_COMMAND,
+            t,
+            node=self.name,
+            term=self._asked,
+            loop=loop,
+            why=f"{was} (term {self.term}) {what}; "
+            f"{sum(1 for a in self.answers if a is not None and a.granted)} of "
+            f"{len(self.dns)} device nodes granted the term; continuing from the mirror of "
+            f"loop {self.mirrored}",
+        )
+        return logic
+
+    # -- standing down -----------------------------------------------------------
+    @classmethod
+    def stand_down(
+        cls, mission: Mission, logic: ControlLogic, keys: KeySet | None, why: str
+    ) -> Standby:
+        """A commander that learned of a newer term becomes the standby: its
+        logic (and vector) are kept, to be overwritten by the new
+        commander's mirrors; ``cn_stood_down``."""
+        sb = cls(mission, logic, keys)
+        # Its own schedule and vector until the new commander's mirrors come:
+        # loop numbers follow time, so the schedule is the same.
+        sb.term = max(logic.term, logic.superseded)
+        sb.mirrored, sb.mirrored_t = logic.loop, logic.t_ns
+        sb.commander = sb.index
+        sb.origin = logic.t_ns - (logic.loop - 1) * mission.period_ns if logic.loop else None
+        logic.events.emit(
+            EV.CN_STOOD_DOWN,
+            logic.t_ns,
+            node=logic.name,
+            loop=logic.loop,
+            term=sb.term,
+            why=why,
+        )
+        return sb
+

@@ -1,0 +1,268 @@
+"""Terms and fencing: which control node may drive a device node (docs/architecture.md#failover).
+
+A mission with a standby control node (``cn_b``) numbers its commanders'
+reigns: the **term**. The first commander runs term 1; every takeover
+raises it by one. The term travels in every trigger (``dnX_term`` in
+``cn_to_dnX``, authenticated with the trigger) and in telemetry
+(``cn_term``), so everyone can tell the commander of the day from an old one.
+
+**A device node's rules** (:class:`TermGuard`, used by
+:class:`~zplatform.loop.DeviceLogic`):
+
+* it runs a trigger only if its term is at least the highest term it has
+  run or promised; a lower term's trigger is *fenced*: answered (so the old
+  commander learns of the newer term from ``dnX_term_seen`` in the reply),
+  never run;
+* it follows a *higher* term only when it has been promised to it, or when
+  no trigger of its current term has run for ``failover.lease_loops``
+  periods (the lease): a standby that is only cut off from a working
+  commander cannot take the node from it;
+* it never runs two triggers of one loop (a trigger must be for a later
+  loop than the last one run, whatever its term), so no loop is driven by
+  two terms on one node.
+
+**The probe** (the standby's question before it takes command,
+codecs/FORMAT.md §6.4): on ``{vehicle}/dnX/probe``, a control node asks each
+device node, tagged with the node's link key (channels ``probe_cn_to_dnX`` /
+``probe_dnX_to_cn``):
+
+* ``STATUS``: what term do you run, since when, which loop? (a restarting
+  control node's first question; never changes anything);
+* ``ASK`` term Q: promise Q. Granted when Q is above every term the node
+  runs or has promised and its lease has run out. The promise fences the
+  old term at once and lasts ``lease_loops`` periods, long enough for the
+  first trigger of term Q, which makes it permanent; unused, it lapses;
+* ``RELEASE`` term Q: drop the promise of Q (the asker will not take
+  command: some other node still hears the commander).
+
+A reply echoes the question's nonce, so it cannot be replayed into another
+question, and states the node's term, its promise, whether it granted, how
+long ago its last trigger ran (on its own clock), that loop and its stamp.
+
+Everything here is sans-IO and allocates nothing per trigger.
+"""
+
+from __future__ import annotations
+
+import secrets
+import struct
+from typing import NamedTuple
+
+from .auth import TAG_LEN, AuthError, Channel
+from .errors import CodecError
+
+__all__ = [
+    "ASK",
+    "NONCE_LEN",
+    "RELEASE",
+    "STATUS",
+    "ProbeAsk",
+    "ProbeReply",
+    "TermGuard",
+    "Verdict",
+    "ask_frame",
+    "ask_size",
+    "read_ask",
+    "read_reply",
+    "reply_frame",
+]
+
+VERSION = 1
+NONCE_LEN = 16
+ASK, STATUS, RELEASE = 1, 2, 3
+"""The kinds of probe question (module doc)."""
+_KINDS = (ASK, STATUS, RELEASE)
+# magic "ZP", version, kind, device node index, the asker (its index among the
+# mission's control nodes), term, nonce, the asker's stamp
+_ASK = struct.Struct(f"<2sBBBBI{NONCE_LEN}sq")
+# magic "ZQ", version, device node index, nonce echo, term run, term promised,
+# granted, safed_why, quiet (ns since the last trigger ran; -1: none yet),
+# that trigger's loop and its stamp (the commander's clock)
+_REPLY = struct.Struct(f"<2sBB{NONCE_LEN}sIIBBqQq")
+_A_MAGIC = b"ZP"
+_R_MAGIC = b"ZQ"
+
+
+class ProbeAsk(NamedTuple):
+    """A probe question, as a device node reads it."""
+
+    kind: int
+    dn: int
+    asker: int
+    term: int
+    nonce: bytes
+    t_ns: int
+
+
+class ProbeReply(NamedTuple):
+    """A device node's answer to a probe (module doc)."""
+
+    dn: int
+    nonce: bytes
+    term: int
+    promised: int
+    granted: bool
+    safed_why: int
+    quiet_ns: int
+    last_loop: int
+    last_t_ns: int
+
+
+def ask_size(authenticated: bool) -> int:
+    """Bytes of a probe question on the wire."""
+    return _ASK.size + (TAG_LEN if authenticated else 0)
+
+
+def reply_size(authenticated: bool) -> int:
+    """Bytes of a probe reply on the wire."""
+    return _REPLY.size + (TAG_LEN if authenticated else 0)
+
+
+def new_nonce() -> bytes:
+    return secrets.token_bytes(NONCE_LEN)
+
+
+def ask_frame(
+    ch: Channel | None, kind: int, index: int, asker: int, term: int, nonce: bytes, t_ns: int
+) -> bytes:
+    """A probe question for device node ``index`` from control node number
+    ``asker`` (tagged with ``ch``, the node's ``probe_cn_to_dnX`` channel,
+    when the mission authenticates)."""
+    body = _ASK.pack(_A_MAGIC, VERSION, kind, index, asker, term, nonce, t_ns)
+    return bytes(ch.seal(body)) if ch is not None else body
+
+
+def read_ask(ch: Channel | None, payload: bytes | bytearray | memoryview, index: int) -> ProbeAsk:
+    """Check and read a probe question for device node ``index``; CodecError
+    (AuthError for a bad tag) for anything else."""
+    body = ch.open(payload) if ch is not None else memoryview(payload)
+    if len(body) != _ASK.size:
+        raise CodecError(f"{len(body)} bytes: not a probe question")
+    magic, version, kind, i, asker, term, nonce, t_ns = _ASK.unpack(body)
+    if magic != _A_MAGIC or version != VERSION or kind not in _KINDS:
+        raise CodecError("not a probe question of version 1")
+    if i != index:
+        raise CodecError(f"a probe question for device node {i}, not {index}")
+    return ProbeAsk(kind, i, asker, term, nonce, t_ns)
+
+
+def reply_frame(ch: Channel | None, r: ProbeReply) -> bytes:
+    """A device node's reply (tagged with its ``probe_dnX_to_cn`` channel)."""
+    body = _REPLY.pack(
+        _R_MAGIC,
+        VERSION,
+        r.dn,
+        r.nonce,
+        r.term,
+        r.promised,
+        int(r.granted),
+        r.safed_why,
+        r.quiet_ns,
+        r.last_loop,
+        r.last_t_ns,
+    )
+    return bytes(ch.seal(body)) if ch is not None else body
+
+
+def read_reply(
+    ch: Channel | None, payload: bytes | bytearray | memoryview, index: int, nonce: bytes
+) -> ProbeReply:
+    """Check and read device node ``index``'s reply to the question with
+    ``nonce``; CodecError (AuthError: a bad tag) for anything else, a reply
+    to another question included."""
+    body = ch.open(payload) if ch is not None else memoryview(payload)
+    if len(body) != _REPLY.size:
+        raise CodecError(f"{len(body)} bytes: not a probe reply")
+    magic, version, i, echo, term, promised, granted, why, quiet, loop, t = _REPLY.unpack(body)
+    if magic != _R_MAGIC or version != VERSION or i != index:
+        raise AuthError(f"not device node {index}'s probe reply")
+    if echo != nonce:
+        raise CodecError("a probe reply to another question (a replay, or late)")
+    return ProbeReply(i, echo, term, promised, bool(granted), why, quiet, loop, t)
+
+
+class Verdict:
+    """What :meth:`TermGuard.admit` says of a trigger's term."""
+
+    SAME = 0
+    """The term the node runs: run it (if it is otherwise new)."""
+    NEW = 1
+    """A higher term the node may follow (promised to it, its lease out, or
+    its first trigger ever): run it, then follow that term."""
+    FENCED = 2
+    """Below a term the node runs or has promised: answer, never run."""
+    LEASED = 3
+    """A higher term, but a trigger of the current term ran within the
+    lease: the current commander is alive; answer, never run."""
+
+
+class TermGuard:
+    """A device node's term fencing (module doc), sans-IO.
+
+    ``lease_ns``: ``failover.lease_loops`` periods. The caller tells it when
+    a trigger's term is to be judged (:meth:`admit`, with the local time of
+    the last trigger that ran) and when a trigger of a term ran
+    (:meth:`ran`); it answers probe questions (:meth:`answer`). Not
+    thread-safe: the node's loop thread.
+    """
+
+    __slots__ = ("_asker", "_lease", "_promise", "_until", "term")
+
+    def __init__(self, lease_ns: int) -> None:
+        self._lease = lease_ns
+        self.term = 0
+        """The highest term whose trigger this node ran (0: none yet)."""
+        self._promise = 0
+        self._asker = -1
+        self._until = 0
+
+    def promised(self, now_ns: int) -> int:
+        """The term promised and not lapsed at ``now_ns`` (0: none)."""
+        return self._promise if self._promise and now_ns < self._until else 0
+
+    def seen(self, now_ns: int) -> int:
+        """The term this node reports (``dnX_term_seen``): the highest it
+        runs or has promised."""
+        return max(self.term, self.promised(now_ns))
+
+    def _quiet(self, now_ns: int, last_run_ns: int | None) -> bool:
+        return last_run_ns is None or now_ns - last_run_ns >= self._lease
+
+    def admit(self, term: int, now_ns: int, last_run_ns: int | None) -> int:
+        """The :class:`Verdict` on a trigger of ``term`` arriving at ``now_ns``;
+        ``last_run_ns``: this node's time when its last trigger ran (None: never)."""
+        if term < self.seen(now_ns):
+            return Verdict.FENCED
+        if term == self.term:
+            return Verdict.SAME
+        # A higher term: promised to it, the node's first, or the lease is out.
+        if term == self.promised(now_ns) or self.term == 0 or self._quiet(now_ns, last_run_ns):
+            return Verdict.NEW
+        return Verdict.LEASED
+
+    def ran(self, term: int) -> bool:
+        """A trigger of ``term`` ran; returns whether the node now follows a
+        new term (its promise, if any, is then fulfilled)."""
+        if term <= self.term:
+            return False
+        self.term = term
+        self._promise = 0
+        return True
+
+    def answer(
+        self, kind: int, asker: int, term: int, now_ns: int, last_run_ns: int | None
+    ) -> bool:
+        """Take a probe question from control node number ``asker`` (module
+        doc); returns whether an ASK was granted. A promise is to one asker:
+        the other control node asking for the same term is refused."""
+        if kind == ASK:
+            if term > self.seen(now_ns) and self._quiet(now_ns, last_run_ns):
+                self._promise = term
+                self._asker = asker
+                self._until = now_ns + self._lease
+                return True
+            # The same asker again, for the term already promised to it.
+            return term == self.promised(now_ns) and asker == self._asker
+        if kind == RELEASE and term == self._promise and asker == self._asker:
+            self._promise = 0
+        return False
