@@ -189,10 +189,12 @@ class ControllerSet:
             c = mission.controllers[i]
             where = f"$.controllers[{i}]"
             cls = load_component_class(c.cls, Controller, f"{where}.class", pythonpath=code)
+            redundant = node == "cn" and mission.standby is not None
+            if redundant:
+                _check_takeover_safe(cls, where)
             inst: Controller = build_component("controller", c, where, cls, c, dv)
             inst.events = events
-            if node == "cn" and mission.standby is not None:
-                _check_takeover_safe(cls, where)
+            if redundant:
                 inst._sealed = True
             ens = f"{c.name}_enabled_ns"
             slot = _Slot(

@@ -456,6 +456,10 @@ class LockstepRunner:
         )
         if top is not None:
             self.control = top.logic
+            term = top.logic.term
+            ran = top.logic.loop == loop
+            if term and ran and (not self.commanders or self.commanders[-1][1:] != (top.name, term)):
+                self.commanders.append((loop, top.name, term))
         gl = self.ground
         for tm in tms:
             if gl.on_telemetry(tm, t):
@@ -520,8 +524,6 @@ class LockstepRunner:
                 f"device node(s) follow term {cn.superseded}",
             )
             return None
-        if term and (not self.commanders or self.commanders[-1][1:] != (c.name, term)):
-            self.commanders.append((loop, c.name, term))
         if tm is not None and not reach(c.name, "gn"):
             return None
         return tm

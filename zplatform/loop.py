@@ -326,12 +326,15 @@ class ControlLogic:
         except CodecError as exc:
             self._bad_frame(self.dns[i], str(exc))
             return False
-        if self.redundant:
+        if self.redundant and self.loop:
             seen = _U32.unpack_from(frame.data, self._seen_at[i])[0]
-            if seen > self._h_term.get():
-                # DN i follows a newer term: it ran nothing of this one's.
-                self._fenced[i] = True
-                self._fenced_term = max(self._fenced_term, seen)
+            term = self._h_term.get()
+            if seen != term:
+                # DN i ran nothing of this term's: it follows a newer one (this
+                # node is fenced), or still an older one (its lease).
+                if seen > term and frame.seq == self.loop:
+                    self._fenced[i] = True
+                    self._fenced_term = max(self._fenced_term, seen)
                 return False
         if frame.seq != self.loop or self._got[i]:
             # an answer to an older loop (or a duplicate): counted, dropped

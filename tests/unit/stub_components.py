@@ -17,3 +17,17 @@ class Idle(Controller):
 
     def run_safed(self, t_ns: int) -> None:
         pass
+
+
+class Counter(Controller):
+    """Declares takeover_safe but counts in an attribute: what a redundant
+    mission must catch (tests/unit/test_fencing.py)."""
+
+    takeover_safe = True
+    n = 0
+
+    def run_enabled(self, t_ns: int) -> None:
+        self.n += 1
+
+    def run_safed(self, t_ns: int) -> None:
+        pass
