@@ -457,8 +457,8 @@ class LockstepRunner:
         if top is not None:
             self.control = top.logic
             term = top.logic.term
-            ran = top.logic.loop == loop
-            if term and ran and (not self.commanders or self.commanders[-1][1:] != (top.name, term)):
+            new = not self.commanders or self.commanders[-1][1:] != (top.name, term)
+            if term and top.logic.loop == loop and new:
                 self.commanders.append((loop, top.name, term))
         gl = self.ground
         for tm in tms:

@@ -204,7 +204,8 @@ def test_bad_node_name(name: str) -> None:
     d["nodes"][name] = {}
     err = fails(d)
     assert err.path == f"$.nodes.{name}"
-    assert f"node name {name!r} is not one of cn, cn_b (a standby control node), gn, dn0, dn1" in err.reason
+    want = f"node name {name!r} is not one of cn, cn_b (a standby control node), gn, dn0, dn1"
+    assert want in err.reason
 
 
 @pytest.mark.parametrize("dns", [["dn1"], ["dn0", "dn2"], ["dn0", "dn1", "dn3"]])

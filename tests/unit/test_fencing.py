@@ -12,6 +12,7 @@ from pathlib import Path
 import pytest
 
 from zplatform import load_mission
+from zplatform.errors import CodecError
 from zplatform.failover import Decision, MirrorReader, Standby
 from zplatform.fencing import ASK, RELEASE, STATUS, TermGuard, Verdict, ask_frame, read_reply
 from zplatform.lockstep import sim_keys
@@ -148,7 +149,7 @@ def test_probe_replies_are_bound_to_their_question_and_their_link() -> None:
     forged = ask_frame(KEYS.for_node("cn").channel("probe_cn_to_dn1"), ASK, 0, 0, 9, b"n" * 16, 0)
     bad = int(dn.dv.get("dn0_bad_frames"))
     assert dn.probe(forged, at(9)) is None and int(dn.dv.get("dn0_bad_frames")) == bad + 1
-    with pytest.raises(Exception):
+    with pytest.raises(CodecError):
         read_reply(None, b"junk", 0, b"n" * 16)
 
 
