@@ -211,11 +211,12 @@ def cmd_node(args: argparse.Namespace) -> int:
     name = args.name
     realtime = not args.no_realtime
     summary: CnSummary | DnSummary | GnSummary
-    if name == "cn":
+    if name in mission.control_nodes:
         from .node.control import run_control_node
 
         summary = run_control_node(
             mission,
+            name=name,
             duration_s=args.duration,
             realtime=realtime,
             ready_timeout_s=args.ready_timeout,
@@ -224,7 +225,10 @@ def cmd_node(args: argparse.Namespace) -> int:
             mission_source=args.mission,
         )
     elif args.record is not None:
-        raise NodeError("--record records the control node's loop: use it with `node MISSION cn`")
+        raise NodeError(
+            "--record records a control node's loop: use it with `node MISSION cn` (or the "
+            "standby's name)"
+        )
     elif name == "gn":
         from .node.ground import run_ground_logger
         from .uplink import load_commands
@@ -371,7 +375,11 @@ def cmd_up(args: argparse.Namespace) -> int:
     # First use on this host: make the mission's key set (every node finds its
     # own). Every node it spawns needs its keys: a missing one is one error
     # line now, before anything runs...
-    for role in ("cn", *mission.device_nodes, *(["gn"] if mission.has_ground else [])):
+    for role in (
+        *mission.control_nodes,
+        *mission.device_nodes,
+        *(["gn"] if mission.has_ground else []),
+    ):
         load_keys(mission, role, create=True)
     # ...and, for links that run mutual TLS, the mission's PKI beside the key
     # set, where every node's session looks for it (unless ZPLATFORM_DEPLOYMENT

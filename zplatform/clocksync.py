@@ -88,6 +88,8 @@ log = logging.getLogger("zplatform.clocksync")
 
 # codecs/FORMAT.md §6.3: magic, version, the DN's index, the nonce, then times.
 _QUERY = struct.Struct("<2sBB16sq")
+PEER_INDEX = 0xFE
+"""The index a control node asks the commander's clock with (the standby)."""
 _REPLY = struct.Struct("<2sBB16sqqq")
 _Q_MAGIC, _R_MAGIC, _VERSION = b"ZQ", b"ZR", 1
 NONCE_LEN = 16
@@ -134,9 +136,16 @@ class ClockLink:
 
     def __init__(self, mission: Mission, dn: str, keys: KeySet | None) -> None:
         self.dn = dn
-        self.index = mission.device_nodes.index(dn)
-        self._seal = channel(keys, f"clock_{dn}_to_cn")
-        self._open = channel(keys, f"clock_cn_to_{dn}")
+        if dn in mission.control_nodes:
+            # A control node that does not command (the standby) sets its clock
+            # by the commander's, over the link between the two.
+            self.index = PEER_INDEX
+            self._seal = channel(keys, "clock_peer_to_cn")
+            self._open = channel(keys, "clock_cn_to_peer")
+        else:
+            self.index = mission.device_nodes.index(dn)
+            self._seal = channel(keys, f"clock_{dn}_to_cn")
+            self._open = channel(keys, f"clock_cn_to_{dn}")
         self.refused_bad = 0
         self.refused_other = 0
 
@@ -181,6 +190,12 @@ class ClockResponder:
         dns = mission.device_nodes
         self._open: list[Channel | None] = [channel(keys, f"clock_{dn}_to_cn") for dn in dns]
         self._seal: list[Channel | None] = [channel(keys, f"clock_cn_to_{dn}") for dn in dns]
+        # The other control node of a redundant mission asks as PEER_INDEX.
+        self._peer = (
+            (channel(keys, "clock_peer_to_cn"), channel(keys, "clock_cn_to_peer"))
+            if mission.standby is not None
+            else None
+        )
         self._auth = keys is not None
         self.refused = 0
         """Queries refused (malformed, an unknown DN, a bad tag)."""
@@ -195,9 +210,12 @@ class ClockResponder:
             if len(raw) != want or raw[:3] != _Q_MAGIC + bytes((_VERSION,)):
                 raise AuthError(f"{len(raw)} bytes: not a clock query of version {_VERSION}")
             index = raw[3]
-            if index >= len(self._open):
+            if index == PEER_INDEX and self._peer is not None:
+                ch, seal = self._peer
+            elif index < len(self._open):
+                ch, seal = self._open[index], self._seal[index]
+            else:
                 raise AuthError(f"no device node number {index}")
-            ch = self._open[index]
             body = ch.open(raw) if ch is not None else memoryview(raw)
         except AuthError as exc:
             self.refused += 1
@@ -205,7 +223,6 @@ class ClockResponder:
             return None
         _, _, _, nonce, t1 = _QUERY.unpack(body)
         reply = _REPLY.pack(_R_MAGIC, _VERSION, index, nonce, t1, t2, t3)
-        seal = self._seal[index]
         return bytes(seal.seal(reply)) if seal is not None else reply
 
 

@@ -441,13 +441,23 @@ def access_control(mission: Mission, dep: Deployment) -> dict[str, Any]:
             rule(f"{n}-own", ["put", "delete", "declare_queryable", "reply"], own),
             rule(f"{n}-alive", ["liveliness_token"], [f"{v}/{n}/alive"]),
         ]
-        if n == "cn":
+        if n in mission.control_nodes:
             dn_keys = [f"{v}/{d}/to_cn" for d in mission.device_nodes]
             if dn_keys:
                 # The wildcard sync query (transport.sync_query) is one get on
                 # {vehicle}/*/to_cn; only dnX answer it (their own keys).
                 dn_keys.append(f"{v}/*/to_cn")
-                ids.append(rule("cn-sync", ["query"], dn_keys))
+                ids.append(rule(f"{n}-sync", ["query"], dn_keys))
+            if mission.standby is not None:
+                # Either control node may command: it writes and serves the
+                # commander's keys ({vehicle}/cn/...: telemetry, the mirror,
+                # the clock, the recorder), probes the device nodes, and, as
+                # the standby, sets its clock by the commander's.
+                ids.append(
+                    rule(f"{n}-command", ["put", "declare_queryable", "reply"], [f"{v}/cn/**"])
+                )
+                probes = [f"{v}/{d}/probe" for d in mission.device_nodes]
+                ids.append(rule(f"{n}-probe", ["query"], [*probes, f"{v}/cn/clock"]))
         else:
             ids.append(rule(f"{n}-clock", ["query"], [f"{v}/cn/clock"]))
         if n == "gn" and "cn" in mission.recording_nodes:

@@ -180,6 +180,10 @@ class Standby:
         self.cut = 0
         """Mirrored loops in a row in which the commander applied the replies of
         at most half of the device nodes (it is alive but cut off from them)."""
+        self._finals = tuple(dv.handle(f"{dn}_final") for dn in dns)
+        self.ended = False
+        """The last mirror was of the commander's final loop (its run ended as
+        planned: ``dnX_final``); nothing is to be taken over."""
         self._save_seq = 0
         self._save: tuple[int, bytes] | None = None
         self._params = bool(mission.params)
@@ -218,6 +222,7 @@ class Standby:
         self.mirrored, self.mirrored_t = frame.seq, frame.t_ns
         self.term, self.commander = term, commander
         self.origin = frame.t_ns - (frame.seq - 1) * self._period
+        self.ended = any(h.get() for h in self._finals)
         self._held = False
         if first:
             self.events.emit(
@@ -266,7 +271,7 @@ class Standby:
         that show the commander without most device nodes' replies for as
         many loops (:attr:`cut`); and no round asked in the last
         ``takeover_loops`` slots."""
-        if self.origin is None or (
+        if self.origin is None or self.ended or (
             self.missing(slot) < self._takeover and self.cut < self._takeover
         ):
             self._next_ask = 0

@@ -62,6 +62,7 @@ __all__ = [
     "Verdict",
     "ask_frame",
     "ask_size",
+    "ask_stamp",
     "read_ask",
     "read_reply",
     "reply_frame",
@@ -75,12 +76,12 @@ _KINDS = (ASK, STATUS, RELEASE)
 # magic "ZP", version, kind, device node index, the asker (its index among the
 # mission's control nodes), term, nonce, the asker's stamp
 _ASK = struct.Struct(f"<2sBBBBI{NONCE_LEN}sq")
-# magic "ZQ", version, device node index, nonce echo, term run, term promised,
+# magic "ZA", version, device node index, nonce echo, term run, term promised,
 # granted, safed_why, quiet (ns since the last trigger ran; -1: none yet),
 # that trigger's loop and its stamp (the commander's clock)
 _REPLY = struct.Struct(f"<2sBB{NONCE_LEN}sIIBBqQq")
 _A_MAGIC = b"ZP"
-_R_MAGIC = b"ZQ"
+_R_MAGIC = b"ZA"
 
 
 class ProbeAsk(NamedTuple):
@@ -120,6 +121,14 @@ def reply_size(authenticated: bool) -> int:
 
 def new_nonce() -> bytes:
     return secrets.token_bytes(NONCE_LEN)
+
+
+def ask_stamp(body: bytes | memoryview) -> tuple[int, int]:
+    """``(asker, stamp)`` of a probe question's checked body (fixed offsets;
+    ValueError, a CodecError, for a body of another size)."""
+    if len(body) != _ASK.size:
+        raise CodecError(f"{len(body)} bytes: not a probe question")
+    return body[5], int.from_bytes(body[_ASK.size - 8 :], "little", signed=True)
 
 
 def ask_frame(

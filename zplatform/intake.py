@@ -11,6 +11,8 @@ admitted goes into a bounded :class:`Mailbox`. One intake per key:
 key                            intake (node)                  fresh: admitted when
 =============================  =============================  ================================
 ``{vehicle}/dnX/to_cn``        :class:`TriggerIntake` (dnX)   stamped later than any admitted
+``{vehicle}/dnX/probe``        :class:`ProbeIntake` (dnX)     stamped later than any admitted
+                                                              from the same control node
 ``{vehicle}/gn/to_cn``         :class:`RequestIntake` (CN)    this CN run, numbered above
                                                               every number seen
 ``{vehicle}/cn/telemetry``     :class:`TelemetryIntake`       stamped later than any admitted
@@ -78,6 +80,7 @@ from .commands import RequestNumber, request_refusal
 from .config import Mission
 from .datavector import Layout
 from .errors import CodecError
+from .fencing import ask_size, ask_stamp
 from .handoff import Mailbox, Waker
 from .messages import wildcard_sync_for
 
@@ -85,9 +88,11 @@ __all__ = [
     "BACKLOG",
     "CN_REFUSALS",
     "EVENT_PERIOD_NS",
+    "PROBES",
     "CnRefusals",
     "Intake",
     "Payload",
+    "ProbeIntake",
     "RefusalLog",
     "ReplyCheck",
     "RequestIntake",
@@ -99,6 +104,8 @@ __all__ = [
 BACKLOG = 4
 """Valid triggers a DN keeps while its loop thread is busy: older ones are
 for loops the CN has closed, so the oldest is let go past this."""
+PROBES = 2
+"""Probe questions a DN keeps while its loop thread is busy."""
 EVENT_PERIOD_NS = 1_000_000_000
 """At most one refusal event per intake in this much loop time (:class:`RefusalLog`)."""
 
@@ -151,9 +158,7 @@ class Intake(ABC, Generic[H]):
         self._min = TAG_LEN + 1 if channel is not None else 1
         self._open = channel
         self._lock = threading.Lock()
-        self.box: Mailbox[tuple[H, bytes]] | None = (
-            Mailbox(capacity, waker) if capacity else None
-        )
+        self.box: Mailbox[tuple[H, bytes]] | None = Mailbox(capacity, waker) if capacity else None
         self.size = 0
         self.bad = 0
         self.stale = 0
@@ -258,6 +263,28 @@ class TriggerIntake(_StampIntake[H]):
         return bundle_entry(data, self._index) if is_bundle(data) else data
 
 
+class ProbeIntake(Intake[H]):
+    """A device node's probe questions (``{vehicle}/dnX/probe``, a redundant
+    mission's control nodes asking which term it runs, :mod:`zplatform.fencing`).
+    Fresh: stamped later than any question admitted from the same control
+    node, so a replayed question is refused unanswered. Its mailbox keeps
+    :data:`PROBES` questions (``waker``: the trigger mailbox's, so the node's
+    loop wakes for either)."""
+
+    def __init__(self, node: str, channel: Channel | None, waker: Waker) -> None:
+        super().__init__(
+            f"{node}'s probe", ask_size(channel is not None), channel, PROBES, waker=waker
+        )
+        self._newest = [-(1 << 63)] * 8
+
+    def _fresh(self, body: memoryview, handle: H) -> bool:
+        asker, t_ns = ask_stamp(body)
+        if asker >= len(self._newest) or t_ns <= self._newest[asker]:
+            return False
+        self._newest[asker] = t_ns
+        return True
+
+
 class TelemetryIntake(_StampIntake[int]):
     """The ground's telemetry (``{vehicle}/cn/telemetry``); the handle is the
     receive time on the ground's clock. Fresh: stamped later than any
@@ -277,13 +304,34 @@ class TelemetryIntake(_StampIntake[int]):
         max_age_ns: int,
         waker: Waker | None = None,
     ) -> None:
-        size = Layout.for_node(mission, "cn").size
+        lay = Layout.for_node(mission, "cn")
+        size = lay.size
         self._max_age = max_age_ns
         self._aged = 0
         self.aged = 0
         """Replays beyond the freshness bound among those counted by the last
         :meth:`take_counts`."""
+        # A redundant mission's snapshots are ordered by (term, stamp): after a
+        # takeover the new commander's are fresh even when the old one, not
+        # yet stood down, stamped a later loop (zplatform.failover).
+        self._size = size
+        self._term_at = lay.element("cn_term").offset if mission.standby is not None else -1
+        self._newest_term = 0
         super().__init__("telemetry", max_frame_len(size, channel), channel, capacity, waker=waker)
+
+    def _fresh(self, body: memoryview, handle: int) -> bool:
+        if self._term_at < 0:
+            return super()._fresh(body, handle)
+        term = int.from_bytes(
+            frame_data(body, self._size)[self._term_at : self._term_at + 4], "little"
+        )
+        if term < self._newest_term:
+            return False
+        if term > self._newest_term:
+            self._newest_term = term
+            _, self.newest_t = frame_stamp(body)
+            return True
+        return super()._fresh(body, handle)
 
     def _replayed(self, t_ns: int, handle: int) -> None:
         if handle - t_ns > self._max_age:

@@ -58,6 +58,14 @@ class CnSummary(msgspec.Struct, frozen=True):
     recorded_loops: int | None = None
     recording_dropped_loops: int | None = None
     node: str = "cn"
+    last_loop: int = 0
+    """The loop its vector was at when it ended (``cn_loop``)."""
+    term: int = 0
+    """A redundant mission's: the term its vector was in (0: no terms)."""
+    commanding: bool = True
+    """Whether it commanded when it ended (False: it ended as the standby)."""
+    takeovers: int = 0
+    """Times it took command as the standby (zplatform.failover)."""
 
 
 class DnSummary(msgspec.Struct, frozen=True):
@@ -141,6 +149,9 @@ def cn_summary(
     loop_work_us: LoopWork | None = None,
     recorded_loops: int | None = None,
     recording_dropped_loops: int | None = None,
+    node: str = "cn",
+    commanding: bool = True,
+    takeovers: int = 0,
 ) -> CnSummary:
     """The CN's summary from a CN-layout vector: its own, or the last
     telemetry snapshot of a CN that died before it could write one."""
@@ -161,6 +172,11 @@ def cn_summary(
         loop_work_us=loop_work_us or LoopWork(),
         recorded_loops=recorded_loops,
         recording_dropped_loops=recording_dropped_loops,
+        node=node,
+        last_loop=int(dv.get("cn_loop")),
+        term=int(dv.get("cn_term")) if "cn_term" in dv.layout.elements else 0,
+        commanding=commanding,
+        takeovers=takeovers,
     )
 
 

@@ -44,7 +44,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from .config import Mission
+from .config import STANDBY, Mission
 from .datavector import DataVector
 from .errors import NodeError
 from .events import EV
@@ -161,10 +161,14 @@ class Children:
         than a lost CN, and the ground logs the end. Then the DNs and the
         ground; the vehicle world last (the DNs safe their outputs into it
         as they stop)."""
-        codes = self.stop([n for n in self.procs if n == "cn"])
-        codes.update(self.stop([n for n in self.procs if n not in ("cn", "world")]))
+        cns = [n for n in self.procs if n in CONTROL_NODES]  # with a standby, both at once
+        codes = self.stop(cns)
+        codes.update(self.stop([n for n in self.procs if n not in (*cns, "world")]))
         codes.update(self.stop([n for n in self.procs if n == "world"]))
         return codes
+
+
+CONTROL_NODES = ("cn", STANDBY)
 
 
 class Watch:
@@ -219,7 +223,29 @@ def watch(
                 if n in w.died:
                     continue
                 w.died[n] = c
-                if n == "cn":
+                if (
+                    mission.standby is not None
+                    and n in mission.control_nodes
+                    and not all(cn in w.died for cn in mission.control_nodes)
+                ):
+                    while link.next(0.0) is not None:
+                        pass
+                    commander = link.dv.get_name("cn_commander") if link.logic.received else "cn"
+                    if n != commander or c != 0:
+                        # The standby gone, or the commander lost: the other
+                        # control node takes over (zplatform.failover).
+                        w.ok = w.ok and c == 0
+                        what = (
+                            "the commander carries on without a standby"
+                            if n != commander
+                            else "the standby takes over once the device nodes no longer hear it"
+                        )
+                        print(
+                            f"\nzplatform up: control node {n} ended (exit code {c}); {what}",
+                            file=sys.stderr,
+                        )
+                        continue
+                if n in mission.control_nodes:
                     # Take what the CN sent before it went: the summary's figures.
                     while link.next(0.0) is not None:
                         pass
@@ -295,11 +321,18 @@ def merge_summaries(
     """The run's summary from the nodes' summary files (``cn_fallback`` when
     the CN wrote none)."""
     nodes: dict[str, CnSummary | DnSummary | GnSummary | None] = {}
-    cn = read_summary(paths["cn"], CnSummary) or cn_fallback
+    cns = {n: read_summary(paths[n], CnSummary) for n in mission.control_nodes if n in paths}
+    # The run's figures are the last commander's: the highest term, the latest loop.
+    last = max(
+        (c for c in cns.values() if c is not None and c.commanding),
+        key=lambda c: (c.term, c.last_loop),
+        default=None,
+    )
+    cn = last or cns.get("cn") or cn_fallback
     gn = read_summary(paths["gn"], GnSummary) if "gn" in paths else None
     for name, p in paths.items():
-        if name == "cn":
-            nodes[name] = cn
+        if name in cns:
+            nodes[name] = cns[name]
         elif name == "gn":
             nodes[name] = gn
         else:
@@ -412,6 +445,11 @@ def run_up(
         if duration_s is not None:
             cn += ["--duration", str(duration_s)]
         spawn["cn"] = cn
+        if mission.standby is not None:  # it follows cn, and takes over if cn dies
+            sb = ["node", path, mission.standby, *common]
+            if record:  # what it records, once it commands, next to cn's recording
+                sb += ["--record", str(Path(record).resolve() / mission.standby)]
+            spawn[mission.standby] = sb
         # The vehicle world (zplatform.world), when the mission has one: a
         # process of its own that the device nodes' boards reach.
         world = ["world", path, *common[2:]] if mission.world is not None else None

@@ -73,12 +73,19 @@ from typing import Any
 import zenoh
 
 from .codec import BundleEncoder
-from .handoff import Handoff
-from .intake import CnRefusals, ReplyCheck, TriggerIntake
+from .handoff import Handoff, Mailbox
+from .intake import CnRefusals, ProbeIntake, ReplyCheck, TriggerIntake
 from .loop import ControlLogic, DeviceLogic
 from .transport import KeySpace, is_matching
 
-__all__ = ["REPIN_AFTER", "ControlSync", "DeviceSync", "SyncTrace", "TapPublisher"]
+__all__ = [
+    "REPIN_AFTER",
+    "ControlSync",
+    "DeviceSync",
+    "ProbeSync",
+    "SyncTrace",
+    "TapPublisher",
+]
 
 _DROP = zenoh.CongestionControl.DROP
 _ALL = zenoh.QueryTarget.ALL
@@ -459,6 +466,7 @@ class DeviceSync:
         now_ns: Callable[[], int],
         *,
         intake: TriggerIntake[zenoh.Query],
+        probes: ProbeIntake[zenoh.Query] | None = None,
         trace: SyncTrace | None = None,
     ) -> None:
         self.dn = dn
@@ -486,9 +494,30 @@ class DeviceSync:
         self.queryable = session.declare_queryable(
             self._key, zenoh.handlers.Callback(handoff, indirect=False)
         )
+        # A redundant mission's probes (zplatform.fencing): their own intake,
+        # waking the same wait as the triggers.
+        self.probes = probes
+        self._probe_q: zenoh.Queryable[Any] | None = None
+        self._ready: Callable[[], object] = box.__len__
+        if probes is not None:
+            pbox = probes.box
+            assert pbox is not None
+            self._pbox = pbox
+            self._probe_key = keys.probe(dn)
+            padmit = probes.admit
+
+            def on_probe(query: zenoh.Query) -> None:
+                p = query.payload
+                padmit(p if p is not None else _NO_PAYLOAD, query)
+
+            self._probe_q = session.declare_queryable(
+                self._probe_key, zenoh.handlers.Callback(on_probe, indirect=False)
+            )
+            self._ready = lambda: len(box) or len(pbox)
 
     def wait(self, logic: DeviceLogic, timeout_s: float) -> bool:
-        """Serve queries until one starts a loop (True) or ``timeout_s`` passes."""
+        """Serve queries until one starts a loop (True) or ``timeout_s`` passes.
+        Probe questions that arrive meanwhile are answered first."""
         box = self._box
         deadline = time.monotonic() + timeout_s
         try:
@@ -496,9 +525,18 @@ class DeviceSync:
                 left = deadline - time.monotonic()
                 if left <= 0:
                     return False
-                item = box.get(left)
-                if item is None:
-                    return False
+                if self.probes is not None:
+                    if not box.waker.wait(self._ready, left):
+                        return False
+                    while (probe := self._pbox.pop()) is not None:
+                        self._answer(probe, logic)
+                    item = box.pop()
+                    if item is None:
+                        continue
+                else:
+                    item = box.get(left)
+                    if item is None:
+                        return False
                 while (newer := box.pop()) is not None:  # a backlog: answer, keep the newest
                     self._serve(item, logic, may_run=False)
                     item = newer
@@ -508,6 +546,16 @@ class DeviceSync:
         finally:
             size, bad, stale = self.intake.take_counts()
             logic.refused(size, bad, stale, self._now())
+
+    def _answer(self, item: tuple[zenoh.Query, bytes], logic: DeviceLogic) -> None:
+        """Answer one probe question (:meth:`DeviceLogic.probe`)."""
+        query, data = item
+        with query:
+            reply = logic.probe(data, self._now())
+            if reply is None:
+                query.reply_err(self._err_prefix + logic.reject_reason.encode())
+            else:
+                query.reply(self._probe_key, reply)
 
     def _serve(
         self, item: tuple[zenoh.Query, bytes], logic: DeviceLogic, *, may_run: bool
@@ -531,4 +579,88 @@ class DeviceSync:
 
     def close(self) -> None:
         self.queryable.undeclare()
+        if self._probe_q is not None:
+            self._probe_q.undeclare()
         self._tap.undeclare()
+
+
+def _ignore(reply: zenoh.Reply) -> None:
+    pass
+
+
+class ProbeSync:
+    """A control node's probe rounds (:mod:`zplatform.fencing`): one question
+    per device node on ``{vehicle}/dnX/probe``, the replies handed to the
+    caller's ``answer`` on the calling thread until every device node
+    answered or ``timeout_ns`` passed. Replies wait in a bounded mailbox
+    (a peer answering many times cannot grow memory); the caller checks
+    each one (tag, nonce). Not thread-safe: one thread asks."""
+
+    def __init__(
+        self, session: zenoh.Session, keys: KeySpace, dns: Sequence[str], timeout_ns: int
+    ) -> None:
+        self.session = session
+        self._keys = [keys.probe(dn) for dn in dns]
+        self.timeout_ns = timeout_ns
+        self._box: Mailbox[tuple[int, bytes]] = Mailbox(4 * max(len(dns), 1))
+        box = self._box
+
+        def make(i: int) -> Callable[[zenoh.Reply], None]:
+            def on_reply(reply: zenoh.Reply) -> None:  # zenoh's thread: hand off
+                ok = reply.ok
+                if ok is not None and len(ok.payload) <= _ERR_MAX:
+                    box.put((i, ok.payload.to_bytes()))
+
+            return on_reply
+
+        self._callbacks = [
+            zenoh.handlers.Callback(make(i), indirect=False) for i in range(len(dns))
+        ]
+        self._drop: zenoh.handlers.Callback[zenoh.Reply] = zenoh.handlers.Callback(
+            _ignore, indirect=False
+        )
+
+    def round(self, asks: Sequence[bytes], answer: Callable[[int, bytes], bool]) -> int:
+        """Send ``asks[i]`` to device node ``i``; hand each reply to
+        ``answer(i, payload)`` until every node's was taken (``answer``
+        returned True) or the deadline passed; returns how many were taken."""
+        box = self._box
+        box.drain([])  # replies to an earlier round: late, not this one's
+        for i, ask in enumerate(asks):
+            self.session.get(
+                self._keys[i],
+                self._callbacks[i],
+                payload=ask,
+                consolidation=zenoh.ConsolidationMode.NONE,
+                timeout=max(self.timeout_ns / 1e9, 0.005),
+                congestion_control=_DROP,
+            )
+        n = len(asks)
+        taken = [False] * n
+        deadline = time.monotonic_ns() + self.timeout_ns
+        got = 0
+        while got < n:
+            left = deadline - time.monotonic_ns()
+            if left <= 0:
+                break
+            item = box.get(left / 1e9)
+            if item is None:
+                break
+            i, payload = item
+            if not taken[i] and answer(i, payload):
+                taken[i] = True
+                got += 1
+        return got
+
+    def send(self, frames: Sequence[bytes | None]) -> None:
+        """Send each question that is not None (a RELEASE), answers unread."""
+        for i, f in enumerate(frames):
+            if f is not None:
+                self.session.get(
+                    self._keys[i],
+                    self._drop,
+                    payload=f,
+                    consolidation=zenoh.ConsolidationMode.NONE,
+                    timeout=0.05,
+                    congestion_control=_DROP,
+                )

@@ -87,6 +87,11 @@ class NodeClock:
         clock it runs on (a scheduler deadline, say). Pure arithmetic."""
         return self._base + monotonic_ns
 
+    def monotonic_at(self, node_ns: int) -> int:
+        """The monotonic clock's reading at this clock's time ``node_ns`` (the
+        inverse of :meth:`at`: a schedule in node time, as a scheduler's)."""
+        return node_ns - self._base
+
     @property
     def offset_ns(self) -> int:
         """The clock-sync correction applied so far (ns added to the anchor)."""

@@ -40,7 +40,7 @@ from typing import Any
 import yaml
 import zenoh
 
-from .config import Mission, relocate_mission
+from .config import STANDBY, Mission, relocate_mission
 from .deploy import Deployment, check_tool_may_command, require_deployment, zenoh_settings
 from .errors import TransportError
 from .handoff import Handoff
@@ -127,6 +127,16 @@ class KeySpace:
     @property
     def everything(self) -> str:
         return f"{self.vehicle}/**"
+
+    @property
+    def mirror(self) -> str:
+        """The commanding control node's whole Data Vector, every loop, for the
+        standby (zplatform.failover)."""
+        return f"{self.vehicle}/cn/mirror"
+
+    def probe(self, dn: str) -> str:
+        """A device node's probe queryable (zplatform.fencing)."""
+        return f"{self.vehicle}/{dn}/probe"
 
 
 def _insert(cfg: zenoh.Config, key: str, value: Any) -> None:
@@ -302,11 +312,16 @@ def wait_for_nodes(
     nodes: Iterable[str],
     timeout_s: float,
     stop: threading.Event | None = None,
+    *,
+    any_of: bool = False,
 ) -> set[str]:
-    """Block until every node in ``nodes`` has a liveliness token.
+    """Block until every node in ``nodes`` has a liveliness token (``any_of``:
+    until at least one has, as a device node waits for whichever control
+    node runs).
 
-    Returns the set of alive nodes. Raises TransportError naming the missing
-    nodes when ``timeout_s`` passes (or ``stop`` is set) first.
+    Returns the set of alive nodes among ``nodes``. Raises TransportError
+    naming the missing nodes when ``timeout_s`` passes (or ``stop`` is set)
+    first.
     """
     want = set(nodes)
     alive: set[str] = set()
@@ -315,16 +330,21 @@ def wait_for_nodes(
     def on_sample(s: zenoh.Sample) -> None:  # hand off only
         q.put((str(s.key_expr), s.kind == zenoh.SampleKind.PUT))
 
+    def done() -> bool:
+        return bool(want & alive) if any_of else want <= alive
+
     sub = session.liveliness().declare_subscriber(
         keys.all_alive, zenoh.handlers.Callback(on_sample, indirect=False), history=True
     )
     try:
         deadline = time.monotonic() + timeout_s
-        while not want <= alive:
+        while not done():
             left = deadline - time.monotonic()
             if left <= 0 or (stop is not None and stop.is_set()):
                 raise TransportError(
-                    f"nodes not alive after {timeout_s:g} s: {sorted(want - alive)}"
+                    f"none of {sorted(want)} alive after {timeout_s:g} s"
+                    if any_of
+                    else f"nodes not alive after {timeout_s:g} s: {sorted(want - alive)}"
                 )
             try:
                 key, up = q.get(timeout=min(left, 0.2))
@@ -335,7 +355,7 @@ def wait_for_nodes(
                 alive.add(name)
             else:
                 alive.discard(name)
-        return alive
+        return want & alive
     finally:
         sub.undeclare()
 
@@ -392,10 +412,16 @@ def rewrite_endpoints(src: str | Path, dst: str | Path, host: str = "127.0.0.1")
                 if isinstance(nodes.get(n), dict) and isinstance(nodes[n].get("board"), dict):
                     nodes[n]["board"]["port"] = link
     cn_ep = f"tcp/{host}:{ports['cn']}" if "cn" in ports else None
+    # A standby control node is connected to by every node too, so the mesh
+    # outlives cn (the device nodes, the ground and tools keep reaching it).
+    sb_ep = f"tcp/{host}:{ports[STANDBY]}" if STANDBY in ports else None
     for name, node in nodes.items():
         node = node or {}
         node["listen"] = [f"tcp/{host}:{ports[name]}"]
-        node["connect"] = [] if name == "cn" or cn_ep is None else [cn_ep]
+        connect = [] if name == "cn" or cn_ep is None else [cn_ep]
+        if sb_ep is not None and name not in ("cn", STANDBY):
+            connect.append(sb_ep)
+        node["connect"] = connect
         nodes[name] = node
     Path(dst).write_text(yaml.safe_dump(raw, sort_keys=False))
     return ports

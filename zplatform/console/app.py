@@ -321,6 +321,13 @@ def _status_text(s: Status) -> Text:
     if s.fault != "NONE":
         t.append(f"FAULT {s.fault}  ", style="bold red")
     t.append(f"cmd #{s.cmd_seq} {s.cmd_status}  last: {s.last_command}\n")
+    if s.commander:  # a redundant mission: who commands, in which term, the standby
+        t.append(f"{s.commander} commands, term {s.term}  ", style="bold")
+        if s.standby_ready:
+            t.append("standby ready  ")
+        else:
+            t.append("NO STANDBY", style="bold yellow")
+            t.append("  ")
     t.append(f"tm {s.received} gap {s.gaps} bad {s.bad}")
     for dn, rx, missed, late, off in s.per_dn:
         style = "yellow" if missed or late else None

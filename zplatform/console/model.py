@@ -124,6 +124,10 @@ class Status:
     cmd_seq: int
     cmd_status: str
     last_command: str
+    commander: str = ""
+    """A redundant mission's control node in command ("" without a standby)."""
+    term: int = 0
+    standby_ready: bool = False
 
 
 class ConsoleModel:
@@ -228,6 +232,7 @@ class ConsoleModel:
     # -- reading ------------------------------------------------------------
     def status(self) -> Status:
         dv = self.dv
+        redundant = self.mission.standby is not None
         los = self._los or self.last_rx_ns is None
         silence = (
             None
@@ -260,6 +265,9 @@ class ConsoleModel:
             cmd_seq=int(dv.get("cn_cmd_seq")),
             cmd_status=dv.get_name("cn_cmd_status"),
             last_command=self.last_command,
+            commander=dv.get_name("cn_commander") if redundant else "",
+            term=int(dv.get("cn_term")) if redundant else 0,
+            standby_ready=bool(dv.get("cn_standby_ready")) if redundant else False,
         )
 
     def format_value(self, spec: ElementSpec) -> str:

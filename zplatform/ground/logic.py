@@ -77,9 +77,9 @@ from typing import NamedTuple
 import msgspec
 
 from ..auth import TAG_LEN, AuthError, KeySet, channel, link_of
-from ..codec import RegionCodec
+from ..codec import Frame, RegionCodec
 from ..commands import protected_elements
-from ..config import Mission
+from ..config import STANDBY, Mission
 from ..datavector import DataVector, Layout
 from ..errors import CodecError, CommandError
 from ..events import EV, Event, EventLog, EventReader, EventType
@@ -104,6 +104,7 @@ REASON_GRACE_NS = 500_000_000
 """How long a verdict waits for the CN's event that gives its reason."""
 
 _U64 = struct.Struct("<Q")
+_U32 = struct.Struct("<I")
 _CMD_EVENTS = 64  # recent cmd_accepted/cmd_rejected events kept for matching
 _GAPS_KEPT = 256
 
@@ -148,6 +149,7 @@ def _pattern(ev: EventType) -> re.Pattern[str]:
 
 _ACCEPTED = _pattern(EV.CMD_ACCEPTED)
 _REJECTED = _pattern(EV.CMD_REJECTED)
+CONTROL_NODES = ("cn", STANDBY)
 
 
 class _CmdEvent:
@@ -160,7 +162,7 @@ class _CmdEvent:
 
 
 def _read_cmd_event(e: Event) -> _CmdEvent | None:
-    if e.node != "cn":
+    if e.node not in CONTROL_NODES:  # either control node of a redundant mission
         return None
     if e.id == EV.CMD_ACCEPTED.name:
         m = _ACCEPTED.match(e.text)
@@ -183,6 +185,7 @@ class _Tally(msgspec.Struct):
 
     refused: dict[str, int]
     received: int = 0
+    term_changes: int = 0
     gaps: int = 0
     bad: int = 0
     epoch_changes: int = 0
@@ -281,6 +284,12 @@ class GroundLogic:
         self._events_in = EventReader(mission, keys)
         self._max_len = self._codec.max_frame_len + (TAG_LEN if self._open is not None else 0)
         self._epoch_at = self.layout.element("cn_epoch").offset
+        # A redundant mission's term (docs/architecture.md#failover): the
+        # ground follows the newest, whichever control node commands in it.
+        self._term_at = (
+            self.layout.element("cn_term").offset if mission.standby is not None else None
+        )
+        self._term = 0
         self.max_age_ns = default_max_age_ns(mission) if max_age_ns is None else max_age_ns
         self._period = mission.period_ns
         self._div = mission.telemetry_divisor
@@ -381,7 +390,9 @@ class GroundLogic:
         """A snapshot of every counter (a new object per call)."""
         n = msgspec.structs.asdict(self._n)
         n["refused"] = dict(self._n.refused)
-        return TelemetryCounters(**n, epoch=max(self._epoch, 0), last_seq=self._last_seq)
+        return TelemetryCounters(
+            **n, epoch=max(self._epoch, 0), last_seq=self._last_seq, term=self._term
+        )
 
     def on_telemetry(
         self, payload: bytes | bytearray | memoryview, rx_ns: int, *, can_send: bool = True
@@ -432,6 +443,19 @@ class GroundLogic:
                     rx_ns,
                 )
             self._follow(epoch, seq, rx_ns)
+            if self._term_at is not None:
+                self._term = _U32.unpack_from(frame.data, self._term_at)[0]
+        elif self._term_at is not None and (
+            term := _U32.unpack_from(frame.data, self._term_at)[0]
+        ) != self._term:
+            if term < self._term:
+                return self._refuse(
+                    "old_term",
+                    f"snapshot of loop {seq} in term {term}: term {self._term} commands now "
+                    "(a control node that stood down, or was replaced)",
+                    rx_ns,
+                )
+            self._new_term(term, frame, rx_ns)
         elif seq <= self._last_seq:
             return self._refuse(
                 "not_newer",
@@ -475,6 +499,23 @@ class GroundLogic:
         if kind not in self._evented:  # the first of each kind; the rest are counted
             self._evented.add(kind)
             self.events.emit(EV.TM_REFUSED, rx_ns, reason=kind, detail=detail)
+
+    def _new_term(self, term: int, frame: Frame, rx_ns: int) -> None:
+        """A newer term commands (a takeover): follow it from this snapshot,
+        whatever the loop order of the old one (its request numbers, run and
+        verdicts carry on; a request waiting for a verdict is sent again to
+        the new commander as usual, :meth:`command`)."""
+        old, self._term = self._term, term
+        self._n.term_changes += 1
+        who = self._codec_commander(frame)
+        self.events.emit(EV.TM_NEW_TERM, rx_ns, commander=who, loop=frame.seq, old=old, term=term)
+        self._last_seq = min(self._last_seq, frame.seq - self._div)
+
+    def _codec_commander(self, frame: Frame) -> str:
+        at = self.layout.element("cn_commander").offset
+        i = frame.data[at]
+        nodes = self.mission.control_nodes
+        return nodes[i] if i < len(nodes) else f"control node {i}"
 
     def _follow(self, epoch: int, seq: int, rx_ns: int) -> None:
         """Follow CN run ``epoch`` from loop ``seq``: the first, or a restart."""

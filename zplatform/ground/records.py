@@ -33,7 +33,7 @@ __all__ = [
     "param_rows",
 ]
 
-REFUSALS = ("stale", "ahead", "old_epoch", "not_newer", "jump")
+REFUSALS = ("stale", "ahead", "old_epoch", "old_term", "not_newer", "jump")
 """Why an authentic, well-formed telemetry snapshot is refused:
 
 * ``stale``: stamped further before this ground's clock than the freshness
@@ -41,6 +41,8 @@ REFUSALS = ("stale", "ahead", "old_epoch", "not_newer", "jump")
 * ``ahead``: stamped further after this ground's clock than the bound allows
   (this host's clock is behind);
 * ``old_epoch``: of a control node run older than the one the ground follows;
+* ``old_term``: of a term older than the one the ground follows (a control
+  node that no longer commands: docs/architecture.md#failover);
 * ``not_newer``: not newer than the last snapshot of the run followed (a
   duplicate, a reordered or replayed frame);
 * ``jump``: further ahead of the last snapshot than the time since allows.
@@ -57,6 +59,7 @@ class TelemetryCounters(msgspec.Struct, frozen=True):
     (:data:`REFUSALS`); ``epoch``: the control node run followed (its
     ``cn_epoch``; 0 before the first accepted snapshot); ``epoch_changes``:
     times the ground followed a restarted control node to a newer run;
+    ``term``/``term_changes``: the term followed and the takeovers followed;
     ``first_seq``/``last_seq``: loop numbers of the first and the last
     accepted snapshot (-1 before any); ``bad_events``: event records that
     did not decode.
@@ -71,6 +74,10 @@ class TelemetryCounters(msgspec.Struct, frozen=True):
     first_seq: int = -1
     last_seq: int = -1
     bad_events: int = 0
+    term: int = 0
+    """A redundant mission's term followed (0: no terms, or none yet)."""
+    term_changes: int = 0
+    """Takeovers the ground followed: a newer term's snapshots."""
 
     @property
     def rejected(self) -> int:

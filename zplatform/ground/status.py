@@ -61,7 +61,8 @@ def status_line(
     mission: Mission, dv: DataVector, hz: float | None, watch: Sequence[str] = ()
 ) -> str:
     """One line: loop, rate, state, fault, misses per DN, overruns, the last
-    verdict, then ``watch``'s elements (``name=value``)."""
+    verdict, a redundant mission's commander, term and standby, then
+    ``watch``'s elements (``name=value``)."""
     misses = " ".join(f"{dn}={int(dv.get(f'cn_missed_{dn}'))}" for dn in mission.device_nodes)
     rate = "-" if hz is None else f"{hz:.1f}"
     line = (
@@ -70,6 +71,12 @@ def status_line(
         f"{int(dv.get('cn_loop_overruns'))}/{int(dv.get('cn_sync_overruns'))}  "
         f"cmd #{int(dv.get('cn_cmd_seq'))} {dv.get_name('cn_cmd_status')}"
     )
+    if mission.standby is not None:  # who commands, in which term, and the standby
+        ready = "standby ready" if dv.get("cn_standby_ready") else "NO STANDBY"
+        line += (
+            f"  {dv.get_name('cn_commander')} commands (term {int(dv.get('cn_term'))}, "
+            f"{ready})"
+        )
     if watch:
         line += "  " + " ".join(f"{n}={_value(dv, n)}" for n in watch)
     return line

@@ -127,7 +127,7 @@ def list_params(
         raise CommandError(f"mission {mission.mission!r} has no parameters")
     link = GroundLink(mission, key_file=key_file, events=False)
     try:
-        if "cn" in link.alive_nodes():
+        if set(mission.control_nodes) & set(link.alive_nodes()):
             link.wait_joined(timeout_s)
             dv = link.dv
             values = {p.name: dv.get(p.name) for p in mission.params}

@@ -48,11 +48,14 @@ import zenoh
 
 from ..auth import KeySet, channel, load_keys
 from ..bulk import open_bulk
-from ..clocksync import ClockServer
+from ..clocksync import ClockLink, ClockServer, estimator_for
 from ..codes import CommandStatus
 from ..config import Mission
 from ..datavector import DataVector
-from ..errors import NodeError, RecordingError, TransportError
+from ..errors import ClockSyncError, NodeError, RecordingError, TransportError
+from ..events import EV
+from ..failover import Decision, MirrorReader, Standby
+from ..fencing import STATUS
 from ..ground.logic import default_max_age_ns
 from ..handoff import Mailbox
 from ..health import Heartbeat, Liveness, thread_deadlines_ns
@@ -65,7 +68,7 @@ from ..recorder.server import RecorderServer
 from ..recording import Recorder
 from ..scheduler import GcGuard, PeriodicLoop
 from ..summary import CnSummary, LoopWork, cn_summary
-from ..sync import ControlSync, SyncTrace
+from ..sync import ControlSync, ProbeSync, SyncTrace
 from ..timebase import NodeClock
 from ..transport import NodeSession, wait_for_nodes
 from ..watchdog import Watchdog
@@ -75,6 +78,18 @@ from .runtime import EventPublisher, StopFlag, realtime_setup
 __all__ = ["ControlNode", "run_control_node"]
 
 log = logging.getLogger("zplatform.cn")
+
+_DROP = zenoh.CongestionControl.DROP
+MIRRORS = 4
+"""Mirror frames kept between two beats of a standby (the newest ones)."""
+
+
+def _hand_mirror(sample: zenoh.Sample, box: Mailbox[tuple[None, bytes]], longest: int) -> None:
+    # zenoh's thread: a size bound, then the hand-off (the loop checks the tag).
+    p = sample.payload
+    if len(p) <= longest:
+        box.put((None, p.to_bytes()))
+
 
 INBOX = 16
 """Command request frames kept between two loops (the newest ones): only
@@ -96,6 +111,7 @@ class ControlNode:
         self,
         mission: Mission,
         *,
+        name: str = "cn",
         stop: StopFlag | None = None,
         lowlatency: bool | None = None,
         clock: NodeClock | None = None,
@@ -103,22 +119,36 @@ class ControlNode:
         sync_trace: SyncTrace | None = None,
         params_file: str | Path | None = None,
     ) -> None:
+        if name not in mission.control_nodes:
+            raise NodeError(
+                f"{name!r} is not a control node of mission {mission.mission!r}: "
+                f"{mission.control_nodes}"
+            )
         self.mission = mission
+        self.name = name
+        self.keys = keys
+        self.redundant = mission.standby is not None
         self.stop = stop or StopFlag(install=False)
         self.clock = clock or NodeClock()
-        self.clock.lock()  # the CN is the reference clock: never adjusted
+        if not self.redundant:
+            self.clock.lock()  # the CN is the reference clock: never adjusted
+        # (In a redundant mission a control node locks its clock once it knows
+        # its role: a standby first sets it by the commander's, module doc.)
         # The run's epoch: this clock's start, unique per run of the CN.
         self.clock_epoch = self.clock.now_ns()
-        self.logic = ControlLogic(mission, keys=keys, epoch=self.clock_epoch)
+        self.logic = ControlLogic(mission, keys=keys, epoch=self.clock_epoch, name=name)
         self.dv: DataVector = self.logic.dv
-        self.ns = NodeSession(mission, "cn", announce=False, lowlatency=lowlatency)
+        self.ns = NodeSession(mission, name, announce=False, lowlatency=lowlatency)
         s = self.ns.session
         space = self.ns.keys
         # Every thread this node runs checks in (zplatform.health).
         self.liveness = Liveness(thread_deadlines_ns(mission))
         self._loop_hb = self.liveness.add(Heartbeat("loop"))
-        self.clock_server = ClockServer(s, space, self.clock.now_ns, mission, keys)
-        self.liveness.add(self.clock_server.heartbeat)
+        # The commander serves the clock; `cn` from the start (the device nodes
+        # set their clocks by it before anything runs), a standby once it commands.
+        self.clock_server: ClockServer | None = None
+        if name == "cn":
+            self._serve_clock()
         # The intakes get channels of their own (zenoh's threads check tags
         # with them; the loop's are not shared across threads).
         self.sync = ControlSync(
@@ -140,29 +170,15 @@ class ControlNode:
         # neither memory nor the operator's fresh command.
         # A mission without a ground node has no request region: no intake,
         # and an inbox that stays empty.
-        commands = self.logic.commands
         self._requests: RequestIntake | None = None
         self._inbox: Mailbox[tuple[None, bytes]] = Mailbox(1)
-        if mission.has_ground:
-            self._requests = RequestIntake(
-                mission,
-                channel(keys, "gn_to_cn"),
-                int(self.dv.get("cn_epoch")),
-                lambda: commands.last_seq,
-                INBOX,
-            )
-            assert self._requests.box is not None
-            self._inbox = self._requests.box
         self._taken: list[tuple[None, bytes]] = []
         self._seen_dropped = 0
         self._refused = CnRefusals()
         self._grounds: list[bytes] = []
         self._gsub: zenoh.Subscriber[Any] | None = None
-        if mission.has_ground:
-            self._gsub = s.declare_subscriber(
-                space.gn_to_cn,
-                zenoh.handlers.Callback(self._on_ground, indirect=False),
-            )
+        if not self.redundant:  # a redundant mission's commander opens it to command
+            self._take_requests()
         self._tm_pub = s.declare_publisher(
             space.telemetry, congestion_control=zenoh.CongestionControl.DROP
         )
@@ -170,34 +186,25 @@ class ControlNode:
         # cannot use (or one another CN holds) stops the node on the pad.
         self.flight_recorder: FlightRecorder | None = None
         self._rec_server: RecorderServer | None = None
-        if "cn" in mission.recording_nodes:
+        if name in mission.recording_nodes:
             try:
                 rec = open_recorder(
-                    mission, "cn", self.dv, run=self.clock_epoch, authenticated=keys is not None
+                    mission, name, self.dv, run=self.clock_epoch, authenticated=keys is not None
                 )
             except RecordingError as exc:
                 self.ns.close()
                 raise NodeError(f"control node cannot start its flight recorder: {exc}") from exc
-            rec.attach(self.dv, self.logic.events)
+            rec.attach(self.dv, self.logic.events, prefix="cn")  # either CN: cn_rec_*
             self.flight_recorder = rec
             self.liveness.add(rec.heartbeat)
             log.info("flight recorder: %s", rec.directory)
-            assert mission.recorder is not None
-            self._rec_server = RecorderServer(
-                s,
-                space.recorder,
-                rec,
-                channel(keys, "telemetry"),
-                now_ns=self.clock.now_ns,
-                max_age_ns=default_max_age_ns(mission),
-                serve_bps=mission.recorder.serve_bps,
-                divisor=mission.telemetry_divisor,
-            )
+            if not self.redundant:  # a redundant mission's commander serves it
+                self._serve_recorder()
         self._events = EventPublisher(
             s,
-            space.events("cn"),
+            space.events(name),
             self.logic.events,
-            channel(keys, "events_cn"),
+            channel(keys, f"events_{name}"),
             recorder=self.flight_recorder,
         )
         self._radio = _Radio(mission, s, space.downlink) if mission.downlink.ccsds else None
@@ -206,7 +213,7 @@ class ControlNode:
         if mission.health is not None:
             self.health = NodeHealth(mission, "cn", self.liveness, session=s)
             self.logic.attach_health(self.health)
-        wd = mission.nodes["cn"].watchdog
+        wd = mission.nodes[name].watchdog
         self.watchdog = (
             Watchdog(wd, "cn", self.liveness, self.logic.events) if wd is not None else None
         )
@@ -215,9 +222,45 @@ class ControlNode:
         if self._saver is not None:
             self.liveness.add(self._saver.heartbeat)
         self._skipped = 0
+        self._gap = False  # the next loop is a takeover's first
+        self._take_at = 0
         self._stopped_cleanly = False
         self._last_step: int | None = None  # self.loops after the run's planned last loop
-        self.ns.announce()
+        # Failover (zplatform.failover): the mirror out and in, the probes, the
+        # other control node's liveliness, and the standby while not commanding.
+        self.standby: Standby | None = None
+        self.takeovers = 0
+        """Times this node took command (a standby's takeovers)."""
+        if self.redundant:
+            self._mirror_pub = s.declare_publisher(space.mirror, congestion_control=_DROP)
+            self._mirrors: Mailbox[tuple[None, bytes]] = Mailbox(MIRRORS)
+            self._reader = MirrorReader(self.logic, keys)
+            mirrors, reader_max = self._mirrors, self._reader.codec.max_frame_len + 64
+
+            def on_mirror(sample: zenoh.Sample) -> None:
+                _hand_mirror(sample, mirrors, reader_max)
+
+            self._mirror_sub = s.declare_subscriber(
+                space.mirror,
+                zenoh.handlers.Callback(on_mirror, indirect=False),
+                allowed_origin=zenoh.Locality.REMOTE,
+            )
+            self.probes = ProbeSync(
+                s, space, mission.device_nodes, max(mission.sync_timeout_ns, mission.period_ns // 4)
+            )
+            self._peer = next(n for n in mission.control_nodes if n != name)
+            self._peer_alive = False
+            self._peer_seen = False
+            self._peer_sub = s.liveliness().declare_subscriber(
+                space.alive(self._peer),
+                zenoh.handlers.Callback(self._on_peer, indirect=False),
+                history=True,
+            )
+            self._h_ready = self.dv.handle("cn_standby_ready")
+        if not self.redundant or name == "cn":
+            # The device nodes wait for a control node's token, then set their
+            # clocks by `cn`'s server. A standby announces once it follows.
+            self.ns.announce()
         self.first_loop_ns = 0
         self.last_loop_ns = 0
         self.loops = 0
@@ -226,6 +269,75 @@ class ControlNode:
         # summary: a preallocated ring, one int store per loop.
         self._work = np.zeros(1 << 16, dtype=np.int64)
         self._mono = time.monotonic_ns
+
+    # -- what a commander serves, opened when it commands ----------------------
+    def _serve_clock(self) -> None:
+        if self.clock_server is None:
+            self.clock_server = ClockServer(
+                self.ns.session, self.ns.keys, self.clock.now_ns, self.mission, self.keys
+            )
+            self.liveness.add(self.clock_server.heartbeat)
+
+    def _take_requests(self) -> None:
+        """The command inbox (zplatform.intake): size, tag, this run, a number
+        above every one seen, then bounded, newest kept. A flood of junk or of
+        replayed requests is refused as it arrives and counted; it costs
+        neither memory nor the operator's fresh command. A mission without a
+        ground node has no request region: no intake, and an inbox that
+        stays empty."""
+        m = self.mission
+        if not m.has_ground or self._requests is not None:
+            return
+        commands = self.logic.commands
+        self._requests = RequestIntake(
+            m,
+            channel(self.keys, "gn_to_cn"),
+            int(self.dv.get("cn_epoch")),
+            lambda: commands.last_seq,
+            INBOX,
+        )
+        assert self._requests.box is not None
+        self._inbox = self._requests.box
+        self._gsub = self.ns.session.declare_subscriber(
+            self.ns.keys.gn_to_cn,
+            zenoh.handlers.Callback(self._on_ground, indirect=False),
+        )
+
+    def _serve_recorder(self) -> None:
+        rec, m = self.flight_recorder, self.mission
+        if rec is None or self._rec_server is not None:
+            return
+        assert m.recorder is not None
+        self._rec_server = RecorderServer(
+            self.ns.session,
+            self.ns.keys.recorder,
+            rec,
+            channel(self.keys, "telemetry"),
+            now_ns=self.clock.now_ns,
+            max_age_ns=default_max_age_ns(m),
+            serve_bps=m.recorder.serve_bps,
+            divisor=m.telemetry_divisor,
+        )
+
+    def _stop_serving(self) -> None:
+        """A commander standing down: the clock, the inbox and the recorder's
+        server are the new commander's now."""
+        if self.clock_server is not None:
+            self.liveness.remove(self.clock_server.heartbeat)
+            self.clock_server.close()
+            self.clock_server = None
+        if self._gsub is not None:
+            self._gsub.undeclare()
+            self._gsub = None
+        self._requests = None
+        self._inbox = Mailbox(1)
+        if self._rec_server is not None:
+            self._rec_server.close()
+            self._rec_server = None
+
+    def _on_peer(self, sample: zenoh.Sample) -> None:
+        # zenoh's thread: one flag, read by the loop.
+        self._peer_alive = sample.kind == zenoh.SampleKind.PUT
 
     def _on_ground(self, sample: zenoh.Sample) -> None:
         # zenoh's thread: the intake's checks and the hand-off, nothing more.
@@ -262,6 +374,8 @@ class ControlNode:
                 wait_for_nodes(self.ns.session, self.ns.keys, dns, timeout_s, self.stop.event)
             except TransportError as exc:
                 raise NodeError(f"control node cannot start: {exc}") from exc
+        if self.redundant and not self._first_to_command(timeout_s):
+            return {}
         if m.has_ground and ground_wait_s != 0:
             # Wait for the ground (alive = subscribed to telemetry) so its log
             # starts at loop 1; but never make flight depend on the ground link.
@@ -301,6 +415,70 @@ class ControlNode:
         self._load_params()
         return offsets
 
+    def _first_to_command(self, timeout_s: float) -> bool:
+        """A redundant mission's control node at start: asks every device node
+        what it runs (a STATUS probe round, :mod:`zplatform.fencing`). True:
+        none has ever run a loop and this is ``cn``, the first commander: it
+        starts the run (term 1). Else it follows as the standby: it sets its
+        clock by the commander's and waits for its mirrors (a control node
+        restarted in flight rejoins the flight this way, never in SAFE).
+        NodeError when no device node answers."""
+        sb = Standby(self.mission, self.logic, self.keys)
+        deadline = time.monotonic() + timeout_s
+        while True:
+            asks = sb.ask(0, self.clock.now_ns(), kind=STATUS)
+            if self.probes.round(asks, sb.answer):
+                break
+            if time.monotonic() > deadline or self.stop.is_set():
+                raise NodeError(f"{self.name} cannot start: no device node answers its probe")
+        ran = [a for a in sb.answers if a is not None and (a.last_loop or a.term)]
+        if not ran and self.name == "cn":
+            self.clock.lock()
+            return True
+        self._stop_serving()
+        self._set_clock_by_commander(deadline)
+        sb.term = max((a.term for a in sb.answers if a is not None), default=0)
+        self.standby = sb
+        log.info(
+            "%s follows as the standby: %s",
+            self.name,
+            f"the device nodes run term {sb.term}" if ran else "the run has not begun",
+        )
+        return False
+
+    def _set_clock_by_commander(self, deadline: float) -> None:
+        """A standby's clock follows the commander's (its clock server, over the
+        control nodes' link), measured as a device node measures it, then
+        locked. NodeError when no commander serves the clock by ``deadline``."""
+        m = self.mission
+        link = ClockLink(m, self.name, self.keys)
+        estimate = estimator_for(m.clock)
+        while True:
+            try:
+                est = estimate(
+                    self.ns.session,
+                    self.ns.keys,
+                    self.clock.now_ns,
+                    link,
+                    exchanges=m.clock.exchanges,
+                    keep_fraction=m.clock.keep_fraction,
+                )
+                break
+            except ClockSyncError as exc:
+                if time.monotonic() > deadline or self.stop.is_set():
+                    raise NodeError(f"{self.name} cannot set its clock: {exc}") from exc
+            self.stop.event.wait(0.1)
+        self.clock.apply_offset(est.offset_ns)
+        self.clock.lock()
+        log.info(
+            "%s clock set by the commander's: %+.3f ms (%s estimator, %d of %d exchanges kept)",
+            self.name,
+            est.offset_ns / 1e6,
+            est.estimator,
+            est.kept,
+            est.exchanges,
+        )
+
     def _load_params(self) -> None:
         """Load the parameter file into the Data Vector (its events go out
         with loop 1's). Blocks on one small file read, before the loop."""
@@ -319,12 +497,16 @@ class ControlNode:
 
     def step(self, k: int, deadline_ns: int) -> bool:
         """One loop; returns False to stop: after the run's final loop (the
-        last of ``max_loops``, or the loop after a stop was asked for)."""
+        last of ``max_loops``, or the loop after a stop was asked for), or,
+        in a redundant mission, when this node stands down (a newer term
+        commands: :attr:`standby` is then set)."""
         m0 = self._mono()
         self._loop_hb.beat_at(m0)
         if self.health is not None:
             self.health.note(m0 - deadline_ns)
         loop = k + 1
+        if self.redundant and not self._still_commanding():
+            return False
         # The loop's one timestamp is its scheduled start, not the moment the
         # thread woke: loop n is then at t1 + (n - 1) * period exactly, as in
         # the lockstep runner, so timers and rate phases fire in the same loop
@@ -345,6 +527,9 @@ class ControlNode:
             for _, frame in taken:
                 grounds.append(frame)
         skipped, self._skipped = self._skipped, 0
+        if self._gap:  # the first loop after a takeover: the periods no one ran
+            self._gap = False
+            skipped = max(loop - 1 - logic.loop, 0)
         rec = self.flight_recorder
         if rec is not None:  # its counters into this loop's telemetry
             rec.tick(t)
@@ -365,6 +550,11 @@ class ControlNode:
             save = logic.params.take_save()
             if save is not None:
                 saver.submit(*save)
+        if logic.superseded:  # most device nodes follow a newer term
+            self._stand_down(f"the device nodes follow term {logic.superseded}")
+            return False
+        if logic.mirror is not None:  # the standby's copy, before anything else
+            self._mirror_pub.put(logic.mirror)
         if tm is not None:
             self._tm_pub.put(tm)
             if rec is not None:
@@ -381,6 +571,117 @@ class ControlNode:
         if self.health is not None:
             self.health.kick()  # sample now, in the slack before the next loop
         return not final
+
+    # -- failover (a redundant mission) ------------------------------------------
+    def _still_commanding(self) -> bool:
+        """A commander's check at the top of each loop: a mirror of a newer
+        term from the other control node makes it stand down before it sends
+        anything (a commander woken from a stop learns it here); and the
+        other node's liveliness goes into ``cn_standby_ready``."""
+        item = self._mirrors.pop()
+        while item is not None:
+            term, who = self._reader.newer_term(item[1])
+            if term:
+                self.logic.superseded = term
+                self._stand_down(
+                    f"a mirror of term {term} came from {self.mission.control_nodes[who]}"
+                )
+                return False
+            item = self._mirrors.pop()
+        ready = self._peer_alive
+        self._h_ready.set(ready)  # (a mirror it took over from said the other's view)
+        if ready != self._peer_seen:
+            self._peer_seen = ready
+            self.logic.events.emit(
+                EV.CN_STANDBY_READY,
+                self.logic.t_ns,
+                node=self.name,
+                peer=self._peer,
+                what="alive and following" if ready else "gone",
+            )
+        return True
+
+    def _stand_down(self, why: str) -> None:
+        self.standby = Standby.stand_down(self.mission, self.logic, self.keys, why)
+        self._stop_serving()
+        log.warning("%s stands down: %s", self.name, why)
+
+    def _follow(self, gc_guard: GcGuard) -> int | None:
+        """Follow the commander as the standby until this node takes command;
+        returns the schedule's start (monotonic ns) to command from, or None
+        when stopped first. Blocks."""
+        sb = self.standby
+        assert sb is not None
+        while sb.origin is None:  # the first mirror gives the schedule
+            if self.stop.is_set():
+                return None
+            self._loop_hb.beat()
+            item = self._mirrors.get(0.2)
+            if item is not None:
+                self._apply_mirror(item[1], self.clock.now_ns())
+            self._events.flush()
+        self._take_at = 0
+        follower = PeriodicLoop(self.mission.period_ns, slack_hook=gc_guard.on_slack)
+        # Half a period into each of the commander's loops: its mirror is due.
+        start = self.clock.monotonic_at(sb.origin) + self.mission.period_ns // 2
+        follower.run(self._tick, start_ns=start)
+        if not self._take_at:
+            return None
+        logic = sb.take(self._take_at)
+        self.standby = None
+        self.takeovers += 1
+        self._gap = True
+        self._serve_clock()
+        self._take_requests()
+        self._serve_recorder()
+        self.ns.announce()
+        log.warning("%s took command in term %d at loop %d", self.name, logic.term, self._take_at)
+        assert sb.origin is not None
+        return self.clock.monotonic_at(sb.origin)
+
+    def _apply_mirror(self, payload: bytes, now: int) -> None:
+        sb = self.standby
+        assert sb is not None
+        first = sb.mirrored == 0
+        if not sb.mirror(payload, now):
+            return
+        if first:
+            self.ns.announce()  # following: ready to take over
+        rec = self.flight_recorder
+        if rec is not None and sb.mirrored % self.mission.telemetry_divisor == 0:
+            # A standby's own flight record: the commander's telemetry, as it was.
+            rec.frame(sb.mirrored, self.logic.telemetry(), sb.mirrored_t)
+
+    def _tick(self, k: int, deadline_ns: int) -> bool:
+        """One beat of the standby, half a period into the commander's loop:
+        the mirrors that came, a PRM_SAVE to follow, and, when the commander
+        has fallen silent, a probe round that may end in a takeover."""
+        m0 = self._mono()
+        self._loop_hb.beat_at(m0)
+        sb = self.standby
+        assert sb is not None
+        now = self.clock.now_ns()
+        item = self._mirrors.pop()
+        while item is not None:
+            self._apply_mirror(item[1], now)
+            item = self._mirrors.pop()
+        save = sb.take_save()
+        if save is not None and self._saver is not None:
+            self._saver.submit(*save)
+        if self._saver is not None:
+            self._saver.poll()  # a follower's save is its own: the result only logged
+        slot = sb.slot(now)
+        if sb.tick(slot):
+            asks = sb.ask(slot, now)
+            self.probes.round(asks, sb.answer)
+            if sb.decide(slot, self.clock.now_ns()) == Decision.TAKE:
+                self._take_at = slot + 1
+                return False
+            self.probes.send(sb.releases)
+        if self.watchdog is not None:
+            self.watchdog.stroke(self._mono(), now)
+        self._events.flush()
+        return not self.stop.is_set()
 
     def _take_refusals(self) -> CnRefusals:
         """What the intakes refused since the last loop (an input of the loop)."""
@@ -410,7 +711,7 @@ class ControlNode:
 
         The last loop of the call (the ``max_loops``-th, or the one after a
         stop) is the run's final loop (module doc)."""
-        nc = self.mission.nodes["cn"]
+        nc = self.mission.nodes[self.name]
         self._last_step = None if max_loops is None else self.loops + max_loops
         if realtime:
             realtime_setup(nc.priority, nc.cpu)
@@ -428,7 +729,18 @@ class ControlNode:
         )
         gc_guard.freeze_after_startup()
         try:
-            loop.run(self.step, max_loops=max_loops)
+            start: int | None = None
+            while not self.stop.is_set():
+                if self.standby is not None:  # a redundant mission's standby
+                    start = self._follow(gc_guard)
+                    if start is None:
+                        break
+                left = None if self._last_step is None else self._last_step - self.loops
+                if left is not None and left <= 0:
+                    break
+                loop.run(self.step, max_loops=left, start_ns=start)
+                if self.standby is None:  # the run ended; not a stand-down
+                    break
         finally:
             gc_guard.restore()
         self._stopped_cleanly = True
@@ -453,6 +765,9 @@ class ControlNode:
             else None,
             recorded_loops=rec.loops if rec is not None else None,
             recording_dropped_loops=rec.dropped_loops if rec is not None else None,
+            node=self.name,
+            commanding=self.standby is None,
+            takeovers=self.takeovers,
         )
 
     def close(self) -> None:
@@ -472,9 +787,14 @@ class ControlNode:
                 self._rec_server.close()
             self._events.undeclare()
             self.sync.close()
-            self.clock_server.close()
+            if self.clock_server is not None:
+                self.clock_server.close()
             if self._gsub is not None:
                 self._gsub.undeclare()
+            if self.redundant:
+                self._mirror_sub.undeclare()
+                self._mirror_pub.undeclare()
+                self._peer_sub.undeclare()
             if self._radio is not None:
                 self._radio.pub.undeclare()
             if self.bulk is not None:
@@ -539,6 +859,7 @@ class _Radio:
 def run_control_node(
     mission: Mission,
     *,
+    name: str = "cn",
     max_loops: int | None = None,
     duration_s: float | None = None,
     realtime: bool = True,
@@ -553,10 +874,11 @@ def run_control_node(
     ``record``: a directory to record every loop's inputs into (needs
     ``mission_source``, the mission file, which the recording keeps)."""
     stop = StopFlag()
-    node = ControlNode(mission, stop=stop, keys=load_keys(mission, "cn", key_file))
+    node = ControlNode(mission, name=name, stop=stop, keys=load_keys(mission, name, key_file))
     try:
         offsets = node.wait_ready(ready_timeout_s, ground_wait_s)
-        log.info("device nodes ready; clock offsets (ns): %s", offsets)
+        if node.standby is None:
+            log.info("device nodes ready; clock offsets (ns): %s", offsets)
         if record is not None:
             if mission_source is None:
                 raise NodeError("recording needs the mission file's path")

@@ -34,6 +34,8 @@ import logging
 import threading
 import time
 
+import zenoh
+
 from ..auth import KeySet, channel, load_keys
 from ..boards import close_board, open_board
 from ..bulk import NodeBulk, open_bulk
@@ -42,7 +44,7 @@ from ..config import Mission
 from ..errors import ClockSyncError, NodeError, RecordingError, TransportError, ZPlatformError
 from ..events import EV
 from ..health import Heartbeat, Liveness, thread_deadlines_ns
-from ..intake import TriggerIntake
+from ..intake import ProbeIntake, TriggerIntake
 from ..loop import DeviceLogic
 from ..recorder import FlightRecorder, open_recorder, summary_line
 from ..scheduler import GcGuard
@@ -135,16 +137,14 @@ class DeviceNode:
         Returns the applied offset (ns). Raises NodeError on failure.
         """
         s, keys, m = self.ns.session, self.ns.keys, self.mission
+        deadline = time.monotonic() + ready_timeout_s
         try:
-            wait_for_nodes(s, keys, ["cn"], ready_timeout_s, self.stop.event)
-            est = self.estimate_offset(
-                s,
-                keys,
-                self.clock.now_ns,
-                self.clock_link,
-                exchanges=m.clock.exchanges,
-                keep_fraction=m.clock.keep_fraction,
+            # Whichever control node runs (a redundant mission's standby may
+            # command by the time this node starts); the commander serves the clock.
+            wait_for_nodes(
+                s, keys, m.control_nodes, ready_timeout_s, self.stop.event, any_of=True
             )
+            est = self._estimate_by(deadline, m.clock.exchanges)
         except (TransportError, ClockSyncError) as exc:
             raise NodeError(f"{self.name} cannot start: {exc}") from exc
         try:
@@ -184,13 +184,26 @@ class DeviceNode:
             res.offset_ns / 1e3,
             res.estimator,
         )
+        trigger_intake: TriggerIntake[zenoh.Query] = TriggerIntake(
+            m, self.name, channel(self._keys, f"cn_to_{self.name}")
+        )
+        assert trigger_intake.box is not None
         self.sync = DeviceSync(
             s,
             keys,
             self.name,
             self.clock.now_ns,
             # The intake's own channel: zenoh's thread checks tags with it.
-            intake=TriggerIntake(m, self.name, channel(self._keys, f"cn_to_{self.name}")),
+            intake=trigger_intake,
+            probes=(
+                ProbeIntake(
+                    self.name,
+                    channel(self._keys, f"probe_cn_to_{self.name}"),
+                    trigger_intake.box.waker,
+                )
+                if m.standby is not None
+                else None
+            ),
             trace=self._sync_trace,
         )
         self.bulk = open_bulk(s, m, self.name, self.logic)
@@ -222,6 +235,26 @@ class DeviceNode:
             self._resync.start()
         self.ns.announce()
         return est.offset_ns
+
+    def _estimate_by(self, deadline: float, exchanges: int) -> ClockEstimate:
+        """The clock's offset to the commander's; while no control node serves
+        the clock yet (a standby is alive before the commander runs), ask
+        again every 0.1 s until ``deadline`` (then the last ClockSyncError)."""
+        m = self.mission
+        while True:
+            try:
+                return self.estimate_offset(
+                    self.ns.session,
+                    self.ns.keys,
+                    self.clock.now_ns,
+                    self.clock_link,
+                    exchanges=exchanges,
+                    keep_fraction=m.clock.keep_fraction,
+                )
+            except ClockSyncError:
+                if m.standby is None or time.monotonic() > deadline or self.stop.is_set():
+                    raise
+            self.stop.event.wait(0.1)
 
     def _resync_loop(self) -> None:
         # Background: measure, never step the clock, never write what the

@@ -92,7 +92,7 @@ def open_recorder(
         raise RecordingError(f"mission {mission.mission!r} does not record node {node!r}")
     layout, region, _ = frames_of(mission, node, None)
     frame_len = RegionCodec(dv, region).max_frame_len + (TAG_LEN if authenticated else 0)
-    per_s = mission.loop_hz / (mission.telemetry_divisor if node == "cn" else 1)
+    per_s = mission.loop_hz / (mission.telemetry_divisor if node in mission.control_nodes else 1)
     loops = max(2, math.ceil(cfg.buffer_ms / 1000 * per_s))
     head = {
         "mission": mission.mission,

@@ -83,7 +83,7 @@ def frames_of(
     whose tag they carry (None without authentication). RecordingError for
     a node that does not record frames of this mission; KeyError_ when
     ``keys`` does not hold that channel's link (:func:`reader_role`)."""
-    if node == "cn":
+    if node in mission.control_nodes:  # either control node records the whole vector
         return Layout.for_node(mission, "cn"), None, channel(keys, "telemetry")
     if node in mission.device_nodes:
         region = f"{node}_to_cn"

@@ -220,11 +220,13 @@ class FlightRecorder:
         self._thread.start()
 
     # -- reporting into the node's Data Vector and events --------------------
-    def attach(self, dv: DataVector, events: EventLog) -> None:
+    def attach(self, dv: DataVector, events: EventLog, *, prefix: str | None = None) -> None:
         """Report from now on: the counters into ``dv``'s ``<node>_rec_dropped``,
         ``_rec_evicted`` and ``_rec_errors`` (at :meth:`tick`), and the
-        recorder's events into ``events``. Call before the first loop."""
-        n = self.node
+        recorder's events into ``events``. Call before the first loop.
+        ``prefix``: the elements' owner when not the node (a standby control
+        node reports into the commander's ``cn_rec_*``)."""
+        n = prefix or self.node
         self._h = (
             dv.handle(f"{n}_rec_dropped"),
             dv.handle(f"{n}_rec_evicted"),
