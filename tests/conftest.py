@@ -22,6 +22,12 @@ Missions with a flight recorder (the shipped flight and recovery_igniter
 ones) record into a temporary directory of the session
 (``ZPLATFORM_RECORDER_DIR``, inherited too), removed at exit: nothing is
 written to the user's state directory.
+
+And the registry of running missions (``zplatform ps``; every verb takes a
+running mission's name) is the session's own too: a mission that ``up`` runs
+elsewhere on the machine is not one a test can see by name (a test that
+expects ``keygen led_test`` to fail without a running ``led_test`` failed
+whenever someone else ran one).
 """
 
 from __future__ import annotations
@@ -47,6 +53,10 @@ settings.load_profile("zplatform")
 _PARAMS_DIR = tempfile.mkdtemp(prefix="zplatform-test-params-")
 os.environ["ZPLATFORM_PARAMS_DIR"] = _PARAMS_DIR
 atexit.register(shutil.rmtree, _PARAMS_DIR, True)
+
+_RUN_DIR = tempfile.mkdtemp(prefix="zplatform-test-run-")
+os.environ["ZPLATFORM_RUNTIME_DIR"] = _RUN_DIR
+atexit.register(shutil.rmtree, _RUN_DIR, True)
 
 _RECORDER_DIR = tempfile.mkdtemp(prefix="zplatform-test-recorder-")
 os.environ["ZPLATFORM_RECORDER_DIR"] = _RECORDER_DIR

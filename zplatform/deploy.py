@@ -431,7 +431,7 @@ def access_control(mission: Mission, dep: Deployment) -> dict[str, Any]:
         rule(
             "liveliness-watch",
             ["declare_liveliness_subscriber", "liveliness_query"],
-            [f"{v}/*/alive"],
+            [f"{v}/*/alive", f"{v}/*/standby"],
         ),
     ]
     for n in nodes:
@@ -439,7 +439,11 @@ def access_control(mission: Mission, dep: Deployment) -> dict[str, Any]:
         ids = [
             *common,
             rule(f"{n}-own", ["put", "delete", "declare_queryable", "reply"], own),
-            rule(f"{n}-alive", ["liveliness_token"], [f"{v}/{n}/alive"]),
+            rule(
+                f"{n}-alive",
+                ["liveliness_token"],
+                [f"{v}/{n}/alive", *([f"{v}/{n}/standby"] if n in mission.control_nodes else [])],
+            ),
         ]
         if n in mission.control_nodes:
             dn_keys = [f"{v}/{d}/to_cn" for d in mission.device_nodes]

@@ -108,6 +108,10 @@ class KeySpace:
     def alive(self, node: str) -> str:
         return f"{self.vehicle}/{node}/alive"
 
+    def standby(self, node: str) -> str:
+        """A control node's liveliness token while it follows as a ready standby."""
+        return f"{self.vehicle}/{node}/standby"
+
     def health_probe(self, node: str) -> str:
         """The node's own zenoh probe (zplatform.node.health): local to its session."""
         return f"{self.vehicle}/{node}/health/probe"

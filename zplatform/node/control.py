@@ -251,8 +251,9 @@ class ControlNode:
             self._peer = next(n for n in mission.control_nodes if n != name)
             self._peer_alive = False
             self._peer_seen = False
+            self._ready_token: zenoh.LivelinessToken | None = None
             self._peer_sub = s.liveliness().declare_subscriber(
-                space.alive(self._peer),
+                space.standby(self._peer),
                 zenoh.handlers.Callback(self._on_peer, indirect=False),
                 history=True,
             )
@@ -336,7 +337,7 @@ class ControlNode:
             self._rec_server = None
 
     def _on_peer(self, sample: zenoh.Sample) -> None:
-        # zenoh's thread: one flag, read by the loop.
+        # zenoh's thread: one flag, read by the loop (the other node's standby token).
         self._peer_alive = sample.kind == zenoh.SampleKind.PUT
 
     def _on_ground(self, sample: zenoh.Sample) -> None:
@@ -434,6 +435,8 @@ class ControlNode:
         ran = [a for a in sb.answers if a is not None and (a.last_loop or a.term)]
         if not ran and self.name == "cn":
             self.clock.lock()
+            self._take_requests()
+            self._serve_recorder()
             return True
         self._stop_serving()
         self._set_clock_by_commander(deadline)
@@ -629,6 +632,9 @@ class ControlNode:
             return None
         logic = sb.take(self._take_at)
         self.standby = None
+        if self._ready_token is not None:
+            self._ready_token.undeclare()
+            self._ready_token = None
         self.takeovers += 1
         self._gap = True
         self._serve_clock()
@@ -645,8 +651,12 @@ class ControlNode:
         first = sb.mirrored == 0
         if not sb.mirror(payload, now):
             return
-        if first:
-            self.ns.announce()  # following: ready to take over
+        if first:  # following: ready to take over (the commander's cn_standby_ready)
+            self.ns.announce()
+            if self._ready_token is None:
+                self._ready_token = self.ns.session.liveliness().declare_token(
+                    self.ns.keys.standby(self.name)
+                )
         rec = self.flight_recorder
         if rec is not None and sb.mirrored % self.mission.telemetry_divisor == 0:
             # A standby's own flight record: the commander's telemetry, as it was.
@@ -792,6 +802,8 @@ class ControlNode:
             if self._gsub is not None:
                 self._gsub.undeclare()
             if self.redundant:
+                if self._ready_token is not None:
+                    self._ready_token.undeclare()
                 self._mirror_sub.undeclare()
                 self._mirror_pub.undeclare()
                 self._peer_sub.undeclare()
