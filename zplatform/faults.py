@@ -46,6 +46,10 @@ The mission's monitors (:mod:`zplatform.monitors`) latch faults too, through
 Only the first fault latches: once ``cn_fault`` is not ``NONE`` it stays
 until someone writes it back (a WRITE command of ``cn_fault = NONE``, or a
 state-machine action); a symptom still present then raises it again. A
+mission may let DN_LOST clear itself (``faults.dn_rejoin_clears``): once
+every device node has answered again for ``faults.dn_reenable_loops`` loops
+in a row (a restarted node, a healed link), with a ``dn_fault_cleared``
+event; a transition the fault fired stays taken. A
 raised fault emits one ``WARNING_HI`` event (``EV.FAULT``): the platform acted,
 and the state machine answers it.
 """
@@ -67,9 +71,10 @@ __all__ = ["ErrorCode", "Fault", "FaultMonitor"]
 class _Watch:
     """A counter element and how many consecutive loops it has grown."""
 
-    __slots__ = ("fault", "get", "last", "limit", "run", "text")
+    __slots__ = ("fault", "get", "last", "limit", "run", "text", "who")
 
-    def __init__(self, h: Handle, fault: Fault, limit: int, text: str) -> None:
+    def __init__(self, h: Handle, fault: Fault, limit: int, text: str, who: str = "") -> None:
+        self.who = who
         self.get = h.get
         self.last: int = h.get()
         self.fault = fault
@@ -106,6 +111,7 @@ class FaultMonitor:
                         Fault.DN_LOST,
                         f.dn_lost_loops,
                         f"{dn} missed {f.dn_lost_loops} syncs in a row",
+                        dn,
                     )
                 )
         if f.controller_fail_loops > 0:
@@ -137,6 +143,13 @@ class FaultMonitor:
                 )
             )
         self._watches = tuple(watches)
+        # faults.dn_rejoin_clears: DN_LOST clears once every device node has
+        # answered again for dn_reenable_loops loops in a row.
+        self._rejoin = f.dn_rejoin_clears and f.dn_lost_loops > 0 and bool(dns)
+        self._rejoin_after = f.dn_reenable_loops
+        self._lost = tuple(w for w in watches if w.fault == Fault.DN_LOST)
+        self._answered = 0  # loops in a row in which every device node answered
+        self._lost_names: list[str] = []
         # The clock bound (thesis 4.9) holds for the whole run: the DNs'
         # periodic re-sync measures what is left after the start-up
         # correction (dnX_clock_drift_ns).
@@ -164,8 +177,10 @@ class FaultMonitor:
             else:
                 w.run = 0
             w.last = v
-            if w.run >= w.limit:
-                self.raise_fault(w.fault, w.text, t_ns)
+            if w.run >= w.limit and self.raise_fault(w.fault, w.text, t_ns) and w.who:
+                self._lost_names.append(w.who)
+        if self._rejoin:
+            self._clear_on_rejoin(t_ns)
         bound = self._clock_bound
         for dn, h in self._drift:
             d = h.get()
@@ -184,6 +199,23 @@ class FaultMonitor:
                     "clock off? see its dn_safed event)",
                     t_ns,
                 )
+
+    def _clear_on_rejoin(self, t_ns: int) -> None:
+        """``faults.dn_rejoin_clears``: a latched DN_LOST clears once every
+        device node has answered again (none missed) for ``dn_reenable_loops``
+        loops in a row, with a ``dn_fault_cleared`` event."""
+        if any(w.run for w in self._lost):
+            self._answered = 0
+            return
+        self._answered += 1
+        if self._answered < self._rejoin_after or self._h_fault.get() != Fault.DN_LOST:
+            return
+        self._h_fault.set(int(Fault.NONE))
+        who = ", ".join(self._lost_names) or "the lost device node"
+        self._lost_names.clear()
+        self._events.emit(
+            EV.DN_FAULT_CLEARED, t_ns, dn=who, n=self._answered, fault=Fault.DN_LOST.name
+        )
 
     def adopt(self) -> None:
         """Take up the watched counters as they stand (a takeover,

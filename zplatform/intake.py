@@ -380,6 +380,12 @@ class RequestIntake(Intake[None]):
         self._highest = seq
         return True
 
+    def follow(self, cn_epoch: int) -> None:
+        """Admit requests of CN run ``cn_epoch`` from now on (a control node
+        that resumed a run it had recorded)."""
+        with self._lock:
+            self._epoch = cn_epoch
+
     def _took(self) -> None:
         self.reported, self._reported = self._reported, (0, 0)
 

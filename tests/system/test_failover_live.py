@@ -119,3 +119,31 @@ def test_a_stopped_commander_is_replaced_and_stands_down_when_continued(
         c.advance(10)
         assert "stands down" in c.log(commander), c.log(commander)[-2000:]
     _one_term_per_loop(c, root, {term, term + 1})
+
+
+def test_a_control_node_restarted_in_flight_resumes_and_the_flight_deploys(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """recovery_igniter (no standby): the control node killed while ARMED and
+    started again a second later does not come up in SAFE at loop 1 with a
+    new run: it resumes the run from its own flight recorder (the same
+    epoch, ARMED, loop numbers going on by time), says so (``cn_resumed``),
+    and the flight deploys."""
+    monkeypatch.setenv(RECORDER_DIR_ENV, str(tmp_path / "rec"))
+    with Cluster(CONFIGS / "recovery_igniter.yaml", tmp_path) as c:
+        for n in ("world", "dn0", "dn1", "cn"):
+            c.spawn(n)
+        c.advance(20)
+        r = zp("cmd", str(c.path), "launch", "--arm")
+        assert r.returncode == 0, r.stdout + r.stderr
+        c.wait_for(lambda dv: dv.get_name("cn_state") == "ARMED", 30, "ARMED")
+        c.advance(50)
+        epoch, loop = int(c.tm.get("cn_epoch")), int(c.tm.get("cn_loop"))
+        c.kill("cn")
+        c.spawn("cn")
+        c.wait_for(lambda dv: int(dv.get("cn_loop")) > loop + 5, 60, "the run going on")
+        assert int(c.tm.get("cn_epoch")) == epoch
+        assert c.tm.get_name("cn_state") in ("ARMED", "FIRE", "DEPLOYED")
+        assert "resumed the run in flight" in c.log("cn")
+        c.wait_for(lambda dv: dv.get_name("cn_state") == "DEPLOYED", 60, "DEPLOYED")
+        assert c.tm.get_name("cn_fault") == "NONE"

@@ -274,3 +274,33 @@ def test_a_redundant_mission_refuses_a_controller_that_keeps_state_outside_the_v
         )
     assert e.value.path.startswith("$.controllers[") and e.value.path.endswith("].class")
     assert "takeover_safe" in e.value.reason
+
+
+# -- a device node that comes back --------------------------------------------------------
+
+
+@pytest.mark.parametrize("clears", [True, False])
+def test_a_lost_device_nodes_fault_clears_when_it_rejoins_if_the_mission_says_so(
+    clears: bool,
+) -> None:
+    """dn0 gone for 0.6 s on the pad: DN_LOST latches (after
+    ``faults.dn_lost_loops``); once it answers again for
+    ``faults.dn_reenable_loops`` loops, the fault clears with a
+    ``dn_fault_cleared`` event when ``faults.dn_rejoin_clears`` says so, and
+    stays latched (today's rule) when not."""
+    text = (ROOT / "configs" / "recovery_igniter.yaml").read_text()
+    text += f"\nfaults: {{dn_rejoin_clears: {str(clears).lower()}}}\n"
+    m = decode_mission(text.encode(), base_dir=ROOT / "configs")
+    r = LockstepRunner(m)
+    r.run(0.5)
+    r.lost.add("dn0")
+    r.run(0.6)
+    assert r.control.dv.get_name("cn_fault") == "DN_LOST"
+    r.lost.discard("dn0")
+    r.run(0.5)
+    cleared = [e for e in r.result().events if e.id == "dn_fault_cleared"]
+    if clears:
+        assert r.control.dv.get_name("cn_fault") == "NONE"
+        assert len(cleared) == 1 and "dn0" in cleared[0].text, cleared
+    else:
+        assert r.control.dv.get_name("cn_fault") == "DN_LOST" and not cleared

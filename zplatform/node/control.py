@@ -49,10 +49,11 @@ import zenoh
 from ..auth import KeySet, channel, load_keys
 from ..bulk import open_bulk
 from ..clocksync import ClockLink, ClockServer, estimator_for
-from ..codes import CommandStatus
+from ..codec import Frame, RegionCodec
+from ..codes import CommandStatus, SafedWhy
 from ..config import Mission
 from ..datavector import DataVector
-from ..errors import ClockSyncError, NodeError, RecordingError, TransportError
+from ..errors import ClockSyncError, CodecError, NodeError, RecordingError, TransportError
 from ..events import EV
 from ..failover import Decision, MirrorReader, Standby
 from ..fencing import STATUS
@@ -63,7 +64,7 @@ from ..intake import CnRefusals, ReplyCheck, RequestIntake
 from ..loop import ControlLogic
 from ..messages import wildcard_sync_for
 from ..params import ParamSaver, params_path, read_params_file
-from ..recorder import FlightRecorder, open_recorder, summary_line
+from ..recorder import FlightRecorder, RecorderReader, open_recorder, recorder_dir, summary_line
 from ..recorder.server import RecorderServer
 from ..recording import Recorder
 from ..scheduler import GcGuard, PeriodicLoop
@@ -186,7 +187,10 @@ class ControlNode:
         # cannot use (or one another CN holds) stops the node on the pad.
         self.flight_recorder: FlightRecorder | None = None
         self._rec_server: RecorderServer | None = None
+        # What this node recorded last (a restart in flight resumes from it).
+        self._recorded: Frame | None = None
         if name in mission.recording_nodes:
+            self._recorded = _last_recorded(mission, name, self.logic, keys)
             try:
                 rec = open_recorder(
                     mission, name, self.dv, run=self.clock_epoch, authenticated=keys is not None
@@ -224,6 +228,8 @@ class ControlNode:
         self._skipped = 0
         self._gap = False  # the next loop is a takeover's first
         self._take_at = 0
+        self._origin: int | None = None  # a resumed run's schedule (monotonic ns)
+        self._resume_term = 0  # a redundant mission's node resuming: its term
         self._stopped_cleanly = False
         self._last_step: int | None = None  # self.loops after the run's planned last loop
         # Failover (zplatform.failover): the mirror out and in, the probes, the
@@ -413,8 +419,77 @@ class ControlNode:
         self.sync.quiesce(logic, timeout_s=max(2 * m.period_ns / 1e9, 1.0))
         logic.reset_sync_counters()
         logic.events.drain()  # warm-up bad frames were logged; flight starts clean
+        # Device nodes that ran loops and were not told the run ended: this
+        # node restarted in flight (its run goes on without it).
+        ended = SafedWhy.RUN_ENDED
+        mid_run = [
+            int(self.dv.get(f"{dn}_loop"))
+            for dn in dns
+            if int(self.dv.get(f"{dn}_loop")) and self.dv.get(f"{dn}_safed_why") != ended
+        ]
+        if (mid_run or self._resume_term) and self._resume(max(mid_run, default=0)):
+            return offsets
         self._load_params()
         return offsets
+
+    def _resume(self, dn_loop: int) -> bool:
+        """Restarted while the device nodes are mid-run (they ran loops up to
+        ``dn_loop`` and no one drives them): take up the run from this node's
+        own flight recorder, its newest telemetry frame, never start over in
+        SAFE (``cn_resumed``): the run's epoch, state and every element as
+        recorded, the schedule where it was (loop numbers follow time), in a
+        redundant mission a new term. Without a usable record (no recorder,
+        nothing recorded, another mission's, or older than the device nodes'
+        loops by more than a minute) the node starts over, with a FATAL
+        ``cn_restarted_in_flight`` event saying why. Returns whether it resumed."""
+        m, logic, now = self.mission, self.logic, self.clock.now_ns()
+        why = self._unusable_record(dn_loop, now)
+        if why:
+            logic.events.emit(
+                EV.CN_RESTARTED_IN_FLIGHT, now, node=self.name, loop=dn_loop, why=why
+            )
+            log.error("%s restarted in flight and starts over: %s", self.name, why)
+            return False
+        assert self._recorded is not None
+        frame = self._recorded
+        RegionCodec(self.dv).write(frame)
+        logic.adopt()
+        origin = frame.t_ns - (frame.seq - 1) * m.period_ns
+        self._origin = self.clock.monotonic_at(origin)
+        self._gap = True
+        if self._resume_term:
+            loop = (now - origin) // m.period_ns + 2
+            logic.take_command(self._resume_term, loop)
+        if self._requests is not None:
+            self._requests.follow(int(self.dv.get("cn_epoch")))
+        logic.events.emit(
+            EV.CN_RESUMED,
+            now,
+            node=self.name,
+            epoch=int(self.dv.get("cn_epoch")),
+            loop=frame.seq,
+            state=self.dv.get_name("cn_state"),
+            source=f"its flight recorder's frame of loop {frame.seq} "
+            f"({(now - frame.t_ns) / 1e9:.1f} s old)",
+        )
+        log.warning(
+            "%s resumed the run in flight from its recorder (loop %d)", self.name, frame.seq
+        )
+        return True
+
+    def _unusable_record(self, dn_loop: int, now: int) -> str:
+        frame = self._recorded
+        if self.flight_recorder is None:
+            return "the mission has no flight recorder for it (`recorder:`) and no standby"
+        if frame is None:
+            return "its flight recorder holds no frame"
+        if frame.seq > dn_loop + 1 or now - frame.t_ns > RESUME_MAX_AGE_NS:
+            return (
+                f"its flight recorder's last frame (loop {frame.seq}, "
+                f"{(now - frame.t_ns) / 1e9:.0f} s old) is not of the device nodes' run "
+                f"(loop {dn_loop})"
+            )
+        return ""
 
     def _first_to_command(self, timeout_s: float) -> bool:
         """A redundant mission's control node at start: asks every device node
@@ -424,7 +499,8 @@ class ControlNode:
         clock by the commander's and waits for its mirrors (a control node
         restarted in flight rejoins the flight this way, never in SAFE).
         NodeError when no device node answers."""
-        sb = Standby(self.mission, self.logic, self.keys)
+        m = self.mission
+        sb = Standby(m, self.logic, self.keys)
         deadline = time.monotonic() + timeout_s
         while True:
             asks = sb.ask(0, self.clock.now_ns(), kind=STATUS)
@@ -433,7 +509,14 @@ class ControlNode:
             if time.monotonic() > deadline or self.stop.is_set():
                 raise NodeError(f"{self.name} cannot start: no device node answers its probe")
         ran = [a for a in sb.answers if a is not None and (a.last_loop or a.term)]
-        if not ran and self.name == "cn":
+        lease = m.takeover.lease_loops * m.period_ns
+        driven = [a for a in ran if 0 <= a.quiet_ns < lease]
+        if (not ran and self.name == "cn") or (ran and not driven):
+            # The first commander of a fresh run; or the run goes on and no one
+            # drives it (both control nodes were lost): resume it in a new term.
+            if ran:
+                self._resume_term = max(max(a.term, a.promised) for a in ran) + 1
+            self._serve_clock()
             self.clock.lock()
             self._take_requests()
             self._serve_recorder()
@@ -739,7 +822,7 @@ class ControlNode:
         )
         gc_guard.freeze_after_startup()
         try:
-            start: int | None = None
+            start: int | None = self._origin  # a resumed run's schedule
             while not self.stop.is_set():
                 if self.standby is not None:  # a redundant mission's standby
                     start = self._follow(gc_guard)
@@ -826,6 +909,30 @@ class ControlNode:
                 self.flight_recorder.close()
                 log.info("flight recorder: %s", summary_line(self.flight_recorder))
             self.ns.close()
+
+
+RESUME_MAX_AGE_NS = 60_000_000_000
+"""A restarted control node resumes from a recorded frame at most this old."""
+
+
+def _last_recorded(
+    mission: Mission, node: str, logic: ControlLogic, keys: KeySet | None
+) -> Frame | None:
+    """The newest telemetry frame ``node``'s flight recorder holds, checked
+    (its tag, this mission's layout); None when there is none, or it does not
+    check. Reads only the newest segment that holds a frame."""
+    try:
+        got = RecorderReader(recorder_dir(mission, node)).last_frame()
+    except RecordingError:
+        return None
+    if got is None or got[0].mission != mission.mission:
+        return None
+    ch = channel(keys, "telemetry")
+    try:
+        payload = got[1].payload
+        return RegionCodec(logic.dv).check(ch.open(payload) if ch is not None else payload)
+    except CodecError:
+        return None
 
 
 def check_clocks(offsets: dict[str, int], residuals: dict[str, int], bound_ms: float) -> None:

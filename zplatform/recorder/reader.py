@@ -33,6 +33,7 @@ from .format import (
     COUNTS,
     END,
     FORMAT_VERSION,
+    FRAME,
     HEAD,
     HEADER,
     HEADER_LEN,
@@ -276,6 +277,28 @@ class RecorderReader:
     def _problem(self, text: str) -> None:
         self.damaged += 1
         self.problems.append(text)
+
+    def last_frame(self) -> tuple[SegmentHead, Record] | None:
+        """The newest FRAME record (and its segment's header), reading the
+        segments newest first and stopping at the first that holds one: what
+        a restarted control node resumes from. None when none holds one."""
+        for index, path in reversed(self.segments):
+            head: SegmentHead | None = None
+            last: Record | None = None
+            for rec in scan_segment(path, self._problem):
+                if head is None:
+                    if rec.type != HEAD or rec.offset != 0 or len(rec.payload) > MAX_HEAD_LEN:
+                        break
+                    try:
+                        head = SegmentHead.parse(path, index, rec.payload)
+                    except RecordingError:
+                        break
+                    continue
+                if rec.type == FRAME:
+                    last = rec
+            if head is not None and last is not None:
+                return head, last
+        return None
 
     def records(self) -> Iterator[tuple[SegmentHead, Record]]:
         """Every record after a readable header, oldest segment first, with
