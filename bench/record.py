@@ -44,7 +44,7 @@ def loop_inputs(
     cn = r.control
 
     class Tap:
-        def begin(self, loop: int, t_ns: int, final: bool) -> None:
+        def begin(self, loop: int, t_ns: int, final: bool, standby: bool = False) -> None:
             captured.clear()
 
         def reply(self, i: int, payload: Any) -> None:

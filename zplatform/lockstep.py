@@ -724,6 +724,10 @@ def _replay(
     cn = ControlLogic(mission, keys=keys)
     refused = CnRefusals()
     cn.dv.write_all(reader.initial)  # epoch included
+    # A recording that starts mid-run (a standby that took command, a control
+    # node that resumed after a restart): every component takes up its state
+    # from that vector, as the recording node did.
+    cn.adopt()
     recorded = _RecordedHealth()
     if mission.health is not None:  # the recorded blocks, on the recorded loops
         cn.attach_health(recorded)
@@ -734,7 +738,7 @@ def _replay(
     diff: Difference | None = None
     for rec in reader.loops():
         recorded.block = rec.health
-        cn.begin(rec.loop, rec.t_ns, final=rec.final)
+        cn.begin(rec.loop, rec.t_ns, final=rec.final, standby=rec.standby if cn.redundant else None)
         for i, payload in rec.replies:
             cn.reply(i, payload)
         tm = cn.finish(

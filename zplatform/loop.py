@@ -124,7 +124,7 @@ class LoopRecorder(Protocol):
     (:class:`zplatform.recording.Recorder` copies into preallocated chunks).
     """
 
-    def begin(self, loop: int, t_ns: int, final: bool) -> None: ...
+    def begin(self, loop: int, t_ns: int, final: bool, standby: bool) -> None: ...
 
     def reply(self, i: int, payload: bytes | bytearray | memoryview | None) -> None: ...
 
@@ -267,6 +267,7 @@ class ControlLogic:
             self._h_term = dv.handle("cn_term")
             self._h_commander = dv.handle("cn_commander")
             self._h_term_loop = dv.handle("cn_term_loop")
+            self._h_ready = dv.handle("cn_standby_ready")
             self._term_dn = tuple(dv.handle(f"{dn}_term") for dn in dns)
             self._seen_at = tuple(
                 dv.layout.element(f"{dn}_term_seen").offset
@@ -282,15 +283,22 @@ class ControlLogic:
         return int(self._h_term.get()) if self.redundant else 0
 
     # -- the loop ------------------------------------------------------------
-    def begin(self, loop: int, t_ns: int, *, final: bool = False) -> list[bytearray]:
+    def begin(
+        self, loop: int, t_ns: int, *, final: bool = False, standby: bool | None = None
+    ) -> list[bytearray]:
         """Open loop ``loop`` at ``t_ns``; returns the query frame of each DN
         (in ``mission.device_nodes`` order), stamped ``(loop, t_ns)``.
 
         ``final``: this is the run's last loop (module doc): every frame
         carries ``dnX_final`` true. The platform owns that element: it is
-        written here every loop, whatever a component wrote into it."""
+        written here every loop, whatever a component wrote into it.
+        ``standby``: a redundant mission's other control node is ready (its
+        driver watches it; ``cn_standby_ready``, an input like ``final``;
+        None: left as it is)."""
         self.loop = loop
         self.t_ns = t_ns
+        if standby is not None and self.redundant:
+            self._h_ready.set(standby)
         got = self._got
         frames = self._frames
         term = self._h_term.get() if self.redundant else 0
@@ -305,7 +313,7 @@ class ControlLogic:
             frames[i] = seal.seal(frame) if seal is not None else frame
         self.pending = len(got)
         if self.recorder is not None:
-            self.recorder.begin(loop, t_ns, final)
+            self.recorder.begin(loop, t_ns, final, bool(standby))
         return frames
 
     def reply(self, i: int, payload: bytes | bytearray | memoryview | None) -> bool:
@@ -782,8 +790,11 @@ class DeviceLogic:
         # A lower seq with a later timestamp is a restarted CN, not an old
         # query: follow it rather than stall forever.
         late = self._stale_after is not None and now_ns - frame.t_ns > self._stale_after
+        # Loop 0 (the CN's warm-up) is answered, never run: it does not arm
+        # the watchdog either (the CN's first loop may come a while later).
         new = (
             may_run
+            and frame.seq > 0
             and (frame.seq > self.last_loop or frame.t_ns > self.last_t_ns + _RESTART_NS)
             and not late
         )

@@ -19,7 +19,9 @@ DIR`` needs nothing else.
              and size, and content digest, :func:`mission_digest`)
              u32 m  m bytes: the CN's Data Vector when recording started
     items:   u8 type  u8 dn  u32 length  length bytes
-               1 BEGIN      u64 loop, i64 t_ns, u8 final (1: the run's last loop)
+               1 BEGIN      u64 loop, i64 t_ns, u8 flags (1: the run's last loop;
+                            2: a redundant mission's standby was ready, the
+                            driver's input cn_standby_ready)
                2 REPLY      the reply frame of DN ``dn``
                3 REPLY_ERR  DN ``dn`` answered with an error (length 0)
                4 OVERSIZE   a reply longer than any valid frame: u32 its length
@@ -76,6 +78,7 @@ replay stops there.
 
 from __future__ import annotations
 
+import contextlib
 import errno
 import hashlib
 import os
@@ -252,6 +255,7 @@ class Recorder:
         dv: DataVector,
         *,
         seconds: float = 2.0,
+        start: bool = True,
     ) -> None:
         self.directory = Path(directory)
         dns = mission.device_nodes
@@ -312,15 +316,32 @@ class Recorder:
                 )
             )
             self._file.write(_HEAD.pack(MAGIC, VERSION, len(meta)) + meta)
-            init = bytearray(dv.size)
-            dv.read_all(init)
-            self._file.write(_U32.pack(len(init)) + init)
         except (OSError, yaml.YAMLError) as exc:
             raise RecordingError(f"cannot record into {str(self.directory)!r}: {exc}") from exc
+        self.started = False
+        if start:
+            self.start(dv)
         self.heartbeat = Heartbeat("record")
         """The writer thread's check-in (zplatform.health), for the node's liveness."""
         self._writer = threading.Thread(target=self._write_loop, name="recorder", daemon=True)
         self._writer.start()
+
+    def start(self, dv: DataVector) -> None:
+        """Write ``dv`` as the recording's first vector (what the replay starts
+        from); loops may be recorded from now on. Construction does it unless
+        ``start=False``: a standby control node makes its recorder ahead (the
+        allocations, the mission's copy) and starts it when it takes command,
+        with the vector it took over (one small file write). RecordingError
+        if the write fails."""
+        if self.started:
+            return
+        init = bytearray(dv.size)
+        dv.read_all(init)
+        try:
+            self._file.write(_U32.pack(len(init)) + init)
+        except OSError as exc:
+            raise RecordingError(f"cannot record into {str(self.directory)!r}: {exc}") from exc
+        self.started = True
 
     # -- the writer thread -------------------------------------------------
     def _write_loop(self) -> None:
@@ -368,7 +389,7 @@ class Recorder:
             self._mv[off : off + n] = payload
         self._off = off + n
 
-    def begin(self, loop: int, t_ns: int, final: bool = False) -> None:
+    def begin(self, loop: int, t_ns: int, final: bool = False, standby: bool = False) -> None:
         if self._dropping:
             # Resume only at a loop boundary, with a chunk free.
             if self._free.empty():
@@ -389,7 +410,7 @@ class Recorder:
                 return
         off = self._off
         _ITEM.pack_into(self._mv, off, BEGIN, 0, _BEGIN.size)
-        _BEGIN.pack_into(self._mv, off + _ITEM.size, loop, t_ns, final)
+        _BEGIN.pack_into(self._mv, off + _ITEM.size, loop, t_ns, final | (standby << 1))
         self._off = off + _ITEM.size + _BEGIN.size
         self._open_loop = True
 
@@ -466,10 +487,21 @@ class Recorder:
         )
 
     def close(self) -> None:
-        """Flush every chunk to the file and stop the writer (idempotent)."""
+        """Flush every chunk to the file and stop the writer (idempotent). A
+        recorder never started (a standby that never took command) removes
+        the files it made: there is no recording."""
         if self._closed:
             return
         self._closed = True
+        if not self.started:
+            self._full.put(-1)
+            self._writer.join()
+            self._file.close()
+            for name in (RECORD_FILE, MISSION_FILE):
+                (self.directory / name).unlink(missing_ok=True)
+            with contextlib.suppress(OSError):
+                self.directory.rmdir()  # only if it is empty: nothing of anyone's is lost
+            return
         if not self._dropping and self._off:
             self._used[self._cur] = self._off
             self._full.put(self._cur)
@@ -501,6 +533,9 @@ class LoopRecord(msgspec.Struct, frozen=True):
     saves: list[SaveResult] = []
     health: bytes | None = None
     """The health block the loop copied in (None: not a health loop)."""
+    standby: bool = False
+    """A redundant mission's: whether the driver saw the standby ready
+    (``cn_standby_ready``, an input of the loop)."""
 
 
 class RecordReader:
@@ -646,7 +681,7 @@ class RecordReader:
         off = f.tell()
         in_loop = False
         loop = t = 0
-        final = False
+        final = standby = False
         grounds: list[bytes] = []
         telemetry: bytes | None = None
         health: bytes | None = None
@@ -669,8 +704,8 @@ class RecordReader:
             if typ == BEGIN:
                 if in_loop:
                     raise self._fail(f"item at byte {off - n - _ITEM.size}: loop {loop} never ends")
-                loop, t, final_byte = _BEGIN.unpack(body)
-                final = bool(final_byte)
+                loop, t, flags = _BEGIN.unpack(body)
+                final, standby = bool(flags & 1), bool(flags & 2)
                 in_loop = True
                 telemetry = None
                 health = None
@@ -702,6 +737,7 @@ class RecordReader:
                     telemetry,
                     saves,
                     health,
+                    standby,
                 )
                 in_loop = False
             elif typ == TELEMETRY:

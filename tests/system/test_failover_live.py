@@ -71,7 +71,9 @@ def test_a_killed_commander_is_replaced_then_rejoins_as_the_standby(
     monkeypatch.setenv(RECORDER_DIR_ENV, str(root))
     with Cluster(FLIGHT, tmp_path) as c:
         for n in NODES:
-            c.spawn(n)
+            # Both control nodes record their loops (the standby once it commands).
+            extra = ("--record", str(tmp_path / f"loops-{n}")) if n in ("cn", "cn_b") else ()
+            c.spawn(n, *extra)
         commander, term = _ready(c)
         assert zp("cmd", str(c.path), "noop").returncode == 0
         c.kill(commander)
@@ -91,6 +93,9 @@ def test_a_killed_commander_is_replaced_then_rejoins_as_the_standby(
         assert c.tm.get_name("cn_state") == "SAFE"
         assert "follows as the standby" in c.log(commander)
     _one_term_per_loop(c, root, {term, now})
+    # The new commander's recording starts at the takeover and replays bit for bit.
+    r = zp("replay", str(tmp_path / f"loops-{new}"), "--mission", str(c.path))
+    assert r.returncode == 0 and "identical" in r.stdout, r.stdout + r.stderr
 
 
 def test_a_stopped_commander_is_replaced_and_stands_down_when_continued(

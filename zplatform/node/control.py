@@ -229,12 +229,14 @@ class ControlNode:
         self._gap = False  # the next loop is a takeover's first
         self._take_at = 0
         self._origin: int | None = None  # a resumed run's schedule (monotonic ns)
+        self._next_recorder: Recorder | None = None  # a standby's --record, not started
         self._resume_term = 0  # a redundant mission's node resuming: its term
         self._stopped_cleanly = False
         self._last_step: int | None = None  # self.loops after the run's planned last loop
         # Failover (zplatform.failover): the mirror out and in, the probes, the
         # other control node's liveliness, and the standby while not commanding.
         self.standby: Standby | None = None
+        self._peer_alive = False  # the other control node's standby token (zenoh's thread)
         self.takeovers = 0
         """Times this node took command (a standby's takeovers)."""
         if self.redundant:
@@ -255,7 +257,6 @@ class ControlNode:
                 s, space, mission.device_nodes, max(mission.sync_timeout_ns, mission.period_ns // 4)
             )
             self._peer = next(n for n in mission.control_nodes if n != name)
-            self._peer_alive = False
             self._peer_seen = False
             self._ready_token: zenoh.LivelinessToken | None = None
             self._peer_sub = s.liveliness().declare_subscriber(
@@ -263,7 +264,6 @@ class ControlNode:
                 zenoh.handlers.Callback(self._on_peer, indirect=False),
                 history=True,
             )
-            self._h_ready = self.dv.handle("cn_standby_ready")
         if not self.redundant or name == "cn":
             # The device nodes wait for a control node's token, then set their
             # clocks by `cn`'s server. A standby announces once it follows.
@@ -351,13 +351,23 @@ class ControlNode:
         assert self._requests is not None  # subscribed only with a ground node
         self._requests.admit(sample.payload, None)
 
-    def record(self, directory: str | Path, mission_source: str | Path) -> Recorder:
+    def record(self, directory: str | Path, mission_source: str | Path) -> Recorder | None:
         """Record every loop's inputs into ``directory`` from now on (call
-        after :meth:`wait_ready`). RecordingError if it cannot start."""
-        self.recorder = Recorder(directory, self.mission, mission_source, self.dv)
-        self.logic.recorder = self.recorder
-        self.liveness.add(self.recorder.heartbeat)
-        return self.recorder
+        after :meth:`wait_ready`). RecordingError if it cannot start. A
+        standby (None returned) starts recording when it takes command, from
+        the vector it took over (:func:`zplatform.lockstep.replay` adopts a
+        recording that starts mid-run); a node that stands down ends its
+        recording there: a recording is one reign."""
+        rec = Recorder(
+            directory, self.mission, mission_source, self.dv, start=self.standby is None
+        )
+        self.liveness.add(rec.heartbeat)
+        if self.standby is not None:  # made now; started when it takes command
+            self._next_recorder = rec
+            return None
+        self.recorder = rec
+        self.logic.recorder = rec
+        return rec
 
     # -- start-up --------------------------------------------------------
     def wait_ready(
@@ -591,7 +601,8 @@ class ControlNode:
         if self.health is not None:
             self.health.note(m0 - deadline_ns)
         loop = k + 1
-        if self.redundant and not self._still_commanding():
+        ready = self._peer_alive  # read once: zenoh's thread writes it
+        if self.redundant and not self._still_commanding(ready):
             return False
         # The loop's one timestamp is its scheduled start, not the moment the
         # thread woke: loop n is then at t1 + (n - 1) * period exactly, as in
@@ -603,7 +614,8 @@ class ControlNode:
             self.first_loop_ns = t
         logic = self.logic
         final = self.loops + 1 == self._last_step or self.stop.is_set()
-        overrun = self.sync.sync(logic.begin(loop, t, final=final), logic)
+        standby = ready if self.redundant else None
+        overrun = self.sync.sync(logic.begin(loop, t, final=final, standby=standby), logic)
         grounds = self._grounds
         grounds.clear()
         taken = self._taken
@@ -659,7 +671,7 @@ class ControlNode:
         return not final
 
     # -- failover (a redundant mission) ------------------------------------------
-    def _still_commanding(self) -> bool:
+    def _still_commanding(self, ready: bool) -> bool:
         """A commander's check at the top of each loop: a mirror of a newer
         term from the other control node makes it stand down before it sends
         anything (a commander woken from a stop learns it here); and the
@@ -674,8 +686,6 @@ class ControlNode:
                 )
                 return False
             item = self._mirrors.pop()
-        ready = self._peer_alive
-        self._h_ready.set(ready)  # (a mirror it took over from said the other's view)
         if ready != self._peer_seen:
             self._peer_seen = ready
             self.logic.events.emit(
@@ -690,6 +700,8 @@ class ControlNode:
     def _stand_down(self, why: str) -> None:
         self.standby = Standby.stand_down(self.mission, self.logic, self.keys, why)
         self._stop_serving()
+        if self.recorder is not None:  # the recording of this reign ends here
+            self.logic.recorder = None
         log.warning("%s stands down: %s", self.name, why)
 
     def _follow(self, gc_guard: GcGuard) -> int | None:
@@ -715,6 +727,14 @@ class ControlNode:
             return None
         logic = sb.take(self._take_at)
         self.standby = None
+        rec, self._next_recorder = self._next_recorder, None
+        if rec is not None:
+            try:
+                rec.start(self.dv)
+                self.recorder = rec
+                logic.recorder = rec
+            except RecordingError as exc:  # the flight goes on; say why nothing is recorded
+                log.error("%s cannot record its loops: %s", self.name, exc)
         if self._ready_token is not None:
             self._ready_token.undeclare()
             self._ready_token = None
@@ -901,8 +921,9 @@ class ControlNode:
                 self.watchdog.close(clean=self._stopped_cleanly)
             if self.health is not None:
                 self.health.close()
-            if self.recorder is not None:
-                self.recorder.close()
+            for r in (self.recorder, self._next_recorder):
+                if r is not None:
+                    r.close()
             if self._saver is not None:  # a save in progress is finished, not torn
                 self._saver.close()
             if self.flight_recorder is not None:
@@ -1001,8 +1022,10 @@ def run_control_node(
         if record is not None:
             if mission_source is None:
                 raise NodeError("recording needs the mission file's path")
-            node.record(record, mission_source)
-            log.info("recording loop inputs into %s", record)
+            if node.record(record, mission_source) is not None:
+                log.info("recording loop inputs into %s", record)
+            else:
+                log.info("recording loop inputs into %s once it commands", record)
         if duration_s is not None:
             n = max(1, round(duration_s * mission.loop_hz))
             max_loops = n if max_loops is None else min(max_loops, n)
