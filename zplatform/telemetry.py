@@ -285,6 +285,87 @@ def _as_numbers(raw: list[str]) -> list[float] | None:
         return None
 
 
+#: Markers closer than this share of the run share one label.
+_NEAR = 0.02
+#: A shared label names at most this many markers, then "(+N more)".
+_MAX_LINES = 5
+#: Label text size and the gaps (points) around and between labels.
+_LABEL_PT, _LABEL_GAP_PT = 7.0, 2.0
+
+
+def _marker_groups(markers: list[Marker], span_s: float) -> list[list[Marker]]:
+    """Markers in time order, in groups: those within :data:`_NEAR` of the run share a label."""
+    near = _NEAR * (span_s if span_s > 0 else 1.0)
+    groups: list[list[Marker]] = []
+    for m in markers:
+        if groups and m.t_s - groups[-1][0].t_s <= near:
+            groups[-1].append(m)
+        else:
+            groups.append([m])
+    return groups
+
+
+def _group_text(group: list[Marker]) -> str:
+    lines = [m.label for m in group]
+    if len(lines) > _MAX_LINES:
+        lines = [*lines[: _MAX_LINES - 1], f"(+{len(lines) - _MAX_LINES + 1} more)"]
+    return "\n".join(lines)
+
+
+def _stack_labels(fig: Any, ax: Any, labels: list[Any]) -> float:
+    """Place marker labels above ``ax`` so that no two overlap; returns their height (pixels).
+
+    Each label (an annotation at its marker's time on the top edge of
+    ``ax``) is measured with the figure's renderer: its text and its
+    background box. In time order, a label goes at the lowest height above
+    the axes where it overlaps no label placed before it (a skyline: the
+    candidates are the axes' edge and the top of every placed label). A
+    label that would run past the axes' right edge is set to the left of its
+    marker instead. The layout must be final in x: call after
+    ``tight_layout``.
+    """
+    from matplotlib.transforms import Bbox
+
+    renderer = fig.canvas.get_renderer()
+    px_per_pt = renderer.points_to_pixels(1.0)
+    gap = _LABEL_GAP_PT * px_per_pt
+    right = ax.get_window_extent(renderer).x1
+
+    def extent(label: Any) -> Any:
+        label.update_positions(renderer)
+        boxes = [label.get_window_extent(renderer)]
+        patch = label.get_bbox_patch()
+        if patch is not None:
+            label.update_bbox_position_size(renderer)
+            boxes.append(patch.get_window_extent(renderer))
+        return Bbox.union(boxes)
+
+    placed: list[Any] = []
+    for label in labels:
+        label.set_horizontalalignment("left")
+        label.xyann = (_LABEL_GAP_PT, _LABEL_GAP_PT)
+        box = extent(label)
+        if box.x1 > right:  # no room on the right: the text ends at its marker
+            label.set_horizontalalignment("right")
+            label.xyann = (-_LABEL_GAP_PT, _LABEL_GAP_PT)
+            box = extent(label)
+        # Each box widened by a gap either side: neighbours on a line stay two gaps apart.
+        wide = Bbox.from_extents(box.x0 - gap, box.y0, box.x1 + gap, box.y1)
+        rise = 0.0
+        for up in sorted({0.0, *(p.y1 + gap - box.y0 for p in placed)}):
+            if up < 0:
+                continue
+            moved = wide.translated(0, up)
+            if not any(moved.overlaps(p) for p in placed):
+                rise = up
+                break
+        label.xyann = (label.xyann[0], _LABEL_GAP_PT + rise / px_per_pt)
+        placed.append(wide.translated(0, rise))
+    if not placed:
+        return 0.0
+    return max(p.y1 for p in placed) - ax.get_window_extent(renderer).y1 + gap
+
+
 def plot_telemetry(
     rows: list[dict[str, str]],
     elements: list[str],
@@ -297,9 +378,11 @@ def plot_telemetry(
     Numbers are lines; booleans (columns holding only ``0``/``1``) and enums
     (names) are steps with labelled levels (``False``/``True``, the enum
     names in order of first appearance). State changes and commands
-    (:func:`plot_markers`) are vertical lines on every axis, named on the
-    top one. Needs matplotlib (the ``plot`` extra); uses the Agg backend.
-    Returns the markers drawn.
+    (:func:`plot_markers`) are vertical lines on every axis, named above the
+    top one: markers within 2 % of the run share a label, and labels are
+    stacked so that none overlaps another (:func:`_stack_labels`); the
+    figure grows by their height. Needs matplotlib (the ``plot`` extra);
+    uses the Agg backend. Returns the markers drawn.
     """
     import matplotlib
 
@@ -309,8 +392,9 @@ def plot_telemetry(
     t0 = int(rows[0]["rx_time_ns"])
     t = [(int(r["rx_time_ns"]) - t0) / 1e9 for r in rows]
     markers = plot_markers(rows)
+    height_in = 1.5 + 2.0 * len(elements)
     fig, axes = plt.subplots(
-        len(elements), 1, sharex=True, squeeze=False, figsize=(10, 1.5 + 2.0 * len(elements))
+        len(elements), 1, sharex=True, squeeze=False, figsize=(10, height_in), dpi=100
     )
     try:
         for ax, name in zip(axes[:, 0], elements, strict=True):
@@ -338,30 +422,58 @@ def plot_telemetry(
                     label=m.label,
                 )
         top = axes[0, 0]
-        # Markers closer than 2 % of the run share one label, so they stay legible.
-        near = 0.02 * (t[-1] - t[0] if len(t) > 1 else 1.0)
-        groups: list[list[Marker]] = []
-        for m in markers:
-            if groups and m.t_s - groups[-1][0].t_s <= near:
-                groups[-1].append(m)
-            else:
-                groups.append([m])
-        for g in groups:
+        labels = []
+        for g in _marker_groups(markers, t[-1] - t[0]):
+            at = (g[0].t_s, 1.0)
+            state = g[0].kind == "state"
+            # The marker's line, on from the axes' edge up to its label, beneath every label.
             top.annotate(
-                "\n".join(m.label for m in g),
-                xy=(g[0].t_s, 0.97),
+                "",
+                xy=at,
                 xycoords=("data", "axes fraction"),
-                xytext=(2, 0),
+                xytext=(0, 0),
                 textcoords="offset points",
-                va="top",
-                ha="left",
-                fontsize=7,
-                bbox={"boxstyle": "round,pad=0.15", "fc": "white", "ec": "none", "alpha": 0.8},
-                color="tab:red" if all(m.kind == "state" for m in g) else "black",
+                arrowprops={
+                    "arrowstyle": "-",
+                    "color": "tab:red" if state else "tab:green",
+                    "linestyle": "--" if state else ":",
+                    "lw": 1,
+                    "shrinkA": 0,
+                    "shrinkB": 0,
+                },
+                annotation_clip=False,
+                zorder=2.5,
+            ).set_in_layout(False)
+            labels.append(
+                top.annotate(
+                    _group_text(g),
+                    xy=at,
+                    xycoords=("data", "axes fraction"),
+                    xytext=(_LABEL_GAP_PT, _LABEL_GAP_PT),
+                    textcoords="offset points",
+                    va="bottom",
+                    ha="left",
+                    fontsize=_LABEL_PT,
+                    bbox={"boxstyle": "square,pad=0.1", "fc": "white", "ec": "none"},
+                    color="tab:red" if all(m.kind == "state" for m in g) else "black",
+                    annotation_clip=False,
+                    zorder=3,
+                )
             )
+        leaders = [a for a in top.texts if not a.get_text()]
         axes[-1, 0].set_xlabel("time since first snapshot (s)")
         fig.suptitle(title or ", ".join(elements))
-        fig.tight_layout()
+        # The labels' height depends on where the layout puts the axes, and the
+        # layout on the labels' height: settle it (the x scale barely moves).
+        for attempt in range(4):
+            fig.tight_layout()
+            stack_in = _stack_labels(fig, top, labels) / fig.dpi
+            want = height_in + stack_in
+            if attempt == 3 or abs(fig.get_figheight() - want) < 0.02:
+                break
+            fig.set_figheight(want)
+        for leader, label in zip(leaders, labels, strict=True):
+            leader.xyann = (0.0, label.xyann[1])
         fig.savefig(Path(out), dpi=100)
     finally:
         plt.close(fig)

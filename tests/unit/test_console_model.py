@@ -122,3 +122,42 @@ def test_command_outcomes_show_with_their_reason() -> None:
     assert [(x.severity, x.source) for x in m.log] == [("WARNING_HI", "cmd")]
     m.on_refusal(1, "LAUNCH", "not sent (ARM not accepted)")
     assert m.status().last_command == "LAUNCH: not sent (ARM not accepted)"
+
+
+def test_one_value_formatter_serves_the_console_and_the_parameter_table(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """ground.records.value_text spells values for both, each keeping its own spelling."""
+    from zplatform.console import model as console_model
+    from zplatform.ground.records import value_text
+
+    # the parameter table's spelling (mission-file words, 7 digits)...
+    assert [value_text(v) for v in (True, False, 1 / 3, 2.5, 7, "x")] == [
+        "true",
+        "false",
+        "0.3333333",
+        "2.5",
+        "7",
+        "x",
+    ]
+    # ...and the console's (telemetry CSV bits, 6 digits), from the same function
+    assert [value_text(v, bools=("0", "1"), digits=6) for v in (True, False, 1 / 3)] == [
+        "1",
+        "0",
+        "0.333333",
+    ]
+    m = ConsoleModel(MISSION)
+    spec = m.layout.elements
+    m.dv.set("cn_prm_unsaved", True)
+    m.dv.set("cn_cpu_pct", 12.345678)
+    called: list[object] = []
+
+    def spy(v: object, **kw: object) -> str:
+        called.append(v)
+        return value_text(v, **kw)  # type: ignore[arg-type]
+
+    monkeypatch.setattr(console_model, "value_text", spy)
+    assert m.format_value(spec["cn_prm_unsaved"]) == "1"
+    assert m.format_value(spec["cn_cpu_pct"]) == "12.3457"
+    assert m.format_value(spec["cn_loop"]) == "0"
+    assert len(called) == 3  # the console's values went through the shared formatter

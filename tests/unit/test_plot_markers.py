@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any, NamedTuple
 
 import pytest
 
@@ -57,3 +58,127 @@ def test_events_path_is_beside_the_csv() -> None:
     assert events_path("tm.csv") == Path("tm.events.jsonl")
     assert events_path("/a/b/run.CSV") == Path("/a/b/run.events.jsonl")
     assert events_path("log") == Path("log.events.jsonl")
+
+
+# ------------------------------------------------- marker labels never overlap
+
+
+def _timeline(
+    span_s: float, states: list[tuple[float, str]], commands: list[tuple[float, str]]
+) -> list[dict[str, str]]:
+    """Rows at 10 Hz over ``span_s``, with state changes and command verdicts at the given times."""
+    rows = []
+    seq = 0
+    cmd, status = "NONE", "NONE"
+    for i in range(int(span_s * 10) + 1):
+        t = i / 10
+        state = [s for at, s in states if at <= t + 1e-9][-1]
+        for at, c in commands:
+            if abs(at - t) < 1e-9:
+                seq += 1
+                cmd, status = c.split()
+        rows.append(
+            {
+                "rx_time_ns": str(1_000_000_000 + i * 100_000_000),
+                "cn_state": state,
+                "cn_cmd": cmd,
+                "cn_cmd_seq": str(seq),
+                "cn_cmd_status": status,
+                "alt": str((t * (span_s - t)) % 997),
+            }
+        )
+    return rows
+
+
+#: The flight mission's run (configs/flight.commands): the audit's overlaps,
+#: BOOST/COAST over "ARM ACCEPTED" and LANDED over "NOOP ACCEPTED".
+FLIGHT = _timeline(
+    60.0,
+    [
+        (0, "SAFE"),
+        (1.0, "ARMED"),
+        (3.1, "BOOST"),
+        (6.0, "COAST"),
+        (15.4, "DROGUE"),
+        (31.0, "MAIN"),
+        (47.1, "LANDED"),
+    ],
+    [(1.0, "ARM ACCEPTED"), (1.1, "LAUNCH ACCEPTED"), (45.0, "NOOP ACCEPTED")],
+)
+
+#: A busy run: a marker every 0.5 s to 2 % apart, long labels, some at the very end.
+BUSY = _timeline(
+    20.0,
+    [(0, "SAFE")] + [(0.3 + 0.9 * k, f"STATE_NUMBER_{k}") for k in range(22)],
+    [(0.5 * k, "WRITE_PARAMETER_SET REJECTED_NOT_WHITELISTED") for k in range(1, 41)],
+)
+
+
+class Drawn(NamedTuple):
+    """A plot as drawn: what each label covers, the top plot's area, the figure's."""
+
+    labels: list[tuple[str, Any]]  # (text, Bbox in pixels); the title as "(title)"
+    top: Any
+    figure: Any
+
+
+def _draw(
+    monkeypatch: pytest.MonkeyPatch, rows: list[dict[str, str]], elements: list[str], out: Path
+) -> Drawn:
+    """Plot ``rows`` and measure its texts with the renderer that drew them.
+
+    A text covers its glyphs and its background box (``bbox=``), both
+    measured after a draw; the title counts too.
+    """
+    from matplotlib.figure import Figure
+    from matplotlib.transforms import Bbox
+
+    drawn: list[Drawn] = []
+    save = Figure.savefig
+
+    def measure(fig: Figure, *a: Any, **kw: Any) -> None:
+        save(fig, *a, **kw)
+        fig.canvas.draw()
+        r = fig.canvas.get_renderer()  # type: ignore[attr-defined]
+        texts = [t for ax in fig.axes for t in ax.texts if t.get_text()]
+        if fig._suptitle is not None:
+            texts.append(fig._suptitle)
+        labels = []
+        for t in texts:
+            boxes = [t.get_window_extent(r)]
+            if t.get_bbox_patch() is not None:
+                boxes.append(t.get_bbox_patch().get_window_extent(r))
+            name = "(title)" if t is fig._suptitle else t.get_text()
+            labels.append((name, Bbox.union(boxes)))
+        drawn.append(Drawn(labels, fig.axes[0].get_window_extent(r), fig.bbox.frozen()))
+
+    monkeypatch.setattr(Figure, "savefig", measure)
+    plot_telemetry(rows, elements, out)
+    (d,) = drawn
+    return d
+
+
+@pytest.mark.parametrize(
+    ("rows", "elements"),
+    [(FLIGHT, ["cn_state", "alt"]), (FLIGHT, ["alt"]), (BUSY, ["cn_state", "alt"])],
+    ids=["flight", "flight-one-axis", "busy"],
+)
+def test_marker_labels_do_not_overlap(
+    monkeypatch: pytest.MonkeyPatch,
+    tmp_path: Path,
+    rows: list[dict[str, str]],
+    elements: list[str],
+) -> None:
+    pytest.importorskip("matplotlib")
+    d = _draw(monkeypatch, rows, elements, tmp_path / "p.png")
+    drawn = "\n".join(text for text, _ in d.labels)
+    assert all(m.label in drawn for m in plot_markers(rows)[:3])  # the labels are there
+    for i, (a, ba) in enumerate(d.labels):
+        for b, bb in d.labels[i + 1 :]:
+            assert not ba.overlaps(bb), f"{a!r} at {ba.bounds} overlaps {b!r} at {bb.bounds}"
+    # ...and none leaves the figure or covers the top plot's data
+    for text, box in d.labels:
+        assert d.figure.x0 <= box.x0 and box.x1 <= d.figure.x1, text
+        assert d.figure.y0 <= box.y0 and box.y1 <= d.figure.y1, text
+        if text != "(title)":
+            assert box.y0 >= d.top.y1 - 1, f"{text!r} covers the plot"

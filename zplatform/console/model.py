@@ -42,6 +42,7 @@ from ..ground.records import (
     TelemetryCounters,
     format_outcome,
     param_rows,
+    value_text,
 )
 from ..ground.status import RateMeter
 from ..health import stalled_names
@@ -395,8 +396,5 @@ def writable_names(mission: Mission, layout: Layout) -> list[str]:
 
 
 def _fmt(v: Any) -> str:
-    if isinstance(v, bool):
-        return "1" if v else "0"
-    if isinstance(v, float):
-        return f"{v:.6g}"
-    return str(v)
+    """A Data Vector value: bools as the telemetry CSV spells them, floats to 6 digits."""
+    return value_text(v, bools=("0", "1"), digits=6)

@@ -31,6 +31,7 @@ __all__ = [
     "TelemetryCounters",
     "format_outcome",
     "param_rows",
+    "value_text",
 ]
 
 REFUSALS = ("stale", "ahead", "old_epoch", "old_term", "not_newer", "jump")
@@ -176,13 +177,17 @@ def param_rows(mission: Mission, values: Mapping[str, object] | None) -> list[Pa
     rows = []
     for p in mission.params:
         units = f" {p.units}" if p.units else ""
-        bounds = f"[{_text(p.min)}, {_text(p.max)}]{units}" if p.min is not None else units[1:]
+        bounds = (
+            f"[{value_text(p.min)}, {value_text(p.max)}]{units}" if p.min is not None else units[1:]
+        )
         rows.append(
             ParamRow(
                 name=p.name,
                 type=p.type,
-                value=_text(values[p.name]) if values is not None and p.name in values else "-",
-                default=_text(p.default),
+                value=value_text(values[p.name])
+                if values is not None and p.name in values
+                else "-",
+                default=value_text(p.default),
                 bounds=bounds,
                 states=param_states(mission, p),
                 hazardous=p.hazardous,
@@ -192,9 +197,15 @@ def param_rows(mission: Mission, values: Mapping[str, object] | None) -> list[Pa
     return rows
 
 
-def _text(v: object) -> str:
+def value_text(v: object, *, bools: tuple[str, str] = ("false", "true"), digits: int = 7) -> str:
+    """A value as the ground shows it: a bool as ``bools`` (false, true), a float to ``digits``.
+
+    The defaults are the parameter table's (the words of a mission file);
+    the console shows Data Vector values as the telemetry CSV spells bools,
+    ``bools=("0", "1")``, to 6 digits. Anything else is ``str(v)``.
+    """
     if isinstance(v, bool):
-        return "true" if v else "false"
+        return bools[1] if v else bools[0]
     if isinstance(v, float):
-        return f"{v:.7g}"
+        return f"{v:.{digits}g}"
     return str(v)
