@@ -33,6 +33,7 @@ __all__ = ["main"]
 Handler = Callable[[argparse.Namespace], int]
 
 
+
 def _mission_report(m: Mission) -> dict[str, object]:
     layout = Layout.for_node(m, "cn")
     from .codec import frame_overhead
@@ -74,7 +75,21 @@ def _mission_report(m: Mission) -> dict[str, object]:
         "regions": regions,
         "sync_bytes_per_loop": per_loop,
         "telemetry_bytes_per_loop": per_loop_tm,
-        "bandwidth_bps": (per_loop + per_loop_tm) * 8 * m.loop_hz,
+        # With a standby, the commander's mirror to it every loop too.
+        "bandwidth_bps": (per_loop + per_loop_tm + (telemetry if m.standby else 0))
+        * 8
+        * m.loop_hz,
+        "standby": (
+            {
+                "node": m.standby,
+                "takeover_loops": m.takeover.takeover_loops,
+                "lease_loops": m.takeover.lease_loops,
+                # The standby's copy of the vector, every loop, whatever the divisor.
+                "mirror_bytes_per_loop": telemetry,
+            }
+            if m.standby is not None
+            else None
+        ),
     }
 
 
@@ -134,6 +149,14 @@ def cmd_check(args: argparse.Namespace) -> int:
         f"sync deadline {m.sync_timeout_ms:g} ms)"
     )
     print(links_text)
+    if m.standby is not None:
+        f = m.takeover
+        print(
+            f"standby control node {m.standby}: takes command after {f.takeover_loops} loops "
+            f"without the commander (device nodes' lease {f.lease_loops} loops, watchdog "
+            f"{m.faults.dn_watchdog_loops}); its mirror of the vector "
+            f"{rep['standby']['mirror_bytes_per_loop']} B per loop"  # type: ignore[index]
+        )
     for r in rep["regions"]:  # type: ignore[attr-defined]
         print(
             f"\nregion {r['region']}  {r['size']} B  frame {r['frame_bytes']} B  "

@@ -468,8 +468,7 @@ class StateMachineConfig(_Struct):
     states: Annotated[
         dict[str, StateConfig],
         Meta(
-            description="Every state by name (identifiers), in the order `cn_state` numbers "
-            "them."
+            description="Every state by name (identifiers), in the order `cn_state` numbers them."
         ),
     ]
     priority: Annotated[
@@ -948,13 +947,9 @@ class HealthMetric(msgspec.Struct, frozen=True):
 
 HEALTH_METRICS: tuple[HealthMetric, ...] = (
     # sampled by the health thread, in this order (zplatform.health.SAMPLED)
-    HealthMetric(
-        "cpu_pct", "f32", "the node process's CPU, % of one core", (None, 80), (None, 95)
-    ),
+    HealthMetric("cpu_pct", "f32", "the node process's CPU, % of one core", (None, 80), (None, 95)),
     HealthMetric("sys_cpu_pct", "f32", "the host's CPU, % of all cores", (None, 85), (None, 95)),
-    HealthMetric(
-        "rss_mb", "f32", "the process's resident memory (MiB)", (None, 512), (None, 1024)
-    ),
+    HealthMetric("rss_mb", "f32", "the process's resident memory (MiB)", (None, 512), (None, 1024)),
     HealthMetric(
         "mem_free_mb", "f32", "the host's available memory (MiB)", (256, None), (64, None)
     ),
@@ -1887,6 +1882,14 @@ def _check_failover(m: Mission) -> None:
         )
     if m.nodes[STANDBY].board:
         raise ConfigError("a control node has no board", f"$.nodes.{STANDBY}.board")
+    for i, ch in enumerate(m.bulk):
+        if ch.node in ("cn", STANDBY) or "cn" in ch.readers or STANDBY in ch.readers:
+            raise ConfigError(
+                f"bulk channel {ch.name!r} ends on a control node: a mission with a standby "
+                "control node mirrors the Data Vector, not bulk arrays, so a takeover would "
+                "lose it (keep bulk channels between device nodes)",
+                f"$.bulk[{i}]",
+            )
 
 
 _ENDPOINT_RE = re.compile(r"^(tcp|udp|tls|quic|unixsock-stream|ws)/(.+)$")
@@ -2015,7 +2018,13 @@ def platform_elements(m: Mission) -> dict[str, list[ElementConfig]]:
         # which term, and the command handler's and state machine's state that
         # a standby must mirror to continue exactly where the other left off.
         cn += [
-            E("cn_term", "u32", 1, doc="the term in command: raised by every takeover"),
+            E(
+                "cn_term",
+                "u32",
+                1,
+                doc="the term in command, raised by every takeover (with a standby, `cn_b`; "
+                "so are the next six)",
+            ),
             E("cn_commander", "enum", "cn", m.control_nodes, doc="the control node in command"),
             E("cn_term_loop", "u64", 0, doc="the loop this term began (0: the first term)"),
             E(
@@ -2040,7 +2049,9 @@ def platform_elements(m: Mission) -> dict[str, list[ElementConfig]]:
         # safes its actuators as the run's end, not as a lost control node.
         out[f"cn_to_{dn}"] = [E(f"{dn}_final", "bool", False)]
         if m.standby is not None:  # the term of the control node that sent the trigger
-            out[f"cn_to_{dn}"].append(E(f"{dn}_term", "u32", 1, doc=f"the term driving {dn}"))
+            out[f"cn_to_{dn}"].append(
+                E(f"{dn}_term", "u32", 1, doc="the term of the trigger (with a standby)")
+            )
         out[f"{dn}_to_cn"] = [
             E(f"{dn}_loop", "u64", 0, doc=f"the CN loop {dn} last ran"),
             E(f"{dn}_time_ns", "i64", 0, doc=f"{dn}'s time of that loop (ns)"),
@@ -2066,7 +2077,12 @@ def platform_elements(m: Mission) -> dict[str, list[ElementConfig]]:
         ]
         if m.standby is not None:
             out[f"{dn}_to_cn"].append(
-                E(f"{dn}_term_seen", "u32", 0, doc=f"the highest term whose trigger {dn} ran")
+                E(
+                    f"{dn}_term_seen",
+                    "u32",
+                    0,
+                    doc=f"the highest term {dn} ran or promised (with a standby)",
+                )
             )
     if m.has_ground:
         out["gn_to_cn"] = [
@@ -2098,7 +2114,12 @@ def platform_elements(m: Mission) -> dict[str, list[ElementConfig]]:
         if region == "cn" and m.standby is not None:
             # Controller.enabled_at_ns, mirrored so a takeover keeps it.
             out[region].append(
-                E(f"{c.name}_enabled_ns", "i64", 0, doc=f"when {c.name} was last enabled (ns)")
+                E(
+                    f"{c.name}_enabled_ns",
+                    "i64",
+                    0,
+                    doc=f"when controller {c.name} was last enabled (ns; with a standby)",
+                )
             )
     # Bulk channel counters live where their node reports them.
     for node in m.nodes:
@@ -2405,8 +2426,11 @@ def _check_control_sections(m: Mission) -> None:
                 raise ConfigError(
                     f"{section[:-1]} {c.name!r} is placed on {c.node!r}; "
                     "expected cn or a device node"
-                    + (" (the standby runs cn's controllers when it commands)"
-                       if c.node == STANDBY else ""),
+                    + (
+                        " (the standby runs cn's controllers when it commands)"
+                        if c.node == STANDBY
+                        else ""
+                    ),
                     f"{where}.node",
                 )
             if section == "devices" and c.node == "cn":

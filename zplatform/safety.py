@@ -27,6 +27,11 @@ makes them errors). Each is a :class:`SafetyWarning` naming its YAML path:
     The mission has hazardous commands but says ``security.transport:
     plain``: its links take any peer on the network (``auto`` would run
     mutual TLS with access control). At ``$.security.transport``.
+``control_node_cannot_resume``
+    The mission drives pyrotechnic outputs but has neither a standby control
+    node (``cn_b``) nor a flight recorder for ``cn``: a control node lost in
+    flight is the end of the flight, and one restarted mid-run starts over
+    in its initial state (docs/architecture.md#failover). At ``$.nodes``.
 
 The command smells apply only to a mission with a ground node (without one
 no command reaches the vehicle). The device smells import the devices'
@@ -52,6 +57,7 @@ WarningKind = Literal[
     "no_safe_value",
     "pyrotechnic_without_hazardous",
     "plain_transport_with_hazardous",
+    "control_node_cannot_resume",
 ]
 
 
@@ -130,6 +136,17 @@ def safety_warnings(mission: Mission) -> list[SafetyWarning]:
                 f"the mission drives pyrotechnic outputs ({', '.join(pyros)}) but no command "
                 f"is hazardous: none needs an ARM first; list the ones that can fire them "
                 f"(of {commands})",
+            )
+        )
+    if pyros and mission.standby is None and "cn" not in mission.recording_nodes:
+        out.append(
+            SafetyWarning(
+                "control_node_cannot_resume",
+                "$.nodes",
+                f"the mission drives pyrotechnic outputs ({', '.join(pyros)}) with one control "
+                "node and no flight recorder for it: a control node lost in flight ends the "
+                "flight, and one restarted mid-run starts over; add a standby control node "
+                "(cn_b) or a `recorder:` section (the control node resumes from it)",
             )
         )
     if mission.commands.hazardous and mission.security.transport == "plain":

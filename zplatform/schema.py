@@ -417,9 +417,7 @@ class _Walker:
             return self._nested(self.non_null(items), f"{path}[i]")
         if value.get("type") == "object" and isinstance(value.get("additionalProperties"), dict):
             name = _KEY_NAMES.get(path, "key")
-            return self._nested(
-                self.non_null(value["additionalProperties"]), f"{path}.<{name}>"
-            )
+            return self._nested(self.non_null(value["additionalProperties"]), f"{path}.<{name}>")
         return None, path
 
 
@@ -444,11 +442,11 @@ def _block(anchor: str, heading: str, section: _Section, rows: slice = slice(Non
 
 def _platform_rows() -> list[str]:
     """The platform elements of every region, for a mission with a device
-    node (``dnX``), a ground node, a controller, a bulk channel, a flight
-    recorder, a parameter and health."""
+    node (``dnX``), a ground node, a standby control node, a controller, a
+    bulk channel, a flight recorder, a parameter and health."""
     example = Mission(
         mission="m",
-        nodes={"cn": NodeConfig(), "dn0": NodeConfig(), "gn": NodeConfig()},
+        nodes={"cn": NodeConfig(), "cn_b": NodeConfig(), "dn0": NodeConfig(), "gn": NodeConfig()},
         regions={},
         controllers=[ComponentConfig(name="ctl", cls="m:C", node="cn")],
         bulk=[BulkChannelConfig(name="chan", node="dn0", type="u8[8]", readers=["cn"])],
@@ -469,6 +467,7 @@ def _platform_rows() -> list[str]:
         ("param_x", "<parameter>"),
         ("dn0", "dnX"),
         ("ctl_mode", "<controller>_mode"),
+        ("ctl_enabled_ns", "<controller>_enabled_ns"),
         ("controller ctl's", "the controller's"),
         ("bulk_chan_", "bulk_<channel>_"),
         ("chan: ", ""),

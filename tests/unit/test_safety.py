@@ -121,10 +121,24 @@ def test_pyrotechnic_outputs_need_hazardous_commands() -> None:
     doc = mission(commands={"protected": ["vent_mode"], "whitelist": {"SAFE": ["ARM", "WRITE"]}})
     doc["devices"][0]["config"]["pyrotechnic"] = True  # type: ignore[index]
     doc["devices"].append({"name": "cutter", "class": f"{HERE}:Squib", "node": "dn0"})  # type: ignore[attr-defined]
+    doc["recorder"] = {}  # a control node that resumes after a restart: not this test's smell
     (w,) = warnings_of(doc)
     assert (w.kind, w.path) == ("pyrotechnic_without_hazardous", "$.commands.hazardous")
     assert "(ign, cutter)" in w.message
     doc["commands"] = {"hazardous": ["LAUNCH"]}
+    assert warnings_of(doc) == []
+
+
+def test_a_pyrotechnic_mission_whose_control_node_cannot_resume() -> None:
+    """Pyrotechnic outputs, one control node and no flight recorder for it: a
+    control node lost in flight ends the flight, and one restarted mid-run
+    starts over. A recorder (it resumes from it) or a standby closes it."""
+    doc = mission(commands={"hazardous": ["LAUNCH"]})
+    doc["devices"][0]["config"]["pyrotechnic"] = True  # type: ignore[index]
+    (w,) = warnings_of(doc)
+    assert (w.kind, w.path) == ("control_node_cannot_resume", "$.nodes")
+    assert "(ign)" in w.message and "cn_b" in w.message and "recorder" in w.message
+    doc["recorder"] = {}
     assert warnings_of(doc) == []
 
 
