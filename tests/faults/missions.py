@@ -82,13 +82,14 @@ def plain_tcp_mission(src: str | Path, dst: str | Path) -> Path:
     The flood cases attack from a peer without any key, so they need a
     transport that lets such a peer in: with mutual TLS and the generated
     access control it gets no session at all, which hides what a flood
-    does to the nodes. Missions are plain TCP by default today; when a
-    secure transport becomes the default, the mission's opt-out belongs
-    here, so every flood test keeps stating its transport in one place.
+    does to the nodes. A mission with hazardous commands runs mutual TLS by
+    default (``security.transport: auto``), so the copy opts out here
+    (``plain``): every flood test states its transport in this one place.
     Raises ValueError for a mission whose endpoints are not ``tcp/``.
     """
     raw = yaml.safe_load(Path(src).read_text())
     relocate_mission(raw, src)
+    raw.setdefault("security", {})["transport"] = "plain"
     for name, node in raw["nodes"].items():
         for ep in [*node.get("listen", []), *node.get("connect", [])]:
             if not ep.startswith("tcp/"):
