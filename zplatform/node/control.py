@@ -145,10 +145,12 @@ class ControlNode:
         # Every thread this node runs checks in (zplatform.health).
         self.liveness = Liveness(thread_deadlines_ns(mission))
         self._loop_hb = self.liveness.add(Heartbeat("loop"))
-        # The commander serves the clock; `cn` from the start (the device nodes
-        # set their clocks by it before anything runs), a standby once it commands.
+        # The commander serves the clock; a mission's only control node from
+        # the start (the device nodes set their clocks by it before anything
+        # runs); in a redundant mission the node that commands, once it knows
+        # it does (wait_ready).
         self.clock_server: ClockServer | None = None
-        if name == "cn":
+        if not self.redundant:
             self._serve_clock()
         # The intakes get channels of their own (zenoh's threads check tags
         # with them; the loop's are not shared across threads).
@@ -386,6 +388,11 @@ class ControlNode:
         m = self.mission
         dns = m.device_nodes
         start = time.monotonic()
+        if self.redundant and self.name == "cn" and not self._alive_now(dns):
+            # A fresh start (the device nodes are not up): they set their clocks
+            # by cn's before they come up. Device nodes already running mean a
+            # run may be going on: ask them first (_first_to_command).
+            self._serve_clock()
         if dns:
             try:
                 wait_for_nodes(self.ns.session, self.ns.keys, dns, timeout_s, self.stop.event)
@@ -500,6 +507,15 @@ class ControlNode:
                 f"(loop {dn_loop})"
             )
         return ""
+
+    def _alive_now(self, nodes: list[str]) -> bool:
+        """Whether every one of ``nodes`` has its liveliness token now (a short
+        look: tokens come with the subscriber's history)."""
+        try:
+            wait_for_nodes(self.ns.session, self.ns.keys, nodes, ALIVE_LOOK_S, self.stop.event)
+        except TransportError:
+            return False
+        return True
 
     def _first_to_command(self, timeout_s: float) -> bool:
         """A redundant mission's control node at start: asks every device node
@@ -932,6 +948,8 @@ class ControlNode:
             self.ns.close()
 
 
+ALIVE_LOOK_S = 0.5
+"""How long a starting control node looks for device nodes already running."""
 RESUME_MAX_AGE_NS = 60_000_000_000
 """A restarted control node resumes from a recorded frame at most this old."""
 
