@@ -1864,6 +1864,12 @@ def _check_failover(m: Mission) -> None:
                 "$.failover",
             )
         return
+    if not m.device_nodes:
+        raise ConfigError(
+            f"a standby control node ({STANDBY}) needs device nodes: they decide when it may "
+            "take command (docs/architecture.md#failover)",
+            f"$.nodes.{STANDBY}",
+        )
     f = m.takeover
     if f.lease_loops > f.takeover_loops:
         raise ConfigError(

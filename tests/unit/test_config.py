@@ -749,3 +749,28 @@ def test_shipped_configs_load(path: Path) -> None:
 
 def test_shipped_configs_exist() -> None:
     assert {"minimal", "led_test"} <= {p.stem for p in CONFIGS.glob("*.yaml")}
+
+
+def test_a_standby_control_node_is_checked_at_load() -> None:
+    """A standby (`cn_b`) needs device nodes, a takeover that fits the device
+    nodes' watchdog and a lease within it; it carries no board, no
+    controller of its own, no bulk channel end; `failover:` needs it."""
+    d = mission()
+    d["nodes"]["cn_b"] = {}
+    d["failover"] = {"takeover_loops": 8}
+    err = fails(d)
+    assert err.path == "$.failover.takeover_loops" and "watchdog" in err.reason
+    d["failover"] = {"takeover_loops": 3, "lease_loops": 4}
+    err = fails(d)
+    assert err.path == "$.failover.lease_loops"
+    d["failover"] = {}
+    d["nodes"]["cn_b"] = {"board": {"driver": "sim"}}
+    assert fails(d).path == "$.nodes.cn_b.board"
+    d["nodes"]["cn_b"] = {}
+    d.pop("failover")
+    no_dns = {k: v for k, v in d["nodes"].items() if not k.startswith("dn")}
+    err = fails({**d, "nodes": no_dns, "regions": {"cn": d["regions"]["cn"]}})
+    assert err.path == "$.nodes.cn_b" and "device nodes" in err.reason
+    e = mission()
+    e["failover"] = {}
+    assert fails(e).path == "$.failover"
