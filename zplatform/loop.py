@@ -561,9 +561,10 @@ class ControlLogic:
         elements, the parameters. The persistence counts of the fault
         monitor and of the mission's monitors start over: a symptom must
         persist for its whole count under this control node (a later fault,
-        never a spurious one). A parameter save that was being written by
-        the node that recorded the vector is reported failed. Does nothing
-        before loop 1 (a fresh vector: every component starts as built)."""
+        never a spurious one). A parameter save that the node that wrote the
+        vector was still writing is written again, by this node
+        (:meth:`ParamTable.adopt <zplatform.params.ParamTable.adopt>`). Does
+        nothing before loop 1 (a fresh vector: every component starts as built)."""
         self.loop = int(self._h_loop.get())
         self.t_ns = t = int(self._h_time.get())
         if self.loop == 0:
