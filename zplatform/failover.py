@@ -147,6 +147,7 @@ class Standby:
         self._reader = MirrorReader(logic, keys)
         self._period = mission.period_ns
         self._takeover = mission.takeover.takeover_loops
+        self._lease = mission.takeover.lease_loops * mission.period_ns
         dns = mission.device_nodes
         self.dns = tuple(dns)
         self._ask_ch = tuple(channel(keys, f"probe_cn_to_{dn}") for dn in dns)
@@ -159,6 +160,9 @@ class Standby:
         send to each device node that granted (None: nothing to release)."""
         self.mirrored = 0
         """The loop of the last mirror applied (0: none yet)."""
+        self.following = False
+        """A mirror from the commander was applied (since this node stood down,
+        if it did): the standby is ready to take over."""
         self.mirrored_t = 0
         self.term = 0
         """The newest term known: the mirror's, or one a device node reported."""
@@ -210,7 +214,8 @@ class Standby:
         if (term, frame.seq) <= (self.term, self.mirrored):
             return False
         self._reader.codec.write(frame)
-        first = self.mirrored == 0
+        first = not self.following
+        self.following = True
         got = 0
         for i, h in enumerate(self._rx):
             rx = h.get()
@@ -316,11 +321,15 @@ class Standby:
         majority = 2 * len(granted) > len(self.dns)
         if self._kind == ASK and answered and len(granted) == len(answered) and majority:
             return Decision.TAKE
-        for i, r in enumerate(self.answers):
-            if r is not None and r.granted:
+        # Every device node asked gets the RELEASE, not only those whose grant
+        # came back in time: a late answer may have carried a promise, which
+        # would fence the commander for the lease.
+        if self._kind == ASK:
+            for i in range(len(self.dns)):
                 self.releases[i] = ask_frame(
                     self._ask_ch[i], RELEASE, i, self.index, self._asked, new_nonce(), now_ns
                 )
+            self._next_ask = slot + self._retry_in(answered)
         if self._kind == ASK and not self._held:
             self._held = True
             self.events.emit(
@@ -331,6 +340,17 @@ class Standby:
                 why=self._why_held(answered, granted),
             )
         return Decision.WAIT
+
+    def _retry_in(self, answered: list[ProbeReply]) -> int:
+        """Slots until the next round: when the device nodes refused only
+        because their lease had not yet run out (they last ran a trigger just
+        before the commander fell silent), as soon as it will have, else
+        ``takeover_loops`` (a commander still driving them)."""
+        refusing = [a for a in answered if not a.granted]
+        if not refusing or any(a.term > self.term or a.quiet_ns < 0 for a in refusing):
+            return self._takeover
+        left = self._lease - min(a.quiet_ns for a in refusing)
+        return max(1, min(self._takeover, -(-left // self._period)))
 
     def _why_held(self, answered: list[ProbeReply], granted: list[ProbeReply]) -> str:
         if not answered:
@@ -391,6 +411,7 @@ class Standby:
         sb.mirrored, sb.mirrored_t = logic.loop, logic.t_ns
         sb.commander = sb.index
         sb.origin = logic.t_ns - (logic.loop - 1) * mission.period_ns if logic.loop else None
+        sb.following = False  # until the new commander's mirror comes
         logic.events.emit(
             EV.CN_STOOD_DOWN,
             logic.t_ns,

@@ -254,15 +254,18 @@ class ControlLogic:
         # Terms (zplatform.fencing), in a mission with a standby control node.
         self.redundant = mission.standby is not None
         self.superseded = 0
-        """A higher term that a majority of the device nodes follow, seen in
-        this loop's replies (0: none): this control node no longer commands;
-        its driver stands it down (:mod:`zplatform.failover`)."""
+        """A higher term that a majority of the device nodes have followed
+        for more than ``failover.lease_loops`` loops in a row, seen in the
+        replies (0: none): this control node no longer commands; its driver
+        stands it down (:mod:`zplatform.failover`)."""
         self.mirror: bytearray | None = None
         """The last loop's mirror frame (the whole Data Vector, tagged for the
         standby; redundant missions only): the driver sends it every loop."""
         self._seal_mirror: Channel | None = None
         self._fenced = [False] * len(dns)
         self._fenced_term = 0
+        self._fenced_run = 0  # loops in a row a majority fenced this node
+        self._lease_loops = mission.takeover.lease_loops
         if self.redundant:
             self._h_term = dv.handle("cn_term")
             self._h_commander = dv.handle("cn_commander")
@@ -297,11 +300,17 @@ class ControlLogic:
         None: left as it is)."""
         self.loop = loop
         self.t_ns = t_ns
-        if standby is not None and self.redundant:
-            self._h_ready.set(standby)
         got = self._got
         frames = self._frames
-        term = self._h_term.get() if self.redundant else 0
+        term = 0
+        if self.redundant:
+            if standby is not None:
+                self._h_ready.set(standby)
+            term = self._h_term.get()
+            if self._h_term_loop.get() > self._h_loop.get():
+                # A term's first loop (take_command named the one planned; this
+                # is the one that runs, should the set-up have outlasted it).
+                self._h_term_loop.set(loop)
         for i, codec in enumerate(self._to_dn):
             got[i] = False
             self._final[i].set(final)
@@ -389,10 +398,11 @@ class ControlLogic:
         for i, got in enumerate(self._got):
             if not got:
                 self._missed[i].bump()
-        if self.redundant and sum(self._fenced) * 2 > len(self._fenced):
-            # A majority of the device nodes follow a newer term: another control
-            # node commands. This one runs nothing more (its driver stands it
-            # down); one device node alone cannot make it stand down.
+        if self.redundant and self._superseded_now():
+            # A majority of the device nodes have followed a newer term for
+            # longer than any promise lasts: another control node commands. This
+            # one runs nothing more (its driver stands it down); one device node
+            # alone, or a promise a standby let go, cannot make it stand down.
             self.superseded = self._fenced_term
             if self.recorder is not None:
                 self.recorder.finish(
@@ -447,6 +457,16 @@ class ControlLogic:
                 grounds, sync_overrun, loop_overruns, inbox_dropped, refused, saves, tm
             )
         return tm
+
+    def _superseded_now(self) -> bool:
+        """This loop's replies: a majority fenced by a newer term, for more
+        loops in a row than a device node's promise lasts (``lease_loops``)."""
+        if sum(self._fenced) * 2 > len(self._fenced):
+            self._fenced_run += 1
+        else:
+            self._fenced_run = 0
+            self._fenced_term = 0
+        return self._fenced_run > self._lease_loops
 
     def _refused(self, r: CnRefusals | None, t: int) -> None:
         """Count what the intake refused (module doc): a frame refused for its
@@ -575,18 +595,19 @@ class ControlLogic:
         self.monitors.adopt()
         self.controllers.adopt()
         self.params.adopt(t)
-        self.superseded = self._fenced_term = 0
+        self.superseded = self._fenced_term = self._fenced_run = 0
 
     def take_command(self, term: int, loop: int) -> None:
         """Command from ``loop`` on in ``term`` (a takeover: ``cn_term``,
-        ``cn_commander`` = this node, ``cn_term_loop``); call :meth:`adopt`
+        ``cn_commander`` = this node, ``cn_term_loop``, which the term's first
+        :meth:`begin` corrects to the loop that runs); call :meth:`adopt`
         first. ValueError in a mission without a standby."""
         if not self.redundant:
             raise ValueError("a mission without a standby control node has no terms")
         self._h_term.set(term)
         self._h_commander.set(self.mission.control_nodes.index(self.name))
         self._h_term_loop.set(loop)
-        self.superseded = self._fenced_term = 0
+        self.superseded = self._fenced_term = self._fenced_run = 0
 
     def reset_sync_counters(self) -> None:
         """Zero rx/missed/late per DN and the sync overruns (after a warm-up)."""

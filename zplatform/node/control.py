@@ -741,7 +741,15 @@ class ControlNode:
         follower.run(self._tick, start_ns=start)
         if not self._take_at:
             return None
-        logic = sb.take(self._take_at)
+        # What a commander serves, first; then the loop: the next one of the
+        # schedule not yet begun, so the term's first loop is one that runs
+        # (cn_term_loop), however long the set-up took.
+        self._serve_clock()
+        self._take_requests()
+        self._serve_recorder()
+        self.ns.announce()
+        loop = max(self._take_at, sb.slot(self.clock.now_ns()) + 1)
+        logic = sb.take(loop)
         self.standby = None
         rec, self._next_recorder = self._next_recorder, None
         if rec is not None:
@@ -756,26 +764,20 @@ class ControlNode:
             self._ready_token = None
         self.takeovers += 1
         self._gap = True
-        self._serve_clock()
-        self._take_requests()
-        self._serve_recorder()
-        self.ns.announce()
-        log.warning("%s took command in term %d at loop %d", self.name, logic.term, self._take_at)
+        log.warning("%s took command in term %d at loop %d", self.name, logic.term, loop)
         assert sb.origin is not None
         return self.clock.monotonic_at(sb.origin)
 
     def _apply_mirror(self, payload: bytes, now: int) -> None:
         sb = self.standby
         assert sb is not None
-        first = sb.mirrored == 0
         if not sb.mirror(payload, now):
             return
-        if first:  # following: ready to take over (the commander's cn_standby_ready)
+        if self._ready_token is None:  # following: ready (the commander's cn_standby_ready)
             self.ns.announce()
-            if self._ready_token is None:
-                self._ready_token = self.ns.session.liveliness().declare_token(
-                    self.ns.keys.standby(self.name)
-                )
+            self._ready_token = self.ns.session.liveliness().declare_token(
+                self.ns.keys.standby(self.name)
+            )
         rec = self.flight_recorder
         if rec is not None and sb.mirrored % self.mission.telemetry_divisor == 0:
             # A standby's own flight record: the commander's telemetry, as it was.
