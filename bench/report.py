@@ -534,7 +534,7 @@ def failover_section(params: dict[str, Any], variants: dict[str, dict[str, Any]]
     rows = []
     for case, v in variants.items():
         if "error" in v:
-            rows.append([case, v["error"][:120], *[None] * 11])
+            rows.append([case, v["error"][:120], *[None] * 12])
             continue
         rows.append(
             [
@@ -542,6 +542,9 @@ def failover_section(params: dict[str, Any], variants: dict[str, dict[str, Any]]
                 v.get("faults"),
                 f"{fmt(v.get('takeovers'))} ({fmt(v.get('spurious_takeovers'))})",
                 f"{fmt(v.get('takeover_loops_p50'))} / {fmt(v.get('takeover_loops_max'))}",
+                f"{fmt(v.get('first_trigger_loops_p50'))} / "
+                f"{fmt(v.get('first_trigger_loops_max'))} "
+                f"({fmt(v.get('term_loop_not_run'))})",
                 f"{fmt(v.get('takeover_ms_p50'))} / {fmt(v.get('takeover_ms_max'))}",
                 v.get("dn_untriggered_max"),
                 v.get("dn_safed_events"),
@@ -552,7 +555,14 @@ def failover_section(params: dict[str, Any], variants: dict[str, dict[str, Any]]
                 v.get("expected_state"),
                 all(
                     v.get(k)
-                    for k in ("met_p50", "met_max", "met_no_safings", "met_no_two_term_loops")
+                    for k in (
+                        "met_p50",
+                        "met_max",
+                        "met_p50_first_trigger",
+                        "met_max_first_trigger",
+                        "met_no_safings",
+                        "met_no_two_term_loops",
+                    )
                 )
                 and bool(v.get("final_as_configured")),
             ]
@@ -562,6 +572,7 @@ def failover_section(params: dict[str, Any], variants: dict[str, dict[str, Any]]
         "faults",
         "term changes (spurious)",
         "takeover loops p50 / max",
+        "first trigger loops p50 / max (term's first loop not run)",
         "takeover ms p50 / max",
         "DN loops untriggered, max",
         "DN safings",
@@ -575,7 +586,9 @@ def failover_section(params: dict[str, Any], variants: dict[str, dict[str, Any]]
     lines = [
         "",
         "**Takeovers** (loops: from the fault's loop on the commander's schedule to "
-        "`cn_term_loop`; DN loops untriggered: from the device nodes' flight recorders; "
+        "`cn_term_loop`; first trigger: to the first loop a device node ran in the new "
+        "term, and how often `cn_term_loop` itself never ran; DN loops untriggered: "
+        "from the device nodes' flight recorders; "
         "term changes: every new term the telemetry showed, spurious: those no fault "
         "of the bench caused)",
         "",
