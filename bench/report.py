@@ -527,6 +527,99 @@ def faults_section(params: dict[str, Any], variants: dict[str, dict[str, Any]]) 
     return lines
 
 
+def failover_section(params: dict[str, Any], variants: dict[str, dict[str, Any]]) -> list[str]:
+    """Issue 21's table: per case, the takeovers (fault -> the new term's first
+    loop), the device nodes' loops without a trigger, safings, two-term loops,
+    the final state; then each case's takeovers by their length."""
+    rows = []
+    for case, v in variants.items():
+        if "error" in v:
+            rows.append([case, v["error"][:120], *[None] * 12])
+            continue
+        rows.append(
+            [
+                case,
+                v.get("faults"),
+                f"{fmt(v.get('takeovers'))} ({fmt(v.get('spurious_takeovers'))})",
+                f"{fmt(v.get('takeover_loops_p50'))} / {fmt(v.get('takeover_loops_max'))}",
+                f"{fmt(v.get('first_trigger_loops_p50'))} / "
+                f"{fmt(v.get('first_trigger_loops_max'))} "
+                f"({fmt(v.get('term_loop_not_run'))})",
+                f"{fmt(v.get('takeover_ms_p50'))} / {fmt(v.get('takeover_ms_max'))}",
+                v.get("dn_untriggered_max"),
+                v.get("dn_safed_events"),
+                v.get("two_term_loops"),
+                f"{fmt(v.get('rejoin_s_p50'))} / {fmt(v.get('rejoin_s_max'))}",
+                f"{fmt(v.get('standby_ready_again'))} of {fmt(v.get('faults'))}",
+                v.get("final_state"),
+                v.get("expected_state"),
+                all(
+                    v.get(k)
+                    for k in (
+                        "met_p50",
+                        "met_max",
+                        "met_p50_first_trigger",
+                        "met_max_first_trigger",
+                        "met_no_safings",
+                        "met_no_two_term_loops",
+                    )
+                )
+                and bool(v.get("final_as_configured")),
+            ]
+        )
+    head = [
+        "case",
+        "faults",
+        "term changes (spurious)",
+        "takeover loops p50 / max",
+        "first trigger loops p50 / max (term's first loop not run)",
+        "takeover ms p50 / max",
+        "DN loops untriggered, max",
+        "DN safings",
+        "two-term loops",
+        "rejoin s p50 / max",
+        "standby ready again",
+        "final",
+        "configured",
+        "all targets",
+    ]
+    lines = [
+        "",
+        "**Takeovers** (loops: from the fault's loop on the commander's schedule to "
+        "`cn_term_loop`; first trigger: to the first loop a device node ran in the new "
+        "term, and how often `cn_term_loop` itself never ran; DN loops untriggered: "
+        "from the device nodes' flight recorders; "
+        "term changes: every new term the telemetry showed, spurious: those no fault "
+        "of the bench caused)",
+        "",
+        *md_table(head, rows),
+    ]
+    for case, v in variants.items():
+        each = v.get("each") or []
+        if not each:
+            continue
+        counts: dict[int, int] = {}
+        for t in each:
+            counts[int(t["loops"])] = counts.get(int(t["loops"]), 0) + 1
+        dist = ", ".join(f"{k} loops x{n}" for k, n in sorted(counts.items()))
+        lines += ["", f"_{case}_: takeovers by length: {dist}."]
+        if "drogue_fired" in v:
+            lines[-1] += (
+                f" The flight: killed in {v.get('state_at_kill')}, ended "
+                f"{v.get('final_state')}; drogue fired: {fmt(v.get('drogue_fired'))}, "
+                f"main fired: {fmt(v.get('main_fired'))}."
+            )
+        for x in v.get("spurious") or []:
+            gaps = [g for g in (x.get("dn_untriggered") or {}).values() if g is not None]
+            lines[-1] += (
+                f" Spurious term {x.get('old')} -> {x.get('new')} from loop {x.get('loop')} "
+                f"(DN loops untriggered: {fmt(max(gaps, default=None))})."
+            )
+        for text in v.get("dn_safed") or []:
+            lines[-1] += f" Safing: {fmt(text)}."
+    return lines
+
+
 def params_section(params: dict[str, Any]) -> list[str]:
     """Short params inline; long nested ones (over 100 characters of JSON) folded away."""
     short: list[tuple[str, Any]] = []
@@ -789,6 +882,8 @@ def section(bench: str, doc: dict[str, Any], plots_dir: Path | None, report_dir:
         lines += sync_trace_section(params, variants)
     elif bench == "faults":
         lines += faults_section(params, variants)
+    elif bench == "failover":
+        lines += failover_section(params, variants)
     lines += ratios_section(params, variants)
     lines += targets_section(params, variants)
     if plots_dir is not None:

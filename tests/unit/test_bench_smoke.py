@@ -1,4 +1,4 @@
-"""Smoke tests of the bandwidth, reliability, telemetry-latency and clock benches.
+"""Smoke tests of the bandwidth, reliability, telemetry-latency, clock and failover benches.
 
 Each runs its bench's ``main`` briefly (realtime scheduling off, so the test
 process is never put in SCHED_FIFO) and checks the result file's shape and
@@ -15,7 +15,7 @@ from pathlib import Path
 
 import pytest
 
-from bench import bandwidth, clock, levers, reliability, report, telemetry_latency
+from bench import bandwidth, clock, failover, levers, reliability, report, telemetry_latency
 
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(180)]
 
@@ -136,3 +136,30 @@ def test_levers_and_sync_trace_smoke(tmp_path: Path) -> None:
         assert v["p50_us"] > 0 and v["hop_issued->arrive_p50_us"] > 0, v
     assert "wildcard/shipped" in doc["params"]["ratios_p50"]
     assert "levers" in _renders(tmp_path)
+
+
+def test_failover_smoke(tmp_path: Path) -> None:
+    """``bench.failover --quick`` as shipped (about 20 s): two kill -9 and two
+    SIGSTOPs of the commanding control node on the flight mission, each
+    answered by a takeover in a new term; no loop driven by two terms (the
+    fencing's guarantee, whatever the load); the report renders the cases."""
+    out = tmp_path / "failover.json"
+    failover.main(["--quick", "--json", str(out)])
+    doc = _doc(out, "failover")
+    assert set(doc["variants"]) == {"kill9", "sigstop"}
+    assert doc["params"]["faults_per_case"] == 2 and doc["params"]["targets"]
+    for case, v in doc["variants"].items():
+        assert "error" not in v, (case, v["error"])
+        assert v["faults"] == len(v["each"]) == 2
+        assert v["takeovers"] >= 2 and v["loops_recorded"] > 0
+        for t in v["each"]:
+            assert t["new_term"] > t["old_term"] and t["commander"] != t["victim"], t
+            assert t["loops"] == t["term_loop"] - t["fault_loop"] > 0, t
+            assert set(t["dn_untriggered"]) == {"dn0", "dn1"}, t
+        for k in ("takeover_loops_p50", "takeover_loops_max", "takeover_ms_p50",
+                  "dn_untriggered_max", "dn_safed_events", "final_state"):  # fmt: skip
+            assert v[k] is not None, k
+        for k in ("met_p50", "met_max", "met_no_safings", "met_no_two_term_loops"):
+            assert isinstance(v[k], bool), k
+        assert v["two_term_loops"] == 0 and v["met_no_two_term_loops"]
+    assert "**Takeovers**" in _renders(tmp_path)
