@@ -161,3 +161,27 @@ def test_one_value_formatter_serves_the_console_and_the_parameter_table(
     assert m.format_value(spec["cn_cpu_pct"]) == "12.3457"
     assert m.format_value(spec["cn_loop"]) == "0"
     assert len(called) == 3  # the console's values went through the shared formatter
+
+
+def test_a_redundant_missions_header_says_who_commands_in_which_term() -> None:
+    """The flight mission has a standby: the console's header and ``up``'s
+    status line show the commander, its term and whether the standby is
+    ready; a mission without one shows none of it."""
+    from zplatform.ground.status import status_line
+
+    flight = load_mission(CONFIGS / "flight.yaml")
+    m = ConsoleModel(flight)
+    dv = DataVector(m.layout)
+    dv.set("cn_loop", 5)
+    dv.set("cn_term", 2)
+    dv.set("cn_commander", flight.control_nodes.index("cn_b"))
+    dv.set("cn_standby_ready", False)
+    m.on_snapshot(dv, 50 * MS)
+    s = m.status()
+    assert (s.commander, s.term, s.standby_ready) == ("cn_b", 2, False)
+    line = status_line(flight, m.dv, None)
+    assert "cn_b commands (term 2, NO STANDBY)" in line
+    plain = ConsoleModel(MISSION)
+    _feed(plain, 1, 10 * MS)
+    assert plain.status().commander == ""
+    assert "commands (term" not in status_line(MISSION, plain.dv, None)
