@@ -29,9 +29,11 @@ device node, tagged with the node's link key (channels ``probe_cn_to_dnX`` /
 * ``STATUS``: what term do you run, since when, which loop? (a restarting
   control node's first question; never changes anything);
 * ``ASK`` term Q: promise Q. Granted when Q is above every term the node
-  runs or has promised and its lease has run out. The promise fences the
-  old term at once and lasts ``lease_loops`` periods, long enough for the
-  first trigger of term Q, which makes it permanent; unused, it lapses;
+  runs or has promised and its lease has run out: no trigger ran, and no
+  promise was given (to the other control node), for ``lease_loops``
+  periods. The promise fences the old term at once and lasts the lease,
+  long enough for the first trigger of term Q, which makes it permanent;
+  unused, it lapses;
 * ``RELEASE`` term Q: drop the promise of Q (the asker will not take
   command: some other node still hears the commander).
 
@@ -215,7 +217,7 @@ class TermGuard:
     thread-safe: the node's loop thread.
     """
 
-    __slots__ = ("_asker", "_lease", "_promise", "_until", "term")
+    __slots__ = ("_asker", "_given", "_lease", "_promise", "_until", "term")
 
     def __init__(self, lease_ns: int) -> None:
         self._lease = lease_ns
@@ -223,6 +225,7 @@ class TermGuard:
         """The highest term whose trigger this node ran (0: none yet)."""
         self._promise = 0
         self._asker = -1
+        self._given = 0
         self._until = 0
 
     def promised(self, now_ns: int) -> int:
@@ -235,6 +238,10 @@ class TermGuard:
         return max(self.term, self.promised(now_ns))
 
     def _quiet(self, now_ns: int, last_run_ns: int | None) -> bool:
+        """No trigger ran, and no promise was given, for the lease: a fresh
+        promise is a commander about to drive, as much as a trigger is."""
+        if self.promised(now_ns) and now_ns - self._given < self._lease:
+            return False
         return last_run_ns is None or now_ns - last_run_ns >= self._lease
 
     def admit(self, term: int, now_ns: int, last_run_ns: int | None) -> int:
@@ -268,6 +275,7 @@ class TermGuard:
             if term > self.seen(now_ns) and self._quiet(now_ns, last_run_ns):
                 self._promise = term
                 self._asker = asker
+                self._given = now_ns
                 self._until = now_ns + self._lease
                 return True
             # The same asker again, for the term already promised to it.

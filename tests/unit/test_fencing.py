@@ -243,3 +243,16 @@ def test_a_redundant_mission_holds_its_controllers_to_the_vector() -> None:
     cn.begin(1, at(1))
     cn.finish()
     assert cn.dv.get_name("count_mode") == "enabled"
+
+
+def test_a_fresh_promise_holds_off_the_other_control_nodes_ask() -> None:
+    """A node that promised cn_b term 2 a moment ago refuses cn (asking term 3,
+    as a node that just stood down and counts silence from its own last loop
+    would): the promise is a commander about to drive; the lease runs from it."""
+    g = TermGuard(LEASE)
+    g.ran(1)
+    last = at(10)
+    now = last + LEASE
+    assert g.answer(ASK, 1, 2, now, last)
+    assert not g.answer(ASK, 0, 3, now + P, last)  # within the lease of the promise
+    assert g.admit(2, now + P, last) == Verdict.NEW  # cn_b's first trigger still runs
