@@ -22,6 +22,16 @@ docs/architecture.md#failover tells the whole story; in short:
   them), in the new term, from the mirror it holds (``cn_took_command``);
   otherwise it releases the promises it got and asks again
   ``takeover_loops`` loops later.
+* A standby whose last mirror is older than ``2 * takeover_loops +
+  lease_loops`` loops (:attr:`Standby.max_age`: the oldest a takeover after
+  a commander's death, with a round retried for each lease and for one
+  unanswered question, can need) is **blind**: it never takes command from
+  it, as that would turn the vehicle's state back in time (a commander that
+  flew on while the standby was cut off from it, then died). It says so
+  (``cn_takeover_held``), withdraws its readiness (the commander's
+  ``cn_standby_ready`` falls), and follows again from the next mirror; the
+  device nodes meanwhile keep their loss-of-commander outputs
+  (``dn_watchdog``), the configured state.
 * A control node whose trigger replies show that more than half of the
   device nodes follow a newer term, or that receives a mirror of a newer
   term, **stands down** and becomes the standby (``cn_stood_down``).
@@ -177,6 +187,9 @@ class Standby:
         self._kind = ASK
         self._next_ask = 0  # the first slot a new round may start in
         self._held = False  # a cn_takeover_held event was given for this silence
+        self.max_age = 2 * self._takeover + mission.takeover.lease_loops
+        """The oldest mirror (in loops) this standby takes command from."""
+        self._blind = False  # a cn_takeover_held event said the mirror is too old
         # Whether the commander still reaches the device nodes, from the
         # mirrors: cn_rx_dnX grows for each reply it applied.
         self._rx = tuple(dv.handle(f"cn_rx_{dn}") for dn in dns)
@@ -221,14 +234,16 @@ class Standby:
             rx = h.get()
             got += rx != self._rx_last[i]
             self._rx_last[i] = rx
-        self.cut = 0 if first or 2 * got > len(self._rx) or frame.seq != self.mirrored + 1 else (
-            self.cut + 1
+        self.cut = (
+            0
+            if first or 2 * got > len(self._rx) or frame.seq != self.mirrored + 1
+            else (self.cut + 1)
         )
         self.mirrored, self.mirrored_t = frame.seq, frame.t_ns
         self.term, self.commander = term, commander
         self.origin = frame.t_ns - (frame.seq - 1) * self._period
         self.ended = any(h.get() for h in self._finals)
-        self._held = False
+        self._held = self._blind = False
         if first:
             self.events.emit(
                 EV.CN_FOLLOWING,
@@ -270,16 +285,39 @@ class Standby:
         when the mirror of ``slot``'s own loop is due: half a period in)."""
         return max(slot - self.mirrored, 0)
 
+    def blind(self, slot: int) -> bool:
+        """Whether the last mirror is too old to take command from in
+        ``slot`` (more than :attr:`max_age` loops missing; module doc). A
+        node that never had a mirror is blind too."""
+        return self.origin is None or self.missing(slot) > self.max_age
+
     def tick(self, slot: int) -> bool:
         """Whether to probe the device nodes in ``slot`` (called once per slot,
         half a period in): no mirror for ``takeover_loops`` loops, or mirrors
         that show the commander without most device nodes' replies for as
         many loops (:attr:`cut`); and no round asked in the last
-        ``takeover_loops`` slots."""
-        if self.origin is None or self.ended or (
-            self.missing(slot) < self._takeover and self.cut < self._takeover
+        ``takeover_loops`` slots; and the mirror not too old (:meth:`blind`:
+        a ``cn_takeover_held`` event says so, once per silence)."""
+        if (
+            self.origin is None
+            or self.ended
+            or (self.missing(slot) < self._takeover and self.cut < self._takeover)
         ):
             self._next_ask = 0
+            return False
+        if self.blind(slot):
+            if not self._blind:
+                self._blind = True
+                self.events.emit(
+                    EV.CN_TAKEOVER_HELD,
+                    self.origin + (slot - 1) * self._period,
+                    node=self.name,
+                    loop=self.mirrored,
+                    why=f"the last mirror, of loop {self.mirrored}, is {self.missing(slot)} "
+                    f"loops old (a takeover needs one at most {self.max_age} old): taking "
+                    "command from it would turn the vehicle's state back; following again "
+                    "from the next mirror",
+                )
             return False
         return slot >= self._next_ask
 
@@ -421,4 +459,3 @@ class Standby:
             why=why,
         )
         return sb
-

@@ -161,8 +161,7 @@ class ControlNode:
             mission.sync_timeout_ns,
             query_timeout_s=max(mission.period_ns / 1e9, 0.01),
             checks=[
-                ReplyCheck(mission, dn, channel(keys, f"{dn}_to_cn"))
-                for dn in mission.device_nodes
+                ReplyCheck(mission, dn, channel(keys, f"{dn}_to_cn")) for dn in mission.device_nodes
             ],
             wildcard=wildcard_sync_for(mission),
             trace=sync_trace,
@@ -360,9 +359,7 @@ class ControlNode:
         the vector it took over (:func:`zplatform.lockstep.replay` adopts a
         recording that starts mid-run); a node that stands down ends its
         recording there: a recording is one reign."""
-        rec = Recorder(
-            directory, self.mission, mission_source, self.dv, start=self.standby is None
-        )
+        rec = Recorder(directory, self.mission, mission_source, self.dv, start=self.standby is None)
         self.liveness.add(rec.heartbeat)
         if self.standby is not None:  # made now; started when it takes command
             self._next_recorder = rec
@@ -462,9 +459,7 @@ class ControlNode:
         m, logic, now = self.mission, self.logic, self.clock.now_ns()
         why = self._unusable_record(dn_loop, now)
         if why:
-            logic.events.emit(
-                EV.CN_RESTARTED_IN_FLIGHT, now, node=self.name, loop=dn_loop, why=why
-            )
+            logic.events.emit(EV.CN_RESTARTED_IN_FLIGHT, now, node=self.name, loop=dn_loop, why=why)
             log.error("%s restarted in flight and starts over: %s", self.name, why)
             return False
         assert self._recorded is not None
@@ -709,7 +704,9 @@ class ControlNode:
                 self.logic.t_ns,
                 node=self.name,
                 peer=self._peer,
-                what="alive and following" if ready else "gone",
+                what="alive and following"
+                if ready
+                else "not ready (gone, or its mirrors stopped coming)",
             )
         return True
 
@@ -802,6 +799,16 @@ class ControlNode:
         if self._saver is not None:
             self._saver.poll()  # a follower's save is its own: the result only logged
         slot = sb.slot(now)
+        if self._ready_token is not None and sb.blind(slot):
+            # Too old a mirror to take command from: not ready (the commander's
+            # cn_standby_ready falls) until the next one comes.
+            self._ready_token.undeclare()
+            self._ready_token = None
+            log.warning(
+                "%s has had no mirror since loop %d: not ready to take over until the next one",
+                self.name,
+                sb.mirrored,
+            )
         if sb.tick(slot):
             asks = sb.ask(slot, now)
             self.probes.round(asks, sb.answer)
