@@ -187,16 +187,18 @@ class Ekf(Controller):
     ``h`` altitude above the pad, ``v`` vertical velocity, ``b`` the
     accelerometer's bias. Prediction integrates the IMU's specific force
     (``v' = a - b - g``); each barometer and each new GPS fix correct
-    ``h`` (innovations beyond ``gate_sigma`` are refused, so a Mach dip or a
-    glitch is ignored; above ``transonic_mps`` the barometers are not used
-    at all). A loop in flight that takes no altitude (transonic, or every
-    measurement refused) is blind: the errors of the prediction that a
-    vertical model does not know (tilt, scale, the barometers' lag absorbed
-    into the bias) grow in the covariance as a velocity random walk of
-    ``blind_walk_mps`` per root second, so the gate widens until the
-    barometers are taken again. Without it an estimate that drifted past
-    the gate during the transonic blackout refused every barometer for the
-    rest of the climb and fired the drogue early (a Mach 1.05 flight,
+    ``h`` (a fix is up to ``gps_latency_s`` old when read, so its noise
+    grows by the distance flown meanwhile, ``v`` times that; innovations
+    beyond ``gate_sigma`` are refused, so a Mach dip or a glitch is ignored;
+    above ``transonic_mps`` the barometers are not used at all). A loop in
+    flight that takes no altitude (transonic, or every measurement refused)
+    is blind: the errors of the prediction that a vertical model does not
+    know (tilt, scale, the barometers' lag absorbed into the bias) grow in
+    the covariance as a velocity random walk of ``blind_walk_mps`` per root
+    second, so the gate widens until the barometers are taken again
+    (without it, an estimate that drifted past the gate during the
+    transonic blackout refused every barometer for the rest of the climb
+    and fired the drogue early: the Mach 1.05 flight of
     ``tests/system/test_flight.py``). ``baro_sigma_m`` and ``gps_sigma_m``,
     the measurement noises that set the Kalman gains, are numbers or
     elements (parameters). On the pad (before ``liftoff`` is set) the filter
@@ -238,6 +240,7 @@ class Ekf(Controller):
         fallback_sigma_mps2: Annotated[float, Meta(gt=0)] = 20.0
         baro_sigma_m: Annotated[float, Meta(gt=0)] | str = 1.0
         gps_sigma_m: Annotated[float, Meta(gt=0)] | str = 3.0
+        gps_latency_s: Annotated[float, Meta(ge=0)] = 0.1
         gate_sigma: Annotated[float, Meta(gt=0)] = 5.0
         saturation_mps2: Annotated[float, Meta(gt=0)] = 150.0
         transonic_mps: Annotated[float, Meta(gt=0)] = 250.0
@@ -360,7 +363,7 @@ class Ekf(Controller):
                 self._gps_used.set(seq)
                 z = self._gps.get()
                 if math.isfinite(z):
-                    r = self._gps_sigma.get() ** 2
+                    r = self._gps_sigma.get() ** 2 + (state[1] * c.gps_latency_s) ** 2
                     took = _update(state, 0, z - ground, r, c.gate_sigma) or took
             if not took:  # blind this loop: the prediction's own errors grow (class doc)
                 w = c.blind_walk_mps * c.blind_walk_mps * dt
