@@ -187,12 +187,23 @@ class Ekf(Controller):
     ``h`` altitude above the pad, ``v`` vertical velocity, ``b`` the
     accelerometer's bias. Prediction integrates the IMU's specific force
     (``v' = a - b - g``); each barometer and each new GPS fix correct
-    ``h`` (innovations beyond ``gate_sigma`` are refused, so a Mach dip or a
-    glitch is ignored; above ``transonic_mps`` the barometers are not used
-    at all). ``baro_sigma_m`` and ``gps_sigma_m``, the measurement noises
-    that set the Kalman gains, are numbers or elements (parameters). On the
-    pad (before ``liftoff`` is set) the filter also takes ``h = 0, v = 0``
-    and averages the barometers into the ground reference.
+    ``h`` (a fix is up to ``gps_latency_s`` old when read, so its noise
+    grows by the distance flown meanwhile, ``v`` times that; innovations
+    beyond ``gate_sigma`` are refused, so a Mach dip or a glitch is ignored;
+    above ``transonic_mps`` the barometers are not used at all). A loop in
+    flight that takes no altitude (transonic, or every measurement refused)
+    is blind: the errors of the prediction that a vertical model does not
+    know (tilt, scale, the barometers' lag absorbed into the bias) grow in
+    the covariance as a velocity random walk of ``blind_walk_mps`` per root
+    second, so the gate widens until the barometers are taken again
+    (without it, an estimate that drifted past the gate during the
+    transonic blackout refused every barometer for the rest of the climb
+    and fired the drogue early: the Mach 1.05 flight of
+    ``tests/system/test_flight.py``). ``baro_sigma_m`` and ``gps_sigma_m``,
+    the measurement noises that set the Kalman gains, are numbers or
+    elements (parameters). On the pad (before ``liftoff`` is set) the filter
+    also takes ``h = 0, v = 0`` and averages the barometers into the ground
+    reference.
 
     Fallback: when the IMU is lost (``imu_ok`` false, or a sample that is
     not a number, or beyond ``saturation_mps2``) the prediction runs without
@@ -229,9 +240,11 @@ class Ekf(Controller):
         fallback_sigma_mps2: Annotated[float, Meta(gt=0)] = 20.0
         baro_sigma_m: Annotated[float, Meta(gt=0)] | str = 1.0
         gps_sigma_m: Annotated[float, Meta(gt=0)] | str = 3.0
+        gps_latency_s: Annotated[float, Meta(ge=0)] = 0.1
         gate_sigma: Annotated[float, Meta(gt=0)] = 5.0
         saturation_mps2: Annotated[float, Meta(gt=0)] = 150.0
         transonic_mps: Annotated[float, Meta(gt=0)] = 250.0
+        blind_walk_mps: Annotated[float, Meta(ge=0)] = 3.0
         ground_tau_s: Annotated[float, Meta(gt=0)] = 2.0
 
     config: Config
@@ -338,18 +351,25 @@ class Ekf(Controller):
             _update(state, 0, 0.0, 0.05**2, 1e9)
             _update(state, 1, 0.0, 0.01**2, 1e9)
         else:
+            took = False
             if abs(state[1]) < c.transonic_mps:
                 r = self._baro_sigma.get() ** 2
                 for hb in self._baros:
                     z = hb.get()
                     if math.isfinite(z):
-                        _update(state, 0, z - ground, r, c.gate_sigma)
+                        took = _update(state, 0, z - ground, r, c.gate_sigma) or took
             seq = self._gps_seq.get()
             if seq != self._gps_used.get():
                 self._gps_used.set(seq)
                 z = self._gps.get()
                 if math.isfinite(z):
-                    _update(state, 0, z - ground, self._gps_sigma.get() ** 2, c.gate_sigma)
+                    r = self._gps_sigma.get() ** 2 + (state[1] * c.gps_latency_s) ** 2
+                    took = _update(state, 0, z - ground, r, c.gate_sigma) or took
+            if not took:  # blind this loop: the prediction's own errors grow (class doc)
+                w = c.blind_walk_mps * c.blind_walk_mps * dt
+                state[3] += w * dt * dt / 3.0
+                state[4] += w * dt / 2.0
+                state[6] += w
         h, v, b, p00, p01, p02, p11, p12, p22 = state
         self._hh.set(h)
         self._hv.set(v)

@@ -461,7 +461,8 @@ class Sensors:
         self.gyro = 0.0
         self.gps_alt = 0.0
         self.gps_fix = False
-        self._next_gps = 0.0
+        self.gps_epochs = 0
+        self._next_gps_ns: int | None = None
         self._imu_frozen = False
 
     def sample_imu(self, f: Flight, t: float) -> None:
@@ -497,11 +498,20 @@ class Sensors:
             out = round(out / p.baro_quantum_pa) * p.baro_quantum_pa
         return out
 
-    def sample_gps(self, f: Flight, t: float, pad_m: float) -> None:
+    def sample_gps(self, f: Flight, t_ns: int, pad_m: float) -> None:
+        """The receiver's solution when one is due at ``t_ns``: on its own
+        schedule, every ``1/gps_hz`` s of the world's clock (which runs alike
+        on the pad and in flight), taken at the first sample at or after its
+        time, the next due a period after that time (not after the sample:
+        no drift). ``gps_epochs`` counts them; a dropout or high g is a
+        solution without a fix (the flag drops, the altitude holds the last)."""
         p = self.p
-        if t < self._next_gps:
+        due = self._next_gps_ns
+        if due is not None and t_ns < due:
             return
-        self._next_gps = t + 1.0 / p.gps_hz
+        period = round(1e9 / p.gps_hz)
+        self._next_gps_ns = t_ns + period if due is None or t_ns - due >= period else due + period
+        self.gps_epochs += 1
         lost = self._rng.random() < p.gps_dropout or abs(f.specific_force) > p.gps_max_g * 9.81
         self.gps_fix = not lost
         if not lost:
@@ -559,7 +569,7 @@ def vehicle(world: Any, t_ns: int) -> None:
         s.sample_imu(f, f.t)
         for i, bs in enumerate(st.baros):
             st.baro_pa[i] = bs.baro(f, dt, p.pad_altitude_m)
-        s.sample_gps(f, f.t if f.ignited else st.next_ns / 1e9, p.pad_altitude_m)
+        s.sample_gps(f, st.next_ns, p.pad_altitude_m)
         st.next_ns += STEP_NS
     sp = p.sensors
     fifo = s.fifo

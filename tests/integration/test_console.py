@@ -10,6 +10,16 @@ detail; so does a PRM_SET of a hazardous parameter, shown in the parameter
 view (``params``). Every wait is on what the screen shows, bounded; nothing sleeps for
 a peer.
 
+The flight mission (``configs/flight.yaml``) live in the console: launched
+from its command line (confirmed: ARM, LAUNCH), it shows the CN's state
+changes SAFE -> ARMED -> BOOST -> COAST, COAST on the status line, and the
+EKF's altitude (``nav_h_m``) climbing in the Data Vector pane.
+
+A key press costs the pilot up to 2 s when the test process is busy (it
+waits for the process to idle, at most 1 s, twice): a test whose own ground
+link decodes the telemetry beside the console's is never idle. The flight
+test has the console's link only, and types its one command at once.
+
 The browser test serves the console with ``zplatform ground --web``, opens
 the address it prints (with its token) in headless Chromium and reads the
 page, and every request it makes (skipped, with the reason, without
@@ -177,6 +187,60 @@ def test_console_against_running_mission(tmp_path: Path) -> None:
         c.advance(5)
         asyncio.run(_big_screen(c))
         asyncio.run(_small_screen(c))
+
+
+def _shown(app: ConsoleApp, element: str) -> str | None:
+    """The value the Data Vector pane shows for ``element``."""
+    for line in _text(app, "#dv-table").splitlines():
+        words = line.split()
+        if len(words) == 2 and words[0] == element:
+            return words[1]
+    return None
+
+
+async def _flight_screen(c: Cluster) -> None:
+    model = ConsoleModel(c.mission)
+    app = ConsoleApp(model, Link(model, timeout_s=20))
+    async with app.run_test(size=(160, 50)) as pilot:
+        await _until(pilot, lambda: " LINK " in _text(app, "#status"), "the link up")
+        assert "NO STANDBY" in _text(app, "#status")  # cn_b is not running
+        app.query_one("#cmd").value = "launch"  # type: ignore[attr-defined]
+        await pilot.press("enter")
+        await _until(pilot, lambda: isinstance(app.screen, ConfirmScreen), "the confirmation")
+        await pilot.press("y")
+        states: list[str] = []
+        heights: list[float] = []
+
+        def coasting() -> bool:
+            s, h = _state_shown(app), _shown(app, "nav_h_m")
+            if s is not None and (not states or states[-1] != s):
+                states.append(s)
+            if h is not None and (not heights or heights[-1] != float(h)):
+                heights.append(float(h))
+            # in flight: the altitude redrawn three times at least (the
+            # redraws' pace is the box's: one at each screen refresh)
+            return s == "COAST" and len([x for x in heights if x > 1.0]) >= 3
+
+        await _until(pilot, coasting, "COAST, the altitude climbing")
+        events = _text(app, "#events-text")
+        assert "ARM #1: ACCEPTED" in events and "LAUNCH #2: ACCEPTED" in events, events
+        # the state machine's changes as the CN's events, in order (the
+        # status line shows the current state; ARMED lasts 2 s, which a
+        # press on a busy box may outlast)
+        moves = [x.split("state ", 1)[1].split(" (")[0] for x in events.splitlines()
+                 if "state_change: state " in x]  # fmt: skip
+        assert moves == ["SAFE -> ARMED", "ARMED -> BOOST", "BOOST -> COAST"], events
+        assert states[-1] == "COAST", states
+        climb = [h for h in heights if h > 1.0]
+        assert climb == sorted(climb) and climb[-1] > 50.0, heights  # past burnout, up
+        await pilot.press("ctrl+q")
+
+
+def test_console_shows_the_flight_live(tmp_path: Path) -> None:
+    with Cluster(CONFIGS / "flight.yaml", tmp_path) as c:
+        for n in ("world", "dn0", "dn1", "cn"):
+            c.spawn(n)
+        asyncio.run(_flight_screen(c))
 
 
 # -- browser -------------------------------------------------------------------

@@ -6,6 +6,12 @@ The hardware-in-the-loop run has dn0's IMU, barometer, motor igniter and
 chute switches behind the real :class:`~zplatform.boards.SerialBoard`,
 talking the serial protocol over a pty to the world process, which plays
 the board's firmware with the physics behind its pins.
+
+The whole flights (two at once, about a minute) run with the soaks (``-m
+slow``). The default suite flies the HIL mission from launch to burnout:
+its nodes as processes, ARM and LAUNCH from ``zplatform cmd``, and the
+state machine's lift-off and burnout seen by dn0's IMU through the serial
+board (a few seconds of flight, about 15 s in all).
 """
 
 from __future__ import annotations
@@ -14,10 +20,13 @@ import json
 import subprocess
 import sys
 from pathlib import Path
+from typing import Any
 
 import msgspec.yaml
 import pytest
 
+from tests.integration.board_probe import with_probe
+from tests.integration.harness import Cluster
 from zplatform import load_mission
 from zplatform.lockstep import LockstepRunner
 from zplatform.telemetry import read_csv
@@ -91,8 +100,8 @@ def runs(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
 
 # Two whole flights in real time (about a minute): with the soaks (-m
 # slow). The default suite flies the same mission in lockstep
-# (tests/system/test_flight.py) and runs sim against live on led_test
-# (tests/system/test_sim_equals_live.py).
+# (tests/system/test_flight.py), the HIL mission live to burnout (below),
+# and runs sim against live on led_test (tests/system/test_sim_equals_live.py).
 @pytest.mark.slow
 @pytest.mark.parametrize("name", ["flight", "flight_hil"])
 def test_up_lands_under_both_chutes_with_the_states_of_sim(
@@ -123,3 +132,64 @@ def test_up_lands_under_both_chutes_with_the_states_of_sim(
     # the IMU's data came through dn0's board (the wire protocol, for HIL)
     accels = {r["dn0_accel_mps2"] for r in rows if r["cn_state"] == "BOOST"}
     assert len(accels) > 10 and max(float(a) for a in accels) > 30.0
+
+
+def _zp(*args: str) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
+        [sys.executable, "-m", "zplatform", *args],
+        capture_output=True, text=True, cwd=ROOT, timeout=60, check=False,
+    )  # fmt: skip
+
+
+def test_the_hil_mission_lifts_off_and_burns_out_on_dn0s_serial_board(tmp_path: Path) -> None:
+    """configs/flight_hil.yaml live, to burnout: the world process serves
+    dn0's board on a pty, dn0 runs the real SerialBoard (a probe device
+    copies its health counters into telemetry: tests/integration/board_probe.py),
+    dn1 and cn as in flight (cn alone: the standby is not needed to fly).
+    ``zplatform cmd ... launch --arm`` is accepted; the motor igniter's
+    WRITE goes out over the serial link, and lift-off (BOOST) and burnout
+    (COAST) come from dn0's IMU read back over it. Every WRITE dn0 sent was
+    answered or counted as timed out, and nothing on the link was bad: no
+    bad frame, no ERROR from the board, no reconnect, nothing the board
+    simulator refused."""
+    mission = tmp_path / "flight_hil.yaml"
+    pre = with_probe(CONFIGS / "flight_hil.yaml", mission, "dn0", ROOT)
+    states: list[str] = []
+    boost_g: list[float] = []
+
+    def seen(dv: Any) -> bool:
+        s = dv.get_name("cn_state")
+        if not states or states[-1] != s:
+            states.append(s)
+        if s == "BOOST":
+            boost_g.append(dv.get("dn0_accel_mps2") / 9.80665)
+        return s in ("COAST", "ABORTED")
+
+    with Cluster(mission, tmp_path) as c:
+        for n in ("world", "dn0", "dn1", "cn"):
+            c.spawn(n)
+        c.wait_for(lambda dv: dv.get(pre + "frames_received") > 50, 60, "dn0's link up")
+        r = _zp("cmd", str(c.path), "launch", "--arm")
+        assert r.returncode == 0 and "ACCEPTED" in r.stdout, r.stdout + r.stderr
+        c.wait_for(seen, 30, "burnout")
+        dv = c.tm
+        link = {n: int(dv.get(pre + n)) for n in
+                ("frames_sent", "frames_received", "timeouts", "late_replies", "bad_frames",
+                 "device_errors", "reconnects", "errors")}  # fmt: skip
+        errors = int(dv.get("dn0_errors"))
+        fault = dv.get_name("cn_fault")
+    if fault == "NONE":
+        assert states[-3:] == ["ARMED", "BOOST", "COAST"], (states, link)
+        assert max(boost_g) > 2.5  # lift-off, as dn0 read it over the wire
+        assert link["frames_sent"] > 500, link  # 5 s and more of 100 Hz
+    else:  # the pty stalled past the fault limit on a loaded host (as in the slow test)
+        assert fault == "CONTROLLER_FAILED" and link["timeouts"] >= 25, (fault, link)
+        assert states[-1] == "ABORTED" and "ARMED" in states, states
+    # Every WRITE answered (the HELLO_ACK is one more frame) or timed out;
+    # a timed-out WRITE's answer may still come, counted late.
+    answered = link["frames_received"] - 1 - link["late_replies"]
+    assert link["frames_sent"] - link["timeouts"] <= answered <= link["frames_sent"], link
+    assert link["bad_frames"] == link["device_errors"] == link["reconnects"] == 0, link
+    # dn0 counted every failed step (a timeout, or the link not up yet at start)
+    assert errors == link["errors"] >= link["timeouts"], (errors, link)
+    assert "malformed" not in c.log("world"), c.log("world")[-2000:]
