@@ -39,6 +39,8 @@ from .errors import ConfigError
 from .types import SCALAR_TYPES, ScalarType, parse_type
 
 __all__ = [
+    "BOARD_LINK_COUNTERS",
+    "BOARD_LINK_DRIVERS",
     "CMD_NAMES",
     "CMD_STATUS_NAMES",
     "CONTROLLER_MODES",
@@ -72,6 +74,7 @@ __all__ = [
     "WatchdogConfig",
     "WorldBoardConfig",
     "WorldConfig",
+    "board_link_elements",
     "check_mission_name",
     "element_spec",
     "health_elements",
@@ -1961,6 +1964,47 @@ def _link_endpoint(ep: str, mtls: bool, why: str, where: str) -> str:
     )
 
 
+BOARD_LINK_DRIVERS = ("serial", "gpiod")
+"""The board drivers whose link a device node reports in ``dnX_board_*``:
+the ones that talk to hardware outside the node's process (a serial port,
+the kernel's GPIO lines). ``sim`` is the node's own memory, ``world`` is
+simulation plumbing on loopback (and the lockstep runner swaps it for an
+in-process port), and a team's ``package.module:Class`` promises no
+:class:`~zplatform.boards.HealthCounters`: those add no elements, so their
+missions keep their layout."""
+
+BOARD_LINK_COUNTERS: tuple[tuple[str, str, str], ...] = (
+    ("sent", "frames_sent", "frames {dn}'s board link sent (gpiod: I/O cycles)"),
+    ("received", "frames_received", "frames {dn}'s board link received (gpiod: I/O cycles)"),
+    ("timeouts", "timeouts", "steps of {dn}'s board that waited in vain for the inputs"),
+    ("late", "late_replies", "answers from {dn}'s board after their step gave up"),
+    ("bad_frames", "bad_frames", "frames from {dn}'s board refused (CRC, framing, shape)"),
+    ("reconnects", "reconnects", "times {dn}'s board link was lost and opened again"),
+    ("device_errors", "device_errors", "ERROR frames {dn}'s board sent (it refused a frame)"),
+)
+"""The ``dnX_board_<suffix>`` u32 counters: ``(suffix, HealthCounters
+attribute, doc)``, in layout order after ``dnX_board_ok``. Counters a driver
+does not keep (gpiod has no link to time out) stay 0."""
+
+
+def board_link_elements(m: Mission, dn: str) -> list[ElementConfig]:
+    """Device node ``dn``'s board link elements (``dnX_to_cn``), or ``[]``
+    when its board's driver is not one of :data:`BOARD_LINK_DRIVERS`.
+
+    ``dnX_board_ok`` (bool): the board's step succeeded in dnX's last run;
+    then one u32 per :data:`BOARD_LINK_COUNTERS`, the board's own count,
+    saturating at the type's maximum. Written by the node's loop
+    (:class:`~zplatform.loop.DeviceLogic`) after each step. Pure: it reads
+    only the mission's config, never a board."""
+    if m.nodes[dn].board.get("driver", "sim") not in BOARD_LINK_DRIVERS:
+        return []
+    E = ElementConfig
+    return [
+        E(f"{dn}_board_ok", "bool", False, doc=f"{dn}'s board step succeeded in its last run"),
+        *(E(f"{dn}_board_{s}", "u32", 0, doc=d.format(dn=dn)) for s, _, d in BOARD_LINK_COUNTERS),
+    ]
+
+
 def platform_elements(m: Mission) -> dict[str, list[ElementConfig]]:
     """The elements every mission has (docs/architecture.md#data-vector), per region."""
     states = list(m.state_machine.states) if m.state_machine else ["IDLE"]
@@ -2090,6 +2134,9 @@ def platform_elements(m: Mission) -> dict[str, list[ElementConfig]]:
                     doc=f"the highest term {dn} ran or promised (with a standby)",
                 )
             )
+        # Its board's link, for a board that has one (BOARD_LINK_DRIVERS):
+        # an operator sees timeouts and reconnects as they happen.
+        out[f"{dn}_to_cn"] += board_link_elements(m, dn)
     if m.has_ground:
         out["gn_to_cn"] = [
             E("gn_cmd", "enum", "NONE", list(CMD_NAMES), doc="the requested command"),
@@ -2174,13 +2221,16 @@ def _element_path(m: Mission, region: str, i: int, n_platform: int, name: str) -
     """The YAML path of the ``i``-th element of a region after platform elements
     were prepended: the index the user wrote, or where a platform element
     comes from (``cn_state`` from the state machine, ``<c>_mode`` from a
-    controller)."""
+    controller, ``dnX_board_*`` from the node's board)."""
     if i >= n_platform:
         return f"$.regions.{region}[{i - n_platform}]"
     if name == "cn_state":
         return "$.state_machine"
     if any(p.name == name for p in m.params):
         return _param_path(m, name)
+    dn = region.removesuffix("_to_cn")
+    if dn != region and name.startswith(f"{dn}_board_"):
+        return f"$.nodes.{dn}.board"
     if m.health is not None and any(name.endswith(f"_{t.name}") for t in HEALTH_METRICS):
         return "$.health"
     for j, c in enumerate(m.controllers):

@@ -88,14 +88,14 @@ from collections.abc import Sequence
 from typing import Any, Protocol
 
 from .auth import AuthError, Channel, KeySet, channel
-from .boards import Board, safe_board
+from .boards import Board, HealthCounters, safe_board
 from .codec import Frame, RegionCodec, bundle_entry, is_bundle
 from .codes import CommandStatus, SafedWhy
 from .commands import CommandHandler, RequestNumber
 from .components import Streak
-from .config import Mission
+from .config import BOARD_LINK_COUNTERS, Mission
 from .controllers import ControllerSet
-from .datavector import DataVector, Layout
+from .datavector import DataVector, Handle, Layout
 from .devices import DeviceSet
 from .errors import CodecError, ConfigError
 from .events import EV, EventLog, EventType
@@ -111,6 +111,7 @@ from .world import node_board
 __all__ = ["BulkPort", "ControlLogic", "DeviceLogic", "LoopRecorder"]
 
 _U32 = struct.Struct("<I")
+_U32_MAX = 0xFFFF_FFFF
 # A trigger stamped this much later than the last one served, yet with a
 # lower loop number, comes from a restarted control node.
 _RESTART_NS = 1_000_000_000
@@ -667,6 +668,14 @@ class DeviceLogic:
     caught by their sets, and an exception of the board's own ``step`` (a
     physics hook bug, a board that cannot latch its inputs) is counted in
     ``dnX_errors`` and reported once per streak.
+
+    A board with a link (a driver of
+    :data:`~zplatform.config.BOARD_LINK_DRIVERS`: serial, gpiod) is reported
+    every run, right after its step: ``dnX_board_ok`` (that step succeeded)
+    and the board's :class:`~zplatform.boards.HealthCounters` (timeouts,
+    reconnects, bad frames, ...) in ``dnX_board_*``, which reach the CN with
+    the next reply like everything the run writes. :attr:`board_link` says
+    whether the node has them.
     """
 
     def __init__(
@@ -723,6 +732,26 @@ class DeviceLogic:
         self._max_ahead = round(mission.clock.offset_bound_ms * 1e6) + mission.period_ns
         self._watchdog_ns = mission.faults.dn_watchdog_loops * mission.period_ns
         self._board_streak = Streak()
+        # The board's link (zplatform.config.board_link_elements), for a
+        # board that has one: handles bound here, and the board's own
+        # mutable HealthCounters read in place each run, because health()
+        # builds a new struct per call. A board without HealthCounters (the
+        # world's in-process port in lockstep, a test's) leaves the counters
+        # at 0, so a lockstep run stays deterministic.
+        self.board_link = f"{node}_board_ok" in self.layout.elements
+        """Whether this node reports its board's link (``dnX_board_*``)."""
+        self._h_board_ok: Handle | None = None
+        self._board_counters: HealthCounters | None = None
+        self._board_counts: tuple[tuple[Handle, str], ...] = ()
+        if self.board_link:
+            self._h_board_ok = dv.handle(f"{node}_board_ok")
+            counters = getattr(self.board, "counters", None)
+            if isinstance(counters, HealthCounters):
+                self._board_counters = counters
+                self._board_counts = tuple(
+                    (dv.handle(f"{node}_board_{suffix}"), attr)
+                    for suffix, attr, _ in BOARD_LINK_COUNTERS
+                )
         self._bulk: BulkPort | None = None
         self._refusals = RefusalLog(3)
         # Terms (zplatform.fencing), in a mission with a standby control node:
@@ -1017,8 +1046,12 @@ class DeviceLogic:
         try:
             self.board.step(t_ns)
             self._board_streak.ok()
+            board_ok = True
         except Exception as exc:
             self._board_failed(exc, t_ns)
+            board_ok = False
+        if self._h_board_ok is not None:
+            self._write_board_link(board_ok)
         self.devices.run_sensors(loop, t_ns)
         self.controllers.run(loop, t_ns)
         if not self.safed:  # while safed, outputs stay at their safe values
@@ -1094,6 +1127,19 @@ class DeviceLogic:
         self._h_safed.set(True)
         self._h_safed_why.set(code)
         self.events.emit(ev, t_ns, node=self.node, why=why)
+
+    def _write_board_link(self, ok: bool) -> None:
+        """``dnX_board_ok`` and the board's counters into ``dnX_board_*``:
+        read in place, set through handles bound at start-up, so nothing is
+        built per loop (``health()`` would build a struct)."""
+        assert self._h_board_ok is not None
+        self._h_board_ok.set(ok)
+        c = self._board_counters
+        for h, attr in self._board_counts:
+            n = getattr(c, attr)
+            # The board's counts are unbounded ints; the elements are u32 and
+            # saturate like every platform counter (Handle.bump), never wrap.
+            h.set(n if n < _U32_MAX else _U32_MAX)
 
     def _board_failed(self, exc: Exception, t_ns: int) -> None:
         self._errors.bump()

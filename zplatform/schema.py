@@ -442,11 +442,14 @@ def _block(anchor: str, heading: str, section: _Section, rows: slice = slice(Non
 
 def _platform_rows() -> list[str]:
     """The platform elements of every region, for a mission with a device
-    node (``dnX``), a ground node, a standby control node, a controller, a
-    bulk channel, a flight recorder, a parameter and health."""
+    node (``dnX``) on a serial board, a ground node, a standby control node,
+    a controller, a bulk channel, a flight recorder, a parameter and health."""
+    # Only the board's driver matters here (it decides the dnX_board_*
+    # elements); the board is never built.
+    serial = NodeConfig(board={"driver": "serial", "port": "/dev/ttyACM0"})
     example = Mission(
         mission="m",
-        nodes={"cn": NodeConfig(), "cn_b": NodeConfig(), "dn0": NodeConfig(), "gn": NodeConfig()},
+        nodes={"cn": NodeConfig(), "cn_b": NodeConfig(), "dn0": serial, "gn": NodeConfig()},
         regions={},
         controllers=[ComponentConfig(name="ctl", cls="m:C", node="cn")],
         bulk=[BulkChannelConfig(name="chan", node="dn0", type="u8[8]", readers=["cn"])],
@@ -639,9 +642,11 @@ def reference_markdown() -> str:
         "`dnX`, a `<controller>_mode` per controller (in `cn` for a controller on "
         "the CN, in `cn_to_dnX` for one on dnX), bulk counters per channel on its "
         "owner and readers, flight recorder counters on each node that records "
-        "(`recorder`), the health elements of each node when the mission has a "
-        "`health:` section (`cn_...` in `cn`, `dnX_...` in `dnX_to_cn`; see "
-        "`zplatform.health`), and `gn_to_cn` when the mission has a ground node. "
+        "(`recorder`), the board link elements `dnX_board_*` of each device node "
+        "whose board talks to hardware (`driver: serial` or `gpiod`), the health "
+        "elements of each node when the mission has a `health:` section (`cn_...` "
+        "in `cn`, `dnX_...` in `dnX_to_cn`; see `zplatform.health`), and "
+        "`gn_to_cn` when the mission has a ground node. "
         "Counters saturate at their type's maximum (they never wrap); times are "
         "nanoseconds.",
         "",

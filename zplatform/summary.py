@@ -15,6 +15,7 @@ from typing import TypeVar
 
 import msgspec
 
+from .boards.base import BoardHealth
 from .config import Mission
 from .datavector import DataVector
 from .ground.records import CommandOutcome
@@ -25,6 +26,8 @@ __all__ = [
     "GnSummary",
     "LoopWork",
     "RunSummary",
+    "board_line",
+    "board_trouble",
     "cn_summary",
     "read_summary",
     "write_summary",
@@ -83,6 +86,11 @@ class DnSummary(msgspec.Struct, frozen=True):
     ("" when they were not): the control node's run ended (its final loop),
     or no valid trigger came (a lost control node). A clean exit safes them
     after this summary is taken."""
+    board: BoardHealth | None = None
+    """Its board's health as the node stopped serving triggers (its counters
+    over the whole run), for a board with a link (``serial``, ``gpiod``:
+    :data:`~zplatform.config.BOARD_LINK_DRIVERS`, the nodes with
+    ``dnX_board_*`` elements); None for any other board."""
 
 
 class GnSummary(msgspec.Struct, frozen=True):
@@ -138,6 +146,38 @@ class RunSummary(msgspec.Struct, frozen=True):
 
 
 S = TypeVar("S", CnSummary, DnSummary, GnSummary)
+
+
+def board_trouble(h: BoardHealth) -> bool:
+    """Whether a board's link misbehaved over the run: any timeout,
+    reconnect, bad frame, late reply or device ERROR (what ``up`` and the
+    node's exit log call out)."""
+    return bool(h.timeouts or h.reconnects or h.bad_frames or h.late_replies or h.device_errors)
+
+
+def board_line(node: str, h: BoardHealth) -> str:
+    """A board's link counters in one line, for a person: ``dn0's board:
+    3 timeouts, 1 reconnect, 0 bad frames, 2 late replies, 0 device errors
+    (5400 frames sent, 5398 received; ok at the end); last error: ...``
+    (the end: when ``h`` was taken; ``last_error`` only when there is one)."""
+    counts = (
+        (h.timeouts, "timeout", "timeouts"),
+        (h.reconnects, "reconnect", "reconnects"),
+        (h.bad_frames, "bad frame", "bad frames"),
+        (h.late_replies, "late reply", "late replies"),
+        (h.device_errors, "device error", "device errors"),
+    )
+    parts = [f"{c} {one if c == 1 else many}" for c, one, many in counts]
+    state = "ok" if h.ok else ("safed" if h.safe_active else "failing")
+    if not h.connected:
+        state = "link down"
+    line = (
+        f"{node}'s board: {', '.join(parts)} ({h.frames_sent} frames sent, "
+        f"{h.frames_received} received; {state} at the end)"
+    )
+    if h.last_error:
+        line += f"; last error: {h.last_error}"
+    return line
 
 
 def cn_summary(

@@ -59,6 +59,8 @@ from .summary import (
     DnSummary,
     GnSummary,
     RunSummary,
+    board_line,
+    board_trouble,
     cn_summary,
     read_summary,
     write_summary,
@@ -66,7 +68,15 @@ from .summary import (
 from .telemetry import events_path
 from .transport import rewrite_endpoints
 
-__all__ = ["Children", "Watch", "format_run_summary", "merge_summaries", "run_up", "watch"]
+__all__ = [
+    "Children",
+    "Watch",
+    "format_board_lines",
+    "format_run_summary",
+    "merge_summaries",
+    "run_up",
+    "watch",
+]
 
 STOP_SLOW_S = 10.0
 """A node still running this long after SIGTERM is reported as slow to stop."""
@@ -369,6 +379,19 @@ def format_run_summary(s: RunSummary) -> str:
     )
 
 
+def format_board_lines(s: RunSummary) -> list[str]:
+    """One line per device node whose board's link misbehaved over the run
+    (timeouts, reconnects, bad frames, late replies, device errors:
+    :func:`~zplatform.summary.board_trouble`), in node order; ``[]`` when
+    every link was clean or no node has one. ``up`` prints them under its
+    one-line account."""
+    return [
+        f"zplatform up: {board_line(name, n.board)}"
+        for name, n in s.nodes.items()
+        if isinstance(n, DnSummary) and n.board is not None and board_trouble(n.board)
+    ]
+
+
 def _interrupt(signum: int, frame: Any) -> None:
     raise KeyboardInterrupt
 
@@ -530,6 +553,8 @@ def _supervise(
     write_summary(summary, s)
     if not quiet:
         print(format_run_summary(s))
+        for line in format_board_lines(s):
+            print(line)
         if log:
             print(f"telemetry -> {log}; events -> {events_path(log)}")
     return rc

@@ -25,10 +25,10 @@ from typing import Any
 import msgspec.yaml
 import pytest
 
-from tests.integration.board_probe import with_probe
 from tests.integration.harness import Cluster
 from zplatform import load_mission
 from zplatform.lockstep import LockstepRunner
+from zplatform.summary import DnSummary, read_summary
 from zplatform.telemetry import read_csv
 from zplatform.transport import rewrite_endpoints
 from zplatform.uplink import load_commands
@@ -143,17 +143,15 @@ def _zp(*args: str) -> subprocess.CompletedProcess[str]:
 
 def test_the_hil_mission_lifts_off_and_burns_out_on_dn0s_serial_board(tmp_path: Path) -> None:
     """configs/flight_hil.yaml live, to burnout: the world process serves
-    dn0's board on a pty, dn0 runs the real SerialBoard (a probe device
-    copies its health counters into telemetry: tests/integration/board_probe.py),
-    dn1 and cn as in flight (cn alone: the standby is not needed to fly).
+    dn0's board on a pty, dn0 runs the real SerialBoard and reports its link
+    in telemetry (``dn0_board_*``) and in its summary, dn1 and cn as in
+    flight (cn alone: the standby is not needed to fly).
     ``zplatform cmd ... launch --arm`` is accepted; the motor igniter's
     WRITE goes out over the serial link, and lift-off (BOOST) and burnout
     (COAST) come from dn0's IMU read back over it. Every WRITE dn0 sent was
     answered or counted as timed out, and nothing on the link was bad: no
     bad frame, no ERROR from the board, no reconnect, nothing the board
     simulator refused."""
-    mission = tmp_path / "flight_hil.yaml"
-    pre = with_probe(CONFIGS / "flight_hil.yaml", mission, "dn0", ROOT)
     states: list[str] = []
     boost_g: list[float] = []
 
@@ -165,31 +163,47 @@ def test_the_hil_mission_lifts_off_and_burns_out_on_dn0s_serial_board(tmp_path: 
             boost_g.append(dv.get("dn0_accel_mps2") / 9.80665)
         return s in ("COAST", "ABORTED")
 
-    with Cluster(mission, tmp_path) as c:
+    with Cluster(CONFIGS / "flight_hil.yaml", tmp_path) as c:
         for n in ("world", "dn0", "dn1", "cn"):
             c.spawn(n)
-        c.wait_for(lambda dv: dv.get(pre + "frames_received") > 50, 60, "dn0's link up")
+        c.wait_for(lambda dv: dv.get("dn0_board_received") > 50, 60, "dn0's link up")
         r = _zp("cmd", str(c.path), "launch", "--arm")
         assert r.returncode == 0 and "ACCEPTED" in r.stdout, r.stdout + r.stderr
         c.wait_for(seen, 30, "burnout")
         dv = c.tm
-        link = {n: int(dv.get(pre + n)) for n in
-                ("frames_sent", "frames_received", "timeouts", "late_replies", "bad_frames",
-                 "device_errors", "reconnects", "errors")}  # fmt: skip
+        link = {n: int(dv.get(f"dn0_board_{n}")) for n in
+                ("ok", "sent", "received", "timeouts", "late", "bad_frames", "device_errors",
+                 "reconnects")}  # fmt: skip
         errors = int(dv.get("dn0_errors"))
         fault = dv.get_name("cn_fault")
+        # Stopped cleanly, each device node writes its summary.
+        for n in ("dn0", "dn1"):
+            c.procs[n].terminate()
+        for n in ("dn0", "dn1"):
+            assert c.procs[n].wait(timeout=30) == 0, c.log(n)[-2000:]
     if fault == "NONE":
         assert states[-3:] == ["ARMED", "BOOST", "COAST"], (states, link)
         assert max(boost_g) > 2.5  # lift-off, as dn0 read it over the wire
-        assert link["frames_sent"] > 500, link  # 5 s and more of 100 Hz
+        assert link["sent"] > 500, link  # 5 s and more of 100 Hz
     else:  # the pty stalled past the fault limit on a loaded host (as in the slow test)
         assert fault == "CONTROLLER_FAILED" and link["timeouts"] >= 25, (fault, link)
         assert states[-1] == "ABORTED" and "ARMED" in states, states
     # Every WRITE answered (the HELLO_ACK is one more frame) or timed out;
     # a timed-out WRITE's answer may still come, counted late.
-    answered = link["frames_received"] - 1 - link["late_replies"]
-    assert link["frames_sent"] - link["timeouts"] <= answered <= link["frames_sent"], link
+    answered = link["received"] - 1 - link["late"]
+    assert link["sent"] - link["timeouts"] <= answered <= link["sent"], link
     assert link["bad_frames"] == link["device_errors"] == link["reconnects"] == 0, link
     # dn0 counted every failed step (a timeout, or the link not up yet at start)
-    assert errors == link["errors"] >= link["timeouts"], (errors, link)
+    assert errors >= link["timeouts"], (errors, link)
     assert "malformed" not in c.log("world"), c.log("world")[-2000:]
+    # dn0's summary (written as it stopped) has its board's counters over the
+    # whole run: the telemetry above was a moment of them; dn1's world link
+    # reports none.
+    dn0 = read_summary(tmp_path / "dn0.json", DnSummary)
+    assert dn0 is not None and dn0.board is not None, c.log("dn0")[-2000:]
+    b = dn0.board
+    assert b.frames_sent >= link["sent"] and b.timeouts >= link["timeouts"], (b, link)
+    assert b.bad_frames == b.device_errors == b.reconnects == 0, b
+    assert b.errors == dn0.errors, (b, dn0)  # its only errors were the board's failed steps
+    dn1 = read_summary(tmp_path / "dn1.json", DnSummary)
+    assert dn1 is not None and dn1.board is None

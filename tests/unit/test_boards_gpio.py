@@ -235,6 +235,37 @@ def test_device_node_drives_a_gpio_board_from_the_mission(
     assert chip.released and chip.physical[27] is False
 
 
+def test_a_gpio_nodes_link_elements_count_io_cycles_and_failed_steps(
+    chip: FakeChip, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A gpiod board has no link to time out: its dnX_board_* elements count
+    I/O cycles (one write and one read per step) and dnX_board_ok says
+    whether the last step's ioctls succeeded; the rest stay 0."""
+    monkeypatch.setitem(sys.modules, "gpiod", fake_gpiod({chip.path: chip}))
+    mission = decode_mission(MISSION)
+    logic = DeviceLogic(mission, "dn0")  # the mission's own board
+    assert isinstance(logic.board, GpiodBoard) and logic.board_link
+    open_board(logic.board)
+    dv = logic.dv
+
+    def link() -> dict[str, int]:
+        names = ("ok", "sent", "received", "timeouts", "late", "bad_frames", "reconnects")
+        return {n: int(dv.get(f"dn0_board_{n}")) for n in names}
+
+    for loop in (1, 2):
+        run_dn_loop(logic, loop, loop * 10_000_000)
+    quiet = {"timeouts": 0, "late": 0, "bad_frames": 0, "reconnects": 0}
+    assert link() == {"ok": 1, "sent": 2, "received": 2, **quiet}
+    chip.fail = True
+    run_dn_loop(logic, 3, 30_000_000)
+    assert link() == {"ok": 0, "sent": 2, "received": 2, **quiet}
+    assert dv.get("dn0_errors") == 1
+    chip.fail = False
+    run_dn_loop(logic, 4, 40_000_000)
+    assert link() == {"ok": 1, "sent": 3, "received": 3, **quiet}
+    close_board(logic.board)
+
+
 # -- a real chip: gpio-sim through configfs (root and the gpio-sim module) --------------
 
 CONFIGFS = Path("/sys/kernel/config/gpio-sim")

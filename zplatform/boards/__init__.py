@@ -59,8 +59,11 @@ implementation.
 
 The device loop's side (:class:`~zplatform.loop.DeviceLogic`): count a
 :class:`BoardError` from ``step`` in ``dnX_errors`` (it already counts any
-exception there), call :func:`safe_board` on it, and read
-:func:`board_health` for telemetry or events.
+exception there) and call :func:`safe_board` on it. For the drivers with a
+link (``serial``, ``gpiod``: :data:`zplatform.config.BOARD_LINK_DRIVERS`) it
+also copies the board's ``counters`` (a :class:`HealthCounters`, read in
+place: no allocation) into the telemetry elements ``dnX_board_*`` after
+every step, and the node's summary carries :func:`board_health` at exit.
 
 Drivers: :class:`SerialBoard` (``serialboard``, needs ``pyserial``, the
 ``serial`` extra) and :class:`GpiodBoard` (``gpio``, needs ``gpiod``, the

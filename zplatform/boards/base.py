@@ -90,6 +90,11 @@ class HealthCounters:
     (``frames_received``, ``bad_frames``, ``reconnects``, ``device_errors``,
     ``late_replies``) and the loop thread own the rest, so no lock is needed:
     each attribute has a single writer and reads of an int are atomic.
+
+    A driver exposes its counters as its ``counters`` attribute: the device
+    loop reads them there in place after every step (the telemetry
+    elements ``dnX_board_*``), which allocates nothing, where
+    :meth:`snapshot` builds a struct.
     """
 
     __slots__ = (

@@ -37,7 +37,7 @@ import time
 import zenoh
 
 from ..auth import KeySet, channel, load_keys
-from ..boards import close_board, open_board
+from ..boards import board_health, close_board, open_board
 from ..bulk import NodeBulk, open_bulk
 from ..clocksync import ClockEstimate, ClockLink, estimator_for
 from ..config import Mission
@@ -48,7 +48,7 @@ from ..intake import ProbeIntake, TriggerIntake
 from ..loop import DeviceLogic
 from ..recorder import FlightRecorder, open_recorder, summary_line
 from ..scheduler import GcGuard
-from ..summary import DnSummary
+from ..summary import DnSummary, board_line, board_trouble
 from ..sync import DeviceSync, SyncTrace
 from ..timebase import NodeClock
 from ..transport import NodeSession, wait_for_nodes
@@ -398,6 +398,8 @@ class DeviceNode:
         self._stopped_cleanly = True
 
     def summary(self) -> DnSummary:
+        """The node's run so far; ``board`` is its board's health for a board
+        with a link (:attr:`zplatform.loop.DeviceLogic.board_link`), else None."""
         return DnSummary(
             node=self.name,
             loops=self.loops,
@@ -407,6 +409,7 @@ class DeviceNode:
             errors=int(self.dv.get(f"{self.name}_errors")),
             stale_queries=self.logic.stale,
             safed_why=self.logic.safed_why if self.logic.safed else "",
+            board=board_health(self.logic.board) if self.logic.board_link else None,
         )
 
     def close(self) -> None:
@@ -449,6 +452,10 @@ def run_device_node(
     try:
         node.start(ready_timeout_s)
         node.run(realtime=realtime)
-        return node.summary()
+        summary = node.summary()
     finally:
         node.close()
+    if summary.board is not None:  # once, at exit: the link's account for the operator
+        level = logging.WARNING if board_trouble(summary.board) else logging.INFO
+        log.log(level, "%s", board_line(name, summary.board))
+    return summary
