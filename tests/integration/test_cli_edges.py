@@ -239,6 +239,7 @@ def test_broken_pipe_in_process(monkeypatch: pytest.MonkeyPatch) -> None:
         (["up", "configs/minimal.yaml", "--ready-timeout", "0"], "--ready-timeout: must be > 0"),
         (["sim", "configs/minimal.yaml", "--log", "x.csv", "--duration", "nan"], "must be > 0"),
         (["tap", "configs/minimal.yaml", "--count", "0"], "--count: must be >= 1"),
+        (["up", "configs/minimal.yaml", "--settle", "0"], "--settle: must be > 0"),
         (["cmd", "configs/minimal.yaml", "noop", "--timeout", "abc"], "expected a number"),
     ],
 )
@@ -249,6 +250,18 @@ def test_numeric_options_are_validated(
         main(argv)
     assert exc.value.code == 2
     assert phrase in capsys.readouterr().err
+
+
+@pytest.mark.parametrize(
+    "extra", [[], ["--commands", "configs/led_test.commands", "--duration", "5"]]
+)
+def test_settle_is_for_a_script_without_a_duration(
+    extra: list[str], capsys: pytest.CaptureFixture[str]
+) -> None:
+    assert main(["up", "configs/led_test.yaml", "--settle", "1", *extra]) == 2
+    err = capsys.readouterr().err
+    assert "--settle is how long a run goes on after its script (--commands) without " \
+        "--duration" in err and err.count("\n") == 1, err  # fmt: skip
 
 
 def test_version_and_help(capsys: pytest.CaptureFixture[str]) -> None:
