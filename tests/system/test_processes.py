@@ -17,7 +17,7 @@ from pathlib import Path
 import pytest
 
 from tests.budget import assert_every_loop_counted, assert_telemetry_counted
-from tests.drive import igniter_bench_copy
+from tests.drive import igniter_bench_copy, igniter_quick_flight
 from zplatform.ground.link import GroundLink
 from zplatform.mission import load_mission
 from zplatform.pki import ensure_mission_pki
@@ -34,7 +34,7 @@ SEQ = [f"led_seq{i}_fb" for i in range(5)]
 class Mission:
     """`zplatform up` in the background, watched through telemetry."""
 
-    def __init__(self, config: str, tmp: Path) -> None:
+    def __init__(self, config: str | Path, tmp: Path) -> None:
         self.path = tmp / "mission.yaml"
         rewrite_endpoints(ROOT / "configs" / config, self.path)
         self.mission = load_mission(self.path)
@@ -176,8 +176,10 @@ def _fired_rows(rows: list[dict[str, str]]) -> list[dict[str, str]]:
 
 
 def test_recovery_igniter_fires_when_both_nodes_agree(tmp_path: Path) -> None:
-    """Thesis 5.1.3.2 as processes: ARM + LAUNCH sent with `zplatform cmd`, both DNs fire."""
-    m = Mission("recovery_igniter.yaml", tmp_path)
+    """Thesis 5.1.3.2 as processes: ARM + LAUNCH sent with `zplatform cmd`, both DNs fire.
+    The simulated flight is the quick one (tests/drive.py: apogee at 4 s, not
+    8 s); the states, rules and commands are the shipped mission's."""
+    m = Mission(igniter_quick_flight(tmp_path / "recovery_igniter_quick.yaml"), tmp_path)
     try:
         m.await_state("SAFE")
         # LAUNCH is hazardous: alone it is refused before anything is sent, with
