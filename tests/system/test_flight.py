@@ -148,10 +148,40 @@ _WEATHER = given(
 )
 
 
-def _recovery_and_airbrakes(seed: int, wind: float, gust: float, dry: float, aim: float) -> None:
+def _weathers(n: int) -> Any:
+    """``n`` weathers, the same ones every run. Each is a 40 s flight in
+    lockstep (about a second of CPU): the default suite flies 3 (the shipped
+    flight's own marks are checked above), the soaks (-m slow) 40."""
+    return settings(
+        max_examples=n,
+        deadline=None,
+        derandomize=True,
+        suppress_health_check=[HealthCheck.too_slow],
+    )
+
+
+@_weathers(3)
+@_WEATHER
+def test_recovery_and_airbrakes_over_seeded_noise_and_wind(
+    seed: int, wind: float, gust: float, dry: float, aim: float
+) -> None:
     """Drogue within 0.5 s after the true apogee, never before; main within
     10 m of its altitude; apogee within 3 % of any target the rocket (its
     dry mass drawn too, and known to its airbrake controller) can reach."""
+    _recovery_and_airbrakes(seed, wind, gust, dry, aim)
+
+
+@pytest.mark.slow
+@_weathers(40)
+@_WEATHER
+def test_recovery_and_airbrakes_over_many_weathers(
+    seed: int, wind: float, gust: float, dry: float, aim: float
+) -> None:
+    """The same property over 40 weathers."""
+    _recovery_and_airbrakes(seed, wind, gust, dry, aim)
+
+
+def _recovery_and_airbrakes(seed: int, wind: float, gust: float, dry: float, aim: float) -> None:
     m = flight(wind_mps=wind, gust_mps=gust, dry_mass_kg=dry, sensors={"seed": seed})
     assert m.world is not None
     free, braked = _free_and_braked_apogee({**m.world.params, "gust_mps": 0.0})
@@ -166,26 +196,6 @@ def _recovery_and_airbrakes(seed: int, wind: float, gust: float, dry: float, aim
     assert 0.0 < f.drogue_at - f.apogee_t <= 0.5
     assert fl.main_alt is not None and abs(fl.main_alt - MAIN_M) <= 10.0
     assert abs(f.apogee_m - target) <= 0.03 * target, (f.apogee_m, target)
-
-
-# Each example is a 40 s flight in lockstep (about a second of CPU): the
-# default suite flies 3 weathers (the shipped flight's own marks are checked
-# above), the soaks (-m slow) 40.
-test_recovery_and_airbrakes_over_seeded_noise_and_wind = settings(
-    max_examples=3,
-    deadline=None,
-    derandomize=True,
-    suppress_health_check=[HealthCheck.too_slow],
-)(_WEATHER(_recovery_and_airbrakes))
-
-test_recovery_and_airbrakes_over_many_weathers = pytest.mark.slow(
-    settings(
-        max_examples=40,
-        deadline=None,
-        derandomize=True,
-        suppress_health_check=[HealthCheck.too_slow],
-    )(_WEATHER(_recovery_and_airbrakes))
-)
 
 
 PARAM_SCRIPT = """\
