@@ -142,13 +142,15 @@ def test_cmd_and_prompt_arm_in_one_step_and_give_every_reason(tmp_path: Path) ->
             c.spawn(n)
         c.wait_for(lambda dv: dv.get_name("cn_state") == "SAFE", 30, "state SAFE")
         path = str(c.path)
-        r = _zp("cmd", path, "write", "safety0_mode", "safed")
+        r, launch = _zp_all(  # side by side: two processes
+            ("cmd", path, "write", "safety0_mode", "safed"), ("cmd", path, "launch")
+        )
         assert r.returncode == 2, r.stdout + r.stderr
         assert (
             "safety0_mode is protected (commands.protected): send it as ARM n, then WRITE n+1 "
             "(--arm)" in r.stderr
         )
-        r = _zp("cmd", path, "launch")
+        r = launch
         assert r.returncode == 2 and "LAUNCH is hazardous" in r.stderr, r.stdout + r.stderr
         c.advance(5)
         assert int(c.tm.get("cn_cmd_seq")) == 0 and int(c.tm.get("cn_cmd_rejects")) == 0
