@@ -22,6 +22,14 @@ Missions with a flight recorder (the shipped flight and recovery_igniter
 ones) record into a temporary directory of the session
 (``ZPLATFORM_RECORDER_DIR``, inherited too), removed at exit: nothing is
 written to the user's state directory.
+
+The suite starts hundreds of Python processes (nodes, ground tools), and
+each compiled every zplatform module from source where the environment
+says ``PYTHONDONTWRITEBYTECODE`` (this machine's does): a fifth of a second
+of CPU per process. They share one bytecode cache of the session instead
+(``PYTHONPYCACHEPREFIX``, a temporary directory removed at exit): the
+first process compiles a module, the others read it; nothing is written
+beside the sources.
 """
 
 from __future__ import annotations
@@ -51,3 +59,8 @@ atexit.register(shutil.rmtree, _PARAMS_DIR, True)
 _RECORDER_DIR = tempfile.mkdtemp(prefix="zplatform-test-recorder-")
 os.environ["ZPLATFORM_RECORDER_DIR"] = _RECORDER_DIR
 atexit.register(shutil.rmtree, _RECORDER_DIR, True)
+
+_PYCACHE = tempfile.mkdtemp(prefix="zplatform-test-pycache-")
+os.environ.pop("PYTHONDONTWRITEBYTECODE", None)
+os.environ["PYTHONPYCACHEPREFIX"] = _PYCACHE
+atexit.register(shutil.rmtree, _PYCACHE, True)
