@@ -59,3 +59,26 @@ def igniter_quick_flight(dst: Path, src: Path | None = None) -> Path:
     raw["world"]["params"].update(QUICK_FLIGHT)
     dst.write_text(yaml.safe_dump(raw, sort_keys=False))
     return dst
+
+
+# The LED platform's walk, quicker: state C lights dn1's five LEDs 0.25 s
+# apart instead of 1 s (C lasts 1 s, not 4), and D flashes at 0.4 s instead
+# of 1 s. A (until LAUNCH), B's 3 s and E are the shipped mission's.
+QUICK_LEDS = {"seq_leds": {"step_s": 0.25}, "flasher": {"period_s": 0.4}}
+
+
+def led_quick(dst: Path) -> Path:
+    """A copy of configs/led_test.yaml at ``dst`` with :data:`QUICK_LEDS`, for
+    the live walk. Returns ``dst``."""
+    import yaml
+
+    from zplatform.config import relocate_mission
+
+    src = Path(__file__).resolve().parents[1] / "configs" / "led_test.yaml"
+    raw = yaml.safe_load(src.read_text())
+    relocate_mission(raw, src)
+    for c in raw["controllers"]:
+        c.setdefault("config", {}).update(QUICK_LEDS.get(c["name"], {}))
+    assert all(any(c["name"] == n for c in raw["controllers"]) for n in QUICK_LEDS)
+    dst.write_text(yaml.safe_dump(raw, sort_keys=False))
+    return dst

@@ -17,7 +17,7 @@ from pathlib import Path
 import pytest
 
 from tests.budget import assert_every_loop_counted, assert_telemetry_counted
-from tests.drive import igniter_bench_copy, igniter_quick_flight
+from tests.drive import igniter_bench_copy, igniter_quick_flight, led_quick
 from zplatform.ground.link import GroundLink
 from zplatform.mission import load_mission
 from zplatform.pki import ensure_mission_pki
@@ -100,8 +100,10 @@ class Mission:
 
 
 def test_led_platform_walks_a_to_e(tmp_path: Path) -> None:
-    """Thesis 5.1.3.1 as processes: A -LAUNCH-> B -3 s-> C -LED4-> D -ABORT-> E, LEDs per state."""
-    m = Mission("led_test.yaml", tmp_path)
+    """Thesis 5.1.3.1 as processes: A -LAUNCH-> B -3 s-> C -LED4-> D -ABORT-> E, LEDs per state.
+    C's LEDs step 0.25 s apart and D flashes at 0.4 s (tests/drive.py: the
+    thesis' timings are test_lockstep_missions.py's); B's 3 s are the thesis'."""
+    m = Mission(led_quick(tmp_path / "led_test_quick.yaml"), tmp_path)
     try:
         m.await_state("A")
         m.await_telemetry(lambda dv: bool(dv.get("led_a_fb")), "state LED A lit")
