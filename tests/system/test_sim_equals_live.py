@@ -21,11 +21,12 @@ from zplatform.uplink import load_commands
 ROOT = Path(__file__).resolve().parents[2]
 LED_YAML = ROOT / "configs" / "led_test.yaml"
 # The thesis' script (configs/led_test.commands: LAUNCH at 1 s, ABORT at
-# 14 s, in a 20 s run) less the time it only waits: D is reached at 8.04 s,
-# so ABORT at 9 s still walks A..E, and E holds for a second. 10 s of
-# flight instead of 20, the same states, verdicts and comparisons.
-SCRIPT = "at 1.0 launch\nat 9.0 abort\n"
-DURATION_S = 10
+# 14 s, in a 20 s run) less the time it only waits: LAUNCH at 0.5 s reaches
+# D at 7.54 s, so ABORT at 8.5 s still walks A..E (a second of D), and E
+# holds for half a second. 9 s of flight instead of 20, the same states,
+# verdicts and comparisons.
+SCRIPT = "at 0.5 launch\nat 8.5 abort\n"
+DURATION_S = 9
 
 
 def state_changes(rows: list[dict[str, str]]) -> list[tuple[int, str]]:
@@ -39,7 +40,7 @@ def state_changes(rows: list[dict[str, str]]) -> list[tuple[int, str]]:
 
 @pytest.fixture(scope="module")
 def live_run(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """A 10 s led_test run under ``up`` with its script, logged and recorded."""
+    """A 9 s led_test run under ``up`` with its script, logged and recorded."""
     tmp = tmp_path_factory.mktemp("live")
     mission = tmp / "mission.yaml"
     rewrite_endpoints(LED_YAML, mission)
