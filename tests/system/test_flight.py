@@ -251,18 +251,25 @@ def test_a_parameter_script_is_byte_identical_run_to_run(tmp_path: Path) -> None
 
 def test_sim_is_byte_identical_run_to_run_and_from_the_command_line(tmp_path: Path) -> None:
     a, b, c = tmp_path / "a.csv", tmp_path / "b.csv", tmp_path / "c.csv"
-    for path in (a, b):
-        r = LockstepRunner(load_mission(FLIGHT_YAML), commands=load_commands(FLIGHT_CMDS))
-        with CsvLogger(path, r.control.layout) as log:
-            r.run(60.0, log=log)
-    assert a.read_bytes() == b.read_bytes()
-    p = subprocess.run(
+    # The command line's run (a process) flies beside the two in this one.
+    p = subprocess.Popen(
         [sys.executable, "-m", "zplatform", "sim", str(FLIGHT_YAML), "--commands",
          str(FLIGHT_CMDS), "--log", str(c)],
-        cwd=ROOT, capture_output=True, text=True, timeout=120, check=False,
+        cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
     )  # fmt: skip
-    assert p.returncode == 0, p.stdout + p.stderr
-    assert "SAFE -> ARMED -> BOOST -> COAST -> DROGUE -> MAIN -> LANDED" in p.stdout
+    try:
+        for path in (a, b):
+            r = LockstepRunner(load_mission(FLIGHT_YAML), commands=load_commands(FLIGHT_CMDS))
+            with CsvLogger(path, r.control.layout) as log:
+                r.run(60.0, log=log)
+        out, err = p.communicate(timeout=120)
+    finally:
+        if p.poll() is None:
+            p.kill()
+            p.communicate()
+    assert a.read_bytes() == b.read_bytes()
+    assert p.returncode == 0, out + err
+    assert "SAFE -> ARMED -> BOOST -> COAST -> DROGUE -> MAIN -> LANDED" in out
     assert c.read_bytes() == a.read_bytes()  # the default duration (60 s) ends the same
 
 
