@@ -12,21 +12,15 @@ from pathlib import Path
 
 import pytest
 
+from tests.live_runs import LED_DURATION_S
 from zplatform import load_mission
 from zplatform.lockstep import LockstepRunner, replay
 from zplatform.telemetry import CsvLogger, read_csv
-from zplatform.transport import rewrite_endpoints
 from zplatform.uplink import load_commands
 
 ROOT = Path(__file__).resolve().parents[2]
 LED_YAML = ROOT / "configs" / "led_test.yaml"
-# The thesis' script (configs/led_test.commands: LAUNCH at 1 s, ABORT at
-# 14 s, in a 20 s run) less the time it only waits: LAUNCH at 0.5 s reaches
-# D at 7.54 s, so ABORT at 8.5 s still walks A..E (a second of D), and E
-# holds for half a second. 9 s of flight instead of 20, the same states,
-# verdicts and comparisons.
-SCRIPT = "at 0.5 launch\nat 8.5 abort\n"
-DURATION_S = 9
+DURATION_S = LED_DURATION_S
 
 
 def state_changes(rows: list[dict[str, str]]) -> list[tuple[int, str]]:
@@ -38,39 +32,12 @@ def state_changes(rows: list[dict[str, str]]) -> list[tuple[int, str]]:
     return out
 
 
-@pytest.fixture(scope="module")
-def live_run(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """A 9 s led_test run under ``up`` with its script, logged and recorded."""
-    tmp = tmp_path_factory.mktemp("live")
-    mission = tmp / "mission.yaml"
-    rewrite_endpoints(LED_YAML, mission)
-    (tmp / "led.commands").write_text(SCRIPT)
-    proc = subprocess.run(
-        [
-            sys.executable,
-            "-m",
-            "zplatform",
-            "up",
-            str(mission),
-            "--duration",
-            str(DURATION_S),
-            "--commands",
-            str(tmp / "led.commands"),
-            "--log",
-            str(tmp / "live.csv"),
-            "--summary",
-            str(tmp / "up.json"),
-            "--record",
-            str(tmp / "rec"),
-            "--quiet",
-        ],
-        cwd=ROOT,
-        capture_output=True,
-        text=True,
-        timeout=150,
-    )
-    assert proc.returncode == 0, proc.stderr[-3000:]
-    return tmp
+@pytest.fixture
+def live_run(led_live_run: Path) -> Path:
+    """The LED platform's scripted run under ``up`` (tests/live_runs.py: 9 s,
+    LAUNCH at 0.5 s, ABORT at 8.5 s), logged and recorded; made once a
+    session, other tests read it too."""
+    return led_live_run
 
 
 def test_sim_equals_live(live_run: Path, tmp_path: Path) -> None:
