@@ -35,7 +35,30 @@ from pathlib import Path
 
 import atheris
 
-with atheris.instrument_imports(include=["zplatform"]):
+# The zplatform modules the targets run, for coverage guidance (found by
+# profiling both targets on random and seeded inputs: the same coverage as
+# instrumenting all of zplatform, 386 edges for `command`). Instrumenting
+# every module zplatform's package imports (58) cost each fuzzing process
+# about 2 s of CPU before its first run. atheris takes a package to include
+# (a module name counts as its top-level package), so the rest are excluded.
+FUZZED_MODULES = {
+    "zplatform.codec",
+    "zplatform.commands",
+    "zplatform.config",
+    "zplatform.datavector",
+    "zplatform.events",
+    "zplatform.params",
+    "zplatform.statemachine",
+    "zplatform.types",
+}
+_SRC = Path(__file__).resolve().parents[2] / "zplatform"
+_NOT_FUZZED = sorted(
+    ".".join(("zplatform", *p.relative_to(_SRC).with_suffix("").parts)).removesuffix(".__init__")
+    for p in _SRC.rglob("*.py")
+    if ".".join(("zplatform", *p.relative_to(_SRC).with_suffix("").parts)) not in FUZZED_MODULES
+)
+
+with atheris.instrument_imports(include=["zplatform"], exclude=_NOT_FUZZED):
     from zplatform.codec import RegionCodec, decode_frame, encode_frame
     from zplatform.commands import CommandHandler, CommandStatus
     from zplatform.datavector import DataVector, Layout
