@@ -28,6 +28,14 @@ running mission's name) is the session's own too: a mission that ``up`` runs
 elsewhere on the machine is not one a test can see by name (a test that
 expects ``keygen led_test`` to fail without a running ``led_test`` failed
 whenever someone else ran one).
+
+The suite starts hundreds of Python processes (nodes, ground tools), and
+each compiled every zplatform module from source where the environment
+says ``PYTHONDONTWRITEBYTECODE`` (this machine's does): a fifth of a second
+of CPU per process. They share one bytecode cache of the session instead
+(``PYTHONPYCACHEPREFIX``, a temporary directory removed at exit): the
+first process compiles a module, the others read it; nothing is written
+beside the sources.
 """
 
 from __future__ import annotations
@@ -61,3 +69,8 @@ atexit.register(shutil.rmtree, _RUN_DIR, True)
 _RECORDER_DIR = tempfile.mkdtemp(prefix="zplatform-test-recorder-")
 os.environ["ZPLATFORM_RECORDER_DIR"] = _RECORDER_DIR
 atexit.register(shutil.rmtree, _RECORDER_DIR, True)
+
+_PYCACHE = tempfile.mkdtemp(prefix="zplatform-test-pycache-")
+os.environ.pop("PYTHONDONTWRITEBYTECODE", None)
+os.environ["PYTHONPYCACHEPREFIX"] = _PYCACHE
+atexit.register(shutil.rmtree, _PYCACHE, True)

@@ -26,7 +26,8 @@ from .cli_args import (
     positive_int,
     timeout_option,
 )
-from .errors import NodeError
+from .errors import CommandError, NodeError
+from .ground.script import MIN_DURATION_S, SETTLE_S
 from .ground.tap import TAP_SILENCE_S
 from .mission import load_mission
 from .node.runtime import setup_logging
@@ -56,6 +57,13 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     )
     p.add_argument(
         "--commands", metavar="FILE", help="command script the ground node plays (at 1.0 launch)"
+    )
+    p.add_argument(
+        "--settle",
+        type=positive_float,
+        metavar="S",
+        help="with --commands and no --duration: stop S seconds after the script's last "
+        f"verdict (default {SETTLE_S:g} s, and at least {MIN_DURATION_S:g} s in all)",
     )
     p.add_argument("--quiet", action="store_true", help="no live status line, no summary line")
     _node_options(p, "seconds the nodes wait for their peers at start (default 60)")
@@ -299,7 +307,6 @@ def _log_from_recorder(args: argparse.Namespace) -> int:
     written (every record skipped is named on stderr and counted), 2 when
     nothing could be read."""
     from .auth import load_keys
-    from .errors import CommandError
     from .recorder import export, reader_role, recorded_node
 
     if args.duration is not None:
@@ -371,6 +378,11 @@ def cmd_up(args: argparse.Namespace) -> int:
     from .pki import ensure_mission_pki
     from .supervisor import run_up
 
+    if args.settle is not None and (not args.commands or args.duration is not None):
+        raise CommandError(
+            "--settle is how long a run goes on after its script (--commands) without "
+            "--duration"
+        )
     mission = load_mission(args.mission)
     # First use on this host: make the mission's key set (every node finds its
     # own). Every node it spawns needs its keys: a missing one is one error
@@ -406,6 +418,7 @@ def cmd_up(args: argparse.Namespace) -> int:
         summary=args.summary,
         free_ports=args.free_ports,
         commands=args.commands,
+        settle_s=args.settle,
         realtime=not args.no_realtime,
         quiet=args.quiet,
         ready_timeout_s=args.ready_timeout,

@@ -63,7 +63,8 @@ directory itself (no symlink, FIFO or device), ``mission.yaml`` at most
 :data:`MAX_META_BYTES`, the initial vector exactly the layout's size, each
 item exactly or at most the length its type allows for the mission (a reply
 no longer than the widest frame of its DN's region, a known DN, at most a
-bounded number of items per loop), read one item at a time. Every malformed
+bounded number of items per loop, a FINISH's refusal status a command
+status), read one item at a time. Every malformed
 recording ends in one :class:`~zplatform.errors.RecordingError` naming the
 file, the offset and what was expected; only a tail cut off mid-item (a
 recorder that was killed) is an incomplete recording rather than an error.
@@ -96,6 +97,7 @@ import yaml
 
 from .auth import TAG_LEN
 from .codec import RegionCodec
+from .codes import CommandStatus
 from .config import Mission, relocate_mission
 from .datavector import DataVector, Layout
 from .errors import CodecError, ConfigError, RecordingError
@@ -145,6 +147,8 @@ PRM_SAVED, HEALTH = 11, 12  # 10 was FOREIGN (version 4 and before)
 _ITEM = struct.Struct("<BBI")  # type, dn, length
 _BEGIN = struct.Struct("<QqB")
 _FINISH = struct.Struct("<BII" + "I" * 7 + "BQ")
+_CMD_STATUS = 7  # the refusals' cmd_status, after their seven counts
+_STATUSES = frozenset(int(s) for s in CommandStatus)
 _U32 = struct.Struct("<I")
 _NONE_REFUSED = CnRefusals().fields()
 _U64 = struct.Struct("<Q")
@@ -724,6 +728,11 @@ class RecordReader:
                 )
             if typ == FINISH:
                 so, lo, dr, *refused = _FINISH.unpack(body)
+                if refused[_CMD_STATUS] not in _STATUSES:  # the loop names it: a known one
+                    raise self._fail(
+                        f"loop {loop}: FINISH with command status {refused[_CMD_STATUS]} "
+                        f"(at most {max(_STATUSES)})"
+                    )
                 yield LoopRecord(
                     loop,
                     t,

@@ -26,7 +26,9 @@ With a command script and no duration, the run ends
 :data:`~zplatform.ground.script.SETTLE_S` after the script's last verdict
 (the ground node's ``script_done`` event; at least
 :data:`~zplatform.ground.script.MIN_DURATION_S` in all), so the last
-command's consequences play out and ``up`` still ends by itself.
+command's consequences play out and ``up`` still ends by itself;
+``--settle S`` (``settle_s``) makes that S seconds after the verdict, with
+no minimum.
 """
 
 from __future__ import annotations
@@ -216,9 +218,11 @@ def watch(
     quiet: bool = False,
     ready_timeout_s: float = 60.0,
     end_after_script: bool = False,
+    settle_s: float | None = None,
 ) -> Watch:
     """Live status until the CN finishes, ``stopping()`` or (with
-    ``end_after_script``) the script's end (module doc), through ``link``
+    ``end_after_script``) the script's end (module doc; ``settle_s``: how
+    long after the last verdict, None for the default), through ``link``
     (opened with ``on_event=w.on_event``; the caller closes it, after
     stopping the nodes). Fills and returns ``w``. Blocks."""
     tty = sys.stdout.isatty()
@@ -296,7 +300,12 @@ def watch(
             done_at = w.script_done_at
             if end_after_script and done_at is not None:
                 w.script_done = True
-                if now >= max(done_at + SETTLE_S, start + MIN_DURATION_S):
+                end = (
+                    max(done_at + SETTLE_S, start + MIN_DURATION_S)
+                    if settle_s is None
+                    else done_at + settle_s
+                )
+                if now >= end:
                     if not quiet:
                         print(
                             f"\nzplatform up: the script's last verdict came {now - done_at:.0f}"
@@ -405,14 +414,16 @@ def run_up(
     summary: str | None = None,
     free_ports: bool = False,
     commands: str | None = None,
+    settle_s: float | None = None,
     realtime: bool = True,
     quiet: bool = False,
     ready_timeout_s: float = 60.0,
     record: str | None = None,
 ) -> int:
     """Run every node of ``mission`` (loaded from ``source``) until the CN
-    finishes (``duration_s``), the script's end (module doc) or Ctrl-C /
-    SIGTERM. Blocks; returns the exit code (0: a clean run).
+    finishes (``duration_s``), the script's end (module doc; ``settle_s``
+    after its last verdict when given) or Ctrl-C / SIGTERM. Blocks;
+    returns the exit code (0: a clean run).
 
     The caller has refused what a user can get wrong (the mission, the
     script, output paths, busy ports). While it runs the mission is
@@ -487,6 +498,7 @@ def run_up(
             quiet=quiet,
             ready_timeout_s=ready_timeout_s,
             end_after_script=bool(commands) and duration_s is None,
+            settle_s=settle_s,
         )
     finally:
         reg.remove()
@@ -505,6 +517,7 @@ def _supervise(
     quiet: bool,
     ready_timeout_s: float,
     end_after_script: bool,
+    settle_s: float | None = None,
 ) -> int:
     children = Children()
     summaries = {n: tmp / f"{n}.json" for n in spawn}
@@ -537,6 +550,7 @@ def _supervise(
             quiet=quiet,
             ready_timeout_s=ready_timeout_s,
             end_after_script=end_after_script,
+            settle_s=settle_s,
         )
     finally:
         # The nodes first (CN, DNs and ground, world), then our own session:

@@ -61,21 +61,39 @@ PY = sys.executable
 
 
 class Probe:
-    def __init__(self, host: NetnsHost, mission: Path, env: dict[str, str], *ident: str) -> None:
+    """A tls_probe process in ``host``; ``wait=False``: call :meth:`ready`
+    later (probes start side by side)."""
+
+    def __init__(
+        self, host: NetnsHost, mission: Path, env: dict[str, str], *ident: str, wait: bool = True
+    ) -> None:
         self.p = host.popen(
             [PY, "-m", "tests.faults.tls_probe", str(mission), *ident],
             pipe_stdio=True,
             env=env,
             cwd=ROOT,
         )
-        assert readline(self.p, 30) == "ready"
+        if wait:
+            self.ready()
 
-    def ask(self, timeout_s: float = 10, **req: Any) -> dict[str, Any]:
+    def ready(self) -> Probe:
+        assert readline(self.p, 30) == "ready"
+        return self
+
+    def send(self, **req: Any) -> None:
+        """Send one request; :meth:`reply` reads its answer (so several
+        probes can be asked at once)."""
         assert self.p.stdin is not None
         self.p.stdin.write(json.dumps(req) + "\n")
         self.p.stdin.flush()
+
+    def reply(self, timeout_s: float = 10) -> dict[str, Any]:
         out: dict[str, Any] = json.loads(readline(self.p, timeout_s + 10))
         return out
+
+    def ask(self, timeout_s: float = 10, **req: Any) -> dict[str, Any]:
+        self.send(**req)
+        return self.reply(timeout_s)
 
     def telemetry(self, timeout: float, count: int = 1) -> dict[str, Any]:
         return self.ask(timeout, op="telemetry", timeout=timeout, count=count)
@@ -213,17 +231,29 @@ def test_unknown_peers_cannot_connect_and_the_acl_denies_what_a_cert_may_not_do(
             f"--- {n}\n" + (tmp_path / f"{n}.log").read_text()[-2000:] for n in ("cn", "dn0", "gn")
         )
 
-    # A legitimate peer (the mission's tool cert) sees the mission run.
-    legit = Probe(h_x, path, env, *_ident(pki, "tool"))
+    # Every probe starts now, side by side (each is a process): a legitimate
+    # peer (the mission's tool cert); two unknown ones, without a cert and
+    # with a cert from another CA; and two valid certs for the ACL's rules.
+    legit = Probe(h_x, path, env, *_ident(pki, "tool"), wait=False)
+    unknown = [Probe(h_x, path, env, *ident, wait=False) for ident in ([], _ident(foreign, "gn"))]
+    as_gn = Probe(h_x, path, env, *_ident(pki, "gn"), wait=False)
+    as_cn = Probe(h_x, path, env, *_ident(pki, "cn"), wait=False)
+    for probe in (legit, *unknown, as_gn, as_cn):
+        probe.ready()
+
+    # The legitimate peer sees the mission run.
     t = legit.telemetry(90, count=20)
     assert t["new"] == 20, logs()
     assert t["cn_bad_frames"] == 0 and t["cn_cmd_rejects"] == 0, t
     assert legit.peers() >= 1
 
-    # Unknown peers: no cert at all, or a cert from another CA.
-    for ident in ([], _ident(foreign, "gn")):
-        x = Probe(h_x, path, env, *ident)
-        assert x.telemetry(3)["received"] == 0
+    # Unknown peers: no cert at all, or a cert from another CA. Both watch
+    # for telemetry over the same 3 s.
+    for x in unknown:
+        x.send(op="telemetry", timeout=3, count=1)
+    for x in unknown:
+        assert x.reply(3)["received"] == 0
+    for x in unknown:
         assert x.peers() == 0
         assert x.get("rocket/dn0/to_cn") == {"ok": 0, "err": 0, "why": []}
         x.put("rocket/gn/to_cn")
@@ -231,13 +261,11 @@ def test_unknown_peers_cannot_connect_and_the_acl_denies_what_a_cert_may_not_do(
 
     # A valid cert the ACL does not allow to query a DN: the query never
     # reaches dn0; with the CN's cert the same query does.
-    as_gn = Probe(h_x, path, env, *_ident(pki, "gn"))
     assert as_gn.telemetry(30)["new"] == 1  # connected and receiving: a legit peer
     assert as_gn.get("rocket/dn0/to_cn") == {"ok": 0, "err": 0, "why": []}
     as_gn.put("rocket/cn/telemetry")  # only cn may put its telemetry
     t = legit.telemetry(10, count=50)  # half a second of loops
     assert t["cn_bad_frames"] == 0 and t["dn0_bad_frames"] == 0, t
-    as_cn = Probe(h_x, path, env, *_ident(pki, "cn"))
     for _ in range(50):  # until the probe's session has learnt dn0's queryable
         # dn0's intake refuses the garbage unread (no reply) and counts it.
         assert as_cn.get("rocket/dn0/to_cn", 0.5) == {"ok": 0, "err": 0, "why": []}

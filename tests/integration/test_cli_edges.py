@@ -192,15 +192,25 @@ def test_verbs_that_need_an_extra_name_it(
 
 
 def test_check_json_into_a_closed_pipe_is_quiet() -> None:
-    # Many rounds of output so the pipe really breaks (more than its buffer).
-    script = (
-        "for i in $(seq 30); do echo configs/led_test.yaml; done | "
-        f"xargs -n1 {sys.executable} -m zplatform check --json | head -c 100 >/dev/null; "
-        f"{sys.executable} -m zplatform check configs/led_test.yaml --json | head -n 1"
-    )
-    r = subprocess.run(["bash", "-c", script], cwd=ROOT, capture_output=True, text=True, timeout=90)
-    assert "Traceback" not in r.stderr and "BrokenPipe" not in r.stderr, r.stderr
-    assert r.stdout.strip() == "{"
+    # A pipe whose reader is gone before the first byte: the very first
+    # write breaks it, every time (one process, not rounds of them hoping
+    # that one of them writes after `head` went).
+    r, w = os.pipe()
+    os.close(r)
+    try:
+        p = subprocess.run(
+            [sys.executable, "-m", "zplatform", "check", "configs/led_test.yaml", "--json"],
+            cwd=ROOT, stdout=w, stderr=subprocess.PIPE, text=True, timeout=60,
+        )  # fmt: skip
+    finally:
+        os.close(w)
+    assert "Traceback" not in p.stderr and "BrokenPipe" not in p.stderr, p.stderr
+    assert p.returncode == 141, (p.returncode, p.stderr)  # as killed by SIGPIPE, quietly
+    # A reader that takes the first line and goes: that line is the JSON's.
+    script = f"{sys.executable} -m zplatform check configs/led_test.yaml --json | head -n 1"
+    q = subprocess.run(["bash", "-c", script], cwd=ROOT, capture_output=True, text=True, timeout=60)
+    assert "Traceback" not in q.stderr and "BrokenPipe" not in q.stderr, q.stderr
+    assert q.stdout.strip() == "{"
 
 
 def test_broken_pipe_in_process(monkeypatch: pytest.MonkeyPatch) -> None:
@@ -229,6 +239,7 @@ def test_broken_pipe_in_process(monkeypatch: pytest.MonkeyPatch) -> None:
         (["up", "configs/minimal.yaml", "--ready-timeout", "0"], "--ready-timeout: must be > 0"),
         (["sim", "configs/minimal.yaml", "--log", "x.csv", "--duration", "nan"], "must be > 0"),
         (["tap", "configs/minimal.yaml", "--count", "0"], "--count: must be >= 1"),
+        (["up", "configs/minimal.yaml", "--settle", "0"], "--settle: must be > 0"),
         (["cmd", "configs/minimal.yaml", "noop", "--timeout", "abc"], "expected a number"),
     ],
 )
@@ -239,6 +250,18 @@ def test_numeric_options_are_validated(
         main(argv)
     assert exc.value.code == 2
     assert phrase in capsys.readouterr().err
+
+
+@pytest.mark.parametrize(
+    "extra", [[], ["--commands", "configs/led_test.commands", "--duration", "5"]]
+)
+def test_settle_is_for_a_script_without_a_duration(
+    extra: list[str], capsys: pytest.CaptureFixture[str]
+) -> None:
+    assert main(["up", "configs/led_test.yaml", "--settle", "1", *extra]) == 2
+    err = capsys.readouterr().err
+    assert "--settle is how long a run goes on after its script (--commands) without " \
+        "--duration" in err and err.count("\n") == 1, err  # fmt: skip
 
 
 def test_version_and_help(capsys: pytest.CaptureFixture[str]) -> None:

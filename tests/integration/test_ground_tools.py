@@ -32,13 +32,57 @@ def _zp(
     )
 
 
+def _zp_all(
+    *runs: tuple[str, ...],
+    stdins: dict[int, str] | None = None,
+    envs: dict[int, dict[str, str]] | None = None,
+) -> list[subprocess.CompletedProcess[str]]:
+    """:func:`_zp` for each argument list, all running at once (``stdins``
+    and ``envs`` by position)."""
+    stdins, envs = stdins or {}, envs or {}
+    procs = [
+        subprocess.Popen(
+            [sys.executable, "-m", "zplatform", *args],
+            cwd=ROOT,
+            stdin=subprocess.PIPE if i in stdins else subprocess.DEVNULL,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+            env=dict(os.environ, **envs.get(i, {})),
+        )
+        for i, args in enumerate(runs)
+    ]
+    done = []
+    try:
+        for i, text in stdins.items():  # all of it at once: a few lines
+            stdin = procs[i].stdin
+            assert stdin is not None
+            stdin.write(text)
+            stdin.close()
+            procs[i].stdin = None  # written and closed: communicate() only reads
+        for p in procs:
+            out, err = p.communicate(timeout=60)
+            done.append(subprocess.CompletedProcess(p.args, p.returncode, out, err))
+    finally:
+        for p in procs:
+            if p.poll() is None:
+                p.kill()
+                p.communicate()
+    return done
+
+
 def test_tap_ground_and_log(tmp_path: Path) -> None:
-    """A tap sees every node's keys decoded; the ground prompt sends a command; log writes CSV."""
+    """A tap sees every node's keys decoded; the ground prompt sends a command; log writes CSV.
+    Tools that do not depend on each other run side by side (each is a process)."""
     with Cluster(CONFIGS / "minimal.yaml", tmp_path) as c:
         c.spawn("dn0")
         c.spawn("cn")
         c.advance(10)
-        r = _zp("tap", str(c.path), "--count", "40", "--json", "--timeout", "30")
+        r, g = _zp_all(
+            ("tap", str(c.path), "--count", "40", "--json", "--timeout", "30"),
+            ("ground", str(c.path), "--watch", "heartbeat"),
+            stdins={1: "launch\nquit\n"},
+        )
         assert r.returncode == 0, r.stderr
         keys = {json.loads(line)["key"] for line in r.stdout.splitlines()}
         # Telemetry from the CN and the DN's tap put, each decoded to values.
@@ -46,10 +90,31 @@ def test_tap_ground_and_log(tmp_path: Path) -> None:
         sample = next(json.loads(x) for x in r.stdout.splitlines() if '"rocket/dn0/to_cn"' in x)
         assert "dn0_loop" in sample["values"]
 
-        r = _zp("ground", str(c.path), "--watch", "heartbeat", stdin="launch\nquit\n")
-        assert r.returncode == 0, r.stderr
-        assert "LAUNCH #1: ACCEPTED" in r.stdout, r.stdout
+        assert g.returncode == 0, g.stderr
+        assert "LAUNCH #1: ACCEPTED" in g.stdout, g.stdout
         c.wait_for(lambda dv: dv.get_name("cn_state") == "RUN", 30, "state RUN")
+
+        # A ground host whose clock is 5 s ahead of the vehicle's believes no
+        # snapshot (each looks 5 s old: a replay, for all it knows) and says
+        # what to do; widening the bound is one way. (The skewed cmd never
+        # joins, so it sends nothing: the wide one's NOOP is #2 either way.)
+        # A quiet key of a running mission is not a dead mission.
+        skewed = {"ZPLATFORM_CLOCK_SKEW_NS": str(5_000_000_000)}
+        wide = {**skewed, "ZPLATFORM_TELEMETRY_MAX_AGE_MS": "10000"}
+        r, w, q = _zp_all(
+            ("cmd", str(c.path), "noop", "--timeout", "2"),
+            ("cmd", str(c.path), "noop"),
+            ("tap", str(c.path), "rocket/nothing/here", "--timeout", "1"),
+            envs={0: skewed, 1: wide},
+        )
+        assert r.returncode == 2 and "Traceback" not in r.stderr, r.stdout + r.stderr
+        assert "no acceptable telemetry within 2 s" in r.stderr and "stale" in r.stderr
+        assert "synchronise it (chrony, NTP)" in r.stderr
+        assert "ZPLATFORM_TELEMETRY_MAX_AGE_MS" in r.stderr
+        assert w.returncode == 0 and "NOOP #2: ACCEPTED" in w.stdout, w.stdout + w.stderr
+        assert q.returncode == 1, q.stdout + q.stderr
+        assert "the mission is running (nodes alive: cn, dn0) but nothing was published on " \
+            "rocket/nothing/here within 1 s" in q.stderr  # fmt: skip
 
         out = tmp_path / "log.csv"
         r = _zp("log", str(c.path), "--out", str(out), "--duration", "1")
@@ -67,25 +132,6 @@ def test_tap_ground_and_log(tmp_path: Path) -> None:
         assert int(m[1]) == rows and m[2] == str(out)
         assert m[4] == str(tmp_path / "log.events.jsonl")
 
-        # A ground host whose clock is 5 s ahead of the vehicle's believes no
-        # snapshot (each looks 5 s old: a replay, for all it knows) and says
-        # what to do; widening the bound is one way.
-        skewed = {"ZPLATFORM_CLOCK_SKEW_NS": str(5_000_000_000)}
-        r = _zp("cmd", str(c.path), "noop", "--timeout", "2", env=skewed)
-        assert r.returncode == 2 and "Traceback" not in r.stderr, r.stdout + r.stderr
-        assert "no acceptable telemetry within 2 s" in r.stderr and "stale" in r.stderr
-        assert "synchronise it (chrony, NTP)" in r.stderr
-        assert "ZPLATFORM_TELEMETRY_MAX_AGE_MS" in r.stderr
-        wide = {**skewed, "ZPLATFORM_TELEMETRY_MAX_AGE_MS": "10000"}
-        r = _zp("cmd", str(c.path), "noop", env=wide)
-        assert r.returncode == 0 and "NOOP #2: ACCEPTED" in r.stdout, r.stdout + r.stderr
-
-        # A quiet key of a running mission is not a dead mission.
-        r = _zp("tap", str(c.path), "rocket/nothing/here", "--timeout", "1")
-        assert r.returncode == 1, r.stdout + r.stderr
-        assert "the mission is running (nodes alive: cn, dn0) but nothing was published on " \
-            "rocket/nothing/here within 1 s" in r.stderr  # fmt: skip
-
 
 def test_cmd_and_prompt_arm_in_one_step_and_give_every_reason(tmp_path: Path) -> None:
     """Protected WRITEs and hazardous commands: refused unarmed before anything
@@ -96,13 +142,15 @@ def test_cmd_and_prompt_arm_in_one_step_and_give_every_reason(tmp_path: Path) ->
             c.spawn(n)
         c.wait_for(lambda dv: dv.get_name("cn_state") == "SAFE", 30, "state SAFE")
         path = str(c.path)
-        r = _zp("cmd", path, "write", "safety0_mode", "safed")
+        r, launch = _zp_all(  # side by side: two processes
+            ("cmd", path, "write", "safety0_mode", "safed"), ("cmd", path, "launch")
+        )
         assert r.returncode == 2, r.stdout + r.stderr
         assert (
             "safety0_mode is protected (commands.protected): send it as ARM n, then WRITE n+1 "
             "(--arm)" in r.stderr
         )
-        r = _zp("cmd", path, "launch")
+        r = launch
         assert r.returncode == 2 and "LAUNCH is hazardous" in r.stderr, r.stdout + r.stderr
         c.advance(5)
         assert int(c.tm.get("cn_cmd_seq")) == 0 and int(c.tm.get("cn_cmd_rejects")) == 0

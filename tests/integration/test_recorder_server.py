@@ -164,7 +164,8 @@ def test_a_request_that_does_not_check_gets_nothing(rig: Any, what: str, why: st
 
 
 def test_askers_beyond_the_bound_are_dropped_and_replies_are_paced(rig: Any) -> None:
-    r = rig(serve_bps=10_000)  # ~270 bytes per frame: 97 frames take about 2.6 s
+    bps = 40_000  # ~270 bytes per frame: 97 frames take about 0.65 s
+    r = rig(serve_bps=bps)
     done: queue.SimpleQueue[int] = queue.SimpleQueue()
     start = time.monotonic()
 
@@ -189,5 +190,5 @@ def test_askers_beyond_the_bound_are_dropped_and_replies_are_paced(rig: Any) -> 
     elapsed = time.monotonic() - start
     assert answered[:2] == [0, 0] and answered[2] > 0 and answered[3] > 0
     assert r.server.busy == 2 and r.server.served == 2
-    # Two answers of ~26 kB each at 10 kB/s: no faster than the rate allows.
-    assert elapsed >= 2 * 97 * 270 / 10_000 * 0.9
+    # Two answers of ~26 kB each at 40 kB/s: no faster than the rate allows.
+    assert elapsed >= 2 * 97 * 270 / bps * 0.9

@@ -336,12 +336,15 @@ def test_stalled_device_node_skips_missed_loops(tmp_path: Path) -> None:
 
 
 def test_up_with_a_script_and_no_duration_ends_after_the_last_verdict(tmp_path: Path) -> None:
-    """`up --commands FILE` without `--duration` runs SETTLE_S past the
-    script's last verdict (the ground node's script_done event), then stops
-    by itself: every node stopped cleanly, exit 0."""
-    from zplatform.ground.script import SETTLE_S
+    """`up --commands FILE` without `--duration` runs on past the script's
+    last verdict (the ground node's script_done event), then stops by
+    itself: every node stopped cleanly, exit 0. How long past it is
+    ``--settle`` (1 s here; the default, SETTLE_S with at least
+    MIN_DURATION_S in all, is tests/unit/test_supervisor.py's, on a clock of
+    its own)."""
     from zplatform.transport import rewrite_endpoints
 
+    settle_s = 1.0
     path = tmp_path / "m.yaml"
     rewrite_endpoints(CONFIGS / "minimal.yaml", path)
     script = tmp_path / "s.commands"
@@ -349,7 +352,7 @@ def test_up_with_a_script_and_no_duration_ends_after_the_last_verdict(tmp_path: 
     log = tmp_path / "tm.csv"
     up = subprocess.Popen(
         [sys.executable, "-m", "zplatform", "up", str(path), "--commands", str(script),
-         "--summary", str(tmp_path / "s.json"), "--log", str(log)],
+         "--settle", str(settle_s), "--summary", str(tmp_path / "s.json"), "--log", str(log)],
         cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
     )  # fmt: skip
     try:
@@ -364,9 +367,9 @@ def test_up_with_a_script_and_no_duration_ends_after_the_last_verdict(tmp_path: 
     s = json.loads((tmp_path / "s.json").read_text())
     assert [c["status"] for c in s["commands"]] == ["ACCEPTED", "ACCEPTED"]
     assert s["exit_codes"] == {"dn0": 0, "gn": 0, "cn": 0}
-    # SETTLE_S past the last verdict: the CN's loops (scheduled times, so a
+    # settle_s past the last verdict: the CN's loops (scheduled times, so a
     # skipped period on a busy host does not count against it) ran that long.
     verdict_s = s["commands"][-1]["t_ns"] / 1e9
-    assert s["duration_s"] >= verdict_s + SETTLE_S - 0.1, (s["duration_s"], verdict_s)
+    assert s["duration_s"] >= verdict_s + settle_s - 0.1, (s["duration_s"], verdict_s)
     events = (tmp_path / "tm.events.jsonl").read_text()
     assert '"id": "script_done"' in events

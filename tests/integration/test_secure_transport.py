@@ -75,6 +75,34 @@ def _zp(*args: str, env: dict[str, str] | None = None) -> subprocess.CompletedPr
     )
 
 
+def _zp_all(
+    *runs: tuple[tuple[str, ...], dict[str, str] | None],
+) -> list[subprocess.CompletedProcess[str]]:
+    """:func:`_zp` for each ``(args, env)``, all running at once."""
+    procs = [
+        subprocess.Popen(
+            [sys.executable, "-m", "zplatform", *args],
+            cwd=ROOT,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+            env=dict(os.environ, **(env or {})),
+        )
+        for args, env in runs
+    ]
+    done = []
+    try:
+        for p in procs:
+            out, err = p.communicate(timeout=90)
+            done.append(subprocess.CompletedProcess(p.args, p.returncode, out, err))
+    finally:
+        for p in procs:
+            if p.poll() is None:
+                p.kill()
+                p.communicate()
+    return done
+
+
 def _insert(cfg: zenoh.Config, key: str, value: Any) -> None:
     cfg.insert_json5(key, json.dumps(value))
 
@@ -127,18 +155,22 @@ def test_unknown_peers_get_no_session_under_the_default_transport(tmp_path: Path
                 x.close()
 
         # Every verb finds the deployment the same way: the mission's default
-        # one (where `up` and `keygen` put it) ...
+        # one (where `up` and `keygen` put it), or the file ZPLATFORM_DEPLOYMENT
+        # names (a foreign one opens no link), or none on a host without any
+        # (no session, and the error says how to make one). The four verbs
+        # run side by side: each is a process of its own.
         path = str(c.path)
-        r = _zp("tap", path, f"{m.vehicle}/cn/telemetry", "--count", "1", "--timeout", "30")
-        assert r.returncode == 0, r.stdout + r.stderr
-        r = _zp("cmd", path, "noop")
-        assert r.returncode == 0 and "ACCEPTED" in r.stdout, r.stdout + r.stderr
-        # ... or the file ZPLATFORM_DEPLOYMENT names: a foreign one opens no link.
         foreign_file = str(tmp_path / "foreign" / "deployment.yaml")
-        r = _zp("tap", path, "--timeout", "3", env={DEPLOYMENT_ENV: foreign_file})
-        assert r.returncode == 1, r.stdout + r.stderr
-        # A host without any: no session, and the error says how to make one.
-        r = _zp("tap", path, "--timeout", "3", env={"XDG_CONFIG_HOME": str(tmp_path / "empty")})
+        tap, cmd, tap_foreign, tap_none = _zp_all(
+            (("tap", path, f"{m.vehicle}/cn/telemetry", "--count", "1", "--timeout", "30"), None),
+            (("cmd", path, "noop"), None),
+            (("tap", path, "--timeout", "3"), {DEPLOYMENT_ENV: foreign_file}),
+            (("tap", path, "--timeout", "3"), {"XDG_CONFIG_HOME": str(tmp_path / "empty")}),
+        )
+        assert tap.returncode == 0, tap.stdout + tap.stderr
+        assert cmd.returncode == 0 and "ACCEPTED" in cmd.stdout, cmd.stdout + cmd.stderr
+        assert tap_foreign.returncode == 1, tap_foreign.stdout + tap_foreign.stderr
+        r = tap_none
         assert r.returncode == 2 and "Traceback" not in r.stderr, r.stderr
         assert "zplatform keygen" in r.stderr and "security.transport" in r.stderr, r.stderr
 
@@ -148,7 +180,8 @@ def test_up_makes_the_pki_on_first_use_and_keeps_it(tmp_path: Path) -> None:
     makes its key set and, beside it, its PKI where every session looks
     (0700/0600), says so, and the next `up` uses them as they are."""
     home = tmp_path / "config"
-    up = ("up", str(CONFIGS / "recovery_igniter.yaml"), "--free-ports", "--duration", "1")
+    # A fifth of a second of loops: what is checked is made before the nodes start.
+    up = ("up", str(CONFIGS / "recovery_igniter.yaml"), "--free-ports", "--duration", "0.2")
     env = {"XDG_CONFIG_HOME": str(home), "ZPLATFORM_KEY": ""}  # no master key: a key set
     r = _zp(*up, "--quiet", "--no-realtime", env=env)
     assert r.returncode == 0, r.stdout[-2000:] + r.stderr[-2000:]

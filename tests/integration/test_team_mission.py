@@ -46,6 +46,32 @@ def _zp(cwd: Path, *args: str, timeout: float = 90) -> subprocess.CompletedProce
     )
 
 
+def _zp_all(cwd: Path, *runs: tuple[str, ...]) -> list[subprocess.CompletedProcess[str]]:
+    """:func:`_zp` for each argument list, all running at once."""
+    procs = [
+        subprocess.Popen(
+            [sys.executable, "-m", "zplatform", *args],
+            cwd=cwd,
+            env=_env(),
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+        )
+        for args in runs
+    ]
+    done = []
+    try:
+        for p in procs:
+            out, err = p.communicate(timeout=90)
+            done.append(subprocess.CompletedProcess(p.args, p.returncode, out, err))
+    finally:
+        for p in procs:
+            if p.poll() is None:
+                p.kill()
+                p.communicate()
+    return done
+
+
 def _on_free_ports(path: Path) -> None:
     doc = yaml.safe_load(path.read_text())
     ports = {n: free_port() for n in doc["nodes"]}
@@ -68,24 +94,27 @@ def test_a_team_mission_runs_without_pythonpath_and_the_ground_needs_only_the_fi
     ground_copy = ground / mission.name
     ground_copy.write_text(mission.read_text())
 
-    r = _zp(cwd, "check", str(mission))
-    assert r.returncode == 0, r.stderr
-    # A flight verb without the code fails at load, clearly, in one line.
-    r = _zp(cwd, "check", str(ground_copy))
-    assert r.returncode == 2
-    assert r.stderr.startswith("zplatform: error: cannot import module 'hotfire_team_it'"), r.stderr
-    assert "at `$.controllers[0].class`" in r.stderr and r.stderr.count("\n") == 1, r.stderr
-
     script = tmp_path / "fire.commands"
     script.write_text("at 0.1 arm\nat 0.2 launch\n")
     summary = tmp_path / "sim.json"
-    r = _zp(cwd, "sim", str(mission), "--duration", "1", "--commands", str(script),
-            "--log", str(tmp_path / "sim.csv"), "--summary", str(summary))  # fmt: skip
-    assert r.returncode == 0, r.stderr
+    # The verbs that need no running mission, side by side (each a process).
+    check, check_ground, sim, xtce = _zp_all(
+        cwd,
+        ("check", str(mission)),
+        ("check", str(ground_copy)),
+        ("sim", str(mission), "--duration", "1", "--commands", str(script),
+         "--log", str(tmp_path / "sim.csv"), "--summary", str(summary)),
+        ("xtce", str(ground_copy), "--out", str(tmp_path / "x.xml")),
+    )  # fmt: skip
+    assert check.returncode == 0, check.stderr
+    # A flight verb without the code fails at load, clearly, in one line.
+    r = check_ground
+    assert r.returncode == 2
+    assert r.stderr.startswith("zplatform: error: cannot import module 'hotfire_team_it'"), r.stderr
+    assert "at `$.controllers[0].class`" in r.stderr and r.stderr.count("\n") == 1, r.stderr
+    assert sim.returncode == 0, sim.stderr
     assert json.loads(summary.read_text())["final_state"] == "FIRE"
-
-    r = _zp(cwd, "xtce", str(ground_copy), "--out", str(tmp_path / "x.xml"))
-    assert r.returncode == 0, r.stderr
+    assert xtce.returncode == 0, xtce.stderr
 
     # The mission's PKI, as `zplatform keygen` makes it (`up` would too, but
     # the ground verbs below start beside it and must find it there).

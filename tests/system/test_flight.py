@@ -144,25 +144,49 @@ def _free_and_braked_apogee(params: dict[str, Any]) -> tuple[float, float]:
     return out[0], out[1]
 
 
-@settings(
-    max_examples=8,
-    deadline=None,
-    derandomize=True,
-    suppress_health_check=[HealthCheck.too_slow],
-)
-@given(
+_WEATHER = given(
     seed=st.integers(1, 10_000),
     wind=st.floats(0.0, 8.0),
     gust=st.floats(0.0, 2.0),
     dry=st.floats(5.5, 7.5),
     aim=st.floats(0.15, 0.85),
 )
+
+
+def _weathers(n: int) -> Any:
+    """``n`` weathers, the same ones every run. Each is a 40 s flight in
+    lockstep (about a second of CPU): the default suite flies 3 (the shipped
+    flight's own marks are checked above), the soaks (-m slow) 40."""
+    return settings(
+        max_examples=n,
+        deadline=None,
+        derandomize=True,
+        suppress_health_check=[HealthCheck.too_slow],
+    )
+
+
+@_weathers(3)
+@_WEATHER
 def test_recovery_and_airbrakes_over_seeded_noise_and_wind(
     seed: int, wind: float, gust: float, dry: float, aim: float
 ) -> None:
     """Drogue within 0.5 s after the true apogee, never before; main within
     10 m of its altitude; apogee within 3 % of any target the rocket (its
     dry mass drawn too, and known to its airbrake controller) can reach."""
+    _recovery_and_airbrakes(seed, wind, gust, dry, aim)
+
+
+@pytest.mark.slow
+@_weathers(40)
+@_WEATHER
+def test_recovery_and_airbrakes_over_many_weathers(
+    seed: int, wind: float, gust: float, dry: float, aim: float
+) -> None:
+    """The same property over 40 weathers."""
+    _recovery_and_airbrakes(seed, wind, gust, dry, aim)
+
+
+def _recovery_and_airbrakes(seed: int, wind: float, gust: float, dry: float, aim: float) -> None:
     m = flight(wind_mps=wind, gust_mps=gust, dry_mass_kg=dry, sensors={"seed": seed})
     assert m.world is not None
     free, braked = _free_and_braked_apogee({**m.world.params, "gust_mps": 0.0})
@@ -343,18 +367,25 @@ def test_a_parameter_script_is_byte_identical_run_to_run(tmp_path: Path) -> None
 
 def test_sim_is_byte_identical_run_to_run_and_from_the_command_line(tmp_path: Path) -> None:
     a, b, c = tmp_path / "a.csv", tmp_path / "b.csv", tmp_path / "c.csv"
-    for path in (a, b):
-        r = LockstepRunner(load_mission(FLIGHT_YAML), commands=load_commands(FLIGHT_CMDS))
-        with CsvLogger(path, r.control.layout) as log:
-            r.run(60.0, log=log)
-    assert a.read_bytes() == b.read_bytes()
-    p = subprocess.run(
+    # The command line's run (a process) flies beside the two in this one.
+    p = subprocess.Popen(
         [sys.executable, "-m", "zplatform", "sim", str(FLIGHT_YAML), "--commands",
          str(FLIGHT_CMDS), "--log", str(c)],
-        cwd=ROOT, capture_output=True, text=True, timeout=120, check=False,
+        cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
     )  # fmt: skip
-    assert p.returncode == 0, p.stdout + p.stderr
-    assert "SAFE -> ARMED -> BOOST -> COAST -> DROGUE -> MAIN -> LANDED" in p.stdout
+    try:
+        for path in (a, b):
+            r = LockstepRunner(load_mission(FLIGHT_YAML), commands=load_commands(FLIGHT_CMDS))
+            with CsvLogger(path, r.control.layout) as log:
+                r.run(60.0, log=log)
+        out, err = p.communicate(timeout=120)
+    finally:
+        if p.poll() is None:
+            p.kill()
+            p.communicate()
+    assert a.read_bytes() == b.read_bytes()
+    assert p.returncode == 0, out + err
+    assert "SAFE -> ARMED -> BOOST -> COAST -> DROGUE -> MAIN -> LANDED" in out
     assert c.read_bytes() == a.read_bytes()  # the default duration (60 s) ends the same
 
 

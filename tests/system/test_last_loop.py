@@ -19,26 +19,13 @@ ROOT = Path(__file__).resolve().parents[2]
 pytestmark = pytest.mark.timeout(240)
 
 
-@pytest.mark.parametrize("mission", ["led_test", "recovery_igniter"])
-def test_a_clean_up_ends_with_the_dns_safed_and_no_warning(tmp_path: Path, mission: str) -> None:
-    tm, summary = tmp_path / "tm.csv", tmp_path / "s.json"
-    r = subprocess.run(
-        [
-            *(sys.executable, "-m", "zplatform", "up", str(ROOT / "configs" / f"{mission}.yaml")),
-            *("--free-ports", "--duration", "2", "--quiet", "--no-realtime"),
-            *("--log", str(tm), "--summary", str(summary)),
-        ],
-        cwd=ROOT,
-        capture_output=True,
-        text=True,
-        timeout=180,
-    )
-    assert r.returncode == 0, r.stderr[-3000:]
+def _ended_cleanly(tm: Path, events_file: Path, summary: Path) -> None:
+    """No dn_safed warning after the last loop, every DN safed as the run's end."""
     # The run's end is no lost control node: no dn_safed warning after the
     # last loop (before it, a DN the loaded machine starved of triggers for
     # the watchdog's time is safed, legitimately, and re-enabled).
     last_t = int(read_csv(tm)[-1]["cn_time_ns"])
-    events = [json.loads(line) for line in (tmp_path / "tm.events.jsonl").read_text().splitlines()]
+    events = [json.loads(line) for line in events_file.read_text().splitlines()]
     late = [e for e in events if e["id"] == "dn_safed" and e["t_ns"] >= last_t]
     assert late == [], late
     # Every DN's actuators are at their safe values because the run ended.
@@ -47,6 +34,34 @@ def test_a_clean_up_ends_with_the_dns_safed_and_no_warning(tmp_path: Path, missi
     assert dns and all(v is not None for v in dns.values()), s["nodes"]
     for name, dn in dns.items():
         assert dn["safed_why"].startswith("the control node's run ended"), (name, dn)
+
+
+def test_a_clean_up_ends_with_the_dns_safed_and_no_warning(tmp_path: Path) -> None:
+    """recovery_igniter, half a second under `up` (the run's end is what counts)."""
+    tm, summary = tmp_path / "tm.csv", tmp_path / "s.json"
+    mission = ROOT / "configs" / "recovery_igniter.yaml"
+    r = subprocess.run(
+        [
+            *(sys.executable, "-m", "zplatform", "up", str(mission)),
+            *("--free-ports", "--duration", "0.5", "--quiet", "--no-realtime"),
+            *("--log", str(tm), "--summary", str(summary)),
+        ],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=180,
+    )
+    assert r.returncode == 0, r.stderr[-3000:]
+    _ended_cleanly(tm, tmp_path / "tm.events.jsonl", summary)
+
+
+def test_the_led_platform_s_scripted_run_ends_with_the_dns_safed_and_no_warning(
+    led_live_run: Path,
+) -> None:
+    """led_test: the session's scripted run under `up` (tests/live_runs.py),
+    which other tests read too, ended the same way."""
+    d = led_live_run
+    _ended_cleanly(d / "live.csv", d / "live.events.jsonl", d / "up.json")
 
 
 def test_a_stopped_cn_runs_one_more_loop_flagged_final(tmp_path: Path) -> None:

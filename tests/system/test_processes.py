@@ -17,7 +17,7 @@ from pathlib import Path
 import pytest
 
 from tests.budget import assert_every_loop_counted, assert_telemetry_counted
-from tests.drive import igniter_bench_copy
+from tests.drive import igniter_bench_copy, igniter_quick_flight, led_quick
 from zplatform.ground.link import GroundLink
 from zplatform.mission import load_mission
 from zplatform.pki import ensure_mission_pki
@@ -34,7 +34,7 @@ SEQ = [f"led_seq{i}_fb" for i in range(5)]
 class Mission:
     """`zplatform up` in the background, watched through telemetry."""
 
-    def __init__(self, config: str, tmp: Path) -> None:
+    def __init__(self, config: str | Path, tmp: Path) -> None:
         self.path = tmp / "mission.yaml"
         rewrite_endpoints(ROOT / "configs" / config, self.path)
         self.mission = load_mission(self.path)
@@ -99,29 +99,10 @@ class Mission:
             self.up.wait()
 
 
-def test_led_platform_walks_a_to_e(tmp_path: Path) -> None:
-    """Thesis 5.1.3.1 as processes: A -LAUNCH-> B -3 s-> C -LED4-> D -ABORT-> E, LEDs per state."""
-    m = Mission("led_test.yaml", tmp_path)
-    try:
-        m.await_state("A")
-        m.await_telemetry(lambda dv: bool(dv.get("led_a_fb")), "state LED A lit")
-        r = m.cmd("launch")
-        assert r.returncode == 0 and "ACCEPTED" in r.stdout, r.stdout + r.stderr
-        # A command not whitelisted in B is refused, and says why.
-        m.await_state("B")
-        r = m.cmd("write", "b_timer_done", "true")
-        assert r.returncode == 1 and "REJECTED_NOT_ALLOWED" in r.stdout, r.stdout + r.stderr
-        m.await_state("D", timeout_s=60)
-        m.await_telemetry(lambda dv: dv.get("led_flash_fb"), "flash LED on")
-        m.await_telemetry(lambda dv: not dv.get("led_flash_fb"), "flash LED off")
-        r = m.cmd("abort")
-        assert r.returncode == 0 and "ACCEPTED" in r.stdout, r.stdout + r.stderr
-        m.await_state("E")
-        m.await_telemetry(lambda dv: dv.get("led_e_fb"), "state LED E lit")
-        summary = m.stop()
-    finally:
-        m.kill()
-    rows = read_csv(m.csv)
+def _walked_a_to_e_with_each_state_s_led(rows: list[dict[str, str]], summary: dict) -> None:  # type: ignore[type-arg]
+    """The LED platform's log and summary: A..E in order, each state's LED
+    lit at its end and no other, C's sequence, D's flash, E's LEDs out, every
+    loop and snapshot counted."""
     states = [r["cn_state"] for r in rows]
     order = [s for i, s in enumerate(states) if i == 0 or states[i - 1] != s]
     assert order == ["A", "B", "C", "D", "E"]
@@ -151,6 +132,53 @@ def test_led_platform_walks_a_to_e(tmp_path: Path) -> None:
     assert_telemetry_counted(summary)
 
 
+def test_the_led_platform_walks_a_to_e_with_each_state_s_led(led_live_run: Path) -> None:
+    """Thesis 5.1.3.1 as processes (five of them under `up`), the ground node
+    playing LAUNCH and ABORT from a script: the session's run that
+    test_sim_equals_live compares with sim (tests/live_runs.py). Each state's
+    LED in the ground's log, as the operator's walk below checks it."""
+    rows = read_csv(led_live_run / "live.csv")
+    summary = json.loads((led_live_run / "up.json").read_text())
+    assert [c["status"] for c in summary["commands"]] == ["ACCEPTED", "ACCEPTED"]
+    _walked_a_to_e_with_each_state_s_led(rows, summary)
+
+
+# The same walk driven by an operator's `zplatform cmd` from another process
+# when telemetry shows each state, with a refused WRITE in B: with the soaks
+# (-m slow). The default suite keeps its LEDs and states on the session's
+# scripted run (test_the_led_platform_walks_a_to_e_with_each_state_s_led),
+# `cmd` from another process with verdicts and refusals
+# (test_recovery_igniter_fires_when_both_nodes_agree below, tests/integration/
+# test_ground_tools.py, test_ground_replay.py: REJECTED_NOT_ALLOWED with its
+# reason) and the thesis' timings loop for loop (test_lockstep_missions.py).
+@pytest.mark.slow
+def test_led_platform_walks_a_to_e(tmp_path: Path) -> None:
+    """Thesis 5.1.3.1 as processes: A -LAUNCH-> B -3 s-> C -LED4-> D -ABORT-> E, LEDs per state.
+    C's LEDs step 0.25 s apart and D flashes at 0.4 s (tests/drive.py: the
+    thesis' timings are test_lockstep_missions.py's); B's 3 s are the thesis'."""
+    m = Mission(led_quick(tmp_path / "led_test_quick.yaml"), tmp_path)
+    try:
+        m.await_state("A")
+        m.await_telemetry(lambda dv: bool(dv.get("led_a_fb")), "state LED A lit")
+        r = m.cmd("launch")
+        assert r.returncode == 0 and "ACCEPTED" in r.stdout, r.stdout + r.stderr
+        # A command not whitelisted in B is refused, and says why.
+        m.await_state("B")
+        r = m.cmd("write", "b_timer_done", "true")
+        assert r.returncode == 1 and "REJECTED_NOT_ALLOWED" in r.stdout, r.stdout + r.stderr
+        m.await_state("D", timeout_s=60)
+        m.await_telemetry(lambda dv: dv.get("led_flash_fb"), "flash LED on")
+        m.await_telemetry(lambda dv: not dv.get("led_flash_fb"), "flash LED off")
+        r = m.cmd("abort")
+        assert r.returncode == 0 and "ACCEPTED" in r.stdout, r.stdout + r.stderr
+        m.await_state("E")
+        m.await_telemetry(lambda dv: dv.get("led_e_fb"), "state LED E lit")
+        summary = m.stop()
+    finally:
+        m.kill()
+    _walked_a_to_e_with_each_state_s_led(read_csv(m.csv), summary)
+
+
 def test_cmd_refuses_unknown_before_sending(tmp_path: Path) -> None:
     """Unknown commands and elements are refused before anything is sent (no CN needed)."""
     path = tmp_path / "m.yaml"
@@ -176,8 +204,10 @@ def _fired_rows(rows: list[dict[str, str]]) -> list[dict[str, str]]:
 
 
 def test_recovery_igniter_fires_when_both_nodes_agree(tmp_path: Path) -> None:
-    """Thesis 5.1.3.2 as processes: ARM + LAUNCH sent with `zplatform cmd`, both DNs fire."""
-    m = Mission("recovery_igniter.yaml", tmp_path)
+    """Thesis 5.1.3.2 as processes: ARM + LAUNCH sent with `zplatform cmd`, both DNs fire.
+    The simulated flight is the quick one (tests/drive.py: apogee at 4 s, not
+    8 s); the states, rules and commands are the shipped mission's."""
+    m = Mission(igniter_quick_flight(tmp_path / "recovery_igniter_quick.yaml"), tmp_path)
     try:
         m.await_state("SAFE")
         # LAUNCH is hazardous: alone it is refused before anything is sent, with

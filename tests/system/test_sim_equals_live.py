@@ -12,16 +12,15 @@ from pathlib import Path
 
 import pytest
 
+from tests.live_runs import LED_DURATION_S
 from zplatform import load_mission
 from zplatform.lockstep import LockstepRunner, replay
 from zplatform.telemetry import CsvLogger, read_csv
-from zplatform.transport import rewrite_endpoints
 from zplatform.uplink import load_commands
 
 ROOT = Path(__file__).resolve().parents[2]
 LED_YAML = ROOT / "configs" / "led_test.yaml"
-LED_CMDS = ROOT / "configs" / "led_test.commands"
-DURATION_S = 20
+DURATION_S = LED_DURATION_S
 
 
 def state_changes(rows: list[dict[str, str]]) -> list[tuple[int, str]]:
@@ -33,43 +32,17 @@ def state_changes(rows: list[dict[str, str]]) -> list[tuple[int, str]]:
     return out
 
 
-@pytest.fixture(scope="module")
-def live_run(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """A 20 s led_test run under ``up`` with its script, logged and recorded."""
-    tmp = tmp_path_factory.mktemp("live")
-    mission = tmp / "mission.yaml"
-    rewrite_endpoints(LED_YAML, mission)
-    proc = subprocess.run(
-        [
-            sys.executable,
-            "-m",
-            "zplatform",
-            "up",
-            str(mission),
-            "--duration",
-            str(DURATION_S),
-            "--commands",
-            str(LED_CMDS),
-            "--log",
-            str(tmp / "live.csv"),
-            "--summary",
-            str(tmp / "up.json"),
-            "--record",
-            str(tmp / "rec"),
-            "--quiet",
-        ],
-        cwd=ROOT,
-        capture_output=True,
-        text=True,
-        timeout=150,
-    )
-    assert proc.returncode == 0, proc.stderr[-3000:]
-    return tmp
+@pytest.fixture
+def live_run(led_live_run: Path) -> Path:
+    """The LED platform's scripted run under ``up`` (tests/live_runs.py: 9 s,
+    LAUNCH at 0.5 s, ABORT at 8.5 s), logged and recorded; made once a
+    session, other tests read it too."""
+    return led_live_run
 
 
 def test_sim_equals_live(live_run: Path, tmp_path: Path) -> None:
     mission = load_mission(live_run / "mission.yaml")
-    runner = LockstepRunner(mission, commands=load_commands(LED_CMDS))
+    runner = LockstepRunner(mission, commands=load_commands(live_run / "led.commands"))
     with CsvLogger(tmp_path / "sim.csv", runner.control.layout) as log:
         res = runner.run(DURATION_S, log=log)
     live = read_csv(live_run / "live.csv")

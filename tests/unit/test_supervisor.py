@@ -20,6 +20,7 @@ import pytest
 
 from zplatform import load_mission, supervisor
 from zplatform.datavector import DataVector, Layout
+from zplatform.ground.script import MIN_DURATION_S, SETTLE_S
 
 ROOT = Path(__file__).resolve().parents[2]
 MISSION = ROOT / "configs" / "minimal.yaml"
@@ -94,3 +95,47 @@ def test_up_stops_its_nodes_before_closing_its_session_and_never_waits_on_the_cl
     # Every node had been stopped when the close began: the DN by its signal.
     assert at_close == {"cn": 0, "dn0": -signal.SIGTERM}
     assert result == [0]
+
+
+@pytest.mark.parametrize(
+    ("verdict_at", "settle_s", "ends_at"),
+    [
+        # The default: SETTLE_S after the last verdict, at least MIN_DURATION_S in all.
+        (1.0, None, max(1.0 + SETTLE_S, MIN_DURATION_S)),
+        (0.2, None, max(0.2 + SETTLE_S, MIN_DURATION_S)),
+        (0.2, 1.0, 1.2),  # --settle S: S after the verdict, no minimum
+        (3.0, 0.5, 3.5),
+    ],
+)
+def test_a_script_run_ends_its_settle_after_the_last_verdict(
+    monkeypatch: pytest.MonkeyPatch, verdict_at: float, settle_s: float | None, ends_at: float
+) -> None:
+    """``watch`` with a script and no duration (``up --commands``, ``--settle``),
+    on a clock of its own: each empty read of the link is 0.1 s."""
+    mission = load_mission(MISSION)
+    now = [100.0]
+    monkeypatch.setattr(supervisor.time, "monotonic", lambda: now[0])
+    w = supervisor.Watch()
+
+    class Link:
+        dv = DataVector(Layout.for_node(mission, "gn"))
+        logic = SimpleNamespace(received=True)
+
+        def next(self, timeout: float) -> None:
+            now[0] = round(now[0] + 0.1, 6)
+            if w.script_done_at is None and now[0] >= 100.0 + verdict_at:
+                w.script_done_at = now[0]  # the ground node's script_done
+
+    children = SimpleNamespace(dead=lambda: [])
+    supervisor.watch(
+        mission,
+        children,  # type: ignore[arg-type]
+        Link(),  # type: ignore[arg-type]
+        w,
+        lambda: False,
+        quiet=True,
+        end_after_script=True,
+        settle_s=settle_s,
+    )
+    assert w.script_done
+    assert now[0] == pytest.approx(100.0 + ends_at)

@@ -207,3 +207,31 @@ def test_virtual_clock_overflow_guard() -> None:
     assert vc.now_ns() == I64_MAX - YEAR_NS  # a refused advance does not move it
     with pytest.raises(TimebaseError, match="overflow"):
         VirtualClock(T0).set(I64_MAX)
+
+
+def test_the_anchor_is_read_between_two_monotonic_reads_close_together() -> None:
+    """A process preempted between reading its two clocks (a loaded host) does
+    not anchor its clock that far off: the realtime reading is bracketed by
+    monotonic ones and the tightest bracket of a few tries is kept."""
+    fc = FakeClocks()
+    stolen = [100_000_000, 100_000_000]  # 100 ms, after each of the first two realtime reads
+    after_realtime = False
+
+    def realtime() -> int:
+        nonlocal after_realtime
+        after_realtime = True
+        fc.advance(1_000)
+        return fc.real
+
+    def monotonic() -> int:
+        nonlocal after_realtime
+        if after_realtime and stolen:
+            fc.advance(stolen.pop())  # the scheduler ran something else here
+        after_realtime = False
+        fc.advance(1_000)
+        return fc.mono
+
+    c = NodeClock(realtime=realtime, monotonic=monotonic)
+    # Both fake clocks advance together: the node clock must read the
+    # realtime clock, to a microsecond (the tight bracket's half-width).
+    assert abs(c.now_ns() - fc.real) <= 1_000, c.now_ns() - fc.real

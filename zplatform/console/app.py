@@ -142,6 +142,8 @@ class ConsoleApp(App[int]):
         self.model = model
         self.link = link
         self._drawn = -1
+        self._shown: dict[str, object] = {}  # what each pane shows now (refresh_view)
+        self._rows: list[tuple[str, list[tuple[str, str, str]]]] = []
         self.title = f"zplatform ground - {model.mission.mission}"
 
     # -- layout --------------------------------------------------------------
@@ -178,6 +180,16 @@ class ConsoleApp(App[int]):
 
     # -- drawing -------------------------------------------------------------
     def refresh_view(self) -> None:
+        """Redraw what changed since the last call (:data:`REFRESH_HZ` times a second).
+
+        A pane gets new content only when what it shows changed, and the
+        screen is laid out again only when a pane's height changed: the Data
+        Vector's values move with every snapshot, but its lines (one per
+        region and per element, never wrapped) stay. The Data Vector is drawn
+        as lines of text cut to the pane's width, not as a table, which rich
+        would measure cell by cell at every redraw: redrawn that way, with a
+        layout each time, a 125-element mission kept a core busy and the
+        operator's keys waited behind the redraws."""
         m = self.model
         with m.lock:
             m.tick(self.now_ns())
@@ -185,26 +197,39 @@ class ConsoleApp(App[int]):
             changed = m.version != self._drawn
             if changed:
                 self._drawn = m.version
-                rows = m.region_rows()
+                self._rows = m.region_rows()
                 lines = m.events()[-200:]
                 series = m.plot_series()
                 plotted = list(m.plotted)
                 params = m.param_rows() if m.show_params else None
         bar = self.query_one("#status", Static)
-        bar.update(_status_text(status))
+        text = _status_text(status)
+        if text != self._shown.get("status"):
+            self._shown["status"] = text
+            _show(bar, text)
         bar.set_class(status.los, "los")
+        dv = self.query_one("#dv-table", Static)
+        key = (dv.content_size.width, self._rows)  # a resize redraws it too
+        if key != self._shown.get("dv"):
+            self._shown["dv"] = key
+            shown = _dv_text(self._rows, key[0])
+            _show(dv, shown, len(shown.plain.split("\n")) if self._rows else None)
         if not changed:
             return
-        self.query_one("#dv-table", Static).update(_dv_table(rows))
-        text = Text(no_wrap=False)
-        for x in lines:
-            text.append(f"{_clock(x.t_ns)} ", style="dim")
-            text.append(f"{x.severity:<11} ", style=severity_style(x.severity) or None)
-            text.append(f"{x.source:<7} {x.text}\n")
-        self.query_one("#events-text", Static).update(text)
-        self.query_one("#events", VerticalScroll).scroll_end(animate=False)
+        if lines != self._shown.get("events"):
+            self._shown["events"] = lines
+            text = Text(no_wrap=False)
+            for x in lines:
+                text.append(f"{_clock(x.t_ns)} ", style="dim")
+                text.append(f"{x.severity:<11} ", style=severity_style(x.severity) or None)
+                text.append(f"{x.source:<7} {x.text}\n")
+            self.query_one("#events-text", Static).update(text)
+            self.query_one("#events", VerticalScroll).scroll_end(animate=False)
         self.query_one("#params", VerticalScroll).set_class(params is not None, "shown")
-        if params is not None:
+        if params is None:
+            self._shown.pop("params", None)
+        elif params != self._shown.get("params"):
+            self._shown["params"] = params
             self.query_one("#params-table", Static).update(_params_table(params))
         plot = self.query_one("#plot", PlotextPlot)
         plot.set_class(bool(plotted), "shown")
@@ -303,6 +328,20 @@ class ConsoleApp(App[int]):
             cmd.focus()
 
 
+def _show(widget: Static, content: Any, height: int | None = None) -> None:
+    """Give ``widget`` new content; lay the screen out again only when its
+    height changes (``height``: the content's, when known without measuring)."""
+    widget.update(content, layout=False)
+    width = widget.content_size.width
+    if not width:  # not laid out yet
+        widget.refresh(layout=True)
+        return
+    if height is None:
+        height = widget.get_content_height(widget.size, widget.size, width)
+    if height != widget.content_size.height:
+        widget.refresh(layout=True)
+
+
 def _status_text(s: Status) -> Text:
     t = Text()
     if not s.connected:
@@ -355,13 +394,25 @@ def _clock(t_ns: int) -> str:
     return f"{(s // 3600) % 24:02d}:{(s // 60) % 60:02d}:{s % 60:02d}.{ns // 100_000_000}"
 
 
-def _dv_table(rows: list[tuple[str, list[tuple[str, str, str]]]]) -> Table:
-    table = Table.grid(padding=(0, 1), expand=True)
-    table.add_column("element", no_wrap=True, overflow="ellipsis", ratio=3)
-    table.add_column("value", no_wrap=True, overflow="ellipsis", ratio=2)
-    styles = {"red": "bold white on red", "yellow": "black on yellow", "": ""}
+_LEVEL_STYLES = {"red": "bold white on red", "yellow": "black on yellow", "": ""}
+
+
+def _dv_text(rows: list[tuple[str, list[tuple[str, str, str]]]], width: int) -> Text:
+    """The Data Vector pane: each region's name, then a line per element,
+    its name in the first three fifths of ``width`` and its value (in its
+    limit colour) in the rest, each cut with an ellipsis, never wrapped."""
+    width = max(width, 3)
+    name_w = max(1, (width - 1) * 3 // 5)
+    value_w = max(1, width - 1 - name_w)
+    out: list[Text] = []
     for region, elements in rows:
-        table.add_row(Text(region, style="bold underline"), "")
+        head = Text(region, style="bold underline")
+        head.truncate(width, overflow="ellipsis")
+        out.append(head)
         for name, value, level in elements:
-            table.add_row(name, Text(value, style=styles[level]))
-    return table
+            cell = Text(name)
+            cell.truncate(name_w, overflow="ellipsis", pad=True)
+            shown = Text(value, style=_LEVEL_STYLES[level])
+            shown.truncate(value_w, overflow="ellipsis")
+            out.append(Text.assemble(cell, " ", shown))
+    return Text("\n", no_wrap=True, overflow="ellipsis").join(out)
