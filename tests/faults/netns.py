@@ -10,7 +10,8 @@
   interface the host sees go away).
 * ``topology="mesh"``: one veth pair per pair of hosts, host ``i`` reaching
   host ``j`` at ``10.77.<pair>.x`` (see :meth:`NetnsLab.addr_of`); used where
-  no bridge module is available.
+  no bridge module is available, and where a test cuts one pair of hosts
+  apart and leaves each with its other links (:meth:`NetnsLab.set_pair`).
 
 Names are unique per lab (``zf<pid><n>...``) so parallel workers never clash,
 and every namespace the lab made is deleted by :meth:`NetnsLab.close`, after
@@ -193,6 +194,18 @@ class NetnsLab:
                 _ip("link", "set", ib, state, ns=self.hosts[b].ns)
             elif i == b:
                 _ip("link", "set", ia, state, ns=self.hosts[a].ns)
+
+    def set_pair(self, i: int, j: int, *, up: bool) -> None:
+        """Cut (or restore) the one link between hosts ``i`` and ``j`` of a
+        mesh, as :meth:`set_links` cuts all of a host's: the end in ``j`` goes
+        down, so neither host reaches the other while both keep every other
+        link (a bridge has no such link: ValueError)."""
+        if self.topology != "mesh":
+            raise ValueError("only a mesh has a link per pair of hosts")
+        lo, hi = sorted((i, j))
+        in_lo, in_hi, _, _ = self.mesh[(lo, hi)]
+        iface, host = (in_hi, hi) if j == hi else (in_lo, lo)
+        _ip("link", "set", iface, "up" if up else "down", ns=self.hosts[host].ns)
 
     def close(self) -> None:
         for h in self.hosts:
