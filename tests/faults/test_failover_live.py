@@ -70,7 +70,8 @@ from zplatform import registry
 from zplatform.config import Mission
 from zplatform.mission import load_mission
 from zplatform.pki import ensure_mission_pki
-from zplatform.recorder import RECORDER_DIR_ENV
+from zplatform.recorder import RECORDER_DIR_ENV, RecorderReader
+from zplatform.recorder.format import FRAME
 
 FLIGHT = CONFIGS / "flight.yaml"
 COMMANDS = CONFIGS / "flight.commands"
@@ -127,6 +128,18 @@ NOT_ANNOUNCED = (
     "only on a standby's first mirror, Standby.mirrored == 0, and Standby.stand_down starts "
     "mirrored at the loop it stood down in)"
 )
+MIRRORS_LOST = (
+    "product bug (zenoh suspected): a control node that stood down after a 1 s SIGSTOP "
+    "received two mirrors of the new commander and then none for the rest of the run (its "
+    "flight recorder: mirrored loops 1057, 1059, then nothing until 5040), while the commander "
+    "published one every loop; it kept asking as the standby and, when the commander stalled "
+    "at loop 5038, took command from its 40 s old mirror (LANDED -> COAST). Its zenoh session "
+    "with the commander lapsed on one side while it was stopped; both control nodes dial each "
+    "other (the mission's connect and gossip), the case of eclipse-zenoh/zenoh#2806 (a "
+    "reconnect merged into the stale transport: declarations never re-sent, data one way "
+    "only). Nothing tells: the standby's silence is not reported"
+)
+REJOIN_LOOPS = 200  # a node stopped past its lease opens its zenoh sessions again first
 STALE_LOOPS = 50  # a takeover from a mirror this much older than its loop is from a stale one
 
 _TOOK = re.compile(
@@ -208,6 +221,10 @@ class NotAnnounced(AssertionError):
     """The stood-down node is not reported as the standby (:data:`NOT_ANNOUNCED`)."""
 
 
+class MirrorsLost(AssertionError):
+    """The stood-down node stopped receiving mirrors (:data:`MIRRORS_LOST`)."""
+
+
 @contextlib.contextmanager
 def known_bugs_gate(logs: Callable[[], str]) -> Iterator[None]:
     """A failed check becomes an xfail naming the known product bug the run
@@ -216,6 +233,8 @@ def known_bugs_gate(logs: Callable[[], str]) -> Iterator[None]:
         yield
     except NotAnnounced as exc:
         pytest.xfail(f"{NOT_ANNOUNCED} [{exc}]")
+    except MirrorsLost as exc:
+        pytest.xfail(f"{MIRRORS_LOST} [{exc}]")
     except AssertionError as exc:
         seen = known_bugs(logs())
         if seen:
@@ -299,6 +318,24 @@ def assert_one_term_per_loop(
 def terms_between(driven: dict[int, dict[str, int]], lo: int, hi: int) -> set[int]:
     """The terms that drove the device nodes in loops ``lo`` to ``hi``."""
     return {t for n, by in driven.items() if lo <= n <= hi for t in by.values()}
+
+
+def assert_follows(mission: Mission, root: Path, node: str, lo: int, hi: int) -> None:
+    """``node`` stood down at loop ``lo``: within :data:`REJOIN_LOOPS` (its
+    zenoh sessions may have to open again) and from then to ``hi`` its flight
+    recorder holds a frame at least every :data:`STALE_LOOPS` loops (a
+    standby records the commander's telemetry from each mirror it takes; a
+    commander its own): it followed, ready to take over from a fresh state."""
+    loops = sorted(
+        rec.loop
+        for _, rec in RecorderReader(root / mission.mission / node).records()
+        if rec.type == FRAME and lo < rec.loop <= hi
+    )
+    gaps = [(a, b) for a, b in itertools.pairwise([*loops, hi]) if b - a > STALE_LOOPS]
+    if not loops or loops[0] - lo > REJOIN_LOOPS:
+        gaps.insert(0, (lo, loops[0] if loops else hi))
+    if gaps:
+        raise MirrorsLost(f"{node} took no mirror in loops {gaps} (it stood down at {lo})")
 
 
 def announced_again(w: FlightWatch, since: float, node: str) -> None:
@@ -564,6 +601,7 @@ def test_the_commander_stopped_for_a_second_in_coast_stands_down_and_the_flight_
             f.mission, rec_root, last_term=w.last()["cn_term"], landed=landed
         )
         assert {term, term + 1} <= terms_between(driven, at.v["cn_loop"], landed)
+        assert_follows(f.mission, rec_root, stopped, down.loop, landed)
         announced_again(w, t_down, stopped)
 
 
@@ -848,6 +886,7 @@ def test_the_commander_cut_from_everyone_is_replaced_and_stands_down_when_it_hea
             f.mission, rec_root, last_term=w.last()["cn_term"], landed=landed
         )
         assert {term, term + 1} <= terms_between(driven, at.v["cn_loop"], landed)
+        assert_follows(f.mission, rec_root, cut, down.loop, landed)
         announced_again(w, t_down, cut)
 
 
