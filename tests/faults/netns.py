@@ -57,6 +57,21 @@ def _ip(*args: str, ns: str | None = None) -> None:
         raise RuntimeError(f"{' '.join(cmd)} failed: {r.stderr.strip()}")
 
 
+def _ip_together(commands: list[list[str]]) -> None:
+    """Run several ``ip`` commands at the same time; raise if any failed."""
+    procs = [
+        subprocess.Popen(["ip", *c], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+        for c in commands
+    ]
+    failed = []
+    for c, p in zip(commands, procs, strict=True):
+        _, err = p.communicate(timeout=10)
+        if p.returncode != 0:
+            failed.append(f"ip {' '.join(c)} failed: {err.strip()}")
+    if failed:
+        raise RuntimeError("; ".join(failed))
+
+
 @dataclass
 class NetnsHost:
     lab: NetnsLab
@@ -189,11 +204,15 @@ class NetnsLab:
             assert self.bridge_ns is not None
             _ip("link", "set", f"p{i}", state, ns=self.bridge_ns)
             return
-        for (a, b), (ia, ib, _, _) in self.mesh.items():
-            if i == a:
-                _ip("link", "set", ib, state, ns=self.hosts[b].ns)
-            elif i == b:
-                _ip("link", "set", ia, state, ns=self.hosts[a].ns)
+        # All of the host's links at once (one `ip` per far end, run together):
+        # one after the other, on a busy host, the last went down tens of ms
+        # after the first, and a node saw part of a cut the test meant as one.
+        ends = [
+            (ib, self.hosts[b].ns) if i == a else (ia, self.hosts[a].ns)
+            for (a, b), (ia, ib, _, _) in self.mesh.items()
+            if i in (a, b)
+        ]
+        _ip_together([["-n", ns, "link", "set", iface, state] for iface, ns in ends])
 
     def set_pair(self, i: int, j: int, *, up: bool) -> None:
         """Cut (or restore) the one link between hosts ``i`` and ``j`` of a
