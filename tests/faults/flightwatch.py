@@ -9,7 +9,9 @@ elements of :data:`WATCH`, and one per event, ``{"t": T, "ev": {"node",
 one monotonic clock across network namespaces). It ends when its stdin
 closes. Run it where the test process cannot open a session (inside a
 network namespace: ``NetnsHost.popen(..., pipe_stdio=True)``), or beside an
-``up`` run so the test process holds no zenoh session of its own.
+``up`` run so the test process holds no zenoh session of its own. Where it
+may, it runs at the lowest real-time priority (SCHED_FIFO 1): below every
+node, above a CPU hog, so it joins before the flight leaves the pad.
 
 :class:`FlightWatch` is the test's side: a reader thread keeps every line;
 :meth:`FlightWatch.wait_for` waits on a predicate over the snapshots (a hang
@@ -18,7 +20,9 @@ detector with a generous timeout, never a speed limit).
 
 from __future__ import annotations
 
+import contextlib
 import json
+import os
 import subprocess
 import sys
 import threading
@@ -158,6 +162,12 @@ def watch_main(mission_path: str) -> int:
     from zplatform.ground.records import EventRecord
     from zplatform.mission import load_mission
 
+    # The lowest real-time priority where permitted: below every node (they
+    # run at the mission's, 20), above a CPU hog, which would otherwise start
+    # the watcher only after the flight left the pad. Set before the session
+    # opens, so zenoh's threads have it too.
+    with contextlib.suppress(OSError):
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(1))
     m = load_mission(mission_path)
     done = threading.Event()
 

@@ -72,6 +72,7 @@ from zplatform.mission import load_mission
 from zplatform.pki import ensure_mission_pki
 from zplatform.recorder import RECORDER_DIR_ENV, RecorderReader
 from zplatform.recorder.format import FRAME
+from zplatform.telemetry import read_csv
 
 FLIGHT = CONFIGS / "flight.yaml"
 COMMANDS = CONFIGS / "flight.commands"
@@ -271,26 +272,40 @@ def after(snaps: list[dict[str, Any]], pred: Callable[[dict[str, Any]], bool]) -
 
 
 # --------------------------------------------------------------------------- checks
-def assert_flown_as_configured(w: FlightWatch, logs: str) -> int:
-    """LANDED through every state in order, both chutes, no fault, no device
-    node safed at any time (telemetry, events, the nodes' logs). Returns the
-    loop the flight landed in."""
-    last = w.last()
-    snaps = w.since()
+def assert_flown_as_configured(w: FlightWatch, logs: str, csv: Path) -> int:
+    """From the ground node's log of the run (``csv``: every snapshot from
+    loop 1, the control node waits for the ground before it): LANDED through
+    every state in order, both chutes, no fault, no device node safed at any
+    time (telemetry, events, the nodes' logs). Returns the loop the flight
+    landed in."""
+    rows = read_csv(csv)
+    assert rows, f"the ground logged nothing in {csv}"
+    last = rows[-1]
     history = [t.line.strip()[24:200] for t in took_lines(logs)]
-    assert states_of(snaps) == STATES, (states_of(snaps), history)
-    assert last["drogue_fired"] and last["main_fired"], last
-    assert last["cn_fault"] == "NONE", last
-    safed = [
-        (v["cn_loop"], v["dn0_safed"], v["dn1_safed"])
-        for v in snaps
-        if v["dn0_safed"] or v["dn1_safed"]
-    ]
+    assert states_of(rows) == STATES, (states_of(rows), history)
+    assert (last["drogue_fired"], last["main_fired"]) == ("1", "1"), last["cn_loop"]
+    assert last["cn_fault"] == "NONE", (last["cn_loop"], last["cn_fault"])
     lines = [x for x in logs.splitlines() for dn in DNS if f" {dn} dn_safed:" in x]
     assert not lines, (lines, history)
+    safed = [r["cn_loop"] for r in rows if "1" in (r["dn0_safed"], r["dn1_safed"])]
     assert not safed, (safed[:5], history)
     assert w.events_of("dn_safed") == [], (w.events_of("dn_safed"), history)
-    return int(after(snaps, lambda v: v["cn_state"] == "LANDED")[0]["cn_loop"])
+    return int(after(rows, lambda v: v["cn_state"] == "LANDED")[0]["cn_loop"])
+
+
+def wait_state(w: FlightWatch, state: str, at_loop: int) -> Snap:
+    """The first snapshot in ``state`` from loop ``at_loop`` on: where a fault
+    begins. RuntimeError (never an xfail: see :func:`known_bugs_gate`) when
+    the watcher came too late to see it."""
+    w.wait_for(lambda v: True, 60, "the watcher's first snapshot")
+    now = w.last()
+    if STATES.index(now["cn_state"]) > STATES.index(state):
+        raise RuntimeError(f"the watcher joined too late for {state}: {now}")
+    return w.wait_for(
+        lambda v: v["cn_state"] == state and v["cn_loop"] >= at_loop,
+        FLIGHT_S,
+        f"{state} from loop {at_loop}",
+    )
 
 
 def assert_one_term_per_loop(
@@ -379,6 +394,7 @@ class UpFlight:
         self.tmp = tmp
         self.out = tmp / "up.out"
         self.summary_path = tmp / "up.json"
+        self.csv = tmp / "tm.csv"  # the ground node's log of the run
         with open(self.out, "wb") as f:
             self.proc = subprocess.Popen(
                 [
@@ -393,7 +409,7 @@ class UpFlight:
                     "--summary",
                     str(self.summary_path),
                     "--log",
-                    str(tmp / "tm.csv"),
+                    str(self.csv),
                 ],
                 stdout=f,
                 stderr=subprocess.STDOUT,
@@ -525,11 +541,7 @@ def test_the_commander_killed_in_flight_is_replaced_and_the_flight_lands(
     f = UpFlight(tmp_path)
     with f, known_bugs_gate(f.output):
         w = f.w
-        at = w.wait_for(
-            lambda v: v["cn_state"] == state and v["cn_loop"] >= at_loop,
-            FLIGHT_S,
-            f"{state} from loop {at_loop}",
-        )
+        at = wait_state(w, state, at_loop)
         dead, term = at.v["cn_commander"], at.v["cn_term"]
         new = other(dead)
         f.signal(dead, signal.SIGKILL)
@@ -547,7 +559,7 @@ def test_the_commander_killed_in_flight_is_replaced_and_the_flight_lands(
         took = [t for t in took_lines(out) if t.term > term]
         assert [(t.node, t.term) for t in took] == [(new, term + 1)], took
         assert (s["nodes"][new]["term"], s["nodes"][new]["commanding"]) == (term + 1, True)
-        landed = assert_flown_as_configured(w, out)
+        landed = assert_flown_as_configured(w, out, f.csv)
         driven = assert_one_term_per_loop(f.mission, rec_root, last_term=term + 1, landed=landed)
         assert terms_between(driven, at.v["cn_loop"], landed) == {term, term + 1}
 
@@ -565,9 +577,7 @@ def test_the_commander_stopped_for_a_second_in_coast_stands_down_and_the_flight_
     f = UpFlight(tmp_path)
     with f, known_bugs_gate(f.output):
         w = f.w
-        at = w.wait_for(
-            lambda v: v["cn_state"] == "COAST" and v["cn_loop"] >= 1000, FLIGHT_S, "COAST"
-        )
+        at = wait_state(w, "COAST", 1000)
         stopped, term = at.v["cn_commander"], at.v["cn_term"]
         new = other(stopped)
         before = len([x for x in stood_lines(f.output()) if x.node == stopped])
@@ -600,7 +610,7 @@ def test_the_commander_stopped_for_a_second_in_coast_stands_down_and_the_flight_
         assert reigns(reign) == {(term + 1, new)}, reigns(reign)
         took = [t for t in took_lines(out) if t.term == term + 1]
         assert [t.node for t in took] == [new], took
-        landed = assert_flown_as_configured(w, out)
+        landed = assert_flown_as_configured(w, out, f.csv)
         driven = assert_one_term_per_loop(
             f.mission, rec_root, last_term=w.last()["cn_term"], landed=landed
         )
@@ -618,9 +628,7 @@ def test_the_standby_killed_in_flight_changes_nothing(tmp_path: Path, rec_root: 
     f = UpFlight(tmp_path)
     with f, known_bugs_gate(f.output):
         w = f.w
-        at = w.wait_for(
-            lambda v: v["cn_state"] == "COAST" and v["cn_loop"] >= 800, FLIGHT_S, "COAST"
-        )
+        at = wait_state(w, "COAST", 800)
         commander, term = at.v["cn_commander"], at.v["cn_term"]
         dead = other(commander)
         changes = len(took_lines(f.output())) + len(stood_lines(f.output()))
@@ -637,7 +645,7 @@ def test_the_standby_killed_in_flight_changes_nothing(tmp_path: Path, rec_root: 
         assert reigns(w.since(t0)) == {(term, commander)}, reigns(w.since(t0))
         assert not any(v["cn_standby_ready"] for v in w.since(gone.t))
         assert len(took_lines(out)) + len(stood_lines(out)) == changes, out[-3000:]
-        landed = assert_flown_as_configured(w, out)
+        landed = assert_flown_as_configured(w, out, f.csv)
         driven = assert_one_term_per_loop(f.mission, rec_root, last_term=term, landed=landed)
         assert terms_between(driven, at.v["cn_loop"], landed) == {term}
 
@@ -675,6 +683,7 @@ class MeshFlight:
         self.runs: dict[str, int] = {}
         self.watch: FlightWatch | None = None
         self.relay: subprocess.Popen[Any] | None = None
+        self.csv = tmp / "gn.csv"  # the ground node's log of the run
 
     def index(self, node: str) -> int:
         return self.hosts[node].index
@@ -728,7 +737,7 @@ class MeshFlight:
             "--commands",
             str(COMMANDS),
             "--log",
-            str(self.tmp / "gn.csv"),
+            str(self.csv),
             "--summary",
             str(self.tmp / "gn.json"),
         )
@@ -797,9 +806,7 @@ def mesh(
 
 def _in_coast(f: MeshFlight) -> Snap:
     """COAST, 8 s into the flight: where each namespace case begins."""
-    return f.w.wait_for(
-        lambda v: v["cn_state"] == "COAST" and v["cn_loop"] >= 800, FLIGHT_S, "COAST"
-    )
+    return wait_state(f.w, "COAST", 800)
 
 
 def test_control_nodes_cut_from_each_other_change_nothing(mesh: MeshFlight, rec_root: Path) -> None:
@@ -837,7 +844,7 @@ def test_control_nodes_cut_from_each_other_change_nothing(mesh: MeshFlight, rec_
         _commands_accepted(gn)
         assert reigns(window) == {(term, commander)}, reigns(window)
         assert changed == 0, took_lines(f.logs())[-3:]
-        landed = assert_flown_as_configured(w, f.logs())
+        landed = assert_flown_as_configured(w, f.logs(), f.csv)
         driven = assert_one_term_per_loop(
             f.mission, rec_root, last_term=w.last()["cn_term"], landed=landed
         )
@@ -885,7 +892,7 @@ def test_the_commander_cut_from_everyone_is_replaced_and_stands_down_when_it_hea
         assert reigns(reign) == {(term + 1, new)}, reigns(reign)
         took = [t for t in took_lines(f.logs()) if t.term == term + 1]
         assert [t.node for t in took] == [new], took
-        landed = assert_flown_as_configured(w, f.logs())
+        landed = assert_flown_as_configured(w, f.logs(), f.csv)
         driven = assert_one_term_per_loop(
             f.mission, rec_root, last_term=w.last()["cn_term"], landed=landed
         )
@@ -924,7 +931,7 @@ def test_the_killed_commander_restarted_rejoins_as_the_standby(
         window = w.since(gone.t, until.t)
         assert reigns(window) == {(term + 1, new)}, reigns(window)
         assert all(v["cn_standby_ready"] for v in w.since(back.t, until.t))
-        landed = assert_flown_as_configured(w, f.logs())
+        landed = assert_flown_as_configured(w, f.logs(), f.csv)
         driven = assert_one_term_per_loop(
             f.mission, rec_root, last_term=w.last()["cn_term"], landed=landed
         )
