@@ -13,6 +13,9 @@
   :class:`~tests.faults.netns.NetnsLab` (hosts may be shared); each non-CN
   node connects to the CN. Run the nodes with ``host.popen(["python", "-m",
   "zplatform", "node", path, name])``.
+* :func:`mesh_mission`: the same on a mesh lab (one host per node): every
+  node listens on each of its host's links and reaches each peer over the
+  link the two share, so one pair can be cut apart.
 """
 
 from __future__ import annotations
@@ -70,6 +73,41 @@ def netns_mission(
         node = node or {}
         node["listen"] = [hosts[name].endpoint(ports[name])]
         node["connect"] = [] if name == "cn" else [cn_ep]
+        raw["nodes"][name] = node
+    Path(dst).write_text(yaml.safe_dump(raw, sort_keys=False))
+    return Path(dst)
+
+
+def mesh_mission(
+    src: str | Path, dst: str | Path, hosts: Mapping[str, NetnsHost], port: int = PORT
+) -> Path:
+    """Copy mission ``src`` to ``dst`` with node ``n`` on ``hosts[n]`` of a
+    mesh :class:`~tests.faults.netns.NetnsLab` (one host per node): node
+    number ``k`` listens on port ``PORT+k`` of each of its host's links, and
+    connects to the nodes it connects to in ``src``, each at the address of
+    the link between the two hosts. Cutting one link (``NetnsLab.set_pair``)
+    then parts exactly those two nodes: no other route joins them."""
+    raw = yaml.safe_load(Path(src).read_text())
+    relocate_mission(raw, src)
+    missing = set(raw["nodes"]) - set(hosts)
+    if missing:
+        raise ValueError(f"no host for nodes {sorted(missing)}")
+    lab = next(iter(hosts.values())).lab
+    if lab.topology != "mesh" or len({h.index for h in hosts.values()}) != len(hosts):
+        raise ValueError("mesh_mission needs a mesh lab and a host of its own per node")
+    ports = {name: port + k for k, name in enumerate(raw["nodes"])}
+    owner = {
+        ep: name for name, node in raw["nodes"].items() for ep in (node or {}).get("listen", [])
+    }
+    for name, node in raw["nodes"].items():
+        node = node or {}
+        i = hosts[name].index
+        links = [h.index for h in lab.hosts if h.index != i]
+        node["listen"] = [f"tcp/{lab.addr_of(i, seen_from=j)}:{ports[name]}" for j in links]
+        node["connect"] = [
+            f"tcp/{lab.addr_of(hosts[owner[ep]].index, seen_from=i)}:{ports[owner[ep]]}"
+            for ep in node.get("connect", [])
+        ]
         raw["nodes"][name] = node
     Path(dst).write_text(yaml.safe_dump(raw, sort_keys=False))
     return Path(dst)

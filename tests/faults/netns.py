@@ -10,7 +10,8 @@
   interface the host sees go away).
 * ``topology="mesh"``: one veth pair per pair of hosts, host ``i`` reaching
   host ``j`` at ``10.77.<pair>.x`` (see :meth:`NetnsLab.addr_of`); used where
-  no bridge module is available.
+  no bridge module is available, and where a test cuts one pair of hosts
+  apart and leaves each with its other links (:meth:`NetnsLab.set_pair`).
 
 Names are unique per lab (``zf<pid><n>...``) so parallel workers never clash,
 and every namespace the lab made is deleted by :meth:`NetnsLab.close`, after
@@ -54,6 +55,21 @@ def _ip(*args: str, ns: str | None = None) -> None:
     r = subprocess.run(cmd, capture_output=True, text=True, check=False, timeout=10)
     if r.returncode != 0:
         raise RuntimeError(f"{' '.join(cmd)} failed: {r.stderr.strip()}")
+
+
+def _ip_together(commands: list[list[str]]) -> None:
+    """Run several ``ip`` commands at the same time; raise if any failed."""
+    procs = [
+        subprocess.Popen(["ip", *c], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+        for c in commands
+    ]
+    failed = []
+    for c, p in zip(commands, procs, strict=True):
+        _, err = p.communicate(timeout=10)
+        if p.returncode != 0:
+            failed.append(f"ip {' '.join(c)} failed: {err.strip()}")
+    if failed:
+        raise RuntimeError("; ".join(failed))
 
 
 @dataclass
@@ -188,11 +204,27 @@ class NetnsLab:
             assert self.bridge_ns is not None
             _ip("link", "set", f"p{i}", state, ns=self.bridge_ns)
             return
-        for (a, b), (ia, ib, _, _) in self.mesh.items():
-            if i == a:
-                _ip("link", "set", ib, state, ns=self.hosts[b].ns)
-            elif i == b:
-                _ip("link", "set", ia, state, ns=self.hosts[a].ns)
+        # All of the host's links at once (one `ip` per far end, run together):
+        # one after the other, on a busy host, the last went down tens of ms
+        # after the first, and a node saw part of a cut the test meant as one.
+        ends = [
+            (ib, self.hosts[b].ns) if i == a else (ia, self.hosts[a].ns)
+            for (a, b), (ia, ib, _, _) in self.mesh.items()
+            if i in (a, b)
+        ]
+        _ip_together([["-n", ns, "link", "set", iface, state] for iface, ns in ends])
+
+    def set_pair(self, i: int, j: int, *, up: bool) -> None:
+        """Cut (or restore) the one link between hosts ``i`` and ``j`` of a
+        mesh, as :meth:`set_links` cuts all of a host's: the end in ``j`` goes
+        down, so neither host reaches the other while both keep every other
+        link (a bridge has no such link: ValueError)."""
+        if self.topology != "mesh":
+            raise ValueError("only a mesh has a link per pair of hosts")
+        lo, hi = sorted((i, j))
+        in_lo, in_hi, _, _ = self.mesh[(lo, hi)]
+        iface, host = (in_hi, hi) if j == hi else (in_lo, lo)
+        _ip("link", "set", iface, "up" if up else "down", ns=self.hosts[host].ns)
 
     def close(self) -> None:
         for h in self.hosts:

@@ -234,6 +234,26 @@ def test_a_primary_cut_off_from_everyone_stands_down_when_it_heals(nominal: Flow
     assert loop >= 1200 + 200
 
 
+@pytest.mark.xfail(
+    strict=True,
+    reason="product bug: a standby cut off from the commander's mirrors takes command, when the "
+    "device nodes grant it (the commander stalled past the lease), from the last mirror it holds, "
+    "however old (zplatform/failover.py Standby.decide/take); seen live too "
+    "(tests/faults/test_failover_live.py)",
+)
+def test_a_standby_cut_off_from_the_mirrors_never_takes_command_from_a_stale_one(
+    nominal: Flown,
+) -> None:
+    """The control nodes cannot hear each other from loop 1000 for 5 s, both
+    still reach the device nodes; at loop 1300 the commander stalls for 5
+    loops (past the lease), so the device nodes grant the standby's next
+    question. Its mirror is of loop 999, 3 s old: taking command from it
+    would fly on from that state (today: the drogue 3 s late, the main never
+    fired). The flight must end as if nothing happened."""
+    fl = fly(faults={1000: [("partition", ("cn", "cn_b", 500))], 1300: [("stop", ("cn", 5))]})
+    _as_if_nothing_happened(fl, nominal)
+
+
 # -- the standby itself, and missions without one -----------------------------------
 
 
