@@ -121,15 +121,26 @@ Device node (:class:`DeviceSync`):
 
 
 class TapPublisher:
-    """A put for taps that costs (almost) nothing when nobody subscribes.
+    """A put that costs (almost) nothing when nobody subscribes.
 
     A matching listener keeps ``matching`` current from zenoh's thread; the
-    loop reads one bool and skips the put when no subscriber matches.
+    loop reads one bool and skips the put when no subscriber matches. That
+    matters for large frames: zenoh-python 1.10 copies a payload into a
+    ``ZBytes`` before zenoh looks for a subscriber, so an unguarded put of a
+    whole 100,000-element vector costs a 325 KB copy for nobody
+    (``python -m bench.frame_trace``, ``tm.put``).
+
+    ``exact``: when the listener says nobody matches, ask zenoh's routing
+    state itself (``matching_status``, under a microsecond) before skipping,
+    so that no put is lost to the listener's lag after a subscriber came
+    (the telemetry a ground logs from loop 1 on). Without it (taps for
+    tools) a put in that lag may be skipped.
     """
 
-    def __init__(self, session: zenoh.Session, key: str) -> None:
+    def __init__(self, session: zenoh.Session, key: str, *, exact: bool = False) -> None:
         self.pub = session.declare_publisher(key, congestion_control=zenoh.CongestionControl.DROP)
         self.matching = is_matching(self.pub)
+        self._exact = exact
         self._listener = self.pub.declare_matching_listener(
             zenoh.handlers.Callback(self._on_matching, indirect=False)
         )
@@ -138,7 +149,8 @@ class TapPublisher:
         self.matching = bool(status.matching)
 
     def put(self, payload: bytes | bytearray) -> None:
-        if self.matching:
+        """Publish ``payload`` if anyone subscribes (never blocks: DROP)."""
+        if self.matching or (self._exact and is_matching(self.pub)):
             self.pub.put(payload)
 
     def undeclare(self) -> None:
