@@ -15,10 +15,14 @@ for every process on a host)::
     DN zenoh thread  dn.copied, dn.verified,   intake: size, payload out of zenoh,
                      dn.admitted               tag, freshness, mailbox
     DN loop thread   dn.serve                  the query taken from the mailbox
-                     dn.opened, dn.decoded,    DeviceLogic.trigger: tag (again, if
-                     dn.applied                it is), decode, the data into the vector
+                     dn.opened, dn.decoded     DeviceLogic.trigger: tag stripped (the
+                                               intake checked it), decode
                      dn.encoded, dn.sealed     the reply framed, tagged
                      dn.replied                query.reply (payload into zenoh), released
+                     dn.apply                  the trigger's data into the vector
+                                               (DeviceLogic.run, after the reply; a
+                                               trigger that applies it before the reply
+                                               stamps dn.applied on the chain too)
     zenoh            dn.replied -> cn.back     reply to the CN's callback
     CN zenoh thread  cn.queued                 the payload out of zenoh, handed off
     CN loop thread   cn.taken, cn.opened,      ControlLogic.reply: tag, decode, the
@@ -94,23 +98,26 @@ CHAIN = (
 )
 #: Steps timed by their own start and end (not on the exchange's chain).
 SPANS = ("cn.encode", "cn.seal", "tm.encode", "tm.seal", "tm.put")
+#: The DN's: a column of its rows after :data:`DN_MARKS`.
+DN_SPANS = ("dn.apply",)
 
 #: Payload copies per hop, named by the stamp that ends it (or the span):
 #: ``(count, what)``, counted from the code path as it is (module doc).
 COPIES: dict[str, tuple[int, str]] = {
     "cn.encode": (1, "the region into the encoder's buffer"),
-    "cn.seal": (1, "the frame into the channel's buffer, then its tag"),
+    "cn.seal": (0, "the tag, written in place after the frame"),
     "cn.sent": (1, "ZBytes(bytearray) in session.get"),
     "dn.arrive": (1, "zenoh: into its shared-memory pool"),
     "dn.copied": (1, "ZBytes.to_bytes()"),
     "dn.verified": (0, "tag over a view"),
     "dn.admitted": (0, "the bytes into the mailbox, by reference"),
     "dn.serve": (0, "wake-up"),
-    "dn.opened": (0, "tag over a view"),
+    "dn.opened": (0, "the tag stripped (checked by the intake), a view"),
     "dn.decoded": (0, "msgspec: data is a memoryview into the bytes"),
     "dn.applied": (1, "the data into the vector"),
+    "dn.apply": (1, "the trigger's data into the vector (after the reply)"),
     "dn.encoded": (1, "the region into the encoder's buffer"),
-    "dn.sealed": (1, "the frame into the channel's buffer, then its tag"),
+    "dn.sealed": (0, "the tag, written in place after the frame"),
     "dn.replied": (1, "ZBytes(bytearray) in query.reply"),
     "cn.back": (1, "zenoh: into its shared-memory pool"),
     "cn.queued": (1, "ZBytes.to_bytes()"),
@@ -119,8 +126,8 @@ COPIES: dict[str, tuple[int, str]] = {
     "cn.decoded": (0, "msgspec: data is a memoryview into the bytes"),
     "cn.applied": (1, "the data into the vector"),
     "tm.encode": (1, "the whole vector into the encoder's buffer"),
-    "tm.seal": (1, "the frame into the channel's buffer, then its tag"),
-    "tm.put": (1, "ZBytes(bytearray) in publisher.put, subscribed or not"),
+    "tm.seal": (0, "the tag, written in place after the frame"),
+    "tm.put": (0, "none when nobody subscribes (skipped); else ZBytes(bytearray), 1"),
 }
 
 
@@ -176,13 +183,14 @@ def dn_main(argv: list[str]) -> None:
     mission_path, name, out, *extra = argv
     if set(extra) - {"--no-realtime"}:
         raise SystemExit(f"frame_trace dn: unknown options {extra}")
-    rows: npt.NDArray[np.int64] = np.zeros((_MAX, len(DN_MARKS)), np.int64)
-    col = {m: k for k, m in enumerate(DN_MARKS)}
+    rows: npt.NDArray[np.int64] = np.zeros((_MAX, len(DN_MARKS) + len(DN_SPANS)), np.int64)
+    col = {m: k for k, m in enumerate((*DN_MARKS, *DN_SPANS))}
     mono = time.monotonic_ns
     zt = threading.local()  # zenoh's thread: this query's intake stamps and loop
     intake_lock = threading.Lock()
     by_loop: dict[int, list[int]] = {}  # admitted queries' intake stamps, by the loop they carry
-    cur = [0] * len(DN_MARKS)  # the query being served (loop thread)
+    cur = [0] * rows.shape[1]  # the query being served (loop thread)
+    serving = [False, 0]  # between serve and replied; the loop last replied to
 
     def dump() -> None:
         used = np.nonzero(rows.any(axis=1))[0]
@@ -237,13 +245,30 @@ def dn_main(argv: list[str]) -> None:
             for k in range(len(cur)):
                 cur[k] = 0
             cur[col["serve"]] = t
+            serving[0] = True
         elif hop == "replied":
             cur[col["replied"]] = t
+            serving[0], serving[1] = False, loop
             with intake_lock:
                 s = by_loop.pop(loop, None)
             if s is not None and 0 < loop < _MAX:
                 cur[:4] = s
                 rows[loop] = cur
+
+    apply0 = [0]
+
+    def apply_start() -> None:
+        apply0[0] = mono()
+
+    def apply_end() -> None:
+        # In the trigger (before the reply): a mark on the chain too; in
+        # run(), after the reply: the span only, on the row just written.
+        t = mono()
+        if serving[0]:
+            cur[col["applied"]] = t
+            cur[col["dn.apply"]] = t - apply0[0]
+        elif 0 < serving[1] < _MAX:
+            rows[serving[1], col["dn.apply"]] = t - apply0[0]
 
     setup_logging()
     mission = load_mission(mission_path)
@@ -252,14 +277,15 @@ def dn_main(argv: list[str]) -> None:
     )
     logic: Any = node.logic
     # The logic's own codecs and channels: stand-ins stamping after each step.
-    if logic._open is not None:
-        logic._open = _Spy(logic._open, {"open": (None, stamp("opened"))})
+    if logic._open is not None:  # checked again, or stripped (checked by the intake)
+        opened = (None, stamp("opened"))
+        logic._open = _Spy(logic._open, {"open": opened, "strip": opened})
     logic._in = _Spy(
-        logic._in, {"check": (None, stamp("decoded")), "write": (None, stamp("applied"))}
+        logic._in, {"check": (None, stamp("decoded")), "write": (apply_start, apply_end)}
     )
     logic._out = _Spy(logic._out, {"encode": (None, stamp("encoded"))})
     if logic._seal is not None:
-        logic._seal = _Spy(logic._seal, {"seal": (None, stamp("sealed"))})
+        logic._seal = _Spy(logic._seal, {"seal_tail": (None, stamp("sealed"))})
     try:
         node.start()
         node.run(realtime="--no-realtime" not in extra)
@@ -348,7 +374,7 @@ def instrument_cn(cn: Any, st: _CnStamps) -> None:
     )
     if logic._seal_to_dn[0] is not None:
         logic._seal_to_dn = tuple(
-            _Spy(c, {"seal": st.span("cn.seal", i)}) for i, c in enumerate(logic._seal_to_dn)
+            _Spy(c, {"seal_tail": st.span("cn.seal", i)}) for i, c in enumerate(logic._seal_to_dn)
         )
     if logic._open_from_dn[0] is not None:
         logic._open_from_dn = tuple(
@@ -361,7 +387,7 @@ def instrument_cn(cn: Any, st: _CnStamps) -> None:
     )
     logic._tm = _Spy(logic._tm, {"encode": st.span("tm.encode")})
     if logic._seal_tm is not None:
-        logic._seal_tm = _Spy(logic._seal_tm, {"seal": st.span("tm.seal")})
+        logic._seal_tm = _Spy(logic._seal_tm, {"seal_tail": st.span("tm.seal")})
     cn._tm_pub = _Spy(cn._tm_pub, {"put": st.span("tm.put")})
     sync.session = _Spy(sync.session, {"get": (None, st.mark("sent"))})
     # The reply hand-off (zenoh's thread): its end, after the payload's copy.
@@ -399,7 +425,8 @@ def hop_table(
 
     ``cn[loop][i]``: the CN's chain stamps for DN ``i`` (:data:`CN_MARKS`);
     ``spans[loop][i]``: its span durations (:data:`SPANS`, ns);
-    ``dns[i][loop]``: DN ``i``'s stamps (:data:`DN_MARKS`). An exchange
+    ``dns[i][loop]``: DN ``i``'s stamps (:data:`DN_MARKS`), then its span
+    durations (:data:`DN_SPANS`, ns). An exchange
     counts when both ends stamped its first and last mark; a hop ends at
     each later mark that was stamped, from the last one before it that was.
     """
@@ -409,9 +436,13 @@ def hop_table(
             d = dns[i].get(loop) if i < len(dns) else None
             if d is None:
                 continue
-            t = [*row[:2], *d, *row[2:]]
+            nd = len(DN_MARKS)
+            t = [*row[:2], *d[:nd], *row[2:]]
             if not (t[0] and t[-1]):
                 continue
+            for k, name in enumerate(DN_SPANS):
+                if nd + k < len(d) and d[nd + k]:
+                    per.setdefault(name, []).append(d[nd + k] / 1e3)
             prev = 0
             for k in range(1, len(t)):
                 if not t[k]:
@@ -431,7 +462,7 @@ def hop_table(
         (k for k in per if "->" in k),
         key=lambda k: tuple(CHAIN.index(x) for x in reversed(k.split("->"))),
     )
-    for name in [*SPANS[:2], *hops, "exchange", *SPANS[2:]]:
+    for name in [*SPANS[:2], *hops, "exchange", *DN_SPANS, *SPANS[2:]]:
         if name not in per:
             continue
         end = name.split("->")[-1]
