@@ -468,6 +468,10 @@ def hop_table(
         end = name.split("->")[-1]
         n_copies, what = COPIES.get(end, (0, ""))
         out[name] = {**_stat(np.array(per[name])), "copies": n_copies, "copy": what}
+    if "exchange" in out:  # every copy of the exchange's two payloads, framing included
+        mine = [*SPANS[:2], *hops, *DN_SPANS]
+        out["exchange"]["copies"] = sum(out[h]["copies"] for h in mine if h in out)
+        out["exchange"]["copy"] = "all of the exchange's: its hops, the query's framing"
     return out
 
 
