@@ -109,7 +109,9 @@ class BenchCluster:
 
     ``realtime``: apply SCHED_FIFO/affinity from the mission (and pass
     ``--no-realtime`` to the DNs otherwise). ``trace_dir``: run each DN under
-    :mod:`bench.sync_trace`, which writes ``<dn>.trace.json`` there on exit.
+    ``trace_module`` (default :mod:`bench.sync_trace`; :mod:`bench.frame_trace`
+    for large frames), whose ``dn`` entry point writes ``<dn>.trace.json``
+    there on exit.
     ``cn_trace``: the in-process CN's sync trace hook
     (:data:`zplatform.sync.SyncTrace`).
     """
@@ -123,6 +125,7 @@ class BenchCluster:
         log_dir: Path | None = None,
         trace_dir: Path | None = None,
         cn_trace: SyncTrace | None = None,
+        trace_module: str = "bench.sync_trace",
     ) -> None:
         self.path = mission_path
         self.mission: Mission = load_mission(mission_path)
@@ -139,9 +142,9 @@ class BenchCluster:
         for dn in self.mission.device_nodes:
             e = dict(env, **(dn_env or {}).get(dn, {}))
             args = [sys.executable, "-m", "zplatform", "node", str(mission_path), dn]
-            if trace_dir is not None:  # bench.sync_trace: the same node, its hops stamped
+            if trace_dir is not None:  # the same node, its hops stamped
                 out = str(trace_dir / f"{dn}.trace.json")
-                args = [sys.executable, "-m", "bench.sync_trace", "dn", *args[4:], out]
+                args = [sys.executable, "-m", trace_module, "dn", *args[4:], out]
             if not realtime:
                 args.append("--no-realtime")
             with open(self.log_dir / f"{dn}.log", "ab") as log:

@@ -43,6 +43,7 @@ ORDER = (
     "sync_trace",
     "rate",
     "bandwidth",
+    "frame_trace",
     "reliability",
     "telemetry_latency",
     "clock",
@@ -454,6 +455,61 @@ def sync_trace_section(params: dict[str, Any], variants: dict[str, dict[str, Any
         "**Hops** (per DN exchange; `sync_total` = issued -> taken)",
         "",
         *md_table(["hop", "p50 us", "p99 us", "max us", "p50 us in missed loops"], rows),
+    ]
+
+
+def frame_trace_section(params: dict[str, Any], variants: dict[str, dict[str, Any]]) -> list[str]:
+    """The large-frame hop tables (bench.frame_trace): per DN split and MAC, one column
+    pair (p50, copies) per label side by side (a before and an after), and each
+    variant's sync p50 over the raw zenoh floor of its own run."""
+    traced = {k: v for k, v in variants.items() if v.get("hops")}
+    if not traced:
+        return []
+    groups: dict[tuple[Any, Any], dict[str, dict[str, Any]]] = {}
+    for k, v in traced.items():
+        groups.setdefault((v.get("n_dn"), v.get("mac")), {})[k] = v
+    tables: list[str] = []
+    for (n_dn, mac), group in groups.items():
+        names: list[str] = []  # chain order as first seen (a hop one variant merged)
+        for v in group.values():
+            names += [h for h in v["hops"] if h not in names]
+        header = ["hop"]
+        for v in group.values():
+            header += [f"{v.get('label')} p50 us", "copies"]
+        rows = []
+        for h in names:
+            row: list[Any] = [h]
+            for v in group.values():
+                cell = v["hops"].get(h) or {}
+                row += [cell.get("p50_us"), cell.get("copies")]
+            rows.append(row)
+        tables += ["", f"**Hops, {n_dn} DN, {mac}**", "", *md_table(header, rows)]
+    summary = [
+        [
+            k,
+            v.get("label"),
+            v.get("n_dn"),
+            v.get("mac"),
+            v.get("p50_us"),
+            v.get("deadline_miss_rate"),
+            f"{v['vs_raw_zenoh_p50']:.2f}x" if v.get("vs_raw_zenoh_p50") else None,
+            " ".join(str(x) for x in v.get("loadavg") or []) or None,
+        ]
+        for k, v in traced.items()
+    ]
+    return [
+        "",
+        "**Sync step per variant** (p50 over the raw zenoh floor of the same bytes, "
+        "measured in the same run; load average after the run)",
+        "",
+        *md_table(
+            ["variant", "label", "DNs", "MAC", "sync p50 us", "miss rate", "vs raw zenoh", "load"],
+            summary,
+        ),
+        "",
+        "Hops: p50 per DN exchange; `a->b` between two stamps of one exchange, the others "
+        "timed on their own; copies of the payload counted from the code path.",
+        *tables,
     ]
 
 
@@ -880,6 +936,8 @@ def section(bench: str, doc: dict[str, Any], plots_dir: Path | None, report_dir:
         lines += clock_section(params, variants)
     elif bench == "sync_trace":
         lines += sync_trace_section(params, variants)
+    elif bench == "frame_trace":
+        lines += frame_trace_section(params, variants)
     elif bench == "faults":
         lines += faults_section(params, variants)
     elif bench == "failover":

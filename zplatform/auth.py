@@ -284,12 +284,17 @@ class Channel:
     """Tags and checks the frames of one channel (module doc).
 
     ``link_key``: the key of the channel's link; ``mac``: ``blake3`` or
-    ``hmac-sha256``. :meth:`seal` returns this channel's own buffer
-    (overwritten by the next call; resized only if the frame length
-    changes). :meth:`open` returns a view of the frame inside ``payload``
-    (no copy) or raises AuthError. :meth:`tag` allocates only the tag's 16
-    bytes. Not thread-safe (the BLAKE3 hasher is kept and reset per frame):
-    one per sending or receiving thread.
+    ``hmac-sha256``. :meth:`seal` copies the frame into this channel's own
+    buffer and tags it there (the buffer is overwritten by the next call;
+    resized only if the frame length changes); :meth:`seal_tail` tags a
+    frame in the buffer that carries it, without copying it (a sender that
+    frames into a :class:`~zplatform.codec.FrameEncoder` with ``tail``
+    room: what the loops do, whose frames are up to the whole Data Vector).
+    :meth:`open` returns a view of the frame inside ``payload`` (no copy) or
+    raises AuthError; :meth:`strip` is the same view for a payload whose tag
+    this channel's key was already checked on. :meth:`tag` allocates only
+    the tag's 16 bytes. Not thread-safe (the BLAKE3 hasher is kept and reset
+    per frame): one per sending or receiving thread.
     """
 
     __slots__ = ("_buf", "_hasher", "_key", "mac", "name", "tag")
@@ -322,6 +327,29 @@ class Channel:
         buf[:n] = frame
         buf[n:] = self.tag(frame)
         return buf
+
+    def seal_tail(self, buf: bytearray) -> bytearray:
+        """Tag the frame that fills ``buf`` but for its last :data:`TAG_LEN`
+        bytes, and write the tag there; returns ``buf`` (the frame is read
+        through a view, never copied). ValueError when ``buf`` has no room
+        for a frame and a tag."""
+        mv = memoryview(buf)
+        n = len(mv) - TAG_LEN
+        if n <= 0:
+            raise ValueError(f"{self.name}: {len(mv)} bytes hold no frame and tag")
+        mv[n:] = self.tag(mv[:n])
+        return buf
+
+    def strip(self, payload: bytes | bytearray | memoryview) -> memoryview:
+        """The frame in ``payload`` (a view, no copy), its tag not checked:
+        only for a payload whose tag was already checked with this channel's
+        key, on the very same bytes (a node's intake, ahead of its loop
+        thread). AuthError when it is too short to carry a tag."""
+        mv = memoryview(payload)
+        n = len(mv) - TAG_LEN
+        if n <= 0:
+            raise AuthError(f"{self.name}: {len(mv)} bytes, too short to carry a tag")
+        return mv[:n]
 
     def open(self, payload: bytes | bytearray | memoryview) -> memoryview:
         mv = memoryview(payload)

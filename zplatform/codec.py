@@ -88,21 +88,32 @@ class FrameEncoder:
     by the next call, so hand it to zenoh (which copies) before encoding
     again. The buffer is resized only when the data length changes (never,
     for a region). Not thread-safe; one per sending loop.
+
+    ``tail``: bytes of room the buffer keeps after the frame, so that a tag
+    can be written there in place (:meth:`zplatform.auth.Channel.seal_tail`)
+    instead of the frame being copied into a tagged buffer of its own.
+    :meth:`encode` then returns the frame followed by that room, whose bytes
+    are whatever the last tag left there until it is tagged.
     """
 
-    __slots__ = ("_buf", "_mv", "_n")
+    __slots__ = ("_at", "_buf", "_mv", "_n", "tail")
 
-    def __init__(self, capacity: int = 0) -> None:
+    def __init__(self, capacity: int = 0, tail: int = 0) -> None:
+        if tail < 0:
+            raise ValueError(f"tail room must be >= 0, not {tail}")
+        self.tail = tail
         self._buf = bytearray()
         self._mv = memoryview(self._buf)
         self._n = -1
+        self._at = 0
         self._resize(capacity)
 
     def _resize(self, n: int) -> None:
-        # A bytearray cannot be resized while a memoryview is exported.
+        # A bytearray cannot be resized while a memoryview is exported: a new
+        # one is made instead (a caller may still hold a view of the old).
         self._mv.release()
-        need = frame_overhead(n) + n
-        self._buf = bytearray(need)
+        at = frame_overhead(n)
+        self._buf = bytearray(at + n + self.tail)
         if n < 256:
             _BIN8.pack_into(self._buf, _HDR_LEN, 0xC4, n)
         elif n < 65536:
@@ -111,11 +122,13 @@ class FrameEncoder:
             _BIN32.pack_into(self._buf, _HDR_LEN, 0xC6, n)
         self._mv = memoryview(self._buf)
         self._n = n
+        self._at = at
 
     def encode(
         self, layout_id: int, seq: int, t_ns: int, data: bytes | bytearray | memoryview
     ) -> bytearray:
-        """Encode one frame; raises FrameFormatError for out-of-range header fields.
+        """Encode one frame (one copy of ``data``, into the buffer); raises
+        FrameFormatError for out-of-range header fields.
 
         Why not msgspec's ``encode_into`` here: it writes the smallest int
         markers, so a frame's length would vary with ``seq``. The fixed-width
@@ -133,7 +146,8 @@ class FrameEncoder:
             raise FrameFormatError(
                 f"header out of range (layout_id {layout_id}, seq {seq}, t_ns {t_ns}): {exc}"
             ) from exc
-        self._mv[len(self._buf) - n :] = data
+        at = self._at
+        self._mv[at : at + n] = data
         return self._buf
 
 
@@ -242,14 +256,16 @@ class RegionCodec:
     whole vector (``region=None``: the telemetry frame).
 
     ``encode(seq, t_ns)`` frames the region's current bytes (one copy, into
-    the encoder's buffer). Receiving is decode once, then copy once:
+    the encoder's buffer; ``tail``: bytes of room kept after the frame for
+    a tag written in place, :class:`FrameEncoder`). Receiving is decode
+    once, then copy once:
     :meth:`check` decodes and checks a frame without touching the vector and
     :meth:`write` copies a checked frame's data in; :meth:`apply` does both.
     """
 
     __slots__ = ("_dec", "_enc", "_view", "dv", "layout_id", "region", "size")
 
-    def __init__(self, dv: DataVector, region: str | None = None) -> None:
+    def __init__(self, dv: DataVector, region: str | None = None, *, tail: int = 0) -> None:
         if region is None:
             layout_id, size, view, name = (
                 dv.layout.layout_id,
@@ -265,7 +281,7 @@ class RegionCodec:
         self.layout_id = layout_id
         self.size = size
         self._view = view
-        self._enc = FrameEncoder(size)
+        self._enc = FrameEncoder(size, tail)
         self._dec = FrameDecoder(layout_id, size, name)
 
     @property
@@ -274,7 +290,8 @@ class RegionCodec:
         return max_frame_length(self.size)
 
     def encode(self, seq: int, t_ns: int) -> bytearray:
-        """Frame the region now; the returned buffer is reused by the next call."""
+        """Frame the region now (followed by the tail room, if any); the
+        returned buffer is reused by the next call."""
         return self._enc.encode(self.layout_id, seq, t_ns, self._view)
 
     def check(self, frame: bytes | bytearray | memoryview) -> Frame:

@@ -163,6 +163,13 @@ class Intake(ABC, Generic[H]):
         self.bad = 0
         self.stale = 0
 
+    @property
+    def authenticates(self) -> bool:
+        """Whether this intake checks tags: then every frame it passes has
+        an authentic tag, and its consumer need not check it again
+        (:meth:`zplatform.loop.DeviceLogic.trigger`'s ``authentic``)."""
+        return self._open is not None
+
     def check(self, payload: Payload, handle: H) -> bytes | None:
         """The frame's bytes when it passes every check, else None (counted)."""
         with self._lock:

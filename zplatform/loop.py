@@ -87,7 +87,7 @@ import struct
 from collections.abc import Sequence
 from typing import Any, Protocol
 
-from .auth import AuthError, Channel, KeySet, channel
+from .auth import TAG_LEN, AuthError, Channel, KeySet, channel
 from .boards import Board, HealthCounters, safe_board
 from .codec import Frame, RegionCodec, bundle_entry, is_bundle
 from .codes import CommandStatus, SafedWhy
@@ -220,15 +220,20 @@ class ControlLogic:
         )
         self.dns: tuple[str, ...] = tuple(mission.device_nodes)
         dns = self.dns
-        self._to_dn = tuple(RegionCodec(dv, f"cn_to_{dn}") for dn in dns)
-        self._from_dn = tuple(RegionCodec(dv, f"{dn}_to_cn") for dn in dns)
-        self._ground = RegionCodec(dv, "gn_to_cn") if mission.has_ground else None
-        self._tm = RegionCodec(dv)
         # The CN's links (auth.py): every cn<->dnX, the uplink, the downlink.
         self._seal_to_dn = tuple(channel(keys, f"cn_to_{dn}") for dn in dns)
         self._open_from_dn = tuple(channel(keys, f"{dn}_to_cn") for dn in dns)
         self._open_ground = channel(keys, "gn_to_cn") if mission.has_ground else None
         self._seal_tm = channel(keys, "telemetry")
+        # What the CN sends is framed with room for its tag, tagged in place
+        # (Channel.seal_tail): a frame up to the whole vector is copied once.
+        self._to_dn = tuple(
+            RegionCodec(dv, f"cn_to_{dn}", tail=TAG_LEN if ch is not None else 0)
+            for dn, ch in zip(dns, self._seal_to_dn, strict=True)
+        )
+        self._from_dn = tuple(RegionCodec(dv, f"{dn}_to_cn") for dn in dns)
+        self._ground = RegionCodec(dv, "gn_to_cn") if mission.has_ground else None
+        self._tm = RegionCodec(dv, tail=TAG_LEN if self._seal_tm is not None else 0)
         self._frames: list[bytearray] = [bytearray() for _ in dns]
         self._dropped = dv.handle("cn_cmd_dropped")
         self._number = RequestNumber(self.layout) if self._ground is not None else None
@@ -320,7 +325,7 @@ class ControlLogic:
                 self._fenced[i] = False
             seal = self._seal_to_dn[i]
             frame = codec.encode(loop, t_ns)
-            frames[i] = seal.seal(frame) if seal is not None else frame
+            frames[i] = seal.seal_tail(frame) if seal is not None else frame
         self.pending = len(got)
         if self.recorder is not None:
             self.recorder.begin(loop, t_ns, final, bool(standby))
@@ -442,15 +447,17 @@ class ControlLogic:
         self.statemachine.step(t)
         self.controllers.run(loop, t)
         tm: bytearray | None = None
-        body: bytearray | None = None
         if loop % self._divisor == 0:
-            tm = body = self._tm.encode(loop, t)
-            if self._seal_tm is not None:
-                tm = self._seal_tm.seal(body)
+            tm = self.telemetry()
         if self.redundant:  # the standby mirrors the whole vector every loop
-            if body is None:
-                body = self._tm.encode(loop, t)
-            self.mirror = self._seal_mirror.seal(body) if self._seal_mirror is not None else body
+            # The same frame, tagged for the standby (a copy into the mirror
+            # channel's buffer: the telemetry's tag sits in the encoder's).
+            body = tm if tm is not None else self._tm.encode(loop, t)
+            if self._seal_mirror is None:  # no keys: no tag anywhere
+                self.mirror = body
+            else:
+                frame = memoryview(body)[: len(body) - TAG_LEN] if self._seal_tm else body
+                self.mirror = self._seal_mirror.seal(frame)
         if bulk is not None:  # what the controllers filled goes out
             bulk.publish(loop, t)
         if self.recorder is not None:
@@ -555,9 +562,12 @@ class ControlLogic:
         return True
 
     def telemetry(self) -> bytearray:
-        """The whole vector framed now (for a final snapshot off the divisor)."""
+        """The whole vector framed now, tagged (what :meth:`finish` returns on
+        a telemetry loop; a driver's final snapshot off the divisor). One
+        copy of the vector, into the telemetry encoder's buffer, which the
+        next call overwrites."""
         tm = self._tm.encode(self.loop, self.t_ns)
-        return self._seal_tm.seal(tm) if self._seal_tm is not None else tm
+        return self._seal_tm.seal_tail(tm) if self._seal_tm is not None else tm
 
     def attach_bulk(self, port: BulkPort) -> None:
         """Move the CN's bulk channels through ``port`` from the next loop on
@@ -712,9 +722,10 @@ class DeviceLogic:
         self._in = RegionCodec(dv, f"cn_to_{node}")
         # This node's place in a sync bundle (one wildcard query for every DN).
         self._index = mission.device_nodes.index(node)
-        self._out = RegionCodec(dv, f"{node}_to_cn")
         self._open: Channel | None = channel(keys, f"cn_to_{node}")
         self._seal: Channel | None = channel(keys, f"{node}_to_cn")
+        # The reply is framed with room for its tag, tagged in place.
+        self._out = RegionCodec(dv, f"{node}_to_cn", tail=TAG_LEN if self._seal else 0)
         self._loop = dv.handle(f"{node}_loop")
         self._time = dv.handle(f"{node}_time_ns")
         self._errors = dv.handle(f"{node}_errors")
@@ -788,11 +799,17 @@ class DeviceLogic:
         """Triggers answered but not run (older loop, stale, or not newest)."""
         self.triggered = 0
         """The loop the last :meth:`trigger` started, or 0 if it started none."""
+        self._pending: Frame | None = None  # that trigger's frame, for run() to apply
         self.reject_reason = ""
         """Why the last :meth:`trigger` returned None."""
 
     def trigger(
-        self, payload: bytes | bytearray | memoryview, now_ns: int, *, may_run: bool = True
+        self,
+        payload: bytes | bytearray | memoryview,
+        now_ns: int,
+        *,
+        may_run: bool = True,
+        authentic: bool = False,
     ) -> bytearray | None:
         """Check one CN query frame (or a sync bundle holding it) and frame the reply.
 
@@ -803,7 +820,20 @@ class DeviceLogic:
         Sets :attr:`triggered` to the loop to run, or 0: a query for a loop
         not newer than the last one served, a stale one, or one the driver
         says may not run (``may_run=False``: a backlog the DN skips) is
-        answered but not applied.
+        answered but not applied. A trigger that starts a loop is applied
+        (its data copied into the ``cn_to_dnX`` region) by :meth:`run`, after
+        the reply has gone; its frame's data is a view into ``payload``, so
+        the caller keeps ``payload`` unchanged until then (the live driver's
+        are immutable ``bytes``; :meth:`step` runs at once).
+
+        ``authentic``: the caller checked this very payload's tag with this
+        node's ``cn_to_dnX`` key already (the driver's intake,
+        :class:`~zplatform.intake.TriggerIntake`, on zenoh's thread), so it
+        is not computed again here: the tag is only stripped
+        (:meth:`~zplatform.auth.Channel.strip`). A whole-vector trigger's tag
+        costs tens of microseconds to hundreds (HMAC-SHA256), on the sync's
+        critical path (``python -m bench.frame_trace``). Without it (the
+        default, and every caller but the live driver) the tag is checked.
         """
         self.triggered = 0
         last = self.last_trigger_ns
@@ -817,7 +847,9 @@ class DeviceLogic:
         try:
             if is_bundle(payload):  # a wildcard query: this node's frame from the bundle
                 payload = bundle_entry(payload, self._index)
-            frame = self._in.check(self._open.open(payload) if self._open else payload)
+            ch = self._open
+            body = payload if ch is None else ch.strip(payload) if authentic else ch.open(payload)
+            frame = self._in.check(body)
             # Authentic from here on.
             if guard is not None and frame.seq > 0:
                 term = _U32.unpack_from(frame.data, self._term_at)[0]
@@ -850,14 +882,17 @@ class DeviceLogic:
             and not late
         )
         if new:
-            self._in.write(frame)
+            # The data goes into the region in run(), not here: the reply
+            # (the region before this loop's run) leaves without waiting for
+            # the copy, up to a whole region's on the sync's critical path.
+            self._pending = frame
             self.last_loop = frame.seq
             self.last_t_ns = frame.t_ns
             self.last_trigger_ns = now_ns
             self.triggered = frame.seq
             self._unrun_since = None
             if guard is not None and verdict == Verdict.NEW:
-                self._new_term(frame.seq, now_ns)
+                self._new_term(frame.seq, now_ns, term)
         else:
             self.stale += 1
             if newer:
@@ -874,14 +909,13 @@ class DeviceLogic:
         if guard is not None:
             self._h_term_seen.set(guard.seen(now_ns))
         reply = self._out.encode(frame.seq, now_ns)
-        return self._seal.seal(reply) if self._seal is not None else reply
+        return self._seal.seal_tail(reply) if self._seal is not None else reply
 
-    def _new_term(self, loop: int, now_ns: int) -> None:
-        """The trigger just written into the region ran a higher term: follow it."""
+    def _new_term(self, loop: int, now_ns: int, term: int) -> None:
+        """The trigger just taken to run carries a higher term: follow it."""
         guard = self.guard
         assert guard is not None
         old = guard.term
-        term = int(self._h_term.get())
         guard.ran(term)
         self.events.emit(
             EV.DN_NEW_TERM,
@@ -920,7 +954,7 @@ class DeviceLogic:
             )
         self._h_term_seen.set(guard.seen(now_ns))
         reply = self._out.encode(frame.seq, now_ns)
-        return self._seal.seal(reply) if self._seal is not None else reply
+        return self._seal.seal_tail(reply) if self._seal is not None else reply
 
     def probe(self, payload: bytes | bytearray | memoryview, now_ns: int) -> bytes | None:
         """Answer a control node's probe question (:mod:`zplatform.fencing`):
@@ -1025,7 +1059,13 @@ class DeviceLogic:
         """Run the loop :meth:`trigger` started, at ``t_ns``: bulk samples in,
         board, sensors, controllers, actuators (not while safed), then the owned
         bulk channels out and their counters; after the CN's last loop (a
-        final trigger), the node safes itself (class doc)."""
+        final trigger), the node safes itself (class doc). First, the
+        trigger's data goes into its region (:meth:`trigger` leaves that
+        copy to here, after the reply)."""
+        pending = self._pending
+        if pending is not None:
+            self._pending = None
+            self._in.write(pending)
         loop = self.triggered
         bulk = self._bulk
         if bulk is not None:  # the newest samples in, before the run reads them

@@ -25,7 +25,12 @@ Device node (:class:`DeviceSync`)::
 
 Zenoh callbacks only check and hand off (:mod:`zplatform.intake`: a size
 check, one tag check, a stamp compare and a counter bump, each constant
-time and bounded); the loop thread does all the work. What a peer without
+time and bounded); the loop thread does all the work. The tag is checked
+once, there: the DN's loop thread gets the very bytes its intake checked
+and only strips the tag (``DeviceLogic.trigger(authentic=True)``), which
+saves a whole frame's MAC on the sync's critical path (tens of
+microseconds for a whole-vector frame with BLAKE3, hundreds with
+HMAC-SHA256: ``python -m bench.frame_trace``). What a peer without
 the key sends is refused there and counted, never queued:
 
 * **A DN answers only the query whose trigger verifies and is newer than
@@ -116,15 +121,26 @@ Device node (:class:`DeviceSync`):
 
 
 class TapPublisher:
-    """A put for taps that costs (almost) nothing when nobody subscribes.
+    """A put that costs (almost) nothing when nobody subscribes.
 
     A matching listener keeps ``matching`` current from zenoh's thread; the
-    loop reads one bool and skips the put when no subscriber matches.
+    loop reads one bool and skips the put when no subscriber matches. That
+    matters for large frames: zenoh-python 1.10 copies a payload into a
+    ``ZBytes`` before zenoh looks for a subscriber, so an unguarded put of a
+    whole 100,000-element vector costs a 325 KB copy for nobody
+    (``python -m bench.frame_trace``, ``tm.put``).
+
+    ``exact``: when the listener says nobody matches, ask zenoh's routing
+    state itself (``matching_status``, under a microsecond) before skipping,
+    so that no put is lost to the listener's lag after a subscriber came
+    (the telemetry a ground logs from loop 1 on). Without it (taps for
+    tools) a put in that lag may be skipped.
     """
 
-    def __init__(self, session: zenoh.Session, key: str) -> None:
+    def __init__(self, session: zenoh.Session, key: str, *, exact: bool = False) -> None:
         self.pub = session.declare_publisher(key, congestion_control=zenoh.CongestionControl.DROP)
         self.matching = is_matching(self.pub)
+        self._exact = exact
         self._listener = self.pub.declare_matching_listener(
             zenoh.handlers.Callback(self._on_matching, indirect=False)
         )
@@ -133,7 +149,8 @@ class TapPublisher:
         self.matching = bool(status.matching)
 
     def put(self, payload: bytes | bytearray) -> None:
-        if self.matching:
+        """Publish ``payload`` if anyone subscribes (never blocks: DROP)."""
+        if self.matching or (self._exact and is_matching(self.pub)):
             self.pub.put(payload)
 
     def undeclare(self) -> None:
@@ -475,6 +492,7 @@ class DeviceSync:
         self._key = keys.dn_to_cn(dn)
         self._err_prefix = f"{dn}: ".encode()
         self.intake = intake
+        self._authentic = intake.authenticates
         box = intake.box
         assert box is not None
         self._box = box
@@ -565,7 +583,8 @@ class DeviceSync:
             trace("serve", 0)
         query, data = item
         with query:
-            reply = logic.trigger(data, self._now(), may_run=may_run)
+            # The intake checked this payload's tag already (module doc).
+            reply = logic.trigger(data, self._now(), may_run=may_run, authentic=self._authentic)
             self.reply = reply
             if reply is None:
                 # "dnX: reason": a wildcard query's error replies carry no key.

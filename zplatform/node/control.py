@@ -69,7 +69,7 @@ from ..recorder.server import RecorderServer
 from ..recording import Recorder
 from ..scheduler import GcGuard, PeriodicLoop
 from ..summary import CnSummary, LoopWork, cn_summary
-from ..sync import ControlSync, ProbeSync, SyncTrace
+from ..sync import ControlSync, ProbeSync, SyncTrace, TapPublisher
 from ..timebase import NodeClock
 from ..transport import NodeSession, wait_for_nodes
 from ..watchdog import Watchdog
@@ -181,9 +181,11 @@ class ControlNode:
         self._gsub: zenoh.Subscriber[Any] | None = None
         if not self.redundant:  # a redundant mission's commander opens it to command
             self._take_requests()
-        self._tm_pub = s.declare_publisher(
-            space.telemetry, congestion_control=zenoh.CongestionControl.DROP
-        )
+        # Telemetry goes out every telemetry_divisor loops, but only to a
+        # subscriber: a whole-vector snapshot nobody takes (a vehicle flying
+        # without its ground, a bench) is not copied into zenoh for nothing.
+        # The flight recorder records it all the same.
+        self._tm_pub = TapPublisher(s, space.telemetry, exact=True)
         # The flight recorder: opened before anything runs, so a directory it
         # cannot use (or one another CN holds) stops the node on the pad.
         self.flight_recorder: FlightRecorder | None = None
