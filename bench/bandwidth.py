@@ -305,9 +305,7 @@ def plot_bandwidth(variants: dict[str, dict[str, Any]], out_dir: Path) -> Path:
         xs = [v["elements"] for v in row]
         axes[0].plot(xs, [v["p99_us"] for v in row], "o-", label=f"{d} DN, {mac}")
         axes[1].plot(xs, [v["cpu_cn_pct"] for v in row], "o-", label=f"CN, {d} DN, {mac}")
-        axes[1].plot(
-            xs, [v["cpu_dn_pct"] for v in row], "s--", label=f"busiest DN, {d} DN, {mac}"
-        )
+        axes[1].plot(xs, [v["cpu_dn_pct"] for v in row], "s--", label=f"busiest DN, {d} DN, {mac}")
     axes[0].axhline(DEADLINE_MS * 1e3, color="r", lw=0.8, ls=":", label="2 ms deadline")
     axes[0].set_ylabel("sync p99 (us)")
     axes[1].set_ylabel("CPU (% of one core)")

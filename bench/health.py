@@ -153,8 +153,13 @@ def main() -> None:
         variants[name] = v
     write_result(
         "health",
-        {"mission": "recovery_igniter", "loop_hz": m.loop_hz, "seconds_per_run": seconds,
-         "rounds": rounds, "warmup_loops": warm},
+        {
+            "mission": "recovery_igniter",
+            "loop_hz": m.loop_hz,
+            "seconds_per_run": seconds,
+            "rounds": rounds,
+            "warmup_loops": warm,
+        },
         variants,
         args.json,
     )

@@ -8,9 +8,7 @@ from zplatform import DataVector, Layout, RegionCodec
 from zplatform.loop import DeviceLogic
 
 
-def run_dn_loop(
-    logic: DeviceLogic, loop: int, t_ns: int, cn: DataVector | None = None
-) -> None:
+def run_dn_loop(logic: DeviceLogic, loop: int, t_ns: int, cn: DataVector | None = None) -> None:
     """One DN loop: the CN's trigger frame for ``loop`` at ``t_ns`` (its
     ``cn_to_dnX`` region from ``cn``, a CN-layout vector; initial values if
     None), then the run."""

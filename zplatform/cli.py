@@ -33,7 +33,6 @@ __all__ = ["main"]
 Handler = Callable[[argparse.Namespace], int]
 
 
-
 def _mission_report(m: Mission) -> dict[str, object]:
     layout = Layout.for_node(m, "cn")
     from .codec import frame_overhead
@@ -76,9 +75,7 @@ def _mission_report(m: Mission) -> dict[str, object]:
         "sync_bytes_per_loop": per_loop,
         "telemetry_bytes_per_loop": per_loop_tm,
         # With a standby, the commander's mirror to it every loop too.
-        "bandwidth_bps": (per_loop + per_loop_tm + (telemetry if m.standby else 0))
-        * 8
-        * m.loop_hz,
+        "bandwidth_bps": (per_loop + per_loop_tm + (telemetry if m.standby else 0)) * 8 * m.loop_hz,
         "standby": (
             {
                 "node": m.standby,
@@ -209,10 +206,7 @@ def _keygen_pki(mission: Mission, where: Path) -> None:
         return
     pki = ensure_mission_pki(mission, where)
     made = f"made {', '.join(pki.made)}" if pki.made else "every certificate was there"
-    print(
-        f"the PKI of its mutual TLS links ({transport_reason(mission)}) is beside it "
-        f"({made}):"
-    )
+    print(f"the PKI of its mutual TLS links ({transport_reason(mission)}) is beside it ({made}):")
     for who, files in host_files(mission):
         print(f"  {' '.join(files):<32} -> {who}")
 

@@ -380,8 +380,7 @@ def cmd_up(args: argparse.Namespace) -> int:
 
     if args.settle is not None and (not args.commands or args.duration is not None):
         raise CommandError(
-            "--settle is how long a run goes on after its script (--commands) without "
-            "--duration"
+            "--settle is how long a run goes on after its script (--commands) without --duration"
         )
     mission = load_mission(args.mission)
     # First use on this host: make the mission's key set (every node finds its

@@ -246,9 +246,7 @@ def build_component(
     except ConfigError as exc:
         raise ConfigError(f"{label}: {exc.reason}", exc.path) from exc
     except Exception as exc:
-        raise ControlError(
-            f"{label} failed to build: {type(exc).__name__}: {exc}", where
-        ) from exc
+        raise ControlError(f"{label} failed to build: {type(exc).__name__}: {exc}", where) from exc
 
 
 def owned_regions(dv: DataVector, node: str) -> tuple[str, ...]:
@@ -351,8 +349,7 @@ class Component(abc.ABC):
         if not isinstance(name, str) or name not in self.dv.layout.elements:
             regions = ", ".join(self.dv.layout.regions)
             raise ConfigError(
-                f"element {name!r} is not in node {self.node}'s Data Vector "
-                f"(regions {regions})",
+                f"element {name!r} is not in node {self.node}'s Data Vector (regions {regions})",
                 where,
             )
         h = self.dv.handle(name)
@@ -366,8 +363,7 @@ class Component(abc.ABC):
             kind = "enum" if spec.enum is not None else spec.scalar.kind
             if kind not in kinds:
                 raise ConfigError(
-                    f"element {name!r} is {spec.type_text}; expected "
-                    f"{' or '.join(kinds)}",
+                    f"element {name!r} is {spec.type_text}; expected {' or '.join(kinds)}",
                     where,
                 )
         return h

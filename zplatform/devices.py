@@ -155,11 +155,11 @@ class DigitalOutput(Actuator):
         ] = None
         invert: Annotated[
             bool,
-            Meta(description="Active low: command and feedback stay in \"on\" terms."),
+            Meta(description='Active low: command and feedback stay in "on" terms.'),
         ] = False
         safe: Annotated[
             bool,
-            Meta(description="The level (in \"on\" terms) a device node that lost its CN leaves."),
+            Meta(description='The level (in "on" terms) a device node that lost its CN leaves.'),
         ] = False
         # The pin fires something that cannot be undone (an igniter): the
         # mission then needs hazardous commands (zplatform.safety).
@@ -249,9 +249,7 @@ class AnalogOutput(Actuator):
         command: Annotated[
             str, Meta(description="Element (float or int) holding the commanded value.")
         ]
-        scale: Annotated[
-            float, Meta(description="Engineering units per volt (not 0).")
-        ] = 1.0
+        scale: Annotated[float, Meta(description="Engineering units per volt (not 0).")] = 1.0
         offset: Annotated[float, Meta(description="Engineering units at 0 V.")] = 0.0
         min_volts: Annotated[float, Meta(description="Lowest voltage driven.")] = -10.0
         max_volts: Annotated[float, Meta(description="Highest voltage driven.")] = 10.0

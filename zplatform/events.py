@@ -275,8 +275,7 @@ class EV:
         75,
         "gap_unfilled",
         Severity.WARNING_LO,
-        "loops {first}..{last}: {n} snapshot(s) not filled from the control node's recorder: "
-        "{why}",
+        "loops {first}..{last}: {n} snapshot(s) not filled from the control node's recorder: {why}",
     )
     # the flight recorder (zplatform.recorder), on the node that records
     RECORDER_DROPPING = EventType(

@@ -323,9 +323,7 @@ class HealthInput:
         block = HealthBlock(dv, node)
         self._a, self._b = block.offset, block.end
         self._stalled = dv.handle(f"{node}_threads_stalled")
-        self._deadline_ms = {
-            n: v / 1e6 for n, v in thread_deadlines_ns(mission).items()
-        }
+        self._deadline_ms = {n: v / 1e6 for n, v in thread_deadlines_ns(mission).items()}
         self._events = events
         self._last = 0
         self.port: HealthPort | None = None

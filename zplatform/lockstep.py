@@ -509,9 +509,7 @@ class LockstepRunner:
             cn.reply(i, reply)
         grounds = (ground,) if ground is not None and reach(c.name, "gn") else ()
         saved = c.saver.poll()
-        tm = cn.finish(
-            grounds, loop_overruns=skipped, saves=(saved,) if saved is not None else ()
-        )
+        tm = cn.finish(grounds, loop_overruns=skipped, saves=(saved,) if saved is not None else ())
         save = cn.params.take_save()
         if save is not None:
             c.saver.submit(*save)
@@ -565,7 +563,6 @@ class LockstepRunner:
             dev = self.devices[i]
             if release is not None and dev.node not in self.lost and self.reach(c.name, dev.node):
                 dev.probe(release, now)
-
 
     def run(self, duration_s: float, *, log: CsvLogger | None = None) -> SimResult:
         """Run ``round(duration_s * loop_hz)`` loops (continuing from any

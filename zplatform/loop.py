@@ -279,8 +279,7 @@ class ControlLogic:
             self._h_ready = dv.handle("cn_standby_ready")
             self._term_dn = tuple(dv.handle(f"{dn}_term") for dn in dns)
             self._seen_at = tuple(
-                dv.layout.element(f"{dn}_term_seen").offset
-                - dv.layout.region(f"{dn}_to_cn").offset
+                dv.layout.element(f"{dn}_term_seen").offset - dv.layout.region(f"{dn}_to_cn").offset
                 for dn in dns
             )
             self._seal_mirror = channel(keys, "mirror")
@@ -709,11 +708,7 @@ class DeviceLogic:
         self.layout = Layout.for_node(mission, node)
         self.dv = dv = DataVector(self.layout)
         self.events = events if events is not None else EventLog(node)
-        self.board: Board = (
-            board
-            if board is not None
-            else node_board(mission, node)
-        )
+        self.board: Board = board if board is not None else node_board(mission, node)
         self.devices = DeviceSet(mission, node, dv, self.board, self.events)
         self.controllers = ControllerSet(mission, node, dv, self.events)
         self._health = (
@@ -1008,6 +1003,7 @@ class DeviceLogic:
                 reason=f"refused as they arrived, unanswered: {ev[0]} of a wrong size, "
                 f"{ev[1]} with bad tags, {ev[2]} replayed (not newer than the last trigger)",
             )
+
     def _not_run(self, stamp_ns: int, now_ns: int, why: object) -> None:
         """An authentic trigger newer than any seen could not run (class doc):
         safe the node once the CN's stamps span the watchdog without a run.

@@ -182,8 +182,7 @@ def _check_response(
             raise ConfigError(f"{m.to!r} is not a state; states: {states}", f"{w}.to")
         if m.states is not None and m.states == [m.to]:
             raise ConfigError(
-                f"the monitor runs only in {m.to!r}, its own target: it could never move "
-                "the state",
+                f"the monitor runs only in {m.to!r}, its own target: it could never move the state",
                 f"{w}.states",
             )
     if m.response == "safe":
@@ -358,8 +357,7 @@ class _Rate(_Monitor):
         lo = None if self.lo == -math.inf else self.lo
         hi = None if self.hi == math.inf else self.hi
         return (
-            f"{self.cfg.element} changes {self.last_rate:g}/s, outside "
-            f"[{_fmt(lo)}, {_fmt(hi)}]/s"
+            f"{self.cfg.element} changes {self.last_rate:g}/s, outside [{_fmt(lo)}, {_fmt(hi)}]/s"
         )
 
 

@@ -173,8 +173,7 @@ def check_config(mission: Mission, *, warn: bool = True) -> None:
                     )
         if warn and not open_in:
             log.warning(
-                "parameter %s can change in no state (none of its states allows PRM_SET) "
-                "- at `%s`",
+                "parameter %s can change in no state (none of its states allows PRM_SET) - at `%s`",
                 p.name,
                 w,
             )

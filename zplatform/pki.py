@@ -306,9 +306,7 @@ def ensure_mission_pki(mission: Mission, directory: str | Path | None = None) ->
         if directory is not None
         else default_deployment_path(mission)
     )
-    made = ensure_pki(
-        path.parent, list(mission.nodes), ca_name=f"zplatform {mission.mission} CA"
-    )
+    made = ensure_pki(path.parent, list(mission.nodes), ca_name=f"zplatform {mission.mission} CA")
     raw = _read_deployment(path)
     nodes = raw.get("nodes")
     return MissionPki(

@@ -139,8 +139,8 @@ _MAX_SAVE_DETAIL = 512  # bytes of a PRM_SAVED item's detail (the recorder trunc
 _MAX_REPLIES_PER_DN = 64
 _MAX_GROUNDS_PER_LOOP = 1024
 
-BEGIN, REPLY, REPLY_ERR, OVERSIZE, GROUND, GROUND_OVERSIZE, TELEMETRY, FINISH, DROPPED = (
-    range(1, 10)
+BEGIN, REPLY, REPLY_ERR, OVERSIZE, GROUND, GROUND_OVERSIZE, TELEMETRY, FINISH, DROPPED = range(
+    1, 10
 )
 PRM_SAVED, HEALTH = 11, 12  # 10 was FOREIGN (version 4 and before)
 
@@ -805,9 +805,7 @@ def _open_regular(dfd: int, name: str, where: str) -> tuple[int, int]:
     file of the directory itself, never a symlink, FIFO or device (opened
     non-blocking, so a FIFO cannot hang the open). Returns (fd, size)."""
     try:
-        fd = os.open(
-            name, os.O_RDONLY | os.O_NOFOLLOW | os.O_NONBLOCK | os.O_CLOEXEC, dir_fd=dfd
-        )
+        fd = os.open(name, os.O_RDONLY | os.O_NOFOLLOW | os.O_NONBLOCK | os.O_CLOEXEC, dir_fd=dfd)
     except OSError as exc:
         if exc.errno == errno.ELOOP:
             raise RecordingError(

@@ -503,9 +503,7 @@ class StateMachine:
         self._h_state = dv.handle("cn_state")
         self._h_tis = dv.handle("cn_time_in_state_ns")
         # A redundant mission mirrors whether a HOLD is in effect (adopt()).
-        self._h_holding = (
-            dv.handle("cn_holding") if "cn_holding" in dv.layout.elements else None
-        )
+        self._h_holding = dv.handle("cn_holding") if "cn_holding" in dv.layout.elements else None
         names = self._h_state.spec.enum
         assert names is not None, "cn_state is an enum"
         self.states: tuple[str, ...] = names
@@ -531,9 +529,7 @@ class StateMachine:
                     target = index[t.to]
                     if t.after_s is not None:
                         why = f"after {_fmt_s(t.after_s)}"
-                        trs.append(
-                            _Transition(target, name, why, after_ns=round(t.after_s * 1e9))
-                        )
+                        trs.append(_Transition(target, name, why, after_ns=round(t.after_s * 1e9)))
                         continue
                     assert t.element is not None and t.op is not None
                     e = table[t.element][1]

@@ -575,9 +575,7 @@ class DeviceSync:
             else:
                 query.reply(self._probe_key, reply)
 
-    def _serve(
-        self, item: tuple[zenoh.Query, bytes], logic: DeviceLogic, *, may_run: bool
-    ) -> None:
+    def _serve(self, item: tuple[zenoh.Query, bytes], logic: DeviceLogic, *, may_run: bool) -> None:
         trace = self._trace
         if trace is not None:
             trace("serve", 0)

@@ -347,8 +347,10 @@ class WorldLink:
             self._latched_ns = now
         elif self._latched_ns is None or now - self._latched_ns > self._stale_ns:
             self.counters.timeouts += 1
-            age = "none yet" if self._latched_ns is None else (
-                f"the newest is {(now - self._latched_ns) / 1e6:.0f} ms old"
+            age = (
+                "none yet"
+                if self._latched_ns is None
+                else (f"the newest is {(now - self._latched_ns) / 1e6:.0f} ms old")
             )
             raise self._fail(f"no inputs from the world at {self.address} ({age})")
         self.counters.consecutive_errors = 0
@@ -580,9 +582,7 @@ def serve(mission: Mission, *, stop: Any = None, ready: Any = None) -> int:
     return bad[0]
 
 
-def _take_outputs(
-    sock: socket.socket, buf: bytearray, peers: list[_Peer], bad: list[int]
-) -> None:
+def _take_outputs(sock: socket.socket, buf: bytearray, peers: list[_Peer], bad: list[int]) -> None:
     """Apply every OUTPUTS datagram waiting on ``sock``; count malformed ones."""
     while True:
         try:

@@ -285,8 +285,14 @@ class Ekf(Controller):
         dt = min(max((t_ns - last) / 1e9, 0.001), 0.1) if last else 0.01
         h, v, b = self._hh.get(), self._hv.get(), self._hb.get()
         p = self._hp.get()
-        p00, p01, p02, p11, p12, p22 = (float(p[0]), float(p[1]), float(p[2]), float(p[3]),
-                                        float(p[4]), float(p[5]))
+        p00, p01, p02, p11, p12, p22 = (
+            float(p[0]),
+            float(p[1]),
+            float(p[2]),
+            float(p[3]),
+            float(p[4]),
+            float(p[5]),
+        )
         if p00 == 0.0 and p11 == 0.0 and p22 == 0.0:  # first run: an honest prior
             p00, p11, p22 = 100.0, 1.0, 1.0
         a = self._accel.get()

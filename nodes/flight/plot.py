@@ -73,16 +73,31 @@ def main(argv: list[str] | None = None) -> None:
     )
     ax.plot(d["t"], d["truth"], label="truth (physics)", lw=2.2, color="0.6")
     ax.plot(d["t"], d["nav"], label="estimate (EKF on the CN)", lw=1.0, color="C0")
-    ax.plot(d["t"], d["target"], ls="--", color="C3", lw=1,
-            label=f"apogee target {d['target'][-1]:g} m")
+    ax.plot(
+        d["t"], d["target"], ls="--", color="C3", lw=1, label=f"apogee target {d['target'][-1]:g} m"
+    )
     for t, state in d["states"]:
         for x in (ax, bx):
             x.axvline(t, color="0.8", lw=0.8, zorder=0)
-        ax.annotate(state, (t, 0), xytext=(2, 4),
-                    textcoords="offset points", rotation=90, fontsize=7, va="bottom")
+        ax.annotate(
+            state,
+            (t, 0),
+            xytext=(2, 4),
+            textcoords="offset points",
+            rotation=90,
+            fontsize=7,
+            va="bottom",
+        )
     for t, chute in d["chutes"]:
-        ax.annotate(f"{chute} out", (t, 0), xytext=(0, 40), textcoords="offset points",
-                    fontsize=8, color="C2", arrowprops={"arrowstyle": "->", "color": "C2"})
+        ax.annotate(
+            f"{chute} out",
+            (t, 0),
+            xytext=(0, 40),
+            textcoords="offset points",
+            fontsize=8,
+            color="C2",
+            arrowprops={"arrowstyle": "->", "color": "C2"},
+        )
     ax.set_ylabel("altitude above the pad (m)")
     ax.set_title("configs/flight.yaml in lockstep: truth vs estimate vs apogee target")
     ax.legend(loc="upper right", fontsize=8)

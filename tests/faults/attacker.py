@@ -177,12 +177,12 @@ def main(argv: list[str] | None = None) -> int:
     rng = random.Random(a.seed)
     lay = Layout.for_node(m, "cn")
     tag = TAG_LEN if m.security.auth else 0
-    trigger_len = frame_overhead(lay.region(f"cn_to_{a.dn}").size) + lay.region(
-        f"cn_to_{a.dn}"
-    ).size + tag
-    reply_len = frame_overhead(lay.region(f"{a.dn}_to_cn").size) + lay.region(
-        f"{a.dn}_to_cn"
-    ).size + tag
+    trigger_len = (
+        frame_overhead(lay.region(f"cn_to_{a.dn}").size) + lay.region(f"cn_to_{a.dn}").size + tag
+    )
+    reply_len = (
+        frame_overhead(lay.region(f"{a.dn}_to_cn").size) + lay.region(f"{a.dn}_to_cn").size + tag
+    )
     session = open_session(zenoh_config(m, None))
     dn_key = keys.dn_to_cn(a.dn)
     tm_len = frame_overhead(lay.size) + lay.size + tag
@@ -203,6 +203,7 @@ def main(argv: list[str] | None = None) -> int:
             cap.close()
             payloads = [cap.frames[-1]] * len(junk)
         payloads = _mix(junk if what != "replay" else [], payloads)
+
         def on_reply(r: zenoh.Reply) -> None:  # what the DN answered (zenoh's own timeouts aside)
             err = r.err
             if r.ok is not None or (err is not None and err.payload.to_bytes() != b"Timeout"):

@@ -409,7 +409,6 @@ def case_floods(
     started: list[Attacker] = []
     try:
         with flight(tmp, realtime=realtime) as c:
-
             flood_s = FLOOD_S if quick else BENCH_FLOOD_S
 
             def attacker(what: str) -> Attacker:

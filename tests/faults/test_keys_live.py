@@ -267,9 +267,7 @@ def test_a_dn_that_cannot_run_safes_and_the_cn_faults(tmp_path: Path) -> None:
         with rogue_clock(c, tagged=False, shifts=((30 * MS, True),)):
             _fly(c)
             c.wait_for(lambda dv: dv.get_name("cn_fault") != "NONE", 60, "a fault")
-            c.wait_for(
-                lambda dv: dv.get_name("cn_state") == "ABORTED", 30, "ABORTED after LAUNCH"
-            )
+            c.wait_for(lambda dv: dv.get_name("cn_state") == "ABORTED", 30, "ABORTED after LAUNCH")
         tm = c.tm
         assert tm.get_name("cn_fault") == "DN_SAFED"
         safed = [dn for dn in ("dn0", "dn1") if tm.get_name(f"{dn}_safed_why") == "CANNOT_RUN"]
@@ -277,4 +275,3 @@ def test_a_dn_that_cannot_run_safes_and_the_cn_faults(tmp_path: Path) -> None:
         assert tm.get("igniter_fired") is False
         log = "".join(c.log(dn) for dn in safed)
         assert "none could run" in log and "clock off" in log
-

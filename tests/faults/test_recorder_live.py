@@ -110,8 +110,7 @@ def test_ground_fills_a_5s_link_cut_from_the_cn_recorder(
     on_board = [n for n in recorded_loops(cn_dir) if loops[0] <= n <= loops[-1]]
     holes = sorted(set(on_board) - set(loops))
     assert loops == on_board, (
-        f"the ground log differs from the CN's loops: missing {holes[:20]}"
-        f"\n{c.log('gn')[-3000:]}"
+        f"the ground log differs from the CN's loops: missing {holes[:20]}\n{c.log('gn')[-3000:]}"
     )
     assert loops[-1] > healed_at + 100
     gn_log = c.log("gn")

@@ -138,8 +138,10 @@ async def _big_screen(c: Cluster) -> None:
         await pilot.press("y")
         await _until(
             pilot,
-            lambda: "PRM_SET #4: ACCEPTED (deploy_altitude_m = 300.0, was 250.0)"
-            in _text(app, "#events-text"),
+            lambda: (
+                "PRM_SET #4: ACCEPTED (deploy_altitude_m = 300.0, was 250.0)"
+                in _text(app, "#events-text")
+            ),
             "the PRM_SET's verdict",
         )
         await _until(pilot, lambda: " 300 " in _text(app, "#params-table"), "the new value")

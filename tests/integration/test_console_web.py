@@ -174,7 +174,10 @@ def test_no_console_without_the_token_right_host_and_same_origin(served: Served)
             cookie = await _session(http, s)
             with_cookie = {"Cookie": f"{COOKIE}={cookie}"}
             for origin, why in (
-                ({"Origin": "http://evil.example"}, "cross-origin request from 'http://evil.example'"),
+                (
+                    {"Origin": "http://evil.example"},
+                    "cross-origin request from 'http://evil.example'",
+                ),
                 ({}, "without an Origin"),
             ):
                 async with http.get(s.ws_url, headers=_upgrade({**with_cookie, **origin})) as r:

@@ -22,8 +22,18 @@ pytestmark = pytest.mark.timeout(120)
 def _record(mission: Path, out: Path, *extra: str) -> subprocess.CompletedProcess[str]:
     """`zplatform ccsds MISSION --record OUT` for 1.5 s."""
     return subprocess.run(
-        [sys.executable, "-m", "zplatform", "ccsds", str(mission), "--record", str(out),
-         "--duration", "1.5", *extra],
+        [
+            sys.executable,
+            "-m",
+            "zplatform",
+            "ccsds",
+            str(mission),
+            "--record",
+            str(out),
+            "--duration",
+            "1.5",
+            *extra,
+        ],
         cwd=ROOT,
         capture_output=True,
         text=True,
@@ -59,9 +69,7 @@ def test_the_control_node_sends_its_own_radio_downlink(tmp_path: Path) -> None:
     the ground records the packets and decodes them to the same values the
     telemetry carried."""
     src = tmp_path / "radio.yaml"
-    src.write_text(
-        (CONFIGS / "minimal.yaml").read_text() + "downlink: {ccsds: true, divisor: 5}\n"
-    )
+    src.write_text((CONFIGS / "minimal.yaml").read_text() + "downlink: {ccsds: true, divisor: 5}\n")
     with Cluster(src, tmp_path) as c:
         c.spawn("dn0")
         c.spawn("cn")

@@ -52,14 +52,19 @@ def _mission(tmp: Path, *, monitors: list[dict[str, Any]], **health: Any) -> Pat
                 },
             },
         },
-        "regions": {"cn": [{"name": "beat", "type": "u32"}], "dn0_to_cn": [
-            {"name": "dn0_x", "type": "f32"}]},
+        "regions": {
+            "cn": [{"name": "beat", "type": "u32"}],
+            "dn0_to_cn": [{"name": "dn0_x", "type": "f32"}],
+        },
         "health": {"rate_hz": HEALTH_HZ, "deadlines_ms": {"board": BOARD_DEADLINE_MS}, **health},
         "state_machine": {
             "initial": "RUN",
             "states": {
-                "RUN": {"transitions": [
-                    {"element": "cn_fault", "op": "!=", "value": "NONE", "to": "FAULTED"}]},
+                "RUN": {
+                    "transitions": [
+                        {"element": "cn_fault", "op": "!=", "value": "NONE", "to": "FAULTED"}
+                    ]
+                },
                 "HOT": {},
                 "FAULTED": {},
             },
@@ -127,13 +132,18 @@ def test_a_hung_thread_is_named_its_monitor_responds_and_its_watchdog_stops(
     path = _mission(
         tmp_path,
         monitors=[
-            {"name": "dn0_threads", "element": "dn0_threads_stalled", "kind": "limit", "hi": 0,
-             "response": "fault", "fault": "THREAD_STALLED"},
+            {
+                "name": "dn0_threads",
+                "element": "dn0_threads_stalled",
+                "kind": "limit",
+                "hi": 0,
+                "response": "fault",
+                "fault": "THREAD_STALLED",
+            },
         ],
     )
     raw = yaml.safe_load(path.read_text())
-    raw["nodes"]["dn0"]["watchdog"] = {"kind": "device", "device": str(wd_file),
-                                       "interval_ms": 50}
+    raw["nodes"]["dn0"]["watchdog"] = {"kind": "device", "device": str(wd_file), "interval_ms": 50}
     raw["nodes"]["cn"]["watchdog"] = {"kind": "systemd", "interval_ms": 50}
     path.write_text(yaml.safe_dump(raw, sort_keys=False))
     with notify, Cluster(path, tmp_path) as c:
@@ -159,8 +169,7 @@ def test_a_hung_thread_is_named_its_monitor_responds_and_its_watchdog_stops(
             )
             e = q.wait("dn0", "thread_stalled")
             assert e.text == (
-                f"dn0: thread board has not checked in within its deadline "
-                f"({BOARD_DEADLINE_MS} ms)"
+                f"dn0: thread board has not checked in within its deadline ({BOARD_DEADLINE_MS} ms)"
             )
             # The monitor's response: THREAD_STALLED latched, the state machine answers.
             c.wait_for(lambda dv: dv.get_name("cn_state") == "FAULTED", 30, "FAULTED")
@@ -183,17 +192,23 @@ def test_a_hung_thread_is_named_its_monitor_responds_and_its_watchdog_stops(
 
 
 def _hogs(n: int) -> list[subprocess.Popen[bytes]]:
-    return [
-        subprocess.Popen([sys.executable, "-c", "while True: pass"]) for _ in range(n)
-    ]
+    return [subprocess.Popen([sys.executable, "-c", "while True: pass"]) for _ in range(n)]
 
 
 def test_a_cpu_hog_beside_the_nodes_raises_its_monitor(tmp_path: Path) -> None:
     path = _mission(
         tmp_path,
         monitors=[
-            {"name": "hog", "element": "dn0_sys_cpu_pct", "kind": "limit", "hi": 90,
-             "persistence": 2, "response": "transition", "to": "HOT", "states": ["RUN"]},
+            {
+                "name": "hog",
+                "element": "dn0_sys_cpu_pct",
+                "kind": "limit",
+                "hi": 90,
+                "persistence": 2,
+                "response": "transition",
+                "to": "HOT",
+                "states": ["RUN"],
+            },
         ],
     )
     hogs: list[subprocess.Popen[bytes]] = []
@@ -223,7 +238,8 @@ def _tmpfs(where: Path, size: str) -> Iterator[Path]:
         pytest.skip("mounting a tmpfs needs root and mount(8)")
     r = subprocess.run(
         ["mount", "-t", "tmpfs", "-o", f"size={size}", "tmpfs", str(where)],
-        capture_output=True, text=True,
+        capture_output=True,
+        text=True,
     )
     if r.returncode != 0:
         pytest.skip(f"cannot mount a tmpfs here: {r.stderr.strip()}")
@@ -240,8 +256,13 @@ def test_a_full_disk_raises_its_monitor(tmp_path: Path) -> None:
             disk_path=str(disk),
             limits={"disk_free_mb": {"yellow": [4, None], "red": [1, None]}},
             monitors=[
-                {"name": "disk", "element": "dn0_disk_free_mb", "kind": "limit",
-                 "band": "red", "response": "fault"},
+                {
+                    "name": "disk",
+                    "element": "dn0_disk_free_mb",
+                    "kind": "limit",
+                    "band": "red",
+                    "response": "fault",
+                },
             ],
         )
         with Cluster(path, tmp_path) as c:

@@ -81,7 +81,8 @@ def test_camera_frames_go_through_shared_memory_between_processes(tmp_path: Path
     # the two sides agree up to the frames in flight between them; a reader
     # that lost or double-counted frames would drift without bound.
     fresh = next(
-        b for a, b in zip(rows[-2::-1], rows[::-1], strict=False)
+        b
+        for a, b in zip(rows[-2::-1], rows[::-1], strict=False)
         if int(b["cn_rx_dn0"]) > int(a["cn_rx_dn0"])
     )
     published = int(fresh["bulk_frame_published"])

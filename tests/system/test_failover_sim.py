@@ -234,13 +234,6 @@ def test_a_primary_cut_off_from_everyone_stands_down_when_it_heals(nominal: Flow
     assert loop >= 1200 + 200
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="product bug: a standby cut off from the commander's mirrors takes command, when the "
-    "device nodes grant it (the commander stalled past the lease), from the last mirror it holds, "
-    "however old (zplatform/failover.py Standby.decide/take); seen live too "
-    "(tests/faults/test_failover_live.py)",
-)
 def test_a_standby_cut_off_from_the_mirrors_never_takes_command_from_a_stale_one(
     nominal: Flown,
 ) -> None:

@@ -152,9 +152,7 @@ def test_a_plain_mission_uses_no_deployment(with_deployment: Path) -> None:
     assert not m.mtls and require_deployment(m) is None
 
 
-def test_a_host_holds_only_its_own_key_and_it_must_be_private(
-    pki: Path, tmp_path: Path
-) -> None:
+def test_a_host_holds_only_its_own_key_and_it_must_be_private(pki: Path, tmp_path: Path) -> None:
     """The deployment names every node; a session checks the files of the
     identity it presents, and refuses a private key others can read."""
     for f in ("ca.pem", "deployment.yaml", "dn0.pem", "dn0.tls.key"):
@@ -339,9 +337,10 @@ def _endpoints(text: str) -> list[str]:
 def test_hazardous_commands_run_mutual_tls_by_default() -> None:
     m = decode_mission(HAZARDOUS)
     assert m.security.transport == "auto" and m.mtls
-    assert _endpoints(HAZARDOUS) == ["tls/10.0.0.1:7447", "tls/10.0.0.2:7447"] + [
-        "tls/10.0.0.1:7447"
-    ] * 2
+    assert (
+        _endpoints(HAZARDOUS)
+        == ["tls/10.0.0.1:7447", "tls/10.0.0.2:7447"] + ["tls/10.0.0.1:7447"] * 2
+    )
     # Without hazardous commands auto is plain; mtls and plain say so outright.
     no_hazard = HAZARDOUS.replace("commands:\n  hazardous: [LAUNCH]\n", "")
     assert not decode_mission(no_hazard).mtls and _endpoints(no_hazard)[0].startswith("tcp/")

@@ -89,9 +89,7 @@ def test_the_shipped_flight_missions_opt_in() -> None:
 
 
 def test_health_elements_have_limits_readings_start_as_nan(tmp_path: Path) -> None:
-    m = load_mission(
-        _with_health(MINIMAL, tmp_path, {"limits": {"cpu_pct": {"red": [None, 50]}}})
-    )
+    m = load_mission(_with_health(MINIMAL, tmp_path, {"limits": {"cpu_pct": {"red": [None, 50]}}}))
     cpu = m.element("dn0_cpu_pct")[1]
     assert cpu.limits is not None
     assert list(cpu.limits.red or ()) == [None, 50]  # the mission's band
@@ -117,9 +115,7 @@ def test_health_elements_have_limits_readings_start_as_nan(tmp_path: Path) -> No
         ({"rate": 2}, "$.health", "rate"),
     ],
 )
-def test_a_bad_health_section_names_its_path(
-    health: dict[str, Any], path: str, words: str
-) -> None:
+def test_a_bad_health_section_names_its_path(health: dict[str, Any], path: str, words: str) -> None:
     raw = yaml.safe_load(MINIMAL.read_text())
     raw["health"] = health
     with pytest.raises(ConfigError) as ei:
@@ -326,9 +322,7 @@ def test_an_injected_stall_in_lockstep_is_named_and_its_monitor_responds() -> No
         dn0.stall("board")
         stall_loop = r.loop
         res = r.run(2.0)
-        aborted = next(
-            e.t_ns for e in res.events if e.id == "state_change" and "ABORTED" in e.text
-        )
+        aborted = next(e.t_ns for e in res.events if e.id == "state_change" and "ABORTED" in e.text)
         key = [(e.t_ns, e.node, e.text) for e in res.events if e.t_ns > r.start_ns + 20 * 10**7]
         return res.states, key, (aborted - r.start_ns) // m.period_ns + 1 - stall_loop
 

@@ -78,9 +78,7 @@ def test_a_ground_key_set_cannot_fire_an_igniter() -> None:
     boards = {dn: SimBoard({"digital_pins": 2, "analog_pins": 2}) for dn in ("dn0", "dn1")}
     for b in boards.values():
         b.inject_analog(0, 150.0 / 200.0)  # the barometer's pin: 200 m per volt
-    dns = [
-        DeviceLogic(IGN, dn, keys=k, board=boards[dn]) for dn, k in (("dn0", DN0), ("dn1", DN1))
-    ]
+    dns = [DeviceLogic(IGN, dn, keys=k, board=boards[dn]) for dn, k in (("dn0", DN0), ("dn1", DN1))]
     loop = 0
 
     def real_loop() -> None:

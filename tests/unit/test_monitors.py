@@ -172,8 +172,15 @@ def test_fault_response_latches_in_the_loop_it_trips() -> None:
 
 def test_transition_response_moves_the_state_in_the_same_loop() -> None:
     r = Rig(
-        {"name": "go_b", "element": "x", "kind": "limit", "hi": 1, "response": "transition",
-         "to": "B", "states": ["A"]}
+        {
+            "name": "go_b",
+            "element": "x",
+            "kind": "limit",
+            "hi": 1,
+            "response": "transition",
+            "to": "B",
+            "states": ["A"],
+        }
     )
     ev = r.step(x=2.0)
     assert ev == [
@@ -216,8 +223,14 @@ def test_a_requested_transition_comes_after_abort_and_before_the_states_others()
 
 def test_safe_response_safes_the_controller_before_it_runs() -> None:
     r = Rig(
-        {"name": "cut", "element": "flag", "kind": "stale", "unchanged_loops": 2,
-         "response": "safe", "controller": "ctl"}
+        {
+            "name": "cut",
+            "element": "flag",
+            "kind": "stale",
+            "unchanged_loops": 2,
+            "response": "safe",
+            "controller": "ctl",
+        }
     )
     ran: list[str] = []
     ctl = r.cn.controllers.controllers[0]
@@ -264,29 +277,44 @@ GOOD = {"name": "m", "element": "x", "kind": "limit", "hi": 1}
         ({**GOOD, "kind": "fast"}, "$.monitors[0].kind", "Invalid enum value 'fast'"),
         ({**GOOD, "unchanged_loops": 3}, "$.monitors[0].unchanged_loops", "does not apply"),
         ({**GOOD, "band": "red"}, "$.monitors[0].band", "not both"),
-        ({"name": "m", "element": "n", "kind": "limit", "band": "red"}, "$.monitors[0].band",
-         "no red limits"),
+        (
+            {"name": "m", "element": "n", "kind": "limit", "band": "red"},
+            "$.monitors[0].band",
+            "no red limits",
+        ),
         ({"name": "m", "element": "x", "kind": "limit"}, "$.monitors[0]", "needs `lo`"),
         ({**GOOD, "lo": 2}, "$.monitors[0].lo", "above hi"),
         ({**GOOD, "hi": float("nan")}, "$.monitors[0].hi", "nan compares"),
         ({"name": "m", "element": "x", "kind": "stale"}, "$.monitors[0]", "exactly one"),
-        ({"name": "m", "element": "x", "kind": "stale", "max_age_ms": 5},
-         "$.monitors[0].element", "integer time stamp"),
+        (
+            {"name": "m", "element": "x", "kind": "stale", "max_age_ms": 5},
+            "$.monitors[0].element",
+            "integer time stamp",
+        ),
         ({"name": "m", "element": "x", "kind": "rate"}, "$.monitors[0]", "per second"),
         ({**GOOD, "window_loops": 3}, "$.monitors[0].window_loops", "rate monitors"),
         ({**GOOD, "persistence": 0}, "$.monitors[0].persistence", ">= 1"),
         ({**GOOD, "states": ["A", "Z"]}, "$.monitors[0].states[1]", "'Z' is not a state"),
         ({**GOOD, "response": "transition"}, "$.monitors[0]", "needs `to`"),
         ({**GOOD, "response": "transition", "to": "Q"}, "$.monitors[0].to", "not a state"),
-        ({**GOOD, "response": "transition", "to": "B", "states": ["B"]},
-         "$.monitors[0].states", "its own target"),
+        (
+            {**GOOD, "response": "transition", "to": "B", "states": ["B"]},
+            "$.monitors[0].states",
+            "its own target",
+        ),
         ({**GOOD, "response": "safe"}, "$.monitors[0]", "needs `controller`"),
-        ({**GOOD, "response": "safe", "controller": "nope"}, "$.monitors[0].controller",
-         "no controller named"),
+        (
+            {**GOOD, "response": "safe", "controller": "nope"},
+            "$.monitors[0].controller",
+            "no controller named",
+        ),
         ({**GOOD, "response": "fault", "fault": "NONE"}, "$.monitors[0].fault", "not a fault"),
         ({**GOOD, "to": "B"}, "$.monitors[0].to", "does not apply to response 'event'"),
-        ({**GOOD, "response": "fault", "controller": "ctl"}, "$.monitors[0].controller",
-         "does not apply"),
+        (
+            {**GOOD, "response": "fault", "controller": "ctl"},
+            "$.monitors[0].controller",
+            "does not apply",
+        ),
     ],
 )
 def test_a_bad_monitor_names_its_path(monitor: dict[str, Any], path: str, words: str) -> None:

@@ -295,8 +295,10 @@ FINISH = (8, 0, bytes(_FINISH.size))
         (_items(BEGIN, (11, 0, b"s" * 600)), "PRM_SAVED of 600 bytes (at most 521 "),
         # A refusal's status the loop would have to name (hypothesis found it:
         # a ValueError out of the control loop's refusal event, not this error).
-        (_items(BEGIN, (8, 0, bytes(_FINISH.size - 9) + b"\x0c" + bytes(8))),
-         "loop 1: FINISH with command status 12 (at most 11)"),
+        (
+            _items(BEGIN, (8, 0, bytes(_FINISH.size - 9) + b"\x0c" + bytes(8))),
+            "loop 1: FINISH with command status 12 (at most 11)",
+        ),
     ],
 )
 def test_malformed_items_end_in_one_recording_error(

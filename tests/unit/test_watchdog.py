@@ -117,9 +117,7 @@ def test_a_fifo_reader_sees_the_strokes_stop(tmp_path: Path) -> None:
 def test_only_the_watched_threads_count(tmp_path: Path) -> None:
     dev = tmp_path / "watchdog"
     dev.touch()
-    wd, clock, loop, _, _ = _rig(
-        WatchdogConfig(kind="device", device=str(dev), threads=["loop"])
-    )
+    wd, clock, loop, _, _ = _rig(WatchdogConfig(kind="device", device=str(dev), threads=["loop"]))
     wd.open()
     _run(wd, clock, loop, 2000)  # the board is stalled, but not watched
     assert wd.strokes == 20 and not wd.withheld
@@ -209,8 +207,12 @@ BASE: dict[str, Any] = {
 @pytest.mark.parametrize(
     ("node", "wd", "path", "words"),
     [
-        ("dn0", {"kind": "device", "threads": ["loop", "lopo"]},
-         "$.nodes.dn0.watchdog.threads[1]", "no thread named 'lopo'"),
+        (
+            "dn0",
+            {"kind": "device", "threads": ["loop", "lopo"]},
+            "$.nodes.dn0.watchdog.threads[1]",
+            "no thread named 'lopo'",
+        ),
         ("dn0", {"kind": "device", "device": ""}, "$.nodes.dn0.watchdog.device", "device path"),
         ("gn", {"kind": "systemd"}, "$.nodes.gn.watchdog", "ground node"),
         ("cn", {"kind": "hw"}, "$.nodes.cn.watchdog.kind", "Invalid enum value"),

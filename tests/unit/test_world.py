@@ -123,14 +123,23 @@ def test_lockstep_runs_the_world_in_process() -> None:
     ("text", "path", "match"),
     [
         (mission_text().replace("world:", "wurld:", 1), "$", "wurld"),
-        (mission_text(port=0).replace("127.0.0.1:0", "10.0.0.1:7499"), "$.world.listen",
-         "loopback"),
+        (
+            mission_text(port=0).replace("127.0.0.1:0", "10.0.0.1:7499"),
+            "$.world.listen",
+            "loopback",
+        ),
         (mission_text().replace(f"{HERE}:lamp", "os:getcwd"), "$.world.physics", "signature"),
-        (mission_text().replace("dn1: {digital_pins", "dn7: {digital_pins"), "$.world.boards.dn7",
-         "not a device node"),
+        (
+            mission_text().replace("dn1: {digital_pins", "dn7: {digital_pins"),
+            "$.world.boards.dn7",
+            "not a device node",
+        ),
         (mission_text(board="{driver: world, port: x}"), "$.nodes.dn0.board.port", "no other"),
-        (mission_text(world="  serve_serial: {dn0: /tmp/x}"), "$.world.serve_serial.dn0",
-         "driver: serial"),
+        (
+            mission_text(world="  serve_serial: {dn0: /tmp/x}"),
+            "$.world.serve_serial.dn0",
+            "driver: serial",
+        ),
     ],
 )
 def test_bad_worlds_are_refused_with_their_path(text: str, path: str, match: str) -> None:

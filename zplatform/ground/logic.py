@@ -445,9 +445,10 @@ class GroundLogic:
             self._follow(epoch, seq, rx_ns)
             if self._term_at is not None:
                 self._term = _U32.unpack_from(frame.data, self._term_at)[0]
-        elif self._term_at is not None and (
-            term := _U32.unpack_from(frame.data, self._term_at)[0]
-        ) != self._term:
+        elif (
+            self._term_at is not None
+            and (term := _U32.unpack_from(frame.data, self._term_at)[0]) != self._term
+        ):
             if term < self._term:
                 return self._refuse(
                     "old_term",

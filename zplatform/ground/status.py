@@ -73,10 +73,7 @@ def status_line(
     )
     if mission.standby is not None:  # who commands, in which term, and the standby
         ready = "standby ready" if dv.get("cn_standby_ready") else "NO STANDBY"
-        line += (
-            f"  {dv.get_name('cn_commander')} commands (term {int(dv.get('cn_term'))}, "
-            f"{ready})"
-        )
+        line += f"  {dv.get_name('cn_commander')} commands (term {int(dv.get('cn_term'))}, {ready})"
     if watch:
         line += "  " + " ".join(f"{n}={_value(dv, n)}" for n in watch)
     return line

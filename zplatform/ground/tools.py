@@ -159,7 +159,9 @@ def list_params(
     else:
         why = f"cannot read {path}: {data.strerror}"
     return ParamListing(
-        mission.mission, f"not running; {why}: it starts at the defaults", False,
+        mission.mission,
+        f"not running; {why}: it starts at the defaults",
+        False,
         param_rows(mission, None),
     )
 

@@ -141,9 +141,7 @@ class DeviceNode:
         try:
             # Whichever control node runs (a redundant mission's standby may
             # command by the time this node starts); the commander serves the clock.
-            wait_for_nodes(
-                s, keys, m.control_nodes, ready_timeout_s, self.stop.event, any_of=True
-            )
+            wait_for_nodes(s, keys, m.control_nodes, ready_timeout_s, self.stop.event, any_of=True)
             est = self._estimate_by(deadline, m.clock.exchanges)
         except (TransportError, ClockSyncError) as exc:
             raise NodeError(f"{self.name} cannot start: {exc}") from exc
