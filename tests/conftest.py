@@ -42,10 +42,12 @@ from __future__ import annotations
 
 import atexit
 import os
+import pathlib
 import secrets
 import shutil
 import tempfile
 
+import pytest
 from hypothesis import settings
 
 os.environ.setdefault("ZPLATFORM_KEY", secrets.token_hex(32))
@@ -74,3 +76,32 @@ _PYCACHE = tempfile.mkdtemp(prefix="zplatform-test-pycache-")
 os.environ.pop("PYTHONDONTWRITEBYTECODE", None)
 os.environ["PYTHONPYCACHEPREFIX"] = _PYCACHE
 atexit.register(shutil.rmtree, _PYCACHE, True)
+
+
+# Tests that run node processes in real time (loops at 100 Hz, zenoh
+# sessions, network namespaces) run one after another, on one worker, when
+# the suite runs on several (scripts/test.sh: pytest-xdist, --dist
+# loadgroup); the in-process tests (unit, property, lockstep) fill the other.
+# Two live missions at once would be a second busy box for each other's
+# deadlines: the live tests are built to pass beside a CPU hog, not beside
+# each other by design, and the namespaces and relays they make are named
+# per test run, not per worker.
+_IN_PROCESS_SYSTEM = {"test_failover_sim.py", "test_flight.py", "test_lockstep_missions.py"}
+_LIVE_UNIT = {("unit", "test_world.py")}
+
+
+def _runs_live(path: pathlib.Path) -> bool:
+    kind = path.parent.name
+    if kind in {"faults", "integration"}:
+        return True
+    if kind == "system":
+        return path.name not in _IN_PROCESS_SYSTEM
+    return (kind, path.name) in _LIVE_UNIT
+
+
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    if not config.pluginmanager.hasplugin("xdist"):
+        return
+    for item in items:
+        if _runs_live(item.path):
+            item.add_marker(pytest.mark.xdist_group("live"))

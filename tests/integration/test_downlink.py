@@ -84,7 +84,10 @@ def test_the_control_node_sends_its_own_radio_downlink(tmp_path: Path) -> None:
     assert len(rows) > 5  # of ~30 in 1.5 s: enough steps to see the divisor
     loops = [int(x["cn_loop"]) for x in rows]
     steps = [b - a for a, b in pairwise(loops)]
-    assert all(s % 5 == 0 for s in steps), steps  # decimated on the vehicle
+    # Decimated on the vehicle: one snapshot in every 5 the CN offers it. A
+    # loop the CN skipped (an overrun on a busy host) is no snapshot, so a
+    # step may be longer than 5 loops, never shorter.
+    assert min(steps) >= 5, steps
     # A packet lost on the way (DROP, a busy box) is a longer step, no more.
     assert sum(s == 5 for s in steps) >= LINK_ALIVE * len(steps), steps
     assert all(int(x["heartbeat"]) >= 0 and x["cn_state"] == "IDLE" for x in rows)
