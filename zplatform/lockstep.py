@@ -54,6 +54,7 @@ from .boards import Board
 from .codec import BundleEncoder, RegionCodec
 from .config import BulkChannelConfig, Mission
 from .datavector import DataVector, Layout
+from .errors import RecordingError, ZPlatformError
 from .events import Event
 from .failover import Decision, MirrorReader, Standby
 from .ground.logic import GroundLogic
@@ -702,7 +703,6 @@ def replay(
     missing key; a difference is a result, not an error.
     """
     from .auth import load_keys
-    from .errors import RecordingError
     from .mission import load_mission
 
     mission = load_mission(mission_file)
@@ -723,8 +723,16 @@ def _replay(
     cn.dv.write_all(reader.initial)  # epoch included
     # A recording that starts mid-run (a standby that took command, a control
     # node that resumed after a restart): every component takes up its state
-    # from that vector, as the recording node did.
-    cn.adopt()
+    # from that vector, as the recording node did. The recording is not
+    # trusted (a damaged file, a crafted one): a vector no control node of
+    # this mission could have written is its error, never a crash.
+    try:
+        cn.adopt()
+    except (ZPlatformError, IndexError, ValueError, OverflowError) as exc:
+        raise RecordingError(
+            f"the recording's first vector cannot be taken up by this mission's control "
+            f"node: {exc}"
+        ) from exc
     recorded = _RecordedHealth()
     if mission.health is not None:  # the recorded blocks, on the recorded loops
         cn.attach_health(recorded)

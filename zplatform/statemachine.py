@@ -57,7 +57,7 @@ from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
 from .config import CMD_NAMES, element_spec, platform_elements
-from .errors import ConfigError
+from .errors import ConfigError, StateMachineError
 from .events import EV, EventLog
 from .types import ScalarType
 
@@ -642,9 +642,19 @@ class StateMachine:
         (``cn_state``, ``cn_time_in_state_ns``, ``cn_holding``): the next
         step continues exactly as the step that wrote it would have
         (:meth:`zplatform.loop.ControlLogic.adopt`). Timed actions already
-        due at that time in state count as done."""
-        self._state = self._h_state.get()
+        due at that time in state count as done.
+
+        Raises StateMachineError (nothing taken up) when the vector names no
+        state of this machine or a negative time in state: a vector no
+        control node of this mission wrote (a damaged recording)."""
+        state = int(self._h_state.get())
         tis = int(self._h_tis.get())
+        if not 0 <= state < len(self.states) or tis < 0:
+            raise StateMachineError(
+                f"cannot take up state {state} after {tis} ns in it: this machine has "
+                f"{len(self.states)} states ({', '.join(self.states)})"
+            )
+        self._state = state
         self._started = True
         self._entered_ns = t_ns - tis
         self._held_ns = 0

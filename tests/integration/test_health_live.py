@@ -14,6 +14,7 @@ from __future__ import annotations
 import contextlib
 import os
 import queue
+import re
 import shutil
 import socket
 import subprocess
@@ -79,9 +80,14 @@ def _mission(tmp: Path, *, monitors: list[dict[str, Any]], **health: Any) -> Pat
 class _Events:
     """Every event of the mission's nodes from now on (a subscription of the
     test's session), kept in arrival order; each record's tag is checked
-    with the tool's keys (a record that does not verify fails the test)."""
+    with the tool's keys (a record that does not verify fails the test).
+
+    Events go out with congestion control DROP (a stalled subscriber never
+    blocks a node's loop), so on a starved host one may never arrive; every
+    event is also in its node's own log, which :meth:`wait` reads too."""
 
     def __init__(self, c: Cluster) -> None:
+        self._c = c
         self._q: queue.SimpleQueue[tuple[str, bytes]] = queue.SimpleQueue()
         self._reader = EventReader(c.mission, load_keys(c.mission, "tool"))
         self.seen: list[Event] = []
@@ -90,16 +96,23 @@ class _Events:
             lambda s: self._q.put((str(s.key_expr), s.payload.to_bytes())),
         )
 
-    def wait(self, node: str, id_: str, timeout_s: float = 30) -> Event:
-        """The first event ``id_`` of ``node`` (already seen, or the next to come)."""
+    def wait(self, node: str, id_: str, timeout_s: float = 30) -> str:
+        """The text of the first event ``id_`` of ``node`` (already seen, or
+        the next to come), received or in the node's log."""
         deadline = time.monotonic() + timeout_s
+        logged = re.compile(rf" {re.escape(node)} {re.escape(id_)}: (.*)$", re.M)
         while True:
             for e in self.seen:
                 if e.node == node and e.id == id_:
-                    return e
+                    return e.text
+            m = logged.search(self._c.log(node))
+            if m:
+                return m[1]
             try:
-                key, raw = self._q.get(timeout=max(0.0, deadline - time.monotonic()))
+                key, raw = self._q.get(timeout=min(0.2, max(0.0, deadline - time.monotonic())))
             except queue.Empty:
+                if time.monotonic() < deadline:
+                    continue
                 texts = [f"{e.node} {e.id}: {e.text}" for e in self.seen]
                 raise AssertionError(f"no {id_} event from {node}; saw {texts}") from None
             e, verified = self._reader.read(key, raw)
@@ -167,15 +180,15 @@ def test_a_hung_thread_is_named_its_monitor_responds_and_its_watchdog_stops(
                 30,
                 "dn0's board thread named stalled",
             )
-            e = q.wait("dn0", "thread_stalled")
-            assert e.text == (
+            text = q.wait("dn0", "thread_stalled")
+            assert text == (
                 f"dn0: thread board has not checked in within its deadline ({BOARD_DEADLINE_MS} ms)"
             )
             # The monitor's response: THREAD_STALLED latched, the state machine answers.
             c.wait_for(lambda dv: dv.get_name("cn_state") == "FAULTED", 30, "FAULTED")
             assert c.tm.get_name("cn_fault") == "THREAD_STALLED"
-            e = q.wait("dn0", "watchdog_withheld")
-            assert "thread(s) board stalled" in e.text
+            text = q.wait("dn0", "watchdog_withheld")
+            assert "thread(s) board stalled" in text
         finally:
             q.close()
         # No stroke since: the hardware would reset dn0's host.
@@ -220,10 +233,10 @@ def test_a_cpu_hog_beside_the_nodes_raises_its_monitor(tmp_path: Path) -> None:
             q = _Events(c)
             hogs = _hogs(os.cpu_count() or 2)  # every core busy
             c.wait_for(lambda dv: dv.get_name("cn_state") == "HOT", 60, "the hog monitor")
-            e = q.wait("cn", "monitor_tripped")
+            text = q.wait("cn", "monitor_tripped")
             q.close()
-            assert e.text.startswith("monitor hog: dn0_sys_cpu_pct = ")
-            assert e.text.endswith("for 2 loops; transition to HOT requested")
+            assert text.startswith("monitor hog: dn0_sys_cpu_pct = ")
+            assert text.endswith("for 2 loops; transition to HOT requested")
             assert float(c.tm.get("dn0_sys_cpu_pct")) > 90
         finally:
             for h in hogs:

@@ -1,5 +1,5 @@
 """The flight mission live (issue 19): ``zplatform up`` of the flight and of its
-hardware-in-the-loop twin, side by side, each against the lockstep run of
+hardware-in-the-loop twin, each against the lockstep run of
 the same file and script (the sim-equals-live rule).
 
 The hardware-in-the-loop run has dn0's IMU, barometer, motor igniter and
@@ -7,8 +7,9 @@ chute switches behind the real :class:`~zplatform.boards.SerialBoard`,
 talking the serial protocol over a pty to the world process, which plays
 the board's firmware with the physics behind its pins.
 
-The whole flights (two at once, about a minute) run with the soaks (``-m
-slow``). The default suite flies the HIL mission from launch to burnout:
+The HIL mission flies whole, from the pad to the ground, in the default
+suite (about a minute); the plain flight's whole live run is with the soaks
+(``-m slow``). The default suite also flies the HIL mission to burnout:
 its nodes as processes, ARM and LAUNCH from ``zplatform cmd``, and the
 state machine's lift-off and burnout seen by dn0's IMU through the serial
 board (a few seconds of flight, about 15 s in all).
@@ -19,6 +20,7 @@ from __future__ import annotations
 import json
 import subprocess
 import sys
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -76,38 +78,41 @@ def _changes(rows: list[dict[str, str]]) -> list[str]:
 
 
 @pytest.fixture(scope="module")
-def runs(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
-    """``up`` of flight.yaml and of flight_hil.yaml, at the same time, each
-    with the flight script, logged."""
-    procs = {}
-    dirs = {}
-    for name in ("flight", "flight_hil"):
+def flown(tmp_path_factory: pytest.TempPathFactory) -> Callable[[str], Path]:
+    """``up`` of a flight mission (``flight`` or ``flight_hil``) with the
+    flight script, logged, once a module: the directory of its run."""
+    dirs: dict[str, Path] = {}
+
+    def fly(name: str) -> Path:
+        if name in dirs:
+            return dirs[name]
         tmp = tmp_path_factory.mktemp(name)
         mission = tmp / f"{name}.yaml"
         rewrite_endpoints(CONFIGS / f"{name}.yaml", mission)
-        dirs[name] = tmp
-        procs[name] = subprocess.Popen(
+        p = subprocess.run(
             [sys.executable, "-m", "zplatform", "up", str(mission), "--duration",
              str(DURATION_S), "--commands", str(CMDS), "--log", str(tmp / "live.csv"),
              "--summary", str(tmp / "up.json"), "--quiet"],
-            cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+            cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, timeout=240, check=False,
         )  # fmt: skip
-    for name, p in procs.items():
-        out, _ = p.communicate(timeout=240)
-        assert p.returncode == 0, f"{name}: {out.decode(errors='replace')[-3000:]}"
-    return dirs
+        assert p.returncode == 0, f"{name}: {p.stdout.decode(errors='replace')[-3000:]}"
+        dirs[name] = tmp
+        return tmp
+
+    return fly
 
 
-# Two whole flights in real time (about a minute): with the soaks (-m
-# slow). The default suite flies the same mission in lockstep
-# (tests/system/test_flight.py), the HIL mission live to burnout (below),
-# and runs sim against live on led_test (tests/system/test_sim_equals_live.py).
-@pytest.mark.slow
-@pytest.mark.parametrize("name", ["flight", "flight_hil"])
+# A whole flight in real time (about a minute) each. The HIL flight, end to
+# end on its pty, is in the default suite; the plain flight's live run is
+# with the soaks (-m slow): the default suite flies it in lockstep
+# (tests/system/test_flight.py), its HIL twin differs from it only in dn0's
+# board (above), and sim against live runs on led_test too
+# (tests/system/test_sim_equals_live.py).
+@pytest.mark.parametrize("name", [pytest.param("flight", marks=pytest.mark.slow), "flight_hil"])
 def test_up_lands_under_both_chutes_with_the_states_of_sim(
-    runs: dict[str, Path], name: str
+    flown: Callable[[str], Path], name: str
 ) -> None:
-    tmp = runs[name]
+    tmp = flown(name)
     up = json.loads((tmp / "up.json").read_text())
     rows = read_csv(tmp / "live.csv")
     assert up["final_state"] == "LANDED"

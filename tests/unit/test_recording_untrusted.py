@@ -96,6 +96,27 @@ def real(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return d
 
 
+@pytest.mark.parametrize(("state", "tis"), [(99, 0), (255, 0), (0, -5)])
+def test_a_first_vector_no_control_node_could_write_is_refused(
+    tmp_path: Path, state: int, tis: int
+) -> None:
+    """A recording that starts mid-run (cn_loop above 0) names a state the
+    mission does not have, or a negative time in it: the replay refuses it
+    with RecordingError (found by the fuzz below beside a CPU hog: the
+    replay's adopt raised IndexError)."""
+    d = tmp_path / "rec"
+    m = load_mission(MINIMAL)
+    cn = ControlLogic(m, keys=load_keys(m, "cn"), epoch=1)
+    cn.dv.set("cn_loop", 5)
+    # Raw bytes, as a damaged file holds them (set() refuses an unknown state).
+    cn.dv.buf[cn.dv.layout.elements["cn_state"].offset] = state
+    cn.dv.set("cn_time_in_state_ns", tis)
+    rec = Recorder(d, m, MINIMAL, cn.dv)
+    rec.close()
+    with pytest.raises(RecordingError, match="cannot be taken up"):
+        replay(d, MINIMAL)
+
+
 def _header(mission_text: str, pythonpath: Path | None = None) -> tuple[bytes, str]:
     """A consistent header for ``mission_text`` (loaded without its code),
     and the text as it is written beside it."""
