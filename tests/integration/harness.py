@@ -173,3 +173,53 @@ class Cluster:
         self.wait_for(
             lambda dv: int(dv.get("cn_loop")) >= target, timeout_s, f"cn_loop >= {target}"
         )
+
+
+def zp_side_by_side(
+    *runs: tuple[str, ...],
+    cwd: Path | None = None,
+    stdins: dict[int, str] | None = None,
+    envs: dict[int, dict[str, str]] | None = None,
+    base_env: dict[str, str] | None = None,
+    timeout: float = 90,
+) -> list[subprocess.CompletedProcess[str]]:
+    """``python -m zplatform ARGS`` for each argument list, all running at
+    once (each verb is a process of its own, so the test waits for the
+    slowest, not the sum), each one's result in order.
+
+    ``stdins`` and ``envs`` are by position: text written to that process's
+    stdin at once (then closed), variables over ``base_env`` (default: this
+    process's environment). Blocks until all have ended or ``timeout``
+    passed for one (subprocess.TimeoutExpired); kills whatever is left on
+    the way out."""
+    stdins, envs = stdins or {}, envs or {}
+    base = dict(os.environ) if base_env is None else base_env
+    procs = [
+        subprocess.Popen(
+            [sys.executable, "-m", "zplatform", *args],
+            cwd=cwd or ROOT,
+            stdin=subprocess.PIPE if i in stdins else subprocess.DEVNULL,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+            env={**base, **envs.get(i, {})},
+        )
+        for i, args in enumerate(runs)
+    ]
+    done = []
+    try:
+        for i, text in stdins.items():  # all of it at once: a few lines
+            stdin = procs[i].stdin
+            assert stdin is not None
+            stdin.write(text)
+            stdin.close()
+            procs[i].stdin = None  # written and closed: communicate() only reads
+        for p in procs:
+            out, err = p.communicate(timeout=timeout)
+            done.append(subprocess.CompletedProcess(p.args, p.returncode, out, err))
+    finally:
+        for p in procs:
+            if p.poll() is None:
+                p.kill()
+                p.communicate()
+    return done

@@ -13,7 +13,7 @@ import pytest
 
 from zplatform.cli import main
 
-from .harness import CONFIGS, ROOT, Cluster
+from .harness import CONFIGS, ROOT, Cluster, zp_side_by_side
 
 pytestmark = pytest.mark.timeout(180)
 
@@ -32,45 +32,6 @@ def _zp(
     )
 
 
-def _zp_all(
-    *runs: tuple[str, ...],
-    stdins: dict[int, str] | None = None,
-    envs: dict[int, dict[str, str]] | None = None,
-) -> list[subprocess.CompletedProcess[str]]:
-    """:func:`_zp` for each argument list, all running at once (``stdins``
-    and ``envs`` by position)."""
-    stdins, envs = stdins or {}, envs or {}
-    procs = [
-        subprocess.Popen(
-            [sys.executable, "-m", "zplatform", *args],
-            cwd=ROOT,
-            stdin=subprocess.PIPE if i in stdins else subprocess.DEVNULL,
-            stdout=subprocess.PIPE,
-            stderr=subprocess.PIPE,
-            text=True,
-            env=dict(os.environ, **envs.get(i, {})),
-        )
-        for i, args in enumerate(runs)
-    ]
-    done = []
-    try:
-        for i, text in stdins.items():  # all of it at once: a few lines
-            stdin = procs[i].stdin
-            assert stdin is not None
-            stdin.write(text)
-            stdin.close()
-            procs[i].stdin = None  # written and closed: communicate() only reads
-        for p in procs:
-            out, err = p.communicate(timeout=60)
-            done.append(subprocess.CompletedProcess(p.args, p.returncode, out, err))
-    finally:
-        for p in procs:
-            if p.poll() is None:
-                p.kill()
-                p.communicate()
-    return done
-
-
 def test_tap_ground_and_log(tmp_path: Path) -> None:
     """A tap sees every node's keys decoded; the ground prompt sends a command; log writes CSV.
     Tools that do not depend on each other run side by side (each is a process)."""
@@ -78,7 +39,7 @@ def test_tap_ground_and_log(tmp_path: Path) -> None:
         c.spawn("dn0")
         c.spawn("cn")
         c.advance(10)
-        r, g = _zp_all(
+        r, g = zp_side_by_side(
             ("tap", str(c.path), "--count", "40", "--json", "--timeout", "30"),
             ("ground", str(c.path), "--watch", "heartbeat"),
             stdins={1: "launch\nquit\n"},
@@ -101,7 +62,7 @@ def test_tap_ground_and_log(tmp_path: Path) -> None:
         # A quiet key of a running mission is not a dead mission.
         skewed = {"ZPLATFORM_CLOCK_SKEW_NS": str(5_000_000_000)}
         wide = {**skewed, "ZPLATFORM_TELEMETRY_MAX_AGE_MS": "10000"}
-        r, w, q = _zp_all(
+        r, w, q = zp_side_by_side(
             ("cmd", str(c.path), "noop", "--timeout", "2"),
             ("cmd", str(c.path), "noop"),
             ("tap", str(c.path), "rocket/nothing/here", "--timeout", "1"),
@@ -142,7 +103,7 @@ def test_cmd_and_prompt_arm_in_one_step_and_give_every_reason(tmp_path: Path) ->
             c.spawn(n)
         c.wait_for(lambda dv: dv.get_name("cn_state") == "SAFE", 30, "state SAFE")
         path = str(c.path)
-        r, launch = _zp_all(  # side by side: two processes
+        r, launch = zp_side_by_side(  # side by side: two processes
             ("cmd", path, "write", "safety0_mode", "safed"), ("cmd", path, "launch")
         )
         assert r.returncode == 2, r.stdout + r.stderr

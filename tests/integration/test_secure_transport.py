@@ -32,7 +32,7 @@ from tests.pki import make_test_pki
 from zplatform.deploy import DEPLOYMENT_ENV, default_deployment_path, load_deployment
 from zplatform.transport import open_session, zenoh_config
 
-from .harness import CONFIGS, ROOT, Cluster
+from .harness import CONFIGS, ROOT, Cluster, zp_side_by_side
 
 pytestmark = pytest.mark.timeout(180)
 
@@ -73,34 +73,6 @@ def _zp(*args: str, env: dict[str, str] | None = None) -> subprocess.CompletedPr
         timeout=90,
         env=dict(os.environ, **(env or {})),
     )
-
-
-def _zp_all(
-    *runs: tuple[tuple[str, ...], dict[str, str] | None],
-) -> list[subprocess.CompletedProcess[str]]:
-    """:func:`_zp` for each ``(args, env)``, all running at once."""
-    procs = [
-        subprocess.Popen(
-            [sys.executable, "-m", "zplatform", *args],
-            cwd=ROOT,
-            stdout=subprocess.PIPE,
-            stderr=subprocess.PIPE,
-            text=True,
-            env=dict(os.environ, **(env or {})),
-        )
-        for args, env in runs
-    ]
-    done = []
-    try:
-        for p in procs:
-            out, err = p.communicate(timeout=90)
-            done.append(subprocess.CompletedProcess(p.args, p.returncode, out, err))
-    finally:
-        for p in procs:
-            if p.poll() is None:
-                p.kill()
-                p.communicate()
-    return done
 
 
 def _insert(cfg: zenoh.Config, key: str, value: Any) -> None:
@@ -161,11 +133,15 @@ def test_unknown_peers_get_no_session_under_the_default_transport(tmp_path: Path
         # run side by side: each is a process of its own.
         path = str(c.path)
         foreign_file = str(tmp_path / "foreign" / "deployment.yaml")
-        tap, cmd, tap_foreign, tap_none = _zp_all(
-            (("tap", path, f"{m.vehicle}/cn/telemetry", "--count", "1", "--timeout", "30"), None),
-            (("cmd", path, "noop"), None),
-            (("tap", path, "--timeout", "3"), {DEPLOYMENT_ENV: foreign_file}),
-            (("tap", path, "--timeout", "3"), {"XDG_CONFIG_HOME": str(tmp_path / "empty")}),
+        tap, cmd, tap_foreign, tap_none = zp_side_by_side(
+            ("tap", path, f"{m.vehicle}/cn/telemetry", "--count", "1", "--timeout", "30"),
+            ("cmd", path, "noop"),
+            ("tap", path, "--timeout", "3"),
+            ("tap", path, "--timeout", "3"),
+            envs={
+                2: {DEPLOYMENT_ENV: foreign_file},
+                3: {"XDG_CONFIG_HOME": str(tmp_path / "empty")},
+            },
         )
         assert tap.returncode == 0, tap.stdout + tap.stderr
         assert cmd.returncode == 0 and "ACCEPTED" in cmd.stdout, cmd.stdout + cmd.stderr

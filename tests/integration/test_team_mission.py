@@ -19,6 +19,7 @@ from pathlib import Path
 import pytest
 import yaml
 
+from tests.integration.harness import zp_side_by_side
 from tests.unit.test_mission_code import team_mission, write_code
 from zplatform.mission import load_mission
 from zplatform.pki import ensure_mission_pki
@@ -44,32 +45,6 @@ def _zp(cwd: Path, *args: str, timeout: float = 90) -> subprocess.CompletedProce
         text=True,
         timeout=timeout,
     )
-
-
-def _zp_all(cwd: Path, *runs: tuple[str, ...]) -> list[subprocess.CompletedProcess[str]]:
-    """:func:`_zp` for each argument list, all running at once."""
-    procs = [
-        subprocess.Popen(
-            [sys.executable, "-m", "zplatform", *args],
-            cwd=cwd,
-            env=_env(),
-            stdout=subprocess.PIPE,
-            stderr=subprocess.PIPE,
-            text=True,
-        )
-        for args in runs
-    ]
-    done = []
-    try:
-        for p in procs:
-            out, err = p.communicate(timeout=90)
-            done.append(subprocess.CompletedProcess(p.args, p.returncode, out, err))
-    finally:
-        for p in procs:
-            if p.poll() is None:
-                p.kill()
-                p.communicate()
-    return done
 
 
 def _on_free_ports(path: Path) -> None:
@@ -98,13 +73,13 @@ def test_a_team_mission_runs_without_pythonpath_and_the_ground_needs_only_the_fi
     script.write_text("at 0.1 arm\nat 0.2 launch\n")
     summary = tmp_path / "sim.json"
     # The verbs that need no running mission, side by side (each a process).
-    check, check_ground, sim, xtce = _zp_all(
-        cwd,
+    check, check_ground, sim, xtce = zp_side_by_side(
         ("check", str(mission)),
         ("check", str(ground_copy)),
         ("sim", str(mission), "--duration", "1", "--commands", str(script),
          "--log", str(tmp_path / "sim.csv"), "--summary", str(summary)),
         ("xtce", str(ground_copy), "--out", str(tmp_path / "x.xml")),
+        cwd=cwd, base_env=_env(),
     )  # fmt: skip
     assert check.returncode == 0, check.stderr
     # A flight verb without the code fails at load, clearly, in one line.
