@@ -98,7 +98,15 @@ BUGS = {
         "missed, none late) while the device nodes ran every trigger and replied (their flight "
         "recorders hold every loop, they never safed), from when its zenoh session with the "
         "standby closed until the link came back: DN_LOST, COAST -> ABORTED (seen once in "
-        "about ten cuts)"
+        "about ten cuts; likely eclipse-zenoh/zenoh#2517, a peer's session closing stops "
+        "queries between other peers for seconds)"
+    ),
+    "queries-lost": (
+        "known bug (zenoh, eclipse-zenoh/zenoh#2517: a peer's session closing stops queries "
+        "between other peers that stay connected, for seconds): the new commander's triggers "
+        "reached a device node (it followed the new term) and then stopped reaching it when "
+        "the old commander's session lapsed, until the cut healed; the device node's watchdog "
+        "safed it and the new commander latched DN_LOST (seen once in two cuts from everyone)"
     ),
 }
 MIRRORS_LOST = (
@@ -176,6 +184,21 @@ def known_bugs(text: str, *, replies_lost: bool = False) -> list[str]:
     safed = [x for x in lines if re.search(r" dn\d+ dn_safed:", x)]
     if replies_lost and lost and not safed:
         seen.append(f"{BUGS['replies-lost']} [{lost[0].strip()}]")
+    # queries-lost: a device node followed a term its new commander took, then
+    # its watchdog safed it for want of triggers and that commander lost it.
+    for t in took_lines(text):
+        for dn in sorted(
+            set(re.findall(r" (dn\d+) dn_new_term: \1 follows term " + str(t.term) + " ", text))
+        ):
+            starved = [
+                x
+                for x in lines
+                if f" {dn} dn_safed: {dn} safed its actuators: no valid trigger" in x
+            ]
+            dropped = [x for x in lines if f" {t.node} fault: fault DN_LOST: {dn} missed" in x]
+            if starved and dropped:
+                seen.append(f"{BUGS['queries-lost']} [{starved[0].strip()} / {dropped[0].strip()}]")
+                return seen
     return seen
 
 
