@@ -45,6 +45,8 @@ def vehicle_params() -> tuple[VehicleParams, float]:
     params = dict(raw["world"]["params"])
     params.update(wind_mps=0.0, gust_mps=0.0, drogue_inflation_s=0.0, main_inflation_s=0.0)
     main_m = next(c["config"]["main_m"] for c in raw["controllers"] if "main_m" in c["config"])
+    if isinstance(main_m, str):  # a parameter of the mission (params:): its default
+        main_m = next(p["default"] for p in raw.get("params", []) if p["name"] == main_m)
     return msgspec.convert(params, VehicleParams), float(main_m)
 
 
