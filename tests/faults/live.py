@@ -1118,7 +1118,12 @@ def case_rogue(tmp: Path, quick: bool) -> CaseResult:
         forged_loop = c.now("cn_loop") + 7
         forged = _frame(lay.layout_id, forged_loop, time.time_ns(), rng.randbytes(lay.size))
         forged += rng.randbytes(32)  # a made-up tag
-        pub = c.session.declare_publisher(f"{c.mission.vehicle}/cn/telemetry")
+        # BLOCK: each forged frame reaches every subscriber (with zenoh's DROP,
+        # a starved host may drop one on the way to the ground node, which
+        # then has nothing to count).
+        pub = c.session.declare_publisher(
+            f"{c.mission.vehicle}/cn/telemetry", congestion_control=zenoh.CongestionControl.BLOCK
+        )
         bad_rx0 = c.rx.logic.counters.rejected
         for _ in range(5):
             pub.put(forged)
