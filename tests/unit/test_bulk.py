@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 import zenoh
 
+from tests.zsession import lone_session
 from zplatform.bulk import (
     HEADER,
     BulkChannelConfig,
@@ -139,11 +140,7 @@ def test_decode_sample_checks_length_and_layout() -> None:
 
 @pytest.fixture
 def session() -> Iterator[zenoh.Session]:
-    cfg = zenoh.Config()
-    cfg.insert_json5("mode", '"peer"')
-    cfg.insert_json5("listen/endpoints", "[]")
-    cfg.insert_json5("scouting/multicast/enabled", "false")
-    s = zenoh.open(cfg)
+    s = lone_session()
     yield s
     s.close()
 

@@ -12,6 +12,7 @@ from typing import Any
 import pytest
 import zenoh
 
+from tests.zsession import lone_session
 from zplatform.auth import TAG_LEN, AuthError, Channel, channel
 from zplatform.codec import FrameEncoder, RegionCodec, encode_frame
 from zplatform.intake import ReplyCheck, TriggerIntake
@@ -118,14 +119,6 @@ def test_the_trigger_s_data_is_applied_by_run_after_the_reply() -> None:
     assert dn.dv.get("dn0_setpoint") == 4.0
 
 
-def _session() -> zenoh.Session:
-    cfg = zenoh.Config()
-    cfg.insert_json5("mode", '"peer"')
-    cfg.insert_json5("listen/endpoints", "[]")
-    cfg.insert_json5("scouting/multicast/enabled", "false")
-    return zenoh.open(cfg)
-
-
 class _CountingOpen:
     """Stands in for the DN logic's channel: counts tag checks."""
 
@@ -152,7 +145,7 @@ def test_a_live_device_node_checks_each_trigger_s_tag_once() -> None:
     assert dn._open is not None
     spy = _CountingOpen(dn._open)
     dn._open = spy  # type: ignore[assignment]
-    session = _session()
+    session = lone_session()
     try:
         keys = KeySpace(M.vehicle)
         now = iter(range(T0, 2 * T0, PERIOD)).__next__
@@ -199,7 +192,7 @@ class _FakePub:
 def test_a_tap_puts_only_for_a_subscriber(exact: bool, zenoh_says: bool, sent: int) -> None:
     """The listener's flag first; ``exact``: zenoh's own matching state when
     the flag says nobody (a subscriber the listener has not told of yet)."""
-    session = _session()
+    session = lone_session()
     try:
         tap = TapPublisher(session, "large/frames/test", exact=exact)
         real = tap.pub

@@ -6,8 +6,7 @@ from __future__ import annotations
 import threading
 from pathlib import Path
 
-import zenoh
-
+from tests.zsession import lone_session
 from zplatform.auth import channel
 from zplatform.intake import ReplyCheck, TriggerIntake
 from zplatform.lockstep import sim_keys
@@ -19,21 +18,13 @@ from zplatform.transport import KeySpace
 MINIMAL = Path(__file__).resolve().parents[2] / "configs" / "minimal.yaml"
 
 
-def _session() -> zenoh.Session:
-    cfg = zenoh.Config()
-    cfg.insert_json5("mode", '"peer"')
-    cfg.insert_json5("listen/endpoints", "[]")
-    cfg.insert_json5("scouting/multicast/enabled", "false")
-    return zenoh.open(cfg)
-
-
 def test_both_ends_report_every_hop_in_order() -> None:
     m = load_mission(MINIMAL)
     cn = ControlLogic(m, keys=sim_keys(m))
     dn = DeviceLogic(m, "dn0", keys=sim_keys(m))
     cn_hops: list[tuple[str, int]] = []
     dn_hops: list[tuple[str, int]] = []
-    session = _session()
+    session = lone_session()
     try:
         keys = KeySpace(m.vehicle)
         now = iter(range(10**9, 2 * 10**9, 10**7)).__next__
