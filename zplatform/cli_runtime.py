@@ -403,9 +403,14 @@ def cmd_up(args: argparse.Namespace) -> int:
                 f"({', '.join(pki.made)}) in {pki.directory}"
             )
     if args.commands:
+        from .ground.script import ScriptPlayer
         from .uplink import load_commands
 
-        load_commands(args.commands)  # a bad script fails here
+        # A bad script fails here, line by line, as `sim` checks it: its
+        # syntax and every command, element and value against the mission
+        # (before, only the syntax was checked and the ground node died on
+        # the rest after every other node had started).
+        ScriptPlayer(mission, load_commands(args.commands))
     _check_outputs(args, "log", "summary", "record")
     if not args.free_ports:
         check_ports(mission)  # another `up` of this mission, or anything else, on its ports

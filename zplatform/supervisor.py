@@ -285,6 +285,15 @@ def watch(
                     else "the control node carries on (DN_LOST and the mission's fault response)"
                 )
                 print(f"\nzplatform up: node {n} died (exit code {c}); {what}", file=sys.stderr)
+                if n == "gn" and end_after_script and w.script_done_at is None:
+                    # The run was to end after the ground node's script: with
+                    # the player gone it never would (before, `up` flew on
+                    # without an end).
+                    print(
+                        "zplatform up: the ground node played the command script; stopping",
+                        file=sys.stderr,
+                    )
+                    return w
             got = link.next(0.2)
             if got is not None:
                 rate.add_snapshot(link.dv)

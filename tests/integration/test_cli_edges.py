@@ -392,6 +392,47 @@ def test_up_registers_is_found_by_name_logs_events_and_cleans_up(
     assert r.stdout.strip() == "no mission is running"
 
 
+def test_up_ends_when_the_ground_node_playing_its_script_dies(
+    tmp_path: Path, runtime: Path
+) -> None:
+    """`up --commands` without --duration ends after the script; if the
+    ground node that plays it dies first, `up` says so and stops (it used to
+    fly on with no end)."""
+    script = tmp_path / "late.commands"
+    script.write_text("at 600 launch\n")  # never reached: the GN dies first
+    up = subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "zplatform",
+            "up",
+            "configs/minimal.yaml",
+            "--free-ports",
+            "--no-realtime",
+            "--quiet",
+            "--commands",
+            str(script),
+        ],
+        cwd=ROOT,
+        env=dict(os.environ, PYTHONUNBUFFERED="1"),
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        entry = runtime / "minimal.json"
+        _wait_until(lambda: entry.exists() and b'"gn":' in entry.read_bytes(), 30, "entry")
+        gn = json.loads(entry.read_text())["nodes"]["gn"]
+        os.kill(gn, signal.SIGKILL)
+        _out, err = up.communicate(timeout=60)
+    finally:
+        if up.poll() is None:
+            up.kill()
+            up.communicate()
+    assert "node gn died" in err and "played the command script; stopping" in err, err
+    assert up.returncode != 0 and "Traceback" not in err, (up.returncode, err)
+
+
 # ---------------------------------------------------------------- registry
 
 
@@ -430,3 +471,23 @@ def test_registry_names_stale_entries_and_resolution(runtime: Path, tmp_path: Pa
         a.remove()
         b.remove()
     assert registry.running() == []
+
+
+@pytest.mark.parametrize(
+    ("line", "phrase"),
+    [
+        ("at 1.0 write no_such_elem 1", "no element named 'no_such_elem'"),
+        ("at 1.0 frobnicate", "unknown command 'frobnicate'"),
+    ],
+)
+def test_up_checks_the_command_script_against_the_mission_before_spawning(
+    tmp_path: Path, line: str, phrase: str
+) -> None:
+    """A script `sim` refuses is refused by `up` too, naming its line, before
+    any node starts (it used to start every node, lose the ground node on the
+    bad line and wait 60 s for it)."""
+    script = tmp_path / "bad.commands"
+    script.write_text(f"# a comment\n{line}\n")
+    r = _zp("up", "configs/led_test.yaml", "--commands", str(script), "--free-ports")
+    _clear_error(r, 2, f"{script}:2", phrase)
+    assert "loops" not in r.stdout and "alive" not in r.stderr
