@@ -75,7 +75,7 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p.set_defaults(func=cmd_up)
 
     p = mission_verb(sub, "node", help="run one node of a mission (multi-host deployments)")
-    p.add_argument("name", help="cn, dnX or gn")
+    p.add_argument("name", help="cn, dnX, gn, or cn_b (a standby mission's second control node)")
     _duration(p, "CN: seconds of loops; GN: seconds of logging")
     p.add_argument(
         "--log", metavar="CSV", help="GN: telemetry CSV; events beside it (NAME.events.jsonl)"

@@ -1,6 +1,6 @@
 """Lockstep runs in virtual time: ``zplatform sim`` and ``zplatform replay``.
 
-``zplatform sim MISSION [--duration S] [--commands FILE] --log CSV
+``zplatform sim MISSION [--duration S] [--commands FILE] [--log CSV]
 [--summary JSON]`` runs every node in this process
 (:class:`~zplatform.lockstep.LockstepRunner`), logs every telemetry snapshot
 to CSV, prints the states visited and each command's verdict, and exits 0
@@ -49,17 +49,21 @@ def cmd_sim(args: argparse.Namespace) -> int:
     mission = load_mission(args.mission)
     script = load_commands(args.commands) if args.commands else []
     duration = args.duration if args.duration is not None else script_duration_s(script)
-    check_output(args.log, "telemetry log")
+    ev_path = events_path(args.log) if args.log else None
+    if args.log:
+        check_output(args.log, "telemetry log")
+        check_output(ev_path, "event log")
     if args.summary:
         check_output(args.summary, "summary")
     runner = LockstepRunner(mission, commands=script)
-    ev_path = events_path(args.log)
-    check_output(ev_path, "event log")
-    with CsvLogger(args.log, runner.control.layout) as log:
-        res = runner.run(duration, log=log)
-    with EventWriter(ev_path) as ev:
-        for e in res.events:  # virtual time: the event's own loop time is its "receive" time
-            ev.write(EventRecord.of(e, e.t_ns))
+    if args.log:
+        with CsvLogger(args.log, runner.control.layout) as log:
+            res = runner.run(duration, log=log)
+        with EventWriter(ev_path) as ev:
+            for e in res.events:  # virtual time: the event's own loop time is its "receive" time
+                ev.write(EventRecord.of(e, e.t_ns))
+    else:
+        res = runner.run(duration)
     out = sys.stdout
     print(
         f"sim {res.mission}: {res.loops} loops ({res.duration_s:g} s virtual) in "
@@ -72,9 +76,10 @@ def cmd_sim(args: argparse.Namespace) -> int:
         print(f"  not sent before the end of the run: {src}")
     print(f"states: {' -> '.join(res.states)}; final state {res.final_state}")
     print(
-        f"errors {res.errors} {res.errors_by_node}; fault {res.fault}; "
-        f"telemetry rows {res.telemetry_received} -> {args.log}; "
-        f"events {len(res.events)} -> {ev_path}"
+        f"errors {res.errors} ({', '.join(f'{n} {c}' for n, c in res.errors_by_node.items())}); "
+        f"fault {res.fault}; "
+        f"telemetry rows {res.telemetry_received} -> {args.log or '(no --log)'}; "
+        f"events {len(res.events)} -> {ev_path or '(no --log)'}"
     )
     if args.summary:
         Path(args.summary).write_text(json.dumps(res.summary(), indent=2) + "\n")
@@ -154,7 +159,10 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p = sub.add_parser(
         "sim",
         help="lockstep run of every node in virtual time (deterministic)",
-        description=__doc__.splitlines()[0] if __doc__ else None,
+        description="Run every node of the mission in one process, loop by loop in virtual "
+        "time: the same logic as a live run, deterministic, as fast as the CPU allows. "
+        "Prints the states reached and every command's verdict; --log writes the telemetry "
+        "CSV and its events beside it (NAME.events.jsonl).",
     )
     p.add_argument(
         "mission", help="mission YAML file, or the name of a running mission (`zplatform ps`)"
@@ -168,7 +176,9 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         f"at least {MIN_DURATION_S:g} s)",
     )
     p.add_argument("--commands", metavar="FILE", help="command script ('at 1.0 launch' lines)")
-    p.add_argument("--log", metavar="CSV", required=True, help="telemetry CSV to write")
+    p.add_argument(
+        "--log", metavar="CSV", help="telemetry CSV to write, events beside it (default: none)"
+    )
     p.add_argument("--summary", metavar="JSON", help="write a JSON summary of the run")
     p.set_defaults(func=cmd_sim)
 

@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import difflib
 import re
+from collections.abc import Sequence
 from decimal import Decimal, InvalidOperation
 from pathlib import Path
 from typing import Any
@@ -107,9 +108,8 @@ def parse_commands(text: str, source: str = "<string>") -> list[ScriptCommand]:
         cmd = m.group(2).lower()
         args = (m.group(3) or "").split()
         if cmd not in _COMMANDS:
-            raise CommandError(
-                f"{where}: unknown command {m.group(2)!r}; expected one of {', '.join(_COMMANDS)}"
-            )
+            hint = did_you_mean(cmd, list(_COMMANDS)) or f"; expected one of {', '.join(_COMMANDS)}"
+            raise CommandError(f"{where}: unknown command {m.group(2)!r}{hint}")
         if cmd in _TWO_ARGS:
             if len(args) != 2:
                 raise CommandError(f"{where}: {cmd} takes {_TWO_ARGS[cmd]}, got {args}")
@@ -155,6 +155,13 @@ def element_index(mission: Mission, name: str) -> int:
         raise CommandError(f"no element named {name!r}{hint}") from None
 
 
+def did_you_mean(word: str, choices: Sequence[str]) -> str:
+    """``"; did you mean a, b?"`` naming the choices closest to ``word``, or
+    ``""``: the hint `check` gives, for every name an operator types."""
+    close = difflib.get_close_matches(word.lower(), list(choices), n=3)
+    return f"; did you mean {', '.join(close)}?" if close else ""
+
+
 def resolve_write(layout: Layout, element: str, value: str, where: str) -> tuple[int, float]:
     """``(gn_cmd_element, gn_cmd_value)`` of ``write element value``.
 
@@ -165,7 +172,8 @@ def resolve_write(layout: Layout, element: str, value: str, where: str) -> tuple
     try:
         spec = layout.element(element)
     except DataVectorError as exc:
-        raise CommandError(f"{where}: {exc}") from None
+        hint = did_you_mean(element, list(layout.elements))
+        raise CommandError(f"{where}: {exc}{hint}") from None
     if spec.count:
         raise CommandError(f"{where}: {element} is an array; WRITE sets one scalar")
     v: Any = value
@@ -227,10 +235,9 @@ def validate_command(
     cmd = command.upper()
     where = where or cmd.lower()
     if cmd not in CMD_NAMES or cmd == "NONE":
-        raise CommandError(
-            f"unknown command {command!r}; expected one of "
-            f"{', '.join(c.lower() for c in CMD_NAMES[1:])}"
-        )
+        names = [c.lower() for c in CMD_NAMES[1:]]
+        hint = did_you_mean(command, names) or f"; expected one of {', '.join(names)}"
+        raise CommandError(f"unknown command {command!r}{hint}")
     args = _TWO_ARGS.get(cmd.lower())
     if args is None:
         if element is not None:

@@ -282,6 +282,20 @@ def test_version_and_help(capsys: pytest.CaptureFixture[str]) -> None:
                 missing.append(f"{verb} {'/'.join(a.option_strings) or a.dest}")
     assert not missing, f"options without help: {missing}"
     assert not any("DESIGN" in t for t in texts)
+    # Help is prose for a user, never a raw docstring's markup.
+    raw = [v for v, p in sub.choices.items() if "``" in p.format_help()]  # type: ignore[union-attr]
+    assert not raw, f"help with raw docstring markup: {raw}"
+    node = sub.choices["node"].format_help()  # type: ignore[index]
+    assert "cn_b" in node
+
+
+def test_sim_needs_no_log_and_prints_no_reprs(capsys: pytest.CaptureFixture[str]) -> None:
+    """`sim MISSION` alone runs and reports (the CSV is opt-in), in words."""
+    code = main(["sim", str(CONFIGS / "led_test.yaml"), "--duration", "1"])
+    out = capsys.readouterr().out
+    assert code == 0, out
+    assert "errors 0 (cn 0, dn0 0, dn1 0, dn2 0)" in out and "(no --log)" in out, out
+    assert "{" not in out and "'" not in out, out
 
 
 # ---------------------------------------------------------------- up
