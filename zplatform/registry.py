@@ -195,12 +195,18 @@ def resolve_mission(arg: str) -> str:
     p = Path(arg)
     if p.is_file():
         return arg
-    if p.exists():
-        raise CommandError(f"{arg} is not a mission file (a directory?)")
     entries = running()
+    # A running mission's name wins over a directory of that name (a team's
+    # checkout holds `flight/` beside `configs/flight.yaml`): the directory
+    # can never be a mission file, the running mission is what was meant.
     for e in entries:
         if e.name == arg:
             return e.mission_file
+    if p.exists():
+        raise CommandError(
+            f"{arg} is a directory, not a mission file, and no running mission is named "
+            f"{arg!r}; {_describe(entries)}"
+        )
     looks_like_path = os.sep in arg or arg.endswith((".yaml", ".yml"))
     what = "no such mission file" if looks_like_path else "no such file or running mission"
     # A bare name that is a mission file nearby (`led_test` for

@@ -21,7 +21,7 @@ from pathlib import Path
 import pytest
 import yaml
 
-from zplatform import cli_runtime, registry
+from zplatform import CommandError, cli_runtime, registry
 from zplatform.cli import build_parser, main
 from zplatform.events import Event, Severity, encode_event
 from zplatform.transport import rewrite_endpoints
@@ -485,6 +485,26 @@ def test_registry_names_stale_entries_and_resolution(runtime: Path, tmp_path: Pa
         a.remove()
         b.remove()
     assert registry.running() == []
+
+
+def test_a_directory_named_like_a_running_mission_does_not_hide_it(
+    runtime: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """`cmd led_test` from a checkout holding a `led_test/` folder reaches the
+    running mission; with none running, the message names both readings."""
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "led_test").mkdir()
+    with pytest.raises(CommandError) as exc:
+        registry.resolve_mission("led_test")
+    assert "led_test is a directory, not a mission file, and no running mission is named" in str(
+        exc.value
+    )
+    assert "no mission is running" in str(exc.value)
+    a = registry.register("led_test", str(CONFIGS / "led_test.yaml"))
+    try:
+        assert registry.resolve_mission("led_test") == a.entry.mission_file
+    finally:
+        a.remove()
 
 
 @pytest.mark.parametrize(
