@@ -292,7 +292,10 @@ def test_console_ends_with_its_websocket(served: Served, how: str) -> None:
         assert time.monotonic() < deadline, s.err()
         time.sleep(0.05)  # polling the server's log line about it
     assert f"console {console.pid} ended (exit code 0)" in s.err()  # it quit; nobody killed it
-    assert s.proc.poll() is None  # the server serves on
+    # One browser, once: with its session over, the server has nothing left to
+    # serve (it used to keep serving a spent token and a live cookie).
+    assert s.proc.wait(timeout=SESSION_END_S) == 0, s.err()
+    assert "the console ended and its token is spent" in s.out()
 
 
 def test_console_ends_when_its_server_is_killed(tmp_path: Path) -> None:

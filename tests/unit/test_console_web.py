@@ -99,3 +99,13 @@ def test_token_admits_one_session_once() -> None:
 )
 def test_loopback(host: str, loopback: bool) -> None:
     assert is_loopback(host) is loopback
+
+
+def test_an_ended_session_admits_nothing_and_its_token_stays_spent() -> None:
+    a = Admission("127.0.0.1", 8000, token="t0ken")
+    session = a.redeem("t0ken")
+    assert session is not None and a.admitted(session)
+    assert a.redeem("t0ken") is None  # spent while the session runs
+    a.revoke()
+    assert not a.admitted(session)  # its cookie admits nothing more
+    assert a.redeem("t0ken") is None  # and the token stays spent

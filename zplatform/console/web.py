@@ -202,6 +202,7 @@ class Admission:
         self.port = port
         self.token = token if token is not None else secrets.token_urlsafe(32)
         self._session: str | None = None
+        self._spent = False
 
     def host_refusal(self, host: str | None) -> str | None:
         """Why a request with this Host header is refused (403), or None."""
@@ -228,10 +229,15 @@ class Admission:
     def redeem(self, token: str) -> str | None:
         """A new session for the right token, the first time only; else None."""
         right = hmac.compare_digest(token.encode(), self.token.encode())
-        if not right or self._session is not None:
+        if not right or self._spent:
             return None
+        self._spent = True
         self._session = secrets.token_urlsafe(32)
         return self._session
+
+    def revoke(self) -> None:
+        """End the session: its cookie admits nothing more, and the token stays spent."""
+        self._session = None
 
     def admitted(self, session: str | None) -> bool:
         """True for the session cookie the token was redeemed for."""
@@ -379,6 +385,9 @@ class WebConsole:
         self.consoles: set[_Console] = set()
         self._static = _static_dir()
         self._runner: web.AppRunner | None = None
+        self.ended = asyncio.Event()
+        """Set when the one session's console has ended: the server has nothing
+        left to serve (:meth:`serve` returns)."""
 
     @property
     def port(self) -> int:
@@ -446,9 +455,18 @@ class WebConsole:
             "(restart for another); Ctrl-C stops the server and its consoles",
             flush=True,
         )
+        waits = [asyncio.ensure_future(e.wait()) for e in (stop, self.ended)]
         try:
-            await stop.wait()
+            await asyncio.wait(waits, return_when=asyncio.FIRST_COMPLETED)
+            if self.ended.is_set():
+                print(
+                    f"{self.title}: the console ended and its token is spent; "
+                    "start `zplatform ground --web` again for another",
+                    flush=True,
+                )
         finally:
+            for w in waits:
+                w.cancel()
             await self.close()
 
     # -- requests ----------------------------------------------------------------
@@ -529,6 +547,11 @@ class WebConsole:
                 await screen
             self.consoles.discard(console)
             log.info("console %d ended (exit code %s)", console.pid, code)
+            # One browser, once: with its console gone the session ends, so
+            # neither its cookie nor the token opens another console.
+            self.admission.revoke()
+            if not self.consoles:
+                self.ended.set()
         return ws
 
 
