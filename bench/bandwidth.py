@@ -55,7 +55,9 @@ point runs ``--seconds`` (quick 5, full 15) per MAC plus its start-up (a
 
 Run ``python -m bench.bandwidth [--quick] [--json PATH] [--macs blake3,hmac]
 [--counts N,...] [--splits D,...] [--regions B,...] [--seconds S] [--no-rates]
-[--merge]``.
+[--merge]``. Only a full run without ``--json`` writes the committed
+``bench/results/bandwidth.json`` and ``bench/plots/``; ``--quick`` writes to a
+scratch folder under the temporary directory (:func:`output_paths`).
 """
 
 from __future__ import annotations
@@ -418,6 +420,23 @@ def targets(
     return out
 
 
+def output_paths(*, quick: bool, json_path: str | None) -> tuple[Path, Path]:
+    """Where a run writes its JSON and its plot.
+
+    Only a full run to the default path writes the repository's files
+    (``bench/results/bandwidth.json``, ``bench/plots/``); a ``--quick`` run
+    writes to a scratch folder under the temporary directory, and a run given
+    ``--json PATH`` puts its plot beside PATH, so a try-out never overwrites
+    the committed figures."""
+    if json_path:
+        path = Path(json_path)
+        return path, path.parent / "plots"
+    if quick:
+        scratch = Path(tempfile.gettempdir()) / "zplatform-bench"
+        return scratch / "bandwidth-quick.json", scratch / "plots"
+    return RESULTS_DIR / "bandwidth.json", Path(__file__).resolve().parent / "plots"
+
+
 def main(argv: list[str] | None = None) -> dict[str, Any]:
     parser = bench_argparser(__doc__.splitlines()[0] if __doc__ else "bandwidth")
     parser.add_argument("--seconds", type=float, default=None, help="per point")
@@ -554,7 +573,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
                         held = r
                 max_rate.setdefault(mac, {})[str(n)] = held
 
-    path = Path(args.json) if args.json else RESULTS_DIR / "bandwidth.json"
+    path, plots_dir = output_paths(quick=quick, json_path=args.json)
     stamp = {
         "run_utc": datetime.now(UTC).strftime("%Y-%m-%dT%H:%M:%SZ"),
         "run_cpu": machine_info().get("cpu_model"),
@@ -602,8 +621,9 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
             # Relative to bench/, so the result and the report name the same
             # file on any checkout.
             bench_dir = Path(__file__).resolve().parent
-            plot = plot_bandwidth(variants, bench_dir / "plots")
-            params["plots"] = [str(plot.relative_to(bench_dir))]
+            plot = plot_bandwidth(variants, plots_dir)
+            where = plot.relative_to(bench_dir) if plot.is_relative_to(bench_dir) else plot
+            params["plots"] = [str(where)]
         except Exception as exc:  # plotting never loses the measurement
             params["plot_error"] = repr(exc)
     doc = write_result("bandwidth", params, variants, str(path))

@@ -27,7 +27,5 @@ def test_a_mistyped_command_gets_its_closest_name() -> None:
 
 def test_a_mistyped_element_gets_its_closest_names() -> None:
     mission = load_mission(CONFIGS / "led_test.yaml", code=False)
-    with pytest.raises(
-        CommandError, match=r"'led_a_cmdd'.*did you mean led_a_cmd"
-    ):
+    with pytest.raises(CommandError, match=r"'led_a_cmdd'.*did you mean led_a_cmd"):
         validate_command(mission, "write", "led_a_cmdd", "1")
