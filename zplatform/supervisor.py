@@ -55,7 +55,7 @@ from .ground.records import EventRecord
 from .ground.script import MIN_DURATION_S, SETTLE_S
 from .ground.status import RateMeter, status_line
 from .mission import load_mission
-from .node.runtime import PARENT_ENV, STOP_PIPE_ENV
+from .node.runtime import LOG_LEVEL_ENV, PARENT_ENV, STOP_PIPE_ENV
 from .summary import (
     CnSummary,
     DnSummary,
@@ -97,13 +97,15 @@ node has stopped; a close still under way then is left to the process's exit."""
 class Children:
     """The node processes ``up`` spawned; every one is reaped on exit."""
 
-    def __init__(self) -> None:
+    def __init__(self, *, quiet: bool = False) -> None:
         self.procs: dict[str, subprocess.Popen[bytes]] = {}
+        # `up --quiet`: the nodes log warnings and errors only (LOG_LEVEL_ENV).
+        self._env = {LOG_LEVEL_ENV: "WARNING"} if quiet else {}
 
     def spawn(self, name: str, argv: list[str], *, ready: float | None = None) -> None:
         """Start ``zplatform ARGV``; with ``ready`` (seconds), wait for its
         first output line to be ``READY`` (NodeError if it is not, in time)."""
-        env = dict(os.environ, PYTHONUNBUFFERED="1")
+        env = dict(os.environ, PYTHONUNBUFFERED="1", **self._env)
         env[PARENT_ENV] = str(os.getpid())
         env[STOP_PIPE_ENV] = "1"
         # A new session: a Ctrl-C in the terminal reaches `up` alone, which
@@ -528,7 +530,7 @@ def _supervise(
     end_after_script: bool,
     settle_s: float | None = None,
 ) -> int:
-    children = Children()
+    children = Children(quiet=quiet)
     summaries = {n: tmp / f"{n}.json" for n in spawn}
     stopping = False
 

@@ -525,3 +525,20 @@ def test_up_checks_the_command_script_against_the_mission_before_spawning(
     r = _zp("up", "configs/led_test.yaml", "--commands", str(script), "--free-ports")
     _clear_error(r, 2, f"{script}:2", phrase)
     assert "loops" not in r.stdout and "alive" not in r.stderr
+
+
+def test_up_quiet_prints_no_info(tmp_path: Path, runtime: Path) -> None:
+    """`up --quiet` of a clean run prints nothing: the nodes log warnings and
+    errors only (they used to log every INFO line to the terminal)."""
+    r = _zp(
+        "up",
+        "configs/minimal.yaml",
+        "--duration",
+        "1",
+        "--quiet",
+        "--free-ports",
+        "--no-realtime",
+        timeout=90,
+    )
+    assert r.returncode == 0, r.stderr
+    assert " INFO " not in r.stderr and r.stdout == "", (r.stdout, r.stderr)

@@ -179,9 +179,16 @@ def _promote_threads(priority: int) -> int:
     return n
 
 
+LOG_LEVEL_ENV = "ZPLATFORM_LOG_LEVEL"
+"""A node's log level when not ``--verbose`` (``WARNING`` under ``up --quiet``);
+default ``INFO``."""
+
+
 def setup_logging(verbose: bool = False) -> None:
+    """Log to stderr: DEBUG with ``verbose``, else :data:`LOG_LEVEL_ENV` or INFO."""
+    level = os.environ.get(LOG_LEVEL_ENV, "INFO").upper()
     logging.basicConfig(
-        level=logging.DEBUG if verbose else logging.INFO,
+        level=logging.DEBUG if verbose else logging.getLevelNamesMapping().get(level, logging.INFO),
         format="%(asctime)s %(name)s %(levelname)s %(message)s",
         stream=sys.stderr,
     )
