@@ -465,14 +465,18 @@ def key_file_name(role: str) -> str:
     return f"{role}.keys"
 
 
-def write_key_set(mission: Mission, directory: str | Path) -> dict[str, Path]:
+def write_key_set(
+    mission: Mission, directory: str | Path, *, replace: bool = False
+) -> dict[str, Path]:
     """Write a new key set for ``mission`` into ``directory``: one file per
     host role (:func:`host_roles`), each holding that role's links with
     independent random keys; files mode 0600, the directory 0700 (made, with
     its parents, if missing). Returns ``{role: path}``.
 
-    Refuses (KeyError_) to overwrite a key file: a new key set locks out
-    every host that still has the old one."""
+    Refuses (KeyError_) to overwrite a key file unless ``replace`` (a key
+    rotation): a new key set locks out every host that still has the old
+    one. With ``replace`` each file is replaced whole (written aside, then
+    renamed), so a reader never sees half a key file."""
     d = Path(directory)
     keys = KeySet.generate(mission)
     try:
@@ -484,8 +488,11 @@ def write_key_set(mission: Mission, directory: str | Path) -> dict[str, Path]:
     roles = host_roles(mission)
     for role in roles:
         p = d / key_file_name(role)
-        if p.exists():
-            raise KeyError_(f"{p} exists; remove the old key set first to make a new one")
+        if p.exists() and not replace:
+            raise KeyError_(
+                f"{p} exists; `zplatform keygen --rotate` replaces the key set (every host "
+                "then needs its new file)"
+            )
     for role in roles:
         p = d / key_file_name(role)
         mine = keys.for_node(role)
@@ -497,12 +504,17 @@ def write_key_set(mission: Mission, directory: str | Path) -> dict[str, Path]:
             f"role {role}",
             *(f"{ln} {mine.link_key(ln).hex()}" for ln in mine.links),
         ]
+        aside = p.with_name(p.name + ".new") if replace else p
         try:
-            fd = os.open(p, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+            if replace:
+                aside.unlink(missing_ok=True)
+            fd = os.open(aside, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
         except OSError as exc:
             raise KeyError_(f"cannot write a key file {p}: {exc.strerror}") from exc
         with os.fdopen(fd, "w") as f:
             f.write("\n".join(lines) + "\n")
+        if replace:
+            os.replace(aside, p)
         out[role] = p
     return out
 

@@ -215,11 +215,13 @@ def cmd_keygen(args: argparse.Namespace) -> int:
     """Write a new key set (one file per host role, mode 0600, in a 0700
     directory) and, for a mission whose links run mutual TLS, the mission's
     PKI beside it (only what is missing); say which file goes to which host.
-    Refuses to overwrite a key set."""
+    An existing set is kept (said so, exit 0) unless ``--rotate``."""
     from .auth import (
         KEY_FILE_ENV,
         default_key_dir,
         host_roles,
+        key_file_name,
+        read_key_file,
         role_host,
         role_links,
         write_key_set,
@@ -227,7 +229,19 @@ def cmd_keygen(args: argparse.Namespace) -> int:
 
     mission = load_mission(resolve_mission(args.target), code=False)
     where = Path(args.out) if args.out else default_key_dir(mission)
-    files = write_key_set(mission, where)
+    have = [where / key_file_name(r) for r in host_roles(mission)]
+    if not args.rotate and all(p.is_file() for p in have):
+        # The README's order runs `up` (which makes the set on first use)
+        # before `keygen`: the set is there, and it is what every host needs.
+        read_key_file(have[0], mission)  # a damaged or foreign set still says so
+        print(
+            f"the key set of mission {mission.mission!r} is in {where}/ already (made by "
+            "`up` on first use or an earlier keygen): nothing written; `--rotate` replaces "
+            "it (every host then needs its new file)"
+        )
+        _keygen_pki(mission, where)
+        return 0
+    files = write_key_set(mission, where, replace=args.rotate)
     print(f"wrote the key set of mission {mission.mission!r} to {where}/ (one file per host role):")
     for role in host_roles(mission):
         links = ", ".join(role_links(mission, role))
@@ -291,6 +305,11 @@ def build_parser() -> argparse.ArgumentParser:
         "--out",
         metavar="DIR",
         help="the directory to write the set into (default: the mission's key directory)",
+    )
+    c.add_argument(
+        "--rotate",
+        action="store_true",
+        help="replace an existing key set with new keys (every host then needs its new file)",
     )
     c.set_defaults(func=cmd_keygen)
     c = sub.add_parser(

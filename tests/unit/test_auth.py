@@ -314,8 +314,17 @@ def test_keygen_verb(no_env_key: Path) -> None:
         line = next(x for x in r.stdout.splitlines() if x.strip().startswith(f"{role}.keys"))
         assert host in line and ", ".join(role_links(IGNITER, role)) in line
         assert stat.S_IMODE((d / f"{role}.keys").stat().st_mode) == 0o600
+    # Again (as after `up`, which makes the set on first use): kept, said so, exit 0.
+    before = (d / "cn.keys").read_bytes()
     r = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=60)
-    assert r.returncode == 2 and "exists" in r.stderr and "Traceback" not in r.stderr
+    assert r.returncode == 0 and "already" in r.stdout and "--rotate" in r.stdout, r
+    assert (d / "cn.keys").read_bytes() == before
+    # --rotate replaces every file with new keys, 0600 still.
+    r = subprocess.run([*cmd, "--rotate"], capture_output=True, text=True, env=env, timeout=60)
+    assert r.returncode == 0, r.stderr
+    assert (d / "cn.keys").read_bytes() != before
+    assert stat.S_IMODE((d / "cn.keys").stat().st_mode) == 0o600
+    assert not list(d.glob("*.new"))
     out = no_env_key / "elsewhere"
     r = subprocess.run([*cmd, "--out", str(out)], capture_output=True, text=True, env=env)
     assert r.returncode == 0 and (out / "dn1.keys").exists()
