@@ -187,7 +187,9 @@ def cmd_ps(args: argparse.Namespace) -> int:
     now = time.time()
     for e in entries:
         logs = " ".join(e.logs.values()) or "-"
-        print(f"{e.name:<20} {e.pid:>8} {now - e.started:>7.0f}s  {e.mission_file:<40} {logs}")
+        # The file the user started, not `up --free-ports`' remapped copy.
+        shown = e.source_file or e.mission_file
+        print(f"{e.name:<20} {e.pid:>8} {now - e.started:>7.0f}s  {shown:<40} {logs}")
     return 0
 
 

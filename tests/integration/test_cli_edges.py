@@ -487,6 +487,22 @@ def test_registry_names_stale_entries_and_resolution(runtime: Path, tmp_path: Pa
     assert registry.running() == []
 
 
+def test_ps_shows_the_file_the_user_started(
+    runtime: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """`up --free-ports` runs a remapped copy; `ps` names the user's file."""
+    a = registry.register("led_test", str(CONFIGS / "led_test.yaml"))
+    try:
+        copy = runtime / "led_test.mission.yaml"
+        copy.write_text((CONFIGS / "led_test.yaml").read_text())
+        a.update(mission_file=str(copy))
+        assert main(["ps"]) == 0
+        out = capsys.readouterr().out
+        assert str((CONFIGS / "led_test.yaml").resolve()) in out and str(copy) not in out, out
+    finally:
+        a.remove()
+
+
 def test_a_directory_named_like_a_running_mission_does_not_hide_it(
     runtime: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
