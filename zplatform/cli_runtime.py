@@ -134,6 +134,13 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         "instead of listening: recorded rows carry the frame's own stamp as rx_time_ns; "
         "the CN's frames are checked with a tool's keys, a device node's with its own key file",
     )
+    p.add_argument(
+        "--run",
+        metavar="ID",
+        type=_run_id,
+        help="with --from-recorder: read only this run (its id, the CN epoch the summary "
+        "lists; or 'last'); default every run in the directory",
+    )
     p.add_argument("--summary", metavar="JSON", help="write the logger's summary JSON here")
     p.set_defaults(func=cmd_log)
 
@@ -279,6 +286,8 @@ def cmd_world(args: argparse.Namespace) -> int:
 def cmd_log(args: argparse.Namespace) -> int:
     if args.from_recorder is not None:
         return _log_from_recorder(args)
+    if args.run is not None:
+        raise CommandError("--run picks a run of a flight recorder: use it with --from-recorder")
     setup_logging()
     from .ground.logger import log_summary_line
     from .node.ground import run_ground_logger
@@ -301,6 +310,13 @@ MAX_PROBLEM_LINES = 50
 """Lines of damage a recorder read prints before it only counts them."""
 
 
+def _run_id(text: str) -> str:
+    """``--run``: ``last`` or a run id (a non-negative integer)."""
+    if text != "last" and not text.isdigit():
+        raise argparse.ArgumentTypeError(f"expected a run id (an integer) or 'last', got {text!r}")
+    return text
+
+
 def _log_from_recorder(args: argparse.Namespace) -> int:
     """``log --from-recorder DIR``: a recorder directory into the ground's
     files (:func:`zplatform.recorder.export`). Exit 0 when the files were
@@ -319,7 +335,10 @@ def _log_from_recorder(args: argparse.Namespace) -> int:
     # Checked with the keys of the host role that holds the frames' link:
     # the CN's telemetry with a tool's, a DN's replies with that DN's.
     keys = load_keys(mission, reader_role(mission, recorded_node(args.from_recorder)))
-    s = export(args.from_recorder, mission, keys, args.out, ev)
+    run: int | str | None = None
+    if args.run is not None:
+        run = "last" if args.run == "last" else int(args.run)
+    s = export(args.from_recorder, mission, keys, args.out, ev, run=run)
     for line in s.problems[:MAX_PROBLEM_LINES]:
         print(f"zplatform log: {line}", file=sys.stderr)
     if len(s.problems) > MAX_PROBLEM_LINES:
@@ -334,6 +353,13 @@ def _log_from_recorder(args: argparse.Namespace) -> int:
         f"{ev}; {s.damaged} damaged record(s) or file(s) skipped, {s.refused} refused, "
         f"{s.not_recorded} loop(s) the recorder had dropped"
     )
+    if s.picked is None and len(s.run_ids) > 1:
+        print(
+            f"zplatform log: the recorder holds {len(s.run_ids)} runs "
+            f"({', '.join(str(r) for r in s.run_ids)}), read one after another into one "
+            "file; --run ID (or --run last) reads one",
+            file=sys.stderr,
+        )
     return 0
 
 

@@ -50,13 +50,13 @@ def cmd_sim(args: argparse.Namespace) -> int:
     script = load_commands(args.commands) if args.commands else []
     duration = args.duration if args.duration is not None else script_duration_s(script)
     ev_path = events_path(args.log) if args.log else None
-    if args.log:
+    if ev_path is not None:
         check_output(args.log, "telemetry log")
         check_output(ev_path, "event log")
     if args.summary:
         check_output(args.summary, "summary")
     runner = LockstepRunner(mission, commands=script)
-    if args.log:
+    if ev_path is not None:
         with CsvLogger(args.log, runner.control.layout) as log:
             res = runner.run(duration, log=log)
         with EventWriter(ev_path) as ev:

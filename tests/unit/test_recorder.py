@@ -573,3 +573,33 @@ def test_log_from_recorder_writes_the_files_and_names_the_damage(
         err.startswith(f"zplatform log: {seg.name}: offset ") and "checksum does not match" in err
     )
     assert (tmp_path / "t.events.jsonl").exists()
+
+
+def test_export_reads_one_run_of_several(tmp_path: Path) -> None:
+    """Two runs in one directory: every run by default (named), or one by id or 'last'."""
+    tm = Telemetry()
+    tool = keys(tm.mission, "tool")
+    for run, loops in ((EPOCH, (1, 30)), (EPOCH + 10**12, (1, 20))):
+        rec = FlightRecorder(
+            tmp_path,
+            head(run=run),
+            **{
+                "max_bytes": 1 << 20,
+                "file_bytes": 64 * 1024,
+                "fsync_ms": None,
+                "buffer_bytes": 1 << 20,
+                "max_record": len(tm.frame(0)),
+                "interval_s": 0.001,
+            },
+        )
+        for n, f in tm.frames(*loops):
+            assert rec.frame(n, f)
+        rec.close()
+    s = export(tmp_path, tm.mission, tool, tmp_path / "all.csv", None)
+    assert (s.rows, s.runs, s.run_ids, s.picked) == (50, 2, (EPOCH, EPOCH + 10**12), None)
+    s = export(tmp_path, tm.mission, tool, tmp_path / "one.csv", None, run=EPOCH)
+    assert (s.rows, s.first_loop, s.last_loop, s.runs, s.picked) == (30, 1, 30, 1, EPOCH)
+    s = export(tmp_path, tm.mission, tool, tmp_path / "last.csv", None, run="last")
+    assert (s.rows, s.last_loop, s.picked) == (20, 20, EPOCH + 10**12)
+    with pytest.raises(RecordingError, match=r"holds no run 7 \(its runs: "):
+        export(tmp_path, tm.mission, tool, tmp_path / "x.csv", None, run=7)

@@ -57,7 +57,9 @@ class ExportSummary(msgspec.Struct, frozen=True):
     frames or events that did not check; ``damaged``: damaged records and
     unreadable files; ``not_recorded``: loops the recorder said it dropped;
     ``runs``/``runs_ended``: runs met, and those that ended with their END
-    record; ``problems``: one line per refusal, damage and drop, in order.
+    record; ``problems``: one line per refusal, damage and drop, in order;
+    ``run_ids``: every run the directory holds; ``picked``: the run read
+    (None: all of them).
     """
 
     node: str
@@ -72,6 +74,8 @@ class ExportSummary(msgspec.Struct, frozen=True):
     runs: int
     runs_ended: int
     problems: list[str]
+    run_ids: tuple[int, ...] = ()
+    picked: int | None = None
 
 
 def frames_of(
@@ -125,6 +129,8 @@ def export(
     keys: KeySet | None,
     csv_path: str | Path,
     events_path: str | Path | None,
+    *,
+    run: int | str | None = None,
 ) -> ExportSummary:
     """Write the recorder directory ``directory`` as a telemetry CSV and an
     events JSONL (module doc). Blocks on file I/O.
@@ -133,9 +139,18 @@ def export(
     readable segment or is of a node (or a layout) that is not
     ``mission``'s, KeyError_ when ``keys`` cannot check its frames
     (:func:`reader_role` says whose keys can); everything else is counted
-    in the summary."""
+    in the summary. ``run``: only that run's records (its id, the CN epoch,
+    or ``"last"``); None reads every run in the directory, in file order
+    (:attr:`ExportSummary.run_ids` names them). RecordingError for a run the
+    directory does not hold."""
     reader = RecorderReader(directory)
     first = _first_head(reader, directory)
+    run_ids = _run_ids(reader)
+    if run == "last":
+        run = run_ids[-1] if run_ids else None
+    if run is not None and run not in run_ids:
+        held = ", ".join(str(r) for r in run_ids) or "none"
+        raise RecordingError(f"{str(directory)!r} holds no run {run} (its runs: {held})")
     layout, region, ch = frames_of(mission, first.node, keys)
     dv = DataVector(layout)
     codec = RegionCodec(dv, region)
@@ -174,7 +189,7 @@ def export(
     events = EventWriter(events_path) if events_path is not None else None
     try:
         for head, rec in reader.records():
-            if not usable(head):
+            if (run is not None and head.run != run) or not usable(head):
                 continue
             runs.add(head.run)
             where = f"{head.path.name}: offset {rec.offset}"
@@ -235,4 +250,17 @@ def export(
         runs=len(runs),
         runs_ended=len(ended),
         problems=problems,
+        run_ids=tuple(run_ids),
+        picked=run if isinstance(run, int) else None,
     )
+
+
+def _run_ids(reader: RecorderReader) -> list[int]:
+    """Every run the directory's segments belong to, oldest first (by id:
+    a run's id is its CN epoch, which grows from run to run)."""
+    ids: set[int] = set()
+    for index, path in reader.segments:
+        head = reader.head_of(index, path)
+        if head is not None:
+            ids.add(head.run)
+    return sorted(ids)

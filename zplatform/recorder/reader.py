@@ -265,13 +265,22 @@ class RecorderReader:
         node and layout the directory holds), without reading further and
         without adding to :attr:`problems`; None when no segment has one."""
         for index, path in self.segments:
-            for rec in scan_segment(path, lambda _text: None):
-                if rec.type == HEAD and rec.offset == 0 and len(rec.payload) <= MAX_HEAD_LEN:
-                    try:
-                        return SegmentHead.parse(path, index, rec.payload)
-                    except RecordingError:
-                        pass
-                break
+            head = self.head_of(index, path)
+            if head is not None:
+                return head
+        return None
+
+    @staticmethod
+    def head_of(index: int, path: Path) -> SegmentHead | None:
+        """The header of one segment (reading its first record only), None
+        when it has no readable one; adds nothing to :attr:`problems`."""
+        for rec in scan_segment(path, lambda _text: None):
+            if rec.type == HEAD and rec.offset == 0 and len(rec.payload) <= MAX_HEAD_LEN:
+                try:
+                    return SegmentHead.parse(path, index, rec.payload)
+                except RecordingError:
+                    pass
+            break
         return None
 
     def _problem(self, text: str) -> None:
