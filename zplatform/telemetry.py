@@ -74,6 +74,15 @@ def _fmt_f32(v: float) -> str:
     return np.format_float_scientific(np.float32(v), unique=True, trim="0")
 
 
+def f32_value(v: float) -> float:
+    """``v``, an f32 element's value, as the shortest float that reads back as
+    the same f32: what the element holds, without the widened double's
+    noise (0.7f is 0.7, not 0.699999988079071). NaN and infinities pass."""
+    if v != v or v == _INF or v == -_INF:
+        return float(v)
+    return float(np.format_float_positional(np.float32(v), unique=True, trim="0"))
+
+
 def _enum_formatter(names: tuple[str, ...]) -> Formatter:
     n = len(names)
 

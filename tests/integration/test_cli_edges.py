@@ -129,6 +129,24 @@ def test_tap_without_bounds_gives_up_on_silence(
     assert "no sample on rocket/** within 0.5 s" in capsys.readouterr().err
 
 
+def test_tap_shows_f32_values_at_their_own_precision() -> None:
+    """0.7 in an f32 element taps as 0.7, not the widened double 0.699999988079071."""
+    from zplatform.auth import load_keys
+    from zplatform.ground.tap import TapDecoder, format_tap
+    from zplatform.loop import ControlLogic
+    from zplatform.mission import load_mission
+
+    mission = load_mission(CONFIGS / "flight.yaml")
+    cn = ControlLogic(mission, keys=load_keys(mission, "cn"), epoch=10**18)
+    cn.begin(1, 10**18 + 10**7)
+    cn.dv.set("airbrake_rate_ps", 0.7)  # an f32 parameter
+    tm = cn.finish()
+    assert tm is not None
+    d = TapDecoder(mission).decode("rocket/cn/telemetry", bytes(tm))
+    assert "airbrake_rate_ps=0.7 " in format_tap(d, as_json=False)
+    assert json.loads(format_tap(d, as_json=True))["values"]["airbrake_rate_ps"] == 0.7
+
+
 def test_tap_prints_events_decoded() -> None:
     from zplatform.auth import load_keys
     from zplatform.ground.tap import TapDecoder, format_tap

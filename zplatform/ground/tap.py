@@ -27,6 +27,7 @@ from ..config import Mission
 from ..datavector import DataVector, Layout
 from ..errors import CodecError, CommandError, TransportError
 from ..events import EventReader
+from ..telemetry import f32_value
 from ..transport import KeySpace
 from .records import EventRecord
 
@@ -111,11 +112,14 @@ class TapDecoder:
             return {"key": key, "error": str(exc)}
         values: dict[str, Any] = {}
         for name, spec in dv.layout.elements.items():
-            values[name] = (
-                dv.get_name(name)
-                if spec.enum is not None
-                else (dv.get(name).tolist() if spec.count else dv.get(name))
-            )
+            if spec.enum is not None:
+                values[name] = dv.get_name(name)
+                continue
+            v = dv.get(name).tolist() if spec.count else dv.get(name)
+            if spec.scalar.kind == "float" and spec.scalar.size == 4:
+                # An f32 shown at its own precision, not the double's noise.
+                v = [f32_value(x) for x in v] if spec.count else f32_value(v)
+            values[name] = v
         out: dict[str, Any] = {"key": key, "seq": frame.seq, "t_ns": frame.t_ns}
         if verified is not None:
             out["verified"] = verified
