@@ -143,6 +143,9 @@ class RunSummary(msgspec.Struct, frozen=True):
     final_state: str | None
     nodes: dict[str, CnSummary | DnSummary | GnSummary | None]
     exit_codes: dict[str, int]
+    takeover: str | None = None
+    """A redundant mission whose command changed hands: who commanded, in
+    which term, for how many loops (None: one commander throughout)."""
 
 
 S = TypeVar("S", CnSummary, DnSummary, GnSummary)

@@ -359,6 +359,18 @@ def merge_summaries(
         default=None,
     )
     cn = last or cns.get("cn") or cn_fallback
+    # A takeover: the run is the vehicle's, numbered on across commanders, so
+    # its loops are the last commander's last loop, and the account says who
+    # commanded when (the last commander alone counted only its own loops).
+    took = sorted(
+        (c for c in cns.values() if c is not None and c.loops and c.term),
+        key=lambda c: (c.term, c.last_loop),
+    )
+    takeover = None
+    if last is not None and any(c.takeovers for c in took):
+        takeover = "command changed hands: " + ", then ".join(
+            f"{c.node} (term {c.term}, {c.loops} loops)" for c in took
+        )
     gn = read_summary(paths["gn"], GnSummary) if "gn" in paths else None
     for name, p in paths.items():
         if name in cns:
@@ -369,7 +381,7 @@ def merge_summaries(
             nodes[name] = read_summary(p, DnSummary)
     return RunSummary(
         mission=mission.mission,
-        loops=cn.loops if cn else 0,
+        loops=(cn.last_loop if takeover and cn else cn.loops if cn else 0),
         duration_s=cn.duration_s if cn else 0.0,
         rate_hz=cn.rate_hz if cn else 0.0,
         loop_overruns=cn.loop_overruns if cn else None,
@@ -384,6 +396,7 @@ def merge_summaries(
         final_state=cn.final_state if cn else None,
         nodes=nodes,
         exit_codes=codes,
+        takeover=takeover,
     )
 
 
@@ -391,12 +404,19 @@ def format_run_summary(s: RunSummary) -> str:
     """The one-line account ``up`` prints at the end."""
     if s.loops == 0:
         return f"{s.mission}: no loop ran (see the messages above)"
-    return (
+    line = (
         f"{s.mission}: {s.loops} loops in {s.duration_s:.2f} s "
         f"({s.rate_hz:.2f} Hz); overruns loop {s.loop_overruns} sync {s.sync_overruns}; "
-        f"missed {s.missed}; late {s.late}; telemetry {s.telemetry_received} "
-        f"(gaps {s.telemetry_gaps}); errors {s.errors}; final state {s.final_state}"
+        f"missed {_per_node(s.missed)}; late {_per_node(s.late)}; telemetry "
+        f"{s.telemetry_received} (gaps {s.telemetry_gaps}); errors {s.errors}; final state "
+        f"{s.final_state}"
     )
+    return f"{line}; {s.takeover}" if s.takeover else line
+
+
+def _per_node(counts: dict[str, int]) -> str:
+    """``dn0 3, dn1 0``: per-node counts in words (``-`` for none)."""
+    return ", ".join(f"{n} {c}" for n, c in counts.items()) or "-"
 
 
 def format_board_lines(s: RunSummary) -> list[str]:
