@@ -92,7 +92,11 @@ class ConfirmScreen(ModalScreen[bool]):
     ]
     DEFAULT_CSS = """
     ConfirmScreen { align: center middle; }
-    #dialog { width: 60; height: auto; border: thick $error; padding: 1 2; background: $panel; }
+    #dialog { width: 80%; max-width: 100; height: auto; border: thick $error; padding: 1 2;
+              background: $panel; }
+    /* The question wraps inside the dialog: a Label is as wide as its text
+       by default, which cut a long ARM question at the screen's edge. */
+    #question { width: 100%; }
     #dialog Horizontal { height: auto; align: center middle; }
     #dialog Button { margin: 1 2 0 2; }
     """
