@@ -55,7 +55,7 @@ from .ground.records import EventRecord
 from .ground.script import MIN_DURATION_S, SETTLE_S
 from .ground.status import RateMeter, status_line
 from .mission import load_mission
-from .node.runtime import LOG_LEVEL_ENV, PARENT_ENV, STOP_PIPE_ENV
+from .node.runtime import LOG_LEVEL_ENV, PARENT_ENV, STATUS_LINE_ENV, STOP_PIPE_ENV
 from .summary import (
     CnSummary,
     DnSummary,
@@ -97,10 +97,14 @@ node has stopped; a close still under way then is left to the process's exit."""
 class Children:
     """The node processes ``up`` spawned; every one is reaped on exit."""
 
-    def __init__(self, *, quiet: bool = False) -> None:
+    def __init__(self, *, quiet: bool = False, status_line: bool = False) -> None:
         self.procs: dict[str, subprocess.Popen[bytes]] = {}
         # `up --quiet`: the nodes log warnings and errors only (LOG_LEVEL_ENV).
         self._env = {LOG_LEVEL_ENV: "WARNING"} if quiet else {}
+        if status_line:
+            # `up` redraws a status line in place (\r) on this terminal: each
+            # node's log line first clears it, so the two never run together.
+            self._env[STATUS_LINE_ENV] = "1"
 
     def spawn(self, name: str, argv: list[str], *, ready: float | None = None) -> None:
         """Start ``zplatform ARGV``; with ``ready`` (seconds), wait for its
@@ -550,7 +554,7 @@ def _supervise(
     end_after_script: bool,
     settle_s: float | None = None,
 ) -> int:
-    children = Children(quiet=quiet)
+    children = Children(quiet=quiet, status_line=sys.stdout.isatty() and not quiet)
     summaries = {n: tmp / f"{n}.json" for n in spawn}
     stopping = False
 

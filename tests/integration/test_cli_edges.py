@@ -576,3 +576,41 @@ def test_up_quiet_prints_no_info(tmp_path: Path, runtime: Path) -> None:
     )
     assert r.returncode == 0, r.stderr
     assert " INFO " not in r.stderr and r.stdout == "", (r.stdout, r.stderr)
+
+
+def test_up_s_status_line_never_runs_into_a_node_s_log_line(runtime: Path) -> None:
+    """On a terminal `up` redraws its status line in place (\\r); each node's
+    log line starts by clearing it, so the two never share a line."""
+    import pty
+    import re
+
+    main_fd, sub_fd = pty.openpty()
+    up = subprocess.Popen(
+        [sys.executable, "-m", "zplatform", "up", "configs/minimal.yaml", "--duration", "3",
+         "--free-ports", "--no-realtime"],
+        cwd=ROOT, stdin=subprocess.DEVNULL, stdout=sub_fd, stderr=sub_fd,
+        env=dict(os.environ, PYTHONUNBUFFERED="1"),
+    )  # fmt: skip
+    os.close(sub_fd)
+    out = bytearray()
+    try:
+        while True:
+            try:
+                chunk = os.read(main_fd, 65536)
+            except OSError:  # EIO: every writer of the terminal has gone
+                break
+            if not chunk:
+                break
+            out += chunk
+        assert up.wait(timeout=60) == 0, out.decode(errors="replace")
+    finally:
+        os.close(main_fd)
+        if up.poll() is None:
+            up.kill()
+            up.wait()
+    text = out.decode(errors="replace")
+    assert re.search(r"\rloop +\d+ ", text), text  # the status line, drawn in place
+    stamps = [m.start() for m in re.finditer(r"20\d\d-\d\d-\d\d \d\d:\d\d:\d\d,\d{3} ", text)]
+    assert stamps, text
+    for at in stamps:
+        assert text[max(0, at - 4) : at] == "\r\x1b[K", repr(text[max(0, at - 120) : at + 40])

@@ -184,11 +184,28 @@ LOG_LEVEL_ENV = "ZPLATFORM_LOG_LEVEL"
 default ``INFO``."""
 
 
+STATUS_LINE_ENV = "ZPLATFORM_STATUS_LINE"
+"""Set by ``up`` when it redraws a status line in place on the terminal the
+nodes share: each log line then starts by clearing that line."""
+
+CLEAR_LINE = "\r\x1b[K"
+"""Carriage return and erase-to-end-of-line: what a log line starts with
+beside ``up``'s status line (:data:`STATUS_LINE_ENV`)."""
+
+
+def log_format() -> str:
+    """The nodes' log line format: :data:`CLEAR_LINE` first when ``up``'s
+    status line shares the terminal (stderr a terminal and
+    :data:`STATUS_LINE_ENV` set), so the line never runs into the status."""
+    clear = CLEAR_LINE if os.environ.get(STATUS_LINE_ENV) and sys.stderr.isatty() else ""
+    return clear + "%(asctime)s %(name)s %(levelname)s %(message)s"
+
+
 def setup_logging(verbose: bool = False) -> None:
     """Log to stderr: DEBUG with ``verbose``, else :data:`LOG_LEVEL_ENV` or INFO."""
     level = os.environ.get(LOG_LEVEL_ENV, "INFO").upper()
     logging.basicConfig(
         level=logging.DEBUG if verbose else logging.getLevelNamesMapping().get(level, logging.INFO),
-        format="%(asctime)s %(name)s %(levelname)s %(message)s",
+        format=log_format(),
         stream=sys.stderr,
     )
