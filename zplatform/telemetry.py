@@ -397,6 +397,7 @@ def plot_telemetry(
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    from matplotlib.ticker import MaxNLocator
 
     t0 = int(rows[0]["rx_time_ns"])
     t = [(int(r["rx_time_ns"]) - t0) / 1e9 for r in rows]
@@ -415,6 +416,10 @@ def plot_telemetry(
                 ax.set_ylim(-0.2, 1.2)
             elif nums is not None:
                 ax.plot(t, nums)
+                if all(v.lstrip("-").isdigit() for v in raw):
+                    # An integer element: whole-number ticks only (a counter
+                    # between 3 and 4 has no 3.5).
+                    ax.yaxis.set_major_locator(MaxNLocator(integer=True))
             else:  # an enum written by name: its levels in order of appearance
                 names = sorted(set(raw), key=raw.index)
                 ax.step(t, [names.index(v) for v in raw], where="post")

@@ -1,17 +1,21 @@
 """Plot a flight: the truth against the flight software's estimate and its apogee target.
 
-``python -m nodes.flight.plot [--mission configs/flight.yaml] [--commands
-configs/flight.commands] --out docs/flight.png`` flies the mission in the
-lockstep runner and draws, against mission time: the true altitude (the
-vehicle world's, which the flight software never sees), the EKF's
-altitude, the apogee target, the airbrake deployment and the chute
-deployments, with every state change marked. Needs matplotlib (the
-``plot`` extra). Deterministic: the same files give the same picture.
+``python nodes/flight/plot.py --out flight.png`` (from any directory; or
+``python -m nodes.flight.plot`` from the repository's root) flies
+configs/flight.yaml with its command script in the lockstep runner and draws,
+against mission time: the true altitude (the vehicle world's, which the
+flight software never sees), the EKF's altitude, the apogee target, the
+airbrake deployment and the chute deployments, with every state change
+marked. ``--csv FILE`` plots a telemetry CSV instead (``zplatform up --log``
+or ``sim --log``: a flight already flown, no truth in it). Needs matplotlib
+(the ``plot`` extra). Deterministic: the same files give the same picture.
 """
 
 from __future__ import annotations
 
 import argparse
+import bisect
+import csv
 from pathlib import Path
 from typing import Any
 
@@ -55,23 +59,76 @@ def fly(mission: Path, commands: Path, seconds: float) -> dict[str, list[Any]]:
     return out
 
 
+def from_csv(path: Path) -> dict[str, list[Any]]:
+    """The same series from a telemetry CSV of the flight mission (no truth:
+    telemetry holds what the flight software knew). ValueError naming the
+    column for a CSV of another mission."""
+    with path.open(newline="") as f:
+        rows = list(csv.DictReader(f))
+    need = ("cn_time_ns", "cn_state", "nav_h_m", "apogee_target_m", "dn1_airbrake_cmd")
+    missing = [c for c in need if rows and c not in rows[0]]
+    if not rows or missing:
+        raise ValueError(f"{path}: not a telemetry CSV of the flight mission (no {missing})")
+    out: dict[str, list[Any]] = {k: [] for k in ("t", "nav", "brake", "target", "states", "chutes")}
+    out["truth"] = []
+    t0 = int(rows[0]["cn_time_ns"])
+    last, fired = "", {"drogue": False, "main": False}
+    for r in rows:
+        t = (int(r["cn_time_ns"]) - t0) / 1e9
+        out["t"].append(t)
+        out["nav"].append(float(r["nav_h_m"]))
+        out["brake"].append(float(r["dn1_airbrake_cmd"]))
+        out["target"].append(float(r["apogee_target_m"]))
+        if r["cn_state"] != last:
+            out["states"].append((t, r["cn_state"]))
+            last = r["cn_state"]
+        for name in fired:
+            now = r.get(f"{name}_fired") in ("1", "True", "true")
+            if now and not fired[name]:
+                out["chutes"].append((t, name))
+            fired[name] = fired[name] or now
+    return out
+
+
 def main(argv: list[str] | None = None) -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0] if __doc__ else None)
-    ap.add_argument("--mission", type=Path, default=ROOT / "configs" / "flight.yaml")
-    ap.add_argument("--commands", type=Path, default=ROOT / "configs" / "flight.commands")
-    ap.add_argument("--seconds", type=float, default=70.0)
-    ap.add_argument("--out", type=Path, required=True)
+    ap = argparse.ArgumentParser(
+        description="Plot a flight of configs/flight.yaml: altitude (truth and the EKF's "
+        "estimate), the apogee target, the airbrakes, the chutes and every state change.",
+    )
+    ap.add_argument(
+        "--mission",
+        type=Path,
+        default=ROOT / "configs" / "flight.yaml",
+        help="the mission to fly in lockstep (default: the repository's configs/flight.yaml)",
+    )
+    ap.add_argument(
+        "--commands",
+        type=Path,
+        default=ROOT / "configs" / "flight.commands",
+        help="its command script (default: configs/flight.commands)",
+    )
+    ap.add_argument(
+        "--seconds", type=float, default=70.0, help="longest flight to fly (default 70 s)"
+    )
+    ap.add_argument(
+        "--csv",
+        type=Path,
+        help="plot this telemetry CSV (`zplatform up --log`, `sim --log`) instead of flying",
+    )
+    ap.add_argument("--out", type=Path, required=True, help="the PNG to write")
     a = ap.parse_args(argv)
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    d = fly(a.mission, a.commands, a.seconds)
+    d = from_csv(a.csv) if a.csv is not None else fly(a.mission, a.commands, a.seconds)
     fig, (ax, bx) = plt.subplots(
         2, 1, figsize=(10, 6.5), sharex=True, gridspec_kw={"height_ratios": [3, 1]}
     )
-    ax.plot(d["t"], d["truth"], label="truth (physics)", lw=2.2, color="0.6")
+    if d["truth"]:
+        ax.plot(d["t"], d["truth"], label="truth (physics)", lw=2.2, color="0.6")
+    alt = d["truth"] or d["nav"]  # what the chute arrows point at
     ax.plot(d["t"], d["nav"], label="estimate (EKF on the CN)", lw=1.0, color="C0")
     ax.plot(
         d["t"], d["target"], ls="--", color="C3", lw=1, label=f"apogee target {d['target'][-1]:g} m"
@@ -89,17 +146,25 @@ def main(argv: list[str] | None = None) -> None:
             va="bottom",
         )
     for t, chute in d["chutes"]:
+        # The arrow points at the vehicle where the chute came out.
+        at = alt[min(bisect.bisect_left(d["t"], t), len(alt) - 1)]
         ax.annotate(
             f"{chute} out",
-            (t, 0),
-            xytext=(0, 40),
+            (t, at),
+            xytext=(12, 36),
             textcoords="offset points",
             fontsize=8,
             color="C2",
             arrowprops={"arrowstyle": "->", "color": "C2"},
         )
+    top = max(max(alt), max(d["target"]))
+    ax.set_ylim(top=top * 1.15)  # headroom for the labels above the apogee
     ax.set_ylabel("altitude above the pad (m)")
-    ax.set_title("configs/flight.yaml in lockstep: truth vs estimate vs apogee target")
+    ax.set_title(
+        f"{a.csv.name}: estimate vs apogee target"
+        if a.csv is not None
+        else "configs/flight.yaml in lockstep: truth vs estimate vs apogee target"
+    )
     ax.legend(loc="upper right", fontsize=8)
     ax.grid(alpha=0.3)
     bx.plot(d["t"], d["brake"], color="C1", lw=1.2)

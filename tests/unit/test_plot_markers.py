@@ -182,3 +182,62 @@ def test_marker_labels_do_not_overlap(
         assert d.figure.y0 <= box.y0 and box.y1 <= d.figure.y1, text
         if text != "(title)":
             assert box.y0 >= d.top.y1 - 1, f"{text!r} covers the plot"
+
+
+def test_an_integer_element_gets_whole_number_ticks(
+    monkeypatch: pytest.MonkeyPatch, tmp_path: Path
+) -> None:
+    pytest.importorskip("matplotlib")
+    from matplotlib.figure import Figure
+
+    rows = [{"rx_time_ns": str(i * 10**8), "misses": str(3 + (i > 4))} for i in range(10)]
+    ticks: list[list[float]] = []
+    save = Figure.savefig
+
+    def measure(fig: Any, *a: Any, **kw: Any) -> None:
+        save(fig, *a, **kw)
+        ticks.append([float(v) for v in fig.axes[0].get_yticks()])
+
+    monkeypatch.setattr(Figure, "savefig", measure)
+    plot_telemetry(rows, ["misses"], tmp_path / "i.png")
+    (drawn,) = ticks
+    assert drawn and all(v.is_integer() for v in drawn), drawn
+
+
+def test_the_flight_plot_reads_a_csv_and_points_its_chute_arrows_at_the_vehicle(
+    monkeypatch: pytest.MonkeyPatch, tmp_path: Path
+) -> None:
+    pytest.importorskip("matplotlib")
+    from matplotlib.figure import Figure
+
+    from nodes.flight import plot
+
+    # A flight mission CSV's columns, a rise and fall, the drogue at the top.
+    rows = []
+    for i in range(100):
+        h = 100.0 - abs(i - 50) * 2.0
+        rows.append(
+            {
+                "cn_time_ns": str(i * 10**8),
+                "cn_state": "COAST" if i < 50 else "DROGUE",
+                "nav_h_m": str(h),
+                "apogee_target_m": "120",
+                "dn1_airbrake_cmd": "0",
+                "drogue_fired": "1" if i >= 50 else "0",
+                "main_fired": "0",
+            }
+        )
+    csv_path = tmp_path / "fl.csv"
+    csv_path.write_text(
+        ",".join(rows[0]) + "\n" + "".join(",".join(r.values()) + "\n" for r in rows)
+    )
+    arrows: list[tuple[float, float]] = []
+    save = Figure.savefig
+
+    def measure(fig: Any, *a: Any, **kw: Any) -> None:
+        arrows.extend(t.xy for t in fig.axes[0].texts if "out" in t.get_text())
+        save(fig, *a, **kw)
+
+    monkeypatch.setattr(Figure, "savefig", measure)
+    plot.main(["--csv", str(csv_path), "--out", str(tmp_path / "f.png")])
+    assert arrows == [(5.0, 100.0)]  # the drogue's arrow at the apogee, not the axis
