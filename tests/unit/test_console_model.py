@@ -185,3 +185,21 @@ def test_a_redundant_missions_header_says_who_commands_in_which_term() -> None:
     _feed(plain, 1, 10 * MS)
     assert plain.status().commander == ""
     assert "commands (term" not in status_line(MISSION, plain.dv, None)
+
+
+def test_times_show_as_times_of_day_and_durations_never_raw_ns() -> None:
+    from zplatform.ground.records import ns_text
+
+    m = ConsoleModel(MISSION)
+    spec = m.layout.elements
+    t = (12 * 3600 + 3 * 60 + 10) * 10**9 + 123_456_789 + 20_000 * 86_400 * 10**9
+    m.dv.set("cn_time_ns", t)
+    m.dv.set("cn_time_in_state_ns", 2_500_000_000)
+    assert m.format_value(spec["cn_time_ns"]) == "12:03:10.123"
+    assert m.format_value(spec["cn_time_in_state_ns"]) == "2.500 s"
+    assert [ns_text(v) for v in (0, 18_742, -5_706, 3_200_000)] == [
+        "0",
+        "18.7 us",
+        "-5.7 us",
+        "3.200 ms",
+    ]

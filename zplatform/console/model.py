@@ -41,6 +41,7 @@ from ..ground.records import (
     ParamRow,
     TelemetryCounters,
     format_outcome,
+    ns_text,
     param_rows,
     value_text,
 )
@@ -281,6 +282,8 @@ class ConsoleModel:
             items = v[:8].tolist()
             text = ", ".join(_fmt(x) for x in items)
             return f"[{text}{', ...' if spec.count > 8 else ''}]"
+        if spec.name.endswith("_ns") and spec.scalar.kind == "int":
+            return ns_text(int(v))  # a time of day or a duration, never raw ns
         return _fmt(v)
 
     def level(self, spec: ElementSpec) -> str:

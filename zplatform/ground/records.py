@@ -24,12 +24,14 @@ if TYPE_CHECKING:
     from ..config import Mission
 
 __all__ = [
+    "EPOCH_TIME_NS",
     "REFUSALS",
     "CommandOutcome",
     "EventRecord",
     "ParamRow",
     "TelemetryCounters",
     "format_outcome",
+    "ns_text",
     "param_rows",
     "value_text",
 ]
@@ -195,6 +197,27 @@ def param_rows(mission: Mission, values: Mapping[str, object] | None) -> list[Pa
             )
         )
     return rows
+
+
+EPOCH_TIME_NS = 10**17
+"""An ``*_ns`` value at or above this (1973) is a time of day (the node
+clock counts from the Unix epoch); below it, a duration or an offset."""
+
+
+def ns_text(v: int) -> str:
+    """An ``*_ns`` element's value for a person: a time of day as UTC
+    ``HH:MM:SS.mmm``, a duration or offset in s, ms or us (``0`` as ``0``)."""
+    if v >= EPOCH_TIME_NS:
+        s, ns = divmod(v, 1_000_000_000)
+        return f"{(s // 3600) % 24:02d}:{(s // 60) % 60:02d}:{s % 60:02d}.{ns // 1_000_000:03d}"
+    a = abs(v)
+    if a == 0:
+        return "0"
+    if a < 1_000_000:
+        return f"{v / 1e3:.1f} us"
+    if a < 1_000_000_000:
+        return f"{v / 1e6:.3f} ms"
+    return f"{v / 1e9:.3f} s"
 
 
 def value_text(v: object, *, bools: tuple[str, str] = ("false", "true"), digits: int = 7) -> str:
