@@ -123,3 +123,17 @@ def test_tap_before_up_has_registered_the_name_fails_at_once(
     for doc in ("docs/tutorial.md", "docs/operations.md"):
         text = " ".join((ROOT / doc).read_text(encoding="utf-8").split())
         assert "no such file or running mission" in text, doc
+
+
+def test_the_reference_names_the_key_set_auth_reads() -> None:
+    """Keys are one file per host role in the mission's key set directory
+    (zplatform/auth.py), not one key file per mission."""
+    from zplatform.auth import default_key_dir, key_file_name
+
+    reference = (ROOT / "docs" / "mission-reference.md").read_text(encoding="utf-8")
+    row = next(line for line in reference.splitlines() if line.startswith("| `$.mission` |"))
+    assert default_key_dir("m").parts[-3:] == ("zplatform", "keys", "m")
+    assert "~/.config/zplatform/keys/<mission>/" in row
+    for role in ("cn", "dn0", "gn", "tool"):
+        assert f"`{key_file_name(role)}`" in row, role
+    assert "<mission>.key`" not in reference
