@@ -60,27 +60,48 @@ def test_the_demo_says_how_to_reach_the_cli() -> None:
     assert ".venv/bin/zplatform" in tail
 
 
-def _tour_commands() -> list[list[str]]:
-    tour = _section(_readme(), "A 5-minute tour")
+def _commands(markdown: str) -> list[list[str]]:
+    """The `zplatform` command lines of the indented code blocks, without
+    `zplatform` and comments. In a transcript (a block with `$ ` prompts)
+    only the prompted lines are commands; the rest is what they print."""
     out = []
-    for line in tour.splitlines():
-        if line.startswith("    zplatform "):
-            out.append(shlex.split(line.strip(), comments=True)[1:])
+    for block in re.findall(r"(?:^    .*\n?)+", markdown, re.M):
+        lines = [line[4:] for line in block.splitlines()]
+        if any(line.startswith("$ ") for line in lines):
+            lines = [line[2:] for line in lines if line.startswith("$ ")]
+        for line in lines:
+            if line.startswith("zplatform "):
+                out.append(shlex.split(line, comments=True)[1:])
     return out
 
 
-def test_the_tour_s_commands_are_taken_by_the_cli_as_written() -> None:
-    cmds = _tour_commands()
-    verbs = [c[0] for c in cmds]
-    for verb in ("check", "sim", "up", "ps", "tap", "cmd", "log", "ground", "plot"):
-        assert verb in verbs, verb
+def _check_parses(cmds: list[list[str]]) -> None:
     cli._load_extras()
     parser = cli.build_parser()
     for argv in cmds:
-        parser.parse_args(argv)  # SystemExit (a usage error) fails the test
+        try:
+            parser.parse_args(argv)
+        except SystemExit as exc:  # 0: --version, --help; else a usage error
+            if exc.code:
+                pytest.fail(f"the CLI refuses: zplatform {shlex.join(argv)}")
         for arg in argv:
             if arg.startswith("configs/"):
                 assert (ROOT / arg).is_file(), arg
+
+
+def test_the_tour_s_commands_are_taken_by_the_cli_as_written() -> None:
+    cmds = _commands(_section(_readme(), "A 5-minute tour"))
+    verbs = [c[0] for c in cmds]
+    for verb in ("check", "sim", "up", "ps", "tap", "cmd", "log", "ground", "plot"):
+        assert verb in verbs, verb
+    _check_parses(cmds)
+
+
+@pytest.mark.parametrize("page", ["operations.md", "missions.md", "security.md"])
+def test_the_docs_commands_are_taken_by_the_cli_as_written(page: str) -> None:
+    cmds = _commands((ROOT / "docs" / page).read_text(encoding="utf-8"))
+    assert cmds, page
+    _check_parses(cmds)
 
 
 def _shipped_missions_table() -> str:
