@@ -52,11 +52,12 @@ def cmd_sim(args: argparse.Namespace) -> int:
     ev_path = events_path(args.log) if args.log else None
     if args.log:
         check_output(args.log, "telemetry log")
+    if ev_path is not None:
         check_output(ev_path, "event log")
     if args.summary:
         check_output(args.summary, "summary")
     runner = LockstepRunner(mission, commands=script)
-    if args.log:
+    if args.log and ev_path is not None:
         with CsvLogger(args.log, runner.control.layout) as log:
             res = runner.run(duration, log=log)
         with EventWriter(ev_path) as ev:
