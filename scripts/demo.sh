@@ -20,4 +20,7 @@ rc=0
 echo "demo: the run's figures (JSON) are in led_test.summary.json"
 echo "demo: plot it with: .venv/bin/pip install -e '.[plot]' &&" \
   ".venv/bin/zplatform plot led_test.csv cn_state led_a_fb --out led_test.png"
+# The command is in .venv, not on PATH: say how to reach it.
+echo "demo: the zplatform command is in .venv: run 'source .venv/bin/activate'" \
+  "(then 'zplatform --help'), or call it as .venv/bin/zplatform"
 exit "$rc"

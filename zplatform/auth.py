@@ -28,7 +28,7 @@ that commands (ground node, console, ``cmd``); ``tool``, a read-only tool
 another DN, as the CN, or as the telemetry; a tool cannot command. The
 symmetric downlink and event keys are shared by every ground: a
 compromised ground could forge telemetry or events to other grounds, never
-command the vehicle (README, "Authentication", weighs this against
+command the vehicle (docs/security.md, "Keys per link", weighs this against
 signatures).
 
 **The tag.** Each channel's key is derived from its link's key and names
@@ -523,7 +523,7 @@ _LINE_RE = re.compile(r"^([a-z][a-z0-9_-]*)\s+(\S+)$")
 
 
 def read_key_file(path: str | Path, mission: Mission) -> KeySet:
-    """The keys in one host's key file (format: README, "Authentication").
+    """The keys in one host's key file (format: docs/security.md, key files).
 
     KeyError_ (one line, naming the file) when it is missing, not a regular
     file, readable or writable by group or others (with the ``chmod`` that

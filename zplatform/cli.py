@@ -233,7 +233,7 @@ def cmd_keygen(args: argparse.Namespace) -> int:
     where = Path(args.out) if args.out else default_key_dir(mission)
     have = [where / key_file_name(r) for r in host_roles(mission)]
     if not args.rotate and all(p.is_file() for p in have):
-        # The README's order runs `up` (which makes the set on first use)
+        # The documented order (docs/operations.md) runs `up` (which makes the set on first use)
         # before `keygen`: the set is there, and it is what every host needs.
         read_key_file(have[0], mission)  # a damaged or foreign set still says so
         print(

@@ -1430,8 +1430,9 @@ class Mission(_Struct):
     mission: Annotated[
         str,
         Meta(
-            description="The mission's name: its key file (`~/.config/zplatform/keys/"
-            "<mission>.key`), its name while `up` runs (`zplatform ps`). At most 128 "
+            description="The mission's name: its key set directory (`~/.config/zplatform/"
+            "keys/<mission>/`, one key file per host role: `cn.keys`, `dn0.keys`, ..., "
+            "`gn.keys`, `tool.keys`), its name while `up` runs (`zplatform ps`). At most 128 "
             "characters; no control characters, no `* $ ? # /`."
         ),
     ]

@@ -22,6 +22,12 @@ pytestmark = pytest.mark.timeout(300)
 PAGES = (
     "index.html",  # README.md
     "tutorial/index.html",
+    "operations/index.html",
+    "missions/index.html",
+    "security/index.html",
+    "faults/index.html",
+    "testing/index.html",
+    "internals/index.html",
     "mission-reference/index.html",
     "architecture/index.html",
     "requirements/index.html",
