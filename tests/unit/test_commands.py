@@ -61,6 +61,7 @@ state_machine:
 
 WHITELIST = """
 commands:
+  writable: [x, z, big, w, y, flag, mode, valve, ctl_mode, cn_fault]
   whitelist:
     A: [NOOP, LAUNCH, ABORT, WRITE, HOLD, RESUME, ARM]
     B: [ABORT]
@@ -207,6 +208,7 @@ def test_no_whitelist_allows_everything() -> None:
 HAZARD = """
 commands:
   hazardous: [LAUNCH, WRITE]
+  writable: [x]
   whitelist:
     A: [NOOP, LAUNCH, ABORT, WRITE, ARM]
 """
