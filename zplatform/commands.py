@@ -323,7 +323,7 @@ def check_config(mission: Mission, *, warn: bool = True) -> None:
         index[name] = i
     outputs = output_states(mission)
     wl = cfg.whitelist
-    for name, listed in cfg.write_states.items():
+    for name, named in cfg.write_states.items():
         w = f"$.commands.write_states.{name}"
         if name not in index:
             raise ConfigError(
@@ -331,7 +331,7 @@ def check_config(mission: Mission, *, warn: bool = True) -> None:
                 "mean nothing",
                 w,
             )
-        for j, state in enumerate(listed):
+        for j, state in enumerate(named):
             if state not in states:
                 raise ConfigError(f"{state!r} is not a state; states: {states}", f"{w}[{j}]")
             if state in wl and "WRITE" not in wl[state]:

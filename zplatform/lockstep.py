@@ -730,7 +730,8 @@ def _replay(
         cn.adopt()
     except (ZPlatformError, IndexError, ValueError, OverflowError) as exc:
         raise RecordingError(
-            f"the recording's first vector cannot be taken up by this mission's control node: {exc}"
+            f"the recording's first vector cannot be taken up by this mission's control "
+            f"node: {exc}"
         ) from exc
     recorded = _RecordedHealth()
     if mission.health is not None:  # the recorded blocks, on the recorded loops
