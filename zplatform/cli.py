@@ -154,9 +154,9 @@ def cmd_check(args: argparse.Namespace) -> int:
             f"WRITE may set {len(writable)} element(s) (commands.writable; deny by default)"
             + (":" if writable else "")
         )
-        for w in writable:
-            arm = "  (ARM n, then WRITE n+1)" if w.protected else ""
-            print(f"  {w.element:<24} in {', '.join(w.states)}{arm}")
+        for e in writable:
+            arm = "  (ARM n, then WRITE n+1)" if e.protected else ""
+            print(f"  {e.element:<24} in {', '.join(e.states)}{arm}")
     if outputs:
         print(f"hazardous outputs: {len(outputs)} (hazardous_outputs; interlocked on their node):")
         for h in outputs:
