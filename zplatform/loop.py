@@ -37,11 +37,16 @@ One DN trigger::
 
     reply = dn.trigger(payload, now)   # check the CN's frame, frame the reply
     ...the driver answers the query with reply (an error when it is None)
-    if dn.triggered: dn.run(t)         # sensors -> controllers -> actuators
+    if dn.triggered: dn.run(t)         # sensors -> controllers -> interlock -> actuators
 
 The reply carries ``dnX_to_cn`` as it stood *before* this loop's run, so
 what a DN's run writes reaches the CN one loop later (thesis 3.4.5.3).
 ``loop`` on a DN is the CN's loop number (the trigger frame's ``seq``).
+
+A DN holding a hazardous output (``hazardous_outputs``) gets the CN's state
+in every trigger (``dnX_state``, written by :meth:`ControlLogic.begin`); its
+interlock (:mod:`zplatform.interlocks`) writes the safe value of each such
+output whose states do not include it, before the actuators run.
 
 The last loop of a run: a driver that knows a loop is the CN's last (the
 run's planned end, or one more loop after a stop was asked for) passes
@@ -688,6 +693,11 @@ class DeviceLogic:
     caught by their sets, and an exception of the board's own ``step`` (a
     physics hook bug, a board that cannot latch its inputs) is counted in
     ``dnX_errors`` and reported once per streak.
+
+    The node's hazardous outputs (``hazardous_outputs``) are driven only
+    in their states: after the controllers, :attr:`interlock` writes the
+    safe value of each whose states do not include the one its trigger
+    carries (``dnX_state``), counted in ``dnX_interlocked``.
 
     A board with a link (a driver of
     :data:`~zplatform.config.BOARD_LINK_DRIVERS`: serial, gpiod) is reported
