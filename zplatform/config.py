@@ -1735,6 +1735,7 @@ def _keyed_sections() -> tuple[tuple[tuple[str, ...], Any], ...]:
         (("regions",), list[ElementConfig]),
         (("state_machine", "states"), StateConfig),
         (("commands", "whitelist"), list[str]),
+        (("commands", "write_states"), list[str]),
     )
 
 

@@ -424,6 +424,11 @@ def test_a_hazardous_output_is_written_only_in_its_states() -> None:
             "'flag' is not in commands.writable",
         ),
         (
+            "commands:\n  writable: [x]\n  write_states: {x: A}\n",
+            "$.commands.write_states.x",
+            "Expected `array`, got `str`",
+        ),
+        (
             "commands:\n  writable: [x]\n  write_states: {x: [A, Z]}\n",
             "$.commands.write_states.x[1]",
             "'Z' is not a state",
