@@ -120,7 +120,7 @@ def cmd_check(args: argparse.Namespace) -> int:
     Exit 0 with warnings, 2 with ``--strict`` (each warning printed as an
     error line), 2 for a mission that does not load or a deployment that
     does not fit it."""
-    from .safety import safety_warnings
+    from .safety import doors, safety_warnings
 
     # load_mission builds every controller and device on scratch vectors,
     # so a bad class path or component config fails here, not on the pad.
@@ -129,6 +129,9 @@ def cmd_check(args: argparse.Namespace) -> int:
     rep = _mission_report(m)
     links, links_text = _links_report(m)
     rep.update(links)
+    writable, outputs = doors(m)
+    rep["writable"] = [msgspec.to_builtins(w) for w in writable]
+    rep["hazardous_outputs"] = [msgspec.to_builtins(h) for h in outputs]
     rc = 2 if args.strict and warnings else 0
     if args.json:
         rep["warnings"] = [msgspec.to_builtins(w) for w in warnings]
@@ -146,6 +149,22 @@ def cmd_check(args: argparse.Namespace) -> int:
         f"sync deadline {m.sync_timeout_ms:g} ms)"
     )
     print(links_text)
+    if m.has_ground:
+        print(
+            f"WRITE may set {len(writable)} element(s) (commands.writable; deny by default)"
+            + (":" if writable else "")
+        )
+        for e in writable:
+            arm = "  (ARM n, then WRITE n+1)" if e.protected else ""
+            print(f"  {e.element:<24} in {', '.join(e.states)}{arm}")
+    if outputs:
+        print(f"hazardous outputs: {len(outputs)} (hazardous_outputs; interlocked on their node):")
+        for h in outputs:
+            safe = str(h.safe).lower() if isinstance(h.safe, bool) else f"{h.safe:g}"
+            print(
+                f"  {h.element:<24} {h.node}: driven only in {', '.join(h.states) or 'no state'}"
+                f"; else {safe}"
+            )
     if m.standby is not None:
         f = m.takeover
         print(

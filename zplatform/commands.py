@@ -33,13 +33,17 @@ Validation, first failure wins (the status goes to ``cn_cmd_status``):
    ``gn_cmd_seq - 1``, accepted at most :data:`ARM_WINDOW_NS` before. An
    ARM confirms one command only;
 5. ``REJECTED_BAD_ARGUMENT``: for WRITE, the element index names no
-   writable element, or the value does not fit its type (enum: an index in
+   writable element (``commands.writable``, deny by default; a parameter
+   changes only by PRM_SET), or the value does not fit its type (enum: an index in
    range; ints: integral and in range; bool: 0 or 1; floats: finite and in
    range); for PRM_SET, the index names no parameter, or the value does not
    fit its type;
-6. PRM_SET only: ``REJECTED_PARAM_STATE``, the parameter may not change in
-   this state (its ``states``); ``REJECTED_OUT_OF_BOUNDS``, the value is
-   outside its ``[min, max]``;
+6. WRITE only: ``REJECTED_NOT_ALLOWED``, the element may not be written in
+   this state (``commands.write_states``; a hazardous output only in its
+   own states, ``hazardous_outputs``). PRM_SET only:
+   ``REJECTED_PARAM_STATE``, the parameter may not change in this state
+   (its ``states``); ``REJECTED_OUT_OF_BOUNDS``, the value is outside its
+   ``[min, max]``;
 7. PRM_SAVE only: ``REJECTED_BUSY``, the previous save is still being
    written; ``REJECTED_NOT_ALLOWED`` in a mission without parameters.
 
@@ -79,6 +83,7 @@ from .codes import Command, CommandStatus
 from .config import CMD_NAMES
 from .errors import ConfigError
 from .events import EV, EventLog
+from .interlocks import output_states
 from .params import ParamSlot, ParamTable
 from .statemachine import logic_writable, why_not_writable
 
@@ -96,7 +101,9 @@ __all__ = [
     "check_config",
     "protected_elements",
     "request_refusal",
+    "transition_readers",
     "writable_elements",
+    "write_states",
 ]
 
 log = logging.getLogger("zplatform.commands")
@@ -181,23 +188,46 @@ def protected_elements(mission: Mission) -> list[str]:
 
 
 def writable_elements(mission: Mission) -> list[str]:
-    """Elements a WRITE command may write, in Data Vector order.
+    """Elements a WRITE command may write, in Data Vector order: those
+    ``commands.writable`` lists, and no other (deny by default)."""
+    # Never a parameter: check_config refuses one here, and this list
+    # must not let one through whoever calls it before that check.
+    chosen = set(mission.commands.writable) - {p.name for p in mission.params}
+    return [n for n in _all_element_names(mission) if n in chosen]
 
-    ``commands.writable`` when given; otherwise every scalar element CN logic
-    may write (:func:`~zplatform.statemachine.logic_writable`: the mission's
-    own elements of ``cn`` and ``cn_to_dnX``, controller modes, ``cn_fault``).
-    """
-    if mission.commands.writable is not None:
-        # Never a parameter: check_config refuses one here, and this list
-        # must not let one through whoever calls it before that check.
-        chosen = set(mission.commands.writable) - {p.name for p in mission.params}
-        return [n for n in _all_element_names(mission) if n in chosen]
-    allowed = logic_writable(mission)
-    out = []
-    for r in mission.region_names():
-        for e in mission.regions[r]:
-            if e.name in allowed and "[" not in e.type:
-                out.append(e.name)
+
+def write_states(mission: Mission) -> dict[str, list[str]]:
+    """Each writable element (:func:`writable_elements`, in that order) and
+    the states in which a WRITE may set it, in state order: the states
+    whose whitelist allows WRITE, narrowed to ``commands.write_states``'s
+    list for the element when it has one, and to a hazardous output's
+    states (``hazardous_outputs``). Pure."""
+    cfg = mission.commands
+    outputs = output_states(mission)
+    wl = cfg.whitelist
+    states = [s for s in _state_names(mission) if s not in wl or "WRITE" in wl[s]]
+    out: dict[str, list[str]] = {}
+    for name in writable_elements(mission):
+        listed = cfg.write_states.get(name)
+        out[name] = [
+            s
+            for s in states
+            if (listed is None or s in listed) and (name not in outputs or s in outputs[name])
+        ]
+    return out
+
+
+def transition_readers(mission: Mission) -> dict[str, list[tuple[str, int]]]:
+    """Each element a transition condition reads, and where: ``(state,
+    index of the transition)`` pairs in YAML order. Pure."""
+    out: dict[str, list[tuple[str, int]]] = {}
+    sm = mission.state_machine
+    if sm is None:
+        return out
+    for state, st in sm.states.items():
+        for i, t in enumerate(st.transitions):
+            if t.element is not None:
+                out.setdefault(t.element, []).append((state, i))
     return out
 
 
@@ -213,8 +243,15 @@ def check_config(mission: Mission, *, warn: bool = True) -> None:
     * hazardous entries are command names other than ``NONE`` and ``ARM``
       (ARM is the confirmation), and a state that allows a hazardous
       command also allows ARM (else it could never be accepted there);
-    * ``writable`` elements exist, are scalars, and may be written by CN
-      logic (not platform bookkeeping, not received from a peer).
+    * ``writable`` elements exist, are scalars, are listed once, and may be
+      written by CN logic (not platform bookkeeping, not received from a
+      peer, not a parameter);
+    * ``write_states`` names writable elements and states whose whitelist
+      allows WRITE (for a hazardous output, only its own states); every
+      writable element may be written in some state (:func:`write_states`);
+    * no writable element may be written in a state whose transitions read
+      it (:func:`transition_readers`): a WRITE must never fire a transition
+      (the ground would drive the flight's events).
 
     With ``warn``, logs a warning for a ``cn_cmd == X`` transition in a
     state whose whitelist refuses ``X`` (the transition can never fire).
@@ -267,22 +304,74 @@ def check_config(mission: Mission, *, warn: bool = True) -> None:
                 "protected elements need an ARM first, but no state allows ARM",
                 "$.commands.protected",
             )
-    if cfg.writable is not None:
-        table = {e.name: (r, e) for r, es in mission.regions.items() for e in es}
-        can = logic_writable(mission)
-        for i, name in enumerate(cfg.writable):
-            w = f"$.commands.writable[{i}]"
-            if name not in table:
-                close = difflib.get_close_matches(name, list(table), n=3)
-                hint = f"; did you mean {', '.join(close)}?" if close else ""
-                raise ConfigError(f"no element named {name!r} in the Data Vector{hint}", w)
-            region, e = table[name]
-            if "[" in e.type:
+    table = {e.name: (r, e) for r, es in mission.regions.items() for e in es}
+    can = logic_writable(mission)
+    index: dict[str, int] = {}
+    for i, name in enumerate(cfg.writable):
+        w = f"$.commands.writable[{i}]"
+        if name not in table:
+            close = difflib.get_close_matches(name, list(table), n=3)
+            hint = f"; did you mean {', '.join(close)}?" if close else ""
+            raise ConfigError(f"no element named {name!r} in the Data Vector{hint}", w)
+        region, e = table[name]
+        if "[" in e.type:
+            raise ConfigError(f"element {name!r} is an array ({e.type}); WRITE sets one scalar", w)
+        if name not in can:
+            raise ConfigError(why_not_writable(mission, region, name), w)
+        if name in index:
+            raise ConfigError(f"element {name!r} is listed twice", w)
+        index[name] = i
+    outputs = output_states(mission)
+    wl = cfg.whitelist
+    for name, named in cfg.write_states.items():
+        w = f"$.commands.write_states.{name}"
+        if name not in index:
+            raise ConfigError(
+                f"{name!r} is not in commands.writable: a WRITE never sets it, so its states "
+                "mean nothing",
+                w,
+            )
+        for j, state in enumerate(named):
+            if state not in states:
+                raise ConfigError(f"{state!r} is not a state; states: {states}", f"{w}[{j}]")
+            if state in wl and "WRITE" not in wl[state]:
+                raise ConfigError(f"state {state}'s whitelist does not allow WRITE", f"{w}[{j}]")
+            if name in outputs and state not in outputs[name]:
                 raise ConfigError(
-                    f"element {name!r} is an array ({e.type}); WRITE sets one scalar", w
+                    f"{name!r} is a hazardous output that may be driven only in "
+                    f"{', '.join(outputs[name]) or 'no state'} (hazardous_outputs), not in "
+                    f"{state}",
+                    f"{w}[{j}]",
                 )
-            if name not in can:
-                raise ConfigError(why_not_writable(mission, region, name), w)
+    may = write_states(mission)
+    readers = transition_readers(mission)
+    for name, i in index.items():
+        w = (
+            f"$.commands.write_states.{name}"
+            if name in cfg.write_states
+            else f"$.commands.writable[{i}]"
+        )
+        if not may[name]:
+            also = (
+                f", and it is a hazardous output of {', '.join(outputs[name]) or 'no state'}"
+                if name in outputs
+                else ""
+            )
+            raise ConfigError(
+                f"element {name!r} may be written in no state (none of its states allows "
+                f"WRITE{also}): drop it from commands.writable",
+                w,
+            )
+        for state, k in readers.get(name, ()):
+            if state in may[name]:
+                raise ConfigError(
+                    f"element {name!r} is read by a transition of state {state} "
+                    f"(`$.state_machine.states.{state}.transitions[{k}]`) and a WRITE may set it "
+                    f"in {state}: one command would fire that transition; name the states where "
+                    f"it may be written in commands.write_states.{name} (without {state}), or "
+                    "leave it out of commands.writable",
+                    w,
+                )
     sm = mission.state_machine
     if warn and sm is not None:
         for state, st in sm.states.items():
@@ -383,10 +472,15 @@ class CommandHandler:
         )
         self._hazardous = tuple(c in mission.commands.hazardous for c in CMD_NAMES)
         targets: list[Handle | None] = [None] * len(dv.layout.elements)
-        for name in writable_elements(mission):
+        # Per element index, the states (by cn_state's index) a WRITE may set it in.
+        may: list[tuple[bool, ...]] = [()] * len(dv.layout.elements)
+        for name, ok in write_states(mission).items():
             h = dv.handle(name)
             targets[h.spec.index] = h
+            may[h.spec.index] = tuple(s in ok for s in states)
         self._targets = tuple(targets)
+        self._may_write = tuple(may)
+        self._param_names = frozenset(p.name for p in mission.params)
         protected = [False] * len(dv.layout.elements)
         for name in protected_elements(mission):
             protected[dv.layout.element(name).index] = True
@@ -550,7 +644,7 @@ class CommandHandler:
                     f"{ARM_WINDOW_NS // 1_000_000_000} s",
                 )
         if cmd == Command.WRITE:
-            return self._write()
+            return self._write(state)
         if cmd == Command.PRM_SET:
             return self._prm_set(slot, state)
         if cmd == Command.PRM_SAVE:
@@ -569,17 +663,30 @@ class CommandHandler:
         idx = self._g_elem.get()
         return idx < len(self._protected) and self._protected[idx]
 
-    def _write(self) -> tuple[int, str]:
+    def _write(self, state: int) -> tuple[int, str]:
         idx = self._g_elem.get()
         value = self._g_value.get()
         target = self._targets[idx] if idx < len(self._targets) else None
         if target is None:
             if idx < len(self._names_by_index):
+                name = self._names_by_index[idx]
+                if name in self._param_names:
+                    why = "it is a parameter: set it with PRM_SET"
+                else:
+                    why = "commands.writable does not list it (a WRITE sets only those)"
                 return (
                     CommandStatus.REJECTED_BAD_ARGUMENT,
-                    f"element {self._names_by_index[idx]} is not writable",
+                    f"element {name} is not writable: {why}",
                 )
             return CommandStatus.REJECTED_BAD_ARGUMENT, f"no element with index {idx}"
+        may = self._may_write[idx]
+        if state < len(may) and not may[state]:
+            allowed = [s for s, ok in zip(self._states, may, strict=False) if ok]
+            return (
+                CommandStatus.REJECTED_NOT_ALLOWED,
+                f"a WRITE of {target.spec.name} is not allowed in state {self._states[state]} "
+                f"(only in {', '.join(allowed)}: commands.write_states, hazardous_outputs)",
+            )
         v, reason = _write_value(target.spec, value)
         if reason:
             return CommandStatus.REJECTED_BAD_ARGUMENT, reason

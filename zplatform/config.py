@@ -60,6 +60,7 @@ __all__ = [
     "ComponentConfig",
     "ElementConfig",
     "FaultsConfig",
+    "HazardousOutputConfig",
     "HealthConfig",
     "HealthMetric",
     "Mission",
@@ -78,6 +79,7 @@ __all__ = [
     "check_mission_name",
     "element_spec",
     "health_elements",
+    "interlocked_nodes",
     "parse_mission",
     "platform_elements",
     "relocate_mission",
@@ -546,7 +548,8 @@ class CommandsConfig(_Struct):
     state's whitelist (`REJECTED_NOT_ALLOWED`), an ARM just before a
     hazardous command, a protected WRITE or a hazardous parameter's PRM_SET
     (`REJECTED_NOT_ARMED`), a WRITE's element and value or a PRM_SET's
-    parameter and value (`REJECTED_BAD_ARGUMENT`), then for PRM_SET the
+    parameter and value (`REJECTED_BAD_ARGUMENT`), a WRITE's states
+    (`write_states`, `hazardous_outputs`: `REJECTED_NOT_ALLOWED`), then for PRM_SET the
     parameter's states (`REJECTED_PARAM_STATE`) and bounds
     (`REJECTED_OUT_OF_BOUNDS`), for PRM_SAVE a save still being written
     (`REJECTED_BUSY`)."""
@@ -567,13 +570,25 @@ class CommandsConfig(_Struct):
         ),
     ] = msgspec.field(default_factory=list)
     writable: Annotated[
-        list[str] | None,
+        list[str],
         Meta(
-            description="Elements a WRITE may set. Default: every scalar element CN logic may "
-            "write (the mission's own in `cn` and `cn_to_dnX`, controller modes, `cn_fault`). "
-            "Never a parameter (PRM_SET sets those)."
+            description="The elements a WRITE may set; deny by default: an element not listed "
+            "here is never written by a WRITE (`REJECTED_BAD_ARGUMENT`). Each is a scalar CN "
+            "logic may write (the mission's own in `cn` and `cn_to_dnX`, controller modes, "
+            "`cn_fault`), never a parameter (PRM_SET sets those), and never an element a "
+            "transition of a state where it may be written reads (a WRITE must not fire a "
+            "transition)."
         ),
-    ] = None
+    ] = msgspec.field(default_factory=list)
+    write_states: Annotated[
+        dict[str, list[str]],
+        Meta(
+            description="Per writable element, the states in which a WRITE may set it "
+            "(the state's whitelist must allow WRITE too). An element not listed here may be "
+            "written in every state whose whitelist allows WRITE; a hazardous output "
+            "(`hazardous_outputs`) only in its own states."
+        ),
+    ] = msgspec.field(default_factory=dict)
     protected: Annotated[
         list[str] | None,
         Meta(
@@ -582,6 +597,38 @@ class CommandsConfig(_Struct):
             "commands, else none."
         ),
     ] = None
+
+
+class HazardousOutputConfig(_Struct):
+    """A hazardous output (an igniter, a motor, a valve): a scalar element a
+    device node drives an actuator from, and the states in which it may be
+    driven. The CN refuses a WRITE of it in any other state, and the device
+    node holding it enforces the same rule on its own: it learns the
+    vehicle's state from each authenticated trigger (`dnX_state`) and, in a
+    state not listed, writes the output's `safe` value before its actuators
+    run, counts it in `dnX_interlocked` and events it (at most once a
+    second). A state-machine action may set it to anything but its safe
+    value only in its states (checked at load)."""
+
+    element: Annotated[
+        str,
+        Meta(
+            description="The output's element: a scalar of region `cn_to_dnX` or `dnX_to_cn` "
+            "of the device node that drives it (the mission's own, not a platform element)."
+        ),
+    ]
+    states: Annotated[
+        list[str],
+        Meta(description="The states in which the output may be driven (unique state names)."),
+    ]
+    safe: Annotated[
+        Scalar | None,
+        Meta(
+            description="The value the device node writes in every other state: fits the "
+            "element. Default: `false`, 0 or the enum's first name."
+        ),
+    ] = None
+    doc: Annotated[str, Meta(description="What the output drives.")] = ""
 
 
 class ParamConfig(_Struct):
@@ -1491,6 +1538,13 @@ class Mission(_Struct):
         Meta(description="Sensor and actuator drivers on the device nodes."),
     ] = msgspec.field(default_factory=list)
     commands: CommandsConfig = msgspec.field(default_factory=CommandsConfig)
+    hazardous_outputs: Annotated[
+        list[HazardousOutputConfig],
+        Meta(
+            description="Outputs that may be driven only in the states each names, enforced "
+            "by the CN (WRITE) and by the device node holding each (its interlock)."
+        ),
+    ] = msgspec.field(default_factory=list)
     faults: FaultsConfig = msgspec.field(default_factory=FaultsConfig)
     security: SecurityConfig = msgspec.field(default_factory=SecurityConfig)
     downlink: DownlinkConfig = msgspec.field(default_factory=DownlinkConfig)
@@ -1682,6 +1736,7 @@ def _keyed_sections() -> tuple[tuple[tuple[str, ...], Any], ...]:
         (("regions",), list[ElementConfig]),
         (("state_machine", "states"), StateConfig),
         (("commands", "whitelist"), list[str]),
+        (("commands", "write_states"), list[str]),
     )
 
 
@@ -2006,6 +2061,23 @@ def board_link_elements(m: Mission, dn: str) -> list[ElementConfig]:
     ]
 
 
+def interlocked_nodes(m: Mission) -> list[str]:
+    """The device nodes that hold a hazardous output (``hazardous_outputs``:
+    an element of their ``cn_to_dnX`` or ``dnX_to_cn``), in index order:
+    the ones whose triggers carry the CN's state (``dnX_state``) and that
+    count what their interlock refused (``dnX_interlocked``). Pure."""
+    wanted = {h.element for h in m.hazardous_outputs}
+    if not wanted:
+        return []
+    return [
+        dn
+        for dn in m.device_nodes
+        if any(
+            e.name in wanted for r in (f"cn_to_{dn}", f"{dn}_to_cn") for e in m.regions.get(r, ())
+        )
+    ]
+
+
 def platform_elements(m: Mission) -> dict[str, list[ElementConfig]]:
     """The elements every mission has (docs/architecture.md#data-vector), per region."""
     states = list(m.state_machine.states) if m.state_machine else ["IDLE"]
@@ -2103,6 +2175,17 @@ def platform_elements(m: Mission) -> dict[str, list[ElementConfig]]:
             out[f"cn_to_{dn}"].append(
                 E(f"{dn}_term", "u32", 1, doc="the term of the trigger (with a standby)")
             )
+        interlocked = dn in interlocked_nodes(m)
+        if interlocked:  # what the DN's interlock judges its hazardous outputs by
+            out[f"cn_to_{dn}"].append(
+                E(
+                    f"{dn}_state",
+                    "enum",
+                    initial,
+                    states,
+                    doc="the CN's state when it sent the trigger (with a hazardous output)",
+                )
+            )
         out[f"{dn}_to_cn"] = [
             E(f"{dn}_loop", "u64", 0, doc=f"the CN loop {dn} last ran"),
             E(f"{dn}_time_ns", "i64", 0, doc=f"{dn}'s time of that loop (ns)"),
@@ -2133,6 +2216,16 @@ def platform_elements(m: Mission) -> dict[str, list[ElementConfig]]:
                     "u32",
                     0,
                     doc=f"the highest term {dn} ran or promised (with a standby)",
+                )
+            )
+        if interlocked:
+            out[f"{dn}_to_cn"].append(
+                E(
+                    f"{dn}_interlocked",
+                    "u32",
+                    0,
+                    doc=f"hazardous outputs {dn} drove safe in a state not theirs "
+                    "(one per output and loop)",
                 )
             )
         # Its board's link, for a board that has one (BOARD_LINK_DRIVERS):

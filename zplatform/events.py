@@ -417,6 +417,13 @@ class EV:
         Severity.ACTIVITY_LO,
         "{node}: the standby {peer} is {what}",
     )
+    DN_INTERLOCKED = EventType(
+        120,
+        "dn_interlocked",
+        Severity.WARNING_HI,
+        "{node} drove {n} hazardous output(s) to their safe value in state {state}, "
+        "where they may not be driven: {names} (hazardous_outputs)",
+    )
     TM_NEW_TERM = EventType(
         76,
         "tm_new_term",

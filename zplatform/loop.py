@@ -37,11 +37,16 @@ One DN trigger::
 
     reply = dn.trigger(payload, now)   # check the CN's frame, frame the reply
     ...the driver answers the query with reply (an error when it is None)
-    if dn.triggered: dn.run(t)         # sensors -> controllers -> actuators
+    if dn.triggered: dn.run(t)         # sensors -> controllers -> interlock -> actuators
 
 The reply carries ``dnX_to_cn`` as it stood *before* this loop's run, so
 what a DN's run writes reaches the CN one loop later (thesis 3.4.5.3).
 ``loop`` on a DN is the CN's loop number (the trigger frame's ``seq``).
+
+A DN holding a hazardous output (``hazardous_outputs``) gets the CN's state
+in every trigger (``dnX_state``, written by :meth:`ControlLogic.begin`); its
+interlock (:mod:`zplatform.interlocks`) writes the safe value of each such
+output whose states do not include it, before the actuators run.
 
 The last loop of a run: a driver that knows a loop is the CN's last (the
 run's planned end, or one more loop after a stop was asked for) passes
@@ -93,7 +98,7 @@ from .codec import Frame, RegionCodec, bundle_entry, is_bundle
 from .codes import CommandStatus, SafedWhy
 from .commands import CommandHandler, RequestNumber
 from .components import Streak
-from .config import BOARD_LINK_COUNTERS, Mission
+from .config import BOARD_LINK_COUNTERS, Mission, interlocked_nodes
 from .controllers import ControllerSet
 from .datavector import DataVector, Handle, Layout
 from .devices import DeviceSet
@@ -103,6 +108,7 @@ from .faults import FaultMonitor
 from .fencing import ProbeReply, TermGuard, Verdict, read_ask, reply_frame
 from .health import HealthInput, HealthPort
 from .intake import CnRefusals, RefusalLog
+from .interlocks import OutputInterlock
 from .monitors import MonitorSet
 from .params import ParamTable, SaveResult
 from .statemachine import StateMachine
@@ -249,6 +255,12 @@ class ControlLogic:
         self._h_loop = dv.handle("cn_loop")
         self._h_time = dv.handle("cn_time_ns")
         self._final = tuple(dv.handle(f"{dn}_final") for dn in dns)
+        # The CN's state travels in each trigger to a DN holding a hazardous
+        # output (dnX_state): that DN's interlock judges its outputs by it.
+        self._h_state = dv.handle("cn_state")
+        self._state_dn = tuple(
+            dv.handle(f"{dn}_state") for dn in dns if dn in interlocked_nodes(mission)
+        )
         self._got = [False] * len(dns)
         self._divisor = mission.telemetry_divisor
         self.loop = 0
@@ -316,6 +328,10 @@ class ControlLogic:
                 # A term's first loop (take_command named the one planned; this
                 # is the one that runs, should the set-up have outlasted it).
                 self._h_term_loop.set(loop)
+        if self._state_dn:
+            state = self._h_state.get()
+            for h in self._state_dn:
+                h.set(state)
         for i, codec in enumerate(self._to_dn):
             got[i] = False
             self._final[i].set(final)
@@ -678,6 +694,11 @@ class DeviceLogic:
     physics hook bug, a board that cannot latch its inputs) is counted in
     ``dnX_errors`` and reported once per streak.
 
+    The node's hazardous outputs (``hazardous_outputs``) are driven only
+    in their states: after the controllers, :attr:`interlock` writes the
+    safe value of each whose states do not include the one its trigger
+    carries (``dnX_state``), counted in ``dnX_interlocked``.
+
     A board with a link (a driver of
     :data:`~zplatform.config.BOARD_LINK_DRIVERS`: serial, gpiod) is reported
     every run, right after its step: ``dnX_board_ok`` (that step succeeded)
@@ -711,6 +732,8 @@ class DeviceLogic:
         self.board: Board = board if board is not None else node_board(mission, node)
         self.devices = DeviceSet(mission, node, dv, self.board, self.events)
         self.controllers = ControllerSet(mission, node, dv, self.events)
+        self.interlock = OutputInterlock(mission, node, dv, self.events)
+        """The node's interlock on its hazardous outputs (:mod:`zplatform.interlocks`)."""
         self._health = (
             HealthInput(mission, node, dv, self.events) if mission.health is not None else None
         )
@@ -1091,6 +1114,8 @@ class DeviceLogic:
         self.devices.run_sensors(loop, t_ns)
         self.controllers.run(loop, t_ns)
         if not self.safed:  # while safed, outputs stay at their safe values
+            if self.interlock.active:  # a hazardous output outside its states: safe
+                self.interlock.apply(t_ns)
             self.devices.run_actuators(loop, t_ns)
         if bulk is not None:  # after the run: the reply has gone already
             bulk.publish(loop, t_ns)

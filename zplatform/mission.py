@@ -12,7 +12,11 @@ tests. They return a :class:`~zplatform.config.Mission` that passed
    * controllers' ``initial_mode``;
    * the state machine (:func:`zplatform.statemachine.check_config`):
      elements, values, writability, zero-time cycles;
-   * the commands (:func:`zplatform.commands.check_config`);
+   * the hazardous outputs (:func:`zplatform.interlocks.check_config`):
+     their elements, states and safe values, and no action driving one
+     outside its states;
+   * the commands (:func:`zplatform.commands.check_config`): among them,
+     no element WRITE-able in a state whose transitions read it;
    * the parameters (:func:`zplatform.params.check_config`): their states,
      and ARM wherever a hazardous one may change;
    * the controllers (:func:`zplatform.controllers.check_config`): every
@@ -73,6 +77,7 @@ from . import (
     controllers,
     devices,
     health,
+    interlocks,
     monitors,
     params,
     statemachine,
@@ -107,6 +112,7 @@ def check_mission(mission: Mission, *, code: bool = True) -> None:
                 f"$.controllers[{i}].initial_mode",
             )
     statemachine.check_config(mission)
+    interlocks.check_config(mission)
     commands.check_config(mission)
     params.check_config(mission)
     if code:

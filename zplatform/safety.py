@@ -33,6 +33,9 @@ makes them errors). Each is a :class:`SafetyWarning` naming its YAML path:
     flight is the end of the flight, and one restarted mid-run starts over
     in its initial state (docs/architecture.md#failover). At ``$.nodes``.
 
+:func:`doors` lists what ``check`` prints besides: every element a WRITE
+may set and every hazardous output, each with its states.
+
 The command smells apply only to a mission with a ground node (without one
 no command reaches the vehicle). The device smells import the devices'
 classes (from the mission's ``pythonpath``), so they need the mission's
@@ -45,12 +48,13 @@ from typing import Literal
 
 import msgspec
 
-from .commands import protected_elements, writable_elements
+from .commands import protected_elements, writable_elements, write_states
 from .components import decode_component_config, load_component_class, mission_code_path
 from .config import CMD_NAMES, Mission
 from .devices import Actuator
+from .interlocks import safe_value
 
-__all__ = ["SafetyWarning", "safety_warnings"]
+__all__ = ["HazardousOutput", "SafetyWarning", "WritableElement", "doors", "safety_warnings"]
 
 WarningKind = Literal[
     "unprotected_mode",
@@ -71,6 +75,52 @@ class SafetyWarning(msgspec.Struct, frozen=True):
 
     def __str__(self) -> str:
         return f"{self.message} - at `{self.path}`"
+
+
+class WritableElement(msgspec.Struct, frozen=True):
+    """An element a ground WRITE may set (``commands.writable``), the states
+    it may be set in (:func:`zplatform.commands.write_states`), whether it
+    needs ARM n, WRITE n+1 (``protected``), and the YAML path naming it."""
+
+    element: str
+    states: list[str]
+    protected: bool
+    path: str
+
+
+class HazardousOutput(msgspec.Struct, frozen=True):
+    """A hazardous output (``hazardous_outputs``): its element, the device
+    node holding it, the states it may be driven in, its safe value and the
+    YAML path naming it."""
+
+    element: str
+    node: str
+    states: list[str]
+    safe: int | float | bool
+    path: str
+
+
+def doors(mission: Mission) -> tuple[list[WritableElement], list[HazardousOutput]]:
+    """What ``zplatform check`` lists: every element a WRITE may set, and
+    every hazardous output, each with its states. Pure; raises nothing for a
+    mission that loaded."""
+    protected = set(protected_elements(mission))
+    index = {name: i for i, name in enumerate(mission.commands.writable)}
+    writable = [
+        WritableElement(name, states, name in protected, f"$.commands.writable[{index[name]}]")
+        for name, states in write_states(mission).items()
+    ]
+    table = {e.name: (r, e) for r, es in mission.regions.items() for e in es}
+    outputs = []
+    for i, h in enumerate(mission.hazardous_outputs):
+        region, e = table[h.element]
+        node = region.removeprefix("cn_to_").removesuffix("_to_cn")
+        outputs.append(
+            HazardousOutput(
+                h.element, node, list(h.states), safe_value(e, h), f"$.hazardous_outputs[{i}]"
+            )
+        )
+    return writable, outputs
 
 
 def _write_allowed_somewhere(mission: Mission) -> bool:

@@ -42,6 +42,8 @@ from .config import (
     CONTROLLER_MODES,
     BulkChannelConfig,
     ComponentConfig,
+    ElementConfig,
+    HazardousOutputConfig,
     HealthConfig,
     Mission,
     NodeConfig,
@@ -82,6 +84,7 @@ _KEY_NAMES = {
     "$.regions": "region",
     "$.state_machine.states": "state",
     "$.commands.whitelist": "state",
+    "$.commands.write_states": "element",
 }
 # Where a key's type links to when its keys are not in the mission's tables.
 _LINKS = {
@@ -442,15 +445,17 @@ def _block(anchor: str, heading: str, section: _Section, rows: slice = slice(Non
 
 def _platform_rows() -> list[str]:
     """The platform elements of every region, for a mission with a device
-    node (``dnX``) on a serial board, a ground node, a standby control node,
-    a controller, a bulk channel, a flight recorder, a parameter and health."""
+    node (``dnX``) on a serial board holding a hazardous output, a ground
+    node, a standby control node, a controller, a bulk channel, a flight
+    recorder, a parameter and health."""
     # Only the board's driver matters here (it decides the dnX_board_*
     # elements); the board is never built.
     serial = NodeConfig(board={"driver": "serial", "port": "/dev/ttyACM0"})
     example = Mission(
         mission="m",
         nodes={"cn": NodeConfig(), "cn_b": NodeConfig(), "dn0": serial, "gn": NodeConfig()},
-        regions={},
+        regions={"cn_to_dn0": [ElementConfig(name="out_x", type="bool")]},
+        hazardous_outputs=[HazardousOutputConfig(element="out_x", states=["IDLE"])],
         controllers=[ComponentConfig(name="ctl", cls="m:C", node="cn")],
         bulk=[BulkChannelConfig(name="chan", node="dn0", type="u8[8]", readers=["cn"])],
         recorder=RecorderConfig(),
@@ -484,7 +489,7 @@ def _platform_rows() -> list[str]:
     out = ["| region | element | type | meaning |", "|---|---|---|---|"]
     for region, elements in _platform_elements(example).items():
         for e in elements:
-            if e.name == "cn_state":
+            if e.name in ("cn_state", "dn0_state"):
                 kind = "enum: the states, in order"
             elif e.name == "param_x":
                 kind = "its `type`"
@@ -643,7 +648,9 @@ def reference_markdown() -> str:
         "the CN, in `cn_to_dnX` for one on dnX), bulk counters per channel on its "
         "owner and readers, flight recorder counters on each node that records "
         "(`recorder`), the board link elements `dnX_board_*` of each device node "
-        "whose board talks to hardware (`driver: serial` or `gpiod`), the health "
+        "whose board talks to hardware (`driver: serial` or `gpiod`), `dnX_state` "
+        "and `dnX_interlocked` of each device node holding a hazardous output "
+        "(`hazardous_outputs`), the health "
         "elements of each node when the mission has a `health:` section (`cn_...` "
         "in `cn`, `dnX_...` in `dnX_to_cn`; see `zplatform.health`), and "
         "`gn_to_cn` when the mission has a ground node. "

@@ -61,10 +61,13 @@ def _get(dv: DataVector, k: str) -> Any:
     return dv.get_name(k) if spec.enum is not None else dv.get(k)
 
 
-def _fire_trigger(c: Cluster, dn: str, seq: int, t_ns: int) -> bytes:
+def _fire_trigger(c: Cluster, dn: str, seq: int, t_ns: int, state: str = "FIRE") -> bytes:
     """A ``cn_to_dnX`` frame that would fire dnX's igniter (armed, commanded
-    in this very loop, its safety controller enabled)."""
+    in this very loop, its safety controller enabled), stamped with
+    ``state`` (``dnX_state``, which the DN's interlock reads: FIRE is a
+    state the igniter may fire in)."""
     dv = DataVector(Layout.for_node(c.mission, "cn"))
+    dv.set(f"{dn}_state", state)
     dv.set(f"{dn}_ign_armed", True)
     dv.set(f"{dn}_ign_cmd", True)
     dv.set(f"{dn}_ign_cmd_loop", seq)
@@ -145,10 +148,23 @@ def test_a_ground_key_cannot_fire_the_igniter(
         assert c.tm.get_name("cn_fault") == "NONE"
         # The control: the CN's own key file makes the same triggers fire both
         # igniters, with the vehicle in SAFE (what the ground's key did with
-        # one mission key for every link).
+        # one mission key for every link), once they claim a state the
+        # igniter may fire in.
         cn = load_keys(c.mission, "cn", files["cn"])
         assert cn is not None
         seal = {dn: cn.channel(f"cn_to_{dn}") for dn in ("dn0", "dn1")}
+        # First stamped with the vehicle's state, SAFE: each device node's
+        # interlock drives its igniter safe instead, and counts it.
+        deadline = time.monotonic() + 20
+        while not (c.tm.get("dn0_interlocked") and c.tm.get("dn1_interlocked")):
+            assert time.monotonic() < deadline, "the interlocks counted nothing"
+            seq = _next_loop(c, clock)
+            for dn in ("dn0", "dn1"):
+                frame = _fire_trigger(c, dn, seq, clock.now_ns(), state="SAFE")
+                _query(c, dn, bytes(seal[dn].seal(frame)))
+            c.rx.next(0.05)
+        assert c.tm.get("igniter_fired") is False
+        assert not c.tm.get("dn0_ign_out") and not c.tm.get("dn1_ign_out")
         deadline = time.monotonic() + 20
         while not c.tm.get("igniter_fired"):
             assert time.monotonic() < deadline, "the CN's key did not fire the igniter"

@@ -476,3 +476,62 @@ def test_the_controllers_keep_their_state_in_the_data_vector() -> None:
         assert a.dv.get(name) == b.dv.get(name), name
     assert list(a.dv.get("nav_cov")) == list(b.dv.get("nav_cov"))
     assert math.isfinite(a.dv.get("nav_h_m"))
+
+
+# ---------------------------------------------------------------------------
+# An attacker holding the ground key (issue "Every door locked by construction")
+
+
+def _outcome(fl: Flown, name: str) -> Any:
+    (c,) = [c for c in fl.result.commands if c.command == name]
+    return c
+
+
+def test_a_ground_write_of_the_apogee_flag_in_aborted_fires_no_drogue() -> None:
+    """An ABORT in BOOST, then a plain WRITE (no ARM) of ``ev_apogee`` while
+    the rocket still climbs: ABORTED allows WRITE and leaves for DROGUE on
+    that flag. Refused (the flag is not writable), and no drogue fires: the
+    state stays ABORTED and both drogue switches stay off."""
+    drogue_out: list[bool] = []
+    at_write: dict[str, Any] = {}
+
+    def watch(r: LockstepRunner) -> None:
+        drogue_out.extend(bool(d.dv.get(f"{d.node}_drogue_out")) for d in r.devices)
+        if r.loop == 600:  # the WRITE's loop (6.0 s)
+            t = r.world.truth  # type: ignore[union-attr]
+            at_write.update(z=t.z, vz=t.vz, state=r.control.dv.get_name("cn_state"))
+
+    script = "at 1.0 arm\nat 1.1 launch\nat 4.0 abort\nat 6.0 write ev_apogee true\n"
+    fl = fly(load_mission(FLIGHT_YAML), script, seconds=10.0, until_landed=False, each=watch)
+    # The attack's set-up is real: aborted, climbing, inside the drogue's altitude window.
+    assert at_write["state"] == "ABORTED" and at_write["vz"] > 50 and 150 < at_write["z"] < 3000
+    w = _outcome(fl, "WRITE")
+    assert w.status == "REJECTED_BAD_ARGUMENT"
+    assert "element ev_apogee is not writable: commands.writable does not list it" in w.reason
+    assert [s for _, s in fl.states] == ["SAFE", "ARMED", "BOOST", "ABORTED"]
+    assert fl.truth.drogue_at is None and not any(drogue_out)
+
+
+def test_an_armed_write_of_the_motor_command_in_safe_lights_no_motor() -> None:
+    """ARM, then WRITE ``dn0_motor_cmd`` true on the pad: refused by the CN
+    (the motor command is a hazardous output of ARMED, never writable), and
+    the motor igniter stays off while the vehicle stays SAFE."""
+    motor: list[bool] = []
+
+    def watch(r: LockstepRunner) -> None:
+        motor.append(bool(r.devices[0].dv.get("dn0_motor_fb")))
+
+    fl = fly(
+        load_mission(FLIGHT_YAML),
+        "at 1.0 arm\nat 1.1 write dn0_motor_cmd true\n",
+        seconds=4.0,
+        until_landed=False,
+        each=watch,
+    )
+    assert _outcome(fl, "ARM").status == "ACCEPTED"
+    w = _outcome(fl, "WRITE")
+    assert w.status == "REJECTED_BAD_ARGUMENT"
+    assert "element dn0_motor_cmd is not writable" in w.reason
+    assert [s for _, s in fl.states] == ["SAFE"]
+    assert not fl.truth.ignited and not any(motor)
+    assert fl.runner.devices[0].dv.get("dn0_interlocked") == 0  # nothing reached the node

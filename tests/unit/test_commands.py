@@ -16,6 +16,7 @@ from zplatform.commands import (
     CommandHandler,
     CommandStatus,
     writable_elements,
+    write_states,
 )
 from zplatform.config import Mission
 from zplatform.errors import CommandError, ConfigError
@@ -61,6 +62,7 @@ state_machine:
 
 WHITELIST = """
 commands:
+  writable: [x, z, big, w, y, flag, mode, valve, ctl_mode, cn_fault]
   whitelist:
     A: [NOOP, LAUNCH, ABORT, WRITE, HOLD, RESUME, ARM]
     B: [ABORT]
@@ -207,6 +209,7 @@ def test_no_whitelist_allows_everything() -> None:
 HAZARD = """
 commands:
   hazardous: [LAUNCH, WRITE]
+  writable: [x]
   whitelist:
     A: [NOOP, LAUNCH, ABORT, WRITE, ARM]
 """
@@ -340,9 +343,158 @@ def test_explicit_writable_list_restricts_writes() -> None:
     assert r.send("WRITE", 2, "x", 1.0) == "REJECTED_BAD_ARGUMENT"
 
 
-def test_default_writable_elements() -> None:
+def test_writable_elements_are_those_listed_in_data_vector_order() -> None:
     w = writable_elements(mission())
     assert w == ["cn_fault", "ctl_mode", "x", "z", "big", "w", "y", "flag", "mode", "valve"]
+
+
+def test_nothing_is_writable_by_default_and_the_refusal_names_the_list() -> None:
+    """Deny by default: without ``commands.writable`` a WRITE sets nothing,
+    and the CN's reason names the element and where to list it."""
+    m = mission("commands:\n  whitelist:\n    A: [NOOP, LAUNCH, ABORT, WRITE]\n")
+    assert writable_elements(m) == [] and write_states(m) == {}
+    r = Rig(m)
+    assert r.send("WRITE", 1, "flag", 1.0) == "REJECTED_BAD_ARGUMENT"
+    assert r.dv.get("flag") is False
+    e = r.events.drain()[-1]
+    assert (
+        "element flag is not writable: commands.writable does not list it (a WRITE sets only "
+        "those)" in e.text
+    )
+
+
+def test_a_write_of_a_parameter_points_to_prm_set() -> None:
+    m = mission(
+        "params:\n  - {name: gain, type: f32, default: 1, min: 0, max: 2}\n"
+        "commands:\n  writable: [flag]\n"
+    )
+    r = Rig(m)
+    assert r.send("WRITE", 1, "gain", 1.5) == "REJECTED_BAD_ARGUMENT"
+    assert "element gain is not writable: it is a parameter: set it with PRM_SET" in (
+        r.events.drain()[-1].text
+    )
+
+
+WRITE_STATES = """
+commands:
+  writable: [flag, x]
+  write_states:
+    flag: [E]
+  whitelist:
+    A: [NOOP, LAUNCH, ABORT, WRITE]
+    B: [ABORT]
+"""
+
+
+def test_write_states_limit_where_an_element_may_be_written() -> None:
+    """``flag`` only in E (absent from the whitelist: every command), ``x``
+    wherever WRITE is allowed (A and E)."""
+    m = mission(WRITE_STATES)
+    assert write_states(m) == {"x": ["A", "E"], "flag": ["E"]}
+    r = Rig(m)
+    assert r.send("WRITE", 1, "x", 3) == "ACCEPTED"
+    assert r.send("WRITE", 2, "flag", 1.0) == "REJECTED_NOT_ALLOWED"
+    assert r.dv.get("flag") is False
+    assert "a WRITE of flag is not allowed in state A (only in E" in r.events.drain()[-1].text
+    assert r.send("ABORT", 3) == "ACCEPTED" and r.dv.get_name("cn_state") == "E"
+    assert r.send("WRITE", 4, "flag", 1.0) == "ACCEPTED" and r.dv.get("flag") is True
+
+
+def test_a_hazardous_output_is_written_only_in_its_states() -> None:
+    """``valve`` (cn_to_dn0) may be driven only in E: a WRITE in A is refused
+    even though A allows WRITE and ``writable`` lists it."""
+    m = mission(
+        "hazardous_outputs:\n  - {element: valve, states: [E]}\n"
+        "commands:\n  writable: [valve]\n  whitelist:\n    A: [NOOP, ABORT, WRITE]\n"
+    )
+    assert write_states(m) == {"valve": ["E"]}
+    r = Rig(m)
+    assert r.send("WRITE", 1, "valve", 1.0) == "REJECTED_NOT_ALLOWED"
+    assert r.dv.get("valve") is False
+    assert r.send("ABORT", 2) == "ACCEPTED"
+    assert r.send("WRITE", 3, "valve", 1.0) == "ACCEPTED" and r.dv.get("valve") is True
+
+
+@pytest.mark.parametrize(
+    ("extra", "path", "message"),
+    [
+        (
+            "commands:\n  writable: [x]\n  write_states: {flag: [A]}\n",
+            "$.commands.write_states.flag",
+            "'flag' is not in commands.writable",
+        ),
+        (
+            "commands:\n  writable: [x]\n  write_states: {x: A}\n",
+            "$.commands.write_states.x",
+            "Expected `array`, got `str`",
+        ),
+        (
+            "commands:\n  writable: [x]\n  write_states: {x: [A, Z]}\n",
+            "$.commands.write_states.x[1]",
+            "'Z' is not a state",
+        ),
+        (
+            "commands:\n  writable: [x]\n  write_states: {x: [B]}\n  whitelist: {B: [ABORT]}\n",
+            "$.commands.write_states.x[0]",
+            "state B's whitelist does not allow WRITE",
+        ),
+        (
+            "commands:\n  writable: [x, x]\n",
+            "$.commands.writable[1]",
+            "listed twice",
+        ),
+        (
+            "commands:\n  writable: [x]\n  whitelist: {A: [NOOP], B: [NOOP], E: [NOOP]}\n",
+            "$.commands.writable[0]",
+            "'x' may be written in no state",
+        ),
+        (
+            "hazardous_outputs:\n  - {element: valve, states: [B]}\n"
+            "commands:\n  writable: [valve]\n  write_states: {valve: [A]}\n",
+            "$.commands.write_states.valve[0]",
+            "hazardous output that may be driven only in B (hazardous_outputs), not in A",
+        ),
+    ],
+)
+def test_rule_write_states(extra: str, path: str, message: str) -> None:
+    e = _config_error(extra)
+    assert e.path == path
+    assert message in e.reason
+
+
+TRANSITION_READS = """
+state_machine:
+  initial: A
+  states:
+    A:
+      transitions:
+        - {element: cn_cmd, op: "==", value: ABORT, to: E}
+    E:
+      transitions:
+        - {element: flag, op: "==", value: true, to: A}
+"""
+
+
+def test_rule_no_write_may_fire_a_transition() -> None:
+    """The issue's attack on configs/flight.yaml: a flight-event flag a
+    state's transition reads, WRITE-able in that state. Refused at load,
+    naming the element's entry and the transition; allowed once the
+    element's states leave that state out."""
+    base = BASE.split("state_machine:")[0] + TRANSITION_READS
+    with pytest.raises(ConfigError) as ei:
+        mission("commands:\n  writable: [x, flag]\n", base=base)
+    e = ei.value
+    assert e.path == "$.commands.writable[1]"
+    assert "'flag' is read by a transition of state E" in e.reason
+    assert "$.state_machine.states.E.transitions[0]" in e.reason
+    with pytest.raises(ConfigError) as ei:
+        mission("commands:\n  writable: [flag]\n  write_states: {flag: [A, E]}\n", base=base)
+    assert ei.value.path == "$.commands.write_states.flag"
+    m = mission("commands:\n  writable: [flag]\n  write_states: {flag: [A]}\n", base=base)
+    assert write_states(m) == {"flag": ["A"]}
+    # Nor by a whitelist that refuses WRITE where the flag is read.
+    m = mission("commands:\n  writable: [flag]\n  whitelist: {E: [NOOP]}\n", base=base)
+    assert write_states(m) == {"flag": ["A"]}
 
 
 # --------------------------------------------------------------------------- HOLD / RESUME

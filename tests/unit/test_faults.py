@@ -137,7 +137,9 @@ def test_same_loop_order_is_dn_lost_first() -> None:
 
 def test_a_write_clears_the_fault_and_a_persisting_symptom_raises_it_again() -> None:
     m = decode_mission(
-        BASE + "faults: {dn_lost_loops: 2}\ncommands: {whitelist: {IDLE: [WRITE]}}\n"
+        BASE
+        + "faults: {dn_lost_loops: 2}\n"
+        + "commands: {writable: [cn_fault], whitelist: {IDLE: [WRITE]}}\n"
     )
     r = Rig(m)
     ch = CommandHandler(m, r.dv, r.events)

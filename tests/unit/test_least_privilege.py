@@ -59,8 +59,11 @@ def forgeries(held: KeySet, frame: bytes) -> Iterator[bytes]:
 
 def fire_trigger(dn: str, seq: int, t_ns: int) -> bytes:
     """A ``cn_to_dnX`` frame that would fire dnX's igniter: armed, commanded
-    in this very loop, its safety controller enabled."""
+    in this very loop, its safety controller enabled, and stamped with the
+    state the igniter may fire in (``dnX_state``, which the DN's interlock
+    reads)."""
     dv = DataVector(Layout.for_node(IGN, "cn"))
+    dv.set(f"{dn}_state", "FIRE")
     dv.set(f"{dn}_ign_armed", True)
     dv.set(f"{dn}_ign_cmd", True)
     dv.set(f"{dn}_ign_cmd_loop", seq)

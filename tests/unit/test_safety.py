@@ -64,6 +64,7 @@ def mission(**sections: object) -> dict[str, object]:
                 "config": {"pin": 0, "command": "fire"},
             },
         ],
+        "commands": {"writable": ["vent_mode"]},  # deny by default: the mode is listed
     }
     doc.update(sections)
     return doc
@@ -85,10 +86,16 @@ def test_a_plain_write_that_can_enable_a_controller_is_reported() -> None:
 @pytest.mark.parametrize(
     "commands",
     [
-        {"hazardous": ["LAUNCH"]},  # modes are protected by default then
-        {"protected": ["vent_mode"], "whitelist": {"SAFE": ["ARM", "WRITE"]}},
+        # modes are protected by default then
+        {"hazardous": ["LAUNCH"], "writable": ["vent_mode"]},
+        {
+            "protected": ["vent_mode"],
+            "writable": ["vent_mode"],
+            "whitelist": {"SAFE": ["ARM", "WRITE"]},
+        },
         {"whitelist": {"SAFE": ["NOOP"], "FLIGHT": ["ABORT"]}},  # no WRITE anywhere
         {"writable": ["valve"]},  # the mode is not writable at all
+        {},  # nothing is writable by default
     ],
 )
 def test_protected_or_unwritable_modes_are_fine(commands: dict[str, object]) -> None:
@@ -118,7 +125,13 @@ def test_an_actuator_without_a_safe_value() -> None:
 
 
 def test_pyrotechnic_outputs_need_hazardous_commands() -> None:
-    doc = mission(commands={"protected": ["vent_mode"], "whitelist": {"SAFE": ["ARM", "WRITE"]}})
+    doc = mission(
+        commands={
+            "protected": ["vent_mode"],
+            "writable": ["vent_mode"],
+            "whitelist": {"SAFE": ["ARM", "WRITE"]},
+        }
+    )
     doc["devices"][0]["config"]["pyrotechnic"] = True  # type: ignore[index]
     doc["devices"].append({"name": "cutter", "class": f"{HERE}:Squib", "node": "dn0"})  # type: ignore[attr-defined]
     doc["recorder"] = {}  # a control node that resumes after a restart: not this test's smell
@@ -154,7 +167,8 @@ def test_a_hazardous_mission_on_plain_links(
     doc["security"] = {"transport": "auto"}  # mutual TLS: nothing to say
     assert warnings_of(doc) == []
     doc["security"] = {"transport": "plain"}
-    doc["commands"] = {"protected": ["vent_mode"]}  # nothing hazardous: plain is the default
+    # nothing hazardous: plain is the default
+    doc["commands"] = {"protected": ["vent_mode"], "writable": ["vent_mode"]}
     assert warnings_of(doc) == []
     path = tmp_path / "m.yaml"
     path.write_text(yaml.safe_dump(mission(commands={"hazardous": ["LAUNCH"]})))

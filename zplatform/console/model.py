@@ -383,18 +383,19 @@ def writable_names(mission: Mission, layout: Layout) -> list[str]:
     """Elements a WRITE may target, for completion (the CN checks again).
 
     The platform's own list (``zplatform.commands.writable_elements``) when
-    it is there; else ``commands.writable`` or every scalar outside ``gn_to_cn``.
+    it is there; else the scalars ``commands.writable`` lists (deny by
+    default: none without it).
     """
     try:
         from ..commands import writable_elements
 
         return list(writable_elements(mission))
     except (ImportError, ZPlatformError):
-        chosen = mission.commands.writable
+        chosen = set(mission.commands.writable)
         return [
             e.name
             for e in layout.elements.values()
-            if e.region != "gn_to_cn" and not e.count and (chosen is None or e.name in chosen)
+            if e.region != "gn_to_cn" and not e.count and e.name in chosen
         ]
 
 
