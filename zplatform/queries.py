@@ -118,7 +118,9 @@ class ReplyCap:
     zenoh's replier id (a reply without one counts as one anonymous
     replier). One instance per query; called on zenoh's thread (one query's
     replies arrive on one thread at a time in practice; the counts are
-    plain ints, a race costs at most a miscount by one).
+    plain ints, a race costs at most a miscount by one). A reused one
+    (a preallocated callback) is :meth:`reset` by the asker before each
+    query.
     """
 
     __slots__ = ("_seen", "dropped", "per_replier")
@@ -127,6 +129,10 @@ class ReplyCap:
         self.per_replier = per_replier
         self._seen: dict[object, int] = {}
         self.dropped = 0
+
+    def reset(self) -> None:
+        """A new query: every replier's share is whole again (any thread)."""
+        self._seen = {}  # one reference swap: zenoh's thread sees the old or the new
 
     def admit(self, reply: zenoh.Reply) -> bool:
         """Whether ``reply`` is within its replier's share (then counted)."""
