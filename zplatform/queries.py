@@ -115,8 +115,8 @@ class ReplyCap:
     share of the asker's mailbox, so the genuine replier's answer still gets
     in, and the asker reads a bounded number of replies per query. Replies
     over the cap are counted (:attr:`dropped`). Repliers are told apart by
-    zenoh's replier id (a reply without one counts as one anonymous
-    replier). One instance per query; called on zenoh's thread (one query's
+    the zenoh session of their replier id (a reply without one counts as
+    one anonymous replier). One instance per query; called on zenoh's thread (one query's
     replies arrive on one thread at a time in practice; the counts are
     plain ints, a race costs at most a miscount by one). A reused one
     (a preallocated callback) is :meth:`reset` by the asker before each
@@ -136,7 +136,10 @@ class ReplyCap:
 
     def admit(self, reply: zenoh.Reply) -> bool:
         """Whether ``reply`` is within its replier's share (then counted)."""
-        who = getattr(reply, "replier_id", None)
+        rid = getattr(reply, "replier_id", None)
+        # By session (its ZenohId): zenoh's EntityGlobalId compares by
+        # identity, and one session declaring many queryables gets one share.
+        who = getattr(rid, "zid", rid)
         n = self._seen.get(who, 0)
         if n >= self.per_replier:
             self.dropped += 1
