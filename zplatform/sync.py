@@ -94,7 +94,6 @@ __all__ = [
 ]
 
 _DROP = zenoh.CongestionControl.DROP
-_ALL = zenoh.QueryTarget.ALL
 _NO_PAYLOAD = zenoh.ZBytes(b"")
 _ERR_MAX = 512  # longest error reply read: a DN's is "dnX: reason"
 REPIN_AFTER = 3
@@ -224,7 +223,6 @@ class ControlSync:
         self._idle = threading.Event()
         self._idle.set()
         self._build_callbacks()
-        self._consolidation = zenoh.ConsolidationMode.NONE
         self.duration_ns = 0
         """How long the last :meth:`sync` took."""
 
@@ -380,31 +378,28 @@ class ControlSync:
             if trace is not None:
                 for i in range(n):
                     trace("issued", i)
-            self.session.get(
+            ask(
+                self.session,
                 self._all,
                 self._any_counted if warmup else self._any,
                 payload=self._bundle.pack(frames),
-                target=_ALL,
-                consolidation=self._consolidation,
-                timeout=self._query_timeout,
-                congestion_control=_DROP,
+                timeout_s=self._query_timeout,
             )
         else:
             for i in range(n):
-                # DROP: on a link that stopped draining (a cut cable) a
-                # BLOCKing get would freeze the CN's loop for seconds; a
-                # dropped query is a missed sync, counted like any other
-                # (tests/faults, cable cut).
+                # zplatform.queries.ask: DROP (on a link that stopped draining,
+                # a cut cable, a BLOCKing get would freeze the CN's loop for
+                # seconds; a dropped query is a missed sync, counted like any
+                # other: tests/faults, cable cut) and target ALL (a peer's
+                # "complete" queryable on dnX/to_cn cannot take the trigger).
                 if trace is not None:
                     trace("issued", i)
-                self.session.get(
+                ask(
+                    self.session,
                     self._keys[i],
                     callbacks[i],
                     payload=frames[i],
-                    target=_ALL,  # an impostor's "complete" queryable cannot take it
-                    consolidation=self._consolidation,
-                    timeout=self._query_timeout,
-                    congestion_control=_DROP,
+                    timeout_s=self._query_timeout,
                 )
         # The taps after the queries: tools may wait, the DNs may not.
         taps = self._taps
