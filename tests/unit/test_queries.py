@@ -23,6 +23,7 @@ from pathlib import Path
 import pytest
 import zenoh
 
+from tests.zsession import lone_session
 from zplatform.auth import KeySet, channel
 from zplatform.clocksync import ClockLink, ClockServer, estimate_offset
 from zplatform.errors import TransportError
@@ -242,3 +243,17 @@ def test_a_flooding_impostor_on_the_clock_key_never_holds_the_clock(trio: Trio) 
         server.close()
     assert link.refused_bad <= 20 and link.refused_other == 0
     assert est.exchanges == 20 and link.timeouts == 0
+
+
+def test_alive_nodes_reads_the_tokens_through_a_bounded_mailbox() -> None:
+    """The one liveliness get: through a callback and a deadline, not
+    zenoh's channel iterated until the query ends."""
+    s = lone_session()
+    try:
+        tokens = [s.liveliness().declare_token(KEYS.alive(n)) for n in ("dn0", "cn")]
+        link = types.SimpleNamespace(ns=types.SimpleNamespace(session=s), keys=KEYS)
+        assert GroundLink.alive_nodes(link, 5.0) == ["cn", "dn0"]  # type: ignore[arg-type]
+        for t in tokens:
+            t.undeclare()
+    finally:
+        s.close()
