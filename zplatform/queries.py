@@ -68,7 +68,7 @@ def ask(
     handler: zenoh.handlers.Callback[zenoh.Reply],
     *,
     timeout_s: float,
-    payload: bytes | zenoh.ZBytes | None = None,
+    payload: bytes | bytearray | zenoh.ZBytes | None = None,
     priority: zenoh.Priority | None = None,
     local_only: bool = False,
     instrumentation: zenoh.TimestampInstrumentation | None = None,
