@@ -29,6 +29,7 @@ from zplatform.clocksync import ClockLink, ClockServer, estimate_offset
 from zplatform.errors import TransportError
 from zplatform.ground.link import GroundLink
 from zplatform.handoff import Mailbox
+from zplatform.health import Heartbeat, Liveness, stalled_names, thread_deadlines_ns
 from zplatform.intake import ReplyCheck, TriggerIntake
 from zplatform.lockstep import sim_keys
 from zplatform.loop import ControlLogic, DeviceLogic
@@ -257,3 +258,61 @@ def test_alive_nodes_reads_the_tokens_through_a_bounded_mailbox() -> None:
             t.undeclare()
     finally:
         s.close()
+
+
+def test_a_peer_that_stops_reading_never_stalls_the_clock_thread(trio: Trio) -> None:
+    """A peer on the clock key whose zenoh stops reading its link (its
+    thread held), once the DN's traffic to it has filled that link: zenoh's
+    default for a get (BLOCK) held the DN's clock thread for 5 s, past the
+    thread monitor's 3 s clock deadline (which aborts the flight). DROPped,
+    the query to it is lost and the CN's answers come as ever: the
+    monitor, watching all along, never sees the clock thread stalled."""
+    keys = KeySet.from_master(IGNITER, bytes(range(32)))
+    release = threading.Event()
+
+    def stop_reading(sample: zenoh.Sample) -> None:
+        release.wait(30.0)  # holds the impostor's zenoh thread: its link stops draining
+
+    server = ClockServer(trio.genuine, KEYS, time.monotonic_ns, IGNITER, keys.for_node("cn"))
+    sub = trio.impostor.declare_subscriber(
+        "zplatform-test/flood/**", zenoh.handlers.Callback(stop_reading, indirect=False)
+    )
+    impostor = trio.impostor.declare_queryable(
+        KEYS.clock, zenoh.handlers.Callback(lambda q: None, indirect=False), complete=True
+    )
+    trio.ready()
+    liveness = Liveness(thread_deadlines_ns(IGNITER))
+    hb = liveness.add(Heartbeat("clock"))
+    stalls: list[int] = []
+    done = threading.Event()
+
+    def monitor() -> None:  # the node's thread monitor, in small
+        while not done.wait(0.05):
+            if mask := liveness.stalled(time.monotonic_ns()):
+                stalls.append(mask)
+
+    def now() -> int:  # the re-sync thread checks in at every clock read
+        hb.beat()
+        return time.monotonic_ns()
+
+    pub = trio.asker.declare_publisher(
+        "zplatform-test/flood/x", congestion_control=zenoh.CongestionControl.DROP
+    )
+    blob = bytes(1 << 16)
+    for _ in range(5000):  # the DN's traffic to the peer fills its link (DROPped beyond)
+        pub.put(blob)
+    watcher = threading.Thread(target=monitor)
+    watcher.start()
+    link = ClockLink(IGNITER, "dn0", keys.for_node("dn0"))
+    try:
+        est = estimate_offset(trio.asker, KEYS, now, link, exchanges=20, timeout_s=1.0)
+    finally:
+        done.set()
+        watcher.join()
+        release.set()
+        pub.undeclare()
+        sub.undeclare()
+        impostor.undeclare()
+        server.close()
+    assert [stalled_names(m) for m in stalls] == []
+    assert est.exchanges == 20 and link.timeouts == 0
