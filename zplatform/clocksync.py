@@ -294,6 +294,9 @@ class ClockServer:
                             responder.reason,
                         )
                     continue
+                # DROP: a reply takes its query's QoS (zenoh 1.x ignores a
+                # reply's own), and the DNs ask DROP (zplatform.queries), so a
+                # DN's stalled link never holds the clock server.
                 query.reply(self._key, reply)
             self.served += 1
 

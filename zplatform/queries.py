@@ -19,7 +19,8 @@ or made to block. :func:`ask` closes those doors in one place:
 * **Congestion control DROP.** A BLOCKing get waits for a link that stopped
   draining (a peer that does not read its socket, a cut cable), for seconds;
   a dropped query simply gets no answer, the same counted timeout as a
-  silent peer.
+  silent peer. A reply takes its query's QoS (zenoh 1.x): the answers
+  are DROPped too, so a replier is never held by the asker's link.
 * **A callback handler only** (:func:`replies`, ``indirect=False``): it
   runs on zenoh's thread and only hands off, into a bounded
   :class:`~zplatform.handoff.Mailbox` the asking thread waits on with its
