@@ -32,13 +32,17 @@ DN's query carries a fresh random nonce and is tagged with its cn<->dnX
 link key (channel ``clock_dnX_to_cn``); the CN answers only a query whose
 tag checks, echoing the nonce, tagged on the reverse channel
 (``clock_cn_to_dnX``). The DN asks every queryable on the clock key
-(``QueryTarget.ALL``, so a rogue cannot take the real CN's place) and
-takes, per exchange, the first reply whose tag checks and whose nonce is
-this exchange's: a reply from a peer without the key, or a real reply
-replayed into another exchange, is refused and counted
-(:class:`ClockLink`). The sans-IO ends are :class:`ClockLink` (the DN's)
-and :class:`ClockResponder` (the CN's); :class:`ClockServer` serves the
-latter on zenoh.
+(``QueryTarget.ALL``, so a rogue cannot take the real CN's place, through
+:func:`zplatform.queries.ask`) and takes, per exchange, the first reply
+whose tag checks and whose nonce is this exchange's: a reply from a peer
+without the key, or a real reply replayed into another exchange, is
+refused and counted (:class:`ClockLink`). An exchange never waits past its
+timeout: the query is DROPped rather than blocked on a congested link, a
+replier that holds the query is cut off by the timeout, and a flooding
+replier gets one reply read per exchange; an exchange left without a
+valid answer is a counted timeout (:attr:`ClockLink.timeouts`). The
+sans-IO ends are :class:`ClockLink` (the DN's) and :class:`ClockResponder`
+(the CN's); :class:`ClockServer` serves the latter on zenoh.
 
 ``zenoh_ts`` is the default (``clock.estimator`` in the mission) because it
 measured more accurate: median |error| 6.94 us vs 7.36 us, worst 17.3 us vs
@@ -63,11 +67,13 @@ from typing import Protocol
 
 import zenoh
 
+from . import queries
 from .auth import TAG_LEN, AuthError, Channel, KeySet, channel
 from .config import ClockConfig, Mission
 from .errors import ClockSyncError
-from .handoff import Handoff
+from .handoff import Mailbox
 from .health import Heartbeat
+from .queries import ReplyCap, ask
 from .transport import KeySpace
 
 __all__ = [
@@ -130,7 +136,9 @@ class ClockLink:
     the nonce alone binds a reply to its query). Counts what it refuses:
     :attr:`refused_bad` (a bad tag, or not a reply: a peer without the key)
     and :attr:`refused_other` (authentic, but for another exchange: a
-    replay, or a reply late beyond its exchange). Not thread-safe: one
+    replay, or a reply late beyond its exchange), and the exchanges that
+    got no valid answer in time, :attr:`timeouts` (a silent, slow or
+    unreachable clock; a flood from peers without the key). Not thread-safe: one
     estimating thread at a time; the counters may be read from any thread.
     """
 
@@ -148,6 +156,7 @@ class ClockLink:
             self._open = channel(keys, f"clock_cn_to_{dn}")
         self.refused_bad = 0
         self.refused_other = 0
+        self.timeouts = 0
 
     def query(self, t1: int) -> tuple[bytes, bytes]:
         """``(payload, nonce)`` of a new query stamped ``t1`` (this node's clock)."""
@@ -285,6 +294,9 @@ class ClockServer:
                             responder.reason,
                         )
                     continue
+                # DROP: a reply takes its query's QoS (zenoh 1.x ignores a
+                # reply's own), and the DNs ask DROP (zplatform.queries), so a
+                # DN's stalled link never holds the clock server.
                 query.reply(self._key, reply)
             self.served += 1
 
@@ -309,6 +321,11 @@ class Exchange:
     stamps: list[int]
 
 
+CLOCK_REPLIERS_MAX = 8
+"""Replies an exchange reads at most (one per replier, :class:`~zplatform.queries.ReplyCap`):
+a peer flooding replies cannot keep the asking thread reading."""
+
+
 def _exchange(
     session: zenoh.Session,
     keys: KeySpace,
@@ -318,54 +335,55 @@ def _exchange(
     instrumentation: zenoh.TimestampInstrumentation | None = None,
 ) -> Exchange | None:
     """One exchange: the times of the first reply that is this query's
-    answer (:meth:`ClockLink.check`), or None when none came within
-    ``timeout_s``. Every queryable on the clock key is asked (a rogue cannot
-    hide the CN); replies are checked in arrival order, and the exchange
-    ends at the first valid one."""
+    answer (:meth:`ClockLink.check`), or None (counted in
+    :attr:`ClockLink.timeouts`) when none came within ``timeout_s``. Every
+    queryable on the clock key is asked (:func:`~zplatform.queries.ask`: a
+    rogue cannot hide the CN, a congested link drops the query rather than
+    block); each replier's first reply is checked, in arrival order, at most
+    :data:`CLOCK_REPLIERS_MAX` of them, and the exchange ends at the first
+    valid one. Never waits past ``timeout_s``, whatever the peers do."""
     # (payload, t4 read in the callback, zenoh's stamps); None: the query ended.
-    replies: Handoff[tuple[bytes, int, list[int]] | None] = Handoff()
+    replies: Mailbox[tuple[bytes, int, list[int]] | None] = Mailbox(CLOCK_REPLIERS_MAX + 1)
+    cap = ReplyCap(1)  # the CN answers a query once: more from one replier is a flood
 
     def on_reply(r: zenoh.Reply) -> None:
         t4 = now_ns()  # in zenoh's thread, before any hand-off
         ok = r.ok
-        if ok is None:
+        if ok is None or not cap.admit(r):
             return
         stack = getattr(ok, "timestamp_stack", None)
         stamps: list[int] = []
         if stack is not None:
-            for rec in stack.records:
+            for rec in stack.records[:4]:
                 ts = rec.timestamp()
                 if isinstance(ts, bytes | bytearray):
                     continue
                 stamps.append(ts.get_time_as_ntp64().as_nanos())
         replies.put((ok.payload.to_bytes(), t4, stamps))
 
-    cb = zenoh.handlers.Callback(on_reply, lambda: replies.put(None), indirect=False)
     t1 = now_ns()
     payload, nonce = link.query(t1)
-    session.get(
+    ask(
+        session,
         keys.clock,
-        cb,
+        queries.replies(on_reply, lambda: replies.put(None)),
         payload=payload,
-        consolidation=zenoh.ConsolidationMode.NONE,
-        target=zenoh.QueryTarget.ALL,
-        timeout=timeout_s,
-        timestamp_instrumentation=instrumentation,
+        timeout_s=timeout_s,
+        instrumentation=instrumentation,
     )
     deadline = time.monotonic() + timeout_s
-    while (left := deadline - time.monotonic()) > 0:
-        try:
-            item = replies.get(timeout=left)
-        except queue.Empty:
-            return None
-        if item is None:
-            return None
+    for _ in range(CLOCK_REPLIERS_MAX):
+        left = deadline - time.monotonic()
+        item = replies.get(left) if left > 0 else None
+        if item is None:  # the deadline passed, or the query ended unanswered
+            break
         t4 = now_ns()
         raw, t4_cb, stamps = item
         got = link.check(raw, nonce)
         if got is not None:  # the CN's answer to this very query
             _, t2, t3 = got
             return Exchange(t1, t2, t3, t4_cb, t4, stamps)
+    link.timeouts += 1
     return None
 
 
@@ -382,15 +400,22 @@ def estimate_offset(
     """Measure the CN-minus-local clock offset over ``exchanges`` round trips.
 
     Each exchange is :class:`ClockLink`'s (authenticated, nonce-bound);
-    replies it refuses are counted there. Blocks for the exchanges (about
-    0.3 ms each on loopback). Raises ClockSyncError when fewer than half the
-    exchanges get a valid reply (the CN's clock server is unreachable, or
-    only peers without the key answer).
+    replies it refuses and exchanges left unanswered are counted there.
+    Blocks for the exchanges (about 0.3 ms each on loopback), each at most
+    ``timeout_s`` whatever the peers do (:func:`_exchange`), and stops early
+    once half of them can no longer get a valid reply. Raises
+    ClockSyncError when fewer than half the exchanges get a valid reply
+    (the CN's clock server is unreachable, or only peers without the key
+    answer).
     """
     samples: list[tuple[int, int]] = []
+    missed = 0
     for _ in range(exchanges):
         x = _exchange(session, keys, link, now_ns, timeout_s)
         if x is None:
+            missed += 1
+            if missed > exchanges - exchanges // 2:
+                break  # half can no longer answer: stop asking a silent clock
             continue
         t1, t2, t3, t4 = x.t1, x.t2, x.t3, x.t4
         samples.append((((t2 - t1) + (t3 - t4)) // 2, (t4 - t1) - (t3 - t2)))
@@ -468,7 +493,9 @@ def estimate_offset_zenoh(
     exchanges (a 100 ppm drift over 200 exchanges moves the DN's mapping by
     about 6 us).
 
-    Blocks for the exchanges. Raises ClockSyncError when fewer than half of
+    Blocks for the exchanges, each at most ``timeout_s``, and stops early
+    once half of them can no longer get a valid reply (as
+    :func:`estimate_offset`). Raises ClockSyncError when fewer than half of
     them get a valid reply (the CN's clock server is unreachable), and its
     subclass :class:`ZenohTimestampsError` where :func:`estimate_offset`
     would have succeeded: when at least half got a valid reply but fewer
@@ -482,9 +509,13 @@ def estimate_offset_zenoh(
     samples: list[tuple[int, int]] = []
     answered = 0  # valid replies to their own exchange, stamped or not
     cn_lo, cn_hi, dn_lo, dn_hi = -(1 << 63), 1 << 63, -(1 << 63), 1 << 63
+    missed = 0
     for _ in range(exchanges):
         x = _exchange(session, keys, link, now_ns, timeout_s, ti)
         if x is None:
+            missed += 1
+            if missed > exchanges - exchanges // 2:
+                break  # half can no longer answer: stop asking a silent clock
             continue
         answered += 1
         if len(x.stamps) != 4:

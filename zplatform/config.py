@@ -2208,6 +2208,12 @@ def platform_elements(m: Mission) -> dict[str, list[ElementConfig]]:
                 0,
                 doc=f"clock replies and estimates {dn} refused (bad tag, replayed, a jump)",
             ),
+            E(
+                f"{dn}_clock_timeouts",
+                "u32",
+                0,
+                doc=f"clock exchanges of {dn} left unanswered (a silent or slow clock)",
+            ),
         ]
         if m.standby is not None:
             out[f"{dn}_to_cn"].append(

@@ -309,6 +309,13 @@ class EV:
         "{node} refused {n} clock-sync replies ({auth} with a bad tag, {replay} for another "
         "exchange): a peer without the link key answers on the clock key, or replays",
     )
+    CLOCK_TIMEOUT = EventType(
+        62,
+        "clock_timeout",
+        Severity.WARNING_LO,
+        "{node}'s clock sync went unanswered {n} more time(s), {total} in all: the clock "
+        "is silent, slow or unreachable (each exchange gives up at its timeout)",
+    )
     CLOCK_JUMP_REFUSED = EventType(
         61,
         "clock_jump_refused",

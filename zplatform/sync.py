@@ -81,6 +81,7 @@ from .codec import BundleEncoder
 from .handoff import Handoff, Mailbox
 from .intake import CnRefusals, ProbeIntake, ReplyCheck, TriggerIntake
 from .loop import ControlLogic, DeviceLogic
+from .queries import ReplyCap, ask, replies
 from .transport import KeySpace, is_matching
 
 __all__ = [
@@ -93,7 +94,6 @@ __all__ = [
 ]
 
 _DROP = zenoh.CongestionControl.DROP
-_ALL = zenoh.QueryTarget.ALL
 _NO_PAYLOAD = zenoh.ZBytes(b"")
 _ERR_MAX = 512  # longest error reply read: a DN's is "dnX: reason"
 REPIN_AFTER = 3
@@ -223,7 +223,6 @@ class ControlSync:
         self._idle = threading.Event()
         self._idle.set()
         self._build_callbacks()
-        self._consolidation = zenoh.ConsolidationMode.NONE
         self.duration_ns = 0
         """How long the last :meth:`sync` took."""
 
@@ -379,30 +378,28 @@ class ControlSync:
             if trace is not None:
                 for i in range(n):
                     trace("issued", i)
-            self.session.get(
+            ask(
+                self.session,
                 self._all,
                 self._any_counted if warmup else self._any,
                 payload=self._bundle.pack(frames),
-                target=_ALL,
-                consolidation=self._consolidation,
-                timeout=self._query_timeout,
-                congestion_control=_DROP,
+                timeout_s=self._query_timeout,
             )
         else:
             for i in range(n):
-                # DROP: on a link that stopped draining (a cut cable) a
-                # BLOCKing get would freeze the CN's loop for seconds; a
-                # dropped query is a missed sync, counted like any other
-                # (tests/faults, cable cut).
+                # zplatform.queries.ask: DROP (on a link that stopped draining,
+                # a cut cable, a BLOCKing get would freeze the CN's loop for
+                # seconds; a dropped query is a missed sync, counted like any
+                # other: tests/faults, cable cut) and target ALL (a peer's
+                # "complete" queryable on dnX/to_cn cannot take the trigger).
                 if trace is not None:
                     trace("issued", i)
-                self.session.get(
+                ask(
+                    self.session,
                     self._keys[i],
                     callbacks[i],
                     payload=frames[i],
-                    consolidation=self._consolidation,
-                    timeout=self._query_timeout,
-                    congestion_control=_DROP,
+                    timeout_s=self._query_timeout,
                 )
         # The taps after the queries: tools may wait, the DNs may not.
         taps = self._taps
@@ -609,9 +606,12 @@ class ProbeSync:
     """A control node's probe rounds (:mod:`zplatform.fencing`): one question
     per device node on ``{vehicle}/dnX/probe``, the replies handed to the
     caller's ``answer`` on the calling thread until every device node
-    answered or ``timeout_ns`` passed. Replies wait in a bounded mailbox
-    (a peer answering many times cannot grow memory); the caller checks
-    each one (tag, nonce). Not thread-safe: one thread asks."""
+    answered or ``timeout_ns`` passed. Every query goes through
+    :func:`zplatform.queries.ask` (every queryable on the key, DROP, a
+    timeout: an impostor declaring a "complete" probe queryable cannot take
+    the question, a congested link cannot block the asker). Replies wait in
+    a bounded mailbox (a peer answering many times cannot grow memory); the
+    caller checks each one (tag, nonce). Not thread-safe: one thread asks."""
 
     def __init__(
         self, session: zenoh.Session, keys: KeySpace, dns: Sequence[str], timeout_ns: int
@@ -622,20 +622,22 @@ class ProbeSync:
         self._box: Mailbox[tuple[int, bytes]] = Mailbox(4 * max(len(dns), 1))
         box = self._box
 
+        # One reply per replier per question is read (a DN answers once): a
+        # peer flooding answers cannot push the DN's out of the mailbox.
+        self._caps = [ReplyCap(1) for _ in dns]
+
         def make(i: int) -> Callable[[zenoh.Reply], None]:
+            cap = self._caps[i]
+
             def on_reply(reply: zenoh.Reply) -> None:  # zenoh's thread: hand off
                 ok = reply.ok
-                if ok is not None and len(ok.payload) <= _ERR_MAX:
+                if ok is not None and len(ok.payload) <= _ERR_MAX and cap.admit(reply):
                     box.put((i, ok.payload.to_bytes()))
 
             return on_reply
 
-        self._callbacks = [
-            zenoh.handlers.Callback(make(i), indirect=False) for i in range(len(dns))
-        ]
-        self._drop: zenoh.handlers.Callback[zenoh.Reply] = zenoh.handlers.Callback(
-            _ignore, indirect=False
-        )
+        self._callbacks = [replies(make(i)) for i in range(len(dns))]
+        self._drop: zenoh.handlers.Callback[zenoh.Reply] = replies(_ignore)
 
     def round(self, asks: Sequence[bytes], answer: Callable[[int, bytes], bool]) -> int:
         """Send ``asks[i]`` to device node ``i``; hand each reply to
@@ -643,14 +645,18 @@ class ProbeSync:
         returned True) or the deadline passed; returns how many were taken."""
         box = self._box
         box.drain([])  # replies to an earlier round: late, not this one's
-        for i, ask in enumerate(asks):
-            self.session.get(
+        timeout_s = max(self.timeout_ns / 1e9, 0.005)
+        for i, question in enumerate(asks):
+            self._caps[i].reset()
+            # Every queryable on dnX/probe (a peer that declares a "complete"
+            # one cannot take the question from the DN); `answer` takes only
+            # the DN's (tag, nonce).
+            ask(
+                self.session,
                 self._keys[i],
                 self._callbacks[i],
-                payload=ask,
-                consolidation=zenoh.ConsolidationMode.NONE,
-                timeout=max(self.timeout_ns / 1e9, 0.005),
-                congestion_control=_DROP,
+                payload=question,
+                timeout_s=timeout_s,
             )
         n = len(asks)
         taken = [False] * n
@@ -673,11 +679,4 @@ class ProbeSync:
         """Send each question that is not None (a RELEASE), answers unread."""
         for i, f in enumerate(frames):
             if f is not None:
-                self.session.get(
-                    self._keys[i],
-                    self._drop,
-                    payload=f,
-                    consolidation=zenoh.ConsolidationMode.NONE,
-                    timeout=0.05,
-                    congestion_control=_DROP,
-                )
+                ask(self.session, self._keys[i], self._drop, payload=f, timeout_s=0.05)

@@ -101,6 +101,11 @@ class _Sample:
 @dataclass
 class _Reply:
     ok: _Sample | None
+    replier_id: str = "cn"  # zenoh's id of the answering queryable
+
+
+class _Blocked(Exception):
+    """What the simulated zenoh does where the real one would block the thread."""
 
 
 Rogue = Callable[[bytes, int], bytes | None]
@@ -116,7 +121,10 @@ class SimSession:
     ``step_dn_zenoh_after``: after that many exchanges the DN's zenoh clock
     (the host's real-time clock) steps by ``step_ns``.
     ``answer``: whether the CN answers at all. ``rogues``: other peers on
-    the clock key, answering before the CN (``rogues_first``) or after it.
+    the clock key, answering before the CN (``rogues_first``, each
+    ``flood`` times) or after it. ``congested``: the link stopped draining
+    (no query gets through; a BLOCKing get raises :class:`_Blocked`).
+    ``kwargs``: each get's options.
     """
 
     cn_node: int = 0
@@ -133,6 +141,9 @@ class SimSession:
     targets: list[Any] = field(default_factory=list)
     rogues: list[Rogue] = field(default_factory=list)
     rogues_first: bool = True
+    flood: int = 1
+    congested: bool = False
+    kwargs: list[dict[str, Any]] = field(default_factory=list)
     responder: ClockResponder = field(default_factory=_responder)
 
     def now_ns(self) -> int:
@@ -141,20 +152,33 @@ class SimSession:
 
     def get(self, key: Any, handler: Any, *, payload: bytes, **kw: Any) -> None:
         self.gets += 1
+        self.kwargs.append(kw)
+        if self.congested:
+            # A link that stopped draining: zenoh blocks a BLOCKing get for
+            # seconds (a stalled thread); a DROPped one is lost, and zenoh
+            # ends it at its timeout (here: later than the asker waits).
+            if kw.get("congestion_control") != zenoh.CongestionControl.DROP:
+                raise _Blocked("a BLOCKing get on a congested link stalls the asking thread")
+            return
         ti = kw.get("timestamp_instrumentation")
         self.instrumented.append(ti is not None)
         self.targets.append(kw.get("target"))
         if self.step_dn_zenoh_after is not None and self.gets == self.step_dn_zenoh_after + 1:
             self.dn_zenoh += self.step_ns
-        rogue = [r for r in (f(payload, self.t) for f in self.rogues) if r is not None]
+        rogue = [
+            (f"rogue{k}", r)
+            for k, r in enumerate(f(payload, self.t) for f in self.rogues)
+            if r is not None
+        ]
         if self.rogues_first:
-            for raw in rogue:
-                handler.callback(_Reply(_Sample(_Payload(raw), None)))
+            for who, raw in rogue:
+                for _ in range(self.flood):
+                    handler.callback(_Reply(_Sample(_Payload(raw), None), who))
         if self.answer:
             self._cn(handler, payload, ti)
         if not self.rogues_first:
-            for raw in rogue:
-                handler.callback(_Reply(_Sample(_Payload(raw), None)))
+            for who, raw in rogue:
+                handler.callback(_Reply(_Sample(_Payload(raw), None), who))
         handler.drop()
 
     def _cn(self, handler: Any, payload: bytes, ti: Any) -> None:
@@ -276,7 +300,8 @@ def test_unreachable_cn_does_not_fall_back() -> None:
     with pytest.raises(ClockSyncError, match="instrumented replies"):
         est(s, KEYS, s.now_ns, _link(), exchanges=8, timeout_s=0.001)
     assert est.fallbacks == 0
-    assert s.gets == 8  # one series: no second attempt
+    # One series, no second attempt; it stops once half cannot answer.
+    assert s.gets == 5
 
 
 def test_node_clock_never_asks_zenoh_for_timestamps() -> None:
@@ -331,7 +356,7 @@ def test_a_rogue_clock_without_the_key_is_refused_and_counted(fn: Any, shift_ns:
 
 def test_only_rogues_answering_is_a_clock_sync_error_that_says_so() -> None:
     s = _sim(answer=False, rogues=[_rogue(30 * MS)])
-    with pytest.raises(ClockSyncError, match=r"0 of 8 valid replies .*8 replies refused for a bad"):
+    with pytest.raises(ClockSyncError, match=r"0 of 8 valid replies .*5 replies refused for a bad"):
         estimate_offset(s, KEYS, s.now_ns, _link(), exchanges=8, timeout_s=0.001)
 
 
@@ -386,3 +411,66 @@ def test_peers_with_another_mac_do_not_sync() -> None:
     link = ClockLink(hm, "dn0", KeySet.from_master(hm, MASTER).for_node("dn0"))
     q, _ = link.query(1)
     assert _responder().answer(q, 2, 3) is None  # the CN's MAC is blake3
+
+
+# -- a slow, silent or flooding clock peer never holds the asking thread -----------------
+
+
+@pytest.mark.parametrize("fn", [estimate_offset, estimate_offset_zenoh])
+def test_a_congested_link_drops_clock_queries_and_counts_timeouts(fn: Any) -> None:
+    """A peer that stops reading its link: every clock query is DROPped, never
+    blocked on (zenoh's default for a get is BLOCK), and each exchange ends
+    at its own timeout as a counted timeout, even though zenoh finalises
+    none of them; the series stops once half can no longer answer."""
+    s = _sim(congested=True)
+    link = _link()
+    with pytest.raises(ClockSyncError, match="0 of 8"):
+        fn(s, KEYS, s.now_ns, link, exchanges=8, timeout_s=0.001)
+    assert s.gets == 5 and link.timeouts == 5 and link.refused == 0
+    for kw in s.kwargs:  # zplatform.queries.ask: the one way a query is sent
+        assert kw["congestion_control"] == zenoh.CongestionControl.DROP
+        assert kw["target"] == zenoh.QueryTarget.ALL
+        assert kw["consolidation"] == zenoh.ConsolidationMode.NONE
+        assert 0 < kw["timeout"] == 0.001
+
+
+@pytest.mark.parametrize("fn", [estimate_offset, estimate_offset_zenoh])
+def test_a_flooding_rogue_gets_one_reply_read_per_exchange(fn: Any) -> None:
+    """A peer without the key answers every query 2000 times before the CN:
+    one of its replies per exchange is read (and refused), the rest are let
+    go in zenoh's callback, and the CN's answer is still the one taken."""
+    s = _sim(rogues=[_rogue(30 * MS)], flood=2000)
+    link = _link()
+    est = fn(s, KEYS, s.now_ns, link, exchanges=20)
+    assert abs(est.offset_ns - (s.cn_node - s.dn_node)) <= 1, est
+    assert (link.refused_bad, link.refused_other, link.timeouts) == (20, 0, 0)
+
+
+def test_a_dns_clock_timeouts_are_counted_and_evented_at_most_once_a_second() -> None:
+    """The DN's loop thread puts the clock link's timeouts into
+    ``dnX_clock_timeouts`` at every account, and says so in a
+    ``clock_timeout`` event at most once a second."""
+    from zplatform.events import EventLog
+    from zplatform.loop import DeviceLogic
+    from zplatform.node.device import ClockTally
+
+    logic = DeviceLogic(IGNITER, "dn0")
+    link = ClockLink(IGNITER, "dn0", None)
+    events = EventLog("dn0")
+    tally = ClockTally(logic.dv, "dn0", link, events)
+    t0 = 5_000 * MS
+    tally.count(t0)
+    assert int(logic.dv.get("dn0_clock_timeouts")) == 0 and not events.drain()
+    link.timeouts = 3
+    tally.count(t0)
+    assert int(logic.dv.get("dn0_clock_timeouts")) == 3
+    [ev] = events.drain()
+    assert ev.id == "clock_timeout" and "3 more time(s), 3 in all" in ev.text
+    link.timeouts = 7
+    tally.count(t0 + 600 * MS)  # within the second: counted, not told
+    assert int(logic.dv.get("dn0_clock_timeouts")) == 7 and not events.drain()
+    tally.count(t0 + 1_000 * MS)  # the second is over: told, with what was held
+    [ev] = events.drain()
+    assert "4 more time(s), 7 in all" in ev.text
+    tally.count(t0 + 5_000 * MS)  # nothing new: nothing said
+    assert not events.drain() and int(logic.dv.get("dn0_clock_timeouts")) == 7

@@ -60,6 +60,7 @@ from ..events import MAX_TEXT, Event
 from ..handoff import Mailbox, Waker
 from ..intake import TelemetryIntake
 from ..node.runtime import EventPublisher
+from ..queries import ask, replies
 from ..timebase import NodeClock
 from ..transport import NodeSession, is_matching
 from ..uplink import ScriptCommand, validate_command
@@ -85,6 +86,8 @@ EVENT_MAX = 4 * MAX_TEXT + 1024
 characters, 4 bytes each in UTF-8 at worst) and the rest."""
 EVENT_BACKLOG = 4096
 TAP_BACKLOG = 4096
+ALIVE_BACKLOG = 1024
+"""Liveliness tokens :meth:`GroundLink.alive_nodes` holds at most (a flood lets the oldest go)."""
 _BACKLOG_BYTES = 64 * 2**20
 
 _TM, _EV = 0, 1
@@ -180,7 +183,12 @@ class GroundLink:
             self._subscribe(self.keys.all_events, self._on_event)
         self._pub: zenoh.Publisher | None = None
         if commands or script:
-            self._pub = session.declare_publisher(self.keys.gn_to_cn)
+            # DROP (zenoh's default for a put, said here): a stalled link
+            # loses a request, which the ground logic sends again and at last
+            # ends NO_VERDICT; it never blocks the ground's thread.
+            self._pub = session.declare_publisher(
+                self.keys.gn_to_cn, congestion_control=zenoh.CongestionControl.DROP
+            )
         # A node publishes its own events (and takes them back through its
         # intake); a tool hands them to on_event itself.
         self._ev_pub = (
@@ -427,33 +435,53 @@ class GroundLink:
         and return at once: each reply's payload is queued into ``into`` as
         ``(tag, payload)`` as it arrives (error replies are skipped), then
         ``(tag, None)`` when the get is over (every replier done, or
-        ``timeout_s`` passed). For the gap fill from the CN's recorder."""
+        ``timeout_s`` passed). For the gap fill from the CN's recorder.
+
+        Sent by :func:`zplatform.queries.ask`: every queryable on the key
+        is asked (a peer declaring a "complete" recorder queryable cannot
+        take the request from the CN's recorder; the gap fill takes only
+        replies whose tag checks), DROPped rather than blocked on a
+        congested link. Never blocks."""
 
         def on_reply(reply: zenoh.Reply) -> None:
             ok = reply.ok  # hand off only
             if ok is not None:
                 into.put((tag, ok.payload.to_bytes()))
 
-        self.ns.session.get(
+        ask(
+            self.ns.session,
             key_expr,
-            zenoh.handlers.Callback(on_reply, lambda: into.put((tag, None)), indirect=False),
+            replies(on_reply, lambda: into.put((tag, None))),
             payload=payload,
-            timeout=timeout_s,
-            consolidation=zenoh.ConsolidationMode.NONE,
-            # The replies travel with these: behind live traffic, and dropped
-            # rather than blocking anyone on a stalled link.
+            timeout_s=timeout_s,
+            # The replies travel with these: behind live traffic.
             priority=zenoh.Priority.BACKGROUND,
-            congestion_control=zenoh.CongestionControl.DROP,
         )
 
     def alive_nodes(self, timeout_s: float = 1.0) -> list[str]:
-        """The mission's nodes with a liveliness token now, sorted."""
+        """The mission's nodes with a liveliness token now, sorted. Blocks at
+        most ``timeout_s`` (the tokens come through a bounded mailbox, read
+        with that deadline: a peer that floods tokens or a query zenoh never
+        ends cannot hold the caller)."""
+        box: Mailbox[str | None] = Mailbox(ALIVE_BACKLOG)
+
+        def on_reply(reply: zenoh.Reply) -> None:
+            ok = reply.ok  # hand off only
+            if ok is not None:
+                box.put(str(ok.key_expr))
+
+        self.ns.session.liveliness().get(
+            self.keys.all_alive, replies(on_reply, lambda: box.put(None)), timeout=timeout_s
+        )
         names = set()
-        for reply in self.ns.session.liveliness().get(self.keys.all_alive, timeout=timeout_s):
-            if reply.ok is not None:
-                parts = str(reply.ok.key_expr).split("/")
-                if len(parts) >= 2:
-                    names.add(parts[-2])
+        deadline = time.monotonic() + timeout_s
+        while (left := deadline - time.monotonic()) > 0:
+            key = box.get(left)
+            if key is None:  # the get is over, or the deadline passed
+                break
+            parts = key.split("/")
+            if len(parts) >= 2:
+                names.add(parts[-2])
         return sorted(names)
 
     def close(self) -> None:

@@ -19,7 +19,10 @@ counted in ``dnX_clock_refused``) and changes nothing; an accepted one goes
 to ``dnX_clock_drift_ns``. The clock itself is never stepped (thesis
 4.10.1). Clock replies refused for a bad tag or another exchange's nonce
 (:class:`~zplatform.clocksync.ClockLink`) are counted there too, with a
-``clock_refused`` event per measurement that met any.
+``clock_refused`` event per measurement that met any; exchanges left
+unanswered (a silent or slow clock peer: each waits at most its timeout,
+never longer) in ``dnX_clock_timeouts``, with a ``clock_timeout`` event at
+most once a second (:class:`ClockTally`).
 
 With a ``recorder`` section naming the node (the flight recorder,
 :mod:`zplatform.recorder`), the reply frame of every loop the node runs and
@@ -41,8 +44,9 @@ from ..boards import board_health, close_board, open_board
 from ..bulk import NodeBulk, open_bulk
 from ..clocksync import ClockEstimate, ClockLink, estimator_for
 from ..config import Mission
+from ..datavector import DataVector
 from ..errors import ClockSyncError, NodeError, RecordingError, TransportError, ZPlatformError
-from ..events import EV
+from ..events import EV, EventLog
 from ..health import Heartbeat, Liveness, thread_deadlines_ns
 from ..intake import ProbeIntake, TriggerIntake
 from ..loop import DeviceLogic
@@ -56,9 +60,76 @@ from ..watchdog import Watchdog
 from .health import NodeHealth
 from .runtime import EventPublisher, StopFlag, realtime_setup
 
-__all__ = ["DeviceNode", "run_device_node"]
+__all__ = ["ClockTally", "DeviceNode", "run_device_node"]
 
 log = logging.getLogger("zplatform.dn")
+
+
+TIMEOUT_EVENT_EVERY_NS = 1_000_000_000
+"""A ``clock_timeout`` event at most this often (the counter counts every one)."""
+
+
+class ClockTally:
+    """The loop thread's account of the clock exchanges, into the Data Vector.
+
+    ``link``'s refusals (:class:`~zplatform.clocksync.ClockLink`) plus the
+    estimates refused for a jump (:meth:`jump_refused`) go to
+    ``dnX_clock_refused``, with a ``clock_refused`` event per :meth:`count`
+    that met new ones; exchanges left unanswered (``link.timeouts``: a
+    silent, slow or unreachable clock, a query dropped on a congested link)
+    go to ``dnX_clock_timeouts``, with a ``clock_timeout`` event at most once
+    a second (:data:`TIMEOUT_EVENT_EVERY_NS`). Never blocks, never raises.
+    Not thread-safe: the loop thread alone calls it (the link's counters
+    are written by the measuring thread and only read here)."""
+
+    def __init__(self, dv: DataVector, node: str, link: ClockLink, events: EventLog) -> None:
+        self.node = node
+        self.link = link
+        self.events = events
+        self._refused_h = dv.handle(f"{node}_clock_refused")
+        self._timeouts_h = dv.handle(f"{node}_clock_timeouts")
+        self.jumps_refused = 0
+        self._refused_seen = (0, 0)
+        self._timeouts_seen = 0  # at the last clock_timeout event
+        self._timeout_event_ns: int | None = None
+
+    def jump_refused(self) -> None:
+        """An estimate refused for jumping beyond the clock bound."""
+        self.jumps_refused += 1
+        self._refused_h.set(self.link.refused + self.jumps_refused)
+
+    def count(self, t_ns: int) -> None:
+        """Bring the counters up to date at loop time ``t_ns``; emit the events due."""
+        link = self.link
+        bad, other = link.refused_bad, link.refused_other
+        seen_bad, seen_other = self._refused_seen
+        if (bad, other) != (seen_bad, seen_other):
+            self._refused_seen = (bad, other)
+            self._refused_h.set(bad + other + self.jumps_refused)
+            self.events.emit(
+                EV.CLOCK_REFUSED,
+                t_ns,
+                node=self.node,
+                n=bad + other - seen_bad - seen_other,
+                auth=bad - seen_bad,
+                replay=other - seen_other,
+            )
+        timeouts = link.timeouts
+        if timeouts == self._timeouts_seen:
+            return
+        self._timeouts_h.set(timeouts)
+        last = self._timeout_event_ns
+        if last is not None and t_ns - last < TIMEOUT_EVENT_EVERY_NS:
+            return  # counted; told with the next event
+        self._timeout_event_ns = t_ns
+        self.events.emit(
+            EV.CLOCK_TIMEOUT,
+            t_ns,
+            node=self.node,
+            n=timeouts - self._timeouts_seen,
+            total=timeouts,
+        )
+        self._timeouts_seen = timeouts
 
 
 class DeviceNode:
@@ -98,15 +169,13 @@ class DeviceNode:
         self._offset_h = self.dv.handle(f"{name}_clock_offset_ns")
         self._drift_h = self.dv.handle(f"{name}_clock_drift_ns")
         self._overruns = self.dv.handle(f"{name}_loop_overruns")
-        self._refused_h = self.dv.handle(f"{name}_clock_refused")
+        self._tally = ClockTally(self.dv, name, self.clock_link, self.logic.events)
         self._bound_ns = round(mission.clock.offset_bound_ms * 1e6)
         self.drift_ns = 0
         # The re-sync thread's newest measurement, for the loop thread to
         # judge (a reference swap; the thread never writes what the loop uses).
         self._measured: ClockEstimate | None = None
         self._resynced = False  # set by the re-sync thread after every attempt
-        self._jumps_refused = 0
-        self._refused_seen = (0, 0)
         self.loops = 0
         self.sync: DeviceSync | None = None
         self._sync_trace = sync_trace
@@ -169,7 +238,7 @@ class DeviceNode:
             raise NodeError(f"{self.name} cannot start: {exc}") from exc
         self.drift_ns = res.offset_ns
         self._drift_h.set(res.offset_ns)
-        self._count_refusals(self.clock.now_ns())  # events go out with the first flush
+        self._tally.count(self.clock.now_ns())  # events go out with the first flush
         log.info(
             "%s clock corrected by %+.3f ms (%s estimator, delay %.0f us, %d of %d exchanges "
             "kept); residual %+.3f us (%s)",
@@ -290,13 +359,12 @@ class DeviceNode:
         (module doc), and count the clock replies it refused."""
         self._resynced = False
         est, self._measured = self._measured, None
-        self._count_refusals(t_ns)
+        self._tally.count(t_ns)
         if est is None:
             return
         jump = est.offset_ns - self.drift_ns
         if abs(jump) > self._bound_ns:
-            self._jumps_refused += 1
-            self._refused_h.set(self.clock_link.refused + self._jumps_refused)
+            self._tally.jump_refused()
             self.logic.events.emit(
                 EV.CLOCK_JUMP_REFUSED,
                 t_ns,
@@ -309,23 +377,6 @@ class DeviceNode:
             return
         self.drift_ns = est.offset_ns
         self._drift_h.set(est.offset_ns)
-
-    def _count_refusals(self, t_ns: int) -> None:
-        link = self.clock_link
-        bad, other = link.refused_bad, link.refused_other
-        seen_bad, seen_other = self._refused_seen
-        if (bad, other) == (seen_bad, seen_other):
-            return
-        self._refused_seen = (bad, other)
-        self._refused_h.set(bad + other + self._jumps_refused)
-        self.logic.events.emit(
-            EV.CLOCK_REFUSED,
-            t_ns,
-            node=self.name,
-            n=bad + other - seen_bad - seen_other,
-            auth=bad - seen_bad,
-            replay=other - seen_other,
-        )
 
     def run(self, *, max_loops: int | None = None, realtime: bool = True) -> None:
         """Serve triggers until stopped (or ``max_loops``). Blocks."""

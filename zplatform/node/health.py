@@ -53,6 +53,7 @@ import zenoh
 
 from ..config import Mission
 from ..health import BLOCK_SIZE, LOOP_FIELDS, SAMPLED, Heartbeat, Liveness
+from ..queries import ask, replies
 from ..transport import KeySpace
 
 __all__ = ["NodeHealth", "ResourceSampler", "Sample"]
@@ -186,7 +187,7 @@ class NodeHealth:
                 zenoh.handlers.Callback(self._hold, indirect=False),
                 allowed_origin=zenoh.Locality.SESSION_LOCAL,
             )
-            self._probe_cb = zenoh.handlers.Callback(_ignore, self._probe_done, indirect=False)
+            self._probe_cb = replies(_ignore, self._probe_done)
             self._probe_timeout_s = min(0.1, self._period_ns / 4e9)
         SAMPLED.pack_into(self._staging, 0, _NAN, _NAN, _NAN, _NAN, _NAN, _NAN, 0)
 
@@ -277,11 +278,14 @@ class NodeHealth:
             self._latched |= self._liveness.stalled(clock())
             if self._probe is not None:
                 try:
-                    self._session.get(
+                    # Session-local, DROP, target ALL, a timeout: the one way
+                    # zplatform asks (zplatform.queries); never blocks this thread.
+                    ask(
+                        self._session,
                         self._probe_key,
                         self._probe_cb,
-                        timeout=self._probe_timeout_s,
-                        allowed_destination=zenoh.Locality.SESSION_LOCAL,
+                        timeout_s=self._probe_timeout_s,
+                        local_only=True,
                     )
                 except zenoh.ZError as exc:  # the session is closing
                     log.debug("%s zenoh probe not sent: %s", self.node, exc)

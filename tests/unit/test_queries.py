@@ -1,0 +1,318 @@
+"""zplatform.queries: every query is asked of every queryable on its key, so
+an impostor that declares a ``complete`` queryable cannot take it.
+
+Real zenoh sessions on loopback (free ports, this test's own: nothing else
+connects): the genuine answerer, an impostor with a ``complete=True``
+queryable on the same key, and the asker, connected to both. Zenoh's
+default target (``BEST_MATCHING``) sends the query to the complete
+queryable alone: the genuine answer never comes. Each test shows it does,
+and that it is the one taken.
+"""
+
+from __future__ import annotations
+
+import json
+import socket
+import threading
+import time
+import types
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+from pathlib import Path
+
+import pytest
+import zenoh
+
+from tests.zsession import lone_session
+from zplatform.auth import KeySet, channel
+from zplatform.clocksync import ClockLink, ClockServer, estimate_offset
+from zplatform.errors import TransportError
+from zplatform.ground.link import GroundLink
+from zplatform.handoff import Mailbox
+from zplatform.health import Heartbeat, Liveness, stalled_names, thread_deadlines_ns
+from zplatform.intake import ReplyCheck, TriggerIntake
+from zplatform.lockstep import sim_keys
+from zplatform.loop import ControlLogic, DeviceLogic
+from zplatform.mission import load_mission
+from zplatform.queries import ReplyCap, ask, replies
+from zplatform.sync import ControlSync, DeviceSync, ProbeSync
+from zplatform.transport import KeySpace
+
+ROOT = Path(__file__).resolve().parents[2]
+MINIMAL = load_mission(ROOT / "configs" / "minimal.yaml")
+IGNITER = load_mission(ROOT / "configs" / "recovery_igniter.yaml")
+KEYS = KeySpace("rocket")
+READY = "zplatform-test/ready"
+FLOOD = 50
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def _session(listen: int | None, connect: list[int]) -> zenoh.Session:
+    cfg = zenoh.Config()
+    cfg.insert_json5("mode", '"peer"')
+    cfg.insert_json5("scouting/multicast/enabled", "false")
+    cfg.insert_json5("listen/endpoints", json.dumps([f"tcp/127.0.0.1:{listen}"] if listen else []))
+    cfg.insert_json5("connect/endpoints", json.dumps([f"tcp/127.0.0.1:{p}" for p in connect]))
+    return zenoh.open(cfg)
+
+
+@dataclass
+class Trio:
+    genuine: zenoh.Session
+    impostor: zenoh.Session
+    asker: zenoh.Session
+
+    def ready(self, *declared: object) -> None:
+        """Wait until the asker knows what the genuine and the impostor
+        declared so far: each then declares a liveliness token, which
+        reaches the asker after its earlier declarations (one link each,
+        in order)."""
+        seen = {"genuine": threading.Event(), "impostor": threading.Event()}
+
+        def on_token(sample: zenoh.Sample) -> None:
+            who = str(sample.key_expr).rsplit("/", 1)[-1]
+            if who in seen and sample.kind == zenoh.SampleKind.PUT:
+                seen[who].set()
+
+        sub = self.asker.liveliness().declare_subscriber(
+            f"{READY}/*", zenoh.handlers.Callback(on_token, indirect=False), history=True
+        )
+        tokens = [
+            self.genuine.liveliness().declare_token(f"{READY}/genuine"),
+            self.impostor.liveliness().declare_token(f"{READY}/impostor"),
+        ]
+        try:
+            for who, ev in seen.items():
+                assert ev.wait(20.0), f"the asker never saw the {who} session"
+        finally:
+            sub.undeclare()
+            for t in tokens:
+                t.undeclare()
+
+
+@pytest.fixture
+def trio() -> Iterator[Trio]:
+    p1, p2 = _free_port(), _free_port()
+    genuine = _session(p1, [])
+    impostor = _session(p2, [p1])
+    asker = _session(None, [p1, p2])
+    try:
+        yield Trio(genuine, impostor, asker)
+    finally:
+        for s in (asker, impostor, genuine):
+            s.close()
+
+
+def _answering(
+    session: zenoh.Session, key: str, payload: bytes, *, complete: bool = False, times: int = 1
+) -> zenoh.Queryable[None]:
+    def on_query(query: zenoh.Query) -> None:
+        with query:
+            for _ in range(times):
+                query.reply(key, payload)
+
+    return session.declare_queryable(
+        key, zenoh.handlers.Callback(on_query, indirect=False), complete=complete
+    )
+
+
+def test_ask_refuses_a_blocking_handler_and_an_open_ended_timeout() -> None:
+    class NoSession:
+        def get(self, *a: object, **kw: object) -> None:
+            raise AssertionError("nothing is sent")
+
+    s = NoSession()
+    with pytest.raises(TransportError, match="callback"):
+        ask(s, "k", zenoh.handlers.FifoChannel(4), timeout_s=1.0)  # type: ignore[arg-type]
+    for bad in (0.0, -1.0, float("inf"), float("nan")):
+        with pytest.raises(TransportError, match="finite positive timeout"):
+            ask(s, "k", replies(lambda r: None), timeout_s=bad)  # type: ignore[arg-type]
+
+
+def test_a_reply_cap_reads_each_repliers_share_once_per_query() -> None:
+    cap = ReplyCap(1)
+    a, b = (types.SimpleNamespace(replier_id=types.SimpleNamespace(zid=z)) for z in "ab")
+    got = [cap.admit(r) for r in (a, a, b, a, b)]  # type: ignore[arg-type]
+    assert got == [True, False, True, False, False] and cap.dropped == 3
+    cap.reset()
+    assert cap.admit(a) and cap.dropped == 3  # type: ignore[arg-type]
+
+
+def test_an_impostors_complete_probe_queryable_cannot_take_the_probe(trio: Trio) -> None:
+    key = KEYS.probe("dn0")
+    genuine = _answering(trio.genuine, key, b"genuine")
+    impostor = _answering(trio.impostor, key, b"impostor", complete=True, times=FLOOD)
+    trio.ready()
+    seen: list[bytes] = []
+
+    def answer(i: int, payload: bytes) -> bool:
+        seen.append(payload)
+        return payload == b"genuine"  # stands for the tag and nonce check
+
+    probes = ProbeSync(trio.asker, KEYS, ["dn0"], timeout_ns=5_000_000_000)
+    try:
+        assert probes.round([b"question"], answer) == 1
+    finally:
+        genuine.undeclare()
+        impostor.undeclare()
+    # The DN's answer was taken; of the impostor's flood at most one was read.
+    assert seen.count(b"genuine") == 1 and seen.count(b"impostor") <= 1
+
+
+def test_an_impostors_complete_recorder_queryable_cannot_take_the_gap_fill(trio: Trio) -> None:
+    genuine = _answering(trio.genuine, KEYS.recorder, b"genuine")
+    impostor = _answering(trio.impostor, KEYS.recorder, b"impostor", complete=True)
+    trio.ready()
+    box: Mailbox[tuple[int, bytes | None]] = Mailbox(64)
+    link = types.SimpleNamespace(ns=types.SimpleNamespace(session=trio.asker))
+    GroundLink.query(link, KEYS.recorder, b"request", 5.0, box, 7)  # type: ignore[arg-type]
+    got: list[bytes] = []
+    try:
+        while (item := box.get(10.0)) is not None:
+            tag, payload = item
+            assert tag == 7
+            if payload is None:  # the get is over
+                break
+            got.append(payload)
+    finally:
+        genuine.undeclare()
+        impostor.undeclare()
+    assert sorted(got) == [b"genuine", b"impostor"]  # the gap fill checks each one's tag
+
+
+def test_an_impostors_complete_trigger_queryable_cannot_take_the_trigger(trio: Trio) -> None:
+    m = MINIMAL
+    sim = sim_keys(m)
+    cn = ControlLogic(m, keys=sim)
+    dn = DeviceLogic(m, "dn0", keys=sim)
+    now = iter(range(10**9, 2 * 10**9, 10**7)).__next__
+    ks = KeySpace(m.vehicle)
+    ds = DeviceSync(
+        trio.genuine, ks, "dn0", now, intake=TriggerIntake(m, "dn0", channel(sim, "cn_to_dn0"))
+    )
+    impostor = _answering(trio.impostor, ks.dn_to_cn("dn0"), b"impostor", complete=True)
+    trio.ready()
+    cs = ControlSync(
+        trio.asker,
+        ks,
+        ["dn0"],
+        5_000_000_000,  # generous: this checks who is asked, not the timing
+        5.0,
+        checks=[ReplyCheck(m, "dn0", channel(sim, "dn0_to_cn"))],
+    )
+    try:
+        served = threading.Thread(target=ds.wait, args=(dn, 10.0))
+        served.start()
+        cs.sync(cn.begin(1, 10**9 + 10**7), cn)
+        served.join()
+        assert cn.pending == 0  # the DN was triggered; its reply came back and was applied
+    finally:
+        cs.close()
+        ds.close()
+        impostor.undeclare()
+
+
+def test_a_flooding_impostor_on_the_clock_key_never_holds_the_clock(trio: Trio) -> None:
+    """An impostor answering every clock query FLOOD times and never letting
+    go of it: the CN's answers are taken, at most one impostor reply is read
+    per exchange, and none is left waiting for the impostor."""
+    keys = KeySet.from_master(IGNITER, bytes(range(32)))
+    held: list[zenoh.Query] = []
+
+    def hold(query: zenoh.Query) -> None:
+        for _ in range(FLOOD):
+            query.reply(KEYS.clock, bytes(80))
+        held.append(query)  # never finalised here: zenoh's timeout ends it
+
+    server = ClockServer(trio.genuine, KEYS, time.monotonic_ns, IGNITER, keys.for_node("cn"))
+    impostor = trio.impostor.declare_queryable(
+        KEYS.clock, zenoh.handlers.Callback(hold, indirect=False), complete=True
+    )
+    trio.ready()
+    link = ClockLink(IGNITER, "dn0", keys.for_node("dn0"))
+    clock: Callable[[], int] = time.monotonic_ns
+    try:
+        est = estimate_offset(trio.asker, KEYS, clock, link, exchanges=20, timeout_s=5.0)
+    finally:
+        impostor.undeclare()
+        held.clear()
+        server.close()
+    assert link.refused_bad <= 20 and link.refused_other == 0
+    assert est.exchanges == 20 and link.timeouts == 0
+
+
+def test_alive_nodes_reads_the_tokens_through_a_bounded_mailbox() -> None:
+    """The one liveliness get: through a callback and a deadline, not
+    zenoh's channel iterated until the query ends."""
+    s = lone_session()
+    try:
+        tokens = [s.liveliness().declare_token(KEYS.alive(n)) for n in ("dn0", "cn")]
+        link = types.SimpleNamespace(ns=types.SimpleNamespace(session=s), keys=KEYS)
+        assert GroundLink.alive_nodes(link, 5.0) == ["cn", "dn0"]  # type: ignore[arg-type]
+        for t in tokens:
+            t.undeclare()
+    finally:
+        s.close()
+
+
+def test_a_peer_that_stops_reading_never_stalls_the_clock_thread(trio: Trio) -> None:
+    """A peer on the clock key whose zenoh stops reading its link (its
+    thread held), once the DN's traffic to it has filled that link: zenoh's
+    default for a get (BLOCK) held the DN's clock thread for 5 s, past the
+    thread monitor's 3 s clock deadline (which aborts the flight). DROPped,
+    the query to it is lost and the CN's answers come as ever: the
+    monitor, watching all along, never sees the clock thread stalled."""
+    keys = KeySet.from_master(IGNITER, bytes(range(32)))
+    release = threading.Event()
+
+    def stop_reading(sample: zenoh.Sample) -> None:
+        release.wait(30.0)  # holds the impostor's zenoh thread: its link stops draining
+
+    server = ClockServer(trio.genuine, KEYS, time.monotonic_ns, IGNITER, keys.for_node("cn"))
+    sub = trio.impostor.declare_subscriber(
+        "zplatform-test/flood/**", zenoh.handlers.Callback(stop_reading, indirect=False)
+    )
+    impostor = trio.impostor.declare_queryable(
+        KEYS.clock, zenoh.handlers.Callback(lambda q: None, indirect=False), complete=True
+    )
+    trio.ready()
+    liveness = Liveness(thread_deadlines_ns(IGNITER))
+    hb = liveness.add(Heartbeat("clock"))
+    stalls: list[int] = []
+    done = threading.Event()
+
+    def monitor() -> None:  # the node's thread monitor, in small
+        while not done.wait(0.05):
+            if mask := liveness.stalled(time.monotonic_ns()):
+                stalls.append(mask)
+
+    def now() -> int:  # the re-sync thread checks in at every clock read
+        hb.beat()
+        return time.monotonic_ns()
+
+    pub = trio.asker.declare_publisher(
+        "zplatform-test/flood/x", congestion_control=zenoh.CongestionControl.DROP
+    )
+    blob = bytes(1 << 16)
+    for _ in range(5000):  # the DN's traffic to the peer fills its link (DROPped beyond)
+        pub.put(blob)
+    watcher = threading.Thread(target=monitor)
+    watcher.start()
+    link = ClockLink(IGNITER, "dn0", keys.for_node("dn0"))
+    try:
+        est = estimate_offset(trio.asker, KEYS, now, link, exchanges=20, timeout_s=1.0)
+    finally:
+        done.set()
+        watcher.join()
+        release.set()
+        pub.undeclare()
+        sub.undeclare()
+        impostor.undeclare()
+        server.close()
+    assert [stalled_names(m) for m in stalls] == []
+    assert est.exchanges == 20 and link.timeouts == 0

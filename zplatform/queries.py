@@ -1,0 +1,149 @@
+"""Every zenoh query zplatform sends goes through :func:`ask`.
+
+A query is a door a hostile peer can stand behind. Asked the way zenoh
+does by default, it is held open by a silent peer, captured by an impostor
+or made to block. :func:`ask` closes those doors in one place:
+
+* **Target ALL.** Zenoh's default target, ``BEST_MATCHING``, sends the query
+  to *one* queryable that declared itself ``complete`` when there is one, so
+  a peer that declares a complete queryable on a probe or recorder key
+  receives the question instead of the node it was meant for, and the real
+  answer never comes. ``ALL`` asks every queryable on the key. The caller
+  takes only the answers that check (tag, nonce, replier), so an impostor's
+  answers are refused and counted, never taken.
+* **No consolidation.** Every reply is handed over as it arrives (zenoh's
+  default consolidation can hold replies back until the query ends).
+* **An explicit, finite timeout.** Zenoh finalises the query after it
+  however the repliers behave (a replier that never lets go of the query
+  cannot keep it open), and the handler's ``drop`` then runs.
+* **Congestion control DROP.** A BLOCKing get waits for a link that stopped
+  draining (a peer that does not read its socket, a cut cable), for seconds;
+  a dropped query simply gets no answer, the same counted timeout as a
+  silent peer. A reply takes its query's QoS (zenoh 1.x): the answers
+  are DROPped too, so a replier is never held by the asker's link.
+* **A callback handler only** (:func:`replies`, ``indirect=False``): it
+  runs on zenoh's thread and only hands off, into a bounded
+  :class:`~zplatform.handoff.Mailbox` the asking thread waits on with its
+  own deadline. Zenoh's default handler is refused: a FIFO channel blocks
+  zenoh's thread when full, and iterating it blocks the asker until the
+  query ends.
+
+The asking thread therefore never waits longer than it chooses: :func:`ask`
+returns at once, and the caller's wait on its mailbox has its deadline.
+Liveliness gets take no target or congestion option; the one there is
+(:meth:`zplatform.ground.link.GroundLink.alive_nodes`) uses the same callback
+and deadline.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+
+import zenoh
+
+from .errors import TransportError
+
+__all__ = ["CONGESTION", "CONSOLIDATION", "TARGET", "ReplyCap", "ask", "replies"]
+
+TARGET = zenoh.QueryTarget.ALL
+"""Every queryable on the key is asked (module doc: never ``BEST_MATCHING``)."""
+CONSOLIDATION = zenoh.ConsolidationMode.NONE
+CONGESTION = zenoh.CongestionControl.DROP
+
+
+def replies(
+    on_reply: Callable[[zenoh.Reply], None], on_done: Callable[[], None] | None = None
+) -> zenoh.handlers.Callback[zenoh.Reply]:
+    """The handler :func:`ask` takes: ``on_reply`` per reply, ``on_done``
+    once when the query is over (every replier done, or the timeout), both
+    on zenoh's thread (``indirect=False``). Both must only hand off: no
+    blocking, no waiting, into a bounded mailbox. Build it once and reuse it
+    where the query repeats (no allocation per query)."""
+    return zenoh.handlers.Callback(on_reply, on_done, indirect=False)
+
+
+def ask(
+    session: zenoh.Session,
+    key_expr: str,
+    handler: zenoh.handlers.Callback[zenoh.Reply],
+    *,
+    timeout_s: float,
+    payload: bytes | bytearray | zenoh.ZBytes | None = None,
+    priority: zenoh.Priority | None = None,
+    local_only: bool = False,
+    instrumentation: zenoh.TimestampInstrumentation | None = None,
+) -> None:
+    """Send one query on ``key_expr`` (module doc: target ALL, no
+    consolidation, ``timeout_s``, DROP) and return at once; never blocks.
+
+    ``handler``: a :func:`replies` callback (anything else is refused).
+    ``timeout_s``: finite and positive. ``priority``: zenoh's (its default
+    when None). ``local_only``: only this session's own queryables answer
+    (``Locality.SESSION_LOCAL``). ``instrumentation``: zenoh's timestamp
+    instrumentation (the clock sync). A query DROPped on a congested link
+    just gets no reply: the handler's ``drop`` runs at the timeout.
+
+    Raises TransportError for a handler that is not a callback or a timeout
+    that is not finite and positive (a programming error); zenoh's ZError
+    when the session is closed.
+    """
+    if not isinstance(handler, zenoh.handlers.Callback):
+        raise TransportError(
+            f"a query's handler must be a zplatform.queries.replies callback, not "
+            f"{type(handler).__name__}: zenoh's channels block a thread"
+        )
+    if not (timeout_s > 0 and math.isfinite(timeout_s)):
+        raise TransportError(f"a query needs a finite positive timeout, not {timeout_s!r} s")
+    session.get(
+        key_expr,
+        handler,
+        target=TARGET,
+        consolidation=CONSOLIDATION,
+        timeout=timeout_s,
+        congestion_control=CONGESTION,
+        priority=priority,
+        payload=payload,
+        allowed_destination=zenoh.Locality.SESSION_LOCAL if local_only else None,
+        timestamp_instrumentation=instrumentation,
+    )
+
+
+class ReplyCap:
+    """At most ``per_replier`` replies from each replier to one query, for an
+    ``on_reply`` callback to admit (:meth:`admit`) before it hands a reply
+    off: a peer that floods replies to a query fills no more than its own
+    share of the asker's mailbox, so the genuine replier's answer still gets
+    in, and the asker reads a bounded number of replies per query. Replies
+    over the cap are counted (:attr:`dropped`). Repliers are told apart by
+    the zenoh session of their replier id (a reply without one counts as
+    one anonymous replier). One instance per query; called on zenoh's thread (one query's
+    replies arrive on one thread at a time in practice; the counts are
+    plain ints, a race costs at most a miscount by one). A reused one
+    (a preallocated callback) is :meth:`reset` by the asker before each
+    query.
+    """
+
+    __slots__ = ("_seen", "dropped", "per_replier")
+
+    def __init__(self, per_replier: int = 1) -> None:
+        self.per_replier = per_replier
+        self._seen: dict[object, int] = {}
+        self.dropped = 0
+
+    def reset(self) -> None:
+        """A new query: every replier's share is whole again (any thread)."""
+        self._seen = {}  # one reference swap: zenoh's thread sees the old or the new
+
+    def admit(self, reply: zenoh.Reply) -> bool:
+        """Whether ``reply`` is within its replier's share (then counted)."""
+        rid = getattr(reply, "replier_id", None)
+        # By session (its ZenohId): zenoh's EntityGlobalId compares by
+        # identity, and one session declaring many queryables gets one share.
+        who = getattr(rid, "zid", rid)
+        n = self._seen.get(who, 0)
+        if n >= self.per_replier:
+            self.dropped += 1
+            return False
+        self._seen[who] = n + 1
+        return True
