@@ -58,7 +58,7 @@ def test_up_stops_its_nodes_before_closing_its_session_and_never_waits_on_the_cl
         self.procs[name] = subprocess.Popen([sys.executable, "-c", PROGRAMS[name]])
 
     monkeypatch.setattr(supervisor.Children, "spawn", spawn)
-    monkeypatch.setattr(supervisor, "Children", lambda: children)
+    monkeypatch.setattr(supervisor, "Children", lambda **_kw: children)
     monkeypatch.setattr(supervisor, "GroundLink", HungLink)
     monkeypatch.setattr(supervisor, "LINK_CLOSE_S", 0.2)
     monkeypatch.setattr(signal, "signal", lambda *a: None)  # pytest keeps its own
