@@ -54,9 +54,6 @@ from .ground.logic import GroundLogic
 from .ground.records import CommandOutcome, EventRecord, TelemetryCounters
 from .ground.script import ScriptPlayer
 from .health import FakeHealth, HealthPort, Heartbeat, Liveness
-from .lockstep import LockstepRunner, ReplayResult, SimResult, replay
-from .loop import ControlLogic, DeviceLogic
-from .mission import check_mission, decode_mission, load_mission
 from .keyspace import (
     KEYSPACE,
     ExpandedKey,
@@ -68,6 +65,9 @@ from .keyspace import (
     keyspace_markdown,
     match_key,
 )
+from .lockstep import LockstepRunner, ReplayResult, SimResult, replay
+from .loop import ControlLogic, DeviceLogic
+from .mission import check_mission, decode_mission, load_mission
 from .monitors import MonitorSet
 from .params import (
     ParamFileError,

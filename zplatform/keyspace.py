@@ -182,8 +182,7 @@ KEYSPACE: tuple[KeyRow, ...] = (
             ),
         ),
         when="always",
-        what="the whole CN Data Vector every `telemetry_divisor` loops, while someone "
-        "subscribes",
+        what="the whole CN Data Vector every `telemetry_divisor` loops, while someone subscribes",
     ),
     KeyRow(
         "downlink",
@@ -363,8 +362,7 @@ KEYSPACE: tuple[KeyRow, ...] = (
             ),
         ),
         when="health",
-        what="the node's own probe of zenoh's runtime (`zplatform.node.health`), "
-        "session-local",
+        what="the node's own probe of zenoh's runtime (`zplatform.node.health`), session-local",
     ),
     KeyRow(
         "bulk",
@@ -476,7 +474,7 @@ KEYSPACE: tuple[KeyRow, ...] = (
             ),
         ),
         when="always",
-        what="`zplatform tap`'s default subscription (each sample checked by its own key's channel)",
+        what="`zplatform tap`'s default subscription (each sample checked by its key's channel)",
     ),
 )
 """Every key expression pattern of the platform (module doc)."""

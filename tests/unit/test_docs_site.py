@@ -24,6 +24,7 @@ PAGES = (
     "tutorial/index.html",
     "mission-reference/index.html",
     "architecture/index.html",
+    "keyspace/index.html",
     "requirements/index.html",
     "serial-protocol/index.html",
     "codecs/FORMAT/index.html",
