@@ -149,7 +149,7 @@ KEYSPACE: tuple[KeyRow, ...] = (
         "cn_to_dn",
         "{vehicle}/cn/to_{dn}",
         puts=("commander",),
-        declares=("any",),
+        declares=("gn", "tool"),
         queries=(),
         frames=(
             KeyFrames(

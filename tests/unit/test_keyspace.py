@@ -310,7 +310,9 @@ def _name(
     return _callers(mod, fn, name, depth)
 
 
-def _callers(mod: _Module, fn: ast.FunctionDef | ast.AsyncFunctionDef, param: str, depth: int):
+def _callers(
+    mod: _Module, fn: ast.FunctionDef | ast.AsyncFunctionDef, param: str, depth: int
+) -> list[str]:
     """Resolve ``param`` of ``fn`` at every call site in zplatform/."""
     cls = mod.enclosing(fn, ast.ClassDef)
     callee = cls.name if fn.name == "__init__" and isinstance(cls, ast.ClassDef) else fn.name
@@ -417,7 +419,7 @@ def _channel_names() -> Iterator[tuple[str, str]]:
         if isinstance(e, ast.Constant) and isinstance(e.value, str):
             return e.value
         if isinstance(e, ast.JoinedStr):
-            return "".join(v.value if isinstance(v, ast.Constant) else "{}" for v in e.values)
+            return "".join(str(v.value) if isinstance(v, ast.Constant) else "{}" for v in e.values)
         return None
 
     for mod in MODULES:
