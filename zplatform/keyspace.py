@@ -22,6 +22,7 @@ cannot get a key without its row) and ValueError for a missing placeholder.
 
 Placeholders: ``{vehicle}`` (the mission's), ``{dn}`` (a device node),
 ``{node}`` (any node: control, device, ground), ``{cn}`` (a control node),
+``{asker}`` (who asks the clock: a device node, or ``peer``, the standby),
 ``{owner}``/``{channel}`` (a bulk channel's owner and name). Role names in
 ``puts``/``declares``/``queries``: ``commander`` (whichever control node
 commands), ``control`` (either control node), ``gn``, ``tool``,
@@ -266,7 +267,7 @@ KEYSPACE: tuple[KeyRow, ...] = (
         "{vehicle}/cn/clock",
         puts=(),
         declares=("commander",),
-        queries=("{dn}", "control"),  # the standby asks as `peer`
+        queries=("{asker}",),
         frames=(
             KeyFrames(
                 "query",
@@ -647,8 +648,11 @@ def keyspace_markdown() -> str:
         "the table in `zplatform/keyspace.py` that the transport builds its keys",
         "from. The [architecture](architecture.md#key-space) explains them;",
         "`{vehicle}` is the mission's `vehicle`, `{dn}` a device node, `{node}`",
-        "any node, `{cn}` a control node; `commander` is whichever control node",
-        "commands, `control` either control node.",
+        "any node, `{cn}` a control node, `{asker}` who asks the clock (a device",
+        "node, or `peer`: the standby); `commander` is whichever control node",
+        "commands, `control` either control node. Who puts, queries, declares a",
+        "queryable or holds a token is what the access-control list of a mutual-TLS",
+        "mission allows (`tests/unit/test_keyspace.py` checks it).",
         "",
         "## Who uses which key",
         "",

@@ -23,13 +23,19 @@ import inspect
 import re
 from collections.abc import Iterator
 from pathlib import Path
+from types import SimpleNamespace
+from typing import Any
 
 import pytest
+import zenoh
 
 from zplatform import auth
 from zplatform.cli import main
+from zplatform.config import Mission
+from zplatform.deploy import access_control
 from zplatform.keyspace import (
     KEYSPACE,
+    ExpandedKey,
     expand_keys,
     key_of,
     key_row,
@@ -486,3 +492,64 @@ def test_every_channel_a_mission_keys_has_a_row(path: Path) -> None:
     assert {f"events_{n}" for n in [*m.control_nodes, *m.device_nodes]} <= chans
     if m.standby is not None:
         assert chans >= auth.PEER_CHANNELS
+
+
+# -- the who-columns are what the access-control list allows -------------------------
+
+
+def _roles(m: Mission, k: ExpandedKey, who: tuple[str, ...]) -> set[str]:
+    """The host roles a who-column names, for one expanded row."""
+    out: set[str] = set()
+    params = dict(k.params)
+    for w in who:
+        if w in ("commander", "control"):
+            out |= set(m.control_nodes)
+        elif w.startswith("{"):
+            name = params.get(w.strip("{}"))
+            if name is not None and name != "peer":
+                out.add(name)
+            elif name == "peer":
+                out |= set(m.control_nodes)
+        elif w == "gn":
+            out |= {"gn"} if m.has_ground else set()
+        elif w == "tool":
+            out.add("tool")
+        elif w == "any":
+            out |= {*m.nodes, "tool"}
+    return out
+
+
+def _acl_allows(acl: dict[str, Any], who: str, message: str, key: str) -> bool:
+    (pol,) = [p for p in acl["policies"] if p["subjects"] == [f"s-{who}"]]
+    by_id = {r["id"]: r for r in acl["rules"]}
+    want = zenoh.KeyExpr(key)
+    return any(
+        r["flows"] == ["ingress"]
+        and message in r["messages"]
+        and any(zenoh.KeyExpr(ke).includes(want) for ke in r["key_exprs"])
+        for r in (by_id[i] for i in pol["rules"])
+    )
+
+
+@pytest.mark.parametrize("path", MISSIONS, ids=lambda p: p.stem)
+def test_the_who_columns_are_what_the_access_control_list_allows(path: Path) -> None:
+    """Who puts, queries, declares a queryable or holds a liveliness token on
+    each key, by the table, is allowed it by the access-control list of the
+    mission's mutual-TLS deployment (a tool that may command)."""
+    m = load_mission(path)
+    dep: Any = SimpleNamespace(tool=SimpleNamespace(may_command=True))
+    acl = access_control(m, dep)
+    checked = 0
+    for k in expand_keys(m):
+        kinds = {f.kind for f in k.row.frames}
+        wants = [("put", w) for w in _roles(m, k, k.row.puts)]
+        ask = "liveliness_query" if kinds == {"token"} else "query"
+        wants += [(ask, w) for w in _roles(m, k, k.row.queries) if "self" not in k.row.queries]
+        if "query" in kinds and "self" not in k.row.declares:
+            wants += [("declare_queryable", w) for w in _roles(m, k, k.row.declares)]
+        if kinds == {"token"} and "*" not in k.key:
+            wants += [("liveliness_token", w) for w in _roles(m, k, k.row.declares[:1])]
+        for message, who in wants:
+            assert _acl_allows(acl, who, message, k.key), f"{k.id}: {who} may not {message}"
+            checked += 1
+    assert checked >= 20
