@@ -43,7 +43,7 @@ from zplatform.config import Mission
 from zplatform.datavector import DataVector, Layout
 from zplatform.events import Event, EventLog, encode_event
 from zplatform.failover import Standby
-from zplatform.fencing import ASK, ask_frame, new_nonce
+from zplatform.fencing import ASK, NONCE_LEN, ask_frame, new_nonce
 from zplatform.ground.gapfill import GapFill
 from zplatform.ground.logic import Gap, GroundLogic
 from zplatform.handoff import Mailbox, Waker
@@ -580,8 +580,8 @@ class MirrorH(Harness):
         return None
 
 
-_ASK = struct.Struct(f"<2sBBBBI{16}sq")  # codecs/FORMAT.md §6.5
-_PREPLY = struct.Struct(f"<2sBB{16}sIIBBqQq")
+_ASK = struct.Struct(f"<2sBBBBI{NONCE_LEN}sq")  # codecs/FORMAT.md §6.5
+_PREPLY = struct.Struct(f"<2sBB{NONCE_LEN}sIIBBqQq")
 
 
 class ProbeAskH(_IntakeCounts, Harness):
@@ -932,11 +932,10 @@ def test_every_tagged_frame_is_refused_and_counted_once(
         h.close()
 
 
-def _old_run(h: Harness, old: bool | bytes) -> None:
+def _old_run(h: Harness, old: bytes) -> None:
     """A receiver that just started takes, first, a genuine frame of its
     sender's earlier run (a day before, another epoch): refused as stale,
     and the sender's genuine frames of this run are taken after it."""
-    assert isinstance(old, bytes)
     before = h.counts()
     assert not h.feed(old), "replay_old_run: admitted"
     after = h.counts()
