@@ -54,6 +54,17 @@ from .ground.logic import GroundLogic
 from .ground.records import CommandOutcome, EventRecord, TelemetryCounters
 from .ground.script import ScriptPlayer
 from .health import FakeHealth, HealthPort, Heartbeat, Liveness
+from .keyspace import (
+    KEYSPACE,
+    ExpandedKey,
+    KeyFrames,
+    KeyRow,
+    expand_keys,
+    key_of,
+    key_row,
+    keyspace_markdown,
+    match_key,
+)
 from .lockstep import LockstepRunner, ReplayResult, SimResult, replay
 from .loop import ControlLogic, DeviceLogic
 from .mission import check_mission, decode_mission, load_mission
@@ -84,6 +95,7 @@ __version__ = "0.1.0"
 
 __all__ = [
     "EV",
+    "KEYSPACE",
     "Actuator",
     "Board",
     "ClockSyncError",
@@ -112,6 +124,7 @@ __all__ = [
     "EventReader",
     "EventRecord",
     "EventType",
+    "ExpandedKey",
     "FakeHealth",
     "Fault",
     "FaultMonitor",
@@ -128,6 +141,8 @@ __all__ = [
     "Handle",
     "HealthPort",
     "Heartbeat",
+    "KeyFrames",
+    "KeyRow",
     "KeySet",
     "KeySpace",
     "Layout",
@@ -180,10 +195,15 @@ __all__ = [
     "decode_params",
     "encode_frame",
     "encode_params",
+    "expand_keys",
     "fill_request",
+    "key_of",
+    "key_row",
+    "keyspace_markdown",
     "load_commands",
     "load_keys",
     "load_mission",
+    "match_key",
     "mission_schema",
     "params_path",
     "parse_commands",

@@ -64,6 +64,7 @@ import numpy as np
 import zenoh
 
 from .errors import TransportError
+from .keyspace import key_of
 
 __all__ = [
     "BULK_HEADER_BYTES",
@@ -103,8 +104,9 @@ assert HEADER.size == BULK_HEADER_BYTES
 
 
 def bulk_key(vehicle: str, channel: BulkChannelConfig) -> str:
-    """``{vehicle}/{owner}/bulk/{name}`` (docs/architecture.md#key-space)."""
-    return f"{vehicle}/{channel.node}/bulk/{channel.name}"
+    """``{vehicle}/{owner}/bulk/{name}`` (docs/architecture.md#key-space), from
+    its row of :data:`zplatform.keyspace.KEYSPACE`."""
+    return key_of("bulk", vehicle, owner=channel.node, channel=channel.name)
 
 
 def pool_size(channels: Sequence[BulkChannelConfig], node: str) -> int:

@@ -276,17 +276,23 @@ def cmd_keygen(args: argparse.Namespace) -> int:
 
 
 def cmd_schema(args: argparse.Namespace) -> int:
-    """The mission file's JSON Schema (or its markdown reference), to stdout or a file."""
+    """The mission file's JSON Schema (or its markdown reference, or the key
+    space's table), to stdout or a file."""
     from pathlib import Path
 
     from .cli_args import check_output
+    from .keyspace import keyspace_markdown
     from .schema import mission_schema_json, reference_markdown
 
-    text = reference_markdown() if args.markdown else mission_schema_json()
+    if args.keyspace:
+        text, what = keyspace_markdown(), "the key space"
+    elif args.markdown:
+        text, what = reference_markdown(), "the mission reference"
+    else:
+        text, what = mission_schema_json(), "the mission schema"
     if args.out is None:
         sys.stdout.write(text)
         return 0
-    what = "the mission reference" if args.markdown else "the mission schema"
     check_output(args.out, what)
     Path(args.out).write_text(text, encoding="utf-8")
     print(f"wrote {what} to {args.out}")
@@ -337,12 +343,19 @@ def build_parser() -> argparse.ArgumentParser:
         "schema",
         help="print the mission file's JSON Schema (for editor completion and validation)",
         description="Print the JSON Schema of a mission file, or with --markdown the mission "
-        "reference (docs/mission-reference.md). Point an editor at the schema with a first "
+        "reference (docs/mission-reference.md), or with --keyspace the key space's table "
+        "(docs/keyspace.md). Point an editor at the schema with a first "
         "line `# yaml-language-server: $schema=mission.schema.json` in the mission file.",
     )
     c.add_argument("--out", metavar="FILE", help="write it to FILE instead of stdout")
-    c.add_argument(
+    form = c.add_mutually_exclusive_group()
+    form.add_argument(
         "--markdown", action="store_true", help="the mission reference (markdown) instead"
+    )
+    form.add_argument(
+        "--keyspace",
+        action="store_true",
+        help="the key space's table (markdown, docs/keyspace.md) instead",
     )
     c.set_defaults(func=cmd_schema)
     c = sub.add_parser("ps", help="list the running missions (registered by `up`)")

@@ -44,6 +44,7 @@ from .config import STANDBY, Mission, relocate_mission
 from .deploy import Deployment, check_tool_may_command, require_deployment, zenoh_settings
 from .errors import TransportError
 from .handoff import Handoff
+from .keyspace import key_of
 from .messages import lowlatency_for
 
 __all__ = [
@@ -61,64 +62,67 @@ __all__ = [
 
 @dataclass(frozen=True, slots=True)
 class KeySpace:
-    """The keys of docs/architecture.md#key-space for one vehicle prefix."""
+    """The keys of docs/architecture.md#key-space for one vehicle prefix,
+    each built from its row of :data:`zplatform.keyspace.KEYSPACE` (the one
+    table of the key space; a key without a row cannot be built). Builds
+    a new string per call: take keys once, when declaring."""
 
     vehicle: str
 
     def dn_to_cn(self, dn: str) -> str:
-        return f"{self.vehicle}/{dn}/to_cn"
+        return key_of("dn_to_cn", self.vehicle, dn=dn)
 
     @property
     def sync_all(self) -> str:
         """The wildcard sync query's key: every ``dnX/to_cn`` at once."""
-        return f"{self.vehicle}/*/to_cn"
+        return key_of("sync_all", self.vehicle)
 
     def cn_to_dn(self, dn: str) -> str:
-        return f"{self.vehicle}/cn/to_{dn}"
+        return key_of("cn_to_dn", self.vehicle, dn=dn)
 
     @property
     def telemetry(self) -> str:
-        return f"{self.vehicle}/cn/telemetry"
+        return key_of("telemetry", self.vehicle)
 
     @property
     def downlink(self) -> str:
         """CCSDS space packets of the radio downlink (one sample per packet)."""
-        return f"{self.vehicle}/cn/downlink"
+        return key_of("downlink", self.vehicle)
 
     @property
     def gn_to_cn(self) -> str:
-        return f"{self.vehicle}/gn/to_cn"
+        return key_of("gn_to_cn", self.vehicle)
 
     @property
     def recorder(self) -> str:
         """The CN's flight recorder: a queryable answering gap-fill requests."""
-        return f"{self.vehicle}/cn/recorder"
+        return key_of("recorder", self.vehicle)
 
     def events(self, node: str) -> str:
-        return f"{self.vehicle}/{node}/events"
+        return key_of("events", self.vehicle, node=node)
 
     @property
     def all_events(self) -> str:
-        return f"{self.vehicle}/*/events"
+        return key_of("all_events", self.vehicle)
 
     @property
     def clock(self) -> str:
-        return f"{self.vehicle}/cn/clock"
+        return key_of("clock", self.vehicle)
 
     def alive(self, node: str) -> str:
-        return f"{self.vehicle}/{node}/alive"
+        return key_of("alive", self.vehicle, node=node)
 
     def standby(self, node: str) -> str:
         """A control node's liveliness token while it follows as a ready standby."""
-        return f"{self.vehicle}/{node}/standby"
+        return key_of("standby", self.vehicle, cn=node)
 
     def health_probe(self, node: str) -> str:
         """The node's own zenoh probe (zplatform.node.health): local to its session."""
-        return f"{self.vehicle}/{node}/health/probe"
+        return key_of("health_probe", self.vehicle, node=node)
 
     @property
     def all_alive(self) -> str:
-        return f"{self.vehicle}/*/alive"
+        return key_of("all_alive", self.vehicle)
 
     def region(self, region: str) -> str:
         """The key a region travels on (docs/architecture.md#key-space): ``cn_to_dnX`` ->
@@ -126,21 +130,31 @@ class KeySpace:
         src, sep, dst = region.partition("_to_")
         if not sep or not src or not dst:
             raise TransportError(f"{region!r} is not a sync region (src_to_dst)")
-        return f"{self.vehicle}/{src}/to_{dst}"
+        if region == "gn_to_cn":
+            return self.gn_to_cn
+        if src == "cn":
+            return self.cn_to_dn(dst)
+        if dst == "cn":
+            return self.dn_to_cn(src)
+        raise TransportError(f"{region!r} is not a sync region (cn_to_dnX, dnX_to_cn, gn_to_cn)")
 
     @property
     def everything(self) -> str:
-        return f"{self.vehicle}/**"
+        return key_of("everything", self.vehicle)
 
     @property
     def mirror(self) -> str:
         """The commanding control node's whole Data Vector, every loop, for the
         standby (zplatform.failover)."""
-        return f"{self.vehicle}/cn/mirror"
+        return key_of("mirror", self.vehicle)
 
     def probe(self, dn: str) -> str:
         """A device node's probe queryable (zplatform.fencing)."""
-        return f"{self.vehicle}/{dn}/probe"
+        return key_of("probe", self.vehicle, dn=dn)
+
+    def bulk(self, owner: str, channel: str) -> str:
+        """A bulk channel's samples (zplatform.bulk)."""
+        return key_of("bulk", self.vehicle, owner=owner, channel=channel)
 
 
 def _insert(cfg: zenoh.Config, key: str, value: Any) -> None:

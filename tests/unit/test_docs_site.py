@@ -30,6 +30,7 @@ PAGES = (
     "internals/index.html",
     "mission-reference/index.html",
     "architecture/index.html",
+    "keyspace/index.html",
     "requirements/index.html",
     "serial-protocol/index.html",
     "codecs/FORMAT/index.html",

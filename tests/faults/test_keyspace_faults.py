@@ -1,0 +1,997 @@
+"""The generated fault suite: every tagged frame of every key a mission uses,
+fed to the intake that guards it (in process, no network).
+
+The plan is the key space (zplatform/keyspace.py): for each row of the
+shipped flight and recovery_igniter missions, expanded per device node and
+per node (:func:`zplatform.keyspace.expand_keys`), and each frame of it
+that carries a tag, the row's intake gets
+
+* junk of its longest accepted length, one byte over, of 0 and of 1 byte;
+* a genuine frame with a bad tag;
+* a same-run replay of a genuine frame it admitted;
+* a genuine-format frame, tagged with the right key (an insider's), with the
+  largest and then the smallest integer in every header field (u64/i64
+  extremes; a field that only selects the channel, the node index, is kept);
+
+and each must be refused and counted exactly once, never raise; after an
+extreme frame the next genuine one must still be admitted (a frame stamped
+at the end of time must not lock the receiver out).
+
+A row whose frame has no recipe here fails (:data:`RECIPES`): a new channel
+brings its recipe. What an intake cannot refuse yet is an
+``xfail(strict=True)`` with the reason (:attr:`Harness.gaps`), so it turns
+into a failure, to be unmarked, the day it is fixed.
+"""
+
+from __future__ import annotations
+
+import os
+import struct
+from abc import ABC, abstractmethod
+from collections import deque
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from types import SimpleNamespace
+from typing import Any, ClassVar
+
+import pytest
+
+from zplatform.auth import KEY_ENV, TAG_LEN, KeySet, channel
+from zplatform.clocksync import ClockLink, ClockResponder
+from zplatform.codec import BundleEncoder, decode_frame, encode_frame
+from zplatform.config import Mission
+from zplatform.datavector import DataVector, Layout
+from zplatform.events import Event, EventLog, encode_event
+from zplatform.failover import Standby
+from zplatform.fencing import ASK, NONCE_LEN, ask_frame, new_nonce
+from zplatform.ground.gapfill import GapFill
+from zplatform.ground.logic import Gap, GroundLogic
+from zplatform.handoff import Mailbox, Waker
+from zplatform.intake import ProbeIntake, ReplyCheck, RequestIntake, TelemetryIntake, TriggerIntake
+from zplatform.keyspace import ExpandedKey, KeyFrames, expand_keys
+from zplatform.loop import ControlLogic, DeviceLogic
+from zplatform.mission import load_mission
+from zplatform.node.control import MIRRORS, _hand_mirror
+from zplatform.recorder.format import REPLY_FRAMES, REPLY_LEN, REQUEST, REQUEST_MAGIC
+from zplatform.recorder.server import RecorderServer
+from zplatform.uplink import Uplink
+
+ROOT = Path(__file__).resolve().parents[2]
+MISSIONS = {n: load_mission(ROOT / "configs" / f"{n}.yaml") for n in ("flight", "recovery_igniter")}
+MASTER = bytes.fromhex(os.environ[KEY_ENV])
+T0 = 1_700_000_000_000_000_000
+EPOCH = 77
+
+U64_MAX, I64_MAX, I64_MIN = (1 << 64) - 1, (1 << 63) - 1, -(1 << 63)
+U32_MAX = (1 << 32) - 1
+CASES = (
+    "junk_max",
+    "junk_over",
+    "junk_empty",
+    "junk_one",
+    "bad_tag",
+    "replay",
+    "extreme_max",
+    "extreme_min",
+    "extreme_stamp",
+    "replay_old_run",
+)
+DAY = 86_400 * 10**9
+
+
+def _keys(m: Mission) -> KeySet:
+    return KeySet.from_master(m, MASTER)
+
+
+def _junk(n: int) -> bytes:
+    """``n`` bytes of deterministic junk (no valid tag, no valid frame)."""
+    return bytes((i * 131 + 7) & 0xFF for i in range(n))
+
+
+class Bytes:
+    """A payload as zenoh hands it over (its length free, ``to_bytes`` a copy)."""
+
+    def __init__(self, data: bytes) -> None:
+        self._data = data
+
+    def __len__(self) -> int:
+        return len(self._data)
+
+    def to_bytes(self) -> bytes:
+        return self._data
+
+
+def _reframe(tagged: bytes, hi: bool, key: Any) -> bytes:
+    """A region frame with the data of ``tagged`` (a genuine frame) and every
+    header integer at its largest (``hi``) or smallest, tagged with ``key``."""
+    data = bytes(decode_frame(tagged[:-TAG_LEN]).data)
+    frame = (
+        encode_frame(U32_MAX, U64_MAX, I64_MAX, data) if hi else encode_frame(0, 0, I64_MIN, data)
+    )
+    return bytes(key.seal(frame))
+
+
+def _restamp(tagged: bytes, key: Any, seq: int | None = None) -> bytes:
+    """``tagged`` (a genuine region frame) stamped at i64 max (and loop
+    ``seq``, by default u64 max), everything else as it was, tagged with ``key``."""
+    f = decode_frame(tagged[:-TAG_LEN])
+    s = U64_MAX if seq is None else seq
+    return bytes(key.seal(encode_frame(f.layout_id, s, I64_MAX, bytes(f.data))))
+
+
+class Harness(ABC):
+    """One frame kind's intake, fed in process (module doc).
+
+    ``kinds``: the counters the intake keeps (of ``size``, ``bad``,
+    ``stale``); ``max_len``: the longest payload its size check takes;
+    :meth:`genuine`: a new genuine frame, newer than every one before;
+    :meth:`feed`: True when the intake admitted the payload; :meth:`counts`:
+    its counters so far; :meth:`advance`: the receiver moves past the frame
+    it just admitted (a new exchange, the next loop asked);
+    :meth:`extreme`: a genuine-format frame, with the right tag, every
+    header integer at an extreme. ``gaps(mission)``: the cases it cannot
+    refuse yet, with why."""
+
+    kinds: ClassVar[tuple[str, ...]] = ("size", "bad", "stale")
+    max_len: int
+
+    @classmethod
+    def gaps(cls, m: Mission) -> dict[str, str]:
+        return {}
+
+    @abstractmethod
+    def genuine(self) -> bytes: ...
+
+    @abstractmethod
+    def feed(self, payload: bytes) -> bool: ...
+
+    @abstractmethod
+    def counts(self) -> dict[str, int]: ...
+
+    @abstractmethod
+    def extreme(self, hi: bool) -> bytes: ...
+
+    @abstractmethod
+    def stamp_max(self) -> bytes:
+        """A genuine frame whose freshness fields alone (its loop, stamp,
+        number) are at their largest: what a key holder's bug or a stepped
+        clock sends."""
+
+    def advance(self) -> None:
+        """By default the receiver needs no telling."""
+        return None
+
+    def close(self) -> None:
+        """By default nothing to release."""
+        return None
+
+
+class _IntakeCounts:
+    """Counts of a zplatform.intake.Intake, accumulated across take_counts()."""
+
+    intake: Any
+
+    def counts(self) -> dict[str, int]:
+        s, b, t = self.intake.take_counts()
+        c = self._c = getattr(self, "_c", {"size": 0, "bad": 0, "stale": 0})
+        c["size"] += s
+        c["bad"] += b
+        c["stale"] += t
+        return dict(c)
+
+
+_STAMP_GAP = (
+    "the intake admits an authentic frame stamped at i64 max (its freshness is 'later "
+    "than the newest', with no bound ahead of the receiver's clock), and from then on "
+    "refuses every genuine frame as stale"
+)
+
+
+_RUN_GAP = (
+    "cross-run replay: a receiver that just started admits a genuine frame of its "
+    "sender's earlier run (freshness is relative to the frames it has seen, not bound to "
+    "the sender's run)"
+)
+
+
+class TriggerH(_IntakeCounts, Harness):
+    """A DN's triggers (TriggerIntake), alone or in a wildcard sync bundle."""
+
+    def __init__(self, m: Mission, dn: str, bundle: bool = False, t0: int = T0) -> None:
+        self.t0 = t0
+        self.m, self.keys, self.bundle = m, _keys(m), bundle
+        self.i = m.device_nodes.index(dn)
+        self.ch = channel(self.keys, f"cn_to_{dn}")
+        self.intake: TriggerIntake[None] = TriggerIntake(m, dn, channel(self.keys, f"cn_to_{dn}"))
+        self.max_len = self.intake.max_len
+        self.cn = ControlLogic(m, keys=self.keys, epoch=self.t0)
+        self.n = 0
+
+    @classmethod
+    def gaps(cls, m: Mission) -> dict[str, str]:
+        return {
+            "extreme_max": _STAMP_GAP,
+            "extreme_stamp": _STAMP_GAP,
+            "replay_old_run": _RUN_GAP,
+        }
+
+    def _frames(self) -> list[bytes]:
+        self.n += 1
+        return [bytes(f) for f in self.cn.begin(self.n, self.t0 + self.n * self.m.period_ns)]
+
+    def genuine(self) -> bytes:
+        frames = self._frames()
+        return bytes(BundleEncoder().pack(frames)) if self.bundle else frames[self.i]
+
+    def feed(self, payload: bytes) -> bool:
+        return self.intake.admit(Bytes(payload), None)
+
+    def extreme(self, hi: bool) -> bytes:
+        return _reframe(self._frames()[self.i], hi, self.ch)
+
+    def stamp_max(self) -> bytes:
+        return _restamp(self._frames()[self.i], self.ch)
+
+
+class ReplyH(_IntakeCounts, Harness):
+    """The CN's check of a sync reply from an unknown session (ReplyCheck)."""
+
+    def __init__(self, m: Mission, dn: str, t0: int = T0) -> None:
+        self.t0 = t0
+        self.m, self.keys = m, _keys(m)
+        self.i = m.device_nodes.index(dn)
+        self.ch = channel(self.keys, f"{dn}_to_cn")
+        self.intake = ReplyCheck(m, dn, channel(self.keys, f"{dn}_to_cn"))
+        self.max_len = self.intake.max_len
+        self.cn = ControlLogic(m, keys=self.keys, epoch=self.t0)
+        self.dn = DeviceLogic(m, dn, keys=self.keys)
+        self.n = 0
+
+    def genuine(self) -> bytes:
+        self.n += 1
+        t = self.t0 + self.n * self.m.period_ns
+        reply = self.dn.trigger(bytes(self.cn.begin(self.n, t)[self.i]), t)
+        assert reply is not None
+        self.intake.expect(self.n, t)
+        return bytes(reply)
+
+    def advance(self) -> None:
+        self.intake.expect(self.n + 1, self.t0 + (self.n + 1) * self.m.period_ns)
+
+    def _stamp_seq(self) -> int | None:
+        return self.n  # the loop asked, stamped at the end of time
+
+    def feed(self, payload: bytes) -> bool:
+        return self.intake.check(Bytes(payload), None) is not None
+
+    def extreme(self, hi: bool) -> bytes:
+        return _reframe(self.genuine(), hi, self.ch)
+
+    def stamp_max(self) -> bytes:
+        return _restamp(self.genuine(), self.ch, self._stamp_seq())
+
+
+class RequestH(_IntakeCounts, Harness):
+    """The CN's command requests (RequestIntake)."""
+
+    def __init__(self, m: Mission, t0: int = T0) -> None:
+        self.t0 = t0
+        self.m, self.keys = m, _keys(m)
+        self.ch = channel(self.keys, "gn_to_cn")
+        self.last = 0
+        self.epoch = EPOCH if t0 == T0 else EPOCH - 1  # an earlier run of the CN
+        self.intake = RequestIntake(m, self.ch, self.epoch, lambda: self.last, 16)
+        self.max_len = self.intake.max_len
+        self.up = Uplink(m, self.keys)
+        self.n = 0
+        lay = Layout.for_node(m, "cn")
+        self.up_layout = lay.region("gn_to_cn").layout_id
+        base = lay.region("gn_to_cn").offset
+        self._num = [
+            (lay.element(e).offset - base, lay.element(e).scalar.struct)
+            for e in ("gn_cmd_epoch", "gn_cmd_seq")
+        ]
+
+    def genuine(self) -> bytes:
+        self.n += 1
+        return bytes(self.up.frame("NOOP", self.n, 0, 0.0, self.t0 + self.n, self.epoch))
+
+    def advance(self) -> None:
+        self.last = self.n  # the loop took it
+
+    def feed(self, payload: bytes) -> bool:
+        return self.intake.admit(Bytes(payload), None)
+
+    def extreme(self, hi: bool) -> bytes:
+        # The request's own numbers (its run and number) are header fields too.
+        data = bytearray(decode_frame(self.genuine()[:-TAG_LEN]).data)
+        for off, fmt in self._num:
+            size = struct.calcsize(fmt)
+            signed = fmt.islower()
+            v = ((1 << (8 * size - 1)) - 1 if signed else (1 << (8 * size)) - 1) if hi else 0
+            v = v if hi or not signed else -(1 << (8 * size - 1))
+            struct.pack_into("<" + fmt, data, off, v)
+        frame = (
+            encode_frame(U32_MAX, U64_MAX, I64_MAX, data)
+            if hi
+            else encode_frame(0, 0, I64_MIN, data)
+        )
+        assert self.ch is not None
+        return bytes(self.ch.seal(frame))
+
+    def stamp_max(self) -> bytes:
+        # This run, the highest number a request may carry.
+        off, fmt = self._num[1]
+        data = bytearray(decode_frame(self.genuine()[:-TAG_LEN]).data)
+        struct.pack_into("<" + fmt, data, off, (1 << (8 * struct.calcsize(fmt))) - 1)
+        assert self.ch is not None
+        return bytes(self.ch.seal(encode_frame(self.up_layout, self.n, I64_MAX, data)))
+
+
+class TelemetryH(_IntakeCounts, Harness):
+    """The ground's telemetry (TelemetryIntake)."""
+
+    def __init__(self, m: Mission, t0: int = T0) -> None:
+        self.t0 = t0
+        self.m, self.keys = m, _keys(m)
+        self.ch = channel(self.keys, "telemetry")
+        self.intake = TelemetryIntake(m, channel(self.keys, "telemetry"), 8, 10**9)
+        self.max_len = self.intake.max_len
+        self.cn = ControlLogic(m, keys=self.keys, epoch=self.t0)
+        self.n = 0
+
+    @classmethod
+    def gaps(cls, m: Mission) -> dict[str, str]:
+        return {
+            "extreme_max": _STAMP_GAP,
+            "extreme_stamp": _STAMP_GAP,
+            "replay_old_run": _RUN_GAP,
+        }
+
+    def genuine(self) -> bytes:
+        self.n += 1
+        self.cn.begin(self.n, self.t0 + self.n * self.m.period_ns)
+        return bytes(self.cn.telemetry())
+
+    def feed(self, payload: bytes) -> bool:
+        return self.intake.admit(Bytes(payload), self.t0 + self.n * self.m.period_ns)
+
+    def extreme(self, hi: bool) -> bytes:
+        return _reframe(self.genuine(), hi, self.ch)
+
+    def stamp_max(self) -> bytes:
+        return _restamp(self.genuine(), self.ch, self._stamp_seq())
+
+    def _stamp_seq(self) -> int | None:
+        return None
+
+
+class EventH(Harness):
+    """The ground's event records (EventReader, counted by GroundLogic)."""
+
+    kinds = ("bad",)
+
+    def __init__(self, m: Mission, node: str, t0: int = T0) -> None:
+        self.t0 = t0
+        self.m, self.keys, self.node = m, _keys(m), node
+        self.ch = channel(self.keys, f"events_{node}")
+        self.logic = GroundLogic(m, keys=self.keys)
+        self.key = f"{m.vehicle}/{node}/events"
+        self.max_len = 4096
+        self.n = 0
+
+    @classmethod
+    def gaps(cls, m: Mission) -> dict[str, str]:
+        why = (
+            "an event record has no freshness rule at intake: EventReader and "
+            "GroundLogic.on_event_bytes take an authentic record again"
+        )
+        return {
+            "replay": why,
+            "extreme_min": why + " (seq 0, t_ns i64 min)",
+            "extreme_stamp": why + " (seq u64 max, t_ns i64 max)",
+            "replay_old_run": why + " (of an earlier run of the node)",
+        }
+
+    def _record(self, seq: int, t_ns: int, severity: int) -> bytes:
+        assert self.ch is not None
+        body = encode_event(Event(self.node, seq, t_ns, severity, "bad_frame", "x"))
+        return bytes(self.ch.seal(body))
+
+    def genuine(self) -> bytes:
+        self.n += 1
+        return self._record(self.n, self.t0 + self.n, 2)
+
+    def feed(self, payload: bytes) -> bool:
+        return self.logic.on_event_bytes(self.key, payload, self.t0) is not None
+
+    def counts(self) -> dict[str, int]:
+        return {"bad": self.logic.counters.bad_events}
+
+    def extreme(self, hi: bool) -> bytes:
+        if hi:
+            return self._record(U64_MAX, I64_MAX, U64_MAX)
+        return self._record(0, I64_MIN, 0)
+
+    def stamp_max(self) -> bytes:
+        return self._record(U64_MAX, I64_MAX, 2)
+
+
+def _asker_node(asker: str) -> str:
+    return "cn_b" if asker == "peer" else asker
+
+
+_QUERY = struct.Struct("<2sBB16sq")  # codecs/FORMAT.md §6.3
+_CREPLY = struct.Struct("<2sBB16sqqq")
+
+
+class ClockQueryH(Harness):
+    """The CN's clock server (ClockResponder): a DN's (or the standby's) query."""
+
+    kinds = ("bad",)
+
+    def __init__(self, m: Mission, asker: str, t0: int = T0) -> None:
+        self.t0 = t0
+        self.m, self.keys = m, _keys(m)
+        self.responder = ClockResponder(m, self.keys)
+        self.link = ClockLink(m, _asker_node(asker), self.keys)
+        self.ch = channel(self.keys, f"clock_{asker}_to_cn")
+        self.max_len = _QUERY.size + TAG_LEN
+        self.n = 0
+
+    @classmethod
+    def gaps(cls, m: Mission) -> dict[str, str]:
+        why = (
+            "the clock server answers every authentic query (no freshness at the "
+            "server; the asker's nonce binds the reply)"
+        )
+        return {
+            "replay": why,
+            "extreme_stamp": why + ", one stamped at i64 max too",
+            "replay_old_run": why + ", one of an earlier run too",
+        }
+
+    def genuine(self) -> bytes:
+        self.n += 1
+        return self.link.query(self.t0 + self.n)[0]
+
+    def feed(self, payload: bytes) -> bool:
+        return self.responder.answer(payload, self.t0, self.t0 + 1) is not None
+
+    def counts(self) -> dict[str, int]:
+        return {"bad": self.responder.refused}
+
+    def extreme(self, hi: bool) -> bytes:
+        assert self.ch is not None
+        v, t = (255, I64_MAX) if hi else (0, I64_MIN)
+        body = _QUERY.pack(b"ZQ", v, self.link.index, new_nonce(), t)
+        return bytes(self.ch.seal(body))
+
+    def stamp_max(self) -> bytes:
+        assert self.ch is not None
+        return bytes(self.ch.seal(_QUERY.pack(b"ZQ", 1, self.link.index, new_nonce(), I64_MAX)))
+
+
+class ClockReplyH(Harness):
+    """A DN's (or the standby's) end of the clock exchange (ClockLink)."""
+
+    kinds = ("bad", "stale")
+
+    @classmethod
+    def gaps(cls, m: Mission) -> dict[str, str]:
+        return {
+            "extreme_stamp": "ClockLink takes an authentic reply whose times are i64 max "
+            "and whose t1 is not the query's (it checks the nonce, not the times)"
+        }
+
+    def __init__(self, m: Mission, asker: str, t0: int = T0) -> None:
+        self.t0 = t0
+        self.m, self.keys = m, _keys(m)
+        self.responder = ClockResponder(m, self.keys)
+        self.link = ClockLink(m, _asker_node(asker), self.keys)
+        self.ch = channel(self.keys, f"clock_cn_to_{asker}")
+        self.max_len = _CREPLY.size + TAG_LEN
+        self.n = 0
+        self.nonce = b""
+
+    def genuine(self) -> bytes:
+        self.n += 1
+        query, self.nonce = self.link.query(self.t0 + self.n)
+        reply = self.responder.answer(query, self.t0 + self.n, self.t0 + self.n + 1)
+        assert reply is not None
+        return reply
+
+    def advance(self) -> None:
+        self.nonce = self.link.query(self.t0 + self.n + 1)[1]  # the next exchange
+
+    def feed(self, payload: bytes) -> bool:
+        return self.link.check(payload, self.nonce) is not None
+
+    def counts(self) -> dict[str, int]:
+        return {"bad": self.link.refused_bad, "stale": self.link.refused_other}
+
+    def extreme(self, hi: bool) -> bytes:
+        assert self.ch is not None
+        self.genuine()  # a query in flight, whose nonce the frame echoes
+        v, t = (255, I64_MAX) if hi else (0, I64_MIN)
+        body = _CREPLY.pack(b"ZR", v, self.link.index, self.nonce, t, t, t)
+        return bytes(self.ch.seal(body))
+
+    def stamp_max(self) -> bytes:
+        assert self.ch is not None
+        self.genuine()
+        t = I64_MAX
+        return bytes(self.ch.seal(_CREPLY.pack(b"ZR", 1, self.link.index, self.nonce, t, t, t)))
+
+
+class MirrorH(Harness):
+    """A standby's mirror frames, as the node takes them: the size bound of
+    its zenoh callback (zplatform.node.control._hand_mirror), its mailbox,
+    then Standby.mirror."""
+
+    kinds = ("bad",)
+
+    def __init__(self, m: Mission, t0: int = T0) -> None:
+        self.t0 = t0
+        self.m, self.keys = m, _keys(m)
+        self.ch = channel(self.keys, "mirror")
+        self.cn = ControlLogic(m, keys=self.keys, epoch=self.t0)
+        self.sb = Standby(m, ControlLogic(m, keys=self.keys, epoch=self.t0, name="cn_b"), self.keys)
+        self.max_len = self.sb._reader.codec.max_frame_len + 64  # the callback's bound
+        self.box: Mailbox[tuple[None, bytes]] = Mailbox(MIRRORS)
+        self.n = 0
+
+    @classmethod
+    def gaps(cls, m: Mission) -> dict[str, str]:
+        return {
+            "replay": "Standby.mirror drops a replayed mirror without counting it (no "
+            "stale counter; a mirror intake in zplatform.intake is not on this branch)",
+            "extreme_stamp": "Standby.mirror applies an authentic mirror of loop u64 max "
+            "stamped at i64 max (no bound ahead of the commander's schedule), and then "
+            "refuses every genuine mirror as older",
+            "replay_old_run": _RUN_GAP,
+            "junk_over": "the node's mirror callback drops a frame longer than its bound "
+            "without counting it (_hand_mirror)",
+        }
+
+    def genuine(self) -> bytes:
+        self.n += 1
+        self.cn.begin(self.n, self.t0 + self.n * self.m.period_ns)
+        self.cn.finish()
+        assert self.cn.mirror is not None
+        return bytes(self.cn.mirror)
+
+    def feed(self, payload: bytes) -> bool:
+        sample: Any = SimpleNamespace(payload=Bytes(payload))
+        _hand_mirror(sample, self.box, self.max_len)
+        item = self.box.pop()
+        return item is not None and self.sb.mirror(item[1], self.t0 + self.n * self.m.period_ns)
+
+    def counts(self) -> dict[str, int]:
+        return {"bad": self.sb.bad}
+
+    def extreme(self, hi: bool) -> bytes:
+        return _reframe(self.genuine(), hi, self.ch)
+
+    def stamp_max(self) -> bytes:
+        return _restamp(self.genuine(), self.ch, self._stamp_seq())
+
+    def _stamp_seq(self) -> int | None:
+        return None
+
+
+_ASK = struct.Struct(f"<2sBBBBI{NONCE_LEN}sq")  # codecs/FORMAT.md §6.5
+_PREPLY = struct.Struct(f"<2sBB{NONCE_LEN}sIIBBqQq")
+
+
+class ProbeAskH(_IntakeCounts, Harness):
+    """A DN's probe questions (ProbeIntake)."""
+
+    @classmethod
+    def gaps(cls, m: Mission) -> dict[str, str]:
+        return {
+            "extreme_stamp": "ProbeIntake admits an authentic question of a known control "
+            "node stamped at i64 max, and then refuses every genuine question of that node",
+            "replay_old_run": _RUN_GAP,
+        }
+
+    def __init__(self, m: Mission, dn: str, t0: int = T0) -> None:
+        self.t0 = t0
+        self.m, self.keys = m, _keys(m)
+        self.i = m.device_nodes.index(dn)
+        self.ch = channel(self.keys, f"probe_cn_to_{dn}")
+        self.intake: ProbeIntake[None] = ProbeIntake(
+            dn, channel(self.keys, f"probe_cn_to_{dn}"), Waker()
+        )
+        self.max_len = self.intake.max_len
+        self.n = 0
+
+    def genuine(self) -> bytes:
+        self.n += 1
+        return ask_frame(self.ch, ASK, self.i, 1, 1, new_nonce(), self.t0 + self.n)
+
+    def feed(self, payload: bytes) -> bool:
+        return self.intake.admit(Bytes(payload), None)
+
+    def extreme(self, hi: bool) -> bytes:
+        assert self.ch is not None
+        if hi:
+            body = _ASK.pack(b"ZP", 255, 255, self.i, 255, U32_MAX, new_nonce(), I64_MAX)
+        else:
+            body = _ASK.pack(b"ZP", 0, 0, self.i, 0, 0, new_nonce(), I64_MIN)
+        return bytes(self.ch.seal(body))
+
+    def stamp_max(self) -> bytes:
+        return ask_frame(self.ch, ASK, self.i, 1, U32_MAX, new_nonce(), I64_MAX)
+
+
+class ProbeReplyH(Harness):
+    """A control node's probe replies (Standby.answer)."""
+
+    kinds = ("bad",)
+
+    @classmethod
+    def gaps(cls, m: Mission) -> dict[str, str]:
+        return {
+            "extreme_stamp": "Standby.answer takes an authentic reply claiming term and "
+            "promise u32 max and a loop of u64 max (read_reply checks the nonce, not the values)"
+        }
+
+    def __init__(self, m: Mission, dn: str, t0: int = T0) -> None:
+        self.t0 = t0
+        self.m, self.keys = m, _keys(m)
+        self.i = m.device_nodes.index(dn)
+        self.ch = channel(self.keys, f"probe_{dn}_to_cn")
+        self.sb = Standby(m, ControlLogic(m, keys=self.keys, epoch=self.t0, name="cn_b"), self.keys)
+        self.dn = DeviceLogic(m, dn, keys=self.keys)
+        self.max_len = _PREPLY.size + TAG_LEN
+        self.n = 0
+        self.asks = self.sb.ask(0, self.t0)
+
+    def genuine(self) -> bytes:
+        self.n += 1
+        reply = self.dn.probe(self.asks[self.i], self.t0 + self.n)
+        assert reply is not None
+        return reply
+
+    def advance(self) -> None:
+        self.asks = self.sb.ask(self.n, self.t0 + self.n)  # the next round
+
+    def feed(self, payload: bytes) -> bool:
+        return self.sb.answer(self.i, payload)
+
+    def counts(self) -> dict[str, int]:
+        return {"bad": self.sb.bad_replies}
+
+    def extreme(self, hi: bool) -> bytes:
+        assert self.ch is not None
+        nonce = _ask_nonce(self.asks[self.i])
+        if hi:
+            body = _PREPLY.pack(
+                b"ZA", 255, self.i, nonce, U32_MAX, U32_MAX, 255, 255, I64_MAX, U64_MAX, I64_MAX
+            )
+        else:
+            body = _PREPLY.pack(b"ZA", 0, self.i, nonce, 0, 0, 0, 0, I64_MIN, 0, I64_MIN)
+        return bytes(self.ch.seal(body))
+
+    def stamp_max(self) -> bytes:
+        assert self.ch is not None
+        nonce = _ask_nonce(self.asks[self.i])
+        body = _PREPLY.pack(b"ZA", 1, self.i, nonce, U32_MAX, U32_MAX, 1, 0, 0, U64_MAX, I64_MAX)
+        return bytes(self.ch.seal(body))
+
+
+def _ask_nonce(ask: bytes) -> bytes:
+    return _ASK.unpack(ask[: _ASK.size])[6]
+
+
+class _Query:
+    """A zenoh query as RecorderServer sees it."""
+
+    def __init__(self, payload: bytes) -> None:
+        self.payload = Bytes(payload)
+        self.replies: list[bytes] = []
+
+    def reply(self, key: str, payload: bytes) -> None:
+        self.replies.append(payload)
+
+    def drop(self) -> None:
+        pass
+
+    def __enter__(self) -> _Query:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        pass
+
+
+class _Session:
+    def declare_queryable(self, key: str, handler: object) -> Any:
+        return SimpleNamespace(undeclare=lambda: None)
+
+
+class RecorderQueryH(Harness):
+    """The CN's flight recorder server: a gap-fill request (RecorderServer);
+    its thread is stopped, and each admitted request is served here."""
+
+    kinds = ("size", "bad")
+
+    def __init__(self, m: Mission, t0: int = T0) -> None:
+        self.t0 = t0
+        self.m, self.keys = m, _keys(m)
+        self.ch = channel(self.keys, "telemetry")
+        rec: Any = SimpleNamespace(run=-1)  # never the run asked: no file is read
+        self.server = RecorderServer(
+            _Session(),  # type: ignore[arg-type]
+            f"{m.vehicle}/cn/recorder",
+            rec,
+            channel(self.keys, "telemetry"),
+            now_ns=lambda: t0,
+            max_age_ns=10**9,
+            serve_bps=10**9,
+        )
+        self.server.close()  # its thread: this harness serves what is admitted
+        self.max_len = REQUEST.size + TAG_LEN
+        self.n = 0
+
+    @classmethod
+    def gaps(cls, m: Mission) -> dict[str, str]:
+        return {
+            "replay": "the recorder serves a replayed request again while its stamp is "
+            "within the clock bound (reads are idempotent; bounded by MAX_PENDING only)"
+        }
+
+    def _request(self, run: int, first: int, last: int, t_ns: int) -> bytes:
+        assert self.ch is not None
+        return bytes(self.ch.seal(REQUEST.pack(REQUEST_MAGIC, run, first, last, t_ns)))
+
+    def genuine(self) -> bytes:
+        self.n += 1
+        return self._request(7, self.n, self.n, self.t0 + self.n)
+
+    def feed(self, payload: bytes) -> bool:
+        served = self.server.served
+        self.server._on_query(_Query(payload))  # type: ignore[arg-type]
+        while self.server._pending:
+            self.server._serve(self.server._pending.popleft())
+        return self.server.served > served
+
+    def counts(self) -> dict[str, int]:
+        s = self.server
+        return {"size": s._refused_rx, "bad": s._refused_checked}
+
+    def extreme(self, hi: bool) -> bytes:
+        if hi:
+            return self._request(U64_MAX, U64_MAX, U64_MAX, I64_MAX)
+        return self._request(0, 0, 0, I64_MIN)
+
+    def stamp_max(self) -> bytes:
+        return self._request(7, self.n + 1, self.n + 1, I64_MAX)
+
+
+class GapFillH(Harness):
+    """The ground's gap fill: frames in the recorder's replies (GapFill)."""
+
+    kinds = ("bad",)
+
+    def __init__(self, m: Mission, t0: int = T0) -> None:
+        self.t0 = t0
+        self.m, self.keys = m, _keys(m)
+        self.ch = channel(self.keys, "telemetry")
+        self.cn = ControlLogic(m, keys=self.keys, epoch=self.t0)
+        self.gf = GapFill(m, self.keys, EventLog("gn"), lambda rx, dv: None)
+        lay = Layout.for_node(m, "cn")
+        logic: Any = SimpleNamespace(gaps=deque([Gap(self.t0, 1, 1000)]), dv=DataVector(lay))
+        self.gf.snapshot(logic, self.t0)
+        req = self.gf.take_request(self.t0)
+        assert req is not None
+        self.rid = req[0]
+        self.max_len = 1 + REPLY_LEN.size + self.gf._frame_max
+        self.n = 0
+
+    @classmethod
+    def gaps(cls, m: Mission) -> dict[str, str]:
+        return {
+            "replay": "GapFill keeps the first frame of a loop and drops a replayed one "
+            "without counting it",
+            "junk_empty": "GapFill.on_reply ignores an empty reply without counting it",
+            "extreme_stamp": "GapFill takes an authentic frame of a loop asked stamped at "
+            "i64 max (its t_ns is not checked; it becomes the row's time)",
+        }
+
+    def _reply(self, frame: bytes) -> bytes:
+        return bytes([REPLY_FRAMES]) + REPLY_LEN.pack(len(frame)) + frame
+
+    def _frame(self) -> bytes:
+        self.n += 1
+        self.cn.begin(self.n, self.t0 + self.n * self.m.period_ns)
+        return bytes(self.cn.telemetry())
+
+    def genuine(self) -> bytes:
+        return self._reply(self._frame())
+
+    def feed(self, payload: bytes) -> bool:
+        ask = self.gf._ask
+        assert ask is not None
+        got = len(ask.got)
+        self.gf.on_reply(self.rid, payload)
+        return len(ask.got) > got
+
+    def counts(self) -> dict[str, int]:
+        return {"bad": self.gf.refused}
+
+    def extreme(self, hi: bool) -> bytes:
+        return self._reply(_reframe(self._frame(), hi, self.ch))
+
+    def stamp_max(self) -> bytes:
+        self._frame()
+        return self._reply(_restamp(self._frame(), self.ch, self.n))
+
+
+def _dn(k: ExpandedKey) -> dict[str, Any]:
+    return {"dn": dict(k.params)["dn"]}
+
+
+def _node(k: ExpandedKey) -> dict[str, Any]:
+    return {"node": dict(k.params)["node"]}
+
+
+def _asker(k: ExpandedKey) -> dict[str, Any]:
+    return {"asker": dict(k.params)["asker"]}
+
+
+def _none(k: ExpandedKey) -> dict[str, Any]:
+    return {}
+
+
+RECIPES: dict[tuple[str, str], tuple[type[Harness], Callable[[ExpandedKey], dict[str, Any]]]] = {
+    ("dn_to_cn", "query"): (TriggerH, _dn),
+    ("dn_to_cn", "reply"): (ReplyH, _dn),
+    ("sync_all", "query"): (TriggerH, lambda k: {**_dn(k), "bundle": True}),
+    ("telemetry", "sample"): (TelemetryH, _none),
+    ("gn_to_cn", "sample"): (RequestH, _none),
+    ("events", "sample"): (EventH, _node),
+    ("all_events", "sample"): (EventH, _node),
+    ("clock", "query"): (ClockQueryH, _asker),
+    ("clock", "reply"): (ClockReplyH, _asker),
+    ("recorder", "query"): (RecorderQueryH, _none),
+    ("recorder", "reply"): (GapFillH, _none),
+    ("mirror", "sample"): (MirrorH, _none),
+    ("probe", "query"): (ProbeAskH, _dn),
+    ("probe", "reply"): (ProbeReplyH, _dn),
+}
+"""A fault recipe per (row, frame kind) whose frames are tagged and taken by
+a node: the harness and its arguments from the expanded row."""
+
+
+def _harness(m: Mission, k: ExpandedKey, kind: str, t0: int) -> Harness:
+    recipe = RECIPES.get((k.row.name, kind))
+    assert recipe is not None, (
+        f"row {k.row.name!r} ({k.row.key}) carries tagged {kind} frames, and "
+        "tests/faults/test_keyspace_faults.py has no fault recipe for them: add one to RECIPES"
+    )
+    cls, args = recipe
+    return cls(m, **args(k), t0=t0)  # type: ignore[call-arg]
+
+
+def _tagged() -> Iterator[tuple[str, Mission, ExpandedKey, int, KeyFrames]]:
+    for name, m in MISSIONS.items():
+        for k in expand_keys(m):
+            for j, f in enumerate(k.row.frames):
+                if f.tagged:
+                    yield name, m, k, j, f
+
+
+def _cases() -> Iterator[Any]:
+    for name, m, k, j, f in _tagged():
+        if f.intake == "none":
+            continue
+        recipe = RECIPES.get((k.row.name, f.kind))
+        gaps = recipe[0].gaps(m) if recipe is not None else {}
+        for case in CASES:
+            marks = []
+            if case in gaps:
+                marks.append(
+                    pytest.mark.xfail(strict=True, reason=gaps[case], raises=AssertionError)
+                )
+            yield pytest.param(name, k, j, case, id=f"{name}-{k.id}-{f.kind}-{case}", marks=marks)
+
+
+def _expected(h: Harness, case: str) -> str | None:
+    """The counter a case must land in (None: any one, exactly once)."""
+    want = {
+        "junk_over": "size",
+        "junk_empty": "size",
+        "junk_one": "size",
+        "junk_max": "bad",
+        "bad_tag": "bad",
+        "replay": "stale",
+    }.get(case)
+    if want == "size" and "size" not in h.kinds:
+        want = "bad"
+    return want if want in h.kinds else None
+
+
+@pytest.mark.parametrize(("mission", "key", "frame", "case"), list(_cases()), indirect=False)
+def test_every_tagged_frame_is_refused_and_counted_once(
+    mission: str, key: ExpandedKey, frame: int, case: str
+) -> None:
+    m = MISSIONS[mission]
+    f = key.row.frames[frame]
+    h = _harness(m, key, f.kind, T0)
+    try:
+        if case == "replay_old_run":
+            old = _harness(m, key, f.kind, T0 - DAY)
+            try:
+                _old_run(h, old.genuine())
+            finally:
+                old.close()
+        else:
+            _run_case(h, case)
+    finally:
+        h.close()
+
+
+def _old_run(h: Harness, old: bytes) -> None:
+    """A receiver that just started takes, first, a genuine frame of its
+    sender's earlier run (a day before, another epoch): refused as stale,
+    and the sender's genuine frames of this run are taken after it."""
+    before = h.counts()
+    assert not h.feed(old), "replay_old_run: admitted"
+    after = h.counts()
+    delta = {k: after[k] - before[k] for k in after}
+    assert sum(delta.values()) == 1, f"replay_old_run: counted {delta}, not once"
+    if "stale" in h.kinds:
+        assert delta["stale"] == 1, f"replay_old_run: counted {delta}, not as stale"
+    assert h.feed(h.genuine()), "replay_old_run: this run's genuine frame is refused after it"
+
+
+def _run_case(h: Harness, case: str) -> None:
+    # The genuine frame is admitted: the recipe is sound.
+    g = h.genuine()
+    assert h.feed(g), "a genuine frame was refused"
+    h.advance()
+    if case == "junk_max":
+        bad = _junk(h.max_len)
+    elif case == "junk_over":
+        bad = _junk(h.max_len + 1)
+    elif case == "junk_empty":
+        bad = b""
+    elif case == "junk_one":
+        bad = b"\x00"
+    elif case == "bad_tag":
+        g2 = h.genuine()
+        bad = g2[:-1] + bytes([g2[-1] ^ 0x01])
+    elif case == "replay":
+        bad = g
+    elif case == "extreme_stamp":
+        bad = h.stamp_max()
+    else:
+        bad = h.extreme(case == "extreme_max")
+    before = h.counts()
+    assert not h.feed(bad), f"{case}: admitted"
+    after = h.counts()
+    delta = {k: after[k] - before[k] for k in after}
+    assert sum(delta.values()) == 1, f"{case}: counted {delta}, not once"
+    want = _expected(h, case)
+    if want is not None:
+        assert delta[want] == 1, f"{case}: counted {delta}, not in {want!r}"
+    if case.startswith("extreme"):
+        h.advance()
+        assert h.feed(h.genuine()), f"{case}: the next genuine frame is refused after it"
+
+
+@pytest.mark.parametrize(
+    ("mission", "key", "frame"),
+    [
+        pytest.param(n, k, j, id=f"{n}-{k.id}-{f.kind}")
+        for n, _, k, j, f in _tagged()
+        if f.intake == "none"
+    ],
+)
+def test_a_tagged_frame_no_intake_guards_is_taken_by_no_vehicle_node(
+    mission: str, key: ExpandedKey, frame: int
+) -> None:
+    """A tap (``cn/to_dnX``): tagged, put for tools, taken by no node on the
+    vehicle (only the ground and tools may declare on it)."""
+    assert set(key.row.declares) <= {"gn", "tool"}, key.row.declares
