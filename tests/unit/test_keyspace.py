@@ -375,7 +375,9 @@ CALLS = {f"{m.rel}:{c.lineno}": (m, c, k) for m, c, k in _zenoh_calls()}
 def test_the_scan_sees_every_kind_of_zenoh_call() -> None:
     kinds = {call.func.attr for _, call, _ in CALLS.values()}  # type: ignore[attr-defined]
     assert kinds >= _DECLARES - {"declare_querier"} | {"get"}, kinds
-    assert len(CALLS) >= 25
+    # Every get goes through zplatform.queries.ask (one call site, whose key
+    # parameter the scan follows to each caller), so fewer sites than calls.
+    assert len(CALLS) >= 20
 
 
 @pytest.mark.parametrize("site", sorted(CALLS))
