@@ -88,6 +88,7 @@ def run_cases(quick: bool, only: list[str] | None = None) -> dict[str, dict[str,
     cases: dict[str, Any] = {
         **importlib.import_module("tests.faults.live").CASES,
         **{k: floods[k] for k in FLOOD_CASES},
+        **importlib.import_module("tests.faults.decl_flood").CASES,
     }
 
     out: dict[str, dict[str, Any]] = {}
