@@ -31,6 +31,8 @@ fault, no DN safed) and ends DEPLOYED.
 from __future__ import annotations
 
 import os
+import subprocess
+import sys
 import time
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -50,7 +52,9 @@ from tests.faults.floods import (
 )
 from tests.faults.live import CaseResult, Live, live
 from tests.faults.missions import plain_tcp_mission
+from tests.integration.harness import ROOT
 from zplatform.deploy import default_deployment_path
+from zplatform.transport import free_port
 
 RATE = 2000.0
 """Declarations per second of the attacker."""
@@ -67,10 +71,14 @@ ATTACKS = (
     "allowed_distinct",
     "keyexpr_distinct",
     "denied_distinct_cn_only",
+    "denied_distinct_via_gateway",
+    "allowed_distinct_via_gateway",
 )
 """Each attack: its mode (``declare-MODE``), ``distinct`` for a key per
 declaration, ``cn_only`` when the attacker reaches the CN alone (the DNs on
-a network it cannot reach)."""
+a network it cannot reach), ``via_gateway`` when it reaches only a ground
+gateway (:mod:`tests.faults.gateway`, a zenoh router with the ground's
+identity and the mission's access control, connected to the CN)."""
 
 
 @contextmanager
@@ -96,6 +104,28 @@ def _usage(a: _Mark, b: _Mark) -> dict[str, Any]:
     }
 
 
+def _gateway(c: Live, transport: str, log: Path) -> tuple[subprocess.Popen[str], str]:
+    """A ground gateway (:mod:`tests.faults.gateway`) on a free port, ready."""
+    proto = "tls" if transport == "mtls" else "tcp"
+    ep = f"{proto}/127.0.0.1:{free_port()}"
+    dep = ["--deployment", str(default_deployment_path(c.mission))] if proto == "tls" else []
+    with open(log, "w") as err:
+        gw = subprocess.Popen(
+            [sys.executable, "-m", "tests.faults.gateway", str(c.path), ep, *dep],
+            stdin=subprocess.PIPE,
+            stdout=subprocess.PIPE,
+            stderr=err,
+            text=True,
+            cwd=ROOT,
+        )
+    assert gw.stdout is not None
+    line = gw.stdout.readline().strip()
+    if line != "ready":
+        gw.kill()
+        raise AssertionError(f"gateway: {line!r}: {log.read_text()[-2000:]}")
+    return gw, ep
+
+
 def _safed(c: Live, t0: float, t1: float) -> int:
     """``dn_safed`` events the test received between ``t0`` and ``t1``."""
     return sum(1 for t, e in c.drain_events() if t0 <= t <= t1 and e["id"] == "dn_safed")
@@ -110,6 +140,7 @@ def case_declaration_flood(tmp: Path, quick: bool) -> CaseResult:
     old_config = os.environ.get("XDG_CONFIG_HOME")
     os.environ["XDG_CONFIG_HOME"] = str(tmp / "config")
     started: list[Attacker] = []
+    started_gw: list[subprocess.Popen[str]] = []
     try:
         for transport in TRANSPORTS:
             sub = tmp / transport
@@ -133,6 +164,12 @@ def case_declaration_flood(tmp: Path, quick: bool) -> CaseResult:
                     more = ["--distinct"] if "distinct" in opts else []
                     if "only" in opts:
                         more += ["--connect", c.mission.nodes["cn"].listen[0]]
+                    watched = procs
+                    if "gateway" in opts:
+                        gw, gw_ep = _gateway(c, transport, sub / f"{what}.gateway.log")
+                        started_gw.append(gw)
+                        watched = {**procs, "gateway": psutil.Process(gw.pid)}
+                        more += ["--connect", gw_ep]
                     a = Attacker(
                         c.path,
                         f"declare-{mode}",
@@ -143,12 +180,12 @@ def case_declaration_flood(tmp: Path, quick: bool) -> CaseResult:
                     )
                     started.append(a)
                     a.expect("ready")
-                    m0 = _Mark(c, procs)
+                    m0 = _Mark(c, watched)
                     a.go()
                     _lasts(c, a)()
                     res = a.finish()
                     c.pump_for(0.5)  # what the attack left in flight is handled
-                    w = _usage(m0, _Mark(c, procs))
+                    w = _usage(m0, _Mark(c, watched))
                     ref_rate = ref["missed"] / max(ref["loops"], 1)
                     w.update(
                         sent=int(res["sent"]),
@@ -177,6 +214,14 @@ def case_declaration_flood(tmp: Path, quick: bool) -> CaseResult:
     finally:
         for a in started:
             a.close()
+        for gw in started_gw:
+            if gw.stdin is not None:
+                gw.stdin.close()  # its end: it closes its session
+            try:
+                gw.wait(10)
+            except subprocess.TimeoutExpired:
+                gw.kill()
+                gw.wait()
         if old_config is None:
             os.environ.pop("XDG_CONFIG_HOME", None)
         else:
