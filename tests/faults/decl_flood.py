@@ -126,6 +126,19 @@ def _gateway(c: Live, transport: str, log: Path) -> tuple[subprocess.Popen[str],
     return gw, ep
 
 
+def _close_gateway(gw: subprocess.Popen[str]) -> None:
+    """End a gateway (idempotent): stdin's end closes its session."""
+    if gw.poll() is None and gw.stdin is not None and not gw.stdin.closed:
+        gw.stdin.close()
+        try:
+            gw.wait(10)
+        except subprocess.TimeoutExpired:
+            gw.kill()
+            gw.wait()
+    if gw.stdout is not None:
+        gw.stdout.close()
+
+
 def _safed(c: Live, t0: float, t1: float) -> int:
     """``dn_safed`` events the test received between ``t0`` and ``t1``."""
     return sum(1 for t, e in c.drain_events() if t0 <= t <= t1 and e["id"] == "dn_safed")
@@ -186,6 +199,8 @@ def case_declaration_flood(tmp: Path, quick: bool) -> CaseResult:
                     res = a.finish()
                     c.pump_for(0.5)  # what the attack left in flight is handled
                     w = _usage(m0, _Mark(c, watched))
+                    for gw in started_gw:  # one gateway per attack, gone with it
+                        _close_gateway(gw)
                     ref_rate = ref["missed"] / max(ref["loops"], 1)
                     w.update(
                         sent=int(res["sent"]),
@@ -215,13 +230,7 @@ def case_declaration_flood(tmp: Path, quick: bool) -> CaseResult:
         for a in started:
             a.close()
         for gw in started_gw:
-            if gw.stdin is not None:
-                gw.stdin.close()  # its end: it closes its session
-            try:
-                gw.wait(10)
-            except subprocess.TimeoutExpired:
-                gw.kill()
-                gw.wait()
+            _close_gateway(gw)
         if old_config is None:
             os.environ.pop("XDG_CONFIG_HOME", None)
         else:
