@@ -17,7 +17,10 @@ the CN's sync queries as a rogue, floods the ground's telemetry key and
 replays the operator's command frames, each at 6,000 frames/s (10 s each
 here, 3 s in the tests; the replay until the operator's command has its
 verdict), once with the nodes as configured (SCHED_FIFO) and once without
-real-time priority; and dn0 restarted beside a rogue replier.
+real-time priority; and dn0 restarted beside a rogue replier. Then the
+declaration flood of ``tests/faults/decl_flood.py`` (``declaration_flood``):
+per transport (mTLS with a ``tool`` cert, plain TCP keyless) and attack,
+each node's CPU (per cent of a core) and RSS against a reference window.
 
 Figures per case (``variants[case]``):
 
@@ -88,6 +91,7 @@ def run_cases(quick: bool, only: list[str] | None = None) -> dict[str, dict[str,
     cases: dict[str, Any] = {
         **importlib.import_module("tests.faults.live").CASES,
         **{k: floods[k] for k in FLOOD_CASES},
+        **importlib.import_module("tests.faults.decl_flood").CASES,
     }
 
     out: dict[str, dict[str, Any]] = {}

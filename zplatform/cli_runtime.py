@@ -164,7 +164,12 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         "({vehicle}/NODE/events) as severity, id and text. Exits 1 when nothing at all "
         f"arrived within --timeout (without --timeout: within {TAP_SILENCE_S:g} s).",
     )
-    p.add_argument("keyexpr", nargs="?", help="zenoh key expression (default: {vehicle}/**)")
+    p.add_argument(
+        "keyexpr",
+        nargs="?",
+        help="zenoh key expression (default: {vehicle}/**; under access control, "
+        "every key a tool may watch)",
+    )
     p.add_argument("--count", type=positive_int, metavar="N", help="stop after N samples")
     p.add_argument(
         "--timeout",

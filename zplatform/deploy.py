@@ -44,19 +44,36 @@ Contract:
   name. A cert's common name is its node name (``cn``, ``dn0``, ``gn``) or
   ``tool``. The rules follow docs/architecture.md#key-space (:func:`access_control`):
 
-  - node ``X`` may put, reply on and declare queryables and liveliness tokens
-    only under its own prefix ``{vehicle}/X/**``; so only ``cn`` puts
-    ``{vehicle}/cn/telemetry``, only ``gn`` puts ``{vehicle}/gn/to_cn``, and
-    ``dnX`` replies only on ``{vehicle}/dnX/to_cn``;
-  - only ``cn`` may query ``{vehicle}/dnX/to_cn`` (and ``{vehicle}/*/to_cn``,
-    the wildcard sync query); any node may query the
-    CN's clock ``{vehicle}/cn/clock``; ``gn`` and ``tool`` may query the
+  each rule names the message kinds it allows (zenoh 1.x ACL messages:
+  ``put``, ``declare_subscriber``, ``query``, ``declare_queryable``,
+  ``reply``, ``liveliness_token``, ``declare_liveliness_subscriber``,
+  ``liveliness_query``; ``delete`` none) and, for each, only the keys the
+  role uses; a declaration outside them is dropped where it comes in and
+  never enters the node's routing tables:
+
+  - node ``X`` puts only under its own prefix ``{vehicle}/X/**``; so only
+    ``cn`` puts ``{vehicle}/cn/telemetry``, only ``gn`` puts
+    ``{vehicle}/gn/to_cn``; liveliness tokens only ``{vehicle}/X/alive``
+    (and ``{vehicle}/X/standby`` for a control node);
+  - queryables (and the replies they send) only where the role serves:
+    ``dnX`` on ``{vehicle}/dnX/to_cn`` and ``{vehicle}/dnX/probe``, a control
+    node on ``{vehicle}/cn/clock`` and ``{vehicle}/cn/recorder``; ``gn`` and
+    ``tool`` none;
+  - subscribers only where the role listens: a control node on
+    ``{vehicle}/gn/to_cn`` (and ``{vehicle}/cn/mirror`` with a standby),
+    ``gn`` and ``tool`` on :func:`tool_watch_keys` (telemetry, every
+    node's events, the downlink), each node on the bulk channels it reads;
+    nobody on ``{vehicle}/**``;
+  - only a control node queries ``{vehicle}/dnX/to_cn`` (and
+    ``{vehicle}/*/to_cn``, the wildcard sync query); the other nodes query
+    the CN's clock ``{vehicle}/cn/clock``; ``gn`` and ``tool`` may query the
     CN's flight recorder ``{vehicle}/cn/recorder`` (gap fill), when the
     mission has one;
-  - every identity may subscribe to ``{vehicle}/**`` and watch liveliness;
-  - ``tool`` (``tap``, ``log``, ``cmd``, ``ground``) only subscribes and
-    watches, and puts ``{vehicle}/gn/to_cn`` (operator commands) only with
-    ``may_command: true``.
+  - every identity may watch and ask liveliness (``{vehicle}/*/alive``,
+    ``{vehicle}/*/standby``);
+  - ``tool`` (``tap``, ``log``, ``cmd``, ``ground``) only subscribes,
+    watches and asks the recorder, and puts ``{vehicle}/gn/to_cn``
+    (operator commands) only with ``may_command: true``.
 
   A node egresses only to identities it knows (the node names and ``tool``):
   a cert from the mission CA with any other common name gets nothing.
@@ -95,6 +112,7 @@ __all__ = [
     "require_deployment",
     "tls_nodes",
     "tls_settings",
+    "tool_watch_keys",
     "zenoh_settings",
 ]
 
@@ -400,12 +418,28 @@ _ALL_MESSAGES = [
 ]
 
 
+def tool_watch_keys(mission: Mission) -> list[str]:
+    """The key expressions a tool (``tap``, ``log``, ``cmd``, ``ground``) may
+    subscribe to under access control: the CN's telemetry, every node's
+    events and the CN's radio downlink (``ground --record``). Never the
+    whole key space: each of a peer's subscribers is a declaration every
+    node it reaches must take in and route to (docs/architecture.md#key-space)."""
+    v = mission.vehicle
+    return [f"{v}/cn/telemetry", f"{v}/*/events", f"{v}/cn/downlink"]
+
+
 def access_control(mission: Mission, dep: Deployment) -> dict[str, Any]:
     """The zenoh ``access_control`` section every node of ``mission`` runs.
 
     Subjects are certificate common names (module doc for the rules). Ingress
-    rules say what a node accepts from each identity; egress is allowed to
-    every known identity (a node's own sends are its code, not a peer's).
+    rules say what a node accepts from each identity, message kind by
+    message kind: a declaration (subscriber, queryable, liveliness token or
+    subscriber) on a key its role does not use is dropped where it comes in,
+    so it never enters the node's routing tables (tests/faults/test_acl_declarations.py
+    shows it). zenoh allows a message when a rule's key expression
+    *includes* the message's (a subscriber on ``{vehicle}/**`` is denied by
+    a rule on ``{vehicle}/cn/telemetry``). Egress is allowed to every known
+    identity (a node's own sends are its code, not a peer's).
     """
     v = mission.vehicle
     nodes = list(mission.nodes)
@@ -425,9 +459,12 @@ def access_control(mission: Mission, dep: Deployment) -> dict[str, Any]:
         )
         return rid
 
+    def bulk_read(n: str) -> list[str]:
+        return [f"{v}/{ch.node}/bulk/{ch.name}" for ch in mission.bulk if n in ch.readers]
+
+    recorder = "cn" in mission.recording_nodes
     common = [
         rule("egress-all", _ALL_MESSAGES, [f"{v}/**"], flow="egress"),
-        rule("watch", ["declare_subscriber"], [f"{v}/**"]),
         rule(
             "liveliness-watch",
             ["declare_liveliness_subscriber", "liveliness_query"],
@@ -435,40 +472,53 @@ def access_control(mission: Mission, dep: Deployment) -> dict[str, Any]:
         ),
     ]
     for n in nodes:
-        own = [f"{v}/{n}/**"]
+        control = n in mission.control_nodes
         ids = [
             *common,
-            rule(f"{n}-own", ["put", "delete", "declare_queryable", "reply"], own),
+            # Its own key space: taps, events, bulk samples, telemetry.
+            rule(f"{n}-put", ["put"], [f"{v}/{n}/**"]),
             rule(
                 f"{n}-alive",
                 ["liveliness_token"],
-                [f"{v}/{n}/alive", *([f"{v}/{n}/standby"] if n in mission.control_nodes else [])],
+                [f"{v}/{n}/alive", *([f"{v}/{n}/standby"] if control else [])],
             ),
         ]
-        if n in mission.control_nodes:
+        watch = bulk_read(n)
+        serve: list[str] = []
+        ask: list[str] = []
+        if control:
+            watch.append(f"{v}/gn/to_cn")  # operator commands
+            if mission.standby is not None:
+                watch.append(f"{v}/cn/mirror")  # the standby follows the commander
+            serve += [f"{v}/cn/clock", *([f"{v}/cn/recorder"] if recorder else [])]
             dn_keys = [f"{v}/{d}/to_cn" for d in mission.device_nodes]
             if dn_keys:
                 # The wildcard sync query (transport.sync_query) is one get on
                 # {vehicle}/*/to_cn; only dnX answer it (their own keys).
-                dn_keys.append(f"{v}/*/to_cn")
-                ids.append(rule(f"{n}-sync", ["query"], dn_keys))
+                ask += [*dn_keys, f"{v}/*/to_cn"]
             if mission.standby is not None:
-                # Either control node may command: it writes and serves the
-                # commander's keys ({vehicle}/cn/...: telemetry, the mirror,
-                # the clock, the recorder), probes the device nodes, and, as
-                # the standby, sets its clock by the commander's.
-                ids.append(
-                    rule(f"{n}-command", ["put", "declare_queryable", "reply"], [f"{v}/cn/**"])
-                )
-                probes = [f"{v}/{d}/probe" for d in mission.device_nodes]
-                ids.append(rule(f"{n}-probe", ["query"], [*probes, f"{v}/cn/clock"]))
-        else:
-            ids.append(rule(f"{n}-clock", ["query"], [f"{v}/cn/clock"]))
-        if n == "gn" and "cn" in mission.recording_nodes:
-            ids.append(rule("gn-recorder", ["query"], [f"{v}/cn/recorder"]))
+                # Either control node may command: it writes the commander's
+                # keys ({vehicle}/cn/...: telemetry, the mirror), probes the
+                # device nodes, and, as the standby, sets its clock by the
+                # commander's.
+                ids.append(rule(f"{n}-command", ["put"], [f"{v}/cn/**"]))
+                ask += [*(f"{v}/{d}/probe" for d in mission.device_nodes), f"{v}/cn/clock"]
+        elif n in mission.device_nodes:
+            serve += [f"{v}/{n}/to_cn", f"{v}/{n}/probe"]
+            ask.append(f"{v}/cn/clock")
+        else:  # the ground node
+            watch += tool_watch_keys(mission)
+            ask += [f"{v}/cn/clock", *([f"{v}/cn/recorder"] if recorder else [])]
+        if watch:
+            ids.append(rule(f"{n}-watch", ["declare_subscriber"], watch))
+        if serve:
+            # A reply comes in on the key of the queryable that sent it.
+            ids.append(rule(f"{n}-serve", ["declare_queryable", "reply"], serve))
+        if ask:
+            ids.append(rule(f"{n}-ask", ["query"], ask))
         policies.append({"id": f"p-{n}", "rules": ids, "subjects": [f"s-{n}"]})
-    tool_rules = list(common)
-    if "cn" in mission.recording_nodes:  # `zplatform log` fills its gaps too
+    tool_rules = [*common, rule("tool-watch", ["declare_subscriber"], tool_watch_keys(mission))]
+    if recorder:  # `zplatform log` fills its gaps too
         tool_rules.append(rule("tool-recorder", ["query"], [f"{v}/cn/recorder"]))
     if dep.tool is not None and dep.tool.may_command and mission.has_ground:
         tool_rules.append(rule("tool-command", ["put"], [f"{v}/gn/to_cn"]))

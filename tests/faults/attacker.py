@@ -26,6 +26,24 @@ Modes:
 * ``tm-junk`` / ``tm-replay`` / ``tm-mixed``: puts on ``{vehicle}/cn/telemetry``
   (junk, half of a snapshot's size; the CN's own snapshots captured from
   that key; both, alternately): the ground node is the victim;
+* ``declare-denied`` / ``declare-allowed``: a declaration flood: the
+  attacker declares, at ``--rate`` declarations per second, round robin,
+  ``--hold`` of each kind and then keeps replacing its oldest (undeclare,
+  declare anew: each one a message every node it reaches takes in).
+  ``denied``: subscribers on the whole key space ``{vehicle}/**`` and
+  queryables on ``{vehicle}/DN/to_cn``, which the access control denies a
+  ``tool`` cert; ``allowed``: subscribers on ``{vehicle}/cn/telemetry`` and
+  ``{vehicle}/*/events`` and liveliness subscribers on ``{vehicle}/*/alive``,
+  which it allows one (``--deployment``: the deployment whose ``tool``
+  identity it presents; without one, keyless, as on plain TCP);
+  ``--distinct``: each declaration on a key of its own (``{vehicle}/**/xN``,
+  ``{vehicle}/DN/to_cn/xN``; ``{vehicle}/xN/events``, ``{vehicle}/xN/alive``,
+  which ``*`` in an allowed rule still covers), a new resource each;
+  ``declare-keyexpr``: only key expressions (``session.declare_keyexpr``,
+  ``{vehicle}/xN`` with ``--distinct``): zenoh's own subscriber and
+  queryable declarations send one for each new non-wild key prefix, and
+  zenoh's access control filters none (zenoh 1.10);
+  ``--connect EP``: reach only ``EP`` (gossip off), not every node;
 * ``cmd-replay``: publishes command request frames on ``{vehicle}/gn/to_cn``,
   round robin: the operator's own, captured on the wire (a zenoh peer cannot
   subscribe to another tool's puts: tools listen nowhere) and given on
@@ -58,11 +76,15 @@ import zenoh
 from zplatform.auth import TAG_LEN
 from zplatform.codec import frame_overhead
 from zplatform.datavector import Layout
+from zplatform.deploy import load_deployment
 from zplatform.mission import load_mission
 from zplatform.transport import KeySpace, open_session, zenoh_config
 
 MODES = (
     *(f"{k}-{p}" for k in ("query", "reply", "tm") for p in ("junk", "replay", "mixed")),
+    "declare-denied",
+    "declare-allowed",
+    "declare-keyexpr",
     "cmd-replay",
 )
 TICK_S = 0.002  # pacing granularity: rate * TICK_S frames per tick
@@ -167,6 +189,10 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--rate", type=float, default=6000.0)
     p.add_argument("--duration", type=float, default=3.0)
     p.add_argument("--seed", type=int, default=1)
+    p.add_argument("--hold", type=int, default=2000, help="declare modes: held per kind")
+    p.add_argument("--deployment", help="present this deployment's tool identity (mTLS)")
+    p.add_argument("--distinct", action="store_true", help="declare modes: a key each")
+    p.add_argument("--connect", help="connect only to this endpoint, gossip off")
     a = p.parse_args(argv)
     # A real attacker has a machine of its own: here it must keep its rate
     # beside the nodes and whatever else loads the box (a CPU hog).
@@ -183,7 +209,13 @@ def main(argv: list[str] | None = None) -> int:
     reply_len = (
         frame_overhead(lay.region(f"{a.dn}_to_cn").size) + lay.region(f"{a.dn}_to_cn").size + tag
     )
-    session = open_session(zenoh_config(m, None))
+    dep = load_deployment(a.deployment, m) if a.deployment else None
+    cfg = zenoh_config(m, None, deployment=dep)
+    if a.connect:
+        cfg.insert_json5("connect/endpoints", json.dumps([a.connect]))
+        cfg.insert_json5("scouting/gossip/enabled", "false")
+        cfg.insert_json5("scouting/multicast/enabled", "false")
+    session = open_session(cfg)
     dn_key = keys.dn_to_cn(a.dn)
     tm_len = frame_overhead(lay.size) + lay.size + tag
     exact = {"query": trigger_len, "reply": reply_len, "tm": tm_len}.get(a.mode.split("-")[0], 0)
@@ -245,6 +277,50 @@ def main(argv: list[str] | None = None) -> int:
         def send() -> None:
             k[0] += 1
             tm_pub.put(payloads[k[0] % len(payloads)])
+
+    elif kind == "declare":
+        v = m.vehicle
+        noop = zenoh.handlers.Callback(lambda _: None, indirect=False)
+        kinds: list[Any]
+        # --distinct: each declaration on a key of its own (a new resource
+        # in every routing table that takes it in), else all on one key.
+        x = (lambda: f"x{k[0]}") if a.distinct else (lambda: "")
+        if what == "keyexpr":  # only key expressions: no subscriber, no queryable
+
+            class _Ke:
+                def __init__(self, ke: zenoh.KeyExpr) -> None:
+                    self.ke = ke
+
+                def undeclare(self) -> None:
+                    session.undeclare(self.ke)
+
+            kinds = [lambda: _Ke(session.declare_keyexpr(f"{v}/{x() or 'x'}"))]
+        elif what == "denied":
+            kinds = [
+                lambda: session.declare_subscriber(f"{v}/**" + (f"/{x()}" if x() else ""), noop),
+                lambda: session.declare_queryable(dn_key + (f"/{x()}" if x() else ""), noop),
+            ]
+        else:
+            kinds = [
+                lambda: session.declare_subscriber(keys.telemetry, noop),
+                lambda: session.declare_subscriber(f"{v}/{x() or '*'}/events", noop),
+                lambda: session.liveliness().declare_subscriber(f"{v}/{x() or '*'}/alive", noop),
+            ]
+        held: list[deque[Any]] = [deque() for _ in kinds]
+
+        def send() -> None:
+            i = k[0] % len(kinds)
+            k[0] += 1
+            if len(held[i]) >= a.hold:
+                held[i].popleft().undeclare()
+            held[i].append(kinds[i]())
+
+        def undeclare_all() -> None:
+            for h in held:
+                while h:
+                    h.popleft().undeclare()
+
+        cleanup.append(undeclare_all)
 
     else:  # cmd-replay: the frames come on stdin, captured on the wire
         words = sys.stdin.readline().split()

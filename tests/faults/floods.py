@@ -125,7 +125,16 @@ def tapped_mission(c: Live, tap: Wiretap) -> Path:
 class Attacker:
     """One attacker process (:mod:`tests.faults.attacker`), keyless."""
 
-    def __init__(self, mission: Path, mode: str, log: Path, *, rate: float, duration: float):
+    def __init__(
+        self,
+        mission: Path,
+        mode: str,
+        log: Path,
+        *,
+        rate: float,
+        duration: float,
+        extra: tuple[str, ...] = (),
+    ):
         self.mode = mode
         self._log = open(log, "w")  # noqa: SIM115 - closed in close()
         self.proc = subprocess.Popen(
@@ -139,6 +148,7 @@ class Attacker:
                 str(rate),
                 "--duration",
                 str(duration),
+                *extra,
             ],
             stdin=subprocess.PIPE,
             stdout=subprocess.PIPE,

@@ -14,6 +14,7 @@ from typing import Any
 
 import msgspec
 import pytest
+import zenoh
 
 from tests.pki import make_test_pki
 from zplatform.auth import KEY_FILE_ENV
@@ -29,7 +30,7 @@ from zplatform.deploy import (
     tls_settings,
     zenoh_settings,
 )
-from zplatform.errors import ConfigError
+from zplatform.errors import CommandError, ConfigError
 from zplatform.mission import decode_mission
 from zplatform.transport import NodeSession, zenoh_config
 
@@ -243,9 +244,15 @@ def _policy(acl: dict[str, Any], who: str) -> list[dict[str, Any]]:
 
 
 def _allowed(acl: dict[str, Any], who: str, message: str, key: str) -> bool:
-    """Whether ``who`` may send ``message`` on exactly ``key`` (ingress)."""
+    """Whether a node lets ``who`` send ``message`` on ``key`` (ingress), as
+    zenoh decides it: an allow rule for the message whose key expression
+    includes ``key`` (so a rule on ``rocket/cn/telemetry`` does not allow a
+    subscriber on ``rocket/**``)."""
+    k = zenoh.KeyExpr(key)
     return any(
-        r["flows"] == ["ingress"] and message in r["messages"] and key in r["key_exprs"]
+        r["flows"] == ["ingress"]
+        and message in r["messages"]
+        and any(zenoh.KeyExpr(x).includes(k) for x in r["key_exprs"])
         for r in _policy(acl, who)
     )
 
@@ -262,7 +269,7 @@ def test_acl_follows_the_key_space(with_deployment: Path) -> None:
     assert _allowed(acl, "cn", "put", "rocket/cn/**")
     assert not any("rocket/cn/**" in r["key_exprs"] for r in _policy(acl, "gn"))
     assert _allowed(acl, "gn", "put", "rocket/gn/**")
-    assert _allowed(acl, "dn0", "reply", "rocket/dn0/**")
+    assert _allowed(acl, "dn0", "reply", "rocket/dn0/to_cn")
     assert _allowed(acl, "dn0", "query", "rocket/cn/clock")
     assert not any(
         _allowed(acl, "tool", msg, k)
@@ -276,6 +283,73 @@ def test_acl_follows_the_key_space(with_deployment: Path) -> None:
     assert _allowed(access_control(m, operator), "tool", "put", "rocket/gn/to_cn")
 
 
+# (who, message, key, allowed): every role declares only what it uses.
+_DECLARATIONS = [
+    # A tool watches telemetry, events and the downlink; nothing else, and
+    # never the whole key space; it serves nothing, holds no token.
+    ("tool", "declare_subscriber", "rocket/cn/telemetry", True),
+    ("tool", "declare_subscriber", "rocket/*/events", True),
+    ("tool", "declare_subscriber", "rocket/dn0/events", True),
+    ("tool", "declare_subscriber", "rocket/cn/downlink", True),
+    ("tool", "declare_subscriber", "rocket/**", False),
+    ("tool", "declare_subscriber", "rocket/cn/*", False),
+    ("tool", "declare_subscriber", "rocket/cn/to_dn0", False),
+    ("tool", "declare_subscriber", "rocket/gn/to_cn", False),
+    ("tool", "declare_queryable", "rocket/dn0/to_cn", False),
+    ("tool", "declare_queryable", "rocket/cn/clock", False),
+    ("tool", "reply", "rocket/dn0/to_cn", False),
+    ("tool", "liveliness_token", "rocket/dn0/alive", False),
+    ("tool", "liveliness_query", "rocket/*/alive", True),
+    ("tool", "declare_liveliness_subscriber", "rocket/*/alive", True),
+    ("tool", "declare_liveliness_subscriber", "rocket/**", False),
+    ("tool", "delete", "rocket/cn/telemetry", False),
+    # The ground likewise, plus its own token, commands and the CN's clock.
+    ("gn", "declare_subscriber", "rocket/cn/telemetry", True),
+    ("gn", "declare_subscriber", "rocket/**", False),
+    ("gn", "declare_queryable", "rocket/gn/to_cn", False),
+    ("gn", "declare_queryable", "rocket/dn0/to_cn", False),
+    ("gn", "liveliness_token", "rocket/gn/alive", True),
+    ("gn", "liveliness_token", "rocket/cn/alive", False),
+    ("gn", "put", "rocket/gn/to_cn", True),
+    ("gn", "query", "rocket/cn/clock", True),
+    # A device node serves its own two keys and subscribes to nothing.
+    ("dn0", "declare_queryable", "rocket/dn0/to_cn", True),
+    ("dn0", "declare_queryable", "rocket/dn0/probe", True),
+    ("dn0", "declare_queryable", "rocket/dn0/**", False),
+    ("dn0", "declare_queryable", "rocket/cn/clock", False),
+    ("dn0", "declare_subscriber", "rocket/cn/to_dn0", False),
+    ("dn0", "declare_subscriber", "rocket/**", False),
+    ("dn0", "liveliness_token", "rocket/dn0/alive", True),
+    ("dn0", "liveliness_token", "rocket/cn/alive", False),
+    # The CN serves its clock, listens to commands, queries the DNs.
+    ("cn", "declare_queryable", "rocket/cn/clock", True),
+    ("cn", "declare_queryable", "rocket/dn0/to_cn", False),
+    ("cn", "declare_subscriber", "rocket/gn/to_cn", True),
+    ("cn", "declare_subscriber", "rocket/**", False),
+    ("cn", "query", "rocket/*/to_cn", True),
+]
+
+
+@pytest.mark.parametrize(("who", "message", "key", "allowed"), _DECLARATIONS)
+def test_each_role_declares_only_the_kinds_and_keys_it_uses(
+    with_deployment: Path, who: str, message: str, key: str, allowed: bool
+) -> None:
+    m = decode_mission(TLS_MISSION)
+    acl = access_control(m, load_deployment(with_deployment, m))
+    assert _allowed(acl, who, message, key) is allowed
+
+
+def test_bulk_readers_may_subscribe_to_their_channels_only(with_deployment: Path) -> None:
+    m = decode_mission(
+        TLS_MISSION + "bulk:\n  - {name: img, node: dn0, readers: [cn], type: 'u8[16]'}\n"
+    )
+    acl = access_control(m, load_deployment(with_deployment, m))
+    assert _allowed(acl, "cn", "declare_subscriber", "rocket/dn0/bulk/img")
+    assert not _allowed(acl, "gn", "declare_subscriber", "rocket/dn0/bulk/img")
+    assert not _allowed(acl, "cn", "declare_subscriber", "rocket/dn0/bulk/*")
+    assert _allowed(acl, "dn0", "put", "rocket/dn0/bulk/img")
+
+
 def test_only_the_ground_and_the_tools_may_ask_the_cn_recorder(with_deployment: Path) -> None:
     key = "rocket/cn/recorder"
     m = decode_mission(TLS_MISSION)  # no flight recorder: nobody may ask
@@ -285,7 +359,7 @@ def test_only_the_ground_and_the_tools_may_ask_the_cn_recorder(with_deployment: 
     acl = access_control(m, load_deployment(with_deployment, m))
     assert _allowed(acl, "gn", "query", key) and _allowed(acl, "tool", "query", key)
     assert not _allowed(acl, "dn0", "query", key)
-    assert _allowed(acl, "cn", "reply", "rocket/cn/**")  # the CN answers on its own key
+    assert _allowed(acl, "cn", "reply", key)  # the CN answers on its own key
 
 
 def test_zenoh_accepts_the_generated_config(with_deployment: Path) -> None:
@@ -388,3 +462,18 @@ def test_a_tcp_and_a_tls_listen_on_one_address_are_one_endpoint() -> None:
     with pytest.raises(ConfigError, match="also listened on by cn") as ei:
         decode_mission(text)
     assert ei.value.path == "$.nodes.dn0.listen[0]"
+
+
+def test_tap_under_access_control_watches_only_what_a_tool_may(with_deployment: Path) -> None:
+    from zplatform.ground.tap import tap_keys
+
+    m = decode_mission(TLS_MISSION)
+    # The nodes would drop a subscriber on the whole key space, silently:
+    # tap subscribes to each key a tool may watch instead, and refuses a key
+    # outside them with the list.
+    assert tap_keys(m, None) == ["rocket/cn/telemetry", "rocket/*/events", "rocket/cn/downlink"]
+    assert tap_keys(m, "rocket/dn0/events") == ["rocket/dn0/events"]
+    with pytest.raises(CommandError, match="rocket/cn/telemetry, rocket/\\*/events"):
+        tap_keys(m, "rocket/**")
+    plain = decode_mission(TLS_MISSION.replace("tls/", "tcp/"))
+    assert tap_keys(plain, None) == ["rocket/**"]

@@ -31,7 +31,7 @@ from ..telemetry import f32_value
 from ..transport import KeySpace
 from .records import EventRecord
 
-__all__ = ["TAP_SILENCE_S", "TapDecoder", "check_keyexpr", "format_tap", "run_tap"]
+__all__ = ["TAP_SILENCE_S", "TapDecoder", "check_keyexpr", "format_tap", "run_tap", "tap_keys"]
 
 TAP_SILENCE_S = 5.0
 """``tap`` without ``--timeout`` gives up when nothing at all arrived this long."""
@@ -139,6 +139,33 @@ def check_keyexpr(keyexpr: str) -> None:
         ) from None
 
 
+def tap_keys(mission: Mission, keyexpr: str | None) -> list[str]:
+    """The key expressions ``tap`` subscribes to for ``keyexpr`` (None: all
+    it may). Without access control: ``keyexpr`` or the whole key space.
+    Under the deployment's access control a tool may subscribe only to
+    :func:`~zplatform.deploy.tool_watch_keys` (the nodes drop any other
+    subscriber where it comes in, silently): None gives each of those, and a
+    ``keyexpr`` none of them includes is a CommandError naming them, not a
+    tap that stays silent. Reads the deployment (DeploymentError as
+    :func:`~zplatform.deploy.require_deployment`)."""
+    from ..deploy import require_deployment, tls_nodes, tool_watch_keys
+
+    dep = require_deployment(mission)
+    if dep is None or not dep.access_control or not tls_nodes(mission):
+        return [keyexpr or KeySpace(mission.vehicle).everything]
+    allowed = tool_watch_keys(mission)
+    if keyexpr is None:
+        return allowed
+    check_keyexpr(keyexpr)
+    k = zenoh.KeyExpr(keyexpr)
+    if any(zenoh.KeyExpr(a).includes(k) for a in allowed):
+        return [keyexpr]
+    raise CommandError(
+        f"{keyexpr!r}: the mission's access control lets a tool subscribe only to "
+        f"{', '.join(allowed)} (or keys within them); tap one of those, or leave the key out"
+    )
+
+
 def format_tap(d: dict[str, Any], as_json: bool) -> str:
     """One printed line for a decoded sample."""
     key = d["key"]
@@ -168,7 +195,8 @@ def run_tap(
     out: TextIO = sys.stdout,
     silence_s: float = TAP_SILENCE_S,
 ) -> tuple[int, str | None]:
-    """Print samples on ``keyexpr`` (default: the whole key space) until
+    """Print samples on ``keyexpr`` (default: the whole key space, or under
+    access control every key a tool may watch, :func:`tap_keys`) until
     ``count`` samples, ``timeout_s`` or Ctrl-C. Blocks.
 
     Returns ``(samples printed, why none came)``: with none, the second
@@ -179,11 +207,14 @@ def run_tap(
     """
     from .link import GroundLink
 
-    keyexpr = keyexpr or KeySpace(mission.vehicle).everything
-    check_keyexpr(keyexpr)
+    if keyexpr is not None:
+        check_keyexpr(keyexpr)
+    watched = tap_keys(mission, keyexpr)
+    keyexpr = ", ".join(watched)
     dec = TapDecoder(mission)
     link = GroundLink(mission, keys=None, telemetry=False, events=False)
-    link.tap(keyexpr)
+    for k in watched:
+        link.tap(k)
     via: dict[str, list[int]] = {}  # per key: [through shared memory, copied]
     n = 0
     start = time.monotonic()
