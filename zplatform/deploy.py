@@ -424,8 +424,10 @@ def tool_watch_keys(mission: Mission) -> list[str]:
     events and the CN's radio downlink (``ground --record``). Never the
     whole key space: each of a peer's subscribers is a declaration every
     node it reaches must take in and route to (docs/architecture.md#key-space)."""
+    from .keyspace import key_of  # the table every key comes from
+
     v = mission.vehicle
-    return [f"{v}/cn/telemetry", f"{v}/*/events", f"{v}/cn/downlink"]
+    return [key_of("telemetry", v), key_of("all_events", v), key_of("downlink", v)]
 
 
 def access_control(mission: Mission, dep: Deployment) -> dict[str, Any]:

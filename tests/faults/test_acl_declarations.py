@@ -97,12 +97,24 @@ def test_a_tool_cert_cannot_declare_a_wildcard_subscriber_or_a_queryable(
     dn0_q = dn0.declare_queryable(
         f"{v}/dn0/to_cn", zenoh.handlers.Callback(lambda q: q.reply(q.key_expr, b"dn0"))
     )
-    # dn0's queryable is known to the CN: a get answered by it (a bounded poll).
-    for _ in range(200):
-        if any(r.ok is not None for r in cn.get(f"{v}/dn0/to_cn", timeout=0.1)):
-            break
-    else:
+    # dn0's queryable is known to the CN: its querier's matching listener says
+    # so (a get before the declaration arrives returns at once with no reply,
+    # so a poll of gets raced it).
+    matched: queue.SimpleQueue[bool] = queue.SimpleQueue()
+    probe = cn.declare_querier(f"{v}/dn0/to_cn", target=zenoh.QueryTarget.ALL)
+    listener = probe.declare_matching_listener(
+        zenoh.handlers.Callback(lambda st: matched.put(st.matching), indirect=False)
+    )
+    try:
+        if not probe.matching_status.matching:
+            while not matched.get(timeout=10):
+                pass
+    except queue.Empty:
         pytest.fail("dn0's queryable never reached the CN")
+    finally:
+        listener.undeclare()
+        probe.undeclare()
+    assert any(r.ok is not None for r in cn.get(f"{v}/dn0/to_cn", timeout=2))
 
     wildcard, queries = _Counter(), _Counter()
     flood = [

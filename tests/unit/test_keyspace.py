@@ -180,6 +180,10 @@ _CHOSEN = {
         "`zplatform tap MISSION KEYEXPR`: a read-only tool subscribes to the "
         "operator's key expression (row everything when none is given)"
     ),
+    ("zplatform/ground/tap.py", "run_tap", "k"): (
+        "each key `tap_keys` gives: the operator's key expression, or under access "
+        "control the rows a tool may watch (deploy.tool_watch_keys, built with key_of)"
+    ),
 }
 
 
@@ -295,6 +299,8 @@ def _name(
     if fn is None:
         return [f"{mod.rel}: {name} is no local"]
     assert isinstance(fn, _FN)
+    if (mod.rel, fn.name, name) in _CHOSEN:
+        return []  # a key a person chooses (the table's reason)
     me = (mod.rel, fn.lineno, name)
     assigned = [
         (n.value, n)
@@ -311,8 +317,6 @@ def _name(
         if outer is not None:
             return _name(mod, name, fn, depth + 1)
         return [f"{mod.rel}:{fn.lineno}: {name} in {fn.name} comes from nowhere"]
-    if (mod.rel, fn.name, name) in _CHOSEN:
-        return []
     return _callers(mod, fn, name, depth)
 
 
