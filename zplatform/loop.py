@@ -100,7 +100,7 @@ from .devices import DeviceSet
 from .errors import CodecError, ConfigError
 from .events import EV, EventLog, EventType
 from .faults import FaultMonitor
-from .fencing import ProbeReply, TermGuard, Verdict, read_ask, reply_frame
+from .fencing import TERM_MAX, ProbeReply, TermGuard, Verdict, read_ask, reply_frame
 from .health import HealthInput, HealthPort
 from .intake import CnRefusals, RefusalLog
 from .monitors import MonitorSet
@@ -350,6 +350,9 @@ class ControlLogic:
             return False
         if self.redundant and self.loop:
             seen = _U32.unpack_from(frame.data, self._seen_at[i])[0]
+            if seen > TERM_MAX:  # no node can run it (zplatform.fencing): malformed
+                self._bad_frame(self.dns[i], f"a reply naming term {seen}, above {TERM_MAX}")
+                return False
             term = self._h_term.get()
             if seen != term:
                 # DN i ran nothing of this term's: it follows a newer one (this
@@ -765,6 +768,8 @@ class DeviceLogic:
         self.guard: TermGuard | None = None
         self._term_at = 0
         self._fenced_log = RefusalLog(2)
+        self._probe_log = RefusalLog(4)
+        self._askers = len(mission.control_nodes)
         if mission.standby is not None:
             self.guard = TermGuard(mission.takeover.lease_loops * mission.period_ns)
             self._h_term = dv.handle(f"{node}_term")
@@ -848,6 +853,8 @@ class DeviceLogic:
             # Authentic from here on.
             if guard is not None and frame.seq > 0:
                 term = _U32.unpack_from(frame.data, self._term_at)[0]
+                if term > TERM_MAX:  # no commander can run it (zplatform.fencing)
+                    raise CodecError(f"a trigger of term {term}: above {TERM_MAX}")
                 verdict = guard.admit(term, now_ns, self.last_trigger_ns)
                 if verdict == Verdict.FENCED or verdict == Verdict.LEASED:
                     return self._fence(frame, term, verdict, now_ns)
@@ -960,11 +967,12 @@ class DeviceLogic:
         if guard is None:
             return None
         try:
-            ask = read_ask(self._open_probe, payload, self._index)
+            ask = read_ask(self._open_probe, payload, self._index, self._askers)
         except CodecError as exc:
-            self._bad.bump()
+            # Counted and evented with the intake's refusals (at most once a
+            # second: without authentication junk gets this far).
             self.reject_reason = str(exc)
-            self.events.emit(EV.BAD_FRAME, now_ns, source="probe", reason=exc)
+            self.probes_refused(0, 1, 0, 0, now_ns, reason=self.reject_reason)
             return None
         last = self.last_trigger_ns
         granted = guard.answer(ask.kind, ask.asker, ask.term, now_ns, last)
@@ -1002,6 +1010,30 @@ class DeviceLogic:
                 source=f"{sum(ev)} sync quer(ies)",
                 reason=f"refused as they arrived, unanswered: {ev[0]} of a wrong size, "
                 f"{ev[1]} with bad tags, {ev[2]} replayed (not newer than the last trigger)",
+            )
+
+    def probes_refused(
+        self, size: int, bad: int, stale: int, excess: int, now_ns: int, *, reason: str = ""
+    ) -> None:
+        """Count the probe questions refused (:class:`~zplatform.intake.ProbeIntake`
+        as they arrived, unanswered, or :meth:`probe`): ``size`` of a wrong
+        size, ``bad`` with a bad tag or out of range, ``stale`` replayed,
+        ``excess`` beyond the rate bound. Each is a bad frame
+        (``dnX_bad_frames``), evented together at most once a second
+        (``reason``: the last refusal's, if any). Call it whenever the
+        driver waited, with zeros too."""
+        n = size + bad + stale + excess
+        if n:
+            self._bad.bump(n)
+        ev = self._probe_log.add(now_ns, size, bad, stale, excess)
+        if ev is not None:
+            self.events.emit(
+                EV.BAD_FRAME,
+                now_ns,
+                source=f"{sum(ev)} probe question(s)",
+                reason=f"refused: {ev[0]} of a wrong size, {ev[1]} bad (tag or values), "
+                f"{ev[2]} replayed, {ev[3]} beyond the rate bound"
+                + (f"; the last: {reason}" if reason else ""),
             )
 
     def _not_run(self, stamp_ns: int, now_ns: int, why: object) -> None:
