@@ -20,9 +20,9 @@ docs/architecture.md#failover tells the whole story; in short:
   working commander learns from the device nodes it still drives that
   they are driven, asks nothing, and waits (``cn_takeover_held``). When
   every device node that answered granted, and they are more than half of
-  the mission's device nodes, the standby **takes command** at the next loop of the commander's
-  own schedule (loop numbers follow time, as a commander's overrun skips
-  them), in the new term, from the mirror it holds (``cn_took_command``);
+  the mission's device nodes, the standby **takes command** at the next
+  loop of the commander's own schedule (loop numbers follow time, as a
+  commander's overrun skips them), in the new term, from the mirror it holds (``cn_took_command``);
   otherwise it releases the promises it got and asks again
   ``takeover_loops`` loops later.
 * A standby whose last mirror is older than ``2 * takeover_loops +
@@ -443,7 +443,7 @@ class Standby:
                 now_ns,
                 node=self.name,
                 loop=self.mirrored,
-                why=self._why_held(answered, [], driven),
+                why=self._why_held(answered, answered, driven),
             )
         return False
 
@@ -492,8 +492,11 @@ class Standby:
         return max(1, min(self._takeover, -(-left // self._period)))
 
     def _why_held(
-        self, answered: list[ProbeReply], granted: list[ProbeReply], refusing: list[ProbeReply]
+        self, answered: list[ProbeReply], counted: list[ProbeReply], refusing: list[ProbeReply]
     ) -> str:
+        """Why a round ends without a takeover: no answer; ``refusing``, the
+        device nodes still driven (or refusing); else too few of them
+        (``counted``: those that answered as a takeover needs)."""
         if not answered:
             return "no device node answered its question"
         busy = [
@@ -505,7 +508,7 @@ class Standby:
         if busy:
             return "the commander still drives " + "; ".join(busy)
         return (
-            f"only {len(granted)} of {len(self.dns)} device nodes answered: a takeover needs "
+            f"only {len(counted)} of {len(self.dns)} device nodes answered: a takeover needs "
             "more than half"
         )
 
