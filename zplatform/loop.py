@@ -239,6 +239,7 @@ class ControlLogic:
         self._number = RequestNumber(self.layout) if self._ground is not None else None
         # Refusals at the driver's intake: one event a second at most.
         self._refusals = RefusalLog(7)
+        self._out_of_range = RefusalLog(1)  # replies naming a term no node can run
         self._shown = (0, 0)  # the refusal cn_cmd_reject_status/_seq show
         self._rx = tuple(dv.handle(f"cn_rx_{dn}") for dn in dns)
         self._missed = tuple(dv.handle(f"cn_missed_{dn}") for dn in dns)
@@ -351,7 +352,15 @@ class ControlLogic:
         if self.redundant and self.loop:
             seen = _U32.unpack_from(frame.data, self._seen_at[i])[0]
             if seen > TERM_MAX:  # no node can run it (zplatform.fencing): malformed
-                self._bad_frame(self.dns[i], f"a reply naming term {seen}, above {TERM_MAX}")
+                self._bad.bump()
+                ev = self._out_of_range.add(self.t_ns, 1)
+                if ev is not None:  # an insider could send one a loop: once a second
+                    self.events.emit(
+                        EV.BAD_FRAME,
+                        self.t_ns,
+                        source=f"{ev[0]} repl(ies) from {self.dns[i]}",
+                        reason=f"naming term {seen}, above the last a node can run ({TERM_MAX})",
+                    )
                 return False
             term = self._h_term.get()
             if seen != term:
@@ -769,6 +778,7 @@ class DeviceLogic:
         self._term_at = 0
         self._fenced_log = RefusalLog(2)
         self._probe_log = RefusalLog(4)
+        self._term_log = RefusalLog(1)  # triggers naming a term no node can run
         self._askers = len(mission.control_nodes)
         if mission.standby is not None:
             self.guard = TermGuard(mission.takeover.lease_loops * mission.period_ns)
@@ -854,7 +864,8 @@ class DeviceLogic:
             if guard is not None and frame.seq > 0:
                 term = _U32.unpack_from(frame.data, self._term_at)[0]
                 if term > TERM_MAX:  # no commander can run it (zplatform.fencing)
-                    raise CodecError(f"a trigger of term {term}: above {TERM_MAX}")
+                    self._out_of_range(term, now_ns)
+                    return None
                 verdict = guard.admit(term, now_ns, self.last_trigger_ns)
                 if verdict == Verdict.FENCED or verdict == Verdict.LEASED:
                     return self._fence(frame, term, verdict, now_ns)
@@ -912,6 +923,22 @@ class DeviceLogic:
             self._h_term_seen.set(guard.seen(now_ns))
         reply = self._out.encode(frame.seq, now_ns)
         return self._seal.seal_tail(reply) if self._seal is not None else reply
+
+    def _out_of_range(self, term: int, now_ns: int) -> None:
+        """An authentic trigger naming a term above
+        :data:`~zplatform.fencing.TERM_MAX`: a bad frame, never run nor
+        followed (the driver answers with an error); evented at most once a
+        second (a control node's key could send one a loop)."""
+        self._bad.bump()
+        self.reject_reason = f"a trigger of term {term}: above {TERM_MAX}"
+        ev = self._term_log.add(now_ns, 1)
+        if ev is not None:
+            self.events.emit(
+                EV.BAD_FRAME,
+                now_ns,
+                source=f"{ev[0]} sync quer(ies)",
+                reason=self.reject_reason,
+            )
 
     def _new_term(self, loop: int, now_ns: int, term: int) -> None:
         """The trigger just taken to run carries a higher term: follow it."""

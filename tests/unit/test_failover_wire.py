@@ -196,21 +196,28 @@ def test_a_mirror_naming_no_control_node_or_no_term_is_refused() -> None:
 def test_triggers_and_replies_naming_a_term_above_the_range_are_bad_frames() -> None:
     """Insider with a control node's key: a trigger of term 2^32 - 1 was run
     (and no commander could ever take the node back). Insider with a device
-    node's key: a reply naming it counted toward standing the commander down."""
+    node's key: a reply naming it counted toward standing the commander down.
+    Both are bad frames now, evented once a second however many come."""
     cn = _commander(term=U32_MAX)
     dn = DeviceLogic(FLIGHT, "dn0", keys=KEYS.for_node("dn0"))
-    assert dn.trigger(cn.begin(1, at(1))[0], at(1)) is None
+    for n in range(1, 51):  # half a second of loops
+        assert dn.trigger(cn.begin(n, at(n))[0], at(n)) is None
     assert dn.triggered == 0 and dn.guard is not None and dn.guard.term == 0
-    assert int(dn.dv.get("dn0_bad_frames")) == 1
+    assert int(dn.dv.get("dn0_bad_frames")) == 50
+    assert len([e for e in dn.events.drain() if e.id == EV.BAD_FRAME.name]) == 1
     good = _commander()
-    assert dn.trigger(good.begin(2, at(2))[0], at(2)) is not None and dn.triggered == 2
-    # dn0 (the insider) answers cn's loop saying it follows term 2^32 - 1.
+    assert dn.trigger(good.begin(51, at(51))[0], at(51)) is not None and dn.triggered == 51
+    # dn0 (the insider) answers cn's loops saying it follows term 2^32 - 1.
     dn.guard.term = U32_MAX
-    frames = good.begin(3, at(3))
     bad = int(good.dv.get("cn_bad_frames"))
-    reply = dn.trigger(frames[0], at(3))
-    assert not good.reply(0, reply)
-    assert int(good.dv.get("cn_bad_frames")) == bad + 1
+    for n in range(52, 102):
+        reply = dn.trigger(good.begin(n, at(n))[0], at(n))
+        assert not good.reply(0, reply)
+        good.finish()
+    assert int(good.dv.get("cn_bad_frames")) == bad + 50
+    assert good.superseded == 0
+    out = [e for e in good.events.drain() if e.id == EV.BAD_FRAME.name and "naming term" in e.text]
+    assert len(out) == 1
 
 
 # -- 2. the probe's intake: size, rate, tag, freshness before the loop --------------------
