@@ -11,15 +11,18 @@ docs/architecture.md#failover tells the whole story; in short:
   every controller's state elements (a redundant mission's control-node
   controllers keep their state in the vector: ``Controller.takeover_safe``).
 * When no mirror came for ``failover.takeover_loops`` loops, the standby
-  **asks every device node** (a probe, :mod:`zplatform.fencing`) to promise
-  it the next term. A device node grants only when no trigger of its own
-  term has run for ``failover.lease_loops`` periods: a standby that is only
-  cut off from a working commander is refused by the device nodes it still
-  drives, and waits (``cn_takeover_held``). When every device node that
-  answered granted, and they are more than half of the mission's device
-  nodes, the standby **takes command** at the next loop of the commander's
-  own schedule (loop numbers follow time, as a commander's overrun skips
-  them), in the new term, from the mirror it holds (``cn_took_command``);
+  first asks every device node what it runs (a STATUS probe,
+  :mod:`zplatform.fencing`, which changes nothing); only when their answers
+  show the commander silent to them too (:meth:`Standby.silent`) does it
+  **ask every device node** to promise it the next term. A device node
+  grants only when no trigger of its own term has run for
+  ``failover.lease_loops`` periods: a standby that is only cut off from a
+  working commander learns from the device nodes it still drives that
+  they are driven, asks nothing, and waits (``cn_takeover_held``). When
+  every device node that answered granted, and they are more than half of
+  the mission's device nodes, the standby **takes command** at the next
+  loop of the commander's own schedule (loop numbers follow time, as a
+  commander's overrun skips them), in the new term, from the mirror it holds (``cn_took_command``);
   otherwise it releases the promises it got and asks again
   ``takeover_loops`` loops later.
 * A standby whose last mirror is older than ``2 * takeover_loops +
@@ -58,12 +61,15 @@ zenoh runtime (:mod:`zplatform.node.control`) and the lockstep runner
 
     sb.mirror(frame, now)             # every mirror frame that arrives
     if sb.tick(slot):                 # once per loop slot of the commander's schedule
-        asks = sb.ask(slot, now)      # one probe question per device node
+        asks = sb.ask(slot, now, kind=STATUS)  # first ask nothing: is the commander silent?
         sb.answer(i, reply)           # each reply, until the deadline
-        if sb.decide(slot) == TAKE:
-            logic = sb.take(slot + 1) # the ControlLogic to run from loop slot + 1
-        else:
-            send sb.releases          # the promises it will not use
+        if sb.silent(slot, now):      # to the device nodes too: now ask for the term
+            asks = sb.ask(slot, now)  # one ASK per device node
+            sb.answer(i, reply)
+            if sb.decide(slot) == TAKE:
+                logic = sb.take(slot + 1) # the ControlLogic to run from loop slot + 1
+            else:
+                send sb.releases      # the promises it will not use
 """
 
 from __future__ import annotations
@@ -76,7 +82,19 @@ from .codec import Frame, RegionCodec
 from .config import Mission
 from .errors import CodecError
 from .events import EV
-from .fencing import ASK, RELEASE, ProbeReply, ask_frame, new_nonce, read_reply
+from .fencing import (
+    ASK,
+    LOOP_MAX,
+    RELEASE,
+    STATUS,
+    TERM_MAX,
+    ProbeReply,
+    ask_frame,
+    new_nonce,
+    next_term,
+    read_reply,
+)
+from .intake import RefusalLog
 from .loop import ControlLogic
 from .params import encode_params
 
@@ -93,10 +111,14 @@ class Decision(enum.IntEnum):
 
 
 class MirrorReader:
-    """Checks mirror frames for a control node (tag, layout, shape) and reads
-    their term and commander, writing nothing. A commander keeps one to hear
-    a newer term's mirror (:meth:`newer_term`); a :class:`Standby` reads the
-    mirrors it applies with one. Not thread-safe."""
+    """Checks mirror frames for a control node (tag, layout, shape, and the
+    range of every integer the failover reads from them: a term from 1 to
+    :data:`~zplatform.fencing.TERM_MAX`, a commander that is one of the
+    mission's control nodes, a loop from 1 to
+    :data:`~zplatform.fencing.LOOP_MAX`) and reads their term and commander,
+    writing nothing. A commander keeps one to hear a newer term's mirror
+    (:meth:`newer_term`); a :class:`Standby` reads the mirrors it applies
+    with one. Not thread-safe."""
 
     def __init__(self, logic: ControlLogic, keys: KeySet | None) -> None:
         dv = logic.dv
@@ -106,16 +128,22 @@ class MirrorReader:
         self.codec = RegionCodec(dv)
         self._term_at = dv.layout.element("cn_term").offset
         self._commander_at = dv.layout.element("cn_commander").offset
+        self._nodes = len(logic.mission.control_nodes)
         self.bad = 0
-        """Frames refused: a bad tag, another layout, malformed."""
+        """Frames refused: a bad tag, another layout, malformed, out of range."""
 
     def read(self, payload: bytes | bytearray | memoryview) -> Frame | None:
         """The checked frame, or None (counted in :attr:`bad`)."""
         try:
-            return self.codec.check(self._open.open(payload) if self._open else payload)
+            frame = self.codec.check(self._open.open(payload) if self._open else payload)
         except CodecError:
             self.bad += 1
             return None
+        term, who = self.stamp(frame)
+        if not (1 <= term <= TERM_MAX and who < self._nodes and 1 <= frame.seq <= LOOP_MAX):
+            self.bad += 1  # authentic, but a vector no commander can have sent
+            return None
+        return frame
 
     def stamp(self, frame: Frame) -> tuple[int, int]:
         """``(term, commander index)`` of a checked frame."""
@@ -182,7 +210,11 @@ class Standby:
         """The commander's schedule: the time of loop 1 (loop n runs at
         ``origin + (n - 1) * period``); None before the first mirror."""
         self.bad_replies = 0
-        """Probe replies refused: a bad tag, another question's, malformed."""
+        """Probe replies refused: a bad tag, another question's, malformed,
+        out of range, a grant of a term not asked for."""
+        # Refused mirrors and replies, evented at most once a second (tick).
+        self._refusals = RefusalLog(2)
+        self._counted = (0, 0)
         self._asked = 0  # the term the current round asks for
         self._kind = ASK
         self._next_ask = 0  # the first slot a new round may start in
@@ -297,7 +329,11 @@ class Standby:
         that show the commander without most device nodes' replies for as
         many loops (:attr:`cut`); and no round asked in the last
         ``takeover_loops`` slots; and the mirror not too old (:meth:`blind`:
-        a ``cn_takeover_held`` event says so, once per silence)."""
+        a ``cn_takeover_held`` event says so, once per silence); and a next
+        term to ask for (none after :data:`~zplatform.fencing.TERM_MAX`).
+        Refused mirrors and probe replies are evented here, at most once a
+        second."""
+        self._event_refusals(slot)
         if (
             self.origin is None
             or self.ended
@@ -319,14 +355,46 @@ class Standby:
                     "from the next mirror",
                 )
             return False
+        if not next_term(self.term):
+            if not self._held:
+                self._held = True
+                self.events.emit(
+                    EV.CN_TAKEOVER_HELD,
+                    self.origin + (slot - 1) * self._period,
+                    node=self.name,
+                    loop=self.mirrored,
+                    why=f"term {self.term} is the last a node can run: there is no next "
+                    "term to ask for",
+                )
+            return False
         return slot >= self._next_ask
+
+    def _event_refusals(self, slot: int) -> None:
+        """Mirrors and probe replies refused since the last slot, as one
+        ``bad_frame`` event at most once a second (of the schedule's time)."""
+        counted = (self._reader.bad, self.bad_replies)
+        new = (counted[0] - self._counted[0], counted[1] - self._counted[1])
+        self._counted = counted
+        t = self.origin + (slot - 1) * self._period if self.origin is not None else 0
+        ev = self._refusals.add(t, *new)
+        if ev is not None:
+            self.events.emit(
+                EV.BAD_FRAME,
+                t,
+                source=f"{sum(ev)} failover frame(s)",
+                reason=f"refused by {self.name}: {ev[0]} mirror(s), {ev[1]} probe "
+                "answer(s) (a bad tag, malformed, out of range, or another question's)",
+            )
 
     def ask(self, slot: int, now_ns: int, *, kind: int = ASK) -> list[bytes]:
         """The probe questions of a new round, one per device node: ASK for
         the term after every term known (``kind``: STATUS, a question that
-        asks for nothing)."""
+        asks for nothing; a STATUS too when there is no next term,
+        :func:`~zplatform.fencing.next_term`)."""
+        self._asked = next_term(self.term) if kind == ASK else 0
+        if not self._asked:
+            kind = STATUS
         self._kind = kind
-        self._asked = self.term + 1 if kind == ASK else 0
         out = []
         for i in range(len(self.dns)):
             self.answers[i] = None
@@ -343,8 +411,41 @@ class Standby:
         except CodecError:
             self.bad_replies += 1
             return False
+        if r.granted and (self._kind != ASK or r.promised != self._asked):
+            self.bad_replies += 1  # a grant of a term this round did not ask for
+            return False
         self.answers[i] = r
         return True
+
+    def silent(self, slot: int, now_ns: int) -> bool:
+        """A STATUS round is over (``ask(slot, now, kind=STATUS)``, asking
+        nothing): whether the device nodes' answers show the commander
+        silent too, so that an ASK may follow in the same slot. True when
+        more than half of them answered and none ran a trigger within the
+        lease or holds a promise (to either control node). Otherwise no
+        term is asked for, so no promise can fence a commander that still
+        drives some device node (a busy host's late triggers included); the
+        next round comes when the lease may have run out (as after a refused
+        ASK), with a ``cn_takeover_held`` event (once per silence). Learns
+        any newer term a device node reported."""
+        answered = [a for a in self.answers if a is not None]
+        driven = [a for a in answered if 0 <= a.quiet_ns < self._lease or a.promised]
+        retry = self._retry_in(driven)
+        for a in answered:
+            self.term = max(self.term, a.term, a.promised)
+        if 2 * len(answered) > len(self.dns) and not driven:
+            return True
+        self._next_ask = slot + retry
+        if not self._held:
+            self._held = True
+            self.events.emit(
+                EV.CN_TAKEOVER_HELD,
+                now_ns,
+                node=self.name,
+                loop=self.mirrored,
+                why=self._why_held(answered, answered, driven),
+            )
+        return False
 
     def decide(self, slot: int, now_ns: int) -> Decision:
         """The round is over: TAKE when every device node that answered
@@ -375,7 +476,7 @@ class Standby:
                 now_ns,
                 node=self.name,
                 loop=self.mirrored,
-                why=self._why_held(answered, granted),
+                why=self._why_held(answered, granted, [a for a in answered if not a.granted]),
             )
         return Decision.WAIT
 
@@ -390,19 +491,24 @@ class Standby:
         left = self._lease - min(a.quiet_ns for a in refusing)
         return max(1, min(self._takeover, -(-left // self._period)))
 
-    def _why_held(self, answered: list[ProbeReply], granted: list[ProbeReply]) -> str:
+    def _why_held(
+        self, answered: list[ProbeReply], counted: list[ProbeReply], refusing: list[ProbeReply]
+    ) -> str:
+        """Why a round ends without a takeover: no answer; ``refusing``, the
+        device nodes still driven (or refusing); else too few of them
+        (``counted``: those that answered as a takeover needs)."""
         if not answered:
             return "no device node answered its question"
         busy = [
             f"{self.dns[a.dn]} ran loop {a.last_loop} of term {a.term} "
             f"{a.quiet_ns / 1e6:.0f} ms ago"
-            for a in answered
-            if not a.granted
+            + (f" and promised term {a.promised}" if a.promised else "")
+            for a in refusing
         ]
         if busy:
             return "the commander still drives " + "; ".join(busy)
         return (
-            f"only {len(granted)} of {len(self.dns)} device nodes answered: a takeover needs "
+            f"only {len(counted)} of {len(self.dns)} device nodes answered: a takeover needs "
             "more than half"
         )
 

@@ -41,6 +41,16 @@ A reply echoes the question's nonce, so it cannot be replayed into another
 question, and states the node's term, its promise, whether it granted, how
 long ago its last trigger ran (on its own clock), that loop and its stamp.
 
+**Ranges.** Every integer these frames carry is checked where it is read
+(:func:`read_ask`, :func:`read_reply`), so a frame is refused (CodecError)
+rather than carried into arithmetic the node cannot represent: a term is
+at most :data:`TERM_MAX` (one below the ``u32`` field's largest value, so
+the next term after any valid one still fits, and a standby that knows
+:data:`TERM_MAX` asks for nothing: :func:`next_term`), a loop at most
+:data:`LOOP_MAX`, an asker one of the mission's control nodes, a flag 0 or
+1, the quiet time -1 or more. A valid-looking frame with a wrong value is
+as refused as a forged one: counted by its receiver, never an exception.
+
 Everything here is sans-IO and allocates nothing per trigger.
 """
 
@@ -55,9 +65,11 @@ from .errors import CodecError
 
 __all__ = [
     "ASK",
+    "LOOP_MAX",
     "NONCE_LEN",
     "RELEASE",
     "STATUS",
+    "TERM_MAX",
     "ProbeAsk",
     "ProbeReply",
     "TermGuard",
@@ -65,6 +77,7 @@ __all__ = [
     "ask_frame",
     "ask_size",
     "ask_stamp",
+    "next_term",
     "read_ask",
     "read_reply",
     "reply_frame",
@@ -75,6 +88,17 @@ NONCE_LEN = 16
 ASK, STATUS, RELEASE = 1, 2, 3
 """The kinds of probe question (module doc)."""
 _KINDS = (ASK, STATUS, RELEASE)
+TERM_MAX = 0xFFFF_FFFE
+"""The highest term a node may run, ask for or adopt (module doc): one below
+the largest ``u32``, so ``term + 1`` of a valid term is always representable
+and a node at :data:`TERM_MAX` asks for nothing more."""
+LOOP_MAX = (1 << 63) - 1
+"""The highest loop number taken from a failover frame (a mirror's ``seq``,
+a probe answer's ``last_loop``): schedule arithmetic on it stays within the
+``u64``/``i64`` fields it is written back to."""
+MAX_ASKERS = 2
+"""Control nodes a mission can have (``cn``, ``cn_b``): a question's
+``asker`` is below this."""
 # magic "ZP", version, kind, device node index, the asker (its index among the
 # mission's control nodes), term, nonce, the asker's stamp
 _ASK = struct.Struct(f"<2sBBBBI{NONCE_LEN}sq")
@@ -125,12 +149,23 @@ def new_nonce() -> bytes:
     return secrets.token_bytes(NONCE_LEN)
 
 
-def ask_stamp(body: bytes | memoryview) -> tuple[int, int]:
+def next_term(term: int) -> int:
+    """The term to ask for after ``term`` (every term known): ``term + 1``,
+    or 0 when ``term`` is :data:`TERM_MAX` already, or out of range (there
+    is no next term: the asker asks for nothing)."""
+    return term + 1 if 0 <= term < TERM_MAX else 0
+
+
+def ask_stamp(body: bytes | memoryview, askers: int = MAX_ASKERS) -> tuple[int, int]:
     """``(asker, stamp)`` of a probe question's checked body (fixed offsets;
-    ValueError, a CodecError, for a body of another size)."""
+    CodecError for a body of another size, or an asker that is not one of
+    ``askers`` control nodes)."""
     if len(body) != _ASK.size:
         raise CodecError(f"{len(body)} bytes: not a probe question")
-    return body[5], int.from_bytes(body[_ASK.size - 8 :], "little", signed=True)
+    asker = body[5]
+    if asker >= askers:
+        raise CodecError(f"a probe question from control node {asker}: there are {askers}")
+    return asker, int.from_bytes(body[_ASK.size - 8 :], "little", signed=True)
 
 
 def ask_frame(
@@ -143,9 +178,16 @@ def ask_frame(
     return bytes(ch.seal(body)) if ch is not None else body
 
 
-def read_ask(ch: Channel | None, payload: bytes | bytearray | memoryview, index: int) -> ProbeAsk:
-    """Check and read a probe question for device node ``index``; CodecError
-    (AuthError for a bad tag) for anything else."""
+def read_ask(
+    ch: Channel | None,
+    payload: bytes | bytearray | memoryview,
+    index: int,
+    askers: int = MAX_ASKERS,
+) -> ProbeAsk:
+    """Check and read a probe question for device node ``index`` from one of
+    ``askers`` control nodes; CodecError (AuthError for a bad tag) for
+    anything else, a value out of range included (module doc): an ASK or a
+    RELEASE names a term from 1 to :data:`TERM_MAX`, a STATUS none (0)."""
     body = ch.open(payload) if ch is not None else memoryview(payload)
     if len(body) != _ASK.size:
         raise CodecError(f"{len(body)} bytes: not a probe question")
@@ -154,6 +196,10 @@ def read_ask(ch: Channel | None, payload: bytes | bytearray | memoryview, index:
         raise CodecError("not a probe question of version 1")
     if i != index:
         raise CodecError(f"a probe question for device node {i}, not {index}")
+    if asker >= askers:
+        raise CodecError(f"a probe question from control node {asker}: there are {askers}")
+    if (term != 0) if kind == STATUS else not 1 <= term <= TERM_MAX:
+        raise CodecError(f"a probe question for term {term}: out of range for its kind {kind}")
     return ProbeAsk(kind, i, asker, term, nonce, t_ns)
 
 
@@ -189,6 +235,12 @@ def read_reply(
         raise AuthError(f"not device node {index}'s probe reply")
     if echo != nonce:
         raise CodecError("a probe reply to another question (a replay, or late)")
+    if term > TERM_MAX or promised > TERM_MAX:
+        raise CodecError(f"a probe reply naming term {max(term, promised)}: above {TERM_MAX}")
+    if granted > 1 or (granted and not promised):
+        raise CodecError(f"a probe reply granting {granted} for term {promised}: malformed")
+    if quiet < -1 or loop > LOOP_MAX:
+        raise CodecError(f"a probe reply quiet for {quiet} ns since loop {loop}: out of range")
     return ProbeReply(i, echo, term, promised, bool(granted), why, quiet, loop, t)
 
 

@@ -12,7 +12,10 @@ key                            intake (node)                  fresh: admitted wh
 =============================  =============================  ================================
 ``{vehicle}/dnX/to_cn``        :class:`TriggerIntake` (dnX)   stamped later than any admitted
 ``{vehicle}/dnX/probe``        :class:`ProbeIntake` (dnX)     stamped later than any admitted
-                                                              from the same control node
+                                                              from the same control node;
+                                                              within the rate bounds
+``{vehicle}/cn/mirror``        :class:`MirrorIntake` (either  newer in (term, loop) than any
+                               control node)                  admitted, from the other node
 ``{vehicle}/gn/to_cn``         :class:`RequestIntake` (CN)    this CN run, numbered above
                                                               every number seen
 ``{vehicle}/cn/telemetry``     :class:`TelemetryIntake`       stamped later than any admitted
@@ -25,7 +28,9 @@ The checks, in this order, the first failure wins:
 
 1. **size**: ``len(payload)``, which zenoh-python gives without copying,
    against the lengths the key can carry (at most the longest valid frame,
-   tag included): counted in ``size``, refused unread;
+   tag included): counted in ``size``, refused unread; then, for a key
+   with a rate bound (the probe), the bound, still unread (counted in
+   :attr:`ProbeIntake.excess`);
 2. **tag**: one bounded copy out of zenoh (``to_bytes()``: zenoh-python 1.10
    has no buffer protocol, so reading any byte copies them all, at most the
    length just checked) and the channel's tag
@@ -63,6 +68,7 @@ applying and events stay on the loop thread.
 from __future__ import annotations
 
 import threading
+import time
 from abc import ABC, abstractmethod
 from collections.abc import Callable
 from typing import Generic, Protocol, TypeVar
@@ -80,7 +86,7 @@ from .commands import RequestNumber, request_refusal
 from .config import Mission
 from .datavector import Layout
 from .errors import CodecError
-from .fencing import ask_size, ask_stamp
+from .fencing import LOOP_MAX, TERM_MAX, ask_size, ask_stamp
 from .handoff import Mailbox, Waker
 from .messages import wildcard_sync_for
 
@@ -88,9 +94,12 @@ __all__ = [
     "BACKLOG",
     "CN_REFUSALS",
     "EVENT_PERIOD_NS",
+    "MIRRORS",
     "PROBES",
+    "PROBE_BURST",
     "CnRefusals",
     "Intake",
+    "MirrorIntake",
     "Payload",
     "ProbeIntake",
     "RefusalLog",
@@ -106,6 +115,12 @@ BACKLOG = 4
 for loops the CN has closed, so the oldest is let go past this."""
 PROBES = 2
 """Probe questions a DN keeps while its loop thread is busy."""
+PROBE_BURST = 8
+"""Probe questions one control node may ask a DN at once; then one a loop
+period (:class:`ProbeIntake`'s rate bound: a standby's round is one STATUS,
+one ASK and one RELEASE, at most one round a period)."""
+MIRRORS = 4
+"""Mirror frames a control node keeps between two beats (the newest ones)."""
 EVENT_PERIOD_NS = 1_000_000_000
 """At most one refusal event per intake in this much loop time (:class:`RefusalLog`)."""
 
@@ -192,6 +207,8 @@ class Intake(ABC, Generic[H]):
         if not self._min <= n <= self.max_len:
             self.size += 1
             return None
+        if not self._within_rate():
+            return None
         data = payload.to_bytes()
         ch = self._open
         if ch is None:
@@ -202,7 +219,8 @@ class Intake(ABC, Generic[H]):
             self.bad += 1
             return None
         if not fresh:
-            self.stale += 1
+            if fresh is not None:  # None: refused and counted by the subclass
+                self.stale += 1
             return None
         return data
 
@@ -210,11 +228,18 @@ class Intake(ABC, Generic[H]):
         """The tagged frame in what arrived (CodecError if there is none)."""
         return data
 
+    def _within_rate(self) -> bool:
+        """Whether a frame of the right size may be read now (before any
+        copy; with the lock held): a key with a rate bound counts and
+        refuses the excess here. Every frame, by default."""
+        return True
+
     @abstractmethod
-    def _fresh(self, body: memoryview, handle: H) -> bool:
+    def _fresh(self, body: memoryview, handle: H) -> bool | None:
         """Whether the authentic frame ``body`` (with ``handle``) is newer
         than every admitted one; records it as the newest when it is.
-        CodecError if unreadable."""
+        CodecError if unreadable; None: refused for another reason, which
+        the subclass counted."""
 
     def take_counts(self) -> tuple[int, int, int]:
         """``(size, bad, stale)`` refusals since the last call (then zeroed)."""
@@ -276,19 +301,118 @@ class ProbeIntake(Intake[H]):
     Fresh: stamped later than any question admitted from the same control
     node, so a replayed question is refused unanswered. Its mailbox keeps
     :data:`PROBES` questions (``waker``: the trigger mailbox's, so the node's
-    loop wakes for either)."""
+    loop wakes for either).
 
-    def __init__(self, node: str, channel: Channel | None, waker: Waker) -> None:
+    **Rate bounds** (``now_ns``: the clock they run on; ``period_ns``: the
+    mission's loop period). Two, each a token bucket kept as one integer
+    (GCRA: constant time, no allocation), so a flood costs the callback a
+    length, a clock read and a compare per question, and never reaches the
+    loop thread beyond a few answers a period:
+
+    * per channel, *before any copy* (the asker is not known unread): at
+      most ``askers`` * :data:`PROBE_BURST` questions at once, then
+      ``askers`` a period, whoever sends them;
+    * per asker, once the tag proved who asks: at most :data:`PROBE_BURST`
+      at once, then one a period.
+
+    What exceeds either is refused unanswered and counted in
+    :attr:`excess`. A flood from a peer without the key uses up the
+    channel's bound, so a genuine question sent meanwhile may be refused
+    too (the standby asks again later): the flood delays a takeover for as
+    long as it lasts, never the device node's loop. Without authentication
+    only the channel's bound applies (the asker cannot be told)."""
+
+    def __init__(
+        self,
+        node: str,
+        channel: Channel | None,
+        waker: Waker,
+        *,
+        period_ns: int,
+        askers: int = 2,
+        now_ns: Callable[[], int] = time.monotonic_ns,
+    ) -> None:
         super().__init__(
             f"{node}'s probe", ask_size(channel is not None), channel, PROBES, waker=waker
         )
-        self._newest = [-(1 << 63)] * 8
+        self._askers = askers
+        self._newest = [-(1 << 63)] * askers
+        self._now = now_ns
+        self._every = max(period_ns, 1)
+        self._tau = (PROBE_BURST - 1) * self._every  # one asker's burst
+        self._every_all = max(self._every // askers, 1)
+        self._tau_all = (askers * PROBE_BURST - 1) * self._every_all
+        self._tat = [-(1 << 63)] * askers  # per asker: the theoretical arrival time
+        self._tat_all = -(1 << 63)
+        self._excess = 0
+        self.excess = 0
+        """Questions refused beyond a rate bound, among those counted by the
+        last :meth:`take_counts`."""
 
-    def _fresh(self, body: memoryview, handle: H) -> bool:
-        asker, t_ns = ask_stamp(body)
-        if asker >= len(self._newest) or t_ns <= self._newest[asker]:
+    def _within_rate(self) -> bool:
+        now = self._now()
+        tat = max(self._tat_all, now)
+        if tat - now > self._tau_all:
+            self._excess += 1
             return False
+        self._tat_all = tat + self._every_all
+        return True
+
+    def _fresh(self, body: memoryview, handle: H) -> bool | None:
+        asker, t_ns = ask_stamp(body, self._askers)  # CodecError: no such asker (bad)
+        if t_ns <= self._newest[asker]:
+            return False
+        # After freshness: a replay of the asker's questions uses none of its bound.
+        now = self._now()
+        tat = max(self._tat[asker], now)
+        if tat - now > self._tau:
+            self._excess += 1
+            return None
+        self._tat[asker] = tat + self._every
         self._newest[asker] = t_ns
+        return True
+
+    def _took(self) -> None:
+        self.excess, self._excess = self._excess, 0
+
+
+class MirrorIntake(Intake[None]):
+    """A control node's mirror frames (``{vehicle}/cn/mirror``, the
+    commander's whole vector for the standby, :mod:`zplatform.failover`),
+    for ``node``. Fresh: authentic, from the *other* control node
+    (``cn_commander``), with a term and a loop in range
+    (:data:`~zplatform.fencing.TERM_MAX`, :data:`~zplatform.fencing.LOOP_MAX`),
+    and newer in (``cn_term``, loop) order than every mirror admitted
+    before. So junk never reaches the mailbox, and a replayed mirror of
+    this run (an older loop, an older term), however authentic, neither
+    displaces a genuine one nor reaches a commander's check for a newer
+    term: it cannot make a commander stand down. (A mirror recorded in an
+    earlier run of the same keys is another matter: its term and loop may
+    be above this run's; binding the keys to the run is what refuses it.)
+    Its mailbox keeps :data:`MIRRORS` frames."""
+
+    def __init__(self, mission: Mission, node: str, channel: Channel | None) -> None:
+        lay = Layout.for_node(mission, "cn")
+        self._size = lay.size
+        self._term_at = lay.element("cn_term").offset
+        self._who_at = lay.element("cn_commander").offset
+        self._index = mission.control_nodes.index(node)
+        self._nodes = len(mission.control_nodes)
+        self.newest = (0, 0)
+        """``(term, loop)`` of the newest admitted mirror."""
+        super().__init__("mirror", max_frame_len(self._size, channel), channel, MIRRORS)
+
+    def _fresh(self, body: memoryview, handle: None) -> bool:
+        seq, _ = frame_stamp(body)
+        data = frame_data(body, self._size)
+        at = self._term_at
+        term = int.from_bytes(data[at : at + 4], "little")
+        who = data[self._who_at]
+        if not (1 <= term <= TERM_MAX and who < self._nodes and 1 <= seq <= LOOP_MAX):
+            raise CodecError(f"a mirror of term {term}, loop {seq}, from node {who}: out of range")
+        if who == self._index or (term, seq) <= self.newest:
+            return False  # its own, or not newer: a replay (or a duplicate)
+        self.newest = (term, seq)
         return True
 
 

@@ -57,6 +57,7 @@ from .datavector import DataVector, Layout
 from .errors import RecordingError, ZPlatformError
 from .events import Event
 from .failover import Decision, MirrorReader, Standby
+from .fencing import STATUS
 from .ground.logic import GroundLogic
 from .ground.records import CommandOutcome, EventRecord
 from .health import BLOCK_SIZE, HealthPort
@@ -549,13 +550,12 @@ class LockstepRunner:
         if not sb.tick(loop):
             return
         now = t + self.period_ns // 2
-        asks = sb.ask(loop, now)
-        for i, dev in enumerate(self.devices):
-            if dev.node in self.lost or not self.reach(c.name, dev.node):
-                continue
-            reply = dev.probe(asks[i], now)
-            if reply is not None:
-                sb.answer(i, reply)
+        # First a question that changes nothing: an ASK only when the device
+        # nodes' answers show the commander silent to them too (Standby.silent).
+        self._probe_round(c, sb.ask(loop, now, kind=STATUS), now)
+        if not sb.silent(loop, now):
+            return
+        self._probe_round(c, sb.ask(loop, now), now)
         if sb.decide(loop, now) == Decision.TAKE:
             sb.take(loop + 1)
             c.standby = None
@@ -564,6 +564,18 @@ class LockstepRunner:
             dev = self.devices[i]
             if release is not None and dev.node not in self.lost and self.reach(c.name, dev.node):
                 dev.probe(release, now)
+
+    def _probe_round(self, c: SimControlNode, asks: list[bytes], now: int) -> None:
+        """Standby ``c``'s questions to every device node it reaches, each
+        answer handed to it."""
+        sb = c.standby
+        assert sb is not None
+        for i, dev in enumerate(self.devices):
+            if dev.node in self.lost or not self.reach(c.name, dev.node):
+                continue
+            reply = dev.probe(asks[i], now)
+            if reply is not None:
+                sb.answer(i, reply)
 
     def run(self, duration_s: float, *, log: CsvLogger | None = None) -> SimResult:
         """Run ``round(duration_s * loop_hz)`` loops (continuing from any

@@ -105,7 +105,7 @@ from .devices import DeviceSet
 from .errors import CodecError, ConfigError
 from .events import EV, EventLog, EventType
 from .faults import FaultMonitor
-from .fencing import ProbeReply, TermGuard, Verdict, read_ask, reply_frame
+from .fencing import TERM_MAX, ProbeReply, TermGuard, Verdict, read_ask, reply_frame
 from .health import HealthInput, HealthPort
 from .intake import CnRefusals, RefusalLog
 from .interlocks import OutputInterlock
@@ -245,6 +245,7 @@ class ControlLogic:
         self._number = RequestNumber(self.layout) if self._ground is not None else None
         # Refusals at the driver's intake: one event a second at most.
         self._refusals = RefusalLog(7)
+        self._out_of_range = RefusalLog(1)  # replies naming a term no node can run
         self._shown = (0, 0)  # the refusal cn_cmd_reject_status/_seq show
         self._rx = tuple(dv.handle(f"cn_rx_{dn}") for dn in dns)
         self._missed = tuple(dv.handle(f"cn_missed_{dn}") for dn in dns)
@@ -366,6 +367,17 @@ class ControlLogic:
             return False
         if self.redundant and self.loop:
             seen = _U32.unpack_from(frame.data, self._seen_at[i])[0]
+            if seen > TERM_MAX:  # no node can run it (zplatform.fencing): malformed
+                self._bad.bump()
+                ev = self._out_of_range.add(self.t_ns, 1)
+                if ev is not None:  # an insider could send one a loop: once a second
+                    self.events.emit(
+                        EV.BAD_FRAME,
+                        self.t_ns,
+                        source=f"{ev[0]} repl(ies) from {self.dns[i]}",
+                        reason=f"naming term {seen}, above the last a node can run ({TERM_MAX})",
+                    )
+                return False
             term = self._h_term.get()
             if seen != term:
                 # DN i ran nothing of this term's: it follows a newer one (this
@@ -788,6 +800,9 @@ class DeviceLogic:
         self.guard: TermGuard | None = None
         self._term_at = 0
         self._fenced_log = RefusalLog(2)
+        self._probe_log = RefusalLog(4)
+        self._term_log = RefusalLog(1)  # triggers naming a term no node can run
+        self._askers = len(mission.control_nodes)
         if mission.standby is not None:
             self.guard = TermGuard(mission.takeover.lease_loops * mission.period_ns)
             self._h_term = dv.handle(f"{node}_term")
@@ -871,6 +886,9 @@ class DeviceLogic:
             # Authentic from here on.
             if guard is not None and frame.seq > 0:
                 term = _U32.unpack_from(frame.data, self._term_at)[0]
+                if term > TERM_MAX:  # no commander can run it (zplatform.fencing)
+                    self._out_of_range(term, now_ns)
+                    return None
                 verdict = guard.admit(term, now_ns, self.last_trigger_ns)
                 if verdict == Verdict.FENCED or verdict == Verdict.LEASED:
                     return self._fence(frame, term, verdict, now_ns)
@@ -929,6 +947,22 @@ class DeviceLogic:
         reply = self._out.encode(frame.seq, now_ns)
         return self._seal.seal_tail(reply) if self._seal is not None else reply
 
+    def _out_of_range(self, term: int, now_ns: int) -> None:
+        """An authentic trigger naming a term above
+        :data:`~zplatform.fencing.TERM_MAX`: a bad frame, never run nor
+        followed (the driver answers with an error); evented at most once a
+        second (a control node's key could send one a loop)."""
+        self._bad.bump()
+        self.reject_reason = f"a trigger of term {term}: above {TERM_MAX}"
+        ev = self._term_log.add(now_ns, 1)
+        if ev is not None:
+            self.events.emit(
+                EV.BAD_FRAME,
+                now_ns,
+                source=f"{ev[0]} sync quer(ies)",
+                reason=self.reject_reason,
+            )
+
     def _new_term(self, loop: int, now_ns: int, term: int) -> None:
         """The trigger just taken to run carries a higher term: follow it."""
         guard = self.guard
@@ -983,11 +1017,12 @@ class DeviceLogic:
         if guard is None:
             return None
         try:
-            ask = read_ask(self._open_probe, payload, self._index)
+            ask = read_ask(self._open_probe, payload, self._index, self._askers)
         except CodecError as exc:
-            self._bad.bump()
+            # Counted and evented with the intake's refusals (at most once a
+            # second: without authentication junk gets this far).
             self.reject_reason = str(exc)
-            self.events.emit(EV.BAD_FRAME, now_ns, source="probe", reason=exc)
+            self.probes_refused(0, 1, 0, 0, now_ns, reason=self.reject_reason)
             return None
         last = self.last_trigger_ns
         granted = guard.answer(ask.kind, ask.asker, ask.term, now_ns, last)
@@ -1025,6 +1060,30 @@ class DeviceLogic:
                 source=f"{sum(ev)} sync quer(ies)",
                 reason=f"refused as they arrived, unanswered: {ev[0]} of a wrong size, "
                 f"{ev[1]} with bad tags, {ev[2]} replayed (not newer than the last trigger)",
+            )
+
+    def probes_refused(
+        self, size: int, bad: int, stale: int, excess: int, now_ns: int, *, reason: str = ""
+    ) -> None:
+        """Count the probe questions refused (:class:`~zplatform.intake.ProbeIntake`
+        as they arrived, unanswered, or :meth:`probe`): ``size`` of a wrong
+        size, ``bad`` with a bad tag or out of range, ``stale`` replayed,
+        ``excess`` beyond the rate bound. Each is a bad frame
+        (``dnX_bad_frames``), evented together at most once a second
+        (``reason``: the last refusal's, if any). Call it whenever the
+        driver waited, with zeros too."""
+        n = size + bad + stale + excess
+        if n:
+            self._bad.bump(n)
+        ev = self._probe_log.add(now_ns, size, bad, stale, excess)
+        if ev is not None:
+            self.events.emit(
+                EV.BAD_FRAME,
+                now_ns,
+                source=f"{sum(ev)} probe question(s)",
+                reason=f"refused: {ev[0]} of a wrong size, {ev[1]} bad (tag or values), "
+                f"{ev[2]} replayed, {ev[3]} beyond the rate bound"
+                + (f"; the last: {reason}" if reason else ""),
             )
 
     def _not_run(self, stamp_ns: int, now_ns: int, why: object) -> None:

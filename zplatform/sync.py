@@ -509,7 +509,8 @@ class DeviceSync:
         self.queryable = session.declare_queryable(
             self._key, zenoh.handlers.Callback(handoff, indirect=False)
         )
-        # A redundant mission's probes (zplatform.fencing): their own intake,
+        # A redundant mission's probes (zplatform.fencing): their own intake
+        # (size, its rate bound, tag, freshness: zplatform.intake.ProbeIntake),
         # waking the same wait as the triggers.
         self.probes = probes
         self._probe_q: zenoh.Queryable[Any] | None = None
@@ -522,9 +523,13 @@ class DeviceSync:
             padmit = probes.admit
 
             def on_probe(query: zenoh.Query) -> None:
+                # zenoh's thread: the intake's checks; a refused question is
+                # released here, unanswered.
                 p = query.payload
                 padmit(p if p is not None else _NO_PAYLOAD, query)
 
+            self.on_probe: Callable[[zenoh.Query], None] = on_probe
+            """The probe queryable's callback (what zenoh's thread runs per question)."""
             self._probe_q = session.declare_queryable(
                 self._probe_key, zenoh.handlers.Callback(on_probe, indirect=False)
             )
@@ -560,7 +565,11 @@ class DeviceSync:
                     return True
         finally:
             size, bad, stale = self.intake.take_counts()
-            logic.refused(size, bad, stale, self._now())
+            now = self._now()
+            logic.refused(size, bad, stale, now)
+            if self.probes is not None:
+                size, bad, stale = self.probes.take_counts()
+                logic.probes_refused(size, bad, stale, self.probes.excess, now)
 
     def _answer(self, item: tuple[zenoh.Query, bytes], logic: DeviceLogic) -> None:
         """Answer one probe question (:meth:`DeviceLogic.probe`)."""

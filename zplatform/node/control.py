@@ -56,11 +56,11 @@ from ..datavector import DataVector
 from ..errors import ClockSyncError, CodecError, NodeError, RecordingError, TransportError
 from ..events import EV
 from ..failover import Decision, MirrorReader, Standby
-from ..fencing import STATUS
+from ..fencing import STATUS, next_term
 from ..ground.logic import default_max_age_ns
 from ..handoff import Mailbox
 from ..health import Heartbeat, Liveness, thread_deadlines_ns
-from ..intake import CnRefusals, ReplyCheck, RequestIntake
+from ..intake import CnRefusals, MirrorIntake, RefusalLog, ReplyCheck, RequestIntake
 from ..loop import ControlLogic
 from ..messages import wildcard_sync_for
 from ..params import ParamSaver, params_path, read_params_file
@@ -81,15 +81,6 @@ __all__ = ["ControlNode", "run_control_node"]
 log = logging.getLogger("zplatform.cn")
 
 _DROP = zenoh.CongestionControl.DROP
-MIRRORS = 4
-"""Mirror frames kept between two beats of a standby (the newest ones)."""
-
-
-def _hand_mirror(sample: zenoh.Sample, box: Mailbox[tuple[None, bytes]], longest: int) -> None:
-    # zenoh's thread: a size bound, then the hand-off (the loop checks the tag).
-    p = sample.payload
-    if len(p) <= longest:
-        box.put((None, p.to_bytes()))
 
 
 INBOX = 16
@@ -244,16 +235,17 @@ class ControlNode:
         """Times this node took command (a standby's takeovers)."""
         if self.redundant:
             self._mirror_pub = s.declare_publisher(space.mirror, congestion_control=_DROP)
-            self._mirrors: Mailbox[tuple[None, bytes]] = Mailbox(MIRRORS)
+            # The mirror's intake (zplatform.intake.MirrorIntake): size, tag,
+            # range, from the other node, newer in (term, loop); only then the
+            # bounded mailbox, so junk and replays never displace a genuine one.
+            self.mirror_intake = MirrorIntake(mission, name, channel(keys, "mirror"))
+            assert self.mirror_intake.box is not None
+            self._mirrors: Mailbox[tuple[None, bytes]] = self.mirror_intake.box
+            self._mirror_log = RefusalLog(3)
             self._reader = MirrorReader(self.logic, keys)
-            mirrors, reader_max = self._mirrors, self._reader.codec.max_frame_len + 64
-
-            def on_mirror(sample: zenoh.Sample) -> None:
-                _hand_mirror(sample, mirrors, reader_max)
-
             self._mirror_sub = s.declare_subscriber(
                 space.mirror,
-                zenoh.handlers.Callback(on_mirror, indirect=False),
+                zenoh.handlers.Callback(self._on_mirror, indirect=False),
                 allowed_origin=zenoh.Locality.REMOTE,
             )
             self.probes = ProbeSync(
@@ -348,6 +340,24 @@ class ControlNode:
     def _on_peer(self, sample: zenoh.Sample) -> None:
         # zenoh's thread: one flag, read by the loop (the other node's standby token).
         self._peer_alive = sample.kind == zenoh.SampleKind.PUT
+
+    def _on_mirror(self, sample: zenoh.Sample) -> None:
+        # zenoh's thread: the intake's checks and the hand-off, nothing more.
+        self.mirror_intake.admit(sample.payload, None)
+
+    def _mirror_refusals(self, t_ns: int) -> None:
+        """The mirrors the intake refused since the last call, evented at most
+        once a second (the loop thread, every loop or beat)."""
+        ev = self._mirror_log.add(t_ns, *self.mirror_intake.take_counts())
+        if ev is not None:
+            self.logic.events.emit(
+                EV.BAD_FRAME,
+                t_ns,
+                source=f"{sum(ev)} mirror frame(s)",
+                reason=f"refused as they arrived by {self.name}: {ev[0]} of a wrong size, "
+                f"{ev[1]} with bad tags or values out of range, {ev[2]} not newer than the "
+                "newest (replayed, or its own)",
+            )
 
     def _on_ground(self, sample: zenoh.Sample) -> None:
         # zenoh's thread: the intake's checks and the hand-off, nothing more.
@@ -538,7 +548,13 @@ class ControlNode:
             # The first commander of a fresh run; or the run goes on and no one
             # drives it (both control nodes were lost): resume it in a new term.
             if ran:
-                self._resume_term = max(max(a.term, a.promised) for a in ran) + 1
+                newest = max(max(a.term, a.promised) for a in ran)
+                self._resume_term = next_term(newest)
+                if not self._resume_term:  # answers range-checked: newest is TERM_MAX
+                    raise NodeError(
+                        f"{self.name} cannot resume the run: the device nodes ran term "
+                        f"{newest}, the last a node can run (there is no next term)"
+                    )
             self._serve_clock()
             self.clock.lock()
             self._take_requests()
@@ -689,6 +705,7 @@ class ControlNode:
         term from the other control node makes it stand down before it sends
         anything (a commander woken from a stop learns it here); and the
         other node's liveliness goes into ``cn_standby_ready``."""
+        self._mirror_refusals(self.logic.t_ns)
         item = self._mirrors.pop()
         while item is not None:
             term, who = self._reader.newer_term(item[1])
@@ -795,6 +812,7 @@ class ControlNode:
         while item is not None:
             self._apply_mirror(item[1], now)
             item = self._mirrors.pop()
+        self._mirror_refusals(now)
         save = sb.take_save()
         if save is not None and self._saver is not None:
             self._saver.submit(*save)
@@ -812,12 +830,16 @@ class ControlNode:
                 sb.mirrored,
             )
         if sb.tick(slot):
-            asks = sb.ask(slot, now)
-            self.probes.round(asks, sb.answer)
-            if sb.decide(slot, self.clock.now_ns()) == Decision.TAKE:
-                self._take_at = slot + 1
-                return False
-            self.probes.send(sb.releases)
+            # First a question that changes nothing; a term is asked for only
+            # when the device nodes' answers show the commander silent too
+            # (Standby.silent): no promise fences a commander still driving.
+            self.probes.round(sb.ask(slot, now, kind=STATUS), sb.answer)
+            if sb.silent(slot, self.clock.now_ns()):
+                self.probes.round(sb.ask(slot, self.clock.now_ns()), sb.answer)
+                if sb.decide(slot, self.clock.now_ns()) == Decision.TAKE:
+                    self._take_at = slot + 1
+                    return False
+                self.probes.send(sb.releases)
         if self.watchdog is not None:
             self.watchdog.stroke(self._mono(), now)
         self._events.flush()

@@ -267,6 +267,8 @@ class DeviceNode:
                     self.name,
                     channel(self._keys, f"probe_cn_to_{self.name}"),
                     trigger_intake.box.waker,
+                    period_ns=m.period_ns,
+                    askers=len(m.control_nodes),
                 )
                 if m.standby is not None
                 else None
