@@ -62,7 +62,8 @@ Contract:
   - subscribers only where the role listens: a control node on
     ``{vehicle}/gn/to_cn`` (and ``{vehicle}/cn/mirror`` with a standby),
     ``gn`` and ``tool`` on :func:`tool_watch_keys` (telemetry, every
-    node's events, the downlink), each node on the bulk channels it reads;
+    node's events, the downlink, each sync region's tap by its exact key),
+    each node on the bulk channels it reads;
     nobody on ``{vehicle}/**``;
   - only a control node queries ``{vehicle}/dnX/to_cn`` (and
     ``{vehicle}/*/to_cn``, the wildcard sync query); the other nodes query
@@ -421,13 +422,19 @@ _ALL_MESSAGES = [
 def tool_watch_keys(mission: Mission) -> list[str]:
     """The key expressions a tool (``tap``, ``log``, ``cmd``, ``ground``) may
     subscribe to under access control: the CN's telemetry, every node's
-    events and the CN's radio downlink (``ground --record``). Never the
+    events, the CN's radio downlink (``ground --record``) and each sync
+    region's tap (``cn/to_dnX``, ``dnX/to_cn``, exact keys). Never the
     whole key space: each of a peer's subscribers is a declaration every
     node it reaches must take in and route to (docs/architecture.md#key-space)."""
     from .keyspace import key_of  # the table every key comes from
 
     v = mission.vehicle
-    return [key_of("telemetry", v), key_of("all_events", v), key_of("downlink", v)]
+    # Each sync region's tap, by its exact key (never a wildcard): what the
+    # DNs and the CN put for taps, the first thing a person looks at.
+    regions = [
+        key_of(row, v, dn=dn) for dn in mission.device_nodes for row in ("cn_to_dn", "dn_to_cn")
+    ]
+    return [key_of("telemetry", v), key_of("all_events", v), key_of("downlink", v), *regions]
 
 
 def access_control(mission: Mission, dep: Deployment) -> dict[str, Any]:

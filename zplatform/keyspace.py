@@ -423,9 +423,10 @@ KEYSPACE: tuple[KeyRow, ...] = (
                 "sample",
                 "mirror",
                 "cn-cn_b",
-                "zplatform.failover.Standby.mirror control",
-                "(term, loop) later than the last applied",
-                "mailbox of MIRRORS, newest kept",
+                "zplatform.intake.MirrorIntake control",
+                "from the other control node, term and loop in range, (term, loop) "
+                "later than every mirror admitted",
+                "mailbox of MIRRORS, newest kept; junk and stale refused before it",
             ),
         ),
         when="standby",
@@ -444,7 +445,8 @@ KEYSPACE: tuple[KeyRow, ...] = (
                 "cn-{dn}",
                 "zplatform.intake.ProbeIntake {dn}",
                 _STAMP + " from the same control node",
-                "mailbox of PROBES, newest wins",
+                "per channel before any copy (askers x PROBE_BURST, then askers a period), "
+                "per asker after the tag (PROBE_BURST, then one a period); mailbox of PROBES",
             ),
             KeyFrames(
                 "reply",

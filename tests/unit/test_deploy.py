@@ -293,7 +293,9 @@ _DECLARATIONS = [
     ("tool", "declare_subscriber", "rocket/cn/downlink", True),
     ("tool", "declare_subscriber", "rocket/**", False),
     ("tool", "declare_subscriber", "rocket/cn/*", False),
-    ("tool", "declare_subscriber", "rocket/cn/to_dn0", False),
+    ("tool", "declare_subscriber", "rocket/cn/to_dn0", True),  # a region's tap, exact key
+    ("tool", "declare_subscriber", "rocket/dn0/to_cn", True),
+    ("tool", "declare_subscriber", "rocket/*/to_cn", False),
     ("tool", "declare_subscriber", "rocket/gn/to_cn", False),
     ("tool", "declare_queryable", "rocket/dn0/to_cn", False),
     ("tool", "declare_queryable", "rocket/cn/clock", False),
@@ -471,7 +473,11 @@ def test_tap_under_access_control_watches_only_what_a_tool_may(with_deployment: 
     # The nodes would drop a subscriber on the whole key space, silently:
     # tap subscribes to each key a tool may watch instead, and refuses a key
     # outside them with the list.
-    assert tap_keys(m, None) == ["rocket/cn/telemetry", "rocket/*/events", "rocket/cn/downlink"]
+    assert tap_keys(m, None)[:3] == ["rocket/cn/telemetry", "rocket/*/events", "rocket/cn/downlink"]
+    assert set(tap_keys(m, None)[3:]) == {
+        f"rocket/{k}" for dn in m.device_nodes for k in (f"cn/to_{dn}", f"{dn}/to_cn")
+    }
+    assert tap_keys(m, "rocket/dn0/to_cn") == ["rocket/dn0/to_cn"]
     assert tap_keys(m, "rocket/dn0/events") == ["rocket/dn0/events"]
     with pytest.raises(CommandError, match="rocket/cn/telemetry, rocket/\\*/events"):
         tap_keys(m, "rocket/**")
