@@ -942,8 +942,8 @@ class HealthConfig(_Struct):
     """Each node's health in telemetry: CPU, memory, disk, temperature, loop
     lateness, overruns, garbage-collector pauses and the liveness of its
     threads, as platform elements `<node>_...` in `cn` (the CN) and
-    `dnX_to_cn` (each DN), with limits; see zplatform.health. Without this
-    section a mission has no health elements."""
+    `dnX_to_cn` (each DN), with limits; see zplatform.health. On by default
+    at 1 Hz; `health: null` in the mission turns it off."""
 
     rate_hz: Annotated[
         float,
@@ -1593,9 +1593,10 @@ class Mission(_Struct):
         HealthConfig | None,
         Meta(
             description="Each node's health (CPU, memory, disk, temperature, loop timing, "
-            "thread liveness) in telemetry; without it, no health elements."
+            "thread liveness) in telemetry. On by default at 1 Hz for every vehicle node; "
+            "`health: null` turns it off (no health elements)."
         ),
-    ] = None
+    ] = msgspec.field(default_factory=lambda: HealthConfig(rate_hz=1.0))
     failover: Annotated[
         FailoverConfig | None,
         Meta(

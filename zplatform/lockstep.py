@@ -744,9 +744,11 @@ def _replay(
         raise RecordingError(
             f"the recording's first vector cannot be taken up by this mission's control node: {exc}"
         ) from exc
+    # The recorded blocks, on the recorded loops, from the first block on: a
+    # control node that ran without a health port (the lockstep runner, a
+    # loop driven by hand) recorded none, and its replay takes none either.
     recorded = _RecordedHealth()
-    if mission.health is not None:  # the recorded blocks, on the recorded loops
-        cn.attach_health(recorded)
+    attached = False
     state_dv = cn.dv
     frames = 0
     loops = 0
@@ -754,6 +756,9 @@ def _replay(
     diff: Difference | None = None
     for rec in reader.loops():
         recorded.block = rec.health
+        if rec.health is not None and not attached:
+            cn.attach_health(recorded)
+            attached = True
         cn.begin(rec.loop, rec.t_ns, final=rec.final, standby=rec.standby if cn.redundant else None)
         for i, payload in rec.replies:
             cn.reply(i, payload)

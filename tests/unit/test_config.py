@@ -37,6 +37,7 @@ BASE: dict[str, Any] = {
         "cn": [{"name": "x", "type": "u8"}],
         "dn0_to_cn": [{"name": "y", "type": "f32"}],
     },
+    "health": None,  # the element tests pin every element; health has its own
 }
 
 

@@ -49,7 +49,7 @@ CONFIGS = ROOT / "configs"
 MINIMAL = CONFIGS / "minimal.yaml"
 
 
-def _with_health(path: Path, tmp: Path, health: dict[str, Any], **extra: Any) -> Path:
+def _with_health(path: Path, tmp: Path, health: dict[str, Any] | None, **extra: Any) -> Path:
     raw = yaml.safe_load(path.read_text())
     raw["health"] = health
     raw.update(extra)
@@ -65,8 +65,12 @@ def _names(m: Mission, region: str) -> list[str]:
 # -- the elements --------------------------------------------------------------------
 
 
-def test_only_a_mission_with_a_health_section_has_health_elements(tmp_path: Path) -> None:
-    plain = load_mission(MINIMAL)
+def test_health_is_on_by_default_at_1_hz_and_a_mission_may_turn_it_off(tmp_path: Path) -> None:
+    default = load_mission(MINIMAL)  # no `health:` section
+    assert default.health is not None and default.health.rate_hz == 1.0
+    assert default.element("cn_cpu_pct") and default.element("dn0_threads_stalled")
+    plain = load_mission(_with_health(MINIMAL, tmp_path, None))  # `health: null`
+    assert plain.health is None
     assert not any(n.endswith("_cpu_pct") for n in Layout.for_node(plain, "cn").elements)
     m = load_mission(_with_health(MINIMAL, tmp_path, {"rate_hz": 5}))
     for node, region in (("cn", "cn"), ("dn0", "dn0_to_cn")):
@@ -300,8 +304,8 @@ def test_the_block_is_copied_on_health_loops_and_stalls_are_named(tmp_path: Path
     ]
 
 
-def test_attaching_health_to_a_mission_without_it_is_refused() -> None:
-    cn = ControlLogic(load_mission(MINIMAL), keys=None)
+def test_attaching_health_to_a_mission_without_it_is_refused(tmp_path: Path) -> None:
+    cn = ControlLogic(load_mission(_with_health(MINIMAL, tmp_path, None)), keys=None)
     with pytest.raises(ConfigError, match="no `health:` section"):
         cn.attach_health(FakeHealth())
 

@@ -297,6 +297,18 @@ BEGIN = (1, 0, struct.pack("<QqB", 1, 10_000_000, 0))
 FINISH = (8, 0, bytes(_FINISH.size))
 
 
+def test_a_health_block_in_a_mission_without_health_is_a_recording_error(
+    tmp_path: Path,
+) -> None:
+    d = tmp_path / "rec"
+    d.mkdir()
+    head, text = _header(MINIMAL.read_text() + "health: null\n")
+    (d / MISSION_FILE).write_text(text)
+    (d / RECORD_FILE).write_bytes(head + _items(BEGIN, (12, 0, b"h")))
+    with pytest.raises(RecordingError, match="a health block; the mission has no health"):
+        list(RecordReader(d).loops())
+
+
 @pytest.mark.parametrize(
     ("items", "words"),
     [
@@ -311,7 +323,7 @@ FINISH = (8, 0, bytes(_FINISH.size))
         (_items(BEGIN, (7, 0, b"t"), (7, 0, b"t")), "loop 1: two telemetry frames"),
         (_items(BEGIN, *[(2, 0, b"r")] * 65), "loop 1: over 64 DN replies"),
         (_items(BEGIN, (10, 255, b"k")), "unknown type 10"),  # FOREIGN, before version 5
-        (_items(BEGIN, (12, 0, b"h")), "a health block; the mission has no health"),
+        (_items(BEGIN, (12, 0, b"h")), "HEALTH of 1 bytes (exactly "),
         (_items(BEGIN, (11, 0, b"\x01\x02\x03")), "PRM_SAVED of 3 bytes (at least 9)"),
         (_items(BEGIN, (11, 0, b"s" * 600)), "PRM_SAVED of 600 bytes (at most 521 "),
         # A refusal's status the loop would have to name (hypothesis found it:
