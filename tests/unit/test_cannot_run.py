@@ -182,12 +182,15 @@ def test_a_dn_safed_by_the_run_s_end_that_cannot_run_the_next_run_says_so() -> N
     cn.set("dn0_final", True)
     dn.step(bytes(seal.seal(codec.encode(1, T0))), T0)
     assert dn.dv.get_name("dn0_safed_why") == "RUN_ENDED"
+    # The node knows it (its clock re-sync rests between runs: nobody serves it).
+    assert dn.run_ended
     cn.set("dn0_final", False)
     t = T0 + 2_000 * MS  # a new run, 2 s later; this node 50 ms off
     for k in range(1, 40):
         dn.trigger(bytes(seal.seal(codec.encode(k, t))), t + 50 * MS)
         t += PERIOD
     assert dn.dv.get_name("dn0_safed_why") == "CANNOT_RUN"
+    assert not dn.run_ended  # a new run is under way
     told = [e for e in dn.events.drain() if e.id == "dn_safed"]
     assert len(told) == 1 and "none could run" in told[0].text
 
