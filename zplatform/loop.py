@@ -596,13 +596,6 @@ class ControlLogic:
         tm = self._tm.encode(self.loop, self.t_ns)
         return self._seal_tm.seal_tail(tm) if self._seal_tm is not None else tm
 
-    @property
-    def run_ended(self) -> bool:
-        """The control node's run ended (its last loop ran here, or came too
-        late to): this node is safed and waits for a new run. A plain read,
-        safe from another thread (it is a reference compare)."""
-        return self._safed_by is EV.DN_SAFED_RUN_ENDED
-
     def attach_bulk(self, port: BulkPort) -> None:
         """Move the CN's bulk channels through ``port`` from the next loop on
         (module doc) and give every controller its arrays (by channel)."""
@@ -1201,6 +1194,13 @@ class DeviceLogic:
         if self.triggered:
             self.run(now_ns)
         return reply
+
+    @property
+    def run_ended(self) -> bool:
+        """The control node's run ended (its last loop ran here, or came too
+        late to): this node is safed and waits for a new run. A plain read,
+        safe from another thread (it is a reference compare)."""
+        return self._safed_by is EV.DN_SAFED_RUN_ENDED
 
     def attach_bulk(self, port: BulkPort) -> None:
         """Move the node's bulk channels through ``port`` from the next run on
