@@ -453,8 +453,15 @@ def test_up_ends_when_the_ground_node_playing_its_script_dies(
     )
     try:
         entry = runtime / "minimal.json"
-        _wait_until(lambda: entry.exists() and b'"gn":' in entry.read_bytes(), 30, "entry")
-        gn = json.loads(entry.read_text())["nodes"]["gn"]
+        def gn_pid() -> int | None:
+            try:
+                return json.loads(entry.read_text()).get("nodes", {}).get("gn")
+            except (OSError, ValueError):
+                return None  # not written yet
+
+        _wait_until(lambda: gn_pid() is not None, 30, "the ground node in the entry")
+        gn = gn_pid()
+        assert gn is not None
         os.kill(gn, signal.SIGKILL)
         _out, err = up.communicate(timeout=60)
     finally:
