@@ -403,7 +403,7 @@ def test_console_in_browser(tmp_path: Path) -> None:
                     *CHROMIUM_FLAGS,
                     f"--user-data-dir={profile}",
                     "--remote-debugging-port=0",
-                    "--window-size=1200,800",
+                    "--window-size=1200,1600",  # the Data Vector pane, health and all
                     "about:blank",
                 ],
                 stdout=logs[1],
