@@ -421,7 +421,9 @@ def test_commands_due_together_go_one_per_loop(tmp_path: Path) -> None:
 def test_write_through_the_script_holds_in_manual_mode(tmp_path: Path) -> None:
     """Control logic off (thesis 6.2): an operator WRITE to an output sticks."""
     m = load_mission(LED_YAML)
-    script = parse_commands("at 0.5 write state_leds_mode manual\nat 0.6 write led_c_cmd true\n")
+    script = parse_commands(
+        "at 0.5 arm\nat 0.5 write state_leds_mode manual\nat 0.6 write led_c_cmd true\n"
+    )  # a controller's mode is protected: ARM, then WRITE
     res, rows = run(m, script, 1.0, tmp_path / "x.csv")
     assert all(c.status == "ACCEPTED" for c in res.commands)
     last = rows[-1]
