@@ -113,7 +113,8 @@ COPIES: dict[str, tuple[int, str]] = {
     "dn.arrive": (1, "zenoh: into its shared-memory pool"),
     "dn.copied": (1, "ZBytes.to_bytes()"),
     "dn.verified": (0, "tag over a view"),
-    "dn.admitted": (0, "the bytes into the mailbox, by reference"),
+    # The intake has no inner points (module doc): its hop holds copied and verified.
+    "dn.admitted": (1, "the intake: ZBytes.to_bytes(), the tag over a view, into the mailbox"),
     "dn.serve": (0, "wake-up"),
     "dn.opened": (0, "the tag stripped (checked by the intake), a view"),
     "dn.decoded": (0, "msgspec: data is a memoryview into the bytes"),
