@@ -306,12 +306,6 @@ class ControlLogic:
         return self._got
 
     @property
-    def frames(self) -> Sequence[bytearray]:
-        """The query frames the last :meth:`begin` returned (the logic's own
-        buffers, rewritten by the next :meth:`begin`; read them, never write)."""
-        return self._frames
-
-    @property
     def term(self) -> int:
         """The term this control node's Data Vector is in (``cn_term``; 0
         in a mission without a standby)."""
@@ -334,6 +328,7 @@ class ControlLogic:
         self.t_ns = t_ns
         got = self._got
         frames = self._frames
+        tr = trace.tracer
         term = 0
         if self.redundant:
             if standby is not None:
@@ -354,7 +349,6 @@ class ControlLogic:
                 self._term_dn[i].set(term)
                 self._fenced[i] = False
             seal = self._seal_to_dn[i]
-            tr = trace.tracer
             if tr is not None:
                 tr.mark("cn.encode", i)
             frame = codec.encode(loop, t_ns)

@@ -75,8 +75,11 @@ def test_nothing_is_recorded_when_no_tracer_is_installed() -> None:
     assert reply is not None
     dn.run(10**9)
     assert cn.reply(0, reply)
+    assert list(cn.replied) == [True]  # public: what bench/reliability.py reads per loop
     cn.telemetry()
     assert r.count == 0
+    cn.begin(2, 10**9 + 10**7)
+    assert list(cn.replied) == [False]
 
 
 CN_LOOP = (
