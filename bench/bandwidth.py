@@ -31,9 +31,10 @@ missed, plus periods the CN skipped, over all periods), ``cpu_cn_pct`` (this
 process, the CN) and ``cpu_dn_pct`` (the busiest DN), in % of one core over
 the measured loops, ``shm_reply_fraction`` (replies whose payload came
 through zenoh shared memory: ``payload.as_shm() is not None``, checked in the
-CN's reply callback) and ``holds_100hz`` (rate held within 2% and miss rate
-under 1e-4: with a few thousand loops per point, "0 misses" bounds the true
-rate only near 1e-3; the reliability bench is the long run) and
+CN's reply callback: the ``sync.shm`` point of :mod:`zplatform.trace`) and
+``holds_100hz`` (rate held within 2% and miss rate under 1e-4: with a few
+thousand loops per point, "0 misses" bounds the true rate only near 1e-3;
+the reliability bench is the long run) and
 ``vs_raw_zenoh_p50`` (its sync p50 over the raw-zenoh floor's p50, the same
 bytes).
 
@@ -67,19 +68,18 @@ import os
 import secrets
 import tempfile
 import time
-from collections.abc import Callable
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import psutil
-import zenoh
 
 from bench.baselines import run_baseline
 from bench.cluster import BenchCluster, SyncSamples, make_mission
 from bench.common import RESULTS_DIR, bench_argparser, machine_info, summarize, write_result
 from bench.sync import PRIORITY, inherit_fifo
+from zplatform import trace
 from zplatform.auth import MACS
 from zplatform.messages import lowlatency_for
 
@@ -135,42 +135,28 @@ def _cpu_s(procs: list[psutil.Process]) -> list[float]:
     return out
 
 
-def _instrument(cn: Any, counts: dict[str, int]) -> None:
-    """Wrap the CN's reply callbacks (count shared-memory payloads, reply sizes) and its
-    sync call (frame sizes). A bench-only hook on ControlSync's internals."""
-    sync = cn.sync
-    orig_handoffs = [sync._make_handoff(i) for i in range(len(sync.dns))]
-    sizes_up = [0] * len(sync.dns)
+class _Sizes:
+    """A :class:`zplatform.trace.Tracer` counting the CN's replies (and those
+    whose payload zenoh delivered in shared memory: ``sync.shm``) and keeping
+    each DN's last reply size (``sync.back``) and its first query sizes
+    (``sync.issued``). ``sync.back`` and ``sync.shm`` come from zenoh's
+    threads: one writer each per DN, read after the run."""
 
-    def wrap(i: int) -> Callable[[zenoh.Reply], None]:
-        h = orig_handoffs[i]
+    def __init__(self, n_dn: int) -> None:
+        self.replies = 0
+        self.shm = 0
+        self.up = [0] * n_dn
+        self.down: list[int] = []
+        self.n_dn = n_dn
 
-        def cb(reply: zenoh.Reply) -> None:
-            ok = reply.ok
-            if ok is not None:
-                counts["replies"] += 1
-                if ok.payload.as_shm() is not None:
-                    counts["shm"] += 1
-                sizes_up[i] = len(ok.payload)
-            h(reply)
-
-        return cb
-
-    sync._callbacks = [
-        zenoh.handlers.Callback(wrap(i), sync._on_finalised, indirect=False)
-        for i in range(len(sync.dns))
-    ]
-    orig_sync = sync.sync
-    sizes_down: list[int] = []
-
-    def sized(frames: Any, logic: Any) -> bool:
-        if not sizes_down:
-            sizes_down.extend(len(f) for f in frames)
-        return bool(orig_sync(frames, logic))
-
-    sync.sync = sized
-    counts["_sizes_up"] = sizes_up  # type: ignore[assignment]
-    counts["_sizes_down"] = sizes_down  # type: ignore[assignment]
+    def mark(self, name: str, n: int = 0, v: int = 0) -> None:
+        if name == "sync.back":
+            self.replies += 1
+            self.up[n] = v
+        elif name == "sync.shm":
+            self.shm += 1
+        elif name == "sync.issued" and len(self.down) < self.n_dn:
+            self.down.append(v)
 
 
 def run_point(
@@ -206,16 +192,19 @@ def run_point(
         )
         hook = SyncSamples(loops)
 
-        counts: dict[str, Any] = {"replies": 0, "shm": 0}
+        sizes = _Sizes(n_dn)
         try:
             with BenchCluster(mission, realtime=priority > 0) as c:
                 c.start(timeout_s=300.0)
                 startup_s = time.monotonic() - t0
-                _instrument(c.cn, counts)
                 dn_ps = [psutil.Process(p.pid) for p in c.procs]
                 me = psutil.Process()
+                trace.install(sizes)  # the CN's replies and frames (class _Sizes)
                 cpu0, me0, w0 = _cpu_s(dn_ps), _cpu_s([me])[0], time.monotonic()
-                periodic = c.run(loops, hook, record=loops)
+                try:
+                    periodic = c.run(loops, hook, record=loops)
+                finally:
+                    trace.uninstall()
                 cpu1, me1, w1 = _cpu_s(dn_ps), _cpu_s([me])[0], time.monotonic()
                 summary = c.cn.summary()
                 lateness = periodic.lateness_ns()
@@ -239,8 +228,8 @@ def run_point(
     fig["rate_hz"] = rate_hz
     fig["rate_hz_measured"] = round(float(summary.rate_hz), 2)
     fig["deadline_us"] = sync_ms * 1e3
-    down = list(counts["_sizes_down"])
-    up = list(counts["_sizes_up"])
+    down = list(sizes.down)
+    up = list(sizes.up)
     fig["frame_bytes_down"] = down
     fig["frame_bytes_up"] = up
     fig["frame_bytes_max"] = max([*down, *up, 0])
@@ -251,10 +240,8 @@ def run_point(
     fig["cpu_cn_pct"] = round(100.0 * (me1 - me0) / wall, 1)
     fig["cpu_dn_pct"] = max(dn_pct) if dn_pct else None
     fig["cpu_dn_pct_each"] = dn_pct
-    fig["shm_replies"] = int(counts["shm"])
-    fig["shm_reply_fraction"] = (
-        round(counts["shm"] / counts["replies"], 4) if counts["replies"] else None
-    )
+    fig["shm_replies"] = int(sizes.shm)
+    fig["shm_reply_fraction"] = round(sizes.shm / sizes.replies, 4) if sizes.replies else None
     fig["startup_s"] = round(startup_s, 1)
     fig["lowlatency"] = lowlatency
     fig["bad_frames"] = int(summary.bad_frames)

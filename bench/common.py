@@ -15,7 +15,7 @@ import socket
 import subprocess
 import sys
 import time
-from collections.abc import Iterable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from importlib import metadata
 from pathlib import Path
 from typing import Any
@@ -215,3 +215,21 @@ def terminate_all(procs: Iterable[subprocess.Popen[bytes]], grace_s: float = 2.0
         if p.poll() is None:
             _signal_group(p, signal.SIGKILL)
             p.wait()
+
+
+class TmPutStamps:
+    """A :class:`zplatform.trace.Tracer` keeping, per loop, when the control
+    node was about to publish its telemetry (the ``tm.put`` point): on
+    ``CLOCK_MONOTONIC`` (``mono``) and on ``clock`` (``ns``: the node's
+    clock, ``ControlNode.clock.now_ns``). Install it with
+    :func:`zplatform.trace.install` around the run."""
+
+    def __init__(self, now_ns: Callable[[], int]) -> None:
+        self.mono: dict[int, int] = {}
+        self.ns: dict[int, int] = {}
+        self._now = now_ns
+
+    def mark(self, name: str, n: int = 0, v: int = 0) -> None:
+        if name == "tm.put":
+            self.mono[n] = time.monotonic_ns()
+            self.ns[n] = self._now()

@@ -30,12 +30,16 @@ for every process on a host)::
                      tm.encode, tm.seal,       telemetry, after the sync (outside its
                      tm.put                    window, on the same thread)
 
-A stamp is taken by wrapping the object that does the step (a stand-in
-that stamps around the named method and passes everything else through),
-in the traced processes only: the nodes' code runs as shipped, and each
-stamp costs well under a microsecond against the tens of microseconds a
-325 KB step takes. A step the code no longer has (a tag checked once
-instead of twice) is simply not stamped, and its hop merges into the next.
+A stamp is a trace point of the platform's own (:mod:`zplatform.trace`:
+``sync.issued``, ``dn.serve``, ``cn.decoded`` and the rest, named in its
+module doc), recorded by a tracer this bench installs in the traced
+processes only: the nodes' code runs as shipped, each point costs one ``is
+None`` test when no tracer is installed, and each stamp well under a
+microsecond against the tens of microseconds a 325 KB step takes. The
+intake's inner steps (``dn.copied``, ``dn.verified``) have no point (the
+intake is one call at the queryable's callback), so their hops merge into
+``dn.arrive -> dn.admitted``; a step the code no longer has is simply not
+stamped, and its hop merges into the next.
 
 Reported per hop (the difference of consecutive stamps of one exchange):
 p50 and p99 over the run, and the payload copies the hop makes
@@ -67,7 +71,6 @@ import sys
 import tempfile
 import threading
 import time
-from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -110,7 +113,8 @@ COPIES: dict[str, tuple[int, str]] = {
     "dn.arrive": (1, "zenoh: into its shared-memory pool"),
     "dn.copied": (1, "ZBytes.to_bytes()"),
     "dn.verified": (0, "tag over a view"),
-    "dn.admitted": (0, "the bytes into the mailbox, by reference"),
+    # The intake has no inner points (module doc): its hop holds copied and verified.
+    "dn.admitted": (1, "the intake: ZBytes.to_bytes(), the tag over a view, into the mailbox"),
     "dn.serve": (0, "wake-up"),
     "dn.opened": (0, "the tag stripped (checked by the intake), a view"),
     "dn.decoded": (0, "msgspec: data is a memoryview into the bytes"),
@@ -131,51 +135,80 @@ COPIES: dict[str, tuple[int, str]] = {
 }
 
 
-class _Spy:
-    """Stands in for ``target``: each method named in ``stamps`` calls its
-    ``(before, after)`` callables (either None) around the real call; every
-    other attribute is the target's. For objects with ``__slots__`` (codecs,
-    channels), whose methods cannot be replaced on the instance."""
-
-    def __init__(
-        self,
-        target: Any,
-        stamps: dict[str, tuple[Callable[[], None] | None, Callable[[], None] | None]],
-    ) -> None:
-        object.__setattr__(self, "_target", target)
-        for name, (pre, post) in stamps.items():
-            object.__setattr__(self, name, _stamped(getattr(target, name), pre, post))
-
-    def __getattr__(self, name: str) -> Any:
-        return getattr(object.__getattribute__(self, "_target"), name)
-
-
-def _stamped(
-    fn: Callable[..., Any], pre: Callable[[], None] | None, post: Callable[[], None] | None
-) -> Callable[..., Any]:
-    def call(*args: Any, **kwargs: Any) -> Any:
-        if pre is not None:
-            pre()
-        out = fn(*args, **kwargs)
-        if post is not None:
-            post()
-        return out
-
-    return call
-
-
 _MAX = 1 << 14  # loops kept per process (160 s at 100 Hz)
 
 
 # -- the device node's process ---------------------------------------------------------
 
 
+class _DnStamps:
+    """The DN process's :class:`zplatform.trace.Tracer`: its chain marks and
+    spans per loop (:data:`DN_MARKS`, :data:`DN_SPANS`), for :func:`dump`.
+
+    zenoh's thread stamps ``dn.arrive`` and ``dn.admitted``; the loop thread
+    the rest. A served query takes the intake stamps of the one query
+    admitted since the last serve: when none or more than one was (a query
+    refused, a backlog let go), its row is not kept, so no query's intake is
+    ever matched to another's serve. The intake's own steps (the payload's
+    copy out of zenoh, its tag) are inside ``dn.arrive -> dn.admitted``:
+    ``dn.copied`` and ``dn.verified`` are not stamped (their hops merge)."""
+
+    def __init__(self) -> None:
+        width = len(DN_MARKS) + len(DN_SPANS)
+        self.rows: npt.NDArray[np.int64] = np.zeros((_MAX, width), np.int64)
+        self.col = {m: k for k, m in enumerate((*DN_MARKS, *DN_SPANS))}
+        self.mono = time.monotonic_ns
+        self.zt = threading.local()  # zenoh's thread: this query's arrival
+        self.lock = threading.Lock()
+        self.admitted = [0, 0, 0, 0]  # the last admitted query's intake stamps
+        self.n_admitted = 0  # queries admitted since the last serve
+        self.cur = [0] * width  # the query being served (loop thread)
+        self.matched = False
+        self.last = 0  # the loop last replied to
+        self.apply0 = 0
+
+    def mark(self, name: str, n: int = 0, v: int = 0) -> None:
+        t = self.mono()
+        if name == "dn.arrive":
+            self.zt.t = t
+        elif name == "dn.admitted":
+            with self.lock:
+                self.admitted[:] = (getattr(self.zt, "t", 0), 0, 0, t)
+                self.n_admitted += 1
+        elif name == "dn.serve":
+            cur = self.cur
+            for k in range(len(cur)):
+                cur[k] = 0
+            with self.lock:
+                self.matched = self.n_admitted == 1
+                cur[:4] = self.admitted
+                self.n_admitted = 0
+            cur[self.col["serve"]] = t
+        elif name == "dn.replied":
+            self.cur[self.col["replied"]] = t
+            self.last = n
+            if self.matched and 0 < n < _MAX:
+                self.rows[n] = self.cur
+        elif name == "dn.apply":
+            self.apply0 = t
+        elif name == "dn.applied":  # in run(), after the reply: on the row just written
+            if 0 < self.last < _MAX:
+                self.rows[self.last, self.col["dn.apply"]] = t - self.apply0
+        elif name.startswith("dn."):  # opened, decoded, encoded, sealed
+            c = self.col.get(name[3:])
+            if c is not None:
+                self.cur[c] = t
+
+    def dump(self, out: str) -> None:
+        used = np.nonzero(self.rows.any(axis=1))[0]
+        Path(out).write_text(json.dumps({"loops": used.tolist(), "t": self.rows[used].tolist()}))
+
+
 def dn_main(argv: list[str]) -> None:
     """``dn <mission> <name> <out.json> [--no-realtime]``: a DN process
     (``zplatform node MISSION NAME``'s) with every step stamped (module doc)."""
+    from zplatform import trace
     from zplatform.auth import load_keys
-    from zplatform.codec import frame_stamp
-    from zplatform.intake import TriggerIntake
     from zplatform.mission import load_mission
     from zplatform.node.device import DeviceNode
     from zplatform.node.runtime import StopFlag, setup_logging
@@ -183,124 +216,41 @@ def dn_main(argv: list[str]) -> None:
     mission_path, name, out, *extra = argv
     if set(extra) - {"--no-realtime"}:
         raise SystemExit(f"frame_trace dn: unknown options {extra}")
-    rows: npt.NDArray[np.int64] = np.zeros((_MAX, len(DN_MARKS) + len(DN_SPANS)), np.int64)
-    col = {m: k for k, m in enumerate((*DN_MARKS, *DN_SPANS))}
-    mono = time.monotonic_ns
-    zt = threading.local()  # zenoh's thread: this query's intake stamps and loop
-    intake_lock = threading.Lock()
-    by_loop: dict[int, list[int]] = {}  # admitted queries' intake stamps, by the loop they carry
-    cur = [0] * rows.shape[1]  # the query being served (loop thread)
-    serving = [False, 0]  # between serve and replied; the loop last replied to
-
-    def dump() -> None:
-        used = np.nonzero(rows.any(axis=1))[0]
-        Path(out).write_text(json.dumps({"loops": used.tolist(), "t": rows[used].tolist()}))
-
-    atexit.register(dump)
-
-    # The intake (zenoh's thread), patched on the class in this process only:
-    # admit's entry and exit; _frame runs just after the payload's copy out of
-    # zenoh, _fresh just after the tag (and reads the loop the query carries:
-    # queries admitted before the loop ran, or let go from a full mailbox,
-    # are never matched to another's serve).
-    admit0, frame0, fresh0 = TriggerIntake.admit, TriggerIntake._frame, TriggerIntake._fresh
-
-    def admit(self: Any, payload: Any, handle: Any) -> bool:
-        s = zt.s = [0] * 4
-        zt.loop = 0
-        s[0] = mono()
-        ok = bool(admit0(self, payload, handle))
-        s[3] = mono()
-        if ok and zt.loop:
-            with intake_lock:
-                if len(by_loop) > 64:  # queries never served (a backlog let go)
-                    by_loop.clear()
-                by_loop[zt.loop] = s
-        return ok
-
-    def frame(self: Any, data: bytes) -> Any:
-        zt.s[1] = mono()
-        return frame0(self, data)
-
-    def fresh(self: Any, body: memoryview, handle: Any) -> bool:
-        zt.s[2] = mono()
-        zt.loop = frame_stamp(body)[0]
-        return bool(fresh0(self, body, handle))
-
-    TriggerIntake.admit = admit  # type: ignore[method-assign]
-    TriggerIntake._frame = frame  # type: ignore[method-assign]
-    TriggerIntake._fresh = fresh  # type: ignore[method-assign]
-
-    def stamp(mark: str) -> Callable[[], None]:
-        k = col[mark]
-
-        def at() -> None:
-            cur[k] = mono()
-
-        return at
-
-    def trace(hop: str, loop: int) -> None:
-        t = mono()
-        if hop == "serve":
-            for k in range(len(cur)):
-                cur[k] = 0
-            cur[col["serve"]] = t
-            serving[0] = True
-        elif hop == "replied":
-            cur[col["replied"]] = t
-            serving[0], serving[1] = False, loop
-            with intake_lock:
-                s = by_loop.pop(loop, None)
-            if s is not None and 0 < loop < _MAX:
-                cur[:4] = s
-                rows[loop] = cur
-
-    apply0 = [0]
-
-    def apply_start() -> None:
-        apply0[0] = mono()
-
-    def apply_end() -> None:
-        # In the trigger (before the reply): a mark on the chain too; in
-        # run(), after the reply: the span only, on the row just written.
-        t = mono()
-        if serving[0]:
-            cur[col["applied"]] = t
-            cur[col["dn.apply"]] = t - apply0[0]
-        elif 0 < serving[1] < _MAX:
-            rows[serving[1], col["dn.apply"]] = t - apply0[0]
-
+    st = _DnStamps()
+    atexit.register(st.dump, out)
     setup_logging()
     mission = load_mission(mission_path)
-    node = DeviceNode(
-        mission, name, stop=StopFlag(), keys=load_keys(mission, name), sync_trace=trace
-    )
-    logic: Any = node.logic
-    # The logic's own codecs and channels: stand-ins stamping after each step.
-    if logic._open is not None:  # checked again, or stripped (checked by the intake)
-        opened = (None, stamp("opened"))
-        logic._open = _Spy(logic._open, {"open": opened, "strip": opened})
-    logic._in = _Spy(
-        logic._in, {"check": (None, stamp("decoded")), "write": (apply_start, apply_end)}
-    )
-    logic._out = _Spy(logic._out, {"encode": (None, stamp("encoded"))})
-    if logic._seal is not None:
-        logic._seal = _Spy(logic._seal, {"seal_tail": (None, stamp("sealed"))})
+    node = DeviceNode(mission, name, stop=StopFlag(), keys=load_keys(mission, name))
+    trace.install(st)
     try:
         node.start()
         node.run(realtime="--no-realtime" not in extra)
     finally:
+        trace.uninstall()
         node.close()
-        dump()
+        st.dump(out)
 
 
 # -- the control node (this process) ---------------------------------------------------
 
 
+#: The CN's trace points on the chain: their column in :data:`CN_MARKS`.
+CN_POINTS = {"sync.issued": 0, "sync.sent": 1, "cn.opened": 5, "cn.decoded": 6, "cn.applied": 7}
+#: A span's end point -> (the span, its start point).
+SPAN_POINTS = {
+    "cn.encoded": ("cn.encode", "cn.encode"),
+    "cn.sealed": ("cn.seal", "cn.encoded"),
+    "tm.encoded": ("tm.encode", "tm.encode"),
+    "tm.sealed": ("tm.seal", "tm.encoded"),
+    "tm.sent": ("tm.put", "tm.put"),
+}
+
+
 class _CnStamps:
-    """The in-process CN's stamps: the chain marks per loop and DN, the spans
-    per loop (and DN, for the queries' framing). Loop thread and zenoh's
-    threads; zenoh's stamps wait per DN until the loop thread takes the reply."""
+    """The in-process CN's :class:`zplatform.trace.Tracer`: the chain marks
+    per loop and DN, the spans per loop (and DN, for the queries' framing),
+    and the frames' sizes. Loop thread and zenoh's threads; zenoh's stamps
+    wait per DN until the loop thread takes the reply."""
 
     def __init__(self, n_dn: int) -> None:
         self.n_dn = n_dn
@@ -309,98 +259,41 @@ class _CnStamps:
         self.reply_len = [0] * n_dn
         self.query_len = [0] * n_dn
         self.logic: Any = None
-        self._col = {m: k for k, m in enumerate(CN_MARKS)}
-        self._zen = [[0, 0] for _ in range(n_dn)]  # back, queued
-        self._last = 0  # the DN whose query was issued last
-        self._t0: dict[str, int] = {}
-        self._mono = time.monotonic_ns
+        self.zen = [[0, 0] for _ in range(n_dn)]  # back, queued
+        self.t0: dict[tuple[str, int], int] = {}  # a span's start, by point and DN
+        self.mono = time.monotonic_ns
 
-    def _loop(self) -> int:
+    def loop(self) -> int:
         logic = self.logic
         loop = int(logic.loop) if logic is not None else 0
         return loop if 0 < loop < _MAX else 0
 
-    def __call__(self, hop: str, i: int) -> None:
-        """The sync's own :data:`~zplatform.sync.SyncTrace` hook."""
-        t = self._mono()
-        if hop == "back":
-            self._zen[i][0] = t
+    def mark(self, name: str, n: int = 0, v: int = 0) -> None:
+        t = self.mono()
+        if name == "sync.back":  # zenoh's thread
+            self.zen[n][0] = t
+            self.reply_len[n] = v
             return
-        loop = self._loop()
-        if hop == "issued":
-            self._last = i
-            self.chain[loop, i, 0] = t
-        elif hop == "taken":
-            row = self.chain[loop, i]
-            row[2], row[3] = self._zen[i]
+        if name == "sync.queued":  # zenoh's thread
+            self.zen[n][1] = t
+            return
+        i = n if name.startswith(("cn.", "sync.")) else 0  # tm.*: n is the loop
+        k = CN_POINTS.get(name)
+        if k is not None:
+            self.chain[self.loop(), i, k] = t
+            if name == "sync.issued":
+                self.query_len[i] = v
+            return
+        if name == "sync.taken":
+            row = self.chain[self.loop(), i]
+            row[2], row[3] = self.zen[i]
             row[4] = t
-
-    def mark(self, mark: str, i: int | None = None) -> Callable[[], None]:
-        """A stamp of chain mark ``mark`` (loop thread) for DN ``i`` (None:
-        the DN issued last)."""
-        k = self._col[mark]
-
-        def at() -> None:
-            self.chain[self._loop(), self._last if i is None else i, k] = self._mono()
-
-        return at
-
-    def queued(self, i: int) -> Callable[[], None]:
-        def at() -> None:
-            self._zen[i][1] = self._mono()
-
-        return at
-
-    def span(self, name: str, i: int = 0) -> tuple[Callable[[], None], Callable[[], None]]:
-        """``(start, end)`` of span ``name`` (loop thread), for DN ``i``."""
-        k = SPANS.index(name)
-
-        def start() -> None:
-            self._t0[name] = self._mono()
-
-        def end() -> None:
-            self.spans[self._loop(), i, k] = self._mono() - self._t0[name]
-
-        return start, end
-
-
-def instrument_cn(cn: Any, st: _CnStamps) -> None:
-    """Put the stand-ins into the CN's logic, sync and telemetry publisher."""
-    logic, sync = cn.logic, cn.sync
-    st.logic = logic
-    n = st.n_dn
-    logic._to_dn = tuple(
-        _Spy(c, {"encode": st.span("cn.encode", i)}) for i, c in enumerate(logic._to_dn)
-    )
-    if logic._seal_to_dn[0] is not None:
-        logic._seal_to_dn = tuple(
-            _Spy(c, {"seal_tail": st.span("cn.seal", i)}) for i, c in enumerate(logic._seal_to_dn)
-        )
-    if logic._open_from_dn[0] is not None:
-        logic._open_from_dn = tuple(
-            _Spy(c, {"open": (None, st.mark("opened", i))})
-            for i, c in enumerate(logic._open_from_dn)
-        )
-    logic._from_dn = tuple(
-        _Spy(c, {"check": (None, st.mark("decoded", i)), "write": (None, st.mark("applied", i))})
-        for i, c in enumerate(logic._from_dn)
-    )
-    logic._tm = _Spy(logic._tm, {"encode": st.span("tm.encode")})
-    if logic._seal_tm is not None:
-        logic._seal_tm = _Spy(logic._seal_tm, {"seal_tail": st.span("tm.seal")})
-    cn._tm_pub = _Spy(cn._tm_pub, {"put": st.span("tm.put")})
-    sync.session = _Spy(sync.session, {"get": (None, st.mark("sent"))})
-    # The reply hand-off (zenoh's thread): its end, after the payload's copy.
-    take = sync._take
-    ends = [st.queued(i) for i in range(n)]
-
-    def timed_take(i: int, reply: Any, payload: Any) -> None:
-        st.reply_len[i] = len(payload)
-        take(i, reply, payload)
-        ends[i]()
-
-    sync._take = timed_take
-    sync._build_callbacks()
+            return
+        end = SPAN_POINTS.get(name)
+        if end is not None:
+            span, start = end
+            self.spans[self.loop(), i, SPANS.index(span)] = t - self.t0.get((start, i), t)
+        self.t0[name, i] = t
 
 
 # -- reduction ---------------------------------------------------------------------------
@@ -481,6 +374,7 @@ def _point(
     """One traced cluster; returns its variant and its largest frame (bytes)."""
     from bench.bandwidth import DEADLINE_MS, RATE_HZ, element_extra
     from bench.cluster import BenchCluster, SyncSamples, make_mission
+    from zplatform import trace
 
     with tempfile.TemporaryDirectory(prefix="zp-ftrace-") as tmp:
         tmpdir = Path(tmp)
@@ -498,17 +392,16 @@ def _point(
         loops = max(1, round(seconds * RATE_HZ))
         samples = SyncSamples(loops)
         with BenchCluster(
-            mpath,
-            realtime=priority > 0,
-            trace_dir=tmpdir,
-            cn_trace=st,
-            trace_module="bench.frame_trace",
+            mpath, realtime=priority > 0, trace_dir=tmpdir, trace_module="bench.frame_trace"
         ) as c:
             m = c.mission
-            instrument_cn(c.cn, st)
-            c.start(timeout_s=300.0)
-            c.run(loops, samples)
-            st.query_len = [len(f) for f in c.cn.logic._frames]  # the last loop's, as sent
+            st.logic = c.cn.logic
+            trace.install(st)
+            try:
+                c.start(timeout_s=300.0)
+                c.run(loops, samples)
+            finally:
+                trace.uninstall()
         dn_rows = []
         for dn in m.device_nodes:
             doc = json.loads((tmpdir / f"{dn}.trace.json").read_text())

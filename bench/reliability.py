@@ -28,7 +28,8 @@ node's share in a 100 ms window is coarse), from a 10 Hz sampler thread.
 Periods the CN's scheduler skipped (it woke too late) run no loop in either
 system: they are reported as ``params.skipped_periods``, not as messages.
 
-Telemetry latency: CN ``put`` (node clock, read just before the put) to the
+Telemetry latency: CN ``put`` (node clock, read just before the put: the ``tm.put`` point of
+:mod:`zplatform.trace`) to the
 ground's decode (the ground's node clock plus its clock-sync offset to the
 CN, :func:`zplatform.clocksync.estimate_offset` against the CN's clock server
 at start): the figure holds across hosts. ``tm_latency_same_host_*`` is the
@@ -73,9 +74,18 @@ from bench.baselines import (
     zenoh_config,
 )
 from bench.cluster import BenchCluster
-from bench.common import REPO_ROOT, bench_argparser, free_port, spawn, summarize, terminate_all
+from bench.common import (
+    REPO_ROOT,
+    TmPutStamps,
+    bench_argparser,
+    free_port,
+    spawn,
+    summarize,
+    terminate_all,
+)
 from bench.common import write_result as _write
 from bench.sync import PRIORITY, inherit_fifo
+from zplatform import trace
 from zplatform.config import relocate_mission
 from zplatform.handoff import Handoff
 from zplatform.transport import is_matching
@@ -459,24 +469,11 @@ def run(minutes: float, priority: int) -> tuple[dict[str, Any], dict[str, dict[s
                     zp_loop = np.zeros(loops, np.int64)
                     raw_dur = np.zeros(loops, np.int64)
                     raw_got = np.zeros(loops, np.int64)
-                    tm_put: dict[int, int] = {}
-                    tm_put_mono: dict[int, int] = {}
-                    pub = cn._tm_pub
-                    clock = cn.clock
-
-                    class TimedPub:
-                        def put(self, payload: Any) -> None:
-                            loop = cn.logic.loop
-                            tm_put_mono[loop] = time.monotonic_ns()
-                            tm_put[loop] = clock.now_ns()
-                            pub.put(payload)
-
-                        def undeclare(self) -> None:
-                            pub.undeclare()
-
-                    cn._tm_pub = TimedPub()  # type: ignore[assignment]
+                    put_stamps = TmPutStamps(cn.clock.now_ns)
+                    tm_put, tm_put_mono = put_stamps.ns, put_stamps.mono
+                    trace.install(put_stamps)
                     step = cn.step
-                    got_list = cn.logic._got
+                    got_list = cn.logic.replied
                     count = [0]
 
                     def hooked(k: int, dl: int) -> bool:
@@ -503,6 +500,7 @@ def run(minutes: float, priority: int) -> tuple[dict[str, Any], dict[str, dict[s
                         cn.run(max_loops=loops, realtime=priority > 0)
                     finally:
                         del cn.step
+                        trace.uninstall()
                         sampler.stop()
                     wall_s = time.monotonic() - t_start
                     skipped = int(summary_skipped(cn))

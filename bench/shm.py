@@ -123,7 +123,7 @@ class _Sender:
         if variant.startswith("zplatform"):
             from zplatform.bulk import NodeBulk
             from zplatform.mission import decode_mission
-            from zplatform.transport import NodeSession, is_matching
+            from zplatform.transport import NodeSession
 
             m = decode_mission(mission_text)
             shm = variant == "zplatform_shm"
@@ -134,7 +134,7 @@ class _Sender:
                 w.array.reshape(-1)[:] = np.frombuffer(self.src[w.channel.sample_bytes], np.uint8)[
                     32:
                 ]
-            self._wait(lambda: all(is_matching(w._pub) for w in self.writers.values()))
+            self._wait(lambda: all(w.matching for w in self.writers.values()))
         elif variant.startswith("raw_zenoh"):
             import zenoh
 

@@ -82,30 +82,14 @@ _PRIO_ENV = "ZP_TRACE_ZENOH_PRIORITY"
 
 def _split_priorities() -> None:
     """With ``ZP_TRACE_ZENOH_PRIORITY=P``: when a node promotes its threads to
-    SCHED_FIFO, every thread but the calling (loop) thread gets P instead."""
+    SCHED_FIFO, every thread but the calling (loop) thread gets P instead
+    (:func:`zplatform.node.runtime.split_thread_priorities`)."""
     p = os.environ.get(_PRIO_ENV)
     if not p:
         return
-    import threading
+    from zplatform.node.runtime import split_thread_priorities
 
-    import zplatform.node.runtime as rt
-
-    others = int(p)
-
-    def promote(priority: int) -> int:
-        me = threading.get_native_id()
-        n = 0
-        for t in os.listdir("/proc/self/task"):
-            tid = int(t)
-            prio = priority if tid == me else others
-            try:
-                os.sched_setscheduler(tid, os.SCHED_FIFO, os.sched_param(prio))
-                n += 1
-            except OSError:
-                pass
-        return n
-
-    rt._promote_threads = promote
+    split_thread_priorities(int(p))
 
 
 def dn_main(argv: list[str]) -> None:

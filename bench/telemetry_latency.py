@@ -6,7 +6,8 @@ ground``: the platform's ``GroundLink`` as node ``gn``). The
 latency of each snapshot is the ground's node clock at decode, plus its
 clock-sync offset to the CN (measured against the CN's clock server at
 start, as a DN does), minus the CN's node clock read just before its
-``put``: the figure holds across hosts. ``same_host_*`` is the same on
+``put`` (the ``tm.put`` trace point, :mod:`zplatform.trace`): the figure
+holds across hosts. ``same_host_*`` is the same on
 ``CLOCK_MONOTONIC`` (one host only), a check of the clock-sync term.
 
 Missions (variants): ``led_test`` (configs/led_test.yaml), ``thesis_200``
@@ -27,7 +28,6 @@ from __future__ import annotations
 import os
 import secrets
 import tempfile
-import time
 from pathlib import Path
 from typing import Any
 
@@ -36,9 +36,17 @@ import yaml
 
 from bench.bandwidth import element_extra
 from bench.cluster import BenchCluster, make_mission
-from bench.common import REPO_ROOT, bench_argparser, free_port, summarize, write_result
+from bench.common import (
+    REPO_ROOT,
+    TmPutStamps,
+    bench_argparser,
+    free_port,
+    summarize,
+    write_result,
+)
 from bench.reliability import _finish_child, _spawn_child, _wait_ready
 from bench.sync import PRIORITY, inherit_fifo
+from zplatform import trace
 from zplatform.config import relocate_mission
 
 TM_DEADLINE_MS = 30.0
@@ -86,23 +94,13 @@ def run_mission(mpath: Path, seconds: float, priority: int) -> dict[str, Any]:
             c.start(timeout_s=300.0)
             _wait_ready(ground, "ground node")
             tm_bytes = len(cn.logic.telemetry())
-            put_ns: dict[int, int] = {}
-            put_mono: dict[int, int] = {}
-            pub = cn._tm_pub
-            clock = cn.clock
-            logic = cn.logic
-
-            class TimedPub:
-                def put(self, payload: Any) -> None:
-                    put_mono[logic.loop] = time.monotonic_ns()
-                    put_ns[logic.loop] = clock.now_ns()
-                    pub.put(payload)
-
-                def undeclare(self) -> None:
-                    pub.undeclare()
-
-            cn._tm_pub = TimedPub()  # type: ignore[assignment]
-            c.run(loops)
+            stamps = TmPutStamps(cn.clock.now_ns)
+            put_ns, put_mono = stamps.ns, stamps.mono
+            trace.install(stamps)
+            try:
+                c.run(loops)
+            finally:
+                trace.uninstall()
             summary = cn.summary()
         finally:
             gn = _finish_child(ground, gn_out)

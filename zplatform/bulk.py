@@ -65,6 +65,7 @@ import zenoh
 
 from .errors import TransportError
 from .keyspace import key_of
+from .transport import is_matching
 
 __all__ = [
     "BULK_HEADER_BYTES",
@@ -249,6 +250,12 @@ class BulkWriter:
 
     def stats(self) -> BulkStats:
         return BulkStats(published=self.published, dropped=self.dropped)
+
+    @property
+    def matching(self) -> bool:
+        """Whether any subscriber matches this channel's key now (zenoh's
+        routing state, :func:`zplatform.transport.is_matching`; never blocks)."""
+        return is_matching(self._pub)
 
     def undeclare(self) -> None:
         self._pub.undeclare()

@@ -92,6 +92,7 @@ import struct
 from collections.abc import Sequence
 from typing import Any, Protocol
 
+from . import trace
 from .auth import TAG_LEN, AuthError, Channel, KeySet, channel
 from .boards import Board, HealthCounters, safe_board
 from .codec import Frame, RegionCodec, bundle_entry, is_bundle
@@ -298,6 +299,13 @@ class ControlLogic:
             self._seal_mirror = channel(keys, "mirror")
 
     @property
+    def replied(self) -> Sequence[bool]:
+        """Per DN (``dns`` order): its reply for the current loop was applied.
+        The logic's own list, valid until the next :meth:`begin`; read it, never
+        write it (no copy, so a per-loop reader allocates nothing)."""
+        return self._got
+
+    @property
     def term(self) -> int:
         """The term this control node's Data Vector is in (``cn_term``; 0
         in a mission without a standby)."""
@@ -320,6 +328,7 @@ class ControlLogic:
         self.t_ns = t_ns
         got = self._got
         frames = self._frames
+        tr = trace.tracer
         term = 0
         if self.redundant:
             if standby is not None:
@@ -340,8 +349,14 @@ class ControlLogic:
                 self._term_dn[i].set(term)
                 self._fenced[i] = False
             seal = self._seal_to_dn[i]
+            if tr is not None:
+                tr.mark("cn.encode", i)
             frame = codec.encode(loop, t_ns)
+            if tr is not None:
+                tr.mark("cn.encoded", i)
             frames[i] = seal.seal_tail(frame) if seal is not None else frame
+            if tr is not None:
+                tr.mark("cn.sealed", i)
         self.pending = len(got)
         if self.recorder is not None:
             self.recorder.begin(loop, t_ns, final, bool(standby))
@@ -359,9 +374,15 @@ class ControlLogic:
             self._bad_frame(self.dns[i], "the device node answered with an error")
             return False
         codec = self._from_dn[i]
+        tr = trace.tracer
         try:
             ch = self._open_from_dn[i]
-            frame = codec.check(ch.open(payload) if ch is not None else payload)
+            body = ch.open(payload) if ch is not None else payload
+            if tr is not None:
+                tr.mark("cn.opened", i)
+            frame = codec.check(body)
+            if tr is not None:
+                tr.mark("cn.decoded", i)
         except CodecError as exc:
             self._bad_frame(self.dns[i], str(exc))
             return False
@@ -391,6 +412,8 @@ class ControlLogic:
             self._late[i].bump()
             return False
         codec.write(frame)
+        if tr is not None:
+            tr.mark("cn.applied", i)
         self._got[i] = True
         self._rx[i].bump()
         self.pending -= 1
@@ -593,8 +616,17 @@ class ControlLogic:
         a telemetry loop; a driver's final snapshot off the divisor). One
         copy of the vector, into the telemetry encoder's buffer, which the
         next call overwrites."""
+        tr = trace.tracer
+        if tr is not None:
+            tr.mark("tm.encode", self.loop)
         tm = self._tm.encode(self.loop, self.t_ns)
-        return self._seal_tm.seal_tail(tm) if self._seal_tm is not None else tm
+        if tr is None:
+            return self._seal_tm.seal_tail(tm) if self._seal_tm is not None else tm
+        tr.mark("tm.encoded", self.loop)
+        if self._seal_tm is not None:
+            tm = self._seal_tm.seal_tail(tm)
+        tr.mark("tm.sealed", self.loop)
+        return tm
 
     def attach_bulk(self, port: BulkPort) -> None:
         """Move the CN's bulk channels through ``port`` from the next loop on
@@ -869,6 +901,7 @@ class DeviceLogic:
         default, and every caller but the live driver) the tag is checked.
         """
         self.triggered = 0
+        tr = trace.tracer
         last = self.last_trigger_ns
         if last is not None and not self.safed and now_ns - last > self._watchdog_ns:
             # This node was not running (stopped, starved) for longer than
@@ -882,7 +915,11 @@ class DeviceLogic:
                 payload = bundle_entry(payload, self._index)
             ch = self._open
             body = payload if ch is None else ch.strip(payload) if authentic else ch.open(payload)
+            if tr is not None:
+                tr.mark("dn.opened")
             frame = self._in.check(body)
+            if tr is not None:
+                tr.mark("dn.decoded")
             # Authentic from here on.
             if guard is not None and frame.seq > 0:
                 term = _U32.unpack_from(frame.data, self._term_at)[0]
@@ -945,7 +982,13 @@ class DeviceLogic:
         if guard is not None:
             self._h_term_seen.set(guard.seen(now_ns))
         reply = self._out.encode(frame.seq, now_ns)
-        return self._seal.seal_tail(reply) if self._seal is not None else reply
+        if tr is None:
+            return self._seal.seal_tail(reply) if self._seal is not None else reply
+        tr.mark("dn.encoded")
+        if self._seal is not None:
+            reply = self._seal.seal_tail(reply)
+        tr.mark("dn.sealed")
+        return reply
 
     def _out_of_range(self, term: int, now_ns: int) -> None:
         """An authentic trigger naming a term above
@@ -1143,7 +1186,12 @@ class DeviceLogic:
         pending = self._pending
         if pending is not None:
             self._pending = None
+            tr = trace.tracer
+            if tr is not None:
+                tr.mark("dn.apply")
             self._in.write(pending)
+            if tr is not None:
+                tr.mark("dn.applied")
         loop = self.triggered
         bulk = self._bulk
         if bulk is not None:  # the newest samples in, before the run reads them

@@ -77,6 +77,7 @@ from typing import Any
 
 import zenoh
 
+from . import trace as tracer
 from .codec import BundleEncoder
 from .handoff import Handoff, Mailbox
 from .intake import CnRefusals, ProbeIntake, ReplyCheck, TriggerIntake
@@ -253,7 +254,11 @@ class ControlSync:
             # zenoh's thread: who answered, then the bytes (module doc).
             ok = reply.ok
             if ok is not None:
-                take(i, reply, ok.payload)
+                tr = tracer.tracer
+                if tr is None:
+                    take(i, reply, ok.payload)
+                else:
+                    _traced_take(tr, take, i, reply, ok.payload)
                 return
             err = reply.err
             if err is not None and error(err.payload) is not None:
@@ -322,7 +327,11 @@ class ControlSync:
                 return
             if self._trace is not None:
                 self._trace("back", i)
-            self._take(i, reply, ok.payload)
+            tr = tracer.tracer
+            if tr is None:
+                self._take(i, reply, ok.payload)
+            else:
+                _traced_take(tr, self._take, i, reply, ok.payload)
             return
         err = reply.err
         if err is None:
@@ -374,10 +383,14 @@ class ControlSync:
             callbacks = self._counted
             self._idle.clear()
             self._issued += 1 if self.wildcard else n
+        tr = tracer.tracer
         if self.wildcard:
             if trace is not None:
                 for i in range(n):
                     trace("issued", i)
+            if tr is not None:
+                for i in range(n):
+                    tr.mark("sync.issued", i, len(frames[i]))
             ask(
                 self.session,
                 self._all,
@@ -385,6 +398,9 @@ class ControlSync:
                 payload=self._bundle.pack(frames),
                 timeout_s=self._query_timeout,
             )
+            if tr is not None:
+                for i in range(n):
+                    tr.mark("sync.sent", i)
         else:
             for i in range(n):
                 # zplatform.queries.ask: DROP (on a link that stopped draining,
@@ -394,6 +410,8 @@ class ControlSync:
                 # "complete" queryable on dnX/to_cn cannot take the trigger).
                 if trace is not None:
                     trace("issued", i)
+                if tr is not None:
+                    tr.mark("sync.issued", i, len(frames[i]))
                 ask(
                     self.session,
                     self._keys[i],
@@ -401,6 +419,8 @@ class ControlSync:
                     payload=frames[i],
                     timeout_s=self._query_timeout,
                 )
+                if tr is not None:
+                    tr.mark("sync.sent", i)
         # The taps after the queries: tools may wait, the DNs may not.
         taps = self._taps
         for i in range(n):
@@ -417,6 +437,8 @@ class ControlSync:
                 break
             if trace is not None:
                 trace("taken", i)
+            if tr is not None:
+                tr.mark("sync.taken", i)
             if reply(i, payload):
                 got[i] = True
         end = self._mono()
@@ -502,9 +524,15 @@ class DeviceSync:
         def handoff(query: zenoh.Query) -> None:
             # zenoh's thread: the intake's checks; a refused query is
             # released here, unanswered (zenoh finalises it at once).
+            tr = tracer.tracer
+            if tr is not None:
+                tr.mark("dn.arrive")
             p = query.payload
-            if admit(p if p is not None else _NO_PAYLOAD, query) and trace is not None:
-                trace("arrive", 0)
+            if admit(p if p is not None else _NO_PAYLOAD, query):
+                if tr is not None:
+                    tr.mark("dn.admitted")
+                if trace is not None:
+                    trace("arrive", 0)
 
         self.queryable = session.declare_queryable(
             self._key, zenoh.handlers.Callback(handoff, indirect=False)
@@ -585,6 +613,9 @@ class DeviceSync:
         trace = self._trace
         if trace is not None:
             trace("serve", 0)
+        tr = tracer.tracer
+        if tr is not None:
+            tr.mark("dn.serve")
         query, data = item
         with query:
             # The intake checked this payload's tag already (module doc).
@@ -597,6 +628,8 @@ class DeviceSync:
                 query.reply(self._key, reply)
         if trace is not None:
             trace("replied", logic.last_loop)
+        if tr is not None:
+            tr.mark("dn.replied", logic.last_loop)
         if reply is not None:
             self._tap.put(reply)
 
@@ -605,6 +638,21 @@ class DeviceSync:
         if self._probe_q is not None:
             self._probe_q.undeclare()
         self._tap.undeclare()
+
+
+def _traced_take(
+    tr: tracer.Tracer,
+    take: Callable[[int, zenoh.Reply, zenoh.ZBytes], None],
+    i: int,
+    reply: zenoh.Reply,
+    payload: zenoh.ZBytes,
+) -> None:
+    """``take`` with the trace points of a reply (:mod:`zplatform.trace`)."""
+    tr.mark("sync.back", i, len(payload))
+    if payload.as_shm() is not None:
+        tr.mark("sync.shm", i)
+    take(i, reply, payload)
+    tr.mark("sync.queued", i)
 
 
 def _ignore(reply: zenoh.Reply) -> None:

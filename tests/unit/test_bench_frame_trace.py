@@ -6,7 +6,16 @@ from __future__ import annotations
 
 from typing import Any
 
-from bench.frame_trace import CN_MARKS, COPIES, DN_MARKS, DN_SPANS, SPANS, _Spy, hop_table
+from bench.frame_trace import (
+    CN_MARKS,
+    COPIES,
+    DN_MARKS,
+    DN_SPANS,
+    SPANS,
+    _CnStamps,
+    _DnStamps,
+    hop_table,
+)
 
 
 def _rows(skip: set[str]) -> tuple[list[int], list[int]]:
@@ -53,19 +62,64 @@ def test_an_exchange_the_dn_did_not_stamp_is_left_out() -> None:
     assert hop_table({3: [cn]}, {}, [{}]) == {}
 
 
-def test_a_spy_stamps_around_the_named_method_and_passes_the_rest() -> None:
-    calls: list[str] = []
+class _Logic:
+    loop = 7
 
-    class Target:
-        __slots__ = ("x",)
 
-        def __init__(self) -> None:
-            self.x = 5
+def _ticks() -> Any:
+    return iter(range(1_000, 10**6, 1_000)).__next__
 
-        def work(self, a: int) -> int:
-            calls.append("work")
-            return a + self.x
 
-    spy: Any = _Spy(Target(), {"work": (lambda: calls.append("pre"), lambda: calls.append("post"))})
-    assert spy.work(2) == 7 and spy.x == 5
-    assert calls == ["pre", "work", "post"]
+def test_the_cn_tracer_puts_each_point_in_its_column() -> None:
+    st = _CnStamps(1)
+    st.logic = _Logic()
+    st.mono = _ticks()
+    for name, v in [
+        ("cn.encode", 0),
+        ("cn.encoded", 0),
+        ("cn.sealed", 0),
+        ("sync.issued", 300),
+        ("sync.sent", 0),
+        ("sync.back", 200),
+        ("sync.queued", 0),
+        ("sync.taken", 0),
+        ("cn.opened", 0),
+        ("cn.decoded", 0),
+        ("cn.applied", 0),
+    ]:
+        st.mark(name, 0, v)
+    for name in ("tm.encode", "tm.encoded", "tm.sealed", "tm.put", "tm.sent"):
+        st.mark(name, 7)
+    # issued at the 4th tick, then one a tick in CN_MARKS order
+    assert st.chain[7, 0].tolist() == [4_000 + 1_000 * k for k in range(len(CN_MARKS))]
+    assert st.spans[7, 0].tolist() == [1_000] * len(SPANS)  # each span one tick
+    assert (st.query_len, st.reply_len) == ([300], [200])
+
+
+def test_the_dn_tracer_keeps_a_served_query_with_its_own_intake_only() -> None:
+    st = _DnStamps()
+    st.mono = _ticks()
+    served = ["dn.serve", "dn.opened", "dn.decoded", "dn.encoded", "dn.sealed"]
+    for name in ["dn.arrive", "dn.admitted", *served]:
+        st.mark(name)
+    st.mark("dn.replied", 5)
+    st.mark("dn.apply")
+    st.mark("dn.applied")
+    row = dict(zip((*DN_MARKS, *DN_SPANS), st.rows[5].tolist(), strict=True))
+    assert row["arrive"] == 1_000 and row["admitted"] == 2_000
+    assert row["copied"] == row["verified"] == row["applied"] == 0  # no point of theirs
+    assert [row[m] for m in ("serve", "opened", "decoded", "encoded", "sealed")] == [
+        3_000,
+        4_000,
+        5_000,
+        6_000,
+        7_000,
+    ]
+    assert row["replied"] == 8_000 and row["dn.apply"] == 1_000
+    # Two queries admitted before one serve (a backlog): neither row is kept.
+    for name in ["dn.arrive", "dn.admitted", "dn.arrive", "dn.admitted", *served]:
+        st.mark(name)
+    st.mark("dn.replied", 6)
+    st.mark("dn.serve")
+    st.mark("dn.replied", 7)
+    assert not st.rows[6].any() and not st.rows[7].any()

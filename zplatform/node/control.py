@@ -46,6 +46,7 @@ from typing import Any
 import numpy as np
 import zenoh
 
+from .. import trace
 from ..auth import KeySet, channel, load_keys
 from ..bulk import open_bulk
 from ..clocksync import ClockLink, ClockServer, estimator_for
@@ -683,7 +684,12 @@ class ControlNode:
         if logic.mirror is not None:  # the standby's copy, before anything else
             self._mirror_pub.put(logic.mirror)
         if tm is not None:
+            tr = trace.tracer
+            if tr is not None:
+                tr.mark("tm.put", loop, len(tm))
             self._tm_pub.put(tm)
+            if tr is not None:
+                tr.mark("tm.sent", loop)
             if rec is not None:
                 rec.frame(loop, tm, t)
             if self._radio is not None:

@@ -164,15 +164,30 @@ def realtime_setup(priority: int | None, cpu: int | None) -> RealtimeStatus:
     return status
 
 
+_other_priority: int | None = None
+
+
+def split_thread_priorities(others: int | None) -> None:
+    """Benchmarks (``bench/sync_trace.py``): when :func:`realtime_setup`
+    promotes a node's threads to SCHED_FIFO, every thread but the calling
+    (loop) thread gets priority ``others`` instead of the loop's (None: the
+    loop's, the default). Process-wide; call before the node starts."""
+    global _other_priority
+    _other_priority = others
+
+
 def _promote_threads(priority: int) -> int:
     n = 0
     try:
         tids = [int(t) for t in os.listdir("/proc/self/task")]
     except OSError:
         return 0
+    me = threading.get_native_id()
+    others = priority if _other_priority is None else _other_priority
     for tid in tids:
+        prio = priority if tid == me else others
         try:
-            os.sched_setscheduler(tid, os.SCHED_FIFO, os.sched_param(priority))
+            os.sched_setscheduler(tid, os.SCHED_FIFO, os.sched_param(prio))
             n += 1
         except OSError:
             pass

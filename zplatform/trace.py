@@ -1,0 +1,166 @@
+"""Named trace points in the loop and its drivers: a zero-cost hook for benchmarks.
+
+The platform's hot paths call :func:`mark`-style points by name at the steps a
+benchmark wants to time (a sync issued, a reply taken, telemetry encoded). The
+module-level :data:`tracer` is None by default (every flight node), so a point
+costs one module attribute load and an ``is None`` test::
+
+    tr = trace.tracer
+    if tr is not None:
+        tr.mark("cn.encoded", i)
+
+:func:`install` puts a tracer in (any object with :meth:`Tracer.mark`, called
+on whichever thread reaches the point: loop thread or zenoh's; it must return
+at once, never block, never raise); :func:`uninstall` takes it out. The
+supplied :class:`Ring` records ``(name, n, v, t_ns)`` into preallocated
+arrays, overwriting the oldest record when full: nothing grows per record.
+A benchmark may install its own :class:`Tracer` (``bench/frame_trace.py``
+stamps straight into its per-loop tables).
+
+The points (:data:`POINTS`; ``n`` a DN index unless said, ``v`` 0 unless said):
+
+Control node, loop thread:
+
+* ``cn.encode`` / ``cn.encoded`` / ``cn.sealed``: DN ``n``'s query frame about
+  to be encoded, encoded, tagged (:meth:`~zplatform.loop.ControlLogic.begin`);
+* ``sync.issued``: the query to DN ``n`` about to go into zenoh, ``v`` its
+  length; ``sync.sent``: it went (``session.get`` returned);
+* ``sync.taken``: DN ``n``'s reply taken from the hand-off;
+* ``cn.opened`` / ``cn.decoded`` / ``cn.applied``: DN ``n``'s reply's tag
+  checked, decoded, its data in the vector (``ControlLogic.reply``);
+* ``tm.encode`` / ``tm.encoded`` / ``tm.sealed``: the telemetry frame
+  (``ControlLogic.telemetry``; ``n`` the loop);
+* ``tm.put`` / ``tm.sent``: the telemetry frame about to be published,
+  published (the control node's loop; ``n`` the loop, ``v`` its length).
+
+Control node, zenoh's thread:
+
+* ``sync.back``: DN ``n``'s reply arrived at the callback, ``v`` its length;
+  ``sync.shm``: that reply's payload is in shared memory;
+* ``sync.queued``: DN ``n``'s reply copied out of zenoh, handed off (or
+  refused).
+
+Device node (``n`` 0 unless said):
+
+* ``dn.arrive`` / ``dn.admitted``: zenoh's thread, a query at the queryable's
+  callback, and through the intake (``dn.admitted`` only if admitted);
+* ``dn.serve``: loop thread, the query taken from the mailbox;
+* ``dn.opened`` / ``dn.decoded``: the trigger's tag stripped or checked,
+  decoded (``DeviceLogic.trigger``);
+* ``dn.encoded`` / ``dn.sealed``: the reply framed, tagged;
+* ``dn.replied``: the reply sent, ``n`` the CN loop the query carried;
+* ``dn.apply`` / ``dn.applied``: the trigger's data about to go into the
+  vector, in (``DeviceLogic.run``, after the reply).
+"""
+
+from __future__ import annotations
+
+import itertools
+import time
+from array import array
+from collections.abc import Callable
+from typing import Protocol
+
+__all__ = ["POINTS", "Ring", "Tracer", "install", "tracer", "uninstall"]
+
+POINTS = (
+    "cn.encode",
+    "cn.encoded",
+    "cn.sealed",
+    "sync.issued",
+    "sync.sent",
+    "sync.back",
+    "sync.shm",
+    "sync.queued",
+    "sync.taken",
+    "cn.opened",
+    "cn.decoded",
+    "cn.applied",
+    "tm.encode",
+    "tm.encoded",
+    "tm.sealed",
+    "tm.put",
+    "tm.sent",
+    "dn.arrive",
+    "dn.admitted",
+    "dn.serve",
+    "dn.opened",
+    "dn.decoded",
+    "dn.encoded",
+    "dn.sealed",
+    "dn.replied",
+    "dn.apply",
+    "dn.applied",
+)
+"""Every trace point's name (module doc), in the order an exchange reaches them."""
+
+
+class Tracer(Protocol):
+    """What :func:`install` takes."""
+
+    def mark(self, name: str, n: int = 0, v: int = 0) -> None:
+        """Point ``name`` reached (one of :data:`POINTS`), with its index
+        ``n`` and value ``v`` (module doc). Any thread; returns at once,
+        never blocks, never raises."""
+
+
+tracer: Tracer | None = None
+"""The installed tracer, or None (the default: no tracing)."""
+
+
+def install(t: Tracer) -> None:
+    """Make ``t`` the process's tracer (replacing any). Points reached from
+    now on call ``t.mark``."""
+    global tracer
+    tracer = t
+
+
+def uninstall() -> None:
+    """No tracer: every point is one ``is None`` test again."""
+    global tracer
+    tracer = None
+
+
+class Ring:
+    """A :class:`Tracer` keeping the last ``capacity`` records in preallocated
+    arrays (``clock``: ``CLOCK_MONOTONIC`` ns by default). Any thread: each
+    mark claims its own slot (``next`` on an :func:`itertools.count`, atomic
+    under the GIL), so marks from the loop's and zenoh's threads never share
+    one; a record read while it is being written may be half of it, so
+    :meth:`records` is for after the run."""
+
+    def __init__(
+        self, capacity: int = 1 << 16, clock: Callable[[], int] = time.monotonic_ns
+    ) -> None:
+        if capacity < 1:
+            raise ValueError(f"capacity must be at least 1, not {capacity}")
+        self.capacity = capacity
+        self._names: list[str] = [""] * capacity
+        self._n = array("q", bytes(8 * capacity))
+        self._v = array("q", bytes(8 * capacity))
+        self._t = array("q", bytes(8 * capacity))
+        self._clock = clock
+        self._seq = itertools.count()
+        self.count = 0
+        """Records made (more than ``capacity``: the oldest were overwritten)."""
+
+    def mark(self, name: str, n: int = 0, v: int = 0) -> None:
+        t = self._clock()
+        j = next(self._seq)
+        k = j % self.capacity
+        self._t[k] = t
+        self._names[k] = name
+        self._n[k] = n
+        self._v[k] = v
+        if j >= self.count:
+            self.count = j + 1
+
+    def records(self) -> list[tuple[str, int, int, int]]:
+        """The kept records, oldest first: ``(name, n, v, t_ns)``. Allocates
+        (after a run, not in a hot path)."""
+        c, cap = self.count, self.capacity
+        out = []
+        for j in range(max(0, c - cap), c):
+            k = j % cap
+            out.append((self._names[k], self._n[k], self._v[k], self._t[k]))
+        return out
