@@ -52,7 +52,6 @@ import numpy as np
 from .auth import TAG_LEN, KeySet
 from .boards import Board
 from .codec import BundleEncoder, RegionCodec
-from .codes import SafedWhy
 from .config import BulkChannelConfig, Mission
 from .datavector import DataVector, Layout
 from .errors import RecordingError, ZPlatformError
@@ -445,14 +444,8 @@ class LockstepRunner:
             logic.reply(i, self.devices[i].trigger(frames[i], t))
         logic.reset_sync_counters()
         logic.events.drain()
-        dv = logic.dv
-        mid_run = [
-            int(dv.get(f"{dn}_loop"))
-            for dn in self.mission.device_nodes
-            if int(dv.get(f"{dn}_loop")) and dv.get(f"{dn}_safed_why") != SafedWhy.RUN_ENDED
-        ]
         recorded = check_recorded(logic, keys, held) if held is not None else None
-        done = role.resume(mid_run, record is not False and c.records, recorded, t)
+        done = role.resume(record is not False and c.records, recorded, t)
         if done is None:
             return "command"
         return "resume" if isinstance(done, Resume) else "start_over"

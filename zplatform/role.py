@@ -15,8 +15,8 @@ Inputs and actions, in the order a node meets them::
     # start-up, a redundant mission: one STATUS probe round
     asks = role.status_probe(now)             # -> send, each reply to role.answer(i, reply)
     role.start()                              # -> Command(term) or Follow(term)
-    # start-up, after the warm-up sync: the device nodes' loops, the recorder's newest frame
-    role.resume(mid_run, has_recorder, recorded, now)
+    # start-up, after the warm-up sync (the device nodes' loops are in the vector):
+    role.resume(has_recorder, recorded_frame, now)
                                               # -> None, Resume(...) or StartOver(why)
     # a commander
     role.mirror(frame, now)                   # every mirror that arrives -> StandDown | None
@@ -43,6 +43,7 @@ from typing import NamedTuple
 
 from .auth import KeySet, channel
 from .codec import Frame, RegionCodec
+from .codes import SafedWhy
 from .config import Mission
 from .errors import CodecError, NodeError
 from .events import EV
@@ -98,9 +99,12 @@ class StartOver(NamedTuple):
 
 
 class StandDown(NamedTuple):
-    """A newer term commands: this node stood down and follows (``why``)."""
+    """A newer term commands: this node stood down and follows (``why``);
+    ``followed``: the newer term's mirror that told it was applied (its
+    first as the standby)."""
 
     why: str
+    followed: bool = False
 
 
 class Probe(NamedTuple):
@@ -192,16 +196,29 @@ class ControlRole:
         self.standby = sb
         return Follow(sb.term, bool(ran))
 
+    def mid_run(self) -> list[int]:
+        """After the warm-up sync (its replies in the vector): the loops of the
+        device nodes that ran loops and were not told the run ended (a run
+        going on without this node)."""
+        dv = self.logic.dv
+        loops = [int(dv.get(f"{dn}_loop")) for dn in self.mission.device_nodes]
+        return [
+            n
+            for n, dn in zip(loops, self.mission.device_nodes, strict=True)
+            if n and dv.get(f"{dn}_safed_why") != SafedWhy.RUN_ENDED
+        ]
+
     def resume(
-        self, mid_run: list[int], has_recorder: bool, recorded: Frame | None, now_ns: int
+        self, has_recorder: bool, recorded: Frame | None, now_ns: int
     ) -> Resume | StartOver | None:
-        """A commander after the warm-up: ``mid_run``, the loops of the device
-        nodes that ran loops and were not told the run ended; ``recorded``, the
-        newest frame this node's flight recorder holds (``has_recorder``: it
-        has one). None: a fresh run. Otherwise restarted in flight: Resume
+        """A commander after the warm-up sync: the device nodes' loops
+        (:meth:`mid_run`, from the vector); ``recorded``, the newest frame this
+        node's flight recorder holds (``has_recorder``: it has one). None: a
+        fresh run. Otherwise restarted in flight: Resume
         (the frame written into the vector and adopted, a new term entered
         in a redundant mission, ``cn_resumed``), or StartOver when the record
         is unusable (``cn_restarted_in_flight`` says why)."""
+        mid_run = self.mid_run()
         if not mid_run and not self.resume_term:
             return None
         m, logic = self.mission, self.logic
@@ -243,12 +260,10 @@ class ControlRole:
             if not term:
                 return False
             self.logic.superseded = term
-            down = self._stand_down(
-                f"a mirror of term {term} came from {self.mission.control_nodes[who]}"
-            )
+            why = f"a mirror of term {term} came from {self.mission.control_nodes[who]}"
+            self._stand_down(why)
             assert self.standby is not None
-            self.standby.mirror(payload, now_ns)
-            return down
+            return StandDown(why, self.standby.mirror(payload, now_ns))
         return self.standby.mirror(payload, now_ns)
 
     def finished(self) -> StandDown | None:

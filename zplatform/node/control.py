@@ -50,7 +50,7 @@ from ..auth import KeySet, channel, load_keys
 from ..bulk import open_bulk
 from ..clocksync import ClockLink, ClockServer, estimator_for
 from ..codec import Frame
-from ..codes import CommandStatus, SafedWhy
+from ..codes import CommandStatus
 from ..config import Mission
 from ..datavector import DataVector
 from ..errors import ClockSyncError, NodeError, RecordingError, TransportError
@@ -457,27 +457,21 @@ class ControlNode:
         logic.events.drain()  # warm-up bad frames were logged; flight starts clean
         # Device nodes that ran loops and were not told the run ended: this
         # node restarted in flight (its run goes on without it).
-        ended = SafedWhy.RUN_ENDED
-        mid_run = [
-            int(self.dv.get(f"{dn}_loop"))
-            for dn in dns
-            if int(self.dv.get(f"{dn}_loop")) and self.dv.get(f"{dn}_safed_why") != ended
-        ]
-        if self._resume(mid_run):
+        if self._resume():
             return offsets
         self._load_params()
         return offsets
 
-    def _resume(self, mid_run: list[int]) -> bool:
-        """Restarted while the device nodes are mid-run (``mid_run``: their
-        loops; or a driverless run this node resumes in a new term): the role
+    def _resume(self) -> bool:
+        """Restarted while the device nodes are mid-run (their loops, from the
+        warm-up; or a driverless run this node resumes in a new term): the role
         takes up the run from this node's own flight recorder, its newest
         telemetry frame (:meth:`~zplatform.role.ControlRole.resume`), never
         starting over in SAFE, or says why it starts over; this node carries
         it out: the schedule where it was (loop numbers follow time), the
         command inbox in the recorded epoch. Returns whether it resumed."""
         action = self.role.resume(
-            mid_run, self.flight_recorder is not None, self._recorded, self.clock.now_ns()
+            self.flight_recorder is not None, self._recorded, self.clock.now_ns()
         )
         if isinstance(action, StartOver):
             log.error("%s restarted in flight and starts over: %s", self.name, action.why)
@@ -670,10 +664,11 @@ class ControlNode:
         self._mirror_refusals(self.logic.t_ns)
         item = self._mirrors.pop()
         while item is not None:
-            down = self.role.mirror(item[1], self.logic.t_ns)
-            if isinstance(down, StandDown):  # the mirror is the standby's first
+            down = self.role.mirror(item[1], self.clock.now_ns())
+            if isinstance(down, StandDown):
                 self._stood_down(down.why)
-                self._followed()
+                if down.followed:  # the newer term's mirror is the standby's first
+                    self._followed()
                 return False
             item = self._mirrors.pop()
         if ready != self._peer_seen:
