@@ -24,6 +24,10 @@ live) runs at virtual time ``t = start_ns + (n - 1) * period_ns``:
 
 No frame is ever lost or late here, so ``cn_missed_dnX`` and ``cn_late_dnX``
 stay 0, unless a test declares a node dead (:attr:`LockstepRunner.lost`).
+A test may also kill, stop, cut off or restart a control node
+(:meth:`LockstepRunner.restart`: a new process whose
+:class:`~zplatform.role.ControlRole` is fed the device nodes' answers and
+what its flight recorder holds, as live).
 No loop is flagged final (``dnX_final``, :mod:`zplatform.loop`): a
 runner may be run on (:meth:`LockstepRunner.run` continues from the last
 loop), so it never knows which loop is the last, and a flag it guessed
@@ -54,7 +58,7 @@ from .boards import Board
 from .codec import BundleEncoder, RegionCodec
 from .config import BulkChannelConfig, Mission
 from .datavector import DataVector, Layout
-from .errors import RecordingError, ZPlatformError
+from .errors import NodeError, RecordingError, ZPlatformError
 from .events import Event
 from .failover import Standby
 from .ground.logic import GroundLogic
@@ -376,7 +380,8 @@ class LockstepRunner:
             port = _SimBulkPort(n, self._channels)
             if port.arrays:
                 logic.attach_bulk(port)
-        for n, hp in (health or {}).items():
+        self._health = dict(health or {})
+        for n, hp in self._health.items():
             if n not in logics:
                 raise ValueError(f"health given for {n!r}, which is not a cn or device node")
             logics[n].attach_health(hp)
@@ -413,8 +418,9 @@ class LockstepRunner:
         (``record``: True, the newest telemetry frame it made, if the mission
         records it; False, no recorder; None, an empty one; or bytes, a frame
         given). Returns what it did: ``command``, ``follow``, ``resume`` or
-        ``start_over``. NodeError as live (no next term); ValueError for a
-        mission with bulk channels (not re-attached)."""
+        ``start_over``. NodeError as live (no device node answers its probe,
+        or no next term); ValueError for a mission with bulk channels (not
+        re-attached; a health port given for it is)."""
         old = self.cns[node]
         if self.mission.bulk:
             raise ValueError("restart does not re-attach bulk channels")
@@ -431,12 +437,16 @@ class LockstepRunner:
             for i, d in enumerate(self.devices)
             if d.node not in self.lost and self.reach(node, d.node)
         ]
+        if self._health.get(node) is not None:
+            logic.attach_health(self._health[node])
         if role.redundant:
             asks = role.status_probe(t)
+            answered = 0
             for i in reached:
                 reply = self.devices[i].probe(asks[i], t)
-                if reply is not None:
-                    role.answer(i, reply)
+                answered += reply is not None and role.answer(i, reply)
+            if not answered:  # as live: it cannot start
+                raise NodeError(f"{node} cannot start: no device node answers its probe")
             if not isinstance(role.start(), Command):
                 return "follow"
         frames = logic.begin(0, t)  # the warm-up: answered, never run

@@ -23,6 +23,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from zplatform import load_mission
+from zplatform.errors import NodeError
 from zplatform.fencing import ASK, STATUS
 from zplatform.lockstep import DEFAULT_START_NS, LockstepRunner
 from zplatform.role import ControlRole, Probe, Release, Take
@@ -169,6 +170,13 @@ def test_both_control_nodes_lost_the_first_back_resumes_in_the_next_term() -> No
     assert len(_texts(r, "cn_resumed")) == 1
     assert {t for by in r.driven.values() for t in by.values()} == {1, 2}
     assert _two_term_loops(r) == []
+
+
+def test_a_control_node_no_device_node_answers_cannot_start() -> None:
+    r = LockstepRunner(FLIGHT, commands=FLIGHT_CMDS)
+    _run(r, {500: [("kill", ("cn",)), ("kill", ("dn0",)), ("kill", ("dn1",))]}, 600)
+    with pytest.raises(NodeError, match="no device node answers its probe"):
+        r.restart("cn")
 
 
 # -- the failover cases, by the role's actions ----------------------------------------
