@@ -55,9 +55,10 @@ it: a command that loop accepted but whose snapshot never reached the
 standby is not known to it (the ground sees the new term's verdicts; a
 request it sent again is judged once, by the new commander).
 
-:class:`Standby` is sans-IO, as the loop is (:mod:`zplatform.loop`): the
-zenoh runtime (:mod:`zplatform.node.control`) and the lockstep runner
-(:mod:`zplatform.lockstep`) drive it the same way::
+:class:`Standby` is sans-IO, as the loop is (:mod:`zplatform.loop`); one
+:class:`~zplatform.role.ControlRole` drives it for both drivers, the zenoh
+runtime (:mod:`zplatform.node.control`) and the lockstep runner
+(:mod:`zplatform.lockstep`), this way::
 
     sb.mirror(frame, now)             # every mirror frame that arrives
     if sb.tick(slot):                 # once per loop slot of the commander's schedule

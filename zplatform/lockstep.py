@@ -24,6 +24,10 @@ live) runs at virtual time ``t = start_ns + (n - 1) * period_ns``:
 
 No frame is ever lost or late here, so ``cn_missed_dnX`` and ``cn_late_dnX``
 stay 0, unless a test declares a node dead (:attr:`LockstepRunner.lost`).
+A test may also kill, stop, cut off or restart a control node
+(:meth:`LockstepRunner.restart`: a new process whose
+:class:`~zplatform.role.ControlRole` is fed the device nodes' answers and
+what its flight recorder holds, as live).
 No loop is flagged final (``dnX_final``, :mod:`zplatform.loop`): a
 runner may be run on (:meth:`LockstepRunner.run` continues from the last
 loop), so it never knows which loop is the last, and a flag it guessed
@@ -54,10 +58,9 @@ from .boards import Board
 from .codec import BundleEncoder, RegionCodec
 from .config import BulkChannelConfig, Mission
 from .datavector import DataVector, Layout
-from .errors import RecordingError, ZPlatformError
+from .errors import NodeError, RecordingError, ZPlatformError
 from .events import Event
-from .failover import Decision, MirrorReader, Standby
-from .fencing import STATUS
+from .failover import Standby
 from .ground.logic import GroundLogic
 from .ground.records import CommandOutcome, EventRecord
 from .health import BLOCK_SIZE, HealthPort
@@ -66,6 +69,7 @@ from .loop import ControlLogic, DeviceLogic
 from .messages import wildcard_sync_for
 from .params import MemorySaver
 from .recording import RecordReader
+from .role import Command, ControlRole, Probe, Release, Resume, Take, check_recorded
 from .telemetry import CsvLogger
 from .timebase import VirtualClock
 from .uplink import ScriptCommand
@@ -237,27 +241,34 @@ class _SimBulkPort:
 
 
 class SimControlNode:
-    """One control node of a lockstep run: its logic, and, while it does not
-    command, its :class:`~zplatform.failover.Standby`; the faults a test put
-    on it (:meth:`LockstepRunner.kill`, :meth:`LockstepRunner.stop`)."""
+    """One control node of a lockstep run: its logic and its
+    :class:`~zplatform.role.ControlRole`; the faults a test put on it
+    (:meth:`LockstepRunner.kill`, :meth:`LockstepRunner.stop`,
+    :meth:`LockstepRunner.restart`); and what its flight recorder holds (the
+    newest telemetry frame it made, when the mission records it)."""
 
     def __init__(
-        self,
-        name: str,
-        logic: ControlLogic,
-        keys: KeySet | None,
-        standby: Standby | None = None,
+        self, name: str, logic: ControlLogic, keys: KeySet | None, *, follows: bool = False
     ) -> None:
         self.name = name
         self.logic = logic
         self.keys = keys
-        self.standby = standby
-        self.reader = MirrorReader(logic, keys) if logic.redundant else None
+        self.role = ControlRole(logic.mission, logic, keys)
+        if follows:
+            self.role.follow_from_start()
         self.state_h = logic.dv.handle("cn_state")
         self.saver = MemorySaver()
         self.dead = False
         self.stopped_until = 0
         self._held: tuple[bytes, int] | None = None
+        self.records = name in logic.mission.recording_nodes
+        self.recorded: bytes | None = None
+        """The newest telemetry frame its flight recorder holds (None: none)."""
+
+    @property
+    def standby(self) -> Standby | None:
+        """Its standby while it does not command (None: it commands)."""
+        return self.role.standby
 
     def runs(self, loop: int) -> bool:
         """Whether it runs in ``loop`` (neither dead nor stopped)."""
@@ -269,29 +280,13 @@ class SimControlNode:
         if not self.runs(loop):
             self._held = (frame, t)
             return
-        self._apply_mirror(frame, t)
+        self.role.mirror(frame, t)
 
     def deliver_held(self, t: int) -> None:
         if self._held is not None:
             frame, at = self._held
             self._held = None
-            self._apply_mirror(frame, at)
-
-    def _apply_mirror(self, frame: bytes, t: int) -> None:
-        if self.standby is None:
-            # A commander hearing a newer term's mirror stands down first.
-            assert self.reader is not None
-            term, who = self.reader.newer_term(frame)
-            if not term:
-                return
-            self.logic.superseded = term
-            self.standby = Standby.stand_down(
-                self.logic.mission,
-                self.logic,
-                self.keys,
-                f"a mirror of term {term} came from {self.logic.mission.control_nodes[who]}",
-            )
-        self.standby.mirror(frame, t)
+            self.role.mirror(frame, at)
 
 
 class LockstepRunner:
@@ -338,9 +333,7 @@ class LockstepRunner:
             name = mission.standby
             sb_keys = keys and keys.for_node(name)
             sb_logic = ControlLogic(mission, keys=sb_keys, name=name)
-            self.cns[name] = SimControlNode(
-                name, sb_logic, sb_keys, Standby(mission, sb_logic, sb_keys)
-            )
+            self.cns[name] = SimControlNode(name, sb_logic, sb_keys, follows=True)
         self._cuts: dict[frozenset[str], int | None] = {}
         self.driven: dict[int, dict[str, int]] = {}
         """Redundant missions: per loop, the term that drove each device node
@@ -387,7 +380,8 @@ class LockstepRunner:
             port = _SimBulkPort(n, self._channels)
             if port.arrays:
                 logic.attach_bulk(port)
-        for n, hp in (health or {}).items():
+        self._health = dict(health or {})
+        for n, hp in self._health.items():
             if n not in logics:
                 raise ValueError(f"health given for {n!r}, which is not a cn or device node")
             logics[n].attach_health(hp)
@@ -414,6 +408,57 @@ class LockstepRunner:
         SIGSTOP): it runs nothing, then resumes with the state it had, in the
         loop its schedule is at (the loops in between skipped)."""
         self.cns[node].stopped_until = self.loop + loops
+
+    def restart(self, node: str = "cn", *, record: bytes | bool | None = True) -> str:
+        """Control node ``node`` starts again as a new process before the next
+        loop (after :meth:`kill`, or in place of a live one): a fresh logic
+        with a new epoch, whose role decides from what it is fed, as live: a
+        STATUS probe of the device nodes (a redundant mission), the warm-up's
+        loops of the device nodes, and what its flight recorder holds
+        (``record``: True, the newest telemetry frame it made, if the mission
+        records it; False, no recorder; None, an empty one; or bytes, a frame
+        given). Returns what it did: ``command``, ``follow``, ``resume`` or
+        ``start_over``. NodeError as live (no device node answers its probe,
+        or no next term); ValueError for a mission with bulk channels (not
+        re-attached; a health port given for it is)."""
+        old = self.cns[node]
+        if self.mission.bulk:
+            raise ValueError("restart does not re-attach bulk channels")
+        t = self.clock.now_ns()
+        keys = old.keys
+        logic = ControlLogic(self.mission, keys=keys, epoch=t, name=node)
+        c = SimControlNode(node, logic, keys)
+        c.records = old.records
+        held = old.recorded if record is True else record if isinstance(record, bytes) else None
+        self.cns[node] = c
+        role = c.role
+        reached = [
+            i
+            for i, d in enumerate(self.devices)
+            if d.node not in self.lost and self.reach(node, d.node)
+        ]
+        if self._health.get(node) is not None:
+            logic.attach_health(self._health[node])
+        if role.redundant:
+            asks = role.status_probe(t)
+            answered = 0
+            for i in reached:
+                reply = self.devices[i].probe(asks[i], t)
+                answered += reply is not None and role.answer(i, reply)
+            if not answered:  # as live: it cannot start
+                raise NodeError(f"{node} cannot start: no device node answers its probe")
+            if not isinstance(role.start(), Command):
+                return "follow"
+        frames = logic.begin(0, t)  # the warm-up: answered, never run
+        for i in reached:
+            logic.reply(i, self.devices[i].trigger(frames[i], t))
+        logic.reset_sync_counters()
+        logic.events.drain()
+        recorded = check_recorded(logic, keys, held) if held is not None else None
+        done = role.resume(record is not False and c.records, recorded, t)
+        if done is None:
+            return "command"
+        return "resume" if isinstance(done, Resume) else "start_over"
 
     def partition(self, a: str, b: str, loops: int | None = None) -> None:
         """Nothing passes between nodes ``a`` and ``b`` (either way) for the
@@ -515,15 +560,10 @@ class LockstepRunner:
         save = cn.params.take_save()
         if save is not None:
             c.saver.submit(*save)
-        if cn.superseded:  # a newer term drives the device nodes: stand down
-            c.standby = Standby.stand_down(
-                self.mission,
-                cn,
-                c.keys,
-                f"{sum(1 for d in self.devices if d.guard is not None and d.guard.term > term)} "
-                f"device node(s) follow term {cn.superseded}",
-            )
+        if c.role.finished() is not None:  # a newer term drives the device nodes
             return None
+        if tm is not None and c.records:  # its flight recorder's newest frame
+            c.recorded = bytes(tm)
         if tm is not None and not reach(c.name, "gn"):
             return None
         return tm
@@ -540,42 +580,40 @@ class LockstepRunner:
                 other.take_mirror(bytes(c.logic.mirror), t, self.loop + 1)
 
     def _follow(self, c: SimControlNode, loop: int, t: int) -> None:
-        """A standby's turn in ``loop``, half a period in: maybe a probe round,
-        maybe a takeover from the next loop."""
-        sb = c.standby
+        """A standby's turn in ``loop``, half a period in: its role's probe
+        rounds, maybe a takeover from the next loop (:mod:`zplatform.role`)."""
+        role = c.role
+        sb = role.standby
         assert sb is not None
         save = sb.take_save()
         if save is not None:
             c.saver.submit(*save)
-        if not sb.tick(loop):
-            return
         now = t + self.period_ns // 2
-        # First a question that changes nothing: an ASK only when the device
-        # nodes' answers show the commander silent to them too (Standby.silent).
-        self._probe_round(c, sb.ask(loop, now, kind=STATUS), now)
-        if not sb.silent(loop, now):
-            return
-        self._probe_round(c, sb.ask(loop, now), now)
-        if sb.decide(loop, now) == Decision.TAKE:
-            sb.take(loop + 1)
-            c.standby = None
-            return
-        for i, release in enumerate(sb.releases):
-            dev = self.devices[i]
-            if release is not None and dev.node not in self.lost and self.reach(c.name, dev.node):
-                dev.probe(release, now)
+        action: Probe | Take | Release | None = role.tick(loop, now)
+        while isinstance(action, Probe):
+            self._probe_round(c, action.asks, now)
+            action = role.round_over(loop, now)
+        if isinstance(action, Take):
+            role.take(action.loop)
+        elif isinstance(action, Release):
+            for i, release in enumerate(action.releases):
+                dev = self.devices[i]
+                if (
+                    release is not None
+                    and dev.node not in self.lost
+                    and self.reach(c.name, dev.node)
+                ):
+                    dev.probe(release, now)
 
     def _probe_round(self, c: SimControlNode, asks: list[bytes], now: int) -> None:
-        """Standby ``c``'s questions to every device node it reaches, each
-        answer handed to it."""
-        sb = c.standby
-        assert sb is not None
+        """Control node ``c``'s questions to every device node it reaches,
+        each answer handed to its role."""
         for i, dev in enumerate(self.devices):
             if dev.node in self.lost or not self.reach(c.name, dev.node):
                 continue
             reply = dev.probe(asks[i], now)
             if reply is not None:
-                sb.answer(i, reply)
+                c.role.answer(i, reply)
 
     def run(self, duration_s: float, *, log: CsvLogger | None = None) -> SimResult:
         """Run ``round(duration_s * loop_hz)`` loops (continuing from any

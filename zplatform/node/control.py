@@ -50,14 +50,13 @@ from .. import trace
 from ..auth import KeySet, channel, load_keys
 from ..bulk import open_bulk
 from ..clocksync import ClockLink, ClockServer, estimator_for
-from ..codec import Frame, RegionCodec
-from ..codes import CommandStatus, SafedWhy
+from ..codec import Frame
+from ..codes import CommandStatus
 from ..config import Mission
 from ..datavector import DataVector
-from ..errors import ClockSyncError, CodecError, NodeError, RecordingError, TransportError
+from ..errors import ClockSyncError, NodeError, RecordingError, TransportError
 from ..events import EV
-from ..failover import Decision, MirrorReader, Standby
-from ..fencing import STATUS, next_term
+from ..failover import Standby
 from ..ground.logic import default_max_age_ns
 from ..handoff import Mailbox
 from ..health import Heartbeat, Liveness, thread_deadlines_ns
@@ -68,6 +67,17 @@ from ..params import ParamSaver, params_path, read_params_file
 from ..recorder import FlightRecorder, RecorderReader, open_recorder, recorder_dir, summary_line
 from ..recorder.server import RecorderServer
 from ..recording import Recorder
+from ..role import (
+    Command,
+    ControlRole,
+    Probe,
+    Release,
+    Resume,
+    StandDown,
+    StartOver,
+    Take,
+    check_recorded,
+)
 from ..scheduler import GcGuard, PeriodicLoop
 from ..summary import CnSummary, LoopWork, cn_summary
 from ..sync import ControlSync, ProbeSync, SyncTrace, TapPublisher
@@ -225,12 +235,13 @@ class ControlNode:
         self._take_at = 0
         self._origin: int | None = None  # a resumed run's schedule (monotonic ns)
         self._next_recorder: Recorder | None = None  # a standby's --record, not started
-        self._resume_term = 0  # a redundant mission's node resuming: its term
         self._stopped_cleanly = False
         self._last_step: int | None = None  # self.loops after the run's planned last loop
         # Failover (zplatform.failover): the mirror out and in, the probes, the
         # other control node's liveliness, and the standby while not commanding.
-        self.standby: Standby | None = None
+        # Who commands, resumes, follows, stands down and takes over: the
+        # role (zplatform.role) decides; this node delivers and carries out.
+        self.role = ControlRole(mission, self.logic, keys)
         self._peer_alive = False  # the other control node's standby token (zenoh's thread)
         self.takeovers = 0
         """Times this node took command (a standby's takeovers)."""
@@ -243,7 +254,6 @@ class ControlNode:
             assert self.mirror_intake.box is not None
             self._mirrors: Mailbox[tuple[None, bytes]] = self.mirror_intake.box
             self._mirror_log = RefusalLog(3)
-            self._reader = MirrorReader(self.logic, keys)
             self._mirror_sub = s.declare_subscriber(
                 space.mirror,
                 zenoh.handlers.Callback(self._on_mirror, indirect=False),
@@ -448,73 +458,34 @@ class ControlNode:
         logic.events.drain()  # warm-up bad frames were logged; flight starts clean
         # Device nodes that ran loops and were not told the run ended: this
         # node restarted in flight (its run goes on without it).
-        ended = SafedWhy.RUN_ENDED
-        mid_run = [
-            int(self.dv.get(f"{dn}_loop"))
-            for dn in dns
-            if int(self.dv.get(f"{dn}_loop")) and self.dv.get(f"{dn}_safed_why") != ended
-        ]
-        if (mid_run or self._resume_term) and self._resume(max(mid_run, default=0)):
+        if self._resume():
             return offsets
         self._load_params()
         return offsets
 
-    def _resume(self, dn_loop: int) -> bool:
-        """Restarted while the device nodes are mid-run (they ran loops up to
-        ``dn_loop`` and no one drives them): take up the run from this node's
-        own flight recorder, its newest telemetry frame, never start over in
-        SAFE (``cn_resumed``): the run's epoch, state and every element as
-        recorded, the schedule where it was (loop numbers follow time), in a
-        redundant mission a new term. Without a usable record (no recorder,
-        nothing recorded, another mission's, or older than the device nodes'
-        loops by more than a minute) the node starts over, with a FATAL
-        ``cn_restarted_in_flight`` event saying why. Returns whether it resumed."""
-        m, logic, now = self.mission, self.logic, self.clock.now_ns()
-        why = self._unusable_record(dn_loop, now)
-        if why:
-            logic.events.emit(EV.CN_RESTARTED_IN_FLIGHT, now, node=self.name, loop=dn_loop, why=why)
-            log.error("%s restarted in flight and starts over: %s", self.name, why)
+    def _resume(self) -> bool:
+        """Restarted while the device nodes are mid-run (their loops, from the
+        warm-up; or a driverless run this node resumes in a new term): the role
+        takes up the run from this node's own flight recorder, its newest
+        telemetry frame (:meth:`~zplatform.role.ControlRole.resume`), never
+        starting over in SAFE, or says why it starts over; this node carries
+        it out: the schedule where it was (loop numbers follow time), the
+        command inbox in the recorded epoch. Returns whether it resumed."""
+        action = self.role.resume(
+            self.flight_recorder is not None, self._recorded, self.clock.now_ns()
+        )
+        if isinstance(action, StartOver):
+            log.error("%s restarted in flight and starts over: %s", self.name, action.why)
+        if not isinstance(action, Resume):
             return False
-        assert self._recorded is not None
-        frame = self._recorded
-        RegionCodec(self.dv).write(frame)
-        logic.adopt()
-        origin = frame.t_ns - (frame.seq - 1) * m.period_ns
-        self._origin = self.clock.monotonic_at(origin)
+        self._origin = self.clock.monotonic_at(action.origin)
         self._gap = True
-        if self._resume_term:
-            loop = (now - origin) // m.period_ns + 2
-            logic.take_command(self._resume_term, loop)
         if self._requests is not None:
             self._requests.follow(int(self.dv.get("cn_epoch")))
-        logic.events.emit(
-            EV.CN_RESUMED,
-            now,
-            node=self.name,
-            epoch=int(self.dv.get("cn_epoch")),
-            loop=frame.seq,
-            state=self.dv.get_name("cn_state"),
-            source=f"its flight recorder's frame of loop {frame.seq} "
-            f"({(now - frame.t_ns) / 1e9:.1f} s old)",
-        )
         log.warning(
-            "%s resumed the run in flight from its recorder (loop %d)", self.name, frame.seq
+            "%s resumed the run in flight from its recorder (loop %d)", self.name, action.loop
         )
         return True
-
-    def _unusable_record(self, dn_loop: int, now: int) -> str:
-        frame = self._recorded
-        if self.flight_recorder is None:
-            return "the mission has no flight recorder for it (`recorder:`) and no standby"
-        if frame is None:
-            return "its flight recorder holds no frame"
-        if frame.seq > dn_loop + 1 or now - frame.t_ns > RESUME_MAX_AGE_NS:
-            return (
-                f"its flight recorder's last frame (loop {frame.seq}, "
-                f"{(now - frame.t_ns) / 1e9:.0f} s old) is not of the device nodes' run "
-                f"(loop {dn_loop})"
-            )
-        return ""
 
     def _alive_now(self, nodes: list[str]) -> bool:
         """Whether every one of ``nodes`` has its liveliness token now (a short
@@ -533,29 +504,15 @@ class ControlNode:
         clock by the commander's and waits for its mirrors (a control node
         restarted in flight rejoins the flight this way, never in SAFE).
         NodeError when no device node answers."""
-        m = self.mission
-        sb = Standby(m, self.logic, self.keys)
+        role = self.role
         deadline = time.monotonic() + timeout_s
         while True:
-            asks = sb.ask(0, self.clock.now_ns(), kind=STATUS)
-            if self.probes.round(asks, sb.answer):
+            if self.probes.round(role.status_probe(self.clock.now_ns()), role.answer):
                 break
             if time.monotonic() > deadline or self.stop.is_set():
                 raise NodeError(f"{self.name} cannot start: no device node answers its probe")
-        ran = [a for a in sb.answers if a is not None and (a.last_loop or a.term)]
-        lease = m.takeover.lease_loops * m.period_ns
-        driven = [a for a in ran if 0 <= a.quiet_ns < lease]
-        if (not ran and self.name == "cn") or (ran and not driven):
-            # The first commander of a fresh run; or the run goes on and no one
-            # drives it (both control nodes were lost): resume it in a new term.
-            if ran:
-                newest = max(max(a.term, a.promised) for a in ran)
-                self._resume_term = next_term(newest)
-                if not self._resume_term:  # answers range-checked: newest is TERM_MAX
-                    raise NodeError(
-                        f"{self.name} cannot resume the run: the device nodes ran term "
-                        f"{newest}, the last a node can run (there is no next term)"
-                    )
+        action = role.start()
+        if isinstance(action, Command):
             self._serve_clock()
             self.clock.lock()
             self._take_requests()
@@ -563,12 +520,10 @@ class ControlNode:
             return True
         self._stop_serving()
         self._set_clock_by_commander(deadline)
-        sb.term = max((a.term for a in sb.answers if a is not None), default=0)
-        self.standby = sb
         log.info(
             "%s follows as the standby: %s",
             self.name,
-            f"the device nodes run term {sb.term}" if ran else "the run has not begun",
+            f"the device nodes run term {action.term}" if action.ran else "the run has not begun",
         )
         return False
 
@@ -678,8 +633,9 @@ class ControlNode:
             save = logic.params.take_save()
             if save is not None:
                 saver.submit(*save)
-        if logic.superseded:  # most device nodes follow a newer term
-            self._stand_down(f"the device nodes follow term {logic.superseded}")
+        down = self.role.finished()  # most device nodes follow a newer term
+        if down is not None:
+            self._stood_down(down.why)
             return False
         if logic.mirror is not None:  # the standby's copy, before anything else
             self._mirror_pub.put(logic.mirror)
@@ -714,12 +670,11 @@ class ControlNode:
         self._mirror_refusals(self.logic.t_ns)
         item = self._mirrors.pop()
         while item is not None:
-            term, who = self._reader.newer_term(item[1])
-            if term:
-                self.logic.superseded = term
-                self._stand_down(
-                    f"a mirror of term {term} came from {self.mission.control_nodes[who]}"
-                )
+            down = self.role.mirror(item[1], self.clock.now_ns())
+            if isinstance(down, StandDown):
+                self._stood_down(down.why)
+                if down.followed:  # the newer term's mirror is the standby's first
+                    self._followed()
                 return False
             item = self._mirrors.pop()
         if ready != self._peer_seen:
@@ -735,8 +690,13 @@ class ControlNode:
             )
         return True
 
-    def _stand_down(self, why: str) -> None:
-        self.standby = Standby.stand_down(self.mission, self.logic, self.keys, why)
+    @property
+    def standby(self) -> Standby | None:
+        """The role's standby while this node does not command (None: it commands)."""
+        return self.role.standby
+
+    def _stood_down(self, why: str) -> None:
+        """Carry out a stand-down the role decided (it follows now)."""
         self._stop_serving()
         if self.recorder is not None:  # the recording of this reign ends here
             self.logic.recorder = None
@@ -771,8 +731,7 @@ class ControlNode:
         self._serve_recorder()
         self.ns.announce()
         loop = max(self._take_at, sb.slot(self.clock.now_ns()) + 1)
-        logic = sb.take(loop)
-        self.standby = None
+        logic = self.role.take(loop)
         rec, self._next_recorder = self._next_recorder, None
         if rec is not None:
             try:
@@ -791,10 +750,13 @@ class ControlNode:
         return self.clock.monotonic_at(sb.origin)
 
     def _apply_mirror(self, payload: bytes, now: int) -> None:
+        if self.role.mirror(payload, now) is True:
+            self._followed()
+
+    def _followed(self) -> None:
+        """The standby applied a mirror: ready, and its own flight record."""
         sb = self.standby
         assert sb is not None
-        if not sb.mirror(payload, now):
-            return
         if self._ready_token is None:  # following: ready (the commander's cn_standby_ready)
             self.ns.announce()
             self._ready_token = self.ns.session.liveliness().declare_token(
@@ -835,17 +797,17 @@ class ControlNode:
                 self.name,
                 sb.mirrored,
             )
-        if sb.tick(slot):
-            # First a question that changes nothing; a term is asked for only
-            # when the device nodes' answers show the commander silent too
-            # (Standby.silent): no promise fences a commander still driving.
-            self.probes.round(sb.ask(slot, now, kind=STATUS), sb.answer)
-            if sb.silent(slot, self.clock.now_ns()):
-                self.probes.round(sb.ask(slot, self.clock.now_ns()), sb.answer)
-                if sb.decide(slot, self.clock.now_ns()) == Decision.TAKE:
-                    self._take_at = slot + 1
-                    return False
-                self.probes.send(sb.releases)
+        role = self.role
+        # The role's probe rounds (zplatform.role): this node asks, hands answers.
+        action: Probe | Take | Release | None = role.tick(slot, now)
+        while isinstance(action, Probe):
+            self.probes.round(action.asks, role.answer)
+            action = role.round_over(slot, self.clock.now_ns())
+        if isinstance(action, Take):
+            self._take_at = action.loop
+            return False
+        if isinstance(action, Release):
+            self.probes.send(action.releases)
         if self.watchdog is not None:
             self.watchdog.stroke(self._mono(), now)
         self._events.flush()
@@ -989,8 +951,6 @@ class ControlNode:
 
 ALIVE_LOOK_S = 0.5
 """How long a starting control node looks for device nodes already running."""
-RESUME_MAX_AGE_NS = 60_000_000_000
-"""A restarted control node resumes from a recorded frame at most this old."""
 
 
 def _last_recorded(
@@ -1005,12 +965,7 @@ def _last_recorded(
         return None
     if got is None or got[0].mission != mission.mission:
         return None
-    ch = channel(keys, "telemetry")
-    try:
-        payload = got[1].payload
-        return RegionCodec(logic.dv).check(ch.open(payload) if ch is not None else payload)
-    except CodecError:
-        return None
+    return check_recorded(logic, keys, got[1].payload)
 
 
 def check_clocks(offsets: dict[str, int], residuals: dict[str, int], bound_ms: float) -> None:
