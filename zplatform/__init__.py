@@ -12,6 +12,7 @@ from __future__ import annotations
 
 from .auth import KeySet, load_keys
 from .boards import Board, SimBoard
+from .boards.world import WorldLink
 from .codec import (
     Frame,
     FrameDecoder,
@@ -89,7 +90,7 @@ from .timebase import NodeClock, VirtualClock
 from .transport import KeySpace
 from .uplink import ScriptCommand, fill_request, load_commands, parse_commands
 from .watchdog import Watchdog
-from .world import World, WorldBoard, WorldLink
+from .world import World, WorldBoard
 
 __version__ = "0.1.0"
 

@@ -92,6 +92,7 @@ from .registry import (
 )
 from .serialboard import SerialBoard, SerialBoardConfig
 from .sim import Physics, SimBoard, SimBoardConfig
+from .world import WorldLink, node_board
 
 __all__ = [
     "BUILTIN_DRIVERS",
@@ -107,10 +108,12 @@ __all__ = [
     "SerialBoardConfig",
     "SimBoard",
     "SimBoardConfig",
+    "WorldLink",
     "board_health",
     "check_board",
     "close_board",
     "make_board",
+    "node_board",
     "open_board",
     "safe_board",
 ]
