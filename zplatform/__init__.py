@@ -80,7 +80,7 @@ from .params import (
 )
 from .rategroups import RateGroups
 from .recorder import FlightRecorder, RecorderReader
-from .recording import Recorder
+from .replay_recording import Recorder
 from .safety import SafetyWarning, safety_warnings
 from .scheduler import GcGuard, LoopStats, PeriodicLoop, setup_realtime
 from .schema import mission_schema, reference_markdown

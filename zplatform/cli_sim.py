@@ -131,7 +131,7 @@ def cmd_replay(args: argparse.Namespace) -> int:
 
 def _read_recording(args: argparse.Namespace) -> int:
     """``replay DIR --list/--log`` without a mission file: no code runs."""
-    from .recording import RecordReader, read_recording
+    from .replay_recording import RecordReader, read_recording
 
     listing = sys.stdout if args.list else None
     if args.log:

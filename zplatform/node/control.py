@@ -66,7 +66,7 @@ from ..messages import wildcard_sync_for
 from ..params import ParamSaver, params_path, read_params_file
 from ..recorder import FlightRecorder, RecorderReader, open_recorder, recorder_dir, summary_line
 from ..recorder.server import RecorderServer
-from ..recording import Recorder
+from ..replay_recording import Recorder
 from ..scheduler import GcGuard, PeriodicLoop
 from ..summary import CnSummary, LoopWork, cn_summary
 from ..sync import ControlSync, ProbeSync, SyncTrace, TapPublisher
