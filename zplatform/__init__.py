@@ -52,7 +52,6 @@ from .faults import FaultMonitor
 from .ground.gapfill import GapFill
 from .ground.link import GroundLink
 from .ground.logic import GroundLogic
-from .ground.records import CommandOutcome, EventRecord, TelemetryCounters
 from .ground.script import ScriptPlayer
 from .health import FakeHealth, HealthPort, Heartbeat, Liveness
 from .keyspace import (
@@ -80,6 +79,7 @@ from .params import (
 )
 from .rategroups import RateGroups
 from .recorder import FlightRecorder, RecorderReader
+from .records import CommandOutcome, EventRecord, TelemetryCounters
 from .replay_recording import Recorder
 from .safety import SafetyWarning, safety_warnings
 from .scheduler import GcGuard, LoopStats, PeriodicLoop, setup_realtime

@@ -59,12 +59,12 @@ from .events import Event
 from .failover import Decision, MirrorReader, Standby
 from .fencing import STATUS
 from .ground.logic import GroundLogic
-from .ground.records import CommandOutcome, EventRecord
 from .health import BLOCK_SIZE, HealthPort
 from .intake import CnRefusals
 from .loop import ControlLogic, DeviceLogic
 from .messages import wildcard_sync_for
 from .params import MemorySaver
+from .records import CommandOutcome, EventRecord
 from .replay_recording import RecordReader
 from .telemetry import CsvLogger
 from .timebase import VirtualClock

@@ -26,8 +26,8 @@ import msgspec
 
 from ..config import Mission
 from ..errors import CommandError
+from ..records import CommandOutcome
 from ..uplink import ScriptCommand, validate_command
-from .records import CommandOutcome
 
 __all__ = ["MIN_DURATION_S", "SETTLE_S", "ScriptPlayer", "script_duration_s"]
 
