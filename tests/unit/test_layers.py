@@ -9,8 +9,9 @@ listed module by module; there are no known exceptions. Importing
 its own package is already loading; so the root package ``zplatform``, which
 re-exports the public API, is never a target of a module inside it).
 
-A second rule keeps the layers: the core (the sans-IO modules, config,
-boards and the world model) never imports a process entry point, the CLI,
+A second rule keeps the layers: the core (config, the sans-IO modules,
+boards, the world model, the records, logs, summaries and the flight
+recorder) never imports a process entry point, the CLI,
 a node runtime, the ground or the console.
 """
 
@@ -49,6 +50,12 @@ CORE = {
     "zplatform.statemachine",
     "zplatform.commands",
     "zplatform.loop",
+    "zplatform.records",
+    "zplatform.telemetry",
+    "zplatform.summary",
+    "zplatform.recorder",
+    "zplatform.events",
+    "zplatform.schema",
 }
 
 KNOWN_CIRCLES: list[tuple[str, ...]] = []
