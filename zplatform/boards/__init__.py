@@ -69,7 +69,11 @@ Drivers: :class:`SerialBoard` (``serialboard``, needs ``pyserial``, the
 ``serial`` extra) and :class:`GpiodBoard` (``gpio``, needs ``gpiod``, the
 ``gpio`` extra) import their libraries only when used, so this package
 imports without them. ``python -m zplatform.boards.serial_sim`` is a
-simulated serial device behind a pty, for tests and bench setups.
+simulated serial device behind a pty, for tests and bench setups. The
+``world`` driver (a port onto the mission's vehicle world process) and
+:func:`~zplatform.boards.world.node_board`, which builds a device node's
+board from the mission, are :mod:`zplatform.boards.world` (not imported
+here: it needs the mission's types).
 
 Errors::
 
@@ -92,7 +96,6 @@ from .registry import (
 )
 from .serialboard import SerialBoard, SerialBoardConfig
 from .sim import Physics, SimBoard, SimBoardConfig
-from .world import WorldLink, node_board
 
 __all__ = [
     "BUILTIN_DRIVERS",
@@ -108,12 +111,10 @@ __all__ = [
     "SerialBoardConfig",
     "SimBoard",
     "SimBoardConfig",
-    "WorldLink",
     "board_health",
     "check_board",
     "close_board",
     "make_board",
-    "node_board",
     "open_board",
     "safe_board",
 ]
