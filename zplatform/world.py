@@ -21,11 +21,12 @@ Three ways in, one world (PX4/ArduPilot SITL's simulator bridge, in small):
   device nodes) that advances on its own monotonic clock at
   ``world.rate_hz``, as the physical world does, and after each advance
   sends every board it has heard from its inputs; a node's board
-  (``board: {driver: world}``) is a :class:`~zplatform.boards.world.WorldLink` that sends its
-  outputs over UDP on loopback and latches the newest inputs it received
-  (below). Nothing waits on anything: a late datagram is older sensor
-  data, as on real hardware, and only inputs older than
-  ``world.stale_ms`` fail a step;
+  (``board: {driver: world}``) is a
+  :class:`~zplatform.boards.world.WorldLink` that sends its outputs over
+  UDP on loopback and latches the newest inputs it received (the link's
+  datagrams are in :mod:`zplatform.boards.world`). Nothing waits on
+  anything: a late datagram is older sensor data, as on real hardware, and
+  only inputs older than ``world.stale_ms`` fail a step;
 * **hardware in the loop**: the same process also plays a node's board
   firmware over the serial board protocol on a pty
   (``world.serve_serial``, :class:`~zplatform.boards.serial_sim.SimDevice`),
@@ -34,8 +35,8 @@ Three ways in, one world (PX4/ArduPilot SITL's simulator bridge, in small):
   the world brought up to that moment).
 
 Semantics shared by all three: outputs reach the world when they are set
-(a :class:`~zplatform.boards.world.WorldLink` sends a changed output at once, and all of them with
-every step); a board's step latches that board's inputs as the world last
+(a :class:`~zplatform.boards.world.WorldLink` sends a changed output at
+once, and all of them with every step); a board's step latches that board's inputs as the world last
 made them (lockstep: after advancing the world to the loop's time).
 
 Where the rest lives: this module is the model (:class:`World`,
