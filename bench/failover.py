@@ -115,9 +115,9 @@ from zplatform.datavector import DataVector
 from zplatform.errors import FrameFormatError, RecordingError
 from zplatform.events import decode_event
 from zplatform.ground.link import GroundLink
-from zplatform.ground.records import EventRecord
 from zplatform.recorder import RECORDER_DIR_ENV, RecorderReader
 from zplatform.recorder.format import EVENT
+from zplatform.records import EventRecord
 
 MISSION = REPO_ROOT / "configs" / "flight.yaml"
 NODES = ("world", "dn0", "dn1", "cn", "cn_b")

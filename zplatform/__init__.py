@@ -12,6 +12,7 @@ from __future__ import annotations
 
 from .auth import KeySet, load_keys
 from .boards import Board, SimBoard
+from .boards.world import WorldLink
 from .codec import (
     Frame,
     FrameDecoder,
@@ -51,7 +52,6 @@ from .faults import FaultMonitor
 from .ground.gapfill import GapFill
 from .ground.link import GroundLink
 from .ground.logic import GroundLogic
-from .ground.records import CommandOutcome, EventRecord, TelemetryCounters
 from .ground.script import ScriptPlayer
 from .health import FakeHealth, HealthPort, Heartbeat, Liveness
 from .keyspace import (
@@ -79,7 +79,8 @@ from .params import (
 )
 from .rategroups import RateGroups
 from .recorder import FlightRecorder, RecorderReader
-from .recording import Recorder
+from .records import CommandOutcome, EventRecord, TelemetryCounters
+from .replay_recording import Recorder
 from .safety import SafetyWarning, safety_warnings
 from .scheduler import GcGuard, LoopStats, PeriodicLoop, setup_realtime
 from .schema import mission_schema, reference_markdown
@@ -89,7 +90,7 @@ from .timebase import NodeClock, VirtualClock
 from .transport import KeySpace
 from .uplink import ScriptCommand, fill_request, load_commands, parse_commands
 from .watchdog import Watchdog
-from .world import World, WorldBoard, WorldLink
+from .world import World, WorldBoard
 
 __version__ = "0.1.0"
 

@@ -283,7 +283,7 @@ def cmd_node(args: argparse.Namespace) -> int:
 
 
 def cmd_world(args: argparse.Namespace) -> int:
-    from .world import main as world_main
+    from .world_server import main as world_main
 
     return world_main(args.mission, realtime=not args.no_realtime)
 

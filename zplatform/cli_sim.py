@@ -35,10 +35,10 @@ import msgspec
 from .cli_args import check_output, positive_float
 from .datavector import Layout
 from .errors import CommandError
-from .ground.records import EventRecord, format_outcome
 from .ground.script import MIN_DURATION_S, SETTLE_S, script_duration_s
 from .lockstep import LockstepRunner, replay
 from .mission import load_mission
+from .records import EventRecord, format_outcome
 from .telemetry import CsvLogger, EventWriter, events_path
 from .uplink import load_commands
 
@@ -131,7 +131,7 @@ def cmd_replay(args: argparse.Namespace) -> int:
 
 def _read_recording(args: argparse.Namespace) -> int:
     """``replay DIR --list/--log`` without a mission file: no code runs."""
-    from .recording import RecordReader, read_recording
+    from .replay_recording import RecordReader, read_recording
 
     listing = sys.stdout if args.list else None
     if args.log:

@@ -35,6 +35,7 @@ import msgspec
 from msgspec import Meta
 
 from .boards import Board
+from .boards.world import node_board
 from .components import (
     Component,
     Streak,
@@ -389,7 +390,6 @@ def check_config(mission: Mission) -> None:
     config field, pin or element name, or board config.
     """
     from .datavector import Layout
-    from .world import node_board  # the boards package (under it) imports this module
 
     for node in mission.device_nodes:
         board = node_board(mission, node)

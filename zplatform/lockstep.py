@@ -40,7 +40,7 @@ and nothing iterates a set or hashes into the output: the same mission and
 the same command script give a byte-identical CSV log.
 
 :func:`replay` feeds a live run's recorded loop inputs
-(:mod:`zplatform.recording`) through a fresh control loop and checks that
+(:mod:`zplatform.replay_recording`) through a fresh control loop and checks that
 its telemetry is bit-identical to what was recorded.
 """
 
@@ -62,13 +62,13 @@ from .errors import NodeError, RecordingError, ZPlatformError
 from .events import Event
 from .failover import Standby
 from .ground.logic import GroundLogic
-from .ground.records import CommandOutcome, EventRecord
 from .health import BLOCK_SIZE, HealthPort
 from .intake import CnRefusals
 from .loop import ControlLogic, DeviceLogic
 from .messages import wildcard_sync_for
 from .params import MemorySaver
-from .recording import RecordReader
+from .records import CommandOutcome, EventRecord
+from .replay_recording import RecordReader
 from .role import Command, ControlRole, Probe, Release, Resume, Take, check_recorded
 from .telemetry import CsvLogger
 from .timebase import VirtualClock
@@ -744,11 +744,11 @@ def replay(
     The loop runs the mission loaded from ``mission_file``, the operator's
     (its code imported as for ``sim``), never code the recording names: the
     recording must be of that mission (the same layout and
-    :func:`~zplatform.recording.mission_digest`), else RecordingError naming
+    :func:`~zplatform.replay_recording.mission_digest`), else RecordingError naming
     the first difference. The mission key is needed when the mission
     authenticates (the recorded frames carry their tags and are checked
     again). Raises :class:`~zplatform.errors.RecordingError` for a missing
-    or malformed recording (:class:`~zplatform.recording.RecordReader`),
+    or malformed recording (:class:`~zplatform.replay_recording.RecordReader`),
     ConfigError for a mission file that does not load, KeyError_ for a
     missing key; a difference is a result, not an error.
     """

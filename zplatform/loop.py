@@ -95,6 +95,7 @@ from typing import Any, Protocol
 from . import trace
 from .auth import TAG_LEN, AuthError, Channel, KeySet, channel
 from .boards import Board, HealthCounters, safe_board
+from .boards.world import node_board
 from .codec import Frame, RegionCodec, bundle_entry, is_bundle
 from .codes import CommandStatus, SafedWhy
 from .commands import CommandHandler, RequestNumber
@@ -113,7 +114,6 @@ from .interlocks import OutputInterlock
 from .monitors import MonitorSet
 from .params import ParamTable, SaveResult
 from .statemachine import StateMachine
-from .world import node_board
 
 __all__ = ["BulkPort", "ControlLogic", "DeviceLogic", "LoopRecorder"]
 
@@ -129,7 +129,7 @@ class LoopRecorder(Protocol):
     """What :class:`ControlLogic` tells a recorder, in call order, per loop.
 
     Implementations must not block or allocate per call
-    (:class:`zplatform.recording.Recorder` copies into preallocated chunks).
+    (:class:`zplatform.replay_recording.Recorder` copies into preallocated chunks).
     """
 
     def begin(self, loop: int, t_ns: int, final: bool, standby: bool) -> None: ...
@@ -698,7 +698,7 @@ class DeviceLogic:
     controllers, actuators.
 
     ``board`` defaults to the board the node's ``board:`` config names
-    (:func:`zplatform.world.node_board`; built, not opened: the runtime
+    (:func:`zplatform.boards.world.node_board`; built, not opened: the runtime
     opens it). ``keys``: the node's keys, its cn<->dnX link (None: the
     mission does not authenticate). ``stale_after_ns``: a trigger stamped (CN time) more than
     this long before ``now_ns`` belongs to a loop the CN has already closed;

@@ -23,7 +23,7 @@ tests. They return a :class:`~zplatform.config.Mission` that passed
      ``class`` imported, checked to be a concrete Controller, its typed
      ``config`` decoded and its element handles bound on a scratch Data
      Vector of its node;
-   * the vehicle world (:func:`zplatform.world.check_config`): its boards,
+   * the vehicle world (:func:`zplatform.world_checks.check_config`): its boards,
      physics function and params, and the nodes that use it;
    * the devices and boards (:func:`zplatform.devices.check_config`): every
      node's ``board`` config (a SimBoard's ``physics`` function imported and
@@ -82,7 +82,7 @@ from . import (
     params,
     statemachine,
     watchdog,
-    world,
+    world_checks,
 )
 from .config import (
     CONTROLLER_MODES,
@@ -119,7 +119,7 @@ def check_mission(mission: Mission, *, code: bool = True) -> None:
         _check_pythonpath(mission)
     # The world before the devices: a node's `driver: world` board is built
     # from it, so a bad world section is reported as itself.
-    world.check_config(mission, code=code)
+    world_checks.check_config(mission, code=code)
     if code:
         controllers.check_config(mission)
         devices.check_config(mission)

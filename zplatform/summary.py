@@ -18,7 +18,7 @@ import msgspec
 from .boards.base import BoardHealth
 from .config import Mission
 from .datavector import DataVector
-from .ground.records import CommandOutcome
+from .records import CommandOutcome
 
 __all__ = [
     "CnSummary",
@@ -98,7 +98,7 @@ class GnSummary(msgspec.Struct, frozen=True):
 
     ``telemetry_bad`` counts every snapshot not applied (malformed,
     unauthenticated or refused); ``telemetry_refused`` breaks the refusals
-    down by reason (:data:`zplatform.ground.records.REFUSALS`);
+    down by reason (:data:`zplatform.records.REFUSALS`);
     ``epoch_changes``: control node restarts the ground followed;
     ``events_logged``: event records written to the events file;
     ``telemetry_filled``/``telemetry_unfilled``: gap loops written from the

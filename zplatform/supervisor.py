@@ -51,11 +51,11 @@ from .datavector import DataVector
 from .errors import NodeError
 from .events import EV
 from .ground.link import GroundLink
-from .ground.records import EventRecord
 from .ground.script import MIN_DURATION_S, SETTLE_S
 from .ground.status import RateMeter, status_line
 from .mission import load_mission
 from .node.runtime import LOG_LEVEL_ENV, PARENT_ENV, STATUS_LINE_ENV, STOP_PIPE_ENV
+from .records import EventRecord
 from .summary import (
     CnSummary,
     DnSummary,

@@ -36,7 +36,7 @@ import numpy as np
 
 from .datavector import DataVector, ElementSpec, Layout
 from .errors import DataVectorError
-from .ground.records import EventRecord
+from .records import EventRecord
 
 __all__ = [
     "MAX_ARRAY_COLUMNS",
@@ -222,7 +222,7 @@ def events_path(csv_path: str | Path) -> Path:
 class EventWriter:
     """Writes event records as JSON lines, one object per event, in arrival order.
 
-    Each line is a :class:`~zplatform.ground.records.EventRecord`:
+    Each line is a :class:`~zplatform.records.EventRecord`:
     ``rx_time_ns`` (the receiver's clock, as in the CSV), then the event's
     ``node``, ``seq``, ``t_ns``, ``severity`` (its name), ``id`` and
     ``text``. Flushed after each event: events are rare and an operator may

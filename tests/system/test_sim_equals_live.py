@@ -110,7 +110,7 @@ def test_replay_names_the_first_difference(live_run: Path, tmp_path: Path) -> No
     """A tampered recording is caught, with its loop and element."""
     import shutil
 
-    from zplatform.recording import RECORD_FILE, RecordReader
+    from zplatform.replay_recording import RECORD_FILE, RecordReader
 
     rec = tmp_path / "rec"
     shutil.copytree(live_run / "rec", rec)

@@ -18,7 +18,7 @@ from zplatform.console.model import (
 from zplatform.datavector import DataVector
 from zplatform.errors import CommandError, DataVectorError
 from zplatform.events import Severity
-from zplatform.ground.records import CommandOutcome, EventRecord
+from zplatform.records import CommandOutcome, EventRecord
 
 CONFIGS = Path(__file__).resolve().parents[2] / "configs"
 MISSION = load_mission(CONFIGS / "recovery_igniter.yaml")
@@ -127,9 +127,9 @@ def test_command_outcomes_show_with_their_reason() -> None:
 def test_one_value_formatter_serves_the_console_and_the_parameter_table(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
-    """ground.records.value_text spells values for both, each keeping its own spelling."""
+    """zplatform.records.value_text spells values for both, each keeping its own spelling."""
     from zplatform.console import model as console_model
-    from zplatform.ground.records import value_text
+    from zplatform.records import value_text
 
     # the parameter table's spelling (mission-file words, 7 digits)...
     assert [value_text(v) for v in (True, False, 1 / 3, 2.5, 7, "x")] == [
@@ -188,7 +188,7 @@ def test_a_redundant_missions_header_says_who_commands_in_which_term() -> None:
 
 
 def test_times_show_as_times_of_day_and_durations_never_raw_ns() -> None:
-    from zplatform.ground.records import ns_text
+    from zplatform.records import ns_text
 
     m = ConsoleModel(MISSION)
     spec = m.layout.elements

@@ -23,9 +23,9 @@ from zplatform.ground.logic import (
     default_max_age_ns,
     needs_arm,
 )
-from zplatform.ground.records import format_outcome
 from zplatform.ground.status import RateMeter, status_line
 from zplatform.loop import ControlLogic
+from zplatform.records import format_outcome
 from zplatform.uplink import Uplink, parse_commands
 
 CONFIGS = Path(__file__).resolve().parents[2] / "configs"

@@ -22,9 +22,9 @@ from zplatform import (
     Recorder,
     decode_mission,
     load_mission,
-    recording,
     replay,
 )
+from zplatform import replay_recording as recording
 from zplatform.auth import load_keys
 from zplatform.codes import Thread
 from zplatform.config import Mission
@@ -41,7 +41,7 @@ from zplatform.health import (
     thread_deadlines_ns,
 )
 from zplatform.node.health import NodeHealth, ResourceSampler
-from zplatform.recording import RecordReader
+from zplatform.replay_recording import RecordReader
 from zplatform.uplink import parse_commands
 
 ROOT = Path(__file__).resolve().parents[2]

@@ -29,7 +29,7 @@ from zplatform.intake import (
 from zplatform.lockstep import replay
 from zplatform.loop import ControlLogic, DeviceLogic
 from zplatform.mission import decode_mission, load_mission
-from zplatform.recording import Recorder, RecordReader
+from zplatform.replay_recording import Recorder, RecordReader
 from zplatform.sync import REPIN_AFTER, ControlSync
 from zplatform.transport import KeySpace
 from zplatform.uplink import Uplink

@@ -80,8 +80,29 @@ def _imported_modules(path: Path) -> set[str]:
     return out
 
 
+def _package_imports(path: Path) -> tuple[set[str], set[str]]:
+    """A module of a subpackage's imports: (its siblings, the package's modules above)."""
+    siblings: set[str] = set()
+    above: set[str] = set()
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.ImportFrom) and node.level in (1, 2):
+            into = siblings if node.level == 1 else above
+            into.update([node.module] if node.module else [a.name for a in node.names])
+    return siblings, above
+
+
 def test_config_imports_no_module_that_gives_the_sections_meaning() -> None:
-    assert _imported_modules(PKG / "config.py") <= {"codes", "errors", "types"}
+    # The package's rooms import downwards only: schema <- platform <- checks.
+    below: dict[str, set[str]] = {
+        "schema": set(),
+        "platform": {"schema"},
+        "checks": {"schema", "platform"},
+    }
+    below["__init__"] = {"schema", "platform", "checks"}
+    for name, allowed in below.items():
+        siblings, above = _package_imports(PKG / "config" / f"{name}.py")
+        assert siblings <= allowed, name
+        assert above <= {"codes", "errors", "types"}, name
     assert _imported_modules(PKG / "codes.py") == set()
     assert not (PKG / "_checks.py").exists()
 

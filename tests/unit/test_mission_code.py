@@ -21,7 +21,7 @@ from zplatform import DataVector, Layout, LockstepRunner
 from zplatform.config import relocate_mission, resolve_pythonpath
 from zplatform.errors import ConfigError
 from zplatform.mission import decode_mission, load_mission
-from zplatform.recording import MISSION_FILE, Recorder
+from zplatform.replay_recording import MISSION_FILE, Recorder
 from zplatform.transport import rewrite_endpoints
 
 CODE = '''

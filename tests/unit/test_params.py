@@ -21,7 +21,6 @@ from zplatform.config import Mission, parse_mission
 from zplatform.console.model import ConsoleModel
 from zplatform.errors import CommandError, ConfigError
 from zplatform.ground.logic import needs_arm
-from zplatform.ground.records import param_rows
 from zplatform.params import (
     ParamFileError,
     ParamSaver,
@@ -32,6 +31,7 @@ from zplatform.params import (
     params_path,
     read_params_file,
 )
+from zplatform.records import param_rows
 from zplatform.uplink import Uplink, element_index, parse_commands, validate_command
 
 S = 1_000_000_000

@@ -16,10 +16,11 @@ import pytest
 from tests.drive import run_dn_loop
 from zplatform import LockstepRunner, World, decode_mission
 from zplatform.boards import BoardError
+from zplatform.boards.world import WorldLink, node_board
 from zplatform.errors import ConfigError
 from zplatform.loop import DeviceLogic
-from zplatform.world import WorldLink, node_board, serve
-from zplatform.world import check_config as check_world
+from zplatform.world_checks import check_config as check_world
+from zplatform.world_server import serve
 
 HERE = __name__
 

@@ -69,7 +69,11 @@ Drivers: :class:`SerialBoard` (``serialboard``, needs ``pyserial``, the
 ``serial`` extra) and :class:`GpiodBoard` (``gpio``, needs ``gpiod``, the
 ``gpio`` extra) import their libraries only when used, so this package
 imports without them. ``python -m zplatform.boards.serial_sim`` is a
-simulated serial device behind a pty, for tests and bench setups.
+simulated serial device behind a pty, for tests and bench setups. The
+``world`` driver (a port onto the mission's vehicle world process) and
+:func:`~zplatform.boards.world.node_board`, which builds a device node's
+board from the mission, are :mod:`zplatform.boards.world` (not imported
+here: it needs the mission's types).
 
 Errors::
 

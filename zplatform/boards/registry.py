@@ -83,7 +83,7 @@ def make_board(
     if driver == "world":
         raise ConfigError(
             "driver 'world' is a port onto the mission's vehicle world: build it with "
-            "zplatform.world.node_board(mission, node)",
+            "zplatform.boards.world.node_board(mission, node)",
             f"{where}.driver",
         )
     if driver == "serial":
@@ -126,7 +126,7 @@ def check_board(
     """
     driver, config = _split(spec, where)
     if driver == "world":
-        return  # checked against the mission's world (zplatform.world.check_config)
+        return  # checked against the mission's world (zplatform.world_checks.check_config)
     if driver in BUILTIN_DRIVERS:
         make_board(spec, where=where, pythonpath=pythonpath)
         return

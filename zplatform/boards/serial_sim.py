@@ -17,7 +17,7 @@ The device safes itself like a firmware would: with no valid WRITE for
 ``--watchdog-ms`` it drives every output off / 0 V.
 
 :class:`SimDevice` and :func:`open_pty_link` are also what the vehicle
-world process (:mod:`zplatform.world`) uses to play a board's firmware over
+world process (:mod:`zplatform.world_server`) uses to play a board's firmware over
 a pty for hardware in the loop, with the world's physics behind the pins.
 """
 

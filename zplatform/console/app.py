@@ -31,7 +31,7 @@ from textual.widgets import Button, Input, Label, Static
 from textual_plotext import PlotextPlot
 
 from ..errors import CommandError, DataVectorError
-from ..ground.records import ParamRow
+from ..records import ParamRow
 from .link import Link
 from .model import HELP, LOCAL_COMMANDS, ConsoleModel, Status, severity_style
 

@@ -24,7 +24,7 @@ import time
 from collections.abc import Callable
 
 from ..errors import ZPlatformError
-from ..ground.records import EventRecord
+from ..records import EventRecord
 from ..timebase import NodeClock
 from .model import ConsoleModel
 

@@ -3,7 +3,7 @@
 :class:`ConsoleModel` is fed by a telemetry source: :meth:`on_snapshot`
 after each accepted snapshot (a CN-layout Data Vector, with the ground's
 counters), :meth:`on_event` per event record, :meth:`on_result` per command
-outcome (:class:`~zplatform.ground.records.CommandOutcome`, with its reason). The screen asks it
+outcome (:class:`~zplatform.records.CommandOutcome`, with its reason). The screen asks it
 what to draw at a human rate (:meth:`status`, :meth:`region_rows`,
 :meth:`events`, :meth:`plot_series`); :meth:`tick` with the current time
 decides loss of signal. Nothing here blocks, allocates per snapshot beyond
@@ -35,7 +35,10 @@ from ..config import CMD_NAMES, Mission
 from ..datavector import DataVector, ElementSpec, Layout
 from ..errors import CommandError, ZPlatformError
 from ..events import Severity
-from ..ground.records import (
+from ..ground.status import RateMeter
+from ..health import stalled_names
+from ..limits import Limits, mission_limits
+from ..records import (
     CommandOutcome,
     EventRecord,
     ParamRow,
@@ -45,9 +48,6 @@ from ..ground.records import (
     param_rows,
     value_text,
 )
-from ..ground.status import RateMeter
-from ..health import stalled_names
-from ..limits import Limits, mission_limits
 
 __all__ = [
     "ConsoleModel",

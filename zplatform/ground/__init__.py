@@ -5,7 +5,9 @@
   host), used by every driver;
 * :mod:`.link`: :class:`~.link.GroundLink`, the zenoh driver (one session,
   one telemetry subscriber, one event intake, one command publisher);
-* :mod:`.records`: the typed records (counters, command outcomes, events);
+* the typed records (counters, command outcomes, events) are
+  :mod:`zplatform.records` (re-exported here), below every layer that logs
+  or shows them;
 * :mod:`.script`: the command-script player;
 * :mod:`.status`: the status line and the loop-rate meter;
 * :mod:`.logger`: the telemetry CSV and the events file;
@@ -24,8 +26,8 @@ GroundLink``), so the lockstep runner and the record types stay light.
 
 from __future__ import annotations
 
+from ..records import REFUSALS, CommandOutcome, EventRecord, TelemetryCounters, format_outcome
 from .logic import GroundLogic, needs_arm
-from .records import REFUSALS, CommandOutcome, EventRecord, TelemetryCounters, format_outcome
 from .script import ScriptPlayer
 from .status import RateMeter, status_line
 

@@ -61,11 +61,11 @@ from ..handoff import Mailbox, Waker
 from ..intake import TelemetryIntake
 from ..node.runtime import EventPublisher
 from ..queries import ask, replies
+from ..records import CommandOutcome, EventRecord
 from ..timebase import NodeClock
 from ..transport import NodeSession, is_matching
 from ..uplink import ScriptCommand, validate_command
 from .logic import GroundLogic, default_max_age_ns
-from .records import CommandOutcome, EventRecord
 
 __all__ = [
     "EVENT_BACKLOG",

@@ -13,9 +13,9 @@ from __future__ import annotations
 from pathlib import Path
 
 from ..datavector import DataVector, Layout
+from ..records import EventRecord
 from ..summary import GnSummary
 from ..telemetry import CsvLogger, EventWriter, events_path
-from .records import EventRecord
 
 __all__ = ["TelemetryLog", "log_summary_line"]
 

@@ -83,8 +83,8 @@ from ..config import STANDBY, Mission
 from ..datavector import DataVector, Layout
 from ..errors import CodecError, CommandError
 from ..events import EV, Event, EventLog, EventReader, EventType
+from ..records import REFUSALS, CommandOutcome, EventRecord, TelemetryCounters
 from ..uplink import ScriptCommand, Uplink, validate_command
-from .records import REFUSALS, CommandOutcome, EventRecord, TelemetryCounters
 from .script import ScriptPlayer
 
 __all__ = [

@@ -20,17 +20,14 @@ the command's time, ``up`` from its verdict (the ground node's
 from __future__ import annotations
 
 from collections.abc import Sequence
-from typing import TYPE_CHECKING
+from typing import Protocol
 
 import msgspec
 
 from ..config import Mission
 from ..errors import CommandError
+from ..records import CommandOutcome
 from ..uplink import ScriptCommand, validate_command
-from .records import CommandOutcome
-
-if TYPE_CHECKING:
-    from .logic import GroundLogic
 
 __all__ = ["MIN_DURATION_S", "SETTLE_S", "ScriptPlayer", "script_duration_s"]
 
@@ -44,6 +41,26 @@ def script_duration_s(script: Sequence[ScriptCommand]) -> float:
     """Last command + :data:`SETTLE_S`, at least :data:`MIN_DURATION_S` (s)."""
     last = max((c.at_ns for c in script), default=0) / 1e9
     return max(MIN_DURATION_S, last + SETTLE_S)
+
+
+class _Logic(Protocol):
+    """What the player uses of the :class:`~.logic.GroundLogic` it is handed
+    (a protocol, so this module does not import the logic that imports it)."""
+
+    @property
+    def idle(self) -> bool: ...
+
+    def command(
+        self,
+        command: str,
+        element: str | None = None,
+        value: str | None = None,
+        *,
+        now_ns: int,
+        source: str = "",
+    ) -> int: ...
+
+    def result(self, ticket: int) -> list[CommandOutcome] | None: ...
 
 
 class _Entry(msgspec.Struct, frozen=True):
@@ -76,7 +93,7 @@ class ScriptPlayer:
         """Sources (``file:line``) of the commands not sent yet."""
         return [e.command.source for e in self._script[self._next :]]
 
-    def step(self, logic: GroundLogic, loop: int, now_ns: int, can_send: bool) -> None:
+    def step(self, logic: _Logic, loop: int, now_ns: int, can_send: bool) -> None:
         """After the ground accepted the snapshot of ``loop``: submit the
         next command if it is due and nothing waits for a verdict."""
         if self._next == len(self._script) or not can_send or not logic.idle:
@@ -90,12 +107,12 @@ class ScriptPlayer:
             logic.command(c.command, c.element, c.value, now_ns=now_ns, source=c.source)
         )
 
-    def done(self, logic: GroundLogic) -> bool:
+    def done(self, logic: _Logic) -> bool:
         """Every command was sent and its outcome released."""
         return self._next == len(self._script) and all(
             logic.result(t) is not None for t in self._tickets
         )
 
-    def results(self, logic: GroundLogic) -> list[CommandOutcome]:
+    def results(self, logic: _Logic) -> list[CommandOutcome]:
         """The released outcomes of the script's commands, in order."""
         return [o for t in self._tickets for o in (logic.result(t) or [])]

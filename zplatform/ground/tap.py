@@ -3,7 +3,7 @@
 :class:`TapDecoder` turns a sample into a dict: a region frame or telemetry
 into its elements (checked with the mission key when it is at hand, else
 decoded and marked ``"verified": false``), an event into its
-:class:`~.records.EventRecord`, a bulk sample into its header and a summary
+:class:`~zplatform.records.EventRecord`, a bulk sample into its header and a summary
 of its array, anything else into its first bytes. :func:`run_tap` prints
 samples through a :class:`~.link.GroundLink` until a count, a timeout or
 Ctrl-C; when nothing came it says whether the mission is running at all
@@ -27,9 +27,9 @@ from ..config import Mission
 from ..datavector import DataVector, Layout
 from ..errors import CodecError, CommandError, TransportError
 from ..events import EventReader
+from ..records import EventRecord
 from ..telemetry import f32_value
 from ..transport import KeySpace
-from .records import EventRecord
 
 __all__ = ["TAP_SILENCE_S", "TapDecoder", "check_keyexpr", "format_tap", "run_tap", "tap_keys"]
 

@@ -24,10 +24,10 @@ import msgspec
 from ..config import Mission
 from ..errors import CommandError, ZPlatformError
 from ..params import ParamFileError, decode_params, params_path, read_params_file
+from ..records import CommandOutcome, EventRecord, ParamRow, format_outcome, param_rows
 from ..uplink import validate_command
 from .link import GroundLink
 from .logic import needs_arm
-from .records import CommandOutcome, EventRecord, ParamRow, format_outcome, param_rows
 from .status import RateMeter, status_line
 
 __all__ = [

@@ -19,7 +19,7 @@ themselves as the run's end, not as a lost CN): the last of ``max_loops``
 (``--duration``), or, once a stop is asked for (SIGTERM, Ctrl-C under
 ``up``), one more loop after it, after which the node stops.
 
-``record`` attaches a :class:`~zplatform.recording.Recorder` after the
+``record`` attaches a :class:`~zplatform.replay_recording.Recorder` after the
 warm-up: every input of every loop goes to disk for ``zplatform replay``.
 
 Parameters (:mod:`zplatform.params`): :meth:`ControlNode.wait_ready` ends by
@@ -66,7 +66,7 @@ from ..messages import wildcard_sync_for
 from ..params import ParamSaver, params_path, read_params_file
 from ..recorder import FlightRecorder, RecorderReader, open_recorder, recorder_dir, summary_line
 from ..recorder.server import RecorderServer
-from ..recording import Recorder
+from ..replay_recording import Recorder
 from ..role import (
     Command,
     ControlRole,

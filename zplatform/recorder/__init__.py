@@ -1,6 +1,6 @@
 """The on-board flight recorder: each vehicle node keeps its own telemetry and
 events on local storage, and the ground fills its telemetry gaps from the
-CN's (issue 20). Not to be confused with :mod:`zplatform.recording`, which
+CN's (issue 20). Not to be confused with :mod:`zplatform.replay_recording`, which
 records a CN's loop *inputs* for a bit-exact replay (``up --record``).
 
 A mission turns it on with a ``recorder:`` section

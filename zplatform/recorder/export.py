@@ -40,7 +40,7 @@ from ..config import Mission
 from ..datavector import DataVector, Layout
 from ..errors import CodecError, FrameFormatError, RecordingError
 from ..events import decode_event
-from ..ground.records import EventRecord
+from ..records import EventRecord
 from ..telemetry import CsvLogger, EventWriter
 from .format import DROPPED, END, EVENT, FRAME
 from .reader import RecorderReader, SegmentHead, counts

@@ -1,7 +1,7 @@
 """The ground side's typed records: telemetry counters, command outcomes, events, parameters.
 
 Frozen ``msgspec.Struct``\\ s, snapshots in the manner of trio's statistics
-objects: a :class:`TelemetryCounters` is what :class:`~.logic.GroundLogic`
+objects: a :class:`TelemetryCounters` is what :class:`~zplatform.ground.logic.GroundLogic`
 counted up to the moment it was taken, a :class:`CommandOutcome` the CN's
 verdict on one request with its reason, an :class:`EventRecord` one event as
 the ground received it (the line of the events JSONL, the ``event`` of
@@ -16,12 +16,12 @@ from typing import TYPE_CHECKING, Literal
 
 import msgspec
 
-from ..events import Event
+from .events import Event
 
 if TYPE_CHECKING:
     from collections.abc import Mapping
 
-    from ..config import Mission
+    from .config import Mission
 
 __all__ = [
     "EPOCH_TIME_NS",
@@ -174,7 +174,7 @@ def param_rows(mission: Mission, values: Mapping[str, object] | None) -> list[Pa
     """Every parameter of ``mission`` in declaration order, with its value
     from ``values`` (by name: a telemetry snapshot, a parameter file; None
     or a name missing: unknown)."""
-    from ..params import param_states
+    from .params import param_states
 
     rows = []
     for p in mission.params:

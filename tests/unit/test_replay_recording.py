@@ -9,9 +9,10 @@ from typing import Any
 
 import pytest
 
-from zplatform import ControlLogic, Recorder, load_mission, recording
+from zplatform import ControlLogic, Recorder, load_mission
+from zplatform import replay_recording as recording
 from zplatform.errors import RecordingError
-from zplatform.recording import RecordReader
+from zplatform.replay_recording import RecordReader
 
 ROOT = Path(__file__).resolve().parents[2]
 MISSION = ROOT / "configs" / "minimal.yaml"

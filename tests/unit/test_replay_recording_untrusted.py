@@ -33,7 +33,7 @@ from zplatform.datavector import Layout
 from zplatform.errors import RecordingError
 from zplatform.loop import DeviceLogic
 from zplatform.mission import decode_mission
-from zplatform.recording import (
+from zplatform.replay_recording import (
     MAX_META_BYTES,
     MAX_MISSION_BYTES,
     MISSION_FILE,
