@@ -375,7 +375,7 @@ class TelemetryH(_IntakeCounts, Harness):
 class EventH(Harness):
     """The ground's event records (EventReader, counted by GroundLogic)."""
 
-    kinds = ("bad",)
+    kinds = ("bad", "stale")
 
     def __init__(self, m: Mission, node: str, t0: int = T0) -> None:
         self.t0 = t0
@@ -385,19 +385,6 @@ class EventH(Harness):
         self.key = f"{m.vehicle}/{node}/events"
         self.max_len = 4096
         self.n = 0
-
-    @classmethod
-    def gaps(cls, m: Mission) -> dict[str, str]:
-        why = (
-            "an event record has no freshness rule at intake: EventReader and "
-            "GroundLogic.on_event_bytes take an authentic record again"
-        )
-        return {
-            "replay": why,
-            "extreme_min": why + " (seq 0, t_ns i64 min)",
-            "extreme_stamp": why + " (seq u64 max, t_ns i64 max)",
-            "replay_old_run": why + " (of an earlier run of the node)",
-        }
 
     def _record(self, seq: int, t_ns: int, severity: int) -> bytes:
         assert self.ch is not None
@@ -412,7 +399,8 @@ class EventH(Harness):
         return self.logic.on_event_bytes(self.key, payload, self.t0) is not None
 
     def counts(self) -> dict[str, int]:
-        return {"bad": self.logic.counters.bad_events}
+        c = self.logic.counters
+        return {"bad": c.bad_events, "stale": c.stale_events}
 
     def extreme(self, hi: bool) -> bytes:
         if hi:

@@ -462,3 +462,34 @@ def test_the_rate_is_unknown_until_two_snapshots_give_it() -> None:
     v.step()
     line = status_line(LED, v.ground.dv, None, ["led_a_fb"])
     assert "     - Hz" in line and "0.0 Hz" not in line and "led_a_fb=False" in line
+
+
+def test_event_records_must_be_fresh_per_node_and_replays_are_counted() -> None:
+    """An authentic event record is taken once, stamped within the ground's
+    clock bound: a replay, or one stamped at the end of time (which, taken,
+    would leave every genuine record after it 'not newer'), is refused and
+    counted in stale_events, and the node's next genuine record is taken."""
+    from zplatform.auth import channel
+    from zplatform.events import encode_event
+
+    keys = KeySet.from_master(IGN, KEY)
+    g = GroundLogic(IGN, keys=keys.for_node("gn"))
+    ch = channel(keys, "events_dn0")
+    assert ch is not None
+    key = f"{IGN.vehicle}/dn0/events"
+    now = 1_700_000_000_000_000_000
+    bound = g.max_age_ns
+
+    def rec(seq: int, t_ns: int) -> bytes:
+        return bytes(ch.seal(encode_event(Event("dn0", seq, t_ns, 2, "bad_frame", "x"))))
+
+    first = rec(1, now)
+    assert g.on_event_bytes(key, first, now) is not None
+    assert g.on_event_bytes(key, rec(2, now), now) is not None  # same loop, numbered up
+    assert g.on_event_bytes(key, first, now) is None  # a replay
+    assert g.on_event_bytes(key, rec(3, (1 << 63) - 1), now) is None  # the end of time
+    assert g.on_event_bytes(key, rec(4, now + bound + 1), now) is None  # beyond the bound
+    assert g.on_event_bytes(key, rec(5, now - bound - 1), now) is None  # an old record
+    assert g.on_event_bytes(key, rec(6, now + 1), now) is not None
+    c = g.counters
+    assert (c.stale_events, c.bad_events) == (4, 0)

@@ -82,7 +82,7 @@ from ..commands import protected_elements
 from ..config import STANDBY, Mission
 from ..datavector import DataVector, Layout
 from ..errors import CodecError, CommandError
-from ..events import EV, Event, EventLog, EventReader, EventType
+from ..events import EV, Event, EventLog, EventReader, EventType, StaleRecordError
 from ..uplink import ScriptCommand, Uplink, validate_command
 from .records import REFUSALS, CommandOutcome, EventRecord, TelemetryCounters
 from .script import ScriptPlayer
@@ -191,6 +191,7 @@ class _Tally(msgspec.Struct):
     epoch_changes: int = 0
     first_seq: int = -1
     bad_events: int = 0
+    stale_events: int = 0
 
 
 class _Plan:
@@ -281,7 +282,6 @@ class GroundLogic:
         """The last accepted snapshot (all zero before the first)."""
         self._codec = RegionCodec(self.dv)
         self._open = channel(keys, "telemetry")
-        self._events_in = EventReader(mission, keys)
         self._max_len = self._codec.max_frame_len + (TAG_LEN if self._open is not None else 0)
         self._epoch_at = self.layout.element("cn_epoch").offset
         # A redundant mission's term (docs/architecture.md#failover): the
@@ -291,6 +291,7 @@ class GroundLogic:
         )
         self._term = 0
         self.max_age_ns = default_max_age_ns(mission) if max_age_ns is None else max_age_ns
+        self._events_in = EventReader(mission, keys, self.max_age_ns)
         self._period = mission.period_ns
         self._div = mission.telemetry_divisor
         self.events = EventLog(node)
@@ -755,9 +756,15 @@ class GroundLogic:
     ) -> EventRecord | None:
         """Check and take one event record that came on ``key_expr``
         (``{vehicle}/<node>/events``: whose key checks its tag); None
-        (counted) if it is not one, or its tag fails."""
+        (counted in ``bad_events``) if it is not one, or its tag fails;
+        None (counted in ``stale_events``) if it is authentic but not fresh
+        (:class:`~zplatform.events.EventReader`: a replay, or stamped beyond
+        :attr:`max_age_ns` of ``rx_ns``)."""
         try:
-            e, verified = self._events_in.read(key_expr, payload)
+            e, verified = self._events_in.read(key_expr, payload, rx_ns)
+        except StaleRecordError:
+            self._n.stale_events += 1
+            return None
         except CodecError:
             self._n.bad_events += 1
             return None
