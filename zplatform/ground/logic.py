@@ -354,14 +354,26 @@ class GroundLogic:
         """The longest telemetry frame that can be valid (bytes, tag included)."""
         return self._max_len
 
-    def refused(self, size: int, bad: int, stale: int, aged: int, rx_ns: int) -> None:
+    def refused(
+        self, size: int, bad: int, stale: int, aged: int, rx_ns: int, ahead: int = 0
+    ) -> None:
         """Count snapshots the driver's intake refused as they arrived (module
         doc): ``size`` too long and ``bad`` with a bad tag count as bad;
-        ``stale`` replays (authentic, not newer than the newest let through)
-        as refused ``stale`` (``aged`` of them, stamped beyond the freshness
-        bound) or ``not_newer`` (the rest). The first of each kind is an
-        event, as for :meth:`on_telemetry`'s own."""
+        ``stale`` authentic ones that were not fresh: ``ahead`` of them
+        stamped beyond the freshness bound after they arrived (refused
+        ``ahead``), ``aged`` beyond it before (``stale``), the rest replays
+        not newer than the newest let through (``not_newer``). The first of
+        each kind is an event, as for :meth:`on_telemetry`'s own."""
         n = self._n
+        if ahead:
+            n.refused["ahead"] += ahead
+            stale -= ahead
+            self._note(
+                "ahead",
+                f"{ahead} snapshot(s) stamped more than {self.max_age_ns / 1e9:g} s after they "
+                "arrived",
+                rx_ns,
+            )
         if size:
             n.bad += size
             self._note("size", f"{size} snapshot(s) longer than any telemetry frame", rx_ns)
