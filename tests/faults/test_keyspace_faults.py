@@ -690,13 +690,6 @@ class RecorderQueryH(Harness):
         self.max_len = REQUEST.size + TAG_LEN
         self.n = 0
 
-    @classmethod
-    def gaps(cls, m: Mission) -> dict[str, str]:
-        return {
-            "replay": "the recorder serves a replayed request again while its stamp is "
-            "within the clock bound (reads are idempotent; bounded by MAX_PENDING only)"
-        }
-
     def _request(self, run: int, first: int, last: int, t_ns: int) -> bytes:
         assert self.ch is not None
         return bytes(self.ch.seal(REQUEST.pack(REQUEST_MAGIC, run, first, last, t_ns)))
@@ -744,16 +737,6 @@ class GapFillH(Harness):
         self.rid = req[0]
         self.max_len = 1 + REPLY_LEN.size + self.gf._frame_max
         self.n = 0
-
-    @classmethod
-    def gaps(cls, m: Mission) -> dict[str, str]:
-        return {
-            "replay": "GapFill keeps the first frame of a loop and drops a replayed one "
-            "without counting it",
-            "junk_empty": "GapFill.on_reply ignores an empty reply without counting it",
-            "extreme_stamp": "GapFill takes an authentic frame of a loop asked stamped at "
-            "i64 max (its t_ns is not checked; it becomes the row's time)",
-        }
 
     def _reply(self, frame: bytes) -> bytes:
         return bytes([REPLY_FRAMES]) + REPLY_LEN.pack(len(frame)) + frame
