@@ -10,16 +10,20 @@ admitted goes into a bounded :class:`Mailbox`. One intake per key:
 =============================  =============================  ================================
 key                            intake (node)                  fresh: admitted when
 =============================  =============================  ================================
-``{vehicle}/dnX/to_cn``        :class:`TriggerIntake` (dnX)   stamped later than any admitted
+``{vehicle}/dnX/to_cn``        :class:`TriggerIntake` (dnX)   stamped later than any admitted,
+                                                              not beyond the clock bound
+                                                              ahead of the node's clock
 ``{vehicle}/dnX/probe``        :class:`ProbeIntake` (dnX)     stamped later than any admitted
-                                                              from the same control node;
-                                                              within the rate bounds
+                                                              from the same control node,
+                                                              not beyond the clock bound
+                                                              ahead; within the rate bounds
 ``{vehicle}/cn/mirror``        :class:`MirrorIntake` (either  newer in (term, loop) than any
                                control node)                  admitted, from the other node
 ``{vehicle}/gn/to_cn``         :class:`RequestIntake` (CN)    this CN run, numbered above
                                                               every number seen
-``{vehicle}/cn/telemetry``     :class:`TelemetryIntake`       stamped later than any admitted
-                               (ground)
+``{vehicle}/cn/telemetry``     :class:`TelemetryIntake`       newer in (run, term, stamp)
+                               (ground)                       than any admitted, not beyond
+                                                              ``max_age`` ahead of arrival
 the CN's sync replies          :class:`ReplyCheck` (CN)       for the loop asked
                                                               (:class:`zplatform.sync.ControlSync`)
 =============================  =============================  ================================
@@ -41,7 +45,10 @@ The checks, in this order, the first failure wins:
 3. **freshness**: the authentic frame's stamp (its loop number and time, read
    at the fixed offsets of codecs/FORMAT.md §2, or a request's epoch and
    number) against the newest admitted: an authentic frame that is not newer
-   is a replay (or a duplicate), counted in ``stale``. This check must come
+   is a replay (or a duplicate), counted in ``stale``; so is one stamped
+   further ahead of the receiver's clock than the mission's clock bound
+   allows (it would become the newest and refuse every genuine frame after
+   it). This check must come
    before the mailbox: there, a replayed frame arriving after a fresh one
    would be "newest" and displace it. Without authentication
    (``security.auth: false``) a replay cannot be told from a forgery, so
