@@ -518,11 +518,15 @@ class EventReader:
     **Freshness** (with ``now_ns`` and a ``max_age_ns``, the receiver's
     clock bound): a verified record is fresh when stamped within
     ``max_age_ns`` of ``now_ns`` (either side: a record is published as it
-    is emitted) and later, in (``t_ns``, ``seq``) order, than every record
-    of the same node taken before (the records of one loop share its time,
-    numbered up). Else :class:`StaleRecordError` (a FrameFormatError): a
-    replay, or a stamp no clock of the mission can have made (which, taken,
-    would lock every genuine record after it out). An unverified record
+    is emitted) and newer than every record of the same node taken before,
+    in its number or in its time: a replay of any record taken is neither
+    (both are at most the largest taken), while the node's next record is
+    numbered up (the records of one loop share its time, and a node may
+    stamp one with its loop's time after one with its clock's) and a
+    restarted node's, numbered from 0 again, are later. Else
+    :class:`StaleRecordError` (a FrameFormatError): a replay, or a stamp no
+    clock of the mission can have made (which, taken, would lock every
+    genuine record after it out). An unverified record
     (no key, or no authentication) is not checked: its stamp proves nothing.
     Not thread-safe.
     """
@@ -532,7 +536,7 @@ class EventReader:
     ) -> None:
         self._auth = mission.security.auth
         self._max_age = max_age_ns
-        # Per node with a key: (t_ns, seq) of its newest record taken.
+        # Per node with a key: the largest t_ns and the largest seq taken.
         self._newest: dict[str, tuple[int, int]] = {}
         # Made once, for the nodes whose event keys are held: a flood on
         # made-up keys costs no memory.
@@ -574,11 +578,15 @@ class EventReader:
                 f"clock (bound {bound / 1e9:g} s): a replay, or a clock no node can have"
             )
         newest = self._newest.get(e.node)
-        if newest is not None and (e.t_ns, e.seq) <= newest:
+        if newest is None:
+            self._newest[e.node] = (e.t_ns, e.seq)
+            return
+        t, seq = newest
+        if e.t_ns <= t and e.seq <= seq:
             raise StaleRecordError(
-                f"{e.node}'s event #{e.seq} is not newer than #{newest[1]}: a replay"
+                f"{e.node}'s event #{e.seq} is not newer than #{seq} at its time: a replay"
             )
-        self._newest[e.node] = (e.t_ns, e.seq)
+        self._newest[e.node] = (max(t, e.t_ns), max(seq, e.seq))
 
 
 class EventLog:

@@ -241,8 +241,8 @@ KEYSPACE: tuple[KeyRow, ...] = (
                 "events_{node}",
                 "events-{node}",
                 "zplatform.events.EventReader gn",
-                "per node, (t_ns, seq) later than any taken, t_ns within max_age of the "
-                "ground's clock",
+                "per node, seq or t_ns above every record taken, t_ns within max_age of "
+                "the ground's clock",
                 "mailbox of the ground link, newest kept",
             ),
         ),
@@ -261,8 +261,8 @@ KEYSPACE: tuple[KeyRow, ...] = (
                 "events_{node}",
                 "events-{node}",
                 "zplatform.events.EventReader gn",
-                "per node, (t_ns, seq) later than any taken, t_ns within max_age of the "
-                "ground's clock",
+                "per node, seq or t_ns above every record taken, t_ns within max_age of "
+                "the ground's clock",
                 "mailbox of the ground link, newest kept",
             ),
         ),

@@ -491,8 +491,15 @@ def test_event_records_must_be_fresh_per_node_and_replays_are_counted() -> None:
     assert g.on_event_bytes(key, rec(4, now + bound + 1), now) is None  # beyond the bound
     assert g.on_event_bytes(key, rec(5, now - bound - 1), now) is None  # an old record
     assert g.on_event_bytes(key, rec(6, now + 1), now) is not None
+    # Numbered up but stamped before (the loop's time after the clock's): taken;
+    # then a replay of any record taken is not.
+    assert g.on_event_bytes(key, rec(7, now), now) is not None
+    assert g.on_event_bytes(key, rec(6, now + 1), now) is None
+    assert g.on_event_bytes(key, rec(2, now), now) is None
+    # A restarted node numbers from 0 again, later.
+    assert g.on_event_bytes(key, rec(0, now + 2), now) is not None
     c = g.counters
-    assert (c.stale_events, c.bad_events) == (4, 0)
+    assert (c.stale_events, c.bad_events) == (6, 0)
 
 
 def test_the_ground_keeps_logging_after_an_earlier_runs_higher_term_snapshot() -> None:
