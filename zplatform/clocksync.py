@@ -61,6 +61,7 @@ import secrets
 import struct
 import threading
 import time
+from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Protocol
@@ -99,6 +100,15 @@ PEER_INDEX = 0xFE
 _REPLY = struct.Struct("<2sBB16sqqq")
 _Q_MAGIC, _R_MAGIC, _VERSION = b"ZQ", b"ZR", 1
 NONCE_LEN = 16
+QUERY_SPAN_NS = 86_400 * 10**9
+"""How far apart a clock query's stamp and the CN's clock, or a reply's
+times and its query's, may be: a day. A host clock that is merely not
+synchronised (a zone set wrong is hours off) is nearer; a stamp beyond is a
+key holder's or a broken clock's, refused (:class:`ClockResponder`,
+:class:`ClockLink`)."""
+ANSWERED = 256
+"""Nonces of the queries it answered a :class:`ClockResponder` keeps per
+asker, to refuse a replayed query unanswered (a start-up series is 200)."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -157,17 +167,23 @@ class ClockLink:
         self.refused_bad = 0
         self.refused_other = 0
         self.timeouts = 0
+        self._sent = (b"", 0)  # the last query's nonce and stamp
 
     def query(self, t1: int) -> tuple[bytes, bytes]:
         """``(payload, nonce)`` of a new query stamped ``t1`` (this node's clock)."""
         nonce = secrets.token_bytes(NONCE_LEN)
+        self._sent = (nonce, t1)
         body = _QUERY.pack(_Q_MAGIC, _VERSION, self.index, nonce, t1)
         seal = self._seal
         return (bytes(seal.seal(body)) if seal is not None else body), nonce
 
     def check(self, raw: bytes, nonce: bytes) -> tuple[int, int, int] | None:
         """``(t1, t2, t3)`` of the CN's reply to the query with ``nonce``;
-        None (counted) for anything else."""
+        None (counted) for anything else. The times are checked too: ``t1``
+        must be the query's own (for the last query made), the CN's ``t2``
+        no later than its ``t3``, both within :data:`QUERY_SPAN_NS` of
+        ``t1``; an authentic reply with other times (a key holder's, a CN
+        clock gone wrong) is refused in :attr:`refused_other`."""
         try:
             body = self._open.open(raw) if self._open is not None else memoryview(raw)
             if len(body) != _REPLY.size:
@@ -179,7 +195,7 @@ class ClockLink:
         if magic != _R_MAGIC or version != _VERSION or index != self.index:
             self.refused_bad += 1
             return None
-        if echo != nonce:
+        if echo != nonce or not _believable(t1, t2, t3, self._sent, nonce):
             self.refused_other += 1
             return None
         return t1, t2, t3
@@ -189,11 +205,22 @@ class ClockLink:
         return self.refused_bad + self.refused_other
 
 
+def _believable(t1: int, t2: int, t3: int, sent: tuple[bytes, int], nonce: bytes) -> bool:
+    """Whether a reply's times can be the CN's answer to the query sent."""
+    if sent[0] == nonce and t1 != sent[1]:
+        return False
+    return t2 <= t3 and abs(t2 - t1) <= QUERY_SPAN_NS and t3 - t2 <= QUERY_SPAN_NS
+
+
 class ClockResponder:
     """The CN's end of the clock exchange (module doc), sans-IO: answers a
-    DN's query if its tag checks with that DN's link key. ``keys``: the
-    CN's keys (None: the mission does not authenticate). Not thread-safe:
-    one serving thread."""
+    DN's query if its tag checks with that DN's link key, it is stamped
+    within :data:`QUERY_SPAN_NS` of the CN's clock, and its nonce is not
+    one of the last :data:`ANSWERED` the asker's queries carried (a replay
+    is refused unanswered; the asker's nonce, not its clock, orders its
+    queries: a DN's clock steps when corrected). ``keys``: the CN's keys
+    (None: the mission does not authenticate, and only the stamp is
+    checked). Not thread-safe: one serving thread."""
 
     def __init__(self, mission: Mission, keys: KeySet | None) -> None:
         dns = mission.device_nodes
@@ -206,8 +233,13 @@ class ClockResponder:
             else None
         )
         self._auth = keys is not None
+        # Per asker (a DN's index, or the peer last): the nonces answered,
+        # oldest first, and the same as a set.
+        self._answered: list[deque[bytes]] = [deque() for _ in range(len(dns) + 1)]
+        self._seen: list[set[bytes]] = [set() for _ in range(len(dns) + 1)]
         self.refused = 0
-        """Queries refused (malformed, an unknown DN, a bad tag)."""
+        """Queries refused (malformed, an unknown DN, a bad tag, stamped out
+        of bounds, replayed)."""
         self.reason = ""
         """Why the last query was refused."""
 
@@ -231,6 +263,22 @@ class ClockResponder:
             self.reason = str(exc)
             return None
         _, _, _, nonce, t1 = _QUERY.unpack(body)
+        if abs(t1 - t2) > QUERY_SPAN_NS:
+            self.refused += 1
+            self.reason = f"a query stamped {(t1 - t2) / 1e9:+.0f} s from this clock"
+            return None
+        if self._auth:
+            asker = -1 if index == PEER_INDEX else index
+            seen = self._seen[asker]
+            if nonce in seen:
+                self.refused += 1
+                self.reason = "a query answered before (a replay)"
+                return None
+            answered = self._answered[asker]
+            if len(answered) == ANSWERED:
+                seen.discard(answered.popleft())
+            answered.append(nonce)
+            seen.add(nonce)
         reply = _REPLY.pack(_R_MAGIC, _VERSION, index, nonce, t1, t2, t3)
         return bytes(seal.seal(reply)) if seal is not None else reply
 

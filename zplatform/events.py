@@ -56,6 +56,7 @@ __all__ = [
     "EventReader",
     "EventType",
     "Severity",
+    "StaleRecordError",
     "decode_event",
     "encode_event",
 ]
@@ -492,6 +493,10 @@ def decode_event(b: bytes | bytearray | memoryview) -> Event:
         raise FrameFormatError(f"not an event record: {exc}") from exc
 
 
+class StaleRecordError(FrameFormatError):
+    """An authentic event record that is not fresh (:class:`EventReader`)."""
+
+
 class EventReader:
     """Takes the event records of every node off the network, checking each
     node's tag (codecs/FORMAT.md §6.1, channel ``events_<node>``).
@@ -499,7 +504,8 @@ class EventReader:
     ``keys``: the receiver's keys (None: it holds none). Records carry a tag
     when the mission authenticates (``security.auth``). :meth:`read` takes
     the sample's key expression (``{vehicle}/<node>/events``: whose key
-    checks the tag) and payload, and returns ``(event, verified)``:
+    checks the tag), its payload and, when freshness is checked, the
+    receiver's clock ``now_ns``, and returns ``(event, verified)``:
     ``verified`` True when the tag checked, False when this receiver holds
     no key for that node (the record is decoded from the bytes before the
     tag, unchecked: show it marked so), None when the mission does not
@@ -508,11 +514,30 @@ class EventReader:
     record, :class:`~zplatform.auth.AuthError` (a FrameFormatError's
     sibling, both CodecErrors) for a bad tag, or a record that names
     another node than the key it came on. Channels are made once per node.
+
+    **Freshness** (with ``now_ns`` and a ``max_age_ns``, the receiver's
+    clock bound): a verified record is fresh when stamped within
+    ``max_age_ns`` of ``now_ns`` (either side: a record is published as it
+    is emitted) and newer than every record of the same node taken before,
+    in its number or in its time: a replay of any record taken is neither
+    (both are at most the largest taken), while the node's next record is
+    numbered up (the records of one loop share its time, and a node may
+    stamp one with its loop's time after one with its clock's) and a
+    restarted node's, numbered from 0 again, are later. Else
+    :class:`StaleRecordError` (a FrameFormatError): a replay, or a stamp no
+    clock of the mission can have made (which, taken, would lock every
+    genuine record after it out). An unverified record
+    (no key, or no authentication) is not checked: its stamp proves nothing.
     Not thread-safe.
     """
 
-    def __init__(self, mission: Mission, keys: KeySet | None) -> None:
+    def __init__(
+        self, mission: Mission, keys: KeySet | None, max_age_ns: int | None = None
+    ) -> None:
         self._auth = mission.security.auth
+        self._max_age = max_age_ns
+        # Per node with a key: the largest t_ns and the largest seq taken.
+        self._newest: dict[str, tuple[int, int]] = {}
         # Made once, for the nodes whose event keys are held: a flood on
         # made-up keys costs no memory.
         self._channels: dict[str, Channel] = {}
@@ -523,7 +548,10 @@ class EventReader:
                     self._channels[node] = keys.channel(f"events_{node}")
 
     def read(
-        self, key_expr: str, payload: bytes | bytearray | memoryview
+        self,
+        key_expr: str,
+        payload: bytes | bytearray | memoryview,
+        now_ns: int | None = None,
     ) -> tuple[Event, bool | None]:
         from .auth import TAG_LEN, AuthError
 
@@ -539,7 +567,26 @@ class EventReader:
         e = decode_event(ch.open(payload))
         if e.node != node:
             raise AuthError(f"a record of {e.node!r} on {node!r}'s key")
+        if now_ns is not None and self._max_age is not None:
+            self._fresh(e, now_ns, self._max_age)
         return e, True
+
+    def _fresh(self, e: Event, now_ns: int, bound: int) -> None:
+        if abs(e.t_ns - now_ns) > bound:
+            raise StaleRecordError(
+                f"{e.node}'s event #{e.seq} stamped {(e.t_ns - now_ns) / 1e9:+.3f} s from this "
+                f"clock (bound {bound / 1e9:g} s): a replay, or a clock no node can have"
+            )
+        newest = self._newest.get(e.node)
+        if newest is None:
+            self._newest[e.node] = (e.t_ns, e.seq)
+            return
+        t, seq = newest
+        if e.t_ns <= t and e.seq <= seq:
+            raise StaleRecordError(
+                f"{e.node}'s event #{e.seq} is not newer than #{seq} at its time: a replay"
+            )
+        self._newest[e.node] = (max(t, e.t_ns), max(seq, e.seq))
 
 
 class EventLog:

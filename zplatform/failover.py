@@ -185,6 +185,9 @@ class Standby:
         dv = logic.dv
         self._reader = MirrorReader(logic, keys)
         self._period = mission.period_ns
+        # How far ahead of this node's (corrected) clock a commander's stamp
+        # may be: the clock bound and a period, as a device node believes one.
+        self._max_ahead = round(mission.clock.offset_bound_ms * 1e6) + mission.period_ns
         self._takeover = mission.takeover.takeover_loops
         self._lease = mission.takeover.lease_loops * mission.period_ns
         dns = mission.device_nodes
@@ -250,9 +253,16 @@ class Standby:
     def mirror(self, payload: bytes | bytearray | memoryview, now_ns: int) -> bool:
         """Take one mirror frame: applied (True) when it is authentic, of
         this mission's layout, from the other control node, and newer (a
-        newer term, or a later loop of the same term) than the last one."""
+        newer term, or a later loop of the same term) than the last one.
+        One stamped further ahead of ``now_ns`` (this node's clock) than
+        the clock bound and a period is refused and counted in :attr:`bad`:
+        no commander's clock makes it, and taken it would set the schedule
+        the standby follows and takes over on (:attr:`origin`)."""
         frame = self._reader.read(payload)
         if frame is None:
+            return False
+        if frame.t_ns - now_ns > self._max_ahead:
+            self._reader.bad += 1
             return False
         term, commander = self._reader.stamp(frame)
         if commander == self.index:  # its own, from before it stood down

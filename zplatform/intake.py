@@ -10,16 +10,20 @@ admitted goes into a bounded :class:`Mailbox`. One intake per key:
 =============================  =============================  ================================
 key                            intake (node)                  fresh: admitted when
 =============================  =============================  ================================
-``{vehicle}/dnX/to_cn``        :class:`TriggerIntake` (dnX)   stamped later than any admitted
+``{vehicle}/dnX/to_cn``        :class:`TriggerIntake` (dnX)   stamped later than any admitted,
+                                                              not beyond the clock bound
+                                                              ahead of the node's clock
 ``{vehicle}/dnX/probe``        :class:`ProbeIntake` (dnX)     stamped later than any admitted
-                                                              from the same control node;
-                                                              within the rate bounds
+                                                              from the same control node,
+                                                              not beyond the clock bound
+                                                              ahead; within the rate bounds
 ``{vehicle}/cn/mirror``        :class:`MirrorIntake` (either  newer in (term, loop) than any
                                control node)                  admitted, from the other node
 ``{vehicle}/gn/to_cn``         :class:`RequestIntake` (CN)    this CN run, numbered above
                                                               every number seen
-``{vehicle}/cn/telemetry``     :class:`TelemetryIntake`       stamped later than any admitted
-                               (ground)
+``{vehicle}/cn/telemetry``     :class:`TelemetryIntake`       newer in (run, term, stamp)
+                               (ground)                       than any admitted, not beyond
+                                                              ``max_age`` ahead of arrival
 the CN's sync replies          :class:`ReplyCheck` (CN)       for the loop asked
                                                               (:class:`zplatform.sync.ControlSync`)
 =============================  =============================  ================================
@@ -41,7 +45,10 @@ The checks, in this order, the first failure wins:
 3. **freshness**: the authentic frame's stamp (its loop number and time, read
    at the fixed offsets of codecs/FORMAT.md §2, or a request's epoch and
    number) against the newest admitted: an authentic frame that is not newer
-   is a replay (or a duplicate), counted in ``stale``. This check must come
+   is a replay (or a duplicate), counted in ``stale``; so is one stamped
+   further ahead of the receiver's clock than the mission's clock bound
+   allows (it would become the newest and refuse every genuine frame after
+   it). This check must come
    before the mailbox: there, a replayed frame arriving after a fresh one
    would be "newest" and displace it. Without authentication
    (``security.auth: false``) a replay cannot be told from a forgery, so
@@ -107,6 +114,7 @@ __all__ = [
     "RequestIntake",
     "TelemetryIntake",
     "TriggerIntake",
+    "ahead_bound_ns",
     "max_frame_len",
 ]
 
@@ -135,6 +143,13 @@ class Payload(Protocol):
     def __len__(self) -> int: ...
 
     def to_bytes(self) -> bytes: ...
+
+
+def ahead_bound_ns(mission: Mission) -> int:
+    """How far ahead of a vehicle node's corrected clock a genuine stamp of
+    the CN's may be: the clock bound (``clock.offset_bound_ms``) and a
+    period, as :class:`~zplatform.loop.DeviceLogic` believes a trigger."""
+    return round(mission.clock.offset_bound_ms * 1e6) + mission.period_ns
 
 
 def max_frame_len(size: int, channel: Channel | None) -> int:
@@ -255,21 +270,31 @@ class Intake(ABC, Generic[H]):
 
 class _StampIntake(Intake[H]):
     """Fresh: stamped (``t_ns``, the sender's clock) later than every frame
-    admitted so far. A sender's stamps grow with its loop, and a restarted
-    sender's start after its last run's, so only a replay (or a duplicate)
-    is not later; a stamp is authentic, so nobody without the key can push
-    it ahead."""
+    admitted so far, and no further ahead of the receiver's clock than its
+    bound (:meth:`_ahead`). A sender's stamps grow with its loop, and a
+    restarted sender's start after its last run's, so only a replay (or a
+    duplicate) is not later; a stamp is authentic, so nobody without the
+    key can push it ahead, and the bound ahead keeps a key holder's (or a
+    stepped clock's) stamp at the end of time from becoming the newest,
+    which would refuse every genuine frame after it."""
 
     newest_t = -(1 << 63)
     """The stamp of the newest admitted frame."""
 
     def _fresh(self, body: memoryview, handle: H) -> bool:
         _, t_ns = frame_stamp(body)
+        if self._ahead(t_ns, handle):
+            return False
         if t_ns <= self.newest_t:
             self._replayed(t_ns, handle)
             return False
         self.newest_t = t_ns
         return True
+
+    def _ahead(self, t_ns: int, handle: H) -> bool:
+        """Whether ``t_ns`` is further ahead of the receiver's clock than
+        any sender's clock may be (counted by the caller as stale)."""
+        return False
 
     def _replayed(self, t_ns: int, handle: H) -> None:
         """Note a frame refused as not newer (with the lock held)."""
@@ -279,27 +304,44 @@ class TriggerIntake(_StampIntake[H]):
     """A DN's sync queries (``{vehicle}/dnX/to_cn``): the CN's trigger for
     the node, alone or in a sync bundle (``transport.sync_query``
     wildcard). Fresh: stamped later than any trigger admitted before, so a
-    replayed trigger, however authentic, is refused (and never answered).
-    Its mailbox keeps :data:`BACKLOG` triggers."""
+    replayed trigger, however authentic, is refused (and never answered),
+    and no further ahead of ``now_ns`` (the node's corrected clock, the
+    CN's time) than the clock bound and a period
+    (``clock.offset_bound_ms``, as :class:`~zplatform.loop.DeviceLogic`
+    believes a trigger). Its mailbox keeps :data:`BACKLOG` triggers."""
 
-    def __init__(self, mission: Mission, node: str, channel: Channel | None) -> None:
+    def __init__(
+        self,
+        mission: Mission,
+        node: str,
+        channel: Channel | None,
+        now_ns: Callable[[], int] = time.time_ns,
+    ) -> None:
         lay = Layout.for_node(mission, "cn")
         dns = mission.device_nodes
         lens = [max_frame_len(lay.region(f"cn_to_{dn}").size, channel) for dn in dns]
         self._index = mission.device_nodes.index(node)
         own = lens[self._index]
         longest = max(own, bundle_size(lens)) if wildcard_sync_for(mission) else own
+        self._now = now_ns
+        self._max_ahead = ahead_bound_ns(mission)
         super().__init__(f"{node}'s sync query", longest, channel, BACKLOG)
 
     def _frame(self, data: bytes) -> bytes | memoryview:
         return bundle_entry(data, self._index) if is_bundle(data) else data
+
+    def _ahead(self, t_ns: int, handle: H) -> bool:
+        return t_ns - self._now() > self._max_ahead
 
 
 class ProbeIntake(Intake[H]):
     """A device node's probe questions (``{vehicle}/dnX/probe``, a redundant
     mission's control nodes asking which term it runs, :mod:`zplatform.fencing`).
     Fresh: stamped later than any question admitted from the same control
-    node, so a replayed question is refused unanswered. Its mailbox keeps
+    node, so a replayed question is refused unanswered, and no further
+    ahead of ``clock_ns`` (the node's corrected clock, the CN's time) than
+    the clock bound and a period (``bound_ns``), so a question stamped at
+    the end of time never locks its asker out. Its mailbox keeps
     :data:`PROBES` questions (``waker``: the trigger mailbox's, so the node's
     loop wakes for either).
 
@@ -331,6 +373,8 @@ class ProbeIntake(Intake[H]):
         period_ns: int,
         askers: int = 2,
         now_ns: Callable[[], int] = time.monotonic_ns,
+        clock_ns: Callable[[], int] = time.time_ns,
+        bound_ns: int = 0,
     ) -> None:
         super().__init__(
             f"{node}'s probe", ask_size(channel is not None), channel, PROBES, waker=waker
@@ -338,6 +382,8 @@ class ProbeIntake(Intake[H]):
         self._askers = askers
         self._newest = [-(1 << 63)] * askers
         self._now = now_ns
+        self._clock = clock_ns
+        self._max_ahead = bound_ns + period_ns
         self._every = max(period_ns, 1)
         self._tau = (PROBE_BURST - 1) * self._every  # one asker's burst
         self._every_all = max(self._every // askers, 1)
@@ -360,7 +406,7 @@ class ProbeIntake(Intake[H]):
 
     def _fresh(self, body: memoryview, handle: H) -> bool | None:
         asker, t_ns = ask_stamp(body, self._askers)  # CodecError: no such asker (bad)
-        if t_ns <= self._newest[asker]:
+        if t_ns <= self._newest[asker] or t_ns - self._clock() > self._max_ahead:
             return False
         # After freshness: a replay of the asker's questions uses none of its bound.
         now = self._now()
@@ -418,14 +464,24 @@ class MirrorIntake(Intake[None]):
 
 class TelemetryIntake(_StampIntake[int]):
     """The ground's telemetry (``{vehicle}/cn/telemetry``); the handle is the
-    receive time on the ground's clock. Fresh: stamped later than any
-    snapshot admitted before, so a replayed snapshot (of this run or an
-    earlier one) never displaces a new one; the
-    :class:`~zplatform.ground.logic.GroundLogic` checks the rest (its clock
-    bound, the run it follows). Of the refused replays, those stamped more
-    than ``max_age_ns`` before they arrived are also counted in
-    :attr:`aged` (what the logic calls ``stale``). ``capacity``: snapshots
-    kept while the consumer is busy."""
+    receive time on the ground's clock. Fresh: newer, in (run, term, stamp)
+    order, than any snapshot admitted before, as
+    :class:`~zplatform.ground.logic.GroundLogic` orders them, and stamped no
+    further than ``max_age_ns`` (the freshness bound) ahead of its arrival.
+    The run (``cn_epoch``) and, in a redundant mission, the term
+    (``cn_term``) are read from the tagged snapshot; a new run or term is
+    taken only from a snapshot stamped within ``max_age_ns`` of its arrival
+    (either side), so a replay of an earlier run, whatever its term, never
+    displaces a new snapshot nor raises the newest term (after a takeover
+    the new commander's snapshots are fresh even when the old one, not yet
+    stood down, stamped a later loop: zplatform.failover). An older run is
+    taken again, as the logic follows it, only once the newest admitted
+    snapshot is older than ``max_age_ns``. The logic checks the rest (its
+    clock bound both ways, the jumps). Of the refused snapshots, those
+    stamped more than ``max_age_ns`` before they arrived are also counted in
+    :attr:`aged`, those stamped beyond it after in :attr:`ahead` (what the
+    logic calls ``stale`` and ``ahead``). ``capacity``: snapshots kept while
+    the consumer is busy."""
 
     def __init__(
         self,
@@ -442,27 +498,43 @@ class TelemetryIntake(_StampIntake[int]):
         self.aged = 0
         """Replays beyond the freshness bound among those counted by the last
         :meth:`take_counts`."""
-        # A redundant mission's snapshots are ordered by (term, stamp): after a
-        # takeover the new commander's are fresh even when the old one, not
-        # yet stood down, stamped a later loop (zplatform.failover).
+        self._ahead_n = 0
+        self.ahead = 0
+        """Snapshots stamped beyond the freshness bound ahead of their arrival
+        among those counted by the last :meth:`take_counts`."""
         self._size = size
+        self._epoch_at = lay.element("cn_epoch").offset
         self._term_at = lay.element("cn_term").offset if mission.standby is not None else -1
+        self._newest_epoch = -1
         self._newest_term = 0
         super().__init__("telemetry", max_frame_len(size, channel), channel, capacity, waker=waker)
 
     def _fresh(self, body: memoryview, handle: int) -> bool:
-        if self._term_at < 0:
-            return super()._fresh(body, handle)
-        term = int.from_bytes(
-            frame_data(body, self._size)[self._term_at : self._term_at + 4], "little"
-        )
-        if term < self._newest_term:
+        _, t_ns = frame_stamp(body)
+        age = handle - t_ns
+        if -age > self._max_age:
+            self._ahead_n += 1
             return False
-        if term > self._newest_term:
-            self._newest_term = term
-            _, self.newest_t = frame_stamp(body)
-            return True
-        return super()._fresh(body, handle)
+        data = frame_data(body, self._size)
+        at = self._epoch_at
+        epoch = int.from_bytes(data[at : at + 8], "little")
+        at = self._term_at
+        term = int.from_bytes(data[at : at + 4], "little") if at >= 0 else 0
+        if epoch == self._newest_epoch and term == self._newest_term:
+            return super()._fresh(body, handle)
+        # A new run or a new term: only from a snapshot of now.
+        if age > self._max_age:
+            self._aged += 1
+            return False
+        if epoch == self._newest_epoch:
+            if term < self._newest_term:
+                return False  # a term that stood down (or a replay of it)
+        elif epoch < self._newest_epoch and handle - self.newest_t <= self._max_age:
+            return False  # an older run while this one speaks
+        self._newest_epoch = epoch
+        self._newest_term = term
+        self.newest_t = t_ns
+        return True
 
     def _replayed(self, t_ns: int, handle: int) -> None:
         if handle - t_ns > self._max_age:
@@ -470,6 +542,7 @@ class TelemetryIntake(_StampIntake[int]):
 
     def _took(self) -> None:
         self.aged, self._aged = self._aged, 0
+        self.ahead, self._ahead_n = self._ahead_n, 0
 
 
 class RequestIntake(Intake[None]):

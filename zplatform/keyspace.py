@@ -94,8 +94,12 @@ class KeyRow(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
     what: str
 
 
-_STAMP = "stamped later than any admitted"
+_STAMP = (
+    "stamped later than any admitted and at most the clock bound and a period ahead of "
+    "the receiver's clock"
+)
 _NONCE = "nonce echo: the reply to this exchange's query only"
+_NONCE_TIMES = _NONCE + ", its t1 the query's, t2 <= t3, within a day (QUERY_SPAN_NS) of t1"
 
 KEYSPACE: tuple[KeyRow, ...] = (
     KeyRow(
@@ -177,7 +181,8 @@ KEYSPACE: tuple[KeyRow, ...] = (
                 "telemetry",
                 "downlink",
                 "zplatform.intake.TelemetryIntake gn",
-                "(term, stamp) later than any admitted",
+                "(run, term, stamp) later than any admitted; at most max_age ahead of its "
+                "arrival; a new run or term only stamped within max_age of it",
                 "mailbox, newest wins",
                 run_bound=True,
             ),
@@ -236,7 +241,8 @@ KEYSPACE: tuple[KeyRow, ...] = (
                 "events_{node}",
                 "events-{node}",
                 "zplatform.events.EventReader gn",
-                "none: a record's own seq, not checked at intake",
+                "per node, seq or t_ns above every record taken, t_ns within max_age of "
+                "the ground's clock",
                 "mailbox of the ground link, newest kept",
             ),
         ),
@@ -255,7 +261,8 @@ KEYSPACE: tuple[KeyRow, ...] = (
                 "events_{node}",
                 "events-{node}",
                 "zplatform.events.EventReader gn",
-                "none: a record's own seq, not checked at intake",
+                "per node, seq or t_ns above every record taken, t_ns within max_age of "
+                "the ground's clock",
                 "mailbox of the ground link, newest kept",
             ),
         ),
@@ -274,7 +281,8 @@ KEYSPACE: tuple[KeyRow, ...] = (
                 "clock_{asker}_to_cn",
                 "cn-{dn}; cn-cn_b for the standby",
                 "zplatform.clocksync.ClockResponder commander",
-                "none: every authentic query is answered, its nonce echoed",
+                "stamped within a day (QUERY_SPAN_NS) of the CN's clock, its nonce not "
+                "among the asker's last ANSWERED",
                 "one serving thread, queries queued",
             ),
             KeyFrames(
@@ -282,7 +290,7 @@ KEYSPACE: tuple[KeyRow, ...] = (
                 "clock_cn_to_{asker}",
                 "cn-{dn}; cn-cn_b for the standby",
                 "zplatform.clocksync.ClockLink {asker}",
-                _NONCE,
+                _NONCE_TIMES,
                 "the first valid reply ends the exchange",
             ),
         ),
@@ -396,7 +404,8 @@ KEYSPACE: tuple[KeyRow, ...] = (
                 "telemetry",
                 "downlink",
                 "zplatform.recorder.server.RecorderServer commander",
-                "stamped within the clock bound of the CN's clock",
+                "stamped within the clock bound of the CN's clock, not one of the last "
+                "REMEMBERED served",
                 "at most MAX_PENDING in hand, replies paced to serve_bps",
             ),
             KeyFrames(
@@ -404,7 +413,8 @@ KEYSPACE: tuple[KeyRow, ...] = (
                 "telemetry",
                 "downlink",
                 "zplatform.ground.gapfill.GapFill gn",
-                "the run followed, a loop in the range asked",
+                "the run followed, a loop in the range asked not yet taken, stamped at "
+                "most the clock bound after the ask",
                 "the gap fill's bounded hold",
                 run_bound=True,
             ),
@@ -425,7 +435,8 @@ KEYSPACE: tuple[KeyRow, ...] = (
                 "cn-cn_b",
                 "zplatform.intake.MirrorIntake control",
                 "from the other control node, term and loop in range, (term, loop) "
-                "later than every mirror admitted",
+                "later than every mirror admitted; at most the clock bound and a period "
+                "ahead of the standby's clock (Standby.mirror)",
                 "mailbox of MIRRORS, newest kept; junk and stale refused before it",
             ),
         ),

@@ -65,7 +65,8 @@ class TelemetryCounters(msgspec.Struct, frozen=True):
     ``term``/``term_changes``: the term followed and the takeovers followed;
     ``first_seq``/``last_seq``: loop numbers of the first and the last
     accepted snapshot (-1 before any); ``bad_events``: event records that
-    did not decode.
+    did not decode; ``stale_events``: authentic event records refused as
+    not fresh (a replay, or a stamp beyond the clock bound).
     """
 
     received: int = 0
@@ -77,6 +78,9 @@ class TelemetryCounters(msgspec.Struct, frozen=True):
     first_seq: int = -1
     last_seq: int = -1
     bad_events: int = 0
+    stale_events: int = 0
+    """Authentic event records refused as not fresh (replayed, or stamped
+    beyond the freshness bound of the ground's clock)."""
     term: int = 0
     """A redundant mission's term followed (0: no terms, or none yet)."""
     term_changes: int = 0

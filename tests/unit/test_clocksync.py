@@ -474,3 +474,50 @@ def test_a_dns_clock_timeouts_are_counted_and_evented_at_most_once_a_second() ->
     assert "4 more time(s), 7 in all" in ev.text
     tally.count(t0 + 5_000 * MS)  # nothing new: nothing said
     assert not events.drain() and int(logic.dv.get("dn0_clock_timeouts")) == 7
+
+
+# -- freshness of the exchange: replays and absurd times -----------------------------
+
+T0 = 1_700_000_000_000_000_000
+DAY = 86_400 * 10**9
+I64_MAX = (1 << 63) - 1
+
+
+def test_the_clock_server_refuses_a_replayed_or_absurdly_stamped_query_unanswered() -> None:
+    """An authentic query is answered once: its replay (the same nonce), one
+    stamped at i64 max, or more than a day from the CN's clock, is refused
+    unanswered and counted; a query a few hours off (an unsynchronised
+    asker's clock) is still answered."""
+    link, cn = _link(), _responder()
+    q, _ = link.query(T0)
+    assert cn.answer(q, T0 + MS, T0 + 2 * MS) is not None
+    assert cn.answer(q, T0 + 3 * MS, T0 + 4 * MS) is None  # a replay
+    assert "replay" in cn.reason
+    assert cn.answer(link.query(I64_MAX)[0], T0, T0 + 1) is None
+    assert cn.answer(link.query(T0 - DAY - 1)[0], T0, T0 + 1) is None
+    assert cn.answer(link.query(T0 - 5 * 3600 * 10**9)[0], T0, T0 + 1) is not None
+    assert cn.refused == 3
+    peer = ClockLink(IGNITER, "dn1", ALL_KEYS.for_node("dn1"))
+    assert cn.answer(peer.query(T0)[0], T0, T0 + 1) is not None  # its nonces are its own
+
+
+def test_a_clock_reply_with_absurd_times_is_refused_and_counted() -> None:
+    """An authentic reply echoing this exchange's nonce, but whose t1 is not
+    the query's, whose t2 is after t3, or whose times are a day away, is
+    refused (refused_other); the genuine reply is taken."""
+    link = _link()
+    seal = ALL_KEYS.for_node("cn").channel("clock_cn_to_dn0")
+    reply = struct.Struct("<2sBB16sqqq")
+
+    def forged(nonce: bytes, t1: int, t2: int, t3: int) -> bytes:
+        return bytes(seal.seal(reply.pack(b"ZR", 1, link.index, nonce, t1, t2, t3)))
+
+    _, nonce = link.query(T0)
+    for t1, t2, t3 in (
+        (I64_MAX, I64_MAX, I64_MAX),  # a t1 not the query's
+        (T0, T0 + 2 * MS, T0 + MS),  # answered before asked
+        (T0, T0 + DAY + 1, T0 + DAY + 2),  # a day away
+    ):
+        assert link.check(forged(nonce, t1, t2, t3), nonce) is None
+    assert (link.refused_bad, link.refused_other) == (0, 3)
+    assert link.check(forged(nonce, T0, T0 + MS, T0 + 2 * MS), nonce) == (T0, T0 + MS, T0 + 2 * MS)

@@ -478,3 +478,25 @@ def test_a_standby_never_asks_for_a_term_while_the_commander_drives_a_device_nod
         r.step()
     assert [(node, term) for _, node, term in r.commanders] == [("cn", 1), ("cn_b", 2)]
     assert any(kind == ASK for _, _, kind in asked)
+
+
+def test_a_mirror_stamped_beyond_the_clock_bound_is_refused_and_counted() -> None:
+    """An authentic mirror (the commander's key: an insider's, or a stepped
+    clock) stamped further ahead of the standby's clock than the clock
+    bound and a period is refused and counted in bad: it would set the
+    schedule the standby follows; the next genuine mirror is applied."""
+    from zplatform.auth import TAG_LEN
+    from zplatform.codec import decode_frame, encode_frame
+
+    sb = _standby()
+    cn = _commander()
+    assert sb.mirror(_mirror(cn, 1), at(1))
+    genuine = _mirror(cn, 2)
+    f = decode_frame(genuine[:-TAG_LEN])
+    ch = KEYS.channel("mirror")
+    bound = round(FLIGHT.clock.offset_bound_ms * 1e6) + FLIGHT.period_ns
+    for t in (at(2) + bound + 1, (1 << 63) - 1):
+        assert not sb.mirror(bytes(ch.seal(encode_frame(f.layout_id, 2, t, bytes(f.data)))), at(2))
+    assert sb.bad == 2 and sb.mirrored == 1
+    assert sb.mirror(genuine, at(2)) and sb.mirrored == 2
+    assert sb.origin == at(1)

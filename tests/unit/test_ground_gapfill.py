@@ -7,6 +7,7 @@ from pathlib import Path
 from typing import Any
 
 from zplatform.auth import KeySet
+from zplatform.codec import decode_frame, encode_frame
 from zplatform.datavector import DataVector
 from zplatform.events import Event
 from zplatform.ground.gapfill import GapFill
@@ -96,7 +97,7 @@ def test_a_gap_is_asked_for_exactly_and_written_in_loop_order() -> None:
     forged = frames(epoch=EPOCH + 1)[15]  # another run of the CN
     bad_tag = frames(keys=KeySet.from_master(MISSION, bytes(32)))[16]
     g.fill.on_reply(rid, reply(*(TM[n] for n in range(11, 16)), forged, bad_tag, TM[30]))
-    g.fill.on_reply(rid, reply(*(TM[n] for n in range(16, 21)), TM[12]))  # 12 again: once
+    g.fill.on_reply(rid, reply(*(TM[n] for n in range(16, 21)), TM[12]))  # 12 again: refused
     g.fill.on_reply(rid, end(10, 0))
     assert len(g.rows) == 10  # nothing written before the request is over
     g.fill.on_done(rid, now + S)
@@ -104,7 +105,7 @@ def test_a_gap_is_asked_for_exactly_and_written_in_loop_order() -> None:
     # The filled rows carry the frame's own stamp; the live ones their arrival.
     assert g.rows[10:20] == [(EPOCH + n * PERIOD, n) for n in range(11, 21)]
     assert g.rows[20] == (EPOCH + 21 * PERIOD + 1000, 21)
-    assert g.fill.refused == 3 and (g.fill.filled, g.fill.unfilled) == (10, 0)
+    assert g.fill.refused == 4 and (g.fill.filled, g.fill.unfilled) == (10, 0)
     assert "control node run" in g.fill.last_refusal
     (ev,) = g.events()[-1:]
     assert ev.id == "gap_filled" and ev.text.startswith("filled loops 11..20 (10 snapshot(s))")
@@ -208,3 +209,28 @@ def test_the_ground_logic_queues_each_gap() -> None:
         assert logic.on_telemetry(TM[n], EPOCH + n * PERIOD)
     assert list(logic.gaps) == [Gap(EPOCH, 3, 4), Gap(EPOCH, 7, 8)]
     assert logic.counters.gaps == 4
+
+
+def test_an_empty_reply_a_replayed_frame_and_a_frame_stamped_after_the_ask_are_counted() -> None:
+    """Every refusal counts: an empty reply, a frame of a loop already
+    taken (a replay), and an authentic frame of a loop asked for stamped
+    beyond the clock bound after the request (at i64 max it would be the
+    row's time), which is not taken."""
+    g = Ground()
+    g.live(*range(1, 11))
+    g.live(*range(21, 26))
+    now = EPOCH + 26 * PERIOD
+    req = g.fill.take_request(now)
+    assert req is not None
+    rid = req[0]
+    ch = KEYS.channel("telemetry")
+    f = decode_frame(ch.open(TM[12]))
+    late = bytes(ch.seal(encode_frame(f.layout_id, 12, (1 << 63) - 1, bytes(f.data))))
+    g.fill.on_reply(rid, b"")
+    g.fill.on_reply(rid, reply(late))
+    g.fill.on_reply(rid, reply(*(TM[n] for n in range(11, 21)), TM[11]))
+    assert g.fill.refused == 3
+    g.fill.on_reply(rid, end(10, 0))
+    g.fill.on_done(rid, now + S)
+    assert g.rows[11] == (EPOCH + 12 * PERIOD, 12)  # the genuine stamp
+    assert (g.fill.filled, g.fill.unfilled) == (10, 0)

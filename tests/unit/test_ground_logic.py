@@ -462,3 +462,96 @@ def test_the_rate_is_unknown_until_two_snapshots_give_it() -> None:
     v.step()
     line = status_line(LED, v.ground.dv, None, ["led_a_fb"])
     assert "     - Hz" in line and "0.0 Hz" not in line and "led_a_fb=False" in line
+
+
+def test_event_records_must_be_fresh_per_node_and_replays_are_counted() -> None:
+    """An authentic event record is taken once, stamped within the ground's
+    clock bound: a replay, or one stamped at the end of time (which, taken,
+    would leave every genuine record after it 'not newer'), is refused and
+    counted in stale_events, and the node's next genuine record is taken."""
+    from zplatform.auth import channel
+    from zplatform.events import encode_event
+
+    keys = KeySet.from_master(IGN, KEY)
+    g = GroundLogic(IGN, keys=keys.for_node("gn"))
+    ch = channel(keys, "events_dn0")
+    assert ch is not None
+    key = f"{IGN.vehicle}/dn0/events"
+    now = 1_700_000_000_000_000_000
+    bound = g.max_age_ns
+
+    def rec(seq: int, t_ns: int) -> bytes:
+        return bytes(ch.seal(encode_event(Event("dn0", seq, t_ns, 2, "bad_frame", "x"))))
+
+    first = rec(1, now)
+    assert g.on_event_bytes(key, first, now) is not None
+    assert g.on_event_bytes(key, rec(2, now), now) is not None  # same loop, numbered up
+    assert g.on_event_bytes(key, first, now) is None  # a replay
+    assert g.on_event_bytes(key, rec(3, (1 << 63) - 1), now) is None  # the end of time
+    assert g.on_event_bytes(key, rec(4, now + bound + 1), now) is None  # beyond the bound
+    assert g.on_event_bytes(key, rec(5, now - bound - 1), now) is None  # an old record
+    assert g.on_event_bytes(key, rec(6, now + 1), now) is not None
+    # Numbered up but stamped before (the loop's time after the clock's): taken;
+    # then a replay of any record taken is not.
+    assert g.on_event_bytes(key, rec(7, now), now) is not None
+    assert g.on_event_bytes(key, rec(6, now + 1), now) is None
+    assert g.on_event_bytes(key, rec(2, now), now) is None
+    # A restarted node numbers from 0 again, later.
+    assert g.on_event_bytes(key, rec(0, now + 2), now) is not None
+    c = g.counters
+    assert (c.stale_events, c.bad_events) == (6, 0)
+
+
+def test_the_ground_keeps_logging_after_an_earlier_runs_higher_term_snapshot() -> None:
+    """The ground's intake and its logic agree on the order (run, term,
+    stamp): a genuine snapshot of an earlier run of the control nodes in a
+    higher term, replayed, is refused at the intake (counted as the logic's
+    ``stale``) and never raises the term the intake holds, so every genuine
+    snapshot of this run after it is still logged; one stamped far ahead is
+    refused as ``ahead``."""
+    import os
+
+    from zplatform.auth import KEY_ENV, channel
+    from zplatform.intake import TelemetryIntake
+
+    flight = load_mission(CONFIGS / "flight.yaml")
+    keys = KeySet.from_master(flight, bytes.fromhex(os.environ[KEY_ENV]))
+    g = GroundLogic(flight, keys=keys.for_node("gn"))
+    intake = TelemetryIntake(flight, channel(keys, "telemetry"), 8, g.max_age_ns)
+    assert intake.box is not None
+    p = flight.period_ns
+    run = 1_700_000_000_000_000_000
+
+    class _Payload:
+        def __init__(self, data: bytes) -> None:
+            self.data = data
+
+        def __len__(self) -> int:
+            return len(self.data)
+
+        def to_bytes(self) -> bytes:
+            return self.data
+
+    def snapshot(epoch: int, term: int, loop: int, t_ns: int) -> bytes:
+        cn = ControlLogic(flight, keys=keys.for_node("cn"), epoch=epoch)
+        cn.dv.handle("cn_term").set(term)
+        cn.begin(loop, t_ns)
+        return bytes(cn.telemetry())
+
+    def arrive(frame: bytes, rx: int) -> bool:
+        if not intake.admit(_Payload(frame), rx):
+            g.refused(*intake.take_counts(), intake.aged, rx, intake.ahead)
+            return False
+        item = intake.box.pop()
+        assert item is not None
+        return g.on_telemetry(item[1], item[0])
+
+    assert arrive(snapshot(run, 1, 1, run + p), run + p)
+    old = snapshot(run - 86_400 * 10**9, 5, 9, run - 86_400 * 10**9 + 9 * p)
+    assert not arrive(old, run + 2 * p)
+    assert not arrive(snapshot(run, 1, 3, (1 << 63) - 1), run + 3 * p)
+    for n in range(4, 8):
+        assert arrive(snapshot(run, 1, n, run + n * p), run + n * p)
+    c = g.counters
+    assert (c.received, c.term, c.last_seq) == (5, 1, 7)
+    assert (c.refused["stale"], c.refused["ahead"], c.refused["not_newer"]) == (1, 1, 0)

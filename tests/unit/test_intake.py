@@ -14,12 +14,16 @@ import pytest
 import zenoh
 
 from tests.faults.peers import peer_config
-from zplatform.auth import KEY_ENV, KeySet, channel
+from zplatform.auth import KEY_ENV, TAG_LEN, KeySet, channel
+from zplatform.codec import decode_frame, encode_frame
 from zplatform.codes import CommandStatus
 from zplatform.commands import SEQ_WINDOW, request_refusal
+from zplatform.fencing import ASK, ask_frame, new_nonce
+from zplatform.handoff import Waker
 from zplatform.intake import (
     BACKLOG,
     CnRefusals,
+    ProbeIntake,
     RefusalLog,
     ReplyCheck,
     RequestIntake,
@@ -199,11 +203,12 @@ def test_the_ground_admits_only_telemetry_newer_than_it_has() -> None:
         cn.begin(n, T0 + n * PERIOD)
         frames.append(bytes(cn.telemetry()))
     intake = TelemetryIntake(M, channel(KEYS, "telemetry"), 8, 10**9)
-    assert intake.admit(Bytes(frames[1]), 2)
-    assert not intake.admit(Bytes(frames[0]), 1)  # older
-    assert not intake.admit(Bytes(frames[1]), 2)  # again
-    assert intake.admit(Bytes(frames[2]), 3)
-    assert not intake.admit(Bytes(frames[2][:-1] + bytes([frames[2][-1] ^ 1])), 3)  # a bad tag
+    rx = [T0 + n * PERIOD for n in (1, 2, 3)]  # received as stamped
+    assert intake.admit(Bytes(frames[1]), rx[1])
+    assert not intake.admit(Bytes(frames[0]), rx[1])  # older
+    assert not intake.admit(Bytes(frames[1]), rx[1])  # again
+    assert intake.admit(Bytes(frames[2]), rx[2])
+    assert not intake.admit(Bytes(frames[2][:-1] + bytes([frames[2][-1] ^ 1])), rx[2])  # bad tag
     assert intake.take_counts() == (0, 1, 2)
 
 
@@ -378,3 +383,97 @@ def test_a_refusal_log_events_the_first_at_once_then_once_a_period() -> None:
     assert log.add(104, 0, 0) is None
     assert log.add(105, 0, 1) == [2, 4]
     assert log.add(500, 0, 0) is None
+
+
+# -- freshness bounded ahead: a stamp at the end of time locks nobody out ------------
+
+FLIGHT = load_mission(ROOT / "configs" / "flight.yaml")
+FKEYS = KeySet.from_master(FLIGHT, bytes.fromhex(os.environ[KEY_ENV]))
+I64_MAX = (1 << 63) - 1
+
+
+def test_a_trigger_stamped_beyond_the_clock_bound_is_refused_and_locks_nobody_out() -> None:
+    """An authentic trigger stamped further ahead of the DN's clock than the
+    clock bound and a period (a key holder's, or a stepped CN clock) is
+    refused as stale, never the newest: the next genuine trigger is taken."""
+    now = [T0]
+    intake: TriggerIntake[None] = TriggerIntake(
+        M, "dn0", channel(KEYS, "cn_to_dn0"), lambda: now[0]
+    )
+    cn = ControlLogic(M, keys=KEYS.for_node("cn"), epoch=T0)
+    bound = round(M.clock.offset_bound_ms * 1e6) + PERIOD
+    assert intake.admit(Bytes(bytes(cn.begin(1, T0)[0])), None)
+    ahead = bytes(cn.begin(2, T0 + bound + 1)[0])  # genuine, just beyond the bound
+    assert not intake.admit(Bytes(ahead), None)
+    edge = bytes(cn.begin(3, T0 + bound)[0])  # at the bound: believable
+    assert intake.admit(Bytes(edge), None)
+    ch = channel(KEYS, "cn_to_dn0")
+    assert ch is not None
+    f = decode_frame(edge[:-TAG_LEN])
+    end = bytes(ch.seal(encode_frame(f.layout_id, 4, I64_MAX, bytes(f.data))))
+    assert not intake.admit(Bytes(end), None)
+    now[0] = T0 + 2 * bound
+    assert intake.admit(Bytes(bytes(cn.begin(5, T0 + 2 * bound)[0])), None)
+    assert intake.take_counts() == (0, 0, 2)
+
+
+def test_a_probe_question_stamped_beyond_the_clock_bound_is_refused() -> None:
+    """A question of a known control node stamped beyond the DN's clock
+    bound is refused unanswered (stale) and does not become its newest."""
+    clock = [T0]
+    ch = channel(FKEYS, "probe_cn_to_dn0")
+    intake: ProbeIntake[None] = ProbeIntake(
+        "dn0",
+        channel(FKEYS, "probe_cn_to_dn0"),
+        Waker(),
+        period_ns=FLIGHT.period_ns,
+        now_ns=lambda: clock[0],
+        clock_ns=lambda: clock[0],
+        bound_ns=round(FLIGHT.clock.offset_bound_ms * 1e6),
+    )
+    bound = round(FLIGHT.clock.offset_bound_ms * 1e6) + FLIGHT.period_ns
+    assert intake.admit(Bytes(ask_frame(ch, ASK, 0, 1, 1, new_nonce(), T0)), None)
+    for beyond in (bound + 1, None):
+        clock[0] += FLIGHT.period_ns
+        t = I64_MAX if beyond is None else clock[0] + beyond
+        assert not intake.admit(Bytes(ask_frame(ch, ASK, 0, 1, 2, new_nonce(), t)), None)
+    clock[0] += FLIGHT.period_ns
+    assert intake.admit(Bytes(ask_frame(ch, ASK, 0, 1, 3, new_nonce(), clock[0])), None)
+    assert intake.take_counts() == (0, 0, 2)
+
+
+def _snapshot(epoch: int, term: int, loop: int) -> bytes:
+    """A genuine snapshot of CN run ``epoch`` in ``term``, stamped ``epoch + loop periods``."""
+    cn = ControlLogic(FLIGHT, keys=FKEYS.for_node("cn"), epoch=epoch)
+    cn.dv.handle("cn_term").set(term)
+    cn.begin(loop, epoch + loop * FLIGHT.period_ns)
+    return bytes(cn.telemetry())
+
+
+def test_an_earlier_runs_higher_term_snapshot_does_not_freeze_the_ground() -> None:
+    """The attack on the ground's telemetry intake: a genuine snapshot of an
+    earlier run of the control nodes (a day before, in a higher term after
+    takeovers) replayed once. The intake orders by the run (``cn_epoch``)
+    before the term, and takes a new run or term only from a snapshot of
+    now, so it is refused (aged) and this run's snapshots are still taken."""
+    age = 2 * 10**9
+    intake = TelemetryIntake(FLIGHT, channel(FKEYS, "telemetry"), 8, age)
+    run = T0
+    p = FLIGHT.period_ns
+    assert intake.admit(Bytes(_snapshot(run, 1, 1)), run + p)
+    old = _snapshot(run - 86_400 * 10**9, 5, 9)  # the earlier run, term 5
+    assert not intake.admit(Bytes(old), run + 2 * p)
+    assert intake.admit(Bytes(_snapshot(run, 1, 3)), run + 3 * p)
+    assert intake.take_counts() == (0, 0, 1) and intake.aged == 1
+    # A recent earlier run (restarted a second ago), its snapshot fresh: an
+    # older run while this one speaks.
+    recent = _snapshot(run - 10**9, 7, 100_000_000 // p)
+    assert not intake.admit(Bytes(recent), run + 4 * p)
+    # A takeover: a higher term of this run, stamped now, is taken; the old
+    # commander's later loop (a lower term) is not.
+    assert intake.admit(Bytes(_snapshot(run, 2, 5)), run + 5 * p)
+    assert not intake.admit(Bytes(_snapshot(run, 1, 6)), run + 6 * p)
+    # A higher term stamped long before it arrived is not a takeover of now.
+    assert not intake.admit(Bytes(_snapshot(run, 3, 7)), run + 7 * p + 2 * age)
+    assert intake.admit(Bytes(_snapshot(run, 2, 8)), run + 8 * p)
+    assert intake.take_counts() == (0, 0, 3) and intake.aged == 1

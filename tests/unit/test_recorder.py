@@ -603,3 +603,73 @@ def test_export_reads_one_run_of_several(tmp_path: Path) -> None:
     assert (s.rows, s.last_loop, s.picked) == (20, 20, EPOCH + 10**12)
     with pytest.raises(RecordingError, match=r"holds no run 7 \(its runs: "):
         export(tmp_path, tm.mission, tool, tmp_path / "x.csv", None, run=7)
+
+
+class _Query:
+    """A zenoh query as RecorderServer sees it (the replies kept)."""
+
+    def __init__(self, payload: bytes) -> None:
+        self.payload = _Payload(payload)
+        self.replies: list[bytes] = []
+
+    def reply(self, key: str, payload: bytes) -> None:
+        self.replies.append(payload)
+
+    def drop(self) -> None:
+        pass
+
+
+class _Payload:
+    def __init__(self, data: bytes) -> None:
+        self._data = data
+
+    def __len__(self) -> int:
+        return len(self._data)
+
+    def to_bytes(self) -> bytes:
+        return self._data
+
+
+class _Session:
+    def declare_queryable(self, key: str, handler: object) -> Any:
+        return type("Q", (), {"undeclare": lambda self: None})()
+
+
+def test_the_recorder_server_refuses_a_replayed_request() -> None:
+    """A genuine request is served once: the same request again (a replay
+    within its stamp's bound) is refused unserved and counted; a new
+    request for the same loops, stamped later, is served."""
+    from zplatform.auth import channel
+    from zplatform.recorder.format import REQUEST, REQUEST_MAGIC
+    from zplatform.recorder.server import RecorderServer
+
+    m = mission()
+    ch = channel(keys(m), "telemetry")
+    assert ch is not None
+    rec: Any = type("R", (), {"run": -1})()  # never the run asked: no file is read
+    server = RecorderServer(
+        _Session(),  # type: ignore[arg-type]
+        "v/cn/recorder",
+        rec,
+        channel(keys(m), "telemetry"),
+        now_ns=lambda: EPOCH,
+        max_age_ns=10**9,
+        serve_bps=10**9,
+    )
+    server.close()
+
+    def serve(t_ns: int) -> _Query:
+        q = _Query(bytes(ch.seal(REQUEST.pack(REQUEST_MAGIC, 7, 1, 5, t_ns))))
+        server._on_query(q)  # type: ignore[arg-type]
+        while server._pending:
+            server._serve(server._pending.popleft())
+        return q
+
+    first = serve(EPOCH)
+    assert first.replies and server.served == 1
+    again = _Query(first.payload.to_bytes())
+    server._on_query(again)  # type: ignore[arg-type]
+    server._serve(server._pending.popleft())
+    assert again.replies == [] and server.served == 1 and server.refused == 1
+    assert "replay" in server.last_refusal
+    assert serve(EPOCH + 1).replies and server.served == 2 and server.refused == 1

@@ -19,14 +19,15 @@ replies and their end (:meth:`GapFill.on_reply`, :meth:`GapFill.on_done`).
 Every frame a reply carries is checked as live telemetry is (size, the
 telemetry channel's tag, layout and encoding), and then: of the CN run the
 gap belongs to (``cn_epoch``), a loop of the range asked, on the telemetry
-divisor, not one already filled. Freshness is not asked of it (a filled
-frame is old by definition): the run is what ties it to the telemetry the
-ground followed, so a recording of another run is refused. Refused frames
-are counted (:attr:`GapFill.refused`, the first reason in
-:attr:`GapFill.last_refusal`). A filled row's ``rx_time_ns`` is the frame's
-own stamp (nothing was received live; ``zplatform log --from-recorder``
-writes the CN recorder's rows the same way, so the two agree byte for
-byte).
+divisor, not one already filled (a replay), stamped no later than the
+clock bound after the request was made. Freshness is not asked of it
+otherwise (a filled frame is old by definition): the run is what ties it to
+the telemetry the ground followed, so a recording of another run is
+refused. Refused frames (and empty replies) are counted
+(:attr:`GapFill.refused`, the first reason in :attr:`GapFill.last_refusal`).
+A filled row's ``rx_time_ns`` is the frame's own stamp (nothing was
+received live; ``zplatform log --from-recorder`` writes the CN
+recorder's rows the same way, so the two agree byte for byte).
 
 Requests go one at a time, at most
 :data:`~zplatform.recorder.format.MAX_REQUEST_LOOPS` loops each; what one
@@ -61,7 +62,7 @@ from ..recorder.format import (
     REQUEST,
     REQUEST_MAGIC,
 )
-from .logic import Gap, GroundLogic
+from .logic import Gap, GroundLogic, default_max_age_ns
 
 __all__ = ["GapFill"]
 
@@ -71,10 +72,22 @@ _NS = 1_000_000_000
 class _Ask:
     """One request in flight: its number, range, tries, deadline and what came."""
 
-    __slots__ = ("deadline", "epoch", "first", "got", "id", "last", "not_held", "not_run", "tries")
+    __slots__ = (
+        "asked",
+        "deadline",
+        "epoch",
+        "first",
+        "got",
+        "id",
+        "last",
+        "not_held",
+        "not_run",
+        "tries",
+    )
 
-    def __init__(self, rid: int, gap: Gap, tries: int, deadline: int) -> None:
+    def __init__(self, rid: int, gap: Gap, tries: int, deadline: int, asked: int) -> None:
         self.id = rid
+        self.asked = asked  # when it was asked, on the ground's clock
         self.epoch, self.first, self.last = gap
         self.tries = tries
         self.deadline = deadline
@@ -129,6 +142,7 @@ class GapFill:
         self._hold_ns = int(hold_s * _NS)
         self._tries = tries
         self._retry_ns = int(retry_s * _NS)
+        self._max_age = default_max_age_ns(mission)
         self._todo: deque[tuple[Gap, int, int]] = deque()  # (range, tries so far, not before)
         self._ask: _Ask | None = None
         self._next_id = 0
@@ -190,7 +204,7 @@ class GapFill:
         loops = (gap.last - gap.first) // self._div + 1
         timeout_ns = 3 * _NS + 2 * loops * (self._frame_max + REPLY_LEN.size) * _NS // self._bps
         self._next_id += 1
-        self._ask = _Ask(self._next_id, gap, tries + 1, now_ns + timeout_ns + _NS)
+        self._ask = _Ask(self._next_id, gap, tries + 1, now_ns + timeout_ns + _NS, now_ns)
         self.requests += 1
         body = REQUEST.pack(REQUEST_MAGIC, gap.epoch, gap.first, gap.last, now_ns)
         ch = self._channel
@@ -199,9 +213,12 @@ class GapFill:
     def on_reply(self, rid: int, payload: bytes) -> None:
         """One reply of request ``rid``: frames (each checked, module doc)
         or the recorder's end totals. A reply of a request no longer in
-        flight is ignored. Never raises."""
+        flight is ignored; an empty one is refused (counted). Never raises."""
         ask = self._ask
-        if ask is None or ask.id != rid or not payload:
+        if ask is None or ask.id != rid:
+            return
+        if not payload:
+            self._refuse("an empty reply")
             return
         if payload[0] == REPLY_END and len(payload) == 1 + REPLY_TOTALS.size:
             _, ask.not_held, ask.not_run = REPLY_TOTALS.unpack_from(payload, 1)
@@ -236,7 +253,13 @@ class GapFill:
             self._refuse(f"a frame of control node run {epoch}, not {ask.epoch}")
         elif not ask.first <= seq <= ask.last or seq % self._div:
             self._refuse(f"a frame of loop {seq}, not asked for ({ask.first}..{ask.last})")
-        elif seq not in ask.got:
+        elif frame.t_ns - ask.asked > self._max_age:
+            # A recorded loop is older than the request: a stamp beyond the
+            # clock bound after it is no clock's (it would be the row's time).
+            self._refuse(f"a frame of loop {seq} stamped after it was asked for")
+        elif seq in ask.got:
+            self._refuse(f"a frame of loop {seq} again (a replay)")
+        else:
             ask.got[seq] = (frame.t_ns, data)
 
     def _refuse(self, why: str) -> None:

@@ -272,7 +272,7 @@ class GroundLink:
         logic = self.logic
         size, bad, stale = self._tm.take_counts()
         if size or bad or stale:
-            logic.refused(size, bad, stale, self._tm.aged, now_ns)
+            logic.refused(size, bad, stale, self._tm.aged, now_ns, self._tm.ahead)
         oversize = self._ev_oversize
         if oversize != self._ev_oversize_seen:
             logic.refused_events(oversize - self._ev_oversize_seen)

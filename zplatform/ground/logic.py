@@ -82,7 +82,7 @@ from ..commands import protected_elements
 from ..config import STANDBY, Mission
 from ..datavector import DataVector, Layout
 from ..errors import CodecError, CommandError
-from ..events import EV, Event, EventLog, EventReader, EventType
+from ..events import EV, Event, EventLog, EventReader, EventType, StaleRecordError
 from ..records import REFUSALS, CommandOutcome, EventRecord, TelemetryCounters
 from ..uplink import ScriptCommand, Uplink, validate_command
 from .script import ScriptPlayer
@@ -191,6 +191,7 @@ class _Tally(msgspec.Struct):
     epoch_changes: int = 0
     first_seq: int = -1
     bad_events: int = 0
+    stale_events: int = 0
 
 
 class _Plan:
@@ -281,7 +282,6 @@ class GroundLogic:
         """The last accepted snapshot (all zero before the first)."""
         self._codec = RegionCodec(self.dv)
         self._open = channel(keys, "telemetry")
-        self._events_in = EventReader(mission, keys)
         self._max_len = self._codec.max_frame_len + (TAG_LEN if self._open is not None else 0)
         self._epoch_at = self.layout.element("cn_epoch").offset
         # A redundant mission's term (docs/architecture.md#failover): the
@@ -291,6 +291,7 @@ class GroundLogic:
         )
         self._term = 0
         self.max_age_ns = default_max_age_ns(mission) if max_age_ns is None else max_age_ns
+        self._events_in = EventReader(mission, keys, self.max_age_ns)
         self._period = mission.period_ns
         self._div = mission.telemetry_divisor
         self.events = EventLog(node)
@@ -353,14 +354,26 @@ class GroundLogic:
         """The longest telemetry frame that can be valid (bytes, tag included)."""
         return self._max_len
 
-    def refused(self, size: int, bad: int, stale: int, aged: int, rx_ns: int) -> None:
+    def refused(
+        self, size: int, bad: int, stale: int, aged: int, rx_ns: int, ahead: int = 0
+    ) -> None:
         """Count snapshots the driver's intake refused as they arrived (module
         doc): ``size`` too long and ``bad`` with a bad tag count as bad;
-        ``stale`` replays (authentic, not newer than the newest let through)
-        as refused ``stale`` (``aged`` of them, stamped beyond the freshness
-        bound) or ``not_newer`` (the rest). The first of each kind is an
-        event, as for :meth:`on_telemetry`'s own."""
+        ``stale`` authentic ones that were not fresh: ``ahead`` of them
+        stamped beyond the freshness bound after they arrived (refused
+        ``ahead``), ``aged`` beyond it before (``stale``), the rest replays
+        not newer than the newest let through (``not_newer``). The first of
+        each kind is an event, as for :meth:`on_telemetry`'s own."""
         n = self._n
+        if ahead:
+            n.refused["ahead"] += ahead
+            stale -= ahead
+            self._note(
+                "ahead",
+                f"{ahead} snapshot(s) stamped more than {self.max_age_ns / 1e9:g} s after they "
+                "arrived",
+                rx_ns,
+            )
         if size:
             n.bad += size
             self._note("size", f"{size} snapshot(s) longer than any telemetry frame", rx_ns)
@@ -755,9 +768,15 @@ class GroundLogic:
     ) -> EventRecord | None:
         """Check and take one event record that came on ``key_expr``
         (``{vehicle}/<node>/events``: whose key checks its tag); None
-        (counted) if it is not one, or its tag fails."""
+        (counted in ``bad_events``) if it is not one, or its tag fails;
+        None (counted in ``stale_events``) if it is authentic but not fresh
+        (:class:`~zplatform.events.EventReader`: a replay, or stamped beyond
+        :attr:`max_age_ns` of ``rx_ns``)."""
         try:
-            e, verified = self._events_in.read(key_expr, payload)
+            e, verified = self._events_in.read(key_expr, payload, rx_ns)
+        except StaleRecordError:
+            self._n.stale_events += 1
+            return None
         except CodecError:
             self._n.bad_events += 1
             return None

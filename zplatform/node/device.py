@@ -252,7 +252,7 @@ class DeviceNode:
             res.estimator,
         )
         trigger_intake: TriggerIntake[zenoh.Query] = TriggerIntake(
-            m, self.name, channel(self._keys, f"cn_to_{self.name}")
+            m, self.name, channel(self._keys, f"cn_to_{self.name}"), self.clock.now_ns
         )
         assert trigger_intake.box is not None
         self.sync = DeviceSync(
@@ -269,6 +269,8 @@ class DeviceNode:
                     trigger_intake.box.waker,
                     period_ns=m.period_ns,
                     askers=len(m.control_nodes),
+                    clock_ns=self.clock.now_ns,
+                    bound_ns=round(m.clock.offset_bound_ms * 1e6),
                 )
                 if m.standby is not None
                 else None

@@ -11,7 +11,8 @@ nothing but the GIL's share of one thread:
 * one serving thread checks the request (the telemetry channel's tag: only
   whoever can read the recorded frames may ask; a stamp within the clock
   bound of this node's clock, so a request captured earlier cannot be
-  replayed later; a range of at most :data:`~.format.MAX_REQUEST_LOOPS`
+  replayed later, and none of the last :data:`REMEMBERED` served, so it
+  cannot be replayed meanwhile either; a range of at most :data:`~.format.MAX_REQUEST_LOOPS`
   loops of this run), reads the recorder's segment files (never the loop's
   buffer: loops still in it are waited for, up to :data:`WRITE_WAIT_S`),
   and replies in chunks of at most :data:`~.format.REPLY_BYTES`
@@ -60,10 +61,13 @@ from .format import (
 from .reader import counts, scan_segment
 from .writer import FlightRecorder
 
-__all__ = ["MAX_PENDING", "WRITE_WAIT_S", "RecorderServer"]
+__all__ = ["MAX_PENDING", "REMEMBERED", "WRITE_WAIT_S", "RecorderServer"]
 
 MAX_PENDING = 2
 """Requests waiting or being served; any more are dropped unanswered."""
+REMEMBERED = 64
+"""Requests served that a server remembers, to refuse a replay of one while
+its stamp is still within the bound (older ones are refused by the stamp)."""
 WRITE_WAIT_S = 1.0
 """How long a request for loops still in the recorder's buffer waits for them
 to be written (then what is in the files is sent)."""
@@ -100,6 +104,9 @@ class RecorderServer:
         self._key = key_expr
         self._req_len = REQUEST.size + (TAG_LEN if channel is not None else 0)
         self._pending: deque[zenoh.Query] = deque()
+        # The requests served lately (the serving thread's): a replay of one
+        # is refused, not served again.
+        self._served: deque[tuple[int, int, int, int]] = deque(maxlen=REMEMBERED)
         self._cv = threading.Condition()
         self._stop = False
         self._closed = False
@@ -179,6 +186,12 @@ class RecorderServer:
         if first < 1 or last < first or last - first >= MAX_REQUEST_LOOPS:
             self._refuse(f"a range of loops {first}..{last}")
             return
+        request = (t_ns, run, first, last)
+        if ch is not None:  # without tags a replay cannot be told from a request
+            if request in self._served:
+                self._refuse(f"a request for loops {first}..{last} served before (a replay)")
+                return
+            self._served.append(request)
         rec = self.recorder
         div = self._div
         asked = set(range(first + (-first) % div, last + 1, div))  # the telemetry loops
