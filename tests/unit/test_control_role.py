@@ -198,7 +198,8 @@ def _mirror_of(term: int, loop: int, name: str = "cn_b") -> bytes:
 def test_a_commander_stands_down_on_a_newer_terms_mirror_and_follows_it() -> None:
     role = _role("cn")
     assert role.commanding
-    down = role.mirror(_mirror_of(2, 50), T0)
+    # Taken when it was sent: a mirror stamped beyond the clock bound ahead is refused.
+    down = role.mirror(_mirror_of(2, 50), T0 + 49 * PERIOD)
     assert down == StandDown("a mirror of term 2 came from cn_b", True)
     sb = role.standby
     assert sb is not None and sb.term == 2 and sb.following and sb.mirrored == 50
