@@ -3,64 +3,15 @@
 :class:`GroundLogic` is to the ground what :class:`~zplatform.loop.ControlLogic`
 is to the control node: it owns the ground's Data Vector (the CN layout, as
 the last accepted snapshot showed it), every check a snapshot passes before
-it touches that vector, the counters, the command requests and the reading
-of their verdicts, and the command-script player. It never touches zenoh or
-a clock: every input comes with its receive time on the caller's clock.
-Drivers: the zenoh link (:mod:`zplatform.ground.link`: the ground node,
-``cmd``, ``tap``, ``log``, ``ground``, ``up``'s watcher) and the lockstep
-runner, so a script means the same thing live and in ``sim``.
-
-**Telemetry** (:meth:`GroundLogic.on_telemetry`), each check in this order,
-the first failure wins and is counted (:class:`~.records.TelemetryCounters`):
-
-1. size: longer than any telemetry frame -> ``bad``, before any work;
-2. the telemetry channel's tag (:mod:`zplatform.auth`) -> ``bad``;
-3. layout and encoding (:class:`~zplatform.codec.RegionCodec`) -> ``bad``;
-4. freshness: the frame's stamp must be within :attr:`GroundLogic.max_age_ns`
-   of the receive time (node clocks are realtime-anchored,
-   :mod:`zplatform.timebase`, so a ground and a CN agree to the clock bound)
-   -> refused ``stale`` or ``ahead``. A recording of an earlier run,
-   replayed on the telemetry key, is stale: it can never be believed;
-5. the run: the ground follows one CN run (its ``cn_epoch``). It joins the
-   first fresh run it sees; a fresh snapshot of a *newer* run means the CN
-   restarted: the ground follows it, counts the change and emits
-   ``cn_restarted`` (pending requests of the old run end ``NO_VERDICT``).
-   A snapshot of an older run is refused (``old_epoch``), unless the run
-   followed has gone stale itself (then the fresh one is the newest alive);
-6. order within the run: newer than the last snapshot (``not_newer``), and
-   not further ahead than the time since allows (``jump``).
-
-Only then is the snapshot written into :attr:`GroundLogic.dv`; missing loop
-numbers count as ``gaps``, and each run of them is queued in
-:attr:`GroundLogic.gaps` for whoever fills them (the gap fill from the CN's
-flight recorder, :mod:`zplatform.ground.gapfill`). The first refusal of
-each kind is an event (``tm_refused``); the rest are counted. A driver
-whose intake refuses snapshots as they arrive
-(:class:`~zplatform.intake.TelemetryIntake`: the size, the tag, and a
-replay, not newer than the newest it let through) hands over its counts
-(:meth:`GroundLogic.refused`), counted the same way.
-
-**Commands** (:meth:`GroundLogic.command`): a request is numbered after the
-CN's last verdict (``cn_cmd_seq + 1``, or after the ground's own last
-request), carries the run followed, and goes out only while no other
-request waits for its verdict (numbers stay consecutive: ARM n, COMMAND
-n+1; an armed command is one call). Its verdict is read only from a snapshot
-*provably after it*: the same run, a loop after the one the ground had seen
-when it sent it, with the number echoed in ``cn_cmd_seq`` (``cn_cmd_status``)
-or in ``cn_cmd_reject_seq`` (``cn_cmd_reject_status``, a refusal that
-consumed no number, with ``cn_cmd_rejects`` grown since). A request whose
-verdict does not show within ``resend_loops`` loops is sent again with the
-same number, at most ``tries`` times, then ends ``NO_VERDICT``.
-
-The reason of a verdict comes from the CN's ``cmd_accepted`` /
-``cmd_rejected`` event (:meth:`GroundLogic.on_event`), matched by node
-``cn``, number, command, status and run; events are not authenticated, so
-an event never decides a verdict, it only explains the one telemetry
-showed. When none arrives within ``reason_grace_ns`` of the verdict, the
-reason is derived from the verdict snapshot and marked so. Outcomes are
-released in verdict order (:attr:`GroundLogic.outcomes`); the script player
-moves on at the verdict, not at its reason, so timing never depends on the
-event channel.
+it touches that vector (size, tag, layout, freshness, the run followed, order
+within it), the counters, the command requests and the reading of their
+verdicts, and the command-script player. It never touches zenoh or a clock:
+every input comes with its receive time on the caller's clock. Drivers: the
+zenoh link (:mod:`zplatform.ground.link`) and the lockstep runner, so a
+script means the same thing live and in ``sim``. A verdict is read only from
+a later snapshot of the same run echoing the request's number; an event (tagged,
+but lossy) only explains it. The checks in order, the run rules and the
+verdict rules: docs/architecture.md#ground ("The ground's checks").
 
 Nothing here blocks or raises for what arrives: bad input is counted. Not
 thread-safe: one driver thread calls everything.
