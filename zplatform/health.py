@@ -16,7 +16,7 @@ keep their initial values (NaN readings, zero counters), so a ``sim`` is
 byte-identical run to run.
 
 The element table, a thread's contract and the thread names:
-docs/architecture.md#health-and-thread-liveness.
+docs/architecture.md#health.
 """
 
 from __future__ import annotations

@@ -16,7 +16,7 @@ Nothing blocks; a step allocates nothing; a late reply is counted, a malformed
 one counted and evented; neither raises.
 
 The map of the loop (order, last loop, bulk and health ports, interlock):
-docs/architecture.md#the-loop-one-sans-io-step-per-node.
+docs/architecture.md#the-loop.
 """
 
 from __future__ import annotations
