@@ -14,8 +14,7 @@ Contract: raises :class:`~zplatform.errors.ConfigError` naming the YAML path
 naming its path and class); blocks on reading the file and importing code.
 ``code=False`` (the ground verbs) runs the checks that need no mission code
 and imports nothing of the mission's; the Data Vector layout is the same
-either way. The deployment is not part of loading. This module sits above
-the control modules (it imports them, none imports it).
+either way; the deployment is not loaded. Sits above the control modules.
 
 The checks in order: docs/architecture.md#the-loop (loading a mission).
 """
