@@ -11,9 +11,9 @@ Contract: :meth:`CommandHandler.step` runs on the CN's loop thread, validates
 a new request (first failure wins: unknown, replay, the state's whitelist,
 ARM for hazardous commands, argument, the element's or parameter's states and
 bounds, a save still being written), writes the verdict to ``cn_cmd_seq`` /
-``cn_cmd_status`` with a ``cmd_accepted`` or ``cmd_rejected`` event, and holds
-an accepted command in ``cn_cmd`` for exactly one loop. Nothing in a request
-can make it raise. :meth:`CommandHandler.count_refused` counts requests refused
+``cn_cmd_status`` with a ``cmd_accepted`` or ``cmd_rejected`` event, and keeps
+an accepted command in ``cn_cmd`` until a transition consumes it or a state
+that does not handle it steps. Nothing in a request can make it raise. :meth:`CommandHandler.count_refused` counts requests refused
 without consuming a number (epoch, replay, auth) in ``cn_cmd_reject_*``.
 
 The rules: docs/architecture.md#safety-rules, docs/mission-reference.md#key-commands.
