@@ -15,9 +15,7 @@ Contract: :class:`ControllerSet` builds and runs one node's controllers on its
 loop thread. A controller that raises never stops the loop: it is counted,
 evented once per failure streak and safed at once; one whose ``run_safed``
 raises too is disabled for good (a FATAL event); on the CN the streak goes to
-the :class:`~zplatform.faults.FaultMonitor`.
-
-The failure rules in full: docs/architecture.md#errors-and-faults.
+the :class:`~zplatform.faults.FaultMonitor`. Rules: docs/architecture.md#errors-and-faults.
 """
 
 from __future__ import annotations
