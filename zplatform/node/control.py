@@ -14,8 +14,7 @@ Contract: initialisation errors raise :class:`~zplatform.errors.NodeError`
 Data Vector and the loop goes on. The loop thread never blocks on disk: the
 loop recorder (``record``), parameter saves (a
 :class:`~zplatform.params.ParamSaver`) and the flight recorder write from
-threads of their own; a :class:`~zplatform.recorder.server.RecorderServer`
-answers gap fill from its own thread.
+threads of their own, as does the gap-fill server.
 
 Start-up, the last loop and what runs beside the loop: docs/architecture.md#drivers.
 """
