@@ -16,8 +16,7 @@ them as the thesis does: during initialisation print and exit non-zero;
 after start count, event and keep the rate, or latch a fault for the state
 machine.
 
-The whole tree, and how errors after start are handled:
-docs/architecture.md#errors-and-faults.
+The whole tree and its handling: docs/architecture.md#errors-and-faults.
 """
 
 from __future__ import annotations
