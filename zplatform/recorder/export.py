@@ -15,9 +15,7 @@ Contract: nothing in the directory stops the export: a damaged or torn
 record, a frame whose tag or layout does not check, an event that does not
 decode is skipped and counted with one line in
 :attr:`ExportSummary.problems`, as are the loops the recorder dropped and
-runs without their ``END`` record. Blocks on file I/O.
-
-The operator's view: docs/operations.md#the-flight-recorder.
+runs without their ``END`` record. Blocks on file I/O. See docs/operations.md#the-flight-recorder.
 """
 
 from __future__ import annotations
