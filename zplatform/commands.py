@@ -4,8 +4,7 @@ Holds :class:`CommandHandler` (one request per ``gn_to_cn`` frame:
 ``gn_cmd``, ``gn_cmd_seq``, and for WRITE and PRM_SET ``gn_cmd_element`` and
 ``gn_cmd_value``), the request-number rules (:func:`request_refusal`,
 :class:`RequestNumber`, shared with the CN's intake), and the load-time checks
-of the ``commands`` section (:func:`check_config`, :func:`writable_elements`,
-:func:`write_states`, :func:`protected_elements`).
+of the ``commands`` section (:func:`check_config`, :func:`writable_elements`, ...).
 
 Contract: :meth:`CommandHandler.step` runs on the CN's loop thread, validates
 a new request (first failure wins: unknown, replay, the state's whitelist,
@@ -13,8 +12,9 @@ ARM for hazardous commands, argument, the element's or parameter's states and
 bounds, a save still being written), writes the verdict to ``cn_cmd_seq`` /
 ``cn_cmd_status`` with a ``cmd_accepted`` or ``cmd_rejected`` event, and keeps
 an accepted command in ``cn_cmd`` until a transition consumes it or a state
-that does not handle it steps. Nothing in a request can make it raise. :meth:`CommandHandler.count_refused` counts requests refused
-without consuming a number (epoch, replay, auth) in ``cn_cmd_reject_*``.
+that does not handle it steps. Nothing in a request can make it raise.
+:meth:`CommandHandler.count_refused` counts requests refused without consuming
+a number (epoch, replay, auth) in ``cn_cmd_reject_*``.
 
 The rules: docs/architecture.md#safety-rules, docs/mission-reference.md#key-commands.
 """

@@ -1,4 +1,4 @@
-"""A control node's role, sans-IO: who commands, follows, takes over (docs/architecture.md#failover).
+"""A control node's role, sans-IO: who commands, follows or takes over.
 
 :class:`ControlRole` holds every protocol decision a control node makes about
 *whether* it commands: at start-up (one STATUS probe round: ``Command`` or
