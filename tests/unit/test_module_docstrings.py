@@ -50,10 +50,24 @@ def test_the_exempt_modules_exist() -> None:
     assert [p for p in EXEMPT if not (ROOT / p).is_file()] == []
 
 
+def _anchors(page: Path) -> set[str]:
+    """The ids a link into ``page`` may name: explicit ``<a id>`` tags and the
+    headings' slugs as the docs site makes them."""
+    text = page.read_text()
+    ids = set(re.findall(r'<a id="([^"]+)"', text))
+    for heading in re.findall(r"^#+ (.+)$", text, re.M):
+        slug = re.sub(r"[^\w\- ]", "", heading.replace("`", "")).strip().lower()
+        ids.add(re.sub(r"[\s-]+", "-", slug))
+    return ids
+
+
 def test_docstrings_name_files_that_exist() -> None:
     bad = []
     for path, doc in _docstrings().items():
-        for ref in re.findall(r"\b((?:docs|codecs)/[\w./-]*\w)", doc or ""):
-            if not (ROOT / ref).exists():
+        for ref, anchor in re.findall(r"\b((?:docs|codecs)/[\w./-]*\w)(?:#([\w-]+))?", doc or ""):
+            target = ROOT / ref
+            if not target.exists():
                 bad.append(f"{path}: {ref}")
-    assert bad == [], f"module docstrings name files that do not exist: {bad}"
+            elif anchor and target.suffix == ".md" and anchor not in _anchors(target):
+                bad.append(f"{path}: {ref}#{anchor}")
+    assert bad == [], f"module docstrings name files or sections that do not exist: {bad}"
