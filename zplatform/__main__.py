@@ -1,3 +1,5 @@
+"""``python -m zplatform``: the ``zplatform`` command (:func:`zplatform.cli.main`)."""
+
 import sys
 
 from .cli import main

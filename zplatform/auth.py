@@ -1,73 +1,22 @@
 """Authentication of every frame a node takes from the network: per-link keys and tags.
 
 With ``security.auth`` on (the default), every region frame, telemetry
-snapshot, command request, clock-sync exchange and event record travels as
-``frame || tag`` (codecs/FORMAT.md §6.1). A receiver checks the tag, in
-constant time, before it decodes anything.
+snapshot, command request, clock-sync exchange, probe, mirror and event
+record travels as ``frame || tag``: the first :data:`TAG_LEN` (16) bytes of
+keyed BLAKE3 or HMAC-SHA256 under a key derived per channel from its link's
+key, so a frame tagged for one channel fails on every other. Keys are per
+*link* and each host role holds only the links it speaks on
+(:func:`role_links`); replays within a channel are the receivers' to refuse.
 
-**Links, and who holds what.** Keys are per *link*, not per mission: each
-link has its own 32-byte key, and each host holds only the links it
-speaks on (least privilege)::
+Holds :class:`Channel` (tags and checks one channel's frames: ``open``
+returns a view without copying or raises :class:`AuthError`; the check is
+constant-time and comes before any decode; not thread-safe, one per thread),
+:class:`KeySet`, and finding and checking keys (:func:`load_keys`: explicit
+file, ``ZPLATFORM_KEY_FILE``, ``ZPLATFORM_KEY``, then the mission's key set;
+:func:`check_key` refuses weak keys and key files others may read, raising
+:class:`KeyError_`). Loading keys blocks on file I/O; tagging never blocks.
 
-    link        channels it tags                              held by host roles
-    cn-dnX      cn_to_dnX (triggers), dnX_to_cn (replies),    cn, cn_b, dnX
-                clock_dnX_to_cn, clock_cn_to_dnX (clock sync),
-                probe_cn_to_dnX, probe_dnX_to_cn (term probes)
-    uplink      gn_to_cn (command requests)                   cn, cn_b, gn
-    downlink    telemetry                                      cn, cn_b, gn, tool
-    cn-cn_b     mirror, clock_peer_to_cn, clock_cn_to_peer    cn, cn_b
-    events-N    events_N (node N's event records)              N, gn, tool
-
-Host roles: ``cn``; ``cn_b``, a standby control node (it holds what ``cn``
-holds, since it may take command, and the link between the two control
-nodes, which nobody else holds: a ground cannot forge the mirror that a
-standby takes over from); each device node ``dnX``; ``gn``, the ground station
-that commands (ground node, console, ``cmd``); ``tool``, a read-only tool
-(``tap``, ``log``). So a ground's keys cannot make a trigger any DN runs
-(it commands only through the CN's checks); a DN's keys cannot pose as
-another DN, as the CN, or as the telemetry; a tool cannot command. The
-symmetric downlink and event keys are shared by every ground: a
-compromised ground could forge telemetry or events to other grounds, never
-command the vehicle (docs/security.md, "Keys per link", weighs this against
-signatures).
-
-**The tag.** Each channel's key is derived from its link's key and names
-the vehicle, the MAC and the channel; the tag is the first
-:data:`TAG_LEN` bytes of a MAC over the whole frame::
-
-    channel_key = HMAC-SHA256(link_key, "zplatform/2/" + vehicle + "/" + mac + "/" + channel)
-    tag         = BLAKE3-keyed(channel_key, frame)[0:16]      # security.mac: blake3 (default)
-                | HMAC-SHA256(channel_key, frame)[0:16]       # security.mac: hmac-sha256
-
-A frame tagged for one channel fails on every other (a reply is no
-trigger, telemetry no command), and two nodes configured with different
-MACs refuse each other's frames as bad tags, saying so. Replays *within* a
-channel are the receivers' to refuse (a newer loop, the loop asked for,
-the CN's epoch, a clock nonce).
-
-**Where keys come from**, first match wins (:func:`load_keys`):
-
-1. an explicit path (``key_file``), else the file named by
-   ``ZPLATFORM_KEY_FILE``: a host's key file (``<role>.keys``), or a key
-   set directory (the host role's file in it);
-2. ``ZPLATFORM_KEY``: hex of a *master* key from which every link key is
-   derived (``HMAC-SHA256(master, "zplatform/2/link/" + vehicle + "/" +
-   link)``): a single-host and test convenience (whoever has it has every
-   link), never for a vehicle whose hosts are apart;
-3. the mission's key set directory ``~/.config/zplatform/keys/<mission>/``,
-   which ``zplatform keygen MISSION`` writes (one file per host role, each
-   holding independent random keys: a file lets its host derive nothing
-   else) and ``zplatform up`` creates on first use.
-
-Keys are checked as ssh checks a private key: a key file readable or
-writable by group or others is refused (naming the file, its mode and the
-``chmod`` that fixes it), and so is a weak key (:func:`check_key`).
-
-Cost per frame (``python -m bench.mac``, bench/REPORT.md, p50 on the
-shared 2-core box): keyed BLAKE3 0.8 us per 256 B frame and 40 us per
-325 KB; HMAC-SHA256 1.8 us and 160 us. The BLAKE3 hasher of a channel is
-built once and reset per frame (``reset()`` measured 0.9 us per 256 B
-against 1.4 us for a new hasher and 1.0 us for ``copy()``).
+The tag: codecs/FORMAT.md (section 6.1); links and key files: docs/security.md.
 """
 
 from __future__ import annotations

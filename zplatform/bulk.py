@@ -1,53 +1,22 @@
 """Bulk channels: large fixed arrays between nodes, outside the sync loop.
 
-A bulk channel is a named, fixed-size array (``u8[4194304]``,
-``f32[1024,1024]``) that one node (its *owner*) publishes every
-``rate_divisor``-th loop on ``{vehicle}/{owner}/bulk/{name}`` (docs/architecture.md#key-space)
-and that its *readers* receive. Bulk data never travels in the sync query:
-a camera frame must not delay the 2 ms exchange.
+A bulk channel is a named, fixed-size array (``u8[4194304]``, ``f32[1024,1024]``)
+that one node (its *owner*) publishes every ``rate_divisor``-th loop on
+``{vehicle}/{owner}/bulk/{name}`` and its *readers* receive, never in the sync
+query (a camera frame must not delay the 2 ms exchange). Holds
+:class:`BulkWriter`, :class:`BulkReader`, :class:`NodeBulk` (a node's port for
+the loop) and :func:`pool_size`; the channel schema (:class:`BulkChannelConfig`)
+and its counter elements are :mod:`zplatform.config`'s, re-exported here.
 
-Transport (docs/architecture.md#zenoh, re-checked in ``tests/integration/test_bulk_shm.py``
-and ``bench/shm.py``):
-
-* The owner allocates every sample from a zenoh ``ShmProvider`` whose pool is
-  sized from the mission (:func:`pool_size`) and pre-touched at start, so no
-  page fault lands in the loop. zenoh-python has no zero-copy write: the
-  owner's :attr:`BulkWriter.array` is a numpy view over a ``bytearray`` and
-  :meth:`BulkWriter.publish` copies it into the shared-memory chunk once.
-* Between same-host peers with shared memory enabled the chunk itself is
-  handed over; to a peer on another host (or one with shared memory off)
-  zenoh copies it onto the network by itself: the same mission, no code
-  change. Receivers count which path each sample took
-  (``payload.as_shm() is not None``): a silent fallback is visible.
-* Pool exhausted (readers still hold every chunk): :meth:`BulkWriter.publish`
-  retries for at most the channel's ``alloc_timeout_ms``, then counts a drop
-  and returns ``False``. It never raises for that and never falls back to a
-  heap copy behind the caller's back.
-* Receiver: the zenoh callback only stores the sample in a one-slot mailbox
-  (latest wins; a superseded sample is counted in ``missed``). The loop thread
-  calls :meth:`BulkReader.poll`, which copies the payload into the
-  preallocated :attr:`BulkReader.array`. zenoh-python cannot read shared
-  memory in place, so that is two copies (shared memory -> ``bytes`` ->
-  array); ``poll(copy=False)`` skips the second and leaves a read-only view
-  over the received bytes in :attr:`BulkReader.view`.
-
-The mission schema of a channel (:class:`BulkChannelConfig`, the ``bulk:``
-list) and its counter elements live in :mod:`zplatform.config`, re-exported
-here.
-
-Why the copies stay on the loop thread: ``bytes(shm)`` costs about 0.3 ms
-per 4 MB here; done in zenoh's callback thread it would compete with the loop
-thread for the GIL at a random moment (in the middle of a sync exchange),
-done in :meth:`BulkReader.poll` it happens where the loop schedules it, after
-the sync step.
-
-Nothing here allocates per sample except the ``bytes`` zenoh returns on the
-receiving side (freed when the next sample replaces it; glibc reuses the
-block, see the RSS test in ``tests/integration/test_bulk_shm.py``).
-
-Thread safety: a writer and a reader are each used from one thread (the
-loop). Counters are plain ints written by that thread (``missed`` also by the
-zenoh callback thread, under the GIL); :meth:`stats` returns a frozen snapshot.
+Contract: the owner's samples come from a zenoh shared-memory pool sized from
+the mission and pre-touched at start; :meth:`BulkWriter.publish` copies the
+array into a chunk once and, with the pool exhausted, retries for at most
+``alloc_timeout_ms``, then counts a drop and returns ``False`` (never raises,
+never falls back to a heap copy). A reader's zenoh callback only stores the
+sample in a one-slot mailbox (newest wins, ``missed`` counted); the loop
+thread's :meth:`BulkReader.poll` copies it into the preallocated array
+(``copy=False``: a read-only view). Each writer and reader belongs to one
+thread; :meth:`stats` is a frozen snapshot. Copies and costs: docs/architecture.md#zenoh.
 """
 
 from __future__ import annotations

@@ -1,48 +1,22 @@
 """CCSDS space-packet downlink of telemetry (an optional radio-link path).
 
-The CN's telemetry is its whole Data Vector. Over a radio link it travels as
-CCSDS space packets (CCSDS 133.0-B-2), one packet per non-empty region per
-downlinked snapshot; :mod:`zplatform.xtce` describes exactly these packets.
+The CN's telemetry is its whole Data Vector; over a radio link it travels as
+CCSDS space packets (CCSDS 133.0-B-2), one per non-empty region per
+downlinked snapshot (APID = ``apid_base`` + the region's index; a region too
+long for one packet is segmented), as :mod:`zplatform.xtce` describes them.
 
-Packet layout (every multi-byte header field big-endian, as CCSDS wants;
-the region bytes stay little-endian, exactly as in the Data Vector)::
+Contract: :class:`CcsdsEncoder` (the CN's side) downlinks every
+``divisor``-th snapshot within a ``budget_bps`` token bucket refilled from the
+snapshots' own CN time, so the same snapshots give the same packets; a
+snapshot that does not fit is dropped whole and counted, never half of one.
+:class:`CcsdsDecoder` checks length, CRC-16, APID and segment order before
+anything touches its Data Vector (a refused packet raises
+:class:`CcsdsError` and is counted by reason) and applies a snapshot only once
+all its regions arrived (a CSV byte-identical to the telemetry's).
+:func:`packet_plan` raises ConfigError for an APID past 0x7FE or a
+``max_data`` too small. Sans-IO: no zenoh, no clock.
 
-    offset  size  field
-    0       6     primary header (spacepackets.SpacePacketHeader, TM,
-                  secondary-header flag set, APID = apid_base + region index,
-                  sequence count per APID modulo 2**14, sequence flags)
-    6       8     loop number (u64, the CN's ``cn_loop`` of the snapshot)
-    14      8     CN time of the snapshot (i64 ns, the telemetry frame's t_ns)
-    22      4     byte offset of this segment inside the region (u32)
-    26      n     region bytes [offset, offset + n)
-    26+n    2     CRC-16/CCITT-FALSE (poly 0x1021, init 0xFFFF) over bytes 0..26+n
-
-The APID of a region is ``apid_base + i`` where ``i`` is the region's index
-in :meth:`Mission.region_names` (the CN buffer order): stable for a mission,
-and the same on both ends without negotiation. Empty regions keep their
-index but send nothing.
-
-A region larger than ``max_data`` bytes (the packet data field, 65536 at
-most) is segmented: FIRST, CONTINUATION..., LAST, each with its offset; a
-region that fits goes UNSEGMENTED. ``max_data`` may be set lower for a link
-with a small MTU.
-
-Rate control, on the sender (:class:`CcsdsEncoder`):
-
-* ``divisor``: only every ``divisor``-th snapshot offered is downlinked
-  (counted in ``decimated``);
-* ``budget_bps``: a token bucket of bytes per second (one second of burst)
-  refilled from the snapshots' own CN time, so the same snapshots give the
-  same packets (deterministic, as the lockstep runner needs). A snapshot
-  whose packets do not all fit is dropped whole and counted in
-  ``dropped_budget``: never half a snapshot, never silently.
-
-The receiver (:class:`CcsdsDecoder`) checks length, CRC, APID and segment
-order before anything touches its Data Vector; every rejected packet is
-counted by reason and a snapshot is applied only once all its regions
-arrived (an incomplete one is counted in ``incomplete``). The result feeds
-the same :class:`~zplatform.telemetry.CsvLogger`, so a CSV written from
-decoded packets is byte-identical to one written from the telemetry itself.
+The packet byte by byte, segmentation and rate control: codecs/FORMAT.md (section 13).
 """
 
 from __future__ import annotations

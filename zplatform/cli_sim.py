@@ -2,25 +2,21 @@
 
 ``zplatform sim MISSION [--duration S] [--commands FILE] [--log CSV]
 [--summary JSON]`` runs every node in this process
-(:class:`~zplatform.lockstep.LockstepRunner`), logs every telemetry snapshot
-to CSV, prints the states visited and each command's verdict, and exits 0
-on a clean run (no errors, no fault, every scripted command accepted), 1
-otherwise, 2 for a bad mission or script. Without ``--duration`` it runs
-:data:`~zplatform.ground.script.SETTLE_S` virtual seconds past the script's
-last command (at least :data:`~zplatform.ground.script.MIN_DURATION_S`),
-so the consequences of the last command play out: the recovery igniter's
-``at 0.6 launch`` reaches DEPLOYED at ~11.7 s. Events go beside the CSV
-(``sim.csv`` -> ``sim.events.jsonl``) when the runner reports them.
+(:class:`~zplatform.lockstep.LockstepRunner`), logs every snapshot to CSV
+(events beside it), prints the states visited and each verdict; without
+``--duration``, until :data:`~zplatform.ground.script.SETTLE_S` virtual
+seconds past the script's last command.
 
-``zplatform replay DIR --mission FILE [--log CSV]`` feeds a recording made
-by ``up --record DIR`` through the control loop of the mission in ``FILE``
-(which must be the recorded mission: a replay never runs code a recording
-names) and checks that the telemetry is bit-identical to what was recorded
-live; exits 0 when it is, 1 (naming the first differing loop and element)
-when it is not, 2 for a bad recording or another mission. Without
-``--mission`` only what needs no mission code runs: ``--list`` (the
-recorded loops) and ``--log CSV`` (the recorded telemetry); bare, it says
-that it needs ``--mission`` (exit 2).
+``zplatform replay DIR --mission FILE [--log CSV]`` feeds a recording made by
+``up --record DIR`` through the control loop of the mission in ``FILE`` (which
+must be the recorded mission: a replay never runs code a recording names) and
+checks the telemetry is bit-identical; without ``--mission`` only ``--list``
+and ``--log`` run (they need no mission code).
+
+Contract, exit codes: sim 0 on a clean run (no errors, no fault, every
+scripted command accepted), 1 otherwise; replay 0 when identical, 1 naming
+the first differing loop and element; 2 for a bad mission, script or
+recording (one line, never a traceback). See docs/operations.md.
 """
 
 from __future__ import annotations

@@ -1,74 +1,22 @@
 """The operator command handler (thesis ch. 4.8 and 6.1), sans-IO.
 
-The ground node sends one request per ``gn_to_cn`` frame: ``gn_cmd`` (a
-command of :class:`~zplatform.codes.Command`), ``gn_cmd_seq`` (a number
-that must grow with every request), and for WRITE ``gn_cmd_element`` (the
-element's index in the CN's element list, ``ElementSpec.index``) and
-``gn_cmd_value``. The handler has the thesis' three internal states:
+Holds :class:`CommandHandler` (one request per ``gn_to_cn`` frame:
+``gn_cmd``, ``gn_cmd_seq``, and for WRITE and PRM_SET ``gn_cmd_element`` and
+``gn_cmd_value``), the request-number rules (:func:`request_refusal`,
+:class:`RequestNumber`, shared with the CN's intake), and the load-time checks
+of the ``commands`` section (:func:`check_config`, :func:`writable_elements`, ...).
 
-* **Idle**: nothing to do;
-* **Requested**: the runtime applied a new ``gn_to_cn`` frame this loop;
-  the request is validated, then accepted or rejected;
-* **Active**: an accepted command is in ``cn_cmd`` for exactly one loop, so
-  the state machine's transitions (``cn_cmd == LAUNCH``) see it once; the
-  next loop clears it to ``NONE``.
+Contract: :meth:`CommandHandler.step` runs on the CN's loop thread, validates
+a new request (first failure wins: unknown, replay, the state's whitelist,
+ARM for hazardous commands, argument, the element's or parameter's states and
+bounds, a save still being written), writes the verdict to ``cn_cmd_seq`` /
+``cn_cmd_status`` with a ``cmd_accepted`` or ``cmd_rejected`` event, and keeps
+an accepted command in ``cn_cmd`` until a transition consumes it or a state
+that does not handle it steps. Nothing in a request can make it raise.
+:meth:`CommandHandler.count_refused` counts requests refused without consuming
+a number (epoch, replay, auth) in ``cn_cmd_reject_*``.
 
-PRM_SET carries a parameter's element index in ``gn_cmd_element`` and its
-value in ``gn_cmd_value``; PRM_SAVE nothing (parameters:
-:mod:`zplatform.params`).
-
-Validation, first failure wins (the status goes to ``cn_cmd_status``):
-
-1. ``REJECTED_UNKNOWN``: the code is not a command (``NONE`` included);
-2. ``REJECTED_REPLAY``: ``gn_cmd_seq`` is not above the highest number seen
-   so far (any first number >= 1 is fine). Every request that is not a
-   replay raises that number, accepted or rejected;
-3. ``REJECTED_NOT_ALLOWED``: the command is not in the current state's
-   whitelist (``commands.whitelist``; a state not listed allows every
-   command). NOOP and ARM follow the whitelist like the others. HOLD and
-   RESUME are also refused when there is no state machine to hold;
-4. ``REJECTED_NOT_ARMED``: a hazardous command (``commands.hazardous``), a
-   WRITE of a protected element or a PRM_SET of a hazardous parameter needs
-   double confirmation: an accepted ARM numbered exactly
-   ``gn_cmd_seq - 1``, accepted at most :data:`ARM_WINDOW_NS` before. An
-   ARM confirms one command only;
-5. ``REJECTED_BAD_ARGUMENT``: for WRITE, the element index names no
-   writable element (``commands.writable``, deny by default; a parameter
-   changes only by PRM_SET), or the value does not fit its type (enum: an index in
-   range; ints: integral and in range; bool: 0 or 1; floats: finite and in
-   range); for PRM_SET, the index names no parameter, or the value does not
-   fit its type;
-6. WRITE only: ``REJECTED_NOT_ALLOWED``, the element may not be written in
-   this state (``commands.write_states``; a hazardous output only in its
-   own states, ``hazardous_outputs``). PRM_SET only:
-   ``REJECTED_PARAM_STATE``, the parameter may not change in this state
-   (its ``states``); ``REJECTED_OUT_OF_BOUNDS``, the value is outside its
-   ``[min, max]``;
-7. PRM_SAVE only: ``REJECTED_BUSY``, the previous save is still being
-   written; ``REJECTED_NOT_ALLOWED`` in a mission without parameters.
-
-An accepted command sets ``cn_cmd`` (WRITE also writes the element, PRM_SET
-the parameter; PRM_SAVE queues the save, :mod:`zplatform.params`; HOLD and
-RESUME call the state machine) and becomes Active. Every request writes
-``cn_cmd_seq = gn_cmd_seq`` and ``cn_cmd_status`` and emits an event: COMMAND
-``cmd_accepted`` or WARNING_LO ``cmd_rejected`` with the reason. Nothing in a
-request can make :meth:`CommandHandler.step` raise.
-
-A request refused without consuming a number (``REJECTED_EPOCH``,
-``REJECTED_REPLAY``, or ``REJECTED_AUTH`` for a frame that fails its tag)
-leaves ``cn_cmd_seq``/``cn_cmd_status`` alone and writes
-``cn_cmd_rejects`` (a count), ``cn_cmd_reject_status`` and
-``cn_cmd_reject_seq`` (its number; 0 for ``REJECTED_AUTH``, whose number
-cannot be trusted), so the tool that sent it learns of the refusal at once.
-The epoch and number rules are :func:`request_refusal`'s: the CN's intake
-(:class:`zplatform.intake.RequestIntake`) applies them to every request as
-it arrives, so a replayed frame never reaches the loop, and counts the
-refused ones together (:meth:`CommandHandler.count_refused`: when several
-were refused in one loop, ``cn_cmd_reject_seq`` shows the highest number,
-an operator's fresh one rather than a replay's).
-
-The numbers are remembered for the CN's life: a ground tool continues from
-the ``cn_cmd_seq`` it reads in telemetry (see :func:`zplatform.uplink.fill_request`).
+The rules: docs/architecture.md#safety-rules, docs/mission-reference.md#key-commands.
 """
 
 from __future__ import annotations

@@ -2,28 +2,21 @@
 
 A *component* is mission code placed on one node (a controller of
 :mod:`zplatform.controllers` or a device of :mod:`zplatform.devices`). This
-module holds what both kinds need, so neither imports the other's internals:
+module holds what both need, so neither imports the other's internals:
+:class:`Component` (name, node, a typed ``Config`` decoded from the YAML
+``config:``, element handles taken once in :meth:`Component.bind`,
+:meth:`Component.tunable` for a number or an element such as a parameter),
+:func:`decode_component_config`, :func:`load_component_class` and
+:func:`load_function` (the platform's only import of mission code: the
+mission's ``pythonpath`` is at the front of ``sys.path`` while they import,
+:func:`mission_code_path`, and only then), :func:`build_component` and
+:class:`Streak` (the counter behind "one event per failure streak").
 
-* :class:`Component`: name, node, typed ``Config`` decoded from the YAML
-  ``config:`` mapping, element handles taken once in :meth:`Component.bind`
-  (:meth:`Component.tunable` for a setting given as a number or as an
-  element, typically a mission parameter);
-* :func:`decode_component_config`: YAML mapping -> ``msgspec.Struct``, with
-  the error path continuing the component's YAML path;
-* :func:`load_component_class` and :func:`load_function`: import a
-  ``"package.module:Name"`` path, refusing at load (ConfigError naming the
-  YAML path) anything that is not what the mission says it is. They are the
-  platform's only import of mission code: the mission's ``pythonpath``
-  directories are at the front of ``sys.path`` while they import
-  (:func:`mission_code_path`), and only then;
-* :func:`build_component`: run a component's constructor so that anything
-  it raises names its YAML path and class;
-* :class:`Streak`: the failure-streak counter behind "one event per failure
-  streak" (controllers, devices, a device node's board).
+Contract: a bad mission raises :class:`~zplatform.errors.ConfigError` naming
+the YAML path (a constructor's other errors: ControlError with path and class);
+nothing here runs in the loop except :class:`Streak`, which allocates nothing.
 
-Everything here raises :class:`~zplatform.errors.ConfigError` for a bad
-mission and never runs in the loop, except :class:`Streak`, which allocates
-nothing.
+Writing your own: docs/mission-reference.md#your-own-controllers-devices-boards-and-physics.
 """
 
 from __future__ import annotations

@@ -1,44 +1,21 @@
 """Controllers: the control logic of a mission (the thesis, ch. 4.6 and 6.2).
 
-A :class:`Controller` is mission code that runs every loop (or every Nth
-loop, its rate group) on one node and talks to the rest of the system only
-through that node's Data Vector. Its mode lives in the Data Vector too, in
-the platform element ``<name>_mode`` (``enabled`` / ``safed`` / ``manual``),
-which the state machine's actions write (thesis 4.6.1):
-
-* ``enabled`` -> :meth:`Controller.run_enabled`: normal control;
-* ``safed``   -> :meth:`Controller.run_safed`: drive outputs to their safe
-  values (actuator devices have no mode: safing the controller that feeds
-  them is how an actuator is safed, thesis 4.7);
-* ``manual``  -> :meth:`Controller.run_manual`: control logic off
-  (thesis 6.2). By default it does nothing, so an operator's WRITE commands to
-  the controller's outputs hold instead of being overwritten every loop.
-
-A mode value outside the three names is treated as ``safed`` (fail safe).
-
-Each controller class declares its own typed configuration: a nested
-``Config`` ``msgspec.Struct`` (``forbid_unknown_fields=True``); the base
-class decodes the YAML ``config:`` mapping into it, so a typo fails at load
-with its YAML path (``$.controllers[2].config.step_s``). Element handles are
+A :class:`Controller` is mission code that runs every loop (or every Nth loop,
+its rate group) on one node and talks to the rest of the system only through
+that node's Data Vector. Its mode is the platform element ``<name>_mode``,
+which the state machine's actions write: ``enabled`` runs
+:meth:`Controller.run_enabled`, ``safed`` :meth:`Controller.run_safed` (drive
+outputs safe: safing the controller that feeds an actuator is how it is
+safed), ``manual`` :meth:`Controller.run_manual` (nothing by default, so an
+operator's WRITEs hold); any other value runs ``safed``. Each class declares a
+typed ``Config`` struct, decoded at load with YAML paths; element handles are
 taken once in :meth:`Controller.bind`, never by name in the loop.
 
-:class:`ControllerSet` builds and runs one node's controllers. A controller
-that raises does not stop the loop (thesis 4.11.1, non-critical error after
-start): the exception is counted in ``cn_errors`` (with ``cn_last_error =
-CONTROLLER_ERROR``) or ``dnX_errors``, one ``WARNING_HI`` event
-(``controller_failed``) is emitted per failure streak (not every loop; the
-set counts itself rather than calling ``FaultMonitor.error``, which would
-add a WARNING_LO event per failure), and the
-controller is safed: its mode element is set to ``safed`` and
-:meth:`~Controller.run_safed` is called at once. It stays safed until the
-mode it failed in is commanded again after a change (on a device node the CN
-keeps re-sending the old mode, so the set latches the safing locally until
-the CN's commanded mode changes). If ``run_safed`` raises too, the
-controller cannot be made safe by software: it is disabled for good and a
-``FATAL`` event (``controller_disabled``) is emitted. On the CN every failing loop (and every due
-loop of a disabled controller) is reported to the
-:class:`~zplatform.faults.FaultMonitor` with the length of the streak, which
-decides when that becomes a critical fault.
+Contract: :class:`ControllerSet` builds and runs one node's controllers on its
+loop thread. A controller that raises never stops the loop: it is counted,
+evented once per failure streak and safed at once; one whose ``run_safed``
+raises too is disabled for good (a FATAL event); on the CN the streak goes to
+the :class:`~zplatform.faults.FaultMonitor`. Rules: docs/architecture.md#errors-and-faults.
 """
 
 from __future__ import annotations

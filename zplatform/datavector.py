@@ -4,6 +4,7 @@ A :class:`Layout` is computed once from the mission for one node: every
 element's offset and size, every region's offset, size and ``layout_id``. A
 :class:`DataVector` owns one ``bytearray`` of that size and a little-endian
 numpy structured view over it (no copy: the view *is* the buffer).
+Endianness is fixed little-endian on every host (thesis 4.3.4, solved).
 
 Access paths, fastest first:
 
@@ -12,12 +13,10 @@ Access paths, fastest first:
   hot path (no dict lookup, no allocation for scalars).
 * :meth:`DataVector.get` / :meth:`DataVector.set` by name, with full range
   and enum checks on ``set`` (for commands and actions: slower, safe).
-* Regions and the whole vector are copied out into a caller's preallocated
-  buffer (:meth:`read_region`) and in from bytes (:meth:`write_region`); a
-  size mismatch raises instead of truncating (thesis 4.1.3).
-  :meth:`region_view` returns a zero-copy ``memoryview`` for encoders.
-
-Endianness is fixed little-endian on every host (thesis 4.3.4, solved).
+* Regions are copied out into a caller's preallocated buffer
+  (:meth:`read_region`) and in from bytes (:meth:`write_region`); a size
+  mismatch raises instead of truncating; :meth:`region_view` is a zero-copy
+  ``memoryview`` for encoders. See docs/architecture.md#data-vector.
 """
 
 from __future__ import annotations

@@ -1,88 +1,22 @@
 """Deployment files: the host-specific TLS settings a mission's zenoh links need.
 
-A mission YAML is shared and versioned; certificate and key *paths* are not
-(they differ per host, and point at secrets). They live in a separate
-**deployment file**::
+A mission YAML is shared and versioned; certificate and key *paths* differ per
+host and point at secrets, so they live in a per-host **deployment file**
+(``ca``, ``nodes: {name: {cert, key}}``, optional ``tool`` with
+``may_command``, ``access_control``), which ``zplatform keygen`` writes beside
+the key set with the mission's PKI (:mod:`zplatform.pki`).
 
-    # deployment.yaml (relative paths are relative to this file)
-    ca: ca.pem                     # the mission CA: every peer's cert must chain to it
-    nodes:
-      cn:  {cert: cn.pem,  key: cn.tls.key}
-      dn0: {cert: dn0.pem, key: dn0.tls.key}
-      gn:  {cert: gn.pem,  key: gn.tls.key}
-    tool: {cert: tool.pem, key: tool.tls.key, may_command: true}   # optional
-    access_control: true           # optional, default true
+Contract: only a mission whose links run mutual TLS
+(:attr:`zplatform.config.Mission.mtls`) needs one; every session finds it
+through :func:`require_deployment` (``ZPLATFORM_DEPLOYMENT``, else
+:func:`default_deployment_path`), which raises :class:`DeploymentError` naming
+``$.security.transport`` and how to make one when there is none or it does not
+fit. Loading a mission never needs it. :func:`tls_settings` checks a node's
+cert and key when a session presents them (refusing a private key others may
+read); :func:`access_control` builds the zenoh ACL (deny by default, keyed by
+the peer cert's common name). Functions read files and block on that I/O only.
 
-Contract:
-
-* Which missions need one: those whose links run mutual TLS
-  (:attr:`zplatform.config.Mission.mtls`, from ``security.transport``:
-  ``auto`` means mtls for a mission with hazardous commands). Loading such
-  a mission turns its ``tcp/`` endpoints into ``tls/``; every session it
-  opens (every verb: ``up``, ``node``, ``cmd``, ``tap``, ``log``,
-  ``ground``, the console, through :class:`zplatform.transport.NodeSession`)
-  takes its deployment from :func:`require_deployment`, the one way to find
-  it: the file named by :data:`DEPLOYMENT_ENV` (``ZPLATFORM_DEPLOYMENT``),
-  else the deployment beside the host's key set
-  (:func:`default_deployment_path`, ``~/.config/zplatform/keys/<mission>/
-  deployment.yaml`` by default), which ``zplatform keygen MISSION`` writes
-  with the key set and the mission's PKI (:mod:`zplatform.pki`) and
-  ``zplatform up`` on first use.
-  A mission that needs one and has none never opens a session: the error
-  says how to make one. Loading a mission does not need the deployment
-  (``check``, ``sim`` and ``replay`` run on any host); ``check`` says which
-  one a session would use, and refuses one that does not fit.
-* A deployment names every node's cert and key, but a host holds only its
-  own: the CA is checked to exist when the file is read, a node's cert and
-  key when a session presents them (:func:`tls_settings`), and a private
-  key that others may read is refused there (as ssh refuses such keys).
-* Every node runs **mutual TLS** (``enable_mtls``): a peer without a cert
-  signed by the mission CA cannot open a link at all, neither to a node's
-  listener nor as the listener a node connects to.
-* Every node enforces an **access-control list** (zenoh ``access_control``,
-  ``default_permission: deny``) keyed by the remote's certificate common
-  name. A cert's common name is its node name (``cn``, ``dn0``, ``gn``) or
-  ``tool``. The rules follow docs/architecture.md#key-space (:func:`access_control`):
-
-  each rule names the message kinds it allows (zenoh 1.x ACL messages:
-  ``put``, ``declare_subscriber``, ``query``, ``declare_queryable``,
-  ``reply``, ``liveliness_token``, ``declare_liveliness_subscriber``,
-  ``liveliness_query``; ``delete`` none) and, for each, only the keys the
-  role uses; a declaration outside them is dropped where it comes in and
-  never enters the node's routing tables:
-
-  - node ``X`` puts only under its own prefix ``{vehicle}/X/**``; so only
-    ``cn`` puts ``{vehicle}/cn/telemetry``, only ``gn`` puts
-    ``{vehicle}/gn/to_cn``; liveliness tokens only ``{vehicle}/X/alive``
-    (and ``{vehicle}/X/standby`` for a control node);
-  - queryables (and the replies they send) only where the role serves:
-    ``dnX`` on ``{vehicle}/dnX/to_cn`` and ``{vehicle}/dnX/probe``, a control
-    node on ``{vehicle}/cn/clock`` and ``{vehicle}/cn/recorder``; ``gn`` and
-    ``tool`` none;
-  - subscribers only where the role listens: a control node on
-    ``{vehicle}/gn/to_cn`` (and ``{vehicle}/cn/mirror`` with a standby),
-    ``gn`` and ``tool`` on :func:`tool_watch_keys` (telemetry, every
-    node's events, the downlink, each sync region's tap by its exact key),
-    each node on the bulk channels it reads;
-    nobody on ``{vehicle}/**``;
-  - only a control node queries ``{vehicle}/dnX/to_cn`` (and
-    ``{vehicle}/*/to_cn``, the wildcard sync query); the other nodes query
-    the CN's clock ``{vehicle}/cn/clock``; ``gn`` and ``tool`` may query the
-    CN's flight recorder ``{vehicle}/cn/recorder`` (gap fill), when the
-    mission has one;
-  - every identity may watch and ask liveliness (``{vehicle}/*/alive``,
-    ``{vehicle}/*/standby``);
-  - ``tool`` (``tap``, ``log``, ``cmd``, ``ground``) only subscribes,
-    watches and asks the recorder, and puts ``{vehicle}/gn/to_cn``
-    (operator commands) only with ``may_command: true``.
-
-  A node egresses only to identities it knows (the node names and ``tool``):
-  a cert from the mission CA with any other common name gets nothing.
-
-A mission whose links are plain (``security.transport: plain``, or ``auto``
-without hazardous commands) uses no deployment: those links stay
-unauthenticated at the link level (frames are still authenticated,
-:mod:`zplatform.auth`).
+Format, rules and the ACL per role: docs/security.md#tls-and-access-control.
 """
 
 from __future__ import annotations

@@ -1,29 +1,22 @@
 """Devices: sensor and actuator drivers on the device nodes (the thesis, ch. 4.7).
 
 A :class:`Device` connects the Data Vector to an I/O
-:class:`~zplatform.boards.Board` (the
-thesis' FPGA interface). A :class:`Sensor` reads the board, converts
-electrical to engineering units, calibrates and writes the Data Vector; an
-:class:`Actuator` reads the Data Vector and drives the board. Devices have no
-mode: an actuator is safed by safing the controller that feeds it.
+:class:`~zplatform.boards.Board` (the thesis' FPGA interface): a
+:class:`Sensor` reads the board, converts to engineering units and writes
+the Data Vector; an :class:`Actuator` reads the Data Vector and drives the
+board. Devices have no mode: an actuator is safed by safing the controller
+that feeds it. Shipped drivers: :class:`DigitalOutput` (the thesis' LED
+driver, with read-back feedback), :class:`DigitalInput`,
+:class:`AnalogInput` (``volts * scale + offset``) and :class:`AnalogOutput`.
 
-Each loop of a device node runs, in order (:class:`DeviceSet` and
-:class:`~zplatform.loop.DeviceLogic`): the board's
-:meth:`~zplatform.boards.Board.step`
-(latch inputs; the simulated board's physics), the sensors, the node's
-controllers, the actuators. A device that raises is counted in
-``dnX_errors`` and reported by a ``WARNING_HI`` event (``EV.DEVICE_FAILED``)
-once per failure streak;
-the loop goes on and the device runs again next loop.
+Contract: :class:`DeviceSet` runs on the device node's loop thread, in order
+(with :class:`~zplatform.loop.DeviceLogic`): the board's step, the sensors,
+the node's controllers, the actuators. A device that raises is counted in
+``dnX_errors`` and evented once per failure streak (``device_failed``); the
+loop goes on. Boards live in :mod:`zplatform.boards` (this module imports
+them, never the reverse).
 
-Boards live in :mod:`zplatform.boards` (this module imports them, never the
-reverse): the contract :class:`~zplatform.boards.Board` and the simulated
-:class:`~zplatform.boards.SimBoard`, the default of every device node.
-
-Shipped drivers: :class:`DigitalOutput` (the thesis' LED driver: sets a pin
-from a command element and reads the pin back into a feedback element, which
-proves the pin really changed), :class:`DigitalInput`, :class:`AnalogInput`
-(``volts * scale + offset``) and :class:`AnalogOutput`.
+Writing your own: docs/mission-reference.md#your-own-controllers-devices-boards-and-physics.
 """
 
 from __future__ import annotations

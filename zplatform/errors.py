@@ -1,39 +1,22 @@
 """The zplatform error tree (the thesis, ch. 4.11, made Pythonic).
 
 The thesis' C++ platform returns an ``Error_t`` status from every function and
-has the node mains decide what to do with it. In Python the same contract is
-carried by exceptions: every error the platform raises on purpose is a
-subclass of :class:`ZPlatformError`, so a node main can tell "ours, with a
-clear message" from a bug with one ``except``. Low-level errors (msgspec,
-numpy, zenoh, OS) are converted at the boundary with ``raise ... from exc``.
+has the node mains decide what to do with it. Here exceptions carry the same
+contract: every error the platform raises on purpose is a subclass of
+:class:`ZPlatformError`, so a node main can tell "ours, with a clear message"
+from a bug with one ``except``. Low-level errors (msgspec, numpy, zenoh, OS)
+are converted at the boundary with ``raise ... from exc``.
 
-How the mains handle them (thesis 4.11.1):
+Holds the root and the shared branches (:class:`ConfigError`, whose message
+names the YAML path; :class:`CodecError` and its frame errors;
+:class:`NodeError`, :class:`RecordingError`, ...); a few leaves live with
+their modules (``AuthError``, ``KeyError_``, ``BoardError``,
+``DeploymentError``, ``CcsdsError``, ``ParamFileError``). The mains handle
+them as the thesis does: during initialisation print and exit non-zero;
+after start count, event and keep the rate, or latch a fault for the state
+machine.
 
-* during initialisation: print the message and exit non-zero;
-* after start, non-critical: count in the Data Vector, publish an event,
-  keep the loop rate;
-* after start, critical: raise a fault flag that the mission's state machine
-  sends to an abort state.
-
-The tree::
-
-    ZPlatformError
-    ├── ConfigError              mission YAML invalid; message names the YAML path
-    ├── DataVectorError          unknown element, bad value, size mismatch
-    ├── CodecError               a frame that must not touch the Data Vector
-    │   ├── FrameFormatError     not a frame: bad MessagePack, wrong shape/types
-    │   ├── LayoutMismatchError  a frame of another region layout
-    │   └── FrameSizeError       data length differs from the region size
-    ├── TimebaseError            clock would overflow; offset applied too late
-    ├── SchedulerError           bad period / rate group; real-time set-up misuse
-    ├── TransportError           zenoh session or key-space failure
-    ├── ClockSyncError           offset could not be estimated or exceeds bound
-    ├── StateMachineError        state-machine misuse at run time
-    ├── CommandError             a command refused before it was sent (CLI)
-    ├── ControlError             controller/device construction or wiring
-    ├── EventError               an event that is not in the catalogue (a bug)
-    ├── NodeError                a node main cannot start or run
-    └── RecordingError           a loop recording or flight recorder cannot be written or read
+The whole tree and its handling: docs/architecture.md#errors-and-faults.
 """
 
 from __future__ import annotations

@@ -1,76 +1,22 @@
 """The standby control node: it mirrors the commander and takes over when it falls silent.
 
-docs/architecture.md#failover tells the whole story; in short:
+Holds :class:`Standby` (a control node that does not command), the mirror
+frame's reader (:class:`MirrorReader`) and :class:`Decision`. The commander
+sends its whole Data Vector each loop as a mirror; the standby writes every
+fresh one into its own vector and keeps the commander's schedule. When the
+commander falls silent it probes the device nodes (STATUS, then ASK for the
+next term, :mod:`zplatform.fencing`) and takes command only when more than
+half of them granted and none refused; a standby whose last mirror is older
+than :attr:`Standby.max_age` loops (``2 * takeover_loops + lease_loops``) is
+blind and never takes command from it.
 
-* A mission may declare a second control node, ``cn_b``. Whichever control
-  node commands sends, at the end of every loop, its whole Data Vector to
-  the other as a **mirror** frame (``{vehicle}/cn/mirror``, tagged with the
-  link only the two control nodes hold). The other one, the **standby**,
-  writes every fresh mirror into its own vector: state, time in state,
-  pending command, request numbers, ARM, latched fault, controller modes and
-  every controller's state elements (a redundant mission's control-node
-  controllers keep their state in the vector: ``Controller.takeover_safe``).
-* When no mirror came for ``failover.takeover_loops`` loops, the standby
-  first asks every device node what it runs (a STATUS probe,
-  :mod:`zplatform.fencing`, which changes nothing); only when their answers
-  show the commander silent to them too (:meth:`Standby.silent`) does it
-  **ask every device node** to promise it the next term. A device node
-  grants only when no trigger of its own term has run for
-  ``failover.lease_loops`` periods: a standby that is only cut off from a
-  working commander learns from the device nodes it still drives that
-  they are driven, asks nothing, and waits (``cn_takeover_held``). When
-  every device node that answered granted, and they are more than half of
-  the mission's device nodes, the standby **takes command** at the next
-  loop of the commander's own schedule (loop numbers follow time, as a
-  commander's overrun skips them), in the new term, from the mirror it holds (``cn_took_command``);
-  otherwise it releases the promises it got and asks again
-  ``takeover_loops`` loops later.
-* A standby whose last mirror is older than ``2 * takeover_loops +
-  lease_loops`` loops (:attr:`Standby.max_age`: the oldest a takeover after
-  a commander's death, with a round retried for each lease and for one
-  unanswered question, can need) is **blind**: it never takes command from
-  it, as that would turn the vehicle's state back in time (a commander that
-  flew on while the standby was cut off from it, then died). It says so
-  (``cn_takeover_held``), withdraws its readiness (the commander's
-  ``cn_standby_ready`` falls), and follows again from the next mirror; the
-  device nodes meanwhile keep their loss-of-commander outputs
-  (``dn_watchdog``), the configured state.
-* A control node whose trigger replies show that more than half of the
-  device nodes follow a newer term, or that receives a mirror of a newer
-  term, **stands down** and becomes the standby (``cn_stood_down``).
+Contract: sans-IO like the loop (:mod:`zplatform.loop`): reads no clock, opens
+nothing, starts no thread; one :class:`~zplatform.role.ControlRole` drives it
+for both drivers, on the node's loop thread (not thread-safe). It never raises
+for what arrives: refused mirrors and probe replies are counted
+(:attr:`Standby.bad`, :attr:`Standby.bad_replies`), evented at most once a second.
 
-Why the device nodes decide: they are what must never be driven by two
-control nodes, and each sees directly whether the commander still drives
-it. Liveliness or missing mirrors alone cannot tell a dead commander from a
-cut link between the two control nodes. The promise fences the old term at
-the device node the moment it is given, so a commander that wakes up
-between the question and the new term's first trigger drives nothing; the
-majority rule means two control nodes can never each hold most of the
-device nodes.
-
-What a takeover loses: the mirror is of the last loop the standby
-received. The commander's loop in flight when it died (at most one, more
-if mirrors were lost) is redone by the new commander from the state before
-it: a command that loop accepted but whose snapshot never reached the
-standby is not known to it (the ground sees the new term's verdicts; a
-request it sent again is judged once, by the new commander).
-
-:class:`Standby` is sans-IO, as the loop is (:mod:`zplatform.loop`); one
-:class:`~zplatform.role.ControlRole` drives it for both drivers, the zenoh
-runtime (:mod:`zplatform.node.control`) and the lockstep runner
-(:mod:`zplatform.lockstep`), this way::
-
-    sb.mirror(frame, now)             # every mirror frame that arrives
-    if sb.tick(slot):                 # once per loop slot of the commander's schedule
-        asks = sb.ask(slot, now, kind=STATUS)  # first ask nothing: is the commander silent?
-        sb.answer(i, reply)           # each reply, until the deadline
-        if sb.silent(slot, now):      # to the device nodes too: now ask for the term
-            asks = sb.ask(slot, now)  # one ASK per device node
-            sb.answer(i, reply)
-            if sb.decide(slot) == TAKE:
-                logic = sb.take(slot + 1) # the ControlLogic to run from loop slot + 1
-            else:
-                send sb.releases      # the promises it will not use
+The whole story and the driver's call order: docs/architecture.md#failover.
 """
 
 from __future__ import annotations

@@ -1,57 +1,22 @@
 """Error handling after start (the thesis, ch. 4.11.1), sans-IO.
 
-The thesis' node mains handle an error after start in one of two ways:
+The thesis' split: a **critical** error sets a flag the state machine reads
+(``cn_fault``, an enum of :class:`~zplatform.codes.Fault`), so a configured
+transition (``cn_fault != NONE``) takes the vehicle to a safe state; a
+**non-critical** one is counted (``cn_errors``, its code in ``cn_last_error``)
+and evented, and the loop keeps its rate. :class:`FaultMonitor` decides which
+is which from the ``faults`` section: a symptom (DN_LOST, CONTROLLER_FAILED,
+SYNC_OVERRUNS, LOOP_OVERRUNS, CLOCK_DRIFT, DN_SAFED) becomes critical when it
+persists for its count of consecutive loops; the mission's monitors latch
+theirs through :meth:`FaultMonitor.raise_fault`.
 
-* **critical**: set a flag the state machine reads, so a configured
-  transition (``cn_fault != NONE -> ABORT``) takes the vehicle to a safe
-  state. The flag is ``cn_fault``, an enum of
-  :class:`~zplatform.codes.Fault`;
-* **non-critical**: count it in the Data Vector (``cn_errors``, with the
-  code in ``cn_last_error``) and publish an event; the loop keeps its rate.
+Contract: runs on the CN's loop thread in ``ControlLogic.finish``, first of the
+logic; never blocks, never raises for a symptom. Only the first fault
+latches, and it stays until written back to ``NONE`` (or, with
+``faults.dn_rejoin_clears``, DN_LOST clears when every device node answers
+again); a raised fault emits one WARNING_HI ``fault`` event.
 
-:class:`FaultMonitor` decides which is which from the ``faults`` section:
-a symptom becomes critical when it persists for N consecutive loops (N = 0
-turns that check off):
-
-================== ==================================== ======================
-fault              symptom, per loop                    N
-================== ==================================== ======================
-DN_LOST            ``cn_missed_dnX`` grew (any dnX)     ``dn_lost_loops``
-CONTROLLER_FAILED  ``dnX_errors`` grew (any dnX), or a  ``controller_fail_loops``
-                   CN controller raised
-                   (:meth:`~FaultMonitor.report_controller_failure`)
-SYNC_OVERRUNS      ``cn_sync_overruns`` grew            ``sync_overrun_loops``
-LOOP_OVERRUNS      ``cn_loop_overruns`` grew            ``loop_overrun_loops``
-CLOCK_DRIFT        ``|dnX_clock_drift_ns|`` beyond the   1 (one reading)
-                   clock bound (``clock.offset_bound_ms``)
-DN_SAFED           ``dnX_safed_why`` is ``CANNOT_RUN``   1 (one reading)
-                   (any dnX)
-================== ==================================== ======================
-
-``DN_SAFED`` is a device node that answers the CN's triggers yet runs none
-of them (its clock off, every trigger stale): the node has safed itself
-after ``faults.dn_watchdog_loops`` periods of that and says so in its
-replies (:class:`~zplatform.loop.DeviceLogic`). A node safed because the CN
-went quiet (``CN_LOST``) or because the run ended (``RUN_ENDED``) is no
-fault here: it re-enables once the CN triggers it again, and a CN that
-stops hearing it latches ``DN_LOST``. Missions answer ``DN_SAFED`` like
-any fault (``cn_fault != NONE``): the shipped igniter mission aborts from
-ARMED and FIRE, so a DN that cannot run ends a flight ABORTED, visibly,
-instead of ARMED with a healthy-looking link.
-
-The mission's monitors (:mod:`zplatform.monitors`) latch faults too, through
-:meth:`FaultMonitor.raise_fault`: ``MONITOR`` or the fault a monitor names
-(``THREAD_STALLED`` for a node's stalled thread, say).
-
-Only the first fault latches: once ``cn_fault`` is not ``NONE`` it stays
-until someone writes it back (a WRITE command of ``cn_fault = NONE``, or a
-state-machine action); a symptom still present then raises it again. A
-mission may let DN_LOST clear itself (``faults.dn_rejoin_clears``): once
-every device node has answered again for ``faults.dn_reenable_loops`` loops
-in a row (a restarted node, a healed link), with a ``dn_fault_cleared``
-event; a transition the fault fired stays taken. A
-raised fault emits one ``WARNING_HI`` event (``EV.FAULT``): the platform acted,
-and the state machine answers it.
+The symptoms, their counts and what is no fault: docs/architecture.md#errors-and-faults.
 """
 
 from __future__ import annotations

@@ -1,57 +1,22 @@
 """Terms and fencing: which control node may drive a device node (docs/architecture.md#failover).
 
-A mission with a standby control node (``cn_b``) numbers its commanders'
-reigns: the **term**. The first commander runs term 1; every takeover
-raises it by one. The term travels in every trigger (``dnX_term`` in
-``cn_to_dnX``, authenticated with the trigger) and in telemetry
-(``cn_term``), so everyone can tell the commander of the day from an old one.
+A mission with a standby control node numbers its commanders' reigns: the
+**term** (1 for the first commander, one more per takeover), carried in every
+trigger (``dnX_term``) and in telemetry (``cn_term``). :class:`TermGuard`
+(used by :class:`~zplatform.loop.DeviceLogic`) is a device node's rule: run a
+trigger only of the highest term it ran or promised (a lower term's is
+answered, never run), follow a higher term only on a promise or after its
+own term's lease ran out, never run two triggers of one loop. The probe
+(``STATUS``, ``ASK`` a term, ``RELEASE`` it) is a control node's question to
+a device node before it takes command: :func:`ask_frame`, :func:`read_ask`,
+:func:`reply_frame`, :func:`read_reply`, :func:`next_term`.
 
-**A device node's rules** (:class:`TermGuard`, used by
-:class:`~zplatform.loop.DeviceLogic`):
+Contract: sans-IO; :class:`TermGuard` allocates nothing per trigger. Every
+integer a frame carries is range-checked where it is read (a term at most
+:data:`TERM_MAX`, a loop at most :data:`LOOP_MAX`, an asker a control node, a
+flag 0 or 1): a frame outside them raises CodecError, counted like a forged one.
 
-* it runs a trigger only if its term is at least the highest term it has
-  run or promised; a lower term's trigger is *fenced*: answered (so the old
-  commander learns of the newer term from ``dnX_term_seen`` in the reply),
-  never run;
-* it follows a *higher* term only when it has been promised to it, or when
-  no trigger of its current term has run for ``failover.lease_loops``
-  periods (the lease): a standby that is only cut off from a working
-  commander cannot take the node from it;
-* it never runs two triggers of one loop (a trigger must be for a later
-  loop than the last one run, whatever its term), so no loop is driven by
-  two terms on one node.
-
-**The probe** (the standby's question before it takes command,
-codecs/FORMAT.md §6.4): on ``{vehicle}/dnX/probe``, a control node asks each
-device node, tagged with the node's link key (channels ``probe_cn_to_dnX`` /
-``probe_dnX_to_cn``):
-
-* ``STATUS``: what term do you run, since when, which loop? (a restarting
-  control node's first question; never changes anything);
-* ``ASK`` term Q: promise Q. Granted when Q is above every term the node
-  runs or has promised and its lease has run out: no trigger ran, and no
-  promise was given (to the other control node), for ``lease_loops``
-  periods. The promise fences the old term at once and lasts the lease,
-  long enough for the first trigger of term Q, which makes it permanent;
-  unused, it lapses;
-* ``RELEASE`` term Q: drop the promise of Q (the asker will not take
-  command: some other node still hears the commander).
-
-A reply echoes the question's nonce, so it cannot be replayed into another
-question, and states the node's term, its promise, whether it granted, how
-long ago its last trigger ran (on its own clock), that loop and its stamp.
-
-**Ranges.** Every integer these frames carry is checked where it is read
-(:func:`read_ask`, :func:`read_reply`), so a frame is refused (CodecError)
-rather than carried into arithmetic the node cannot represent: a term is
-at most :data:`TERM_MAX` (one below the ``u32`` field's largest value, so
-the next term after any valid one still fits, and a standby that knows
-:data:`TERM_MAX` asks for nothing: :func:`next_term`), a loop at most
-:data:`LOOP_MAX`, an asker one of the mission's control nodes, a flag 0 or
-1, the quiet time -1 or more. A valid-looking frame with a wrong value is
-as refused as a forged one: counted by its receiver, never an exception.
-
-Everything here is sans-IO and allocates nothing per trigger.
+The probe byte by byte and the ranges: codecs/FORMAT.md (section 6.6).
 """
 
 from __future__ import annotations

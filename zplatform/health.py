@@ -1,84 +1,22 @@
 """What a node keeps about itself: health in telemetry and thread liveness.
 
-A mission with a ``health:`` section gives every node (the CN and each DN) a
-block of **health elements** in the region it reports in (``cn`` for the CN,
-``dnX_to_cn`` for dnX), ordinary Data Vector elements with limits, written
-at the mission's health rate (``health.rate_hz``, 1-10 Hz: every
-:func:`health_divisor` loops). A mission without the section has none of
-them, so its layouts do not change. ``<node>_`` prefixes each name:
+Holds the health elements' layout and limits (:data:`METRICS`,
+:func:`health_divisor`), thread liveness (:class:`Heartbeat`, one per thread,
+and :class:`Liveness`, which says as a bit mask of :data:`THREAD_NAMES` which
+threads are past their deadline), and the sans-IO copy of a node's health
+block into its Data Vector (:class:`HealthBlock`, :class:`HealthPort`,
+:class:`HealthInput`, :class:`FakeHealth` for tests).
 
-=================== ===== =====================================================
-element             type  meaning (over the last health period)
-=================== ===== =====================================================
-``cpu_pct``         f32   the node process's CPU, % of one core
-``sys_cpu_pct``     f32   the host's CPU, % of all cores
-``rss_mb``          f32   the process's resident memory (MiB)
-``mem_free_mb``     f32   the host's available memory (MiB)
-``disk_free_mb``    f32   free space where the node logs (``health.disk_path``, MiB)
-``cpu_temp_c``      f32   the hottest CPU temperature sensor (deg C); **NaN
-                          when the host has no sensor** (a NaN is inside every
-                          limit: it never colours, never trips a monitor)
-``health_seq``      u32   samples the node's health thread has taken
-``late_max_ms``     f32   the loop's worst start lateness (ms)
-``overruns_recent`` u32   loops that overran their period
-``gc_max_ms``       f32   the longest garbage-collector pause (ms)
-``gc_count``        u32   garbage collections
-``threads_stalled`` u16   threads past their check-in deadline: bit ``i`` is
-                          :data:`THREAD_NAMES` ``[i]``
-=================== ===== =====================================================
+Contract: nothing here samples a host or blocks (the live sampler is
+:mod:`zplatform.node.health`); ``Heartbeat.beat``/``idle`` are single stores,
+safe from any thread; on health loops the loop copies the whole block in one
+copy and emits ``thread_stalled`` / ``thread_resumed`` events from the loop,
+so the events are as deterministic as the block. Without a port the elements
+keep their initial values (NaN readings, zero counters), so a ``sim`` is
+byte-identical run to run.
 
-The six readings start as NaN (no reading yet) and the rest as 0. Default
-limits (yellow/red) are in :data:`METRICS`; ``health.limits`` replaces them
-band by band. Nothing in the lockstep runner samples a host: there the
-elements keep their initial values unless a test attaches a
-:class:`FakeHealth`, so ``sim`` stays byte-identical run to run.
-
-Thread liveness
----------------
-Every thread a node runs checks in through a :class:`Heartbeat`, a cheap
-store of the time (``beat()``, about 0.1 us). The node's :class:`Liveness`
-holds them by name, each with its deadline (``health.deadlines_ms``, defaults
-in :func:`thread_deadlines_ns`), and :meth:`Liveness.stalled` says, as a bit
-mask of :data:`THREAD_NAMES`, which have not checked in within their
-deadline. The contract for a thread's owner:
-
-* create ``Heartbeat(name)`` with a name from :data:`THREAD_NAMES` (for a
-  new kind of thread, append a member to :class:`zplatform.codes.Thread`;
-  never renumber) and expose it as the ``heartbeat`` attribute; the node
-  runtime adds it to the node's :class:`Liveness` (:meth:`Liveness.add`);
-* call ``beat()`` every time the thread makes progress, at least once per
-  deadline: a thread that waits for work waits with a timeout and beats on
-  every wake-up;
-* or, before it blocks on outside input that may legitimately never come
-  (a queue a writer thread drains, a query that may not arrive), call
-  ``idle()``: an idle thread is not stalled; it beats again when it wakes.
-  So a thread stuck *inside* a unit of work (a write to a hung disk, a
-  serial read that never returns) is reported; one with nothing to do is not;
-* call ``idle()`` when the thread ends.
-
-The names (:data:`THREAD_NAMES`, the lowercase members of
-:class:`zplatform.codes.Thread`): ``loop`` the node's loop thread; ``zenoh``
-zenoh's runtime running the node's callbacks (checked by the health thread's
-probe: a query to the node's own session that nobody answers, finalised by
-zenoh's timer on zenoh's thread, which checks in); ``health`` the health
-thread; ``clock`` the CN's clock server or a DN's clock re-sync; ``board`` a
-board's I/O thread (the serial board's, or a team's board with a
-``heartbeat``); ``record`` the CN's ``--record`` writer; ``recorder`` the
-on-board flight recorder's writer.
-
-The staging block and its one copy
-----------------------------------
-A node's health elements are contiguous in its Data Vector (:class:`HealthBlock`),
-and the live driver keeps a staging area of the same bytes
-(:class:`HealthPort`): the health thread packs what it samples (the first
-:data:`SAMPLED` fields) into it, and on health loops the loop thread packs
-what it measured itself (:data:`LOOP_FIELDS`: lateness, overruns, gc, stalled
-threads) and the loop copies the whole block into the Data Vector in one
-copy (:meth:`HealthInput.apply`). Each pack is one C call, so the loop never
-copies a half-written field; fields of two samples may sit side by side.
-:meth:`HealthInput.apply` also emits ``thread_stalled`` naming each thread
-whose bit came up (``thread_resumed`` when it goes down), from the loop, so
-the events are as deterministic as the block.
+The element table, a thread's contract and the thread names:
+docs/architecture.md#health.
 """
 
 from __future__ import annotations

@@ -1,27 +1,22 @@
 """Hazardous outputs and their interlocks (``hazardous_outputs``), sans-IO.
 
-A mission names each hazardous output (an igniter, a motor, a valve: a
-scalar element a device node drives an actuator from) and the states in
-which it may be driven. Two guards keep that rule, each on its own:
-
-* the control node refuses a WRITE of the output in any other state
-  (:mod:`zplatform.commands`, ``REJECTED_NOT_ALLOWED``), and a
-  state-machine action may set it to anything but its safe value only in
-  its states (:func:`check_config`, at load);
-* the device node holding the output (:class:`OutputInterlock`, run by
-  :class:`~zplatform.loop.DeviceLogic` between its controllers and its
-  actuators) reads the vehicle's state from the authenticated trigger it
-  runs (``dnX_state``, which the control node writes into every trigger),
-  and in a state not the output's writes the output's safe value instead,
-  counting it in ``dnX_interlocked`` and reporting it at most once a
-  second. So a control node that was told (or tricked) into commanding an
-  output out of its states still cannot drive it: the lockstep runner and
-  the live runtime run the same :class:`~zplatform.loop.DeviceLogic`.
+A mission names each hazardous output (an igniter, a motor, a valve: a scalar
+element a device node drives an actuator from) and the states in which it may
+be driven. Two guards keep that rule, each on its own: the control node
+refuses a WRITE of the output in any other state (:mod:`zplatform.commands`),
+and a state-machine action may set it to anything but its safe value only in
+its states (:func:`check_config`, at load); and the device node holding it
+(:class:`OutputInterlock`, run by :class:`~zplatform.loop.DeviceLogic`
+between its controllers and its actuators) reads the vehicle's state from
+the authenticated trigger it runs (``dnX_state``) and, in a state not the
+output's, writes the safe value instead (``dnX_interlocked``, evented at most
+once a second). So a control node told (or tricked) into commanding an output
+out of its states still cannot drive it.
 
 Contract: :func:`check_config` raises :class:`~zplatform.errors.ConfigError`
 naming the YAML path; :class:`OutputInterlock` resolves everything at
-construction and its :meth:`~OutputInterlock.apply` allocates nothing
-while no output is refused and never raises.
+construction, and :meth:`~OutputInterlock.apply` allocates nothing while no
+output is refused and never raises. See docs/architecture.md#safety-rules.
 """
 
 from __future__ import annotations

@@ -2,32 +2,21 @@
 
 :data:`KEYSPACE` has a row per key expression pattern (``{vehicle}/{dn}/to_cn``):
 who may put on it, who declares its subscribers, queryables or liveliness
-tokens, who may query it, and per kind of frame it carries (a query, a
-reply, a sample, a token) the auth channel whose key tags it (its link),
-the freshness and rate rules its receiver keeps, whether it is bound to a
-run, and the intake that guards it. It is the single source of the keys:
-:class:`zplatform.transport.KeySpace` builds every key from it
+tokens, who may query it, and per kind of frame it carries the auth channel
+whose key tags it, the freshness and rate rules its receiver keeps, whether
+it is bound to a run, and the intake that guards it. It is the single source
+of the keys: :class:`zplatform.transport.KeySpace` builds every key from it
 (:func:`key_of`), docs/keyspace.md is generated from it
-(:func:`keyspace_markdown`), and the test suite is planned from it
-(``tests/unit/test_keyspace.py`` refuses a zenoh call in ``zplatform/``
-whose key does not come from a row, or an auth channel without a row;
-``tests/faults/test_keyspace_faults.py`` feeds every tagged frame's intake
-junk, bad tags, replays and extreme headers).
+(:func:`keyspace_markdown`), and ``tests/unit/test_keyspace.py`` refuses a
+zenoh call in ``zplatform/`` whose key comes from no row.
 
-:func:`expand_keys` is pure: the rows a mission uses, with their placeholders
-filled in (per device node, per node, per bulk channel). Nothing here
-blocks, allocates after import, or touches the network; :func:`key_of`
-raises :class:`KeyError` for a row that does not exist (a new channel
-cannot get a key without its row) and ValueError for a missing placeholder.
+Contract: :func:`expand_keys` is pure (the rows a mission uses, placeholders
+filled in per device node, node and bulk channel). Nothing here blocks,
+allocates after import, or touches the network; :func:`key_of` raises
+:class:`KeyError` for a row that does not exist (a new channel cannot get a
+key without its row) and ValueError for a missing placeholder.
 
-Placeholders: ``{vehicle}`` (the mission's), ``{dn}`` (a device node),
-``{node}`` (any node: control, device, ground), ``{cn}`` (a control node),
-``{asker}`` (who asks the clock: a device node, or ``peer``, the standby),
-``{owner}``/``{channel}`` (a bulk channel's owner and name). Role names in
-``puts``/``declares``/``queries``: ``commander`` (whichever control node
-commands), ``control`` (either control node), ``gn``, ``tool``,
-``{dn}``/``{node}``/``{cn}``/``{owner}`` (the node the key names), ``any``
-(every identity), ``self`` (the node's own session only).
+Placeholders and role names: docs/keyspace.md, docs/architecture.md#key-space.
 """
 
 from __future__ import annotations

@@ -3,45 +3,20 @@
 :class:`LockstepRunner` is the second driver of the sans-IO loop
 (:mod:`zplatform.loop`): it moves the same region frames, encoded and
 decoded, between :class:`~zplatform.loop.ControlLogic`, every
-:class:`~zplatform.loop.DeviceLogic` and the same ground logic as the live
-ground node (:class:`~zplatform.ground.logic.GroundLogic`: its checks, its
-command requests and verdicts, its script player). It has no protocol order
-of its own. Loop ``n`` (from 1, as
-live) runs at virtual time ``t = start_ns + (n - 1) * period_ns``:
+:class:`~zplatform.loop.DeviceLogic` and the same
+:class:`~zplatform.ground.logic.GroundLogic` as the live ground node, with no
+protocol order of its own. Loop ``n`` (from 1, as live) runs at virtual time
+``start_ns + (n - 1) * period_ns``. :func:`replay` feeds a live run's
+recorded inputs through a fresh control loop and checks its telemetry bit for bit.
 
-1. ``frames = cn.begin(n, t)``; each DN in order takes its frame and
-   replies (:meth:`~zplatform.loop.DeviceLogic.step`), and the reply goes
-   back to ``cn.reply``;
-2. ``cn.finish(ground, saves=...)`` with the request frame the script
-   player produced from the previous loop's telemetry (if any) and the
-   parameter save the previous loop asked for (a PRM_SAVE, kept in memory
-   by :attr:`LockstepRunner.saver`: a sim writes no file, and its
-   parameters start from their defaults);
-3. on telemetry loops the ground logic takes the telemetry frame (received
-   at ``t``, so it is fresh), the runner logs it (``rx_time_ns = t``) and
-   takes the request the script player made, if any, for the next loop;
-   then the ground logic reads the loop's events (the reasons of verdicts).
+Contract: deterministic: nothing reads the wall clock (but
+:class:`SimResult`'s speed figure) and nothing iterates a set or hashes into
+the output, so the same mission and command script give a byte-identical CSV.
+No frame is lost or late unless a test says so (:attr:`LockstepRunner.lost`,
+``kill``, ``stop``, ``partition``, ``restart``); no loop is flagged final, so
+a runner may be run on. Everything runs on the calling thread.
 
-No frame is ever lost or late here, so ``cn_missed_dnX`` and ``cn_late_dnX``
-stay 0, unless a test declares a node dead (:attr:`LockstepRunner.lost`).
-A test may also kill, stop, cut off or restart a control node
-(:meth:`LockstepRunner.restart`: a new process whose
-:class:`~zplatform.role.ControlRole` is fed the device nodes' answers and
-what its flight recorder holds, as live).
-No loop is flagged final (``dnX_final``, :mod:`zplatform.loop`): a
-runner may be run on (:meth:`LockstepRunner.run` continues from the last
-loop), so it never knows which loop is the last, and a flag it guessed
-would make the same mission's output depend on how the run was cut; the
-DNs of a sim are never safed by a run's end, nor by a watchdog (nothing
-waits in virtual time). A replay repeats the recorded flags.
-
-Nothing reads the wall clock except the speed figure of :class:`SimResult`,
-and nothing iterates a set or hashes into the output: the same mission and
-the same command script give a byte-identical CSV log.
-
-:func:`replay` feeds a live run's recorded loop inputs
-(:mod:`zplatform.replay_recording`) through a fresh control loop and checks that
-its telemetry is bit-identical to what was recorded.
+The order of a loop and why no loop is final: docs/architecture.md#drivers.
 """
 
 from __future__ import annotations

@@ -1,89 +1,22 @@
-"""The sans-IO loop of each node (docs/architecture.md#the-loop): regions in, frames out.
+"""The sans-IO loop of each node: regions in, frames out.
 
-:class:`ControlLogic` and :class:`DeviceLogic` own a node's Data Vector, its
-codecs and everything that runs on it each loop, *and the protocol order*.
-They never touch zenoh or the wall clock. Two drivers move their frames:
-the zenoh runtime (:mod:`zplatform.node`) and the lockstep runner
-(:mod:`zplatform.lockstep`); neither has a protocol order of its own.
+:class:`ControlLogic` (the CN) and :class:`DeviceLogic` (a DN) own a node's
+Data Vector, its codecs, everything that runs on it each loop, *and the
+protocol order*. They never touch zenoh, a socket or the wall clock; two
+drivers move their frames (the zenoh runtime, :mod:`zplatform.node`, and the
+lockstep runner, :mod:`zplatform.lockstep`), neither with an order of its own.
 
-One CN loop ``n`` (numbered from 1 in every driver) with its one timestamp::
+Contract: a CN loop is ``begin(n, t, final=...)`` -> ``reply(i, payload)`` per
+DN -> ``finish(ground_frame, ...)`` (the telemetry frame, or None); a DN
+trigger is ``trigger(payload, now)`` (the reply, framed from ``dnX_to_cn`` as
+it stood before this loop's run) then ``run(t)``. Every input that changes the
+Data Vector passes through these calls, so a recorder attached to them
+(:attr:`ControlLogic.recorder`) captures what a replay needs, bit for bit.
+Nothing blocks; a step allocates nothing; a late reply is counted, a malformed
+one counted and evented; neither raises.
 
-    frames = cn.begin(n, t, final=f) # cn_to_dnX query frames, stamped (n, t)
-    ...the driver sends frame i to DN i and hands back whatever comes:
-    cn.reply(i, payload)             # True once DN i's reply for loop n is in
-    ...until every DN replied or the sync deadline passed, then
-    tm = cn.finish(ground_frame, sync_overrun=..., loop_overruns=..., saves=...)
-    ...the driver publishes tm (the whole vector) when it is not None,
-    and hands cn.params.take_save() (a PRM_SAVE's file bytes) to its saver.
-
-:meth:`ControlLogic.finish` counts the misses, applies the parameter saves
-that finished since the last loop, applies at most one ground command
-frame, runs faults -> monitors -> commands -> state machine -> controllers,
-and frames the telemetry. A save's result is an input like a command frame:
-the driver's saver writes the file off the loop thread
-(:mod:`zplatform.params`), and the loop that learns of it is recorded.
-Replies that are not for loop ``n`` (an older loop's, a duplicate) are
-counted late and never applied; malformed replies are counted in
-``cn_bad_frames`` and reported as events. What the driver's intake refused
-as it arrived (:mod:`zplatform.intake`: frames of a wrong size, with bad
-tags, replayed, from no DN) is an input of ``finish`` too
-(:class:`~zplatform.intake.CnRefusals`): counted the same way, evented at
-most once a second. Every input that changes the Data Vector passes
-through these three calls, so a recorder attached to them
-(:attr:`ControlLogic.recorder`) captures everything a replay needs to
-reproduce the telemetry bit for bit.
-
-One DN trigger::
-
-    reply = dn.trigger(payload, now)   # check the CN's frame, frame the reply
-    ...the driver answers the query with reply (an error when it is None)
-    if dn.triggered: dn.run(t)         # sensors -> controllers -> interlock -> actuators
-
-The reply carries ``dnX_to_cn`` as it stood *before* this loop's run, so
-what a DN's run writes reaches the CN one loop later (thesis 3.4.5.3).
-``loop`` on a DN is the CN's loop number (the trigger frame's ``seq``).
-
-A DN holding a hazardous output (``hazardous_outputs``) gets the CN's state
-in every trigger (``dnX_state``, written by :meth:`ControlLogic.begin`); its
-interlock (:mod:`zplatform.interlocks`) writes the safe value of each such
-output whose states do not include it, before the actuators run.
-
-The last loop of a run: a driver that knows a loop is the CN's last (the
-run's planned end, or one more loop after a stop was asked for) passes
-``final=True`` to :meth:`ControlLogic.begin`, which sets the platform
-element ``dnX_final`` in every ``cn_to_dnX`` frame of that loop. A DN that
-runs a final trigger runs its loop, then safes its actuators with an
-activity event (``dn_safed_run_ended``): the run ended, no control node was
-lost. Its watchdog then stays quiet, and it stays safed until a control node
-triggers it again ``faults.dn_reenable_loops`` times in a row. A DN that
-stops getting triggers without one is safed by its watchdog, with a warning
-(the control node is lost). ``final`` is an input of the loop, recorded and
-replayed like the others.
-
-Bulk channels (large arrays outside the sync, :mod:`zplatform.bulk`) are
-part of the same order: a node with a :class:`BulkPort` attached
-(:meth:`ControlLogic.attach_bulk`, :meth:`DeviceLogic.attach_bulk`) takes the
-newest samples of the channels it reads before its logic (the CN at the top
-of ``finish``, a DN at the top of ``run``), writes the channel counters, and
-publishes the channels it owns that are due after its logic. The drivers
-only supply the port: zenoh's (:class:`zplatform.bulk.NodeBulk`) or the
-lockstep runner's in-memory one.
-
-Health (:mod:`zplatform.health`), for a mission with a ``health:`` section,
-follows the same pattern: a driver attaches a
-:class:`~zplatform.health.HealthPort` (:meth:`ControlLogic.attach_health`,
-:meth:`DeviceLogic.attach_health`; live, :class:`zplatform.node.health.NodeHealth`
-with its sampling thread), and on health loops (``loop %
-health_divisor == 0``) the logic takes the node's health block from it and
-copies it into its health elements in one copy: the CN in ``finish`` before
-the fault monitor (so the monitors see it), a DN at the top of ``run``. The
-CN's block is an input like the others: its recorder gets it
-(:meth:`LoopRecorder.health`) and a replay feeds it back. Without a port (the
-lockstep runner's default) the health elements keep their initial values,
-so a ``sim`` is byte-identical run to run. The CN's monitors
-(:mod:`zplatform.monitors`) run in ``finish`` after the fault monitor and
-before the command handler and the state machine, so a response takes
-effect in the loop its monitor trips.
+The map of the loop (order, last loop, bulk and health ports, interlock):
+docs/architecture.md#the-loop.
 """
 
 from __future__ import annotations

@@ -1,70 +1,22 @@
 """Loading a mission: the schema, then every semantic check, before anything runs.
 
 :func:`load_mission` (a file) and :func:`decode_mission` (YAML text) are the
-way in for every caller: the runtime, the lockstep runner, the tools, the
-tests. They return a :class:`~zplatform.config.Mission` that passed
+way in for every caller (the runtime, the lockstep runner, the tools, the
+tests). They return a :class:`~zplatform.config.Mission` that passed the
+schema and structural checks of :func:`zplatform.config.parse_mission` and
+then :func:`check_mission`, every check that needs the whole Data Vector or
+the mission's code, so a bad class path, a typo in a component's config or a
+physics function of the wrong shape fails at load with its YAML path, never
+in the first loop on the pad.
 
-1. the schema and structural checks of :func:`zplatform.config.parse_mission`
-   (types, names, topology, sizes, endpoints; platform elements added), then
-2. :func:`check_mission`: every check that needs the whole Data Vector or
-   the mission's code, in this order:
+Contract: raises :class:`~zplatform.errors.ConfigError` naming the YAML path
+(a component constructor that raises: :class:`~zplatform.errors.ControlError`
+naming its path and class); blocks on reading the file and importing code.
+``code=False`` (the ground verbs) runs the checks that need no mission code
+and imports nothing of the mission's; the Data Vector layout is the same
+either way; the deployment is not loaded. Sits above the control modules.
 
-   * controllers' ``initial_mode``;
-   * the state machine (:func:`zplatform.statemachine.check_config`):
-     elements, values, writability, zero-time cycles;
-   * the hazardous outputs (:func:`zplatform.interlocks.check_config`):
-     their elements, states and safe values, and no action driving one
-     outside its states;
-   * the commands (:func:`zplatform.commands.check_config`): among them,
-     no element WRITE-able in a state whose transitions read it;
-   * the parameters (:func:`zplatform.params.check_config`): their states,
-     and ARM wherever a hazardous one may change;
-   * the controllers (:func:`zplatform.controllers.check_config`): every
-     ``class`` imported, checked to be a concrete Controller, its typed
-     ``config`` decoded and its element handles bound on a scratch Data
-     Vector of its node;
-   * the vehicle world (:func:`zplatform.world_checks.check_config`): its boards,
-     physics function and params, and the nodes that use it;
-   * the devices and boards (:func:`zplatform.devices.check_config`): every
-     node's ``board`` config (a SimBoard's ``physics`` function imported and
-     its signature checked), every device class, config and pin;
-   * the ``health`` section (:func:`zplatform.health.check_config`), the
-     limits, the ``monitors`` (:func:`zplatform.monitors.check_config`:
-     elements, kinds, states, responses), every node's ``watchdog``
-     (:func:`zplatform.watchdog.check_config`), the radio downlink and the
-     lowlatency transport.
-
-The deployment (the TLS certificates of a mission whose links run mutual
-TLS) is not part of loading: it is per host, and the verbs that never open
-a session (``check``, ``sim``, ``replay``) run without it. Every session
-finds it (:func:`zplatform.deploy.require_deployment`), and ``check``
-reports the one a session would use.
-
-So a bad class path, a typo in a component's config or a physics function
-that cannot take ``(board, t_ns)`` fails here, at load, with its YAML path,
-never in the first loop on the pad. Every failure is a
-:class:`~zplatform.errors.ConfigError`; a controller or device whose own
-constructor raises is a :class:`~zplatform.errors.ControlError` naming its
-YAML path and class.
-
-Mission code and ``code=False``
--------------------------------
-Checking imports mission code (controllers, devices, boards, physics) and
-runs their constructors and ``bind``: it must have no side effects beyond
-that. The code is found through the mission's ``pythonpath`` (directories
-relative to the mission file; by default the mission file's own directory),
-which loading resolves to absolute directories, each checked to exist.
-
-The verbs that only talk to a running mission (``cmd``, ``tap``, ``log``,
-``ground``, ``xtce``, ``ccsds``) need the layouts and rules, never the code:
-they load with ``code=False``, which runs every check above except the
-controllers', the devices' and boards' and the ``pythonpath`` directories'
-and imports nothing of the mission's. The Data Vector layout is the same
-either way: it comes from the YAML alone (a controller's ``<name>_mode``
-element from its entry in ``controllers``), never from a class.
-
-This module sits above the control modules (it imports them, none imports
-it), so ``config`` stays free of import cycles.
+The checks in order: docs/architecture.md#the-loop (loading a mission).
 """
 
 from __future__ import annotations

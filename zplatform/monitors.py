@@ -1,42 +1,22 @@
 """Monitors and responses: fault detection and fault response, as F Prime splits them (sans-IO).
 
 A mission declares ``monitors:`` (:class:`~zplatform.config.MonitorConfig`),
-each a condition on one scalar element of the CN's Data Vector:
+each a condition on one scalar element of the CN's Data Vector (``limit``,
+``stale``, ``rate``) that, holding for ``persistence`` loops in a row,
+**trips** once and runs its response: ``event`` (``monitor_warning``),
+``fault`` (:meth:`~zplatform.faults.FaultMonitor.raise_fault`), ``transition``
+(:meth:`~zplatform.statemachine.StateMachine.request`) or ``safe`` (a
+controller's mode set to ``safed``; each but ``event`` with ``monitor_tripped``).
+It **clears** when the condition stops holding; outside its ``states``, neither.
 
-``limit``
-    the value is below ``lo`` or above ``hi`` (either may be open), or
-    outside the element's own ``yellow`` / ``red`` limits (``band``);
-``stale``
-    the value has not changed for ``unchanged_loops`` loops (NaN counts as
-    unchanged from NaN), or, for an integer time stamp in ns such as a
-    DN's ``dnX_time_ns``, it is older than ``max_age_ms`` in CN loop time
-    (armed once the stamp first changes from its initial value, so a DN
-    that never answered is DN_LOST's business, not this monitor's);
-``rate``
-    its change per second over ``window_loops`` loops is below ``lo`` or
-    above ``hi`` (evaluated once the window has filled).
+Contract: :class:`MonitorSet` runs on the CN's loop thread in
+``ControlLogic.finish``, after the fault monitor and before the command
+handler and the state machine, so a response takes effect in the loop the
+monitor trips. Everything is resolved at construction; a step allocates only
+when a monitor trips or clears (its event) and never raises.
+:func:`check_config` raises ConfigError with the YAML path at load.
 
-A condition that holds for ``persistence`` loops in a row **trips** the
-monitor, once, and its response runs: ``event`` (``monitor_warning``, nothing
-else), ``fault`` (:meth:`~zplatform.faults.FaultMonitor.raise_fault` with the
-configured :class:`~zplatform.codes.Fault`, ``MONITOR`` by default),
-``transition`` (:meth:`~zplatform.statemachine.StateMachine.request`: the
-state machine takes it in this loop's step, after an ABORT-class command's
-transition and before the state's other transitions) or ``safe`` (the
-controller's ``<name>_mode`` set to ``safed`` now, before the controllers
-run). Every response but ``event`` emits ``monitor_tripped`` (WARNING_HI:
-the platform acted). When the condition stops holding, the monitor
-**clears** (``monitor_cleared``) and may trip again. Outside its ``states``
-a monitor neither trips nor clears, and its persistence count starts over.
-
-:class:`MonitorSet` runs on the CN in :meth:`ControlLogic.finish
-<zplatform.loop.ControlLogic.finish>`, after the fault monitor and before
-the command handler and the state machine, so a response takes effect in the
-loop the monitor trips. Everything is resolved at construction (handles,
-bounds, per-state flags, responses); a step reads handles, compares and
-counts, and allocates only when a monitor trips or clears (its event).
-:func:`check_config` checks the section at load, each error with its YAML
-path.
+The kinds and responses: docs/missions.md#health-monitors-and-the-watchdog.
 """
 
 from __future__ import annotations

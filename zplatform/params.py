@@ -1,66 +1,22 @@
 """Mission parameters: values a ground crew tunes without a rebuild (sans-IO core, file I/O).
 
-A mission's ``params:`` (:class:`~zplatform.config.ParamConfig`) declares
-each parameter: name, scalar type, default, ``[min, max]``, units, the states
-in which it may change, hazardous or not. Its value is a Data Vector element
-of region ``cn`` **named after the parameter** (``apogee_target_m``): the name
-the operator types is the name a controller's config gives and the telemetry
-column, so there is one name for one thing (an element of that name is
-refused at load). Being an element, a parameter is replicated in telemetry,
-logged, recorded and replayed like any other, and controllers read it each
-loop like any other (:meth:`zplatform.components.Component.tunable`).
+Holds :class:`ParamTable` (each parameter is a ``cn`` element named after it,
+so it is in telemetry, logs and replays like any element; PRM_SET and
+PRM_SAVE, judged by :mod:`zplatform.commands`, change and save it), the
+parameter file (:func:`params_path`: ``$ZPLATFORM_PARAMS_DIR`` or ``params/``
+beside the key files, ``XDG_CONFIG_HOME`` respected; :func:`params_layout_id`;
+:func:`write_atomic`), the savers (:class:`ParamSaver`, a writer thread, and
+:class:`MemorySaver` for the lockstep runner) and the load-time checks.
 
-A parameter changes only by an accepted **PRM_SET** (parameter, value),
-through the normal authenticated command path
-(:mod:`zplatform.commands`): the state's whitelist, then ARM n / PRM_SET n+1
-for a hazardous parameter, then the parameter's ``states``
-(``REJECTED_PARAM_STATE``), its type (``REJECTED_BAD_ARGUMENT``) and bounds
-(``REJECTED_OUT_OF_BOUNDS``). A WRITE cannot set one, nor can a state
-machine action. **PRM_SAVE** writes every parameter to the control node's
-parameter file, off the loop thread.
+Contract: the table runs on the CN's loop thread and never blocks; a save is
+handed to a saver and its result comes back as an input of a later loop
+(``ControlLogic.finish(saves=...)``), recorded for replay. :func:`write_atomic`
+(temporary file, fsync, rename, fsync of the directory, under a lock file)
+leaves the old file or the new one after a kill at any point.
+:meth:`ParamTable.load` never raises for a bad file: a missing, corrupt or
+foreign file leaves every default with an event, a value out of bounds alone.
 
-The store's state is in the Data Vector too (so a replay reproduces it):
-
-* ``cn_prm_load_status`` (:class:`~zplatform.codes.ParamLoad`): what the
-  start made of the file;
-* ``cn_prm_save_seq``, ``cn_prm_save_status``
-  (:class:`~zplatform.codes.ParamSave`): the last PRM_SAVE accepted (its
-  request number) and where it stands: ``PENDING`` from its verdict
-  (ACCEPTED means *queued*) until the writer is done, then ``SAVED`` or
-  ``FAILED``, with an event (``prm_saved`` / ``prm_save_failed``). A PRM_SAVE
-  while one is pending is ``REJECTED_BUSY``;
-* ``cn_prm_unsaved``: a PRM_SET was accepted since the last load or the
-  last PRM_SAVE accepted (set again when that save fails).
-
-**The file** (:func:`params_path`): ``<dir>/<mission>.params`` where
-``<dir>`` is ``$ZPLATFORM_PARAMS_DIR``, else ``params/`` beside the key files
-(``~/.config/zplatform/params``, ``XDG_CONFIG_HOME`` respected). It is the
-vehicle's state, not the mission's definition: the same mission file flies
-on the bench and on the vehicle, each with its own saved values. Format
-(``codecs/FORMAT.md`` §9): a header ``b"ZPPRM\\0"``, a u16 format version, the
-u32 length and the CRC-32 of the body, then the body, MessagePack of
-``{mission, layout_id, seq, saved_ns, values}`` where ``layout_id``
-(:func:`params_layout_id`) hashes the parameters' names and types, so a file
-of another mission or of another parameter list is refused (``FOREIGN``).
-
-**Saving** (:func:`write_atomic`): write a temporary file beside it, fsync
-it, rename it over the old one, fsync the directory (writers of one file take
-turns on a lock file beside it). A kill at any point
-leaves the old file or the new one, never a torn one (the temporary file
-is ignored and overwritten by the next save).
-
-**Loading at start** (:meth:`ParamTable.load`): a missing, unreadable,
-corrupt (magic, version, length, checksum, encoding) or foreign file leaves
-every parameter at its default, with an event; a value out of its bounds
-(bounds change with the mission file, the parameter list does not) falls
-back to its default, and an event names it (``PARTIAL``).
-
-Drivers: the control node's runtime reads the file before loop 1, and hands
-each PRM_SAVE to a :class:`ParamSaver` (a writer thread); the result comes
-back as an input of a later loop (``ControlLogic.finish(saves=...)``),
-recorded for replay. The lockstep runner starts from the defaults and saves
-into a :class:`MemorySaver`, answered in the next loop, so a run is
-byte-identical.
+The file format: codecs/FORMAT.md (section 10); operating it: docs/operations.md#parameters.
 """
 
 from __future__ import annotations

@@ -3,38 +3,20 @@
 A mission whose links run mutual TLS (:attr:`zplatform.config.Mission.mtls`)
 needs, on each host, a deployment file (:mod:`zplatform.deploy`) naming the
 mission CA and that host's certificate and key. :func:`ensure_mission_pki`
-makes all of it beside the host's key set (:mod:`zplatform.auth`; the
-place is :func:`zplatform.deploy.default_deployment_path`,
-``~/.config/zplatform/keys/<mission>/`` by default), one identity per host
-role, so each host's files sit beside its ``ROLE.keys``: ``zplatform keygen
-MISSION`` calls it after writing the key set and says which files go to
-which host (:func:`host_files`); ``zplatform up`` calls it on first use, so
-a single-host run needs no set-up. The directory then holds::
+makes all of it beside the host's key set
+(:func:`zplatform.deploy.default_deployment_path`): ``ca.pem`` and ``ca.key``
+(which never leaves this host), ``<node>.pem`` and ``<node>.tls.key`` per node
+(common name: the node's name), ``tool.pem`` and ``tool.tls.key`` for the
+operator's tools, and ``deployment.yaml``. ``zplatform keygen`` calls it and
+says which files go to which host (:func:`host_files`); ``zplatform up``
+calls it on first use.
 
-    cn.keys dn0.keys ...     the key set (zplatform.auth), one file per host role
-    ca.pem ca.key            the mission CA (ca.key signs; it never leaves this host)
-    cn.pem cn.tls.key ...    one per node: the certificate's common name is the node name
-    tool.pem tool.tls.key    the operator's tools (tap, log, cmd, ground): common name "tool"
-    deployment.yaml          names them all, paths relative to itself
+Contract: keys are ECDSA P-256, mode 0600 in a 0700 directory; nothing that
+exists is overwritten (a second call adds only what is missing, signed by the
+CA already there); certificates never expire. Concurrent callers serialise
+on a lock file. Blocks on file I/O and key generation (a few ms per key).
 
-Contract:
-
-* Keys are ECDSA P-256 (what rustls, zenoh's TLS, takes), written PKCS#8,
-  unencrypted, mode 0600 in a 0700 directory; nothing is written anywhere
-  else, and nothing that exists is overwritten: a second call adds only what
-  is missing (a node the mission gained), signed by the CA already there.
-* Certificates are valid from 2000-01-01 and do not expire (9999-12-31, as
-  RFC 5280 allows): a board without a real-time clock that boots in the
-  past must still link, and a link that closes on a date is not a risk a
-  flight should run. Rotate by making a new PKI (remove the directory,
-  ``keygen`` again) and copying it out; nothing is revocable.
-* Leaf certificates carry the name as common name and DNS SAN, key usage
-  digitalSignature and both serverAuth and clientAuth (a zenoh peer is
-  both), and are signed by the CA (CA:TRUE, pathlen 0).
-* Concurrent callers (two ``up`` of one mission) serialise on a lock file in
-  the directory. Blocks on file I/O and key generation (a few ms per key).
-
-Tests make throwaway PKIs with the same code (``tests/pki.py``).
+Certificate profile, rotation, where each file goes: docs/security.md#tls-and-access-control.
 """
 
 from __future__ import annotations

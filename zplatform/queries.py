@@ -1,38 +1,22 @@
 """Every zenoh query zplatform sends goes through :func:`ask`.
 
-A query is a door a hostile peer can stand behind. Asked the way zenoh
-does by default, it is held open by a silent peer, captured by an impostor
-or made to block. :func:`ask` closes those doors in one place:
+A query is a door a hostile peer can stand behind: asked the way zenoh does
+by default, it is held open by a silent peer, captured by an impostor (a
+queryable declared ``complete`` takes a ``BEST_MATCHING`` query) or made to
+block. :func:`ask` closes those doors in one place: target ALL (the caller
+takes only the answers that check: tag, nonce, replier), no consolidation,
+an explicit finite timeout after which zenoh finalises the query however the
+repliers behave, congestion control DROP (a stalled link drops the query
+instead of blocking; replies take its QoS), and a callback handler only
+(:func:`replies`, ``indirect=False``) that hands each reply off, on zenoh's
+thread, into a bounded :class:`~zplatform.handoff.Mailbox`.
 
-* **Target ALL.** Zenoh's default target, ``BEST_MATCHING``, sends the query
-  to *one* queryable that declared itself ``complete`` when there is one, so
-  a peer that declares a complete queryable on a probe or recorder key
-  receives the question instead of the node it was meant for, and the real
-  answer never comes. ``ALL`` asks every queryable on the key. The caller
-  takes only the answers that check (tag, nonce, replier), so an impostor's
-  answers are refused and counted, never taken.
-* **No consolidation.** Every reply is handed over as it arrives (zenoh's
-  default consolidation can hold replies back until the query ends).
-* **An explicit, finite timeout.** Zenoh finalises the query after it
-  however the repliers behave (a replier that never lets go of the query
-  cannot keep it open), and the handler's ``drop`` then runs.
-* **Congestion control DROP.** A BLOCKing get waits for a link that stopped
-  draining (a peer that does not read its socket, a cut cable), for seconds;
-  a dropped query simply gets no answer, the same counted timeout as a
-  silent peer. A reply takes its query's QoS (zenoh 1.x): the answers
-  are DROPped too, so a replier is never held by the asker's link.
-* **A callback handler only** (:func:`replies`, ``indirect=False``): it
-  runs on zenoh's thread and only hands off, into a bounded
-  :class:`~zplatform.handoff.Mailbox` the asking thread waits on with its
-  own deadline. Zenoh's default handler is refused: a FIFO channel blocks
-  zenoh's thread when full, and iterating it blocks the asker until the
-  query ends.
+Contract: :func:`ask` returns at once and never blocks; the asking thread
+waits on its mailbox with its own deadline, so it never waits longer than it
+chooses. The one liveliness get (:meth:`~zplatform.ground.link.GroundLink.alive_nodes`)
+uses the same callback and deadline.
 
-The asking thread therefore never waits longer than it chooses: :func:`ask`
-returns at once, and the caller's wait on its mailbox has its deadline.
-Liveliness gets take no target or congestion option; the one there is
-(:meth:`zplatform.ground.link.GroundLink.alive_nodes`) uses the same callback
-and deadline.
+Why each option, as measured: docs/architecture.md#zenoh.
 """
 
 from __future__ import annotations

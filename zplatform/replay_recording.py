@@ -1,80 +1,22 @@
 """Recording a live CN's loop inputs, and reading them back for a replay.
 
-``zplatform up --record DIR`` (and ``node MISSION cn --record DIR``) attaches
-a :class:`Recorder` to the CN's :class:`~zplatform.loop.ControlLogic`: every
-input its loop consumed is written, per loop, in call order: the loop number,
-timestamp and whether it was the run's last (``final``), each DN reply as it
-arrived (its bytes, or that the DN answered with an error), the ground
-frame, the sync-overrun flag and the skipped periods, the parameter saves
-that finished (:mod:`zplatform.params`), the node's health block on health
-loops (:mod:`zplatform.health`), and the telemetry frame the loop
-produced (what a replay must reproduce). ``DIR`` holds
-``mission.yaml`` (the effective mission) and ``cn.zrec``; ``zplatform replay
-DIR`` needs nothing else.
+:class:`Recorder` (attached to a :class:`~zplatform.loop.ControlLogic` by
+``up --record DIR``) writes every input the CN's loop consumed, per loop in
+call order, and the telemetry it produced, to ``DIR/cn.zrec`` beside the
+effective ``DIR/mission.yaml``; :class:`RecordReader` and
+:func:`read_recording` read them back for ``zplatform replay``.
 
-``cn.zrec``, all integers little-endian::
+Contract: the recorder runs on the loop thread, copies each item into a
+preallocated chunk and never blocks or allocates per loop; a writer thread
+writes full chunks, and loops that find no free chunk are dropped and
+counted (a ``DROPPED`` item), never silently. The reader trusts nothing: it
+never imports code the recording names, reads with bounds (regular files
+only, sizes capped, one item at a time), checks the recording is of the
+mission it is given (:func:`mission_digest`, naming the first difference),
+and raises one :class:`~zplatform.errors.RecordingError` naming the file,
+offset and what was expected (a tail cut off mid-item is only incomplete).
 
-    header:  b"ZPREC\\0"  u16 version (6)  u32 n  n bytes of JSON metadata
-             (:class:`RecordMeta`: the mission's name, Data Vector layout id
-             and size, and content digest, :func:`mission_digest`)
-             u32 m  m bytes: the CN's Data Vector when recording started
-    items:   u8 type  u8 dn  u32 length  length bytes
-               1 BEGIN      u64 loop, i64 t_ns, u8 flags (1: the run's last loop;
-                            2: a redundant mission's standby was ready, the
-                            driver's input cn_standby_ready)
-               2 REPLY      the reply frame of DN ``dn``
-               3 REPLY_ERR  DN ``dn`` answered with an error (length 0)
-               4 OVERSIZE   a reply longer than any valid frame: u32 its length
-               5 GROUND     a command request frame the loop took (any number)
-               6 GROUND_OVERSIZE  u32 its length
-               7 TELEMETRY  the telemetry frame the loop produced
-               8 FINISH     u8 sync_overrun, u32 loop_overruns, u32 inbox_dropped,
-                            then what the intake refused (zplatform.intake.CnRefusals,
-                            in its field order): u32 reply_size, reply_bad,
-                            reply_stale, reply_foreign, cmd_size, cmd_bad, cmd_stale,
-                            u8 cmd_status, u64 cmd_seq (ends a loop)
-               9 DROPPED    u64 loops the recorder could not keep (ring full)
-              11 PRM_SAVED  a parameter save finished: u64 its PRM_SAVE number,
-                            u8 ok, then its detail (UTF-8, at most 512 bytes)
-              12 HEALTH     the CN's health block the loop copied in
-                            (health loops of a mission with ``health:``)
-
-Only version 6 is read: the intake's refusals in FINISH (counts: a flood
-is not recorded frame by frame) and the mission's content digest in the
-header, checked against the ``mission.yaml`` beside it. Earlier versions
-had no digest, an ``inbox_oversize`` count in FINISH and an item (10,
-FOREIGN) per reply from no DN, which this loop no longer takes: such a
-recording is refused by name; record it again.
-
-An oversize frame cannot decode (it is longer than the widest valid
-encoding), so a replay feeds an empty payload in its place: the same bad
-frame to the loop, without storing an attacker's megabytes.
-
-Reading a recording (:class:`RecordReader`) trusts nothing in it: a
-recording is a file someone handed over. It never imports code the
-recording names: the recorded ``mission.yaml`` is read without its code
-(:func:`~zplatform.mission.decode_mission` with ``code=False``), and
-whatever needs the mission's code (a replay) runs the mission file the
-operator passes, which must be the recorded mission (same layout, same
-:func:`mission_digest`), or the reader refuses and names the first
-difference. It reads with bounds: both files must be regular files in the
-directory itself (no symlink, FIFO or device), ``mission.yaml`` at most
-:data:`MAX_MISSION_BYTES` and free of YAML aliases, the metadata at most
-:data:`MAX_META_BYTES`, the initial vector exactly the layout's size, each
-item exactly or at most the length its type allows for the mission (a reply
-no longer than the widest frame of its DN's region, a known DN, at most a
-bounded number of items per loop, a FINISH's refusal status a command
-status), read one item at a time. Every malformed
-recording ends in one :class:`~zplatform.errors.RecordingError` naming the
-file, the offset and what was expected; only a tail cut off mid-item (a
-recorder that was killed) is an incomplete recording rather than an error.
-
-Hot path: :class:`Recorder` copies each item into one of a set of
-preallocated chunks (no buffer is allocated per loop, nothing blocks); a
-writer thread writes full chunks to the file and returns them. If the
-writer falls behind and no chunk is free, the loops that do not fit are
-dropped and counted, never silently: the record says so (``DROPPED``) and a
-replay stops there.
+The file, byte by byte, and the reader's bounds: codecs/FORMAT.md (section 11).
 """
 
 from __future__ import annotations

@@ -1,40 +1,22 @@
-"""A control node's role, sans-IO: who commands, follows, takes over (architecture: Failover).
+"""A control node's role, sans-IO: who commands, follows or takes over.
 
-:class:`ControlRole` holds every protocol decision a control node makes
-about *whether* it commands; its two drivers, the zenoh runtime
-(:mod:`zplatform.node.control`) and the lockstep runner
-(:mod:`zplatform.lockstep`), only deliver its inputs and carry out the
-actions it returns. It reads no clock (every input comes with its time),
-opens nothing and starts no thread; it writes only the node's own
-:class:`~zplatform.loop.ControlLogic` (its vector and events) and its
-:class:`~zplatform.failover.Standby`. Not thread-safe: the node's loop
-thread.
+:class:`ControlRole` holds every protocol decision a control node makes about
+*whether* it commands: at start-up (one STATUS probe round: ``Command`` or
+``Follow``; after the warm-up: ``Resume`` from the flight recorder or
+``StartOver``), as a commander (``StandDown`` on a newer term in a mirror or
+in most device nodes' replies) and as a standby (per slot of the commander's
+schedule: ``Probe`` STATUS, then ASK only if the commander is silent to the
+device nodes too, then ``Take`` or ``Release``, through its
+:class:`~zplatform.failover.Standby`).
 
-Inputs and actions, in the order a node meets them::
+Contract: its two drivers, the zenoh runtime (:mod:`zplatform.node.control`)
+and the lockstep runner (:mod:`zplatform.lockstep`), only deliver its inputs
+and carry out the actions it returns. It reads no clock (every input comes
+with its time), opens nothing and starts no thread; it writes only the
+node's own :class:`~zplatform.loop.ControlLogic` (its vector and events) and
+its Standby. Not thread-safe: the node's loop thread.
 
-    # start-up, a redundant mission: one STATUS probe round
-    asks = role.status_probe(now)             # -> send, each reply to role.answer(i, reply)
-    role.start()                              # -> Command(term) or Follow(term)
-    # start-up, after the warm-up sync (the device nodes' loops are in the vector):
-    role.resume(has_recorder, recorded_frame, now)
-                                              # -> None, Resume(...) or StartOver(why)
-    # a commander
-    role.mirror(frame, now)                   # every mirror that arrives -> StandDown | None
-    role.finished()                           # after each loop's finish -> StandDown | None
-    # a standby, once per slot of the commander's schedule, half a period in
-    role.mirror(frame, now)                   # -> True when applied (it follows)
-    role.tick(slot, now)                      # -> Probe(STATUS) | None
-    role.round_over(slot, now)                # after each Probe's answers
-                                              # -> Probe(ASK) | Take(loop) | Release | None
-    logic = role.take(loop)                   # carry out a Take: command from `loop`
-
-The rules themselves are the ones the architecture states: the first
-commander of a fresh run is ``cn``; a run that goes on with no one driving
-it is resumed in the next term; a standby asks a term only after a STATUS
-round shows the commander silent to the device nodes too, and takes
-command only when every device node that answered granted and they are a
-majority (:class:`~zplatform.failover.Standby`); a commander hearing a
-newer term (a mirror, or most device nodes' replies) stands down.
+The inputs, the actions and their order: docs/architecture.md#failover.
 """
 
 from __future__ import annotations

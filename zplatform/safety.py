@@ -1,45 +1,20 @@
 """Safety smells: a mission that loads fine but leaves a door open.
 
 :func:`safety_warnings` looks at a mission that passed
-:func:`zplatform.mission.load_mission` for what the loader cannot refuse
-(each is legal, and sometimes meant) but an operator should know before
-flight. ``zplatform check`` prints them (``--json`` lists them, ``--strict``
-makes them errors). Each is a :class:`SafetyWarning` naming its YAML path:
+:func:`zplatform.mission.load_mission` for what the loader cannot refuse (each
+is legal, and sometimes meant) but an operator should know before flight:
+``unprotected_mode``, ``no_safe_value``, ``pyrotechnic_without_hazardous``,
+``plain_transport_with_hazardous``, ``control_node_cannot_resume``, each a
+:class:`SafetyWarning` naming its YAML path. :func:`doors` lists what
+``zplatform check`` prints besides: every element a WRITE may set and every
+hazardous output, each with its states.
 
-``unprotected_mode``
-    A controller's mode element can be set by a plain WRITE: one
-    unconfirmed command can enable (or disable) the controller in any state
-    whose whitelist allows WRITE. Protected elements (``commands.protected``;
-    by default every controller mode once the mission has a hazardous
-    command) need ARM n, WRITE n+1. At ``$.controllers[i]``.
-``no_safe_value``
-    An actuator class that does not override
-    :meth:`~zplatform.devices.Actuator.safe`: a device node that loses its
-    control node leaves that output to the board's own safe state instead of
-    a value the device declares. At ``$.devices[i]``.
-``pyrotechnic_without_hazardous``
-    The mission has a pyrotechnic output (an actuator whose class sets
-    ``pyrotechnic = True``, or whose config says ``pyrotechnic: true``, as
-    :class:`~zplatform.devices.DigitalOutput`'s may) but no hazardous
-    command: no operator command of it needs ARM first. At
-    ``$.commands.hazardous``.
-``plain_transport_with_hazardous``
-    The mission has hazardous commands but says ``security.transport:
-    plain``: its links take any peer on the network (``auto`` would run
-    mutual TLS with access control). At ``$.security.transport``.
-``control_node_cannot_resume``
-    The mission drives pyrotechnic outputs but has neither a standby control
-    node (``cn_b``) nor a flight recorder for ``cn``: a control node lost in
-    flight is the end of the flight, and one restarted mid-run starts over
-    in its initial state (docs/architecture.md#failover). At ``$.nodes``.
+Contract: pure functions of the mission; they never raise for a smell
+(``check --strict`` turns them into errors). The command smells apply only to
+a mission with a ground node; the device smells import the devices' classes,
+so :func:`safety_warnings` needs a mission loaded with its code.
 
-:func:`doors` lists what ``check`` prints besides: every element a WRITE
-may set and every hazardous output, each with its states.
-
-The command smells apply only to a mission with a ground node (without one
-no command reaches the vehicle). The device smells import the devices'
-classes (from the mission's ``pythonpath``), so they need the mission's
-code: :func:`safety_warnings` is for the verbs that have it (``check``).
+Each smell, where and why: docs/missions.md#your-own-code (the table of smells).
 """
 
 from __future__ import annotations

@@ -1,68 +1,22 @@
 """Periodic loops and real-time set-up (the thesis, ch. 4.12, made Pythonic).
 
-The thesis' Thread Manager creates a SCHED_FIFO thread per node, pins it to a
-CPU, and runs the loop function from a ``timerfd`` with a callback for missed
-deadlines. Here the same duties are split into small pieces that the node
-mains compose:
+Holds :class:`PeriodicLoop` (a step function on absolute deadlines:
+deadline *k* is ``start_ns + k * period_ns``, so the loop never drifts),
+:func:`setup_realtime` (SCHED_FIFO, CPU affinity and locked memory for the
+*calling thread*, with a graceful fallback, :class:`RealtimeStatus`) and
+:class:`GcGuard` (the cyclic garbage collector kept out of the loop). Rate
+groups are :mod:`zplatform.rategroups` (sans-IO, apart from this OS-facing module).
 
-* :class:`PeriodicLoop` runs a step function on absolute deadlines;
-* :class:`~zplatform.rategroups.RateGroups` (in :mod:`zplatform.rategroups`,
-  which the sans-IO core imports without this OS-facing module) runs members
-  every Nth loop;
-* :func:`setup_realtime` asks for SCHED_FIFO, CPU affinity and locked memory,
-  and falls back gracefully when the process is not allowed to;
-* :class:`GcGuard` keeps the cyclic garbage collector out of the loop, and
-  collects the youngest generation only when a loop has slack to spare.
+Contract: :meth:`PeriodicLoop.run` blocks the calling thread until the step
+returns ``False``, ``max_loops`` steps ran, :meth:`PeriodicLoop.stop` is
+called (from any thread or a signal handler) or the step or a hook raises
+(the exception propagates unchanged). On overrun it skips the passed periods,
+never bursts, and calls ``on_overrun``; ``k`` is a period index. Inside the
+loop it allocates no containers, formats no strings and logs nothing;
+:meth:`~PeriodicLoop.stats` and :meth:`~PeriodicLoop.lateness_ns` may be read
+from any thread (without a lock: fields may be one loop apart).
 
-Contract
---------
-
-**What blocks.** :meth:`PeriodicLoop.run` blocks the calling thread until the
-step returns ``False``, ``max_loops`` steps have run, :meth:`PeriodicLoop.stop`
-is called, or the step (or a hook) raises; an exception from the step or a
-hook propagates out of ``run`` unchanged, with the statistics kept up to
-that loop. Nothing else in this module blocks, except :meth:`GcGuard`'s
-collections (bounded by the caller's slack rule) and :func:`setup_realtime`'s
-system calls.
-
-**Thread safety.** :meth:`PeriodicLoop.stop` may be called from any thread or
-from a signal handler: it sets one flag that ``run`` reads before waiting and
-again before each step, so the loop ends after the step in progress (or
-before the next one, if it is waiting). :meth:`PeriodicLoop.stats` and
-:meth:`PeriodicLoop.lateness_ns` may be called from any thread; while a run is
-in progress they read counters without a lock, so a snapshot may be one loop
-out of step between fields. Everything else is meant for one thread.
-:func:`setup_realtime` acts on the *calling thread* (Linux applies
-``sched_setscheduler(0, …)`` and ``sched_setaffinity(0, …)`` to the caller),
-so call it from the thread that will run the loop.
-
-**Allocation rules (the hot path).** Inside the loop ``run`` builds no
-containers, formats no strings and logs nothing: it reads the clock, does
-integer arithmetic on locals, stores into a preallocated ``int64`` ring, and
-calls the step and the hooks. (CPython still boxes the large integers that
-clock arithmetic produces; that is the floor for pure Python.) Statistics are
-frozen snapshots built on demand by :meth:`PeriodicLoop.stats`, never log
-lines. :meth:`RateGroups.due` returns a tuple precomputed at configure time.
-
-**Deadlines.** Deadline *k* is ``start_ns + k * period_ns``, computed from the
-start, never by sleeping one period after the last step, so the loop does not
-drift however long its steps take. The wait sleeps with ``sleep`` until
-``spin_ns`` before the deadline and busy-waits the rest on ``clock``
-(``time.sleep`` here wakes 60-100 us late; the spin makes the start lateness
-small at the price of one CPU busy for ``spin_ns`` per loop).
-
-**Overrun policy: skip, do not burst.** After each step the loop reads the
-clock. If it is past deadline *k+1*, the loop has overrun: the overrun is
-counted, ``on_overrun(k, lateness_ns)`` is called with how far past deadline
-*k+1* the step ended, and the periods whose deadlines have already passed are
-*skipped*: the next step runs at the first deadline not yet passed (one
-that the step ended exactly on still counts), with its own index ``k``.
-Catching up by running the missed steps back-to-back would hand the rest of
-the system a burst of messages and compress the controllers' time steps
-exactly when the node is already overloaded; a flight loop would rather lose
-a period and keep its cadence. So ``k`` is a period index, not a step
-count: after a skip it jumps, and the step can read the gap from its ``k`` or
-``deadline_ns`` arguments.
+Deadlines, the spin wait, the skip policy: docs/architecture.md#drivers.
 """
 
 from __future__ import annotations

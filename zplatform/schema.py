@@ -2,29 +2,21 @@
 
 One source: the ``msgspec.Struct`` tree of :mod:`zplatform.config` (and the
 ``Config`` structs of the built-in boards and devices) carries every key's
-type, default, bounds (``Annotated[..., Meta(ge=...)]``) and description
-(``Meta(description=...)``; a struct's docstring describes its section).
-This module turns it into
+type, default, bounds and description (a struct's docstring describes its
+section). :func:`mission_schema` turns it into a JSON Schema (draft 2020-12)
+for editors and validators (a board mapping checked against its driver's
+config, a built-in device's ``config`` against its class's);
+:func:`reference_markdown` into ``docs/mission-reference.md`` (every key with
+its YAML path in the form errors use, the platform elements, the built-ins).
 
-* :func:`mission_schema`: a JSON Schema (draft 2020-12) of a mission file,
-  for editors (completion, hover text, squiggles) and validators; a board
-  mapping is checked against its driver's config and a built-in device's
-  ``config`` against its class's;
-* :func:`reference_markdown`: ``docs/mission-reference.md``, every key with
-  its YAML path in the form errors use (``$.nodes.<node>.listen[i]``), type,
-  default, bounds and meaning, plus the platform elements, the built-in
-  boards and devices, and how a team's own classes declare their config.
+Contract: both functions are pure (no I/O) and deterministic, and raise
+nothing for the shipped structs; ``zplatform schema [--markdown] [--out
+FILE]`` prints or writes either, and ``tests/unit/test_schema.py`` fails when
+the committed reference differs. The schema is a guide, not the judge:
+``zplatform check`` runs every rule, and the schema never refuses a file
+``check`` accepts.
 
-``zplatform schema [--markdown] [--out FILE]`` prints or writes either;
-``tests/unit/test_schema.py`` fails when the committed reference differs
-from what this module generates. Both functions are pure (no I/O) and
-deterministic; they raise nothing for the shipped structs.
-
-The schema is a guide, not the judge: ``zplatform check`` runs every rule
-(names that exist, regions that match the nodes, a board's pins, a
-component's own config), and a file the schema accepts may still fail
-there. The schema never refuses a file ``check`` accepts
-(``tests/unit/test_schema.py`` validates every shipped mission).
+See docs/mission-reference.md#completion-in-your-editor.
 """
 
 from __future__ import annotations

@@ -1,48 +1,22 @@
 """The mission state machine (the thesis, ch. 4.5), sans-IO.
 
 A state has a timed *action sequence* (writes of Data Vector elements at
-given seconds into the state) and an ordered list of *transitions*. A
-transition fires on a condition ``element op value`` (``cn_cmd == LAUNCH``,
+given seconds into the state) and an ordered list of *transitions*, each
+firing on a condition ``element op value`` (``cn_cmd == LAUNCH``,
 ``tank_pressure > 30.5``, ``cn_fault != NONE``) or after ``after_s`` seconds
-in the state. The current state is the ``cn_state`` element; the time in it
-is ``cn_time_in_state_ns``.
+in the state. The current state is ``cn_state``; the time in it
+``cn_time_in_state_ns``; HOLD freezes that time, RESUME continues it.
 
-Per loop, :meth:`StateMachine.step` does, with the loop's one timestamp:
+Contract: :class:`StateMachine` resolves everything at construction (handles,
+comparison functions, converted values); :meth:`StateMachine.step` runs on
+the CN's loop thread once per loop, fires at most one transition (ABORT-class
+first, then a monitor's request, then config order), runs the due actions of
+the (possibly new) state at most once per visit, never raises for a valid
+config and allocates only the event of a state change. :func:`check_config`
+raises :class:`~zplatform.errors.ConfigError` with the YAML path of the first
+bad field (a cycle of ``after_s: 0`` transitions included).
 
-1. on the very first step, enter the initial state and run its actions due
-   at 0 s;
-2. evaluate the current state's transitions in config order (ABORT-class
-   command transitions first, ``priority``; then a transition a monitor's
-   response requested, :meth:`StateMachine.request`; then the rest): the
-   first that holds fires, at most one per step; the new state is entered
-   at this step's time (time in state 0);
-3. run the actions of the (possibly new) state that have come due and not
-   yet run, in ``at_s`` order (config order for equal times): an action at
-   0 s runs in the loop its state is entered, every action runs at most once
-   per visit of its state;
-4. write ``cn_state`` and ``cn_time_in_state_ns``.
-
-So a state's transitions are first evaluated in the loop after it was
-entered (the initial state's also in the first loop), and its 0 s actions
-always run, however soon it is left.
-
-*Hold* (the HOLD command) freezes the time in state: timed actions and
-``after_s`` transitions wait, while condition transitions still fire (an
-ABORT must work during a hold). RESUME continues the clock where it stopped.
-Any transition ends a hold: the new state starts with a running clock.
-
-Everything is resolved at construction: element handles, comparison
-functions, values converted to the element's stored form, event arguments. A
-step only reads handles, compares and writes; it never raises for a valid
-config and builds no containers or strings (it emits one event, and so
-allocates one, only when the state changes).
-
-:func:`check_config` checks the ``state_machine`` section against the whole
-Data Vector (thesis 4.5.1 and the rules below; a cycle of ``after_s: 0``
-transitions, which would change state on every loop, is refused), raising
-:class:`~zplatform.errors.ConfigError` with the YAML path of the first bad
-field; unreachable states are logged as warnings on the
-``zplatform.statemachine`` logger, not errors.
+The step in order: docs/architecture.md#the-loop (the state machine).
 """
 
 from __future__ import annotations

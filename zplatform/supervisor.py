@@ -1,34 +1,22 @@
 """``zplatform up``: every node of a mission as a process of this host, supervised.
 
 :func:`run_up` registers the run (:mod:`zplatform.registry`), spawns the
-device nodes, the ground node and the control node (``python -m zplatform
-node ...``, each in a session of its own, never forked from a process that
-holds a zenoh session), watches them (:func:`watch`) through a
+device nodes, the ground node and the control node (each ``python -m zplatform
+node ...`` in a session of its own, never forked from a process that holds a
+zenoh session), watches them (:func:`watch`) through a
 :class:`~zplatform.ground.link.GroundLink` of its own, stops them in order
-(the CN first, so the ground logs the end), and merges their summaries into
+(the CN first, so the ground logs the end) and merges their summaries into
 the ``--summary`` JSON (:class:`~zplatform.summary.RunSummary`).
 
-The nodes are signalled before ``up`` closes its own zenoh session, and
-that close never decides a node's fate: closing a session can take seconds
-(a mutual-TLS link's close handshake on a busy host), and a node that waited
-for it would lose part of its stop timeout, or be killed at its end. The
-close runs last, in a thread of its own, for at most
+Contract: :func:`run_up` blocks until the run ends (its duration, the
+script's last verdict plus :data:`~zplatform.ground.script.SETTLE_S` or
+``--settle``, a stop, or the CN's death) and returns the exit code. A dead DN
+or ground node is reported and the rest run on (the run ends non-zero); a
+dead CN ends the flight. The nodes are signalled before ``up`` closes its own
+zenoh session, which closes last, in a thread, for at most
 :data:`LINK_CLOSE_S`.
 
-What a node's death does: the flight never depends on the ground link, and
-a lost DN is the CN's to handle (DN_LOST and the mission's fault response),
-so when a DN or the ground node dies, ``up`` says so and keeps the rest
-running (the run then ends non-zero). When the CN dies, the flight is over:
-``up`` says so, stops the rest, and fills the summary from the CN's last
-telemetry.
-
-With a command script and no duration, the run ends
-:data:`~zplatform.ground.script.SETTLE_S` after the script's last verdict
-(the ground node's ``script_done`` event; at least
-:data:`~zplatform.ground.script.MIN_DURATION_S` in all), so the last
-command's consequences play out and ``up`` still ends by itself;
-``--settle S`` (``settle_s``) makes that S seconds after the verdict, with
-no minimum.
+What a node's death does and how a run ends: docs/operations.md#running-missions.
 """
 
 from __future__ import annotations

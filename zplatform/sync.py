@@ -1,70 +1,22 @@
-"""The Data Synchronization Protocol on zenoh, both ends (thesis 3.3, 4.3):
-transport only.
+"""The Data Synchronization Protocol on zenoh, both ends (thesis 3.3, 4.3): transport only.
 
 What a frame means, which reply counts, what is late, stale or bad: all of
 that is :mod:`zplatform.loop`'s, shared with the lockstep runner. These
-classes only move the frames.
+classes only move the frames: :class:`ControlSync` (the CN: one get per DN on
+``{vehicle}/dnX/to_cn``, or one wildcard get with a bundle, at the top of
+every loop, replies handed to ``ControlLogic.reply`` until none is pending or
+the deadline passed), :class:`DeviceSync` (a DN: waits for the CN's query,
+the loop trigger, and answers at once), :class:`ProbeSync` (failover probes).
 
-Control node (:class:`ControlSync`), at the top of every loop::
+Contract: zenoh callbacks only check and hand off (:mod:`zplatform.intake`:
+size, one tag check, a stamp compare, a counter, each constant time); the
+loop thread does the work and gets the very bytes the intake checked. Queries
+use DROP congestion control, so a dead link drops a query instead of blocking
+the loop. A forged or replayed trigger gets no reply; the CN takes a reply
+only from the DN's own zenoh session. ``ControlSync.sync`` blocks until every
+reply is in or the deadline passed, ``DeviceSync.wait`` until a query or its timeout.
 
-    for each DN, in parallel:  get {vehicle}/dnX/to_cn  payload = the loop's cn_to_dnX frame
-    hand every reply to ControlLogic.reply until none is pending or the deadline passed
-
-or, with ``transport.sync_query`` wildcard (:func:`zplatform.messages.wildcard_sync_for`)::
-
-    get {vehicle}/*/to_cn  payload = a bundle of every DN's frame (codecs/FORMAT.md §6.2)
-
-Each DN takes its own frame from the bundle; a reply is the DN's by its key.
-One get instead of one per DN: fewer calls on the loop thread and one
-routing pass in zenoh (bench/REPORT.md#sync).
-
-Device node (:class:`DeviceSync`)::
-
-    block on the CN's query (the loop trigger, thesis 3.4.5.3)
-    DeviceLogic.trigger(payload) -> reply (or an error reply), at once
-
-Zenoh callbacks only check and hand off (:mod:`zplatform.intake`: a size
-check, one tag check, a stamp compare and a counter bump, each constant
-time and bounded); the loop thread does all the work. The tag is checked
-once, there: the DN's loop thread gets the very bytes its intake checked
-and only strips the tag (``DeviceLogic.trigger(authentic=True)``), which
-saves a whole frame's MAC on the sync's critical path (tens of
-microseconds for a whole-vector frame with BLAKE3, hundreds with
-HMAC-SHA256: ``python -m bench.frame_trace``). What a peer without
-the key sends is refused there and counted, never queued:
-
-* **A DN answers only the query whose trigger verifies and is newer than
-  every trigger before it** (:class:`~zplatform.intake.TriggerIntake`): a
-  forged or replayed trigger is dropped without a reply (the querier's get
-  ends empty) and counted in ``dnX_bad_frames``. A valid trigger that comes
-  too late to run (stamped more than a period before this node's clock, or
-  skipped in a backlog) is still answered, without running: at most one per
-  CN loop can exist, so nobody can multiply them, and the CN then counts
-  the loop late rather than lost.
-* **The CN takes a reply only from the DN**: zenoh tells who answered
-  (``reply.replier_id``), and each DN's zenoh session is learned from its
-  first authenticated reply for the loop asked. A reply from any other
-  session is ignored before anything is read (``cn_bad_frames``). A
-  restarted DN has a new session: once the DN it knew has missed
-  :data:`REPIN_AFTER` loops in a row, replies from other sessions are
-  checked as they arrive (size, tag, the loop asked,
-  :class:`~zplatform.intake.ReplyCheck`) and the first that passes is the
-  DN's from then on. (``replier_id`` is what the replier's zenoh says:
-  a modified zenoh could claim the DN's; its frames still fail the tag on
-  the loop thread. Mutual TLS with the generated access control,
-  :mod:`zplatform.deploy`, leaves no such peer a session at all.)
-
-Why the query stays open one loop period (not just the sync deadline): a
-reply that misses the deadline still arrives and is handed to the next
-loop's ``reply``, which counts it late (``cn_late_dnX``) instead of it
-vanishing inside zenoh. It is never applied.
-
-Tracing (:data:`SyncTrace`): both ends take an optional ``trace`` callable,
-called at each hop of an exchange with the hop's name, so a benchmark
-(``python -m bench.sync_trace``) can stamp where a sync's time goes without
-touching the classes' insides. Without one (the default, and every flight
-node) the hand-offs are the untraced ones and the loop pays one ``is None``
-test per query and reply.
+Detail (wildcard, a restarted DN, late replies, trace hops): docs/architecture.md#drivers.
 """
 
 from __future__ import annotations

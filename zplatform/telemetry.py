@@ -1,24 +1,19 @@
 """Telemetry logs: the CSV format of docs/architecture.md#files.
 
-:class:`CsvLogger` writes one header row and one row per telemetry snapshot:
+:class:`CsvLogger` writes one header row (``rx_time_ns`` then every element of
+the layout in buffer order; an array of at most :data:`MAX_ARRAY_COLUMNS`
+values as one column per value, ``accel[0]``, a longer one left out) and one
+row per telemetry snapshot: enums by name, bools as ``0``/``1``, integers in
+decimal, floats in the shortest text that reads back exactly; ASCII, one
+newline per row, never quoted. Also here: the events JSONL beside it
+(:class:`EventWriter`, :func:`events_path`), :func:`read_csv` and the plot
+(:func:`plot_telemetry`, :func:`plot_markers`).
 
-* the header is ``rx_time_ns`` then every element of the layout in buffer
-  order; an array of at most :data:`MAX_ARRAY_COLUMNS` values becomes one
-  column per value (``accel[0]``, ``accel[1]``, ...), a longer one is left out;
-* enums are written by name (the number if the value has no name), bools as
-  ``0``/``1``, integers in decimal, ``f64`` with ``repr`` and ``f32`` with the
-  shortest text that reads back as the same ``f32``: every float round-trips
-  exactly; ``nan``, ``inf`` and ``-inf`` are spelled so;
-* lines end in ``\\n``, the file is ASCII; no quoting is ever needed (names are
-  identifiers and no value contains a comma).
-
-The same snapshots give the same bytes: nothing in a row depends on the
-wall clock, dict or set order, or the platform (the lockstep runner's
-byte-identical logs rely on it).
-
-Writing a row is one ``struct.unpack_from`` over the whole vector (a format
-precomputed from the layout, pad bytes over the left-out arrays) and one
-formatter per column, chosen at construction.
+Contract: the same snapshots give the same bytes: nothing in a row depends on
+the wall clock, dict or set order, or the platform (the lockstep runner's
+byte-identical logs rely on it). Writing a row is one ``struct.unpack_from``
+over the whole vector (a format precomputed from the layout) and one
+formatter per column, chosen at construction; it blocks on the file write.
 """
 
 from __future__ import annotations

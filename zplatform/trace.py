@@ -1,56 +1,22 @@
 """Named trace points in the loop and its drivers: a zero-cost hook for benchmarks.
 
-The platform's hot paths call :func:`mark`-style points by name at the steps a
-benchmark wants to time (a sync issued, a reply taken, telemetry encoded). The
-module-level :data:`tracer` is None by default (every flight node), so a point
-costs one module attribute load and an ``is None`` test::
+The platform's hot paths call points by name (:data:`POINTS`: a sync issued,
+a reply taken, telemetry encoded) through the module-level :data:`tracer`,
+None by default (every flight node), so a point costs one module attribute
+load and an ``is None`` test::
 
     tr = trace.tracer
     if tr is not None:
         tr.mark("cn.encoded", i)
 
-:func:`install` puts a tracer in (any object with :meth:`Tracer.mark`, called
-on whichever thread reaches the point: loop thread or zenoh's; it must return
-at once, never block, never raise); :func:`uninstall` takes it out. The
-supplied :class:`Ring` records ``(name, n, v, t_ns)`` into preallocated
-arrays, overwriting the oldest record when full: nothing grows per record.
-A benchmark may install its own :class:`Tracer` (``bench/frame_trace.py``
-stamps straight into its per-loop tables).
+Contract: :func:`install` puts a tracer in (any object with
+:meth:`Tracer.mark`, called on whichever thread reaches the point, loop
+thread or zenoh's; it must return at once, never block, never raise);
+:func:`uninstall` takes it out. The supplied :class:`Ring` records
+``(name, n, v, t_ns)`` into preallocated arrays, overwriting the oldest
+record when full: nothing grows per record.
 
-The points (:data:`POINTS`; ``n`` a DN index unless said, ``v`` 0 unless said):
-
-Control node, loop thread:
-
-* ``cn.encode`` / ``cn.encoded`` / ``cn.sealed``: DN ``n``'s query frame about
-  to be encoded, encoded, tagged (:meth:`~zplatform.loop.ControlLogic.begin`);
-* ``sync.issued``: the query to DN ``n`` about to go into zenoh, ``v`` its
-  length; ``sync.sent``: it went (``session.get`` returned);
-* ``sync.taken``: DN ``n``'s reply taken from the hand-off;
-* ``cn.opened`` / ``cn.decoded`` / ``cn.applied``: DN ``n``'s reply's tag
-  checked, decoded, its data in the vector (``ControlLogic.reply``);
-* ``tm.encode`` / ``tm.encoded`` / ``tm.sealed``: the telemetry frame
-  (``ControlLogic.telemetry``; ``n`` the loop);
-* ``tm.put`` / ``tm.sent``: the telemetry frame about to be published,
-  published (the control node's loop; ``n`` the loop, ``v`` its length).
-
-Control node, zenoh's thread:
-
-* ``sync.back``: DN ``n``'s reply arrived at the callback, ``v`` its length;
-  ``sync.shm``: that reply's payload is in shared memory;
-* ``sync.queued``: DN ``n``'s reply copied out of zenoh, handed off (or
-  refused).
-
-Device node (``n`` 0 unless said):
-
-* ``dn.arrive`` / ``dn.admitted``: zenoh's thread, a query at the queryable's
-  callback, and through the intake (``dn.admitted`` only if admitted);
-* ``dn.serve``: loop thread, the query taken from the mailbox;
-* ``dn.opened`` / ``dn.decoded``: the trigger's tag stripped or checked,
-  decoded (``DeviceLogic.trigger``);
-* ``dn.encoded`` / ``dn.sealed``: the reply framed, tagged;
-* ``dn.replied``: the reply sent, ``n`` the CN loop the query carried;
-* ``dn.apply`` / ``dn.applied``: the trigger's data about to go into the
-  vector, in (``DeviceLogic.run``, after the reply).
+Every point, where and on which thread: docs/testing.md#trace-points.
 """
 
 from __future__ import annotations

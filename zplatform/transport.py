@@ -3,24 +3,20 @@
 Every node is a zenoh *peer*. Its ``zenoh.Config`` is built here from the
 mission alone (listen and connect endpoints, scouting, lease, low latency,
 shared memory), so the same file runs on one host with loopback endpoints or
-across hosts with real addresses; nothing else knows which.
+across hosts with real addresses. Tools that are not mission nodes (``tap``,
+``cmd``, ``log``) open a peer that listens nowhere and connects to *every*
+node's listen endpoints: zenoh peers do not forward for each other, so this
+fan-out is what lets a tap see keys put by any node. TLS and access control
+come from the deployment (:mod:`zplatform.deploy`), which :class:`NodeSession`
+finds itself: no verb opens an mTLS mission's session without one.
 
-Tools that are not mission nodes (``tap``, ``cmd``, ``log``) open a peer that
-listens nowhere and connects to *every* node's listen endpoints. Zenoh peers
-do not forward for each other (docs/architecture.md#zenoh), so this full fan-out is what
-lets a tap see keys put by any node.
-
-TLS and access control come from a deployment file (:mod:`zplatform.deploy`),
-not the mission: :func:`zenoh_config` takes one, and :class:`NodeSession`
-finds the mission's own when none is passed
-(:func:`zplatform.deploy.require_deployment`: ``ZPLATFORM_DEPLOYMENT`` or the
-mission's default), so every verb runs an mTLS mission without a flag of
-its own, and none opens a session of an mTLS mission without one.
-
-Readiness is explicit: each node declares a liveliness token on
-``{vehicle}/{node}/alive`` and :func:`wait_for_nodes` blocks on a liveliness
-subscriber (with history) until the wanted nodes are alive. Nobody sleeps to
-wait for a peer.
+Contract: :func:`zenoh_config` is pure; opening a :class:`NodeSession` blocks
+on zenoh and raises :class:`~zplatform.errors.TransportError` (or a deployment
+error) when it cannot. Readiness is explicit: each node declares a liveliness
+token on ``{vehicle}/{node}/alive`` and :func:`wait_for_nodes` blocks on a
+liveliness subscriber until the wanted nodes are alive (TransportError naming
+the missing ones at its timeout): nobody sleeps to wait for a peer.
+:meth:`NodeSession.close` waits at most :data:`SESSION_CLOSE_S`. See docs/architecture.md#zenoh.
 """
 
 from __future__ import annotations

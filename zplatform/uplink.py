@@ -2,25 +2,20 @@
 resolution and request framing.
 
 Everything that turns an operator's ``launch`` or ``write led_a_cmd true``
-into a ``gn_to_cn`` frame lives here. Reading the CN's answer, numbering
-requests and playing scripts over time are the ground logic's
-(:mod:`zplatform.ground.logic`, :mod:`zplatform.ground.script`), which the
-zenoh tools and the lockstep runner share, so a script means the same thing
-live and in ``sim``.
+into a ``gn_to_cn`` frame lives here (:func:`fill_request`, element and
+value resolution). Reading the CN's answer, numbering requests and playing
+scripts over time are the ground logic's (:mod:`zplatform.ground.logic`,
+:mod:`zplatform.ground.script`), which the zenoh tools and the lockstep
+runner share, so a script means the same thing live and in ``sim``.
 
 Command scripts (:func:`parse_commands`, :func:`load_commands`) have one
-command per line, ``#`` starts a comment::
+command per line (``at 1.0 launch``, ``at 2.0 write seq_leds_mode manual``,
+``at 3.0 prm_set apogee_target_m 550``); ``#`` starts a comment; times are
+seconds (decimal, read exactly) from the start of loop 1.
 
-    at 0.5 arm
-    at 1.0 launch
-    at 2.0 write seq_leds_mode manual
-    at 3.0 prm_set apogee_target_m 550
-    at 3.1 prm_save
-    at 9.0 abort
-
-Times are seconds (decimal, read exactly) from the start of loop 1; when a
-command is due and how commands follow each other is
-:mod:`zplatform.ground.script`'s to say.
+Contract: pure functions (:func:`load_commands` also reads its file); a bad
+script or command raises :class:`~zplatform.errors.CommandError` naming where,
+before anything is sent. See docs/operations.md#commanding.
 """
 
 from __future__ import annotations

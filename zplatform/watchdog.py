@@ -1,35 +1,22 @@
 """The watchdog plug-in: a node's loop strokes a watchdog while its threads are alive.
 
-A node whose mission entry has ``watchdog:`` (:class:`~zplatform.config.WatchdogConfig`)
-strokes, from its loop thread, every ``interval_ms``:
+A node whose mission entry has ``watchdog:``
+(:class:`~zplatform.config.WatchdogConfig`) strokes, from its loop thread,
+every ``interval_ms``: ``kind: systemd`` (sd_notify ``WATCHDOG=1`` to
+``$NOTIFY_SOCKET``; ``READY=1`` when the loop starts, ``STOPPING=1`` on a clean
+stop) or ``kind: device`` (a byte to ``/dev/watchdog``; ``V``, the magic close,
+on a clean stop). Each stroke first asks the node's
+:class:`~zplatform.health.Liveness` whether every watched thread checked in;
+while one has not, it withholds the stroke (``watchdog_withheld``) so the
+watchdog resets the host, and resumes if they recover (``watchdog_resumed``).
 
-``kind: systemd``
-    the sd_notify protocol: a datagram ``WATCHDOG=1`` to the ``AF_UNIX``
-    socket ``$NOTIFY_SOCKET`` names (an abstract socket when it starts with
-    ``@``). The unit's ``WatchdogSec=`` makes systemd act (restart the
-    service, or what ``WatchdogSignal=`` says) when no stroke came in time.
-    The node sends ``READY=1`` when its loop starts and ``STOPPING=1`` on a
-    clean stop; without ``$NOTIFY_SOCKET`` it refuses to start (a watchdog
-    the operator asked for and does not have is an error, not a warning).
-``kind: device``
-    the Linux watchdog device API: one byte (not ``V``) written to
-    ``device`` (``/dev/watchdog``) restarts the hardware timer; on a clean
-    stop the node writes ``V`` first (the "magic close", honoured by drivers
-    without ``nowayout``), so an orderly exit does not reset the host.
+Contract: :class:`Watchdog` runs on the loop thread and never blocks: one
+compare per loop, and every ``interval_ms`` the liveness check and one
+non-blocking write (a stroke that cannot be written is counted in
+:attr:`Watchdog.errors`, never waited for). A systemd watchdog without
+``$NOTIFY_SOCKET`` is an error at start, not a warning.
 
-Each stroke first asks the node's :class:`~zplatform.health.Liveness` whether
-every watched thread (``threads``, default all the node runs) has checked in
-within its deadline; while one has not, the node does not stroke, so the
-watchdog fires and the host (or the service) is reset: a ``watchdog_withheld``
-event names the stalled threads. If they recover before that, strokes resume
-(``watchdog_resumed``): a working flight computer is not reset for a stall it
-survived. The loop itself is watched by construction: a stuck loop strokes
-nothing.
-
-Cost on the loop: one integer compare per loop, and every ``interval_ms`` the
-liveness check and one non-blocking write (the socket and the device are
-non-blocking: a stroke that cannot be written is counted in
-:attr:`Watchdog.errors`, never waited for).
+The operator's view: docs/missions.md#health-monitors-and-the-watchdog.
 """
 
 from __future__ import annotations

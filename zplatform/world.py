@@ -1,50 +1,22 @@
 """The vehicle world: one physical state behind the boards of several device nodes.
 
-Each device node has its own board, and live each node is its own process;
-but a vehicle has one physical state, which actuators on several nodes
-change (both nodes' pyro switches deploy a chute) and every node's sensors
-read. A :class:`World` is that state: the pins of every board it spans (a
+A vehicle has one physical state, which actuators on several nodes change
+(both nodes' pyro switches deploy a chute) and every node's sensors read.
+:class:`World` is that state: the pins of every board it spans (a
 :class:`~zplatform.devices.SimBoard` per node, as the world sees it) and one
-physics hook, ``function(world, t_ns)``, that reads every board's outputs
-and writes every board's inputs when time advances. Flight code never sees
-it: a node's devices talk to pins, as they do on hardware.
+physics hook, ``function(world, t_ns)``, that reads every board's outputs and
+writes every board's inputs when time advances. :class:`WorldBoard` is a
+node's board as a port onto it in the lockstep runner. Flight code never sees
+it: a node's devices talk to pins, as on hardware.
 
-Three ways in, one world (PX4/ArduPilot SITL's simulator bridge, in small):
+Contract: this module is the model, sans-IO and deterministic:
+:meth:`World.advance` runs the physics once per new time, however many boards
+step at that time, and a board's step latches its inputs as the world last
+made them. Not thread-safe (one thread drives a world). The live board driver
+and its datagrams are :mod:`zplatform.boards.world`, the checks
+:mod:`zplatform.world_checks`, the world process :mod:`zplatform.world_server`.
 
-* **lockstep** (``zplatform sim``, tests): one :class:`World` in the process;
-  each node's board is a :class:`WorldBoard` port onto it.
-  :meth:`World.advance` runs the physics once per new time, however many
-  boards step at that time, so the run is deterministic;
-* **live** (``zplatform up``): the world is its own process
-  (``zplatform world MISSION``,
-  :func:`~zplatform.world_server.serve`, started by ``up`` before the
-  device nodes) that advances on its own monotonic clock at
-  ``world.rate_hz``, as the physical world does, and after each advance
-  sends every board it has heard from its inputs; a node's board
-  (``board: {driver: world}``) is a
-  :class:`~zplatform.boards.world.WorldLink` that sends its outputs over
-  UDP on loopback and latches the newest inputs it received (the link's
-  datagrams are in :mod:`zplatform.boards.world`). Nothing waits on
-  anything: a late datagram is older sensor data, as on real hardware, and
-  only inputs older than ``world.stale_ms`` fail a step;
-* **hardware in the loop**: the same process also plays a node's board
-  firmware over the serial board protocol on a pty
-  (``world.serve_serial``, :class:`~zplatform.boards.serial_sim.SimDevice`),
-  so that node runs the real :class:`~zplatform.boards.SerialBoard` and
-  reads its sensors through the wire protocol (each WRITE is answered from
-  the world brought up to that moment).
-
-Semantics shared by all three: outputs reach the world when they are set
-(a :class:`~zplatform.boards.world.WorldLink` sends a changed output at
-once, and all of them with every step); a board's step latches that board's inputs as the world last
-made them (lockstep: after advancing the world to the loop's time).
-
-Where the rest lives: this module is the model (:class:`World`,
-:class:`WorldBoard`); the live board driver and the link's datagrams are
-:mod:`zplatform.boards.world` (:class:`~zplatform.boards.world.WorldLink`,
-:func:`~zplatform.boards.world.node_board`); the checks of the world section
-against the mission, :mod:`zplatform.world_checks`; the world process
-(``zplatform world MISSION``), :mod:`zplatform.world_server`.
+Lockstep, live and hardware in the loop: docs/architecture.md#drivers.
 """
 
 from __future__ import annotations

@@ -2,34 +2,19 @@
 
 :func:`mission_xtce` describes, with ``yamcs-pymdb``, exactly the packets
 :mod:`zplatform.ccsds` sends, so Yamcs (or any XTCE ground system) decodes
-them without zplatform:
+them without zplatform: the CCSDS primary header, our secondary header, and
+one container per packet of :func:`zplatform.ccsds.packet_plan` holding one
+parameter per Data Vector element at its bit position, with the element's
+limits as alarms. An element that straddles two segments of a segmented
+region is declared but placed in no container (:attr:`XtceExport.unplaced`).
+Commands: one meta-command per operator command on the ``gn_to_cn`` layout;
+the mission's hazardous commands are CRITICAL.
 
-* the CCSDS primary header (pymdb's ``ccsds_space_packet`` abstract container);
-* an abstract ``zplatform_packet`` that adds our secondary header
-  (``ccsds_loop`` u64, ``ccsds_time_ns`` i64, ``ccsds_segment_offset`` u32,
-  big-endian);
-* one container per packet of :func:`zplatform.ccsds.packet_plan`, named
-  after its region (``{region}_seg{k}`` when a region is segmented),
-  restricted on its APID (and segment offset), holding one parameter per
-  Data Vector element at its absolute bit position from the start of the
-  packet, little-endian, with its own type: unsigned/signed integers of the
-  element's width, IEEE floats, booleans (one byte), enums with their names,
-  arrays of those; element limits as threshold alarms (yellow: warning,
-  red: critical).
+Contract: a pure function of the mission (loaded with ``code=False`` is
+enough); it needs the ``ground`` extra (``yamcs-pymdb``). ARM-then-fire and
+the frame's tag stay zplatform's own uplink's: XTCE does not describe them.
 
-An element that straddles two segments of a segmented region cannot be
-read from one packet: it is declared as a parameter but placed in no
-container, and listed in :attr:`XtceExport.unplaced`.
-
-Commands: an abstract ``zplatform_request`` lays out the ``gn_to_cn``
-region (``gn_cmd``, ``gn_cmd_seq``, ``gn_cmd_element``, ``gn_cmd_value``,
-little-endian) behind a CCSDS TC header on the region's APID, and one
-meta-command per operator command (LAUNCH ABORT WRITE NOOP HOLD RESUME
-ARM PRM_SET PRM_SAVE) fixes ``gn_cmd``; WRITE and PRM_SET leave the element
-(writable elements, then parameters) and the value to the operator. The
-mission's hazardous commands are CRITICAL (Yamcs asks before sending them);
-the ARM-then-fire protocol and the HMAC tag, when the mission requires one,
-are for zplatform's own uplink.
+The containers, types and commands in full: docs/operations.md#radio-downlink.
 """
 
 from __future__ import annotations

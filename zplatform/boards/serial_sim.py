@@ -2,23 +2,19 @@
 
 ``python -m zplatform.boards.serial_sim --link PATH [options]`` opens a pty
 pair, points the symlink ``PATH`` at its slave side (atomically, like udev's
-``/dev/serial/by-id/...`` links for a USB serial device) and then behaves as
-the device side of ``docs/serial-protocol.md``, in Python, over a
-:class:`~zplatform.boards.SimBoard`: digital pins read back their output
-unless an input is injected (``--inject-digital 4=1``), analog pins likewise
-(``--inject-analog 0=1.25``). It prints ``READY <slave path>`` once the link
-is in place.
+``/dev/serial/by-id/...`` links) and then behaves as the device side of
+docs/serial-protocol.md, in Python, over a :class:`~zplatform.boards.SimBoard`:
+pins read back their output unless an input is injected (``--inject-digital
+4=1``, ``--inject-analog 0=1.25``). It prints ``READY <slave path>`` once the
+link is in place.
 
-Test hooks: ``SIGUSR1`` makes the next reply be preceded by garbage, a
-truncated frame and a frame with a bad CRC (all of which the host must skip
-and count); killing the process is a cable pull (the pty vanishes).
-
-The device safes itself like a firmware would: with no valid WRITE for
-``--watchdog-ms`` it drives every output off / 0 V.
-
-:class:`SimDevice` and :func:`open_pty_link` are also what the vehicle
-world process (:mod:`zplatform.world_server`) uses to play a board's firmware over
-a pty for hardware in the loop, with the world's physics behind the pins.
+Contract: the device safes itself like a firmware would (no valid WRITE for
+``--watchdog-ms``: every output off / 0 V). Test hooks: ``SIGUSR1`` makes the
+next reply be preceded by garbage, a truncated frame and a frame with a bad
+CRC (all of which the host must skip and count); killing the process is a
+cable pull. :class:`SimDevice` and :func:`open_pty_link` are also what the
+vehicle world process (:mod:`zplatform.world_server`) uses to play a board's
+firmware over a pty for hardware in the loop.
 """
 
 from __future__ import annotations

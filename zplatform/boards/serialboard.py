@@ -1,24 +1,22 @@
 """The serial board: a microcontroller behind a serial port (pyserial).
 
-The host side of the protocol in ``docs/serial-protocol.md``
-(:mod:`zplatform.boards.wire`). One I/O thread per board owns the port: it
-opens it, does the HELLO handshake, reads and deframes everything the device
-sends, and on any port error closes it and reopens with exponential backoff
-(a USB serial adapter that is pulled and plugged back in comes back under the
-same path, e.g. ``/dev/serial/by-id/...``). The loop thread only writes one
-WRITE frame per :meth:`SerialBoard.step` and waits, at most
+The host side of docs/serial-protocol.md (:mod:`zplatform.boards.wire`). One
+I/O thread per board owns the port: it opens it, does the HELLO handshake,
+reads and deframes everything the device sends, and on any port error closes
+it and reopens with exponential backoff (a USB serial adapter pulled and
+plugged back in comes back under the same path). The loop thread only writes
+one WRITE frame per :meth:`SerialBoard.step` and waits, at most
 ``reply_timeout_ms``, for the INPUTS frame with the same sequence number.
 
 Threads: :meth:`~SerialBoard.step`, the pin methods, :meth:`~SerialBoard.safe`
 and :meth:`~SerialBoard.health` belong to the loop thread; the I/O thread
 hands the latest INPUTS over as one immutable tuple (an atomic reference
-swap) and signals it with an Event. Two things are decided under a lock
-both threads take (briefly; the loop thread once per step): whether an
-INPUTS answers the WRITE the loop is waiting for (so an answer to an
-earlier WRITE that gave up is counted late, never latched as this step's
-inputs), and which port is the link (so a write failure seen by the loop
-thread takes the link down at once, and the I/O thread, woken, reopens it;
-a failure on a port already replaced never takes down its successor).
+swap) and signals it with an Event. Under a lock both threads take briefly,
+they decide whether an INPUTS answers the WRITE being waited for (an answer
+to an earlier WRITE is counted late, never latched) and which port is the
+link (a write failure seen by the loop takes the link down at once, and the
+I/O thread reopens it; a failure on a replaced port never takes down its
+successor).
 """
 
 from __future__ import annotations

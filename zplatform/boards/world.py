@@ -1,28 +1,22 @@
 """The ``world`` board driver: a node's board live, its pins exchanged with
 the mission's vehicle world process over UDP on loopback.
 
-The vehicle world (:mod:`zplatform.world`) is one physical state behind the
-boards of several device nodes. Live (``zplatform up``) it is its own
+Live (``zplatform up``) the vehicle world (:mod:`zplatform.world`) is its own
 process (``zplatform world MISSION``, :mod:`zplatform.world_server`); a
 node's board (``board: {driver: world}``) is a :class:`WorldLink` that sends
 its outputs over UDP on loopback and latches the newest inputs it received.
-Nothing waits on anything: a late datagram is older sensor data, as on real
-hardware, and only inputs older than ``world.stale_ms`` fail a step.
 :func:`node_board` builds any device node's board from the mission (a
 :class:`WorldLink` for ``driver: world``, else
-:func:`~zplatform.boards.make_board`).
+:func:`~zplatform.boards.make_board`); :func:`world_nodes` and
+:func:`link_address` give the link's node numbers and address.
 
-World link datagrams (little-endian; ``A`` is the node's analog pin count,
-``node`` its index in ``world.boards``, :func:`world_nodes`)::
+Contract: nothing waits on anything: a late datagram is older sensor data,
+as on real hardware, and only inputs older than ``world.stale_ms`` fail a
+step (a :class:`~zplatform.boards.BoardError`). The link is simulation
+plumbing: unauthenticated, loopback only (checked at load); malformed
+datagrams are counted and dropped.
 
-    b"ZW" type:u8 node:u8 seq:u16 | dout:u64 | A x aout:f32
-      type 2 OUTPUTS (board -> world: its outputs; the world answers to
-                      this address from then on)
-      type 3 INPUTS  (world -> board, after each advance: din:u64 levels,
-                      A x f32 volts)
-
-The link is simulation plumbing: unauthenticated, loopback only (checked at
-load, :func:`link_address`). Malformed datagrams are counted and dropped.
+The datagrams: codecs/FORMAT.md (section 14); the world: docs/architecture.md#drivers.
 """
 
 from __future__ import annotations

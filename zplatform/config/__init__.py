@@ -1,33 +1,22 @@
 """The mission configuration: YAML decoded into typed, structurally checked structs.
 
-A package of three rooms, one concern each, that import downwards only
-(``schema`` <- ``platform`` <- ``checks``):
+A package of three rooms that import downwards only (``schema`` <-
+``platform`` <- ``checks``): :mod:`zplatform.config.schema`, the
+:class:`Mission` struct tree (``msgspec.Struct`` with ``forbid_unknown_fields``,
+every key with its description) and the size limits (:data:`MAX_ARRAY_COUNT`,
+:data:`MAX_REGION_BYTES`, :data:`MAX_VECTOR_BYTES`);
+:mod:`zplatform.config.platform`, the platform elements every mission gets
+(docs/architecture.md#data-vector); :mod:`zplatform.config.checks`, the
+structural checks and :func:`parse_mission`. This package re-exports every
+public name of the three: ``from zplatform.config import X`` is the way in.
 
-* :mod:`zplatform.config.schema`: the :class:`Mission` struct tree
-  (``msgspec.Struct`` with ``forbid_unknown_fields``, so a typo fails at
-  decode, every key with its description) and the size limits that keep a
-  mission from exhausting memory (:data:`MAX_ARRAY_COUNT`,
-  :data:`MAX_REGION_BYTES`, :data:`MAX_VECTOR_BYTES`);
-* :mod:`zplatform.config.platform`: the platform elements of
-  docs/architecture.md#data-vector added to the regions (the wire contract
-  every mission gets);
-* :mod:`zplatform.config.checks`: the structural checks of the thesis, ch.
-  4.1.1 (Data Vector), 4.2.1 (network) and the topology rules of
-  docs/architecture.md, and :func:`parse_mission`, which does all of that;
-  every failure is a :class:`~zplatform.errors.ConfigError` whose message
-  names the YAML path of the bad field and what was expected.
+Contract: :func:`parse_mission` raises :class:`~zplatform.errors.ConfigError`
+naming the YAML path of the bad field and what was expected. It imports none
+of the modules that give the sections their meaning (they import it), so a
+mission that only passed it is not fit to fly: the semantic checks run in
+:func:`zplatform.mission.load_mission`. A loaded :class:`Mission` is immutable.
 
-This package re-exports every public name of the three, so ``from
-zplatform.config import X`` is the way in; ``__all__`` is unchanged.
-
-It imports none of the modules that give the sections their meaning (state
-machine, commands, controllers, devices): those import *it*. The semantic
-checks live with them and are run by :func:`zplatform.mission.load_mission`
-/ :func:`zplatform.mission.decode_mission`, the way in for everyone else. A
-mission that only passed :func:`parse_mission` is not fit to fly.
-
-After loading, a :class:`Mission` is treated as immutable: the runtime reads
-it, never writes it.
+Loading, in order: docs/architecture.md#the-loop (loading a mission).
 """
 
 from __future__ import annotations

@@ -1,26 +1,20 @@
 """The console's state, without zenoh and without textual (sans-IO).
 
-:class:`ConsoleModel` is fed by a telemetry source: :meth:`on_snapshot`
-after each accepted snapshot (a CN-layout Data Vector, with the ground's
-counters), :meth:`on_event` per event record, :meth:`on_result` per command
-outcome (:class:`~zplatform.records.CommandOutcome`, with its reason). The screen asks it
-what to draw at a human rate (:meth:`status`, :meth:`region_rows`,
-:meth:`events`, :meth:`plot_series`); :meth:`tick` with the current time
-decides loss of signal. Nothing here blocks, allocates per snapshot beyond
-one buffer copy and, for plotted elements, one tuple, or reads a clock:
-every time comes in as an argument (ns), so tests drive it directly.
+:class:`ConsoleModel` is fed by a telemetry source: :meth:`on_snapshot` after
+each accepted snapshot (a CN-layout Data Vector, with the ground's counters),
+:meth:`on_event` per event record, :meth:`on_result` per command outcome
+(:class:`~zplatform.records.CommandOutcome`). The screen asks it what to draw
+at a human rate (:meth:`status`, :meth:`region_rows`, :meth:`events`,
+:meth:`plot_series`); :meth:`tick` with the current time decides loss of
+signal. Limits come from :func:`zplatform.limits.mission_limits`; severities
+are handled by member *name* (:func:`severity_rank`, :func:`severity_style`;
+an unknown name ranks as informational).
 
-Not thread-safe: the owner (:class:`~zplatform.console.link.Link`) holds
-:attr:`lock` around every call from its threads and the screen holds it
-while it reads.
-
-**Limits** come from :func:`zplatform.limits.mission_limits` (the mission's
-per-element ``limits`` and the caller's ``limits={name: {...}}``).
-
-**Severities** are handled by member *name*, so the console works with the
-old five (DEBUG..CRITICAL) and F Prime's seven (FATAL..DIAGNOSTIC):
-:func:`severity_rank` orders them for filtering and :func:`severity_style`
-colours them; an unknown name ranks as informational.
+Contract: nothing here blocks, reads a clock (every time is an argument, in
+ns) or allocates per snapshot beyond one buffer copy and, for plotted
+elements, one tuple. Not thread-safe: the owner
+(:class:`~zplatform.console.link.Link`) holds :attr:`lock` around every call
+from its threads, and the screen holds it while it reads.
 """
 
 from __future__ import annotations

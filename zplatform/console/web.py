@@ -1,56 +1,22 @@
 """The web console: ``zplatform ground MISSION --web PORT`` serves the console to a browser.
 
-A browser session is one console process (``zplatform ground MISSION
---console``, textual's web driver) whose screen the page draws with
-textual-serve's front end (``textual.js``, xterm.js). Whoever holds a
-session commands the vehicle, so the server admits only the operator and
-ties every console's life to the session and to the server.
+Holds :class:`WebConsole` (an aiohttp server: each browser session is one
+console process, ``ground MISSION --console`` under
+:class:`~zplatform.console.webdriver.ConsoleWebDriver`, whose screen
+textual-serve's front end draws) and :class:`Admission` (sans-IO: a one-time
+token compared in constant time, then a session cookie; the Host and Origin
+checks). Whoever holds a session commands the vehicle, so the server admits
+only the operator and ties every console's life to the session and the server.
 
-**Admission** (:class:`Admission`, sans-IO):
+Contract: :meth:`WebConsole.serve` blocks until SIGINT or SIGTERM (or its console
+ends), then ends every console and the server. A refused request gets a one-line 401/403 and
+one log warning (never the token); every response forbids framing and any
+other origin; the page loads nothing from the internet. A console is started
+without a shell and ended when its WebSocket closes: asked to quit, then
+SIGTERM after :data:`QUIT_GRACE_S`, SIGKILL after :data:`KILL_GRACE_S`.
 
-* at start the server makes a random token and prints its address,
-  ``http://127.0.0.1:PORT/?token=...``. The token is compared in constant
-  time and admits one browser, once: the page answers with a session cookie
-  (HttpOnly, SameSite=Strict: no other site's page can send it) and
-  redirects to ``/``, so the token leaves the address bar. A spent or wrong
-  token, or no session, is a 401;
-* every request's Host must name this server: ``localhost``, an IP address
-  literal, or the name given with ``--host``, with the server's port. A
-  page on another name that resolves here (DNS rebinding) is a 403;
-* a request that carries an Origin must come from the server's own origin,
-  and a WebSocket must carry one (browsers always do): a cross-site page
-  opening the console's WebSocket is a 403 before any console starts;
-* every refusal is one line of text to the client and one warning in the
-  log (``zplatform.console.web``; never the token); listening beyond
-  loopback prints one warning on stderr;
-* every response forbids framing (clickjacking) and, by its content
-  security policy, any load or connection to another origin.
-
-**Offline**: the page is this module's, not textual-serve's template
-(which loads a Google font): it loads textual-serve's script, style sheet
-and Roboto Mono font files from ``/static`` on this server, and nothing
-else.
-
-**Lifetime**: the console process is started directly (no shell between),
-with :class:`~zplatform.console.webdriver.ConsoleWebDriver` as its textual
-driver, which ends it when its stdin closes, its stdout breaks or the server
-dies. The server ends a console when its WebSocket closes (a browser that
-vanished without closing is noticed by the WebSocket heartbeat): it asks it
-to quit, closes its stdin, and sends SIGTERM, then SIGKILL, if it outlives
-:data:`QUIT_GRACE_S`, then :data:`KILL_GRACE_S`. A console that ends by
-itself closes its WebSocket, so the page says "Session ended" instead of
-showing a frozen screen. SIGINT or SIGTERM ends every console, then the
-server.
-
-**Why not textual-serve's Server**: it cannot be made safe by configuration
-or a subclass short of replacing every method: its routes (a directory
-listing of ``/static``, file downloads), its page (the Google font), its
-WebSocket handler (no admission; a console started through ``sh -c``, so a
-parent-death signal follows the shell; a session end that waits for the
-console's output to end, forever if the console hangs), its access log
-(which would log the token) and its shutdown (up to 60 s waiting for open
-WebSockets while their consoles run). What remains of textual-serve here is
-its front end; the wire protocol to the console is textual's own.
+Admission, lifetime, and why not textual-serve's server:
+docs/architecture.md#ground (the web console); its use: docs/operations.md.
 """
 
 from __future__ import annotations

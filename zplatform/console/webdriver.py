@@ -3,41 +3,19 @@
 The web server (:mod:`.web`) starts one ``zplatform ground MISSION --console``
 process per browser session, with ``TEXTUAL_DRIVER`` naming
 :class:`ConsoleWebDriver` and :data:`~zplatform.node.runtime.PARENT_ENV`
-holding the server's PID. The server and the console talk over the
-console's stdin and stdout (textual's web-driver packets). The console ends
-when its session does, however it ends:
+holding the server's PID; they talk over the console's stdin and stdout
+(textual's web-driver packets).
 
-* **the server says quit** (the browser closed the session): the app exits,
-  unmounts, and its Link closes its zenoh sessions;
-* **stdin closes** (the server ended the session, or died: the kernel closes
-  a dead process's pipes, SIGKILL included): the same. textual's own
-  WebDriver stops reading at end of file and leaves the app running with
-  nobody to see it;
-* **stdout breaks** (nobody reads the screen): the same. textual's own
-  WebDriver raises ``BrokenPipeError`` out of every draw; textual's handler
-  for that error rings the bell, which writes to the same pipe and raises
-  again, so the app never learns it should exit: it keeps its sessions, and
-  the mission key, headless;
-* **the server process dies**: the kernel sends SIGTERM
-  (``PR_SET_PDEATHSIG``, Linux), which ends the console the same way (as
-  does SIGINT), even with its pipes held open by another process; a console
-  still starting, before textual handles signals, dies of it;
-* whichever came first, a console that has not exited :data:`EXIT_GRACE_S`
-  later exits hard (``os._exit``): the kernel then closes its sockets.
+Contract: the console ends when its session does, however it ends: the
+server says quit, stdin closes, stdout breaks, or the server process dies
+(SIGTERM by ``PR_SET_PDEATHSIG``, Linux); each time the app exits and its
+Link closes its zenoh sessions. Whichever came first, a console that has not
+exited :data:`EXIT_GRACE_S` later exits hard (``os._exit``) from a thread of
+its own, since textual can spin instead of exiting. Every such end leaves one
+line on stderr: why it ended, and whether it closed or was cut short.
 
-That last resort runs on its own thread because textual (8.2) can spin
-instead of exiting: asked to exit while a resize is still being laid out
-(a browser sends its size when it connects, and a browser that goes at once
-makes the server send quit right after), the screen's layout swings between
-the new size and the app's old one, each swing a full redraw, and textual's
-message pump, which does not yield to the event loop while its own queue is
-non-empty, starves the loop: the exit never completes and SIGINT and
-SIGTERM, handled on that loop, are never handled (the ~88 % CPU console that
-outlived textual-serve's Ctrl-C and SIGTERM).
-
-Every end for one of these reasons leaves one line on stderr (the server's
-stderr, which the console inherits): why it ended, and that it closed or
-that it was cut short.
+Why each end needs its own handling (textual's driver would leave a headless
+console holding the mission key): docs/architecture.md#ground.
 """
 
 from __future__ import annotations

@@ -1,46 +1,22 @@
 """The ground's zenoh driver: one session feeding a :class:`~.logic.GroundLogic`.
 
-:class:`GroundLink` is the only place a ground tool meets zenoh: the ground
-node, ``cmd``, ``tap``, ``log``, the line prompt, the console and ``up``'s
-watcher all use it. It holds one session (the ground node's own, or a tool's
-connected to every node), and at most one of each:
+:class:`GroundLink` is the only place a ground tool meets zenoh (the ground
+node, ``cmd``, ``tap``, ``log``, the prompt, the console, ``up``'s watcher). It
+holds one session and at most one each of: a telemetry subscriber
+(``{vehicle}/cn/telemetry``), an event intake (``{vehicle}/*/events``), a
+command publisher (``{vehicle}/gn/to_cn``) and a raw tap on any key.
 
-* a **telemetry** subscriber on ``{vehicle}/cn/telemetry``;
-* an **event intake** on ``{vehicle}/*/events``;
-* a **command publisher** on ``{vehicle}/gn/to_cn``;
-* a raw **tap** subscriber on any key expression (``zplatform tap``).
+Contract: every zenoh callback only checks and queues (:mod:`zplatform.intake`),
+each kind in a bounded mailbox of its own (:data:`TELEMETRY_BACKLOG`,
+:data:`EVENT_BACKLOG`, :data:`TAP_BACKLOG`, :data:`ALIVE_BACKLOG`), so a flood
+on one key displaces nothing on another; bad, replayed or stale input is
+refused and counted, never raised. The caller's thread takes them
+(:meth:`GroundLink.next`: telemetry first, then events), runs them through
+the logic and publishes the requests it makes. A snapshot's age is measured
+on arrival (a realtime-anchored :class:`~zplatform.timebase.NodeClock`); the
+bound is the mission's or ``ZPLATFORM_TELEMETRY_MAX_AGE_MS``. Not thread-safe.
 
-Every zenoh callback only checks and queues (:mod:`zplatform.intake`), each
-kind in a bounded mailbox of its own, so a flood on one key can displace
-nothing on another:
-
-* **telemetry** (:class:`~zplatform.intake.TelemetryIntake`): a snapshot
-  longer than any telemetry frame, or with a bad tag, is refused as it
-  arrives and counted as bad; an authentic one stamped no later than the
-  newest admitted (a replay) is refused and counted (``not_newer``, or
-  ``stale`` beyond the freshness bound); the rest wait, at most
-  :data:`TELEMETRY_BACKLOG` snapshots' worth (the newest kept, the gaps
-  counted by the logic), for the caller's thread;
-* **events**: a record longer than :data:`EVENT_MAX` is refused unread
-  (``bad_events``); at most :data:`EVENT_BACKLOG` wait (a drop shows as a
-  gap in the node's event numbers);
-* **taps**: at most :data:`TAP_BACKLOG` samples wait; older ones are let go
-  and counted (:attr:`GroundLink.taps_dropped`).
-
-The caller's thread takes them (:meth:`GroundLink.next`: telemetry first,
-then events), runs them through the logic, publishes the requests it
-makes, and hands every event record to ``on_event``. The ground's own
-events (joined, restarted, refused, script done) go to ``on_event`` too: a
-ground *node* publishes them on ``{vehicle}/gn/events`` and takes them back
-through its intake, a tool hands them over directly.
-
-The clock is a :class:`~zplatform.timebase.NodeClock` (realtime-anchored,
-like every node's), read in the callbacks: a snapshot's age is measured at
-its arrival, not when the caller got round to it. The freshness bound is the
-mission's (:func:`~.logic.default_max_age_ns`) unless
-``ZPLATFORM_TELEMETRY_MAX_AGE_MS`` says otherwise.
-
-Not thread-safe: one thread calls everything after construction.
+Each mailbox's bound and refusals: docs/architecture.md#ground.
 """
 
 from __future__ import annotations

@@ -1,39 +1,22 @@
 """Control Node Main (thesis 4.13): entry and the periodic loop on zenoh.
 
-Entry: open the session, serve the clock, wait for every DN to be alive,
-read each DN's clock offset with a warm-up sync (refusing to start beyond the
-mission bound), then run the loop on absolute deadlines. Initialisation
-errors raise :class:`~zplatform.errors.NodeError` (the CLI prints and exits
-non-zero); errors after start are counted in the Data Vector and the loop
-goes on.
+:class:`ControlNode` opens the session, serves the clock, waits for every DN
+to be alive, reads each DN's clock offset with a warm-up sync (refusing to
+start beyond the mission bound) and loads the parameter file
+(:meth:`ControlNode.wait_ready`), then runs the loop of :mod:`zplatform.loop`
+on absolute deadlines (:meth:`ControlNode.run`): ``begin`` at the loop's
+scheduled start, sync every DN, ``finish`` with at most one ground frame,
+publish the telemetry every Nth loop. The run's last loop is flagged final
+(the last of ``max_loops``, or one more loop after a stop was asked for).
 
-Loop (one timestamp per loop), the order of :mod:`zplatform.loop`::
+Contract: initialisation errors raise :class:`~zplatform.errors.NodeError`
+(the CLI prints and exits non-zero); errors after start are counted in the
+Data Vector and the loop goes on. The loop thread never blocks on disk: the
+loop recorder (``record``), parameter saves (a
+:class:`~zplatform.params.ParamSaver`) and the flight recorder write from
+threads of their own, as does the gap-fill server.
 
-    t = the loop's scheduled start, on the node clock
-    frames = logic.begin(loop, t, final=...); sync every DN with them (2 ms deadline)
-    tm = logic.finish(at most one ground frame, overrun flags)
-    publish tm (every Nth loop), events
-
-The run's last loop is flagged final (``dnX_final``, so the DNs safe
-themselves as the run's end, not as a lost CN): the last of ``max_loops``
-(``--duration``), or, once a stop is asked for (SIGTERM, Ctrl-C under
-``up``), one more loop after it, after which the node stops.
-
-``record`` attaches a :class:`~zplatform.replay_recording.Recorder` after the
-warm-up: every input of every loop goes to disk for ``zplatform replay``.
-
-Parameters (:mod:`zplatform.params`): :meth:`ControlNode.wait_ready` ends by
-loading the parameter file (before loop 1, so a recording starts with the
-values loaded); each loop hands an accepted PRM_SAVE to a
-:class:`~zplatform.params.ParamSaver` (a writer thread) and passes the saves
-it finished to the next loop.
-
-With a ``recorder`` section naming the CN (the flight recorder,
-:mod:`zplatform.recorder`), every telemetry frame the loop publishes and
-every event is also copied to the CN's flight recorder (never blocking the
-loop; its counters go into ``cn_rec_*`` before each loop's logic), and a
-:class:`~zplatform.recorder.server.RecorderServer` answers the ground's
-gap-fill requests on ``{vehicle}/cn/recorder`` from its own thread.
+Start-up, the last loop and what runs beside the loop: docs/architecture.md#drivers.
 """
 
 from __future__ import annotations

@@ -1,34 +1,22 @@
 """Device Node Main (thesis 4.14): entry and the triggered loop on zenoh.
 
-Entry: open the session, wait for the CN, measure the clock offset to it
-(NTP-style over zenoh, :mod:`zplatform.clocksync`), apply it once and lock
-the clock, declare the sync queryable, then announce liveliness: from that
-moment the CN may trigger loops. Every offset measurement (this one, the
-residual after it, the re-syncs) uses the estimator the mission's
-``clock.estimator`` names (:func:`~zplatform.clocksync.estimator_for`).
+:class:`DeviceNode` opens the session, waits for the CN, measures its clock
+offset (:mod:`zplatform.clocksync`, the estimator ``clock.estimator`` names),
+applies it once and locks the clock, declares the sync queryable, then
+announces liveliness: from that moment the CN may trigger loops. Its loop
+waits for the CN's query (the trigger), answers it at once
+(:meth:`DeviceLogic.trigger <zplatform.loop.DeviceLogic.trigger>`), then runs
+:meth:`~zplatform.loop.DeviceLogic.run` with the query's loop number and one
+local timestamp.
 
-Loop: block on the CN's query (the trigger); :meth:`DeviceLogic.trigger
-<zplatform.loop.DeviceLogic.trigger>` checks it and frames the reply, sent at
-once; then :meth:`~zplatform.loop.DeviceLogic.run` (sensors -> controllers
--> actuators) with the query's loop number and one local timestamp. A background thread
-re-estimates the offset every ``clock.resync_s`` and hands each result to
-the loop thread, which alone decides what the node reports: an estimate
-that jumps from the last accepted one by more than the clock bound
-(``clock.offset_bound_ms``) is refused (a ``clock_jump_refused`` event,
-counted in ``dnX_clock_refused``) and changes nothing; an accepted one goes
-to ``dnX_clock_drift_ns``. The clock itself is never stepped (thesis
-4.10.1). Clock replies refused for a bad tag or another exchange's nonce
-(:class:`~zplatform.clocksync.ClockLink`) are counted there too, with a
-``clock_refused`` event per measurement that met any; exchanges left
-unanswered (a silent or slow clock peer: each waits at most its timeout,
-never longer) in ``dnX_clock_timeouts``, with a ``clock_timeout`` event at
-most once a second (:class:`ClockTally`).
+Contract: the loop thread alone decides what the node reports: a background
+thread re-estimates the clock offset every ``clock.resync_s`` and hands each
+result over; an estimate that jumps beyond the clock bound is refused and
+counted, and the clock is never stepped. Clock exchanges wait at most their
+timeout, counted in ``dnX_clock_timeouts`` (:class:`ClockTally`: one event a
+second at most). The flight recorder never blocks the loop.
 
-With a ``recorder`` section naming the node (the flight recorder,
-:mod:`zplatform.recorder`), the reply frame of every loop the node runs and
-every event are also copied to its flight recorder, never blocking the
-loop; its counters go into ``dnX_rec_*`` before each run, so the next reply
-carries them.
+Start-up, clock re-sync and the recorder: docs/architecture.md#drivers.
 """
 
 from __future__ import annotations

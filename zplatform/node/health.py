@@ -2,41 +2,20 @@
 
 :class:`NodeHealth` is the zenoh runtime's :class:`~zplatform.health.HealthPort`
 (:mod:`zplatform.health` has the elements and the contract). It runs one
-thread, ``health``, which once per health period
+thread, ``health``, which once per health period samples the process and the
+host through psutil (:class:`ResourceSampler`), latches the threads past their
+deadline, and probes zenoh with a query nobody answers, whose finalisation on
+zenoh's thread checks in for ``zenoh``.
 
-* samples the process and the host through psutil (:class:`ResourceSampler`:
-  CPU, RSS, available memory, free disk at ``health.disk_path``, the
-  hottest CPU temperature sensor or NaN) and packs the values, with its
-  sample count, into the staging block in one call;
-* latches every thread that is past its deadline right now (so a stall of
-  the loop thread itself is reported once the loop runs again);
-* probes zenoh: a query to the node's own session, on a key only this
-  session serves, that nobody answers; zenoh's timer finalises it on
-  zenoh's own thread, whose callback checks in for ``zenoh``. A zenoh
-  runtime that can no longer run the node's callbacks stops checking in.
+Contract: the loop thread's calls never block: :meth:`NodeHealth.note` and
+:meth:`NodeHealth.overran` are one compare or add per loop,
+:meth:`NodeHealth.kick` one flag test (it lets the thread sample in the loop's
+slack), and :meth:`NodeHealth.take` packs the window figures and stalled
+threads into the staging block, resets the window and returns the block for
+the logic's one copy. The sampling thread packs each sample in one call; it
+samples on its own every two periods when the loop stops kicking.
 
-The loop thread reports its own timing (:meth:`NodeHealth.note`,
-:meth:`NodeHealth.overran`: one compare or add per loop), and garbage-collector
-pauses are timed by a ``gc.callbacks`` hook. On health loops the logic calls
-:meth:`NodeHealth.take`, which packs those window figures and the stalled
-threads into the block, resets the window and returns the block for the
-logic's one copy.
-
-**When it samples.** The sampling thread holds the GIL for parts of a sample
-(psutil parses ``/proc`` in Python): sampling while the loop thread wants to
-run would delay the loop by up to the interpreter's switch interval. So the
-driver calls :meth:`NodeHealth.kick` when the loop's work is done (one flag
-test per loop), and after a health loop that wakes the thread, which samples
-in the loop's slack; the next health loop copies that sample (a period old).
-A loop that stops kicking (stalled, or a device node without triggers)
-does not stop the thread: it samples on its own every two periods, and so
-keeps latching stalled threads.
-
-psutil is a runtime dependency: it reads ``/proc`` and ``/sys`` (and other
-systems' equivalents) with fewer surprises than parsing them by hand.
-Sampling costs a few hundred microseconds of the health thread, which holds
-the GIL for parts of it: ``python -m bench.health`` measures what that costs
-the CN's loop.
+When and how it samples, and what that costs: docs/architecture.md#health.
 """
 
 from __future__ import annotations

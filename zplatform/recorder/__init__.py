@@ -1,30 +1,22 @@
 """The on-board flight recorder: each vehicle node keeps its own telemetry and
 events on local storage, and the ground fills its telemetry gaps from the
-CN's (issue 20). Not to be confused with :mod:`zplatform.replay_recording`, which
+CN's. Not to be confused with :mod:`zplatform.replay_recording`, which
 records a CN's loop *inputs* for a bit-exact replay (``up --record``).
 
 A mission turns it on with a ``recorder:`` section
 (:class:`~zplatform.config.RecorderConfig`); each node of
 ``Mission.recording_nodes`` then writes a ring of segment files into its own
-directory (:func:`recorder_dir`):
+directory (:func:`recorder_dir`): the CN every telemetry frame it publishes,
+a device node every reply frame it sends for a loop it runs, both every event.
+The package: :mod:`.format` (the records, the gap-fill exchange),
+:mod:`.writer` (:class:`FlightRecorder`: the loop copies, a thread writes),
+:mod:`.reader` (:class:`RecorderReader`), :mod:`.export` (a directory into
+the ground's CSV and JSONL) and :mod:`.server` (the CN's gap-fill queryable).
 
-* :mod:`.format`: the record on disk (self-delimiting, CRC-32 checked), the
-  segment files, the gap-fill request and reply;
-* :mod:`.writer`: :class:`FlightRecorder`, the loop's side (copies into a
-  preallocated RAM buffer, never blocks, drops whole loops and counts them)
-  and the writer thread (segments, the ring bound, the fsync policy);
-* :mod:`.reader`: :class:`RecorderReader`, every record that checks and a
-  line for every one that does not;
-* :mod:`.export`: a directory into the ground log's CSV and events JSONL
-  (``zplatform log MISSION --from-recorder DIR``);
-* :mod:`.server`: the CN's queryable ``{vehicle}/cn/recorder`` that answers
-  the ground's gap-fill requests (:mod:`zplatform.ground.gapfill`).
+Contract: the loop's side never blocks and drops whole loops, counted, when
+its buffer is full; a reader never misreads a damaged record.
 
-What each node records: the CN, every telemetry frame it publishes (the
-same authenticated frame); a device node, every reply frame it sends for a
-loop it runs (its region ``dnX_to_cn`` as it stood before that loop's run:
-what the CN received, or would have); both, every event they publish. The
-ground node records nothing: its log is the ground's record.
+The design: docs/architecture.md#flight-recorder; the files: codecs/FORMAT.md (section 12).
 """
 
 from __future__ import annotations

@@ -3,29 +3,19 @@
 
 :func:`export` reads one node's recorder directory
 (:class:`~.reader.RecorderReader`) and writes what it holds in the ground
-log's formats: each recorded frame that checks, like live telemetry (the
-channel's tag, the layout of the mission given; :mod:`zplatform.auth`,
-:class:`~zplatform.codec.RegionCodec`), as one row of the telemetry CSV
-(:class:`~zplatform.telemetry.CsvLogger`: same header, same row format),
-and each event as one line of the events JSONL
-(:class:`~zplatform.telemetry.EventWriter`).
+log's formats: each recorded frame that checks like live telemetry (the
+channel's tag, the layout of the mission given) as one row of the telemetry
+CSV (:class:`~zplatform.telemetry.CsvLogger`: same header, same rows; a
+device node's directory gives its region ``dnX_to_cn``), and each event as
+one line of the events JSONL (:class:`~zplatform.telemetry.EventWriter`). A
+row's ``rx_time_ns`` is the frame's own stamp, so the same frame gives the
+same row whoever reads it (the ground's gap fill writes its rows the same way).
 
-* The CN's directory gives the ground log's own columns (the whole Data
-  Vector); a device node's gives the columns of its region ``dnX_to_cn``
-  (its reply frames: the region as it stood before each loop's run, what
-  the CN received).
-* ``rx_time_ns`` of a recorded row is the frame's own stamp (``t_ns``: the
-  loop's time on the node's clock, which is realtime-anchored and
-  corrected to the CN's), and of a recorded event its ``t_ns``: nothing
-  was received, and the stamp places the row where it belongs in time.
-  The same frame gives the same row, whoever reads it: the ground's gap
-  fill writes the rows it gets from the CN's recorder the same way.
-* Nothing in the directory stops the export: a damaged or torn record, a
-  frame whose tag or layout does not check, an event that does not decode
-  is skipped and counted, with one line in :attr:`ExportSummary.problems`.
-  Loops the recorder itself dropped (its ``DROPPED`` records) are listed
-  there too, as are runs that ended without their ``END`` record (a kill
-  or a power loss).
+Contract: nothing in the directory stops the export: a damaged or torn
+record, a frame whose tag or layout does not check, an event that does not
+decode is skipped and counted with one line in
+:attr:`ExportSummary.problems`, as are the loops the recorder dropped and
+runs without their ``END`` record. Blocks on file I/O. See docs/operations.md#the-flight-recorder.
 """
 
 from __future__ import annotations

@@ -1,57 +1,20 @@
 """The flight recorder's formats: the record on disk, a directory's files,
 and the gap-fill request and reply on ``{vehicle}/cn/recorder``.
 
-A recorder directory (one node's) holds a ring of **segment files**
-``seg-00000001.zfr``, ``seg-00000002.zfr``, ... numbered on across runs;
-the highest number is the newest. A segment is a sequence of
-self-delimiting, checksummed **records**, all integers little-endian::
+Holds the constants and structs every reader and writer shares: the 24-byte
+record header (:data:`HEADER`: sync word, CRC-32, length, type, flags, loop),
+the record types (``HEAD``, ``FRAME``, ``EVENT``, ``DROPPED``, ``END``; ``WRAP``
+marks the unused rest of the RAM ring and is never written to a file), the
+segment names (:func:`segment_name`, :data:`SEGMENT_RE`), the gap-fill
+request (:data:`REQUEST`, at most :data:`MAX_REQUEST_LOOPS` loops) and reply
+kinds (frames, at most :data:`REPLY_BYTES` per reply; end, with totals).
 
-    offset  size  field
-         0     4  sync: b"\\x89ZFR"
-         4     4  crc: CRC-32 (zlib) of bytes 8..end of the record
-         8     4  length: bytes of payload after the 24-byte header
-        12     1  type (below)
-        13     1  flags (0)
-        14     2  reserved (0)
-        16     8  loop: u64, the loop the record belongs to
-        24     -  payload (length bytes)
+Contract: pure definitions and :func:`record_crc`; nothing here does I/O,
+blocks or raises. The checksum covers the length and the type, so a reader
+detects a torn or damaged record and skips it rather than misreading it.
 
-The checksum covers the length and the type, so a torn or damaged record
-is detected, never misread: a reader skips it (to the next sync word whose
-record checks) and says so. Types:
-
-* ``HEAD`` (1): the first record of every segment: JSON (UTF-8, at most
-  :data:`MAX_HEAD_LEN` bytes) naming the format, mission, vehicle, node,
-  run, what the frames are (``kind``: ``telemetry`` for the CN, the region
-  ``dnX_to_cn`` for a device node) with their ``layout_id`` and
-  authentication ``channel`` (null when the mission does not authenticate),
-  the loop period, the telemetry divisor, the segment number and the wall
-  time it was started (``created_unix_ns``);
-* ``FRAME`` (2): one frame exactly as the node sent it (a telemetry frame
-  with its tag, or a device node's reply frame); ``loop`` is its sequence
-  number;
-* ``EVENT`` (3): one event record in its wire form
-  (:func:`zplatform.events.encode_event`); ``loop`` is the node's loop when
-  it was published;
-* ``DROPPED`` (4): loops the recorder could not keep: ``u64 first, u64 last,
-  u64 count`` (written before the next loop it keeps, or at the end);
-* ``END`` (5): the run ended cleanly (``u64 loops kept, u64 loops dropped,
-  u64 events kept``); a run without one ended by a kill or a power loss.
-
-Gap fill: the ground asks the CN's recorder (a queryable on
-``{vehicle}/cn/recorder``) with a request payload::
-
-    b"ZRQ1"  u64 run (cn_epoch)  u64 first loop  u64 last loop  i64 t_ns (asker's clock)
-
-followed by the telemetry channel's tag (:mod:`zplatform.auth`) when the
-mission authenticates: whoever may read the recorded frames (they carry
-that channel's tag) may ask. ``last - first`` is at most
-:data:`MAX_REQUEST_LOOPS`. Each reply's payload starts with a kind byte:
-``1`` (frames) then ``u32 length, frame`` repeated (at most
-:data:`REPLY_BYTES` per reply, or one longer frame alone); ``2`` (end) then
-``u64 frames sent, u64 telemetry loops of the range the recorder does not
-hold, u64 loops of the range that never ran`` (periods the CN's scheduler
-skipped: there is no telemetry of them anywhere).
+The records byte by byte and the gap-fill exchange: codecs/FORMAT.md
+(section 12); the recorder's design: docs/architecture.md#flight-recorder.
 """
 
 from __future__ import annotations

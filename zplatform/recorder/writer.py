@@ -1,39 +1,22 @@
 """The recording side: a node's loop copies, a writer thread writes.
 
 :class:`FlightRecorder` keeps one node's records in a ring of segment files
-(:mod:`~.format`). The loop thread's calls (:meth:`~FlightRecorder.frame`,
+(:mod:`~.format`): a preallocated RAM ring (``buffer_bytes``) that the loop
+fills and a writer thread that checksums, writes (unbuffered), fsyncs as
+``fsync_ms`` says, and only then frees the space.
+
+Contract: the loop thread's calls (:meth:`~FlightRecorder.frame`,
 :meth:`~FlightRecorder.event`, :meth:`~FlightRecorder.tick`) never block,
-never raise and allocate nothing per call: a record is packed and copied into
-a preallocated RAM ring buffer (``buffer_bytes``), and published by moving an
-index. A writer thread wakes every ``interval_s`` (sooner when the buffer is
-half full), checksums the records it finds, writes them to the current
-segment with plain ``write`` calls (unbuffered: what was written is in the
-operating system, so a kill -9 of the node loses at most the last
-interval's records), fsyncs as the ``fsync_ms`` policy says, and only then
-frees their space.
+never raise and allocate nothing per call. Bounded everywhere: a loop the
+buffer cannot take is dropped whole and counted (:attr:`FlightRecorder.dropped`,
+a ``DROPPED`` record, ``recorder_dropping``/``recorder_resumed`` events); the
+directory's segments stay within ``max_bytes``, the oldest removed first
+(:attr:`evicted`, ``recorder_evicted``); a failed write, fsync or open is
+counted (:attr:`errors`) and told once per kind (``recorder_failed``). One
+recorder per directory: it is locked for the recorder's life, and a second
+one is refused with :class:`~zplatform.errors.RecordingError`.
 
-Bounded everywhere:
-
-* **RAM**: when a loop's frame does not fit in the buffer (the storage
-  stalled or is slower than the loop), the loop is dropped whole and
-  counted (:attr:`FlightRecorder.dropped`); the first loop kept again is
-  preceded by a ``DROPPED`` record naming the loops lost, so a reader knows.
-  A ``recorder_dropping`` event says when it starts, ``recorder_resumed``
-  when it ends (once :meth:`~FlightRecorder.attach` gave the recorder the
-  node's events and Data Vector).
-* **Storage**: a segment holds at most ``file_bytes``; before a new one is
-  started, the oldest segments of the directory (earlier runs' first) are
-  removed until the directory's segments and the new one fit in
-  ``max_bytes``. Each removal is counted (:attr:`evicted`) and told
-  (``recorder_evicted``).
-* **Errors**: a failed write, fsync or open is counted (:attr:`errors`) and
-  told once per kind of failure (``recorder_failed``); the records of a
-  failed write are lost (counted as dropped loops) and the next write starts
-  a new segment.
-
-One recorder per directory: the directory is locked (``flock`` on
-``.lock``) for the recorder's life, so a second node or run on the same
-directory is refused (RecordingError) instead of mixing its files in.
+The design and what survives a kill: docs/architecture.md#flight-recorder.
 """
 
 from __future__ import annotations
