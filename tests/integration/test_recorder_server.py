@@ -169,7 +169,7 @@ def test_askers_beyond_the_bound_are_dropped_and_replies_are_paced(rig: Any) -> 
     done: queue.SimpleQueue[int] = queue.SimpleQueue()
     start = time.monotonic()
 
-    def asker() -> None:
+    def asker(k: int) -> None:
         replies: list[bytes] = []
 
         def on_reply(rep: zenoh.Reply) -> None:
@@ -179,13 +179,13 @@ def test_askers_beyond_the_bound_are_dropped_and_replies_are_paced(rig: Any) -> 
         r.client.get(
             KEYEXPR,
             zenoh.handlers.Callback(on_reply, lambda: done.put(len(replies)), indirect=False),
-            payload=r.request(1, 100),
+            payload=r.request(1, 100 - k),  # four requests, not one replayed
             timeout=30,
             consolidation=zenoh.ConsolidationMode.NONE,
         )
 
-    for _ in range(4):  # at once: two are taken, two are turned away
-        asker()
+    for k in range(4):  # at once: two are taken, two are turned away
+        asker(k)
     answered = sorted(done.get(timeout=40) for _ in range(4))
     elapsed = time.monotonic() - start
     assert answered[:2] == [0, 0] and answered[2] > 0 and answered[3] > 0
