@@ -36,6 +36,7 @@ from typing import Any, ClassVar
 
 import pytest
 
+from tests.payload import Bytes
 from zplatform.auth import KEY_ENV, TAG_LEN, KeySet, channel
 from zplatform.clocksync import ClockLink, ClockResponder
 from zplatform.codec import BundleEncoder, decode_frame, encode_frame
@@ -92,19 +93,6 @@ def _keys(m: Mission) -> KeySet:
 def _junk(n: int) -> bytes:
     """``n`` bytes of deterministic junk (no valid tag, no valid frame)."""
     return bytes((i * 131 + 7) & 0xFF for i in range(n))
-
-
-class Bytes:
-    """A payload as zenoh hands it over (its length free, ``to_bytes`` a copy)."""
-
-    def __init__(self, data: bytes) -> None:
-        self._data = data
-
-    def __len__(self) -> int:
-        return len(self._data)
-
-    def to_bytes(self) -> bytes:
-        return self._data
 
 
 def _reframe(tagged: bytes, hi: bool, key: Any) -> bytes:

@@ -17,6 +17,7 @@ from pathlib import Path
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
+from tests.payload import Bytes
 from zplatform import load_mission
 from zplatform.codec import frame_overhead
 from zplatform.datavector import Layout
@@ -135,17 +136,6 @@ mirrors = st.one_of(
     st.lists(st.tuples(st.integers(0, len(MIRROR) - 1), u8), max_size=12).map(_edited),
     st.lists(st.tuples(st.sampled_from(_READ), u8), min_size=1, max_size=6).map(_edited),
 )
-
-
-class Bytes:
-    def __init__(self, data: bytes) -> None:
-        self._data = data
-
-    def __len__(self) -> int:
-        return len(self._data)
-
-    def to_bytes(self) -> bytes:
-        return self._data
 
 
 @_SETTINGS

@@ -16,6 +16,7 @@ from typing import Any
 
 import pytest
 
+from tests.payload import Bytes
 from zplatform import load_mission
 from zplatform.errors import CodecError
 from zplatform.events import EV
@@ -47,23 +48,6 @@ U32_MAX = 0xFFFF_FFFF
 
 def at(loop: int) -> int:
     return T0 + (loop - 1) * P
-
-
-class Bytes:
-    """A payload as zenoh hands it over: the length for free; ``to_bytes``
-    counted, so a test can tell a frame was refused unread."""
-
-    copies = 0
-
-    def __init__(self, data: bytes) -> None:
-        self._data = data
-
-    def __len__(self) -> int:
-        return len(self._data)
-
-    def to_bytes(self) -> bytes:
-        Bytes.copies += 1
-        return self._data
 
 
 def _commander(term: int = 1, who: int = 0) -> ControlLogic:

@@ -14,6 +14,7 @@ import pytest
 import zenoh
 
 from tests.faults.peers import peer_config
+from tests.payload import Bytes
 from zplatform.auth import KEY_ENV, TAG_LEN, KeySet, channel
 from zplatform.codec import decode_frame, encode_frame
 from zplatform.codes import CommandStatus
@@ -46,23 +47,6 @@ M = load_mission(LED)
 KEYS = KeySet.from_master(M, bytes.fromhex(os.environ[KEY_ENV]))
 PERIOD = M.period_ns
 T0 = 1_700_000_000_000_000_000
-
-
-class Bytes:
-    """A payload as zenoh hands it over: the length for free; ``to_bytes``
-    counted, so a test can tell a frame was refused unread."""
-
-    copies = 0
-
-    def __init__(self, data: bytes) -> None:
-        self._data = data
-
-    def __len__(self) -> int:
-        return len(self._data)
-
-    def to_bytes(self) -> bytes:
-        Bytes.copies += 1
-        return self._data
 
 
 def trigger(loop: int, t: int, dn: int = 0) -> bytes:
