@@ -9,12 +9,12 @@ the first failure winning: size (unread, no copy), a rate bound where the
 key has one, then one bounded copy and the channel's tag (constant time),
 then freshness against the newest admitted. A refused frame is only
 counted: no queue, no decode, no event of its own. :meth:`Intake.admit`
-puts an admitted one (its bytes: the one copy) in a bounded :class:`Mailbox`
+puts an admitted one (its bytes: the one copy) in a bounded :class:`~.handoff.Mailbox`
 (full: the oldest is let go), whose last item is always the newest valid
-frame; :meth:`Intake.check` only checks. Never blocks (its lock is held for
-these steps and a consumer's pop), never raises for what arrives; the loop
-thread takes the items and, once per loop, the counts
-(:meth:`Intake.take_counts`), and events them through :class:`RefusalLog`.
+frame; :meth:`Intake.check` only checks. Never blocks beyond two short
+locks (the intake's, for these steps; the mailbox's, for a put or a pop),
+never raises for what arrives; the loop thread takes the items and the counts
+(:meth:`Intake.take_counts`, once per loop) and events them (:class:`RefusalLog`).
 Detail: docs/architecture.md#the-intake; per key: docs/keyspace.md;
 the stamps' offsets: codecs/FORMAT.md §2.
 """
