@@ -1,55 +1,22 @@
 """Clock synchronisation between each DN and the CN (thesis 4.9), NTP-style.
 
-The CN serves ``{vehicle}/cn/clock``. A DN sends ``t1`` (its clock), the CN
-stamps ``t2`` when the query reaches it and ``t3`` when it replies, the DN
-stamps ``t4`` on receipt. Per exchange::
+The CN serves ``{vehicle}/cn/clock`` (:class:`ClockServer`, around the
+sans-IO :class:`ClockResponder`; ``t2`` is read in the zenoh callback, the
+reply sent from the server thread). A DN's sans-IO end is
+:class:`ClockLink`: per exchange a query with a fresh nonce, tagged with its
+cn<->dnX link key, asked of every queryable (``QueryTarget.ALL``) and
+DROPped rather than blocked; the first reply whose tag checks and whose
+nonce is the exchange's is taken, any other refused and counted, and an
+exchange without one is a counted timeout (:attr:`ClockLink.timeouts`).
+An exchange never waits past its timeout.
 
-    offset = ((t2 - t1) + (t3 - t4)) / 2      # CN clock minus DN clock
-    delay  = (t4 - t1) - (t3 - t2)            # round trip minus CN time
-
-Over many exchanges the fastest ``keep_fraction`` (smallest delay, least
-queueing asymmetry) are kept and their median offset is the estimate.
-
-What must agree across nodes is each node's
-:class:`~zplatform.timebase.NodeClock`, the clock that stamps loops and
-frames. Two estimators measure it, against the same :class:`ClockServer`
-(``t2`` is taken in the zenoh callback, a clock read, no blocking; the reply
-is sent from a server thread, whose queueing shows up between t2 and t3 and
-so cancels out of the delay):
-
-* ``node_clock``, :func:`estimate_offset`: the four times read from the node
-  clocks in Python. It measures the corrected quantity directly, but the
-  DN's ``t4`` is read after the reply callback's hand-off to the waiting
-  thread, so that latency sits in the return path only.
-* ``zenoh_ts``, :func:`estimate_offset_zenoh`: the four time points zenoh
-  stamps itself (timestamp instrumentation) as the query and the reply cross
-  it, on each host's zenoh clock, mapped into node time by the node-clock
-  reads next to them. Zenoh's clock knows nothing of the node clock's anchor,
-  hence the mapping; Python's callback and hand-off latency drops out.
-
-**Authenticated, and bound to the exchange** (codecs/FORMAT.md §6.3). A
-DN's query carries a fresh random nonce and is tagged with its cn<->dnX
-link key (channel ``clock_dnX_to_cn``); the CN answers only a query whose
-tag checks, echoing the nonce, tagged on the reverse channel
-(``clock_cn_to_dnX``). The DN asks every queryable on the clock key
-(``QueryTarget.ALL``, so a rogue cannot take the real CN's place, through
-:func:`zplatform.queries.ask`) and takes, per exchange, the first reply
-whose tag checks and whose nonce is this exchange's: a reply from a peer
-without the key, or a real reply replayed into another exchange, is
-refused and counted (:class:`ClockLink`). An exchange never waits past its
-timeout: the query is DROPped rather than blocked on a congested link, a
-replier that holds the query is cut off by the timeout, and a flooding
-replier gets one reply read per exchange; an exchange left without a
-valid answer is a counted timeout (:attr:`ClockLink.timeouts`). The
-sans-IO ends are :class:`ClockLink` (the DN's) and :class:`ClockResponder`
-(the CN's); :class:`ClockServer` serves the latter on zenoh.
-
-``zenoh_ts`` is the default (``clock.estimator`` in the mission) because it
-measured more accurate: median |error| 6.94 us vs 7.36 us, worst 17.3 us vs
-26.6 us, over injected skews of 0, 50 ms and 500 ms and a 100 ppm drift
-(``python -m bench.clock``, bench/REPORT.md, section "clock").
-:func:`estimator_for` gives the mission's choice as one callable; its
-fallback from ``zenoh_ts`` to ``node_clock`` is described there.
+Over many exchanges the fastest ``keep_fraction`` are kept and their median
+offset (CN clock minus DN clock) is the estimate: :func:`estimate_offset`
+(``node_clock``, the node clocks read in Python) or
+:func:`estimate_offset_zenoh` (``zenoh_ts``, zenoh's own timestamps mapped
+into node time, the default); :func:`estimator_for` gives the mission's
+``clock.estimator``. Detail, formulas and measured accuracy:
+docs/architecture.md#the-clock-exchange; wire: codecs/FORMAT.md §6.3.
 """
 
 from __future__ import annotations

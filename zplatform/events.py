@@ -1,37 +1,21 @@
 """Event records and the event catalogue: what a node tells the operator, apart from telemetry.
 
-Every event the platform can emit is declared once, in the catalogue
-(:class:`EV`), F Prime style: a stable numeric ``id`` (never reused), a
-``name`` (the machine-readable key records carry: ``state_change``,
-``cmd_rejected``, ...), a :class:`Severity` and a ``str.format`` format
-string. Call sites name the entry and pass the format arguments::
+Every event is declared once in the catalogue (:class:`EV`): a stable
+numeric id, a name, a :class:`Severity` and a format string; call sites
+name the entry and pass its arguments (``events.emit(EV.CMD_REJECTED,
+t_ns, name=..., ...)``), never a severity. An :class:`Event` is one record,
+published on ``{vehicle}/{node}/events``.
 
-    events.emit(EV.CMD_REJECTED, t_ns, name="LAUNCH", seq=4, status="REJECTED_REPLAY",
-                detail="...")
-
-so a severity is never picked at the call site, and a catalogue test proves
-every entry formats and that ids and names are unique.
-
-An :class:`Event` is one record (severity, id, text, time) published on
-``{vehicle}/{node}/events`` (docs/architecture.md#key-space). Node logic never publishes: it
-calls :meth:`EventLog.emit`, which appends to a bounded in-memory queue, and
-the runtime takes the queue after the loop (:meth:`~EventLog.drain`) and
-publishes what it took. So emitting is sans-IO and never blocks; it raises
-only :class:`~zplatform.errors.EventError` for an entry that is not in the
-catalogue (a programming error, found by the first test that reaches the call
-site), never for what happens in flight.
-
-The log is bounded (``capacity`` events between two drains). When it is full
-the *oldest* pending events are kept and new ones are counted in
-:attr:`EventLog.dropped`: the first events of a burst usually say what went
-wrong, the rest repeat it. Every emitted event takes the next ``seq`` number,
-dropped ones included, so a receiver sees a drop as a gap in ``seq``.
-
-Wire form: MessagePack of the struct as a map (``{"node": ..., "seq": ...}``),
-self-describing so a tap in any language can print it. ``id`` on the wire is
-the entry's *name* (a string), ``severity`` the :class:`Severity` value.
-:func:`decode_event` raises :class:`~zplatform.errors.FrameFormatError` on
-anything that is not an event record.
+:meth:`EventLog.emit` is sans-IO and never blocks: it appends to a bounded
+queue that the runtime takes after the loop (:meth:`EventLog.drain`) and
+publishes. Full, it keeps the oldest and counts the new ones
+(:attr:`EventLog.dropped`); every event takes the next ``seq``, dropped
+ones too, so a drop shows as a gap. It raises only
+:class:`~zplatform.errors.EventError` for an entry not in the catalogue (a
+bug), never for its arguments. :func:`decode_event` raises
+:class:`~zplatform.errors.FrameFormatError` on anything that is not an
+event record; :class:`EventReader` checks tag and freshness.
+Detail: docs/architecture.md#the-event-log; wire: codecs/FORMAT.md §6.4.
 """
 
 from __future__ import annotations

@@ -1,75 +1,22 @@
 """The intake of frames from the network: refused in constant time, handed
 off bounded, the newest valid frame first.
 
-Whatever arrives on a key a node takes frames on meets an *intake* in the
-zenoh callback that received it, before the loop thread sees anything. A
-frame from a peer that holds no valid key is refused there and counted,
-and costs nothing more: no queue, no decode, no event of its own. What is
-admitted goes into a bounded :class:`Mailbox`. One intake per key:
-
-=============================  =============================  ================================
-key                            intake (node)                  fresh: admitted when
-=============================  =============================  ================================
-``{vehicle}/dnX/to_cn``        :class:`TriggerIntake` (dnX)   stamped later than any admitted,
-                                                              not beyond the clock bound
-                                                              ahead of the node's clock
-``{vehicle}/dnX/probe``        :class:`ProbeIntake` (dnX)     stamped later than any admitted
-                                                              from the same control node,
-                                                              not beyond the clock bound
-                                                              ahead; within the rate bounds
-``{vehicle}/cn/mirror``        :class:`MirrorIntake` (either  newer in (term, loop) than any
-                               control node)                  admitted, from the other node
-``{vehicle}/gn/to_cn``         :class:`RequestIntake` (CN)    this CN run, numbered above
-                                                              every number seen
-``{vehicle}/cn/telemetry``     :class:`TelemetryIntake`       newer in (run, term, stamp)
-                               (ground)                       than any admitted, not beyond
-                                                              ``max_age`` ahead of arrival
-the CN's sync replies          :class:`ReplyCheck` (CN)       for the loop asked
-                                                              (:class:`zplatform.sync.ControlSync`)
-=============================  =============================  ================================
-
-The checks, in this order, the first failure wins:
-
-1. **size**: ``len(payload)``, which zenoh-python gives without copying,
-   against the lengths the key can carry (at most the longest valid frame,
-   tag included): counted in ``size``, refused unread; then, for a key
-   with a rate bound (the probe), the bound, still unread (counted in
-   :attr:`ProbeIntake.excess`);
-2. **tag**: one bounded copy out of zenoh (``to_bytes()``: zenoh-python 1.10
-   has no buffer protocol, so reading any byte copies them all, at most the
-   length just checked) and the channel's tag
-   (:meth:`zplatform.auth.Channel.open`, compared in constant time), with the
-   intake's own :class:`~zplatform.auth.Channel` (the loop's is not shared
-   across threads): a bad tag, or an authentic frame that is no frame,
-   counts in ``bad``;
-3. **freshness**: the authentic frame's stamp (its loop number and time, read
-   at the fixed offsets of codecs/FORMAT.md §2, or a request's epoch and
-   number) against the newest admitted: an authentic frame that is not newer
-   is a replay (or a duplicate), counted in ``stale``; so is one stamped
-   further ahead of the receiver's clock than the mission's clock bound
-   allows (it would become the newest and refuse every genuine frame after
-   it). This check must come
-   before the mailbox: there, a replayed frame arriving after a fresh one
-   would be "newest" and displace it. Without authentication
-   (``security.auth: false``) a replay cannot be told from a forgery, so
-   this check is skipped (size and the bounds still apply).
-
-Only then is the frame put in the mailbox, with a handle (the zenoh query
-to answer, the receive time). Since each admitted frame is newer than every
-one before it, the mailbox's last item is always the newest valid frame;
-when it is full the oldest is let go (counted in :attr:`Mailbox.dropped`).
-The loop thread takes the items (:meth:`Mailbox.get`, :meth:`Mailbox.drain`)
-and, once per loop, the counts (:meth:`Intake.take_counts`), which it
-writes into its Data Vector and reports in events a flood cannot multiply
-(:class:`RefusalLog`).
-
-Why a zenoh callback may do this much (the rule is that a callback only
-hands off): every step is bounded and constant time (one copy of at most the
-longest valid frame, one tag, a few integer compares, a counter bump), none
-blocks (the intake's lock is held only for these steps, by zenoh's threads,
-and by the consumer for a pop), and a frame refused here is never queued,
-so a flood cannot grow memory or reach the loop thread. Decoding,
-applying and events stay on the loop thread.
+One intake per key a node takes frames on (:class:`TriggerIntake`,
+:class:`ProbeIntake`, :class:`MirrorIntake`, :class:`RequestIntake`,
+:class:`TelemetryIntake`, and :class:`ReplyCheck` for the CN's sync
+replies). It runs in the zenoh callback that received the frame and checks,
+the first failure winning: size (unread, no copy), a rate bound where the
+key has one, then one bounded copy and the channel's tag (constant time),
+then freshness against the newest admitted. A refused frame is only
+counted: no queue, no decode, no event of its own. :meth:`Intake.admit`
+puts an admitted one (its bytes: the one copy) in a bounded :class:`~.handoff.Mailbox`
+(full: the oldest is let go), whose last item is always the newest valid
+frame; :meth:`Intake.check` only checks. Never blocks beyond two short
+locks (the intake's, for these steps; the mailbox's, for a put or a pop),
+never raises for what arrives; the loop thread takes the items and the counts
+(:meth:`Intake.take_counts`, once per loop) and events them (:class:`RefusalLog`).
+Detail: docs/architecture.md#the-intake; per key: docs/keyspace.md;
+the stamps' offsets: codecs/FORMAT.md §2.
 """
 
 from __future__ import annotations

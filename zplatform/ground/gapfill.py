@@ -1,44 +1,22 @@
 """Filling the ground log's telemetry gaps from the CN's flight recorder.
 
-A link loss leaves a hole in the ground's telemetry: the first snapshot
-accepted after it jumps ahead, and :class:`~.logic.GroundLogic` queues the
-missing loops (:attr:`~.logic.GroundLogic.gaps`). The link is back at that
-moment (a snapshot just came through it), so :class:`GapFill` asks the CN's
-flight recorder (:mod:`zplatform.recorder.server`, ``{vehicle}/cn/recorder``)
-for exactly those loops, and writes what comes back into the log **in loop
-order**: while a gap is being filled, the snapshots that keep arriving are
-held (copies, in memory) and written after the filled rows; with nothing to
-fill, each snapshot is written as it is accepted, as before (no copy).
+:class:`GapFill` asks the CN's recorder (``{vehicle}/cn/recorder``,
+:mod:`zplatform.recorder.server`) for the loops
+:attr:`~.logic.GroundLogic.gaps` queued, as soon as a snapshot shows the
+link is back, and writes the log **in loop order**: while a gap is being
+filled, arriving snapshots are held (copies, in memory, at most
+``hold_s``); with nothing to fill each is written as accepted (no copy).
 
-Sans-IO, like the rest of the ground: the driver (the ground node,
-``zplatform log``: :func:`zplatform.node.ground.run_ground_logger`) hands in
-every accepted snapshot (:meth:`GapFill.snapshot`), sends the requests it is
-given (:meth:`GapFill.take_request`) as zenoh gets, and hands back their
-replies and their end (:meth:`GapFill.on_reply`, :meth:`GapFill.on_done`).
-
-Every frame a reply carries is checked as live telemetry is (size, the
-telemetry channel's tag, layout and encoding), and then: of the CN run the
-gap belongs to (``cn_epoch``), a loop of the range asked, on the telemetry
-divisor, not one already filled (a replay), stamped no later than the
-clock bound after the request was made. Freshness is not asked of it
-otherwise (a filled frame is old by definition): the run is what ties it to
-the telemetry the ground followed, so a recording of another run is
-refused. Refused frames (and empty replies) are counted
-(:attr:`GapFill.refused`, the first reason in :attr:`GapFill.last_refusal`).
-A filled row's ``rx_time_ns`` is the frame's own stamp (nothing was
-received live; ``zplatform log --from-recorder`` writes the CN
-recorder's rows the same way, so the two agree byte for byte).
-
-Requests go one at a time, at most
-:data:`~zplatform.recorder.format.MAX_REQUEST_LOOPS` loops each; what one
-did not bring is asked again, up to ``tries`` times, except the loops the
-recorder says it does not hold (it dropped them) or that never ran (the
-CN's scheduler skipped their periods: a gap in loop numbers that is no
-loss, counted in :attr:`GapFill.not_run`). Each request ends in a
-``gap_filled`` event (the rows filled) and, for what is lost, a
-``gap_unfilled`` one naming the loops and why. Bounded: held rows are
-written, and the gaps still open given up, once the oldest has been held
-``hold_s`` (or at :meth:`GapFill.finish`).
+Sans-IO, single-threaded (the driver's thread): the driver hands in every
+accepted snapshot (:meth:`GapFill.snapshot`), sends the requests it is
+given (:meth:`GapFill.take_request`, one at a time) and hands back their
+replies and end (:meth:`GapFill.on_reply`, :meth:`GapFill.on_done`).
+Every frame a reply carries is checked as live telemetry is, then for the
+gap's run, range, divisor, replay and stamp; refused frames are counted
+(:attr:`GapFill.refused`, :attr:`GapFill.last_refusal`), never raised.
+Loops never run are counted apart (:attr:`GapFill.not_run`); each request
+ends in ``gap_filled`` / ``gap_unfilled`` events.
+Detail: docs/architecture.md#the-gap-fill.
 """
 
 from __future__ import annotations

@@ -1,37 +1,22 @@
 """The CN's recorder answers the ground's gap-fill requests over zenoh.
 
 :class:`RecorderServer` declares a queryable on ``{vehicle}/cn/recorder``
-(request and reply formats: :mod:`~.format`). It costs the control loop
-nothing but the GIL's share of one thread:
+(formats: :mod:`~.format`) and costs the control loop nothing but the GIL's
+share of one thread. Zenoh's callback only checks the request's size and
+hands the query to a bounded inbox (:data:`MAX_PENDING`; more are dropped
+unanswered, counted in :attr:`RecorderServer.busy`); it never blocks.
 
-* zenoh's callback only checks the request's size and hands the query to a
-  bounded inbox (:data:`MAX_PENDING` requests; more are dropped unanswered
-  and counted in :attr:`RecorderServer.busy`, so an asker learns nothing
-  but has to wait);
-* one serving thread checks the request (the telemetry channel's tag: only
-  whoever can read the recorded frames may ask; a stamp within the clock
-  bound of this node's clock, so a request captured earlier cannot be
-  replayed later, and none of the last :data:`REMEMBERED` served, so it
-  cannot be replayed meanwhile either; a range of at most :data:`~.format.MAX_REQUEST_LOOPS`
-  loops of this run), reads the recorder's segment files (never the loop's
-  buffer: loops still in it are waited for, up to :data:`WRITE_WAIT_S`),
-  and replies in chunks of at most :data:`~.format.REPLY_BYTES`
-  paced to ``serve_bps`` bytes per second, so that no asker can take more
-  from the control node than that rate (the replies travel with the
-  query's QoS: the ground asks at zenoh's lowest priority, with DROP
-  congestion control; a reply that blocks on a stalled link holds this
-  thread, never the loop, whose publishers drop);
-* a request that does not check is dropped unanswered and counted
-  (:attr:`RecorderServer.refused`), the reason kept in
-  :attr:`RecorderServer.last_refusal`.
-
-The frames are the recorded telemetry frames, each with its tag: the ground
-checks them as it checks live telemetry. The final reply (kind ``END``)
-says how many frames were sent, how many telemetry loops of the range the
-recorder does not hold (it dropped them, they left the ring, or they are of
-another run), and how many never ran: loop numbers between the recorder's
-oldest and newest that are neither recorded nor dropped are periods the
-CN's scheduler skipped (overruns), of which there never was telemetry.
+One serving thread checks each request (the telemetry channel's tag, a
+stamp within the clock bound, none of the last :data:`REMEMBERED` served,
+a range of at most :data:`~.format.MAX_REQUEST_LOOPS` loops of this run);
+one that does not check is dropped unanswered and counted
+(:attr:`RecorderServer.refused`, :attr:`RecorderServer.last_refusal`),
+never raised. It reads the segment files (never the loop's buffer; waits up
+to :data:`WRITE_WAIT_S` for loops still in it) and replies in chunks of at
+most :data:`~.format.REPLY_BYTES` paced to ``serve_bps``; a blocked reply
+holds this thread, never the loop. The final ``END`` reply counts the
+frames sent, the loops not held and the loops never run.
+Detail: docs/architecture.md#the-gap-fill.
 """
 
 from __future__ import annotations
