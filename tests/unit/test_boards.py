@@ -434,3 +434,21 @@ def test_device_logic_builds_the_mission_board() -> None:
             raise
         pytest.skip("DeviceLogic still builds a SimBoard; wire it to zplatform.boards.make_board")
     assert isinstance(logic.board, GpiodBoard)
+
+
+def test_one_pin_range_rule_for_every_board() -> None:
+    """boards.base.check_pin is the one rule the sim, serial and world boards use."""
+    import inspect
+
+    from zplatform.boards import base, serialboard, sim
+    from zplatform.boards import world as world_board
+    from zplatform.errors import ControlError
+
+    assert base.check_pin("digital", 3, 4) == 3
+    with pytest.raises(ControlError, match=r"analog pin 4 out of range \(board has 4\)"):
+        base.check_pin("analog", 4, 4)
+    with pytest.raises(ControlError, match=r"digital pin -1 out of range"):
+        base.check_pin("digital", -1, 4)
+    for mod in (sim, serialboard, world_board):
+        src = inspect.getsource(mod)
+        assert "check_pin(" in src and "out of range (board has" not in src, mod.__name__

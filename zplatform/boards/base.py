@@ -12,9 +12,18 @@ from typing import Protocol, runtime_checkable
 
 import msgspec
 
-from ..errors import ZPlatformError
+from ..errors import ControlError, ZPlatformError
 
-__all__ = ["Board", "BoardError", "BoardHealth", "HealthCounters", "ManagedBoard"]
+__all__ = ["Board", "BoardError", "BoardHealth", "HealthCounters", "ManagedBoard", "check_pin"]
+
+
+def check_pin(kind: str, pin: int, count: int) -> int:
+    """``pin``, when it is one of the board's ``count`` pins of ``kind``
+    (``digital``, ``analog``); else ControlError naming both. Every board's pin
+    methods use this one rule (a constant-time compare, no allocation)."""
+    if not 0 <= pin < count:
+        raise ControlError(f"{kind} pin {pin} out of range (board has {count})")
+    return pin
 
 
 @runtime_checkable

@@ -31,10 +31,10 @@ import msgspec
 from msgspec import Meta
 
 from ..components import decode_component_config
-from ..errors import ConfigError, ControlError
+from ..errors import ConfigError
 from ..health import Heartbeat
 from . import wire
-from .base import BoardError, BoardHealth, HealthCounters
+from .base import BoardError, BoardHealth, HealthCounters, check_pin
 
 __all__ = ["SerialBoard", "SerialBoardConfig", "round_trip_ms"]
 
@@ -233,27 +233,21 @@ class SerialBoard:
         return self._n_ana
 
     def set_digital(self, pin: int, value: bool) -> None:
-        if not 0 <= pin < self._n_dig:
-            raise ControlError(f"digital pin {pin} out of range (board has {self._n_dig})")
+        check_pin("digital", pin, self._n_dig)
         if value:
             self._dout |= 1 << pin
         else:
             self._dout &= ~(1 << pin)
 
     def get_digital(self, pin: int) -> bool:
-        if not 0 <= pin < self._n_dig:
-            raise ControlError(f"digital pin {pin} out of range (board has {self._n_dig})")
+        check_pin("digital", pin, self._n_dig)
         return bool((self._din >> pin) & 1)
 
     def set_analog(self, pin: int, volts: float) -> None:
-        if not 0 <= pin < self._n_ana:
-            raise ControlError(f"analog pin {pin} out of range (board has {self._n_ana})")
-        self._aout[pin] = float(volts)
+        self._aout[check_pin("analog", pin, self._n_ana)] = float(volts)
 
     def get_analog(self, pin: int) -> float:
-        if not 0 <= pin < self._n_ana:
-            raise ControlError(f"analog pin {pin} out of range (board has {self._n_ana})")
-        return self._ain[pin]
+        return self._ain[check_pin("analog", pin, self._n_ana)]
 
     def step(self, t_ns: int) -> None:
         """Flush the outputs and latch the inputs; BoardError on any failure.

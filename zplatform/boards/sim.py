@@ -17,8 +17,7 @@ import msgspec
 from msgspec import Meta
 
 from ..components import decode_component_config, load_function
-from ..errors import ControlError
-from .base import BoardHealth
+from .base import BoardHealth, check_pin
 
 __all__ = ["Physics", "SimBoard", "SimBoardConfig"]
 
@@ -122,14 +121,10 @@ class SimBoard:
             self._physics(self, t_ns)
 
     def _dpin(self, pin: int) -> int:
-        if not 0 <= pin < self._n_dig:
-            raise ControlError(f"digital pin {pin} out of range (board has {self._n_dig})")
-        return pin
+        return check_pin("digital", pin, self._n_dig)
 
     def _apin(self, pin: int) -> int:
-        if not 0 <= pin < self._n_ana:
-            raise ControlError(f"analog pin {pin} out of range (board has {self._n_ana})")
-        return pin
+        return check_pin("analog", pin, self._n_ana)
 
     def set_digital(self, pin: int, value: bool) -> None:
         self._dout[self._dpin(pin)] = bool(value)

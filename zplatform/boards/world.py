@@ -28,8 +28,8 @@ import time
 
 from ..components import mission_code_path
 from ..config import Mission
-from ..errors import ConfigError, ControlError
-from .base import Board, BoardError, BoardHealth, HealthCounters
+from ..errors import ConfigError
+from .base import Board, BoardError, BoardHealth, HealthCounters, check_pin
 from .registry import make_board
 
 __all__ = ["WorldLink", "link_address", "node_board", "world_nodes"]
@@ -114,12 +114,10 @@ class WorldLink:
         return self._n_ana
 
     def _dpin(self, pin: int) -> None:
-        if not 0 <= pin < self._n_dig:
-            raise ControlError(f"digital pin {pin} out of range (board has {self._n_dig})")
+        check_pin("digital", pin, self._n_dig)
 
     def _apin(self, pin: int) -> None:
-        if not 0 <= pin < self._n_ana:
-            raise ControlError(f"analog pin {pin} out of range (board has {self._n_ana})")
+        check_pin("analog", pin, self._n_ana)
 
     def set_digital(self, pin: int, value: bool) -> None:
         self._dpin(pin)
