@@ -87,6 +87,10 @@ def make_mission(
         "sync_timeout_ms": sync_timeout_ms,
         "transport": {"lowlatency": lowlatency},
         "clock": {"exchanges": 50, "resync_s": 0},
+        # Health is on by default; a bench mission sizes its regions to the
+        # byte and compares with raw transports, so it runs without (its
+        # cost is bench.health's to measure).
+        "health": None,
         "nodes": nodes,
         "regions": regions,
     }
