@@ -52,6 +52,20 @@ def _clear_error(r: subprocess.CompletedProcess[str], code: int, *phrases: str) 
         assert p in r.stderr, (p, r.stderr)
 
 
+def _up_minimal(*args: str, env: dict[str, str] | None = None) -> subprocess.Popen[str]:
+    """`up configs/minimal.yaml --free-ports --no-realtime --quiet ARGS`, its
+    output piped (the caller ends it)."""
+    return subprocess.Popen(
+        [sys.executable, "-m", "zplatform", "up", "configs/minimal.yaml", "--free-ports",
+         "--no-realtime", "--quiet", *args],
+        cwd=ROOT,
+        env=env if env is not None else dict(os.environ, PYTHONUNBUFFERED="1"),
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )  # fmt: skip
+
+
 def _wait_until(pred: Callable[[], bool], timeout_s: float, what: str) -> None:
     deadline = time.monotonic() + timeout_s
     while time.monotonic() < deadline:
@@ -370,27 +384,7 @@ def test_up_registers_is_found_by_name_logs_events_and_cleans_up(
     log = tmp_path / "tm.csv"
     events = tmp_path / "tm.events.jsonl"
     env = dict(os.environ, TMPDIR=str(scratch), PYTHONUNBUFFERED="1")
-    up = subprocess.Popen(
-        [
-            sys.executable,
-            "-m",
-            "zplatform",
-            "up",
-            "configs/minimal.yaml",
-            "--free-ports",
-            "--no-realtime",
-            "--quiet",
-            "--log",
-            str(log),
-            "--commands",
-            str(script),
-        ],
-        cwd=ROOT,
-        env=env,
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-    )
+    up = _up_minimal("--log", str(log), "--commands", str(script), env=env)
     try:
         entry = runtime / "minimal.json"
         _wait_until(lambda: entry.exists() and b'"nodes":{"' in entry.read_bytes(), 30, "entry")
@@ -432,27 +426,10 @@ def test_up_ends_when_the_ground_node_playing_its_script_dies(
     fly on with no end)."""
     script = tmp_path / "late.commands"
     script.write_text("at 600 launch\n")  # never reached: the GN dies first
-    up = subprocess.Popen(
-        [
-            sys.executable,
-            "-m",
-            "zplatform",
-            "up",
-            "configs/minimal.yaml",
-            "--free-ports",
-            "--no-realtime",
-            "--quiet",
-            "--commands",
-            str(script),
-        ],
-        cwd=ROOT,
-        env=dict(os.environ, PYTHONUNBUFFERED="1"),
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-    )
+    up = _up_minimal("--commands", str(script))
     try:
         entry = runtime / "minimal.json"
+
         def gn_pid() -> int | None:
             try:
                 return json.loads(entry.read_text()).get("nodes", {}).get("gn")
