@@ -280,14 +280,16 @@ def watch(
                 )
                 print(f"\nzplatform up: node {n} died (exit code {c}); {what}", file=sys.stderr)
                 if n == "gn" and end_after_script and w.script_done_at is None:
-                    # The run was to end after the ground node's script: with
-                    # the player gone it never would (before, `up` flew on
-                    # without an end).
+                    # The run was to end after the ground node's script, which
+                    # now never ends. The vehicle does not depend on the ground:
+                    # it flies on (stopping `up` would stop the control node
+                    # mid-flight), and the operator is told how the run ends.
+                    end_after_script = False
                     print(
-                        "zplatform up: the ground node played the command script; stopping",
+                        "zplatform up: the ground node was playing the command script: the "
+                        "rest of it is not sent; the vehicle flies on; Ctrl-C ends the run",
                         file=sys.stderr,
                     )
-                    return w
             got = link.next(0.2)
             if got is not None:
                 rate.add_snapshot(link.dv)
