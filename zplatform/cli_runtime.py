@@ -76,7 +76,11 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
 
     p = mission_verb(sub, "node", help="run one node of a mission (multi-host deployments)")
     p.add_argument("name", help="cn, dnX, gn, or cn_b (a standby mission's second control node)")
-    _duration(p, "CN: seconds of loops; GN: seconds of logging")
+    _duration(
+        p,
+        "CN: seconds of loops (for both control nodes of a standby mission: the run ends "
+        "at that loop whichever commands); GN: seconds of logging",
+    )
     p.add_argument(
         "--log", metavar="CSV", help="GN: telemetry CSV; events beside it (NAME.events.jsonl)"
     )

@@ -506,6 +506,10 @@ def run_up(
         spawn["cn"] = cn
         if mission.standby is not None:  # it follows cn, and takes over if cn dies
             sb = ["node", path, mission.standby, *common]
+            if duration_s is not None:
+                # The run's end is the vehicle's: after a takeover the standby
+                # ends it at the same loop (without it, `up` never ended).
+                sb += ["--duration", str(duration_s)]
             if record:  # what it records, once it commands, next to cn's recording
                 sb += ["--record", str(Path(record).resolve() / mission.standby)]
             spawn[mission.standby] = sb

@@ -127,6 +127,38 @@ def test_a_stopped_commander_is_replaced_and_stands_down_when_continued(
     _one_term_per_loop(c, root, {term, term + 1})
 
 
+def test_a_run_with_an_end_ends_there_after_a_takeover(tmp_path: Path) -> None:
+    """Both control nodes run with ``--duration`` (as ``up --duration`` runs
+    them): the commander stopped for a second is replaced, and the run
+    still ends at its planned loop: the new commander flags it final and
+    exits, and the node that stood down stops following there and exits
+    (before, neither ever ended and ``up --duration`` hung)."""
+    loops = 1500
+    with Cluster(FLIGHT, tmp_path) as c:
+        for n in NODES:
+            extra = ("--duration", str(loops / c.mission.loop_hz)) if n in ("cn", "cn_b") else ()
+            c.spawn(n, *extra)
+        commander, term = _ready(c)
+        assert int(c.tm.get("cn_loop")) < loops // 2, "the run is too near its end to fault"
+        p = c.procs[commander]
+        os.kill(p.pid, signal.SIGSTOP)
+        try:
+            c.wait_for(lambda dv: int(dv.get("cn_term")) > term, 30, "a new term in command")
+        finally:
+            os.kill(p.pid, signal.SIGCONT)
+        seen = 0
+        deadline = time.monotonic() + 120.0  # generous: a busy host
+        while c.procs["cn"].poll() is None or c.procs["cn_b"].poll() is None:
+            if c.rx.next(0.2) is not None:
+                seen = max(seen, int(c.tm.get("cn_loop")))
+            assert seen <= loops, f"loop {seen} after the run's last, {loops}"
+            assert time.monotonic() < deadline, "the control nodes did not end the run"
+        assert c.procs["cn"].returncode == 0, c.log("cn")[-3000:]
+        assert c.procs["cn_b"].returncode == 0, c.log("cn_b")[-3000:]
+        assert seen > loops // 2
+        assert "stands down" in c.log(commander), c.log(commander)[-2000:]
+
+
 def test_a_control_node_restarted_in_flight_resumes_and_the_flight_deploys(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:

@@ -7,7 +7,9 @@ start beyond the mission bound) and loads the parameter file
 on absolute deadlines (:meth:`ControlNode.run`): ``begin`` at the loop's
 scheduled start, sync every DN, ``finish`` with at most one ground frame,
 publish the telemetry every Nth loop. The run's last loop is flagged final
-(the last of ``max_loops``, or one more loop after a stop was asked for).
+(the last of ``max_loops``, or one more loop after a stop was asked for);
+a run's end is a loop of the vehicle's schedule, so after a takeover the
+new commander ends the run there and a node that stood down stops there.
 
 Contract: initialisation errors raise :class:`~zplatform.errors.NodeError`
 (the CLI prints and exits non-zero); errors after start are counted in the
@@ -220,6 +222,11 @@ class ControlNode:
         self._next_recorder: Recorder | None = None  # a standby's --record, not started
         self._stopped_cleanly = False
         self._last_step: int | None = None  # self.loops after the run's planned last loop
+        # The run's last loop in the vehicle's numbering (the schedule's), so
+        # a run with an end ends whichever control node then commands: after
+        # a takeover the new commander ends it there, and a node that stood
+        # down stops following there (without it neither would ever end).
+        self._end_loop: int | None = None
         # Failover (zplatform.failover): the mirror out and in, the probes, the
         # other control node's liveliness, and the standby while not commanding.
         # Who commands, resumes, follows, stands down and takes over: the
@@ -581,7 +588,14 @@ class ControlNode:
         if self.loops == 0:
             self.first_loop_ns = t
         logic = self.logic
-        final = self.loops + 1 == self._last_step or self.stop.is_set()
+        if self.loops == 0 and self._last_step is not None and self._end_loop is None:
+            self._end_loop = loop + self._last_step - 1  # a commander from the start
+        end = self._end_loop
+        final = (
+            self.loops + 1 == self._last_step
+            or (end is not None and loop >= end)
+            or self.stop.is_set()
+        )
         standby = ready if self.redundant else None
         overrun = self.sync.sync(logic.begin(loop, t, final=final, standby=standby), logic)
         grounds = self._grounds
@@ -714,6 +728,11 @@ class ControlNode:
         self._serve_recorder()
         self.ns.announce()
         loop = max(self._take_at, sb.slot(self.clock.now_ns()) + 1)
+        if self._end_loop is not None and loop > self._end_loop:
+            log.info(
+                "%s does not take command: the run ended at loop %d", self.name, self._end_loop
+            )
+            return None
         logic = self.role.take(loop)
         rec, self._next_recorder = self._next_recorder, None
         if rec is not None:
@@ -770,6 +789,8 @@ class ControlNode:
         if self._saver is not None:
             self._saver.poll()  # a follower's save is its own: the result only logged
         slot = sb.slot(now)
+        if self._end_loop is not None and slot >= self._end_loop:
+            return False  # the run's last loop is over: nothing left to follow
         if self._ready_token is not None and sb.blind(slot):
             # Too old a mirror to take command from: not ready (the commander's
             # cn_standby_ready falls) until the next one comes.
@@ -826,6 +847,10 @@ class ControlNode:
         stop) is the run's final loop (module doc)."""
         nc = self.mission.nodes[self.name]
         self._last_step = None if max_loops is None else self.loops + max_loops
+        if max_loops is not None and self.standby is not None and self._end_loop is None:
+            # A standby from the start: ``max_loops`` are the run's, counted
+            # on the commander's schedule from its first loop.
+            self._end_loop = max_loops
         if realtime:
             realtime_setup(nc.priority, nc.cpu)
         self._loop_hb.beat()
