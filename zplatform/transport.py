@@ -1,22 +1,22 @@
-"""Zenoh transport: session config from the mission, the key space, readiness.
+"""Zenoh transport: session config, the key space, readiness, event publishing.
 
 Every node is a zenoh *peer*. Its ``zenoh.Config`` is built here from the
 mission alone (listen and connect endpoints, scouting, lease, low latency,
 shared memory), so the same file runs on one host with loopback endpoints or
-across hosts with real addresses. Tools that are not mission nodes (``tap``,
-``cmd``, ``log``) open a peer that listens nowhere and connects to *every*
-node's listen endpoints: zenoh peers do not forward for each other, so this
-fan-out is what lets a tap see keys put by any node. TLS and access control
+across hosts with real addresses. A tool that is no mission node (``tap``,
+``cmd``, ``log``) listens nowhere and connects to *every* node's endpoints:
+zenoh peers do not forward for each other. TLS and access control
 come from the deployment (:mod:`zplatform.deploy`), which :class:`NodeSession`
 finds itself: no verb opens an mTLS mission's session without one.
 
 Contract: :func:`zenoh_config` is pure; opening a :class:`NodeSession` blocks
 on zenoh and raises :class:`~zplatform.errors.TransportError` (or a deployment
-error) when it cannot. Readiness is explicit: each node declares a liveliness
-token on ``{vehicle}/{node}/alive`` and :func:`wait_for_nodes` blocks on a
-liveliness subscriber until the wanted nodes are alive (TransportError naming
-the missing ones at its timeout): nobody sleeps to wait for a peer.
-:meth:`NodeSession.close` waits at most :data:`SESSION_CLOSE_S`. See docs/architecture.md#zenoh.
+error) when it cannot; its close waits at most :data:`SESSION_CLOSE_S`.
+Readiness is explicit: each node declares a liveliness token on
+``{vehicle}/{node}/alive`` and :func:`wait_for_nodes` blocks on a liveliness
+subscriber until the wanted nodes are alive (TransportError naming the
+missing ones at its timeout): nobody sleeps to wait for a peer.
+:class:`EventPublisher` puts any node's events. See docs/architecture.md#zenoh.
 """
 
 from __future__ import annotations
@@ -31,7 +31,7 @@ import time
 from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import yaml
 import zenoh
@@ -39,11 +39,17 @@ import zenoh
 from .config import STANDBY, Mission, relocate_mission
 from .deploy import Deployment, check_tool_may_command, require_deployment, zenoh_settings
 from .errors import TransportError
+from .events import EventLog, Severity, encode_event
 from .handoff import Handoff
 from .keyspace import key_of
 from .messages import lowlatency_for
 
+if TYPE_CHECKING:
+    from .auth import Channel
+    from .recorder.writer import FlightRecorder
+
 __all__ = [
+    "EventPublisher",
     "KeySpace",
     "NodeSession",
     "apply_deployment",
@@ -318,6 +324,66 @@ class NodeSession:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+
+class EventPublisher:
+    """Publishes a node's events on ``{vehicle}/{node}/events``.
+
+    Call :meth:`flush` once per loop: it costs one int compare when nothing
+    was emitted, and events are rare (state changes, verdicts, failures).
+    Events are also written to the node's log (stderr) for the operator.
+    ``seal``: the node's ``events_<node>`` channel, which tags each record
+    (None: the mission does not authenticate). Given a ``recorder`` (the
+    node's flight recorder), each record is also kept on board, untagged:
+    the recorder's own checksums guard it there.
+    """
+
+    def __init__(
+        self,
+        session: zenoh.Session,
+        key: str,
+        events: EventLog,
+        seal: Channel | None,
+        recorder: FlightRecorder | None = None,
+    ) -> None:
+        self.events = events
+        self._seal = seal
+        self.recorder = recorder
+        # DROP: a subscriber on a stalled link must never block the loop
+        # that flushes events; each event is also in this node's own log.
+        self._pub = session.declare_publisher(key, congestion_control=zenoh.CongestionControl.DROP)
+        self._seen = 0
+
+    def flush(self) -> None:
+        if self.events.emitted == self._seen:
+            return
+        self._seen = self.events.emitted
+        seal = self._seal
+        rec = self.recorder
+        for e in self.events.drain():
+            record = encode_event(e)
+            self._pub.put(bytes(seal.seal(record)) if seal is not None else record)
+            if rec is not None:
+                rec.event(record)
+            _event_log.log(_LEVELS.get(e.severity, logging.INFO), "%s %s: %s", e.node, e.id, e.text)
+
+    def undeclare(self) -> None:
+        self.flush()
+        self._pub.undeclare()
+
+
+_event_log = logging.getLogger("zplatform.node")
+"""Where published events are also logged: the node's own log."""
+
+_LEVELS: dict[int, int] = {
+    Severity.DIAGNOSTIC: logging.DEBUG,
+    Severity.ACTIVITY_LO: logging.INFO,
+    Severity.ACTIVITY_HI: logging.INFO,
+    Severity.COMMAND: logging.INFO,
+    Severity.WARNING_LO: logging.WARNING,
+    Severity.WARNING_HI: logging.ERROR,
+    Severity.FATAL: logging.CRITICAL,
+}
 
 
 def wait_for_nodes(

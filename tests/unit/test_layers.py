@@ -12,7 +12,9 @@ re-exports the public API, is never a target of a module inside it).
 A second rule keeps the layers: the core (config, the sans-IO modules,
 boards, the world model, the records, logs, summaries and the flight
 recorder) never imports a process entry point, the CLI,
-a node runtime, the ground or the console.
+a node runtime, the ground or the console. And the two zenoh-facing sides
+stand apart: the ground never imports the vehicle nodes' runtime
+(``zplatform.node``); what both use lives below them (``zplatform.transport``).
 """
 
 from __future__ import annotations
@@ -180,3 +182,20 @@ def test_the_core_never_imports_a_layer_above_it() -> None:
         if _in(b, TOP) or b in TOP_MODULES
     )
     assert not upward, "the core imports a layer above it:\n" + "\n".join(upward)
+
+
+# Sides of the top layer that must not import each other: (importer, imported).
+APART = [("zplatform.ground", "zplatform.node")]
+
+
+def test_the_ground_never_imports_the_vehicle_nodes_runtime() -> None:
+    graph = import_graph()
+    across = sorted(
+        f"{a} -> {b}"
+        for side, other in APART
+        for a, targets in graph.items()
+        if _in(a, (side,))
+        for b in targets
+        if _in(b, (other,))
+    )
+    assert not across, "a side imports another it must not:\n" + "\n".join(across)

@@ -35,11 +35,10 @@ from ..errors import CommandError, TransportError
 from ..events import MAX_TEXT, Event
 from ..handoff import Mailbox, Waker
 from ..intake import TelemetryIntake
-from ..node.runtime import EventPublisher
 from ..queries import ask, replies
 from ..records import CommandOutcome, EventRecord
 from ..timebase import NodeClock
-from ..transport import NodeSession, is_matching
+from ..transport import EventPublisher, NodeSession, is_matching
 from ..uplink import ScriptCommand, validate_command
 from .logic import GroundLogic, default_max_age_ns
 

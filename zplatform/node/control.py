@@ -7,16 +7,14 @@ start beyond the mission bound) and loads the parameter file
 on absolute deadlines (:meth:`ControlNode.run`): ``begin`` at the loop's
 scheduled start, sync every DN, ``finish`` with at most one ground frame,
 publish the telemetry every Nth loop. The run's last loop is flagged final
-(the last of ``max_loops``, or one more loop after a stop was asked for);
-a run's end is a loop of the vehicle's schedule, so after a takeover the
-new commander ends the run there and a node that stood down stops there.
+(the last of ``max_loops``, or one more after a stop was asked for), a loop
+of the vehicle's schedule, whichever node commands (or stood down) by then.
 
 Contract: initialisation errors raise :class:`~zplatform.errors.NodeError`
 (the CLI prints and exits non-zero); errors after start are counted in the
 Data Vector and the loop goes on. The loop thread never blocks on disk: the
-loop recorder (``record``), parameter saves (a
-:class:`~zplatform.params.ParamSaver`) and the flight recorder write from
-threads of their own, as does the gap-fill server.
+loop recorder (``record``), parameter saves, the flight recorder and the
+gap-fill server run on threads of their own.
 
 Start-up, the last loop and what runs beside the loop: docs/architecture.md#drivers.
 """
@@ -67,10 +65,10 @@ from ..scheduler import GcGuard, PeriodicLoop
 from ..summary import CnSummary, LoopWork, cn_summary
 from ..sync import ControlSync, ProbeSync, SyncTrace, TapPublisher
 from ..timebase import NodeClock
-from ..transport import NodeSession, wait_for_nodes
+from ..transport import EventPublisher, NodeSession, wait_for_nodes
 from ..watchdog import Watchdog
 from .health import NodeHealth
-from .runtime import EventPublisher, StopFlag, realtime_setup
+from .runtime import StopFlag, realtime_setup
 
 __all__ = ["ControlNode", "run_control_node"]
 

@@ -43,10 +43,10 @@ from ..scheduler import GcGuard
 from ..summary import DnSummary, board_line, board_trouble
 from ..sync import DeviceSync, SyncTrace
 from ..timebase import NodeClock
-from ..transport import NodeSession, wait_for_nodes
+from ..transport import EventPublisher, NodeSession, wait_for_nodes
 from ..watchdog import Watchdog
 from .health import NodeHealth
-from .runtime import EventPublisher, StopFlag, realtime_setup
+from .runtime import StopFlag, realtime_setup
 
 __all__ = ["ClockTally", "DeviceNode", "run_device_node"]
 

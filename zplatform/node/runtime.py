@@ -1,4 +1,7 @@
-"""What every node main shares: stop signals, event publishing, RT set-up.
+"""What every node main shares: stop signals, RT set-up, logging.
+
+Event publishing, which the ground node shares too, is
+:class:`zplatform.transport.EventPublisher`.
 
 Kept apart from the per-node mains so each main reads as its loop.
 """
@@ -12,17 +15,11 @@ import sys
 import threading
 from types import FrameType
 
-import zenoh
-
-from ..auth import Channel
-from ..events import EventLog, Severity, encode_event
-from ..recorder.writer import FlightRecorder
 from ..scheduler import RealtimeStatus, setup_realtime
 
 __all__ = [
     "PARENT_ENV",
     "STOP_PIPE_ENV",
-    "EventPublisher",
     "StopFlag",
     "realtime_setup",
     "setup_logging",
@@ -89,63 +86,6 @@ class StopFlag:
 
     def set(self) -> None:
         self.event.set()
-
-
-class EventPublisher:
-    """Publishes a node's events on ``{vehicle}/{node}/events``.
-
-    Call :meth:`flush` once per loop: it costs one int compare when nothing
-    was emitted, and events are rare (state changes, verdicts, failures).
-    Events are also written to the node's log (stderr) for the operator.
-    ``seal``: the node's ``events_<node>`` channel, which tags each record
-    (None: the mission does not authenticate). Given a ``recorder`` (the
-    node's flight recorder), each record is also kept on board, untagged:
-    the recorder's own checksums guard it there.
-    """
-
-    def __init__(
-        self,
-        session: zenoh.Session,
-        key: str,
-        events: EventLog,
-        seal: Channel | None,
-        recorder: FlightRecorder | None = None,
-    ) -> None:
-        self.events = events
-        self._seal = seal
-        self.recorder = recorder
-        # DROP: a subscriber on a stalled link must never block the loop
-        # that flushes events; each event is also in this node's own log.
-        self._pub = session.declare_publisher(key, congestion_control=zenoh.CongestionControl.DROP)
-        self._seen = 0
-
-    def flush(self) -> None:
-        if self.events.emitted == self._seen:
-            return
-        self._seen = self.events.emitted
-        seal = self._seal
-        rec = self.recorder
-        for e in self.events.drain():
-            record = encode_event(e)
-            self._pub.put(bytes(seal.seal(record)) if seal is not None else record)
-            if rec is not None:
-                rec.event(record)
-            log.log(_LEVELS.get(e.severity, logging.INFO), "%s %s: %s", e.node, e.id, e.text)
-
-    def undeclare(self) -> None:
-        self.flush()
-        self._pub.undeclare()
-
-
-_LEVELS: dict[int, int] = {
-    Severity.DIAGNOSTIC: logging.DEBUG,
-    Severity.ACTIVITY_LO: logging.INFO,
-    Severity.ACTIVITY_HI: logging.INFO,
-    Severity.COMMAND: logging.INFO,
-    Severity.WARNING_LO: logging.WARNING,
-    Severity.WARNING_HI: logging.ERROR,
-    Severity.FATAL: logging.CRITICAL,
-}
 
 
 def realtime_setup(priority: int | None, cpu: int | None) -> RealtimeStatus:
