@@ -177,20 +177,13 @@ class BenchCluster:
         Returns the PeriodicLoop (its ``stats()`` and ``lateness_ns()``).
         """
         cn = self.cn
+        hook = None
         if on_loop is not None:
-            step = cn.step
 
-            def hooked(k: int, deadline_ns: int) -> bool:
-                go = step(k, deadline_ns)
-                on_loop(k + 1, cn)
-                return go
+            def hook(loop: int, deadline_ns: int, started_ns: int) -> None:
+                on_loop(loop, cn)
 
-            cn.step = hooked  # type: ignore[method-assign]
-        try:
-            return cn.run(max_loops=loops, realtime=self.realtime, record=record)
-        finally:
-            if on_loop is not None:
-                del cn.step
+        return cn.run(max_loops=loops, realtime=self.realtime, record=record, on_loop=hook)
 
     def close(self) -> None:
         try:

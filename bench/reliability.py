@@ -472,34 +472,28 @@ def run(minutes: float, priority: int) -> tuple[dict[str, Any], dict[str, dict[s
                     put_stamps = TmPutStamps(cn.clock.now_ns)
                     tm_put, tm_put_mono = put_stamps.ns, put_stamps.mono
                     trace.install(put_stamps)
-                    step = cn.step
                     got_list = cn.logic.replied
                     count = [0]
 
-                    def hooked(k: int, dl: int) -> bool:
+                    def after(loop: int, dl: int, m0: int) -> None:
                         i = count[0]
-                        m0 = time.monotonic_ns()
-                        go = step(k, dl)
                         if i < loops:
                             zp_late[i] = m0 - dl
                             zp_mono[i] = m0
-                            zp_loop[i] = cn.logic.loop
+                            zp_loop[i] = loop
                             zp_dur[i] = cn.sync.duration_ns
                             zp_got[i] = sum(1 << j for j, g in enumerate(got_list) if g)
                             half = dl + period // 2 - time.monotonic_ns()
                             if half > 0:
                                 time.sleep(half / 1e9)
-                            raw_dur[i], raw_got[i] = raw.step(cn.logic.loop)
+                            raw_dur[i], raw_got[i] = raw.step(loop)
                             count[0] = i + 1
-                        return go
 
-                    cn.step = hooked  # type: ignore[method-assign,assignment]
                     sampler.start()
                     t_start = time.monotonic()
                     try:
-                        cn.run(max_loops=loops, realtime=priority > 0)
+                        cn.run(max_loops=loops, realtime=priority > 0, on_loop=after)
                     finally:
-                        del cn.step
                         trace.uninstall()
                         sampler.stop()
                     wall_s = time.monotonic() - t_start

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import logging
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -270,6 +271,7 @@ class ControlNode:
         # summary: a preallocated ring, one int store per loop.
         self._work = np.zeros(1 << 16, dtype=np.int64)
         self._mono = time.monotonic_ns
+        self._on_loop: Callable[[int, int, int], None] | None = None  # run()'s hook
 
     # -- what a commander serves, opened when it commands ----------------------
     def _serve_clock(self) -> None:
@@ -654,6 +656,9 @@ class ControlNode:
         self.last_loop_ns = t
         if self.health is not None:
             self.health.kick()  # sample now, in the slack before the next loop
+        hook = self._on_loop
+        if hook is not None:
+            hook(loop, deadline_ns, m0)
         return not final
 
     # -- failover (a redundant mission) ------------------------------------------
@@ -838,11 +843,18 @@ class ControlNode:
         max_loops: int | None = None,
         realtime: bool = True,
         record: int = 0,
+        on_loop: Callable[[int, int, int], None] | None = None,
     ) -> PeriodicLoop:
         """Run the loop until stopped or ``max_loops``; returns the loop (stats).
 
         The last loop of the call (the ``max_loops``-th, or the one after a
-        stop) is the run's final loop (module doc)."""
+        stop) is the run's final loop (module doc). ``on_loop``: called on
+        the loop thread after each loop this node commands (not a
+        standby's beats, not a loop it stood down in) with ``(loop,
+        deadline_ns, started_ns)``: the loop's number, its scheduled start
+        and when it started (both ``time.monotonic_ns``). What it takes
+        delays the next loop (benchmarks use it; None costs one test a
+        loop)."""
         nc = self.mission.nodes[self.name]
         self._last_step = None if max_loops is None else self.loops + max_loops
         if max_loops is not None and self.standby is not None and self._end_loop is None:
@@ -864,6 +876,7 @@ class ControlNode:
             record=record,
         )
         gc_guard.freeze_after_startup()
+        self._on_loop = on_loop
         try:
             start: int | None = self._origin  # a resumed run's schedule
             while not self.stop.is_set():
@@ -878,6 +891,7 @@ class ControlNode:
                 if self.standby is None:  # the run ended; not a stand-down
                     break
         finally:
+            self._on_loop = None
             gc_guard.restore()
         self._stopped_cleanly = True
         return loop
