@@ -5,6 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from zplatform import DataVector, Layout, RegionCodec
+from zplatform.commands import CommandHandler, RequestNumber
 from zplatform.loop import DeviceLogic
 
 
@@ -16,6 +17,19 @@ def run_dn_loop(logic: DeviceLogic, loop: int, t_ns: int, cn: DataVector | None 
         cn = DataVector(Layout.for_node(logic.mission, "cn"))
     reply = logic.step(RegionCodec(cn, f"cn_to_{logic.node}").encode(loop, t_ns), t_ns)
     assert reply is not None and logic.triggered == loop, logic.reject_reason
+
+
+def step_request(ch: CommandHandler, dv: DataVector, new_request: bool, t_ns: int) -> None:
+    """One :meth:`CommandHandler.step` as the CN's loop makes it: the request
+    applied to ``dv``'s ``gn_to_cn`` region (``new_request``) is admitted
+    first (:meth:`CommandHandler.admit`: its run and number), then stepped."""
+    if new_request:
+        base = dv.layout.region("gn_to_cn").offset
+        data = memoryview(dv.buf)[base:]
+        number = RequestNumber(dv.layout)
+        epoch, seq = number.read(data)
+        new_request = ch.admit(epoch, seq, t_ns, number.command(data))
+    ch.step(new_request, t_ns)
 
 
 def igniter_bench_copy(dst_dir: Path) -> Path:

@@ -2,20 +2,20 @@
 
 Holds :class:`CommandHandler` (one request per ``gn_to_cn`` frame:
 ``gn_cmd``, ``gn_cmd_seq``, and for WRITE and PRM_SET ``gn_cmd_element`` and
-``gn_cmd_value``), the request-number rules (:func:`request_refusal`,
-:class:`RequestNumber`, shared with the CN's intake), and the load-time checks
-of the ``commands`` section (:func:`check_config`, :func:`writable_elements`, ...).
+``gn_cmd_value``), the request-number rule (:func:`request_refusal`, the
+one the CN's intake applies too, with :class:`RequestNumber`), and the
+load-time checks of the ``commands`` section (:func:`check_config`, ...).
 
-Contract: :meth:`CommandHandler.step` runs on the CN's loop thread, validates
-a new request (first failure wins: unknown, replay, the state's whitelist,
-ARM for hazardous commands, argument, the element's or parameter's states and
-bounds, a save still being written), writes the verdict to ``cn_cmd_seq`` /
+Contract: on the CN's loop thread, :meth:`CommandHandler.admit` refuses a
+request for another run or numbered not above the last (that rule), and
+:meth:`CommandHandler.step` validates the admitted one (first failure wins:
+unknown, the state's whitelist, ARM for hazardous commands, argument, the
+element's or parameter's states and bounds, a save still being written),
+writes the verdict to ``cn_cmd_seq`` /
 ``cn_cmd_status`` with a ``cmd_accepted`` or ``cmd_rejected`` event, and keeps
 an accepted command in ``cn_cmd`` until a transition consumes it or a state
 that does not handle it steps. Nothing in a request can make it raise.
-:meth:`CommandHandler.count_refused` counts requests refused without consuming
-a number (epoch, replay, auth) in ``cn_cmd_reject_*``.
-
+What the intake refused is counted by :meth:`CommandHandler.count_refused`.
 The rules: docs/architecture.md#safety-rules, docs/mission-reference.md#key-commands.
 """
 
@@ -49,6 +49,7 @@ __all__ = [
     "check_config",
     "protected_elements",
     "request_refusal",
+    "request_refusal_detail",
     "transition_readers",
     "writable_elements",
     "write_states",
@@ -65,19 +66,57 @@ even a forger walking them up by this much per request would need 2**44
 requests to exhaust them."""
 
 
-def request_refusal(epoch: int, seq: int, cn_epoch: int, last_seq: int) -> int:
-    """The refusal that consumes no number (module doc, checks 2 and the
-    epoch), for a request numbered ``seq`` for CN run ``epoch``, on a CN
-    whose run is ``cn_epoch`` and whose highest number seen is ``last_seq``:
-    ``REJECTED_EPOCH``, ``REJECTED_REPLAY``, or 0 when it may go on to be
-    validated. Pure and constant time: the CN's intake applies it to a
-    request as it arrives (so a replayed frame never displaces a fresh one),
-    :class:`CommandHandler` to the request it takes."""
+_OTHER_RUN, _NOT_ABOVE, _TOO_FAR = 1, 2, 3
+_STATUS_OF = (
+    0,
+    CommandStatus.REJECTED_EPOCH,
+    CommandStatus.REJECTED_REPLAY,
+    CommandStatus.REJECTED_REPLAY,
+)
+
+
+def _number_rule(epoch: int, seq: int, cn_epoch: int, last_seq: int) -> int:
+    """The request-number rule, the one place it is written: 0 (may go
+    on), or why not: another run, a number not above the last, or one too
+    far past it (:data:`SEQ_WINDOW`)."""
     if epoch != cn_epoch:
-        return CommandStatus.REJECTED_EPOCH
-    if seq <= last_seq or seq - last_seq > SEQ_WINDOW:
-        return CommandStatus.REJECTED_REPLAY
+        return _OTHER_RUN
+    if seq <= last_seq:
+        return _NOT_ABOVE
+    if seq - last_seq > SEQ_WINDOW:
+        return _TOO_FAR
     return 0
+
+
+def request_refusal(epoch: int, seq: int, cn_epoch: int, last_seq: int) -> int:
+    """The refusal that consumes no number (module doc), for a request
+    numbered ``seq`` for CN run ``epoch``, on a CN whose run is
+    ``cn_epoch`` and whose highest number seen is ``last_seq``:
+    ``REJECTED_EPOCH``, ``REJECTED_REPLAY``, or 0 when it may go on to be
+    validated. Pure, constant time, allocates nothing: the CN's intake
+    applies it to a request as it arrives (so a replayed frame never
+    displaces a fresh one), :meth:`CommandHandler.admit` to each request
+    the loop may take (:func:`request_refusal_detail` says why)."""
+    return _STATUS_OF[_number_rule(epoch, seq, cn_epoch, last_seq)]
+
+
+def request_refusal_detail(
+    epoch: int, seq: int, cn_epoch: int, last_seq: int
+) -> tuple[int, str] | None:
+    """:func:`request_refusal`'s status and the detail its event gives, or
+    None when the request may go on. Pure."""
+    why = _number_rule(epoch, seq, cn_epoch, last_seq)
+    if why == _OTHER_RUN:
+        detail = (
+            f"epoch {epoch} is not this control node's ({cn_epoch}): a request for an earlier run"
+        )
+    elif why == _NOT_ABOVE:
+        detail = f"number {seq} is not above the last one seen ({last_seq})"
+    elif why == _TOO_FAR:
+        detail = f"number {seq} jumps more than {SEQ_WINDOW} past the last one ({last_seq})"
+    else:
+        return None
+    return _STATUS_OF[why], detail
 
 
 class RequestNumber:
@@ -409,7 +448,6 @@ class CommandHandler:
         if self._has_ground:
             self._g_cmd = dv.handle("gn_cmd")
             self._g_seq = dv.handle("gn_cmd_seq")
-            self._g_epoch = dv.handle("gn_cmd_epoch")
             self._g_elem = dv.handle("gn_cmd_element")
             self._g_value = dv.handle("gn_cmd_value")
         states = self._h_state.spec.enum or ()
@@ -477,7 +515,8 @@ class CommandHandler:
     def step(self, new_request: bool, t_ns: int) -> None:
         """One loop, before the state machine's step: settle last loop's
         pending command (module doc), then handle the request the runtime
-        applied this loop (``new_request``). Never raises."""
+        applied this loop (``new_request``), one :meth:`admit` let through:
+        its number is not checked again here. Never raises."""
         if self._active:
             sm = self._sm
             # Pending until a transition consumed it, or a step left the state
@@ -491,10 +530,6 @@ class CommandHandler:
         cmd = self._g_cmd.get()
         seq = self._g_seq.get()
         name = CMD_NAMES[cmd] if cmd < _N_CMDS else f"code {cmd}"
-        refused = self.refusal(self._g_epoch.get(), seq)
-        if refused is not None:
-            self.reject(refused[0], t_ns, name=name, seq=seq, detail=refused[1])
-            return
         self._last_seq = seq
         status, detail = self._validate(cmd, seq, t_ns)
         self._h_seq.set(seq)
@@ -550,21 +585,21 @@ class CommandHandler:
     def refusal(self, epoch: int, seq: int) -> tuple[int, str] | None:
         """``(status, detail)`` when a request numbered ``seq`` for CN run
         ``epoch`` is refused without consuming a number
-        (:func:`request_refusal`: epoch, then number), else None. Changes nothing."""
-        cn_epoch = self._h_epoch.get()
-        status = request_refusal(epoch, seq, cn_epoch, self._last_seq)
-        if status == CommandStatus.REJECTED_EPOCH:
-            return status, (
-                f"epoch {epoch} is not this control node's ({cn_epoch}): a request for an "
-                "earlier run"
-            )
-        if status == CommandStatus.REJECTED_REPLAY:
-            if seq <= self._last_seq:
-                return status, f"number {seq} is not above the last one seen ({self._last_seq})"
-            return status, (
-                f"number {seq} jumps more than {SEQ_WINDOW} past the last one ({self._last_seq})"
-            )
-        return None
+        (:func:`request_refusal_detail`: epoch, then number), else None.
+        Changes nothing."""
+        return request_refusal_detail(epoch, seq, self._h_epoch.get(), self._last_seq)
+
+    def admit(self, epoch: int, seq: int, t_ns: int, name: str = "request") -> bool:
+        """Whether the request ``name`` numbered ``seq`` for CN run ``epoch``
+        may be taken (:meth:`refusal`); when not, it is rejected now
+        (:meth:`reject`: counted, evented, no number consumed). The runtime
+        admits every request frame before it picks the one to apply
+        (:meth:`step`'s ``new_request``). Never raises."""
+        refused = self.refusal(epoch, seq)
+        if refused is None:
+            return True
+        self.reject(refused[0], t_ns, name=name, seq=seq, detail=refused[1])
+        return False
 
     def _validate(self, cmd: int, seq: int, t_ns: int) -> tuple[int, str]:
         """``(status, detail)``; performs the command when it is accepted."""

@@ -503,7 +503,7 @@ class ControlLogic:
     def _take_request(self, grounds: Sequence[bytes | bytearray | memoryview]) -> bool:
         """Check every request frame, refuse the ones that cannot be taken
         (a bad tag; a request for another CN run or a number not above the
-        last seen: :meth:`CommandHandler.refusal`, counted as rejects that
+        last seen: :meth:`CommandHandler.admit`, counted as rejects that
         consume no number) *before* choosing, then apply the valid one with
         the highest number: a replayed frame never displaces a fresh one.
         Returns whether one was applied."""
@@ -523,10 +523,7 @@ class ControlLogic:
                 self._bad_frame("the ground", str(exc))
                 continue
             epoch, seq = self._number.read(frame.data)
-            refused = self.commands.refusal(epoch, seq)
-            if refused is not None:
-                name = self._number.command(frame.data)
-                self.commands.reject(refused[0], self.t_ns, name=name, seq=seq, detail=refused[1])
+            if not self.commands.admit(epoch, seq, self.t_ns, self._number.command(frame.data)):
                 continue
             valid += 1
             if seq > best_seq:

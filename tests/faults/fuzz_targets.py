@@ -67,6 +67,8 @@ with atheris.instrument_imports(include=["zplatform"], exclude=_NOT_FUZZED):
     from zplatform.mission import load_mission
     from zplatform.statemachine import StateMachine
 
+from tests.drive import step_request  # noqa: E402 (after the instrumented imports)
+
 MISSION = load_mission(Path(__file__).resolve().parents[2] / "configs" / "led_test.yaml")
 LAYOUT = Layout.for_node(MISSION, "cn")
 REGIONS = list(LAYOUT.regions)
@@ -141,7 +143,7 @@ def command_target(data: bytes) -> None:
         except CodecError:
             applied = False
         rejects = int(dv.get("cn_cmd_rejects"))
-        ch.step(applied, t)
+        step_request(ch, dv, applied, t)
         sm.step(t)
         status = int(dv.get("cn_cmd_status"))
         assert 0 <= status < len(CommandStatus), status

@@ -5,6 +5,7 @@ from __future__ import annotations
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
+from tests.drive import step_request
 from tests.property.strategies import LoopInput, loop_inputs, state_machine_missions
 from zplatform import DataVector, Layout, decode_mission
 from zplatform.commands import CommandHandler, CommandStatus
@@ -40,7 +41,7 @@ def test_random_state_machines_stay_in_their_states_and_never_raise(
             dv.set("gn_cmd_seq", min(seq, 0xFFFF_FFFF))
             dv.set("gn_cmd_element", idx)
             dv.set("gn_cmd_value", value)
-        ch.step(cmd is not None, t)
+        step_request(ch, dv, cmd is not None, t)
         sm.step(t)
         assert sm.state in states
         assert dv.get_name("cn_state") == sm.state
@@ -86,7 +87,7 @@ def test_command_handler_never_raises_on_any_request_bytes(frames: list[bytes]) 
     for frame in frames:
         dv.write_region("gn_to_cn", frame)
         rejects = dv.get("cn_cmd_rejects")
-        ch.step(True, t)
+        step_request(ch, dv, True, t)
         sm.step(t)
         assert 0 <= dv.get("cn_cmd_status") < len(CommandStatus)
         if dv.get("cn_cmd_rejects") == rejects:

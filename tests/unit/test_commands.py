@@ -9,6 +9,7 @@ import textwrap
 
 import pytest
 
+from tests.drive import step_request
 from zplatform import DataVector, Layout, decode_mission
 from zplatform.commands import (
     ARM_WINDOW_NS,
@@ -97,7 +98,7 @@ class Rig:
 
     def loop(self, new: bool = False) -> str:
         rejects = self.dv.get("cn_cmd_rejects")
-        self.ch.step(new, self.t)
+        step_request(self.ch, self.dv, new, self.t)
         if self.sm is not None:
             self.sm.step(self.t)
         self.t += PERIOD

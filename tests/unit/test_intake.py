@@ -18,7 +18,12 @@ from tests.payload import Bytes
 from zplatform.auth import KEY_ENV, TAG_LEN, KeySet, channel
 from zplatform.codec import decode_frame, encode_frame
 from zplatform.codes import CommandStatus
-from zplatform.commands import SEQ_WINDOW, request_refusal
+from zplatform.commands import (
+    SEQ_WINDOW,
+    CommandHandler,
+    request_refusal,
+    request_refusal_detail,
+)
 from zplatform.fencing import ASK, ask_frame, new_nonce
 from zplatform.handoff import Waker
 from zplatform.intake import (
@@ -132,6 +137,72 @@ def test_request_refusal_is_the_command_handlers_rule() -> None:
         cn.commands._last_seq = last
         got = cn.commands.refusal(epoch, seq)
         assert (got[0] if got else 0) == request_refusal(epoch, seq, 7, last), (epoch, seq, last)
+
+
+@pytest.mark.parametrize(
+    ("epoch", "seq", "last", "status", "detail"),
+    [
+        (7, 1, 0, 0, None),  # the first number: any above 0
+        (7, 0, 0, "REJECTED_REPLAY", "number 0 is not above the last one seen (0)"),
+        (7, 6, 5, 0, None),
+        (7, 5, 5, "REJECTED_REPLAY", "number 5 is not above the last one seen (5)"),
+        (7, 4, 5, "REJECTED_REPLAY", "number 4 is not above the last one seen (5)"),
+        (7, 5 + SEQ_WINDOW, 5, 0, None),  # the longest jump allowed
+        (
+            7,
+            6 + SEQ_WINDOW,
+            5,
+            "REJECTED_REPLAY",
+            f"number {6 + SEQ_WINDOW} jumps more than {SEQ_WINDOW} past the last one (5)",
+        ),
+        (
+            8,
+            6,
+            5,
+            "REJECTED_EPOCH",
+            "epoch 8 is not this control node's (7): a request for an earlier run",
+        ),
+        (8, 4, 5, "REJECTED_EPOCH", None),  # another run first, whatever its number
+    ],
+)
+def test_the_request_number_rule_table(
+    epoch: int, seq: int, last: int, status: str | int, detail: str | None
+) -> None:
+    """The one request-number rule (zplatform.commands.request_refusal) on a
+    CN of run 7: its status, and the detail its refusal event gives."""
+    want = CommandStatus[status] if isinstance(status, str) else status
+    assert request_refusal(epoch, seq, 7, last) == want
+    got = request_refusal_detail(epoch, seq, 7, last)
+    if not want:
+        assert got is None
+    else:
+        assert got is not None and got[0] == want
+        if detail is not None:
+            assert got[1] == detail
+
+
+def test_the_loop_checks_a_requests_number_once(monkeypatch: pytest.MonkeyPatch) -> None:
+    """One request frame, one application of the number rule: the loop
+    admits it (CommandHandler.admit) and the command handler's step does
+    not check it again (it did, once more, for the frame the loop chose)."""
+    calls: list[tuple[int, int]] = []
+    rule = CommandHandler.refusal
+
+    def counted(self: CommandHandler, epoch: int, seq: int) -> tuple[int, str] | None:
+        calls.append((epoch, seq))
+        return rule(self, epoch, seq)
+
+    monkeypatch.setattr(CommandHandler, "refusal", counted)
+    cn = ControlLogic(M, keys=KEYS, epoch=77)
+    up = Uplink(M, KEYS)
+    cn.begin(1, T0)
+    cn.finish([bytes(up.frame("NOOP", 1, 0, 0.0, 0, 77))])
+    assert cn.dv.get_name("cn_cmd_status") == "ACCEPTED" and cn.dv.get("cn_cmd_seq") == 1
+    assert calls == [(77, 1)]
+    cn.begin(2, T0 + PERIOD)
+    cn.finish([bytes(up.frame("NOOP", 1, 0, 0.0, 0, 77))])  # a replay: refused once
+    assert calls == [(77, 1), (77, 1)]
+    assert cn.dv.get("cn_cmd_rejects") == 1 and cn.dv.get("cn_cmd_seq") == 1
 
 
 def test_a_replayed_request_never_reaches_the_inbox() -> None:

@@ -9,6 +9,7 @@ from typing import Any
 
 import pytest
 
+from tests.drive import step_request
 from zplatform import DataVector, Layout, decode_mission
 from zplatform.commands import CommandHandler
 from zplatform.config import Mission, StateConfig
@@ -80,7 +81,7 @@ class Rig:
                 assert command is not None
                 self.seq += 1
                 fill_request(self.dv, command, self.seq)
-            self.ch.step(new, self.t)
+            step_request(self.ch, self.dv, new, self.t)
             self.sm.step(self.t)
             self.t += PERIOD
 
