@@ -9,6 +9,7 @@ node did not accept.
 
 from __future__ import annotations
 
+import types
 from pathlib import Path
 
 import pytest
@@ -129,6 +130,54 @@ def test_a_frame_without_the_telemetry_key_is_bad_and_never_applied() -> None:
     assert int(v.ground.dv.get("cn_loop")) == 0
     assert "bad authentication tag" in v.ground.last_refusal
     assert _ids(v.ground) == ["tm_refused"]  # the first of its kind; the rest counted
+
+
+def test_a_snapshot_the_intake_verified_is_only_stripped_of_its_tag() -> None:
+    """``authentic=True``: the driver's intake checked this payload's tag, so
+    the logic does not compute it again (a tag it would refuse shows that it
+    was not); without it, the same payload is refused for its tag."""
+    v = Vehicle()
+    frame = bytearray(v.step(tm=False))
+    frame[-1] ^= 0xFF  # a tag that does not verify
+    g = GroundLogic(LED, keys=_keys(LED, "gn"))
+    assert not g.on_telemetry(frame, v.t + LATENCY)
+    assert g.counters.bad == 1 and "bad authentication tag" in g.last_refusal
+    assert g.on_telemetry(frame, v.t + LATENCY, authentic=True)
+    assert g.counters.received == 1 and int(g.dv.get("cn_loop")) == 1
+
+
+def test_the_ground_link_checks_a_snapshots_tag_once(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A snapshot through the ground's zenoh link: its tag is computed once,
+    by the intake as it arrives (it was computed again by the logic)."""
+    from tests.payload import Bytes
+    from zplatform.auth import Channel
+    from zplatform.ground.link import GroundLink
+    from zplatform.transport import rewrite_endpoints
+
+    rewrite_endpoints(CONFIGS / "led_test.yaml", tmp_path / "led.yaml")
+    m = load_mission(tmp_path / "led.yaml")
+    link = GroundLink(m, keys=_keys(m, "gn"), events=False)
+    try:
+        cn = ControlLogic(m, keys=_keys(m, "cn"), epoch=link.clock.now_ns())
+        cn.begin(1, link.clock.now_ns())
+        frame = bytes(cn.finish([]) or b"")
+        opened: list[str] = []
+        real_open = Channel.open
+
+        def counted(self: Channel, payload: bytes | bytearray | memoryview) -> memoryview:
+            opened.append(self.name)
+            return real_open(self, payload)
+
+        monkeypatch.setattr(Channel, "open", counted)
+        sample = types.SimpleNamespace(payload=Bytes(frame))
+        link._on_telemetry(sample)  # type: ignore[arg-type]  # as zenoh's thread does
+        assert link.next(0) is not None
+        assert link.logic.counters.received == 1
+        assert opened == ["telemetry"]
+    finally:
+        link.close()
 
 
 def test_an_oversized_frame_is_refused_by_its_size_first() -> None:

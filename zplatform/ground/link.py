@@ -215,7 +215,10 @@ class GroundLink:
         logic; True when a snapshot was accepted."""
         logic = self.logic
         if kind == _TM:
-            ok = logic.on_telemetry(payload, rx, can_send=self.cn_listening)
+            # Its tag was checked on arrival (the intake): not again.
+            ok = logic.on_telemetry(
+                payload, rx, can_send=self.cn_listening, authentic=self._tm.authenticates
+            )
             self._after(rx)
             return ok
         rec = logic.on_event_bytes(key, payload, rx)

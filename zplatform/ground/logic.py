@@ -359,21 +359,35 @@ class GroundLogic:
         )
 
     def on_telemetry(
-        self, payload: bytes | bytearray | memoryview, rx_ns: int, *, can_send: bool = True
+        self,
+        payload: bytes | bytearray | memoryview,
+        rx_ns: int,
+        *,
+        can_send: bool = True,
+        authentic: bool = False,
     ) -> bool:
         """Check one telemetry frame received at ``rx_ns`` (module doc);
         returns whether it was accepted into :attr:`dv`. On acceptance,
         verdicts are read, the script player runs, and requests may be
         queued for :meth:`take_requests`. ``can_send``: the CN listens for
-        requests now (else they wait). Never raises for the payload."""
+        requests now (else they wait). Never raises for the payload.
+
+        ``authentic``: the caller checked this very payload's tag with the
+        ground's telemetry key already (the link's intake,
+        :class:`~zplatform.intake.TelemetryIntake`, as it arrived), so the
+        tag is only stripped (:meth:`~zplatform.auth.Channel.strip`), not
+        computed again: once per snapshot on the ground, as on a device
+        node (:meth:`zplatform.loop.DeviceLogic.trigger`). Without it (the
+        default: the lockstep runner, a replay) the tag is checked here."""
         if len(payload) > self._max_len:
             return self._reject_bad(
                 "size",
                 f"{len(payload)} bytes, longer than any telemetry frame ({self._max_len})",
                 rx_ns,
             )
+        ch = self._open
         try:
-            body = self._open.open(payload) if self._open is not None else payload
+            body = payload if ch is None else ch.strip(payload) if authentic else ch.open(payload)
             frame = self._codec.check(body)
         except AuthError as exc:
             return self._reject_bad("tag", str(exc), rx_ns)
