@@ -25,7 +25,7 @@ import re
 from collections.abc import Sequence
 from decimal import Decimal, InvalidOperation
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import msgspec
 
@@ -36,6 +36,7 @@ from .datavector import DataVector, Layout
 from .errors import CommandError, DataVectorError
 
 __all__ = [
+    "CheckedCommand",
     "ScriptCommand",
     "Uplink",
     "element_index",
@@ -45,6 +46,7 @@ __all__ = [
     "resolve_param",
     "resolve_write",
     "validate_command",
+    "validate_words",
 ]
 
 _COMMANDS = tuple(c.lower() for c in CMD_NAMES if c != "NONE")
@@ -212,14 +214,29 @@ def resolve_param(mission: Mission, name: str, value: str, where: str) -> tuple[
     return index, num
 
 
+class CheckedCommand(NamedTuple):
+    """An operator command :func:`validate_command` let through, as it goes
+    into ``gn_to_cn``: the ground takes it as checked
+    (:meth:`zplatform.ground.logic.GroundLogic.submit`), never again."""
+
+    command: str
+    """The command's name, upper case."""
+    element: int
+    """``gn_cmd_element``: the element's or parameter's index (0 without one)."""
+    value: float
+    """``gn_cmd_value`` (0.0 without one)."""
+
+
 def validate_command(
     mission: Mission,
     command: str,
     element: str | None = None,
     value: str | None = None,
     where: str | None = None,
-) -> tuple[str, int, float]:
-    """Check an operator command against the mission before anything is sent.
+) -> CheckedCommand:
+    """Check an operator command against the mission before anything is sent:
+    the ground's one place for it (the tools, the console, the script
+    player and the ground logic all call it, each command once).
 
     Returns ``(COMMAND, element index, value)`` as they go into ``gn_to_cn``.
     Raises CommandError for an unknown command, element or parameter, or a
@@ -239,14 +256,26 @@ def validate_command(
             raise CommandError(f"{command} takes no arguments")
         if cmd == "PRM_SAVE" and not mission.params:
             raise CommandError(f"mission {mission.mission!r} has no parameters to save")
-        return cmd, 0, 0.0
+        return CheckedCommand(cmd, 0, 0.0)
     if element is None or value is None:
         raise CommandError(f"{cmd.lower()} needs {args}")
     if cmd == "PRM_SET":
         index, num = resolve_param(mission, element, value, where)
     else:
         index, num = resolve_write(Layout.for_node(mission, "cn"), element, value, where)
-    return cmd, index, num
+    return CheckedCommand(cmd, index, num)
+
+
+def validate_words(
+    mission: Mission, command: str, args: Sequence[str], where: str | None = None
+) -> CheckedCommand:
+    """:func:`validate_command` for a command as an operator types it: its
+    name and at most two words (ELEMENT VALUE, PARAMETER VALUE); more raise
+    CommandError."""
+    if len(args) > 2:
+        raise CommandError(f"{command} takes at most ELEMENT VALUE, got {list(args)}")
+    element = args[0] if args else None
+    return validate_command(mission, command, element, args[1] if len(args) > 1 else None, where)
 
 
 def fill_request(

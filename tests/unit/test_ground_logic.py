@@ -11,11 +11,13 @@ from __future__ import annotations
 
 import types
 from pathlib import Path
+from typing import Any
 
 import pytest
 
 from zplatform import load_mission
 from zplatform.auth import KeySet
+from zplatform.errors import CommandError
 from zplatform.events import EV, Event, Severity
 from zplatform.ground.logic import (
     REASON_GRACE_NS,
@@ -27,7 +29,7 @@ from zplatform.ground.logic import (
 from zplatform.ground.status import RateMeter, status_line
 from zplatform.loop import ControlLogic
 from zplatform.records import format_outcome
-from zplatform.uplink import Uplink, parse_commands
+from zplatform.uplink import Uplink, parse_commands, validate_words
 
 CONFIGS = Path(__file__).resolve().parents[2] / "configs"
 LED = load_mission(CONFIGS / "led_test.yaml")
@@ -493,6 +495,54 @@ def test_the_script_player_says_when_the_script_is_done() -> None:
         ("LAUNCH", "ACCEPTED"),
     ]
     assert "script_done" in _ids(g)
+
+
+def _count_checks(monkeypatch: pytest.MonkeyPatch) -> list[str]:
+    """Every element a ground check resolves from now on (the heart of
+    zplatform.uplink.validate_command for a WRITE), in order."""
+    import zplatform.uplink as uplink
+
+    seen: list[str] = []
+    real = uplink.resolve_write
+
+    def counted(layout: Any, element: str, value: str, where: str) -> tuple[int, float]:
+        seen.append(element)
+        return real(layout, element, value, where)
+
+    monkeypatch.setattr(uplink, "resolve_write", counted)
+    return seen
+
+
+def test_a_scripted_command_is_checked_once(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The player checks each line against the mission when it is built and
+    hands the checked command to the logic, which does not check it again
+    (it did, a second time, as it was played)."""
+    checks = _count_checks(monkeypatch)
+    script = parse_commands("at 0.02 write led_a_cmd true\n")
+    g = GroundLogic(LED, keys=_keys(LED, "gn"), script=script)
+    assert checks == ["led_a_cmd"]
+    v = Vehicle(LED, ground=g)
+    v.run(10)
+    g.finish(v.t)
+    assert [(o.command, o.status) for o in g.outcomes] == [("WRITE", "ACCEPTED")]
+    assert int(g.dv.get("led_a_cmd")) == 1
+    assert checks == ["led_a_cmd"]
+
+
+def test_a_checked_command_is_submitted_unchecked_and_a_named_one_checked(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    checks = _count_checks(monkeypatch)
+    v = Vehicle()
+    v.run(2)
+    checked = validate_words(LED, "write", ["led_a_cmd", "true"])
+    assert checks == ["led_a_cmd"]
+    done = v.until_done(v.ground.submit(checked, now_ns=v.t + LATENCY))
+    assert [o.status for o in done] == ["ACCEPTED"] and checks == ["led_a_cmd"]
+    done = v.until_done(v.command("write", "led_a_cmd", "false"))
+    assert [o.status for o in done] == ["ACCEPTED"] and checks == ["led_a_cmd"] * 2
+    with pytest.raises(CommandError, match=r"write takes at most ELEMENT VALUE, got \["):
+        validate_words(LED, "write", ["led_a_cmd", "true", "now"])
 
 
 # -- status -------------------------------------------------------------------------

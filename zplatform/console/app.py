@@ -265,7 +265,7 @@ class ConsoleApp(App[int]):
     def run_command(self, line: str) -> None:
         """One command line: a console command, or a command for the vehicle."""
         from ..ground.logic import needs_arm
-        from ..uplink import validate_command
+        from ..uplink import validate_words
 
         words = line.split()
         head = words[0].lower()
@@ -274,17 +274,12 @@ class ConsoleApp(App[int]):
             if head in LOCAL_COMMANDS:
                 self._local(head, args)
                 return
-            if len(args) > 2:
-                raise CommandError(f"{head} takes at most ELEMENT VALUE")
-            element = args[0] if args else None
-            cmd, _, _ = validate_command(
-                self.model.mission, head, element, args[1] if len(args) > 1 else None
-            )
+            checked = validate_words(self.model.mission, head, args)
         except (CommandError, DataVectorError) as exc:
             self._note(f"refused: {exc}", "WARNING_HI")
             return
-        shown = " ".join([cmd, *args])
-        why = needs_arm(self.model.mission, cmd, element)
+        shown = " ".join([checked.command, *args])
+        why = needs_arm(self.model.mission, checked.command, args[0] if args else None)
         if why is not None:
 
             def answered(yes: bool | None) -> None:
@@ -294,7 +289,7 @@ class ConsoleApp(App[int]):
                     self._note(f"no link: {shown} not sent", "WARNING_HI")
                 else:
                     self._note(f"sending ARM then {shown}", "COMMAND")
-                    self.link.send(head, args, True)
+                    self.link.send(checked, shown, True)
 
             self.push_screen(ConfirmScreen(f"{why}. Send ARM, then {shown}?"), answered)
             return
@@ -302,7 +297,7 @@ class ConsoleApp(App[int]):
             self._note(f"no link: {shown} not sent", "WARNING_HI")
             return
         self._note(f"sending {shown}", "COMMAND")
-        self.link.send(head, args, False)
+        self.link.send(checked, shown, False)
 
     def _local(self, head: str, args: list[str]) -> None:
         m = self.model

@@ -26,6 +26,7 @@ from collections.abc import Callable
 from ..errors import ZPlatformError
 from ..records import EventRecord
 from ..timebase import NodeClock
+from ..uplink import CheckedCommand
 from .model import ConsoleModel
 
 __all__ = ["Link"]
@@ -48,7 +49,7 @@ class Link:
         self.timeout_s = timeout_s
         self.clock = NodeClock()
         self._stop = threading.Event()
-        self._cmds: queue.SimpleQueue[tuple[str, list[str], bool]] = queue.SimpleQueue()
+        self._cmds: queue.SimpleQueue[tuple[CheckedCommand, str, bool]] = queue.SimpleQueue()
         self._thread: threading.Thread | None = None
         self.busy = False  # a command waits for its verdict
 
@@ -61,9 +62,11 @@ class Link:
         )
         self._thread.start()
 
-    def send(self, command: str, args: list[str], armed: bool) -> None:
-        """Queue ``command`` (checked already); ``armed``: ARM n first, then it as n+1."""
-        self._cmds.put((command, args, armed))
+    def send(self, command: CheckedCommand, shown: str, armed: bool) -> None:
+        """Queue ``command`` (:func:`~zplatform.uplink.validate_command`'s:
+        not checked again), ``shown`` as the operator typed it; ``armed``:
+        ARM n first, then it as n+1."""
+        self._cmds.put((command, shown, armed))
 
     def close(self) -> None:
         self._stop.set()
@@ -102,12 +105,12 @@ class Link:
                         m.on_snapshot(link.dv, t, counters)
                 while True:
                     try:
-                        cmd, args, armed = self._cmds.get_nowait()
+                        checked, shown, armed = self._cmds.get_nowait()
                     except queue.Empty:
                         break
-                    what = " ".join([("armed " if armed else "") + cmd, *args])
+                    what = ("armed " if armed else "") + shown
                     try:
-                        ticket = link.submit(cmd, args, armed=armed)
+                        ticket = link.submit(checked, armed=armed)
                     except ZPlatformError as exc:
                         with m.lock:
                             m.on_refusal(self.now_ns(), what, str(exc))

@@ -39,7 +39,7 @@ from ..queries import ask, replies
 from ..records import CommandOutcome, EventRecord
 from ..timebase import NodeClock
 from ..transport import EventPublisher, NodeSession, is_matching
-from ..uplink import ScriptCommand, validate_command
+from ..uplink import CheckedCommand, ScriptCommand, validate_command
 from .logic import GroundLogic, default_max_age_ns
 
 __all__ = [
@@ -316,25 +316,19 @@ class GroundLink:
                 raise CommandError("the control node does not subscribe to ground commands")
             self.next(0.01)
 
-    def submit(self, command: str, args: Sequence[str] = (), *, armed: bool = False) -> int:
-        """Queue a command with its arguments (WRITE: ELEMENT VALUE;
-        :meth:`GroundLogic.command`) and publish it if it can go now;
-        returns its ticket. Never blocks; CommandError for bad arguments."""
-        if len(args) > 2:
-            raise CommandError(f"{command} takes at most ELEMENT VALUE, got {list(args)}")
-        ticket = self.logic.command(
-            command,
-            *args,
-            now_ns=self.clock.now_ns(),
-            armed=armed,
-            can_send=self.cn_listening,
+    def submit(self, checked: CheckedCommand, *, armed: bool = False) -> int:
+        """Queue a command :func:`~zplatform.uplink.validate_command` checked
+        (:meth:`GroundLogic.submit`: not checked again) and publish it if it
+        can go now; returns its ticket. Never blocks."""
+        ticket = self.logic.submit(
+            checked, now_ns=self.clock.now_ns(), armed=armed, can_send=self.cn_listening
         )
         self._after(self.clock.now_ns())
         return ticket
 
     def command(
         self,
-        command: str,
+        command: str | CheckedCommand,
         element: str | None = None,
         value: str | None = None,
         *,
@@ -343,17 +337,23 @@ class GroundLink:
     ) -> list[CommandOutcome]:
         """Send one operator command and wait for its outcome(s). Blocks.
 
-        Refuses before sending (CommandError) an unknown command or element
-        and a value that does not fit (whether a command needs ``armed`` is
-        the caller's to ask: :func:`~.logic.needs_arm`). Waits up to
-        ``timeout_s`` for telemetry
-        and the CN to listen, and as long again for the verdicts (and their
-        reasons); raises CommandError when one does not come.
+        ``command``: its name, with ``element`` and ``value`` where it takes
+        them, refused before sending (CommandError) when
+        :func:`~zplatform.uplink.validate_command` refuses it; or what that
+        function returned already (not checked again). Whether a command
+        needs ``armed`` is the caller's to ask (:func:`~.logic.needs_arm`).
+        Waits up to ``timeout_s`` for telemetry and the CN to listen, and as
+        long again for the verdicts (and their reasons); raises CommandError
+        when one does not come.
         """
-        validate_command(self.mission, command, element, value)  # before anything waits
+        checked = (
+            command
+            if isinstance(command, CheckedCommand)
+            else validate_command(self.mission, command, element, value)  # before anything waits
+        )
         self.wait_joined(timeout_s)
         self.wait_cn_listening(timeout_s)
-        ticket = self.submit(command, [a for a in (element, value) if a is not None], armed=armed)
+        ticket = self.submit(checked, armed=armed)
         deadline = time.monotonic() + timeout_s
         while (done := self.logic.result(ticket)) is None:
             if time.monotonic() > deadline:

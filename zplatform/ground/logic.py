@@ -35,7 +35,7 @@ from ..datavector import DataVector, Layout
 from ..errors import CodecError, CommandError
 from ..events import EV, Event, EventLog, EventReader, EventType, StaleRecordError
 from ..records import REFUSALS, CommandOutcome, EventRecord, TelemetryCounters
-from ..uplink import ScriptCommand, Uplink, validate_command
+from ..uplink import CheckedCommand, ScriptCommand, Uplink, validate_command
 from .script import ScriptPlayer
 
 __all__ = [
@@ -536,15 +536,38 @@ class GroundLogic:
         source: str = "",
         can_send: bool = True,
     ) -> int:
-        """Queue one operator command; returns its ticket (:meth:`result`).
+        """Check one operator command (:func:`~zplatform.uplink.validate_command`)
+        and queue it (:meth:`submit`); returns its ticket (:meth:`result`).
+        Raises CommandError for an unknown command, element or value
+        (nothing is queued) or a mission without a ground node."""
+        self._need_uplink()
+        checked = validate_command(self.mission, command, element, value, source or None)
+        return self._queue(checked, now_ns, armed, source, can_send)
+
+    def submit(
+        self,
+        checked: CheckedCommand,
+        *,
+        now_ns: int,
+        armed: bool = False,
+        source: str = "",
+        can_send: bool = True,
+    ) -> int:
+        """Queue one operator command that
+        :func:`~zplatform.uplink.validate_command` checked already (it is
+        not checked again); returns its ticket (:meth:`result`).
 
         ``armed``: ARM n first, then the command n+1 once the ARM is
         accepted (one ticket). It goes out at once when the ground follows a
         run, nothing else waits for a verdict and ``can_send``; otherwise
         with a later snapshot (:meth:`take_requests`). Raises CommandError
-        for an unknown command, element or value (nothing is queued) or a
-        mission without a ground node.
+        for a mission without a ground node, or a ground without the
+        uplink's key.
         """
+        self._need_uplink()
+        return self._queue(checked, now_ns, armed, source, can_send)
+
+    def _need_uplink(self) -> None:
         if self._uplink is None:
             raise CommandError(
                 f"mission {self.mission.mission!r} has no ground node 'gn'"
@@ -552,8 +575,12 @@ class GroundLogic:
                 else "this ground holds no uplink key (a read-only tool's keys): commands "
                 "need the ground's key file (gn.keys from `zplatform keygen`)"
             )
-        cmd, index, num = validate_command(self.mission, command, element, value, source or None)
-        steps = [("ARM", 0, 0.0), (cmd, index, num)] if armed else [(cmd, index, num)]
+
+    def _queue(
+        self, checked: CheckedCommand, now_ns: int, armed: bool, source: str, can_send: bool
+    ) -> int:
+        step = (checked.command, checked.element, checked.value)
+        steps = [("ARM", 0, 0.0), step] if armed else [step]
         ticket = self._next_ticket
         self._next_ticket += 1
         plan = _Plan(ticket, steps, source)

@@ -27,7 +27,7 @@ import msgspec
 from ..config import Mission
 from ..errors import CommandError
 from ..records import CommandOutcome
-from ..uplink import ScriptCommand, validate_command
+from ..uplink import CheckedCommand, ScriptCommand, validate_command
 
 __all__ = ["MIN_DURATION_S", "SETTLE_S", "ScriptPlayer", "script_duration_s"]
 
@@ -50,15 +50,7 @@ class _Logic(Protocol):
     @property
     def idle(self) -> bool: ...
 
-    def command(
-        self,
-        command: str,
-        element: str | None = None,
-        value: str | None = None,
-        *,
-        now_ns: int,
-        source: str = "",
-    ) -> int: ...
+    def submit(self, checked: CheckedCommand, *, now_ns: int, source: str = "") -> int: ...
 
     def result(self, ticket: int) -> list[CommandOutcome] | None: ...
 
@@ -66,6 +58,7 @@ class _Logic(Protocol):
 class _Entry(msgspec.Struct, frozen=True):
     due_loop: int
     command: ScriptCommand
+    checked: CheckedCommand  # validated once, at construction
 
 
 class ScriptPlayer:
@@ -82,8 +75,8 @@ class ScriptPlayer:
         period = mission.period_ns
         entries = []
         for c in sorted(script, key=lambda c: c.at_ns):
-            validate_command(mission, c.command, c.element, c.value, c.source)
-            entries.append(_Entry(1 + -(-c.at_ns // period), c))
+            checked = validate_command(mission, c.command, c.element, c.value, c.source)
+            entries.append(_Entry(1 + -(-c.at_ns // period), c, checked))
         self._script = entries
         self._next = 0
         self._tickets: list[int] = []
@@ -102,10 +95,7 @@ class ScriptPlayer:
         if e.due_loop > loop + 1:
             return
         self._next += 1
-        c = e.command
-        self._tickets.append(
-            logic.command(c.command, c.element, c.value, now_ns=now_ns, source=c.source)
-        )
+        self._tickets.append(logic.submit(e.checked, now_ns=now_ns, source=e.command.source))
 
     def done(self, logic: _Logic) -> bool:
         """Every command was sent and its outcome released."""

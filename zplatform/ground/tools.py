@@ -25,7 +25,7 @@ from ..config import Mission
 from ..errors import CommandError, ZPlatformError
 from ..params import ParamFileError, decode_params, params_path, read_params_file
 from ..records import CommandOutcome, EventRecord, ParamRow, format_outcome, param_rows
-from ..uplink import validate_command
+from ..uplink import CheckedCommand, validate_command, validate_words
 from .link import GroundLink
 from .logic import needs_arm
 from .status import RateMeter, status_line
@@ -50,21 +50,18 @@ PROMPT_HELP = (
 
 def check_command(
     mission: Mission, command: str, args: list[str], *, armed: bool, arm_hint: str
-) -> tuple[str | None, str | None]:
-    """``(element, value)`` of a command line, refused (CommandError) before
-    anything is sent: bad arguments, and a command that needs ARM first
-    without ``armed`` (``arm_hint`` says how to arm it in this tool)."""
-    if len(args) > 2:
-        raise CommandError(f"too many arguments: {args}")
-    element = args[0] if args else None
-    value = args[1] if len(args) > 1 else None
-    cmd, _, _ = validate_command(mission, command, element, value)
-    if armed and cmd == "ARM":
+) -> CheckedCommand:
+    """A command line checked (:func:`~zplatform.uplink.validate_words`) and
+    refused (CommandError) before anything is sent: bad arguments, and a
+    command that needs ARM first without ``armed`` (``arm_hint`` says how
+    to arm it in this tool). The link sends what it returns unchecked."""
+    checked = validate_words(mission, command, args)
+    if armed and checked.command == "ARM":
         raise CommandError("ARM is the confirmation itself: send it alone")
-    why = needs_arm(mission, cmd, element)
+    why = needs_arm(mission, checked.command, args[0] if args else None)
     if why is not None and not armed:
-        raise CommandError(f"{why}: send it as ARM n, then {cmd} n+1 ({arm_hint})")
-    return element, value
+        raise CommandError(f"{why}: send it as ARM n, then {checked.command} n+1 ({arm_hint})")
+    return checked
 
 
 def _steps(command: str, armed: bool) -> list[str]:
@@ -95,10 +92,10 @@ def send_command(
     :func:`check_command` refuses; CommandError when telemetry, the CN or a
     verdict does not come within ``timeout_s`` (saying why).
     """
-    element, value = check_command(mission, command, args, armed=armed, arm_hint="--arm")
+    checked = check_command(mission, command, args, armed=armed, arm_hint="--arm")
     link = GroundLink(mission, key_file=key_file, commands=True)
     try:
-        outcomes = link.command(command, element, value, armed=armed, timeout_s=timeout_s)
+        outcomes = link.command(checked, armed=armed, timeout_s=timeout_s)
         return outcomes, _steps(command, armed)
     finally:
         link.close()
@@ -183,27 +180,30 @@ def set_param(
     (every verdict ACCEPTED, the save SAVED). Refuses before sending
     (CommandError) what :func:`check_command` refuses; CommandError when
     telemetry or a verdict does not come within ``timeout_s``."""
+    prm_set = prm_save = None
     if name is not None:
-        check_command(mission, "prm_set", [name, value or ""], armed=armed, arm_hint="--arm")
+        prm_set = check_command(
+            mission, "prm_set", [name, value or ""], armed=armed, arm_hint="--arm"
+        )
     elif armed:
         raise CommandError("--arm arms a PRM_SET: give NAME VALUE")
     elif not save:
         raise CommandError("nothing to do: give NAME VALUE, --save, or both")
     if save:
-        validate_command(mission, "prm_save")
+        prm_save = validate_command(mission, "prm_save")
     events: list[EventRecord] = []
     link = GroundLink(mission, key_file=key_file, commands=True, on_event=events.append)
     lines: list[str] = []
     try:
-        if name is not None:
-            outcomes = link.command("prm_set", name, value, armed=armed, timeout_s=timeout_s)
+        if prm_set is not None:
+            outcomes = link.command(prm_set, armed=armed, timeout_s=timeout_s)
             steps = _steps("prm_set", armed)
             lines += format_result(outcomes, steps)
             if len(outcomes) != len(steps) or not all(o.accepted for o in outcomes):
                 return lines, False
-        if not save:
+        if prm_save is None:
             return lines, True
-        (saved,) = link.command("prm_save", timeout_s=timeout_s)
+        (saved,) = link.command(prm_save, timeout_s=timeout_s)
         lines.append(format_outcome(saved))
         if not saved.accepted:
             return lines, False
@@ -320,14 +320,14 @@ def _prompt_command(
             print("refused: armed needs a COMMAND (armed launch)", file=out, flush=True)
             return
     try:
-        element, value = check_command(
+        checked = check_command(
             mission, words[0], words[1:], armed=armed, arm_hint=f"armed {' '.join(words)}"
         )
     except ZPlatformError as exc:
         print(f"refused: {exc}", file=out, flush=True)
         return
     try:
-        outcomes = link.command(words[0], element, value, armed=armed, timeout_s=timeout_s)
+        outcomes = link.command(checked, armed=armed, timeout_s=timeout_s)
     except ZPlatformError as exc:
         print(f"error: {exc}", file=out, flush=True)
         return
