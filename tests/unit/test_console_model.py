@@ -102,6 +102,22 @@ def test_completion_of_commands_and_elements() -> None:
     assert m.complete("") is None
 
 
+@pytest.mark.parametrize("name", ["recovery_igniter.yaml", "led_test.yaml", "minimal.yaml"])
+def test_write_completes_the_platforms_writable_elements_only(name: str) -> None:
+    """The console's writable-element rule is the platform's one
+    (zplatform.commands.writable_elements), whatever the mission."""
+    from zplatform.commands import writable_elements
+
+    m = load_mission(CONFIGS / name)
+    model = ConsoleModel(m)
+    assert model.writable == writable_elements(m)
+    params = {p.name for p in m.params}
+    for element in model.layout.elements:
+        completed = model.complete(f"write {element}"[:-1])
+        if completed == f"write {element}":
+            assert element in model.writable and element not in params
+
+
 def test_plot_series_keeps_a_window() -> None:
     m = ConsoleModel(MISSION, plot_window_s=1.0)
     m.set_plot(["cn_loop"])

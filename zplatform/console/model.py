@@ -25,9 +25,10 @@ from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 from typing import Any
 
+from ..commands import writable_elements
 from ..config import CMD_NAMES, Mission
 from ..datavector import DataVector, ElementSpec, Layout
-from ..errors import CommandError, ZPlatformError
+from ..errors import CommandError
 from ..events import Severity
 from ..ground.status import RateMeter
 from ..health import stalled_names
@@ -50,7 +51,6 @@ __all__ = [
     "Status",
     "severity_rank",
     "severity_style",
-    "writable_names",
 ]
 
 # Rank by name: higher is worse. Old and new names side by side.
@@ -148,7 +148,9 @@ class ConsoleModel:
         self._masks = frozenset(
             f"{n}_threads_stalled" for n in ["cn", *mission.device_nodes] if mission.health
         )
-        self.writable = writable_names(mission, self.layout)
+        self.writable = writable_elements(mission)
+        """What ``write`` completes: the elements a WRITE may set, by the
+        platform's one rule (:func:`zplatform.commands.writable_elements`)."""
         self.log: deque[LogLine] = deque(maxlen=max_events)
         self.min_rank = 0
         self.received = 0
@@ -371,26 +373,6 @@ class ConsoleModel:
             if cand.lower().startswith(last.lower()) and cand != last:
                 return " ".join([*words[:-1], cand])
         return None
-
-
-def writable_names(mission: Mission, layout: Layout) -> list[str]:
-    """Elements a WRITE may target, for completion (the CN checks again).
-
-    The platform's own list (``zplatform.commands.writable_elements``) when
-    it is there; else the scalars ``commands.writable`` lists (deny by
-    default: none without it).
-    """
-    try:
-        from ..commands import writable_elements
-
-        return list(writable_elements(mission))
-    except (ImportError, ZPlatformError):
-        chosen = set(mission.commands.writable)
-        return [
-            e.name
-            for e in layout.elements.values()
-            if e.region != "gn_to_cn" and not e.count and e.name in chosen
-        ]
 
 
 def _fmt(v: Any) -> str:
