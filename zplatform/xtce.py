@@ -53,6 +53,7 @@ from yamcs.pymdb.commands import ArgumentEntry
 from yamcs.pymdb.expressions import all_of
 
 from .ccsds import APID_BASE, MAX_DATA, SECONDARY_HEADER, packet_plan
+from .commands import writable_elements
 from .config import CMD_NAMES, Mission
 from .datavector import ElementSpec, Layout
 from .errors import ConfigError
@@ -280,11 +281,9 @@ def _add_commands(
         encoding=_int_encoding(spec("gn_cmd_seq").scalar.size * 8, False),
         short_description="command number: one more than the CN's last verdict",
     )
-    # The same list the CN accepts (imported lazily: it needs no textual).
-    from .console.model import writable_names
-
-    # WRITE's elements, then PRM_SET's parameters (never WRITE's: the CN refuses them).
-    names = writable_names(mission, layout) + [p.name for p in mission.params]
+    # WRITE's elements (the list the CN accepts: the platform's one rule),
+    # then PRM_SET's parameters (never WRITE's: the CN refuses them).
+    names = writable_elements(mission) + [p.name for p in mission.params]
     targets = [layout.element(n) for n in names]
     el_arg = EnumeratedArgument(
         name="gn_cmd_element",
