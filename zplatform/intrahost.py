@@ -44,6 +44,7 @@ __all__ = [
     "LinkNames",
     "LinkState",
     "check_shm",
+    "iceoryx2_config",
     "link_names",
     "mission_link_sizes",
     "mission_shm_need",
@@ -155,7 +156,8 @@ def _iox() -> Any:
     return iceoryx2
 
 
-def _config(prefix: str) -> Any:
+def iceoryx2_config(prefix: str = PREFIX) -> Any:
+    """An iceoryx2 config whose files all carry ``prefix`` (their own namespace)."""
     iox = _iox()
     cfg = iox.config.default()
     cfg.global_cfg.prefix = iox.FileName.new(prefix)
@@ -169,7 +171,7 @@ def remove_stale(prefix: str = PREFIX) -> int:
     iox = _iox()
     removed = 0
     try:
-        states = iox.Node.list(iox.ServiceType.Ipc, _config(prefix))
+        states = iox.Node.list(iox.ServiceType.Ipc, iceoryx2_config(prefix))
     except Exception as exc:  # iceoryx2's NodeListFailure: a directory we cannot read
         raise IntraHostError(f"intra-host: cannot list iceoryx2 nodes ({exc})") from exc
     for state in states:
@@ -202,7 +204,7 @@ class _End:
         try:
             self._node = (
                 iox.NodeBuilder.new()
-                .config(_config(prefix))
+                .config(iceoryx2_config(prefix))
                 # The node's own SIGTERM handler stays the process's.
                 .signal_handling_mode(iox.SignalHandlingMode.Disabled)
                 .create(iox.ServiceType.Ipc)
@@ -288,8 +290,7 @@ class IntraHostClient(_End):
             self._listener = self._res_ev.listener_builder().create()
         except Exception as exc:
             raise IntraHostError(f"intra-host link {names.sync}: no client ({exc!r})") from exc
-        self.deadline_s = deadline_s
-        self._deadline = iox.Duration.from_secs_f64(deadline_s)
+        self.set_deadline(deadline_s)
         self.stall_after = stall_after
         self._loan: Any = None
         self._pending: Any = None
@@ -304,6 +305,11 @@ class IntraHostClient(_End):
         self.no_peer = 0
         self.consecutive_timeouts = 0
         self._peerless = False
+
+    def set_deadline(self, deadline_s: float) -> None:
+        """How long :meth:`exchange` waits for a reply from now on."""
+        self.deadline_s = deadline_s
+        self._deadline = self._iox.Duration.from_secs_f64(deadline_s)
 
     @property
     def state(self) -> LinkState:

@@ -156,8 +156,7 @@ def test_a_silent_peer_times_out_then_stalls_and_a_reply_recovers(prefix: str) -
         assert server.wait(0) is None
         stop = threading.Event()
         t = _echo(server, stop)
-        client.deadline_s = 30.0  # behaviour, not the box's speed: wait for the reply
-        client._deadline = client._iox.Duration.from_secs_f64(30.0)
+        client.set_deadline(30.0)  # behaviour, not the box's speed: wait for the reply
         assert client.call(b"\x00\x01", out) == 2
         assert bytes(out[:2]) == b"\xff\xfe"
         assert (client.state, client.consecutive_timeouts, client.replies) == (LinkState.UP, 0, 1)
