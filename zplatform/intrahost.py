@@ -257,7 +257,8 @@ def _view(ptr: int, n: int) -> memoryview:
 
 
 class IntraHostClient(_End):
-    """The CN's end of one link: :meth:`trigger`, :meth:`exchange`, :meth:`release`.
+    """The CN's end of one link: :meth:`trigger`, then :meth:`exchange` (or
+    :meth:`send` and :meth:`collect`), then :meth:`release`.
 
     Not thread-safe: one loop thread owns it. Raises IntraHostError when the
     link cannot open (names, shared memory, iceoryx2); after that nothing
@@ -293,6 +294,8 @@ class IntraHostClient(_End):
         self.set_deadline(deadline_s)
         self.stall_after = stall_after
         self._loan: Any = None
+        self._waiting: Any = None  # sent, its reply not collected yet
+        self._t_sent = 0.0
         self._pending: Any = None
         self._response: Any = None
         #: Counters (never reset): exchanges sent, replies returned, timeouts
@@ -338,42 +341,63 @@ class IntraHostClient(_End):
         return _view(self._loan.payload_ptr, n)
 
     def exchange(self) -> memoryview | None:
-        """Send the loaned trigger, wake the server and wait for its reply up to
-        the deadline. Returns a read-only view of the reply in shared memory,
-        valid until :meth:`release` or the next :meth:`trigger`; None when no
-        reply came in time, or no server is attached (counted). Blocks at most
-        ``deadline_s`` (plus scheduling); never spins."""
+        """:meth:`send` the loaned trigger, then :meth:`collect` its reply within
+        ``deadline_s``. Blocks at most ``deadline_s`` (plus scheduling)."""
+        if not self.send():
+            return None
+        return self.collect()
+
+    def send(self) -> bool:
+        """Send the loaned trigger and wake the server; does not block. False
+        (counted as a miss) when no server is attached or the send failed."""
         loan, self._loan = self._loan, None
         if loan is None:
-            raise IntraHostError("intra-host exchange without a trigger")
+            raise IntraHostError("intra-host send without a trigger")
         self.sent += 1
+        self._t_sent = time.monotonic()
         try:
             pending = loan.assume_init().send()
         except Exception:  # RequestSendError: the connection broke
             self._missed()
-            return None
+            return False
         if pending.number_of_server_connections == 0:
             self._peerless = True
             self.no_peer += 1
             self._missed()
-            return None
+            return False
         self._peerless = False
+        self._waiting = pending
         self._notifier.notify()
-        t_end = time.monotonic() + self.deadline_s
-        wait = self._deadline
+        return True
+
+    def collect(self, t_end: float | None = None) -> memoryview | None:
+        """Wait for the reply to the trigger :meth:`send` sent, until ``t_end``
+        (``time.monotonic()``; default: ``deadline_s`` after the send, so a CN
+        can send to every DN, then collect each against one deadline).
+        Returns a read-only view of the reply in shared memory, valid until
+        :meth:`release` or the next :meth:`trigger`; None when no reply came
+        in time (counted; the request is withdrawn, so a late reply is never
+        taken for the next one's). Blocks at most until ``t_end``; never spins."""
+        pending, self._waiting = self._waiting, None
+        if pending is None:
+            return None
+        if t_end is None:
+            t_end = self._t_sent + self.deadline_s
+            wait = self._deadline  # preallocated: the common case allocates no Duration
+        else:
+            wait = self._iox.Duration.from_secs_f64(max(0.0, t_end - time.monotonic()))
         while True:
             response = pending.receive()
             if response is not None:
                 break
-            left = t_end - time.monotonic()
-            if left <= 0:
+            if t_end - time.monotonic() <= 0:
                 # Dropping the pending request tells iceoryx2 a late reply
                 # has nobody to go to.
                 del pending
                 self._missed()
                 return None
             self._listener.timed_wait(wait)
-            # A wake-up of an earlier, late reply: wait out what is left.
+            # Woken by an earlier, late reply's event: wait out what is left.
             wait = self._iox.Duration.from_secs_f64(max(0.0, t_end - time.monotonic()))
         n = response.header.number_of_elements
         if n > self.max_reply:
@@ -409,9 +433,11 @@ class IntraHostClient(_End):
         return n
 
     def release(self) -> None:
-        """Give the reply's sample back (its view must not be used after)."""
+        """Give the reply's sample back (its view must not be used after), and
+        withdraw a trigger sent but not collected."""
         self._response = None
         self._pending = None
+        self._waiting = None
 
     def _missed(self) -> None:
         self.timeouts += 1

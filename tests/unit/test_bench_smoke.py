@@ -1,4 +1,5 @@
-"""Smoke tests of the bandwidth, reliability, telemetry-latency, clock and failover benches.
+"""Smoke tests of the bandwidth, reliability, telemetry-latency, clock, failover and
+intra-host benches.
 
 Each runs its bench's ``main`` briefly (realtime scheduling off, so the test
 process is never put in SCHED_FIFO) and checks the result file's shape and
@@ -15,7 +16,16 @@ from pathlib import Path
 
 import pytest
 
-from bench import bandwidth, clock, failover, levers, reliability, report, telemetry_latency
+from bench import (
+    bandwidth,
+    clock,
+    failover,
+    intrahost,
+    levers,
+    reliability,
+    report,
+    telemetry_latency,
+)
 
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(180)]
 
@@ -104,6 +114,15 @@ def test_clock_smoke(tmp_path: Path) -> None:
     assert set(doc["params"]["abs_err_p50_us"]) == {"node_clock", "zenoh_ts"}
     assert doc["params"]["more_accurate"] in ("node_clock", "zenoh_ts")
     assert "Residual error" in _renders(tmp_path)
+
+
+def test_intrahost_smoke(tmp_path: Path) -> None:
+    out = tmp_path / "intrahost.json"
+    intrahost.main(["--quick", "--json", str(out)])
+    doc = _doc(out, "intrahost")
+    assert {f"{v}_{s}" for v in intrahost.VARIANTS for s in intrahost.SIZES} == set(doc["variants"])
+    assert all(v["msgs"] + v["lost"] == 120 for v in doc["variants"].values())
+    assert "intrahost" in _renders(tmp_path)
 
 
 @pytest.mark.slow
