@@ -5,7 +5,9 @@ exists (a trigger sent after that waits in its queue), then:
 
 * ``echo``: answers each trigger with its bytes inverted (``b ^ 0xFF``),
   until stdin closes;
-* ``hold``: never answers (to be killed with SIGKILL).
+* ``hold``: never answers (to be killed with SIGKILL);
+* ``ask``: the control node's end instead: sends one trigger, says
+  ``ready``, and waits for stdin to close (to be killed with SIGKILL).
 """
 
 from __future__ import annotations
@@ -13,12 +15,22 @@ from __future__ import annotations
 import select
 import sys
 
-from zplatform.intrahost import IntraHostServer, link_names
+from zplatform.intrahost import IntraHostClient, IntraHostServer, link_names
 
 
 def main() -> None:
     mode, prefix, mission, run, bound = sys.argv[1:6]
     names = link_names(mission, "rocket", run, "cn", "dn0")
+    if mode == "ask":
+        client = IntraHostClient(names, int(bound), int(bound), prefix=prefix)
+        buf = client.trigger(3)
+        assert buf is not None
+        buf[:] = b"ask"
+        assert client.send()
+        sys.stdout.write("ready\n")
+        sys.stdout.flush()
+        sys.stdin.read()
+        return
     server = IntraHostServer(names, int(bound), int(bound), prefix=prefix)
     sys.stdout.write("ready\n")
     sys.stdout.flush()

@@ -8,6 +8,9 @@ Verified here:
 * a peer killed with SIGKILL mid-link leaves stale iceoryx2 resources that
   the next run's ends remove (``stale_removed``), and that run's round
   trips work; the dead peer's link reads STALLED, then NO_PEER;
+* a control node's end killed with SIGKILL while its trigger waits: the
+  server's reply finds no one, the dead end is removed, and a new client
+  (two, as many as the service admits) is served;
 * two missions' links on one host, with the same node names, stay apart.
 
 No sleeps: the test waits for the peer's ``ready`` line and its exit.
@@ -159,4 +162,46 @@ def test_two_missions_on_one_host_do_not_collide(prefix: str) -> None:
             c.close()
         for p in peers:
             p.stop()
+    assert leftovers(prefix) == []
+
+
+def test_a_killed_control_node_end_leaves_nothing_the_next_trips_over(prefix: str) -> None:
+    import threading
+
+    names = link_names("cnkill", "rocket", "1", "cn", "dn0")
+    server = IntraHostServer(names, BOUND, BOUND, prefix=prefix)
+    peer = Peer("ask", prefix, "cnkill")
+    try:
+        trigger = server.wait(30.0)
+        assert trigger is not None and bytes(trigger) == b"ask"
+        peer.kill9()
+        assert remove_stale(prefix) == 1
+        # Its request is still in hand; once the dead end is removed the
+        # reply has nobody to go to.
+        assert server.reply(3) is None
+        assert not server.send()
+        stop = threading.Event()
+
+        def serve() -> None:
+            while not stop.is_set():
+                view = server.wait(0.05)
+                if view is not None:
+                    server.respond(bytes(view).translate(INVERT))
+
+        t = threading.Thread(target=serve, daemon=True)
+        t.start()
+        clients = [_client(prefix, "cnkill") for _ in range(2)]
+        out = bytearray(BOUND)
+        try:
+            for c in clients:
+                assert c.call(b"again", out) == 5
+                assert bytes(out[:5]) == b"again".translate(INVERT)
+        finally:
+            stop.set()
+            t.join()
+            for c in clients:
+                c.close()
+    finally:
+        server.close()
+        peer.stop()
     assert leftovers(prefix) == []
