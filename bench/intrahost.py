@@ -26,9 +26,16 @@ reply is in the array (``p50_us``/``p99_us``/``max_us``, ``time.perf_counter_ns`
 and ``cpu_us_per_exchange``: both processes' CPU time (user + system, every
 thread) over the exchanges, divided by their number. Waits block (event
 listener, zenoh's reply); nothing spins. ``ratios``: p50 and CPU of each
-over raw iceoryx2 and raw zenoh.
+over raw iceoryx2 and raw zenoh. ``carrier_unpaced_256B`` and
+``raw_iceoryx2_unpaced_256B`` run the same exchanges back to back (no
+pacing): what a wake-up of a process that slept 10 ms costs over one that
+just ran shows as ``*_paced_over_unpaced_p50_256B``.
 
-Run ``python -m bench.intrahost [--quick] [--json PATH]``; results go to
+Scheduling: ``--priority P`` (default 20, as ``bench.sync``; 0 turns it
+off) puts this process in SCHED_FIFO P before the responders start, so
+every end of every variant runs at that priority.
+
+Run ``python -m bench.intrahost [--quick] [--priority P] [--json PATH]``; results go to
 ``bench/results/intrahost.json``. Blocks about 70 s (``--quick``: 15 s).
 """
 
@@ -50,6 +57,7 @@ from bench.common import REPO_ROOT, bench_argparser, free_port, summarize, write
 SIZES = {"256B": 256, "325KB": 325_000}
 VARIANTS = ("carrier", "raw_iceoryx2", "raw_iceoryx2_waitset", "raw_zenoh")
 PERIOD_S = 0.01  # 100 Hz
+UNPACED = ("carrier", "raw_iceoryx2")  # also run back to back, 256 B: the warm wake-up
 ROUNDS = 4
 PER_ROUND = 250  # exchanges per round, size and variant
 DEADLINE_S = 0.002  # the zenoh sync's deadline; a later reply is a miss
@@ -159,12 +167,15 @@ def _responder(variant: str, mission_text: str) -> None:
             if cmd["cmd"] == "quit":
                 break
             c0, served = _cpu_s(), 0
+            t_idle = time.monotonic() + WAIT_S
             while served < cmd["n"]:
                 active = srv.receive()
                 if active is None:
-                    if not block(wait) and not srv.has_requests:
+                    if time.monotonic() >= t_idle:
                         break
+                    block(wait)
                     continue
+                t_idle = time.monotonic() + WAIT_S
                 n = active.header.number_of_elements
                 loan = active.loan_slice_uninit(n)
                 ctypes.memmove(loan.payload_ptr, src[n], n)
@@ -319,9 +330,11 @@ class _Asker:
             ctypes.memmove(loan.payload_ptr, self.csrc[n], n)
             pending = loan.assume_init().send()
             self.notifier.notify()
+            t_end = time.monotonic() + WAIT_S
             while (response := pending.receive()) is None:
-                if not self.block(self.wait) and not pending.has_response:
+                if time.monotonic() >= t_end:
                     return None
+                self.block(self.wait)
             k = response.header.number_of_elements
             ctypes.memmove(self.dst.ctypes.data, response.payload_ptr, k)
             del response, pending
@@ -354,6 +367,12 @@ def _responder_role(variant: str) -> None:
 
 def main(argv: list[str] | None = None) -> dict[str, Any]:
     ap = bench_argparser(__doc__.split("\n")[0] if __doc__ else "bench.intrahost")
+    ap.add_argument(
+        "--priority",
+        type=int,
+        default=20,
+        help="SCHED_FIFO priority of this process and the responders (0: off), as bench.sync",
+    )
     ap.add_argument("--role", help=argparse_hidden())
     ap.add_argument("--variant", help=argparse_hidden())
     args = ap.parse_args(argv)
@@ -364,10 +383,16 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         return {}
 
     rounds = 2 if args.quick else ROUNDS
+    from bench.sync import inherit_fifo
+
+    # Before any child starts: the responders inherit the policy.
+    scheduling = inherit_fifo(args.priority)
     per_round = 60 if args.quick else PER_ROUND
     procs: dict[str, _Proc] = {}
     askers: dict[str, _Asker] = {}
     lat: dict[str, list[int]] = {f"{v}_{s}": [] for v in VARIANTS for s in SIZES}
+    for v in UNPACED:
+        lat[f"{v}_unpaced_256B"] = []
     lost: dict[str, int] = dict.fromkeys(lat, 0)
     cpu: dict[str, float] = dict.fromkeys(lat, 0.0)
     try:
@@ -387,6 +412,11 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
                     c, k = _run_block(procs[v], askers[v], v, n, per_round, lat[key], PERIOD_S)
                     cpu[key] += c
                     lost[key] += k
+            for v in UNPACED:  # back to back: the peer never sleeps long
+                key = f"{v}_unpaced_256B"
+                c, k = _run_block(procs[v], askers[v], v, SIZES["256B"], per_round, lat[key], 0)
+                cpu[key] += c
+                lost[key] += k
     finally:
         for a in askers.values():
             a.close()
@@ -413,6 +443,8 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         return round(pa / pb, 2) if pa and pb else None
 
     ratios: dict[str, float | None] = {}
+    for v in UNPACED:
+        ratios[f"{v}_paced_over_unpaced_p50_256B"] = ratio(f"{v}_256B", f"{v}_unpaced_256B")
     for s in SIZES:
         ratios[f"waitset_over_listener_p50_{s}"] = ratio(
             f"raw_iceoryx2_waitset_{s}", f"raw_iceoryx2_{s}"
@@ -433,6 +465,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         )
     params = {
         "quick": args.quick,
+        "scheduling": scheduling,
         "sizes": SIZES,
         "rounds": rounds,
         "per_round": per_round,

@@ -118,9 +118,11 @@ def test_clock_smoke(tmp_path: Path) -> None:
 
 def test_intrahost_smoke(tmp_path: Path) -> None:
     out = tmp_path / "intrahost.json"
-    intrahost.main(["--quick", "--json", str(out)])
+    intrahost.main(["--quick", "--priority", "0", "--json", str(out)])
     doc = _doc(out, "intrahost")
-    assert {f"{v}_{s}" for v in intrahost.VARIANTS for s in intrahost.SIZES} == set(doc["variants"])
+    paced = {f"{v}_{s}" for v in intrahost.VARIANTS for s in intrahost.SIZES}
+    unpaced = {f"{v}_unpaced_256B" for v in intrahost.UNPACED}
+    assert paced | unpaced == set(doc["variants"])
     assert all(v["msgs"] + v["lost"] == 120 for v in doc["variants"].values())
     assert "intrahost" in _renders(tmp_path)
 
