@@ -325,3 +325,15 @@ def test_exchanges_leave_no_memory_behind(prefix: str) -> None:
         t.join()
         client.close()
         server.close()
+
+
+def test_a_second_server_on_a_link_is_refused(prefix: str) -> None:
+    # A process that took the link's one server place (a squatter, a DN
+    # started twice) makes the next fail to open, with an error, not a hang.
+    names = link_names("twice", "rocket", 1, "cn", "dn0")
+    first = IntraHostServer(names, 64, 64, prefix=prefix)
+    try:
+        with pytest.raises(IntraHostError, match="no server"):
+            IntraHostServer(names, 64, 64, prefix=prefix)
+    finally:
+        first.close()
