@@ -31,6 +31,7 @@ __all__ = [
     "EventError",
     "FrameFormatError",
     "FrameSizeError",
+    "IntraHostError",
     "LayoutMismatchError",
     "NodeError",
     "RecordingError",
@@ -118,6 +119,11 @@ class ControlError(ZPlatformError):
 
 class EventError(ZPlatformError):
     """An event emitted that is not an entry of the catalogue (``zplatform.events.EV``)."""
+
+
+class IntraHostError(ZPlatformError):
+    """An intra-host (iceoryx2 shared-memory) link cannot open: bad names, too
+    little shared memory on the host, or iceoryx2 refused (zplatform/intrahost.py)."""
 
 
 class NodeError(ZPlatformError):

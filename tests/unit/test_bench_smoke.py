@@ -1,4 +1,5 @@
-"""Smoke tests of the bandwidth, reliability, telemetry-latency, clock and failover benches.
+"""Smoke tests of the bandwidth, reliability, telemetry-latency, clock, failover and
+intra-host benches.
 
 Each runs its bench's ``main`` briefly (realtime scheduling off, so the test
 process is never put in SCHED_FIFO) and checks the result file's shape and
@@ -15,7 +16,16 @@ from pathlib import Path
 
 import pytest
 
-from bench import bandwidth, clock, failover, levers, reliability, report, telemetry_latency
+from bench import (
+    bandwidth,
+    clock,
+    failover,
+    intrahost,
+    levers,
+    reliability,
+    report,
+    telemetry_latency,
+)
 
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(180)]
 
@@ -104,6 +114,17 @@ def test_clock_smoke(tmp_path: Path) -> None:
     assert set(doc["params"]["abs_err_p50_us"]) == {"node_clock", "zenoh_ts"}
     assert doc["params"]["more_accurate"] in ("node_clock", "zenoh_ts")
     assert "Residual error" in _renders(tmp_path)
+
+
+def test_intrahost_smoke(tmp_path: Path) -> None:
+    out = tmp_path / "intrahost.json"
+    intrahost.main(["--quick", "--priority", "0", "--json", str(out)])
+    doc = _doc(out, "intrahost")
+    paced = {f"{v}_{s}" for v in intrahost.VARIANTS for s in intrahost.SIZES}
+    unpaced = {f"{v}_unpaced_256B" for v in intrahost.UNPACED}
+    assert paced | unpaced == set(doc["variants"])
+    assert all(v["msgs"] + v["lost"] == 120 for v in doc["variants"].values())
+    assert "intrahost" in _renders(tmp_path)
 
 
 @pytest.mark.slow

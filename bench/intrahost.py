@@ -1,0 +1,531 @@
+"""The intra-host carrier beside raw iceoryx2 request/response and raw zenoh get/reply.
+
+One trigger and one reply of the same size (256 B and 325 KB), paced at
+100 Hz, between this process (the control node's end) and one responder
+process per variant, all three running in one invocation, in interleaved
+rounds (each round visits every size and variant):
+
+* ``carrier``: :class:`zplatform.intrahost.IntraHostClient` /
+  :class:`~zplatform.intrahost.IntraHostServer`: the client copies the frame
+  into its loaned request (the encode), the server reads the trigger in place
+  and copies its reply into a loan, the client copies the reply once into a
+  preallocated array (the Data Vector);
+* ``raw_iceoryx2``: the same iceoryx2 services and event wake-ups written
+  bare (``loan_slice_uninit``, ``memmove``, ``send``, ``notify``;
+  ``timed_wait``, ``receive``, one copy out): the floor the carrier adds to;
+* ``raw_iceoryx2_waitset``: the same, each end waiting in an iceoryx2
+  ``WaitSet`` with the listener attached (then ``try_wait`` to consume the
+  event) instead of the listener's own ``timed_wait``: the other way to
+  block, measured to choose;
+* ``raw_zenoh``: ``session.get`` with the payload, the queryable replies
+  from its callback, ``to_bytes()`` and a copy into the array; zplatform's
+  own zenoh config (loopback TCP, shared memory as the mission default).
+
+Per exchange: the round trip from before the trigger is written until the
+reply is in the array (``p50_us``/``p99_us``/``max_us``, ``time.perf_counter_ns``),
+and ``cpu_us_per_exchange``: both processes' CPU time (user + system, every
+thread) over the exchanges, divided by their number. Waits block (event
+listener, zenoh's reply); nothing spins. ``ratios``: p50 and CPU of each
+over raw iceoryx2 and raw zenoh. ``carrier_unpaced_256B`` and
+``raw_iceoryx2_unpaced_256B`` run the same exchanges back to back (no
+pacing): what a wake-up of a process that slept 10 ms costs over one that
+just ran shows as ``*_paced_over_unpaced_p50_256B``.
+
+Scheduling: ``--priority P`` (default 20, as ``bench.sync``; 0 turns it
+off) puts this process in SCHED_FIFO P before the responders start, so
+every end of every variant runs at that priority.
+
+Run ``python -m bench.intrahost [--quick] [--priority P] [--json PATH]``; results go to
+``bench/results/intrahost.json``. Blocks about 70 s (``--quick``: 15 s).
+"""
+
+from __future__ import annotations
+
+import ctypes
+import json
+import os
+import resource
+import subprocess
+import sys
+import time
+from typing import Any
+
+import numpy as np
+
+from bench.common import REPO_ROOT, bench_argparser, free_port, summarize, write_result
+
+SIZES = {"256B": 256, "325KB": 325_000}
+VARIANTS = ("carrier", "raw_iceoryx2", "raw_iceoryx2_waitset", "raw_zenoh")
+PERIOD_S = 0.01  # 100 Hz
+UNPACED = ("carrier", "raw_iceoryx2")  # also run back to back, 256 B: the warm wake-up
+ROUNDS = 4
+PER_ROUND = 250  # exchanges per round, size and variant
+DEADLINE_S = 0.002  # the zenoh sync's deadline; a later reply is a miss
+WAIT_S = 1.0  # how long an exchange waits before it is counted lost
+TAG = "@@"
+PREFIX = f"zpbench{os.getpid()}_"  # the orchestrator's pid, inherited by the children
+
+
+def _mission_text(cn_port: int, dn_port: int) -> str:
+    return (
+        "mission: bench_intrahost\n"
+        "nodes:\n"
+        f"  cn: {{listen: ['tcp/127.0.0.1:{cn_port}']}}\n"
+        f"  dn0: {{listen: ['tcp/127.0.0.1:{dn_port}'], connect: ['tcp/127.0.0.1:{cn_port}']}}\n"
+        "regions:\n  cn_to_dn0:\n    - {name: x, type: u8}\n"
+    )
+
+
+def _cpu_s() -> float:
+    ru = resource.getrusage(resource.RUSAGE_SELF)
+    return ru.ru_utime + ru.ru_stime
+
+
+def _say(obj: dict[str, Any]) -> None:
+    sys.stdout.write(TAG + json.dumps(obj) + "\n")
+    sys.stdout.flush()
+
+
+def _iox_services(prefix: str, name: str) -> tuple[Any, Any, Any, Any, Any]:
+    import iceoryx2 as iox
+
+    from zplatform.intrahost import iceoryx2_config
+
+    iox.set_log_level(iox.LogLevel.Error)
+    node = (
+        iox.NodeBuilder.new()
+        .config(iceoryx2_config(prefix))
+        .signal_handling_mode(iox.SignalHandlingMode.Disabled)
+        .create(iox.ServiceType.Ipc)
+    )
+    u8 = iox.Slice[ctypes.c_uint8]
+    svc = node.service_builder(iox.ServiceName.new(name)).request_response(u8, u8).open_or_create()
+    req = node.service_builder(iox.ServiceName.new(name + "/req")).event().open_or_create()
+    res = node.service_builder(iox.ServiceName.new(name + "/res")).event().open_or_create()
+    return iox, node, svc, req, res
+
+
+def _blocker(iox: Any, listener: Any, waitset: bool) -> Any:
+    """A blocking wait on ``listener`` with a timeout: its own ``timed_wait``,
+    or a ``WaitSet`` it is attached to. Returns whether an event came."""
+    if not waitset:
+        return listener.timed_wait
+    ws = (
+        iox.WaitSetBuilder.new()
+        .signal_handling_mode(iox.SignalHandlingMode.Disabled)
+        .create(iox.ServiceType.Ipc)
+    )
+    guard = ws.attach_notification(listener)
+
+    def block(timeout: Any) -> bool:
+        ids, _result = ws.wait_and_process_with_timeout(timeout)
+        block.guard = guard  # type: ignore[attr-defined]  # keeps the attachment alive
+        return bool(ids) and bool(listener.try_wait())
+
+    return block
+
+
+# -- responder (the device node's end) ----------------------------------------
+
+
+def _responder(variant: str, mission_text: str) -> None:
+    big = max(SIZES.values())
+    reply = {n: os.urandom(n) for n in SIZES.values()}
+    if variant == "carrier":
+        from zplatform.intrahost import IntraHostServer, link_names
+
+        server = IntraHostServer(
+            link_names("bench", "rocket", os.getppid(), "cn", "dn0"), big, big, prefix=PREFIX
+        )
+        _say({"ready": True})
+        for cmd in _commands():
+            if cmd["cmd"] == "quit":
+                break
+            c0, served = _cpu_s(), 0
+            while served < cmd["n"]:
+                view = server.wait(WAIT_S)
+                if view is None:
+                    break
+                n = len(view)
+                buf = server.reply(n)
+                if buf is not None:
+                    buf[:] = reply[n]  # the reply's encode, into the loan
+                    server.send()
+                served += 1
+            _say({"cpu_s": _cpu_s() - c0, "served": served})
+        server.close()
+    elif variant.startswith("raw_iceoryx2"):
+        iox, _node, svc, req_ev, res_ev = _iox_services(PREFIX, f"bench/{os.getppid()}/{variant}")
+        srv = svc.server_builder().initial_max_slice_len(big).create()
+        listener = req_ev.listener_builder().create()
+        notifier = res_ev.notifier_builder().create()
+        wait = iox.Duration.from_secs_f64(WAIT_S)
+        block = _blocker(iox, listener, variant.endswith("waitset"))
+        src = {n: (ctypes.c_char * n).from_buffer(bytearray(b)) for n, b in reply.items()}
+        _say({"ready": True})
+        for cmd in _commands():
+            if cmd["cmd"] == "quit":
+                break
+            c0, served = _cpu_s(), 0
+            t_idle = time.monotonic() + WAIT_S
+            while served < cmd["n"]:
+                active = srv.receive()
+                if active is None:
+                    if time.monotonic() >= t_idle:
+                        break
+                    block(wait)
+                    continue
+                t_idle = time.monotonic() + WAIT_S
+                n = active.header.number_of_elements
+                loan = active.loan_slice_uninit(n)
+                ctypes.memmove(loan.payload_ptr, src[n], n)
+                loan.assume_init().send()
+                notifier.notify()
+                del active
+                served += 1
+            _say({"cpu_s": _cpu_s() - c0, "served": served})
+    else:
+        import zenoh
+
+        from zplatform.mission import decode_mission
+        from zplatform.transport import open_session, zenoh_config
+
+        session = open_session(zenoh_config(decode_mission(mission_text), "dn0"))
+        count = [0]
+
+        def on_query(query: Any) -> None:
+            with query:
+                payload = query.payload
+                n = len(payload) if payload is not None else 0
+                query.reply(query.key_expr, reply.get(n, b""))
+                count[0] += 1
+
+        qbl = session.declare_queryable(
+            "bench/intrahost/q", zenoh.handlers.Callback(on_query, indirect=False)
+        )
+        _say({"ready": True})
+        for cmd in _commands():
+            if cmd["cmd"] == "quit":
+                break
+            c0, k0 = _cpu_s(), count[0]
+            # The callback serves; this thread waits for the orchestrator.
+            _say({"ack": True})
+            _commands_next()
+            _say({"cpu_s": _cpu_s() - c0, "served": count[0] - k0})
+        qbl.undeclare()
+        session.close()
+
+
+_STDIN: Any = None
+
+
+def _commands() -> Any:
+    global _STDIN
+    _STDIN = iter(sys.stdin)
+    for line in _STDIN:
+        if line.strip():
+            yield json.loads(line)
+
+
+def _commands_next() -> dict[str, Any]:
+    for line in _STDIN:
+        if line.strip():
+            out: dict[str, Any] = json.loads(line)
+            return out
+    return {"cmd": "quit"}
+
+
+# -- the control node's end ------------------------------------------------------
+
+
+class _Proc:
+    def __init__(self, variant: str, mission_text: str) -> None:
+        self.p = subprocess.Popen(
+            [sys.executable, "-m", "bench.intrahost", "--role", "respond", "--variant", variant],
+            cwd=REPO_ROOT,
+            stdin=subprocess.PIPE,
+            stdout=subprocess.PIPE,
+            env=dict(os.environ, ZP_BENCH_MISSION=mission_text, PYTHONUNBUFFERED="1"),
+            text=True,
+        )
+
+    def send(self, obj: dict[str, Any]) -> None:
+        assert self.p.stdin is not None
+        self.p.stdin.write(json.dumps(obj) + "\n")
+        self.p.stdin.flush()
+
+    def read(self) -> dict[str, Any]:
+        assert self.p.stdout is not None
+        for line in self.p.stdout:
+            if line.startswith(TAG):
+                out: dict[str, Any] = json.loads(line[len(TAG) :])
+                return out
+        raise RuntimeError(f"responder exited ({self.p.wait()})")
+
+    def close(self) -> None:
+        try:
+            self.send({"cmd": "quit"})
+            self.p.wait(timeout=10)
+        except Exception:
+            self.p.kill()
+            self.p.wait()
+
+
+class _Asker:
+    """The control node's end of one variant: ``exchange(n)`` returns the
+    round trip in ns, or None when no reply came within ``WAIT_S``."""
+
+    def __init__(self, variant: str, mission_text: str) -> None:
+        self.variant = variant
+        big = max(SIZES.values())
+        self.src = {n: os.urandom(n) for n in SIZES.values()}
+        self.dst = np.empty(big, np.uint8)
+        self.dst_mv = self.dst.data  # a memoryview, no copy
+        if variant == "carrier":
+            from zplatform.intrahost import IntraHostClient, link_names
+
+            self.client = IntraHostClient(
+                link_names("bench", "rocket", os.getpid(), "cn", "dn0"),
+                big,
+                big,
+                prefix=PREFIX,
+                deadline_s=WAIT_S,
+            )
+        elif variant.startswith("raw_iceoryx2"):
+            iox, self._node, svc, req_ev, res_ev = _iox_services(
+                PREFIX, f"bench/{os.getpid()}/{variant}"
+            )
+            self.iox = iox
+            self.cli = svc.client_builder().initial_max_slice_len(big).create()
+            self.notifier = req_ev.notifier_builder().create()
+            self.listener = res_ev.listener_builder().create()
+            self.block = _blocker(iox, self.listener, variant.endswith("waitset"))
+            self.wait = iox.Duration.from_secs_f64(WAIT_S)
+            self.csrc = {
+                n: (ctypes.c_char * n).from_buffer(bytearray(b)) for n, b in self.src.items()
+            }
+        else:
+            import zenoh
+
+            from zplatform.mission import decode_mission
+            from zplatform.transport import open_session, zenoh_config
+
+            self.zenoh = zenoh
+            self.session = open_session(zenoh_config(decode_mission(mission_text), "cn"))
+
+    def exchange(self, n: int) -> int | None:
+        t0 = time.perf_counter_ns()
+        if self.variant == "carrier":
+            buf = self.client.trigger(n)
+            if buf is None:
+                return None
+            buf[:] = self.src[n]  # the trigger's encode, into the loan
+            reply = self.client.exchange()
+            if reply is None:
+                return None
+            self.dst_mv[: len(reply)] = reply  # the one copy, into the vector
+            self.client.release()
+        elif self.variant.startswith("raw_iceoryx2"):
+            loan = self.cli.loan_slice_uninit(n)
+            ctypes.memmove(loan.payload_ptr, self.csrc[n], n)
+            pending = loan.assume_init().send()
+            self.notifier.notify()
+            t_end = time.monotonic() + WAIT_S
+            while (response := pending.receive()) is None:
+                if time.monotonic() >= t_end:
+                    return None
+                self.block(self.wait)
+            k = response.header.number_of_elements
+            ctypes.memmove(self.dst.ctypes.data, response.payload_ptr, k)
+            del response, pending
+        else:
+            got = None
+            for answer in self.session.get(
+                "bench/intrahost/q",
+                payload=self.src[n],
+                consolidation=self.zenoh.ConsolidationMode.NONE,
+                timeout=WAIT_S,
+            ):
+                if answer.ok is not None:
+                    got = answer.ok.payload.to_bytes()
+                    self.dst_mv[: len(got)] = got
+                break
+            if got is None:
+                return None
+        return time.perf_counter_ns() - t0
+
+    def close(self) -> None:
+        if self.variant == "carrier":
+            self.client.close()
+        elif self.variant == "raw_zenoh":
+            self.session.close()
+
+
+def _responder_role(variant: str) -> None:
+    _responder(variant, os.environ["ZP_BENCH_MISSION"])
+
+
+def main(argv: list[str] | None = None) -> dict[str, Any]:
+    ap = bench_argparser(__doc__.split("\n")[0] if __doc__ else "bench.intrahost")
+    ap.add_argument(
+        "--priority",
+        type=int,
+        default=20,
+        help="SCHED_FIFO priority of this process and the responders (0: off), as bench.sync",
+    )
+    ap.add_argument("--role", help=argparse_hidden())
+    ap.add_argument("--variant", help=argparse_hidden())
+    args = ap.parse_args(argv)
+    if args.role:
+        global PREFIX
+        PREFIX = f"zpbench{os.getppid()}_"
+        _responder_role(args.variant)
+        return {}
+
+    rounds = 2 if args.quick else ROUNDS
+    from bench.sync import inherit_fifo
+
+    # Before any child starts: the responders inherit the policy.
+    scheduling = inherit_fifo(args.priority)
+    per_round = 60 if args.quick else PER_ROUND
+    procs: dict[str, _Proc] = {}
+    askers: dict[str, _Asker] = {}
+    lat: dict[str, list[int]] = {f"{v}_{s}": [] for v in VARIANTS for s in SIZES}
+    for v in UNPACED:
+        lat[f"{v}_unpaced_256B"] = []
+    lost: dict[str, int] = dict.fromkeys(lat, 0)
+    cpu: dict[str, float] = dict.fromkeys(lat, 0.0)
+    try:
+        for v in VARIANTS:
+            mission_text = _mission_text(free_port(), free_port())
+            procs[v] = _Proc(v, mission_text)
+            procs[v].read()
+            askers[v] = _Asker(v, mission_text)
+        for v in VARIANTS:  # warm up: zenoh's routes, every segment touched once
+            for n in SIZES.values():
+                _run_block(procs[v], askers[v], v, n, 5, [], 0)
+        for rnd in range(rounds):
+            for s, n in SIZES.items():
+                for v in VARIANTS:
+                    print(f"round {rnd + 1}/{rounds} {v} {s} x{per_round}", file=sys.stderr)
+                    key = f"{v}_{s}"
+                    c, k = _run_block(procs[v], askers[v], v, n, per_round, lat[key], PERIOD_S)
+                    cpu[key] += c
+                    lost[key] += k
+            for v in UNPACED:  # back to back: the peer never sleeps long
+                key = f"{v}_unpaced_256B"
+                c, k = _run_block(procs[v], askers[v], v, SIZES["256B"], per_round, lat[key], 0)
+                cpu[key] += c
+                lost[key] += k
+    finally:
+        for a in askers.values():
+            a.close()
+        for p in procs.values():
+            p.close()
+        from zplatform.intrahost import remove_stale
+
+        remove_stale(PREFIX)
+        for path in _own_files():
+            try:
+                os.unlink(path)
+            except OSError:
+                pass
+
+    result: dict[str, dict[str, Any]] = {}
+    for key, samples in lat.items():
+        fig = summarize(samples, int(DEADLINE_S * 1e9))
+        fig["lost"] = lost[key]
+        fig["cpu_us_per_exchange"] = round(cpu[key] / max(1, len(samples)) * 1e6, 1)
+        result[key] = fig
+
+    def ratio(a: str, b: str, what: str = "p50_us") -> float | None:
+        pa, pb = result[a].get(what), result[b].get(what)
+        return round(pa / pb, 2) if pa and pb else None
+
+    ratios: dict[str, float | None] = {}
+    for v in UNPACED:
+        ratios[f"{v}_paced_over_unpaced_p50_256B"] = ratio(f"{v}_256B", f"{v}_unpaced_256B")
+    for s in SIZES:
+        ratios[f"waitset_over_listener_p50_{s}"] = ratio(
+            f"raw_iceoryx2_waitset_{s}", f"raw_iceoryx2_{s}"
+        )
+        ratios[f"waitset_over_listener_cpu_{s}"] = ratio(
+            f"raw_iceoryx2_waitset_{s}", f"raw_iceoryx2_{s}", "cpu_us_per_exchange"
+        )
+        ratios[f"carrier_over_raw_iceoryx2_p50_{s}"] = ratio(f"carrier_{s}", f"raw_iceoryx2_{s}")
+        ratios[f"carrier_over_raw_zenoh_p50_{s}"] = ratio(f"carrier_{s}", f"raw_zenoh_{s}")
+        ratios[f"raw_zenoh_over_raw_iceoryx2_p50_{s}"] = ratio(
+            f"raw_zenoh_{s}", f"raw_iceoryx2_{s}"
+        )
+        ratios[f"carrier_over_raw_zenoh_cpu_{s}"] = ratio(
+            f"carrier_{s}", f"raw_zenoh_{s}", "cpu_us_per_exchange"
+        )
+        ratios[f"carrier_over_raw_iceoryx2_cpu_{s}"] = ratio(
+            f"carrier_{s}", f"raw_iceoryx2_{s}", "cpu_us_per_exchange"
+        )
+    params = {
+        "quick": args.quick,
+        "scheduling": scheduling,
+        "sizes": SIZES,
+        "rounds": rounds,
+        "per_round": per_round,
+        "period_s": PERIOD_S,
+        "deadline_s": DEADLINE_S,
+        "ratios": ratios,
+        "targets": {"carrier_over_raw_iceoryx2_p50_256B": 1.3, "carrier_p50_256B_us": 150},
+        "notes": [
+            "round trip: trigger written to reply in the receiver's array, same size each way",
+            "cpu_us_per_exchange: both processes, every thread, user + system",
+            "deadline_miss_rate: replies at or after the zenoh sync's 2 ms deadline",
+            "lost: no reply within 1 s",
+        ],
+    }
+    doc = write_result("intrahost", params, result, args.json)
+    print(json.dumps(ratios, indent=1))
+    return doc
+
+
+def _run_block(
+    proc: _Proc, asker: _Asker, variant: str, n: int, count: int, out: list[int], period: float
+) -> tuple[float, int]:
+    """``count`` exchanges of ``n`` bytes paced at ``period``; returns (CPU s of
+    both ends, exchanges lost)."""
+    proc.send({"cmd": "serve", "n": count})
+    if variant == "raw_zenoh":
+        proc.read()  # its ack: the responder's CPU clock has started
+    c0 = _cpu_s()
+    lost = 0
+    t_next = time.monotonic()
+    for _ in range(count):
+        rt = asker.exchange(n)
+        if rt is None:
+            lost += 1
+        else:
+            out.append(rt)
+        if period:
+            t_next += period
+            while (left := t_next - time.monotonic()) > 0:
+                time.sleep(left)
+    mine = _cpu_s() - c0
+    if variant == "raw_zenoh":
+        proc.send({"cmd": "done"})
+    theirs = proc.read()
+    return mine + theirs["cpu_s"], lost
+
+
+def _own_files() -> list[str]:
+    import glob
+
+    return glob.glob(f"/dev/shm/{PREFIX}*") + glob.glob(
+        f"/tmp/iceoryx2/**/{PREFIX}*", recursive=True
+    )
+
+
+def argparse_hidden() -> str:
+    import argparse
+
+    return argparse.SUPPRESS
+
+
+if __name__ == "__main__":
+    main()
