@@ -27,7 +27,7 @@ from abc import ABC, abstractmethod
 from collections.abc import Callable
 from typing import Generic, Protocol, TypeVar
 
-from .auth import TAG_LEN, Channel
+from .auth import TAG_LEN, Channel, RunError
 from .codec import (
     bundle_entry,
     bundle_size,
@@ -177,6 +177,9 @@ class Intake(ABC, Generic[H]):
             return data
         try:
             fresh = self._fresh(ch.open(self._frame(data)), handle)
+        except RunError:  # another run's frame (an earlier run's replay): stale
+            self.stale += 1
+            return None
         except CodecError:  # a bad tag (AuthError), or an authentic frame that is none
             self.bad += 1
             return None
