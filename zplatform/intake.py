@@ -40,7 +40,7 @@ from .commands import RequestNumber, request_refusal
 from .config import Mission
 from .datavector import Layout
 from .errors import CodecError
-from .fencing import LOOP_MAX, TERM_MAX, ask_size, ask_stamp
+from .fencing import LOOP_MAX, TERM_MAX, any_run, ask_size, ask_stamp
 from .handoff import Mailbox, Waker
 from .messages import wildcard_sync_for
 
@@ -176,7 +176,8 @@ class Intake(ABC, Generic[H]):
         if ch is None:
             return data
         try:
-            fresh = self._fresh(ch.open(self._frame(data)), handle)
+            frame = self._frame(data)
+            fresh = self._fresh(ch.open(frame, any_run=self._any_run(frame)), handle)
         except RunError:  # another run's frame (an earlier run's replay): stale
             self.stale += 1
             return None
@@ -192,6 +193,11 @@ class Intake(ABC, Generic[H]):
     def _frame(self, data: bytes) -> bytes | memoryview:
         """The tagged frame in what arrived (CodecError if there is none)."""
         return data
+
+    def _any_run(self, frame: bytes | memoryview) -> bool:
+        """Whether ``frame`` may be of any run (zplatform.auth.Run): none, by
+        default; a probe's STATUS question (zplatform.fencing.any_run)."""
+        return False
 
     def _within_rate(self) -> bool:
         """Whether a frame of the right size may be read now (before any
@@ -353,6 +359,9 @@ class ProbeIntake(Intake[H]):
             return False
         self._tat_all = tat + self._every_all
         return True
+
+    def _any_run(self, frame: bytes | memoryview) -> bool:
+        return any_run(frame)
 
     def _fresh(self, body: memoryview, handle: H) -> bool | None:
         asker, t_ns = ask_stamp(body, self._askers)  # CodecError: no such asker (bad)

@@ -143,7 +143,7 @@ class ControlLogic:
         # This run's epoch: command requests must carry it (a request made
         # for an earlier run of the CN is refused, not replayed).
         dv.set("cn_epoch", epoch)
-        self.run = run = Run(epoch)
+        self.auth_run = run = Run(epoch)
         """The run this node's channels are bound to (zplatform.auth.Run): its
         ``cn_epoch``, followed by :meth:`adopt` (a resumed or mirrored vector
         brings its run), or learned by a standby's clock exchange with the
@@ -268,6 +268,8 @@ class ControlLogic:
         None: left as it is)."""
         self.loop = loop
         self.t_ns = t_ns
+        # The run is the vector's (a resumed or taken-over one's included).
+        self.auth_run.set(self._h_epoch.get())
         got = self._got
         frames = self._frames
         tr = trace.tracer
@@ -597,8 +599,8 @@ class ControlLogic:
         vector was still writing is written again, by this node
         (:meth:`ParamTable.adopt <zplatform.params.ParamTable.adopt>`). Does
         nothing before loop 1 (a fresh vector: every component starts as built).
-        The run (:attr:`run`) becomes the vector's ``cn_epoch`` whatever the loop."""
-        self.run.set(int(self._h_epoch.get()))
+        The run (:attr:`auth_run`) becomes the vector's ``cn_epoch`` whatever the loop."""
+        self.auth_run.set(int(self._h_epoch.get()))
         self.loop = int(self._h_loop.get())
         self.t_ns = t = int(self._h_time.get())
         if self.loop == 0:
@@ -733,7 +735,7 @@ class DeviceLogic:
         # exchange (zplatform.auth.Run): triggers and questions of another run
         # are refused. None: any run's (a test's logic, fed by its own CN).
         # An answer names the run of what it answers (_answering).
-        self.run = run
+        self.auth_run = run
         self._answering = Run()
         self._open: Channel | None = channel(keys, f"cn_to_{node}", run)
         self._seal: Channel | None = channel(keys, f"{node}_to_cn", self._answering)

@@ -188,7 +188,6 @@ def _learn_run(m: Mission, node: str, keys: KeySet, t0: int, run: Run | None = N
     return link.run
 
 
-
 class TriggerH(_IntakeCounts, Harness):
     """A DN's triggers (TriggerIntake), alone or in a wildcard sync bundle."""
 
@@ -497,9 +496,9 @@ class MirrorH(_IntakeCounts, Harness):
         # A standby that just started (a run of its own), told the
         # commander's by its clock exchange with it.
         sb = ControlLogic(m, keys=self.keys, epoch=t0 + 12345, name="cn_b")
-        _learn_run(m, "cn_b", self.keys, t0, sb.run)
+        _learn_run(m, "cn_b", self.keys, t0, sb.auth_run)
         self.sb = Standby(m, sb, self.keys)
-        self.intake = MirrorIntake(m, "cn_b", channel(self.keys, "mirror", sb.run))
+        self.intake = MirrorIntake(m, "cn_b", channel(self.keys, "mirror", sb.auth_run))
         self.max_len = self.intake.max_len
         self.n = 0
 

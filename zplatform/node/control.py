@@ -150,7 +150,7 @@ class ControlNode:
             mission.sync_timeout_ns,
             query_timeout_s=max(mission.period_ns / 1e9, 0.01),
             checks=[
-                ReplyCheck(mission, dn, channel(keys, f"{dn}_to_cn", self.logic.run))
+                ReplyCheck(mission, dn, channel(keys, f"{dn}_to_cn", self.logic.auth_run))
                 for dn in mission.device_nodes
             ],
             wildcard=wildcard_sync_for(mission),
@@ -201,7 +201,7 @@ class ControlNode:
             s,
             space.events(name),
             self.logic.events,
-            channel(keys, f"events_{name}", self.logic.run),
+            channel(keys, f"events_{name}", self.logic.auth_run),
             recorder=self.flight_recorder,
         )
         self._radio = _Radio(mission, s, space.downlink) if mission.downlink.ccsds else None
@@ -244,7 +244,7 @@ class ControlNode:
             # range, from the other node, newer in (term, loop); only then the
             # bounded mailbox, so junk and replays never displace a genuine one.
             self.mirror_intake = MirrorIntake(
-                mission, name, channel(keys, "mirror", self.logic.run)
+                mission, name, channel(keys, "mirror", self.logic.auth_run)
             )
             assert self.mirror_intake.box is not None
             self._mirrors: Mailbox[tuple[None, bytes]] = self.mirror_intake.box
@@ -287,7 +287,7 @@ class ControlNode:
                 self.clock.now_ns,
                 self.mission,
                 self.keys,
-                run=self.logic.run,
+                run=self.logic.auth_run,
             )
             self.liveness.add(self.clock_server.heartbeat)
 
@@ -534,7 +534,7 @@ class ControlNode:
         m = self.mission
         # The exchange also tells the commander's run, which this node's
         # channels take on (mirrors, probes; zplatform.auth.Run).
-        link = ClockLink(m, self.name, self.keys, run=self.logic.run)
+        link = ClockLink(m, self.name, self.keys, run=self.logic.auth_run)
         estimate = estimator_for(m.clock)
         while True:
             try:
