@@ -345,7 +345,7 @@ MASTER = bytes.fromhex("5a9c4e1f0b7d3a6e82c5f19d4b07e3a8c6d2f5910e8b4a7c3d6f1e0b
 NONCE = bytes(range(0xA0, 0xB0))
 CLOCK_QUERY = struct.Struct("<2sBB16sq")
 CLOCK_REPLY = struct.Struct("<2sBB16sqqq")
-RUN = T0 - 0x5A5A5A  # the CN's run (its cn_epoch: T0's high bits, 24 random low bits)
+RUN = T0 - 0x5A5A5A  # the CN's run (a cn_epoch: a clock reading, its low 24 bits random)
 
 
 def auth_messages(frame: bytes) -> list[tuple[str, str, str, int, bytes]]:

@@ -2,11 +2,16 @@
 
 With ``security.auth`` on (the default), every region frame, telemetry
 snapshot, command request, clock-sync exchange, probe, mirror and event
-record travels as ``frame || tag``: the first :data:`TAG_LEN` (16) bytes of
-keyed BLAKE3 or HMAC-SHA256 under a key derived per channel from its link's
-key, so a frame tagged for one channel fails on every other. Keys are per
+record travels as ``frame || tag``: the tag (:data:`TAG_LEN`, 24 bytes) is
+the sender's *run* (:data:`RUN_LEN` bytes) then 16 bytes of keyed BLAKE3 or
+HMAC-SHA256 under a key derived per channel from its link's key and bound
+to that run (:func:`run_key`), so a frame tagged for one channel fails on
+every other, and a receiver bound to a run (:class:`Run`: a device node's
+and the standby's, learned by their clock exchange; the control node's,
+its ``cn_epoch``) refuses every frame of another run (:class:`RunError`):
+a frame recorded in an earlier run never verifies again. Keys are per
 *link* and each host role holds only the links it speaks on
-(:func:`role_links`); replays within a channel are the receivers' to refuse.
+(:func:`role_links`); replays within a run are the receivers' to refuse.
 
 Holds :class:`Channel` (tags and checks one channel's frames: ``open``
 returns a view without copying or raises :class:`AuthError`; the check is
@@ -473,7 +478,7 @@ class _RunKey:
             return hmac.digest(self.key, frame, "sha256")[:MAC_LEN]
         h.reset()
         h.update(frame)
-        return h.digest(MAC_LEN)  # type: ignore[no-any-return]
+        return h.digest(MAC_LEN)
 
 
 class KeySet:

@@ -148,15 +148,15 @@ class DeviceNode:
         # The control node's run (zplatform.auth.Run), learned by the clock
         # exchange before the sync queryable is declared: triggers and probe
         # questions of another run (an earlier run's, replayed) are refused.
-        self.run = Run()
+        self.auth_run = Run()
         self.logic = DeviceLogic(
-            mission, name, stale_after_ns=mission.period_ns, keys=keys, run=self.run
+            mission, name, stale_after_ns=mission.period_ns, keys=keys, run=self.auth_run
         )
         self.dv = self.logic.dv
         self._keys = keys
         # The clock exchange, tagged with this node's link key; one thread
         # measures at a time (start-up, then the re-sync thread).
-        self.clock_link = ClockLink(mission, name, keys, run=self.run)
+        self.clock_link = ClockLink(mission, name, keys, run=self.auth_run)
         self.ns = NodeSession(mission, name, announce=False, lowlatency=lowlatency)
         # One estimator for the start-up sync, its residual and the re-syncs.
         self.estimate_offset = estimator_for(mission.clock)
@@ -246,7 +246,10 @@ class DeviceNode:
             res.estimator,
         )
         trigger_intake: TriggerIntake[zenoh.Query] = TriggerIntake(
-            m, self.name, channel(self._keys, f"cn_to_{self.name}", self.run), self.clock.now_ns
+            m,
+            self.name,
+            channel(self._keys, f"cn_to_{self.name}", self.auth_run),
+            self.clock.now_ns,
         )
         assert trigger_intake.box is not None
         self.sync = DeviceSync(
@@ -259,7 +262,7 @@ class DeviceNode:
             probes=(
                 ProbeIntake(
                     self.name,
-                    channel(self._keys, f"probe_cn_to_{self.name}", self.run),
+                    channel(self._keys, f"probe_cn_to_{self.name}", self.auth_run),
                     trigger_intake.box.waker,
                     period_ns=m.period_ns,
                     askers=len(m.control_nodes),
@@ -291,7 +294,7 @@ class DeviceNode:
             s,
             keys.events(self.name),
             self.logic.events,
-            channel(self._keys, f"events_{self.name}", self.run),
+            channel(self._keys, f"events_{self.name}", self.auth_run),
             recorder=self.flight_recorder,
         )
         if m.clock.resync_s > 0:
