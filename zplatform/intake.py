@@ -286,6 +286,12 @@ class TriggerIntake(_StampIntake[H]):
     def _frame(self, data: bytes) -> bytes | memoryview:
         return bundle_entry(data, self._index) if is_bundle(data) else data
 
+    def _any_run(self, frame: bytes | memoryview) -> bool:
+        # The warm-up (loop 0: answered, never run) of any run: a restarted
+        # control node warms up before it knows whether it resumes the run.
+        # DeviceLogic.trigger refuses any other loop of another run.
+        return frame_stamp(frame)[0] == 0
+
     def _ahead(self, t_ns: int, handle: H) -> bool:
         return t_ns - self._now() > self._max_ahead
 

@@ -26,7 +26,7 @@ from collections.abc import Sequence
 from typing import Any, Protocol
 
 from . import trace
-from .auth import RUN_LEN, TAG_LEN, AuthError, Channel, KeySet, Run, channel
+from .auth import RUN_LEN, TAG_LEN, AuthError, Channel, KeySet, Run, RunError, channel
 from .boards import Board, HealthCounters, safe_board
 from .boards.world import node_board
 from .codec import Frame, RegionCodec, bundle_entry, is_bundle
@@ -867,12 +867,18 @@ class DeviceLogic:
             if is_bundle(payload):  # a wildcard query: this node's frame from the bundle
                 payload = bundle_entry(payload, self._index)
             ch = self._open
-            body = payload if ch is None else ch.strip(payload) if authentic else ch.open(payload)
-            if ch is not None:
-                self._answer_run_of(payload)
+            body = (
+                payload
+                if ch is None
+                else ch.strip(payload)
+                if authentic
+                else ch.open(payload, any_run=True)
+            )
             if tr is not None:
                 tr.mark("dn.opened")
             frame = self._in.check(body)
+            if ch is not None:
+                self._run_of_trigger(payload, frame.seq)
             if tr is not None:
                 tr.mark("dn.decoded")
             # Authentic from here on.
@@ -1005,6 +1011,20 @@ class DeviceLogic:
         self._h_term_seen.set(guard.seen(now_ns))
         reply = self._out.encode(frame.seq, now_ns)
         return self._seal.seal_tail(reply) if self._seal is not None else reply
+
+    def _run_of_trigger(self, payload: bytes | bytearray | memoryview, loop: int) -> None:
+        """Answer in the run of the authentic trigger ``payload``; RunError
+        (a CodecError) when it is of another run than this node's and not
+        the warm-up (loop 0: answered, never run, changes nothing; a
+        restarted control node sends it before it knows whether it resumes
+        the run, zplatform.role)."""
+        self._answer_run_of(payload)
+        run = self.auth_run
+        if run is not None and loop > 0 and self._answering.epoch != run.epoch:
+            raise RunError(
+                f"cn_to_{self.node}: a trigger of run {self._answering.epoch}, not of this "
+                f"run ({run.epoch})"
+            )
 
     def _answer_run_of(self, payload: bytes | bytearray | memoryview) -> None:
         """Answer in the run of the authentic ``payload`` (its tag's run word;

@@ -116,3 +116,31 @@ def test_the_control_logic_follows_its_vectors_run() -> None:
     assert resumed.auth_run.epoch == NEW
     assert Channel.run_of(_trigger(resumed, 2)) == NEW
     assert Run().epoch == NO_RUN and not Run().known
+
+
+def test_a_restarted_control_nodes_warm_up_is_answered_in_its_run_then_it_resumes() -> None:
+    """A control node restarted in flight has a new run (NEW) until it
+    resumes the device nodes' (OLD, its recorder's): its warm-up (loop 0,
+    answered, never run) is answered in NEW at the intake and by the
+    logic, so it learns where they are; its loop 1 of NEW is not run; once
+    it has adopted the recorded vector, its triggers are of OLD again and run."""
+    intake: TriggerIntake[None] = TriggerIntake(
+        FLIGHT, "dn0", KEYS.for_node("dn0").channel("cn_to_dn0", Run(OLD)), lambda: at(0)
+    )
+    dn = DeviceLogic(FLIGHT, "dn0", keys=KEYS.for_node("dn0"), run=Run(OLD))
+    first = _cn(OLD)
+    assert dn.trigger(_trigger(first, 1), at(1)) is not None and dn.triggered == 1
+    restarted = _cn(NEW)
+    warm = bytes(restarted.begin(0, at(2))[0])
+    assert intake.admit(Bytes(warm), None)
+    reply = dn.trigger(warm, at(2), authentic=True)
+    assert reply is not None and dn.triggered == 0 and Channel.run_of(reply) == NEW
+    restarted.reply(0, reply)
+    assert restarted.replied[0]
+    assert dn.trigger(_trigger(restarted, 3), at(3)) is None and dn.triggered == 0
+    assert not intake.admit(Bytes(_trigger(restarted, 4)), None)
+    assert intake.take_counts() == (0, 0, 1)
+    restarted.dv.write_all(bytes(first.dv.view()))
+    restarted.adopt()
+    reply = dn.trigger(_trigger(restarted, 5), at(5))
+    assert reply is not None and dn.triggered == 5 and Channel.run_of(reply) == OLD
