@@ -399,7 +399,8 @@ class MirrorIntake(Intake[None]):
     displaces a genuine one nor reaches a commander's check for a newer
     term: it cannot make a commander stand down. (A mirror recorded in an
     earlier run of the same keys is another matter: its term and loop may
-    be above this run's; binding the keys to the run is what refuses it.)
+    be above this run's: the channel is bound to the run, zplatform.auth.Run,
+    and refuses it as stale.)
     Its mailbox keeps :data:`MIRRORS` frames."""
 
     def __init__(self, mission: Mission, node: str, channel: Channel | None) -> None:
