@@ -201,6 +201,10 @@ class ClockLink:
     def refused(self) -> int:
         return self.refused_bad + self.refused_other
 
+    def forget(self) -> None:
+        """Make the next query a hello (module doc): the run may have changed."""
+        self._answered = False
+
 
 def _believable(t1: int, t2: int, t3: int, sent: tuple[bytes, int], nonce: bytes) -> bool:
     """Whether a reply's times can be the CN's answer to the query sent."""

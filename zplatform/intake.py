@@ -139,6 +139,11 @@ class Intake(ABC, Generic[H]):
         self.size = 0
         self.bad = 0
         self.stale = 0
+        self.on_other_run: Callable[[], None] | None = None
+        """Called (on zenoh's thread: it must not block) for each genuine
+        frame of another run (zplatform.auth.RunError): a device node's cue
+        to ask its clock exchange for the run now (the control node may
+        have started a new one)."""
 
     @property
     def authenticates(self) -> bool:
@@ -178,8 +183,10 @@ class Intake(ABC, Generic[H]):
         try:
             frame = self._frame(data)
             fresh = self._fresh(ch.open(frame, any_run=self._any_run(frame)), handle)
-        except RunError:  # another run's frame (an earlier run's replay): stale
+        except RunError:  # another run's genuine frame (an earlier run's replay): stale
             self.stale += 1
+            if self.on_other_run is not None:
+                self.on_other_run()
             return None
         except CodecError:  # a bad tag (AuthError), or an authentic frame that is none
             self.bad += 1

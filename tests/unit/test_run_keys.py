@@ -144,3 +144,20 @@ def test_a_restarted_control_nodes_warm_up_is_answered_in_its_run_then_it_resume
     restarted.adopt()
     reply = dn.trigger(_trigger(restarted, 5), at(5))
     assert reply is not None and dn.triggered == 5 and Channel.run_of(reply) == OLD
+
+
+def test_a_genuine_trigger_of_another_run_cues_the_device_node_to_ask_the_run() -> None:
+    """The intake calls on_other_run for a genuine frame of another run
+    (the device node then asks its clock exchange for the run: the control
+    node may have started a new one), never for junk or this run's frames."""
+    cues: list[int] = []
+    intake: TriggerIntake[None] = TriggerIntake(
+        FLIGHT, "dn0", KEYS.for_node("dn0").channel("cn_to_dn0", Run(NEW))
+    )
+    intake.on_other_run = lambda: cues.append(1)
+    old = _trigger(_cn(OLD), 5)
+    assert not intake.admit(Bytes(old), None) and cues == [1]
+    junk = old[:-1] + bytes([old[-1] ^ 1])
+    assert not intake.admit(Bytes(junk), None) and cues == [1]
+    assert intake.admit(Bytes(_trigger(_cn(NEW), 1)), None) and cues == [1]
+    assert intake.take_counts() == (0, 1, 1)

@@ -55,6 +55,9 @@ log = logging.getLogger("zplatform.dn")
 
 TIMEOUT_EVENT_EVERY_NS = 1_000_000_000
 """A ``clock_timeout`` event at most this often (the counter counts every one)."""
+RELEARN_S = 1.0
+"""At most one clock re-sync this often on a genuine trigger of another run
+(the control node may have started a new one; zplatform.auth.Run)."""
 
 
 class ClockTally:
@@ -177,6 +180,7 @@ class DeviceNode:
         self._events: EventPublisher | None = None
         self.flight_recorder: FlightRecorder | None = None
         self._resync: threading.Thread | None = None
+        self._relearn = threading.Event()  # set: re-sync now, the run may be new
         # Every thread this node runs checks in (zplatform.health).
         self.liveness = Liveness(thread_deadlines_ns(mission))
         self._loop_hb = self.liveness.add(Heartbeat("loop"))
@@ -252,6 +256,10 @@ class DeviceNode:
             self.clock.now_ns,
         )
         assert trigger_intake.box is not None
+        # A genuine trigger of another run: the control node may have started
+        # a new one; the re-sync thread asks the run now (at most once a
+        # RELEARN_S), not at its next re-sync.
+        trigger_intake.on_other_run = self._relearn.set
         self.sync = DeviceSync(
             s,
             keys,
@@ -338,7 +346,22 @@ class DeviceNode:
             return now_ns()
 
         hb.idle()
-        while not self.stop.event.wait(m.clock.resync_s):
+        last_relearn = -RELEARN_S
+        while True:
+            nudged = self._relearn.wait(m.clock.resync_s)
+            if self.stop.is_set():
+                return
+            if nudged:
+                # A trigger of another run (intake.on_other_run): ask with a
+                # hello, whose answer tells the run, at most once a RELEARN_S
+                # (a replay of an earlier run's triggers costs one exchange
+                # series a RELEARN_S, never more).
+                wait_s = last_relearn + RELEARN_S - time.monotonic()
+                if wait_s > 0 and self.stop.event.wait(wait_s):
+                    return
+                self._relearn.clear()
+                last_relearn = time.monotonic()
+                self.clock_link.forget()
             hb.beat()
             if self.logic.run_ended:
                 # Nobody serves the clock between runs: no measurement, and no
@@ -479,6 +502,7 @@ class DeviceNode:
         if self.bulk is not None:
             self.bulk.close()
         if self._resync is not None:
+            self._relearn.set()  # wakes it to see the stop
             self._resync.join(timeout=2)
         if self.watchdog is not None:
             # A loop that ended in an exception leaves the watchdog armed.
