@@ -10,10 +10,12 @@ The frames come from ``vectors/mission.yaml`` through the platform's own
 element by element, with ``struct``, not from the Data Vector.
 
 ``vectors/auth/`` holds the tags (FORMAT.md §6.1, §6.3, §8.1): a region
-frame, a clock query and its reply, and an event record, each tagged under
-both MACs with keys derived from a published master key (never a real
-key: the platform refuses it). Each ``<mac>_<what>.bin`` is the message
-with its tag; its ``.json`` gives every key and context string on the way.
+frame, a clock query (a hello naming no run, and one naming the run) and
+its reply, and an event record, each tagged under both MACs with keys
+derived from a published master key (never a real key: the platform
+refuses it), in the control node's run ``RUN`` (the hello in run 0).
+Each ``<mac>_<what>.bin`` is the message with its tag; its ``.json``
+gives every key and context string on the way.
 
 ``tests/unit/test_golden_vectors.py`` decodes and re-encodes every vector and
 never regenerates them. Regenerating changes pinned bytes: do it only for a
@@ -39,7 +41,7 @@ MISSION = VECTORS / "mission.yaml"
 sys.path.insert(0, str(HERE.parent))  # run from a checkout without installing
 
 from zplatform import DataVector, ElementSpec, Layout, RegionCodec, load_mission  # noqa: E402
-from zplatform.auth import MACS, Channel, KeySet, channel_key, link_of  # noqa: E402
+from zplatform.auth import MACS, NO_RUN, Channel, KeySet, Run, channel_key, link_of, run_key  # noqa: E402
 from zplatform.datavector import _region_descriptor  # noqa: E402
 from zplatform.events import Event, Severity, encode_event  # noqa: E402
 
@@ -343,26 +345,37 @@ MASTER = bytes.fromhex("5a9c4e1f0b7d3a6e82c5f19d4b07e3a8c6d2f5910e8b4a7c3d6f1e0b
 NONCE = bytes(range(0xA0, 0xB0))
 CLOCK_QUERY = struct.Struct("<2sBB16sq")
 CLOCK_REPLY = struct.Struct("<2sBB16sqqq")
+RUN = T0 - 0x5A5A5A  # the CN's run (a cn_epoch: a clock reading, its low 24 bits random)
 
 
-def auth_messages(frame: bytes) -> list[tuple[str, str, str, bytes]]:
-    """``(what, channel, description, message)`` of every tagged vector."""
+def auth_messages(frame: bytes) -> list[tuple[str, str, str, int, bytes]]:
+    """``(what, channel, description, run, message)`` of every tagged vector."""
     event = Event("cn", 0, T0, int(Severity.COMMAND), "cmd_accepted", "command LAUNCH #2 accepted")
+    query = CLOCK_QUERY.pack(b"ZQ", 1, 0, NONCE, T0)
     return [
-        ("cn_to_dn0", "cn_to_dn0", "vector scalars_typical as a trigger to dn0", frame),
+        ("cn_to_dn0", "cn_to_dn0", "vector scalars_typical as a trigger to dn0", RUN, frame),
+        (
+            "clock_hello_dn0",
+            "clock_dn0_to_cn",
+            "dn0's first clock query, naming no run (a hello): nonce a0..af, t1 = T0",
+            NO_RUN,
+            query,
+        ),
         (
             "clock_query_dn0",
             "clock_dn0_to_cn",
-            "dn0's clock query: nonce a0..af, t1 = T0",
-            CLOCK_QUERY.pack(b"ZQ", 1, 0, NONCE, T0),
+            "the same query naming the run dn0 knows",
+            RUN,
+            query,
         ),
         (
             "clock_reply_dn0",
             "clock_cn_to_dn0",
-            "the CN's reply to it: t2 = T0 + 1.5 ms, t3 = T0 + 1.52 ms",
+            "the CN's reply to either: t2 = T0 + 1.5 ms, t3 = T0 + 1.52 ms, in its run",
+            RUN,
             CLOCK_REPLY.pack(b"ZR", 1, 0, NONCE, T0, T0 + 1_500_000, T0 + 1_520_000),
         ),
-        ("events_cn", "events_cn", "an event record of the CN", encode_event(event)),
+        ("events_cn", "events_cn", "an event record of the CN", RUN, encode_event(event)),
     ]
 
 
@@ -372,11 +385,11 @@ def write_auth_vectors(mission: object, frame: bytes) -> None:
     keys = KeySet.from_master(mission, MASTER)  # type: ignore[arg-type]
     written = set()
     for mac in MACS:
-        for what, name, description, body in auth_messages(frame):
+        for what, name, description, run, body in auth_messages(frame):
             link = link_of(name)
             link_key = keys.link_key(link)
             ch_key = channel_key(link_key, vehicle, mac, name)
-            sealed = bytes(Channel(link_key, vehicle, name, mac).seal(body))
+            sealed = bytes(Channel(link_key, vehicle, name, mac, Run(run)).seal(body))
             vec = f"{mac}_{what}"
             doc = {
                 "name": vec,
@@ -390,6 +403,9 @@ def write_auth_vectors(mission: object, frame: bytes) -> None:
                 "channel": name,
                 "channel_context": f"zplatform/2/{vehicle}/{mac}/{name}",
                 "channel_key_hex": ch_key.hex(),
+                "run": run,
+                "run_word_hex": run.to_bytes(8, "little").hex(),
+                "run_key_hex": run_key(ch_key, run).hex(),
                 "message_size": len(body),
                 "message_hex": body.hex(),
                 "tag_hex": sealed[len(body) :].hex(),

@@ -2,11 +2,16 @@
 
 With ``security.auth`` on (the default), every region frame, telemetry
 snapshot, command request, clock-sync exchange, probe, mirror and event
-record travels as ``frame || tag``: the first :data:`TAG_LEN` (16) bytes of
-keyed BLAKE3 or HMAC-SHA256 under a key derived per channel from its link's
-key, so a frame tagged for one channel fails on every other. Keys are per
+record travels as ``frame || tag``: the tag (:data:`TAG_LEN`, 24 bytes) is
+the sender's *run* (:data:`RUN_LEN` bytes) then 16 bytes of keyed BLAKE3 or
+HMAC-SHA256 under a key derived per channel from its link's key and bound
+to that run (:func:`run_key`), so a frame tagged for one channel fails on
+every other, and a receiver bound to a run (:class:`Run`: a device node's
+and the standby's, learned by their clock exchange; the control node's,
+its ``cn_epoch``) refuses every frame of another run (:class:`RunError`):
+a frame recorded in an earlier run never verifies again. Keys are per
 *link* and each host role holds only the links it speaks on
-(:func:`role_links`); replays within a channel are the receivers' to refuse.
+(:func:`role_links`); replays within a run are the receivers' to refuse.
 
 Holds :class:`Channel` (tags and checks one channel's frames: ``open``
 returns a view without copying or raises :class:`AuthError`; the check is
@@ -28,6 +33,7 @@ import secrets
 import stat
 from collections.abc import Mapping
 from pathlib import Path
+from typing import Any
 
 import blake3
 
@@ -38,11 +44,16 @@ __all__ = [
     "KEY_ENV",
     "KEY_FILE_ENV",
     "MACS",
+    "MAC_LEN",
+    "NO_RUN",
+    "RUN_LEN",
     "TAG_LEN",
     "AuthError",
     "Channel",
     "KeyError_",
     "KeySet",
+    "Run",
+    "RunError",
     "channel",
     "channel_key",
     "check_key",
@@ -51,14 +62,26 @@ __all__ = [
     "key_file_name",
     "link_of",
     "load_keys",
+    "new_run_epoch",
     "read_key_file",
     "role_host",
     "role_links",
+    "run_key",
     "write_key_set",
 ]
 
-TAG_LEN = 16
-"""Bytes of tag per frame (a MAC truncated to 128 bits, as RFC 4868's HMAC-SHA-256-128)."""
+RUN_LEN = 8
+"""Bytes of the run word that opens every tag (codecs/FORMAT.md §6.1): the
+sender's run (the control node's ``cn_epoch``, little-endian), or
+:data:`NO_RUN`."""
+MAC_LEN = 16
+"""Bytes of MAC per frame (truncated to 128 bits, as RFC 4868's HMAC-SHA-256-128)."""
+TAG_LEN = RUN_LEN + MAC_LEN
+"""Bytes of tag per frame: the run word, then the MAC under the run's key."""
+NO_RUN = 0
+"""The run of a sender that knows none (a node before its first clock
+exchange, the ground): its frames are tagged under the run-0 key, which
+only a receiver that is bound to no run takes (:class:`Run`)."""
 KEY_ENV = "ZPLATFORM_KEY"
 KEY_FILE_ENV = "ZPLATFORM_KEY_FILE"
 KEY_LEN = 32
@@ -81,6 +104,12 @@ _KNOWN_TEST_KEYS = frozenset(
 class AuthError(CodecError):
     """A frame without a valid tag for its channel: never applied, counted
     as a bad frame like any other malformed input."""
+
+
+class RunError(AuthError):
+    """A frame tagged for another run than the receiver's (or before the
+    receiver knows its run): refused before its MAC is computed. Receivers
+    count it as stale (an earlier run's frame is a replay), not as bad."""
 
 
 class KeyError_(ZPlatformError):
@@ -223,6 +252,61 @@ def _derive(key: bytes, context: str) -> bytes:
     return hmac.digest(key, context.encode(), "sha256")
 
 
+def run_key(ch_key: bytes, run: int) -> bytes:
+    """The key of a channel in run ``run`` (codecs/FORMAT.md §6.1):
+    HMAC-SHA256(channel_key, "zplatform/2/run/" || run as u64 little-endian)."""
+    return hmac.digest(ch_key, _RUN_CONTEXT + _run_word(run), "sha256")
+
+
+def _run_word(run: int) -> bytes:
+    return (run & _U64).to_bytes(RUN_LEN, "little")
+
+
+_RUN_CONTEXT = (_PREFIX + "run/").encode()
+_U64 = (1 << 64) - 1
+_RUN_LOW_BITS = 24
+
+
+def new_run_epoch(now_ns: int) -> int:
+    """A control node's new run: its clock ``now_ns`` with the low 24 bits
+    (17 ms) replaced by random ones, never :data:`NO_RUN`. Runs started
+    more than 17 ms apart keep their clocks' order (the ground orders
+    telemetry by run); two runs on a clock that repeats (a host without a
+    real-time clock, reset at every boot) still differ but with chance
+    2**-24, so an earlier run's frames do not verify in the new one."""
+    mask = (1 << _RUN_LOW_BITS) - 1
+    run = ((now_ns & ~mask) | secrets.randbits(_RUN_LOW_BITS)) & _U64
+    return run or 1
+
+
+class Run:
+    """The run a node's channels are bound to (module doc), shared by every
+    :class:`Channel` of the node that names it: ``epoch`` (a u64; 0, i.e.
+    :data:`NO_RUN`, while unknown) and ``word``, its :data:`RUN_LEN` bytes
+    as the tag carries them. :meth:`set` is the one writer (the loop thread
+    following ``cn_epoch``, or the clock exchange that learned it); each
+    channel re-keys once when it sees a new run, never per frame. Reading
+    from other threads is safe (one attribute read)."""
+
+    __slots__ = ("epoch", "word")
+
+    def __init__(self, epoch: int = NO_RUN) -> None:
+        self.epoch = NO_RUN
+        self.word = _run_word(NO_RUN)
+        self.set(epoch)
+
+    def set(self, epoch: int) -> None:
+        """Bind to run ``epoch`` (allocates only when it changes)."""
+        if epoch != self.epoch:
+            # One assignment publishes both: readers take (epoch, word) via .word.
+            self.word = _run_word(epoch)
+            self.epoch = epoch
+
+    @property
+    def known(self) -> bool:
+        return self.epoch != NO_RUN
+
+
 def channel_key(link_key: bytes, vehicle: str, mac: str, name: str) -> bytes:
     """The key of channel ``name`` (codecs/FORMAT.md §6.1): the MAC's name is
     part of it, so peers configured with different MACs never agree on a tag."""
@@ -233,40 +317,59 @@ class Channel:
     """Tags and checks the frames of one channel (module doc).
 
     ``link_key``: the key of the channel's link; ``mac``: ``blake3`` or
-    ``hmac-sha256``. :meth:`seal` copies the frame into this channel's own
-    buffer and tags it there (the buffer is overwritten by the next call;
-    resized only if the frame length changes); :meth:`seal_tail` tags a
-    frame in the buffer that carries it, without copying it (a sender that
-    frames into a :class:`~zplatform.codec.FrameEncoder` with ``tail``
-    room: what the loops do, whose frames are up to the whole Data Vector).
-    :meth:`open` returns a view of the frame inside ``payload`` (no copy) or
-    raises AuthError; :meth:`strip` is the same view for a payload whose tag
-    this channel's key was already checked on. :meth:`tag` allocates only
-    the tag's 16 bytes. Not thread-safe (the BLAKE3 hasher is kept and reset
+    ``hmac-sha256``; ``run``: the :class:`Run` this end is bound to (None:
+    bound to none). A tag is the run word then the MAC under the run's key
+    (:func:`run_key`, codecs/FORMAT.md §6.1). Sending, the run word is
+    ``run``'s (:data:`NO_RUN` without one). Receiving, a channel bound to a
+    run takes only frames of that run: another run's (or any while its run
+    is unknown) is refused, as :class:`RunError` when its MAC checks under
+    the key of the run it names (an earlier run's genuine frame, replayed:
+    stale) and AuthError when not (junk: bad); an unbound channel (the
+    ground's) takes any run's frame whose MAC checks under that run's key.
+    The keys of this end's run and of the last other run seen are kept, so
+    re-keying (one HMAC) happens once per run, not per frame (a flood of
+    frames each naming a new run costs one HMAC each on top of the MAC).
+
+    :meth:`seal` copies the frame into this channel's own buffer and tags it
+    there (the buffer is overwritten by the next call; resized only if the
+    frame length changes); :meth:`seal_tail` tags a frame in the buffer that
+    carries it, without copying it (a sender that frames into a
+    :class:`~zplatform.codec.FrameEncoder` with ``tail`` room: what the
+    loops do, whose frames are up to the whole Data Vector). :meth:`open`
+    returns a view of the frame inside ``payload`` (no copy) or raises
+    AuthError; :meth:`strip` is the same view for a payload whose tag this
+    channel's key was already checked on. :meth:`tag` allocates only the
+    tag's 24 bytes. Not thread-safe (the BLAKE3 hasher is kept and reset
     per frame): one per sending or receiving thread.
     """
 
-    __slots__ = ("_buf", "_hasher", "_key", "mac", "name", "tag")
+    __slots__ = ("_buf", "_main", "_other", "mac", "name", "run")
 
-    def __init__(self, link_key: bytes, vehicle: str, name: str, mac: str = "blake3") -> None:
+    def __init__(
+        self,
+        link_key: bytes,
+        vehicle: str,
+        name: str,
+        mac: str = "blake3",
+        run: Run | None = None,
+    ) -> None:
         if mac not in MACS:
             raise ValueError(f"unknown MAC {mac!r}; one of {', '.join(MACS)}")
         self.name = name
         self.mac = mac
-        self._key = channel_key(link_key, vehicle, mac, name)
+        self.run = run
+        base = channel_key(link_key, vehicle, mac, name)
         self._buf = bytearray()
-        self._hasher = blake3.blake3(key=self._key) if mac == "blake3" else None
-        self.tag = self._tag_blake3 if mac == "blake3" else self._tag_hmac
+        # Two run keys: this end's run's, and the last other run seen (to
+        # tell an earlier run's authentic frame, stale, from junk, bad).
+        self._main = _RunKey(base, mac)
+        self._other = _RunKey(base, mac)
 
-    def _tag_blake3(self, frame: bytes | bytearray | memoryview) -> bytes:
-        h = self._hasher
-        assert h is not None
-        h.reset()
-        h.update(frame)
-        return h.digest(TAG_LEN)
-
-    def _tag_hmac(self, frame: bytes | bytearray | memoryview) -> bytes:
-        return hmac.digest(self._key, frame, "sha256")[:TAG_LEN]
+    def tag(self, frame: bytes | bytearray | memoryview) -> bytes:
+        """The tag of ``frame`` in this channel's sending run: run word and MAC."""
+        run = self.run
+        k = self._main.use(run.word if run is not None else _NO_WORD)
+        return k.word + k.mac(frame)
 
     def seal(self, frame: bytes | bytearray | memoryview) -> bytearray:
         n = len(frame)
@@ -274,8 +377,14 @@ class Channel:
             self._buf = bytearray(n + TAG_LEN)
         buf = self._buf
         buf[:n] = frame
-        buf[n:] = self.tag(frame)
+        self._seal_at(memoryview(buf), n)
         return buf
+
+    def _seal_at(self, mv: memoryview, n: int) -> None:
+        run = self.run
+        k = self._main.use(run.word if run is not None else _NO_WORD)
+        mv[n : n + RUN_LEN] = k.word
+        mv[n + RUN_LEN :] = k.mac(mv[:n])
 
     def seal_tail(self, buf: bytearray) -> bytearray:
         """Tag the frame that fills ``buf`` but for its last :data:`TAG_LEN`
@@ -286,7 +395,7 @@ class Channel:
         n = len(mv) - TAG_LEN
         if n <= 0:
             raise ValueError(f"{self.name}: {len(mv)} bytes hold no frame and tag")
-        mv[n:] = self.tag(mv[:n])
+        self._seal_at(mv, n)
         return buf
 
     def strip(self, payload: bytes | bytearray | memoryview) -> memoryview:
@@ -300,18 +409,76 @@ class Channel:
             raise AuthError(f"{self.name}: {len(mv)} bytes, too short to carry a tag")
         return mv[:n]
 
-    def open(self, payload: bytes | bytearray | memoryview) -> memoryview:
+    @staticmethod
+    def run_of(payload: bytes | bytearray | memoryview) -> int:
+        """The run a tagged ``payload`` names (not checked; 0 when too short)."""
+        mv = memoryview(payload)
+        n = len(mv) - TAG_LEN
+        return int.from_bytes(mv[n : n + RUN_LEN], "little") if n > 0 else NO_RUN
+
+    def open(self, payload: bytes | bytearray | memoryview, *, any_run: bool = False) -> memoryview:
+        """The frame in ``payload`` (a view, no copy) if its tag checks (class
+        doc); RunError for another run's frame on a bound channel, AuthError
+        for any other bad tag. ``any_run``: take any run's frame, even on a
+        bound channel (a clock reply that echoes this end's fresh nonce: how
+        a node learns its run, :mod:`zplatform.clocksync`)."""
         mv = memoryview(payload)
         n = len(mv) - TAG_LEN
         if n <= 0:
             raise AuthError(f"{self.name}: {len(mv)} bytes, too short to carry a tag")
+        word = mv[n : n + RUN_LEN]
         body = mv[:n]
-        if not hmac.compare_digest(self.tag(body), mv[n:]):
-            raise AuthError(
-                f"{self.name}: bad authentication tag (wrong key, forged, or a peer with "
-                f"another security.mac; this node's is {self.mac})"
-            )
-        return body
+        run = self.run
+        if run is not None and not any_run and word != run.word:
+            # Another run's: refused either way. Its MAC (under that run's
+            # key, kept for the next one) tells a replay from junk.
+            if hmac.compare_digest(self._other.use(word).mac(body), mv[n + RUN_LEN :]):
+                got = int.from_bytes(word, "little")
+                raise RunError(
+                    f"{self.name}: a frame of run {got}, not of this run ({run.epoch})"
+                    if run.known
+                    else f"{self.name}: a frame of run {got} before this node knows its run"
+                )
+        elif hmac.compare_digest(self._main.use(word).mac(body), mv[n + RUN_LEN :]):
+            return body
+        raise AuthError(
+            f"{self.name}: bad authentication tag (wrong key, forged, or a peer with "
+            f"another security.mac; this node's is {self.mac})"
+        )
+
+
+_NO_WORD = _run_word(NO_RUN)
+
+
+class _RunKey:
+    """A channel's key in one run (:func:`run_key`) and its MAC; re-keyed
+    only when asked for another run (:meth:`use`)."""
+
+    __slots__ = ("_base", "_blake3", "hasher", "key", "word")
+
+    def __init__(self, base: bytes, mac: str) -> None:
+        self._base = base
+        self._blake3 = mac == "blake3"
+        self.word = b""
+        self.key = b""
+        self.hasher: Any = None
+
+    def use(self, word: bytes | memoryview) -> _RunKey:
+        if word != self.word:
+            w = bytes(word)
+            self.key = hmac.digest(self._base, _RUN_CONTEXT + w, "sha256")
+            if self._blake3:
+                self.hasher = blake3.blake3(key=self.key)
+            self.word = w
+        return self
+
+    def mac(self, frame: bytes | bytearray | memoryview) -> bytes:
+        h = self.hasher
+        if h is None:
+            return hmac.digest(self.key, frame, "sha256")[:MAC_LEN]
+        h.reset()
+        h.update(frame)
+        return h.digest(MAC_LEN)
 
 
 class KeySet:
@@ -370,10 +537,10 @@ class KeySet:
                 f"{', '.join(self._keys) or 'none'})"
             ) from None
 
-    def channel(self, name: str) -> Channel:
-        """A new :class:`Channel` for ``name``, keyed by its link; KeyError_
-        when the link is not held."""
-        return Channel(self.link_key(link_of(name)), self.vehicle, name, self.mac)
+    def channel(self, name: str, run: Run | None = None) -> Channel:
+        """A new :class:`Channel` for ``name``, keyed by its link and bound to
+        ``run`` (None: to none); KeyError_ when the link is not held."""
+        return Channel(self.link_key(link_of(name)), self.vehicle, name, self.mac, run)
 
     def for_node(self, role: str) -> KeySet:
         """The keys host role ``role`` holds, taken from these; KeyError_ (one
@@ -392,10 +559,10 @@ class KeySet:
         )
 
 
-def channel(keys: KeySet | None, name: str) -> Channel | None:
-    """``keys.channel(name)``, or None when the mission does not authenticate
-    (``keys`` None): what every node builds its channels with."""
-    return keys.channel(name) if keys is not None else None
+def channel(keys: KeySet | None, name: str, run: Run | None = None) -> Channel | None:
+    """``keys.channel(name, run)``, or None when the mission does not
+    authenticate (``keys`` None): what every node builds its channels with."""
+    return keys.channel(name, run) if keys is not None else None
 
 
 # -- key files ------------------------------------------------------------------------

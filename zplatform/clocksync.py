@@ -10,6 +10,18 @@ nonce is the exchange's is taken, any other refused and counted, and an
 exchange without one is a counted timeout (:attr:`ClockLink.timeouts`).
 An exchange never waits past its timeout.
 
+The exchange is also how a node learns the control node's *run*, the one
+every key is bound to (:class:`zplatform.auth.Run`), from a frame that
+cannot be a replay: the reply is tagged under the run's key, names the run,
+and echoes the asker's fresh nonce. A query names the run the asker knows
+(then the server answers only a query of its own run: an earlier run's,
+replayed, is refused unanswered), or none (:data:`~zplatform.auth.NO_RUN`,
+a *hello*: before the asker knows the run, or after an exchange that got no
+answer, as when the control node started a new run). A hello is answered
+as any query (stateless, like a SYN cookie: the answer only tells the run
+and the time, bound to a nonce only the asker knows), so a replayed hello
+tells an eavesdropper what it could read from any frame's run word.
+
 Over many exchanges the fastest ``keep_fraction`` are kept and their median
 offset (CN clock minus DN clock) is the estimate: :func:`estimate_offset`
 (``node_clock``, the node clocks read in Python) or
@@ -36,7 +48,7 @@ from typing import Protocol
 import zenoh
 
 from . import queries
-from .auth import TAG_LEN, AuthError, Channel, KeySet, channel
+from .auth import NO_RUN, TAG_LEN, AuthError, Channel, KeySet, Run, RunError, channel, new_run_epoch
 from .config import ClockConfig, Mission
 from .errors import ClockSyncError
 from .handoff import Mailbox
@@ -119,27 +131,38 @@ class ClockLink:
     estimating thread at a time; the counters may be read from any thread.
     """
 
-    def __init__(self, mission: Mission, dn: str, keys: KeySet | None) -> None:
+    def __init__(
+        self, mission: Mission, dn: str, keys: KeySet | None, run: Run | None = None
+    ) -> None:
         self.dn = dn
+        # run: where the run learned goes (the node's, which its channels are
+        # bound to); _asking: the run the next query names (module doc).
+        self.run = run if run is not None else Run()
+        self._asking = Run()
+        self._answered = False
         if dn in mission.control_nodes:
             # A control node that does not command (the standby) sets its clock
             # by the commander's, over the link between the two.
             self.index = PEER_INDEX
-            self._seal = channel(keys, "clock_peer_to_cn")
-            self._open = channel(keys, "clock_cn_to_peer")
+            self._seal = channel(keys, "clock_peer_to_cn", self._asking)
+            self._open = channel(keys, "clock_cn_to_peer", self.run)
         else:
             self.index = mission.device_nodes.index(dn)
-            self._seal = channel(keys, f"clock_{dn}_to_cn")
-            self._open = channel(keys, f"clock_cn_to_{dn}")
+            self._seal = channel(keys, f"clock_{dn}_to_cn", self._asking)
+            self._open = channel(keys, f"clock_cn_to_{dn}", self.run)
         self.refused_bad = 0
         self.refused_other = 0
         self.timeouts = 0
         self._sent = (b"", 0)  # the last query's nonce and stamp
 
     def query(self, t1: int) -> tuple[bytes, bytes]:
-        """``(payload, nonce)`` of a new query stamped ``t1`` (this node's clock)."""
+        """``(payload, nonce)`` of a new query stamped ``t1`` (this node's clock),
+        naming the run this node knows if the last query was answered, else
+        none (a hello, module doc)."""
         nonce = secrets.token_bytes(NONCE_LEN)
         self._sent = (nonce, t1)
+        self._asking.set(self.run.epoch if self._answered else NO_RUN)
+        self._answered = False
         body = _QUERY.pack(_Q_MAGIC, _VERSION, self.index, nonce, t1)
         seal = self._seal
         return (bytes(seal.seal(body)) if seal is not None else body), nonce
@@ -150,9 +173,11 @@ class ClockLink:
         must be the query's own (for the last query made), the CN's ``t2``
         no later than its ``t3``, both within :data:`QUERY_SPAN_NS` of
         ``t1``; an authentic reply with other times (a key holder's, a CN
-        clock gone wrong) is refused in :attr:`refused_other`."""
+        clock gone wrong) is refused in :attr:`refused_other`. The reply
+        may name any run (its tag is checked under that run's key): taken, it
+        is this node's run from then on (:attr:`run`, module doc)."""
         try:
-            body = self._open.open(raw) if self._open is not None else memoryview(raw)
+            body = self._open.open(raw, any_run=True) if self._open is not None else memoryview(raw)
             if len(body) != _REPLY.size:
                 raise AuthError(f"{len(body)} bytes, not a clock reply")
         except AuthError:
@@ -165,11 +190,20 @@ class ClockLink:
         if echo != nonce or not _believable(t1, t2, t3, self._sent, nonce):
             self.refused_other += 1
             return None
+        if self._open is not None and echo == self._sent[0]:
+            # Authentic and the answer to this node's latest, fresh, query:
+            # the run it names is the control node's now.
+            self.run.set(Channel.run_of(raw))
+            self._answered = True
         return t1, t2, t3
 
     @property
     def refused(self) -> int:
         return self.refused_bad + self.refused_other
+
+    def forget(self) -> None:
+        """Make the next query a hello (module doc): the run may have changed."""
+        self._answered = False
 
 
 def _believable(t1: int, t2: int, t3: int, sent: tuple[bytes, int], nonce: bytes) -> bool:
@@ -187,15 +221,22 @@ class ClockResponder:
     is refused unanswered; the asker's nonce, not its clock, orders its
     queries: a DN's clock steps when corrected). ``keys``: the CN's keys
     (None: the mission does not authenticate, and only the stamp is
-    checked). Not thread-safe: one serving thread."""
+    checked). ``run``: the control node's run (its ``cn_epoch``; None: a
+    new run of its own): a query must name it or none (a hello, module doc);
+    one naming another run is refused before its MAC. The reply names it.
+    Not thread-safe: one serving thread."""
 
-    def __init__(self, mission: Mission, keys: KeySet | None) -> None:
+    def __init__(self, mission: Mission, keys: KeySet | None, run: Run | None = None) -> None:
         dns = mission.device_nodes
+        self.run = run if run is not None else Run(new_run_epoch(time.time_ns()))
+        r = self.run
+        # Queries are opened unbound (a hello names no run; the run is checked
+        # first, in answer), replies sealed in the run.
         self._open: list[Channel | None] = [channel(keys, f"clock_{dn}_to_cn") for dn in dns]
-        self._seal: list[Channel | None] = [channel(keys, f"clock_cn_to_{dn}") for dn in dns]
+        self._seal: list[Channel | None] = [channel(keys, f"clock_cn_to_{dn}", r) for dn in dns]
         # The other control node of a redundant mission asks as PEER_INDEX.
         self._peer = (
-            (channel(keys, "clock_peer_to_cn"), channel(keys, "clock_cn_to_peer"))
+            (channel(keys, "clock_peer_to_cn"), channel(keys, "clock_cn_to_peer", r))
             if mission.standby is not None
             else None
         )
@@ -224,6 +265,13 @@ class ClockResponder:
                 ch, seal = self._open[index], self._seal[index]
             else:
                 raise AuthError(f"no device node number {index}")
+            if ch is not None:
+                asked = Channel.run_of(raw)
+                if asked not in (NO_RUN, self.run.epoch):
+                    raise RunError(
+                        f"a query of run {asked}, not of this run ({self.run.epoch}): "
+                        "an earlier run's, replayed"
+                    )
             body = ch.open(raw) if ch is not None else memoryview(raw)
         except AuthError as exc:
             self.refused += 1
@@ -254,7 +302,7 @@ class ClockServer:
     """The CN's clock queryable. Runs its own reply thread; ``close()`` stops it.
 
     Each query is answered by a :class:`ClockResponder` (``mission``,
-    ``auth``: the CN's keys); a refused one gets an error reply, is counted
+    ``auth``: the CN's keys, ``run``: its run); a refused one gets an error reply, is counted
     (:attr:`refused`) and logged (the first, then every 1000th). The thread
     checks in through :attr:`heartbeat` (``clock``, :mod:`zplatform.health`):
     idle while it waits for a query, beating while it serves one."""
@@ -266,12 +314,14 @@ class ClockServer:
         now_ns: Callable[[], int],
         mission: Mission,
         auth: KeySet | None,
+        *,
+        run: Run | None = None,
     ) -> None:
         self._now = now_ns
         self.heartbeat = Heartbeat("clock")
         self._q: queue.SimpleQueue[tuple[zenoh.Query, int] | None] = queue.SimpleQueue()
         self._key = keys.clock
-        self._responder = ClockResponder(mission, auth)
+        self._responder = ClockResponder(mission, auth, run)
         self.served = 0
         self._queryable = session.declare_queryable(
             self._key, zenoh.handlers.Callback(self._on_query, indirect=False)

@@ -71,7 +71,8 @@ class MirrorReader:
         dv = logic.dv
         self.logic = logic
         self.index = logic.mission.control_nodes.index(logic.name)
-        self._open = channel(keys, "mirror")
+        # Bound to the logic's run: a mirror of another run never verifies.
+        self._open = channel(keys, "mirror", logic.auth_run)
         self.codec = RegionCodec(dv)
         self._term_at = dv.layout.element("cn_term").offset
         self._commander_at = dv.layout.element("cn_commander").offset
@@ -138,8 +139,10 @@ class Standby:
         self._lease = mission.takeover.lease_loops * mission.period_ns
         dns = mission.device_nodes
         self.dns = tuple(dns)
-        self._ask_ch = tuple(channel(keys, f"probe_cn_to_{dn}") for dn in dns)
-        self._reply_ch = tuple(channel(keys, f"probe_{dn}_to_cn") for dn in dns)
+        # The run: the commander's, which a standby's clock exchange with it
+        # learned (logic.auth_run); a device node answers only questions of it.
+        self._ask_ch = tuple(channel(keys, f"probe_cn_to_{dn}", logic.auth_run) for dn in dns)
+        self._reply_ch = tuple(channel(keys, f"probe_{dn}_to_cn", logic.auth_run) for dn in dns)
         self._nonces = [b""] * len(dns)
         self.answers: list[ProbeReply | None] = [None] * len(dns)
         """The replies of the current probe round, per device node."""

@@ -133,6 +133,16 @@ def ask_stamp(body: bytes | memoryview, askers: int = MAX_ASKERS) -> tuple[int, 
     return asker, int.from_bytes(body[_ASK.size - 8 :], "little", signed=True)
 
 
+def any_run(payload: bytes | bytearray | memoryview) -> bool:
+    """Whether a device node answers the probe question ``payload`` whatever
+    run it names (its tag still checked under that run's key): a STATUS,
+    which changes nothing and whose answer is bound to the asker's nonce, so
+    a control node that has not learned the run yet (restarted, it asks
+    before it knows who commands) gets its answer. An ASK or a RELEASE
+    moves a device node's term: only of its run."""
+    return len(payload) > 2 and payload[2 + 1] == STATUS
+
+
 def ask_frame(
     ch: Channel | None, kind: int, index: int, asker: int, term: int, nonce: bytes, t_ns: int
 ) -> bytes:
@@ -152,8 +162,11 @@ def read_ask(
     """Check and read a probe question for device node ``index`` from one of
     ``askers`` control nodes; CodecError (AuthError for a bad tag) for
     anything else, a value out of range included (module doc): an ASK or a
-    RELEASE names a term from 1 to :data:`TERM_MAX`, a STATUS none (0)."""
-    body = ch.open(payload) if ch is not None else memoryview(payload)
+    RELEASE names a term from 1 to :data:`TERM_MAX`, a STATUS none (0).
+    With ``ch`` bound to a run (zplatform.auth.Run), an ASK or a RELEASE
+    must be of that run (RunError: an earlier run's, replayed); a STATUS may
+    be of any (:func:`any_run`)."""
+    body = ch.open(payload, any_run=any_run(payload)) if ch is not None else memoryview(payload)
     if len(body) != _ASK.size:
         raise CodecError(f"{len(body)} bytes: not a probe question")
     magic, version, kind, i, asker, term, nonce, t_ns = _ASK.unpack(body)

@@ -27,7 +27,7 @@ from abc import ABC, abstractmethod
 from collections.abc import Callable
 from typing import Generic, Protocol, TypeVar
 
-from .auth import TAG_LEN, Channel
+from .auth import TAG_LEN, Channel, RunError
 from .codec import (
     bundle_entry,
     bundle_size,
@@ -40,7 +40,7 @@ from .commands import RequestNumber, request_refusal
 from .config import Mission
 from .datavector import Layout
 from .errors import CodecError
-from .fencing import LOOP_MAX, TERM_MAX, ask_size, ask_stamp
+from .fencing import LOOP_MAX, TERM_MAX, any_run, ask_size, ask_stamp
 from .handoff import Mailbox, Waker
 from .messages import wildcard_sync_for
 
@@ -139,6 +139,11 @@ class Intake(ABC, Generic[H]):
         self.size = 0
         self.bad = 0
         self.stale = 0
+        self.on_other_run: Callable[[], None] | None = None
+        """Called (on zenoh's thread: it must not block) for each genuine
+        frame of another run (zplatform.auth.RunError): a device node's cue
+        to ask its clock exchange for the run now (the control node may
+        have started a new one)."""
 
     @property
     def authenticates(self) -> bool:
@@ -176,7 +181,13 @@ class Intake(ABC, Generic[H]):
         if ch is None:
             return data
         try:
-            fresh = self._fresh(ch.open(self._frame(data)), handle)
+            frame = self._frame(data)
+            fresh = self._fresh(ch.open(frame, any_run=self._any_run(frame)), handle)
+        except RunError:  # another run's genuine frame (an earlier run's replay): stale
+            self.stale += 1
+            if self.on_other_run is not None:
+                self.on_other_run()
+            return None
         except CodecError:  # a bad tag (AuthError), or an authentic frame that is none
             self.bad += 1
             return None
@@ -189,6 +200,11 @@ class Intake(ABC, Generic[H]):
     def _frame(self, data: bytes) -> bytes | memoryview:
         """The tagged frame in what arrived (CodecError if there is none)."""
         return data
+
+    def _any_run(self, frame: bytes | memoryview) -> bool:
+        """Whether ``frame`` may be of any run (zplatform.auth.Run): none, by
+        default; a probe's STATUS question (zplatform.fencing.any_run)."""
+        return False
 
     def _within_rate(self) -> bool:
         """Whether a frame of the right size may be read now (before any
@@ -277,6 +293,12 @@ class TriggerIntake(_StampIntake[H]):
     def _frame(self, data: bytes) -> bytes | memoryview:
         return bundle_entry(data, self._index) if is_bundle(data) else data
 
+    def _any_run(self, frame: bytes | memoryview) -> bool:
+        # The warm-up (loop 0: answered, never run) of any run: a restarted
+        # control node warms up before it knows whether it resumes the run.
+        # DeviceLogic.trigger refuses any other loop of another run.
+        return frame_stamp(frame)[0] == 0
+
     def _ahead(self, t_ns: int, handle: H) -> bool:
         return t_ns - self._now() > self._max_ahead
 
@@ -351,6 +373,9 @@ class ProbeIntake(Intake[H]):
         self._tat_all = tat + self._every_all
         return True
 
+    def _any_run(self, frame: bytes | memoryview) -> bool:
+        return any_run(frame)
+
     def _fresh(self, body: memoryview, handle: H) -> bool | None:
         asker, t_ns = ask_stamp(body, self._askers)  # CodecError: no such asker (bad)
         if t_ns <= self._newest[asker] or t_ns - self._clock() > self._max_ahead:
@@ -381,7 +406,8 @@ class MirrorIntake(Intake[None]):
     displaces a genuine one nor reaches a commander's check for a newer
     term: it cannot make a commander stand down. (A mirror recorded in an
     earlier run of the same keys is another matter: its term and loop may
-    be above this run's; binding the keys to the run is what refuses it.)
+    be above this run's: the channel is bound to the run, zplatform.auth.Run,
+    and refuses it as stale.)
     Its mailbox keeps :data:`MIRRORS` frames."""
 
     def __init__(self, mission: Mission, node: str, channel: Channel | None) -> None:

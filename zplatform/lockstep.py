@@ -30,6 +30,7 @@ import numpy as np
 
 from .auth import TAG_LEN, KeySet
 from .boards import Board
+from .clocksync import ClockLink, ClockResponder
 from .codec import BundleEncoder, RegionCodec
 from .config import BulkChannelConfig, Mission
 from .datavector import DataVector, Layout
@@ -308,6 +309,7 @@ class LockstepRunner:
             name = mission.standby
             sb_keys = keys and keys.for_node(name)
             sb_logic = ControlLogic(mission, keys=sb_keys, name=name)
+            self._learn_run(sb_logic)
             self.cns[name] = SimControlNode(name, sb_logic, sb_keys, follows=True)
         self._cuts: dict[frozenset[str], int | None] = {}
         self.driven: dict[int, dict[str, int]] = {}
@@ -378,6 +380,22 @@ class LockstepRunner:
         else:
             raise ValueError(f"no control or device node {node!r} to kill")
 
+    def _learn_run(self, logic: ControlLogic) -> None:
+        """A control node that follows learns the commander's run as live: by
+        a clock exchange with it (a hello, zplatform.clocksync), in virtual
+        time. Without authentication there is no run to learn."""
+        keys = sim_keys(self.mission)
+        if keys is None:
+            return
+        t = self.clock.now_ns()
+        link = ClockLink(self.mission, logic.name, keys.for_node(logic.name), run=logic.auth_run)
+        server = ClockResponder(
+            self.mission, keys.for_node(self.control.name), self.control.auth_run
+        )
+        query, nonce = link.query(t)
+        reply = server.answer(query, t, t)
+        assert reply is not None and link.check(reply, nonce) is not None
+
     def stop(self, node: str, loops: int) -> None:
         """Control node ``node`` is frozen for the next ``loops`` loops (as
         SIGSTOP): it runs nothing, then resumes with the state it had, in the
@@ -423,6 +441,7 @@ class LockstepRunner:
             if not answered:  # as live: it cannot start
                 raise NodeError(f"{node} cannot start: no device node answers its probe")
             if not isinstance(role.start(), Command):
+                self._learn_run(logic)  # as live: its clock exchange with the commander
                 return "follow"
         frames = logic.begin(0, t)  # the warm-up: answered, never run
         for i in reached:

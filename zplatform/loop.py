@@ -26,7 +26,7 @@ from collections.abc import Sequence
 from typing import Any, Protocol
 
 from . import trace
-from .auth import TAG_LEN, AuthError, Channel, KeySet, channel
+from .auth import RUN_LEN, TAG_LEN, AuthError, Channel, KeySet, Run, RunError, channel
 from .boards import Board, HealthCounters, safe_board
 from .boards.world import node_board
 from .codec import Frame, RegionCodec, bundle_entry, is_bundle
@@ -143,6 +143,13 @@ class ControlLogic:
         # This run's epoch: command requests must carry it (a request made
         # for an earlier run of the CN is refused, not replayed).
         dv.set("cn_epoch", epoch)
+        self.auth_run = run = Run(epoch)
+        """The run this node's channels are bound to (zplatform.auth.Run): its
+        ``cn_epoch``, followed by :meth:`adopt` (a resumed or mirrored vector
+        brings its run), or learned by a standby's clock exchange with the
+        commander. Every frame it sends names it; the replies, probe answers
+        and mirrors it takes must be of it."""
+        self._h_epoch = dv.handle("cn_epoch")
         self.events = events if events is not None else EventLog(name)
         self.faults = FaultMonitor(mission, dv, self.events)
         self.statemachine = StateMachine(mission, dv, self.events)
@@ -161,10 +168,12 @@ class ControlLogic:
         self.dns: tuple[str, ...] = tuple(mission.device_nodes)
         dns = self.dns
         # The CN's links (auth.py): every cn<->dnX, the uplink, the downlink.
-        self._seal_to_dn = tuple(channel(keys, f"cn_to_{dn}") for dn in dns)
-        self._open_from_dn = tuple(channel(keys, f"{dn}_to_cn") for dn in dns)
+        # Bound to this run (auth.Run), but the uplink: the ground knows no
+        # run, and a request carries the run it is for (cn_epoch) in its data.
+        self._seal_to_dn = tuple(channel(keys, f"cn_to_{dn}", run) for dn in dns)
+        self._open_from_dn = tuple(channel(keys, f"{dn}_to_cn", run) for dn in dns)
         self._open_ground = channel(keys, "gn_to_cn") if mission.has_ground else None
-        self._seal_tm = channel(keys, "telemetry")
+        self._seal_tm = channel(keys, "telemetry", run)
         # What the CN sends is framed with room for its tag, tagged in place
         # (Channel.seal_tail): a frame up to the whole vector is copied once.
         self._to_dn = tuple(
@@ -229,7 +238,7 @@ class ControlLogic:
                 dv.layout.element(f"{dn}_term_seen").offset - dv.layout.region(f"{dn}_to_cn").offset
                 for dn in dns
             )
-            self._seal_mirror = channel(keys, "mirror")
+            self._seal_mirror = channel(keys, "mirror", run)
 
     @property
     def replied(self) -> Sequence[bool]:
@@ -259,6 +268,8 @@ class ControlLogic:
         None: left as it is)."""
         self.loop = loop
         self.t_ns = t_ns
+        # The run is the vector's (a resumed or taken-over one's included).
+        self.auth_run.set(self._h_epoch.get())
         got = self._got
         frames = self._frames
         tr = trace.tracer
@@ -584,7 +595,9 @@ class ControlLogic:
         never a spurious one). A parameter save that the node that wrote the
         vector was still writing is written again, by this node
         (:meth:`ParamTable.adopt <zplatform.params.ParamTable.adopt>`). Does
-        nothing before loop 1 (a fresh vector: every component starts as built)."""
+        nothing before loop 1 (a fresh vector: every component starts as built).
+        The run (:attr:`auth_run`) becomes the vector's ``cn_epoch`` whatever the loop."""
+        self.auth_run.set(int(self._h_epoch.get()))
         self.loop = int(self._h_loop.get())
         self.t_ns = t = int(self._h_time.get())
         if self.loop == 0:
@@ -691,6 +704,7 @@ class DeviceLogic:
         events: EventLog | None = None,
         stale_after_ns: int | None = None,
         keys: KeySet | None = None,
+        run: Run | None = None,
     ) -> None:
         if node not in mission.device_nodes:
             raise ConfigError(
@@ -714,8 +728,14 @@ class DeviceLogic:
         self._in = RegionCodec(dv, f"cn_to_{node}")
         # This node's place in a sync bundle (one wildcard query for every DN).
         self._index = mission.device_nodes.index(node)
-        self._open: Channel | None = channel(keys, f"cn_to_{node}")
-        self._seal: Channel | None = channel(keys, f"{node}_to_cn")
+        # ``run``: the control node's run, learned by this node's clock
+        # exchange (zplatform.auth.Run): triggers and questions of another run
+        # are refused. None: any run's (a test's logic, fed by its own CN).
+        # An answer names the run of what it answers (_answering).
+        self.auth_run = run
+        self._answering = Run()
+        self._open: Channel | None = channel(keys, f"cn_to_{node}", run)
+        self._seal: Channel | None = channel(keys, f"{node}_to_cn", self._answering)
         # The reply is framed with room for its tag, tagged in place.
         self._out = RegionCodec(dv, f"{node}_to_cn", tail=TAG_LEN if self._seal else 0)
         self._loop = dv.handle(f"{node}_loop")
@@ -770,8 +790,8 @@ class DeviceLogic:
             self._h_term = dv.handle(f"{node}_term")
             self._term_at = self._h_term.spec.offset - self.layout.region(f"cn_to_{node}").offset
             self._h_term_seen = dv.handle(f"{node}_term_seen")
-            self._open_probe = channel(keys, f"probe_cn_to_{node}")
-            self._seal_probe = channel(keys, f"probe_{node}_to_cn")
+            self._open_probe = channel(keys, f"probe_cn_to_{node}", run)
+            self._seal_probe = channel(keys, f"probe_{node}_to_cn", self._answering)
         self.fenced = 0
         """Triggers answered but not run because of their term (a lower term's,
         or a higher one's while the current commander is alive)."""
@@ -844,10 +864,18 @@ class DeviceLogic:
             if is_bundle(payload):  # a wildcard query: this node's frame from the bundle
                 payload = bundle_entry(payload, self._index)
             ch = self._open
-            body = payload if ch is None else ch.strip(payload) if authentic else ch.open(payload)
+            body = (
+                payload
+                if ch is None
+                else ch.strip(payload)
+                if authentic
+                else ch.open(payload, any_run=True)
+            )
             if tr is not None:
                 tr.mark("dn.opened")
             frame = self._in.check(body)
+            if ch is not None:
+                self._run_of_trigger(payload, frame.seq)
             if tr is not None:
                 tr.mark("dn.decoded")
             # Authentic from here on.
@@ -981,6 +1009,28 @@ class DeviceLogic:
         reply = self._out.encode(frame.seq, now_ns)
         return self._seal.seal_tail(reply) if self._seal is not None else reply
 
+    def _run_of_trigger(self, payload: bytes | bytearray | memoryview, loop: int) -> None:
+        """Answer in the run of the authentic trigger ``payload``; RunError
+        (a CodecError) when it is of another run than this node's and not
+        the warm-up (loop 0: answered, never run, changes nothing; a
+        restarted control node sends it before it knows whether it resumes
+        the run, zplatform.role)."""
+        self._answer_run_of(payload)
+        run = self.auth_run
+        if run is not None and loop > 0 and self._answering.epoch != run.epoch:
+            raise RunError(
+                f"cn_to_{self.node}: a trigger of run {self._answering.epoch}, not of this "
+                f"run ({run.epoch})"
+            )
+
+    def _answer_run_of(self, payload: bytes | bytearray | memoryview) -> None:
+        """Answer in the run of the authentic ``payload`` (its tag's run word;
+        re-keys the answering channels only when the run changes)."""
+        n = len(payload) - TAG_LEN
+        word = memoryview(payload)[n : n + RUN_LEN]
+        if word != self._answering.word:
+            self._answering.set(int.from_bytes(word, "little"))
+
     def probe(self, payload: bytes | bytearray | memoryview, now_ns: int) -> bytes | None:
         """Answer a control node's probe question (:mod:`zplatform.fencing`):
         the reply frame, or None for a question that is not authentic or
@@ -991,6 +1041,8 @@ class DeviceLogic:
             return None
         try:
             ask = read_ask(self._open_probe, payload, self._index, self._askers)
+            if self._open_probe is not None:
+                self._answer_run_of(payload)
         except CodecError as exc:
             # Counted and evented with the intake's refusals (at most once a
             # second: without authentication junk gets this far).

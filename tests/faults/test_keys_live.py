@@ -41,7 +41,7 @@ import zenoh
 from tests.budget import LINK_ALIVE
 from tests.drive import igniter_quick_flight
 from tests.integration.harness import CONFIGS, Cluster
-from zplatform.auth import KEY_FILE_ENV, Channel, KeySet, load_keys, write_key_set
+from zplatform.auth import KEY_FILE_ENV, Channel, KeySet, Run, load_keys, write_key_set
 from zplatform.codec import RegionCodec
 from zplatform.datavector import DataVector, Layout
 from zplatform.mission import load_mission
@@ -152,7 +152,10 @@ def test_a_ground_key_cannot_fire_the_igniter(
         # igniter may fire in.
         cn = load_keys(c.mission, "cn", files["cn"])
         assert cn is not None
-        seal = {dn: cn.channel(f"cn_to_{dn}") for dn in ("dn0", "dn1")}
+        # In the CN's run (zplatform.auth.Run): what an insider holding its
+        # key can do in the current run (an earlier run's frames never verify).
+        run = Run(int(c.tm.get("cn_epoch")))
+        seal = {dn: cn.channel(f"cn_to_{dn}", run) for dn in ("dn0", "dn1")}
         # First stamped with the vehicle's state, SAFE: each device node's
         # interlock drives its igniter safe instead, and counts it.
         deadline = time.monotonic() + 20

@@ -37,7 +37,7 @@ from typing import Any, ClassVar
 import pytest
 
 from tests.payload import Bytes
-from zplatform.auth import KEY_ENV, TAG_LEN, KeySet, channel
+from zplatform.auth import KEY_ENV, TAG_LEN, KeySet, Run, channel
 from zplatform.clocksync import ClockLink, ClockResponder
 from zplatform.codec import BundleEncoder, decode_frame, encode_frame
 from zplatform.config import Mission
@@ -174,11 +174,18 @@ class _IntakeCounts:
         return dict(c)
 
 
-_RUN_GAP = (
-    "cross-run replay: a receiver that just started admits a genuine frame of its "
-    "sender's earlier run (freshness is relative to the frames it has seen, not bound to "
-    "the sender's run)"
-)
+def _learn_run(m: Mission, node: str, keys: KeySet, t0: int, run: Run | None = None) -> Run:
+    """The run of the control node that started at ``t0`` (its ``cn_epoch``),
+    as ``node`` (a device node, or the standby ``cn_b``) learns it: one clock
+    exchange, a hello, with that control node's clock server
+    (zplatform.clocksync). Into ``run`` if given."""
+    link = ClockLink(m, node, keys, run=run)
+    responder = ClockResponder(m, keys, Run(t0))
+    query, nonce = link.query(t0)
+    reply = responder.answer(query, t0, t0 + 1)
+    assert reply is not None and link.check(reply, nonce) is not None
+    assert link.run.epoch == t0
+    return link.run
 
 
 class TriggerH(_IntakeCounts, Harness):
@@ -188,15 +195,15 @@ class TriggerH(_IntakeCounts, Harness):
         self.t0 = t0
         self.m, self.keys, self.bundle = m, _keys(m), bundle
         self.i = m.device_nodes.index(dn)
-        self.ch = channel(self.keys, f"cn_to_{dn}")
-        self.intake: TriggerIntake[None] = TriggerIntake(m, dn, channel(self.keys, f"cn_to_{dn}"))
+        self.ch = channel(self.keys, f"cn_to_{dn}", Run(t0))  # the CN's, for extremes
+        # The DN's intake is bound to the run its clock exchange told.
+        run = _learn_run(m, dn, self.keys, t0)
+        self.intake: TriggerIntake[None] = TriggerIntake(
+            m, dn, channel(self.keys, f"cn_to_{dn}", run)
+        )
         self.max_len = self.intake.max_len
         self.cn = ControlLogic(m, keys=self.keys, epoch=self.t0)
         self.n = 0
-
-    @classmethod
-    def gaps(cls, m: Mission) -> dict[str, str]:
-        return {"replay_old_run": _RUN_GAP}
 
     def _frames(self) -> list[bytes]:
         self.n += 1
@@ -223,8 +230,8 @@ class ReplyH(_IntakeCounts, Harness):
         self.t0 = t0
         self.m, self.keys = m, _keys(m)
         self.i = m.device_nodes.index(dn)
-        self.ch = channel(self.keys, f"{dn}_to_cn")
-        self.intake = ReplyCheck(m, dn, channel(self.keys, f"{dn}_to_cn"))
+        self.ch = channel(self.keys, f"{dn}_to_cn", Run(t0))  # the DN's, for extremes
+        self.intake = ReplyCheck(m, dn, channel(self.keys, f"{dn}_to_cn", Run(t0)))
         self.max_len = self.intake.max_len
         self.cn = ControlLogic(m, keys=self.keys, epoch=self.t0)
         self.dn = DeviceLogic(m, dn, keys=self.keys)
@@ -399,19 +406,16 @@ class ClockQueryH(Harness):
     def __init__(self, m: Mission, asker: str, t0: int = T0) -> None:
         self.t0 = t0
         self.m, self.keys = m, _keys(m)
-        self.responder = ClockResponder(m, self.keys)
+        self.responder = ClockResponder(m, self.keys, Run(t0))
         self.link = ClockLink(m, _asker_node(asker), self.keys)
-        self.ch = channel(self.keys, f"clock_{asker}_to_cn")
+        # The asker's first exchange (a hello) told it the run: its next
+        # query names it (an earlier run's query names that run's).
+        query, nonce = self.link.query(t0)
+        reply = self.responder.answer(query, t0, t0 + 1)
+        assert reply is not None and self.link.check(reply, nonce) is not None
+        self.ch = channel(self.keys, f"clock_{asker}_to_cn", Run(t0))
         self.max_len = _QUERY.size + TAG_LEN
         self.n = 0
-
-    @classmethod
-    def gaps(cls, m: Mission) -> dict[str, str]:
-        return {
-            "replay_old_run": "the clock server answers an authentic query of an earlier "
-            "run stamped within a day of its clock (QUERY_SPAN_NS: an unsynchronised "
-            "asker's clock may be hours off) whose nonce it has not seen"
-        }
 
     def genuine(self) -> bytes:
         self.n += 1
@@ -484,17 +488,17 @@ class MirrorH(_IntakeCounts, Harness):
     (zplatform.intake.MirrorIntake: size, tag, range, sender, newer), its
     mailbox, then Standby.mirror."""
 
-    @classmethod
-    def gaps(cls, m: Mission) -> dict[str, str]:
-        return {"replay_old_run": _RUN_GAP}
-
     def __init__(self, m: Mission, t0: int = T0) -> None:
         self.t0 = t0
         self.m, self.keys = m, _keys(m)
-        self.ch = channel(self.keys, "mirror")
+        self.ch = channel(self.keys, "mirror", Run(t0))  # the commander's
         self.cn = ControlLogic(m, keys=self.keys, epoch=self.t0)
-        self.sb = Standby(m, ControlLogic(m, keys=self.keys, epoch=self.t0, name="cn_b"), self.keys)
-        self.intake = MirrorIntake(m, "cn_b", self.ch)
+        # A standby that just started (a run of its own), told the
+        # commander's by its clock exchange with it.
+        sb = ControlLogic(m, keys=self.keys, epoch=t0 + 12345, name="cn_b")
+        _learn_run(m, "cn_b", self.keys, t0, sb.auth_run)
+        self.sb = Standby(m, sb, self.keys)
+        self.intake = MirrorIntake(m, "cn_b", channel(self.keys, "mirror", sb.auth_run))
         self.max_len = self.intake.max_len
         self.n = 0
 
@@ -529,22 +533,18 @@ _PREPLY = struct.Struct(f"<2sBB{NONCE_LEN}sIIBBqQq")
 class ProbeAskH(_IntakeCounts, Harness):
     """A DN's probe questions (ProbeIntake)."""
 
-    @classmethod
-    def gaps(cls, m: Mission) -> dict[str, str]:
-        return {"replay_old_run": _RUN_GAP}
-
     def __init__(self, m: Mission, dn: str, t0: int = T0) -> None:
         self.t0 = t0
         self.m, self.keys = m, _keys(m)
         self.i = m.device_nodes.index(dn)
-        self.ch = channel(self.keys, f"probe_cn_to_{dn}")
+        self.ch = channel(self.keys, f"probe_cn_to_{dn}", Run(t0))  # a control node's
         # The rate bounds run on a clock a period on per question: these
         # recipes test the checks before them, never the bounds
         # (tests/unit/test_failover_wire.py tests those).
         self.clock_ns = t0
         self.intake: ProbeIntake[None] = ProbeIntake(
             dn,
-            channel(self.keys, f"probe_cn_to_{dn}"),
+            channel(self.keys, f"probe_cn_to_{dn}", _learn_run(m, dn, self.keys, t0)),
             Waker(),
             period_ns=m.period_ns,
             now_ns=lambda: self.clock_ns,

@@ -23,10 +23,13 @@ from zplatform.auth import (
     Channel,
     KeyError_,
     KeySet,
+    Run,
+    RunError,
     check_key,
     default_key_dir,
     host_roles,
     load_keys,
+    new_run_epoch,
     role_links,
     write_key_set,
 )
@@ -276,11 +279,56 @@ def test_the_tags_are_what_format_md_says() -> None:
     for mac in MACS:
         ctx = f"zplatform/2/rocket/{mac}/telemetry".encode()
         ch_key = hmac.new(link, ctx, hashlib.sha256).digest()
-        if mac == "blake3":
-            tag = blake3.blake3(frame, key=ch_key).digest()[:16]
-        else:
-            tag = hmac.new(ch_key, frame, hashlib.sha256).digest()[:16]
-        assert bytes(Channel(link, "rocket", "telemetry", mac).seal(frame)) == frame + tag
+        for epoch in (0, 0x0123456789ABCDEF):
+            word = epoch.to_bytes(8, "little")
+            k_run = hmac.new(ch_key, b"zplatform/2/run/" + word, hashlib.sha256).digest()
+            if mac == "blake3":
+                mac_ = blake3.blake3(frame, key=k_run).digest()[:16]
+            else:
+                mac_ = hmac.new(k_run, frame, hashlib.sha256).digest()[:16]
+            ch = Channel(link, "rocket", "telemetry", mac, Run(epoch) if epoch else None)
+            assert bytes(ch.seal(frame)) == frame + word + mac_
+
+
+def test_a_frame_of_another_run_never_verifies() -> None:
+    """Keys bound to the run (codecs/FORMAT.md §6.1): a receiver bound to a
+    run refuses another run's frame, and any frame before it knows its run,
+    as RunError, before the MAC; an unbound one (the ground) takes every
+    run's genuine frame; a frame whose run word was rewritten fails its MAC."""
+    old, new = Run(1000), Run(2000)
+    send_old = Channel(GOOD, "rocket", "cn_to_dn0", run=old)
+    send_new = Channel(GOOD, "rocket", "cn_to_dn0", run=new)
+    bound = Channel(GOOD, "rocket", "cn_to_dn0", run=Run(2000))
+    unbound = Channel(GOOD, "rocket", "cn_to_dn0")
+    f_old, f_new = bytes(send_old.seal(b"frame")), bytes(send_new.seal(b"frame"))
+    assert bytes(bound.open(f_new)) == b"frame"
+    with pytest.raises(RunError, match=r"a frame of run 1000, not of this run \(2000\)"):
+        bound.open(f_old)
+    with pytest.raises(RunError, match=r"before this node knows its run"):
+        Channel(GOOD, "rocket", "cn_to_dn0", run=Run()).open(f_new)
+    assert bytes(unbound.open(f_old)) == bytes(unbound.open(f_new)) == b"frame"
+    assert Channel.run_of(f_old) == 1000 and bound.run_of(f_new) == 2000
+    # The old frame relabelled with the new run: its MAC is the old run's key's.
+    forged = f_old[:5] + (2000).to_bytes(8, "little") + f_old[13:]
+    with pytest.raises(AuthError, match="bad authentication tag") as exc:
+        bound.open(forged)
+    assert not isinstance(exc.value, RunError)
+    # The run re-keys the channel once it changes, on both ends.
+    new.set(3000)
+    bound.run.set(3000)  # type: ignore[union-attr]
+    f3 = bytes(send_new.seal(b"frame"))
+    assert bytes(bound.open(f3)) == b"frame"
+    with pytest.raises(RunError):
+        bound.open(f_new)
+
+
+def test_a_new_run_is_random_in_its_low_bits_and_keeps_the_clock_order() -> None:
+    t = 1_700_000_000_123_456_789
+    runs = {new_run_epoch(t) for _ in range(64)}
+    assert len(runs) > 60  # 24 random bits
+    assert all(r >> 24 == t >> 24 for r in runs)
+    assert min(new_run_epoch(t + (1 << 24)) for _ in range(16)) > max(runs)
+    assert new_run_epoch(0) != 0
 
 
 def test_the_mission_chooses_the_mac() -> None:

@@ -21,7 +21,7 @@ from typing import Any, get_args, get_type_hints
 import pytest
 import zenoh
 
-from zplatform.auth import KeySet
+from zplatform.auth import NO_RUN, Channel, KeySet, Run
 from zplatform.clocksync import (
     ESTIMATORS,
     ClockEstimate,
@@ -521,3 +521,47 @@ def test_a_clock_reply_with_absurd_times_is_refused_and_counted() -> None:
         assert link.check(forged(nonce, t1, t2, t3), nonce) is None
     assert (link.refused_bad, link.refused_other) == (0, 3)
     assert link.check(forged(nonce, T0, T0 + MS, T0 + 2 * MS), nonce) == (T0, T0 + MS, T0 + 2 * MS)
+
+
+def test_the_clock_exchange_tells_the_run_and_refuses_another_runs_query() -> None:
+    """Keys bound to the run (zplatform.auth.Run, FORMAT.md §6.3): a device
+    node's first query names no run (a hello) and is answered; the answer,
+    tagged in the CN's run and echoing the node's fresh nonce, tells it the
+    run; its next query names the run. A query of an earlier run (the same
+    node's, recorded then, never answered in this run) is refused unanswered
+    before its MAC; after an unanswered exchange the node says hello again
+    and learns a new run."""
+    run = Run(7_000)
+    cn = ClockResponder(IGNITER, ALL_KEYS.for_node("cn"), run)
+    learned = Run()
+    link = ClockLink(IGNITER, "dn0", ALL_KEYS.for_node("dn0"), run=learned)
+    hello, n = link.query(T0)
+    assert Channel.run_of(hello) == NO_RUN and not learned.known
+    reply = cn.answer(hello, T0, T0 + 1)
+    assert reply is not None and Channel.run_of(reply) == 7_000
+    assert link.check(reply, n) is not None and learned.epoch == 7_000
+    q, n = link.query(T0 + 1)
+    assert Channel.run_of(q) == 7_000
+    reply = cn.answer(q, T0 + 1, T0 + 2)
+    assert reply is not None and link.check(reply, n) is not None
+    # An earlier run's query, genuine then: refused, not answered.
+    old = ClockLink(IGNITER, "dn0", ALL_KEYS.for_node("dn0"), run=Run())
+    old_cn = ClockResponder(IGNITER, ALL_KEYS.for_node("cn"), Run(6_000))
+    h, n = old.query(T0 - 10)
+    r = old_cn.answer(h, T0 - 10, T0 - 9)
+    assert r is not None and old.check(r, n) is not None
+    replayed = old.query(T0 - 5)[0]
+    assert Channel.run_of(replayed) == 6_000
+    assert cn.answer(replayed, T0 + 3, T0 + 4) is None
+    assert "not of this run (7000)" in cn.reason and cn.refused == 1
+    # The CN starts a new run: the node's query of the old one goes
+    # unanswered, so its next is a hello, whose answer tells the new run.
+    run.set(8_000)
+    q, n = link.query(T0 + 5)
+    assert cn.answer(q, T0 + 5, T0 + 6) is None
+    q, n = link.query(T0 + 7)
+    assert Channel.run_of(q) == NO_RUN
+    reply = cn.answer(q, T0 + 7, T0 + 8)
+    assert reply is not None and link.check(reply, n) is not None and learned.epoch == 8_000
+    # A reply of another run that is not the answer to the latest query teaches nothing.
+    assert link.check(r, n) is None and learned.epoch == 8_000

@@ -17,7 +17,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from zplatform import load_mission
-from zplatform.auth import channel
+from zplatform.auth import Channel, Run, channel
 from zplatform.errors import NodeError
 from zplatform.fencing import ASK, STATUS, TERM_MAX, ProbeReply, read_ask, reply_frame
 from zplatform.lockstep import DEFAULT_START_NS, sim_keys
@@ -68,7 +68,9 @@ def _answer(role: ControlRole, asks: list[bytes], answers: list[Answer], loop: i
         term, promised, quiet = a
         grant = q.kind == ASK and quiet >= LEASE_NS and q.term > max(term, promised)
         r = ProbeReply(i, q.nonce, term, q.term if grant else promised, grant, 0, quiet, loop, T0)
-        assert role.answer(i, reply_frame(channel(dk, f"probe_{DNS[i]}_to_cn"), r))
+        # In the run of the question (as a device node answers: zplatform.auth.Run).
+        run = Run(Channel.run_of(ask))
+        assert role.answer(i, reply_frame(channel(dk, f"probe_{DNS[i]}_to_cn", run), r))
 
 
 def _start(role: ControlRole, answers: list[Answer]) -> Command | Follow:

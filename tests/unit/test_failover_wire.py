@@ -76,7 +76,8 @@ def _dn_reply(sb: Standby, i: int, **fields: Any) -> bytes:
     ``i``'s key (an insider holding it can put anything in it)."""
     dn = FLIGHT.device_nodes[i]
     r = ProbeReply(i, sb._nonces[i], 1, 0, False, 0, 4 * P, 5, at(5))._replace(**fields)
-    return reply_frame(KEYS.for_node(dn).channel(f"probe_{dn}_to_cn"), r)
+    # In the run of the question it answers (the standby's: zplatform.auth.Run).
+    return reply_frame(KEYS.for_node(dn).channel(f"probe_{dn}_to_cn", sb.logic.auth_run), r)
 
 
 # -- 1. every integer from the wire is range-checked where it is used -------------------

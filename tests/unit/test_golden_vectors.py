@@ -155,7 +155,7 @@ AUTH_NAMES = sorted(p.stem for p in AUTH.glob("*.json"))
 
 def test_auth_vectors_present() -> None:
     assert sorted(p.stem for p in AUTH.glob("*.bin")) == AUTH_NAMES
-    whats = ("cn_to_dn0", "clock_query_dn0", "clock_reply_dn0", "events_cn")
+    whats = ("cn_to_dn0", "clock_hello_dn0", "clock_query_dn0", "clock_reply_dn0", "events_cn")
     assert sorted(f"{mac}_{w}" for mac in ("blake3", "hmac-sha256") for w in whats) == AUTH_NAMES
 
 
@@ -176,11 +176,16 @@ def test_auth_vector_by_hand(name: str) -> None:
     link_key = hmac.new(master, link_ctx.encode(), hashlib.sha256).digest()
     ch_key = hmac.new(link_key, ch_ctx.encode(), hashlib.sha256).digest()
     assert (link_key.hex(), ch_key.hex()) == (meta["link_key_hex"], meta["channel_key_hex"])
+    # The run's key (§6.1): the channel's, bound to the run word.
+    word = meta["run"].to_bytes(8, "little")
+    run_key = hmac.new(ch_key, b"zplatform/2/run/" + word, hashlib.sha256).digest()
+    assert (word.hex(), run_key.hex()) == (meta["run_word_hex"], meta["run_key_hex"])
     body = bytes.fromhex(meta["message_hex"])
     if meta["mac"] == "blake3":
-        tag = blake3.blake3(body, key=ch_key).digest(16)
+        mac = blake3.blake3(body, key=run_key).digest(16)
     else:
-        tag = hmac.new(ch_key, body, hashlib.sha256).digest()[:16]
+        mac = hmac.new(run_key, body, hashlib.sha256).digest()[:16]
+    tag = word + mac
     assert tag.hex() == meta["tag_hex"] and sealed == body + tag
     assert len(body) == meta["message_size"]
 
@@ -188,7 +193,7 @@ def test_auth_vector_by_hand(name: str) -> None:
 @pytest.mark.parametrize("name", AUTH_NAMES)
 def test_auth_vector_by_the_platform(name: str) -> None:
     """The platform opens each vector and makes it again, byte for byte."""
-    from zplatform.auth import KeySet
+    from zplatform.auth import KeySet, Run, RunError
     from zplatform.clocksync import ClockLink, ClockResponder
     from zplatform.events import EventReader
 
@@ -197,24 +202,35 @@ def test_auth_vector_by_the_platform(name: str) -> None:
     mission = load_mission(VECTORS / "mission.yaml")
     mission.security.mac = meta["mac"]
     keys = KeySet.from_master(mission, bytes.fromhex(meta["master_hex"]))
-    ch = keys.channel(meta["channel"])
+    run = meta["run"]
+    ch = keys.channel(meta["channel"], Run(run))
     body = bytes(ch.open(sealed))
     assert bytes(ch.seal(body)) == sealed
+    if run:  # bound to another run, the receiver refuses it (§6.1)
+        with pytest.raises(RunError):
+            keys.channel(meta["channel"], Run(run + 1)).open(sealed)
     what = name.split("_", 1)[1]
+    rrun = json.loads((AUTH / f"{meta['mac']}_clock_reply_dn0.json").read_text())["run"]
     if what == "cn_to_dn0":
         assert body == (VECTORS / "scalars_typical.bin").read_bytes()
-    elif what == "clock_query_dn0":
+    elif what in ("clock_query_dn0", "clock_hello_dn0"):
         reply = (AUTH / f"{meta['mac']}_clock_reply_dn0.bin").read_bytes()
         t2, t3 = 1_700_000_000_001_500_000, 1_700_000_000_001_520_000
-        assert ClockResponder(mission, keys.for_node("cn")).answer(sealed, t2, t3) == reply
+        cn = keys.for_node("cn")
+        assert ClockResponder(mission, cn, Run(rrun)).answer(sealed, t2, t3) == reply
+        if run:  # a query naming another run than the server's is refused
+            assert ClockResponder(mission, cn, Run(rrun + 1)).answer(sealed, t2, t3) is None
     elif what == "clock_reply_dn0":
         nonce = bytes(range(0xA0, 0xB0))
         link = ClockLink(mission, "dn0", keys.for_node("dn0"))
+        link.query(1_700_000_000_000_000_000)
+        link._sent = (nonce, 1_700_000_000_000_000_000)  # the vector's query
         assert link.check(sealed, nonce) == (
             1_700_000_000_000_000_000,
             1_700_000_000_001_500_000,
             1_700_000_000_001_520_000,
         )
+        assert link.run.epoch == run  # the reply told dn0 the run
     else:
         e, verified = EventReader(mission, keys).read("rocket/cn/events", sealed)
         assert verified is True and (e.node, e.id) == ("cn", "cmd_accepted")

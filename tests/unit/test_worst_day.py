@@ -10,7 +10,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from zplatform import DataVector, Layout, RegionCodec, load_mission
-from zplatform.auth import AuthError, Channel, KeySet, channel
+from zplatform.auth import TAG_LEN, AuthError, Channel, KeySet, channel
 from zplatform.codec import encode_frame
 from zplatform.intake import CnRefusals
 from zplatform.lockstep import LockstepRunner, sim_keys
@@ -408,7 +408,7 @@ def test_frames_are_exactly_tag_longer() -> None:
     key = b"k" * 32
     cn = ControlLogic(LED, keys=_ks(LED, key), epoch=1)
     plain = ControlLogic(LED, keys=None, epoch=1)
-    assert len(cn.begin(1, 1)[0]) == len(plain.begin(1, 1)[0]) + 16
+    assert len(cn.begin(1, 1)[0]) == len(plain.begin(1, 1)[0]) + TAG_LEN  # the run word and the MAC
     frame = encode_frame(1, 1, 1, b"")
     assert struct.unpack_from(">I", frame, 2)[0] == 1
 

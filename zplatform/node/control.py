@@ -31,7 +31,7 @@ import numpy as np
 import zenoh
 
 from .. import trace
-from ..auth import KeySet, channel, load_keys
+from ..auth import KeySet, channel, load_keys, new_run_epoch
 from ..bulk import open_bulk
 from ..clocksync import ClockLink, ClockServer, estimator_for
 from ..codec import Frame
@@ -121,8 +121,10 @@ class ControlNode:
             self.clock.lock()  # the CN is the reference clock: never adjusted
         # (In a redundant mission a control node locks its clock once it knows
         # its role: a standby first sets it by the commander's, module doc.)
-        # The run's epoch: this clock's start, unique per run of the CN.
-        self.clock_epoch = self.clock.now_ns()
+        # The run's epoch: this clock's start, its low bits random, so unique
+        # per run of the CN even on a clock that repeats across boots: the
+        # run every frame's key is bound to (zplatform.auth.new_run_epoch).
+        self.clock_epoch = new_run_epoch(self.clock.now_ns())
         self.logic = ControlLogic(mission, keys=keys, epoch=self.clock_epoch, name=name)
         self.dv: DataVector = self.logic.dv
         self.ns = NodeSession(mission, name, announce=False, lowlatency=lowlatency)
@@ -147,7 +149,8 @@ class ControlNode:
             mission.sync_timeout_ns,
             query_timeout_s=max(mission.period_ns / 1e9, 0.01),
             checks=[
-                ReplyCheck(mission, dn, channel(keys, f"{dn}_to_cn")) for dn in mission.device_nodes
+                ReplyCheck(mission, dn, channel(keys, f"{dn}_to_cn", self.logic.auth_run))
+                for dn in mission.device_nodes
             ],
             wildcard=wildcard_sync_for(mission),
             trace=sync_trace,
@@ -197,7 +200,7 @@ class ControlNode:
             s,
             space.events(name),
             self.logic.events,
-            channel(keys, f"events_{name}"),
+            channel(keys, f"events_{name}", self.logic.auth_run),
             recorder=self.flight_recorder,
         )
         self._radio = _Radio(mission, s, space.downlink) if mission.downlink.ccsds else None
@@ -239,7 +242,9 @@ class ControlNode:
             # The mirror's intake (zplatform.intake.MirrorIntake): size, tag,
             # range, from the other node, newer in (term, loop); only then the
             # bounded mailbox, so junk and replays never displace a genuine one.
-            self.mirror_intake = MirrorIntake(mission, name, channel(keys, "mirror"))
+            self.mirror_intake = MirrorIntake(
+                mission, name, channel(keys, "mirror", self.logic.auth_run)
+            )
             assert self.mirror_intake.box is not None
             self._mirrors: Mailbox[tuple[None, bytes]] = self.mirror_intake.box
             self._mirror_log = RefusalLog(3)
@@ -277,7 +282,12 @@ class ControlNode:
     def _serve_clock(self) -> None:
         if self.clock_server is None:
             self.clock_server = ClockServer(
-                self.ns.session, self.ns.keys, self.clock.now_ns, self.mission, self.keys
+                self.ns.session,
+                self.ns.keys,
+                self.clock.now_ns,
+                self.mission,
+                self.keys,
+                run=self.logic.auth_run,
             )
             self.liveness.add(self.clock_server.heartbeat)
 
@@ -522,7 +532,9 @@ class ControlNode:
         control nodes' link), measured as a device node measures it, then
         locked. NodeError when no commander serves the clock by ``deadline``."""
         m = self.mission
-        link = ClockLink(m, self.name, self.keys)
+        # The exchange also tells the commander's run, which this node's
+        # channels take on (mirrors, probes; zplatform.auth.Run).
+        link = ClockLink(m, self.name, self.keys, run=self.logic.auth_run)
         estimate = estimator_for(m.clock)
         while True:
             try:

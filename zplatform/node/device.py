@@ -27,7 +27,7 @@ import time
 
 import zenoh
 
-from ..auth import KeySet, channel, load_keys
+from ..auth import KeySet, Run, channel, load_keys
 from ..boards import board_health, close_board, open_board
 from ..bulk import NodeBulk, open_bulk
 from ..clocksync import ClockEstimate, ClockLink, estimator_for
@@ -55,6 +55,9 @@ log = logging.getLogger("zplatform.dn")
 
 TIMEOUT_EVENT_EVERY_NS = 1_000_000_000
 """A ``clock_timeout`` event at most this often (the counter counts every one)."""
+RELEARN_S = 1.0
+"""At most one clock re-sync this often on a genuine trigger of another run
+(the control node may have started a new one; zplatform.auth.Run)."""
 
 
 class ClockTally:
@@ -145,12 +148,18 @@ class DeviceNode:
         self.clock = clock or NodeClock()
         # A trigger stamped (CN time) more than a period ago belongs to a loop
         # the CN has already closed: answer it, do not run it.
-        self.logic = DeviceLogic(mission, name, stale_after_ns=mission.period_ns, keys=keys)
+        # The control node's run (zplatform.auth.Run), learned by the clock
+        # exchange before the sync queryable is declared: triggers and probe
+        # questions of another run (an earlier run's, replayed) are refused.
+        self.auth_run = Run()
+        self.logic = DeviceLogic(
+            mission, name, stale_after_ns=mission.period_ns, keys=keys, run=self.auth_run
+        )
         self.dv = self.logic.dv
         self._keys = keys
         # The clock exchange, tagged with this node's link key; one thread
         # measures at a time (start-up, then the re-sync thread).
-        self.clock_link = ClockLink(mission, name, keys)
+        self.clock_link = ClockLink(mission, name, keys, run=self.auth_run)
         self.ns = NodeSession(mission, name, announce=False, lowlatency=lowlatency)
         # One estimator for the start-up sync, its residual and the re-syncs.
         self.estimate_offset = estimator_for(mission.clock)
@@ -171,6 +180,7 @@ class DeviceNode:
         self._events: EventPublisher | None = None
         self.flight_recorder: FlightRecorder | None = None
         self._resync: threading.Thread | None = None
+        self._relearn = threading.Event()  # set: re-sync now, the run may be new
         # Every thread this node runs checks in (zplatform.health).
         self.liveness = Liveness(thread_deadlines_ns(mission))
         self._loop_hb = self.liveness.add(Heartbeat("loop"))
@@ -240,9 +250,16 @@ class DeviceNode:
             res.estimator,
         )
         trigger_intake: TriggerIntake[zenoh.Query] = TriggerIntake(
-            m, self.name, channel(self._keys, f"cn_to_{self.name}"), self.clock.now_ns
+            m,
+            self.name,
+            channel(self._keys, f"cn_to_{self.name}", self.auth_run),
+            self.clock.now_ns,
         )
         assert trigger_intake.box is not None
+        # A genuine trigger of another run: the control node may have started
+        # a new one; the re-sync thread asks the run now (at most once a
+        # RELEARN_S), not at its next re-sync.
+        trigger_intake.on_other_run = self._relearn.set
         self.sync = DeviceSync(
             s,
             keys,
@@ -253,7 +270,7 @@ class DeviceNode:
             probes=(
                 ProbeIntake(
                     self.name,
-                    channel(self._keys, f"probe_cn_to_{self.name}"),
+                    channel(self._keys, f"probe_cn_to_{self.name}", self.auth_run),
                     trigger_intake.box.waker,
                     period_ns=m.period_ns,
                     askers=len(m.control_nodes),
@@ -285,7 +302,7 @@ class DeviceNode:
             s,
             keys.events(self.name),
             self.logic.events,
-            channel(self._keys, f"events_{self.name}"),
+            channel(self._keys, f"events_{self.name}", self.auth_run),
             recorder=self.flight_recorder,
         )
         if m.clock.resync_s > 0:
@@ -329,7 +346,22 @@ class DeviceNode:
             return now_ns()
 
         hb.idle()
-        while not self.stop.event.wait(m.clock.resync_s):
+        last_relearn = -RELEARN_S
+        while True:
+            nudged = self._relearn.wait(m.clock.resync_s)
+            if self.stop.is_set():
+                return
+            if nudged:
+                # A trigger of another run (intake.on_other_run): ask with a
+                # hello, whose answer tells the run, at most once a RELEARN_S
+                # (a replay of an earlier run's triggers costs one exchange
+                # series a RELEARN_S, never more).
+                wait_s = last_relearn + RELEARN_S - time.monotonic()
+                if wait_s > 0 and self.stop.event.wait(wait_s):
+                    return
+                self._relearn.clear()
+                last_relearn = time.monotonic()
+                self.clock_link.forget()
             hb.beat()
             if self.logic.run_ended:
                 # Nobody serves the clock between runs: no measurement, and no
@@ -470,6 +502,7 @@ class DeviceNode:
         if self.bulk is not None:
             self.bulk.close()
         if self._resync is not None:
+            self._relearn.set()  # wakes it to see the stop
             self._resync.join(timeout=2)
         if self.watchdog is not None:
             # A loop that ended in an exception leaves the watchdog armed.

@@ -1,0 +1,163 @@
+"""Keys bound to the run (zplatform.auth.Run, codecs/FORMAT.md §6.1): the
+nodes' logic and intakes refuse another run's frames, answer in the run of
+what they answer, and follow their vector's run."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from tests.payload import Bytes
+from zplatform import load_mission
+from zplatform.auth import NO_RUN, TAG_LEN, Channel, Run
+from zplatform.failover import MirrorReader, Standby
+from zplatform.fencing import ASK, STATUS, ask_frame, new_nonce
+from zplatform.intake import TriggerIntake
+from zplatform.lockstep import sim_keys
+from zplatform.loop import ControlLogic, DeviceLogic
+
+ROOT = Path(__file__).resolve().parents[2]
+FLIGHT = load_mission(ROOT / "configs" / "flight.yaml")
+KEYS = sim_keys(FLIGHT)
+assert KEYS is not None
+P = FLIGHT.period_ns
+T0 = 1_700_000_000_000_000_000
+OLD, NEW = T0 - 86_400 * 10**9, T0
+
+
+def at(loop: int) -> int:
+    return T0 + loop * P
+
+
+def _cn(epoch: int, name: str = "cn") -> ControlLogic:
+    return ControlLogic(FLIGHT, keys=KEYS.for_node(name), epoch=epoch, name=name)
+
+
+def _trigger(cn: ControlLogic, loop: int, i: int = 0) -> bytes:
+    return bytes(cn.begin(loop, at(loop))[i])
+
+
+def test_a_bound_device_node_runs_only_its_runs_triggers_and_answers_in_it() -> None:
+    """dn0 bound to the run its clock exchange told (NEW): a genuine trigger
+    of an earlier run (OLD, a later loop and stamp) is refused and counted,
+    never run; this run's is run, and the reply names this run, so the
+    control node (bound to its own run) takes it."""
+    run = Run(NEW)
+    dn = DeviceLogic(FLIGHT, "dn0", keys=KEYS.for_node("dn0"), run=run)
+    old, new = _cn(OLD), _cn(NEW)
+    assert dn.trigger(_trigger(old, 9), at(9)) is None and dn.triggered == 0
+    assert int(dn.dv.get("dn0_bad_frames")) == 1
+    assert "not of this run" in dn.reject_reason
+    reply = dn.trigger(_trigger(new, 1), at(1))
+    assert reply is not None and dn.triggered == 1
+    assert Channel.run_of(reply) == NEW
+    new.reply(0, reply)
+    assert new.replied[0]
+    # Before it knows the run, nothing is run.
+    fresh = DeviceLogic(FLIGHT, "dn0", keys=KEYS.for_node("dn0"), run=Run())
+    assert fresh.trigger(_trigger(new, 2), at(2)) is None and fresh.triggered == 0
+
+
+def test_the_trigger_intake_counts_another_runs_genuine_trigger_stale_and_junk_bad() -> None:
+    intake: TriggerIntake[None] = TriggerIntake(
+        FLIGHT, "dn0", KEYS.for_node("dn0").channel("cn_to_dn0", Run(NEW))
+    )
+    old = _trigger(_cn(OLD), 5)
+    assert not intake.admit(Bytes(old), None)
+    assert intake.take_counts() == (0, 0, 1)
+    # The same bytes under a run word rewritten to this run's: a bad tag.
+    n = len(old) - TAG_LEN
+    forged = old[:n] + NEW.to_bytes(8, "little") + old[n + 8 :]
+    assert not intake.admit(Bytes(forged), None)
+    assert intake.take_counts() == (0, 1, 0)
+    assert intake.admit(Bytes(_trigger(_cn(NEW), 1)), None)
+
+
+def test_a_device_node_answers_a_status_in_any_run_but_an_ask_only_in_its_own() -> None:
+    """A STATUS moves nothing: answered in the asker's run (a restarted
+    control node asks before it knows the run). An ASK of another run (an
+    earlier run's, replayed) would move the node's term: refused."""
+    dn = DeviceLogic(FLIGHT, "dn0", keys=KEYS.for_node("dn0"), run=Run(NEW))
+    old = KEYS.for_node("cn").channel("probe_cn_to_dn0", Run(OLD))
+    status = dn.probe(ask_frame(old, STATUS, 0, 1, 0, new_nonce(), at(1)), at(1))
+    assert status is not None and Channel.run_of(status) == OLD
+    assert dn.probe(ask_frame(old, ASK, 0, 1, 2, new_nonce(), at(2)), at(2)) is None
+    assert dn.guard is not None and dn.guard.promised(at(2)) == 0
+    mine = KEYS.for_node("cn").channel("probe_cn_to_dn0", Run(NEW))
+    reply = dn.probe(ask_frame(mine, STATUS, 0, 1, 0, new_nonce(), at(3)), at(3))
+    assert reply is not None and Channel.run_of(reply) == NEW
+
+
+def test_a_standby_refuses_a_mirror_of_another_run() -> None:
+    """cn_b learned the commander's run (NEW): the commander's mirror of an
+    earlier run, however newer its term and loop, never verifies."""
+    sb = Standby(FLIGHT, _cn(NEW, "cn_b"), KEYS.for_node("cn_b"))
+    old = _cn(OLD)
+    old.take_command(5, 1)
+    old.begin(50, at(50))
+    old.finish()
+    assert old.mirror is not None
+    assert not sb.mirror(bytes(old.mirror), at(50)) and sb.bad == 1
+    cn = _cn(NEW)
+    cn.begin(1, at(1))
+    cn.finish()
+    assert cn.mirror is not None and sb.mirror(bytes(cn.mirror), at(1))
+    reader = MirrorReader(_cn(NEW), KEYS.for_node("cn"))
+    assert reader.read(bytes(old.mirror)) is None
+
+
+def test_the_control_logic_follows_its_vectors_run() -> None:
+    """A resumed vector (adopt) or a taken-over one brings its run: the
+    logic's frames name it from then on."""
+    cn = _cn(NEW)
+    assert Channel.run_of(_trigger(cn, 1)) == NEW
+    resumed = _cn(NEW + 1)
+    resumed.dv.write_all(bytes(cn.dv.view()))
+    resumed.adopt()
+    assert resumed.auth_run.epoch == NEW
+    assert Channel.run_of(_trigger(resumed, 2)) == NEW
+    assert Run().epoch == NO_RUN and not Run().known
+
+
+def test_a_restarted_control_nodes_warm_up_is_answered_in_its_run_then_it_resumes() -> None:
+    """A control node restarted in flight has a new run (NEW) until it
+    resumes the device nodes' (OLD, its recorder's): its warm-up (loop 0,
+    answered, never run) is answered in NEW at the intake and by the
+    logic, so it learns where they are; its loop 1 of NEW is not run; once
+    it has adopted the recorded vector, its triggers are of OLD again and run."""
+    intake: TriggerIntake[None] = TriggerIntake(
+        FLIGHT, "dn0", KEYS.for_node("dn0").channel("cn_to_dn0", Run(OLD)), lambda: at(0)
+    )
+    dn = DeviceLogic(FLIGHT, "dn0", keys=KEYS.for_node("dn0"), run=Run(OLD))
+    first = _cn(OLD)
+    assert dn.trigger(_trigger(first, 1), at(1)) is not None and dn.triggered == 1
+    restarted = _cn(NEW)
+    warm = bytes(restarted.begin(0, at(2))[0])
+    assert intake.admit(Bytes(warm), None)
+    reply = dn.trigger(warm, at(2), authentic=True)
+    assert reply is not None and dn.triggered == 0 and Channel.run_of(reply) == NEW
+    restarted.reply(0, reply)
+    assert restarted.replied[0]
+    assert dn.trigger(_trigger(restarted, 3), at(3)) is None and dn.triggered == 0
+    assert not intake.admit(Bytes(_trigger(restarted, 4)), None)
+    assert intake.take_counts() == (0, 0, 1)
+    restarted.dv.write_all(bytes(first.dv.view()))
+    restarted.adopt()
+    reply = dn.trigger(_trigger(restarted, 5), at(5))
+    assert reply is not None and dn.triggered == 5 and Channel.run_of(reply) == OLD
+
+
+def test_a_genuine_trigger_of_another_run_cues_the_device_node_to_ask_the_run() -> None:
+    """The intake calls on_other_run for a genuine frame of another run
+    (the device node then asks its clock exchange for the run: the control
+    node may have started a new one), never for junk or this run's frames."""
+    cues: list[int] = []
+    intake: TriggerIntake[None] = TriggerIntake(
+        FLIGHT, "dn0", KEYS.for_node("dn0").channel("cn_to_dn0", Run(NEW))
+    )
+    intake.on_other_run = lambda: cues.append(1)
+    old = _trigger(_cn(OLD), 5)
+    assert not intake.admit(Bytes(old), None) and cues == [1]
+    junk = old[:-1] + bytes([old[-1] ^ 1])
+    assert not intake.admit(Bytes(junk), None) and cues == [1]
+    assert intake.admit(Bytes(_trigger(_cn(NEW), 1)), None) and cues == [1]
+    assert intake.take_counts() == (0, 1, 1)
