@@ -1,27 +1,22 @@
 """Authentication of every frame a node takes from the network: per-link keys and tags.
 
 With ``security.auth`` on (the default), every region frame, telemetry
-snapshot, command request, clock-sync exchange, probe, mirror and event
-record travels as ``frame || tag``: the tag (:data:`TAG_LEN`, 24 bytes) is
-the sender's *run* (:data:`RUN_LEN` bytes) then 16 bytes of keyed BLAKE3 or
-HMAC-SHA256 under a key derived per channel from its link's key and bound
-to that run (:func:`run_key`), so a frame tagged for one channel fails on
-every other, and a receiver bound to a run (:class:`Run`: a device node's
-and the standby's, learned by their clock exchange; the control node's,
-its ``cn_epoch``) refuses every frame of another run (:class:`RunError`):
-a frame recorded in an earlier run never verifies again. Keys are per
-*link* and each host role holds only the links it speaks on
-(:func:`role_links`); replays within a run are the receivers' to refuse.
+snapshot, command request, clock exchange, probe, mirror and event record
+travels as ``frame || tag``: the sender's *run* (:data:`RUN_LEN` bytes)
+then 16 bytes of keyed BLAKE3 or HMAC-SHA256 under a key derived from the
+link's key, the channel and that run (:func:`run_key`). A frame tagged for
+one channel fails on every other; a receiver bound to a run (:class:`Run`,
+learned by the clock exchange or the control node's own ``cn_epoch``)
+refuses every frame of another run (:class:`RunError`), so a frame of an
+earlier run never verifies again. Each host role holds only the links it
+speaks on (:func:`role_links`); replays within a run are the receivers'.
 
-Holds :class:`Channel` (tags and checks one channel's frames: ``open``
-returns a view without copying or raises :class:`AuthError`; the check is
-constant-time and comes before any decode; not thread-safe, one per thread),
-:class:`KeySet`, and finding and checking keys (:func:`load_keys`: explicit
-file, ``ZPLATFORM_KEY_FILE``, ``ZPLATFORM_KEY``, then the mission's key set;
-:func:`check_key` refuses weak keys and key files others may read, raising
-:class:`KeyError_`). Loading keys blocks on file I/O; tagging never blocks.
-
-The tag: codecs/FORMAT.md (section 6.1); links and key files: docs/security.md.
+:class:`Channel` tags and checks one channel's frames (``open`` returns a
+view, no copy, or raises :class:`AuthError`; constant-time, before any
+decode; one per thread). :func:`load_keys` finds a host's keys (file,
+``ZPLATFORM_KEY_FILE``, ``ZPLATFORM_KEY``, the mission's key set) and
+:func:`check_key` refuses weak or exposed ones (:class:`KeyError_`);
+loading blocks on file I/O, tagging never blocks. Tag: codecs/FORMAT.md §6.1.
 """
 
 from __future__ import annotations

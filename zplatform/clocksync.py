@@ -1,34 +1,21 @@
 """Clock synchronisation between each DN and the CN (thesis 4.9), NTP-style.
 
-The CN serves ``{vehicle}/cn/clock`` (:class:`ClockServer`, around the
-sans-IO :class:`ClockResponder`; ``t2`` is read in the zenoh callback, the
-reply sent from the server thread). A DN's sans-IO end is
-:class:`ClockLink`: per exchange a query with a fresh nonce, tagged with its
-cn<->dnX link key, asked of every queryable (``QueryTarget.ALL``) and
+The CN serves ``{vehicle}/cn/clock`` (:class:`ClockServer` around the
+sans-IO :class:`ClockResponder`; ``t2`` read in zenoh's callback, the reply
+sent from the server thread). A DN's sans-IO end is :class:`ClockLink`: per
+exchange a tagged query with a fresh nonce, asked of every queryable and
 DROPped rather than blocked; the first reply whose tag checks and whose
 nonce is the exchange's is taken, any other refused and counted, and an
-exchange without one is a counted timeout (:attr:`ClockLink.timeouts`).
-An exchange never waits past its timeout.
+exchange without one is a counted timeout. It never waits past its timeout.
 
-The exchange is also how a node learns the control node's *run*, the one
-every key is bound to (:class:`zplatform.auth.Run`), from a frame that
-cannot be a replay: the reply is tagged under the run's key, names the run,
-and echoes the asker's fresh nonce. A query names the run the asker knows
-(then the server answers only a query of its own run: an earlier run's,
-replayed, is refused unanswered), or none (:data:`~zplatform.auth.NO_RUN`,
-a *hello*: before the asker knows the run, or after an exchange that got no
-answer, as when the control node started a new run). A hello is answered
-as any query (stateless, like a SYN cookie: the answer only tells the run
-and the time, bound to a nonce only the asker knows), so a replayed hello
-tells an eavesdropper what it could read from any frame's run word.
-
-Over many exchanges the fastest ``keep_fraction`` are kept and their median
-offset (CN clock minus DN clock) is the estimate: :func:`estimate_offset`
-(``node_clock``, the node clocks read in Python) or
-:func:`estimate_offset_zenoh` (``zenoh_ts``, zenoh's own timestamps mapped
-into node time, the default); :func:`estimator_for` gives the mission's
-``clock.estimator``. Detail, formulas and measured accuracy:
-docs/architecture.md#the-clock-exchange; wire: codecs/FORMAT.md §6.3.
+The exchange is also how a node learns the control node's *run*
+(:class:`zplatform.auth.Run`) from a frame that cannot be a replay: the
+reply names the run, is tagged under its key and echoes the asker's nonce.
+A query names the asker's run (the server refuses another run's, unanswered)
+or none (a *hello*, answered statelessly like a SYN cookie). The fastest
+``keep_fraction`` of many exchanges give the offset (:func:`estimator_for`:
+``node_clock`` or zenoh's timestamps, the default). Formulas and measured
+accuracy: docs/architecture.md#the-clock-exchange; wire: codecs/FORMAT.md §6.3.
 """
 
 from __future__ import annotations

@@ -168,9 +168,11 @@ def test_the_ground_link_checks_a_snapshots_tag_once(
         opened: list[str] = []
         real_open = Channel.open
 
-        def counted(self: Channel, payload: bytes | bytearray | memoryview) -> memoryview:
+        def counted(
+            self: Channel, payload: bytes | bytearray | memoryview, **kw: Any
+        ) -> memoryview:
             opened.append(self.name)
-            return real_open(self, payload)
+            return real_open(self, payload, **kw)
 
         monkeypatch.setattr(Channel, "open", counted)
         sample = types.SimpleNamespace(payload=Bytes(frame))
