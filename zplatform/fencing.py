@@ -140,7 +140,7 @@ def any_run(payload: bytes | bytearray | memoryview) -> bool:
     a control node that has not learned the run yet (restarted, it asks
     before it knows who commands) gets its answer. An ASK or a RELEASE
     moves a device node's term: only of its run."""
-    return len(payload) > 2 and payload[2 + 1] == STATUS
+    return len(payload) > 3 and payload[3] == STATUS  # byte 3: the question's kind
 
 
 def ask_frame(
