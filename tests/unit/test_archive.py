@@ -262,3 +262,97 @@ def test_archive_config_errors_name_the_yaml_path() -> None:
     m = decode_mission(base + "\narchive: {enabled: false}\n", code=False)
     assert not m.archive.enabled
     assert os.environ.get("ZPLATFORM_ARCHIVE_DIR")  # the tests never write the user's
+
+
+@pytest.fixture
+def cli_archive(mission: Mission, tmp_path: Path) -> Path:
+    """An archive of run 7, loops 1..300, and a WARNING_HI event."""
+    layout = Layout.for_node(mission, "cn")
+    w = ArchiveWriter(mission, layout, tmp_path)
+    feed(w, DataVector(layout), range(1, 301))
+    w.event(EventRecord(T0 + 5, "cn", 3, T0 + 4, "WARNING_HI", "fault", "a fault"))
+    w.event(EventRecord(T0 + 6, "gn", 4, T0 + 6, "COMMAND", "cmd_sent", "ARM sent"))
+    w.close()
+    return tmp_path
+
+
+def _cli(d: Path, *args: str) -> int:
+    from zplatform.cli import main
+
+    return main(["archive", str(ROOT / "configs" / "flight.yaml"), "--dir", str(d), *args])
+
+
+def test_cli_query_prints_the_telemetry_logs_csv(
+    cli_archive: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    rc = _cli(
+        cli_archive, "query", "--elements", "apogee_t*,cn_state", "--from", "1", "--to", "loop:102"
+    )
+    assert rc == 0
+    assert capsys.readouterr().out.splitlines() == [
+        "rx_time_ns,cn_state,apogee_target_m",
+        f"{T0 + 101 * PERIOD + 3},ARMED,25.25",
+        f"{T0 + 102 * PERIOD + 3},ARMED,25.5",
+    ]
+    rc = _cli(cli_archive, "query", "--elements", "cn_state,ev_liftoff", "--every", "1s")
+    assert rc == 0
+    assert capsys.readouterr().out.splitlines() == [
+        "bucket_ns,cn_state_min,cn_state_max,cn_state_mean,ev_liftoff_min,ev_liftoff_max,"
+        "ev_liftoff_mean",
+        f"{T0 + PERIOD},0,1,0.01,0,0,0.0",
+        f"{T0 + 101 * PERIOD},1,2,1.01,0,0,0.0",
+        f"{T0 + 201 * PERIOD},2,3,2.01,0,0,0.0",
+    ]
+
+
+def test_cli_runs_events_and_export(
+    cli_archive: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    import json
+
+    import pyarrow.parquet as pq
+
+    assert _cli(cli_archive, "runs", "--json") == 0
+    (run,) = json.loads(capsys.readouterr().out)
+    assert (run["run"], run["loops"], run["states"], run["outcome"]) == (
+        7,
+        300,
+        ["SAFE", "ARMED", "BOOST", "COAST"],
+        "ended",
+    )
+    assert run["commands"] == ["gn: ARM sent"]
+    assert _cli(cli_archive, "events", "--severity", "warning_hi") == 0
+    (line,) = capsys.readouterr().out.splitlines()
+    assert json.loads(line)["text"] == "a fault"
+    out = tmp_path / "x.parquet"
+    assert _cli(cli_archive, "export", "--format", "parquet", "--out", str(out)) == 0
+    t = pq.read_table(out)
+    assert t.num_rows == 300 and "dn0_state" in t.column_names
+
+
+@pytest.mark.parametrize(
+    ("args", "reason"),
+    [
+        (["query", "--elements", "cn_stat"], "no element matches 'cn_stat'; did you mean"),
+        (["query", "--elements", "cn_state", "--from", "5", "--to", "2"], "reversed"),
+        (["query", "--elements", "cn_state", "--from", "noon"], "expected ISO UTC"),
+        (["query", "--elements", "cn_state", "--from", "2026-12-07T03:20:00"], "time zone"),
+        (["query", "--elements", "cn_state", "--run", "3"], "no run 3"),
+        (["query", "--elements", "cn_state", "--every", "1s", "--agg", "median"], "median"),
+        (["query", "--elements", "cn_state", "--every", "0s"], "longer than 0"),
+        (["query", "--elements", "nav_*", "--every", "1s"], "nav_cov is an array"),
+        (["query", "--elements", ","], "--elements is empty"),
+        (["events", "--severity", "LOUD"], "no severity 'LOUD'"),
+    ],
+)
+def test_cli_refuses_a_bad_query_with_its_reason(
+    cli_archive: Path, capsys: pytest.CaptureFixture[str], args: list[str], reason: str
+) -> None:
+    assert _cli(cli_archive, *args) == 2
+    err = capsys.readouterr().err
+    assert reason in err and "Traceback" not in err
+
+
+def test_cli_refuses_a_missing_archive(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    assert _cli(tmp_path / "none", "runs") == 2
+    assert "no archive of mission 'flight'" in capsys.readouterr().err

@@ -7,7 +7,7 @@ recorder's format, the source of truth) and as Parquet files partitioned by
 run and hour, one column per element. The package: :mod:`.store` (the
 files), :mod:`.writer` (:class:`ArchiveWriter`: the receive path copies, a
 thread writes), :mod:`.query` (:class:`Archive`, :class:`Query`: DuckDB in
-process; ``zplatform archive`` reads through it).
+process) and :mod:`.cli` (``zplatform archive``).
 
 Contract: the receive path never blocks on the archive; a reader never sees
 half a file. The guide: docs/archive.md.

@@ -24,7 +24,6 @@ import re
 from datetime import datetime
 from pathlib import Path
 
-import duckdb
 import msgspec
 import pyarrow as pa
 import pyarrow.parquet as pq
@@ -115,6 +114,8 @@ class Archive:
     no archive."""
 
     def __init__(self, mission: Mission, root: str | Path, *, recover: bool = True) -> None:
+        import duckdb  # here: the ground node's writer never needs it
+
         from .writer import lock_archive
 
         self.mission, self.root = mission, Path(root)
@@ -132,6 +133,7 @@ class Archive:
                 finally:
                     os.close(fd)
         self._db = duckdb.connect(":memory:")
+        self._db.execute("SET threads TO 2")  # a ground station's tool, not its server
 
     def _problem(self, text: str) -> None:
         self.problems.append(text)
@@ -228,7 +230,7 @@ class Archive:
             if self.layout.element(n).count:
                 raise ArchiveError(f"{n} is an array: aggregate scalar elements only")
         exprs = ", ".join(
-            AGGREGATES[a].format(c=f'"{n}"') + f' AS "{n}_{a}"' for n in names for a in aggs
+            AGGREGATES[a].format(c=self._scalar(n)) + f' AS "{n}_{a}"' for n in names for a in aggs
         )
         if not files:
             return pa.table({"bucket_ns": pa.array([], pa.int64())})
@@ -237,6 +239,12 @@ class Archive:
             f"{exprs} FROM read_parquet(?){where} GROUP BY 1 ORDER BY 1"
         )
         return self._db.sql(sql, params=[files, *params]).to_arrow_table()
+
+    def _scalar(self, name: str) -> str:
+        """Element ``name`` as an aggregatable column (a bool as 0/1)."""
+        if self.layout.element(name).scalar.kind == "bool":
+            return f'CAST("{name}" AS TINYINT)'
+        return f'"{name}"'
 
     def _empty(self, names: list[str]) -> pa.Table:
         schema = store.file_schema(self.layout)
