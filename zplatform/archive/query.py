@@ -21,6 +21,7 @@ import fnmatch
 import math
 import os
 import re
+from collections.abc import Sequence
 from datetime import datetime
 from pathlib import Path
 
@@ -136,7 +137,8 @@ class Archive:
         self._db.execute("SET threads TO 2")  # a ground station's tool, not its server
 
     def _problem(self, text: str) -> None:
-        self.problems.append(text)
+        if text not in self.problems:
+            self.problems.append(text)
 
     def runs(self) -> list[store.RunInfo]:
         """Every run's record, oldest first (by run id: the CN's epoch)."""
@@ -177,16 +179,45 @@ class Archive:
             raise ArchiveError(f"{len(want)} elements asked, at most {MAX_ELEMENTS}")
         return [n for n in names if n in want]
 
-    def _files(self, kind: str, run: int) -> list[str]:
+    def _files(self, kind: str, run: int, *, deep: bool = False) -> list[str]:
+        """Run ``run``'s closed files of ``kind`` that look whole (Parquet's
+        magic at both ends; ``deep``: their footer reads, slower); the others
+        are skipped and told in :attr:`problems`."""
         ok = []
         for f in store.parquet_files(self.root, kind, run):
             try:
-                pq.read_metadata(f)
+                if deep:
+                    pq.read_metadata(f)
+                else:
+                    with open(f, "rb") as fh:
+                        head = fh.read(4)
+                        fh.seek(-4, os.SEEK_END)
+                        if head != b"PAR1" or fh.read(4) != b"PAR1":
+                            raise OSError("not a whole Parquet file")
             except (OSError, pa.ArrowException) as exc:
                 self._problem(f"{f}: unreadable Parquet file skipped ({exc})")
                 continue
             ok.append(str(f))
         return ok
+
+    def _sql(
+        self, sql: str, kind: str, run: int, params: Sequence[object], empty: pa.Table
+    ) -> pa.Table:
+        """``sql`` over run ``run``'s files of ``kind`` (its first parameter);
+        a file DuckDB cannot read (a damaged footer) is found, skipped and
+        told, and the query run again without it."""
+        import duckdb
+
+        files = self._files(kind, run)
+        try:
+            if not files:
+                return empty
+            return self._db.sql(sql, params=[files, *params]).to_arrow_table()
+        except duckdb.Error:
+            files = self._files(kind, run, deep=True)
+            if not files:
+                return empty
+            return self._db.sql(sql, params=[files, *params]).to_arrow_table()
 
     def _where(self, q: Query, info: store.RunInfo) -> tuple[str, list[int]]:
         conds, params = [], []
@@ -211,13 +242,10 @@ class Archive:
         info = self.run(q.run)
         names = self.elements(q.elements)
         where, params = self._where(q, info)
-        files = self._files("tm", info.run)
         cols = ", ".join(f'"{n}"' for n in names)
         if q.every is None:
-            if not files:
-                return self._empty(names)
             sql = f"SELECT loop, t_ns, rx_ns, {cols} FROM read_parquet(?){where} ORDER BY loop"
-            return self._db.sql(sql, params=[files, *params]).to_arrow_table()
+            return self._sql(sql, "tm", info.run, params, self._empty(names))
         every = parse_every(q.every)
         aggs = []
         for a in q.agg:
@@ -232,13 +260,12 @@ class Archive:
         exprs = ", ".join(
             AGGREGATES[a].format(c=self._scalar(n)) + f' AS "{n}_{a}"' for n in names for a in aggs
         )
-        if not files:
-            return pa.table({"bucket_ns": pa.array([], pa.int64())})
         sql = (
             f"SELECT {info.start_ns} + (t_ns - {info.start_ns}) // {every} * {every} AS bucket_ns, "
             f"{exprs} FROM read_parquet(?){where} GROUP BY 1 ORDER BY 1"
         )
-        return self._db.sql(sql, params=[files, *params]).to_arrow_table()
+        empty = pa.table({"bucket_ns": pa.array([], pa.int64())})
+        return self._sql(sql, "tm", info.run, params, empty)
 
     def _scalar(self, name: str) -> str:
         """Element ``name`` as an aggregatable column (a bool as 0/1)."""
@@ -258,14 +285,11 @@ class Archive:
         for s in sevs:
             if s not in known:
                 raise ArchiveError(f"no severity {s!r}{did_you_mean(s, known)}")
-        files = self._files("ev", info.run)
-        if not files:
-            return store.EVENT_SCHEMA.empty_table()
         where = ""
         if sevs:
             where = " WHERE severity IN (" + ", ".join("?" * len(sevs)) + ")"
         sql = f"SELECT * FROM read_parquet(?){where} ORDER BY rx_ns, node, seq"
-        return self._db.sql(sql, params=[files, *sevs]).to_arrow_table()
+        return self._sql(sql, "ev", info.run, list(sevs), store.EVENT_SCHEMA.empty_table())
 
     def close(self) -> None:
         self._db.close()

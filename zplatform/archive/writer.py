@@ -358,7 +358,7 @@ class ArchiveWriter:
             d.mkdir(parents=True, exist_ok=True)
             self._pw_path = d / f"part-{store.next_part(d):06d}.parquet"
             self._pw = pq.ParquetWriter(
-                str(self._pw_path) + ".tmp", self._schema, compression="zstd"
+                str(self._pw_path) + ".tmp", self._schema, **store.parquet_options(self._schema)
             )
             self._pw_hour, self._pw_rows = hour, 0
         self._pw.write_table(table, row_group_size=len(rows))
