@@ -66,6 +66,7 @@ def test_rows_written_once_each_and_read_back(mission: Mission, tmp_path: Path) 
         "dropped": 0,
         "events_dropped": 0,
         "errors": 0,
+        "lost": 0,
     }
     with Archive(mission, tmp_path) as a:
         (info,) = a.runs()
@@ -200,6 +201,52 @@ def test_an_unreadable_parquet_file_is_skipped_with_a_note(
         t = a.query(Query("cn_loop"))
         assert t.column("cn_loop").to_pylist() == [*range(1, 101), *range(201, 301)]
         assert len(a.problems) == 1 and files[1].name in a.problems[0]
+
+
+def test_a_damaged_footer_is_found_when_duckdb_fails_and_skipped(
+    mission: Mission, tmp_path: Path
+) -> None:
+    layout = Layout.for_node(mission, "cn")
+    w = ArchiveWriter(small(mission, row_group_s=1.0, file_s=1.0), layout, tmp_path)
+    feed(w, DataVector(layout), range(1, 301))
+    w.close()
+    files = sorted(tmp_path.glob("tm/run-7/*/part-*.parquet"))
+    data = bytearray(files[2].read_bytes())
+    data[-8:-4] = (len(data) * 2).to_bytes(4, "little")  # the footer's length; magic kept
+    files[2].write_bytes(bytes(data))
+    with Archive(mission, tmp_path) as a:
+        t = a.query(Query("cn_loop"))
+        assert t.column("cn_loop").to_pylist() == list(range(1, 201))
+        assert len(a.problems) == 1 and files[2].name in a.problems[0]
+
+
+def test_a_full_disk_is_counted_told_once_and_the_archive_goes_on(
+    mission: Mission, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    layout = Layout.for_node(mission, "cn")
+    w = ArchiveWriter(mission, layout, tmp_path)
+    dv = DataVector(layout)
+    feed(w, dv, range(1, 101))
+    raw = ArchiveWriter._raw
+
+    def full(self: ArchiveWriter, data: bytes) -> None:
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(ArchiveWriter, "_raw", full)
+    feed(w, dv, range(101, 201))
+    feed(w, dv, range(201, 301))
+    monkeypatch.setattr(ArchiveWriter, "_raw", raw)  # the disk has room again
+    feed(w, dv, range(301, 401))
+    events = EventLog("gn", 16)
+    w.tick(T0, events)
+    w.close()
+    s = w.stats()
+    assert s["errors"] == 2 and s["lost"] == 200 and s["dropped"] == 0
+    told = [e for e in events.drain() if e.id == "archive_failed"]
+    assert len(told) == 1 and "No space left" in told[0].text
+    with Archive(mission, tmp_path) as a:
+        loops = a.query(Query("cn_loop")).column("loop").to_pylist()
+    assert loops == [*range(1, 101), *range(301, 401)]
 
 
 def test_retention_removes_the_oldest_runs_whole(mission: Mission, tmp_path: Path) -> None:

@@ -108,6 +108,8 @@ class ArchiveWriter:
         self._dropped_told = (0, 0)
         self._told_ns = -(10**18)
         self.errors = 0
+        self.lost = 0
+        """Snapshots taken from the queue whose write failed (a full disk)."""
         self._failed: set[str] = set()
         self._notes: deque[tuple[EventType, dict[str, Any]]] = deque(maxlen=256)
         self.rows = 0
@@ -237,6 +239,7 @@ class ArchiveWriter:
                 self._event(e)
             self._sync()
         except (OSError, pa.ArrowException) as exc:
+            self.lost += len(rows)
             self._fail("write", exc)
 
     def _ingest(self, run: int, rows: np.ndarray, rx: np.ndarray) -> None:
@@ -431,11 +434,13 @@ class ArchiveWriter:
             os.close(self._lock_fd)
 
     def stats(self) -> dict[str, int]:
-        """What it kept: rows, duplicates, dropped snapshots and events, errors."""
+        """What it kept: rows, duplicates, dropped snapshots and events,
+        errors and the snapshots they lost."""
         return {
             "rows": self.rows,
             "duplicates": self.duplicates,
             "dropped": self.dropped,
             "events_dropped": self.events_dropped,
             "errors": self.errors,
+            "lost": self.lost,
         }
