@@ -82,6 +82,29 @@ def test_rows_written_once_each_and_read_back(mission: Mission, tmp_path: Path) 
         assert a.problems == []
 
 
+def test_a_closed_segment_is_sealed_and_a_lost_run_is_redecoded_from_it(
+    mission: Mission, tmp_path: Path
+) -> None:
+    layout = Layout.for_node(mission, "cn")
+    w = ArchiveWriter(mission, layout, tmp_path)
+    feed(w, DataVector(layout), range(1, 301))
+    w.event(EventRecord(T0, "cn", 1, T0, "WARNING_HI", "fault", "a fault"))
+    w.close()
+    raw = sorted(p.name for p in (tmp_path / "raw" / "run-7").iterdir())
+    assert raw == ["seg-00000000.zfr.zst"]
+    # The Parquet files lost, the run left open: all of it comes back from the raw.
+    for f in [*tmp_path.glob("tm/run-7/*/*.parquet"), *tmp_path.glob("ev/run-7/*.parquet")]:
+        f.unlink()
+    info = store.read_run(tmp_path, 7)
+    assert info is not None
+    info.outcome = "open"
+    store.write_run(tmp_path, info)
+    with Archive(mission, tmp_path) as a:
+        assert a.query(Query("cn_loop")).column("loop").to_pylist() == list(range(1, 301))
+        assert a.events(7).column("text").to_pylist() == ["a fault"]
+        assert a.runs()[0].outcome == "interrupted" and a.problems == []
+
+
 def test_runs_are_kept_apart(mission: Mission, tmp_path: Path) -> None:
     layout = Layout.for_node(mission, "cn")
     w = ArchiveWriter(mission, layout, tmp_path)

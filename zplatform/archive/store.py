@@ -3,7 +3,8 @@
 A mission's archive (``DIR/<mission>/``) holds, per run (CN epoch ``R``):
 ``raw/run-R/seg-N.zfr`` (the flight recorder's checksummed records: a
 ``HEAD``, then one ``FRAME`` per snapshot, the CN vector's bytes, and one
-``EVENT`` per event, its JSON), ``tm/run-R/hYYYYMMDDHH/part-N.parquet``
+``EVENT`` per event, its JSON; once closed, zstd-compressed into
+``seg-N.zfr.zst``), ``tm/run-R/hYYYYMMDDHH/part-N.parquet``
 (decoded snapshots, one column per element; an array is one fixed-size-list
 column, so a query of another element never reads it), ``ev/run-R/part-N.parquet``
 (events) and ``runs/run-R.json`` (:class:`RunInfo`). A Parquet file is
@@ -21,6 +22,7 @@ import os
 import re
 import shutil
 import struct
+import tempfile
 import time
 from collections.abc import Callable, Iterable
 from pathlib import Path
@@ -43,10 +45,13 @@ __all__ = [
     "file_schema",
     "parquet_options",
     "raw_record",
+    "raw_segments",
     "read_run",
     "recover",
     "retain",
     "run_dirs",
+    "seal_segment",
+    "segment_index",
     "write_run",
 ]
 
@@ -298,7 +303,7 @@ def recover(
     files; runs left ``open`` become ``interrupted``. Returns the runs
     touched. A damaged record or segment is skipped (``note`` says where)."""
     touched: list[int] = []
-    for kind in ("tm", "ev"):
+    for kind in ("tm", "ev", "raw"):
         for tmp in (root / kind).glob("run-*/**/*.tmp"):
             with contextlib.suppress(OSError):
                 tmp.unlink()
@@ -312,8 +317,8 @@ def recover(
         rows: list[bytes] = []
         rx: list[int] = []
         events: list[EventRecord] = []
-        for seg in sorted(run_dirs(root, "raw", run).glob("seg-*.zfr")):
-            for r in scan_segment(seg, note):
+        for seg in raw_segments(run_dirs(root, "raw", run)):
+            for r in _scan(seg, note):
                 if r.type == FRAME and len(r.payload) == 8 + layout.size:
                     if r.loop not in seen:  # the record's loop is the vector's cn_loop
                         seen.add(r.loop)
@@ -344,6 +349,57 @@ def recover(
         write_run(root, info)
         touched.append(run)
     return touched
+
+
+_SEG_RE = re.compile(r"seg-([0-9]{8})\.zfr(\.zst)?")
+
+
+def segment_index(path: Path) -> int | None:
+    """The index of raw segment ``path`` (``seg-N.zfr``, or sealed ``.zfr.zst``)."""
+    m = _SEG_RE.fullmatch(path.name)
+    return int(m.group(1)) if m else None
+
+
+def raw_segments(directory: Path) -> list[Path]:
+    """A run's raw segments in order, sealed or open (a sealed one first when
+    a crash left both: the same records, each loop then taken once)."""
+    try:
+        names = [p for p in directory.iterdir() if _SEG_RE.fullmatch(p.name)]
+    except OSError:
+        return []
+    return sorted(names, key=lambda p: (segment_index(p), not p.name.endswith(".zst")))
+
+
+def seal_segment(path: Path) -> None:
+    """Compress a closed raw segment into ``seg-N.zfr.zst`` (a standard zstd
+    stream: ``zstd -d`` gives the segment back byte for byte), then remove
+    it. Written as a temporary file renamed, so a crash leaves one whole
+    file or both."""
+    tmp = path.with_name(path.name + ".zst.tmp")
+    with open(path, "rb") as src, pa.CompressedOutputStream(str(tmp), "zstd") as dst:
+        while chunk := src.read(1 << 20):
+            dst.write(chunk)
+    with open(tmp, "rb") as f:
+        os.fsync(f.fileno())
+    os.replace(tmp, path.with_name(path.name + ".zst"))
+    path.unlink()
+
+
+def _scan(seg: Path, note: Callable[[str], None]) -> Iterable[Any]:
+    """The records of raw segment ``seg`` that check (a sealed one unpacked
+    to a temporary file first)."""
+    if not seg.name.endswith(".zst"):
+        yield from scan_segment(seg, note)
+        return
+    with tempfile.TemporaryDirectory() as d:
+        plain = Path(d) / seg.name[: -len(".zst")]
+        try:
+            with pa.CompressedInputStream(str(seg), "zstd") as src, open(plain, "wb") as dst:
+                while chunk := src.read(1 << 20):
+                    dst.write(chunk)
+        except (OSError, pa.ArrowException) as exc:
+            note(f"{seg.name}: cannot unpack it ({exc}); what it held up to there is read")
+        yield from scan_segment(plain, note)
 
 
 def _write_parquet(path: Path, table: pa.Table) -> None:

@@ -19,7 +19,6 @@ files already closed are untouched. One writer per archive directory (a lock).
 
 from __future__ import annotations
 
-import contextlib
 import fcntl
 import logging
 import os
@@ -296,17 +295,27 @@ class ArchiveWriter:
         self._seen = store.loops_in(store.parquet_files(self.root, "tm", run), self._damage)
         raw = store.run_dirs(self.root, "raw", run)
         raw.mkdir(parents=True, exist_ok=True)
-        used = [int(p.stem[4:]) for p in raw.glob("seg-*.zfr") if p.stem[4:].isdigit()]
-        self._seg_index = max(used, default=-1) + 1
+        used = [store.segment_index(p) for p in raw.iterdir()]
+        self._seg_index = max((i for i in used if i is not None), default=-1) + 1
         self._open_segment()
         store.write_run(self.root, self._info)
         early, self._early_events = self._early_events, []
         for e in early:
             self._event(e)
 
+    def _seal_segment(self) -> None:
+        """Close the open raw segment and compress it (:func:`.store.seal_segment`)."""
+        seg, self._seg = self._seg, None
+        if seg is None:
+            return
+        try:
+            os.fsync(seg.fileno())
+        finally:
+            seg.close()
+        store.seal_segment(Path(str(seg.name)))
+
     def _open_segment(self) -> None:
-        if self._seg is not None:
-            self._seg.close()
+        self._seal_segment()
         assert self._run is not None
         path = store.run_dirs(self.root, "raw", self._run) / segment_name(self._seg_index)
         self._seg_index += 1
@@ -410,12 +419,8 @@ class ArchiveWriter:
             self._info.outcome = outcome
             self._close_file()
         finally:
-            if self._seg is not None:
-                with contextlib.suppress(OSError):
-                    os.fsync(self._seg.fileno())
-                self._seg.close()
-                self._seg = None
-        self._run = None
+            self._run = None
+            self._seal_segment()
 
     # -- the end ------------------------------------------------------------
     def close(self, timeout_s: float = 30.0) -> None:
