@@ -26,6 +26,7 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 
 from ..cli_args import check_output, mission_verb
+from ..config import Mission
 from ..datavector import Layout
 from ..mission import load_mission
 from ..telemetry import MAX_ARRAY_COLUMNS, _formatter
@@ -68,6 +69,12 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     )
     q.add_argument("--loops", action="store_true", help="also the loop and t_ns columns, first")
     q.add_argument("--out", metavar="FILE", help="write the CSV here (default: stdout)")
+    q.add_argument(
+        "--remote",
+        action="store_true",
+        help="ask the mission's ground node over zenoh (as a tool) instead of reading a directory",
+    )
+    q.add_argument("--timeout", type=float, default=30.0, metavar="S", help="with --remote")
     e = acts.add_parser("events", help="a run's events, as JSON lines")
     e.add_argument("--run", type=_run_arg, metavar="R", help="the run (default: the last)")
     e.add_argument("--severity", metavar="LIST", help="only these severities (WARNING_HI,FATAL)")
@@ -87,6 +94,8 @@ def _run_and_range(p: argparse.ArgumentParser) -> None:
 
 def cmd_archive(args: argparse.Namespace) -> int:
     mission = load_mission(args.mission, code=False)
+    if getattr(args, "remote", False):
+        return _remote(mission, args)
     root = Path(args.dir) if args.dir else archive_dir(mission)
     out = getattr(args, "out", None)
     if out is not None:
@@ -127,6 +136,40 @@ def _query(a: Archive, args: argparse.Namespace) -> int:
             _plain_csv(table, f)
         else:
             write_csv(a.layout, table, f, loops=args.loops)
+    return 0
+
+
+def _remote(mission: Mission, args: argparse.Namespace) -> int:
+    """``query --remote``: the same query, answered by the ground node."""
+    import secrets
+
+    from ..auth import channel
+    from ..ground.link import GroundLink
+    from .server import remote_query
+
+    if args.out is not None:
+        check_output(args.out, "output")
+    q = Query(args.elements, run=args.run, start=args.start, end=args.end, every=args.every)
+    q.agg = [s.strip() for s in args.agg.split(",") if s.strip()]
+    link = GroundLink(mission, telemetry=False, events=False)
+    try:
+        table = remote_query(
+            link.ns.session,
+            link.keys.archive,
+            channel(link.link_keys, "telemetry"),
+            q,
+            now_ns=link.clock.now_ns(),
+            nonce=secrets.randbits(64),
+            timeout_s=args.timeout,
+        )
+    finally:
+        link.close()
+    layout = Layout.for_node(mission, "cn")
+    with _open(args.out) as f:
+        if args.every is not None:
+            _plain_csv(table, f)
+        else:
+            write_csv(layout, table, f, loops=args.loops)
     return 0
 
 

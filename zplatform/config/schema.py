@@ -780,6 +780,25 @@ class ArchiveConfig(_Struct):
             "the archive's thread holds (at most 256 MiB); a full queue drops, counted.",
         ),
     ] = 10.0
+    serve_bps: Annotated[
+        int,
+        Meta(
+            ge=10_000,
+            le=1_000_000_000,
+            description="Bytes per second the ground node sends when a station or tool asks its "
+            "archive over zenoh (`{vehicle}/archive/query`): answered by a thread of its own, "
+            "paced so that no asker can crowd out live telemetry.",
+        ),
+    ] = 2_000_000
+    serve_max_bytes: Annotated[
+        int,
+        Meta(
+            ge=64 * 1024,
+            le=1 << 34,
+            description="Most bytes of one answer over zenoh; a query whose answer is larger "
+            "is refused with a reason saying so (never cut short silently).",
+        ),
+    ] = 64 * 1024 * 1024
 
 
 class SecurityConfig(_Struct):

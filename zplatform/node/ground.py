@@ -39,6 +39,7 @@ from .runtime import StopFlag
 
 if TYPE_CHECKING:
     from ..archive import ArchiveWriter
+    from ..archive.server import ArchiveServer
 
 __all__ = ["run_ground_logger"]
 
@@ -79,6 +80,7 @@ def run_ground_logger(
         link.close()
         raise
     arch = _open_archive(mission, logic.layout) if node == "gn" else None
+    serve = _serve_archive(link, arch) if arch is not None else None
     sink: _Sink = tlog if arch is None else _Tee(tlog, arch)
     link.on_event = sink.event  # events are handed over in this thread, by link.next
     fill = _Filler(link, sink) if "cn" in mission.recording_nodes else None
@@ -118,6 +120,8 @@ def run_ground_logger(
         logic.finish(link.clock.now_ns())
         link.next(0.0)  # the ground's last events (fills, verdicts) into the log
     finally:
+        if serve is not None:
+            serve.close()
         link.close()
         tlog.close()
         if arch is not None:
@@ -174,6 +178,30 @@ def _open_archive(mission: Mission, layout: Layout) -> ArchiveWriter | None:
         return ArchiveWriter(mission, layout, archive_dir(mission))
     except ZPlatformError as exc:
         log.warning("no archive: %s", exc)
+        return None
+
+
+def _serve_archive(link: GroundLink, arch: ArchiveWriter) -> ArchiveServer | None:
+    """Answer archive queries on ``{vehicle}/archive/query`` (None: it cannot
+    be declared; said in the log)."""
+    from ..archive import Archive
+    from ..archive.server import ArchiveServer
+    from ..auth import channel
+
+    m = link.mission
+    try:
+        return ArchiveServer(
+            link.ns.session,
+            link.keys.archive,
+            lambda: Archive(m, arch.root, recover=False),
+            channel(link.link_keys, "telemetry"),
+            now_ns=link.clock.now_ns,
+            max_age_ns=link.logic.max_age_ns,
+            serve_bps=m.archive.serve_bps,
+            max_bytes=m.archive.serve_max_bytes,
+        )
+    except Exception as exc:  # zenoh's errors are not ours: the ground goes on without
+        log.warning("the archive is not served over zenoh: %s", exc)
         return None
 
 
