@@ -141,6 +141,16 @@ def test_a_full_queue_drops_counted_and_evented_once_a_second(
     assert len(told) == 1 and "5 snapshot(s)" in told[0].text
 
 
+def test_a_vector_of_another_layout_is_dropped_counted_never_raised(
+    mission: Mission, tmp_path: Path
+) -> None:
+    other = load_mission(ROOT / "configs" / "led_test.yaml", code=False)
+    w = ArchiveWriter(mission, Layout.for_node(mission, "cn"), tmp_path)
+    w.snapshot(T0, DataVector(Layout.for_node(other, "cn")))
+    w.close()
+    assert (w.dropped, w.rows) == (1, 0)
+
+
 def _child(tmp_path: Path, n: int) -> subprocess.Popen[str]:
     code = textwrap.dedent(
         f"""

@@ -152,8 +152,8 @@ class ArchiveWriter:
         """Queue a copy of ``dv`` (the CN vector of an accepted snapshot)
         received at ``rx_ns``; a full queue drops it, counted."""
         head = self._head
-        if head - self._tail >= self._cap:
-            self.dropped += 1
+        if head - self._tail >= self._cap or len(dv.buf) != self._size:
+            self.dropped += 1  # full, or not a CN vector of this layout
             return
         i = head % self._cap
         at = i * self._size
@@ -197,10 +197,16 @@ class ArchiveWriter:
 
     def _main(self) -> None:
         while not self._stop.wait(WAKE_S):
-            self._drain()
+            self._drain_safely()
             with self._drained:
                 self._drained.notify_all()
-        self._drain()
+        self._drain_safely()
+
+    def _drain_safely(self) -> None:
+        try:
+            self._drain()
+        except Exception as exc:  # a bug must not end the thread silently: told, and on
+            self._fail("archive (an unexpected error)", exc)
 
     def flush(self, timeout_s: float = 10.0) -> bool:
         """Block until the archive's thread took everything queued before
