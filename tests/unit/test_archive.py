@@ -105,6 +105,23 @@ def test_a_closed_segment_is_sealed_and_a_lost_run_is_redecoded_from_it(
         assert a.runs()[0].outcome == "interrupted" and a.problems == []
 
 
+def test_a_late_loop_is_in_its_place_in_a_query(mission: Mission, tmp_path: Path) -> None:
+    layout = Layout.for_node(mission, "cn")
+    w = ArchiveWriter(small(mission, row_group_s=1.0), layout, tmp_path)
+    dv = DataVector(layout)
+    feed(w, dv, [*range(1, 101), *range(150, 201)])
+    feed(w, dv, range(101, 150))  # a gap filled after later loops came
+    w.close()
+    with Archive(mission, tmp_path) as a:
+        assert a.runs()[0].in_order is False
+        assert a.query(Query("cn_loop")).column("loop").to_pylist() == list(range(1, 201))
+    w = ArchiveWriter(mission, layout, tmp_path)
+    feed(w, dv, range(1, 101), epoch=8)
+    w.close()
+    with Archive(mission, tmp_path) as a:
+        assert a.run(8).in_order is True
+
+
 def test_runs_are_kept_apart(mission: Mission, tmp_path: Path) -> None:
     layout = Layout.for_node(mission, "cn")
     w = ArchiveWriter(mission, layout, tmp_path)

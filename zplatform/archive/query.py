@@ -244,7 +244,10 @@ class Archive:
         where, params = self._where(q, info)
         cols = ", ".join(f'"{n}"' for n in names)
         if q.every is None:
-            sql = f"SELECT loop, t_ns, rx_ns, {cols} FROM read_parquet(?){where} ORDER BY loop"
+            # Rows written in loop order come back in it (DuckDB keeps the
+            # files' order): sorting them again costs a third of the query.
+            order = "" if info.in_order and info.outcome != "open" else " ORDER BY loop"
+            sql = f"SELECT loop, t_ns, rx_ns, {cols} FROM read_parquet(?){where}{order}"
             return self._sql(sql, "tm", info.run, params, self._empty(names))
         every = parse_every(q.every)
         aggs = []

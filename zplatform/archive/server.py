@@ -184,17 +184,18 @@ class ArchiveServer:
                     f"({self._max_bytes}): narrow the range, ask fewer elements or aggregate"
                 )
         except (ArchiveError, msgspec.DecodeError, msgspec.ValidationError) as exc:
+            self.served += 1  # before the reply: an asker that has it finds it counted
             self._reply(query, ERROR, nonce, 0, 1, str(exc).encode()[:CHUNK])
-            self.served += 1
             return
         count = max(1, -(-len(answer) // CHUNK))
         start, sent = time.monotonic(), 0
         for i in range(count):
+            if i == count - 1:
+                self.served += 1  # before the last chunk, likewise
             sent += self._reply(query, DATA, nonce, i, count, answer[i * CHUNK : (i + 1) * CHUNK])
             ahead = sent / self._bps - (time.monotonic() - start)
             if ahead > 0:
                 time.sleep(ahead)  # the serving thread paces; zenoh's thread never waits
-        self.served += 1
 
     def _reply(self, query: Any, kind: int, nonce: int, i: int, n: int, data: bytes) -> int:
         frame = REPLY.pack(kind, nonce, i, n) + data

@@ -86,6 +86,9 @@ class RunInfo(msgspec.Struct, forbid_unknown_fields=True):
     outcome: str = "open"
     events: int = 0
     commands: list[str] = msgspec.field(default_factory=list)
+    in_order: bool = True
+    """Every row was written after every lower loop (the files, in order,
+    hold the loops in order): a query need not sort."""
 
 
 def run_dirs(root: Path, kind: str, run: int) -> Path:
@@ -333,6 +336,7 @@ def recover(
         if info is None:
             info = RunInfo(run, mission, vehicle, layout.layout_id)
         if rows:
+            info.in_order = False  # recovered rows go after rows of later loops, maybe
             arr = np.frombuffer(b"".join(rows), np.uint8).reshape(len(rows), layout.size)
             table = decode_rows(layout, schema, arr, np.array(rx, np.int64))
             t0 = int(table.column("t_ns")[0].as_py())

@@ -124,6 +124,7 @@ class ArchiveWriter:
         self._run: int | None = None
         self._info: store.RunInfo | None = None
         self._seen: set[int] = set()
+        self._max_loop = -1
         self._seg: BinaryIO | None = None
         self._seg_bytes = 0
         self._seg_index = 0
@@ -263,6 +264,11 @@ class ArchiveWriter:
             return
         if len(keep) != len(rows):
             rows, rx, loops = rows[keep], rx[keep], loops[keep]
+        info = self._info
+        assert info is not None
+        if info.in_order and (int(loops[0]) <= self._max_loop or bool(np.any(np.diff(loops) <= 0))):
+            info.in_order = False  # a late loop (a gap filled out of order): queries sort
+        self._max_loop = max(self._max_loop, int(loops.max()))
         self._raw(
             b"".join(
                 store.raw_record(FRAME, lp, rx[i].tobytes() + rows[i].tobytes())
@@ -299,6 +305,7 @@ class ArchiveWriter:
         )
         self._info.outcome = "open"
         self._seen = store.loops_in(store.parquet_files(self.root, "tm", run), self._damage)
+        self._max_loop = max(self._seen, default=-1)
         raw = store.run_dirs(self.root, "raw", run)
         raw.mkdir(parents=True, exist_ok=True)
         used = [store.segment_index(p) for p in raw.iterdir()]
