@@ -20,7 +20,8 @@ file: the tests keep them in a directory of their own
 
 Missions with a flight recorder (the shipped flight and recovery_igniter
 ones) record into a temporary directory of the session
-(``ZPLATFORM_RECORDER_DIR``, inherited too), removed at exit: nothing is
+(``ZPLATFORM_RECORDER_DIR``, inherited too), removed at exit, and the
+ground archive into another (``ZPLATFORM_ARCHIVE_DIR``): nothing is
 written to the user's state directory.
 
 And the registry of running missions (``zplatform ps``; every verb takes a
@@ -71,6 +72,10 @@ atexit.register(shutil.rmtree, _RUN_DIR, True)
 _RECORDER_DIR = tempfile.mkdtemp(prefix="zplatform-test-recorder-")
 os.environ["ZPLATFORM_RECORDER_DIR"] = _RECORDER_DIR
 atexit.register(shutil.rmtree, _RECORDER_DIR, True)
+
+_ARCHIVE_DIR = tempfile.mkdtemp(prefix="zplatform-test-archive-")
+os.environ["ZPLATFORM_ARCHIVE_DIR"] = _ARCHIVE_DIR
+atexit.register(shutil.rmtree, _ARCHIVE_DIR, True)
 
 _PYCACHE = tempfile.mkdtemp(prefix="zplatform-test-pycache-")
 os.environ.pop("PYTHONDONTWRITEBYTECODE", None)

@@ -4,13 +4,15 @@
 ports) under ``zplatform up`` with a command script, logged, summarised and
 recorded. tests/system/test_sim_equals_live.py compares it with ``sim`` and
 replays it; tests/system/test_processes.py checks each state's LEDs in its
-log; tests/system/test_last_loop.py checks how it ended. Each asserts
+log; tests/system/test_last_loop.py checks how it ended;
+tests/system/test_archive_live.py queries its ground archive. Each asserts
 something else about the same run (tests/system/conftest.py makes it once,
 ``led_live_run``).
 """
 
 from __future__ import annotations
 
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -32,7 +34,9 @@ def led_script_run(tmp: Path) -> Path:
     """Run led_test under ``up`` for :data:`LED_DURATION_S` with
     :data:`LED_SCRIPT` in ``tmp``: ``mission.yaml`` (the copy on free ports),
     ``led.commands``, ``live.csv`` and ``live.events.jsonl`` (the ground's
-    log), ``up.json`` (the run's summary), ``rec/`` (the recording).
+    log), ``up.json`` (the run's summary), ``rec/`` (the recording),
+    ``archive/led_test/`` (the ground node's archive: a directory of its
+    own, so no other test's ground node holds it).
     Returns ``tmp``; fails unless ``up`` exits 0."""
     mission = tmp / "mission.yaml"
     rewrite_endpoints(LED_YAML, mission)
@@ -48,6 +52,7 @@ def led_script_run(tmp: Path) -> Path:
         capture_output=True,
         text=True,
         timeout=150,
+        env={**os.environ, "ZPLATFORM_ARCHIVE_DIR": str(tmp / "archive")},
     )
     assert proc.returncode == 0, proc.stderr[-3000:]
     return tmp

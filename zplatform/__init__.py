@@ -29,6 +29,7 @@ from .controllers import Controller, ControllerSet
 from .datavector import DataVector, ElementSpec, Handle, Layout, RegionSpec
 from .devices import Actuator, Device, DeviceSet, Sensor
 from .errors import (
+    ArchiveError,
     ClockSyncError,
     CodecError,
     CommandError,
@@ -99,6 +100,7 @@ __all__ = [
     "EV",
     "KEYSPACE",
     "Actuator",
+    "ArchiveError",
     "Board",
     "ClockSyncError",
     "CodecError",

@@ -366,7 +366,7 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
-# Subcommands contributed by other modules (runtime, ground tools, sim).
+# Subcommands contributed by other modules (runtime, ground tools, sim, archive).
 _EXTRA: list[Callable[[argparse._SubParsersAction[argparse.ArgumentParser]], None]] = []
 
 
@@ -375,7 +375,12 @@ def _load_extras() -> None:
 
     if _EXTRA:  # once per process: main() may be called again (tests)
         return
-    for mod in ("zplatform.cli_runtime", "zplatform.cli_ground", "zplatform.cli_sim"):
+    for mod in (
+        "zplatform.cli_runtime",
+        "zplatform.cli_ground",
+        "zplatform.cli_sim",
+        "zplatform.archive.cli",
+    ):
         try:
             m = importlib.import_module(mod)
         except ModuleNotFoundError as exc:

@@ -406,6 +406,7 @@ def access_control(mission: Mission, dep: Deployment) -> dict[str, Any]:
         return [f"{v}/{ch.node}/bulk/{ch.name}" for ch in mission.bulk if n in ch.readers]
 
     recorder = "cn" in mission.recording_nodes
+    archive = [f"{v}/archive/query"] if mission.has_ground and mission.archive.enabled else []
     common = [
         rule("egress-all", _ALL_MESSAGES, [f"{v}/**"], flow="egress"),
         rule(
@@ -451,7 +452,8 @@ def access_control(mission: Mission, dep: Deployment) -> dict[str, Any]:
             ask.append(f"{v}/cn/clock")
         else:  # the ground node
             watch += tool_watch_keys(mission)
-            ask += [f"{v}/cn/clock", *([f"{v}/cn/recorder"] if recorder else [])]
+            ask += [f"{v}/cn/clock", *([f"{v}/cn/recorder"] if recorder else []), *archive]
+            serve += archive  # its archive, for other stations and tools
         if watch:
             ids.append(rule(f"{n}-watch", ["declare_subscriber"], watch))
         if serve:
@@ -463,6 +465,8 @@ def access_control(mission: Mission, dep: Deployment) -> dict[str, Any]:
     tool_rules = [*common, rule("tool-watch", ["declare_subscriber"], tool_watch_keys(mission))]
     if recorder:  # `zplatform log` fills its gaps too
         tool_rules.append(rule("tool-recorder", ["query"], [f"{v}/cn/recorder"]))
+    if archive:  # `zplatform archive --remote`
+        tool_rules.append(rule("tool-archive", ["query"], archive))
     if dep.tool is not None and dep.tool.may_command and mission.has_ground:
         tool_rules.append(rule("tool-command", ["put"], [f"{v}/gn/to_cn"]))
     policies.append({"id": f"p-{TOOL}", "rules": tool_rules, "subjects": [f"s-{TOOL}"]})

@@ -9,7 +9,7 @@ are converted at the boundary with ``raise ... from exc``.
 
 Holds the root and the shared branches (:class:`ConfigError`, whose message
 names the YAML path; :class:`CodecError` and its frame errors;
-:class:`NodeError`, :class:`RecordingError`, ...); a few leaves live with
+:class:`NodeError`, :class:`RecordingError`, :class:`ArchiveError`, ...); a few leaves live with
 their modules (``AuthError``, ``KeyError_``, ``BoardError``,
 ``DeploymentError``, ``CcsdsError``, ``ParamFileError``). The mains handle
 them as the thesis does: during initialisation print and exit non-zero;
@@ -22,6 +22,7 @@ The whole tree and its handling: docs/architecture.md#errors-and-faults.
 from __future__ import annotations
 
 __all__ = [
+    "ArchiveError",
     "ClockSyncError",
     "CodecError",
     "CommandError",
@@ -132,3 +133,7 @@ class NodeError(ZPlatformError):
 
 class RecordingError(ZPlatformError):
     """A loop recording cannot be written, or read back for a replay."""
+
+
+class ArchiveError(ZPlatformError):
+    """The ground archive cannot be opened, or a query of it is refused (the reason says why)."""

@@ -286,6 +286,26 @@ class EV:
     RECORDER_FAILED = EventType(
         83, "recorder_failed", Severity.WARNING_LO, "{node}'s recorder cannot {what}: {error}"
     )
+    # the ground archive (zplatform.archive), on the ground node
+    ARCHIVE_DROPPING = EventType(
+        84,
+        "archive_dropping",
+        Severity.WARNING_LO,
+        "the ground archive's queue is full: {n} snapshot(s) and {events} event(s) not "
+        "archived so far",
+    )
+    ARCHIVE_FAILED = EventType(
+        85, "archive_failed", Severity.WARNING_LO, "the ground archive cannot {what}: {error}"
+    )
+    ARCHIVE_DAMAGED = EventType(
+        86, "archive_damaged", Severity.WARNING_LO, "the ground archive skipped damage: {what}"
+    )
+    ARCHIVE_REMOVED = EventType(
+        87,
+        "archive_removed",
+        Severity.ACTIVITY_LO,
+        "the ground archive removed run {run} ({size} bytes): {why}",
+    )
     # clock sync (a device node's re-syncs, zplatform.clocksync)
     CLOCK_REFUSED = EventType(
         60,

@@ -70,7 +70,7 @@ class KeyFrames(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
 
 class KeyRow(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
     """One key expression pattern (module doc). ``when``: the missions that
-    use it (``always``, ``ground``, ``standby``, ``recorder``, ``downlink``,
+    use it (``always``, ``ground``, ``standby``, ``recorder``, ``archive``, ``downlink``,
     ``wildcard``, ``bulk``, ``health``)."""
 
     name: str
@@ -412,6 +412,36 @@ KEYSPACE: tuple[KeyRow, ...] = (
         what="the CN's flight recorder: recorded telemetry for a loop range (gap fill)",
     ),
     KeyRow(
+        "archive",
+        "{vehicle}/archive/query",
+        puts=(),
+        declares=("gn",),
+        queries=("gn", "tool"),
+        frames=(
+            KeyFrames(
+                "query",
+                "telemetry",
+                "downlink",
+                "zplatform.archive.server.ArchiveServer gn",
+                "stamped within the clock bound of the ground's clock, not one of the last "
+                "REMEMBERED answered",
+                "at most MAX_PENDING in hand, replies paced to archive.serve_bps, at most "
+                "archive.serve_max_bytes per answer (more: an error saying so)",
+            ),
+            KeyFrames(
+                "reply",
+                "telemetry",
+                "downlink",
+                "zplatform.archive.server.ArchiveAsk tool",
+                "the ask's nonce, each chunk index once, within the count announced",
+                "the asker's bounded mailbox",
+            ),
+        ),
+        when="archive",
+        what="the ground archive: a query's rows as Arrow IPC stream chunks (`zplatform "
+        "archive MISSION --remote query`)",
+    ),
+    KeyRow(
         "mirror",
         "{vehicle}/cn/mirror",
         puts=("commander",),
@@ -542,6 +572,8 @@ def _present(r: KeyRow, mission: Mission) -> bool:
         return mission.standby is not None
     if w == "recorder":
         return mission.recorder is not None
+    if w == "archive":
+        return mission.has_ground and mission.archive.enabled
     if w == "downlink":
         return bool(mission.downlink.ccsds)
     if w == "wildcard":

@@ -155,6 +155,10 @@ def decode_mission(
         mission.recorder.dir = os.path.join(
             os.path.abspath(base_dir if base_dir is not None else os.curdir), mission.recorder.dir
         )
+    if mission.archive.dir is not None:
+        mission.archive.dir = os.path.join(
+            os.path.abspath(base_dir if base_dir is not None else os.curdir), mission.archive.dir
+        )
     check_mission(mission, code=code)
     return mission
 

@@ -100,6 +100,11 @@ class KeySpace:
         """The CN's flight recorder: a queryable answering gap-fill requests."""
         return key_of("recorder", self.vehicle)
 
+    @property
+    def archive(self) -> str:
+        """The ground archive: the ground node's queryable answering archive queries."""
+        return key_of("archive", self.vehicle)
+
     def events(self, node: str) -> str:
         return key_of("events", self.vehicle, node=node)
 

@@ -34,9 +34,15 @@ from pathlib import Path
 from types import SimpleNamespace
 from typing import Any, ClassVar
 
+import msgspec
 import pytest
 
 from tests.payload import Bytes
+from zplatform.archive import Archive
+from zplatform.archive import Query as ArchiveQuery
+from zplatform.archive.server import ASK as ARCHIVE_ASK
+from zplatform.archive.server import MAX_ASK, ArchiveAsk, ArchiveServer
+from zplatform.archive.server import REPLY as ARCHIVE_REPLY
 from zplatform.auth import KEY_ENV, TAG_LEN, KeySet, Run, channel
 from zplatform.clocksync import ClockLink, ClockResponder
 from zplatform.codec import BundleEncoder, decode_frame, encode_frame
@@ -755,6 +761,98 @@ class GapFillH(Harness):
         return self._reply(_restamp(self._frame(), self.ch, self.n))
 
 
+class ArchiveQueryH(Harness):
+    """The ground's archive server: an ask (ArchiveServer); its thread is
+    stopped, and each admitted ask is served here (from no archive: the
+    answer is an error reply, which counts as served)."""
+
+    kinds = ("size", "bad")
+
+    def __init__(self, m: Mission, t0: int = T0) -> None:
+        self.t0 = t0
+        self.m, self.keys = m, _keys(m)
+        self.ch = channel(self.keys, "telemetry")
+
+        def no_archive() -> Archive:
+            return Archive(m, Path("/nonexistent/archive"))
+
+        self.server = ArchiveServer(
+            _Session(),  # type: ignore[arg-type]
+            f"{m.vehicle}/archive/query",
+            no_archive,
+            channel(self.keys, "telemetry"),
+            now_ns=lambda: t0,
+            max_age_ns=10**9,
+            serve_bps=10**9,
+            max_bytes=10**6,
+        )
+        self.server.close()  # its thread: this harness serves what is admitted
+        self.body = msgspec.json.encode(ArchiveQuery("cn_state"))
+        self.max_len = ARCHIVE_ASK.size + MAX_ASK + TAG_LEN
+        self.n = 0
+
+    def _ask(self, t_ns: int, nonce: int) -> bytes:
+        assert self.ch is not None
+        return bytes(self.ch.seal(ARCHIVE_ASK.pack(b"ZAQ1", t_ns, nonce) + self.body))
+
+    def genuine(self) -> bytes:
+        self.n += 1
+        return self._ask(self.t0 + self.n, self.n)
+
+    def feed(self, payload: bytes) -> bool:
+        served = self.server.served
+        self.server._on_query(_Query(payload))  # type: ignore[arg-type]
+        while self.server._pending:
+            self.server._serve(self.server._pending.popleft())
+        return self.server.served > served
+
+    def counts(self) -> dict[str, int]:
+        s = self.server
+        return {"size": s._refused_rx, "bad": s._refused_checked}
+
+    def extreme(self, hi: bool) -> bytes:
+        return self._ask(I64_MAX, U64_MAX) if hi else self._ask(I64_MIN, 0)
+
+    def stamp_max(self) -> bytes:
+        return self._ask(I64_MAX, self.n + 1)
+
+
+class ArchiveReplyH(Harness):
+    """A station asking the ground's archive: the answer's chunks (ArchiveAsk)."""
+
+    kinds = ("bad",)
+
+    def __init__(self, m: Mission, t0: int = T0) -> None:
+        self.m, self.keys = m, _keys(m)
+        self.ch = channel(self.keys, "telemetry")
+        self.nonce = t0 & U64_MAX  # each run's asks have their own
+        self.asker = ArchiveAsk(channel(self.keys, "telemetry"), self.nonce)
+        self.max_len = self.asker.max_len
+        self.n = -1
+
+    def _reply(self, kind: int, nonce: int, i: int, count: int) -> bytes:
+        assert self.ch is not None
+        return bytes(self.ch.seal(ARCHIVE_REPLY.pack(kind, nonce, i, count) + b"chunk"))
+
+    def genuine(self) -> bytes:
+        self.n += 1
+        return self._reply(1, self.nonce, self.n, 1000)
+
+    def feed(self, payload: bytes) -> bool:
+        return self.asker.on_reply(payload)
+
+    def counts(self) -> dict[str, int]:
+        return {"bad": self.asker.refused}
+
+    def extreme(self, hi: bool) -> bytes:
+        if hi:
+            return self._reply(255, U64_MAX, U32_MAX, U32_MAX)
+        return self._reply(0, 0, 0, 0)
+
+    def stamp_max(self) -> bytes:
+        return self._reply(1, self.nonce, U32_MAX - 1, 1000)
+
+
 def _dn(k: ExpandedKey) -> dict[str, Any]:
     return {"dn": dict(k.params)["dn"]}
 
@@ -783,6 +881,8 @@ RECIPES: dict[tuple[str, str], tuple[type[Harness], Callable[[ExpandedKey], dict
     ("clock", "reply"): (ClockReplyH, _asker),
     ("recorder", "query"): (RecorderQueryH, _none),
     ("recorder", "reply"): (GapFillH, _none),
+    ("archive", "query"): (ArchiveQueryH, _none),
+    ("archive", "reply"): (ArchiveReplyH, _none),
     ("mirror", "sample"): (MirrorH, _none),
     ("probe", "query"): (ProbeAskH, _dn),
     ("probe", "reply"): (ProbeReplyH, _dn),

@@ -121,6 +121,9 @@ from .schema import (
     ActionConfig as ActionConfig,
 )
 from .schema import (
+    ArchiveConfig as ArchiveConfig,
+)
+from .schema import (
     BulkChannelConfig as BulkChannelConfig,
 )
 from .schema import (
@@ -219,6 +222,7 @@ __all__ = [
     "SAFED_WHY_NAMES",
     "THREAD_NAMES",
     "ActionConfig",
+    "ArchiveConfig",
     "ClockConfig",
     "CommandsConfig",
     "ComponentConfig",

@@ -136,6 +136,7 @@ def parse_mission(text: bytes | str, source: str = "<string>") -> Mission:
     # such, not as the repeated `<name>_mode` element it would create.
     _check_control_sections(mission)
     _check_recorder(mission)
+    _check_archive(mission)
     _check_params(mission)
     n_platform = _add_platform_elements(mission)
     _check_elements(mission, n_platform)
@@ -252,15 +253,16 @@ def resolve_pythonpath(entries: Sequence[str] | None, base_dir: str | Path | Non
 def relocate_mission(raw: dict[str, Any], source: str | Path) -> None:
     """Make a mission mapping read from file ``source`` mean the same from
     any other directory: its ``pythonpath`` (or the default, ``source``'s
-    directory) and its recorder ``dir`` become absolute. For copies of a mission file (``up
-    --free-ports``, a recording). A malformed ``pythonpath`` is left for the
+    directory) and its recorder and archive ``dir`` become absolute. For copies
+    of a mission file (``up --free-ports``, a recording). A malformed ``pythonpath`` is left for the
     loader to refuse with its YAML path."""
     entries = raw.get("pythonpath")
     if entries is None or (isinstance(entries, list) and all(isinstance(e, str) for e in entries)):
         raw["pythonpath"] = resolve_pythonpath(entries, Path(source).parent)
-    rec = raw.get("recorder")
-    if isinstance(rec, dict) and isinstance(rec.get("dir"), str) and rec["dir"]:
-        rec["dir"] = os.path.join(os.path.abspath(Path(source).parent), rec["dir"])
+    for section in ("recorder", "archive"):
+        rec = raw.get(section)
+        if isinstance(rec, dict) and isinstance(rec.get("dir"), str) and rec["dir"]:
+            rec["dir"] = os.path.join(os.path.abspath(Path(source).parent), rec["dir"])
 
 
 def _check_mission(m: Mission) -> None:
@@ -655,6 +657,18 @@ def _check_initial(e: ElementConfig, where: str) -> Value:
             raise ConfigError(f"expected {count} initial values for {e.type}, got {len(v)}", w)
         return [_coerce_scalar(st, x, f"{w}[{j}]", None) for j, x in enumerate(v)]
     return [_coerce_scalar(st, v, w, None)] * count
+
+
+def _check_archive(m: Mission) -> None:
+    """The archive's directory is a path and a file holds a row group."""
+    a = m.archive
+    if a.dir is not None and (not a.dir or "\x00" in a.dir):
+        raise ConfigError("the archive directory must be a non-empty path", "$.archive.dir")
+    if a.row_group_s > a.file_s:
+        raise ConfigError(
+            f"a row group ({a.row_group_s:g} s) must fit in a file ({a.file_s:g} s)",
+            "$.archive.row_group_s",
+        )
 
 
 def _check_recorder(m: Mission) -> None:

@@ -712,6 +712,95 @@ class RecorderConfig(_Struct):
     ] = 2_000_000
 
 
+class ArchiveConfig(_Struct):
+    """The ground archive (`zplatform.archive`): the ground node keeps every
+    verified snapshot and event it receives, gap-filled loops included, as
+    checksummed raw segments (the flight recorder's format, the source of
+    truth) and as Parquet files (one column per element, zstd) that
+    `zplatform archive MISSION runs|query|events|export` reads with DuckDB.
+    The receive path only copies into a bounded queue; the archive's own
+    thread does the I/O, and a snapshot the queue cannot take is counted and
+    evented (`archive_dropping`), never waited for. Runs (CN epochs) are kept
+    apart, each loop once. On by default; `enabled: false` turns it off."""
+
+    enabled: Annotated[
+        bool, Meta(description="Whether the ground node archives what it receives.")
+    ] = True
+    dir: Annotated[
+        str | None,
+        Meta(
+            description="Directory of the archive; mission `M` writes `DIR/M/`. Relative to "
+            "the mission file. Default: `zplatform/archive` in the state directory "
+            "(`$XDG_STATE_HOME`, else `~/.local/state`; `/var/lib` for root). The environment "
+            "variable `ZPLATFORM_ARCHIVE_DIR`, when set, replaces it."
+        ),
+    ] = None
+    max_bytes: Annotated[
+        int,
+        Meta(
+            ge=1024 * 1024,
+            le=1 << 50,
+            description="Most bytes the mission's archive holds; the oldest runs are removed "
+            "whole to stay within it (never the run being written).",
+        ),
+    ] = 20 * 1024**3
+    max_age_days: Annotated[
+        Annotated[float, Meta(gt=0, le=36_500)] | None,
+        Meta(
+            description="Runs that ended longer ago than this many days are removed; `null`: "
+            "kept whatever their age."
+        ),
+    ] = 365.0
+    row_group_s: Annotated[
+        float,
+        Meta(
+            ge=0.1,
+            le=3600,
+            description="Seconds of snapshots per Parquet row group (fewer for a large vector: "
+            "at most 64 MiB of rows). Larger groups make smaller files and faster queries; a "
+            "crash loses none of the open group's rows that reached the raw segment (they are "
+            "re-decoded from it).",
+        ),
+    ] = 60.0
+    file_s: Annotated[
+        float,
+        Meta(
+            ge=1,
+            le=86_400,
+            description="Seconds of snapshots per Parquet file; a file is also closed at an "
+            "hour's boundary (the files are partitioned by run and hour).",
+        ),
+    ] = 600.0
+    queue_s: Annotated[
+        float,
+        Meta(
+            ge=0.1,
+            le=600,
+            description="Seconds of snapshots the hand-off queue between the receive path and "
+            "the archive's thread holds (at most 256 MiB); a full queue drops, counted.",
+        ),
+    ] = 10.0
+    serve_bps: Annotated[
+        int,
+        Meta(
+            ge=10_000,
+            le=1_000_000_000,
+            description="Bytes per second the ground node sends when a station or tool asks its "
+            "archive over zenoh (`{vehicle}/archive/query`): answered by a thread of its own, "
+            "paced so that no asker can crowd out live telemetry.",
+        ),
+    ] = 2_000_000
+    serve_max_bytes: Annotated[
+        int,
+        Meta(
+            ge=64 * 1024,
+            le=1 << 34,
+            description="Most bytes of one answer over zenoh; a query whose answer is larger "
+            "is refused with a reason saying so (never cut short silently).",
+        ),
+    ] = 64 * 1024 * 1024
+
+
 class SecurityConfig(_Struct):
     """Authentication of every frame a node takes from the network, and of
     every peer that may open a link at all."""
@@ -1273,6 +1362,13 @@ class Mission(_Struct):
             "and events on local storage (`{}` turns it on with the defaults). Off when absent."
         ),
     ] = None
+    archive: Annotated[
+        ArchiveConfig,
+        Meta(
+            description="The ground archive: every run the ground node receives, kept and "
+            "queryable (`zplatform archive`). On by default."
+        ),
+    ] = msgspec.field(default_factory=ArchiveConfig)
     bulk: Annotated[
         list[BulkChannelConfig],
         Meta(description="Bulk channels: large arrays moved outside the sync."),

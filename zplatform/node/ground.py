@@ -4,11 +4,11 @@ A thin driver: a :class:`~zplatform.ground.link.GroundLink` (one session,
 the telemetry subscriber, the event intake, the command publisher when a
 script is played) feeds the ground's sans-IO
 :class:`~zplatform.ground.logic.GroundLogic`, which checks every snapshot,
-keeps the CN-layout Data Vector (the GN's first Data Vector, thesis 4.15),
-counts gaps and refusals, and plays the command script (the GN's second
-Data Vector holds the requests). This module only logs what the logic
-accepted (:class:`~zplatform.ground.logger.TelemetryLog`) until it is told
-to stop, and reports.
+keeps the CN-layout Data Vector (thesis 4.15), counts gaps and refusals,
+and plays the command script. This module only logs what the logic
+accepted (:class:`~zplatform.ground.logger.TelemetryLog`; the ground node
+also into its :class:`~zplatform.archive.ArchiveWriter`, handed off, unless
+the mission's ``archive`` is off) until it is told to stop, and reports.
 
 When the mission's CN has a flight recorder, the log goes through a
 :class:`~zplatform.ground.gapfill.GapFill`: a gap a link loss leaves is
@@ -23,15 +23,23 @@ from __future__ import annotations
 import logging
 import time
 from pathlib import Path
+from typing import TYPE_CHECKING, Protocol
 
 from ..config import Mission
+from ..datavector import DataVector, Layout
+from ..errors import ZPlatformError
 from ..ground.gapfill import GapFill
 from ..ground.link import GroundLink
 from ..ground.logger import TelemetryLog
 from ..handoff import Mailbox
+from ..records import EventRecord
 from ..summary import GnSummary
 from ..uplink import ScriptCommand
 from .runtime import StopFlag
+
+if TYPE_CHECKING:
+    from ..archive import ArchiveWriter
+    from ..archive.server import ArchiveServer
 
 __all__ = ["run_ground_logger"]
 
@@ -71,8 +79,11 @@ def run_ground_logger(
     except BaseException:
         link.close()
         raise
-    link.on_event = tlog.event  # events are handed over in this thread, by link.next
-    fill = _Filler(link, tlog) if "cn" in mission.recording_nodes else None
+    arch = _open_archive(mission, logic.layout) if node == "gn" else None
+    serve = _serve_archive(link, arch) if arch is not None else None
+    sink: _Sink = tlog if arch is None else _Tee(tlog, arch)
+    link.on_event = sink.event  # events are handed over in this thread, by link.next
+    fill = _Filler(link, sink) if "cn" in mission.recording_nodes else None
     start = time.monotonic()
     last_rx = start
     try:
@@ -80,6 +91,8 @@ def run_ground_logger(
             if duration_s is not None and time.monotonic() - start >= duration_s:
                 break
             t = link.next(0.2 if fill is None or not fill.busy else 0.02)
+            if arch is not None:
+                arch.tick(link.clock.now_ns(), logic.events)
             if fill is not None:
                 fill.pump()
             if t is None:
@@ -95,20 +108,25 @@ def run_ground_logger(
             if fill is not None:
                 fill.fill.snapshot(logic, t)
             else:
-                tlog.snapshot(t, logic.dv)
+                sink.snapshot(t, logic.dv)
         # Take what is already queued, so nothing received is dropped.
         while (t := link.next(0.0)) is not None:
             if fill is not None:
                 fill.fill.snapshot(logic, t)
             else:
-                tlog.snapshot(t, logic.dv)
+                sink.snapshot(t, logic.dv)
         if fill is not None:
             fill.drain(FILL_GRACE_S)
         logic.finish(link.clock.now_ns())
         link.next(0.0)  # the ground's last events (fills, verdicts) into the log
     finally:
+        if serve is not None:
+            serve.close()
         link.close()
         tlog.close()
+        if arch is not None:
+            arch.close()
+            log.info("archive: %s -> %s", arch.stats(), arch.root)
     c = logic.counters
     player = logic.player
     return GnSummary(
@@ -129,6 +147,64 @@ def run_ground_logger(
     )
 
 
+class _Sink(Protocol):
+    def snapshot(self, rx_ns: int, dv: DataVector) -> None: ...
+    def event(self, rec: EventRecord) -> None: ...
+
+
+class _Tee:
+    """The log and the archive, fed the same snapshots and events."""
+
+    def __init__(self, tlog: TelemetryLog, arch: ArchiveWriter) -> None:
+        self.tlog, self.arch = tlog, arch
+
+    def snapshot(self, rx_ns: int, dv: DataVector) -> None:
+        self.tlog.snapshot(rx_ns, dv)
+        self.arch.snapshot(rx_ns, dv)
+
+    def event(self, rec: EventRecord) -> None:
+        self.tlog.event(rec)
+        self.arch.event(rec)
+
+
+def _open_archive(mission: Mission, layout: Layout) -> ArchiveWriter | None:
+    """The ground node's archive, or None when the mission turns it off or it
+    cannot open (said in the log: the ground logs and commands without it)."""
+    if not mission.archive.enabled:
+        return None
+    try:
+        from ..archive import ArchiveWriter, archive_dir
+
+        return ArchiveWriter(mission, layout, archive_dir(mission))
+    except ZPlatformError as exc:
+        log.warning("no archive: %s", exc)
+        return None
+
+
+def _serve_archive(link: GroundLink, arch: ArchiveWriter) -> ArchiveServer | None:
+    """Answer archive queries on ``{vehicle}/archive/query`` (None: it cannot
+    be declared; said in the log)."""
+    from ..archive import Archive
+    from ..archive.server import ArchiveServer
+    from ..auth import channel
+
+    m = link.mission
+    try:
+        return ArchiveServer(
+            link.ns.session,
+            link.keys.archive,
+            lambda: Archive(m, arch.root, recover=False),
+            channel(link.link_keys, "telemetry"),
+            now_ns=link.clock.now_ns,
+            max_age_ns=link.logic.max_age_ns,
+            serve_bps=m.archive.serve_bps,
+            max_bytes=m.archive.serve_max_bytes,
+        )
+    except Exception as exc:  # zenoh's errors are not ours: the ground goes on without
+        log.warning("the archive is not served over zenoh: %s", exc)
+        return None
+
+
 FILL_GRACE_S = 10.0
 """How long a log that ends waits for gap fills still in flight."""
 FILL_BACKLOG = 1024
@@ -139,7 +215,7 @@ class _Filler:
     """Drives a :class:`GapFill` over the link: sends its requests as zenoh
     gets, hands it their replies (queued by zenoh's callbacks)."""
 
-    def __init__(self, link: GroundLink, tlog: TelemetryLog) -> None:
+    def __init__(self, link: GroundLink, tlog: _Sink) -> None:
         self.link = link
         self.fill = GapFill(link.mission, link.link_keys, link.logic.events, tlog.snapshot)
         # Bounded like every hand-off from zenoh: a peer flooding replies

@@ -1,0 +1,505 @@
+"""The ground archive on disk: where each file goes, how rows become Parquet.
+
+A mission's archive (``DIR/<mission>/``) holds, per run (CN epoch ``R``):
+``raw/run-R/seg-N.zfr`` (the flight recorder's checksummed records: a
+``HEAD``, then one ``FRAME`` per snapshot, the CN vector's bytes, and one
+``EVENT`` per event, its JSON; once closed, zstd-compressed into
+``seg-N.zfr.zst``), ``tm/run-R/hYYYYMMDDHH/part-N.parquet``
+(decoded snapshots, one column per element; an array is one fixed-size-list
+column, so a query of another element never reads it), ``ev/run-R/part-N.parquet``
+(events) and ``runs/run-R.json`` (:class:`RunInfo`). A Parquet file is
+written as ``*.tmp`` and renamed when closed: a reader never sees half a file.
+
+Contract: pure file layout and decoding; :func:`recover` and :func:`retain`
+do I/O, never raise for damaged contents (they report it through ``note``).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import re
+import shutil
+import struct
+import tempfile
+import time
+from collections.abc import Callable, Iterable
+from pathlib import Path
+from typing import Any
+
+import msgspec
+import numpy as np
+import pyarrow as pa
+import pyarrow.parquet as pq
+
+from ..datavector import Layout
+from ..recorder.format import EVENT, FORMAT_VERSION, FRAME, HEAD, HEADER, SYNC, record_crc
+from ..recorder.reader import scan_segment
+from ..records import EventRecord
+
+__all__ = [
+    "RunInfo",
+    "decode_rows",
+    "event_table",
+    "file_schema",
+    "parquet_options",
+    "raw_record",
+    "raw_segments",
+    "read_run",
+    "recover",
+    "retain",
+    "run_dirs",
+    "seal_segment",
+    "segment_index",
+    "write_run",
+]
+
+_RUN_RE = re.compile(r"run-([0-9]{1,20})")
+_PART_RE = re.compile(r"part-([0-9]{6,})\.parquet")
+META_KEY = b"zplatform.layout"
+_EVENT_DECODER = msgspec.json.Decoder(EventRecord)
+_EVENT_ENCODER = msgspec.json.Encoder()
+_U64 = struct.Struct("<Q")
+
+
+class RunInfo(msgspec.Struct, forbid_unknown_fields=True):
+    """One run (CN epoch) as the archive knows it: ``runs/run-R.json``.
+
+    ``start_ns``/``end_ns``: the first and last snapshot's ``cn_time_ns``;
+    ``states``: every state reached, in the order first reached;
+    ``outcome``: ``open`` while a writer holds it, ``ended`` when closed,
+    ``interrupted`` when recovered after a crash; ``commands``: the text of
+    every command event (requests, verdicts)."""
+
+    run: int
+    mission: str
+    vehicle: str
+    layout_id: int
+    start_ns: int = 0
+    end_ns: int = 0
+    first_loop: int = -1
+    last_loop: int = -1
+    loops: int = 0
+    states: list[str] = msgspec.field(default_factory=list)
+    final_state: str = ""
+    outcome: str = "open"
+    events: int = 0
+    commands: list[str] = msgspec.field(default_factory=list)
+    in_order: bool = True
+    """Every row was written after every lower loop (the files, in order,
+    hold the loops in order): a query need not sort."""
+
+
+def run_dirs(root: Path, kind: str, run: int) -> Path:
+    """``root/kind/run-R``: the directory of run ``run``'s ``kind`` files."""
+    return root / kind / f"run-{run}"
+
+
+def read_run(root: Path, run: int) -> RunInfo | None:
+    """Run ``run``'s record, or None when missing or unreadable."""
+    try:
+        return msgspec.json.decode((root / "runs" / f"run-{run}.json").read_bytes(), type=RunInfo)
+    except (OSError, msgspec.ValidationError, msgspec.DecodeError):
+        return None
+
+
+def write_run(root: Path, info: RunInfo) -> None:
+    """Write run ``info.run``'s record atomically (a temporary file renamed)."""
+    d = root / "runs"
+    d.mkdir(parents=True, exist_ok=True)
+    tmp = d / f"run-{info.run}.json.tmp"
+    tmp.write_bytes(msgspec.json.encode(info))
+    os.replace(tmp, d / f"run-{info.run}.json")
+
+
+def runs_on_disk(root: Path) -> list[int]:
+    """Every run with a record, a raw segment or a Parquet file, sorted."""
+    found: set[int] = set()
+    for kind in ("raw", "tm", "ev"):
+        with contextlib.suppress(OSError):
+            for name in os.listdir(root / kind):
+                m = _RUN_RE.fullmatch(name)
+                if m:
+                    found.add(int(m.group(1)))
+    with contextlib.suppress(OSError):
+        for name in os.listdir(root / "runs"):
+            m = re.fullmatch(r"run-([0-9]{1,20})\.json", name)
+            if m:
+                found.add(int(m.group(1)))
+    return sorted(found)
+
+
+def parquet_files(root: Path, kind: str, run: int) -> list[Path]:
+    """Run ``run``'s closed Parquet files of ``kind`` (``tm``/``ev``), sorted."""
+    base = run_dirs(root, kind, run)
+    out: list[Path] = []
+    if kind == "tm":
+        with contextlib.suppress(OSError):
+            for hour in sorted(os.listdir(base)):
+                out.extend(
+                    base / hour / n
+                    for n in sorted(os.listdir(base / hour))
+                    if _PART_RE.fullmatch(n)
+                )
+        return out
+    with contextlib.suppress(OSError):
+        out = [base / n for n in sorted(os.listdir(base)) if _PART_RE.fullmatch(n)]
+    return out
+
+
+def next_part(directory: Path) -> int:
+    """The next free part number in ``directory`` (temporary files count)."""
+    top = -1
+    with contextlib.suppress(OSError):
+        for n in os.listdir(directory):
+            m = re.fullmatch(r"part-([0-9]{6,})\.parquet(\.tmp)?", n)
+            if m:
+                top = max(top, int(m.group(1)))
+    return top + 1
+
+
+def hour_dir(t_ns: int) -> str:
+    """``hYYYYMMDDHH`` (UTC) of vehicle time ``t_ns``: the time partition."""
+    return "h" + time.strftime("%Y%m%d%H", time.gmtime(t_ns // 1_000_000_000))
+
+
+def _arrow_type(layout: Layout, name: str) -> pa.DataType:
+    e = layout.element(name)
+    t = pa.from_numpy_dtype(np.dtype(e.scalar.numpy))
+    return pa.list_(t, e.count) if e.count else t
+
+
+def file_schema(layout: Layout) -> pa.Schema:
+    """The telemetry files' schema: ``loop``, ``t_ns`` (``cn_time_ns``),
+    ``rx_ns`` (the ground's receive time) and one column per element; the
+    layout (types, enum names) in the schema's metadata, for any reader."""
+    fields = [pa.field("loop", pa.uint64()), pa.field("t_ns", pa.int64())]
+    fields.append(pa.field("rx_ns", pa.int64()))
+    meta = {
+        "layout_id": layout.layout_id,
+        "elements": {
+            e.name: {"type": e.type_text, "enum": list(e.enum) if e.enum else None}
+            for e in layout.elements.values()
+        },
+    }
+    fields.extend(pa.field(n, _arrow_type(layout, n)) for n in layout.elements)
+    return pa.schema(fields, metadata={META_KEY: json.dumps(meta).encode()})
+
+
+def parquet_options(schema: pa.Schema) -> dict[str, Any]:
+    """How every archive file is written: zstd; statistics only for the
+    columns queries filter on (``loop``, the times, an event's severity), so
+    a wide vector's footer (read by every query) stays small."""
+    stats = [n for n in ("loop", "t_ns", "rx_ns", "severity") if n in schema.names]
+    return {"compression": "zstd", "write_statistics": stats}
+
+
+def decode_rows(layout: Layout, schema: pa.Schema, rows: np.ndarray, rx: np.ndarray) -> pa.Table:
+    """Snapshots ``rows`` (an ``(n, layout.size)`` uint8 array of CN vectors)
+    received at ``rx`` into a table of :func:`file_schema`. Copies."""
+    rec = rows.view(layout.dtype).reshape(-1)
+    cols: list[pa.Array] = [
+        pa.array(np.ascontiguousarray(rec["cn_loop"]), pa.uint64()),
+        pa.array(np.ascontiguousarray(rec["cn_time_ns"]), pa.int64()),
+        pa.array(np.ascontiguousarray(rx), pa.int64()),
+    ]
+    for e in layout.elements.values():
+        v = np.ascontiguousarray(rec[e.name])
+        if e.count:
+            flat = pa.array(v.reshape(-1))
+            cols.append(pa.FixedSizeListArray.from_arrays(flat, e.count))
+        else:
+            cols.append(pa.array(v))
+    return pa.Table.from_arrays(cols, schema=schema)
+
+
+EVENT_SCHEMA = pa.schema(
+    [
+        ("rx_ns", pa.int64()),
+        ("t_ns", pa.int64()),
+        ("node", pa.string()),
+        ("seq", pa.int64()),
+        ("severity", pa.string()),
+        ("id", pa.string()),
+        ("text", pa.string()),
+        ("verified", pa.bool_()),
+    ]
+)
+
+
+def event_table(events: Iterable[EventRecord]) -> pa.Table:
+    """Events as a table of :data:`EVENT_SCHEMA`."""
+    evs = list(events)
+    return pa.Table.from_pydict(
+        {
+            "rx_ns": [e.rx_time_ns for e in evs],
+            "t_ns": [e.t_ns for e in evs],
+            "node": [e.node for e in evs],
+            "seq": [e.seq for e in evs],
+            "severity": [e.severity for e in evs],
+            "id": [e.id for e in evs],
+            "text": [e.text for e in evs],
+            "verified": [e.verified for e in evs],
+        },
+        schema=EVENT_SCHEMA,
+    )
+
+
+def raw_record(typ: int, loop: int, payload: bytes | bytearray | memoryview) -> bytes:
+    """One checksummed record of the flight recorder's format."""
+    rec = bytearray(HEADER.size + len(payload))
+    rec[HEADER.size :] = payload
+    HEADER.pack_into(rec, 0, SYNC, 0, len(payload), typ, 0, 0, loop)
+    HEADER.pack_into(rec, 0, SYNC, record_crc(rec, 0, len(rec)), len(payload), typ, 0, 0, loop)
+    return bytes(rec)
+
+
+def head_record(mission: str, vehicle: str, run: int, layout: Layout, segment: int) -> bytes:
+    """The ``HEAD`` record of a raw segment (what the recorder's reader parses)."""
+    body = {
+        "format": FORMAT_VERSION,
+        "mission": mission,
+        "vehicle": vehicle,
+        "node": "gn",
+        "run": run,
+        "kind": "archive",
+        "layout_id": layout.layout_id,
+        "channel": None,
+        "period_ns": 0,
+        "telemetry_divisor": 1,
+        "created_unix_ns": time.time_ns(),
+        "segment": segment,
+    }
+    return raw_record(HEAD, 0, json.dumps(body).encode())
+
+
+def loops_in(files: Iterable[Path], note: Callable[[str], None]) -> set[int]:
+    """Every loop the telemetry ``files`` hold (only their ``loop`` column is read)."""
+    seen: set[int] = set()
+    for f in files:
+        try:
+            seen.update(pq.read_table(f, columns=["loop"]).column(0).to_pylist())
+        except (OSError, pa.ArrowException) as exc:
+            note(f"{f.name}: unreadable Parquet file skipped ({exc})")
+    return seen
+
+
+def _events_in(files: Iterable[Path], note: Callable[[str], None]) -> set[tuple[str, int, int]]:
+    """Every event (node, seq, t_ns) the event ``files`` hold."""
+    seen: set[tuple[str, int, int]] = set()
+    for f in files:
+        try:
+            t = pq.read_table(f, columns=["node", "seq", "t_ns"])
+        except (OSError, pa.ArrowException) as exc:
+            note(f"{f.name}: unreadable Parquet file skipped ({exc})")
+            continue
+        seen.update(zip(*(t.column(i).to_pylist() for i in range(3)), strict=True))
+    return seen
+
+
+def recover(
+    root: Path, layout: Layout, mission: str, vehicle: str, note: Callable[[str], None]
+) -> list[int]:
+    """After a crash: remove half-written ``*.tmp`` files and re-decode every
+    loop and event the raw segments hold that no Parquet file does, into new
+    files; runs left ``open`` become ``interrupted``. Returns the runs
+    touched. A damaged record or segment is skipped (``note`` says where)."""
+    touched: list[int] = []
+    for kind in ("tm", "ev", "raw"):
+        for tmp in (root / kind).glob("run-*/**/*.tmp"):
+            with contextlib.suppress(OSError):
+                tmp.unlink()
+    schema = file_schema(layout)
+    for run in runs_on_disk(root):
+        info = read_run(root, run)
+        if info is not None and info.outcome != "open":
+            continue
+        seen = loops_in(parquet_files(root, "tm", run), note)
+        known = _events_in(parquet_files(root, "ev", run), note)
+        rows: list[bytes] = []
+        rx: list[int] = []
+        events: list[EventRecord] = []
+        for seg in raw_segments(run_dirs(root, "raw", run)):
+            for r in _scan(seg, note):
+                if r.type == FRAME and len(r.payload) == 8 + layout.size:
+                    if r.loop not in seen:  # the record's loop is the vector's cn_loop
+                        seen.add(r.loop)
+                        rx.append(_U64.unpack_from(r.payload, 0)[0])
+                        rows.append(r.payload[8:])
+                elif r.type == EVENT:
+                    with contextlib.suppress(msgspec.DecodeError, msgspec.ValidationError):
+                        e = _EVENT_DECODER.decode(r.payload)
+                        if (e.node, e.seq, e.t_ns) not in known:
+                            known.add((e.node, e.seq, e.t_ns))
+                            events.append(e)
+        if info is None:
+            info = RunInfo(run, mission, vehicle, layout.layout_id)
+        if rows:
+            info.in_order = False  # recovered rows go after rows of later loops, maybe
+            arr = np.frombuffer(b"".join(rows), np.uint8).reshape(len(rows), layout.size)
+            table = decode_rows(layout, schema, arr, np.array(rx, np.int64))
+            t0 = int(table.column("t_ns")[0].as_py())
+            d = run_dirs(root, "tm", run) / hour_dir(t0)
+            d.mkdir(parents=True, exist_ok=True)
+            _write_parquet(d / f"part-{next_part(d):06d}.parquet", table)
+            _account(info, layout, arr)
+        if events:
+            d = run_dirs(root, "ev", run)
+            d.mkdir(parents=True, exist_ok=True)
+            _write_parquet(d / f"part-{next_part(d):06d}.parquet", event_table(events))
+            info.events += len(events)
+        info.outcome = "interrupted"
+        write_run(root, info)
+        touched.append(run)
+    return touched
+
+
+_SEG_RE = re.compile(r"seg-([0-9]{8})\.zfr(\.zst)?")
+
+
+def segment_index(path: Path) -> int | None:
+    """The index of raw segment ``path`` (``seg-N.zfr``, or sealed ``.zfr.zst``)."""
+    m = _SEG_RE.fullmatch(path.name)
+    return int(m.group(1)) if m else None
+
+
+def raw_segments(directory: Path) -> list[Path]:
+    """A run's raw segments in order, sealed or open (a sealed one first when
+    a crash left both: the same records, each loop then taken once)."""
+    try:
+        names = [p for p in directory.iterdir() if _SEG_RE.fullmatch(p.name)]
+    except OSError:
+        return []
+    return sorted(names, key=lambda p: (segment_index(p), not p.name.endswith(".zst")))
+
+
+def seal_segment(path: Path) -> None:
+    """Compress a closed raw segment into ``seg-N.zfr.zst`` (a standard zstd
+    stream: ``zstd -d`` gives the segment back byte for byte), then remove
+    it. Written as a temporary file renamed, so a crash leaves one whole
+    file or both."""
+    tmp = path.with_name(path.name + ".zst.tmp")
+    with open(path, "rb") as src, pa.CompressedOutputStream(str(tmp), "zstd") as dst:
+        while chunk := src.read(1 << 20):
+            dst.write(chunk)
+    with open(tmp, "rb") as f:
+        os.fsync(f.fileno())
+    os.replace(tmp, path.with_name(path.name + ".zst"))
+    path.unlink()
+
+
+def _scan(seg: Path, note: Callable[[str], None]) -> Iterable[Any]:
+    """The records of raw segment ``seg`` that check (a sealed one unpacked
+    to a temporary file first)."""
+    if not seg.name.endswith(".zst"):
+        yield from scan_segment(seg, note)
+        return
+    with tempfile.TemporaryDirectory() as d:
+        plain = Path(d) / seg.name[: -len(".zst")]
+        try:
+            with pa.CompressedInputStream(str(seg), "zstd") as src, open(plain, "wb") as dst:
+                while chunk := src.read(1 << 20):
+                    dst.write(chunk)
+        except (OSError, pa.ArrowException) as exc:
+            note(f"{seg.name}: cannot unpack it ({exc}); what it held up to there is read")
+        yield from scan_segment(plain, note)
+
+
+def _write_parquet(path: Path, table: pa.Table) -> None:
+    tmp = path.with_name(path.name + ".tmp")
+    pq.write_table(table, tmp, **parquet_options(table.schema))
+    os.replace(tmp, path)
+
+
+def _account(info: RunInfo, layout: Layout, rows: np.ndarray) -> None:
+    """Fold snapshots ``rows`` into ``info`` (loops, times, states reached)."""
+    rec = rows.view(layout.dtype).reshape(-1)
+    loops, times, states = rec["cn_loop"], rec["cn_time_ns"], rec["cn_state"]
+    n = len(rec)
+    if not n:
+        return
+    lo, hi = int(loops.min()), int(loops.max())
+    if info.loops == 0 or lo < info.first_loop:
+        info.first_loop = lo
+        info.start_ns = int(times[int(loops.argmin())])
+    if info.loops == 0 or hi > info.last_loop:
+        info.last_loop = hi
+        info.end_ns = int(times[int(loops.argmax())])
+        info.final_state = layout.element("cn_state").name_of(int(states[int(loops.argmax())]))
+    info.loops += n
+    spec = layout.element("cn_state")
+    _, first = np.unique(states, return_index=True)
+    for i in sorted(first.tolist()):
+        name = spec.name_of(int(states[i]))
+        if name not in info.states:
+            info.states.append(name)
+
+
+def du(path: Path) -> int:
+    """Bytes of every file under ``path``."""
+    total = 0
+    for dirpath, _, files in os.walk(path):
+        for f in files:
+            with contextlib.suppress(OSError):
+                total += os.lstat(os.path.join(dirpath, f)).st_size
+    return total
+
+
+def remove_run(root: Path, run: int) -> None:
+    """Remove every file of run ``run``."""
+    for kind in ("raw", "tm", "ev"):
+        shutil.rmtree(run_dirs(root, kind, run), ignore_errors=True)
+    with contextlib.suppress(OSError):
+        (root / "runs" / f"run-{run}.json").unlink()
+
+
+def retain(
+    root: Path,
+    *,
+    max_bytes: int,
+    max_age_days: float | None,
+    keep: int | None,
+    now_ns: int,
+    removed: Callable[[int, int, str], None],
+) -> None:
+    """Remove whole runs, oldest first: those that ended more than
+    ``max_age_days`` before ``now_ns`` (vehicle time), then as many as it takes
+    for the archive to hold at most ``max_bytes``. Never run ``keep`` (the one
+    being written). ``removed(run, bytes, why)`` is told each."""
+    runs = [r for r in runs_on_disk(root) if r != keep]
+    sizes = {r: sum(du(run_dirs(root, k, r)) for k in ("raw", "tm", "ev")) for r in runs}
+    ends = {}
+    for r in runs:
+        info = read_run(root, r)
+        ends[r] = info.end_ns if info is not None and info.end_ns else r
+    runs.sort(key=lambda r: ends[r])
+    total = du(root)
+    left = []
+    for r in runs:
+        if max_age_days is not None and now_ns - ends[r] > max_age_days * 86_400e9:
+            remove_run(root, r)
+            total -= sizes[r]
+            removed(r, sizes[r], f"older than {max_age_days:g} day(s)")
+        else:
+            left.append(r)
+    for r in left:
+        if total <= max_bytes:
+            break
+        remove_run(root, r)
+        total -= sizes[r]
+        removed(r, sizes[r], f"the archive holds more than {max_bytes} bytes")
+
+
+def events_of(records: Iterable[Any]) -> list[EventRecord]:
+    """Decode raw ``EVENT`` records' payloads (the undecodable skipped)."""
+    out = []
+    for p in records:
+        with contextlib.suppress(msgspec.DecodeError, msgspec.ValidationError):
+            out.append(_EVENT_DECODER.decode(p))
+    return out
+
+
+def encode_event(rec: EventRecord) -> bytes:
+    """An event's raw ``EVENT`` payload (its JSON, as the events JSONL writes it)."""
+    return _EVENT_ENCODER.encode(rec)

@@ -1,0 +1,464 @@
+"""The archive's writing side: the receive path copies, the archive's thread writes.
+
+:class:`ArchiveWriter` takes every snapshot the ground accepted
+(:meth:`~ArchiveWriter.snapshot`: the CN vector's bytes copied into a slot
+of a preallocated ring) and every event (:meth:`~ArchiveWriter.event`, a
+bounded queue). Its thread wakes every :data:`WAKE_S`, drops loops it
+already holds (a gap fill, a second copy), appends the raw records
+(:mod:`.store`) and adds the decoded rows to the open Parquet file, a row
+group at a time; a file is closed (renamed) every ``file_s`` or at an hour's
+boundary, then retention runs.
+
+Contract: :meth:`~ArchiveWriter.snapshot`, :meth:`~ArchiveWriter.event` and
+:meth:`~ArchiveWriter.tick` never block, never raise, and allocate nothing
+per snapshot; a full queue drops, counted (:attr:`~ArchiveWriter.dropped`) and
+evented at most once a second (``archive_dropping``). An I/O error is counted
+and evented once per kind (``archive_failed``); the rows it held are lost, the
+files already closed are untouched. One writer per archive directory (a lock).
+"""
+
+from __future__ import annotations
+
+import fcntl
+import logging
+import os
+import threading
+import time
+from collections import deque
+from pathlib import Path
+from typing import Any, BinaryIO
+
+import numpy as np
+import pyarrow as pa
+import pyarrow.parquet as pq
+
+from ..config import Mission
+from ..datavector import DataVector, Layout
+from ..errors import ArchiveError
+from ..events import EV, EventLog, EventType
+from ..recorder.format import EVENT, FRAME, segment_name
+from ..records import EventRecord
+from . import store
+
+__all__ = ["EVENT_BACKLOG", "QUEUE_BYTES", "WAKE_S", "ArchiveWriter"]
+
+log = logging.getLogger("zplatform.archive")
+
+WAKE_S = 0.1
+"""How often the archive's thread takes what was queued."""
+QUEUE_BYTES = 256 * 2**20
+"""Most bytes of snapshots the hand-off ring holds."""
+ROW_GROUP_BYTES = 64 * 2**20
+"""Most bytes of snapshots in one row group (a large vector gets fewer rows)."""
+EVENT_BACKLOG = 4096
+"""Events queued for the archive's thread, at most."""
+SEGMENT_BYTES = 64 * 2**20
+"""A new raw segment is started past this size."""
+MAX_COMMANDS = 1000
+"""Command events a run's record lists, at most (the events file keeps every one)."""
+LOCK_FILE = ".lock"
+
+
+def lock_archive(root: Path) -> int | None:
+    """An exclusive lock on the archive ``root`` (a file descriptor), or None
+    when another process holds it. Raises OSError when it cannot be made."""
+    root.mkdir(parents=True, exist_ok=True)
+    fd = os.open(root / LOCK_FILE, os.O_RDWR | os.O_CREAT | getattr(os, "O_CLOEXEC", 0), 0o644)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        os.close(fd)
+        return None
+    return fd
+
+
+class ArchiveWriter:
+    """Archives one ground's snapshots and events into ``root`` (module doc).
+
+    ``layout``: the CN layout of the vectors handed in. Recovers what a crash
+    left (:func:`.store.recover`) and applies retention before its thread
+    starts. Raises ArchiveError when another writer holds ``root`` or it
+    cannot be created."""
+
+    def __init__(self, mission: Mission, layout: Layout, root: str | Path) -> None:
+        self.mission, self.layout, self.root = mission, layout, Path(root)
+        cfg = mission.archive
+        self.cfg = cfg
+        try:
+            fd = lock_archive(self.root)
+        except OSError as exc:
+            raise ArchiveError(f"cannot open the archive {self.root}: {exc.strerror}") from None
+        if fd is None:
+            raise ArchiveError(f"another ground node writes the archive {self.root}")
+        self._lock_fd = fd
+        size = max(layout.size, 1)
+        per_s = mission.loop_hz / mission.telemetry_divisor
+        cap = max(16, min(int(cfg.queue_s * per_s), QUEUE_BYTES // size))
+        self._size, self._cap = size, cap
+        self._ring = bytearray(cap * size)
+        self._ring_mv = memoryview(self._ring)
+        self._rx = np.zeros(cap, np.int64)
+        self._head = 0  # written by the receive path only
+        self._tail = 0  # written by the archive's thread only
+        self._events: deque[EventRecord] = deque()
+        self.dropped = 0
+        """Snapshots the full queue did not take."""
+        self.events_dropped = 0
+        self._dropped_told = (0, 0)
+        self._told_ns = -(10**18)
+        self.errors = 0
+        self.lost = 0
+        """Snapshots taken from the queue whose write failed (a full disk)."""
+        self._failed: set[str] = set()
+        self._notes: deque[tuple[EventType, dict[str, Any]]] = deque(maxlen=256)
+        self.rows = 0
+        """Snapshots archived (each loop once)."""
+        self.duplicates = 0
+        """Snapshots of loops already archived (not written again)."""
+        self._schema = store.file_schema(layout)
+        self._rg_rows = max(1, min(int(cfg.row_group_s * per_s), ROW_GROUP_BYTES // size))
+        self._file_rows = max(self._rg_rows, int(cfg.file_s * per_s))
+        self._loop_at = layout.element("cn_loop").offset
+        self._epoch_at = layout.element("cn_epoch").offset
+        # The archive's thread's own state.
+        self._run: int | None = None
+        self._info: store.RunInfo | None = None
+        self._seen: set[int] = set()
+        self._max_loop = -1
+        self._seg: BinaryIO | None = None
+        self._seg_bytes = 0
+        self._seg_index = 0
+        self._synced = 0.0
+        self._pend: list[np.ndarray] = []
+        self._pend_rx: list[np.ndarray] = []
+        self._pend_n = 0
+        self._pw: pq.ParquetWriter | None = None
+        self._pw_path: Path | None = None
+        self._pw_hour = ""
+        self._pw_rows = 0
+        self._ev_pend: list[EventRecord] = []
+        self._early_events: list[EventRecord] = []
+        try:
+            store.recover(self.root, layout, mission.mission, mission.vehicle, self._damage)
+            self._retain()
+        except (OSError, pa.ArrowException) as exc:
+            self._fail("recover what a crash left", exc)
+        self._stop = threading.Event()
+        self._drained = threading.Condition()
+        self._thread = threading.Thread(target=self._main, name="archive", daemon=True)
+        self._thread.start()
+
+    # -- the receive path ---------------------------------------------------
+    def snapshot(self, rx_ns: int, dv: DataVector) -> None:
+        """Queue a copy of ``dv`` (the CN vector of an accepted snapshot)
+        received at ``rx_ns``; a full queue drops it, counted."""
+        head = self._head
+        if head - self._tail >= self._cap or len(dv.buf) != self._size:
+            self.dropped += 1  # full, or not a CN vector of this layout
+            return
+        i = head % self._cap
+        at = i * self._size
+        self._ring_mv[at : at + self._size] = dv.buf
+        self._rx[i] = rx_ns
+        self._head = head + 1
+
+    def event(self, rec: EventRecord) -> None:
+        """Queue an event; beyond :data:`EVENT_BACKLOG` waiting it is dropped, counted."""
+        if len(self._events) >= EVENT_BACKLOG:
+            self.events_dropped += 1
+            return
+        self._events.append(rec)
+
+    def tick(self, now_ns: int, events: EventLog) -> None:
+        """Tell ``events`` (the ground's) what the archive has to say: its
+        thread's notes, and drops at most once a second. Call from the
+        thread that owns ``events``."""
+        while self._notes:
+            ev, args = self._notes.popleft()
+            events.emit(ev, now_ns, **args)
+        dropped = (self.dropped, self.events_dropped)
+        if dropped != self._dropped_told and now_ns - self._told_ns >= 1_000_000_000:
+            self._dropped_told, self._told_ns = dropped, now_ns
+            events.emit(EV.ARCHIVE_DROPPING, now_ns, n=dropped[0], events=dropped[1])
+
+    # -- the archive's thread -----------------------------------------------
+    def _note(self, ev: EventType, **args: Any) -> None:
+        self._notes.append((ev, args))
+
+    def _fail(self, what: str, exc: BaseException) -> None:
+        self.errors += 1
+        if what not in self._failed:  # once per kind
+            self._failed.add(what)
+            log.warning("the ground archive cannot %s: %s", what, exc)
+            self._note(EV.ARCHIVE_FAILED, what=what, error=str(exc)[:200])
+
+    def _damage(self, what: str) -> None:
+        log.warning("the ground archive skipped damage: %s", what)
+        self._note(EV.ARCHIVE_DAMAGED, what=what[:300])
+
+    def _main(self) -> None:
+        while not self._stop.wait(WAKE_S):
+            self._drain_safely()
+            with self._drained:
+                self._drained.notify_all()
+        self._drain_safely()
+
+    def _drain_safely(self) -> None:
+        try:
+            self._drain()
+        except Exception as exc:  # a bug must not end the thread silently: told, and on
+            self._fail("archive (an unexpected error)", exc)
+
+    def flush(self, timeout_s: float = 10.0) -> bool:
+        """Block until the archive's thread took everything queued before
+        this call (written to the raw segment; rows wait for their row
+        group), at most ``timeout_s``; True when it did. Not for the
+        receive path."""
+        target = self._head
+        with self._drained:
+            return self._drained.wait_for(
+                lambda: self._tail >= target or not self._thread.is_alive(), timeout_s
+            )
+
+    def _take(self) -> tuple[np.ndarray, np.ndarray]:
+        """Copy the queued snapshots out of the ring and free their slots."""
+        head, tail, cap, size = self._head, self._tail, self._cap, self._size
+        n = head - tail
+        ring = np.frombuffer(self._ring, np.uint8).reshape(cap, size)
+        idx = np.arange(tail, head) % cap
+        rows, rx = ring[idx], self._rx[idx]  # fancy indexing copies
+        self._tail = head
+        return rows[:n], rx[:n]
+
+    def _drain(self) -> None:
+        rows, rx = self._take()
+        evs = []
+        while self._events:
+            evs.append(self._events.popleft())
+        try:
+            if len(rows):
+                epochs = rows[:, self._epoch_at : self._epoch_at + 8].copy().view("<u8")[:, 0]
+                cuts = np.flatnonzero(np.diff(epochs)) + 1
+                for part in np.split(np.arange(len(rows)), cuts):
+                    self._ingest(int(epochs[part[0]]), rows[part], rx[part])
+            for e in evs:
+                self._event(e)
+            self._sync()
+        except (OSError, pa.ArrowException) as exc:
+            self.lost += len(rows)
+            self._fail("write", exc)
+
+    def _ingest(self, run: int, rows: np.ndarray, rx: np.ndarray) -> None:
+        if run != self._run:
+            self._end_run("ended")
+            self._start_run(run)
+        loops = rows[:, self._loop_at : self._loop_at + 8].copy().view("<u8")[:, 0]
+        keep = []
+        for i, lp in enumerate(loops.tolist()):
+            if lp in self._seen:
+                self.duplicates += 1
+            else:
+                self._seen.add(lp)
+                keep.append(i)
+        if not keep:
+            return
+        if len(keep) != len(rows):
+            rows, rx, loops = rows[keep], rx[keep], loops[keep]
+        info = self._info
+        assert info is not None
+        if info.in_order and (int(loops[0]) <= self._max_loop or bool(np.any(np.diff(loops) <= 0))):
+            info.in_order = False  # a late loop (a gap filled out of order): queries sort
+        self._max_loop = max(self._max_loop, int(loops.max()))
+        self._raw(
+            b"".join(
+                store.raw_record(FRAME, lp, rx[i].tobytes() + rows[i].tobytes())
+                for i, lp in enumerate(loops.tolist())
+            )
+        )
+        self._pend.append(rows)
+        self._pend_rx.append(rx)
+        self._pend_n += len(rows)
+        self.rows += len(rows)
+        if self._pend_n >= self._rg_rows:
+            self._flush_groups(final=False)
+
+    def _event(self, e: EventRecord) -> None:
+        if self._run is None:
+            self._early_events.append(e)  # before the first snapshot: the first run's
+            del self._early_events[:-EVENT_BACKLOG]
+            return
+        self._raw(store.raw_record(EVENT, 0, store.encode_event(e)))
+        self._ev_pend.append(e)
+        info = self._info
+        assert info is not None
+        info.events += 1
+        if (e.severity == "COMMAND" or e.id.startswith("cmd_")) and len(
+            info.commands
+        ) < MAX_COMMANDS:
+            info.commands.append(f"{e.node}: {e.text}")
+
+    def _start_run(self, run: int) -> None:
+        self._run = run
+        info = store.read_run(self.root, run)
+        self._info = info or store.RunInfo(
+            run, self.mission.mission, self.mission.vehicle, self.layout.layout_id
+        )
+        self._info.outcome = "open"
+        self._seen = store.loops_in(store.parquet_files(self.root, "tm", run), self._damage)
+        self._max_loop = max(self._seen, default=-1)
+        raw = store.run_dirs(self.root, "raw", run)
+        raw.mkdir(parents=True, exist_ok=True)
+        used = [store.segment_index(p) for p in raw.iterdir()]
+        self._seg_index = max((i for i in used if i is not None), default=-1) + 1
+        self._open_segment()
+        store.write_run(self.root, self._info)
+        early, self._early_events = self._early_events, []
+        for e in early:
+            self._event(e)
+
+    def _seal_segment(self) -> None:
+        """Close the open raw segment and compress it (:func:`.store.seal_segment`)."""
+        seg, self._seg = self._seg, None
+        if seg is None:
+            return
+        try:
+            os.fsync(seg.fileno())
+        finally:
+            seg.close()
+        store.seal_segment(Path(str(seg.name)))
+
+    def _open_segment(self) -> None:
+        self._seal_segment()
+        assert self._run is not None
+        path = store.run_dirs(self.root, "raw", self._run) / segment_name(self._seg_index)
+        self._seg_index += 1
+        self._seg = open(path, "ab", buffering=0)  # noqa: SIM115
+        head = store.head_record(
+            self.mission.mission, self.mission.vehicle, self._run, self.layout, self._seg_index - 1
+        )
+        self._seg.write(head)
+        self._seg_bytes = len(head)
+
+    def _raw(self, data: bytes) -> None:
+        if self._seg is None:
+            return
+        if self._seg_bytes + len(data) > SEGMENT_BYTES:
+            self._open_segment()
+        assert self._seg is not None
+        self._seg.write(data)
+        self._seg_bytes += len(data)
+
+    def _sync(self) -> None:
+        now = time.monotonic()
+        if self._seg is not None and now - self._synced >= 1.0:
+            self._synced = now
+            os.fsync(self._seg.fileno())
+
+    def _flush_groups(self, *, final: bool) -> None:
+        """The pending rows as row groups of ``row_group_s`` each; ``final``:
+        the rest too, else the rest stays pending."""
+        if not self._pend_n:
+            return
+        rows = np.concatenate(self._pend) if len(self._pend) > 1 else self._pend[0]
+        rx = np.concatenate(self._pend_rx) if len(self._pend_rx) > 1 else self._pend_rx[0]
+        n, at = len(rows), 0
+        while n - at >= self._rg_rows or (final and at < n):
+            k = min(self._rg_rows, n - at)
+            self._write_group(rows[at : at + k], rx[at : at + k])
+            at += k
+        self._pend, self._pend_rx = ([rows[at:]], [rx[at:]]) if at < n else ([], [])
+        self._pend_n = n - at
+
+    def _write_group(self, rows: np.ndarray, rx: np.ndarray) -> None:
+        """One row group of the open file (opened, or closed first at an
+        hour's boundary)."""
+        table = store.decode_rows(self.layout, self._schema, rows, rx)
+        assert self._info is not None and self._run is not None
+        store._account(self._info, self.layout, rows)
+        hour = store.hour_dir(int(table.column("t_ns")[0].as_py()))
+        if self._pw is not None and hour != self._pw_hour:
+            self._close_file()
+        if self._pw is None:
+            d = store.run_dirs(self.root, "tm", self._run) / hour
+            d.mkdir(parents=True, exist_ok=True)
+            self._pw_path = d / f"part-{store.next_part(d):06d}.parquet"
+            self._pw = pq.ParquetWriter(
+                str(self._pw_path) + ".tmp", self._schema, **store.parquet_options(self._schema)
+            )
+            self._pw_hour, self._pw_rows = hour, 0
+        self._pw.write_table(table, row_group_size=len(rows))
+        self._pw_rows += len(rows)
+        if self._pw_rows >= self._file_rows:
+            self._close_file()
+
+    def _close_file(self) -> None:
+        """Close (rename) the open telemetry file, write the events held and
+        the run's record, apply retention."""
+        if self._pw is not None:
+            assert self._pw_path is not None
+            self._pw.close()
+            os.replace(str(self._pw_path) + ".tmp", self._pw_path)
+            self._pw = None
+        if self._ev_pend and self._run is not None:
+            d = store.run_dirs(self.root, "ev", self._run)
+            d.mkdir(parents=True, exist_ok=True)
+            store._write_parquet(
+                d / f"part-{store.next_part(d):06d}.parquet", store.event_table(self._ev_pend)
+            )
+            self._ev_pend = []
+        if self._info is not None:
+            store.write_run(self.root, self._info)
+        self._retain()
+
+    def _retain(self) -> None:
+        def removed(run: int, size: int, why: str) -> None:
+            self._note(EV.ARCHIVE_REMOVED, run=run, size=size, why=why)
+
+        store.retain(
+            self.root,
+            max_bytes=self.cfg.max_bytes,
+            max_age_days=self.cfg.max_age_days,
+            keep=self._run,
+            now_ns=time.time_ns(),
+            removed=removed,
+        )
+
+    def _end_run(self, outcome: str) -> None:
+        if self._run is None:
+            return
+        try:
+            self._flush_groups(final=True)
+            assert self._info is not None
+            self._info.outcome = outcome
+            self._close_file()
+        finally:
+            self._run = None
+            self._seal_segment()
+
+    # -- the end ------------------------------------------------------------
+    def close(self, timeout_s: float = 30.0) -> None:
+        """Take what is queued, close the run's files (outcome ``ended``),
+        release the lock; idempotent. Blocks up to ``timeout_s`` for the
+        thread."""
+        if self._stop.is_set():
+            return
+        self._stop.set()
+        self._thread.join(timeout_s)
+        try:
+            self._end_run("ended")
+        except (OSError, pa.ArrowException) as exc:
+            self._fail("close its files", exc)
+        finally:
+            os.close(self._lock_fd)
+
+    def stats(self) -> dict[str, int]:
+        """What it kept: rows, duplicates, dropped snapshots and events,
+        errors and the snapshots they lost."""
+        return {
+            "rows": self.rows,
+            "duplicates": self.duplicates,
+            "dropped": self.dropped,
+            "events_dropped": self.events_dropped,
+            "errors": self.errors,
+            "lost": self.lost,
+        }
