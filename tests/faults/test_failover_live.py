@@ -821,3 +821,42 @@ def test_the_killed_commander_restarted_rejoins_as_the_standby(
         f.mission, rec_root, last_term=w.last()["cn_term"], landed=landed
     )
     assert terms_between(driven, gone.v["cn_loop"], until.v["cn_loop"]) == {term + 1}
+
+
+def test_the_standby_stopped_for_a_second_gets_the_mirrors_again(
+    mesh: MeshFlight, rec_root: Path
+) -> None:
+    """SIGSTOP of the standby for a second in COAST (until the commander sees
+    it gone: its lease ran out and the session between the two closed), then
+    SIGCONT: the case of eclipse-zenoh/zenoh#2806 while both control nodes
+    dialed each other. With one dialer per pair
+    (:func:`zplatform.transport.dial_ranks`: cn_b dials cn, never cn cn_b)
+    the session opens again one way, and the standby takes the commander's
+    mirrors again (its flight recorder, to the landing, with no gap longer
+    than :data:`STALE_LOOPS`), the commander reports it ready again, and
+    nothing changes who commands."""
+    f, w = mesh, mesh.w
+    at = _in_coast(f)
+    commander, term = at.v["cn_commander"], at.v["cn_term"]
+    standby = other(commander)
+    changes = len(took_lines(f.logs())) + len(stood_lines(f.logs()))
+    p = f.procs[standby]
+    t0 = time.monotonic()
+    p.send_signal(signal.SIGSTOP)
+    try:
+        gone = w.wait_for(lambda v: not v["cn_standby_ready"], 30, f"{standby} not ready")
+        time.sleep(max(0.0, 1.0 - (time.monotonic() - t0)))  # the stop lasts a second
+    finally:
+        p.send_signal(signal.SIGCONT)
+    back = w.wait_for(lambda v: bool(v["cn_standby_ready"]), 60, f"{standby} ready again")
+    f.landed()
+    gn = f.stop()
+    _commands_accepted(gn)
+    assert reigns(w.since(t0)) == {(term, commander)}, reigns(w.since(t0))
+    changed = len(took_lines(f.logs())) + len(stood_lines(f.logs())) - changes
+    assert changed == 0, took_lines(f.logs())[-3:]
+    flying = [v for v in w.since(back.t) if v["cn_state"] != "LANDED"]
+    assert all(v["cn_standby_ready"] for v in flying), "ready again, then not"
+    landed = assert_flown_as_configured(w, f.logs(), f.csv)
+    assert_one_term_per_loop(f.mission, rec_root, last_term=term, landed=landed)
+    assert_follows(f.mission, rec_root, standby, gone.v["cn_loop"], landed)
