@@ -181,7 +181,8 @@ class ControlSync:
         # A live DN whose queries get no reply at all, loop after loop, has
         # lost its route in zenoh (zenoh#2517): its querier is declared again
         # (zplatform.queries.Unanswered). `_heard` is set on zenoh's thread
-        # by any reply for the DN, `_alive` by its liveliness token.
+        # by any reply for the DN (cleared by each watch), `_alive` by its
+        # liveliness token.
         self._heard = [False] * len(dns)
         self._alive = [False] * len(dns)
         self.unanswered = Unanswered(len(dns))
@@ -357,11 +358,9 @@ class ControlSync:
         callbacks = self._callbacks
         trace = self._trace
         got = self._got
-        heard = self._heard
         for i, check in enumerate(self._checks):
             check.expect(logic.loop, logic.t_ns)
             got[i] = False
-            heard[i] = False
         if warmup:
             callbacks = self._counted
             self._idle.clear()
@@ -444,7 +443,10 @@ class ControlSync:
                 self._quiet[i] += 1
                 if self._quiet[i] >= REPIN_AFTER:
                     self._open[i] = True
-            if watch.observe(i, ok or heard[i], alive[i]):
+            # Any reply since the last watch counts, a late one too (it came
+            # after the deadline): only silence is a lost route.
+            answered, heard[i] = ok or heard[i], False
+            if watch.observe(i, answered, alive[i]):
                 self._recover(i)
 
     def _recover(self, i: int) -> None:

@@ -428,3 +428,41 @@ def test_the_cn_recovers_a_live_dns_lost_query_route_and_is_answered_again(
         ds.close()
         if token is not None:
             token.undeclare()
+
+
+def test_a_dn_that_answers_only_late_is_not_a_lost_route(trio: Trio) -> None:
+    """Replies that come after the sync's deadline (a busy host) are replies:
+    a live DN answering every trigger late gets no recovery, however long."""
+    m = MINIMAL
+    sim = sim_keys(m)
+    cn = ControlLogic(m, keys=sim)
+    dn = DeviceLogic(m, "dn0", keys=sim)
+    now = iter(range(10**9, 20 * 10**9, 10**7)).__next__
+    ks = KeySpace(m.vehicle)
+    ds = DeviceSync(
+        trio.genuine, ks, "dn0", now, intake=TriggerIntake(m, "dn0", channel(sim, "cn_to_dn0"))
+    )
+    token = trio.genuine.liveliness().declare_token(ks.alive("dn0"))
+    trio.ready()
+    cs = ControlSync(
+        trio.asker,
+        ks,
+        ["dn0"],
+        1,  # the deadline passes before any reply can come: every reply is late
+        5.0,
+        checks=[ReplyCheck(m, "dn0", channel(sim, "dn0_to_cn"))],
+    )
+    try:
+        for loop in range(1, 3 * UNANSWERED_LOOPS + 1):
+            served = threading.Thread(target=ds.wait, args=(dn, 10.0))
+            served.start()
+            cs.sync(cn.begin(loop, 10**9 + loop * 10**7), cn)
+            served.join()
+            assert cs._q.get(timeout=10.0)[0] == 0  # the late reply, taken by zenoh's thread
+        recovered: list[tuple[str, int]] = []
+        cs.take_recoveries(recovered)
+        assert (recovered, cs.unanswered.recoveries) == ([], [0])
+    finally:
+        cs.close()
+        ds.close()
+        token.undeclare()
