@@ -11,8 +11,9 @@ come from the deployment (:mod:`zplatform.deploy`), which :class:`NodeSession`
 finds itself: no verb opens an mTLS mission's session without one.
 
 One dialer per pair: each node's zenoh id is ordered by its place in the
-connect lists (:func:`dial_ranks`) and gossip autoconnects only to a lower
-id, so no two nodes dial each other (a split session after a stall,
+connect lists (:func:`dial_ranks`), a node dials every node below it
+(:func:`dial_below`, with scouting on) and scouting autoconnects only to a
+lower id, so no two nodes dial each other (a split session after a stall,
 eclipse-zenoh/zenoh#2806).
 
 Contract: :func:`zenoh_config` is pure but for the random part of the
@@ -54,6 +55,7 @@ __all__ = [
     "KeySpace",
     "NodeSession",
     "apply_deployment",
+    "dial_below",
     "dial_ranks",
     "dials",
     "free_port",
@@ -226,11 +228,29 @@ def zid_for(rank: int, high: int | None = None) -> str:
     return f"{rest << 8 | rank:x}"  # zenoh refuses leading zeros
 
 
+def dial_below(mission: Mission, node: str, connect: list[str]) -> list[str]:
+    """The listen endpoints of every node ranked below ``node``
+    (:func:`dial_ranks`) that ``connect`` does not hold: where a mission
+    with scouting on (every pair meets) has ``node`` dial by itself. Gossip
+    alone is not enough: it tells a newcomer only the peers its introducer
+    knows at that moment, so two nodes that join together may never link,
+    and with ``greater-zid`` only the higher one may dial. Pure."""
+    ranks = dial_ranks(mission)
+    return [
+        ep
+        for other, n in mission.nodes.items()
+        if ranks[other] < ranks[node]
+        for ep in n.listen
+        if ep not in connect
+    ]
+
+
 def dials(mission: Mission) -> set[tuple[str, str]]:
     """Every ``(a, b)``: node ``a``'s zenoh dials node ``b`` in the session
-    configs :func:`zenoh_config` builds (its connect list, or gossip's
-    ``greater-zid`` autoconnect to a node that listens). Pure; for checks
-    and tests: no pair is in both directions."""
+    configs :func:`zenoh_config` builds (its connect list; with scouting on,
+    every node below it that listens, :func:`dial_below`, as scouting's
+    ``greater-zid`` autoconnect also would). Pure; for checks and tests: no
+    pair is in both directions."""
     ranks = dial_ranks(mission)
     owner = {ep: name for name, n in mission.nodes.items() for ep in n.listen}
     out = {
@@ -239,7 +259,7 @@ def dials(mission: Mission) -> set[tuple[str, str]]:
         for ep in n.connect
         if ep in owner and owner[ep] != name
     }
-    if mission.transport.gossip_scouting:
+    if mission.transport.gossip_scouting or mission.transport.multicast_scouting:
         out |= {
             (a, b)
             for a in mission.nodes
@@ -278,6 +298,8 @@ def zenoh_config(
             raise TransportError(f"no node {node!r} in mission {mission.mission!r}")
         listen = list(mission.nodes[node].listen)
         connect = list(mission.nodes[node].connect)
+        if t.gossip_scouting or t.multicast_scouting:
+            connect += dial_below(mission, node, connect)
     _insert(cfg, "listen/endpoints", listen)
     _insert(cfg, "connect/endpoints", connect)
     # Keep retrying connects: peers start in any order. A short retry period
@@ -290,7 +312,9 @@ def zenoh_config(
     # One dialer per pair (dial_ranks): zenoh's gossip dials only a peer of
     # a lower id, and a node's id orders by its rank in the connect lists. A
     # tool listens nowhere: nobody dials it, whatever its (random) id.
-    _insert(cfg, "scouting/gossip/autoconnect_strategy", {"peer": {"to_peer": "greater-zid"}})
+    one_way = {"peer": {"to_peer": "greater-zid"}}
+    _insert(cfg, "scouting/gossip/autoconnect_strategy", one_way)
+    _insert(cfg, "scouting/multicast/autoconnect_strategy", one_way)
     if node is not None:
         _insert(cfg, "id", zid_for(dial_ranks(mission)[node]))
     _insert(cfg, "transport/link/tx/lease", t.lease_ms)

@@ -12,6 +12,7 @@ import pytest
 import yaml
 import zenoh
 
+from zplatform.config import Mission
 from zplatform.errors import ConfigError, TransportError
 from zplatform.mission import decode_mission, load_mission
 from zplatform.transport import (
@@ -34,7 +35,7 @@ def _zenoh_order(zid: str) -> bytes:
     return int(zid, 16).to_bytes(16, "little")
 
 
-def _missions(tmp_path: Path) -> list[object]:
+def _missions(tmp_path: Path) -> list[Mission]:
     out = []
     for path in SHIPPED:
         if "nodes:" not in path.read_text():
@@ -50,9 +51,9 @@ def test_no_pair_of_nodes_dials_each_other_in_any_shipped_mission(tmp_path: Path
     missions = _missions(tmp_path)
     assert len(missions) >= 10
     for m in missions:
-        d = dials(m)  # type: ignore[arg-type]
+        d = dials(m)
         both = sorted((a, b) for a, b in d if (b, a) in d)
-        assert both == [], (m.mission, both)  # type: ignore[attr-defined]
+        assert both == [], (m.mission, both)
 
 
 def test_the_session_configs_order_zenoh_ids_as_the_connect_lists_dial(tmp_path: Path) -> None:
@@ -60,16 +61,25 @@ def test_the_session_configs_order_zenoh_ids_as_the_connect_lists_dial(tmp_path:
     its id is above (in zenoh's order) every node it connects to; an id is
     fresh per config (a restarted node is a new peer)."""
     for m in _missions(tmp_path):
-        cfgs = {n: zenoh_config(m, n) for n in m.nodes}  # type: ignore[attr-defined]
+        cfgs = {n: zenoh_config(m, n) for n in m.nodes}
         ids = {n: json.loads(c.get_json("id")) for n, c in cfgs.items()}
-        ranks = dial_ranks(m)  # type: ignore[arg-type]
-        for a, b in dials(m):  # type: ignore[arg-type]
+        ranks = dial_ranks(m)
+        for a, b in dials(m):
             assert _zenoh_order(ids[a]) > _zenoh_order(ids[b]), (a, b, ids)
+        owner = {ep: n for n, node in m.nodes.items() for ep in node.listen}
+        for n, c in cfgs.items():  # every endpoint a node dials is a node's below it
+            for ep in json.loads(c.get_json("connect/endpoints")):
+                assert ep not in owner or ranks[owner[ep]] < ranks[n], (n, ep)
+            if m.transport.gossip_scouting:  # and it dials every node below it
+                below = {o for o in m.nodes if ranks[o] < ranks[n] and m.nodes[o].listen}
+                dialed = {owner[ep] for ep in json.loads(c.get_json("connect/endpoints"))}
+                assert dialed == below, (n, dialed, below)
         for n, c in cfgs.items():
-            strategy = json.loads(c.get_json("scouting/gossip/autoconnect_strategy"))
-            assert strategy == {"peer": {"to_peer": "greater-zid"}}, n
+            for how in ("gossip", "multicast"):
+                strategy = json.loads(c.get_json(f"scouting/{how}/autoconnect_strategy"))
+                assert strategy == {"peer": {"to_peer": "greater-zid"}}, (n, how)
             assert int(ids[n], 16) & 0xFF == ranks[n]
-        again = json.loads(zenoh_config(m, "cn").get_json("id"))  # type: ignore[arg-type]
+        again = json.loads(zenoh_config(m, "cn").get_json("id"))
         assert again != ids["cn"]
 
 
@@ -104,12 +114,12 @@ def test_a_zid_out_of_rank_range_is_refused() -> None:
 
 
 def test_zenoh_dials_only_from_the_greater_rank() -> None:
-    """zenoh itself, three peers: X and Y each connect to Z and learn of each
-    other by gossip; Y listens nowhere, so only Y can dial X. Their ids are
+    """zenoh itself, three peers: X and Y each connect to Z (X first) and learn
+    of each other by gossip; Y listens nowhere, so only Y can dial X. Their ids are
     made so zenoh's order (the rank byte, little-endian first) and the hex
-    string's order disagree: X ``ff..ff01``, Y ``00..0102``. The link forms
-    (Y's token reaches X: peers do not forward for each other): Y dialed,
-    so zenoh ranked Y above X by the lowest byte as :func:`zid_for` assumes."""
+    string's order disagree: X ``ff..ff01``, Y ``102``. The link forms (Y's
+    token reaches X: peers do not forward for each other): Y dialed, so
+    zenoh ranked Y above X by the lowest byte as :func:`zid_for` assumes."""
     pz, px = free_port(), free_port()
     base = load_mission(ROOT / "configs" / "minimal.yaml")  # its transport settings
 
@@ -122,23 +132,46 @@ def test_zenoh_dials_only_from_the_greater_rank() -> None:
 
     x_id, y_id = zid_for(1, high=(1 << 120) - 1), zid_for(2, high=1)
     assert x_id > y_id and _zenoh_order(y_id) > _zenoh_order(x_id)
-    z = open_session(cfg(zid_for(3), [f"tcp/127.0.0.1:{pz}"], []))
-    x = open_session(cfg(x_id, [f"tcp/127.0.0.1:{px}"], [f"tcp/127.0.0.1:{pz}"]))
-    seen: queue.Queue[str] = queue.Queue()
-    try:
-        sub = x.liveliness().declare_subscriber(
-            "t/y/alive",
-            zenoh.handlers.Callback(lambda s: seen.put(str(s.key_expr)), indirect=False),
-            history=True,
+
+    def arrived(key: str, session: zenoh.Session, timeout_s: float) -> bool:
+        """Whether ``session`` sees a liveliness token on ``key`` in time."""
+        q: queue.Queue[bool] = queue.Queue()
+
+        def on_token(s: zenoh.Sample) -> None:  # hand off only
+            q.put(s.kind == zenoh.SampleKind.PUT)
+
+        sub = session.liveliness().declare_subscriber(
+            key, zenoh.handlers.Callback(on_token, indirect=False), history=True
         )
-        y = open_session(cfg(y_id, [], [f"tcp/127.0.0.1:{pz}"]))
         try:
-            y.liveliness().declare_token("t/y/alive")
-            assert seen.get(timeout=20) == "t/y/alive"
-            assert str(y.info.zid()) == y_id
+            return q.get(timeout=timeout_s)
+        except queue.Empty:
+            return False
         finally:
             sub.undeclare()
-            y.close()
+
+    z = open_session(cfg(zid_for(3), [f"tcp/127.0.0.1:{pz}"], []))
+    x = open_session(cfg(x_id, [f"tcp/127.0.0.1:{px}"], [f"tcp/127.0.0.1:{pz}"]))
+    try:
+        x_token = x.liveliness().declare_token("t/x/alive")
+        assert arrived("t/x/alive", z, 20)  # X joined Z before Y does
+        x_token.undeclare()
+        # zenoh's gossip tells a newcomer the peers its introducer knows then,
+        # and on a busy host may not have X's locators yet: Y joins again
+        # (a new session, the same id) until it learns of X. With the order
+        # the other way round (X above Y), no attempt would ever link them.
+        for _attempt in range(3):
+            y = open_session(cfg(y_id, [], [f"tcp/127.0.0.1:{pz}"]))
+            try:
+                assert str(y.info.zid()) == y_id
+                y_token = y.liveliness().declare_token("t/y/alive")
+                linked = arrived("t/y/alive", x, 10)
+                y_token.undeclare()
+            finally:
+                y.close()
+            if linked:
+                break
+        assert linked, "Y never dialed X"
     finally:
         x.close()
         z.close()
