@@ -188,7 +188,8 @@ class ControlSync:
         self.unanswered = Unanswered(len(dns))
         self._recovered: list[int] = []
         self._queriers = [
-            declare_querier(session, k, timeout_s=query_timeout_s) for k in self._keys
+            declare_querier(session, self._keys[i], timeout_s=query_timeout_s)
+            for i in range(len(self._keys))
         ]
         self._all_querier = (
             declare_querier(session, self._all, timeout_s=query_timeout_s)
