@@ -436,6 +436,14 @@ class EV:
         "{node} drove {n} hazardous output(s) to their safe value in state {state}, "
         "where they may not be driven: {names} (hazardous_outputs)",
     )
+    QUERY_RECOVERED = EventType(
+        125,
+        "query_recovered",
+        Severity.WARNING_LO,
+        "{node} declared its querier again for {dns} ({n} time(s), {total} in all): a live "
+        "device node's queries had no reply for {loops} loops in a row (a route lost in "
+        "zenoh, eclipse-zenoh/zenoh#2517)",
+    )
     TM_NEW_TERM = EventType(
         76,
         "tm_new_term",

@@ -16,6 +16,13 @@ waits on its mailbox with its own deadline, so it never waits longer than it
 chooses. The one liveliness get (:meth:`~zplatform.ground.link.GroundLink.alive_nodes`)
 uses the same callback and deadline.
 
+A query a live peer's queryable leaves unanswered loop after loop (zenoh
+lost its route to that queryable while another peer's session closed,
+eclipse-zenoh/zenoh#2517) is noticed by :class:`Unanswered` and recovered
+by declaring the asker's querier on the key again (:func:`declare_querier`:
+zenoh then asks its peers for the key's queryables, and they declare them
+to it again).
+
 Why each option, as measured: docs/architecture.md#zenoh.
 """
 
@@ -23,17 +30,61 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
+from typing import Protocol
 
 import zenoh
 
 from .errors import TransportError
 
-__all__ = ["CONGESTION", "CONSOLIDATION", "TARGET", "ReplyCap", "ask", "replies"]
+__all__ = [
+    "CONGESTION",
+    "CONSOLIDATION",
+    "TARGET",
+    "UNANSWERED_LOOPS",
+    "QueryFault",
+    "ReplyCap",
+    "Unanswered",
+    "ask",
+    "declare_querier",
+    "replies",
+    "set_fault",
+]
 
 TARGET = zenoh.QueryTarget.ALL
 """Every queryable on the key is asked (module doc: never ``BEST_MATCHING``)."""
 CONSOLIDATION = zenoh.ConsolidationMode.NONE
 CONGESTION = zenoh.CongestionControl.DROP
+
+
+UNANSWERED_LOOPS = 10
+"""Loops in a row a live peer may leave its key's queries without a single
+reply before the asker declares its querier on the key again
+(:class:`Unanswered`): 100 ms at 100 Hz, well inside a device node's lease
+and watchdog, and past any single dropped query or busy-host hiccup."""
+
+
+class QueryFault(Protocol):
+    """A fault for tests (:func:`set_fault`): zenoh losing the route of
+    some keys' queries (eclipse-zenoh/zenoh#2517) until a querier on the key
+    is declared again."""
+
+    def lost(self, key_expr: str) -> bool:
+        """Whether a query on ``key_expr`` is lost now (then never sent)."""
+        ...
+
+    def redeclared(self, key_expr: str) -> None:
+        """A querier on ``key_expr`` was just declared (:func:`declare_querier`)."""
+        ...
+
+
+_fault: QueryFault | None = None
+
+
+def set_fault(fault: QueryFault | None) -> None:
+    """Install (or, with None, remove) a :class:`QueryFault` in this
+    process: tests only. :func:`ask` consults it before each query."""
+    global _fault
+    _fault = fault
 
 
 def replies(
@@ -79,6 +130,9 @@ def ask(
         )
     if not (timeout_s > 0 and math.isfinite(timeout_s)):
         raise TransportError(f"a query needs a finite positive timeout, not {timeout_s!r} s")
+    fault = _fault
+    if fault is not None and fault.lost(key_expr):
+        return  # what zenoh#2517 does: the query reaches no queryable
     session.get(
         key_expr,
         handler,
@@ -130,4 +184,60 @@ class ReplyCap:
             self.dropped += 1
             return False
         self._seen[who] = n + 1
+        return True
+
+
+def declare_querier(session: zenoh.Session, key_expr: str, *, timeout_s: float) -> zenoh.Querier:
+    """A querier on ``key_expr`` with :func:`ask`'s options (target ALL, no
+    consolidation, DROP, ``timeout_s``). Declaring it makes zenoh send its
+    peers an interest in the key's queryables (current and future), which
+    they answer by declaring them to this session again: how an asker whose
+    routes to a live queryable were lost gets them back (undeclare the old
+    querier first: zenoh sends the interest for the first querier on a key).
+    Blocks briefly on zenoh's state; not for every loop. Raises zenoh's
+    ZError when the session is closed."""
+    q = session.declare_querier(
+        key_expr,
+        target=TARGET,
+        consolidation=CONSOLIDATION,
+        timeout=timeout_s,
+        congestion_control=CONGESTION,
+    )
+    fault = _fault
+    if fault is not None:
+        fault.redeclared(key_expr)
+    return q
+
+
+class Unanswered:
+    """Which targets a live peer leaves without any reply, loop after loop
+    (the symptom of eclipse-zenoh/zenoh#2517). Sans-IO: the asker calls
+    :meth:`observe` once a loop per target, with whether any reply came for
+    it and whether its peer's liveliness token is present; after ``after``
+    such loops in a row it returns True once (recover now: declare the
+    querier again), counted in :attr:`recoveries`, and counts afresh. A
+    target that answers, or whose peer is gone (dead, or cut off: zenoh's
+    lease ended its token), resets the count: that is a lost node, not a
+    lost route. Allocates nothing per call."""
+
+    __slots__ = ("_quiet", "after", "recoveries")
+
+    def __init__(self, n: int, after: int = UNANSWERED_LOOPS) -> None:
+        if after < 1:
+            raise TransportError(f"Unanswered needs at least one loop, not {after}")
+        self.after = after
+        self._quiet = [0] * n
+        self.recoveries = [0] * n
+        """Recoveries per target so far."""
+
+    def observe(self, i: int, answered: bool, alive: bool) -> bool:
+        """One loop of target ``i``; True when it is time to recover it."""
+        if answered or not alive:
+            self._quiet[i] = 0
+            return False
+        self._quiet[i] += 1
+        if self._quiet[i] < self.after:
+            return False
+        self._quiet[i] = 0
+        self.recoveries[i] += 1
         return True

@@ -34,7 +34,7 @@ from .codec import BundleEncoder
 from .handoff import Handoff, Mailbox
 from .intake import CnRefusals, ProbeIntake, ReplyCheck, TriggerIntake
 from .loop import ControlLogic, DeviceLogic
-from .queries import ReplyCap, ask, replies
+from .queries import ReplyCap, Unanswered, ask, declare_querier, replies
 from .transport import KeySpace, is_matching
 
 __all__ = [
@@ -178,6 +178,34 @@ class ControlSync:
         self._build_callbacks()
         self.duration_ns = 0
         """How long the last :meth:`sync` took."""
+        # A live DN whose queries get no reply at all, loop after loop, has
+        # lost its route in zenoh (zenoh#2517): its querier is declared again
+        # (zplatform.queries.Unanswered). `_heard` is set on zenoh's thread
+        # by any reply for the DN (cleared by each watch), `_alive` by its
+        # liveliness token.
+        self._heard = [False] * len(dns)
+        self._alive = [False] * len(dns)
+        self.unanswered = Unanswered(len(dns))
+        self._recovered: list[int] = []
+        self._queriers = [
+            declare_querier(session, self._keys[i], timeout_s=query_timeout_s)
+            for i in range(len(self._keys))
+        ]
+        self._all_querier = (
+            declare_querier(session, self._all, timeout_s=query_timeout_s)
+            if self.wildcard
+            else None
+        )
+        self._alive_index = {keys.alive(dn): i for i, dn in enumerate(self.dns)}
+        self._alive_sub = session.liveliness().declare_subscriber(
+            keys.all_alive, zenoh.handlers.Callback(self._on_alive, indirect=False), history=True
+        )
+
+    def _on_alive(self, sample: zenoh.Sample) -> None:
+        # zenoh's thread: one flag per DN, read by the loop.
+        i = self._alive_index.get(str(sample.key_expr))
+        if i is not None:
+            self._alive[i] = sample.kind == zenoh.SampleKind.PUT
 
     def _build_callbacks(self) -> None:
         # Flight queries have no drop callback: zenoh finalises every query
@@ -233,6 +261,7 @@ class ControlSync:
         rid = reply.replier_id
         zid = rid.zid if rid is not None else None
         if zid is not None and zid == self._zids[i]:
+            self._heard[i] = True
             if len(payload) > self._max_len[i]:
                 with self._count_lock:
                     self._oversize += 1
@@ -245,6 +274,7 @@ class ControlSync:
             return
         data = self._checks[i].check(payload, None)  # size, tag, the loop asked: counted if not
         if data is not None:
+            self._heard[i] = True
             self._zids[i] = zid
             self._q.put((i, data))
 
@@ -263,6 +293,7 @@ class ControlSync:
         comes from DN ``i``'s session, else foreign."""
         rid = reply.replier_id
         if rid is not None and self._zids[i] is not None and rid.zid == self._zids[i]:
+            self._heard[i] = True
             self._q.put((i, None))
         else:
             with self._count_lock:
@@ -400,7 +431,11 @@ class ControlSync:
 
     def _watch(self, got: list[bool]) -> None:
         """After a sync: a DN whose known session answered keeps it alone;
-        one quiet for :data:`REPIN_AFTER` loops lets others be checked."""
+        one quiet for :data:`REPIN_AFTER` loops lets others be checked. A
+        live DN that sent no reply at all for
+        :data:`~zplatform.queries.UNANSWERED_LOOPS` loops gets its querier
+        declared again (:meth:`take_recoveries`)."""
+        heard, alive, watch = self._heard, self._alive, self.unanswered
         for i, ok in enumerate(got):
             if ok:
                 self._quiet[i] = 0
@@ -409,6 +444,35 @@ class ControlSync:
                 self._quiet[i] += 1
                 if self._quiet[i] >= REPIN_AFTER:
                     self._open[i] = True
+            # Any reply since the last watch counts, a late one too (it came
+            # after the deadline): only silence is a lost route.
+            answered, heard[i] = ok or heard[i], False
+            if watch.observe(i, answered, alive[i]):
+                self._recover(i)
+
+    def _recover(self, i: int) -> None:
+        """Declare DN ``i``'s querier again (and the wildcard's): zenoh asks
+        the peers for the key's queryables anew (zplatform.queries). The loop
+        thread; rare (at most once per UNANSWERED_LOOPS loops and DN)."""
+        self._queriers[i].undeclare()
+        self._queriers[i] = declare_querier(
+            self.session, self._keys[i], timeout_s=self._query_timeout
+        )
+        if self._all_querier is not None:
+            self._all_querier.undeclare()
+            self._all_querier = declare_querier(
+                self.session, self._all, timeout_s=self._query_timeout
+            )
+        self._recovered.append(i)
+
+    def take_recoveries(self, out: list[tuple[str, int]]) -> None:
+        """Append ``(dn, recoveries so far)`` for each querier declared again
+        since the last call to ``out`` (the loop thread, once a loop; the
+        driver events them)."""
+        if self._recovered:
+            for i in self._recovered:
+                out.append((self.dns[i], self.unanswered.recoveries[i]))
+            self._recovered.clear()
 
     def quiesce(self, logic: ControlLogic, timeout_s: float) -> bool:
         """Wait until every warm-up query issued so far is finalised, then hand any
@@ -425,6 +489,11 @@ class ControlSync:
     def close(self) -> None:
         for t in self._taps:
             t.undeclare()
+        for q in self._queriers:
+            q.undeclare()
+        if self._all_querier is not None:
+            self._all_querier.undeclare()
+        self._alive_sub.undeclare()
 
 
 class DeviceSync:

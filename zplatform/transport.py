@@ -9,7 +9,14 @@ zenoh peers do not forward for each other. TLS and access control
 come from the deployment (:mod:`zplatform.deploy`), which :class:`NodeSession`
 finds itself: no verb opens an mTLS mission's session without one.
 
-Contract: :func:`zenoh_config` is pure; opening a :class:`NodeSession` blocks
+One dialer per pair: each node's zenoh id is ordered by its place in the
+connect lists (:func:`dial_ranks`), a node dials every node below it
+(:func:`dial_below`, with scouting on) and scouting autoconnects only to a
+lower id, so no two nodes dial each other (a split session after a stall,
+eclipse-zenoh/zenoh#2806).
+
+Contract: :func:`zenoh_config` is pure but for the random part of the
+node's zenoh id (:func:`zid_for`); opening a :class:`NodeSession` blocks
 on zenoh and raises :class:`~zplatform.errors.TransportError` (or a deployment
 error) when it cannot; its close waits at most :data:`SESSION_CLOSE_S`.
 Readiness is explicit: each node declares a liveliness token on
@@ -25,6 +32,7 @@ import contextlib
 import json
 import logging
 import queue
+import secrets
 import socket
 import threading
 import time
@@ -53,12 +61,16 @@ __all__ = [
     "KeySpace",
     "NodeSession",
     "apply_deployment",
+    "dial_below",
+    "dial_ranks",
+    "dials",
     "free_port",
     "is_matching",
     "open_session",
     "rewrite_endpoints",
     "wait_for_nodes",
     "zenoh_config",
+    "zid_for",
 ]
 
 
@@ -171,6 +183,103 @@ def _insert(cfg: zenoh.Config, key: str, value: Any) -> None:
         raise TransportError(f"zenoh config {key}={value!r} rejected: {exc}") from exc
 
 
+def dial_ranks(mission: Mission) -> dict[str, int]:
+    """Each node's place in the mission's dialing order, 1 to ``len(nodes)``:
+    a node ranks above every node it connects to (an endpoint in its
+    ``connect`` that is another node's ``listen``), nodes the connect lists
+    leave unordered by name. Pure.
+
+    Why: two peers that dial each other can leave their zenoh session split
+    after one of them stalls (eclipse-zenoh/zenoh#2806); with each node's
+    zenoh id ordered by this rank (:func:`zid_for`) and gossip's
+    ``autoconnect_strategy`` ``greater-zid``, zenoh's own dialing goes the
+    way the connect lists go, so every pair is dialed one way only
+    (docs/architecture.md#failover). Raises TransportError, naming the
+    nodes, when the connect lists dial in a circle (a pair both ways).
+    """
+    owner = {ep: name for name, n in mission.nodes.items() for ep in n.listen}
+    targets = {
+        name: {owner[ep] for ep in n.connect if ep in owner and owner[ep] != name}
+        for name, n in mission.nodes.items()
+    }
+    ranks: dict[str, int] = {}
+    while len(ranks) < len(targets):
+        ready = sorted(n for n, t in targets.items() if n not in ranks and t <= ranks.keys())
+        if not ready:
+            left = sorted(n for n in targets if n not in ranks)
+            both = [
+                f"{a} and {b}"
+                for a in left
+                for b in sorted(targets[a])
+                if a < b and a in targets[b]
+            ]
+            what = ", ".join(both) if both else f"{left} (in a circle)"
+            raise TransportError(
+                f"mission {mission.mission!r}: nodes {what} connect to each other; "
+                "let one node of each pair connect to the other, never both ways"
+            )
+        ranks[ready[0]] = len(ranks) + 1
+    return ranks
+
+
+_RANK_MAX = 255  # the zenoh id's lowest byte
+
+
+def zid_for(rank: int, high: int | None = None) -> str:
+    """A fresh zenoh id (hex, at most 32 digits) that orders by ``rank`` (1..255)
+    under zenoh's ``greater-zid`` rule: zenoh compares ids by their
+    little-endian bytes (``uhlc::ID`` derives ``Ord`` over ``to_le_bytes``),
+    so the rank goes in the lowest byte, first compared; the other 15 bytes
+    are random, so a restarted node is a new peer to zenoh (never merged
+    into its old session). ``high``: those 15 bytes (tests), else random.
+    Raises TransportError for a rank out of range."""
+    if not 1 <= rank <= _RANK_MAX:
+        raise TransportError(f"a mission has at most {_RANK_MAX} nodes (zenoh id rank {rank})")
+    rest = secrets.randbits(120) if high is None else high & ((1 << 120) - 1)
+    return f"{rest << 8 | rank:x}"  # zenoh refuses leading zeros
+
+
+def dial_below(mission: Mission, node: str, connect: list[str]) -> list[str]:
+    """The listen endpoints of every node ranked below ``node``
+    (:func:`dial_ranks`) that ``connect`` does not hold: where a mission
+    with scouting on (every pair meets) has ``node`` dial by itself. Gossip
+    alone is not enough: it tells a newcomer only the peers its introducer
+    knows at that moment, so two nodes that join together may never link,
+    and with ``greater-zid`` only the higher one may dial. Pure."""
+    ranks = dial_ranks(mission)
+    return [
+        ep
+        for other, n in mission.nodes.items()
+        if ranks[other] < ranks[node]
+        for ep in n.listen
+        if ep not in connect
+    ]
+
+
+def dials(mission: Mission) -> set[tuple[str, str]]:
+    """Every ``(a, b)``: node ``a``'s zenoh dials node ``b`` in the session
+    configs :func:`zenoh_config` builds (its connect list; with scouting on,
+    every node below it that listens, :func:`dial_below`, as scouting's
+    ``greater-zid`` autoconnect also would). Pure; for checks and tests: no
+    pair is in both directions."""
+    ranks = dial_ranks(mission)
+    owner = {ep: name for name, n in mission.nodes.items() for ep in n.listen}
+    out = {
+        (name, owner[ep])
+        for name, n in mission.nodes.items()
+        for ep in n.connect
+        if ep in owner and owner[ep] != name
+    }
+    if mission.transport.gossip_scouting or mission.transport.multicast_scouting:
+        out |= {
+            (a, b)
+            for a in mission.nodes
+            for b, nb in mission.nodes.items()
+            if a != b and nb.listen and ranks[a] > ranks[b]
+        }
+    return out
+
+
 def zenoh_config(
     mission: Mission,
     node: str | None,
@@ -200,6 +309,8 @@ def zenoh_config(
             raise TransportError(f"no node {node!r} in mission {mission.mission!r}")
         listen = list(mission.nodes[node].listen)
         connect = list(mission.nodes[node].connect)
+        if t.gossip_scouting or t.multicast_scouting:
+            connect += dial_below(mission, node, connect)
     _insert(cfg, "listen/endpoints", listen)
     _insert(cfg, "connect/endpoints", connect)
     # Keep retrying connects: peers start in any order. A short retry period
@@ -209,6 +320,14 @@ def zenoh_config(
     _insert(cfg, "connect/retry", {"period_init_ms": 50, "period_max_ms": 200})
     _insert(cfg, "scouting/multicast/enabled", t.multicast_scouting)
     _insert(cfg, "scouting/gossip/enabled", t.gossip_scouting)
+    # One dialer per pair (dial_ranks): zenoh's gossip dials only a peer of
+    # a lower id, and a node's id orders by its rank in the connect lists. A
+    # tool listens nowhere: nobody dials it, whatever its (random) id.
+    one_way = {"peer": {"to_peer": "greater-zid"}}
+    _insert(cfg, "scouting/gossip/autoconnect_strategy", one_way)
+    _insert(cfg, "scouting/multicast/autoconnect_strategy", one_way)
+    if node is not None:
+        _insert(cfg, "id", zid_for(dial_ranks(mission)[node]))
     _insert(cfg, "transport/link/tx/lease", t.lease_ms)
     ll = lowlatency_for(mission) if lowlatency is None else lowlatency
     if ll:

@@ -34,12 +34,13 @@ node is left to take it back), after a standby's death not one to the end;
 one term in command from a cut of the control nodes' link until the standby
 follows again, and from a restart until the restarted node follows.
 
-Known bugs below the platform, in zenoh (:data:`BUGS`, :data:`MIRRORS_LOST`:
-a session between the control nodes split after a stop, eclipse-zenoh/zenoh#2806;
-queries or replies between connected peers lost for seconds while another
-peer's session closes, #2517), each recognised from the nodes' logs, turn a
-failed check into an xfail naming the bug and its evidence; any other
-failure stands.
+No failure is excused: the zenoh defects these cases used to be gated on
+(eclipse-zenoh/zenoh#2806, a session between the control nodes split after a
+stop when both dialed each other; #2517, queries between connected peers
+lost while another peer's session closes) are designed out (one dialer per
+pair, :func:`zplatform.transport.dial_ranks`) or recovered from (a query
+that a live peer's queryable leaves unanswered, :mod:`zplatform.queries`),
+docs/architecture.md#failover.
 
 Waits are on telemetry, events, process exit or a node's log file; a sleep
 only makes a fault last (the stop, the cuts). Each flight takes about 70 s.
@@ -87,41 +88,6 @@ FLIGHT_S = 150.0  # hang detector for a whole flight (it lands at about 48 s)
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(480)]
 
 
-# --------------------------------------------------------------------------- known bugs
-# A run on a busy host may meet a bug below the platform the fault did not cause (a
-# zenoh session between two nodes that splits after a stall or a cut). Each is recognised
-# from the nodes' own logs (every event is logged where it is emitted, even when its
-# zenoh message is lost); a failed check in a run that shows one becomes an xfail that
-# names the bug and its evidence. A run without any passes or fails on its checks.
-BUGS = {
-    "replies-lost": (
-        "known bug (zenoh routing suspected): with the link between the two control nodes "
-        "cut, the commander stopped receiving the device nodes' sync replies (every sync "
-        "missed, none late) while the device nodes ran every trigger and replied (their flight "
-        "recorders hold every loop, they never safed), from when its zenoh session with the "
-        "standby closed until the link came back: DN_LOST, COAST -> ABORTED (seen once in "
-        "about ten cuts; likely eclipse-zenoh/zenoh#2517, a peer's session closing stops "
-        "queries between other peers for seconds)"
-    ),
-    "queries-lost": (
-        "known bug (zenoh, eclipse-zenoh/zenoh#2517: a peer's session closing stops queries "
-        "between other peers that stay connected, for seconds): the new commander's triggers "
-        "reached a device node (it followed the new term) and then stopped reaching it when "
-        "the old commander's session lapsed, until the cut healed; the device node's watchdog "
-        "safed it and the new commander latched DN_LOST (seen once in two cuts from everyone)"
-    ),
-}
-MIRRORS_LOST = (
-    "known bug (zenoh suspected): a control node that stood down after a 1 s SIGSTOP "
-    "received two mirrors of the new commander and then none for the rest of the run (its "
-    "flight recorder: mirrored loops 1057, 1059, then nothing until 5040), while the commander "
-    "published one every loop (before the blind-standby rule it then took command from its "
-    "40 s old mirror when the commander stalled; now it is held, not ready). Its zenoh session "
-    "with the commander lapsed on one side while it was stopped; both control nodes dial each "
-    "other (the mission's connect and gossip), the case of eclipse-zenoh/zenoh#2806 (a "
-    "reconnect merged into the stale transport: declarations never re-sent, data one way "
-    "only)"
-)
 REJOIN_LOOPS = 200  # a node stopped past its lease opens its zenoh sessions again first
 STALE_LOOPS = 50  # a takeover from a mirror this much older than its loop is from a stale one
 
@@ -176,53 +142,6 @@ def stood_lines(text: str) -> list[Stood]:
     return out
 
 
-def known_bugs(text: str, *, replies_lost: bool = False) -> list[str]:
-    """The known bugs (:data:`BUGS`) the logs show, each with its evidence
-    (``replies_lost``: look for that one; only where no fault of the test's
-    own cuts the commander from the device nodes)."""
-    seen = []
-    lines = text.splitlines()
-    lost = [x for x in lines if re.search(r" cn(_b)? fault: fault DN_LOST", x)]
-    safed = [x for x in lines if re.search(r" dn\d+ dn_safed:", x)]
-    if replies_lost and lost and not safed:
-        seen.append(f"{BUGS['replies-lost']} [{lost[0].strip()}]")
-    # queries-lost: a device node followed a term its new commander took, then
-    # its watchdog safed it for want of triggers and that commander lost it.
-    for t in took_lines(text):
-        for dn in sorted(
-            set(re.findall(r" (dn\d+) dn_new_term: \1 follows term " + str(t.term) + " ", text))
-        ):
-            starved = [
-                x
-                for x in lines
-                if f" {dn} dn_safed: {dn} safed its actuators: no valid trigger" in x
-            ]
-            dropped = [x for x in lines if f" {t.node} fault: fault DN_LOST: {dn} missed" in x]
-            if starved and dropped:
-                seen.append(f"{BUGS['queries-lost']} [{starved[0].strip()} / {dropped[0].strip()}]")
-                return seen
-    return seen
-
-
-class MirrorsLost(AssertionError):
-    """The stood-down node stopped receiving mirrors (:data:`MIRRORS_LOST`)."""
-
-
-@contextlib.contextmanager
-def known_bugs_gate(logs: Callable[[], str], *, replies_lost: bool = False) -> Iterator[None]:
-    """A failed check becomes an xfail naming the known product bug the run
-    showed (module doc); any other failure stands."""
-    try:
-        yield
-    except MirrorsLost as exc:
-        pytest.xfail(f"{MIRRORS_LOST} [{exc}]")
-    except AssertionError as exc:
-        seen = known_bugs(logs(), replies_lost=replies_lost)
-        if seen:
-            pytest.xfail(" AND ".join(seen) + f" [the failed check: {str(exc)[:600]}]")
-        raise
-
-
 def other(cn: str) -> str:
     return "cn_b" if cn == "cn" else "cn"
 
@@ -271,7 +190,7 @@ def assert_flown_as_configured(w: FlightWatch, logs: str, csv: Path) -> int:
 
 def wait_state(w: FlightWatch, state: str, at_loop: int) -> Snap:
     """The first snapshot in ``state`` from loop ``at_loop`` on: where a fault
-    begins. RuntimeError (never an xfail: see :func:`known_bugs_gate`) when
+    begins. RuntimeError (not an assertion about the run) when
     the watcher came too late to see it."""
     w.wait_for(lambda v: True, 60, "the watcher's first snapshot")
     now = w.last()
@@ -330,7 +249,7 @@ def assert_follows(mission: Mission, root: Path, node: str, lo: int, hi: int) ->
     if not loops or loops[0] - lo > REJOIN_LOOPS:
         gaps.insert(0, (lo, loops[0] if loops else hi))
     if gaps:
-        raise MirrorsLost(f"{node} took no mirror in loops {gaps} (it stood down at {lo})")
+        raise AssertionError(f"{node} took no mirror in loops {gaps} (it stood down at {lo})")
 
 
 def announced_again(w: FlightWatch, since: float, node: str) -> None:
@@ -514,7 +433,7 @@ def test_the_commander_killed_in_flight_is_replaced_and_the_flight_lands(
     LANDED as configured; ``up`` carries on without the dead node, ends the
     run after the script and exits 1 (a node died)."""
     f = UpFlight(tmp_path)
-    with f, known_bugs_gate(f.output):
+    with f:
         w = f.w
         at = wait_state(w, state, at_loop)
         dead, term = at.v["cn_commander"], at.v["cn_term"]
@@ -549,7 +468,7 @@ def test_the_commander_stopped_for_a_second_in_coast_stands_down_and_the_flight_
     configured, and no node died (``up`` exits 0). The stood-down node is
     then the standby: the commander must report it ready."""
     f = UpFlight(tmp_path)
-    with f, known_bugs_gate(f.output):
+    with f:
         w = f.w
         at = wait_state(w, "COAST", 1000)
         stopped, term = at.v["cn_commander"], at.v["cn_term"]
@@ -600,7 +519,7 @@ def test_the_standby_killed_in_flight_changes_nothing(tmp_path: Path, rec_root: 
     lands as configured; ``up`` says so, ends the run after the script and
     exits 1 (a node died)."""
     f = UpFlight(tmp_path)
-    with f, known_bugs_gate(f.output):
+    with f:
         w = f.w
         at = wait_state(w, "COAST", 800)
         commander, term = at.v["cn_commander"], at.v["cn_term"]
@@ -791,38 +710,37 @@ def test_control_nodes_cut_from_each_other_change_nothing(mesh: MeshFlight, rec_
     the cut until a second after the link is back, and the flight lands as
     configured."""
     f, w = mesh, mesh.w
-    with known_bugs_gate(f.logs, replies_lost=True):
-        at = _in_coast(f)
-        commander, term = at.v["cn_commander"], at.v["cn_term"]
-        standby = other(commander)
-        held0 = f.log(standby).count(f" {standby} cn_takeover_held:")
-        changes = len(took_lines(f.logs())) + len(stood_lines(f.logs()))
-        t0 = time.monotonic()
-        f.lab.set_pair(f.index("cn"), f.index("cn_b"), up=False)
-        try:
-            wait_log(
-                lambda: f.log(standby),
-                lambda t: t.count(f" {standby} cn_takeover_held:") > held0,
-                30,
-                f"{standby} holding its takeover",
-            )
-            time.sleep(max(0.0, CUT_S - (time.monotonic() - t0)))  # the cut lasts CUT_S
-        finally:
-            f.lab.set_pair(f.index("cn"), f.index("cn_b"), up=True)
-        healed = w.last()["cn_loop"]
-        end = w.wait_for(lambda v: v["cn_loop"] >= healed + 100, 30, "a second more")
-        window = w.since(t0, end.t)
-        changed = len(took_lines(f.logs())) + len(stood_lines(f.logs())) - changes
-        f.landed()
-        gn = f.stop()
-        _commands_accepted(gn)
-        assert reigns(window) == {(term, commander)}, reigns(window)
-        assert changed == 0, took_lines(f.logs())[-3:]
-        landed = assert_flown_as_configured(w, f.logs(), f.csv)
-        driven = assert_one_term_per_loop(
-            f.mission, rec_root, last_term=w.last()["cn_term"], landed=landed
+    at = _in_coast(f)
+    commander, term = at.v["cn_commander"], at.v["cn_term"]
+    standby = other(commander)
+    held0 = f.log(standby).count(f" {standby} cn_takeover_held:")
+    changes = len(took_lines(f.logs())) + len(stood_lines(f.logs()))
+    t0 = time.monotonic()
+    f.lab.set_pair(f.index("cn"), f.index("cn_b"), up=False)
+    try:
+        wait_log(
+            lambda: f.log(standby),
+            lambda t: t.count(f" {standby} cn_takeover_held:") > held0,
+            30,
+            f"{standby} holding its takeover",
         )
-        assert terms_between(driven, window[0]["cn_loop"], window[-1]["cn_loop"]) == {term}
+        time.sleep(max(0.0, CUT_S - (time.monotonic() - t0)))  # the cut lasts CUT_S
+    finally:
+        f.lab.set_pair(f.index("cn"), f.index("cn_b"), up=True)
+    healed = w.last()["cn_loop"]
+    end = w.wait_for(lambda v: v["cn_loop"] >= healed + 100, 30, "a second more")
+    window = w.since(t0, end.t)
+    changed = len(took_lines(f.logs())) + len(stood_lines(f.logs())) - changes
+    f.landed()
+    gn = f.stop()
+    _commands_accepted(gn)
+    assert reigns(window) == {(term, commander)}, reigns(window)
+    assert changed == 0, took_lines(f.logs())[-3:]
+    landed = assert_flown_as_configured(w, f.logs(), f.csv)
+    driven = assert_one_term_per_loop(
+        f.mission, rec_root, last_term=w.last()["cn_term"], landed=landed
+    )
+    assert terms_between(driven, window[0]["cn_loop"], window[-1]["cn_loop"]) == {term}
 
 
 def test_the_commander_cut_from_everyone_is_replaced_and_stands_down_when_it_heals(
@@ -835,43 +753,40 @@ def test_the_commander_cut_from_everyone_is_replaced_and_stands_down_when_it_hea
     down. The flight lands as configured. The stood-down node is then the
     standby: the commander must report it ready."""
     f, w = mesh, mesh.w
-    with known_bugs_gate(f.logs):
-        at = _in_coast(f)
-        cut, term = at.v["cn_commander"], at.v["cn_term"]
-        new = other(cut)
-        before = len([x for x in stood_lines(f.log(cut)) if x.node == cut])
-        t0 = time.monotonic()
-        f.hosts[cut].link_down()
-        try:
-            w.wait_for(
-                lambda v: (v["cn_term"], v["cn_commander"]) == (term + 1, new), 30, "a new term"
-            )
-            time.sleep(max(0.0, CUT_S - (time.monotonic() - t0)))  # the cut lasts CUT_S
-        finally:
-            f.hosts[cut].link_up()
-        text = wait_log(
-            lambda: f.log(cut),
-            lambda t: len([x for x in stood_lines(t) if x.node == cut]) > before,
-            60,
-            f"{cut} standing down",
-        )
-        t_down = time.monotonic()
-        down = [x for x in stood_lines(text) if x.node == cut][before]
-        f.landed()
-        gn = f.stop()
-        _commands_accepted(gn)
-        assert down.term == term + 1, down
-        reign = after(w.since(at.t, t_down), lambda v: v["cn_term"] > term)
-        assert reigns(reign) == {(term + 1, new)}, reigns(reign)
-        took = [t for t in took_lines(f.logs()) if t.term == term + 1]
-        assert [t.node for t in took] == [new], took
-        landed = assert_flown_as_configured(w, f.logs(), f.csv)
-        driven = assert_one_term_per_loop(
-            f.mission, rec_root, last_term=w.last()["cn_term"], landed=landed
-        )
-        assert {term, term + 1} <= terms_between(driven, at.v["cn_loop"], landed)
-        assert_follows(f.mission, rec_root, cut, down.loop, landed)
-        announced_again(w, t_down, cut)
+    at = _in_coast(f)
+    cut, term = at.v["cn_commander"], at.v["cn_term"]
+    new = other(cut)
+    before = len([x for x in stood_lines(f.log(cut)) if x.node == cut])
+    t0 = time.monotonic()
+    f.hosts[cut].link_down()
+    try:
+        w.wait_for(lambda v: (v["cn_term"], v["cn_commander"]) == (term + 1, new), 30, "a new term")
+        time.sleep(max(0.0, CUT_S - (time.monotonic() - t0)))  # the cut lasts CUT_S
+    finally:
+        f.hosts[cut].link_up()
+    text = wait_log(
+        lambda: f.log(cut),
+        lambda t: len([x for x in stood_lines(t) if x.node == cut]) > before,
+        60,
+        f"{cut} standing down",
+    )
+    t_down = time.monotonic()
+    down = [x for x in stood_lines(text) if x.node == cut][before]
+    f.landed()
+    gn = f.stop()
+    _commands_accepted(gn)
+    assert down.term == term + 1, down
+    reign = after(w.since(at.t, t_down), lambda v: v["cn_term"] > term)
+    assert reigns(reign) == {(term + 1, new)}, reigns(reign)
+    took = [t for t in took_lines(f.logs()) if t.term == term + 1]
+    assert [t.node for t in took] == [new], took
+    landed = assert_flown_as_configured(w, f.logs(), f.csv)
+    driven = assert_one_term_per_loop(
+        f.mission, rec_root, last_term=w.last()["cn_term"], landed=landed
+    )
+    assert {term, term + 1} <= terms_between(driven, at.v["cn_loop"], landed)
+    assert_follows(f.mission, rec_root, cut, down.loop, landed)
+    announced_again(w, t_down, cut)
 
 
 def test_the_killed_commander_restarted_rejoins_as_the_standby(
@@ -883,29 +798,65 @@ def test_the_killed_commander_restarted_rejoins_as_the_standby(
     standby: the commander reports it ready again, and the term stays until
     a second after it follows; the flight lands as configured."""
     f, w = mesh, mesh.w
-    with known_bugs_gate(f.logs):
-        at = _in_coast(f)
-        dead, term = at.v["cn_commander"], at.v["cn_term"]
-        new = other(dead)
-        p = f.procs[dead]
-        p.kill()
-        p.wait()
-        w.wait_for(lambda v: (v["cn_term"], v["cn_commander"]) == (term + 1, new), 30, "a new term")
-        gone = w.wait_for(lambda v: not v["cn_standby_ready"], 30, "no standby")
-        f.spawn(dead)
-        back = w.wait_for(lambda v: bool(v["cn_standby_ready"]), 90, f"{dead} following")
-        wait_log(
-            lambda: f.log(dead), lambda t: f"{dead} follows as the standby" in t, 30, "following"
-        )
-        until = w.wait_for(lambda v: v["cn_loop"] >= back.v["cn_loop"] + 100, 30, "a second more")
-        f.landed()
-        gn = f.stop()
-        _commands_accepted(gn)
-        window = w.since(gone.t, until.t)
-        assert reigns(window) == {(term + 1, new)}, reigns(window)
-        assert all(v["cn_standby_ready"] for v in w.since(back.t, until.t))
-        landed = assert_flown_as_configured(w, f.logs(), f.csv)
-        driven = assert_one_term_per_loop(
-            f.mission, rec_root, last_term=w.last()["cn_term"], landed=landed
-        )
-        assert terms_between(driven, gone.v["cn_loop"], until.v["cn_loop"]) == {term + 1}
+    at = _in_coast(f)
+    dead, term = at.v["cn_commander"], at.v["cn_term"]
+    new = other(dead)
+    p = f.procs[dead]
+    p.kill()
+    p.wait()
+    w.wait_for(lambda v: (v["cn_term"], v["cn_commander"]) == (term + 1, new), 30, "a new term")
+    gone = w.wait_for(lambda v: not v["cn_standby_ready"], 30, "no standby")
+    f.spawn(dead)
+    back = w.wait_for(lambda v: bool(v["cn_standby_ready"]), 90, f"{dead} following")
+    wait_log(lambda: f.log(dead), lambda t: f"{dead} follows as the standby" in t, 30, "following")
+    until = w.wait_for(lambda v: v["cn_loop"] >= back.v["cn_loop"] + 100, 30, "a second more")
+    f.landed()
+    gn = f.stop()
+    _commands_accepted(gn)
+    window = w.since(gone.t, until.t)
+    assert reigns(window) == {(term + 1, new)}, reigns(window)
+    assert all(v["cn_standby_ready"] for v in w.since(back.t, until.t))
+    landed = assert_flown_as_configured(w, f.logs(), f.csv)
+    driven = assert_one_term_per_loop(
+        f.mission, rec_root, last_term=w.last()["cn_term"], landed=landed
+    )
+    assert terms_between(driven, gone.v["cn_loop"], until.v["cn_loop"]) == {term + 1}
+
+
+def test_the_standby_stopped_for_a_second_gets_the_mirrors_again(
+    mesh: MeshFlight, rec_root: Path
+) -> None:
+    """SIGSTOP of the standby for a second in COAST (until the commander sees
+    it gone: its lease ran out and the session between the two closed), then
+    SIGCONT: the case of eclipse-zenoh/zenoh#2806 while both control nodes
+    dialed each other. With one dialer per pair
+    (:func:`zplatform.transport.dial_ranks`: cn_b dials cn, never cn cn_b)
+    the session opens again one way, and the standby takes the commander's
+    mirrors again (its flight recorder, to the landing, with no gap longer
+    than :data:`STALE_LOOPS`), the commander reports it ready again, and
+    nothing changes who commands."""
+    f, w = mesh, mesh.w
+    at = _in_coast(f)
+    commander, term = at.v["cn_commander"], at.v["cn_term"]
+    standby = other(commander)
+    changes = len(took_lines(f.logs())) + len(stood_lines(f.logs()))
+    p = f.procs[standby]
+    t0 = time.monotonic()
+    p.send_signal(signal.SIGSTOP)
+    try:
+        gone = w.wait_for(lambda v: not v["cn_standby_ready"], 30, f"{standby} not ready")
+        time.sleep(max(0.0, 1.0 - (time.monotonic() - t0)))  # the stop lasts a second
+    finally:
+        p.send_signal(signal.SIGCONT)
+    back = w.wait_for(lambda v: bool(v["cn_standby_ready"]), 60, f"{standby} ready again")
+    f.landed()
+    gn = f.stop()
+    _commands_accepted(gn)
+    assert reigns(w.since(t0)) == {(term, commander)}, reigns(w.since(t0))
+    changed = len(took_lines(f.logs())) + len(stood_lines(f.logs())) - changes
+    assert changed == 0, took_lines(f.logs())[-3:]
+    flying = [v for v in w.since(back.t) if v["cn_state"] != "LANDED"]
+    assert all(v["cn_standby_ready"] for v in flying), "ready again, then not"
+    landed = assert_flown_as_configured(w, f.logs(), f.csv)
+    assert_one_term_per_loop(f.mission, rec_root, last_term=term, landed=landed)
+    assert_follows(f.mission, rec_root, standby, gone.v["cn_loop"], landed)

@@ -34,7 +34,7 @@ from zplatform.intake import ReplyCheck, TriggerIntake
 from zplatform.lockstep import sim_keys
 from zplatform.loop import ControlLogic, DeviceLogic
 from zplatform.mission import load_mission
-from zplatform.queries import ReplyCap, ask, replies
+from zplatform.queries import UNANSWERED_LOOPS, ReplyCap, Unanswered, ask, replies, set_fault
 from zplatform.sync import ControlSync, DeviceSync, ProbeSync
 from zplatform.transport import KeySpace
 
@@ -316,3 +316,153 @@ def test_a_peer_that_stops_reading_never_stalls_the_clock_thread(trio: Trio) -> 
         server.close()
     assert [stalled_names(m) for m in stalls] == []
     assert est.exchanges == 20 and link.timeouts == 0
+
+
+# ---------------------------------------------------------------- zenoh#2517: a lost route
+def test_unanswered_recovers_a_live_target_once_per_run_of_silent_loops() -> None:
+    w = Unanswered(2, after=3)
+    # Target 0 silent and alive: recover at the 3rd loop, then count afresh.
+    assert [w.observe(0, False, True) for _ in range(7)] == [
+        False, False, True, False, False, True, False,
+    ]  # fmt: skip
+    # Target 1 silent but not alive (dead, cut off): never a route to recover.
+    assert not any(w.observe(1, False, False) for _ in range(10))
+    # An answer or a lost token resets the run.
+    assert [w.observe(1, False, True), w.observe(1, True, True), w.observe(1, False, True)] == [
+        False, False, False,
+    ]  # fmt: skip
+    assert [w.observe(1, False, True), w.observe(1, False, False), w.observe(1, False, True)] == [
+        False, False, False,
+    ]  # fmt: skip
+    assert w.recoveries == [2, 0]
+    with pytest.raises(TransportError):
+        Unanswered(1, after=0)
+
+
+class LostRoute:
+    """zenoh#2517 as :func:`zplatform.queries.set_fault` plays it: once armed,
+    every query on ``key`` is lost until a querier on it is declared again."""
+
+    def __init__(self, key: str) -> None:
+        self.key = key
+        self.armed = False
+        self.redeclares = 0
+        self.lost_queries = 0
+
+    def lost(self, key_expr: str) -> bool:
+        if self.armed and key_expr == self.key:
+            self.lost_queries += 1
+            return True
+        return False
+
+    def redeclared(self, key_expr: str) -> None:
+        if key_expr == self.key and self.armed:
+            self.redeclares += 1
+            self.armed = False
+
+
+@pytest.mark.parametrize("alive", [True, False], ids=["dn-alive", "dn-gone"])
+def test_the_cn_recovers_a_live_dns_lost_query_route_and_is_answered_again(
+    trio: Trio, alive: bool
+) -> None:
+    """A live DN (its token present) whose triggers reach no queryable for
+    UNANSWERED_LOOPS loops in a row: the CN's sync declares its querier again,
+    once, says so (take_recoveries), and the DN's next trigger is answered.
+    A DN without a token (dead or cut off) is a lost node, not a lost route:
+    no recovery however long it stays silent."""
+    m = MINIMAL
+    sim = sim_keys(m)
+    cn = ControlLogic(m, keys=sim)
+    dn = DeviceLogic(m, "dn0", keys=sim)
+    now = iter(range(10**9, 20 * 10**9, 10**7)).__next__
+    ks = KeySpace(m.vehicle)
+    ds = DeviceSync(
+        trio.genuine, ks, "dn0", now, intake=TriggerIntake(m, "dn0", channel(sim, "cn_to_dn0"))
+    )
+    token = trio.genuine.liveliness().declare_token(ks.alive("dn0")) if alive else None
+    trio.ready()  # the asker has the DN's queryable and token
+    fault = LostRoute(ks.dn_to_cn("dn0"))
+    set_fault(fault)
+    cs = ControlSync(
+        trio.asker,
+        ks,
+        ["dn0"],
+        20_000_000,  # the lost loops each wait out this deadline
+        5.0,
+        checks=[ReplyCheck(m, "dn0", channel(sim, "dn0_to_cn"))],
+    )
+    loop = 0
+
+    def one_loop(serve: bool) -> None:
+        nonlocal loop
+        loop += 1
+        served = threading.Thread(target=ds.wait, args=(dn, 10.0)) if serve else None
+        if served is not None:
+            served.start()
+        cs.sync(cn.begin(loop, 10**9 + loop * 10**7), cn)
+        if served is not None:
+            served.join()
+
+    try:
+        one_loop(serve=True)  # the route works: answered
+        assert cn.pending == 0
+        fault.armed = True  # from now on zenoh has no route to dn0's queryable
+        recovered: list[tuple[str, int]] = []
+        for _ in range(6 * UNANSWERED_LOOPS):  # a bound in loops, not in time
+            one_loop(serve=False)
+            cs.take_recoveries(recovered)
+            if recovered:
+                break
+        if not alive:
+            assert (recovered, fault.redeclares, cs.unanswered.recoveries) == ([], 0, [0])
+            assert fault.lost_queries == 6 * UNANSWERED_LOOPS
+            return
+        assert recovered == [("dn0", 1)]
+        assert fault.redeclares == 1 and cs.unanswered.recoveries == [1]
+        assert UNANSWERED_LOOPS <= fault.lost_queries < 6 * UNANSWERED_LOOPS
+        one_loop(serve=True)  # the querier declared again: the DN answers
+        assert cn.pending == 0
+    finally:
+        set_fault(None)
+        cs.close()
+        ds.close()
+        if token is not None:
+            token.undeclare()
+
+
+def test_a_dn_that_answers_only_late_is_not_a_lost_route(trio: Trio) -> None:
+    """Replies that come after the sync's deadline (a busy host) are replies:
+    a live DN answering every trigger late gets no recovery, however long."""
+    m = MINIMAL
+    sim = sim_keys(m)
+    cn = ControlLogic(m, keys=sim)
+    dn = DeviceLogic(m, "dn0", keys=sim)
+    now = iter(range(10**9, 20 * 10**9, 10**7)).__next__
+    ks = KeySpace(m.vehicle)
+    ds = DeviceSync(
+        trio.genuine, ks, "dn0", now, intake=TriggerIntake(m, "dn0", channel(sim, "cn_to_dn0"))
+    )
+    token = trio.genuine.liveliness().declare_token(ks.alive("dn0"))
+    trio.ready()
+    cs = ControlSync(
+        trio.asker,
+        ks,
+        ["dn0"],
+        1,  # the deadline passes before any reply can come: every reply is late
+        5.0,
+        checks=[ReplyCheck(m, "dn0", channel(sim, "dn0_to_cn"))],
+    )
+    try:
+        for loop in range(1, 3 * UNANSWERED_LOOPS + 1):
+            served = threading.Thread(target=ds.wait, args=(dn, 10.0))
+            served.start()
+            cs.sync(cn.begin(loop, 10**9 + loop * 10**7), cn)
+            served.join()
+            assert cs._q.get(timeout=10.0)[0] == 0  # the late reply, taken by zenoh's thread
+        recovered: list[tuple[str, int]] = []
+        cs.take_recoveries(recovered)
+        assert (recovered, cs.unanswered.recoveries) == ([], [0])
+    finally:
+        cs.close()
+        ds.close()
+        token.undeclare()

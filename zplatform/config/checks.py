@@ -309,6 +309,17 @@ def _check_mission(m: Mission) -> None:
             where = f"$.nodes.{name}.connect[{i}]"
             _check_endpoint(ep, where)
             node.connect[i] = _link_endpoint(ep, mtls, why, where)
+    # One dialer per pair (zplatform.transport.dial_ranks): two nodes that
+    # dial each other can leave their zenoh session split after a stall.
+    for name, node in m.nodes.items():
+        for i, ep in enumerate(node.connect):
+            peer = seen.get(ep)
+            if peer is not None and peer != name and set(m.nodes[peer].connect) & set(node.listen):
+                raise ConfigError(
+                    f"{name} and {peer} connect to each other: let one of them connect to the "
+                    "other, never both ways (a split zenoh session, eclipse-zenoh/zenoh#2806)",
+                    f"$.nodes.{name}.connect[{i}]",
+                )
     if m.sync_timeout_ms * 1e6 >= m.period_ns:
         raise ConfigError(
             f"sync_timeout_ms {m.sync_timeout_ms} must be shorter than the loop period "

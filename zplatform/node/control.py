@@ -48,6 +48,7 @@ from ..intake import CnRefusals, MirrorIntake, RefusalLog, ReplyCheck, RequestIn
 from ..loop import ControlLogic
 from ..messages import wildcard_sync_for
 from ..params import ParamSaver, params_path, read_params_file
+from ..queries import UNANSWERED_LOOPS
 from ..recorder import FlightRecorder, RecorderReader, open_recorder, recorder_dir, summary_line
 from ..recorder.server import RecorderServer
 from ..replay_recording import Recorder
@@ -166,6 +167,11 @@ class ControlNode:
         self._taken: list[tuple[None, bytes]] = []
         self._seen_dropped = 0
         self._refused = CnRefusals()
+        # Queriers the sync declared again (a live DN unanswered, zenoh#2517).
+        self._recoveries: list[tuple[str, int]] = []
+        self._recovered_dns: dict[str, int] = {}
+        self._recovery_log = RefusalLog(1)
+        self._recovery_unsent = False
         self._grounds: list[bytes] = []
         self._gsub: zenoh.Subscriber[Any] | None = None
         if not self.redundant:  # a redundant mission's commander opens it to command
@@ -610,6 +616,7 @@ class ControlNode:
         )
         standby = ready if self.redundant else None
         overrun = self.sync.sync(logic.begin(loop, t, final=final, standby=standby), logic)
+        self._query_recoveries(t)
         grounds = self._grounds
         grounds.clear()
         taken = self._taken
@@ -831,6 +838,29 @@ class ControlNode:
             self.watchdog.stroke(self._mono(), now)
         self._events.flush()
         return not self.stop.is_set()
+
+    def _query_recoveries(self, t_ns: int) -> None:
+        """The device nodes whose querier the sync declared again this loop
+        (zplatform.queries.Unanswered), evented at most once a second."""
+        got = self._recoveries
+        self.sync.take_recoveries(got)
+        if not got and not self._recovery_unsent:
+            return  # every loop but a recovering one: nothing allocated
+        for dn, total in got:
+            self._recovered_dns[dn] = total
+        ev = self._recovery_log.add(t_ns, len(got))
+        got.clear()
+        self._recovery_unsent = ev is None
+        if ev is not None:
+            self.logic.events.emit(
+                EV.QUERY_RECOVERED,
+                t_ns,
+                node=self.name,
+                dns=", ".join(sorted(self._recovered_dns)),
+                n=ev[0],
+                total=sum(self._recovered_dns.values()),
+                loops=UNANSWERED_LOOPS,
+            )
 
     def _take_refusals(self) -> CnRefusals:
         """What the intakes refused since the last loop (an input of the loop)."""
