@@ -1,29 +1,18 @@
 """Every zenoh query zplatform sends goes through :func:`ask`.
 
-A query is a door a hostile peer can stand behind: asked the way zenoh does
-by default, it is held open by a silent peer, captured by an impostor (a
-queryable declared ``complete`` takes a ``BEST_MATCHING`` query) or made to
-block. :func:`ask` closes those doors in one place: target ALL (the caller
-takes only the answers that check: tag, nonce, replier), no consolidation,
-an explicit finite timeout after which zenoh finalises the query however the
-repliers behave, congestion control DROP (a stalled link drops the query
-instead of blocking; replies take its QoS), and a callback handler only
-(:func:`replies`, ``indirect=False``) that hands each reply off, on zenoh's
-thread, into a bounded :class:`~zplatform.handoff.Mailbox`.
+A query is a door a hostile peer can stand behind: asked zenoh's default
+way it is held open by a silent peer, captured by an impostor (a queryable
+declared ``complete`` takes a ``BEST_MATCHING`` query) or made to block.
+:func:`ask` closes those doors in one place: target ALL (the caller takes
+only answers that check: tag, nonce, replier), no consolidation, a finite
+timeout, congestion control DROP, and a callback that hands each reply off
+on zenoh's thread into a bounded :class:`~zplatform.handoff.Mailbox`.
 
 Contract: :func:`ask` returns at once and never blocks; the asking thread
-waits on its mailbox with its own deadline, so it never waits longer than it
-chooses. The one liveliness get (:meth:`~zplatform.ground.link.GroundLink.alive_nodes`)
-uses the same callback and deadline.
-
-A query a live peer's queryable leaves unanswered loop after loop (zenoh
-lost its route to that queryable while another peer's session closed,
-eclipse-zenoh/zenoh#2517) is noticed by :class:`Unanswered` and recovered
-by declaring the asker's querier on the key again (:func:`declare_querier`:
-zenoh then asks its peers for the key's queryables, and they declare them
-to it again).
-
-Why each option, as measured: docs/architecture.md#zenoh.
+waits on its mailbox with its own deadline. A query a live peer's queryable
+leaves unanswered loop after loop (zenoh lost the route, eclipse-zenoh/zenoh#2517)
+is noticed by :class:`Unanswered` and recovered by declaring the querier
+again (:func:`declare_querier`). Why each option: docs/architecture.md#zenoh.
 """
 
 from __future__ import annotations

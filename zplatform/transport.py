@@ -1,29 +1,21 @@
 """Zenoh transport: session config, the key space, readiness, event publishing.
 
-Every node is a zenoh *peer*. Its ``zenoh.Config`` is built here from the
-mission alone (listen and connect endpoints, scouting, lease, low latency,
-shared memory), so the same file runs on one host with loopback endpoints or
-across hosts with real addresses. A tool that is no mission node (``tap``,
-``cmd``, ``log``) listens nowhere and connects to *every* node's endpoints:
-zenoh peers do not forward for each other. TLS and access control
-come from the deployment (:mod:`zplatform.deploy`), which :class:`NodeSession`
-finds itself: no verb opens an mTLS mission's session without one.
+Every node is a zenoh *peer*; its ``zenoh.Config`` is built here from the
+mission alone (endpoints, scouting, lease, low latency, shared memory), so
+one file runs on one host or across hosts. A tool (``tap``, ``cmd``, ``log``)
+listens nowhere and connects to every node. TLS and access control come
+from the deployment (:mod:`zplatform.deploy`). One dialer per pair: zenoh
+ids are ordered by the connect lists (:func:`dial_ranks`, :func:`zid_for`),
+a node dials every node below it and scouting autoconnects only to a lower
+id, so no two nodes dial each other (eclipse-zenoh/zenoh#2806).
 
-One dialer per pair: each node's zenoh id is ordered by its place in the
-connect lists (:func:`dial_ranks`), a node dials every node below it
-(:func:`dial_below`, with scouting on) and scouting autoconnects only to a
-lower id, so no two nodes dial each other (a split session after a stall,
-eclipse-zenoh/zenoh#2806).
-
-Contract: :func:`zenoh_config` is pure but for the random part of the
-node's zenoh id (:func:`zid_for`); opening a :class:`NodeSession` blocks
-on zenoh and raises :class:`~zplatform.errors.TransportError` (or a deployment
-error) when it cannot; its close waits at most :data:`SESSION_CLOSE_S`.
-Readiness is explicit: each node declares a liveliness token on
-``{vehicle}/{node}/alive`` and :func:`wait_for_nodes` blocks on a liveliness
-subscriber until the wanted nodes are alive (TransportError naming the
-missing ones at its timeout): nobody sleeps to wait for a peer.
-:class:`EventPublisher` puts any node's events. See docs/architecture.md#zenoh.
+Contract: :func:`zenoh_config` is pure but for the random part of the zenoh
+id; opening a :class:`NodeSession` blocks on zenoh and raises
+:class:`~zplatform.errors.TransportError` (or a deployment error) when it
+cannot; its close waits at most :data:`SESSION_CLOSE_S`. Readiness is
+explicit: liveliness tokens on ``{vehicle}/{node}/alive`` and
+:func:`wait_for_nodes` (TransportError naming the missing ones at its
+timeout). :class:`EventPublisher` puts any node's events. docs/architecture.md#zenoh.
 """
 
 from __future__ import annotations
