@@ -57,7 +57,9 @@ Modes:
   as any peer subscribes) or given on stdin (``--frames-stdin``: one line
   ``frames HEX...``, as for ``cmd-replay``); junk only without either.
   Gets and puts use congestion control BLOCK: every frame sent reaches the
-  node, so the node's refusal counter can be held to it exactly.
+  node, so the node's refusal counter can be held to it exactly. The JSON
+  line adds ``genuine`` (frames captured) and ``right_size`` (frames sent
+  of exactly ``--size`` bytes).
 
 Protocol: prints ``ready`` once connected and armed (replay modes: once it
 captured what it replays; reply modes: once the CN's queries reach its
@@ -244,6 +246,7 @@ def main(argv: list[str] | None = None) -> int:
     cleanup: list[Any] = []
     k = [0]
     answered = [0]  # query modes: replies (or error replies) the DN sent back
+    right_size = [0]  # key modes: frames sent of exactly --size bytes
     kind, _, what = a.mode.partition("-")
     if kind == "query":
         payloads = []
@@ -363,6 +366,7 @@ def main(argv: list[str] | None = None) -> int:
         # Junk and genuine frames alternately, as many of each (a frame
         # replayed many times over is refused each time as stale).
         payloads = _mix(junk, (genuine * len(junk))[: len(junk)] if genuine else [])
+        right = [len(x) == a.size for x in payloads]
         block = zenoh.CongestionControl.BLOCK
         if what == "get":
 
@@ -376,6 +380,7 @@ def main(argv: list[str] | None = None) -> int:
 
             def send() -> None:
                 k[0] += 1
+                right_size[0] += right[k[0] % len(payloads)]
                 session.get(
                     key,
                     key_handler,
@@ -390,6 +395,7 @@ def main(argv: list[str] | None = None) -> int:
 
             def send() -> None:
                 k[0] += 1
+                right_size[0] += right[k[0] % len(payloads)]
                 key_pub.put(payloads[k[0] % len(payloads)])
 
         else:  # answer: a rogue queryable, answering the newest query
@@ -400,6 +406,7 @@ def main(argv: list[str] | None = None) -> int:
 
             def send() -> None:
                 k[0] += 1
+                right_size[0] += right[k[0] % len(payloads)]
                 key_rogue.reply(payloads[k[0] % len(payloads)])
 
     else:  # cmd-replay: the frames come on stdin, captured on the wire
@@ -434,6 +441,7 @@ def main(argv: list[str] | None = None) -> int:
         result["answered"] = answered[0]
     if kind == "key":
         result["genuine"] = len(genuine)
+        result["right_size"] = right_size[0]
     print(json.dumps(result))
     return 0
 

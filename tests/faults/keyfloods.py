@@ -104,6 +104,54 @@ NOT_FLOODED: dict[tuple[str, str], str] = {
 """(row, frame kind) taken by no flood here, and why (``test_keyfloods.py``
 checks every other one of a shipped mission has a flood)."""
 
+LAST = ("clock", "recorder")
+"""Rows flooded last in a flight: the commander serves them itself, and a
+flood of them can stall its loop (:data:`KNOWN_DEFECTS`), which must not
+change the floods that follow (a takeover makes the standby the commander)."""
+
+KNOWN_DEFECTS: dict[str, tuple[str, str]] = {
+    "ground_peer_memory": (
+        r"(events\[[^\]]+\]|telemetry)_gn_memory_flat",
+        "the ground node keeps about 19 MB of native memory (zenoh's, the Python heap "
+        "stays flat; MALLOC_ARENA_MAX=1 alike) per peer session that floods it, after "
+        "the peer has gone",
+    ),
+    "commander_service_flood": (
+        r"(clock\[[^\]]+\]|recorder)_(no_dn_safed|no_takeover|flight_goes_on|no_fault)",
+        "a keyless query flood on a key the commander serves itself (its clock, its "
+        "recorder: 170-250 us of its CPU per query, under its GIL) can stall its loop "
+        "past the device nodes' watchdog: both safe, and the standby takes over",
+    ),
+}
+"""Defects the suite found and reports (not fixed here), by the checks they
+fail (a regular expression on the check's name): ``test_keyfloods.py``
+turns a run whose every failure is one of them into an xfail naming them.
+The whole flight's checks (``flight_*``, ``final_state_as_configured``)
+count as the commander's when one of its service floods failed."""
+
+
+def known_failures(r: CaseResult) -> tuple[list[str], list[str]]:
+    """(failures no known defect explains, the known defects that explain
+    the others) of a flight's result."""
+    import re
+
+    failed = [n for n, ok, _ in r.checks if not ok]
+    hit: set[str] = set()
+    unknown: list[str] = []
+    for n in failed:
+        for name, (rx, _) in KNOWN_DEFECTS.items():
+            if re.fullmatch(rx, n):
+                hit.add(name)
+                break
+        else:
+            unknown.append(n)
+    if "commander_service_flood" in hit:
+        unknown = [
+            n for n in unknown if not (n.startswith("flight_") or n == "final_state_as_configured")
+        ]
+    return [f for f in r.failures() if f.split(":")[0] in unknown], sorted(hit)
+
+
 _CLASS = {"query": "query", "sample": "sample", "reply": "reply"}
 _MODE = {"query": "key-get", "sample": "key-put", "reply": "key-answer"}
 
@@ -120,7 +168,10 @@ class Flood:
     count: at least ``sent``); ``size`` the row's longest frame;
     ``capture`` where the genuine frames replayed come from (a key;
     ``wiretap``: the operator's frames on the wire; None: junk only);
-    ``answers``: the intake may answer a refused query (with an error)."""
+    ``answers``: the intake may answer a refused query (with an error);
+    ``of``: what an exact count equals, ``sent`` or ``right_size`` (the
+    frames of exactly ``size`` bytes: a request of another size is a bad
+    frame, not a reject)."""
 
     id: str
     row: str
@@ -133,6 +184,7 @@ class Flood:
     capture: str | None
     note: str = ""
     answers: bool = False
+    of: str = "sent"
 
     @property
     def cls(self) -> str:
@@ -171,6 +223,7 @@ def _flood(m: Mission, k: ExpandedKey, f: KeyFrames) -> Flood:
     capture: str | None = None
     note = ""
     answers = False
+    of = "sent"
     row = k.row.name
     if row == "dn_to_cn" and f.kind == "query":
         counter, exact, capture = f"{p['dn']}_bad_frames", True, f"{v}/cn/to_{p['dn']}"
@@ -182,7 +235,7 @@ def _flood(m: Mission, k: ExpandedKey, f: KeyFrames) -> Flood:
     elif row == "gn_to_cn":
         # A request of a wrong size is a bad frame; of the right size, a
         # bad tag or a replay is a reject (zplatform.loop: ControlLogic._refused).
-        counter, exact, capture = "cn_cmd_rejects+cn_bad_frames", True, "wiretap"
+        counter, exact, capture, of = "cn_cmd_rejects", True, "wiretap", "right_size"
     elif row == "telemetry":
         counter, capture = "gn:telemetry_bad", k.key
         note = "the ground's summary, read once at the end (the flood's frames and no other)"
@@ -211,6 +264,7 @@ def _flood(m: Mission, k: ExpandedKey, f: KeyFrames) -> Flood:
         capture,
         note,
         answers,
+        of,
     )
 
 
@@ -241,6 +295,7 @@ def flood_plan(m: Mission, rows: Iterable[KeyRow] = KEYSPACE) -> tuple[list[Floo
                 continue
             seen[(k.key, f.kind)] = tag
             floods.append(_flood(m, k, f))
+    floods.sort(key=lambda fl: fl.row in LAST)  # stable: table order otherwise
     return floods, skipped
 
 
@@ -265,24 +320,40 @@ def _nodes(m: Mission) -> list[str]:
     return [*m.device_nodes, *m.control_nodes]
 
 
-def _intact(r: CaseResult, c: Live, going: tuple[str, ...], after: str, term: Any) -> None:
-    """The flight as configured so far: in one of the states ``going``, no
-    fault, no DN safed, and (``term``: with a standby) no takeover."""
+@dataclass
+class _Seen:
+    """What the flight showed up to a check: events read, DNs safed, the
+    term in command (with a standby)."""
+
+    events: int = 0
+    safed: frozenset[str] = frozenset()
+    term: tuple[int, str] | None = None
+
+
+def _seen(c: Live) -> _Seen:
+    term = None
+    if c.mission.standby is not None:
+        term = int(c.tm.get("cn_term")), c.tm.get_name("cn_commander")
+    safed = frozenset(dn for dn in c.mission.device_nodes if int(c.tm.get(f"{dn}_safed")))
+    return _Seen(len(c.drain_events()), safed, term)
+
+
+def _intact(r: CaseResult, c: Live, going: tuple[str, ...], after: str, since: _Seen) -> _Seen:
+    """The flight as configured since ``since``: in one of the states
+    ``going``, no fault, no DN safed (event or telemetry), no takeover
+    (``cn_term``, ``cn_commander``). Returns what it saw, for the next
+    check: each flood answers for what happened during it."""
     state, fault = c.now("cn_state"), c.now("cn_fault")
     r.check(f"{after}_flight_goes_on", state in going, state)
     r.check(f"{after}_no_fault", fault == "NONE", fault)
-    safed = [e["text"] for _, e in c.drain_events() if e["id"] == "dn_safed"]
-    safed += [dn for dn in c.mission.device_nodes if int(c.tm.get(f"{dn}_safed"))]
+    now = _seen(c)
+    events = c.drain_events()[since.events :]
+    safed = [e["text"] for _, e in events if e["id"] == "dn_safed"]
+    safed += sorted(now.safed - since.safed)
     r.check(f"{after}_no_dn_safed", not safed, safed[:3])
-    if term is not None:
-        now = (int(c.tm.get("cn_term")), c.tm.get_name("cn_commander"))
-        r.check(f"{after}_no_takeover", now == term, (term, now))
-
-
-def _term(c: Live) -> tuple[int, str] | None:
-    if c.mission.standby is None:
-        return None
-    return int(c.tm.get("cn_term")), c.tm.get_name("cn_commander")
+    if since.term is not None:
+        r.check(f"{after}_no_takeover", now.term == since.term, (since.term, now.term))
+    return now
 
 
 def _count(c: Live, counter: str) -> int:
@@ -347,7 +418,9 @@ def _run_flood(
         r.check(f"{name}_{n}_memory_flat", g <= RSS_MARGIN_MB, (g, w["rss_mb"][n]))
     if counted is not None:
         if fl.exact:
-            r.check(f"{name}_every_frame_counted_exactly", counted == sent, (counted, sent))
+            due = int(res[fl.of]) if fl.of != "sent" else sent
+            fig["due"] = due
+            r.check(f"{name}_every_frame_counted_exactly", counted == due, (counted, due, sent))
         else:
             r.check(f"{name}_every_frame_counted", 0 < counted <= sent, (counted, sent))
     r.check(f"{name}_events_once_a_second", events <= (m1.t - m0.t) + 2, events)
@@ -422,7 +495,7 @@ def case_keyfloods(
             if launch:
                 c.wait_for(lambda dv: dv.get_name("cn_state") != "SAFE", 30, "ARMED")
             r.check("operator_frames_captured", len(tap.frames) >= 1, len(tap.frames))
-            term = _term(c)
+            start = seen = _seen(c)
             going = _GOING[mission] if launch else ("SAFE",)
             names = ["gn", *_nodes(c.mission)]
             procs = {n: psutil.Process(c.procs[n].pid) for n in names}
@@ -436,7 +509,7 @@ def case_keyfloods(
                 a.expect("ready")
                 _run_flood(r, c, fl, a, ref, procs)
                 a.close()
-                _intact(r, c, going, fl.id, term)
+                seen = _intact(r, c, going, fl.id, seen)
             if launch:
                 end = _END[mission]
                 c.wait_for(
@@ -444,7 +517,7 @@ def case_keyfloods(
                     120,
                     "the flight's end",
                 )
-            _intact(r, c, going, "flight", term)
+            _intact(r, c, going, "flight", start)
             _check_in_order(r, [s.v for s in c.snaps])
             final = f"{c.now('cn_state')}/{c.now('cn_fault')}"
             want = f"{_END[mission] if launch else 'SAFE'}/NONE"

@@ -5,7 +5,9 @@
   and the floods are what the rows say (victim, counter, size);
 * ``-m slow``: every flood of each mission, 2 s at 6,000 frames/s each, in
   one flight per mission, the nodes as configured (SCHED_FIFO where the
-  user may) and without real-time priority;
+  user may) and without real-time priority; a flight whose every failed
+  check is a defect this suite found and reports (``KNOWN_DEFECTS``) is an
+  xfail naming it;
 * the default suite: one flood per class (query key, sample key, reply
   path) of recovery_igniter, 1 s each, with its nodes on the pad.
 """
@@ -19,10 +21,12 @@ import pytest
 
 from tests.faults.keyfloods import (
     CLASSES,
+    KNOWN_DEFECTS,
     MISSIONS,
     NOT_FLOODED,
     case_keyfloods,
     flood_plan,
+    known_failures,
     representatives,
 )
 from zplatform.keyspace import KEYSPACE, KeyFrames, KeyRow, expand_keys
@@ -67,7 +71,7 @@ def test_the_plan_follows_the_rows() -> None:
             "reply",
         )
         assert by_id[f"probe[{dn}]"].counter == f"{dn}_bad_frames"
-    assert by_id["gn_to_cn"].counter == "cn_cmd_rejects+cn_bad_frames"
+    assert (by_id["gn_to_cn"].counter, by_id["gn_to_cn"].of) == ("cn_cmd_rejects", "right_size")
     assert by_id["gn_to_cn"].capture == "wiretap"
     assert by_id["mirror"].victim == "cn_b"
     assert by_id["telemetry"].victim == "gn"
@@ -123,4 +127,22 @@ def test_one_flood_per_class_on_the_pad(tmp_path: Path) -> None:
 def test_every_flood_in_one_flight(mission: str, realtime: bool, tmp_path: Path) -> None:
     r = case_keyfloods(tmp_path, True, mission, realtime=realtime)
     print(r.case, json.dumps(r.figures, default=str))
-    assert r.ok, f"{r.case}: {r.failures()} figures={r.figures}"
+    unknown, known = known_failures(r)
+    assert not unknown, f"{r.case}: {unknown} figures={r.figures}"
+    if known:  # found by this suite and reported (KNOWN_DEFECTS), not fixed yet
+        pytest.xfail("; ".join(f"{k}: {KNOWN_DEFECTS[k][1]}" for k in known))
+
+
+def test_known_defects_explain_only_their_checks() -> None:
+    from tests.faults.live import CaseResult
+
+    r = CaseResult("x")
+    r.check("events[cn]_gn_memory_flat", False, 19.3)
+    r.check("dn_to_cn[dn0]_cn_memory_flat", True)
+    assert known_failures(r) == ([], ["ground_peer_memory"])
+    r.check("flight_no_takeover", False)  # no service flood failed: unexplained
+    assert known_failures(r)[0] == ["flight_no_takeover: "]
+    r.check("clock[dn0]_no_takeover", False)
+    assert known_failures(r) == ([], ["commander_service_flood", "ground_peer_memory"])
+    r.check("dn_to_cn[dn0]_every_frame_counted_exactly", False)
+    assert len(known_failures(r)[0]) == 1
