@@ -61,17 +61,18 @@ def test_the_plan_follows_the_rows() -> None:
     assert len(by_id) == len(floods)
     for dn in ("dn0", "dn1"):
         q = by_id[f"dn_to_cn[{dn}]"]
-        assert (q.victim, q.counter, q.exact) == (dn, f"{dn}_bad_frames", True)
+        assert (q.victim, q.counter, q.count) == (dn, f"{dn}_bad_frames", "exact")
         assert q.capture == f"rocket/cn/to_{dn}"
         rep = by_id[f"dn_to_cn[{dn}]/reply"]
-        assert (rep.victim, rep.counter, rep.exact, rep.cls) == (
+        assert (rep.victim, rep.counter, rep.count, rep.cls) == (
             "cn",
             "cn_bad_frames",
-            False,
+            "at_most",
             "reply",
         )
         assert by_id[f"probe[{dn}]"].counter == f"{dn}_bad_frames"
-    assert (by_id["gn_to_cn"].counter, by_id["gn_to_cn"].of) == ("cn_cmd_rejects", "right_size")
+    gn = by_id["gn_to_cn"]
+    assert (gn.counter, gn.count) == ("cn_cmd_rejects+cn_bad_frames", "at_least")
     assert by_id["gn_to_cn"].capture == "wiretap"
     assert by_id["mirror"].victim == "cn_b"
     assert by_id["telemetry"].victim == "gn"
