@@ -287,6 +287,7 @@ def main(argv: list[str] | None = None) -> None:
         help="keep the result file's other cases (and its machine block): replace only "
         "the cases run, and note the run in params.runs",
     )
+    p.add_argument("--note", help="a line on the run's conditions, kept in params.runs")
     args = p.parse_args(argv)
     t_run = time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())
     load0 = os.getloadavg()
@@ -367,6 +368,7 @@ def main(argv: list[str] | None = None) -> None:
         "loadavg_before": [round(x, 2) for x in load0],
         "loadavg_after": [round(x, 2) for x in os.getloadavg()],
         "machine": machine_info(),
+        **({"note": args.note} if args.note else {}),
     }
     if old:
         prev = (old.get("params") or {}).get("runs")
