@@ -60,15 +60,17 @@ Blocks for about 2 minutes (``--quick``: a bit less). Run it under ``flock
 from __future__ import annotations
 
 import importlib
+import json
 import os
 import secrets
+import statistics
 import tempfile
 import time
 import traceback
 from pathlib import Path
 from typing import Any
 
-from .common import bench_argparser, write_result
+from .common import RESULTS_DIR, bench_argparser, machine_info, write_result
 
 TARGET_DETECT_MS = 500.0
 FLOOD_CASES = ("floods_in_flight", "floods_in_flight_no_realtime", "restart_beside_rogue")
@@ -92,6 +94,7 @@ def run_cases(quick: bool, only: list[str] | None = None) -> dict[str, dict[str,
         **importlib.import_module("tests.faults.live").CASES,
         **{k: floods[k] for k in FLOOD_CASES},
         **importlib.import_module("tests.faults.decl_flood").CASES,
+        **importlib.import_module("tests.faults.keyfloods").CASES,
     }
 
     out: dict[str, dict[str, Any]] = {}
@@ -175,6 +178,99 @@ def flood_rows(variants: dict[str, dict[str, Any]]) -> list[dict[str, Any]]:
     return rows
 
 
+def keyflood_rows(variants: dict[str, dict[str, Any]]) -> list[dict[str, Any]]:
+    """One row per generated flood (``tests/faults/keyfloods.py``) and
+    channel: for each mission and key space row, the CPU the node under
+    attack spent per frame beyond its reference and the misses the flood
+    added per 1,000 frames/s, nodes as configured (``rt``) and without
+    real-time priority (``no_rt``)."""
+    kf = importlib.import_module("tests.faults.keyfloods")
+    rows: dict[tuple[str, str], dict[str, Any]] = {}
+    for mission in kf.MISSIONS:
+        for rt, tag in ((True, "rt"), (False, "no_rt")):
+            v = variants.get(kf._name(mission, rt)) or {}
+            for fid in v.get("plan") or []:
+                f = v.get(fid)
+                if not isinstance(f, dict):
+                    continue
+                row = rows.setdefault(
+                    (mission, fid),
+                    {
+                        "mission": mission,
+                        "flood": fid,
+                        "class": f.get("class"),
+                        "victim": f.get("victim"),
+                        "counter": f.get("counter"),
+                    },
+                )
+                row[f"rate_hz_{tag}"] = f.get("rate_hz")
+                row[f"counted_{tag}"] = f"{_v(f.get('counted'))}/{f.get('sent')}"
+                row[f"cpu_us_per_frame_{tag}"] = f.get("cpu_us_per_frame")
+                row[f"misses_added_per_khz_{tag}"] = f.get("misses_added_per_khz")
+                row[f"rss_growth_mb_max_{tag}"] = max((f.get("rss_growth_mb") or {"-": 0}).values())
+    cols = [
+        f"{k}_{t}"
+        for k in ("rate_hz", "counted", "cpu_us_per_frame", "misses_added_per_khz")
+        for t in ("rt", "no_rt")
+    ] + ["rss_growth_mb_max_rt", "rss_growth_mb_max_no_rt"]
+    return [{**r, **{c: r.get(c) for c in cols}} for r in rows.values()]
+
+
+def keyflood_medians(rows: list[dict[str, Any]]) -> dict[str, Any]:
+    """Per mission and scheduling, the median over the floods (channels) of
+    the CPU per frame and of the misses added per 1,000 frames/s."""
+    out: dict[str, Any] = {}
+    for mission in sorted({r["mission"] for r in rows}):
+        for tag in ("rt", "no_rt"):
+            mine = [r for r in rows if r["mission"] == mission]
+            cpu = [r[f"cpu_us_per_frame_{tag}"] for r in mine]
+            miss = [r[f"misses_added_per_khz_{tag}"] for r in mine]
+            cpu = [x for x in cpu if x is not None]
+            miss = [x for x in miss if x is not None]
+            if cpu:
+                out[f"{mission}_{tag}"] = {
+                    "floods": len(cpu),
+                    "cpu_us_per_frame_median": round(statistics.median(cpu), 2),
+                    "misses_added_per_khz_median": round(statistics.median(miss), 7),
+                    "misses_added_per_khz_max": max(miss),
+                    "floods_meeting_target": sum(x < _target_khz() for x in miss),
+                }
+    return out
+
+
+def _target_khz() -> float:
+    return float(importlib.import_module("tests.faults.floods").TARGET_MISSES_PER_KHZ)
+
+
+def declaration_rows(variants: dict[str, dict[str, Any]]) -> list[dict[str, Any]]:
+    """The declaration flood (``tests/faults/decl_flood.py``): one row per
+    transport and attack, the CPU it added to the busiest node (per cent of
+    a core) and the misses it added per loop."""
+    v = variants.get("declaration_flood") or {}
+    rows = []
+    for transport, fig in v.items():
+        if not isinstance(fig, dict) or "reference" not in fig:
+            continue
+        for attack, w in fig.items():
+            if not isinstance(w, dict) or "sent" not in w:
+                continue
+            added = w.get("cpu_pct_added") or {}
+            top = max(added, key=lambda n: added[n]) if added else None
+            rows.append(
+                {
+                    "transport": transport,
+                    "attack": attack,
+                    "rate_hz": w.get("rate_hz"),
+                    "sent": w.get("sent"),
+                    "cpu_pct_added_max": None if top is None else f"{added[top]} ({top})",
+                    "misses_added_per_loop": w.get("misses_added_per_loop"),
+                    "dn_safed": w.get("dn_safed"),
+                    "final_state": fig.get("final_state"),
+                }
+            )
+    return rows
+
+
 def flood_markdown(rows: list[dict[str, Any]]) -> str:
     """The flood rows as a Markdown table, headed by their keys."""
     lines = ["| " + " | ".join(rows[0]) + " |", "|" + "---|" * len(rows[0])]
@@ -185,8 +281,22 @@ def flood_markdown(rows: list[dict[str, Any]]) -> str:
 def main(argv: list[str] | None = None) -> None:
     p = bench_argparser(__doc__.splitlines()[0] if __doc__ else "faults")
     p.add_argument("--case", action="append", help="run only this case (repeatable)")
+    p.add_argument(
+        "--merge",
+        action="store_true",
+        help="keep the result file's other cases (and its machine block): replace only "
+        "the cases run, and note the run in params.runs",
+    )
+    p.add_argument("--note", help="a line on the run's conditions, kept in params.runs")
     args = p.parse_args(argv)
-    variants = run_cases(args.quick, args.case)
+    t_run = time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())
+    load0 = os.getloadavg()
+    ran = run_cases(args.quick, args.case)
+    path = Path(args.json) if args.json else RESULTS_DIR / "faults.json"
+    old: dict[str, Any] = {}
+    if args.merge and path.exists():
+        old = json.loads(path.read_text())
+    variants = {**(old.get("variants") or {}), **ran}
     loss = [variants[c].get("detect_ms") for c in NODE_LOSS if c in variants]
     forged = sum(int(f.get("forged_applied") or 0) for f in variants.values())
     floods = flood_rows(variants)
@@ -230,12 +340,57 @@ def main(argv: list[str] | None = None) -> None:
         ],
         "floods": floods,
     }
-    write_result("faults", params, variants, args.json)
+    keyfloods = keyflood_rows(variants)
+    medians = keyflood_medians(keyfloods)
+    added_kf = [r["misses_added_per_khz_rt"] for r in keyfloods]
+    added_kf = [x for x in added_kf if x is not None]
+    if keyfloods:
+        params["targets"].append(
+            {
+                "name": "misses a generated flood adds per 1,000 frames/s (nodes as configured), "
+                "max over the channels",
+                "value": max(added_kf, default=None),
+                "limit": target_khz,
+                "unit": "misses per loop per 1k frames/s",
+                "met": bool(added_kf) and all(x < target_khz for x in added_kf),
+            }
+        )
+    params.update(
+        keyfloods=keyfloods, keyflood_medians=medians, declaration_flood=declaration_rows(variants)
+    )
+    run = {
+        "utc": t_run,
+        "cases": sorted(ran),
+        "command": "python -m bench.faults "
+        + " ".join(f"--case {c}" for c in (args.case or []))
+        + (" --merge" if args.merge else "")
+        + (" --quick" if args.quick else ""),
+        "loadavg_before": [round(x, 2) for x in load0],
+        "loadavg_after": [round(x, 2) for x in os.getloadavg()],
+        "machine": machine_info(),
+        **({"note": args.note} if args.note else {}),
+    }
+    if old:
+        prev = (old.get("params") or {}).get("runs")
+        params["runs"] = [*(prev if isinstance(prev, list) else [prev] if prev else []), run]
+    else:
+        params["runs"] = [run]
+    doc = write_result("faults", params, variants, args.json)
+    if old.get("machine"):  # the file's machine block stays the first run's; this run's is in runs
+        doc["machine"] = old["machine"]
+        path.write_text(json.dumps(doc, indent=2, sort_keys=False) + "\n", encoding="utf-8")
     print()
     print(markdown(variants))
     if floods:
         print()
         print(flood_markdown(floods))
+    for extra in (keyfloods, params["declaration_flood"]):
+        if extra:
+            print()
+            print(flood_markdown(extra))
+    if medians:
+        print()
+        print(json.dumps(medians, indent=1))
     print()
     for t in params["targets"]:
         print(

@@ -61,7 +61,15 @@ BULKY = ("samples", "samples_ns", "samples_us", "histogram")
 #: Benches whose variants all do the same work, so "p50 vs the best p50" means something.
 VS_BEST = ("sync", "baselines")
 #: Params shown in their own tables instead of the params list.
-STRUCTURED_PARAMS = ("targets", "ratios_p50", "misses", "floods")
+STRUCTURED_PARAMS = (
+    "targets",
+    "ratios_p50",
+    "misses",
+    "floods",
+    "keyfloods",
+    "keyflood_medians",
+    "declaration_flood",
+)
 
 
 # ----------------------------------------------------------------------------- loading
@@ -580,6 +588,42 @@ def faults_section(params: dict[str, Any], variants: dict[str, dict[str, Any]]) 
                 ([r.get(k) for k in floods[0]] for r in floods),
             ),
         ]
+    medians = params.get("keyflood_medians") or {}
+    if medians:
+        lines += [
+            "",
+            "**The flood suite generated from the key space** (`tests/faults/keyfloods.py`: "
+            "every row a keyless peer reaches, 6,000 frames/s of junk of the row's frame size "
+            "and of genuine frames of the same flight replayed, one flight per mission and "
+            "scheduling): per mission and scheduling, the median over the channels of the CPU "
+            "the node under attack spent per frame and of the misses each flood added per "
+            "1,000 frames/s (target under 1e-4)",
+            "",
+            *md_table(
+                ["flight", *next(iter(medians.values()))],
+                ([k, *m.values()] for k, m in medians.items()),
+            ),
+        ]
+    for key, title in (
+        (
+            "keyfloods",
+            "Per channel (flood), nodes as configured (rt) and without real-time "
+            "priority (no_rt); counted: by the victim's counter / sent",
+        ),
+        (
+            "declaration_flood",
+            "**Declaration flood** (`tests/faults/decl_flood.py`): per "
+            "transport and attack, the CPU it added to the busiest node and the misses per loop",
+        ),
+    ):
+        table: list[dict[str, Any]] = params.get(key) or []
+        if table:
+            lines += [
+                "",
+                title,
+                "",
+                *md_table(list(table[0]), ([r.get(k) for k in table[0]] for r in table)),
+            ]
     return lines
 
 

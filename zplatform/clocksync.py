@@ -20,6 +20,7 @@ accuracy: docs/architecture.md#the-clock-exchange; wire: codecs/FORMAT.md §6.3.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import logging
 import queue
@@ -285,12 +286,21 @@ class ClockResponder:
         return bytes(seal.seal(reply)) if seal is not None else reply
 
 
+CLOCK_BACKLOG = 64
+"""Clock queries the CN's clock server holds while its thread is busy: the
+askers (every DN, the standby) ask one at a time, so a full backlog is a
+flood; a query past it is dropped unanswered and counted."""
+
+
 class ClockServer:
     """The CN's clock queryable. Runs its own reply thread; ``close()`` stops it.
 
     Each query is answered by a :class:`ClockResponder` (``mission``,
     ``auth``: the CN's keys, ``run``: its run); a refused one gets an error reply, is counted
-    (:attr:`refused`) and logged (the first, then every 1000th). The thread
+    (:attr:`refused`) and logged (the first, then every 1000th). At most
+    :data:`CLOCK_BACKLOG` queries wait for the thread: zenoh's callback
+    drops one past that unanswered (counted in :attr:`dropped` and in
+    :attr:`refused`), so a flood holds bounded memory. The thread
     checks in through :attr:`heartbeat` (``clock``, :mod:`zplatform.health`):
     idle while it waits for a query, beating while it serves one."""
 
@@ -306,7 +316,9 @@ class ClockServer:
     ) -> None:
         self._now = now_ns
         self.heartbeat = Heartbeat("clock")
-        self._q: queue.SimpleQueue[tuple[zenoh.Query, int] | None] = queue.SimpleQueue()
+        self._q: queue.Queue[tuple[zenoh.Query, int] | None] = queue.Queue(CLOCK_BACKLOG)
+        self.dropped = 0
+        """Queries dropped unanswered by a full backlog (zenoh's callback writes)."""
         self._key = keys.clock
         self._responder = ClockResponder(mission, auth, run)
         self.served = 0
@@ -318,10 +330,14 @@ class ClockServer:
 
     @property
     def refused(self) -> int:
-        return self._responder.refused
+        return self._responder.refused + self.dropped
 
     def _on_query(self, query: zenoh.Query) -> None:
-        self._q.put((query, self._now()))  # t2, then hand off
+        try:
+            self._q.put_nowait((query, self._now()))  # t2, then hand off
+        except queue.Full:  # a flood: the query goes, unanswered (zenoh finalises it)
+            self.dropped += 1  # this callback is the only writer
+            query.drop()
 
     def _serve(self) -> None:
         hb = self.heartbeat
@@ -354,7 +370,13 @@ class ClockServer:
 
     def close(self) -> None:
         self._queryable.undeclare()
-        self._q.put(None)
+        while True:  # room for the stop mark (what still waits is let go)
+            try:
+                self._q.put_nowait(None)
+                break
+            except queue.Full:
+                with contextlib.suppress(queue.Empty):
+                    self._q.get_nowait()
         self._thread.join(timeout=2)
 
 

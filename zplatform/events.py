@@ -583,6 +583,30 @@ class EventReader:
             self._fresh(e, now_ns, self._max_age)
         return e, True
 
+    def forged(self, key_expr: str, payload: bytes | bytearray | memoryview) -> bool:
+        """Whether ``payload``, come on ``key_expr``, is refused by its tag
+        alone: the mission authenticates, this reader holds the key of the
+        key's node, and the tag does not verify (or there is none). Copies
+        nothing, raises nothing; thread-safe (it reads only what
+        ``__init__`` made), so a receiver checks it in zenoh's callback and
+        queues no forged record (:class:`~zplatform.ground.link.GroundLink`).
+        :meth:`read` checks the tag again: a record not forged here may
+        still be refused there (not a record, another node's, stale)."""
+        from .auth import AuthError
+
+        if not self._auth:
+            return False
+        parts = str(key_expr).rsplit("/", 2)
+        node = parts[-2] if len(parts) == 3 and parts[-1] == "events" else ""
+        ch = self._channels.get(node)
+        if ch is None:
+            return False
+        try:
+            ch.open(payload)
+        except AuthError:
+            return True
+        return False
+
     def _fresh(self, e: Event, now_ns: int, bound: int) -> None:
         if abs(e.t_ns - now_ns) > bound:
             raise StaleRecordError(

@@ -272,7 +272,7 @@ KEYSPACE: tuple[KeyRow, ...] = (
                 "zplatform.clocksync.ClockResponder commander",
                 "stamped within a day (QUERY_SPAN_NS) of the CN's clock, its nonce not "
                 "among the asker's last ANSWERED",
-                "one serving thread, queries queued",
+                "one serving thread, at most CLOCK_BACKLOG queued, the rest dropped and counted",
             ),
             KeyFrames(
                 "reply",

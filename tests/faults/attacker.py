@@ -47,7 +47,19 @@ Modes:
 * ``cmd-replay``: publishes command request frames on ``{vehicle}/gn/to_cn``,
   round robin: the operator's own, captured on the wire (a zenoh peer cannot
   subscribe to another tool's puts: tools listen nowhere) and given on
-  stdin as one line ``frames HEX HEX...`` before ``ready``.
+  stdin as one line ``frames HEX HEX...`` before ``ready``;
+* ``key-get`` / ``key-put`` / ``key-answer``: the same three attacks on any
+  key ``--key`` (the generated suite of ``tests/faults/keyfloods.py``, one
+  per key space row): gets carrying, puts of, or a rogue queryable's
+  answers to the queries on ``--key`` with junk (half random sizes, half
+  exactly ``--size`` bytes, the row's longest frame) alternating with
+  genuine frames captured from ``--capture KEY`` (a tap or the key itself,
+  as any peer subscribes) or given on stdin (``--frames-stdin``: one line
+  ``frames HEX...``, as for ``cmd-replay``); junk only without either.
+  Gets and puts use congestion control BLOCK: every frame sent reaches the
+  node, so the node's refusal counter can be held to it exactly. The JSON
+  line adds ``genuine`` (frames captured) and ``right_size`` (frames sent
+  of exactly ``--size`` bytes).
 
 Protocol: prints ``ready`` once connected and armed (replay modes: once it
 captured what it replays; reply modes: once the CN's queries reach its
@@ -86,6 +98,9 @@ MODES = (
     "declare-allowed",
     "declare-keyexpr",
     "cmd-replay",
+    "key-get",
+    "key-put",
+    "key-answer",
 )
 TICK_S = 0.002  # pacing granularity: rate * TICK_S frames per tick
 
@@ -193,6 +208,11 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--deployment", help="present this deployment's tool identity (mTLS)")
     p.add_argument("--distinct", action="store_true", help="declare modes: a key each")
     p.add_argument("--connect", help="connect only to this endpoint, gossip off")
+    p.add_argument("--key", help="key-* modes: the key attacked")
+    p.add_argument("--size", type=int, default=0, help="key-* modes: the row's frame size")
+    p.add_argument("--capture", help="key-* modes: replay genuine frames seen on this key")
+    p.add_argument("--frames-stdin", action="store_true", help="key-* modes: frames on stdin")
+    p.add_argument("--capture-wait", type=float, default=3.0, help="key-* modes: seconds")
     a = p.parse_args(argv)
     # A real attacker has a machine of its own: here it must keep its rate
     # beside the nodes and whatever else loads the box (a CPU hog).
@@ -226,6 +246,7 @@ def main(argv: list[str] | None = None) -> int:
     cleanup: list[Any] = []
     k = [0]
     answered = [0]  # query modes: replies (or error replies) the DN sent back
+    right_size = [0]  # key modes: frames sent of exactly --size bytes
     kind, _, what = a.mode.partition("-")
     if kind == "query":
         payloads = []
@@ -322,6 +343,72 @@ def main(argv: list[str] | None = None) -> int:
 
         cleanup.append(undeclare_all)
 
+    elif kind == "key":
+        if not a.key:
+            raise SystemExit(f"{a.mode}: --key is required")
+        junk = [rng.randbytes(rng.randrange(0, 2000)) for _ in range(64)]
+        junk += [rng.randbytes(a.size) for _ in range(64)]
+        rng.shuffle(junk)
+        genuine: list[bytes] = []
+        if a.frames_stdin:
+            words = sys.stdin.readline().split()
+            if not words or words[0] != "frames":
+                raise SystemExit(f"{a.mode}: expected a line `frames HEX...` on stdin")
+            genuine = [bytes.fromhex(w) for w in words[1:]]
+        elif a.capture:
+            # What the key carries now and then (events) may not come within
+            # the wait: then the flood is junk only (``genuine`` says so).
+            cap = Capture(session, a.capture, keep=len(junk))
+            with suppress(SystemExit):
+                cap.wait(len(junk), a.capture_wait)
+            cap.close()
+            genuine = list(cap.frames)
+        # Junk and genuine frames alternately, as many of each (a frame
+        # replayed many times over is refused each time as stale).
+        payloads = _mix(junk, (genuine * len(junk))[: len(junk)] if genuine else [])
+        right = [len(x) == a.size for x in payloads]
+        block = zenoh.CongestionControl.BLOCK
+        if what == "get":
+
+            def on_key_reply(r: zenoh.Reply) -> None:
+                err = r.err
+                if r.ok is not None or (err is not None and err.payload.to_bytes() != b"Timeout"):
+                    answered[0] += 1
+
+            key_handler = zenoh.handlers.Callback(on_key_reply, indirect=False)
+            key = a.key
+
+            def send() -> None:
+                k[0] += 1
+                right_size[0] += right[k[0] % len(payloads)]
+                session.get(
+                    key,
+                    key_handler,
+                    payload=payloads[k[0] % len(payloads)],
+                    timeout=0.05,
+                    congestion_control=block,
+                )
+
+        elif what == "put":
+            key_pub = session.declare_publisher(a.key, congestion_control=block)
+            cleanup.append(key_pub.undeclare)
+
+            def send() -> None:
+                k[0] += 1
+                right_size[0] += right[k[0] % len(payloads)]
+                key_pub.put(payloads[k[0] % len(payloads)])
+
+        else:  # answer: a rogue queryable, answering the newest query
+            key_rogue = Rogue(session, a.key)
+            cleanup.append(key_rogue.close)
+            if not key_rogue.seen.wait(60):
+                raise SystemExit(f"{a.mode}: no query on {a.key} in 60 s")
+
+            def send() -> None:
+                k[0] += 1
+                right_size[0] += right[k[0] % len(payloads)]
+                key_rogue.reply(payloads[k[0] % len(payloads)])
+
     else:  # cmd-replay: the frames come on stdin, captured on the wire
         words = sys.stdin.readline().split()
         if not words or words[0] != "frames" or len(words) < 2:
@@ -350,8 +437,11 @@ def main(argv: list[str] | None = None) -> int:
         c()
     session.close()
     result: dict[str, Any] = {"sent": sent, "seconds": round(seconds, 3), "rate": sent / seconds}
-    if kind == "query":
+    if kind == "query" or a.mode == "key-get":
         result["answered"] = answered[0]
+    if kind == "key":
+        result["genuine"] = len(genuine)
+        result["right_size"] = right_size[0]
     print(json.dumps(result))
     return 0
 

@@ -190,3 +190,22 @@ def test_events_are_authenticated_per_node() -> None:
     e, verified = EventReader(IGN, None).read("rocket/cn/events", real)
     assert verified is False and e.text == "command LAUNCH #9 accepted"
     assert TOOL.has("events-cn") and EventReader(IGN, TOOL).read("rocket/cn/events", real)[1]
+
+
+def test_a_forged_event_record_is_known_by_its_tag_alone() -> None:
+    """``EventReader.forged``, which the ground's zenoh callback asks before it
+    queues a record: every forgery a keyless peer makes is refused there; a
+    genuine record, an insider's (dn0's key, on dn0's key: refused later, by
+    ``read``) and a record of a node whose key the reader lacks are not."""
+    log = EventLog("cn")
+    log.emit(EV.CMD_ACCEPTED, T0, name="LAUNCH", seq=9, detail="")
+    record = encode_event(log.drain()[0])
+    real = bytes(CN.channel("events_cn").seal(record))
+    grounds = EventReader(IGN, GN)
+    assert not grounds.forged("rocket/cn/events", real)
+    for forged in [*forgeries(KeySet.generate(IGN), record), b"", b"x", record]:
+        assert grounds.forged("rocket/cn/events", forged)
+    insider = bytes(DN0.channel("events_dn0").seal(record))
+    assert not grounds.forged("rocket/dn0/events", insider)
+    assert not EventReader(IGN, None).forged("rocket/cn/events", b"junk")  # no key: unchecked
+    assert not grounds.forged("rocket/other/events", b"junk")  # no such node's key

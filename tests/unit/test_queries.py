@@ -466,3 +466,56 @@ def test_a_dn_that_answers_only_late_is_not_a_lost_route(trio: Trio) -> None:
         cs.close()
         ds.close()
         token.undeclare()
+
+
+class _HeldQuery:
+    """A clock query whose answer waits for ``release`` (the server's thread
+    busy on it), as zenoh hands the callback one."""
+
+    def __init__(self, release: threading.Event) -> None:
+        self.release = release
+        self.payload = None
+        self.dropped = False
+
+    def __enter__(self) -> _HeldQuery:
+        self.release.wait(30.0)
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        return None
+
+    def reply_err(self, payload: bytes) -> None:
+        return None
+
+    def drop(self) -> None:
+        self.dropped = True
+
+
+def test_a_flood_of_clock_queries_waits_in_a_bounded_backlog() -> None:
+    """A keyless flood on the clock key (the generated flood suite,
+    tests/faults/keyfloods.py: the commander's RSS grew by about 146 MB in a
+    3 s flood at 6,000 queries/s): while the server's thread is busy, at most
+    CLOCK_BACKLOG queries wait; the rest are dropped unanswered and counted."""
+    import zplatform.clocksync as cs
+
+    backlog = getattr(cs, "CLOCK_BACKLOG", 64)  # (main had no bound: checked there too)
+    keys = KeySet.from_master(IGNITER, bytes(range(32)))
+    s = lone_session()
+    release = threading.Event()
+    server = ClockServer(s, KEYS, time.monotonic_ns, IGNITER, keys.for_node("cn"))
+    try:
+        flood = [_HeldQuery(release) for _ in range(5000)]
+        server._on_query(flood[0])  # type: ignore[arg-type]
+        deadline = time.monotonic() + 10
+        while server._q.qsize() and time.monotonic() < deadline:  # the thread took it
+            time.sleep(0.001)  # polling the server's own queue: no peer to wait on
+        for q in flood[1:]:
+            server._on_query(q)  # type: ignore[arg-type]
+        assert server._q.qsize() == backlog
+        assert server.dropped == len(flood) - 1 - backlog
+        assert sum(q.dropped for q in flood) == server.dropped
+        assert server.refused >= server.dropped  # the dropped count as refused
+    finally:
+        release.set()
+        server.close()
+        s.close()

@@ -149,7 +149,9 @@ class GroundLink:
         self._tm_box = self._tm.box
         self._ev_box: Mailbox[tuple[str, bytes, int]] = Mailbox(EVENT_BACKLOG, self._waker)
         self._tap_box: Mailbox[tuple[str, bytes, bool]] = Mailbox(TAP_BACKLOG, self._waker)
-        self._ev_oversize = 0  # zenoh's thread writes, the caller's reads (a total)
+        # Records refused as they arrived (oversize or forged): zenoh's thread
+        # writes, the caller's reads (a total).
+        self._ev_oversize = 0
         self._ev_oversize_seen = 0
         self._subs: list[zenoh.Subscriber[None]] = []
         if telemetry:
@@ -372,7 +374,15 @@ class GroundLink:
         if len(p) > EVENT_MAX:
             self._ev_oversize += 1  # this callback is the only writer
             return
-        self._ev_box.put((str(sample.key_expr), p.to_bytes(), self.clock.now_ns()))
+        key, data = str(sample.key_expr), p.to_bytes()
+        # The tag before the mailbox: a forged record (a keyless flood) is
+        # counted and let go here, never queued (a flood of them filled the
+        # mailbox, up to EVENT_BACKLOG x EVENT_MAX bytes, and pushed the
+        # genuine records out: a full mailbox lets the oldest go).
+        if self.logic.forged_event(key, data):
+            self._ev_oversize += 1
+            return
+        self._ev_box.put((key, data, self.clock.now_ns()))
 
     def _on_tap(self, sample: zenoh.Sample) -> None:
         p = sample.payload  # and whether shared memory carried it

@@ -346,7 +346,8 @@ class GroundLogic:
             )
 
     def refused_events(self, n: int) -> None:
-        """Count ``n`` event records the driver refused unread for their size."""
+        """Count ``n`` event records the driver refused as they arrived: for
+        their size, or their tag (:meth:`forged_event`)."""
         self._n.bad_events += n
 
     @property
@@ -754,6 +755,13 @@ class GroundLogic:
                     self._match(r)
             self._release(rx_ns)
         return EventRecord.of(e, rx_ns, verified)
+
+    def forged_event(self, key_expr: str, payload: bytes | bytearray | memoryview) -> bool:
+        """Whether an event record is refused by its tag alone
+        (:meth:`zplatform.events.EventReader.forged`: thread-safe, no copy):
+        its receiver's zenoh callback asks, and counts it with
+        :meth:`refused_events` instead of queueing it."""
+        return self._events_in.forged(key_expr, payload)
 
     def on_event_bytes(
         self, key_expr: str, payload: bytes | bytearray | memoryview, rx_ns: int
