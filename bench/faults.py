@@ -188,7 +188,7 @@ def keyflood_rows(variants: dict[str, dict[str, Any]]) -> list[dict[str, Any]]:
     rows: dict[tuple[str, str], dict[str, Any]] = {}
     for mission in kf.MISSIONS:
         for rt, tag in ((True, "rt"), (False, "no_rt")):
-            v = variants.get(kf._name(mission, rt)) or {}
+            v = variants.get(kf.case_name(mission, rt)) or {}
             for fid in v.get("plan") or []:
                 f = v.get(fid)
                 if not isinstance(f, dict):

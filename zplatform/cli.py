@@ -379,7 +379,7 @@ def _load_extras() -> None:
         "zplatform.cli_runtime",
         "zplatform.cli_ground",
         "zplatform.cli_sim",
-        "zplatform.archive.cli",
+        "zplatform.cli_archive",
     ):
         try:
             m = importlib.import_module(mod)

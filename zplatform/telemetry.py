@@ -87,7 +87,7 @@ def _enum_formatter(names: tuple[str, ...]) -> Formatter:
     return fmt
 
 
-def _formatter(spec: ElementSpec) -> Formatter:
+def formatter(spec: ElementSpec) -> Formatter:
     if spec.enum is not None:
         return _enum_formatter(spec.enum)
     kind = spec.scalar.kind
@@ -140,7 +140,7 @@ class CsvLogger:
                 fmt.append(f"{e.offset - pos}x")
             n = max(e.count, 1)
             fmt.append(f"{n}{e.scalar.struct}")
-            formatters.extend([_formatter(e)] * n)
+            formatters.extend([formatter(e)] * n)
             pos = e.offset + e.size
         self._struct = struct.Struct("".join(fmt))
         self._formatters = tuple(formatters)

@@ -579,12 +579,12 @@ def _ground_counted(r: CaseResult, c: Live, plan: list[Flood]) -> None:
     r.check(f"{fl.id}_every_frame_counted_at_least", ok, (refused, fig["sent"]))
 
 
-def _name(mission: str, realtime: bool) -> str:
+def case_name(mission: str, realtime: bool) -> str:
     return f"keyfloods_{mission}" + ("" if realtime else "_no_realtime")
 
 
 CASES = {
-    _name(m, rt): (lambda t, q, m=m, rt=rt: case_keyfloods(t, q, m, realtime=rt))
+    case_name(m, rt): (lambda t, q, m=m, rt=rt: case_keyfloods(t, q, m, realtime=rt))
     for m in MISSIONS
     for rt in (True, False)
 }

@@ -25,13 +25,13 @@ import msgspec
 import pyarrow as pa
 import pyarrow.parquet as pq
 
-from ..cli_args import check_output, mission_verb
-from ..config import Mission
-from ..datavector import Layout
-from ..mission import load_mission
-from ..telemetry import MAX_ARRAY_COLUMNS, _formatter
-from . import archive_dir
-from .query import AGGREGATES, Archive, Query
+from .archive import archive_dir
+from .archive.query import AGGREGATES, Archive, Query
+from .cli_args import check_output, mission_verb
+from .config import Mission
+from .datavector import Layout
+from .mission import load_mission
+from .telemetry import MAX_ARRAY_COLUMNS, formatter
 
 __all__ = ["register"]
 
@@ -242,7 +242,7 @@ def write_csv(layout: Layout, table: pa.Table, f: TextIO, *, loops: bool) -> Non
         e = layout.element(n)
         if e.count > MAX_ARRAY_COLUMNS:
             continue
-        fmt = _formatter(e)
+        fmt = formatter(e)
         if e.count:
             header.extend(f"{n}[{i}]" for i in range(e.count))
         else:
