@@ -32,9 +32,9 @@ from bench.common import bench_argparser, summarize, write_result
 from zplatform import LockstepRunner, load_mission
 from zplatform.archive import Archive, ArchiveWriter, Query
 from zplatform.archive.store import du
-from zplatform.datavector import DataVector, Layout
-from zplatform.telemetry import CsvLogger
-from zplatform.uplink import load_commands
+from zplatform.control.uplink import load_commands
+from zplatform.core.datavector import DataVector, Layout
+from zplatform.telemetry.logs import CsvLogger
 
 ROOT = Path(__file__).resolve().parents[1]
 MISSION = ROOT / "configs" / "flight.yaml"

@@ -80,8 +80,8 @@ from bench.cluster import BenchCluster, SyncSamples, make_mission
 from bench.common import RESULTS_DIR, bench_argparser, machine_info, summarize, write_result
 from bench.sync import PRIORITY, inherit_fifo
 from zplatform import trace
-from zplatform.auth import MACS
-from zplatform.messages import lowlatency_for
+from zplatform.core.auth import MACS
+from zplatform.core.messages import lowlatency_for
 
 TYPES = ("f32", "i32", "u16", "bool", "f64", "u8", "i16", "u32")
 COUNTS_FULL = (10, 100, 1_000, 10_000, 100_000)

@@ -1,18 +1,18 @@
 """Clock sync: node-clock and zenoh-timestamp estimators against injected skew and drift.
 
 Two estimators of the CN-minus-DN node-clock offset (both in
-:mod:`zplatform.clocksync`, both against the same, unchanged
-:class:`~zplatform.clocksync.ClockServer`):
+:mod:`zplatform.runtime.clocksync`, both against the same, unchanged
+:class:`~zplatform.runtime.clocksync.ClockServer`):
 
-* ``node_clock``: :func:`~zplatform.clocksync.estimate_offset` (the four
+* ``node_clock``: :func:`~zplatform.runtime.clocksync.estimate_offset` (the four
   times read from the node clocks in Python);
-* ``zenoh_ts``: :func:`~zplatform.clocksync.estimate_offset_zenoh` (the four
+* ``zenoh_ts``: :func:`~zplatform.runtime.clocksync.estimate_offset_zenoh` (the four
   times from zenoh 1.10's timestamp instrumentation on the query, mapped into
   node time on each side); the platform's default ``clock.estimator`` since
   this benchmark found it the more accurate.
 
 The CN's clock server runs in a child process (its own zenoh session, its own
-:class:`~zplatform.timebase.NodeClock`), on TCP loopback. The DN side runs
+:class:`~zplatform.runtime.timebase.NodeClock`), on TCP loopback. The DN side runs
 here, with a NodeClock whose anchor is skewed by ``skew`` and whose rate is off
 by ``drift`` (a scaled monotonic clock). The truth is exact: both node clocks
 are ``anchor + CLOCK_MONOTONIC`` (system-wide), the child reports its
@@ -49,12 +49,17 @@ import zenoh
 
 from bench.baselines import zenoh_config
 from bench.common import REPO_ROOT, bench_argparser, free_port, terminate_all, write_result
-from zplatform.auth import KEY_ENV, load_keys
-from zplatform.clocksync import ClockLink, ClockServer, estimate_offset, estimate_offset_zenoh
+from zplatform.core.auth import KEY_ENV, load_keys
 from zplatform.errors import ClockSyncError
-from zplatform.mission import load_mission
-from zplatform.timebase import NodeClock
-from zplatform.transport import KeySpace
+from zplatform.mission.load import load_mission
+from zplatform.runtime.clocksync import (
+    ClockLink,
+    ClockServer,
+    estimate_offset,
+    estimate_offset_zenoh,
+)
+from zplatform.runtime.timebase import NodeClock
+from zplatform.runtime.transport import KeySpace
 
 KEYS = KeySpace("clockbench")
 # The exchanges are authenticated as shipped: the minimal mission's dn0 link,

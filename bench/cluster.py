@@ -23,14 +23,14 @@ import numpy as np
 import numpy.typing as npt
 import yaml
 
-from zplatform.auth import KEY_ENV, KEY_FILE_ENV, load_keys
 from zplatform.config import Mission
-from zplatform.mission import load_mission
+from zplatform.core.auth import KEY_ENV, KEY_FILE_ENV, load_keys
+from zplatform.mission.load import load_mission
 from zplatform.node.control import ControlNode
-from zplatform.node.runtime import PARENT_ENV, StopFlag
-from zplatform.scheduler import PeriodicLoop
-from zplatform.sync import SyncTrace
-from zplatform.transport import free_port
+from zplatform.runtime.process import PARENT_ENV, StopFlag
+from zplatform.runtime.scheduler import PeriodicLoop
+from zplatform.runtime.sync import SyncTrace
+from zplatform.runtime.transport import free_port
 
 from .common import REPO_ROOT, terminate_all
 
@@ -117,7 +117,7 @@ class BenchCluster:
     for large frames), whose ``dn`` entry point writes ``<dn>.trace.json``
     there on exit.
     ``cn_trace``: the in-process CN's sync trace hook
-    (:data:`zplatform.sync.SyncTrace`).
+    (:data:`zplatform.runtime.sync.SyncTrace`).
     """
 
     def __init__(

@@ -27,7 +27,7 @@ each, one run of the mission each):
 Each fault is injected at a uniformly random phase of a loop (``--seed``):
 the bench reads the schedule's origin from the latest snapshot,
 ``cn_time_ns - (cn_loop - 1) * period`` (node clocks are anchored to
-CLOCK_REALTIME, ``zplatform/timebase.py``), and sends the signal at
+CLOCK_REALTIME, ``zplatform/runtime/timebase.py``), and sends the signal at
 ``origin + (n - 1 + u) * period`` for the loop n two after that snapshot, u
 uniform in [0, 1). Per takeover it measures:
 
@@ -111,13 +111,13 @@ from typing import Any
 
 from bench.common import REPO_ROOT, bench_argparser, write_result
 from zplatform.config import Mission
-from zplatform.datavector import DataVector
+from zplatform.core.datavector import DataVector
+from zplatform.core.events import decode_event
 from zplatform.errors import FrameFormatError, RecordingError
-from zplatform.events import decode_event
 from zplatform.ground.link import GroundLink
 from zplatform.recorder import RECORDER_DIR_ENV, RecorderReader
 from zplatform.recorder.format import EVENT
-from zplatform.records import EventRecord
+from zplatform.telemetry.records import EventRecord
 
 MISSION = REPO_ROOT / "configs" / "flight.yaml"
 NODES = ("world", "dn0", "dn1", "cn", "cn_b")
@@ -765,7 +765,7 @@ def main(argv: list[str] | None = None) -> None:
     args = p.parse_args(argv)
     kills = args.kills if args.kills is not None else (2 if args.quick else 20)
     cases = args.case or [c for c in CASES if not (args.quick and c == "kill9_flight")]
-    from zplatform.mission import load_mission
+    from zplatform.mission.load import load_mission
 
     m = load_mission(MISSION, code=False)
     watchdog = m.faults.dn_watchdog_loops

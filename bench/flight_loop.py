@@ -1,8 +1,8 @@
 """What the flight software costs the control node's loop: its logic step, EKF and controllers.
 
 The flight mission (``configs/flight.yaml``) flies its script in the
-lockstep runner (the same :class:`~zplatform.loop.ControlLogic` a live CN
-runs), and every loop's logic step, :meth:`~zplatform.loop.ControlLogic.finish`
+lockstep runner (the same :class:`~zplatform.control.loop.ControlLogic` a live CN
+runs), and every loop's logic step, :meth:`~zplatform.control.loop.ControlLogic.finish`
 (faults, commands, state machine, controllers, telemetry framing), is timed
 with ``perf_counter_ns``, as is each flight controller's own ``run_enabled``
 (EKF, flight events, airbrakes). The recovery igniter mission's logic step
@@ -25,7 +25,7 @@ from typing import Any
 
 from bench.common import REPO_ROOT, bench_argparser, summarize, write_result
 from zplatform import LockstepRunner, load_mission
-from zplatform.uplink import load_commands
+from zplatform.control.uplink import load_commands
 
 CONFIGS = REPO_ROOT / "configs"
 

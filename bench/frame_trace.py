@@ -208,10 +208,10 @@ def dn_main(argv: list[str]) -> None:
     """``dn <mission> <name> <out.json> [--no-realtime]``: a DN process
     (``zplatform node MISSION NAME``'s) with every step stamped (module doc)."""
     from zplatform import trace
-    from zplatform.auth import load_keys
-    from zplatform.mission import load_mission
+    from zplatform.core.auth import load_keys
+    from zplatform.mission.load import load_mission
     from zplatform.node.device import DeviceNode
-    from zplatform.node.runtime import StopFlag, setup_logging
+    from zplatform.runtime.process import StopFlag, setup_logging
 
     mission_path, name, out, *extra = argv
     if set(extra) - {"--no-realtime"}:

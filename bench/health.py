@@ -1,4 +1,4 @@
-"""What health sampling costs the CN's loop (``health:``, zplatform.health).
+"""What health sampling costs the CN's loop (``health:``, zplatform.core.health).
 
 The recovery igniter mission's CN loop (``ControlLogic.begin``, ``reply`` per
 DN, ``finish``, its monitors included) runs paced at 100 Hz on a
@@ -35,9 +35,9 @@ from bench.common import bench_argparser, summarize, write_result
 from bench.record import loop_inputs
 from zplatform import ControlLogic, GcGuard, PeriodicLoop, load_mission
 from zplatform.config import Mission
-from zplatform.health import Heartbeat, Liveness, health_divisor, thread_deadlines_ns
-from zplatform.lockstep import sim_keys
+from zplatform.core.health import Heartbeat, Liveness, health_divisor, thread_deadlines_ns
 from zplatform.node.health import NodeHealth
+from zplatform.sim.lockstep import sim_keys
 
 ROOT = Path(__file__).resolve().parents[1]
 MISSION = ROOT / "configs" / "recovery_igniter.yaml"

@@ -5,8 +5,8 @@ One trigger and one reply of the same size (256 B and 325 KB), paced at
 process per variant, all three running in one invocation, in interleaved
 rounds (each round visits every size and variant):
 
-* ``carrier``: :class:`zplatform.intrahost.IntraHostClient` /
-  :class:`~zplatform.intrahost.IntraHostServer`: the client copies the frame
+* ``carrier``: :class:`zplatform.runtime.intrahost.IntraHostClient` /
+  :class:`~zplatform.runtime.intrahost.IntraHostServer`: the client copies the frame
   into its loaned request (the encode), the server reads the trigger in place
   and copies its reply into a loan, the client copies the reply once into a
   preallocated array (the Data Vector);
@@ -89,7 +89,7 @@ def _say(obj: dict[str, Any]) -> None:
 def _iox_services(prefix: str, name: str) -> tuple[Any, Any, Any, Any, Any]:
     import iceoryx2 as iox
 
-    from zplatform.intrahost import iceoryx2_config
+    from zplatform.runtime.intrahost import iceoryx2_config
 
     iox.set_log_level(iox.LogLevel.Error)
     node = (
@@ -132,7 +132,7 @@ def _responder(variant: str, mission_text: str) -> None:
     big = max(SIZES.values())
     reply = {n: os.urandom(n) for n in SIZES.values()}
     if variant == "carrier":
-        from zplatform.intrahost import IntraHostServer, link_names
+        from zplatform.runtime.intrahost import IntraHostServer, link_names
 
         server = IntraHostServer(
             link_names("bench", "rocket", os.getppid(), "cn", "dn0"), big, big, prefix=PREFIX
@@ -187,8 +187,8 @@ def _responder(variant: str, mission_text: str) -> None:
     else:
         import zenoh
 
-        from zplatform.mission import decode_mission
-        from zplatform.transport import open_session, zenoh_config
+        from zplatform.mission.load import decode_mission
+        from zplatform.runtime.transport import open_session, zenoh_config
 
         session = open_session(zenoh_config(decode_mission(mission_text), "dn0"))
         count = [0]
@@ -282,7 +282,7 @@ class _Asker:
         self.dst = np.empty(big, np.uint8)
         self.dst_mv = self.dst.data  # a memoryview, no copy
         if variant == "carrier":
-            from zplatform.intrahost import IntraHostClient, link_names
+            from zplatform.runtime.intrahost import IntraHostClient, link_names
 
             self.client = IntraHostClient(
                 link_names("bench", "rocket", os.getpid(), "cn", "dn0"),
@@ -307,8 +307,8 @@ class _Asker:
         else:
             import zenoh
 
-            from zplatform.mission import decode_mission
-            from zplatform.transport import open_session, zenoh_config
+            from zplatform.mission.load import decode_mission
+            from zplatform.runtime.transport import open_session, zenoh_config
 
             self.zenoh = zenoh
             self.session = open_session(zenoh_config(decode_mission(mission_text), "cn"))
@@ -422,7 +422,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
             a.close()
         for p in procs.values():
             p.close()
-        from zplatform.intrahost import remove_stale
+        from zplatform.runtime.intrahost import remove_stale
 
         remove_stale(PREFIX)
         for path in _own_files():

@@ -4,7 +4,7 @@ What is measured, per variant (3 DNs, 100 Hz, 30 s as three interleaved
 10 s segments on fresh clusters, each after a 3 s warm-up; ``--quick`` one
 10 s segment):
 
-* **CN lateness**: the CN's :class:`~zplatform.scheduler.PeriodicLoop` start
+* **CN lateness**: the CN's :class:`~zplatform.runtime.scheduler.PeriodicLoop` start
   lateness (the time the loop step was called minus its absolute deadline,
   ``time.monotonic_ns``), recorded by the scheduler itself for every loop.
 * **DN lateness**: each DN's loop start time is ``dnX_time_ns`` (the DN's

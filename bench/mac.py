@@ -4,8 +4,8 @@
 
 Per MAC (``security.mac``) and frame size (a 256 B region frame, a 325 KB
 reply: the 100,000-element point of ``bench.bandwidth``), the time of
-:meth:`zplatform.auth.Channel.seal` (what a sender adds) and of
-:meth:`~zplatform.auth.Channel.open` (what a receiver adds), as the
+:meth:`zplatform.core.auth.Channel.seal` (what a sender adds) and of
+:meth:`~zplatform.core.auth.Channel.open` (what a receiver adds), as the
 platform calls them: one channel, its buffer and BLAKE3 hasher reused
 (reset per frame). Baselines: a plain copy of the frame (``seal`` copies
 it once), and, for the report's argument about telemetry to many grounds,
@@ -27,7 +27,7 @@ from functools import partial
 from typing import Any
 
 from bench.common import bench_argparser, summarize, write_result
-from zplatform.auth import MACS, Channel
+from zplatform.core.auth import MACS, Channel
 
 SIZES = {"256B": 256, "325KB": 325_000}
 ITERATIONS = {"256B": 200_000, "325KB": 2_000}

@@ -64,8 +64,8 @@ from typing import Annotated, Any
 import msgspec
 from msgspec import Meta
 
-from zplatform.controllers import Controller
-from zplatform.datavector import DataVector
+from zplatform.control.controllers import Controller
+from zplatform.core.datavector import DataVector
 from zplatform.node.control import ControlNode
 
 from .cluster import BenchCluster, make_mission

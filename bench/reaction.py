@@ -52,9 +52,9 @@ import yaml
 from msgspec import Meta
 
 from zplatform.boards import SimBoard
-from zplatform.controllers import Controller
-from zplatform.datavector import DataVector
-from zplatform.devices import Actuator, Sensor
+from zplatform.control.controllers import Controller
+from zplatform.control.devices import Actuator, Sensor
+from zplatform.core.datavector import DataVector
 from zplatform.node.control import ControlNode
 
 from .cluster import BenchCluster, make_mission

@@ -1,7 +1,7 @@
 """Reconnect after a stop: how soon a peer stopped past its lease gets data again.
 
 Three zenoh peers in processes of their own, their sessions built by
-:func:`zplatform.transport.zenoh_config` from ``configs/minimal.yaml`` on
+:func:`zplatform.runtime.transport.zenoh_config` from ``configs/minimal.yaml`` on
 free ports and plain TCP (``dn0`` and ``gn`` connect to ``cn``; gossip
 introduces ``gn`` and ``dn0``): ``cn`` publishes a stamp
 (``CLOCK_MONOTONIC``, shared by the host's processes) every 10 ms, as a
@@ -52,7 +52,7 @@ PERIOD_S = 0.01
 
 
 def _mission(tmp: Path) -> Path:
-    from zplatform.transport import rewrite_endpoints
+    from zplatform.runtime.transport import rewrite_endpoints
 
     path = tmp / "minimal.yaml"
     rewrite_endpoints(REPO_ROOT / "configs" / "minimal.yaml", path)
@@ -68,8 +68,8 @@ def child(role: str, mission_path: str, variant: str) -> None:
     publisher's matching status (``gn``'s subscriber): ``<ns> 1|0``. Ends when stdin closes."""
     import zenoh
 
-    from zplatform.mission import load_mission
-    from zplatform.transport import open_session, zenoh_config
+    from zplatform.mission.load import load_mission
+    from zplatform.runtime.transport import open_session, zenoh_config
 
     m = load_mission(mission_path)
     cfg = zenoh_config(m, role)

@@ -25,8 +25,8 @@ from typing import Any
 from bench.common import bench_argparser, summarize, write_result
 from zplatform import ControlLogic, LockstepRunner, Recorder, load_mission
 from zplatform.config import Mission
-from zplatform.lockstep import sim_keys
-from zplatform.uplink import load_commands
+from zplatform.control.uplink import load_commands
+from zplatform.sim.lockstep import sim_keys
 
 ROOT = Path(__file__).resolve().parents[1]
 MISSION = ROOT / "configs" / "led_test.yaml"

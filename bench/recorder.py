@@ -48,12 +48,12 @@ import zenoh
 from bench.common import REPO_ROOT, bench_argparser, summarize, write_result
 from bench.record import loop_inputs
 from zplatform import ControlLogic, load_mission
-from zplatform.auth import channel
+from zplatform.core.auth import channel
 from zplatform.ground.logic import default_max_age_ns
-from zplatform.lockstep import sim_keys
 from zplatform.recorder import RECORDER_DIR_ENV, open_recorder
 from zplatform.recorder.format import REQUEST, REQUEST_MAGIC
 from zplatform.recorder.server import RecorderServer
+from zplatform.sim.lockstep import sim_keys
 
 MISSION = REPO_ROOT / "configs" / "flight.yaml"
 COMMANDS = REPO_ROOT / "configs" / "flight.commands"

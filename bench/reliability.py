@@ -31,7 +31,7 @@ system: they are reported as ``params.skipped_periods``, not as messages.
 Telemetry latency: CN ``put`` (node clock, read just before the put: the ``tm.put`` point of
 :mod:`zplatform.trace`) to the
 ground's decode (the ground's node clock plus its clock-sync offset to the
-CN, :func:`zplatform.clocksync.estimate_offset` against the CN's clock server
+CN, :func:`zplatform.runtime.clocksync.estimate_offset` against the CN's clock server
 at start): the figure holds across hosts. ``tm_latency_same_host_*`` is the
 same measured on ``CLOCK_MONOTONIC`` (valid on one host only), as a check of
 the clock-sync term. The raw floor's telemetry latency is on
@@ -87,8 +87,8 @@ from bench.common import write_result as _write
 from bench.sync import PRIORITY, inherit_fifo
 from zplatform import trace
 from zplatform.config import relocate_mission
-from zplatform.handoff import Handoff
-from zplatform.transport import is_matching
+from zplatform.control.handoff import Handoff
+from zplatform.runtime.transport import is_matching
 
 TM_DEADLINE_MS = 30.0
 TARGET_RELIABILITY = 0.9999
@@ -165,10 +165,10 @@ def ground_main(argv: list[str]) -> None:
         sub.undeclare()
         s.close()
     else:
-        from zplatform.auth import load_keys
-        from zplatform.clocksync import ClockLink, estimate_offset
+        from zplatform.core.auth import load_keys
         from zplatform.ground.link import GroundLink
-        from zplatform.mission import load_mission
+        from zplatform.mission.load import load_mission
+        from zplatform.runtime.clocksync import ClockLink, estimate_offset
 
         mission = load_mission(argv[0])
         out = argv[1]

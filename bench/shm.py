@@ -4,7 +4,7 @@ For each size (1 KB, 64 KB, 1 MB, 4 MB, 16 MB) these variants run side by
 side in one run, in interleaved rounds (every round visits every size and
 variant), each as its own sender process and receiver process:
 
-* ``zplatform_shm``: :class:`zplatform.bulk.NodeBulk`, shared memory on:
+* ``zplatform_shm``: :class:`zplatform.runtime.bulk.NodeBulk`, shared memory on:
   one copy into the pool, then on the receiver ``bytes(shm)`` and a copy into
   the reader's preallocated array (:meth:`BulkReader.wait`);
 * ``zplatform_shm_view``: the same processes, ``wait(copy=False)``: the
@@ -20,7 +20,7 @@ variant), each as its own sender process and receiver process:
   sample's memory view into a preallocated array (one copy out);
 * ``copy``: ``np.copyto`` of the same size in one process (the floor).
 
-Both zenoh sessions are built by :func:`zplatform.transport.zenoh_config`
+Both zenoh sessions are built by :func:`zplatform.runtime.transport.zenoh_config`
 from one two-node mission (loopback TCP, shared memory per variant).
 
 Latency is one way: the sender writes ``time.monotonic_ns()`` into the
@@ -92,7 +92,7 @@ def _mission_text(cn_port: int, dn_port: int) -> str:
 
 
 def _channels() -> list[Any]:
-    from zplatform.bulk import BulkChannelConfig
+    from zplatform.runtime.bulk import BulkChannelConfig
 
     # The header is 32 bytes: shrink the array so a sample is exactly the size.
     return [
@@ -121,9 +121,9 @@ class _Sender:
         self.src = {n: bytearray(os.urandom(n)) for n in SIZES.values()}
         self.drops = 0
         if variant.startswith("zplatform"):
-            from zplatform.bulk import NodeBulk
-            from zplatform.mission import decode_mission
-            from zplatform.transport import NodeSession
+            from zplatform.mission.load import decode_mission
+            from zplatform.runtime.bulk import NodeBulk
+            from zplatform.runtime.transport import NodeSession
 
             m = decode_mission(mission_text)
             shm = variant == "zplatform_shm"
@@ -138,8 +138,8 @@ class _Sender:
         elif variant.startswith("raw_zenoh"):
             import zenoh
 
-            from zplatform.mission import decode_mission
-            from zplatform.transport import is_matching, open_session, zenoh_config
+            from zplatform.mission.load import decode_mission
+            from zplatform.runtime.transport import is_matching, open_session, zenoh_config
 
             m = decode_mission(mission_text)
             shm = variant == "raw_zenoh_shm"
@@ -260,9 +260,9 @@ class _Receiver:
         self.variant = variant
         self.dst = {n: np.empty(n, np.uint8) for n in SIZES.values()}
         if variant.startswith("zplatform"):
-            from zplatform.bulk import NodeBulk
-            from zplatform.mission import decode_mission
-            from zplatform.transport import NodeSession
+            from zplatform.mission.load import decode_mission
+            from zplatform.runtime.bulk import NodeBulk
+            from zplatform.runtime.transport import NodeSession
 
             m = decode_mission(mission_text)
             shm = variant == "zplatform_shm"
@@ -272,8 +272,8 @@ class _Receiver:
         elif variant.startswith("raw_zenoh"):
             import zenoh
 
-            from zplatform.mission import decode_mission
-            from zplatform.transport import open_session, zenoh_config
+            from zplatform.mission.load import decode_mission
+            from zplatform.runtime.transport import open_session, zenoh_config
 
             m = decode_mission(mission_text)
             self.session = open_session(

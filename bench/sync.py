@@ -12,7 +12,7 @@ same scheduling (see *Scheduling* below):
   the first region is encoded and queried until every reply has been checked
   and applied, or the sync deadline passed);
   These run the mission defaults (``transport.lowlatency`` off: module doc
-  of :mod:`zplatform.messages`).
+  of :mod:`zplatform.core.messages`).
   (one get per DN);
 * ``zplatform_wildcard_3dn``: the same with ``sync_query: wildcard`` (one
   query per loop with every DN's frame), and ``zplatform_lowlatency_3dn``
@@ -76,8 +76,8 @@ import numpy as np
 from bench.baselines import run_baseline
 from bench.cluster import BenchCluster, SyncSamples, make_mission
 from bench.common import RESULTS_DIR, bench_argparser, summarize, write_result
-from zplatform.deploy import DEPLOYMENT_ENV
-from zplatform.pki import DEPLOYMENT_FILE, ensure_pki
+from zplatform.security.deploy import DEPLOYMENT_ENV
+from zplatform.security.pki import DEPLOYMENT_FILE, ensure_pki
 
 RATE_HZ = 100.0
 REGION_BYTES = 256

@@ -49,10 +49,10 @@ REGION_BYTES = 256
 
 def cn_main(argv: list[str]) -> None:
     """``cn <mission> <loops> <out.json>``: the CN's real loop; per-loop sync figures to JSON."""
-    from zplatform.auth import load_keys
-    from zplatform.mission import load_mission
+    from zplatform.core.auth import load_keys
+    from zplatform.mission.load import load_mission
     from zplatform.node.control import ControlNode
-    from zplatform.node.runtime import StopFlag
+    from zplatform.runtime.process import StopFlag
 
     path, loops, out = argv[0], int(argv[1]), argv[2]
     m = load_mission(path)

@@ -17,7 +17,7 @@ and DN:
 Reported per hop (the difference of consecutive stamps): p50/p99 over the
 run, and the same over the loops whose sync missed its deadline, so a
 lever can be aimed at the hop that costs the time. The stamps are taken
-through the sync's public trace hook (:data:`zplatform.sync.SyncTrace`,
+through the sync's public trace hook (:data:`zplatform.runtime.sync.SyncTrace`,
 ``ControlNode(sync_trace=...)``, ``DeviceNode(sync_trace=...)``), in the
 traced processes only: the nodes run as shipped, and untraced nodes pay
 nothing for the hook.
@@ -83,11 +83,11 @@ _PRIO_ENV = "ZP_TRACE_ZENOH_PRIORITY"
 def _split_priorities() -> None:
     """With ``ZP_TRACE_ZENOH_PRIORITY=P``: when a node promotes its threads to
     SCHED_FIFO, every thread but the calling (loop) thread gets P instead
-    (:func:`zplatform.node.runtime.split_thread_priorities`)."""
+    (:func:`zplatform.runtime.process.split_thread_priorities`)."""
     p = os.environ.get(_PRIO_ENV)
     if not p:
         return
-    from zplatform.node.runtime import split_thread_priorities
+    from zplatform.runtime.process import split_thread_priorities
 
     split_thread_priorities(int(p))
 
@@ -95,10 +95,10 @@ def _split_priorities() -> None:
 def dn_main(argv: list[str]) -> None:
     """``dn <mission> <name> <out.json> [--no-realtime]``: a DN process
     (``zplatform node MISSION NAME``'s) with its hops stamped."""
-    from zplatform.auth import load_keys
-    from zplatform.mission import load_mission
+    from zplatform.core.auth import load_keys
+    from zplatform.mission.load import load_mission
     from zplatform.node.device import DeviceNode
-    from zplatform.node.runtime import StopFlag, setup_logging
+    from zplatform.runtime.process import StopFlag, setup_logging
 
     _split_priorities()
 
@@ -137,7 +137,7 @@ def dn_main(argv: list[str]) -> None:
 
 
 class _CnTrace:
-    """The in-process CN's :data:`~zplatform.sync.SyncTrace`: issued, back,
+    """The in-process CN's :data:`~zplatform.runtime.sync.SyncTrace`: issued, back,
     taken per DN and loop. ``logic`` is set once the node is built (stamps
     of loop 0, the warm-up, are not kept)."""
 

@@ -41,9 +41,9 @@ MISSION = VECTORS / "mission.yaml"
 sys.path.insert(0, str(HERE.parent))  # run from a checkout without installing
 
 from zplatform import DataVector, ElementSpec, Layout, RegionCodec, load_mission  # noqa: E402
-from zplatform.auth import MACS, NO_RUN, Channel, KeySet, Run, channel_key, link_of, run_key  # noqa: E402
-from zplatform.datavector import _region_descriptor  # noqa: E402
-from zplatform.events import Event, Severity, encode_event  # noqa: E402
+from zplatform.core.auth import MACS, NO_RUN, Channel, KeySet, Run, channel_key, link_of, run_key  # noqa: E402
+from zplatform.core.datavector import _region_descriptor  # noqa: E402
+from zplatform.core.events import Event, Severity, encode_event  # noqa: E402
 
 T0 = 1_700_000_000_000_000_000  # 2023-11-14T22:13:20Z in ns
 

@@ -5,8 +5,8 @@ from __future__ import annotations
 from pathlib import Path
 
 from zplatform import DataVector, Layout, RegionCodec
-from zplatform.commands import CommandHandler, RequestNumber
-from zplatform.loop import DeviceLogic
+from zplatform.control.commands import CommandHandler, RequestNumber
+from zplatform.control.loop import DeviceLogic
 
 
 def run_dn_loop(logic: DeviceLogic, loop: int, t_ns: int, cn: DataVector | None = None) -> None:

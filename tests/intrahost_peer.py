@@ -15,7 +15,7 @@ from __future__ import annotations
 import select
 import sys
 
-from zplatform.intrahost import IntraHostClient, IntraHostServer, link_names
+from zplatform.runtime.intrahost import IntraHostClient, IntraHostServer, link_names
 
 
 def main() -> None:

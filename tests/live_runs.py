@@ -17,7 +17,7 @@ import subprocess
 import sys
 from pathlib import Path
 
-from zplatform.transport import rewrite_endpoints
+from zplatform.runtime.transport import rewrite_endpoints
 
 ROOT = Path(__file__).resolve().parents[1]
 LED_YAML = ROOT / "configs" / "led_test.yaml"

@@ -1,9 +1,9 @@
 """A throwaway PKI for the TLS tests, made by the platform's own code
-(:func:`zplatform.pki.ensure_pki`, what ``zplatform keygen`` runs).
+(:func:`zplatform.security.pki.ensure_pki`, what ``zplatform keygen`` runs).
 
 **Tests only**: the CA key sits next to the certs in a temporary directory.
 A flight deployment's certificates come from ``zplatform keygen`` (or the
-team's own CA; see :mod:`zplatform.deploy` for the deployment file they go
+team's own CA; see :mod:`zplatform.security.deploy` for the deployment file they go
 into).
 """
 
@@ -12,8 +12,8 @@ from __future__ import annotations
 from collections.abc import Iterable
 from pathlib import Path
 
-from zplatform.deploy import Deployment, load_deployment
-from zplatform.pki import DEPLOYMENT_FILE, ensure_pki
+from zplatform.security.deploy import Deployment, load_deployment
+from zplatform.security.pki import DEPLOYMENT_FILE, ensure_pki
 
 __all__ = ["make_test_pki"]
 

@@ -11,10 +11,10 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from zplatform.auth import TAG_LEN
-from zplatform.codec import RegionCodec
 from zplatform.config import Mission
-from zplatform.datavector import DataVector, Layout
+from zplatform.core.auth import TAG_LEN
+from zplatform.core.codec import RegionCodec
+from zplatform.core.datavector import DataVector, Layout
 from zplatform.recorder import RecorderReader, recorder_dir
 from zplatform.recorder.format import FRAME
 

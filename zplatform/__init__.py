@@ -10,10 +10,30 @@ here; module paths below ``zplatform.`` are implementation detail.
 
 from __future__ import annotations
 
-from .auth import KeySet, load_keys
 from .boards import Board, SimBoard
 from .boards.world import WorldLink
-from .codec import (
+from .config import Mission
+from .config.codes import Command, CommandStatus, Fault, ParamLoad, ParamSave, SafedWhy, Thread
+from .control.commands import CommandHandler
+from .control.controllers import Controller, ControllerSet
+from .control.devices import Actuator, Device, DeviceSet, Sensor
+from .control.faults import FaultMonitor
+from .control.loop import ControlLogic, DeviceLogic
+from .control.monitors import MonitorSet
+from .control.params import (
+    ParamFileError,
+    ParamSaver,
+    ParamTable,
+    decode_params,
+    encode_params,
+    params_path,
+)
+from .control.rategroups import RateGroups
+from .control.statemachine import StateMachine
+from .control.uplink import ScriptCommand, fill_request, load_commands, parse_commands
+from .control.watchdog import Watchdog
+from .core.auth import KeySet, load_keys
+from .core.codec import (
     Frame,
     FrameDecoder,
     FrameEncoder,
@@ -21,13 +41,10 @@ from .codec import (
     decode_frame,
     encode_frame,
 )
-from .codes import Command, CommandStatus, Fault, ParamLoad, ParamSave, SafedWhy, Thread
-from .commands import CommandHandler
-from .components import Component
-from .config import Mission
-from .controllers import Controller, ControllerSet
-from .datavector import DataVector, ElementSpec, Handle, Layout, RegionSpec
-from .devices import Actuator, Device, DeviceSet, Sensor
+from .core.components import Component
+from .core.datavector import DataVector, ElementSpec, Handle, Layout, RegionSpec
+from .core.events import EV, Event, EventLog, EventReader, EventType, Severity
+from .core.health import FakeHealth, HealthPort, Heartbeat, Liveness
 from .errors import (
     ArchiveError,
     ClockSyncError,
@@ -49,14 +66,18 @@ from .errors import (
     TransportError,
     ZPlatformError,
 )
-from .events import EV, Event, EventLog, EventReader, EventType, Severity
-from .faults import FaultMonitor
 from .ground.gapfill import GapFill
 from .ground.link import GroundLink
 from .ground.logic import GroundLogic
 from .ground.script import ScriptPlayer
-from .health import FakeHealth, HealthPort, Heartbeat, Liveness
-from .keyspace import (
+from .mission.load import check_mission, decode_mission, load_mission
+from .mission.safety import SafetyWarning, safety_warnings
+from .mission.schema import mission_schema, reference_markdown
+from .recorder import FlightRecorder, RecorderReader
+from .runtime.scheduler import GcGuard, LoopStats, PeriodicLoop, setup_realtime
+from .runtime.timebase import NodeClock, VirtualClock
+from .runtime.transport import KeySpace
+from .security.keyspace import (
     KEYSPACE,
     ExpandedKey,
     KeyFrames,
@@ -67,32 +88,11 @@ from .keyspace import (
     keyspace_markdown,
     match_key,
 )
-from .lockstep import LockstepRunner, ReplayResult, SimResult, replay
-from .loop import ControlLogic, DeviceLogic
-from .mission import check_mission, decode_mission, load_mission
-from .monitors import MonitorSet
-from .params import (
-    ParamFileError,
-    ParamSaver,
-    ParamTable,
-    decode_params,
-    encode_params,
-    params_path,
-)
-from .rategroups import RateGroups
-from .recorder import FlightRecorder, RecorderReader
-from .records import CommandOutcome, EventRecord, TelemetryCounters
-from .replay_recording import Recorder
-from .safety import SafetyWarning, safety_warnings
-from .scheduler import GcGuard, LoopStats, PeriodicLoop, setup_realtime
-from .schema import mission_schema, reference_markdown
-from .statemachine import StateMachine
-from .telemetry import CsvLogger, read_csv
-from .timebase import NodeClock, VirtualClock
-from .transport import KeySpace
-from .uplink import ScriptCommand, fill_request, load_commands, parse_commands
-from .watchdog import Watchdog
-from .world import World, WorldBoard
+from .sim.lockstep import LockstepRunner, ReplayResult, SimResult, replay
+from .sim.replay_recording import Recorder
+from .telemetry.logs import CsvLogger, read_csv
+from .telemetry.records import CommandOutcome, EventRecord, TelemetryCounters
+from .world.model import World, WorldBoard
 
 __version__ = "0.1.0"
 

@@ -1,7 +1,7 @@
-"""``python -m zplatform``: the ``zplatform`` command (:func:`zplatform.cli.main`)."""
+"""``python -m zplatform``: the ``zplatform`` command (:func:`zplatform.cli.main.main`)."""
 
 import sys
 
-from .cli import main
+from .cli.main import main
 
 sys.exit(main())

@@ -119,12 +119,12 @@ class ControlError(ZPlatformError):
 
 
 class EventError(ZPlatformError):
-    """An event emitted that is not an entry of the catalogue (``zplatform.events.EV``)."""
+    """An event emitted that is not an entry of the catalogue (``zplatform.core.events.EV``)."""
 
 
 class IntraHostError(ZPlatformError):
     """An intra-host (iceoryx2 shared-memory) link cannot open: bad names, too
-    little shared memory on the host, or iceoryx2 refused (zplatform/intrahost.py)."""
+    little shared memory on the host, or iceoryx2 refused (zplatform/runtime/intrahost.py)."""
 
 
 class NodeError(ZPlatformError):

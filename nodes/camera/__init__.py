@@ -1,6 +1,6 @@
 """The camera mission's components (``configs/camera.yaml``): a camera on a
 device node and an image controller on the control node, joined by a bulk
-channel (:mod:`zplatform.bulk`) outside the 2 ms sync.
+channel (:mod:`zplatform.runtime.bulk`) outside the 2 ms sync.
 
 * :class:`SimCamera` (DN sensor): fills its bulk channel's array with a test
   pattern (a fixed gradient shifted by the frame number) every run and counts
@@ -17,9 +17,9 @@ from typing import Any
 import msgspec
 import numpy as np
 
-from zplatform.controllers import Controller
-from zplatform.datavector import DataVector
-from zplatform.devices import Sensor
+from zplatform.control.controllers import Controller
+from zplatform.control.devices import Sensor
+from zplatform.core.datavector import DataVector
 from zplatform.errors import ControlError
 
 __all__ = ["ImageStats", "SimCamera"]

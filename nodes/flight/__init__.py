@@ -3,7 +3,7 @@
 Flight software only: every class here talks to the Data Vector and, for
 devices, to board pins. The physics behind the pins is
 :mod:`nodes.flight.physics`, reached through the mission's vehicle world
-(:mod:`zplatform.world`), the serial board simulator in hardware in the
+(:mod:`zplatform.world.model`), the serial board simulator in hardware in the
 loop, or real hardware; nothing here can tell which.
 
 Device nodes (each reads its sensors at its own rate):
@@ -32,7 +32,7 @@ the airbrake rate, the EKF's measurement noise) are config fields that take
 a number or the name of an element: ``configs/flight.yaml`` names its
 mission parameters there (``target_m: apogee_target_m``), which the
 controllers read every loop, so a PRM_SET changes the flight without a
-rebuild (:mod:`zplatform.params`).
+rebuild (:mod:`zplatform.control.params`).
 
 Takeover-ready: every piece of state a controller needs from one loop to the
 next (EKF state and covariance, ground reference, persistence counts,
@@ -55,9 +55,9 @@ from typing import Annotated
 import msgspec
 from msgspec import Meta
 
-from zplatform.controllers import Controller
-from zplatform.datavector import DataVector
-from zplatform.devices import Sensor
+from zplatform.control.controllers import Controller
+from zplatform.control.devices import Sensor
+from zplatform.core.datavector import DataVector
 from zplatform.errors import ConfigError
 
 from .physics import atmosphere, pressure_altitude

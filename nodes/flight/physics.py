@@ -1,7 +1,7 @@
 """The flight's physics: a rocket in a 2-D vertical plane, its motor, air, chutes and sensors.
 
 This is simulation, not flight code: it runs behind the board contract, as
-the physics hook of the mission's vehicle world (:mod:`zplatform.world`),
+the physics hook of the mission's vehicle world (:mod:`zplatform.world.model`),
 and the flight software (:mod:`nodes.flight`) sees only what it puts on the
 boards' pins. :func:`vehicle` is that hook; :class:`Flight` is the model,
 also used alone by ``python -m bench.flight_validation``.
@@ -534,7 +534,7 @@ class _World:
 
 
 def vehicle(world: Any, t_ns: int) -> None:
-    """The vehicle world's physics hook (:mod:`zplatform.world`): advance to ``t_ns``.
+    """The vehicle world's physics hook (:mod:`zplatform.world.model`): advance to ``t_ns``.
 
     Reads the actuator pins (igniter, chutes' switches, airbrake servo) of
     every board, steps :class:`Flight` on the 400 Hz grid up to ``t_ns``,
@@ -591,7 +591,7 @@ def vehicle(world: Any, t_ns: int) -> None:
 
 
 def check(world: Any) -> None:
-    """Load-time check of the world (:mod:`zplatform.world`): the motor file
+    """Load-time check of the world (:mod:`zplatform.world.model`): the motor file
     reads, and every wired pin is on its board (ValueError otherwise)."""
     p: VehicleParams = world.params
     Motor(p.motor)

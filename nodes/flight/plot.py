@@ -20,7 +20,7 @@ from pathlib import Path
 from typing import Any
 
 from zplatform import LockstepRunner, load_mission
-from zplatform.uplink import load_commands
+from zplatform.control.uplink import load_commands
 
 ROOT = Path(__file__).resolve().parents[2]
 

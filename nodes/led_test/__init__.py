@@ -7,7 +7,7 @@
   (on for the first half of each period), timed from when it was enabled.
 
 Every one drives command elements only; the
-:class:`~zplatform.devices.DigitalOutput` devices on the DNs set the pins and
+:class:`~zplatform.control.devices.DigitalOutput` devices on the DNs set the pins and
 read them back into the ``*_fb`` elements. Safed, every LED is commanded off.
 """
 
@@ -18,8 +18,8 @@ from typing import Annotated
 import msgspec
 from msgspec import Meta
 
-from zplatform.controllers import Controller
-from zplatform.datavector import DataVector, Handle
+from zplatform.control.controllers import Controller
+from zplatform.core.datavector import DataVector, Handle
 from zplatform.errors import ConfigError
 
 __all__ = ["FlashController", "SequentialLedController", "StateLedController"]

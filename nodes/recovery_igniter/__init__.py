@@ -36,8 +36,8 @@ from typing import Annotated
 import msgspec
 from msgspec import Meta
 
-from zplatform.controllers import Controller
-from zplatform.datavector import DataVector
+from zplatform.control.controllers import Controller
+from zplatform.core.datavector import DataVector
 from zplatform.errors import ConfigError
 
 __all__ = ["ApogeeDetector", "IgniterSafetyController", "IgnitionController"]

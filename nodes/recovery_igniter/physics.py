@@ -1,7 +1,7 @@
 """Simulated flight for the recovery igniter test's barometers.
 
 :func:`flight` is the physics hook of the mission's vehicle world
-(:mod:`zplatform.world`): both device nodes' boards are ports onto one
+(:mod:`zplatform.world.model`): both device nodes' boards are ports onto one
 flight, which starts when the launch output (``launch_pin``, driven by dn0
 when the state machine enters ARMED) first reads on, not when a node starts:
 on the pad until then, then a ballistic coast from ``v0_mps`` to apogee,
@@ -62,7 +62,7 @@ def flight(world: Any, t_ns: int) -> None:
 
 
 def check(world: Any) -> None:
-    """Load-time check (:mod:`zplatform.world`): every pin named is on its board."""
+    """Load-time check (:mod:`zplatform.world.model`): every pin named is on its board."""
     p: FlightParams = world.params
     pins = [(p.launch_pin, "digital"), *(((n, pin), "analog") for n, pin in p.baro_pins.items())]
     for (node, pin), kind in pins:

@@ -18,8 +18,8 @@ import math
 import msgspec
 
 from zplatform.boards import SimBoard
-from zplatform.controllers import Controller
-from zplatform.datavector import DataVector
+from zplatform.control.controllers import Controller
+from zplatform.core.datavector import DataVector
 
 __all__ = ["Mirror", "waves"]
 

@@ -85,12 +85,12 @@ from typing import Any
 
 import zenoh
 
-from zplatform.auth import TAG_LEN
-from zplatform.codec import frame_overhead
-from zplatform.datavector import Layout
-from zplatform.deploy import load_deployment
-from zplatform.mission import load_mission
-from zplatform.transport import KeySpace, open_session, zenoh_config
+from zplatform.core.auth import TAG_LEN
+from zplatform.core.codec import frame_overhead
+from zplatform.core.datavector import Layout
+from zplatform.mission.load import load_mission
+from zplatform.runtime.transport import KeySpace, open_session, zenoh_config
+from zplatform.security.deploy import load_deployment
 
 MODES = (
     *(f"{k}-{p}" for k in ("query", "reply", "tm") for p in ("junk", "replay", "mixed")),

@@ -13,7 +13,7 @@ from typing import Any
 
 import zenoh
 
-import zplatform.sync as zsync
+import zplatform.runtime.sync as zsync
 
 
 class _DropGets:
@@ -39,6 +39,6 @@ def _patched_init(self: zsync.ControlSync, session: zenoh.Session, *a: Any, **k:
 zsync.ControlSync.__init__ = _patched_init  # type: ignore[method-assign]
 
 if __name__ == "__main__":
-    from zplatform.cli import main
+    from zplatform.cli.main import main
 
     raise SystemExit(main(sys.argv[1:]))

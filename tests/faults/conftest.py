@@ -24,7 +24,7 @@ import zenoh
 from tests.faults.netns import NetnsHost, NetnsLab, netns_unavailable
 from tests.faults.peers import ECHO_KEY, echo, peer_config
 from tests.faults.relay import FaultRelay
-from zplatform.transport import free_port
+from zplatform.runtime.transport import free_port
 
 
 def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:

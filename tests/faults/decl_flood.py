@@ -53,8 +53,8 @@ from tests.faults.floods import (
 from tests.faults.live import CaseResult, Live, live
 from tests.faults.missions import plain_tcp_mission
 from tests.integration.harness import ROOT
-from zplatform.deploy import default_deployment_path
-from zplatform.transport import free_port
+from zplatform.runtime.transport import free_port
+from zplatform.security.deploy import default_deployment_path
 
 RATE = 2000.0
 """Declarations per second of the attacker."""

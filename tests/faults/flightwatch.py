@@ -159,8 +159,8 @@ class FlightWatch:
 def watch_main(mission_path: str) -> int:
     """Print the mission's telemetry and events as JSON lines until stdin closes."""
     from zplatform.ground.link import GroundLink
-    from zplatform.mission import load_mission
-    from zplatform.records import EventRecord
+    from zplatform.mission.load import load_mission
+    from zplatform.telemetry.records import EventRecord
 
     # The lowest real-time priority where permitted: below every node (they
     # run at the mission's, 20), above a CPU hog, which would otherwise start

@@ -56,11 +56,11 @@ from tests.faults.live import CaseResult, Live, _check_in_order, _final, live
 from tests.faults.missions import plain_tcp_mission
 from tests.faults.relay import FaultRelay
 from tests.integration.harness import CONFIGS, ROOT
-from zplatform.auth import TAG_LEN
-from zplatform.codec import frame_overhead
 from zplatform.config import Mission
-from zplatform.datavector import Layout
-from zplatform.messages import lowlatency_for
+from zplatform.core.auth import TAG_LEN
+from zplatform.core.codec import frame_overhead
+from zplatform.core.datavector import Layout
+from zplatform.core.messages import lowlatency_for
 
 IGNITER = CONFIGS / "recovery_igniter.yaml"
 MINIMAL = CONFIGS / "minimal.yaml"
@@ -537,7 +537,7 @@ def case_restart_beside_rogue(tmp: Path, quick: bool) -> CaseResult:
     """dn0 killed and restarted while a rogue answers on its key at ``RATE``
     (junk and dn0's own captured replies): the CN, which took replies only
     from dn0's first session, takes the restarted dn0's (a new zenoh
-    session) once the first has gone quiet (:data:`zplatform.sync.REPIN_AFTER`
+    session) once the first has gone quiet (:data:`zplatform.runtime.sync.REPIN_AFTER`
     loops), and never the rogue's (the minimal mission on plain TCP)."""
     r = CaseResult("restart_beside_rogue")
     a: Attacker | None = None

@@ -42,14 +42,14 @@ import atheris
 # about 2 s of CPU before its first run. atheris takes a package to include
 # (a module name counts as its top-level package), so the rest are excluded.
 FUZZED_MODULES = {
-    "zplatform.codec",
-    "zplatform.commands",
+    "zplatform.core.codec",
+    "zplatform.control.commands",
     "zplatform.config",
-    "zplatform.datavector",
-    "zplatform.events",
-    "zplatform.params",
-    "zplatform.statemachine",
-    "zplatform.types",
+    "zplatform.core.datavector",
+    "zplatform.core.events",
+    "zplatform.control.params",
+    "zplatform.control.statemachine",
+    "zplatform.config.types",
 }
 _SRC = Path(__file__).resolve().parents[2] / "zplatform"
 _NOT_FUZZED = sorted(
@@ -59,13 +59,13 @@ _NOT_FUZZED = sorted(
 )
 
 with atheris.instrument_imports(include=["zplatform"], exclude=_NOT_FUZZED):
-    from zplatform.codec import RegionCodec, decode_frame, encode_frame
-    from zplatform.commands import CommandHandler, CommandStatus
-    from zplatform.datavector import DataVector, Layout
+    from zplatform.control.commands import CommandHandler, CommandStatus
+    from zplatform.control.statemachine import StateMachine
+    from zplatform.core.codec import RegionCodec, decode_frame, encode_frame
+    from zplatform.core.datavector import DataVector, Layout
+    from zplatform.core.events import EventLog
     from zplatform.errors import CodecError
-    from zplatform.events import EventLog
-    from zplatform.mission import load_mission
-    from zplatform.statemachine import StateMachine
+    from zplatform.mission.load import load_mission
 
 from tests.drive import step_request  # noqa: E402 (after the instrumented imports)
 

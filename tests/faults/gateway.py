@@ -19,9 +19,9 @@ import json
 import sys
 import time
 
-from zplatform.deploy import load_deployment
-from zplatform.mission import load_mission
-from zplatform.transport import open_session, zenoh_config
+from zplatform.mission.load import load_mission
+from zplatform.runtime.transport import open_session, zenoh_config
+from zplatform.security.deploy import load_deployment
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -1,8 +1,8 @@
-"""The live flood suite generated from the key space (``zplatform/keyspace.py``),
+"""The live flood suite generated from the key space (``zplatform/security/keyspace.py``),
 shared by the tests (``test_keyfloods.py``) and the benchmark (``bench/faults.py``).
 
 :func:`flood_plan` reads the mission's expanded key space
-(:func:`zplatform.keyspace.expand_keys`: each device node's keys, each
+(:func:`zplatform.security.keyspace.expand_keys`: each device node's keys, each
 node's) and gives every (row, frame kind) a keyless peer on plain TCP can
 reach either a :class:`Flood` or a :data:`NOT_FLOODED` reason, so a row
 added to the table later gets its flood (or fails ``test_keyfloods.py``
@@ -82,7 +82,7 @@ from tests.faults.live import CaseResult, Live, _check_in_order, live
 from tests.faults.missions import plain_tcp_mission
 from tests.integration.harness import CONFIGS
 from zplatform.config import Mission
-from zplatform.keyspace import KEYSPACE, ExpandedKey, KeyFrames, KeyRow, expand_keys
+from zplatform.security.keyspace import KEYSPACE, ExpandedKey, KeyFrames, KeyRow, expand_keys
 
 MISSIONS = {"flight": CONFIGS / "flight.yaml", "recovery_igniter": IGNITER}
 FLOOD_S = 2.0
@@ -240,7 +240,7 @@ def _flood(m: Mission, k: ExpandedKey, f: KeyFrames) -> Flood:
         note = "junk only: a control node probes only in a takeover (nothing to capture)"
     elif row == "gn_to_cn":
         # A request of a wrong size is a bad frame; of the right size, a
-        # bad tag or a replay is a reject (zplatform.loop: ControlLogic._refused).
+        # bad tag or a replay is a reject (zplatform.control.loop: ControlLogic._refused).
         counter, count, capture = "cn_cmd_rejects+cn_bad_frames", "at_least", "wiretap"
     elif row == "telemetry":
         counter, count, capture = "gn:telemetry_bad", "at_least", k.key

@@ -67,11 +67,11 @@ import zenoh
 from tests.faults.missions import relay_links
 from tests.faults.relay import FaultRelay
 from tests.integration.harness import CONFIGS, Cluster
-from zplatform.auth import load_keys
-from zplatform.datavector import DataVector, Layout
-from zplatform.events import EventReader
+from zplatform.core.auth import load_keys
+from zplatform.core.datavector import DataVector, Layout
+from zplatform.core.events import EventReader
 from zplatform.ground.link import GroundLink
-from zplatform.mission import load_mission
+from zplatform.mission.load import load_mission
 
 MISSION = CONFIGS / "minimal.yaml"
 PERIOD_S = 0.01
@@ -1215,8 +1215,8 @@ def watch_main(mission_path: str) -> int:
     import sys
 
     from zplatform.ground.logic import GroundLogic
-    from zplatform.timebase import NodeClock
-    from zplatform.transport import zenoh_config
+    from zplatform.runtime.timebase import NodeClock
+    from zplatform.runtime.transport import zenoh_config
 
     m = load_mission(mission_path)
     cfg = zenoh_config(m, None)

@@ -29,8 +29,8 @@ import yaml
 from tests.faults.netns import NetnsHost
 from tests.faults.relay import FaultRelay
 from zplatform.config import relocate_mission
-from zplatform.messages import lowlatency_for
-from zplatform.mission import load_mission
+from zplatform.core.messages import lowlatency_for
+from zplatform.mission.load import load_mission
 
 PORT = 7447
 

@@ -36,7 +36,7 @@ def peer_config(
     lowlatency: bool = False,
 ) -> zenoh.Config:
     c = zenoh.Config()
-    if lowlatency:  # as zplatform.transport sets it (QoS off: zenoh refuses the pair)
+    if lowlatency:  # as zplatform.runtime.transport sets it (QoS off: zenoh refuses the pair)
         c.insert_json5("transport/unicast/lowlatency", "true")
         c.insert_json5("transport/unicast/qos/enabled", "false")
     for key, value in (

@@ -1,9 +1,9 @@
 """The access-control list bounds what a peer may *declare*, not only what
-it may send (zplatform.deploy.access_control), measured on the wire.
+it may send (zplatform.security.deploy.access_control), measured on the wire.
 
 In this process, on loopback, over mutual TLS with the deployment's access
 control: a ``cn`` and a ``dn0`` session with their own certificates and
-configs (:func:`zplatform.transport.zenoh_config`, what their nodes run),
+configs (:func:`zplatform.runtime.transport.zenoh_config`, what their nodes run),
 and a peer presenting the mission's read-only ``tool`` certificate,
 connected to both, that declares :data:`N` subscribers on the whole key
 space ``{vehicle}/**`` and :data:`N` queryables on dn0's sync key, then one
@@ -37,8 +37,8 @@ import pytest
 import zenoh
 
 from tests.pki import make_test_pki
-from zplatform.mission import decode_mission
-from zplatform.transport import free_port, open_session, zenoh_config
+from zplatform.mission.load import decode_mission
+from zplatform.runtime.transport import free_port, open_session, zenoh_config
 
 pytestmark = pytest.mark.timeout(120)
 

@@ -13,7 +13,7 @@ from tests.budget import later_than_now, sync_counts
 from tests.faults.missions import relay_links
 from tests.faults.relay import FaultRelay
 from tests.integration.harness import CONFIGS, Cluster
-from zplatform.mission import load_mission
+from zplatform.mission.load import load_mission
 
 pytestmark = pytest.mark.timeout(120)
 

@@ -38,8 +38,8 @@ No failure is excused: the zenoh defects these cases used to be gated on
 (eclipse-zenoh/zenoh#2806, a session between the control nodes split after a
 stop when both dialed each other; #2517, queries between connected peers
 lost while another peer's session closes) are designed out (one dialer per
-pair, :func:`zplatform.transport.dial_ranks`) or recovered from (a query
-that a live peer's queryable leaves unanswered, :mod:`zplatform.queries`),
+pair, :func:`zplatform.runtime.transport.dial_ranks`) or recovered from (a query
+that a live peer's queryable leaves unanswered, :mod:`zplatform.runtime.queries`),
 docs/architecture.md#failover.
 
 Waits are on telemetry, events, process exit or a node's log file; a sleep
@@ -70,13 +70,13 @@ from tests.faults.missions import mesh_mission
 from tests.faults.netns import NetnsHost, NetnsLab
 from tests.integration.harness import CONFIGS, ROOT
 from tests.terms import driven_terms, two_term_loops
-from zplatform import registry
+from zplatform.cli import registry
 from zplatform.config import Mission
-from zplatform.mission import load_mission
-from zplatform.pki import ensure_mission_pki
+from zplatform.mission.load import load_mission
 from zplatform.recorder import RECORDER_DIR_ENV, RecorderReader
 from zplatform.recorder.format import FRAME
-from zplatform.telemetry import read_csv
+from zplatform.security.pki import ensure_mission_pki
+from zplatform.telemetry.logs import read_csv
 
 FLIGHT = CONFIGS / "flight.yaml"
 COMMANDS = CONFIGS / "flight.commands"
@@ -830,7 +830,7 @@ def test_the_standby_stopped_for_a_second_gets_the_mirrors_again(
     it gone: its lease ran out and the session between the two closed), then
     SIGCONT: the case of eclipse-zenoh/zenoh#2806 while both control nodes
     dialed each other. With one dialer per pair
-    (:func:`zplatform.transport.dial_ranks`: cn_b dials cn, never cn cn_b)
+    (:func:`zplatform.runtime.transport.dial_ranks`: cn_b dials cn, never cn cn_b)
     the session opens again one way, and the standby takes the commander's
     mirrors again (its flight recorder, to the landing, with no gap longer
     than :data:`STALE_LOOPS`), the commander reports it ready again, and

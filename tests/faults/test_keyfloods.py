@@ -29,8 +29,8 @@ from tests.faults.keyfloods import (
     known_failures,
     representatives,
 )
-from zplatform.keyspace import KEYSPACE, KeyFrames, KeyRow, expand_keys
-from zplatform.mission import load_mission
+from zplatform.mission.load import load_mission
+from zplatform.security.keyspace import KEYSPACE, KeyFrames, KeyRow, expand_keys
 
 pytestmark = [pytest.mark.faults]
 _LOADED = {n: load_mission(p) for n, p in MISSIONS.items()}

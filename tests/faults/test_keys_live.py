@@ -41,11 +41,11 @@ import zenoh
 from tests.budget import LINK_ALIVE
 from tests.drive import igniter_quick_flight
 from tests.integration.harness import CONFIGS, Cluster
-from zplatform.auth import KEY_FILE_ENV, Channel, KeySet, Run, load_keys, write_key_set
-from zplatform.codec import RegionCodec
-from zplatform.datavector import DataVector, Layout
-from zplatform.mission import load_mission
-from zplatform.timebase import NodeClock
+from zplatform.core.auth import KEY_FILE_ENV, Channel, KeySet, Run, load_keys, write_key_set
+from zplatform.core.codec import RegionCodec
+from zplatform.core.datavector import DataVector, Layout
+from zplatform.mission.load import load_mission
+from zplatform.runtime.timebase import NodeClock
 
 pytestmark = pytest.mark.timeout(240)
 
@@ -152,7 +152,7 @@ def test_a_ground_key_cannot_fire_the_igniter(
         # igniter may fire in.
         cn = load_keys(c.mission, "cn", files["cn"])
         assert cn is not None
-        # In the CN's run (zplatform.auth.Run): what an insider holding its
+        # In the CN's run (zplatform.core.auth.Run): what an insider holding its
         # key can do in the current run (an earlier run's frames never verify).
         run = Run(int(c.tm.get("cn_epoch")))
         seal = {dn: cn.channel(f"cn_to_{dn}", run) for dn in ("dn0", "dn1")}

@@ -1,9 +1,9 @@
 """The generated fault suite: every tagged frame of every key a mission uses,
 fed to the intake that guards it (in process, no network).
 
-The plan is the key space (zplatform/keyspace.py): for each row of the
+The plan is the key space (zplatform/security/keyspace.py): for each row of the
 shipped flight and recovery_igniter missions, expanded per device node and
-per node (:func:`zplatform.keyspace.expand_keys`), and each frame of it
+per node (:func:`zplatform.security.keyspace.expand_keys`), and each frame of it
 that carries a tag, the row's intake gets
 
 * junk of its longest accepted length, one byte over, of 0 and of 1 byte;
@@ -43,18 +43,11 @@ from zplatform.archive import Query as ArchiveQuery
 from zplatform.archive.server import ASK as ARCHIVE_ASK
 from zplatform.archive.server import MAX_ASK, ArchiveAsk, ArchiveServer
 from zplatform.archive.server import REPLY as ARCHIVE_REPLY
-from zplatform.auth import KEY_ENV, TAG_LEN, KeySet, Run, channel
-from zplatform.clocksync import ClockLink, ClockResponder
-from zplatform.codec import BundleEncoder, decode_frame, encode_frame
 from zplatform.config import Mission
-from zplatform.datavector import DataVector, Layout
-from zplatform.events import Event, EventLog, encode_event
-from zplatform.failover import Standby
-from zplatform.fencing import ASK, NONCE_LEN, ask_frame, new_nonce
-from zplatform.ground.gapfill import GapFill
-from zplatform.ground.logic import Gap, GroundLogic
-from zplatform.handoff import Waker
-from zplatform.intake import (
+from zplatform.control.failover import Standby
+from zplatform.control.fencing import ASK, NONCE_LEN, ask_frame, new_nonce
+from zplatform.control.handoff import Waker
+from zplatform.control.intake import (
     MirrorIntake,
     ProbeIntake,
     ReplyCheck,
@@ -62,12 +55,19 @@ from zplatform.intake import (
     TelemetryIntake,
     TriggerIntake,
 )
-from zplatform.keyspace import ExpandedKey, KeyFrames, expand_keys
-from zplatform.loop import ControlLogic, DeviceLogic
-from zplatform.mission import load_mission
+from zplatform.control.loop import ControlLogic, DeviceLogic
+from zplatform.control.uplink import Uplink
+from zplatform.core.auth import KEY_ENV, TAG_LEN, KeySet, Run, channel
+from zplatform.core.codec import BundleEncoder, decode_frame, encode_frame
+from zplatform.core.datavector import DataVector, Layout
+from zplatform.core.events import Event, EventLog, encode_event
+from zplatform.ground.gapfill import GapFill
+from zplatform.ground.logic import Gap, GroundLogic
+from zplatform.mission.load import load_mission
 from zplatform.recorder.format import REPLY_FRAMES, REPLY_LEN, REQUEST, REQUEST_MAGIC
 from zplatform.recorder.server import RecorderServer
-from zplatform.uplink import Uplink
+from zplatform.runtime.clocksync import ClockLink, ClockResponder
+from zplatform.security.keyspace import ExpandedKey, KeyFrames, expand_keys
 
 ROOT = Path(__file__).resolve().parents[2]
 MISSIONS = {n: load_mission(ROOT / "configs" / f"{n}.yaml") for n in ("flight", "recovery_igniter")}
@@ -167,7 +167,7 @@ class Harness(ABC):
 
 
 class _IntakeCounts:
-    """Counts of a zplatform.intake.Intake, accumulated across take_counts()."""
+    """Counts of a zplatform.control.intake.Intake, accumulated across take_counts()."""
 
     intake: Any
 
@@ -184,7 +184,7 @@ def _learn_run(m: Mission, node: str, keys: KeySet, t0: int, run: Run | None = N
     """The run of the control node that started at ``t0`` (its ``cn_epoch``),
     as ``node`` (a device node, or the standby ``cn_b``) learns it: one clock
     exchange, a hello, with that control node's clock server
-    (zplatform.clocksync). Into ``run`` if given."""
+    (zplatform.runtime.clocksync). Into ``run`` if given."""
     link = ClockLink(m, node, keys, run=run)
     responder = ClockResponder(m, keys, Run(t0))
     query, nonce = link.query(t0)
@@ -491,7 +491,7 @@ class ClockReplyH(Harness):
 
 class MirrorH(_IntakeCounts, Harness):
     """A standby's mirror frames, as the node takes them: its intake
-    (zplatform.intake.MirrorIntake: size, tag, range, sender, newer), its
+    (zplatform.control.intake.MirrorIntake: size, tag, range, sender, newer), its
     mailbox, then Standby.mirror."""
 
     def __init__(self, m: Mission, t0: int = T0) -> None:
@@ -585,7 +585,7 @@ class ProbeReplyH(Harness):
 
     @classmethod
     def gaps(cls, m: Mission) -> dict[str, str]:
-        return {}  # read_reply range-checks term, promise and loop (zplatform.fencing)
+        return {}  # read_reply range-checks term, promise and loop (zplatform.control.fencing)
 
     def __init__(self, m: Mission, dn: str, t0: int = T0) -> None:
         self.t0 = t0

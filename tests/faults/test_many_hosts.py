@@ -19,7 +19,7 @@ import pytest
 from tests.budget import assert_every_loop_counted
 from tests.faults.missions import netns_mission
 from tests.faults.netns import NetnsHost
-from zplatform.telemetry import read_csv
+from zplatform.telemetry.logs import read_csv
 
 ROOT = Path(__file__).resolve().parents[2]
 pytestmark = pytest.mark.faults

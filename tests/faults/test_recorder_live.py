@@ -28,7 +28,7 @@ import yaml
 from tests.faults.missions import relay_links
 from tests.faults.relay import FaultRelay
 from tests.integration.harness import CONFIGS, ROOT, Cluster
-from zplatform.mission import load_mission
+from zplatform.mission.load import load_mission
 from zplatform.recorder import RECORDER_DIR_ENV, RecorderReader, recorder_dir
 from zplatform.recorder.format import FRAME
 

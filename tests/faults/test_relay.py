@@ -21,7 +21,7 @@ import zenoh
 from tests.faults.conftest import ZenohPair
 from tests.faults.peers import ECHO_KEY, echo, get_once, peer_config
 from tests.faults.relay import DirStats, FaultPlan, FaultRelay, RelayProcess
-from zplatform.transport import free_port
+from zplatform.runtime.transport import free_port
 
 ROOT = Path(__file__).resolve().parents[2]
 

@@ -1,4 +1,4 @@
-"""mTLS and access control across network namespaces (zplatform.deploy).
+"""mTLS and access control across network namespaces (zplatform.security.deploy).
 
 First, the default: the recovery igniter (hazardous commands, so
 ``security.transport: auto`` runs mutual TLS) with the PKI made where ``up``
@@ -52,9 +52,9 @@ from tests.faults.missions import netns_mission
 from tests.faults.netns import NetnsHost
 from tests.faults.test_netns import readline
 from tests.pki import make_test_pki
-from zplatform.deploy import DEPLOYMENT_ENV
-from zplatform.mission import load_mission
-from zplatform.pki import ensure_mission_pki
+from zplatform.mission.load import load_mission
+from zplatform.security.deploy import DEPLOYMENT_ENV
+from zplatform.security.pki import ensure_mission_pki
 
 ROOT = Path(__file__).resolve().parents[2]
 PY = sys.executable

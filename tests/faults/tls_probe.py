@@ -36,12 +36,12 @@ from typing import Any
 
 import zenoh
 
-from zplatform.auth import load_keys
-from zplatform.deploy import Deployment, ToolIdentity
+from zplatform.core.auth import load_keys
 from zplatform.ground.logic import GroundLogic
-from zplatform.mission import load_mission
-from zplatform.timebase import NodeClock
-from zplatform.transport import KeySpace, open_session, zenoh_config
+from zplatform.mission.load import load_mission
+from zplatform.runtime.timebase import NodeClock
+from zplatform.runtime.transport import KeySpace, open_session, zenoh_config
+from zplatform.security.deploy import Deployment, ToolIdentity
 
 GARBAGE = b"\x93intruder\x00not-a-frame"
 

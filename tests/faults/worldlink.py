@@ -1,6 +1,6 @@
 """The vehicle world's link carried from one network namespace's loopback to another's.
 
-A mission's vehicle world (``zplatform world``, :mod:`zplatform.world`) is
+A mission's vehicle world (``zplatform world``, :mod:`zplatform.world.model`) is
 the physics behind the device nodes' boards: each ``driver: world`` board
 exchanges its pins with it in UDP datagrams on loopback (``world.listen``,
 checked to be a loopback address). With the device nodes on hosts of their

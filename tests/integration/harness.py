@@ -19,11 +19,11 @@ from typing import Any
 import yaml
 
 from zplatform.config import Mission
-from zplatform.datavector import DataVector
+from zplatform.core.datavector import DataVector
 from zplatform.ground.link import GroundLink
-from zplatform.mission import load_mission
-from zplatform.pki import ensure_mission_pki
-from zplatform.transport import rewrite_endpoints
+from zplatform.mission.load import load_mission
+from zplatform.runtime.transport import rewrite_endpoints
+from zplatform.security.pki import ensure_mission_pki
 
 ROOT = Path(__file__).resolve().parents[2]
 CONFIGS = ROOT / "configs"

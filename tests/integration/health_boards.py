@@ -1,7 +1,7 @@
 """A board for the health tests (not collected: no ``test_`` prefix).
 
 ``tests.integration.health_boards:HangBoard`` is a simulated board with an
-I/O thread of its own that checks in (``heartbeat``, zplatform.health) every
+I/O thread of its own that checks in (``heartbeat``, zplatform.core.health) every
 20 ms, until the file ``hang_file`` names exists: then the thread hangs (it
 blocks until the board is closed), as a thread stuck in a driver would.
 """
@@ -15,7 +15,7 @@ from typing import Any
 import msgspec
 
 from zplatform.boards import SimBoard
-from zplatform.health import Heartbeat
+from zplatform.core.health import Heartbeat
 
 
 class HangBoard(SimBoard):

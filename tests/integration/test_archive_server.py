@@ -16,11 +16,11 @@ from tests.faults.peers import peer_config
 from tests.unit.test_archive import T0, feed
 from zplatform.archive import Archive, ArchiveWriter, Query
 from zplatform.archive.server import ArchiveServer, remote_query
-from zplatform.auth import KeySet
-from zplatform.datavector import DataVector, Layout
+from zplatform.core.auth import KeySet
+from zplatform.core.datavector import DataVector, Layout
 from zplatform.errors import ArchiveError
-from zplatform.mission import load_mission
-from zplatform.transport import free_port, is_matching
+from zplatform.mission.load import load_mission
+from zplatform.runtime.transport import free_port, is_matching
 
 ROOT = Path(__file__).resolve().parents[2]
 MISSION = load_mission(ROOT / "configs" / "flight.yaml", code=False)

@@ -29,10 +29,10 @@ import msgspec
 import numpy as np
 import pytest
 
-from zplatform.bulk import BulkChannelConfig, NodeBulk
 from zplatform.config import Mission
-from zplatform.mission import decode_mission
-from zplatform.transport import NodeSession, free_port, is_matching
+from zplatform.mission.load import decode_mission
+from zplatform.runtime.bulk import BulkChannelConfig, NodeBulk
+from zplatform.runtime.transport import NodeSession, free_port, is_matching
 
 ROOT = Path(__file__).resolve().parents[2]
 MB = 1 << 20

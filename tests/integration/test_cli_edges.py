@@ -21,10 +21,12 @@ from pathlib import Path
 import pytest
 import yaml
 
-from zplatform import CommandError, cli_runtime, registry
-from zplatform.cli import build_parser, main
-from zplatform.events import Event, Severity, encode_event
-from zplatform.transport import rewrite_endpoints
+from zplatform import CommandError
+from zplatform.cli import registry
+from zplatform.cli import runtime as cli_runtime
+from zplatform.cli.main import build_parser, main
+from zplatform.core.events import Event, Severity, encode_event
+from zplatform.runtime.transport import rewrite_endpoints
 
 from .harness import CONFIGS, ROOT
 
@@ -145,10 +147,10 @@ def test_tap_without_bounds_gives_up_on_silence(
 
 def test_tap_shows_f32_values_at_their_own_precision() -> None:
     """0.7 in an f32 element taps as 0.7, not the widened double 0.699999988079071."""
-    from zplatform.auth import load_keys
+    from zplatform.control.loop import ControlLogic
+    from zplatform.core.auth import load_keys
     from zplatform.ground.tap import TapDecoder, format_tap
-    from zplatform.loop import ControlLogic
-    from zplatform.mission import load_mission
+    from zplatform.mission.load import load_mission
 
     mission = load_mission(CONFIGS / "flight.yaml")
     cn = ControlLogic(mission, keys=load_keys(mission, "cn"), epoch=10**18)
@@ -162,9 +164,9 @@ def test_tap_shows_f32_values_at_their_own_precision() -> None:
 
 
 def test_tap_prints_events_decoded() -> None:
-    from zplatform.auth import load_keys
+    from zplatform.core.auth import load_keys
     from zplatform.ground.tap import TapDecoder, format_tap
-    from zplatform.mission import load_mission
+    from zplatform.mission.load import load_mission
 
     mission = load_mission(CONFIGS / "minimal.yaml")
     dec = TapDecoder(mission)
@@ -196,10 +198,10 @@ def test_tap_prints_events_decoded() -> None:
 @pytest.mark.parametrize(
     ("argv", "blocked", "phrase"),
     [
-        (["xtce", "configs/minimal.yaml"], ("yamcs", "zplatform.xtce"), "zplatform[ground]"),
+        (["xtce", "configs/minimal.yaml"], ("yamcs", "zplatform.cli.xtce"), "zplatform[ground]"),
         (
             ["ccsds", "configs/minimal.yaml", "--decode", "x.bin", "--out", "x.csv"],
-            ("spacepackets", "zplatform.ccsds", "zplatform.xtce"),
+            ("spacepackets", "zplatform.telemetry.ccsds", "zplatform.cli.xtce"),
             "zplatform[ground]",
         ),
         (["plot", "x.csv", "cn_loop", "--out", "x.png"], ("matplotlib",), "zplatform[plot]"),
@@ -354,7 +356,7 @@ def test_second_up_on_the_same_ports_is_refused(tmp_path: Path) -> None:
 
 
 def test_sim_default_duration_covers_the_script(tmp_path: Path) -> None:
-    from zplatform.telemetry import read_csv
+    from zplatform.telemetry.logs import read_csv
 
     out = tmp_path / "sim.csv"
     rc = main(

@@ -51,8 +51,8 @@ from textual import events
 from textual.widgets import Static
 
 from zplatform.console import ConfirmScreen, ConsoleApp, ConsoleModel, Link
-from zplatform.events import Severity
-from zplatform.transport import rewrite_endpoints
+from zplatform.core.events import Severity
+from zplatform.runtime.transport import rewrite_endpoints
 
 from .harness import CONFIGS, ROOT, Cluster
 

@@ -38,8 +38,8 @@ import psutil
 
 from zplatform.console.web import COOKIE, KILL_GRACE_S, QUIT_GRACE_S
 from zplatform.console.webdriver import EXIT_GRACE_S
-from zplatform.node.runtime import PARENT_ENV
-from zplatform.transport import rewrite_endpoints
+from zplatform.runtime.process import PARENT_ENV
+from zplatform.runtime.transport import rewrite_endpoints
 
 from .harness import CONFIGS, ROOT, Cluster
 

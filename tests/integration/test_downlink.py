@@ -10,8 +10,8 @@ from pathlib import Path
 import pytest
 
 from tests.budget import LINK_ALIVE
-from zplatform.cli import main
-from zplatform.telemetry import read_csv
+from zplatform.cli.main import main
+from zplatform.telemetry.logs import read_csv
 
 from .harness import CONFIGS, ROOT, Cluster
 

@@ -15,11 +15,11 @@ import os
 import time
 from pathlib import Path
 
-from zplatform.auth import KEY_ENV, KeySet, channel
-from zplatform.events import Event, encode_event
+from zplatform.core.auth import KEY_ENV, KeySet, channel
+from zplatform.core.events import Event, encode_event
 from zplatform.ground.link import EVENT_BACKLOG, EVENT_MAX, GroundLink
-from zplatform.mission import load_mission
-from zplatform.transport import rewrite_endpoints
+from zplatform.mission.load import load_mission
+from zplatform.runtime.transport import rewrite_endpoints
 
 CONFIGS = Path(__file__).resolve().parents[2] / "configs"
 

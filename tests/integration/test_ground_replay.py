@@ -29,8 +29,8 @@ import pytest
 import zenoh
 
 from zplatform.ground.link import GroundLink
-from zplatform.telemetry import read_csv
-from zplatform.transport import free_port, zenoh_config
+from zplatform.runtime.transport import free_port, zenoh_config
+from zplatform.telemetry.logs import read_csv
 
 from .harness import CONFIGS, ROOT, Cluster
 

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 
-from zplatform.cli import main
+from zplatform.cli.main import main
 
 from .harness import CONFIGS, ROOT, Cluster, zp_side_by_side
 

@@ -27,9 +27,9 @@ from typing import Any
 import pytest
 import yaml
 
-from zplatform.auth import load_keys
-from zplatform.codes import Thread
-from zplatform.events import Event, EventReader
+from zplatform.config.codes import Thread
+from zplatform.core.auth import load_keys
+from zplatform.core.events import Event, EventReader
 
 from .harness import ROOT, Cluster
 

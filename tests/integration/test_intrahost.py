@@ -1,4 +1,4 @@
-"""The intra-host carrier between real processes (zplatform/intrahost.py).
+"""The intra-host carrier between real processes (zplatform/runtime/intrahost.py).
 
 The device node's end runs in a child process (tests/intrahost_peer.py) that
 says ``ready`` once its server exists; the control node's end is this test.
@@ -29,7 +29,7 @@ from pathlib import Path
 import pytest
 
 from tests.intrahost_peer import leftovers, wipe
-from zplatform.intrahost import (
+from zplatform.runtime.intrahost import (
     IntraHostClient,
     IntraHostServer,
     LinkState,

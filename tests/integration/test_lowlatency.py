@@ -13,9 +13,9 @@ import queue
 
 import zenoh
 
-from zplatform.messages import LOWLATENCY_MAX_MESSAGE, lowlatency_for
-from zplatform.mission import decode_mission
-from zplatform.transport import free_port, is_matching, open_session, zenoh_config
+from zplatform.core.messages import LOWLATENCY_MAX_MESSAGE, lowlatency_for
+from zplatform.mission.load import decode_mission
+from zplatform.runtime.transport import free_port, is_matching, open_session, zenoh_config
 
 
 def test_lowlatency_carries_the_largest_message_a_lowlatency_mission_sends() -> None:

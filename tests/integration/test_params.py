@@ -16,9 +16,8 @@ from pathlib import Path
 import pytest
 
 from zplatform import ControlLogic, decode_mission
-from zplatform.codes import ParamLoad
-from zplatform.lockstep import replay
-from zplatform.params import (
+from zplatform.config.codes import ParamLoad
+from zplatform.control.params import (
     SAVE_STEPS,
     ParamTable,
     decode_params,
@@ -26,6 +25,7 @@ from zplatform.params import (
     read_params_file,
     write_atomic,
 )
+from zplatform.sim.lockstep import replay
 
 from .harness import ROOT, Cluster
 
@@ -49,7 +49,7 @@ NEW = {"gain": 987.5, "steps": 99999}
 CHILD = """
 import os, signal, sys
 from zplatform import decode_mission
-from zplatform.params import encode_params, write_atomic
+from zplatform.control.params import encode_params, write_atomic
 mission = decode_mission(sys.argv[1])
 path, kill_at = sys.argv[2], sys.argv[3]
 def step(name):
@@ -182,7 +182,7 @@ commands:
 GAIN = '''
 """y = gain * u, the gain a number or an element (a parameter), read every loop."""
 import msgspec
-from zplatform.controllers import Controller
+from zplatform.control.controllers import Controller
 
 class Gain(Controller):
     class Config(msgspec.Struct, forbid_unknown_fields=True):

@@ -13,9 +13,9 @@ import pytest
 import zenoh
 
 from tests.faults.peers import peer_config
-from zplatform.auth import KeySet
-from zplatform.loop import ControlLogic
-from zplatform.mission import decode_mission
+from zplatform.control.loop import ControlLogic
+from zplatform.core.auth import KeySet
+from zplatform.mission.load import decode_mission
 from zplatform.recorder import RECORDER_DIR_ENV, open_recorder
 from zplatform.recorder.format import (
     MAX_REQUEST_LOOPS,
@@ -27,7 +27,7 @@ from zplatform.recorder.format import (
     REQUEST_MAGIC,
 )
 from zplatform.recorder.server import RecorderServer
-from zplatform.transport import free_port, is_matching
+from zplatform.runtime.transport import free_port, is_matching
 
 ROOT = Path(__file__).resolve().parents[2]
 MISSION = decode_mission(

@@ -23,10 +23,10 @@ from tests.budget import (
     later_than_now,
     sync_counts,
 )
-from zplatform.auth import load_keys
-from zplatform.codec import encode_frame
-from zplatform.events import Event, EventReader
-from zplatform.telemetry import read_csv
+from zplatform.core.auth import load_keys
+from zplatform.core.codec import encode_frame
+from zplatform.core.events import Event, EventReader
+from zplatform.telemetry.logs import read_csv
 
 from .harness import CONFIGS, ROOT, Cluster
 
@@ -236,8 +236,8 @@ def test_up_flies_on_when_a_device_node_dies(tmp_path: Path) -> None:
     import psutil
 
     from zplatform.ground.link import GroundLink
-    from zplatform.mission import load_mission
-    from zplatform.transport import rewrite_endpoints
+    from zplatform.mission.load import load_mission
+    from zplatform.runtime.transport import rewrite_endpoints
 
     path = tmp_path / "m.yaml"
     rewrite_endpoints(CONFIGS / "minimal.yaml", path)
@@ -279,7 +279,7 @@ def test_up_reports_a_dead_control_node(tmp_path: Path) -> None:
     non-zero exit and a summary filled from its last telemetry."""
     import psutil
 
-    from zplatform.transport import rewrite_endpoints
+    from zplatform.runtime.transport import rewrite_endpoints
 
     path = tmp_path / "m.yaml"
     rewrite_endpoints(CONFIGS / "minimal.yaml", path)
@@ -342,7 +342,7 @@ def test_up_with_a_script_and_no_duration_ends_after_the_last_verdict(tmp_path: 
     ``--settle`` (1 s here; the default, SETTLE_S with at least
     MIN_DURATION_S in all, is tests/unit/test_supervisor.py's, on a clock of
     its own)."""
-    from zplatform.transport import rewrite_endpoints
+    from zplatform.runtime.transport import rewrite_endpoints
 
     settle_s = 1.0
     path = tmp_path / "m.yaml"

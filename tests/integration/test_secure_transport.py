@@ -29,8 +29,8 @@ import pytest
 import zenoh
 
 from tests.pki import make_test_pki
-from zplatform.deploy import DEPLOYMENT_ENV, default_deployment_path, load_deployment
-from zplatform.transport import open_session, zenoh_config
+from zplatform.runtime.transport import open_session, zenoh_config
+from zplatform.security.deploy import DEPLOYMENT_ENV, default_deployment_path, load_deployment
 
 from .harness import CONFIGS, ROOT, Cluster, zp_side_by_side
 

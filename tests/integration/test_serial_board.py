@@ -27,7 +27,7 @@ from tests.drive import run_dn_loop
 from zplatform import DataVector, Layout, decode_mission
 from zplatform.boards import BoardError, close_board, make_board, open_board
 from zplatform.boards.serialboard import SerialBoard
-from zplatform.loop import DeviceLogic
+from zplatform.control.loop import DeviceLogic
 
 pytestmark = pytest.mark.timeout(60)
 
@@ -198,11 +198,11 @@ regions:
     - {name: button, type: bool}
     - {name: volts, type: f64}
 devices:
-  - {name: led, class: 'zplatform.devices:DigitalOutput', node: dn0,
+  - {name: led, class: 'zplatform.control.devices:DigitalOutput', node: dn0,
      config: {pin: 0, command: led_cmd, feedback: led_fb}}
-  - {name: button, class: 'zplatform.devices:DigitalInput', node: dn0,
+  - {name: button, class: 'zplatform.control.devices:DigitalInput', node: dn0,
      config: {pin: 4, element: button}}
-  - {name: volts, class: 'zplatform.devices:AnalogInput', node: dn0,
+  - {name: volts, class: 'zplatform.control.devices:AnalogInput', node: dn0,
      config: {pin: 1, element: volts, scale: 2.0}}
 """
 

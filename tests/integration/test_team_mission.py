@@ -21,9 +21,9 @@ import yaml
 
 from tests.integration.harness import zp_side_by_side
 from tests.unit.test_mission_code import team_mission, write_code
-from zplatform.mission import load_mission
-from zplatform.pki import ensure_mission_pki
-from zplatform.transport import free_port
+from zplatform.mission.load import load_mission
+from zplatform.runtime.transport import free_port
+from zplatform.security.pki import ensure_mission_pki
 
 pytestmark = pytest.mark.timeout(240)
 

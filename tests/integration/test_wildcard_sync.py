@@ -14,10 +14,10 @@ import yaml
 import zenoh
 
 from tests.budget import assert_kept_syncing, sync_counts
-from zplatform.auth import load_keys
 from zplatform.config import relocate_mission
-from zplatform.events import EventReader
-from zplatform.messages import wildcard_sync_for
+from zplatform.core.auth import load_keys
+from zplatform.core.events import EventReader
+from zplatform.core.messages import wildcard_sync_for
 
 from .harness import CONFIGS, Cluster
 
@@ -55,7 +55,7 @@ def test_one_query_runs_every_dn_and_foreign_replies_are_counted(tmp_path: Path)
         assert_kept_syncing(before, sync_counts(c.tm, dns), dns)
         assert answered.qsize() >= 20
         # A malformed bundle to every DN at once: each refuses it unanswered
-        # (a forged trigger gets no reply, zplatform.intake) and counts it.
+        # (a forged trigger gets no reply, zplatform.control.intake) and counts it.
         answers = list(c.session.get(f"{v}/*/to_cn", payload=b"ZB\x01\x01\xff\xff", timeout=2.0))
         assert [r for r in answers if r.ok is not None or r.err is not None] == [], answers
         c.wait_for(

@@ -12,8 +12,8 @@ import msgspec
 from hypothesis import strategies as st
 
 from zplatform.config import CMD_NAMES
-from zplatform.datavector import ElementSpec, RegionSpec
-from zplatform.types import SCALAR_TYPES, ScalarType
+from zplatform.config.types import SCALAR_TYPES, ScalarType
+from zplatform.core.datavector import ElementSpec, RegionSpec
 
 # ---------------------------------------------------------------------------
 # State machines and operator commands (statemachine.py, commands.py)

@@ -15,9 +15,9 @@ from hypothesis import strategies as st
 
 from zplatform.archive import Archive, ArchiveWriter, Query
 from zplatform.config import Mission
-from zplatform.datavector import DataVector, Layout
+from zplatform.core.datavector import DataVector, Layout
 from zplatform.errors import ArchiveError
-from zplatform.mission import load_mission
+from zplatform.mission.load import load_mission
 
 ROOT = Path(__file__).resolve().parents[2]
 T0 = 1_800_000_000_000_000_000

@@ -20,7 +20,7 @@ from zplatform import (
     decode_mission,
     encode_frame,
 )
-from zplatform.datavector import ElementSpec
+from zplatform.core.datavector import ElementSpec
 
 # Random missions cost a config decode each: 60 examples keep the file near 8 s.
 _SETTINGS = settings(

@@ -19,15 +19,15 @@ from hypothesis import strategies as st
 
 from tests.payload import Bytes
 from zplatform import load_mission
-from zplatform.codec import frame_overhead
-from zplatform.datavector import Layout
+from zplatform.control.failover import MirrorReader, Standby
+from zplatform.control.fencing import NONCE_LEN, ask_stamp, read_ask, read_reply
+from zplatform.control.handoff import Waker
+from zplatform.control.intake import MirrorIntake, ProbeIntake
+from zplatform.control.loop import ControlLogic, DeviceLogic
+from zplatform.core.codec import frame_overhead
+from zplatform.core.datavector import Layout
 from zplatform.errors import CodecError
-from zplatform.failover import MirrorReader, Standby
-from zplatform.fencing import NONCE_LEN, ask_stamp, read_ask, read_reply
-from zplatform.handoff import Waker
-from zplatform.intake import MirrorIntake, ProbeIntake
-from zplatform.lockstep import sim_keys
-from zplatform.loop import ControlLogic, DeviceLogic
+from zplatform.sim.lockstep import sim_keys
 
 ROOT = Path(__file__).resolve().parents[2]
 FLIGHT = load_mission(ROOT / "configs" / "flight.yaml")

@@ -8,9 +8,9 @@ from hypothesis import strategies as st
 from tests.drive import step_request
 from tests.property.strategies import LoopInput, loop_inputs, state_machine_missions
 from zplatform import DataVector, Layout, decode_mission
-from zplatform.commands import CommandHandler, CommandStatus
-from zplatform.events import EventLog
-from zplatform.statemachine import StateMachine
+from zplatform.control.commands import CommandHandler, CommandStatus
+from zplatform.control.statemachine import StateMachine
+from zplatform.core.events import EventLog
 
 PERIOD = 10_000_000
 _SETTINGS = settings(max_examples=150, deadline=None, suppress_health_check=[HealthCheck.too_slow])

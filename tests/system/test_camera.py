@@ -10,8 +10,8 @@ import time
 from pathlib import Path
 
 from zplatform import LockstepRunner, load_mission
-from zplatform.registry import running
-from zplatform.telemetry import CsvLogger, read_csv
+from zplatform.cli.registry import running
+from zplatform.telemetry.logs import CsvLogger, read_csv
 
 ROOT = Path(__file__).resolve().parents[2]
 CAMERA = ROOT / "configs" / "camera.yaml"

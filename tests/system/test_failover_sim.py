@@ -19,10 +19,10 @@ from hypothesis import strategies as st
 
 from zplatform import load_mission
 from zplatform.config import Mission
+from zplatform.control.uplink import load_commands, parse_commands
 from zplatform.errors import ConfigError
-from zplatform.lockstep import LockstepRunner, SimResult
-from zplatform.mission import decode_mission
-from zplatform.uplink import load_commands, parse_commands
+from zplatform.mission.load import decode_mission
+from zplatform.sim.lockstep import LockstepRunner, SimResult
 
 ROOT = Path(__file__).resolve().parents[2]
 FLIGHT_YAML = ROOT / "configs" / "flight.yaml"

@@ -24,9 +24,9 @@ from hypothesis import strategies as st
 from nodes.flight.physics import STEP_NS, Flight, VehicleParams
 from zplatform import load_mission
 from zplatform.config import Mission
-from zplatform.lockstep import LockstepRunner, SimResult
-from zplatform.telemetry import CsvLogger
-from zplatform.uplink import load_commands, parse_commands
+from zplatform.control.uplink import load_commands, parse_commands
+from zplatform.sim.lockstep import LockstepRunner, SimResult
+from zplatform.telemetry.logs import CsvLogger
 
 ROOT = Path(__file__).resolve().parents[2]
 FLIGHT_YAML = ROOT / "configs" / "flight.yaml"
@@ -350,7 +350,7 @@ def test_a_script_that_sets_parameters_changes_the_flight(nominal: Flown) -> Non
     assert dv.get_name("cn_prm_save_status") == "SAVED"  # in memory: a sim writes no file
     saved = fl.runner.saver.data
     assert saved is not None
-    from zplatform.params import decode_params
+    from zplatform.control.params import decode_params
 
     assert decode_params(fl.runner.mission, saved).values["main_deploy_m"] == 250.0
 
@@ -458,7 +458,7 @@ def test_the_controllers_keep_their_state_in_the_data_vector() -> None:
     """A standby CN that mirrors the Data Vector can take over (issue 17): a
     fresh control logic given a copy of the vector mid-coast computes the
     same next loop as the one it replaces."""
-    from zplatform.loop import ControlLogic
+    from zplatform.control.loop import ControlLogic
 
     m = load_mission(FLIGHT_YAML)
     r = LockstepRunner(m, commands=load_commands(FLIGHT_CMDS))

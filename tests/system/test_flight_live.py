@@ -29,11 +29,11 @@ import pytest
 
 from tests.integration.harness import Cluster
 from zplatform import load_mission
-from zplatform.lockstep import LockstepRunner
-from zplatform.summary import DnSummary, read_summary
-from zplatform.telemetry import read_csv
-from zplatform.transport import rewrite_endpoints
-from zplatform.uplink import load_commands
+from zplatform.control.uplink import load_commands
+from zplatform.runtime.transport import rewrite_endpoints
+from zplatform.sim.lockstep import LockstepRunner
+from zplatform.telemetry.logs import read_csv
+from zplatform.telemetry.summary import DnSummary, read_summary
 
 pytest.importorskip("serial")
 

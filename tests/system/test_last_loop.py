@@ -12,7 +12,7 @@ from pathlib import Path
 
 import pytest
 
-from zplatform.telemetry import read_csv
+from zplatform.telemetry.logs import read_csv
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -73,9 +73,9 @@ def test_a_stopped_cn_runs_one_more_loop_flagged_final(tmp_path: Path) -> None:
     import zenoh
 
     from tests.integration.harness import CONFIGS, Cluster
-    from zplatform.auth import load_keys
-    from zplatform.events import EventReader
-    from zplatform.transport import KeySpace
+    from zplatform.core.auth import load_keys
+    from zplatform.core.events import EventReader
+    from zplatform.runtime.transport import KeySpace
 
     with Cluster(CONFIGS / "minimal.yaml", tmp_path) as c:
         got: queue.SimpleQueue[bytes] = queue.SimpleQueue()

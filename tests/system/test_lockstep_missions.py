@@ -19,10 +19,10 @@ import pytest
 from tests.drive import igniter_bench_copy
 from zplatform import load_mission
 from zplatform.config import Mission
+from zplatform.control.uplink import ScriptCommand, load_commands, parse_commands
 from zplatform.errors import CommandError
-from zplatform.lockstep import DEFAULT_START_NS, LockstepRunner, SimResult
-from zplatform.telemetry import CsvLogger, read_csv
-from zplatform.uplink import ScriptCommand, load_commands, parse_commands
+from zplatform.sim.lockstep import DEFAULT_START_NS, LockstepRunner, SimResult
+from zplatform.telemetry.logs import CsvLogger, read_csv
 
 ROOT = Path(__file__).resolve().parents[2]
 CONFIGS = ROOT / "configs"

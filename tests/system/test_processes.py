@@ -19,10 +19,10 @@ import pytest
 from tests.budget import assert_every_loop_counted, assert_telemetry_counted
 from tests.drive import igniter_bench_copy, igniter_quick_flight, led_quick
 from zplatform.ground.link import GroundLink
-from zplatform.mission import load_mission
-from zplatform.pki import ensure_mission_pki
-from zplatform.telemetry import read_csv
-from zplatform.transport import rewrite_endpoints
+from zplatform.mission.load import load_mission
+from zplatform.runtime.transport import rewrite_endpoints
+from zplatform.security.pki import ensure_mission_pki
+from zplatform.telemetry.logs import read_csv
 
 ROOT = Path(__file__).resolve().parents[2]
 pytestmark = pytest.mark.timeout(240)

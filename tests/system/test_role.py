@@ -1,9 +1,10 @@
-"""The control role in lockstep (zplatform/role.py): restarts in flight and every failover case.
+"""The control role in lockstep (zplatform/control/role.py): restarts in flight and every failover
+case.
 
 What was testable only live (a control node restarted mid-flight resuming
 from its flight recorder, or starting over) runs here in virtual time:
 :meth:`LockstepRunner.restart` starts a control node again as a new
-process would, and its :class:`~zplatform.role.ControlRole` is fed what it
+process would, and its :class:`~zplatform.control.role.ControlRole` is fed what it
 would be fed live (the device nodes' STATUS answers, the warm-up's loops,
 what its recorder holds). The failover cases check the role's actions
 themselves (a recording wrapper around :meth:`ControlRole.round_over`),
@@ -23,11 +24,11 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from zplatform import load_mission
+from zplatform.control.fencing import ASK, STATUS
+from zplatform.control.role import ControlRole, Probe, Release, Take
+from zplatform.control.uplink import load_commands
 from zplatform.errors import NodeError
-from zplatform.fencing import ASK, STATUS
-from zplatform.lockstep import DEFAULT_START_NS, LockstepRunner
-from zplatform.role import ControlRole, Probe, Release, Take
-from zplatform.uplink import load_commands
+from zplatform.sim.lockstep import DEFAULT_START_NS, LockstepRunner
 
 ROOT = Path(__file__).resolve().parents[2]
 IGNITER = load_mission(ROOT / "configs" / "recovery_igniter.yaml")

@@ -14,9 +14,9 @@ import pytest
 
 from tests.live_runs import LED_DURATION_S
 from zplatform import load_mission
-from zplatform.lockstep import LockstepRunner, replay
-from zplatform.telemetry import CsvLogger, read_csv
-from zplatform.uplink import load_commands
+from zplatform.control.uplink import load_commands
+from zplatform.sim.lockstep import LockstepRunner, replay
+from zplatform.telemetry.logs import CsvLogger, read_csv
 
 ROOT = Path(__file__).resolve().parents[2]
 LED_YAML = ROOT / "configs" / "led_test.yaml"
@@ -110,7 +110,7 @@ def test_replay_names_the_first_difference(live_run: Path, tmp_path: Path) -> No
     """A tampered recording is caught, with its loop and element."""
     import shutil
 
-    from zplatform.replay_recording import RECORD_FILE, RecordReader
+    from zplatform.sim.replay_recording import RECORD_FILE, RecordReader
 
     rec = tmp_path / "rec"
     shutil.copytree(live_run / "rec", rec)

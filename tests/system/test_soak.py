@@ -18,7 +18,7 @@ from pathlib import Path
 import pytest
 
 from tests.budget import THESIS_RELIABILITY
-from zplatform.transport import rewrite_endpoints
+from zplatform.runtime.transport import rewrite_endpoints
 
 ROOT = Path(__file__).resolve().parents[2]
 MINUTES = float(os.environ.get("ZPLATFORM_SOAK_MINUTES", "10"))

@@ -16,8 +16,8 @@ import pytest
 
 from tests.budget import assert_every_loop_counted, assert_telemetry_counted
 from zplatform import load_mission
-from zplatform.lockstep import LockstepRunner
-from zplatform.telemetry import CsvLogger, read_csv
+from zplatform.sim.lockstep import LockstepRunner
+from zplatform.telemetry.logs import CsvLogger, read_csv
 
 ROOT = Path(__file__).resolve().parents[2]
 YAML = ROOT / "configs" / "thesis_200.yaml"

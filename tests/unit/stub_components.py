@@ -6,7 +6,7 @@ real one: ``stub_components:Idle`` where the class does not matter.
 
 from __future__ import annotations
 
-from zplatform.controllers import Controller
+from zplatform.control.controllers import Controller
 
 
 class Idle(Controller):

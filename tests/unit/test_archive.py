@@ -15,11 +15,11 @@ import pytest
 from zplatform.archive import Archive, ArchiveWriter, Query, archive_dir, store
 from zplatform.archive import writer as writer_mod
 from zplatform.config import Mission
-from zplatform.datavector import DataVector, Layout
+from zplatform.core.datavector import DataVector, Layout
+from zplatform.core.events import EventLog
 from zplatform.errors import ArchiveError, ConfigError
-from zplatform.events import EventLog
-from zplatform.mission import decode_mission, load_mission
-from zplatform.records import EventRecord
+from zplatform.mission.load import decode_mission, load_mission
+from zplatform.telemetry.records import EventRecord
 
 ROOT = Path(__file__).resolve().parents[2]
 T0 = 1_800_000_000_000_000_000
@@ -175,7 +175,7 @@ def _child(tmp_path: Path, n: int) -> subprocess.Popen[str]:
         sys.path.insert(0, {str(ROOT / "tests")!r})
         from unit.test_archive import feed, _mission_for_child
         from zplatform.archive import ArchiveWriter
-        from zplatform.datavector import DataVector, Layout
+        from zplatform.core.datavector import DataVector, Layout
         m = _mission_for_child()
         layout = Layout.for_node(m, "cn")
         w = ArchiveWriter(m, layout, {str(tmp_path)!r})
@@ -374,7 +374,7 @@ def cli_archive(mission: Mission, tmp_path: Path) -> Path:
 
 
 def _cli(d: Path, *args: str) -> int:
-    from zplatform.cli import main
+    from zplatform.cli.main import main
 
     return main(["archive", str(ROOT / "configs" / "flight.yaml"), "--dir", str(d), *args])
 

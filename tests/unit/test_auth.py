@@ -1,4 +1,4 @@
-"""Key sets, key hygiene and frame tags (zplatform.auth)."""
+"""Key sets, key hygiene and frame tags (zplatform.core.auth)."""
 
 from __future__ import annotations
 
@@ -14,7 +14,7 @@ import blake3
 import pytest
 
 from zplatform import load_mission
-from zplatform.auth import (
+from zplatform.core.auth import (
     KEY_ENV,
     KEY_FILE_ENV,
     MACS,
@@ -33,7 +33,7 @@ from zplatform.auth import (
     role_links,
     write_key_set,
 )
-from zplatform.mission import decode_mission
+from zplatform.mission.load import decode_mission
 
 ROOT = Path(__file__).resolve().parents[2]
 MINIMAL = load_mission(ROOT / "configs" / "minimal.yaml")
@@ -386,7 +386,7 @@ def test_keygen_needs_the_mission_s_nodes(
 ) -> None:
     """A bare name says nothing of the nodes, whose links the set is made of:
     one error line."""
-    from zplatform.cli import main
+    from zplatform.cli.main import main
 
     monkeypatch.chdir(tmp_path)
     for bad in ("led_test", "missions/nope.yaml"):

@@ -137,13 +137,13 @@ def test_no_bench_touches_a_private_name_or_patches_the_platform() -> None:
     [
         "def f(node):\n    node.logic._open = 1\n",
         "def f(cn):\n    return cn._tm_pub\n",
-        "from zplatform.intake import TriggerIntake\nTriggerIntake.admit = None\n",
-        "import zplatform.node.runtime as rt\nrt.realtime_setup = None\n",
+        "from zplatform.control.intake import TriggerIntake\nTriggerIntake.admit = None\n",
+        "import zplatform.runtime.process as rt\nrt.realtime_setup = None\n",
         "from zplatform import trace\ntrace.tracer = object()\n",
-        "from zplatform.sync import _ignore\n",
-        "from zplatform.sync import ControlSync\nsetattr(ControlSync, 'sync', None)\n",
-        "def f(mp):\n    mp.setattr('zplatform.sync.ControlSync.sync', None)\n",
-        "from zplatform.loop import ControlLogic\n"
+        "from zplatform.runtime.sync import _ignore\n",
+        "from zplatform.runtime.sync import ControlSync\nsetattr(ControlSync, 'sync', None)\n",
+        "def f(mp):\n    mp.setattr('zplatform.runtime.sync.ControlSync.sync', None)\n",
+        "from zplatform.control.loop import ControlLogic\n"
         "class L(ControlLogic):\n    def f(self):\n        return self._got\n",
     ],
 )

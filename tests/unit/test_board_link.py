@@ -21,6 +21,7 @@ from tests.serial_port import MemoryPort
 from zplatform import DataVector, Layout, RegionCodec, SimBoard, decode_mission, load_mission
 from zplatform.boards import BoardHealth, HealthCounters, board_health, wire
 from zplatform.boards.serialboard import SerialBoard
+from zplatform.cli.supervisor import format_board_lines
 from zplatform.config import (
     BOARD_LINK_COUNTERS,
     Mission,
@@ -28,11 +29,10 @@ from zplatform.config import (
     board_link_elements,
     platform_elements,
 )
+from zplatform.control.loop import DeviceLogic
 from zplatform.errors import ConfigError
-from zplatform.lockstep import LockstepRunner
-from zplatform.loop import DeviceLogic
-from zplatform.summary import DnSummary, RunSummary, read_summary, write_summary
-from zplatform.supervisor import format_board_lines
+from zplatform.sim.lockstep import LockstepRunner
+from zplatform.telemetry.summary import DnSummary, RunSummary, read_summary, write_summary
 
 pytestmark = pytest.mark.timeout(60)
 

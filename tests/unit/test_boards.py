@@ -102,7 +102,7 @@ def test_exports() -> None:
 
 def test_boards_never_import_devices() -> None:
     """The boards package sits below the devices (devices import boards, never
-    the reverse): no module of zplatform/boards imports zplatform.devices."""
+    the reverse): no module of zplatform/boards imports zplatform.control.devices."""
     import ast
     from pathlib import Path
 
@@ -110,7 +110,7 @@ def test_boards_never_import_devices() -> None:
         for node in ast.walk(ast.parse(f.read_text())):
             if isinstance(node, ast.ImportFrom):
                 name = "." * node.level + (node.module or "")
-                assert name not in ("..devices", "zplatform.devices"), f
+                assert name not in ("..devices", "zplatform.control.devices"), f
                 assert not (
                     node.level == 2
                     and node.module is None
@@ -416,7 +416,7 @@ regions:
   dn0_to_cn:
     - {name: button, type: bool}
 devices:
-  - {name: button, class: 'zplatform.devices:DigitalInput', node: dn0,
+  - {name: button, class: 'zplatform.control.devices:DigitalInput', node: dn0,
      config: {pin: 0, element: button}}
 """
 
@@ -424,7 +424,7 @@ devices:
 def test_device_logic_builds_the_mission_board() -> None:
     """Once DeviceLogic builds its default board with make_board, the mission alone picks it."""
     from zplatform import decode_mission
-    from zplatform.loop import DeviceLogic
+    from zplatform.control.loop import DeviceLogic
 
     mission = decode_mission(GPIO_MISSION)
     try:

@@ -19,8 +19,8 @@ from tests.drive import run_dn_loop
 from zplatform import DataVector, Layout, decode_mission
 from zplatform.boards import BoardError, close_board, make_board, open_board
 from zplatform.boards.gpio import GpiodBoard
+from zplatform.control.loop import DeviceLogic
 from zplatform.errors import ControlError
-from zplatform.loop import DeviceLogic
 
 WHERE = "$.nodes.dn0.board"
 
@@ -207,9 +207,9 @@ regions:
     - {name: led_fb, type: bool}
     - {name: button, type: bool}
 devices:
-  - {name: led, class: 'zplatform.devices:DigitalOutput', node: dn0,
+  - {name: led, class: 'zplatform.control.devices:DigitalOutput', node: dn0,
      config: {pin: 1, command: led_cmd, feedback: led_fb}}
-  - {name: button, class: 'zplatform.devices:DigitalInput', node: dn0,
+  - {name: button, class: 'zplatform.control.devices:DigitalInput', node: dn0,
      config: {pin: 0, element: button}}
 """
 

@@ -14,7 +14,8 @@ import pytest
 import zenoh
 
 from tests.zsession import lone_session
-from zplatform.bulk import (
+from zplatform.errors import ConfigError, TransportError
+from zplatform.runtime.bulk import (
     HEADER,
     BulkChannelConfig,
     BulkWriter,
@@ -27,7 +28,6 @@ from zplatform.bulk import (
     parse_bulk_type,
     pool_size,
 )
-from zplatform.errors import ConfigError, TransportError
 
 NODES = ("cn", "dn0", "dn1", "gn")
 
@@ -279,7 +279,7 @@ def test_camera_mission_declares_valid_channels() -> None:
     decoded separately here."""
     import yaml
 
-    from zplatform.mission import decode_mission
+    from zplatform.mission.load import decode_mission
 
     path = Path(__file__).resolve().parents[2] / "configs" / "camera.yaml"
     raw = yaml.safe_load(path.read_text())
@@ -314,7 +314,7 @@ def test_real_pool_exhausted_by_a_holding_reader_drops_then_recovers(
     reader.close()
 
 
-# -- the loop's order (zplatform.loop owns it; drivers only supply the port) --
+# -- the loop's order (zplatform.control.loop owns it; drivers only supply the port) --
 
 
 class _Port:
@@ -342,9 +342,9 @@ class _Port:
 
 def test_the_loop_receives_before_its_logic_and_publishes_after() -> None:
     from tests.drive import run_dn_loop
-    from zplatform.lockstep import sim_keys
-    from zplatform.loop import ControlLogic, DeviceLogic
-    from zplatform.mission import load_mission
+    from zplatform.control.loop import ControlLogic, DeviceLogic
+    from zplatform.mission.load import load_mission
+    from zplatform.sim.lockstep import sim_keys
 
     m = load_mission(Path(__file__).resolve().parents[2] / "configs" / "minimal.yaml")
     calls: list[tuple[str, int]] = []

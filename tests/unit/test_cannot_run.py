@@ -1,6 +1,6 @@
 """A device node that answers the CN's triggers but can run none of them
-safes itself, says why, and the CN latches DN_SAFED (zplatform.loop,
-zplatform.faults); in lockstep, with the real frames of both sides.
+safes itself, says why, and the CN latches DN_SAFED (zplatform.control.loop,
+zplatform.control.faults); in lockstep, with the real frames of both sides.
 
 The case is the rogue clock's (issue: a DN whose clock was "corrected" by a
 peer without the key finds every real trigger stale): before, it answered
@@ -11,14 +11,14 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from zplatform.auth import KeySet
-from zplatform.codec import RegionCodec
 from zplatform.config import Mission
-from zplatform.datavector import DataVector, Layout
-from zplatform.loop import ControlLogic, DeviceLogic
-from zplatform.mission import load_mission
-from zplatform.uplink import Uplink
-from zplatform.world import World
+from zplatform.control.loop import ControlLogic, DeviceLogic
+from zplatform.control.uplink import Uplink
+from zplatform.core.auth import KeySet
+from zplatform.core.codec import RegionCodec
+from zplatform.core.datavector import DataVector, Layout
+from zplatform.mission.load import load_mission
+from zplatform.world.model import World
 
 ROOT = Path(__file__).resolve().parents[2]
 IGN = load_mission(ROOT / "configs" / "recovery_igniter.yaml")

@@ -12,7 +12,9 @@ from hypothesis import strategies as st
 from spacepackets.ccsds.spacepacket import SequenceFlags, SpacePacketHeader
 
 from zplatform import load_mission
-from zplatform.ccsds import (
+from zplatform.core.datavector import DataVector, Layout
+from zplatform.errors import ConfigError
+from zplatform.telemetry.ccsds import (
     APID_BASE,
     CcsdsDecoder,
     CcsdsEncoder,
@@ -21,9 +23,7 @@ from zplatform.ccsds import (
     packet_plan,
     split_stream,
 )
-from zplatform.datavector import DataVector, Layout
-from zplatform.errors import ConfigError
-from zplatform.telemetry import CsvLogger
+from zplatform.telemetry.logs import CsvLogger
 
 CONFIGS = Path(__file__).resolve().parents[2] / "configs"
 LED = load_mission(CONFIGS / "led_test.yaml")
@@ -142,7 +142,7 @@ def test_decoder_refuses_and_counts() -> None:
 
 def test_decode_verb_writes_the_same_csv(tmp_path: Path) -> None:
     """`zplatform ccsds --decode` turns a packet file into the telemetry CSV."""
-    from zplatform.cli import main
+    from zplatform.cli.main import main
 
     enc = CcsdsEncoder(LED)
     src = DataVector(enc.layout)

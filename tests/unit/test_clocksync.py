@@ -1,8 +1,8 @@
-"""zplatform.clocksync without a network: the estimator a mission picks, its
+"""zplatform.runtime.clocksync without a network: the estimator a mission picks, its
 fallback, and both estimators against a simulated CN whose clocks are known.
 
 :class:`SimSession` stands in for the DN's zenoh session: each ``get`` runs
-one exchange with the CN's :class:`~zplatform.clocksync.ClockServer` on a
+one exchange with the CN's :class:`~zplatform.runtime.clocksync.ClockServer` on a
 simulated true time, stamping the node clocks and (when instrumented) zenoh's
 four time points the way the real ones are taken: ``t1`` before zenoh's send
 stamp, ``t2`` after its receive stamp, ``t3`` before the reply's send stamp,
@@ -21,8 +21,11 @@ from typing import Any, get_args, get_type_hints
 import pytest
 import zenoh
 
-from zplatform.auth import NO_RUN, Channel, KeySet, Run
-from zplatform.clocksync import (
+from zplatform.config import ClockConfig
+from zplatform.core.auth import NO_RUN, Channel, KeySet, Run
+from zplatform.errors import ClockSyncError
+from zplatform.mission.load import load_mission
+from zplatform.runtime.clocksync import (
     ESTIMATORS,
     ClockEstimate,
     ClockEstimator,
@@ -33,10 +36,7 @@ from zplatform.clocksync import (
     estimate_offset_zenoh,
     estimator_for,
 )
-from zplatform.config import ClockConfig
-from zplatform.errors import ClockSyncError
-from zplatform.mission import load_mission
-from zplatform.transport import KeySpace
+from zplatform.runtime.transport import KeySpace
 
 ROOT = Path(__file__).resolve().parents[2]
 IGNITER = load_mission(ROOT / "configs" / "recovery_igniter.yaml")
@@ -427,7 +427,7 @@ def test_a_congested_link_drops_clock_queries_and_counts_timeouts(fn: Any) -> No
     with pytest.raises(ClockSyncError, match="0 of 8"):
         fn(s, KEYS, s.now_ns, link, exchanges=8, timeout_s=0.001)
     assert s.gets == 5 and link.timeouts == 5 and link.refused == 0
-    for kw in s.kwargs:  # zplatform.queries.ask: the one way a query is sent
+    for kw in s.kwargs:  # zplatform.runtime.queries.ask: the one way a query is sent
         assert kw["congestion_control"] == zenoh.CongestionControl.DROP
         assert kw["target"] == zenoh.QueryTarget.ALL
         assert kw["consolidation"] == zenoh.ConsolidationMode.NONE
@@ -450,8 +450,8 @@ def test_a_dns_clock_timeouts_are_counted_and_evented_at_most_once_a_second() ->
     """The DN's loop thread puts the clock link's timeouts into
     ``dnX_clock_timeouts`` at every account, and says so in a
     ``clock_timeout`` event at most once a second."""
-    from zplatform.events import EventLog
-    from zplatform.loop import DeviceLogic
+    from zplatform.control.loop import DeviceLogic
+    from zplatform.core.events import EventLog
     from zplatform.node.device import ClockTally
 
     logic = DeviceLogic(IGNITER, "dn0")
@@ -524,7 +524,7 @@ def test_a_clock_reply_with_absurd_times_is_refused_and_counted() -> None:
 
 
 def test_the_clock_exchange_tells_the_run_and_refuses_another_runs_query() -> None:
-    """Keys bound to the run (zplatform.auth.Run, FORMAT.md §6.3): a device
+    """Keys bound to the run (zplatform.core.auth.Run, FORMAT.md §6.3): a device
     node's first query names no run (a hello) and is answered; the answer,
     tagged in the CN's run and echoing the node's fresh nonce, tells it the
     run; its next query names the run. A query of an earlier run (the same

@@ -1,4 +1,4 @@
-"""Tests of zplatform.codec: the region frame, its fixed-width form, and every rejection."""
+"""Tests of zplatform.core.codec: the region frame, its fixed-width form, and every rejection."""
 
 from __future__ import annotations
 
@@ -24,7 +24,7 @@ from zplatform import (
     decode_mission,
     encode_frame,
 )
-from zplatform.codec import frame_overhead
+from zplatform.core.codec import frame_overhead
 
 MISSION = """
 mission: codectest

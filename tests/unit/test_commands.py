@@ -1,4 +1,4 @@
-"""Tests of zplatform.commands: every outcome of a request, the Active -> Idle
+"""Tests of zplatform.control.commands: every outcome of a request, the Active -> Idle
 clear, ARM double confirmation, WRITE checks, config rules, ground helpers."""
 
 from __future__ import annotations
@@ -11,7 +11,8 @@ import pytest
 
 from tests.drive import step_request
 from zplatform import DataVector, Layout, decode_mission
-from zplatform.commands import (
+from zplatform.config import Mission
+from zplatform.control.commands import (
     ARM_WINDOW_NS,
     Command,
     CommandHandler,
@@ -19,11 +20,10 @@ from zplatform.commands import (
     writable_elements,
     write_states,
 )
-from zplatform.config import Mission
+from zplatform.control.statemachine import StateMachine
+from zplatform.control.uplink import element_index, fill_request
+from zplatform.core.events import EventLog, Severity
 from zplatform.errors import CommandError, ConfigError
-from zplatform.events import EventLog, Severity
-from zplatform.statemachine import StateMachine
-from zplatform.uplink import element_index, fill_request
 
 MS = 1_000_000
 S = 1_000_000_000

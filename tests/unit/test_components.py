@@ -1,12 +1,12 @@
-"""Tests of zplatform.components: the shared loaders and the failure streak."""
+"""Tests of zplatform.core.components: the shared loaders and the failure streak."""
 
 from __future__ import annotations
 
 import pytest
 
-from zplatform.components import Streak, load_component_class, load_function
-from zplatform.controllers import Controller
-from zplatform.devices import Device, DigitalOutput
+from zplatform.control.controllers import Controller
+from zplatform.control.devices import Device, DigitalOutput
+from zplatform.core.components import Streak, load_component_class, load_function
 from zplatform.errors import ConfigError
 
 
@@ -56,9 +56,12 @@ def test_load_function_refuses_at_load(spec: str, match: str) -> None:
 
 
 def test_load_component_class_names_the_path() -> None:
-    assert load_component_class("zplatform.devices:DigitalOutput", Device, "$.x") is DigitalOutput
+    assert (
+        load_component_class("zplatform.control.devices:DigitalOutput", Device, "$.x")
+        is DigitalOutput
+    )
     with pytest.raises(ConfigError, match="is abstract") as ei:
-        load_component_class("zplatform.controllers:Controller", Controller, "$.c[0].class")
+        load_component_class("zplatform.control.controllers:Controller", Controller, "$.c[0].class")
     assert ei.value.path == "$.c[0].class"
 
 
@@ -69,3 +72,22 @@ def test_streak_counts_and_reports_its_end() -> None:
     assert s.ok() is True and s.length == 0
     assert s.ok() is False
     assert s.fail() == 1  # a new streak starts at 1
+
+
+def test_a_mission_may_name_a_class_by_its_path_before_the_packages() -> None:
+    # issue 26 moved zplatform/devices.py to zplatform/control/devices.py: a
+    # team's mission file written before still names zplatform.devices
+    import importlib
+
+    from zplatform.control import controllers as ctl
+    from zplatform.control import devices as dev
+    from zplatform.core import components
+
+    load = components.load_component_class
+    assert load("zplatform.devices:DigitalOutput", dev.Device, "$.x") is dev.DigitalOutput
+    with pytest.raises(ConfigError, match="is abstract"):  # found, at its old path
+        load("zplatform.controllers:Controller", ctl.Controller, "$.c")
+    with pytest.raises(ConfigError, match="cannot import"):
+        load("zplatform.nowhere:Thing", dev.Device, "$.x")
+    for old, new in components.MOVED_MODULES.items():
+        assert importlib.import_module(new).__name__ == new, old

@@ -15,10 +15,10 @@ from zplatform.console.model import (
     severity_rank,
     severity_style,
 )
-from zplatform.datavector import DataVector
+from zplatform.core.datavector import DataVector
+from zplatform.core.events import Severity
 from zplatform.errors import CommandError, DataVectorError
-from zplatform.events import Severity
-from zplatform.records import CommandOutcome, EventRecord
+from zplatform.telemetry.records import CommandOutcome, EventRecord
 
 CONFIGS = Path(__file__).resolve().parents[2] / "configs"
 MISSION = load_mission(CONFIGS / "recovery_igniter.yaml")
@@ -105,8 +105,8 @@ def test_completion_of_commands_and_elements() -> None:
 @pytest.mark.parametrize("name", ["recovery_igniter.yaml", "led_test.yaml", "minimal.yaml"])
 def test_write_completes_the_platforms_writable_elements_only(name: str) -> None:
     """The console's writable-element rule is the platform's one
-    (zplatform.commands.writable_elements), whatever the mission."""
-    from zplatform.commands import writable_elements
+    (zplatform.control.commands.writable_elements), whatever the mission."""
+    from zplatform.control.commands import writable_elements
 
     m = load_mission(CONFIGS / name)
     model = ConsoleModel(m)
@@ -143,9 +143,10 @@ def test_command_outcomes_show_with_their_reason() -> None:
 def test_one_value_formatter_serves_the_console_and_the_parameter_table(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
-    """zplatform.records.value_text spells values for both, each keeping its own spelling."""
+    """zplatform.telemetry.records.value_text spells values for both, each keeping its own
+    spelling."""
     from zplatform.console import model as console_model
-    from zplatform.records import value_text
+    from zplatform.telemetry.records import value_text
 
     # the parameter table's spelling (mission-file words, 7 digits)...
     assert [value_text(v) for v in (True, False, 1 / 3, 2.5, 7, "x")] == [
@@ -204,7 +205,7 @@ def test_a_redundant_missions_header_says_who_commands_in_which_term() -> None:
 
 
 def test_times_show_as_times_of_day_and_durations_never_raw_ns() -> None:
-    from zplatform.records import ns_text
+    from zplatform.telemetry.records import ns_text
 
     m = ConsoleModel(MISSION)
     spec = m.layout.elements

@@ -25,7 +25,7 @@ from textual.widgets import Static
 
 from zplatform import load_mission
 from zplatform.console import ConsoleApp, ConsoleModel
-from zplatform.datavector import DataVector
+from zplatform.core.datavector import DataVector
 
 CONFIGS = Path(__file__).resolve().parents[2] / "configs"
 MISSION = load_mission(CONFIGS / "recovery_igniter.yaml", code=False)

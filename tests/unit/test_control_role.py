@@ -1,7 +1,7 @@
-"""The control role, sans-IO (zplatform/role.py): fed inputs by hand, its actions checked.
+"""The control role, sans-IO (zplatform/control/role.py): fed inputs by hand, its actions checked.
 
 No runner and no device node: the device nodes' probe answers are written
-here (:func:`zplatform.fencing.reply_frame`, echoing each question's nonce),
+here (:func:`zplatform.control.fencing.reply_frame`, echoing each question's nonce),
 mirrors and recorded frames come from a second control logic of the same
 mission. A property drives a standby through random sequences of slots,
 mirrors and answers.
@@ -17,12 +17,9 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from zplatform import load_mission
-from zplatform.auth import Channel, Run, channel
-from zplatform.errors import NodeError
-from zplatform.fencing import ASK, STATUS, TERM_MAX, ProbeReply, read_ask, reply_frame
-from zplatform.lockstep import DEFAULT_START_NS, sim_keys
-from zplatform.loop import ControlLogic
-from zplatform.role import (
+from zplatform.control.fencing import ASK, STATUS, TERM_MAX, ProbeReply, read_ask, reply_frame
+from zplatform.control.loop import ControlLogic
+from zplatform.control.role import (
     RESUME_MAX_AGE_NS,
     Command,
     ControlRole,
@@ -35,6 +32,9 @@ from zplatform.role import (
     Take,
     check_recorded,
 )
+from zplatform.core.auth import Channel, Run, channel
+from zplatform.errors import NodeError
+from zplatform.sim.lockstep import DEFAULT_START_NS, sim_keys
 
 ROOT = Path(__file__).resolve().parents[2]
 FLIGHT = load_mission(ROOT / "configs" / "flight.yaml")
@@ -68,7 +68,7 @@ def _answer(role: ControlRole, asks: list[bytes], answers: list[Answer], loop: i
         term, promised, quiet = a
         grant = q.kind == ASK and quiet >= LEASE_NS and q.term > max(term, promised)
         r = ProbeReply(i, q.nonce, term, q.term if grant else promised, grant, 0, quiet, loop, T0)
-        # In the run of the question (as a device node answers: zplatform.auth.Run).
+        # In the run of the question (as a device node answers: zplatform.core.auth.Run).
         run = Run(Channel.run_of(ask))
         assert role.answer(i, reply_frame(channel(dk, f"probe_{DNS[i]}_to_cn", run), r))
 

@@ -1,4 +1,4 @@
-"""Tests of zplatform.controllers: modes, failure handling, typed configs, rate groups,
+"""Tests of zplatform.control.controllers: modes, failure handling, typed configs, rate groups,
 and the shipped missions' controllers in isolation."""
 
 from __future__ import annotations
@@ -10,7 +10,7 @@ import pytest
 
 from zplatform import DataVector, Layout, decode_mission
 from zplatform.config import Mission, parse_mission
-from zplatform.controllers import (
+from zplatform.control.controllers import (
     ENABLED,
     MANUAL,
     SAFED,
@@ -18,10 +18,10 @@ from zplatform.controllers import (
     ControllerSet,
     check_config,
 )
+from zplatform.control.faults import ErrorCode, FaultMonitor
+from zplatform.control.loop import ControlLogic
+from zplatform.core.events import EventLog, Severity
 from zplatform.errors import ConfigError, ControlError
-from zplatform.events import EventLog, Severity
-from zplatform.faults import ErrorCode, FaultMonitor
-from zplatform.loop import ControlLogic
 
 PERIOD = 10_000_000
 HERE = __name__
@@ -345,7 +345,7 @@ def test_element_kind_is_checked() -> None:
     [
         ("no_such_module_zp:X", "cannot import module 'no_such_module_zp'"),
         (f"{HERE}:Missing", "has no attribute 'Missing'"),
-        (f"{HERE}:NotAController", "is not a zplatform.controllers.Controller subclass"),
+        (f"{HERE}:NotAController", "is not a zplatform.control.controllers.Controller subclass"),
         (f"{HERE}:Abstract", "is abstract"),
     ],
 )

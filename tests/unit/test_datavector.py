@@ -1,4 +1,5 @@
-"""Tests of zplatform.datavector: element, region and whole-vector access, layout, layout_id."""
+"""Tests of zplatform.core.datavector: element, region and whole-vector access, layout,
+layout_id."""
 
 from __future__ import annotations
 
@@ -13,7 +14,7 @@ import pytest
 
 from zplatform import DataVector, DataVectorError, Layout, decode_mission
 from zplatform.config import ElementConfig
-from zplatform.datavector import LAYOUT_MAGIC, VECTOR_MAGIC, layout_id_of
+from zplatform.core.datavector import LAYOUT_MAGIC, VECTOR_MAGIC, layout_id_of
 
 MISSION = """
 mission: dvtest

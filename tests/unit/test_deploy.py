@@ -1,4 +1,4 @@
-"""Tests of zplatform.deploy: deployment files, their fit with the mission,
+"""Tests of zplatform.security.deploy: deployment files, their fit with the mission,
 and the zenoh config pieces (mTLS, access control) generated from them.
 
 Behaviour on the wire (a foreign peer cannot connect, the ACL denies) is
@@ -17,8 +17,11 @@ import pytest
 import zenoh
 
 from tests.pki import make_test_pki
-from zplatform.auth import KEY_FILE_ENV
-from zplatform.deploy import (
+from zplatform.core.auth import KEY_FILE_ENV
+from zplatform.errors import CommandError, ConfigError
+from zplatform.mission.load import decode_mission
+from zplatform.runtime.transport import NodeSession, zenoh_config
+from zplatform.security.deploy import (
     DEPLOYMENT_ENV,
     Deployment,
     DeploymentError,
@@ -30,9 +33,6 @@ from zplatform.deploy import (
     tls_settings,
     zenoh_settings,
 )
-from zplatform.errors import CommandError, ConfigError
-from zplatform.mission import decode_mission
-from zplatform.transport import NodeSession, zenoh_config
 
 TLS_MISSION = """
 mission: tlstest

@@ -1,4 +1,4 @@
-"""Tests of zplatform.devices: SimBoard, the physics hook, the shipped drivers,
+"""Tests of zplatform.control.devices: SimBoard, the physics hook, the shipped drivers,
 DeviceSet failure handling and the device node's loop order."""
 
 from __future__ import annotations
@@ -12,8 +12,8 @@ from tests.drive import run_dn_loop
 from zplatform import DataVector, Layout, decode_mission
 from zplatform.boards import Board, SimBoard
 from zplatform.config import Mission, parse_mission
-from zplatform.controllers import Controller
-from zplatform.devices import (
+from zplatform.control.controllers import Controller
+from zplatform.control.devices import (
     Actuator,
     AnalogInput,
     Device,
@@ -21,9 +21,9 @@ from zplatform.devices import (
     DigitalOutput,
     Sensor,
 )
+from zplatform.control.loop import DeviceLogic
+from zplatform.core.events import EventLog, Severity
 from zplatform.errors import ConfigError, ControlError
-from zplatform.events import EventLog, Severity
-from zplatform.loop import DeviceLogic
 
 PERIOD = 10_000_000
 HERE = __name__
@@ -141,7 +141,7 @@ def devset(m: Mission, board: Board | None = None) -> tuple[DeviceSet, DataVecto
     return DeviceSet(m, "dn0", dv, board, ev), dv, ev
 
 
-LED = "- {name: led, class: 'zplatform.devices:DigitalOutput', node: dn0, config: {pin: 2, command: led_cmd, feedback: led_fb}}\n"  # noqa: E501
+LED = "- {name: led, class: 'zplatform.control.devices:DigitalOutput', node: dn0, config: {pin: 2, command: led_cmd, feedback: led_fb}}\n"  # noqa: E501
 
 
 # -- SimBoard -------------------------------------------------------------------
@@ -257,9 +257,9 @@ def test_digital_output_invert() -> None:
 
 def test_digital_and_analog_inputs_with_calibration() -> None:
     m = mission(
-        "- {name: btn, class: 'zplatform.devices:DigitalInput', node: dn0,"
+        "- {name: btn, class: 'zplatform.control.devices:DigitalInput', node: dn0,"
         " config: {pin: 0, element: button, invert: true}}\n"
-        "- {name: therm, class: 'zplatform.devices:AnalogInput', node: dn0,"
+        "- {name: therm, class: 'zplatform.control.devices:AnalogInput', node: dn0,"
         " config: {pin: 1, element: temp, scale: 100.0, offset: -50.0}}\n"
     )
     board = SimBoard(m.nodes["dn0"].board)
@@ -274,7 +274,7 @@ def test_digital_and_analog_inputs_with_calibration() -> None:
 
 def test_analog_output_scales_and_clamps() -> None:
     m = mission(
-        "- {name: dac, class: 'zplatform.devices:AnalogOutput', node: dn0,"
+        "- {name: dac, class: 'zplatform.control.devices:AnalogOutput', node: dn0,"
         " config: {pin: 1, command: volts, scale: 2.0, offset: 1.0, max_volts: 5.0}}\n"
     )
     board = SimBoard(m.nodes["dn0"].board)
@@ -306,14 +306,17 @@ def test_analog_output_scales_and_clamps() -> None:
             "expected bool",
         ),
         (
-            LED.replace("zplatform.devices:DigitalOutput", f"{HERE}:PlainDevice"),
+            LED.replace("zplatform.control.devices:DigitalOutput", f"{HERE}:PlainDevice"),
             "$.devices[0].class",
             "must subclass",
         ),
         (
-            LED.replace("zplatform.devices:DigitalOutput", "zplatform.controllers:Controller"),
+            LED.replace(
+                "zplatform.control.devices:DigitalOutput",
+                "zplatform.control.controllers:Controller",
+            ),
             "$.devices[0].class",
-            "is not a zplatform.devices.Device subclass",
+            "is not a zplatform.control.devices.Device subclass",
         ),
     ],
 )
@@ -343,7 +346,7 @@ def test_a_device_that_raises_in_bind_names_its_yaml_path_and_class() -> None:
 
 def test_analog_input_pin_checked_against_board() -> None:
     m = mission(
-        "- {name: a, class: 'zplatform.devices:AnalogInput', node: dn0,"
+        "- {name: a, class: 'zplatform.control.devices:AnalogInput', node: dn0,"
         " config: {pin: 2, element: temp}}\n",
         check=False,
     )
@@ -356,7 +359,7 @@ def test_analog_input_pin_checked_against_board() -> None:
 
 FLAKY = (
     f"- {{name: flaky, class: '{HERE}:Flaky', node: dn0, config: {{element: volts}}}}\n"
-    "- {name: therm, class: 'zplatform.devices:AnalogInput', node: dn0,"
+    "- {name: therm, class: 'zplatform.control.devices:AnalogInput', node: dn0,"
     " config: {pin: 1, element: temp}}\n"
 )
 
@@ -399,9 +402,9 @@ def test_device_rate_groups() -> None:
 def test_device_logic_order_board_sensors_controllers_actuators() -> None:
     """A reading reaches the actuator in the same loop (thesis 5.2.3, DN reaction time)."""
     m = mission(
-        "- {name: meter, class: 'zplatform.devices:AnalogInput', node: dn0,"
+        "- {name: meter, class: 'zplatform.control.devices:AnalogInput', node: dn0,"
         " config: {pin: 0, element: volts}}\n"
-        "- {name: out, class: 'zplatform.devices:DigitalOutput', node: dn0,"
+        "- {name: out, class: 'zplatform.control.devices:DigitalOutput', node: dn0,"
         " config: {pin: 1, command: cmd, feedback: button}}\n",
         controllers=(
             f"- {{name: follow, class: '{HERE}:Follow', node: dn0, initial_mode: enabled}}\n"
@@ -439,7 +442,7 @@ def test_device_logic_refuses_a_non_device_node() -> None:
 
 
 def test_check_config_validates_boards_and_devices() -> None:
-    from zplatform.devices import check_config
+    from zplatform.control.devices import check_config
 
     check_config(mission(LED))
     with pytest.raises(ConfigError) as ei:

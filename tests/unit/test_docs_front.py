@@ -17,7 +17,7 @@ from pathlib import Path
 
 import pytest
 
-from zplatform import cli
+from zplatform.cli import main as cli
 
 ROOT = Path(__file__).resolve().parents[2]
 README = ROOT / "README.md"
@@ -148,8 +148,8 @@ def test_tap_before_up_has_registered_the_name_fails_at_once(
 
 def test_the_reference_names_the_key_set_auth_reads() -> None:
     """Keys are one file per host role in the mission's key set directory
-    (zplatform/auth.py), not one key file per mission."""
-    from zplatform.auth import default_key_dir, key_file_name
+    (zplatform/core/auth.py), not one key file per mission."""
+    from zplatform.core.auth import default_key_dir, key_file_name
 
     reference = (ROOT / "docs" / "mission-reference.md").read_text(encoding="utf-8")
     row = next(line for line in reference.splitlines() if line.startswith("| `$.mission` |"))

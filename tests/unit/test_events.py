@@ -1,4 +1,4 @@
-"""Tests of zplatform.events: the catalogue, the bounded log and the wire form."""
+"""Tests of zplatform.core.events: the catalogue, the bounded log and the wire form."""
 
 from __future__ import annotations
 
@@ -8,8 +8,7 @@ from typing import Any
 import msgspec
 import pytest
 
-from zplatform.errors import CodecError, EventError, FrameFormatError, ZPlatformError
-from zplatform.events import (
+from zplatform.core.events import (
     EV,
     Event,
     EventLog,
@@ -18,6 +17,7 @@ from zplatform.events import (
     decode_event,
     encode_event,
 )
+from zplatform.errors import CodecError, EventError, FrameFormatError, ZPlatformError
 
 # Three catalogue entries with one text field each, for the log's own tests.
 A = EV.ERROR  # "{text}"

@@ -2,7 +2,7 @@
 construction"): the probe (``{vehicle}/dnX/probe``) and the mirror
 (``{vehicle}/cn/mirror``) refuse what no genuine peer sends before it can
 cost anything, and every integer they carry is range-checked where it is
-read (zplatform.fencing, zplatform.failover, zplatform.intake).
+read (zplatform.control.fencing, zplatform.control.failover, zplatform.control.intake).
 
 Each test names the attack it answers: an insider holding one node's key,
 or a peer without any key on plain TCP. Frames are real (the lockstep
@@ -18,10 +18,8 @@ import pytest
 
 from tests.payload import Bytes
 from zplatform import load_mission
-from zplatform.errors import CodecError
-from zplatform.events import EV
-from zplatform.failover import Decision, MirrorReader, Standby
-from zplatform.fencing import (
+from zplatform.control.failover import Decision, MirrorReader, Standby
+from zplatform.control.fencing import (
     ASK,
     RELEASE,
     STATUS,
@@ -32,10 +30,12 @@ from zplatform.fencing import (
     read_reply,
     reply_frame,
 )
-from zplatform.handoff import Waker
-from zplatform.intake import PROBE_BURST, PROBES, MirrorIntake, ProbeIntake
-from zplatform.lockstep import LockstepRunner, sim_keys
-from zplatform.loop import ControlLogic, DeviceLogic
+from zplatform.control.handoff import Waker
+from zplatform.control.intake import PROBE_BURST, PROBES, MirrorIntake, ProbeIntake
+from zplatform.control.loop import ControlLogic, DeviceLogic
+from zplatform.core.events import EV
+from zplatform.errors import CodecError
+from zplatform.sim.lockstep import LockstepRunner, sim_keys
 
 ROOT = Path(__file__).resolve().parents[2]
 FLIGHT = load_mission(ROOT / "configs" / "flight.yaml")
@@ -76,7 +76,7 @@ def _dn_reply(sb: Standby, i: int, **fields: Any) -> bytes:
     ``i``'s key (an insider holding it can put anything in it)."""
     dn = FLIGHT.device_nodes[i]
     r = ProbeReply(i, sb._nonces[i], 1, 0, False, 0, 4 * P, 5, at(5))._replace(**fields)
-    # In the run of the question it answers (the standby's: zplatform.auth.Run).
+    # In the run of the question it answers (the standby's: zplatform.core.auth.Run).
     return reply_frame(KEYS.for_node(dn).channel(f"probe_{dn}_to_cn", sb.logic.auth_run), r)
 
 
@@ -307,9 +307,9 @@ def test_a_probe_flood_leaves_the_device_nodes_loop_its_trigger() -> None:
     a flood of junk and of valid-but-excess questions: exact counts, at most
     the bound's questions answered, and the loop's trigger runs as always."""
     from tests.zsession import lone_session
-    from zplatform.intake import TriggerIntake
-    from zplatform.sync import DeviceSync
-    from zplatform.transport import KeySpace
+    from zplatform.control.intake import TriggerIntake
+    from zplatform.runtime.sync import DeviceSync
+    from zplatform.runtime.transport import KeySpace
 
     clock = Clock()
     dn = DeviceLogic(FLIGHT, "dn0", keys=KEYS.for_node("dn0"))
@@ -470,8 +470,8 @@ def test_a_mirror_stamped_beyond_the_clock_bound_is_refused_and_counted() -> Non
     clock) stamped further ahead of the standby's clock than the clock
     bound and a period is refused and counted in bad: it would set the
     schedule the standby follows; the next genuine mirror is applied."""
-    from zplatform.auth import TAG_LEN
-    from zplatform.codec import decode_frame, encode_frame
+    from zplatform.core.auth import TAG_LEN
+    from zplatform.core.codec import decode_frame, encode_frame
 
     sb = _standby()
     cn = _commander()

@@ -1,4 +1,4 @@
-"""Tests of zplatform.faults: consecutive-loop thresholds, latching, clearing,
+"""Tests of zplatform.control.faults: consecutive-loop thresholds, latching, clearing,
 controller failures, non-critical errors."""
 
 from __future__ import annotations
@@ -8,11 +8,11 @@ import textwrap
 import pytest
 
 from zplatform import DataVector, Layout, decode_mission
-from zplatform.commands import CommandHandler
 from zplatform.config import Mission
-from zplatform.events import EventLog, Severity
-from zplatform.faults import ErrorCode, Fault, FaultMonitor
-from zplatform.uplink import element_index, fill_request
+from zplatform.control.commands import CommandHandler
+from zplatform.control.faults import ErrorCode, Fault, FaultMonitor
+from zplatform.control.uplink import element_index, fill_request
+from zplatform.core.events import EventLog, Severity
 
 PERIOD = 10_000_000
 

@@ -1,4 +1,4 @@
-"""Terms and fencing (zplatform.fencing) on real frames: what a device node runs, and when.
+"""Terms and fencing (zplatform.control.fencing) on real frames: what a device node runs, and when.
 
 The flight mission has a standby control node, so its triggers carry a
 term. Frames are made by real :class:`ControlLogic` instances with the
@@ -12,11 +12,19 @@ from pathlib import Path
 import pytest
 
 from zplatform import load_mission
+from zplatform.control.failover import Decision, MirrorReader, Standby
+from zplatform.control.fencing import (
+    ASK,
+    RELEASE,
+    STATUS,
+    TermGuard,
+    Verdict,
+    ask_frame,
+    read_reply,
+)
+from zplatform.control.loop import ControlLogic, DeviceLogic
 from zplatform.errors import CodecError
-from zplatform.failover import Decision, MirrorReader, Standby
-from zplatform.fencing import ASK, RELEASE, STATUS, TermGuard, Verdict, ask_frame, read_reply
-from zplatform.lockstep import sim_keys
-from zplatform.loop import ControlLogic, DeviceLogic
+from zplatform.sim.lockstep import sim_keys
 
 ROOT = Path(__file__).resolve().parents[2]
 FLIGHT = load_mission(ROOT / "configs" / "flight.yaml")
@@ -225,7 +233,7 @@ def test_a_redundant_mission_holds_its_controllers_to_the_vector() -> None:
     still keeps state in an attribute fails in its first loop (safed, an event),
     instead of silently keeping what a takeover would lose."""
     from zplatform.errors import ConfigError
-    from zplatform.mission import decode_mission
+    from zplatform.mission.load import decode_mission
 
     with pytest.raises(ConfigError) as e:
         decode_mission(REDUNDANT % "Idle")

@@ -32,7 +32,7 @@ from nodes.flight.physics import (
     pressure_altitude,
 )
 from zplatform import load_mission
-from zplatform.world import World
+from zplatform.world.model import World
 
 FLIGHT_YAML = Path(__file__).resolve().parents[2] / "configs" / "flight.yaml"
 DT = STEP_NS / 1e9

@@ -18,7 +18,7 @@ import msgspec
 import pytest
 
 from zplatform import DataVector, ElementSpec, Layout, RegionCodec, decode_frame, load_mission
-from zplatform.datavector import _region_descriptor
+from zplatform.core.datavector import _region_descriptor
 
 VECTORS = Path(__file__).resolve().parents[2] / "codecs" / "vectors"
 NAMES = sorted(p.stem for p in VECTORS.glob("*.json"))
@@ -193,9 +193,9 @@ def test_auth_vector_by_hand(name: str) -> None:
 @pytest.mark.parametrize("name", AUTH_NAMES)
 def test_auth_vector_by_the_platform(name: str) -> None:
     """The platform opens each vector and makes it again, byte for byte."""
-    from zplatform.auth import KeySet, Run, RunError
-    from zplatform.clocksync import ClockLink, ClockResponder
-    from zplatform.events import EventReader
+    from zplatform.core.auth import KeySet, Run, RunError
+    from zplatform.core.events import EventReader
+    from zplatform.runtime.clocksync import ClockLink, ClockResponder
 
     meta = json.loads((AUTH / f"{name}.json").read_text())
     sealed = (AUTH / f"{name}.bin").read_bytes()

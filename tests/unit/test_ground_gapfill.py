@@ -6,14 +6,14 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
-from zplatform.auth import KeySet
-from zplatform.codec import decode_frame, encode_frame
-from zplatform.datavector import DataVector
-from zplatform.events import Event
+from zplatform.control.loop import ControlLogic
+from zplatform.core.auth import KeySet
+from zplatform.core.codec import decode_frame, encode_frame
+from zplatform.core.datavector import DataVector
+from zplatform.core.events import Event
 from zplatform.ground.gapfill import GapFill
 from zplatform.ground.logic import Gap, GroundLogic
-from zplatform.loop import ControlLogic
-from zplatform.mission import decode_mission
+from zplatform.mission.load import decode_mission
 from zplatform.recorder.format import (
     REPLY_END,
     REPLY_FRAMES,

@@ -16,9 +16,11 @@ from typing import Any
 import pytest
 
 from zplatform import load_mission
-from zplatform.auth import KeySet
+from zplatform.control.loop import ControlLogic
+from zplatform.control.uplink import Uplink, parse_commands, validate_words
+from zplatform.core.auth import KeySet
+from zplatform.core.events import EV, Event, Severity
 from zplatform.errors import CommandError
-from zplatform.events import EV, Event, Severity
 from zplatform.ground.logic import (
     REASON_GRACE_NS,
     GroundLogic,
@@ -27,9 +29,7 @@ from zplatform.ground.logic import (
     needs_arm,
 )
 from zplatform.ground.status import RateMeter, status_line
-from zplatform.loop import ControlLogic
-from zplatform.records import format_outcome
-from zplatform.uplink import Uplink, parse_commands, validate_words
+from zplatform.telemetry.records import format_outcome
 
 CONFIGS = Path(__file__).resolve().parents[2] / "configs"
 LED = load_mission(CONFIGS / "led_test.yaml")
@@ -154,9 +154,9 @@ def test_the_ground_link_checks_a_snapshots_tag_once(
     """A snapshot through the ground's zenoh link: its tag is computed once,
     by the intake as it arrives (it was computed again by the logic)."""
     from tests.payload import Bytes
-    from zplatform.auth import Channel
+    from zplatform.core.auth import Channel
     from zplatform.ground.link import GroundLink
-    from zplatform.transport import rewrite_endpoints
+    from zplatform.runtime.transport import rewrite_endpoints
 
     rewrite_endpoints(CONFIGS / "led_test.yaml", tmp_path / "led.yaml")
     m = load_mission(tmp_path / "led.yaml")
@@ -501,8 +501,8 @@ def test_the_script_player_says_when_the_script_is_done() -> None:
 
 def _count_checks(monkeypatch: pytest.MonkeyPatch) -> list[str]:
     """Every element a ground check resolves from now on (the heart of
-    zplatform.uplink.validate_command for a WRITE), in order."""
-    import zplatform.uplink as uplink
+    zplatform.control.uplink.validate_command for a WRITE), in order."""
+    import zplatform.control.uplink as uplink
 
     seen: list[str] = []
     real = uplink.resolve_write
@@ -570,8 +570,8 @@ def test_event_records_must_be_fresh_per_node_and_replays_are_counted() -> None:
     clock bound: a replay, or one stamped at the end of time (which, taken,
     would leave every genuine record after it 'not newer'), is refused and
     counted in stale_events, and the node's next genuine record is taken."""
-    from zplatform.auth import channel
-    from zplatform.events import encode_event
+    from zplatform.core.auth import channel
+    from zplatform.core.events import encode_event
 
     keys = KeySet.from_master(IGN, KEY)
     g = GroundLogic(IGN, keys=keys.for_node("gn"))
@@ -612,8 +612,8 @@ def test_the_ground_keeps_logging_after_an_earlier_runs_higher_term_snapshot() -
     refused as ``ahead``."""
     import os
 
-    from zplatform.auth import KEY_ENV, channel
-    from zplatform.intake import TelemetryIntake
+    from zplatform.control.intake import TelemetryIntake
+    from zplatform.core.auth import KEY_ENV, channel
 
     flight = load_mission(CONFIGS / "flight.yaml")
     keys = KeySet.from_master(flight, bytes.fromhex(os.environ[KEY_ENV]))

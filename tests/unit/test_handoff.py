@@ -1,4 +1,4 @@
-"""zplatform.handoff: waits that always end, hand-offs that lose nothing.
+"""zplatform.control.handoff: waits that always end, hand-offs that lose nothing.
 
 The first tests reproduce the trap the module doc names: on CPython 3.11 a
 ``queue.SimpleQueue.get(timeout=...)`` interrupted by a signal whose handler
@@ -17,7 +17,7 @@ from collections.abc import Callable, Iterator
 
 import pytest
 
-from zplatform.handoff import Handoff, Mailbox, Waker
+from zplatform.control.handoff import Handoff, Mailbox, Waker
 
 pytestmark = pytest.mark.timeout(30)
 

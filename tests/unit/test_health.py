@@ -24,12 +24,12 @@ from zplatform import (
     load_mission,
     replay,
 )
-from zplatform import replay_recording as recording
-from zplatform.auth import load_keys
-from zplatform.codes import Thread
 from zplatform.config import Mission
-from zplatform.datavector import Layout
-from zplatform.health import (
+from zplatform.config.codes import Thread
+from zplatform.control.uplink import parse_commands
+from zplatform.core.auth import load_keys
+from zplatform.core.datavector import Layout
+from zplatform.core.health import (
     BLOCK_SIZE,
     METRICS,
     THREAD_NAMES,
@@ -41,8 +41,8 @@ from zplatform.health import (
     thread_deadlines_ns,
 )
 from zplatform.node.health import NodeHealth, ResourceSampler
-from zplatform.replay_recording import RecordReader
-from zplatform.uplink import parse_commands
+from zplatform.sim import replay_recording as recording
+from zplatform.sim.replay_recording import RecordReader
 
 ROOT = Path(__file__).resolve().parents[2]
 CONFIGS = ROOT / "configs"
@@ -232,7 +232,7 @@ def test_the_recorders_writer_checks_in_and_a_hung_disk_is_a_stall(
 
 
 def test_the_param_savers_thread_checks_in_and_a_hung_write_is_a_stall(tmp_path: Path) -> None:
-    from zplatform.params import ParamSaver
+    from zplatform.control.params import ParamSaver
 
     go = threading.Event()
 
@@ -455,7 +455,7 @@ def test_node_health_samples_on_its_thread_and_times_gc(tmp_path: Path) -> None:
 
 
 def test_the_zenoh_probe_checks_in_from_zenohs_thread_only(tmp_path: Path) -> None:
-    from zplatform.transport import NodeSession
+    from zplatform.runtime.transport import NodeSession
 
     m = load_mission(_with_health(MINIMAL, tmp_path, {"rate_hz": 10}))
     live = Liveness(thread_deadlines_ns(m))
@@ -481,7 +481,7 @@ def test_the_zenoh_probe_checks_in_from_zenohs_thread_only(tmp_path: Path) -> No
 
 
 def _values(block: bytes) -> dict[str, float]:
-    from zplatform.health import LOOP_FIELDS, SAMPLED
+    from zplatform.core.health import LOOP_FIELDS, SAMPLED
 
     vals = (*SAMPLED.unpack_from(block, 0), *LOOP_FIELDS.unpack_from(block, SAMPLED.size))
     return dict(zip((x.name for x in METRICS), vals, strict=True))
@@ -514,7 +514,7 @@ def test_the_console_colours_health_and_names_stalled_threads() -> None:
 def test_health_elements_are_in_the_xtce_export_with_their_alarms() -> None:
     import xml.etree.ElementTree as ET
 
-    from zplatform.xtce import mission_xtce
+    from zplatform.cli.xtce import mission_xtce
 
     m = load_mission(CONFIGS / "flight.yaml", code=False)
     xml = mission_xtce(m).xml

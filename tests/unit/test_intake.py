@@ -1,4 +1,4 @@
-"""The intake (zplatform.intake): what arrives is refused in constant time
+"""The intake (zplatform.control.intake): what arrives is refused in constant time
 and counted, what passes waits in a bounded mailbox where the newest valid
 frame wins; the CN takes replies only from the DN's session and learns a
 restarted DN's; the loop counts what the intake refused, records it and
@@ -15,18 +15,16 @@ import zenoh
 
 from tests.faults.peers import peer_config
 from tests.payload import Bytes
-from zplatform.auth import KEY_ENV, TAG_LEN, KeySet, channel
-from zplatform.codec import decode_frame, encode_frame
-from zplatform.codes import CommandStatus
-from zplatform.commands import (
+from zplatform.config.codes import CommandStatus
+from zplatform.control.commands import (
     SEQ_WINDOW,
     CommandHandler,
     request_refusal,
     request_refusal_detail,
 )
-from zplatform.fencing import ASK, ask_frame, new_nonce
-from zplatform.handoff import Waker
-from zplatform.intake import (
+from zplatform.control.fencing import ASK, ask_frame, new_nonce
+from zplatform.control.handoff import Waker
+from zplatform.control.intake import (
     BACKLOG,
     CnRefusals,
     ProbeIntake,
@@ -36,13 +34,15 @@ from zplatform.intake import (
     TelemetryIntake,
     TriggerIntake,
 )
-from zplatform.lockstep import replay
-from zplatform.loop import ControlLogic, DeviceLogic
-from zplatform.mission import decode_mission, load_mission
-from zplatform.replay_recording import Recorder, RecordReader
-from zplatform.sync import REPIN_AFTER, ControlSync
-from zplatform.transport import KeySpace
-from zplatform.uplink import Uplink
+from zplatform.control.loop import ControlLogic, DeviceLogic
+from zplatform.control.uplink import Uplink
+from zplatform.core.auth import KEY_ENV, TAG_LEN, KeySet, channel
+from zplatform.core.codec import decode_frame, encode_frame
+from zplatform.mission.load import decode_mission, load_mission
+from zplatform.runtime.sync import REPIN_AFTER, ControlSync
+from zplatform.runtime.transport import KeySpace
+from zplatform.sim.lockstep import replay
+from zplatform.sim.replay_recording import Recorder, RecordReader
 
 ROOT = Path(__file__).resolve().parents[2]
 LED = ROOT / "configs" / "led_test.yaml"
@@ -99,7 +99,7 @@ def test_a_dn_takes_its_own_trigger_from_a_sync_bundle() -> None:
     text = LED.read_text() + "\ntransport: {sync_query: wildcard}\n"
     m = decode_mission(text)
     cn = ControlLogic(m, keys=KEYS, epoch=T0)
-    from zplatform.codec import BundleEncoder
+    from zplatform.core.codec import BundleEncoder
 
     bundle = bytes(BundleEncoder().pack(cn.begin(1, T0 + PERIOD)))
     for i, dn in enumerate(m.device_nodes):
@@ -168,7 +168,7 @@ def test_request_refusal_is_the_command_handlers_rule() -> None:
 def test_the_request_number_rule_table(
     epoch: int, seq: int, last: int, status: str | int, detail: str | None
 ) -> None:
-    """The one request-number rule (zplatform.commands.request_refusal) on a
+    """The one request-number rule (zplatform.control.commands.request_refusal) on a
     CN of run 7: its status, and the detail its refusal event gives."""
     want = CommandStatus[status] if isinstance(status, str) else status
     assert request_refusal(epoch, seq, 7, last) == want

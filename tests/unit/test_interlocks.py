@@ -1,4 +1,4 @@
-"""Hazardous outputs (zplatform.interlocks): the config rules, the device
+"""Hazardous outputs (zplatform.control.interlocks): the config rules, the device
 node's interlock on the state its trigger carries, and `zplatform check`'s
 list of every writable element and hazardous output."""
 
@@ -12,11 +12,11 @@ import pytest
 
 from zplatform import DataVector, Layout, RegionCodec, decode_mission, load_mission
 from zplatform.boards import SimBoard
-from zplatform.cli import main
+from zplatform.cli.main import main
 from zplatform.config import Mission
+from zplatform.control.loop import ControlLogic, DeviceLogic
 from zplatform.errors import ConfigError
-from zplatform.loop import ControlLogic, DeviceLogic
-from zplatform.safety import doors
+from zplatform.mission.safety import doors
 
 ROOT = Path(__file__).resolve().parents[2]
 FLIGHT = ROOT / "configs" / "flight.yaml"
@@ -44,7 +44,7 @@ state_machine:
       transitions:
         - {element: cn_cmd, op: "==", value: ABORT, to: SAFE}
 devices:
-  - {name: valve, class: "zplatform.devices:DigitalOutput", node: dn0,
+  - {name: valve, class: "zplatform.control.devices:DigitalOutput", node: dn0,
      config: {pin: 0, command: valve_cmd, feedback: valve_fb}}
 """
 

@@ -1,4 +1,4 @@
-"""The intra-host carrier in one process (zplatform/intrahost.py): names,
+"""The intra-host carrier in one process (zplatform/runtime/intrahost.py): names,
 sizing, the shared-memory check, and an exchange's outcomes with a peer that
 is absent, silent, or there. Cross-process round trips and a kill -9 are in
 tests/integration/test_intrahost.py.
@@ -16,9 +16,10 @@ from collections.abc import Iterator
 import pytest
 
 from tests.intrahost_peer import leftovers, wipe
-from zplatform import intrahost
 from zplatform.errors import IntraHostError, ZPlatformError
-from zplatform.intrahost import (
+from zplatform.mission.load import decode_mission
+from zplatform.runtime import intrahost
+from zplatform.runtime.intrahost import (
     IntraHostClient,
     IntraHostServer,
     LinkState,
@@ -28,7 +29,6 @@ from zplatform.intrahost import (
     mission_shm_need,
     segment_bytes,
 )
-from zplatform.mission import decode_mission
 
 MISSION = """\
 mission: {name}

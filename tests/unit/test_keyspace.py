@@ -1,11 +1,11 @@
-"""The key space is one table (zplatform/keyspace.py), and nothing uses a key
+"""The key space is one table (zplatform/security/keyspace.py), and nothing uses a key
 or a channel without its row.
 
 * every zenoh call in ``zplatform/`` (declare a publisher, subscriber,
   queryable, querier or liveliness token; a session's get or put; a
   liveliness get or subscriber) takes its key from the table-backed
-  builders (:class:`zplatform.transport.KeySpace`, :func:`key_of`,
-  :func:`zplatform.bulk.bulk_key`), found by a static scan that follows
+  builders (:class:`zplatform.runtime.transport.KeySpace`, :func:`key_of`,
+  :func:`zplatform.runtime.bulk.bulk_key`), found by a static scan that follows
   names, attributes and parameters back to where the key was made;
 * every auth channel name the code builds a channel for belongs to a row,
   and every row's channel is tagged by the link the row says;
@@ -29,11 +29,13 @@ from typing import Any
 import pytest
 import zenoh
 
-from zplatform import auth
-from zplatform.cli import main
+from zplatform.cli.main import main
 from zplatform.config import Mission
-from zplatform.deploy import access_control
-from zplatform.keyspace import (
+from zplatform.core import auth
+from zplatform.mission.load import load_mission
+from zplatform.runtime.transport import KeySpace
+from zplatform.security.deploy import access_control
+from zplatform.security.keyspace import (
     KEYSPACE,
     ExpandedKey,
     expand_keys,
@@ -42,8 +44,6 @@ from zplatform.keyspace import (
     keyspace_markdown,
     match_key,
 )
-from zplatform.mission import load_mission
-from zplatform.transport import KeySpace
 
 ROOT = Path(__file__).resolve().parents[2]
 PKG = ROOT / "zplatform"
@@ -104,7 +104,7 @@ def test_every_keyspace_member_builds_a_key_of_a_row() -> None:
 
 def test_keyspace_members_call_key_of_only() -> None:
     """KeySpace builds no key by hand: every method's key is key_of's."""
-    src = (PKG / "transport.py").read_text()
+    src = (PKG / "runtime/transport.py").read_text()
     cls = next(
         n for n in ast.walk(ast.parse(src)) if isinstance(n, ast.ClassDef) and n.name == "KeySpace"
     )
@@ -379,7 +379,7 @@ CALLS = {f"{m.rel}:{c.lineno}": (m, c, k) for m, c, k in _zenoh_calls()}
 def test_the_scan_sees_every_kind_of_zenoh_call() -> None:
     kinds = {call.func.attr for _, call, _ in CALLS.values()}  # type: ignore[attr-defined]
     assert kinds >= _DECLARES - {"declare_querier"} | {"get"}, kinds
-    # Every get goes through zplatform.queries.ask (one call site, whose key
+    # Every get goes through zplatform.runtime.queries.ask (one call site, whose key
     # parameter the scan follows to each caller), so fewer sites than calls.
     assert len(CALLS) >= 20
 
@@ -389,7 +389,7 @@ def test_every_zenoh_call_takes_its_key_from_the_table(site: str) -> None:
     mod, call, key = CALLS[site]
     why = _resolve(mod, key, call)
     assert not why, (
-        f"{site}: a zenoh call whose key is not built from zplatform/keyspace.py "
+        f"{site}: a zenoh call whose key is not built from zplatform/security/keyspace.py "
         f"(add the key's row to KEYSPACE and build it with KeySpace/key_of): {why}"
     )
 
@@ -453,7 +453,7 @@ def _channel_names() -> Iterator[tuple[str, str]]:
             if p is not None:
                 yield f"{mod.rel}:{node.lineno}", p
     for name in sorted(auth.PEER_CHANNELS):
-        yield "zplatform/auth.py:PEER_CHANNELS", name
+        yield "zplatform/core/auth.py:PEER_CHANNELS", name
 
 
 # What each placeholder of a row's channel may stand for (``{}``: a code's f-string field).
@@ -483,7 +483,7 @@ def test_every_auth_channel_belongs_to_a_row() -> None:
     names = list(_channel_names())
     assert len(names) >= 15
     missing = [(site, n) for site, n in names if not any(rx.fullmatch(n) for rx in rows)]
-    assert not missing, f"channels without a row in zplatform/keyspace.py: {missing}"
+    assert not missing, f"channels without a row in zplatform/security/keyspace.py: {missing}"
 
 
 @pytest.mark.parametrize("path", MISSIONS, ids=lambda p: p.stem)

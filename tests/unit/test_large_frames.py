@@ -13,14 +13,14 @@ import pytest
 import zenoh
 
 from tests.zsession import lone_session
-from zplatform.auth import TAG_LEN, AuthError, Channel, channel
-from zplatform.codec import FrameEncoder, RegionCodec, encode_frame
-from zplatform.intake import ReplyCheck, TriggerIntake
-from zplatform.lockstep import sim_keys
-from zplatform.loop import ControlLogic, DeviceLogic
-from zplatform.mission import load_mission
-from zplatform.sync import ControlSync, DeviceSync, TapPublisher
-from zplatform.transport import KeySpace
+from zplatform.control.intake import ReplyCheck, TriggerIntake
+from zplatform.control.loop import ControlLogic, DeviceLogic
+from zplatform.core.auth import TAG_LEN, AuthError, Channel, channel
+from zplatform.core.codec import FrameEncoder, RegionCodec, encode_frame
+from zplatform.mission.load import load_mission
+from zplatform.runtime.sync import ControlSync, DeviceSync, TapPublisher
+from zplatform.runtime.transport import KeySpace
+from zplatform.sim.lockstep import sim_keys
 
 MINIMAL = Path(__file__).resolve().parents[2] / "configs" / "minimal.yaml"
 M = load_mission(MINIMAL)

@@ -9,12 +9,14 @@ listed module by module; there are no known exceptions. Importing
 its own package is already loading; so the root package ``zplatform``, which
 re-exports the public API, is never a target of a module inside it).
 
-A second rule keeps the layers: the core (config, the sans-IO modules,
-boards, the world model, the records, logs, summaries and the flight
-recorder) never imports a process entry point, the CLI,
-a node runtime, the ground or the console. And the two zenoh-facing sides
-stand apart: the ground never imports the vehicle nodes' runtime
-(``zplatform.node``); what both use lives below them (``zplatform.transport``).
+A second rule keeps the layers: the core (config, the data core, boards,
+the world model, the control logic, security, telemetry, the mission checks
+and the flight recorder) never imports a process entry point, the CLI, a
+node runtime, the zenoh runtime, the ground or the console; the ground never
+imports the vehicle nodes' runtime (``zplatform.node``). A third: every
+module sits in a package of LAYERS (or is a root module: errors, trace), and
+a package imports only those before it in LAYERS, the order of
+docs/architecture.md's package layout table.
 """
 
 from __future__ import annotations
@@ -25,39 +27,48 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[2]
 PKG = ROOT / "zplatform"
 
+# The packages bottom-up: each imports only those before it and the root
+# modules (ROOT_MODULES); docs/architecture.md's package layout, in order.
+LAYERS = (
+    "zplatform.config",
+    "zplatform.core",
+    "zplatform.boards",
+    "zplatform.world",
+    "zplatform.control",
+    "zplatform.security",
+    "zplatform.telemetry",
+    "zplatform.mission",
+    "zplatform.recorder",
+    "zplatform.runtime",
+    "zplatform.archive",
+    "zplatform.ground",
+    "zplatform.sim",
+    "zplatform.node",
+    "zplatform.console",
+    "zplatform.cli",
+)
+ROOT_MODULES = {"zplatform.errors", "zplatform.trace"}
 # The layers above the core: process entry points and the zenoh-facing sides.
 TOP = (
     "zplatform.cli",
-    "zplatform.cli_args",
-    "zplatform.cli_ground",
-    "zplatform.cli_runtime",
-    "zplatform.cli_sim",
     "zplatform.node",
     "zplatform.ground",
     "zplatform.console",
+    "zplatform.sim",
+    "zplatform.runtime",
 )
-TOP_MODULES = {"zplatform.__main__", "zplatform.world_server", "zplatform.supervisor"}
-# The core that must never import them (and the config package in full).
+TOP_MODULES = {"zplatform.__main__"}
+# The core that must never import them.
 CORE = {
     "zplatform.config",
+    "zplatform.core",
     "zplatform.boards",
     "zplatform.world",
-    "zplatform.world_checks",
-    "zplatform.mission",
-    "zplatform.devices",
-    "zplatform.controllers",
-    "zplatform.components",
-    "zplatform.datavector",
-    "zplatform.codec",
-    "zplatform.statemachine",
-    "zplatform.commands",
-    "zplatform.loop",
-    "zplatform.records",
+    "zplatform.control",
+    "zplatform.security",
     "zplatform.telemetry",
-    "zplatform.summary",
+    "zplatform.mission",
     "zplatform.recorder",
-    "zplatform.events",
-    "zplatform.schema",
 }
 
 KNOWN_CIRCLES: list[tuple[str, ...]] = []
@@ -161,9 +172,9 @@ def test_the_graph_sees_the_imports_it_must() -> None:
     # and a TYPE_CHECKING import, and a subpackage's parent run on import.
     graph = import_graph()
     assert "zplatform.config.schema" in graph["zplatform.config.platform"]
-    assert "zplatform.world_server" in graph["zplatform.cli_runtime"]  # in a function
-    assert "zplatform.mission" in graph["zplatform.world_server"]  # in a function
-    assert "zplatform.boards" in graph["zplatform.world"]  # parent of boards.world
+    assert "zplatform.sim.world_server" in graph["zplatform.cli.runtime"]  # in a function
+    assert "zplatform.mission.load" in graph["zplatform.sim.world_server"]  # in a function
+    assert "zplatform.boards" in graph["zplatform.world.model"]  # parent of boards.world
     assert "zplatform.boards" not in graph["zplatform.boards.world"]  # its own package
 
 
@@ -199,3 +210,39 @@ def test_the_ground_never_imports_the_vehicle_nodes_runtime() -> None:
         if _in(b, (other,))
     )
     assert not across, "a side imports another it must not:\n" + "\n".join(across)
+
+
+def _layer(name: str) -> int | None:
+    """The index in LAYERS of the package holding ``name`` (None: a root module)."""
+    for i, pkg in enumerate(LAYERS):
+        if _in(name, (pkg,)):
+            return i
+    return None
+
+
+def test_every_module_sits_in_a_layer() -> None:
+    # a new module goes into the package of its layer, not beside them
+    stray = [
+        name
+        for name in import_graph()
+        if name != "zplatform"
+        and _layer(name) is None
+        and name not in ROOT_MODULES
+        and name != "zplatform.__main__"
+    ]
+    assert not stray, f"modules outside LAYERS (place them, or add their package): {stray}"
+
+
+def test_every_package_imports_only_layers_below_it() -> None:
+    # The packages form a ladder: no package imports one above it, so no two
+    # packages import each other either (a circle of packages is one upward).
+    upward = []
+    for a, targets in import_graph().items():
+        la = _layer(a)
+        for b in targets:
+            lb = _layer(b)
+            if a in ROOT_MODULES and b not in ROOT_MODULES:
+                upward.append(f"{a} -> {b}")  # the root modules are the ground floor
+            elif la is not None and lb is not None and lb > la:
+                upward.append(f"{a} -> {b}")
+    assert not upward, "a package imports one above it:\n" + "\n".join(upward)

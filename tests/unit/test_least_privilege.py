@@ -1,4 +1,4 @@
-"""Keys per link, each host holding only its own (zplatform.auth), with real
+"""Keys per link, each host holding only its own (zplatform.core.auth), with real
 frames: whatever a host's keys can make, the links it does not hold refuse.
 
 Before per-link keys, the ground's key was the mission key: it signed
@@ -13,14 +13,14 @@ from pathlib import Path
 
 import pytest
 
-from zplatform.auth import MACS, AuthError, Channel, KeyError_, KeySet
 from zplatform.boards import SimBoard
-from zplatform.codec import RegionCodec
-from zplatform.datavector import DataVector, Layout
-from zplatform.events import EV, EventLog, EventReader, encode_event
-from zplatform.loop import ControlLogic, DeviceLogic
-from zplatform.mission import load_mission
-from zplatform.uplink import Uplink
+from zplatform.control.loop import ControlLogic, DeviceLogic
+from zplatform.control.uplink import Uplink
+from zplatform.core.auth import MACS, AuthError, Channel, KeyError_, KeySet
+from zplatform.core.codec import RegionCodec
+from zplatform.core.datavector import DataVector, Layout
+from zplatform.core.events import EV, EventLog, EventReader, encode_event
+from zplatform.mission.load import load_mission
 
 ROOT = Path(__file__).resolve().parents[2]
 IGN = load_mission(ROOT / "configs" / "recovery_igniter.yaml")

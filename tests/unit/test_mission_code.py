@@ -20,9 +20,9 @@ import yaml
 from zplatform import DataVector, Layout, LockstepRunner
 from zplatform.config import relocate_mission, resolve_pythonpath
 from zplatform.errors import ConfigError
-from zplatform.mission import decode_mission, load_mission
-from zplatform.replay_recording import MISSION_FILE, Recorder
-from zplatform.transport import rewrite_endpoints
+from zplatform.mission.load import decode_mission, load_mission
+from zplatform.runtime.transport import rewrite_endpoints
+from zplatform.sim.replay_recording import MISSION_FILE, Recorder
 
 CODE = '''
 """A team's mission code (test fixture)."""

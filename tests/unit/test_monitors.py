@@ -1,4 +1,4 @@
-"""Monitors and responses (zplatform.monitors): each kind, persistence, states,
+"""Monitors and responses (zplatform.control.monitors): each kind, persistence, states,
 each response in the loop it trips, the config's errors with their YAML paths."""
 
 from __future__ import annotations
@@ -12,7 +12,7 @@ import yaml
 
 from zplatform import EV, ConfigError, ControlLogic, DataVector, EventLog, Layout, decode_mission
 from zplatform.config import Mission
-from zplatform.statemachine import StateMachine
+from zplatform.control.statemachine import StateMachine
 
 BASE = """
 mission: montest
@@ -349,7 +349,7 @@ def test_a_mission_without_a_state_machine_monitors_in_idle() -> None:
 
 
 def test_a_state_reached_only_by_a_monitor_is_reachable() -> None:
-    from zplatform.statemachine import unreachable_states
+    from zplatform.control.statemachine import unreachable_states
 
     assert unreachable_states(mission()) == ["B"]
     go_b = {"name": "m", "element": "x", "kind": "limit", "hi": 1, "response": "transition"}

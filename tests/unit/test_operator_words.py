@@ -8,8 +8,8 @@ from pathlib import Path
 import pytest
 
 from zplatform import CommandError
-from zplatform.mission import load_mission
-from zplatform.uplink import parse_commands, validate_command
+from zplatform.control.uplink import parse_commands, validate_command
+from zplatform.mission.load import load_mission
 
 CONFIGS = Path(__file__).resolve().parents[2] / "configs"
 

@@ -1,4 +1,4 @@
-"""Mission parameters (zplatform.params): config checks, PRM_SET and PRM_SAVE
+"""Mission parameters (zplatform.control.params): config checks, PRM_SET and PRM_SAVE
 through the CN's loop with real (authenticated) request frames, the
 parameter file, loading at start, and the ground's side."""
 
@@ -14,14 +14,11 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from zplatform import ControlLogic, decode_mission
-from zplatform.auth import KeySet
-from zplatform.codes import ParamLoad
-from zplatform.commands import writable_elements
 from zplatform.config import Mission, parse_mission
+from zplatform.config.codes import ParamLoad
 from zplatform.console.model import ConsoleModel
-from zplatform.errors import CommandError, ConfigError
-from zplatform.ground.logic import needs_arm
-from zplatform.params import (
+from zplatform.control.commands import writable_elements
+from zplatform.control.params import (
     ParamFileError,
     ParamSaver,
     SaveResult,
@@ -31,8 +28,11 @@ from zplatform.params import (
     params_path,
     read_params_file,
 )
-from zplatform.records import param_rows
-from zplatform.uplink import Uplink, element_index, parse_commands, validate_command
+from zplatform.control.uplink import Uplink, element_index, parse_commands, validate_command
+from zplatform.core.auth import KeySet
+from zplatform.errors import CommandError, ConfigError
+from zplatform.ground.logic import needs_arm
+from zplatform.telemetry.records import param_rows
 
 S = 1_000_000_000
 PERIOD = 10_000_000

@@ -1,4 +1,4 @@
-"""The mission PKI (zplatform.pki) and `zplatform keygen`'s PKI step: what is
+"""The mission PKI (zplatform.security.pki) and `zplatform keygen`'s PKI step: what is
 made, where, with which modes, and that a second run adds only what is missing."""
 
 from __future__ import annotations
@@ -14,14 +14,14 @@ import pytest
 from cryptography import x509
 from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
 
-from zplatform.deploy import (
+from zplatform.mission.load import load_mission
+from zplatform.security.deploy import (
     DEPLOYMENT_ENV,
     DeploymentError,
     default_deployment_path,
     load_deployment,
 )
-from zplatform.mission import load_mission
-from zplatform.pki import ensure_mission_pki, ensure_pki
+from zplatform.security.pki import ensure_mission_pki, ensure_pki
 
 ROOT = Path(__file__).resolve().parents[2]
 IGNITER = ROOT / "configs" / "recovery_igniter.yaml"

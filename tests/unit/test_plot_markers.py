@@ -7,7 +7,7 @@ from typing import Any, NamedTuple
 
 import pytest
 
-from zplatform.telemetry import Marker, events_path, plot_markers, plot_telemetry
+from zplatform.telemetry.logs import Marker, events_path, plot_markers, plot_telemetry
 
 
 def _rows() -> list[dict[str, str]]:

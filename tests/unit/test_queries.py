@@ -1,4 +1,4 @@
-"""zplatform.queries: every query is asked of every queryable on its key, so
+"""zplatform.runtime.queries: every query is asked of every queryable on its key, so
 an impostor that declares a ``complete`` queryable cannot take it.
 
 Real zenoh sessions on loopback (free ports, this test's own: nothing else
@@ -24,19 +24,26 @@ import pytest
 import zenoh
 
 from tests.zsession import lone_session
-from zplatform.auth import KeySet, channel
-from zplatform.clocksync import ClockLink, ClockServer, estimate_offset
+from zplatform.control.handoff import Mailbox
+from zplatform.control.intake import ReplyCheck, TriggerIntake
+from zplatform.control.loop import ControlLogic, DeviceLogic
+from zplatform.core.auth import KeySet, channel
+from zplatform.core.health import Heartbeat, Liveness, stalled_names, thread_deadlines_ns
 from zplatform.errors import TransportError
 from zplatform.ground.link import GroundLink
-from zplatform.handoff import Mailbox
-from zplatform.health import Heartbeat, Liveness, stalled_names, thread_deadlines_ns
-from zplatform.intake import ReplyCheck, TriggerIntake
-from zplatform.lockstep import sim_keys
-from zplatform.loop import ControlLogic, DeviceLogic
-from zplatform.mission import load_mission
-from zplatform.queries import UNANSWERED_LOOPS, ReplyCap, Unanswered, ask, replies, set_fault
-from zplatform.sync import ControlSync, DeviceSync, ProbeSync
-from zplatform.transport import KeySpace
+from zplatform.mission.load import load_mission
+from zplatform.runtime.clocksync import ClockLink, ClockServer, estimate_offset
+from zplatform.runtime.queries import (
+    UNANSWERED_LOOPS,
+    ReplyCap,
+    Unanswered,
+    ask,
+    replies,
+    set_fault,
+)
+from zplatform.runtime.sync import ControlSync, DeviceSync, ProbeSync
+from zplatform.runtime.transport import KeySpace
+from zplatform.sim.lockstep import sim_keys
 
 ROOT = Path(__file__).resolve().parents[2]
 MINIMAL = load_mission(ROOT / "configs" / "minimal.yaml")
@@ -340,7 +347,7 @@ def test_unanswered_recovers_a_live_target_once_per_run_of_silent_loops() -> Non
 
 
 class LostRoute:
-    """zenoh#2517 as :func:`zplatform.queries.set_fault` plays it: once armed,
+    """zenoh#2517 as :func:`zplatform.runtime.queries.set_fault` plays it: once armed,
     every query on ``key`` is lost until a querier on it is declared again."""
 
     def __init__(self, key: str) -> None:
@@ -496,7 +503,7 @@ def test_a_flood_of_clock_queries_waits_in_a_bounded_backlog() -> None:
     tests/faults/keyfloods.py: the commander's RSS grew by about 146 MB in a
     3 s flood at 6,000 queries/s): while the server's thread is busy, at most
     CLOCK_BACKLOG queries wait; the rest are dropped unanswered and counted."""
-    import zplatform.clocksync as cs
+    import zplatform.runtime.clocksync as cs
 
     backlog = getattr(cs, "CLOCK_BACKLOG", 64)  # (main had no bound: checked there too)
     keys = KeySet.from_master(IGNITER, bytes(range(32)))

@@ -18,14 +18,14 @@ from typing import Any, BinaryIO
 
 import pytest
 
-from zplatform.auth import KeyError_, KeySet
 from zplatform.config import relocate_mission
-from zplatform.datavector import Layout
+from zplatform.control.loop import ControlLogic
+from zplatform.core.auth import KeyError_, KeySet
+from zplatform.core.datavector import Layout
+from zplatform.core.events import EV, EventLog, encode_event
+from zplatform.core.health import Liveness, stalled_names
 from zplatform.errors import ConfigError, RecordingError
-from zplatform.events import EV, EventLog, encode_event
-from zplatform.health import Liveness, stalled_names
-from zplatform.loop import ControlLogic
-from zplatform.mission import decode_mission
+from zplatform.mission.load import decode_mission
 from zplatform.recorder import (
     RECORDER_DIR_ENV,
     FlightRecorder,
@@ -38,7 +38,7 @@ from zplatform.recorder import (
 )
 from zplatform.recorder.format import DROPPED, END, EVENT, FRAME, HEADER_LEN
 from zplatform.recorder.reader import counts
-from zplatform.telemetry import CsvLogger
+from zplatform.telemetry.logs import CsvLogger
 
 ROOT = Path(__file__).resolve().parents[2]
 MINIMAL = (ROOT / "configs" / "minimal.yaml").read_text()
@@ -297,7 +297,7 @@ def test_a_stalled_disk_drops_whole_loops_counted_never_blocking(tmp_path: Path)
     rec.tick(30)
     assert rec.dropped == 20 and tm.cn.dv.get("cn_rec_dropped") == 20
     # The writer stuck in its write stops checking in: named stalled
-    # (zplatform.health), and checks in again once the write returns.
+    # (zplatform.core.health), and checks in again once the write returns.
     live = Liveness({"recorder": 50_000_000})
     live.add(rec.heartbeat)
     assert wait_for(lambda: stalled_names(live.stalled(time.monotonic_ns())) == ["recorder"])
@@ -421,7 +421,7 @@ def test_export_refuses_another_missions_layout(tmp_path: Path) -> None:
 def test_a_device_nodes_directory_reads_as_its_region(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    from zplatform.loop import DeviceLogic
+    from zplatform.control.loop import DeviceLogic
 
     monkeypatch.setenv(RECORDER_DIR_ENV, str(tmp_path))
     m = mission()
@@ -520,7 +520,7 @@ def test_recorded_frames_are_the_telemetry_channels() -> None:
 def test_log_from_recorder_mistakes_are_one_line_exit_2(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    from zplatform.cli import main
+    from zplatform.cli.main import main
 
     m = tmp_path / "m.yaml"
     m.write_text(MINIMAL + "\nrecorder: {}\n")
@@ -539,7 +539,7 @@ def test_log_from_recorder_mistakes_are_one_line_exit_2(
 def test_log_from_recorder_writes_the_files_and_names_the_damage(
     tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    from zplatform.cli import main
+    from zplatform.cli.main import main
 
     monkeypatch.setenv("ZPLATFORM_KEY", KEY.hex())
     m = tmp_path / "m.yaml"
@@ -639,7 +639,7 @@ def test_the_recorder_server_refuses_a_replayed_request() -> None:
     """A genuine request is served once: the same request again (a replay
     within its stamp's bound) is refused unserved and counted; a new
     request for the same loops, stamped later, is served."""
-    from zplatform.auth import channel
+    from zplatform.core.auth import channel
     from zplatform.recorder.format import REQUEST, REQUEST_MAGIC
     from zplatform.recorder.server import RecorderServer
 

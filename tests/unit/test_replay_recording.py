@@ -10,9 +10,9 @@ from typing import Any
 import pytest
 
 from zplatform import ControlLogic, Recorder, load_mission
-from zplatform import replay_recording as recording
 from zplatform.errors import RecordingError
-from zplatform.replay_recording import RecordReader
+from zplatform.sim import replay_recording as recording
+from zplatform.sim.replay_recording import RecordReader
 
 ROOT = Path(__file__).resolve().parents[2]
 MISSION = ROOT / "configs" / "minimal.yaml"
@@ -67,7 +67,7 @@ def test_the_final_loop_flag_is_recorded_and_replayed(tmp_path: Path) -> None:
     """A run's last loop (dnX_final in its frames and telemetry) is an input
     of the loop like the others: the replay repeats it, bit for bit."""
     from zplatform import replay
-    from zplatform.auth import load_keys
+    from zplatform.core.auth import load_keys
 
     m = load_mission(MISSION)
     cn = ControlLogic(m, keys=load_keys(m, "cn"), epoch=1)

@@ -27,13 +27,13 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from zplatform import ControlLogic, Recorder, load_mission, replay
-from zplatform.auth import load_keys
-from zplatform.cli import main
-from zplatform.datavector import Layout
+from zplatform.cli.main import main
+from zplatform.control.loop import DeviceLogic
+from zplatform.core.auth import load_keys
+from zplatform.core.datavector import Layout
 from zplatform.errors import RecordingError
-from zplatform.loop import DeviceLogic
-from zplatform.mission import decode_mission
-from zplatform.replay_recording import (
+from zplatform.mission.load import decode_mission
+from zplatform.sim.replay_recording import (
     MAX_META_BYTES,
     MAX_MISSION_BYTES,
     MISSION_FILE,

@@ -1,4 +1,4 @@
-"""Keys bound to the run (zplatform.auth.Run, codecs/FORMAT.md §6.1): the
+"""Keys bound to the run (zplatform.core.auth.Run, codecs/FORMAT.md §6.1): the
 nodes' logic and intakes refuse another run's frames, answer in the run of
 what they answer, and follow their vector's run."""
 
@@ -8,12 +8,12 @@ from pathlib import Path
 
 from tests.payload import Bytes
 from zplatform import load_mission
-from zplatform.auth import NO_RUN, TAG_LEN, Channel, Run
-from zplatform.failover import MirrorReader, Standby
-from zplatform.fencing import ASK, STATUS, ask_frame, new_nonce
-from zplatform.intake import TriggerIntake
-from zplatform.lockstep import sim_keys
-from zplatform.loop import ControlLogic, DeviceLogic
+from zplatform.control.failover import MirrorReader, Standby
+from zplatform.control.fencing import ASK, STATUS, ask_frame, new_nonce
+from zplatform.control.intake import TriggerIntake
+from zplatform.control.loop import ControlLogic, DeviceLogic
+from zplatform.core.auth import NO_RUN, TAG_LEN, Channel, Run
+from zplatform.sim.lockstep import sim_keys
 
 ROOT = Path(__file__).resolve().parents[2]
 FLIGHT = load_mission(ROOT / "configs" / "flight.yaml")

@@ -4,9 +4,9 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from zplatform.mission import load_mission
-from zplatform.summary import CnSummary, write_summary
-from zplatform.supervisor import format_run_summary, merge_summaries
+from zplatform.cli.supervisor import format_run_summary, merge_summaries
+from zplatform.mission.load import load_mission
+from zplatform.telemetry.summary import CnSummary, write_summary
 
 FLIGHT = Path(__file__).resolve().parents[2] / "configs" / "flight.yaml"
 

@@ -1,4 +1,4 @@
-"""Safety smells that `zplatform check` reports (zplatform.safety)."""
+"""Safety smells that `zplatform check` reports (zplatform.mission.safety)."""
 
 from __future__ import annotations
 
@@ -9,9 +9,9 @@ import pytest
 import yaml
 
 from zplatform import SafetyWarning, decode_mission, load_mission, safety_warnings
-from zplatform.cli import main
-from zplatform.datavector import DataVector
-from zplatform.devices import Actuator
+from zplatform.cli.main import main
+from zplatform.control.devices import Actuator
+from zplatform.core.datavector import DataVector
 
 ROOT = Path(__file__).resolve().parents[2]
 HERE = __name__
@@ -59,7 +59,7 @@ def mission(**sections: object) -> dict[str, object]:
         "devices": [
             {
                 "name": "ign",
-                "class": "zplatform.devices:DigitalOutput",
+                "class": "zplatform.control.devices:DigitalOutput",
                 "node": "dn0",
                 "config": {"pin": 0, "command": "fire"},
             },
@@ -113,7 +113,7 @@ def test_an_actuator_without_a_safe_value() -> None:
     doc["devices"] = [
         {
             "name": "ign",
-            "class": "zplatform.devices:DigitalOutput",
+            "class": "zplatform.control.devices:DigitalOutput",
             "node": "dn0",
             "config": {"pin": 0, "command": "fire"},
         },

@@ -1,4 +1,5 @@
-"""Tests of zplatform.scheduler: deterministic, on a fake clock (one real-clock behaviour check)."""
+"""Tests of zplatform.runtime.scheduler: deterministic, on a fake clock (one real-clock behaviour
+check)."""
 
 from __future__ import annotations
 
@@ -11,10 +12,10 @@ from collections.abc import Callable, Iterable
 import numpy as np
 import pytest
 
-from zplatform import scheduler
+from zplatform.control.rategroups import RateGroup, RateGroups, rate_due
 from zplatform.errors import SchedulerError
-from zplatform.rategroups import RateGroup, RateGroups, rate_due
-from zplatform.scheduler import (
+from zplatform.runtime import scheduler
+from zplatform.runtime.scheduler import (
     GcGuard,
     LoopStats,
     PeriodicLoop,

@@ -12,9 +12,9 @@ import pytest
 import yaml
 
 from zplatform.boards import BUILTIN_DRIVERS
-from zplatform.cli import main
-from zplatform.mission import decode_mission
-from zplatform.schema import (
+from zplatform.cli.main import main
+from zplatform.mission.load import decode_mission
+from zplatform.mission.schema import (
     BOARD_CONFIGS,
     REFERENCE_PATH,
     builtin_devices,
@@ -125,7 +125,7 @@ def test_a_builtin_device_config_follows_its_class(
     validator: jsonschema.Draft202012Validator,
 ) -> None:
     doc = _minimal()
-    device = {"name": "led", "class": "zplatform.devices:DigitalOutput", "node": "dn0"}
+    device = {"name": "led", "class": "zplatform.control.devices:DigitalOutput", "node": "dn0"}
     doc["devices"] = [{**device, "config": {"pin": 0, "command": "dn0_setpoint"}}]
     assert _errors(validator, doc) == []
     doc["devices"] = [{**device, "config": {"pin": 0, "comand": "dn0_setpoint"}}]
@@ -157,10 +157,10 @@ def test_every_builtin_board_and_device_is_covered() -> None:
     # schema has a branch for it beside the configs of the others.
     assert set(BOARD_CONFIGS) | {"world"} == set(BUILTIN_DRIVERS)
     assert set(builtin_devices()) >= {
-        "zplatform.devices:AnalogInput",
-        "zplatform.devices:AnalogOutput",
-        "zplatform.devices:DigitalInput",
-        "zplatform.devices:DigitalOutput",
+        "zplatform.control.devices:AnalogInput",
+        "zplatform.control.devices:AnalogOutput",
+        "zplatform.control.devices:DigitalInput",
+        "zplatform.control.devices:DigitalOutput",
     }
 
 

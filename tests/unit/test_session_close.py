@@ -9,8 +9,8 @@ import time
 
 import pytest
 
-from zplatform import transport
-from zplatform.transport import NodeSession, sessions_left_open
+from zplatform.runtime import transport
+from zplatform.runtime.transport import NodeSession, sessions_left_open
 
 
 class _HangingSession:

@@ -1,4 +1,4 @@
-"""Tests of zplatform.statemachine: every config rule (message and YAML path),
+"""Tests of zplatform.control.statemachine: every config rule (message and YAML path),
 every transition kind, action timing, ordering, hold and resume."""
 
 from __future__ import annotations
@@ -11,17 +11,17 @@ import pytest
 
 from tests.drive import step_request
 from zplatform import DataVector, Layout, decode_mission
-from zplatform.commands import CommandHandler
 from zplatform.config import Mission, StateConfig
-from zplatform.errors import ConfigError
-from zplatform.events import EventLog, Severity
-from zplatform.statemachine import (
+from zplatform.control.commands import CommandHandler
+from zplatform.control.statemachine import (
     StateMachine,
     check_config,
     logic_writable,
     unreachable_states,
 )
-from zplatform.uplink import fill_request
+from zplatform.control.uplink import fill_request
+from zplatform.core.events import EventLog, Severity
+from zplatform.errors import ConfigError
 
 MS = 1_000_000
 S = 1_000_000_000

@@ -1,5 +1,5 @@
 """A node under ``up`` also stops when ``up`` closes its stdin, beside SIGTERM
-(zplatform/node/runtime.py StopFlag): a DN was seen looping on after its
+(zplatform/runtime/process.py StopFlag): a DN was seen looping on after its
 SIGTERM until ``up``'s grace ran out and it was killed."""
 
 from __future__ import annotations
@@ -8,10 +8,10 @@ import os
 import subprocess
 import sys
 
-from zplatform.node.runtime import STOP_PIPE_ENV
+from zplatform.runtime.process import STOP_PIPE_ENV
 
 _CHILD = (
-    "from zplatform.node.runtime import StopFlag\n"
+    "from zplatform.runtime.process import StopFlag\n"
     "s = StopFlag()\n"
     "print('ready', flush=True)\n"
     "s.event.wait(30)\n"

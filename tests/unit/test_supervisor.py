@@ -18,8 +18,9 @@ from typing import Any
 
 import pytest
 
-from zplatform import load_mission, supervisor
-from zplatform.datavector import DataVector, Layout
+from zplatform import load_mission
+from zplatform.cli import supervisor
+from zplatform.core.datavector import DataVector, Layout
 from zplatform.ground.script import MIN_DURATION_S, SETTLE_S
 
 ROOT = Path(__file__).resolve().parents[2]

@@ -12,13 +12,13 @@ import yaml
 from hypothesis import given
 from hypothesis import strategies as st
 
-from zplatform.codec import BUNDLE_MAGIC, BundleEncoder, bundle_entry, is_bundle
+from zplatform.control.loop import ControlLogic, DeviceLogic
+from zplatform.control.uplink import ScriptCommand
+from zplatform.core.codec import BUNDLE_MAGIC, BundleEncoder, bundle_entry, is_bundle
+from zplatform.core.messages import WILDCARD_MAX_BUNDLE, sync_bundle_size, wildcard_sync_for
 from zplatform.errors import FrameFormatError
-from zplatform.lockstep import LockstepRunner, sim_keys
-from zplatform.loop import ControlLogic, DeviceLogic
-from zplatform.messages import WILDCARD_MAX_BUNDLE, sync_bundle_size, wildcard_sync_for
-from zplatform.mission import decode_mission, load_mission
-from zplatform.uplink import ScriptCommand
+from zplatform.mission.load import decode_mission, load_mission
+from zplatform.sim.lockstep import LockstepRunner, sim_keys
 
 ROOT = Path(__file__).resolve().parents[2]
 LED = ROOT / "configs" / "led_test.yaml"

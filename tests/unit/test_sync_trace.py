@@ -1,4 +1,4 @@
-"""The sync's public trace hook (zplatform.sync.SyncTrace): every hop of an
+"""The sync's public trace hook (zplatform.runtime.sync.SyncTrace): every hop of an
 exchange, at both ends, in order; what bench.sync_trace stamps."""
 
 from __future__ import annotations
@@ -7,13 +7,13 @@ import threading
 from pathlib import Path
 
 from tests.zsession import lone_session
-from zplatform.auth import channel
-from zplatform.intake import ReplyCheck, TriggerIntake
-from zplatform.lockstep import sim_keys
-from zplatform.loop import ControlLogic, DeviceLogic
-from zplatform.mission import load_mission
-from zplatform.sync import ControlSync, DeviceSync
-from zplatform.transport import KeySpace
+from zplatform.control.intake import ReplyCheck, TriggerIntake
+from zplatform.control.loop import ControlLogic, DeviceLogic
+from zplatform.core.auth import channel
+from zplatform.mission.load import load_mission
+from zplatform.runtime.sync import ControlSync, DeviceSync
+from zplatform.runtime.transport import KeySpace
+from zplatform.sim.lockstep import sim_keys
 
 MINIMAL = Path(__file__).resolve().parents[2] / "configs" / "minimal.yaml"
 

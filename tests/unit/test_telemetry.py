@@ -1,4 +1,4 @@
-"""Tests of zplatform.telemetry: the CSV log format of docs/architecture.md#files."""
+"""Tests of zplatform.telemetry.logs: the CSV log format of docs/architecture.md#files."""
 
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from zplatform import DataVector, DataVectorError, Layout, decode_mission
-from zplatform.telemetry import MAX_ARRAY_COLUMNS, CsvLogger, csv_columns, read_csv
+from zplatform.telemetry.logs import MAX_ARRAY_COLUMNS, CsvLogger, csv_columns, read_csv
 
 MISSION = """
 mission: tmtest

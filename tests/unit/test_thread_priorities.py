@@ -1,4 +1,4 @@
-"""zplatform.node.runtime.split_thread_priorities: what bench/sync_trace.py's
+"""zplatform.runtime.process.split_thread_priorities: what bench/sync_trace.py's
 ZP_TRACE_ZENOH_PRIORITY sets (it used to patch the runtime's private
 _promote_threads): when a node promotes its threads, the calling (loop) thread
 gets the loop's priority, every other thread the split one; by default all
@@ -12,7 +12,7 @@ from collections.abc import Iterator
 
 import pytest
 
-from zplatform.node import runtime
+from zplatform.runtime import process as runtime
 
 
 @pytest.fixture

@@ -1,11 +1,12 @@
-"""Tests of zplatform.timebase: the node clock on injected fake clocks, and the virtual clock."""
+"""Tests of zplatform.runtime.timebase: the node clock on injected fake clocks, and the virtual
+clock."""
 
 from __future__ import annotations
 
 import pytest
 
 from zplatform import NodeClock, TimebaseError, VirtualClock
-from zplatform.timebase import I64_MAX, SKEW_ENV, YEAR_NS, check_overflow
+from zplatform.runtime.timebase import I64_MAX, SKEW_ENV, YEAR_NS, check_overflow
 
 T0 = 1_700_000_000_000_000_000  # 2023-11-14, in ns since the epoch
 

@@ -14,8 +14,8 @@ import zenoh
 
 from zplatform.config import Mission
 from zplatform.errors import ConfigError, TransportError
-from zplatform.mission import decode_mission, load_mission
-from zplatform.transport import (
+from zplatform.mission.load import decode_mission, load_mission
+from zplatform.runtime.transport import (
     dial_ranks,
     dials,
     free_port,

@@ -13,13 +13,13 @@ import pytest
 
 from tests.zsession import lone_session
 from zplatform import trace
-from zplatform.auth import channel
-from zplatform.intake import ReplyCheck, TriggerIntake
-from zplatform.lockstep import sim_keys
-from zplatform.loop import ControlLogic, DeviceLogic
-from zplatform.mission import load_mission
-from zplatform.sync import ControlSync, DeviceSync
-from zplatform.transport import KeySpace
+from zplatform.control.intake import ReplyCheck, TriggerIntake
+from zplatform.control.loop import ControlLogic, DeviceLogic
+from zplatform.core.auth import channel
+from zplatform.mission.load import load_mission
+from zplatform.runtime.sync import ControlSync, DeviceSync
+from zplatform.runtime.transport import KeySpace
+from zplatform.sim.lockstep import sim_keys
 
 MINIMAL = Path(__file__).resolve().parents[2] / "configs" / "minimal.yaml"
 

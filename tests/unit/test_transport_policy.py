@@ -10,11 +10,11 @@ import pytest
 import yaml
 
 from zplatform.config import parse_mission
+from zplatform.core.events import EV, MAX_TEXT, EventLog, encode_event
+from zplatform.core.messages import LOWLATENCY_MAX_MESSAGE, largest_message, lowlatency_for
 from zplatform.errors import ConfigError
-from zplatform.events import EV, MAX_TEXT, EventLog, encode_event
-from zplatform.messages import LOWLATENCY_MAX_MESSAGE, largest_message, lowlatency_for
-from zplatform.mission import decode_mission, load_mission
-from zplatform.transport import zenoh_config
+from zplatform.mission.load import decode_mission, load_mission
+from zplatform.runtime.transport import zenoh_config
 
 ROOT = Path(__file__).resolve().parents[2]
 

@@ -15,8 +15,8 @@ import yaml
 
 from zplatform import EV, ConfigError, EventLog, NodeError, decode_mission
 from zplatform.config import WatchdogConfig
-from zplatform.health import THREAD_NAMES, Heartbeat, Liveness
-from zplatform.watchdog import Watchdog
+from zplatform.control.watchdog import Watchdog
+from zplatform.core.health import THREAD_NAMES, Heartbeat, Liveness
 
 MS = 1_000_000
 

@@ -1,4 +1,4 @@
-"""The vehicle world (zplatform.world): one physical state behind several nodes' boards.
+"""The vehicle world (zplatform.world.model): one physical state behind several nodes' boards.
 
 A toy physics here: a "lamp" that is lit only while both nodes' switches are
 on (two switches in series, like a chute's igniter circuit), whose
@@ -17,10 +17,10 @@ from tests.drive import run_dn_loop
 from zplatform import LockstepRunner, World, decode_mission
 from zplatform.boards import BoardError
 from zplatform.boards.world import WorldLink, node_board
+from zplatform.control.loop import DeviceLogic
 from zplatform.errors import ConfigError
-from zplatform.loop import DeviceLogic
-from zplatform.world_checks import check_config as check_world
-from zplatform.world_server import serve
+from zplatform.sim.world_server import serve
+from zplatform.world.checks import check_config as check_world
 
 HERE = __name__
 
@@ -73,13 +73,13 @@ regions:
   dn1_to_cn:
     - {{name: lit1, type: f32}}
 devices:
-  - {{name: s0, class: "zplatform.devices:DigitalOutput",
+  - {{name: s0, class: "zplatform.control.devices:DigitalOutput",
      node: dn0, config: {{pin: 0, command: sw0}}}}
-  - {{name: l0, class: "zplatform.devices:AnalogInput",
+  - {{name: l0, class: "zplatform.control.devices:AnalogInput",
      node: dn0, config: {{pin: 0, element: lit0}}}}
-  - {{name: s1, class: "zplatform.devices:DigitalOutput",
+  - {{name: s1, class: "zplatform.control.devices:DigitalOutput",
      node: dn1, config: {{pin: 0, command: sw1}}}}
-  - {{name: l1, class: "zplatform.devices:AnalogInput",
+  - {{name: l1, class: "zplatform.control.devices:AnalogInput",
      node: dn1, config: {{pin: 0, element: lit1}}}}
 """
 

@@ -10,12 +10,12 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from zplatform import DataVector, Layout, RegionCodec, load_mission
-from zplatform.auth import TAG_LEN, AuthError, Channel, KeySet, channel
-from zplatform.codec import encode_frame
-from zplatform.intake import CnRefusals
-from zplatform.lockstep import LockstepRunner, sim_keys
-from zplatform.loop import ControlLogic, DeviceLogic
-from zplatform.uplink import Uplink, element_index, parse_commands
+from zplatform.control.intake import CnRefusals
+from zplatform.control.loop import ControlLogic, DeviceLogic
+from zplatform.control.uplink import Uplink, element_index, parse_commands
+from zplatform.core.auth import TAG_LEN, AuthError, Channel, KeySet, channel
+from zplatform.core.codec import encode_frame
+from zplatform.sim.lockstep import LockstepRunner, sim_keys
 
 CONFIGS = Path(__file__).resolve().parents[2] / "configs"
 LED = load_mission(CONFIGS / "led_test.yaml")

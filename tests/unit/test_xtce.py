@@ -8,12 +8,12 @@ from pathlib import Path
 import pytest
 
 from zplatform import load_mission
-from zplatform.ccsds import packet_plan
-from zplatform.cli import main
+from zplatform.cli.main import main
+from zplatform.cli.xtce import HEADER_BITS, mission_xtce
 from zplatform.config import CMD_NAMES, Mission
-from zplatform.datavector import ElementSpec, Layout
-from zplatform.mission import decode_mission
-from zplatform.xtce import HEADER_BITS, mission_xtce
+from zplatform.core.datavector import ElementSpec, Layout
+from zplatform.mission.load import decode_mission
+from zplatform.telemetry.ccsds import packet_plan
 
 CONFIGS = Path(__file__).resolve().parents[2] / "configs"
 NS = {"x": "http://www.omg.org/spec/XTCE/20180204"}
@@ -215,8 +215,8 @@ def test_packets_decode_by_the_xtce_alone(mission: Mission) -> None:
     """Reading our CCSDS packets with nothing but the XTCE gives the Data Vector's values."""
     import random
 
-    from zplatform.ccsds import CcsdsEncoder
-    from zplatform.datavector import DataVector
+    from zplatform.core.datavector import DataVector
+    from zplatform.telemetry.ccsds import CcsdsEncoder
 
     rnd = random.Random(7)
     enc = CcsdsEncoder(mission)

@@ -30,10 +30,10 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 
 from ..config import Mission
-from ..datavector import Layout
+from ..control.uplink import did_you_mean
+from ..core.datavector import Layout
+from ..core.events import Severity
 from ..errors import ArchiveError
-from ..events import Severity
-from ..uplink import did_you_mean
 from . import store
 
 __all__ = ["AGGREGATES", "Archive", "Query", "parse_every", "parse_time"]

@@ -14,7 +14,7 @@ saying so (never cut silently); so is a refused query (its reason).
 index) and puts the table together.
 
 Contract: neither side raises for what the peer sends; a bad frame is
-refused and counted (``refused``). The key's row: zplatform/keyspace.py.
+refused and counted (``refused``). The key's row: zplatform/security/keyspace.py.
 """
 
 from __future__ import annotations
@@ -30,7 +30,7 @@ import msgspec
 import pyarrow as pa
 import zenoh
 
-from ..auth import TAG_LEN, AuthError, Channel
+from ..core.auth import TAG_LEN, AuthError, Channel
 from ..errors import ArchiveError
 from .query import Archive, Query
 
@@ -296,8 +296,8 @@ def remote_query(
     ``timeout_s``. The replies come through a bounded mailbox (zenoh's
     thread only hands off). ArchiveError: no answer, a refusal (its
     reason), or an incomplete one."""
-    from ..handoff import Mailbox
-    from ..queries import ask, replies
+    from ..control.handoff import Mailbox
+    from ..runtime.queries import ask, replies
 
     box: Mailbox[bytes | None] = Mailbox(1 << 16)
 

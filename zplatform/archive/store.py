@@ -33,10 +33,10 @@ import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
 
-from ..datavector import Layout
+from ..core.datavector import Layout
 from ..recorder.format import EVENT, FORMAT_VERSION, FRAME, HEAD, HEADER, SYNC, record_crc
 from ..recorder.reader import scan_segment
-from ..records import EventRecord
+from ..telemetry.records import EventRecord
 
 __all__ = [
     "RunInfo",

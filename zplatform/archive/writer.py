@@ -33,11 +33,11 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 
 from ..config import Mission
-from ..datavector import DataVector, Layout
+from ..core.datavector import DataVector, Layout
+from ..core.events import EV, EventLog, EventType
 from ..errors import ArchiveError
-from ..events import EV, EventLog, EventType
 from ..recorder.format import EVENT, FRAME, segment_name
-from ..records import EventRecord
+from ..telemetry.records import EventRecord
 from . import store
 
 __all__ = ["EVENT_BACKLOG", "QUEUE_BYTES", "WAKE_S", "ArchiveWriter"]

@@ -24,7 +24,7 @@ from typing import Annotated, Any, Literal
 import msgspec
 from msgspec import Meta
 
-from ..components import decode_component_config
+from ..core.components import decode_component_config
 from ..errors import ControlError
 from .base import BoardError, BoardHealth, HealthCounters
 

@@ -13,7 +13,7 @@ from typing import Any
 
 import msgspec
 
-from ..components import decode_component_config, load_component_class
+from ..core.components import decode_component_config, load_component_class
 from ..errors import ConfigError
 from .base import Board, BoardHealth
 from .sim import SimBoard
@@ -75,7 +75,7 @@ def make_board(
     ConfigError, and must not touch hardware before ``open()``. The result
     must satisfy :class:`~zplatform.boards.Board` (ConfigError otherwise).
     ``pythonpath``: the mission's code directories, for a team's driver
-    class or a physics hook (:func:`~zplatform.components.mission_code_path`).
+    class or a physics hook (:func:`~zplatform.core.components.mission_code_path`).
     """
     driver, config = _split(spec, where)
     if driver == "sim":
@@ -126,7 +126,7 @@ def check_board(
     """
     driver, config = _split(spec, where)
     if driver == "world":
-        return  # checked against the mission's world (zplatform.world_checks.check_config)
+        return  # checked against the mission's world (zplatform.world.checks.check_config)
     if driver in BUILTIN_DRIVERS:
         make_board(spec, where=where, pythonpath=pythonpath)
         return

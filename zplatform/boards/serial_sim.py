@@ -13,7 +13,7 @@ Contract: the device safes itself like a firmware would (no valid WRITE for
 next reply be preceded by garbage, a truncated frame and a frame with a bad
 CRC (all of which the host must skip and count); killing the process is a
 cable pull. :class:`SimDevice` and :func:`open_pty_link` are also what the
-vehicle world process (:mod:`zplatform.world_server`) uses to play a board's
+vehicle world process (:mod:`zplatform.sim.world_server`) uses to play a board's
 firmware over a pty for hardware in the loop.
 """
 

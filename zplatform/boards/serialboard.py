@@ -30,9 +30,9 @@ from typing import Annotated, Any, NoReturn
 import msgspec
 from msgspec import Meta
 
-from ..components import decode_component_config
+from ..core.components import decode_component_config
+from ..core.health import Heartbeat
 from ..errors import ConfigError
-from ..health import Heartbeat
 from . import wire
 from .base import BoardError, BoardHealth, HealthCounters, check_pin
 
@@ -219,7 +219,7 @@ class SerialBoard:
         self._thread: threading.Thread | None = None
         self._opened = False
         self.heartbeat = Heartbeat("board")
-        """The I/O thread's check-in (zplatform.health): beats per read (at
+        """The I/O thread's check-in (zplatform.core.health): beats per read (at
         least every 50 ms), idle while it waits to reconnect."""
 
     # -- the Board protocol ------------------------------------------------------

@@ -16,7 +16,7 @@ from typing import Annotated, Any
 import msgspec
 from msgspec import Meta
 
-from ..components import decode_component_config, load_function
+from ..core.components import decode_component_config, load_function
 from .base import BoardHealth, check_pin
 
 __all__ = ["Physics", "SimBoard", "SimBoardConfig"]

@@ -1,8 +1,8 @@
 """The ``world`` board driver: a node's board live, its pins exchanged with
 the mission's vehicle world process over UDP on loopback.
 
-Live (``zplatform up``) the vehicle world (:mod:`zplatform.world`) is its own
-process (``zplatform world MISSION``, :mod:`zplatform.world_server`); a
+Live (``zplatform up``) the vehicle world (:mod:`zplatform.world.model`) is its own
+process (``zplatform world MISSION``, :mod:`zplatform.sim.world_server`); a
 node's board (``board: {driver: world}``) is a :class:`WorldLink` that sends
 its outputs over UDP on loopback and latches the newest inputs it received.
 :func:`node_board` builds any device node's board from the mission (a
@@ -26,8 +26,8 @@ import socket
 import struct
 import time
 
-from ..components import mission_code_path
 from ..config import Mission
+from ..core.components import mission_code_path
 from ..errors import ConfigError
 from .base import Board, BoardError, BoardHealth, HealthCounters, check_pin
 from .registry import make_board

@@ -14,7 +14,7 @@ Contract: :func:`parse_mission` raises :class:`~zplatform.errors.ConfigError`
 naming the YAML path of the bad field and what was expected. It imports none
 of the modules that give the sections their meaning (they import it), so a
 mission that only passed it is not fit to fly: the semantic checks run in
-:func:`zplatform.mission.load_mission`. A loaded :class:`Mission` is immutable.
+:func:`zplatform.mission.load.load_mission`. A loaded :class:`Mission` is immutable.
 
 Loading, in order: docs/architecture.md#the-loop (loading a mission).
 """

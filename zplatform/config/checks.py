@@ -22,7 +22,6 @@ from typing import Any
 import msgspec
 
 from ..errors import ConfigError
-from ..types import SCALAR_TYPES, ScalarType, parse_type
 from .platform import HEALTH_METRICS, _add_platform_elements, element_spec
 from .schema import (
     _DN_RE,
@@ -41,6 +40,7 @@ from .schema import (
     Value,
     _parse_or_raise,
 )
+from .types import SCALAR_TYPES, ScalarType, parse_type
 
 # Names checked with fullmatch, never match: `$` also matches before a
 # trailing newline, so "cn_loop\n" would pass a match().
@@ -113,7 +113,7 @@ def parse_mission(text: bytes | str, source: str = "<string>") -> Mission:
 
     Raises :class:`ConfigError` naming the YAML path of the first bad field.
     Runs no semantic check (state machine, commands, controller and device
-    classes): use :func:`zplatform.mission.decode_mission`, which calls this
+    classes): use :func:`zplatform.mission.load.decode_mission`, which calls this
     and then those, unless you are one of those checks.
     """
     try:
@@ -309,7 +309,7 @@ def _check_mission(m: Mission) -> None:
             where = f"$.nodes.{name}.connect[{i}]"
             _check_endpoint(ep, where)
             node.connect[i] = _link_endpoint(ep, mtls, why, where)
-    # One dialer per pair (zplatform.transport.dial_ranks): two nodes that
+    # One dialer per pair (zplatform.runtime.transport.dial_ranks): two nodes that
     # dial each other can leave their zenoh session split after a stall.
     for name, node in m.nodes.items():
         for i, ep in enumerate(node.connect):
@@ -394,15 +394,15 @@ def _check_endpoint(ep: str, where: str) -> None:
         )
     if m.group(1) == "quic":
         # quic needs the same certificate settings as tls; zplatform's
-        # deployment file (zplatform.deploy) is tested with tls/ only.
+        # deployment file (zplatform.security.deploy) is tested with tls/ only.
         raise ConfigError(
             f"endpoint {ep!r}: quic/ needs TLS certificate settings from a deployment file, "
             "which zplatform does not support for quic yet; use tcp/ (it runs as tls/ with "
-            "mutual TLS under security.transport: mtls, see zplatform.deploy)",
+            "mutual TLS under security.transport: mtls, see zplatform.security.deploy)",
             where,
         )
     # A tls/ endpoint is structurally fine here; its certificate settings come
-    # from the deployment file, which the session reads (zplatform.deploy).
+    # from the deployment file, which the session reads (zplatform.security.deploy).
     if m.group(1) in ("tcp", "udp", "tls", "quic", "ws"):
         host, sep, port = m.group(2).rpartition(":")
         if not sep or not host or not port.isdigit() or not 0 <= int(port) <= 65535:
@@ -423,7 +423,7 @@ def transport_reason(m: Mission) -> str:
 
 def _link_endpoint(ep: str, mtls: bool, why: str, where: str) -> str:
     """The endpoint a node actually uses under the mission's transport:
-    ``tcp/`` runs as ``tls/`` under mtls (zplatform.deploy supplies the
+    ``tcp/`` runs as ``tls/`` under mtls (zplatform.security.deploy supplies the
     certificates); ConfigError for an endpoint that cannot (``udp/``, ``ws/``,
     a unix socket) or for ``tls/`` in a mission that says ``plain``."""
     proto = ep.partition("/")[0]
@@ -477,7 +477,7 @@ def _check_params(m: Mission) -> None:
     """Structural checks of ``params`` (each entry alone): name, a scalar
     type, bounds for numbers (finite, fitting the type, in order), a default
     that fits and lies within them. States and the whitelist are checked by
-    :func:`zplatform.params.check_config`."""
+    :func:`zplatform.control.params.check_config`."""
     names: set[str] = set()
     for i, p in enumerate(m.params):
         w = f"$.params[{i}]"
@@ -709,7 +709,7 @@ def _check_recorder(m: Mission) -> None:
 def _check_control_sections(m: Mission) -> None:
     """Structural checks of the control sections; semantic checks that need
     the whole Data Vector are done by the owning modules' ``check_config``
-    (run by :func:`zplatform.mission.check_mission` afterwards)."""
+    (run by :func:`zplatform.mission.load.check_mission` afterwards)."""
     for section in ("controllers", "devices"):
         names: set[str] = set()
         for i, c in enumerate(getattr(m, section)):

@@ -15,13 +15,13 @@ from typing import Any
 
 import msgspec
 
-from ..codes import Command, CommandStatus, Fault, ParamLoad, ParamSave, SafedWhy
 from ..errors import ConfigError
-from ..types import SCALAR_TYPES, ScalarType, parse_type
+from .codes import Command, CommandStatus, Fault, ParamLoad, ParamSave, SafedWhy
 from .schema import THREAD_NAMES, BulkChannelConfig, ElementConfig, LimitsConfig, Mission
+from .types import SCALAR_TYPES, ScalarType, parse_type
 
 # Enum names of the platform elements cn_cmd/gn_cmd, cn_cmd_status and
-# cn_fault, derived from the one definition of the codes (zplatform.codes).
+# cn_fault, derived from the one definition of the codes (zplatform.config.codes).
 CMD_NAMES: tuple[str, ...] = tuple(m.name for m in Command)
 CMD_STATUS_NAMES: tuple[str, ...] = tuple(m.name for m in CommandStatus)
 CONTROLLER_MODES: tuple[str, ...] = ("enabled", "safed", "manual")
@@ -32,7 +32,7 @@ SAFED_WHY_NAMES: tuple[str, ...] = tuple(m.name for m in SafedWhy)
 
 
 class HealthMetric(msgspec.Struct, frozen=True):
-    """One health element (:mod:`zplatform.health`): its name after
+    """One health element (:mod:`zplatform.core.health`): its name after
     ``<node>_``, type, meaning and default limits (``per_period``: the limits
     are in loop periods)."""
 
@@ -45,7 +45,7 @@ class HealthMetric(msgspec.Struct, frozen=True):
 
 
 HEALTH_METRICS: tuple[HealthMetric, ...] = (
-    # sampled by the health thread, in this order (zplatform.health.SAMPLED)
+    # sampled by the health thread, in this order (zplatform.core.health.SAMPLED)
     HealthMetric("cpu_pct", "f32", "the node process's CPU, % of one core", (None, 80), (None, 95)),
     HealthMetric("sys_cpu_pct", "f32", "the host's CPU, % of all cores", (None, 85), (None, 95)),
     HealthMetric("rss_mb", "f32", "the process's resident memory (MiB)", (None, 512), (None, 1024)),
@@ -67,7 +67,7 @@ HEALTH_METRICS: tuple[HealthMetric, ...] = (
         (None, 85),
     ),
     HealthMetric("health_seq", "u32", "samples the node's health thread has taken"),
-    # measured by the loop, in this order (zplatform.health.LOOP_FIELDS)
+    # measured by the loop, in this order (zplatform.core.health.LOOP_FIELDS)
     HealthMetric(
         "late_max_ms",
         "f32",
@@ -101,7 +101,7 @@ HEALTH_METRICS: tuple[HealthMetric, ...] = (
         (None, 0),
     ),
 )
-"""Every health element, in block order (:mod:`zplatform.health`)."""
+"""Every health element, in block order (:mod:`zplatform.core.health`)."""
 _HEALTH_READINGS = 6  # the first six are readings: NaN until the first sample
 
 
@@ -209,7 +209,7 @@ def board_link_elements(m: Mission, dn: str) -> list[ElementConfig]:
     ``dnX_board_ok`` (bool): the board's step succeeded in dnX's last run;
     then one u32 per :data:`BOARD_LINK_COUNTERS`, the board's own count,
     saturating at the type's maximum. Written by the node's loop
-    (:class:`~zplatform.loop.DeviceLogic`) after each step. Pure: it reads
+    (:class:`~zplatform.control.loop.DeviceLogic`) after each step. Pure: it reads
     only the mission's config, never a board."""
     if m.nodes[dn].board.get("driver", "sim") not in BOARD_LINK_DRIVERS:
         return []
@@ -274,7 +274,7 @@ def platform_elements(m: Mission) -> dict[str, list[ElementConfig]]:
         E("cn_time_in_state_ns", "i64", 0, doc="time in the current state (ns)"),
     ]
     if m.params:
-        # The parameters and their store's state (zplatform.params).
+        # The parameters and their store's state (zplatform.control.params).
         cn += [
             E(p.name, p.type, p.default, doc=p.doc or f"parameter {p.name}") for p in m.params
         ] + [
@@ -447,7 +447,7 @@ def platform_elements(m: Mission) -> dict[str, list[ElementConfig]]:
                 E(f"{node}_rec_evicted", "u32", 0, doc=f"files {node}'s recorder ring removed"),
                 E(f"{node}_rec_errors", "u32", 0, doc=f"{node}'s recorder storage errors"),
             ]
-    # Health, last: one contiguous block per node (zplatform.health), only
+    # Health, last: one contiguous block per node (zplatform.core.health), only
     # in a mission with a `health:` section.
     for node in ["cn", *m.device_nodes]:
         out["cn" if node == "cn" else f"{node}_to_cn"] += [

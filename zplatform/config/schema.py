@@ -1,7 +1,7 @@
 """The mission file's types: YAML decoded into typed structs (``msgspec.Struct``).
 
 The :class:`Mission` struct tree, every key with its description (what
-:mod:`zplatform.schema` turns into the mission reference), with
+:mod:`zplatform.mission.schema` turns into the mission reference), with
 ``forbid_unknown_fields`` so a typo fails at decode, and the size limits that
 keep a mission from exhausting memory (:data:`MAX_ARRAY_COUNT`,
 :data:`MAX_REGION_BYTES`, :data:`MAX_VECTOR_BYTES`). The cross-field checks
@@ -19,15 +19,15 @@ from typing import Annotated, Any, Literal
 import msgspec
 from msgspec import Meta
 
-from ..codes import Thread
 from ..errors import ConfigError
-from ..types import SCALAR_TYPES, ScalarType
+from .codes import Thread
+from .types import SCALAR_TYPES, ScalarType
 
 Scalar = int | float | bool | str
 Value = Scalar | list[Scalar]
 THREAD_NAMES: tuple[str, ...] = tuple(t.name.lower() for t in Thread)
 """The threads whose liveness a node reports, by bit of ``<node>_threads_stalled``
-(:class:`~zplatform.codes.Thread`, :mod:`zplatform.health`)."""
+(:class:`~zplatform.config.codes.Thread`, :mod:`zplatform.core.health`)."""
 _DN_RE = re.compile(r"^dn([0-9]+)$")
 MAX_ARRAY_COUNT = 16 * 1024 * 1024
 """Most items in one array element (16 Mi: ``u8[16777216]``, ``f64[16777216]``)."""
@@ -105,7 +105,7 @@ class WatchdogConfig(_Struct):
     """A node's watchdog: the loop strokes systemd's watchdog or a watchdog
     device while every watched thread checks in, and stops the moment one
     does not (so the host is reset); strokes resume if it recovers first.
-    See zplatform.watchdog."""
+    See zplatform.control.watchdog."""
 
     kind: Annotated[
         Literal["systemd", "device"],
@@ -212,7 +212,7 @@ class TransportConfig(_Struct):
             "gone (a killed one is seen at once).",
         ),
     ] = 1000
-    # "auto" is resolved by zplatform.messages.lowlatency_for.
+    # "auto" is resolved by zplatform.core.messages.lowlatency_for.
     lowlatency: Annotated[
         bool | Literal["auto"],
         Meta(
@@ -226,7 +226,7 @@ class TransportConfig(_Struct):
             "config error."
         ),
     ] = False
-    # "auto" is resolved by zplatform.messages.wildcard_sync_for.
+    # "auto" is resolved by zplatform.core.messages.wildcard_sync_for.
     sync_query: Annotated[
         Literal["auto", "wildcard", "per_node"],
         Meta(
@@ -288,7 +288,7 @@ class ClockConfig(_Struct):
             "the drift goes to `dnX_clock_drift_ns`.",
         ),
     ] = 10.0
-    # zplatform.clocksync.estimator_for builds the one named here.
+    # zplatform.runtime.clocksync.estimator_for builds the one named here.
     estimator: Annotated[
         Literal["zenoh_ts", "node_clock"],
         Meta(
@@ -416,7 +416,7 @@ class ComponentConfig(_Struct):
         Meta(
             description="`package.module:ClassName`: a `zplatform.Controller` subclass for a "
             "controller, a `zplatform.Sensor` or `zplatform.Actuator` subclass for a device "
-            "(built-ins: `zplatform.devices:DigitalOutput`, ...)."
+            "(built-ins: `zplatform.control.devices:DigitalOutput`, ...)."
         ),
     ] = msgspec.field(name="class")
     node: Annotated[
@@ -946,7 +946,7 @@ class HealthConfig(_Struct):
     """Each node's health in telemetry: CPU, memory, disk, temperature, loop
     lateness, overruns, garbage-collector pauses and the liveness of its
     threads, as platform elements `<node>_...` in `cn` (the CN) and
-    `dnX_to_cn` (each DN), with limits; see zplatform.health. On by default
+    `dnX_to_cn` (each DN), with limits; see zplatform.core.health. On by default
     at 1 Hz; `health: null` in the mission turns it off."""
 
     rate_hz: Annotated[
@@ -992,7 +992,7 @@ class MonitorConfig(_Struct):
     `persistence` loops in a row, trips once and runs its response; it
     clears when the condition stops holding. Monitors run every loop on the
     CN, after the fault monitor and before the state machine, so a response
-    takes effect in the loop it trips. See zplatform.monitors."""
+    takes effect in the loop it trips. See zplatform.control.monitors."""
 
     name: Annotated[str, Meta(description="Unique monitor name: `[a-z][a-z0-9_]*`.")]
     element: Annotated[
@@ -1157,7 +1157,7 @@ class WorldConfig(_Struct):
     ] = msgspec.field(default_factory=dict)
 
 
-# -- bulk channels (zplatform.bulk moves them) --------------------------------
+# -- bulk channels (zplatform.runtime.bulk moves them) --------------------------------
 
 BULK_HEADER_BYTES = 32  # see HEADER below
 MAX_CHANNEL_BYTES = 1 << 30  # 1 GiB: a typo guard, not a zenoh limit
@@ -1400,7 +1400,7 @@ class Mission(_Struct):
         WorldConfig | None,
         Meta(
             description="One vehicle world shared by the boards of several device nodes "
-            "(physics that every board's outputs change): see zplatform.world."
+            "(physics that every board's outputs change): see zplatform.world.model."
         ),
     ] = None
     health: Annotated[

@@ -55,9 +55,9 @@ def run_console(
 ) -> int:
     """Run the console in this terminal until the operator quits. Blocks.
 
-    ``limits``: extra element limits (:mod:`zplatform.limits`) over the mission's.
+    ``limits``: extra element limits (:mod:`zplatform.control.limits`) over the mission's.
     """
-    from ..mission import load_mission
+    from ..mission.load import load_mission
     from .app import ConsoleApp
     from .link import Link
 
@@ -85,8 +85,8 @@ def serve_console(
     import sys
     from pathlib import Path
 
-    from ..mission import load_mission
-    from ..node.runtime import setup_logging
+    from ..mission.load import load_mission
+    from ..runtime.process import setup_logging
     from .web import WebConsole
 
     mission = load_mission(mission_path, code=False)  # fail here, not in every browser tab

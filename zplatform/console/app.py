@@ -31,7 +31,7 @@ from textual.widgets import Button, Input, Label, Static
 from textual_plotext import PlotextPlot
 
 from ..errors import CommandError, DataVectorError
-from ..records import ParamRow
+from ..telemetry.records import ParamRow
 from .link import Link
 from .model import HELP, LOCAL_COMMANDS, ConsoleModel, Status, severity_style
 
@@ -264,8 +264,8 @@ class ConsoleApp(App[int]):
 
     def run_command(self, line: str) -> None:
         """One command line: a console command, or a command for the vehicle."""
+        from ..control.uplink import validate_words
         from ..ground.logic import needs_arm
-        from ..uplink import validate_words
 
         words = line.split()
         head = words[0].lower()

@@ -23,10 +23,10 @@ import threading
 import time
 from collections.abc import Callable
 
+from ..control.uplink import CheckedCommand
 from ..errors import ZPlatformError
-from ..records import EventRecord
-from ..timebase import NodeClock
-from ..uplink import CheckedCommand
+from ..runtime.timebase import NodeClock
+from ..telemetry.records import EventRecord
 from .model import ConsoleModel
 
 __all__ = ["Link"]
@@ -63,7 +63,7 @@ class Link:
         self._thread.start()
 
     def send(self, command: CheckedCommand, shown: str, armed: bool) -> None:
-        """Queue ``command`` (:func:`~zplatform.uplink.validate_command`'s:
+        """Queue ``command`` (:func:`~zplatform.control.uplink.validate_command`'s:
         not checked again), ``shown`` as the operator typed it; ``armed``:
         ARM n first, then it as n+1."""
         self._cmds.put((command, shown, armed))

@@ -3,10 +3,10 @@
 :class:`ConsoleModel` is fed by a telemetry source: :meth:`on_snapshot` after
 each accepted snapshot (a CN-layout Data Vector, with the ground's counters),
 :meth:`on_event` per event record, :meth:`on_result` per command outcome
-(:class:`~zplatform.records.CommandOutcome`). The screen asks it what to draw
+(:class:`~zplatform.telemetry.records.CommandOutcome`). The screen asks it what to draw
 at a human rate (:meth:`status`, :meth:`region_rows`, :meth:`events`,
 :meth:`plot_series`); :meth:`tick` with the current time decides loss of
-signal. Limits come from :func:`zplatform.limits.mission_limits`; severities
+signal. Limits come from :func:`zplatform.control.limits.mission_limits`; severities
 are handled by member *name* (:func:`severity_rank`, :func:`severity_style`;
 an unknown name ranks as informational).
 
@@ -25,15 +25,15 @@ from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 from typing import Any
 
-from ..commands import writable_elements
 from ..config import CMD_NAMES, Mission
-from ..datavector import DataVector, ElementSpec, Layout
+from ..control.commands import writable_elements
+from ..control.limits import Limits, mission_limits
+from ..core.datavector import DataVector, ElementSpec, Layout
+from ..core.events import Severity
+from ..core.health import stalled_names
 from ..errors import CommandError
-from ..events import Severity
 from ..ground.status import RateMeter
-from ..health import stalled_names
-from ..limits import Limits, mission_limits
-from ..records import (
+from ..telemetry.records import (
     CommandOutcome,
     EventRecord,
     ParamRow,
@@ -150,7 +150,7 @@ class ConsoleModel:
         )
         self.writable = writable_elements(mission)
         """What ``write`` completes: the elements a WRITE may set, by the
-        platform's one rule (:func:`zplatform.commands.writable_elements`)."""
+        platform's one rule (:func:`zplatform.control.commands.writable_elements`)."""
         self.log: deque[LogLine] = deque(maxlen=max_events)
         self.min_rank = 0
         self.received = 0

@@ -39,7 +39,7 @@ from typing import Any
 from aiohttp import WSCloseCode, WSMsgType, hdrs, web
 
 from ..errors import CommandError
-from ..node.runtime import PARENT_ENV
+from ..runtime.process import PARENT_ENV
 
 __all__ = [
     "COOKIE",

@@ -2,7 +2,7 @@
 
 The web server (:mod:`.web`) starts one ``zplatform ground MISSION --console``
 process per browser session, with ``TEXTUAL_DRIVER`` naming
-:class:`ConsoleWebDriver` and :data:`~zplatform.node.runtime.PARENT_ENV`
+:class:`ConsoleWebDriver` and :data:`~zplatform.runtime.process.PARENT_ENV`
 holding the server's PID; they talk over the console's stdin and stdout
 (textual's web-driver packets).
 
@@ -33,7 +33,7 @@ from textual import messages
 from textual.app import App
 from textual.drivers.web_driver import WebDriver
 
-from ..node.runtime import PARENT_ENV
+from ..runtime.process import PARENT_ENV
 
 __all__ = ["EXIT_GRACE_S", "ConsoleWebDriver", "die_with_parent"]
 

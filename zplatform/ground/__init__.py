@@ -7,7 +7,7 @@ used by every driver), :mod:`.link` (the zenoh driver,
 :mod:`.status` (the status line and loop-rate meter), :mod:`.logger` (the
 telemetry CSV and events file), :mod:`.tap` (``zplatform tap``) and
 :mod:`.tools` (``zplatform cmd`` and the line prompt). The typed records
-(counters, command outcomes, events) are :mod:`zplatform.records`,
+(counters, command outcomes, events) are :mod:`zplatform.telemetry.records`,
 re-exported here. The ground node's process is :mod:`zplatform.node.ground`;
 the console and ``up``'s watcher drive a :class:`~.link.GroundLink` too, and
 the lockstep runner drives a :class:`GroundLogic` in virtual time.
@@ -20,7 +20,13 @@ record types stay light. The design: docs/architecture.md#ground.
 
 from __future__ import annotations
 
-from ..records import REFUSALS, CommandOutcome, EventRecord, TelemetryCounters, format_outcome
+from ..telemetry.records import (
+    REFUSALS,
+    CommandOutcome,
+    EventRecord,
+    TelemetryCounters,
+    format_outcome,
+)
 from .logic import GroundLogic, needs_arm
 from .script import ScriptPlayer
 from .status import RateMeter, status_line

@@ -25,12 +25,12 @@ from collections import deque
 from collections.abc import Callable
 from typing import NamedTuple
 
-from ..auth import TAG_LEN, KeySet, channel
-from ..codec import RegionCodec
 from ..config import Mission
-from ..datavector import DataVector, Layout
+from ..core.auth import TAG_LEN, KeySet, channel
+from ..core.codec import RegionCodec
+from ..core.datavector import DataVector, Layout
+from ..core.events import EV, EventLog
 from ..errors import CodecError
-from ..events import EV, EventLog
 from ..recorder.format import (
     MAX_REQUEST_LOOPS,
     REPLY_END,

@@ -6,14 +6,14 @@ holds one session and at most one each of: a telemetry subscriber
 (``{vehicle}/cn/telemetry``), an event intake (``{vehicle}/*/events``), a
 command publisher (``{vehicle}/gn/to_cn``) and a raw tap on any key.
 
-Contract: every zenoh callback only checks and queues (:mod:`zplatform.intake`),
+Contract: every zenoh callback only checks and queues (:mod:`zplatform.control.intake`),
 each kind in a bounded mailbox of its own (:data:`TELEMETRY_BACKLOG`,
 :data:`EVENT_BACKLOG`, :data:`TAP_BACKLOG`, :data:`ALIVE_BACKLOG`), so a flood
 on one key displaces nothing on another; bad, replayed or stale input is
 refused and counted, never raised. The caller's thread takes them
 (:meth:`GroundLink.next`: telemetry first, then events), runs them through
 the logic and publishes the requests it makes. A snapshot's age is measured
-on arrival (a realtime-anchored :class:`~zplatform.timebase.NodeClock`); the
+on arrival (a realtime-anchored :class:`~zplatform.runtime.timebase.NodeClock`); the
 bound is the mission's or ``ZPLATFORM_TELEMETRY_MAX_AGE_MS``. Not thread-safe.
 
 Each mailbox's bound and refusals: docs/architecture.md#ground.
@@ -28,18 +28,18 @@ from typing import Literal
 
 import zenoh
 
-from ..auth import KeySet, channel, load_keys
 from ..config import Mission
-from ..datavector import DataVector
+from ..control.handoff import Mailbox, Waker
+from ..control.intake import TelemetryIntake
+from ..control.uplink import CheckedCommand, ScriptCommand, validate_command
+from ..core.auth import KeySet, channel, load_keys
+from ..core.datavector import DataVector
+from ..core.events import MAX_TEXT, Event
 from ..errors import CommandError, TransportError
-from ..events import MAX_TEXT, Event
-from ..handoff import Mailbox, Waker
-from ..intake import TelemetryIntake
-from ..queries import ask, replies
-from ..records import CommandOutcome, EventRecord
-from ..timebase import NodeClock
-from ..transport import EventPublisher, NodeSession, is_matching
-from ..uplink import CheckedCommand, ScriptCommand, validate_command
+from ..runtime.queries import ask, replies
+from ..runtime.timebase import NodeClock
+from ..runtime.transport import EventPublisher, NodeSession, is_matching
+from ..telemetry.records import CommandOutcome, EventRecord
 from .logic import GroundLogic, default_max_age_ns
 
 __all__ = [
@@ -90,7 +90,7 @@ class GroundLink:
     ``node``: run as that node of the mission (``gn``: its endpoints and
     liveliness token, declared once everything is subscribed); None: a
     tool connected to every node. ``keys``: the ground's keys, or
-    ``"mission"`` to load them (:func:`zplatform.auth.load_keys`: host role
+    ``"mission"`` to load them (:func:`zplatform.core.auth.load_keys`: host role
     ``gn`` when it runs as the ground node or may command, else ``tool``,
     from ``key_file``, the environment or the default key set) before any
     session opens, so a missing key is the first and only error.
@@ -319,7 +319,7 @@ class GroundLink:
             self.next(0.01)
 
     def submit(self, checked: CheckedCommand, *, armed: bool = False) -> int:
-        """Queue a command :func:`~zplatform.uplink.validate_command` checked
+        """Queue a command :func:`~zplatform.control.uplink.validate_command` checked
         (:meth:`GroundLogic.submit`: not checked again) and publish it if it
         can go now; returns its ticket. Never blocks."""
         ticket = self.logic.submit(
@@ -341,7 +341,7 @@ class GroundLink:
 
         ``command``: its name, with ``element`` and ``value`` where it takes
         them, refused before sending (CommandError) when
-        :func:`~zplatform.uplink.validate_command` refuses it; or what that
+        :func:`~zplatform.control.uplink.validate_command` refuses it; or what that
         function returned already (not checked again). Whether a command
         needs ``armed`` is the caller's to ask (:func:`~.logic.needs_arm`).
         Waits up to ``timeout_s`` for telemetry and the CN to listen, and as
@@ -425,7 +425,7 @@ class GroundLink:
         ``(tag, None)`` when the get is over (every replier done, or
         ``timeout_s`` passed). For the gap fill from the CN's recorder.
 
-        Sent by :func:`zplatform.queries.ask`: every queryable on the key
+        Sent by :func:`zplatform.runtime.queries.ask`: every queryable on the key
         is asked (a peer declaring a "complete" recorder queryable cannot
         take the request from the CN's recorder; the gap fill takes only
         replies whose tag checks), DROPped rather than blocked on a

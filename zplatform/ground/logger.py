@@ -1,9 +1,9 @@
 """The ground's logs: telemetry snapshots as CSV, events as JSON lines beside it.
 
 :class:`TelemetryLog` writes what a :class:`~.link.GroundLink` accepts: one
-CSV row per snapshot (:class:`~zplatform.telemetry.CsvLogger`: the CSV
-format is :mod:`zplatform.telemetry`'s) and one JSON line per event
-(:class:`~zplatform.telemetry.EventWriter`), in ``tm.csv`` and
+CSV row per snapshot (:class:`~zplatform.telemetry.logs.CsvLogger`: the CSV
+format is :mod:`zplatform.telemetry.logs`'s) and one JSON line per event
+(:class:`~zplatform.telemetry.logs.EventWriter`), in ``tm.csv`` and
 ``tm.events.jsonl``. :func:`log_summary_line` says what a run
 logged, for ``zplatform log`` and ``up``.
 """
@@ -12,17 +12,17 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from ..datavector import DataVector, Layout
-from ..records import EventRecord
-from ..summary import GnSummary
-from ..telemetry import CsvLogger, EventWriter, events_path
+from ..core.datavector import DataVector, Layout
+from ..telemetry.logs import CsvLogger, EventWriter, events_path
+from ..telemetry.records import EventRecord
+from ..telemetry.summary import GnSummary
 
 __all__ = ["TelemetryLog", "log_summary_line"]
 
 
 class TelemetryLog:
     """A telemetry CSV (``csv``, optional) and an events file (``events``,
-    optional; :func:`~zplatform.telemetry.events_path` beside the CSV is the
+    optional; :func:`~zplatform.telemetry.logs.events_path` beside the CSV is the
     convention). Files are created (truncated) at construction; :meth:`close`
     flushes and closes them, idempotent."""
 

@@ -1,6 +1,6 @@
 """The ground's sans-IO logic: telemetry in, every check, requests out.
 
-:class:`GroundLogic` is to the ground what :class:`~zplatform.loop.ControlLogic`
+:class:`GroundLogic` is to the ground what :class:`~zplatform.control.loop.ControlLogic`
 is to the control node: it owns the ground's Data Vector (the CN layout, as
 the last accepted snapshot showed it), every check a snapshot passes before
 it touches that vector (size, tag, layout, freshness, the run followed, order
@@ -27,15 +27,15 @@ from typing import NamedTuple
 
 import msgspec
 
-from ..auth import TAG_LEN, AuthError, KeySet, channel, link_of
-from ..codec import Frame, RegionCodec
-from ..commands import protected_elements
 from ..config import STANDBY, Mission
-from ..datavector import DataVector, Layout
+from ..control.commands import protected_elements
+from ..control.uplink import CheckedCommand, ScriptCommand, Uplink, validate_command
+from ..core.auth import TAG_LEN, AuthError, KeySet, channel, link_of
+from ..core.codec import Frame, RegionCodec
+from ..core.datavector import DataVector, Layout
+from ..core.events import EV, Event, EventLog, EventReader, EventType, StaleRecordError
 from ..errors import CodecError, CommandError
-from ..events import EV, Event, EventLog, EventReader, EventType, StaleRecordError
-from ..records import REFUSALS, CommandOutcome, EventRecord, TelemetryCounters
-from ..uplink import CheckedCommand, ScriptCommand, Uplink, validate_command
+from ..telemetry.records import REFUSALS, CommandOutcome, EventRecord, TelemetryCounters
 from .script import ScriptPlayer
 
 __all__ = [
@@ -79,7 +79,7 @@ def needs_arm(mission: Mission, command: str, element: str | None = None) -> str
     PRM_SET) must go as ARM n, then the command n+1, or None when it need
     not: the command is hazardous (``commands.hazardous``), the WRITE sets a
     protected element (``commands.protected``,
-    :func:`zplatform.commands.protected_elements`), or the PRM_SET a
+    :func:`zplatform.control.commands.protected_elements`), or the PRM_SET a
     hazardous parameter (``params[i].hazardous``)."""
     cmd = command.upper()
     if cmd in mission.commands.hazardous:
@@ -204,7 +204,7 @@ class GroundLogic:
     """The ground's logic (module doc). Construction resolves the script
     against the mission (CommandError naming ``file:line``).
 
-    ``keys``: the ground's keys (:func:`zplatform.auth.load_keys`: a ground
+    ``keys``: the ground's keys (:func:`zplatform.core.auth.load_keys`: a ground
     node's or a commanding tool's hold the downlink, the uplink and every
     node's event key; a read-only tool's no uplink, so it frames no
     request); None: the mission does not authenticate. Only events whose
@@ -375,10 +375,10 @@ class GroundLogic:
 
         ``authentic``: the caller checked this very payload's tag with the
         ground's telemetry key already (the link's intake,
-        :class:`~zplatform.intake.TelemetryIntake`, as it arrived), so the
-        tag is only stripped (:meth:`~zplatform.auth.Channel.strip`), not
+        :class:`~zplatform.control.intake.TelemetryIntake`, as it arrived), so the
+        tag is only stripped (:meth:`~zplatform.core.auth.Channel.strip`), not
         computed again: once per snapshot on the ground, as on a device
-        node (:meth:`zplatform.loop.DeviceLogic.trigger`). Without it (the
+        node (:meth:`zplatform.control.loop.DeviceLogic.trigger`). Without it (the
         default: the lockstep runner, a replay) the tag is checked here."""
         if len(payload) > self._max_len:
             return self._reject_bad(
@@ -537,7 +537,7 @@ class GroundLogic:
         source: str = "",
         can_send: bool = True,
     ) -> int:
-        """Check one operator command (:func:`~zplatform.uplink.validate_command`)
+        """Check one operator command (:func:`~zplatform.control.uplink.validate_command`)
         and queue it (:meth:`submit`); returns its ticket (:meth:`result`).
         Raises CommandError for an unknown command, element or value
         (nothing is queued) or a mission without a ground node."""
@@ -555,7 +555,7 @@ class GroundLogic:
         can_send: bool = True,
     ) -> int:
         """Queue one operator command that
-        :func:`~zplatform.uplink.validate_command` checked already (it is
+        :func:`~zplatform.control.uplink.validate_command` checked already (it is
         not checked again); returns its ticket (:meth:`result`).
 
         ``armed``: ARM n first, then the command n+1 once the ARM is
@@ -758,7 +758,7 @@ class GroundLogic:
 
     def forged_event(self, key_expr: str, payload: bytes | bytearray | memoryview) -> bool:
         """Whether an event record is refused by its tag alone
-        (:meth:`zplatform.events.EventReader.forged`: thread-safe, no copy):
+        (:meth:`zplatform.core.events.EventReader.forged`: thread-safe, no copy):
         its receiver's zenoh callback asks, and counts it with
         :meth:`refused_events` instead of queueing it."""
         return self._events_in.forged(key_expr, payload)
@@ -770,7 +770,7 @@ class GroundLogic:
         (``{vehicle}/<node>/events``: whose key checks its tag); None
         (counted in ``bad_events``) if it is not one, or its tag fails;
         None (counted in ``stale_events``) if it is authentic but not fresh
-        (:class:`~zplatform.events.EventReader`: a replay, or stamped beyond
+        (:class:`~zplatform.core.events.EventReader`: a replay, or stamped beyond
         :attr:`max_age_ns` of ``rx_ns``)."""
         try:
             e, verified = self._events_in.read(key_expr, payload, rx_ns)

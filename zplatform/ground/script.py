@@ -1,6 +1,6 @@
 """Playing a command script from the ground, sans-IO.
 
-A script (:func:`zplatform.uplink.parse_commands`) times each command from
+A script (:func:`zplatform.control.uplink.parse_commands`) times each command from
 the start of loop 1. A command at time ``T`` is due in the first loop ``n``
 whose start ``(n - 1) * period`` is at or after ``T``: the player submits it
 to the :class:`~.logic.GroundLogic` when the ground accepts the telemetry of
@@ -25,9 +25,9 @@ from typing import Protocol
 import msgspec
 
 from ..config import Mission
+from ..control.uplink import CheckedCommand, ScriptCommand, validate_command
 from ..errors import CommandError
-from ..records import CommandOutcome
-from ..uplink import CheckedCommand, ScriptCommand, validate_command
+from ..telemetry.records import CommandOutcome
 
 __all__ = ["MIN_DURATION_S", "SETTLE_S", "ScriptPlayer", "script_duration_s"]
 

@@ -14,7 +14,7 @@ from collections import deque
 from collections.abc import Sequence
 
 from ..config import Mission
-from ..datavector import DataVector
+from ..core.datavector import DataVector
 
 __all__ = ["RateMeter", "status_line"]
 

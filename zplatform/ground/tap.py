@@ -3,7 +3,7 @@
 :class:`TapDecoder` turns a sample into a dict: a region frame or telemetry
 into its elements (checked with the mission key when it is at hand, else
 decoded and marked ``"verified": false``), an event into its
-:class:`~zplatform.records.EventRecord`, a bulk sample into its header and a summary
+:class:`~zplatform.telemetry.records.EventRecord`, a bulk sample into its header and a summary
 of its array, anything else into its first bytes. :func:`run_tap` prints
 samples through a :class:`~.link.GroundLink` until a count, a timeout or
 Ctrl-C; when nothing came it says whether the mission is running at all
@@ -20,16 +20,16 @@ from typing import Any, TextIO
 import msgspec
 import zenoh
 
-from ..auth import TAG_LEN, Channel, KeyError_, link_of, load_keys
-from ..bulk import bulk_key, decode_sample
-from ..codec import RegionCodec
 from ..config import Mission
-from ..datavector import DataVector, Layout
+from ..core.auth import TAG_LEN, Channel, KeyError_, link_of, load_keys
+from ..core.codec import RegionCodec
+from ..core.datavector import DataVector, Layout
+from ..core.events import EventReader
 from ..errors import CodecError, CommandError, TransportError
-from ..events import EventReader
-from ..records import EventRecord
-from ..telemetry import f32_value
-from ..transport import KeySpace
+from ..runtime.bulk import bulk_key, decode_sample
+from ..runtime.transport import KeySpace
+from ..telemetry.logs import f32_value
+from ..telemetry.records import EventRecord
 
 __all__ = ["TAP_SILENCE_S", "TapDecoder", "check_keyexpr", "format_tap", "run_tap", "tap_keys"]
 
@@ -143,12 +143,12 @@ def tap_keys(mission: Mission, keyexpr: str | None) -> list[str]:
     """The key expressions ``tap`` subscribes to for ``keyexpr`` (None: all
     it may). Without access control: ``keyexpr`` or the whole key space.
     Under the deployment's access control a tool may subscribe only to
-    :func:`~zplatform.deploy.tool_watch_keys` (the nodes drop any other
+    :func:`~zplatform.security.deploy.tool_watch_keys` (the nodes drop any other
     subscriber where it comes in, silently): None gives each of those, and a
     ``keyexpr`` none of them includes is a CommandError naming them, not a
     tap that stays silent. Reads the deployment (DeploymentError as
-    :func:`~zplatform.deploy.require_deployment`)."""
-    from ..deploy import require_deployment, tls_nodes, tool_watch_keys
+    :func:`~zplatform.security.deploy.require_deployment`)."""
+    from ..security.deploy import require_deployment, tls_nodes, tool_watch_keys
 
     dep = require_deployment(mission)
     if dep is None or not dep.access_control or not tls_nodes(mission):

@@ -22,10 +22,10 @@ from typing import TextIO
 import msgspec
 
 from ..config import Mission
+from ..control.params import ParamFileError, decode_params, params_path, read_params_file
+from ..control.uplink import CheckedCommand, validate_command, validate_words
 from ..errors import CommandError, ZPlatformError
-from ..params import ParamFileError, decode_params, params_path, read_params_file
-from ..records import CommandOutcome, EventRecord, ParamRow, format_outcome, param_rows
-from ..uplink import CheckedCommand, validate_command, validate_words
+from ..telemetry.records import CommandOutcome, EventRecord, ParamRow, format_outcome, param_rows
 from .link import GroundLink
 from .logic import needs_arm
 from .status import RateMeter, status_line
@@ -51,7 +51,7 @@ PROMPT_HELP = (
 def check_command(
     mission: Mission, command: str, args: list[str], *, armed: bool, arm_hint: str
 ) -> CheckedCommand:
-    """A command line checked (:func:`~zplatform.uplink.validate_words`) and
+    """A command line checked (:func:`~zplatform.control.uplink.validate_words`) and
     refused (CommandError) before anything is sent: bad arguments, and a
     command that needs ARM first without ``armed`` (``arm_hint`` says how
     to arm it in this tool). The link sends what it returns unchecked."""

@@ -3,7 +3,7 @@
 :class:`ControlNode` opens the session, serves the clock, waits for every DN
 to be alive, reads each DN's clock offset with a warm-up sync (refusing to
 start beyond the mission bound) and loads the parameter file
-(:meth:`ControlNode.wait_ready`), then runs the loop of :mod:`zplatform.loop`
+(:meth:`ControlNode.wait_ready`), then runs the loop of :mod:`zplatform.control.loop`
 on absolute deadlines (:meth:`ControlNode.run`): ``begin`` at the loop's
 scheduled start, sync every DN, ``finish`` with at most one ground frame,
 publish the telemetry every Nth loop. The run's last loop is flagged final
@@ -31,28 +31,14 @@ import numpy as np
 import zenoh
 
 from .. import trace
-from ..auth import KeySet, channel, load_keys, new_run_epoch
-from ..bulk import open_bulk
-from ..clocksync import ClockLink, ClockServer, estimator_for
-from ..codec import Frame
-from ..codes import CommandStatus
 from ..config import Mission
-from ..datavector import DataVector
-from ..errors import ClockSyncError, NodeError, RecordingError, TransportError
-from ..events import EV
-from ..failover import Standby
-from ..ground.logic import default_max_age_ns
-from ..handoff import Mailbox
-from ..health import Heartbeat, Liveness, thread_deadlines_ns
-from ..intake import CnRefusals, MirrorIntake, RefusalLog, ReplyCheck, RequestIntake
-from ..loop import ControlLogic
-from ..messages import wildcard_sync_for
-from ..params import ParamSaver, params_path, read_params_file
-from ..queries import UNANSWERED_LOOPS
-from ..recorder import FlightRecorder, RecorderReader, open_recorder, recorder_dir, summary_line
-from ..recorder.server import RecorderServer
-from ..replay_recording import Recorder
-from ..role import (
+from ..config.codes import CommandStatus
+from ..control.failover import Standby
+from ..control.handoff import Mailbox
+from ..control.intake import CnRefusals, MirrorIntake, RefusalLog, ReplyCheck, RequestIntake
+from ..control.loop import ControlLogic
+from ..control.params import ParamSaver, params_path, read_params_file
+from ..control.role import (
     Command,
     ControlRole,
     Probe,
@@ -63,14 +49,28 @@ from ..role import (
     Take,
     check_recorded,
 )
-from ..scheduler import GcGuard, PeriodicLoop
-from ..summary import CnSummary, LoopWork, cn_summary
-from ..sync import ControlSync, ProbeSync, SyncTrace, TapPublisher
-from ..timebase import NodeClock
-from ..transport import EventPublisher, NodeSession, wait_for_nodes
-from ..watchdog import Watchdog
+from ..control.watchdog import Watchdog
+from ..core.auth import KeySet, channel, load_keys, new_run_epoch
+from ..core.codec import Frame
+from ..core.datavector import DataVector
+from ..core.events import EV
+from ..core.health import Heartbeat, Liveness, thread_deadlines_ns
+from ..core.messages import wildcard_sync_for
+from ..errors import ClockSyncError, NodeError, RecordingError, TransportError
+from ..ground.logic import default_max_age_ns
+from ..recorder import FlightRecorder, RecorderReader, open_recorder, recorder_dir, summary_line
+from ..recorder.server import RecorderServer
+from ..runtime.bulk import open_bulk
+from ..runtime.clocksync import ClockLink, ClockServer, estimator_for
+from ..runtime.process import StopFlag, realtime_setup
+from ..runtime.queries import UNANSWERED_LOOPS
+from ..runtime.scheduler import GcGuard, PeriodicLoop
+from ..runtime.sync import ControlSync, ProbeSync, SyncTrace, TapPublisher
+from ..runtime.timebase import NodeClock
+from ..runtime.transport import EventPublisher, NodeSession, wait_for_nodes
+from ..sim.replay_recording import Recorder
+from ..telemetry.summary import CnSummary, LoopWork, cn_summary
 from .health import NodeHealth
-from .runtime import StopFlag, realtime_setup
 
 __all__ = ["ControlNode", "run_control_node"]
 
@@ -82,7 +82,7 @@ _DROP = zenoh.CongestionControl.DROP
 INBOX = 16
 """Command request frames kept between two loops (the newest ones): only
 authentic requests of this run, numbered above every number seen, get
-this far (:class:`~zplatform.intake.RequestIntake`)."""
+this far (:class:`~zplatform.control.intake.RequestIntake`)."""
 
 
 class ControlNode:
@@ -90,9 +90,9 @@ class ControlNode:
 
     Build, then :meth:`run`; :meth:`close` releases every zenoh entity. Not
     thread-safe: one loop thread. ``sync_trace``: a
-    :data:`~zplatform.sync.SyncTrace` for the sync's hops (benchmarks).
+    :data:`~zplatform.runtime.sync.SyncTrace` for the sync's hops (benchmarks).
     ``params_file``: the parameter file (default
-    :func:`~zplatform.params.params_path`; unused without ``params``).
+    :func:`~zplatform.control.params.params_path`; unused without ``params``).
     """
 
     def __init__(
@@ -124,14 +124,14 @@ class ControlNode:
         # its role: a standby first sets it by the commander's, module doc.)
         # The run's epoch: this clock's start, its low bits random, so unique
         # per run of the CN even on a clock that repeats across boots: the
-        # run every frame's key is bound to (zplatform.auth.new_run_epoch).
+        # run every frame's key is bound to (zplatform.core.auth.new_run_epoch).
         self.clock_epoch = new_run_epoch(self.clock.now_ns())
         self.logic = ControlLogic(mission, keys=keys, epoch=self.clock_epoch, name=name)
         self.dv: DataVector = self.logic.dv
         self.ns = NodeSession(mission, name, announce=False, lowlatency=lowlatency)
         s = self.ns.session
         space = self.ns.keys
-        # Every thread this node runs checks in (zplatform.health).
+        # Every thread this node runs checks in (zplatform.core.health).
         self.liveness = Liveness(thread_deadlines_ns(mission))
         self._loop_hb = self.liveness.add(Heartbeat("loop"))
         # The commander serves the clock; a mission's only control node from
@@ -156,7 +156,7 @@ class ControlNode:
             wildcard=wildcard_sync_for(mission),
             trace=sync_trace,
         )
-        # The command inbox (zplatform.intake): size, tag, this run, a number
+        # The command inbox (zplatform.control.intake): size, tag, this run, a number
         # above every one seen, then bounded, newest kept. A flood of junk or
         # of replayed requests is refused as it arrives and counted; it costs
         # neither memory nor the operator's fresh command.
@@ -235,17 +235,17 @@ class ControlNode:
         # a takeover the new commander ends it there, and a node that stood
         # down stops following there (without it neither would ever end).
         self._end_loop: int | None = None
-        # Failover (zplatform.failover): the mirror out and in, the probes, the
+        # Failover (zplatform.control.failover): the mirror out and in, the probes, the
         # other control node's liveliness, and the standby while not commanding.
         # Who commands, resumes, follows, stands down and takes over: the
-        # role (zplatform.role) decides; this node delivers and carries out.
+        # role (zplatform.control.role) decides; this node delivers and carries out.
         self.role = ControlRole(mission, self.logic, keys)
         self._peer_alive = False  # the other control node's standby token (zenoh's thread)
         self.takeovers = 0
         """Times this node took command (a standby's takeovers)."""
         if self.redundant:
             self._mirror_pub = s.declare_publisher(space.mirror, congestion_control=_DROP)
-            # The mirror's intake (zplatform.intake.MirrorIntake): size, tag,
+            # The mirror's intake (zplatform.control.intake.MirrorIntake): size, tag,
             # range, from the other node, newer in (term, loop); only then the
             # bounded mailbox, so junk and replays never displace a genuine one.
             self.mirror_intake = MirrorIntake(
@@ -298,7 +298,7 @@ class ControlNode:
             self.liveness.add(self.clock_server.heartbeat)
 
     def _take_requests(self) -> None:
-        """The command inbox (zplatform.intake): size, tag, this run, a number
+        """The command inbox (zplatform.control.intake): size, tag, this run, a number
         above every one seen, then bounded, newest kept. A flood of junk or of
         replayed requests is refused as it arrives and counted; it costs
         neither memory nor the operator's fresh command. A mission without a
@@ -385,7 +385,7 @@ class ControlNode:
         """Record every loop's inputs into ``directory`` from now on (call
         after :meth:`wait_ready`). RecordingError if it cannot start. A
         standby (None returned) starts recording when it takes command, from
-        the vector it took over (:func:`zplatform.lockstep.replay` adopts a
+        the vector it took over (:func:`zplatform.sim.lockstep.replay` adopts a
         recording that starts mid-run); a node that stands down ends its
         recording there: a recording is one reign."""
         rec = Recorder(directory, self.mission, mission_source, self.dv, start=self.standby is None)
@@ -473,7 +473,7 @@ class ControlNode:
         """Restarted while the device nodes are mid-run (their loops, from the
         warm-up; or a driverless run this node resumes in a new term): the role
         takes up the run from this node's own flight recorder, its newest
-        telemetry frame (:meth:`~zplatform.role.ControlRole.resume`), never
+        telemetry frame (:meth:`~zplatform.control.role.ControlRole.resume`), never
         starting over in SAFE, or says why it starts over; this node carries
         it out: the schedule where it was (loop numbers follow time), the
         command inbox in the recorded epoch. Returns whether it resumed."""
@@ -504,7 +504,7 @@ class ControlNode:
 
     def _first_to_command(self, timeout_s: float) -> bool:
         """A redundant mission's control node at start: asks every device node
-        what it runs (a STATUS probe round, :mod:`zplatform.fencing`). True:
+        what it runs (a STATUS probe round, :mod:`zplatform.control.fencing`). True:
         none has ever run a loop and this is ``cn``, the first commander: it
         starts the run (term 1). Else it follows as the standby: it sets its
         clock by the commander's and waits for its mirrors (a control node
@@ -539,7 +539,7 @@ class ControlNode:
         locked. NodeError when no commander serves the clock by ``deadline``."""
         m = self.mission
         # The exchange also tells the commander's run, which this node's
-        # channels take on (mirrors, probes; zplatform.auth.Run).
+        # channels take on (mirrors, probes; zplatform.core.auth.Run).
         link = ClockLink(m, self.name, self.keys, run=self.logic.auth_run)
         estimate = estimator_for(m.clock)
         while True:
@@ -824,7 +824,7 @@ class ControlNode:
                 sb.mirrored,
             )
         role = self.role
-        # The role's probe rounds (zplatform.role): this node asks, hands answers.
+        # The role's probe rounds (zplatform.control.role): this node asks, hands answers.
         action: Probe | Take | Release | None = role.tick(slot, now)
         while isinstance(action, Probe):
             self.probes.round(action.asks, role.answer)
@@ -841,7 +841,7 @@ class ControlNode:
 
     def _query_recoveries(self, t_ns: int) -> None:
         """The device nodes whose querier the sync declared again this loop
-        (zplatform.queries.Unanswered), evented at most once a second."""
+        (zplatform.runtime.queries.Unanswered), evented at most once a second."""
         got = self._recoveries
         self.sync.take_recoveries(got)
         if not got and not self._recovery_unsent:
@@ -1054,7 +1054,7 @@ class _Radio:
 
     def __init__(self, mission: Mission, session: zenoh.Session, key: str) -> None:
         try:
-            from ..ccsds import CcsdsEncoder
+            from ..telemetry.ccsds import CcsdsEncoder
         except ImportError as exc:
             raise NodeError(
                 "the mission's downlink needs spacepackets: pip install 'zplatform[ground]'"

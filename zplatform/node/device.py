@@ -1,12 +1,12 @@
 """Device Node Main (thesis 4.14): entry and the triggered loop on zenoh.
 
 :class:`DeviceNode` opens the session, waits for the CN, measures its clock
-offset (:mod:`zplatform.clocksync`, the estimator ``clock.estimator`` names),
+offset (:mod:`zplatform.runtime.clocksync`, the estimator ``clock.estimator`` names),
 applies it once and locks the clock, declares the sync queryable, then
 announces liveliness: from that moment the CN may trigger loops. Its loop
 waits for the CN's query (the trigger), answers it at once
-(:meth:`DeviceLogic.trigger <zplatform.loop.DeviceLogic.trigger>`), then runs
-:meth:`~zplatform.loop.DeviceLogic.run` with the query's loop number and one
+(:meth:`DeviceLogic.trigger <zplatform.control.loop.DeviceLogic.trigger>`), then runs
+:meth:`~zplatform.control.loop.DeviceLogic.run` with the query's loop number and one
 local timestamp.
 
 Contract: the loop thread alone decides what the node reports: a background
@@ -27,26 +27,26 @@ import time
 
 import zenoh
 
-from ..auth import KeySet, Run, channel, load_keys
 from ..boards import board_health, close_board, open_board
-from ..bulk import NodeBulk, open_bulk
-from ..clocksync import ClockEstimate, ClockLink, estimator_for
 from ..config import Mission
-from ..datavector import DataVector
+from ..control.intake import ProbeIntake, TriggerIntake
+from ..control.loop import DeviceLogic
+from ..control.watchdog import Watchdog
+from ..core.auth import KeySet, Run, channel, load_keys
+from ..core.datavector import DataVector
+from ..core.events import EV, EventLog
+from ..core.health import Heartbeat, Liveness, thread_deadlines_ns
 from ..errors import ClockSyncError, NodeError, RecordingError, TransportError, ZPlatformError
-from ..events import EV, EventLog
-from ..health import Heartbeat, Liveness, thread_deadlines_ns
-from ..intake import ProbeIntake, TriggerIntake
-from ..loop import DeviceLogic
 from ..recorder import FlightRecorder, open_recorder, summary_line
-from ..scheduler import GcGuard
-from ..summary import DnSummary, board_line, board_trouble
-from ..sync import DeviceSync, SyncTrace
-from ..timebase import NodeClock
-from ..transport import EventPublisher, NodeSession, wait_for_nodes
-from ..watchdog import Watchdog
+from ..runtime.bulk import NodeBulk, open_bulk
+from ..runtime.clocksync import ClockEstimate, ClockLink, estimator_for
+from ..runtime.process import StopFlag, realtime_setup
+from ..runtime.scheduler import GcGuard
+from ..runtime.sync import DeviceSync, SyncTrace
+from ..runtime.timebase import NodeClock
+from ..runtime.transport import EventPublisher, NodeSession, wait_for_nodes
+from ..telemetry.summary import DnSummary, board_line, board_trouble
 from .health import NodeHealth
-from .runtime import StopFlag, realtime_setup
 
 __all__ = ["ClockTally", "DeviceNode", "run_device_node"]
 
@@ -57,13 +57,13 @@ TIMEOUT_EVENT_EVERY_NS = 1_000_000_000
 """A ``clock_timeout`` event at most this often (the counter counts every one)."""
 RELEARN_S = 1.0
 """At most one clock re-sync this often on a genuine trigger of another run
-(the control node may have started a new one; zplatform.auth.Run)."""
+(the control node may have started a new one; zplatform.core.auth.Run)."""
 
 
 class ClockTally:
     """The loop thread's account of the clock exchanges, into the Data Vector.
 
-    ``link``'s refusals (:class:`~zplatform.clocksync.ClockLink`) plus the
+    ``link``'s refusals (:class:`~zplatform.runtime.clocksync.ClockLink`) plus the
     estimates refused for a jump (:meth:`jump_refused`) go to
     ``dnX_clock_refused``, with a ``clock_refused`` event per :meth:`count`
     that met new ones; exchanges left unanswered (``link.timeouts``: a
@@ -126,7 +126,7 @@ class ClockTally:
 class DeviceNode:
     """One DN process. Build, :meth:`start` (blocks for clock sync), :meth:`run`.
 
-    ``sync_trace``: a :data:`~zplatform.sync.SyncTrace` for the sync's hops
+    ``sync_trace``: a :data:`~zplatform.runtime.sync.SyncTrace` for the sync's hops
     (benchmarks)."""
 
     def __init__(
@@ -148,7 +148,7 @@ class DeviceNode:
         self.clock = clock or NodeClock()
         # A trigger stamped (CN time) more than a period ago belongs to a loop
         # the CN has already closed: answer it, do not run it.
-        # The control node's run (zplatform.auth.Run), learned by the clock
+        # The control node's run (zplatform.core.auth.Run), learned by the clock
         # exchange before the sync queryable is declared: triggers and probe
         # questions of another run (an earlier run's, replayed) are refused.
         self.auth_run = Run()
@@ -181,7 +181,7 @@ class DeviceNode:
         self.flight_recorder: FlightRecorder | None = None
         self._resync: threading.Thread | None = None
         self._relearn = threading.Event()  # set: re-sync now, the run may be new
-        # Every thread this node runs checks in (zplatform.health).
+        # Every thread this node runs checks in (zplatform.core.health).
         self.liveness = Liveness(thread_deadlines_ns(mission))
         self._loop_hb = self.liveness.add(Heartbeat("loop"))
         self._resync_hb = Heartbeat("clock")
@@ -477,7 +477,7 @@ class DeviceNode:
 
     def summary(self) -> DnSummary:
         """The node's run so far; ``board`` is its board's health for a board
-        with a link (:attr:`zplatform.loop.DeviceLogic.board_link`), else None."""
+        with a link (:attr:`zplatform.control.loop.DeviceLogic.board_link`), else None."""
         return DnSummary(
             node=self.name,
             loops=self.loops,

@@ -26,16 +26,16 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Protocol
 
 from ..config import Mission
-from ..datavector import DataVector, Layout
+from ..control.handoff import Mailbox
+from ..control.uplink import ScriptCommand
+from ..core.datavector import DataVector, Layout
 from ..errors import ZPlatformError
 from ..ground.gapfill import GapFill
 from ..ground.link import GroundLink
 from ..ground.logger import TelemetryLog
-from ..handoff import Mailbox
-from ..records import EventRecord
-from ..summary import GnSummary
-from ..uplink import ScriptCommand
-from .runtime import StopFlag
+from ..runtime.process import StopFlag
+from ..telemetry.records import EventRecord
+from ..telemetry.summary import GnSummary
 
 if TYPE_CHECKING:
     from ..archive import ArchiveWriter
@@ -186,7 +186,7 @@ def _serve_archive(link: GroundLink, arch: ArchiveWriter) -> ArchiveServer | Non
     be declared; said in the log)."""
     from ..archive import Archive
     from ..archive.server import ArchiveServer
-    from ..auth import channel
+    from ..core.auth import channel
 
     m = link.mission
     try:

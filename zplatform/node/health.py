@@ -1,7 +1,7 @@
 """A live node's health: the sampling thread, the zenoh probe and the loop's window.
 
-:class:`NodeHealth` is the zenoh runtime's :class:`~zplatform.health.HealthPort`
-(:mod:`zplatform.health` has the elements and the contract). It runs one
+:class:`NodeHealth` is the zenoh runtime's :class:`~zplatform.core.health.HealthPort`
+(:mod:`zplatform.core.health` has the elements and the contract). It runs one
 thread, ``health``, which once per health period samples the process and the
 host through psutil (:class:`ResourceSampler`), latches the threads past their
 deadline, and probes zenoh with a query nobody answers, whose finalisation on
@@ -31,9 +31,9 @@ from typing import Any
 import zenoh
 
 from ..config import Mission
-from ..health import BLOCK_SIZE, LOOP_FIELDS, SAMPLED, Heartbeat, Liveness
-from ..queries import ask, replies
-from ..transport import KeySpace
+from ..core.health import BLOCK_SIZE, LOOP_FIELDS, SAMPLED, Heartbeat, Liveness
+from ..runtime.queries import ask, replies
+from ..runtime.transport import KeySpace
 
 __all__ = ["NodeHealth", "ResourceSampler", "Sample"]
 
@@ -105,7 +105,7 @@ class ResourceSampler:
 
 
 class NodeHealth:
-    """A live node's :class:`~zplatform.health.HealthPort` (module doc).
+    """A live node's :class:`~zplatform.core.health.HealthPort` (module doc).
 
     Construction adds the ``health`` heartbeat (and ``zenoh``, with a
     ``session``) to ``liveness`` and builds the sampler; :meth:`start` starts
@@ -258,7 +258,7 @@ class NodeHealth:
             if self._probe is not None:
                 try:
                     # Session-local, DROP, target ALL, a timeout: the one way
-                    # zplatform asks (zplatform.queries); never blocks this thread.
+                    # zplatform asks (zplatform.runtime.queries); never blocks this thread.
                     ask(
                         self._session,
                         self._probe_key,

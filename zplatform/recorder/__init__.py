@@ -1,6 +1,6 @@
 """The on-board flight recorder: each vehicle node keeps its own telemetry and
 events on local storage, and the ground fills its telemetry gaps from the
-CN's. Not to be confused with :mod:`zplatform.replay_recording`, which
+CN's. Not to be confused with :mod:`zplatform.sim.replay_recording`, which
 records a CN's loop *inputs* for a bit-exact replay (``up --record``).
 
 A mission turns it on with a ``recorder:`` section
@@ -25,10 +25,10 @@ import math
 import os
 from pathlib import Path
 
-from ..auth import TAG_LEN
-from ..codec import RegionCodec
 from ..config import Mission
-from ..datavector import DataVector
+from ..core.auth import TAG_LEN
+from ..core.codec import RegionCodec
+from ..core.datavector import DataVector
 from ..errors import RecordingError
 from .export import ExportSummary, export, frames_of, reader_role, recorded_node
 from .format import HEADER_LEN

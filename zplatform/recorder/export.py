@@ -5,9 +5,9 @@
 (:class:`~.reader.RecorderReader`) and writes what it holds in the ground
 log's formats: each recorded frame that checks like live telemetry (the
 channel's tag, the layout of the mission given) as one row of the telemetry
-CSV (:class:`~zplatform.telemetry.CsvLogger`: same header, same rows; a
+CSV (:class:`~zplatform.telemetry.logs.CsvLogger`: same header, same rows; a
 device node's directory gives its region ``dnX_to_cn``), and each event as
-one line of the events JSONL (:class:`~zplatform.telemetry.EventWriter`). A
+one line of the events JSONL (:class:`~zplatform.telemetry.logs.EventWriter`). A
 row's ``rx_time_ns`` is the frame's own stamp, so the same frame gives the
 same row whoever reads it (the ground's gap fill writes its rows the same way).
 
@@ -24,14 +24,14 @@ from pathlib import Path
 
 import msgspec
 
-from ..auth import Channel, KeySet, channel
-from ..codec import RegionCodec
 from ..config import Mission
-from ..datavector import DataVector, Layout
+from ..core.auth import Channel, KeySet, channel
+from ..core.codec import RegionCodec
+from ..core.datavector import DataVector, Layout
+from ..core.events import decode_event
 from ..errors import CodecError, FrameFormatError, RecordingError
-from ..events import decode_event
-from ..records import EventRecord
-from ..telemetry import CsvLogger, EventWriter
+from ..telemetry.logs import CsvLogger, EventWriter
+from ..telemetry.records import EventRecord
 from .format import DROPPED, END, EVENT, FRAME
 from .reader import RecorderReader, SegmentHead, counts
 
@@ -90,7 +90,7 @@ def frames_of(
 
 def reader_role(mission: Mission, node: str) -> str:
     """The host role whose keys check node ``node``'s recorded frames
-    (:func:`zplatform.auth.load_keys`): ``tool`` for the CN's (telemetry,
+    (:func:`zplatform.core.auth.load_keys`): ``tool`` for the CN's (telemetry,
     the downlink's key, which every ground holds), the device node itself
     for a DN's (its replies, tagged with the key of its link to the CN,
     which only the DN and the CN hold), ``tool`` for any other name, which

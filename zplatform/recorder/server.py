@@ -30,7 +30,7 @@ from typing import Any
 
 import zenoh
 
-from ..auth import TAG_LEN, AuthError, Channel
+from ..core.auth import TAG_LEN, AuthError, Channel
 from .format import (
     DROPPED,
     FRAME,

@@ -33,10 +33,10 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any, BinaryIO
 
-from ..datavector import DataVector
+from ..core.datavector import DataVector
+from ..core.events import EV, EventLog
+from ..core.health import Heartbeat
 from ..errors import RecordingError
-from ..events import EV, EventLog
-from ..health import Heartbeat
 from .format import (
     COUNTS,
     DROPPED,
@@ -89,7 +89,7 @@ class FlightRecorder:
     shorter). ``opener`` makes each segment file (default
     :func:`default_opener`; tests pass slow or failing fakes). The writer
     thread checks in through :attr:`heartbeat` (``recorder``,
-    :mod:`zplatform.health`) each time it wakes, at least every
+    :mod:`zplatform.core.health`) each time it wakes, at least every
     ``interval_s``: one stuck in a write to a hung storage is named stalled.
 
     Construction creates and locks the directory and opens the first
@@ -121,7 +121,7 @@ class FlightRecorder:
         self._fsync_ns = None if fsync_ms is None else int(fsync_ms * 1e6)
         self._opener = opener
         self.heartbeat = Heartbeat("recorder")
-        """The writer thread's check-in, for the node's :class:`~zplatform.health.Liveness`."""
+        """The writer thread's check-in, for the node's :class:`~zplatform.core.health.Liveness`."""
         self._interval = interval_s
         rec = HEADER_LEN + max_record
         if file_bytes < HEADER_LEN * 2 + 4096 + 4 * rec:

@@ -1,0 +1,724 @@
+"""The operator command handler (thesis ch. 4.8 and 6.1), sans-IO.
+
+Holds :class:`CommandHandler` (one request per ``gn_to_cn`` frame:
+``gn_cmd``, ``gn_cmd_seq``, and for WRITE and PRM_SET ``gn_cmd_element`` and
+``gn_cmd_value``), the request-number rule (:func:`request_refusal`, the
+one the CN's intake applies too, with :class:`RequestNumber`), and the
+load-time checks of the ``commands`` section (:func:`check_config`, ...).
+
+Contract: on the CN's loop thread, :meth:`CommandHandler.admit` refuses a
+request for another run or numbered not above the last (that rule), and
+:meth:`CommandHandler.step` validates the admitted one (first failure wins:
+unknown, the state's whitelist, ARM for hazardous commands, argument, the
+element's or parameter's states and bounds, a save still being written),
+writes the verdict to ``cn_cmd_seq`` /
+``cn_cmd_status`` with a ``cmd_accepted`` or ``cmd_rejected`` event, and keeps
+an accepted command in ``cn_cmd`` until a transition consumes it or a state
+that does not handle it steps. Nothing in a request can make it raise.
+What the intake refused is counted by :meth:`CommandHandler.count_refused`.
+The rules: docs/architecture.md#safety-rules, docs/mission-reference.md#key-commands.
+"""
+
+from __future__ import annotations
+
+import difflib
+import logging
+import math
+import struct
+from typing import TYPE_CHECKING, Any
+
+from ..config import CMD_NAMES
+from ..config.codes import Command, CommandStatus
+from ..core.events import EV, EventLog
+from ..errors import ConfigError
+from .interlocks import output_states
+from .params import ParamSlot, ParamTable
+from .statemachine import logic_writable, why_not_writable
+
+if TYPE_CHECKING:
+    from ..config import Mission
+    from ..core.datavector import DataVector, ElementSpec, Handle, Layout
+    from .statemachine import StateMachine
+
+__all__ = [
+    "ARM_WINDOW_NS",
+    "Command",
+    "CommandHandler",
+    "CommandStatus",
+    "RequestNumber",
+    "check_config",
+    "protected_elements",
+    "request_refusal",
+    "request_refusal_detail",
+    "transition_readers",
+    "writable_elements",
+    "write_states",
+]
+
+log = logging.getLogger("zplatform.commands")
+
+ARM_WINDOW_NS = 10_000_000_000
+"""How long an accepted ARM confirms the next (hazardous) command: 10 s."""
+
+SEQ_WINDOW = 1 << 20
+"""How far past the last number a request may jump. Numbers are u64, so
+even a forger walking them up by this much per request would need 2**44
+requests to exhaust them."""
+
+
+_OTHER_RUN, _NOT_ABOVE, _TOO_FAR = 1, 2, 3
+_STATUS_OF = (
+    0,
+    CommandStatus.REJECTED_EPOCH,
+    CommandStatus.REJECTED_REPLAY,
+    CommandStatus.REJECTED_REPLAY,
+)
+
+
+def _number_rule(epoch: int, seq: int, cn_epoch: int, last_seq: int) -> int:
+    """The request-number rule, the one place it is written: 0 (may go
+    on), or why not: another run, a number not above the last, or one too
+    far past it (:data:`SEQ_WINDOW`)."""
+    if epoch != cn_epoch:
+        return _OTHER_RUN
+    if seq <= last_seq:
+        return _NOT_ABOVE
+    if seq - last_seq > SEQ_WINDOW:
+        return _TOO_FAR
+    return 0
+
+
+def request_refusal(epoch: int, seq: int, cn_epoch: int, last_seq: int) -> int:
+    """The refusal that consumes no number (module doc), for a request
+    numbered ``seq`` for CN run ``epoch``, on a CN whose run is
+    ``cn_epoch`` and whose highest number seen is ``last_seq``:
+    ``REJECTED_EPOCH``, ``REJECTED_REPLAY``, or 0 when it may go on to be
+    validated. Pure, constant time, allocates nothing: the CN's intake
+    applies it to a request as it arrives (so a replayed frame never
+    displaces a fresh one), :meth:`CommandHandler.admit` to each request
+    the loop may take (:func:`request_refusal_detail` says why)."""
+    return _STATUS_OF[_number_rule(epoch, seq, cn_epoch, last_seq)]
+
+
+def request_refusal_detail(
+    epoch: int, seq: int, cn_epoch: int, last_seq: int
+) -> tuple[int, str] | None:
+    """:func:`request_refusal`'s status and the detail its event gives, or
+    None when the request may go on. Pure."""
+    why = _number_rule(epoch, seq, cn_epoch, last_seq)
+    if why == _OTHER_RUN:
+        detail = (
+            f"epoch {epoch} is not this control node's ({cn_epoch}): a request for an earlier run"
+        )
+    elif why == _NOT_ABOVE:
+        detail = f"number {seq} is not above the last one seen ({last_seq})"
+    elif why == _TOO_FAR:
+        detail = f"number {seq} jumps more than {SEQ_WINDOW} past the last one ({last_seq})"
+    else:
+        return None
+    return _STATUS_OF[why], detail
+
+
+class RequestNumber:
+    """Reads a request's ``gn_cmd_epoch`` and ``gn_cmd_seq`` (and its
+    ``gn_cmd``) out of a ``gn_to_cn`` region's data, at their fixed offsets:
+    what :func:`request_refusal` needs, without applying the frame."""
+
+    __slots__ = ("_cmd", "_epoch", "_seq")
+
+    def __init__(self, layout: Layout) -> None:
+        base = layout.region("gn_to_cn").offset
+
+        def field(name: str) -> struct.Struct:
+            e = layout.element(name)
+            return struct.Struct(f"<{e.offset - base}x{e.scalar.struct}")
+
+        self._epoch = field("gn_cmd_epoch")
+        self._seq = field("gn_cmd_seq")
+        self._cmd = field("gn_cmd")
+
+    def read(self, data: bytes | bytearray | memoryview) -> tuple[int, int]:
+        """``(epoch, seq)`` of one request's region data (struct.error if too short)."""
+        return self._epoch.unpack_from(data)[0], self._seq.unpack_from(data)[0]
+
+    def command(self, data: bytes | bytearray | memoryview) -> str:
+        """The name of the command a request's region data asks for."""
+        cmd = int(self._cmd.unpack_from(data)[0])
+        return CMD_NAMES[cmd] if cmd < len(CMD_NAMES) else f"code {cmd}"
+
+
+_N_CMDS = len(CMD_NAMES)
+_F32_MAX = 3.4028234663852886e38
+
+
+# ---------------------------------------------------------------------------
+# configuration
+
+
+def _all_element_names(mission: Mission) -> list[str]:
+    """The CN's element list, in ``ElementSpec.index`` order."""
+    return [e.name for r in mission.region_names() for e in mission.regions[r]]
+
+
+def protected_elements(mission: Mission) -> list[str]:
+    """Elements a WRITE may set only as a hazardous command (ARM n, WRITE n+1).
+
+    ``commands.protected`` when given; otherwise every controller mode when
+    the mission has hazardous commands (switching a safety controller off is
+    as hazardous as the command it guards), else none."""
+    cfg = mission.commands
+    if cfg.protected is not None:
+        return list(cfg.protected)
+    if not cfg.hazardous:
+        return []
+    return [f"{c.name}_mode" for c in mission.controllers]
+
+
+def writable_elements(mission: Mission) -> list[str]:
+    """Elements a WRITE command may write, in Data Vector order: those
+    ``commands.writable`` lists, and no other (deny by default)."""
+    # Never a parameter: check_config refuses one here, and this list
+    # must not let one through whoever calls it before that check.
+    chosen = set(mission.commands.writable) - {p.name for p in mission.params}
+    return [n for n in _all_element_names(mission) if n in chosen]
+
+
+def write_states(mission: Mission) -> dict[str, list[str]]:
+    """Each writable element (:func:`writable_elements`, in that order) and
+    the states in which a WRITE may set it, in state order: the states
+    whose whitelist allows WRITE, narrowed to ``commands.write_states``'s
+    list for the element when it has one, and to a hazardous output's
+    states (``hazardous_outputs``). Pure."""
+    cfg = mission.commands
+    outputs = output_states(mission)
+    wl = cfg.whitelist
+    states = [s for s in _state_names(mission) if s not in wl or "WRITE" in wl[s]]
+    out: dict[str, list[str]] = {}
+    for name in writable_elements(mission):
+        listed = cfg.write_states.get(name)
+        out[name] = [
+            s
+            for s in states
+            if (listed is None or s in listed) and (name not in outputs or s in outputs[name])
+        ]
+    return out
+
+
+def transition_readers(mission: Mission) -> dict[str, list[tuple[str, int]]]:
+    """Each element a transition condition reads, and where: ``(state,
+    index of the transition)`` pairs in YAML order. Pure."""
+    out: dict[str, list[tuple[str, int]]] = {}
+    sm = mission.state_machine
+    if sm is None:
+        return out
+    for state, st in sm.states.items():
+        for i, t in enumerate(st.transitions):
+            if t.element is not None:
+                out.setdefault(t.element, []).append((state, i))
+    return out
+
+
+def _state_names(mission: Mission) -> list[str]:
+    sm = mission.state_machine
+    return list(sm.states) if sm is not None else ["IDLE"]
+
+
+def check_config(mission: Mission, *, warn: bool = True) -> None:
+    """Check the ``commands`` section; raises ConfigError naming the YAML path.
+
+    * whitelist keys are states, values are command names (not ``NONE``);
+    * hazardous entries are command names other than ``NONE`` and ``ARM``
+      (ARM is the confirmation), and a state that allows a hazardous
+      command also allows ARM (else it could never be accepted there);
+    * ``writable`` elements exist, are scalars, are listed once, and may be
+      written by CN logic (not platform bookkeeping, not received from a
+      peer, not a parameter);
+    * ``write_states`` names writable elements and states whose whitelist
+      allows WRITE (for a hazardous output, only its own states); every
+      writable element may be written in some state (:func:`write_states`);
+    * no writable element may be written in a state whose transitions read
+      it (:func:`transition_readers`): a WRITE must never fire a transition
+      (the ground would drive the flight's events).
+
+    With ``warn``, logs a warning for a ``cn_cmd == X`` transition in a
+    state whose whitelist refuses ``X`` (the transition can never fire).
+    """
+    cfg = mission.commands
+    states = _state_names(mission)
+    commands = [c for c in CMD_NAMES if c != "NONE"]
+    for i, h in enumerate(cfg.hazardous):
+        w = f"$.commands.hazardous[{i}]"
+        if h not in commands:
+            raise ConfigError(f"{h!r} is not a command; commands: {', '.join(commands)}", w)
+        if h == "ARM":
+            raise ConfigError("ARM cannot be hazardous: it is the confirmation itself", w)
+    for state, allowed in cfg.whitelist.items():
+        w = f"$.commands.whitelist.{state}"
+        if state not in states:
+            raise ConfigError(f"the whitelist names state {state!r}; states: {states}", w)
+        for j, c in enumerate(allowed):
+            if c not in commands:
+                raise ConfigError(
+                    f"{c!r} is not a command; commands: {', '.join(commands)}", f"{w}[{j}]"
+                )
+        for h in cfg.hazardous:
+            if h in allowed and "ARM" not in allowed:
+                raise ConfigError(
+                    f"{h} is hazardous and needs an ARM first, but state {state} does not "
+                    "allow ARM",
+                    w,
+                )
+    params = {p.name for p in mission.params}
+    if cfg.protected is not None:
+        allowed_w = set(writable_elements(mission))
+        for i, name in enumerate(cfg.protected):
+            if name in params:
+                raise ConfigError(
+                    f"{name!r} is a parameter: WRITE never sets it; make it hazardous in "
+                    "`params` instead (ARM n, then PRM_SET n+1)",
+                    f"$.commands.protected[{i}]",
+                )
+            if name not in allowed_w:
+                raise ConfigError(
+                    f"{name!r} is not an element WRITE may set, so protecting it means nothing; "
+                    f"writable: {sorted(allowed_w)}",
+                    f"$.commands.protected[{i}]",
+                )
+        if cfg.protected and "ARM" not in {c for v in cfg.whitelist.values() for c in v} | (
+            {"ARM"} if set(states) - set(cfg.whitelist) else set()
+        ):
+            raise ConfigError(
+                "protected elements need an ARM first, but no state allows ARM",
+                "$.commands.protected",
+            )
+    table = {e.name: (r, e) for r, es in mission.regions.items() for e in es}
+    can = logic_writable(mission)
+    index: dict[str, int] = {}
+    for i, name in enumerate(cfg.writable):
+        w = f"$.commands.writable[{i}]"
+        if name not in table:
+            close = difflib.get_close_matches(name, list(table), n=3)
+            hint = f"; did you mean {', '.join(close)}?" if close else ""
+            raise ConfigError(f"no element named {name!r} in the Data Vector{hint}", w)
+        region, e = table[name]
+        if "[" in e.type:
+            raise ConfigError(f"element {name!r} is an array ({e.type}); WRITE sets one scalar", w)
+        if name not in can:
+            raise ConfigError(why_not_writable(mission, region, name), w)
+        if name in index:
+            raise ConfigError(f"element {name!r} is listed twice", w)
+        index[name] = i
+    outputs = output_states(mission)
+    wl = cfg.whitelist
+    for name, named in cfg.write_states.items():
+        w = f"$.commands.write_states.{name}"
+        if name not in index:
+            raise ConfigError(
+                f"{name!r} is not in commands.writable: a WRITE never sets it, so its states "
+                "mean nothing",
+                w,
+            )
+        for j, state in enumerate(named):
+            if state not in states:
+                raise ConfigError(f"{state!r} is not a state; states: {states}", f"{w}[{j}]")
+            if state in wl and "WRITE" not in wl[state]:
+                raise ConfigError(f"state {state}'s whitelist does not allow WRITE", f"{w}[{j}]")
+            if name in outputs and state not in outputs[name]:
+                raise ConfigError(
+                    f"{name!r} is a hazardous output that may be driven only in "
+                    f"{', '.join(outputs[name]) or 'no state'} (hazardous_outputs), not in "
+                    f"{state}",
+                    f"{w}[{j}]",
+                )
+    may = write_states(mission)
+    readers = transition_readers(mission)
+    for name, i in index.items():
+        w = (
+            f"$.commands.write_states.{name}"
+            if name in cfg.write_states
+            else f"$.commands.writable[{i}]"
+        )
+        if not may[name]:
+            also = (
+                f", and it is a hazardous output of {', '.join(outputs[name]) or 'no state'}"
+                if name in outputs
+                else ""
+            )
+            raise ConfigError(
+                f"element {name!r} may be written in no state (none of its states allows "
+                f"WRITE{also}): drop it from commands.writable",
+                w,
+            )
+        for state, k in readers.get(name, ()):
+            if state in may[name]:
+                raise ConfigError(
+                    f"element {name!r} is read by a transition of state {state} "
+                    f"(`$.state_machine.states.{state}.transitions[{k}]`) and a WRITE may set it "
+                    f"in {state}: one command would fire that transition; name the states where "
+                    f"it may be written in commands.write_states.{name} (without {state}), or "
+                    "leave it out of commands.writable",
+                    w,
+                )
+    sm = mission.state_machine
+    if warn and sm is not None:
+        for state, st in sm.states.items():
+            listed = cfg.whitelist.get(state)
+            if listed is None:
+                continue
+            for i, t in enumerate(st.transitions):
+                if (
+                    t.element == "cn_cmd"
+                    and t.op == "=="
+                    and isinstance(t.value, str)
+                    and t.value not in listed
+                ):
+                    log.warning(
+                        "state %s refuses command %s, so this transition never fires - at "
+                        "`$.state_machine.states.%s.transitions[%d]`",
+                        state,
+                        t.value,
+                        state,
+                        i,
+                    )
+
+
+# ---------------------------------------------------------------------------
+# the handler
+
+
+def _write_value(spec: ElementSpec, v: float) -> tuple[Any, str]:
+    """``(stored value, "")`` for a WRITE of ``v`` to ``spec``, or
+    ``(None, reason)`` when it does not fit."""
+    st = spec.scalar
+    if math.isnan(v) or math.isinf(v):
+        return None, f"value {v} is not finite"
+    if spec.enum is not None:
+        if v.is_integer() and 0 <= v < len(spec.enum):
+            return int(v), ""
+        return None, f"{v:g} is not an index of {spec.name}'s names 0..{len(spec.enum) - 1}"
+    if st.kind == "bool":
+        if v in (0.0, 1.0):
+            return v == 1.0, ""
+        return None, f"{v:g} is not 0 or 1 for bool element {spec.name}"
+    if st.kind == "int":
+        assert st.lo is not None and st.hi is not None
+        if v.is_integer() and st.lo <= int(v) <= st.hi:
+            return int(v), ""
+        return None, f"{v!r} is not an integer in {st.lo}..{st.hi} for {st.name} {spec.name}"
+    if st.size == 4 and abs(v) > _F32_MAX:
+        return None, f"{v!r} does not fit f32 element {spec.name}"
+    return v, ""
+
+
+class CommandHandler:
+    """Validates and applies operator command requests on the CN (module doc).
+
+    ``dv`` is the CN's Data Vector. ``statemachine`` receives HOLD and
+    RESUME (without one, they are refused). ``params``: the CN's parameter
+    table (PRM_SET, PRM_SAVE; default: one of its own). Construction runs
+    :func:`check_config` and resolves the whitelist, the hazardous set and
+    the writable elements into tables indexed by state and command code, so
+    a loop without a request costs one attribute test.
+
+    Not thread-safe: the CN loop calls :meth:`step` once per loop, before
+    the state machine's step.
+    """
+
+    def __init__(
+        self,
+        mission: Mission,
+        dv: DataVector,
+        events: EventLog,
+        statemachine: StateMachine | None = None,
+        params: ParamTable | None = None,
+    ) -> None:
+        check_config(mission, warn=False)
+        self._events = events
+        self._sm = statemachine
+        self.params = params if params is not None else ParamTable(mission, dv, events)
+        self._h_cmd = dv.handle("cn_cmd")
+        self._h_seq = dv.handle("cn_cmd_seq")
+        self._h_status = dv.handle("cn_cmd_status")
+        self._h_rejects = dv.handle("cn_cmd_rejects")
+        self._h_reject_status = dv.handle("cn_cmd_reject_status")
+        self._h_reject_seq = dv.handle("cn_cmd_reject_seq")
+        self._h_epoch = dv.handle("cn_epoch")
+        self._h_state = dv.handle("cn_state")
+        self._has_ground = "gn_to_cn" in dv.layout.regions
+        if self._has_ground:
+            self._g_cmd = dv.handle("gn_cmd")
+            self._g_seq = dv.handle("gn_cmd_seq")
+            self._g_elem = dv.handle("gn_cmd_element")
+            self._g_value = dv.handle("gn_cmd_value")
+        states = self._h_state.spec.enum or ()
+        self._states = states
+        wl = mission.commands.whitelist
+        self._allowed: tuple[tuple[bool, ...], ...] = tuple(
+            tuple(s not in wl or c in wl[s] for c in CMD_NAMES) for s in states
+        )
+        self._hazardous = tuple(c in mission.commands.hazardous for c in CMD_NAMES)
+        targets: list[Handle | None] = [None] * len(dv.layout.elements)
+        # Per element index, the states (by cn_state's index) a WRITE may set it in.
+        may: list[tuple[bool, ...]] = [()] * len(dv.layout.elements)
+        for name, ok in write_states(mission).items():
+            h = dv.handle(name)
+            targets[h.spec.index] = h
+            may[h.spec.index] = tuple(s in ok for s in states)
+        self._targets = tuple(targets)
+        self._may_write = tuple(may)
+        self._param_names = frozenset(p.name for p in mission.params)
+        protected = [False] * len(dv.layout.elements)
+        for name in protected_elements(mission):
+            protected[dv.layout.element(name).index] = True
+        self._protected = tuple(protected)
+        self._names_by_index = tuple(
+            sorted(dv.layout.elements, key=lambda n: dv.layout.elements[n].index)
+        )
+        self._active = False
+        self._last_seq = 0
+        self._arm_seq = -1
+        self._arm_t_ns = 0
+        # A redundant mission mirrors the last ARM (adopt()).
+        arm = "cn_arm_seq" in dv.layout.elements
+        self._h_arm_seq = dv.handle("cn_arm_seq") if arm else None
+        self._h_arm_t = dv.handle("cn_arm_t_ns") if arm else None
+
+    def adopt(self) -> None:
+        """Take up the handler's state from the Data Vector (a takeover,
+        :meth:`zplatform.control.loop.ControlLogic.adopt`): the pending command
+        (``cn_cmd``), the last number (``cn_cmd_seq``) and, in a redundant
+        mission, the last ARM (``cn_arm_seq``, ``cn_arm_t_ns``)."""
+        self._active = self._h_cmd.get() != 0
+        self._last_seq = int(self._h_seq.get())
+        if self._h_arm_seq is not None and self._h_arm_t is not None:
+            seq = int(self._h_arm_seq.get())
+            self._arm_seq = seq if seq else -1
+            self._arm_t_ns = int(self._h_arm_t.get())
+
+    def _armed_at(self, seq: int, t_ns: int) -> None:
+        self._arm_seq = seq
+        self._arm_t_ns = t_ns
+        if self._h_arm_seq is not None and self._h_arm_t is not None:
+            self._h_arm_seq.set(max(seq, 0))
+            self._h_arm_t.set(t_ns)
+
+    @property
+    def active(self) -> bool:
+        """Whether an accepted command is in ``cn_cmd`` this loop."""
+        return self._active
+
+    @property
+    def last_seq(self) -> int:
+        """The highest request number seen (0 before the first request)."""
+        return self._last_seq
+
+    def step(self, new_request: bool, t_ns: int) -> None:
+        """One loop, before the state machine's step: settle last loop's
+        pending command (module doc), then handle the request the runtime
+        applied this loop (``new_request``), one :meth:`admit` let through:
+        its number is not checked again here. Never raises."""
+        if self._active:
+            sm = self._sm
+            # Pending until a transition consumed it, or a step left the state
+            # unchanged (that state does not handle it). A state change by
+            # another transition keeps it for the new state's next step.
+            if sm is None or sm.consumed_cmd or not sm.changed:
+                self._h_cmd.set(0)
+                self._active = False
+        if not new_request or not self._has_ground:
+            return
+        cmd = self._g_cmd.get()
+        seq = self._g_seq.get()
+        name = CMD_NAMES[cmd] if cmd < _N_CMDS else f"code {cmd}"
+        self._last_seq = seq
+        status, detail = self._validate(cmd, seq, t_ns)
+        self._h_seq.set(seq)
+        self._h_status.set(status)
+        if status == CommandStatus.ACCEPTED:
+            if self._active:
+                prev = CMD_NAMES[self._h_cmd.get()]
+                self._events.emit(EV.CMD_SUPERSEDED, t_ns, name=prev, by=name)
+            self._h_cmd.set(cmd)
+            self._active = True
+            self._events.emit(EV.CMD_ACCEPTED, t_ns, name=name, seq=seq, detail=detail)
+        else:
+            self._emit_rejected(status, t_ns, name, seq, detail)
+
+    def reject(
+        self, status: int, t_ns: int, *, name: str = "request", seq: int = 0, detail: str = ""
+    ) -> None:
+        """Refuse a request without consuming a number: counted in
+        ``cn_cmd_rejects``, reason in ``cn_cmd_reject_status``, its number in
+        ``cn_cmd_reject_seq`` (so the ground can tell its request was
+        refused), an event; ``cn_cmd_seq`` and ``cn_cmd_status`` keep the
+        last real verdict (so a replayed or forged frame cannot disturb the
+        operator's numbering). Also what the loop calls for a request frame
+        that fails authentication, with ``seq`` 0: the number of a frame
+        that is not authentic cannot be trusted."""
+        self._h_rejects.bump()
+        self._h_reject_status.set(status)
+        self._h_reject_seq.set(seq)
+        self._emit_rejected(status, t_ns, name, seq, detail)
+
+    def count_refused(self, n: int, status: int, seq: int) -> None:
+        """Count ``n`` requests the CN's intake refused as they arrived
+        (:class:`zplatform.control.intake.RequestIntake`: bad tags, other runs,
+        numbers not above the last): as :meth:`reject` does, without an
+        event each (the loop reports them together): ``cn_cmd_rejects``
+        grows by ``n``, ``cn_cmd_reject_status``/``cn_cmd_reject_seq`` show
+        ``status``/``seq`` (the highest number refused; ``REJECTED_AUTH`` and
+        0 when only bad tags came)."""
+        self._h_rejects.bump(n)
+        self._h_reject_status.set(status)
+        self._h_reject_seq.set(seq)
+
+    def _emit_rejected(self, status: int, t_ns: int, name: str, seq: int, detail: str) -> None:
+        self._events.emit(
+            EV.CMD_REJECTED,
+            t_ns,
+            name=name,
+            seq=seq,
+            status=CommandStatus(status).name,
+            detail=detail,
+        )
+
+    def refusal(self, epoch: int, seq: int) -> tuple[int, str] | None:
+        """``(status, detail)`` when a request numbered ``seq`` for CN run
+        ``epoch`` is refused without consuming a number
+        (:func:`request_refusal_detail`: epoch, then number), else None.
+        Changes nothing."""
+        return request_refusal_detail(epoch, seq, self._h_epoch.get(), self._last_seq)
+
+    def admit(self, epoch: int, seq: int, t_ns: int, name: str = "request") -> bool:
+        """Whether the request ``name`` numbered ``seq`` for CN run ``epoch``
+        may be taken (:meth:`refusal`); when not, it is rejected now
+        (:meth:`reject`: counted, evented, no number consumed). The runtime
+        admits every request frame before it picks the one to apply
+        (:meth:`step`'s ``new_request``). Never raises."""
+        refused = self.refusal(epoch, seq)
+        if refused is None:
+            return True
+        self.reject(refused[0], t_ns, name=name, seq=seq, detail=refused[1])
+        return False
+
+    def _validate(self, cmd: int, seq: int, t_ns: int) -> tuple[int, str]:
+        """``(status, detail)``; performs the command when it is accepted."""
+        if cmd == Command.NONE or cmd >= _N_CMDS:
+            return CommandStatus.REJECTED_UNKNOWN, f"{cmd} is not a command code"
+        state = self._h_state.get()
+        if state < len(self._allowed) and not self._allowed[state][cmd]:
+            return (
+                CommandStatus.REJECTED_NOT_ALLOWED,
+                f"not allowed in state {self._states[state]}",
+            )
+        slot = self.params.slot(self._g_elem.get()) if cmd == Command.PRM_SET else None
+        hazardous = (
+            self._hazardous[cmd]
+            or (cmd == Command.WRITE and self._protected_write())
+            or (slot is not None and slot.hazardous)
+        )
+        if hazardous:
+            armed = self._arm_seq == seq - 1 and 0 <= t_ns - self._arm_t_ns <= ARM_WINDOW_NS
+            self._armed_at(-1, self._arm_t_ns)
+            if not armed:
+                return (
+                    CommandStatus.REJECTED_NOT_ARMED,
+                    f"hazardous: needs an accepted ARM #{seq - 1} within the last "
+                    f"{ARM_WINDOW_NS // 1_000_000_000} s",
+                )
+        if cmd == Command.WRITE:
+            return self._write(state)
+        if cmd == Command.PRM_SET:
+            return self._prm_set(slot, state)
+        if cmd == Command.PRM_SAVE:
+            return self._prm_save(seq, t_ns)
+        if cmd == Command.HOLD or cmd == Command.RESUME:
+            if self._sm is None:
+                return CommandStatus.REJECTED_NOT_ALLOWED, "no state machine to hold or resume"
+            changed = self._sm.hold(t_ns) if cmd == Command.HOLD else self._sm.resume(t_ns)
+            if not changed:
+                return CommandStatus.ACCEPTED, " (no change: already so)"
+        elif cmd == Command.ARM:
+            self._armed_at(seq, t_ns)
+        return CommandStatus.ACCEPTED, ""
+
+    def _protected_write(self) -> bool:
+        idx = self._g_elem.get()
+        return idx < len(self._protected) and self._protected[idx]
+
+    def _write(self, state: int) -> tuple[int, str]:
+        idx = self._g_elem.get()
+        value = self._g_value.get()
+        target = self._targets[idx] if idx < len(self._targets) else None
+        if target is None:
+            if idx < len(self._names_by_index):
+                name = self._names_by_index[idx]
+                if name in self._param_names:
+                    why = "it is a parameter: set it with PRM_SET"
+                else:
+                    why = "commands.writable does not list it (a WRITE sets only those)"
+                return (
+                    CommandStatus.REJECTED_BAD_ARGUMENT,
+                    f"element {name} is not writable: {why}",
+                )
+            return CommandStatus.REJECTED_BAD_ARGUMENT, f"no element with index {idx}"
+        may = self._may_write[idx]
+        if state < len(may) and not may[state]:
+            allowed = [s for s, ok in zip(self._states, may, strict=False) if ok]
+            return (
+                CommandStatus.REJECTED_NOT_ALLOWED,
+                f"a WRITE of {target.spec.name} is not allowed in state {self._states[state]} "
+                f"(only in {', '.join(allowed)}: commands.write_states, hazardous_outputs)",
+            )
+        v, reason = _write_value(target.spec, value)
+        if reason:
+            return CommandStatus.REJECTED_BAD_ARGUMENT, reason
+        target.set(v)
+        shown = target.spec.name_of(v) if target.spec.enum is not None else repr(v)
+        return CommandStatus.ACCEPTED, f" ({target.spec.name} = {shown})"
+
+    def _prm_set(self, slot: ParamSlot | None, state: int) -> tuple[int, str]:
+        if slot is None:
+            idx = self._g_elem.get()
+            if not self.params.slots:
+                return CommandStatus.REJECTED_NOT_ALLOWED, "this mission has no parameters"
+            what = (
+                f"element {self._names_by_index[idx]}"
+                if idx < len(self._names_by_index)
+                else f"index {idx}"
+            )
+            return CommandStatus.REJECTED_BAD_ARGUMENT, f"{what} is not a parameter"
+        v, reason = _write_value(slot.handle.spec, self._g_value.get())
+        if reason:
+            return CommandStatus.REJECTED_BAD_ARGUMENT, reason
+        if state < len(slot.allowed) and not slot.allowed[state]:
+            allowed = [s for s, ok in zip(self._states, slot.allowed, strict=False) if ok]
+            return (
+                CommandStatus.REJECTED_PARAM_STATE,
+                f"parameter {slot.name} may not change in state {self._states[state]} "
+                f"(only in {', '.join(allowed) or 'no state'})",
+            )
+        if not slot.in_bounds(v):
+            return (
+                CommandStatus.REJECTED_OUT_OF_BOUNDS,
+                f"{v!r} is outside {slot.name}'s bounds {slot.bounds_text()}",
+            )
+        was = slot.handle.get()
+        slot.handle.set(v)
+        self.params.changed()
+        now = slot.handle.get()
+        return CommandStatus.ACCEPTED, f" ({slot.name} = {slot.text(now)}, was {slot.text(was)})"
+
+    def _prm_save(self, seq: int, t_ns: int) -> tuple[int, str]:
+        params = self.params
+        if not params.slots:
+            return CommandStatus.REJECTED_NOT_ALLOWED, "this mission has no parameters"
+        busy = params.saving
+        if busy:
+            return (
+                CommandStatus.REJECTED_BUSY,
+                f"PRM_SAVE #{busy} is still being written; send it again when "
+                "cn_prm_save_status is no longer PENDING",
+            )
+        params.request_save(seq, t_ns)
+        return CommandStatus.ACCEPTED, " (queued: cn_prm_save_status tells when it is written)"

@@ -1,0 +1,688 @@
+"""The intake of frames from the network: refused in constant time, handed
+off bounded, the newest valid frame first.
+
+One intake per key a node takes frames on (:class:`TriggerIntake`,
+:class:`ProbeIntake`, :class:`MirrorIntake`, :class:`RequestIntake`,
+:class:`TelemetryIntake`, and :class:`ReplyCheck` for the CN's sync
+replies). It runs in the zenoh callback that received the frame and checks,
+the first failure winning: size (unread, no copy), a rate bound where the
+key has one, then one bounded copy and the channel's tag (constant time),
+then freshness against the newest admitted. A refused frame is only
+counted: no queue, no decode, no event of its own. :meth:`Intake.admit`
+puts an admitted one (its bytes: the one copy) in a bounded :class:`~.handoff.Mailbox`
+(full: the oldest is let go), whose last item is always the newest valid
+frame; :meth:`Intake.check` only checks. Never blocks beyond two short
+locks (the intake's, for these steps; the mailbox's, for a put or a pop),
+never raises for what arrives; the loop thread takes the items and the counts
+(:meth:`Intake.take_counts`, once per loop) and events them (:class:`RefusalLog`).
+Detail: docs/architecture.md#the-intake; per key: docs/keyspace.md;
+the stamps' offsets: codecs/FORMAT.md §2.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from abc import ABC, abstractmethod
+from collections.abc import Callable
+from typing import Generic, Protocol, TypeVar
+
+from ..config import Mission
+from ..core.auth import TAG_LEN, Channel, RunError
+from ..core.codec import (
+    bundle_entry,
+    bundle_size,
+    frame_data,
+    frame_stamp,
+    is_bundle,
+    max_frame_length,
+)
+from ..core.datavector import Layout
+from ..core.messages import wildcard_sync_for
+from ..errors import CodecError
+from .commands import RequestNumber, request_refusal
+from .fencing import LOOP_MAX, TERM_MAX, any_run, ask_size, ask_stamp
+from .handoff import Mailbox, Waker
+
+__all__ = [
+    "BACKLOG",
+    "CN_REFUSALS",
+    "EVENT_PERIOD_NS",
+    "MIRRORS",
+    "PROBES",
+    "PROBE_BURST",
+    "CnRefusals",
+    "Intake",
+    "MirrorIntake",
+    "Payload",
+    "ProbeIntake",
+    "RefusalLog",
+    "ReplyCheck",
+    "RequestIntake",
+    "TelemetryIntake",
+    "TriggerIntake",
+    "ahead_bound_ns",
+    "max_frame_len",
+]
+
+BACKLOG = 4
+"""Valid triggers a DN keeps while its loop thread is busy: older ones are
+for loops the CN has closed, so the oldest is let go past this."""
+PROBES = 2
+"""Probe questions a DN keeps while its loop thread is busy."""
+PROBE_BURST = 8
+"""Probe questions one control node may ask a DN at once; then one a loop
+period (:class:`ProbeIntake`'s rate bound: a standby's round is one STATUS,
+one ASK and one RELEASE, at most one round a period)."""
+MIRRORS = 4
+"""Mirror frames a control node keeps between two beats (the newest ones)."""
+EVENT_PERIOD_NS = 1_000_000_000
+"""At most one refusal event per intake in this much loop time (:class:`RefusalLog`)."""
+
+T = TypeVar("T")
+H = TypeVar("H")
+
+
+class Payload(Protocol):
+    """What an intake reads a frame from: ``zenoh.ZBytes`` (its length is
+    free, ``to_bytes`` copies)."""
+
+    def __len__(self) -> int: ...
+
+    def to_bytes(self) -> bytes: ...
+
+
+def ahead_bound_ns(mission: Mission) -> int:
+    """How far ahead of a vehicle node's corrected clock a genuine stamp of
+    the CN's may be: the clock bound (``clock.offset_bound_ms``) and a
+    period, as :class:`~zplatform.control.loop.DeviceLogic` believes a trigger."""
+    return round(mission.clock.offset_bound_ms * 1e6) + mission.period_ns
+
+
+def max_frame_len(size: int, channel: Channel | None) -> int:
+    """The longest valid frame of a region of ``size`` bytes as it travels
+    (:func:`zplatform.core.codec.max_frame_length`), with its tag."""
+    return max_frame_length(size) + (TAG_LEN if channel is not None else 0)
+
+
+class Intake(ABC, Generic[H]):
+    """One key's intake (module doc): size, tag, freshness, and, for a key
+    whose frames a loop takes later, a bounded mailbox of
+    ``(handle, frame bytes)``.
+
+    ``max_len``/``min_len``: the frame lengths the key can carry;
+    ``channel``: the intake's own channel for the key (None: the mission
+    does not authenticate); ``capacity``: the mailbox's (0: no mailbox,
+    :meth:`check` only). Subclasses say what a key's frame is
+    (:meth:`_frame`) and when it is fresh (:meth:`_fresh`, called with the
+    intake's lock held).
+
+    Thread-safe: :meth:`check` and :meth:`admit` from any of zenoh's
+    threads; :attr:`box` and :meth:`take_counts` from the consumer.
+    """
+
+    def __init__(
+        self,
+        name: str,
+        max_len: int,
+        channel: Channel | None,
+        capacity: int = 0,
+        *,
+        waker: Waker | None = None,
+    ) -> None:
+        self.name = name
+        self.max_len = max_len
+        self._min = TAG_LEN + 1 if channel is not None else 1
+        self._open = channel
+        self._lock = threading.Lock()
+        self.box: Mailbox[tuple[H, bytes]] | None = Mailbox(capacity, waker) if capacity else None
+        self.size = 0
+        self.bad = 0
+        self.stale = 0
+        self.on_other_run: Callable[[], None] | None = None
+        """Called (on zenoh's thread: it must not block) for each genuine
+        frame of another run (zplatform.core.auth.RunError): a device node's cue
+        to ask its clock exchange for the run now (the control node may
+        have started a new one)."""
+
+    @property
+    def authenticates(self) -> bool:
+        """Whether this intake checks tags: then every frame it passes has
+        an authentic tag, and its consumer need not check it again
+        (:meth:`zplatform.control.loop.DeviceLogic.trigger`'s ``authentic``)."""
+        return self._open is not None
+
+    def check(self, payload: Payload, handle: H) -> bytes | None:
+        """The frame's bytes when it passes every check, else None (counted)."""
+        with self._lock:
+            return self._check(payload, handle)
+
+    def admit(self, payload: Payload, handle: H) -> bool:
+        """Check ``payload``; put ``(handle, its bytes)`` in the mailbox when
+        it passes (returns True), else count why (False)."""
+        box = self.box
+        assert box is not None, "an intake without a mailbox only checks"
+        with self._lock:
+            data = self._check(payload, handle)
+            if data is None:
+                return False
+            box.put((handle, data))  # under the lock: admission order is mailbox order
+            return True
+
+    def _check(self, payload: Payload, handle: H) -> bytes | None:
+        n = len(payload)
+        if not self._min <= n <= self.max_len:
+            self.size += 1
+            return None
+        if not self._within_rate():
+            return None
+        data = payload.to_bytes()
+        ch = self._open
+        if ch is None:
+            return data
+        try:
+            frame = self._frame(data)
+            fresh = self._fresh(ch.open(frame, any_run=self._any_run(frame)), handle)
+        except RunError:  # another run's genuine frame (an earlier run's replay): stale
+            self.stale += 1
+            if self.on_other_run is not None:
+                self.on_other_run()
+            return None
+        except CodecError:  # a bad tag (AuthError), or an authentic frame that is none
+            self.bad += 1
+            return None
+        if not fresh:
+            if fresh is not None:  # None: refused and counted by the subclass
+                self.stale += 1
+            return None
+        return data
+
+    def _frame(self, data: bytes) -> bytes | memoryview:
+        """The tagged frame in what arrived (CodecError if there is none)."""
+        return data
+
+    def _any_run(self, frame: bytes | memoryview) -> bool:
+        """Whether ``frame`` may be of any run (zplatform.core.auth.Run): none, by
+        default; a probe's STATUS question (zplatform.control.fencing.any_run)."""
+        return False
+
+    def _within_rate(self) -> bool:
+        """Whether a frame of the right size may be read now (before any
+        copy; with the lock held): a key with a rate bound counts and
+        refuses the excess here. Every frame, by default."""
+        return True
+
+    @abstractmethod
+    def _fresh(self, body: memoryview, handle: H) -> bool | None:
+        """Whether the authentic frame ``body`` (with ``handle``) is newer
+        than every admitted one; records it as the newest when it is.
+        CodecError if unreadable; None: refused for another reason, which
+        the subclass counted."""
+
+    def take_counts(self) -> tuple[int, int, int]:
+        """``(size, bad, stale)`` refusals since the last call (then zeroed)."""
+        with self._lock:
+            counts = (self.size, self.bad, self.stale)
+            self.size = self.bad = self.stale = 0
+            self._took()
+        return counts
+
+    def _took(self) -> None:
+        """What else :meth:`take_counts` zeroes (with the lock held)."""
+
+
+class _StampIntake(Intake[H]):
+    """Fresh: stamped (``t_ns``, the sender's clock) later than every frame
+    admitted so far, and no further ahead of the receiver's clock than its
+    bound (:meth:`_ahead`). A sender's stamps grow with its loop, and a
+    restarted sender's start after its last run's, so only a replay (or a
+    duplicate) is not later; a stamp is authentic, so nobody without the
+    key can push it ahead, and the bound ahead keeps a key holder's (or a
+    stepped clock's) stamp at the end of time from becoming the newest,
+    which would refuse every genuine frame after it."""
+
+    newest_t = -(1 << 63)
+    """The stamp of the newest admitted frame."""
+
+    def _fresh(self, body: memoryview, handle: H) -> bool:
+        _, t_ns = frame_stamp(body)
+        if self._ahead(t_ns, handle):
+            return False
+        if t_ns <= self.newest_t:
+            self._replayed(t_ns, handle)
+            return False
+        self.newest_t = t_ns
+        return True
+
+    def _ahead(self, t_ns: int, handle: H) -> bool:
+        """Whether ``t_ns`` is further ahead of the receiver's clock than
+        any sender's clock may be (counted by the caller as stale)."""
+        return False
+
+    def _replayed(self, t_ns: int, handle: H) -> None:
+        """Note a frame refused as not newer (with the lock held)."""
+
+
+class TriggerIntake(_StampIntake[H]):
+    """A DN's sync queries (``{vehicle}/dnX/to_cn``): the CN's trigger for
+    the node, alone or in a sync bundle (``transport.sync_query``
+    wildcard). Fresh: stamped later than any trigger admitted before, so a
+    replayed trigger, however authentic, is refused (and never answered),
+    and no further ahead of ``now_ns`` (the node's corrected clock, the
+    CN's time) than the clock bound and a period
+    (``clock.offset_bound_ms``, as :class:`~zplatform.control.loop.DeviceLogic`
+    believes a trigger). Its mailbox keeps :data:`BACKLOG` triggers."""
+
+    def __init__(
+        self,
+        mission: Mission,
+        node: str,
+        channel: Channel | None,
+        now_ns: Callable[[], int] = time.time_ns,
+    ) -> None:
+        lay = Layout.for_node(mission, "cn")
+        dns = mission.device_nodes
+        lens = [max_frame_len(lay.region(f"cn_to_{dn}").size, channel) for dn in dns]
+        self._index = mission.device_nodes.index(node)
+        own = lens[self._index]
+        longest = max(own, bundle_size(lens)) if wildcard_sync_for(mission) else own
+        self._now = now_ns
+        self._max_ahead = ahead_bound_ns(mission)
+        super().__init__(f"{node}'s sync query", longest, channel, BACKLOG)
+
+    def _frame(self, data: bytes) -> bytes | memoryview:
+        return bundle_entry(data, self._index) if is_bundle(data) else data
+
+    def _any_run(self, frame: bytes | memoryview) -> bool:
+        # The warm-up (loop 0: answered, never run) of any run: a restarted
+        # control node warms up before it knows whether it resumes the run.
+        # DeviceLogic.trigger refuses any other loop of another run.
+        return frame_stamp(frame)[0] == 0
+
+    def _ahead(self, t_ns: int, handle: H) -> bool:
+        return t_ns - self._now() > self._max_ahead
+
+
+class ProbeIntake(Intake[H]):
+    """A device node's probe questions (``{vehicle}/dnX/probe``, a redundant
+    mission's control nodes asking which term it runs, :mod:`zplatform.control.fencing`).
+    Fresh: stamped later than any question admitted from the same control
+    node, so a replayed question is refused unanswered, and no further
+    ahead of ``clock_ns`` (the node's corrected clock, the CN's time) than
+    the clock bound and a period (``bound_ns``), so a question stamped at
+    the end of time never locks its asker out. Its mailbox keeps
+    :data:`PROBES` questions (``waker``: the trigger mailbox's, so the node's
+    loop wakes for either).
+
+    **Rate bounds** (``now_ns``: the clock they run on; ``period_ns``: the
+    mission's loop period). Two, each a token bucket kept as one integer
+    (GCRA: constant time, no allocation), so a flood costs the callback a
+    length, a clock read and a compare per question, and never reaches the
+    loop thread beyond a few answers a period:
+
+    * per channel, *before any copy* (the asker is not known unread): at
+      most ``askers`` * :data:`PROBE_BURST` questions at once, then
+      ``askers`` a period, whoever sends them;
+    * per asker, once the tag proved who asks: at most :data:`PROBE_BURST`
+      at once, then one a period.
+
+    What exceeds either is refused unanswered and counted in
+    :attr:`excess`. A flood from a peer without the key uses up the
+    channel's bound, so a genuine question sent meanwhile may be refused
+    too (the standby asks again later): the flood delays a takeover for as
+    long as it lasts, never the device node's loop. Without authentication
+    only the channel's bound applies (the asker cannot be told)."""
+
+    def __init__(
+        self,
+        node: str,
+        channel: Channel | None,
+        waker: Waker,
+        *,
+        period_ns: int,
+        askers: int = 2,
+        now_ns: Callable[[], int] = time.monotonic_ns,
+        clock_ns: Callable[[], int] = time.time_ns,
+        bound_ns: int = 0,
+    ) -> None:
+        super().__init__(
+            f"{node}'s probe", ask_size(channel is not None), channel, PROBES, waker=waker
+        )
+        self._askers = askers
+        self._newest = [-(1 << 63)] * askers
+        self._now = now_ns
+        self._clock = clock_ns
+        self._max_ahead = bound_ns + period_ns
+        self._every = max(period_ns, 1)
+        self._tau = (PROBE_BURST - 1) * self._every  # one asker's burst
+        self._every_all = max(self._every // askers, 1)
+        self._tau_all = (askers * PROBE_BURST - 1) * self._every_all
+        self._tat = [-(1 << 63)] * askers  # per asker: the theoretical arrival time
+        self._tat_all = -(1 << 63)
+        self._excess = 0
+        self.excess = 0
+        """Questions refused beyond a rate bound, among those counted by the
+        last :meth:`take_counts`."""
+
+    def _within_rate(self) -> bool:
+        now = self._now()
+        tat = max(self._tat_all, now)
+        if tat - now > self._tau_all:
+            self._excess += 1
+            return False
+        self._tat_all = tat + self._every_all
+        return True
+
+    def _any_run(self, frame: bytes | memoryview) -> bool:
+        return any_run(frame)
+
+    def _fresh(self, body: memoryview, handle: H) -> bool | None:
+        asker, t_ns = ask_stamp(body, self._askers)  # CodecError: no such asker (bad)
+        if t_ns <= self._newest[asker] or t_ns - self._clock() > self._max_ahead:
+            return False
+        # After freshness: a replay of the asker's questions uses none of its bound.
+        now = self._now()
+        tat = max(self._tat[asker], now)
+        if tat - now > self._tau:
+            self._excess += 1
+            return None
+        self._tat[asker] = tat + self._every
+        self._newest[asker] = t_ns
+        return True
+
+    def _took(self) -> None:
+        self.excess, self._excess = self._excess, 0
+
+
+class MirrorIntake(Intake[None]):
+    """A control node's mirror frames (``{vehicle}/cn/mirror``, the
+    commander's whole vector for the standby, :mod:`zplatform.control.failover`),
+    for ``node``. Fresh: authentic, from the *other* control node
+    (``cn_commander``), with a term and a loop in range
+    (:data:`~zplatform.control.fencing.TERM_MAX`, :data:`~zplatform.control.fencing.LOOP_MAX`),
+    and newer in (``cn_term``, loop) order than every mirror admitted
+    before. So junk never reaches the mailbox, and a replayed mirror of
+    this run (an older loop, an older term), however authentic, neither
+    displaces a genuine one nor reaches a commander's check for a newer
+    term: it cannot make a commander stand down. (A mirror recorded in an
+    earlier run of the same keys is another matter: its term and loop may
+    be above this run's: the channel is bound to the run, zplatform.core.auth.Run,
+    and refuses it as stale.)
+    Its mailbox keeps :data:`MIRRORS` frames."""
+
+    def __init__(self, mission: Mission, node: str, channel: Channel | None) -> None:
+        lay = Layout.for_node(mission, "cn")
+        self._size = lay.size
+        self._term_at = lay.element("cn_term").offset
+        self._who_at = lay.element("cn_commander").offset
+        self._index = mission.control_nodes.index(node)
+        self._nodes = len(mission.control_nodes)
+        self.newest = (0, 0)
+        """``(term, loop)`` of the newest admitted mirror."""
+        super().__init__("mirror", max_frame_len(self._size, channel), channel, MIRRORS)
+
+    def _fresh(self, body: memoryview, handle: None) -> bool:
+        seq, _ = frame_stamp(body)
+        data = frame_data(body, self._size)
+        at = self._term_at
+        term = int.from_bytes(data[at : at + 4], "little")
+        who = data[self._who_at]
+        if not (1 <= term <= TERM_MAX and who < self._nodes and 1 <= seq <= LOOP_MAX):
+            raise CodecError(f"a mirror of term {term}, loop {seq}, from node {who}: out of range")
+        if who == self._index or (term, seq) <= self.newest:
+            return False  # its own, or not newer: a replay (or a duplicate)
+        self.newest = (term, seq)
+        return True
+
+
+class TelemetryIntake(_StampIntake[int]):
+    """The ground's telemetry (``{vehicle}/cn/telemetry``); the handle is the
+    receive time on the ground's clock. Fresh: newer, in (run, term, stamp)
+    order, than any snapshot admitted before, as
+    :class:`~zplatform.ground.logic.GroundLogic` orders them, and stamped no
+    further than ``max_age_ns`` (the freshness bound) ahead of its arrival.
+    The run (``cn_epoch``) and, in a redundant mission, the term
+    (``cn_term``) are read from the tagged snapshot; a new run or term is
+    taken only from a snapshot stamped within ``max_age_ns`` of its arrival
+    (either side), so a replay of an earlier run, whatever its term, never
+    displaces a new snapshot nor raises the newest term (after a takeover
+    the new commander's snapshots are fresh even when the old one, not yet
+    stood down, stamped a later loop: zplatform.control.failover). An older run is
+    taken again, as the logic follows it, only once the newest admitted
+    snapshot is older than ``max_age_ns``. The logic checks the rest (its
+    clock bound both ways, the jumps). Of the refused snapshots, those
+    stamped more than ``max_age_ns`` before they arrived are also counted in
+    :attr:`aged`, those stamped beyond it after in :attr:`ahead` (what the
+    logic calls ``stale`` and ``ahead``). ``capacity``: snapshots kept while
+    the consumer is busy."""
+
+    def __init__(
+        self,
+        mission: Mission,
+        channel: Channel | None,
+        capacity: int,
+        max_age_ns: int,
+        waker: Waker | None = None,
+    ) -> None:
+        lay = Layout.for_node(mission, "cn")
+        size = lay.size
+        self._max_age = max_age_ns
+        self._aged = 0
+        self.aged = 0
+        """Replays beyond the freshness bound among those counted by the last
+        :meth:`take_counts`."""
+        self._ahead_n = 0
+        self.ahead = 0
+        """Snapshots stamped beyond the freshness bound ahead of their arrival
+        among those counted by the last :meth:`take_counts`."""
+        self._size = size
+        self._epoch_at = lay.element("cn_epoch").offset
+        self._term_at = lay.element("cn_term").offset if mission.standby is not None else -1
+        self._newest_epoch = -1
+        self._newest_term = 0
+        super().__init__("telemetry", max_frame_len(size, channel), channel, capacity, waker=waker)
+
+    def _fresh(self, body: memoryview, handle: int) -> bool:
+        _, t_ns = frame_stamp(body)
+        age = handle - t_ns
+        if -age > self._max_age:
+            self._ahead_n += 1
+            return False
+        data = frame_data(body, self._size)
+        at = self._epoch_at
+        epoch = int.from_bytes(data[at : at + 8], "little")
+        at = self._term_at
+        term = int.from_bytes(data[at : at + 4], "little") if at >= 0 else 0
+        if epoch == self._newest_epoch and term == self._newest_term:
+            return super()._fresh(body, handle)
+        # A new run or a new term: only from a snapshot of now.
+        if age > self._max_age:
+            self._aged += 1
+            return False
+        if epoch == self._newest_epoch:
+            if term < self._newest_term:
+                return False  # a term that stood down (or a replay of it)
+        elif epoch < self._newest_epoch and handle - self.newest_t <= self._max_age:
+            return False  # an older run while this one speaks
+        self._newest_epoch = epoch
+        self._newest_term = term
+        self.newest_t = t_ns
+        return True
+
+    def _replayed(self, t_ns: int, handle: int) -> None:
+        if handle - t_ns > self._max_age:
+            self._aged += 1
+
+    def _took(self) -> None:
+        self.aged, self._aged = self._aged, 0
+        self.ahead, self._ahead_n = self._ahead_n, 0
+
+
+class RequestIntake(Intake[None]):
+    """The CN's command requests (``{vehicle}/gn/to_cn``). Fresh: for this
+    CN run and numbered above every number seen, by the rules of
+    :func:`zplatform.control.commands.request_refusal` (``last_seq()``: the command
+    handler's highest number; the intake's own highest admitted counts
+    too). A refused request is counted in ``stale``; the one with the
+    highest number is reported with its status (:attr:`reported`), as the
+    CN's ``cn_cmd_reject_seq`` shows it."""
+
+    def __init__(
+        self,
+        mission: Mission,
+        channel: Channel | None,
+        cn_epoch: int,
+        last_seq: Callable[[], int],
+        capacity: int,
+    ) -> None:
+        lay = Layout.for_node(mission, "cn")
+        self._size = lay.region("gn_to_cn").size
+        self._number = RequestNumber(lay)
+        self._epoch = cn_epoch
+        self._last_seq = last_seq
+        self._highest = 0
+        self._reported = (0, 0)
+        self.reported = (0, 0)
+        """``(status, seq)`` of the refused request with the highest number
+        among those counted by the last :meth:`take_counts` (``(0, 0)``: none)."""
+        super().__init__("command request", max_frame_len(self._size, channel), channel, capacity)
+
+    def _fresh(self, body: memoryview, handle: None) -> bool:
+        epoch, seq = self._number.read(frame_data(body, self._size))
+        status = request_refusal(epoch, seq, self._epoch, max(self._last_seq(), self._highest))
+        if status:
+            if self._reported[0] == 0 or seq >= self._reported[1]:
+                self._reported = (status, seq)
+            return False
+        self._highest = seq
+        return True
+
+    def follow(self, cn_epoch: int) -> None:
+        """Admit requests of CN run ``cn_epoch`` from now on (a control node
+        that resumed a run it had recorded)."""
+        with self._lock:
+            self._epoch = cn_epoch
+
+    def _took(self) -> None:
+        self.reported, self._reported = self._reported, (0, 0)
+
+
+class ReplyCheck(Intake[None]):
+    """Checks a sync reply that does not come from the zenoh session known
+    to answer for the DN (:class:`zplatform.runtime.sync.ControlSync`): a restarted
+    DN, or someone else. Fresh: for the loop the CN is asking
+    (:meth:`expect`), stamped within the clock bound plus a period of the
+    query. No mailbox: the caller hands a reply that passes to the loop."""
+
+    def __init__(self, mission: Mission, dn: str, channel: Channel | None) -> None:
+        size = Layout.for_node(mission, "cn").region(f"{dn}_to_cn").size
+        super().__init__(f"{dn}'s sync reply", max_frame_len(size, channel), channel)
+        self._window = round(mission.clock.offset_bound_ms * 1e6) + mission.period_ns
+        self.loop = -1
+        self.t_ns = 0
+
+    def expect(self, loop: int, t_ns: int) -> None:
+        """From now on, a reply is fresh only for ``loop``, asked at ``t_ns``
+        (the loop thread, before the queries go out)."""
+        self.loop, self.t_ns = loop, t_ns
+
+    def _fresh(self, body: memoryview, handle: None) -> bool:
+        seq, t_ns = frame_stamp(body)
+        return seq == self.loop and abs(t_ns - self.t_ns) <= self._window
+
+
+class CnRefusals:
+    """What a CN driver's intakes refused during one loop: an input of
+    :meth:`zplatform.control.loop.ControlLogic.finish`, recorded like every other.
+    Preallocated; the driver overwrites it each loop (:meth:`clear`).
+
+    Sync replies (every DN's): ``reply_size`` of a wrong size, ``reply_bad``
+    with a bad tag, ``reply_stale`` authentic but not for the loop asked (a
+    replay), ``reply_foreign`` from a replier that is no DN's. Command
+    requests: ``cmd_size``, ``cmd_bad``, ``cmd_stale`` (epoch or number), and
+    ``cmd_status``/``cmd_seq`` of the refusal to report (the stale one with
+    the highest number; ``REJECTED_AUTH``/0 when only bad tags came)."""
+
+    __slots__ = (
+        "cmd_bad",
+        "cmd_seq",
+        "cmd_size",
+        "cmd_stale",
+        "cmd_status",
+        "reply_bad",
+        "reply_foreign",
+        "reply_size",
+        "reply_stale",
+    )  # CN_REFUSALS: their recorded order
+
+    def __init__(self) -> None:
+        self.clear()
+
+    def clear(self) -> None:
+        self.reply_size = self.reply_bad = self.reply_stale = self.reply_foreign = 0
+        self.cmd_size = self.cmd_bad = self.cmd_stale = 0
+        self.cmd_status = self.cmd_seq = 0
+
+    @property
+    def total(self) -> int:
+        return (
+            self.reply_size
+            + self.reply_bad
+            + self.reply_stale
+            + self.reply_foreign
+            + self.cmd_size
+            + self.cmd_bad
+            + self.cmd_stale
+        )
+
+    def fields(self) -> tuple[int, ...]:
+        """Every count, in :data:`CN_REFUSALS` order (for a recorder)."""
+        return tuple(getattr(self, k) for k in CN_REFUSALS)
+
+    def set_fields(self, values: tuple[int, ...]) -> CnRefusals:
+        """The inverse of :meth:`fields`; returns self."""
+        for k, v in zip(CN_REFUSALS, values, strict=True):
+            setattr(self, k, v)
+        return self
+
+
+CN_REFUSALS = (
+    "reply_size",
+    "reply_bad",
+    "reply_stale",
+    "reply_foreign",
+    "cmd_size",
+    "cmd_bad",
+    "cmd_stale",
+    "cmd_status",
+    "cmd_seq",
+)
+""":class:`CnRefusals`' fields in their recorded order."""
+
+
+class RefusalLog:
+    """Turns refusal counts into events a flood cannot multiply.
+
+    :meth:`add` accumulates counts and returns them, to be evented, when
+    :data:`EVENT_PERIOD_NS` of loop time has passed since the last event
+    (or there was none yet): the first refusal after a quiet period is
+    evented at once, a flood costs one event a period with its counts, and
+    counts left at its end go out at most one period later (:meth:`add`
+    with zeros, every loop). Sans-IO and deterministic: loop time only."""
+
+    __slots__ = ("_last", "_n", "_period")
+
+    def __init__(self, fields: int, period_ns: int = EVENT_PERIOD_NS) -> None:
+        self._n = [0] * fields
+        self._last: int | None = None
+        self._period = period_ns
+
+    def add(self, t_ns: int, *counts: int) -> list[int] | None:
+        n = self._n
+        for i, c in enumerate(counts):
+            n[i] += c
+        if not any(n) or (self._last is not None and t_ns - self._last < self._period):
+            return None
+        self._last = t_ns
+        self._n = [0] * len(n)
+        return n

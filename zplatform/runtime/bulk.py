@@ -1,0 +1,481 @@
+"""Bulk channels: large fixed arrays between nodes, outside the sync loop.
+
+A bulk channel is a named, fixed-size array (``u8[4194304]``, ``f32[1024,1024]``)
+that one node (its *owner*) publishes every ``rate_divisor``-th loop on
+``{vehicle}/{owner}/bulk/{name}`` and its *readers* receive, never in the sync
+query (a camera frame must not delay the 2 ms exchange). Holds
+:class:`BulkWriter`, :class:`BulkReader`, :class:`NodeBulk` (a node's port for
+the loop) and :func:`pool_size`; the channel schema (:class:`BulkChannelConfig`)
+and its counter elements are :mod:`zplatform.config`'s, re-exported here.
+
+Contract: the owner's samples come from a zenoh shared-memory pool sized from
+the mission and pre-touched at start; :meth:`BulkWriter.publish` copies the
+array into a chunk once and, with the pool exhausted, retries for at most
+``alloc_timeout_ms``, then counts a drop and returns ``False`` (never raises,
+never falls back to a heap copy). A reader's zenoh callback only stores the
+sample in a one-slot mailbox (newest wins, ``missed`` counted); the loop
+thread's :meth:`BulkReader.poll` copies it into the preallocated array
+(``copy=False``: a read-only view). Each writer and reader belongs to one
+thread; :meth:`stats` is a frozen snapshot. Copies and costs: docs/architecture.md#zenoh.
+"""
+
+from __future__ import annotations
+
+import math
+import struct
+import threading
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import zenoh
+
+from ..errors import TransportError
+from ..security.keyspace import key_of
+from .transport import is_matching
+
+__all__ = [
+    "BULK_HEADER_BYTES",
+    "HEADER",
+    "MAX_CHANNEL_BYTES",
+    "BulkChannelConfig",
+    "BulkHeader",
+    "BulkReader",
+    "BulkStats",
+    "BulkWriter",
+    "NodeBulk",
+    "bulk_key",
+    "check_bulk_channels",
+    "counter_elements",
+    "counter_region",
+    "decode_sample",
+    "parse_bulk_type",
+    "pool_size",
+]
+
+from ..config import (
+    BULK_HEADER_BYTES,
+    MAX_CHANNEL_BYTES,
+    BulkChannelConfig,
+    check_bulk_channels,
+    counter_elements,
+    counter_region,
+    parse_bulk_type,
+)
+
+# Sample header, little-endian: layout_id u32, flags u32 (0), seq u64 (the
+# channel's own sample counter: gaps are missed samples), loop u64 (the
+# owner's loop number), t_ns i64 (the owner's clock when it published).
+# 32 bytes keeps the array 8-byte aligned inside the chunk.
+HEADER = struct.Struct("<IIQQq")
+assert HEADER.size == BULK_HEADER_BYTES
+
+
+def bulk_key(vehicle: str, channel: BulkChannelConfig) -> str:
+    """``{vehicle}/{owner}/bulk/{name}`` (docs/architecture.md#key-space), from
+    its row of :data:`zplatform.security.keyspace.KEYSPACE`."""
+    return key_of("bulk", vehicle, owner=channel.node, channel=channel.name)
+
+
+def pool_size(channels: Sequence[BulkChannelConfig], node: str) -> int:
+    """Bytes of ``node``'s shared-memory pool: every channel it owns times its
+    :attr:`~BulkChannelConfig.slot_count`, each sample rounded up to 4 KiB
+    pages (chunks are page-aligned in practice). 0 when it owns none."""
+    page = 4096
+    total = 0
+    for ch in channels:
+        if ch.node == node:
+            total += ch.slot_count * (-(-ch.sample_bytes // page) * page)
+    return total
+
+
+@dataclass(frozen=True, slots=True)
+class BulkStats:
+    """Counters of one channel end, a frozen snapshot."""
+
+    published: int = 0
+    dropped: int = 0
+    received_shm: int = 0
+    received_copied: int = 0
+    missed: int = 0
+    bad: int = 0
+
+
+@dataclass(frozen=True, slots=True)
+class BulkHeader:
+    layout_id: int
+    seq: int
+    loop: int
+    t_ns: int
+
+
+def decode_sample(
+    data: bytes, channel: BulkChannelConfig
+) -> tuple[BulkHeader, np.ndarray[Any, Any]]:
+    """Header and a read-only array view of one sample's bytes (no copy).
+
+    Raises TransportError if the length or layout does not match ``channel``.
+    For ``zplatform tap`` and tests; the loop uses :class:`BulkReader`.
+    """
+    if len(data) != channel.sample_bytes:
+        raise TransportError(
+            f"bulk {channel.name}: sample of {len(data)} bytes, expected {channel.sample_bytes}"
+        )
+    layout, _flags, seq, loop, t_ns = HEADER.unpack_from(data, 0)
+    if layout != channel.layout_id:
+        raise TransportError(
+            f"bulk {channel.name}: layout {layout:#x} is not {channel.layout_id:#x}"
+        )
+    arr = np.frombuffer(data, channel.dtype, math.prod(channel.shape), HEADER.size)
+    return BulkHeader(layout, seq, loop, t_ns), arr.reshape(channel.shape)
+
+
+class BulkWriter:
+    """The owner's end of one channel.
+
+    Write the frame into :attr:`array` (preallocated, the channel's dtype and
+    shape), then call :meth:`publish` on the loops where :meth:`due` is true.
+    """
+
+    def __init__(
+        self,
+        session: zenoh.Session,
+        key: str,
+        channel: BulkChannelConfig,
+        provider: Any | None,
+        *,
+        monotonic: Callable[[], int] = time.monotonic_ns,
+    ) -> None:
+        self.channel = channel
+        self.key = key
+        self._provider = provider
+        self._mono = monotonic
+        self._timeout_ns = round(channel.alloc_timeout_ms * 1e6)
+        self._size = channel.sample_bytes
+        self._layout = channel.layout_id
+        # ZShmMut[:] accepts only bytes/bytearray (not a memoryview or an
+        # ndarray), so the frame lives in a bytearray and the array views it.
+        self._buf = bytearray(self._size)
+        self.array: np.ndarray[Any, Any] = np.frombuffer(
+            self._buf, channel.dtype, math.prod(channel.shape), HEADER.size
+        ).reshape(channel.shape)
+        self._gc = zenoh.shm.GarbageCollect() if provider is not None else None
+        # DROP: a slow link or reader loses samples, it never blocks the loop.
+        # DATA_LOW: queued behind the sync frames when QoS is on.
+        self._pub = session.declare_publisher(
+            key,
+            congestion_control=zenoh.CongestionControl.DROP,
+            priority=zenoh.Priority.DATA_LOW,
+            express=True,
+        )
+        self._seq = 0
+        self.published = 0
+        self.dropped = 0
+
+    def due(self, loop: int) -> bool:
+        """Whether ``loop`` is one of this channel's publishing loops."""
+        return loop % self.channel.rate_divisor == self.channel.rate_phase
+
+    def publish(self, loop: int, t_ns: int) -> bool:
+        """Send :attr:`array` with ``loop`` and ``t_ns`` in its header.
+
+        With a provider: one copy into a shared-memory chunk. If none is free,
+        retry (garbage-collecting released chunks) for at most the channel's
+        ``alloc_timeout_ms``, then count a drop and return ``False``; never
+        raises for an exhausted pool. Without a provider (shared memory off):
+        one copy into a zenoh buffer. Returns ``True`` when the sample was put.
+        Raises TransportError only if zenoh refuses the put itself.
+        """
+        HEADER.pack_into(self._buf, 0, self._layout, 0, self._seq, loop, t_ns)
+        if self._provider is None:
+            payload: Any = self._buf
+        else:
+            chunk = self._alloc()
+            if chunk is None:
+                self.dropped += 1
+                return False
+            chunk[:] = self._buf
+            payload = chunk
+        try:
+            self._pub.put(payload)
+        except zenoh.ZError as exc:
+            raise TransportError(f"bulk put on {self.key} failed: {exc}") from exc
+        self._seq += 1
+        self.published += 1
+        return True
+
+    def _alloc(self) -> Any | None:
+        deadline = self._mono() + self._timeout_ns
+        while True:
+            try:
+                return self._provider.alloc(self._size, policy=self._gc)  # type: ignore[union-attr]
+            except zenoh.ZError:
+                pass  # "out of memory": every chunk is still held by a reader
+            if self._mono() >= deadline:
+                return None
+            time.sleep(50e-6)
+
+    def stats(self) -> BulkStats:
+        return BulkStats(published=self.published, dropped=self.dropped)
+
+    @property
+    def matching(self) -> bool:
+        """Whether any subscriber matches this channel's key now (zenoh's
+        routing state, :func:`zplatform.runtime.transport.is_matching`; never blocks)."""
+        return is_matching(self._pub)
+
+    def undeclare(self) -> None:
+        self._pub.undeclare()
+
+
+class BulkReader:
+    """A reader's end of one channel.
+
+    :meth:`poll` (non-blocking) or :meth:`wait` (blocking, bounded) takes the
+    newest sample, if any, into :attr:`array`. Older unread samples are
+    superseded, never queued: a slow reader never stalls the session.
+    """
+
+    def __init__(self, session: zenoh.Session, key: str, channel: BulkChannelConfig) -> None:
+        self.channel = channel
+        self.key = key
+        self.array: np.ndarray[Any, Any] = np.zeros(channel.shape, channel.dtype)
+        self.view: np.ndarray[Any, Any] | None = None
+        self.header: BulkHeader | None = None
+        self._size = channel.sample_bytes
+        self._layout = channel.layout_id
+        self._count = math.prod(channel.shape)
+        self._dtype = channel.dtype  # parsed once: poll must not re-parse the type
+        self._shape = channel.shape
+        self._latest: zenoh.Sample | None = None
+        self._event = threading.Event()
+        self._last_seq: int | None = None
+        self.received_shm = 0
+        self.received_copied = 0
+        self.missed = 0
+        self.bad = 0
+        self._sub = session.declare_subscriber(
+            key, zenoh.handlers.Callback(self._on_sample, indirect=False)
+        )
+
+    def _on_sample(self, sample: zenoh.Sample) -> None:
+        # zenoh's thread: hand off only (docs/architecture.md#zenoh). Replacing the slot
+        # releases the superseded sample (and its shared-memory chunk).
+        self._latest = sample
+        self._event.set()
+
+    def poll(self, *, copy: bool = True) -> bool:
+        """Take the newest sample if one arrived since the last call.
+
+        Returns ``True`` when :attr:`array` (``copy=True``) or :attr:`view`
+        (``copy=False``: read-only, valid until the next poll) holds a new,
+        checked sample; ``False`` when none arrived or it was refused
+        (counted in ``bad``). Never blocks; copies once out of zenoh and,
+        with ``copy=True``, once into :attr:`array`.
+        """
+        sample = self._latest
+        if sample is None:
+            return False
+        self._latest = None
+        self._event.clear()
+        payload = sample.payload
+        shm = payload.as_shm()
+        if shm is not None:
+            data = bytes(shm)  # faster than payload.to_bytes() for shm (bench.shm)
+            self.received_shm += 1
+        else:
+            data = payload.to_bytes()
+            self.received_copied += 1
+        del sample, payload, shm  # release the chunk now, not at the next poll
+        if len(data) != self._size:
+            self.bad += 1
+            return False
+        layout, _flags, seq, loop, t_ns = HEADER.unpack_from(data, 0)
+        if layout != self._layout:
+            self.bad += 1
+            return False
+        if self._last_seq is not None and seq > self._last_seq + 1:
+            self.missed += seq - self._last_seq - 1
+        self._last_seq = seq
+        self.header = BulkHeader(layout, seq, loop, t_ns)
+        src = np.frombuffer(data, self._dtype, self._count, HEADER.size)
+        if copy:
+            np.copyto(self.array.reshape(-1), src)
+            self.view = None
+        else:
+            self.view = src.reshape(self._shape)
+        return True
+
+    def wait(self, timeout_s: float, *, copy: bool = True) -> bool:
+        """Block up to ``timeout_s`` for a sample, then :meth:`poll`."""
+        if self._latest is None:
+            self._event.wait(timeout_s)
+        return self.poll(copy=copy)
+
+    def stats(self) -> BulkStats:
+        return BulkStats(
+            received_shm=self.received_shm,
+            received_copied=self.received_copied,
+            missed=self.missed,
+            bad=self.bad,
+        )
+
+    def undeclare(self) -> None:
+        self._sub.undeclare()
+        self._latest = None
+
+
+class NodeBulk:
+    """Every bulk channel end of one node, declared from the mission.
+
+    ``NodeBulk(session, vehicle, channels, node, shared_memory=...)`` creates
+    one shared-memory pool (:func:`pool_size`; pre-touched, so the first
+    frames pay no page faults) when the node owns a channel and shared memory
+    is on, a :class:`BulkWriter` per owned channel (:attr:`writers`) and a
+    :class:`BulkReader` per channel it reads (:attr:`readers`).
+
+    It is the node loop's :class:`~zplatform.control.loop.BulkPort`: the loop
+    (:class:`~zplatform.control.loop.ControlLogic`, :class:`~zplatform.control.loop.DeviceLogic`)
+    calls :meth:`receive` before its logic, :meth:`write_counters`, and
+    :meth:`publish` after its logic; the components fill and read
+    :attr:`arrays`. By hand, per loop::
+
+        bulk.receive(loop)             # readers: the newest samples into their arrays
+        ...the logic reads bulk.arrays[name] and fills the owned ones...
+        bulk.publish(loop, t_ns)       # writers due on this loop
+        bulk.write_counters(dv)        # or bulk.counters() into telemetry
+
+    Blocks at construction for the pool's first touch (one write of every
+    chunk: proportional to the pool). Raises TransportError if the pool
+    cannot be created.
+    """
+
+    def __init__(
+        self,
+        session: zenoh.Session,
+        vehicle: str,
+        channels: Sequence[BulkChannelConfig],
+        node: str,
+        *,
+        shared_memory: bool = True,
+        prefault: bool = True,
+    ) -> None:
+        self.node = node
+        self.pool_bytes = pool_size(channels, node) if shared_memory else 0
+        self.provider: Any | None = None
+        if self.pool_bytes:
+            try:
+                self.provider = zenoh.shm.ShmProvider.default_backend(self.pool_bytes)
+            except Exception as exc:  # ZError: /dev/shm too small, no permission
+                raise TransportError(
+                    f"cannot create a {self.pool_bytes}-byte shared-memory pool for {node}: {exc}"
+                ) from exc
+            if prefault:
+                self._prefault(channels)
+        self.writers: dict[str, BulkWriter] = {}
+        self.readers: dict[str, BulkReader] = {}
+        for ch in channels:
+            key = bulk_key(vehicle, ch)
+            if ch.node == node:
+                self.writers[ch.name] = BulkWriter(session, key, ch, self.provider)
+            elif node in ch.readers:
+                self.readers[ch.name] = BulkReader(session, key, ch)
+        self._handles: list[tuple[Any, Callable[[], int]]] = []
+        self.arrays: dict[str, Any] = {n: w.array for n, w in self.writers.items()}
+        """Every channel's array by name: the owned ones (filled by the node's
+        components, published from) and the read ones (the newest sample)."""
+        self.arrays.update({n: r.array for n, r in self.readers.items()})
+        self._writers = tuple(self.writers.values())
+        self._readers = tuple(self.readers.values())
+
+    def receive(self, loop: int) -> None:
+        """Take the newest sample of every read channel into its array
+        (:meth:`BulkReader.poll`); never blocks."""
+        for r in self._readers:
+            r.poll()
+
+    def publish(self, loop: int, t_ns: int) -> None:
+        """Publish every owned channel due on ``loop`` (:meth:`BulkWriter.publish`:
+        a full pool counts a drop after ``alloc_timeout_ms``)."""
+        for w in self._writers:
+            if w.due(loop):
+                w.publish(loop, t_ns)
+
+    def _prefault(self, channels: Sequence[BulkChannelConfig]) -> None:
+        # Allocate every chunk once and write it whole, so the kernel maps the
+        # pool's pages now; then give them back to the pool.
+        assert self.provider is not None
+        held = []
+        for ch in channels:
+            if ch.node != self.node:
+                continue
+            zeros = bytes(ch.sample_bytes)
+            for _ in range(ch.slot_count):
+                try:
+                    chunk = self.provider.alloc(ch.sample_bytes)
+                except zenoh.ZError:
+                    break
+                chunk[:] = zeros
+                held.append(chunk)
+        del held
+        self.provider.garbage_collect()
+
+    def counters(self) -> dict[str, int]:
+        """Current counters under the names of :func:`counter_elements`."""
+        out: dict[str, int] = {}
+        for name, w in self.writers.items():
+            out[f"bulk_{name}_published"] = w.published
+            out[f"bulk_{name}_dropped"] = w.dropped
+        for name, r in self.readers.items():
+            out[f"bulk_{name}_shm"] = r.received_shm
+            out[f"bulk_{name}_copied"] = r.received_copied
+            out[f"bulk_{name}_missed"] = r.missed
+            out[f"bulk_{name}_bad"] = r.bad
+        return out
+
+    def write_counters(self, dv: Any) -> None:
+        """Write :meth:`counters` into Data Vector ``dv`` (u32, wrapping);
+        elements the layout lacks are skipped. Handles are built once."""
+        if not self._handles:
+            for name in self.counters():
+                try:
+                    self._handles.append((dv.handle(name), _getter(self, name)))
+                except Exception:  # the runtime has not added this element
+                    continue
+        for h, get in self._handles:
+            h.set(get() & 0xFFFF_FFFF)
+
+    def close(self) -> None:
+        for w in self.writers.values():
+            w.undeclare()
+        for r in self.readers.values():
+            r.undeclare()
+
+
+def _getter(bulk: NodeBulk, element: str) -> Callable[[], int]:
+    _, rest = element.split("_", 1)
+    name, field = rest.rsplit("_", 1)
+    attr = {"shm": "received_shm", "copied": "received_copied"}.get(field, field)
+    end: Any = bulk.writers[name] if name in bulk.writers else bulk.readers[name]
+    return lambda: int(getattr(end, attr))
+
+
+def open_bulk(session: zenoh.Session, mission: Any, node: str, logic: Any) -> NodeBulk | None:
+    """The node's bulk channel ends (None when it has none), attached to the
+    node's loop (``logic.attach_bulk``), which receives, publishes and counts
+    them in its protocol order and hands :attr:`NodeBulk.arrays` to its
+    components. Raises TransportError as :class:`NodeBulk`."""
+    mine = [ch for ch in mission.bulk if ch.node == node or node in ch.readers]
+    if not mine:
+        return None
+    bulk = NodeBulk(
+        session,
+        mission.vehicle,
+        mission.bulk,
+        node,
+        shared_memory=mission.transport.shared_memory,
+    )
+    logic.attach_bulk(bulk)
+    return bulk

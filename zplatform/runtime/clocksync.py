@@ -1,0 +1,744 @@
+"""Clock synchronisation between each DN and the CN (thesis 4.9), NTP-style.
+
+The CN serves ``{vehicle}/cn/clock`` (:class:`ClockServer` around the
+sans-IO :class:`ClockResponder`; ``t2`` read in zenoh's callback, the reply
+sent from the server thread). A DN's sans-IO end is :class:`ClockLink`: per
+exchange a tagged query with a fresh nonce, asked of every queryable and
+DROPped rather than blocked; the first reply whose tag checks and whose
+nonce is the exchange's is taken, any other refused and counted, and an
+exchange without one is a counted timeout. It never waits past its timeout.
+
+The exchange is also how a node learns the control node's *run*
+(:class:`zplatform.core.auth.Run`) from a frame that cannot be a replay: the
+reply names the run, is tagged under its key and echoes the asker's nonce.
+A query names the asker's run (the server refuses another run's, unanswered)
+or none (a *hello*, answered statelessly like a SYN cookie). The fastest
+``keep_fraction`` of many exchanges give the offset (:func:`estimator_for`:
+``node_clock`` or zenoh's timestamps, the default). Formulas and measured
+accuracy: docs/architecture.md#the-clock-exchange; wire: codecs/FORMAT.md §6.3.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import logging
+import queue
+import secrets
+import struct
+import threading
+import time
+from collections import deque
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Protocol
+
+import zenoh
+
+from ..config import ClockConfig, Mission
+from ..control.handoff import Mailbox
+from ..core.auth import (
+    NO_RUN,
+    TAG_LEN,
+    AuthError,
+    Channel,
+    KeySet,
+    Run,
+    RunError,
+    channel,
+    new_run_epoch,
+)
+from ..core.health import Heartbeat
+from ..errors import ClockSyncError
+from . import queries
+from .queries import ReplyCap, ask
+from .transport import KeySpace
+
+__all__ = [
+    "ESTIMATORS",
+    "ClockEstimate",
+    "ClockEstimator",
+    "ClockLink",
+    "ClockResponder",
+    "ClockServer",
+    "Estimator",
+    "ZenohTimestampsError",
+    "estimate_offset",
+    "estimate_offset_zenoh",
+    "estimator_for",
+]
+
+log = logging.getLogger("zplatform.clocksync")
+
+# codecs/FORMAT.md §6.3: magic, version, the DN's index, the nonce, then times.
+_QUERY = struct.Struct("<2sBB16sq")
+PEER_INDEX = 0xFE
+"""The index a control node asks the commander's clock with (the standby)."""
+_REPLY = struct.Struct("<2sBB16sqqq")
+_Q_MAGIC, _R_MAGIC, _VERSION = b"ZQ", b"ZR", 1
+NONCE_LEN = 16
+QUERY_SPAN_NS = 86_400 * 10**9
+"""How far apart a clock query's stamp and the CN's clock, or a reply's
+times and its query's, may be: a day. A host clock that is merely not
+synchronised (a zone set wrong is hours off) is nearer; a stamp beyond is a
+key holder's or a broken clock's, refused (:class:`ClockResponder`,
+:class:`ClockLink`)."""
+ANSWERED = 256
+"""Nonces of the queries it answered a :class:`ClockResponder` keeps per
+asker, to refuse a replayed query unanswered (a start-up series is 200)."""
+
+
+@dataclass(frozen=True, slots=True)
+class ClockEstimate:
+    """Result of :func:`estimate_offset` (ns; ``offset_ns`` = CN - DN).
+
+    ``estimator``: which estimator produced it (``node_clock`` or ``zenoh_ts``).
+    """
+
+    offset_ns: int
+    delay_ns: int
+    exchanges: int
+    kept: int
+    spread_ns: int
+    estimator: str = "node_clock"
+
+
+class ZenohTimestampsError(ClockSyncError):
+    """The CN answered, but zenoh's timestamps cannot give the offset.
+
+    Raised by :func:`estimate_offset_zenoh` where :func:`estimate_offset`
+    would have succeeded: the replies lack zenoh's four timestamps (the CN's
+    zenoh does not stamp), or zenoh's clock and the node clock disagree over
+    the exchanges (a host clock stepped). :class:`ClockEstimator` falls back
+    to :func:`estimate_offset` on it.
+    """
+
+
+class ClockLink:
+    """A DN's end of the clock exchange (module doc), sans-IO.
+
+    :meth:`query` frames one query with a fresh nonce; :meth:`check` takes
+    one reply and returns the CN's times if it is the answer to that query.
+    ``keys``: the DN's keys (None: the mission does not authenticate, and
+    the nonce alone binds a reply to its query). Counts what it refuses:
+    :attr:`refused_bad` (a bad tag, or not a reply: a peer without the key)
+    and :attr:`refused_other` (authentic, but for another exchange: a
+    replay, or a reply late beyond its exchange), and the exchanges that
+    got no valid answer in time, :attr:`timeouts` (a silent, slow or
+    unreachable clock; a flood from peers without the key). Not thread-safe: one
+    estimating thread at a time; the counters may be read from any thread.
+    """
+
+    def __init__(
+        self, mission: Mission, dn: str, keys: KeySet | None, run: Run | None = None
+    ) -> None:
+        self.dn = dn
+        # run: where the run learned goes (the node's, which its channels are
+        # bound to); _asking: the run the next query names (module doc).
+        self.run = run if run is not None else Run()
+        self._asking = Run()
+        self._answered = False
+        if dn in mission.control_nodes:
+            # A control node that does not command (the standby) sets its clock
+            # by the commander's, over the link between the two.
+            self.index = PEER_INDEX
+            self._seal = channel(keys, "clock_peer_to_cn", self._asking)
+            self._open = channel(keys, "clock_cn_to_peer", self.run)
+        else:
+            self.index = mission.device_nodes.index(dn)
+            self._seal = channel(keys, f"clock_{dn}_to_cn", self._asking)
+            self._open = channel(keys, f"clock_cn_to_{dn}", self.run)
+        self.refused_bad = 0
+        self.refused_other = 0
+        self.timeouts = 0
+        self._sent = (b"", 0)  # the last query's nonce and stamp
+
+    def query(self, t1: int) -> tuple[bytes, bytes]:
+        """``(payload, nonce)`` of a new query stamped ``t1`` (this node's clock),
+        naming the run this node knows if the last query was answered, else
+        none (a hello, module doc)."""
+        nonce = secrets.token_bytes(NONCE_LEN)
+        self._sent = (nonce, t1)
+        self._asking.set(self.run.epoch if self._answered else NO_RUN)
+        self._answered = False
+        body = _QUERY.pack(_Q_MAGIC, _VERSION, self.index, nonce, t1)
+        seal = self._seal
+        return (bytes(seal.seal(body)) if seal is not None else body), nonce
+
+    def check(self, raw: bytes, nonce: bytes) -> tuple[int, int, int] | None:
+        """``(t1, t2, t3)`` of the CN's reply to the query with ``nonce``;
+        None (counted) for anything else. The times are checked too: ``t1``
+        must be the query's own (for the last query made), the CN's ``t2``
+        no later than its ``t3``, both within :data:`QUERY_SPAN_NS` of
+        ``t1``; an authentic reply with other times (a key holder's, a CN
+        clock gone wrong) is refused in :attr:`refused_other`. The reply
+        may name any run (its tag is checked under that run's key): taken, it
+        is this node's run from then on (:attr:`run`, module doc)."""
+        try:
+            body = self._open.open(raw, any_run=True) if self._open is not None else memoryview(raw)
+            if len(body) != _REPLY.size:
+                raise AuthError(f"{len(body)} bytes, not a clock reply")
+        except AuthError:
+            self.refused_bad += 1
+            return None
+        magic, version, index, echo, t1, t2, t3 = _REPLY.unpack(body)
+        if magic != _R_MAGIC or version != _VERSION or index != self.index:
+            self.refused_bad += 1
+            return None
+        if echo != nonce or not _believable(t1, t2, t3, self._sent, nonce):
+            self.refused_other += 1
+            return None
+        if self._open is not None and echo == self._sent[0]:
+            # Authentic and the answer to this node's latest, fresh, query:
+            # the run it names is the control node's now.
+            self.run.set(Channel.run_of(raw))
+            self._answered = True
+        return t1, t2, t3
+
+    @property
+    def refused(self) -> int:
+        return self.refused_bad + self.refused_other
+
+    def forget(self) -> None:
+        """Make the next query a hello (module doc): the run may have changed."""
+        self._answered = False
+
+
+def _believable(t1: int, t2: int, t3: int, sent: tuple[bytes, int], nonce: bytes) -> bool:
+    """Whether a reply's times can be the CN's answer to the query sent."""
+    if sent[0] == nonce and t1 != sent[1]:
+        return False
+    return t2 <= t3 and abs(t2 - t1) <= QUERY_SPAN_NS and t3 - t2 <= QUERY_SPAN_NS
+
+
+class ClockResponder:
+    """The CN's end of the clock exchange (module doc), sans-IO: answers a
+    DN's query if its tag checks with that DN's link key, it is stamped
+    within :data:`QUERY_SPAN_NS` of the CN's clock, and its nonce is not
+    one of the last :data:`ANSWERED` the asker's queries carried (a replay
+    is refused unanswered; the asker's nonce, not its clock, orders its
+    queries: a DN's clock steps when corrected). ``keys``: the CN's keys
+    (None: the mission does not authenticate, and only the stamp is
+    checked). ``run``: the control node's run (its ``cn_epoch``; None: a
+    new run of its own): a query must name it or none (a hello, module doc);
+    one naming another run is refused before its MAC. The reply names it.
+    Not thread-safe: one serving thread."""
+
+    def __init__(self, mission: Mission, keys: KeySet | None, run: Run | None = None) -> None:
+        dns = mission.device_nodes
+        self.run = run if run is not None else Run(new_run_epoch(time.time_ns()))
+        r = self.run
+        # Queries are opened unbound (a hello names no run; the run is checked
+        # first, in answer), replies sealed in the run.
+        self._open: list[Channel | None] = [channel(keys, f"clock_{dn}_to_cn") for dn in dns]
+        self._seal: list[Channel | None] = [channel(keys, f"clock_cn_to_{dn}", r) for dn in dns]
+        # The other control node of a redundant mission asks as PEER_INDEX.
+        self._peer = (
+            (channel(keys, "clock_peer_to_cn"), channel(keys, "clock_cn_to_peer", r))
+            if mission.standby is not None
+            else None
+        )
+        self._auth = keys is not None
+        # Per asker (a DN's index, or the peer last): the nonces answered,
+        # oldest first, and the same as a set.
+        self._answered: list[deque[bytes]] = [deque() for _ in range(len(dns) + 1)]
+        self._seen: list[set[bytes]] = [set() for _ in range(len(dns) + 1)]
+        self.refused = 0
+        """Queries refused (malformed, an unknown DN, a bad tag, stamped out
+        of bounds, replayed)."""
+        self.reason = ""
+        """Why the last query was refused."""
+
+    def answer(self, raw: bytes, t2: int, t3: int) -> bytes | None:
+        """The reply to query ``raw`` received at ``t2``, sent at ``t3``; None
+        (counted, :attr:`reason` set) for a query to refuse."""
+        want = _QUERY.size + (TAG_LEN if self._auth else 0)
+        try:
+            if len(raw) != want or raw[:3] != _Q_MAGIC + bytes((_VERSION,)):
+                raise AuthError(f"{len(raw)} bytes: not a clock query of version {_VERSION}")
+            index = raw[3]
+            if index == PEER_INDEX and self._peer is not None:
+                ch, seal = self._peer
+            elif index < len(self._open):
+                ch, seal = self._open[index], self._seal[index]
+            else:
+                raise AuthError(f"no device node number {index}")
+            if ch is not None:
+                asked = Channel.run_of(raw)
+                if asked not in (NO_RUN, self.run.epoch):
+                    raise RunError(
+                        f"a query of run {asked}, not of this run ({self.run.epoch}): "
+                        "an earlier run's, replayed"
+                    )
+            body = ch.open(raw) if ch is not None else memoryview(raw)
+        except AuthError as exc:
+            self.refused += 1
+            self.reason = str(exc)
+            return None
+        _, _, _, nonce, t1 = _QUERY.unpack(body)
+        if abs(t1 - t2) > QUERY_SPAN_NS:
+            self.refused += 1
+            self.reason = f"a query stamped {(t1 - t2) / 1e9:+.0f} s from this clock"
+            return None
+        if self._auth:
+            asker = -1 if index == PEER_INDEX else index
+            seen = self._seen[asker]
+            if nonce in seen:
+                self.refused += 1
+                self.reason = "a query answered before (a replay)"
+                return None
+            answered = self._answered[asker]
+            if len(answered) == ANSWERED:
+                seen.discard(answered.popleft())
+            answered.append(nonce)
+            seen.add(nonce)
+        reply = _REPLY.pack(_R_MAGIC, _VERSION, index, nonce, t1, t2, t3)
+        return bytes(seal.seal(reply)) if seal is not None else reply
+
+
+CLOCK_BACKLOG = 64
+"""Clock queries the CN's clock server holds while its thread is busy: the
+askers (every DN, the standby) ask one at a time, so a full backlog is a
+flood; a query past it is dropped unanswered and counted."""
+
+
+class ClockServer:
+    """The CN's clock queryable. Runs its own reply thread; ``close()`` stops it.
+
+    Each query is answered by a :class:`ClockResponder` (``mission``,
+    ``auth``: the CN's keys, ``run``: its run); a refused one gets an error reply, is counted
+    (:attr:`refused`) and logged (the first, then every 1000th). At most
+    :data:`CLOCK_BACKLOG` queries wait for the thread: zenoh's callback
+    drops one past that unanswered (counted in :attr:`dropped` and in
+    :attr:`refused`), so a flood holds bounded memory. The thread
+    checks in through :attr:`heartbeat` (``clock``, :mod:`zplatform.core.health`):
+    idle while it waits for a query, beating while it serves one."""
+
+    def __init__(
+        self,
+        session: zenoh.Session,
+        keys: KeySpace,
+        now_ns: Callable[[], int],
+        mission: Mission,
+        auth: KeySet | None,
+        *,
+        run: Run | None = None,
+    ) -> None:
+        self._now = now_ns
+        self.heartbeat = Heartbeat("clock")
+        self._q: queue.Queue[tuple[zenoh.Query, int] | None] = queue.Queue(CLOCK_BACKLOG)
+        self.dropped = 0
+        """Queries dropped unanswered by a full backlog (zenoh's callback writes)."""
+        self._key = keys.clock
+        self._responder = ClockResponder(mission, auth, run)
+        self.served = 0
+        self._queryable = session.declare_queryable(
+            self._key, zenoh.handlers.Callback(self._on_query, indirect=False)
+        )
+        self._thread = threading.Thread(target=self._serve, name="clock-server", daemon=True)
+        self._thread.start()
+
+    @property
+    def refused(self) -> int:
+        return self._responder.refused + self.dropped
+
+    def _on_query(self, query: zenoh.Query) -> None:
+        try:
+            self._q.put_nowait((query, self._now()))  # t2, then hand off
+        except queue.Full:  # a flood: the query goes, unanswered (zenoh finalises it)
+            self.dropped += 1  # this callback is the only writer
+            query.drop()
+
+    def _serve(self) -> None:
+        hb = self.heartbeat
+        responder = self._responder
+        while True:
+            hb.idle()
+            item = self._q.get()
+            if item is None:
+                return
+            hb.beat()
+            query, t2 = item
+            with query:
+                p = query.payload
+                raw = p.to_bytes() if p is not None else b""
+                reply = responder.answer(raw, t2, self._now())
+                if reply is None:
+                    query.reply_err(b"clock query refused")
+                    if responder.refused % 1000 == 1:
+                        log.warning(
+                            "clock query refused (%d so far): %s",
+                            responder.refused,
+                            responder.reason,
+                        )
+                    continue
+                # DROP: a reply takes its query's QoS (zenoh 1.x ignores a
+                # reply's own), and the DNs ask DROP (zplatform.runtime.queries), so a
+                # DN's stalled link never holds the clock server.
+                query.reply(self._key, reply)
+            self.served += 1
+
+    def close(self) -> None:
+        self._queryable.undeclare()
+        while True:  # room for the stop mark (what still waits is let go)
+            try:
+                self._q.put_nowait(None)
+                break
+            except queue.Full:
+                with contextlib.suppress(queue.Empty):
+                    self._q.get_nowait()
+        self._thread.join(timeout=2)
+
+
+@dataclass(frozen=True, slots=True)
+class Exchange:
+    """The times of one clock exchange (ns): ``t1`` query sent, ``t2`` / ``t3``
+    the CN's receive and reply times, ``t4_cb`` read in zenoh's reply
+    callback, ``t4`` read by the waiting thread after the hand-off;
+    ``stamps``: zenoh's four time points when the query was instrumented."""
+
+    t1: int
+    t2: int
+    t3: int
+    t4_cb: int
+    t4: int
+    stamps: list[int]
+
+
+CLOCK_REPLIERS_MAX = 8
+"""Replies an exchange reads at most (one per replier,
+:class:`~zplatform.runtime.queries.ReplyCap`):
+a peer flooding replies cannot keep the asking thread reading."""
+
+
+def _exchange(
+    session: zenoh.Session,
+    keys: KeySpace,
+    link: ClockLink,
+    now_ns: Callable[[], int],
+    timeout_s: float,
+    instrumentation: zenoh.TimestampInstrumentation | None = None,
+) -> Exchange | None:
+    """One exchange: the times of the first reply that is this query's
+    answer (:meth:`ClockLink.check`), or None (counted in
+    :attr:`ClockLink.timeouts`) when none came within ``timeout_s``. Every
+    queryable on the clock key is asked (:func:`~zplatform.runtime.queries.ask`: a
+    rogue cannot hide the CN, a congested link drops the query rather than
+    block); each replier's first reply is checked, in arrival order, at most
+    :data:`CLOCK_REPLIERS_MAX` of them, and the exchange ends at the first
+    valid one. Never waits past ``timeout_s``, whatever the peers do."""
+    # (payload, t4 read in the callback, zenoh's stamps); None: the query ended.
+    replies: Mailbox[tuple[bytes, int, list[int]] | None] = Mailbox(CLOCK_REPLIERS_MAX + 1)
+    cap = ReplyCap(1)  # the CN answers a query once: more from one replier is a flood
+
+    def on_reply(r: zenoh.Reply) -> None:
+        t4 = now_ns()  # in zenoh's thread, before any hand-off
+        ok = r.ok
+        if ok is None or not cap.admit(r):
+            return
+        stack = getattr(ok, "timestamp_stack", None)
+        stamps: list[int] = []
+        if stack is not None:
+            for rec in stack.records[:4]:
+                ts = rec.timestamp()
+                if isinstance(ts, bytes | bytearray):
+                    continue
+                stamps.append(ts.get_time_as_ntp64().as_nanos())
+        replies.put((ok.payload.to_bytes(), t4, stamps))
+
+    t1 = now_ns()
+    payload, nonce = link.query(t1)
+    ask(
+        session,
+        keys.clock,
+        queries.replies(on_reply, lambda: replies.put(None)),
+        payload=payload,
+        timeout_s=timeout_s,
+        instrumentation=instrumentation,
+    )
+    deadline = time.monotonic() + timeout_s
+    for _ in range(CLOCK_REPLIERS_MAX):
+        left = deadline - time.monotonic()
+        item = replies.get(left) if left > 0 else None
+        if item is None:  # the deadline passed, or the query ended unanswered
+            break
+        t4 = now_ns()
+        raw, t4_cb, stamps = item
+        got = link.check(raw, nonce)
+        if got is not None:  # the CN's answer to this very query
+            _, t2, t3 = got
+            return Exchange(t1, t2, t3, t4_cb, t4, stamps)
+    link.timeouts += 1
+    return None
+
+
+def estimate_offset(
+    session: zenoh.Session,
+    keys: KeySpace,
+    now_ns: Callable[[], int],
+    link: ClockLink,
+    *,
+    exchanges: int = 200,
+    keep_fraction: float = 0.1,
+    timeout_s: float = 1.0,
+) -> ClockEstimate:
+    """Measure the CN-minus-local clock offset over ``exchanges`` round trips.
+
+    Each exchange is :class:`ClockLink`'s (authenticated, nonce-bound);
+    replies it refuses and exchanges left unanswered are counted there.
+    Blocks for the exchanges (about 0.3 ms each on loopback), each at most
+    ``timeout_s`` whatever the peers do (:func:`_exchange`), and stops early
+    once half of them can no longer get a valid reply. Raises
+    ClockSyncError when fewer than half the exchanges get a valid reply
+    (the CN's clock server is unreachable, or only peers without the key
+    answer).
+    """
+    samples: list[tuple[int, int]] = []
+    missed = 0
+    for _ in range(exchanges):
+        x = _exchange(session, keys, link, now_ns, timeout_s)
+        if x is None:
+            missed += 1
+            if missed > exchanges - exchanges // 2:
+                break  # half can no longer answer: stop asking a silent clock
+            continue
+        t1, t2, t3, t4 = x.t1, x.t2, x.t3, x.t4
+        samples.append((((t2 - t1) + (t3 - t4)) // 2, (t4 - t1) - (t3 - t2)))
+    if len(samples) < exchanges // 2:
+        raise ClockSyncError(
+            f"clock sync got {len(samples)} of {exchanges} valid replies from {keys.clock}"
+            + _refusals(link)
+        )
+    return _fastest(samples, keep_fraction)
+
+
+def _refusals(link: ClockLink) -> str:
+    if not link.refused:
+        return ""
+    return (
+        f" ({link.refused_bad} replies refused for a bad tag, {link.refused_other} for "
+        "another exchange: a peer without the key answers?)"
+    )
+
+
+def _fastest(samples: list[tuple[int, int]], keep_fraction: float) -> ClockEstimate:
+    """The estimate from ``(offset, delay)`` samples: the median offset of the
+    fastest ``keep_fraction`` (at least 3), which the network delayed least."""
+    samples.sort(key=lambda s: s[1])
+    kept = samples[: max(3, int(len(samples) * keep_fraction))]
+    offsets = sorted(o for o, _ in kept)
+    return ClockEstimate(
+        offset_ns=offsets[len(offsets) // 2],
+        delay_ns=kept[len(kept) // 2][1],
+        exchanges=len(samples),
+        kept=len(kept),
+        spread_ns=offsets[-1] - offsets[0],
+    )
+
+
+def estimate_offset_zenoh(
+    session: zenoh.Session,
+    keys: KeySpace,
+    now_ns: Callable[[], int],
+    link: ClockLink,
+    *,
+    exchanges: int = 200,
+    keep_fraction: float = 0.1,
+    timeout_s: float = 1.0,
+    max_inversion_ns: int = 100_000,
+) -> ClockEstimate:
+    """The same estimate as :func:`estimate_offset`, from zenoh's own four time points.
+
+    Each exchange is a query to the CN's :class:`ClockServer` with zenoh 1.10's
+    ``TimestampInstrumentation`` (send and receive records, docs/architecture.md#zenoh): the
+    reply carries ``t1z..t4z``, stamped by zenoh on the host clocks of both
+    sides at the moments the query and the reply cross zenoh. Per exchange::
+
+        offset_z = ((t2z - t1z) + (t3z - t4z)) / 2     # zenoh clocks, CN - DN
+        delay_z  = (t4z - t1z) - (t3z - t2z)
+
+    the fastest ``keep_fraction`` by ``delay_z`` are kept and their median
+    ``offset_z`` is the zenoh-clock offset. It is mapped into node time with
+    each side's node-minus-zenoh clock difference, bracketed over all the
+    exchanges by the node-clock reads next to zenoh's stamps (a read *before*
+    a stamp gives a lower bound, one *after* it an upper bound)::
+
+        map_cn in [max(t3 - t3z), min(t2 - t2z)]   # t3 read before reply, t2 after receive
+        map_dn in [max(t1 - t1z), min(t4 - t4z)]   # t1 read before get, t4 after receive
+        offset = offset_z + mid(map_cn) - mid(map_dn)   # CN node - DN node
+
+    (``t1..t4`` are the node-clock times of :func:`estimate_offset`'s
+    exchange, from the unchanged :class:`ClockServer`.) Averaging each
+    exchange's two mapping terms instead would cancel zenoh's stamps and
+    give back :func:`estimate_offset` exactly; the brackets keep only the
+    tightest reads, so Python's callback and thread hand-off latency drops
+    out of both the network part and the mapping. ``spread_ns`` is the sum
+    of the two bracket widths plus the kept offsets' spread. It assumes each
+    side's node clock and zenoh clock run at the same rate during the
+    exchanges (a 100 ppm drift over 200 exchanges moves the DN's mapping by
+    about 6 us).
+
+    Blocks for the exchanges, each at most ``timeout_s``, and stops early
+    once half of them can no longer get a valid reply (as
+    :func:`estimate_offset`). Raises ClockSyncError when fewer than half of
+    them get a valid reply (the CN's clock server is unreachable), and its
+    subclass :class:`ZenohTimestampsError` where :func:`estimate_offset`
+    would have succeeded: when at least half got a valid reply but fewer
+    than half of the replies carried zenoh's four timestamps, or when a
+    bracket is inverted by more than ``max_inversion_ns`` (its lower bound
+    above its upper bound: zenoh's clock, the host's real-time clock, was
+    stepped during the exchanges, and the mapping is unknown; a small
+    inversion is what a rate difference over the exchanges gives).
+    """
+    ti = zenoh.TimestampInstrumentationBuilder().set_send(True).set_receive(True).build()
+    samples: list[tuple[int, int]] = []
+    answered = 0  # valid replies to their own exchange, stamped or not
+    cn_lo, cn_hi, dn_lo, dn_hi = -(1 << 63), 1 << 63, -(1 << 63), 1 << 63
+    missed = 0
+    for _ in range(exchanges):
+        x = _exchange(session, keys, link, now_ns, timeout_s, ti)
+        if x is None:
+            missed += 1
+            if missed > exchanges - exchanges // 2:
+                break  # half can no longer answer: stop asking a silent clock
+            continue
+        answered += 1
+        if len(x.stamps) != 4:
+            continue
+        t1, t2, t3, t4 = x.t1, x.t2, x.t3, x.t4_cb
+        t1z, t2z, t3z, t4z = x.stamps
+        cn_lo, cn_hi = max(cn_lo, t3 - t3z), min(cn_hi, t2 - t2z)
+        dn_lo, dn_hi = max(dn_lo, t1 - t1z), min(dn_hi, t4 - t4z)
+        samples.append((((t2z - t1z) + (t3z - t4z)) // 2, (t4z - t1z) - (t3z - t2z)))
+    if len(samples) < exchanges // 2:
+        if answered >= exchanges // 2:
+            raise ZenohTimestampsError(
+                f"zenoh-timestamp clock sync: {keys.clock} answered {answered} of "
+                f"{exchanges} exchanges, but only {len(samples)} replies carried zenoh's "
+                "four timestamps (does the CN's zenoh stamp instrumented queries?)"
+            )
+        raise ClockSyncError(
+            f"zenoh-timestamp clock sync got {len(samples)} of {exchanges} "
+            f"instrumented replies from {keys.clock}" + _refusals(link)
+        )
+    inversion = max(cn_lo - cn_hi, dn_lo - dn_hi)
+    if inversion > max_inversion_ns:
+        side = "CN" if cn_lo - cn_hi >= dn_lo - dn_hi else "DN"
+        raise ZenohTimestampsError(
+            f"zenoh-timestamp clock sync: the {side}'s zenoh clock and node clock "
+            f"disagree by {inversion / 1e3:.1f} us over the exchanges (a host clock "
+            "stepped?): zenoh's times cannot be mapped into node time"
+        )
+    est = _fastest(samples, keep_fraction)
+    map_cn = (cn_lo + cn_hi) // 2
+    map_dn = (dn_lo + dn_hi) // 2
+    return dataclasses.replace(
+        est,
+        offset_ns=est.offset_ns + map_cn - map_dn,
+        spread_ns=est.spread_ns + abs(cn_hi - cn_lo) + abs(dn_hi - dn_lo),
+        estimator="zenoh_ts",
+    )
+
+
+class Estimator(Protocol):
+    """The signature :func:`estimate_offset` and :func:`estimate_offset_zenoh` share."""
+
+    def __call__(
+        self,
+        session: zenoh.Session,
+        keys: KeySpace,
+        now_ns: Callable[[], int],
+        link: ClockLink,
+        *,
+        exchanges: int = ...,
+        keep_fraction: float = ...,
+        timeout_s: float = ...,
+    ) -> ClockEstimate: ...
+
+
+#: ``clock.estimator`` names (:class:`~zplatform.config.ClockConfig`) to functions.
+ESTIMATORS: dict[str, Estimator] = {
+    "zenoh_ts": estimate_offset_zenoh,
+    "node_clock": estimate_offset,
+}
+
+
+class ClockEstimator:
+    """The mission's offset estimator, called like :func:`estimate_offset`.
+
+    Made by :func:`estimator_for`. ``primary`` is the chosen function;
+    ``fallback`` (``zenoh_ts`` only: :func:`estimate_offset`) is what a call
+    runs instead when the primary raises :class:`ZenohTimestampsError`, i.e.
+    when the CN answered but zenoh's timestamps could not give the offset
+    (the CN's zenoh does not stamp; a host clock stepped during the
+    exchanges). The fallback is per call: the next call tries ``zenoh_ts``
+    again. A WARNING is logged when calls start falling back, an INFO line
+    when ``zenoh_ts`` works again; ``fallbacks`` counts them, and the
+    estimate's ``estimator`` field names the one that produced it. Any other
+    ClockSyncError (the CN unreachable: fewer than half the exchanges
+    answered) is raised as is, with no second attempt.
+    """
+
+    def __init__(self, name: str, primary: Estimator, fallback: Estimator | None = None) -> None:
+        self.name = name
+        self.primary = primary
+        self.fallback = fallback
+        self.fallbacks = 0
+        self._falling_back = False
+
+    def __repr__(self) -> str:
+        return f"ClockEstimator({self.name!r})"
+
+    def __call__(
+        self,
+        session: zenoh.Session,
+        keys: KeySpace,
+        now_ns: Callable[[], int],
+        link: ClockLink,
+        *,
+        exchanges: int = 200,
+        keep_fraction: float = 0.1,
+        timeout_s: float = 1.0,
+    ) -> ClockEstimate:
+        def run(fn: Estimator) -> ClockEstimate:
+            return fn(
+                session,
+                keys,
+                now_ns,
+                link,
+                exchanges=exchanges,
+                keep_fraction=keep_fraction,
+                timeout_s=timeout_s,
+            )
+
+        if self.fallback is None:
+            return run(self.primary)
+        try:
+            est = run(self.primary)
+        except ZenohTimestampsError as exc:
+            self.fallbacks += 1
+            if not self._falling_back:
+                log.warning("%s; falling back to the node-clock estimator", exc)
+                self._falling_back = True
+            try:
+                return run(self.fallback)
+            except ClockSyncError as exc2:
+                raise ClockSyncError(f"{exc2} (after the {self.name} estimator: {exc})") from exc2
+        if self._falling_back:
+            log.info("the %s clock estimator works again", self.name)
+            self._falling_back = False
+        return est
+
+
+def estimator_for(clock: ClockConfig) -> ClockEstimator:
+    """The offset estimator ``clock.estimator`` names (default ``zenoh_ts``).
+
+    ``zenoh_ts``: :func:`estimate_offset_zenoh`, falling back to
+    :func:`estimate_offset` with a warning when the CN answers without usable
+    zenoh timestamps (:class:`ClockEstimator`); ``node_clock``:
+    :func:`estimate_offset` alone. Either raises ClockSyncError when the CN
+    does not answer.
+    """
+    if clock.estimator == "zenoh_ts":
+        return ClockEstimator("zenoh_ts", estimate_offset_zenoh, fallback=estimate_offset)
+    return ClockEstimator(clock.estimator, ESTIMATORS[clock.estimator])

@@ -1,0 +1,557 @@
+"""The intra-host carrier: one trigger frame to a device node and one reply
+back over iceoryx2 shared memory, for a CN and a DN on one host.
+
+:class:`IntraHostClient` (the CN's end) and :class:`IntraHostServer` (the
+DN's) move bytes only: frames, tags and freshness stay the sync's
+(``zplatform/runtime/sync.py``), as over zenoh. Each link is one iceoryx2
+request/response service and two event services that wake the other side
+(request/response ports cannot join a wait set); each side blocks in its
+event listener with a deadline, never spinning. A timeout is "no reply",
+counted; :attr:`IntraHostClient.state` says when the link has no peer or
+has stalled, so the sync can fall back to zenoh.
+
+Copies per hop: the sender encodes into the loaned sample (0 copies of its
+own), the receiver reads it in place and copies once into its Data Vector.
+Service names (:func:`link_names`) hold the mission, vehicle, run and both
+node names; segments are sized from the mission (:func:`mission_link_sizes`)
+and refused when ``/dev/shm`` cannot hold them (:func:`check_shm`); dead
+processes' resources are removed before a link opens (:func:`remove_stale`).
+How it waits and what it costs: docs/architecture.md#intra-host.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import enum
+import re
+import shutil
+import time
+from dataclasses import dataclass
+from typing import Any
+
+from ..config import Mission
+from ..core.auth import TAG_LEN
+from ..core.codec import max_frame_length
+from ..core.datavector import Layout
+from ..errors import IntraHostError
+
+__all__ = [
+    "DEFAULT_DEADLINE_S",
+    "PREFIX",
+    "STALL_AFTER",
+    "IntraHostClient",
+    "IntraHostServer",
+    "LinkNames",
+    "LinkState",
+    "check_shm",
+    "iceoryx2_config",
+    "link_names",
+    "mission_link_sizes",
+    "mission_shm_need",
+    "remove_stale",
+    "segment_bytes",
+]
+
+#: The file-name prefix of every iceoryx2 resource zplatform creates (in
+#: /dev/shm and iceoryx2's root directory), apart from other iceoryx2 users.
+PREFIX = "zp_"
+#: A reply later than this is no reply (the zenoh sync's deadline too).
+DEFAULT_DEADLINE_S = 0.002
+#: Consecutive timeouts after which the link counts as stalled.
+STALL_AFTER = 3
+#: Samples preallocated per direction: one the sender loans while the
+#: receiver may still hold the previous one, and one in flight. The client
+#: keeps at most one request pending (a timed-out one is dropped first).
+SLOTS = 3
+#: Per-sample bookkeeping iceoryx2 adds to a segment, and the fixed part of
+#: a link (management segments, connections), both measured on 0.10 with
+#: margin (tests/unit/test_intrahost.py checks the bound on the real files).
+_SAMPLE_OVERHEAD = 256
+_LINK_FIXED = 64 * 1024
+_NAME_RE = re.compile(r"[A-Za-z0-9_.-]{1,64}")
+
+
+class LinkState(enum.Enum):
+    """What the client's last exchanges say about the link."""
+
+    UP = "up"  #: the last exchange got its reply, or fewer than STALL_AFTER timed out
+    NO_PEER = "no_peer"  #: no server is attached to the service
+    STALLED = "stalled"  #: STALL_AFTER or more consecutive exchanges without a reply
+
+
+@dataclass(frozen=True, slots=True)
+class LinkNames:
+    """The iceoryx2 service names of one CN-DN link."""
+
+    sync: str  #: the request/response service
+    request_event: str  #: the client notifies it after sending a trigger
+    reply_event: str  #: the server notifies it after sending a reply
+
+
+def link_names(mission: str, vehicle: str, run: str | int, cn: str, dn: str) -> LinkNames:
+    """Service names of the link ``cn`` -> ``dn`` of one run of one mission.
+
+    Two missions on one host, or two runs of one, never share a service.
+    Raises IntraHostError for a part that is empty, longer than 64 or holds
+    a character other than ``[A-Za-z0-9_.-]`` (a ``/`` would shift levels).
+    """
+    parts = {"mission": mission, "vehicle": vehicle, "run": str(run), "cn": cn, "dn": dn}
+    for what, text in parts.items():
+        if not _NAME_RE.fullmatch(text):
+            raise IntraHostError(f"intra-host link: {what} {text!r} is not [A-Za-z0-9_.-]{{1,64}}")
+    base = f"zplatform/{mission}/{vehicle}/{run}/{cn}/{dn}"
+    return LinkNames(f"{base}/sync", f"{base}/trigger", f"{base}/reply")
+
+
+def mission_link_sizes(mission: Mission, dn: str) -> tuple[int, int]:
+    """``(largest trigger, largest reply)`` in bytes for the link to ``dn``:
+    the region frame at its widest (:func:`zplatform.core.codec.max_frame_length`)
+    plus the tag. Anything longer is malformed and refused."""
+    sizes = []
+    for region in (f"cn_to_{dn}", f"{dn}_to_cn"):
+        n = Layout.for_regions(mission, [region]).size
+        sizes.append(max_frame_length(n) + TAG_LEN)
+    return sizes[0], sizes[1]
+
+
+def segment_bytes(max_trigger: int, max_reply: int) -> int:
+    """Upper bound of the shared memory one link takes (both ends)."""
+    return (
+        SLOTS * (max_trigger + _SAMPLE_OVERHEAD)
+        + SLOTS * (max_reply + _SAMPLE_OVERHEAD)
+        + _LINK_FIXED
+    )
+
+
+def mission_shm_need(mission: Mission) -> int:
+    """Shared memory the mission's intra-host links and bulk pools take, in bytes."""
+    from .bulk import pool_size
+
+    need = sum(segment_bytes(*mission_link_sizes(mission, dn)) for dn in mission.device_nodes)
+    nodes = {ch.node for ch in mission.bulk}
+    return need + sum(pool_size(mission.bulk, n) for n in nodes)
+
+
+def check_shm(need: int, shm_dir: str = "/dev/shm", what: str = "the intra-host links") -> None:
+    """Raise IntraHostError, naming both figures, when ``shm_dir`` has less
+    than ``need`` bytes free (or does not exist). Does not block."""
+    try:
+        free = shutil.disk_usage(shm_dir).free
+    except OSError as exc:
+        raise IntraHostError(f"{what}: shared memory {shm_dir} unusable ({exc})") from exc
+    if free < need:
+        raise IntraHostError(
+            f"{what} need {need} bytes of shared memory, {shm_dir} has {free} free: "
+            f"enlarge it (mount -o remount,size=... {shm_dir}; docker --shm-size) "
+            "or pin the link to zenoh"
+        )
+
+
+def _iox() -> Any:
+    # Imported on first use: a mission that never takes the intra-host path
+    # does not load the library (nor its 4 MB extension).
+    import iceoryx2
+
+    iceoryx2.set_log_level(iceoryx2.LogLevel.Error)
+    return iceoryx2
+
+
+def iceoryx2_config(prefix: str = PREFIX) -> Any:
+    """An iceoryx2 config whose files all carry ``prefix`` (their own namespace)."""
+    iox = _iox()
+    cfg = iox.config.default()
+    cfg.global_cfg.prefix = iox.FileName.new(prefix)
+    return cfg
+
+
+def remove_stale(prefix: str = PREFIX) -> int:
+    """Remove what dead processes (a kill -9) left under ``prefix``: their
+    nodes, and their ports in every service. Returns how many dead nodes were
+    removed; skips what another process is removing. Does not block."""
+    iox = _iox()
+    removed = 0
+    try:
+        states = iox.Node.list(iox.ServiceType.Ipc, iceoryx2_config(prefix))
+    except Exception as exc:  # iceoryx2's NodeListFailure: a directory we cannot read
+        raise IntraHostError(f"intra-host: cannot list iceoryx2 nodes ({exc})") from exc
+    for state in states:
+        if isinstance(state, iox.NodeState.Dead):
+            view = state._0
+            try:
+                # 0.10 returns None once removed (its docstring says True).
+                removed += view.try_remove_stale_resources() is not False
+            except Exception:  # NodeCleanupFailure: another process holds it; it cleans
+                pass
+    return removed
+
+
+class _End:
+    """What both ends hold: an iceoryx2 node and the link's three services."""
+
+    def __init__(
+        self, names: LinkNames, max_trigger: int, max_reply: int, prefix: str, check: bool
+    ) -> None:
+        if not (max_trigger >= 1 and max_reply >= 1):
+            raise IntraHostError("intra-host link: frame bounds must be >= 1 byte")
+        if check:
+            check_shm(segment_bytes(max_trigger, max_reply), what=f"intra-host link {names.sync}")
+        self.stale_removed = remove_stale(prefix)
+        iox = self._iox = _iox()
+        self.names = names
+        self.max_trigger = max_trigger
+        self.max_reply = max_reply
+        u8 = iox.Slice[ctypes.c_uint8]
+        try:
+            self._node = (
+                iox.NodeBuilder.new()
+                .config(iceoryx2_config(prefix))
+                # The node's own SIGTERM handler stays the process's.
+                .signal_handling_mode(iox.SignalHandlingMode.Disabled)
+                .create(iox.ServiceType.Ipc)
+            )
+            self._service = (
+                self._node.service_builder(iox.ServiceName.new(names.sync))
+                .request_response(u8, u8)
+                .max_clients(2)  # the CN, and a restarted CN before the dead one is removed
+                .max_servers(1)
+                .max_nodes(4)
+                .max_active_requests_per_client(2)
+                .max_loaned_requests(1)
+                .max_response_buffer_size(1)
+                .max_borrowed_responses_per_pending_response(1)
+                .enable_fire_and_forget_requests(False)
+                .enable_safe_overflow_for_requests(True)
+                .enable_safe_overflow_for_responses(True)
+                .open_or_create()
+            )
+            self._req_ev = self._event(names.request_event)
+            self._res_ev = self._event(names.reply_event)
+        except IntraHostError:
+            raise
+        except Exception as exc:
+            raise IntraHostError(f"intra-host link {names.sync}: cannot open ({exc!r})") from exc
+
+    def _event(self, name: str) -> Any:
+        iox = self._iox
+        return (
+            self._node.service_builder(iox.ServiceName.new(name))
+            .event()
+            .max_nodes(4)
+            .max_listeners(2)
+            .max_notifiers(2)
+            .open_or_create()
+        )
+
+    def close(self) -> None:
+        """Drop every port, then the services, then the node (shared memory
+        goes with its last holder). Idempotent."""
+        for attr in ("_client", "_server", "_notifier", "_listener"):
+            self.__dict__.pop(attr, None)
+        for attr in ("_req_ev", "_res_ev", "_service", "_node"):
+            self.__dict__.pop(attr, None)
+
+
+def _view(ptr: int, n: int) -> memoryview:
+    # A memoryview over shared memory, no copy; ctypes caches the array type.
+    return memoryview((ctypes.c_uint8 * n).from_address(ptr)).cast("B")
+
+
+class IntraHostClient(_End):
+    """The CN's end of one link: :meth:`trigger`, then :meth:`exchange` (or
+    :meth:`send` and :meth:`collect`), then :meth:`release`.
+
+    Not thread-safe: one loop thread owns it. Raises IntraHostError when the
+    link cannot open (names, shared memory, iceoryx2); after that nothing
+    raises but a caller's bug (a trigger above ``max_trigger``).
+    """
+
+    def __init__(
+        self,
+        names: LinkNames,
+        max_trigger: int,
+        max_reply: int,
+        *,
+        deadline_s: float = DEFAULT_DEADLINE_S,
+        stall_after: int = STALL_AFTER,
+        prefix: str = PREFIX,
+        check: bool = True,
+    ) -> None:
+        super().__init__(names, max_trigger, max_reply, prefix, check)
+        iox = self._iox
+        try:
+            self._client = (
+                self._service.client_builder()
+                .initial_max_slice_len(max_trigger)
+                .allocation_strategy(iox.AllocationStrategy.Static)
+                .max_active_requests(2)
+                .override_request_preallocation(SLOTS)
+                .create()
+            )
+            self._notifier = self._req_ev.notifier_builder().create()
+            self._listener = self._res_ev.listener_builder().create()
+        except Exception as exc:
+            raise IntraHostError(f"intra-host link {names.sync}: no client ({exc!r})") from exc
+        self.set_deadline(deadline_s)
+        self.stall_after = stall_after
+        self._loan: Any = None
+        self._waiting: Any = None  # sent, its reply not collected yet
+        self._t_sent = 0.0
+        self._pending: Any = None
+        self._response: Any = None
+        #: Counters (never reset): exchanges sent, replies returned, timeouts
+        #: (no reply within the deadline, no peer, or no sample to loan),
+        #: replies refused (longer than ``max_reply``).
+        self.sent = 0
+        self.replies = 0
+        self.timeouts = 0
+        self.refused = 0
+        self.no_peer = 0
+        self.consecutive_timeouts = 0
+        self._peerless = False
+
+    def set_deadline(self, deadline_s: float) -> None:
+        """How long :meth:`exchange` waits for a reply from now on."""
+        self.deadline_s = deadline_s
+        self._deadline = self._iox.Duration.from_secs_f64(deadline_s)
+
+    @property
+    def state(self) -> LinkState:
+        """UP, NO_PEER (the last send found no server) or STALLED
+        (``stall_after`` consecutive exchanges without a reply)."""
+        if self._peerless:
+            return LinkState.NO_PEER
+        if self.consecutive_timeouts >= self.stall_after:
+            return LinkState.STALLED
+        return LinkState.UP
+
+    def trigger(self, n: int) -> memoryview | None:
+        """A writable view of ``n`` bytes of a loaned request in shared memory:
+        encode the trigger frame straight into it, then :meth:`exchange`.
+        None (counted as a timeout) when no sample can be loaned (the server
+        holds them all). Releases the previous reply first."""
+        if not 1 <= n <= self.max_trigger:
+            raise IntraHostError(f"intra-host trigger of {n} bytes, bound {self.max_trigger}")
+        self.release()
+        try:
+            self._loan = self._client.loan_slice_uninit(n)
+        except Exception:  # LoanError: every slot held by a stuck peer
+            self._loan = None
+            self._missed()
+            return None
+        return _view(self._loan.payload_ptr, n)
+
+    def exchange(self) -> memoryview | None:
+        """:meth:`send` the loaned trigger, then :meth:`collect` its reply within
+        ``deadline_s``. Blocks at most ``deadline_s`` (plus scheduling)."""
+        if not self.send():
+            return None
+        return self.collect()
+
+    def send(self) -> bool:
+        """Send the loaned trigger and wake the server; does not block. False
+        (counted as a miss) when no server is attached or the send failed."""
+        loan, self._loan = self._loan, None
+        if loan is None:
+            raise IntraHostError("intra-host send without a trigger")
+        self.sent += 1
+        self._t_sent = time.monotonic()
+        try:
+            pending = loan.assume_init().send()
+        except Exception:  # RequestSendError: the connection broke
+            self._missed()
+            return False
+        if pending.number_of_server_connections == 0:
+            self._peerless = True
+            self.no_peer += 1
+            self._missed()
+            return False
+        self._peerless = False
+        self._waiting = pending
+        self._notifier.notify()
+        return True
+
+    def collect(self, t_end: float | None = None) -> memoryview | None:
+        """Wait for the reply to the trigger :meth:`send` sent, until ``t_end``
+        (``time.monotonic()``; default: ``deadline_s`` after the send, so a CN
+        can send to every DN, then collect each against one deadline).
+        Returns a read-only view of the reply in shared memory, valid until
+        :meth:`release` or the next :meth:`trigger`; None when no reply came
+        in time (counted; the request is withdrawn, so a late reply is never
+        taken for the next one's). Blocks at most until ``t_end``; never spins."""
+        pending, self._waiting = self._waiting, None
+        if pending is None:
+            return None
+        if t_end is None:
+            t_end = self._t_sent + self.deadline_s
+            wait = self._deadline  # preallocated: the common case allocates no Duration
+        else:
+            wait = self._iox.Duration.from_secs_f64(max(0.0, t_end - time.monotonic()))
+        while True:
+            response = pending.receive()
+            if response is not None:
+                break
+            if t_end - time.monotonic() <= 0:
+                # Dropping the pending request tells iceoryx2 a late reply
+                # has nobody to go to.
+                del pending
+                self._missed()
+                return None
+            self._listener.timed_wait(wait)
+            # Woken by an earlier, late reply's event: wait out what is left.
+            wait = self._iox.Duration.from_secs_f64(max(0.0, t_end - time.monotonic()))
+        n = response.header.number_of_elements
+        if n > self.max_reply:
+            self.refused += 1
+            del response, pending
+            self._missed()
+            return None
+        self._pending, self._response = pending, response
+        self.replies += 1
+        self.consecutive_timeouts = 0
+        return _view(response.payload_ptr, n).toreadonly()
+
+    def call(
+        self, frame: bytes | bytearray | memoryview, out: bytearray | memoryview
+    ) -> int | None:
+        """One exchange of a finished frame: copy it into the loan, exchange,
+        copy the reply into ``out``. Returns the reply's length, or None (no
+        reply, or one longer than ``out``, counted as refused)."""
+        buf = self.trigger(len(frame))
+        if buf is None:
+            return None
+        buf[:] = frame
+        reply = self.exchange()
+        if reply is None:
+            return None
+        n = len(reply)
+        if n > len(out):
+            self.refused += 1
+            self.release()
+            return None
+        out[:n] = reply
+        self.release()
+        return n
+
+    def release(self) -> None:
+        """Give the reply's sample back (its view must not be used after), and
+        withdraw a trigger sent but not collected."""
+        self._response = None
+        self._pending = None
+        self._waiting = None
+
+    def _missed(self) -> None:
+        self.timeouts += 1
+        self.consecutive_timeouts += 1
+
+    def close(self) -> None:
+        self._loan = None
+        self.release()
+        super().close()
+
+
+class IntraHostServer(_End):
+    """The DN's end of one link: :meth:`wait` for a trigger, :meth:`reply`, :meth:`send`.
+
+    Not thread-safe: one loop thread owns it. When triggers queue up (the
+    client timed out and sent anew) the newest is served, the older dropped
+    and counted in ``superseded``.
+    """
+
+    def __init__(
+        self,
+        names: LinkNames,
+        max_trigger: int,
+        max_reply: int,
+        *,
+        prefix: str = PREFIX,
+        check: bool = True,
+    ) -> None:
+        super().__init__(names, max_trigger, max_reply, prefix, check)
+        iox = self._iox
+        try:
+            self._server = (
+                self._service.server_builder()
+                .initial_max_slice_len(max_reply)
+                .allocation_strategy(iox.AllocationStrategy.Static)
+                .max_loaned_responses_per_request(1)
+                .override_response_preallocation(SLOTS)
+                .create()
+            )
+            self._notifier = self._res_ev.notifier_builder().create()
+            self._listener = self._req_ev.listener_builder().create()
+        except Exception as exc:
+            raise IntraHostError(f"intra-host link {names.sync}: no server ({exc!r})") from exc
+        self._active: Any = None
+        self._loan: Any = None
+        #: Counters (never reset): triggers served, replies sent, triggers
+        #: refused (longer than ``max_trigger``), superseded (a newer one came).
+        self.received = 0
+        self.replied = 0
+        self.refused = 0
+        self.superseded = 0
+
+    def wait(self, timeout_s: float) -> memoryview | None:
+        """The next trigger, as a read-only view in shared memory valid until
+        :meth:`send` or the next :meth:`wait`; None after ``timeout_s``
+        without one. Blocks at most ``timeout_s``; never spins."""
+        self._active = self._loan = None
+        t_end = time.monotonic() + timeout_s
+        iox = self._iox
+        while True:
+            request = None
+            while (newer := self._server.receive()) is not None:
+                if request is not None:
+                    self.superseded += 1
+                request = newer
+            if request is not None:
+                n = request.header.number_of_elements
+                if n > self.max_trigger:
+                    self.refused += 1
+                    continue
+                self._active = request
+                self.received += 1
+                return _view(request.payload_ptr, n).toreadonly()
+            left = t_end - time.monotonic()
+            if left <= 0:
+                return None
+            self._listener.timed_wait(iox.Duration.from_secs_f64(left))
+
+    def reply(self, n: int) -> memoryview | None:
+        """A writable view of ``n`` bytes of a loaned reply to the trigger
+        :meth:`wait` returned; None when there is none, or its client has gone."""
+        if not 1 <= n <= self.max_reply:
+            raise IntraHostError(f"intra-host reply of {n} bytes, bound {self.max_reply}")
+        if self._active is None or not self._active.is_connected:
+            return None
+        try:
+            self._loan = self._active.loan_slice_uninit(n)
+        except Exception:  # LoanError: the client holds every reply sample
+            return None
+        return _view(self._loan.payload_ptr, n)
+
+    def send(self) -> bool:
+        """Send the loaned reply and wake the client. False when it could not go."""
+        loan, self._loan = self._loan, None
+        active, self._active = self._active, None
+        if loan is None or active is None:
+            return False
+        try:
+            loan.assume_init().send()
+        except Exception:  # SendError: the client dropped the request meanwhile
+            return False
+        del active
+        self._notifier.notify()
+        self.replied += 1
+        return True
+
+    def respond(self, frame: bytes | bytearray | memoryview) -> bool:
+        """Copy a finished reply frame into a loan and :meth:`send` it."""
+        buf = self.reply(len(frame))
+        if buf is None:
+            return False
+        buf[:] = frame
+        return self.send()
+
+    def close(self) -> None:
+        self._loan = self._active = None
+        super().close()

@@ -1,0 +1,760 @@
+"""The Data Synchronization Protocol on zenoh, both ends (thesis 3.3, 4.3): transport only.
+
+What a frame means, which reply counts, what is late, stale or bad: all of
+that is :mod:`zplatform.control.loop`'s, shared with the lockstep runner. These
+classes only move the frames: :class:`ControlSync` (the CN: one get per DN on
+``{vehicle}/dnX/to_cn``, or one wildcard get with a bundle, at the top of
+every loop, replies handed to ``ControlLogic.reply`` until none is pending or
+the deadline passed), :class:`DeviceSync` (a DN: waits for the CN's query,
+the loop trigger, and answers at once), :class:`ProbeSync` (failover probes).
+
+Contract: zenoh callbacks only check and hand off (:mod:`zplatform.control.intake`:
+size, one tag check, a stamp compare, a counter, each constant time); the
+loop thread does the work and gets the very bytes the intake checked. Queries
+use DROP congestion control, so a dead link drops a query instead of blocking
+the loop. A forged or replayed trigger gets no reply; the CN takes a reply
+only from the DN's own zenoh session. ``ControlSync.sync`` blocks until every
+reply is in or the deadline passed, ``DeviceSync.wait`` until a query or its timeout.
+
+Detail (wildcard, a restarted DN, late replies, trace hops): docs/architecture.md#drivers.
+"""
+
+from __future__ import annotations
+
+import queue
+import threading
+import time
+from collections.abc import Callable, Sequence
+from typing import Any
+
+import zenoh
+
+from .. import trace as tracer
+from ..control.handoff import Handoff, Mailbox
+from ..control.intake import CnRefusals, ProbeIntake, ReplyCheck, TriggerIntake
+from ..control.loop import ControlLogic, DeviceLogic
+from ..core.codec import BundleEncoder
+from .queries import ReplyCap, Unanswered, ask, declare_querier, replies
+from .transport import KeySpace, is_matching
+
+__all__ = [
+    "REPIN_AFTER",
+    "ControlSync",
+    "DeviceSync",
+    "ProbeSync",
+    "SyncTrace",
+    "TapPublisher",
+]
+
+_DROP = zenoh.CongestionControl.DROP
+_NO_PAYLOAD = zenoh.ZBytes(b"")
+_ERR_MAX = 512  # longest error reply read: a DN's is "dnX: reason"
+REPIN_AFTER = 3
+"""Loops in a row a DN's known session must miss before the CN checks
+replies from other sessions for one of the DN's (a restarted DN)."""
+
+SyncTrace = Callable[[str, int], None]
+"""``trace(hop, n)``: one hop of a sync exchange, called where it happens
+(stamp the time inside; return at once, never block, never raise).
+
+Control node (:class:`ControlSync`), ``n`` the DN's index:
+
+* ``"issued"``: loop thread, just before the query to DN ``n`` is sent (a
+  wildcard query: once per DN, before the one query);
+* ``"back"``: zenoh's thread, DN ``n``'s reply being handed to the loop;
+* ``"taken"``: loop thread, DN ``n``'s reply taken from the hand-off.
+
+Device node (:class:`DeviceSync`):
+
+* ``"arrive"``: zenoh's thread, a query being handed to the loop (``n`` 0);
+* ``"serve"``: loop thread, the query taken from the hand-off (``n`` 0);
+* ``"replied"``: loop thread, the reply sent; ``n`` is the CN loop the
+  query carried (``DeviceLogic.last_loop``).
+"""
+
+
+class TapPublisher:
+    """A put that costs (almost) nothing when nobody subscribes.
+
+    A matching listener keeps ``matching`` current from zenoh's thread; the
+    loop reads one bool and skips the put when no subscriber matches. That
+    matters for large frames: zenoh-python 1.10 copies a payload into a
+    ``ZBytes`` before zenoh looks for a subscriber, so an unguarded put of a
+    whole 100,000-element vector costs a 325 KB copy for nobody
+    (``python -m bench.frame_trace``, ``tm.put``).
+
+    ``exact``: when the listener says nobody matches, ask zenoh's routing
+    state itself (``matching_status``, under a microsecond) before skipping,
+    so that no put is lost to the listener's lag after a subscriber came
+    (the telemetry a ground logs from loop 1 on). Without it (taps for
+    tools) a put in that lag may be skipped.
+    """
+
+    def __init__(self, session: zenoh.Session, key: str, *, exact: bool = False) -> None:
+        self.pub = session.declare_publisher(key, congestion_control=zenoh.CongestionControl.DROP)
+        self.matching = is_matching(self.pub)
+        self._exact = exact
+        self._listener = self.pub.declare_matching_listener(
+            zenoh.handlers.Callback(self._on_matching, indirect=False)
+        )
+
+    def _on_matching(self, status: zenoh.MatchingStatus) -> None:
+        self.matching = bool(status.matching)
+
+    def put(self, payload: bytes | bytearray) -> None:
+        """Publish ``payload`` if anyone subscribes (never blocks: DROP)."""
+        if self.matching or (self._exact and is_matching(self.pub)):
+            self.pub.put(payload)
+
+    def undeclare(self) -> None:
+        self._listener.undeclare()
+        self.pub.undeclare()
+
+
+class ControlSync:
+    """The CN end: query every DN with its frame, hand replies to the loop.
+
+    Not thread-safe: call :meth:`sync` from the loop thread only. Blocks for
+    at most ``timeout_ns`` (plus scheduling latency). ``checks``: one
+    :class:`~zplatform.control.intake.ReplyCheck` per DN, in ``dns`` order (module
+    doc: replies from a session not known to be the DN's). ``trace``: a
+    :data:`SyncTrace` for benchmarks (None: no tracing).
+    """
+
+    def __init__(
+        self,
+        session: zenoh.Session,
+        keys: KeySpace,
+        dns: Sequence[str],
+        timeout_ns: int,
+        query_timeout_s: float,
+        *,
+        checks: Sequence[ReplyCheck],
+        wildcard: bool = False,
+        monotonic: Callable[[], int] = time.monotonic_ns,
+        trace: SyncTrace | None = None,
+    ) -> None:
+        if len(checks) != len(dns):
+            raise ValueError(f"one reply check per device node: {len(checks)} for {len(dns)}")
+        self.session = session
+        self._trace = trace
+        self.dns = list(dns)
+        self._checks = tuple(checks)
+        # Who answers for each DN (zenoh.ZenohId, module doc), and whether
+        # replies from other sessions are checked (nobody known yet, or the
+        # known one has gone quiet). The loop thread decides `_open`; zenoh's
+        # thread pins a session whose reply passed the check.
+        self._zids: list[Any] = [None] * len(dns)
+        self._open = [True] * len(dns)
+        self._quiet = [0] * len(dns)
+        self._got = [False] * len(dns)
+        self._max_len = tuple(c.max_len for c in checks)
+        self._count_lock = threading.Lock()
+        self._foreign = 0  # replies from no DN's session (zenoh's thread, under the lock)
+        self._oversize = 0  # replies from a DN's session longer than any frame of it
+        self.wildcard = wildcard and bool(dns)
+        self.timeout_ns = timeout_ns
+        self._mono = monotonic
+        self._query_timeout = query_timeout_s
+        self._keys = [keys.dn_to_cn(dn) for dn in dns]
+        self._taps = [TapPublisher(session, keys.cn_to_dn(dn)) for dn in dns]
+        self._q: Handoff[tuple[int, bytes | None]] = Handoff()
+        # Wildcard: one get on {vehicle}/*/to_cn with every DN's frame in a
+        # bundle; a reply says whose it is by its key, and counts only from
+        # the session that answers for that DN (as per DN). An error reply
+        # has no key: it names its DN ("dnX: reason"), and counts as that
+        # DN's only from that session too; any other is foreign. A peer
+        # whose queryable matches the wildcard cannot pin errors on a DN.
+        self._all = keys.sync_all
+        self._bundle = BundleEncoder()
+        self._index = {k: i for i, k in enumerate(self._keys)}
+        self._names = {dn.encode(): i for i, dn in enumerate(self.dns)}
+        # Issued vs finalised queries (zenoh calls `drop` once per query when
+        # it is done): lets start-up wait until no warm-up reply can still come.
+        self._issued = 0
+        self._finalised = 0
+        self._idle = threading.Event()
+        self._idle.set()
+        self._build_callbacks()
+        self.duration_ns = 0
+        """How long the last :meth:`sync` took."""
+        # A live DN whose queries get no reply at all, loop after loop, has
+        # lost its route in zenoh (zenoh#2517): its querier is declared again
+        # (zplatform.runtime.queries.Unanswered). `_heard` is set on zenoh's thread
+        # by any reply for the DN (cleared by each watch), `_alive` by its
+        # liveliness token.
+        self._heard = [False] * len(dns)
+        self._alive = [False] * len(dns)
+        self.unanswered = Unanswered(len(dns))
+        self._recovered: list[int] = []
+        self._queriers = [
+            declare_querier(session, self._keys[i], timeout_s=query_timeout_s)
+            for i in range(len(self._keys))
+        ]
+        self._all_querier = (
+            declare_querier(session, self._all, timeout_s=query_timeout_s)
+            if self.wildcard
+            else None
+        )
+        self._alive_index = {keys.alive(dn): i for i, dn in enumerate(self.dns)}
+        self._alive_sub = session.liveliness().declare_subscriber(
+            keys.all_alive, zenoh.handlers.Callback(self._on_alive, indirect=False), history=True
+        )
+
+    def _on_alive(self, sample: zenoh.Sample) -> None:
+        # zenoh's thread: one flag per DN, read by the loop.
+        i = self._alive_index.get(str(sample.key_expr))
+        if i is not None:
+            self._alive[i] = sample.kind == zenoh.SampleKind.PUT
+
+    def _build_callbacks(self) -> None:
+        # Flight queries have no drop callback: zenoh finalises every query
+        # (one more message per DN and loop), and a Python callback there
+        # would take the GIL on zenoh's thread for nothing. Warm-up queries
+        # count their finalisations so start-up can wait them out.
+        handoffs = [self._make_handoff(i) for i in range(len(self.dns))]
+        self._callbacks = [zenoh.handlers.Callback(h, indirect=False) for h in handoffs]
+        self._counted = [
+            zenoh.handlers.Callback(h, self._on_finalised, indirect=False) for h in handoffs
+        ]
+        self._any = zenoh.handlers.Callback(self._handoff_any, indirect=False)
+        self._any_counted = zenoh.handlers.Callback(
+            self._handoff_any, self._on_finalised, indirect=False
+        )
+
+    def _on_finalised(self) -> None:
+        self._finalised += 1  # zenoh's thread is the only writer
+        if self._finalised == self._issued:
+            self._idle.set()
+
+    def _make_handoff(self, i: int) -> Callable[[zenoh.Reply], None]:
+        take, error = self._take, self._error
+
+        def handoff(reply: zenoh.Reply) -> None:
+            # zenoh's thread: who answered, then the bytes (module doc).
+            ok = reply.ok
+            if ok is not None:
+                tr = tracer.tracer
+                if tr is None:
+                    take(i, reply, ok.payload)
+                else:
+                    _traced_take(tr, take, i, reply, ok.payload)
+                return
+            err = reply.err
+            if err is not None and error(err.payload) is not None:
+                self._dn_error(i, reply)
+
+        trace = self._trace
+        if trace is None:
+            return handoff
+
+        def traced(reply: zenoh.Reply) -> None:
+            trace("back", i)
+            handoff(reply)
+
+        return traced
+
+    def _take(self, i: int, reply: zenoh.Reply, payload: zenoh.ZBytes) -> None:
+        """Hand DN ``i``'s reply to the loop if it comes from DN ``i``'s
+        session, or passes the check while that one is quiet (which then
+        makes its session DN ``i``'s); else count it."""
+        rid = reply.replier_id
+        zid = rid.zid if rid is not None else None
+        if zid is not None and zid == self._zids[i]:
+            self._heard[i] = True
+            if len(payload) > self._max_len[i]:
+                with self._count_lock:
+                    self._oversize += 1
+                return
+            self._q.put((i, payload.to_bytes()))
+            return
+        if not self._open[i] or zid is None:
+            with self._count_lock:
+                self._foreign += 1
+            return
+        data = self._checks[i].check(payload, None)  # size, tag, the loop asked: counted if not
+        if data is not None:
+            self._heard[i] = True
+            self._zids[i] = zid
+            self._q.put((i, data))
+
+    @staticmethod
+    def _error(payload: zenoh.ZBytes) -> bytes | None:
+        """An error reply's text, or None for zenoh's own timeout (a period
+        after a miss the loop has counted already). Bounded: one longer than
+        :data:`_ERR_MAX` bytes is not read (``b"?"``: no DN's)."""
+        n = len(payload)
+        if n == 7 and payload.to_bytes() == b"Timeout":
+            return None
+        return payload.to_bytes()[:_ERR_MAX] if n <= _ERR_MAX else b"?"
+
+    def _dn_error(self, i: int, reply: zenoh.Reply) -> None:
+        """An error reply for DN ``i``: the DN refusing its trigger when it
+        comes from DN ``i``'s session, else foreign."""
+        rid = reply.replier_id
+        if rid is not None and self._zids[i] is not None and rid.zid == self._zids[i]:
+            self._heard[i] = True
+            self._q.put((i, None))
+        else:
+            with self._count_lock:
+                self._foreign += 1
+
+    def _handoff_any(self, reply: zenoh.Reply) -> None:
+        # zenoh's thread: whose reply it is by its key (or an error's name).
+        ok = reply.ok
+        if ok is not None:
+            i = self._index.get(str(ok.key_expr))
+            if i is None:
+                with self._count_lock:
+                    self._foreign += 1
+                return
+            if self._trace is not None:
+                self._trace("back", i)
+            tr = tracer.tracer
+            if tr is None:
+                self._take(i, reply, ok.payload)
+            else:
+                _traced_take(tr, self._take, i, reply, ok.payload)
+            return
+        err = reply.err
+        if err is None:
+            return
+        reason = self._error(err.payload)
+        if reason is None:
+            return
+        j = self._names.get(reason.split(b":", 1)[0])
+        if j is not None:
+            self._dn_error(j, reply)
+        else:
+            with self._count_lock:
+                self._foreign += 1
+
+    def take_refusals(self, out: CnRefusals) -> None:
+        """Write the sync replies refused since the last call into ``out``
+        (its ``reply_*`` fields; then zeroed). The loop thread, once a loop."""
+        size = bad = stale = 0
+        for c in self._checks:
+            s, b, st = c.take_counts()
+            size += s
+            bad += b
+            stale += st
+        with self._count_lock:
+            foreign, oversize = self._foreign, self._oversize
+            self._foreign = self._oversize = 0
+        out.reply_size, out.reply_bad, out.reply_stale = size + oversize, bad, stale
+        out.reply_foreign = foreign
+
+    def sync(
+        self, frames: Sequence[bytearray], logic: ControlLogic, *, warmup: bool = False
+    ) -> bool:
+        """Send each DN its frame and hand replies to ``logic.reply`` until
+        none is pending or the deadline passed. Returns whether the step
+        overran: with every reply in, any lateness; while waiting for a
+        missing DN, waking more than half a deadline late (the thread was
+        not scheduled). ``warmup``: a start-up sync, whose queries
+        :meth:`quiesce` waits for."""
+        start = self._mono()
+        deadline = start + self.timeout_ns
+        n = len(self.dns)
+        callbacks = self._callbacks
+        trace = self._trace
+        got = self._got
+        for i, check in enumerate(self._checks):
+            check.expect(logic.loop, logic.t_ns)
+            got[i] = False
+        if warmup:
+            callbacks = self._counted
+            self._idle.clear()
+            self._issued += 1 if self.wildcard else n
+        tr = tracer.tracer
+        if self.wildcard:
+            if trace is not None:
+                for i in range(n):
+                    trace("issued", i)
+            if tr is not None:
+                for i in range(n):
+                    tr.mark("sync.issued", i, len(frames[i]))
+            ask(
+                self.session,
+                self._all,
+                self._any_counted if warmup else self._any,
+                payload=self._bundle.pack(frames),
+                timeout_s=self._query_timeout,
+            )
+            if tr is not None:
+                for i in range(n):
+                    tr.mark("sync.sent", i)
+        else:
+            for i in range(n):
+                # zplatform.runtime.queries.ask: DROP (on a link that stopped draining,
+                # a cut cable, a BLOCKing get would freeze the CN's loop for
+                # seconds; a dropped query is a missed sync, counted like any
+                # other: tests/faults, cable cut) and target ALL (a peer's
+                # "complete" queryable on dnX/to_cn cannot take the trigger).
+                if trace is not None:
+                    trace("issued", i)
+                if tr is not None:
+                    tr.mark("sync.issued", i, len(frames[i]))
+                ask(
+                    self.session,
+                    self._keys[i],
+                    callbacks[i],
+                    payload=frames[i],
+                    timeout_s=self._query_timeout,
+                )
+                if tr is not None:
+                    tr.mark("sync.sent", i)
+        # The taps after the queries: tools may wait, the DNs may not.
+        taps = self._taps
+        for i in range(n):
+            taps[i].put(frames[i])
+        q = self._q
+        reply = logic.reply
+        while logic.pending:
+            left = deadline - self._mono()
+            if left <= 0:
+                break
+            try:
+                i, payload = q.get(timeout=left / 1e9)
+            except queue.Empty:
+                break
+            if trace is not None:
+                trace("taken", i)
+            if tr is not None:
+                tr.mark("sync.taken", i)
+            if reply(i, payload):
+                got[i] = True
+        end = self._mono()
+        self.duration_ns = end - start
+        self._watch(got)
+        return end > deadline + (self.timeout_ns // 2 if logic.pending else 0)
+
+    def _watch(self, got: list[bool]) -> None:
+        """After a sync: a DN whose known session answered keeps it alone;
+        one quiet for :data:`REPIN_AFTER` loops lets others be checked. A
+        live DN that sent no reply at all for
+        :data:`~zplatform.runtime.queries.UNANSWERED_LOOPS` loops gets its querier
+        declared again (:meth:`take_recoveries`)."""
+        heard, alive, watch = self._heard, self._alive, self.unanswered
+        for i, ok in enumerate(got):
+            if ok:
+                self._quiet[i] = 0
+                self._open[i] = self._zids[i] is None
+            else:
+                self._quiet[i] += 1
+                if self._quiet[i] >= REPIN_AFTER:
+                    self._open[i] = True
+            # Any reply since the last watch counts, a late one too (it came
+            # after the deadline): only silence is a lost route.
+            answered, heard[i] = ok or heard[i], False
+            if watch.observe(i, answered, alive[i]):
+                self._recover(i)
+
+    def _recover(self, i: int) -> None:
+        """Declare DN ``i``'s querier again (and the wildcard's): zenoh asks
+        the peers for the key's queryables anew (zplatform.runtime.queries). The loop
+        thread; rare (at most once per UNANSWERED_LOOPS loops and DN)."""
+        self._queriers[i].undeclare()
+        self._queriers[i] = declare_querier(
+            self.session, self._keys[i], timeout_s=self._query_timeout
+        )
+        if self._all_querier is not None:
+            self._all_querier.undeclare()
+            self._all_querier = declare_querier(
+                self.session, self._all, timeout_s=self._query_timeout
+            )
+        self._recovered.append(i)
+
+    def take_recoveries(self, out: list[tuple[str, int]]) -> None:
+        """Append ``(dn, recoveries so far)`` for each querier declared again
+        since the last call to ``out`` (the loop thread, once a loop; the
+        driver events them)."""
+        if self._recovered:
+            for i in self._recovered:
+                out.append((self.dns[i], self.unanswered.recoveries[i]))
+            self._recovered.clear()
+
+    def quiesce(self, logic: ControlLogic, timeout_s: float) -> bool:
+        """Wait until every warm-up query issued so far is finalised, then hand any
+        reply still queued to ``logic.reply``. Returns False on timeout. Not
+        for the loop: start-up uses it so warm-up replies never land in
+        flight counters."""
+        ok = self._idle.wait(timeout_s)
+        q = self._q
+        while not q.empty():
+            i, payload = q.get_nowait()
+            logic.reply(i, payload)
+        return ok
+
+    def close(self) -> None:
+        for t in self._taps:
+            t.undeclare()
+        for q in self._queriers:
+            q.undeclare()
+        if self._all_querier is not None:
+            self._all_querier.undeclare()
+        self._alive_sub.undeclare()
+
+
+class DeviceSync:
+    """The DN end: the CN's query is the loop trigger.
+
+    ``intake``: the node's :class:`~zplatform.control.intake.TriggerIntake` (module
+    doc): zenoh's callback admits a query only if its trigger verifies and
+    is newer than every one before; any other is dropped unanswered and
+    counted. :meth:`wait` blocks until an admitted query is there (or the
+    timeout passes), answers it at once with :meth:`DeviceLogic.trigger`'s
+    reply (an error reply for one the logic refuses) and returns whether it
+    started a loop (``logic.triggered``). If admitted queries piled up while
+    this node was not scheduled (at most
+    :data:`~zplatform.control.intake.BACKLOG`; older ones are let go unanswered),
+    every one but the newest is answered with ``may_run=False``: like the
+    CN's scheduler, a stalled DN skips missed loops and never runs a burst
+    of old ones. Each :meth:`wait` also hands the intake's refusals to the
+    logic (:meth:`DeviceLogic.refused`). ``trace``: a :data:`SyncTrace` for
+    benchmarks (None: no tracing).
+    """
+
+    def __init__(
+        self,
+        session: zenoh.Session,
+        keys: KeySpace,
+        dn: str,
+        now_ns: Callable[[], int],
+        *,
+        intake: TriggerIntake[zenoh.Query],
+        probes: ProbeIntake[zenoh.Query] | None = None,
+        trace: SyncTrace | None = None,
+    ) -> None:
+        self.dn = dn
+        self._now = now_ns
+        self._trace = trace
+        self._key = keys.dn_to_cn(dn)
+        self._err_prefix = f"{dn}: ".encode()
+        self.intake = intake
+        self._authentic = intake.authenticates
+        box = intake.box
+        assert box is not None
+        self._box = box
+        self._tap = TapPublisher(session, self._key)
+        self.reply: bytearray | None = None
+        """The last reply frame sent (None: an error reply), the logic's own
+        buffer: valid until the next query is served."""
+        admit = intake.admit
+
+        def handoff(query: zenoh.Query) -> None:
+            # zenoh's thread: the intake's checks; a refused query is
+            # released here, unanswered (zenoh finalises it at once).
+            tr = tracer.tracer
+            if tr is not None:
+                tr.mark("dn.arrive")
+            p = query.payload
+            if admit(p if p is not None else _NO_PAYLOAD, query):
+                if tr is not None:
+                    tr.mark("dn.admitted")
+                if trace is not None:
+                    trace("arrive", 0)
+
+        self.queryable = session.declare_queryable(
+            self._key, zenoh.handlers.Callback(handoff, indirect=False)
+        )
+        # A redundant mission's probes (zplatform.control.fencing): their own intake
+        # (size, its rate bound, tag, freshness: zplatform.control.intake.ProbeIntake),
+        # waking the same wait as the triggers.
+        self.probes = probes
+        self._probe_q: zenoh.Queryable[Any] | None = None
+        self._ready: Callable[[], object] = box.__len__
+        if probes is not None:
+            pbox = probes.box
+            assert pbox is not None
+            self._pbox = pbox
+            self._probe_key = keys.probe(dn)
+            padmit = probes.admit
+
+            def on_probe(query: zenoh.Query) -> None:
+                # zenoh's thread: the intake's checks; a refused question is
+                # released here, unanswered.
+                p = query.payload
+                padmit(p if p is not None else _NO_PAYLOAD, query)
+
+            self.on_probe: Callable[[zenoh.Query], None] = on_probe
+            """The probe queryable's callback (what zenoh's thread runs per question)."""
+            self._probe_q = session.declare_queryable(
+                self._probe_key, zenoh.handlers.Callback(on_probe, indirect=False)
+            )
+            self._ready = lambda: len(box) or len(pbox)
+
+    def wait(self, logic: DeviceLogic, timeout_s: float) -> bool:
+        """Serve queries until one starts a loop (True) or ``timeout_s`` passes.
+        Probe questions that arrive meanwhile are answered first."""
+        box = self._box
+        deadline = time.monotonic() + timeout_s
+        try:
+            while True:
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    return False
+                if self.probes is not None:
+                    if not box.waker.wait(self._ready, left):
+                        return False
+                    while (probe := self._pbox.pop()) is not None:
+                        self._answer(probe, logic)
+                    item = box.pop()
+                    if item is None:
+                        continue
+                else:
+                    item = box.get(left)
+                    if item is None:
+                        return False
+                while (newer := box.pop()) is not None:  # a backlog: answer, keep the newest
+                    self._serve(item, logic, may_run=False)
+                    item = newer
+                self._serve(item, logic, may_run=True)
+                if logic.triggered:
+                    return True
+        finally:
+            size, bad, stale = self.intake.take_counts()
+            now = self._now()
+            logic.refused(size, bad, stale, now)
+            if self.probes is not None:
+                size, bad, stale = self.probes.take_counts()
+                logic.probes_refused(size, bad, stale, self.probes.excess, now)
+
+    def _answer(self, item: tuple[zenoh.Query, bytes], logic: DeviceLogic) -> None:
+        """Answer one probe question (:meth:`DeviceLogic.probe`)."""
+        query, data = item
+        with query:
+            reply = logic.probe(data, self._now())
+            if reply is None:
+                query.reply_err(self._err_prefix + logic.reject_reason.encode())
+            else:
+                query.reply(self._probe_key, reply)
+
+    def _serve(self, item: tuple[zenoh.Query, bytes], logic: DeviceLogic, *, may_run: bool) -> None:
+        trace = self._trace
+        if trace is not None:
+            trace("serve", 0)
+        tr = tracer.tracer
+        if tr is not None:
+            tr.mark("dn.serve")
+        query, data = item
+        with query:
+            # The intake checked this payload's tag already (module doc).
+            reply = logic.trigger(data, self._now(), may_run=may_run, authentic=self._authentic)
+            self.reply = reply
+            if reply is None:
+                # "dnX: reason": a wildcard query's error replies carry no key.
+                query.reply_err(self._err_prefix + logic.reject_reason.encode())
+            else:
+                query.reply(self._key, reply)
+        if trace is not None:
+            trace("replied", logic.last_loop)
+        if tr is not None:
+            tr.mark("dn.replied", logic.last_loop)
+        if reply is not None:
+            self._tap.put(reply)
+
+    def close(self) -> None:
+        self.queryable.undeclare()
+        if self._probe_q is not None:
+            self._probe_q.undeclare()
+        self._tap.undeclare()
+
+
+def _traced_take(
+    tr: tracer.Tracer,
+    take: Callable[[int, zenoh.Reply, zenoh.ZBytes], None],
+    i: int,
+    reply: zenoh.Reply,
+    payload: zenoh.ZBytes,
+) -> None:
+    """``take`` with the trace points of a reply (:mod:`zplatform.trace`)."""
+    tr.mark("sync.back", i, len(payload))
+    if payload.as_shm() is not None:
+        tr.mark("sync.shm", i)
+    take(i, reply, payload)
+    tr.mark("sync.queued", i)
+
+
+def _ignore(reply: zenoh.Reply) -> None:
+    pass
+
+
+class ProbeSync:
+    """A control node's probe rounds (:mod:`zplatform.control.fencing`): one question
+    per device node on ``{vehicle}/dnX/probe``, the replies handed to the
+    caller's ``answer`` on the calling thread until every device node
+    answered or ``timeout_ns`` passed. Every query goes through
+    :func:`zplatform.runtime.queries.ask` (every queryable on the key, DROP, a
+    timeout: an impostor declaring a "complete" probe queryable cannot take
+    the question, a congested link cannot block the asker). Replies wait in
+    a bounded mailbox (a peer answering many times cannot grow memory); the
+    caller checks each one (tag, nonce). Not thread-safe: one thread asks."""
+
+    def __init__(
+        self, session: zenoh.Session, keys: KeySpace, dns: Sequence[str], timeout_ns: int
+    ) -> None:
+        self.session = session
+        self._keys = [keys.probe(dn) for dn in dns]
+        self.timeout_ns = timeout_ns
+        self._box: Mailbox[tuple[int, bytes]] = Mailbox(4 * max(len(dns), 1))
+        box = self._box
+
+        # One reply per replier per question is read (a DN answers once): a
+        # peer flooding answers cannot push the DN's out of the mailbox.
+        self._caps = [ReplyCap(1) for _ in dns]
+
+        def make(i: int) -> Callable[[zenoh.Reply], None]:
+            cap = self._caps[i]
+
+            def on_reply(reply: zenoh.Reply) -> None:  # zenoh's thread: hand off
+                ok = reply.ok
+                if ok is not None and len(ok.payload) <= _ERR_MAX and cap.admit(reply):
+                    box.put((i, ok.payload.to_bytes()))
+
+            return on_reply
+
+        self._callbacks = [replies(make(i)) for i in range(len(dns))]
+        self._drop: zenoh.handlers.Callback[zenoh.Reply] = replies(_ignore)
+
+    def round(self, asks: Sequence[bytes], answer: Callable[[int, bytes], bool]) -> int:
+        """Send ``asks[i]`` to device node ``i``; hand each reply to
+        ``answer(i, payload)`` until every node's was taken (``answer``
+        returned True) or the deadline passed; returns how many were taken."""
+        box = self._box
+        box.drain([])  # replies to an earlier round: late, not this one's
+        timeout_s = max(self.timeout_ns / 1e9, 0.005)
+        for i, question in enumerate(asks):
+            self._caps[i].reset()
+            # Every queryable on dnX/probe (a peer that declares a "complete"
+            # one cannot take the question from the DN); `answer` takes only
+            # the DN's (tag, nonce).
+            ask(
+                self.session,
+                self._keys[i],
+                self._callbacks[i],
+                payload=question,
+                timeout_s=timeout_s,
+            )
+        n = len(asks)
+        taken = [False] * n
+        deadline = time.monotonic_ns() + self.timeout_ns
+        got = 0
+        while got < n:
+            left = deadline - time.monotonic_ns()
+            if left <= 0:
+                break
+            item = box.get(left / 1e9)
+            if item is None:
+                break
+            i, payload = item
+            if not taken[i] and answer(i, payload):
+                taken[i] = True
+                got += 1
+        return got
+
+    def send(self, frames: Sequence[bytes | None]) -> None:
+        """Send each question that is not None (a RELEASE), answers unread."""
+        for i, f in enumerate(frames):
+            if f is not None:
+                ask(self.session, self._keys[i], self._drop, payload=f, timeout_s=0.05)
