@@ -52,7 +52,9 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         "loop numbers (loop:1234).",
     )
     p.add_argument("--dir", metavar="DIR", help="the archive directory (default: the mission's)")
-    acts = p.add_subparsers(dest="action", required=True, metavar="ACTION")
+    acts = p.add_subparsers(
+        dest="action", required=True, metavar="ACTION", help="runs, query, events or export"
+    )
     r = acts.add_parser("runs", help="every run kept: times, loops, states, outcome")
     r.add_argument("--json", action="store_true", help="the run records as JSON")
     q = acts.add_parser("query", help="elements of a run over a time range, as CSV")

@@ -7,8 +7,8 @@ start beyond the mission bound) and loads the parameter file
 on absolute deadlines (:meth:`ControlNode.run`): ``begin`` at the loop's
 scheduled start, sync every DN, ``finish`` with at most one ground frame,
 publish the telemetry every Nth loop. The run's last loop is flagged final
-(the last of ``max_loops``, or one more after a stop was asked for), a loop
-of the vehicle's schedule, whichever node commands (or stood down) by then.
+(the last of ``max_loops``, or one more after a stop was asked for); after
+a takeover the new commander ends the run at that loop of the schedule.
 
 Contract: initialisation errors raise :class:`~zplatform.errors.NodeError`
 (the CLI prints and exits non-zero); errors after start are counted in the
@@ -231,9 +231,12 @@ class ControlNode:
         self._stopped_cleanly = False
         self._last_step: int | None = None  # self.loops after the run's planned last loop
         # The run's last loop in the vehicle's numbering (the schedule's), so
-        # a run with an end ends whichever control node then commands: after
-        # a takeover the new commander ends it there, and a node that stood
-        # down stops following there (without it neither would ever end).
+        # a run with an end ends whichever control node then commands: a
+        # commander from the start runs its ``max_loops`` (more loop numbers
+        # when the box made it skip some: they are counted), a node that took
+        # command mid-run ends at this loop, and a follower stops with the
+        # commander's final loop or, past this loop, once it falls silent
+        # (without it, after a takeover neither node would ever end).
         self._end_loop: int | None = None
         # Failover (zplatform.control.failover): the mirror out and in, the probes, the
         # other control node's liveliness, and the standby while not commanding.
@@ -611,7 +614,7 @@ class ControlNode:
         end = self._end_loop
         final = (
             self.loops + 1 == self._last_step
-            or (end is not None and loop >= end)
+            or (self.takeovers > 0 and end is not None and loop >= end)
             or self.stop.is_set()
         )
         standby = ready if self.redundant else None
@@ -811,8 +814,9 @@ class ControlNode:
         if self._saver is not None:
             self._saver.poll()  # a follower's save is its own: the result only logged
         slot = sb.slot(now)
-        if self._end_loop is not None and slot >= self._end_loop:
-            return False  # the run's last loop is over: nothing left to follow
+        end = self._end_loop
+        if end is not None and (sb.ended or (slot > end and sb.blind(slot))):
+            return False  # the run is over: its final loop, or silence past its end
         if self._ready_token is not None and sb.blind(slot):
             # Too old a mirror to take command from: not ready (the commander's
             # cn_standby_ready falls) until the next one comes.
