@@ -39,7 +39,7 @@ from ..core.health import Heartbeat, Liveness, thread_deadlines_ns
 from ..errors import ClockSyncError, NodeError, RecordingError, TransportError, ZPlatformError
 from ..recorder import FlightRecorder, open_recorder, summary_line
 from ..runtime.bulk import NodeBulk, open_bulk
-from ..runtime.clocksync import ClockEstimate, ClockLink, estimator_for
+from ..runtime.clocksync import RELEARN_S, ClockEstimate, ClockLink, estimator_for, learn_run
 from ..runtime.process import StopFlag, realtime_setup
 from ..runtime.scheduler import GcGuard
 from ..runtime.sync import DeviceSync, SyncTrace
@@ -55,9 +55,6 @@ log = logging.getLogger("zplatform.dn")
 
 TIMEOUT_EVENT_EVERY_NS = 1_000_000_000
 """A ``clock_timeout`` event at most this often (the counter counts every one)."""
-RELEARN_S = 1.0
-"""At most one clock re-sync this often on a genuine trigger of another run
-(the control node may have started a new one; zplatform.core.auth.Run)."""
 
 
 class ClockTally:
@@ -305,7 +302,9 @@ class DeviceNode:
             channel(self._keys, f"events_{self.name}", self.auth_run),
             recorder=self.flight_recorder,
         )
-        if m.clock.resync_s > 0:
+        # Without periodic re-syncs (clock.resync_s: 0) the thread still
+        # answers the intake's cue, with hellos only: the run may be new.
+        if m.clock.resync_s > 0 or self._keys is not None:
             self.liveness.add(self._resync_hb)
             self._resync = threading.Thread(target=self._resync_loop, daemon=True)
             self._resync.start()
@@ -347,8 +346,9 @@ class DeviceNode:
 
         hb.idle()
         last_relearn = -RELEARN_S
+        periodic = m.clock.resync_s > 0
         while True:
-            nudged = self._relearn.wait(m.clock.resync_s)
+            nudged = self._relearn.wait(m.clock.resync_s if periodic else None)
             if self.stop.is_set():
                 return
             if nudged:
@@ -363,20 +363,25 @@ class DeviceNode:
                 last_relearn = time.monotonic()
                 self.clock_link.forget()
             hb.beat()
-            if self.logic.run_ended:
+            if self.logic.run_ended and not nudged:
                 # Nobody serves the clock between runs: no measurement, and no
-                # "re-sync failed" at the end of every flight.
+                # "re-sync failed" at the end of every flight. (A cue is a
+                # control node's genuine trigger: one serves the clock again.)
                 hb.idle()
                 continue
             try:
-                self._measured = self.estimate_offset(
-                    self.ns.session,
-                    self.ns.keys,
-                    now,
-                    self.clock_link,
-                    exchanges=50,
-                    keep_fraction=m.clock.keep_fraction,
-                )
+                if not periodic:  # the run alone: clock.resync_s 0 never re-measures
+                    if not learn_run(self.ns.session, self.ns.keys, now, self.clock_link):
+                        log.warning("%s: no control node told its run", self.name)
+                else:
+                    self._measured = self.estimate_offset(
+                        self.ns.session,
+                        self.ns.keys,
+                        now,
+                        self.clock_link,
+                        exchanges=50,
+                        keep_fraction=m.clock.keep_fraction,
+                    )
             except Exception as exc:  # the CN may be gone; report and keep trying
                 log.warning("%s clock re-sync failed: %s", self.name, exc)
             finally:
