@@ -222,12 +222,12 @@ def test_lockstep_device_nodes_follow_a_control_node_that_starts_over() -> None:
     assert r.restart("cn", record=None) == "start_over"
     res = r.run(1.0)
     assert res.states == ["SAFE", "ARMED", "SAFE"], res.states
+    assert res.missed == dict.fromkeys(IGNITER.device_nodes, 1)
+    assert res.rx == dict.fromkeys(IGNITER.device_nodes, 99)
+    assert [_bad(r, dn) for dn in IGNITER.device_nodes] == [1] * len(r.devices)
     new = DEFAULT_START_NS + 250 * IGNITER.period_ns
     assert r.control.auth_run.epoch == new
     assert [d.auth_run.epoch for d in r.devices] == [new] * len(r.devices)
-    assert res.missed == dict.fromkeys(IGNITER.device_nodes, 1)
-    assert [_bad(r, dn) for dn in IGNITER.device_nodes] == [1] * len(r.devices)
-    assert res.rx == dict.fromkeys(IGNITER.device_nodes, 99)
 
 
 # -- a device node without periodic re-syncs --------------------------------------------

@@ -8,6 +8,9 @@ decoded, between :class:`~zplatform.control.loop.ControlLogic`, every
 protocol order of its own. Loop ``n`` (from 1, as live) runs at virtual time
 ``start_ns + (n - 1) * period_ns``. :func:`replay` feeds a live run's
 recorded inputs through a fresh control loop and checks its telemetry bit for bit.
+Its device nodes are bound to the commander's run as live ones
+(:class:`SimDevice`: learned by a clock hello, triggers through the live
+intake, another run's refused and counted as live).
 
 Contract: deterministic: nothing reads the wall clock (but
 :class:`SimResult`'s speed figure) and nothing iterates a set or hashes into
