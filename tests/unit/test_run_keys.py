@@ -17,7 +17,9 @@ from zplatform.control.intake import TriggerIntake
 from zplatform.control.loop import ControlLogic, DeviceLogic
 from zplatform.control.uplink import load_commands
 from zplatform.core.auth import NO_RUN, TAG_LEN, Channel, Run
-from zplatform.runtime.clocksync import ClockLink, ClockServer, learn_run
+from zplatform.node.device import ClockResync
+from zplatform.runtime.clocksync import ClockLink, ClockServer, estimate_offset
+from zplatform.runtime.process import StopFlag
 from zplatform.runtime.transport import KeySpace
 from zplatform.sim.lockstep import DEFAULT_START_NS, LockstepRunner, sim_keys
 
@@ -235,10 +237,11 @@ def test_lockstep_device_nodes_follow_a_control_node_that_starts_over() -> None:
 
 def test_a_device_node_without_resyncs_learns_a_new_run_by_a_hello_on_demand() -> None:
     """``clock.resync_s: 0``: no periodic re-sync. The control node has started
-    a new run (NEW) while dn0 is bound to the last one (OLD): its intake
-    refuses the new run's genuine trigger as stale and cues; the hello asked
-    on that cue, over zenoh in this process (the control node's clock
-    server), learns NEW; the new run's next trigger is admitted and runs."""
+    a new run (NEW) while dn0 is bound to the last one (OLD), whose end it
+    ran: its intake refuses the new run's genuine trigger as stale and cues
+    the node's re-sync thread, which asks the run with a hello over zenoh
+    in this process (the control node's clock server), learns NEW and
+    measures nothing; the new run's next trigger is admitted and runs."""
     mission = msgspec.structs.replace(
         IGNITER, clock=msgspec.structs.replace(IGNITER.clock, resync_s=0.0)
     )
@@ -249,28 +252,30 @@ def test_a_device_node_without_resyncs_learns_a_new_run_by_a_hello_on_demand() -
     intake: TriggerIntake[None] = TriggerIntake(
         mission, "dn0", keys.for_node("dn0").channel("cn_to_dn0", run), lambda: at(0)
     )
-    cues: list[int] = []
-    intake.on_other_run = lambda: cues.append(1)
     cn = ControlLogic(mission, keys=keys.for_node("cn"), epoch=NEW)
-    first = bytes(cn.begin(1, at(1))[0])
-    assert not intake.admit(Bytes(first), None) and cues == [1]
-    assert intake.take_counts() == (0, 0, 1)
+    space = KeySpace(mission.vehicle)
     session = lone_session()
     server = ClockServer(
-        session,
-        KeySpace(mission.vehicle),
-        lambda: at(1),
-        mission,
-        keys.for_node("cn"),
-        run=cn.auth_run,
+        session, space, lambda: at(1), mission, keys.for_node("cn"), run=cn.auth_run
     )
     link = ClockLink(mission, "dn0", keys.for_node("dn0"), run=run)
+    stop = StopFlag(install=False)
+    resync = ClockResync(
+        mission, "dn0", session, space, lambda: at(1), link, estimate_offset, stop, lambda: True
+    )
+    intake.on_other_run = resync.cue
+    resync.start()
     try:
-        assert learn_run(session, KeySpace(mission.vehicle), lambda: at(1), link)
+        assert not intake.admit(Bytes(bytes(cn.begin(1, at(1))[0])), None)
+        assert intake.take_counts() == (0, 0, 1)
+        assert resync.ended.wait(30.0), "the cue was never answered"
     finally:
+        stop.set()
+        resync.close()
         server.close()
         session.close()
-    assert run.epoch == NEW and link.refused == 0
+    assert run.epoch == NEW and link.refused == 0 and link.timeouts == 0
+    assert resync.attempts == 1 and resync.measured is None
     second = bytes(cn.begin(2, at(2))[0])
     assert intake.admit(Bytes(second), None)
     reply = dn.trigger(second, at(2), authentic=True)
