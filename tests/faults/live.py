@@ -823,9 +823,9 @@ def case_cn_sigstop(tmp: Path, quick: bool) -> CaseResult:
     return r
 
 
-def case_cn_restart(tmp: Path, quick: bool) -> CaseResult:
+def case_cn_restart(tmp: Path, quick: bool, *, mission: Path = MISSION) -> CaseResult:
     r = CaseResult("cn_kill9_restart")
-    with live(tmp) as c:
+    with live(tmp, mission=mission) as c:
         c.watch_events()
         c.spawn_node("dn0")
         c.spawn_node("cn")

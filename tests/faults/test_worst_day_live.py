@@ -68,3 +68,20 @@ def test_worst_day(case: str, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -
         pytest.skip(r.figures["skipped"])
     print(case, r.figures)
     assert r.ok, f"{case}: {r.failures()} figures={r.figures}"
+
+
+def test_a_device_node_without_resyncs_follows_a_restarted_control_nodes_new_run(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """cn_kill9_restart with ``clock.resync_s: 0`` (no periodic re-sync): the
+    restarted control node's new run still reaches dn0, whose intake cues a
+    hello on its first trigger (zplatform.node.device.ClockResync): dn0
+    follows it, as with re-syncs, instead of refusing every trigger of the
+    new run until DN_LOST."""
+    mission = tmp_path / "minimal.yaml"
+    mission.write_text(live.MISSION.read_text() + "clock:\n  resync_s: 0\n")
+    monkeypatch.setattr(live, "MEASURE_RATES", False)
+    (tmp_path / "run").mkdir()
+    r = live.case_cn_restart(tmp_path / "run", True, mission=mission)
+    print(r.figures)
+    assert r.ok, f"{r.failures()} figures={r.figures}"

@@ -6,17 +6,27 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import msgspec
+
 from tests.payload import Bytes
+from tests.zsession import lone_session
 from zplatform import load_mission
 from zplatform.control.failover import MirrorReader, Standby
 from zplatform.control.fencing import ASK, STATUS, ask_frame, new_nonce
 from zplatform.control.intake import TriggerIntake
 from zplatform.control.loop import ControlLogic, DeviceLogic
+from zplatform.control.uplink import load_commands
 from zplatform.core.auth import NO_RUN, TAG_LEN, Channel, Run
-from zplatform.sim.lockstep import sim_keys
+from zplatform.node.device import ClockResync
+from zplatform.runtime.clocksync import ClockLink, ClockServer, estimate_offset
+from zplatform.runtime.process import StopFlag
+from zplatform.runtime.transport import KeySpace
+from zplatform.sim.lockstep import DEFAULT_START_NS, LockstepRunner, sim_keys
 
 ROOT = Path(__file__).resolve().parents[2]
 FLIGHT = load_mission(ROOT / "configs" / "flight.yaml")
+IGNITER = load_mission(ROOT / "configs" / "recovery_igniter.yaml")
+IGNITER_CMDS = load_commands(ROOT / "configs" / "recovery_igniter.commands")
 KEYS = sim_keys(FLIGHT)
 assert KEYS is not None
 P = FLIGHT.period_ns
@@ -161,3 +171,112 @@ def test_a_genuine_trigger_of_another_run_cues_the_device_node_to_ask_the_run() 
     assert not intake.admit(Bytes(junk), None) and cues == [1]
     assert intake.admit(Bytes(_trigger(_cn(NEW), 1)), None) and cues == [1]
     assert intake.take_counts() == (0, 1, 1)
+
+
+# -- the lockstep runner binds its device nodes as live ---------------------------------
+
+
+def _bad(r: LockstepRunner, dn: str) -> int:
+    return int(r.devices[r.mission.device_nodes.index(dn)].dv.get(f"{dn}_bad_frames"))
+
+
+def test_lockstep_device_nodes_refuse_an_earlier_runs_trigger_and_the_flight_deploys() -> None:
+    """recovery_igniter in lockstep: each device node learns the commander's
+    run by a hello, as live. A genuine dn0 trigger of an earlier run (a later
+    loop, a fresh stamp: a replay of the last flight) reaches it mid-flight:
+    refused at its intake unanswered, never run, counted in
+    ``dn0_bad_frames`` as live counts it (the intake's stale), and it cues one
+    hello (the run may be new: it is not, and stays); a second one within
+    the second is counted and cues none. The flight deploys as planned."""
+    r = LockstepRunner(IGNITER, commands=IGNITER_CMDS)
+    assert [d.auth_run.epoch for d in r.devices] == [DEFAULT_START_NS] * len(r.devices)
+    r.run(1.0)
+    keys = sim_keys(IGNITER)
+    assert keys is not None
+    old = ControlLogic(IGNITER, keys=keys.for_node("cn"), epoch=DEFAULT_START_NS - 86_400 * 10**9)
+    replayed = bytes(old.begin(r.loop + 5000, r.clock.now_ns())[0])
+    dn0 = r.dns[0]
+    hellos = dn0.hellos
+    assert r.inject("dn0", replayed) is None
+    assert _bad(r, "dn0") == 1 and dn0.logic.last_loop == r.loop
+    assert dn0.hellos == hellos + 1 and dn0.run.epoch == DEFAULT_START_NS
+    assert r.inject("dn0", replayed) is None
+    assert _bad(r, "dn0") == 2 and dn0.hellos == hellos + 1
+    res = r.run(30.0)
+    assert res.states == ["SAFE", "ARMED", "FIRE", "DEPLOYED"], res.states
+    assert res.fault == "NONE" and res.errors == 0
+    assert set(res.missed.values()) == {0}
+    assert int(r.control.dv.get("dn0_bad_frames")) == 2  # the CN's copy, as telemetry
+    assert _bad(r, "dn1") == 0
+    told = [e.text for e in res.events if e.node == "dn0" and e.id == "bad_frame"]
+    assert told and "1 replayed" in told[0] and "another run's" in told[0], told
+
+
+def test_lockstep_device_nodes_follow_a_control_node_that_starts_over() -> None:
+    """A control node restarted in flight with no usable record starts over:
+    a new run. Each device node refuses the new run's first loop (another
+    run's: unanswered, so the control node counts it missed), asks the run
+    with a hello on that cue, and runs the new run's loops from the next."""
+    r = LockstepRunner(IGNITER, commands=IGNITER_CMDS)
+    r.run(1.5)
+    r.kill("cn")
+    r.run(1.0)
+    assert r.restart("cn", record=None) == "start_over"
+    res = r.run(1.0)
+    assert res.states == ["SAFE", "ARMED", "SAFE"], res.states
+    assert res.missed == dict.fromkeys(IGNITER.device_nodes, 1)
+    assert res.rx == dict.fromkeys(IGNITER.device_nodes, 99)
+    assert [_bad(r, dn) for dn in IGNITER.device_nodes] == [1] * len(r.devices)
+    new = DEFAULT_START_NS + 250 * IGNITER.period_ns
+    assert r.control.auth_run.epoch == new
+    assert [d.auth_run.epoch for d in r.devices] == [new] * len(r.devices)
+
+
+# -- a device node without periodic re-syncs --------------------------------------------
+
+
+def test_a_device_node_without_resyncs_learns_a_new_run_by_a_hello_on_demand() -> None:
+    """``clock.resync_s: 0``: no periodic re-sync. The control node has started
+    a new run (NEW) while dn0 is bound to the last one (OLD), whose end it
+    ran: its intake refuses the new run's genuine trigger as stale and cues
+    the node's re-sync thread, which asks the run with a hello over zenoh
+    in this process (the control node's clock server), learns NEW and
+    measures nothing; the new run's next trigger is admitted and runs."""
+    mission = msgspec.structs.replace(
+        IGNITER, clock=msgspec.structs.replace(IGNITER.clock, resync_s=0.0)
+    )
+    keys = sim_keys(mission)
+    assert keys is not None
+    run = Run(OLD)
+    dn = DeviceLogic(mission, "dn0", keys=keys.for_node("dn0"), run=run)
+    intake: TriggerIntake[None] = TriggerIntake(
+        mission, "dn0", keys.for_node("dn0").channel("cn_to_dn0", run), lambda: at(0)
+    )
+    cn = ControlLogic(mission, keys=keys.for_node("cn"), epoch=NEW)
+    space = KeySpace(mission.vehicle)
+    session = lone_session()
+    server = ClockServer(
+        session, space, lambda: at(1), mission, keys.for_node("cn"), run=cn.auth_run
+    )
+    link = ClockLink(mission, "dn0", keys.for_node("dn0"), run=run)
+    stop = StopFlag(install=False)
+    resync = ClockResync(
+        mission, "dn0", session, space, lambda: at(1), link, estimate_offset, stop, lambda: True
+    )
+    intake.on_other_run = resync.cue
+    resync.start()
+    try:
+        assert not intake.admit(Bytes(bytes(cn.begin(1, at(1))[0])), None)
+        assert intake.take_counts() == (0, 0, 1)
+        assert resync.ended.wait(30.0), "the cue was never answered"
+    finally:
+        stop.set()
+        resync.close()
+        server.close()
+        session.close()
+    assert run.epoch == NEW and link.refused == 0 and link.timeouts == 0
+    assert resync.attempts == 1 and resync.measured is None
+    second = bytes(cn.begin(2, at(2))[0])
+    assert intake.admit(Bytes(second), None)
+    reply = dn.trigger(second, at(2), authentic=True)
+    assert reply is not None and dn.triggered == 2 and Channel.run_of(reply) == NEW

@@ -285,7 +285,8 @@ class ClockConfig(_Struct):
         Meta(
             ge=0,
             description="Re-measure the offset in flight every this many seconds (0: never); "
-            "the drift goes to `dnX_clock_drift_ns`.",
+            "the drift goes to `dnX_clock_drift_ns`. Either way a genuine trigger of another "
+            "run makes the node ask the control node's run (a hello) at most once a second.",
         ),
     ] = 10.0
     # zplatform.runtime.clocksync.estimator_for builds the one named here.

@@ -1071,8 +1071,10 @@ class DeviceLogic:
         """Count the sync queries the driver's intake refused as they arrived
         (:class:`~zplatform.control.intake.TriggerIntake`), unanswered: ``size`` of a
         wrong size, ``bad`` with a bad tag, ``stale`` replayed (not newer
-        than the last trigger). Each is a bad frame (``dnX_bad_frames``);
-        they are evented together, at most once a second
+        than the last trigger, or another run's genuine trigger: an earlier
+        run's, zplatform.core.auth.Run). Each is a bad frame
+        (``dnX_bad_frames``, in the lockstep runner as live); they are
+        evented together, at most once a second
         (:class:`~zplatform.control.intake.RefusalLog`). Call it whenever the driver
         waited, with zeros too: the last counts of a burst go out then."""
         if size or bad or stale:
@@ -1084,7 +1086,8 @@ class DeviceLogic:
                 now_ns,
                 source=f"{sum(ev)} sync quer(ies)",
                 reason=f"refused as they arrived, unanswered: {ev[0]} of a wrong size, "
-                f"{ev[1]} with bad tags, {ev[2]} replayed (not newer than the last trigger)",
+                f"{ev[1]} with bad tags, {ev[2]} replayed (not newer than the last trigger, "
+                "or another run's)",
             )
 
     def probes_refused(

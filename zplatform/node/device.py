@@ -24,6 +24,7 @@ from __future__ import annotations
 import logging
 import threading
 import time
+from collections.abc import Callable
 
 import zenoh
 
@@ -39,25 +40,29 @@ from ..core.health import Heartbeat, Liveness, thread_deadlines_ns
 from ..errors import ClockSyncError, NodeError, RecordingError, TransportError, ZPlatformError
 from ..recorder import FlightRecorder, open_recorder, summary_line
 from ..runtime.bulk import NodeBulk, open_bulk
-from ..runtime.clocksync import ClockEstimate, ClockLink, estimator_for
+from ..runtime.clocksync import (
+    RELEARN_S,
+    ClockEstimate,
+    ClockLink,
+    Estimator,
+    estimator_for,
+    learn_run,
+)
 from ..runtime.process import StopFlag, realtime_setup
 from ..runtime.scheduler import GcGuard
 from ..runtime.sync import DeviceSync, SyncTrace
 from ..runtime.timebase import NodeClock
-from ..runtime.transport import EventPublisher, NodeSession, wait_for_nodes
+from ..runtime.transport import EventPublisher, KeySpace, NodeSession, wait_for_nodes
 from ..telemetry.summary import DnSummary, board_line, board_trouble
 from .health import NodeHealth
 
-__all__ = ["ClockTally", "DeviceNode", "run_device_node"]
+__all__ = ["ClockResync", "ClockTally", "DeviceNode", "run_device_node"]
 
 log = logging.getLogger("zplatform.dn")
 
 
 TIMEOUT_EVENT_EVERY_NS = 1_000_000_000
 """A ``clock_timeout`` event at most this often (the counter counts every one)."""
-RELEARN_S = 1.0
-"""At most one clock re-sync this often on a genuine trigger of another run
-(the control node may have started a new one; zplatform.core.auth.Run)."""
 
 
 class ClockTally:
@@ -123,6 +128,122 @@ class ClockTally:
         self._timeouts_seen = timeouts
 
 
+class ClockResync:
+    """A device node's re-sync thread (module doc): every ``clock.resync_s`` an
+    estimate (``estimate``, over ``link``), handed to the loop thread as
+    :attr:`measured`; and at once, at most once a
+    :data:`~zplatform.runtime.clocksync.RELEARN_S`, on :meth:`cue` (the trigger
+    intake's ``on_other_run``: a genuine trigger of another run), first
+    forgetting the run so that the exchange asks it with a hello. With
+    ``clock.resync_s`` 0 nothing is periodic and a cue asks the run alone
+    (:func:`~zplatform.runtime.clocksync.learn_run`), measuring nothing.
+    ``run_ended``: no periodic measurement while it says so (nobody serves
+    the clock between runs), but a cue is answered (a control node's trigger
+    came). :attr:`attempts` counts the attempts ended (each sets
+    :attr:`done` for the loop thread and :attr:`ended`). Never writes what the
+    loop uses; :meth:`close` stops it (at most 2 s)."""
+
+    def __init__(
+        self,
+        mission: Mission,
+        name: str,
+        session: zenoh.Session,
+        keys: KeySpace,
+        now_ns: Callable[[], int],
+        link: ClockLink,
+        estimate: Estimator,
+        stop: StopFlag,
+        run_ended: Callable[[], bool],
+    ) -> None:
+        self.name = name
+        self._resync_s = mission.clock.resync_s
+        self._keep = mission.clock.keep_fraction
+        self._session = session
+        self._keys = keys
+        self._now = now_ns
+        self.link = link
+        self._estimate = estimate
+        self._stop = stop
+        self._run_ended = run_ended
+        self._cue = threading.Event()  # set: ask now, the run may be new
+        self.heartbeat = Heartbeat("clock")
+        self.measured: ClockEstimate | None = None
+        """The newest estimate, for the loop thread (a reference swap)."""
+        self.done = False
+        """Set after every attempt; the loop thread clears it when it judges."""
+        self.attempts = 0
+        self.ended = threading.Event()
+        """Set after every attempt (tests wait on it)."""
+        self._thread = threading.Thread(target=self._loop, name="clock-resync", daemon=True)
+
+    def start(self) -> None:
+        self._thread.start()
+
+    def cue(self) -> None:
+        """Ask the run now (any thread, never blocks)."""
+        self._cue.set()
+
+    def close(self) -> None:
+        self._cue.set()  # wakes it to see the stop (the caller set it)
+        self._thread.join(timeout=2)
+
+    def _loop(self) -> None:
+        # Idle between measurements; during one it checks in at every clock
+        # read, i.e. every exchange (each waits at most its timeout).
+        hb = self.heartbeat
+        now_ns = self._now
+
+        def now() -> int:
+            hb.beat()
+            return now_ns()
+
+        hb.idle()
+        last_relearn = -RELEARN_S
+        periodic = self._resync_s > 0
+        while True:
+            nudged = self._cue.wait(self._resync_s if periodic else None)
+            if self._stop.is_set():
+                return
+            if nudged:
+                # A trigger of another run (intake.on_other_run): ask with a
+                # hello, whose answer tells the run, at most once a RELEARN_S
+                # (a replay of an earlier run's triggers costs one exchange
+                # series a RELEARN_S, never more).
+                wait_s = last_relearn + RELEARN_S - time.monotonic()
+                if wait_s > 0 and self._stop.event.wait(wait_s):
+                    return
+                self._cue.clear()
+                last_relearn = time.monotonic()
+                self.link.forget()
+            hb.beat()
+            if self._run_ended() and not nudged:
+                # Nobody serves the clock between runs: no measurement, and no
+                # "re-sync failed" at the end of every flight. (A cue is a
+                # control node's genuine trigger: one serves the clock again.)
+                hb.idle()
+                continue
+            try:
+                if not periodic:  # the run alone: clock.resync_s 0 never re-measures
+                    if not learn_run(self._session, self._keys, now, self.link):
+                        log.warning("%s: no control node told its run", self.name)
+                else:
+                    self.measured = self._estimate(
+                        self._session,
+                        self._keys,
+                        now,
+                        self.link,
+                        exchanges=50,
+                        keep_fraction=self._keep,
+                    )
+            except Exception as exc:  # the CN may be gone; report and keep trying
+                log.warning("%s clock re-sync failed: %s", self.name, exc)
+            finally:
+                hb.idle()
+            self.attempts += 1
+            self.done = True
+            self.ended.set()
+
+
 class DeviceNode:
     """One DN process. Build, :meth:`start` (blocks for clock sync), :meth:`run`.
 
@@ -169,22 +290,18 @@ class DeviceNode:
         self._tally = ClockTally(self.dv, name, self.clock_link, self.logic.events)
         self._bound_ns = round(mission.clock.offset_bound_ms * 1e6)
         self.drift_ns = 0
-        # The re-sync thread's newest measurement, for the loop thread to
-        # judge (a reference swap; the thread never writes what the loop uses).
-        self._measured: ClockEstimate | None = None
-        self._resynced = False  # set by the re-sync thread after every attempt
         self.loops = 0
         self.sync: DeviceSync | None = None
         self._sync_trace = sync_trace
         self.bulk: NodeBulk | None = None
         self._events: EventPublisher | None = None
         self.flight_recorder: FlightRecorder | None = None
-        self._resync: threading.Thread | None = None
-        self._relearn = threading.Event()  # set: re-sync now, the run may be new
+        # The re-sync thread (ClockResync), from start() on: its newest
+        # measurement is a reference swap the loop thread judges.
+        self._resync: ClockResync | None = None
         # Every thread this node runs checks in (zplatform.core.health).
         self.liveness = Liveness(thread_deadlines_ns(mission))
         self._loop_hb = self.liveness.add(Heartbeat("loop"))
-        self._resync_hb = Heartbeat("clock")
         board_hb = getattr(self.logic.board, "heartbeat", None)
         if isinstance(board_hb, Heartbeat):  # a board with an I/O thread of its own
             self.liveness.add(board_hb)
@@ -259,7 +376,18 @@ class DeviceNode:
         # A genuine trigger of another run: the control node may have started
         # a new one; the re-sync thread asks the run now (at most once a
         # RELEARN_S), not at its next re-sync.
-        trigger_intake.on_other_run = self._relearn.set
+        self._resync = ClockResync(
+            m,
+            self.name,
+            s,
+            keys,
+            self.clock.now_ns,
+            self.clock_link,
+            self.estimate_offset,
+            self.stop,
+            lambda: self.logic.run_ended,
+        )
+        trigger_intake.on_other_run = self._resync.cue
         self.sync = DeviceSync(
             s,
             keys,
@@ -305,10 +433,13 @@ class DeviceNode:
             channel(self._keys, f"events_{self.name}", self.auth_run),
             recorder=self.flight_recorder,
         )
-        if m.clock.resync_s > 0:
-            self.liveness.add(self._resync_hb)
-            self._resync = threading.Thread(target=self._resync_loop, daemon=True)
+        # Without periodic re-syncs (clock.resync_s: 0) the thread still
+        # answers the intake's cue, with hellos only: the run may be new.
+        if m.clock.resync_s > 0 or self._keys is not None:
+            self.liveness.add(self._resync.heartbeat)
             self._resync.start()
+        else:
+            self._resync = None  # no re-sync, and no run to learn
         self.ns.announce()
         return est.offset_ns
 
@@ -332,62 +463,13 @@ class DeviceNode:
                     raise
             self.stop.event.wait(0.1)
 
-    def _resync_loop(self) -> None:
-        # Background: measure, never step the clock, never write what the
-        # loop uses: the loop thread judges each measurement (_take_measured).
-        # Idle between measurements; during one it checks in at every clock
-        # read, i.e. every exchange (each waits at most its timeout).
-        m = self.mission
-        hb = self._resync_hb
-        now_ns = self.clock.now_ns
-
-        def now() -> int:
-            hb.beat()
-            return now_ns()
-
-        hb.idle()
-        last_relearn = -RELEARN_S
-        while True:
-            nudged = self._relearn.wait(m.clock.resync_s)
-            if self.stop.is_set():
-                return
-            if nudged:
-                # A trigger of another run (intake.on_other_run): ask with a
-                # hello, whose answer tells the run, at most once a RELEARN_S
-                # (a replay of an earlier run's triggers costs one exchange
-                # series a RELEARN_S, never more).
-                wait_s = last_relearn + RELEARN_S - time.monotonic()
-                if wait_s > 0 and self.stop.event.wait(wait_s):
-                    return
-                self._relearn.clear()
-                last_relearn = time.monotonic()
-                self.clock_link.forget()
-            hb.beat()
-            if self.logic.run_ended:
-                # Nobody serves the clock between runs: no measurement, and no
-                # "re-sync failed" at the end of every flight.
-                hb.idle()
-                continue
-            try:
-                self._measured = self.estimate_offset(
-                    self.ns.session,
-                    self.ns.keys,
-                    now,
-                    self.clock_link,
-                    exchanges=50,
-                    keep_fraction=m.clock.keep_fraction,
-                )
-            except Exception as exc:  # the CN may be gone; report and keep trying
-                log.warning("%s clock re-sync failed: %s", self.name, exc)
-            finally:
-                hb.idle()
-            self._resynced = True
-
     def _take_measured(self, t_ns: int) -> None:
         """Loop thread: accept or refuse the re-sync thread's newest estimate
         (module doc), and count the clock replies it refused."""
-        self._resynced = False
-        est, self._measured = self._measured, None
+        rs = self._resync
+        assert rs is not None
+        rs.done = False
+        est, rs.measured = rs.measured, None
         self._tally.count(t_ns)
         if est is None:
             return
@@ -447,7 +529,8 @@ class DeviceNode:
                 loop_hb.beat_at(m0)
                 if health is not None:  # lateness: from the CN's scheduled start
                     health.note(t - logic.last_t_ns)
-                if self._resynced:  # a re-sync attempt ended: judge it here
+                resync = self._resync
+                if resync is not None and resync.done:  # an attempt ended: judge it here
                     self._take_measured(t)
                 rec = self.flight_recorder
                 if rec is not None:  # its counters into the next reply
@@ -502,8 +585,7 @@ class DeviceNode:
         if self.bulk is not None:
             self.bulk.close()
         if self._resync is not None:
-            self._relearn.set()  # wakes it to see the stop
-            self._resync.join(timeout=2)
+            self._resync.close()
         if self.watchdog is not None:
             # A loop that ended in an exception leaves the watchdog armed.
             self.watchdog.close(clean=self._stopped_cleanly)

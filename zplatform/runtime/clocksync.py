@@ -66,6 +66,7 @@ __all__ = [
     "estimate_offset",
     "estimate_offset_zenoh",
     "estimator_for",
+    "learn_run",
 ]
 
 log = logging.getLogger("zplatform.clocksync")
@@ -83,6 +84,12 @@ times and its query's, may be: a day. A host clock that is merely not
 synchronised (a zone set wrong is hours off) is nearer; a stamp beyond is a
 key holder's or a broken clock's, refused (:class:`ClockResponder`,
 :class:`ClockLink`)."""
+RELEARN_S = 1.0
+"""At most one hello exchange this often on a genuine trigger of another run
+(the control node may have started a new one, zplatform.core.auth.Run): a
+device node's re-sync thread, live, and the lockstep runner, in virtual time
+(a replay of an earlier run's triggers costs one exchange series this often,
+never more)."""
 ANSWERED = 256
 """Nonces of the queries it answered a :class:`ClockResponder` keeps per
 asker, to refuse a replayed query unanswered (a start-up series is 200)."""
@@ -470,6 +477,28 @@ def _exchange(
             return Exchange(t1, t2, t3, t4_cb, t4, stamps)
     link.timeouts += 1
     return None
+
+
+def learn_run(
+    session: zenoh.Session,
+    keys: KeySpace,
+    now_ns: Callable[[], int],
+    link: ClockLink,
+    *,
+    tries: int = 3,
+    timeout_s: float = 1.0,
+) -> bool:
+    """Ask the control node's run with hellos (:meth:`ClockLink.forget`, module
+    doc) until one is answered, at most ``tries`` exchanges: True when one
+    was (the run it names is ``link.run`` now), False when none was (each
+    counted in ``link``). Measures nothing: a device node that never
+    re-measures its clock (``clock.resync_s: 0``) still follows a control
+    node that starts a new run. Blocks at most ``tries * timeout_s``."""
+    for _ in range(tries):
+        link.forget()
+        if _exchange(session, keys, link, now_ns, timeout_s) is not None:
+            return True
+    return False
 
 
 def estimate_offset(

@@ -8,6 +8,9 @@ decoded, between :class:`~zplatform.control.loop.ControlLogic`, every
 protocol order of its own. Loop ``n`` (from 1, as live) runs at virtual time
 ``start_ns + (n - 1) * period_ns``. :func:`replay` feeds a live run's
 recorded inputs through a fresh control loop and checks its telemetry bit for bit.
+Its device nodes are bound to the commander's run as live ones
+(:class:`SimDevice`: learned by a clock hello, triggers through the live
+intake, another run's refused and counted as live).
 
 Contract: deterministic: nothing reads the wall clock (but
 :class:`SimResult`'s speed figure) and nothing iterates a set or hashes into
@@ -22,6 +25,7 @@ The order of a loop and why no loop is final: docs/architecture.md#drivers.
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -31,12 +35,12 @@ import numpy as np
 from ..boards import Board
 from ..config import BulkChannelConfig, Mission
 from ..control.failover import Standby
-from ..control.intake import CnRefusals
+from ..control.intake import CnRefusals, TriggerIntake
 from ..control.loop import ControlLogic, DeviceLogic
 from ..control.params import MemorySaver
 from ..control.role import Command, ControlRole, Probe, Release, Resume, Take, check_recorded
 from ..control.uplink import ScriptCommand
-from ..core.auth import TAG_LEN, KeySet
+from ..core.auth import TAG_LEN, KeySet, Run, channel
 from ..core.codec import BundleEncoder, RegionCodec
 from ..core.datavector import DataVector, Layout
 from ..core.events import Event
@@ -44,7 +48,7 @@ from ..core.health import BLOCK_SIZE, HealthPort
 from ..core.messages import wildcard_sync_for
 from ..errors import NodeError, RecordingError, ZPlatformError
 from ..ground.logic import GroundLogic
-from ..runtime.clocksync import ClockLink, ClockResponder
+from ..runtime.clocksync import RELEARN_S, ClockLink, ClockResponder
 from ..runtime.timebase import VirtualClock
 from ..telemetry.logs import CsvLogger
 from ..telemetry.records import CommandOutcome, EventRecord
@@ -216,6 +220,61 @@ class _SimBulkPort:
 # the runner
 
 
+class _Query:
+    """A sync query as an intake reads it (:class:`~zplatform.control.intake.Payload`)."""
+
+    __slots__ = ("data",)
+
+    def __init__(self, data: bytes | bytearray | memoryview) -> None:
+        self.data = data
+
+    def __len__(self) -> int:
+        return len(self.data)
+
+    def to_bytes(self) -> bytes:
+        return bytes(self.data)
+
+
+class _SimTriggerIntake(TriggerIntake[None]):
+    """A device node's live trigger intake (size, tag, run), but for
+    freshness: lockstep delivers each trigger once, in order, and nothing
+    replays, but two commanders of a failover stamp one virtual instant (as
+    a restart's warm-up and its next loop do), which live clocks never do,
+    so the newest-stamp rule would refuse the genuine second one. Whether a
+    trigger runs is the logic's (:meth:`DeviceLogic.trigger`: loop, term)."""
+
+    def _fresh(self, body: memoryview, handle: None) -> bool:
+        return True
+
+
+class SimDevice:
+    """What a lockstep device node has around its logic, as live
+    (zplatform.node.device): the run it learned (shared by its logic, its
+    trigger intake and its clock link), its trigger intake, and its end of the
+    clock exchange, which it asks again on a genuine trigger of another run
+    (the intake's cue), at most once a :data:`~zplatform.runtime.clocksync.RELEARN_S`
+    of virtual time."""
+
+    def __init__(
+        self, logic: DeviceLogic, run: Run, keys: KeySet | None, now_ns: Callable[[], int]
+    ) -> None:
+        self.logic = logic
+        self.run = run
+        self.link = ClockLink(logic.mission, logic.node, keys, run=run)
+        self.intake = _SimTriggerIntake(
+            logic.mission, logic.node, channel(keys, f"cn_to_{logic.node}", run), now_ns
+        )
+        self.cued = False
+        self.intake.on_other_run = self._cue
+        self.asked_ns: int | None = None
+        """Virtual time of its last hello on a cue (None: none yet)."""
+        self.hellos = 0
+        """Clock exchanges it asked (its start's included)."""
+
+    def _cue(self) -> None:
+        self.cued = True
+
+
 class SimControlNode:
     """One control node of a lockstep run: its logic and its
     :class:`~zplatform.control.role.ControlRole`; the faults a test put on it
@@ -230,6 +289,8 @@ class SimControlNode:
         self.logic = logic
         self.keys = keys
         self.role = ControlRole(logic.mission, logic, keys)
+        self.clock = ClockResponder(logic.mission, keys, logic.auth_run)
+        """Its clock server's sans-IO end, in its run (it answers while it commands)."""
         if follows:
             self.role.follow_from_start()
         self.state_h = logic.dv.handle("cn_state")
@@ -327,10 +388,16 @@ class LockstepRunner:
         if self.world is not None:
             for n in self.world.nodes:
                 boards.setdefault(n, self.world.board(n))
-        self.devices = [
-            DeviceLogic(mission, dn, board=boards.get(dn), keys=keys and keys.for_node(dn))
-            for dn in mission.device_nodes
-        ]
+        # Each device node bound to the run it learns by its clock exchange
+        # with the commander (a hello, in virtual time), as live.
+        self.dns: list[SimDevice] = []
+        for dn in mission.device_nodes:
+            run = Run()
+            dn_keys = keys and keys.for_node(dn)
+            dl = DeviceLogic(mission, dn, board=boards.get(dn), keys=dn_keys, run=run)
+            self.dns.append(SimDevice(dl, run, dn_keys, self.clock.now_ns))
+        self.devices = [d.logic for d in self.dns]
+        """Every device node's logic, in the mission's order."""
         # The ground side: the live ground node's logic, in virtual time.
         ground_keys = keys and keys.for_node("gn" if mission.has_ground else "tool")
         self.ground = GroundLogic(mission, keys=ground_keys, script=commands or [])
@@ -362,6 +429,8 @@ class LockstepRunner:
             if n not in logics:
                 raise ValueError(f"health given for {n!r}, which is not a cn or device node")
             logics[n].attach_health(hp)
+        for d in self.dns:  # as live, before the first trigger
+            self._hello(d, 1)
 
     @property
     def saver(self) -> MemorySaver:
@@ -395,6 +464,57 @@ class LockstepRunner:
         query, nonce = link.query(t)
         reply = server.answer(query, t, t)
         assert reply is not None and link.check(reply, nonce) is not None
+
+    def _hello(self, d: SimDevice, loop: int) -> bool:
+        """Device node ``d`` asks the clock for the run with a hello
+        (zplatform.runtime.clocksync), as live: asked of every control node
+        that serves the clock (those that command, run in ``loop`` and reach
+        it), the first valid answer taken. Whether one answered."""
+        t = self.clock.now_ns()
+        d.link.forget()
+        query, nonce = d.link.query(t)
+        d.hellos += 1
+        for c in self.cns.values():
+            if c.standby is not None or not c.runs(loop) or not self.reach(c.name, d.logic.node):
+                continue
+            reply = c.clock.answer(query, t, t)
+            if reply is not None and d.link.check(reply, nonce) is not None:
+                return True
+        return False
+
+    def _serve(
+        self, d: SimDevice, payload: bytes | bytearray | memoryview, t: int, loop: int
+    ) -> tuple[bool, bytearray | None]:
+        """Sync query ``payload`` reaches device node ``d`` at ``t``, as live
+        (zplatform.runtime.sync.DeviceSync): its intake (refused: unanswered,
+        counted in the logic, ``dnX_bad_frames``), then its logic. Returns
+        ``(answered, reply)`` (an answered None is an error reply). A genuine
+        trigger of another run cues a hello, at most once a RELEARN_S."""
+        dev = d.logic
+        data = d.intake.check(_Query(payload), None)
+        reply = None
+        if data is not None:
+            reply = dev.trigger(data, t, authentic=d.intake.authenticates)
+        size, bad, stale = d.intake.take_counts()
+        dev.refused(size, bad, stale, t)
+        if d.cued:
+            d.cued = False
+            if d.asked_ns is None or t - d.asked_ns >= round(RELEARN_S * 1e9):
+                d.asked_ns = t
+                self._hello(d, loop)
+        return data is not None, reply
+
+    def inject(self, node: str, payload: bytes | bytearray | memoryview) -> bytearray | None:
+        """A sync query for device node ``node`` from the network, outside
+        the control nodes' loops (a test's replayed or forged frame), at the
+        current virtual time: taken as any trigger is (:meth:`_serve`).
+        Returns the reply, or None when it was refused (unanswered, or
+        answered with an error); a loop it starts is run."""
+        d = self.dns[self.mission.device_nodes.index(node)]
+        answered, reply = self._serve(d, payload, self.clock.now_ns(), self.loop + 1)
+        if answered and d.logic.triggered:
+            d.logic.run(self.clock.now_ns())
+        return reply
 
     def stop(self, node: str, loops: int) -> None:
         """Control node ``node`` is frozen for the next ``loops`` loops (as
@@ -445,7 +565,9 @@ class LockstepRunner:
                 return "follow"
         frames = logic.begin(0, t)  # the warm-up: answered, never run
         for i in reached:
-            logic.reply(i, self.devices[i].trigger(frames[i], t))
+            answered, warm = self._serve(self.dns[i], frames[i], t, self.loop + 1)
+            if answered:
+                logic.reply(i, warm)
         logic.reset_sync_counters()
         logic.events.drain()
         recorded = check_recorded(logic, keys, held) if held is not None else None
@@ -539,10 +661,15 @@ class LockstepRunner:
         term = cn.term
         if self._bundle is not None:  # as live: one wildcard query, every DN takes its frame
             bundle = self._bundle.pack(frames)
-        for i, dev in enumerate(self.devices):
+        for i, d in enumerate(self.dns):
+            dev = d.logic
             if dev.node in lost or not reach(c.name, dev.node):
                 continue
-            reply = dev.trigger(bundle if self._bundle is not None else frames[i], t)
+            answered, reply = self._serve(
+                d, bundle if self._bundle is not None else frames[i], t, loop
+            )
+            if not answered:  # refused at its intake: the query goes unanswered
+                continue
             if dev.triggered:
                 dev.run(t)
                 if term:
