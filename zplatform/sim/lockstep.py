@@ -8,18 +8,15 @@ decoded, between :class:`~zplatform.control.loop.ControlLogic`, every
 protocol order of its own. Loop ``n`` (from 1, as live) runs at virtual time
 ``start_ns + (n - 1) * period_ns``. :func:`replay` feeds a live run's
 recorded inputs through a fresh control loop and checks its telemetry bit for bit.
-Its device nodes are bound to the commander's run as live ones
-(:class:`SimDevice`: learned by a clock hello, triggers through the live
-intake, another run's refused and counted as live).
+Device nodes are bound to the commander's run as live (:class:`SimDevice`).
 
 Contract: deterministic: nothing reads the wall clock (but
 :class:`SimResult`'s speed figure) and nothing iterates a set or hashes into
 the output, so the same mission and command script give a byte-identical CSV.
 No frame is lost or late unless a test says so (:attr:`LockstepRunner.lost`,
 ``kill``, ``stop``, ``partition``, ``restart``); no loop is flagged final, so
-a runner may be run on. Everything runs on the calling thread.
-
-The order of a loop and why no loop is final: docs/architecture.md#drivers.
+a runner may be run on. Everything runs on the calling thread. The order of
+a loop and why no loop is final: docs/architecture.md#drivers.
 """
 
 from __future__ import annotations
