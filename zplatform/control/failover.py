@@ -304,12 +304,10 @@ class Standby:
         if self.blind(slot):
             if not self._blind:
                 self._blind = True
-                self.events.emit(
-                    EV.CN_TAKEOVER_HELD,
-                    self.origin + (slot - 1) * self._period,
-                    node=self.name,
-                    loop=self.mirrored,
-                    why=f"the last mirror, of loop {self.mirrored}, is {self.missing(slot)} "
+                self._held_event(
+                    self.origin,
+                    slot,
+                    f"the last mirror, of loop {self.mirrored}, is {self.missing(slot)} "
                     f"loops old (a takeover needs one at most {self.max_age} old): taking "
                     "command from it would turn the vehicle's state back; following again "
                     "from the next mirror",
@@ -318,16 +316,25 @@ class Standby:
         if not next_term(self.term):
             if not self._held:
                 self._held = True
-                self.events.emit(
-                    EV.CN_TAKEOVER_HELD,
-                    self.origin + (slot - 1) * self._period,
-                    node=self.name,
-                    loop=self.mirrored,
-                    why=f"term {self.term} is the last a node can run: there is no next "
+                self._held_event(
+                    self.origin,
+                    slot,
+                    f"term {self.term} is the last a node can run: there is no next "
                     "term to ask for",
                 )
             return False
         return slot >= self._next_ask
+
+    def _held_event(self, origin: int, slot: int, why: str) -> None:
+        """The ``cn_takeover_held`` event of ``slot`` saying ``why`` (the
+        callers keep it to once per cause)."""
+        self.events.emit(
+            EV.CN_TAKEOVER_HELD,
+            origin + (slot - 1) * self._period,
+            node=self.name,
+            loop=self.mirrored,
+            why=why,
+        )
 
     def _event_refusals(self, slot: int) -> None:
         """Mirrors and probe replies refused since the last slot, as one
