@@ -14,7 +14,15 @@ import msgspec
 
 from ..errors import ControlError, ZPlatformError
 
-__all__ = ["Board", "BoardError", "BoardHealth", "HealthCounters", "ManagedBoard", "PinCounts", "check_pin"]
+__all__ = [
+    "Board",
+    "BoardError",
+    "BoardHealth",
+    "HealthCounters",
+    "ManagedBoard",
+    "PinCounts",
+    "check_pin",
+]
 
 
 def check_pin(kind: str, pin: int, count: int) -> int:
@@ -24,7 +32,6 @@ def check_pin(kind: str, pin: int, count: int) -> int:
     if not 0 <= pin < count:
         raise ControlError(f"{kind} pin {pin} out of range (board has {count})")
     return pin
-
 
 
 class PinCounts:
@@ -42,6 +49,7 @@ class PinCounts:
     @property
     def analog_pins(self) -> int:
         return self._n_ana
+
 
 @runtime_checkable
 class Board(Protocol):
