@@ -305,8 +305,7 @@ class Standby:
             if not self._blind:
                 self._blind = True
                 self._held_event(
-                    self.origin,
-                    slot,
+                    self.origin + (slot - 1) * self._period,
                     f"the last mirror, of loop {self.mirrored}, is {self.missing(slot)} "
                     f"loops old (a takeover needs one at most {self.max_age} old): taking "
                     "command from it would turn the vehicle's state back; following again "
@@ -317,20 +316,19 @@ class Standby:
             if not self._held:
                 self._held = True
                 self._held_event(
-                    self.origin,
-                    slot,
+                    self.origin + (slot - 1) * self._period,
                     f"term {self.term} is the last a node can run: there is no next "
                     "term to ask for",
                 )
             return False
         return slot >= self._next_ask
 
-    def _held_event(self, origin: int, slot: int, why: str) -> None:
-        """The ``cn_takeover_held`` event of ``slot`` saying ``why`` (the
+    def _held_event(self, t_ns: int, why: str) -> None:
+        """The ``cn_takeover_held`` event at ``t_ns`` saying ``why`` (the
         callers keep it to once per cause)."""
         self.events.emit(
             EV.CN_TAKEOVER_HELD,
-            origin + (slot - 1) * self._period,
+            t_ns,
             node=self.name,
             loop=self.mirrored,
             why=why,
@@ -405,13 +403,7 @@ class Standby:
         self._next_ask = slot + retry
         if not self._held:
             self._held = True
-            self.events.emit(
-                EV.CN_TAKEOVER_HELD,
-                now_ns,
-                node=self.name,
-                loop=self.mirrored,
-                why=self._why_held(answered, answered, driven),
-            )
+            self._held_event(now_ns, self._why_held(answered, answered, driven))
         return False
 
     def decide(self, slot: int, now_ns: int) -> Decision:
@@ -438,12 +430,8 @@ class Standby:
             self._next_ask = slot + self._retry_in(answered)
         if self._kind == ASK and not self._held:
             self._held = True
-            self.events.emit(
-                EV.CN_TAKEOVER_HELD,
-                now_ns,
-                node=self.name,
-                loop=self.mirrored,
-                why=self._why_held(answered, granted, [a for a in answered if not a.granted]),
+            self._held_event(
+                now_ns, self._why_held(answered, granted, [a for a in answered if not a.granted])
             )
         return Decision.WAIT
 
