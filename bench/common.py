@@ -15,7 +15,7 @@ import socket
 import subprocess
 import sys
 import time
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from importlib import metadata
 from pathlib import Path
 from typing import Any
@@ -233,3 +233,87 @@ class TmPutStamps:
         if name == "tm.put":
             self.mono[n] = time.monotonic_ns()
             self.ns[n] = self._now()
+
+
+# -- a bench's own child processes: JSON lines both ways ----------------------
+
+#: What starts a child's protocol lines on its stdout (libraries may print there too).
+TAG = "@@"
+
+
+def two_node_mission(name: str, cn_port: int, dn_port: int) -> str:
+    """The mission text of a two-node bench (a CN and ``dn0`` on loopback TCP,
+    one one-byte region): what the child processes of ``bench.shm`` and
+    ``bench.intrahost`` load."""
+    return (
+        f"mission: {name}\n"
+        "nodes:\n"
+        f"  cn: {{listen: ['tcp/127.0.0.1:{cn_port}']}}\n"
+        f"  dn0: {{listen: ['tcp/127.0.0.1:{dn_port}'], connect: ['tcp/127.0.0.1:{cn_port}']}}\n"
+        "regions:\n  cn_to_dn0:\n    - {name: x, type: u8}\n"
+    )
+
+
+def say(obj: dict[str, Any]) -> None:
+    """In a child: write ``obj`` as one tagged JSON line to stdout and flush."""
+    sys.stdout.write(TAG + json.dumps(obj) + "\n")
+    sys.stdout.flush()
+
+
+def commands() -> Iterator[dict[str, Any]]:
+    """In a child: the parent's commands, one JSON object per non-blank
+    stdin line (blocks for each; ends at EOF)."""
+    for line in sys.stdin:
+        if line.strip():
+            yield json.loads(line)
+
+
+def next_command() -> dict[str, Any]:
+    """In a child: the next command on stdin (blocks), ``{"cmd": "quit"}`` at EOF.
+    Reads the same stream as :func:`commands` (stdin is its own iterator)."""
+    for line in sys.stdin:
+        if line.strip():
+            out: dict[str, Any] = json.loads(line)
+            return out
+    return {"cmd": "quit"}
+
+
+class Child:
+    """A bench's child process (``python -m MODULE *args``, cwd the repo root,
+    ``ZP_BENCH_MISSION`` set to ``mission_text``) spoken to in JSON lines:
+    :meth:`send` a command, :meth:`read` its next tagged reply, :meth:`close`."""
+
+    def __init__(self, module: str, args: list[str], mission_text: str) -> None:
+        self.module = module
+        self.p = subprocess.Popen(
+            [sys.executable, "-m", module, *args],
+            cwd=REPO_ROOT,
+            stdin=subprocess.PIPE,
+            stdout=subprocess.PIPE,
+            env=dict(os.environ, ZP_BENCH_MISSION=mission_text, PYTHONUNBUFFERED="1"),
+            text=True,
+        )
+
+    def send(self, obj: dict[str, Any]) -> None:
+        """Write one command line (blocks only if the child's stdin pipe is full)."""
+        assert self.p.stdin is not None
+        self.p.stdin.write(json.dumps(obj) + "\n")
+        self.p.stdin.flush()
+
+    def read(self) -> dict[str, Any]:
+        """The next tagged line, decoded (blocks); RuntimeError if the child exits first."""
+        assert self.p.stdout is not None
+        for line in self.p.stdout:
+            if line.startswith(TAG):
+                out: dict[str, Any] = json.loads(line[len(TAG) :])
+                return out
+        raise RuntimeError(f"{self.module} child exited ({self.p.wait()})")
+
+    def close(self) -> None:
+        """Ask the child to quit; kill it if it has not within 10 s. Reaps it."""
+        try:
+            self.send({"cmd": "quit"})
+            self.p.wait(timeout=10)
+        except Exception:
+            self.p.kill()
+            self.p.wait()

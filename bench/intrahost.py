@@ -45,14 +45,23 @@ import ctypes
 import json
 import os
 import resource
-import subprocess
 import sys
 import time
 from typing import Any
 
 import numpy as np
 
-from bench.common import REPO_ROOT, bench_argparser, free_port, summarize, write_result
+from bench.common import (
+    Child,
+    bench_argparser,
+    commands,
+    free_port,
+    next_command,
+    say,
+    summarize,
+    two_node_mission,
+    write_result,
+)
 
 SIZES = {"256B": 256, "325KB": 325_000}
 VARIANTS = ("carrier", "raw_iceoryx2", "raw_iceoryx2_waitset", "raw_zenoh")
@@ -62,28 +71,12 @@ ROUNDS = 4
 PER_ROUND = 250  # exchanges per round, size and variant
 DEADLINE_S = 0.002  # the zenoh sync's deadline; a later reply is a miss
 WAIT_S = 1.0  # how long an exchange waits before it is counted lost
-TAG = "@@"
 PREFIX = f"zpbench{os.getpid()}_"  # the orchestrator's pid, inherited by the children
-
-
-def _mission_text(cn_port: int, dn_port: int) -> str:
-    return (
-        "mission: bench_intrahost\n"
-        "nodes:\n"
-        f"  cn: {{listen: ['tcp/127.0.0.1:{cn_port}']}}\n"
-        f"  dn0: {{listen: ['tcp/127.0.0.1:{dn_port}'], connect: ['tcp/127.0.0.1:{cn_port}']}}\n"
-        "regions:\n  cn_to_dn0:\n    - {name: x, type: u8}\n"
-    )
 
 
 def _cpu_s() -> float:
     ru = resource.getrusage(resource.RUSAGE_SELF)
     return ru.ru_utime + ru.ru_stime
-
-
-def _say(obj: dict[str, Any]) -> None:
-    sys.stdout.write(TAG + json.dumps(obj) + "\n")
-    sys.stdout.flush()
 
 
 def _iox_services(prefix: str, name: str) -> tuple[Any, Any, Any, Any, Any]:
@@ -137,8 +130,8 @@ def _responder(variant: str, mission_text: str) -> None:
         server = IntraHostServer(
             link_names("bench", "rocket", os.getppid(), "cn", "dn0"), big, big, prefix=PREFIX
         )
-        _say({"ready": True})
-        for cmd in _commands():
+        say({"ready": True})
+        for cmd in commands():
             if cmd["cmd"] == "quit":
                 break
             c0, served = _cpu_s(), 0
@@ -152,7 +145,7 @@ def _responder(variant: str, mission_text: str) -> None:
                     buf[:] = reply[n]  # the reply's encode, into the loan
                     server.send()
                 served += 1
-            _say({"cpu_s": _cpu_s() - c0, "served": served})
+            say({"cpu_s": _cpu_s() - c0, "served": served})
         server.close()
     elif variant.startswith("raw_iceoryx2"):
         iox, _node, svc, req_ev, res_ev = _iox_services(PREFIX, f"bench/{os.getppid()}/{variant}")
@@ -162,8 +155,8 @@ def _responder(variant: str, mission_text: str) -> None:
         wait = iox.Duration.from_secs_f64(WAIT_S)
         block = _blocker(iox, listener, variant.endswith("waitset"))
         src = {n: (ctypes.c_char * n).from_buffer(bytearray(b)) for n, b in reply.items()}
-        _say({"ready": True})
-        for cmd in _commands():
+        say({"ready": True})
+        for cmd in commands():
             if cmd["cmd"] == "quit":
                 break
             c0, served = _cpu_s(), 0
@@ -183,7 +176,7 @@ def _responder(variant: str, mission_text: str) -> None:
                 notifier.notify()
                 del active
                 served += 1
-            _say({"cpu_s": _cpu_s() - c0, "served": served})
+            say({"cpu_s": _cpu_s() - c0, "served": served})
     else:
         import zenoh
 
@@ -203,72 +196,20 @@ def _responder(variant: str, mission_text: str) -> None:
         qbl = session.declare_queryable(
             "bench/intrahost/q", zenoh.handlers.Callback(on_query, indirect=False)
         )
-        _say({"ready": True})
-        for cmd in _commands():
+        say({"ready": True})
+        for cmd in commands():
             if cmd["cmd"] == "quit":
                 break
             c0, k0 = _cpu_s(), count[0]
             # The callback serves; this thread waits for the orchestrator.
-            _say({"ack": True})
-            _commands_next()
-            _say({"cpu_s": _cpu_s() - c0, "served": count[0] - k0})
+            say({"ack": True})
+            next_command()
+            say({"cpu_s": _cpu_s() - c0, "served": count[0] - k0})
         qbl.undeclare()
         session.close()
 
 
-_STDIN: Any = None
-
-
-def _commands() -> Any:
-    global _STDIN
-    _STDIN = iter(sys.stdin)
-    for line in _STDIN:
-        if line.strip():
-            yield json.loads(line)
-
-
-def _commands_next() -> dict[str, Any]:
-    for line in _STDIN:
-        if line.strip():
-            out: dict[str, Any] = json.loads(line)
-            return out
-    return {"cmd": "quit"}
-
-
 # -- the control node's end ------------------------------------------------------
-
-
-class _Proc:
-    def __init__(self, variant: str, mission_text: str) -> None:
-        self.p = subprocess.Popen(
-            [sys.executable, "-m", "bench.intrahost", "--role", "respond", "--variant", variant],
-            cwd=REPO_ROOT,
-            stdin=subprocess.PIPE,
-            stdout=subprocess.PIPE,
-            env=dict(os.environ, ZP_BENCH_MISSION=mission_text, PYTHONUNBUFFERED="1"),
-            text=True,
-        )
-
-    def send(self, obj: dict[str, Any]) -> None:
-        assert self.p.stdin is not None
-        self.p.stdin.write(json.dumps(obj) + "\n")
-        self.p.stdin.flush()
-
-    def read(self) -> dict[str, Any]:
-        assert self.p.stdout is not None
-        for line in self.p.stdout:
-            if line.startswith(TAG):
-                out: dict[str, Any] = json.loads(line[len(TAG) :])
-                return out
-        raise RuntimeError(f"responder exited ({self.p.wait()})")
-
-    def close(self) -> None:
-        try:
-            self.send({"cmd": "quit"})
-            self.p.wait(timeout=10)
-        except Exception:
-            self.p.kill()
-            self.p.wait()
 
 
 class _Asker:
@@ -388,7 +329,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     # Before any child starts: the responders inherit the policy.
     scheduling = inherit_fifo(args.priority)
     per_round = 60 if args.quick else PER_ROUND
-    procs: dict[str, _Proc] = {}
+    procs: dict[str, Child] = {}
     askers: dict[str, _Asker] = {}
     lat: dict[str, list[int]] = {f"{v}_{s}": [] for v in VARIANTS for s in SIZES}
     for v in UNPACED:
@@ -397,8 +338,8 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     cpu: dict[str, float] = dict.fromkeys(lat, 0.0)
     try:
         for v in VARIANTS:
-            mission_text = _mission_text(free_port(), free_port())
-            procs[v] = _Proc(v, mission_text)
+            mission_text = two_node_mission("bench_intrahost", free_port(), free_port())
+            procs[v] = Child("bench.intrahost", ["--role", "respond", "--variant", v], mission_text)
             procs[v].read()
             askers[v] = _Asker(v, mission_text)
         for v in VARIANTS:  # warm up: zenoh's routes, every segment touched once
@@ -486,7 +427,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
 
 
 def _run_block(
-    proc: _Proc, asker: _Asker, variant: str, n: int, count: int, out: list[int], period: float
+    proc: Child, asker: _Asker, variant: str, n: int, count: int, out: list[int], period: float
 ) -> tuple[float, int]:
     """``count`` exchanges of ``n`` bytes paced at ``period``; returns (CPU s of
     both ends, exchanges lost)."""

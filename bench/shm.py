@@ -50,7 +50,6 @@ import json
 import math
 import os
 import struct
-import subprocess
 import sys
 import threading
 import time
@@ -58,7 +57,16 @@ from typing import Any
 
 import numpy as np
 
-from bench.common import REPO_ROOT, bench_argparser, free_port, summarize, write_result
+from bench.common import (
+    Child,
+    bench_argparser,
+    commands,
+    free_port,
+    say,
+    summarize,
+    two_node_mission,
+    write_result,
+)
 
 SIZES = {
     "1KB": 1 << 10,
@@ -77,18 +85,7 @@ RTT_N = 1000
 ROUNDS = 4
 VARIANTS = ("zplatform_shm", "zplatform", "raw_zenoh_shm", "raw_zenoh", "iceoryx2")
 TS = struct.Struct("<q")  # raw/iceoryx2 header: sender monotonic ns at offset 0
-TAG = "@@"  # our protocol lines on stdout (libraries may print there too)
 IOX_BUFFER = 8  # iceoryx2 subscriber queue (its default, 2, loses most of a burst)
-
-
-def _mission_text(cn_port: int, dn_port: int) -> str:
-    return (
-        "mission: bench_shm\n"
-        "nodes:\n"
-        f"  cn: {{listen: ['tcp/127.0.0.1:{cn_port}']}}\n"
-        f"  dn0: {{listen: ['tcp/127.0.0.1:{dn_port}'], connect: ['tcp/127.0.0.1:{cn_port}']}}\n"
-        "regions:\n  cn_to_dn0:\n    - {name: x, type: u8}\n"
-    )
 
 
 def _channels() -> list[Any]:
@@ -99,17 +96,6 @@ def _channels() -> list[Any]:
         BulkChannelConfig(name=f"s{n}", node="dn0", type=f"u8[{n - 32}]", readers=["cn"])
         for n in SIZES.values()
     ]
-
-
-def _say(obj: dict[str, Any]) -> None:
-    sys.stdout.write(TAG + json.dumps(obj) + "\n")
-    sys.stdout.flush()
-
-
-def _commands() -> Any:
-    for line in sys.stdin:
-        if line.strip():
-            yield json.loads(line)
 
 
 # -- sender ------------------------------------------------------------------
@@ -240,13 +226,13 @@ class _Sender:
                 nxt = t0 + (i + 1) * period
                 while (left := nxt - time.monotonic()) > 0:
                     time.sleep(left)
-        _say({"done": True, "drops": self.drops})
+        say({"done": True, "drops": self.drops})
 
 
 def _sender_main(variant: str, mission_text: str) -> None:
     s = _Sender(variant, mission_text)
-    _say({"ready": True})
-    for cmd in _commands():
+    say({"ready": True})
+    for cmd in commands():
         if cmd["cmd"] == "quit":
             break
         s.run(cmd)
@@ -422,47 +408,14 @@ class _Receiver:
 
 def _receiver_main(variant: str, mission_text: str) -> None:
     r = _Receiver(variant, mission_text)
-    _say({"ready": True})
-    for cmd in _commands():
+    say({"ready": True})
+    for cmd in commands():
         if cmd["cmd"] == "quit":
             break
-        _say(r.rtt(cmd) if cmd["cmd"] == "rtt" else r.run(cmd))
+        say(r.rtt(cmd) if cmd["cmd"] == "rtt" else r.run(cmd))
 
 
 # -- orchestrator ----------------------------------------------------------
-
-
-class _Proc:
-    def __init__(self, role: str, variant: str, mission_text: str) -> None:
-        self.p = subprocess.Popen(
-            [sys.executable, "-m", "bench.shm", "--role", role, "--variant", variant],
-            cwd=REPO_ROOT,
-            stdin=subprocess.PIPE,
-            stdout=subprocess.PIPE,
-            env=dict(os.environ, ZP_BENCH_MISSION=mission_text, PYTHONUNBUFFERED="1"),
-            text=True,
-        )
-
-    def send(self, obj: dict[str, Any]) -> None:
-        assert self.p.stdin is not None
-        self.p.stdin.write(json.dumps(obj) + "\n")
-        self.p.stdin.flush()
-
-    def read(self) -> dict[str, Any]:
-        assert self.p.stdout is not None
-        for line in self.p.stdout:
-            if line.startswith(TAG):
-                out: dict[str, Any] = json.loads(line[len(TAG) :])
-                return out
-        raise RuntimeError(f"bench child exited ({self.p.wait()})")
-
-    def close(self) -> None:
-        try:
-            self.send({"cmd": "quit"})
-            self.p.wait(timeout=10)
-        except Exception:
-            self.p.kill()
-            self.p.wait()
 
 
 def _copy_floor(n: int, count: int) -> list[int]:
@@ -502,13 +455,14 @@ def main() -> None:
     rounds = 2 if quick else ROUNDS
     ice = _iceoryx2_version()
     variants = [v for v in VARIANTS if v != "iceoryx2" or ice]
-    procs: dict[str, tuple[_Proc, _Proc]] = {}
+    procs: dict[str, tuple[Child, Child]] = {}
     try:
         for v in variants:
-            mission_text = _mission_text(free_port(), free_port())  # a pair per variant
-            rx = _Proc("recv", v, mission_text)
+            # A pair of ports per variant.
+            mission_text = two_node_mission("bench_shm", free_port(), free_port())
+            rx = Child("bench.shm", ["--role", "recv", "--variant", v], mission_text)
             rx.read()
-            tx = _Proc("send", v, mission_text)
+            tx = Child("bench.shm", ["--role", "send", "--variant", v], mission_text)
             tx.read()
             procs[v] = (rx, tx)
         runs = [*variants]

@@ -68,6 +68,9 @@ def test_unknown_field_is_refused_at_decode() -> None:
         ([_ch(type="f32[1024,0]")], "$.bulk[0].type", "shape"),
         ([_ch(type="u8[2000000000]")], "$.bulk[0].type", "at most"),
         ([_ch(name="Cam")], "$.bulk[0].name", "must match"),
+        # A trailing newline passed re.match's `$` (the bulk check used match,
+        # the others fullmatch): one name rule for every name now.
+        ([_ch(name="cam\n")], "$.bulk[0].name", "must match"),
         ([_ch(), _ch()], "$.bulk[1].name", "duplicate"),
         ([_ch(node="dn7")], "$.bulk[0].node", "no node"),
         ([_ch(readers=["cn", "dn9"])], "$.bulk[0].readers[1]", "no node"),

@@ -14,7 +14,15 @@ import msgspec
 
 from ..errors import ControlError, ZPlatformError
 
-__all__ = ["Board", "BoardError", "BoardHealth", "HealthCounters", "ManagedBoard", "check_pin"]
+__all__ = [
+    "Board",
+    "BoardError",
+    "BoardHealth",
+    "HealthCounters",
+    "ManagedBoard",
+    "PinCounts",
+    "check_pin",
+]
 
 
 def check_pin(kind: str, pin: int, count: int) -> int:
@@ -24,6 +32,23 @@ def check_pin(kind: str, pin: int, count: int) -> int:
     if not 0 <= pin < count:
         raise ControlError(f"{kind} pin {pin} out of range (board has {count})")
     return pin
+
+
+class PinCounts:
+    """The pin counts of :class:`Board`, one implementation for every driver:
+    a driver sets ``_n_dig`` and ``_n_ana`` in its constructor and inherits
+    ``digital_pins`` and ``analog_pins`` (plain reads, no allocation)."""
+
+    _n_dig: int
+    _n_ana: int
+
+    @property
+    def digital_pins(self) -> int:
+        return self._n_dig
+
+    @property
+    def analog_pins(self) -> int:
+        return self._n_ana
 
 
 @runtime_checkable

@@ -26,7 +26,7 @@ from msgspec import Meta
 
 from ..core.components import decode_component_config
 from ..errors import ControlError
-from .base import BoardError, BoardHealth, HealthCounters
+from .base import BoardError, BoardHealth, HealthCounters, PinCounts
 
 __all__ = ["GpiodBoard", "GpiodBoardConfig"]
 
@@ -89,7 +89,7 @@ class GpiodBoardConfig(msgspec.Struct, forbid_unknown_fields=True):
 _BIAS = {"as-is": "AS_IS", "pull-up": "PULL_UP", "pull-down": "PULL_DOWN", "disabled": "DISABLED"}
 
 
-class GpiodBoard:
+class GpiodBoard(PinCounts):
     """Digital inputs and outputs on one gpiochip (see the module docstring).
 
     Construction validates ``config`` (:class:`GpiodBoardConfig`, ConfigError
@@ -114,6 +114,7 @@ class GpiodBoard:
         self._gpiod = gpiod_module
         mapped = list(cfg.inputs) + list(cfg.outputs)
         self._n_dig = max(mapped) + 1 if mapped else 0
+        self._n_ana = 0  # gpiod lines are digital only
         # pin -> index into the latched levels; -1 for a pin that is not mapped
         self._in_pins = sorted(cfg.inputs)
         self._out_pins = sorted(cfg.outputs)
@@ -135,14 +136,6 @@ class GpiodBoard:
         self._inactive: Any = None
         self._req: Any = None
         self.counters = HealthCounters()
-
-    @property
-    def digital_pins(self) -> int:
-        return self._n_dig
-
-    @property
-    def analog_pins(self) -> int:
-        return 0
 
     def _pin(self, pin: int) -> int:
         if not 0 <= pin < self._n_dig or self._index[pin] < 0:

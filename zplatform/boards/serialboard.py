@@ -34,7 +34,7 @@ from ..core.components import decode_component_config
 from ..core.health import Heartbeat
 from ..errors import ConfigError
 from . import wire
-from .base import BoardError, BoardHealth, HealthCounters, check_pin
+from .base import BoardError, BoardHealth, HealthCounters, PinCounts, check_pin
 
 __all__ = ["SerialBoard", "SerialBoardConfig", "round_trip_ms"]
 
@@ -154,7 +154,7 @@ _U64 = struct.Struct("<Q")
 _HELLO_ACK = struct.Struct("<BBH")
 
 
-class SerialBoard:
+class SerialBoard(PinCounts):
     """A board behind a serial port speaking protocol v1 (see the module docstring).
 
     Construction validates ``config`` (:class:`SerialBoardConfig`; ConfigError
@@ -223,14 +223,6 @@ class SerialBoard:
         least every 50 ms), idle while it waits to reconnect."""
 
     # -- the Board protocol ------------------------------------------------------
-
-    @property
-    def digital_pins(self) -> int:
-        return self._n_dig
-
-    @property
-    def analog_pins(self) -> int:
-        return self._n_ana
 
     def set_digital(self, pin: int, value: bool) -> None:
         check_pin("digital", pin, self._n_dig)

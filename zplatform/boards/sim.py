@@ -17,7 +17,7 @@ import msgspec
 from msgspec import Meta
 
 from ..core.components import decode_component_config, load_function
-from .base import BoardHealth, check_pin
+from .base import BoardHealth, PinCounts, check_pin
 
 __all__ = ["Physics", "SimBoard", "SimBoardConfig"]
 
@@ -56,7 +56,7 @@ class SimBoardConfig(msgspec.Struct, forbid_unknown_fields=True):
 Physics = Callable[["SimBoard", int], None]
 
 
-class SimBoard:
+class SimBoard(PinCounts):
     """A simulated I/O board: pins in lists, inputs injectable, optional physics.
 
     A digital pin reads back what was last set on it unless an input is
@@ -103,14 +103,6 @@ class SimBoard:
         self.start_ns: int | None = None
         self.steps = 0
         self.state: dict[str, Any] = {}  # scratch space for the physics hook
-
-    @property
-    def digital_pins(self) -> int:
-        return self._n_dig
-
-    @property
-    def analog_pins(self) -> int:
-        return self._n_ana
 
     def step(self, t_ns: int) -> None:
         """Advance the simulated world to ``t_ns`` (calls the physics hook)."""

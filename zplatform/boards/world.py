@@ -29,7 +29,7 @@ import time
 from ..config import Mission
 from ..core.components import mission_code_path
 from ..errors import ConfigError
-from .base import Board, BoardError, BoardHealth, HealthCounters, check_pin
+from .base import Board, BoardError, BoardHealth, HealthCounters, PinCounts, check_pin
 from .registry import make_board
 
 __all__ = ["WorldLink", "link_address", "node_board", "world_nodes"]
@@ -66,7 +66,7 @@ def world_nodes(mission: Mission) -> tuple[str, ...]:
     return tuple(n for n in mission.device_nodes if w is not None and n in w.boards)
 
 
-class WorldLink:
+class WorldLink(PinCounts):
     """A node's board, live: its pins exchanged with the world process over UDP.
 
     Construction touches nothing; :meth:`open` makes the socket and sends
@@ -104,14 +104,6 @@ class WorldLink:
         self._latched_ns: int | None = None  # when the newest inputs arrived
         self.counters = HealthCounters()
         self._ok = False
-
-    @property
-    def digital_pins(self) -> int:
-        return self._n_dig
-
-    @property
-    def analog_pins(self) -> int:
-        return self._n_ana
 
     def _dpin(self, pin: int) -> None:
         check_pin("digital", pin, self._n_dig)

@@ -58,26 +58,26 @@ def timeout_option(p: argparse.ArgumentParser, what: str, default: float = 10.0)
     )
 
 
-def positive_float(text: str) -> float:
-    """argparse type: a number > 0."""
+def _seconds(text: str, *, zero_ok: bool) -> float:
+    """A finite number of seconds, > 0 (>= 0 when ``zero_ok``); NaN is
+    refused too. Raises ArgumentTypeError saying which."""
     try:
         v = float(text)
     except ValueError:
         raise argparse.ArgumentTypeError(f"expected a number of seconds, got {text!r}") from None
-    if not v > 0 or v == float("inf"):
-        raise argparse.ArgumentTypeError(f"must be > 0, got {text}")
+    if not (v >= 0 if zero_ok else v > 0) or v == float("inf"):
+        raise argparse.ArgumentTypeError(f"must be {'>=' if zero_ok else '>'} 0, got {text}")
     return v
+
+
+def positive_float(text: str) -> float:
+    """argparse type: a number > 0."""
+    return _seconds(text, zero_ok=False)
 
 
 def nonnegative_float(text: str) -> float:
     """argparse type: a number >= 0."""
-    try:
-        v = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a number of seconds, got {text!r}") from None
-    if not v >= 0 or v == float("inf"):
-        raise argparse.ArgumentTypeError(f"must be >= 0, got {text}")
-    return v
+    return _seconds(text, zero_ok=True)
 
 
 def positive_int(text: str) -> int:

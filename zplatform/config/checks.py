@@ -53,7 +53,18 @@ _KEY_SPECIALS = frozenset("*$?#/")
 
 _FLOAT_WORDS = ("nan", "inf", "+inf", "-inf", "infinity", "-infinity")
 _EXP_FLOAT_RE = re.compile(r"^[-+]?(?:[0-9]+\.?[0-9]*|\.[0-9]+)e[-+]?[0-9]+$")
-_BULK_NAME_RE = re.compile(r"^[a-z][a-z0-9_]*$")
+
+
+def _new_name(name: str, seen: set[str], what: str, where: str, *, label: str = "name") -> None:
+    """Check that ``name`` (of a ``what``: "bulk channel", "parameter",
+    "device", ...) is a valid name (:data:`_NAME_RE`, fullmatch) not in
+    ``seen``, then add it. Raises ConfigError at ``where``; ``label`` opens
+    the first message."""
+    if not _NAME_RE.fullmatch(name):
+        raise ConfigError(f"{label} {name!r} must match {_NAME_RE.pattern}", where)
+    if name in seen:
+        raise ConfigError(f"duplicate {what} name {name!r}", where)
+    seen.add(name)
 
 
 def check_bulk_channels(
@@ -69,11 +80,7 @@ def check_bulk_channels(
     seen: set[str] = set()
     for i, ch in enumerate(channels):
         w = f"{where}[{i}]"
-        if not _BULK_NAME_RE.match(ch.name):
-            raise ConfigError(f"name {ch.name!r} must match {_BULK_NAME_RE.pattern}", f"{w}.name")
-        if ch.name in seen:
-            raise ConfigError(f"duplicate bulk channel name {ch.name!r}", f"{w}.name")
-        seen.add(ch.name)
+        _new_name(ch.name, seen, "bulk channel", f"{w}.name")
         if ch.node not in nodes:
             raise ConfigError(f"no node named {ch.node!r}; nodes: {sorted(nodes)}", f"{w}.node")
         scalar, shape = _parse_or_raise(ch.type, f"{w}.type")
@@ -481,13 +488,7 @@ def _check_params(m: Mission) -> None:
     names: set[str] = set()
     for i, p in enumerate(m.params):
         w = f"$.params[{i}]"
-        if not _NAME_RE.fullmatch(p.name):
-            raise ConfigError(
-                f"parameter name {p.name!r} must match {_NAME_RE.pattern}", f"{w}.name"
-            )
-        if p.name in names:
-            raise ConfigError(f"duplicate parameter name {p.name!r}", f"{w}.name")
-        names.add(p.name)
+        _new_name(p.name, names, "parameter", f"{w}.name", label="parameter name")
         st = SCALAR_TYPES.get(p.type)
         if st is None:
             raise ConfigError(
@@ -714,11 +715,7 @@ def _check_control_sections(m: Mission) -> None:
         names: set[str] = set()
         for i, c in enumerate(getattr(m, section)):
             where = f"$.{section}[{i}]"
-            if not _NAME_RE.fullmatch(c.name):
-                raise ConfigError(f"name {c.name!r} must match {_NAME_RE.pattern}", f"{where}.name")
-            if c.name in names:
-                raise ConfigError(f"duplicate {section[:-1]} name {c.name!r}", f"{where}.name")
-            names.add(c.name)
+            _new_name(c.name, names, section[:-1], f"{where}.name")
             if c.node not in m.nodes or c.node in ("gn", STANDBY):
                 raise ConfigError(
                     f"{section[:-1]} {c.name!r} is placed on {c.node!r}; "

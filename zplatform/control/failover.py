@@ -304,12 +304,9 @@ class Standby:
         if self.blind(slot):
             if not self._blind:
                 self._blind = True
-                self.events.emit(
-                    EV.CN_TAKEOVER_HELD,
+                self._held_event(
                     self.origin + (slot - 1) * self._period,
-                    node=self.name,
-                    loop=self.mirrored,
-                    why=f"the last mirror, of loop {self.mirrored}, is {self.missing(slot)} "
+                    f"the last mirror, of loop {self.mirrored}, is {self.missing(slot)} "
                     f"loops old (a takeover needs one at most {self.max_age} old): taking "
                     "command from it would turn the vehicle's state back; following again "
                     "from the next mirror",
@@ -318,16 +315,24 @@ class Standby:
         if not next_term(self.term):
             if not self._held:
                 self._held = True
-                self.events.emit(
-                    EV.CN_TAKEOVER_HELD,
+                self._held_event(
                     self.origin + (slot - 1) * self._period,
-                    node=self.name,
-                    loop=self.mirrored,
-                    why=f"term {self.term} is the last a node can run: there is no next "
+                    f"term {self.term} is the last a node can run: there is no next "
                     "term to ask for",
                 )
             return False
         return slot >= self._next_ask
+
+    def _held_event(self, t_ns: int, why: str) -> None:
+        """The ``cn_takeover_held`` event at ``t_ns`` saying ``why`` (the
+        callers keep it to once per cause)."""
+        self.events.emit(
+            EV.CN_TAKEOVER_HELD,
+            t_ns,
+            node=self.name,
+            loop=self.mirrored,
+            why=why,
+        )
 
     def _event_refusals(self, slot: int) -> None:
         """Mirrors and probe replies refused since the last slot, as one
@@ -398,13 +403,7 @@ class Standby:
         self._next_ask = slot + retry
         if not self._held:
             self._held = True
-            self.events.emit(
-                EV.CN_TAKEOVER_HELD,
-                now_ns,
-                node=self.name,
-                loop=self.mirrored,
-                why=self._why_held(answered, answered, driven),
-            )
+            self._held_event(now_ns, self._why_held(answered, answered, driven))
         return False
 
     def decide(self, slot: int, now_ns: int) -> Decision:
@@ -431,12 +430,8 @@ class Standby:
             self._next_ask = slot + self._retry_in(answered)
         if self._kind == ASK and not self._held:
             self._held = True
-            self.events.emit(
-                EV.CN_TAKEOVER_HELD,
-                now_ns,
-                node=self.name,
-                loop=self.mirrored,
-                why=self._why_held(answered, granted, [a for a in answered if not a.granted]),
+            self._held_event(
+                now_ns, self._why_held(answered, granted, [a for a in answered if not a.granted])
             )
         return Decision.WAIT
 

@@ -163,9 +163,8 @@ def decode_frame(frame: bytes | bytearray | memoryview) -> Frame:
     """
     try:
         return _decoder.decode(frame)
-    except (msgspec.DecodeError, msgspec.ValidationError) as exc:
-        raise FrameFormatError(f"not a region frame: {exc}") from exc
-    except (TypeError, ValueError, OverflowError) as exc:  # defensive: never leak others
+    # DecodeError includes ValidationError; the others defensively: never leak them.
+    except (msgspec.DecodeError, TypeError, ValueError, OverflowError) as exc:
         raise FrameFormatError(f"not a region frame: {exc}") from exc
 
 

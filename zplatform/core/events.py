@@ -500,9 +500,8 @@ def decode_event(b: bytes | bytearray | memoryview) -> Event:
     """Decode an event record; raises FrameFormatError on anything else."""
     try:
         return _decoder.decode(b)
-    except (msgspec.DecodeError, msgspec.ValidationError) as exc:
-        raise FrameFormatError(f"not an event record: {exc}") from exc
-    except (TypeError, ValueError, OverflowError) as exc:  # defensive: never leak others
+    # DecodeError includes ValidationError; the others defensively: never leak them.
+    except (msgspec.DecodeError, TypeError, ValueError, OverflowError) as exc:
         raise FrameFormatError(f"not an event record: {exc}") from exc
 
 

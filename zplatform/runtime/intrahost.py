@@ -26,6 +26,7 @@ import enum
 import re
 import shutil
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -242,6 +243,18 @@ class _End:
             .open_or_create()
         )
 
+    def _ports(self, what: str, make: Callable[[], Any], *, notify: Any, listen: Any) -> Any:
+        """This end's port (``make()``: the client or the server) and its
+        notifier on the ``notify`` event and listener on the ``listen`` one
+        (the two ends cross them). Raises IntraHostError naming ``what``."""
+        try:
+            port = make()
+            self._notifier = notify.notifier_builder().create()
+            self._listener = listen.listener_builder().create()
+        except Exception as exc:
+            raise IntraHostError(f"intra-host link {self.names.sync}: no {what} ({exc!r})") from exc
+        return port
+
     def close(self) -> None:
         """Drop every port, then the services, then the node (shared memory
         goes with its last holder). Idempotent."""
@@ -278,19 +291,19 @@ class IntraHostClient(_End):
     ) -> None:
         super().__init__(names, max_trigger, max_reply, prefix, check)
         iox = self._iox
-        try:
-            self._client = (
+        self._client = self._ports(
+            "client",
+            lambda: (
                 self._service.client_builder()
                 .initial_max_slice_len(max_trigger)
                 .allocation_strategy(iox.AllocationStrategy.Static)
                 .max_active_requests(2)
                 .override_request_preallocation(SLOTS)
                 .create()
-            )
-            self._notifier = self._req_ev.notifier_builder().create()
-            self._listener = self._res_ev.listener_builder().create()
-        except Exception as exc:
-            raise IntraHostError(f"intra-host link {names.sync}: no client ({exc!r})") from exc
+            ),
+            notify=self._req_ev,
+            listen=self._res_ev,
+        )
         self.set_deadline(deadline_s)
         self.stall_after = stall_after
         self._loan: Any = None
@@ -468,19 +481,19 @@ class IntraHostServer(_End):
     ) -> None:
         super().__init__(names, max_trigger, max_reply, prefix, check)
         iox = self._iox
-        try:
-            self._server = (
+        self._server = self._ports(
+            "server",
+            lambda: (
                 self._service.server_builder()
                 .initial_max_slice_len(max_reply)
                 .allocation_strategy(iox.AllocationStrategy.Static)
                 .max_loaned_responses_per_request(1)
                 .override_response_preallocation(SLOTS)
                 .create()
-            )
-            self._notifier = self._res_ev.notifier_builder().create()
-            self._listener = self._req_ev.listener_builder().create()
-        except Exception as exc:
-            raise IntraHostError(f"intra-host link {names.sync}: no server ({exc!r})") from exc
+            ),
+            notify=self._res_ev,
+            listen=self._req_ev,
+        )
         self._active: Any = None
         self._loan: Any = None
         #: Counters (never reset): triggers served, replies sent, triggers

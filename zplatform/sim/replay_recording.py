@@ -388,8 +388,27 @@ class Recorder:
         telemetry: bytearray | None,
     ) -> None:
         if not self._dropping:
-            self._finish(
-                grounds, sync_overrun, loop_overruns, inbox_dropped, refused, saves, telemetry
+            for save in saves:  # rare: a PRM_SAVE finished
+                detail = save.detail.encode(errors="replace")[:_MAX_SAVE_DETAIL]
+                body = _SAVED.pack(save.seq, save.ok) + detail
+                self._put(PRM_SAVED, 0, body, len(body))
+            for ground in grounds:
+                if len(ground) > self._max_ground:
+                    self._put(GROUND_OVERSIZE, 0, _U32.pack(min(len(ground), 0xFFFF_FFFF)), 4)
+                else:
+                    self._put(GROUND, 0, ground, len(ground))
+            if telemetry is not None:
+                self._put(TELEMETRY, 0, telemetry, len(telemetry))
+            self._put(
+                FINISH,
+                0,
+                _FINISH.pack(
+                    bool(sync_overrun),
+                    loop_overruns,
+                    inbox_dropped,
+                    *(refused.fields() if refused is not None else _NONE_REFUSED),
+                ),
+                _FINISH.size,
             )
         if self._open_loop:
             self._open_loop = False
@@ -398,39 +417,6 @@ class Recorder:
                 self._pending_drops += 1
             else:
                 self.loops += 1
-
-    def _finish(
-        self,
-        grounds: Sequence[bytes | bytearray | memoryview],
-        sync_overrun: bool,
-        loop_overruns: int,
-        inbox_dropped: int,
-        refused: CnRefusals | None,
-        saves: Sequence[SaveResult],
-        telemetry: bytearray | None,
-    ) -> None:
-        for save in saves:  # rare: a PRM_SAVE finished
-            detail = save.detail.encode(errors="replace")[:_MAX_SAVE_DETAIL]
-            body = _SAVED.pack(save.seq, save.ok) + detail
-            self._put(PRM_SAVED, 0, body, len(body))
-        for ground in grounds:
-            if len(ground) > self._max_ground:
-                self._put(GROUND_OVERSIZE, 0, _U32.pack(min(len(ground), 0xFFFF_FFFF)), 4)
-            else:
-                self._put(GROUND, 0, ground, len(ground))
-        if telemetry is not None:
-            self._put(TELEMETRY, 0, telemetry, len(telemetry))
-        self._put(
-            FINISH,
-            0,
-            _FINISH.pack(
-                bool(sync_overrun),
-                loop_overruns,
-                inbox_dropped,
-                *(refused.fields() if refused is not None else _NONE_REFUSED),
-            ),
-            _FINISH.size,
-        )
 
     def close(self) -> None:
         """Flush every chunk to the file and stop the writer (idempotent). A
