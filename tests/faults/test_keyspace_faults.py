@@ -694,9 +694,9 @@ class RecorderQueryH(Harness):
 
     def feed(self, payload: bytes) -> bool:
         served = self.server.served
-        self.server._on_query(_Query(payload))  # type: ignore[arg-type]
+        self.server.on_query(_Query(payload))  # type: ignore[arg-type]
         while self.server._pending:
-            self.server._serve(self.server._pending.popleft())
+            self.server.serve(self.server._pending.popleft())
         return self.server.served > served
 
     def counts(self) -> dict[str, int]:
@@ -801,9 +801,9 @@ class ArchiveQueryH(Harness):
 
     def feed(self, payload: bytes) -> bool:
         served = self.server.served
-        self.server._on_query(_Query(payload))  # type: ignore[arg-type]
+        self.server.on_query(_Query(payload))  # type: ignore[arg-type]
         while self.server._pending:
-            self.server._serve(self.server._pending.popleft())
+            self.server.serve(self.server._pending.popleft())
         return self.server.served > served
 
     def counts(self) -> dict[str, int]:

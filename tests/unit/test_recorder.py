@@ -660,16 +660,16 @@ def test_the_recorder_server_refuses_a_replayed_request() -> None:
 
     def serve(t_ns: int) -> _Query:
         q = _Query(bytes(ch.seal(REQUEST.pack(REQUEST_MAGIC, 7, 1, 5, t_ns))))
-        server._on_query(q)  # type: ignore[arg-type]
+        server.on_query(q)  # type: ignore[arg-type]
         while server._pending:
-            server._serve(server._pending.popleft())
+            server.serve(server._pending.popleft())
         return q
 
     first = serve(EPOCH)
     assert first.replies and server.served == 1
     again = _Query(first.payload.to_bytes())
-    server._on_query(again)  # type: ignore[arg-type]
-    server._serve(server._pending.popleft())
+    server.on_query(again)  # type: ignore[arg-type]
+    server.serve(server._pending.popleft())
     assert again.replies == [] and server.served == 1 and server.refused == 1
     assert "replay" in server.last_refusal
     assert serve(EPOCH + 1).replies and server.served == 2 and server.refused == 1

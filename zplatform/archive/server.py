@@ -20,7 +20,6 @@ refused and counted (``refused``). The key's row: zplatform/security/keyspace.py
 from __future__ import annotations
 
 import struct
-import threading
 import time
 from collections import deque
 from collections.abc import Callable
@@ -30,6 +29,7 @@ import msgspec
 import pyarrow as pa
 import zenoh
 
+from ..control.handoff import QueryWorker
 from ..core.auth import TAG_LEN, AuthError, Channel
 from ..errors import ArchiveError
 from .query import Archive, Query
@@ -64,7 +64,7 @@ def ask_payload(channel: Channel | None, query: Query, t_ns: int, nonce: int) ->
     return bytes(channel.seal(body)) if channel is not None else body
 
 
-class ArchiveServer:
+class ArchiveServer(QueryWorker):
     """Answers archive queries (module doc). ``open_archive``: the archive
     to read (called in the serving thread, per query); ``channel``: the
     telemetry channel (its own instance), None without authentication."""
@@ -90,84 +90,38 @@ class ArchiveServer:
         )
         self._max_len = ASK.size + MAX_ASK + (TAG_LEN if channel is not None else 0)
         self._min_len = ASK.size + (TAG_LEN if channel is not None else 0)
-        self._pending: deque[Any] = deque()
         self._served: deque[tuple[int, int]] = deque(maxlen=REMEMBERED)
-        self._cv = threading.Condition()
-        self._stop = self._closed = False
+        self._closed = False
         self.served = 0
         """Queries answered (with rows, or with an error saying why)."""
-        self._refused_rx = 0  # zenoh's thread
-        self._refused_checked = 0  # the serving thread
-        self.busy = 0
-        """Queries dropped unanswered because :data:`MAX_PENDING` were in hand."""
-        self.last_refusal = ""
-        self._thread = threading.Thread(target=self._loop, name="archive-serve", daemon=True)
-        self._thread.start()
+        super().__init__("archive-serve", MAX_PENDING, (zenoh.ZError,))
         self.queryable = session.declare_queryable(
-            key_expr, zenoh.handlers.Callback(self._on_query, indirect=False)
+            key_expr, zenoh.handlers.Callback(self.on_query, indirect=False)
         )
 
-    @property
-    def refused(self) -> int:
-        return self._refused_rx + self._refused_checked
+    def size_refusal(self, n: int) -> str | None:
+        return None if self._min_len <= n <= self._max_len else f"an ask of {n} bytes"
 
-    def _on_query(self, query: zenoh.Query) -> None:
-        p = query.payload
-        n = 0 if p is None else len(p)
-        if not self._min_len <= n <= self._max_len:
-            self._refused_rx += 1
-            self.last_refusal = f"an ask of {n} bytes"
-            query.drop()
-            return
-        with self._cv:
-            if len(self._pending) >= MAX_PENDING:
-                self.busy += 1
-                query.drop()
-                return
-            self._pending.append(query)
-            self._cv.notify()
-
-    def _loop(self) -> None:
-        while True:
-            with self._cv:
-                while not self._pending and not self._stop:
-                    self._cv.wait()
-                if self._stop:
-                    return
-                query = self._pending[0]
-            try:
-                with query:
-                    self._serve(query)
-            except zenoh.ZError as exc:  # the asker went away mid-answer
-                self.last_refusal = f"a reply failed: {exc}"
-            finally:
-                with self._cv:
-                    self._pending.popleft()
-
-    def _refuse(self, why: str) -> None:
-        self._refused_checked += 1
-        self.last_refusal = why
-
-    def _serve(self, query: Any) -> None:
+    def serve(self, query: Any) -> None:
         payload = query.payload
         data = payload.to_bytes() if payload is not None else b""
         ch = self._channel
         try:
             body: Any = bytes(ch.open(data)) if ch is not None else data
         except AuthError as exc:
-            self._refuse(str(exc))
+            self.refuse(str(exc))
             return
         magic, t_ns, nonce = ASK.unpack_from(body, 0)
         if magic != ASK_MAGIC:
-            self._refuse("not an archive ask")
+            self.refuse("not an archive ask")
             return
         age = self._now() - t_ns
         if abs(age) > self._max_age:
-            self._refuse(f"an ask stamped {age / 1e9:+.3f} s from this node's clock")
+            self.refuse(f"an ask stamped {age / 1e9:+.3f} s from this node's clock")
             return
         if ch is not None:
             if (t_ns, nonce) in self._served:
-                self._refuse("an ask answered before (a replay)")
+                self.refuse("an ask answered before (a replay)")
                 return
             self._served.append((t_ns, nonce))
         try:
@@ -209,13 +163,7 @@ class ArchiveServer:
             return
         self._closed = True
         self.queryable.undeclare()
-        with self._cv:
-            self._stop = True
-            self._cv.notify()
-        self._thread.join(timeout=5)
-        with self._cv:
-            while self._pending:
-                self._pending.popleft().drop()
+        self.stop_serving()
 
 
 class ArchiveAsk:

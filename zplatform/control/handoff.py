@@ -24,9 +24,9 @@ import threading
 import time
 from collections import deque
 from collections.abc import Callable
-from typing import Generic, TypeVar
+from typing import Any, Generic, TypeVar
 
-__all__ = ["Handoff", "Mailbox", "Waker"]
+__all__ = ["Handoff", "Mailbox", "QueryWorker", "Waker"]
 
 T = TypeVar("T")
 
@@ -173,3 +173,97 @@ class Handoff(Generic[T]):
 
     def __len__(self) -> int:
         return len(self._items)
+
+
+class QueryWorker:
+    """One thread that serves the queries of one queryable, handed off by
+    zenoh's callback (the gap-fill and archive servers' shared base).
+
+    :meth:`on_query` is the queryable's callback: on zenoh's thread it checks
+    only the payload's size (:meth:`size_refusal`: refused ones are dropped
+    unanswered, counted and named in :attr:`last_refusal`) and hands the
+    query off; with ``capacity`` queries in hand (waiting or being served)
+    one more is dropped unanswered and counted in :attr:`busy`. Never
+    blocks. The thread serves them in order with :meth:`serve` (a
+    subclass's; an exception of ``lost``, the asker gone mid-answer, is
+    noted, never raised), the query finalised after it. :meth:`stop_serving`
+    stops the thread after the query in hand and drops what waits
+    (idempotent). Queries are duck-typed: ``payload``, ``drop()`` and use as
+    a context manager, as zenoh's are."""
+
+    def __init__(self, name: str, capacity: int, lost: tuple[type[BaseException], ...]) -> None:
+        self._capacity = capacity
+        self._lost = lost
+        self._pending: deque[Any] = deque()
+        self._cv = threading.Condition()
+        self._stop = False
+        self._refused_rx = 0  # counted on zenoh's thread
+        self._refused_checked = 0  # counted on the serving thread
+        self.busy = 0
+        """Queries dropped unanswered because ``capacity`` were in hand."""
+        self.last_refusal = ""
+        self._worker = threading.Thread(target=self._serve_loop, name=name, daemon=True)
+        self._worker.start()
+
+    @property
+    def refused(self) -> int:
+        """Queries dropped unanswered because they did not check."""
+        return self._refused_rx + self._refused_checked
+
+    def size_refusal(self, n: int) -> str | None:
+        """Why a payload of ``n`` bytes is refused unread (None: it is not)."""
+        raise NotImplementedError
+
+    def serve(self, query: Any) -> None:
+        """Answer one query (the serving thread)."""
+        raise NotImplementedError
+
+    def refuse(self, why: str) -> None:
+        """Count a query the serving thread refused, and say why."""
+        self._refused_checked += 1
+        self.last_refusal = why
+
+    # zenoh's thread: check the size, hand off, nothing more.
+    def on_query(self, query: Any) -> None:
+        p = query.payload
+        why = self.size_refusal(0 if p is None else len(p))
+        if why is not None:
+            self._refused_rx += 1
+            self.last_refusal = why
+            query.drop()
+            return
+        with self._cv:
+            if len(self._pending) >= self._capacity:
+                self.busy += 1
+                query.drop()
+                return
+            self._pending.append(query)
+            self._cv.notify()
+
+    def _serve_loop(self) -> None:
+        while True:
+            with self._cv:
+                while not self._pending and not self._stop:
+                    self._cv.wait()
+                if self._stop:
+                    return
+                query = self._pending[0]
+            try:
+                with query:
+                    self.serve(query)
+            except self._lost as exc:  # the asker went away mid-answer
+                self.last_refusal = f"a reply failed: {exc}"
+            finally:
+                with self._cv:
+                    self._pending.popleft()
+
+    def stop_serving(self) -> None:
+        with self._cv:
+            if self._stop:
+                return
+            self._stop = True
+            self._cv.notify()
+        self._worker.join(timeout=5)
+        with self._cv:
+            while self._pending:  # asked too late: finalised unanswered
+                self._pending.popleft().drop()

@@ -22,7 +22,6 @@ Detail: docs/architecture.md#the-gap-fill.
 from __future__ import annotations
 
 import itertools
-import threading
 import time
 from collections import deque
 from collections.abc import Callable
@@ -30,6 +29,7 @@ from typing import Any
 
 import zenoh
 
+from ..control.handoff import QueryWorker
 from ..core.auth import TAG_LEN, AuthError, Channel
 from .format import (
     DROPPED,
@@ -58,7 +58,7 @@ WRITE_WAIT_S = 1.0
 to be written (then what is in the files is sent)."""
 
 
-class RecorderServer:
+class RecorderServer(QueryWorker):
     """Serves gap-fill requests from ``recorder``'s files (module doc).
 
     ``channel``: the telemetry channel (its own instance: channels are not
@@ -88,93 +88,45 @@ class RecorderServer:
         self._div = divisor
         self._key = key_expr
         self._req_len = REQUEST.size + (TAG_LEN if channel is not None else 0)
-        self._pending: deque[zenoh.Query] = deque()
         # The requests served lately (the serving thread's): a replay of one
         # is refused, not served again.
         self._served: deque[tuple[int, int, int, int]] = deque(maxlen=REMEMBERED)
-        self._cv = threading.Condition()
-        self._stop = False
         self._closed = False
         self.served = 0
         """Requests answered."""
         self.frames_sent = 0
-        self._refused_rx = 0  # counted on zenoh's thread
-        self._refused_checked = 0  # counted on the serving thread
-        self.busy = 0
-        """Requests dropped unanswered because :data:`MAX_PENDING` were in hand."""
-        self.last_refusal = ""
-        self._thread = threading.Thread(target=self._serve_loop, name="recorder-serve", daemon=True)
-        self._thread.start()
+        super().__init__("recorder-serve", MAX_PENDING, (zenoh.ZError,))
         self.queryable = session.declare_queryable(
-            key_expr, zenoh.handlers.Callback(self._on_query, indirect=False)
+            key_expr, zenoh.handlers.Callback(self.on_query, indirect=False)
         )
 
-    # zenoh's thread: check the size, hand off, nothing more.
-    def _on_query(self, query: zenoh.Query) -> None:
-        p = query.payload
-        if p is None or len(p) != self._req_len:
-            self._refused_rx += 1
-            self.last_refusal = f"a request of {0 if p is None else len(p)} bytes"
-            query.drop()
-            return
-        with self._cv:
-            if len(self._pending) >= MAX_PENDING:
-                self.busy += 1
-                query.drop()
-                return
-            self._pending.append(query)
-            self._cv.notify()
+    def size_refusal(self, n: int) -> str | None:
+        return None if n == self._req_len else f"a request of {n} bytes"
 
-    def _serve_loop(self) -> None:
-        while True:
-            with self._cv:
-                while not self._pending and not self._stop:
-                    self._cv.wait()
-                if self._stop:
-                    return
-                query = self._pending[0]
-            try:
-                with query:
-                    self._serve(query)
-            except zenoh.ZError as exc:  # the asker went away mid-answer
-                self.last_refusal = f"a reply failed: {exc}"
-            finally:
-                with self._cv:
-                    self._pending.popleft()
-
-    @property
-    def refused(self) -> int:
-        """Requests dropped unanswered because they did not check."""
-        return self._refused_rx + self._refused_checked
-
-    def _refuse(self, why: str) -> None:
-        self._refused_checked += 1
-        self.last_refusal = why
-
-    def _serve(self, query: zenoh.Query) -> None:
+    def serve(self, query: zenoh.Query) -> None:
         payload = query.payload
         data = payload.to_bytes() if payload is not None else b""
         ch = self._channel
         try:
             body: Any = ch.open(data) if ch is not None else data
         except AuthError as exc:
-            self._refuse(str(exc))
+            self.refuse(str(exc))
             return
         magic, run, first, last, t_ns = REQUEST.unpack(body)
         if magic != REQUEST_MAGIC:
-            self._refuse("not a recorder request")
+            self.refuse("not a recorder request")
             return
         age = self._now() - t_ns
         if abs(age) > self._max_age:
-            self._refuse(f"a request stamped {age / 1e9:+.3f} s from this node's clock")
+            self.refuse(f"a request stamped {age / 1e9:+.3f} s from this node's clock")
             return
         if first < 1 or last < first or last - first >= MAX_REQUEST_LOOPS:
-            self._refuse(f"a range of loops {first}..{last}")
+            self.refuse(f"a range of loops {first}..{last}")
             return
         request = (t_ns, run, first, last)
         if ch is not None:  # without tags a replay cannot be told from a request
             if request in self._served:
-                self._refuse(f"a request for loops {first}..{last} served before (a replay)")
+                self.refuse(f"a request for loops {first}..{last} served before (a replay)")
                 return
             self._served.append(request)
         rec = self.recorder
@@ -268,10 +220,4 @@ class RecorderServer:
             return
         self._closed = True
         self.queryable.undeclare()
-        with self._cv:
-            self._stop = True
-            self._cv.notify()
-        self._thread.join(timeout=5)
-        with self._cv:
-            while self._pending:  # asked too late: finalised unanswered
-                self._pending.popleft().drop()
+        self.stop_serving()
