@@ -185,6 +185,7 @@ class Intake(ABC, Generic[H]):
             fresh = self._fresh(ch.open(frame, any_run=self._any_run(frame)), handle)
         except RunError:  # another run's genuine frame (an earlier run's replay): stale
             self.stale += 1
+            self._other_run()
             if self.on_other_run is not None:
                 self.on_other_run()
             return None
@@ -205,6 +206,10 @@ class Intake(ABC, Generic[H]):
         """Whether ``frame`` may be of any run (zplatform.core.auth.Run): none, by
         default; a probe's STATUS question (zplatform.control.fencing.any_run)."""
         return False
+
+    def _other_run(self) -> None:
+        """Count a genuine frame of another run (with the lock held), beyond
+        ``stale``: nothing more, by default."""
 
     def _within_rate(self) -> bool:
         """Whether a frame of the right size may be read now (before any
@@ -364,6 +369,10 @@ class ProbeIntake(Intake[H]):
         """Questions refused beyond a rate bound, among those counted by the
         last :meth:`take_counts`."""
 
+    def _other_run(self) -> None:
+        """Count a genuine frame of another run (with the lock held), beyond
+        ``stale``: nothing more, by default."""
+
     def _within_rate(self) -> bool:
         now = self._now()
         tat = max(self._tat_all, now)
@@ -451,7 +460,8 @@ class TelemetryIntake(_StampIntake[int]):
     taken again, as the logic follows it, only once the newest admitted
     snapshot is older than ``max_age_ns``. The logic checks the rest (its
     clock bound both ways, the jumps). Of the refused snapshots, those
-    stamped more than ``max_age_ns`` before they arrived are also counted in
+    stamped more than ``max_age_ns`` before they arrived, or of another run
+    than ``channel``'s (a ground bound to a run), are also counted in
     :attr:`aged`, those stamped beyond it after in :attr:`ahead` (what the
     logic calls ``stale`` and ``ahead``). ``capacity``: snapshots kept while
     the consumer is busy."""
@@ -512,6 +522,11 @@ class TelemetryIntake(_StampIntake[int]):
     def _replayed(self, t_ns: int, handle: int) -> None:
         if handle - t_ns > self._max_age:
             self._aged += 1
+
+    def _other_run(self) -> None:
+        # A ground bound to a run (zplatform.ground.link): another run's
+        # snapshot, or any before the run is learned, is counted stale.
+        self._aged += 1
 
     def _took(self) -> None:
         self.aged, self._aged = self._aged, 0

@@ -1,0 +1,194 @@
+"""The ground bound to the commander's run (issue 25): the run hello, and
+each ground receiver refusing an earlier run's genuine frame on a fresh
+ground (telemetry, events, gap-fill replies) with exact counters.
+
+Before, the ground was bound to no run: a replayed earlier run's telemetry
+or events reached a ground that had just started (refused only by the clock
+bound or ordering, later)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from zplatform import load_mission
+from zplatform.control.intake import TelemetryIntake
+from zplatform.control.loop import ControlLogic
+from zplatform.core.auth import NO_RUN, KeySet, Run, channel
+from zplatform.core.events import EV, EventLog, encode_event
+from zplatform.ground.gapfill import GapFill
+from zplatform.ground.logic import Gap, GroundLogic
+from zplatform.recorder.format import REPLY_FRAMES, REPLY_LEN
+from zplatform.runtime.clocksync import RUN_ANSWER, ClockResponder, RunAsker
+
+CONFIGS = Path(__file__).resolve().parents[2] / "configs"
+LED = load_mission(CONFIGS / "led_test.yaml")
+PERIOD = LED.period_ns
+MASTER = b"k" * 32
+RUN1 = 1_700_000_000_000_000_000
+RUN2 = RUN1 + 3_600_000_000_000  # the run after, an hour later
+
+
+def _keys(role: str) -> KeySet:
+    return KeySet.from_master(LED, MASTER).for_node(role)
+
+
+def _frames(epoch: int, loops: int) -> list[bytes]:
+    """The control node's genuine telemetry of run ``epoch``, loops 1..``loops``."""
+    cn = ControlLogic(LED, keys=_keys("cn"), epoch=epoch)
+    out = []
+    for n in range(1, loops + 1):
+        cn.begin(n, epoch + n * PERIOD)
+        out.append(bytes(cn.finish([]) or b""))
+    return out
+
+
+# -- the run hello ------------------------------------------------------------------
+
+
+def test_the_run_hello_teaches_the_commanders_run_once_per_hello() -> None:
+    cn = ClockResponder(LED, _keys("cn"), Run(RUN2))
+    for role in ("gn", "tool"):  # a read-only tool learns it too (the downlink's key)
+        asker = RunAsker(_keys(role))
+        assert not asker.run.known
+        hello = asker.hello()
+        answer = cn.answer(hello, 0, 0)
+        assert answer is not None
+        assert asker.check(answer) and asker.run.epoch == RUN2 and asker.learned == 1
+        # The same answer again (a replay) is refused: one answer per hello.
+        assert not asker.check(answer)
+        assert (asker.refused_other, asker.refused_bad) == (1, 0)
+    assert cn.hellos == 2 and cn.refused == 0
+
+
+def test_an_earlier_runs_answer_teaches_nothing() -> None:
+    """The answer to an earlier hello (an earlier run's, recorded) echoes a
+    nonce nobody waits for: refused, the run stays unknown."""
+    old_cn = ClockResponder(LED, _keys("cn"), Run(RUN1))
+    asker = RunAsker(_keys("gn"))
+    recorded = old_cn.answer(asker.hello(), 0, 0)
+    assert recorded is not None
+    asker.hello()  # a fresh ground asks with a new nonce
+    assert not asker.check(recorded)
+    assert not asker.run.known and asker.refused_other == 1
+
+
+def test_a_forged_or_keyless_answer_is_refused_as_bad() -> None:
+    asker = RunAsker(_keys("gn"))
+    hello = asker.hello()
+    stranger = ClockResponder(LED, KeySet.from_master(LED, b"x" * 32), Run(RUN2))
+    assert stranger.answer(hello, 0, 0) is None  # the hello's tag does not check there
+    nonce = hello[3:19]
+    body = RUN_ANSWER.pack(b"ZA", 1, nonce, RUN2)
+    forged = channel(KeySet.from_master(LED, b"x" * 32), "run_answer", Run(RUN2))
+    assert forged is not None
+    assert not asker.check(bytes(forged.seal(body)))
+    assert not asker.check(body)  # no tag at all
+    assert (asker.refused_bad, asker.refused_other) == (2, 0) and not asker.run.known
+    # The answer names its run twice (tag and body): they must agree.
+    liar = channel(_keys("cn"), "run_answer", Run(RUN2))
+    assert liar is not None
+    assert not asker.check(bytes(liar.seal(RUN_ANSWER.pack(b"ZA", 1, nonce, RUN1))))
+    assert asker.refused_other == 1 and not asker.run.known
+
+
+def test_a_clock_query_is_still_answered_as_one() -> None:
+    """The hello shares the clock's queryable; a device node's query is not a hello."""
+    from zplatform.runtime.clocksync import ClockLink
+
+    cn = ClockResponder(LED, _keys("cn"), Run(RUN2))
+    link = ClockLink(LED, "dn0", KeySet.from_master(LED, MASTER).for_node("dn0"))
+    q, nonce = link.query(RUN2)
+    reply = cn.answer(q, RUN2, RUN2)
+    assert reply is not None and link.check(reply, nonce) is not None
+    assert cn.hellos == 0 and link.run.epoch == RUN2
+
+
+# -- each receiver, on a fresh ground ------------------------------------------------
+
+
+def test_a_fresh_ground_refuses_every_snapshot_until_it_learns_the_run() -> None:
+    run = Run()
+    g = GroundLogic(LED, keys=_keys("gn"), run=run)
+    assert g.waiting_for_run
+    old = _frames(RUN1, 3)
+    now = RUN1 + 4 * PERIOD  # within the clock bound: only the run can refuse them
+    for f in old:
+        assert not g.on_telemetry(f, now)
+    c = g.counters
+    assert (c.received, c.bad, c.refused["stale"]) == (0, 0, 3) and not g.joined
+    assert "waiting for the vehicle's run" in g.last_refusal
+    run.set(RUN2)  # learned: run 2 commands
+    assert not g.waiting_for_run
+    for f in old:  # run 1's genuine snapshots, replayed: refused before any decode
+        assert not g.on_telemetry(f, now)
+    new = _frames(RUN2, 2)
+    for n, f in enumerate(new, 1):
+        assert g.on_telemetry(f, RUN2 + n * PERIOD)
+    c = g.counters
+    assert (c.received, c.bad, c.refused["stale"], c.epoch) == (2, 0, 6, RUN2)
+
+
+def test_the_links_telemetry_intake_counts_another_runs_snapshot_stale() -> None:
+    run = Run(RUN2)
+    intake = TelemetryIntake(LED, channel(_keys("gn"), "telemetry", run), 8, 10**12)
+    from tests.payload import Bytes
+
+    for f in _frames(RUN1, 2):
+        assert not intake.admit(Bytes(f), RUN1 + 3 * PERIOD)  # type: ignore[arg-type]
+    assert intake.take_counts() == (0, 0, 2) and intake.aged == 2
+    assert intake.admit(Bytes(_frames(RUN2, 1)[0]), RUN2 + PERIOD)  # type: ignore[arg-type]
+
+
+def test_a_fresh_ground_refuses_an_earlier_runs_events_as_stale() -> None:
+    run = Run(RUN2)
+    g = GroundLogic(LED, keys=_keys("gn"), run=run)
+    key = f"{LED.vehicle}/cn/events"
+
+    def record(epoch: int, seq: int) -> bytes:
+        log = EventLog("cn")
+        log.emit(EV.TM_JOINED, RUN2 + seq, epoch=epoch, loop=seq)
+        (e,) = log.drain()
+        ch = channel(_keys("cn"), "events_cn", Run(epoch))
+        assert ch is not None
+        return bytes(ch.seal(encode_event(e)))
+
+    old = record(RUN1, 1)
+    assert not g.forged_event(key, old)  # genuine: not counted as forged
+    assert g.on_event_bytes(key, old, RUN2 + 10) is None
+    assert (g.counters.stale_events, g.counters.bad_events) == (1, 0)
+    assert g.on_event_bytes(key, record(RUN2, 2), RUN2 + 10) is not None
+    assert (g.counters.stale_events, g.counters.bad_events) == (1, 0)
+
+
+def test_a_gap_fill_reply_of_an_earlier_run_is_refused() -> None:
+    written: list[int] = []
+    run = Run(RUN2)
+    fill = GapFill(LED, _keys("gn"), EventLog("gn"), lambda rx, _dv: written.append(rx), run=run)
+    g = GroundLogic(LED, keys=_keys("gn"), run=run)
+    g.gaps.append(Gap(RUN1, 1, 2))  # a gap of run 1 queued
+    fill.snapshot(g, RUN2)
+    req = fill.take_request(RUN2)
+    assert req is not None
+    rid = req[0]
+    old = _frames(RUN1, 2)
+    payload = bytes([REPLY_FRAMES]) + b"".join(REPLY_LEN.pack(len(f)) + f for f in old)
+    fill.on_reply(rid, payload)
+    assert fill.refused == 2 and fill.filled == 0
+
+
+def test_requests_are_tagged_in_the_learned_run() -> None:
+    from zplatform.core.auth import Channel
+
+    run = Run()
+    g = GroundLogic(LED, keys=_keys("gn"), run=run)
+    run.set(RUN2)
+    f = _frames(RUN2, 1)[0]
+    assert g.on_telemetry(f, RUN2 + PERIOD)
+    g.command("NOOP", now_ns=RUN2 + PERIOD)
+    (req,) = g.take_requests()
+    assert Channel.run_of(req) == RUN2 != NO_RUN
+
+
+def test_a_link_without_authentication_is_bound_to_no_run() -> None:
+    g = GroundLogic(LED, keys=None, run=None)
+    assert not g.waiting_for_run
