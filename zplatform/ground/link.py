@@ -203,6 +203,7 @@ class GroundLink:
             else None
         )
         self._closed = False
+        self._announce_pending = False
         self._learn_run()
         if announce:
             self.announce()
@@ -211,6 +212,11 @@ class GroundLink:
         """Declare the node's liveliness token (once; nothing for a tool).
         Alive only once subscribed: the CN waits for the ground node's token
         before its first loop, so a log starts at loop 1."""
+        if self.waiting_for_run:
+            # Alive only once it can take telemetry: declared when the run is
+            # learned (_learn_run), so the log still starts at loop 1.
+            self._announce_pending = True
+            return
         self.ns.announce()
 
     # -- reading -------------------------------------------------------------
@@ -231,7 +237,9 @@ class GroundLink:
         if asker is None:
             return
         while (answer := self._run_box.pop()) is not None:
-            asker.check(answer)
+            if asker.check(answer) and self._announce_pending:
+                self._announce_pending = False
+                self.ns.announce()
         run = self.run
         assert run is not None
         if run.known and not self._relearn:
