@@ -114,8 +114,8 @@ def test_a_fresh_ground_refuses_every_snapshot_until_it_learns_the_run() -> None
     now = RUN1 + 4 * PERIOD  # within the clock bound: only the run can refuse them
     for f in old:
         assert not g.on_telemetry(f, now)
-    c = g.counters
-    assert (c.received, c.bad, c.refused["stale"]) == (0, 0, 3) and not g.joined
+    c = g.counters  # let go, not counted as refused: the run is not known yet
+    assert (c.received, c.bad, c.rejected, g.waited) == (0, 0, 0, 3) and not g.joined
     assert "waiting for the vehicle's run" in g.last_refusal
     run.set(RUN2)  # learned: run 2 commands
     assert not g.waiting_for_run
@@ -125,7 +125,7 @@ def test_a_fresh_ground_refuses_every_snapshot_until_it_learns_the_run() -> None
     for n, f in enumerate(new, 1):
         assert g.on_telemetry(f, RUN2 + n * PERIOD)
     c = g.counters
-    assert (c.received, c.bad, c.refused["stale"], c.epoch) == (2, 0, 6, RUN2)
+    assert (c.received, c.bad, c.refused["stale"], c.epoch) == (2, 0, 3, RUN2)
 
 
 def test_the_links_telemetry_intake_counts_another_runs_snapshot_stale() -> None:
@@ -137,6 +137,17 @@ def test_the_links_telemetry_intake_counts_another_runs_snapshot_stale() -> None
         assert not intake.admit(Bytes(f), RUN1 + 3 * PERIOD)  # type: ignore[arg-type]
     assert intake.take_counts() == (0, 0, 2) and intake.aged == 2
     assert intake.admit(Bytes(_frames(RUN2, 1)[0]), RUN2 + PERIOD)  # type: ignore[arg-type]
+
+
+def test_the_links_intake_lets_snapshots_go_uncounted_before_the_run_is_known() -> None:
+    from tests.payload import Bytes
+
+    run = Run()
+    intake = TelemetryIntake(LED, channel(_keys("gn"), "telemetry", run), 8, 10**12)
+    nudged: list[int] = []
+    intake.on_other_run = lambda: nudged.append(1)
+    assert not intake.admit(Bytes(_frames(RUN2, 1)[0]), RUN2 + PERIOD)  # type: ignore[arg-type]
+    assert intake.take_counts() == (0, 0, 0) and intake.waiting == 1 and nudged == [1]
 
 
 def test_a_fresh_ground_refuses_an_earlier_runs_events_as_stale() -> None:

@@ -184,8 +184,8 @@ class Intake(ABC, Generic[H]):
             frame = self._frame(data)
             fresh = self._fresh(ch.open(frame, any_run=self._any_run(frame)), handle)
         except RunError:  # another run's genuine frame (an earlier run's replay): stale
-            self.stale += 1
-            self._other_run()
+            if self._other_run():
+                self.stale += 1
             if self.on_other_run is not None:
                 self.on_other_run()
             return None
@@ -207,9 +207,10 @@ class Intake(ABC, Generic[H]):
         default; a probe's STATUS question (zplatform.control.fencing.any_run)."""
         return False
 
-    def _other_run(self) -> None:
-        """Count a genuine frame of another run (with the lock held), beyond
-        ``stale``: nothing more, by default."""
+    def _other_run(self) -> bool:
+        """Whether a genuine frame of another run counts as ``stale`` (with
+        the lock held): it does, by default."""
+        return True
 
     def _within_rate(self) -> bool:
         """Whether a frame of the right size may be read now (before any
@@ -369,9 +370,10 @@ class ProbeIntake(Intake[H]):
         """Questions refused beyond a rate bound, among those counted by the
         last :meth:`take_counts`."""
 
-    def _other_run(self) -> None:
-        """Count a genuine frame of another run (with the lock held), beyond
-        ``stale``: nothing more, by default."""
+    def _other_run(self) -> bool:
+        """Whether a genuine frame of another run counts as ``stale`` (with
+        the lock held): it does, by default."""
+        return True
 
     def _within_rate(self) -> bool:
         now = self._now()
@@ -461,7 +463,8 @@ class TelemetryIntake(_StampIntake[int]):
     snapshot is older than ``max_age_ns``. The logic checks the rest (its
     clock bound both ways, the jumps). Of the refused snapshots, those
     stamped more than ``max_age_ns`` before they arrived, or of another run
-    than ``channel``'s (a ground bound to a run), are also counted in
+    than ``channel``'s (a ground bound to a run; before it knows its run,
+    they are only counted in :attr:`waiting`), are also counted in
     :attr:`aged`, those stamped beyond it after in :attr:`ahead` (what the
     logic calls ``stale`` and ``ahead``). ``capacity``: snapshots kept while
     the consumer is busy."""
@@ -490,6 +493,10 @@ class TelemetryIntake(_StampIntake[int]):
         self._term_at = lay.element("cn_term").offset if mission.standby is not None else -1
         self._newest_epoch = -1
         self._newest_term = 0
+        self._run = channel.run if channel is not None else None
+        self.waiting = 0
+        """Authentic snapshots let go because the run was not learned yet
+        (a ground bound to a run: zplatform.ground.link); not counted as refused."""
         super().__init__("telemetry", max_frame_len(size, channel), channel, capacity, waker=waker)
 
     def _fresh(self, body: memoryview, handle: int) -> bool:
@@ -523,10 +530,16 @@ class TelemetryIntake(_StampIntake[int]):
         if handle - t_ns > self._max_age:
             self._aged += 1
 
-    def _other_run(self) -> None:
+    def _other_run(self) -> bool:
         # A ground bound to a run (zplatform.ground.link): another run's
-        # snapshot, or any before the run is learned, is counted stale.
+        # snapshot is counted stale; one before the run is learned only in
+        # `waiting` (not a replay: the ground does not know the run yet).
+        run = self._run
+        if run is not None and not run.known:
+            self.waiting += 1
+            return False
         self._aged += 1
+        return True
 
     def _took(self) -> None:
         self.aged, self._aged = self._aged, 0

@@ -268,6 +268,9 @@ class GroundLogic:
         take (the oldest are forgotten past a bound: nobody is taking them)."""
         self.last_refusal = ""
         """The detail of the latest refused or bad snapshot ("" if none)."""
+        self.waited = 0
+        """Authentic snapshots let go while :attr:`waiting_for_run` (not
+        counted as refused: not replays, merely before the run was learned)."""
         h = self.dv.handle
         self._h_loop = h("cn_loop")
         self._h_state = h("cn_state")
@@ -406,7 +409,13 @@ class GroundLogic:
             body = payload if ch is None else ch.strip(payload) if authentic else ch.open(payload)
             frame = self._codec.check(body)
         except RunError as exc:  # another run's genuine frame: a replay, or a new run
-            return self._refuse("stale", self._other_run(exc), rx_ns)
+            if self.waiting_for_run:  # not a replay: the run is not known yet
+                self.waited += 1
+                self.last_refusal = f"waiting for the vehicle's run: {exc}"
+                return False
+            return self._refuse(
+                "stale", f"{exc}: an earlier run's snapshot, or the control node restarted", rx_ns
+            )
         except AuthError as exc:
             return self._reject_bad("tag", str(exc), rx_ns)
         except CodecError as exc:
@@ -480,11 +489,6 @@ class GroundLogic:
         self._last_t = t
         self._on_snapshot(rx_ns, can_send)
         return True
-
-    def _other_run(self, exc: RunError) -> str:
-        if self.waiting_for_run:
-            return f"waiting for the vehicle's run: {exc}"
-        return f"{exc}: an earlier run's snapshot, or the control node restarted"
 
     def _reject_bad(self, kind: str, detail: str, rx_ns: int) -> bool:
         self._n.bad += 1
