@@ -203,3 +203,42 @@ def test_requests_are_tagged_in_the_learned_run() -> None:
 def test_a_link_without_authentication_is_bound_to_no_run() -> None:
     g = GroundLogic(LED, keys=None, run=None)
     assert not g.waiting_for_run
+
+
+# -- the command channel ----------------------------------------------------------
+
+
+def _request(tag_run: int, data_run: int, seq: int = 1) -> bytes:
+    """A NOOP request naming ``data_run`` in its data, tagged in ``tag_run``
+    with the uplink's genuine key (an insider's frame, or one recorded)."""
+    from zplatform.control.uplink import Uplink
+
+    return bytes(Uplink(LED, _keys("gn"), Run(tag_run)).frame("NOOP", seq, 0, 0.0, RUN2, data_run))
+
+
+def test_the_control_node_refuses_a_request_tagged_in_another_run_before_decoding() -> None:
+    cn = ControlLogic(LED, keys=_keys("cn"), epoch=RUN2)
+    cn.begin(1, RUN2 + PERIOD)
+    cn.finish([_request(RUN1, RUN2)])  # its data names this run; its tag another
+    assert int(cn.dv.get("cn_cmd_rejects")) == 1
+    status = cn.dv.handle("cn_cmd_reject_status")
+    assert status.spec.name_of(status.get()) == "REJECTED_EPOCH"
+    assert int(cn.dv.get("cn_cmd_seq")) == 0  # no number consumed, nothing applied
+    cn.begin(2, RUN2 + 2 * PERIOD)
+    cn.finish([_request(RUN2, RUN2, 2)])  # tagged in this run: taken
+    assert int(cn.dv.get("cn_cmd_seq")) == 2 and int(cn.dv.get("cn_cmd_rejects")) == 1
+
+
+def test_the_request_intake_counts_a_request_of_another_run_stale() -> None:
+    from tests.payload import Bytes
+    from zplatform.control.intake import RequestIntake
+
+    ch = channel(_keys("cn"), "gn_to_cn", Run(RUN2))
+    intake = RequestIntake(LED, ch, RUN2, lambda: 0, 8)
+    assert not intake.admit(Bytes(_request(RUN1, RUN2)), None)  # type: ignore[arg-type]
+    assert intake.take_counts() == (0, 0, 1)
+    assert intake.admit(Bytes(_request(RUN2, RUN2)), None)  # type: ignore[arg-type]
+    # Tagged in no run (a ground bound to none): its data's run is checked.
+    assert intake.admit(Bytes(_request(NO_RUN, RUN2, 2)), None)  # type: ignore[arg-type]
+    assert not intake.admit(Bytes(_request(NO_RUN, RUN1, 3)), None)  # type: ignore[arg-type]
+    assert intake.take_counts() == (0, 0, 1)

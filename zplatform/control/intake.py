@@ -28,7 +28,7 @@ from collections.abc import Callable
 from typing import Generic, Protocol, TypeVar
 
 from ..config import Mission
-from ..core.auth import TAG_LEN, Channel, RunError
+from ..core.auth import NO_RUN, TAG_LEN, Channel, RunError
 from ..core.codec import (
     bundle_entry,
     bundle_size,
@@ -547,7 +547,9 @@ class TelemetryIntake(_StampIntake[int]):
 
 
 class RequestIntake(Intake[None]):
-    """The CN's command requests (``{vehicle}/gn/to_cn``). Fresh: for this
+    """The CN's command requests (``{vehicle}/gn/to_cn``). ``channel`` bound
+    to the CN's run: a request tagged in another run is refused before any
+    decode (stale); one tagged in none is taken to the next check. Fresh: for this
     CN run and numbered above every number seen, by the rules of
     :func:`zplatform.control.commands.request_refusal` (``last_seq()``: the command
     handler's highest number; the intake's own highest admitted counts
@@ -574,6 +576,12 @@ class RequestIntake(Intake[None]):
         """``(status, seq)`` of the refused request with the highest number
         among those counted by the last :meth:`take_counts` (``(0, 0)``: none)."""
         super().__init__("command request", max_frame_len(self._size, channel), channel, capacity)
+
+    def _any_run(self, frame: bytes | memoryview) -> bool:
+        # A request tagged in no run (a ground bound to none) is opened under
+        # the run-0 key: its data names its run, checked in _fresh. One tagged
+        # in another run is refused before any decode (RunError: stale).
+        return Channel.run_of(frame) == NO_RUN
 
     def _fresh(self, body: memoryview, handle: None) -> bool:
         epoch, seq = self._number.read(frame_data(body, self._size))

@@ -319,8 +319,10 @@ def fill_request(
 class Uplink:
     """Frames command requests: one ``gn_to_cn`` vector, its codec, and the
     uplink's ``gn_to_cn`` channel from ``keys`` (None: the mission does not
-    authenticate), its tags in ``run`` (the run the ground learned; None:
-    :data:`~zplatform.core.auth.NO_RUN`, which a control node refuses).
+    authenticate), its tags in ``run`` (the run the ground learned: a
+    control node refuses a request tagged in another run before any decode;
+    None: :data:`~zplatform.core.auth.NO_RUN`, and only the run the request
+    names in its data is checked).
 
     :meth:`frame` returns a buffer of its own (reused by the next call).
     """
