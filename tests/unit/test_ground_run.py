@@ -8,7 +8,11 @@ bound or ordering, later)."""
 
 from __future__ import annotations
 
+import types
 from pathlib import Path
+from typing import Any
+
+import pytest
 
 from zplatform import load_mission
 from zplatform.control.intake import TelemetryIntake
@@ -18,7 +22,18 @@ from zplatform.core.events import EV, EventLog, encode_event
 from zplatform.ground.gapfill import GapFill
 from zplatform.ground.logic import Gap, GroundLogic
 from zplatform.recorder.format import REPLY_FRAMES, REPLY_LEN
-from zplatform.runtime.clocksync import RUN_ANSWER, ClockResponder, RunAsker
+from zplatform.runtime import clocksync
+
+
+# Looked up when used, so that the tests that need no new name still run
+# (and fail) on the code before the ground was bound to a run.
+def ClockResponder(*a: object) -> Any:
+    return clocksync.ClockResponder(*a)  # type: ignore[arg-type]
+
+
+def RunAsker(*a: object) -> Any:
+    return clocksync.RunAsker(*a)  # type: ignore[attr-defined]
+
 
 CONFIGS = Path(__file__).resolve().parents[2] / "configs"
 LED = load_mission(CONFIGS / "led_test.yaml")
@@ -78,7 +93,7 @@ def test_a_forged_or_keyless_answer_is_refused_as_bad() -> None:
     stranger = ClockResponder(LED, KeySet.from_master(LED, b"x" * 32), Run(RUN2))
     assert stranger.answer(hello, 0, 0) is None  # the hello's tag does not check there
     nonce = hello[3:19]
-    body = RUN_ANSWER.pack(b"ZA", 1, nonce, RUN2)
+    body = clocksync.RUN_ANSWER.pack(b"ZA", 1, nonce, RUN2)
     forged = channel(KeySet.from_master(LED, b"x" * 32), "run_answer", Run(RUN2))
     assert forged is not None
     assert not asker.check(bytes(forged.seal(body)))
@@ -87,7 +102,7 @@ def test_a_forged_or_keyless_answer_is_refused_as_bad() -> None:
     # The answer names its run twice (tag and body): they must agree.
     liar = channel(_keys("cn"), "run_answer", Run(RUN2))
     assert liar is not None
-    assert not asker.check(bytes(liar.seal(RUN_ANSWER.pack(b"ZA", 1, nonce, RUN1))))
+    assert not asker.check(bytes(liar.seal(clocksync.RUN_ANSWER.pack(b"ZA", 1, nonce, RUN1))))
     assert asker.refused_other == 1 and not asker.run.known
 
 
@@ -213,7 +228,10 @@ def _request(tag_run: int, data_run: int, seq: int = 1) -> bytes:
     with the uplink's genuine key (an insider's frame, or one recorded)."""
     from zplatform.control.uplink import Uplink
 
-    return bytes(Uplink(LED, _keys("gn"), Run(tag_run)).frame("NOOP", seq, 0, 0.0, RUN2, data_run))
+    frame = Uplink(LED, None).frame("NOOP", seq, 0, 0.0, RUN2, data_run)
+    ch = channel(_keys("gn"), "gn_to_cn", Run(tag_run))
+    assert ch is not None
+    return bytes(ch.seal(frame))
 
 
 def test_the_control_node_refuses_a_request_tagged_in_another_run_before_decoding() -> None:
@@ -242,3 +260,79 @@ def test_the_request_intake_counts_a_request_of_another_run_stale() -> None:
     assert intake.admit(Bytes(_request(NO_RUN, RUN2, 2)), None)  # type: ignore[arg-type]
     assert not intake.admit(Bytes(_request(NO_RUN, RUN1, 3)), None)  # type: ignore[arg-type]
     assert intake.take_counts() == (0, 0, 1)
+
+
+# -- the ground's zenoh link, fresh -------------------------------------------------
+
+
+@pytest.fixture
+def link(tmp_path: Path) -> Any:
+    from zplatform.ground.link import GroundLink
+    from zplatform.runtime.transport import rewrite_endpoints
+
+    rewrite_endpoints(CONFIGS / "led_test.yaml", tmp_path / "led.yaml")
+    m = load_mission(tmp_path / "led.yaml")
+    gl = GroundLink(m, keys=KeySet.from_master(m, MASTER).for_node("gn"))
+    yield gl
+    gl.close()
+
+
+def test_a_fresh_ground_link_takes_no_snapshot_of_a_run_it_did_not_learn(link: Any) -> None:
+    """An earlier run's genuine snapshot, stamped within the clock bound
+    (a run that ended a moment ago), reaches a ground that just started:
+    let go, never shown (before: followed as the vehicle's run)."""
+    from tests.payload import Bytes
+
+    now = link.clock.now_ns()
+    old = ControlLogic(link.mission, keys=_keys("cn"), epoch=now - 10 * PERIOD)
+    old.begin(9, now - PERIOD)
+    frame = bytes(old.finish([]) or b"")
+    link._on_telemetry(types.SimpleNamespace(payload=Bytes(frame)))  # as zenoh's thread
+    assert link.next(0) is None
+    c = link.logic.counters
+    assert (c.received, c.bad, c.rejected) == (0, 0, 0) and not link.logic.joined
+    assert link.waiting_for_run and link._tm.waiting == 1
+    assert "waiting for the vehicle's run" in link.why_no_telemetry(1.0)
+
+
+def test_a_ground_link_that_learned_the_run_refuses_an_earlier_runs_snapshot_stale(
+    link: Any,
+) -> None:
+    from tests.payload import Bytes
+
+    now = link.clock.now_ns()
+    old = ControlLogic(link.mission, keys=_keys("cn"), epoch=now - 10 * PERIOD)
+    new = ControlLogic(link.mission, keys=_keys("cn"), epoch=now - 5 * PERIOD)
+    link.run.set(new.auth_run.epoch)  # as the commander's answer to its run hello
+    for cn, loop in ((old, 9), (new, 4)):
+        cn.begin(loop, now - PERIOD)
+        frame = bytes(cn.finish([]) or b"")
+        link._on_telemetry(types.SimpleNamespace(payload=Bytes(frame)))
+    assert link.next(0) is not None
+    c = link.logic.counters
+    assert (c.received, c.bad, c.refused["stale"], c.epoch) == (1, 0, 1, new.auth_run.epoch)
+    assert link._relearn  # a genuine snapshot of another run: ask the run again (<= 1/s)
+
+
+def test_a_fresh_ground_link_refuses_an_earlier_runs_event(link: Any) -> None:
+    from tests.payload import Bytes
+
+    now = link.clock.now_ns()
+    log = EventLog("cn")
+    log.emit(EV.TM_JOINED, now, epoch=RUN1, loop=1)
+    (e,) = log.drain()
+    ch = channel(_keys("cn"), "events_cn", Run(now - 10 * PERIOD))
+    assert ch is not None
+    key = f"{link.mission.vehicle}/cn/events"
+    sample = types.SimpleNamespace(payload=Bytes(bytes(ch.seal(encode_event(e)))), key_expr=key)
+    shown: list[object] = []
+    link.on_event = shown.append
+    link._on_event(sample)
+    link.next(0)
+    c = link.logic.counters  # let go, never shown: the run is not known yet
+    assert (c.stale_events, c.bad_events, shown) == (0, 0, []) and link.logic.waited == 1
+    link.run.set(now - 5 * PERIOD)  # learned: a later run commands
+    link._on_event(sample)
+    link.next(0)
+    c = link.logic.counters
+    assert (c.stale_events, c.bad_events, shown) == (1, 0, [])

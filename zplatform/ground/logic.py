@@ -269,8 +269,9 @@ class GroundLogic:
         self.last_refusal = ""
         """The detail of the latest refused or bad snapshot ("" if none)."""
         self.waited = 0
-        """Authentic snapshots let go while :attr:`waiting_for_run` (not
-        counted as refused: not replays, merely before the run was learned)."""
+        """Authentic snapshots and event records let go while
+        :attr:`waiting_for_run` (not counted as refused: not replays, merely
+        before the run was learned)."""
         h = self.dv.handle
         self._h_loop = h("cn_loop")
         self._h_state = h("cn_state")
@@ -800,7 +801,13 @@ class GroundLogic:
         :attr:`max_age_ns` of ``rx_ns``)."""
         try:
             e, verified = self._events_in.read(key_expr, payload, rx_ns)
-        except (StaleRecordError, RunError):  # RunError: another run's genuine record
+        except RunError:  # another run's genuine record
+            if self.waiting_for_run:  # not a replay: the run is not known yet
+                self.waited += 1
+            else:
+                self._n.stale_events += 1
+            return None
+        except StaleRecordError:
             self._n.stale_events += 1
             return None
         except CodecError:
