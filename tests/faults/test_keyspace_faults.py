@@ -866,7 +866,7 @@ class ArchiveReplyH(Harness):
         return self._reply(1, self.nonce, U32_MAX - 1, 1000)
 
 
-_HELLO = struct.Struct("<2sB16s")  # codecs/FORMAT.md §6.4
+_HELLO = struct.Struct("<2sB16s")  # codecs/FORMAT.md §6.3
 
 
 class RunHelloH(Harness):

@@ -17,7 +17,7 @@ the tools, which hold no device node's link, learn the run the same way on
 the same queryable with a *run hello* (:class:`RunAsker`): a fresh nonce
 tagged under the downlink's ``run_hello`` channel, answered by the commander
 with its run, the nonce echoed, tagged under ``run_answer`` in that run
-(codecs/FORMAT.md §6.4). The fastest
+(codecs/FORMAT.md §6.3). The fastest
 ``keep_fraction`` of many exchanges give the offset (:func:`estimator_for`:
 ``node_clock`` or zenoh's timestamps, the default). Formulas and measured
 accuracy: docs/architecture.md#the-clock-exchange; wire: codecs/FORMAT.md §6.3.
@@ -83,7 +83,7 @@ PEER_INDEX = 0xFE
 _REPLY = struct.Struct("<2sBB16sqqq")
 _Q_MAGIC, _R_MAGIC, _VERSION = b"ZQ", b"ZR", 1
 NONCE_LEN = 16
-# codecs/FORMAT.md §6.4: the run hello (magic, version, nonce) and its answer
+# codecs/FORMAT.md §6.3: the run hello (magic, version, nonce) and its answer
 # (magic, version, the nonce echoed, the run).
 RUN_HELLO = struct.Struct("<2sB16s")
 RUN_ANSWER = struct.Struct("<2sB16sQ")
