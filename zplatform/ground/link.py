@@ -16,15 +16,8 @@ the logic and publishes the requests it makes. A snapshot's age is measured
 on arrival (a realtime-anchored :class:`~zplatform.runtime.timebase.NodeClock`); the
 bound is the mission's or ``ZPLATFORM_TELEMETRY_MAX_AGE_MS``. Not thread-safe.
 
-Each mailbox's bound and refusals: docs/architecture.md#ground.
-
-With authentication the link is bound to the commander's run (:attr:`GroundLink.run`),
-learned from its answer to a run hello (:class:`~zplatform.runtime.clocksync.RunAsker`
-on ``{vehicle}/cn/clock``), asked at once, then once a :data:`RELEARN_S` until
-answered; telemetry, events and gap-fill replies of another run are refused
-(stale) and nothing is taken before (:attr:`GroundLogic.waiting_for_run`). A
-genuine snapshot of another run (the control node restarted) makes it ask
-again, at most once a :data:`RELEARN_S`.
+Each mailbox's bound and refusals: docs/architecture.md#ground; the run
+the link is bound to: :class:`GroundLink` and docs/architecture.md#runs.
 """
 
 from __future__ import annotations
@@ -112,6 +105,15 @@ class GroundLink:
     (a ``script`` implies ``commands``). ``on_event`` gets every event record
     in the caller's thread. ``announce=False``: declare the node's liveliness
     token later (:meth:`announce`), after some set-up of the caller's.
+
+    With authentication the link is bound to the commander's run
+    (:attr:`run`), learned from its answer to a run hello
+    (:class:`~zplatform.runtime.clocksync.RunAsker` on ``{vehicle}/cn/clock``),
+    asked at once, then once a :data:`RELEARN_S` until answered; telemetry,
+    events and gap-fill replies of another run are refused (stale) and
+    nothing is taken before (:attr:`GroundLogic.waiting_for_run`). A genuine
+    snapshot of another run (the control node restarted) makes it ask
+    again, at most once a :data:`RELEARN_S`.
 
     Raises KeyError_ for a missing key, TransportError when the session
     cannot open, CommandError for a script that does not fit the mission.

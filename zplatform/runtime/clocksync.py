@@ -13,11 +13,8 @@ The exchange is also how a node learns the control node's *run*
 reply names the run, is tagged under its key and echoes the asker's nonce.
 A query names the asker's run (the server refuses another run's, unanswered)
 or none (a *hello*, answered statelessly like a SYN cookie). The ground and
-the tools, which hold no device node's link, learn the run the same way on
-the same queryable with a *run hello* (:class:`RunAsker`): a fresh nonce
-tagged under the downlink's ``run_hello`` channel, answered by the commander
-with its run, the nonce echoed, tagged under ``run_answer`` in that run
-(codecs/FORMAT.md §6.3). The fastest
+the tools learn it on the same queryable by a *run hello* (:class:`RunAsker`,
+under the downlink's key; codecs/FORMAT.md §6.3). The fastest
 ``keep_fraction`` of many exchanges give the offset (:func:`estimator_for`:
 ``node_clock`` or zenoh's timestamps, the default). Formulas and measured
 accuracy: docs/architecture.md#the-clock-exchange; wire: codecs/FORMAT.md §6.3.
