@@ -16,8 +16,7 @@ the logic and publishes the requests it makes. A snapshot's age is measured
 on arrival (a realtime-anchored :class:`~zplatform.runtime.timebase.NodeClock`); the
 bound is the mission's or ``ZPLATFORM_TELEMETRY_MAX_AGE_MS``. Not thread-safe.
 
-Each mailbox's bound and refusals: docs/architecture.md#ground; the run
-the link is bound to: :class:`GroundLink` and docs/architecture.md#runs.
+Mailboxes: docs/architecture.md#ground; its run: :class:`GroundLink`.
 """
 
 from __future__ import annotations

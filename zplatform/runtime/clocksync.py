@@ -12,9 +12,8 @@ The exchange is also how a node learns the control node's *run*
 (:class:`zplatform.core.auth.Run`) from a frame that cannot be a replay: the
 reply names the run, is tagged under its key and echoes the asker's nonce.
 A query names the asker's run (the server refuses another run's, unanswered)
-or none (a *hello*, answered statelessly like a SYN cookie). The ground and
-the tools learn it on the same queryable by a *run hello* (:class:`RunAsker`,
-under the downlink's key; codecs/FORMAT.md §6.3). The fastest
+or none (a *hello*, answered statelessly like a SYN cookie); the ground and
+tools send a *run hello* (:class:`RunAsker`, downlink key). The fastest
 ``keep_fraction`` of many exchanges give the offset (:func:`estimator_for`:
 ``node_clock`` or zenoh's timestamps, the default). Formulas and measured
 accuracy: docs/architecture.md#the-clock-exchange; wire: codecs/FORMAT.md §6.3.
