@@ -336,3 +336,39 @@ def test_a_fresh_ground_link_refuses_an_earlier_runs_event(link: Any) -> None:
     link.next(0)
     c = link.logic.counters
     assert (c.stale_events, c.bad_events, shown) == (1, 0, [])
+
+
+def test_a_ground_link_follows_a_restarted_control_node_asking_at_most_once_a_second(
+    link: Any, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The control node restarted with a new run: its genuine snapshots are
+    refused until the link asked again (a run hello, at most one per
+    RELEARN_S however many such snapshots come) and took the answer."""
+    import time
+
+    from tests.payload import Bytes
+    from zplatform.ground import link as link_mod
+
+    asked: list[bytes] = []
+    monkeypatch.setattr(link_mod, "ask", lambda *a, **kw: asked.append(kw["payload"]))
+    now = link.clock.now_ns()
+    old_run, new_run = now - 10 * PERIOD, now - 5 * PERIOD
+    link.run.set(old_run)  # learned before the restart
+    link._last_hello = time.monotonic()  # ... just now
+    cn = ControlLogic(link.mission, keys=_keys("cn"), epoch=new_run)
+    for loop in (1, 2, 3):
+        cn.begin(loop, now - PERIOD + loop)
+        link._on_telemetry(types.SimpleNamespace(payload=Bytes(bytes(cn.finish([]) or b""))))
+    assert link.next(0) is None and link.logic.counters.refused["stale"] == 3
+    assert asked == []  # within RELEARN_S of the last hello: not yet
+    link._last_hello -= link_mod.RELEARN_S
+    link._learn_run()
+    link._learn_run()
+    assert len(asked) == 1  # one hello for the three snapshots
+    answer = ClockResponder(link.mission, _keys("cn"), Run(new_run)).answer(asked[0], 0, 0)
+    link._run_box.put(answer)
+    assert link.next(0) is None  # the answer taken (the caller's thread): bound to it
+    cn.begin(4, now)
+    link._on_telemetry(types.SimpleNamespace(payload=Bytes(bytes(cn.finish([]) or b""))))
+    assert link.next(0) is not None  # the new run followed
+    assert link.run.epoch == new_run and link.logic.counters.epoch == new_run
