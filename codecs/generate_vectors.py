@@ -11,9 +11,10 @@ element by element, with ``struct``, not from the Data Vector.
 
 ``vectors/auth/`` holds the tags (FORMAT.md §6.1, §6.3, §8.1): a region
 frame, a clock query (a hello naming no run, and one naming the run) and
-its reply, and an event record, each tagged under both MACs with keys
-derived from a published master key (never a real key: the platform
-refuses it), in the control node's run ``RUN`` (the hello in run 0).
+its reply, an event record, and a ground's run hello and its answer,
+each tagged under both MACs with keys derived from a published master key
+(never a real key: the platform refuses it), in the control node's run
+``RUN`` (the hellos in run 0).
 Each ``<mac>_<what>.bin`` is the message with its tag; its ``.json``
 gives every key and context string on the way.
 
@@ -345,6 +346,8 @@ MASTER = bytes.fromhex("5a9c4e1f0b7d3a6e82c5f19d4b07e3a8c6d2f5910e8b4a7c3d6f1e0b
 NONCE = bytes(range(0xA0, 0xB0))
 CLOCK_QUERY = struct.Struct("<2sBB16sq")
 CLOCK_REPLY = struct.Struct("<2sBB16sqqq")
+RUN_HELLO = struct.Struct("<2sB16s")
+RUN_ANSWER = struct.Struct("<2sB16sQ")
 RUN = T0 - 0x5A5A5A  # the CN's run (a cn_epoch: a clock reading, its low 24 bits random)
 
 
@@ -376,6 +379,20 @@ def auth_messages(frame: bytes) -> list[tuple[str, str, str, int, bytes]]:
             CLOCK_REPLY.pack(b"ZR", 1, 0, NONCE, T0, T0 + 1_500_000, T0 + 1_520_000),
         ),
         ("events_cn", "events_cn", "an event record of the CN", RUN, encode_event(event)),
+        (
+            "run_hello",
+            "run_hello",
+            "a ground's run hello (§6.3), in no run: nonce a0..af",
+            NO_RUN,
+            RUN_HELLO.pack(b"ZH", 1, NONCE),
+        ),
+        (
+            "run_answer",
+            "run_answer",
+            "the commander's answer to it: the nonce echoed, its run, tagged in that run",
+            RUN,
+            RUN_ANSWER.pack(b"ZA", 1, NONCE, RUN),
+        ),
     ]
 
 

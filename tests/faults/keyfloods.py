@@ -104,7 +104,9 @@ NOT_FLOODED: dict[tuple[str, str], str] = {
     ("bulk", "sample"): "shared memory on one host: no network peer reaches it",
     ("downlink", "sample"): "a read-only radio downlink, CRC only: nothing to refuse",
     ("clock", "reply"): "the askers query the clock only to sync (at start, then "
-    "seldom): a rogue has next to no query to answer; in process: test_keyspace_faults",
+    "seldom), the ground and tools to learn the run (a run hello at start, then at most "
+    "once a second on another run's snapshot): a rogue has next to no query to answer; "
+    "the clock's query flood covers the hello (one key); in process: test_keyspace_faults",
     ("recorder", "reply"): "the ground asks only to fill a telemetry gap: a rogue "
     "has no query to answer; in process: test_keyspace_faults",
     ("probe", "reply"): "a control node probes only in a takeover: a rogue has no "

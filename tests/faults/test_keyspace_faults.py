@@ -66,7 +66,7 @@ from zplatform.ground.logic import Gap, GroundLogic
 from zplatform.mission.load import load_mission
 from zplatform.recorder.format import REPLY_FRAMES, REPLY_LEN, REQUEST, REQUEST_MAGIC
 from zplatform.recorder.server import RecorderServer
-from zplatform.runtime.clocksync import ClockLink, ClockResponder
+from zplatform.runtime.clocksync import RUN_ANSWER, ClockLink, ClockResponder, RunAsker
 from zplatform.security.keyspace import ExpandedKey, KeyFrames, expand_keys
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -192,6 +192,16 @@ def _learn_run(m: Mission, node: str, keys: KeySet, t0: int, run: Run | None = N
     assert reply is not None and link.check(reply, nonce) is not None
     assert link.run.epoch == t0
     return link.run
+
+
+def _ground_run(m: Mission, keys: KeySet, t0: int) -> Run:
+    """The run of the control node that started at ``t0``, as the ground
+    learns it: its run hello, answered by that control node's clock server
+    (zplatform.runtime.clocksync.RunAsker)."""
+    asker = RunAsker(keys)
+    answer = ClockResponder(m, keys, Run(t0)).answer(asker.hello(), t0, t0 + 1)
+    assert answer is not None and asker.check(answer) and asker.run.epoch == t0
+    return asker.run
 
 
 class TriggerH(_IntakeCounts, Harness):
@@ -330,14 +340,16 @@ class TelemetryH(_IntakeCounts, Harness):
     def __init__(self, m: Mission, t0: int = T0) -> None:
         self.t0 = t0
         self.m, self.keys = m, _keys(m)
-        self.ch = channel(self.keys, "telemetry")
-        self.intake = TelemetryIntake(m, channel(self.keys, "telemetry"), 8, 10**9)
+        self.ch = channel(self.keys, "telemetry", Run(t0))  # the CN's, for extremes
+        run = _ground_run(m, self.keys, t0)  # a ground bound to the run it learned
+        self.intake = TelemetryIntake(m, channel(self.keys, "telemetry", run), 8, 10**9)
         self.max_len = self.intake.max_len
         self.cn = ControlLogic(m, keys=self.keys, epoch=self.t0)
         self.n = 0
 
-    # No gaps: an earlier run's snapshot is refused by the ground's clock
-    # bound (stamped a day before it arrived), a far-ahead one as well.
+    # No gaps: an earlier run's snapshot is refused by the run the ground
+    # learned (and, a day old, by its clock bound too), a far-ahead one by
+    # the clock bound.
 
     def genuine(self) -> bytes:
         self.n += 1
@@ -365,8 +377,8 @@ class EventH(Harness):
     def __init__(self, m: Mission, node: str, t0: int = T0) -> None:
         self.t0 = t0
         self.m, self.keys, self.node = m, _keys(m), node
-        self.ch = channel(self.keys, f"events_{node}")
-        self.logic = GroundLogic(m, keys=self.keys)
+        self.ch = channel(self.keys, f"events_{node}", Run(t0))  # the node's, in run t0
+        self.logic = GroundLogic(m, keys=self.keys, run=_ground_run(m, self.keys, t0))
         self.key = f"{m.vehicle}/{node}/events"
         self.max_len = 4096
         self.n = 0
@@ -720,9 +732,10 @@ class GapFillH(Harness):
     def __init__(self, m: Mission, t0: int = T0) -> None:
         self.t0 = t0
         self.m, self.keys = m, _keys(m)
-        self.ch = channel(self.keys, "telemetry")
+        self.ch = channel(self.keys, "telemetry", Run(t0))  # the CN's, for extremes
         self.cn = ControlLogic(m, keys=self.keys, epoch=self.t0)
-        self.gf = GapFill(m, self.keys, EventLog("gn"), lambda rx, dv: None)
+        run = _ground_run(m, self.keys, t0)
+        self.gf = GapFill(m, self.keys, EventLog("gn"), lambda rx, dv: None, run=run)
         lay = Layout.for_node(m, "cn")
         logic: Any = SimpleNamespace(gaps=deque([Gap(self.t0, 1, 1000)]), dv=DataVector(lay))
         self.gf.snapshot(logic, self.t0)
@@ -853,6 +866,94 @@ class ArchiveReplyH(Harness):
         return self._reply(1, self.nonce, U32_MAX - 1, 1000)
 
 
+_HELLO = struct.Struct("<2sB16s")  # codecs/FORMAT.md §6.3
+
+
+class RunHelloH(Harness):
+    """The commander's end of the run hello (ClockResponder): a ground's or
+    a tool's hello, on the clock's queryable."""
+
+    kinds = ("bad",)
+
+    @classmethod
+    def gaps(cls, m: Mission) -> dict[str, str]:
+        why = (
+            "a run hello is answered statelessly (a SYN cookie): a replayed one is "
+            "answered again, and its answer echoes a nonce no asker awaits any more "
+            "(RunAsker refuses it: the run_answer reply's replay cases)"
+        )
+        return {"replay": why, "replay_old_run": why}
+
+    def __init__(self, m: Mission, asker: str, t0: int = T0) -> None:
+        self.m, self.keys, self.t0 = m, _keys(m), t0
+        self.responder = ClockResponder(m, self.keys, Run(t0))
+        self.asker = RunAsker(self.keys)
+        self.ch = channel(self.keys, "run_hello")
+        self.max_len = _HELLO.size + TAG_LEN
+
+    def genuine(self) -> bytes:
+        return self.asker.hello()
+
+    def feed(self, payload: bytes) -> bool:
+        return self.responder.answer(payload, self.t0, self.t0 + 1) is not None
+
+    def counts(self) -> dict[str, int]:
+        return {"bad": self.responder.refused}
+
+    def extreme(self, hi: bool) -> bytes:
+        assert self.ch is not None
+        v, nonce = (255, b"\xff" * 16) if hi else (0, bytes(16))
+        return bytes(self.ch.seal(_HELLO.pack(b"ZH", v, nonce)))
+
+    def stamp_max(self) -> bytes:
+        # A hello has no stamp nor number (the nonce makes it fresh): the
+        # one integer, its version, at its largest.
+        return self.extreme(True)
+
+
+class RunAnswerH(Harness):
+    """A ground's or a tool's end of the run hello (RunAsker): the commander's answer."""
+
+    kinds = ("bad", "stale")
+
+    def __init__(self, m: Mission, asker: str, t0: int = T0) -> None:
+        self.m, self.keys, self.t0 = m, _keys(m), t0
+        self.responder = ClockResponder(m, self.keys, Run(t0))
+        self.asker = RunAsker(self.keys)
+        self.ch = channel(self.keys, "run_answer", Run(t0))  # the commander's
+        self.max_len = RUN_ANSWER.size + TAG_LEN
+        self._hello = b""
+
+    def genuine(self) -> bytes:
+        self._hello = self.asker.hello()
+        answer = self.responder.answer(self._hello, self.t0, self.t0 + 1)
+        assert answer is not None
+        return answer
+
+    def advance(self) -> None:
+        self._hello = self.asker.hello()  # the next exchange
+
+    def feed(self, payload: bytes) -> bool:
+        return self.asker.check(payload)
+
+    def counts(self) -> dict[str, int]:
+        return {"bad": self.asker.refused_bad, "stale": self.asker.refused_other}
+
+    def _answer(self, version: int, run: int) -> bytes:
+        assert self.ch is not None
+        nonce = _HELLO.unpack(self._hello[: _HELLO.size])[2]
+        return bytes(self.ch.seal(RUN_ANSWER.pack(b"ZA", version, nonce, run)))
+
+    def extreme(self, hi: bool) -> bytes:
+        self.advance()  # a hello in flight, whose nonce the answer echoes
+        return self._answer(255, U64_MAX) if hi else self._answer(0, 0)
+
+    def stamp_max(self) -> bytes:
+        # No stamp: the run it names at its largest (not the tag's run).
+        self.advance()
+        return self._answer(1, U64_MAX)
+
+
 def _dn(k: ExpandedKey) -> dict[str, Any]:
     return {"dn": dict(k.params)["dn"]}
 
@@ -879,6 +980,8 @@ RECIPES: dict[tuple[str, str], tuple[type[Harness], Callable[[ExpandedKey], dict
     ("all_events", "sample"): (EventH, _node),
     ("clock", "query"): (ClockQueryH, _asker),
     ("clock", "reply"): (ClockReplyH, _asker),
+    ("clock", "query:run_hello"): (RunHelloH, _asker),
+    ("clock", "reply:run_answer"): (RunAnswerH, _asker),
     ("recorder", "query"): (RecorderQueryH, _none),
     ("recorder", "reply"): (GapFillH, _none),
     ("archive", "query"): (ArchiveQueryH, _none),
@@ -889,6 +992,12 @@ RECIPES: dict[tuple[str, str], tuple[type[Harness], Callable[[ExpandedKey], dict
 }
 """A fault recipe per (row, frame kind) whose frames are tagged and taken by
 a node: the harness and its arguments from the expanded row."""
+
+
+def _kind(f: KeyFrames) -> str:
+    """The recipe's kind of frame ``f``: its kind, and its channel for the
+    run hello, which shares the clock's row (``query:run_hello``)."""
+    return f"{f.kind}:{f.channel}" if f.channel.startswith("run_") else f.kind
 
 
 def _harness(m: Mission, k: ExpandedKey, kind: str, t0: int) -> Harness:
@@ -913,7 +1022,7 @@ def _cases() -> Iterator[Any]:
     for name, m, k, j, f in _tagged():
         if f.intake == "none":
             continue
-        recipe = RECIPES.get((k.row.name, f.kind))
+        recipe = RECIPES.get((k.row.name, _kind(f)))
         gaps = recipe[0].gaps(m) if recipe is not None else {}
         for case in CASES:
             marks = []
@@ -921,7 +1030,7 @@ def _cases() -> Iterator[Any]:
                 marks.append(
                     pytest.mark.xfail(strict=True, reason=gaps[case], raises=AssertionError)
                 )
-            yield pytest.param(name, k, j, case, id=f"{name}-{k.id}-{f.kind}-{case}", marks=marks)
+            yield pytest.param(name, k, j, case, id=f"{name}-{k.id}-{_kind(f)}-{case}", marks=marks)
 
 
 def _expected(h: Harness, case: str) -> str | None:
@@ -945,10 +1054,10 @@ def test_every_tagged_frame_is_refused_and_counted_once(
 ) -> None:
     m = MISSIONS[mission]
     f = key.row.frames[frame]
-    h = _harness(m, key, f.kind, T0)
+    h = _harness(m, key, _kind(f), T0)
     try:
         if case == "replay_old_run":
-            old = _harness(m, key, f.kind, T0 - DAY)
+            old = _harness(m, key, _kind(f), T0 - DAY)
             try:
                 _old_run(h, old.genuine())
             finally:
@@ -956,6 +1065,44 @@ def test_every_tagged_frame_is_refused_and_counted_once(
         else:
             _run_case(h, case)
     finally:
+        h.close()
+
+
+GROUND_RECEIVERS = frozenset(
+    {
+        ("telemetry", "sample"),
+        ("events", "sample"),
+        ("all_events", "sample"),
+        ("recorder", "reply"),
+        ("archive", "reply"),
+    }
+)
+"""The ground's receivers of the vehicle's frames (and a station's of the archive's)."""
+
+
+@pytest.mark.parametrize(
+    ("mission", "key", "frame"),
+    [
+        pytest.param(n, k, j, id=f"{n}-{k.id}-{_kind(f)}")
+        for n, _, k, j, f in _tagged()
+        if (k.row.name, _kind(f)) in GROUND_RECEIVERS
+    ],
+)
+def test_a_fresh_ground_refuses_a_run_that_just_ended(
+    mission: str, key: ExpandedKey, frame: int
+) -> None:
+    """``replay_old_run`` at a ground that just started, the earlier run
+    ended a moment ago (ten loops): its frames are stamped within the
+    clock bound, so only the run the ground learned (its run hello) refuses
+    them (the archive's answer: its ask's nonce), counted once."""
+    m = MISSIONS[mission]
+    kind = _kind(key.row.frames[frame])
+    h = _harness(m, key, kind, T0)
+    old = _harness(m, key, kind, T0 - 10 * m.period_ns)
+    try:
+        _old_run(h, old.genuine())
+    finally:
+        old.close()
         h.close()
 
 

@@ -220,3 +220,17 @@ def test_times_show_as_times_of_day_and_durations_never_raw_ns() -> None:
         "-5.7 us",
         "3.200 ms",
     ]
+
+
+def test_before_the_run_is_learned_the_header_says_so() -> None:
+    """A console whose link has not learned the vehicle's run shows nothing
+    but that (zplatform.ground.link: nothing unverified is taken meanwhile)."""
+    from zplatform.console.app import _status_text
+
+    m = ConsoleModel(MISSION)
+    m.waiting_for_run = True
+    s = m.status()
+    assert not s.connected and s.waiting_for_run
+    assert "waiting for the vehicle's run" in _status_text(s).plain
+    m.waiting_for_run = False
+    assert "waiting for telemetry" in _status_text(m.status()).plain

@@ -155,7 +155,15 @@ AUTH_NAMES = sorted(p.stem for p in AUTH.glob("*.json"))
 
 def test_auth_vectors_present() -> None:
     assert sorted(p.stem for p in AUTH.glob("*.bin")) == AUTH_NAMES
-    whats = ("cn_to_dn0", "clock_hello_dn0", "clock_query_dn0", "clock_reply_dn0", "events_cn")
+    whats = (
+        "cn_to_dn0",
+        "clock_hello_dn0",
+        "clock_query_dn0",
+        "clock_reply_dn0",
+        "events_cn",
+        "run_hello",
+        "run_answer",
+    )
     assert sorted(f"{mac}_{w}" for mac in ("blake3", "hmac-sha256") for w in whats) == AUTH_NAMES
 
 
@@ -195,7 +203,7 @@ def test_auth_vector_by_the_platform(name: str) -> None:
     """The platform opens each vector and makes it again, byte for byte."""
     from zplatform.core.auth import KeySet, Run, RunError
     from zplatform.core.events import EventReader
-    from zplatform.runtime.clocksync import ClockLink, ClockResponder
+    from zplatform.runtime.clocksync import ClockLink, ClockResponder, RunAsker
 
     meta = json.loads((AUTH / f"{name}.json").read_text())
     sealed = (AUTH / f"{name}.bin").read_bytes()
@@ -231,6 +239,15 @@ def test_auth_vector_by_the_platform(name: str) -> None:
             1_700_000_000_001_520_000,
         )
         assert link.run.epoch == run  # the reply told dn0 the run
+    elif what == "run_hello":  # the commander answers it with the answer vector (§6.3)
+        answer = (AUTH / f"{meta['mac']}_run_answer.bin").read_bytes()
+        cn = keys.for_node("cn")
+        assert ClockResponder(mission, cn, Run(rrun)).answer(sealed, 0, 0) == answer
+    elif what == "run_answer":
+        asker = RunAsker(keys.for_node("tool"))
+        asker.hello()
+        asker._nonce = bytes(range(0xA0, 0xB0))  # the vector's hello
+        assert asker.check(sealed) and asker.run.epoch == run == rrun
     else:
         e, verified = EventReader(mission, keys).read("rocket/cn/events", sealed)
         assert verified is True and (e.node, e.id) == ("cn", "cmd_accepted")

@@ -163,6 +163,8 @@ def test_the_ground_link_checks_a_snapshots_tag_once(
     link = GroundLink(m, keys=_keys(m, "gn"), events=False)
     try:
         cn = ControlLogic(m, keys=_keys(m, "cn"), epoch=link.clock.now_ns())
+        assert link.run is not None
+        link.run.set(cn.auth_run.epoch)  # as the commander's answer to its run hello
         cn.begin(1, link.clock.now_ns())
         frame = bytes(cn.finish([]) or b"")
         opened: list[str] = []

@@ -441,9 +441,10 @@ def _channel_names() -> Iterator[tuple[str, str]]:
             f = node.func
             name = _callee(f)
             arg: ast.expr | None = None
-            if name == "channel" and isinstance(f, ast.Name) and len(node.args) == 2:
+            # channel(keys, NAME[, run]) and keys.channel(NAME[, run])
+            if name == "channel" and isinstance(f, ast.Name) and len(node.args) in (2, 3):
                 arg = node.args[1]
-            elif name == "channel" and isinstance(f, ast.Attribute) and len(node.args) == 1:
+            elif name == "channel" and isinstance(f, ast.Attribute) and len(node.args) in (1, 2):
                 arg = node.args[0]
             elif name == "Channel" and len(node.args) >= 3:
                 arg = node.args[2]

@@ -345,7 +345,7 @@ def _status_text(s: Status) -> Text:
     t = Text()
     if not s.connected:
         t.append(" NO SIGNAL ", style="bold white on red")
-        t.append(" waiting for telemetry")
+        t.append(" waiting for " + ("the vehicle's run" if s.waiting_for_run else "telemetry"))
         return t
     if s.los:
         t.append(" LOSS OF SIGNAL ", style="bold white on red")

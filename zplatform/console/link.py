@@ -99,6 +99,7 @@ class Link:
         try:
             while not self._stop.is_set():
                 t = link.next(0.05)
+                m.waiting_for_run = link.waiting_for_run  # one bool: no lock needed
                 if t is not None:
                     counters = logic.counters
                     with m.lock:

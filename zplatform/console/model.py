@@ -124,6 +124,9 @@ class Status:
     """A redundant mission's control node in command ("" without a standby)."""
     term: int = 0
     standby_ready: bool = False
+    waiting_for_run: bool = False
+    """The link has not learned the vehicle's run yet (zplatform.ground.link):
+    nothing is shown until it has."""
 
 
 class ConsoleModel:
@@ -158,6 +161,8 @@ class ConsoleModel:
         self.bad = 0
         self.last_rx_ns: int | None = None
         self.now_ns: int | None = None
+        self.waiting_for_run = False
+        """Set by the driver: its link has not learned the vehicle's run yet."""
         self.last_command = "-"
         self._los = False
         self._rate = RateMeter()
@@ -266,6 +271,7 @@ class ConsoleModel:
             commander=dv.get_name("cn_commander") if redundant else "",
             term=int(dv.get("cn_term")) if redundant else 0,
             standby_ready=bool(dv.get("cn_standby_ready")) if redundant else False,
+            waiting_for_run=self.waiting_for_run,
         )
 
     def format_value(self, spec: ElementSpec) -> str:

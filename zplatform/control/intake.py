@@ -28,7 +28,7 @@ from collections.abc import Callable
 from typing import Generic, Protocol, TypeVar
 
 from ..config import Mission
-from ..core.auth import TAG_LEN, Channel, RunError
+from ..core.auth import NO_RUN, TAG_LEN, Channel, RunError
 from ..core.codec import (
     bundle_entry,
     bundle_size,
@@ -184,7 +184,8 @@ class Intake(ABC, Generic[H]):
             frame = self._frame(data)
             fresh = self._fresh(ch.open(frame, any_run=self._any_run(frame)), handle)
         except RunError:  # another run's genuine frame (an earlier run's replay): stale
-            self.stale += 1
+            if self._other_run():
+                self.stale += 1
             if self.on_other_run is not None:
                 self.on_other_run()
             return None
@@ -205,6 +206,11 @@ class Intake(ABC, Generic[H]):
         """Whether ``frame`` may be of any run (zplatform.core.auth.Run): none, by
         default; a probe's STATUS question (zplatform.control.fencing.any_run)."""
         return False
+
+    def _other_run(self) -> bool:
+        """Whether a genuine frame of another run counts as ``stale`` (with
+        the lock held): it does, by default."""
+        return True
 
     def _within_rate(self) -> bool:
         """Whether a frame of the right size may be read now (before any
@@ -364,6 +370,11 @@ class ProbeIntake(Intake[H]):
         """Questions refused beyond a rate bound, among those counted by the
         last :meth:`take_counts`."""
 
+    def _other_run(self) -> bool:
+        """Whether a genuine frame of another run counts as ``stale`` (with
+        the lock held): it does, by default."""
+        return True
+
     def _within_rate(self) -> bool:
         now = self._now()
         tat = max(self._tat_all, now)
@@ -451,7 +462,9 @@ class TelemetryIntake(_StampIntake[int]):
     taken again, as the logic follows it, only once the newest admitted
     snapshot is older than ``max_age_ns``. The logic checks the rest (its
     clock bound both ways, the jumps). Of the refused snapshots, those
-    stamped more than ``max_age_ns`` before they arrived are also counted in
+    stamped more than ``max_age_ns`` before they arrived, or of another run
+    than ``channel``'s (a ground bound to a run; before it knows its run,
+    they are only counted in :attr:`waiting`), are also counted in
     :attr:`aged`, those stamped beyond it after in :attr:`ahead` (what the
     logic calls ``stale`` and ``ahead``). ``capacity``: snapshots kept while
     the consumer is busy."""
@@ -480,6 +493,10 @@ class TelemetryIntake(_StampIntake[int]):
         self._term_at = lay.element("cn_term").offset if mission.standby is not None else -1
         self._newest_epoch = -1
         self._newest_term = 0
+        self._run = channel.run if channel is not None else None
+        self.waiting = 0
+        """Authentic snapshots let go because the run was not learned yet
+        (a ground bound to a run: zplatform.ground.link); not counted as refused."""
         super().__init__("telemetry", max_frame_len(size, channel), channel, capacity, waker=waker)
 
     def _fresh(self, body: memoryview, handle: int) -> bool:
@@ -513,13 +530,26 @@ class TelemetryIntake(_StampIntake[int]):
         if handle - t_ns > self._max_age:
             self._aged += 1
 
+    def _other_run(self) -> bool:
+        # A ground bound to a run (zplatform.ground.link): another run's
+        # snapshot is counted stale; one before the run is learned only in
+        # `waiting` (not a replay: the ground does not know the run yet).
+        run = self._run
+        if run is not None and not run.known:
+            self.waiting += 1
+            return False
+        self._aged += 1
+        return True
+
     def _took(self) -> None:
         self.aged, self._aged = self._aged, 0
         self.ahead, self._ahead_n = self._ahead_n, 0
 
 
 class RequestIntake(Intake[None]):
-    """The CN's command requests (``{vehicle}/gn/to_cn``). Fresh: for this
+    """The CN's command requests (``{vehicle}/gn/to_cn``). ``channel`` bound
+    to the CN's run: a request tagged in another run is refused before any
+    decode (stale); one tagged in none is taken to the next check. Fresh: for this
     CN run and numbered above every number seen, by the rules of
     :func:`zplatform.control.commands.request_refusal` (``last_seq()``: the command
     handler's highest number; the intake's own highest admitted counts
@@ -546,6 +576,12 @@ class RequestIntake(Intake[None]):
         """``(status, seq)`` of the refused request with the highest number
         among those counted by the last :meth:`take_counts` (``(0, 0)``: none)."""
         super().__init__("command request", max_frame_len(self._size, channel), channel, capacity)
+
+    def _any_run(self, frame: bytes | memoryview) -> bool:
+        # A request tagged in no run (a ground bound to none) is opened under
+        # the run-0 key: its data names its run, checked in _fresh. One tagged
+        # in another run is refused before any decode (RunError: stale).
+        return Channel.run_of(frame) == NO_RUN
 
     def _fresh(self, body: memoryview, handle: None) -> bool:
         epoch, seq = self._number.read(frame_data(body, self._size))

@@ -30,7 +30,17 @@ from ..boards import Board, HealthCounters, safe_board
 from ..boards.world import node_board
 from ..config import BOARD_LINK_COUNTERS, Mission, interlocked_nodes
 from ..config.codes import CommandStatus, SafedWhy
-from ..core.auth import RUN_LEN, TAG_LEN, AuthError, Channel, KeySet, Run, RunError, channel
+from ..core.auth import (
+    NO_RUN,
+    RUN_LEN,
+    TAG_LEN,
+    AuthError,
+    Channel,
+    KeySet,
+    Run,
+    RunError,
+    channel,
+)
 from ..core.codec import Frame, RegionCodec, bundle_entry, is_bundle
 from ..core.components import Streak
 from ..core.datavector import DataVector, Handle, Layout
@@ -168,11 +178,15 @@ class ControlLogic:
         self.dns: tuple[str, ...] = tuple(mission.device_nodes)
         dns = self.dns
         # The CN's links (auth.py): every cn<->dnX, the uplink, the downlink.
-        # Bound to this run (auth.Run), but the uplink: the ground knows no
-        # run, and a request carries the run it is for (cn_epoch) in its data.
+        # Bound to this run (auth.Run), the uplink too: the ground learns the
+        # run (its run hello, zplatform.runtime.clocksync.RunAsker) and tags
+        # its requests in it; a request tagged in another run is refused
+        # before any decode. One tagged in none (NO_RUN: a ground bound to no
+        # run) is opened under the run-0 key: its data names the run it is
+        # for (gn_cmd_epoch), which CommandHandler.admit checks, as before.
         self._seal_to_dn = tuple(channel(keys, f"cn_to_{dn}", run) for dn in dns)
         self._open_from_dn = tuple(channel(keys, f"{dn}_to_cn", run) for dn in dns)
-        self._open_ground = channel(keys, "gn_to_cn") if mission.has_ground else None
+        self._open_ground = channel(keys, "gn_to_cn", run) if mission.has_ground else None
         self._seal_tm = channel(keys, "telemetry", run)
         # What the CN sends is framed with room for its tag, tagged in place
         # (Channel.seal_tail): a frame up to the whole vector is copied once.
@@ -525,7 +539,15 @@ class ControlLogic:
         for payload in grounds:
             try:
                 ch = self._open_ground
-                frame = self._ground.check(ch.open(payload) if ch is not None else payload)
+                body = (
+                    ch.open(payload, any_run=Channel.run_of(payload) == NO_RUN)
+                    if ch is not None
+                    else payload
+                )
+                frame = self._ground.check(body)
+            except RunError as exc:  # tagged in another run: refused before any decode
+                self.commands.reject(CommandStatus.REJECTED_EPOCH, self.t_ns, detail=str(exc))
+                continue
             except AuthError as exc:
                 self._bad_frame("the ground", str(exc))
                 self.commands.reject(CommandStatus.REJECTED_AUTH, self.t_ns, detail=str(exc))

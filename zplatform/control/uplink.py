@@ -30,7 +30,7 @@ from typing import Any, NamedTuple
 import msgspec
 
 from ..config import CMD_NAMES, Mission
-from ..core.auth import KeySet, channel
+from ..core.auth import KeySet, Run, channel
 from ..core.codec import RegionCodec
 from ..core.datavector import DataVector, Layout
 from ..errors import CommandError, DataVectorError
@@ -319,18 +319,23 @@ def fill_request(
 class Uplink:
     """Frames command requests: one ``gn_to_cn`` vector, its codec, and the
     uplink's ``gn_to_cn`` channel from ``keys`` (None: the mission does not
-    authenticate).
+    authenticate), its tags in ``run`` (the run the ground learned: a
+    control node refuses a request tagged in another run before any decode;
+    None: :data:`~zplatform.core.auth.NO_RUN`, and only the run the request
+    names in its data is checked).
 
     :meth:`frame` returns a buffer of its own (reused by the next call).
     """
 
-    def __init__(self, mission: Mission, keys: KeySet | None = None) -> None:
+    def __init__(
+        self, mission: Mission, keys: KeySet | None = None, run: Run | None = None
+    ) -> None:
         if not mission.has_ground:
             raise CommandError(f"mission {mission.mission!r} has no ground node 'gn'")
         self.mission = mission
         self.req = DataVector(Layout.for_regions(mission, ["gn_to_cn"]))
         self._codec = RegionCodec(self.req, "gn_to_cn")
-        self._seal = channel(keys, "gn_to_cn")
+        self._seal = channel(keys, "gn_to_cn", run)
 
     def frame(
         self, command: str, seq: int, index: int, value: float, t_ns: int, epoch: int = 0

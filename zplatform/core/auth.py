@@ -118,7 +118,9 @@ class KeyError_(ZPlatformError):
 def link_of(channel_name: str) -> str:
     """The link whose key tags ``channel_name`` (module doc); ValueError for
     a name that is no channel."""
-    if channel_name == "telemetry":
+    if channel_name in ("telemetry", "run_hello", "run_answer"):
+        # The run exchange (zplatform.runtime.clocksync.RunAsker): whoever
+        # reads telemetry may learn the run it is bound to.
         return "downlink"
     if channel_name == "gn_to_cn":
         return "uplink"

@@ -30,7 +30,7 @@ from ..errors import EventError, FrameFormatError
 
 if TYPE_CHECKING:
     from ..config import Mission
-    from .auth import Channel, KeySet
+    from .auth import Channel, KeySet, Run
 
 __all__ = [
     "EV",
@@ -540,11 +540,20 @@ class EventReader:
     clock of the mission can have made (which, taken, would lock every
     genuine record after it out). An unverified record
     (no key, or no authentication) is not checked: its stamp proves nothing.
+    ``run``: the run the receiver is bound to (:class:`~zplatform.core.auth.Run`;
+    None: none): a verified record of another run raises
+    :class:`~zplatform.core.auth.RunError` (an AuthError: an earlier run's,
+    replayed; its receiver counts it stale).
     Not thread-safe.
     """
 
     def __init__(
-        self, mission: Mission, keys: KeySet | None, max_age_ns: int | None = None
+        self,
+        mission: Mission,
+        keys: KeySet | None,
+        max_age_ns: int | None = None,
+        *,
+        run: Run | None = None,
     ) -> None:
         self._auth = mission.security.auth
         self._max_age = max_age_ns
@@ -557,7 +566,7 @@ class EventReader:
             for link in keys.links:
                 if link.startswith("events-"):
                     node = link[len("events-") :]
-                    self._channels[node] = keys.channel(f"events_{node}")
+                    self._channels[node] = keys.channel(f"events_{node}", run)
 
     def read(
         self,
@@ -592,7 +601,7 @@ class EventReader:
         queues no forged record (:class:`~zplatform.ground.link.GroundLink`).
         :meth:`read` checks the tag again: a record not forged here may
         still be refused there (not a record, another node's, stale)."""
-        from .auth import AuthError
+        from .auth import AuthError, RunError
 
         if not self._auth:
             return False
@@ -603,6 +612,8 @@ class EventReader:
             return False
         try:
             ch.open(payload)
+        except RunError:  # genuine, of another run: read() refuses it as stale
+            return False
         except AuthError:
             return True
         return False

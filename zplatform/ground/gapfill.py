@@ -26,7 +26,7 @@ from collections.abc import Callable
 from typing import NamedTuple
 
 from ..config import Mission
-from ..core.auth import TAG_LEN, KeySet, channel
+from ..core.auth import TAG_LEN, KeySet, Run, channel
 from ..core.codec import RegionCodec
 from ..core.datavector import DataVector, Layout
 from ..core.events import EV, EventLog
@@ -90,7 +90,10 @@ class GapFill:
     :attr:`GroundLogic.events`). ``keys``: the ground's keys (a ground
     node's or a tool's: both hold the downlink's, which tags the requests
     and the frames; None: the mission does not authenticate); KeyError_
-    when they do not hold it. Not thread-safe: the driver's thread calls
+    when they do not hold it. ``run``: the run the ground learned
+    (:attr:`GroundLogic.run`): a frame of another run is refused (an
+    earlier run's, replayed), and so is every frame while it is unknown;
+    None: bound to none. Not thread-safe: the driver's thread calls
     everything.
     """
 
@@ -104,13 +107,14 @@ class GapFill:
         hold_s: float = 30.0,
         tries: int = 3,
         retry_s: float = 1.0,
+        run: Run | None = None,
     ) -> None:
         rec = mission.recorder
         self._bps = rec.serve_bps if rec is not None else 1_000_000
         self._layout = Layout.for_node(mission, "cn")
         self._dv = DataVector(self._layout)
         self._codec = RegionCodec(self._dv)
-        self._channel = channel(keys, "telemetry")
+        self._channel = channel(keys, "telemetry", run)
         self._frame_max = self._codec.max_frame_len + (TAG_LEN if self._channel else 0)
         self._epoch_at = self._layout.element("cn_epoch").offset
         self._loop_at = self._layout.element("cn_loop").offset

@@ -16,7 +16,7 @@ the logic and publishes the requests it makes. A snapshot's age is measured
 on arrival (a realtime-anchored :class:`~zplatform.runtime.timebase.NodeClock`); the
 bound is the mission's or ``ZPLATFORM_TELEMETRY_MAX_AGE_MS``. Not thread-safe.
 
-Each mailbox's bound and refusals: docs/architecture.md#ground.
+Mailboxes: docs/architecture.md#ground; its run: :class:`GroundLink`.
 """
 
 from __future__ import annotations
@@ -32,10 +32,11 @@ from ..config import Mission
 from ..control.handoff import Mailbox, Waker
 from ..control.intake import TelemetryIntake
 from ..control.uplink import CheckedCommand, ScriptCommand, validate_command
-from ..core.auth import KeySet, channel, load_keys
+from ..core.auth import KeySet, Run, channel, load_keys
 from ..core.datavector import DataVector
 from ..core.events import MAX_TEXT, Event
 from ..errors import CommandError, TransportError
+from ..runtime.clocksync import RunAsker
 from ..runtime.queries import ask, replies
 from ..runtime.timebase import NodeClock
 from ..runtime.transport import EventPublisher, NodeSession, is_matching
@@ -64,6 +65,11 @@ TAP_BACKLOG = 4096
 ALIVE_BACKLOG = 1024
 """Liveliness tokens :meth:`GroundLink.alive_nodes` holds at most (a flood lets the oldest go)."""
 _BACKLOG_BYTES = 64 * 2**20
+RELEARN_S = 1.0
+"""Run hellos a link sends at most one of per this many seconds (module doc)."""
+RUN_ANSWERS = 8
+"""Answers to run hellos kept for the caller's thread (more are let go)."""
+RUN_HELLO_TIMEOUT_S = 1.0
 
 _TM, _EV = 0, 1
 
@@ -99,6 +105,15 @@ class GroundLink:
     in the caller's thread. ``announce=False``: declare the node's liveliness
     token later (:meth:`announce`), after some set-up of the caller's.
 
+    With authentication the link is bound to the commander's run
+    (:attr:`run`), learned from its answer to a run hello
+    (:class:`~zplatform.runtime.clocksync.RunAsker` on ``{vehicle}/cn/clock``),
+    asked at once, then once a :data:`RELEARN_S` until answered; telemetry,
+    events and gap-fill replies of another run are refused (stale) and
+    nothing is taken before (:attr:`GroundLogic.waiting_for_run`). A genuine
+    snapshot of another run (the control node restarted) makes it ask
+    again, at most once a :data:`RELEARN_S`.
+
     Raises KeyError_ for a missing key, TransportError when the session
     cannot open, CommandError for a script that does not fit the mission.
     """
@@ -125,12 +140,16 @@ class GroundLink:
         self.link_keys: KeySet | None = keys
         """The keys the link checks with (None: the mission does not authenticate)."""
         self.clock = clock or NodeClock()
+        self.run: Run | None = Run() if keys is not None else None
+        """The run the link is bound to (module doc; None: the mission does not
+        authenticate); unknown (``run.known`` False) until learned."""
         self.logic = GroundLogic(
             mission,
             keys=keys,
             node=node or "ground",
             max_age_ns=max_age_ns_from_env(mission),
             script=script,
+            run=self.run,
         )
         self.on_event = on_event
         self.ns = NodeSession(mission, node, announce=False, commands=bool(commands or script))
@@ -140,13 +159,19 @@ class GroundLink:
         self._waker = Waker()
         self._tm = TelemetryIntake(
             mission,
-            channel(keys, "telemetry"),
+            channel(keys, "telemetry", self.run),
             max(2, min(TELEMETRY_BACKLOG, _BACKLOG_BYTES // self.logic.max_frame_len)),
             self.logic.max_age_ns,
             self._waker,
         )
         assert self._tm.box is not None
         self._tm_box = self._tm.box
+        # The run hello (module doc): answers come through their own mailbox.
+        self._asker = RunAsker(keys, self.run) if self.run is not None else None
+        self._run_box: Mailbox[bytes] = Mailbox(RUN_ANSWERS, self._waker)
+        self._relearn = False  # set on zenoh's thread by a snapshot of another run
+        self._last_hello = -RELEARN_S
+        self._tm.on_other_run = self._on_other_run
         self._ev_box: Mailbox[tuple[str, bytes, int]] = Mailbox(EVENT_BACKLOG, self._waker)
         self._tap_box: Mailbox[tuple[str, bytes, bool]] = Mailbox(TAP_BACKLOG, self._waker)
         # Records refused as they arrived (oversize or forged): zenoh's thread
@@ -170,12 +195,17 @@ class GroundLink:
         # intake); a tool hands them to on_event itself.
         self._ev_pub = (
             EventPublisher(
-                session, self.keys.events(node), self.logic.events, channel(keys, f"events_{node}")
+                session,
+                self.keys.events(node),
+                self.logic.events,
+                channel(keys, f"events_{node}", self.run),
             )
             if node is not None
             else None
         )
         self._closed = False
+        self._announce_pending = False
+        self._learn_run()
         if announce:
             self.announce()
 
@@ -183,6 +213,11 @@ class GroundLink:
         """Declare the node's liveliness token (once; nothing for a tool).
         Alive only once subscribed: the CN waits for the ground node's token
         before its first loop, so a log starts at loop 1."""
+        if self.waiting_for_run:
+            # Alive only once it can take telemetry: declared when the run is
+            # learned (_learn_run), so the log still starts at loop 1.
+            self._announce_pending = True
+            return
         self.ns.announce()
 
     # -- reading -------------------------------------------------------------
@@ -191,9 +226,54 @@ class GroundLink:
         """The last accepted snapshot (:attr:`GroundLogic.dv`)."""
         return self.logic.dv
 
+    # -- the run (module doc) --------------------------------------------------
+    def _on_other_run(self) -> None:
+        # zenoh's thread (the intake's lock held): a flag, nothing more.
+        self._relearn = True
+
+    def _learn_run(self) -> None:
+        """Take the answers that came; send a hello when the run is unknown
+        or a snapshot of another run came, at most once a RELEARN_S."""
+        asker = self._asker
+        if asker is None:
+            return
+        while (answer := self._run_box.pop()) is not None:
+            if asker.check(answer) and self._announce_pending:
+                self._announce_pending = False
+                self.ns.announce()
+        run = self.run
+        assert run is not None
+        if run.known and not self._relearn:
+            return
+        now = time.monotonic()
+        if now - self._last_hello < RELEARN_S:
+            return
+        self._last_hello = now
+        self._relearn = False
+        box = self._run_box
+
+        def on_reply(reply: zenoh.Reply) -> None:
+            ok = reply.ok  # hand off only
+            if ok is not None:
+                box.put(ok.payload.to_bytes())
+
+        ask(
+            self.ns.session,
+            self.keys.clock,
+            replies(on_reply, lambda: None),
+            payload=asker.hello(),
+            timeout_s=RUN_HELLO_TIMEOUT_S,
+        )
+
+    @property
+    def waiting_for_run(self) -> bool:
+        """Whether the link has not learned the vehicle's run yet (module doc)."""
+        return self.logic.waiting_for_run
+
     def _pop_any(self) -> tuple[int, bytes, int, str] | None:
         """The next item of any kind (telemetry first), or None at once:
         kind, payload, receive time, the key it came on ("" for telemetry)."""
+        self._learn_run()
         tm = self._tm_box.pop()
         if tm is not None:
             return _TM, tm[1], tm[0], ""
@@ -203,11 +283,17 @@ class GroundLink:
         return None
 
     def _waiting(self) -> bool:
-        return bool(len(self._tm_box) or len(self._ev_box))
+        return bool(len(self._tm_box) or len(self._ev_box) or len(self._run_box))
 
     def _pop(self, deadline: float) -> tuple[int, bytes, int, str] | None:
-        self._waker.wait(self._waiting, deadline - time.monotonic())
-        got = self._pop_any()
+        while True:
+            left = deadline - time.monotonic()
+            if self._asker is not None and (self._relearn or self.waiting_for_run):
+                left = min(left, RELEARN_S)  # wake to ask the run again
+            self._waker.wait(self._waiting, left)
+            got = self._pop_any()
+            if got is not None or time.monotonic() >= deadline:
+                break
         if got is None:
             self._after(self.clock.now_ns())
         return got
@@ -293,6 +379,12 @@ class GroundLink:
         """What to tell an operator when no snapshot was accepted."""
         c = self.logic.counters
         refused = sum(c.refused.values())
+        if self.waiting_for_run:
+            return (
+                f"waiting for the vehicle's run: the control node did not answer this "
+                f"ground's run hello on {self.keys.clock} within {waited_s:g} s (is it up, "
+                "and does this host hold the mission's downlink key?)"
+            )
         if not c.bad and not refused:
             return f"no telemetry from the control node within {waited_s:g} s"
         what = ", ".join(f"{n} {k}" for k, n in (("bad", c.bad), *c.refused.items()) if n)

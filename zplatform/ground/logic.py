@@ -30,7 +30,7 @@ import msgspec
 from ..config import STANDBY, Mission
 from ..control.commands import protected_elements
 from ..control.uplink import CheckedCommand, ScriptCommand, Uplink, validate_command
-from ..core.auth import TAG_LEN, AuthError, KeySet, channel, link_of
+from ..core.auth import TAG_LEN, AuthError, KeySet, Run, RunError, channel, link_of
 from ..core.codec import Frame, RegionCodec
 from ..core.datavector import DataVector, Layout
 from ..core.events import EV, Event, EventLog, EventReader, EventType, StaleRecordError
@@ -211,7 +211,13 @@ class GroundLogic:
     tag verified (or any, when the mission does not authenticate) explain
     a verdict. ``node``: the name the ground's own events carry. ``max_age_ns``: the
     freshness bound (default :func:`default_max_age_ns`). ``script``: a
-    command script to play (:class:`~.script.ScriptPlayer`).
+    command script to play (:class:`~.script.ScriptPlayer`). ``run``: the
+    run the ground's channels are bound to (:class:`~zplatform.core.auth.Run`,
+    learned by its driver from the commander's answer to a run hello,
+    :class:`zplatform.runtime.clocksync.RunAsker`): telemetry, events and
+    requests of another run are refused (counted as stale), and nothing is
+    taken while it is unknown (:attr:`waiting_for_run`); None: bound to none
+    (every run's authentic frame is taken, ordered by the run it names).
     """
 
     def __init__(
@@ -225,14 +231,16 @@ class GroundLogic:
         resend_loops: int = 100,
         tries: int = 3,
         reason_grace_ns: int = REASON_GRACE_NS,
+        run: Run | None = None,
     ) -> None:
         self.mission = mission
+        self.run = run
         self.node = node
         self.layout = Layout.for_node(mission, "cn")
         self.dv = DataVector(self.layout)
         """The last accepted snapshot (all zero before the first)."""
         self._codec = RegionCodec(self.dv)
-        self._open = channel(keys, "telemetry")
+        self._open = channel(keys, "telemetry", run)
         self._max_len = self._codec.max_frame_len + (TAG_LEN if self._open is not None else 0)
         self._epoch_at = self.layout.element("cn_epoch").offset
         # A redundant mission's term (docs/architecture.md#failover): the
@@ -242,7 +250,7 @@ class GroundLogic:
         )
         self._term = 0
         self.max_age_ns = default_max_age_ns(mission) if max_age_ns is None else max_age_ns
-        self._events_in = EventReader(mission, keys, self.max_age_ns)
+        self._events_in = EventReader(mission, keys, self.max_age_ns, run=run)
         self._period = mission.period_ns
         self._div = mission.telemetry_divisor
         self.events = EventLog(node)
@@ -260,6 +268,10 @@ class GroundLogic:
         take (the oldest are forgotten past a bound: nobody is taking them)."""
         self.last_refusal = ""
         """The detail of the latest refused or bad snapshot ("" if none)."""
+        self.waited = 0
+        """Authentic snapshots and event records let go while
+        :attr:`waiting_for_run` (not counted as refused: not replays, merely
+        before the run was learned)."""
         h = self.dv.handle
         self._h_loop = h("cn_loop")
         self._h_state = h("cn_state")
@@ -270,7 +282,7 @@ class GroundLogic:
         self._h_rejects = h("cn_cmd_rejects")
         # commands
         self._uplink = (
-            Uplink(mission, keys)
+            Uplink(mission, keys, run)
             if mission.has_ground and (keys is None or keys.has(link_of("gn_to_cn")))
             else None
         )
@@ -294,6 +306,13 @@ class GroundLogic:
     def joined(self) -> bool:
         """Whether a snapshot was accepted (a CN run is followed)."""
         return self._epoch >= 0
+
+    @property
+    def waiting_for_run(self) -> bool:
+        """Whether the ground is bound to a run it has not learned yet: then
+        it takes nothing (module doc) and shows "waiting for the vehicle's run"."""
+        run = self.run
+        return run is not None and not run.known and self._open is not None
 
     @property
     def received(self) -> int:
@@ -335,8 +354,8 @@ class GroundLogic:
             n.refused["stale"] += aged
             self._note(
                 "stale",
-                f"{aged} replayed snapshot(s) stamped more than {self.max_age_ns / 1e9:g} s "
-                "before they arrived",
+                f"{aged} replayed snapshot(s) of another run than this ground's, or stamped "
+                f"more than {self.max_age_ns / 1e9:g} s before they arrived",
                 rx_ns,
             )
         if stale - aged:
@@ -390,6 +409,14 @@ class GroundLogic:
         try:
             body = payload if ch is None else ch.strip(payload) if authentic else ch.open(payload)
             frame = self._codec.check(body)
+        except RunError as exc:  # another run's genuine frame: a replay, or a new run
+            if self.waiting_for_run:  # not a replay: the run is not known yet
+                self.waited += 1
+                self.last_refusal = f"waiting for the vehicle's run: {exc}"
+                return False
+            return self._refuse(
+                "stale", f"{exc}: an earlier run's snapshot, or the control node restarted", rx_ns
+            )
         except AuthError as exc:
             return self._reject_bad("tag", str(exc), rx_ns)
         except CodecError as exc:
@@ -774,6 +801,12 @@ class GroundLogic:
         :attr:`max_age_ns` of ``rx_ns``)."""
         try:
             e, verified = self._events_in.read(key_expr, payload, rx_ns)
+        except RunError:  # another run's genuine record
+            if self.waiting_for_run:  # not a replay: the run is not known yet
+                self.waited += 1
+            else:
+                self._n.stale_events += 1
+            return None
         except StaleRecordError:
             self._n.stale_events += 1
             return None

@@ -313,7 +313,9 @@ class ControlNode:
         commands = self.logic.commands
         self._requests = RequestIntake(
             m,
-            channel(self.keys, "gn_to_cn"),
+            # Bound to this run: a request tagged in another is refused before
+            # any decode (zplatform.core.auth.RunError, counted stale).
+            channel(self.keys, "gn_to_cn", self.logic.auth_run),
             int(self.dv.get("cn_epoch")),
             lambda: commands.last_seq,
             INBOX,

@@ -217,7 +217,9 @@ class _Filler:
 
     def __init__(self, link: GroundLink, tlog: _Sink) -> None:
         self.link = link
-        self.fill = GapFill(link.mission, link.link_keys, link.logic.events, tlog.snapshot)
+        self.fill = GapFill(
+            link.mission, link.link_keys, link.logic.events, tlog.snapshot, run=link.logic.run
+        )
         # Bounded like every hand-off from zenoh: a peer flooding replies
         # lets the oldest go, and the loops they held are asked for again
         # or told unfilled by the gap fill, never lost silently.

@@ -12,7 +12,8 @@ The exchange is also how a node learns the control node's *run*
 (:class:`zplatform.core.auth.Run`) from a frame that cannot be a replay: the
 reply names the run, is tagged under its key and echoes the asker's nonce.
 A query names the asker's run (the server refuses another run's, unanswered)
-or none (a *hello*, answered statelessly like a SYN cookie). The fastest
+or none (a *hello*, answered statelessly like a SYN cookie); the ground and
+tools send a *run hello* (:class:`RunAsker`, downlink key). The fastest
 ``keep_fraction`` of many exchanges give the offset (:func:`estimator_for`:
 ``node_clock`` or zenoh's timestamps, the default). Formulas and measured
 accuracy: docs/architecture.md#the-clock-exchange; wire: codecs/FORMAT.md §6.3.
@@ -62,6 +63,7 @@ __all__ = [
     "ClockResponder",
     "ClockServer",
     "Estimator",
+    "RunAsker",
     "ZenohTimestampsError",
     "estimate_offset",
     "estimate_offset_zenoh",
@@ -78,6 +80,11 @@ PEER_INDEX = 0xFE
 _REPLY = struct.Struct("<2sBB16sqqq")
 _Q_MAGIC, _R_MAGIC, _VERSION = b"ZQ", b"ZR", 1
 NONCE_LEN = 16
+# codecs/FORMAT.md §6.3: the run hello (magic, version, nonce) and its answer
+# (magic, version, the nonce echoed, the run).
+RUN_HELLO = struct.Struct("<2sB16s")
+RUN_ANSWER = struct.Struct("<2sB16sQ")
+_H_MAGIC, _A_MAGIC = b"ZH", b"ZA"
 QUERY_SPAN_NS = 86_400 * 10**9
 """How far apart a clock query's stamp and the CN's clock, or a reply's
 times and its query's, may be: a day. A host clock that is merely not
@@ -246,6 +253,11 @@ class ClockResponder:
             else None
         )
         self._auth = keys is not None
+        # The run hello (RunAsker): any holder of the downlink key asks, in no run.
+        self._hello_open = channel(keys, "run_hello")
+        self._hello_seal = channel(keys, "run_answer", r)
+        self.hellos = 0
+        """Run hellos answered."""
         # Per asker (a DN's index, or the peer last): the nonces answered,
         # oldest first, and the same as a set.
         self._answered: list[deque[bytes]] = [deque() for _ in range(len(dns) + 1)]
@@ -260,6 +272,8 @@ class ClockResponder:
         """The reply to query ``raw`` received at ``t2``, sent at ``t3``; None
         (counted, :attr:`reason` set) for a query to refuse."""
         want = _QUERY.size + (TAG_LEN if self._auth else 0)
+        if len(raw) == RUN_HELLO.size + (TAG_LEN if self._auth else 0) and raw[:2] == _H_MAGIC:
+            return self._answer_hello(raw)
         try:
             if len(raw) != want or raw[:3] != _Q_MAGIC + bytes((_VERSION,)):
                 raise AuthError(f"{len(raw)} bytes: not a clock query of version {_VERSION}")
@@ -301,6 +315,84 @@ class ClockResponder:
             seen.add(nonce)
         reply = _REPLY.pack(_R_MAGIC, _VERSION, index, nonce, t1, t2, t3)
         return bytes(seal.seal(reply)) if seal is not None else reply
+
+    def _answer_hello(self, raw: bytes) -> bytes | None:
+        """The answer to a run hello (:class:`RunAsker`): statelessly, this
+        run, the nonce echoed; None (counted) for a bad tag or version. A
+        replayed hello is answered again: its answer echoes a nonce nobody
+        waits for any more."""
+        ch = self._hello_open
+        try:
+            body = ch.open(raw, any_run=True) if ch is not None else memoryview(raw)
+            if body[2] != _VERSION:
+                raise AuthError(f"a run hello of version {body[2]}, not {_VERSION}")
+        except AuthError as exc:
+            self.refused += 1
+            self.reason = str(exc)
+            return None
+        _, _, nonce = RUN_HELLO.unpack(body)
+        self.hellos += 1
+        answer = RUN_ANSWER.pack(_A_MAGIC, _VERSION, nonce, self.run.epoch)
+        seal = self._hello_seal
+        return bytes(seal.seal(answer)) if seal is not None else answer
+
+
+class RunAsker:
+    """The ground's end of the run hello (module doc), sans-IO: how a ground
+    or a tool learns the commander's run from an answer that cannot be a
+    replay. :meth:`hello` frames a hello with a fresh nonce (the one
+    awaited from then on); :meth:`check` takes one answer and, when it is
+    the answer to that hello (tag under the ``run_answer`` key of the run
+    it names, the nonce echoed, the run in the body the tag's), binds
+    :attr:`run` to it and returns True; anything else is refused and
+    counted: :attr:`refused_bad` (a bad tag, not an answer) or
+    :attr:`refused_other` (authentic, but not the answer awaited: a replay,
+    or late). One answer per hello. ``keys``: the asker's keys (the
+    downlink's; None: the mission does not authenticate, and the nonce
+    alone binds an answer). Not thread-safe: one thread asks and checks;
+    the counters may be read from any thread."""
+
+    def __init__(self, keys: KeySet | None, run: Run | None = None) -> None:
+        self.run = run if run is not None else Run()
+        self._seal = channel(keys, "run_hello")
+        self._open = channel(keys, "run_answer", self.run)
+        self._nonce = b""
+        self.refused_bad = 0
+        self.refused_other = 0
+        self.learned = 0
+        """Answers taken (the first, then one per re-learning)."""
+
+    def hello(self) -> bytes:
+        """A new hello's payload (a fresh nonce; an earlier hello's answer is
+        refused from now on)."""
+        self._nonce = secrets.token_bytes(NONCE_LEN)
+        body = RUN_HELLO.pack(_H_MAGIC, _VERSION, self._nonce)
+        seal = self._seal
+        return bytes(seal.seal(body)) if seal is not None else body
+
+    def check(self, raw: bytes | bytearray | memoryview) -> bool:
+        """Whether ``raw`` is the answer to the latest hello (class doc);
+        binds :attr:`run` to its run when it is. Never raises for ``raw``."""
+        ch = self._open
+        try:
+            body = ch.open(raw, any_run=True) if ch is not None else memoryview(raw)
+            if len(body) != RUN_ANSWER.size:
+                raise AuthError(f"{len(body)} bytes, not a run answer")
+        except AuthError:
+            self.refused_bad += 1
+            return False
+        magic, version, echo, run = RUN_ANSWER.unpack(body)
+        if magic != _A_MAGIC or version != _VERSION:
+            self.refused_bad += 1
+            return False
+        tagged = Channel.run_of(raw) if ch is not None else run
+        if not self._nonce or echo != self._nonce or run != tagged or run == NO_RUN:
+            self.refused_other += 1
+            return False
+        self._nonce = b""  # one answer per hello
+        self.run.set(run)
+        self.learned += 1
+        return True
 
 
 CLOCK_BACKLOG = 64

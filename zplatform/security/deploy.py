@@ -462,7 +462,13 @@ def access_control(mission: Mission, dep: Deployment) -> dict[str, Any]:
         if ask:
             ids.append(rule(f"{n}-ask", ["query"], ask))
         policies.append({"id": f"p-{n}", "rules": ids, "subjects": [f"s-{n}"]})
-    tool_rules = [*common, rule("tool-watch", ["declare_subscriber"], tool_watch_keys(mission))]
+    tool_rules = [
+        *common,
+        rule("tool-watch", ["declare_subscriber"], tool_watch_keys(mission)),
+        # The run hello (zplatform.runtime.clocksync.RunAsker): a tool learns the
+        # commander's run on its clock's queryable, as the ground node does.
+        rule("tool-run", ["query"], [f"{v}/cn/clock"]),
+    ]
     if recorder:  # `zplatform log` fills its gaps too
         tool_rules.append(rule("tool-recorder", ["query"], [f"{v}/cn/recorder"]))
     if archive:  # `zplatform archive --remote`

@@ -263,7 +263,7 @@ KEYSPACE: tuple[KeyRow, ...] = (
         "{vehicle}/cn/clock",
         puts=(),
         declares=("commander",),
-        queries=("{asker}",),
+        queries=("{asker}", "gn", "tool"),
         frames=(
             KeyFrames(
                 "query",
@@ -282,9 +282,26 @@ KEYSPACE: tuple[KeyRow, ...] = (
                 _NONCE_TIMES,
                 "the first valid reply ends the exchange",
             ),
+            KeyFrames(
+                "query",
+                "run_hello",
+                "downlink",
+                "zplatform.runtime.clocksync.ClockResponder commander",
+                "any (a run hello names no run; answered statelessly, its nonce echoed)",
+                "the clock's serving thread and backlog",
+            ),
+            KeyFrames(
+                "reply",
+                "run_answer",
+                "downlink",
+                "zplatform.runtime.clocksync.RunAsker gn",
+                _NONCE + " (the latest hello's), its run the tag's",
+                "one answer per hello; a hello at most once a RELEARN_S",
+            ),
         ),
         when="always",
-        what="clock-sync exchanges, per asker: each DN, and a standby as `peer`",
+        what="clock-sync exchanges, per asker: each DN, and a standby as `peer`; the "
+        "ground's and the tools' run hello (they learn the commander's run)",
     ),
     KeyRow(
         "alive",

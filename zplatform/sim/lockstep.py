@@ -45,7 +45,7 @@ from ..core.health import BLOCK_SIZE, HealthPort
 from ..core.messages import wildcard_sync_for
 from ..errors import NodeError, RecordingError, ZPlatformError
 from ..ground.logic import GroundLogic
-from ..runtime.clocksync import RELEARN_S, ClockLink, ClockResponder
+from ..runtime.clocksync import RELEARN_S, ClockLink, ClockResponder, RunAsker
 from ..runtime.timebase import VirtualClock
 from ..telemetry.logs import CsvLogger
 from ..telemetry.records import CommandOutcome, EventRecord
@@ -397,7 +397,14 @@ class LockstepRunner:
         """Every device node's logic, in the mission's order."""
         # The ground side: the live ground node's logic, in virtual time.
         ground_keys = keys and keys.for_node("gn" if mission.has_ground else "tool")
-        self.ground = GroundLogic(mission, keys=ground_keys, script=commands or [])
+        # Bound to the commander's run as live, learned by its run hello.
+        self._ground_asker = RunAsker(ground_keys) if ground_keys is not None else None
+        self.ground = GroundLogic(
+            mission,
+            keys=ground_keys,
+            script=commands or [],
+            run=self._ground_asker.run if self._ground_asker is not None else None,
+        )
         # The sync query's form, as the live CN chooses it (transport.sync_query).
         self._bundle = BundleEncoder() if wildcard_sync_for(mission) else None
         self._ground: bytearray | None = None
@@ -513,6 +520,21 @@ class LockstepRunner:
             d.logic.run(self.clock.now_ns())
         return reply
 
+    def _ground_learns_run(self) -> None:
+        """The ground learns the commander's run by its run hello (as live,
+        zplatform.ground.link), when it does not know it: at the start, and
+        after a restart (live: within a RELEARN_S; here at once)."""
+        asker = self._ground_asker
+        if asker is None or asker.run.epoch == self.control.auth_run.epoch:
+            return
+        keys = sim_keys(self.mission)
+        assert keys is not None
+        server = ClockResponder(
+            self.mission, keys.for_node(self.control.name), self.control.auth_run
+        )
+        answer = server.answer(asker.hello(), 0, 0)
+        assert answer is not None and asker.check(answer)
+
     def stop(self, node: str, loops: int) -> None:
         """Control node ``node`` is frozen for the next ``loops`` loops (as
         SIGSTOP): it runs nothing, then resumes with the state it had, in the
@@ -621,6 +643,8 @@ class LockstepRunner:
             if term and top.logic.loop == loop and new:
                 self.commanders.append((loop, top.name, term))
         gl = self.ground
+        if tms:
+            self._ground_learns_run()
         for tm in tms:
             if gl.on_telemetry(tm, t):
                 if log is not None:
