@@ -858,6 +858,12 @@ def case_cn_restart(tmp: Path, quick: bool, *, mission: Path = MISSION) -> CaseR
             "dn0 follows the new CN",
         )
         new = [s.v for s in c.snaps if s.v["cn_epoch"] != epoch0]
+        # dn0 runs the new CN's loops: its loop reaches the new run's first
+        # snapshot's (read on, not at one instant: the snapshot that met the
+        # wait above may predate dn0's first loop of the new run).
+        c.wait_for(
+            lambda dv: int(dv.get("dn0_loop")) >= new[0]["cn_loop"], 30, "dn0 runs new loops"
+        )
         r.figures.update(
             detect_ms=ms(t0, t_safed),
             follow_after_restart_ms=ms(t_restart, c.snaps[-1].t),

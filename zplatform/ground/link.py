@@ -277,13 +277,17 @@ class GroundLink:
         tm = self._tm_box.pop()
         if tm is not None:
             return _TM, tm[1], tm[0], ""
-        ev = self._ev_box.pop()
+        # Events wait in their (bounded) mailbox until the run is known, then
+        # are checked in it: an event of this run sent before this link
+        # learned the run (a short script's script_done) is not lost.
+        ev = None if self.waiting_for_run else self._ev_box.pop()
         if ev is not None:
             return _EV, ev[1], ev[2], ev[0]
         return None
 
     def _waiting(self) -> bool:
-        return bool(len(self._tm_box) or len(self._ev_box) or len(self._run_box))
+        events = len(self._ev_box) and not self.waiting_for_run
+        return bool(len(self._tm_box) or events or len(self._run_box))
 
     def _pop(self, deadline: float) -> tuple[int, bytes, int, str] | None:
         while True:
