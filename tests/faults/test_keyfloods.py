@@ -8,8 +8,9 @@
   user may) and without real-time priority; a flight whose every failed
   check is a defect this suite found and reports (``KNOWN_DEFECTS``) is an
   xfail naming it;
-* the default suite: one flood per class (query key, sample key, reply
-  path) of recovery_igniter, 1 s each, with its nodes on the pad.
+* one flood per class (query key, sample key, reply path) of
+  recovery_igniter, 1 s each, with its nodes on the pad: with the soaks too,
+  until the DN safing it showed (below) is explained.
 """
 
 from __future__ import annotations
