@@ -15,7 +15,7 @@ import os
 import time
 from pathlib import Path
 
-from zplatform.core.auth import KEY_ENV, KeySet, channel
+from zplatform.core.auth import KEY_ENV, KeySet, Run, channel
 from zplatform.core.events import Event, encode_event
 from zplatform.ground.link import EVENT_BACKLOG, EVENT_MAX, GroundLink
 from zplatform.mission.load import load_mission
@@ -49,7 +49,9 @@ def test_forged_event_records_are_refused_before_they_are_queued(tmp_path: Path)
     got: list[object] = []
     link = GroundLink(m, keys=keys, telemetry=False, on_event=got.append)
     try:
-        seal = channel(keys, "events_dn0")
+        run = time.time_ns()
+        link.run.set(run)  # as if learned by its run hello (no control node here)
+        seal = channel(keys, "events_dn0", Run(run))
         assert seal is not None
         rec = encode_event(Event("dn0", 1, time.time_ns(), 2, "bad_frame", "x"))
         link._on_event(_Sample("rocket/dn0/events", bytes(seal.seal(rec))))  # type: ignore[arg-type]
