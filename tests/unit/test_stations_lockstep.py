@@ -35,9 +35,7 @@ ground:
 
 
 def flight_with_ground() -> Mission:
-    return decode_mission(
-        FLIGHT.read_text() + GROUND, source=str(FLIGHT), base_dir=FLIGHT.parent
-    )
+    return decode_mission(FLIGHT.read_text() + GROUND, source=str(FLIGHT), base_dir=FLIGHT.parent)
 
 
 class Stations:
