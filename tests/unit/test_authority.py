@@ -16,9 +16,9 @@ from zplatform.config import Mission
 from zplatform.control.authority import Signer, identity_key
 from zplatform.control.commands import CommandHandler
 from zplatform.control.statemachine import StateMachine
-from zplatform.control.uplink import Uplink, operator_number
+from zplatform.control.uplink import Uplink, operator_number, validate_words
 from zplatform.core.events import EventLog
-from zplatform.errors import ConfigError
+from zplatform.errors import CommandError, ConfigError
 
 S = 1_000_000_000
 PERIOD = 10_000_000
@@ -507,3 +507,20 @@ def test_identity_keys_differ_per_name_kind_and_key_id() -> None:
         for i in (1, 2)
     }
     assert len(keys) == 8
+
+
+def test_the_ground_checks_lock_commands_before_sending() -> None:
+    m = mission()
+    assert validate_words(m, "handover", ["bob"]) == ("HANDOVER", 3, 0.0)
+    assert validate_words(m, "approve", ["17"]) == ("APPROVE", 0, 17.0)
+    assert validate_words(m, "lock", []) == ("LOCK", 0, 0.0)
+    for cmd, args, match in (
+        ("handover", ["eve"], "no operator named 'eve'"),
+        ("handover", [], "needs OPERATOR"),
+        ("approve", ["x"], "ARM's number"),
+        ("takeover", ["fd"], "no arguments"),
+    ):
+        with pytest.raises(CommandError, match=match):
+            validate_words(m, cmd, args)
+    with pytest.raises(CommandError, match="no command lock"):
+        validate_words(decode_mission(MISSION), "lock", [])

@@ -252,6 +252,8 @@ def validate_command(
         names = [c.lower() for c in CMD_NAMES[1:]]
         hint = did_you_mean(command, names) or f"; expected one of {', '.join(names)}"
         raise CommandError(f"unknown command {command!r}{hint}")
+    if cmd in _LOCK_NAMES:
+        return _lock_command(mission, cmd, element, value)
     args = _TWO_ARGS.get(cmd.lower())
     if args is None:
         if element is not None:
@@ -266,6 +268,37 @@ def validate_command(
     else:
         index, num = resolve_write(Layout.for_node(mission, "cn"), element, value, where)
     return CheckedCommand(cmd, index, num)
+
+
+_LOCK_NAMES = ("LOCK", "RELEASE", "HANDOVER", "TAKEOVER", "APPROVE")
+_F64_EXACT = 1 << 53
+
+
+def _lock_command(
+    mission: Mission, cmd: str, element: str | None, value: str | None
+) -> CheckedCommand:
+    """The command lock's commands: ``handover OPERATOR`` (``gn_cmd_element``:
+    the operator's number), ``approve ARM_NUMBER`` (carried in ``gn_cmd_value``
+    to the uplink, which puts it in ``gn_cmd_ref``), the others without an
+    argument; only in a mission with command authority."""
+    if not mission.authority:
+        raise CommandError(
+            f"{cmd.lower()}: mission {mission.mission!r} has no command lock (a `ground:` "
+            "section without single_operator)"
+        )
+    if value is not None:
+        raise CommandError(f"{cmd.lower()} takes at most one argument")
+    if cmd == "HANDOVER":
+        if element is None:
+            raise CommandError("handover needs OPERATOR")
+        return CheckedCommand(cmd, operator_number(mission, element), 0.0)
+    if cmd == "APPROVE":
+        if element is None or not element.isdigit() or not 1 <= int(element) < _F64_EXACT:
+            raise CommandError(f"approve needs the ARM's number (1..2**53-1), got {element!r}")
+        return CheckedCommand(cmd, 0, float(int(element)))
+    if element is not None:
+        raise CommandError(f"{cmd.lower()} takes no arguments")
+    return CheckedCommand(cmd, 0, 0.0)
 
 
 def validate_words(
