@@ -489,6 +489,12 @@ def test_ground_section_errors_name_their_yaml_path(ground: str, path: str, mess
     assert message in str(e.value)
 
 
+def test_range_safetys_abort_cannot_be_hazardous() -> None:
+    with pytest.raises(ConfigError) as e:
+        mission(base=MISSION.replace("hazardous: [LAUNCH]", "hazardous: [LAUNCH, ABORT]"))
+    assert e.value.path == "$.commands.hazardous" and "range safety" in str(e.value)
+
+
 def test_ground_needs_the_ground_node_and_auth() -> None:
     g = "ground: {stations: [{name: pad}], operators: [{name: a, roles: [operator]}]}\n"
     with pytest.raises(ConfigError) as e:

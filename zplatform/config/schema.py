@@ -457,7 +457,10 @@ class ComponentConfig(_Struct):
 class CommandsConfig(_Struct):
     """Which operator commands each state accepts, which need ARM first, and
     what a WRITE may write. Commands: `NOOP`, `LAUNCH`, `ABORT`, `WRITE`,
-    `HOLD`, `RESUME`, `ARM`, `PRM_SET`, `PRM_SAVE` (parameters: `params`). A
+    `HOLD`, `RESUME`, `ARM`, `PRM_SET`, `PRM_SAVE` (parameters: `params`), and
+    with `ground:` the command lock's `LOCK`, `RELEASE`, `HANDOVER`,
+    `TAKEOVER`, `APPROVE` (no whitelist refuses those: they move no vehicle
+    state; their checks come first, docs/security.md#stations-and-operators). A
     request is checked in this order, the first failure giving its verdict:
     a known command, a number above the last (`REJECTED_REPLAY`), the
     state's whitelist (`REJECTED_NOT_ALLOWED`), an ARM just before a

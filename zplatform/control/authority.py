@@ -130,6 +130,12 @@ def check_config(mission: Mission, protected: list[str]) -> None:
     if g is None:
         return
     hazardous = set(mission.commands.hazardous)
+    if "ABORT" in hazardous and any("range_safety" in o.roles for o in g.operators):
+        raise ConfigError(
+            "range safety's ABORT is taken from any station, without the lock: it cannot "
+            "need an ARM too (drop ABORT from commands.hazardous)",
+            "$.commands.hazardous",
+        )
     protected_set = set(protected)
     params = {p.name for p in mission.params if p.hazardous}
     for i, t in enumerate(g.two_person):
