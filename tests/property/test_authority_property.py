@@ -161,3 +161,21 @@ def step(r: Rig, m: Model, who: str, cmd: str, target: int, which: str) -> None:
     if cmd == "LAUNCH" and consumed:
         m.chain = -1
     assert r.dv.get_name("cn_lock_holder") == (m.holder or "NONE")
+
+
+@settings(max_examples=300)
+@given(st.lists(st.binary(min_size=0, max_size=120), min_size=1, max_size=20))
+def test_any_request_bytes_get_a_verdict_and_never_raise(frames: list[bytes]) -> None:
+    """Whatever a key holder puts in a request's fields (operator, station,
+    reference, tags), the authority refuses or judges it: never an exception,
+    never an accepted request without an operator's valid tag."""
+    r = Rig(M)
+    region = r.dv.region_view("gn_to_cn")
+    n = len(region)
+    for f in frames:
+        data = (f * (n // max(len(f), 1) + 1))[:n] if f else bytes(n)
+        region[:] = data
+        r.dv.set("gn_cmd_epoch", r.dv.get("cn_epoch"))
+        r.dv.set("gn_cmd_seq", r.ch.last_seq + 1)
+        assert r.loop(new=True) != "ACCEPTED"
+        assert r.dv.get_name("cn_lock_holder") == "NONE"

@@ -530,3 +530,23 @@ def test_the_ground_checks_lock_commands_before_sending() -> None:
             validate_words(m, cmd, args)
     with pytest.raises(CommandError, match="no command lock"):
         validate_words(decode_mission(MISSION), "lock", [])
+
+
+def test_a_standby_takes_the_lock_over_from_the_mirrored_vector() -> None:
+    """A takeover (CommandHandler.adopt): the lock is in the Data Vector, so
+    the new commander keeps its holder and lease; open approvals are not
+    mirrored, so a pending two-person ARM needs them again."""
+    r = Rig()
+    r.send("alice@pad", "LOCK")
+    r.send("alice@pad", "ARM")
+    r.send("fd@room", "APPROVE", ref=r.ch.last_seq)
+    b = Rig()
+    b.dv.write_all(r.dv.view())
+    b.t = r.t
+    b.ch.adopt()
+    auth = b.ch.authority
+    assert auth is not None and (auth.holder, auth.station) == (1, 0)
+    assert auth.until_ns == r.dv.get("cn_lock_until_ns") and not auth.approved()
+    assert b.send("bob@room", "NOOP") == "REJECTED_NOT_HOLDER"
+    assert b.send("alice@pad", "LAUNCH") == "REJECTED_NOT_ARMED"  # its ARM is gone
+    assert b.send("alice@pad", "NOOP") == "ACCEPTED"

@@ -121,3 +121,42 @@ def test_a_flight_with_stations_hand_over_two_person_launch_and_lease_expiry() -
         "command lock expired: pat@pad's command lock expired (no request in its lease)",
     ]
     assert r.control.dv.get("cn_auth_refused") == 4
+
+
+def test_a_refused_station_never_displaces_the_holders_request_in_a_loop() -> None:
+    """Two requests in one loop, the viewer's numbered higher: the CN refuses
+    the viewer's before it picks (no number consumed) and takes the holder's."""
+    r = LockstepRunner(flight_with_ground())
+    s = Stations(r)
+    r.run(0.5)
+    assert s.send("pat@pad", "LOCK") == "ACCEPTED"
+    dv = r.control.dv
+    seq = r.control.commands.last_seq + 1
+    keys = sim_keys(r.mission)
+    assert keys is not None
+    for who, n in (("pat@pad", seq), ("vic@lounge", seq + 1)):
+        op, st = who.split("@")
+        up = Uplink(r.mission, keys.for_node("gn"), signer=sim_signer(keys, r.mission, op, st))
+        r.uplink(up.frame("NOOP", n, 0, 0.0, r.clock.now_ns(), dv.get("cn_epoch")))
+    r.step()
+    assert dv.get("cn_cmd_seq") == seq and dv.get_name("cn_cmd_status") == "ACCEPTED"
+    assert dv.get("cn_cmd_reject_seq") == seq + 1
+    assert dv.get_name("cn_cmd_reject_status") == "REJECTED_VIEW_ONLY"
+    assert dv.get("cn_cmd_dropped") == 0
+
+
+def test_range_safety_aborts_the_flight_from_a_view_station() -> None:
+    r = LockstepRunner(flight_with_ground())
+    s = Stations(r)
+    r.run(0.5)
+    s.send("fd@room", "LOCK")
+    s.send("fd@room", "ARM")
+    s.send("rso@lounge", "APPROVE", ref=r.control.commands.last_seq)
+    assert s.send("fd@room", "LAUNCH") == "ACCEPTED"
+    r.run(0.5)
+    assert r.control.dv.get_name("cn_state") == "ARMED"
+    assert s.send("vic@lounge", "ABORT") == "REJECTED_VIEW_ONLY"
+    assert s.send("rso@lounge", "ABORT") == "ACCEPTED"
+    r.step()
+    assert r.control.dv.get_name("cn_state") == "ABORTED"
+    assert s.holder == "fd@room"  # the abort left the lock where it was
