@@ -547,16 +547,17 @@ class CommandHandler:
         return self._auth
 
     def _tick(self, t_ns: int) -> None:
-        """Once per loop time: end a lease that ran out, publish the lock."""
+        """Once per loop time: end a lease that ran out (and publish that).
+        The lock's elements change only here and after a request (:meth:`step`)."""
         auth = self._auth
         if auth is None or t_ns == self._tick_t:
             return
         self._tick_t = t_ns
         ch = auth.expire(t_ns)
-        if ch is not None:
+        if ch is not None:  # else nothing changed: the vector shows it already
             self._events.emit(EV.CMD_LOCK, t_ns, what=ch.what, text=ch.text)
             auth.disarm()  # an ARM dies with its holder's lock
-        self._publish()
+            self._publish()
 
     def _publish(self) -> None:
         auth = self._auth
