@@ -436,6 +436,81 @@ def write_auth_vectors(mission: object, frame: bytes) -> None:
             old.unlink()
 
 
+# -- operator and station tags (vectors/operators/) ---------------------------------------
+
+OPERATORS = VECTORS / "operators"
+# (what, operator, station, command, seq, element, ref): a lock request and an approval.
+OPERATOR_REQUESTS = (
+    ("lock", "alice", "pad", "LOCK", 3, 0, 0),
+    ("approve", "rso", "lounge", "APPROVE", 5, 0, 4),
+)
+
+
+def write_operator_vectors() -> None:
+    """``<mac>_<what>.bin``: a ``gn_to_cn`` region frame (untagged by the
+    uplink: §6.1 covers that) whose operator and station tags (§6.7) are
+    made with keys derived from :data:`MASTER`; its ``.json`` every key,
+    context and the covered bytes."""
+    from zplatform.control.authority import IDENTITY_LINK, identity_key
+    from zplatform.control.uplink import Uplink
+    from zplatform.security.identities import sim_signer
+
+    written = set()
+    for mac in MACS:
+        mission = load_mission(OPERATORS / "mission.yaml")
+        mission.security.mac = mac
+        keys = KeySet.from_master(mission, MASTER)
+        base = keys.link_key(IDENTITY_LINK)
+        vehicle = mission.vehicle
+        for what, op, st, cmd, seq, element, ref in OPERATOR_REQUESTS:
+            up = Uplink(mission, signer=sim_signer(keys, mission, op, st))
+            frame = bytes(up.frame(cmd, seq, element, 0.0, T0, RUN, ref=ref))
+            lay = up.req.layout
+            r = lay.region("gn_to_cn")
+            data = bytes(up.req.region_view("gn_to_cn"))
+            covered = lay.element("gn_cmd_op_tag").offset - r.offset
+            st_at = lay.element("gn_cmd_st_tag").offset - r.offset
+            vec = f"{mac}_{what}"
+            doc = {
+                "name": vec,
+                "description": f"{cmd} #{seq} by operator {op} at station {st}"
+                + (f", approving ARM #{ref}" if ref else ""),
+                "mac": mac,
+                "vehicle": vehicle,
+                "master_hex": MASTER.hex(),
+                "operators_context": f"zplatform/2/link/{vehicle}/{IDENTITY_LINK}",
+                "operators_key_hex": base.hex(),
+                "operator": op,
+                "operator_number": [o.name for o in mission.ground.operators].index(op) + 1,
+                "operator_context": f"zplatform/2/{vehicle}/operator/{op}/1",
+                "operator_key_hex": identity_key(base, vehicle, "operator", op, 1).hex(),
+                "station": st,
+                "station_number": [s.name for s in mission.ground.stations].index(st) + 1,
+                "station_context": f"zplatform/2/{vehicle}/station/{st}/1",
+                "station_key_hex": identity_key(base, vehicle, "station", st, 1).hex(),
+                "command": cmd,
+                "seq": seq,
+                "run": RUN,
+                "t_ns": T0,
+                "ref": ref,
+                "data_offset": len(frame) - len(data),
+                "covered_size": covered,
+                "covered_hex": data[:covered].hex(),
+                "operator_tag_hex": data[covered : covered + 16].hex(),
+                "station_tag_hex": data[st_at : st_at + 16].hex(),
+                "frame_size": len(frame),
+            }
+            (OPERATORS / f"{vec}.bin").write_bytes(frame)
+            (OPERATORS / f"{vec}.json").write_text(json.dumps(doc, indent=2) + "\n")
+            written.add(vec)
+            print(
+                f"operators/{vec:25} {len(frame):6} bytes  operator tag {doc['operator_tag_hex']}"
+            )
+    for old in [*OPERATORS.glob("*.bin"), *OPERATORS.glob("*.json")]:
+        if old.stem not in written:
+            old.unlink()
+
+
 def main() -> None:
     mission = load_mission(MISSION)
     layout = Layout.for_node(mission, "cn")
@@ -459,6 +534,7 @@ def main() -> None:
         (VECTORS / f"{v.name}.json").write_text(to_json(v, layout, frame, data))
         print(f"{v.name:24} {v.region:10} {len(frame):6} bytes  layout_id 0x{region.layout_id:08x}")
     write_auth_vectors(mission, (VECTORS / "scalars_typical.bin").read_bytes())
+    write_operator_vectors()
 
 
 if __name__ == "__main__":

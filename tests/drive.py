@@ -28,7 +28,7 @@ def step_request(ch: CommandHandler, dv: DataVector, new_request: bool, t_ns: in
         data = memoryview(dv.buf)[base:]
         number = RequestNumber(dv.layout)
         epoch, seq = number.read(data)
-        new_request = ch.admit(epoch, seq, t_ns, number.command(data))
+        new_request = ch.admit(epoch, seq, t_ns, number.command(data), data)
     ch.step(new_request, t_ns)
 
 

@@ -232,6 +232,23 @@ def _keygen_pki(mission: Mission, where: Path) -> None:
         print(f"  {' '.join(files):<32} -> {who}")
 
 
+def _keygen_identities(mission: Mission, where: Path, *, replace: bool) -> None:
+    """keygen's operator and station keys (a mission with ``ground:``): the
+    missing ones (or those whose ``key_id`` the mission raised), derived
+    from ``cn.keys``: the vehicle is never re-keyed for them."""
+    from ..security.identities import write_identity_files
+
+    if mission.ground is None:
+        return
+    made = write_identity_files(mission, where, replace=replace)
+    if not made:
+        print("every operator and station key file is there (ground:)")
+        return
+    print("operator and station keys (ground:), one file each, to that operator or station:")
+    for name in made:
+        print(f"  {name}")
+
+
 def cmd_keygen(args: argparse.Namespace) -> int:
     """Write a new key set (one file per host role, mode 0600, in a 0700
     directory) and, for a mission whose links run mutual TLS, the mission's
@@ -260,6 +277,7 @@ def cmd_keygen(args: argparse.Namespace) -> int:
             "`up` on first use or an earlier keygen): nothing written; `--rotate` replaces "
             "it (every host then needs its new file)"
         )
+        _keygen_identities(mission, where, replace=False)
         _keygen_pki(mission, where)
         return 0
     files = write_key_set(mission, where, replace=args.rotate)
@@ -267,6 +285,7 @@ def cmd_keygen(args: argparse.Namespace) -> int:
     for role in host_roles(mission):
         links = ", ".join(role_links(mission, role))
         print(f"  {files[role].name:<10} -> {role_host(role):<46} {links}")
+    _keygen_identities(mission, where, replace=args.rotate)
     _keygen_pki(mission, where)
     print(
         "copy each file to its host only, into the same directory (or point "

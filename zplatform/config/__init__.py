@@ -112,6 +112,9 @@ from .schema import (
     MISSION_NAME_MAX as MISSION_NAME_MAX,
 )
 from .schema import (
+    OPERATOR_ROLES as OPERATOR_ROLES,
+)
+from .schema import (
     STANDBY as STANDBY,
 )
 from .schema import (
@@ -148,6 +151,9 @@ from .schema import (
     FaultsConfig as FaultsConfig,
 )
 from .schema import (
+    GroundConfig as GroundConfig,
+)
+from .schema import (
     HazardousOutputConfig as HazardousOutputConfig,
 )
 from .schema import (
@@ -166,6 +172,9 @@ from .schema import (
     NodeConfig as NodeConfig,
 )
 from .schema import (
+    OperatorConfig as OperatorConfig,
+)
+from .schema import (
     ParamConfig as ParamConfig,
 )
 from .schema import (
@@ -182,6 +191,9 @@ from .schema import (
 )
 from .schema import (
     StateMachineConfig as StateMachineConfig,
+)
+from .schema import (
+    StationConfig as StationConfig,
 )
 from .schema import (
     TransitionConfig as TransitionConfig,
@@ -217,6 +229,7 @@ __all__ = [
     "MAX_REGION_BYTES",
     "MAX_VECTOR_BYTES",
     "MISSION_NAME_MAX",
+    "OPERATOR_ROLES",
     "PRM_LOAD_NAMES",
     "PRM_SAVE_NAMES",
     "SAFED_WHY_NAMES",
@@ -228,16 +241,19 @@ __all__ = [
     "ComponentConfig",
     "ElementConfig",
     "FaultsConfig",
+    "GroundConfig",
     "HazardousOutputConfig",
     "HealthConfig",
     "HealthMetric",
     "Mission",
     "MonitorConfig",
     "NodeConfig",
+    "OperatorConfig",
     "ParamConfig",
     "RecorderConfig",
     "StateConfig",
     "StateMachineConfig",
+    "StationConfig",
     "TransitionConfig",
     "TransportConfig",
     "WatchdogConfig",

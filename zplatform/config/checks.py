@@ -145,6 +145,7 @@ def parse_mission(text: bytes | str, source: str = "<string>") -> Mission:
     _check_recorder(mission)
     _check_archive(mission)
     _check_params(mission)
+    _check_ground(mission)
     n_platform = _add_platform_elements(mission)
     _check_elements(mission, n_platform)
     return mission
@@ -345,6 +346,64 @@ def _check_mission(m: Mission) -> None:
         if not elements:
             raise ConfigError("a region must have at least one element", where)
     check_bulk_channels(m.bulk, m.nodes)
+
+
+_IDENT_RE = re.compile(r"^[a-z][a-z0-9_]{0,31}$")
+
+
+def _check_ground(m: Mission) -> None:
+    """Structural checks of ``ground:`` (names, references, what it needs);
+    the two-person list is checked against the commands by
+    :func:`zplatform.control.authority.check_config`."""
+    g = m.ground
+    if g is None:
+        return
+    if not m.has_ground:
+        raise ConfigError("a `ground:` section needs the ground node 'gn' in `nodes`", "$.ground")
+    if not m.security.auth and not g.single_operator:
+        raise ConfigError(
+            "operators are known by their keys: `ground:` needs `security.auth` (or "
+            "`single_operator: true`)",
+            "$.ground",
+        )
+    named = (
+        ("stations", [s.name for s in g.stations]),
+        ("operators", [o.name for o in g.operators]),
+    )
+    for section, names_ in named:
+        if not names_:
+            raise ConfigError(f"`ground.{section}` lists none", f"$.ground.{section}")
+        seen: set[str] = set()
+        for i, name_ in enumerate(names_):
+            where = f"$.ground.{section}[{i}].name"
+            if not _IDENT_RE.fullmatch(name_):
+                raise ConfigError(f"name {name_!r} must match {_IDENT_RE.pattern}", where)
+            _new_name(name_, seen, section[:-1], where)
+    if not any(s.may == "command" for s in g.stations):
+        raise ConfigError("no station may command", "$.ground.stations")
+    for i, op in enumerate(g.operators):
+        where = f"$.ground.operators[{i}].roles"
+        if not op.roles:
+            raise ConfigError(f"operator {op.name!r} has no role", where)
+        if len(set(op.roles)) != len(op.roles):
+            raise ConfigError(f"operator {op.name!r} lists a role twice", where)
+        if "viewer" in op.roles and len(op.roles) > 1:
+            raise ConfigError(
+                f"operator {op.name!r} is a viewer and something more: a viewer never commands",
+                where,
+            )
+    if not any({"flight_director", "operator"} & set(op.roles) for op in g.operators):
+        raise ConfigError("no operator may command (flight_director, operator)", "$.ground")
+    names = {op.name: op for op in g.operators}
+    for i, r in enumerate(g.revoked):
+        name, sep, kid = r.partition("#")
+        where = f"$.ground.revoked[{i}]"
+        if name not in names:
+            raise ConfigError(f"{name!r} is not an operator; operators: {sorted(names)}", where)
+        if sep and (not kid.isdigit() or not 1 <= int(kid) <= 65535):
+            raise ConfigError(f"{r!r}: expected NAME or NAME#KEY_ID (1..65535)", where)
+    if len(set(g.approving_roles)) != len(g.approving_roles):
+        raise ConfigError("a role is listed twice", "$.ground.approving_roles")
 
 
 def _check_failover(m: Mission) -> None:

@@ -49,6 +49,18 @@ class Command(enum.IntEnum):
     ARM = 7
     PRM_SET = 8
     PRM_SAVE = 9
+    LOCK = 10
+    """Ask for (or renew) the command lock (a mission with ``ground:``;
+    :mod:`zplatform.control.authority`)."""
+    RELEASE = 11
+    """Give the command lock up."""
+    HANDOVER = 12
+    """Hand the command lock to the operator numbered ``gn_cmd_element``
+    (``ground.operators`` index + 1)."""
+    TAKEOVER = 13
+    """A flight director takes the command lock from whoever holds it."""
+    APPROVE = 14
+    """A second operator approves the ARM numbered ``gn_cmd_ref`` (two-person rule)."""
 
 
 class CommandStatus(enum.IntEnum):
@@ -71,6 +83,29 @@ class CommandStatus(enum.IntEnum):
     REJECTED_OUT_OF_BOUNDS = 9
     REJECTED_PARAM_STATE = 10
     REJECTED_BUSY = 11
+    REJECTED_OPERATOR_UNKNOWN = 12
+    """No operator, or one the mission's ``ground.operators`` does not list."""
+    REJECTED_OPERATOR_REVOKED = 13
+    """An operator (or that operator's key id) in ``ground.revoked``."""
+    REJECTED_OPERATOR_AUTH = 14
+    """The operator tag does not check under the operator's key (a forged
+    or altered operator field, or an old key id)."""
+    REJECTED_STATION = 15
+    """An unknown station, or its station tag does not check."""
+    REJECTED_VIEW_ONLY = 16
+    """A viewer (role or station) never commands."""
+    REJECTED_NOT_HOLDER = 17
+    """Another operator holds the command lock, or nobody does (the detail names the holder)."""
+    REJECTED_ROLE = 18
+    """The operator's roles do not allow it (a takeover without ``flight_director``,
+    an approval without an approving role, a handover to a non-commanding operator)."""
+    REJECTED_APPROVAL_SELF = 19
+    """An approval by the operator who armed, or by one who already approved."""
+    REJECTED_APPROVAL_STALE = 20
+    """An approval of an ARM that is not the current one (an earlier ARM's,
+    or none open in its window)."""
+    REJECTED_NOT_APPROVED = 21
+    """A two-person command without a second operator's approval of its ARM."""
 
 
 class Fault(enum.IntEnum):

@@ -325,6 +325,30 @@ def platform_elements(m: Mission) -> dict[str, list[ElementConfig]]:
             E(f"cn_missed_{dn}", "u32", 0, doc=f"loops without {dn}'s reply in time"),
             E(f"cn_late_{dn}", "u32", 0, doc=f"replies from {dn} for an older loop"),
         ]
+    g = m.ground
+    if g is not None and m.has_ground:
+        # Command authority (zplatform.control.authority): who sent the last
+        # verdict's request, who holds the lock and until when.
+        ops = ["NONE", *(o.name for o in g.operators)]
+        cn += [
+            E("cn_cmd_operator", "enum", "NONE", ops, doc="the operator of the last verdict"),
+            E("cn_lock_holder", "enum", "NONE", ops, doc="the operator holding the command lock"),
+            E(
+                "cn_lock_station",
+                "enum",
+                "NONE",
+                ["NONE", *(s.name for s in g.stations)],
+                doc="the holder's station (NONE: not yet bound after a handover)",
+            ),
+            E("cn_lock_until_ns", "i64", 0, doc="the lease's end (loop time, ns; 0: no holder)"),
+            E("cn_arm_approvals", "u8", 0, doc="approvals of the current ARM (two-person rule)"),
+            E(
+                "cn_auth_refused",
+                "u32",
+                0,
+                doc="requests refused by operator, station, lock or two-person checks",
+            ),
+        ]
     out: dict[str, list[ElementConfig]] = {"cn": cn}
     for dn in m.device_nodes:
         # Set by the CN in the trigger of its planned last loop: the DN then
@@ -404,6 +428,14 @@ def platform_elements(m: Mission) -> dict[str, list[ElementConfig]]:
             E("gn_cmd_element", "u16", 0, doc="WRITE, PRM_SET: the element's index"),
             E("gn_cmd_value", "f64", 0.0, doc="WRITE, PRM_SET: the value"),
         ]
+        if m.ground is not None:  # codecs/FORMAT.md: the operator's identity
+            out["gn_to_cn"] += [
+                E("gn_cmd_operator", "u16", 0, doc="the operator (`ground.operators` index + 1)"),
+                E("gn_cmd_station", "u16", 0, doc="the station (`ground.stations` index + 1)"),
+                E("gn_cmd_ref", "u64", 0, doc="APPROVE: the number of the ARM approved"),
+                E("gn_cmd_op_tag", "u8[16]", 0, doc="MAC of the request under the operator's key"),
+                E("gn_cmd_st_tag", "u8[16]", 0, doc="MAC of the request under the station's key"),
+            ]
     # A controller's mode lives where its node reads it: in `cn` for CN
     # controllers, in `cn_to_dnX` for DN controllers (the CN's state machine
     # writes it, the sync protocol carries it down).

@@ -457,7 +457,10 @@ class ComponentConfig(_Struct):
 class CommandsConfig(_Struct):
     """Which operator commands each state accepts, which need ARM first, and
     what a WRITE may write. Commands: `NOOP`, `LAUNCH`, `ABORT`, `WRITE`,
-    `HOLD`, `RESUME`, `ARM`, `PRM_SET`, `PRM_SAVE` (parameters: `params`). A
+    `HOLD`, `RESUME`, `ARM`, `PRM_SET`, `PRM_SAVE` (parameters: `params`), and
+    with `ground:` the command lock's `LOCK`, `RELEASE`, `HANDOVER`,
+    `TAKEOVER`, `APPROVE` (no whitelist refuses those: they move no vehicle
+    state; their checks come first, docs/security.md#stations-and-operators). A
     request is checked in this order, the first failure giving its verdict:
     a known command, a number above the last (`REJECTED_REPLAY`), the
     state's whitelist (`REJECTED_NOT_ALLOWED`), an ARM just before a
@@ -1276,6 +1279,114 @@ def _parse_or_raise(text: str, where: str) -> tuple[ScalarType, tuple[int, ...]]
     return parsed
 
 
+OPERATOR_ROLES = ("flight_director", "range_safety", "operator", "viewer")
+"""The roles an operator may hold (``ground.operators[].roles``)."""
+
+
+class StationConfig(_Struct):
+    """One ground station: a host (pad, control room, a viewer's laptop) that
+    sends requests with its own station key (``station-<name>.keys``)."""
+
+    name: Annotated[
+        str,
+        Meta(description="The station's name: `[a-z][a-z0-9_]*`, at most 32 characters."),
+    ]
+    may: Annotated[
+        Literal["command", "view"],
+        Meta(
+            description="`command`: its operators may command (with the lock); `view`: it "
+            "only watches, except that range safety's ABORT is taken from any station."
+        ),
+    ] = "command"
+    key_id: Annotated[
+        int,
+        Meta(
+            ge=1,
+            le=65535,
+            description="The number of the station's key: raise it (and rerun `zplatform "
+            "keygen`) to replace a lost station key; the old one no longer verifies.",
+        ),
+    ] = 1
+
+
+class OperatorConfig(_Struct):
+    """One operator: a person with a key of their own (``operator-<name>.keys``)."""
+
+    name: Annotated[
+        str,
+        Meta(description="The operator's name: `[a-z][a-z0-9_]*`, at most 32 characters."),
+    ]
+    roles: Annotated[
+        list[Literal["flight_director", "range_safety", "operator", "viewer"]],
+        Meta(
+            description="`flight_director` (commands, may take the lock over, approves), "
+            "`range_safety` (ABORT from any station, lock or not; approves), `operator` "
+            "(commands with the lock), `viewer` (never commands)."
+        ),
+    ]
+    key_id: Annotated[
+        int,
+        Meta(
+            ge=1,
+            le=65535,
+            description="The number of the operator's key (part of its derivation): raise it "
+            "and rerun `zplatform keygen` to replace a lost key; the old one no longer "
+            "verifies. The vehicle is never re-keyed.",
+        ),
+    ] = 1
+
+
+class GroundConfig(_Struct):
+    """Stations, operators, command authority and the two-person rule
+    (docs/security.md#stations-and-operators). Without this section the
+    mission has one ground and whoever holds its uplink key commands."""
+
+    stations: Annotated[
+        list[StationConfig],
+        Meta(description="The ground stations (at least one may command)."),
+    ]
+    operators: Annotated[
+        list[OperatorConfig],
+        Meta(description="The operators (at least one may command)."),
+    ]
+    lease_s: Annotated[
+        float,
+        Meta(
+            gt=0,
+            le=3600,
+            description="How long the command lock lasts after its holder's last accepted "
+            "request (s): a holder's station that goes silent loses the lock then.",
+        ),
+    ] = 10.0
+    two_person: Annotated[
+        list[str],
+        Meta(
+            description="Hazardous commands (`LAUNCH`), protected elements (a WRITE of it) "
+            "or hazardous parameters (a PRM_SET of it) that also need an APPROVE of their "
+            "ARM by a second operator with an approving role, inside the ARM window."
+        ),
+    ] = msgspec.field(default_factory=list)
+    approving_roles: Annotated[
+        list[Literal["flight_director", "range_safety", "operator"]],
+        Meta(description="The roles whose holders may approve (two-person rule)."),
+    ] = msgspec.field(default_factory=lambda: ["flight_director", "range_safety"])
+    revoked: Annotated[
+        list[str],
+        Meta(
+            description="Revoked operator keys: `NAME` (every key of that operator) or "
+            "`NAME#KEY_ID` (one key). A CN-side change: the vehicle is not re-keyed."
+        ),
+    ] = msgspec.field(default_factory=list)
+    single_operator: Annotated[
+        bool,
+        Meta(
+            description="Keep the behaviour of a mission without `ground:`: no operator "
+            "identity is required, no lock, no two-person rule (the stations and "
+            "operators still get their key files)."
+        ),
+    ] = False
+
+
 class Mission(_Struct):
     """A whole mission file: the nodes, the Data Vector, the state machine,
     controllers, devices and command rules. See `configs/*.yaml` for
@@ -1423,6 +1534,13 @@ class Mission(_Struct):
         list[MonitorConfig],
         Meta(description="Conditions on the CN's Data Vector and their responses."),
     ] = msgspec.field(default_factory=list)
+    ground: Annotated[
+        GroundConfig | None,
+        Meta(
+            description="Ground stations, operators, command authority and the two-person "
+            "rule (needs the ground node `gn` and `security.auth`)."
+        ),
+    ] = None
     doc: Annotated[str, Meta(description="What the mission is for.")] = ""
 
     # -- derived views (cheap; computed from the checked fields) -----------
@@ -1434,6 +1552,12 @@ class Mission(_Struct):
     @property
     def has_ground(self) -> bool:
         return "gn" in self.nodes
+
+    @property
+    def authority(self) -> bool:
+        """Whether the CN checks operators, the command lock and the
+        two-person rule (a ``ground:`` section without ``single_operator``)."""
+        return self.ground is not None and not self.ground.single_operator
 
     @property
     def standby(self) -> str | None:

@@ -31,6 +31,8 @@ from ..config import CMD_NAMES
 from ..config.codes import Command, CommandStatus
 from ..core.events import EV, EventLog
 from ..errors import ConfigError
+from . import authority as _authority
+from .authority import Authority, Identity
 from .interlocks import output_states
 from .params import ParamSlot, ParamTable
 from .statemachine import logic_writable, why_not_writable
@@ -57,7 +59,7 @@ __all__ = [
 
 log = logging.getLogger("zplatform.commands")
 
-ARM_WINDOW_NS = 10_000_000_000
+ARM_WINDOW_NS = _authority.ARM_WINDOW_NS
 """How long an accepted ARM confirms the next (hazardous) command: 10 s."""
 
 SEQ_WINDOW = 1 << 20
@@ -148,6 +150,15 @@ class RequestNumber:
 
 
 _N_CMDS = len(CMD_NAMES)
+_LOCK_CMDS = frozenset(
+    {Command.LOCK, Command.RELEASE, Command.HANDOVER, Command.TAKEOVER, Command.APPROVE}
+)
+"""The commands of the command lock and the two-person rule
+(:mod:`zplatform.control.authority`): they move no vehicle state, so no
+state's whitelist refuses them."""
+_LOCK_NAMES = frozenset(Command(c).name for c in _LOCK_CMDS)
+_REFUSAL_EVENT_NS = 1_000_000_000
+"""Authority refusals are evented at most once per this (the rest counted)."""
 _F32_MAX = 3.4028234663852886e38
 
 
@@ -252,6 +263,8 @@ def check_config(mission: Mission, *, warn: bool = True) -> None:
             raise ConfigError(f"{h!r} is not a command; commands: {', '.join(commands)}", w)
         if h == "ARM":
             raise ConfigError("ARM cannot be hazardous: it is the confirmation itself", w)
+        if h in _LOCK_NAMES:
+            raise ConfigError(f"{h} moves the command lock, it cannot be hazardous", w)
     for state, allowed in cfg.whitelist.items():
         w = f"$.commands.whitelist.{state}"
         if state not in states:
@@ -359,6 +372,7 @@ def check_config(mission: Mission, *, warn: bool = True) -> None:
                     "leave it out of commands.writable",
                     w,
                 )
+    _authority.check_config(mission, protected_elements(mission))
     sm = mission.state_machine
     if warn and sm is not None:
         for state, st in sm.states.items():
@@ -431,6 +445,7 @@ class CommandHandler:
         events: EventLog,
         statemachine: StateMachine | None = None,
         params: ParamTable | None = None,
+        operators_key: bytes | None = None,
     ) -> None:
         check_config(mission, warn=False)
         self._events = events
@@ -482,6 +497,122 @@ class CommandHandler:
         arm = "cn_arm_seq" in dv.layout.elements
         self._h_arm_seq = dv.handle("cn_arm_seq") if arm else None
         self._h_arm_t = dv.handle("cn_arm_t_ns") if arm else None
+        # Command authority (a `ground:` section without single_operator).
+        g = mission.ground
+        self._auth: Authority | None = None
+        self._tick_t: int | None = None
+        self._refusal_t: int | None = None
+        self._refusals_quiet = 0
+        if g is not None and not g.single_operator and self._has_ground:
+            self._init_authority(mission, dv, operators_key)
+
+    def _init_authority(self, mission: Mission, dv: DataVector, key: bytes | None) -> None:
+        assert mission.ground is not None
+        self._auth = Authority(mission.ground, mission.vehicle, mission.security.mac, key)
+        lay = dv.layout
+        base = lay.region("gn_to_cn").offset
+
+        def at(name: str) -> int:
+            return lay.element(name).offset - base
+
+        def field(name: str) -> struct.Struct:
+            return struct.Struct(f"<{at(name)}x{lay.element(name).scalar.struct}")
+
+        # The request's fields read straight out of a frame's region data
+        # (admit: before it is applied) or out of the vector (step).
+        self._f_cmd = field("gn_cmd")
+        self._f_elem = field("gn_cmd_element")
+        self._f_op = field("gn_cmd_operator")
+        self._f_st = field("gn_cmd_station")
+        self._f_ref = field("gn_cmd_ref")
+        self._op_tag_at = at("gn_cmd_op_tag")
+        self._st_tag_at = at("gn_cmd_st_tag")
+        self._g_region = dv.region_view("gn_to_cn")
+        self._h_cmd_operator = dv.handle("cn_cmd_operator")
+        self._h_lock_holder = dv.handle("cn_lock_holder")
+        self._h_lock_station = dv.handle("cn_lock_station")
+        self._h_lock_until = dv.handle("cn_lock_until_ns")
+        self._h_approvals = dv.handle("cn_arm_approvals")
+        self._h_auth_refused = dv.handle("cn_auth_refused")
+        cmds, elems = _authority.two_person_targets(mission)
+        self._two_cmd = tuple(c in cmds for c in CMD_NAMES)
+        two = [False] * len(lay.elements)
+        for name in elems:
+            two[lay.element(name).index] = True
+        self._two_elem = tuple(two)
+
+    @property
+    def authority(self) -> Authority | None:
+        """The command lock and two-person rule (None: a mission without them)."""
+        return self._auth
+
+    def _tick(self, t_ns: int) -> None:
+        """Once per loop time: end a lease that ran out (and publish that).
+        The lock's elements change only here and after a request (:meth:`step`)."""
+        auth = self._auth
+        if auth is None or t_ns == self._tick_t:
+            return
+        self._tick_t = t_ns
+        ch = auth.expire(t_ns)
+        if ch is not None:  # else nothing changed: the vector shows it already
+            self._events.emit(EV.CMD_LOCK, t_ns, what=ch.what, text=ch.text)
+            auth.disarm()  # an ARM dies with its holder's lock
+            self._publish()
+
+    def _publish(self) -> None:
+        auth = self._auth
+        assert auth is not None
+        self._h_lock_holder.set(auth.holder + 1)
+        self._h_lock_station.set(auth.station + 1)
+        self._h_lock_until.set(auth.until_ns)
+        self._h_approvals.set(min(len(auth.approvers), 255))
+
+    def _authorize(
+        self, data: bytes | bytearray | memoryview, t_ns: int
+    ) -> Identity | tuple[int, str]:
+        """Who sent the request in ``data`` (its region data), checked, and
+        whether the authority lets its command go on; else ``(status, detail)``."""
+        auth = self._auth
+        assert auth is not None
+        try:
+            op = int(self._f_op.unpack_from(data)[0])
+            st = int(self._f_st.unpack_from(data)[0])
+            cmd = int(self._f_cmd.unpack_from(data)[0])
+            target = int(self._f_elem.unpack_from(data)[0])
+            ref = int(self._f_ref.unpack_from(data)[0])
+        except struct.error:
+            return (
+                CommandStatus.REJECTED_OPERATOR_UNKNOWN,
+                "a request too short to name its operator",
+            )
+        mv = memoryview(data)
+        o, s_ = self._op_tag_at, self._st_tag_at
+        tb = _authority.TAG_BYTES
+        who = auth.identify(op, st, mv[:o], mv[o : o + tb], mv[s_ : s_ + tb])
+        if not isinstance(who, Identity):
+            return who
+        why = auth.check(who, cmd, t_ns, target=target, ref=ref)
+        if why is not None:
+            return why[0], f"{auth.who(*who)}: {why[1]}"
+        return who
+
+    def _refuse(self, status: int, t_ns: int, name: str, seq: int, detail: str) -> None:
+        """Refuse a request by the authority (operator, station, lock,
+        two-person) without consuming its number: counted in
+        ``cn_cmd_rejects`` and ``cn_auth_refused``, shown in
+        ``cn_cmd_reject_status``/``_seq``; evented at most once a second (a
+        peer holding one operator's key cannot flood the event stream)."""
+        self._h_rejects.bump()
+        self._h_reject_status.set(status)
+        self._h_reject_seq.set(seq)
+        self._h_auth_refused.bump()
+        last = self._refusal_t
+        if last is not None and 0 <= t_ns - last < _REFUSAL_EVENT_NS:
+            self._refusals_quiet += 1
+            return
+        quiet, self._refusals_quiet, self._refusal_t = self._refusals_quiet, 0, t_ns
+        more = f" (and {quiet} more refused in the second before)" if quiet else ""
+        self._emit_rejected(status, t_ns, name, seq, detail + more)
 
     def adopt(self) -> None:
         """Take up the handler's state from the Data Vector (a takeover,
@@ -494,6 +625,12 @@ class CommandHandler:
             seq = int(self._h_arm_seq.get())
             self._arm_seq = seq if seq else -1
             self._arm_t_ns = int(self._h_arm_t.get())
+        if self._auth is not None:
+            self._auth.adopt(
+                int(self._h_lock_holder.get()) - 1,
+                int(self._h_lock_station.get()) - 1,
+                int(self._h_lock_until.get()),
+            )
 
     def _armed_at(self, seq: int, t_ns: int) -> None:
         self._arm_seq = seq
@@ -525,15 +662,38 @@ class CommandHandler:
             if sm is None or sm.consumed_cmd or not sm.changed:
                 self._h_cmd.set(0)
                 self._active = False
+        auth = self._auth
+        if auth is not None:
+            self._tick(t_ns)
         if not new_request or not self._has_ground:
             return
         cmd = self._g_cmd.get()
         seq = self._g_seq.get()
         name = CMD_NAMES[cmd] if cmd < _N_CMDS else f"code {cmd}"
+        who: Identity | None = None
+        if auth is not None:
+            # Checked again on the applied bytes (admit checked the frame):
+            # the same rules, so it passes unless the loop's time ended a lease.
+            r = self._authorize(self._g_region, t_ns)
+            if not isinstance(r, Identity):
+                self._refuse(r[0], t_ns, name, seq, r[1])
+                return
+            who = r
         self._last_seq = seq
-        status, detail = self._validate(cmd, seq, t_ns)
+        status, detail = self._validate(cmd, seq, t_ns, who)
         self._h_seq.set(seq)
         self._h_status.set(status)
+        if auth is not None and who is not None:
+            self._h_cmd_operator.set(who.operator + 1)
+            detail += f" by {auth.who(*who)}"
+            if status == CommandStatus.ACCEPTED and cmd not in _LOCK_CMDS:
+                ch = auth.apply(who, cmd, t_ns, seq=seq)
+                if ch is not None:
+                    self._events.emit(EV.CMD_LOCK, t_ns, what=ch.what, text=ch.text)
+            self._publish()
+        if status == CommandStatus.ACCEPTED and cmd in _LOCK_CMDS:
+            self._events.emit(EV.CMD_ACCEPTED, t_ns, name=name, seq=seq, detail=detail)
+            return
         if status == CommandStatus.ACCEPTED:
             if self._active:
                 prev = CMD_NAMES[self._h_cmd.get()]
@@ -589,22 +749,44 @@ class CommandHandler:
         Changes nothing."""
         return request_refusal_detail(epoch, seq, self._h_epoch.get(), self._last_seq)
 
-    def admit(self, epoch: int, seq: int, t_ns: int, name: str = "request") -> bool:
+    def admit(
+        self,
+        epoch: int,
+        seq: int,
+        t_ns: int,
+        name: str = "request",
+        data: bytes | bytearray | memoryview | None = None,
+    ) -> bool:
         """Whether the request ``name`` numbered ``seq`` for CN run ``epoch``
         may be taken (:meth:`refusal`); when not, it is rejected now
-        (:meth:`reject`: counted, evented, no number consumed). The runtime
-        admits every request frame before it picks the one to apply
-        (:meth:`step`'s ``new_request``). Never raises."""
+        (:meth:`reject`: counted, evented, no number consumed). With command
+        authority and the request's region ``data``, also its operator,
+        station and the lock (:class:`~zplatform.control.authority.Authority`;
+        refused without consuming a number, evented at most once a second):
+        a request the authority refuses never displaces another in the same
+        loop. The runtime admits every request frame before it picks the
+        one to apply (:meth:`step`'s ``new_request``). Never raises."""
         refused = self.refusal(epoch, seq)
-        if refused is None:
-            return True
-        self.reject(refused[0], t_ns, name=name, seq=seq, detail=refused[1])
-        return False
+        if refused is not None:
+            self.reject(refused[0], t_ns, name=name, seq=seq, detail=refused[1])
+            return False
+        if self._auth is not None and data is not None:
+            self._tick(t_ns)
+            r = self._authorize(data, t_ns)
+            if not isinstance(r, Identity):
+                self._refuse(r[0], t_ns, name, seq, r[1])
+                return False
+        return True
 
-    def _validate(self, cmd: int, seq: int, t_ns: int) -> tuple[int, str]:
-        """``(status, detail)``; performs the command when it is accepted."""
+    def _validate(
+        self, cmd: int, seq: int, t_ns: int, who: Identity | None = None
+    ) -> tuple[int, str]:
+        """``(status, detail)``; performs the command when it is accepted.
+        ``who``: the request's checked operator (with command authority)."""
         if cmd == Command.NONE or cmd >= _N_CMDS:
             return CommandStatus.REJECTED_UNKNOWN, f"{cmd} is not a command code"
+        if cmd in _LOCK_CMDS:
+            return self._lock(cmd, seq, t_ns, who)
         state = self._h_state.get()
         if state < len(self._allowed) and not self._allowed[state][cmd]:
             return (
@@ -619,12 +801,28 @@ class CommandHandler:
         )
         if hazardous:
             armed = self._arm_seq == seq - 1 and 0 <= t_ns - self._arm_t_ns <= ARM_WINDOW_NS
+            approved = True
+            auth = self._auth
+            if auth is not None:
+                # The ARM must be this operator's own, and a two-person
+                # command's ARM approved by a second operator.
+                armed = armed and who is not None and auth.arm_operator == who.operator
+                if self._two_person(cmd, slot):
+                    approved = auth.approved()
+                auth.disarm()
             self._armed_at(-1, self._arm_t_ns)
             if not armed:
                 return (
                     CommandStatus.REJECTED_NOT_ARMED,
                     f"hazardous: needs an accepted ARM #{seq - 1} within the last "
-                    f"{ARM_WINDOW_NS // 1_000_000_000} s",
+                    f"{ARM_WINDOW_NS // 1_000_000_000} s"
+                    + (" by the same operator" if auth is not None else ""),
+                )
+            if not approved:
+                return (
+                    CommandStatus.REJECTED_NOT_APPROVED,
+                    "two-person (ground.two_person): its ARM has no APPROVE by a second "
+                    "operator with an approving role",
                 )
         if cmd == Command.WRITE:
             return self._write(state)
@@ -640,6 +838,30 @@ class CommandHandler:
                 return CommandStatus.ACCEPTED, " (no change: already so)"
         elif cmd == Command.ARM:
             self._armed_at(seq, t_ns)
+        return CommandStatus.ACCEPTED, ""
+
+    def _two_person(self, cmd: int, slot: ParamSlot | None) -> bool:
+        if self._two_cmd[cmd]:
+            return True
+        if cmd == Command.WRITE or slot is not None:
+            idx = self._g_elem.get()
+            return idx < len(self._two_elem) and self._two_elem[idx]
+        return False
+
+    def _lock(self, cmd: int, seq: int, t_ns: int, who: Identity | None) -> tuple[int, str]:
+        """LOCK, RELEASE, HANDOVER, TAKEOVER, APPROVE: checked by :meth:`_authorize`."""
+        auth = self._auth
+        if auth is None or who is None:
+            return (
+                CommandStatus.REJECTED_NOT_ALLOWED,
+                "no command lock in this mission (a `ground:` section without single_operator)",
+            )
+        ch = auth.apply(who, cmd, t_ns, seq=seq, target=self._g_elem.get())
+        if cmd == Command.APPROVE and self._arm_seq == seq - 1:
+            # The armed command may follow its approval (ARM n, APPROVE n+1, cmd n+2).
+            self._armed_at(seq, self._arm_t_ns)
+        if ch is not None:
+            self._events.emit(EV.CMD_LOCK, t_ns, what=ch.what, text=ch.text)
         return CommandStatus.ACCEPTED, ""
 
     def _protected_write(self) -> bool:

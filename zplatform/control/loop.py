@@ -47,6 +47,7 @@ from ..core.datavector import DataVector, Handle, Layout
 from ..core.events import EV, EventLog, EventType
 from ..core.health import HealthInput, HealthPort
 from ..errors import CodecError, ConfigError
+from .authority import IDENTITY_LINK
 from .commands import CommandHandler, RequestNumber
 from .controllers import ControllerSet
 from .devices import DeviceSet
@@ -168,7 +169,15 @@ class ControlLogic:
         (:meth:`~zplatform.control.params.ParamTable.load`), take each PRM_SAVE's bytes
         after a loop (:meth:`~zplatform.control.params.ParamTable.take_save`)."""
         self.commands = CommandHandler(
-            mission, dv, self.events, self.statemachine, params=self.params
+            mission,
+            dv,
+            self.events,
+            self.statemachine,
+            params=self.params,
+            # Every operator's and station's key derives from it (authority.py).
+            operators_key=keys.link_key(IDENTITY_LINK)
+            if keys is not None and keys.has(IDENTITY_LINK)
+            else None,
         )
         self.controllers = ControllerSet(mission, "cn", dv, self.events, self.faults)
         self.monitors = MonitorSet(mission, dv, self.events, self.faults, self.statemachine)
@@ -556,7 +565,9 @@ class ControlLogic:
                 self._bad_frame("the ground", str(exc))
                 continue
             epoch, seq = self._number.read(frame.data)
-            if not self.commands.admit(epoch, seq, self.t_ns, self._number.command(frame.data)):
+            if not self.commands.admit(
+                epoch, seq, self.t_ns, self._number.command(frame.data), frame.data
+            ):
                 continue
             valid += 1
             if seq > best_seq:

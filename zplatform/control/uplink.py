@@ -34,6 +34,7 @@ from ..core.auth import KeySet, Run, channel
 from ..core.codec import RegionCodec
 from ..core.datavector import DataVector, Layout
 from ..errors import CommandError, DataVectorError
+from .authority import TAG_BYTES, Signer, request_tag
 
 __all__ = [
     "CheckedCommand",
@@ -42,6 +43,7 @@ __all__ = [
     "element_index",
     "fill_request",
     "load_commands",
+    "operator_number",
     "parse_commands",
     "resolve_param",
     "resolve_write",
@@ -250,6 +252,8 @@ def validate_command(
         names = [c.lower() for c in CMD_NAMES[1:]]
         hint = did_you_mean(command, names) or f"; expected one of {', '.join(names)}"
         raise CommandError(f"unknown command {command!r}{hint}")
+    if cmd in _LOCK_NAMES:
+        return _lock_command(mission, cmd, element, value)
     args = _TWO_ARGS.get(cmd.lower())
     if args is None:
         if element is not None:
@@ -264,6 +268,37 @@ def validate_command(
     else:
         index, num = resolve_write(Layout.for_node(mission, "cn"), element, value, where)
     return CheckedCommand(cmd, index, num)
+
+
+_LOCK_NAMES = ("LOCK", "RELEASE", "HANDOVER", "TAKEOVER", "APPROVE")
+_F64_EXACT = 1 << 53
+
+
+def _lock_command(
+    mission: Mission, cmd: str, element: str | None, value: str | None
+) -> CheckedCommand:
+    """The command lock's commands: ``handover OPERATOR`` (``gn_cmd_element``:
+    the operator's number), ``approve ARM_NUMBER`` (carried in ``gn_cmd_value``
+    to the uplink, which puts it in ``gn_cmd_ref``), the others without an
+    argument; only in a mission with command authority."""
+    if not mission.authority:
+        raise CommandError(
+            f"{cmd.lower()}: mission {mission.mission!r} has no command lock (a `ground:` "
+            "section without single_operator)"
+        )
+    if value is not None:
+        raise CommandError(f"{cmd.lower()} takes at most one argument")
+    if cmd == "HANDOVER":
+        if element is None:
+            raise CommandError("handover needs OPERATOR")
+        return CheckedCommand(cmd, operator_number(mission, element), 0.0)
+    if cmd == "APPROVE":
+        if element is None or not element.isdigit() or not 1 <= int(element) < _F64_EXACT:
+            raise CommandError(f"approve needs the ARM's number (1..2**53-1), got {element!r}")
+        return CheckedCommand(cmd, 0, float(int(element)))
+    if element is not None:
+        raise CommandError(f"{cmd.lower()} takes no arguments")
+    return CheckedCommand(cmd, 0, 0.0)
 
 
 def validate_words(
@@ -316,6 +351,15 @@ def fill_request(
         raise CommandError(f"cannot fill a command request: {exc}") from exc
 
 
+def operator_number(mission: Mission, name: str) -> int:
+    """The ``gn_cmd_element`` of ``handover NAME``: the operator's index in
+    ``ground.operators`` plus one. CommandError for a name not listed."""
+    ops = [o.name for o in mission.ground.operators] if mission.ground is not None else []
+    if name not in ops:
+        raise CommandError(f"no operator named {name!r}{did_you_mean(name, ops)}")
+    return ops.index(name) + 1
+
+
 class Uplink:
     """Frames command requests: one ``gn_to_cn`` vector, its codec, and the
     uplink's ``gn_to_cn`` channel from ``keys`` (None: the mission does not
@@ -324,11 +368,21 @@ class Uplink:
     None: :data:`~zplatform.core.auth.NO_RUN`, and only the run the request
     names in its data is checked).
 
+    ``signer``: in a mission with ``ground:``, the operator and station
+    every request names and is tagged by (``gn_cmd_operator``,
+    ``gn_cmd_station``, ``gn_cmd_op_tag``, ``gn_cmd_st_tag``; codecs/FORMAT.md
+    §6.7); None: the request names nobody (what a ``single_operator``
+    mission takes; one with command authority refuses it).
+
     :meth:`frame` returns a buffer of its own (reused by the next call).
     """
 
     def __init__(
-        self, mission: Mission, keys: KeySet | None = None, run: Run | None = None
+        self,
+        mission: Mission,
+        keys: KeySet | None = None,
+        run: Run | None = None,
+        signer: Signer | None = None,
     ) -> None:
         if not mission.has_ground:
             raise CommandError(f"mission {mission.mission!r} has no ground node 'gn'")
@@ -336,11 +390,51 @@ class Uplink:
         self.req = DataVector(Layout.for_regions(mission, ["gn_to_cn"]))
         self._codec = RegionCodec(self.req, "gn_to_cn")
         self._seal = channel(keys, "gn_to_cn", run)
+        self.signer = signer
+        g = mission.ground
+        if signer is not None:
+            if g is None:
+                raise CommandError(f"mission {mission.mission!r} has no `ground:` operators")
+            ops = [o.name for o in g.operators]
+            sts = [s.name for s in g.stations]
+            if signer.operator not in ops or signer.station not in sts:
+                raise CommandError(
+                    f"{signer.operator}@{signer.station}: the mission lists operators "
+                    f"{ops} and stations {sts}"
+                )
+            self._op_n = ops.index(signer.operator) + 1
+            self._st_n = sts.index(signer.station) + 1
+            lay = self.req.layout
+            base = lay.region("gn_to_cn").offset
+            self._op_at = lay.element("gn_cmd_op_tag").offset - base
+            self._st_at = lay.element("gn_cmd_st_tag").offset - base
+            self._region = self.req.region_view("gn_to_cn")
 
     def frame(
-        self, command: str, seq: int, index: int, value: float, t_ns: int, epoch: int = 0
+        self,
+        command: str,
+        seq: int,
+        index: int,
+        value: float,
+        t_ns: int,
+        epoch: int = 0,
+        ref: int = 0,
     ) -> bytearray:
-        """The request frame, authenticated (CommandError as :func:`fill_request`)."""
+        """The request frame, authenticated (CommandError as :func:`fill_request`).
+        ``ref``: APPROVE's ARM number (a mission with ``ground:``)."""
         fill_request(self.req, command, seq, index, value, epoch)
+        s = self.signer
+        if s is not None:
+            dv = self.req
+            dv.handle("gn_cmd_operator").set(self._op_n)
+            dv.handle("gn_cmd_station").set(self._st_n)
+            if not 0 <= ref < 1 << 64:
+                raise CommandError(f"ARM number {ref} is outside 0..2**64-1")
+            dv.handle("gn_cmd_ref").set(ref)
+            mv = self._region
+            body = mv[: self._op_at]
+            mac = self.mission.security.mac
+            mv[self._op_at : self._op_at + TAG_BYTES] = request_tag(s.operator_key, mac, body)
+            mv[self._st_at : self._st_at + TAG_BYTES] = request_tag(s.station_key, mac, body)
         frame = self._codec.encode(seq, t_ns)
         return self._seal.seal(frame) if self._seal is not None else frame

@@ -41,6 +41,7 @@ __all__ = [
     "MACS",
     "MAC_LEN",
     "NO_RUN",
+    "OPERATORS_LINK",
     "RUN_LEN",
     "TAG_LEN",
     "AuthError",
@@ -137,6 +138,10 @@ def link_of(channel_name: str) -> str:
     raise ValueError(f"{channel_name!r} is not a channel")
 
 
+OPERATORS_LINK = "operators"
+"""The key (in the control nodes' key files only) that operators' and
+stations' keys derive from (a mission with ``ground:``;
+:mod:`zplatform.control.authority`). No channel is tagged with it."""
 PEER_LINK = "cn-cn_b"
 """The link between a mission's two control nodes (a standby's mirror and clock)."""
 PEER_CHANNELS = frozenset({"mirror", "clock_peer_to_cn", "clock_cn_to_peer"})
@@ -170,7 +175,10 @@ def role_links(mission: Mission, role: str) -> tuple[str, ...]:
         # A standby control node holds what the commander holds: it may command.
         up = ["uplink"] if mission.has_ground else []
         peer = [PEER_LINK] if mission.standby is not None else []
-        return (*(f"cn-{dn}" for dn in dns), *up, "downlink", *peer, f"events-{role}")
+        # The secret every operator's and station's key derives from
+        # (zplatform.control.authority): a control node's alone.
+        ops = [OPERATORS_LINK] if mission.ground is not None and mission.has_ground else []
+        return (*(f"cn-{dn}" for dn in dns), *up, "downlink", *peer, *ops, f"events-{role}")
     if role in dns:
         return (f"cn-{role}", f"events-{role}")
     if role == "gn" and mission.has_ground:

@@ -150,6 +150,12 @@ class EV:
         Severity.WARNING_LO,
         "{n} command request frame(s) dropped: {why}",
     )
+    CMD_LOCK = EventType(
+        14,
+        "cmd_lock",
+        Severity.COMMAND,
+        "command lock {what}: {text}",
+    )
     # errors after start (thesis 4.11.1)
     FAULT = EventType(20, "fault", Severity.WARNING_HI, "fault {fault}: {text}")
     ERROR = EventType(21, "error", Severity.WARNING_LO, "{text}")

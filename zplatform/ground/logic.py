@@ -28,6 +28,7 @@ from typing import NamedTuple
 import msgspec
 
 from ..config import STANDBY, Mission
+from ..control.authority import Signer
 from ..control.commands import protected_elements
 from ..control.uplink import CheckedCommand, ScriptCommand, Uplink, validate_command
 from ..core.auth import TAG_LEN, AuthError, KeySet, Run, RunError, channel, link_of
@@ -218,6 +219,8 @@ class GroundLogic:
     requests of another run are refused (counted as stale), and nothing is
     taken while it is unknown (:attr:`waiting_for_run`); None: bound to none
     (every run's authentic frame is taken, ordered by the run it names).
+    ``signer``: the operator and station its requests name and are signed
+    by (a mission with ``ground:``, :class:`~zplatform.control.uplink.Uplink`).
     """
 
     def __init__(
@@ -232,6 +235,7 @@ class GroundLogic:
         tries: int = 3,
         reason_grace_ns: int = REASON_GRACE_NS,
         run: Run | None = None,
+        signer: Signer | None = None,
     ) -> None:
         self.mission = mission
         self.run = run
@@ -282,7 +286,7 @@ class GroundLogic:
         self._h_rejects = h("cn_cmd_rejects")
         # commands
         self._uplink = (
-            Uplink(mission, keys, run)
+            Uplink(mission, keys, run, signer)
             if mission.has_ground and (keys is None or keys.has(link_of("gn_to_cn")))
             else None
         )
@@ -660,7 +664,9 @@ class GroundLogic:
 
     def _send(self, r: _Request, rx_ns: int) -> None:
         assert self._uplink is not None
-        frame = self._uplink.frame(r.cmd, r.seq, r.index, r.value, rx_ns, r.epoch)
+        # APPROVE carries its ARM's number in the value (validate_command).
+        ref = int(r.value) if r.cmd == "APPROVE" else 0
+        frame = self._uplink.frame(r.cmd, r.seq, r.index, r.value, rx_ns, r.epoch, ref)
         self._out.append(bytes(frame))
 
     def _on_snapshot(self, rx_ns: int, can_send: bool) -> None:

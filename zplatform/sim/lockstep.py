@@ -408,6 +408,7 @@ class LockstepRunner:
         # The sync query's form, as the live CN chooses it (transport.sync_query).
         self._bundle = BundleEncoder() if wildcard_sync_for(mission) else None
         self._ground: bytearray | None = None
+        self._stations: list[bytes] = []
         self.lost: set[str] = set()
         """Device nodes that are gone (a test kills one mid-run by adding it):
         they are neither triggered nor answer, so the CN counts their misses
@@ -621,9 +622,13 @@ class LockstepRunner:
             c.deliver_held(t)
         commanders = [c for c in running if c.standby is None]
         ground, self._ground = self._ground, None
+        # The ground's request, then the other stations' (uplink()), as the
+        # CN's inbox would hold them: it refuses or picks among them.
+        grounds = ((ground,) if ground is not None else ()) + tuple(self._stations)
+        self._stations.clear()
         tms: list[bytearray] = []
         for c in commanders:
-            tm = self._command(c, loop, t, ground)
+            tm = self._command(c, loop, t, grounds)
             if tm is not None:
                 tms.append(bytearray(tm))
         if commanders:
@@ -670,8 +675,15 @@ class LockstepRunner:
         self.loop = loop
         self.clock.advance(self.period_ns)
 
+    def uplink(self, frame: bytes | bytearray) -> None:
+        """Deliver a request ``frame`` of another ground station (one built
+        by its own :class:`~zplatform.control.uplink.Uplink`) to the control
+        nodes in the next loop, beside the ground's (a mission with
+        ``ground:`` stations; a partition from ``gn`` cuts it too)."""
+        self._stations.append(bytes(frame))
+
     def _command(
-        self, c: SimControlNode, loop: int, t: int, ground: bytearray | None
+        self, c: SimControlNode, loop: int, t: int, ground: tuple[bytes | bytearray, ...]
     ) -> bytearray | None:
         """Control node ``c`` runs ``loop`` as a commander; returns its telemetry."""
         cn = c.logic
@@ -696,7 +708,7 @@ class LockstepRunner:
                 if term:
                     self.driven.setdefault(loop, {})[dev.node] = term
             cn.reply(i, reply)
-        grounds = (ground,) if ground is not None and reach(c.name, "gn") else ()
+        grounds = ground if reach(c.name, "gn") else ()
         saved = c.saver.poll()
         tm = cn.finish(grounds, loop_overruns=skipped, saves=(saved,) if saved is not None else ())
         save = cn.params.take_save()
