@@ -26,6 +26,7 @@ from textual.widgets import DataTable, Input, Static
 from tests.unit.test_archive import PERIOD, T0, feed
 from zplatform.archive import ArchiveWriter
 from zplatform.console import ConsoleApp, ConsoleModel
+from zplatform.console.app import _clock
 from zplatform.console.history import (
     HistoryRequest,
     LocalHistory,
@@ -120,7 +121,10 @@ def test_the_console_opens_with_the_last_seconds_filled(archive: Path) -> None:
             ("cn", "COMMAND", "ev: command LAUNCH accepted"),
             ("cn", "WARNING_HI", "ev: chamber pressure high"),
         ]
-        assert status == "history 0.333333 min: 397 point(s) of apogee_target_m, 2 event(s)"
+        to = _clock(START + 596 * step)
+        assert (
+            status == f"history 0.333333 min: 397 point(s) of apogee_target_m to {to}, 2 event(s)"
+        )
         app.refresh_view()
         assert status in str(app.query_one("#status", Static).content)
 

@@ -259,14 +259,21 @@ class ConsoleApp(App[int]):
             with m.lock:
                 kept = {n: m.seed_series(n, pts, step_s) for n, pts in got.items()}
                 added = m.seed_events(lines) if events else 0
-                done = [f"{v} point(s) of {n}" for n, v in kept.items()]
+                # Where each series' archive ends: a running run shows only up
+                # to the last file the ground closed (docs/archive.md).
+                xs = {n: m.plot_series()[n][0] for n, v in kept.items() if v}
+                done = [
+                    f"{v} point(s) of {n}"
+                    + (f" to {_clock(round(xs[n][v - 1] * 1e9))}" if v else "")
+                    for n, v in kept.items()
+                ]
                 if events and not any(s.startswith("events:") for s in said):
                     done.append(f"{added} event(s)")
                 head = f"history {m.history_s / 60:g} min: " + (", ".join(done) or "nothing")
                 m.history = "; ".join([head, *said])
                 m.version += 1
 
-        self.run_worker(work, thread=True, group="fill")
+        self.run_worker(work, thread=True, group="fill", exit_on_error=False)
 
     # -- drawing -------------------------------------------------------------
     def refresh_view(self) -> None:

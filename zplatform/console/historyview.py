@@ -135,7 +135,13 @@ class HistoryScreen(Screen[None]):
         self.query_one("#h-input", Input).value = req.line()
         self._title()
         self._say("querying the archive...")
-        self.run_worker(lambda: self._query(req), thread=True, exclusive=True, group="history")
+        self.run_worker(
+            lambda: self._query(req),
+            thread=True,
+            exclusive=True,
+            group="history",
+            exit_on_error=False,
+        )
 
     def _query(self, req: HistoryRequest) -> None:
         try:
@@ -274,7 +280,9 @@ class RunsScreen(Screen[None]):
         table = self.query_one("#r-table", DataTable)
         table.add_columns("run", "start (UTC)", "s", "loops", "outcome", "states", "commands")
         table.focus()
-        self.run_worker(self._list, thread=True, exclusive=True, group="history")
+        self.run_worker(
+            self._list, thread=True, exclusive=True, group="history", exit_on_error=False
+        )
 
     def _list(self) -> None:
         try:

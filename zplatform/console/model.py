@@ -230,10 +230,10 @@ class ConsoleModel:
         old = [p for p in points if first is None or p[0] + span_s <= first]
         live = list(series)
         series.clear()
-        series.extend(old[-(series.maxlen or len(old)) :])
-        series.extend(live)
+        series.extend(old)
+        series.extend(live)  # a full window lets the oldest archived points go
         self.version += 1
-        return len(old)
+        return max(0, len(series) - len(live))
 
     def seed_events(self, lines: Iterable[LogLine]) -> int:
         """Put archived event lines (oldest first) before the live ones,
