@@ -8,21 +8,9 @@ plot, an optional parameter view (``params``: every parameter's value,
 default, bounds, the states it may change in, hazardous ones marked), and
 the command line (history on up/down, completion on tab).
 
-History (the ground archive, :mod:`.history`): opened with a source and
-``model.history_s`` > 0, the console fills the event pane with the last run's
-events of that span and each plotted element's series with the archive's
-downsampled values, in a worker thread: the live path never waits, the
-status line says "filling history..." meanwhile and then what came (or
-why nothing did), and live data wins where both hold a time. ``plot`` fills
-the new elements' series the same way. ``history ELEMENTS [FROM [TO]] ...``
-opens :class:`~.historyview.HistoryScreen`, ``runs`` the run picker
-(:class:`~.historyview.RunsScreen`); both read-only.
-
-The screen redraws at :data:`REFRESH_HZ` whatever the loop rate: it reads
-the model under its lock, which the link's threads update at the telemetry
-rate. Hazardous commands (``commands.hazardous``), WRITEs of protected
-elements (``commands.protected``) and PRM_SETs of hazardous parameters open
-a confirmation dialog; confirmed, they go ARM n then COMMAND n+1.
+History (:mod:`.history`, docs/operations.md "History in the console"):
+the fill of the last ``model.history_s`` runs in a worker thread, never in
+the live path; ``history`` and ``runs`` open :mod:`.historyview`'s screens.
 """
 
 from __future__ import annotations

@@ -1,31 +1,21 @@
 """The console's history: the ground archive read for the screen (issue 28).
 
-A :class:`HistorySource` answers the console's three questions of the
-archive: which runs it holds (:meth:`~HistorySource.runs`), the rows of a
-:class:`~zplatform.archive.Query` (:meth:`~HistorySource.query`, downsampled
-by the archive when the query says ``every``), and a run's events
-(:meth:`~HistorySource.events`). Two exist:
+A :class:`HistorySource` answers the console's questions of the archive:
+:meth:`~HistorySource.runs`, :meth:`~HistorySource.query` (a
+:class:`~zplatform.archive.Query`, downsampled by the archive with
+``every``) and :meth:`~HistorySource.events`. :class:`LocalHistory` reads
+the archive the ground node writes on this host, read-only (never recovers);
+:class:`RemoteHistory` asks the ground node over zenoh
+(``{vehicle}/archive/query``) with this station's telemetry key, and says
+that runs and events are not served there. :func:`history_source` picks
+one; :func:`parse_request` reads the history view's line.
 
-* :class:`LocalHistory` reads the archive the ground node writes on this
-  host (:func:`~zplatform.archive.archive_dir`), read-only: it never
-  recovers nor writes what a writer holds;
-* :class:`RemoteHistory` asks the ground node's archive server over zenoh
-  (``{vehicle}/archive/query``), tagged with the telemetry channel's key of
-  the role this console holds (the ground's or a tool's). The server answers
-  queries only: the run list and events are not served over zenoh, and
-  asking for them says so.
-
-:func:`history_source` picks one for a mission. :func:`parse_request` reads
-the history view's line (``ELEMENTS [FROM [TO]] [every=D] [agg=A,B]
-[run=R]``) and :func:`fill_query` builds the open-time fill's query.
-
-Contract: every method blocks (disk or network: call them from a worker
-thread, never from textual's event loop or a zenoh callback) and raises
-:class:`~zplatform.errors.ArchiveError` with a reason an operator can read
-for anything that goes wrong (an unknown element with the "did you mean" of
-``check``, a reversed range, an unreachable station, a refusal and its
-reason, an I/O or zenoh error); nothing else escapes. Sources serialise
-their calls (one lock each), so one may be shared by several workers.
+Contract: every method blocks (disk or network: call it from a worker
+thread, never from textual's loop or a zenoh callback) and raises only
+:class:`~zplatform.errors.ArchiveError`, with a reason an operator can
+read (an unknown element with ``check``'s "did you mean", a reversed range,
+an unreachable station, a refusal's reason, an I/O or zenoh error). A
+source serialises its calls (one lock). Guide: docs/operations.md.
 """
 
 from __future__ import annotations
