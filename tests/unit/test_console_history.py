@@ -298,3 +298,26 @@ def test_a_refresh_after_the_screen_is_gone_draws_nothing() -> None:
 
     _drive(app, body, (80, 24))
     app.refresh_view()  # the screen is gone
+
+
+def test_ground_takes_history_minutes_and_plotted_elements(
+    monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    import zplatform.console as console
+    from zplatform.cli.main import _load_extras, build_parser
+
+    _load_extras()  # the verbs beyond check/keygen/schema/ps, as main() loads them
+    got: dict[str, Any] = {}
+    monkeypatch.setattr(console, "run_console", lambda path, **kw: got.update(kw) or 0)
+    flight = str(ROOT / "configs" / "flight.yaml")
+    args = build_parser().parse_args(
+        ["ground", flight, "--console", "--history", "2.5", "--plot", "nav_h_m", "cn_state"]
+    )
+    assert args.func(args) == 0
+    assert (got["history_min"], got["plot"]) == (2.5, ["nav_h_m", "cn_state"])
+    args = build_parser().parse_args(["ground", flight, "--console"])
+    assert args.func(args) == 0 and got["history_min"] is None  # the default: 10 min
+    for bad in ("-1", "nan", "soon"):
+        with pytest.raises(SystemExit):
+            build_parser().parse_args(["ground", flight, "--history", bad])
+    assert "--history: must be 0..1000000 minutes, got -1" in capsys.readouterr().err
