@@ -321,3 +321,24 @@ def test_ground_takes_history_minutes_and_plotted_elements(
         with pytest.raises(SystemExit):
             build_parser().parse_args(["ground", flight, "--history", bad])
     assert "--history: must be 0..1000000 minutes, got -1" in capsys.readouterr().err
+
+
+def test_history_reads_this_hosts_archive_else_asks_over_zenoh(
+    archive: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from zplatform.archive import ARCHIVE_DIR_ENV
+    from zplatform.console.history import RemoteHistory, history_source
+
+    # The ground node writes DIR/<mission>/: here, the console reads it.
+    (tmp_path / "here").mkdir()
+    (tmp_path / "here" / "flight").symlink_to(archive)
+    monkeypatch.setenv(ARCHIVE_DIR_ENV, str(tmp_path / "here"))
+    src = history_source(MISSION)
+    assert isinstance(src, LocalHistory) and src.where == str(tmp_path / "here" / "flight")
+    assert [r.run for r in src.runs()] == [5, 7]
+    monkeypatch.setenv(ARCHIVE_DIR_ENV, str(tmp_path / "elsewhere"))
+    remote = history_source(MISSION)  # no archive on this host: the ground node's
+    assert isinstance(remote, RemoteHistory) and remote.where == "rocket/archive/query"
+    with pytest.raises(ArchiveError, match="the run list is not served over zenoh"):
+        remote.runs()
+    remote.close()  # nothing opened yet (the link opens on the first query): nothing to close

@@ -266,6 +266,7 @@ class RemoteHistory:
         self._session, self._key, self._channel, self._now = session, key_expr, channel, now_ns
         self.timeout_s = timeout_s
         self._on_close = on_close
+        self._mission: Mission | None = None  # for_mission's: the link to open
         self._lock = threading.Lock()
 
     @classmethod
@@ -275,8 +276,6 @@ class RemoteHistory:
         src._mission = mission
         src.where = f"{mission.vehicle}/archive/query"
         return src
-
-    _mission: Mission | None = None
 
     def _connect(self) -> None:
         if self._session is not None or self._mission is None:
@@ -327,10 +326,12 @@ class RemoteHistory:
             return _guarded(f"the archive over zenoh ({self.where})", go)
 
     def close(self) -> None:
-        with self._lock:
-            if self._on_close is not None:
-                self._on_close()
-                self._on_close = None
+        """Close the link this source opened. Does not wait for a query in
+        flight (it fails, said, with the session closed): the console quits
+        at once."""
+        done, self._on_close = self._on_close, None
+        if done is not None:
+            done()
 
 
 def history_source(mission: Mission) -> HistorySource:

@@ -233,9 +233,11 @@ class HistoryScreen(Screen[None]):
             plt.xlabel(f"s from {clock(t0)} UTC")
         plot.refresh()
         out = Text(no_wrap=True)
-        out.append("time (UTC)    " + "  ".join(f"{c:>14}" for c in self.columns) + "\n", "bold")
+        widths = [max(14, len(c)) for c in self.columns]
+        head = "  ".join(f"{c:>{w}}" for c, w in zip(self.columns, widths, strict=True))
+        out.append(f"{'time (UTC)':12}  {head}\n", "bold")
         for r in self.rows[:MAX_ROWS_SHOWN]:
-            cells = "  ".join(f"{_cell(v):>14}" for v in r[1:])
+            cells = "  ".join(f"{_cell(v):>{w}}" for v, w in zip(r[1:], widths, strict=True))
             out.append(f"{clock(r[0])}  {cells}\n")
         self.query_one("#h-table", Static).update(out)
 
