@@ -342,3 +342,25 @@ def test_history_reads_this_hosts_archive_else_asks_over_zenoh(
     with pytest.raises(ArchiveError, match="the run list is not served over zenoh"):
         remote.runs()
     remote.close()  # nothing opened yet (the link opens on the first query): nothing to close
+
+
+def test_a_run_with_no_file_closed_yet_fills_nothing_and_says_so(tmp_path: Path) -> None:
+    """A running run before the ground closed its first Parquet file: the
+    archive answers an aggregated query with ``bucket_ns`` alone (no value
+    columns); the fill said 'Field "cn_state_last" does not exist'."""
+    w = ArchiveWriter(MISSION, LAYOUT, tmp_path)
+    feed(w, DataVector(LAYOUT), range(1, 201))  # flushed to the open file, none closed
+    try:
+        app, model = _console(tmp_path, history_s=20.0)
+        model.set_plot(["cn_state"])
+
+        async def body(pilot: Any) -> None:
+            await _settle(pilot)
+            with model.lock:
+                assert model.status().history == (
+                    "history 0.333333 min: 0 point(s) of cn_state, 0 event(s)"
+                )
+
+        _drive(app, body, (100, 30))
+    finally:
+        w.close()

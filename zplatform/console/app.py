@@ -233,6 +233,9 @@ class ConsoleApp(App[int]):
                     t = src.query(fill_query(elements, now, span, m.plot_step_ns))
                     ts = [b / 1e9 for b in t.column("bucket_ns").to_pylist()]
                     for n in elements:
+                        if not ts:  # no file closed yet: the answer has no columns but the time
+                            got[n] = []
+                            continue
                         vs = t.column(f"{n}_last").to_pylist()
                         pts = zip(ts, vs, strict=True)
                         got[n] = [(x, float(v)) for x, v in pts if v is not None]
