@@ -285,6 +285,9 @@ def test_parse_request_and_pan() -> None:
     with pytest.raises(ArchiveError, match="nav_cov is an array: plot scalar elements only"):
         parse_request(LAYOUT, "nav_cov 0 10")
     assert match_elements(LAYOUT, "nav_cov") == ["nav_cov"]
+    model = ConsoleModel(MISSION)
+    assert model.complete("history apogee_t") == "history apogee_target_m"
+    assert model.complete("ru") == "runs"
 
 
 def test_a_refresh_after_the_screen_is_gone_draws_nothing() -> None:
