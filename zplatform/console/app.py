@@ -8,9 +8,14 @@ plot, an optional parameter view (``params``: every parameter's value,
 default, bounds, the states it may change in, hazardous ones marked), and
 the command line (history on up/down, completion on tab).
 
-History (:mod:`.history`, docs/operations.md "History in the console"):
-the fill of the last ``model.history_s`` runs in a worker thread, never in
-the live path; ``history`` and ``runs`` open :mod:`.historyview`'s screens.
+The screen redraws at :data:`REFRESH_HZ` whatever the loop rate: it reads
+the model under its lock, which the link's threads update at the telemetry
+rate. Hazardous commands (``commands.hazardous``), WRITEs of protected
+elements (``commands.protected``) and PRM_SETs of hazardous parameters open
+a confirmation dialog; confirmed, they go ARM n then COMMAND n+1. History
+(:mod:`.history`; docs/operations.md): the last ``model.history_s`` is filled
+by a worker thread, never the live path; ``history`` and ``runs`` open
+:mod:`.historyview`'s screens.
 """
 
 from __future__ import annotations

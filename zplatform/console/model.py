@@ -3,7 +3,8 @@
 :class:`ConsoleModel` is fed by a telemetry source: :meth:`on_snapshot` after
 each accepted snapshot (a CN-layout Data Vector, with the ground's counters),
 :meth:`on_event` per event record, :meth:`on_result` per command outcome
-(:class:`~zplatform.telemetry.records.CommandOutcome`). The screen asks it what to draw
+(:class:`~zplatform.telemetry.records.CommandOutcome`); the archive's history by
+:meth:`seed_series` and :meth:`seed_events` (live wins). The screen asks it what to draw
 at a human rate (:meth:`status`, :meth:`region_rows`, :meth:`events`,
 :meth:`plot_series`); :meth:`tick` with the current time decides loss of
 signal. Limits come from :func:`zplatform.control.limits.mission_limits`; severities
