@@ -367,3 +367,86 @@ def test_a_run_with_no_file_closed_yet_fills_nothing_and_says_so(tmp_path: Path)
         _drive(app, body, (100, 30))
     finally:
         w.close()
+
+
+class _Gated:
+    """A history source whose answers wait for the test: the fill in flight."""
+
+    where = "gated"
+
+    def __init__(self, inner: LocalHistory) -> None:
+        import threading
+
+        self.inner, self.gate, self.asked = inner, threading.Event(), threading.Event()
+
+    def runs(self) -> Any:
+        return self.inner.runs()
+
+    def query(self, q: Any) -> Any:
+        self.asked.set()
+        assert self.gate.wait(60)
+        return self.inner.query(q)
+
+    def events(self, run: int | None) -> Any:
+        return self.inner.events(run)
+
+    def close(self) -> None:
+        self.gate.set()
+
+
+def test_live_frames_are_shown_while_the_fill_waits_then_it_merges(archive: Path) -> None:
+    model = ConsoleModel(MISSION, los_s=HOUR, history_s=20.0)
+    model.set_plot(["apogee_target_m"])
+    src = _Gated(LocalHistory(MISSION, archive))
+    app = ConsoleApp(model, None, history=src, now_ns=lambda: NOW)
+
+    async def body(pilot: Any) -> None:
+        await pilot.pause()
+        assert src.asked.wait(30)  # the worker asks; the archive has not answered
+        live = DataVector(LAYOUT)
+        for loop in (2991, 2992):  # live frames, as the link feeds them
+            live.set("cn_loop", loop)
+            live.set("cn_time_ns", T0 + loop * PERIOD)
+            live.set("apogee_target_m", -float(loop))
+            with model.lock:
+                model.on_snapshot(live, NOW)
+        app.refresh_view()
+        status = str(app.query_one("#status", Static).content)
+        assert "loop 2992" in status and "filling history..." in status
+        with model.lock:
+            assert model.plot_series()["apogee_target_m"][1] == [-2991.0]  # live only, so far
+        src.gate.set()
+        await _settle(pilot)
+        with model.lock:
+            xs, ys = model.plot_series()["apogee_target_m"]
+            said = model.status().history
+        # Buckets ending at or before loop 2991's time, then the live point.
+        assert ys == [(5 * k + 5) / 4 for k in range(200, 598)] + [-2991.0]
+        assert xs == sorted(xs)
+        assert said.startswith("history 0.333333 min: 398 point(s) of apogee_target_m")
+
+    _drive(app, body, (160, 50))
+
+
+def test_seeds_merge_before_live_and_events_once() -> None:
+    from zplatform.console.model import LogLine
+
+    model = ConsoleModel(MISSION, los_s=HOUR, plot_window_s=1.0)  # 20 points of 50 ms
+    assert model.seed_series("cn_state", [(1.0, 1.0)]) == 0  # not plotted: nothing
+    model.set_plot(["cn_state"])
+    live = DataVector(LAYOUT)
+    live.set("cn_time_ns", 10 * 10**9)
+    live.set("cn_state", 3)
+    model.on_snapshot(live, 10**9)
+    kept = model.seed_series(
+        "cn_state", [(9.96 - i / 20, float(i)) for i in range(30, -1, -1)], 0.05
+    )
+    xs, ys = model.plot_series()["cn_state"]
+    # The bucket at 9.96 s reaches the live point (10 s): dropped; the window
+    # (20 points) keeps the newest archived 19 and the live one.
+    assert kept == 19 and len(xs) == 20 and ys[-2:] == [1.0, 3.0] and xs == sorted(xs)
+    old = [LogLine(5, "COMMAND", "cn", "ev: a"), LogLine(6, "WARNING_HI", "cn", "ev: b")]
+    model.on_event(EventRecord(7, "cn", 3, 7, "FATAL", "ev", "c"))
+    model.log.append(old[1])  # the live pane has b already (seen live)
+    assert model.seed_events(old) == 1
+    assert [x.text for x in model.events()] == ["ev: a", "ev: c", "ev: b"]
