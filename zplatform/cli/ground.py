@@ -26,6 +26,17 @@ def _port(text: str) -> int:
     return v
 
 
+def _minutes(text: str) -> float:
+    """argparse type: minutes, 0 or more (finite)."""
+    try:
+        v = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected minutes, got {text!r}") from None
+    if not 0 <= v <= 1e6:
+        raise argparse.ArgumentTypeError(f"must be 0..1000000 minutes, got {text}")
+    return v
+
+
 __all__ = ["register"]
 
 
@@ -60,6 +71,15 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         "--limits",
         metavar="YAML",
         help="console: element limits {NAME: {yellow: [lo, hi], red: [lo, hi]}} over the mission's",
+    )
+    p.add_argument(
+        "--history",
+        type=_minutes,
+        metavar="MIN",
+        help="console: open with the last MIN minutes of the ground archive (default 10; 0: none)",
+    )
+    p.add_argument(
+        "--plot", nargs="+", metavar="ELEMENT", help="console: plot these from the start"
     )
     p.set_defaults(func=cmd_ground)
 
@@ -144,9 +164,18 @@ def cmd_ground(args: argparse.Namespace) -> int:
                 timeout_s=args.timeout,
                 los_s=args.los,
                 limits_path=args.limits,
+                history_min=args.history,
+                plot=args.plot,
             )
             return 0
-        return run_console(args.mission, timeout_s=args.timeout, los_s=args.los, limits=limits)
+        return run_console(
+            args.mission,
+            timeout_s=args.timeout,
+            los_s=args.los,
+            limits=limits,
+            history_min=args.history,
+            plot=args.plot,
+        )
     return cmd_prompt(args)
 
 

@@ -4,6 +4,9 @@
 * :mod:`.link`: :class:`Link`, a thread over the ground link feeding the model
   and sending commands;
 * :mod:`.app`: :class:`ConsoleApp`, the textual screen (terminal, or a browser);
+* :mod:`.history`: where history comes from (the ground archive on this host,
+  or the ground node's over zenoh); :mod:`.historyview`: its screens (an
+  element over a time range, the run picker);
 * :mod:`.web`: the web server that gives each operator's browser session its
   own console process; :mod:`.webdriver`: that process's textual driver.
 
@@ -52,18 +55,28 @@ def run_console(
     timeout_s: float = 10.0,
     los_s: float = 0.3,
     limits: dict[str, object] | None = None,
+    history_min: float | None = None,
+    plot: list[str] | None = None,
 ) -> int:
     """Run the console in this terminal until the operator quits. Blocks.
 
-    ``limits``: extra element limits (:mod:`zplatform.control.limits`) over the mission's.
+    ``limits``: extra element limits (:mod:`zplatform.control.limits`) over the mission's;
+    ``history_min``: minutes of history to open with (None: the default,
+    :data:`~.history.DEFAULT_HISTORY_MIN`; 0: none); ``plot``: elements
+    plotted from the start (their history filled too). Raises CommandError
+    for an element ``plot`` cannot plot.
     """
     from ..mission.load import load_mission
     from .app import ConsoleApp
+    from .history import DEFAULT_HISTORY_MIN, history_source
     from .link import Link
 
     mission = load_mission(mission_path, code=False)
-    model = ConsoleModel(mission, los_s=los_s, limits=limits)
-    app = ConsoleApp(model, Link(model, timeout_s=timeout_s))
+    minutes = DEFAULT_HISTORY_MIN if history_min is None else history_min
+    model = ConsoleModel(mission, los_s=los_s, limits=limits, history_s=minutes * 60)
+    if plot:
+        model.set_plot(plot)
+    app = ConsoleApp(model, Link(model, timeout_s=timeout_s), history=history_source(mission))
     return app.run() or 0
 
 
@@ -75,6 +88,8 @@ def serve_console(
     timeout_s: float = 10.0,
     los_s: float = 0.3,
     limits_path: str | None = None,
+    history_min: float | None = None,
+    plot: list[str] | None = None,
 ) -> None:
     """Serve the console to the operator's browser on ``http://host:port`` until Ctrl-C. Blocks.
 
@@ -102,6 +117,8 @@ def serve_console(
         "--los",
         str(los_s),
         *(["--limits", str(Path(limits_path).resolve())] if limits_path else []),
+        *(["--history", str(history_min)] if history_min is not None else []),
+        *(["--plot", *plot] if plot else []),
     ]
     setup_logging()
     WebConsole(argv, host=host, port=port, title=f"zplatform ground - {mission.mission}").serve()

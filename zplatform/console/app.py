@@ -12,11 +12,15 @@ The screen redraws at :data:`REFRESH_HZ` whatever the loop rate: it reads
 the model under its lock, which the link's threads update at the telemetry
 rate. Hazardous commands (``commands.hazardous``), WRITEs of protected
 elements (``commands.protected``) and PRM_SETs of hazardous parameters open
-a confirmation dialog; confirmed, they go ARM n then COMMAND n+1.
+a confirmation dialog; confirmed, they go ARM n then COMMAND n+1. History
+(:mod:`.history`; docs/operations.md): the last ``model.history_s`` is filled
+by a worker thread, never the live path; ``history`` and ``runs`` open
+:mod:`.historyview`'s screens.
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import Any, ClassVar
 
 from rich.table import Table
@@ -25,15 +29,25 @@ from textual import events
 from textual.app import App, ComposeResult
 from textual.binding import Binding, BindingType
 from textual.containers import Horizontal, Vertical, VerticalScroll
+from textual.css.query import NoMatches
 from textual.screen import ModalScreen
 from textual.suggester import Suggester
 from textual.widgets import Button, Input, Label, Static
 from textual_plotext import PlotextPlot
 
-from ..errors import CommandError, DataVectorError
+from ..errors import ArchiveError, CommandError, DataVectorError
 from ..telemetry.records import ParamRow
+from .history import HistorySource, fill_query, parse_request
+from .historyview import HistoryScreen, RunsScreen
 from .link import Link
-from .model import HELP, LOCAL_COMMANDS, ConsoleModel, Status, severity_style
+from .model import (
+    HELP,
+    LOCAL_COMMANDS,
+    ConsoleModel,
+    Status,
+    archived_event_line,
+    severity_style,
+)
 
 __all__ = ["REFRESH_HZ", "ConfirmScreen", "ConsoleApp"]
 
@@ -123,7 +137,9 @@ class ConfirmScreen(ModalScreen[bool]):
 
 
 class ConsoleApp(App[int]):
-    """The console. ``link`` is None for a model fed by someone else (tests)."""
+    """The console. ``link`` is None for a model fed by someone else (tests);
+    ``history``: where history is read (None: no history); ``now_ns``: the
+    clock (default: the link's, else the host's)."""
 
     TITLE = "zplatform ground"
     CSS = """
@@ -141,10 +157,21 @@ class ConsoleApp(App[int]):
     """
     BINDINGS: ClassVar[list[BindingType]] = [Binding("ctrl+q", "quit", "quit")]
 
-    def __init__(self, model: ConsoleModel, link: Link | None = None) -> None:
+    def __init__(
+        self,
+        model: ConsoleModel,
+        link: Link | None = None,
+        *,
+        history: HistorySource | None = None,
+        now_ns: Callable[[], int] | None = None,
+    ) -> None:
         super().__init__()
         self.model = model
         self.link = link
+        self.history = history
+        self._clock = now_ns
+        self.history_elements: tuple[str, ...] = ("cn_state",)
+        """What the run picker opens a run with: the last history view's elements."""
         self._drawn = -1
         self._shown: dict[str, object] = {}  # what each pane shows now (refresh_view)
         self._rows: list[tuple[str, list[tuple[str, str, str]]]] = []
@@ -165,6 +192,8 @@ class ConsoleApp(App[int]):
         yield CommandLine(self.model, id="cmd", placeholder="command (tab completes, help)")
 
     def on_mount(self) -> None:
+        if self.history is not None and self.model.history_s > 0:
+            self.fill_history(list(self.model.plotted), events=True)
         if self.link is not None:
             self.link.start()
         self.query_one("#cmd", CommandLine).focus()
@@ -174,13 +203,73 @@ class ConsoleApp(App[int]):
     def on_unmount(self) -> None:
         if self.link is not None:
             self.link.close()
+        if self.history is not None:
+            self.history.close()
 
     def now_ns(self) -> int:
+        if self._clock is not None:
+            return self._clock()
         if self.link is not None:
             return self.link.now_ns()
         import time
 
         return time.time_ns()
+
+    # -- history -------------------------------------------------------------
+    def fill_history(self, elements: list[str], *, events: bool) -> None:
+        """Fill ``elements``' plot series (and with ``events``, the event
+        pane) with the last ``model.history_s`` of the archive, in a worker
+        thread; returns at once. The status line says how it went."""
+        m, src = self.model, self.history
+        if src is None or m.history_s <= 0 or not (elements or events):
+            return
+        with m.lock:
+            m.history = "filling history..."
+            m.version += 1
+        now, span = self.now_ns(), int(m.history_s * 1e9)
+        step_s = m.plot_step_ns / 1e9
+
+        def work() -> None:
+            said: list[str] = []
+            got: dict[str, list[tuple[float, float]]] = {}
+            lines = []
+            if elements:
+                try:
+                    t = src.query(fill_query(elements, now, span, m.plot_step_ns))
+                    ts = [b / 1e9 for b in t.column("bucket_ns").to_pylist()]
+                    for n in elements:
+                        if not ts:  # no file closed yet: the answer has no columns but the time
+                            got[n] = []
+                            continue
+                        vs = t.column(f"{n}_last").to_pylist()
+                        pts = zip(ts, vs, strict=True)
+                        got[n] = [(x, float(v)) for x, v in pts if v is not None]
+                except (ArchiveError, KeyError) as exc:
+                    said.append(f"telemetry: {exc}")
+            if events:
+                try:
+                    rows = src.events(None).to_pylist()
+                    lines = [archived_event_line(r) for r in rows if r["t_ns"] >= now - span]
+                except (ArchiveError, KeyError) as exc:
+                    said.append(f"events: {exc}")
+            with m.lock:
+                kept = {n: m.seed_series(n, pts, step_s) for n, pts in got.items()}
+                added = m.seed_events(lines) if events else 0
+                # Where each series' archive ends: a running run shows only up
+                # to the last file the ground closed (docs/archive.md).
+                xs = {n: m.plot_series()[n][0] for n, v in kept.items() if v}
+                done = [
+                    f"{v} point(s) of {n}"
+                    + (f" to {_clock(round(xs[n][v - 1] * 1e9))}" if v else "")
+                    for n, v in kept.items()
+                ]
+                if events and not any(s.startswith("events:") for s in said):
+                    done.append(f"{added} event(s)")
+                head = f"history {m.history_s / 60:g} min: " + (", ".join(done) or "nothing")
+                m.history = "; ".join([head, *said])
+                m.version += 1
+
+        self.run_worker(work, thread=True, group="fill", exit_on_error=False)
 
     # -- drawing -------------------------------------------------------------
     def refresh_view(self) -> None:
@@ -206,8 +295,13 @@ class ConsoleApp(App[int]):
                 series = m.plot_series()
                 plotted = list(m.plotted)
                 params = m.param_rows() if m.show_params else None
-        bar = self.query_one("#status", Static)
+        try:
+            bar = self.query_one("#status", Static)
+        except NoMatches:  # the app is closing (its timer outlived the screen): nothing to draw
+            return
         text = _status_text(status)
+        if status.history:
+            text.append(f"\n{status.history}", style="dim")
         if text != self._shown.get("status"):
             self._shown["status"] = text
             _show(bar, text)
@@ -307,6 +401,9 @@ class ConsoleApp(App[int]):
         if head == "help":
             self._note(HELP)
             return
+        if head in ("history", "runs"):
+            self._open_history(head, args)
+            return
         with m.lock:
             if head == "filter":
                 msg = m.set_filter(args)
@@ -319,9 +416,33 @@ class ConsoleApp(App[int]):
                 m.version += 1
                 msg = "events cleared"
         self._note(msg)
+        if head == "plot":  # outside the lock: the fill takes it
+            self.fill_history(list(m.plotted), events=False)
+
+    def _open_history(self, head: str, args: list[str]) -> None:
+        """``history [LINE]`` or ``runs``: open the view (read-only)."""
+        if self.history is None:
+            self._note(f"{head}: this console has no archive to read", "WARNING_HI")
+            return
+        layout = self.model.layout
+        if head == "runs":
+            self.push_screen(RunsScreen(self.history, layout, self.history_elements))
+            return
+        if not args:
+            self.push_screen(HistoryScreen(self.history, layout))
+            return
+        try:
+            req = parse_request(layout, " ".join(args))
+        except ArchiveError as exc:
+            self._note(f"refused: {exc}", "WARNING_HI")
+            return
+        self.history_elements = req.elements
+        self.push_screen(HistoryScreen(self.history, layout, req))
 
     async def on_key(self, event: events.Key) -> None:
-        # Typing anywhere goes to the command line.
+        # Typing anywhere on the live screen goes to the command line.
+        if self.screen is not self.default_screen:
+            return
         cmd = self.query_one("#cmd", CommandLine)
         if not cmd.has_focus and event.is_printable and not isinstance(self.screen, ModalScreen):
             cmd.focus()

@@ -3,7 +3,8 @@
 :class:`ConsoleModel` is fed by a telemetry source: :meth:`on_snapshot` after
 each accepted snapshot (a CN-layout Data Vector, with the ground's counters),
 :meth:`on_event` per event record, :meth:`on_result` per command outcome
-(:class:`~zplatform.telemetry.records.CommandOutcome`). The screen asks it what to draw
+(:class:`~zplatform.telemetry.records.CommandOutcome`); the archive's history by
+:meth:`seed_series` and :meth:`seed_events` (live wins). The screen asks it what to draw
 at a human rate (:meth:`status`, :meth:`region_rows`, :meth:`events`,
 :meth:`plot_series`); :meth:`tick` with the current time decides loss of
 signal. Limits come from :func:`zplatform.control.limits.mission_limits`; severities
@@ -49,6 +50,7 @@ __all__ = [
     "Limits",
     "LogLine",
     "Status",
+    "archived_event_line",
     "severity_rank",
     "severity_style",
 ]
@@ -71,13 +73,16 @@ _RANKS = {
 _STYLES = {6: "bold white on red", 5: "bold red", 4: "yellow", 3: "cyan", 2: "", 1: "dim", 0: "dim"}
 
 #: Console-side commands (not sent to the vehicle).
-LOCAL_COMMANDS = ("filter", "plot", "params", "clear", "help", "quit")
+LOCAL_COMMANDS = ("filter", "plot", "params", "history", "runs", "clear", "help", "quit")
+PLOT_POINTS = 600
+"""Most points of a live plot's series (module doc)."""
 OPERATOR_COMMANDS = tuple(c.lower() for c in CMD_NAMES[1:])
 
 HELP = (
     "vehicle: " + " | ".join(OPERATOR_COMMANDS) + " (write ELEMENT VALUE, "
     "prm_set PARAMETER VALUE); console: filter [SEVERITY|all] | plot ELEMENT... | "
-    "params (show/hide the parameters) | clear | quit"
+    "params (show/hide the parameters) | history ELEMENTS [FROM [TO]] [every=1s|raw] "
+    "[agg=min,max,mean] [run=R] (the archive) | runs (pick a past run) | clear | quit"
 )
 
 
@@ -127,6 +132,9 @@ class Status:
     waiting_for_run: bool = False
     """The link has not learned the vehicle's run yet (zplatform.ground.link):
     nothing is shown until it has."""
+    history: str = ""
+    """The history fill's state ("filling history...", what it filled, or why
+    it could not); "" when the console opened without history."""
 
 
 class ConsoleModel:
@@ -140,6 +148,7 @@ class ConsoleModel:
         limits: Mapping[str, Any] | None = None,
         max_events: int = 500,
         plot_window_s: float = 30.0,
+        history_s: float = 0.0,
     ) -> None:
         self.mission = mission
         self.lock = threading.Lock()
@@ -169,8 +178,16 @@ class ConsoleModel:
         self.plotted: list[str] = []
         self.show_params = False
         """Whether the parameter view is shown (the ``params`` command)."""
-        self._plot_step_ns = 50_000_000
-        self._plot_len = int(plot_window_s * 1e9 / self._plot_step_ns)
+        self.history_s = history_s
+        """Seconds of history the console opens with (0: none): the plot's
+        window is at least as long, so what the fill brought stays shown."""
+        self.history = ""
+        """The history fill's state, for the status line (Status.history)."""
+        window_ns = int(max(plot_window_s, history_s) * 1e9)
+        # At most PLOT_POINTS points a series, whatever the window: a long
+        # window samples (and fills) more coarsely, never draws more.
+        self.plot_step_ns = max(50_000_000, window_ns // PLOT_POINTS)
+        self._plot_len = max(1, window_ns // self.plot_step_ns)
         self._series: dict[str, deque[tuple[float, float]]] = {}
         self._last_plot_ns = 0
         self.version = 0  # bumped on every change the screen should redraw for
@@ -192,12 +209,44 @@ class ConsoleModel:
             self._note(rx_ns, "ACTIVITY_HI", "link", "signal acquired")
         self._rate.add_snapshot(self.dv)
         t = int(self.dv.get("cn_time_ns"))
-        if self.plotted and rx_ns - self._last_plot_ns >= self._plot_step_ns:
+        if self.plotted and rx_ns - self._last_plot_ns >= self.plot_step_ns:
             self._last_plot_ns = rx_ns
             ts = t / 1e9
             for name in self.plotted:
                 self._series[name].append((ts, float(self.dv.get(name))))
         self.version += 1
+
+    def seed_series(
+        self, name: str, points: Iterable[tuple[float, float]], span_s: float = 0.0
+    ) -> int:
+        """Put archived ``points`` (vehicle time in s, value; oldest first),
+        each standing for ``span_s`` from its time (a bucket), before plotted
+        element ``name``'s live ones: a point whose span reaches the first
+        live point is dropped (live wins). Returns the points kept; 0 when
+        ``name`` is no longer plotted."""
+        series = self._series.get(name)
+        if series is None:
+            return 0
+        first = series[0][0] if series else None
+        old = [p for p in points if first is None or p[0] + span_s <= first]
+        live = list(series)
+        series.clear()
+        series.extend(old)
+        series.extend(live)  # a full window lets the oldest archived points go
+        self.version += 1
+        return max(0, len(series) - len(live))
+
+    def seed_events(self, lines: Iterable[LogLine]) -> int:
+        """Put archived event lines (oldest first) before the live ones,
+        skipping any the event pane holds already. Returns the lines added."""
+        have = {(x.t_ns, x.source, x.text) for x in self.log}
+        old = [x for x in lines if (x.t_ns, x.source, x.text) not in have]
+        if old:
+            merged = sorted(old, key=lambda x: x.t_ns) + list(self.log)
+            self.log.clear()
+            self.log.extend(merged[-(self.log.maxlen or len(merged)) :])
+            self.version += 1
+        return len(old)
 
     def on_event(self, rec: EventRecord) -> None:
         mark = " (unverified)" if rec.verified is False else ""
@@ -272,6 +321,7 @@ class ConsoleModel:
             term=int(dv.get("cn_term")) if redundant else 0,
             standby_ready=bool(dv.get("cn_standby_ready")) if redundant else False,
             waiting_for_run=self.waiting_for_run,
+            history=self.history,
         )
 
     def format_value(self, spec: ElementSpec) -> str:
@@ -366,7 +416,7 @@ class ConsoleModel:
                 pool = self.writable
             elif head == "prm_set" and len(words) == 2:
                 pool = [p.name for p in self.mission.params]
-            elif head == "plot":
+            elif head in ("plot", "history"):
                 pool = [e.name for e in self.layout.elements.values() if not e.count]
             elif head == "filter" and len(words) == 2:
                 pool = [*(s.name for s in Severity), "all"]
@@ -379,6 +429,18 @@ class ConsoleModel:
             if cand.lower().startswith(last.lower()) and cand != last:
                 return " ".join([*words[:-1], cand])
         return None
+
+
+def archived_event_line(row: Mapping[str, Any]) -> LogLine:
+    """An event the archive kept (a row of ``Archive.events``) as the event
+    pane shows a live one."""
+    mark = " (unverified)" if row.get("verified") is False else ""
+    return LogLine(
+        int(row["t_ns"]),
+        str(row["severity"]),
+        str(row["node"]),
+        f"{row['id']}: {row['text']}{mark}",
+    )
 
 
 def _fmt(v: Any) -> str:
