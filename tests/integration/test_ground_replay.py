@@ -8,8 +8,9 @@ while the operator sends ABORT with ``zplatform cmd`` (a real process), then
 an ABORT the new state refuses. The replaying peer dials the ground node,
 and the tools (``cmd`` and the test's own ground) dial it: every link is
 made by the test, none left to zenoh's gossip, and the test waits for them
-by the ground's liveliness token and the tools' refusals, never a sleep. Before the fix the ground took the old run's
-epoch and numbers from the replay and printed ``ABORT #3: ACCEPTED`` while
+by the ground's liveliness token and the tools' refusals, never a sleep.
+Before the fix the ground took the old run's epoch and numbers from the
+replay and printed ``ABORT #3: ACCEPTED`` while
 the control node refused the request and stayed ARMED, and the ground node
 logged the replayed rows as real.
 
