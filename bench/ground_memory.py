@@ -18,9 +18,13 @@ memory on, as the mission's transport has it and the ground had it before:
 zenoh maps each same-host peer's 16 MiB pool the first time that peer sends
 a payload over 3 KiB, and keeps it mapped after the peer has gone), and any
 ``--set KEY=JSON`` (a zenoh config setting added to the ground's, a
-variant of its own). ``--process``: the fault suite's attacker
-(``tests/faults/attacker.py`` ``key-put``, a tool's config of the mission)
-in a process of its own each cycle, instead of a session of this process.
+variant of its own). ``dn0_queries``: the victim a device node's session
+instead (dn0's config: shared memory on, as the mission has it for bulk
+channels), a queryable on its sync key, the junk in gets: what the
+vehicle's nodes still pay (``refused``: the queries it took).
+``--process``: the fault suite's attacker (``tests/faults/attacker.py``
+``key-put``, a tool's config of the mission) in a process of its own each
+cycle, instead of a session of this process.
 
 ``python -m bench.ground_memory [--quick] [--cycles N] [--process] [--json PATH]``
 (default ``bench/results/ground_memory.json``; ``--quick``, 4 cycles, to the
@@ -49,7 +53,7 @@ import yaml
 from bench.common import REPO_ROOT, Child, bench_argparser, next_command, say
 from zplatform.ground.link import EVENT_MAX
 
-VARIANTS = ("as_is", "ground_shm")
+VARIANTS = ("as_is", "ground_shm", "dn0_queries")
 _SET = {"ground_shm": "set:transport/shared_memory/enabled=true"}
 
 
@@ -81,6 +85,9 @@ def child(mission_path: str, variant: str) -> None:
     from zplatform.mission.load import load_mission
 
     m = load_mission(mission_path)
+    if variant == "dn0_queries":
+        _vehicle_child(m)
+        return
     variant = _SET.get(variant, variant)
     if variant.startswith("set:"):
         key, _, value = variant[4:].partition("=")
@@ -103,6 +110,70 @@ def child(mission_path: str, variant: str) -> None:
         elif cmd["cmd"] == "rss":
             say({"rss_mb": _rss_mb(), "refused": link.logic.counters.bad_events})
     link.close()
+
+
+def _vehicle_child(m: Any) -> None:
+    """``dn0_queries``: a device node's session as the mission configures it
+    (shared memory on) with a queryable on its sync key that answers
+    nothing (the intake refuses junk); protocol as :func:`child`."""
+    import zenoh
+
+    from zplatform.runtime.transport import open_session, zenoh_config
+
+    s = open_session(zenoh_config(m, "dn0"))
+    taken = [0]
+
+    def on_query(q: zenoh.Query) -> None:  # hand off only: counted, never answered
+        taken[0] += 1
+
+    qbl = s.declare_queryable(
+        f"{m.vehicle}/dn0/to_cn", zenoh.handlers.Callback(on_query, indirect=False)
+    )
+    say({"ready": True, "rss_mb": _rss_mb()})
+    while (cmd := next_command())["cmd"] != "quit":
+        if cmd["cmd"] == "peers":
+            say({"peers": [str(z) for z in s.info.peers_zid()]})
+        elif cmd["cmd"] == "rss":
+            say({"rss_mb": _rss_mb(), "refused": taken[0]})
+    qbl.undeclare()
+    s.close()
+
+
+def _flood_gets(mission: Path, ep: str, key: str, rate: float, seconds: float) -> int:
+    """As :func:`_flood`, with gets (queries) carrying the junk."""
+    import zenoh
+
+    from zplatform.runtime.transport import is_matching
+
+    cfg = zenoh.Config()
+    cfg.insert_json5("connect/endpoints", json.dumps([ep]))
+    cfg.insert_json5("scouting/multicast/enabled", "false")
+    cfg.insert_json5("scouting/gossip/enabled", "false")
+    s = zenoh.open(cfg)
+    try:
+        querier = s.declare_querier(key, timeout=0.05)
+        deadline = time.monotonic() + 10.0
+        while not is_matching(querier):  # the node's queryable reached us
+            if time.monotonic() > deadline:
+                raise RuntimeError(f"the node's queryable never matched on {ep}")
+            time.sleep(0.01)
+        rng = random.Random(7)
+        junk = rng.randbytes(EVENT_MAX)
+        noop: zenoh.handlers.Callback[zenoh.Reply] = zenoh.handlers.Callback(
+            lambda _r: None, indirect=False
+        )
+        sent = 0
+        t0 = time.monotonic()
+        while (now := time.monotonic()) - t0 < seconds:
+            while sent < int((now - t0) * rate):
+                n = EVENT_MAX if sent % 2 else rng.randrange(0, 2000)
+                querier.get(noop, payload=junk[:n])
+                sent += 1
+            time.sleep(0.001)  # pacing
+        querier.undeclare()
+        return sent
+    finally:
+        s.close()
 
 
 def _flood(mission: Path, ep: str, key: str, rate: float, seconds: float) -> int:
@@ -189,8 +260,11 @@ def run_variant(
     mission: Path, variant: str, cycles: int, rate: float, flood_s: float, process: bool = False
 ) -> dict[str, Any]:
     raw = yaml.safe_load(mission.read_text())
-    ep = raw["nodes"]["gn"]["listen"][0]
-    key = f"{raw.get('vehicle', 'rocket')}/dn0/events"
+    vehicle = raw.get("vehicle", "rocket")
+    if variant == "dn0_queries":
+        ep, key = raw["nodes"]["dn0"]["listen"][0], f"{vehicle}/dn0/to_cn"
+    else:
+        ep, key = raw["nodes"]["gn"]["listen"][0], f"{vehicle}/dn0/events"
     gn = Child("bench.ground_memory", ["--child", str(mission), variant], mission.read_text())
     try:
         first = gn.read()
@@ -201,6 +275,8 @@ def run_variant(
         refused = 0
         for _ in range(cycles):
             flood = _flood_process if process else _flood
+            if variant == "dn0_queries":
+                flood = _flood_gets
             n = flood(mission, ep, key, rate, flood_s)
             sent.append(n)
             deadline = time.monotonic() + 30.0
@@ -239,7 +315,9 @@ def main() -> None:
     p.add_argument(
         "--process", action="store_true", help="the fault suite's attacker, a process each cycle"
     )
-    p.add_argument("--variant", action="append", default=None, help="as_is, ground_shm")
+    p.add_argument(
+        "--variant", action="append", default=None, help="as_is, ground_shm, dn0_queries"
+    )
     p.add_argument(
         "--set", action="append", default=[], metavar="KEY=JSON", help="a zenoh config variant"
     )
