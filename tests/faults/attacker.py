@@ -81,10 +81,12 @@ import threading
 import time
 from collections import deque
 from contextlib import suppress
+from functools import partial
 from typing import Any
 
 import zenoh
 
+from tests.waits import poll_until
 from zplatform.core.auth import TAG_LEN
 from zplatform.core.codec import frame_overhead
 from zplatform.core.datavector import Layout
@@ -159,7 +161,7 @@ def paced(rate: float, duration_s: float, send: Any, stop: threading.Event) -> t
             owed -= 1.0
         nxt += TICK_S
         if nxt > now:
-            time.sleep(nxt - now)
+            time.sleep(nxt - now)  # stimulus: the flood's pace
         else:
             nxt = now  # behind: do not burst to catch up
     return sent, time.monotonic() - t0
@@ -246,6 +248,9 @@ def main(argv: list[str] | None = None) -> int:
     cleanup: list[Any] = []
     k = [0]
     answered = [0]  # query modes: replies (or error replies) the DN sent back
+    gets = [0]  # query modes: gets sent ...
+    finished: deque[None] = deque()  # ... and finalized by zenoh (answered or timed out)
+    on_finished = partial(finished.append, None)  # zenoh's thread: append is atomic
     right_size = [0]  # key modes: frames sent of exactly --size bytes
     kind, _, what = a.mode.partition("-")
     if kind == "query":
@@ -262,10 +267,11 @@ def main(argv: list[str] | None = None) -> int:
             if r.ok is not None or (err is not None and err.payload.to_bytes() != b"Timeout"):
                 answered[0] += 1
 
-        handler = zenoh.handlers.Callback(on_reply, indirect=False)
+        handler = zenoh.handlers.Callback(on_reply, on_finished, indirect=False)
 
         def send() -> None:
             k[0] += 1
+            gets[0] += 1
             session.get(dn_key, handler, payload=payloads[k[0] % len(payloads)], timeout=0.05)
 
     elif kind == "reply":
@@ -375,11 +381,12 @@ def main(argv: list[str] | None = None) -> int:
                 if r.ok is not None or (err is not None and err.payload.to_bytes() != b"Timeout"):
                     answered[0] += 1
 
-            key_handler = zenoh.handlers.Callback(on_key_reply, indirect=False)
+            key_handler = zenoh.handlers.Callback(on_key_reply, on_finished, indirect=False)
             key = a.key
 
             def send() -> None:
                 k[0] += 1
+                gets[0] += 1
                 right_size[0] += right[k[0] % len(payloads)]
                 session.get(
                     key,
@@ -432,7 +439,9 @@ def main(argv: list[str] | None = None) -> int:
 
     threading.Thread(target=until_stop, daemon=True).start()
     sent, seconds = paced(a.rate, a.duration, send, stop)
-    time.sleep(0.1)  # the last gets' answers, if any, come in (their timeout is 50 ms)
+    # The last gets' answers, if any, come in: zenoh finalizes each get
+    # (its handler's drop) once answered or at its 50 ms timeout.
+    poll_until(lambda: len(finished) >= gets[0], 10.0)
     for c in cleanup:
         c()
     session.close()

@@ -17,8 +17,8 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-import time
 
+from tests.waits import poll_until
 from zplatform.mission.load import load_mission
 from zplatform.runtime.transport import open_session, zenoh_config
 from zplatform.security.deploy import load_deployment
@@ -39,11 +39,8 @@ def main(argv: list[str] | None = None) -> int:
     cfg.insert_json5("scouting/gossip/enabled", "false")
     cfg.insert_json5("scouting/multicast/enabled", "false")
     session = open_session(cfg)
-    deadline = time.monotonic() + 30
-    while not list(session.info.peers_zid()):
-        if time.monotonic() > deadline:
-            raise SystemExit("gateway: the CN never became a peer")
-        time.sleep(0.05)  # polling the session's own state, not waiting for a peer blindly
+    if not poll_until(lambda: list(session.info.peers_zid()), 30):  # the session's own view
+        raise SystemExit("gateway: the CN never became a peer")
     print("ready", flush=True)
     sys.stdin.read()
     session.close()

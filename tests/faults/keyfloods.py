@@ -121,12 +121,6 @@ flood of them can stall its loop (:data:`KNOWN_DEFECTS`), which must not
 change the floods that follow (a takeover makes the standby the commander)."""
 
 KNOWN_DEFECTS: dict[str, tuple[str, str]] = {
-    "ground_peer_memory": (
-        r"(events\[[^\]]+\]|telemetry)_gn_memory_flat",
-        "the ground node keeps about 19 MB of native memory (zenoh's, the Python heap "
-        "stays flat; MALLOC_ARENA_MAX=1 alike) per peer session that floods it, after "
-        "the peer has gone",
-    ),
     "commander_service_flood": (
         r"(clock\[[^\]]+\]|recorder)_(no_dn_safed|no_takeover|flight_goes_on|no_fault)",
         "a keyless query flood on a key the commander serves itself (its clock, its "

@@ -800,7 +800,7 @@ def case_cn_sigstop(tmp: Path, quick: bool) -> CaseResult:
         c.signal("cn", signal.SIGSTOP)
         t_safed = c.wait_event("dn_safed", "dn0", t0, 30)
         # Stopped 0.5 s: well past the 100 ms watchdog, under the 1 s lease.
-        time.sleep(max(0.0, 0.5 - (time.monotonic() - t0)))
+        time.sleep(max(0.0, 0.5 - (time.monotonic() - t0)))  # stimulus: the stop lasts 0.5 s
         rx = c.now("cn_rx_dn0")
         t_cont = time.monotonic()
         c.signal("cn", signal.SIGCONT)
@@ -1185,6 +1185,7 @@ class NetWatch:
         self.proc = proc
         self.snaps: list[Snap] = []
         self._lock = threading.Lock()
+        self._new = threading.Condition(self._lock)  # a snapshot came, or the watcher ended
         self._th = threading.Thread(target=self._read, daemon=True)
         self._th.start()
 
@@ -1193,8 +1194,11 @@ class NetWatch:
         for line in self.proc.stdout:
             with suppress(ValueError):
                 v = json.loads(line)
-                with self._lock:
+                with self._new:
                     self.snaps.append(Snap(v.pop("_t"), v))
+                    self._new.notify_all()
+        with self._new:
+            self._new.notify_all()
 
     def last(self) -> dict[str, Any]:
         with self._lock:
@@ -1203,17 +1207,19 @@ class NetWatch:
     def wait_for(self, pred: Callable[[dict[str, Any]], bool], timeout_s: float, what: str) -> Snap:
         deadline = time.monotonic() + timeout_s
         seen = 0
-        while time.monotonic() < deadline:
-            with self._lock:
-                new = self.snaps[seen:]
+        with self._new:  # woken by each snapshot the reader thread takes
+            while True:
+                for sn in self.snaps[seen:]:
+                    if pred(sn.v):
+                        return sn
                 seen = len(self.snaps)
-            for sn in new:
-                if pred(sn.v):
-                    return sn
-            if self.proc.poll() is not None:
-                raise AssertionError(f"watcher exited ({self.proc.returncode})")
-            time.sleep(0.02)  # polling our own reader thread, not a peer
-        raise AssertionError(f"timed out waiting for {what}; last: {self.last()}")
+                if self.proc.poll() is not None:
+                    raise AssertionError(f"watcher exited ({self.proc.returncode})")
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    last = self.snaps[-1].v if self.snaps else {}
+                    raise AssertionError(f"timed out waiting for {what}; last: {last}")
+                self._new.wait(min(left, 0.5))
 
 
 def watch_main(mission_path: str) -> int:
@@ -1316,7 +1322,7 @@ def case_partition_netns(
                 lost = w.wait_for(lambda v: v["cn_fault"] == "DN_LOST", 30, "DN_LOST")
                 r.figures["dn_lost_ms"] = ms(t0, lost.t)
                 r.target("dn_lost_within_lease", lost.t - t0 <= 1.0, ms(t0, lost.t))
-            time.sleep(max(0.0, down_s - (time.monotonic() - t0)))  # the cut lasts down_s
+            time.sleep(max(0.0, down_s - (time.monotonic() - t0)))  # stimulus: the cut lasts down_s
             rx = w.last()["cn_rx_dn0"]
             loop_at_heal = w.last()["cn_loop"]
             t_heal = time.monotonic()
@@ -1407,7 +1413,7 @@ def _gn_cable_cut(tmp: Path, down_s: float) -> CaseResult:
             first = w.last()
             t0 = time.monotonic()
             h1.link_down()
-            time.sleep(down_s)  # the cut lasts down_s
+            time.sleep(down_s)  # stimulus: the cut lasts down_s
             h1.link_up()
             w.wait_for(lambda v: v["cn_loop"] >= first["cn_loop"] + 100 * down_s + 50, 60, "loops")
             with w._lock:

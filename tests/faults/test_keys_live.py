@@ -41,6 +41,7 @@ import zenoh
 from tests.budget import LINK_ALIVE
 from tests.drive import igniter_quick_flight
 from tests.integration.harness import CONFIGS, Cluster
+from tests.waits import wait_until
 from zplatform.core.auth import KEY_FILE_ENV, Channel, KeySet, Run, load_keys, write_key_set
 from zplatform.core.codec import RegionCodec
 from zplatform.core.datavector import DataVector, Layout
@@ -232,12 +233,13 @@ def _fly(c: Cluster) -> None:
     for node in ("dn0", "dn1"):
         c.spawn(node)
     c.spawn("gn", "--commands", str(SCRIPT), "--log", str(c.tmp / "gn.csv"))
-    deadline = time.monotonic() + 60
-    while len(list(c.session.info.peers_zid())) < 3:
-        assert time.monotonic() < deadline, "the test's session never reached dn0, dn1, gn"
+
+    def linked() -> bool:  # zenoh's view of this session's links; a node that died fails
         for name, p in c.procs.items():
             assert p.poll() is None, f"{name} exited:\n{c.log(name)[-2000:]}"
-        time.sleep(0.05)  # polling our own session's view, not waiting for a peer's timing
+        return len(list(c.session.info.peers_zid())) >= 3
+
+    wait_until(linked, 60, "the test's session to reach dn0, dn1 and gn")
     c.spawn("cn")
 
 

@@ -18,7 +18,6 @@ import csv
 import itertools
 import subprocess
 import sys
-import time
 from collections.abc import Callable
 from pathlib import Path
 
@@ -28,6 +27,7 @@ import yaml
 from tests.faults.missions import relay_links
 from tests.faults.relay import FaultRelay
 from tests.integration.harness import CONFIGS, ROOT, Cluster
+from tests.waits import wait_until
 from zplatform.mission.load import load_mission
 from zplatform.recorder import RECORDER_DIR_ENV, RecorderReader, recorder_dir
 from zplatform.recorder.format import FRAME
@@ -57,14 +57,6 @@ def recorded_loops(directory: Path) -> list[int]:
     return [rec.loop for _, rec in r.records() if rec.type == FRAME]
 
 
-def wait_until(pred: Callable[[], bool], timeout_s: float, what: str) -> None:
-    deadline = time.monotonic() + timeout_s
-    while not pred():
-        if time.monotonic() > deadline:
-            raise AssertionError(f"timed out waiting for {what}")
-        time.sleep(0.1)  # polling files the nodes write: no peer to wait on
-
-
 def zplatform(*args: str) -> subprocess.CompletedProcess[str]:
     return subprocess.run(
         [sys.executable, "-m", "zplatform", *args],
@@ -87,7 +79,9 @@ def test_ground_fills_a_5s_link_cut_from_the_cn_recorder(
         c.spawn("gn", "--log", str(gn_csv))
         c.spawn("cn")
         c.wait_for(lambda dv: int(dv.get("cn_loop")) >= 100, 60, "the CN looping")
-        wait_until(lambda: gn_csv.exists() and len(rows(gn_csv)) >= 50, 30, "the GN logging")
+        wait_until(
+            lambda: gn_csv.exists() and len(rows(gn_csv)) >= 50, 30, "the GN logging", poll_s=0.1
+        )
         relay.partition()
         c.advance(500)  # 5 s of loops, on the test's own link to the CN
         healed_at = int(c.tm.get("cn_loop"))
@@ -97,7 +91,7 @@ def test_ground_fills_a_5s_link_cut_from_the_cn_recorder(
             loops = [int(r["cn_loop"]) for r in rows(gn_csv)]
             return bool(loops) and loops[-1] >= healed_at + 100
 
-        wait_until(filled_past_the_cut, 60, "the GN logging again after the cut")
+        wait_until(filled_past_the_cut, 60, "the GN logging again after the cut", poll_s=0.1)
         c.advance(50)
         c.procs["gn"].terminate()
         assert c.procs["gn"].wait(30) == 0, c.log("gn")
@@ -149,7 +143,9 @@ def test_kill9_of_the_cn_leaves_a_recorder_read_to_its_last_record(
         seen = int(c.tm.get("cn_loop"))
         cn_dir = recorder_dir(c.mission, "cn")
         # What the CN published is on its disk soon after (written, not fsynced).
-        wait_until(lambda: recorded_loops(cn_dir)[-1] >= seen, 10, f"loop {seen} recorded")
+        wait_until(
+            lambda: recorded_loops(cn_dir)[-1] >= seen, 10, f"loop {seen} recorded", poll_s=0.1
+        )
         c.kill("cn")
     loops = recorded_loops(cn_dir)
     assert loops[0] == 1 and loops[-1] >= seen

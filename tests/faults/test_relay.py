@@ -157,7 +157,7 @@ def test_puts_are_never_delivered_out_of_order(
     p.relay.arm(reorder=0.2)
     for i in range(300):
         pub.put(str(i))
-        time.sleep(0.0005)  # pacing the stream, not waiting for a peer
+        time.sleep(0.0005)  # stimulus: the stream's pace
     p.relay.disarm()
     # End marker: a get answered after the burst means every earlier batch
     # has been delivered or discarded (one TCP stream, one order).

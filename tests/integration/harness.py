@@ -18,6 +18,7 @@ from typing import Any
 
 import yaml
 
+from tests.waits import poll_until
 from zplatform.config import Mission
 from zplatform.core.datavector import DataVector
 from zplatform.ground.link import GroundLink
@@ -99,12 +100,15 @@ class Cluster:
 
     def _wait_ready(self, name: str, timeout_s: float = 60.0) -> None:
         """Block until process ``name`` printed ``READY`` (or fail with its log)."""
-        deadline = time.monotonic() + timeout_s
         p = self.procs[name]
-        while "READY" not in self.log(name):
-            if p.poll() is not None or time.monotonic() > deadline:
-                raise AssertionError(f"{name} did not get ready:\n{self.log(name)[-3000:]}")
-            time.sleep(0.05)  # polling a file the child writes: no peer to wait on
+
+        def ready() -> bool:  # the line the child writes; failing at once if it exited
+            if p.poll() is not None:
+                raise AssertionError(f"{name} exited:\n{self.log(name)[-3000:]}")
+            return "READY" in self.log(name)
+
+        if not poll_until(ready, timeout_s):
+            raise AssertionError(f"{name} did not get ready:\n{self.log(name)[-3000:]}")
 
     def log(self, name: str) -> str:
         return (self.tmp / f"{name}.log").read_text(errors="replace")

@@ -4,7 +4,6 @@ station's queries with the same rows as a local query."""
 
 from __future__ import annotations
 
-import time
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -14,13 +13,14 @@ import zenoh
 
 from tests.faults.peers import peer_config
 from tests.unit.test_archive import T0, feed
+from tests.waits import wait_matching
 from zplatform.archive import Archive, ArchiveWriter, Query
 from zplatform.archive.server import ArchiveServer, remote_query
 from zplatform.core.auth import KeySet
 from zplatform.core.datavector import DataVector, Layout
 from zplatform.errors import ArchiveError
 from zplatform.mission.load import load_mission
-from zplatform.runtime.transport import free_port, is_matching
+from zplatform.runtime.transport import free_port
 
 ROOT = Path(__file__).resolve().parents[2]
 MISSION = load_mission(ROOT / "configs" / "flight.yaml", code=False)
@@ -49,10 +49,7 @@ def station(tmp_path: Path) -> Iterator[Any]:
         max_bytes=200_000,
     )
     querier = b.declare_querier(KEYEXPR)
-    deadline = time.monotonic() + 10
-    while not is_matching(querier):  # the queryable is declared to b
-        assert time.monotonic() < deadline, "the archive's queryable never matched"
-        time.sleep(0.01)
+    wait_matching(querier, 10, "the archive's queryable, declared to b")
     querier.undeclare()
     tool = KEYS.for_node("tool").channel("telemetry")  # a read-only station asks
     nonce = iter(range(1, 1000))

@@ -29,10 +29,11 @@ import msgspec
 import numpy as np
 import pytest
 
+from tests.waits import wait_matching
 from zplatform.config import Mission
 from zplatform.mission.load import decode_mission
 from zplatform.runtime.bulk import BulkChannelConfig, NodeBulk
-from zplatform.runtime.transport import NodeSession, free_port, is_matching
+from zplatform.runtime.transport import NodeSession, free_port
 
 ROOT = Path(__file__).resolve().parents[2]
 MB = 1 << 20
@@ -90,7 +91,8 @@ def _spawn_owner(
     return subprocess.Popen(
         [
             sys.executable,
-            __file__,
+            "-m",  # from the repository's root: tests.waits imports
+            "tests.integration.test_bulk_shm",
             str(mission),
             msgspec.json.encode(ch).decode(),
             "1" if shm else "0",
@@ -114,11 +116,7 @@ def _owner_main(argv: list[str]) -> None:
     with NodeSession(mission, "dn0", shared_memory=shm == "1") as ns:
         bulk = NodeBulk(ns.session, mission.vehicle, [ch], "dn0", shared_memory=shm == "1")
         w = bulk.writers[ch.name]
-        deadline = time.monotonic() + 20
-        while not is_matching(w._pub):
-            if time.monotonic() > deadline:
-                raise SystemExit("reader never matched")
-            time.sleep(0.01)
+        wait_matching(w._pub, 20, "the reader's subscriber")
         flat = w.array.reshape(-1)
         rss: list[tuple[int, int]] = []
         t0 = time.monotonic()
@@ -131,7 +129,7 @@ def _owner_main(argv: list[str]) -> None:
             if i % 100 == 0:
                 rss.append(_memory())
             nxt = t0 + (i + 1) * float(period)
-            time.sleep(max(0.0, nxt - time.monotonic()))
+            time.sleep(max(0.0, nxt - time.monotonic()))  # stimulus: the writer's period
         print(json.dumps({**bulk.counters(), "rss": rss, "pool": bulk.pool_bytes}), flush=True)
         bulk.close()
 

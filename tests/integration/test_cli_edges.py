@@ -14,13 +14,12 @@ import signal
 import socket
 import subprocess
 import sys
-import time
-from collections.abc import Callable
 from pathlib import Path
 
 import pytest
 import yaml
 
+from tests.waits import wait_until
 from zplatform import CommandError
 from zplatform.cli import registry
 from zplatform.cli import runtime as cli_runtime
@@ -66,15 +65,6 @@ def _up_minimal(*args: str, env: dict[str, str] | None = None) -> subprocess.Pop
         stderr=subprocess.PIPE,
         text=True,
     )  # fmt: skip
-
-
-def _wait_until(pred: Callable[[], bool], timeout_s: float, what: str) -> None:
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        if pred():
-            return
-        time.sleep(0.05)  # polling a file, not waiting for a peer
-    raise AssertionError(f"timed out waiting for {what}")
 
 
 @pytest.fixture
@@ -389,7 +379,7 @@ def test_up_registers_is_found_by_name_logs_events_and_cleans_up(
     up = _up_minimal("--log", str(log), "--commands", str(script), env=env)
     try:
         entry = runtime / "minimal.json"
-        _wait_until(lambda: entry.exists() and b'"nodes":{"' in entry.read_bytes(), 30, "entry")
+        wait_until(lambda: entry.exists() and b'"nodes":{"' in entry.read_bytes(), 30, "entry")
         r = _zp("ps", "--json")
         assert r.returncode == 0, r.stderr
         (e,) = json.loads(r.stdout)
@@ -402,7 +392,7 @@ def test_up_registers_is_found_by_name_logs_events_and_cleans_up(
         assert r.returncode == 0, r.stderr
         assert all(json.loads(x)["key"] == "rocket/cn/telemetry" for x in r.stdout.splitlines())
         # The ground node logs the events of the scripted LAUNCH beside the CSV.
-        _wait_until(lambda: events.exists() and "state_change" in events.read_text(), 60, "events")
+        wait_until(lambda: events.exists() and "state_change" in events.read_text(), 60, "events")
         up.send_signal(signal.SIGTERM)
         _out, err = up.communicate(timeout=30)
     finally:
@@ -449,11 +439,11 @@ def test_up_says_so_when_the_ground_node_playing_its_script_dies(
             except (OSError, ValueError):
                 return None  # not written yet
 
-        _wait_until(lambda: pid("gn") is not None and pid("cn") is not None, 30, "the entry")
+        wait_until(lambda: pid("gn") is not None and pid("cn") is not None, 30, "the entry")
         gn, cn = pid("gn"), pid("cn")
         assert gn is not None and cn is not None
         os.kill(gn, signal.SIGKILL)
-        _wait_until(lambda: "Ctrl-C ends the run" in err_path.read_text(), 60, "up's word")
+        wait_until(lambda: "Ctrl-C ends the run" in err_path.read_text(), 60, "up's word")
         err = err_path.read_text()
         assert "node gn died" in err and "the vehicle flies on" in err, err
         assert up.poll() is None  # up goes on, and so does the control node

@@ -50,6 +50,7 @@ from rich.table import Table
 from textual import events
 from textual.widgets import Static
 
+from tests.waits import wait_until
 from zplatform.console import ConfirmScreen, ConsoleApp, ConsoleModel, Link
 from zplatform.core.events import Severity
 from zplatform.runtime.transport import rewrite_endpoints
@@ -388,12 +389,13 @@ def test_console_in_browser(tmp_path: Path) -> None:
                 start_new_session=True,  # the server's console children go with it
             )
         )
-        deadline = time.monotonic() + 60
         address = re.compile(r"(http://[^/\s]+)/\?token=\S+")
-        while (m := address.search(_read(tmp_path / "serve.log"))) is None:
+
+        def printed() -> re.Match[str] | None:  # the server's output; failing if it exited
             assert procs[0].poll() is None, _read(tmp_path / "serve.log")
-            assert time.monotonic() < deadline, "the server printed no address"
-            time.sleep(0.05)  # polling the server's output, not waiting on a peer
+            return address.search(_read(tmp_path / "serve.log"))
+
+        m = wait_until(printed, 60, "the server's address")
         url, origin = m.group(0), m.group(1)
         profile = tmp_path / "chromium"
         procs.append(
@@ -412,11 +414,12 @@ def test_console_in_browser(tmp_path: Path) -> None:
             )
         )
         active = profile / "DevToolsActivePort"
-        deadline = time.monotonic() + 30
-        while not (active.exists() and active.read_text().strip()):
+
+        def opened() -> bool:  # the file chromium writes; failing if it exited
             assert procs[1].poll() is None, _read(tmp_path / "chromium.log")[-2000:]
-            assert time.monotonic() < deadline, "chromium never opened its DevTools port"
-            time.sleep(0.05)
+            return active.exists() and bool(active.read_text().strip())
+
+        wait_until(opened, 30, "chromium's DevTools port")
         devtools = int(active.read_text().split()[0])
         text, events = asyncio.run(
             _read_page(devtools, url, ["NO SIGNAL", "waiting for ", "cn_loop"], 60)

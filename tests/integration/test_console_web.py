@@ -22,7 +22,6 @@ import signal
 import subprocess
 import sys
 import threading
-import time
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -36,6 +35,7 @@ pytest.importorskip("psutil")
 import aiohttp
 import psutil
 
+from tests.waits import wait_until
 from zplatform.console.web import COOKIE, KILL_GRACE_S, QUIT_GRACE_S
 from zplatform.console.webdriver import EXIT_GRACE_S
 from zplatform.runtime.process import PARENT_ENV
@@ -66,11 +66,12 @@ class Served:
                 env=dict(os.environ, PYTHONUNBUFFERED="1"),
                 start_new_session=True,
             )
-        deadline = time.monotonic() + 60
-        while (m := re.search(r"http://\S+/\?token=(\S+)", self.out())) is None:
+
+        def address() -> re.Match[str] | None:  # the server's output; failing if it exited
             assert self.proc.poll() is None, f"server exited: {self.err()}"
-            assert time.monotonic() < deadline, f"no address printed: {self.err()}"
-            time.sleep(0.05)  # polling the server's output, not waiting on a peer
+            return re.search(r"http://\S+/\?token=(\S+)", self.out())
+
+        m = wait_until(address, 60, "the server's address")
         self.url = m.group(0)
         self.token = m.group(1)
         self.base = self.url.split("/?")[0]
@@ -287,10 +288,7 @@ def test_console_ends_with_its_websocket(served: Served, how: str) -> None:
 
     console = asyncio.run(go())
     _gone(console, SESSION_END_S)
-    deadline = time.monotonic() + 10
-    while f"console {console.pid} ended" not in s.err():
-        assert time.monotonic() < deadline, s.err()
-        time.sleep(0.05)  # polling the server's log line about it
+    wait_until(lambda: f"console {console.pid} ended" in s.err(), 10, "the console's end")
     assert f"console {console.pid} ended (exit code 0)" in s.err()  # it quit; nobody killed it
     # One browser, once: with its session over, the server has nothing left to
     # serve (it used to keep serving a spent token and a live cookie).

@@ -10,11 +10,11 @@ import subprocess
 import sys
 import textwrap
 import threading
-import time
 from pathlib import Path
 
 import pytest
 
+from tests.waits import wait_until
 from zplatform import ControlLogic, decode_mission
 from zplatform.config.codes import ParamLoad
 from zplatform.control.params import (
@@ -116,10 +116,12 @@ def test_two_writers_of_one_file_take_turns(tmp_path: Path) -> None:
     )  # fmt: skip
     try:
         tmp = path.with_name(".prmkill.params.tmp")
-        deadline = time.monotonic() + 60
-        while not (tmp.exists() and tmp.stat().st_size > 0):  # the first is inside its save
-            assert time.monotonic() < deadline and first.poll() is None
-            time.sleep(0.01)  # a file the child writes: no peer to wait on
+
+        def saving() -> bool:  # the first is inside its save (a file it writes)
+            assert first.poll() is None, "the first writer exited"
+            return tmp.exists() and tmp.stat().st_size > 0
+
+        wait_until(saving, 60, "the first writer inside its save")
         done = threading.Event()
         second = threading.Thread(
             target=lambda: (write_atomic(path, encode_params(m, OLD, seq=3)), done.set())

@@ -13,6 +13,7 @@ import pytest
 import zenoh
 
 from tests.faults.peers import peer_config
+from tests.waits import wait_matching, wait_until
 from zplatform.control.loop import ControlLogic
 from zplatform.core.auth import KeySet
 from zplatform.mission.load import decode_mission
@@ -27,7 +28,7 @@ from zplatform.recorder.format import (
     REQUEST_MAGIC,
 )
 from zplatform.recorder.server import RecorderServer
-from zplatform.runtime.transport import free_port, is_matching
+from zplatform.runtime.transport import free_port
 
 ROOT = Path(__file__).resolve().parents[2]
 MISSION = decode_mission(
@@ -93,8 +94,7 @@ def rig(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Iterator[Any]:
             assert tm is not None
             frames[n] = bytes(tm)
             rec.frame(n, tm)
-        while rec.backlog:
-            time.sleep(0.001)  # the writer thread, in this process
+        wait_until(lambda: not rec.backlog, 10, "the recorder's writer thread")
         ep = f"tcp/127.0.0.1:{free_port()}"
         a = zenoh.open(peer_config([ep]))
         b = zenoh.open(peer_config(connect=[ep]))
@@ -108,10 +108,7 @@ def rig(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Iterator[Any]:
             serve_bps=serve_bps,
         )
         querier = b.declare_querier(KEYEXPR)
-        deadline = time.monotonic() + 10
-        while not is_matching(querier):  # the queryable is declared to b
-            assert time.monotonic() < deadline, "the recorder's queryable never matched"
-            time.sleep(0.01)
+        wait_matching(querier, 10, "the recorder's queryable, declared to b")
         querier.undeclare()
         made.append((server, rec, a, b))
         return Rig(server, b, frames)

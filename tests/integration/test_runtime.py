@@ -23,6 +23,7 @@ from tests.budget import (
     later_than_now,
     sync_counts,
 )
+from tests.waits import wait_until
 from zplatform.core.auth import load_keys
 from zplatform.core.codec import encode_frame
 from zplatform.core.events import Event, EventReader
@@ -286,14 +287,12 @@ def test_up_reports_a_dead_control_node(tmp_path: Path) -> None:
     up = _up(path, "--summary", str(tmp_path / "s.json"), "--log", str(tmp_path / "tm.csv"))
     try:
         # The ground log fills once the CN flies: wait on it, not on time.
-        deadline = time.monotonic() + 60
-        while True:
+        def logged() -> bool:  # a file `up`'s ground writes; failing at once if `up` ended
             assert up.poll() is None, up.stdout.read().decode()[-2000:]  # type: ignore[union-attr]
-            assert time.monotonic() < deadline, "no telemetry logged"
             p = tmp_path / "tm.csv"
-            if p.exists() and p.read_text().count("\n") > 50:
-                break
-            time.sleep(0.2)  # polling a file another process writes; no peer to wait on
+            return p.exists() and p.read_text().count("\n") > 50
+
+        wait_until(logged, 60, "50 rows of telemetry logged", poll_s=0.2)
         children = psutil.Process(up.pid).children()
         cn = next(p for p in children if p.cmdline()[-1:] != [] and " cn " in " ".join(p.cmdline()))
         cn.kill()

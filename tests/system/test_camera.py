@@ -6,9 +6,9 @@ from __future__ import annotations
 import json
 import subprocess
 import sys
-import time
 from pathlib import Path
 
+from tests.waits import wait_until
 from zplatform import LockstepRunner, load_mission
 from zplatform.cli.registry import running
 from zplatform.telemetry.logs import CsvLogger, read_csv
@@ -46,10 +46,11 @@ def test_camera_frames_go_through_shared_memory_between_processes(tmp_path: Path
     try:
         # `up` registers the run as "camera" before it starts the nodes: tap
         # then reaches it by name (the remapped mission has free ports).
-        deadline = time.monotonic() + 60
-        while not any(e.name == "camera" and e.pid == up.pid for e in running()):
-            assert up.poll() is None and time.monotonic() < deadline, "up did not register"
-            time.sleep(0.05)  # polling a file another process writes
+        def registered() -> bool:  # the registry file `up` writes; failing if `up` ended
+            assert up.poll() is None, "up ended"
+            return any(e.name == "camera" and e.pid == up.pid for e in running())
+
+        wait_until(registered, 60, "up to register the run", poll_s=0.05)
         tap = subprocess.run(
             [
                 *(sys.executable, "-m", "zplatform", "tap", "camera", "rocket/dn0/bulk/frame"),

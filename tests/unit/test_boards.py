@@ -360,7 +360,7 @@ class DeadPort:
     def read(self, n: int) -> bytes:
         import time
 
-        time.sleep(0.005)
+        time.sleep(0.005)  # stimulus: a serial read's timeout, nothing came
         return b""
 
     def close(self) -> None:

@@ -26,7 +26,7 @@ pytestmark = pytest.mark.timeout(30)
 def slow_signal() -> Iterator[Callable[[], None]]:
     """Arm a SIGUSR1 to this process 2 ms from now whose handler (run on
     the main thread, inside whatever wait it interrupts) takes 30 ms."""
-    old = signal.signal(signal.SIGUSR1, lambda s, f: time.sleep(0.03))
+    old = signal.signal(signal.SIGUSR1, lambda s, f: time.sleep(0.03))  # stimulus: 30 ms
     timers: list[threading.Timer] = []
 
     def arm() -> None:

@@ -14,6 +14,7 @@ from typing import Any
 import pytest
 import yaml
 
+from tests.waits import wait_until
 from zplatform import (
     EV,
     ConfigError,
@@ -211,13 +212,11 @@ def test_the_recorders_writer_checks_in_and_a_hung_disk_is_a_stall(
     live = Liveness({n: 50_000_000 for n in THREAD_NAMES})
     live.add(rec.heartbeat)
     # Idle while it waits for a chunk: not stalled, however long.
-    deadline = time.monotonic() + 10
-    while rec.heartbeat.age_ns(time.monotonic_ns()) != -1:
-        assert time.monotonic() < deadline
-        time.sleep(0.001)
+    wait_until(lambda: rec.heartbeat.age_ns(time.monotonic_ns()) == -1, 10, "the recorder idle")
     cn.recorder = rec
     try:
         n = 0
+        deadline = time.monotonic() + 10
         while not live.stalled(time.monotonic_ns()):  # the writer is inside a hung write
             assert time.monotonic() < deadline, "a hung write was never a stall"
             n += 1
@@ -245,19 +244,13 @@ def test_the_param_savers_thread_checks_in_and_a_hung_write_is_a_stall(tmp_path:
     live.add(saver.heartbeat)
     try:
         # Idle while it waits for a save: not stalled, however long.
-        deadline = time.monotonic() + 10
-        while saver.heartbeat.age_ns(time.monotonic_ns()) != -1:
-            assert time.monotonic() < deadline
-            time.sleep(0.001)
+        wait_until(lambda: saver.heartbeat.age_ns(time.monotonic_ns()) == -1, 10, "the saver idle")
         saver.submit(1, b"new")
-        while not live.stalled(time.monotonic_ns()):  # the saver is inside a hung write
-            assert time.monotonic() < deadline, "a hung write was never a stall"
-            time.sleep(0.001)
+        # The saver is inside a hung write: past its 50 ms deadline, a stall.
+        wait_until(lambda: live.stalled(time.monotonic_ns()), 10, "a hung write as a stall")
         assert stalled_names(live.stalled(time.monotonic_ns())) == ["params"]
         go.set()
-        while (done := saver.poll()) is None:  # the disk came back: the save ends
-            assert time.monotonic() < deadline
-            time.sleep(0.001)
+        done = wait_until(saver.poll, 10, "the save to end (the disk came back)")
         assert done.ok and done.seq == 1
         assert saver.heartbeat.age_ns(time.monotonic_ns()) == -1  # waiting again: idle
         assert live.stalled(time.monotonic_ns()) == 0
@@ -440,10 +433,7 @@ def test_node_health_samples_on_its_thread_and_times_gc(tmp_path: Path) -> None:
     h.start()
     try:
         assert got.wait(10)
-        deadline = time.monotonic() + 10
-        while h.samples < 2:
-            assert time.monotonic() < deadline
-            time.sleep(0.01)
+        wait_until(lambda: h.samples >= 2, 10, "two health samples")
         gc.collect()
         v = _values(bytes(h.take(0)))
         assert v["cpu_pct"] == 7.0 and v["cpu_temp_c"] == 42.0 and v["health_seq"] >= 2
@@ -466,10 +456,7 @@ def test_the_zenoh_probe_checks_in_from_zenohs_thread_only(tmp_path: Path) -> No
         assert zhb is not None and "zenoh" in live.names
         h.start()
         seen = zhb._t
-        deadline = time.monotonic() + 10
-        while zhb._t == seen:  # a probe finalised by zenoh's timer
-            assert time.monotonic() < deadline, "zenoh never finalised the probe"
-            time.sleep(0.01)
+        wait_until(lambda: zhb._t != seen, 10, "a probe finalised by zenoh's timer")
         h.close()
         # Dropping a held probe on the sampling thread proves nothing: no check-in.
         h._sampler_ident = threading.get_ident()

@@ -6,13 +6,13 @@ from __future__ import annotations
 
 import logging
 import textwrap
-import time
 from pathlib import Path
 
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from tests.waits import wait_until
 from zplatform import ControlLogic, decode_mission
 from zplatform.config import Mission, parse_mission
 from zplatform.config.codes import ParamLoad
@@ -413,11 +413,7 @@ def test_read_params_file_says_missing_and_unreadable_apart(tmp_path: Path) -> N
 
 def _finished(saver: ParamSaver) -> SaveResult:
     """Poll as a loop would (the save is on the saver's thread), for up to 10 s."""
-    deadline = time.monotonic() + 10
-    while (result := saver.poll()) is None:
-        assert time.monotonic() < deadline, "the saver never finished"
-        time.sleep(0.001)  # a loop period, not a wait for a peer
-    return result
+    return wait_until(saver.poll, 10, "the saver to finish")
 
 
 def test_the_saver_writes_off_the_loop_thread_and_reports(tmp_path: Path) -> None:

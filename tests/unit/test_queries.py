@@ -23,6 +23,7 @@ from pathlib import Path
 import pytest
 import zenoh
 
+from tests.waits import wait_until
 from tests.zsession import lone_session
 from zplatform.control.handoff import Mailbox
 from zplatform.control.intake import ReplyCheck, TriggerIntake
@@ -513,9 +514,7 @@ def test_a_flood_of_clock_queries_waits_in_a_bounded_backlog() -> None:
     try:
         flood = [_HeldQuery(release) for _ in range(5000)]
         server._on_query(flood[0])  # type: ignore[arg-type]
-        deadline = time.monotonic() + 10
-        while server._q.qsize() and time.monotonic() < deadline:  # the thread took it
-            time.sleep(0.001)  # polling the server's own queue: no peer to wait on
+        wait_until(lambda: not server._q.qsize(), 10, "the server's thread to take it")
         for q in flood[1:]:
             server._on_query(q)  # type: ignore[arg-type]
         assert server._q.qsize() == backlog

@@ -18,6 +18,7 @@ from typing import Any, BinaryIO
 
 import pytest
 
+from tests.waits import poll_until
 from zplatform.config import relocate_mission
 from zplatform.control.loop import ControlLogic
 from zplatform.core.auth import KeyError_, KeySet
@@ -79,12 +80,7 @@ class Telemetry:
 
 def wait_for(ok: Callable[[], bool], timeout_s: float = 10.0) -> bool:
     """Poll ``ok`` until it holds (True) or ``timeout_s`` passes (False)."""
-    deadline = time.monotonic() + timeout_s
-    while not ok():
-        if time.monotonic() > deadline:
-            return False
-        time.sleep(0.001)
-    return True
+    return poll_until(ok, timeout_s, poll_s=0.001)
 
 
 def head(node: str = "cn", run: int = EPOCH) -> dict[str, Any]:
@@ -226,8 +222,7 @@ def test_the_ring_wraps_at_its_bound_and_says_so(tmp_path: Path) -> None:
         rec.frame(n, f, n)
         rec.tick(n)
         if n % 50 == 0:  # let the writer keep up (a stall is the next test's)
-            while rec.backlog:
-                time.sleep(0.001)
+            assert wait_for(lambda: not rec.backlog)
     rec.close()
     rec.tick(n + 1)
     files = sorted(tmp_path.glob("seg-*.zfr"))
@@ -332,8 +327,7 @@ def test_a_full_disk_is_counted_told_once_and_the_loop_goes_on(tmp_path: Path) -
     for n, f in tm.frames(1, 50):
         assert rec.frame(n, f, n)  # copied: the loop never sees the disk
         rec.tick(n)
-        while rec.backlog:
-            time.sleep(0.001)
+        assert wait_for(lambda: not rec.backlog)
     rec.close()
     rec.tick(51)
     assert rec.lost == 50 and rec.dropped == 50 and rec.errors >= 50
@@ -357,9 +351,11 @@ def test_fsync_follows_the_policy(tmp_path: Path, monkeypatch: pytest.MonkeyPatc
         rec = recorder(tmp_path / str(policy), tm, fsync_ms=policy)
         for n, f in tm.frames(1, 5):
             rec.frame(n, f)
-        while rec.backlog:
-            time.sleep(0.001)
-        time.sleep(0.01)  # a few writer wakes
+        assert wait_for(lambda r=rec: not r.backlog)
+        if expect:
+            assert wait_for(lambda: bool(synced))  # a writer wake syncs
+        else:
+            time.sleep(0.01)  # stimulus: a few writer wakes, none of which may sync
         rec.close()
         assert bool(synced) == expect, policy
 

@@ -26,7 +26,7 @@ from zplatform.ground.script import MIN_DURATION_S, SETTLE_S
 ROOT = Path(__file__).resolve().parents[2]
 MISSION = ROOT / "configs" / "minimal.yaml"
 # The CN's run ends by itself (as with --duration); the DN runs until signalled.
-PROGRAMS = {"cn": "pass", "dn0": "import time; time.sleep(120)"}
+PROGRAMS = {"cn": "pass", "dn0": "import time; time.sleep(120)"}  # stimulus: dn0 hangs on
 
 
 class _Registry:

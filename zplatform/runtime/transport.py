@@ -272,6 +272,10 @@ def dials(mission: Mission) -> set[tuple[str, str]]:
     return out
 
 
+GROUND_NODE = "gn"
+"""The ground node's name: its session never takes shared memory (:func:`zenoh_config`)."""
+
+
 def zenoh_config(
     mission: Mission,
     node: str | None,
@@ -283,7 +287,8 @@ def zenoh_config(
     """A peer config for ``node`` (``None``: a tool connecting to every node).
 
     ``lowlatency``/``shared_memory`` override the mission's transport section
-    (benchmark variants). ``deployment``: TLS and access control
+    (benchmark variants); the ground node's (:data:`GROUND_NODE`) shared
+    memory is off whatever they say. ``deployment``: TLS and access control
     (:func:`apply_deployment`); this function never reads the environment,
     and without a deployment the config of an mTLS mission presents no
     certificate (so it can open no link: what an unknown peer gets).
@@ -328,6 +333,14 @@ def zenoh_config(
         _insert(cfg, "transport/unicast/qos/enabled", False)
     _insert(cfg, "transport/link/tx/queue/batching/enabled", t.batching)
     shm = t.shared_memory if shared_memory is None else shared_memory
+    # Never for the ground node: zenoh maps a same-host peer's whole
+    # shared-memory pool (16 MiB) the first time that peer sends a payload
+    # over 3 KiB, and keeps it mapped after the peer has gone; a keyless
+    # peer that connects, puts 4 KiB of junk on an event key, and leaves,
+    # over and over, grew the ground by 19 MB each time (bench.ground_memory).
+    # The ground reads no bulk channel and sits on another host in flight.
+    if node == GROUND_NODE:
+        shm = False
     _insert(cfg, "transport/shared_memory/enabled", shm)
     if deployment is not None:
         apply_deployment(cfg, mission, node, deployment)
