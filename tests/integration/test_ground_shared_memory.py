@@ -5,8 +5,9 @@ time that peer sends a payload over 3 KiB, and keeps it mapped after the
 peer has gone: a keyless peer that connected to the ground node, put 4 KiB
 of junk on an event key (the fault suite's event rows) and left grew the
 ground by about 19 MB each time, for good. The ground node's session now
-has shared memory off (``zenoh_config``), whatever the mission says; the
-vehicle's nodes keep it (bulk channels).
+has shared memory off (``zenoh_config``), whatever the mission says; a
+vehicle node has it only where it helps (a bulk channel, a region frame over
+zenoh's 3 KiB threshold: ``core.messages.shared_memory_for``).
 """
 
 from __future__ import annotations
@@ -36,9 +37,23 @@ def _mission(tmp: Path) -> Path:
 def test_the_ground_nodes_session_has_no_shared_memory(tmp_path: Path) -> None:
     m = load_mission(_mission(tmp_path))
     shm = "transport/shared_memory/enabled"
-    assert json.loads(zenoh_config(m, "dn0").get_json(shm)) is True  # the vehicle keeps it
     assert json.loads(zenoh_config(m, "gn").get_json(shm)) is False
     assert json.loads(zenoh_config(m, "gn", shared_memory=True).get_json(shm)) is False
+    # minimal's device node has small regions and no bulk channel: nothing to gain.
+    assert json.loads(zenoh_config(m, "dn0").get_json(shm)) is False
+    assert json.loads(zenoh_config(m, "dn0", shared_memory=True).get_json(shm)) is True
+
+
+def test_a_vehicle_node_has_shared_memory_only_where_it_helps() -> None:
+    from zplatform.core.messages import shared_memory_for
+
+    camera = load_mission(CONFIGS / "camera.yaml")  # a bulk channel dn0 -> cn
+    owners = {ch.node for ch in camera.bulk} | {r for ch in camera.bulk for r in ch.readers}
+    assert owners and all(shared_memory_for(camera, n) for n in owners)
+    assert not shared_memory_for(camera, "gn")
+    assert shared_memory_for(camera, None)  # a tool: `tap` shows a bulk sample's path
+    minimal = load_mission(CONFIGS / "minimal.yaml")
+    assert not any(shared_memory_for(minimal, n) for n in minimal.nodes)
 
 
 def test_a_flooding_peer_that_leaves_leaves_no_memory_behind() -> None:

@@ -59,6 +59,32 @@ def largest_message(mission: Mission) -> int:
 WILDCARD_MAX_BUNDLE = 4 * 1024
 
 
+#: Zenoh 1.x moves a message through shared memory only above this size
+#: (``transport/shared_memory/transport_optimization/message_size_threshold``,
+#: its default): a node whose messages are all smaller gains nothing from it.
+SHM_MESSAGE_THRESHOLD = 3 * 1024
+
+
+def shared_memory_for(mission: Mission, node: str | None) -> bool:
+    """Whether ``node`` needs zenoh shared memory: it owns or reads a bulk
+    channel, or one of its region frames is over
+    :data:`SHM_MESSAGE_THRESHOLD`; the ground node never does. A node with it
+    on maps the whole pool (16 MiB) of every same-host peer that sends it a
+    large payload and keeps it mapped after the peer has gone
+    (bench.ground_memory), so a long-running node has it only where it helps;
+    ``None`` (a tool: short-lived, and ``tap`` shows a bulk sample's path) has.
+    """
+    if node is None:
+        return True
+    if node == "gn" or node not in mission.nodes:
+        return False
+    if any(node == ch.node or node in ch.readers for ch in mission.bulk):
+        return True
+    regions = mission.node_regions(node)
+    sizes = [Layout.for_regions(mission, [r]).size for r in regions]
+    return any(n + frame_overhead(n) + TAG_LEN > SHM_MESSAGE_THRESHOLD for n in sizes)
+
+
 def sync_bundle_size(mission: Mission) -> int:
     """Bytes of the mission's sync bundle (every ``cn_to_dnX`` frame, authenticated)."""
 

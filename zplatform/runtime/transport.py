@@ -39,7 +39,7 @@ import zenoh
 from ..config import STANDBY, Mission, relocate_mission
 from ..control.handoff import Handoff
 from ..core.events import EventLog, Severity, encode_event
-from ..core.messages import lowlatency_for
+from ..core.messages import lowlatency_for, shared_memory_for
 from ..errors import TransportError
 from ..security.deploy import Deployment, check_tool_may_command, require_deployment, zenoh_settings
 from ..security.keyspace import key_of
@@ -332,13 +332,17 @@ def zenoh_config(
         _insert(cfg, "transport/unicast/lowlatency", True)
         _insert(cfg, "transport/unicast/qos/enabled", False)
     _insert(cfg, "transport/link/tx/queue/batching/enabled", t.batching)
-    shm = t.shared_memory if shared_memory is None else shared_memory
-    # Never for the ground node: zenoh maps a same-host peer's whole
-    # shared-memory pool (16 MiB) the first time that peer sends a payload
-    # over 3 KiB, and keeps it mapped after the peer has gone; a keyless
-    # peer that connects, puts 4 KiB of junk on an event key, and leaves,
-    # over and over, grew the ground by 19 MB each time (bench.ground_memory).
-    # The ground reads no bulk channel and sits on another host in flight.
+    # Only where it helps (core.messages.shared_memory_for): zenoh maps a
+    # same-host peer's whole shared-memory pool (16 MiB) the first time that
+    # peer sends a payload over 3 KiB, and keeps it mapped after the peer has
+    # gone; a keyless peer that connects, puts 4 KiB of junk on an event key,
+    # and leaves, over and over, grew a node by 16-19 MB each time
+    # (bench.ground_memory). Never for the ground node, whatever the
+    # override: it reads no bulk channel and sits on another host in flight.
+    if shared_memory is None:
+        shm = t.shared_memory and shared_memory_for(mission, node)
+    else:
+        shm = shared_memory
     if node == GROUND_NODE:
         shm = False
     _insert(cfg, "transport/shared_memory/enabled", shm)
