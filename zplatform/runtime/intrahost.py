@@ -23,6 +23,8 @@ from __future__ import annotations
 
 import ctypes
 import enum
+import hashlib
+import os
 import re
 import shutil
 import time
@@ -30,11 +32,13 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
+import msgspec
+
 from ..config import Mission
 from ..core.auth import TAG_LEN
 from ..core.codec import max_frame_length
 from ..core.datavector import Layout
-from ..errors import IntraHostError
+from ..errors import ConfigError, IntraHostError
 
 __all__ = [
     "DEFAULT_DEADLINE_S",
@@ -44,13 +48,17 @@ __all__ = [
     "IntraHostServer",
     "LinkNames",
     "LinkState",
+    "check_intra_host",
     "check_shm",
+    "host_tag",
     "iceoryx2_config",
+    "intra_host_mode",
     "link_names",
     "mission_link_sizes",
     "mission_shm_need",
     "remove_stale",
     "segment_bytes",
+    "sync_link_names",
 ]
 
 #: The file-name prefix of every iceoryx2 resource zplatform creates (in
@@ -102,6 +110,61 @@ def link_names(mission: str, vehicle: str, run: str | int, cn: str, dn: str) -> 
             raise IntraHostError(f"intra-host link: {what} {text!r} is not [A-Za-z0-9_.-]{{1,64}}")
     base = f"zplatform/{mission}/{vehicle}/{run}/{cn}/{dn}"
     return LinkNames(f"{base}/sync", f"{base}/trigger", f"{base}/reply")
+
+
+def host_tag() -> str:
+    """What names this host for the intra-host links: the kernel's boot and
+    this process's network namespace. Two nodes see the same tag only on
+    one host in one network namespace, so nodes that talk over a network
+    (other hosts, or namespaces standing for them) never open one link.
+    Not a secret and not a proof: the tagged round trip is
+    (docs/architecture.md#intra-host). Never raises ("na" when unknown)."""
+    parts = []
+    try:
+        with open("/proc/sys/kernel/random/boot_id") as f:
+            parts.append(f.read().strip().replace("-", "")[:12])
+    except OSError:
+        parts.append("na")
+    try:
+        parts.append(f"{os.stat('/proc/self/ns/net').st_ino:x}")
+    except OSError:
+        parts.append("na")
+    return ".".join(parts)
+
+
+def _name_part(text: str) -> str:
+    return re.sub(r"[^A-Za-z0-9_.-]", "_", text)[:64] or "_"
+
+
+def sync_link_names(mission: Mission, dn: str, cn: str = "cn") -> LinkNames:
+    """The names of the sync's link ``cn`` -> ``dn`` on this host
+    (:func:`link_names`): the mission's name and a digest of its whole
+    configuration (two copies of a mission on other endpoints, as tests run
+    them side by side, never share a link), and :func:`host_tag` for the
+    run part. The same for every run: the frames' tags bind each to its run."""
+    digest = hashlib.sha256(msgspec.json.encode(mission)).hexdigest()[:12]
+    name = f"{_name_part(mission.mission)[:48]}.{digest}"
+    return link_names(name, mission.vehicle, host_tag(), cn, dn)
+
+
+def intra_host_mode(mission: Mission) -> str:
+    """``transport.intra_host`` as the sync takes it: ``zenoh`` for a
+    redundant mission (failover syncs over zenoh) or one without device
+    nodes, else the setting (``auto``, ``zenoh`` or ``shm``)."""
+    if mission.standby is not None or not mission.device_nodes:
+        return "zenoh"
+    return mission.transport.intra_host
+
+
+def check_intra_host(mission: Mission) -> None:
+    """Raise ConfigError at ``transport.intra_host`` for ``shm`` on a
+    redundant mission (its standby and takeovers sync over zenoh)."""
+    if mission.transport.intra_host == "shm" and mission.standby is not None:
+        raise ConfigError(
+            "a redundant mission (failover) syncs over zenoh: intra_host shm cannot be "
+            "pinned, use auto or zenoh",
+            "$.transport.intra_host",
+        )
 
 
 def mission_link_sizes(mission: Mission, dn: str) -> tuple[int, int]:

@@ -1,0 +1,216 @@
+"""The sync over the intra-host link (zplatform.runtime.sync: ShmLink,
+ShmServe; docs/architecture.md#intra-host), both ends in this process on
+one zenoh session and real iceoryx2 services: the trigger and reply take
+shared memory once a reply passed the intake, fall back to zenoh in the
+same loop when the DN's end is gone, come back after RETRY_LOOPS, and a
+forged or replayed frame over shared memory is refused and counted by the
+same intake as over zenoh."""
+
+from __future__ import annotations
+
+import threading
+import uuid
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+
+import pytest
+
+from tests.zsession import lone_session
+from zplatform.control.intake import CnRefusals, ReplyCheck, TriggerIntake
+from zplatform.control.loop import ControlLogic, DeviceLogic
+from zplatform.core.auth import channel
+from zplatform.mission.load import load_mission
+from zplatform.runtime import sync as sync_mod
+from zplatform.runtime.intrahost import (
+    IntraHostClient,
+    IntraHostServer,
+    link_names,
+    mission_link_sizes,
+)
+from zplatform.runtime.sync import ControlSync, DeviceSync, ShmLink, ShmServe
+from zplatform.runtime.transport import KeySpace
+from zplatform.sim.lockstep import sim_keys
+
+MINIMAL = Path(__file__).resolve().parents[2] / "configs" / "minimal.yaml"
+T0 = 10**9
+PERIOD = 10**7
+
+
+@dataclass
+class Pair:
+    m: object
+    cn: ControlLogic
+    dn: DeviceLogic
+    cs: ControlSync
+    ds: DeviceSync
+    link: ShmLink
+    intake: TriggerIntake  # type: ignore[type-arg]
+    names: object
+    sizes: tuple[int, int]
+
+    def loop(self, loop: int) -> bool:
+        """One loop: the DN serves on a thread, the CN syncs; whether the
+        CN got every reply."""
+        served = threading.Thread(target=self.ds.wait, args=(self.dn, 10.0))
+        served.start()
+        self.cs.sync(self.cn.begin(loop, T0 + loop * PERIOD), self.cn)
+        served.join()
+        ok = self.cn.pending == 0
+        self.cn.finish()
+        return ok
+
+
+@pytest.fixture
+def pair() -> Iterator[Pair]:
+    m = load_mission(MINIMAL)
+    sim = sim_keys(m)
+    cn = ControlLogic(m, keys=sim)
+    dn = DeviceLogic(m, "dn0", keys=sim)
+    names = link_names(f"t{uuid.uuid4().hex[:12]}", m.vehicle, "1", "cn", "dn0")
+    sizes = mission_link_sizes(m, "dn0")
+    session = lone_session()
+    keys = KeySpace(m.vehicle)
+    # The DN's clock: a period per read, from the CN's first loop on (the
+    # intake's bound ahead and the logic's staleness both hold).
+    now = iter(range(T0, 100 * T0, PERIOD // 4)).__next__
+    intake: TriggerIntake = TriggerIntake(m, "dn0", channel(sim, "cn_to_dn0"), now)  # type: ignore[type-arg]
+    ds = DeviceSync(
+        session,
+        keys,
+        "dn0",
+        now,
+        intake=intake,
+        shm=IntraHostServer(names, *sizes),
+        shm_hold_s=5.0,
+        path=dn.dv.handle("dn0_sync_path"),
+    )
+    # Generous deadlines: these check what happens, not how fast.
+    link = ShmLink("dn0", IntraHostClient(names, *sizes, deadline_s=2.0))
+    cs = ControlSync(
+        session,
+        keys,
+        ["dn0"],
+        2_000_000_000,
+        2.0,
+        checks=[ReplyCheck(m, "dn0", channel(sim, "dn0_to_cn"))],
+        shm=[link],
+    )
+    try:
+        yield Pair(m, cn, dn, cs, ds, link, intake, names, sizes)
+    finally:
+        cs.close()
+        ds.close()
+        session.close()
+
+
+def changes(cs: ControlSync) -> list[tuple[str, str]]:
+    out: list[tuple[str, str, str]] = []
+    cs.take_path_changes(out)
+    return [(dn, path) for dn, path, _ in out]
+
+
+def test_the_sync_takes_shared_memory_once_a_reply_passed_the_intake(pair: Pair) -> None:
+    hops: list[str] = []
+    pair.cs._trace = lambda h, n: hops.append(h)
+    for loop in (1, 2, 3):
+        assert pair.loop(loop)
+    assert pair.link.on_shm and pair.link.tries == 1
+    assert pair.ds.shm is not None and pair.ds.shm.admitted == 3
+    # Nothing came back over zenoh ("back" is zenoh's thread handing a reply over).
+    assert hops == ["issued", "taken"] * 3
+    # The path is in the DN's reply, so in the CN's vector (telemetry).
+    assert pair.dn.dv.get_name("dn0_sync_path") == "shm"
+    assert pair.cn.dv.get_name("dn0_sync_path") == "shm"
+    assert int(pair.cn.dv.get("cn_missed_dn0")) == 0
+    assert changes(pair.cs) == [("dn0", "shm")]
+    assert pair.cs.paths() == ["shm"]
+
+
+def test_a_dead_shm_server_falls_back_to_zenoh_in_the_same_loop_and_returns(
+    pair: Pair, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.setattr(sync_mod, "RETRY_LOOPS", 3)
+    assert pair.loop(1) and pair.link.on_shm
+    assert pair.ds.shm is not None
+    pair.ds.shm.close()  # the DN's end goes; its node and zenoh stay
+    pair.ds.shm = None
+    # The next trigger finds no server and goes over zenoh at once: no loop lost.
+    for loop in (2, 3, 4):
+        assert pair.loop(loop)
+        assert pair.dn.dv.get_name("dn0_sync_path") == "zenoh"
+    assert not pair.link.on_shm and pair.link.fallbacks == 1
+    assert changes(pair.cs) == [("dn0", "shm"), ("dn0", "zenoh")]
+    # The DN's end comes back (a restarted DN): after RETRY_LOOPS loops the
+    # CN tries shared memory again, and the reply passes: back on it.
+    pair.ds.shm = ShmServe(IntraHostServer(pair.names, *pair.sizes), pair.intake, 5.0)  # type: ignore[arg-type]
+    for loop in range(5, 9):
+        assert pair.loop(loop)
+    assert pair.link.on_shm and pair.dn.dv.get_name("dn0_sync_path") == "shm"
+    assert changes(pair.cs) == [("dn0", "shm")]
+    assert int(pair.cn.dv.get("cn_missed_dn0")) == 0
+
+
+def test_a_forged_reply_over_shared_memory_is_refused_and_counted(pair: Pair) -> None:
+    """Someone else's server on the link (the DN's closed): its reply of the
+    right size fails the tag check, is counted like a bad reply over zenoh,
+    and the link is never used: zenoh carries the loops."""
+    assert pair.ds.shm is not None
+    pair.ds.shm.close()
+    pair.ds.shm = None
+    forger = IntraHostServer(pair.names, *pair.sizes)
+    stop = threading.Event()
+
+    def forge() -> None:
+        while not stop.is_set():
+            if forger.wait(0.05) is not None:
+                forger.respond(bytes(pair.sizes[1] - 4))
+
+    t = threading.Thread(target=forge)
+    t.start()
+    try:
+        # The CN's first try goes to the forger: no valid reply, the loop is lost.
+        served = threading.Thread(target=pair.ds.wait, args=(pair.dn, 0.2))
+        served.start()
+        pair.cs.sync(pair.cn.begin(1, T0 + PERIOD), pair.cn)
+        served.join()
+        assert pair.cn.pending == 1
+        refused = CnRefusals()
+        pair.cs.take_refusals(refused)
+        assert (refused.reply_size, refused.reply_bad, refused.reply_stale) == (0, 1, 0)
+        assert pair.link.refused == 1 and not pair.link.on_shm
+        pair.cn.finish()
+        # The next loops go over zenoh (the try waits RETRY_LOOPS).
+        for loop in (2, 3):
+            assert pair.loop(loop)
+        assert pair.dn.dv.get_name("dn0_sync_path") == "zenoh"
+        assert changes(pair.cs) == []  # never verified: no path change to tell
+    finally:
+        stop.set()
+        t.join()
+        forger.close()
+
+
+def test_junk_and_replayed_triggers_over_shared_memory_meet_the_same_intake(pair: Pair) -> None:
+    """A local process writing into the DN's service: junk is refused (bad
+    tag), a genuine trigger replayed is refused (stale, even when the
+    original came over zenoh), neither answered; both counted in the DN's
+    ``dn0_bad_frames`` as over zenoh."""
+    frame = bytes(pair.cn.begin(1, T0 + PERIOD)[0])
+    pair.cn.finish()
+    assert pair.loop(2)  # over shared memory, verified
+    attacker = IntraHostClient(pair.names, *pair.sizes, deadline_s=0.3)
+    try:
+        out = bytearray(pair.sizes[1])
+        assert attacker.call(bytes(len(frame)), out) is None  # junk: unanswered
+        assert attacker.call(frame, out) is None  # loop 1's genuine trigger: stale
+    finally:
+        attacker.close()
+    bad_before = int(pair.dn.dv.get("dn0_bad_frames"))
+    assert bad_before == 0
+    # The next genuine loop is served after both (one thread, in order), and
+    # its wait hands the intake's counts to the logic.
+    assert pair.loop(3)
+    assert int(pair.dn.dv.get("dn0_bad_frames")) == 2
+    # (loop 1 was begun only for its frame: its miss is the one counted)
+    assert pair.link.on_shm and int(pair.cn.dv.get("cn_missed_dn0")) == 1
