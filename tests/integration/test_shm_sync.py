@@ -13,10 +13,12 @@ import uuid
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import pytest
 
 from tests.zsession import lone_session
+from zplatform.config import Mission
 from zplatform.control.intake import CnRefusals, ReplyCheck, TriggerIntake
 from zplatform.control.loop import ControlLogic, DeviceLogic
 from zplatform.core.auth import channel
@@ -25,6 +27,7 @@ from zplatform.runtime import sync as sync_mod
 from zplatform.runtime.intrahost import (
     IntraHostClient,
     IntraHostServer,
+    LinkNames,
     link_names,
     mission_link_sizes,
 )
@@ -39,14 +42,14 @@ PERIOD = 10**7
 
 @dataclass
 class Pair:
-    m: object
+    m: Mission
     cn: ControlLogic
     dn: DeviceLogic
     cs: ControlSync
     ds: DeviceSync
     link: ShmLink
-    intake: TriggerIntake  # type: ignore[type-arg]
-    names: object
+    intake: TriggerIntake[Any]
+    names: LinkNames
     sizes: tuple[int, int]
 
     def loop(self, loop: int) -> bool:
@@ -74,7 +77,7 @@ def pair() -> Iterator[Pair]:
     # The DN's clock: a period per read, from the CN's first loop on (the
     # intake's bound ahead and the logic's staleness both hold).
     now = iter(range(T0, 100 * T0, PERIOD // 4)).__next__
-    intake: TriggerIntake = TriggerIntake(m, "dn0", channel(sim, "cn_to_dn0"), now)  # type: ignore[type-arg]
+    intake: TriggerIntake[Any] = TriggerIntake(m, "dn0", channel(sim, "cn_to_dn0"), now)
     ds = DeviceSync(
         session,
         keys,
@@ -143,7 +146,7 @@ def test_a_dead_shm_server_falls_back_to_zenoh_in_the_same_loop_and_returns(
     assert changes(pair.cs) == [("dn0", "shm"), ("dn0", "zenoh")]
     # The DN's end comes back (a restarted DN): after RETRY_LOOPS loops the
     # CN tries shared memory again, and the reply passes: back on it.
-    pair.ds.shm = ShmServe(IntraHostServer(pair.names, *pair.sizes), pair.intake, 5.0)  # type: ignore[arg-type]
+    pair.ds.shm = ShmServe(IntraHostServer(pair.names, *pair.sizes), pair.intake, 5.0)
     for loop in range(5, 9):
         assert pair.loop(loop)
     assert pair.link.on_shm and pair.dn.dv.get_name("dn0_sync_path") == "shm"

@@ -31,11 +31,11 @@ from typing import Any
 import zenoh
 
 from .. import trace as tracer
+from ..config import Mission
 from ..control.handoff import Handoff, Mailbox
 from ..control.intake import CnRefusals, ProbeIntake, ReplyCheck, TriggerIntake
 from ..control.loop import ControlLogic, DeviceLogic
 from ..core.codec import BundleEncoder
-from ..config import Mission
 from ..errors import IntraHostError
 from .intrahost import (
     IntraHostClient,
@@ -194,7 +194,7 @@ class ShmLink:
         """``(path, why)`` of each change not yet evented (the driver drains it)."""
         self._loops = 0
         self._retry_at = 0
-        self._wait = RETRY_LOOPS
+        self._failed = 0  # tries in a row that lost their loop
         self._told_no_peer = False
 
     def try_shm(self) -> bool:
@@ -220,24 +220,27 @@ class ShmLink:
     def missed(self, why: str) -> None:
         """The trigger went but no valid reply came back: this loop is lost."""
         if self.on_shm:
-            self._wait = RETRY_LOOPS
+            self._failed = 0
             self._fall(why)
         else:
-            self._wait = min(self._wait * 2, RETRY_MAX_LOOPS)
-        self._retry_at = self._loops + self._wait
+            self._failed += 1
+        # The first try after a fallback comes RETRY_LOOPS later; each
+        # further failed one doubles the wait, up to RETRY_MAX_LOOPS.
+        wait = RETRY_LOOPS << min(max(self._failed - 1, 0), 10)
+        self._retry_at = self._loops + min(wait, max(RETRY_MAX_LOOPS, RETRY_LOOPS))
         # A DN killed with SIGKILL leaves its server in iceoryx2's state: the
         # CN's client would find it connected and wait out each try. Rare
         # (once per failed try), so the directory scan is affordable here.
         try:
             remove_stale()
-        except Exception:  # noqa: BLE001 - a scan that fails leaves the next try to time out
+        except Exception:  # a scan that fails leaves the next try to time out
             pass
 
     def took(self) -> None:
         """A reply over the link passed the intake."""
         if not self.on_shm:
             self.on_shm = True
-            self._wait = RETRY_LOOPS
+            self._failed = 0
             self._told_no_peer = False
             self.changes.append(("shm", "its reply passed the intake"))
 
@@ -916,9 +919,7 @@ class DeviceSync:
         # served trigger came by (it goes back in the reply).
         self._path = path
         self.shm: ShmServe | None = (
-            ShmServe(shm, intake, hold_s=shm_hold_s)
-            if shm is not None
-            else None
+            ShmServe(shm, intake, hold_s=shm_hold_s) if shm is not None else None
         )
 
     def wait(self, logic: DeviceLogic, timeout_s: float) -> bool:

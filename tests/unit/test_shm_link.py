@@ -1,0 +1,86 @@
+"""The CN's choice of path per intra-host link (zplatform.runtime.sync.ShmLink),
+loop by loop: probation, fallback, return with hysteresis, the events queued."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import pytest
+
+from zplatform.runtime import sync as sync_mod
+from zplatform.runtime.sync import RETRY_LOOPS, ShmLink
+
+
+class _Client:
+    def close(self) -> None:
+        pass
+
+
+@pytest.fixture(autouse=True)
+def _no_scan(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr(sync_mod, "remove_stale", lambda: 0)
+
+
+def _link(pinned: bool = False) -> ShmLink:
+    client: Any = _Client()
+    return ShmLink("dn0", client, pinned=pinned)
+
+
+def _tries(link: ShmLink, loops: int) -> list[int]:
+    """The loops (1-based from now) on which the link is tried, each failing."""
+    out = []
+    for k in range(1, loops + 1):
+        if link.try_shm():
+            out.append(k)
+            link.missed("no reply within the deadline")
+    return out
+
+
+def test_a_verified_link_carries_every_loop_until_it_misses() -> None:
+    link = _link()
+    assert link.try_shm()  # the first loop tries (probation)
+    link.took()
+    assert link.on_shm and link.changes == [("shm", "its reply passed the intake")]
+    link.changes.clear()
+    assert all(link.try_shm() for _ in range(500))
+    link.missed("no reply within the deadline")
+    assert not link.on_shm and link.fallbacks == 1
+    assert link.changes == [("zenoh", "no reply within the deadline")]
+    # Back on zenoh: the next try comes RETRY_LOOPS loops later.
+    assert _tries(link, RETRY_LOOPS)[0] == RETRY_LOOPS
+
+
+def test_failed_tries_back_off_doubling_up_to_the_bound() -> None:
+    link = _link()
+    assert link.try_shm()
+    link.missed("a reply the intake refused")  # never verified: no change to tell
+    tries = _tries(link, 4000)
+    gaps = [b - a for a, b in zip([0, *tries], tries, strict=False)]
+    assert gaps[:4] == [RETRY_LOOPS, 2 * RETRY_LOOPS, 4 * RETRY_LOOPS, 8 * RETRY_LOOPS]
+    assert max(gaps) == sync_mod.RETRY_MAX_LOOPS
+    assert link.changes == [] and link.fallbacks == 0
+
+
+def test_no_peer_costs_no_loop_and_no_backoff() -> None:
+    link = _link()
+    link.try_shm()
+    link.took()
+    link.changes.clear()
+    link.try_shm()
+    link.no_peer("no shared-memory server")  # zenoh carries this loop
+    assert link.changes == [("zenoh", "no shared-memory server")]
+    link.changes.clear()
+    for _ in range(3):  # still no server: a try every RETRY_LOOPS, no doubling
+        assert not any(link.try_shm() for _ in range(RETRY_LOOPS - 1))
+        assert link.try_shm()
+        link.no_peer("no shared-memory server")
+    assert link.changes == []
+
+
+def test_pinned_shm_without_a_peer_is_told_once() -> None:
+    link = _link(pinned=True)
+    for _ in range(3):
+        while not link.try_shm():
+            pass
+        link.no_peer("no shared-memory server")
+    assert link.changes == [("zenoh", "pinned to shm, but no shared-memory server")]
