@@ -33,3 +33,6 @@ def test_a_dn_killed_with_sigkill_and_restarted_syncs_over_shared_memory_again(
             "dn0 back on shm",
         )
         assert "intra-host" not in c.log("dn0")  # no failure to open its link
+        # The CN evented both ways (sync_on_shm, then sync_fallback at the kill).
+        log = c.log("cn")
+        assert "sync_on_shm" in log and "sync_fallback" in log

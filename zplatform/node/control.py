@@ -890,7 +890,6 @@ class ControlNode:
             fallbacks = link.fallbacks if link is not None else 0
             ev = EV.SYNC_ON_SHM if path == "shm" else EV.SYNC_FALLBACK
             self.logic.events.emit(ev, t_ns, node=self.name, dn=dn, why=why, fallbacks=fallbacks)
-            log.info("%s: %s's sync takes %s (%s)", self.name, dn, path, why)
         got.clear()
 
     def _take_refusals(self) -> CnRefusals:
