@@ -1,5 +1,5 @@
 """The sync over the intra-host link (zplatform.runtime.sync: ShmLink,
-ShmServe; docs/architecture.md#intra-host), both ends in this process on
+DeviceSync.attach_shm; docs/architecture.md#intra-host), both ends in this process on
 one zenoh session and real iceoryx2 services: the trigger and reply take
 shared memory once a reply passed the intake, fall back to zenoh in the
 same loop when the DN's end is gone, come back after RETRY_LOOPS, and a
@@ -31,7 +31,7 @@ from zplatform.runtime.intrahost import (
     link_names,
     mission_link_sizes,
 )
-from zplatform.runtime.sync import ControlSync, DeviceSync, ShmLink, ShmServe
+from zplatform.runtime.sync import ControlSync, DeviceSync, ShmLink
 from zplatform.runtime.transport import KeySpace
 from zplatform.sim.lockstep import sim_keys
 
@@ -85,7 +85,6 @@ def pair() -> Iterator[Pair]:
         now,
         intake=intake,
         shm=IntraHostServer(names, *sizes),
-        shm_hold_s=5.0,
         path=dn.dv.handle("dn0_sync_path"),
     )
     # Generous deadlines: these check what happens, not how fast.
@@ -119,7 +118,7 @@ def test_the_sync_takes_shared_memory_once_a_reply_passed_the_intake(pair: Pair)
     for loop in (1, 2, 3):
         assert pair.loop(loop)
     assert pair.link.on_shm and pair.link.tries == 1
-    assert pair.ds.shm is not None and pair.ds.shm.admitted == 3
+    assert pair.link.client.replies == 3
     # Nothing came back over zenoh ("back" is zenoh's thread handing a reply over).
     assert hops == ["issued", "taken"] * 3
     # The path is in the DN's reply, so in the CN's vector (telemetry).
@@ -135,9 +134,9 @@ def test_a_dead_shm_server_falls_back_to_zenoh_in_the_same_loop_and_returns(
 ) -> None:
     monkeypatch.setattr(sync_mod, "RETRY_LOOPS", 3)
     assert pair.loop(1) and pair.link.on_shm
-    assert pair.ds.shm is not None
-    pair.ds.shm.close()  # the DN's end goes; its node and zenoh stay
-    pair.ds.shm = None
+    server = pair.ds.detach_shm()  # the DN's end goes; its node and zenoh stay
+    assert server is not None
+    server.close()
     # The next trigger finds no server and goes over zenoh at once: no loop lost.
     for loop in (2, 3, 4):
         assert pair.loop(loop)
@@ -146,7 +145,7 @@ def test_a_dead_shm_server_falls_back_to_zenoh_in_the_same_loop_and_returns(
     assert changes(pair.cs) == [("dn0", "shm"), ("dn0", "zenoh")]
     # The DN's end comes back (a restarted DN): after RETRY_LOOPS loops the
     # CN tries shared memory again, and the reply passes: back on it.
-    pair.ds.shm = ShmServe(IntraHostServer(pair.names, *pair.sizes), pair.intake, 5.0)
+    pair.ds.attach_shm(IntraHostServer(pair.names, *pair.sizes))
     for loop in range(5, 9):
         assert pair.loop(loop)
     assert pair.link.on_shm and pair.dn.dv.get_name("dn0_sync_path") == "shm"
@@ -158,9 +157,9 @@ def test_a_forged_reply_over_shared_memory_is_refused_and_counted(pair: Pair) ->
     """Someone else's server on the link (the DN's closed): its reply of the
     right size fails the tag check, is counted like a bad reply over zenoh,
     and the link is never used: zenoh carries the loops."""
-    assert pair.ds.shm is not None
-    pair.ds.shm.close()
-    pair.ds.shm = None
+    server = pair.ds.detach_shm()
+    assert server is not None
+    server.close()
     forger = IntraHostServer(pair.names, *pair.sizes)
     stop = threading.Event()
 
@@ -196,24 +195,25 @@ def test_a_forged_reply_over_shared_memory_is_refused_and_counted(pair: Pair) ->
 
 def test_junk_and_replayed_triggers_over_shared_memory_meet_the_same_intake(pair: Pair) -> None:
     """A local process writing into the DN's service: junk is refused (bad
-    tag), a genuine trigger replayed is refused (stale, even when the
-    original came over zenoh), neither answered; both counted in the DN's
-    ``dn0_bad_frames`` as over zenoh."""
+    tag), a genuine trigger replayed is refused (stale), neither answered;
+    each counted in the DN's ``dn0_bad_frames`` as over zenoh, and the next
+    genuine loop runs."""
     frame = bytes(pair.cn.begin(1, T0 + PERIOD)[0])
-    pair.cn.finish()
+    pair.cn.finish()  # loop 1 was begun only for its frame: one miss
     assert pair.loop(2)  # over shared memory, verified
-    attacker = IntraHostClient(pair.names, *pair.sizes, deadline_s=0.3)
+    attacker = IntraHostClient(pair.names, *pair.sizes, deadline_s=0.05)
     try:
-        out = bytearray(pair.sizes[1])
-        assert attacker.call(bytes(len(frame)), out) is None  # junk: unanswered
-        assert attacker.call(frame, out) is None  # loop 1's genuine trigger: stale
+        for k, sent in enumerate((bytes(len(frame)), frame), start=1):  # junk; loop 1's, stale
+            buf = attacker.trigger(len(sent))
+            assert buf is not None
+            buf[:] = sent
+            assert attacker.send()  # queued in the DN's service before the DN waits
+            # The DN's wait takes it, refuses it, waits out its timeout unanswered.
+            assert not pair.ds.wait(pair.dn, 0.05)
+            assert attacker.collect() is None
+            assert int(pair.dn.dv.get("dn0_bad_frames")) == k
     finally:
         attacker.close()
-    bad_before = int(pair.dn.dv.get("dn0_bad_frames"))
-    assert bad_before == 0
-    # The next genuine loop is served after both (one thread, in order), and
-    # its wait hands the intake's counts to the logic.
     assert pair.loop(3)
-    assert int(pair.dn.dv.get("dn0_bad_frames")) == 2
-    # (loop 1 was begun only for its frame: its miss is the one counted)
-    assert pair.link.on_shm and int(pair.cn.dv.get("cn_missed_dn0")) == 1
+    assert pair.link.on_shm and pair.dn.dv.get_name("dn0_sync_path") == "shm"
+    assert int(pair.cn.dv.get("cn_missed_dn0")) == 1

@@ -423,7 +423,6 @@ class DeviceNode:
             ),
             trace=self._sync_trace,
             shm=shm,
-            shm_hold_s=m.period_ns / 1e9,
             path=self.dv.handle(f"{self.name}_sync_path"),
         )
         self.bulk = open_bulk(s, m, self.name, self.logic)

@@ -27,6 +27,7 @@ import hashlib
 import os
 import re
 import shutil
+import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -302,7 +303,7 @@ class _End:
             .event()
             .max_nodes(4)
             .max_listeners(2)
-            .max_notifiers(2)
+            .max_notifiers(3)  # the CN, a restarted CN, and the DN's waker (DeviceSync)
             .open_or_create()
         )
 
@@ -591,6 +592,34 @@ class IntraHostServer(_End):
             if left <= 0:
                 return None
             self._listener.timed_wait(iox.Duration.from_secs_f64(left))
+
+    def poll(self) -> memoryview | None:
+        """:meth:`wait` without waiting: the newest trigger queued, or None."""
+        return self.wait(0.0)
+
+    def block(self, timeout_s: float) -> None:
+        """Wait until any notification on the trigger event (a trigger, or a
+        :meth:`waker`'s) or ``timeout_s``; returns at once if one is pending.
+        Never spins. Then :meth:`poll`: the wake may be for something else."""
+        self._listener.timed_wait(self._iox.Duration.from_secs_f64(max(0.0, timeout_s)))
+
+    def waker(self) -> Callable[[], None]:
+        """A function that wakes :meth:`block` (another notifier on the
+        trigger event), for what else this end's thread waits for (a DN's
+        zenoh triggers). Thread-safe: calls from several threads are
+        serialised. Raises IntraHostError when the event admits no more
+        notifiers."""
+        try:
+            notifier = self._req_ev.notifier_builder().create()
+        except Exception as exc:
+            raise IntraHostError(f"intra-host link {self.names.sync}: no waker ({exc!r})") from exc
+        lock = threading.Lock()
+
+        def wake() -> None:
+            with lock:
+                notifier.notify()
+
+        return wake
 
     def reply(self, n: int) -> memoryview | None:
         """A writable view of ``n`` bytes of a loaned reply to the trigger

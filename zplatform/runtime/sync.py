@@ -32,7 +32,7 @@ import zenoh
 
 from .. import trace as tracer
 from ..config import Mission
-from ..control.handoff import Handoff, Mailbox
+from ..control.handoff import Handoff, Mailbox, Waker
 from ..control.intake import CnRefusals, ProbeIntake, ReplyCheck, TriggerIntake
 from ..control.loop import ControlLogic, DeviceLogic
 from ..core.codec import BundleEncoder
@@ -59,7 +59,6 @@ __all__ = [
     "ProbeSync",
     "ShmLink",
     "ShmQuery",
-    "ShmServe",
     "SyncTrace",
     "TapPublisher",
     "open_shm_links",
@@ -140,6 +139,23 @@ class TapPublisher:
     def undeclare(self) -> None:
         self._listener.undeclare()
         self.pub.undeclare()
+
+
+_EMPTY = memoryview(b"")
+
+
+class _ShmWaker(Waker):
+    """A mailbox waker that wakes a DN's loop thread blocked in its
+    intra-host listener (:meth:`DeviceSync.attach_shm`) instead of a lock."""
+
+    __slots__ = ("_wake",)
+
+    def __init__(self, wake: Callable[[], None]) -> None:
+        super().__init__()
+        self._wake = wake
+
+    def notify(self) -> None:
+        self._wake()
 
 
 class _ViewPayload:
@@ -254,94 +270,31 @@ class ShmLink:
 
 
 class ShmQuery:
-    """The handle of a trigger that came over shared memory, in the trigger
-    intake's mailbox beside zenoh's queries: :class:`DeviceSync` answers it
-    as it answers a ``zenoh.Query`` (``with``, :meth:`reply`,
-    :meth:`reply_err`). Its port is the loop thread's until the ``with``
-    ends or the port gives the trigger up (:class:`ShmServe`)."""
+    """The handle of a trigger that came over shared memory, served like a
+    ``zenoh.Query`` by :class:`DeviceSync` (``with``, :meth:`reply`,
+    :meth:`reply_err`) on the loop thread that owns ``server``."""
 
-    __slots__ = ("_port", "gen")
+    __slots__ = ("server",)
 
-    def __init__(self, port: ShmServe, gen: int) -> None:
-        self._port = port
-        self.gen = gen
+    def __init__(self, server: IntraHostServer) -> None:
+        self.server = server
 
     def __enter__(self) -> ShmQuery:
         return self
 
     def __exit__(self, *exc: object) -> None:
-        self._port.served(self)
+        pass
 
     def reply(self, key: object, payload: bytes | bytearray) -> None:
-        """Send ``payload`` back over the link (``key`` is zenoh's, unused)."""
-        self._port.respond(self, payload)
+        """Send ``payload`` back over the link (``key`` is zenoh's, unused):
+        one copy into a loaned sample. A client that has gone gets nothing."""
+        self.server.respond(payload)
 
     def reply_err(self, payload: bytes) -> None:
         """No error replies over shared memory: the CN counts the loop as
         missed (the DN counted the refusal in ``dnX_bad_frames``); an error
         reply there would carry no tag, so any local process could pin one
         on the DN."""
-
-
-class ShmServe:
-    """A DN's end of its intra-host link: a thread that waits for triggers
-    on ``server`` and puts each, through ``intake.admit`` (size, tag, run,
-    freshness: the intake zenoh's triggers pass, sharing their freshness),
-    in the intake's mailbox with a :class:`ShmQuery`. Until the loop thread
-    has answered it (or ``hold_s`` passed: the trigger is then given up,
-    unanswered) the thread does not wait for the next one, so the server
-    has one owner at a time. A refused trigger is counted by the intake and
-    left unanswered. :meth:`close` stops the thread (within 0.1 s) and
-    closes the server."""
-
-    def __init__(self, server: IntraHostServer, intake: Any, hold_s: float) -> None:
-        self.server = server
-        self._intake = intake
-        self._hold = hold_s
-        self._lock = threading.Lock()
-        self._answered = threading.Event()
-        self._gen = 0
-        self._stop = False
-        self.admitted = 0
-        """Triggers the intake admitted (the thread's; never reset)."""
-        self._thread = threading.Thread(target=self._run, name="shm-sync", daemon=True)
-        self._thread.start()
-
-    def _run(self) -> None:
-        server, admit, payload = self.server, self._intake.admit, _ViewPayload()
-        while not self._stop:
-            view = server.wait(0.1)
-            if view is None:
-                continue
-            payload.view = view
-            with self._lock:
-                self._gen += 1
-                query = ShmQuery(self, self._gen)
-                self._answered.clear()
-            ok = admit(payload, query)
-            payload.view = memoryview(b"")
-            if not ok:
-                continue  # refused and counted: the next wait drops it unanswered
-            self.admitted += 1
-            if not self._answered.wait(self._hold):
-                with self._lock:
-                    self._gen += 1  # given up: the loop thread's answer is dropped
-
-    def respond(self, query: ShmQuery, payload: bytes | bytearray) -> None:
-        with self._lock:
-            if query.gen == self._gen:
-                self.server.respond(payload)
-
-    def served(self, query: ShmQuery) -> None:
-        with self._lock:
-            if query.gen == self._gen:
-                self._answered.set()
-
-    def close(self) -> None:
-        self._stop = True
-        self._answered.set()
-        self._thread.join(timeout=2)
-        self.server.close()
 
 
 class ControlSync:
@@ -853,7 +806,6 @@ class DeviceSync:
         probes: ProbeIntake[zenoh.Query] | None = None,
         trace: SyncTrace | None = None,
         shm: IntraHostServer | None = None,
-        shm_hold_s: float = 0.01,
         path: Any = None,
     ) -> None:
         self.dn = dn
@@ -913,14 +865,73 @@ class DeviceSync:
                 self._probe_key, zenoh.handlers.Callback(on_probe, indirect=False)
             )
             self._ready = lambda: len(box) or len(pbox)
-        # The intra-host link (ShmServe): its triggers pass the same intake
-        # into the same mailbox, and are answered over it. ``path``: the
-        # DataVector handle of ``dnX_sync_path``, set to the path each
-        # served trigger came by (it goes back in the reply).
+        # ``path``: the DataVector handle of ``dnX_sync_path``, set to the
+        # path each served trigger came by (it goes back in the reply).
         self._path = path
-        self.shm: ShmServe | None = (
-            ShmServe(shm, intake, hold_s=shm_hold_s) if shm is not None else None
-        )
+        self.shm: IntraHostServer | None = None
+        self._shm_payload = _ViewPayload()
+        if shm is not None:
+            self.attach_shm(shm)
+
+    def attach_shm(self, server: IntraHostServer) -> None:
+        """Take triggers over the intra-host link ``server`` too (module doc
+        of :mod:`zplatform.runtime.intrahost`): :meth:`wait` then blocks in
+        its event listener, which zenoh's admitted triggers and probe
+        questions wake as well (their mailboxes' waker notifies it), so a
+        trigger over shared memory costs the loop thread one wake-up. Its
+        triggers pass the same intake (:meth:`~zplatform.control.intake.Intake.check`:
+        size, tag, run, newer than every trigger by either path) and are
+        answered over it (:class:`ShmQuery`). Raises IntraHostError if the
+        link admits no waker. Call before the loop runs."""
+        wake = server.waker()
+        waker = _ShmWaker(wake)
+        self._box.waker = waker
+        if self.probes is not None:
+            self._pbox.waker = waker
+        self._shm_query = ShmQuery(server)
+        self.shm = server
+
+    def detach_shm(self) -> IntraHostServer | None:
+        """Stop taking triggers over the intra-host link (the loop thread,
+        between two :meth:`wait`); returns its server, not closed."""
+        server, self.shm = self.shm, None
+        waker = Waker()
+        self._box.waker = waker
+        if self.probes is not None:
+            self._pbox.waker = waker
+        return server
+
+    def _wait_shm(self, logic: DeviceLogic, server: IntraHostServer, deadline: float) -> bool:
+        """:meth:`wait` with the intra-host link: the newest zenoh trigger
+        or, when none is queued, the link's, then block in its listener."""
+        box, check, payload = self._box, self.intake.check, self._shm_payload
+        while True:
+            left = deadline - time.monotonic()
+            if left <= 0:
+                return False
+            if self.probes is not None:
+                while (probe := self._pbox.pop()) is not None:
+                    self._answer(probe, logic)
+            item = box.pop()
+            if item is None:
+                view = server.poll()
+                if view is None:
+                    server.block(left)
+                    continue
+                payload.view = view
+                data = check(payload, None)  # refused: counted, unanswered
+                payload.view = _EMPTY
+                if data is None:
+                    continue
+                if self._trace is not None:
+                    self._trace("arrive", 0)
+                item = (self._shm_query, data)
+            while (newer := box.pop()) is not None:  # a backlog: answer, keep the newest
+                self._serve(item, logic, may_run=False)
+                item = newer
+            self._serve(item, logic, may_run=True)
+            if logic.triggered:
+                return True
 
     def wait(self, logic: DeviceLogic, timeout_s: float) -> bool:
         """Serve queries until one starts a loop (True) or ``timeout_s`` passes.
@@ -928,6 +939,8 @@ class DeviceSync:
         box = self._box
         deadline = time.monotonic() + timeout_s
         try:
+            if self.shm is not None:
+                return self._wait_shm(logic, self.shm, deadline)
             while True:
                 left = deadline - time.monotonic()
                 if left <= 0:
@@ -996,9 +1009,10 @@ class DeviceSync:
             self._tap.put(reply)
 
     def close(self) -> None:
-        if self.shm is not None:
-            self.shm.close()
         self.queryable.undeclare()
+        server = self.detach_shm()
+        if server is not None:
+            server.close()
         if self._probe_q is not None:
             self._probe_q.undeclare()
         self._tap.undeclare()
