@@ -263,7 +263,7 @@ class TransportConfig(_Struct):
             "intake (tag, run, loop), else zenoh. A link on shared memory that fails or "
             "stalls falls back to zenoh with an event and returns later. `shm` differs from "
             "`auto` only in that a DN that cannot open its end refuses to start, and a CN "
-            "whose DN has no shared-memory end events it (`sync_path`). A redundant "
+            "whose DN has no shared-memory end events it (`sync_fallback`). A redundant "
             "mission (`failover`) syncs over zenoh: `shm` is a config error there. The "
             "path each link takes: `dnX_sync_path`. Discovery, liveliness, taps, the "
             "ground and other hosts stay on zenoh."

@@ -16,7 +16,16 @@ the loop. A forged or replayed trigger gets no reply; the CN takes a reply
 only from the DN's own zenoh session. ``ControlSync.sync`` blocks until every
 reply is in or the deadline passed, ``DeviceSync.wait`` until a query or its timeout.
 
-Detail (wildcard, a restarted DN, late replies, trace hops): docs/architecture.md#drivers.
+The intra-host path (``transport.intra_host``): between a CN and a DN of
+one host the same frames may go over iceoryx2 shared memory instead
+(:class:`ShmLink` at the CN, :meth:`DeviceSync.attach_shm` at the DN;
+:func:`open_shm_links`, :func:`open_shm_server`), through the same intakes
+(every reply over it checked), falling back to zenoh when the link fails;
+:mod:`zplatform.runtime.intrahost` carries the bytes. Taps publish the same
+frames whichever path the sync took.
+
+Detail (wildcard, a restarted DN, late replies, trace hops): docs/architecture.md#drivers;
+the intra-host path: docs/architecture.md#intra-host.
 """
 
 from __future__ import annotations
@@ -304,7 +313,13 @@ class ControlSync:
     at most ``timeout_ns`` (plus scheduling latency). ``checks``: one
     :class:`~zplatform.control.intake.ReplyCheck` per DN, in ``dns`` order (module
     doc: replies from a session not known to be the DN's). ``trace``: a
-    :data:`SyncTrace` for benchmarks (None: no tracing).
+    :data:`SyncTrace` for benchmarks (None: no tracing). ``shm``: one
+    :class:`ShmLink` (or None) per DN, in ``dns`` order: the DNs whose link
+    takes a loop get its trigger over shared memory and their replies,
+    each through its check, wait up to the same deadline; the others (and a
+    link with no peer, in the same loop) go over zenoh, one query each
+    (the wildcard only while no link takes shared memory). The sync closes
+    the links.
     """
 
     def __init__(
@@ -792,7 +807,9 @@ class DeviceSync:
     CN's scheduler, a stalled DN skips missed loops and never runs a burst
     of old ones. Each :meth:`wait` also hands the intake's refusals to the
     logic (:meth:`DeviceLogic.refused`). ``trace``: a :data:`SyncTrace` for
-    benchmarks (None: no tracing).
+    benchmarks (None: no tracing). ``shm``: the intra-host link's server
+    (:meth:`attach_shm`; closed by :meth:`close`); ``path``: the Data
+    Vector handle of ``dnX_sync_path``, set before each trigger is served.
     """
 
     def __init__(
