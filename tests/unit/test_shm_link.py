@@ -1,14 +1,26 @@
 """The CN's choice of path per intra-host link (zplatform.runtime.sync.ShmLink),
-loop by loop: probation, fallback, return with hysteresis, the events queued."""
+loop by loop: probation, fallback, return with hysteresis, the events queued;
+``transport.intra_host`` on a redundant mission; the path in ``up``'s status."""
 
 from __future__ import annotations
 
+from pathlib import Path
 from typing import Any
 
+import msgspec
 import pytest
+import yaml
 
+from zplatform.cli import supervisor
+from zplatform.config import relocate_mission
+from zplatform.core.datavector import DataVector, Layout
+from zplatform.errors import ConfigError
+from zplatform.mission.load import load_mission
 from zplatform.runtime import sync as sync_mod
+from zplatform.runtime.intrahost import intra_host_mode
 from zplatform.runtime.sync import RETRY_LOOPS, ShmLink
+
+CONFIGS = Path(__file__).resolve().parents[2] / "configs"
 
 
 class _Client:
@@ -84,3 +96,30 @@ def test_pinned_shm_without_a_peer_is_told_once() -> None:
             pass
         link.no_peer("no shared-memory server")
     assert link.changes == [("zenoh", "pinned to shm, but no shared-memory server")]
+
+
+def test_pinned_shm_on_a_redundant_mission_is_a_config_error(tmp_path: Path) -> None:
+    raw = yaml.safe_load((CONFIGS / "flight.yaml").read_text())
+    relocate_mission(raw, CONFIGS / "flight.yaml")
+    assert "cn_b" in raw["nodes"]
+    raw.setdefault("transport", {})["intra_host"] = "shm"
+    path = tmp_path / "m.yaml"
+    path.write_text(yaml.safe_dump(raw, sort_keys=False))
+    with pytest.raises(ConfigError) as err:
+        load_mission(path)
+    assert err.value.path == "$.transport.intra_host"
+    # `auto` on it resolves to zenoh: failover syncs over zenoh.
+    raw["transport"]["intra_host"] = "auto"
+    path.write_text(yaml.safe_dump(raw, sort_keys=False))
+    assert intra_host_mode(load_mission(path)) == "zenoh"
+
+
+def test_up_shows_each_links_path_unless_the_mission_pins_zenoh() -> None:
+    m = load_mission(CONFIGS / "led_test.yaml")
+    dv = DataVector(Layout.for_node(m, "cn"))
+    dv.set("dn1_sync_path", 1)
+    assert supervisor.sync_paths(m, dv) == "  sync dn0=zenoh dn1=shm dn2=zenoh"
+    zenoh_only = msgspec.structs.replace(
+        m, transport=msgspec.structs.replace(m.transport, intra_host="zenoh")
+    )
+    assert supervisor.sync_paths(zenoh_only, dv) == ""
