@@ -123,3 +123,22 @@ def test_up_shows_each_links_path_unless_the_mission_pins_zenoh() -> None:
         m, transport=msgspec.structs.replace(m.transport, intra_host="zenoh")
     )
     assert supervisor.sync_paths(zenoh_only, dv) == ""
+
+
+def test_a_link_entry_overrides_the_missions_path_and_names_a_device_node(
+    tmp_path: Path,
+) -> None:
+    raw = yaml.safe_load((CONFIGS / "led_test.yaml").read_text())
+    relocate_mission(raw, CONFIGS / "led_test.yaml")
+    raw.setdefault("transport", {})["intra_host"] = "zenoh"
+    raw["transport"]["intra_host_links"] = {"dn1": "shm"}
+    path = tmp_path / "m.yaml"
+    path.write_text(yaml.safe_dump(raw, sort_keys=False))
+    m = load_mission(path)
+    assert [intra_host_mode(m, dn) for dn in m.device_nodes] == ["zenoh", "shm", "zenoh"]
+    assert intra_host_mode(m) == "shm"  # some link may take shared memory
+    raw["transport"]["intra_host_links"] = {"dn7": "shm"}
+    path.write_text(yaml.safe_dump(raw, sort_keys=False))
+    with pytest.raises(ConfigError) as err:
+        load_mission(path)
+    assert err.value.path == "$.transport.intra_host_links.dn7"

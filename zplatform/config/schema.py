@@ -269,6 +269,13 @@ class TransportConfig(_Struct):
             "ground and other hosts stay on zenoh."
         ),
     ] = "auto"
+    intra_host_links: Annotated[
+        dict[str, Literal["auto", "zenoh", "shm"]],
+        Meta(
+            description="`intra_host` for single device nodes, by name (`{dn1: zenoh}`): "
+            "overrides the mission's for that DN's link."
+        ),
+    ] = msgspec.field(default_factory=dict)
 
 
 class ClockConfig(_Struct):

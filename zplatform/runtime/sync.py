@@ -921,7 +921,10 @@ class DeviceSync:
     def _wait_shm(self, logic: DeviceLogic, server: IntraHostServer, deadline: float) -> bool:
         """:meth:`wait` with the intra-host link: the newest zenoh trigger
         or, when none is queued, the link's, then block in its listener."""
-        box, check, payload = self._box, self.intake.check, self._shm_payload
+        box, payload = self._box, self._shm_payload
+        # The handle is zenoh's Query for zenoh's triggers; none here.
+        check: Callable[[_ViewPayload, Any], bytes | None] = self.intake.check
+        item: tuple[zenoh.Query | ShmQuery, bytes] | None
         while True:
             left = deadline - time.monotonic()
             if left <= 0:
@@ -998,7 +1001,9 @@ class DeviceSync:
             else:
                 query.reply(self._probe_key, reply)
 
-    def _serve(self, item: tuple[zenoh.Query, bytes], logic: DeviceLogic, *, may_run: bool) -> None:
+    def _serve(
+        self, item: tuple[zenoh.Query | ShmQuery, bytes], logic: DeviceLogic, *, may_run: bool
+    ) -> None:
         trace = self._trace
         if trace is not None:
             trace("serve", 0)
@@ -1141,12 +1146,15 @@ def open_shm_links(mission: Mission, cn: str = "cn") -> list[ShmLink | None]:
     probation (:class:`ShmLink`). A link that cannot open (shared memory too
     small, iceoryx2 refused) is logged and left to zenoh under ``auto``;
     under ``shm`` the IntraHostError is raised (the operator asked for it)."""
-    mode = intra_host_mode(mission)
-    if mode == "zenoh":
+    if intra_host_mode(mission) == "zenoh":
         return []
     links: list[ShmLink | None] = []
     try:
         for dn in mission.device_nodes:
+            mode = intra_host_mode(mission, dn)
+            if mode == "zenoh":
+                links.append(None)
+                continue
             try:
                 client = IntraHostClient(
                     sync_link_names(mission, dn, cn),
@@ -1171,7 +1179,7 @@ def open_shm_links(mission: Mission, cn: str = "cn") -> list[ShmLink | None]:
 def open_shm_server(mission: Mission, dn: str, cn: str = "cn") -> IntraHostServer | None:
     """A DN's end of its intra-host link (None: zenoh only; as
     :func:`open_shm_links`, an IntraHostError only under ``shm``)."""
-    mode = intra_host_mode(mission)
+    mode = intra_host_mode(mission, dn)
     if mode == "zenoh":
         return None
     try:
