@@ -217,3 +217,28 @@ def test_junk_and_replayed_triggers_over_shared_memory_meet_the_same_intake(pair
     assert pair.loop(3)
     assert pair.link.on_shm and pair.dn.dv.get_name("dn0_sync_path") == "shm"
     assert int(pair.cn.dv.get("cn_missed_dn0")) == 1
+
+
+def test_a_dn_waiting_on_its_link_is_woken_by_zenoh_triggers(pair: Pair) -> None:
+    """A CN that syncs over zenoh (its link off) with a DN whose loop
+    thread blocks in the link's listener: zenoh's admitted triggers wake it
+    (the mailbox's waker notifies the listener from zenoh's thread), each
+    loop runs, and the path says zenoh."""
+    cs = ControlSync(
+        pair.cs.session,
+        KeySpace(pair.m.vehicle),
+        ["dn0"],
+        2_000_000_000,
+        2.0,
+        checks=[ReplyCheck(pair.m, "dn0", channel(sim_keys(pair.m), "dn0_to_cn"))],
+    )
+    own, pair.cs = pair.cs, cs  # the fixture's (never used here) closes last
+    try:
+        for loop in (1, 2, 3):
+            assert pair.loop(loop)
+    finally:
+        cs.close()
+        pair.cs = own
+    assert pair.ds.shm is not None
+    assert pair.dn.dv.get_name("dn0_sync_path") == "zenoh"
+    assert int(pair.cn.dv.get("cn_rx_dn0")) == 3
