@@ -348,6 +348,20 @@ class _End:
             self.__dict__.pop(attr, None)
 
 
+def _wait(listener: Any, duration: Any) -> None:
+    """``listener.timed_wait(duration)``; a signal that interrupts it (the
+    node's SIGTERM handler ran: iceoryx2's ListenerWaitError InterruptSignal)
+    ends the wait early instead of raising, as a spurious wake-up: every
+    caller checks its deadline and what arrived after a wait."""
+    try:
+        listener.timed_wait(duration)
+    except Exception as exc:  # iceoryx2's ListenerWaitError
+        if "Interrupt" not in repr(exc):
+            # A broken listener returns at once, every time: pause, never spin
+            # (the caller's deadline still ends its wait).
+            time.sleep(0.001)
+
+
 def _view(ptr: int, n: int) -> memoryview:
     # A memoryview over shared memory, no copy; ctypes caches the array type.
     return memoryview((ctypes.c_uint8 * n).from_address(ptr)).cast("B")
@@ -493,7 +507,7 @@ class IntraHostClient(_End):
                 del pending
                 self._missed()
                 return None
-            self._listener.timed_wait(wait)
+            _wait(self._listener, wait)
             # Woken by an earlier, late reply's event: wait out what is left.
             wait = self._iox.Duration.from_secs_f64(max(0.0, t_end - time.monotonic()))
         n = response.header.number_of_elements
@@ -611,7 +625,7 @@ class IntraHostServer(_End):
             left = t_end - time.monotonic()
             if left <= 0:
                 return None
-            self._listener.timed_wait(iox.Duration.from_secs_f64(left))
+            _wait(self._listener, iox.Duration.from_secs_f64(left))
 
     def poll(self) -> memoryview | None:
         """:meth:`wait` without waiting: the newest trigger queued, or None."""
@@ -621,7 +635,7 @@ class IntraHostServer(_End):
         """Wait until any notification on the trigger event (a trigger, or a
         :meth:`waker`'s) or ``timeout_s``; returns at once if one is pending.
         Never spins. Then :meth:`poll`: the wake may be for something else."""
-        self._listener.timed_wait(self._iox.Duration.from_secs_f64(max(0.0, timeout_s)))
+        _wait(self._listener, self._iox.Duration.from_secs_f64(max(0.0, timeout_s)))
 
     def waker(self) -> Callable[[], None]:
         """A function that wakes :meth:`block` (another notifier on the
