@@ -592,6 +592,12 @@ class IntraHostServer(_End):
             notify=self._res_ev,
             listen=self._req_ev,
         )
+        # The waker's notifier (:meth:`waker`), made with the link: a link
+        # whose event admits no more notifiers fails to open, not later.
+        try:
+            self._wake_notifier = self._req_ev.notifier_builder().create()
+        except Exception as exc:
+            raise IntraHostError(f"intra-host link {names.sync}: no waker ({exc!r})") from exc
         self._active: Any = None
         self._loan: Any = None
         #: Counters (never reset): triggers served, replies sent, triggers
@@ -641,12 +647,8 @@ class IntraHostServer(_End):
         """A function that wakes :meth:`block` (another notifier on the
         trigger event), for what else this end's thread waits for (a DN's
         zenoh triggers). Thread-safe: calls from several threads are
-        serialised. Raises IntraHostError when the event admits no more
-        notifiers."""
-        try:
-            notifier = self._req_ev.notifier_builder().create()
-        except Exception as exc:
-            raise IntraHostError(f"intra-host link {self.names.sync}: no waker ({exc!r})") from exc
+        serialised. Never raises (its notifier was made when the link opened)."""
+        notifier = self._wake_notifier
         lock = threading.Lock()
 
         def wake() -> None:
@@ -693,4 +695,5 @@ class IntraHostServer(_End):
 
     def close(self) -> None:
         self._loan = self._active = None
+        self.__dict__.pop("_wake_notifier", None)
         super().close()

@@ -898,8 +898,7 @@ class DeviceSync:
         trigger over shared memory costs the loop thread one wake-up. Its
         triggers pass the same intake (:meth:`~zplatform.control.intake.Intake.check`:
         size, tag, run, newer than every trigger by either path) and are
-        answered over it (:class:`ShmQuery`). Raises IntraHostError if the
-        link admits no waker. Call before the loop runs."""
+        answered over it (:class:`ShmQuery`). Call before the loop runs."""
         wake = server.waker()
         waker = _ShmWaker(wake)
         self._box.waker = waker
