@@ -9,6 +9,7 @@ same intake as over zenoh."""
 from __future__ import annotations
 
 import threading
+import time
 import uuid
 from collections.abc import Iterator
 from dataclasses import dataclass
@@ -242,3 +243,43 @@ def test_a_dn_waiting_on_its_link_is_woken_by_zenoh_triggers(pair: Pair) -> None
     assert pair.ds.shm is not None
     assert pair.dn.dv.get_name("dn0_sync_path") == "zenoh"
     assert int(pair.cn.dv.get("cn_rx_dn0")) == 3
+
+
+def test_taps_see_the_frames_whichever_path_the_sync_takes(pair: Pair) -> None:
+    """A tool subscribed to ``dn0/to_dn``'s and ``dn0/to_cn``'s taps gets
+    each loop's trigger and reply over zenoh while the sync itself takes
+    shared memory: what ``tap`` sees does not change."""
+    keys = KeySpace(pair.m.vehicle)
+    session = pair.cs.session
+    got: dict[str, list[bytes]] = {"down": [], "up": []}
+    subs = [
+        session.declare_subscriber(
+            keys.cn_to_dn("dn0"), lambda s: got["down"].append(s.payload.to_bytes())
+        ),
+        session.declare_subscriber(
+            keys.dn_to_cn("dn0"), lambda s: got["up"].append(s.payload.to_bytes())
+        ),
+    ]
+    try:
+        # The taps learn of the subscribers from zenoh's matching listeners.
+        taps = [pair.cs._taps[0], pair.ds._tap]
+        deadline = time.monotonic() + 10
+        while not all(t.matching for t in taps) and time.monotonic() < deadline:
+            time.sleep(0.01)  # zenoh's routing state, not a peer: no event to wait on here
+        assert all(t.matching for t in taps)
+        frames = []
+        for loop in (1, 2, 3):
+            served = threading.Thread(target=pair.ds.wait, args=(pair.dn, 10.0))
+            served.start()
+            frame = pair.cn.begin(loop, T0 + loop * PERIOD)
+            frames.append(bytes(frame[0]))
+            pair.cs.sync(frame, pair.cn)
+            served.join()
+            assert pair.cn.pending == 0
+            pair.cn.finish()
+        assert pair.link.on_shm
+        assert got["down"] == frames
+        assert len(got["up"]) == 3
+    finally:
+        for s in subs:
+            s.undeclare()
