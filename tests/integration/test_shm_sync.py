@@ -8,6 +8,7 @@ same intake as over zenoh."""
 
 from __future__ import annotations
 
+import queue
 import threading
 import time
 import uuid
@@ -251,14 +252,11 @@ def test_taps_see_the_frames_whichever_path_the_sync_takes(pair: Pair) -> None:
     shared memory: what ``tap`` sees does not change."""
     keys = KeySpace(pair.m.vehicle)
     session = pair.cs.session
-    got: dict[str, list[bytes]] = {"down": [], "up": []}
+    down: queue.Queue[bytes] = queue.Queue()
+    up: queue.Queue[bytes] = queue.Queue()
     subs = [
-        session.declare_subscriber(
-            keys.cn_to_dn("dn0"), lambda s: got["down"].append(s.payload.to_bytes())
-        ),
-        session.declare_subscriber(
-            keys.dn_to_cn("dn0"), lambda s: got["up"].append(s.payload.to_bytes())
-        ),
+        session.declare_subscriber(keys.cn_to_dn("dn0"), lambda s: down.put(s.payload.to_bytes())),
+        session.declare_subscriber(keys.dn_to_cn("dn0"), lambda s: up.put(s.payload.to_bytes())),
     ]
     try:
         # The taps learn of the subscribers from zenoh's matching listeners.
@@ -278,8 +276,10 @@ def test_taps_see_the_frames_whichever_path_the_sync_takes(pair: Pair) -> None:
             assert pair.cn.pending == 0
             pair.cn.finish()
         assert pair.link.on_shm
-        assert got["down"] == frames
-        assert len(got["up"]) == 3
+        # zenoh hands the samples over on its own thread: each is waited for.
+        assert [down.get(timeout=10) for _ in frames] == frames
+        assert len([up.get(timeout=10) for _ in frames]) == 3
+        assert down.empty() and up.empty()
     finally:
         for s in subs:
             s.undeclare()
