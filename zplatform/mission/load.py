@@ -42,9 +42,8 @@ from ..control import (
     watchdog,
 )
 from ..core import health
-from ..core.messages import check_lowlatency
+from ..core.messages import check_intra_host, check_lowlatency
 from ..errors import ConfigError
-from ..runtime.intrahost import check_intra_host
 from ..world import checks as world_checks
 
 __all__ = ["check_mission", "decode_mission", "load_mission"]
