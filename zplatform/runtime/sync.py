@@ -1,4 +1,4 @@
-"""The Data Synchronization Protocol on zenoh, both ends (thesis 3.3, 4.3): transport only.
+"""The Data Synchronization Protocol, both ends (thesis 3.3, 4.3): transport only.
 
 What a frame means, which reply counts, what is late, stale or bad: all of
 that is :mod:`zplatform.control.loop`'s, shared with the lockstep runner. These
@@ -7,25 +7,16 @@ classes only move the frames: :class:`ControlSync` (the CN: one get per DN on
 every loop, replies handed to ``ControlLogic.reply`` until none is pending or
 the deadline passed), :class:`DeviceSync` (a DN: waits for the CN's query,
 the loop trigger, and answers at once), :class:`ProbeSync` (failover probes).
+On one host the same frames may take iceoryx2 shared memory instead
+(``transport.intra_host``: :class:`ShmLink`, :meth:`DeviceSync.attach_shm`),
+through the same intakes, falling back to zenoh: docs/architecture.md#intra-host.
 
 Contract: zenoh callbacks only check and hand off (:mod:`zplatform.control.intake`:
 size, one tag check, a stamp compare, a counter, each constant time); the
 loop thread does the work and gets the very bytes the intake checked. Queries
-use DROP congestion control, so a dead link drops a query instead of blocking
-the loop. A forged or replayed trigger gets no reply; the CN takes a reply
-only from the DN's own zenoh session. ``ControlSync.sync`` blocks until every
-reply is in or the deadline passed, ``DeviceSync.wait`` until a query or its timeout.
-
-The intra-host path (``transport.intra_host``): between a CN and a DN of
-one host the same frames may go over iceoryx2 shared memory instead
-(:class:`ShmLink` at the CN, :meth:`DeviceSync.attach_shm` at the DN;
-:func:`open_shm_links`, :func:`open_shm_server`), through the same intakes
-(every reply over it checked), falling back to zenoh when the link fails;
-:mod:`zplatform.runtime.intrahost` carries the bytes. Taps publish the same
-frames whichever path the sync took.
-
-Detail (wildcard, a restarted DN, late replies, trace hops): docs/architecture.md#drivers;
-the intra-host path: docs/architecture.md#intra-host.
+use DROP congestion control. A forged or replayed trigger gets no reply; the
+CN takes a reply only from the DN's own zenoh session (or over a link, once
+checked). Detail: docs/architecture.md#drivers.
 """
 
 from __future__ import annotations
