@@ -12,8 +12,8 @@ has stalled, so the sync can fall back to zenoh.
 
 Copies per hop: the sender encodes into the loaned sample (0 copies of its
 own), the receiver reads it in place and copies once into its Data Vector.
-Service names (:func:`link_names`) hold the mission, vehicle, run and both
-node names; segments are sized from the mission (:func:`mission_link_sizes`)
+Service names (:func:`link_names`; the sync's, :func:`sync_link_names`: one
+kernel and network namespace) hold both nodes; segments are sized (:func:`mission_link_sizes`)
 and refused when ``/dev/shm`` cannot hold them (:func:`check_shm`); dead
 processes' resources are removed before a link opens (:func:`remove_stale`).
 How it waits and what it costs: docs/architecture.md#intra-host.
