@@ -426,6 +426,36 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     return doc
 
 
+def run_raw(variant: str, n: int, count: int, period_s: float = PERIOD_S) -> dict[str, Any]:
+    """One variant's exchanges alone (``bench.sync``'s raw rows): a responder
+    process, a warm-up of 5 exchanges, then ``count`` exchanges of ``n``
+    bytes each way paced at ``period_s``. Returns ``{"samples_ns": [...],
+    "lost": k, "cpu_s": both ends}``. Blocks ``count * period_s`` plus the
+    responder's start; cleans its iceoryx2 files up."""
+    mission_text = two_node_mission("bench_intrahost", free_port(), free_port())
+    proc = Child("bench.intrahost", ["--role", "respond", "--variant", variant], mission_text)
+    asker: _Asker | None = None
+    samples: list[int] = []
+    try:
+        proc.read()
+        asker = _Asker(variant, mission_text)
+        _run_block(proc, asker, variant, n, 5, [], 0)
+        cpu, lost = _run_block(proc, asker, variant, n, count, samples, period_s)
+    finally:
+        if asker is not None:
+            asker.close()
+        proc.close()
+        from zplatform.runtime.intrahost import remove_stale
+
+        remove_stale(PREFIX)
+        for path in _own_files():
+            try:
+                os.unlink(path)
+            except OSError:
+                pass
+    return {"samples_ns": samples, "lost": lost, "cpu_s": cpu}
+
+
 def _run_block(
     proc: Child, asker: _Asker, variant: str, n: int, count: int, out: list[int], period: float
 ) -> tuple[float, int]:

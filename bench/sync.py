@@ -28,7 +28,16 @@ same scheduling (see *Scheduling* below):
   wildcard query per loop to every responder, carrying every responder's
   frame, instead of one get each;
 * ``raw_udp_1`` / ``raw_udp_3``: Python UDP request/response, the thesis'
-  transport.
+  transport;
+* ``zplatform_shm_1dn`` / ``zplatform_shm_3dn``: the first two with the sync
+  on the intra-host path (``transport.intra_host: shm``: iceoryx2 shared
+  memory, docs/architecture.md#intra-host); every other ``zplatform_*`` row
+  pins ``intra_host: zenoh``, so it measures zenoh as before;
+  ``raw_iceoryx2_1``: bare iceoryx2 request/response with event wake-ups
+  (:func:`bench.intrahost.run_raw`), the floor of the shared-memory rows;
+* ``*_325KB``: ``zplatform_1dn``, ``zplatform_shm_1dn``, ``raw_zenoh_1``
+  and ``raw_iceoryx2_1`` with 325 KB regions each way (the largest region
+  of ``bench.intrahost``, a 100,000-element vector's order).
 
 What is measured, per loop: the sync exchange's duration. A loop that missed
 its deadline (a DN did not answer in time, or the step ended at or past the
@@ -72,6 +81,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import yaml
 
 from bench.baselines import run_baseline
 from bench.cluster import BenchCluster, SyncSamples, make_mission
@@ -87,6 +97,7 @@ QUICK_S = 10.0
 FULL_S = 30.0
 TARGET_P99_3DN_US = 1000.0
 TARGET_P50_VS_ZENOH = 1.5
+LARGE_BYTES = 325_000  # bench.intrahost.SIZES["325KB"]
 
 
 @dataclass(frozen=True)
@@ -101,6 +112,8 @@ class Variant:
     wildcard: bool = False
     sync_query: str | None = None
     transport: str | None = None  # zplatform: the mission's security.transport
+    intra_host: str = "zenoh"  # zplatform: the mission's transport.intra_host
+    region_bytes: int = REGION_BYTES
 
 
 VARIANTS: tuple[Variant, ...] = (
@@ -117,6 +130,13 @@ VARIANTS: tuple[Variant, ...] = (
     Variant("raw_zenoh_wildcard_lowlatency_3", "zenoh", 3, True, True),
     Variant("raw_udp_1", "udp", 1),
     Variant("raw_udp_3", "udp", 3),
+    Variant("zplatform_shm_1dn", "zplatform", 1, intra_host="shm"),
+    Variant("zplatform_shm_3dn", "zplatform", 3, intra_host="shm"),
+    Variant("raw_iceoryx2_1", "iceoryx2", 1),
+    Variant("zplatform_1dn_325KB", "zplatform", 1, region_bytes=LARGE_BYTES),
+    Variant("zplatform_shm_1dn_325KB", "zplatform", 1, intra_host="shm", region_bytes=LARGE_BYTES),
+    Variant("raw_zenoh_1_325KB", "zenoh", 1, region_bytes=LARGE_BYTES),
+    Variant("raw_iceoryx2_1_325KB", "iceoryx2", 1, region_bytes=LARGE_BYTES),
 )
 
 
@@ -150,8 +170,13 @@ def run_zplatform(
     sync_query: str | None = None,
     priority: int = PRIORITY,
     transport: str | None = None,
+    intra_host: str = "zenoh",
 ) -> dict[str, Any]:
     """Run a zplatform cluster (``n_dn`` DN processes, CN here) for ``duration_s``.
+
+    ``intra_host``: the mission's ``transport.intra_host`` (``shm``: the
+    sync over iceoryx2 shared memory; the result's ``paths`` says which
+    path each DN's link took at the end).
 
     ``transport="mtls"``: over mutual TLS, with a PKI made in the run's
     temporary directory and named by ``ZPLATFORM_DEPLOYMENT`` for the run
@@ -180,6 +205,9 @@ def run_zplatform(
             priority=priority if priority > 0 else None,
             transport=transport,
         )
+        raw = yaml.safe_load(mission.read_text())
+        raw.setdefault("transport", {})["intra_host"] = intra_host
+        mission.write_text(yaml.safe_dump(raw, sort_keys=False))
         hook = SyncSamples(loops)
         deployment = os.environ.get(DEPLOYMENT_ENV)
         if transport == "mtls":
@@ -194,6 +222,7 @@ def run_zplatform(
                 lateness = periodic.lateness_ns()
                 skipped = periodic.stats().skipped_periods
                 wildcard = c.cn.sync.wildcard
+                paths = c.cn.sync.paths()
         except BaseException:
             for log in sorted(tmpdir.glob("*.log")):
                 print(f"--- {log.name}\n{log.read_text(errors='replace')[-4000:]}", flush=True)
@@ -219,6 +248,9 @@ def run_zplatform(
     fig["bad_frames"] = int(summary.bad_frames)
     fig["rate_hz_measured"] = round(float(summary.rate_hz), 2)
     fig["wildcard"] = wildcard
+    fig["intra_host"] = intra_host
+    fig["paths"] = paths
+    fig["region_bytes"] = region_bytes
     if lateness.size:
         p50, p99 = np.percentile(lateness, [50.0, 99.0])
         fig["loop_lateness_p50_us"] = _us(p50)
@@ -235,16 +267,26 @@ def run_variant(v: Variant, *, duration_s: float, priority: int) -> dict[str, An
             rate_hz=RATE_HZ,
             duration_s=duration_s,
             sync_timeout_ms=DEADLINE_MS,
+            region_bytes=v.region_bytes,
             lowlatency=v.lowlatency,
             sync_query=v.sync_query,
             priority=priority,
             transport=v.transport,
+            intra_host=v.intra_host,
         )
+    elif v.kind == "iceoryx2":
+        from bench.intrahost import run_raw
+
+        iox = run_raw("raw_iceoryx2", v.region_bytes, max(1, round(duration_s * RATE_HZ)))
+        fig = summarize(iox["samples_ns"], deadline_ns)
+        fig["missed"] = iox["lost"]
+        fig["responders"] = v.n
+        fig["cpu_us_per_exchange"] = round(iox["cpu_s"] / max(1, len(iox["samples_ns"])) * 1e6, 1)
     else:
         res = run_baseline(
             v.kind,
             v.n,
-            REGION_BYTES,
+            v.region_bytes,
             RATE_HZ,
             duration_s,
             deadline_ns,
@@ -320,6 +362,22 @@ def ratios(variants: dict[str, dict[str, Any]]) -> dict[str, float | None]:
         "zplatform_1dn/raw_udp_1": ("zplatform_1dn", "raw_udp_1"),
         "zplatform_3dn/raw_udp_3": ("zplatform_3dn", "raw_udp_3"),
         "raw_zenoh_3/raw_udp_3": ("raw_zenoh_3", "raw_udp_3"),
+        "zplatform_shm_1dn/raw_iceoryx2_1": ("zplatform_shm_1dn", "raw_iceoryx2_1"),
+        "zplatform_shm_1dn/zplatform_1dn": ("zplatform_shm_1dn", "zplatform_1dn"),
+        "zplatform_shm_1dn/raw_zenoh_1": ("zplatform_shm_1dn", "raw_zenoh_1"),
+        "zplatform_shm_3dn/zplatform_3dn": ("zplatform_shm_3dn", "zplatform_3dn"),
+        "zplatform_shm_3dn/raw_zenoh_3": ("zplatform_shm_3dn", "raw_zenoh_3"),
+        "raw_iceoryx2_1/raw_zenoh_1": ("raw_iceoryx2_1", "raw_zenoh_1"),
+        "zplatform_shm_1dn_325KB/raw_iceoryx2_1_325KB": (
+            "zplatform_shm_1dn_325KB",
+            "raw_iceoryx2_1_325KB",
+        ),
+        "zplatform_shm_1dn_325KB/zplatform_1dn_325KB": (
+            "zplatform_shm_1dn_325KB",
+            "zplatform_1dn_325KB",
+        ),
+        "zplatform_1dn_325KB/raw_zenoh_1_325KB": ("zplatform_1dn_325KB", "raw_zenoh_1_325KB"),
+        "raw_iceoryx2_1_325KB/raw_zenoh_1_325KB": ("raw_iceoryx2_1_325KB", "raw_zenoh_1_325KB"),
     }
     return {k: _ratio(variants, a, b) for k, (a, b) in pairs.items()}
 

@@ -17,6 +17,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import yaml
+
 from zplatform.runtime.transport import rewrite_endpoints
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -30,16 +32,22 @@ LED_SCRIPT = "at 0.5 launch\nat 8.5 abort\n"
 LED_DURATION_S = 9
 
 
-def led_script_run(tmp: Path) -> Path:
+def led_script_run(tmp: Path, intra_host: str | None = None) -> Path:
     """Run led_test under ``up`` for :data:`LED_DURATION_S` with
     :data:`LED_SCRIPT` in ``tmp``: ``mission.yaml`` (the copy on free ports),
     ``led.commands``, ``live.csv`` and ``live.events.jsonl`` (the ground's
     log), ``up.json`` (the run's summary), ``rec/`` (the recording),
     ``archive/led_test/`` (the ground node's archive: a directory of its
     own, so no other test's ground node holds it).
+    ``intra_host``: the copy's ``transport.intra_host`` (None: the file's,
+    ``auto``: its nodes on this host sync over shared memory).
     Returns ``tmp``; fails unless ``up`` exits 0."""
     mission = tmp / "mission.yaml"
     rewrite_endpoints(LED_YAML, mission)
+    if intra_host is not None:
+        raw = yaml.safe_load(mission.read_text())
+        raw.setdefault("transport", {})["intra_host"] = intra_host
+        mission.write_text(yaml.safe_dump(raw, sort_keys=False))
     (tmp / "led.commands").write_text(LED_SCRIPT)
     proc = subprocess.run(
         [

@@ -4,7 +4,9 @@
   link from each chosen node to the CN of an (already port-rewritten)
   mission file. Gossip scouting is switched off in the file, so no node can
   learn the CN's real endpoint and bypass the relay (docs/architecture.md#zenoh: with
-  gossip on, peers connect to each other by themselves).
+  gossip on, peers connect to each other by themselves), and the sync is
+  pinned to zenoh (``transport.intra_host``), so it does not bypass the
+  relay through shared memory either.
 * :func:`plain_tcp_mission`: a copy of a mission on plain TCP, which the
   flood cases need (``floods.py``): the transport every flood test states,
   in this one place.
@@ -54,6 +56,9 @@ def relay_links(
         relays[name] = relay_factory(cn_ep, **plan)
         raw["nodes"][name]["connect"] = [relays[name].endpoint]
     raw.setdefault("transport", {})["gossip_scouting"] = False
+    # The sync too goes through the relays (over zenoh): on one host it
+    # would take shared memory past them (transport.intra_host).
+    raw["transport"]["intra_host"] = "zenoh"
     p.write_text(yaml.safe_dump(raw, sort_keys=False))
     return relays
 

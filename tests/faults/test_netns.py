@@ -103,7 +103,10 @@ def test_mission_nodes_sync_across_namespaces(
     netns_hosts: Callable[..., list[NetnsHost]], tmp_path: Path
 ) -> None:
     """`zplatform node` processes in two namespaces: the CN syncs with dn0
-    over the bridge at its rate (DN first, then a 2 s CN run)."""
+    over the bridge at its rate (DN first, then a 2 s CN run). The mission
+    says ``transport.intra_host: auto`` and both share this kernel and its
+    /dev/shm, but not a network namespace: their sync stays on zenoh (the
+    link's name holds the namespace, docs/architecture.md#intra-host)."""
     h0, h1 = netns_hosts(2)
     path = netns_mission(
         ROOT / "configs" / "minimal.yaml", tmp_path / "m.yaml", {"cn": h0, "dn0": h1, "gn": h0}
@@ -131,3 +134,5 @@ def test_mission_nodes_sync_across_namespaces(
     # Connectivity, not timing: every loop a reply or a counted miss, and
     # the link alive (tests/budget.py).
     assert_every_loop_counted(s)
+    log = (tmp_path / "cn.log").read_text()
+    assert "sync_on_shm" not in log and "sync_fallback" not in log, log[-3000:]

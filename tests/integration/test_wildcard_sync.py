@@ -26,7 +26,8 @@ def test_one_query_runs_every_dn_and_foreign_replies_are_counted(tmp_path: Path)
     src = tmp_path / "led_wild.yaml"
     doc = yaml.safe_load((CONFIGS / "led_test.yaml").read_text())
     relocate_mission(doc, CONFIGS / "led_test.yaml")
-    doc["transport"] = {"sync_query": "wildcard"}
+    # Over zenoh: on one host the syncs would take shared memory (intra_host: auto).
+    doc["transport"] = {"sync_query": "wildcard", "intra_host": "zenoh"}
     src.write_text(yaml.safe_dump(doc, sort_keys=False))
     with Cluster(src, tmp_path) as c:
         assert wildcard_sync_for(c.mission)

@@ -32,12 +32,29 @@ def state_changes(rows: list[dict[str, str]]) -> list[tuple[int, str]]:
     return out
 
 
-@pytest.fixture
-def live_run(led_live_run: Path) -> Path:
+@pytest.fixture(params=["shm", "zenoh"])
+def live_run(request: pytest.FixtureRequest) -> Path:
     """The LED platform's scripted run under ``up`` (tests/live_runs.py: 9 s,
     LAUNCH at 0.5 s, ABORT at 8.5 s), logged and recorded; made once a
-    session, other tests read it too."""
-    return led_live_run
+    session, other tests read it too. By sync path: ``shm``, the shipped
+    file (``transport.intra_host: auto``: its nodes share this host, so
+    their syncs take shared memory, docs/architecture.md#intra-host), and
+    ``zenoh``, pinned to zenoh. The first proves its path from the log."""
+    if request.param == "zenoh":
+        run: Path = request.getfixturevalue("led_live_run_zenoh")
+        paths = {"zenoh"}
+    else:
+        run = request.getfixturevalue("led_live_run")
+        paths = {"shm"}
+    rows = read_csv(run / "live.csv")
+    dns = [k.removesuffix("_sync_path") for k in rows[0] if k.endswith("_sync_path")]
+    assert dns
+    # Every device node's syncs took the path (a link on shared memory
+    # falls back to zenoh for a loop it lost: at most a few such rows).
+    for dn in dns:
+        took = sum(r[f"{dn}_sync_path"] in paths for r in rows)
+        assert took >= len(rows) // 2, (dn, took, len(rows))
+    return run
 
 
 def test_sim_equals_live(live_run: Path, tmp_path: Path) -> None:

@@ -337,3 +337,23 @@ def test_a_second_server_on_a_link_is_refused(prefix: str) -> None:
             IntraHostServer(names, 64, 64, prefix=prefix)
     finally:
         first.close()
+
+
+def test_a_signal_during_a_wait_ends_it_without_raising(prefix: str) -> None:
+    """A node's SIGTERM handler runs while its loop thread waits in the
+    listener: iceoryx2 raises ListenerWaitError(InterruptSignal); the wait
+    ends (as a spurious wake-up) instead, so the node stops cleanly."""
+    import signal
+
+    names = link_names("sig", "rocket", 1, "cn", "dn0")
+    server = IntraHostServer(names, 64, 64, prefix=prefix, check=False)
+    fired: list[int] = []
+    old = signal.signal(signal.SIGALRM, lambda signum, _frame: fired.append(signum))
+    try:
+        signal.setitimer(signal.ITIMER_REAL, 0.05)
+        server.block(30.0)  # ends with the signal
+        assert fired == [signal.SIGALRM]
+    finally:
+        signal.setitimer(signal.ITIMER_REAL, 0)
+        signal.signal(signal.SIGALRM, old)
+        server.close()

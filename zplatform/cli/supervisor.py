@@ -42,6 +42,7 @@ from ..ground.link import GroundLink
 from ..ground.script import MIN_DURATION_S, SETTLE_S
 from ..ground.status import RateMeter, status_line
 from ..mission.load import load_mission
+from ..runtime.intrahost import intra_host_mode
 from ..runtime.process import LOG_LEVEL_ENV, PARENT_ENV, STATUS_LINE_ENV, STOP_PIPE_ENV
 from ..runtime.transport import rewrite_endpoints
 from ..telemetry.logs import events_path
@@ -319,7 +320,7 @@ def watch(
                         )
                     return w
             if not quiet and link.logic.received and now - last_print >= 1.0:
-                line = status_line(mission, link.dv, rate.hz)
+                line = status_line(mission, link.dv, rate.hz) + sync_paths(mission, link.dv)
                 print(("\r" + line) if tty else line, end="" if tty else "\n", flush=True)
                 last_print = now
         return w
@@ -406,6 +407,16 @@ def format_run_summary(s: RunSummary) -> str:
         f"{s.final_state}"
     )
     return f"{line}; {s.takeover}" if s.takeover else line
+
+
+def sync_paths(mission: Mission, dv: DataVector) -> str:
+    """``  sync dn0=shm dn1=zenoh``: the path each DN's last trigger came by
+    (``dnX_sync_path``, docs/architecture.md#intra-host); empty for a
+    mission whose syncs all go over zenoh (``transport.intra_host``)."""
+    if intra_host_mode(mission) == "zenoh":
+        return ""
+    paths = " ".join(f"{dn}={dv.get_name(f'{dn}_sync_path')}" for dn in mission.device_nodes)
+    return f"  sync {paths}"
 
 
 def _per_node(counts: dict[str, int]) -> str:

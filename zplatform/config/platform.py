@@ -180,6 +180,8 @@ def counter_region(node: str) -> str | None:
 
 
 BOARD_LINK_DRIVERS = ("serial", "gpiod")
+SYNC_PATHS = ("zenoh", "shm")
+"""The values of ``dnX_sync_path``, in order (zplatform.runtime.sync)."""
 """The board drivers whose link a device node reports in ``dnX_board_*``:
 the ones that talk to hardware outside the node's process (a serial port,
 the kernel's GPIO lines). ``sim`` is the node's own memory, ``world`` is
@@ -396,6 +398,14 @@ def platform_elements(m: Mission) -> dict[str, list[ElementConfig]]:
                 "u32",
                 0,
                 doc=f"clock exchanges of {dn} left unanswered (a silent or slow clock)",
+            ),
+            E(
+                f"{dn}_sync_path",
+                "enum",
+                "zenoh",
+                list(SYNC_PATHS),
+                doc=f"the path {dn}'s last trigger came by: zenoh, or shm (iceoryx2 shared "
+                "memory on one host, `transport.intra_host`)",
             ),
         ]
         if m.standby is not None:

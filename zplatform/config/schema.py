@@ -252,6 +252,30 @@ class TransportConfig(_Struct):
             "channels travel through it; large messages too)."
         ),
     ] = True
+    # Resolved per link by zplatform.runtime.sync (ShmLink) and zplatform.node.
+    intra_host: Annotated[
+        Literal["auto", "zenoh", "shm"],
+        Meta(
+            description="The path of the sync (each loop's trigger and reply) between the CN "
+            "and a DN on the same host: `shm`, iceoryx2 shared memory "
+            "(docs/architecture.md#intra-host); `zenoh`, always zenoh; `auto`, shared "
+            "memory for each DN whose link answers over it with a reply that passes the "
+            "intake (tag, run, loop), else zenoh. A link on shared memory that fails or "
+            "stalls falls back to zenoh with an event and returns later. `shm` differs from "
+            "`auto` only in that a DN that cannot open its end refuses to start, and a CN "
+            "whose DN has no shared-memory end events it (`sync_fallback`). A redundant "
+            "mission (`failover`) syncs over zenoh: `shm` is a config error there. The "
+            "path each link takes: `dnX_sync_path`. Discovery, liveliness, taps, the "
+            "ground and other hosts stay on zenoh."
+        ),
+    ] = "auto"
+    intra_host_links: Annotated[
+        dict[str, Literal["auto", "zenoh", "shm"]],
+        Meta(
+            description="`intra_host` for single device nodes, by name (`{dn1: zenoh}`): "
+            "overrides the mission's for that DN's link."
+        ),
+    ] = msgspec.field(default_factory=dict)
 
 
 class ClockConfig(_Struct):

@@ -451,6 +451,19 @@ class EV:
         "device node's queries had no reply for {loops} loops in a row (a route lost in "
         "zenoh, eclipse-zenoh/zenoh#2517)",
     )
+    SYNC_ON_SHM = EventType(
+        126,
+        "sync_on_shm",
+        Severity.ACTIVITY_LO,
+        "{node}: {dn}'s sync takes shared memory ({why}; transport.intra_host)",
+    )
+    SYNC_FALLBACK = EventType(
+        127,
+        "sync_fallback",
+        Severity.WARNING_LO,
+        "{node}: {dn}'s sync falls back to zenoh: {why} ({fallbacks} fallback(s) so far; "
+        "shared memory is tried again later)",
+    )
     TM_NEW_TERM = EventType(
         76,
         "tm_new_term",

@@ -18,7 +18,9 @@ from .events import MAX_TEXT
 __all__ = [
     "LOWLATENCY_MAX_MESSAGE",
     "WILDCARD_MAX_BUNDLE",
+    "check_intra_host",
     "check_lowlatency",
+    "intra_host_mode",
     "largest_message",
     "lowlatency_for",
     "sync_bundle_size",
@@ -145,4 +147,44 @@ def check_lowlatency(mission: Mission) -> None:
             f" {LOWLATENCY_MAX_MESSAGE} B (zenoh's lowlatency transport does not fragment"
             " and drops bigger ones): use auto or false",
             "$.transport.lowlatency",
+        )
+
+
+def intra_host_mode(mission: Mission, dn: str | None = None) -> str:
+    """``transport.intra_host`` as the sync takes it for ``dn``'s link
+    (``intra_host_links``' entry, else the mission's), or with ``dn`` None
+    for the mission (``zenoh`` only when every link's is): ``zenoh`` for a
+    redundant mission (failover syncs over zenoh) or one without device
+    nodes, else ``auto``, ``zenoh`` or ``shm``."""
+    t = mission.transport
+    if mission.standby is not None or not mission.device_nodes:
+        return "zenoh"
+    if dn is not None:
+        return t.intra_host_links.get(dn, t.intra_host)
+    modes = {t.intra_host_links.get(d, t.intra_host) for d in mission.device_nodes}
+    return "zenoh" if modes == {"zenoh"} else ("shm" if "shm" in modes else "auto")
+
+
+def check_intra_host(mission: Mission) -> None:
+    """Raise ConfigError at ``transport.intra_host`` (or the link's entry)
+    for ``shm`` on a redundant mission (its standby and takeovers sync over
+    zenoh), and for a link entry that names no device node."""
+    t = mission.transport
+    for dn, mode in t.intra_host_links.items():
+        if dn not in mission.device_nodes:
+            raise ConfigError(
+                f"intra_host_links: {dn!r} is not a device node ({mission.device_nodes})",
+                f"$.transport.intra_host_links.{dn}",
+            )
+        if mode == "shm" and mission.standby is not None:
+            raise ConfigError(
+                "a redundant mission (failover) syncs over zenoh: intra_host shm cannot be "
+                "pinned, use auto or zenoh",
+                f"$.transport.intra_host_links.{dn}",
+            )
+    if t.intra_host == "shm" and mission.standby is not None:
+        raise ConfigError(
+            "a redundant mission (failover) syncs over zenoh: intra_host shm cannot be "
+            "pinned, use auto or zenoh",
+            "$.transport.intra_host",
         )

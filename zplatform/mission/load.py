@@ -42,7 +42,7 @@ from ..control import (
     watchdog,
 )
 from ..core import health
-from ..core.messages import check_lowlatency
+from ..core.messages import check_intra_host, check_lowlatency
 from ..errors import ConfigError
 from ..world import checks as world_checks
 
@@ -81,6 +81,7 @@ def check_mission(mission: Mission, *, code: bool = True) -> None:
     watchdog.check_config(mission)
     _check_downlink(mission)
     check_lowlatency(mission)
+    check_intra_host(mission)
 
 
 def _check_pythonpath(mission: Mission) -> None:

@@ -56,7 +56,7 @@ from ..core.datavector import DataVector
 from ..core.events import EV
 from ..core.health import Heartbeat, Liveness, thread_deadlines_ns
 from ..core.messages import wildcard_sync_for
-from ..errors import ClockSyncError, NodeError, RecordingError, TransportError
+from ..errors import ClockSyncError, IntraHostError, NodeError, RecordingError, TransportError
 from ..ground.logic import default_max_age_ns
 from ..recorder import FlightRecorder, RecorderReader, open_recorder, recorder_dir, summary_line
 from ..recorder.server import RecorderServer
@@ -65,7 +65,7 @@ from ..runtime.clocksync import ClockLink, ClockServer, estimator_for
 from ..runtime.process import StopFlag, realtime_setup
 from ..runtime.queries import UNANSWERED_LOOPS
 from ..runtime.scheduler import GcGuard, PeriodicLoop
-from ..runtime.sync import ControlSync, ProbeSync, SyncTrace, TapPublisher
+from ..runtime.sync import ControlSync, ProbeSync, SyncTrace, TapPublisher, open_shm_links
 from ..runtime.timebase import NodeClock
 from ..runtime.transport import EventPublisher, NodeSession, wait_for_nodes
 from ..sim.replay_recording import Recorder
@@ -128,6 +128,12 @@ class ControlNode:
         self.clock_epoch = new_run_epoch(self.clock.now_ns())
         self.logic = ControlLogic(mission, keys=keys, epoch=self.clock_epoch, name=name)
         self.dv: DataVector = self.logic.dv
+        # The intra-host links (transport.intra_host), before the session: a
+        # pinned `shm` that cannot open stops the node with nothing to undo.
+        try:
+            shm_links = open_shm_links(mission, name)
+        except IntraHostError as exc:
+            raise NodeError(f"control node cannot open its intra-host links: {exc}") from exc
         self.ns = NodeSession(mission, name, announce=False, lowlatency=lowlatency)
         s = self.ns.session
         space = self.ns.keys
@@ -155,7 +161,9 @@ class ControlNode:
             ],
             wildcard=wildcard_sync_for(mission),
             trace=sync_trace,
+            shm=shm_links,
         )
+        self._path_changes: list[tuple[str, str, str]] = []
         # The command inbox (zplatform.control.intake): size, tag, this run, a number
         # above every one seen, then bounded, newest kept. A flood of junk or
         # of replayed requests is refused as it arrives and counted; it costs
@@ -622,6 +630,7 @@ class ControlNode:
         standby = ready if self.redundant else None
         overrun = self.sync.sync(logic.begin(loop, t, final=final, standby=standby), logic)
         self._query_recoveries(t)
+        self._sync_paths(t)
         grounds = self._grounds
         grounds.clear()
         taken = self._taken
@@ -867,6 +876,21 @@ class ControlNode:
                 total=sum(self._recovered_dns.values()),
                 loops=UNANSWERED_LOOPS,
             )
+
+    def _sync_paths(self, t_ns: int) -> None:
+        """Event each intra-host link's path change (ShmLink: at most a
+        fallback and a return per RETRY_LOOPS loops and DN)."""
+        got = self._path_changes
+        self.sync.take_path_changes(got)
+        if not got:
+            return
+        for dn, path, why in got:
+            i = self.mission.device_nodes.index(dn)
+            link = self.sync.shm[i]
+            fallbacks = link.fallbacks if link is not None else 0
+            ev = EV.SYNC_ON_SHM if path == "shm" else EV.SYNC_FALLBACK
+            self.logic.events.emit(ev, t_ns, node=self.name, dn=dn, why=why, fallbacks=fallbacks)
+        got.clear()
 
     def _take_refusals(self) -> CnRefusals:
         """What the intakes refused since the last loop (an input of the loop)."""

@@ -37,7 +37,14 @@ from ..core.auth import KeySet, Run, channel, load_keys
 from ..core.datavector import DataVector
 from ..core.events import EV, EventLog
 from ..core.health import Heartbeat, Liveness, thread_deadlines_ns
-from ..errors import ClockSyncError, NodeError, RecordingError, TransportError, ZPlatformError
+from ..errors import (
+    ClockSyncError,
+    IntraHostError,
+    NodeError,
+    RecordingError,
+    TransportError,
+    ZPlatformError,
+)
 from ..recorder import FlightRecorder, open_recorder, summary_line
 from ..runtime.bulk import NodeBulk, open_bulk
 from ..runtime.clocksync import (
@@ -50,7 +57,7 @@ from ..runtime.clocksync import (
 )
 from ..runtime.process import StopFlag, realtime_setup
 from ..runtime.scheduler import GcGuard
-from ..runtime.sync import DeviceSync, SyncTrace
+from ..runtime.sync import DeviceSync, SyncTrace, open_shm_server
 from ..runtime.timebase import NodeClock
 from ..runtime.transport import EventPublisher, KeySpace, NodeSession, wait_for_nodes
 from ..telemetry.summary import DnSummary, board_line, board_trouble
@@ -388,6 +395,12 @@ class DeviceNode:
             lambda: self.logic.run_ended,
         )
         trigger_intake.on_other_run = self._resync.cue
+        # The intra-host link (transport.intra_host): its triggers pass the
+        # same intake; a pinned `shm` that cannot open stops the node.
+        try:
+            shm = open_shm_server(m, self.name)
+        except IntraHostError as exc:
+            raise NodeError(f"{self.name} cannot open its intra-host link: {exc}") from exc
         self.sync = DeviceSync(
             s,
             keys,
@@ -409,6 +422,8 @@ class DeviceNode:
                 else None
             ),
             trace=self._sync_trace,
+            shm=shm,
+            path=self.dv.handle(f"{self.name}_sync_path"),
         )
         self.bulk = open_bulk(s, m, self.name, self.logic)
         if self.name in m.recording_nodes:

@@ -12,8 +12,8 @@ has stalled, so the sync can fall back to zenoh.
 
 Copies per hop: the sender encodes into the loaned sample (0 copies of its
 own), the receiver reads it in place and copies once into its Data Vector.
-Service names (:func:`link_names`) hold the mission, vehicle, run and both
-node names; segments are sized from the mission (:func:`mission_link_sizes`)
+Service names (:func:`link_names`; the sync's, :func:`sync_link_names`: one
+kernel and network namespace) hold both nodes; segments are sized (:func:`mission_link_sizes`)
 and refused when ``/dev/shm`` cannot hold them (:func:`check_shm`); dead
 processes' resources are removed before a link opens (:func:`remove_stale`).
 How it waits and what it costs: docs/architecture.md#intra-host.
@@ -23,17 +23,23 @@ from __future__ import annotations
 
 import ctypes
 import enum
+import hashlib
+import os
 import re
 import shutil
+import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
+import msgspec
+
 from ..config import Mission
 from ..core.auth import TAG_LEN
 from ..core.codec import max_frame_length
 from ..core.datavector import Layout
+from ..core.messages import check_intra_host, intra_host_mode
 from ..errors import IntraHostError
 
 __all__ = [
@@ -44,13 +50,17 @@ __all__ = [
     "IntraHostServer",
     "LinkNames",
     "LinkState",
+    "check_intra_host",
     "check_shm",
+    "host_tag",
     "iceoryx2_config",
+    "intra_host_mode",
     "link_names",
     "mission_link_sizes",
     "mission_shm_need",
     "remove_stale",
     "segment_bytes",
+    "sync_link_names",
 ]
 
 #: The file-name prefix of every iceoryx2 resource zplatform creates (in
@@ -102,6 +112,41 @@ def link_names(mission: str, vehicle: str, run: str | int, cn: str, dn: str) -> 
             raise IntraHostError(f"intra-host link: {what} {text!r} is not [A-Za-z0-9_.-]{{1,64}}")
     base = f"zplatform/{mission}/{vehicle}/{run}/{cn}/{dn}"
     return LinkNames(f"{base}/sync", f"{base}/trigger", f"{base}/reply")
+
+
+def host_tag() -> str:
+    """What names this host for the intra-host links: the kernel's boot and
+    this process's network namespace. Two nodes see the same tag only on
+    one host in one network namespace, so nodes that talk over a network
+    (other hosts, or namespaces standing for them) never open one link.
+    Not a secret and not a proof: the tagged round trip is
+    (docs/architecture.md#intra-host). Never raises ("na" when unknown)."""
+    parts = []
+    try:
+        with open("/proc/sys/kernel/random/boot_id") as f:
+            parts.append(f.read().strip().replace("-", "")[:12])
+    except OSError:
+        parts.append("na")
+    try:
+        parts.append(f"{os.stat('/proc/self/ns/net').st_ino:x}")
+    except OSError:
+        parts.append("na")
+    return ".".join(parts)
+
+
+def _name_part(text: str) -> str:
+    return re.sub(r"[^A-Za-z0-9_.-]", "_", text)[:64] or "_"
+
+
+def sync_link_names(mission: Mission, dn: str, cn: str = "cn") -> LinkNames:
+    """The names of the sync's link ``cn`` -> ``dn`` on this host
+    (:func:`link_names`): the mission's name and a digest of its whole
+    configuration (two copies of a mission on other endpoints, as tests run
+    them side by side, never share a link), and :func:`host_tag` for the
+    run part. The same for every run: the frames' tags bind each to its run."""
+    digest = hashlib.sha256(msgspec.json.encode(mission)).hexdigest()[:12]
+    name = f"{_name_part(mission.mission)[:48]}.{digest}"
+    return link_names(name, mission.vehicle, host_tag(), cn, dn)
 
 
 def mission_link_sizes(mission: Mission, dn: str) -> tuple[int, int]:
@@ -239,7 +284,7 @@ class _End:
             .event()
             .max_nodes(4)
             .max_listeners(2)
-            .max_notifiers(2)
+            .max_notifiers(3)  # the CN, a restarted CN, and the DN's waker (DeviceSync)
             .open_or_create()
         )
 
@@ -262,6 +307,20 @@ class _End:
             self.__dict__.pop(attr, None)
         for attr in ("_req_ev", "_res_ev", "_service", "_node"):
             self.__dict__.pop(attr, None)
+
+
+def _wait(listener: Any, duration: Any) -> None:
+    """``listener.timed_wait(duration)``; a signal that interrupts it (the
+    node's SIGTERM handler ran: iceoryx2's ListenerWaitError InterruptSignal)
+    ends the wait early instead of raising, as a spurious wake-up: every
+    caller checks its deadline and what arrived after a wait."""
+    try:
+        listener.timed_wait(duration)
+    except Exception as exc:  # iceoryx2's ListenerWaitError
+        if "Interrupt" not in repr(exc):
+            # A broken listener returns at once, every time: pause, never spin
+            # (the caller's deadline still ends its wait).
+            time.sleep(0.001)
 
 
 def _view(ptr: int, n: int) -> memoryview:
@@ -409,7 +468,7 @@ class IntraHostClient(_End):
                 del pending
                 self._missed()
                 return None
-            self._listener.timed_wait(wait)
+            _wait(self._listener, wait)
             # Woken by an earlier, late reply's event: wait out what is left.
             wait = self._iox.Duration.from_secs_f64(max(0.0, t_end - time.monotonic()))
         n = response.header.number_of_elements
@@ -494,6 +553,12 @@ class IntraHostServer(_End):
             notify=self._res_ev,
             listen=self._req_ev,
         )
+        # The waker's notifier (:meth:`waker`), made with the link: a link
+        # whose event admits no more notifiers fails to open, not later.
+        try:
+            self._wake_notifier = self._req_ev.notifier_builder().create()
+        except Exception as exc:
+            raise IntraHostError(f"intra-host link {names.sync}: no waker ({exc!r})") from exc
         self._active: Any = None
         self._loan: Any = None
         #: Counters (never reset): triggers served, replies sent, triggers
@@ -527,7 +592,31 @@ class IntraHostServer(_End):
             left = t_end - time.monotonic()
             if left <= 0:
                 return None
-            self._listener.timed_wait(iox.Duration.from_secs_f64(left))
+            _wait(self._listener, iox.Duration.from_secs_f64(left))
+
+    def poll(self) -> memoryview | None:
+        """:meth:`wait` without waiting: the newest trigger queued, or None."""
+        return self.wait(0.0)
+
+    def block(self, timeout_s: float) -> None:
+        """Wait until any notification on the trigger event (a trigger, or a
+        :meth:`waker`'s) or ``timeout_s``; returns at once if one is pending.
+        Never spins. Then :meth:`poll`: the wake may be for something else."""
+        _wait(self._listener, self._iox.Duration.from_secs_f64(max(0.0, timeout_s)))
+
+    def waker(self) -> Callable[[], None]:
+        """A function that wakes :meth:`block` (another notifier on the
+        trigger event), for what else this end's thread waits for (a DN's
+        zenoh triggers). Thread-safe: calls from several threads are
+        serialised. Never raises (its notifier was made when the link opened)."""
+        notifier = self._wake_notifier
+        lock = threading.Lock()
+
+        def wake() -> None:
+            with lock:
+                notifier.notify()
+
+        return wake
 
     def reply(self, n: int) -> memoryview | None:
         """A writable view of ``n`` bytes of a loaned reply to the trigger
@@ -567,4 +656,5 @@ class IntraHostServer(_End):
 
     def close(self) -> None:
         self._loan = self._active = None
+        self.__dict__.pop("_wake_notifier", None)
         super().close()

@@ -1,4 +1,4 @@
-"""The Data Synchronization Protocol on zenoh, both ends (thesis 3.3, 4.3): transport only.
+"""The Data Synchronization Protocol, both ends (thesis 3.3, 4.3): transport only.
 
 What a frame means, which reply counts, what is late, stale or bad: all of
 that is :mod:`zplatform.control.loop`'s, shared with the lockstep runner. These
@@ -7,20 +7,21 @@ classes only move the frames: :class:`ControlSync` (the CN: one get per DN on
 every loop, replies handed to ``ControlLogic.reply`` until none is pending or
 the deadline passed), :class:`DeviceSync` (a DN: waits for the CN's query,
 the loop trigger, and answers at once), :class:`ProbeSync` (failover probes).
+On one host the same frames may take iceoryx2 shared memory instead
+(``transport.intra_host``: :class:`ShmLink`, :meth:`DeviceSync.attach_shm`),
+through the same intakes, falling back to zenoh: docs/architecture.md#intra-host.
 
 Contract: zenoh callbacks only check and hand off (:mod:`zplatform.control.intake`:
 size, one tag check, a stamp compare, a counter, each constant time); the
 loop thread does the work and gets the very bytes the intake checked. Queries
-use DROP congestion control, so a dead link drops a query instead of blocking
-the loop. A forged or replayed trigger gets no reply; the CN takes a reply
-only from the DN's own zenoh session. ``ControlSync.sync`` blocks until every
-reply is in or the deadline passed, ``DeviceSync.wait`` until a query or its timeout.
-
-Detail (wildcard, a restarted DN, late replies, trace hops): docs/architecture.md#drivers.
+use DROP congestion control. A forged or replayed trigger gets no reply; the
+CN takes a reply only from the DN's own zenoh session (or over a link, once
+checked). Detail: docs/architecture.md#drivers.
 """
 
 from __future__ import annotations
 
+import logging
 import queue
 import threading
 import time
@@ -30,28 +31,57 @@ from typing import Any
 import zenoh
 
 from .. import trace as tracer
-from ..control.handoff import Handoff, Mailbox
+from ..config import Mission
+from ..control.handoff import Handoff, Mailbox, Waker
 from ..control.intake import CnRefusals, ProbeIntake, ReplyCheck, TriggerIntake
 from ..control.loop import ControlLogic, DeviceLogic
 from ..core.codec import BundleEncoder
+from ..errors import IntraHostError
+from .intrahost import (
+    IntraHostClient,
+    IntraHostServer,
+    LinkState,
+    intra_host_mode,
+    mission_link_sizes,
+    remove_stale,
+    sync_link_names,
+)
 from .queries import ReplyCap, Unanswered, ask, declare_querier, replies
 from .transport import KeySpace, is_matching
 
 __all__ = [
+    "PATH_SHM",
+    "PATH_ZENOH",
     "REPIN_AFTER",
+    "RETRY_LOOPS",
     "ControlSync",
     "DeviceSync",
     "ProbeSync",
+    "ShmLink",
+    "ShmQuery",
     "SyncTrace",
     "TapPublisher",
+    "open_shm_links",
+    "open_shm_server",
 ]
 
+log = logging.getLogger("zplatform.sync")
 _DROP = zenoh.CongestionControl.DROP
 _NO_PAYLOAD = zenoh.ZBytes(b"")
 _ERR_MAX = 512  # longest error reply read: a DN's is "dnX: reason"
 REPIN_AFTER = 3
 """Loops in a row a DN's known session must miss before the CN checks
 replies from other sessions for one of the DN's (a restarted DN)."""
+PATH_ZENOH = 0
+"""``dnX_sync_path``: the trigger came over zenoh."""
+PATH_SHM = 1
+"""``dnX_sync_path``: the trigger came over the intra-host link (iceoryx2)."""
+RETRY_LOOPS = 100
+"""Loops a link stays on zenoh after it fell back (or found no shared-memory
+peer) before the CN tries shared memory again (:class:`ShmLink`)."""
+RETRY_MAX_LOOPS = 1000
+"""The longest wait between tries: a link whose tries keep failing doubles
+its wait each time up to this."""
 
 SyncTrace = Callable[[str, int], None]
 """``trace(hop, n)``: one hop of a sync exchange, called where it happens
@@ -111,6 +141,162 @@ class TapPublisher:
         self.pub.undeclare()
 
 
+_EMPTY = memoryview(b"")
+
+
+class _ShmWaker(Waker):
+    """A mailbox waker that wakes a DN's loop thread blocked in its
+    intra-host listener (:meth:`DeviceSync.attach_shm`) instead of a lock."""
+
+    __slots__ = ("_wake",)
+
+    def __init__(self, wake: Callable[[], None]) -> None:
+        super().__init__()
+        self._wake = wake
+
+    def notify(self) -> None:
+        self._wake()
+
+
+class _ViewPayload:
+    """An intake :class:`~zplatform.control.intake.Payload` over a frame in
+    shared memory: its length is free, ``to_bytes`` is the intake's one
+    copy out of the segment (the sender may reuse it after)."""
+
+    __slots__ = ("view",)
+
+    def __init__(self) -> None:
+        self.view = memoryview(b"")
+
+    def __len__(self) -> int:
+        return len(self.view)
+
+    def to_bytes(self) -> bytes:
+        return bytes(self.view)
+
+
+class ShmLink:
+    """The CN's end of one DN's intra-host link and its path (module doc of
+    :mod:`zplatform.runtime.intrahost`; docs/architecture.md#intra-host).
+
+    The loop thread asks :meth:`try_shm` each loop: whether this loop's
+    trigger goes over shared memory. A link starts on *probation*: its first
+    exchange (the start-up's warm-up, a loop no DN runs) must bring back a
+    reply that passes the sync's intake (tag, run, the loop asked: the loop
+    number and stamp are the fresh nonce, the tag proves the DN's key);
+    only then is the link *verified* and the flight's loops take it. Any
+    miss (no server, no reply in the deadline, a reply the intake refuses)
+    puts the link back on zenoh from the next loop (no server: from this
+    one, the trigger goes over zenoh at once), and it is tried again after
+    :data:`RETRY_LOOPS` loops on probation; a try that loses its loop
+    doubles the wait up to :data:`RETRY_MAX_LOOPS`. So a failed or stalled
+    link costs the loop within its deadline, and a try at most one loop per
+    wait. Path changes of a verified link are queued in :attr:`changes`
+    for the driver to event. Not thread-safe: the loop thread."""
+
+    def __init__(self, dn: str, client: IntraHostClient, *, pinned: bool = False) -> None:
+        self.dn = dn
+        self.client = client
+        self.pinned = pinned
+        self.on_shm = False
+        """Whether the link is verified and the loops take it."""
+        self.tries = 0
+        """Exchanges tried on probation (counters never reset)."""
+        self.fallbacks = 0
+        """Times a verified link fell back to zenoh."""
+        self.refused = 0
+        """Replies over the link the intake refused."""
+        self.changes: list[tuple[str, str]] = []
+        """``(path, why)`` of each change not yet evented (the driver drains it)."""
+        self._loops = 0
+        self._retry_at = 0
+        self._failed = 0  # tries in a row that lost their loop
+        self._told_no_peer = False
+
+    def try_shm(self) -> bool:
+        """Whether this loop's trigger goes over shared memory (once a loop)."""
+        self._loops += 1
+        if self.on_shm:
+            return True
+        if self._loops >= self._retry_at:
+            self.tries += 1
+            return True
+        return False
+
+    def no_peer(self, why: str) -> None:
+        """The trigger could not go (no server, no sample): zenoh carries it
+        this loop; tried again after :data:`RETRY_LOOPS` (nothing was lost)."""
+        self._retry_at = self._loops + RETRY_LOOPS
+        if self.on_shm:
+            self._fall(why)
+        elif self.pinned and not self._told_no_peer:
+            self._told_no_peer = True  # once: a DN on another host stays peerless
+            self.changes.append(("zenoh", f"pinned to shm, but {why}"))
+
+    def missed(self, why: str) -> None:
+        """The trigger went but no valid reply came back: this loop is lost."""
+        if self.on_shm:
+            self._failed = 0
+            self._fall(why)
+        else:
+            self._failed += 1
+        # The first try after a fallback comes RETRY_LOOPS later; each
+        # further failed one doubles the wait, up to RETRY_MAX_LOOPS.
+        wait = RETRY_LOOPS << min(max(self._failed - 1, 0), 10)
+        self._retry_at = self._loops + min(wait, max(RETRY_MAX_LOOPS, RETRY_LOOPS))
+        # A DN killed with SIGKILL leaves its server in iceoryx2's state: the
+        # CN's client would find it connected and wait out each try. Rare
+        # (once per failed try), so the directory scan is affordable here.
+        try:
+            remove_stale()
+        except Exception:  # a scan that fails leaves the next try to time out
+            pass
+
+    def took(self) -> None:
+        """A reply over the link passed the intake."""
+        if not self.on_shm:
+            self.on_shm = True
+            self._failed = 0
+            self._told_no_peer = False
+            self.changes.append(("shm", "its reply passed the intake"))
+
+    def _fall(self, why: str) -> None:
+        self.on_shm = False
+        self.fallbacks += 1
+        self.changes.append(("zenoh", why))
+
+    def close(self) -> None:
+        self.client.close()
+
+
+class ShmQuery:
+    """The handle of a trigger that came over shared memory, served like a
+    ``zenoh.Query`` by :class:`DeviceSync` (``with``, :meth:`reply`,
+    :meth:`reply_err`) on the loop thread that owns ``server``."""
+
+    __slots__ = ("server",)
+
+    def __init__(self, server: IntraHostServer) -> None:
+        self.server = server
+
+    def __enter__(self) -> ShmQuery:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        pass
+
+    def reply(self, key: object, payload: bytes | bytearray) -> None:
+        """Send ``payload`` back over the link (``key`` is zenoh's, unused):
+        one copy into a loaned sample. A client that has gone gets nothing."""
+        self.server.respond(payload)
+
+    def reply_err(self, payload: bytes) -> None:
+        """No error replies over shared memory: the CN counts the loop as
+        missed (the DN counted the refusal in ``dnX_bad_frames``); an error
+        reply there would carry no tag, so any local process could pin one
+        on the DN."""
+
+
 class ControlSync:
     """The CN end: query every DN with its frame, hand replies to the loop.
 
@@ -118,7 +304,13 @@ class ControlSync:
     at most ``timeout_ns`` (plus scheduling latency). ``checks``: one
     :class:`~zplatform.control.intake.ReplyCheck` per DN, in ``dns`` order (module
     doc: replies from a session not known to be the DN's). ``trace``: a
-    :data:`SyncTrace` for benchmarks (None: no tracing).
+    :data:`SyncTrace` for benchmarks (None: no tracing). ``shm``: one
+    :class:`ShmLink` (or None) per DN, in ``dns`` order: the DNs whose link
+    takes a loop get its trigger over shared memory and their replies,
+    each through its check, wait up to the same deadline; the others (and a
+    link with no peer, in the same loop) go over zenoh, one query each
+    (the wildcard only while no link takes shared memory). The sync closes
+    the links.
     """
 
     def __init__(
@@ -133,9 +325,18 @@ class ControlSync:
         wildcard: bool = False,
         monotonic: Callable[[], int] = time.monotonic_ns,
         trace: SyncTrace | None = None,
+        shm: Sequence[ShmLink | None] = (),
     ) -> None:
         if len(checks) != len(dns):
             raise ValueError(f"one reply check per device node: {len(checks)} for {len(dns)}")
+        if shm and len(shm) != len(dns):
+            raise ValueError(f"one intra-host link (or None) per device node: {len(shm)}")
+        # The intra-host links (ShmLink; None: zenoh only), and this loop's
+        # use of them: which DNs' triggers went over shared memory.
+        self.shm: tuple[ShmLink | None, ...] = tuple(shm) if shm else (None,) * len(dns)
+        self._has_shm = any(link is not None for link in self.shm)
+        self._sent_shm: list[int] = []
+        self._view = _ViewPayload()
         self.session = session
         self._trace = trace
         self.dns = list(dns)
@@ -362,12 +563,15 @@ class ControlSync:
         for i, check in enumerate(self._checks):
             check.expect(logic.loop, logic.t_ns)
             got[i] = False
+        zenoh_too = self._send_shm(frames) if self._has_shm else n
         if warmup:
             callbacks = self._counted
-            self._idle.clear()
-            self._issued += 1 if self.wildcard else n
+            issued = (1 if self.wildcard and zenoh_too == n else zenoh_too) if zenoh_too else 0
+            if issued:
+                self._idle.clear()
+                self._issued += issued
         tr = tracer.tracer
-        if self.wildcard:
+        if self.wildcard and zenoh_too == n:
             if trace is not None:
                 for i in range(n):
                     trace("issued", i)
@@ -384,8 +588,11 @@ class ControlSync:
             if tr is not None:
                 for i in range(n):
                     tr.mark("sync.sent", i)
-        else:
+        elif zenoh_too:
+            sent_shm = self._sent_shm
             for i in range(n):
+                if i in sent_shm:
+                    continue
                 # zplatform.runtime.queries.ask: DROP (on a link that stopped draining,
                 # a cut cable, a BLOCKing get would freeze the CN's loop for
                 # seconds; a dropped query is a missed sync, counted like any
@@ -408,6 +615,8 @@ class ControlSync:
         taps = self._taps
         for i in range(n):
             taps[i].put(frames[i])
+        if self._sent_shm:
+            self._collect_shm(logic, deadline, trace)
         q = self._q
         reply = logic.reply
         while logic.pending:
@@ -428,6 +637,80 @@ class ControlSync:
         self.duration_ns = end - start
         self._watch(got)
         return end > deadline + (self.timeout_ns // 2 if logic.pending else 0)
+
+    def _send_shm(self, frames: Sequence[bytearray]) -> int:
+        """Send the triggers of the DNs whose link takes shared memory this
+        loop (:meth:`ShmLink.try_shm`); returns how many DNs zenoh carries.
+        A link without a peer (or a sample to lend) hands its trigger back
+        to zenoh in the same loop: nothing is lost."""
+        sent = self._sent_shm
+        sent.clear()
+        trace = self._trace
+        for i, link in enumerate(self.shm):
+            if link is None or not link.try_shm():
+                continue
+            frame = frames[i]
+            client = link.client
+            buf = client.trigger(len(frame))
+            if buf is None:
+                link.no_peer("no sample to lend (the DN holds them all)")
+                continue
+            if trace is not None:
+                trace("issued", i)
+            buf[:] = frame  # the one copy of the trigger into shared memory
+            if not client.send():
+                link.no_peer(
+                    "no shared-memory server"
+                    if client.state is LinkState.NO_PEER
+                    else "the send failed"
+                )
+                continue
+            sent.append(i)
+        return len(self.dns) - len(sent)
+
+    def _collect_shm(self, logic: ControlLogic, deadline: int, trace: SyncTrace | None) -> None:
+        """Each reply over shared memory, through DN ``i``'s intake
+        (:class:`~zplatform.control.intake.ReplyCheck`: size, tag, the loop
+        asked), to ``logic.reply``, waiting at most until ``deadline``."""
+        view, got, checks = self._view, self._got, self._checks
+        for i in self._sent_shm:
+            link = self.shm[i]
+            assert link is not None
+            client = link.client
+            t_end = time.monotonic() + (deadline - self._mono()) / 1e9
+            reply = client.collect(t_end)
+            if reply is None:
+                link.missed("no reply within the deadline")
+                continue
+            if trace is not None:
+                trace("taken", i)
+            view.view = reply
+            data = checks[i].check(view, None)  # refused: counted there
+            view.view = memoryview(b"")
+            client.release()
+            if data is None:
+                link.refused += 1
+                link.missed("a reply the intake refused")
+                continue
+            link.took()
+            self._heard[i] = True
+            if logic.reply(i, data):
+                got[i] = True
+
+    def take_path_changes(self, out: list[tuple[str, str, str]]) -> None:
+        """Append ``(dn, path, why)`` for each link that changed its path
+        since the last call (the loop thread, once a loop; the driver
+        events them)."""
+        if self._has_shm:
+            for link in self.shm:
+                if link is not None and link.changes:
+                    for path, why in link.changes:
+                        out.append((link.dn, path, why))
+                    link.changes.clear()
+
+    def paths(self) -> list[str]:
+        """Each DN's link's path now: ``shm`` or ``zenoh``."""
+        return ["shm" if link is not None and link.on_shm else "zenoh" for link in self.shm]
 
     def _watch(self, got: list[bool]) -> None:
         """After a sync: a DN whose known session answered keeps it alone;
@@ -487,6 +770,9 @@ class ControlSync:
         return ok
 
     def close(self) -> None:
+        for link in self.shm:
+            if link is not None:
+                link.close()
         for t in self._taps:
             t.undeclare()
         for q in self._queriers:
@@ -512,7 +798,9 @@ class DeviceSync:
     CN's scheduler, a stalled DN skips missed loops and never runs a burst
     of old ones. Each :meth:`wait` also hands the intake's refusals to the
     logic (:meth:`DeviceLogic.refused`). ``trace``: a :data:`SyncTrace` for
-    benchmarks (None: no tracing).
+    benchmarks (None: no tracing). ``shm``: the intra-host link's server
+    (:meth:`attach_shm`; closed by :meth:`close`); ``path``: the Data
+    Vector handle of ``dnX_sync_path``, set before each trigger is served.
     """
 
     def __init__(
@@ -525,6 +813,8 @@ class DeviceSync:
         intake: TriggerIntake[zenoh.Query],
         probes: ProbeIntake[zenoh.Query] | None = None,
         trace: SyncTrace | None = None,
+        shm: IntraHostServer | None = None,
+        path: Any = None,
     ) -> None:
         self.dn = dn
         self._now = now_ns
@@ -583,6 +873,75 @@ class DeviceSync:
                 self._probe_key, zenoh.handlers.Callback(on_probe, indirect=False)
             )
             self._ready = lambda: len(box) or len(pbox)
+        # ``path``: the DataVector handle of ``dnX_sync_path``, set to the
+        # path each served trigger came by (it goes back in the reply).
+        self._path = path
+        self.shm: IntraHostServer | None = None
+        self._shm_payload = _ViewPayload()
+        if shm is not None:
+            self.attach_shm(shm)
+
+    def attach_shm(self, server: IntraHostServer) -> None:
+        """Take triggers over the intra-host link ``server`` too (module doc
+        of :mod:`zplatform.runtime.intrahost`): :meth:`wait` then blocks in
+        its event listener, which zenoh's admitted triggers and probe
+        questions wake as well (their mailboxes' waker notifies it), so a
+        trigger over shared memory costs the loop thread one wake-up. Its
+        triggers pass the same intake (:meth:`~zplatform.control.intake.Intake.check`:
+        size, tag, run, newer than every trigger by either path) and are
+        answered over it (:class:`ShmQuery`). Call before the loop runs."""
+        wake = server.waker()
+        waker = _ShmWaker(wake)
+        self._box.waker = waker
+        if self.probes is not None:
+            self._pbox.waker = waker
+        self._shm_query = ShmQuery(server)
+        self.shm = server
+
+    def detach_shm(self) -> IntraHostServer | None:
+        """Stop taking triggers over the intra-host link (the loop thread,
+        between two :meth:`wait`); returns its server, not closed."""
+        server, self.shm = self.shm, None
+        waker = Waker()
+        self._box.waker = waker
+        if self.probes is not None:
+            self._pbox.waker = waker
+        return server
+
+    def _wait_shm(self, logic: DeviceLogic, server: IntraHostServer, deadline: float) -> bool:
+        """:meth:`wait` with the intra-host link: the newest zenoh trigger
+        or, when none is queued, the link's, then block in its listener."""
+        box, payload = self._box, self._shm_payload
+        # The handle is zenoh's Query for zenoh's triggers; none here.
+        check: Callable[[_ViewPayload, Any], bytes | None] = self.intake.check
+        item: tuple[zenoh.Query | ShmQuery, bytes] | None
+        while True:
+            left = deadline - time.monotonic()
+            if left <= 0:
+                return False
+            if self.probes is not None:
+                while (probe := self._pbox.pop()) is not None:
+                    self._answer(probe, logic)
+            item = box.pop()
+            if item is None:
+                view = server.poll()
+                if view is None:
+                    server.block(left)
+                    continue
+                payload.view = view
+                data = check(payload, None)  # refused: counted, unanswered
+                payload.view = _EMPTY
+                if data is None:
+                    continue
+                if self._trace is not None:
+                    self._trace("arrive", 0)
+                item = (self._shm_query, data)
+            while (newer := box.pop()) is not None:  # a backlog: answer, keep the newest
+                self._serve(item, logic, may_run=False)
+                item = newer
+            self._serve(item, logic, may_run=True)
+            if logic.triggered:
+                return True
 
     def wait(self, logic: DeviceLogic, timeout_s: float) -> bool:
         """Serve queries until one starts a loop (True) or ``timeout_s`` passes.
@@ -590,6 +949,8 @@ class DeviceSync:
         box = self._box
         deadline = time.monotonic() + timeout_s
         try:
+            if self.shm is not None:
+                return self._wait_shm(logic, self.shm, deadline)
             while True:
                 left = deadline - time.monotonic()
                 if left <= 0:
@@ -630,7 +991,9 @@ class DeviceSync:
             else:
                 query.reply(self._probe_key, reply)
 
-    def _serve(self, item: tuple[zenoh.Query, bytes], logic: DeviceLogic, *, may_run: bool) -> None:
+    def _serve(
+        self, item: tuple[zenoh.Query | ShmQuery, bytes], logic: DeviceLogic, *, may_run: bool
+    ) -> None:
         trace = self._trace
         if trace is not None:
             trace("serve", 0)
@@ -638,6 +1001,9 @@ class DeviceSync:
         if tr is not None:
             tr.mark("dn.serve")
         query, data = item
+        path = self._path
+        if path is not None:
+            path.set(PATH_SHM if type(query) is ShmQuery else PATH_ZENOH)
         with query:
             # The intake checked this payload's tag already (module doc).
             reply = logic.trigger(data, self._now(), may_run=may_run, authentic=self._authentic)
@@ -656,6 +1022,9 @@ class DeviceSync:
 
     def close(self) -> None:
         self.queryable.undeclare()
+        server = self.detach_shm()
+        if server is not None:
+            server.close()
         if self._probe_q is not None:
             self._probe_q.undeclare()
         self._tap.undeclare()
@@ -758,3 +1127,55 @@ class ProbeSync:
         for i, f in enumerate(frames):
             if f is not None:
                 ask(self.session, self._keys[i], self._drop, payload=f, timeout_s=0.05)
+
+
+def open_shm_links(mission: Mission, cn: str = "cn") -> list[ShmLink | None]:
+    """The CN's intra-host links, one per DN (None: that DN's sync stays on
+    zenoh), or ``[]`` when ``transport.intra_host`` resolves to zenoh
+    (:func:`~zplatform.runtime.intrahost.intra_host_mode`). Each starts on
+    probation (:class:`ShmLink`). A link that cannot open (shared memory too
+    small, iceoryx2 refused) is logged and left to zenoh under ``auto``;
+    under ``shm`` the IntraHostError is raised (the operator asked for it)."""
+    if intra_host_mode(mission) == "zenoh":
+        return []
+    links: list[ShmLink | None] = []
+    try:
+        for dn in mission.device_nodes:
+            mode = intra_host_mode(mission, dn)
+            if mode == "zenoh":
+                links.append(None)
+                continue
+            try:
+                client = IntraHostClient(
+                    sync_link_names(mission, dn, cn),
+                    *mission_link_sizes(mission, dn),
+                    deadline_s=mission.sync_timeout_ns / 1e9,
+                )
+            except IntraHostError as exc:
+                if mode == "shm":
+                    raise
+                log.warning("%s's sync stays on zenoh: %s", dn, exc)
+                links.append(None)
+                continue
+            links.append(ShmLink(dn, client, pinned=mode == "shm"))
+    except BaseException:
+        for link in links:
+            if link is not None:
+                link.close()
+        raise
+    return links if any(link is not None for link in links) else []
+
+
+def open_shm_server(mission: Mission, dn: str, cn: str = "cn") -> IntraHostServer | None:
+    """A DN's end of its intra-host link (None: zenoh only; as
+    :func:`open_shm_links`, an IntraHostError only under ``shm``)."""
+    mode = intra_host_mode(mission, dn)
+    if mode == "zenoh":
+        return None
+    try:
+        return IntraHostServer(sync_link_names(mission, dn, cn), *mission_link_sizes(mission, dn))
+    except IntraHostError as exc:
+        if mode == "shm":
+            raise
+        log.warning("%s's sync stays on zenoh: %s", dn, exc)
+        return None

@@ -1,0 +1,285 @@
+"""The sync over the intra-host link (zplatform.runtime.sync: ShmLink,
+DeviceSync.attach_shm; docs/architecture.md#intra-host), both ends in this process on
+one zenoh session and real iceoryx2 services: the trigger and reply take
+shared memory once a reply passed the intake, fall back to zenoh in the
+same loop when the DN's end is gone, come back after RETRY_LOOPS, and a
+forged or replayed frame over shared memory is refused and counted by the
+same intake as over zenoh."""
+
+from __future__ import annotations
+
+import queue
+import threading
+import time
+import uuid
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from tests.zsession import lone_session
+from zplatform.config import Mission
+from zplatform.control.intake import CnRefusals, ReplyCheck, TriggerIntake
+from zplatform.control.loop import ControlLogic, DeviceLogic
+from zplatform.core.auth import channel
+from zplatform.mission.load import load_mission
+from zplatform.runtime import sync as sync_mod
+from zplatform.runtime.intrahost import (
+    IntraHostClient,
+    IntraHostServer,
+    LinkNames,
+    link_names,
+    mission_link_sizes,
+)
+from zplatform.runtime.sync import ControlSync, DeviceSync, ShmLink
+from zplatform.runtime.transport import KeySpace
+from zplatform.sim.lockstep import sim_keys
+
+MINIMAL = Path(__file__).resolve().parents[2] / "configs" / "minimal.yaml"
+T0 = 10**9
+PERIOD = 10**7
+
+
+@dataclass
+class Pair:
+    m: Mission
+    cn: ControlLogic
+    dn: DeviceLogic
+    cs: ControlSync
+    ds: DeviceSync
+    link: ShmLink
+    intake: TriggerIntake[Any]
+    names: LinkNames
+    sizes: tuple[int, int]
+
+    def loop(self, loop: int) -> bool:
+        """One loop: the DN serves on a thread, the CN syncs; whether the
+        CN got every reply."""
+        served = threading.Thread(target=self.ds.wait, args=(self.dn, 10.0))
+        served.start()
+        self.cs.sync(self.cn.begin(loop, T0 + loop * PERIOD), self.cn)
+        served.join()
+        ok = self.cn.pending == 0
+        self.cn.finish()
+        return ok
+
+
+@pytest.fixture
+def pair() -> Iterator[Pair]:
+    m = load_mission(MINIMAL)
+    sim = sim_keys(m)
+    cn = ControlLogic(m, keys=sim)
+    dn = DeviceLogic(m, "dn0", keys=sim)
+    names = link_names(f"t{uuid.uuid4().hex[:12]}", m.vehicle, "1", "cn", "dn0")
+    sizes = mission_link_sizes(m, "dn0")
+    session = lone_session()
+    keys = KeySpace(m.vehicle)
+    # The DN's clock: a period per read, from the CN's first loop on (the
+    # intake's bound ahead and the logic's staleness both hold).
+    now = iter(range(T0, 100 * T0, PERIOD // 4)).__next__
+    intake: TriggerIntake[Any] = TriggerIntake(m, "dn0", channel(sim, "cn_to_dn0"), now)
+    ds = DeviceSync(
+        session,
+        keys,
+        "dn0",
+        now,
+        intake=intake,
+        shm=IntraHostServer(names, *sizes),
+        path=dn.dv.handle("dn0_sync_path"),
+    )
+    # Generous deadlines: these check what happens, not how fast.
+    link = ShmLink("dn0", IntraHostClient(names, *sizes, deadline_s=2.0))
+    cs = ControlSync(
+        session,
+        keys,
+        ["dn0"],
+        2_000_000_000,
+        2.0,
+        checks=[ReplyCheck(m, "dn0", channel(sim, "dn0_to_cn"))],
+        shm=[link],
+    )
+    try:
+        yield Pair(m, cn, dn, cs, ds, link, intake, names, sizes)
+    finally:
+        cs.close()
+        ds.close()
+        session.close()
+
+
+def changes(cs: ControlSync) -> list[tuple[str, str]]:
+    out: list[tuple[str, str, str]] = []
+    cs.take_path_changes(out)
+    return [(dn, path) for dn, path, _ in out]
+
+
+def test_the_sync_takes_shared_memory_once_a_reply_passed_the_intake(pair: Pair) -> None:
+    hops: list[str] = []
+    pair.cs._trace = lambda h, n: hops.append(h)
+    for loop in (1, 2, 3):
+        assert pair.loop(loop)
+    assert pair.link.on_shm and pair.link.tries == 1
+    assert pair.link.client.replies == 3
+    # Nothing came back over zenoh ("back" is zenoh's thread handing a reply over).
+    assert hops == ["issued", "taken"] * 3
+    # The path is in the DN's reply, so in the CN's vector (telemetry).
+    assert pair.dn.dv.get_name("dn0_sync_path") == "shm"
+    assert pair.cn.dv.get_name("dn0_sync_path") == "shm"
+    assert int(pair.cn.dv.get("cn_missed_dn0")) == 0
+    assert changes(pair.cs) == [("dn0", "shm")]
+    assert pair.cs.paths() == ["shm"]
+
+
+def test_a_dead_shm_server_falls_back_to_zenoh_in_the_same_loop_and_returns(
+    pair: Pair, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.setattr(sync_mod, "RETRY_LOOPS", 3)
+    assert pair.loop(1) and pair.link.on_shm
+    server = pair.ds.detach_shm()  # the DN's end goes; its node and zenoh stay
+    assert server is not None
+    server.close()
+    # The next trigger finds no server and goes over zenoh at once: no loop lost.
+    for loop in (2, 3, 4):
+        assert pair.loop(loop)
+        assert pair.dn.dv.get_name("dn0_sync_path") == "zenoh"
+    assert not pair.link.on_shm and pair.link.fallbacks == 1
+    assert changes(pair.cs) == [("dn0", "shm"), ("dn0", "zenoh")]
+    # The DN's end comes back (a restarted DN): after RETRY_LOOPS loops the
+    # CN tries shared memory again, and the reply passes: back on it.
+    pair.ds.attach_shm(IntraHostServer(pair.names, *pair.sizes))
+    for loop in range(5, 9):
+        assert pair.loop(loop)
+    assert pair.link.on_shm and pair.dn.dv.get_name("dn0_sync_path") == "shm"
+    assert changes(pair.cs) == [("dn0", "shm")]
+    assert int(pair.cn.dv.get("cn_missed_dn0")) == 0
+
+
+def test_a_forged_reply_over_shared_memory_is_refused_and_counted(pair: Pair) -> None:
+    """Someone else's server on the link (the DN's closed): its reply of the
+    right size fails the tag check, is counted like a bad reply over zenoh,
+    and the link is never used: zenoh carries the loops."""
+    server = pair.ds.detach_shm()
+    assert server is not None
+    server.close()
+    forger = IntraHostServer(pair.names, *pair.sizes)
+    stop = threading.Event()
+
+    def forge() -> None:
+        while not stop.is_set():
+            if forger.wait(0.05) is not None:
+                forger.respond(bytes(pair.sizes[1] - 4))
+
+    t = threading.Thread(target=forge)
+    t.start()
+    try:
+        # The CN's first try goes to the forger: no valid reply, the loop is lost.
+        served = threading.Thread(target=pair.ds.wait, args=(pair.dn, 0.2))
+        served.start()
+        pair.cs.sync(pair.cn.begin(1, T0 + PERIOD), pair.cn)
+        served.join()
+        assert pair.cn.pending == 1
+        refused = CnRefusals()
+        pair.cs.take_refusals(refused)
+        assert (refused.reply_size, refused.reply_bad, refused.reply_stale) == (0, 1, 0)
+        assert pair.link.refused == 1 and not pair.link.on_shm
+        pair.cn.finish()
+        # The next loops go over zenoh (the try waits RETRY_LOOPS).
+        for loop in (2, 3):
+            assert pair.loop(loop)
+        assert pair.dn.dv.get_name("dn0_sync_path") == "zenoh"
+        assert changes(pair.cs) == []  # never verified: no path change to tell
+    finally:
+        stop.set()
+        t.join()
+        forger.close()
+
+
+def test_junk_and_replayed_triggers_over_shared_memory_meet_the_same_intake(pair: Pair) -> None:
+    """A local process writing into the DN's service: junk is refused (bad
+    tag), a genuine trigger replayed is refused (stale), neither answered;
+    each counted in the DN's ``dn0_bad_frames`` as over zenoh, and the next
+    genuine loop runs."""
+    frame = bytes(pair.cn.begin(1, T0 + PERIOD)[0])
+    pair.cn.finish()  # loop 1 was begun only for its frame: one miss
+    assert pair.loop(2)  # over shared memory, verified
+    attacker = IntraHostClient(pair.names, *pair.sizes, deadline_s=0.05)
+    try:
+        for k, sent in enumerate((bytes(len(frame)), frame), start=1):  # junk; loop 1's, stale
+            buf = attacker.trigger(len(sent))
+            assert buf is not None
+            buf[:] = sent
+            assert attacker.send()  # queued in the DN's service before the DN waits
+            # The DN's wait takes it, refuses it, waits out its timeout unanswered.
+            assert not pair.ds.wait(pair.dn, 0.05)
+            assert attacker.collect() is None
+            assert int(pair.dn.dv.get("dn0_bad_frames")) == k
+    finally:
+        attacker.close()
+    assert pair.loop(3)
+    assert pair.link.on_shm and pair.dn.dv.get_name("dn0_sync_path") == "shm"
+    assert int(pair.cn.dv.get("cn_missed_dn0")) == 1
+
+
+def test_a_dn_waiting_on_its_link_is_woken_by_zenoh_triggers(pair: Pair) -> None:
+    """A CN that syncs over zenoh (its link off) with a DN whose loop
+    thread blocks in the link's listener: zenoh's admitted triggers wake it
+    (the mailbox's waker notifies the listener from zenoh's thread), each
+    loop runs, and the path says zenoh."""
+    cs = ControlSync(
+        pair.cs.session,
+        KeySpace(pair.m.vehicle),
+        ["dn0"],
+        2_000_000_000,
+        2.0,
+        checks=[ReplyCheck(pair.m, "dn0", channel(sim_keys(pair.m), "dn0_to_cn"))],
+    )
+    own, pair.cs = pair.cs, cs  # the fixture's (never used here) closes last
+    try:
+        for loop in (1, 2, 3):
+            assert pair.loop(loop)
+    finally:
+        cs.close()
+        pair.cs = own
+    assert pair.ds.shm is not None
+    assert pair.dn.dv.get_name("dn0_sync_path") == "zenoh"
+    assert int(pair.cn.dv.get("cn_rx_dn0")) == 3
+
+
+def test_taps_see_the_frames_whichever_path_the_sync_takes(pair: Pair) -> None:
+    """A tool subscribed to ``dn0/to_dn``'s and ``dn0/to_cn``'s taps gets
+    each loop's trigger and reply over zenoh while the sync itself takes
+    shared memory: what ``tap`` sees does not change."""
+    keys = KeySpace(pair.m.vehicle)
+    session = pair.cs.session
+    down: queue.Queue[bytes] = queue.Queue()
+    up: queue.Queue[bytes] = queue.Queue()
+    subs = [
+        session.declare_subscriber(keys.cn_to_dn("dn0"), lambda s: down.put(s.payload.to_bytes())),
+        session.declare_subscriber(keys.dn_to_cn("dn0"), lambda s: up.put(s.payload.to_bytes())),
+    ]
+    try:
+        # The taps learn of the subscribers from zenoh's matching listeners.
+        taps = [pair.cs._taps[0], pair.ds._tap]
+        deadline = time.monotonic() + 10
+        while not all(t.matching for t in taps) and time.monotonic() < deadline:
+            time.sleep(0.01)  # zenoh's routing state, not a peer: no event to wait on here
+        assert all(t.matching for t in taps)
+        frames = []
+        for loop in (1, 2, 3):
+            served = threading.Thread(target=pair.ds.wait, args=(pair.dn, 10.0))
+            served.start()
+            frame = pair.cn.begin(loop, T0 + loop * PERIOD)
+            frames.append(bytes(frame[0]))
+            pair.cs.sync(frame, pair.cn)
+            served.join()
+            assert pair.cn.pending == 0
+            pair.cn.finish()
+        assert pair.link.on_shm
+        # zenoh hands the samples over on its own thread: each is waited for.
+        assert [down.get(timeout=10) for _ in frames] == frames
+        assert len([up.get(timeout=10) for _ in frames]) == 3
+        assert down.empty() and up.empty()
+    finally:
+        for s in subs:
+            s.undeclare()
