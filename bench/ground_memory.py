@@ -14,14 +14,14 @@ polled), the ground reports its RSS (``/proc/self/status`` ``VmRSS``).
 
 Variants: ``as_is`` (the ground as ``zenoh_config`` builds it: no shared
 memory for the ground node), ``ground_shm`` (the same with zenoh's shared
-memory on, as the mission's transport has it and the ground had it before:
-zenoh maps each same-host peer's 16 MiB pool the first time that peer sends
-a payload over 3 KiB, and keeps it mapped after the peer has gone), and any
-``--set KEY=JSON`` (a zenoh config setting added to the ground's, a
-variant of its own). ``dn0_queries``: the victim a device node's session
-instead (dn0's config: shared memory on, as the mission has it for bulk
-channels), a queryable on its sync key, the junk in gets: what the
-vehicle's nodes still pay (``refused``: the queries it took).
+memory on, as the ground had it before: a raw zenoh session on the ground's
+config with a subscriber on the event keys; zenoh maps each same-host peer's 16 MiB pool the
+first time that peer sends a payload over 3 KiB, and keeps it mapped after
+the peer has gone). ``dn0_queries``: the victim a device node's session
+instead (dn0's config as ``zenoh_config`` builds it: shared memory only
+where it helps), a queryable on its sync key, the junk in gets: what the
+vehicle's nodes pay (``refused``: the queries it took); ``dn0_queries_shm``
+the same on a raw session with shared memory on (dn0 before).
 ``--process``: the fault suite's attacker (``tests/faults/attacker.py``
 ``key-put``, a tool's config of the mission) in a process of its own each
 cycle, instead of a session of this process.
@@ -53,8 +53,7 @@ import yaml
 from bench.common import REPO_ROOT, Child, bench_argparser, next_command, say
 from zplatform.ground.link import EVENT_MAX
 
-VARIANTS = ("as_is", "ground_shm", "dn0_queries")
-_SET = {"ground_shm": "set:transport/shared_memory/enabled=true"}
+VARIANTS = ("as_is", "ground_shm", "dn0_queries", "dn0_queries_shm")
 
 
 def _rss_mb() -> float:
@@ -78,9 +77,7 @@ def _mission(tmp: Path) -> Path:
 def child(mission_path: str, variant: str) -> None:
     """The ground node (module doc); answers ``rss`` (its RSS and counters),
     ``peers`` (the zenoh ids of its peers) and ``quit``."""
-    import zenoh
 
-    import zplatform.runtime.transport as transport
     from zplatform.ground.link import GroundLink
     from zplatform.mission.load import load_mission
 
@@ -88,16 +85,9 @@ def child(mission_path: str, variant: str) -> None:
     if variant == "dn0_queries":
         _vehicle_child(m)
         return
-    variant = _SET.get(variant, variant)
-    if variant.startswith("set:"):
-        key, _, value = variant[4:].partition("=")
-        opened = transport.open_session
-
-        def open_with(cfg: zenoh.Config) -> zenoh.Session:
-            cfg.insert_json5(key, value)
-            return opened(cfg)
-
-        transport.open_session = open_with
+    if variant in ("ground_shm", "dn0_queries_shm"):
+        _raw_child(m, variant)
+        return
     link = GroundLink(m, node="gn")
     say({"ready": True, "rss_mb": _rss_mb()})
     while True:
@@ -110,6 +100,40 @@ def child(mission_path: str, variant: str) -> None:
         elif cmd["cmd"] == "rss":
             say({"rss_mb": _rss_mb(), "refused": link.logic.counters.bad_events})
     link.close()
+
+
+def _raw_child(m: Any, variant: str) -> None:
+    """The baselines, raw zenoh sessions with shared memory on (what the
+    ground node and a device node had before): ``ground_shm``, the ground
+    node's config with a subscriber on the event keys; ``dn0_queries_shm``,
+    dn0's config with a queryable on its sync key; both only count what
+    they take; protocol as :func:`child`."""
+    import zenoh
+
+    from zplatform.runtime.transport import open_session, zenoh_config
+
+    node = "gn" if variant == "ground_shm" else "dn0"
+    cfg = zenoh_config(m, node)
+    cfg.insert_json5("transport/shared_memory/enabled", "true")
+    s = open_session(cfg)
+    taken = [0]
+
+    def on_frame(_: object) -> None:  # hand off only: counted, never answered
+        taken[0] += 1
+
+    handler = zenoh.handlers.Callback(on_frame, indirect=False)
+    if node == "gn":
+        decl: Any = s.declare_subscriber(f"{m.vehicle}/*/events", handler)
+    else:
+        decl = s.declare_queryable(f"{m.vehicle}/dn0/to_cn", handler)
+    say({"ready": True, "rss_mb": _rss_mb()})
+    while (cmd := next_command())["cmd"] != "quit":
+        if cmd["cmd"] == "peers":
+            say({"peers": [str(z) for z in s.info.peers_zid()]})
+        elif cmd["cmd"] == "rss":
+            say({"rss_mb": _rss_mb(), "refused": taken[0]})
+    decl.undeclare()
+    s.close()
 
 
 def _vehicle_child(m: Any) -> None:
@@ -261,7 +285,7 @@ def run_variant(
 ) -> dict[str, Any]:
     raw = yaml.safe_load(mission.read_text())
     vehicle = raw.get("vehicle", "rocket")
-    if variant == "dn0_queries":
+    if variant.startswith("dn0_queries"):
         ep, key = raw["nodes"]["dn0"]["listen"][0], f"{vehicle}/dn0/to_cn"
     else:
         ep, key = raw["nodes"]["gn"]["listen"][0], f"{vehicle}/dn0/events"
@@ -275,7 +299,7 @@ def run_variant(
         refused = 0
         for _ in range(cycles):
             flood = _flood_process if process else _flood
-            if variant == "dn0_queries":
+            if variant.startswith("dn0_queries"):
                 flood = _flood_gets
             n = flood(mission, ep, key, rate, flood_s)
             sent.append(n)
@@ -315,16 +339,11 @@ def main() -> None:
     p.add_argument(
         "--process", action="store_true", help="the fault suite's attacker, a process each cycle"
     )
-    p.add_argument(
-        "--variant", action="append", default=None, help="as_is, ground_shm, dn0_queries"
-    )
-    p.add_argument(
-        "--set", action="append", default=[], metavar="KEY=JSON", help="a zenoh config variant"
-    )
+    p.add_argument("--variant", action="append", default=None, help=", ".join(VARIANTS))
     a = p.parse_args()
     cycles = 4 if a.quick else a.cycles
     os.environ.setdefault("ZPLATFORM_KEY", secrets.token_hex(32))
-    names = list(a.variant or VARIANTS) + [f"set:{s}" for s in a.set]
+    names = list(a.variant or VARIANTS)
     out: dict[str, dict[str, Any]] = {}
     with tempfile.TemporaryDirectory() as tmp:
         mission = _mission(Path(tmp))
