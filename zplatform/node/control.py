@@ -33,7 +33,7 @@ import zenoh
 from .. import trace
 from ..config import Mission
 from ..config.codes import CommandStatus
-from ..control.failover import Standby
+from ..control.failover import Standby, probe_wait_ns
 from ..control.handoff import Mailbox
 from ..control.intake import CnRefusals, MirrorIntake, RefusalLog, ReplyCheck, RequestIntake
 from ..control.loop import ControlLogic
@@ -262,9 +262,7 @@ class ControlNode:
                 zenoh.handlers.Callback(self._on_mirror, indirect=False),
                 allowed_origin=zenoh.Locality.REMOTE,
             )
-            self.probes = ProbeSync(
-                s, space, mission.device_nodes, max(mission.sync_timeout_ns, mission.period_ns // 4)
-            )
+            self.probes = ProbeSync(s, space, mission.device_nodes, probe_wait_ns(mission))
             self._peer = next(n for n in mission.control_nodes if n != name)
             self._peer_seen = False
             self._ready_token: zenoh.LivelinessToken | None = None
