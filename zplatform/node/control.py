@@ -845,7 +845,9 @@ class ControlNode:
 
     def _query_recoveries(self, t_ns: int) -> None:
         """The device nodes whose querier the sync declared again this loop
-        (zplatform.runtime.queries.Unanswered), evented at most once a second."""
+        (zplatform.runtime.queries.Unanswered), evented at most once a second
+        (the loop counts them: ``cn_query_recoveries``, from the sync's
+        refusals, :meth:`_take_refusals`)."""
         got = self._recoveries
         self.sync.take_recoveries(got)
         if not got and not self._recovery_unsent:
