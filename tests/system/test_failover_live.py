@@ -61,11 +61,6 @@ def _one_term_per_loop(c: Cluster, root: Path, terms: set[int]) -> None:
     assert {t for by in driven.values() for t in by.values()} >= terms
 
 
-# With the soaks (-m slow) at the end of issue 25's stop: in 2 of 5 whole-suite
-# runs a takeover here took longer than the device nodes' watchdog (dn0 safed
-# for ~100 ms, then re-enabled). The lockstep twins (test_failover_sim.py)
-# stay in the default suite; this regression is open (the closing note).
-@pytest.mark.slow
 def test_a_killed_commander_is_replaced_then_rejoins_as_the_standby(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
@@ -104,11 +99,6 @@ def test_a_killed_commander_is_replaced_then_rejoins_as_the_standby(
     assert r.returncode == 0 and "identical" in r.stdout, r.stdout + r.stderr
 
 
-# With the soaks (-m slow) at the end of issue 25's stop: in 2 of 5 whole-suite
-# runs a takeover here took longer than the device nodes' watchdog (dn0 safed
-# for ~100 ms, then re-enabled). The lockstep twins (test_failover_sim.py)
-# stay in the default suite; this regression is open (the closing note).
-@pytest.mark.slow
 def test_a_stopped_commander_is_replaced_and_stands_down_when_continued(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:

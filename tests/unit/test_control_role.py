@@ -17,6 +17,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from zplatform import load_mission
+from zplatform.control.failover import probe_wait_ns
 from zplatform.control.fencing import ASK, STATUS, TERM_MAX, ProbeReply, read_ask, reply_frame
 from zplatform.control.loop import ControlLogic
 from zplatform.control.role import (
@@ -286,3 +287,63 @@ def test_the_standby_asks_only_when_the_mirrors_are_stale_and_takes_only_a_major
             assert role.commanding and logic.term == 2
             return
         assert isinstance(action, Release) and None not in action.releases
+
+
+def test_a_status_round_too_few_answered_is_asked_again_at_the_next_slot() -> None:
+    """Issue 25: a STATUS round in which too few device nodes answered in
+    time (a busy host's late answers) and none showed the commander driving
+    it is asked again at the very next slot, not ``takeover_loops`` later:
+    two such rounds used to push a takeover past the device nodes' watchdog,
+    three past the blind standby's limit (no takeover at all). A round in
+    which a device node is still driven waits for its lease as before."""
+    role = _role("cn_b")
+    sb = role.follow_from_start()
+    assert KEYS is not None
+    commander = ControlLogic(FLIGHT, keys=KEYS.for_node("cn"), epoch=T0)
+    commander.begin(1, T0)
+    commander.finish(())
+    assert commander.mirror is not None
+    assert role.mirror(bytes(commander.mirror), T0 + PERIOD // 2) is True
+
+    def now(slot: int) -> int:
+        return T0 + (slot - 1) * PERIOD + PERIOD // 2
+
+    slot = 1 + TAKEOVER  # the first slot with takeover_loops mirrors missing
+    quiet = LEASE_NS + PERIOD
+    rounds = 0
+    for s in range(2, slot):
+        assert role.tick(s, now(s)) is None  # mirrors not yet stale
+    for s in range(slot, slot + 3):  # only dn0 answers: too few, none driven
+        action = role.tick(s, now(s))
+        assert isinstance(action, Probe) and action.kind == STATUS, s
+        rounds += 1
+        _answer(role, action.asks, [(1, 0, quiet), None], s)
+        assert role.round_over(s, now(s)) is None
+    assert rounds == 3 and not sb.blind(slot + 2)
+    s = slot + 3  # both answer now: the term is asked for, and granted
+    action = role.tick(s, now(s))
+    assert isinstance(action, Probe) and action.kind == STATUS
+    _answer(role, action.asks, [(1, 0, quiet), (1, 0, quiet)], s)
+    action = role.round_over(s, now(s))
+    assert isinstance(action, Probe) and action.kind == ASK
+    _answer(role, action.asks, [(1, 0, quiet), (1, 0, quiet)], s)
+    assert role.round_over(s, now(s)) == Take(s + 1)
+    # A device node still driven (a trigger within the lease): no round at
+    # the next slot; the next comes once its lease may have run out.
+    role = _role("cn_b")
+    role.follow_from_start()
+    assert role.mirror(bytes(commander.mirror), T0 + PERIOD // 2) is True
+    action = role.tick(slot, now(slot))
+    assert isinstance(action, Probe)
+    _answer(role, action.asks, [(1, 0, quiet), (1, 0, PERIOD)], slot)
+    assert role.round_over(slot, now(slot)) is None
+    assert role.tick(slot + 1, now(slot + 1)) is None
+
+
+def test_a_probe_round_waits_a_whole_period_for_the_device_nodes_answers() -> None:
+    """Issue 25: a busy host's device nodes answered the standby's probes in
+    3 to 17 ms; a round that gave up after 2.5 ms (the larger of the sync
+    timeout and a quarter period) held the takeover back a round each time.
+    A round now waits up to a whole period (it ends at once when all answered)."""
+    for m in (FLIGHT, IGNITER):
+        assert probe_wait_ns(m) == m.period_ns > max(m.sync_timeout_ns, m.period_ns // 4)

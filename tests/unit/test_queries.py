@@ -26,7 +26,7 @@ import zenoh
 from tests.waits import wait_until
 from tests.zsession import lone_session
 from zplatform.control.handoff import Mailbox
-from zplatform.control.intake import ReplyCheck, TriggerIntake
+from zplatform.control.intake import CnRefusals, ReplyCheck, TriggerIntake
 from zplatform.control.loop import ControlLogic, DeviceLogic
 from zplatform.core.auth import KeySet, channel
 from zplatform.core.health import Heartbeat, Liveness, stalled_names, thread_deadlines_ns
@@ -436,6 +436,71 @@ def test_the_cn_recovers_a_live_dns_lost_query_route_and_is_answered_again(
         ds.close()
         if token is not None:
             token.undeclare()
+
+
+def test_each_querier_recovery_is_counted_once_in_the_data_vector(trio: Trio) -> None:
+    """Issue 25, leftover 8: every querier the sync declares again (a live
+    DN's route lost twice, each time for UNANSWERED_LOOPS loops) is counted
+    in the loop's ``cn_query_recoveries``, exactly once, from the sync's
+    refusals the loop takes (``CnRefusals.query_recovered``, recorded with
+    them, so a replay counts the same); answered loops add nothing."""
+    m = MINIMAL
+    sim = sim_keys(m)
+    cn = ControlLogic(m, keys=sim)
+    dn = DeviceLogic(m, "dn0", keys=sim)
+    now = iter(range(10**9, 20 * 10**9, 10**7)).__next__
+    ks = KeySpace(m.vehicle)
+    ds = DeviceSync(
+        trio.genuine, ks, "dn0", now, intake=TriggerIntake(m, "dn0", channel(sim, "cn_to_dn0"))
+    )
+    token = trio.genuine.liveliness().declare_token(ks.alive("dn0"))
+    trio.ready()
+    fault = LostRoute(ks.dn_to_cn("dn0"))
+    set_fault(fault)
+    cs = ControlSync(
+        trio.asker,
+        ks,
+        ["dn0"],
+        5_000_000,  # the lost loops each wait out this deadline
+        5.0,
+        checks=[ReplyCheck(m, "dn0", channel(sim, "dn0_to_cn"))],
+    )
+    refused = CnRefusals()
+    per_loop: list[int] = []
+    loop = 0
+
+    def one_loop(serve: bool) -> None:
+        nonlocal loop
+        loop += 1
+        served = threading.Thread(target=ds.wait, args=(dn, 10.0)) if serve else None
+        if served is not None:
+            served.start()
+        cs.sync(cn.begin(loop, 10**9 + loop * 10**7), cn)
+        if served is not None:
+            served.join()
+        cs.take_refusals(refused)
+        per_loop.append(refused.query_recovered)
+        cn.finish((), refused=refused)
+
+    try:
+        one_loop(serve=True)
+        for _ in range(2):  # the route lost, recovered; lost again, recovered again
+            fault.armed = True
+            for _ in range(6 * UNANSWERED_LOOPS):  # a bound in loops, not in time
+                one_loop(serve=False)
+                if not fault.armed:
+                    break
+            one_loop(serve=True)  # answered again
+        for _ in range(3):
+            one_loop(serve=True)
+        assert fault.redeclares == 2 and cs.unanswered.recoveries == [2]
+        assert sorted(per_loop)[-2:] == [1, 1] and sum(per_loop) == 2
+        assert int(cn.dv.get("cn_query_recoveries")) == 2
+    finally:
+        set_fault(None)
+        cs.close()
+        ds.close()
+        token.undeclare()
 
 
 def test_a_dn_that_answers_only_late_is_not_a_lost_route(trio: Trio) -> None:

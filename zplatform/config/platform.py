@@ -253,6 +253,13 @@ def platform_elements(m: Mission) -> dict[str, list[ElementConfig]]:
         E("cn_errors", "u32", 0, doc="non-critical errors counted"),
         E("cn_last_error", "u16", 0, doc="code of the last non-critical error"),
         E("cn_bad_frames", "u32", 0, doc="frames refused (shape, layout, tag)"),
+        E(
+            "cn_query_recoveries",
+            "u32",
+            0,
+            doc="queriers declared again: a live device node's queries unanswered loop "
+            "after loop (a query route lost in zenoh)",
+        ),
         E("cn_cmd", "enum", "NONE", list(CMD_NAMES), doc="the accepted command, until taken"),
         E("cn_cmd_seq", "u64", 0, doc="number of the last request judged"),
         E("cn_cmd_status", "enum", "NONE", list(CMD_STATUS_NAMES), doc="its verdict"),

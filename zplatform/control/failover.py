@@ -45,9 +45,21 @@ from .intake import RefusalLog
 from .loop import ControlLogic
 from .params import encode_params
 
-__all__ = ["Decision", "MirrorReader", "Standby"]
+__all__ = ["Decision", "MirrorReader", "Standby", "probe_wait_ns"]
 
 _U32 = struct.Struct("<I")
+
+
+def probe_wait_ns(mission: Mission) -> int:
+    """How long a control node's probe round waits for the device nodes'
+    answers (:class:`~zplatform.runtime.sync.ProbeSync`): a whole period.
+    A round ends as soon as every device node answered, so this costs only
+    when an answer is late; a standby has nothing else to do meanwhile, and
+    an answer it gives up on costs a round at the next slot. (It was the
+    larger of the sync timeout and a quarter period, 2.5 ms at 100 Hz: a
+    busy host's device nodes answered in 3 to 17 ms, and each round without
+    them held a takeover back, issue 25.)"""
+    return mission.period_ns
 
 
 class Decision(enum.IntEnum):
@@ -391,11 +403,18 @@ class Standby:
         term is asked for, so no promise can fence a commander that still
         drives some device node (a busy host's late triggers included); the
         next round comes when the lease may have run out (as after a refused
-        ASK), with a ``cn_takeover_held`` event (once per silence). Learns
-        any newer term a device node reported."""
+        ASK), or at the next slot when no answer showed a driven device node
+        (too few came in time), with a ``cn_takeover_held`` event (once per
+        silence). Learns any newer term a device node reported."""
         answered = [a for a in self.answers if a is not None]
         driven = [a for a in answered if 0 <= a.quiet_ns < self._lease or a.promised]
-        retry = self._retry_in(driven)
+        # Too few answers and none driven: a busy host's late answers, not a
+        # commander at work. Asking nothing, the next STATUS round may come at
+        # the next slot (one question a period: within every device node's
+        # rate bound); waiting takeover_loops here would push a takeover past
+        # the device nodes' watchdog after two such rounds, and past the
+        # blind standby's limit after three (issue 25).
+        retry = self._retry_in(driven) if driven else 1
         for a in answered:
             self.term = max(self.term, a.term, a.promised)
         if 2 * len(answered) > len(self.dns) and not driven:

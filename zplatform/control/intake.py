@@ -637,7 +637,10 @@ class CnRefusals:
     replay), ``reply_foreign`` from a replier that is no DN's. Command
     requests: ``cmd_size``, ``cmd_bad``, ``cmd_stale`` (epoch or number), and
     ``cmd_status``/``cmd_seq`` of the refusal to report (the stale one with
-    the highest number; ``REJECTED_AUTH``/0 when only bad tags came)."""
+    the highest number; ``REJECTED_AUTH``/0 when only bad tags came). Not a
+    refusal, but the sync's count of the loop too (so a replay counts it):
+    ``query_recovered``, the device nodes whose querier was declared again
+    (:class:`~zplatform.runtime.queries.Unanswered`; not in :attr:`total`)."""
 
     __slots__ = (
         "cmd_bad",
@@ -645,6 +648,7 @@ class CnRefusals:
         "cmd_size",
         "cmd_stale",
         "cmd_status",
+        "query_recovered",
         "reply_bad",
         "reply_foreign",
         "reply_size",
@@ -658,6 +662,7 @@ class CnRefusals:
         self.reply_size = self.reply_bad = self.reply_stale = self.reply_foreign = 0
         self.cmd_size = self.cmd_bad = self.cmd_stale = 0
         self.cmd_status = self.cmd_seq = 0
+        self.query_recovered = 0
 
     @property
     def total(self) -> int:
@@ -692,6 +697,7 @@ CN_REFUSALS = (
     "cmd_stale",
     "cmd_status",
     "cmd_seq",
+    "query_recovered",
 )
 """:class:`CnRefusals`' fields in their recorded order."""
 

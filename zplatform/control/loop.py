@@ -217,6 +217,7 @@ class ControlLogic:
         self._missed = tuple(dv.handle(f"cn_missed_{dn}") for dn in dns)
         self._late = tuple(dv.handle(f"cn_late_{dn}") for dn in dns)
         self._bad = dv.handle("cn_bad_frames")
+        self._recoveries = dv.handle("cn_query_recoveries")
         self._sync_overruns = dv.handle("cn_sync_overruns")
         self._loop_overruns = dv.handle("cn_loop_overruns")
         self._h_loop = dv.handle("cn_loop")
@@ -500,7 +501,11 @@ class ControlLogic:
         number is a reject that consumes no number, as the command handler
         counts one (:meth:`CommandHandler.count_refused`: ``cn_cmd_rejects``,
         the highest number in ``cn_cmd_reject_seq``). Evented together, at
-        most once a second (a ``bad_frame`` and a ``cmd_rejected`` event)."""
+        most once a second (a ``bad_frame`` and a ``cmd_rejected`` event).
+        The sync's querier recoveries of the loop go into
+        ``cn_query_recoveries`` (the driver events them)."""
+        if r is not None and r.query_recovered:
+            self._recoveries.bump(r.query_recovered)
         if r is not None and r.total:
             self._bad.bump(r.total - r.cmd_stale)  # a stale request is a reject, not a bad frame
             if r.cmd_bad or r.cmd_stale:

@@ -33,7 +33,7 @@ import zenoh
 from .. import trace
 from ..config import Mission
 from ..config.codes import CommandStatus
-from ..control.failover import Standby
+from ..control.failover import Standby, probe_wait_ns
 from ..control.handoff import Mailbox
 from ..control.intake import CnRefusals, MirrorIntake, RefusalLog, ReplyCheck, RequestIntake
 from ..control.loop import ControlLogic
@@ -270,9 +270,7 @@ class ControlNode:
                 zenoh.handlers.Callback(self._on_mirror, indirect=False),
                 allowed_origin=zenoh.Locality.REMOTE,
             )
-            self.probes = ProbeSync(
-                s, space, mission.device_nodes, max(mission.sync_timeout_ns, mission.period_ns // 4)
-            )
+            self.probes = ProbeSync(s, space, mission.device_nodes, probe_wait_ns(mission))
             self._peer = next(n for n in mission.control_nodes if n != name)
             self._peer_seen = False
             self._ready_token: zenoh.LivelinessToken | None = None
@@ -856,7 +854,9 @@ class ControlNode:
 
     def _query_recoveries(self, t_ns: int) -> None:
         """The device nodes whose querier the sync declared again this loop
-        (zplatform.runtime.queries.Unanswered), evented at most once a second."""
+        (zplatform.runtime.queries.Unanswered), evented at most once a second
+        (the loop counts them: ``cn_query_recoveries``, from the sync's
+        refusals, :meth:`_take_refusals`)."""
         got = self._recoveries
         self.sync.take_recoveries(got)
         if not got and not self._recovery_unsent:

@@ -388,6 +388,7 @@ class ControlSync:
         self._alive = [False] * len(dns)
         self.unanswered = Unanswered(len(dns))
         self._recovered: list[int] = []
+        self._recovered_n = 0  # recoveries since the last take_refusals (the loop's count)
         self._queriers = [
             declare_querier(session, self._keys[i], timeout_s=query_timeout_s)
             for i in range(len(self._keys))
@@ -532,7 +533,9 @@ class ControlSync:
 
     def take_refusals(self, out: CnRefusals) -> None:
         """Write the sync replies refused since the last call into ``out``
-        (its ``reply_*`` fields; then zeroed). The loop thread, once a loop."""
+        (its ``reply_*`` fields; then zeroed), and the queriers declared again
+        since (``query_recovered``: the loop counts them in
+        ``cn_query_recoveries``). The loop thread, once a loop."""
         size = bad = stale = 0
         for c in self._checks:
             s, b, st = c.take_counts()
@@ -544,6 +547,7 @@ class ControlSync:
             self._foreign = self._oversize = 0
         out.reply_size, out.reply_bad, out.reply_stale = size + oversize, bad, stale
         out.reply_foreign = foreign
+        out.query_recovered, self._recovered_n = self._recovered_n, 0
 
     def sync(
         self, frames: Sequence[bytearray], logic: ControlLogic, *, warmup: bool = False
@@ -747,6 +751,7 @@ class ControlSync:
                 self.session, self._all, timeout_s=self._query_timeout
             )
         self._recovered.append(i)
+        self._recovered_n += 1
 
     def take_recoveries(self, out: list[tuple[str, int]]) -> None:
         """Append ``(dn, recoveries so far)`` for each querier declared again

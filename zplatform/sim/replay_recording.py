@@ -64,8 +64,8 @@ __all__ = [
 
 MAGIC = b"ZPREC\x00"
 # 2: BEGIN's final flag; 3: PRM_SAVED; 4: HEALTH; 5: FINISH the refusals;
-# 6: the mission's digest in the header
-VERSION = 6
+# 6: the mission's digest in the header; 7: FINISH the querier recoveries
+VERSION = 7
 RECORD_FILE = "cn.zrec"
 MISSION_FILE = "mission.yaml"
 MAX_META_BYTES = 64 * 1024
@@ -88,7 +88,7 @@ PRM_SAVED, HEALTH = 11, 12  # 10 was FOREIGN (version 4 and before)
 
 _ITEM = struct.Struct("<BBI")  # type, dn, length
 _BEGIN = struct.Struct("<QqB")
-_FINISH = struct.Struct("<BII" + "I" * 7 + "BQ")
+_FINISH = struct.Struct("<BII" + "I" * 7 + "BQI")
 _CMD_STATUS = 7  # the refusals' cmd_status, after their seven counts
 _STATUSES = frozenset(int(s) for s in CommandStatus)
 _U32 = struct.Struct("<I")
@@ -532,7 +532,8 @@ class RecordReader:
         if version < VERSION:
             raise self._fail(
                 f"recording version {version}, made by an earlier zplatform (this one reads "
-                f"version {VERSION}: the mission digest and the intake's refusals): record again"
+                f"version {VERSION}: the mission digest, the intake's refusals and the querier "
+                "recoveries): record again"
             )
         if version != VERSION:
             raise self._fail(f"recording version {version}, expected {VERSION}")
