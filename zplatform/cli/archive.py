@@ -145,9 +145,9 @@ def _remote(mission: Mission, args: argparse.Namespace) -> int:
     """``query --remote``: the same query, answered by the ground node."""
     import secrets
 
-    from ...auth import channel
-    from ...ground.link import GroundLink
-    from ..server import remote_query
+    from ..archive.server import remote_query
+    from ..core.auth import channel
+    from ..ground.link import GroundLink
 
     if args.out is not None:
         check_output(args.out, "output")
@@ -160,7 +160,6 @@ def _remote(mission: Mission, args: argparse.Namespace) -> int:
             link.keys.archive,
             channel(link.link_keys, "telemetry"),
             q,
-            now_ns=link.clock.now_ns(),
             nonce=secrets.randbits(64),
             timeout_s=args.timeout,
         )
