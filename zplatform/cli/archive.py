@@ -25,15 +25,16 @@ import msgspec
 import pyarrow as pa
 import pyarrow.parquet as pq
 
-from ..archive import archive_dir
+from ..archive import archive_dir, store
 from ..archive.query import AGGREGATES, Archive, Query
 from ..config import Mission
 from ..core.datavector import Layout
+from ..errors import ArchiveError
 from ..mission.load import load_mission
 from ..telemetry.logs import MAX_ARRAY_COLUMNS, formatter
 from .args import check_output, mission_verb
 
-__all__ = ["register"]
+__all__ = ["archive_run", "event_line", "is_archive", "log_from_archive", "register", "write_csv"]
 
 
 def _run_arg(text: str) -> int:
@@ -178,21 +179,77 @@ def _events(a: Archive, args: argparse.Namespace) -> int:
     sevs = [s.strip() for s in args.severity.split(",") if s.strip()] if args.severity else None
     table = a.events(args.run, severity=sevs)
     for row in table.to_pylist():
-        print(
-            json.dumps(
-                {
-                    "rx_time_ns": row["rx_ns"],
-                    "node": row["node"],
-                    "seq": row["seq"],
-                    "t_ns": row["t_ns"],
-                    "severity": row["severity"],
-                    "id": row["id"],
-                    "text": row["text"],
-                    "verified": row["verified"],
-                }
-            )
-        )
+        print(event_line(row))
     return 0
+
+
+def event_line(row: dict[str, Any]) -> str:
+    """An archived event (a row of :meth:`Archive.events`) as the events
+    file's JSON line."""
+    return json.dumps(
+        {
+            "rx_time_ns": row["rx_ns"],
+            "node": row["node"],
+            "seq": row["seq"],
+            "t_ns": row["t_ns"],
+            "severity": row["severity"],
+            "id": row["id"],
+            "text": row["text"],
+            "verified": row["verified"],
+        }
+    )
+
+
+def is_archive(path: str | Path) -> bool:
+    """Whether ``path`` is a mission's archive directory (``DIR/<mission>``:
+    it holds ``runs/`` or ``tm/``), not a recording or a file."""
+    p = Path(path)
+    return (p / "runs").is_dir() or (p / "tm").is_dir()
+
+
+def archive_run(text: str | int | None) -> int | None:
+    """A ``--run`` for the archive: an id, or ``last``/None for the last run."""
+    if text is None or text == "last":
+        return None
+    if isinstance(text, int):
+        return text
+    if not text.isdigit():
+        raise ArchiveError(f"--run {text!r}: a run id (an integer: `archive runs`) or last")
+    return int(text)
+
+
+def log_from_archive(
+    mission: Mission,
+    root: str | Path,
+    run: int | None,
+    out_csv: str | Path | TextIO,
+    events_out: str | Path | None = None,
+    *,
+    elements: str = "*",
+) -> tuple[store.RunInfo, int, int, list[str]]:
+    """Run ``run`` (None: the last) of the archive at ``root`` as the
+    ground's log: the telemetry CSV (the format ``log`` and ``up --log``
+    write, so ``plot`` reads it) into ``out_csv`` (a path, or an open text
+    file) and its events as JSON lines into ``events_out`` (None: not
+    written). Returns the run's record, the rows and events written, and
+    the damage the archive skipped. Raises ArchiveError for a bad run or
+    glob, OSError when a file cannot be written."""
+    with Archive(mission, root) as a:
+        info = a.run(run)
+        table = a.query(Query(elements, run=info.run))
+        if isinstance(out_csv, str | Path):
+            with open(out_csv, "w", encoding="ascii", newline="") as f:
+                write_csv(a.layout, table, f, loops=False)
+        else:
+            write_csv(a.layout, table, out_csv, loops=False)
+        n_ev = 0
+        if events_out is not None:
+            evs = a.events(info.run).to_pylist()
+            with open(events_out, "w", encoding="utf-8") as f:
+                for row in evs:
+                    f.write(event_line(row) + "\n")
+            n_ev = len(evs)
+        return info, table.num_rows, n_ev, list(a.problems)
 
 
 def _export(a: Archive, args: argparse.Namespace) -> int:
