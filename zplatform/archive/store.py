@@ -39,10 +39,12 @@ from ..recorder.reader import scan_segment
 from ..telemetry.records import EventRecord
 
 __all__ = [
+    "MergeCount",
     "RunInfo",
     "decode_rows",
     "event_table",
     "file_schema",
+    "merge",
     "parquet_options",
     "raw_record",
     "raw_segments",
@@ -503,3 +505,131 @@ def events_of(records: Iterable[Any]) -> list[EventRecord]:
 def encode_event(rec: EventRecord) -> bytes:
     """An event's raw ``EVENT`` payload (its JSON, as the events JSONL writes it)."""
     return _EVENT_ENCODER.encode(rec)
+
+
+class MergeCount(msgspec.Struct):
+    """What :func:`merge` took of one run: rows (loops) and events new to
+    the archive, and the ones it already held (skipped)."""
+
+    run: int
+    rows: int = 0
+    events: int = 0
+    duplicate_rows: int = 0
+    duplicate_events: int = 0
+
+
+def merge(
+    root: Path,
+    src: Path,
+    layout: Layout,
+    mission: str,
+    vehicle: str,
+    note: Callable[[str], None],
+    *,
+    runs: Iterable[int] | None = None,
+) -> list[MergeCount]:
+    """Take into the archive ``root`` what another station's archive ``src``
+    holds of the same runs (or new ones): each run is one run, each loop
+    once (by run and loop), each event once (by node, seq and stamp). Read
+    from ``src``'s raw segments (the source of truth); what is new is written
+    as a raw segment of its own (sealed), then as Parquet files per hour,
+    then the run's record (a crash between leaves at most a raw segment
+    whose loops a later merge writes again: taken once, by loop). A run of
+    another layout is skipped (``note`` says so), as is a damaged record.
+    The caller holds ``root``'s lock (no writer writes it). Returns per run
+    what was taken."""
+    out: list[MergeCount] = []
+    schema = file_schema(layout)
+    want = set(runs) if runs is not None else None
+    for run in runs_on_disk(src):
+        if want is not None and run not in want:
+            continue
+        theirs = read_run(src, run)
+        if theirs is not None and theirs.layout_id != layout.layout_id:
+            note(
+                f"run {run} of {src}: layout {theirs.layout_id:#x}, not this mission's "
+                f"{layout.layout_id:#x}: skipped"
+            )
+            continue
+        count = MergeCount(run)
+        seen = loops_in(parquet_files(root, "tm", run), note)
+        had_rows = bool(seen)
+        known = _events_in(parquet_files(root, "ev", run), note)
+        frames: dict[int, bytes] = {}
+        events: list[EventRecord] = []
+        records: list[bytes] = []
+        for seg in raw_segments(run_dirs(src, "raw", run)):
+            for r in _scan(seg, note):
+                if r.type == FRAME and len(r.payload) == 8 + layout.size:
+                    if r.loop in seen or r.loop in frames:
+                        count.duplicate_rows += 1
+                    else:
+                        frames[r.loop] = bytes(r.payload)
+                elif r.type == EVENT:
+                    try:
+                        e = _EVENT_DECODER.decode(r.payload)
+                    except (msgspec.DecodeError, msgspec.ValidationError):
+                        continue
+                    if (e.node, e.seq, e.t_ns) in known:
+                        count.duplicate_events += 1
+                    else:
+                        known.add((e.node, e.seq, e.t_ns))
+                        events.append(e)
+                        records.append(raw_record(EVENT, 0, r.payload))
+        if not frames and not events:
+            out.append(count)
+            continue
+        loops = sorted(frames)
+        records[:0] = [raw_record(FRAME, n, frames[n]) for n in loops]
+        raw = run_dirs(root, "raw", run)
+        raw.mkdir(parents=True, exist_ok=True)
+        used = [segment_index(p) for p in raw.iterdir()]
+        index = max((i for i in used if i is not None), default=-1) + 1
+        seg_path = raw / f"seg-{index:08d}.zfr"
+        with open(seg_path, "wb") as f:
+            f.write(head_record(mission, vehicle, run, layout, index))
+            for rec in records:
+                f.write(rec)
+            f.flush()
+            os.fsync(f.fileno())
+        seal_segment(seg_path)
+        info = read_run(root, run)
+        if info is None:
+            info = RunInfo(run, mission, vehicle, layout.layout_id)
+            if theirs is not None:
+                info.outcome = "interrupted" if theirs.outcome == "open" else theirs.outcome
+            else:
+                info.outcome = "interrupted"
+        if loops:
+            arr = np.frombuffer(b"".join(frames[n][8:] for n in loops), np.uint8)
+            arr = arr.reshape(len(loops), layout.size)
+            rx = np.array([_U64.unpack_from(frames[n], 0)[0] for n in loops], np.int64)
+            table = decode_rows(layout, schema, arr, rx)
+            t = table.column("t_ns").to_numpy()
+            hours = [hour_dir(int(x)) for x in t]
+            start = 0
+            for i in range(1, len(hours) + 1):
+                if i == len(hours) or hours[i] != hours[start]:
+                    d = run_dirs(root, "tm", run) / hours[start]
+                    d.mkdir(parents=True, exist_ok=True)
+                    part = d / f"part-{next_part(d):06d}.parquet"
+                    _write_parquet(part, table.slice(start, i - start))
+                    start = i
+            if had_rows:
+                info.in_order = False  # merged rows go between the loops already there
+            _account(info, layout, arr)
+            count.rows = len(loops)
+        if events:
+            d = run_dirs(root, "ev", run)
+            d.mkdir(parents=True, exist_ok=True)
+            _write_parquet(d / f"part-{next_part(d):06d}.parquet", event_table(events))
+            info.events += len(events)
+            for e in events:
+                if (e.severity == "COMMAND" or e.id.startswith("cmd_")) and len(
+                    info.commands
+                ) < 1000:
+                    info.commands.append(f"{e.node}: {e.text}")
+            count.events = len(events)
+        write_run(root, info)
+        out.append(count)
+    return out

@@ -54,7 +54,10 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     )
     p.add_argument("--dir", metavar="DIR", help="the archive directory (default: the mission's)")
     acts = p.add_subparsers(
-        dest="action", required=True, metavar="ACTION", help="runs, query, events or export"
+        dest="action",
+        required=True,
+        metavar="ACTION",
+        help="runs, query, events, export or merge",
     )
     r = acts.add_parser("runs", help="every run kept: times, loops, states, outcome")
     r.add_argument("--json", action="store_true", help="the run records as JSON")
@@ -86,6 +89,16 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     x.add_argument("--elements", default="*", metavar="GLOBS", help="default: every element")
     x.add_argument("--format", required=True, choices=("csv", "parquet"))
     x.add_argument("--out", required=True, metavar="FILE")
+    g = acts.add_parser(
+        "merge",
+        help="take in other stations' archives (or copies): each run one run, each loop once",
+        description="Take into this archive (--dir, or the mission's) every run the archive "
+        "directories SRC hold: loops and events it does not hold yet (by run and loop; by "
+        "node, seq and stamp), read from their raw segments. Run it again: nothing is taken "
+        "twice. Not while a ground node writes this archive.",
+    )
+    g.add_argument("sources", nargs="+", metavar="SRC", help="another archive (DIR/<mission>)")
+    g.add_argument("--run", type=_run_arg, metavar="R", help="only this run (default: every one)")
     p.set_defaults(func=cmd_archive)
 
 
@@ -100,6 +113,8 @@ def cmd_archive(args: argparse.Namespace) -> int:
     if getattr(args, "remote", False):
         return _remote(mission, args)
     root = Path(args.dir) if args.dir else archive_dir(mission)
+    if args.action == "merge":
+        return _merge(mission, root, args)
     out = getattr(args, "out", None)
     if out is not None:
         check_output(out, "output")
@@ -108,6 +123,50 @@ def cmd_archive(args: argparse.Namespace) -> int:
         for problem in a.problems:
             print(f"zplatform: archive: {problem}", file=sys.stderr)
     return rc
+
+
+def _merge(mission: Mission, root: Path, args: argparse.Namespace) -> int:
+    """``merge SRC...``: :func:`.store.merge` of each, under the archive's lock."""
+    import os
+
+    from ..archive.writer import lock_archive
+
+    srcs = [Path(s) for s in args.sources]
+    for s in srcs:
+        if not is_archive(s):
+            raise ArchiveError(f"{s} is not an archive directory (it holds no runs/ nor tm/)")
+        if s.resolve() == root.resolve():
+            raise ArchiveError(f"{s} is this archive: nothing to merge")
+    try:
+        fd = lock_archive(root)
+    except OSError as exc:
+        raise ArchiveError(f"cannot open the archive {root}: {exc}") from None
+    if fd is None:
+        raise ArchiveError(f"a ground node writes the archive {root}: merge when it stopped")
+    layout = Layout.for_node(mission, "cn")
+    problems: list[str] = []
+    try:
+        store.recover(root, layout, mission.mission, mission.vehicle, problems.append)
+        for s in srcs:
+            got = store.merge(
+                root,
+                s,
+                layout,
+                mission.mission,
+                mission.vehicle,
+                problems.append,
+                runs=None if args.run is None else [args.run],
+            )
+            for c in got:
+                print(
+                    f"{s}: run {c.run}: {c.rows} row(s) and {c.events} event(s) taken, "
+                    f"{c.duplicate_rows} row(s) and {c.duplicate_events} event(s) held already"
+                )
+    finally:
+        os.close(fd)
+    for line in problems:
+        print(f"zplatform: archive: {line}", file=sys.stderr)
+    return 0
 
 
 def _runs(a: Archive, args: argparse.Namespace) -> int:
