@@ -17,8 +17,15 @@ replayed loop after loop with the loop number and time advanced, fed to an
   ``query_ten_1s``: ten elements aggregated to 1 s buckets (min, max, mean)
   over the hour, each timed :data:`QUERY_ROUNDS` times after one warm-up.
 
-Run ``python -m bench.archive [--quick] [--json PATH]`` (``--quick``: six
-minutes of telemetry); results go to ``bench/results/archive.json``.
+With ``--wide N`` also a layout of N more f32 scalars (:func:`wide`:
+``wide_grouped``, stored in file groups of
+:data:`zplatform.archive.store.GROUP_COLUMNS` elements, and ``wide_whole``,
+every column in one file): ingest rate, and one element queried over the
+rows from a new :class:`Archive` and from one kept.
+
+Run ``python -m bench.archive [--quick] [--wide N] [--json PATH]``
+(``--quick``: six minutes of telemetry); results go to
+``bench/results/archive.json``.
 """
 
 from __future__ import annotations
@@ -44,6 +51,8 @@ QUICK_S = 360
 """Seconds of telemetry ``--quick`` synthesizes."""
 CSV_ROWS = 30_000
 QUERY_ROUNDS = 5
+WIDE_ROWS = 300
+"""Snapshots of ``--wide``'s layout (3 s at 100 Hz: 120 MB of vectors at 100,000 elements)."""
 TEN = (
     "apogee_pred_m,nav_h_m,nav_v_mps,cn_state,dn0_state,dn1_state,cn_cpu_pct,"
     "apogee_target_m,main_deploy_m,airbrake_rate_ps"
@@ -61,8 +70,81 @@ def capture(loops: int) -> list[bytes]:
     return out
 
 
+def wide(n_elements: int, rows: int, group_columns: int) -> dict[str, float | int]:
+    """A mission of ``n_elements`` more f32 scalars (a wide region) at
+    100 Hz: ``rows`` snapshots archived with ``group_columns`` elements per
+    file group (0: one file of every column), then one element (the last)
+    queried over them all :data:`QUERY_ROUNDS` times after one warm-up, in a
+    new :class:`Archive` each (the footers parsed each time: a first ask)
+    and in one kept (:data:`QUERY_ROUNDS` more)."""
+    import numpy as np
+
+    from bench.cluster import make_mission
+    from zplatform.archive import store
+
+    extra = {"cn": [{"name": f"w{i}", "type": "f32"} for i in range(n_elements)]}
+    with tempfile.TemporaryDirectory() as tmp:
+        m = load_mission(make_mission(Path(tmp) / "wide.yaml", n_dn=1, extra=extra), code=False)
+        layout = Layout.for_node(m, "cn")
+        dv = DataVector(layout)
+        rng = np.random.default_rng(1)
+        buf = np.frombuffer(dv.buf, np.uint8)
+        root = Path(tmp) / "wide"
+        saved, store.GROUP_COLUMNS = store.GROUP_COLUMNS, group_columns
+        try:
+            w = ArchiveWriter(m, layout, root)
+            t0 = 1_800_000_000_000_000_000
+            start = time.perf_counter()
+            for i in range(1, rows + 1):
+                buf[:] = rng.integers(0, 256, layout.size, np.uint8)
+                for n, v in (("cn_loop", i), ("cn_time_ns", t0 + i * 10**7), ("cn_epoch", 1)):
+                    dv.set(n, v)
+                dv.set("cn_state", 0)
+                w.snapshot(t0 + i * 10**7 + 1000, dv)
+                if i % 100 == 0:
+                    w.flush(600.0)
+            w.close(600.0)
+            ingest = time.perf_counter() - start
+        finally:
+            store.GROUP_COLUMNS = saved
+        q = Query(f"w{n_elements - 1}", run=1)
+        cold: list[int] = []
+        warm: list[int] = []
+        for k in range(QUERY_ROUNDS + 1):
+            c0 = time.perf_counter_ns()
+            with Archive(m, root) as a:
+                assert a.query(q).num_rows == rows
+            if k:
+                cold.append(time.perf_counter_ns() - c0)
+        with Archive(m, root) as a:
+            for k in range(QUERY_ROUNDS + 1):
+                c0 = time.perf_counter_ns()
+                assert a.query(q).num_rows == rows
+                if k:
+                    warm.append(time.perf_counter_ns() - c0)
+        return {
+            "elements": len(layout.elements),
+            "vector_bytes": layout.size,
+            "rows": rows,
+            "group_columns": group_columns,
+            "ingest_rows_per_s": round(rows / ingest, 1),
+            "tm_bytes": du(root / "tm"),
+            "query_one_new_archive_p50_ms": round(sorted(cold)[len(cold) // 2] / 1e6, 1),
+            "query_one_kept_archive_p50_ms": round(sorted(warm)[len(warm) // 2] / 1e6, 1),
+        }
+
+
 def main() -> None:
-    args = bench_argparser(__doc__.splitlines()[0]).parse_args()
+    ap = bench_argparser(__doc__.splitlines()[0])
+    ap.add_argument(
+        "--wide",
+        type=int,
+        default=0,
+        metavar="N",
+        help="also a wide layout: N more f32 scalars, WIDE_ROWS snapshots, stored in file "
+        "groups and whole (wide_grouped, wide_whole)",
+    )
+    args = ap.parse_args()
     seconds = QUICK_S if args.quick else 3600
     m = load_mission(MISSION, code=False)
     layout = Layout.for_node(m, "cn")
@@ -135,6 +217,12 @@ def main() -> None:
         "parquet_vs_csv": round(tm * per_hour / csv_per_hour, 4),
         "archive_vs_csv": round((tm + raw) * per_hour / csv_per_hour, 4),
     }
+    extra = {}
+    if args.wide:
+        from zplatform.archive.store import GROUP_COLUMNS
+
+        extra["wide_grouped"] = wide(args.wide, WIDE_ROWS, GROUP_COLUMNS)
+        extra["wide_whole"] = wide(args.wide, WIDE_ROWS, 0)
     write_result(
         "archive",
         {
@@ -151,6 +239,7 @@ def main() -> None:
             "size": size,
             "query_one_element_hour": summarize(one),
             "query_ten_elements_1s_hour": summarize(ten),
+            **extra,
         },
         args.json,
     )

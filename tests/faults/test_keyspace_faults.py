@@ -34,7 +34,6 @@ from pathlib import Path
 from types import SimpleNamespace
 from typing import Any, ClassVar
 
-import msgspec
 import pytest
 
 from tests.payload import Bytes
@@ -43,6 +42,8 @@ from zplatform.archive import Query as ArchiveQuery
 from zplatform.archive.server import ASK as ARCHIVE_ASK
 from zplatform.archive.server import MAX_ASK, ArchiveAsk, ArchiveServer
 from zplatform.archive.server import REPLY as ARCHIVE_REPLY
+from zplatform.archive.server import SESSION_BODY as ARCHIVE_SESSION
+from zplatform.archive.server import ask_payload as archive_ask
 from zplatform.config import Mission
 from zplatform.control.failover import Standby
 from zplatform.control.fencing import ASK, NONCE_LEN, ask_frame, new_nonce
@@ -785,17 +786,23 @@ class GapFillH(Harness):
         return self._reply(_restamp(self._frame(), self.ch, self.n))
 
 
-class ArchiveQueryH(Harness):
-    """The ground's archive server: an ask (ArchiveServer); its thread is
-    stopped, and each admitted ask is served here (from no archive: the
-    answer is an error reply, which counts as served)."""
+def _archive_session(t0: int) -> int:
+    """The archive server's session word of the ground that started at ``t0``."""
+    return (t0 & U64_MAX) or 1
 
-    kinds = ("size", "bad")
+
+class ArchiveQueryH(Harness):
+    """The ground's archive server: an ask (ArchiveServer) in its session,
+    with its cookie; its thread is stopped, and each admitted ask is served
+    here (from no archive: the answer is an error reply, which counts as
+    served). Another session's ask (an earlier ground's) is stale."""
+
+    kinds = ("size", "bad", "stale")
 
     def __init__(self, m: Mission, t0: int = T0) -> None:
         self.t0 = t0
         self.m, self.keys = m, _keys(m)
-        self.ch = channel(self.keys, "telemetry")
+        self.ch = channel(self.keys, "telemetry", Run(_archive_session(t0)))
 
         def no_archive() -> Archive:
             return Archive(m, Path("/nonexistent/archive"))
@@ -809,19 +816,19 @@ class ArchiveQueryH(Harness):
             max_age_ns=10**9,
             serve_bps=10**9,
             max_bytes=10**6,
+            session_word=_archive_session(t0),
         )
         self.server.close()  # its thread: this harness serves what is admitted
-        self.body = msgspec.json.encode(ArchiveQuery("cn_state"))
+        self.query = ArchiveQuery("cn_state")
         self.max_len = ARCHIVE_ASK.size + MAX_ASK + TAG_LEN
         self.n = 0
 
-    def _ask(self, t_ns: int, nonce: int) -> bytes:
-        assert self.ch is not None
-        return bytes(self.ch.seal(ARCHIVE_ASK.pack(b"ZAQ1", t_ns, nonce) + self.body))
+    def _ask(self, cookie: int, nonce: int, asker: int = 1) -> bytes:
+        return archive_ask(self.ch, self.query, cookie, nonce, asker=asker)
 
     def genuine(self) -> bytes:
         self.n += 1
-        return self._ask(self.t0 + self.n, self.n)
+        return self._ask(self.t0, self.n)
 
     def feed(self, payload: bytes) -> bool:
         served = self.server.served
@@ -832,31 +839,40 @@ class ArchiveQueryH(Harness):
 
     def counts(self) -> dict[str, int]:
         s = self.server
-        return {"size": s._refused_rx, "bad": s._refused_checked}
+        return {"size": s._refused_rx, "bad": s._refused_checked, "stale": s.stale}
 
     def extreme(self, hi: bool) -> bytes:
-        return self._ask(I64_MAX, U64_MAX) if hi else self._ask(I64_MIN, 0)
+        return self._ask(I64_MAX, U64_MAX, U64_MAX) if hi else self._ask(I64_MIN, 0, 0)
 
     def stamp_max(self) -> bytes:
         return self._ask(I64_MAX, self.n + 1)
 
 
 class ArchiveReplyH(Harness):
-    """A station asking the ground's archive: the answer's chunks (ArchiveAsk)."""
+    """A station asking the ground's archive: the answer's chunks
+    (ArchiveAsk), once its hello taught it the ground's session."""
 
     kinds = ("bad",)
 
     def __init__(self, m: Mission, t0: int = T0) -> None:
         self.m, self.keys = m, _keys(m)
-        self.ch = channel(self.keys, "telemetry")
+        session = _archive_session(t0)
+        self.ch = channel(self.keys, "telemetry", Run(session))
         self.nonce = t0 & U64_MAX  # each run's asks have their own
         self.asker = ArchiveAsk(channel(self.keys, "telemetry"), self.nonce)
+        hello = ARCHIVE_REPLY.pack(3, self.asker.hello_nonce, 0, 1) + ARCHIVE_SESSION.pack(
+            session, t0
+        )
+        assert self.asker.on_reply(self._seal(hello)) and self.asker.session == session
         self.max_len = self.asker.max_len
         self.n = -1
 
-    def _reply(self, kind: int, nonce: int, i: int, count: int) -> bytes:
+    def _seal(self, frame: bytes) -> bytes:
         assert self.ch is not None
-        return bytes(self.ch.seal(ARCHIVE_REPLY.pack(kind, nonce, i, count) + b"chunk"))
+        return bytes(self.ch.seal(frame))
+
+    def _reply(self, kind: int, nonce: int, i: int, count: int) -> bytes:
+        return self._seal(ARCHIVE_REPLY.pack(kind, nonce, i, count) + b"chunk")
 
     def genuine(self) -> bytes:
         self.n += 1

@@ -1,27 +1,48 @@
 """The archive over zenoh: the ground node answers queries on ``{vehicle}/archive/query``.
 
-An ask is :data:`ASK` (magic, stamp, nonce) then a :class:`~.query.Query` as
-JSON, tagged with the telemetry channel's key (every role that may read
-telemetry holds it: the ground, a tool). :class:`ArchiveServer`'s zenoh
-callback only checks the size and hands the query to a bounded inbox
-(:data:`MAX_PENDING`; more are dropped unanswered, counted); its thread checks
-the tag, a stamp within the clock bound, none of the last :data:`REMEMBERED`
-served, runs the query, and replies with the answer as an Arrow IPC stream in
-chunks (:data:`REPLY`: kind, the ask's nonce, index, count), each tagged,
-paced to ``serve_bps``. An answer over ``max_bytes`` is one ``ERROR`` reply
-saying so (never cut silently); so is a refused query (its reason).
-:class:`ArchiveAsk` is the asker's side: it checks each reply (tag, nonce,
-index) and puts the table together.
+Every frame is tagged with the telemetry channel's key (every role that may
+read telemetry holds it: the ground, a tool) and bound to the serving
+*session*: a random word :class:`ArchiveServer` draws when it starts (a new
+one each time the ground node starts), carried as the tag's run word
+(codecs/FORMAT.md §6.1), so an ask or an answer recorded in an earlier
+session never verifies again, whatever it holds. An asker learns the
+session as the ground and the tools learn the vehicle's run: a *hello*
+(:data:`HELLO`: magic, asker, a fresh nonce; tagged in no run) is answered
+statelessly with a ``SESSION`` reply (the session and a cookie, the server's
+monotonic clock, echoing the nonce; tagged in the session). The ask
+(:data:`ASK`: magic, asker, a fresh nonce, the cookie, then a
+:class:`~.query.Query` as JSON) is tagged in the session; the server takes
+it only while its cookie is younger than ``max_age_ns`` and its (cookie,
+asker, nonce) is not one it took (each kept until its cookie expires: never
+forgotten early), so a recorded ask cannot be replayed later in the same
+session either.
+
+:class:`ArchiveServer`'s zenoh callback checks the size, reads the asker
+word (unchecked: only to count) and hands the frame to a bounded inbox
+(:data:`MAX_PENDING`; more are dropped unanswered, counted ``busy``). Its
+thread checks the tag, the session, the cookie, runs the query, and replies
+with the answer as an Arrow IPC stream in chunks (:data:`REPLY`: kind, the
+ask's nonce, index, count), each tagged, paced to ``serve_bps``. Per asker
+(the asker word, a random u64 each :class:`ArchiveAsk`'s station draws):
+at most ``per_asker`` asks in hand, and at most ``asker_bps`` bytes of
+answers per second (a bucket holding ``max_bytes``); an ask past either
+bound is answered with one ``ERROR`` reply saying which and why, as is an
+answer over ``max_bytes`` and a refused query (never cut silently).
+:class:`ArchiveAsk` is the asker's side: it learns the session, then checks
+each reply (tag in the session, nonce, index) and puts the table together.
 
 Contract: neither side raises for what the peer sends; a bad frame is
-refused and counted (``refused``). The key's row: zplatform/security/keyspace.py.
+refused and counted (``refused``: junk or a bad tag; ``stale``: another
+session's frame, an expired cookie, a replay). The key's row:
+zplatform/security/keyspace.py.
 """
 
 from __future__ import annotations
 
+import secrets
 import struct
 import time
-from collections import deque
+from collections import OrderedDict
 from collections.abc import Callable
 from typing import Any
 
@@ -30,44 +51,76 @@ import pyarrow as pa
 import zenoh
 
 from ..control.handoff import QueryWorker
-from ..core.auth import TAG_LEN, AuthError, Channel
+from ..core.auth import RUN_LEN, TAG_LEN, AuthError, Channel, Run, RunError
 from ..errors import ArchiveError
 from .query import Archive, Query
 
 __all__ = [
     "ASK",
+    "HELLO",
     "MAX_ASK",
     "MAX_PENDING",
     "REPLY",
+    "SESSION_BODY",
     "ArchiveAsk",
     "ArchiveServer",
     "ask_payload",
+    "hello_payload",
     "remote_query",
 ]
 
-ASK_MAGIC = b"ZAQ1"
-ASK = struct.Struct("<4sqQ")  # magic, t_ns, nonce
+ASK_MAGIC = b"ZAQ2"
+HELLO_MAGIC = b"ZAH2"
+ASK = struct.Struct("<4sQQq")  # magic, asker, nonce, cookie
+HELLO = struct.Struct("<4sQQ")  # magic, asker, nonce
 MAX_ASK = 4096
 """Most bytes of an ask's JSON query."""
 REPLY = struct.Struct("<BQII")  # kind, nonce, index, count
-DATA, ERROR = 1, 2
+SESSION_BODY = struct.Struct("<Qq")  # a SESSION reply's data: session, cookie
+DATA, ERROR, SESSION = 1, 2, 3
 CHUNK = 32 * 1024
 """Bytes of the answer per reply (under zenoh's unfragmented batch)."""
-MAX_PENDING = 2
-REMEMBERED = 64
+MAX_PENDING = 8
+"""Asks and hellos in hand (waiting or being served); more are dropped, counted."""
+REMEMBERED = 4096
+"""Most asks whose cookie has not expired kept at once; an ask past it is
+refused with a reason (the older ones are never forgotten early)."""
+ASKERS = 1024
+"""Askers whose byte bucket is kept (the least recently served one is let go)."""
 _QUERY = msgspec.json.Decoder(Query)
 
 
-def ask_payload(channel: Channel | None, query: Query, t_ns: int, nonce: int) -> bytes:
-    """An ask: :data:`ASK` and the query's JSON, tagged."""
-    body = ASK.pack(ASK_MAGIC, t_ns, nonce) + msgspec.json.encode(query)
+def hello_payload(channel: Channel | None, asker: int, nonce: int) -> bytes:
+    """A hello: :data:`HELLO`, tagged in no run (the asker knows no session yet)."""
+    body = HELLO.pack(HELLO_MAGIC, asker, nonce)
+    if channel is None:
+        return body
+    run, channel.run = channel.run, None
+    try:
+        return bytes(channel.seal(body))
+    finally:
+        channel.run = run
+
+
+def ask_payload(
+    channel: Channel | None, query: Query, cookie: int, nonce: int, *, asker: int = 0
+) -> bytes:
+    """An ask: :data:`ASK` and the query's JSON, tagged in ``channel``'s run
+    (the session its hello taught, :meth:`ArchiveAsk.on_reply`)."""
+    body = ASK.pack(ASK_MAGIC, asker, nonce, cookie) + msgspec.json.encode(query)
     return bytes(channel.seal(body)) if channel is not None else body
 
 
 class ArchiveServer(QueryWorker):
     """Answers archive queries (module doc). ``open_archive``: the archive
-    to read (called in the serving thread, per query); ``channel``: the
-    telemetry channel (its own instance), None without authentication."""
+    to read (called in the serving thread by the first ask, then kept until
+    :meth:`close`; called again while it raises); ``channel``: the
+    telemetry channel (its own instance: this server binds it to its
+    session), None without authentication; ``now_ns``: the clock of the
+    cookies (monotonic); ``max_age_ns``: how old a cookie an ask may carry
+    when served; ``per_asker``/``asker_bps``: the bounds per asker (None:
+    ``MAX_PENDING`` and ``serve_bps``); ``session``: the session word (None:
+    random)."""
 
     def __init__(
         self,
@@ -76,10 +129,13 @@ class ArchiveServer(QueryWorker):
         open_archive: Callable[[], Archive],
         channel: Channel | None,
         *,
-        now_ns: Callable[[], int],
+        now_ns: Callable[[], int] = time.monotonic_ns,
         max_age_ns: int,
         serve_bps: int,
         max_bytes: int,
+        per_asker: int | None = None,
+        asker_bps: int | None = None,
+        session_word: int | None = None,
     ) -> None:
         self._open, self._channel, self._now = open_archive, channel, now_ns
         self._max_age, self._bps, self._max_bytes, self._key = (
@@ -88,46 +144,155 @@ class ArchiveServer(QueryWorker):
             max_bytes,
             key_expr,
         )
-        self._max_len = ASK.size + MAX_ASK + (TAG_LEN if channel is not None else 0)
-        self._min_len = ASK.size + (TAG_LEN if channel is not None else 0)
-        self._served: deque[tuple[int, int]] = deque(maxlen=REMEMBERED)
+        self._per_asker = per_asker if per_asker is not None else MAX_PENDING
+        self._asker_bps = asker_bps if asker_bps is not None else serve_bps
+        word = session_word if session_word is not None else secrets.randbits(64)
+        self.session = Run(word or 1)
+        """The session this server's frames are bound to (module doc)."""
+        tag = TAG_LEN if channel is not None else 0
+        self._max_len = ASK.size + MAX_ASK + tag
+        self._min_len = HELLO.size + tag
+        self._served: dict[tuple[int, int, int], None] = {}  # (cookie, asker, nonce)
+        self._in_hand: dict[int, int] = {}  # asker -> asks in hand (zenoh's thread counts)
+        self._over: set[int] = set()  # id() of asks taken past their asker's bound
+        self._buckets: OrderedDict[int, tuple[float, int]] = OrderedDict()
         self._closed = False
+        # Opened by the first ask, then kept: one DuckDB connection (and its
+        # cache of the files' footers) for every query, not one per query.
+        self._archive: Archive | None = None
         self.served = 0
         """Queries answered (with rows, or with an error saying why)."""
+        self.stale = 0
+        """Asks refused unanswered as stale: another session's, an expired
+        cookie, one taken before (a replay)."""
+        self.hellos = 0
+        """Hellos answered (each with the session)."""
+        self.over_bound = 0
+        """Asks refused (answered with the reason) past their asker's bound."""
         super().__init__("archive-serve", MAX_PENDING, (zenoh.ZError,))
         self.queryable = session.declare_queryable(
             key_expr, zenoh.handlers.Callback(self.on_query, indirect=False)
         )
 
+    @property
+    def refused(self) -> int:
+        """Frames dropped unanswered because they did not check (stale ones included)."""
+        return self._refused_rx + self._refused_checked + self.stale
+
     def size_refusal(self, n: int) -> str | None:
         return None if self._min_len <= n <= self._max_len else f"an ask of {n} bytes"
 
-    def serve(self, query: Any) -> None:
-        payload = query.payload
-        data = payload.to_bytes() if payload is not None else b""
+    # zenoh's thread: the size, the asker word to count, hand off; nothing more.
+    def on_query(self, query: Any) -> None:
+        p = query.payload
+        n = 0 if p is None else len(p)
+        why = self.size_refusal(n)
+        if why is not None:
+            self._refused_rx += 1
+            self.last_refusal = why
+            query.drop()
+            return
+        head = p.to_bytes()[: ASK.size] if n >= ASK.size else b""
+        asker = ASK.unpack(head)[1] if head[:4] == ASK_MAGIC else None
+        with self._cv:
+            if len(self._pending) >= self._capacity:
+                self.busy += 1
+                query.drop()
+                return
+            if asker is not None:
+                k = self._in_hand.get(asker, 0)
+                if k >= self._per_asker:
+                    self._over.add(id(query))  # answered with the reason once checked
+                else:
+                    self._in_hand[asker] = k + 1
+            self._pending.append(query)
+            self._cv.notify()
+
+    def _stale(self, why: str) -> None:
+        self.stale += 1
+        self.last_refusal = why
+
+    def _open_frame(self, data: bytes, bound: bool) -> Any:
+        """``data``'s frame (its tag checked: in the session when ``bound``,
+        any run when not); None when refused (counted)."""
         ch = self._channel
+        if ch is None:
+            return data
+        ch.run = self.session if bound else None
         try:
-            body: Any = bytes(ch.open(data)) if ch is not None else data
+            return bytes(ch.open(data))
+        except RunError:
+            self._stale("an ask of another session (an earlier one's, replayed, or none)")
         except AuthError as exc:
             self.refuse(str(exc))
-            return
-        magic, t_ns, nonce = ASK.unpack_from(body, 0)
-        if magic != ASK_MAGIC:
-            self.refuse("not an archive ask")
-            return
-        age = self._now() - t_ns
-        if abs(age) > self._max_age:
-            self.refuse(f"an ask stamped {age / 1e9:+.3f} s from this node's clock")
-            return
-        if ch is not None:
-            if (t_ns, nonce) in self._served:
-                self.refuse("an ask answered before (a replay)")
+        return None
+
+    def serve(self, query: Any) -> None:
+        over = id(query) in self._over
+        self._over.discard(id(query))
+        payload = query.payload
+        data = payload.to_bytes() if payload is not None else b""
+        asker = None  # the word zenoh's thread counted this ask under
+        if not over and len(data) >= ASK.size and data[:4] == ASK_MAGIC:
+            asker = ASK.unpack_from(data, 0)[1]
+        try:
+            self._serve(query, data, over)
+        finally:
+            if asker is not None:
+                with self._cv:
+                    k = self._in_hand.get(asker, 1) - 1
+                    if k > 0:
+                        self._in_hand[asker] = k
+                    else:
+                        self._in_hand.pop(asker, None)
+
+    def _serve(self, query: Any, data: bytes, over: bool) -> None:
+        if data[:4] == HELLO_MAGIC and len(data) == HELLO.size + (
+            TAG_LEN if self._channel is not None else 0
+        ):
+            body = self._open_frame(data, bound=False)
+            if body is None:
                 return
-            self._served.append((t_ns, nonce))
+            _, _, nonce = HELLO.unpack_from(body, 0)
+            self.hellos += 1
+            cookie = SESSION_BODY.pack(self.session.epoch, self._now())
+            self._reply(query, SESSION, nonce, 0, 1, cookie)
+            return
+        if len(data) < ASK.size or data[:4] != ASK_MAGIC:
+            # Junk, or a hello of a wrong length: its tag decides which count.
+            if self._open_frame(data, bound=False) is not None:
+                self.refuse("not an archive ask or hello")
+            return
+        body = self._open_frame(data, bound=True)
+        if body is None:
+            return
+        _, asker, nonce, cookie = ASK.unpack_from(body, 0)
+        age = self._now() - cookie
+        if not 0 <= age <= self._max_age:
+            self._stale(f"an ask whose session cookie is {age / 1e9:+.3f} s old")
+            return
+        if (cookie, asker, nonce) in self._served:
+            self._stale("an ask answered before (a replay)")
+            return
+        self._forget(self._now())
+        if len(self._served) >= REMEMBERED:
+            self.refuse(f"{REMEMBERED} asks in the last {self._max_age / 1e9:g} s")
+            return
+        self._served[(cookie, asker, nonce)] = None
+        if over:
+            self.over_bound += 1
+            self._error(
+                query,
+                nonce,
+                f"this asker has {self._per_asker} queries in hand already, the most this "
+                "station serves at once per asker (archive.serve_per_asker): wait for them",
+            )
+            return
         try:
             q = _QUERY.decode(body[ASK.size :])
-            with self._open() as a:
-                table = a.query(q)
+            if self._archive is None:
+                self._archive = self._open()
+            table = self._archive.query(q)
             sink = pa.BufferOutputStream()
             with pa.ipc.new_stream(sink, table.schema) as w:
                 w.write_table(table)
@@ -137,9 +302,16 @@ class ArchiveServer(QueryWorker):
                     f"the answer holds {len(answer)} bytes, more than this station serves "
                     f"({self._max_bytes}): narrow the range, ask fewer elements or aggregate"
                 )
+            wait = self._take(asker, len(answer))
+            if wait > 0:
+                self.over_bound += 1
+                raise ArchiveError(
+                    f"the answer holds {len(answer)} bytes, more than this asker may take now "
+                    f"({self._asker_bps} bytes/s per asker, archive.serve_asker_bps): ask "
+                    f"again in {wait:.1f} s"
+                )
         except (ArchiveError, msgspec.DecodeError, msgspec.ValidationError) as exc:
-            self.served += 1  # before the reply: an asker that has it finds it counted
-            self._reply(query, ERROR, nonce, 0, 1, str(exc).encode()[:CHUNK])
+            self._error(query, nonce, str(exc))
             return
         count = max(1, -(-len(answer) // CHUNK))
         start, sent = time.monotonic(), 0
@@ -151,9 +323,42 @@ class ArchiveServer(QueryWorker):
             if ahead > 0:
                 time.sleep(ahead)  # the serving thread paces; zenoh's thread never waits
 
+    def _error(self, query: Any, nonce: int, why: str) -> None:
+        self.served += 1  # before the reply: an asker that has it finds it counted
+        self._reply(query, ERROR, nonce, 0, 1, why.encode()[:CHUNK])
+
+    def _forget(self, now: int) -> None:
+        """Let go of the asks whose cookie expired (a replay of one is refused by its age)."""
+        served = self._served
+        while served:
+            key = next(iter(served))
+            if now - key[0] <= self._max_age:
+                break
+            del served[key]
+
+    def _take(self, asker: int, n: int) -> float:
+        """Take ``n`` bytes from ``asker``'s bucket (``asker_bps``, holding at
+        most ``max_bytes``): 0 when taken, else the seconds until they are there."""
+        now = self._now() / 1e9
+        cap = max(self._max_bytes, self._asker_bps)
+        t, level = self._buckets.pop(asker, (now, cap))
+        level = min(cap, level + int((now - t) * self._asker_bps))
+        if len(self._buckets) >= ASKERS:
+            self._buckets.popitem(last=False)
+        if level < n:
+            self._buckets[asker] = (now, level)
+            return (n - level) / self._asker_bps
+        self._buckets[asker] = (now, level - n)
+        return 0.0
+
     def _reply(self, query: Any, kind: int, nonce: int, i: int, n: int, data: bytes) -> int:
         frame = REPLY.pack(kind, nonce, i, n) + data
-        out = bytes(self._channel.seal(frame)) if self._channel is not None else frame
+        ch = self._channel
+        if ch is not None:
+            ch.run = self.session
+            out = bytes(ch.seal(frame))
+        else:
+            out = frame
         query.reply(self._key, out)
         return len(out)
 
@@ -164,34 +369,66 @@ class ArchiveServer(QueryWorker):
         self._closed = True
         self.queryable.undeclare()
         self.stop_serving()
+        if self._archive is not None and not self._worker.is_alive():
+            # (a thread still in a query past stop_serving's wait keeps it)
+            self._archive.close()
+            self._archive = None
 
 
 class ArchiveAsk:
-    """One ask's replies, checked and put together (module doc)."""
+    """One ask's replies, checked and put together (module doc).
 
-    def __init__(self, channel: Channel | None, nonce: int) -> None:
+    ``channel``: the telemetry channel (this ask's own instance: it is bound
+    to the session the hello's answer teaches), None without authentication;
+    ``nonce``: the ask's (its hello's is :attr:`hello_nonce`, random);
+    ``asker``: the station's word (random by default). :meth:`hello` and
+    :meth:`ask` make the two frames to send, :meth:`on_reply` takes every
+    reply."""
+
+    def __init__(self, channel: Channel | None, nonce: int, *, asker: int | None = None) -> None:
         self._channel, self.nonce = channel, nonce
+        self.asker = asker if asker is not None else secrets.randbits(64)
+        self.hello_nonce = secrets.randbits(64)
+        self.session: int | None = None
+        """The session learned (None: no hello answered yet)."""
+        self.cookie = 0
         self._chunks: dict[int, bytes] = {}
         self._count: int | None = None
         self.error: str | None = None
         self.refused = 0
-        """Replies refused: a bad tag, another ask's, a repeated or impossible index."""
+        """Replies refused: a bad tag, another session's, another ask's, a
+        repeated or impossible index."""
         self.max_len = REPLY.size + CHUNK + (TAG_LEN if channel is not None else 0)
+        if channel is not None:
+            channel.run = None  # until the session is learned: any run's answer to the hello
+
+    def hello(self) -> bytes:
+        """This ask's hello (module doc)."""
+        return hello_payload(self._channel, self.asker, self.hello_nonce)
+
+    def ask(self, query: Query) -> bytes:
+        """The ask of ``query`` in the session learned. ArchiveError before one is."""
+        if self.session is None:
+            raise ArchiveError("no session yet: the station has not answered the hello")
+        return ask_payload(self._channel, query, self.cookie, self.nonce, asker=self.asker)
 
     def on_reply(self, payload: bytes) -> bool:
-        """Take one reply; True when admitted. Never raises."""
+        """Take one reply (the hello's, then the ask's); True when admitted. Never raises."""
         if not REPLY.size <= len(payload) <= self.max_len:
             self.refused += 1
             return False
         try:
             body = bytes(self._channel.open(payload)) if self._channel is not None else payload
-        except AuthError:
+        except AuthError:  # RunError included: another session's
             self.refused += 1
             return False
         if len(body) < REPLY.size:
             self.refused += 1
             return False
         kind, nonce, i, n = REPLY.unpack_from(body, 0)
+        if self.session is None:
+            word = int.from_bytes(payload[-TAG_LEN : -TAG_LEN + RUN_LEN], "little")
+            return self._on_session(body, word, kind, nonce, i, n)
         ok = nonce == self.nonce and kind in (DATA, ERROR) and i < n
         ok = ok and (self._count is None or n == self._count) and i not in self._chunks
         ok = ok and n <= self.max_chunks and self.error is None
@@ -203,6 +440,22 @@ class ArchiveAsk:
             return True
         self._count = n
         self._chunks[i] = body[REPLY.size :]
+        return True
+
+    def _on_session(self, body: bytes, word: int, kind: int, nonce: int, i: int, n: int) -> bool:
+        ok = kind == SESSION and nonce == self.hello_nonce and (i, n) == (0, 1)
+        ok = ok and len(body) == REPLY.size + SESSION_BODY.size
+        if not ok:
+            self.refused += 1
+            return False
+        session, cookie = SESSION_BODY.unpack_from(body, REPLY.size)
+        ch = self._channel
+        if ch is not None:
+            if session == 0 or word != session:  # tagged in the session it names
+                self.refused += 1
+                return False
+            ch.run = Run(session)  # from now on: only this session's answers
+        self.session, self.cookie = session, cookie
         return True
 
     max_chunks = 1 << 20
@@ -236,14 +489,46 @@ def remote_query(
     channel: Channel | None,
     query: Query,
     *,
-    now_ns: int,
     nonce: int,
     timeout_s: float,
+    now_ns: int | None = None,
+    asker: int | None = None,
 ) -> pa.Table:
-    """Ask the station(s) serving ``key_expr`` for ``query``; blocks up to
-    ``timeout_s``. The replies come through a bounded mailbox (zenoh's
-    thread only hands off). ArchiveError: no answer, a refusal (its
-    reason), or an incomplete one."""
+    """Ask the station(s) serving ``key_expr`` for ``query``: a hello, then
+    the ask in the session it teaches (module doc); blocks up to
+    ``timeout_s`` for each. ``channel``: the telemetry channel, this call's
+    (its run is set to the session); ``now_ns``: unused (the freshness is
+    the station's cookie; kept for callers of the first version);
+    ``asker``: the station's word (random by default). The replies come
+    through a bounded mailbox (zenoh's thread only hands off). ArchiveError:
+    no answer, a refusal (its reason), or an incomplete one."""
+    del now_ns
+    asker_ = ArchiveAsk(channel, nonce, asker=asker)
+    _ask_station(session, key_expr, asker_, asker_.hello(), timeout_s, lambda: asker_.session)
+    if asker_.session is None:
+        raise ArchiveError(
+            f"no station answered on {key_expr} within {timeout_s:g} s"
+            + (f" ({asker_.refused} reply(s) refused)" if asker_.refused else "")
+        )
+    _ask_station(session, key_expr, asker_, asker_.ask(query), timeout_s, lambda: asker_.done)
+    if asker_.error is None and asker_._count is None:
+        raise ArchiveError(
+            f"no station answered the ask on {key_expr} within {timeout_s:g} s (the station "
+            f"refuses an ask it cannot check, or of another session)"
+            + (f" ({asker_.refused} reply(s) refused)" if asker_.refused else "")
+        )
+    return asker_.table()
+
+
+def _ask_station(
+    session: zenoh.Session,
+    key_expr: str,
+    asker: ArchiveAsk,
+    payload: bytes,
+    timeout_s: float,
+    done: Callable[[], object],
+) -> None:
+    """One get of ``payload``, its replies fed to ``asker`` until ``done()``."""
     from ..control.handoff import Mailbox
     from ..runtime.queries import ask, replies
 
@@ -254,23 +539,16 @@ def remote_query(
         if ok is not None:
             box.put(ok.payload.to_bytes())
 
-    asker = ArchiveAsk(channel, nonce)
     ask(
         session,
         key_expr,
         replies(on_reply, lambda: box.put(None)),
-        payload=ask_payload(channel, query, now_ns, nonce),
+        payload=payload,
         timeout_s=timeout_s,
     )
     deadline = time.monotonic() + timeout_s + 1.0
-    while not asker.done and (left := deadline - time.monotonic()) > 0:
+    while not done() and (left := deadline - time.monotonic()) > 0:
         item = box.get(left)
         if item is None:
             break
         asker.on_reply(item)
-    if asker.error is None and asker._count is None:
-        raise ArchiveError(
-            f"no station answered on {key_expr} within {timeout_s:g} s"
-            + (f" ({asker.refused} reply(s) refused)" if asker.refused else "")
-        )
-    return asker.table()

@@ -132,7 +132,9 @@ class ArchiveWriter:
         self._pend: list[np.ndarray] = []
         self._pend_rx: list[np.ndarray] = []
         self._pend_n = 0
-        self._pw: pq.ParquetWriter | None = None
+        self._pw: pq.ParquetWriter | None = None  # group 0's; the others in _pw_groups
+        self._pw_groups: list[pq.ParquetWriter] = []
+        self._groups: list[list[str]] = store.column_groups(layout, 0)
         self._pw_path: Path | None = None
         self._pw_hour = ""
         self._pw_rows = 0
@@ -300,9 +302,13 @@ class ArchiveWriter:
     def _start_run(self, run: int) -> None:
         self._run = run
         info = store.read_run(self.root, run)
-        self._info = info or store.RunInfo(
-            run, self.mission.mission, self.mission.vehicle, self.layout.layout_id
-        )
+        if info is None:
+            info = store.RunInfo(
+                run, self.mission.mission, self.mission.vehicle, self.layout.layout_id
+            )
+            info.group_columns = store.GROUP_COLUMNS
+        self._info = info
+        self._groups = store.column_groups(self.layout, info.group_columns)
         self._info.outcome = "open"
         self._seen = store.loops_in(store.parquet_files(self.root, "tm", run), self._damage)
         self._max_loop = max(self._seen, default=-1)
@@ -382,11 +388,21 @@ class ArchiveWriter:
             d = store.run_dirs(self.root, "tm", self._run) / hour
             d.mkdir(parents=True, exist_ok=True)
             self._pw_path = d / f"part-{store.next_part(d):06d}.parquet"
-            self._pw = pq.ParquetWriter(
-                str(self._pw_path) + ".tmp", self._schema, **store.parquet_options(self._schema)
-            )
+            writers = []
+            for k in range(len(self._groups)):
+                schema = store.group_schema(self.layout, self._groups, k)
+                writers.append(
+                    pq.ParquetWriter(
+                        str(store.group_path(self._pw_path, k)) + ".tmp",
+                        schema,
+                        **store.parquet_options(schema),
+                    )
+                )
+            self._pw, self._pw_groups = writers[0], writers[1:]
             self._pw_hour, self._pw_rows = hour, 0
-        self._pw.write_table(table, row_group_size=len(rows))
+        for pw in [self._pw, *self._pw_groups]:
+            part = table if len(self._groups) == 1 else table.select(pw.schema.names)
+            pw.write_table(part, row_group_size=len(rows))
         self._pw_rows += len(rows)
         if self._pw_rows >= self._file_rows:
             self._close_file()
@@ -396,9 +412,13 @@ class ArchiveWriter:
         the run's record, apply retention."""
         if self._pw is not None:
             assert self._pw_path is not None
-            self._pw.close()
-            os.replace(str(self._pw_path) + ".tmp", self._pw_path)
-            self._pw = None
+            # The groups first, group 0 last: a reader that sees a group-0
+            # file sees its groups (store.write_tm, store.recover).
+            for k, pw in reversed(list(enumerate([self._pw, *self._pw_groups]))):
+                pw.close()
+                path = store.group_path(self._pw_path, k)
+                os.replace(str(path) + ".tmp", path)
+            self._pw, self._pw_groups = None, []
         if self._ev_pend and self._run is not None:
             d = store.run_dirs(self.root, "ev", self._run)
             d.mkdir(parents=True, exist_ok=True)

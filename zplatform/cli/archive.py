@@ -25,15 +25,16 @@ import msgspec
 import pyarrow as pa
 import pyarrow.parquet as pq
 
-from ..archive import archive_dir
+from ..archive import archive_dir, store
 from ..archive.query import AGGREGATES, Archive, Query
 from ..config import Mission
 from ..core.datavector import Layout
+from ..errors import ArchiveError
 from ..mission.load import load_mission
 from ..telemetry.logs import MAX_ARRAY_COLUMNS, formatter
 from .args import check_output, mission_verb
 
-__all__ = ["register"]
+__all__ = ["archive_run", "event_line", "is_archive", "log_from_archive", "register", "write_csv"]
 
 
 def _run_arg(text: str) -> int:
@@ -53,7 +54,10 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     )
     p.add_argument("--dir", metavar="DIR", help="the archive directory (default: the mission's)")
     acts = p.add_subparsers(
-        dest="action", required=True, metavar="ACTION", help="runs, query, events or export"
+        dest="action",
+        required=True,
+        metavar="ACTION",
+        help="runs, query, events, export or merge",
     )
     r = acts.add_parser("runs", help="every run kept: times, loops, states, outcome")
     r.add_argument("--json", action="store_true", help="the run records as JSON")
@@ -85,6 +89,16 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     x.add_argument("--elements", default="*", metavar="GLOBS", help="default: every element")
     x.add_argument("--format", required=True, choices=("csv", "parquet"))
     x.add_argument("--out", required=True, metavar="FILE")
+    g = acts.add_parser(
+        "merge",
+        help="take in other stations' archives (or copies): each run one run, each loop once",
+        description="Take into this archive (--dir, or the mission's) every run the archive "
+        "directories SRC hold: loops and events it does not hold yet (by run and loop; by "
+        "node, seq and stamp), read from their raw segments. Run it again: nothing is taken "
+        "twice. Not while a ground node writes this archive.",
+    )
+    g.add_argument("sources", nargs="+", metavar="SRC", help="another archive (DIR/<mission>)")
+    g.add_argument("--run", type=_run_arg, metavar="R", help="only this run (default: every one)")
     p.set_defaults(func=cmd_archive)
 
 
@@ -99,6 +113,8 @@ def cmd_archive(args: argparse.Namespace) -> int:
     if getattr(args, "remote", False):
         return _remote(mission, args)
     root = Path(args.dir) if args.dir else archive_dir(mission)
+    if args.action == "merge":
+        return _merge(mission, root, args)
     out = getattr(args, "out", None)
     if out is not None:
         check_output(out, "output")
@@ -107,6 +123,50 @@ def cmd_archive(args: argparse.Namespace) -> int:
         for problem in a.problems:
             print(f"zplatform: archive: {problem}", file=sys.stderr)
     return rc
+
+
+def _merge(mission: Mission, root: Path, args: argparse.Namespace) -> int:
+    """``merge SRC...``: :func:`.store.merge` of each, under the archive's lock."""
+    import os
+
+    from ..archive.writer import lock_archive
+
+    srcs = [Path(s) for s in args.sources]
+    for s in srcs:
+        if not is_archive(s):
+            raise ArchiveError(f"{s} is not an archive directory (it holds no runs/ nor tm/)")
+        if s.resolve() == root.resolve():
+            raise ArchiveError(f"{s} is this archive: nothing to merge")
+    try:
+        fd = lock_archive(root)
+    except OSError as exc:
+        raise ArchiveError(f"cannot open the archive {root}: {exc}") from None
+    if fd is None:
+        raise ArchiveError(f"a ground node writes the archive {root}: merge when it stopped")
+    layout = Layout.for_node(mission, "cn")
+    problems: list[str] = []
+    try:
+        store.recover(root, layout, mission.mission, mission.vehicle, problems.append)
+        for s in srcs:
+            got = store.merge(
+                root,
+                s,
+                layout,
+                mission.mission,
+                mission.vehicle,
+                problems.append,
+                runs=None if args.run is None else [args.run],
+            )
+            for c in got:
+                print(
+                    f"{s}: run {c.run}: {c.rows} row(s) and {c.events} event(s) taken, "
+                    f"{c.duplicate_rows} row(s) and {c.duplicate_events} event(s) held already"
+                )
+    finally:
+        os.close(fd)
+    for line in problems:
+        print(f"zplatform: archive: {line}", file=sys.stderr)
+    return 0
 
 
 def _runs(a: Archive, args: argparse.Namespace) -> int:
@@ -145,9 +205,9 @@ def _remote(mission: Mission, args: argparse.Namespace) -> int:
     """``query --remote``: the same query, answered by the ground node."""
     import secrets
 
-    from ...auth import channel
-    from ...ground.link import GroundLink
-    from ..server import remote_query
+    from ..archive.server import remote_query
+    from ..core.auth import channel
+    from ..ground.link import GroundLink
 
     if args.out is not None:
         check_output(args.out, "output")
@@ -160,7 +220,6 @@ def _remote(mission: Mission, args: argparse.Namespace) -> int:
             link.keys.archive,
             channel(link.link_keys, "telemetry"),
             q,
-            now_ns=link.clock.now_ns(),
             nonce=secrets.randbits(64),
             timeout_s=args.timeout,
         )
@@ -179,21 +238,77 @@ def _events(a: Archive, args: argparse.Namespace) -> int:
     sevs = [s.strip() for s in args.severity.split(",") if s.strip()] if args.severity else None
     table = a.events(args.run, severity=sevs)
     for row in table.to_pylist():
-        print(
-            json.dumps(
-                {
-                    "rx_time_ns": row["rx_ns"],
-                    "node": row["node"],
-                    "seq": row["seq"],
-                    "t_ns": row["t_ns"],
-                    "severity": row["severity"],
-                    "id": row["id"],
-                    "text": row["text"],
-                    "verified": row["verified"],
-                }
-            )
-        )
+        print(event_line(row))
     return 0
+
+
+def event_line(row: dict[str, Any]) -> str:
+    """An archived event (a row of :meth:`Archive.events`) as the events
+    file's JSON line."""
+    return json.dumps(
+        {
+            "rx_time_ns": row["rx_ns"],
+            "node": row["node"],
+            "seq": row["seq"],
+            "t_ns": row["t_ns"],
+            "severity": row["severity"],
+            "id": row["id"],
+            "text": row["text"],
+            "verified": row["verified"],
+        }
+    )
+
+
+def is_archive(path: str | Path) -> bool:
+    """Whether ``path`` is a mission's archive directory (``DIR/<mission>``:
+    it holds ``runs/`` or ``tm/``), not a recording or a file."""
+    p = Path(path)
+    return (p / "runs").is_dir() or (p / "tm").is_dir()
+
+
+def archive_run(text: str | int | None) -> int | None:
+    """A ``--run`` for the archive: an id, or ``last``/None for the last run."""
+    if text is None or text == "last":
+        return None
+    if isinstance(text, int):
+        return text
+    if not text.isdigit():
+        raise ArchiveError(f"--run {text!r}: a run id (an integer: `archive runs`) or last")
+    return int(text)
+
+
+def log_from_archive(
+    mission: Mission,
+    root: str | Path,
+    run: int | None,
+    out_csv: str | Path | TextIO,
+    events_out: str | Path | None = None,
+    *,
+    elements: str = "*",
+) -> tuple[store.RunInfo, int, int, list[str]]:
+    """Run ``run`` (None: the last) of the archive at ``root`` as the
+    ground's log: the telemetry CSV (the format ``log`` and ``up --log``
+    write, so ``plot`` reads it) into ``out_csv`` (a path, or an open text
+    file) and its events as JSON lines into ``events_out`` (None: not
+    written). Returns the run's record, the rows and events written, and
+    the damage the archive skipped. Raises ArchiveError for a bad run or
+    glob, OSError when a file cannot be written."""
+    with Archive(mission, root) as a:
+        info = a.run(run)
+        table = a.query(Query(elements, run=info.run))
+        if isinstance(out_csv, str | Path):
+            with open(out_csv, "w", encoding="ascii", newline="") as f:
+                write_csv(a.layout, table, f, loops=False)
+        else:
+            write_csv(a.layout, table, out_csv, loops=False)
+        n_ev = 0
+        if events_out is not None:
+            evs = a.events(info.run).to_pylist()
+            with open(events_out, "w", encoding="utf-8") as f:
+                for row in evs:
+                    f.write(event_line(row) + "\n")
+            n_ev = len(evs)
+        return info, table.num_rows, n_ev, list(a.problems)
 
 
 def _export(a: Archive, args: argparse.Namespace) -> int:

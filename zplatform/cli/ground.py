@@ -113,10 +113,22 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         "and enums as labelled steps; state changes (cn_state) and commands (cn_cmd_seq) "
         "as named vertical lines.",
     )
-    p.add_argument("csv", help="telemetry CSV written by up --log, log or sim")
+    p.add_argument(
+        "csv",
+        help="telemetry CSV written by up --log, log or sim; with --run, the mission file "
+        "whose ground archive to read",
+    )
     p.add_argument("elements", nargs="+", help="column names (see the CSV's header)")
     p.add_argument("--out", required=True, help="image path (PNG, SVG, PDF by extension)")
     p.add_argument("--title", help="figure title (default: the CSV name and the elements)")
+    p.add_argument(
+        "--run",
+        metavar="R",
+        help="plot run R (or 'last') of the mission's ground archive instead of a CSV",
+    )
+    p.add_argument(
+        "--archive", metavar="DIR", help="with --run: this archive directory (.../archive/MISSION)"
+    )
     p.set_defaults(func=cmd_plot)
 
     p = mission_verb(
@@ -256,6 +268,10 @@ def cmd_plot(args: argparse.Namespace) -> int:
     _needs("matplotlib", "plot", "matplotlib", "plot")
     from ..telemetry.logs import plot_telemetry
 
+    if args.run is not None:
+        return _plot_archive(args)
+    if args.archive is not None:
+        raise CommandError("--archive is read with --run R: the run to plot")
     try:
         rows = read_csv(args.csv)
     except FileNotFoundError:
@@ -276,6 +292,58 @@ def cmd_plot(args: argparse.Namespace) -> int:
     markers = plot_telemetry(rows, args.elements, args.out, title=title)
     print(f"wrote {args.out} ({len(rows)} rows, {len(markers)} state/command markers)")
     return 0
+
+
+PLOT_MARKER_ELEMENTS = ("cn_state", "cn_cmd_seq", "cn_cmd", "cn_cmd_status")
+"""What plot's markers read (state changes, commands), asked of the archive too."""
+
+
+def _plot_archive(args: argparse.Namespace) -> int:
+    """``plot MISSION ELEMENTS --run R``: the rows of run R of the mission's
+    archive, as its telemetry CSV would hold them, plotted the same way."""
+    import io
+
+    from ..archive import archive_dir
+    from ..telemetry.logs import plot_telemetry
+    from .archive import archive_run, log_from_archive
+
+    mission = load_mission(args.csv, code=False)
+    root = Path(args.archive) if args.archive else archive_dir(mission)
+    names = list(_cn_elements(mission))
+    want = dict.fromkeys(e.split("[", 1)[0] for e in args.elements)
+    unknown = [e for e in want if e not in names]
+    if unknown:
+        from ..control.uplink import did_you_mean
+
+        raise CommandError(
+            f"not an element of {mission.mission}: {unknown[0]!r}" + did_you_mean(unknown[0], names)
+        )
+    want.update((m, None) for m in PLOT_MARKER_ELEMENTS if m in names)
+    check_output(args.out, "plot")
+    buf = io.StringIO()
+    info, n, _, problems = log_from_archive(
+        mission, root, archive_run(args.run), buf, elements=",".join(want)
+    )
+    for line in problems:
+        print(f"zplatform plot: {line}", file=sys.stderr)
+    buf.seek(0)
+    rows = read_csv(buf)
+    if not rows:
+        raise CommandError(f"run {info.run} of the archive {root} has no rows")
+    missing = [e for e in args.elements if e not in rows[0]]
+    if missing:
+        raise CommandError(f"not columns of the telemetry log: {missing} (an array: NAME[i])")
+    title = args.title or f"{mission.mission} run {info.run}: {', '.join(args.elements)}"
+    markers = plot_telemetry(rows, args.elements, args.out, title=title)
+    print(f"wrote {args.out} (run {info.run}: {n} rows, {len(markers)} state/command markers)")
+    return 0
+
+
+def _cn_elements(mission: Any) -> list[str]:
+    """The elements of the control node's vector (what the archive keeps)."""
+    from ..core.datavector import Layout
+
+    return list(Layout.for_node(mission, "cn").elements)
 
 
 def cmd_xtce(args: argparse.Namespace) -> int:

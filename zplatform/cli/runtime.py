@@ -139,11 +139,21 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         "the CN's frames are checked with a tool's keys, a device node's with its own key file",
     )
     p.add_argument(
+        "--from-archive",
+        nargs="?",
+        const="",
+        metavar="DIR",
+        help="read a run of the ground archive (the mission's, or the archive directory DIR: "
+        ".../archive/MISSION) instead of listening: the rows as the ground received them; "
+        "--run picks the run (default the last)",
+    )
+    p.add_argument(
         "--run",
         metavar="ID",
         type=_run_id,
         help="with --from-recorder: read only this run (its id, the CN epoch the summary "
-        "lists; or 'last'); default every run in the directory",
+        "lists; or 'last'); default every run in the directory. With --from-archive: the "
+        "run (default the last)",
     )
     p.add_argument("--summary", metavar="JSON", help="write the logger's summary JSON here")
     p.set_defaults(func=cmd_log)
@@ -293,10 +303,16 @@ def cmd_world(args: argparse.Namespace) -> int:
 
 
 def cmd_log(args: argparse.Namespace) -> int:
+    if args.from_recorder is not None and args.from_archive is not None:
+        raise CommandError("--from-recorder or --from-archive: one source at a time")
     if args.from_recorder is not None:
         return _log_from_recorder(args)
+    if args.from_archive is not None:
+        return _log_from_archive(args)
     if args.run is not None:
-        raise CommandError("--run picks a run of a flight recorder: use it with --from-recorder")
+        raise CommandError(
+            "--run picks a recorded run: use it with --from-recorder or --from-archive"
+        )
     setup_logging()
     from ..ground.logger import log_summary_line
     from ..node.ground import run_ground_logger
@@ -324,6 +340,34 @@ def _run_id(text: str) -> str:
     if text != "last" and not text.isdigit():
         raise argparse.ArgumentTypeError(f"expected a run id (an integer) or 'last', got {text!r}")
     return text
+
+
+def _log_from_archive(args: argparse.Namespace) -> int:
+    """``log --from-archive [DIR]``: a run of the ground archive into the
+    ground's files (:func:`zplatform.cli.archive.log_from_archive`). Exit 0
+    when written (damage the archive skipped is named on stderr); a bad run
+    or a missing archive: ArchiveError (exit 2)."""
+    from ..archive import archive_dir
+    from .archive import archive_run, log_from_archive
+
+    if args.duration is not None:
+        raise CommandError("--duration is for a live log, not --from-archive")
+    if args.summary is not None:
+        raise CommandError("--summary is for a live log, not --from-archive")
+    mission = load_mission(args.mission, code=False)
+    _check_outputs(args, "out")
+    root = Path(args.from_archive) if args.from_archive else archive_dir(mission)
+    ev = events_path(args.out)
+    info, rows, events, problems = log_from_archive(
+        mission, root, archive_run(args.run), args.out, ev
+    )
+    for line in problems[:MAX_PROBLEM_LINES]:
+        print(f"zplatform log: {line}", file=sys.stderr)
+    print(
+        f"run {info.run} of the archive {root}: {rows} telemetry row(s) -> {args.out}, "
+        f"{events} event(s) -> {ev}"
+    )
+    return 0
 
 
 def _log_from_recorder(args: argparse.Namespace) -> int:

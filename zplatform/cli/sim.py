@@ -83,6 +83,12 @@ def cmd_sim(args: argparse.Namespace) -> int:
 
 
 def cmd_replay(args: argparse.Namespace) -> int:
+    from .archive import is_archive
+
+    if is_archive(args.directory):
+        return _replay_archive(args)
+    if args.run is not None:
+        raise CommandError("--run picks a run of a ground archive; DIR is a recording")
     if args.mission is None and not (args.list or args.log):
         raise CommandError(
             "a replay runs the mission's code, which is never taken from a recording: pass "
@@ -122,6 +128,39 @@ def cmd_replay(args: argparse.Namespace) -> int:
         print("  the recording holds no complete loop")
         return 1
     print("  telemetry bit-identical to the live run")
+    return 0
+
+
+def _replay_archive(args: argparse.Namespace) -> int:
+    """``replay ARCHIVE --mission FILE --log CSV [--run R]``: a run of the
+    ground archive written as the recorded telemetry (its events beside
+    it). The archive keeps the control node's telemetry, not the device
+    nodes' replies a replay feeds the loop: nothing is replayed, the
+    mission file is read only for the layout (no code runs)."""
+    from .archive import archive_run, log_from_archive
+
+    if args.mission is None or not args.log or args.list:
+        raise CommandError(
+            f"{args.directory} is a ground archive: it keeps the telemetry the ground received, "
+            "not the device nodes' replies a replay needs; write a run of it as CSV with "
+            "--mission FILE (its layout: no code runs) --log CSV [--run R]"
+        )
+    if args.summary:
+        raise CommandError("--summary is a replay's: a ground archive is not replayed")
+    check_output(args.log, "telemetry log")
+    mission = load_mission(args.mission, code=False)
+    ev = events_path(args.log)
+    info, rows, events, problems = log_from_archive(
+        mission, args.directory, archive_run(args.run), args.log, ev
+    )
+    for line in problems:
+        print(f"zplatform replay: {line}", file=sys.stderr)
+    print(
+        f"archive of {info.mission}, run {info.run}: loops {info.first_loop}..{info.last_loop} "
+        f"({rows} rows -> {args.log}, {events} events -> {ev}); last state "
+        f"{info.final_state or '-'}; outcome {info.outcome}"
+    )
+    print("  not replayed: a ground archive holds no device node replies")
     return 0
 
 
@@ -186,7 +225,12 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         "the telemetry bit for bit. A recording is never trusted: no code it names is "
         "imported, and without --mission only --list and --log read it.",
     )
-    p.add_argument("directory", metavar="DIR", help="a recording made by `up --record DIR`")
+    p.add_argument(
+        "directory",
+        metavar="DIR",
+        help="a recording made by `up --record DIR`, or a ground archive (its run's telemetry "
+        "with --mission FILE --log CSV)",
+    )
     how = p.add_mutually_exclusive_group()
     how.add_argument(
         "--mission",
@@ -203,4 +247,9 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         help="write the telemetry as CSV: replayed with --mission, else as recorded",
     )
     p.add_argument("--summary", metavar="JSON", help="write the result as JSON")
+    p.add_argument(
+        "--run",
+        metavar="R",
+        help="DIR a ground archive (.../archive/MISSION): the run --log writes (default the last)",
+    )
     p.set_defaults(func=cmd_replay)

@@ -827,6 +827,25 @@ class ArchiveConfig(_Struct):
             "is refused with a reason saying so (never cut short silently).",
         ),
     ] = 64 * 1024 * 1024
+    serve_per_asker: Annotated[
+        int,
+        Meta(
+            ge=1,
+            le=8,
+            description="Most queries one asker (a station or tool) may have in hand at the "
+            "ground node's archive at once; one more is refused with a reason saying so.",
+        ),
+    ] = 2
+    serve_asker_bps: Annotated[
+        int,
+        Meta(
+            ge=10_000,
+            le=1_000_000_000,
+            description="Bytes per second of answers one asker may take from the ground "
+            "node's archive (a bucket holding `serve_max_bytes`): a query whose answer the "
+            "bucket does not hold is refused with a reason saying when to ask again.",
+        ),
+    ] = 1_000_000
 
 
 class SecurityConfig(_Struct):

@@ -195,16 +195,20 @@ def _serve_archive(link: GroundLink, arch: ArchiveWriter) -> ArchiveServer | Non
             link.keys.archive,
             lambda: Archive(m, arch.root, recover=False),
             channel(link.link_keys, "telemetry"),
-            now_ns=link.clock.now_ns,
-            max_age_ns=link.logic.max_age_ns,
+            max_age_ns=ARCHIVE_ASK_WINDOW_NS,
             serve_bps=m.archive.serve_bps,
             max_bytes=m.archive.serve_max_bytes,
+            per_asker=m.archive.serve_per_asker,
+            asker_bps=m.archive.serve_asker_bps,
         )
     except Exception as exc:  # zenoh's errors are not ours: the ground goes on without
         log.warning("the archive is not served over zenoh: %s", exc)
         return None
 
 
+ARCHIVE_ASK_WINDOW_NS = 60 * 10**9
+"""How long after its hello an archive ask is still taken (zplatform.archive.server):
+room for the asks a long answer in hand keeps waiting."""
 FILL_GRACE_S = 10.0
 """How long a log that ends waits for gap fills still in flight."""
 FILL_BACKLOG = 1024

@@ -440,18 +440,23 @@ KEYSPACE: tuple[KeyRow, ...] = (
                 "telemetry",
                 "downlink",
                 "zplatform.archive.server.ArchiveServer gn",
-                "stamped within the clock bound of the ground's clock, not one of the last "
-                "REMEMBERED answered",
-                "at most MAX_PENDING in hand, replies paced to archive.serve_bps, at most "
+                "a hello (tagged in no run) is answered with the server's session; an ask is "
+                "tagged in that session, its cookie younger than the ask window, its (cookie, "
+                "asker, nonce) not one taken",
+                "at most MAX_PENDING in hand, archive.serve_per_asker per asker, replies paced "
+                "to archive.serve_bps, per asker archive.serve_asker_bps, at most "
                 "archive.serve_max_bytes per answer (more: an error saying so)",
+                run_bound=True,
             ),
             KeyFrames(
                 "reply",
                 "telemetry",
                 "downlink",
                 "zplatform.archive.server.ArchiveAsk tool",
-                "the ask's nonce, each chunk index once, within the count announced",
+                "the hello's nonce (the session), then the session and the ask's nonce, each "
+                "chunk index once, within the count announced",
                 "the asker's bounded mailbox",
+                run_bound=True,
             ),
         ),
         when="archive",

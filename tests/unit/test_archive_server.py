@@ -1,0 +1,291 @@
+"""The archive served over zenoh, in process (issue 25 leftover 6, issue 28):
+the ask bound to the server's session (a recorded ask of an earlier session,
+one tagged in run 0, a replay, a forgery: refused and counted), and the
+bounds per asker (queries in hand, bytes per second: refused with the reason).
+
+The server's thread is stopped; each test hands frames to its zenoh callback
+and serves what it admitted here, in order: no network, no timing."""
+
+from __future__ import annotations
+
+import itertools
+from pathlib import Path
+from types import SimpleNamespace
+from typing import Any
+
+import pyarrow as pa
+import pytest
+
+from tests.unit.test_archive import feed
+from zplatform.archive import Archive, ArchiveWriter, Query
+from zplatform.archive.server import (
+    ASK,
+    ASK_MAGIC,
+    ERROR,
+    REPLY,
+    ArchiveAsk,
+    ArchiveServer,
+    ask_payload,
+)
+from zplatform.core.auth import TAG_LEN, KeySet, Run
+from zplatform.core.datavector import DataVector, Layout
+from zplatform.mission.load import load_mission
+
+ROOT = Path(__file__).resolve().parents[2]
+MISSION = load_mission(ROOT / "configs" / "flight.yaml", code=False)
+KEYS = KeySet.from_master(MISSION, bytes.fromhex("8f" + "3a5c91e0b7d24f68" * 3 + "c1d2e3f4a5b6c7"))
+S = 10**9
+NONCES = itertools.count(1000)
+
+
+class _Payload:
+    def __init__(self, data: bytes) -> None:
+        self.data = data
+
+    def __len__(self) -> int:
+        return len(self.data)
+
+    def to_bytes(self) -> bytes:
+        return self.data
+
+
+class _Query:
+    """A zenoh query as the server sees it: its payload, the replies it got."""
+
+    def __init__(self, payload: bytes) -> None:
+        self.payload = _Payload(payload)
+        self.replies: list[bytes] = []
+
+    def reply(self, key: str, payload: bytes) -> None:
+        self.replies.append(payload)
+
+    def drop(self) -> None:
+        pass
+
+    def __enter__(self) -> _Query:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        pass
+
+
+class _Session:
+    def declare_queryable(self, key: str, handler: object) -> Any:
+        return SimpleNamespace(undeclare=lambda: None)
+
+
+class Clock:
+    def __init__(self) -> None:
+        self.t = 5 * S
+
+    def __call__(self) -> int:
+        return self.t
+
+
+@pytest.fixture(scope="module")
+def root(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    d = tmp_path_factory.mktemp("archive")
+    w = ArchiveWriter(MISSION, Layout.for_node(MISSION, "cn"), d)
+    feed(w, DataVector(Layout.for_node(MISSION, "cn")), range(1, 301))
+    w.close()
+    return d
+
+
+def server(root: Path, clock: Clock, session_word: int = 11, **kw: Any) -> ArchiveServer:
+    s = ArchiveServer(
+        _Session(),  # type: ignore[arg-type]
+        "rocket/archive/query",
+        lambda: Archive(MISSION, root, recover=False),
+        KEYS.channel("telemetry"),
+        now_ns=clock,
+        max_age_ns=kw.pop("max_age_ns", 60 * S),
+        serve_bps=10**9,
+        max_bytes=kw.pop("max_bytes", 1 << 20),
+        session_word=session_word,
+        **kw,
+    )
+    s.close()  # its thread: each test serves what is admitted, in order
+    return s
+
+
+def deliver(srv: ArchiveServer, *payloads: bytes) -> list[_Query]:
+    """Hand ``payloads`` to the server's zenoh callback (all in hand at
+    once), then serve what it admitted, in order; the queries, replies in."""
+    qs = [_Query(p) for p in payloads]
+    for q in qs:
+        srv.on_query(q)
+    while srv._pending:
+        srv.serve(srv._pending.popleft())
+    return qs
+
+
+class Station:
+    """An asker: its own channel (the tool's key), its word."""
+
+    def __init__(self, asker: int, keys: KeySet | None = None) -> None:
+        self.keys = keys or KEYS.for_node("tool")
+        self.asker = asker
+
+    def new(self) -> ArchiveAsk:
+        return ArchiveAsk(self.keys.channel("telemetry"), next(NONCES), asker=self.asker)
+
+    def learn(self, srv: ArchiveServer) -> ArchiveAsk:
+        """A new ask that learned ``srv``'s session (one hello)."""
+        a = self.new()
+        (q,) = deliver(srv, a.hello())
+        assert len(q.replies) == 1 and a.on_reply(q.replies[0])
+        assert a.session == srv.session.epoch
+        return a
+
+
+def answer(a: ArchiveAsk, q: _Query) -> pa.Table:
+    for r in q.replies:
+        assert a.on_reply(r)
+    return a.table()
+
+
+Q = Query("cn_state,apogee_target_m", run=7, start="loop:10", end="loop:19")
+
+
+def test_a_genuine_ask_is_answered_in_its_session(root: Path) -> None:
+    clock = Clock()
+    srv = server(root, clock)
+    a = Station(1).learn(srv)
+    (q,) = deliver(srv, a.ask(Q))
+    t = answer(a, q)
+    with Archive(MISSION, root) as local:
+        assert t.equals(local.query(Q)) and t.num_rows == 10
+    assert (srv.served, srv.hellos, srv.refused, srv.stale) == (1, 1, 0, 0)
+
+
+def test_a_recorded_ask_of_an_earlier_session_is_refused_and_counted(root: Path) -> None:
+    """The defect: the ground restarted (a new session); an ask recorded in
+    the last one, replayed at once (its stamp or cookie still young), was
+    answered. Now refused unanswered, counted stale once."""
+    clock = Clock()
+    old = server(root, clock, session_word=11)
+    a = Station(1).learn(old)
+    recorded = a.ask(Q)
+    (q,) = deliver(old, recorded)
+    assert answer(a, q).num_rows == 10
+    new = server(root, clock, session_word=12)  # the ground node started again
+    (q,) = deliver(new, recorded)
+    assert q.replies == []
+    assert (new.stale, new.refused, new.served) == (1, 1, 0)
+    b = Station(1).learn(new)  # the asker asks again: answered
+    (q,) = deliver(new, b.ask(Q))
+    assert answer(b, q).num_rows == 10
+    assert (new.stale, new.served) == (1, 1)
+
+
+def test_an_ask_tagged_in_run_0_is_refused_and_counted(root: Path) -> None:
+    """The defect itself: an ask tagged in no run (run 0) was taken. Now the
+    session is the run word every ask must carry."""
+    clock = Clock()
+    srv = server(root, clock)
+    ch = KEYS.for_node("tool").channel("telemetry")  # bound to no run: tags in run 0
+    (q,) = deliver(srv, ask_payload(ch, Q, clock.t, 99, asker=1))
+    assert q.replies == [] and (srv.stale, srv.refused, srv.served) == (1, 1, 0)
+    ch.run = Run(12)  # another session's word: likewise
+    (q,) = deliver(srv, ask_payload(ch, Q, clock.t, 98, asker=1))
+    assert q.replies == [] and (srv.stale, srv.refused, srv.served) == (2, 2, 0)
+
+
+def test_a_replayed_ask_in_its_session_is_refused_now_and_later(root: Path) -> None:
+    clock = Clock()
+    srv = server(root, clock, max_age_ns=60 * S)
+    a = Station(1).learn(srv)
+    p = a.ask(Q)
+    q1, q2 = deliver(srv, p, p)
+    assert answer(a, q1).num_rows == 10 and q2.replies == []
+    assert (srv.stale, srv.served) == (1, 1)
+    for _ in range(5000):  # more than it keeps: none is forgotten early
+        srv._served[(clock.t, 7, len(srv._served) + 10**6)] = None
+        if len(srv._served) >= 4096:
+            break
+    clock.t += 61 * S  # past its cookie: refused by its age, whatever is kept
+    (q,) = deliver(srv, p)
+    assert q.replies == [] and (srv.stale, srv.served) == (2, 1)
+
+
+def test_a_forged_ask_is_refused_and_counted_as_bad(root: Path) -> None:
+    clock = Clock()
+    srv = server(root, clock)
+    a = Station(1).learn(srv)
+    good = a.ask(Q)
+    flipped = good[:-1] + bytes([good[-1] ^ 1])
+    stranger = Station(2, KeySet.generate(MISSION)).new()  # another mission's key
+    stranger.session, stranger.cookie = srv.session.epoch, clock.t
+    assert stranger._channel is not None
+    stranger._channel.run = srv.session  # it even guessed the session
+    qs = deliver(srv, flipped, stranger.ask(Q), stranger.hello())
+    assert all(q.replies == [] for q in qs)
+    assert (srv.refused, srv.stale, srv._refused_checked, srv.served, srv.hellos) == (3, 0, 3, 0, 1)
+
+
+def test_an_answer_of_another_session_is_refused_by_the_asker(root: Path) -> None:
+    clock = Clock()
+    old, new = server(root, clock, session_word=11), server(root, clock, session_word=12)
+    st = Station(1)
+    a = st.learn(old)
+    (q_old,) = deliver(old, a.ask(Q))
+    b = st.learn(new)
+    b.nonce = a.nonce  # the same nonce: only the session tells them apart
+    assert not b.on_reply(q_old.replies[0]) and b.refused == 1
+    (q,) = deliver(new, b.ask(Q))
+    assert answer(b, q).num_rows == 10
+
+
+def test_two_askers_each_bounded_in_queries_in_hand(root: Path) -> None:
+    """per_asker 1: asker A's second ask in hand is answered with the reason;
+    asker B's, in hand at the same time, is answered with rows."""
+    clock = Clock()
+    srv = server(root, clock, per_asker=1)
+    a1, a2 = Station(1).learn(srv), Station(1).learn(srv)
+    b = Station(2).learn(srv)
+    qa1, qa2, qb = deliver(srv, a1.ask(Q), a2.ask(Q), b.ask(Q))
+    assert answer(a1, qa1).num_rows == 10 and answer(b, qb).num_rows == 10
+    with pytest.raises(Exception, match="1 queries in hand already"):
+        answer(a2, qa2)
+    assert (srv.over_bound, srv.served, srv.refused) == (1, 3, 0)
+    a3 = Station(1).learn(srv)  # A's first is done: A may ask again
+    (q,) = deliver(srv, a3.ask(Q))
+    assert answer(a3, q).num_rows == 10 and srv.over_bound == 1 and srv._in_hand == {}
+
+
+def test_two_askers_each_bounded_in_bytes_per_second(root: Path) -> None:
+    """asker_bps: A's answers empty its bucket, A's next is refused with when
+    to ask again; B is answered meanwhile; A is answered once it refilled."""
+    clock = Clock()
+    srv = server(root, clock, asker_bps=10_000, max_bytes=40_000)
+    big = Query("*", run=7, start="loop:1", end="loop:3")  # one answer: most of the bucket
+    a = Station(1)
+    first = a.learn(srv)
+    (q,) = deliver(srv, first.ask(big))
+    n = sum(len(r) - REPLY.size - TAG_LEN for r in q.replies)
+    assert answer(first, q).num_rows == 3 and 20_000 < n <= 40_000
+    second = a.learn(srv)
+    (q,) = deliver(srv, second.ask(big))
+    with pytest.raises(Exception, match=r"10000 bytes/s per asker.*ask again in [0-9.]+ s"):
+        answer(second, q)
+    b = Station(2).learn(srv)
+    (q,) = deliver(srv, b.ask(big))
+    assert answer(b, q).num_rows == 3
+    clock.t += 4 * S  # 40,000 bytes refilled: the bucket is full again
+    third = a.learn(srv)
+    (q,) = deliver(srv, third.ask(big))
+    assert answer(third, q).num_rows == 3
+    assert (srv.over_bound, srv.served, srv.refused) == (1, 4, 0)
+
+
+def test_an_error_reply_is_one_tagged_frame_echoing_the_nonce(root: Path) -> None:
+    clock = Clock()
+    srv = server(root, clock)
+    a = Station(1).learn(srv)
+    (q,) = deliver(srv, a.ask(Query("cn_stat")))
+    (r,) = q.replies
+    body = bytes(KEYS.for_node("tool").channel("telemetry").open(r))
+    kind, nonce, i, n = REPLY.unpack_from(body, 0)
+    assert (kind, nonce, i, n) == (ERROR, a.nonce, 0, 1)
+    assert b"did you mean" in body
+    assert ASK.unpack_from(a.ask(Q), 0)[:2] == (ASK_MAGIC, 1)
