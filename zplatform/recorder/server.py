@@ -2,9 +2,18 @@
 
 :class:`RecorderServer` declares a queryable on ``{vehicle}/cn/recorder``
 (formats: :mod:`~.format`) and costs the control loop nothing but the GIL's
-share of one thread. Zenoh's callback only checks the request's size and
-hands the query to a bounded inbox (:data:`MAX_PENDING`; more are dropped
-unanswered, counted in :attr:`RecorderServer.busy`); it never blocks.
+share of one thread. Zenoh's callback first checks a rate bound
+(:data:`REQUEST_BURST` at once, then one every :data:`REQUEST_EVERY_NS`:
+a GCRA, one integer; the excess is dropped unanswered and counted in
+:attr:`RecorderServer.excess`), then the request's size, and hands the
+query to a bounded inbox (:data:`MAX_PENDING`; more are dropped
+unanswered, counted in :attr:`RecorderServer.busy`); it never blocks. The
+bound keeps a keyless flood from keeping the serving thread busy with tag
+checks: a Python thread that never waits holds the GIL for up to the
+switch interval each time the control loop wants it back, which stalled
+the commander's loop past the device nodes' watchdog (issue 25). A flood
+delays the ground's gap fills while it lasts (the ground asks again
+later), never the loop.
 
 One serving thread checks each request (the telemetry channel's tag, a
 stamp within the clock bound, none of the last :data:`REMEMBERED` served,
@@ -22,6 +31,7 @@ Detail: docs/architecture.md#the-gap-fill.
 from __future__ import annotations
 
 import itertools
+import threading
 import time
 from collections import deque
 from collections.abc import Callable
@@ -46,13 +56,26 @@ from .format import (
 from .reader import counts, scan_segment
 from .writer import FlightRecorder
 
-__all__ = ["MAX_PENDING", "REMEMBERED", "WRITE_WAIT_S", "RecorderServer"]
+__all__ = [
+    "MAX_PENDING",
+    "REMEMBERED",
+    "REQUEST_BURST",
+    "REQUEST_EVERY_NS",
+    "WRITE_WAIT_S",
+    "RecorderServer",
+]
 
 MAX_PENDING = 2
 """Requests waiting or being served; any more are dropped unanswered."""
 REMEMBERED = 64
 """Requests served that a server remembers, to refuse a replay of one while
 its stamp is still within the bound (older ones are refused by the stamp)."""
+REQUEST_BURST = 8
+"""Requests a recorder server takes at once (module doc); a ground asks one
+at a time, each after the last one's answer."""
+REQUEST_EVERY_NS = 100_000_000
+"""Then one request this often (ns): ten a second, far above a ground's gap fills."""
+_REQUEST_TAU_NS = (REQUEST_BURST - 1) * REQUEST_EVERY_NS
 WRITE_WAIT_S = 1.0
 """How long a request for loops still in the recorder's buffer waits for them
 to be written (then what is in the files is sent)."""
@@ -79,8 +102,14 @@ class RecorderServer(QueryWorker):
         max_age_ns: int,
         serve_bps: int,
         divisor: int = 1,
+        mono_ns: Callable[[], int] = time.monotonic_ns,
     ) -> None:
         self.recorder = recorder
+        self._mono = mono_ns
+        self._tat = -(1 << 63)  # the rate bound's theoretical arrival time
+        self._rate_lock = threading.Lock()
+        self.excess = 0
+        """Requests dropped unanswered, unread, beyond the rate bound (module doc)."""
         self._channel = channel
         self._now = now_ns
         self._max_age = max_age_ns
@@ -99,6 +128,22 @@ class RecorderServer(QueryWorker):
         self.queryable = session.declare_queryable(
             key_expr, zenoh.handlers.Callback(self.on_query, indirect=False)
         )
+
+    def on_query(self, query: Any) -> None:
+        """The queryable's callback: the rate bound, then (the base's) the
+        size and the hand-off (module doc). Never blocks beyond a short lock."""
+        now = self._mono()
+        with self._rate_lock:
+            tat = max(self._tat, now)
+            over = tat - now > _REQUEST_TAU_NS
+            if over:
+                self.excess += 1
+            else:
+                self._tat = tat + REQUEST_EVERY_NS
+        if over:
+            query.drop()
+            return
+        super().on_query(query)
 
     def size_refusal(self, n: int) -> str | None:
         return None if n == self._req_len else f"a request of {n} bytes"
