@@ -22,10 +22,13 @@ from __future__ import annotations
 import argparse
 import contextlib
 import gc
+import json
 import os
+import statistics
 import time
 from collections.abc import Callable
 from functools import partial
+from pathlib import Path
 from typing import Any
 
 from bench.common import REPO_ROOT, bench_argparser, summarize, write_result
@@ -318,15 +321,17 @@ def _victims(m: Any, keys: Any, session: Any, key: str) -> dict[str, Callable[[]
 _ARRIVED: list[int] = []
 
 
+REFUSAL_REPS = 3
+"""Rounds of every live variant (round robin, so the shared box's load
+spreads over all of them); the figure is the median round."""
+
+
 def refusal_live(quick: bool) -> dict[str, dict[str, Any]]:
     """Over zenoh on loopback: a keyless attacker process sends junk gets
     at :data:`REFUSAL_RATE` a second; per variant of the victim's
     queryable (this process), the victim's CPU time per refused query
     beyond its idle CPU (``time.process_time``: every thread, zenoh's
-    included)."""
-    import subprocess
-    import sys
-
+    included), the median of :data:`REFUSAL_REPS` rounds."""
     import zenoh
 
     from bench.baselines import zenoh_config
@@ -334,71 +339,189 @@ def refusal_live(quick: bool) -> dict[str, dict[str, Any]]:
 
     m, keys, trig = _refusal_setup()
     frames = REFUSAL_FRAMES // (4 if quick else 1)
+    reps = 1 if quick else REFUSAL_REPS
     port = free_port()
     session = zenoh.open(zenoh_config(listen_port=port, connect_port=None, lowlatency=False))
     key = "bench/refusal/victim"
-    out: dict[str, dict[str, Any]] = {}
+    runs: dict[str, list[tuple[float, int, float]]] = {}
+    sizes: dict[str, int] = {}
     try:
         t0, c0 = time.monotonic(), time.process_time()
         time.sleep(1.0)
         idle = (time.process_time() - c0) / (time.monotonic() - t0)  # CPU s per s
-        for label, size in REFUSAL_SIZES.items():
-            size = size or trig
-            for name, declare in _victims(m, keys, session, key).items():
-                q = declare()
-                _ARRIVED.clear()
-                proc = subprocess.Popen(
-                    [
-                        sys.executable,
-                        "-m",
-                        "bench.mac",
-                        "--refusal-attacker",
-                        f"{port},{key},{size},{REFUSAL_RATE},{frames}",
-                    ],
-                    cwd=REPO_ROOT,
-                )
-                try:
-                    deadline = time.monotonic() + 30 + frames / REFUSAL_RATE
-                    if name == "no_queryable":  # nothing to count: the attacker's life
-                        t0, c0 = time.monotonic(), time.process_time()
-                        proc.wait(deadline - t0)
-                        t1, c1 = time.monotonic(), time.process_time()
-                        cpu = (c1 - c0) - idle * (t1 - t0)
-                        out[f"live_{name}_{label}"] = {
-                            "size_bytes": size,
-                            "frames": frames,
-                            "cpu_us_per_frame": round(cpu / frames * 1e6, 1),
-                            "note": "no queryable on the key: zenoh's receive and routing "
-                            "(and the attacker's session opening and closing)",
-                        }
-                        print(f"live_{name}_{label}: {out[f'live_{name}_{label}']}")
-                        continue
-                    while not _ARRIVED and time.monotonic() < deadline:
-                        time.sleep(0.001)
-                    t0, c0 = time.monotonic(), time.process_time()
-                    n0 = n = len(_ARRIVED)
-                    while len(_ARRIVED) < frames and time.monotonic() < deadline:
-                        if proc.poll() is not None and len(_ARRIVED) == n:
-                            break
-                        n = len(_ARRIVED)
-                        time.sleep(0.05)
-                    t1, c1 = time.monotonic(), time.process_time()
-                    got = len(_ARRIVED) - n0
-                finally:
-                    proc.wait(30)
-                    q.undeclare()
-                cpu = (c1 - c0) - idle * (t1 - t0)
-                fig = {
-                    "size_bytes": size,
-                    "frames": got,
-                    "rate_hz": round(got / (t1 - t0), 1) if t1 > t0 else None,
-                    "cpu_us_per_frame": round(cpu / got * 1e6, 1) if got else None,
-                    "cpu_pct_of_core_at_1khz": round(cpu / got * 1e5, 2) if got else None,
-                }
-                out[f"live_{name}_{label}"] = fig
-                print(f"live_{name}_{label}: {fig}", flush=True)
+        for _ in range(reps):
+            for label, size in REFUSAL_SIZES.items():
+                size = size or trig
+                for name, declare in _victims(m, keys, session, key).items():
+                    got = _flood_once(name, declare, port, key, size, frames, idle)
+                    runs.setdefault(f"live_{name}_{label}", []).append(got)
+                    sizes[f"live_{name}_{label}"] = size
+                    print(f"live_{name}_{label}: {got}", flush=True)
     finally:
         session.close()
+    out: dict[str, dict[str, Any]] = {}
+    for v, rounds in runs.items():
+        cpu = statistics.median(r[0] for r in rounds)
+        out[v] = {
+            "size_bytes": sizes[v],
+            "frames": statistics.median(r[1] for r in rounds),
+            "rate_hz": statistics.median(r[2] for r in rounds),
+            "cpu_us_per_frame": round(cpu, 1),
+            "cpu_us_per_frame_rounds": [round(r[0], 1) for r in rounds],
+            "cpu_pct_of_core_at_1khz": round(cpu / 10, 2),
+        }
+        if v.startswith("live_no_queryable"):
+            out[v]["note"] = (
+                "no queryable on the key: zenoh's receive and routing, over the "
+                "attacker's whole life (its session's opening and closing too)"
+            )
+    return out
+
+
+def _flood_once(
+    name: str,
+    declare: Callable[[], Any],
+    port: int,
+    key: str,
+    size: int,
+    frames: int,
+    idle: float,
+    rate: int = REFUSAL_RATE,
+) -> tuple[float, int, float]:
+    """One attacker's flood of one variant: ``(CPU us per query beyond
+    idle, queries counted, their rate)``."""
+    import subprocess
+    import sys
+
+    q = declare()
+    _ARRIVED.clear()
+    proc = subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "bench.mac",
+            "--refusal-attacker",
+            f"{port},{key},{size},{rate},{frames}",
+        ],
+        cwd=REPO_ROOT,
+    )
+    try:
+        deadline = time.monotonic() + 30 + frames / rate
+        if name == "no_queryable":  # nothing to count: the attacker's life
+            t0, c0 = time.monotonic(), time.process_time()
+            proc.wait(deadline - t0)
+            t1, c1 = time.monotonic(), time.process_time()
+            got = frames
+        else:
+            while not _ARRIVED and time.monotonic() < deadline:
+                time.sleep(0.001)
+            t0, c0 = time.monotonic(), time.process_time()
+            n0 = n = len(_ARRIVED)
+            while len(_ARRIVED) < frames and time.monotonic() < deadline:
+                if proc.poll() is not None and len(_ARRIVED) == n:
+                    break
+                n = len(_ARRIVED)
+                time.sleep(0.05)
+            t1, c1 = time.monotonic(), time.process_time()
+            got = len(_ARRIVED) - n0
+    finally:
+        proc.wait(30)
+        q.undeclare()
+    cpu = (c1 - c0) - idle * (t1 - t0)
+    return (cpu / got * 1e6 if got else float("nan"), got, got / (t1 - t0) if t1 > t0 else 0.0)
+
+
+LOOP_PERIOD_NS = 10_000_000
+LOOP_WORK_S = 0.0003
+LOOP_DEADLINE_NS = 2_000_000
+LOOP_RATE = 6000
+
+
+class _LoopProbe:
+    """A 100 Hz loop thread in the victim's process, as the control node's:
+    each period it sleeps until its start, then does :data:`LOOP_WORK_S` of
+    Python work; a period whose wake-up lateness plus work exceeds
+    :data:`LOOP_DEADLINE_NS` (the sync deadline) is a miss."""
+
+    def __init__(self) -> None:
+        import threading
+
+        self.late: list[int] = []
+        self._stop = threading.Event()
+        self._t = threading.Thread(target=self._run, daemon=True)
+        self._t.start()
+
+    def _run(self) -> None:
+        nxt = time.monotonic_ns() + LOOP_PERIOD_NS
+        while not self._stop.is_set():
+            ahead = nxt - time.monotonic_ns()
+            if ahead > 0:
+                time.sleep(ahead / 1e9)
+            woke = time.monotonic_ns()
+            end = time.perf_counter() + LOOP_WORK_S
+            x = 0
+            while time.perf_counter() < end:  # the loop's own Python work
+                x += 1
+            self.late.append(time.monotonic_ns() - nxt)
+            nxt += LOOP_PERIOD_NS
+            while nxt < woke:  # an overrun skips periods, as the scheduler does
+                nxt += LOOP_PERIOD_NS
+
+    def stop(self) -> list[int]:
+        self._stop.set()
+        self._t.join(2)
+        return self.late
+
+
+def refusal_loop(quick: bool) -> dict[str, dict[str, Any]]:
+    """The control loop beside a flood (:class:`_LoopProbe`): per server
+    (the clock's, the recorder's; a callback that does nothing; no
+    queryable), a keyless attacker sends junk of the server's request
+    length at :data:`LOOP_RATE` a second for 3 s; the loop's lateness (p50, p99, max)
+    and its misses, the median of :data:`REFUSAL_REPS` rounds."""
+    import struct
+
+    import zenoh
+
+    from bench.baselines import zenoh_config
+    from bench.common import free_port
+    from zplatform.core.auth import TAG_LEN
+    from zplatform.recorder.format import REQUEST
+
+    m, keys, _ = _refusal_setup()
+    # Junk of exactly a clock query's length (codecs/FORMAT.md §6.3) and of
+    # a recorder request's: each passes the size check and costs what follows.
+    sizes = {
+        "clock_server": struct.calcsize("<2sBB16sq") + TAG_LEN,
+        "recorder_server": REQUEST.size + TAG_LEN,
+    }
+    port = free_port()
+    session = zenoh.open(zenoh_config(listen_port=port, connect_port=None, lowlatency=False))
+    key = "bench/refusal/victim"
+    frames = LOOP_RATE * (1 if quick else 3)
+    rounds: dict[str, list[dict[str, Any]]] = {}
+    try:
+        for _ in range(1 if quick else REFUSAL_REPS):
+            victims = _victims(m, keys, session, key)
+            for name in ("no_queryable", "zenoh_floor", "clock_server", "recorder_server"):
+                size = sizes.get(name, sizes["clock_server"])
+                probe = _LoopProbe()
+                _flood_once(name, victims[name], port, key, size, frames, 0.0, LOOP_RATE)
+                late = probe.stop()
+                fig = summarize(late, LOOP_DEADLINE_NS)
+                fig["loops"] = len(late)
+                fig["missed"] = sum(x > LOOP_DEADLINE_NS for x in late)
+                rounds.setdefault(f"loop_{name}", []).append(fig)
+                print(f"loop_{name}: {fig}", flush=True)
+    finally:
+        session.close()
+    out: dict[str, dict[str, Any]] = {}
+    for v, figs in rounds.items():
+        figs.sort(key=lambda f: f["missed"])
+        med = dict(figs[len(figs) // 2])
+        med["missed_rounds"] = [f"{f['missed']}/{f['loops']}" for f in figs]
+        med["max_us_rounds"] = [f.get("max_us") for f in figs]
+        out[v] = med
     return out
 
 
@@ -439,9 +562,13 @@ def _ignore(_reply: Any) -> None:
     pass
 
 
-def refusal_main(quick: bool, json_path: str | None) -> int:
-    variants = refusal_stages(quick)
-    variants.update(refusal_live(quick))
+def refusal_main(
+    quick: bool, json_path: str | None, before: str | None = None, loop_only: bool = False
+) -> int:
+    variants = {} if loop_only else refusal_stages(quick)
+    if not loop_only:
+        variants.update(refusal_live(quick))
+    variants.update(refusal_loop(quick))
     params = {
         "quick": quick,
         "what": "the cost of refusing one junk frame. In process (p50/p99 per call): "
@@ -455,6 +582,14 @@ def refusal_main(quick: bool, json_path: str | None) -> int:
         "fe55771), the TriggerIntake, and the ClockServer itself",
         "command": "flock /tmp/zplatform-bench.lock python -m bench.mac --refusal",
     }
+    if before:
+        # The same bench run with fe55771's zplatform/runtime/clocksync.py and
+        # zplatform/recorder/server.py checked out (the clock and recorder
+        # servers as they were): each variant's figure, for the comparison.
+        old = json.loads(Path(before).read_text())["variants"]
+        params["before_fe55771"] = {
+            k: v.get("cpu_us_per_frame", v.get("p50_us")) for k, v in old.items()
+        }
     write_result("refusal", params, variants, json_path)
     return 0
 
@@ -463,11 +598,15 @@ def main(argv: list[str] | None = None) -> int:
     p = bench_argparser(__doc__.splitlines()[0] if __doc__ else "mac")
     p.add_argument("--refusal", action="store_true", help="the cost of refusing a frame, by stage")
     p.add_argument("--refusal-attacker", metavar="SPEC", help=argparse.SUPPRESS)
+    p.add_argument("--before", metavar="PATH", help="--refusal: a result file to compare with")
+    p.add_argument(
+        "--loop-only", action="store_true", help="--refusal: the loop beside a flood only"
+    )
     args = p.parse_args(argv)
     if args.refusal_attacker:
         return refusal_attacker(args.refusal_attacker)
     if args.refusal:
-        return refusal_main(args.quick, args.json)
+        return refusal_main(args.quick, args.json, args.before, args.loop_only)
     scale = 20 if args.quick else 1
     variants: dict[str, dict[str, Any]] = {}
     sig = _ed25519()
