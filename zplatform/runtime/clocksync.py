@@ -249,7 +249,10 @@ class ClockResponder:
     checked). ``run``: the control node's run (its ``cn_epoch``; None: a
     new run of its own): a query must name it or none (a hello, module doc);
     one naming another run is refused before its MAC. The reply names it.
-    Not thread-safe: one serving thread."""
+    :meth:`answer` is :meth:`check` (the query: what zenoh's callback does,
+    :class:`ClockServer`) then :meth:`reply` (the stamped reply: the
+    server's thread). Not thread-safe: one thread (or one lock) checks, one
+    replies; the two share no channel."""
 
     def __init__(
         self,
@@ -317,7 +320,7 @@ class ClockResponder:
         :attr:`reason` set) to refuse it; a run hello's whole answer
         (bytes); or ``(index, nonce, t1, t2)`` of a clock query to answer with
         :meth:`reply`. Costs a length, a few compares and one MAC over at
-        most 56 bytes; allocates the copy's view and the nonce. Not
+        most 28 bytes; allocates the copy's view and the nonce. Not
         thread-safe with itself (the caller's lock); :meth:`reply` may run
         on another thread meanwhile (they share no channel)."""
         want = _QUERY.size + (TAG_LEN if self._auth else 0)
@@ -478,7 +481,7 @@ class ClockServer:
 
     Each query is checked by a :class:`ClockResponder` (``mission``,
     ``auth``: the CN's keys, ``run``: its run) *in zenoh's callback*: its
-    size unread, then (one copy of at most 80 bytes) magic, run, tag and
+    size unread, then (one copy, of 52 bytes at most) magic, run, tag and
     nonce, under a short lock. A refused one is dropped unanswered (zenoh
     finalises it at once: no error reply, no hand-off), counted
     (:attr:`refused`), and logged by the reply thread at most once a
@@ -526,13 +529,10 @@ class ClockServer:
     def refused(self) -> int:
         return self._responder.refused + self.dropped
 
-    def on_query(self, query: zenoh.Query) -> None:
-        """The queryable's callback (class doc): check, then hand a checked
-        query to the thread or drop it. Never blocks beyond the lock; never
-        raises for what arrives."""
-        self._on_query(query)
-
     def _on_query(self, query: zenoh.Query) -> None:
+        # zenoh's thread (class doc): check, then hand a checked query to the
+        # thread or drop it. Never blocks beyond the lock; never raises for
+        # what arrives.
         t2 = self._now()
         p = query.payload
         n = len(p) if p is not None else 0
