@@ -19,14 +19,19 @@ Figures per variant: ``p50_us``, ``p99_us``, ``max_us`` (each timed call),
 
 from __future__ import annotations
 
+import argparse
+import contextlib
 import gc
+import json
 import os
+import statistics
 import time
 from collections.abc import Callable
 from functools import partial
+from pathlib import Path
 from typing import Any
 
-from bench.common import bench_argparser, summarize, write_result
+from bench.common import REPO_ROOT, bench_argparser, summarize, write_result
 from zplatform.core.auth import MACS, Channel
 
 SIZES = {"256B": 256, "325KB": 325_000}
@@ -76,8 +81,532 @@ def _ed25519() -> tuple[Any, Any] | None:
     return sk, sk.public_key()
 
 
+# -- the cost of refusing a frame, stage by stage (--refusal) -------------------------
+
+REFUSAL_SIZES = {"trigger": 0, "64KB": 65_536}
+"""The refused frames' sizes: a trigger of the flight mission (``cn_to_dn0``,
+tag included: filled in at run time) and a 64 KiB frame."""
+REFUSAL_RATE = 2000
+REFUSAL_FRAMES = 4000
+
+
+def _refusal_setup() -> tuple[Any, Any, int]:
+    """The flight mission, dn0's keys, and the size of its trigger frame."""
+    from zplatform.control.intake import max_frame_len
+    from zplatform.core.auth import KeySet
+    from zplatform.core.datavector import Layout
+    from zplatform.mission.load import load_mission
+
+    m = load_mission(REPO_ROOT / "configs" / "flight.yaml")
+    keys = KeySet.from_master(m, KEY)
+    ch = keys.channel("cn_to_dn0")
+    size = max_frame_len(Layout.for_node(m, "cn").region("cn_to_dn0").size, ch)
+    return m, keys, size
+
+
+class _FakeQuery:
+    """What an intake or server reads of a zenoh query, without zenoh."""
+
+    __slots__ = ("payload",)
+
+    def __init__(self, payload: Any) -> None:
+        self.payload = payload
+
+    def drop(self) -> None:
+        pass
+
+    def reply_err(self, _p: bytes) -> None:
+        pass
+
+
+def refusal_stages(quick: bool) -> dict[str, dict[str, Any]]:
+    """In process (no transport): each stage a refused frame may cost, as
+    the intakes call it, on a junk frame of each size."""
+    import zenoh
+
+    from zplatform.control.intake import TriggerIntake
+    from zplatform.runtime.clocksync import ClockResponder
+
+    m, keys, trig = _refusal_setup()
+    n = 2_000 if quick else 20_000
+    out: dict[str, dict[str, Any]] = {}
+    for label, size in REFUSAL_SIZES.items():
+        size = size or trig
+        junk = os.urandom(size)
+        zb = zenoh.ZBytes(junk)
+        ch = keys.channel("cn_to_dn0")
+        intake: TriggerIntake[None] = TriggerIntake(m, "dn0", keys.channel("cn_to_dn0"))
+        big = max(trig, size)
+        intake.max_len = big  # a 64 KiB junk frame reaches the tag check
+        stages: dict[str, Callable[[], object]] = {
+            "zbytes_len": partial(len, zb),
+            "zbytes_to_bytes": zb.to_bytes,
+            "channel_open_junk": partial(_open_junk, ch, junk),
+            "intake_check_junk": partial(intake.check, zb, None),
+        }
+        if label == "trigger":
+            resp = ClockResponder(m, keys)
+            stages["clock_answer_junk"] = partial(resp.answer, junk, 0, 0)
+        for stage, fn in stages.items():
+            fig = _measure(fn, n)
+            fig["size_bytes"] = size
+            out[f"{stage}_{label}"] = fig
+    return out
+
+
+def _open_junk(ch: Any, junk: bytes) -> None:
+    from zplatform.core.auth import AuthError
+
+    with contextlib.suppress(AuthError):
+        ch.open(junk)
+
+
+def _victims(m: Any, keys: Any, session: Any, key: str) -> dict[str, Callable[[], Any]]:
+    """Per live variant, a function that declares the queryable under test
+    on ``key`` and returns what to undeclare/close."""
+    import queue
+    import threading
+
+    import zenoh
+
+    from zplatform.control.intake import TriggerIntake
+    from zplatform.runtime.clocksync import ClockServer
+
+    def plain(cb: Callable[[Any], None]) -> Callable[[], Any]:
+        return lambda: session.declare_queryable(key, zenoh.handlers.Callback(cb, indirect=False))
+
+    def floor(q: Any) -> None:
+        _ARRIVED.append(1)
+
+    def length(q: Any) -> None:
+        _ARRIVED.append(len(q.payload))
+
+    def copy(q: Any) -> None:
+        _ARRIVED.append(len(q.payload.to_bytes()))
+
+    ch = keys.channel("cn_to_dn0")
+
+    def tag(q: Any) -> None:
+        _ARRIVED.append(1)
+        _open_junk(ch, q.payload.to_bytes())
+
+    def reply_err(q: Any) -> None:
+        _ARRIVED.append(1)
+        q.reply_err(b"refused")
+
+    intake: TriggerIntake[Any] = TriggerIntake(m, "dn0", keys.channel("cn_to_dn0"))
+    intake.max_len = 1 << 20
+
+    def trigger_intake(q: Any) -> None:
+        _ARRIVED.append(1)
+        p = q.payload
+        intake.admit(p, q)
+
+    handoff: queue.Queue[Any] = queue.Queue(64)
+
+    def thread_handoff(q: Any) -> None:
+        _ARRIVED.append(1)
+        with contextlib.suppress(queue.Full):
+            handoff.put_nowait(q)
+
+    def drain() -> None:
+        while (q := handoff.get()) is not None:
+            with q:
+                _open_junk(ch, q.payload.to_bytes())
+                q.reply_err(b"refused")
+
+    def threaded() -> Any:
+        t = threading.Thread(target=drain, daemon=True)
+        t.start()
+        qa = session.declare_queryable(key, zenoh.handlers.Callback(thread_handoff, indirect=False))
+
+        class _Close:
+            def undeclare(self) -> None:
+                qa.undeclare()
+                handoff.put(None)
+                t.join(2)
+
+        return _Close()
+
+    def clock_server() -> Any:
+        from zplatform.runtime.transport import KeySpace
+
+        ks = KeySpace(m.vehicle)
+        server = ClockServer(session, ks, time.time_ns, m, keys)
+        server._queryable.undeclare()  # the same server, counted, on the bench's key
+        orig = server._on_query
+
+        def counted(q: Any) -> None:
+            _ARRIVED.append(1)
+            orig(q)
+
+        server._queryable = session.declare_queryable(
+            key, zenoh.handlers.Callback(counted, indirect=False)
+        )
+
+        class _Close:
+            def undeclare(self) -> None:
+                server.close()
+
+        return _Close()
+
+    def recorder_server() -> Any:
+        from zplatform.recorder.server import RecorderServer
+
+        rec: Any = None  # junk never reaches the files
+        server = RecorderServer(
+            session,
+            key,
+            rec,
+            keys.for_node("cn").channel("telemetry"),
+            now_ns=time.time_ns,
+            max_age_ns=10**9,
+            serve_bps=10**9,
+        )
+        server.queryable.undeclare()
+        orig = server.on_query
+
+        def counted(q: Any) -> None:
+            _ARRIVED.append(1)
+            orig(q)
+
+        server.queryable = session.declare_queryable(
+            key, zenoh.handlers.Callback(counted, indirect=False)
+        )
+
+        class _Close:
+            def undeclare(self) -> None:
+                server.close()
+
+        return _Close()
+
+    def fifo_thread() -> Any:
+        # zenoh's own channel, drained by a Python thread: zenoh's threads
+        # never take the GIL; the thread wakes per query (or per batch).
+        qa = session.declare_queryable(key, zenoh.handlers.FifoChannel(256))
+
+        def drain() -> None:
+            for _q in qa:
+                _ARRIVED.append(1)
+
+        t = threading.Thread(target=drain, daemon=True)
+        t.start()
+
+        class _Close:
+            def undeclare(self) -> None:
+                qa.undeclare()
+                t.join(2)
+
+        return _Close()
+
+    class _Nothing:
+        def undeclare(self) -> None:
+            pass
+
+    return {
+        "no_queryable": _Nothing,
+        "zenoh_floor": plain(floor),
+        "fifo_thread_floor": fifo_thread,
+        "len": plain(length),
+        "to_bytes": plain(copy),
+        "to_bytes_tag": plain(tag),
+        "reply_err": plain(reply_err),
+        "thread_handoff_tag_reply_err": threaded,
+        "trigger_intake": plain(trigger_intake),
+        "clock_server": clock_server,
+        "recorder_server": recorder_server,
+    }
+
+
+_ARRIVED: list[int] = []
+
+
+REFUSAL_REPS = 3
+"""Rounds of every live variant (round robin, so the shared box's load
+spreads over all of them); the figure is the median round."""
+
+
+def refusal_live(quick: bool) -> dict[str, dict[str, Any]]:
+    """Over zenoh on loopback: a keyless attacker process sends junk gets
+    at :data:`REFUSAL_RATE` a second; per variant of the victim's
+    queryable (this process), the victim's CPU time per refused query
+    beyond its idle CPU (``time.process_time``: every thread, zenoh's
+    included), the median of :data:`REFUSAL_REPS` rounds."""
+    import zenoh
+
+    from bench.baselines import zenoh_config
+    from bench.common import free_port
+
+    m, keys, trig = _refusal_setup()
+    frames = REFUSAL_FRAMES // (4 if quick else 1)
+    reps = 1 if quick else REFUSAL_REPS
+    port = free_port()
+    session = zenoh.open(zenoh_config(listen_port=port, connect_port=None, lowlatency=False))
+    key = "bench/refusal/victim"
+    runs: dict[str, list[tuple[float, int, float]]] = {}
+    sizes: dict[str, int] = {}
+    try:
+        t0, c0 = time.monotonic(), time.process_time()
+        time.sleep(1.0)
+        idle = (time.process_time() - c0) / (time.monotonic() - t0)  # CPU s per s
+        for _ in range(reps):
+            for label, size in REFUSAL_SIZES.items():
+                size = size or trig
+                for name, declare in _victims(m, keys, session, key).items():
+                    got = _flood_once(name, declare, port, key, size, frames, idle)
+                    runs.setdefault(f"live_{name}_{label}", []).append(got)
+                    sizes[f"live_{name}_{label}"] = size
+                    print(f"live_{name}_{label}: {got}", flush=True)
+    finally:
+        session.close()
+    out: dict[str, dict[str, Any]] = {}
+    for v, rounds in runs.items():
+        cpu = statistics.median(r[0] for r in rounds)
+        out[v] = {
+            "size_bytes": sizes[v],
+            "frames": statistics.median(r[1] for r in rounds),
+            "rate_hz": statistics.median(r[2] for r in rounds),
+            "cpu_us_per_frame": round(cpu, 1),
+            "cpu_us_per_frame_rounds": [round(r[0], 1) for r in rounds],
+            "cpu_pct_of_core_at_1khz": round(cpu / 10, 2),
+        }
+        if v.startswith("live_no_queryable"):
+            out[v]["note"] = (
+                "no queryable on the key: zenoh's receive and routing, over the "
+                "attacker's whole life (its session's opening and closing too)"
+            )
+    return out
+
+
+def _flood_once(
+    name: str,
+    declare: Callable[[], Any],
+    port: int,
+    key: str,
+    size: int,
+    frames: int,
+    idle: float,
+    rate: int = REFUSAL_RATE,
+) -> tuple[float, int, float]:
+    """One attacker's flood of one variant: ``(CPU us per query beyond
+    idle, queries counted, their rate)``."""
+    import subprocess
+    import sys
+
+    q = declare()
+    _ARRIVED.clear()
+    proc = subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "bench.mac",
+            "--refusal-attacker",
+            f"{port},{key},{size},{rate},{frames}",
+        ],
+        cwd=REPO_ROOT,
+    )
+    try:
+        deadline = time.monotonic() + 30 + frames / rate
+        if name == "no_queryable":  # nothing to count: the attacker's life
+            t0, c0 = time.monotonic(), time.process_time()
+            proc.wait(deadline - t0)
+            t1, c1 = time.monotonic(), time.process_time()
+            got = frames
+        else:
+            while not _ARRIVED and time.monotonic() < deadline:
+                time.sleep(0.001)
+            t0, c0 = time.monotonic(), time.process_time()
+            n0 = n = len(_ARRIVED)
+            while len(_ARRIVED) < frames and time.monotonic() < deadline:
+                if proc.poll() is not None and len(_ARRIVED) == n:
+                    break
+                n = len(_ARRIVED)
+                time.sleep(0.05)
+            t1, c1 = time.monotonic(), time.process_time()
+            got = len(_ARRIVED) - n0
+    finally:
+        proc.wait(30)
+        q.undeclare()
+    cpu = (c1 - c0) - idle * (t1 - t0)
+    return (cpu / got * 1e6 if got else float("nan"), got, got / (t1 - t0) if t1 > t0 else 0.0)
+
+
+LOOP_PERIOD_NS = 10_000_000
+LOOP_WORK_S = 0.0003
+LOOP_DEADLINE_NS = 2_000_000
+LOOP_RATE = 6000
+
+
+class _LoopProbe:
+    """A 100 Hz loop thread in the victim's process, as the control node's:
+    each period it sleeps until its start, then does :data:`LOOP_WORK_S` of
+    Python work; a period whose wake-up lateness plus work exceeds
+    :data:`LOOP_DEADLINE_NS` (the sync deadline) is a miss."""
+
+    def __init__(self) -> None:
+        import threading
+
+        self.late: list[int] = []
+        self._stop = threading.Event()
+        self._t = threading.Thread(target=self._run, daemon=True)
+        self._t.start()
+
+    def _run(self) -> None:
+        nxt = time.monotonic_ns() + LOOP_PERIOD_NS
+        while not self._stop.is_set():
+            ahead = nxt - time.monotonic_ns()
+            if ahead > 0:
+                time.sleep(ahead / 1e9)
+            woke = time.monotonic_ns()
+            end = time.perf_counter() + LOOP_WORK_S
+            x = 0
+            while time.perf_counter() < end:  # the loop's own Python work
+                x += 1
+            self.late.append(time.monotonic_ns() - nxt)
+            nxt += LOOP_PERIOD_NS
+            while nxt < woke:  # an overrun skips periods, as the scheduler does
+                nxt += LOOP_PERIOD_NS
+
+    def stop(self) -> list[int]:
+        self._stop.set()
+        self._t.join(2)
+        return self.late
+
+
+def refusal_loop(quick: bool) -> dict[str, dict[str, Any]]:
+    """The control loop beside a flood (:class:`_LoopProbe`): per server
+    (the clock's, the recorder's; a callback that does nothing; no
+    queryable), a keyless attacker sends junk of the server's request
+    length at :data:`LOOP_RATE` a second for 3 s; the loop's lateness (p50, p99, max)
+    and its misses, the median of :data:`REFUSAL_REPS` rounds."""
+    import struct
+
+    import zenoh
+
+    from bench.baselines import zenoh_config
+    from bench.common import free_port
+    from zplatform.core.auth import TAG_LEN
+    from zplatform.recorder.format import REQUEST
+
+    m, keys, _ = _refusal_setup()
+    # Junk of exactly a clock query's length (codecs/FORMAT.md §6.3) and of
+    # a recorder request's: each passes the size check and costs what follows.
+    sizes = {
+        "clock_server": struct.calcsize("<2sBB16sq") + TAG_LEN,
+        "recorder_server": REQUEST.size + TAG_LEN,
+    }
+    port = free_port()
+    session = zenoh.open(zenoh_config(listen_port=port, connect_port=None, lowlatency=False))
+    key = "bench/refusal/victim"
+    frames = LOOP_RATE * (1 if quick else 3)
+    rounds: dict[str, list[dict[str, Any]]] = {}
+    try:
+        for _ in range(1 if quick else REFUSAL_REPS):
+            victims = _victims(m, keys, session, key)
+            for name in ("no_queryable", "zenoh_floor", "clock_server", "recorder_server"):
+                size = sizes.get(name, sizes["clock_server"])
+                probe = _LoopProbe()
+                _flood_once(name, victims[name], port, key, size, frames, 0.0, LOOP_RATE)
+                late = probe.stop()
+                fig = summarize(late, LOOP_DEADLINE_NS)
+                fig["loops"] = len(late)
+                fig["missed"] = sum(x > LOOP_DEADLINE_NS for x in late)
+                rounds.setdefault(f"loop_{name}", []).append(fig)
+                print(f"loop_{name}: {fig}", flush=True)
+    finally:
+        session.close()
+    out: dict[str, dict[str, Any]] = {}
+    for v, figs in rounds.items():
+        figs.sort(key=lambda f: f["missed"])
+        med = dict(figs[len(figs) // 2])
+        med["missed_rounds"] = [f"{f['missed']}/{f['loops']}" for f in figs]
+        med["max_us_rounds"] = [f.get("max_us") for f in figs]
+        out[v] = med
+    return out
+
+
+def refusal_attacker(spec: str) -> int:
+    """The attacker process of :func:`refusal_live`: ``PORT,KEY,SIZE,RATE,N``."""
+    import zenoh
+
+    from bench.baselines import zenoh_config
+
+    port, key, size, rate, n = spec.split(",")
+    s = zenoh.open(zenoh_config(listen_port=None, connect_port=int(port), lowlatency=False))
+    try:
+        deadline = time.monotonic() + 10
+        while not list(s.info.peers_zid()) and time.monotonic() < deadline:
+            time.sleep(0.01)
+        time.sleep(0.2)  # the victim's queryable declared to this session
+        junk = os.urandom(int(size))
+        every = 1.0 / float(rate)
+        start = time.monotonic()
+        for i in range(int(n)):
+            ahead = start + i * every - time.monotonic()
+            if ahead > 0:
+                time.sleep(ahead)
+            s.get(
+                key,
+                handler=_ignore,
+                payload=junk,
+                congestion_control=zenoh.CongestionControl.BLOCK,
+                timeout=1.0,
+            )
+        time.sleep(0.5)
+    finally:
+        s.close()
+    return 0
+
+
+def _ignore(_reply: Any) -> None:
+    pass
+
+
+def refusal_main(
+    quick: bool, json_path: str | None, before: str | None = None, loop_only: bool = False
+) -> int:
+    variants = {} if loop_only else refusal_stages(quick)
+    if not loop_only:
+        variants.update(refusal_live(quick))
+    variants.update(refusal_loop(quick))
+    params = {
+        "quick": quick,
+        "what": "the cost of refusing one junk frame. In process (p50/p99 per call): "
+        "ZBytes len, to_bytes, Channel.open of junk, TriggerIntake.check of junk, "
+        "ClockResponder.answer of junk. Live (cpu_us_per_frame): a keyless attacker "
+        f"process sends junk gets at {REFUSAL_RATE}/s to a queryable in this process on "
+        "loopback; the victim's process CPU per query beyond idle, for callbacks that do "
+        "nothing (zenoh_floor: zenoh-python's dispatch, the Query object and its "
+        "finalisation), len(payload), to_bytes, to_bytes + tag check, reply_err, a handoff "
+        "to a thread that checks and replies an error (the clock server's shape at "
+        "fe55771), the TriggerIntake, and the ClockServer itself",
+        "command": "flock /tmp/zplatform-bench.lock python -m bench.mac --refusal",
+    }
+    if before:
+        # The same bench run with fe55771's zplatform/runtime/clocksync.py and
+        # zplatform/recorder/server.py checked out (the clock and recorder
+        # servers as they were): each variant's figure, for the comparison.
+        old = json.loads(Path(before).read_text())["variants"]
+        params["before_fe55771"] = {
+            k: v.get("cpu_us_per_frame", v.get("p50_us")) for k, v in old.items()
+        }
+    write_result("refusal", params, variants, json_path)
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
-    args = bench_argparser(__doc__.splitlines()[0] if __doc__ else "mac").parse_args(argv)
+    p = bench_argparser(__doc__.splitlines()[0] if __doc__ else "mac")
+    p.add_argument("--refusal", action="store_true", help="the cost of refusing a frame, by stage")
+    p.add_argument("--refusal-attacker", metavar="SPEC", help=argparse.SUPPRESS)
+    p.add_argument("--before", metavar="PATH", help="--refusal: a result file to compare with")
+    p.add_argument(
+        "--loop-only", action="store_true", help="--refusal: the loop beside a flood only"
+    )
+    args = p.parse_args(argv)
+    if args.refusal_attacker:
+        return refusal_attacker(args.refusal_attacker)
+    if args.refusal:
+        return refusal_main(args.quick, args.json, args.before, args.loop_only)
     scale = 20 if args.quick else 1
     variants: dict[str, dict[str, Any]] = {}
     sig = _ed25519()

@@ -111,51 +111,20 @@ NOT_FLOODED: dict[tuple[str, str], str] = {
     "has no query to answer; in process: test_keyspace_faults",
     ("probe", "reply"): "a control node probes only in a takeover: a rogue has no "
     "query to answer; the failover tests and test_keyspace_faults",
+    ("archive", "reply"): "only a station or tool asks the archive, never the flight: "
+    "a rogue has no query to answer; the asker refuses another session's chunks: "
+    "tests/unit/test_archive_server.py and test_keyspace_faults",
 }
 """(row, frame kind) taken by no flood here, and why (``test_keyfloods.py``
 checks every other one of a shipped mission has a flood)."""
 
 LAST = ("clock", "recorder")
 """Rows flooded last in a flight: the commander serves them itself, and a
-flood of them can stall its loop (:data:`KNOWN_DEFECTS`), which must not
-change the floods that follow (a takeover makes the standby the commander)."""
-
-KNOWN_DEFECTS: dict[str, tuple[str, str]] = {
-    "commander_service_flood": (
-        r"(clock\[[^\]]+\]|recorder)_(no_dn_safed|no_takeover|flight_goes_on|no_fault)",
-        "a keyless query flood on a key the commander serves itself (its clock, its "
-        "recorder: 170-250 us of its CPU per query, under its GIL) can stall its loop "
-        "past the device nodes' watchdog: both safe, and the standby takes over",
-    ),
-}
-"""Defects the suite found and reports (not fixed here), by the checks they
-fail (a regular expression on the check's name): ``test_keyfloods.py``
-turns a run whose every failure is one of them into an xfail naming them.
-The whole flight's checks (``flight_*``, ``final_state_as_configured``)
-count as the commander's when one of its service floods failed."""
-
-
-def known_failures(r: CaseResult) -> tuple[list[str], list[str]]:
-    """(failures no known defect explains, the known defects that explain
-    the others) of a flight's result."""
-    import re
-
-    failed = [n for n, ok, _ in r.checks if not ok]
-    hit: set[str] = set()
-    unknown: list[str] = []
-    for n in failed:
-        for name, (rx, _) in KNOWN_DEFECTS.items():
-            if re.fullmatch(rx, n):
-                hit.add(name)
-                break
-        else:
-            unknown.append(n)
-    if "commander_service_flood" in hit:
-        unknown = [
-            n for n in unknown if not (n.startswith("flight_") or n == "final_state_as_configured")
-        ]
-    return [f for f in r.failures() if f.split(":")[0] in unknown], sorted(hit)
-
+flood of them once stalled its loop (issue 25: each query woke a thread of
+its own, which held the GIL from the loop; now refused in zenoh's callback,
+``test_a_keyless_clock_flood_never_reaches_the_servers_thread``), which
+must not change the floods that follow (a takeover would make the standby
+the commander)."""
 
 _CLASS = {"query": "query", "sample": "sample", "reply": "reply"}
 _MODE = {"query": "key-get", "sample": "key-put", "reply": "key-answer"}
@@ -248,7 +217,8 @@ def _flood(m: Mission, k: ExpandedKey, f: KeyFrames) -> Flood:
         capture = k.key
         note = "the standby counts refused mirrors in its bad_frame events only"
     elif row == "clock":
-        answers = True  # a refused clock query gets an error reply (ClockResponder)
+        # A refused clock query is dropped unanswered in zenoh's callback
+        # (zplatform.runtime.clocksync.ClockServer): nothing may answer it.
         note = "junk only (a get's payload is seen by no peer); refusals in the CN's log only"
     elif row == "recorder":
         note = "junk only (the ground asks only on a gap); the server's counts are not in the DV"

@@ -1,35 +1,15 @@
 """The archive over zenoh: the ground node answers queries on ``{vehicle}/archive/query``.
 
 Every frame is tagged with the telemetry channel's key (every role that may
-read telemetry holds it: the ground, a tool) and bound to the serving
-*session*: a random word :class:`ArchiveServer` draws when it starts (a new
-one each time the ground node starts), carried as the tag's run word
+read telemetry holds it) and bound to the serving *session*: a random word
+:class:`ArchiveServer` draws when it starts, carried as the tag's run word
 (codecs/FORMAT.md §6.1), so an ask or an answer recorded in an earlier
-session never verifies again, whatever it holds. An asker learns the
-session as the ground and the tools learn the vehicle's run: a *hello*
-(:data:`HELLO`: magic, asker, a fresh nonce; tagged in no run) is answered
-statelessly with a ``SESSION`` reply (the session and a cookie, the server's
-monotonic clock, echoing the nonce; tagged in the session). The ask
-(:data:`ASK`: magic, asker, a fresh nonce, the cookie, then a
-:class:`~.query.Query` as JSON) is tagged in the session; the server takes
-it only while its cookie is younger than ``max_age_ns`` and its (cookie,
-asker, nonce) is not one it took (each kept until its cookie expires: never
-forgotten early), so a recorded ask cannot be replayed later in the same
-session either.
-
-:class:`ArchiveServer`'s zenoh callback checks the size, reads the asker
-word (unchecked: only to count) and hands the frame to a bounded inbox
-(:data:`MAX_PENDING`; more are dropped unanswered, counted ``busy``). Its
-thread checks the tag, the session, the cookie, runs the query, and replies
-with the answer as an Arrow IPC stream in chunks (:data:`REPLY`: kind, the
-ask's nonce, index, count), each tagged, paced to ``serve_bps``. Per asker
-(the asker word, a random u64 each :class:`ArchiveAsk`'s station draws):
-at most ``per_asker`` asks in hand, and at most ``asker_bps`` bytes of
-answers per second (a bucket holding ``max_bytes``); an ask past either
-bound is answered with one ``ERROR`` reply saying which and why, as is an
-answer over ``max_bytes`` and a refused query (never cut silently).
-:class:`ArchiveAsk` is the asker's side: it learns the session, then checks
-each reply (tag in the session, nonce, index) and puts the table together.
+session never verifies again. An asker learns the session by a *hello*
+answered statelessly with the session and a cookie; its ask carries the
+cookie and a fresh nonce, taken once while the cookie is young (the
+protocol and the per-asker bounds: :class:`ArchiveServer`). Answers are
+Arrow IPC stream chunks, each tagged, echoing the ask's nonce, paced.
+:class:`ArchiveAsk` is the asker's side.
 
 Contract: neither side raises for what the peer sends; a bad frame is
 refused and counted (``refused``: junk or a bad tag; ``stale``: another
@@ -112,9 +92,36 @@ def ask_payload(
 
 
 class ArchiveServer(QueryWorker):
-    """Answers archive queries (module doc). ``open_archive``: the archive
-    to read (called in the serving thread by the first ask, then kept until
-    :meth:`close`; called again while it raises); ``channel``: the
+    """Answers archive queries (module doc).
+
+    An asker learns the
+    session as the ground and the tools learn the vehicle's run: a *hello*
+    (:data:`HELLO`: magic, asker, a fresh nonce; tagged in no run) is answered
+    statelessly with a ``SESSION`` reply (the session and a cookie, the server's
+    monotonic clock, echoing the nonce; tagged in the session). The ask
+    (:data:`ASK`: magic, asker, a fresh nonce, the cookie, then a
+    :class:`~.query.Query` as JSON) is tagged in the session; the server takes
+    it only while its cookie is younger than ``max_age_ns`` and its (cookie,
+    asker, nonce) is not one it took (each kept until its cookie expires: never
+    forgotten early), so a recorded ask cannot be replayed later in the same
+    session either.
+
+    :class:`ArchiveServer`'s zenoh callback checks the size, reads the asker
+    word (unchecked: only to count) and hands the frame to a bounded inbox
+    (:data:`MAX_PENDING`; more are dropped unanswered, counted ``busy``). Its
+    thread checks the tag, the session, the cookie, runs the query, and replies
+    with the answer as an Arrow IPC stream in chunks (:data:`REPLY`: kind, the
+    ask's nonce, index, count), each tagged, paced to ``serve_bps``. Per asker
+    (the asker word, a random u64 each :class:`ArchiveAsk`'s station draws):
+    at most ``per_asker`` asks in hand, and at most ``asker_bps`` bytes of
+    answers per second (a bucket holding ``max_bytes``); an ask past either
+    bound is answered with one ``ERROR`` reply saying which and why, as is an
+    answer over ``max_bytes`` and a refused query (never cut silently).
+    :class:`ArchiveAsk` is the asker's side: it learns the session, then checks
+    each reply (tag in the session, nonce, index) and puts the table together.
+
+    ``open_archive``: the archive to read (called in the serving thread by
+    the first ask, then kept until :meth:`close`; called again while it raises); ``channel``: the
     telemetry channel (its own instance: this server binds it to its
     session), None without authentication; ``now_ns``: the clock of the
     cookies (monotonic); ``max_age_ns``: how old a cookie an ask may carry

@@ -2,26 +2,25 @@
 
 :class:`RecorderServer` declares a queryable on ``{vehicle}/cn/recorder``
 (formats: :mod:`~.format`) and costs the control loop nothing but the GIL's
-share of one thread. Zenoh's callback only checks the request's size and
-hands the query to a bounded inbox (:data:`MAX_PENDING`; more are dropped
-unanswered, counted in :attr:`RecorderServer.busy`); it never blocks.
+share of one thread. Zenoh's callback checks a rate bound first (a GCRA:
+:data:`REQUEST_BURST`, then one every :data:`REQUEST_EVERY_NS`; the excess
+dropped unanswered, counted in ``excess``), then the size, and hands the
+query to a bounded inbox (:data:`MAX_PENDING`; more dropped, counted in
+``busy``); it never blocks. Why the bound: a keyless flood kept the serving
+thread busy with tag checks, and a Python thread that never waits held the
+GIL from the commander's loop past the device nodes' watchdog (issue 25).
 
-One serving thread checks each request (the telemetry channel's tag, a
-stamp within the clock bound, none of the last :data:`REMEMBERED` served,
-a range of at most :data:`~.format.MAX_REQUEST_LOOPS` loops of this run);
-one that does not check is dropped unanswered and counted
-(:attr:`RecorderServer.refused`, :attr:`RecorderServer.last_refusal`),
-never raised. It reads the segment files (never the loop's buffer; waits up
-to :data:`WRITE_WAIT_S` for loops still in it) and replies in chunks of at
-most :data:`~.format.REPLY_BYTES` paced to ``serve_bps``; a blocked reply
-holds this thread, never the loop. The final ``END`` reply counts the
-frames sent, the loops not held and the loops never run.
+One serving thread checks each request (tag, stamp, not served before, a
+range of this run), drops and counts one that does not check, reads the
+segment files (never the loop's buffer) and replies in paced chunks ending
+with an ``END`` reply that counts what was sent (:class:`RecorderServer`).
 Detail: docs/architecture.md#the-gap-fill.
 """
 
 from __future__ import annotations
 
 import itertools
+import threading
 import time
 from collections import deque
 from collections.abc import Callable
@@ -46,13 +45,26 @@ from .format import (
 from .reader import counts, scan_segment
 from .writer import FlightRecorder
 
-__all__ = ["MAX_PENDING", "REMEMBERED", "WRITE_WAIT_S", "RecorderServer"]
+__all__ = [
+    "MAX_PENDING",
+    "REMEMBERED",
+    "REQUEST_BURST",
+    "REQUEST_EVERY_NS",
+    "WRITE_WAIT_S",
+    "RecorderServer",
+]
 
 MAX_PENDING = 2
 """Requests waiting or being served; any more are dropped unanswered."""
 REMEMBERED = 64
 """Requests served that a server remembers, to refuse a replay of one while
 its stamp is still within the bound (older ones are refused by the stamp)."""
+REQUEST_BURST = 8
+"""Requests a recorder server takes at once (module doc); a ground asks one
+at a time, each after the last one's answer."""
+REQUEST_EVERY_NS = 100_000_000
+"""Then one request this often (ns): ten a second, far above a ground's gap fills."""
+_REQUEST_TAU_NS = (REQUEST_BURST - 1) * REQUEST_EVERY_NS
 WRITE_WAIT_S = 1.0
 """How long a request for loops still in the recorder's buffer waits for them
 to be written (then what is in the files is sent)."""
@@ -60,6 +72,17 @@ to be written (then what is in the files is sent)."""
 
 class RecorderServer(QueryWorker):
     """Serves gap-fill requests from ``recorder``'s files (module doc).
+
+    The serving thread checks each request (the telemetry channel's tag, a
+    stamp within the clock bound, none of the last :data:`REMEMBERED`
+    served, a range of at most :data:`~.format.MAX_REQUEST_LOOPS` loops of
+    this run); one that does not check is dropped unanswered and counted
+    (:attr:`refused`, :attr:`last_refusal`), never raised. It reads the
+    segment files (waits up to :data:`WRITE_WAIT_S` for loops still in the
+    loop's buffer, never reading it) and replies in chunks of at most
+    :data:`~.format.REPLY_BYTES` paced to ``serve_bps``; a blocked reply
+    holds this thread, never the loop. The final ``END`` reply counts the
+    frames sent, the loops not held and the loops never run.
 
     ``channel``: the telemetry channel (its own instance: channels are not
     thread-safe), None when the mission does not authenticate; ``now_ns``:
@@ -79,8 +102,14 @@ class RecorderServer(QueryWorker):
         max_age_ns: int,
         serve_bps: int,
         divisor: int = 1,
+        mono_ns: Callable[[], int] = time.monotonic_ns,
     ) -> None:
         self.recorder = recorder
+        self._mono = mono_ns
+        self._tat = -(1 << 63)  # the rate bound's theoretical arrival time
+        self._rate_lock = threading.Lock()
+        self.excess = 0
+        """Requests dropped unanswered, unread, beyond the rate bound (module doc)."""
         self._channel = channel
         self._now = now_ns
         self._max_age = max_age_ns
@@ -99,6 +128,22 @@ class RecorderServer(QueryWorker):
         self.queryable = session.declare_queryable(
             key_expr, zenoh.handlers.Callback(self.on_query, indirect=False)
         )
+
+    def on_query(self, query: Any) -> None:
+        """The queryable's callback: the rate bound, then (the base's) the
+        size and the hand-off (module doc). Never blocks beyond a short lock."""
+        now = self._mono()
+        with self._rate_lock:
+            tat = max(self._tat, now)
+            over = tat - now > _REQUEST_TAU_NS
+            if over:
+                self.excess += 1
+            else:
+                self._tat = tat + REQUEST_EVERY_NS
+        if over:
+            query.drop()
+            return
+        super().on_query(query)
 
     def size_refusal(self, n: int) -> str | None:
         return None if n == self._req_len else f"a request of {n} bytes"

@@ -225,6 +225,19 @@ def _believable(t1: int, t2: int, t3: int, sent: tuple[bytes, int], nonce: bytes
     return t2 <= t3 and abs(t2 - t1) <= QUERY_SPAN_NS and t3 - t2 <= QUERY_SPAN_NS
 
 
+HELLO_BURST = 16
+"""Run hellos (:class:`RunAsker`) a clock server answers at once; then one
+every :data:`HELLO_EVERY_NS`. The ground and tools ask once at start, then
+at most once a second; a hello is answered statelessly, so a replayed one
+would be answered for ever: beyond the bound it is refused before its MAC
+(a flood of them delays a ground's learning of the run, never the loop)."""
+HELLO_EVERY_NS = 50_000_000
+_HELLO_TAU_NS = (HELLO_BURST - 1) * HELLO_EVERY_NS
+
+_Checked = tuple[int, bytes, int, int]
+"""A clock query :meth:`ClockResponder.check` passed: ``(index, nonce, t1, t2)``."""
+
+
 class ClockResponder:
     """The CN's end of the clock exchange (module doc), sans-IO: answers a
     DN's query if its tag checks with that DN's link key, it is stamped
@@ -236,10 +249,24 @@ class ClockResponder:
     checked). ``run``: the control node's run (its ``cn_epoch``; None: a
     new run of its own): a query must name it or none (a hello, module doc);
     one naming another run is refused before its MAC. The reply names it.
-    Not thread-safe: one serving thread."""
+    :meth:`answer` is :meth:`check` (the query: what zenoh's callback does,
+    :class:`ClockServer`) then :meth:`reply` (the stamped reply: the
+    server's thread). Not thread-safe: one thread (or one lock) checks, one
+    replies; the two share no channel."""
 
-    def __init__(self, mission: Mission, keys: KeySet | None, run: Run | None = None) -> None:
+    def __init__(
+        self,
+        mission: Mission,
+        keys: KeySet | None,
+        run: Run | None = None,
+        *,
+        mono_ns: Callable[[], int] = time.monotonic_ns,
+    ) -> None:
         dns = mission.device_nodes
+        self._mono = mono_ns
+        self._hello_tat = -(1 << 63)
+        self.hello_excess = 0
+        """Run hellos refused unread by their rate bound (also in :attr:`refused`)."""
         self.run = run if run is not None else Run(new_run_epoch(time.time_ns()))
         r = self.run
         # Queries are opened unbound (a hello names no run; the run is checked
@@ -268,20 +295,55 @@ class ClockResponder:
         self.reason = ""
         """Why the last query was refused."""
 
+    @property
+    def sizes(self) -> frozenset[int]:
+        """The lengths a query or a run hello can have: any other is refused unread."""
+        tag = TAG_LEN if self._auth else 0
+        return frozenset({_QUERY.size + tag, RUN_HELLO.size + tag})
+
+    def refuse(self, reason: str) -> None:
+        """Count a query refused before :meth:`check` (its size, unread)."""
+        self.refused += 1
+        self.reason = reason
+
     def answer(self, raw: bytes, t2: int, t3: int) -> bytes | None:
         """The reply to query ``raw`` received at ``t2``, sent at ``t3``; None
-        (counted, :attr:`reason` set) for a query to refuse."""
+        (counted, :attr:`reason` set) for a query to refuse: :meth:`check`
+        then :meth:`reply`."""
+        ok = self.check(raw, t2)
+        if ok is None or isinstance(ok, bytes):
+            return ok
+        return self.reply(ok, t3)
+
+    def check(self, raw: bytes, t2: int) -> bytes | _Checked | None:
+        """Check query ``raw`` received at ``t2`` (class doc): None (counted,
+        :attr:`reason` set) to refuse it; a run hello's whole answer
+        (bytes); or ``(index, nonce, t1, t2)`` of a clock query to answer with
+        :meth:`reply`. Costs a length, a few compares and one MAC over at
+        most 28 bytes; allocates the copy's view and the nonce. Not
+        thread-safe with itself (the caller's lock); :meth:`reply` may run
+        on another thread meanwhile (they share no channel)."""
         want = _QUERY.size + (TAG_LEN if self._auth else 0)
         if len(raw) == RUN_HELLO.size + (TAG_LEN if self._auth else 0) and raw[:2] == _H_MAGIC:
+            # A hello is answered statelessly, so a captured one replays
+            # forever: bounded before its MAC (GCRA, one integer).
+            now = self._mono()
+            tat = max(self._hello_tat, now)
+            if tat - now > _HELLO_TAU_NS:
+                self.hello_excess += 1
+                self.refused += 1
+                self.reason = "run hellos beyond their rate bound"
+                return None
+            self._hello_tat = tat + HELLO_EVERY_NS
             return self._answer_hello(raw)
         try:
             if len(raw) != want or raw[:3] != _Q_MAGIC + bytes((_VERSION,)):
                 raise AuthError(f"{len(raw)} bytes: not a clock query of version {_VERSION}")
             index = raw[3]
             if index == PEER_INDEX and self._peer is not None:
-                ch, seal = self._peer
+                ch = self._peer[0]
             elif index < len(self._open):
-                ch, seal = self._open[index], self._seal[index]
+                ch = self._open[index]
             else:
                 raise AuthError(f"no device node number {index}")
             if ch is not None:
@@ -313,6 +375,15 @@ class ClockResponder:
                 seen.discard(answered.popleft())
             answered.append(nonce)
             seen.add(nonce)
+        return index, nonce, t1, t2
+
+    def reply(self, checked: _Checked, t3: int) -> bytes:
+        """The reply, sent at ``t3``, to a query :meth:`check` passed
+        (``checked``: what it returned), sealed in this run."""
+        index, nonce, t1, t2 = checked
+        seal = (
+            self._peer[1] if index == PEER_INDEX and self._peer is not None else self._seal[index]
+        )
         reply = _REPLY.pack(_R_MAGIC, _VERSION, index, nonce, t1, t2, t3)
         return bytes(seal.seal(reply)) if seal is not None else reply
 
@@ -401,17 +472,30 @@ askers (every DN, the standby) ask one at a time, so a full backlog is a
 flood; a query past it is dropped unanswered and counted."""
 
 
+LOG_PERIOD_S = 1.0
+"""At most one log line of refused clock queries this often (:class:`ClockServer`)."""
+
+
 class ClockServer:
     """The CN's clock queryable. Runs its own reply thread; ``close()`` stops it.
 
-    Each query is answered by a :class:`ClockResponder` (``mission``,
-    ``auth``: the CN's keys, ``run``: its run); a refused one gets an error reply, is counted
-    (:attr:`refused`) and logged (the first, then every 1000th). At most
-    :data:`CLOCK_BACKLOG` queries wait for the thread: zenoh's callback
-    drops one past that unanswered (counted in :attr:`dropped` and in
-    :attr:`refused`), so a flood holds bounded memory. The thread
-    checks in through :attr:`heartbeat` (``clock``, :mod:`zplatform.core.health`):
-    idle while it waits for a query, beating while it serves one."""
+    Each query is checked by a :class:`ClockResponder` (``mission``,
+    ``auth``: the CN's keys, ``run``: its run) *in zenoh's callback*: its
+    size unread, then (one copy, of 52 bytes at most) magic, run, tag and
+    nonce, under a short lock. A refused one is dropped unanswered (zenoh
+    finalises it at once: no error reply, no hand-off), counted
+    (:attr:`refused`), and logged by the reply thread at most once a
+    second (:data:`LOG_PERIOD_S`) with the count and the last reason. So a
+    keyless flood costs the commander zenoh's own dispatch and a few
+    microseconds per query, and never wakes a Python thread of its own,
+    which under the GIL would hold the control loop (a busy thread keeps
+    the GIL for up to the switch interval each time the loop wants it
+    back). Only checked queries wait for the thread, at most
+    :data:`CLOCK_BACKLOG`: one past that is dropped unanswered (counted in
+    :attr:`dropped` and in :attr:`refused`). The thread stamps ``t3``,
+    replies, and checks in through :attr:`heartbeat` (``clock``,
+    :mod:`zplatform.core.health`): idle while it waits, beating while it
+    serves."""
 
     def __init__(
         self,
@@ -425,11 +509,15 @@ class ClockServer:
     ) -> None:
         self._now = now_ns
         self.heartbeat = Heartbeat("clock")
-        self._q: queue.Queue[tuple[zenoh.Query, int] | None] = queue.Queue(CLOCK_BACKLOG)
+        self._q: queue.Queue[tuple[zenoh.Query, bytes | _Checked] | None] = queue.Queue(
+            CLOCK_BACKLOG
+        )
         self.dropped = 0
-        """Queries dropped unanswered by a full backlog (zenoh's callback writes)."""
+        """Checked queries dropped unanswered by a full backlog (zenoh's callback writes)."""
         self._key = keys.clock
         self._responder = ClockResponder(mission, auth, run)
+        self._sizes = self._responder.sizes
+        self._lock = threading.Lock()  # the responder's checks: zenoh's threads
         self.served = 0
         self._queryable = session.declare_queryable(
             self._key, zenoh.handlers.Callback(self._on_query, indirect=False)
@@ -442,35 +530,63 @@ class ClockServer:
         return self._responder.refused + self.dropped
 
     def _on_query(self, query: zenoh.Query) -> None:
+        # zenoh's thread (class doc): check, then hand a checked query to the
+        # thread or drop it. Never blocks beyond the lock; never raises for
+        # what arrives.
+        t2 = self._now()
+        p = query.payload
+        n = len(p) if p is not None else 0
+        responder = self._responder
+        with self._lock:
+            if n not in self._sizes:  # unread
+                responder.refuse(f"{n} bytes: not a clock query of version {_VERSION}")
+                ok = None
+            else:
+                ok = responder.check(p.to_bytes() if p is not None else b"", t2)
+        if ok is None:  # a flood: the query goes, unanswered (zenoh finalises it)
+            query.drop()
+            return
         try:
-            self._q.put_nowait((query, self._now()))  # t2, then hand off
-        except queue.Full:  # a flood: the query goes, unanswered (zenoh finalises it)
-            self.dropped += 1  # this callback is the only writer
+            self._q.put_nowait((query, ok))
+        except queue.Full:
+            with self._lock:
+                self.dropped += 1
             query.drop()
 
     def _serve(self) -> None:
         hb = self.heartbeat
         responder = self._responder
+        logged = 0
+        next_log = 0.0
         while True:
             hb.idle()
-            item = self._q.get()
+            try:
+                item = self._q.get(timeout=LOG_PERIOD_S)
+                idle = False
+            except queue.Empty:
+                item, idle = None, True
+            now = time.monotonic()
+            if self.refused != logged and now >= next_log:
+                # At most one line a LOG_PERIOD_S, however many were refused.
+                log.warning(
+                    "clock queries refused: %d so far (%d since the last report); the last: %s",
+                    self.refused,
+                    self.refused - logged,
+                    responder.reason or "a full backlog",
+                )
+                logged = self.refused
+                next_log = now + LOG_PERIOD_S
+            if idle:
+                continue
             if item is None:
                 return
             hb.beat()
-            query, t2 = item
+            query, checked = item
             with query:
-                p = query.payload
-                raw = p.to_bytes() if p is not None else b""
-                reply = responder.answer(raw, t2, self._now())
-                if reply is None:
-                    query.reply_err(b"clock query refused")
-                    if responder.refused % 1000 == 1:
-                        log.warning(
-                            "clock query refused (%d so far): %s",
-                            responder.refused,
-                            responder.reason,
-                        )
-                    continue
+                # A run hello's answer is whole (nothing to stamp).
+                reply = (
+                    checked if isinstance(checked, bytes) else responder.reply(checked, self._now())
+                )
                 # DROP: a reply takes its query's QoS (zenoh 1.x ignores a
                 # reply's own), and the DNs ask DROP (zplatform.runtime.queries), so a
                 # DN's stalled link never holds the clock server.

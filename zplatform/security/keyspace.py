@@ -272,7 +272,8 @@ KEYSPACE: tuple[KeyRow, ...] = (
                 "zplatform.runtime.clocksync.ClockResponder commander",
                 "stamped within a day (QUERY_SPAN_NS) of the CN's clock, its nonce not "
                 "among the asker's last ANSWERED",
-                "one serving thread, at most CLOCK_BACKLOG queued, the rest dropped and counted",
+                "refused in zenoh's callback, unanswered; checked ones: one serving thread, "
+                "at most CLOCK_BACKLOG queued, the rest dropped and counted",
             ),
             KeyFrames(
                 "reply",
@@ -288,7 +289,8 @@ KEYSPACE: tuple[KeyRow, ...] = (
                 "downlink",
                 "zplatform.runtime.clocksync.ClockResponder commander",
                 "any (a run hello names no run; answered statelessly, its nonce echoed)",
-                "the clock's serving thread and backlog",
+                "HELLO_BURST, then one every HELLO_EVERY_NS, before the MAC; the clock's serving "
+                "thread and backlog",
             ),
             KeyFrames(
                 "reply",
@@ -412,7 +414,8 @@ KEYSPACE: tuple[KeyRow, ...] = (
                 "zplatform.recorder.server.RecorderServer commander",
                 "stamped within the clock bound of the CN's clock, not one of the last "
                 "REMEMBERED served",
-                "at most MAX_PENDING in hand, replies paced to serve_bps",
+                "REQUEST_BURST, then one every REQUEST_EVERY_NS, before any read; at most "
+                "MAX_PENDING in hand, replies paced to serve_bps",
             ),
             KeyFrames(
                 "reply",
