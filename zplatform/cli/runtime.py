@@ -28,10 +28,12 @@ from ..telemetry.summary import CnSummary, DnSummary, GnSummary, write_summary
 from .args import (
     check_output,
     check_ports,
+    identity_options,
     mission_verb,
     nonnegative_float,
     positive_float,
     positive_int,
+    signer_of,
     timeout_option,
 )
 
@@ -58,6 +60,7 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p.add_argument(
         "--commands", metavar="FILE", help="command script the ground node plays (at 1.0 launch)"
     )
+    identity_options(p)
     p.add_argument(
         "--settle",
         type=positive_float,
@@ -85,6 +88,7 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         "--log", metavar="CSV", help="GN: telemetry CSV; events beside it (NAME.events.jsonl)"
     )
     p.add_argument("--commands", metavar="FILE", help="GN: command script to play (at 1.0 launch)")
+    identity_options(p)
     p.add_argument("--summary", metavar="JSON", help="write this node's summary JSON here")
     _node_options(p, "seconds to wait for the peers at start (default 60)")
     p.add_argument(
@@ -157,6 +161,7 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         help="send ARM n first, then the command as n+1 (needed for hazardous commands, "
         "WRITEs of protected elements and PRM_SETs of hazardous parameters)",
     )
+    identity_options(p)
     timeout_option(p, "the CN and for each verdict")
     p.set_defaults(func=cmd_cmd)
 
@@ -258,6 +263,7 @@ def cmd_node(args: argparse.Namespace) -> int:
         from ..node.ground import run_ground_logger
 
         script = load_commands(args.commands) if args.commands else None
+        signer = signer_of(mission, args, commands=script is not None)
         summary = run_ground_logger(
             mission,
             args.log,
@@ -265,6 +271,7 @@ def cmd_node(args: argparse.Namespace) -> int:
             duration_s=args.duration,
             script=script,
             events_out=events_path(args.log) if args.log else None,
+            signer=signer,
         )
     elif name in mission.device_nodes:
         from ..node.device import run_device_node
@@ -378,7 +385,12 @@ def cmd_cmd(args: argparse.Namespace) -> int:
 
     mission = load_mission(args.mission, code=False)
     outcomes, steps = send_command(
-        mission, args.command, args.args, armed=args.arm, timeout_s=args.timeout
+        mission,
+        args.command,
+        args.args,
+        armed=args.arm,
+        timeout_s=args.timeout,
+        signer=signer_of(mission, args),
     )
     for line in format_result(outcomes, steps):
         print(line)
@@ -446,6 +458,8 @@ def cmd_up(args: argparse.Namespace) -> int:
         # (before, only the syntax was checked and the ground node died on
         # the rest after every other node had started).
         ScriptPlayer(mission, load_commands(args.commands))
+    # Who the script commands as: a missing name or key file fails here.
+    signer_of(mission, args, commands=bool(args.commands))
     _check_outputs(args, "log", "summary", "record")
     if not args.free_ports:
         check_ports(mission)  # another `up` of this mission, or anything else, on its ports
@@ -457,6 +471,7 @@ def cmd_up(args: argparse.Namespace) -> int:
         summary=args.summary,
         free_ports=args.free_ports,
         commands=args.commands,
+        operator=(args.operator, args.station) if args.operator or args.station else None,
         settle_s=args.settle,
         realtime=not args.no_realtime,
         quiet=args.quiet,

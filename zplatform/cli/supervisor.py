@@ -439,6 +439,7 @@ def run_up(
     summary: str | None = None,
     free_ports: bool = False,
     commands: str | None = None,
+    operator: tuple[str, str] | None = None,
     settle_s: float | None = None,
     realtime: bool = True,
     quiet: bool = False,
@@ -497,6 +498,8 @@ def run_up(
                 gn += ["--log", str(Path(log).resolve())]
             if commands:
                 gn += ["--commands", str(Path(commands).resolve())]
+            if operator is not None:  # who the script commands as (ground:)
+                gn += ["--operator", operator[0], "--station", operator[1]]
             spawn["gn"] = gn
         cn = ["node", path, "cn", *common]
         if record:

@@ -29,6 +29,7 @@ from typing import Literal
 import zenoh
 
 from ..config import Mission
+from ..control.authority import Signer
 from ..control.handoff import Mailbox, Waker
 from ..control.intake import TelemetryIntake
 from ..control.uplink import CheckedCommand, ScriptCommand, validate_command
@@ -104,6 +105,10 @@ class GroundLink:
     (a ``script`` implies ``commands``). ``on_event`` gets every event record
     in the caller's thread. ``announce=False``: declare the node's liveliness
     token later (:meth:`announce`), after some set-up of the caller's.
+    ``signer``: the operator and station its requests name and are tagged
+    by (a mission with ``ground:``; :func:`zplatform.ground.identity.station_signer`),
+    who also keeps the command lock while they hold it
+    (:class:`~.logic.GroundLogic`'s ``renew_lock``).
 
     With authentication the link is bound to the commander's run
     (:attr:`run`), learned from its answer to a run hello
@@ -132,6 +137,7 @@ class GroundLink:
         on_event: Callable[[EventRecord], None] | None = None,
         clock: NodeClock | None = None,
         announce: bool = True,
+        signer: Signer | None = None,
     ) -> None:
         self.mission = mission
         if keys == "mission":
@@ -150,6 +156,7 @@ class GroundLink:
             max_age_ns=max_age_ns_from_env(mission),
             script=script,
             run=self.run,
+            signer=signer,
         )
         self.on_event = on_event
         self.ns = NodeSession(mission, node, announce=False, commands=bool(commands or script))

@@ -1,0 +1,161 @@
+"""The ground's operator and station (issue 29, ground side): ``--operator
+NAME --station NAME`` read their key files from the key directory (a clear
+error for a missing file, an unknown name, a mission with command authority
+and no operator), a station keeps the command lock while its operator holds
+it (a counted LOCK renewal before the lease runs out, none once released or
+once the station is silent), and every verdict names its operator."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from tests.unit.test_identities import MISSION, keygen
+from tests.unit.test_stations_lockstep import Stations, flight_with_ground
+from zplatform.cli.main import main
+from zplatform.control.authority import Signer
+from zplatform.core.auth import KEY_ENV, KEY_FILE_ENV, KeyError_
+from zplatform.errors import CommandError
+from zplatform.ground.identity import check_names, station_signer
+from zplatform.mission.load import load_mission
+from zplatform.security.identities import sim_signer
+from zplatform.sim.lockstep import LockstepRunner, sim_keys
+from zplatform.telemetry.records import format_outcome
+
+
+@pytest.fixture
+def keydir(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> Path:
+    monkeypatch.delenv(KEY_ENV, raising=False)
+    monkeypatch.delenv(KEY_FILE_ENV, raising=False)
+    monkeypatch.setenv("XDG_CONFIG_HOME", str(tmp_path / "config"))
+    return tmp_path / "keys"
+
+
+def test_the_signer_comes_from_the_key_files_beside_the_tools_key(
+    keydir: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    m = load_mission(keygen(tmp_path, MISSION, keydir), code=False)
+    monkeypatch.setenv(KEY_FILE_ENV, str(keydir / "gn.keys"))
+    s = station_signer(m, "alice", "pad")
+    assert isinstance(s, Signer)
+    assert (s.operator, s.station) == ("alice", "pad")
+    # The same lookup with the directory itself.
+    assert station_signer(m, "bob", "lounge", keydir) is not None
+
+
+def test_refusals_name_the_file_the_name_and_what_to_do(keydir: Path, tmp_path: Path) -> None:
+    m = load_mission(keygen(tmp_path, MISSION, keydir), code=False)
+    with pytest.raises(CommandError, match=r"say who commands with --operator NAME --station"):
+        station_signer(m, None, None, keydir)
+    with pytest.raises(CommandError, match=r"no operator 'alcie'.*did you mean alice\?"):
+        station_signer(m, "alcie", "pad", keydir)
+    with pytest.raises(CommandError, match=r"no station 'pda'.*did you mean pad\?"):
+        station_signer(m, "alice", "pda", keydir)
+    with pytest.raises(CommandError, match="go together"):
+        station_signer(m, "alice", None, keydir)
+    (keydir / "operator-bob.keys").unlink()
+    with pytest.raises(KeyError_, match=r"no key file .*operator-bob\.keys: `zplatform keygen"):
+        station_signer(m, "bob", "pad", keydir)
+
+
+def test_a_mission_without_authority_needs_no_operator_and_takes_none_without_ground(
+    tmp_path: Path,
+) -> None:
+    single = MISSION + "  single_operator: true\n"
+    m = load_mission(_write(tmp_path / "single.yaml", single), code=False)
+    assert check_names(m, None, None) is False
+    plain = MISSION.split("ground:")[0]
+    m2 = load_mission(_write(tmp_path / "plain.yaml", plain), code=False)
+    assert check_names(m2, None, None) is False
+    with pytest.raises(CommandError, match="has no `ground:` section"):
+        check_names(m2, "alice", "pad")
+
+
+def _write(path: Path, text: str) -> Path:
+    path.write_text(text)
+    return path
+
+
+def test_cmd_refuses_a_mission_with_authority_without_operator_before_any_session(
+    keydir: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    path = keygen(tmp_path, MISSION, keydir)
+    capsys.readouterr()
+    assert main(["cmd", str(path), "noop", "--timeout", "0.1"]) == 2
+    assert "--operator NAME --station NAME" in capsys.readouterr().err
+    assert main(["cmd", str(path), "noop", "--operator", "alise", "--station", "pad"]) == 2
+    assert "did you mean alice?" in capsys.readouterr().err
+
+
+def _runner(op: str = "pat", st: str = "pad") -> LockstepRunner:
+    m = flight_with_ground()
+    keys = sim_keys(m)
+    assert keys is not None
+    return LockstepRunner(m, signer=sim_signer(keys, m, op, st))
+
+
+def test_the_station_renews_the_lock_while_its_operator_holds_it_and_stops_on_release() -> None:
+    r = _runner()
+    r.run(0.5)
+    g = r.ground
+    lock = g.command("LOCK", now_ns=r.clock.now_ns())
+    r.run(0.1)
+    (granted,) = g.result(lock) or []
+    assert granted.accepted and granted.operator == "pat@pad"
+    assert format_outcome(granted) == f"LOCK #{granted.seq} by pat@pad: ACCEPTED"
+    dv = r.control.dv
+    # lease_s 2: a LOCK goes in the loop after the one whose snapshot shows
+    # less than 1 s left, and renews 2 s from its own loop: one per 1.02 s
+    # or so, 9 in the next 10 s.
+    r.run(10.0)
+    assert dv.get_name("cn_lock_holder") == "pat" and dv.get_name("cn_lock_station") == "pad"
+    assert g.lock_renewals == 9 and g.lock_renewals_refused == 0
+    assert g.outcomes == [granted]  # renewals are not the operator's outcomes
+    lock_events = [e.text for e in r.run(0.0).events if e.id == "cmd_lock"]
+    assert lock_events == ["command lock granted: pat@pad holds the command lock"]
+    release = g.command("RELEASE", now_ns=r.clock.now_ns())
+    r.run(0.1)
+    assert (g.result(release) or [])[0].accepted
+    r.run(5.0)
+    assert dv.get_name("cn_lock_holder") == "NONE"
+    assert g.lock_renewals == 9
+
+
+def test_a_silent_station_stops_renewing_and_the_lease_runs_out() -> None:
+    r = _runner()
+    r.run(0.5)
+    r.ground.command("LOCK", now_ns=r.clock.now_ns())
+    r.run(3.0)
+    assert r.control.dv.get_name("cn_lock_holder") == "pat"
+    r.partition("cn", "gn")  # the station's link is gone: nothing it sends arrives
+    r.run(2.5)
+    assert r.control.dv.get_name("cn_lock_holder") == "NONE"
+    expired = [e.text for e in r.run(0.0).events if e.id == "cmd_lock"]
+    assert expired[-1] == (
+        "command lock expired: pat@pad's command lock expired (no request in its lease)"
+    )
+
+
+def test_no_renewal_between_an_arm_and_its_approved_command() -> None:
+    """The holder's ARM waits for a second operator's approval past half the
+    lease: a renewal there would void the ARM; the station sends none, and
+    the approved LAUNCH is accepted."""
+    r = _runner("fd", "room")
+    s = Stations(r)
+    g = r.ground
+    r.run(0.5)
+    g.command("LOCK", now_ns=r.clock.now_ns())
+    r.run(0.1)
+    arm = g.command("ARM", now_ns=r.clock.now_ns())
+    r.run(0.1)
+    (armed,) = g.result(arm) or []
+    assert armed.accepted
+    renewals = g.lock_renewals
+    r.run(1.2)  # past half the lease (lease_s 2) since the ARM
+    assert g.lock_renewals == renewals
+    assert s.send("rso@lounge", "APPROVE", ref=armed.seq) == "ACCEPTED"
+    launch = g.command("LAUNCH", now_ns=r.clock.now_ns())
+    r.run(0.1)
+    (launched,) = g.result(launch) or []
+    assert launched.status == "ACCEPTED" and launched.operator == "fd@room"
