@@ -167,6 +167,26 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
 
     p = mission_verb(
         sub,
+        "router",
+        help="run a zenoh router between the vehicle and its stations (ground.routers)",
+        description="Run a zenoh router (zenoh's router mode) with the mission's TLS and "
+        "access control: it forwards the stations' subscriptions, requests and queries and "
+        "fans the control node's telemetry out. --name takes a router of ground.routers; "
+        "--listen/--connect give (or replace) its endpoints. Prints READY once open; runs "
+        "until Ctrl-C or SIGTERM. See docs/deployment.md.",
+    )
+    p.add_argument("--name", metavar="NAME", help="a router of the mission's ground.routers")
+    p.add_argument(
+        "--listen", action="append", metavar="EP", help="endpoint to listen on (repeatable)"
+    )
+    p.add_argument(
+        "--connect", action="append", metavar="EP", help="endpoint to connect to (repeatable)"
+    )
+    p.add_argument("-v", "--verbose", action="store_true", help="debug logging")
+    p.set_defaults(func=cmd_router)
+
+    p = mission_verb(
+        sub,
         "tap",
         help="print every sample on matching keys, decoded (events included)",
         description="Print every sample on matching keys, decoded to named values; events "
@@ -395,6 +415,27 @@ def cmd_cmd(args: argparse.Namespace) -> int:
     for line in format_result(outcomes, steps):
         print(line)
     return 0 if len(outcomes) == len(steps) and all(o.accepted for o in outcomes) else 1
+
+
+def cmd_router(args: argparse.Namespace) -> int:
+    """Run one router until stopped (exit 0); 2 for a bad name or endpoints."""
+    from ..config.checks import check_endpoint
+    from ..runtime.router import find_router, run_router
+
+    setup_logging(args.verbose)
+    mission = load_mission(args.mission, code=False)
+    listen, connect = list(args.listen or []), list(args.connect or [])
+    name = args.name or "router"
+    if args.name is not None:
+        r = find_router(mission, args.name)
+        listen = listen or list(r.listen)
+        connect = connect or list(r.connect)
+    for flag, eps in (("--listen", listen), ("--connect", connect)):
+        for ep in eps:
+            check_endpoint(ep, flag)
+    if not listen and not connect:
+        raise CommandError("router: give --name NAME (ground.routers) or --listen/--connect")
+    return run_router(mission, listen, connect, name=name)
 
 
 def cmd_tap(args: argparse.Namespace) -> int:

@@ -24,7 +24,7 @@ from __future__ import annotations
 import os
 import time
 from collections.abc import Callable, Sequence
-from typing import Literal
+from typing import Any, Literal
 
 import zenoh
 
@@ -89,6 +89,14 @@ def max_age_ns_from_env(mission: Mission) -> int:
     if not 0 < ms < float("inf"):
         raise TransportError(f"{MAX_AGE_ENV}={text!r} is not a positive number of milliseconds")
     return int(ms * 1_000_000)
+
+
+def _station_router(mission: Mission, signer: Signer | None) -> list[str] | None:
+    """The router endpoints of ``signer``'s station (None: none listed)."""
+    if signer is None or mission.ground is None:
+        return None
+    st = next((s for s in mission.ground.stations if s.name == signer.station), None)
+    return list(st.connect) if st is not None and st.connect else None
 
 
 class GroundLink:
@@ -159,7 +167,13 @@ class GroundLink:
             signer=signer,
         )
         self.on_event = on_event
-        self.ns = NodeSession(mission, node, announce=False, commands=bool(commands or script))
+        # A station with a router (ground.stations[].connect) reaches the
+        # vehicle through it, as a zenoh client of that router alone.
+        via = _station_router(mission, signer) if node is None else None
+        overrides: dict[str, Any] = {"via": via} if via else {}
+        self.ns = NodeSession(
+            mission, node, announce=False, commands=bool(commands or script), **overrides
+        )
         self.keys = self.ns.keys
         session = self.ns.session
         # One mailbox per kind (module doc), one waker for the caller's thread.
