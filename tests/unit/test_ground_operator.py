@@ -15,7 +15,7 @@ from tests.unit.test_identities import MISSION, keygen
 from tests.unit.test_stations_lockstep import Stations, flight_with_ground
 from zplatform.cli.main import main
 from zplatform.control.authority import Signer
-from zplatform.core.auth import KEY_ENV, KEY_FILE_ENV, KeyError_
+from zplatform.core.auth import KEY_ENV, KEY_FILE_ENV, KeyError_, load_keys
 from zplatform.errors import CommandError
 from zplatform.ground.identity import check_names, station_signer
 from zplatform.mission.load import load_mission
@@ -42,6 +42,17 @@ def test_the_signer_comes_from_the_key_files_beside_the_tools_key(
     assert (s.operator, s.station) == ("alice", "pad")
     # The same lookup with the directory itself.
     assert station_signer(m, "bob", "lounge", keydir) is not None
+
+
+def test_with_a_master_key_the_signer_derives_from_it_as_the_cns_keys_do(
+    keydir: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    m = load_mission(keygen(tmp_path, MISSION, keydir), code=False)
+    monkeypatch.setenv(KEY_ENV, "5f0c9a7e13d2b8466a91e0c3f57d28b4c61a0e9f3b7d52c8e4a16f903bd7e25a")
+    s = station_signer(m, "alice", "pad")
+    keys = load_keys(m, "cn")
+    assert keys is not None
+    assert s == sim_signer(keys, m, "alice", "pad")  # no key file read: the CN's derivation
 
 
 def test_refusals_name_the_file_the_name_and_what_to_do(keydir: Path, tmp_path: Path) -> None:
@@ -159,3 +170,20 @@ def test_no_renewal_between_an_arm_and_its_approved_command() -> None:
     r.run(0.1)
     (launched,) = g.result(launch) or []
     assert launched.status == "ACCEPTED" and launched.operator == "fd@room"
+
+
+def test_a_request_is_numbered_above_another_stations_refused_one() -> None:
+    """The CN's request intake admits each number once, whatever the
+    authority then says: after a viewer's request numbered n was refused
+    (``cn_cmd_reject_seq`` n, no number consumed), this station numbers its
+    next one n + 1, not n (which the live CN refuses as REJECTED_REPLAY)."""
+    r = _runner()
+    s = Stations(r)
+    r.run(0.5)
+    assert s.send("vic@lounge", "NOOP") == "REJECTED_VIEW_ONLY"
+    refused = r.control.dv.get("cn_cmd_reject_seq")
+    assert r.control.dv.get("cn_cmd_seq") == refused - 1
+    t = r.ground.command("LOCK", now_ns=r.clock.now_ns())
+    r.run(0.1)
+    (o,) = r.ground.result(t) or []
+    assert o.seq == refused + 1 and o.accepted

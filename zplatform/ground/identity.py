@@ -5,7 +5,8 @@
 (:class:`~zplatform.control.uplink.Uplink`), reading ``operator-NAME.keys``
 and ``station-NAME.keys`` from the directory the tool's other keys come
 from (the ``ZPLATFORM_KEY_FILE`` file's directory, or the mission's key set
-directory: :func:`zplatform.core.auth.load_keys`). Rules:
+directory: :func:`zplatform.core.auth.load_keys`), or, where the keys come
+from one master key (``ZPLATFORM_KEY``), derives both from it. Rules:
 docs/security.md#stations-and-operators.
 
 Contract: blocks on file reads only; every refusal is one line before any
@@ -20,11 +21,11 @@ import os
 from pathlib import Path
 
 from ..config import Mission
-from ..control.authority import Signer
+from ..control.authority import IDENTITY_LINK, Signer
 from ..control.uplink import did_you_mean
-from ..core.auth import KEY_FILE_ENV, KeyError_, default_key_dir
+from ..core.auth import KEY_ENV, KEY_FILE_ENV, KeyError_, default_key_dir, load_keys
 from ..errors import CommandError
-from ..security.identities import identity_file_name, load_signer
+from ..security.identities import identity_file_name, load_signer, sim_signer
 
 __all__ = ["check_names", "identity_dir", "station_signer"]
 
@@ -90,6 +91,13 @@ def station_signer(
     if not check_names(mission, operator, station):
         return None
     assert operator is not None and station is not None
+    if key_file is None and not os.environ.get(KEY_FILE_ENV) and os.environ.get(KEY_ENV):
+        # Keys from one master (ZPLATFORM_KEY, as load_keys takes them): the
+        # operator's and station's derive from its `operators` key, as the
+        # control node's do; no key files.
+        keys = load_keys(mission, "cn")
+        if keys is not None and keys.has(IDENTITY_LINK):
+            return sim_signer(keys, mission, operator, station)
     d = identity_dir(mission, key_file)
     paths = [
         d / identity_file_name("operator", operator),

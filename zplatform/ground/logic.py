@@ -689,7 +689,10 @@ class GroundLogic:
         if plan.sent == len(plan.steps):
             self._plans.popleft()
             plan.open = False
-        seq = max(int(self._h_seq.get()), self._last_sent) + 1
+        # Above every number the CN showed, refused ones too: its intake
+        # admits each number once, so a number another station's refused
+        # request used (cn_cmd_reject_seq) would come back REJECTED_REPLAY.
+        seq = max(int(self._h_seq.get()), int(self._h_rseq.get()), self._last_sent) + 1
         r = _Request(plan, step, seq, self._epoch, int(self._h_loop.get()))
         r.rejects0 = int(self._h_rejects.get())
         self._last_sent = seq

@@ -1,0 +1,162 @@
+"""Stations over routers and a WAN, live, in network namespaces (issue 29).
+
+Three namespaces on one bridge: the vehicle LAN (``zplatform node`` cn and
+dn0), the pad (its router, ``zplatform router --name pad``, connected to the
+CN; the pad station's ``cmd`` is its client) and the control room (its
+router, connected to the pad router through the WAN relay,
+tests/faults/wan.py, 80 ms each way and 1 % of chunks lost; the room's and
+the viewers' lounge's ``cmd`` are clients of the room router). Mutual TLS
+and the generated access control throughout, the mission's own PKI and key
+files from ``zplatform keygen``.
+
+Every step is one ``zplatform cmd`` process naming its operator and station;
+a verdict proves the telemetry reached that station (``cmd`` waits for it)
+and the request reached the CN:
+
+* a viewer in the lounge, two routers and the WAN away, is refused
+  (REJECTED_VIEW_ONLY);
+* the pad's operator takes the lock and hands it to the flight director in
+  the control room, who commands with it; the pad is then refused
+  (REJECTED_NOT_HOLDER);
+* range safety aborts from the view-only lounge (ACCEPTED).
+"""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from collections.abc import Callable
+from pathlib import Path
+
+import pytest
+
+from tests.faults.netns import NetnsHost
+
+ROOT = Path(__file__).resolve().parents[2]
+CN, DN, GN, PAD, ROOM, WAN = 7447, 7448, 7449, 7500, 7600, 7700
+
+
+def _mission(veh: str, pad: str, room: str) -> str:
+    return f"""
+mission: stations
+vehicle: rocket
+loop_hz: 50
+sync_timeout_ms: 5
+security: {{transport: mtls}}
+transport: {{gossip_scouting: false, multicast_scouting: false}}
+nodes:
+  cn:  {{listen: ['tcp/{veh}:{CN}']}}
+  dn0: {{listen: ['tcp/{veh}:{DN}'], connect: ['tcp/{veh}:{CN}']}}
+  gn:  {{listen: ['tcp/{veh}:{GN}'], connect: ['tcp/{veh}:{CN}']}}
+regions:
+  cn:
+    - {{name: heartbeat, type: u32, initial: 0}}
+  cn_to_dn0:
+    - {{name: dn0_setpoint, type: f32, initial: 0.0}}
+  dn0_to_cn:
+    - {{name: dn0_measurement, type: f32, initial: 0.0}}
+state_machine:
+  initial: IDLE
+  states:
+    IDLE:
+      transitions:
+        - {{element: cn_cmd, op: "==", value: LAUNCH, to: RUN}}
+    RUN:
+      transitions:
+        - {{element: cn_cmd, op: "==", value: ABORT, to: SAFE}}
+    SAFE: {{}}
+ground:
+  lease_s: 60
+  stations:
+    - {{name: pad, connect: ['tcp/{pad}:{PAD}']}}
+    - {{name: room, connect: ['tcp/{room}:{ROOM}']}}
+    - {{name: lounge, may: view, connect: ['tcp/{room}:{ROOM}']}}
+  operators:
+    - {{name: pat, roles: [operator]}}
+    - {{name: fd, roles: [flight_director]}}
+    - {{name: rso, roles: [range_safety]}}
+    - {{name: vic, roles: [viewer]}}
+  routers:
+    - {{name: pad, listen: ['tcp/{pad}:{PAD}'], connect: ['tcp/{veh}:{CN}']}}
+    - {{name: room, listen: ['tcp/{room}:{ROOM}'], connect: ['tcp/127.0.0.1:{WAN}']}}
+"""
+
+
+def _ready(p: subprocess.Popen[str], what: str) -> None:
+    assert p.stdout is not None
+    line = p.stdout.readline().strip()
+    assert line.startswith("READY"), f"{what} did not start: {line!r} (exit {p.poll()})"
+
+
+@pytest.mark.timeout(300)
+def test_stations_through_two_routers_and_a_wan(
+    netns_hosts: Callable[..., list[NetnsHost]], tmp_path: Path
+) -> None:
+    veh, pad, room = netns_hosts(3)
+    path = tmp_path / "stations.yaml"
+    path.write_text(_mission(veh.addr, pad.addr, room.addr))
+    # The key files keygen writes, as on a deployment's hosts: no master key
+    # (tests/conftest.py sets one for every other test's processes).
+    env = {
+        "XDG_CONFIG_HOME": str(tmp_path / "config"),
+        "PYTHONPATH": str(ROOT),
+        "ZPLATFORM_KEY": "",
+    }
+    zp = [sys.executable, "-m", "zplatform"]
+    kg = subprocess.run(
+        [*zp, "keygen", str(path)],
+        env=dict(os.environ, **env),
+        capture_output=True,
+        text=True,
+        timeout=120,
+        check=False,
+    )
+    assert kg.returncode == 0, kg.stderr
+    node = [*zp, "node", str(path)]
+    veh.popen([*node, "dn0", "--no-realtime"], log=tmp_path / "dn0.log", env=env, cwd=ROOT)
+    veh.popen(
+        [*node, "cn", "--duration", "240", "--ground-wait", "0", "--no-realtime"],
+        log=tmp_path / "cn.log",
+        env=env,
+        cwd=ROOT,
+    )
+    router = [*zp, "router", str(path), "--name"]
+    _ready(pad.popen([*router, "pad"], pipe_stdio=True, env=env, cwd=ROOT), "the pad router")
+    wan = [sys.executable, "-m", "tests.faults.wan", f"127.0.0.1:{WAN}", f"{pad.addr}:{PAD}"]
+    _ready(room.popen([*wan, "--seed", "29"], pipe_stdio=True, env=env, cwd=ROOT), "the WAN")
+    _ready(room.popen([*router, "room"], pipe_stdio=True, env=env, cwd=ROOT), "the room router")
+
+    def cmd(host: NetnsHost, who: str, *words: str) -> tuple[int, str]:
+        op, st = who.split("@")
+        r = host.run(
+            [
+                "env",
+                *(f"{k}={v}" for k, v in env.items()),
+                *zp,
+                "cmd",
+                str(path),
+                *words,
+                "--operator",
+                op,
+                "--station",
+                st,
+                "--timeout",
+                "60",
+            ],
+            timeout=180,
+        )
+        return r.returncode, (r.stdout + r.stderr).strip()
+
+    rc, out = cmd(room, "vic@lounge", "noop")
+    assert rc == 1 and "by vic@lounge: REJECTED_VIEW_ONLY" in out, out
+    rc, out = cmd(pad, "pat@pad", "lock")
+    assert rc == 0 and "by pat@pad: ACCEPTED" in out, out
+    rc, out = cmd(pad, "pat@pad", "handover", "fd")
+    assert rc == 0 and "by pat@pad: ACCEPTED" in out, out
+    rc, out = cmd(room, "fd@room", "noop")
+    assert rc == 0 and "by fd@room: ACCEPTED" in out, out
+    rc, out = cmd(pad, "pat@pad", "noop")
+    assert rc == 1 and "REJECTED_NOT_HOLDER" in out and "fd@room" in out, out
+    rc, out = cmd(room, "rso@lounge", "abort")
+    assert rc == 0 and "by rso@lounge: ACCEPTED" in out, out
