@@ -187,3 +187,23 @@ def test_a_request_is_numbered_above_another_stations_refused_one() -> None:
     r.run(0.1)
     (o,) = r.ground.result(t) or []
     assert o.seq == refused + 1 and o.accepted
+
+
+def test_up_with_a_script_refuses_a_mission_with_authority_without_operator(
+    keydir: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    path = keygen(tmp_path, MISSION, keydir)
+    script = tmp_path / "s.txt"
+    script.write_text("at 1.0 noop\n")
+    capsys.readouterr()
+    assert main(["up", str(path), "--commands", str(script), "--free-ports"]) == 2
+    assert "--operator NAME --station NAME" in capsys.readouterr().err
+
+
+def test_the_console_refuses_an_operator_it_cannot_sign_for(
+    keydir: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    path = keygen(tmp_path, MISSION, keydir)
+    capsys.readouterr()
+    assert main(["ground", str(path), "--console", "--operator", "alice", "--station", "pad"]) == 2
+    assert "does not take --operator" in capsys.readouterr().err

@@ -137,6 +137,12 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
 def cmd_ground(args: argparse.Namespace) -> int:
     """The console on a TTY (or ``--console``), served with ``--web``, else the prompt."""
     if args.web is not None or args.console or (sys.stdin.isatty() and not args.prompt):
+        if args.operator is not None or args.station is not None:
+            raise CommandError(
+                "the console does not take --operator/--station yet: command as an operator "
+                "with `zplatform ground MISSION --prompt --operator NAME --station NAME` or "
+                "`zplatform cmd`"
+            )
         try:
             from ..console import run_console, serve_console
         except ImportError as exc:
