@@ -7,11 +7,9 @@ the deployment's ``router`` identity, and its policy lets it forward only
 what stations may send and receive: their subscriptions to telemetry and
 events, their requests on ``{vehicle}/gn/to_cn``, run hellos, recorder and
 archive queries and their replies, liveliness tokens; never a device node's
-key, a sync query, the mirror or a bulk channel). The control node
-publishes telemetry once to the router it is connected to; each router
-fans it out to its stations and to the next router (docs/deployment.md).
-Stations reach a router as zenoh clients (``ground.stations[].connect``,
-:func:`zplatform.runtime.transport.zenoh_config`).
+key, a sync query, the mirror or a bulk channel). The CN publishes
+telemetry once; each router fans it out to its stations (zenoh clients of
+it, ``ground.stations[].connect``) and the next router (docs/deployment.md).
 
 Contract: :func:`router_config` is pure but for the deployment's file
 checks (DeploymentError for a mission with mutual TLS and no ``router``
