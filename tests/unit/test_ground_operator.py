@@ -207,3 +207,48 @@ def test_the_console_refuses_an_operator_it_cannot_sign_for(
     capsys.readouterr()
     assert main(["ground", str(path), "--console", "--operator", "alice", "--station", "pad"]) == 2
     assert "does not take --operator" in capsys.readouterr().err
+
+
+def test_a_command_returns_when_its_outcome_is_released_not_a_snapshot_later() -> None:
+    """The verdict's snapshot decides, the CN's event with the reason releases
+    the outcome: GroundLink.command returns then, without waiting for the
+    next snapshot (a loop later)."""
+    from types import SimpleNamespace
+
+    from zplatform.control.uplink import CheckedCommand
+    from zplatform.ground.link import GroundLink
+    from zplatform.telemetry.records import CommandOutcome
+
+    done = CommandOutcome("NOOP", 2, "ACCEPTED")
+    items = [("tm", "verdict"), ("ev", "cmd_accepted"), ("tm", "next loop"), ("tm", "and one more")]
+    taken: list[str] = []
+
+    class Logic:
+        def result(self, ticket: int) -> list[CommandOutcome] | None:
+            return [done] if "cmd_accepted" in taken else None
+
+    def pop(deadline: float) -> tuple[str, str, int, str] | None:
+        kind, what = items.pop(0)
+        return kind, what, 0, ""
+
+    def take(kind: str, what: str, rx: int, key: str) -> bool:
+        taken.append(what)
+        return kind == "tm"
+
+    def next_(timeout_s: float) -> int | None:  # what command() used: until a snapshot
+        while item := pop(0.0):
+            if take(*item):
+                return 0
+        return None
+
+    fake = SimpleNamespace(
+        logic=Logic(),
+        wait_joined=lambda t: None,
+        wait_cn_listening=lambda t: None,
+        submit=lambda checked, armed: 1,
+        _pop=pop,
+        _take=take,
+        next=next_,
+    )
+    assert GroundLink.command(fake, CheckedCommand("NOOP", 0, 0.0), timeout_s=5) == [done]  # type: ignore[arg-type]
+    assert taken == ["verdict", "cmd_accepted"]

@@ -478,7 +478,12 @@ class GroundLink:
             if time.monotonic() > deadline:
                 steps = " then ".join(self.logic.steps(ticket))
                 raise CommandError(f"no verdict for {steps} within {timeout_s:g} s")
-            self.next(0.05)
+            # One item at a time: the outcome is released by the CN's event
+            # (its reason) after the verdict's snapshot, and is returned then,
+            # not with the next snapshot a loop later (next() would wait for it).
+            item = self._pop(min(deadline, time.monotonic() + 0.05))
+            if item is not None:
+                self._take(*item)
         return done
 
     # -- taps and liveliness -------------------------------------------------
