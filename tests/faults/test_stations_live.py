@@ -18,14 +18,20 @@ and the request reached the CN:
 * the pad's operator takes the lock and hands it to the flight director in
   the control room, who commands with it; the pad is then refused
   (REJECTED_NOT_HOLDER);
-* range safety aborts from the view-only lounge (ACCEPTED).
+* range safety aborts from the view-only lounge (ACCEPTED);
+* the flight director at a prompt in the control room takes the lock: the
+  station renews it, so for two leases and more every request of the pad
+  is refused naming fd@room; the prompt is killed, and once the lease has
+  run out (the CN's ``cmd_lock`` event says so) the pad takes the lock.
 """
 
 from __future__ import annotations
 
 import os
+import signal
 import subprocess
 import sys
+import time
 from collections.abc import Callable
 from pathlib import Path
 
@@ -35,6 +41,7 @@ from tests.faults.netns import NetnsHost
 
 ROOT = Path(__file__).resolve().parents[2]
 CN, DN, GN, PAD, ROOM, WAN = 7447, 7448, 7449, 7500, 7600, 7700
+LEASE_S = 6
 
 
 def _mission(veh: str, pad: str, room: str) -> str:
@@ -67,7 +74,7 @@ state_machine:
         - {{element: cn_cmd, op: "==", value: ABORT, to: SAFE}}
     SAFE: {{}}
 ground:
-  lease_s: 60
+  lease_s: {LEASE_S}
   stations:
     - {{name: pad, connect: ['tcp/{pad}:{PAD}']}}
     - {{name: room, connect: ['tcp/{room}:{ROOM}']}}
@@ -160,3 +167,35 @@ def test_stations_through_two_routers_and_a_wan(
     assert rc == 1 and "REJECTED_NOT_HOLDER" in out and "fd@room" in out, out
     rc, out = cmd(room, "rso@lounge", "abort")
     assert rc == 0 and "by rso@lounge: ACCEPTED" in out, out
+
+    # The control room's station at a prompt keeps the lock while alive.
+    as_fd = ["--operator", "fd", "--station", "room"]
+    prompt = room.popen(
+        [*zp, "ground", str(path), "--prompt", "--interval", "3600", *as_fd],
+        pipe_stdio=True,
+        env=env,
+        cwd=ROOT,
+    )
+    assert prompt.stdin is not None and prompt.stdout is not None
+    prompt.stdin.write("lock\n")
+    prompt.stdin.flush()
+    for line in prompt.stdout:
+        if line.startswith("LOCK #"):
+            assert "by fd@room: ACCEPTED" in line, line
+            break
+    locked = time.monotonic()
+    refused = 0
+    while time.monotonic() - locked < 2 * LEASE_S:
+        rc, out = cmd(pad, "pat@pad", "lock")
+        assert rc == 1 and "REJECTED_NOT_HOLDER" in out and "fd@room holds" in out, out
+        refused += 1
+    os.killpg(prompt.pid, signal.SIGKILL)  # the station dies: no more renewals
+    for _ in range(30):
+        rc, out = cmd(pad, "pat@pad", "lock")
+        if rc == 0:
+            break
+        assert "REJECTED_NOT_HOLDER" in out, out
+    assert rc == 0 and "by pat@pad: ACCEPTED" in out, out
+    assert refused >= 2
+    cn_log = (tmp_path / "cn.log").read_text()
+    assert "fd@room's command lock expired" in cn_log, cn_log[-3000:]

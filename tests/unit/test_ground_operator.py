@@ -252,3 +252,23 @@ def test_a_command_returns_when_its_outcome_is_released_not_a_snapshot_later() -
     )
     assert GroundLink.command(fake, CheckedCommand("NOOP", 0, 0.0), timeout_s=5) == [done]  # type: ignore[arg-type]
     assert taken == ["verdict", "cmd_accepted"]
+
+
+def test_a_not_holder_verdict_names_the_holder_when_the_cns_event_is_not_there() -> None:
+    """The CN events a refusal at most once a second: the second of two
+    quick REJECTED_NOT_HOLDER verdicts has no event, and the ground names
+    the holder from the verdict's snapshot (``cn_lock_holder``/``station``)."""
+    r = _runner()
+    s = Stations(r)
+    r.run(0.5)
+    assert s.send("fd@room", "LOCK") == "ACCEPTED"
+    g = r.ground
+    first = g.command("NOOP", now_ns=r.clock.now_ns())
+    r.run(0.1)
+    second = g.command("NOOP", now_ns=r.clock.now_ns())
+    r.run(1.0)
+    (a,) = g.result(first) or []
+    (b,) = g.result(second) or []
+    assert a.status == b.status == "REJECTED_NOT_HOLDER"
+    assert a.reason_from == "cn" and "fd@room holds the command lock" in a.reason
+    assert (b.reason_from, b.reason) == ("derived", "fd@room holds the command lock")

@@ -168,6 +168,7 @@ class _Request:
     __slots__ = (
         "cmd",
         "epoch",
+        "holder",
         "index",
         "loop",
         "plan",
@@ -199,6 +200,7 @@ class _Request:
         self.rx = 0
         self.state = ""
         self.shown_seq = 0
+        self.holder = ""  # REJECTED_NOT_HOLDER: who held the lock at the verdict
         self.reason = ""
         self.reason_from = ""
 
@@ -333,6 +335,7 @@ class GroundLogic:
                 self._h_holder = h("cn_lock_holder")
                 self._h_lstation = h("cn_lock_station")
                 self._h_until = h("cn_lock_until_ns")
+        self._lock_h = (h("cn_lock_holder"), h("cn_lock_station")) if mission.authority else None
         self._arm_until = 0  # the snapshot time up to which an ARM of ours may be followed
         self.lock_renewals = 0
         """LOCK renewals sent (``renew_lock``)."""
@@ -760,6 +763,13 @@ class GroundLogic:
     ) -> None:
         r.status, r.loop, r.rx = status, loop, rx_ns
         r.state = self._h_state.spec.name_of(self._h_state.get())
+        if self._lock_h is not None and status == "REJECTED_NOT_HOLDER":
+            # Who holds the lock, as the verdict's snapshot shows it: the
+            # reason when the CN's event (evented at most once a second) is not there.
+            holder, station = self._lock_h
+            who = holder.spec.name_of(holder.get())
+            where = station.spec.name_of(station.get())
+            r.holder = "" if who == "NONE" else who if where == "NONE" else f"{who}@{where}"
         if status == "ACCEPTED":
             # An accepted ARM may be followed by its command within the window
             # (no renewal in between); any later accepted request closes it.
@@ -906,5 +916,11 @@ def _derived(r: _Request) -> tuple[str, str]:
             f"the parameter may not change in state {r.state} (the state its verdict showed)"
         ),
         "REJECTED_BUSY": "the previous PRM_SAVE was still being written",
+        "REJECTED_NOT_HOLDER": (
+            f"{r.holder} holds the command lock"
+            if r.holder
+            else "nobody holds the command lock: LOCK first"
+        ),
+        "REJECTED_VIEW_ONLY": "the operator or the station may only view",
     }.get(r.status, "")
     return why, ("derived" if why else "")
