@@ -9,6 +9,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import msgspec
 import pytest
 
 from tests.unit.test_identities import MISSION, keygen
@@ -99,8 +100,11 @@ def test_cmd_refuses_a_mission_with_authority_without_operator_before_any_sessio
     assert "did you mean alice?" in capsys.readouterr().err
 
 
-def _runner(op: str = "pat", st: str = "pad") -> LockstepRunner:
+def _runner(op: str = "pat", st: str = "pad", lease_s: float = 2) -> LockstepRunner:
     m = flight_with_ground()
+    if lease_s != 2:
+        assert m.ground is not None
+        m = msgspec.structs.replace(m, ground=msgspec.structs.replace(m.ground, lease_s=lease_s))
     keys = sim_keys(m)
     assert keys is not None
     return LockstepRunner(m, signer=sim_signer(keys, m, op, st))
@@ -224,6 +228,8 @@ def test_a_command_returns_when_its_outcome_is_released_not_a_snapshot_later() -
     taken: list[str] = []
 
     class Logic:
+        awaiting_approval = None
+
         def result(self, ticket: int) -> list[CommandOutcome] | None:
             return [done] if "cmd_accepted" in taken else None
 
@@ -272,3 +278,42 @@ def test_a_not_holder_verdict_names_the_holder_when_the_cns_event_is_not_there()
     assert a.status == b.status == "REJECTED_NOT_HOLDER"
     assert a.reason_from == "cn" and "fd@room holds the command lock" in a.reason
     assert (b.reason_from, b.reason) == ("derived", "fd@room holds the command lock")
+
+
+def test_an_armed_two_person_command_waits_for_the_approval_then_goes() -> None:
+    """``cmd launch --arm`` in a mission whose LAUNCH is two-person: ARM n,
+    then nothing until a second operator's APPROVE of n shows in telemetry
+    (``cn_arm_approvals``), then LAUNCH, accepted."""
+    r = _runner("fd", "room")
+    s = Stations(r)
+    g = r.ground
+    r.run(0.5)
+    g.command("LOCK", now_ns=r.clock.now_ns())
+    r.run(0.1)
+    t = g.command("LAUNCH", armed=True, now_ns=r.clock.now_ns())
+    r.run(2.0)
+    arm = g.awaiting_approval
+    assert arm is not None and [o.command for o in g.partial(t)] == ["ARM"]
+    assert g.result(t) is None and r.control.dv.get_name("cn_state") == "SAFE"
+    assert s.send("rso@lounge", "APPROVE", ref=arm) == "ACCEPTED"
+    r.run(1.0)
+    arm_o, launch = g.result(t) or []
+    assert (arm_o.seq, arm_o.status) == (arm, "ACCEPTED")
+    assert (launch.seq, launch.status, launch.operator) == (arm + 2, "ACCEPTED", "fd@room")
+    assert r.control.dv.get_name("cn_state") == "ARMED"
+
+
+def test_without_an_approval_the_command_goes_when_the_window_closes_and_is_refused() -> None:
+    """A lease longer than the ARM's window (no renewal voids the ARM): the
+    command goes when the window has closed, and the CN refuses it (no ARM
+    open any more)."""
+    r = _runner("fd", "room", lease_s=20)
+    g = r.ground
+    r.run(0.5)
+    g.command("LOCK", now_ns=r.clock.now_ns())
+    r.run(0.1)
+    t = g.command("LAUNCH", armed=True, now_ns=r.clock.now_ns())
+    r.run(12.0)  # the ARM's 10 s window, and the verdict
+    arm_o, launch = g.result(t) or []
+    assert arm_o.accepted and launch.status == "REJECTED_NOT_ARMED"  # the ARM ran out
+    assert r.control.dv.get_name("cn_state") == "SAFE"

@@ -29,7 +29,7 @@ from typing import Any, Literal
 import zenoh
 
 from ..config import Mission
-from ..control.authority import Signer
+from ..control.authority import ARM_WINDOW_NS, Signer
 from ..control.handoff import Mailbox, Waker
 from ..control.intake import TelemetryIntake
 from ..control.uplink import CheckedCommand, ScriptCommand, validate_command
@@ -453,8 +453,14 @@ class GroundLink:
         *,
         armed: bool = False,
         timeout_s: float = 10.0,
+        on_approval: Callable[[int], None] | None = None,
     ) -> list[CommandOutcome]:
         """Send one operator command and wait for its outcome(s). Blocks.
+
+        An armed two-person command (``ground.two_person``) waits after its
+        ARM for a second operator's approval, up to the ARM's window more
+        than ``timeout_s``; ``on_approval`` is told the ARM's number once
+        then (to say who must approve what).
 
         ``command``: its name, with ``element`` and ``value`` where it takes
         them, refused before sending (CommandError) when
@@ -474,7 +480,13 @@ class GroundLink:
         self.wait_cn_listening(timeout_s)
         ticket = self.submit(checked, armed=armed)
         deadline = time.monotonic() + timeout_s
+        told = False
         while (done := self.logic.result(ticket)) is None:
+            if not told and (arm := self.logic.awaiting_approval) is not None:
+                told = True
+                deadline += ARM_WINDOW_NS / 1e9
+                if on_approval is not None:
+                    on_approval(arm)
             if time.monotonic() > deadline:
                 steps = " then ".join(self.logic.steps(ticket))
                 raise CommandError(f"no verdict for {steps} within {timeout_s:g} s")

@@ -28,7 +28,7 @@ from typing import NamedTuple
 import msgspec
 
 from ..config import STANDBY, Mission
-from ..control.authority import ARM_WINDOW_NS, Signer
+from ..control.authority import ARM_WINDOW_NS, Signer, two_person_targets
 from ..control.commands import protected_elements
 from ..control.uplink import CheckedCommand, ScriptCommand, Uplink, validate_command
 from ..core.auth import TAG_LEN, AuthError, KeySet, Run, RunError, channel, link_of
@@ -151,12 +151,13 @@ class _Tally(msgspec.Struct):
 class _Plan:
     """One operator command: its steps (ARM first when armed), its outcomes."""
 
-    __slots__ = ("open", "outcomes", "sent", "source", "steps", "ticket")
+    __slots__ = ("approval", "open", "outcomes", "sent", "source", "steps", "ticket")
 
     def __init__(self, ticket: int, steps: list[tuple[str, int, float]], source: str) -> None:
         self.ticket = ticket
         self.steps = steps
         self.source = source
+        self.approval = False  # its command waits for its ARM's approval (two-person)
         self.sent = 0  # steps sent so far
         self.open = True  # more steps may still be sent
         self.outcomes: list[CommandOutcome] = []
@@ -336,6 +337,14 @@ class GroundLogic:
                 self._h_lstation = h("cn_lock_station")
                 self._h_until = h("cn_lock_until_ns")
         self._lock_h = (h("cn_lock_holder"), h("cn_lock_station")) if mission.authority else None
+        # The two-person rule (ground.two_person): an armed command of these
+        # waits for its ARM's approval before it goes (GroundLogic.submit).
+        two_cmds, two_names = two_person_targets(mission)
+        self._two_cmds = two_cmds
+        self._two_elems = frozenset(
+            self.layout.element(n).index for n in two_names if n in self.layout.elements
+        )
+        self._h_approvals = h("cn_arm_approvals") if mission.authority else None
         self._arm_until = 0  # the snapshot time up to which an ARM of ours may be followed
         self.lock_renewals = 0
         """LOCK renewals sent (``renew_lock``)."""
@@ -653,6 +662,7 @@ class GroundLogic:
         ticket = self._next_ticket
         self._next_ticket += 1
         plan = _Plan(ticket, steps, source)
+        plan.approval = armed and self._h_approvals is not None and self._two_person(checked)
         self._plans.append(plan)
         self._tickets[ticket] = plan
         self._dispatch(now_ns, can_send)
@@ -682,11 +692,42 @@ class GroundLogic:
         out, self._out = self._out, []
         return out
 
+    def _two_person(self, checked: CheckedCommand) -> bool:
+        """Whether ``checked`` needs its ARM approved (``ground.two_person``)."""
+        if checked.command in self._two_cmds:
+            return True
+        return checked.command in ("WRITE", "PRM_SET") and checked.element in self._two_elems
+
+    @property
+    def awaiting_approval(self) -> int | None:
+        """The number of this ground's accepted ARM whose two-person command
+        waits for a second operator's APPROVE (None: nothing waits)."""
+        plan = self._plans[0] if self._plans else None
+        if plan is None or not plan.approval or plan.sent != 1 or not plan.outcomes:
+            return None
+        return plan.outcomes[0].seq
+
+    def partial(self, ticket: int) -> list[CommandOutcome]:
+        """The outcomes of ``ticket`` released so far (the ARM's, while its
+        command waits)."""
+        plan = self._tickets.get(ticket)
+        return list(plan.outcomes) if plan is not None else []
+
     def _dispatch(self, rx_ns: int, can_send: bool) -> None:
-        """Send the next queued step when nothing waits for a verdict."""
+        """Send the next queued step when nothing waits for a verdict (nor, for
+        a two-person command, for its ARM's approval: until a snapshot shows
+        one, or the ARM's window has passed, when the CN will refuse it)."""
         if self._inflight is not None or not self._plans or not can_send or self._epoch < 0:
             return
         plan = self._plans[0]
+        if (
+            plan.approval
+            and plan.sent == 1
+            and self._h_approvals is not None
+            and not self._h_approvals.get()
+            and self._last_t < self._arm_until
+        ):
+            return
         step = plan.steps[plan.sent]
         plan.sent += 1
         if plan.sent == len(plan.steps):

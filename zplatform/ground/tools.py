@@ -16,7 +16,7 @@ import queue
 import sys
 import threading
 import time
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from typing import TextIO
 
 import msgspec
@@ -98,10 +98,27 @@ def send_command(
     checked = check_command(mission, command, args, armed=armed, arm_hint="--arm")
     link = GroundLink(mission, key_file=key_file, commands=True, signer=signer)
     try:
-        outcomes = link.command(checked, armed=armed, timeout_s=timeout_s)
+        outcomes = link.command(
+            checked, armed=armed, timeout_s=timeout_s, on_approval=_approval_hint(mission)
+        )
         return outcomes, _steps(command, armed)
     finally:
         link.close()
+
+
+def approval_line(mission: Mission, arm: int) -> str:
+    """What an operator is told while their two-person command waits."""
+    return (
+        f"ARM #{arm} accepted: waiting for a second operator's approval "
+        f"(`zplatform cmd {mission.mission} approve {arm} --operator NAME --station NAME`)"
+    )
+
+
+def _approval_hint(mission: Mission, out: TextIO | None = None) -> Callable[[int], None]:
+    def tell(arm: int) -> None:
+        print(approval_line(mission, arm), file=out or sys.stdout, flush=True)
+
+    return tell
 
 
 class ParamListing(msgspec.Struct, frozen=True):
@@ -346,7 +363,9 @@ def _prompt_command(
         print(f"refused: {exc}", file=out, flush=True)
         return
     try:
-        outcomes = link.command(checked, armed=armed, timeout_s=timeout_s)
+        outcomes = link.command(
+            checked, armed=armed, timeout_s=timeout_s, on_approval=_approval_hint(mission, out)
+        )
     except ZPlatformError as exc:
         print(f"error: {exc}", file=out, flush=True)
         return
