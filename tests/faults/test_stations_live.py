@@ -18,6 +18,8 @@ and the request reached the CN:
 * the pad's operator takes the lock and hands it to the flight director in
   the control room, who commands with it; the pad is then refused
   (REJECTED_NOT_HOLDER);
+* the flight director's LAUNCH is two-person: armed, it waits until range
+  safety approves its ARM from the lounge, then is accepted;
 * range safety aborts from the view-only lounge (ACCEPTED);
 * the flight director at a prompt in the control room takes the lock: the
   station renews it, so for two leases and more every request of the pad
@@ -41,7 +43,7 @@ from tests.faults.netns import NetnsHost
 
 ROOT = Path(__file__).resolve().parents[2]
 CN, DN, GN, PAD, ROOM, WAN = 7447, 7448, 7449, 7500, 7600, 7700
-LEASE_S = 6
+LEASE_S = 10
 
 
 def _mission(veh: str, pad: str, room: str) -> str:
@@ -51,6 +53,7 @@ vehicle: rocket
 loop_hz: 50
 sync_timeout_ms: 5
 security: {{transport: mtls}}
+commands: {{hazardous: [LAUNCH]}}
 transport: {{gossip_scouting: false, multicast_scouting: false}}
 nodes:
   cn:  {{listen: ['tcp/{veh}:{CN}']}}
@@ -84,6 +87,7 @@ ground:
     - {{name: fd, roles: [flight_director]}}
     - {{name: rso, roles: [range_safety]}}
     - {{name: vic, roles: [viewer]}}
+  two_person: [LAUNCH]
   routers:
     - {{name: pad, listen: ['tcp/{pad}:{PAD}'], connect: ['tcp/{veh}:{CN}']}}
     - {{name: room, listen: ['tcp/{room}:{ROOM}'], connect: ['tcp/127.0.0.1:{WAN}']}}
@@ -159,17 +163,35 @@ def test_stations_through_two_routers_and_a_wan(
     assert rc == 1 and "by vic@lounge: REJECTED_VIEW_ONLY" in out, out
     rc, out = cmd(pad, "pat@pad", "lock")
     assert rc == 0 and "by pat@pad: ACCEPTED" in out, out
+    as_fd = ["--operator", "fd", "--station", "room"]
     rc, out = cmd(pad, "pat@pad", "handover", "fd")
     assert rc == 0 and "by pat@pad: ACCEPTED" in out, out
     rc, out = cmd(room, "fd@room", "noop")
     assert rc == 0 and "by fd@room: ACCEPTED" in out, out
     rc, out = cmd(pad, "pat@pad", "noop")
     assert rc == 1 and "REJECTED_NOT_HOLDER" in out and "fd@room" in out, out
+    # A two-person LAUNCH: fd's `cmd launch --arm` waits after its ARM until
+    # range safety approves it from the lounge, then goes.
+    launch = room.popen(
+        [*zp, "cmd", str(path), "launch", "--arm", "--timeout", "60", *as_fd],
+        pipe_stdio=True,
+        env=env,
+        cwd=ROOT,
+    )
+    assert launch.stdout is not None
+    waiting = launch.stdout.readline()
+    assert "waiting for a second operator's approval" in waiting, waiting
+    arm = waiting.split("#", 1)[1].split()[0]
+    rc, out = cmd(room, "rso@lounge", "approve", arm)
+    assert rc == 0 and "by rso@lounge: ACCEPTED" in out, out
+    rest = launch.stdout.read()
+    assert launch.wait(timeout=60) == 0, rest
+    assert f"ARM #{arm} by fd@room: ACCEPTED" in rest
+    assert f"LAUNCH #{int(arm) + 2} by fd@room: ACCEPTED" in rest, rest
     rc, out = cmd(room, "rso@lounge", "abort")
     assert rc == 0 and "by rso@lounge: ACCEPTED" in out, out
 
     # The control room's station at a prompt keeps the lock while alive.
-    as_fd = ["--operator", "fd", "--station", "room"]
     prompt = room.popen(
         [*zp, "ground", str(path), "--prompt", "--interval", "3600", *as_fd],
         pipe_stdio=True,
