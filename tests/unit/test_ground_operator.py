@@ -317,3 +317,25 @@ def test_without_an_approval_the_command_goes_when_the_window_closes_and_is_refu
     arm_o, launch = g.result(t) or []
     assert arm_o.accepted and launch.status == "REJECTED_NOT_ARMED"  # the ARM ran out
     assert r.control.dv.get_name("cn_state") == "SAFE"
+
+
+def test_sim_plays_a_script_as_the_named_operator(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    import yaml
+
+    from tests.unit.test_stations_lockstep import FLIGHT, GROUND
+    from zplatform.config import relocate_mission
+
+    raw = yaml.safe_load(FLIGHT.read_text() + GROUND)
+    relocate_mission(raw, FLIGHT)
+    path = tmp_path / "m.yaml"
+    path.write_text(yaml.safe_dump(raw, sort_keys=False))
+    script = tmp_path / "s.txt"
+    script.write_text("at 1.0 lock\nat 2.0 noop\n")
+    argv = ["sim", str(path), "--commands", str(script), "--duration", "3"]
+    assert main(argv) == 2  # a mission with authority: who commands?
+    assert "--operator NAME --station NAME" in capsys.readouterr().err
+    assert main([*argv, "--operator", "pat", "--station", "pad"]) == 0
+    out = capsys.readouterr().out
+    assert "LOCK #1 by pat@pad: ACCEPTED" in out and "NOOP #2 by pat@pad: ACCEPTED" in out
