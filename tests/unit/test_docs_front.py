@@ -97,7 +97,7 @@ def test_the_tour_s_commands_are_taken_by_the_cli_as_written() -> None:
     _check_parses(cmds)
 
 
-@pytest.mark.parametrize("page", ["operations.md", "missions.md", "security.md"])
+@pytest.mark.parametrize("page", ["operations.md", "missions.md", "security.md", "deployment.md"])
 def test_the_docs_commands_are_taken_by_the_cli_as_written(page: str) -> None:
     cmds = _commands((ROOT / "docs" / page).read_text(encoding="utf-8"))
     assert cmds, page

@@ -25,6 +25,7 @@ PAGES = (
     "operations/index.html",
     "missions/index.html",
     "security/index.html",
+    "deployment/index.html",
     "faults/index.html",
     "testing/index.html",
     "internals/index.html",

@@ -16,16 +16,19 @@ import socket
 from pathlib import Path
 
 from ..config import Mission
+from ..control.authority import Signer
 from ..errors import CommandError
 
 __all__ = [
     "MISSION_HELP",
     "check_output",
     "check_ports",
+    "identity_options",
     "mission_verb",
     "nonnegative_float",
     "positive_float",
     "positive_int",
+    "signer_of",
     "timeout_option",
 ]
 
@@ -45,6 +48,36 @@ def mission_verb(
     p = sub.add_parser(name, help=help, description=description)
     p.add_argument("mission", help=MISSION_HELP)
     return p
+
+
+def identity_options(p: argparse.ArgumentParser) -> None:
+    """``--operator NAME --station NAME``: who commands, from where (a
+    mission with ``ground:``; their key files come from the key directory)."""
+    p.add_argument(
+        "--operator",
+        metavar="NAME",
+        help="the operator who commands (ground.operators; key file operator-NAME.keys)",
+    )
+    p.add_argument(
+        "--station",
+        metavar="NAME",
+        help="the station commanded from (ground.stations; key file station-NAME.keys)",
+    )
+
+
+def signer_of(
+    mission: Mission, args: argparse.Namespace, *, commands: bool = True
+) -> Signer | None:
+    """The signer of ``args.operator``/``args.station``
+    (:func:`zplatform.ground.identity.station_signer`): CommandError or
+    KeyError_ (one line) before anything starts. ``commands`` False: a
+    ground that sends nothing needs no operator (None without the flags)."""
+    from ..ground.identity import station_signer
+
+    operator, station = getattr(args, "operator", None), getattr(args, "station", None)
+    if not commands and operator is None and station is None:
+        return None
+    return station_signer(mission, operator, station)
 
 
 def timeout_option(p: argparse.ArgumentParser, what: str, default: float = 10.0) -> None:

@@ -12,7 +12,15 @@ from typing import Any
 from ..errors import CommandError
 from ..mission.load import load_mission
 from ..telemetry.logs import read_csv
-from .args import check_output, mission_verb, positive_float, positive_int, timeout_option
+from .args import (
+    check_output,
+    identity_options,
+    mission_verb,
+    positive_float,
+    positive_int,
+    signer_of,
+    timeout_option,
+)
 
 
 def _port(text: str) -> int:
@@ -62,6 +70,7 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         "--host", default="127.0.0.1", help="address --web listens on (warns beyond loopback)"
     )
     p.add_argument("--watch", nargs="*", default=[], help="elements to show on the status line")
+    identity_options(p)
     p.add_argument("--interval", type=positive_float, default=1.0, help="status line period (s)")
     timeout_option(p, "each command's verdict")
     p.add_argument(
@@ -103,6 +112,7 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         "--save", action="store_true", help="then PRM_SAVE: write every parameter to the file"
     )
     p.add_argument("--json", action="store_true", help="list as JSON")
+    identity_options(p)
     timeout_option(p, "telemetry and for each verdict")
     p.set_defaults(func=cmd_params)
 
@@ -159,6 +169,12 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
 def cmd_ground(args: argparse.Namespace) -> int:
     """The console on a TTY (or ``--console``), served with ``--web``, else the prompt."""
     if args.web is not None or args.console or (sys.stdin.isatty() and not args.prompt):
+        if args.operator is not None or args.station is not None:
+            raise CommandError(
+                "the console does not take --operator/--station yet: command as an operator "
+                "with `zplatform ground MISSION --prompt --operator NAME --station NAME` or "
+                "`zplatform cmd`"
+            )
         try:
             from ..console import run_console, serve_console
         except ImportError as exc:
@@ -212,11 +228,14 @@ def cmd_prompt(args: argparse.Namespace) -> int:
     """The line prompt (:func:`zplatform.ground.tools.run_prompt`)."""
     from ..ground.tools import run_prompt
 
+    mission = load_mission(args.mission, code=False)
     return run_prompt(
-        load_mission(args.mission, code=False),
+        mission,
         watch=args.watch,
         interval_s=args.interval,
         timeout_s=args.timeout,
+        # A prompt that only watches needs no operator; one named commands.
+        signer=signer_of(mission, args, commands=False),
     )
 
 
@@ -247,7 +266,13 @@ def cmd_params(args: argparse.Namespace) -> int:
             print("  ".join(c.ljust(w) for c, w in zip(row, widths, strict=True)).rstrip())
         return 0
     lines, ok = set_param(
-        mission, args.name, args.value, armed=args.arm, save=args.save, timeout_s=args.timeout
+        mission,
+        args.name,
+        args.value,
+        armed=args.arm,
+        save=args.save,
+        timeout_s=args.timeout,
+        signer=signer_of(mission, args),
     )
     for line in lines:
         print(line)

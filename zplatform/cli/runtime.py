@@ -28,10 +28,12 @@ from ..telemetry.summary import CnSummary, DnSummary, GnSummary, write_summary
 from .args import (
     check_output,
     check_ports,
+    identity_options,
     mission_verb,
     nonnegative_float,
     positive_float,
     positive_int,
+    signer_of,
     timeout_option,
 )
 
@@ -58,6 +60,7 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p.add_argument(
         "--commands", metavar="FILE", help="command script the ground node plays (at 1.0 launch)"
     )
+    identity_options(p)
     p.add_argument(
         "--settle",
         type=positive_float,
@@ -85,6 +88,7 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         "--log", metavar="CSV", help="GN: telemetry CSV; events beside it (NAME.events.jsonl)"
     )
     p.add_argument("--commands", metavar="FILE", help="GN: command script to play (at 1.0 launch)")
+    identity_options(p)
     p.add_argument("--summary", metavar="JSON", help="write this node's summary JSON here")
     _node_options(p, "seconds to wait for the peers at start (default 60)")
     p.add_argument(
@@ -167,8 +171,29 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         help="send ARM n first, then the command as n+1 (needed for hazardous commands, "
         "WRITEs of protected elements and PRM_SETs of hazardous parameters)",
     )
+    identity_options(p)
     timeout_option(p, "the CN and for each verdict")
     p.set_defaults(func=cmd_cmd)
+
+    p = mission_verb(
+        sub,
+        "router",
+        help="run a zenoh router between the vehicle and its stations (ground.routers)",
+        description="Run a zenoh router (zenoh's router mode) with the mission's TLS and "
+        "access control: it forwards the stations' subscriptions, requests and queries and "
+        "fans the control node's telemetry out. --name takes a router of ground.routers; "
+        "--listen/--connect give (or replace) its endpoints. Prints READY once open; runs "
+        "until Ctrl-C or SIGTERM. See docs/deployment.md.",
+    )
+    p.add_argument("--name", metavar="NAME", help="a router of the mission's ground.routers")
+    p.add_argument(
+        "--listen", action="append", metavar="EP", help="endpoint to listen on (repeatable)"
+    )
+    p.add_argument(
+        "--connect", action="append", metavar="EP", help="endpoint to connect to (repeatable)"
+    )
+    p.add_argument("-v", "--verbose", action="store_true", help="debug logging")
+    p.set_defaults(func=cmd_router)
 
     p = mission_verb(
         sub,
@@ -268,6 +293,7 @@ def cmd_node(args: argparse.Namespace) -> int:
         from ..node.ground import run_ground_logger
 
         script = load_commands(args.commands) if args.commands else None
+        signer = signer_of(mission, args, commands=script is not None)
         summary = run_ground_logger(
             mission,
             args.log,
@@ -275,6 +301,7 @@ def cmd_node(args: argparse.Namespace) -> int:
             duration_s=args.duration,
             script=script,
             events_out=events_path(args.log) if args.log else None,
+            signer=signer,
         )
     elif name in mission.device_nodes:
         from ..node.device import run_device_node
@@ -422,11 +449,37 @@ def cmd_cmd(args: argparse.Namespace) -> int:
 
     mission = load_mission(args.mission, code=False)
     outcomes, steps = send_command(
-        mission, args.command, args.args, armed=args.arm, timeout_s=args.timeout
+        mission,
+        args.command,
+        args.args,
+        armed=args.arm,
+        timeout_s=args.timeout,
+        signer=signer_of(mission, args),
     )
     for line in format_result(outcomes, steps):
         print(line)
     return 0 if len(outcomes) == len(steps) and all(o.accepted for o in outcomes) else 1
+
+
+def cmd_router(args: argparse.Namespace) -> int:
+    """Run one router until stopped (exit 0); 2 for a bad name or endpoints."""
+    from ..config.checks import check_endpoint
+    from ..runtime.router import find_router, run_router
+
+    setup_logging(args.verbose)
+    mission = load_mission(args.mission, code=False)
+    listen, connect = list(args.listen or []), list(args.connect or [])
+    name = args.name or "router"
+    if args.name is not None:
+        r = find_router(mission, args.name)
+        listen = listen or list(r.listen)
+        connect = connect or list(r.connect)
+    for flag, eps in (("--listen", listen), ("--connect", connect)):
+        for ep in eps:
+            check_endpoint(ep, flag)
+    if not listen and not connect:
+        raise CommandError("router: give --name NAME (ground.routers) or --listen/--connect")
+    return run_router(mission, listen, connect, name=name)
 
 
 def cmd_tap(args: argparse.Namespace) -> int:
@@ -490,6 +543,8 @@ def cmd_up(args: argparse.Namespace) -> int:
         # (before, only the syntax was checked and the ground node died on
         # the rest after every other node had started).
         ScriptPlayer(mission, load_commands(args.commands))
+    # Who the script commands as: a missing name or key file fails here.
+    signer_of(mission, args, commands=bool(args.commands))
     _check_outputs(args, "log", "summary", "record")
     if not args.free_ports:
         check_ports(mission)  # another `up` of this mission, or anything else, on its ports
@@ -501,6 +556,7 @@ def cmd_up(args: argparse.Namespace) -> int:
         summary=args.summary,
         free_ports=args.free_ports,
         commands=args.commands,
+        operator=(args.operator, args.station) if args.operator or args.station else None,
         settle_s=args.settle,
         realtime=not args.no_realtime,
         quiet=args.quiet,

@@ -31,12 +31,14 @@ import msgspec
 from ..control.uplink import load_commands
 from ..core.datavector import Layout
 from ..errors import CommandError
+from ..ground.identity import check_names
 from ..ground.script import MIN_DURATION_S, SETTLE_S, script_duration_s
 from ..mission.load import load_mission
-from ..sim.lockstep import LockstepRunner, replay
+from ..security.identities import sim_signer
+from ..sim.lockstep import LockstepRunner, replay, sim_keys
 from ..telemetry.logs import CsvLogger, EventWriter, events_path
 from ..telemetry.records import EventRecord, format_outcome
-from .args import check_output, positive_float
+from .args import check_output, identity_options, positive_float
 
 __all__ = ["cmd_replay", "cmd_sim", "register"]
 
@@ -51,7 +53,18 @@ def cmd_sim(args: argparse.Namespace) -> int:
         check_output(ev_path, "event log")
     if args.summary:
         check_output(args.summary, "summary")
-    runner = LockstepRunner(mission, commands=script)
+    signer = None
+    named = args.operator is not None or args.station is not None
+    if (script or named) and check_names(mission, args.operator, args.station):
+        # In virtual time the keys are the run's own (sim_keys): no key files.
+        keys = sim_keys(mission)
+        if keys is None:
+            raise CommandError(
+                f"mission {mission.mission!r} does not authenticate (security.auth): its "
+                "requests cannot name an operator"
+            )
+        signer = sim_signer(keys, mission, args.operator, args.station)
+    runner = LockstepRunner(mission, commands=script, signer=signer)
     if ev_path is not None:
         with CsvLogger(args.log, runner.control.layout) as log:
             res = runner.run(duration, log=log)
@@ -211,6 +224,7 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         f"at least {MIN_DURATION_S:g} s)",
     )
     p.add_argument("--commands", metavar="FILE", help="command script ('at 1.0 launch' lines)")
+    identity_options(p)
     p.add_argument(
         "--log", metavar="CSV", help="telemetry CSV to write, events beside it (default: none)"
     )

@@ -176,6 +176,8 @@ class Children:
 
 
 CONTROL_NODES = ("cn", STANDBY)
+ROUTER_PREFIX = "router:"
+"""The name ``up`` gives a router's process (``router:pad``)."""
 
 
 class Watch:
@@ -277,6 +279,8 @@ def watch(
                     if n == "gn"
                     else "the simulated vehicle is gone: its boards fail (counted errors)"
                     if n == "world"
+                    else "the stations behind it lose the vehicle, which flies on"
+                    if n.startswith(ROUTER_PREFIX)
                     else "the control node carries on (DN_LOST and the mission's fault response)"
                 )
                 print(f"\nzplatform up: node {n} died (exit code {c}); {what}", file=sys.stderr)
@@ -450,6 +454,7 @@ def run_up(
     summary: str | None = None,
     free_ports: bool = False,
     commands: str | None = None,
+    operator: tuple[str, str] | None = None,
     settle_s: float | None = None,
     realtime: bool = True,
     quiet: bool = False,
@@ -508,6 +513,8 @@ def run_up(
                 gn += ["--log", str(Path(log).resolve())]
             if commands:
                 gn += ["--commands", str(Path(commands).resolve())]
+            if operator is not None:  # who the script commands as (ground:)
+                gn += ["--operator", operator[0], "--station", operator[1]]
             spawn["gn"] = gn
         cn = ["node", path, "cn", *common]
         if record:
@@ -527,12 +534,21 @@ def run_up(
         # The vehicle world (zplatform.world.model), when the mission has one: a
         # process of its own that the device nodes' boards reach.
         world = ["world", path, *common[2:]] if mission.world is not None else None
+        # The mission's zenoh routers (ground.routers with start: true): before
+        # the nodes, each ready once its session is open.
+        g = mission.ground
+        routers = {
+            f"{ROUTER_PREFIX}{r.name}": ["router", path, "--name", r.name]
+            for r in (g.routers if g is not None else [])
+            if r.start
+        }
         return _supervise(
             mission,
             spawn,
             tmp,
             reg,
             world=world,
+            routers=routers,
             summary=summary,
             log=log,
             quiet=quiet,
@@ -552,6 +568,7 @@ def _supervise(
     reg: Any,
     *,
     world: list[str] | None,
+    routers: dict[str, list[str]] | None = None,
     summary: str | None,
     log: str | None,
     quiet: bool,
@@ -577,6 +594,8 @@ def _supervise(
         # nodes' boards step it from their first loop.
         if world is not None:
             children.spawn("world", world, ready=ready_timeout_s)
+        for name, argv in (routers or {}).items():
+            children.spawn(name, argv, ready=ready_timeout_s)
         for name, argv in spawn.items():
             children.spawn(name, [*argv, "--summary", str(summaries[name])])
         reg.update(nodes={n: p.pid for n, p in children.procs.items()})

@@ -181,6 +181,9 @@ from .schema import (
     RecorderConfig as RecorderConfig,
 )
 from .schema import (
+    RouterConfig as RouterConfig,
+)
+from .schema import (
     Scalar as Scalar,
 )
 from .schema import (
@@ -251,6 +254,7 @@ __all__ = [
     "OperatorConfig",
     "ParamConfig",
     "RecorderConfig",
+    "RouterConfig",
     "StateConfig",
     "StateMachineConfig",
     "StationConfig",

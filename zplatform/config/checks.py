@@ -308,14 +308,14 @@ def _check_mission(m: Mission) -> None:
     for name, node in m.nodes.items():
         for i, ep in enumerate(node.listen):
             where = f"$.nodes.{name}.listen[{i}]"
-            _check_endpoint(ep, where)
+            check_endpoint(ep, where)
             ep = node.listen[i] = _link_endpoint(ep, mtls, why, where)
             if ep in seen:
                 raise ConfigError(f"endpoint {ep!r} is also listened on by {seen[ep]}", where)
             seen[ep] = name
         for i, ep in enumerate(node.connect):
             where = f"$.nodes.{name}.connect[{i}]"
-            _check_endpoint(ep, where)
+            check_endpoint(ep, where)
             node.connect[i] = _link_endpoint(ep, mtls, why, where)
     # One dialer per pair (zplatform.runtime.transport.dial_ranks): two nodes that
     # dial each other can leave their zenoh session split after a stall.
@@ -404,6 +404,20 @@ def _check_ground(m: Mission) -> None:
             raise ConfigError(f"{r!r}: expected NAME or NAME#KEY_ID (1..65535)", where)
     if len(set(g.approving_roles)) != len(g.approving_roles):
         raise ConfigError("a role is listed twice", "$.ground.approving_roles")
+    seen_routers: set[str] = set(m.nodes)
+    for i, rt in enumerate(g.routers):
+        where = f"$.ground.routers[{i}]"
+        if not _IDENT_RE.fullmatch(rt.name):
+            raise ConfigError(f"name {rt.name!r} must match {_IDENT_RE.pattern}", where + ".name")
+        _new_name(rt.name, seen_routers, "router or node", where + ".name")
+        if not rt.listen and not rt.connect:
+            raise ConfigError(f"router {rt.name!r} neither listens nor connects", where)
+        for field, eps in (("listen", rt.listen), ("connect", rt.connect)):
+            for j, ep in enumerate(eps):
+                check_endpoint(ep, f"{where}.{field}[{j}]")
+    for i, st in enumerate(g.stations):
+        for j, ep in enumerate(st.connect):
+            check_endpoint(ep, f"$.ground.stations[{i}].connect[{j}]")
 
 
 def _check_failover(m: Mission) -> None:
@@ -452,7 +466,7 @@ def _check_failover(m: Mission) -> None:
 _ENDPOINT_RE = re.compile(r"^(tcp|udp|tls|quic|unixsock-stream|ws)/(.+)$")
 
 
-def _check_endpoint(ep: str, where: str) -> None:
+def check_endpoint(ep: str, where: str) -> None:
     m = _ENDPOINT_RE.fullmatch(ep)
     if m is None:
         raise ConfigError(

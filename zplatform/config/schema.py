@@ -1350,6 +1350,41 @@ class StationConfig(_Struct):
             "keygen`) to replace a lost station key; the old one no longer verifies.",
         ),
     ] = 1
+    connect: Annotated[
+        list[str],
+        Meta(
+            description="Where this station's tools connect (`--station NAME`): its router's "
+            "`listen`; empty: to every node, as any tool does."
+        ),
+    ] = msgspec.field(default_factory=list)
+
+
+class RouterConfig(_Struct):
+    """One zenoh router between the vehicle and the stations
+    (`zplatform router MISSION --name NAME`, or started by `up`): it forwards
+    the stations' subscriptions, requests and queries and fans the CN's
+    telemetry out, so the vehicle publishes once whatever the number of
+    stations (docs/deployment.md)."""
+
+    name: Annotated[
+        str,
+        Meta(description="The router's name: `[a-z][a-z0-9_]*`, at most 32 characters."),
+    ]
+    listen: Annotated[
+        list[str],
+        Meta(description="Endpoints it listens on (stations and other routers connect here)."),
+    ] = msgspec.field(default_factory=list)
+    connect: Annotated[
+        list[str],
+        Meta(
+            description="Endpoints it connects to: the control node's `listen` (a pad "
+            "router), or another router's (a control-room router across the WAN)."
+        ),
+    ] = msgspec.field(default_factory=list)
+    start: Annotated[
+        bool,
+        Meta(description="Whether `zplatform up` starts it on this host (off: it runs elsewhere)."),
+    ] = True
 
 
 class OperatorConfig(_Struct):
@@ -1419,6 +1454,10 @@ class GroundConfig(_Struct):
             description="Revoked operator keys: `NAME` (every key of that operator) or "
             "`NAME#KEY_ID` (one key). A CN-side change: the vehicle is not re-keyed."
         ),
+    ] = msgspec.field(default_factory=list)
+    routers: Annotated[
+        list[RouterConfig],
+        Meta(description="The zenoh routers between the vehicle and the stations."),
     ] = msgspec.field(default_factory=list)
     single_operator: Annotated[
         bool,

@@ -24,11 +24,12 @@ from __future__ import annotations
 import os
 import time
 from collections.abc import Callable, Sequence
-from typing import Literal
+from typing import Any, Literal
 
 import zenoh
 
 from ..config import Mission
+from ..control.authority import ARM_WINDOW_NS, Signer
 from ..control.handoff import Mailbox, Waker
 from ..control.intake import TelemetryIntake
 from ..control.uplink import CheckedCommand, ScriptCommand, validate_command
@@ -90,6 +91,14 @@ def max_age_ns_from_env(mission: Mission) -> int:
     return int(ms * 1_000_000)
 
 
+def _station_router(mission: Mission, signer: Signer | None) -> list[str] | None:
+    """The router endpoints of ``signer``'s station (None: none listed)."""
+    if signer is None or mission.ground is None:
+        return None
+    st = next((s for s in mission.ground.stations if s.name == signer.station), None)
+    return list(st.connect) if st is not None and st.connect else None
+
+
 class GroundLink:
     """One zenoh session driving one :class:`GroundLogic` (module doc).
 
@@ -104,6 +113,10 @@ class GroundLink:
     (a ``script`` implies ``commands``). ``on_event`` gets every event record
     in the caller's thread. ``announce=False``: declare the node's liveliness
     token later (:meth:`announce`), after some set-up of the caller's.
+    ``signer``: the operator and station its requests name and are tagged
+    by (a mission with ``ground:``; :func:`zplatform.ground.identity.station_signer`),
+    who also keeps the command lock while they hold it
+    (:class:`~.logic.GroundLogic`'s ``renew_lock``).
 
     With authentication the link is bound to the commander's run
     (:attr:`run`), learned from its answer to a run hello
@@ -132,6 +145,7 @@ class GroundLink:
         on_event: Callable[[EventRecord], None] | None = None,
         clock: NodeClock | None = None,
         announce: bool = True,
+        signer: Signer | None = None,
     ) -> None:
         self.mission = mission
         if keys == "mission":
@@ -150,9 +164,16 @@ class GroundLink:
             max_age_ns=max_age_ns_from_env(mission),
             script=script,
             run=self.run,
+            signer=signer,
         )
         self.on_event = on_event
-        self.ns = NodeSession(mission, node, announce=False, commands=bool(commands or script))
+        # A station with a router (ground.stations[].connect) reaches the
+        # vehicle through it, as a zenoh client of that router alone.
+        via = _station_router(mission, signer) if node is None else None
+        overrides: dict[str, Any] = {"via": via} if via else {}
+        self.ns = NodeSession(
+            mission, node, announce=False, commands=bool(commands or script), **overrides
+        )
         self.keys = self.ns.keys
         session = self.ns.session
         # One mailbox per kind (module doc), one waker for the caller's thread.
@@ -432,8 +453,14 @@ class GroundLink:
         *,
         armed: bool = False,
         timeout_s: float = 10.0,
+        on_approval: Callable[[int], None] | None = None,
     ) -> list[CommandOutcome]:
         """Send one operator command and wait for its outcome(s). Blocks.
+
+        An armed two-person command (``ground.two_person``) waits after its
+        ARM for a second operator's approval, up to the ARM's window more
+        than ``timeout_s``; ``on_approval`` is told the ARM's number once
+        then (to say who must approve what).
 
         ``command``: its name, with ``element`` and ``value`` where it takes
         them, refused before sending (CommandError) when
@@ -453,11 +480,22 @@ class GroundLink:
         self.wait_cn_listening(timeout_s)
         ticket = self.submit(checked, armed=armed)
         deadline = time.monotonic() + timeout_s
+        told = False
         while (done := self.logic.result(ticket)) is None:
+            if not told and (arm := self.logic.awaiting_approval) is not None:
+                told = True
+                deadline += ARM_WINDOW_NS / 1e9
+                if on_approval is not None:
+                    on_approval(arm)
             if time.monotonic() > deadline:
                 steps = " then ".join(self.logic.steps(ticket))
                 raise CommandError(f"no verdict for {steps} within {timeout_s:g} s")
-            self.next(0.05)
+            # One item at a time: the outcome is released by the CN's event
+            # (its reason) after the verdict's snapshot, and is returned then,
+            # not with the next snapshot a loop later (next() would wait for it).
+            item = self._pop(min(deadline, time.monotonic() + 0.05))
+            if item is not None:
+                self._take(*item)
         return done
 
     # -- taps and liveliness -------------------------------------------------

@@ -28,7 +28,7 @@ from typing import NamedTuple
 import msgspec
 
 from ..config import STANDBY, Mission
-from ..control.authority import Signer
+from ..control.authority import ARM_WINDOW_NS, Signer, two_person_targets
 from ..control.commands import protected_elements
 from ..control.uplink import CheckedCommand, ScriptCommand, Uplink, validate_command
 from ..core.auth import TAG_LEN, AuthError, KeySet, Run, RunError, channel, link_of
@@ -57,6 +57,8 @@ REASON_GRACE_NS = 500_000_000
 
 _U64 = struct.Struct("<Q")
 _U32 = struct.Struct("<I")
+_RENEWAL = "lock renewal"
+"""The source of the LOCKs :class:`GroundLogic` sends to keep its lease."""
 _CMD_EVENTS = 64  # recent cmd_accepted/cmd_rejected events kept for matching
 _GAPS_KEPT = 256
 
@@ -149,12 +151,13 @@ class _Tally(msgspec.Struct):
 class _Plan:
     """One operator command: its steps (ARM first when armed), its outcomes."""
 
-    __slots__ = ("open", "outcomes", "sent", "source", "steps", "ticket")
+    __slots__ = ("approval", "open", "outcomes", "sent", "source", "steps", "ticket")
 
     def __init__(self, ticket: int, steps: list[tuple[str, int, float]], source: str) -> None:
         self.ticket = ticket
         self.steps = steps
         self.source = source
+        self.approval = False  # its command waits for its ARM's approval (two-person)
         self.sent = 0  # steps sent so far
         self.open = True  # more steps may still be sent
         self.outcomes: list[CommandOutcome] = []
@@ -166,6 +169,7 @@ class _Request:
     __slots__ = (
         "cmd",
         "epoch",
+        "holder",
         "index",
         "loop",
         "plan",
@@ -197,6 +201,7 @@ class _Request:
         self.rx = 0
         self.state = ""
         self.shown_seq = 0
+        self.holder = ""  # REJECTED_NOT_HOLDER: who held the lock at the verdict
         self.reason = ""
         self.reason_from = ""
 
@@ -220,7 +225,16 @@ class GroundLogic:
     taken while it is unknown (:attr:`waiting_for_run`); None: bound to none
     (every run's authentic frame is taken, ordered by the run it names).
     ``signer``: the operator and station its requests name and are signed
-    by (a mission with ``ground:``, :class:`~zplatform.control.uplink.Uplink`).
+    by (a mission with ``ground:``, :class:`~zplatform.control.uplink.Uplink`);
+    every outcome then names them (:attr:`CommandOutcome.operator`).
+    ``renew_lock``: with a signer, in a mission with command authority, keep
+    the command lock while this station's operator holds it (docs/security.md
+    #stations-and-operators): when a snapshot shows less than half the lease
+    left and nothing waits for a verdict, a LOCK renews it (counted in
+    :attr:`lock_renewals`; not while an ARM of this station may still be
+    followed by its command, which a LOCK between would void). It stops by
+    itself when the operator releases or hands the lock over, or when the
+    driver stops calling (the station shut down: the lease then runs out).
     """
 
     def __init__(
@@ -236,9 +250,12 @@ class GroundLogic:
         reason_grace_ns: int = REASON_GRACE_NS,
         run: Run | None = None,
         signer: Signer | None = None,
+        renew_lock: bool = True,
     ) -> None:
         self.mission = mission
         self.run = run
+        self.operator = f"{signer.operator}@{signer.station}" if signer is not None else ""
+        """``operator@station`` this ground's requests name ("" without a signer)."""
         self.node = node
         self.layout = Layout.for_node(mission, "cn")
         self.dv = DataVector(self.layout)
@@ -304,6 +321,35 @@ class GroundLogic:
         self.outcomes: list[CommandOutcome] = []
         """Every released outcome, in verdict order."""
         self.player = ScriptPlayer(mission, script) if script else None
+        # The command lock's lease (renew_lock): whose it is, when it ends.
+        g = mission.ground
+        self._renew: tuple[int, int, int] | None = None
+        if renew_lock and signer is not None and g is not None and mission.authority:
+            ops = [o.name for o in g.operators]
+            sts = [s.name for s in g.stations]
+            if signer.operator in ops and signer.station in sts:  # else Uplink refused it
+                self._renew = (
+                    ops.index(signer.operator) + 1,
+                    sts.index(signer.station) + 1,
+                    int(g.lease_s * 1_000_000_000),
+                )
+                self._h_holder = h("cn_lock_holder")
+                self._h_lstation = h("cn_lock_station")
+                self._h_until = h("cn_lock_until_ns")
+        self._lock_h = (h("cn_lock_holder"), h("cn_lock_station")) if mission.authority else None
+        # The two-person rule (ground.two_person): an armed command of these
+        # waits for its ARM's approval before it goes (GroundLogic.submit).
+        two_cmds, two_names = two_person_targets(mission)
+        self._two_cmds = two_cmds
+        self._two_elems = frozenset(
+            self.layout.element(n).index for n in two_names if n in self.layout.elements
+        )
+        self._h_approvals = h("cn_arm_approvals") if mission.authority else None
+        self._arm_until = 0  # the snapshot time up to which an ARM of ours may be followed
+        self.lock_renewals = 0
+        """LOCK renewals sent (``renew_lock``)."""
+        self.lock_renewals_refused = 0
+        """Renewals whose verdict was not ACCEPTED (the lock had moved on)."""
 
     # -- telemetry -----------------------------------------------------------
     @property
@@ -616,6 +662,7 @@ class GroundLogic:
         ticket = self._next_ticket
         self._next_ticket += 1
         plan = _Plan(ticket, steps, source)
+        plan.approval = armed and self._h_approvals is not None and self._two_person(checked)
         self._plans.append(plan)
         self._tickets[ticket] = plan
         self._dispatch(now_ns, can_send)
@@ -645,17 +692,51 @@ class GroundLogic:
         out, self._out = self._out, []
         return out
 
+    def _two_person(self, checked: CheckedCommand) -> bool:
+        """Whether ``checked`` needs its ARM approved (``ground.two_person``)."""
+        if checked.command in self._two_cmds:
+            return True
+        return checked.command in ("WRITE", "PRM_SET") and checked.element in self._two_elems
+
+    @property
+    def awaiting_approval(self) -> int | None:
+        """The number of this ground's accepted ARM whose two-person command
+        waits for a second operator's APPROVE (None: nothing waits)."""
+        plan = self._plans[0] if self._plans else None
+        if plan is None or not plan.approval or plan.sent != 1 or not plan.outcomes:
+            return None
+        return plan.outcomes[0].seq
+
+    def partial(self, ticket: int) -> list[CommandOutcome]:
+        """The outcomes of ``ticket`` released so far (the ARM's, while its
+        command waits)."""
+        plan = self._tickets.get(ticket)
+        return list(plan.outcomes) if plan is not None else []
+
     def _dispatch(self, rx_ns: int, can_send: bool) -> None:
-        """Send the next queued step when nothing waits for a verdict."""
+        """Send the next queued step when nothing waits for a verdict (nor, for
+        a two-person command, for its ARM's approval: until a snapshot shows
+        one, or the ARM's window has passed, when the CN will refuse it)."""
         if self._inflight is not None or not self._plans or not can_send or self._epoch < 0:
             return
         plan = self._plans[0]
+        if (
+            plan.approval
+            and plan.sent == 1
+            and self._h_approvals is not None
+            and not self._h_approvals.get()
+            and self._last_t < self._arm_until
+        ):
+            return
         step = plan.steps[plan.sent]
         plan.sent += 1
         if plan.sent == len(plan.steps):
             self._plans.popleft()
             plan.open = False
-        seq = max(int(self._h_seq.get()), self._last_sent) + 1
+        # Above every number the CN showed, refused ones too: its intake
+        # admits each number once, so a number another station's refused
+        # request used (cn_cmd_reject_seq) would come back REJECTED_REPLAY.
+        seq = max(int(self._h_seq.get()), int(self._h_rseq.get()), self._last_sent) + 1
         r = _Request(plan, step, seq, self._epoch, int(self._h_loop.get()))
         r.rejects0 = int(self._h_rejects.get())
         self._last_sent = seq
@@ -699,13 +780,43 @@ class GroundLogic:
         self._release(rx_ns)
         if self.player is not None:
             self.player.step(self, int(self._h_loop.get()), rx_ns, can_send)
+        if self._renew is not None:
+            self._renew_lock(rx_ns, can_send)
         self._dispatch(rx_ns, can_send)
+
+    def _renew_lock(self, rx_ns: int, can_send: bool) -> None:
+        """Queue a LOCK when this station's operator holds the lock and less
+        than half the lease is left (class doc): never while another request
+        is queued or waits for its verdict, nor while an ARM of ours is open."""
+        assert self._renew is not None
+        op, st, lease = self._renew
+        if not can_send or not self.idle or self._last_t < self._arm_until:
+            return
+        if self._h_holder.get() != op or self._h_lstation.get() not in (0, st):
+            return
+        if int(self._h_until.get()) - self._last_t >= lease // 2:
+            return
+        self.lock_renewals += 1
+        self._queue(CheckedCommand("LOCK", 0, 0.0), rx_ns, False, _RENEWAL, can_send)
 
     def _decide(
         self, r: _Request, status: str, loop: int, rx_ns: int, ground_reason: str = ""
     ) -> None:
         r.status, r.loop, r.rx = status, loop, rx_ns
         r.state = self._h_state.spec.name_of(self._h_state.get())
+        if self._lock_h is not None and status == "REJECTED_NOT_HOLDER":
+            # Who holds the lock, as the verdict's snapshot shows it: the
+            # reason when the CN's event (evented at most once a second) is not there.
+            holder, station = self._lock_h
+            who = holder.spec.name_of(holder.get())
+            where = station.spec.name_of(station.get())
+            r.holder = "" if who == "NONE" else who if where == "NONE" else f"{who}@{where}"
+        if status == "ACCEPTED":
+            # An accepted ARM may be followed by its command within the window
+            # (no renewal in between); any later accepted request closes it.
+            self._arm_until = self._last_t + ARM_WINDOW_NS if r.cmd == "ARM" else 0
+        elif r.plan.source == _RENEWAL:
+            self.lock_renewals_refused += 1
         r.shown_seq = int(self._h_seq.get())
         if ground_reason:
             r.reason, r.reason_from = ground_reason, "ground"
@@ -749,9 +860,15 @@ class GroundLogic:
                 r.plan.source,
                 r.reason,
                 r.reason_from,  # type: ignore[arg-type]
+                self.operator,
             )
             r.plan.outcomes.append(o)
-            self.outcomes.append(o)
+            if r.plan.source == _RENEWAL:
+                # Nobody waits for a renewal's ticket: forget it (a long
+                # session renews every half lease).
+                self._tickets.pop(r.plan.ticket, None)
+            else:
+                self.outcomes.append(o)
             released = True
         player = self.player
         if released and player is not None and player.done(self):
@@ -840,5 +957,11 @@ def _derived(r: _Request) -> tuple[str, str]:
             f"the parameter may not change in state {r.state} (the state its verdict showed)"
         ),
         "REJECTED_BUSY": "the previous PRM_SAVE was still being written",
+        "REJECTED_NOT_HOLDER": (
+            f"{r.holder} holds the command lock"
+            if r.holder
+            else "nobody holds the command lock: LOCK first"
+        ),
+        "REJECTED_VIEW_ONLY": "the operator or the station may only view",
     }.get(r.status, "")
     return why, ("derived" if why else "")

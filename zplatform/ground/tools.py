@@ -16,12 +16,13 @@ import queue
 import sys
 import threading
 import time
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from typing import TextIO
 
 import msgspec
 
 from ..config import Mission
+from ..control.authority import Signer
 from ..control.params import ParamFileError, decode_params, params_path, read_params_file
 from ..control.uplink import CheckedCommand, validate_command, validate_words
 from ..errors import CommandError, ZPlatformError
@@ -84,21 +85,40 @@ def send_command(
     armed: bool = False,
     timeout_s: float = 10.0,
     key_file: str | None = None,
+    signer: Signer | None = None,
 ) -> tuple[list[CommandOutcome], list[str]]:
     """Send one operator command and wait for its verdict(s) (``zplatform cmd``).
 
     Returns the outcomes and the steps the command meant to send (``["ARM",
     "LAUNCH"]`` armed). Refuses before opening a session (CommandError) what
     :func:`check_command` refuses; CommandError when telemetry, the CN or a
-    verdict does not come within ``timeout_s`` (saying why).
+    verdict does not come within ``timeout_s`` (saying why). ``signer``:
+    the operator and station the requests name (a mission with ``ground:``).
     """
     checked = check_command(mission, command, args, armed=armed, arm_hint="--arm")
-    link = GroundLink(mission, key_file=key_file, commands=True)
+    link = GroundLink(mission, key_file=key_file, commands=True, signer=signer)
     try:
-        outcomes = link.command(checked, armed=armed, timeout_s=timeout_s)
+        outcomes = link.command(
+            checked, armed=armed, timeout_s=timeout_s, on_approval=_approval_hint(mission)
+        )
         return outcomes, _steps(command, armed)
     finally:
         link.close()
+
+
+def approval_line(mission: Mission, arm: int) -> str:
+    """What an operator is told while their two-person command waits."""
+    return (
+        f"ARM #{arm} accepted: waiting for a second operator's approval "
+        f"(`zplatform cmd {mission.mission} approve {arm} --operator NAME --station NAME`)"
+    )
+
+
+def _approval_hint(mission: Mission, out: TextIO | None = None) -> Callable[[int], None]:
+    def tell(arm: int) -> None:
+        print(approval_line(mission, arm), file=out or sys.stdout, flush=True)
+
+    return tell
 
 
 class ParamListing(msgspec.Struct, frozen=True):
@@ -172,6 +192,7 @@ def set_param(
     save: bool = False,
     timeout_s: float = 10.0,
     key_file: str | None = None,
+    signer: Signer | None = None,
 ) -> tuple[list[str], bool]:
     """``zplatform params MISSION NAME VALUE [--arm] [--save]``: PRM_SET
     (ARM n first when ``armed``), then with ``save`` PRM_SAVE, and wait
@@ -192,7 +213,9 @@ def set_param(
     if save:
         prm_save = validate_command(mission, "prm_save")
     events: list[EventRecord] = []
-    link = GroundLink(mission, key_file=key_file, commands=True, on_event=events.append)
+    link = GroundLink(
+        mission, key_file=key_file, commands=True, on_event=events.append, signer=signer
+    )
     lines: list[str] = []
     try:
         if prm_set is not None:
@@ -260,17 +283,22 @@ def run_prompt(
     timeout_s: float = 10.0,
     lines: Iterable[str] = sys.stdin,
     out: TextIO = sys.stdout,
+    signer: Signer | None = None,
 ) -> int:
     """The line prompt: a status line every ``interval_s`` (:func:`status_line`
     with ``watch``'s elements), every event as it comes, one command per
     line (``armed COMMAND [ARGS]`` for ARM n, then COMMAND n+1), until
-    ``quit``, the end of ``lines`` or Ctrl-C. Blocks; returns 0.
+    ``quit``, the end of ``lines`` or Ctrl-C. Blocks; returns 0. ``signer``:
+    who commands (a mission with ``ground:``); the prompt keeps their command
+    lock while they hold it, until they release it or the prompt ends.
 
     A reader thread only queues lines; this thread owns the link. Unknown
     ``watch`` elements fail at once (DataVectorError naming them).
     """
     watch = list(watch)
-    link = GroundLink(mission, commands=True, on_event=lambda rec: _print_event(out, rec))
+    link = GroundLink(
+        mission, commands=True, on_event=lambda rec: _print_event(out, rec), signer=signer
+    )
     try:
         for name in watch:
             link.dv.layout.element(name)
@@ -319,6 +347,14 @@ def _prompt_command(
         if not words:
             print("refused: armed needs a COMMAND (armed launch)", file=out, flush=True)
             return
+    if mission.authority and not link.logic.operator:
+        print(
+            "refused: this mission has command authority (ground:): start the prompt with "
+            "--operator NAME --station NAME to command",
+            file=out,
+            flush=True,
+        )
+        return
     try:
         checked = check_command(
             mission, words[0], words[1:], armed=armed, arm_hint=f"armed {' '.join(words)}"
@@ -327,7 +363,9 @@ def _prompt_command(
         print(f"refused: {exc}", file=out, flush=True)
         return
     try:
-        outcomes = link.command(checked, armed=armed, timeout_s=timeout_s)
+        outcomes = link.command(
+            checked, armed=armed, timeout_s=timeout_s, on_approval=_approval_hint(mission, out)
+        )
     except ZPlatformError as exc:
         print(f"error: {exc}", file=out, flush=True)
         return

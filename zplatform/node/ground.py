@@ -26,6 +26,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Protocol
 
 from ..config import Mission
+from ..control.authority import Signer
 from ..control.handoff import Mailbox
 from ..control.uplink import ScriptCommand
 from ..core.datavector import DataVector, Layout
@@ -57,6 +58,7 @@ def run_ground_logger(
     script: list[ScriptCommand] | None = None,
     key_file: str | None = None,
     events_out: str | Path | None = None,
+    signer: Signer | None = None,
 ) -> GnSummary:
     """Log accepted telemetry snapshots to ``out_csv`` until stopped or
     ``duration_s``. Blocks; returns the summary.
@@ -68,11 +70,13 @@ def run_ground_logger(
     published); otherwise as a tool connected to every node. ``idle_exit_s``:
     stop when no telemetry was accepted for this long *after* some was (the
     CN finished). ``script``: commands to play (the ground node under ``up
-    --commands``).
+    --commands``). ``signer``: the operator and station the script's
+    requests name (a mission with ``ground:``), who keeps the command lock
+    while they hold it (:class:`~zplatform.ground.logic.GroundLogic`).
     """
     stop = stop or StopFlag()
     node = "gn" if as_node and mission.has_ground else None
-    link = GroundLink(mission, node=node, key_file=key_file, script=script or ())
+    link = GroundLink(mission, node=node, key_file=key_file, script=script or (), signer=signer)
     logic = link.logic
     try:
         tlog = TelemetryLog(logic.layout, out_csv, events_out)

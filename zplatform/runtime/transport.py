@@ -283,8 +283,15 @@ def zenoh_config(
     lowlatency: bool | None = None,
     shared_memory: bool | None = None,
     deployment: Deployment | None = None,
+    via: list[str] | None = None,
 ) -> zenoh.Config:
     """A peer config for ``node`` (``None``: a tool connecting to every node).
+
+    ``via`` (a tool only): a station's router endpoints
+    (``ground.stations[].connect``): the tool is then a zenoh *client* of
+    that router alone, and reaches the vehicle through it
+    (:mod:`zplatform.runtime.router`); ``tcp/`` runs as ``tls/`` in a mission
+    with mutual TLS.
 
     ``lowlatency``/``shared_memory`` override the mission's transport section
     (benchmark variants); the ground node's (:data:`GROUND_NODE`) shared
@@ -297,9 +304,14 @@ def zenoh_config(
     """
     t = mission.transport
     cfg = zenoh.Config()
-    _insert(cfg, "mode", "peer")
-    if node is None:
-        listen: list[str] = []
+    if via is not None and node is not None:
+        raise TransportError(f"node {node!r} connects by its own endpoints, not through a router")
+    _insert(cfg, "mode", "peer" if via is None else "client")
+    listen: list[str] = []
+    connect: list[str]
+    if via is not None:
+        connect = ["tls/" + ep[4:] if mission.mtls and ep.startswith("tcp/") else ep for ep in via]
+    elif node is None:
         connect = [ep for n in mission.nodes.values() for ep in n.listen]
     else:
         if node not in mission.nodes:

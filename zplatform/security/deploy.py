@@ -22,6 +22,7 @@ Format, rules and the ACL per role: docs/security.md#tls-and-access-control.
 from __future__ import annotations
 
 import os
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any, TypeVar
 
@@ -32,6 +33,7 @@ from ..errors import ConfigError
 
 __all__ = [
     "DEPLOYMENT_ENV",
+    "ROUTER",
     "TOOL",
     "Deployment",
     "DeploymentError",
@@ -45,6 +47,7 @@ __all__ = [
     "find_deployment",
     "load_deployment",
     "require_deployment",
+    "router_rules",
     "tls_nodes",
     "tls_settings",
     "tool_watch_keys",
@@ -56,6 +59,9 @@ DEPLOYMENT_ENV = "ZPLATFORM_DEPLOYMENT"
 _T = TypeVar("_T")
 TOOL = "tool"
 """Common name (and ACL subject) of the identity non-node tools present."""
+ROUTER = "router"
+"""Common name (and ACL subject) of the identity every zenoh router of the
+mission presents (``ground.routers``; :mod:`zplatform.runtime.router`)."""
 
 _TLS_PROTOS = ("tls/",)
 
@@ -476,6 +482,15 @@ def access_control(mission: Mission, dep: Deployment) -> dict[str, Any]:
     if dep.tool is not None and dep.tool.may_command and mission.has_ground:
         tool_rules.append(rule("tool-command", ["put"], [f"{v}/gn/to_cn"]))
     policies.append({"id": f"p-{TOOL}", "rules": tool_rules, "subjects": [f"s-{TOOL}"]})
+    if mission.ground is not None and mission.ground.routers:
+        known.append(ROUTER)
+        policies.append(
+            {
+                "id": f"p-{ROUTER}",
+                "rules": router_rules(mission, rule, common),
+                "subjects": [f"s-{ROUTER}"],
+            }
+        )
     subjects = [{"id": f"s-{k}", "cert_common_names": [k]} for k in known]
     return {
         "enabled": True,
@@ -484,6 +499,48 @@ def access_control(mission: Mission, dep: Deployment) -> dict[str, Any]:
         "subjects": subjects,
         "policies": policies,
     }
+
+
+def router_rules(mission: Mission, rule: Callable[..., str], common: list[str]) -> list[str]:
+    """A router's rules (what any node or router takes from one): forwarding
+    only, the stations' side of the key space and the vehicle's answers to
+    it. It may carry telemetry, events, the downlink and the sync taps
+    (:func:`tool_watch_keys`) and the stations' requests (``gn/to_cn``), the
+    subscriptions to them, run hellos, recorder and archive queries and their
+    replies, and liveliness tokens; never a device node's sync key, a sync
+    query, a probe, the mirror or a bulk channel, so a router (or whoever
+    holds its key) can neither drive the vehicle's loop nor pose as a node.
+    ``rule`` adds one rule and returns its id (:func:`access_control`)."""
+    v = mission.vehicle
+    recorder = "cn" in mission.recording_nodes
+    archive = [f"{v}/archive/query"] if mission.has_ground and mission.archive.enabled else []
+    carried = [*tool_watch_keys(mission), *([f"{v}/gn/to_cn"] if mission.has_ground else [])]
+    served = [f"{v}/cn/clock", *([f"{v}/cn/recorder"] if recorder else []), *archive]
+    alive = [f"{v}/*/alive", f"{v}/*/standby"]
+    # Both ways (egress too, unlike a node's policy): in zenoh's router mode
+    # a router's subscriptions are not the only thing that routes samples to
+    # it, so what a node sends a router is bounded here as well.
+    both = ["ingress", "egress"]
+    return [
+        *(c for c in common if c != "egress-all"),  # its own egress rules below
+        *(
+            rule(f"{ROUTER}-{what}-{flow}", messages, keys, flow)
+            for flow in both
+            for what, messages, keys in (
+                ("put", ["put"], carried),
+                ("watch", ["declare_subscriber"], carried),
+                ("serve", ["declare_queryable", "reply"], served),
+                ("ask", ["query"], served),
+                ("alive", ["liveliness_token"], alive),
+            )
+        ),
+        rule(
+            f"{ROUTER}-liveliness-egress",
+            ["declare_liveliness_subscriber", "liveliness_query"],
+            alive,
+            "egress",
+        ),
+    ]
 
 
 def zenoh_settings(mission: Mission, dep: Deployment, node: str | None) -> dict[str, Any]:

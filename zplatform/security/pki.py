@@ -31,7 +31,7 @@ from typing import Any
 import msgspec
 
 from ..config import Mission
-from .deploy import TOOL, DeploymentError, default_deployment_path
+from .deploy import ROUTER, TOOL, DeploymentError, default_deployment_path
 
 __all__ = [
     "DEPLOYMENT_FILE",
@@ -288,7 +288,11 @@ def ensure_mission_pki(mission: Mission, directory: str | Path | None = None) ->
         if directory is not None
         else default_deployment_path(mission)
     )
-    made = ensure_pki(path.parent, list(mission.nodes), ca_name=f"zplatform {mission.mission} CA")
+    # The mission's routers (ground.routers) share one identity, ROUTER.
+    routers = [ROUTER] if mission.ground is not None and mission.ground.routers else []
+    made = ensure_pki(
+        path.parent, [*mission.nodes, *routers], ca_name=f"zplatform {mission.mission} CA"
+    )
     raw = _read_deployment(path)
     nodes = raw.get("nodes")
     return MissionPki(

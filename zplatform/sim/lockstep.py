@@ -31,6 +31,7 @@ import numpy as np
 
 from ..boards import Board
 from ..config import BulkChannelConfig, Mission
+from ..control.authority import Signer
 from ..control.failover import Standby
 from ..control.intake import CnRefusals, TriggerIntake
 from ..control.loop import ControlLogic, DeviceLogic
@@ -331,6 +332,8 @@ class LockstepRunner:
     faults through them); ``health`` gives some nodes a health port (a
     :class:`~zplatform.core.health.FakeHealth`: deterministic values, an injected
     stall; without one a node's health elements keep their initial values).
+    ``signer``: the operator and station the ground's requests name (a
+    mission with ``ground:``; :class:`~zplatform.ground.logic.GroundLogic`).
     A mission with a vehicle world gets one
     :class:`~zplatform.world.model.World` in this process (:attr:`world`), and
     every node it spans a port onto it, whatever that node's board driver
@@ -348,6 +351,7 @@ class LockstepRunner:
         start_ns: int = DEFAULT_START_NS,
         boards: dict[str, Board] | None = None,
         health: dict[str, HealthPort] | None = None,
+        signer: Signer | None = None,
     ) -> None:
         self.mission = mission
         self.start_ns = start_ns
@@ -404,6 +408,7 @@ class LockstepRunner:
             keys=ground_keys,
             script=commands or [],
             run=self._ground_asker.run if self._ground_asker is not None else None,
+            signer=signer,
         )
         # The sync query's form, as the live CN chooses it (transport.sync_query).
         self._bundle = BundleEncoder() if wildcard_sync_for(mission) else None

@@ -106,6 +106,8 @@ class CommandOutcome(msgspec.Struct, frozen=True):
     derived it from the verdict snapshot, ``"ground"`` for the ground's own
     (``NO_VERDICT``), ``""`` when there is nothing to say (an ACCEPTED with
     no detail). ``source`` is the script line (``file:line``), if any.
+    ``operator``: ``operator@station`` the request named (a mission with
+    ``ground:``; "" when it named nobody).
     """
 
     command: str
@@ -116,6 +118,7 @@ class CommandOutcome(msgspec.Struct, frozen=True):
     source: str = ""
     reason: str = ""
     reason_from: Literal["cn", "derived", "ground", ""] = ""
+    operator: str = ""
 
     @property
     def accepted(self) -> bool:
@@ -125,9 +128,11 @@ class CommandOutcome(msgspec.Struct, frozen=True):
 def format_outcome(o: CommandOutcome) -> str:
     """One line for the operator: ``LAUNCH #2: ACCEPTED``, ``WRITE #4:
     ACCEPTED (led_a_cmd = True)``, ``NOOP #3: REJECTED_NOT_ALLOWED: not
-    allowed in state B``; a derived reason says so."""
-    text = f"{o.command} #{o.seq}: {o.status}"
-    if not o.reason:
+    allowed in state B``; ``LOCK #5 by pat@pad: ACCEPTED`` when the request
+    named its operator; a derived reason says so."""
+    by = f" by {o.operator}" if o.operator else ""
+    text = f"{o.command} #{o.seq}{by}: {o.status}"
+    if not o.reason or (by and o.reason == by[1:]):  # the CN's detail names them too
         return text
     text += f" ({o.reason})" if o.accepted else f": {o.reason}"
     if o.reason_from == "derived":
