@@ -37,6 +37,18 @@ every end of every variant runs at that priority.
 
 Run ``python -m bench.intrahost [--quick] [--priority P] [--json PATH]``; results go to
 ``bench/results/intrahost.json``. Blocks about 70 s (``--quick``: 15 s).
+
+``--copies`` (results: ``bench/results/intrahost_copies.json``, a few
+seconds): the receiving end's copies, in one process over a real link, at
+325 KB and 4 MB: a tagged frame copied into the loaned sample, then the
+intake's check and the copy into a preallocated array (the Data Vector),
+``in_place`` (:meth:`~zplatform.control.intake.Intake.check_view`, the
+sync's path now) beside ``copy_out`` (the intake's ``to_bytes`` copy first,
+the path before). Per exchange: ``alloc_bytes`` (tracemalloc's peak above
+the start: a frame-sized figure is a copy), ``memcpy_bytes`` (the copies
+the path makes, counted), and the one-way time from the send until the
+frame is in the array (p50/p99, no pacing, no wake-up: the copies' and
+the tag's cost).
 """
 
 from __future__ import annotations
@@ -314,6 +326,9 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         default=20,
         help="SCHED_FIFO priority of this process and the responders (0: off), as bench.sync",
     )
+    ap.add_argument(
+        "--copies", action="store_true", help="the receiving end's copies alone (module doc)"
+    )
     ap.add_argument("--role", help=argparse_hidden())
     ap.add_argument("--variant", help=argparse_hidden())
     args = ap.parse_args(argv)
@@ -322,6 +337,16 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         PREFIX = f"zpbench{os.getppid()}_"
         _responder_role(args.variant)
         return {}
+    if args.copies:
+        count = 50 if args.quick else 200
+        rows = run_copies(COPY_SIZES, count)
+        doc = write_result(
+            "intrahost_copies",
+            {"sizes": COPY_SIZES, "count": count, "notes": [run_copies.__doc__]},
+            rows,
+            args.json,
+        )
+        return doc
 
     rounds = 2 if args.quick else ROUNDS
     from bench.sync import inherit_fifo
@@ -454,6 +479,107 @@ def run_raw(variant: str, n: int, count: int, period_s: float = PERIOD_S) -> dic
             except OSError:
                 pass
     return {"samples_ns": samples, "lost": lost, "cpu_s": cpu}
+
+
+COPY_SIZES = {"325KB": 325_000, "4MB": 4_000_000}
+
+
+def run_copies(sizes: dict[str, int], count: int) -> dict[str, dict[str, Any]]:
+    """The receiving end's copies per exchange (module doc, ``--copies``):
+    ``{"in_place_325KB": {...}, "copy_out_325KB": {...}, ...}``. One process,
+    one real link (this run's prefix, removed after); blocks a few seconds."""
+    import tracemalloc
+
+    from zplatform.control.intake import Intake
+    from zplatform.core.auth import Channel
+    from zplatform.runtime.intrahost import IntraHostClient, IntraHostServer, link_names
+
+    class _AnyFresh(Intake[None]):
+        def _fresh(self, body: memoryview, handle: None) -> bool:
+            return True
+
+    class _CopyOut:  # main's _ViewPayload: to_bytes copies out of the segment
+        def __init__(self, view: memoryview) -> None:
+            self.view = view
+
+        def __len__(self) -> int:
+            return len(self.view)
+
+        def to_bytes(self) -> bytes:
+            return bytes(self.view)
+
+    key = bytes(range(32))
+    out_rows: dict[str, dict[str, Any]] = {}
+    for label, n in sizes.items():
+        names = link_names(f"copies{os.getpid()}", "bench", label, "cn", "dn0")
+        frame = bytes(Channel(key, "bench", "bench/copies").seal(os.urandom(n)))
+        intake = _AnyFresh("bench", len(frame), Channel(key, "bench", "bench/copies"))
+        client = IntraHostClient(names, len(frame), 8, prefix=PREFIX, check=False)
+        server = IntraHostServer(names, len(frame), 8, prefix=PREFIX, check=False)
+        dv_mv = memoryview(bytearray(n))
+        try:
+            args = (client, server, intake, frame, dv_mv, n)
+            for mode in ("in_place", "copy_out"):
+
+                def one(mode: str = mode, args: tuple[Any, ...] = args) -> int:
+                    return _copy_once(args, mode, _CopyOut)
+
+                for _ in range(5):
+                    one()
+                samples = [one() for _ in range(count)]
+                tracemalloc.start()
+                try:
+                    peaks = []
+                    for _ in range(5):
+                        base = tracemalloc.get_traced_memory()[0]
+                        tracemalloc.reset_peak()
+                        one()
+                        peaks.append(tracemalloc.get_traced_memory()[1] - base)
+                finally:
+                    tracemalloc.stop()
+                fig = summarize(samples)
+                fig["alloc_bytes"] = int(np.median(peaks))
+                # Counted: the loan's copy, the copy into the vector, and
+                # copy_out's to_bytes of the whole frame.
+                fig["memcpy_bytes"] = len(frame) + n + (len(frame) if mode == "copy_out" else 0)
+                out_rows[f"{mode}_{label}"] = fig
+        finally:
+            client.close()
+            server.close()
+    from zplatform.runtime.intrahost import remove_stale
+
+    remove_stale(PREFIX)
+    for path in _own_files():
+        try:
+            os.unlink(path)
+        except OSError:
+            pass
+    return out_rows
+
+
+def _copy_once(ends: tuple[Any, ...], mode: str, copy_out: Any) -> int:
+    """One exchange of :func:`run_copies`; returns ns from the send until the
+    frame is in the vector. ``ends``: client, server, intake, frame, the
+    vector (a memoryview) and the frame's body length."""
+    client, server, intake, frame, dv_mv, n = ends
+    buf = client.trigger(len(frame))
+    assert buf is not None
+    t0 = time.perf_counter_ns()
+    buf[:] = frame  # the sender's one copy into the loan
+    client.send()
+    view = server.wait(WAIT_S)
+    assert view is not None
+    if mode == "in_place":
+        data: Any = intake.check_view(view, None)
+    else:
+        data = intake.check(copy_out(view), None)
+    assert data is not None, "the frame's tag must check"
+    dv_mv[:] = memoryview(data)[:n]  # the decode's copy into the vector
+    t1 = time.perf_counter_ns()
+    server.respond(b"ok")
+    client.collect()
+    client.release()
+    return t1 - t0
 
 
 def _run_block(

@@ -560,6 +560,7 @@ class IntraHostServer(_End):
         except Exception as exc:
             raise IntraHostError(f"intra-host link {names.sync}: no waker ({exc!r})") from exc
         self._active: Any = None
+        self._held: Any = None  # the last trigger answered: its view lives until the next wait
         self._loan: Any = None
         #: Counters (never reset): triggers served, replies sent, triggers
         #: refused (longer than ``max_trigger``), superseded (a newer one came).
@@ -570,9 +571,12 @@ class IntraHostServer(_End):
 
     def wait(self, timeout_s: float) -> memoryview | None:
         """The next trigger, as a read-only view in shared memory valid until
-        :meth:`send` or the next :meth:`wait`; None after ``timeout_s``
-        without one. Blocks at most ``timeout_s``; never spins."""
-        self._active = self._loan = None
+        the next :meth:`wait` (or :meth:`poll`, :meth:`close`): the sample is
+        held after :meth:`send` too, so the DN's loop copies the trigger's
+        data into its Data Vector straight from it (the trigger's one copy
+        on this end); None after ``timeout_s`` without one. Blocks at most
+        ``timeout_s``; never spins."""
+        self._active = self._loan = self._held = None
         t_end = time.monotonic() + timeout_s
         iox = self._iox
         while True:
@@ -637,11 +641,12 @@ class IntraHostServer(_End):
         active, self._active = self._active, None
         if loan is None or active is None:
             return False
+        # Held (not dropped) until the next wait: its view stays valid.
+        self._held = active
         try:
             loan.assume_init().send()
         except Exception:  # SendError: the client dropped the request meanwhile
             return False
-        del active
         self._notifier.notify()
         self.replied += 1
         return True
@@ -655,6 +660,6 @@ class IntraHostServer(_End):
         return self.send()
 
     def close(self) -> None:
-        self._loan = self._active = None
+        self._loan = self._active = self._held = None
         self.__dict__.pop("_wake_notifier", None)
         super().close()
