@@ -19,6 +19,7 @@ from tests.intrahost_peer import leftovers, wipe
 from zplatform.errors import IntraHostError, ZPlatformError
 from zplatform.mission.load import decode_mission
 from zplatform.runtime import intrahost
+from zplatform.runtime.bulk import mission_shm_need
 from zplatform.runtime.intrahost import (
     IntraHostClient,
     IntraHostServer,
@@ -26,7 +27,6 @@ from zplatform.runtime.intrahost import (
     check_shm,
     link_names,
     mission_link_sizes,
-    mission_shm_need,
     segment_bytes,
 )
 
