@@ -1,22 +1,22 @@
-"""The intra-host carrier: one trigger frame to a device node and one reply
-back over iceoryx2 shared memory, for a CN and a DN on one host.
+"""The intra-host carrier: the sync's trigger and reply, and bulk channels'
+samples, over iceoryx2 shared memory between nodes of one host.
 
 :class:`IntraHostClient` (the CN's end) and :class:`IntraHostServer` (the
 DN's) move bytes only: frames, tags and freshness stay the sync's
-(``zplatform/runtime/sync.py``), as over zenoh. Each link is one iceoryx2
-request/response service and two event services that wake the other side
-(request/response ports cannot join a wait set); each side blocks in its
-event listener with a deadline, never spinning. A timeout is "no reply",
-counted; :attr:`IntraHostClient.state` says when the link has no peer or
-has stalled, so the sync can fall back to zenoh.
+(``zplatform/runtime/sync.py``). Each link is one request/response service
+and two event services that wake the other side (request/response ports
+cannot join a wait set); each side blocks in its listener with a deadline,
+never spinning. A timeout is "no reply", counted; :attr:`IntraHostClient.state`
+says when the link has no peer or has stalled, so the sync falls back to zenoh.
+:class:`IntraHostPublisher`/:class:`IntraHostSubscriber`: a bulk channel's
+publish/subscribe service (:func:`bulk_service_name`; ``bulk.py`` uses them).
 
-Copies per hop: the sender encodes into the loaned sample (0 copies of its
-own), the receiver reads it in place and copies once into its Data Vector.
-Service names (:func:`link_names`; the sync's, :func:`sync_link_names`: one
-kernel and network namespace) hold both nodes; segments are sized (:func:`mission_link_sizes`)
-and refused when ``/dev/shm`` cannot hold them (:func:`check_shm`); dead
-processes' resources are removed before a link opens (:func:`remove_stale`).
-How it waits and what it costs: docs/architecture.md#intra-host.
+Copies per hop: the sender copies its frame into the loaned sample once, the
+receiver checks it in place and copies once into its Data Vector. Names
+(:func:`sync_link_names`: one kernel and network namespace) hold both nodes;
+segments are sized (:func:`mission_link_sizes`) and refused when ``/dev/shm``
+cannot hold them (:func:`check_shm`); dead processes' resources are removed
+before an end opens (:func:`remove_stale`). Costs: docs/architecture.md#intra-host.
 """
 
 from __future__ import annotations
@@ -73,10 +73,12 @@ PREFIX = "zp_"
 DEFAULT_DEADLINE_S = 0.002
 #: Consecutive timeouts after which the link counts as stalled.
 STALL_AFTER = 3
-#: Samples preallocated per direction: one the sender loans while the
-#: receiver may still hold the previous one, and one in flight. The client
-#: keeps at most one request pending (a timed-out one is dropped first).
-SLOTS = 3
+#: Samples preallocated per direction: one the sender loans, two queued at
+#: the receiver (its buffer: a timed-out trigger is withdrawn but stays
+#: there until the receiver drains it), and the one the DN holds until its
+#: next wait (its loop copies the trigger's data from it after the reply).
+#: The client keeps at most one request pending.
+SLOTS = 4
 #: Per-sample bookkeeping iceoryx2 adds to a segment, and the fixed part of
 #: a link (management segments, connections), both measured on 0.10 with
 #: margin (tests/unit/test_intrahost.py checks the bound on the real files).
