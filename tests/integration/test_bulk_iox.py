@@ -37,6 +37,7 @@ from tests.waits import poll_until
 from tests.zsession import lone_session
 from zplatform.config import Mission
 from zplatform.core.events import EventLog
+from zplatform.errors import TransportError
 from zplatform.mission.load import decode_mission
 from zplatform.runtime.bulk import STALE_LOOPS, NodeBulk, bulk_key, decode_sample
 from zplatform.runtime.intrahost import IntraHostPublisher, bulk_service_name
@@ -159,6 +160,33 @@ def test_a_forged_sample_in_the_iceoryx2_service_is_refused_and_counted(
             owner.close()
     finally:
         reader.close()
+
+
+@pytest.mark.parametrize("mode", ["auto", "shm"])
+def test_an_owner_whose_publisher_cannot_open_stays_on_zenoh_or_refuses_under_shm(
+    session: Any, mode: str
+) -> None:
+    """A live process holds the channel's one publisher slot: under ``auto``
+    the owner's channel goes over zenoh alone (noted in ``changes``); under
+    ``shm`` (the operator asked for it) the node refuses to start."""
+    m = decode_mission(_mission_text() + f"transport: {{intra_host: {mode}}}\n")
+    ch = m.bulk[0]
+    squatter = IntraHostPublisher(
+        bulk_service_name(m, ch.node, ch.name), ch.sample_bytes, 1, check=False
+    )
+    try:
+        if mode == "shm":
+            with pytest.raises(TransportError, match="bulk frame"):
+                NodeBulk(session, m.vehicle, m.bulk, "dn0", intra_host=m)
+            return
+        owner = NodeBulk(session, m.vehicle, m.bulk, "dn0", intra_host=m)
+        try:
+            assert owner.writers["frame"].iox is None
+            assert [(c, p) for c, p, _ in owner.changes] == [("frame", "zenoh")]
+        finally:
+            owner.close()
+    finally:
+        squatter.close()
 
 
 def _spawn_owner(text: str) -> subprocess.Popen[bytes]:
