@@ -54,11 +54,21 @@ Blocks for a few minutes (``--quick``: about 3 min with both MACs): each
 point runs ``--seconds`` (quick 5, full 15) per MAC plus its start-up (a
 100k-element mission takes each process about 10-20 s to load).
 
+``--intra-host shm|both`` runs the element points (also) with the sync
+over iceoryx2 (``zp_<N>el_<D>dn_shm_<M>``, ``transport.intra_host: shm``)
+beside a ``raw_iceoryx2_1x<S>B`` floor (:func:`bench.intrahost.run_raw`,
+1 DN), and its target: the 100,000-element point with 0 missed loops and a
+p50 within 1.15x of raw iceoryx2. ``--bulk N`` adds the 4 MB bulk one-way
+rows (``bulk_<variant>_4MB``, :func:`bench.intrahost.run_bulk`: zplatform
+over iceoryx2 and over zenoh, raw iceoryx2, raw zenoh; N samples each at
+20 Hz) and ``params.bulk_4MB_ratios``.
+
 Run ``python -m bench.bandwidth [--quick] [--json PATH] [--macs blake3,hmac]
 [--counts N,...] [--splits D,...] [--regions B,...] [--seconds S] [--no-rates]
-[--merge]``. Only a full run without ``--json`` writes the committed
-``bench/results/bandwidth.json`` and ``bench/plots/``; ``--quick`` writes to a
-scratch folder under the temporary directory (:func:`output_paths`).
+[--merge] [--intra-host zenoh|shm|both] [--bulk N]``. Only a full run
+without ``--json`` writes the committed ``bench/results/bandwidth.json`` and
+``bench/plots/``; ``--quick`` writes to a scratch folder under the temporary
+directory (:func:`output_paths`).
 """
 
 from __future__ import annotations
@@ -74,6 +84,7 @@ from typing import Any
 
 import numpy as np
 import psutil
+import yaml
 
 from bench.baselines import run_baseline
 from bench.cluster import BenchCluster, SyncSamples, make_mission
@@ -168,9 +179,12 @@ def run_point(
     region_bytes: int | None = None,
     priority: int = PRIORITY,
     mac: str = MACS[0],
+    intra_host: str = "zenoh",
 ) -> dict[str, Any]:
     """One zplatform cluster: N elements (or plain ``region_bytes`` regions) over ``n_dn`` DNs,
-    every frame tagged with ``mac`` (``security.mac``).
+    every frame tagged with ``mac`` (``security.mac``); ``intra_host``: the
+    mission's ``transport.intra_host`` (``shm``: the sync over iceoryx2;
+    the figures' ``paths`` say which path each DN's link took at the end).
 
     Blocks for the DNs' start-up plus ``rate_hz × duration_s`` loops.
     """
@@ -190,7 +204,12 @@ def run_point(
             extra=element_extra(n_elements, n_dn) if region_bytes is None else None,
             mac=mac,
         )
+        if intra_host != "zenoh":
+            raw = yaml.safe_load(mission.read_text())
+            raw.setdefault("transport", {})["intra_host"] = intra_host
+            mission.write_text(yaml.safe_dump(raw, sort_keys=False))
         hook = SyncSamples(loops)
+        paths: list[str] = []
 
         sizes = _Sizes(n_dn)
         try:
@@ -207,6 +226,7 @@ def run_point(
                     trace.uninstall()
                 cpu1, me1, w1 = _cpu_s(dn_ps), _cpu_s([me])[0], time.monotonic()
                 summary = c.cn.summary()
+                paths = c.cn.sync.paths()
                 lateness = periodic.lateness_ns()
                 skipped = int(periodic.stats().skipped_periods)
                 lowlatency = lowlatency_for(c.mission)
@@ -253,7 +273,30 @@ def run_point(
         fig["loop_lateness_p50_us"] = round(float(p50) / 1e3, 2)
         fig["loop_lateness_p99_us"] = round(float(p99) / 1e3, 2)
     fig["transport"] = "zplatform"
+    if intra_host != "zenoh":  # absent on zenoh's: the same point as before (point_key)
+        fig["intra_host"] = intra_host
+        fig["paths"] = paths
     fig["mac"] = mac
+    return fig
+
+
+def run_floor_iceoryx2(size: int, rate_hz: float, duration_s: float) -> dict[str, Any]:
+    """The same bytes by bare iceoryx2 request/response (one responder,
+    ``size`` B each way, :func:`bench.intrahost.run_raw`): the floor of an
+    intra-host point."""
+    from bench.intrahost import run_raw
+
+    deadline_ns = round(min(DEADLINE_MS, 0.5 * 1e3 / rate_hz) * 1e6)
+    res = run_raw("raw_iceoryx2", size, max(1, round(duration_s * rate_hz)), 1.0 / rate_hz)
+    fig = summarize(res["samples_ns"], deadline_ns)
+    fig["missed"] = res["lost"] + int(
+        np.count_nonzero(np.asarray(res["samples_ns"]) >= deadline_ns)
+    )
+    fig["cpu_us_per_exchange"] = round(res["cpu_s"] / max(1, fig["msgs"]) * 1e6, 1)
+    fig["n_dn"] = 1
+    fig["frame_bytes_max"] = size
+    fig["bytes_per_loop"] = 2 * size
+    fig["transport"] = "raw_iceoryx2"
     return fig
 
 
@@ -328,13 +371,16 @@ def parse_macs(text: str) -> list[str]:
 
 
 def point_key(v: dict[str, Any]) -> tuple[Any, ...]:
-    """What makes two zplatform variants the same point: elements, DNs, region, rate, MAC."""
-    return tuple(v.get(k) for k in ("elements", "n_dn", "region_bytes", "rate_hz", "mac"))
+    """What makes two zplatform variants the same point: elements, DNs, region,
+    rate, intra-host path (None: zenoh), MAC."""
+    keys = ("elements", "n_dn", "region_bytes", "rate_hz", "intra_host", "mac")
+    return tuple(v.get(k) for k in keys)
 
 
 def floor_names(v: dict[str, Any]) -> list[str]:
     """The floor variants of zplatform variant ``v``: the same bytes by bare zenoh and UDP."""
-    return [f"raw_{k}_{v.get('n_dn')}x{v.get('frame_bytes_max')}B" for k in ("zenoh", "udp")]
+    kinds = ("zenoh", "udp", "iceoryx2") if v.get("intra_host") else ("zenoh", "udp")
+    return [f"raw_{k}_{v.get('n_dn')}x{v.get('frame_bytes_max')}B" for k in kinds]
 
 
 def merge_previous(path: Path, variants: dict[str, dict[str, Any]]) -> dict[str, dict[str, Any]]:
@@ -373,6 +419,10 @@ def add_floor_ratios(variants: dict[str, dict[str, Any]]) -> None:
         floor = variants.get(floor_names(v)[0], {})
         if name.startswith("zp_") and v.get("p50_us") and floor.get("p50_us"):
             v["vs_raw_zenoh_p50"] = round(v["p50_us"] / floor["p50_us"], 3)
+        names = floor_names(v)
+        iox = variants.get(names[2], {}) if len(names) > 2 else {}
+        if name.startswith("zp_") and v.get("p50_us") and iox.get("p50_us"):
+            v["vs_raw_iceoryx2_p50"] = round(v["p50_us"] / iox["p50_us"], 3)
 
 
 def targets(
@@ -404,6 +454,21 @@ def targets(
                     "met": None if ratio is None else bool(ratio <= RATIO_LIMIT),
                 }
             )
+            v = variants.get(f"zp_{TARGET_ELEMENTS}el_{d}dn_shm_{mac_suffix(mac)}", {})
+            if v:
+                ratio = v.get("vs_raw_iceoryx2_p50")
+                out.append(
+                    {
+                        "name": f"{TARGET_ELEMENTS:,} elements, {d} DN, {mac}, intra-host: "
+                        "0 missed loops, sync p50 vs raw iceoryx2",
+                        "value": [v.get("missed_loops"), ratio],
+                        "limit": [0, RATIO_LIMIT],
+                        "unit": "x",
+                        "met": None
+                        if ratio is None
+                        else bool(v.get("missed_loops") == 0 and ratio <= RATIO_LIMIT),
+                    }
+                )
     return out
 
 
@@ -444,6 +509,19 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         "--merge", action="store_true", help="join the existing result file instead of replacing it"
     )
     parser.add_argument("--priority", type=int, default=PRIORITY)
+    parser.add_argument(
+        "--intra-host",
+        choices=("zenoh", "shm", "both"),
+        default="zenoh",
+        help="the element points' sync path (transport.intra_host; shm adds a raw iceoryx2 floor)",
+    )
+    parser.add_argument(
+        "--bulk",
+        type=int,
+        default=0,
+        metavar="N",
+        help="also the 4 MB bulk one-way rows, N samples per variant (bench.intrahost.run_bulk)",
+    )
     args = parser.parse_args(argv)
     try:
         macs = parse_macs(args.macs)
@@ -479,34 +557,46 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
 
     # Both MACs of a point run back to back, its floors between them: the
     # comparison that matters is within a point, on a box whose load drifts.
-    for n in counts:
-        for d in splits:
-            for mac in macs:
-                name = f"zp_{n}el_{d}dn_{mac_suffix(mac)}"
-                print(f"running {name} ({seconds:.0f} s) ...", flush=True)
-                try:
-                    fig = run_point(
-                        n_elements=n,
-                        n_dn=d,
-                        rate_hz=RATE_HZ,
-                        duration_s=seconds,
-                        priority=args.priority,
-                        mac=mac,
-                    )
-                except Exception as exc:  # a point that cannot run is reported, not hidden
-                    err = {"error": repr(exc)[:300], "elements": n, "n_dn": d, "mac": mac}
-                    variants[name] = err
-                    print(f"  {name} failed: {exc!r}", flush=True)
-                    continue
-                variants[name] = fig
-                print(
-                    f"  {fig['bytes_per_loop']} B/loop, {fig['mbit_s']} Mbit/s,"
-                    f" p50 {fig['p50_us']} us, p99 {fig['p99_us']} us,"
-                    f" miss {fig['deadline_miss_rate']:.2e}, CN {fig['cpu_cn_pct']}%,"
-                    f" DN {fig['cpu_dn_pct']}%, shm {fig['shm_reply_fraction']}",
-                    flush=True,
-                )
-                floors(d, int(fig["frame_bytes_max"]))
+    paths_run = ["zenoh", "shm"] if args.intra_host == "both" else [args.intra_host]
+    for n, d, mac, ih in (
+        (n, d, mac, ih) for n in counts for d in splits for mac in macs for ih in paths_run
+    ):
+        name = f"zp_{n}el_{d}dn_{'shm_' if ih == 'shm' else ''}{mac_suffix(mac)}"
+        print(f"running {name} ({seconds:.0f} s) ...", flush=True)
+        try:
+            fig = run_point(
+                n_elements=n,
+                n_dn=d,
+                rate_hz=RATE_HZ,
+                duration_s=seconds,
+                priority=args.priority,
+                mac=mac,
+                intra_host=ih,
+            )
+        except Exception as exc:  # a point that cannot run is reported, not hidden
+            err = {"error": repr(exc)[:300], "elements": n, "n_dn": d, "mac": mac}
+            variants[name] = err
+            print(f"  {name} failed: {exc!r}", flush=True)
+            continue
+        variants[name] = fig
+        print(
+            f"  {fig['bytes_per_loop']} B/loop, {fig['mbit_s']} Mbit/s,"
+            f" p50 {fig['p50_us']} us, p99 {fig['p99_us']} us,"
+            f" miss {fig['deadline_miss_rate']:.2e}, CN {fig['cpu_cn_pct']}%,"
+            f" DN {fig['cpu_dn_pct']}%, shm {fig['shm_reply_fraction']}",
+            flush=True,
+        )
+        floors(d, int(fig["frame_bytes_max"]))
+        size = int(fig["frame_bytes_max"])
+        iox_floor = f"raw_iceoryx2_1x{size}B"
+        if ih == "shm" and d == 1 and not args.no_floors and iox_floor not in variants:
+            print(f"  floor raw_iceoryx2 1x{size}B ...", flush=True)
+            variants[iox_floor] = run_floor_iceoryx2(size, RATE_HZ, min(seconds, 10.0))
+    if args.bulk:
+        from bench.intrahost import run_bulk
+
+        print(f"running the 4 MB bulk one-way rows ({args.bulk} samples each) ...", flush=True)
+        variants.update(run_bulk(args.bulk, 0.05))
     regions = (
         [int(x) for x in args.regions.split(",") if x]
         if args.regions is not None
@@ -582,6 +672,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
                 and v.get("rate_hz") == RATE_HZ
                 and v.get("elements")
                 and v.get("holds")
+                and not v.get("intra_host")
             ]
             largest.setdefault(mac, {})[f"{d}dn"] = max(ok) if ok else None
     params: dict[str, Any] = {
@@ -602,7 +693,15 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         "highest_rate_held_3dn": max_rate,
         "thesis_elements": 200,
         "targets": targets(variants, macs, splits),
+        "intra_host": args.intra_host,
     }
+    bulk_iox = variants.get("bulk_zplatform_iox_4MB", {}).get("p50_us")
+    if bulk_iox:
+        params["bulk_4MB_ratios"] = {
+            f"zplatform_iox/{k}": round(bulk_iox / p50, 2)
+            for k in ("raw_iceoryx2", "raw_zenoh", "zplatform_zenoh")
+            if (p50 := variants.get(f"bulk_{k}_4MB", {}).get("p50_us"))
+        }
     if not args.no_plot:
         try:
             # Relative to bench/, so the result and the report name the same

@@ -37,6 +37,18 @@ every end of every variant runs at that priority.
 
 Run ``python -m bench.intrahost [--quick] [--priority P] [--json PATH]``; results go to
 ``bench/results/intrahost.json``. Blocks about 70 s (``--quick``: 15 s).
+
+``--copies`` (results: ``bench/results/intrahost_copies.json``, a few
+seconds): the receiving end's copies, in one process over a real link, at
+325 KB and 4 MB: a tagged frame copied into the loaned sample, then the
+intake's check and the copy into a preallocated array (the Data Vector),
+``in_place`` (:meth:`~zplatform.control.intake.Intake.check_view`, the
+sync's path now) beside ``copy_out`` (the intake's ``to_bytes`` copy first,
+the path before). Per exchange: ``alloc_bytes`` (tracemalloc's peak above
+the start: a frame-sized figure is a copy), ``memcpy_bytes`` (the copies
+the path makes, counted), and the one-way time from the send until the
+frame is in the array (p50/p99, no pacing, no wake-up: the copies' and
+the tag's cost).
 """
 
 from __future__ import annotations
@@ -72,6 +84,16 @@ PER_ROUND = 250  # exchanges per round, size and variant
 DEADLINE_S = 0.002  # the zenoh sync's deadline; a later reply is a miss
 WAIT_S = 1.0  # how long an exchange waits before it is counted lost
 PREFIX = f"zpbench{os.getpid()}_"  # the orchestrator's pid, inherited by the children
+
+
+#: A size besides SIZES that run_raw's ends carry (bench.bandwidth's floors:
+#: a point's largest frame), set in the environment the responder inherits.
+EXTRA_SIZE_ENV = "ZP_BENCH_EXTRA_SIZE"
+
+
+def _sizes() -> list[int]:
+    extra = os.environ.get(EXTRA_SIZE_ENV)
+    return [*SIZES.values(), *([int(extra)] if extra else [])]
 
 
 def _cpu_s() -> float:
@@ -122,8 +144,8 @@ def _blocker(iox: Any, listener: Any, waitset: bool) -> Any:
 
 
 def _responder(variant: str, mission_text: str) -> None:
-    big = max(SIZES.values())
-    reply = {n: os.urandom(n) for n in SIZES.values()}
+    big = max(_sizes())
+    reply = {n: os.urandom(n) for n in _sizes()}
     if variant == "carrier":
         from zplatform.runtime.intrahost import IntraHostServer, link_names
 
@@ -218,8 +240,8 @@ class _Asker:
 
     def __init__(self, variant: str, mission_text: str) -> None:
         self.variant = variant
-        big = max(SIZES.values())
-        self.src = {n: os.urandom(n) for n in SIZES.values()}
+        big = max(_sizes())
+        self.src = {n: os.urandom(n) for n in _sizes()}
         self.dst = np.empty(big, np.uint8)
         self.dst_mv = self.dst.data  # a memoryview, no copy
         if variant == "carrier":
@@ -314,14 +336,30 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         default=20,
         help="SCHED_FIFO priority of this process and the responders (0: off), as bench.sync",
     )
+    ap.add_argument(
+        "--copies", action="store_true", help="the receiving end's copies alone (module doc)"
+    )
     ap.add_argument("--role", help=argparse_hidden())
     ap.add_argument("--variant", help=argparse_hidden())
     args = ap.parse_args(argv)
     if args.role:
         global PREFIX
         PREFIX = f"zpbench{os.getppid()}_"
-        _responder_role(args.variant)
+        if args.role == "bulk":
+            _bulk_publisher(args.variant, os.environ["ZP_BENCH_MISSION"])
+        else:
+            _responder_role(args.variant)
         return {}
+    if args.copies:
+        count = 50 if args.quick else 200
+        rows = run_copies(COPY_SIZES, count)
+        doc = write_result(
+            "intrahost_copies",
+            {"sizes": COPY_SIZES, "count": count, "notes": [run_copies.__doc__]},
+            rows,
+            args.json,
+        )
+        return doc
 
     rounds = 2 if args.quick else ROUNDS
     from bench.sync import inherit_fifo
@@ -432,6 +470,8 @@ def run_raw(variant: str, n: int, count: int, period_s: float = PERIOD_S) -> dic
     bytes each way paced at ``period_s``. Returns ``{"samples_ns": [...],
     "lost": k, "cpu_s": both ends}``. Blocks ``count * period_s`` plus the
     responder's start; cleans its iceoryx2 files up."""
+    if n not in SIZES.values():
+        os.environ[EXTRA_SIZE_ENV] = str(n)  # the responder inherits it
     mission_text = two_node_mission("bench_intrahost", free_port(), free_port())
     proc = Child("bench.intrahost", ["--role", "respond", "--variant", variant], mission_text)
     asker: _Asker | None = None
@@ -454,6 +494,107 @@ def run_raw(variant: str, n: int, count: int, period_s: float = PERIOD_S) -> dic
             except OSError:
                 pass
     return {"samples_ns": samples, "lost": lost, "cpu_s": cpu}
+
+
+COPY_SIZES = {"325KB": 325_000, "4MB": 4_000_000}
+
+
+def run_copies(sizes: dict[str, int], count: int) -> dict[str, dict[str, Any]]:
+    """The receiving end's copies per exchange (module doc, ``--copies``):
+    ``{"in_place_325KB": {...}, "copy_out_325KB": {...}, ...}``. One process,
+    one real link (this run's prefix, removed after); blocks a few seconds."""
+    import tracemalloc
+
+    from zplatform.control.intake import Intake
+    from zplatform.core.auth import Channel
+    from zplatform.runtime.intrahost import IntraHostClient, IntraHostServer, link_names
+
+    class _AnyFresh(Intake[None]):
+        def _fresh(self, body: memoryview, handle: None) -> bool:
+            return True
+
+    class _CopyOut:  # main's _ViewPayload: to_bytes copies out of the segment
+        def __init__(self, view: memoryview) -> None:
+            self.view = view
+
+        def __len__(self) -> int:
+            return len(self.view)
+
+        def to_bytes(self) -> bytes:
+            return bytes(self.view)
+
+    key = bytes(range(32))
+    out_rows: dict[str, dict[str, Any]] = {}
+    for label, n in sizes.items():
+        names = link_names(f"copies{os.getpid()}", "bench", label, "cn", "dn0")
+        frame = bytes(Channel(key, "bench", "bench/copies").seal(os.urandom(n)))
+        intake = _AnyFresh("bench", len(frame), Channel(key, "bench", "bench/copies"))
+        client = IntraHostClient(names, len(frame), 8, prefix=PREFIX, check=False)
+        server = IntraHostServer(names, len(frame), 8, prefix=PREFIX, check=False)
+        dv_mv = memoryview(bytearray(n))
+        try:
+            args = (client, server, intake, frame, dv_mv, n)
+            for mode in ("in_place", "copy_out"):
+
+                def one(mode: str = mode, args: tuple[Any, ...] = args) -> int:
+                    return _copy_once(args, mode, _CopyOut)
+
+                for _ in range(5):
+                    one()
+                samples = [one() for _ in range(count)]
+                tracemalloc.start()
+                try:
+                    peaks = []
+                    for _ in range(5):
+                        base = tracemalloc.get_traced_memory()[0]
+                        tracemalloc.reset_peak()
+                        one()
+                        peaks.append(tracemalloc.get_traced_memory()[1] - base)
+                finally:
+                    tracemalloc.stop()
+                fig = summarize(samples)
+                fig["alloc_bytes"] = int(np.median(peaks))
+                # Counted: the loan's copy, the copy into the vector, and
+                # copy_out's to_bytes of the whole frame.
+                fig["memcpy_bytes"] = len(frame) + n + (len(frame) if mode == "copy_out" else 0)
+                out_rows[f"{mode}_{label}"] = fig
+        finally:
+            client.close()
+            server.close()
+    from zplatform.runtime.intrahost import remove_stale
+
+    remove_stale(PREFIX)
+    for path in _own_files():
+        try:
+            os.unlink(path)
+        except OSError:
+            pass
+    return out_rows
+
+
+def _copy_once(ends: tuple[Any, ...], mode: str, copy_out: Any) -> int:
+    """One exchange of :func:`run_copies`; returns ns from the send until the
+    frame is in the vector. ``ends``: client, server, intake, frame, the
+    vector (a memoryview) and the frame's body length."""
+    client, server, intake, frame, dv_mv, n = ends
+    buf = client.trigger(len(frame))
+    assert buf is not None
+    t0 = time.perf_counter_ns()
+    buf[:] = frame  # the sender's one copy into the loan
+    client.send()
+    view = server.wait(WAIT_S)
+    assert view is not None
+    if mode == "in_place":
+        data: Any = intake.check_view(view, None)
+    else:
+        data = intake.check(copy_out(view), None)
+    assert data is not None, "the frame's tag must check"
+    dv_mv[:] = memoryview(data)[:n]  # the decode's copy into the vector
+    t1 = time.perf_counter_ns()
+    server.respond(b"ok")
+    client.collect()
+    client.release()
+    return t1 - t0
 
 
 def _run_block(
@@ -482,6 +623,240 @@ def _run_block(
         proc.send({"cmd": "done"})
     theirs = proc.read()
     return mine + theirs["cpu_s"], lost
+
+
+# -- bulk one-way (the 4 MB row of bench.bandwidth) ------------------------------
+
+BULK_VARIANTS = ("zplatform_iox", "zplatform_zenoh", "raw_iceoryx2", "raw_zenoh")
+BULK_BYTES = 4_194_304  # a 2048 x 2048 mono8 frame (configs/camera.yaml)
+
+
+def bulk_mission(n: int, intra_host: str) -> str:
+    """A two-node mission with one bulk channel ``frame`` of ``u8[n]`` owned by
+    ``dn0`` and read by ``cn`` (``transport.intra_host``: ``intra_host``)."""
+    text = two_node_mission(f"bench_bulk_{intra_host}", free_port(), free_port())
+    return (
+        text
+        + f"transport: {{intra_host: {intra_host}}}\n"
+        + f"bulk:\n  - {{name: frame, node: dn0, type: 'u8[{n}]', readers: [cn]}}\n"
+    )
+
+
+def _bulk_event(name: str) -> tuple[Any, Any]:
+    """iceoryx2 and the event service that wakes the bulk bench's reader
+    (its ``name``), opened under this run's prefix."""
+    import iceoryx2 as iox
+
+    from zplatform.runtime.intrahost import iceoryx2_config
+
+    iox.set_log_level(iox.LogLevel.Error)
+    node = (
+        iox.NodeBuilder.new()
+        .config(iceoryx2_config(PREFIX))
+        .signal_handling_mode(iox.SignalHandlingMode.Disabled)
+        .create(iox.ServiceType.Ipc)
+    )
+    ev = node.service_builder(iox.ServiceName.new(name)).event().open_or_create()
+    return iox, (node, ev)
+
+
+def _bulk_publisher(variant: str, mission_text: str) -> None:
+    """Child: the owner of one bulk variant; on ``{"cmd": "run", "n", "period"}``
+    publishes ``n`` samples of :data:`BULK_BYTES`, each stamped (monotonic ns,
+    before its first copy) at the start, then says its CPU seconds."""
+    from zplatform.mission.load import decode_mission
+    from zplatform.runtime.bulk import NodeBulk, bulk_key
+    from zplatform.runtime.transport import open_session, zenoh_config
+
+    m = decode_mission(mission_text)
+    session = open_session(zenoh_config(m, "dn0"))
+    iox, (node, ev) = _bulk_event(f"bench/{os.getppid()}/bulk/{variant}/wake")
+    notifier = ev.notifier_builder().create()
+    n = m.bulk[0].sample_bytes - 32
+    src = bytearray(BULK_BYTES + 8)
+    send: Any
+    if variant.startswith("zplatform"):
+        bulk = NodeBulk(session, m.vehicle, m.bulk, "dn0", intra_host=m)
+        w = bulk.writers["frame"]
+        w.array[:] = np.frombuffer(os.urandom(n), np.uint8)
+
+        def send(i: int) -> None:
+            w.publish(i, time.monotonic_ns())
+            notifier.notify()
+
+    elif variant == "raw_iceoryx2":
+        svc = (
+            node.service_builder(iox.ServiceName.new(f"bench/{os.getppid()}/bulk/raw"))
+            .publish_subscribe(iox.Slice[ctypes.c_uint8])
+            .subscriber_max_buffer_size(1)
+            .enable_safe_overflow(True)
+            .open_or_create()
+        )
+        pub = svc.publisher_builder().initial_max_slice_len(len(src)).create()
+        csrc = (ctypes.c_char * len(src)).from_buffer(src)
+
+        def send(i: int) -> None:
+            src[:8] = time.monotonic_ns().to_bytes(8, "little")
+            loan = pub.loan_slice_uninit(len(src))
+            ctypes.memmove(loan.payload_ptr, csrc, len(src))  # the sample's one copy
+            loan.assume_init().send()
+            notifier.notify()
+
+    else:
+        zpub = session.declare_publisher(bulk_key(m.vehicle, m.bulk[0]))
+
+        def send(i: int) -> None:
+            src[:8] = time.monotonic_ns().to_bytes(8, "little")
+            zpub.put(src)
+
+    say({"ready": True})
+    for cmd in commands():
+        if cmd["cmd"] == "quit":
+            break
+        c0 = _cpu_s()
+        t_next = time.monotonic()
+        for i in range(cmd["n"]):
+            send(i)
+            t_next += cmd["period"]
+            time.sleep(max(0.0, t_next - time.monotonic()))  # the owner's period
+        say({"cpu_s": _cpu_s() - c0})
+    session.close()
+
+
+class _BulkReader:
+    """The reader's end of one bulk variant: ``take(timeout_s)`` returns the
+    one-way time of the next sample (from its stamp until it is in the
+    reader's array, ns), or None after ``timeout_s`` without one."""
+
+    def __init__(self, variant: str, mission_text: str) -> None:
+        import zenoh
+
+        from zplatform.mission.load import decode_mission
+        from zplatform.runtime.bulk import NodeBulk, bulk_key
+        from zplatform.runtime.transport import open_session, zenoh_config
+
+        self.variant = variant
+        m = decode_mission(mission_text)
+        self.session = open_session(zenoh_config(m, "cn"))
+        iox, self._ev = _bulk_event(f"bench/{os.getpid()}/bulk/{variant}/wake")
+        self.iox = iox
+        self.listener = self._ev[1].listener_builder().create()
+        self.dst = np.empty(BULK_BYTES + 8, np.uint8)
+        self._got: list[Any] = []
+        self._event = __import__("threading").Event()
+        if variant.startswith("zplatform"):
+            self.bulk = NodeBulk(self.session, m.vehicle, m.bulk, "cn", intra_host=m)
+            self.reader = self.bulk.readers["frame"]
+        elif variant == "raw_iceoryx2":
+            svc = (
+                self._ev[0]
+                .service_builder(iox.ServiceName.new(f"bench/{os.getpid()}/bulk/raw"))
+                .publish_subscribe(iox.Slice[ctypes.c_uint8])
+                .subscriber_max_buffer_size(1)
+                .enable_safe_overflow(True)
+                .open_or_create()
+            )
+            self.sub = svc.subscriber_builder().buffer_size(1).create()
+        else:
+
+            def on_sample(sample: Any) -> None:  # zenoh's thread: hand off
+                self._got.append(sample)
+                self._event.set()
+
+            self.zsub = self.session.declare_subscriber(
+                bulk_key(m.vehicle, m.bulk[0]), zenoh.handlers.Callback(on_sample, indirect=False)
+            )
+
+    def take(self, timeout_s: float) -> int | None:
+        t_end = time.monotonic() + timeout_s
+        v = self.variant
+        while time.monotonic() < t_end:
+            if v == "zplatform_iox":
+                self.listener.timed_wait(self.iox.Duration.from_secs_f64(0.05))
+                if self.reader.poll():
+                    assert self.reader.header is not None
+                    return time.monotonic_ns() - self.reader.header.t_ns
+            elif v == "zplatform_zenoh":
+                if self.reader.wait(0.05):
+                    assert self.reader.header is not None
+                    return time.monotonic_ns() - self.reader.header.t_ns
+            elif v == "raw_iceoryx2":
+                self.listener.timed_wait(self.iox.Duration.from_secs_f64(0.05))
+                sample = None
+                while (newer := self.sub.receive()) is not None:
+                    sample = newer
+                if sample is not None:
+                    k = sample.header.number_of_elements
+                    ctypes.memmove(self.dst.ctypes.data, sample.payload_ptr, k)  # one copy
+                    del sample
+                    return time.monotonic_ns() - int.from_bytes(self.dst[:8].tobytes(), "little")
+            else:
+                self._event.wait(0.05)
+                if self._got:
+                    sample = self._got[-1]
+                    self._got.clear()
+                    self._event.clear()
+                    data = sample.payload.to_bytes()
+                    self.dst[: len(data)] = np.frombuffer(data, np.uint8)
+                    return time.monotonic_ns() - int.from_bytes(data[:8], "little")
+        return None
+
+    def close(self) -> None:
+        if self.variant.startswith("zplatform"):
+            self.bulk.close()
+        self.session.close()
+
+
+def run_bulk(count: int, period_s: float) -> dict[str, dict[str, Any]]:
+    """The 4 MB bulk one-way rows (:data:`BULK_VARIANTS`): per variant an owner
+    process publishing ``count`` samples every ``period_s`` to a reader in
+    this process, woken per sample (an iceoryx2 event the owner notifies
+    after its send for the iceoryx2 rows, zenoh's callback for the zenoh
+    ones). Figures: one-way ``p50_us``/``p99_us`` (stamp before the owner's
+    first copy until the sample is in the reader's array), ``lost``
+    (published, not taken: superseded or dropped), ``cpu_us_per_sample``
+    (both processes). Blocks about ``4 * count * period_s`` plus start-ups."""
+    out: dict[str, dict[str, Any]] = {}
+    for v in BULK_VARIANTS:
+        intra = "zenoh" if v in ("zplatform_zenoh", "raw_zenoh") else "auto"
+        text = bulk_mission(BULK_BYTES, intra)
+        child = Child("bench.intrahost", ["--role", "bulk", "--variant", v], text)
+        reader: _BulkReader | None = None
+        try:
+            reader = _BulkReader(v, text)
+            child.read()
+            # Warm-up: routes, every page of the segments, the reader's switch.
+            child.send({"cmd": "run", "n": 20, "period": period_s})
+            while reader.take(1.0) is not None:
+                pass
+            child.read()
+            samples: list[int] = []
+            c0 = _cpu_s()
+            child.send({"cmd": "run", "n": count, "period": period_s})
+            while len(samples) < count and (t := reader.take(1.0)) is not None:
+                samples.append(t)
+            theirs = child.read()
+            cpu = _cpu_s() - c0 + theirs["cpu_s"]
+            fig = summarize(samples)
+            fig["lost"] = count - len(samples)
+            fig["cpu_us_per_sample"] = round(cpu / max(1, count) * 1e6, 1)
+            fig["bytes"] = BULK_BYTES
+            if v.startswith("zplatform"):
+                fig["counters"] = reader.bulk.counters()
+            out[f"bulk_{v}_4MB"] = fig
+        finally:
+            if reader is not None:
+                reader.close()
+            child.close()
+    from zplatform.runtime.intrahost import remove_stale
+
+    remove_stale(PREFIX)
+    for path in _own_files():
+        try:
+            os.unlink(path)
+        except OSError:
+            pass
+    return out
 
 
 def _own_files() -> list[str]:

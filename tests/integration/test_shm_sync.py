@@ -283,3 +283,32 @@ def test_taps_see_the_frames_whichever_path_the_sync_takes(pair: Pair) -> None:
     finally:
         for s in subs:
             s.undeclare()
+
+
+def test_frames_over_shared_memory_are_checked_and_decoded_in_place(
+    pair: Pair, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Copies to the fewest (docs/architecture.md#intra-host): each end's
+    intake checks the frame where it arrived and its logic decodes it from
+    there (a view on the loaned sample, not a copy in bytes), and the DN's
+    trigger stays readable until its loop ran: the setpoint lands."""
+    kinds: list[tuple[str, type]] = []
+    dn_trigger, cn_reply = pair.dn.trigger, pair.cn.reply
+
+    def on_trigger(payload: Any, *a: Any, **k: Any) -> Any:
+        kinds.append(("trigger", type(payload)))
+        return dn_trigger(payload, *a, **k)
+
+    def on_reply(i: int, payload: Any) -> bool:
+        kinds.append(("reply", type(payload)))
+        return cn_reply(i, payload)
+
+    monkeypatch.setattr(pair.dn, "trigger", on_trigger)
+    monkeypatch.setattr(pair.cn, "reply", on_reply)
+    for loop in (1, 2, 3):
+        pair.cn.dv.set("dn0_setpoint", 1.5 * loop)
+        assert pair.loop(loop)
+        pair.dn.run(T0 + loop * PERIOD)
+        assert pair.dn.dv.get("dn0_setpoint") == 1.5 * loop
+    assert pair.link.on_shm and pair.link.client.replies == 3
+    assert kinds == [("trigger", memoryview), ("reply", memoryview)] * 3

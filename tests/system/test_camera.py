@@ -31,7 +31,8 @@ def test_camera_in_sim_frames_reach_the_controller_a_loop_later(tmp_path: Path) 
 
 def test_camera_frames_go_through_shared_memory_between_processes(tmp_path: Path) -> None:
     """As processes on one host the frames travel through shared memory,
-    never copied: the readers' counters in telemetry and `tap` both say so."""
+    never copied: iceoryx2 to the CN's reader, zenoh's to a tool's `tap`;
+    the readers' counters in telemetry and `tap` both say so."""
     csv, summary = tmp_path / "tm.csv", tmp_path / "s.json"
     up = subprocess.Popen(
         [
@@ -87,8 +88,12 @@ def test_camera_frames_go_through_shared_memory_between_processes(tmp_path: Path
         if int(b["cn_rx_dn0"]) > int(a["cn_rx_dn0"])
     )
     published = int(fresh["bulk_frame_published"])
-    seen = int(fresh["bulk_frame_shm"]) + int(fresh["bulk_frame_missed"])
+    taken = int(fresh["bulk_frame_iox"]) + int(fresh["bulk_frame_shm"])
+    seen = taken + int(fresh["bulk_frame_missed"])
     assert -1 <= published - seen <= 10, fresh
-    assert int(fresh["bulk_frame_shm"]) > 0, fresh
+    # Between processes of one host the CN's reader takes iceoryx2 (after at
+    # most its first frames over zenoh's shared memory, before the switch),
+    # and the tap above still got its frames over zenoh.
+    assert int(fresh["bulk_frame_iox"]) > int(fresh["bulk_frame_shm"]), fresh
     assert float(last["image_mean"]) > 100.0
     assert json.loads(summary.read_text())["loops"] == 600

@@ -110,6 +110,7 @@ def test_counter_elements_by_role() -> None:
         "bulk_cam_dropped",
     ]
     assert [e["name"] for e in counter_elements(chans, "cn")] == [
+        "bulk_cam_iox",
         "bulk_cam_shm",
         "bulk_cam_copied",
         "bulk_cam_missed",
@@ -167,18 +168,35 @@ def test_exhausted_pool_waits_until_deadline_then_counts_a_drop(session: zenoh.S
         return now[0]
 
     prov = _FullProvider()
+    sub = session.declare_subscriber("t/dn0/bulk/cam", lambda s: None)  # someone listens
     w = BulkWriter(session, "t/dn0/bulk/cam", _ch(alloc_timeout_ms=1.0), prov, monotonic=clock)
     assert w.publish(0, 0) is False
     assert (w.published, w.dropped) == (0, 1)
     assert 3 <= prov.calls <= 6  # retried until the 1 ms deadline, then gave up
     assert w.publish(1, 0) is False and w.dropped == 2
     w.undeclare()
+    sub.undeclare()
 
 
 def test_zero_timeout_drops_after_one_try(session: zenoh.Session) -> None:
     prov = _FullProvider()
+    sub = session.declare_subscriber("t/dn0/bulk/cam", lambda s: None)  # someone listens
     w = BulkWriter(session, "t/dn0/bulk/cam", _ch(alloc_timeout_ms=0), prov)
     assert w.publish(0, 0) is False and prov.calls == 1 and w.dropped == 1
+    w.undeclare()
+    sub.undeclare()
+
+
+def test_nobody_subscribed_sends_no_bytes_over_zenoh(session: zenoh.Session) -> None:
+    """Zenoh carries a sample only when a subscriber matches (a remote
+    reader, a tool's tap): with none, no chunk is even taken from the pool."""
+    prov = _FullProvider()
+    w = BulkWriter(session, "t/dn0/bulk/nobody", _ch(alloc_timeout_ms=0), prov)
+    assert w.publish(0, 0) is True and w.publish(1, 0) is True
+    assert prov.calls == 0 and (w.published, w.dropped, w.published_zenoh) == (2, 0, 0)
+    sub = session.declare_subscriber("t/dn0/bulk/nobody", lambda s: None)
+    assert w.publish(2, 0) is False and prov.calls == 1 and w.dropped == 1
+    sub.undeclare()
     w.undeclare()
 
 

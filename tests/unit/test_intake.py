@@ -532,3 +532,24 @@ def test_an_earlier_runs_higher_term_snapshot_does_not_freeze_the_ground() -> No
     assert not intake.admit(Bytes(_snapshot(run, 3, 7)), run + 7 * p + 2 * age)
     assert intake.admit(Bytes(_snapshot(run, 2, 8)), run + 8 * p)
     assert intake.take_counts() == (0, 0, 3) and intake.aged == 1
+
+
+def test_check_view_checks_a_frame_in_place_and_refuses_as_check_does() -> None:
+    """Intake.check_view (the intra-host path's frames in shared memory):
+    a frame that passes comes back as the very view it was given (no
+    copy); junk, a wrong size and another loop's reply are refused and
+    counted as :meth:`check` counts them."""
+    check = ReplyCheck(M, "dn0", channel(KEYS, "dn0_to_cn"))
+    good = bytearray(_reply(5, T0))
+    check.expect(5, T0)
+    view = memoryview(good)
+    assert check.check_view(view, None) is view
+    forged = bytearray(good)
+    forged[3] ^= 1
+    assert check.check_view(memoryview(forged), None) is None
+    assert check.check_view(memoryview(good)[:-1], None) is None
+    assert check.check_view(memoryview(b"x" * (check.max_len + 1)), None) is None
+    check.expect(6, T0)
+    assert check.check_view(memoryview(good), None) is None
+    size, bad, stale = check.take_counts()
+    assert size == 1 and stale == 1 and bad == 2

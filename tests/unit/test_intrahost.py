@@ -19,6 +19,7 @@ from tests.intrahost_peer import leftovers, wipe
 from zplatform.errors import IntraHostError, ZPlatformError
 from zplatform.mission.load import decode_mission
 from zplatform.runtime import intrahost
+from zplatform.runtime.bulk import mission_shm_need
 from zplatform.runtime.intrahost import (
     IntraHostClient,
     IntraHostServer,
@@ -26,7 +27,6 @@ from zplatform.runtime.intrahost import (
     check_shm,
     link_names,
     mission_link_sizes,
-    mission_shm_need,
     segment_bytes,
 )
 
@@ -162,6 +162,44 @@ def test_a_silent_peer_times_out_then_stalls_and_a_reply_recovers(prefix: str) -
         assert (client.state, client.consecutive_timeouts, client.replies) == (LinkState.UP, 0, 1)
         stop.set()
         t.join()
+    finally:
+        client.close()
+        server.close()
+
+
+def test_a_dn_holding_its_answered_trigger_then_stalling_costs_no_loans(prefix: str) -> None:
+    """The DN's end keeps the trigger it answered until its next wait (its
+    loop copies the data from it); if it then stalls, the CN's next tries
+    still find a sample to send (each times out, as before the hold), and
+    the next trigger after the DN's return is served."""
+    names = link_names("held", "rocket", 1, "cn", "dn0")
+    server = IntraHostServer(names, 64, 64, prefix=prefix)
+    client = IntraHostClient(names, 64, 64, prefix=prefix, deadline_s=0.002)
+    try:
+        buf = client.trigger(4)
+        assert buf is not None
+        buf[:] = b"loop"
+        assert client.send()
+        view = server.wait(30.0)
+        assert view is not None and bytes(view) == b"loop"
+        assert server.respond(b"ok")
+        client.set_deadline(30.0)
+        assert client.collect() is not None
+        assert bytes(view) == b"loop"  # held: still the trigger after the reply
+        client.release()
+        client.set_deadline(0.002)
+        for _ in range(5):  # the DN stalls: no wait
+            buf = client.trigger(4)
+            assert buf is not None, "a held trigger starved the CN's loans"
+            buf[:] = b"late"
+            assert client.send()
+            assert client.collect() is None
+        buf = client.trigger(4)
+        assert buf is not None
+        buf[:] = b"back"
+        assert client.send()
+        view = server.wait(30.0)
+        assert view is not None and bytes(view) == b"back"
     finally:
         client.close()
         server.close()

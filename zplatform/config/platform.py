@@ -146,7 +146,7 @@ def counter_elements(channels: Sequence[BulkChannelConfig], node: str) -> list[d
     telemetry, as ElementConfig-shaped dicts (``{"name", "type", "doc"}``).
 
     Owner of a channel: ``bulk_<ch>_published``, ``bulk_<ch>_dropped``.
-    Reader: ``bulk_<ch>_shm``, ``bulk_<ch>_copied``, ``bulk_<ch>_missed``,
+    Reader: ``bulk_<ch>_iox``, ``bulk_<ch>_shm``, ``bulk_<ch>_copied``, ``bulk_<ch>_missed``,
     ``bulk_<ch>_bad``. The names match :meth:`NodeBulk.counters`.
     """
     out: list[dict[str, Any]] = []
@@ -156,7 +156,8 @@ def counter_elements(channels: Sequence[BulkChannelConfig], node: str) -> list[d
             names = (("published", "samples sent"), ("dropped", "no free chunk in time"))
         elif node in ch.readers:
             names = (
-                ("shm", "samples received through shared memory"),
+                ("iox", "samples received through iceoryx2 (a same-host owner)"),
+                ("shm", "samples received through zenoh shared memory"),
                 ("copied", "samples received copied (network or shm off)"),
                 ("missed", "samples superseded or lost (seq gaps)"),
                 ("bad", "samples refused (size or layout)"),

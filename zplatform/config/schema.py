@@ -1213,12 +1213,14 @@ _BULK_TYPE_RE = re.compile(r"^\s*([a-z0-9]+)\s*\[\s*([0-9]+(?:\s*,\s*[0-9]+)*)\s
 
 class BulkChannelConfig(msgspec.Struct, forbid_unknown_fields=True, omit_defaults=True):
     """One bulk channel: a large array (a camera frame, a spectrum) that its
-    owner publishes outside the 2 ms sync, through zenoh shared memory
-    between the processes of one host (over the network across hosts). The
+    owner publishes outside the 2 ms sync, through iceoryx2 shared memory
+    to readers on its host (`transport.intra_host` not `zenoh`), zenoh's
+    across hosts and to tools (docs/architecture.md#intra-host). The
     owner's components fill `self.bulk[name]` and the runtime publishes it
     after the loop's logic; readers' components find the newest sample
     there. Per channel, counters go to telemetry
-    (`bulk_<name>_published`, `_dropped` on the owner; `_shm`, `_copied`,
+    (`bulk_<name>_published`, `_dropped` on the owner; `_iox` (iceoryx2,
+    a same-host owner), `_shm` (zenoh's shared memory), `_copied`,
     `_missed`, `_bad` on each reader).
     """
 

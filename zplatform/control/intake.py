@@ -25,7 +25,7 @@ import threading
 import time
 from abc import ABC, abstractmethod
 from collections.abc import Callable
-from typing import Generic, Protocol, TypeVar
+from typing import Generic, Protocol, TypeVar, cast
 
 from ..config import Mission
 from ..core.auth import NO_RUN, TAG_LEN, Channel, RunError
@@ -105,6 +105,26 @@ def max_frame_len(size: int, channel: Channel | None) -> int:
     return max_frame_length(size) + (TAG_LEN if channel is not None else 0)
 
 
+_NO_VIEW = memoryview(b"")
+
+
+class _InPlace:
+    """A :class:`Payload` whose ``to_bytes`` is the view itself (no copy):
+    :meth:`Intake.check_view`. Every use of the frame in ``_check`` (the
+    tag, the frame's header) reads a buffer, which a view is."""
+
+    __slots__ = ("view",)
+
+    def __init__(self, view: memoryview) -> None:
+        self.view = view
+
+    def __len__(self) -> int:
+        return len(self.view)
+
+    def to_bytes(self) -> bytes:
+        return cast(bytes, self.view)
+
+
 class Intake(ABC, Generic[H]):
     """One key's intake (module doc): size, tag, freshness, and, for a key
     whose frames a loop takes later, a bounded mailbox of
@@ -135,6 +155,7 @@ class Intake(ABC, Generic[H]):
         self._min = TAG_LEN + 1 if channel is not None else 1
         self._open = channel
         self._lock = threading.Lock()
+        self._in_place = _InPlace(_NO_VIEW)
         self.box: Mailbox[tuple[H, bytes]] | None = Mailbox(capacity, waker) if capacity else None
         self.size = 0
         self.bad = 0
@@ -156,6 +177,24 @@ class Intake(ABC, Generic[H]):
         """The frame's bytes when it passes every check, else None (counted)."""
         with self._lock:
             return self._check(payload, handle)
+
+    def check_view(self, view: memoryview, handle: H) -> memoryview | None:
+        """:meth:`check` over a frame read in place (a loaned sample in
+        shared memory, :mod:`zplatform.runtime.intrahost`): the same checks
+        in the same order (size, rate, tag, freshness), with no copy; returns
+        ``view`` itself when it passes. The caller keeps the memory under
+        ``view`` alive, and its bytes as checked, until it has copied what it
+        needs (docs/architecture.md#intra-host: why a writer of that memory
+        gains nothing). Thread-safe as :meth:`check`."""
+        with self._lock:
+            # _check's one copy is the payload's to_bytes: here the view
+            # (one holder per intake, reused under the lock: no allocation).
+            held = self._in_place
+            held.view = view
+            try:
+                return cast("memoryview | None", self._check(held, handle))
+            finally:
+                held.view = _NO_VIEW
 
     def admit(self, payload: Payload, handle: H) -> bool:
         """Check ``payload``; put ``(handle, its bytes)`` in the mailbox when

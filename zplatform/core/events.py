@@ -464,6 +464,19 @@ class EV:
         "{node}: {dn}'s sync falls back to zenoh: {why} ({fallbacks} fallback(s) so far; "
         "shared memory is tried again later)",
     )
+    BULK_ON_SHM = EventType(
+        128,
+        "bulk_on_shm",
+        Severity.ACTIVITY_LO,
+        "{node}: bulk channel {channel} takes iceoryx2 shared memory ({why}; transport.intra_host)",
+    )
+    BULK_FALLBACK = EventType(
+        129,
+        "bulk_fallback",
+        Severity.WARNING_LO,
+        "{node}: bulk channel {channel} falls back to zenoh: {why} ({fallbacks} fallback(s) "
+        "so far; iceoryx2 is taken again when its samples come)",
+    )
     TM_NEW_TERM = EventType(
         76,
         "tm_new_term",

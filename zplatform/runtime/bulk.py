@@ -3,20 +3,20 @@
 A bulk channel is a named, fixed-size array (``u8[4194304]``, ``f32[1024,1024]``)
 that one node (its *owner*) publishes every ``rate_divisor``-th loop on
 ``{vehicle}/{owner}/bulk/{name}`` and its *readers* receive, never in the sync
-query (a camera frame must not delay the 2 ms exchange). Holds
-:class:`BulkWriter`, :class:`BulkReader`, :class:`NodeBulk` (a node's port for
-the loop) and :func:`pool_size`; the channel schema (:class:`BulkChannelConfig`)
-and its counter elements are :mod:`zplatform.config`'s, re-exported here.
+query. Holds :class:`BulkWriter`, :class:`BulkReader`, :class:`NodeBulk` (a
+node's port for the loop) and :func:`pool_size`; the schema and counter
+elements are :mod:`zplatform.config`'s. A reader on the owner's host takes
+the samples over iceoryx2 and drops its zenoh subscriber; zenoh carries a
+sample only while a subscriber matches (another host, a fallback, ``tap``);
+one intake for both (size, layout; seq gaps missed): docs/architecture.md#intra-host.
 
-Contract: the owner's samples come from a zenoh shared-memory pool sized from
-the mission and pre-touched at start; :meth:`BulkWriter.publish` copies the
-array into a chunk once and, with the pool exhausted, retries for at most
-``alloc_timeout_ms``, then counts a drop and returns ``False`` (never raises,
-never falls back to a heap copy). A reader's zenoh callback only stores the
-sample in a one-slot mailbox (newest wins, ``missed`` counted); the loop
-thread's :meth:`BulkReader.poll` copies it into the preallocated array
-(``copy=False``: a read-only view). Each writer and reader belongs to one
-thread; :meth:`stats` is a frozen snapshot. Copies and costs: docs/architecture.md#zenoh.
+Contract: zenoh samples come from a shared-memory pool sized from the mission;
+:meth:`BulkWriter.publish` copies the array once per path and, with no chunk
+or sample free, counts a drop (after ``alloc_timeout_ms`` for zenoh's pool;
+never raises, never falls back to a heap copy). A reader's zenoh callback only
+stores the sample in a one-slot mailbox (newest wins); the loop thread's
+:meth:`BulkReader.poll` copies it into the preallocated array (``copy=False``:
+a read-only view). Each end belongs to one thread. Costs: docs/architecture.md#zenoh.
 """
 
 from __future__ import annotations
@@ -32,14 +32,17 @@ from typing import Any
 import numpy as np
 import zenoh
 
-from ..errors import TransportError
+from ..core.events import EV
+from ..errors import IntraHostError, TransportError
 from ..security.keyspace import key_of
+from . import intrahost
 from .transport import is_matching
 
 __all__ = [
     "BULK_HEADER_BYTES",
     "HEADER",
     "MAX_CHANNEL_BYTES",
+    "STALE_LOOPS",
     "BulkChannelConfig",
     "BulkHeader",
     "BulkReader",
@@ -51,6 +54,7 @@ __all__ = [
     "counter_elements",
     "counter_region",
     "decode_sample",
+    "mission_shm_need",
     "parse_bulk_type",
     "pool_size",
 ]
@@ -64,6 +68,10 @@ from ..config import (
     counter_region,
     parse_bulk_type,
 )
+
+#: Polls (loops) without an iceoryx2 sample after which a reader on that
+#: path falls back to zenoh (or ``4 * rate_divisor``, if longer).
+STALE_LOOPS = 100
 
 # Sample header, little-endian: layout_id u32, flags u32 (0), seq u64 (the
 # channel's own sample counter: gaps are missed samples), loop u64 (the
@@ -97,6 +105,7 @@ class BulkStats:
 
     published: int = 0
     dropped: int = 0
+    received_iox: int = 0
     received_shm: int = 0
     received_copied: int = 0
     missed: int = 0
@@ -147,8 +156,12 @@ class BulkWriter:
         provider: Any | None,
         *,
         monotonic: Callable[[], int] = time.monotonic_ns,
+        iox: Any | None = None,
     ) -> None:
         self.channel = channel
+        self.iox = iox
+        """The channel's iceoryx2 publisher (an IntraHostPublisher: same-host
+        readers), or None."""
         self.key = key
         self._provider = provider
         self._mono = monotonic
@@ -170,9 +183,23 @@ class BulkWriter:
             priority=zenoh.Priority.DATA_LOW,
             express=True,
         )
+        # Zenoh carries a sample only when a subscriber matches (a reader on
+        # another host, a reader whose iceoryx2 path fell back, a tool's tap):
+        # kept current from zenoh's thread, asked exactly before a skip.
+        self.remote = is_matching(self._pub)
+        self._listener = self._pub.declare_matching_listener(
+            zenoh.handlers.Callback(self._on_matching, indirect=False)
+        )
         self._seq = 0
         self.published = 0
         self.dropped = 0
+        self.published_iox = 0
+        """Samples that went over iceoryx2 (counters never reset)."""
+        self.published_zenoh = 0
+        """Samples that went over zenoh."""
+
+    def _on_matching(self, status: zenoh.MatchingStatus) -> None:
+        self.remote = bool(status.matching)
 
     def due(self, loop: int) -> bool:
         """Whether ``loop`` is one of this channel's publishing loops."""
@@ -181,14 +208,32 @@ class BulkWriter:
     def publish(self, loop: int, t_ns: int) -> bool:
         """Send :attr:`array` with ``loop`` and ``t_ns`` in its header.
 
-        With a provider: one copy into a shared-memory chunk. If none is free,
-        retry (garbage-collecting released chunks) for at most the channel's
-        ``alloc_timeout_ms``, then count a drop and return ``False``; never
-        raises for an exhausted pool. Without a provider (shared memory off):
-        one copy into a zenoh buffer. Returns ``True`` when the sample was put.
-        Raises TransportError only if zenoh refuses the put itself.
+        Over iceoryx2 (:attr:`iox`, when a subscriber is attached): one copy
+        into a loaned sample; none free counts a drop. Over zenoh, only when
+        a zenoh subscriber matches (:attr:`remote`; nobody: no bytes sent):
+        with a provider, one copy into a shared-memory chunk. If none is
+        free, retry (garbage-collecting released chunks) for at most the
+        channel's ``alloc_timeout_ms``, then count a drop and return
+        ``False``; never raises for an exhausted pool. Without a provider
+        (shared memory off): one copy into a zenoh buffer. Returns ``True``
+        when the sample was put (or nobody listens: the sequence number
+        moves on either way). Raises TransportError only if zenoh refuses
+        the put itself.
         """
         HEADER.pack_into(self._buf, 0, self._layout, 0, self._seq, loop, t_ns)
+        iox = self.iox
+        if iox is not None and iox.subscribers:
+            loan = iox.loan()
+            if loan is None:
+                self.dropped += 1
+            else:
+                loan[:] = self._buf  # the sample's one copy, into shared memory
+                if iox.send():
+                    self.published_iox += 1
+        if not (self.remote or is_matching(self._pub)):
+            self._seq += 1
+            self.published += 1
+            return True
         if self._provider is None:
             payload: Any = self._buf
         else:
@@ -204,6 +249,7 @@ class BulkWriter:
             raise TransportError(f"bulk put on {self.key} failed: {exc}") from exc
         self._seq += 1
         self.published += 1
+        self.published_zenoh += 1
         return True
 
     def _alloc(self) -> Any | None:
@@ -227,7 +273,10 @@ class BulkWriter:
         return is_matching(self._pub)
 
     def undeclare(self) -> None:
+        self._listener.undeclare()
         self._pub.undeclare()
+        if self.iox is not None:
+            self.iox.close()
 
 
 class BulkReader:
@@ -238,9 +287,29 @@ class BulkReader:
     superseded, never queued: a slow reader never stalls the session.
     """
 
-    def __init__(self, session: zenoh.Session, key: str, channel: BulkChannelConfig) -> None:
+    def __init__(
+        self,
+        session: zenoh.Session,
+        key: str,
+        channel: BulkChannelConfig,
+        *,
+        iox: Any | None = None,
+    ) -> None:
         self.channel = channel
         self.key = key
+        self.iox = iox
+        """The channel's iceoryx2 subscriber (an IntraHostSubscriber: a
+        same-host owner), or None."""
+        self.on_iox = False
+        """Whether iceoryx2 carries the samples (then no zenoh subscriber is
+        declared, so the owner sends none over zenoh for this reader)."""
+        self.fallbacks = 0
+        """Times the iceoryx2 path fell back to zenoh."""
+        self.changes: list[tuple[str, str]] = []
+        """``(path, why)`` of each path change not yet evented (:class:`NodeBulk`)."""
+        self._session = session
+        self._quiet = 0  # polls without an iceoryx2 sample while on it
+        self._quiet_max = max(STALE_LOOPS, 4 * channel.rate_divisor)
         self.array: np.ndarray[Any, Any] = np.zeros(channel.shape, channel.dtype)
         self.view: np.ndarray[Any, Any] | None = None
         self.header: BulkHeader | None = None
@@ -252,12 +321,17 @@ class BulkReader:
         self._latest: zenoh.Sample | None = None
         self._event = threading.Event()
         self._last_seq: int | None = None
+        self.received_iox = 0
         self.received_shm = 0
         self.received_copied = 0
         self.missed = 0
         self.bad = 0
-        self._sub = session.declare_subscriber(
-            key, zenoh.handlers.Callback(self._on_sample, indirect=False)
+        self._sub: Any = None
+        self._declare()
+
+    def _declare(self) -> None:
+        self._sub = self._session.declare_subscriber(
+            self.key, zenoh.handlers.Callback(self._on_sample, indirect=False)
         )
 
     def _on_sample(self, sample: zenoh.Sample) -> None:
@@ -275,6 +349,11 @@ class BulkReader:
         (counted in ``bad``). Never blocks; copies once out of zenoh and,
         with ``copy=True``, once into :attr:`array`.
         """
+        iox = self.iox
+        if iox is not None:
+            got = self._poll_iox(iox, copy)
+            if got is not None:
+                return got
         sample = self._latest
         if sample is None:
             return False
@@ -289,6 +368,56 @@ class BulkReader:
             data = payload.to_bytes()
             self.received_copied += 1
         del sample, payload, shm  # release the chunk now, not at the next poll
+        return self._take(data, copy)
+
+    def _poll_iox(self, iox: Any, copy: bool) -> bool | None:
+        """The iceoryx2 path's part of :meth:`poll`: whether a sample from it
+        was taken (True) or refused (False); None when none came (then
+        zenoh's is looked at). Switches the path (module doc of
+        :mod:`zplatform.runtime.intrahost`; docs/architecture.md#intra-host):
+        onto iceoryx2 at its first sample that passes the intake (the zenoh
+        subscriber goes, so zenoh sends nothing more for this reader), back
+        to zenoh when the owner's publisher is gone or silent for
+        ``max(STALE_LOOPS, 4 * rate_divisor)`` polls."""
+        view = iox.receive()
+        if view is None:
+            if self.on_iox:
+                self._quiet += 1
+                if iox.publishers == 0:
+                    self._fall("the owner's iceoryx2 publisher is gone")
+                elif self._quiet > self._quiet_max:
+                    self._fall(f"no sample over iceoryx2 for {self._quiet} loops")
+            return None
+        # The same intake as zenoh's samples, over the sample in place; the
+        # array's copy is its one copy (copy=False: a view on it, held until
+        # the next poll).
+        ok = self._take(view, copy)
+        if copy:
+            iox.release()
+        if not ok:
+            return False
+        self.received_iox += 1
+        self._quiet = 0
+        if not self.on_iox:
+            self.on_iox = True
+            if self._sub is not None:
+                self._sub.undeclare()
+                self._sub = None
+            self._latest = None
+            self.changes.append(("iox", "a sample over it passed the intake"))
+        return True
+
+    def _fall(self, why: str) -> None:
+        self.on_iox = False
+        self.fallbacks += 1
+        self._quiet = 0
+        if self._sub is None:
+            self._declare()  # rare (once per fallback): the loop thread may declare
+        self.changes.append(("zenoh", why))
+
+    def _take(self, data: bytes | memoryview, copy: bool) -> bool:
+        """The intake of one sample (size, layout; sequence gaps counted as
+        missed), then into :attr:`array` (or :attr:`view`)."""
         if len(data) != self._size:
             self.bad += 1
             return False
@@ -309,13 +438,24 @@ class BulkReader:
         return True
 
     def wait(self, timeout_s: float, *, copy: bool = True) -> bool:
-        """Block up to ``timeout_s`` for a sample, then :meth:`poll`."""
-        if self._latest is None:
-            self._event.wait(timeout_s)
-        return self.poll(copy=copy)
+        """Block up to ``timeout_s`` for a sample, then :meth:`poll`. On the
+        iceoryx2 path (no wake-up of its own) it looks every millisecond:
+        for tools and tests, never the loop (which polls)."""
+        if self.iox is None:
+            if self._latest is None:
+                self._event.wait(timeout_s)
+            return self.poll(copy=copy)
+        t_end = time.monotonic() + timeout_s
+        while True:
+            if self.poll(copy=copy):
+                return True
+            if time.monotonic() >= t_end:
+                return False
+            self._event.wait(min(0.001, max(0.0, t_end - time.monotonic())))
 
     def stats(self) -> BulkStats:
         return BulkStats(
+            received_iox=self.received_iox,
             received_shm=self.received_shm,
             received_copied=self.received_copied,
             missed=self.missed,
@@ -323,8 +463,12 @@ class BulkReader:
         )
 
     def undeclare(self) -> None:
-        self._sub.undeclare()
+        if self._sub is not None:
+            self._sub.undeclare()
+            self._sub = None
         self._latest = None
+        if self.iox is not None:
+            self.iox.close()
 
 
 class NodeBulk:
@@ -361,8 +505,18 @@ class NodeBulk:
         *,
         shared_memory: bool = True,
         prefault: bool = True,
+        intra_host: Any | None = None,
+        events: Any | None = None,
+        now_ns: Callable[[], int] = time.time_ns,
     ) -> None:
         self.node = node
+        self.events = events
+        """Where path changes are evented (an EventLog; None: kept in
+        :attr:`changes` only)."""
+        self._now = now_ns
+        self.changes: list[tuple[str, str, str]] = []
+        """``(channel, path, why)`` of the path changes :meth:`receive` saw
+        (the last ones; cleared when evented)."""
         self.pool_bytes = pool_size(channels, node) if shared_memory else 0
         self.provider: Any | None = None
         if self.pool_bytes:
@@ -379,9 +533,11 @@ class NodeBulk:
         for ch in channels:
             key = bulk_key(vehicle, ch)
             if ch.node == node:
-                self.writers[ch.name] = BulkWriter(session, key, ch, self.provider)
+                pub = self._iox(intra_host, ch, publisher=True) if ch.readers else None
+                self.writers[ch.name] = BulkWriter(session, key, ch, self.provider, iox=pub)
             elif node in ch.readers:
-                self.readers[ch.name] = BulkReader(session, key, ch)
+                sub = self._iox(intra_host, ch, publisher=False)
+                self.readers[ch.name] = BulkReader(session, key, ch, iox=sub)
         self._handles: list[tuple[Any, Callable[[], int]]] = []
         self.arrays: dict[str, Any] = {n: w.array for n, w in self.writers.items()}
         """Every channel's array by name: the owned ones (filled by the node's
@@ -390,11 +546,53 @@ class NodeBulk:
         self._writers = tuple(self.writers.values())
         self._readers = tuple(self.readers.values())
 
+    def _iox(self, mission: Any | None, ch: BulkChannelConfig, *, publisher: bool) -> Any | None:
+        """This node's iceoryx2 end of ``ch`` (its publisher, or a
+        subscriber), or None: the mission's ``transport.intra_host`` is
+        ``zenoh`` (or no mission was given), or the end cannot open
+        (under ``shm`` that raises TransportError: the operator asked for
+        it; under ``auto`` it is noted in :attr:`changes` and zenoh carries
+        the channel)."""
+        if mission is None or mission.transport.intra_host == "zenoh":
+            return None
+        end = intrahost.IntraHostPublisher if publisher else intrahost.IntraHostSubscriber
+        try:
+            name = intrahost.bulk_service_name(mission, ch.node, ch.name)
+            return end(name, ch.sample_bytes, len(ch.readers))
+        except IntraHostError as exc:
+            if mission.transport.intra_host == "shm":
+                raise TransportError(f"bulk {ch.name}: {exc}") from exc
+            self.changes.append((ch.name, "zenoh", f"no iceoryx2 end ({exc})"))
+            return None
+
     def receive(self, loop: int) -> None:
         """Take the newest sample of every read channel into its array
-        (:meth:`BulkReader.poll`); never blocks."""
+        (:meth:`BulkReader.poll`), then event each reader's path change
+        (:attr:`events`); never blocks (a fallback declares a zenoh
+        subscriber, rarely)."""
         for r in self._readers:
             r.poll()
+            if r.changes:
+                for path, why in r.changes:
+                    self.changes.append((r.channel.name, path, why))
+                r.changes.clear()
+        if self.changes and self.events is not None:
+            self._event_changes()
+
+    def _event_changes(self) -> None:
+        t_ns = self._now()
+        for name, path, why in self.changes:
+            r = self.readers.get(name)
+            fallbacks = r.fallbacks if r is not None else 0
+            ev = EV.BULK_ON_SHM if path == "iox" else EV.BULK_FALLBACK
+            self.events.emit(  # type: ignore[union-attr]
+                ev, t_ns, node=self.node, channel=name, why=why, fallbacks=fallbacks
+            )
+        self.changes.clear()
+
+    def paths(self) -> dict[str, str]:
+        """Each read channel's path now: ``iox`` or ``zenoh``."""
+        return {n: "iox" if r.on_iox else "zenoh" for n, r in self.readers.items()}
 
     def publish(self, loop: int, t_ns: int) -> None:
         """Publish every owned channel due on ``loop`` (:meth:`BulkWriter.publish`:
@@ -429,6 +627,7 @@ class NodeBulk:
             out[f"bulk_{name}_published"] = w.published
             out[f"bulk_{name}_dropped"] = w.dropped
         for name, r in self.readers.items():
+            out[f"bulk_{name}_iox"] = r.received_iox
             out[f"bulk_{name}_shm"] = r.received_shm
             out[f"bulk_{name}_copied"] = r.received_copied
             out[f"bulk_{name}_missed"] = r.missed
@@ -454,10 +653,28 @@ class NodeBulk:
             r.undeclare()
 
 
+def mission_shm_need(mission: Any) -> int:
+    """Shared memory the mission's intra-host links and bulk pools take, in
+    bytes: the sync's links, zenoh's bulk pools and the bulk channels'
+    iceoryx2 segments (when ``transport.intra_host`` is not ``zenoh``)."""
+    need = sum(
+        intrahost.segment_bytes(*intrahost.mission_link_sizes(mission, dn))
+        for dn in mission.device_nodes
+    )
+    nodes = {ch.node for ch in mission.bulk}
+    if mission.transport.intra_host != "zenoh":
+        need += sum(
+            intrahost.bulk_segment_bytes(ch.sample_bytes, len(ch.readers)) for ch in mission.bulk
+        )
+    return need + sum(pool_size(mission.bulk, n) for n in nodes)
+
+
 def _getter(bulk: NodeBulk, element: str) -> Callable[[], int]:
     _, rest = element.split("_", 1)
     name, field = rest.rsplit("_", 1)
-    attr = {"shm": "received_shm", "copied": "received_copied"}.get(field, field)
+    attr = {"iox": "received_iox", "shm": "received_shm", "copied": "received_copied"}.get(
+        field, field
+    )
     end: Any = bulk.writers[name] if name in bulk.writers else bulk.readers[name]
     return lambda: int(getattr(end, attr))
 
@@ -476,6 +693,8 @@ def open_bulk(session: zenoh.Session, mission: Any, node: str, logic: Any) -> No
         mission.bulk,
         node,
         shared_memory=mission.transport.shared_memory,
+        intra_host=mission,
+        events=logic.events,
     )
     logic.attach_bulk(bulk)
     return bulk

@@ -1,22 +1,22 @@
-"""The intra-host carrier: one trigger frame to a device node and one reply
-back over iceoryx2 shared memory, for a CN and a DN on one host.
+"""The intra-host carrier: the sync's trigger and reply, and bulk channels'
+samples, over iceoryx2 shared memory between nodes of one host.
 
 :class:`IntraHostClient` (the CN's end) and :class:`IntraHostServer` (the
 DN's) move bytes only: frames, tags and freshness stay the sync's
-(``zplatform/runtime/sync.py``), as over zenoh. Each link is one iceoryx2
-request/response service and two event services that wake the other side
-(request/response ports cannot join a wait set); each side blocks in its
-event listener with a deadline, never spinning. A timeout is "no reply",
-counted; :attr:`IntraHostClient.state` says when the link has no peer or
-has stalled, so the sync can fall back to zenoh.
+(``zplatform/runtime/sync.py``). Each link is one request/response service
+and two event services that wake the other side (request/response ports
+cannot join a wait set); each side blocks in its listener with a deadline,
+never spinning. A timeout is "no reply", counted; :attr:`IntraHostClient.state`
+says when the link has no peer or has stalled, so the sync falls back to zenoh.
+:class:`IntraHostPublisher`/:class:`IntraHostSubscriber`: a bulk channel's
+publish/subscribe service (:func:`bulk_service_name`; ``bulk.py`` uses them).
 
-Copies per hop: the sender encodes into the loaned sample (0 copies of its
-own), the receiver reads it in place and copies once into its Data Vector.
-Service names (:func:`link_names`; the sync's, :func:`sync_link_names`: one
-kernel and network namespace) hold both nodes; segments are sized (:func:`mission_link_sizes`)
-and refused when ``/dev/shm`` cannot hold them (:func:`check_shm`); dead
-processes' resources are removed before a link opens (:func:`remove_stale`).
-How it waits and what it costs: docs/architecture.md#intra-host.
+Copies per hop: the sender copies its frame into the loaned sample once, the
+receiver checks it in place and copies once into its Data Vector. Names
+(:func:`sync_link_names`: one kernel and network namespace) hold both nodes;
+segments are sized (:func:`mission_link_sizes`) and refused when ``/dev/shm``
+cannot hold them (:func:`check_shm`); dead processes' resources are removed
+before an end opens (:func:`remove_stale`). Costs: docs/architecture.md#intra-host.
 """
 
 from __future__ import annotations
@@ -47,9 +47,13 @@ __all__ = [
     "PREFIX",
     "STALL_AFTER",
     "IntraHostClient",
+    "IntraHostPublisher",
     "IntraHostServer",
+    "IntraHostSubscriber",
     "LinkNames",
     "LinkState",
+    "bulk_segment_bytes",
+    "bulk_service_name",
     "check_intra_host",
     "check_shm",
     "host_tag",
@@ -57,7 +61,6 @@ __all__ = [
     "intra_host_mode",
     "link_names",
     "mission_link_sizes",
-    "mission_shm_need",
     "remove_stale",
     "segment_bytes",
     "sync_link_names",
@@ -70,10 +73,12 @@ PREFIX = "zp_"
 DEFAULT_DEADLINE_S = 0.002
 #: Consecutive timeouts after which the link counts as stalled.
 STALL_AFTER = 3
-#: Samples preallocated per direction: one the sender loans while the
-#: receiver may still hold the previous one, and one in flight. The client
-#: keeps at most one request pending (a timed-out one is dropped first).
-SLOTS = 3
+#: Samples preallocated per direction: one the sender loans, two queued at
+#: the receiver (its buffer: a timed-out trigger is withdrawn but stays
+#: there until the receiver drains it), and the one the DN holds until its
+#: next wait (its loop copies the trigger's data from it after the reply).
+#: The client keeps at most one request pending.
+SLOTS = 4
 #: Per-sample bookkeeping iceoryx2 adds to a segment, and the fixed part of
 #: a link (management segments, connections), both measured on 0.10 with
 #: margin (tests/unit/test_intrahost.py checks the bound on the real files).
@@ -138,15 +143,28 @@ def _name_part(text: str) -> str:
     return re.sub(r"[^A-Za-z0-9_.-]", "_", text)[:64] or "_"
 
 
+def _mission_name(mission: Mission) -> str:
+    digest = hashlib.sha256(msgspec.json.encode(mission)).hexdigest()[:12]
+    return f"{_name_part(mission.mission)[:48]}.{digest}"
+
+
+def bulk_service_name(mission: Mission, owner: str, channel: str) -> str:
+    """The iceoryx2 publish/subscribe service of bulk channel ``channel``
+    owned by ``owner`` on this host: named as the sync's links
+    (:func:`sync_link_names`: the mission's name and digest, the vehicle,
+    :func:`host_tag`), so only an owner and readers of one mission on one
+    kernel and network namespace meet. Raises IntraHostError as :func:`link_names`."""
+    names = link_names(_mission_name(mission), mission.vehicle, host_tag(), owner, channel)
+    return names.sync.rsplit("/", 1)[0] + "/bulk"
+
+
 def sync_link_names(mission: Mission, dn: str, cn: str = "cn") -> LinkNames:
     """The names of the sync's link ``cn`` -> ``dn`` on this host
     (:func:`link_names`): the mission's name and a digest of its whole
     configuration (two copies of a mission on other endpoints, as tests run
     them side by side, never share a link), and :func:`host_tag` for the
     run part. The same for every run: the frames' tags bind each to its run."""
-    digest = hashlib.sha256(msgspec.json.encode(mission)).hexdigest()[:12]
-    name = f"{_name_part(mission.mission)[:48]}.{digest}"
-    return link_names(name, mission.vehicle, host_tag(), cn, dn)
+    return link_names(_mission_name(mission), mission.vehicle, host_tag(), cn, dn)
 
 
 def mission_link_sizes(mission: Mission, dn: str) -> tuple[int, int]:
@@ -169,13 +187,17 @@ def segment_bytes(max_trigger: int, max_reply: int) -> int:
     )
 
 
-def mission_shm_need(mission: Mission) -> int:
-    """Shared memory the mission's intra-host links and bulk pools take, in bytes."""
-    from .bulk import pool_size
+def bulk_segment_bytes(sample_bytes: int, readers: int) -> int:
+    """Upper bound of one bulk channel's iceoryx2 data segment: one sample
+    per subscriber slot (:func:`bulk_subscribers`, each buffering one and
+    borrowing one) and the publisher's loan."""
+    return (2 * bulk_subscribers(readers) + 1) * (sample_bytes + _SAMPLE_OVERHEAD) + _LINK_FIXED
 
-    need = sum(segment_bytes(*mission_link_sizes(mission, dn)) for dn in mission.device_nodes)
-    nodes = {ch.node for ch in mission.bulk}
-    return need + sum(pool_size(mission.bulk, n) for n in nodes)
+
+def bulk_subscribers(readers: int) -> int:
+    """Subscriber ports a bulk channel's service admits: each reader, and
+    each again restarted before its dead port is removed."""
+    return 2 * readers
 
 
 def check_shm(need: int, shm_dir: str = "/dev/shm", what: str = "the intra-host links") -> None:
@@ -560,6 +582,7 @@ class IntraHostServer(_End):
         except Exception as exc:
             raise IntraHostError(f"intra-host link {names.sync}: no waker ({exc!r})") from exc
         self._active: Any = None
+        self._held: Any = None  # the last trigger answered: its view lives until the next wait
         self._loan: Any = None
         #: Counters (never reset): triggers served, replies sent, triggers
         #: refused (longer than ``max_trigger``), superseded (a newer one came).
@@ -570,9 +593,12 @@ class IntraHostServer(_End):
 
     def wait(self, timeout_s: float) -> memoryview | None:
         """The next trigger, as a read-only view in shared memory valid until
-        :meth:`send` or the next :meth:`wait`; None after ``timeout_s``
-        without one. Blocks at most ``timeout_s``; never spins."""
-        self._active = self._loan = None
+        the next :meth:`wait` (or :meth:`poll`, :meth:`close`): the sample is
+        held after :meth:`send` too, so the DN's loop copies the trigger's
+        data into its Data Vector straight from it (the trigger's one copy
+        on this end); None after ``timeout_s`` without one. Blocks at most
+        ``timeout_s``; never spins."""
+        self._active = self._loan = self._held = None
         t_end = time.monotonic() + timeout_s
         iox = self._iox
         while True:
@@ -637,11 +663,12 @@ class IntraHostServer(_End):
         active, self._active = self._active, None
         if loan is None or active is None:
             return False
+        # Held (not dropped) until the next wait: its view stays valid.
+        self._held = active
         try:
             loan.assume_init().send()
         except Exception:  # SendError: the client dropped the request meanwhile
             return False
-        del active
         self._notifier.notify()
         self.replied += 1
         return True
@@ -655,6 +682,149 @@ class IntraHostServer(_End):
         return self.send()
 
     def close(self) -> None:
-        self._loan = self._active = None
+        self._loan = self._active = self._held = None
         self.__dict__.pop("_wake_notifier", None)
         super().close()
+
+
+class _PubSub:
+    """What both ends of a bulk channel's iceoryx2 service hold: a node and
+    the publish/subscribe service (:func:`bulk_service_name`), sized from
+    the channel alone so its owner and readers open it alike."""
+
+    def __init__(self, name: str, sample_bytes: int, readers: int, prefix: str) -> None:
+        if sample_bytes < 1 or readers < 1:
+            raise IntraHostError("intra-host bulk: a sample of >= 1 byte and >= 1 reader")
+        # A node's start removes what dead processes left (a kill -9'd owner's
+        # publisher would hold the service's one publisher slot).
+        self.stale_removed = remove_stale(prefix)
+        iox = self._iox = _iox()
+        self.name = name
+        self.sample_bytes = sample_bytes
+        try:
+            self._node = (
+                iox.NodeBuilder.new()
+                .config(iceoryx2_config(prefix))
+                .signal_handling_mode(iox.SignalHandlingMode.Disabled)
+                .create(iox.ServiceType.Ipc)
+            )
+            subs = bulk_subscribers(readers)
+            self._service = (
+                self._node.service_builder(iox.ServiceName.new(name))
+                .publish_subscribe(iox.Slice[ctypes.c_uint8])
+                .max_publishers(1)
+                .max_subscribers(subs)
+                .max_nodes(subs + 2)
+                .history_size(0)
+                .subscriber_max_buffer_size(1)
+                .subscriber_max_borrowed_samples(1)
+                .enable_safe_overflow(True)  # newest wins: a slow reader never stalls the owner
+                .open_or_create()
+            )
+        except Exception as exc:
+            raise IntraHostError(f"intra-host bulk {name}: cannot open ({exc!r})") from exc
+
+    @property
+    def publishers(self) -> int:
+        """Publishers attached now (a dead one until removed); under a µs."""
+        return int(self._service.dynamic_config.number_of_publishers)
+
+    @property
+    def subscribers(self) -> int:
+        """Subscribers attached now (a dead one until removed); under a µs."""
+        return int(self._service.dynamic_config.number_of_subscribers)
+
+    def close(self) -> None:
+        """Drop the port, the service, the node. Idempotent."""
+        for attr in ("_port", "_sample", "_service", "_node"):
+            self.__dict__.pop(attr, None)
+
+
+class IntraHostPublisher(_PubSub):
+    """A bulk channel owner's iceoryx2 publisher: :meth:`loan` a sample,
+    write it, :meth:`send`. Samples are exactly ``sample_bytes`` long. Not
+    thread-safe (the owner's loop thread). Raises IntraHostError when it
+    cannot open (``/dev/shm`` too small with ``check``, iceoryx2 refused, the
+    publisher slot held by a live process); never after."""
+
+    def __init__(
+        self,
+        name: str,
+        sample_bytes: int,
+        readers: int,
+        *,
+        prefix: str = PREFIX,
+        check: bool = True,
+    ) -> None:
+        if check:
+            check_shm(bulk_segment_bytes(sample_bytes, readers), what=f"intra-host bulk {name}")
+        super().__init__(name, sample_bytes, readers, prefix)
+        iox = self._iox
+        try:
+            self._port = (
+                self._service.publisher_builder()
+                .initial_max_slice_len(sample_bytes)
+                .allocation_strategy(iox.AllocationStrategy.Static)
+                .max_loaned_samples(1)
+                .create()
+            )
+        except Exception as exc:
+            raise IntraHostError(f"intra-host bulk {name}: no publisher ({exc!r})") from exc
+        self._sample: Any = None
+
+    def loan(self) -> memoryview | None:
+        """A writable view of a loaned sample in shared memory (``sample_bytes``),
+        or None when none is free (counted by the caller as a drop)."""
+        try:
+            self._sample = self._port.loan_slice_uninit(self.sample_bytes)
+        except Exception:  # LoanError: every sample held by subscribers
+            self._sample = None
+            return None
+        return _view(self._sample.payload_ptr, self.sample_bytes)
+
+    def send(self) -> bool:
+        """Deliver the loaned sample to every subscriber (newest wins in each
+        one's one-slot buffer); False when it could not go. Never blocks."""
+        sample, self._sample = self._sample, None
+        if sample is None:
+            return False
+        try:
+            sample.assume_init().send()
+        except Exception:  # SendError: a broken connection
+            return False
+        return True
+
+
+class IntraHostSubscriber(_PubSub):
+    """A bulk channel reader's iceoryx2 subscriber: :meth:`receive` the
+    newest sample in place. Not thread-safe (the reader's loop thread).
+    Raises IntraHostError when it cannot open; never after."""
+
+    def __init__(self, name: str, sample_bytes: int, readers: int, *, prefix: str = PREFIX) -> None:
+        super().__init__(name, sample_bytes, readers, prefix)
+        try:
+            self._port = self._service.subscriber_builder().buffer_size(1).create()
+        except Exception as exc:
+            raise IntraHostError(f"intra-host bulk {name}: no subscriber ({exc!r})") from exc
+        self._sample: Any = None
+
+    def receive(self) -> memoryview | None:
+        """The newest sample (older ones are dropped) as a read-only view in
+        shared memory, valid until the next :meth:`receive` or :meth:`release`;
+        None when none arrived. Any length comes back: the caller's intake
+        checks it. Never blocks."""
+        self._sample = None
+        sample = None
+        try:
+            while (newer := self._port.receive()) is not None:
+                sample = newer
+        except Exception:  # ReceiveError: a broken connection; nothing to take
+            return None
+        if sample is None:
+            return None
+        self._sample = sample
+        return _view(sample.payload_ptr, sample.header.number_of_elements).toreadonly()
+
+    def release(self) -> None:
+        """Give the sample back (its view must not be used after)."""
+        self._sample = None

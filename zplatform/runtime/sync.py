@@ -141,9 +141,6 @@ class TapPublisher:
         self.pub.undeclare()
 
 
-_EMPTY = memoryview(b"")
-
-
 class _ShmWaker(Waker):
     """A mailbox waker that wakes a DN's loop thread blocked in its
     intra-host listener (:meth:`DeviceSync.attach_shm`) instead of a lock."""
@@ -156,23 +153,6 @@ class _ShmWaker(Waker):
 
     def notify(self) -> None:
         self._wake()
-
-
-class _ViewPayload:
-    """An intake :class:`~zplatform.control.intake.Payload` over a frame in
-    shared memory: its length is free, ``to_bytes`` is the intake's one
-    copy out of the segment (the sender may reuse it after)."""
-
-    __slots__ = ("view",)
-
-    def __init__(self) -> None:
-        self.view = memoryview(b"")
-
-    def __len__(self) -> int:
-        return len(self.view)
-
-    def to_bytes(self) -> bytes:
-        return bytes(self.view)
 
 
 class ShmLink:
@@ -336,7 +316,6 @@ class ControlSync:
         self.shm: tuple[ShmLink | None, ...] = tuple(shm) if shm else (None,) * len(dns)
         self._has_shm = any(link is not None for link in self.shm)
         self._sent_shm: list[int] = []
-        self._view = _ViewPayload()
         self.session = session
         self._trace = trace
         self.dns = list(dns)
@@ -676,7 +655,7 @@ class ControlSync:
         """Each reply over shared memory, through DN ``i``'s intake
         (:class:`~zplatform.control.intake.ReplyCheck`: size, tag, the loop
         asked), to ``logic.reply``, waiting at most until ``deadline``."""
-        view, got, checks = self._view, self._got, self._checks
+        got, checks = self._got, self._checks
         for i in self._sent_shm:
             link = self.shm[i]
             assert link is not None
@@ -688,17 +667,20 @@ class ControlSync:
                 continue
             if trace is not None:
                 trace("taken", i)
-            view.view = reply
-            data = checks[i].check(view, None)  # refused: counted there
-            view.view = memoryview(b"")
-            client.release()
+            # Checked in place (size, tag, the loop asked), no copy; the
+            # logic decodes it from shared memory into the Data Vector (the
+            # reply's one copy), then the sample goes back.
+            data = checks[i].check_view(reply, None)  # refused: counted there
             if data is None:
+                client.release()
                 link.refused += 1
                 link.missed("a reply the intake refused")
                 continue
             link.took()
             self._heard[i] = True
-            if logic.reply(i, data):
+            applied = logic.reply(i, data)
+            client.release()
+            if applied:
                 got[i] = True
 
     def take_path_changes(self, out: list[tuple[str, str, str]]) -> None:
@@ -882,7 +864,6 @@ class DeviceSync:
         # path each served trigger came by (it goes back in the reply).
         self._path = path
         self.shm: IntraHostServer | None = None
-        self._shm_payload = _ViewPayload()
         if shm is not None:
             self.attach_shm(shm)
 
@@ -916,10 +897,10 @@ class DeviceSync:
     def _wait_shm(self, logic: DeviceLogic, server: IntraHostServer, deadline: float) -> bool:
         """:meth:`wait` with the intra-host link: the newest zenoh trigger
         or, when none is queued, the link's, then block in its listener."""
-        box, payload = self._box, self._shm_payload
+        box = self._box
         # The handle is zenoh's Query for zenoh's triggers; none here.
-        check: Callable[[_ViewPayload, Any], bytes | None] = self.intake.check
-        item: tuple[zenoh.Query | ShmQuery, bytes] | None
+        check: Callable[[memoryview, Any], memoryview | None] = self.intake.check_view
+        item: tuple[zenoh.Query | ShmQuery, bytes | memoryview] | None
         while True:
             left = deadline - time.monotonic()
             if left <= 0:
@@ -933,9 +914,10 @@ class DeviceSync:
                 if view is None:
                     server.block(left)
                     continue
-                payload.view = view
-                data = check(payload, None)  # refused: counted, unanswered
-                payload.view = _EMPTY
+                # Checked in place, no copy; the server holds the sample
+                # until its next wait, so the logic's run() copies the
+                # trigger's data from it into the Data Vector (its one copy).
+                data = check(view, None)  # refused: counted, unanswered
                 if data is None:
                     continue
                 if self._trace is not None:
@@ -997,7 +979,11 @@ class DeviceSync:
                 query.reply(self._probe_key, reply)
 
     def _serve(
-        self, item: tuple[zenoh.Query | ShmQuery, bytes], logic: DeviceLogic, *, may_run: bool
+        self,
+        item: tuple[zenoh.Query | ShmQuery, bytes | memoryview],
+        logic: DeviceLogic,
+        *,
+        may_run: bool,
     ) -> None:
         trace = self._trace
         if trace is not None:
