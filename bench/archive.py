@@ -80,7 +80,6 @@ def wide(n_elements: int, rows: int, group_columns: int) -> dict[str, float | in
     import numpy as np
 
     from bench.cluster import make_mission
-    from zplatform.archive import store
 
     extra = {"cn": [{"name": f"w{i}", "type": "f32"} for i in range(n_elements)]}
     with tempfile.TemporaryDirectory() as tmp:
@@ -90,23 +89,19 @@ def wide(n_elements: int, rows: int, group_columns: int) -> dict[str, float | in
         rng = np.random.default_rng(1)
         buf = np.frombuffer(dv.buf, np.uint8)
         root = Path(tmp) / "wide"
-        saved, store.GROUP_COLUMNS = store.GROUP_COLUMNS, group_columns
-        try:
-            w = ArchiveWriter(m, layout, root)
-            t0 = 1_800_000_000_000_000_000
-            start = time.perf_counter()
-            for i in range(1, rows + 1):
-                buf[:] = rng.integers(0, 256, layout.size, np.uint8)
-                for n, v in (("cn_loop", i), ("cn_time_ns", t0 + i * 10**7), ("cn_epoch", 1)):
-                    dv.set(n, v)
-                dv.set("cn_state", 0)
-                w.snapshot(t0 + i * 10**7 + 1000, dv)
-                if i % 100 == 0:
-                    w.flush(600.0)
-            w.close(600.0)
-            ingest = time.perf_counter() - start
-        finally:
-            store.GROUP_COLUMNS = saved
+        w = ArchiveWriter(m, layout, root, group_columns=group_columns)
+        t0 = 1_800_000_000_000_000_000
+        start = time.perf_counter()
+        for i in range(1, rows + 1):
+            buf[:] = rng.integers(0, 256, layout.size, np.uint8)
+            for n, v in (("cn_loop", i), ("cn_time_ns", t0 + i * 10**7), ("cn_epoch", 1)):
+                dv.set(n, v)
+            dv.set("cn_state", 0)
+            w.snapshot(t0 + i * 10**7 + 1000, dv)
+            if i % 100 == 0:
+                w.flush(600.0)
+        w.close(600.0)
+        ingest = time.perf_counter() - start
         q = Query(f"w{n_elements - 1}", run=1)
         cold: list[int] = []
         warm: list[int] = []

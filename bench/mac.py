@@ -233,14 +233,14 @@ def _victims(m: Any, keys: Any, session: Any, key: str) -> dict[str, Callable[[]
 
         ks = KeySpace(m.vehicle)
         server = ClockServer(session, ks, time.time_ns, m, keys)
-        server._queryable.undeclare()  # the same server, counted, on the bench's key
-        orig = server._on_query
+        server.queryable.undeclare()  # the same server, counted, on the bench's key
+        orig = server.on_query
 
         def counted(q: Any) -> None:
             _ARRIVED.append(1)
             orig(q)
 
-        server._queryable = session.declare_queryable(
+        server.queryable = session.declare_queryable(
             key, zenoh.handlers.Callback(counted, indirect=False)
         )
 

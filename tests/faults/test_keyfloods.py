@@ -203,11 +203,11 @@ def test_a_keyless_clock_flood_never_reaches_the_servers_thread() -> None:
     server = ClockServer(s, KeySpace(m.vehicle), time.time_ns, m, keys.for_node("cn"))
     try:
         first = _Query(genuine)
-        server._on_query(first)  # type: ignore[arg-type]
+        server.on_query(first)  # type: ignore[arg-type]
         flood = [_Query(p) for p in _junk(len(genuine), 2000)]
         flood += [_Query(genuine) for _ in range(500)]  # the genuine query, replayed
         for q in flood:
-            server._on_query(q)  # type: ignore[arg-type]
+            server.on_query(q)  # type: ignore[arg-type]
     finally:
         server.close()  # joins the thread: what it was handed is served
         s.close()

@@ -585,10 +585,10 @@ def test_a_flood_of_clock_queries_waits_in_a_bounded_backlog() -> None:
     server = ClockServer(s, KEYS, time.time_ns, IGNITER, keys.for_node("cn"))
     try:
         flood = [_HeldQuery(release, link.query(time.time_ns())[0]) for _ in range(5000)]
-        server._on_query(flood[0])  # type: ignore[arg-type]
+        server.on_query(flood[0])  # type: ignore[arg-type]
         wait_until(lambda: not server._q.qsize(), 10, "the server's thread to take it")
         for q in flood[1:]:
-            server._on_query(q)  # type: ignore[arg-type]
+            server.on_query(q)  # type: ignore[arg-type]
         assert server._q.qsize() == backlog
         assert server.dropped == len(flood) - 1 - backlog
         assert sum(q.dropped for q in flood) == server.dropped

@@ -80,8 +80,18 @@ class ArchiveWriter:
     starts. Raises ArchiveError when another writer holds ``root`` or it
     cannot be created."""
 
-    def __init__(self, mission: Mission, layout: Layout, root: str | Path) -> None:
+    def __init__(
+        self,
+        mission: Mission,
+        layout: Layout,
+        root: str | Path,
+        *,
+        group_columns: int | None = None,
+    ) -> None:
         self.mission, self.layout, self.root = mission, layout, Path(root)
+        # Elements per Parquet file group of a new run (0: one file whatever
+        # the width; None: store.GROUP_COLUMNS); a run keeps its grouping.
+        self._group_columns = group_columns
         cfg = mission.archive
         self.cfg = cfg
         try:
@@ -306,7 +316,8 @@ class ArchiveWriter:
             info = store.RunInfo(
                 run, self.mission.mission, self.mission.vehicle, self.layout.layout_id
             )
-            info.group_columns = store.GROUP_COLUMNS
+            gc = self._group_columns
+            info.group_columns = store.GROUP_COLUMNS if gc is None else gc
         self._info = info
         self._groups = store.column_groups(self.layout, info.group_columns)
         self._info.outcome = "open"

@@ -263,7 +263,8 @@ class RemoteHistory:
     ) -> None:
         self.layout = layout
         self.where = key_expr
-        self._session, self._key, self._channel, self._now = session, key_expr, channel, now_ns
+        self._key = key_expr
+        self._session, self._channel, self._now = session, channel, now_ns
         self.timeout_s = timeout_s
         self._on_close = on_close
         self._mission: Mission | None = None  # for_mission's: the link to open
@@ -272,9 +273,13 @@ class RemoteHistory:
     @classmethod
     def for_mission(cls, mission: Mission, *, timeout_s: float = REMOTE_TIMEOUT_S) -> RemoteHistory:
         """A source that opens its link (one zenoh session) on its first query."""
-        src = cls(Layout.for_node(mission, "cn"), None, "", None, lambda: 0, timeout_s=timeout_s)
+        from ..runtime.transport import KeySpace
+
+        key = KeySpace(mission.vehicle).archive
+        src = RemoteHistory(
+            Layout.for_node(mission, "cn"), None, key, None, lambda: 0, timeout_s=timeout_s
+        )
         src._mission = mission
-        src.where = f"{mission.vehicle}/archive/query"
         return src
 
     def _connect(self) -> None:
@@ -284,7 +289,8 @@ class RemoteHistory:
         from ..ground.link import GroundLink
 
         link = GroundLink(self._mission, telemetry=False, events=False)
-        self._session, self._key = link.ns.session, link.keys.archive
+        self._key = link.keys.archive
+        self._session = link.ns.session
         self._channel = channel(link.link_keys, "telemetry")
         self._now, self._on_close = link.clock.now_ns, link.close
 

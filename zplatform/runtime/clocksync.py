@@ -519,8 +519,8 @@ class ClockServer:
         self._sizes = self._responder.sizes
         self._lock = threading.Lock()  # the responder's checks: zenoh's threads
         self.served = 0
-        self._queryable = session.declare_queryable(
-            self._key, zenoh.handlers.Callback(self._on_query, indirect=False)
+        self.queryable = session.declare_queryable(
+            self._key, zenoh.handlers.Callback(self.on_query, indirect=False)
         )
         self._thread = threading.Thread(target=self._serve, name="clock-server", daemon=True)
         self._thread.start()
@@ -529,7 +529,7 @@ class ClockServer:
     def refused(self) -> int:
         return self._responder.refused + self.dropped
 
-    def _on_query(self, query: zenoh.Query) -> None:
+    def on_query(self, query: zenoh.Query) -> None:
         # zenoh's thread (class doc): check, then hand a checked query to the
         # thread or drop it. Never blocks beyond the lock; never raises for
         # what arrives.
@@ -594,7 +594,7 @@ class ClockServer:
             self.served += 1
 
     def close(self) -> None:
-        self._queryable.undeclare()
+        self.queryable.undeclare()
         while True:  # room for the stop mark (what still waits is let go)
             try:
                 self._q.put_nowait(None)
