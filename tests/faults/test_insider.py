@@ -4,8 +4,10 @@ table and the links each role holds), fed to the intakes of
 tests/faults/test_keyspace_faults.py.
 
 For every (row, role, frame) the role has no right to send and holds no key
-for, the insider tags the frame (a genuine one, and one with every header
-integer at its largest and at its smallest) with each channel it does hold,
+for, the insider tags the frame (a genuine one, one with every header
+integer at its largest and at its smallest, one with its freshness fields
+at their largest, junk of the longest length taken and of one byte more)
+with each channel it does hold,
 in the run it knows: the receiving intake refuses each, counts it exactly
 once as bad, and still admits the genuine sender's next frame. Every other
 case of the plan is a frame only the role's own node or a ground takes, or
@@ -20,7 +22,15 @@ from typing import Any
 import pytest
 
 from tests.faults.insider import REACHES, REFUSED, InsiderCase, plan, shipped
-from tests.faults.test_keyspace_faults import MASTER, RECIPES, T0, Harness, _harness, _kind
+from tests.faults.test_keyspace_faults import (
+    MASTER,
+    RECIPES,
+    T0,
+    Harness,
+    _harness,
+    _junk,
+    _kind,
+)
 from zplatform.core.auth import TAG_LEN, KeySet, Run, host_roles
 
 MISSIONS = shipped()
@@ -28,11 +38,16 @@ CASES = [c for n, m in MISSIONS.items() for c in plan(n, m)]
 
 
 def _variants(h: Harness) -> Iterator[tuple[str, bytes]]:
-    """The frames an insider forges from: a genuine one, and extremes."""
+    """The frames an insider forges from: a genuine one, extremes (every
+    header integer at its largest, its smallest; the freshness fields at
+    their largest), and junk of the longest length the intake takes and one
+    byte more (the tag is then made right for the insider's key)."""
     yield "genuine", h.genuine()
     yield "extreme_max", h.extreme(True)
     yield "extreme_min", h.extreme(False)
     yield "stamp_max", h.stamp_max()
+    yield "length_max", _junk(h.max_len)
+    yield "length_over", _junk(h.max_len + 1)
 
 
 def _retag(payload: bytes, keys: KeySet, name: str) -> bytes:
@@ -82,12 +97,13 @@ def test_an_insider_forgery_outside_its_role_is_refused_and_counted_once(
                 assert not h.feed(forged), f"{case.role}'s {name} tag on {what}: admitted"
                 after = h.counts()
                 delta = {k: after[k] - before[k] for k in after}
-                assert sum(delta.values()) == 1 and delta.get("bad") == 1, (
-                    f"{case.role}'s {name} tag on {what}: counted {delta}, not once as bad"
+                want = "size" if what == "length_over" and "size" in h.kinds else "bad"
+                assert sum(delta.values()) == 1 and delta.get(want) == 1, (
+                    f"{case.role}'s {name} tag on {what}: counted {delta}, not once as {want}"
                 )
                 refused += 1
             h.advance()
             assert h.feed(h.genuine()), f"{case.role}: the genuine sender refused after"
         finally:
             h.close()
-    assert refused == 4 * len(case.forge)
+    assert refused == 6 * len(case.forge)
