@@ -136,6 +136,11 @@ def case_insider(tmp: Path, role: str) -> CaseResult:
     return r
 
 
+# About 11 s a class here, yet -m slow: these floods hit dn0's trigger key, the
+# flood in which test_keyfloods.py's representative run saw both device nodes
+# safe together on a busy box (the control node went silent; open), and this
+# suite's first run saw the same 109 ms stall of the control node between two
+# floods. In the default suite once that is explained.
 @pytest.mark.slow
 @pytest.mark.timeout(180)
 @pytest.mark.parametrize("role", list(INSIDERS))
