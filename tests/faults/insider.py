@@ -7,8 +7,10 @@ declares, queries each key, and which node's intake takes each frame) and
 from the links each role holds (:func:`zplatform.core.auth.role_links`),
 never hand-listed. A role's *rights* on a frame: it is in the row's column
 for that kind of frame (a query's ``queries``, a reply's ``declares``, a
-sample's ``puts``). For every tagged frame a node takes that the role has no
-right to send, the verdict is one of
+sample's ``puts``) and it holds the frame's key (a read-only tool is in
+``gn_to_cn``'s ``puts``, for a tool that may command, but holds no uplink
+key). For every tagged frame a node takes that the role has no right to
+send, the verdict is one of
 
 * ``refused``: the role holds no key of the frame's channel; the insider's
   best forgery is the frame tagged with each channel it does hold (in the
@@ -139,10 +141,12 @@ def plan(name: str, m: Mission) -> list[InsiderCase]:
         mine = channels_of(m, role)
         for k in expand_keys(m):
             for j, f in enumerate(k.row.frames):
-                if not f.tagged or f.intake == "none" or role in senders(m, k, j):
+                if not f.tagged or f.intake == "none":
                     continue
-                rx = receivers(m, k, j)
                 ch = k.channels[j]
+                if role in senders(m, k, j) and ch in mine:
+                    continue  # its right (a tool that may not command holds no uplink)
+                rx = receivers(m, k, j)
                 if ch not in mine:
                     verdict, forge = REFUSED, mine
                 elif role in m.control_nodes:
