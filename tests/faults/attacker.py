@@ -61,6 +61,12 @@ Modes:
   line adds ``genuine`` (frames captured) and ``right_size`` (frames sent
   of exactly ``--size`` bytes).
 
+Insider mode (``--insider KEYFILE``, key-* modes): the attacker holds one
+host role's key file (``zplatform keygen``'s format) and tags every frame
+it sends, junk or replayed, with the channels that role holds, round robin,
+in the run the captured frames name (:func:`insider_tagged`): the floods of
+``tests/faults/test_insider_live.py``.
+
 Protocol: prints ``ready`` once connected and armed (replay modes: once it
 captured what it replays; reply modes: once the CN's queries reach its
 queryable), waits for a line ``go`` on stdin, attacks for ``--duration``
@@ -87,7 +93,7 @@ from typing import Any
 import zenoh
 
 from tests.waits import poll_until
-from zplatform.core.auth import TAG_LEN
+from zplatform.core.auth import TAG_LEN, Channel
 from zplatform.core.codec import frame_overhead
 from zplatform.core.datavector import Layout
 from zplatform.mission.load import load_mission
@@ -198,6 +204,30 @@ class Rogue:
         self.latest = None
 
 
+def insider_tagged(
+    m: Any, key_file: str, payloads: list[bytes], genuine: list[bytes]
+) -> list[bytes]:
+    """``payloads`` re-tagged by an insider (``--insider``): each frame's body
+    (all but its last TAG_LEN bytes) tagged anew with the channels the key
+    file's role holds, round robin, in the run the genuine frames name (the
+    run word of their tags: what any holder of a key learns); a payload too
+    short to carry a tag is kept."""
+    from tests.faults.insider import channels_of
+    from zplatform.core.auth import Run, read_key_file
+
+    ks = read_key_file(key_file, m)
+    assert ks.role is not None, f"{key_file} names no role"
+    run = Run(Channel.run_of(genuine[0])) if genuine else None
+    chans = [ks.channel(c, run) for c in channels_of(m, ks.role)]
+    out = []
+    for i, p in enumerate(payloads):
+        if len(p) <= TAG_LEN:
+            out.append(p)
+            continue
+        out.append(bytes(chans[i % len(chans)].seal(p[:-TAG_LEN])))
+    return out
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m tests.faults.attacker")
     p.add_argument("mission")
@@ -215,6 +245,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--capture", help="key-* modes: replay genuine frames seen on this key")
     p.add_argument("--frames-stdin", action="store_true", help="key-* modes: frames on stdin")
     p.add_argument("--capture-wait", type=float, default=3.0, help="key-* modes: seconds")
+    p.add_argument("--insider", help="key-* modes: an insider's key file (module doc)")
     a = p.parse_args(argv)
     # A real attacker has a machine of its own: here it must keep its rate
     # beside the nodes and whatever else loads the box (a CPU hog).
@@ -372,6 +403,8 @@ def main(argv: list[str] | None = None) -> int:
         # Junk and genuine frames alternately, as many of each (a frame
         # replayed many times over is refused each time as stale).
         payloads = _mix(junk, (genuine * len(junk))[: len(junk)] if genuine else [])
+        if a.insider:
+            payloads = insider_tagged(m, a.insider, payloads, genuine)
         right = [len(x) == a.size for x in payloads]
         block = zenoh.CongestionControl.BLOCK
         if what == "get":
@@ -451,6 +484,8 @@ def main(argv: list[str] | None = None) -> int:
     if kind == "key":
         result["genuine"] = len(genuine)
         result["right_size"] = right_size[0]
+        if a.insider:  # the run the insider tagged in: the captured frames'
+            result["insider_run"] = Channel.run_of(genuine[0]) if genuine else 0
     print(json.dumps(result))
     return 0
 
