@@ -36,12 +36,14 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 
 from ..core.datavector import Layout
+from ..errors import ArchiveError
 from ..recorder.format import EVENT, FORMAT_VERSION, FRAME, HEAD, HEADER, SYNC, record_crc
 from ..recorder.reader import scan_segment
 from ..telemetry.records import EventRecord
 
 __all__ = [
     "GROUP_COLUMNS",
+    "RUN_VERSION",
     "MergeCount",
     "RunInfo",
     "column_groups",
@@ -70,6 +72,24 @@ META_KEY = b"zplatform.layout"
 _EVENT_DECODER = msgspec.json.Decoder(EventRecord)
 _EVENT_ENCODER = msgspec.json.Encoder()
 _U64 = struct.Struct("<Q")
+
+
+RUN_VERSION = 1
+"""The run record's format (:attr:`RunInfo.version`). A record without a
+``version`` is of version 0 (zplatform before versions: without
+``group_columns`` or with it), read with the defaults for what it lacks.
+Every field added to :class:`RunInfo` bumps it: a zplatform refuses a
+record of a version above its own (:func:`read_run`) instead of misreading
+it, and never overwrites one."""
+
+
+class _Version(msgspec.Struct):
+    """A run record's ``version`` alone (whatever else it holds)."""
+
+    version: int = 0
+
+
+_VERSION_DECODER = msgspec.json.Decoder(_Version)
 
 
 class RunInfo(msgspec.Struct, forbid_unknown_fields=True):
@@ -102,6 +122,9 @@ class RunInfo(msgspec.Struct, forbid_unknown_fields=True):
     """Elements per file group (:func:`column_groups`): 0, every element in
     ``part-N.parquet``; else the elements past the first ``group_columns``
     in ``part-N.gK.parquet`` beside it, ``group_columns`` each."""
+    version: int = RUN_VERSION
+    """The record's format (:data:`RUN_VERSION`); a record read from an
+    older one is written back as this one's."""
 
 
 def run_dirs(root: Path, kind: str, run: int) -> Path:
@@ -110,11 +133,27 @@ def run_dirs(root: Path, kind: str, run: int) -> Path:
 
 
 def read_run(root: Path, run: int) -> RunInfo | None:
-    """Run ``run``'s record, or None when missing or unreadable."""
+    """Run ``run``'s record, or None when missing or unreadable. A record
+    of an older format (:data:`RUN_VERSION`) is read with the defaults for
+    the fields it lacks; one of a newer format raises ArchiveError (naming
+    the file): the caller must neither misread nor overwrite it."""
+    path = root / "runs" / f"run-{run}.json"
     try:
-        return msgspec.json.decode((root / "runs" / f"run-{run}.json").read_bytes(), type=RunInfo)
+        data = path.read_bytes()
+        version = _VERSION_DECODER.decode(data).version
     except (OSError, msgspec.ValidationError, msgspec.DecodeError):
         return None
+    if version > RUN_VERSION:
+        raise ArchiveError(
+            f"{path}: written by a newer zplatform (run record version {version}; this one "
+            f"reads up to {RUN_VERSION}): upgrade zplatform to read run {run}"
+        )
+    try:
+        info = msgspec.json.decode(data, type=RunInfo)
+    except (msgspec.ValidationError, msgspec.DecodeError):
+        return None
+    info.version = RUN_VERSION  # what it lacked has its default: this format's meaning
+    return info
 
 
 def write_run(root: Path, info: RunInfo) -> None:
@@ -413,7 +452,11 @@ def recover(
                 tmp.unlink()
     schema = file_schema(layout)
     for run in runs_on_disk(root):
-        info = read_run(root, run)
+        try:
+            info = read_run(root, run)
+        except ArchiveError as exc:
+            note(str(exc))  # a newer zplatform's run: not ours to rewrite, left as it is
+            continue
         if info is not None and info.outcome != "open":
             continue
         _orphan_groups(root, run)
@@ -549,6 +592,17 @@ def du(path: Path) -> int:
     return total
 
 
+def _written_ns(root: Path, run: int) -> int:
+    """When run ``run``'s files (its record, its directories) last changed, ns."""
+    paths = [root / "runs" / f"run-{run}.json"]
+    paths += [run_dirs(root, k, run) for k in ("raw", "tm", "ev")]
+    t = 0
+    for p in paths:
+        with contextlib.suppress(OSError):
+            t = max(t, p.stat().st_mtime_ns)
+    return t
+
+
 def remove_run(root: Path, run: int) -> None:
     """Remove every file of run ``run``."""
     for kind in ("raw", "tm", "ev"):
@@ -574,8 +628,13 @@ def retain(
     sizes = {r: sum(du(run_dirs(root, k, r)) for k in ("raw", "tm", "ev")) for r in runs}
     ends = {}
     for r in runs:
-        info = read_run(root, r)
-        ends[r] = info.end_ns if info is not None and info.end_ns else r
+        try:
+            info = read_run(root, r)
+        except ArchiveError:
+            info = None  # a newer zplatform's run: its end unknown here
+        # A run without a readable end (no record, a newer one's, no row):
+        # aged by when its files were last written, not as if it ended in 1970.
+        ends[r] = info.end_ns if info is not None and info.end_ns else _written_ns(root, r)
     runs.sort(key=lambda r: ends[r])
     total = du(root)
     left = []
@@ -645,7 +704,12 @@ def merge(
     for run in runs_on_disk(src):
         if want is not None and run not in want:
             continue
-        theirs = read_run(src, run)
+        try:
+            theirs = read_run(src, run)
+            read_run(root, run)  # ours: refused alike when a newer zplatform wrote it
+        except ArchiveError as exc:
+            note(f"{exc}: run {run} skipped")
+            continue
         if theirs is not None and theirs.layout_id != layout.layout_id:
             note(
                 f"run {run} of {src}: layout {theirs.layout_id:#x}, not this mission's "

@@ -246,7 +246,7 @@ class ArchiveWriter:
             for e in evs:
                 self._event(e)
             self._sync()
-        except (OSError, pa.ArrowException) as exc:
+        except (OSError, pa.ArrowException, ArchiveError) as exc:
             self.lost += len(rows)
             self._fail("write", exc)
 
@@ -300,8 +300,10 @@ class ArchiveWriter:
             info.commands.append(f"{e.node}: {e.text}")
 
     def _start_run(self, run: int) -> None:
-        self._run = run
+        # A record a newer zplatform wrote raises ArchiveError here, before
+        # this run is taken: its rows are lost, counted and told (_drain).
         info = store.read_run(self.root, run)
+        self._run = run
         if info is None:
             info = store.RunInfo(
                 run, self.mission.mission, self.mission.vehicle, self.layout.layout_id
