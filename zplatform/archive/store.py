@@ -57,7 +57,9 @@ __all__ = [
     "raw_record",
     "raw_segments",
     "read_run",
+    "recount",
     "recover",
+    "refill",
     "retain",
     "run_dirs",
     "seal_segment",
@@ -459,46 +461,117 @@ def recover(
             continue
         if info is not None and info.outcome != "open":
             continue
-        _orphan_groups(root, run)
-        seen = loops_in(parquet_files(root, "tm", run), note)
-        known = _events_in(parquet_files(root, "ev", run), note)
-        rows: list[bytes] = []
-        rx: list[int] = []
-        events: list[EventRecord] = []
-        for seg in raw_segments(run_dirs(root, "raw", run)):
-            for r in _scan(seg, note):
-                if r.type == FRAME and len(r.payload) == 8 + layout.size:
-                    if r.loop not in seen:  # the record's loop is the vector's cn_loop
-                        seen.add(r.loop)
-                        rx.append(_U64.unpack_from(r.payload, 0)[0])
-                        rows.append(r.payload[8:])
-                elif r.type == EVENT:
-                    with contextlib.suppress(msgspec.DecodeError, msgspec.ValidationError):
-                        e = _EVENT_DECODER.decode(r.payload)
-                        if (e.node, e.seq, e.t_ns) not in known:
-                            known.add((e.node, e.seq, e.t_ns))
-                            events.append(e)
         if info is None:
             info = RunInfo(run, mission, vehicle, layout.layout_id)
             info.group_columns = GROUP_COLUMNS
-        if rows:
-            info.in_order = False  # recovered rows go after rows of later loops, maybe
-            arr = np.frombuffer(b"".join(rows), np.uint8).reshape(len(rows), layout.size)
-            table = decode_rows(layout, schema, arr, np.array(rx, np.int64))
-            t0 = int(table.column("t_ns")[0].as_py())
-            d = run_dirs(root, "tm", run) / hour_dir(t0)
-            d.mkdir(parents=True, exist_ok=True)
-            write_tm(d / f"part-{next_part(d):06d}.parquet", table, layout, info.group_columns)
-            _account(info, layout, arr)
-        if events:
-            d = run_dirs(root, "ev", run)
-            d.mkdir(parents=True, exist_ok=True)
-            _write_parquet(d / f"part-{next_part(d):06d}.parquet", event_table(events))
-            info.events += len(events)
+        refill(root, layout, info, note, schema)
         info.outcome = "interrupted"
         write_run(root, info)
         touched.append(run)
     return touched
+
+
+def refill(
+    root: Path,
+    layout: Layout,
+    info: RunInfo,
+    note: Callable[[str], None],
+    schema: pa.Schema | None = None,
+) -> None:
+    """Re-decode into new Parquet files every loop and event run
+    ``info.run``'s raw segments hold that no closed Parquet file does (a
+    crash, or a write that failed: :meth:`.writer.ArchiveWriter` after a
+    full disk), and fold them into ``info`` (not written). Removes group
+    files left without their group-0 file first. A damaged record or
+    segment is skipped (``note`` says where). Raises OSError or
+    ArrowException when a file cannot be written."""
+    run = info.run
+    if schema is None:
+        schema = file_schema(layout)
+    _orphan_groups(root, run)
+    seen = loops_in(parquet_files(root, "tm", run), note)
+    known = _events_in(parquet_files(root, "ev", run), note)
+    rows: list[bytes] = []
+    rx: list[int] = []
+    events: list[EventRecord] = []
+    for seg in raw_segments(run_dirs(root, "raw", run)):
+        for r in _scan(seg, note):
+            if r.type == FRAME and len(r.payload) == 8 + layout.size:
+                if r.loop not in seen:  # the record's loop is the vector's cn_loop
+                    seen.add(r.loop)
+                    rx.append(_U64.unpack_from(r.payload, 0)[0])
+                    rows.append(r.payload[8:])
+            elif r.type == EVENT:
+                with contextlib.suppress(msgspec.DecodeError, msgspec.ValidationError):
+                    e = _EVENT_DECODER.decode(r.payload)
+                    if (e.node, e.seq, e.t_ns) not in known:
+                        known.add((e.node, e.seq, e.t_ns))
+                        events.append(e)
+    if rows:
+        info.in_order = False  # recovered rows go after rows of later loops, maybe
+        arr = np.frombuffer(b"".join(rows), np.uint8).reshape(len(rows), layout.size)
+        table = decode_rows(layout, schema, arr, np.array(rx, np.int64))
+        t0 = int(table.column("t_ns")[0].as_py())
+        d = run_dirs(root, "tm", run) / hour_dir(t0)
+        d.mkdir(parents=True, exist_ok=True)
+        write_tm(d / f"part-{next_part(d):06d}.parquet", table, layout, info.group_columns)
+        _account(info, layout, arr)
+    if events:
+        d = run_dirs(root, "ev", run)
+        d.mkdir(parents=True, exist_ok=True)
+        _write_parquet(d / f"part-{next_part(d):06d}.parquet", event_table(events))
+        info.events += len(events)
+
+
+def recount(root: Path, layout: Layout, info: RunInfo, note: Callable[[str], None]) -> None:
+    """Set ``info``'s loops, first and last loop and times, states reached,
+    final state, events and commands from what run ``info.run``'s closed
+    Parquet files hold (only the ``loop``, ``t_ns`` and ``cn_state``
+    columns, and the events' ``severity``, ``id``, ``node``, ``text``): for
+    a writer whose counts in memory went past the files (a write that
+    failed), after :func:`refill`. An unreadable file is skipped (``note``)."""
+    groups = column_groups(layout, info.group_columns)
+    k = next(i for i, g in enumerate(groups) if "cn_state" in g)
+    loops: list[np.ndarray] = []
+    times: list[np.ndarray] = []
+    states: list[np.ndarray] = []
+    for part in parquet_files(root, "tm", info.run):
+        try:
+            head = pq.read_table(part, columns=["loop", "t_ns"])
+            st = pq.read_table(group_path(part, k), columns=["cn_state"])
+        except (OSError, pa.ArrowException) as exc:
+            note(f"{part.name}: unreadable Parquet file skipped ({exc})")
+            continue
+        loops.append(head.column(0).to_numpy())
+        times.append(head.column(1).to_numpy())
+        states.append(st.column(0).to_numpy())
+    spec = layout.element("cn_state")
+    info.loops, info.states, info.final_state = 0, [], ""
+    info.first_loop = info.last_loop = -1
+    info.start_ns = info.end_ns = 0
+    if loops:
+        lp, tt, ss = np.concatenate(loops), np.concatenate(times), np.concatenate(states)
+        order = np.argsort(lp, kind="stable")
+        lp, tt, ss = lp[order], tt[order], ss[order]
+        info.loops = len(lp)
+        info.first_loop, info.last_loop = int(lp[0]), int(lp[-1])
+        info.start_ns, info.end_ns = int(tt[0]), int(tt[-1])
+        info.final_state = spec.name_of(int(ss[-1]))
+        _, first = np.unique(ss, return_index=True)
+        info.states = [spec.name_of(int(ss[i])) for i in sorted(first.tolist())]
+    info.events, info.commands = 0, []
+    for f in parquet_files(root, "ev", info.run):
+        try:
+            t = pq.read_table(f, columns=["node", "severity", "id", "text"]).to_pylist()
+        except (OSError, pa.ArrowException) as exc:
+            note(f"{f.name}: unreadable Parquet file skipped ({exc})")
+            continue
+        info.events += len(t)
+        for e in t:
+            if (e["severity"] == "COMMAND" or e["id"].startswith("cmd_")) and len(
+                info.commands
+            ) < 1000:
+                info.commands.append(f"{e['node']}: {e['text']}")
 
 
 _SEG_RE = re.compile(r"seg-([0-9]{8})\.zfr(\.zst)?")
@@ -524,13 +597,19 @@ def seal_segment(path: Path) -> None:
     """Compress a closed raw segment into ``seg-N.zfr.zst`` (a standard zstd
     stream: ``zstd -d`` gives the segment back byte for byte), then remove
     it. Written as a temporary file renamed, so a crash leaves one whole
-    file or both."""
+    file or both. On an error (a full disk) the temporary file is removed,
+    the segment left as it is (readable unsealed), and the error raised."""
     tmp = path.with_name(path.name + ".zst.tmp")
-    with open(path, "rb") as src, pa.CompressedOutputStream(str(tmp), "zstd") as dst:
-        while chunk := src.read(1 << 20):
-            dst.write(chunk)
-    with open(tmp, "rb") as f:
-        os.fsync(f.fileno())
+    try:
+        with open(path, "rb") as src, pa.CompressedOutputStream(str(tmp), "zstd") as dst:
+            while chunk := src.read(1 << 20):
+                dst.write(chunk)
+        with open(tmp, "rb") as f:
+            os.fsync(f.fileno())
+    except BaseException:
+        with contextlib.suppress(OSError):
+            tmp.unlink()
+        raise
     os.replace(tmp, path.with_name(path.name + ".zst"))
     path.unlink()
 
@@ -553,8 +632,15 @@ def _scan(seg: Path, note: Callable[[str], None]) -> Iterable[Any]:
 
 
 def _write_parquet(path: Path, table: pa.Table) -> None:
+    """``table`` as ``path``, written as ``*.tmp`` and renamed; on an error
+    (a full disk) the temporary file removed, the error raised."""
     tmp = path.with_name(path.name + ".tmp")
-    pq.write_table(table, tmp, **parquet_options(table.schema))
+    try:
+        pq.write_table(table, tmp, **parquet_options(table.schema))
+    except BaseException:
+        with contextlib.suppress(OSError):
+            tmp.unlink()
+        raise
     os.replace(tmp, path)
 
 
