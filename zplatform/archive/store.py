@@ -709,8 +709,11 @@ def retain(
     """Remove whole runs, oldest first: those that ended more than
     ``max_age_days`` before ``now_ns`` (vehicle time), then as many as it takes
     for the archive to hold at most ``max_bytes``. Never run ``keep`` (the one
-    being written). ``removed(run, bytes, why)`` is told each."""
-    runs = [r for r in runs_on_disk(root) if r != keep]
+    being written), nor the newest run (the last one ended: a ground node
+    started again after a run larger than ``max_bytes`` keeps it).
+    ``removed(run, bytes, why)`` is told each."""
+    on_disk = runs_on_disk(root)
+    runs = [r for r in on_disk[:-1] if r != keep]
     sizes = {r: sum(du(run_dirs(root, k, r)) for k in ("raw", "tm", "ev")) for r in runs}
     ends = {}
     for r in runs:
