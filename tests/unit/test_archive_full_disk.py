@@ -17,7 +17,7 @@ from pathlib import Path
 import pytest
 
 from tests.unit.test_archive import T0, feed, small
-from zplatform.archive import Archive, ArchiveWriter, Query
+from zplatform.archive import Archive, ArchiveWriter, Query, store
 from zplatform.config import Mission
 from zplatform.core.datavector import DataVector, Layout
 from zplatform.core.events import EventLog
@@ -119,3 +119,28 @@ def test_a_full_disk_is_told_once_never_stops_the_queue_and_the_archive_resumes(
         1500,
     )
     assert not list(root.glob("**/*.tmp"))
+
+
+def test_recovery_recounts_a_record_that_counted_rows_a_failed_write_lost(
+    mission: Mission, tmp_path: Path
+) -> None:
+    # A writer that failed mid-run (its open file dropped) has counted rows
+    # no file holds yet; killed before the run's end re-decoded them, its
+    # record overcounts: recovery sets the counts from the files.
+    layout = Layout.for_node(mission, "cn")
+    w = ArchiveWriter(mission, layout, tmp_path)
+    feed(w, DataVector(layout), range(1, 301))
+    w.close()
+    info = store.read_run(tmp_path, 7)
+    assert info is not None
+    info.loops, info.last_loop, info.outcome = 450, 450, "open"
+    store.write_run(tmp_path, info)
+    with Archive(mission, tmp_path) as a:
+        (got,) = a.runs()
+        assert (got.loops, got.first_loop, got.last_loop, got.outcome) == (
+            300,
+            1,
+            300,
+            "interrupted",
+        )
+        assert got.end_ns == T0 + 300 * 10_000_000

@@ -163,7 +163,12 @@ def write_run(root: Path, info: RunInfo) -> None:
     d = root / "runs"
     d.mkdir(parents=True, exist_ok=True)
     tmp = d / f"run-{info.run}.json.tmp"
-    tmp.write_bytes(msgspec.json.encode(info))
+    try:
+        tmp.write_bytes(msgspec.json.encode(info))
+    except BaseException:  # a full disk: no temporary file left behind
+        with contextlib.suppress(OSError):
+            tmp.unlink()
+        raise
     os.replace(tmp, d / f"run-{info.run}.json")
 
 
@@ -465,6 +470,9 @@ def recover(
             info = RunInfo(run, mission, vehicle, layout.layout_id)
             info.group_columns = GROUP_COLUMNS
         refill(root, layout, info, note, schema)
+        # The record's counts as the files hold them (a writer that failed
+        # before the crash may have counted rows it had not written).
+        recount(root, layout, info, note)
         info.outcome = "interrupted"
         write_run(root, info)
         touched.append(run)
