@@ -1,6 +1,6 @@
 """The ground archive under faults, on real node processes (issue 28).
 
-* kill -9 of the ground node mid-run, then a ground node started again on
+* kill -9 of the ground node mid-run (led_test), then a ground node started again on
   the same archive: it opens clean (what the kill left recovered from the
   raw segment, no ``*.tmp`` left, nothing damaged); every loop the ground
   had archived before the kill is there exactly once, each row equal to the
@@ -37,13 +37,15 @@ from zplatform.recorder.reader import scan_segment
 pytestmark = pytest.mark.timeout(240)
 
 
-def archive_mission(tmp: Path, monkeypatch: pytest.MonkeyPatch, archive: Path) -> Path:
-    """The minimal mission with a flight recorder on the CN and an archive
-    closing a file every 2 s (1 s row groups), both in this test's
+def archive_mission(
+    tmp: Path, monkeypatch: pytest.MonkeyPatch, archive: Path, base: str = "minimal.yaml"
+) -> Path:
+    """Mission ``base`` (in configs/) with a flight recorder on the CN and an
+    archive closing a file every 2 s (1 s row groups), both in this test's
     directories (the nodes inherit the environment)."""
     monkeypatch.setenv(RECORDER_DIR_ENV, str(tmp / "rec"))
     monkeypatch.setenv(ARCHIVE_DIR_ENV, str(archive))
-    raw = yaml.safe_load((CONFIGS / "minimal.yaml").read_text())
+    raw = yaml.safe_load((CONFIGS / base).read_text())
     raw["recorder"] = {"file_bytes": 262144, "max_bytes": 8388608}
     raw["archive"] = {"row_group_s": 1.0, "file_s": 2.0}
     path = tmp / "minimal_arch.yaml"
@@ -123,10 +125,14 @@ def same_row(row: dict[str, str], rec: dict[str, str]) -> bool:
 def test_kill9_of_the_ground_node_then_the_archive_opens_clean(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    root = tmp_path / "archive" / "minimal"
-    c = Cluster(archive_mission(tmp_path, monkeypatch, tmp_path / "archive"), tmp_path)
+    # The LED platform (three device nodes; arrays, enums, flags), as the
+    # live archive test flies it, on node processes the test can kill.
+    root = tmp_path / "archive" / "led_test"
+    mission = archive_mission(tmp_path, monkeypatch, tmp_path / "archive", "led_test.yaml")
+    c = Cluster(mission, tmp_path)
     with c:
-        c.spawn("dn0")
+        for dn in ("dn0", "dn1", "dn2"):
+            c.spawn(dn)
         c.spawn("gn", "--log", str(tmp_path / "gn1.csv"))
         c.spawn("cn")
         c.wait_for(lambda dv: int(dv.get("cn_loop")) >= 300, 60, "the CN looping")
