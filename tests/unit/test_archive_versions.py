@@ -115,3 +115,24 @@ def test_the_version_is_part_of_every_record_written() -> None:
     info = store.RunInfo(1, "m", "v", 0)
     raw = msgspec.json.decode(msgspec.json.encode(info))
     assert raw["version"] == store.RUN_VERSION
+
+
+def test_the_cli_says_which_record_a_newer_zplatform_wrote(
+    mission: Mission, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    from tests.unit.test_archive import _cli
+
+    _one_run(mission, tmp_path, range(1, 201), epoch=5)
+    _one_run(mission, tmp_path, range(1, 201), epoch=7)
+    path = _record(tmp_path, 7)
+    future = json.loads(path.read_bytes())
+    future.update(version=1000, a_future_field=True)
+    path.write_text(json.dumps(future))
+    capsys.readouterr()
+    assert _cli(tmp_path, "runs", "--json") == 0
+    out, err = capsys.readouterr()
+    assert [r["run"] for r in json.loads(out)] == [5]
+    assert f"{path}: written by a newer zplatform" in err
+    assert _cli(tmp_path, "query", "--run", "7", "--elements", "cn_state") == 2
+    err = capsys.readouterr().err
+    assert f"{path}: written by a newer zplatform" in err and "Traceback" not in err
