@@ -144,16 +144,25 @@ class Archive:
             self.problems.append(text)
 
     def runs(self) -> list[store.RunInfo]:
-        """Every run's record, oldest first (by run id: the CN's epoch)."""
+        """Every run's record, oldest first (by run id: the CN's epoch). A
+        record a newer zplatform wrote is left out and told in
+        :attr:`problems`."""
         out = []
         for r in store.runs_on_disk(self.root):
-            info = store.read_run(self.root, r)
+            try:
+                info = store.read_run(self.root, r)
+            except ArchiveError as exc:
+                self._problem(str(exc))
+                continue
             if info is not None:
                 out.append(info)
         return out
 
     def run(self, run: int | None) -> store.RunInfo:
-        """Run ``run``'s record (None: the last). ArchiveError when unknown."""
+        """Run ``run``'s record (None: the last). ArchiveError when unknown,
+        or when a newer zplatform wrote it (the error says so)."""
+        if run is not None:
+            store.read_run(self.root, run)  # raises for a newer record
         runs = self.runs()
         if not runs:
             raise ArchiveError(f"the archive {self.root} holds no run")

@@ -36,12 +36,14 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 
 from ..core.datavector import Layout
+from ..errors import ArchiveError
 from ..recorder.format import EVENT, FORMAT_VERSION, FRAME, HEAD, HEADER, SYNC, record_crc
 from ..recorder.reader import scan_segment
 from ..telemetry.records import EventRecord
 
 __all__ = [
     "GROUP_COLUMNS",
+    "RUN_VERSION",
     "MergeCount",
     "RunInfo",
     "column_groups",
@@ -55,7 +57,9 @@ __all__ = [
     "raw_record",
     "raw_segments",
     "read_run",
+    "recount",
     "recover",
+    "refill",
     "retain",
     "run_dirs",
     "seal_segment",
@@ -70,6 +74,24 @@ META_KEY = b"zplatform.layout"
 _EVENT_DECODER = msgspec.json.Decoder(EventRecord)
 _EVENT_ENCODER = msgspec.json.Encoder()
 _U64 = struct.Struct("<Q")
+
+
+RUN_VERSION = 1
+"""The run record's format (:attr:`RunInfo.version`). A record without a
+``version`` is of version 0 (zplatform before versions: without
+``group_columns`` or with it), read with the defaults for what it lacks.
+Every field added to :class:`RunInfo` bumps it: a zplatform refuses a
+record of a version above its own (:func:`read_run`) instead of misreading
+it, and never overwrites one."""
+
+
+class _Version(msgspec.Struct):
+    """A run record's ``version`` alone (whatever else it holds)."""
+
+    version: int = 0
+
+
+_VERSION_DECODER = msgspec.json.Decoder(_Version)
 
 
 class RunInfo(msgspec.Struct, forbid_unknown_fields=True):
@@ -102,6 +124,9 @@ class RunInfo(msgspec.Struct, forbid_unknown_fields=True):
     """Elements per file group (:func:`column_groups`): 0, every element in
     ``part-N.parquet``; else the elements past the first ``group_columns``
     in ``part-N.gK.parquet`` beside it, ``group_columns`` each."""
+    version: int = RUN_VERSION
+    """The record's format (:data:`RUN_VERSION`); a record read from an
+    older one is written back as this one's."""
 
 
 def run_dirs(root: Path, kind: str, run: int) -> Path:
@@ -110,11 +135,27 @@ def run_dirs(root: Path, kind: str, run: int) -> Path:
 
 
 def read_run(root: Path, run: int) -> RunInfo | None:
-    """Run ``run``'s record, or None when missing or unreadable."""
+    """Run ``run``'s record, or None when missing or unreadable. A record
+    of an older format (:data:`RUN_VERSION`) is read with the defaults for
+    the fields it lacks; one of a newer format raises ArchiveError (naming
+    the file): the caller must neither misread nor overwrite it."""
+    path = root / "runs" / f"run-{run}.json"
     try:
-        return msgspec.json.decode((root / "runs" / f"run-{run}.json").read_bytes(), type=RunInfo)
+        data = path.read_bytes()
+        version = _VERSION_DECODER.decode(data).version
     except (OSError, msgspec.ValidationError, msgspec.DecodeError):
         return None
+    if version > RUN_VERSION:
+        raise ArchiveError(
+            f"{path}: written by a newer zplatform (run record version {version}; this one "
+            f"reads up to {RUN_VERSION}): upgrade zplatform to read run {run}"
+        )
+    try:
+        info = msgspec.json.decode(data, type=RunInfo)
+    except (msgspec.ValidationError, msgspec.DecodeError):
+        return None
+    info.version = RUN_VERSION  # what it lacked has its default: this format's meaning
+    return info
 
 
 def write_run(root: Path, info: RunInfo) -> None:
@@ -122,7 +163,12 @@ def write_run(root: Path, info: RunInfo) -> None:
     d = root / "runs"
     d.mkdir(parents=True, exist_ok=True)
     tmp = d / f"run-{info.run}.json.tmp"
-    tmp.write_bytes(msgspec.json.encode(info))
+    try:
+        tmp.write_bytes(msgspec.json.encode(info))
+    except BaseException:  # a full disk: no temporary file left behind
+        with contextlib.suppress(OSError):
+            tmp.unlink()
+        raise
     os.replace(tmp, d / f"run-{info.run}.json")
 
 
@@ -413,49 +459,127 @@ def recover(
                 tmp.unlink()
     schema = file_schema(layout)
     for run in runs_on_disk(root):
-        info = read_run(root, run)
+        try:
+            info = read_run(root, run)
+        except ArchiveError as exc:
+            note(str(exc))  # a newer zplatform's run: not ours to rewrite, left as it is
+            continue
         if info is not None and info.outcome != "open":
             continue
-        _orphan_groups(root, run)
-        seen = loops_in(parquet_files(root, "tm", run), note)
-        known = _events_in(parquet_files(root, "ev", run), note)
-        rows: list[bytes] = []
-        rx: list[int] = []
-        events: list[EventRecord] = []
-        for seg in raw_segments(run_dirs(root, "raw", run)):
-            for r in _scan(seg, note):
-                if r.type == FRAME and len(r.payload) == 8 + layout.size:
-                    if r.loop not in seen:  # the record's loop is the vector's cn_loop
-                        seen.add(r.loop)
-                        rx.append(_U64.unpack_from(r.payload, 0)[0])
-                        rows.append(r.payload[8:])
-                elif r.type == EVENT:
-                    with contextlib.suppress(msgspec.DecodeError, msgspec.ValidationError):
-                        e = _EVENT_DECODER.decode(r.payload)
-                        if (e.node, e.seq, e.t_ns) not in known:
-                            known.add((e.node, e.seq, e.t_ns))
-                            events.append(e)
         if info is None:
             info = RunInfo(run, mission, vehicle, layout.layout_id)
             info.group_columns = GROUP_COLUMNS
-        if rows:
-            info.in_order = False  # recovered rows go after rows of later loops, maybe
-            arr = np.frombuffer(b"".join(rows), np.uint8).reshape(len(rows), layout.size)
-            table = decode_rows(layout, schema, arr, np.array(rx, np.int64))
-            t0 = int(table.column("t_ns")[0].as_py())
-            d = run_dirs(root, "tm", run) / hour_dir(t0)
-            d.mkdir(parents=True, exist_ok=True)
-            write_tm(d / f"part-{next_part(d):06d}.parquet", table, layout, info.group_columns)
-            _account(info, layout, arr)
-        if events:
-            d = run_dirs(root, "ev", run)
-            d.mkdir(parents=True, exist_ok=True)
-            _write_parquet(d / f"part-{next_part(d):06d}.parquet", event_table(events))
-            info.events += len(events)
+        refill(root, layout, info, note, schema)
+        # The record's counts as the files hold them (a writer that failed
+        # before the crash may have counted rows it had not written).
+        recount(root, layout, info, note)
         info.outcome = "interrupted"
         write_run(root, info)
         touched.append(run)
     return touched
+
+
+def refill(
+    root: Path,
+    layout: Layout,
+    info: RunInfo,
+    note: Callable[[str], None],
+    schema: pa.Schema | None = None,
+) -> None:
+    """Re-decode into new Parquet files every loop and event run
+    ``info.run``'s raw segments hold that no closed Parquet file does (a
+    crash, or a write that failed: :meth:`.writer.ArchiveWriter` after a
+    full disk), and fold them into ``info`` (not written). Removes group
+    files left without their group-0 file first. A damaged record or
+    segment is skipped (``note`` says where). Raises OSError or
+    ArrowException when a file cannot be written."""
+    run = info.run
+    if schema is None:
+        schema = file_schema(layout)
+    _orphan_groups(root, run)
+    seen = loops_in(parquet_files(root, "tm", run), note)
+    known = _events_in(parquet_files(root, "ev", run), note)
+    rows: list[bytes] = []
+    rx: list[int] = []
+    events: list[EventRecord] = []
+    for seg in raw_segments(run_dirs(root, "raw", run)):
+        for r in _scan(seg, note):
+            if r.type == FRAME and len(r.payload) == 8 + layout.size:
+                if r.loop not in seen:  # the record's loop is the vector's cn_loop
+                    seen.add(r.loop)
+                    rx.append(_U64.unpack_from(r.payload, 0)[0])
+                    rows.append(r.payload[8:])
+            elif r.type == EVENT:
+                with contextlib.suppress(msgspec.DecodeError, msgspec.ValidationError):
+                    e = _EVENT_DECODER.decode(r.payload)
+                    if (e.node, e.seq, e.t_ns) not in known:
+                        known.add((e.node, e.seq, e.t_ns))
+                        events.append(e)
+    if rows:
+        info.in_order = False  # recovered rows go after rows of later loops, maybe
+        arr = np.frombuffer(b"".join(rows), np.uint8).reshape(len(rows), layout.size)
+        table = decode_rows(layout, schema, arr, np.array(rx, np.int64))
+        t0 = int(table.column("t_ns")[0].as_py())
+        d = run_dirs(root, "tm", run) / hour_dir(t0)
+        d.mkdir(parents=True, exist_ok=True)
+        write_tm(d / f"part-{next_part(d):06d}.parquet", table, layout, info.group_columns)
+        _account(info, layout, arr)
+    if events:
+        d = run_dirs(root, "ev", run)
+        d.mkdir(parents=True, exist_ok=True)
+        _write_parquet(d / f"part-{next_part(d):06d}.parquet", event_table(events))
+        info.events += len(events)
+
+
+def recount(root: Path, layout: Layout, info: RunInfo, note: Callable[[str], None]) -> None:
+    """Set ``info``'s loops, first and last loop and times, states reached,
+    final state, events and commands from what run ``info.run``'s closed
+    Parquet files hold (only the ``loop``, ``t_ns`` and ``cn_state``
+    columns, and the events' ``severity``, ``id``, ``node``, ``text``): for
+    a writer whose counts in memory went past the files (a write that
+    failed), after :func:`refill`. An unreadable file is skipped (``note``)."""
+    groups = column_groups(layout, info.group_columns)
+    k = next(i for i, g in enumerate(groups) if "cn_state" in g)
+    loops: list[np.ndarray] = []
+    times: list[np.ndarray] = []
+    states: list[np.ndarray] = []
+    for part in parquet_files(root, "tm", info.run):
+        try:
+            head = pq.read_table(part, columns=["loop", "t_ns"])
+            st = pq.read_table(group_path(part, k), columns=["cn_state"])
+        except (OSError, pa.ArrowException) as exc:
+            note(f"{part.name}: unreadable Parquet file skipped ({exc})")
+            continue
+        loops.append(head.column(0).to_numpy())
+        times.append(head.column(1).to_numpy())
+        states.append(st.column(0).to_numpy())
+    spec = layout.element("cn_state")
+    info.loops, info.states, info.final_state = 0, [], ""
+    info.first_loop = info.last_loop = -1
+    info.start_ns = info.end_ns = 0
+    if loops:
+        lp, tt, ss = np.concatenate(loops), np.concatenate(times), np.concatenate(states)
+        order = np.argsort(lp, kind="stable")
+        lp, tt, ss = lp[order], tt[order], ss[order]
+        info.loops = len(lp)
+        info.first_loop, info.last_loop = int(lp[0]), int(lp[-1])
+        info.start_ns, info.end_ns = int(tt[0]), int(tt[-1])
+        info.final_state = spec.name_of(int(ss[-1]))
+        _, first = np.unique(ss, return_index=True)
+        info.states = [spec.name_of(int(ss[i])) for i in sorted(first.tolist())]
+    info.events, info.commands = 0, []
+    for f in parquet_files(root, "ev", info.run):
+        try:
+            t = pq.read_table(f, columns=["node", "severity", "id", "text"]).to_pylist()
+        except (OSError, pa.ArrowException) as exc:
+            note(f"{f.name}: unreadable Parquet file skipped ({exc})")
+            continue
+        info.events += len(t)
+        for e in t:
+            if (e["severity"] == "COMMAND" or e["id"].startswith("cmd_")) and len(
+                info.commands
+            ) < 1000:
+                info.commands.append(f"{e['node']}: {e['text']}")
 
 
 _SEG_RE = re.compile(r"seg-([0-9]{8})\.zfr(\.zst)?")
@@ -481,13 +605,19 @@ def seal_segment(path: Path) -> None:
     """Compress a closed raw segment into ``seg-N.zfr.zst`` (a standard zstd
     stream: ``zstd -d`` gives the segment back byte for byte), then remove
     it. Written as a temporary file renamed, so a crash leaves one whole
-    file or both."""
+    file or both. On an error (a full disk) the temporary file is removed,
+    the segment left as it is (readable unsealed), and the error raised."""
     tmp = path.with_name(path.name + ".zst.tmp")
-    with open(path, "rb") as src, pa.CompressedOutputStream(str(tmp), "zstd") as dst:
-        while chunk := src.read(1 << 20):
-            dst.write(chunk)
-    with open(tmp, "rb") as f:
-        os.fsync(f.fileno())
+    try:
+        with open(path, "rb") as src, pa.CompressedOutputStream(str(tmp), "zstd") as dst:
+            while chunk := src.read(1 << 20):
+                dst.write(chunk)
+        with open(tmp, "rb") as f:
+            os.fsync(f.fileno())
+    except BaseException:
+        with contextlib.suppress(OSError):
+            tmp.unlink()
+        raise
     os.replace(tmp, path.with_name(path.name + ".zst"))
     path.unlink()
 
@@ -510,8 +640,15 @@ def _scan(seg: Path, note: Callable[[str], None]) -> Iterable[Any]:
 
 
 def _write_parquet(path: Path, table: pa.Table) -> None:
+    """``table`` as ``path``, written as ``*.tmp`` and renamed; on an error
+    (a full disk) the temporary file removed, the error raised."""
     tmp = path.with_name(path.name + ".tmp")
-    pq.write_table(table, tmp, **parquet_options(table.schema))
+    try:
+        pq.write_table(table, tmp, **parquet_options(table.schema))
+    except BaseException:
+        with contextlib.suppress(OSError):
+            tmp.unlink()
+        raise
     os.replace(tmp, path)
 
 
@@ -549,6 +686,17 @@ def du(path: Path) -> int:
     return total
 
 
+def _written_ns(root: Path, run: int) -> int:
+    """When run ``run``'s files (its record, its directories) last changed, ns."""
+    paths = [root / "runs" / f"run-{run}.json"]
+    paths += [run_dirs(root, k, run) for k in ("raw", "tm", "ev")]
+    t = 0
+    for p in paths:
+        with contextlib.suppress(OSError):
+            t = max(t, p.stat().st_mtime_ns)
+    return t
+
+
 def remove_run(root: Path, run: int) -> None:
     """Remove every file of run ``run``."""
     for kind in ("raw", "tm", "ev"):
@@ -569,13 +717,21 @@ def retain(
     """Remove whole runs, oldest first: those that ended more than
     ``max_age_days`` before ``now_ns`` (vehicle time), then as many as it takes
     for the archive to hold at most ``max_bytes``. Never run ``keep`` (the one
-    being written). ``removed(run, bytes, why)`` is told each."""
-    runs = [r for r in runs_on_disk(root) if r != keep]
+    being written), nor the newest run (the last one ended: a ground node
+    started again after a run larger than ``max_bytes`` keeps it).
+    ``removed(run, bytes, why)`` is told each."""
+    on_disk = runs_on_disk(root)
+    runs = [r for r in on_disk[:-1] if r != keep]
     sizes = {r: sum(du(run_dirs(root, k, r)) for k in ("raw", "tm", "ev")) for r in runs}
     ends = {}
     for r in runs:
-        info = read_run(root, r)
-        ends[r] = info.end_ns if info is not None and info.end_ns else r
+        try:
+            info = read_run(root, r)
+        except ArchiveError:
+            info = None  # a newer zplatform's run: its end unknown here
+        # A run without a readable end (no record, a newer one's, no row):
+        # aged by when its files were last written, not as if it ended in 1970.
+        ends[r] = info.end_ns if info is not None and info.end_ns else _written_ns(root, r)
     runs.sort(key=lambda r: ends[r])
     total = du(root)
     left = []
@@ -645,7 +801,12 @@ def merge(
     for run in runs_on_disk(src):
         if want is not None and run not in want:
             continue
-        theirs = read_run(src, run)
+        try:
+            theirs = read_run(src, run)
+            read_run(root, run)  # ours: refused alike when a newer zplatform wrote it
+        except ArchiveError as exc:
+            note(f"{exc}: run {run} skipped")
+            continue
         if theirs is not None and theirs.layout_id != layout.layout_id:
             note(
                 f"run {run} of {src}: layout {theirs.layout_id:#x}, not this mission's "

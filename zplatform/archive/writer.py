@@ -12,13 +12,21 @@ boundary, then retention runs.
 Contract: :meth:`~ArchiveWriter.snapshot`, :meth:`~ArchiveWriter.event` and
 :meth:`~ArchiveWriter.tick` never block, never raise, and allocate nothing
 per snapshot; a full queue drops, counted (:attr:`~ArchiveWriter.dropped`) and
-evented at most once a second (``archive_dropping``). An I/O error is counted
-and evented once per kind (``archive_failed``); the rows it held are lost, the
-files already closed are untouched. One writer per archive directory (a lock).
+evented at most once a second (``archive_dropping``). An I/O error (a full
+disk) is counted and evented once per kind (``archive_failed``); the thread
+goes on taking the queue. Snapshots the raw segment could not take are lost
+(:attr:`~ArchiveWriter.lost`); the raw segment is cut back to its last whole
+record; the open Parquet file is dropped, and what it and the later failed
+writes held is re-decoded from the raw segment at the run's end
+(:func:`.store.refill`). Once space is freed the writing resumes by itself;
+the files already closed are untouched. One writer per archive directory (a
+lock).
 """
 
 from __future__ import annotations
 
+import contextlib
+import errno
 import fcntl
 import logging
 import os
@@ -72,6 +80,17 @@ def lock_archive(root: Path) -> int | None:
     return fd
 
 
+def _write_all(f: BinaryIO, data: bytes) -> None:
+    """Write all of ``data`` to the unbuffered ``f`` (a short write, a disk
+    filling up, is written on or raises)."""
+    view = memoryview(data)
+    while view:
+        n = f.write(view)
+        if not n:
+            raise OSError(errno.ENOSPC, "No space left on device (a write took nothing)")
+        view = view[n:]
+
+
 class ArchiveWriter:
     """Archives one ground's snapshots and events into ``root`` (module doc).
 
@@ -118,7 +137,8 @@ class ArchiveWriter:
         self._told_ns = -(10**18)
         self.errors = 0
         self.lost = 0
-        """Snapshots taken from the queue whose write failed (a full disk)."""
+        """Snapshots taken from the queue that the raw segment could not
+        take (a full disk): not archived."""
         self._failed: set[str] = set()
         self._notes: deque[tuple[EventType, dict[str, Any]]] = deque(maxlen=256)
         self.rows = 0
@@ -150,6 +170,9 @@ class ArchiveWriter:
         self._pw_rows = 0
         self._ev_pend: list[EventRecord] = []
         self._early_events: list[EventRecord] = []
+        self._refill = False
+        """A write of this run failed: its end re-decodes its raw segments."""
+        self._batch_raw = 0
         try:
             store.recover(self.root, layout, mission.mission, mission.vehicle, self._damage)
             self._retain()
@@ -247,32 +270,64 @@ class ArchiveWriter:
         evs = []
         while self._events:
             evs.append(self._events.popleft())
+        self._batch_raw = 0
         try:
             if len(rows):
                 epochs = rows[:, self._epoch_at : self._epoch_at + 8].copy().view("<u8")[:, 0]
                 cuts = np.flatnonzero(np.diff(epochs)) + 1
                 for part in np.split(np.arange(len(rows)), cuts):
                     self._ingest(int(epochs[part[0]]), rows[part], rx[part])
+        except (OSError, pa.ArrowException, ArchiveError) as exc:
+            self.lost += len(rows) - self._batch_raw  # those in the raw segment are kept
+            self._failure("write", exc)
+        try:
             for e in evs:
                 self._event(e)
             self._sync()
-        except (OSError, pa.ArrowException) as exc:
-            self.lost += len(rows)
-            self._fail("write", exc)
+        except (OSError, pa.ArrowException, ArchiveError) as exc:
+            self._failure("write", exc)
+
+    def _failure(self, what: str, exc: BaseException) -> None:
+        """A write failed (a full disk): counted, told once per kind; the
+        open Parquet file and the rows and events pending for it are
+        dropped (their ``*.tmp`` removed: a broken writer cannot be written
+        on, and the space is freed). They are in the raw segment: the run's
+        end re-decodes them (:func:`.store.refill`), so after space is freed
+        the archive goes on and the run ends whole but for what the raw
+        segment could not take (counted in :attr:`lost`)."""
+        self._fail(what, exc)
+        pws, self._pw, self._pw_groups = [self._pw, *self._pw_groups], None, []
+        for k, pw in enumerate(pws):
+            if pw is None:
+                continue
+            with contextlib.suppress(Exception):  # broken already: only its handle to free
+                pw.close()
+            if self._pw_path is not None:
+                with contextlib.suppress(OSError):
+                    os.unlink(str(store.group_path(self._pw_path, k)) + ".tmp")
+        self._pend, self._pend_rx, self._pend_n = [], [], 0
+        self._ev_pend = []
+        if self._run is not None:
+            self._refill = True
 
     def _ingest(self, run: int, rows: np.ndarray, rx: np.ndarray) -> None:
         if run != self._run:
             self._end_run("ended")
             self._start_run(run)
+        n_in = len(rows)
         loops = rows[:, self._loop_at : self._loop_at + 8].copy().view("<u8")[:, 0]
         keep = []
+        new: set[int] = set()
+        dups = 0
         for i, lp in enumerate(loops.tolist()):
-            if lp in self._seen:
-                self.duplicates += 1
+            if lp in self._seen or lp in new:
+                dups += 1
             else:
-                self._seen.add(lp)
+                new.add(lp)
                 keep.append(i)
         if not keep:
+            self.duplicates += dups
+            self._batch_raw += n_in
             return
         if len(keep) != len(rows):
             rows, rx, loops = rows[keep], rx[keep], loops[keep]
@@ -280,13 +335,18 @@ class ArchiveWriter:
         assert info is not None
         if info.in_order and (int(loops[0]) <= self._max_loop or bool(np.any(np.diff(loops) <= 0))):
             info.in_order = False  # a late loop (a gap filled out of order): queries sort
-        self._max_loop = max(self._max_loop, int(loops.max()))
         self._raw(
             b"".join(
                 store.raw_record(FRAME, lp, rx[i].tobytes() + rows[i].tobytes())
                 for i, lp in enumerate(loops.tolist())
             )
         )
+        # Taken only once in the raw segment: a loop whose write failed is
+        # not seen, so a later copy of it (a gap fill) is archived.
+        self._seen |= new
+        self.duplicates += dups
+        self._batch_raw += n_in
+        self._max_loop = max(self._max_loop, int(loops.max()))
         self._pend.append(rows)
         self._pend_rx.append(rx)
         self._pend_n += len(rows)
@@ -310,8 +370,10 @@ class ArchiveWriter:
             info.commands.append(f"{e.node}: {e.text}")
 
     def _start_run(self, run: int) -> None:
-        self._run = run
+        # A record a newer zplatform wrote raises ArchiveError here, before
+        # this run is taken: its rows are lost, counted and told (_drain).
         info = store.read_run(self.root, run)
+        self._run = run
         if info is None:
             info = store.RunInfo(
                 run, self.mission.mission, self.mission.vehicle, self.layout.layout_id
@@ -334,35 +396,58 @@ class ArchiveWriter:
             self._event(e)
 
     def _seal_segment(self) -> None:
-        """Close the open raw segment and compress it (:func:`.store.seal_segment`)."""
+        """Close the open raw segment and compress it (:func:`.store.seal_segment`;
+        when that fails, a full disk, it stays as it is: readable unsealed)."""
         seg, self._seg = self._seg, None
         if seg is None:
             return
         try:
-            os.fsync(seg.fileno())
+            with contextlib.suppress(OSError):
+                os.fsync(seg.fileno())
         finally:
             seg.close()
-        store.seal_segment(Path(str(seg.name)))
+        try:
+            store.seal_segment(Path(str(seg.name)))
+        except (OSError, pa.ArrowException) as exc:
+            self._fail("compress a raw segment", exc)
 
     def _open_segment(self) -> None:
+        """Seal the open raw segment, start the next one with its ``HEAD``
+        (on an error, a full disk, none is open and the error raised: the
+        next write tries again)."""
         self._seal_segment()
         assert self._run is not None
         path = store.run_dirs(self.root, "raw", self._run) / segment_name(self._seg_index)
-        self._seg_index += 1
-        self._seg = open(path, "ab", buffering=0)  # noqa: SIM115
         head = store.head_record(
-            self.mission.mission, self.mission.vehicle, self._run, self.layout, self._seg_index - 1
+            self.mission.mission, self.mission.vehicle, self._run, self.layout, self._seg_index
         )
-        self._seg.write(head)
-        self._seg_bytes = len(head)
+        # Appending: after a cut back (_raw) the next write goes at the new end.
+        seg = open(path, "ab", buffering=0)  # noqa: SIM115
+        try:
+            _write_all(seg, head)
+        except OSError:
+            seg.close()
+            with contextlib.suppress(OSError):
+                path.unlink()
+            raise
+        self._seg_index += 1
+        self._seg, self._seg_bytes = seg, len(head)
 
     def _raw(self, data: bytes) -> None:
-        if self._seg is None:
+        """Append ``data`` (whole records) to the run's raw segment. On an
+        error (a full disk) the segment is cut back to its last whole record
+        and the error raised: no torn record between good ones."""
+        if self._run is None:
             return
-        if self._seg_bytes + len(data) > SEGMENT_BYTES:
+        if self._seg is None or self._seg_bytes + len(data) > SEGMENT_BYTES:
             self._open_segment()
         assert self._seg is not None
-        self._seg.write(data)
+        try:
+            _write_all(self._seg, data)
+        except OSError:
+            with contextlib.suppress(OSError):
+                os.ftruncate(self._seg.fileno(), self._seg_bytes)
+            raise
         self._seg_bytes += len(data)
 
     def _sync(self) -> None:
@@ -455,15 +540,28 @@ class ArchiveWriter:
         )
 
     def _end_run(self, outcome: str) -> None:
+        """Close the run's files; after a failed write re-decode what its
+        Parquet files lack from its raw segments first. On an error the
+        record stays ``open``: the next opening recovers it."""
         if self._run is None:
             return
+        info = self._info
+        assert info is not None
         try:
             self._flush_groups(final=True)
-            assert self._info is not None
-            self._info.outcome = outcome
+            info.outcome = "open" if self._refill else outcome
             self._close_file()
+            if self._refill:
+                if self._seg is not None:
+                    with contextlib.suppress(OSError):
+                        os.fsync(self._seg.fileno())
+                store.refill(self.root, self.layout, info, self._damage, self._schema)
+                store.recount(self.root, self.layout, info, self._damage)
+                info.outcome = outcome
+                store.write_run(self.root, info)
         finally:
             self._run = None
+            self._refill = False
             self._seal_segment()
 
     # -- the end ------------------------------------------------------------
