@@ -1,26 +1,20 @@
 """The archive's writing side: the receive path copies, the archive's thread writes.
 
-:class:`ArchiveWriter` takes every snapshot the ground accepted
-(:meth:`~ArchiveWriter.snapshot`: the CN vector's bytes copied into a slot
-of a preallocated ring) and every event (:meth:`~ArchiveWriter.event`, a
-bounded queue). Its thread wakes every :data:`WAKE_S`, drops loops it
-already holds (a gap fill, a second copy), appends the raw records
-(:mod:`.store`) and adds the decoded rows to the open Parquet file, a row
-group at a time; a file is closed (renamed) every ``file_s`` or at an hour's
+:class:`ArchiveWriter` takes every snapshot the ground accepted (copied into
+a slot of a preallocated ring) and every event (a bounded queue). Its thread
+wakes every :data:`WAKE_S`, drops loops it already holds, appends the raw
+records (:mod:`.store`) and adds the decoded rows to the open Parquet file a
+row group at a time; a file is closed every ``file_s`` or at an hour's
 boundary, then retention runs.
 
 Contract: :meth:`~ArchiveWriter.snapshot`, :meth:`~ArchiveWriter.event` and
 :meth:`~ArchiveWriter.tick` never block, never raise, and allocate nothing
-per snapshot; a full queue drops, counted (:attr:`~ArchiveWriter.dropped`) and
-evented at most once a second (``archive_dropping``). An I/O error (a full
-disk) is counted and evented once per kind (``archive_failed``); the thread
-goes on taking the queue. Snapshots the raw segment could not take are lost
-(:attr:`~ArchiveWriter.lost`); the raw segment is cut back to its last whole
-record; the open Parquet file is dropped, and what it and the later failed
-writes held is re-decoded from the raw segment at the run's end
-(:func:`.store.refill`). Once space is freed the writing resumes by itself;
-the files already closed are untouched. One writer per archive directory (a
-lock).
+per snapshot; a full queue drops, counted and evented once a second. An I/O
+error (a full disk) is counted and evented once per kind; snapshots the raw
+segment could not take are lost (counted), the segment is cut back to its
+last whole record, the open Parquet file dropped and refilled from the raw
+segment at the run's end (:func:`.store.refill`); writing resumes by itself
+once space is freed. One writer per archive directory (a lock).
 """
 
 from __future__ import annotations
