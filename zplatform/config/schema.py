@@ -769,7 +769,7 @@ class ArchiveConfig(_Struct):
             ge=1024 * 1024,
             le=1 << 50,
             description="Most bytes the mission's archive holds; the oldest runs are removed "
-            "whole to stay within it (never the run being written).",
+            "whole to stay within it (never the run being written, nor the newest run).",
         ),
     ] = 20 * 1024**3
     max_age_days: Annotated[
