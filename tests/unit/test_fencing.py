@@ -17,9 +17,11 @@ from zplatform.control.fencing import (
     ASK,
     RELEASE,
     STATUS,
+    TERM_MAX,
     TermGuard,
     Verdict,
     ask_frame,
+    attested_term,
     read_reply,
 )
 from zplatform.control.loop import ControlLogic, DeviceLogic
@@ -37,6 +39,18 @@ T0 = 1_700_000_000_000_000_000
 
 def at(loop: int) -> int:
     return T0 + (loop - 1) * P
+
+
+# -- the term most device nodes attest -------------------------------------------------
+
+
+def test_the_attested_term_is_what_more_than_half_report_never_one_nodes_alone() -> None:
+    assert attested_term([TERM_MAX, 2], 2) == 2  # one liar of two
+    assert attested_term([TERM_MAX, 4, 3], 3) == 4  # one liar of three
+    assert attested_term([TERM_MAX, TERM_MAX, 3], 3) == TERM_MAX  # a majority
+    assert attested_term([0, 0, 7], 3) == 0  # two restarted
+    assert attested_term([9], 3) == 0 and attested_term([], 2) == 0  # too few answered
+    assert attested_term([5], 1) == 5
 
 
 # -- the guard alone ---------------------------------------------------------------

@@ -34,9 +34,11 @@ from .fencing import (
     LOOP_MAX,
     RELEASE,
     STATUS,
+    TERM_JUMP,
     TERM_MAX,
     ProbeReply,
     ask_frame,
+    attested_term,
     new_nonce,
     next_term,
     read_reply,
@@ -168,7 +170,15 @@ class Standby:
         if it did): the standby is ready to take over."""
         self.mirrored_t = 0
         self.term = 0
-        """The newest term known: the mirror's, or one a device node reported."""
+        """The newest term known: the (authenticated) mirror's, its own, or
+        one more than half of the device nodes attest
+        (:func:`~zplatform.control.fencing.attested_term`), never one a lone
+        device node reported: its insider could name any."""
+        self.reach = 0
+        """The highest term the last round's answers named above :attr:`term`,
+        cut to ``term +`` :data:`~zplatform.control.fencing.TERM_JUMP` (0:
+        none): the next round asks past it, so that a device node fenced a
+        little above the others grants; the round after forgets it."""
         self.commander = -1
         """The index of the control node the last mirror came from (-1: none)."""
         self.origin: int | None = None
@@ -368,7 +378,7 @@ class Standby:
         the term after every term known (``kind``: STATUS, a question that
         asks for nothing; a STATUS too when there is no next term,
         :func:`~zplatform.control.fencing.next_term`)."""
-        self._asked = next_term(self.term) if kind == ASK else 0
+        self._asked = next_term(max(self.term, self.reach)) if kind == ASK else 0
         if not self._asked:
             kind = STATUS
         self._kind = kind
@@ -405,7 +415,10 @@ class Standby:
         next round comes when the lease may have run out (as after a refused
         ASK), or at the next slot when no answer showed a driven device node
         (too few came in time), with a ``cn_takeover_held`` event (once per
-        silence). Learns any newer term a device node reported."""
+        silence). Learns a newer term from the answers: the one more than
+        half of the device nodes attest, and, for the next round only, one a
+        single device node named, up to ``TERM_JUMP`` above it
+        (:attr:`reach`)."""
         answered = [a for a in self.answers if a is not None]
         driven = [a for a in answered if 0 <= a.quiet_ns < self._lease or a.promised]
         # Too few answers and none driven: a busy host's late answers, not a
@@ -415,8 +428,7 @@ class Standby:
         # the device nodes' watchdog after two such rounds, and past the
         # blind standby's limit after three (issue 25).
         retry = self._retry_in(driven) if driven else 1
-        for a in answered:
-            self.term = max(self.term, a.term, a.promised)
+        self._learn(False)
         if 2 * len(answered) > len(self.dns) and not driven:
             return True
         self._next_ask = slot + retry
@@ -429,12 +441,11 @@ class Standby:
         """The round is over: TAKE when every device node that answered
         granted the term and they are more than half of all; else WAIT, with
         :attr:`releases` to send and a ``cn_takeover_held`` event (once per
-        silence of the commander). Learns any newer term a device node
-        reported."""
+        silence of the commander). Learns a newer term the device nodes
+        reported as :meth:`silent` does."""
         answered = [a for a in self.answers if a is not None]
         granted = [a for a in answered if a.granted]
-        for a in answered:
-            self.term = max(self.term, a.term, a.promised if not a.granted else 0)
+        self._learn(True)
         majority = 2 * len(granted) > len(self.dns)
         if self._kind == ASK and answered and len(granted) == len(answered) and majority:
             return Decision.TAKE
@@ -453,6 +464,21 @@ class Standby:
                 now_ns, self._why_held(answered, granted, [a for a in answered if not a.granted])
             )
         return Decision.WAIT
+
+    def _learn(self, asked: bool) -> None:
+        """Learn from this round's answers (``asked``: an ASK's, whose grants
+        name the term asked, not one a node holds): :attr:`term` rises to
+        the term more than half of the device nodes attest; :attr:`reach`
+        becomes the highest any one named, cut to ``term + TERM_JUMP``
+        (issue 25: a device node's insider naming TERM_MAX left the
+        standby no next term for good; docs/architecture.md#failover)."""
+        terms = [0] * len(self.dns)
+        for a in self.answers:
+            if a is not None:
+                terms[a.dn] = max(a.term, 0 if (asked and a.granted) else a.promised)
+        self.term = max(self.term, attested_term(terms, len(self.dns)))
+        top = max(terms)
+        self.reach = min(top, self.term + TERM_JUMP) if top > self.term else 0
 
     def _retry_in(self, answered: list[ProbeReply]) -> int:
         """Slots until the next round: when the device nodes refused only

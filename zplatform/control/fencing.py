@@ -34,6 +34,7 @@ __all__ = [
     "NONCE_LEN",
     "RELEASE",
     "STATUS",
+    "TERM_JUMP",
     "TERM_MAX",
     "ProbeAsk",
     "ProbeReply",
@@ -42,6 +43,7 @@ __all__ = [
     "ask_frame",
     "ask_size",
     "ask_stamp",
+    "attested_term",
     "next_term",
     "read_ask",
     "read_reply",
@@ -57,6 +59,14 @@ TERM_MAX = 0xFFFF_FFFE
 """The highest term a node may run, ask for or adopt (module doc): one below
 the largest ``u32``, so ``term + 1`` of a valid term is always representable
 and a node at :data:`TERM_MAX` asks for nothing more."""
+TERM_JUMP = 8
+"""How far above the term it knows (its mirror's, or one most device nodes
+attest: :func:`attested_term`) a control node asks past a term one device
+node alone reports (docs/architecture.md#failover): enough for an honest
+device node fenced a few takeovers ahead of the others (each takeover is one
+term; a promise held past it lapses within the lease), while a device node's
+insider naming :data:`TERM_MAX` burns at most this many terms per takeover
+instead of the whole term space."""
 LOOP_MAX = (1 << 63) - 1
 """The highest loop number taken from a failover frame (a mirror's ``seq``,
 a probe answer's ``last_loop``): schedule arithmetic on it stays within the
@@ -119,6 +129,21 @@ def next_term(term: int) -> int:
     or 0 when ``term`` is :data:`TERM_MAX` already, or out of range (there
     is no next term: the asker asks for nothing)."""
     return term + 1 if 0 <= term < TERM_MAX else 0
+
+
+def attested_term(terms: list[int], nodes: int) -> int:
+    """The highest term more than half of ``nodes`` device nodes report:
+    the ``nodes // 2 + 1``-th largest of ``terms`` (one per device node that
+    answered, or 0 for one that did not; 0 when fewer than that many are
+    given). No minority (one device node's insider) can raise it above what
+    an honest device node reports (docs/architecture.md#failover); one that
+    lowers it only makes its asker ask too low a term, which is refused.
+    Allocates (a sorted copy): for probe rounds and a stand-down, never per
+    trigger."""
+    k = nodes // 2 + 1
+    if len(terms) < k:
+        return 0
+    return sorted(terms, reverse=True)[k - 1]
 
 
 def ask_stamp(body: bytes | memoryview, askers: int = MAX_ASKERS) -> tuple[int, int]:

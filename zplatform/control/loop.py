@@ -52,7 +52,15 @@ from .commands import CommandHandler, RequestNumber
 from .controllers import ControllerSet
 from .devices import DeviceSet
 from .faults import FaultMonitor
-from .fencing import TERM_MAX, ProbeReply, TermGuard, Verdict, read_ask, reply_frame
+from .fencing import (
+    TERM_MAX,
+    ProbeReply,
+    TermGuard,
+    Verdict,
+    attested_term,
+    read_ask,
+    reply_frame,
+)
 from .intake import CnRefusals, RefusalLog
 from .interlocks import OutputInterlock
 from .monitors import MonitorSet
@@ -249,6 +257,7 @@ class ControlLogic:
         standby; redundant missions only): the driver sends it every loop."""
         self._seal_mirror: Channel | None = None
         self._fenced = [False] * len(dns)
+        self._fenced_seen = [0] * len(dns)  # the term each fenced reply named
         self._fenced_term = 0
         self._fenced_run = 0  # loops in a row a majority fenced this node
         self._lease_loops = mission.takeover.lease_loops
@@ -373,7 +382,7 @@ class ControlLogic:
                 # node is fenced), or still an older one (its lease).
                 if seen > term and frame.seq == self.loop:
                     self._fenced[i] = True
-                    self._fenced_term = max(self._fenced_term, seen)
+                    self._fenced_seen[i] = seen
                 return False
         if frame.seq != self.loop or self._got[i]:
             # an answer to an older loop (or a duplicate): counted, dropped
@@ -486,13 +495,22 @@ class ControlLogic:
 
     def _superseded_now(self) -> bool:
         """This loop's replies: a majority fenced by a newer term, for more
-        loops in a row than a device node's promise lasts (``lease_loops``)."""
-        if sum(self._fenced) * 2 > len(self._fenced):
+        loops in a row than a device node's promise lasts (``lease_loops``).
+        The newer term (:attr:`superseded`) is the one more than half of the
+        device nodes attest, not the highest one named: a device node's
+        insider among the fenced would pass TERM_MAX on to the standby this
+        node becomes, leaving it no next term (issue 25)."""
+        fenced = self._fenced
+        if sum(fenced) * 2 > len(fenced):
             self._fenced_run += 1
         else:
             self._fenced_run = 0
+        if self._fenced_run <= self._lease_loops:
             self._fenced_term = 0
-        return self._fenced_run > self._lease_loops
+            return False
+        seen = [t for t, f in zip(self._fenced_seen, fenced, strict=True) if f]
+        self._fenced_term = attested_term(seen, len(fenced))
+        return True
 
     def _refused(self, r: CnRefusals | None, t: int) -> None:
         """Count what the intake refused (module doc): a frame refused for its
