@@ -388,3 +388,28 @@ def test_the_loop_receives_before_its_logic_and_publishes_after() -> None:
     dn.safe(2 * 10**9, "test")  # a safed DN runs no actuators, but its channels go on
     run_dn_loop(dn, 2, 2 * 10**9)
     assert calls == [("receive 2", 1), ("publish 2", 2), ("counters", 2)]
+
+
+def test_a_sample_over_both_paths_is_taken_once_and_a_restarted_owner_again(
+    session: zenoh.Session,
+) -> None:
+    """Around a switch between iceoryx2 and zenoh the same sample can come
+    over both paths (found by test_camera: published 590, taken 592): it is
+    taken once, counted in ``duplicates``; a restarted owner's sequence
+    starts again at 0 with later stamps, and is taken."""
+    ch = _ch(type="u8[16]")
+    reader = NodeBulk(session, "t", [ch], "cn", shared_memory=False)
+    r = reader.readers["cam"]
+
+    def sample(seq: int, t_ns: int) -> bytes:
+        data = bytearray(ch.sample_bytes)
+        HEADER.pack_into(data, 0, ch.layout_id, 0, seq, seq, t_ns)
+        return bytes(data)
+
+    assert r._take(sample(4, 400), True)
+    assert not r._take(sample(4, 400), True)  # the same, over the other path
+    assert not r._take(sample(3, 300), True)  # an older one
+    assert r._take(sample(5, 500), True)
+    assert r._take(sample(0, 900), True)  # the owner restarted
+    assert (r.duplicates, r.missed, r.bad) == (2, 0, 0)
+    reader.close()

@@ -321,6 +321,11 @@ class BulkReader:
         self._latest: zenoh.Sample | None = None
         self._event = threading.Event()
         self._last_seq: int | None = None
+        self._last_t_ns = 0
+        self.duplicates = 0
+        """Samples refused as taken already (numbered and stamped no later
+        than the last one taken): the same sample over both paths around a
+        switch."""
         self.received_iox = 0
         self.received_shm = 0
         self.received_copied = 0
@@ -361,14 +366,17 @@ class BulkReader:
         self._event.clear()
         payload = sample.payload
         shm = payload.as_shm()
-        if shm is not None:
-            data = bytes(shm)  # faster than payload.to_bytes() for shm (bench.shm)
+        via_shm = shm is not None
+        # bytes(shm) is faster than payload.to_bytes() for shm (bench.shm)
+        data = bytes(shm) if shm is not None else payload.to_bytes()
+        del sample, payload, shm  # release the chunk now, not at the next poll
+        if not self._take(data, copy):
+            return False
+        if via_shm:
             self.received_shm += 1
         else:
-            data = payload.to_bytes()
             self.received_copied += 1
-        del sample, payload, shm  # release the chunk now, not at the next poll
-        return self._take(data, copy)
+        return True
 
     def _poll_iox(self, iox: Any, copy: bool) -> bool | None:
         """The iceoryx2 path's part of :meth:`poll`: whether a sample from it
@@ -425,9 +433,15 @@ class BulkReader:
         if layout != self._layout:
             self.bad += 1
             return False
+        if self._last_seq is not None and seq <= self._last_seq and t_ns <= self._last_t_ns:
+            # A sample taken already (or older): the same one over the other
+            # path around a switch. Not taken twice; a restarted owner's
+            # sequence starts again at 0 but its stamps go on.
+            self.duplicates += 1
+            return False
         if self._last_seq is not None and seq > self._last_seq + 1:
             self.missed += seq - self._last_seq - 1
-        self._last_seq = seq
+        self._last_seq, self._last_t_ns = seq, t_ns
         self.header = BulkHeader(layout, seq, loop, t_ns)
         src = np.frombuffer(data, self._dtype, self._count, HEADER.size)
         if copy:
