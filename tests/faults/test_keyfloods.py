@@ -276,3 +276,45 @@ def test_replayed_run_hellos_are_bounded_before_their_mac() -> None:
     burst = getattr(cs, "HELLO_BURST", 16)
     assert answered == burst
     assert responder.refused == 100 - burst == getattr(responder, "hello_excess", 0)
+
+
+def test_the_recorder_servers_refusals_are_logged_at_most_once_a_second(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    """Issue 25: the recorder server counted the requests it refused but
+    said nothing. Now a flood of junk is reported in the CN's log: one line
+    a second at most (a thread of its own; zenoh's callback only counts),
+    the last (at close) naming the whole count."""
+    import logging
+    import time
+
+    from tests.zsession import lone_session
+    from zplatform.core.auth import TAG_LEN, KeySet, channel
+    from zplatform.recorder import server as rs
+    from zplatform.recorder.format import REQUEST
+
+    m = _LOADED["recovery_igniter"]
+    keys = KeySet.from_master(m, bytes(range(32)))
+    s = lone_session()
+    rec = type("R", (), {"run": -1})()
+    server = rs.RecorderServer(
+        s,
+        f"{m.vehicle}/cn/recorder",
+        rec,  # type: ignore[arg-type]
+        channel(keys.for_node("cn"), "telemetry"),
+        now_ns=time.time_ns,
+        max_age_ns=10**9,
+        serve_bps=10**9,
+    )
+    t0 = time.monotonic()
+    with caplog.at_level(logging.WARNING, logger="zplatform.recorder"):
+        for q in [_Query(p) for p in _junk(REQUEST.size + TAG_LEN, 2000)]:
+            server.on_query(q)
+        server.close()
+        s.close()
+    took = time.monotonic() - t0
+    lines = [r.getMessage() for r in caplog.records if "recorder requests refused" in r.message]
+    assert 1 <= len(lines) <= took / getattr(rs, "LOG_PERIOD_S", 1.0) + 2
+    total = getattr(server, "refusals", -1)
+    assert total >= server.excess > 0
+    assert lines[-1].startswith(f"recorder requests refused: {total} so far")
