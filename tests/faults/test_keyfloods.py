@@ -321,3 +321,45 @@ def test_the_recorder_servers_refusals_are_logged_at_most_once_a_second(
     total = getattr(server, "refusals", -1)
     assert total >= server.excess > 0
     assert lines[-1].startswith(f"recorder requests refused: {total} so far")
+
+
+def test_a_replayed_clock_query_never_reaches_the_servers_thread_again() -> None:
+    """Issue 25 (the clock replay hole): the clock server kept the last 256
+    nonces of each asker, so a keyless peer that saw a DN's clock queries
+    (a queryable on the clock key) could replay an old one once the DN had
+    sent 256 newer ones: answered again, through the server's thread. Now,
+    after 300 genuine queries 100 ms apart (each answered), the replay of
+    the first is dropped unanswered in zenoh's callback, counted once."""
+    from tests.waits import wait_until
+    from tests.zsession import lone_session
+    from zplatform.core.auth import KeySet
+    from zplatform.runtime.clocksync import ClockLink, ClockServer
+    from zplatform.runtime.transport import KeySpace
+
+    m = _LOADED["recovery_igniter"]
+    keys = KeySet.from_master(m, bytes(range(32)))
+    link = ClockLink(m, "dn0", keys.for_node("dn0"))
+    now = [1_800_000_000 * 10**9]
+    s = lone_session()
+    server = ClockServer(s, KeySpace(m.vehicle), lambda: now[0], m, keys.for_node("cn"))
+    try:
+        first = _Query(link.query(now[0])[0])
+        genuine = [first]
+        server._on_query(first)  # type: ignore[arg-type]
+        for _ in range(300):
+            now[0] += 100_000_000
+            q = _Query(link.query(now[0])[0])
+            genuine.append(q)
+            server._on_query(q)  # type: ignore[arg-type]
+            # Served before the next (the backlog holds 64): the thread's pace.
+            wait_until(lambda q=q: q.replies, 10, "the server's thread to answer")
+        refused = server.refused
+        replay = _Query(first.payload.to_bytes())
+        server._on_query(replay)  # type: ignore[arg-type]
+    finally:
+        server.close()  # joins the thread: what it was handed is served
+        s.close()
+    assert server.served == len(genuine) == 301
+    assert all(len(q.replies) == 1 for q in genuine)
+    assert replay.dropped and not replay.replies and not replay.errors
+    assert server.refused - refused == 1
