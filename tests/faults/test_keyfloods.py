@@ -114,9 +114,12 @@ def test_a_row_added_later_gets_its_flood_or_fails_the_plan() -> None:
 # dn0 about 120 us of CPU each (bench figure cpu_us_per_frame), so dn0's
 # zenoh receive thread held a CPU at that priority, and SCHED_FIFO does not
 # share a CPU between threads of one priority: with the other CPU busy at
-# the same priority (another real-time mission on the host: the runs kept
-# show every thread of all three nodes unscheduled for 2 s at once beside
-# one) the commander's loop waited, and both DNs safed. Now zenoh's threads
+# the same priority (another real-time mission on the host) the
+# commander's loop waited, and both DNs safed. Inferred, not reproduced: a
+# kept run shows every thread of all three nodes unscheduled for 2 s at
+# once, between two floods, beside another SCHED_FIFO 20 process; the bench
+# measured zenoh below the loop no slower (REPORT.md, levers: p50 1.01x, fewer
+# misses). Now zenoh's threads
 # run below every loop (zplatform.runtime.process.io_priority). The reply
 # flood also waited for the CN's queries on dn0's key, which it sends only
 # over zenoh: the suite now syncs on zenoh (keyfloods._on_zenoh).
