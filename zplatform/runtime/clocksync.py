@@ -305,7 +305,11 @@ class ClockResponder:
     bound before its correction has, for as long as it ran ahead, one
     window (the bound and :data:`FRESH_NS` wide) in which a replay of its
     start-up series looks corrected: the nonces and the rate bound then
-    hold it. ``keys``: the CN's keys
+    hold it. And an asker restarted in the same run with its clock behind
+    the CN's by more than the bound and :data:`FRESH_NS` (uncorrected, its
+    queries look older than its newest) is refused until its reference
+    drifts down to it: such a node restarts once the control node's run
+    does, or with its host clock set. ``keys``: the CN's keys
     (None: the mission does not authenticate, and only the stamp is
     checked). ``run``: the control node's run (its ``cn_epoch``; None: a
     new run of its own): a query must name it or none (a hello, module doc);
