@@ -62,7 +62,7 @@ from ..recorder import FlightRecorder, RecorderReader, open_recorder, recorder_d
 from ..recorder.server import RecorderServer
 from ..runtime.bulk import open_bulk
 from ..runtime.clocksync import ClockLink, ClockServer, estimator_for
-from ..runtime.process import StopFlag, io_priority, realtime_setup
+from ..runtime.process import StopFlag, realtime_setup
 from ..runtime.queries import UNANSWERED_LOOPS
 from ..runtime.scheduler import GcGuard, PeriodicLoop
 from ..runtime.sync import ControlSync, ProbeSync, SyncTrace, TapPublisher, open_shm_links
@@ -934,13 +934,7 @@ class ControlNode:
             # on the commander's schedule from its first loop.
             self._end_loop = max_loops
         if realtime:
-            # Zenoh's threads below every loop (io_priority): a flood they
-            # refuse never holds a CPU from a loop thread.
-            realtime_setup(
-                nc.priority,
-                nc.cpu,
-                others=io_priority(nc.priority) if nc.priority is not None else None,
-            )
+            realtime_setup(nc.priority, nc.cpu)
         self._loop_hb.beat()
         if self.health is not None:
             self.health.start()

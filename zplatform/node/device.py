@@ -56,7 +56,7 @@ from ..runtime.clocksync import (
     estimator_for,
     learn_run,
 )
-from ..runtime.process import StopFlag, io_priority, realtime_setup
+from ..runtime.process import StopFlag, realtime_setup
 from ..runtime.scheduler import GcGuard
 from ..runtime.sync import DeviceSync, SyncTrace, open_shm_server
 from ..runtime.timebase import NodeClock
@@ -510,13 +510,7 @@ class DeviceNode:
         assert self.sync is not None and self._events is not None, "start() first"
         nc = self.mission.nodes[self.name]
         if realtime:
-            # Zenoh's threads below every loop (io_priority): a flood they
-            # refuse never holds a CPU from a loop thread.
-            realtime_setup(
-                nc.priority,
-                nc.cpu,
-                others=io_priority(nc.priority) if nc.priority is not None else None,
-            )
+            realtime_setup(nc.priority, nc.cpu)
         period = self.mission.period_ns
         logic = self.logic
         wait = self.sync.wait

@@ -88,39 +88,19 @@ class StopFlag:
         self.event.set()
 
 
-def io_priority(priority: int) -> int:
-    """The SCHED_FIFO priority of a node's other threads (zenoh's) when its
-    loop thread runs at ``priority``: half of it, at least 1 (20: 10)."""
-    return max(1, priority // 2)
-
-
-def realtime_setup(
-    priority: int | None, cpu: int | None, *, others: int | None = None
-) -> RealtimeStatus:
+def realtime_setup(priority: int | None, cpu: int | None) -> RealtimeStatus:
     """Apply SCHED_FIFO/affinity when configured; falls back with a log line.
 
     The loop thread alone is not enough on zenoh: replies are received and
     handed over by zenoh's own threads, so every thread of the process that
-    exists now (the session is open) gets SCHED_FIFO too, at ``others``
-    (None: the loop's own ``priority``). The nodes give them
-    :func:`io_priority`, *below every node's loop*: a flood a node's zenoh
-    threads are busy refusing (issue 25: a DN's trigger key at 6,000 gets/s,
-    about 0.6 of a CPU) never holds a CPU from any loop thread on the host
-    (SCHED_FIFO does not share a CPU between threads of one priority: at
-    the loop's, the CN's loop waited behind it and both DNs safed). A
-    benchmark's :func:`split_thread_priorities` overrides ``others``.
+    exists now (the session is open) gets the same policy.
     """
     status = setup_realtime(priority=priority, cpu=cpu)
     for note in status.notes:
         log.info("realtime: %s", note)
     if status.fifo and priority is not None:
-        promoted = _promote_threads(priority, others)
-        log.info(
-            "realtime: SCHED_FIFO %d on %d threads (the loop's; the others at %d)",
-            priority,
-            promoted,
-            _others(priority, others),
-        )
+        promoted = _promote_threads(priority)
+        log.info("realtime: SCHED_FIFO %d on %d threads", priority, promoted)
     return status
 
 
@@ -136,20 +116,14 @@ def split_thread_priorities(others: int | None) -> None:
     _other_priority = others
 
 
-def _others(priority: int, others: int | None) -> int:
-    if _other_priority is not None:
-        return _other_priority
-    return priority if others is None else others
-
-
-def _promote_threads(priority: int, others: int | None = None) -> int:
+def _promote_threads(priority: int) -> int:
     n = 0
     try:
         tids = [int(t) for t in os.listdir("/proc/self/task")]
     except OSError:
         return 0
     me = threading.get_native_id()
-    others = _others(priority, others)
+    others = priority if _other_priority is None else _other_priority
     for tid in tids:
         prio = priority if tid == me else others
         try:
