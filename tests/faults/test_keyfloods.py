@@ -8,7 +8,7 @@
   user may) and without real-time priority; every check must pass;
 * one flood per class (query key, sample key, reply path) of
   recovery_igniter, 1 s each, with its nodes on the pad: in the default
-  suite (the DN safing it showed is explained below, and fixed).
+  suite (the DN safing it showed: below).
 """
 
 from __future__ import annotations
@@ -109,20 +109,16 @@ def test_a_row_added_later_gets_its_flood_or_fails_the_plan() -> None:
 # Issue 25: in 3 of 6 runs on a busy box (with the soaks then) both device
 # nodes of this pad flight safed during a flood ("no valid trigger from the
 # control node for 109 ms"), once during the flood of dn0's trigger key: the
-# control node went silent, not the flooded node. Why: every thread of every
-# node ran SCHED_FIFO at the loop's priority; refusing 5,000 gets/s costs
-# dn0 about 120 us of CPU each (bench figure cpu_us_per_frame), so dn0's
-# zenoh receive thread held a CPU at that priority, and SCHED_FIFO does not
-# share a CPU between threads of one priority: with the other CPU busy at
-# the same priority (another real-time mission on the host) the
-# commander's loop waited, and both DNs safed. Inferred, not reproduced: a
-# kept run shows every thread of all three nodes unscheduled for 2 s at
-# once, between two floods, beside another SCHED_FIFO 20 process; the bench
-# measured zenoh below the loop no slower (REPORT.md, levers: p50 1.01x, fewer
-# misses). Now zenoh's threads
-# run below every loop (zplatform.runtime.process.io_priority). The reply
-# flood also waited for the CN's queries on dn0's key, which it sends only
-# over zenoh: the suite now syncs on zenoh (keyfloods._on_zenoh).
+# control node went silent, not the flooded node. What the runs kept show
+# (tests/faults/README.md): refusing 5,000 gets/s costs dn0 about 120 us of
+# CPU each (cpu_us_per_frame), on its zenoh thread at the loops' SCHED_FIFO
+# priority, which no loop thread can preempt; with another SCHED_FIFO 20
+# process on the 2-core box, all three nodes once went unscheduled for 2 s
+# at once. Zenoh's threads below the loops cured the pad run but starved the
+# standby's mirrors in the flight of `flight` (spinning loops above them):
+# reverted, open. The pad run's reply flood also waited for the CN's queries
+# on dn0's key, sent only over zenoh: the suite now syncs on zenoh
+# (keyfloods._on_zenoh), and the run is back in the default suite.
 @pytest.mark.timeout(120)
 def test_one_flood_per_class_on_the_pad(tmp_path: Path) -> None:
     """The representative run: a query key, a sample key and the reply path
