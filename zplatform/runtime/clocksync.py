@@ -116,13 +116,17 @@ which its freshness reference follows: far beyond any quartz's."""
 
 def ask_bound(clock: ClockConfig) -> tuple[int, int]:
     """``(burst, every_ns)``: the per-asker rate bound of a clock server
-    (:class:`ClockResponder`): a start-up series (``clock.exchanges``) and
-    an in-flight one (:data:`RESYNC_EXCHANGES`) at once, then one query
-    every ``every_ns``: an in-flight series every re-sync period
-    (``clock.resync_s``) or, on cues, every :data:`RELEARN_S`, whichever is
-    sooner."""
+    (:class:`ClockResponder`): two start-up series (``clock.exchanges``:
+    a node restarted right after it started) and an in-flight one
+    (:data:`RESYNC_EXCHANGES`) at once, then one query every ``every_ns``:
+    an in-flight series every re-sync period (``clock.resync_s``) or, on
+    cues, every :data:`RELEARN_S`, whichever is sooner (a start-up series
+    is back in 4 s by default). A node restarted a third time within that
+    finds its start-up series cut short (``ClockSyncError``) and starts
+    when it is back."""
     period_s = min(clock.resync_s, RELEARN_S) if clock.resync_s > 0 else RELEARN_S
-    return clock.exchanges + RESYNC_EXCHANGES + ASK_SLACK, round(period_s * 1e9 / RESYNC_EXCHANGES)
+    burst = 2 * clock.exchanges + RESYNC_EXCHANGES + ASK_SLACK
+    return burst, round(period_s * 1e9 / RESYNC_EXCHANGES)
 
 
 def answered_kept(clock: ClockConfig) -> int:
@@ -295,8 +299,8 @@ class ClockResponder:
       correction at start-up, brings it in bounds (counted in :attr:`stale`);
     * none of the last :func:`answered_kept` nonces it carried (a replay
       young enough to look fresh; also :attr:`stale`);
-    * within its rate bound (:func:`ask_bound`: a start-up and an
-      in-flight series at once, then one series a re-sync period; after
+    * within its rate bound (:func:`ask_bound`: two start-up series and
+      an in-flight one at once, then one series a re-sync period; after
       the checks above, so replays use none of it): the excess is refused
       (:attr:`ask_excess`).
 
