@@ -495,7 +495,10 @@ def test_the_clock_server_refuses_a_replayed_or_absurdly_stamped_query_unanswere
     assert "replay" in cn.reason
     assert cn.answer(link.query(I64_MAX)[0], T0, T0 + 1) is None
     assert cn.answer(link.query(T0 - DAY - 1)[0], T0, T0 + 1) is None
-    assert cn.answer(link.query(T0 - 5 * 3600 * 10**9)[0], T0, T0 + 1) is not None
+    # An asker's first query a few hours off (its clock not yet corrected):
+    # answered (after a genuine one in bounds it would look like a replay).
+    first = _responder().answer(link.query(T0 - 5 * 3600 * 10**9)[0], T0, T0 + 1)
+    assert first is not None
     assert cn.refused == 3
     peer = ClockLink(IGNITER, "dn1", ALL_KEYS.for_node("dn1"))
     assert cn.answer(peer.query(T0)[0], T0, T0 + 1) is not None  # its nonces are its own
@@ -565,3 +568,43 @@ def test_the_clock_exchange_tells_the_run_and_refuses_another_runs_query() -> No
     assert reply is not None and link.check(reply, n) is not None and learned.epoch == 8_000
     # A reply of another run that is not the answer to the latest query teaches nothing.
     assert link.check(r, n) is None and learned.epoch == 8_000
+
+
+def test_a_replay_of_an_old_query_is_refused_after_many_newer_ones() -> None:
+    """Issue 25: the clock server remembered the last 256 nonces of each
+    asker, so once a DN had sent 256 newer queries a replayed old one was
+    answered again (and handed to the server's thread). Now a query looks
+    its age (its stamp against the CN's clock, beside the asker's newest
+    answered): 300 genuine queries 100 ms apart are all answered; a replay
+    of the first is refused, counted once as stale, and so is a replay of
+    the newest (its nonce)."""
+    link, cn = _link(), _responder()
+    first, _ = link.query(T0)
+    assert cn.answer(first, T0 + MS, T0 + 2 * MS) is not None
+    t = T0
+    for _ in range(300):
+        t += 100 * MS
+        newest, _ = link.query(t)
+        assert cn.answer(newest, t + MS, t + 2 * MS) is not None
+    refused = cn.refused
+    assert cn.answer(first, t + 3 * MS, t + 4 * MS) is None
+    assert "replay" in cn.reason
+    assert cn.answer(newest, t + 5 * MS, t + 6 * MS) is None
+    assert cn.refused - refused == 2 and getattr(cn, "stale", 2) == 2
+
+
+def test_a_clock_asker_is_bounded_after_its_tag() -> None:
+    """An asker's genuine queries at once: two start-up series (a node
+    restarted at once) and an in-flight one (and a few hellos) are
+    answered, then one every ``every_ns``; the excess is refused unanswered
+    and counted exactly; a fresh query after
+    the wait is answered again."""
+    from zplatform.runtime.clocksync import ask_bound
+
+    link, cn = _link(), _responder()
+    burst, every = ask_bound(IGNITER.clock)
+    assert burst == 2 * IGNITER.clock.exchanges + 58  # a restart's series too
+    answered = sum(cn.answer(link.query(T0)[0], T0, T0 + 1) is not None for _ in range(burst + 40))
+    assert answered == burst
+    assert cn.ask_excess == 40 == cn.refused and cn.stale == 0
+    assert cn.answer(link.query(T0 + every)[0], T0 + every, T0 + every + 1) is not None

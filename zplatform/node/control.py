@@ -63,7 +63,7 @@ from ..recorder.server import RecorderServer
 from ..runtime.bulk import open_bulk
 from ..runtime.clocksync import ClockLink, ClockServer, estimator_for
 from ..runtime.process import StopFlag, realtime_setup
-from ..runtime.queries import UNANSWERED_LOOPS
+from ..runtime.queries import unanswered_loops
 from ..runtime.scheduler import GcGuard, PeriodicLoop
 from ..runtime.sync import ControlSync, ProbeSync, SyncTrace, TapPublisher, open_shm_links
 from ..runtime.timebase import NodeClock
@@ -162,6 +162,8 @@ class ControlNode:
             wildcard=wildcard_sync_for(mission),
             trace=sync_trace,
             shm=shm_links,
+            # A lost route recovered well before the DNs' watchdog.
+            unanswered=unanswered_loops(mission.faults.dn_watchdog_loops),
         )
         self._path_changes: list[tuple[str, str, str]] = []
         # The command inbox (zplatform.control.intake): size, tag, this run, a number
@@ -874,7 +876,7 @@ class ControlNode:
                 dns=", ".join(sorted(self._recovered_dns)),
                 n=ev[0],
                 total=sum(self._recovered_dns.values()),
-                loops=UNANSWERED_LOOPS,
+                loops=self.sync.unanswered.after,
             )
 
     def _sync_paths(self, t_ns: int) -> None:

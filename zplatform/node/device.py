@@ -49,6 +49,7 @@ from ..recorder import FlightRecorder, open_recorder, summary_line
 from ..runtime.bulk import NodeBulk, open_bulk
 from ..runtime.clocksync import (
     RELEARN_S,
+    RESYNC_EXCHANGES,
     ClockEstimate,
     ClockLink,
     Estimator,
@@ -239,7 +240,7 @@ class ClockResync:
                         self._keys,
                         now,
                         self.link,
-                        exchanges=50,
+                        exchanges=RESYNC_EXCHANGES,  # the clock server bounds askers by it
                         keep_fraction=self._keep,
                     )
             except Exception as exc:  # the CN may be gone; report and keep trying

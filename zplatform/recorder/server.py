@@ -6,9 +6,11 @@ share of one thread. Zenoh's callback checks a rate bound first (a GCRA:
 :data:`REQUEST_BURST`, then one every :data:`REQUEST_EVERY_NS`; the excess
 dropped unanswered, counted in ``excess``), then the size, and hands the
 query to a bounded inbox (:data:`MAX_PENDING`; more dropped, counted in
-``busy``); it never blocks. Why the bound: a keyless flood kept the serving
-thread busy with tag checks, and a Python thread that never waits held the
-GIL from the commander's loop past the device nodes' watchdog (issue 25).
+``busy``); it never blocks. Every refusal is reported in the log by a thread
+of its own, at most once a :data:`LOG_PERIOD_S` (count, why the last).
+Why the bound: a keyless flood kept the serving thread busy with tag
+checks, and a Python thread that never waits held the GIL from the
+commander's loop past the device nodes' watchdog (issue 25).
 
 One serving thread checks each request (tag, stamp, not served before, a
 range of this run), drops and counts one that does not check, reads the
@@ -20,6 +22,7 @@ Detail: docs/architecture.md#the-gap-fill.
 from __future__ import annotations
 
 import itertools
+import logging
 import threading
 import time
 from collections import deque
@@ -59,6 +62,9 @@ MAX_PENDING = 2
 REMEMBERED = 64
 """Requests served that a server remembers, to refuse a replay of one while
 its stamp is still within the bound (older ones are refused by the stamp)."""
+LOG_PERIOD_S = 1.0
+"""At most one log line of refused requests this often (:class:`RecorderServer`)."""
+log = logging.getLogger("zplatform.recorder")
 REQUEST_BURST = 8
 """Requests a recorder server takes at once (module doc); a ground asks one
 at a time, each after the last one's answer."""
@@ -125,9 +131,44 @@ class RecorderServer(QueryWorker):
         """Requests answered."""
         self.frames_sent = 0
         super().__init__("recorder-serve", MAX_PENDING, (zenoh.ZError,))
+        self.logged = 0
+        """Refusals (:attr:`refusals`) reported in the log so far."""
+        self._stop_log = threading.Event()
+        self._logger = threading.Thread(target=self._log_loop, name="recorder-log", daemon=True)
+        self._logger.start()
         self.queryable = session.declare_queryable(
             key_expr, zenoh.handlers.Callback(self.on_query, indirect=False)
         )
+
+    @property
+    def refusals(self) -> int:
+        """Every request dropped unanswered: beyond the rate bound, of a wrong
+        size or failing a check (:attr:`refused`), or past a full inbox."""
+        return self.excess + self.refused + self.busy
+
+    def log_refusals(self) -> bool:
+        """Log one line if requests were refused since the last one (the
+        count, how many beyond the rate bound, the last reason); returns
+        whether it did. The logging thread calls it once a
+        :data:`LOG_PERIOD_S`: zenoh's callback only counts."""
+        total = self.refusals
+        if total == self.logged:
+            return False
+        log.warning(
+            "recorder requests refused: %d so far (%d since the last report, %d beyond "
+            "the rate bound, %d with the inbox full); the last: %s",
+            total,
+            total - self.logged,
+            self.excess,
+            self.busy,
+            self.last_refusal or "beyond the rate bound",
+        )
+        self.logged = total
+        return True
+
+    def _log_loop(self) -> None:
+        while not self._stop_log.wait(LOG_PERIOD_S):
+            self.log_refusals()
 
     def on_query(self, query: Any) -> None:
         """The queryable's callback: the rate bound, then (the base's) the
@@ -266,3 +307,6 @@ class RecorderServer(QueryWorker):
         self._closed = True
         self.queryable.undeclare()
         self.stop_serving()
+        self._stop_log.set()
+        self._logger.join(timeout=2)
+        self.log_refusals()  # what the last period refused

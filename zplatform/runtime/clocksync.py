@@ -97,9 +97,45 @@ RELEARN_S = 1.0
 device node's re-sync thread, live, and the lockstep runner, in virtual time
 (a replay of an earlier run's triggers costs one exchange series this often,
 never more)."""
-ANSWERED = 256
-"""Nonces of the queries it answered a :class:`ClockResponder` keeps per
-asker, to refuse a replayed query unanswered (a start-up series is 200)."""
+RESYNC_EXCHANGES = 50
+"""Exchanges of one in-flight measurement (a device node's re-sync, or a
+re-learning of the run on a cue, at most once a :data:`RELEARN_S`)."""
+ASK_SLACK = 8
+"""Queries a clock asker may send beyond its series at once (the run
+learned with a few hellos, :func:`learn_run`)."""
+FRESH_NS = 2_000_000_000
+"""How much older than its asker's newest a clock query may look
+(:class:`ClockResponder`: its stamp against the CN's clock, compared with
+the asker's newest answered): more than an exchange's timeout (1 s), so a
+genuine query late in transit is still fresh; a replay older than this is
+refused, whatever the nonces remembered."""
+DRIFT_PPM = 1000
+"""How fast an asker's clock may drift from the CN's (parts per million),
+which its freshness reference follows: far beyond any quartz's."""
+
+
+def ask_bound(clock: ClockConfig) -> tuple[int, int]:
+    """``(burst, every_ns)``: the per-asker rate bound of a clock server
+    (:class:`ClockResponder`): two start-up series (``clock.exchanges``:
+    a node restarted right after it started) and an in-flight one
+    (:data:`RESYNC_EXCHANGES`) at once, then one query every ``every_ns``:
+    an in-flight series every re-sync period (``clock.resync_s``) or, on
+    cues, every :data:`RELEARN_S`, whichever is sooner (a start-up series
+    is back in 4 s by default). A node restarted a third time within that
+    finds its start-up series cut short (``ClockSyncError``) and starts
+    when it is back."""
+    period_s = min(clock.resync_s, RELEARN_S) if clock.resync_s > 0 else RELEARN_S
+    burst = 2 * clock.exchanges + RESYNC_EXCHANGES + ASK_SLACK
+    return burst, round(period_s * 1e9 / RESYNC_EXCHANGES)
+
+
+def answered_kept(clock: ClockConfig) -> int:
+    """Nonces of the queries it answered a :class:`ClockResponder` keeps per
+    asker: every query the rate bound (:func:`ask_bound`) lets it answer in
+    twice :data:`FRESH_NS`, so a replay young enough to be fresh is always
+    one of them (refused as answered before), and an older one is stale."""
+    burst, every_ns = ask_bound(clock)
+    return burst + 2 * FRESH_NS // every_ns + 1
 
 
 @dataclass(frozen=True, slots=True)
@@ -218,6 +254,15 @@ class ClockLink:
         self._answered = False
 
 
+def _reference(ref: tuple[int, int] | None, t2: int) -> int | None:
+    """A freshness reference ``(skew, at)`` as it stands at ``t2``: lowered
+    by the drift :data:`DRIFT_PPM` allows since ``at`` (None: none yet)."""
+    if ref is None:
+        return None
+    skew, at = ref
+    return skew - max(t2 - at, 0) * DRIFT_PPM // 1_000_000
+
+
 def _believable(t1: int, t2: int, t3: int, sent: tuple[bytes, int], nonce: bytes) -> bool:
     """Whether a reply's times can be the CN's answer to the query sent."""
     if sent[0] == nonce and t1 != sent[1]:
@@ -241,10 +286,34 @@ _Checked = tuple[int, bytes, int, int]
 class ClockResponder:
     """The CN's end of the clock exchange (module doc), sans-IO: answers a
     DN's query if its tag checks with that DN's link key, it is stamped
-    within :data:`QUERY_SPAN_NS` of the CN's clock, and its nonce is not
-    one of the last :data:`ANSWERED` the asker's queries carried (a replay
-    is refused unanswered; the asker's nonce, not its clock, orders its
-    queries: a DN's clock steps when corrected). ``keys``: the CN's keys
+    within :data:`QUERY_SPAN_NS` of the CN's clock, and, with keys, per
+    asker (a DN, or the standby), it is
+
+    * fresh: its stamp ``t1`` less the CN's receive time ``t2`` (the
+      asker's clock against the CN's) is at most :data:`FRESH_NS` below
+      that of the asker's newest answered query (a reference that follows
+      a drift of :data:`DRIFT_PPM`), or, for an asker whose clock is
+      corrected (within ``clock.offset_bound_ms`` of the CN's), below that
+      of its newest such query: a replay ages with the CN's clock, a
+      genuine query does not; the one step of a DN's clock, its
+      correction at start-up, brings it in bounds (counted in :attr:`stale`);
+    * none of the last :func:`answered_kept` nonces it carried (a replay
+      young enough to look fresh; also :attr:`stale`);
+    * within its rate bound (:func:`ask_bound`: two start-up series and
+      an in-flight one at once, then one series a re-sync period; after
+      the checks above, so replays use none of it): the excess is refused
+      (:attr:`ask_excess`).
+
+    Refused queries go unanswered and are counted in :attr:`refused` too.
+    Limit: an asker whose clock runs ahead of the CN's by more than the
+    bound before its correction has, for as long as it ran ahead, one
+    window (the bound and :data:`FRESH_NS` wide) in which a replay of its
+    start-up series looks corrected: the nonces and the rate bound then
+    hold it. And an asker restarted in the same run with its clock behind
+    the CN's by more than the bound and :data:`FRESH_NS` (uncorrected, its
+    queries look older than its newest) is refused until its reference
+    drifts down to it: such a node restarts once the control node's run
+    does, or with its host clock set. ``keys``: the CN's keys
     (None: the mission does not authenticate, and only the stamp is
     checked). ``run``: the control node's run (its ``cn_epoch``; None: a
     new run of its own): a query must name it or none (a hello, module doc);
@@ -287,8 +356,26 @@ class ClockResponder:
         """Run hellos answered."""
         # Per asker (a DN's index, or the peer last): the nonces answered,
         # oldest first, and the same as a set.
-        self._answered: list[deque[bytes]] = [deque() for _ in range(len(dns) + 1)]
-        self._seen: list[set[bytes]] = [set() for _ in range(len(dns) + 1)]
+        askers = len(dns) + 1
+        self._answered: list[deque[bytes]] = [deque() for _ in range(askers)]
+        self._seen: list[set[bytes]] = [set() for _ in range(askers)]
+        self._kept = answered_kept(mission.clock)
+        burst, self._every = ask_bound(mission.clock)
+        self._tau = (burst - 1) * self._every
+        self._in_sync = round(mission.clock.offset_bound_ms * 1e6)
+        # Per asker: the rate bound's theoretical arrival time (on the CN's
+        # clock, t2: virtual in lockstep), and the freshness references, the
+        # newest skew (t1 - t2) answered and when (t2), of any query and of
+        # one in bounds (a corrected clock); None: none answered yet.
+        self._tat = [-(1 << 63)] * askers
+        self._ref: list[tuple[int, int] | None] = [None] * askers
+        self._ref_sync: list[tuple[int, int] | None] = [None] * askers
+        self.stale = 0
+        """Authentic queries refused as replays: not fresh, or answered before
+        (also in :attr:`refused`)."""
+        self.ask_excess = 0
+        """Authentic fresh queries refused beyond their asker's rate bound
+        (also in :attr:`refused`)."""
         self.refused = 0
         """Queries refused (malformed, an unknown DN, a bad tag, stamped out
         of bounds, replayed)."""
@@ -365,13 +452,39 @@ class ClockResponder:
             return None
         if self._auth:
             asker = -1 if index == PEER_INDEX else index
+            skew = t1 - t2
+            ref = _reference(self._ref[asker], t2)
+            sync = _reference(self._ref_sync[asker], t2)
+            in_sync = abs(skew) <= self._in_sync
+            if not (
+                ref is None
+                or skew >= ref - FRESH_NS
+                or (in_sync and (sync is None or skew >= sync - FRESH_NS))
+            ):
+                self.refused += 1
+                self.stale += 1
+                self.reason = (
+                    f"a query {(ref - skew) / 1e9:.3f} s older than its asker's newest (a replay)"
+                )
+                return None
             seen = self._seen[asker]
             if nonce in seen:
                 self.refused += 1
+                self.stale += 1
                 self.reason = "a query answered before (a replay)"
                 return None
+            tat = max(self._tat[asker], t2)
+            if tat - t2 > self._tau:
+                self.refused += 1
+                self.ask_excess += 1
+                self.reason = "clock queries beyond their asker's rate bound"
+                return None
+            self._tat[asker] = tat + self._every
+            self._ref[asker] = (skew if ref is None else max(skew, ref), t2)
+            if in_sync:
+                self._ref_sync[asker] = (skew if sync is None else max(skew, sync), t2)
             answered = self._answered[asker]
-            if len(answered) == ANSWERED:
+            if len(answered) >= self._kept:
                 seen.discard(answered.popleft())
             answered.append(nonce)
             seen.add(nonce)

@@ -37,6 +37,7 @@ __all__ = [
     "declare_querier",
     "replies",
     "set_fault",
+    "unanswered_loops",
 ]
 
 TARGET = zenoh.QueryTarget.ALL
@@ -46,10 +47,22 @@ CONGESTION = zenoh.CongestionControl.DROP
 
 
 UNANSWERED_LOOPS = 10
-"""Loops in a row a live peer may leave its key's queries without a single
-reply before the asker declares its querier on the key again
-(:class:`Unanswered`): 100 ms at 100 Hz, well inside a device node's lease
-and watchdog, and past any single dropped query or busy-host hiccup."""
+"""The most loops in a row a live peer may leave its key's queries without
+a single reply before the asker declares its querier on the key again
+(:class:`Unanswered`); a control node recovers sooner, by its device nodes'
+watchdog (:func:`unanswered_loops`)."""
+
+
+def unanswered_loops(watchdog_loops: int) -> int:
+    """Loops a control node's sync waits for a live device node's reply
+    before declaring its querier again: a third of the device nodes'
+    watchdog (``faults.dn_watchdog_loops``; 3 of 10), at least one, at most
+    :data:`UNANSWERED_LOOPS`. A lost route (zenoh#2517: a peer's session
+    closing, such as a flood's attacker leaving) must be recovered, and the
+    next trigger arrive, well before the watchdog safes the node: at 10
+    loops, the watchdog's own length, the recovery came after dn1 had safed
+    ("no valid trigger for 104 ms", issue 25's pad flood run)."""
+    return max(1, min(UNANSWERED_LOOPS, watchdog_loops // 3))
 
 
 class QueryFault(Protocol):

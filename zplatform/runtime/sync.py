@@ -46,7 +46,7 @@ from .intrahost import (
     remove_stale,
     sync_link_names,
 )
-from .queries import ReplyCap, Unanswered, ask, declare_querier, replies
+from .queries import UNANSWERED_LOOPS, ReplyCap, Unanswered, ask, declare_querier, replies
 from .transport import KeySpace, is_matching
 
 __all__ = [
@@ -290,7 +290,9 @@ class ControlSync:
     each through its check, wait up to the same deadline; the others (and a
     link with no peer, in the same loop) go over zenoh, one query each
     (the wildcard only while no link takes shared memory). The sync closes
-    the links.
+    the links. ``unanswered``: loops a live DN may go without a reply before
+    its querier is declared again (:class:`~.queries.Unanswered`; a control
+    node's: :func:`~.queries.unanswered_loops` of its DNs' watchdog).
     """
 
     def __init__(
@@ -306,6 +308,7 @@ class ControlSync:
         monotonic: Callable[[], int] = time.monotonic_ns,
         trace: SyncTrace | None = None,
         shm: Sequence[ShmLink | None] = (),
+        unanswered: int = UNANSWERED_LOOPS,
     ) -> None:
         if len(checks) != len(dns):
             raise ValueError(f"one reply check per device node: {len(checks)} for {len(dns)}")
@@ -365,7 +368,7 @@ class ControlSync:
         # liveliness token.
         self._heard = [False] * len(dns)
         self._alive = [False] * len(dns)
-        self.unanswered = Unanswered(len(dns))
+        self.unanswered = Unanswered(len(dns), unanswered)
         self._recovered: list[int] = []
         self._recovered_n = 0  # recoveries since the last take_refusals (the loop's count)
         self._queriers = [
