@@ -395,3 +395,50 @@ def test_the_bounds_apply_to_runs_and_events(root: Path) -> None:
     with pytest.raises(ArchiveError, match=r"1 bytes/s per asker.*ask again in"):
         answer(second, q)
     assert (tight.over_bound, tight.served) == (1, 2)
+
+
+def test_the_cli_prints_runs_and_events_asked_remotely_as_it_prints_them_locally(
+    root: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """``zplatform archive MISSION runs|events --remote``: a tool's link (its
+    keys) asks the server; what it prints equals the local action's output."""
+    import zplatform.archive.server as server_mod
+    import zplatform.ground.link as link_mod
+    from zplatform.cli.main import main
+
+    clock = Clock()
+    srv = server(root, clock)
+    closed: list[bool] = []
+
+    class Link:  # GroundLink as ask_remote uses it: a tool's keys, no network
+        def __init__(self, mission: Any, **kw: Any) -> None:
+            self.ns = SimpleNamespace(session=None)
+            self.keys = SimpleNamespace(archive="rocket/archive/query")
+            self.link_keys = KEYS.for_node("tool")
+
+        def close(self) -> None:
+            closed.append(True)
+
+    def remote_query(session: Any, key: str, ch: Any, ask: Any, **kw: Any) -> pa.Table:
+        a = ArchiveAsk(ch, kw["nonce"], asker=5)
+        (q,) = deliver(srv, a.hello())
+        assert a.on_reply(q.replies[0])
+        (q,) = deliver(srv, a.ask(ask))
+        return answer(a, q)
+
+    monkeypatch.setattr(link_mod, "GroundLink", Link)
+    monkeypatch.setattr(server_mod, "remote_query", remote_query)
+    flight = str(ROOT / "configs" / "flight.yaml")
+    for action in (
+        ["runs", "--json"],
+        ["events", "--run", "7"],
+        ["events", "--severity", "COMMAND"],
+    ):
+        assert main(["archive", flight, "--dir", str(root), *action]) == 0
+        local = capsys.readouterr().out
+        assert main(["archive", flight, *action, "--remote", "--timeout", "1"]) == 0
+        assert capsys.readouterr().out == local and local.count("\n") >= 1
+    assert len(closed) == 3 and (srv.served, srv.refused) == (3, 0)
+    assert main(["archive", flight, "events", "--severity", "WARN", "--remote"]) == 2
+    err = capsys.readouterr().err  # the station's reason, one line
+    assert err == "zplatform: error: the station refused the query: no severity 'WARN'\n"
