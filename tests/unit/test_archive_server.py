@@ -372,6 +372,21 @@ def test_an_ask_of_an_unknown_kind_is_refused_with_its_reason(root: Path) -> Non
     assert (srv.served, srv.refused, srv.stale) == (2, 0, 0)
 
 
+def test_a_run_list_or_events_over_the_answer_bound_are_refused_with_what_to_do(
+    root: Path,
+) -> None:
+    clock = Clock()
+    srv = server(root, clock, max_bytes=500)
+    st = Station(1)
+    a, b = st.learn(srv), st.learn(srv)
+    qa, qb = deliver(srv, a.ask(RunsAsk()), b.ask(EventsAsk()))
+    with pytest.raises(ArchiveError, match=r"more than this station serves \(500\): the run list"):
+        answer(a, qa)
+    with pytest.raises(ArchiveError, match=r"serves \(500\): ask fewer severities"):
+        answer(b, qb)
+    assert (srv.served, srv.refused) == (2, 0)
+
+
 def test_the_bounds_apply_to_runs_and_events(root: Path) -> None:
     """per_asker and asker_bps hold for every kind: A's second ask in hand
     (events) is refused with the reason; an asker whose events emptied its

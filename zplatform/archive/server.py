@@ -103,6 +103,12 @@ _DECODERS: dict[int, msgspec.json.Decoder[Any]] = {
     RUNS: msgspec.json.Decoder(RunsAsk),
     EVENTS: msgspec.json.Decoder(EventsAsk),
 }
+_NARROW = {
+    QUERY: "narrow the range, ask fewer elements or aggregate",
+    RUNS: "the run list is longer than archive.serve_max_bytes (read it where the archive is)",
+    EVENTS: "ask fewer severities",
+}
+"""What an asker may do about an answer over the station's bound, per kind."""
 RUNS_SCHEMA = pa.schema(
     [
         ("run", pa.int64()),
@@ -399,7 +405,7 @@ class ArchiveServer(QueryWorker):
             if len(answer) > self._max_bytes:
                 raise ArchiveError(
                     f"the answer holds {len(answer)} bytes, more than this station serves "
-                    f"({self._max_bytes}): narrow the range, ask fewer elements or aggregate"
+                    f"({self._max_bytes}): {_NARROW[kind]}"
                 )
             wait = self._take(asker, len(answer))
             if wait > 0:
