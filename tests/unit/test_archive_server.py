@@ -17,7 +17,7 @@ import pyarrow as pa
 import pytest
 
 from tests.unit.test_archive import T0, feed
-from zplatform.archive import Archive, ArchiveWriter, Query
+from zplatform.archive import Archive, ArchiveWriter, Query, RunInfo
 from zplatform.archive.server import (
     ASK,
     ASK_MAGIC,
@@ -313,6 +313,9 @@ def test_the_run_list_is_answered_as_exact_rows(root: Path) -> None:
     (q,) = deliver(srv, a.ask(RunsAsk()))
     t = answer(a, q)
     assert t.schema.equals(RUNS_SCHEMA)
+    # Every field of the run record is a column (a field added to RunInfo
+    # and not here would be lost on the way): keep RUNS_SCHEMA in step.
+    assert RUNS_SCHEMA.names == list(RunInfo.__struct_fields__)
     with Archive(MISSION, root) as local:
         want = local.runs()
     assert runs_from_table(t) == want and [r.run for r in want] == [7]
