@@ -1,9 +1,9 @@
 """The console's history over zenoh (issue 28): two in-process sessions on
 loopback, a ground's archive of run 7 (loops 1..300) served by the archive's
 server, read by a console elsewhere through :class:`RemoteHistory` with a
-tool's key: it fills on open, shows a range, and says in the UI why a
-stranger's ask gets no answer, why the station refused an answer too big,
-and that the run list and events are not served over zenoh."""
+tool's key: it fills on open (telemetry and events), shows a range and the
+run list, and says in the UI why a stranger's ask gets no answer and why
+the station refused an answer too big."""
 
 from __future__ import annotations
 
@@ -21,15 +21,17 @@ pytest.importorskip("textual_plotext")
 
 from tests.faults.peers import peer_config
 from tests.unit.test_archive import PERIOD, T0, feed
-from zplatform.archive import Archive, ArchiveWriter
+from zplatform.archive import Archive, ArchiveWriter, RunInfo
 from zplatform.archive.server import ArchiveServer
 from zplatform.console import ConsoleApp, ConsoleModel
 from zplatform.console.history import RemoteHistory
 from zplatform.console.historyview import HistoryScreen, RunsScreen
+from zplatform.console.model import LogLine
 from zplatform.core.auth import KeySet
 from zplatform.core.datavector import DataVector, Layout
 from zplatform.mission.load import load_mission
 from zplatform.runtime.transport import free_port, is_matching
+from zplatform.telemetry.records import EventRecord
 
 ROOT = Path(__file__).resolve().parents[2]
 MISSION = load_mission(ROOT / "configs" / "flight.yaml", code=False)
@@ -44,7 +46,13 @@ START = T0 + PERIOD
 def station(tmp_path: Path) -> Iterator[Any]:
     w = ArchiveWriter(MISSION, LAYOUT, tmp_path)
     feed(w, DataVector(LAYOUT), range(1, 301))
+    # One event before the console's 2 s of history (history_s), one within.
+    w.event(EventRecord(T0 + PERIOD, "gn", 1, T0 + PERIOD, "COMMAND", "cmd_sent", "ARM sent"))
+    at = T0 + 250 * PERIOD
+    w.event(EventRecord(at, "cn", 2, at, "WARNING_LO", "bad_frame", "a frame refused"))
     w.close()
+    with Archive(MISSION, tmp_path) as local:
+        runs = local.runs()
     ep = f"tcp/127.0.0.1:{free_port()}"
     a = zenoh.open(peer_config([ep]))
     b = zenoh.open(peer_config(connect=[ep]))
@@ -71,7 +79,7 @@ def station(tmp_path: Path) -> Iterator[Any]:
         )
 
     try:
-        yield source, server
+        yield source, server, runs
     finally:
         server.close()
         b.close()
@@ -85,7 +93,7 @@ async def _settle(pilot: Any) -> None:
 
 
 def test_the_console_reads_history_over_zenoh_and_tells_every_refusal(station: Any) -> None:
-    source, server = station
+    source, server, archived = station
     tool = KEYS.for_node("tool")  # a read-only station's keys
     model = ConsoleModel(MISSION, los_s=3600.0, history_s=2.0)
     model.set_plot(["apogee_target_m"])
@@ -103,9 +111,11 @@ def test_the_console_reads_history_over_zenoh_and_tells_every_refusal(station: A
             ((START + k * step) / 1e9, (5 * k + 5) / 4) for k in range(20, 60)
         ]
         assert said.startswith("history 0.0333333 min: 40 point(s) of apogee_target_m to ")
-        assert said.endswith(
-            f"events: events are not served over zenoh ({KEYEXPR} answers queries only)"
-        )
+        assert said.endswith(", 1 event(s)")  # the one within the span, served over zenoh
+        with model.lock:
+            shown = model.events()
+        assert LogLine(T0 + 250 * PERIOD, "WARNING_LO", "cn", "bad_frame: a frame refused") in shown
+        assert not any("ARM sent" in line.text for line in shown)
 
         app.run_command("history apogee_target_m loop:10 loop:250 every=raw")
         await _settle(pilot)
@@ -124,7 +134,9 @@ def test_the_console_reads_history_over_zenoh_and_tells_every_refusal(station: A
         await _settle(pilot)
         runs = app.screen
         assert isinstance(runs, RunsScreen)
-        assert runs.error is not None and "the run list is not served over zenoh" in runs.error
+        assert runs.error is None and runs.runs == archived  # the station's records, exactly
+        assert [(r.run, r.loops, r.events) for r in runs.runs] == [(7, 300, 2)]
+        assert isinstance(runs.runs[0], RunInfo)
         await pilot.press("escape")
         await pilot.pause()
 
@@ -140,7 +152,8 @@ def test_the_console_reads_history_over_zenoh_and_tells_every_refusal(station: A
         assert view.message == f"refused: {view.error}"
 
     asyncio.run(_run(app, body))
-    assert server.served == 3 and server.refused == 1
+    # the fill's query and events, the range, the refusal, the run list
+    assert server.served == 5 and server.refused == 1
 
 
 async def _input(pilot: Any, view: HistoryScreen, line: str) -> None:

@@ -16,20 +16,27 @@ from typing import Any
 import pyarrow as pa
 import pytest
 
-from tests.unit.test_archive import feed
-from zplatform.archive import Archive, ArchiveWriter, Query
+from tests.unit.test_archive import T0, feed
+from zplatform.archive import Archive, ArchiveWriter, Query, RunInfo
 from zplatform.archive.server import (
     ASK,
     ASK_MAGIC,
     ERROR,
     REPLY,
+    RUNS,
+    RUNS_SCHEMA,
     ArchiveAsk,
     ArchiveServer,
+    EventsAsk,
+    RunsAsk,
     ask_payload,
+    runs_from_table,
 )
 from zplatform.core.auth import TAG_LEN, KeySet, Run
 from zplatform.core.datavector import DataVector, Layout
+from zplatform.errors import ArchiveError
 from zplatform.mission.load import load_mission
+from zplatform.telemetry.records import EventRecord
 
 ROOT = Path(__file__).resolve().parents[2]
 MISSION = load_mission(ROOT / "configs" / "flight.yaml", code=False)
@@ -87,6 +94,8 @@ def root(tmp_path_factory: pytest.TempPathFactory) -> Path:
     d = tmp_path_factory.mktemp("archive")
     w = ArchiveWriter(MISSION, Layout.for_node(MISSION, "cn"), d)
     feed(w, DataVector(Layout.for_node(MISSION, "cn")), range(1, 301))
+    w.event(EventRecord(T0, "gn", 1, T0, "COMMAND", "cmd_sent", "command ARM sent"))
+    w.event(EventRecord(T0 + 1, "cn", 2, T0, "WARNING_LO", "bad_frame", "a frame refused"))
     w.close()
     return d
 
@@ -289,3 +298,165 @@ def test_an_error_reply_is_one_tagged_frame_echoing_the_nonce(root: Path) -> Non
     assert (kind, nonce, i, n) == (ERROR, a.nonce, 0, 1)
     assert b"did you mean" in body
     assert ASK.unpack_from(a.ask(Q), 0)[:2] == (ASK_MAGIC, 1)
+
+
+# -- the run list and events (issue 28) -------------------------------------------------
+
+
+def test_the_run_list_is_answered_as_exact_rows(root: Path) -> None:
+    """The defect: the server answered queries only (the console's remote
+    run picker said "not served"). Now a RUNS ask is answered with
+    Archive.runs() as rows, read back into the same run records."""
+    clock = Clock()
+    srv = server(root, clock)
+    a = Station(1).learn(srv)
+    (q,) = deliver(srv, a.ask(RunsAsk()))
+    t = answer(a, q)
+    assert t.schema.equals(RUNS_SCHEMA)
+    # Every field of the run record is a column (a field added to RunInfo
+    # and not here would be lost on the way): keep RUNS_SCHEMA in step.
+    assert RUNS_SCHEMA.names == list(RunInfo.__struct_fields__)
+    with Archive(MISSION, root) as local:
+        want = local.runs()
+    assert runs_from_table(t) == want and [r.run for r in want] == [7]
+    assert (srv.served, srv.refused, srv.stale) == (1, 0, 0)
+
+
+def test_events_are_answered_as_exact_rows_and_filtered_by_severity(root: Path) -> None:
+    clock = Clock()
+    srv = server(root, clock)
+    st = Station(1)
+    with Archive(MISSION, root) as local:
+        every, infos = local.events(7), local.events(7, severity=["COMMAND"])
+    assert every.num_rows > infos.num_rows > 0
+    a = st.learn(srv)
+    (q,) = deliver(srv, a.ask(EventsAsk(run=7)))
+    assert answer(a, q).equals(every)
+    b = st.learn(srv)
+    (q,) = deliver(srv, b.ask(EventsAsk(severity=["command"])))  # the last run
+    assert answer(b, q).equals(infos)
+    c = st.learn(srv)
+    (q,) = deliver(srv, c.ask(EventsAsk(severity=["WARN"])))
+    with pytest.raises(ArchiveError, match="no severity 'WARN'"):
+        answer(c, q)
+    assert (srv.served, srv.refused) == (3, 0)
+
+
+def test_a_replayed_runs_or_events_ask_is_refused(root: Path) -> None:
+    clock = Clock()
+    srv = server(root, clock)
+    st = Station(1)
+    for ask in (RunsAsk(), EventsAsk(run=7)):
+        a = st.learn(srv)
+        p = a.ask(ask)
+        q1, q2 = deliver(srv, p, p)
+        assert answer(a, q1).num_rows > 0 and q2.replies == []
+    assert (srv.stale, srv.refused, srv.served) == (2, 2, 2)
+    new = server(root, clock, session_word=12)  # another session: refused as well
+    (q,) = deliver(new, p)
+    assert q.replies == [] and (new.stale, new.served) == (1, 0)
+
+
+def test_an_ask_of_an_unknown_kind_is_refused_with_its_reason(root: Path) -> None:
+    clock = Clock()
+    srv = server(root, clock)
+    a = Station(1).learn(srv)
+    assert a._channel is not None
+    (q,) = deliver(srv, ask_payload(a._channel, RunsAsk(), a.cookie, a.nonce, asker=1, kind=9))
+    with pytest.raises(
+        ArchiveError, match=r"an ask of kind 9, which this station does not serve \(1 query"
+    ):
+        answer(a, q)
+    b = Station(1).learn(srv)  # a runs ask whose body is a query's: refused, said why
+    assert b._channel is not None
+    (q,) = deliver(srv, ask_payload(b._channel, Q, b.cookie, b.nonce, asker=1, kind=RUNS))
+    with pytest.raises(ArchiveError, match="unknown field"):
+        answer(b, q)
+    assert (srv.served, srv.refused, srv.stale) == (2, 0, 0)
+
+
+def test_a_run_list_or_events_over_the_answer_bound_are_refused_with_what_to_do(
+    root: Path,
+) -> None:
+    clock = Clock()
+    srv = server(root, clock, max_bytes=500)
+    st = Station(1)
+    a, b = st.learn(srv), st.learn(srv)
+    qa, qb = deliver(srv, a.ask(RunsAsk()), b.ask(EventsAsk()))
+    with pytest.raises(ArchiveError, match=r"more than this station serves \(500\): the run list"):
+        answer(a, qa)
+    with pytest.raises(ArchiveError, match=r"serves \(500\): ask fewer severities"):
+        answer(b, qb)
+    assert (srv.served, srv.refused) == (2, 0)
+
+
+def test_the_bounds_apply_to_runs_and_events(root: Path) -> None:
+    """per_asker and asker_bps hold for every kind: A's second ask in hand
+    (events) is refused with the reason; an asker whose events emptied its
+    bucket is refused them again with when to ask again."""
+    clock = Clock()
+    srv = server(root, clock, per_asker=1)
+    a1, a2, b = Station(1).learn(srv), Station(1).learn(srv), Station(2).learn(srv)
+    qa1, qa2, qb = deliver(srv, a1.ask(RunsAsk()), a2.ask(EventsAsk()), b.ask(EventsAsk()))
+    assert answer(a1, qa1).num_rows == 1 and answer(b, qb).num_rows > 0
+    with pytest.raises(ArchiveError, match="1 queries in hand already"):
+        answer(a2, qa2)
+    assert srv.over_bound == 1
+    n = sum(len(r) - REPLY.size - TAG_LEN for r in qb.replies)  # the events' answer
+    tight = server(root, clock, asker_bps=1, max_bytes=n)  # a bucket of one answer
+    st = Station(3)
+    first = st.learn(tight)
+    (q,) = deliver(tight, first.ask(EventsAsk()))
+    assert answer(first, q).num_rows == 2
+    second = st.learn(tight)
+    (q,) = deliver(tight, second.ask(EventsAsk(run=7)))
+    with pytest.raises(ArchiveError, match=r"1 bytes/s per asker.*ask again in"):
+        answer(second, q)
+    assert (tight.over_bound, tight.served) == (1, 2)
+
+
+def test_the_cli_prints_runs_and_events_asked_remotely_as_it_prints_them_locally(
+    root: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """``zplatform archive MISSION runs|events --remote``: a tool's link (its
+    keys) asks the server; what it prints equals the local action's output."""
+    import zplatform.archive.server as server_mod
+    import zplatform.ground.link as link_mod
+    from zplatform.cli.main import main
+
+    clock = Clock()
+    srv = server(root, clock)
+    closed: list[bool] = []
+
+    class Link:  # GroundLink as ask_remote uses it: a tool's keys, no network
+        def __init__(self, mission: Any, **kw: Any) -> None:
+            self.ns = SimpleNamespace(session=None)
+            self.keys = SimpleNamespace(archive="rocket/archive/query")
+            self.link_keys = KEYS.for_node("tool")
+
+        def close(self) -> None:
+            closed.append(True)
+
+    def remote_query(session: Any, key: str, ch: Any, ask: Any, **kw: Any) -> pa.Table:
+        a = ArchiveAsk(ch, kw["nonce"], asker=5)
+        (q,) = deliver(srv, a.hello())
+        assert a.on_reply(q.replies[0])
+        (q,) = deliver(srv, a.ask(ask))
+        return answer(a, q)
+
+    monkeypatch.setattr(link_mod, "GroundLink", Link)
+    monkeypatch.setattr(server_mod, "remote_query", remote_query)
+    flight = str(ROOT / "configs" / "flight.yaml")
+    for action in (
+        ["runs", "--json"],
+        ["events", "--run", "7"],
+        ["events", "--severity", "COMMAND"],
+    ):
+        assert main(["archive", flight, "--dir", str(root), *action]) == 0
+        local = capsys.readouterr().out
+        assert main(["archive", flight, *action, "--remote", "--timeout", "1"]) == 0
+        assert capsys.readouterr().out == local and local.count("\n") >= 1
+    assert len(closed) == 3 and (srv.served, srv.refused) == (3, 0)
+    assert main(["archive", flight, "events", "--severity", "WARN", "--remote"]) == 2
+    err = capsys.readouterr().err  # the station's reason, one line
+    assert err == "zplatform: error: the station refused the query: no severity 'WARN'\n"

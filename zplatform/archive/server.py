@@ -7,8 +7,10 @@ read telemetry holds it) and bound to the serving *session*: a random word
 session never verifies again. An asker learns the session by a *hello*
 answered statelessly with the session and a cookie; its ask carries the
 cookie and a fresh nonce, taken once while the cookie is young (the
-protocol and the per-asker bounds: :class:`ArchiveServer`). Answers are
-Arrow IPC stream chunks, each tagged, echoing the ask's nonce, paced.
+protocol and the per-asker bounds: :class:`ArchiveServer`). An ask is of
+one *kind* (:data:`KINDS`): a telemetry query, the run list, or a run's
+events. Answers are Arrow IPC stream chunks, each tagged, echoing the ask's
+nonce, paced.
 :class:`ArchiveAsk` is the asker's side.
 
 Contract: neither side raises for what the peer sends; a bad frame is
@@ -34,24 +36,33 @@ from ..control.handoff import QueryWorker
 from ..core.auth import RUN_LEN, TAG_LEN, AuthError, Channel, Run, RunError
 from ..errors import ArchiveError
 from .query import Archive, Query
+from .store import RunInfo
 
 __all__ = [
     "ASK",
+    "EVENTS",
     "HELLO",
+    "KINDS",
     "MAX_ASK",
     "MAX_PENDING",
+    "QUERY",
     "REPLY",
+    "RUNS",
+    "RUNS_SCHEMA",
     "SESSION_BODY",
     "ArchiveAsk",
     "ArchiveServer",
+    "EventsAsk",
+    "RunsAsk",
     "ask_payload",
     "hello_payload",
     "remote_query",
+    "runs_from_table",
 ]
 
-ASK_MAGIC = b"ZAQ2"
+ASK_MAGIC = b"ZAQ3"
 HELLO_MAGIC = b"ZAH2"
-ASK = struct.Struct("<4sQQq")  # magic, asker, nonce, cookie
+ASK = struct.Struct("<4sQQqB")  # magic, asker, nonce, cookie, kind
 HELLO = struct.Struct("<4sQQ")  # magic, asker, nonce
 MAX_ASK = 4096
 """Most bytes of an ask's JSON query."""
@@ -67,7 +78,73 @@ REMEMBERED = 4096
 refused with a reason (the older ones are never forgotten early)."""
 ASKERS = 1024
 """Askers whose byte bucket is kept (the least recently served one is let go)."""
-_QUERY = msgspec.json.Decoder(Query)
+QUERY, RUNS, EVENTS = 1, 2, 3
+KINDS = {QUERY: "query", RUNS: "runs", EVENTS: "events"}
+"""An ask's kind byte: what its JSON body is and what is answered."""
+
+
+class RunsAsk(msgspec.Struct, forbid_unknown_fields=True):
+    """The run list's ask (kind :data:`RUNS`; its JSON is ``{}``): answered
+    with :meth:`Archive.runs` as rows (:data:`RUNS_SCHEMA`)."""
+
+
+class EventsAsk(msgspec.Struct, forbid_unknown_fields=True):
+    """A run's events (kind :data:`EVENTS`): :meth:`Archive.events` of
+    ``run`` (None: the last), ``severity`` names only (None: every one)."""
+
+    run: int | None = None
+    severity: list[str] | None = None
+
+
+Ask = Query | RunsAsk | EventsAsk
+_KIND_OF: dict[type, int] = {Query: QUERY, RunsAsk: RUNS, EventsAsk: EVENTS}
+_DECODERS: dict[int, msgspec.json.Decoder[Any]] = {
+    QUERY: msgspec.json.Decoder(Query),
+    RUNS: msgspec.json.Decoder(RunsAsk),
+    EVENTS: msgspec.json.Decoder(EventsAsk),
+}
+_NARROW = {
+    QUERY: "narrow the range, ask fewer elements or aggregate",
+    RUNS: "the run list is longer than archive.serve_max_bytes (read it where the archive is)",
+    EVENTS: "ask fewer severities",
+}
+"""What an asker may do about an answer over the station's bound, per kind."""
+RUNS_SCHEMA = pa.schema(
+    [
+        ("run", pa.int64()),
+        ("mission", pa.string()),
+        ("vehicle", pa.string()),
+        ("layout_id", pa.int64()),
+        ("start_ns", pa.int64()),
+        ("end_ns", pa.int64()),
+        ("first_loop", pa.int64()),
+        ("last_loop", pa.int64()),
+        ("loops", pa.int64()),
+        ("states", pa.list_(pa.string())),
+        ("final_state", pa.string()),
+        ("outcome", pa.string()),
+        ("events", pa.int64()),
+        ("commands", pa.list_(pa.string())),
+        ("in_order", pa.bool_()),
+        ("group_columns", pa.int64()),
+        ("version", pa.int64()),
+    ]
+)
+"""The run list's answer: one row per :class:`~.store.RunInfo`, its fields."""
+
+
+def runs_table(runs: list[RunInfo]) -> pa.Table:
+    """``runs`` as rows of :data:`RUNS_SCHEMA` (the answer to a :data:`RUNS` ask)."""
+    return pa.Table.from_pylist([msgspec.to_builtins(r) for r in runs], schema=RUNS_SCHEMA)
+
+
+def runs_from_table(table: pa.Table) -> list[RunInfo]:
+    """The run records a :data:`RUNS` answer holds. ArchiveError when a row
+    is not a run record (a station of another version)."""
+    try:
+        return [msgspec.convert(row, RunInfo) for row in table.to_pylist()]
+    except msgspec.ValidationError as exc:
+        raise ArchiveError(f"the station's run list is not one this version reads: {exc}") from None
 
 
 def hello_payload(channel: Channel | None, asker: int, nonce: int) -> bytes:
@@ -83,11 +160,19 @@ def hello_payload(channel: Channel | None, asker: int, nonce: int) -> bytes:
 
 
 def ask_payload(
-    channel: Channel | None, query: Query, cookie: int, nonce: int, *, asker: int = 0
+    channel: Channel | None,
+    query: Ask,
+    cookie: int,
+    nonce: int,
+    *,
+    asker: int = 0,
+    kind: int | None = None,
 ) -> bytes:
-    """An ask: :data:`ASK` and the query's JSON, tagged in ``channel``'s run
-    (the session its hello taught, :meth:`ArchiveAsk.on_reply`)."""
-    body = ASK.pack(ASK_MAGIC, asker, nonce, cookie) + msgspec.json.encode(query)
+    """An ask: :data:`ASK` (its kind byte: ``query``'s type's, or ``kind``)
+    and the query's JSON, tagged in ``channel``'s run (the session its hello
+    taught, :meth:`ArchiveAsk.on_reply`)."""
+    k = _KIND_OF[type(query)] if kind is None else kind
+    body = ASK.pack(ASK_MAGIC, asker, nonce, cookie, k) + msgspec.json.encode(query)
     return bytes(channel.seal(body)) if channel is not None else body
 
 
@@ -99,8 +184,10 @@ class ArchiveServer(QueryWorker):
     (:data:`HELLO`: magic, asker, a fresh nonce; tagged in no run) is answered
     statelessly with a ``SESSION`` reply (the session and a cookie, the server's
     monotonic clock, echoing the nonce; tagged in the session). The ask
-    (:data:`ASK`: magic, asker, a fresh nonce, the cookie, then a
-    :class:`~.query.Query` as JSON) is tagged in the session; the server takes
+    (:data:`ASK`: magic, asker, a fresh nonce, the cookie, its kind, then
+    as JSON a :class:`~.query.Query` (kind :data:`QUERY`), :class:`RunsAsk`
+    (:data:`RUNS`) or :class:`EventsAsk` (:data:`EVENTS`)) is tagged in the
+    session; the server takes
     it only while its cookie is younger than ``max_age_ns`` and its (cookie,
     asker, nonce) is not one it took (each kept until its cookie expires: never
     forgotten early), so a recorded ask cannot be replayed later in the same
@@ -273,7 +360,7 @@ class ArchiveServer(QueryWorker):
         body = self._open_frame(data, bound=True)
         if body is None:
             return
-        _, asker, nonce, cookie = ASK.unpack_from(body, 0)
+        _, asker, nonce, cookie, kind = ASK.unpack_from(body, 0)
         age = self._now() - cookie
         if not 0 <= age <= self._max_age:
             self._stale(f"an ask whose session cookie is {age / 1e9:+.3f} s old")
@@ -296,10 +383,21 @@ class ArchiveServer(QueryWorker):
             )
             return
         try:
-            q = _QUERY.decode(body[ASK.size :])
+            decoder = _DECODERS.get(kind)
+            if decoder is None:
+                known = ", ".join(f"{k} {n}" for k, n in KINDS.items())
+                raise ArchiveError(
+                    f"an ask of kind {kind}, which this station does not serve ({known})"
+                )
+            q = decoder.decode(body[ASK.size :])
             if self._archive is None:
                 self._archive = self._open()
-            table = self._archive.query(q)
+            if isinstance(q, RunsAsk):
+                table = runs_table(self._archive.runs())
+            elif isinstance(q, EventsAsk):
+                table = self._archive.events(q.run, severity=q.severity)
+            else:
+                table = self._archive.query(q)
             sink = pa.BufferOutputStream()
             with pa.ipc.new_stream(sink, table.schema) as w:
                 w.write_table(table)
@@ -307,7 +405,7 @@ class ArchiveServer(QueryWorker):
             if len(answer) > self._max_bytes:
                 raise ArchiveError(
                     f"the answer holds {len(answer)} bytes, more than this station serves "
-                    f"({self._max_bytes}): narrow the range, ask fewer elements or aggregate"
+                    f"({self._max_bytes}): {_NARROW[kind]}"
                 )
             wait = self._take(asker, len(answer))
             if wait > 0:
@@ -413,8 +511,9 @@ class ArchiveAsk:
         """This ask's hello (module doc)."""
         return hello_payload(self._channel, self.asker, self.hello_nonce)
 
-    def ask(self, query: Query) -> bytes:
-        """The ask of ``query`` in the session learned. ArchiveError before one is."""
+    def ask(self, query: Ask) -> bytes:
+        """The ask of ``query`` (its kind: its type) in the session learned.
+        ArchiveError before one is."""
         if self.session is None:
             raise ArchiveError("no session yet: the station has not answered the hello")
         return ask_payload(self._channel, query, self.cookie, self.nonce, asker=self.asker)
@@ -494,14 +593,15 @@ def remote_query(
     session: zenoh.Session,
     key_expr: str,
     channel: Channel | None,
-    query: Query,
+    query: Ask,
     *,
     nonce: int,
     timeout_s: float,
     now_ns: int | None = None,
     asker: int | None = None,
 ) -> pa.Table:
-    """Ask the station(s) serving ``key_expr`` for ``query``: a hello, then
+    """Ask the station(s) serving ``key_expr`` for ``query`` (a telemetry
+    query, the run list or a run's events, :data:`KINDS`): a hello, then
     the ask in the session it teaches (module doc); blocks up to
     ``timeout_s`` for each. ``channel``: the telemetry channel, this call's
     (its run is set to the session); ``now_ns``: unused (the freshness is

@@ -5,6 +5,9 @@ or ``--dir``) through :class:`~.query.Archive` and prints: ``runs`` a table
 (``--json``: the run records), ``query`` CSV in the telemetry log's format
 (so its rows equal the ground's CSV log's), ``events`` JSON lines in the
 events file's format, ``export`` a run into a CSV or Parquet file.
+``runs``, ``query`` and ``events`` with ``--remote`` ask the mission's
+ground node over zenoh instead (zplatform/archive/server.py) and print the
+same.
 
 Contract: a bad argument or query is refused before anything is written
 (:class:`~zplatform.errors.ArchiveError`, exit 2, one line); damage the
@@ -34,7 +37,15 @@ from ..mission.load import load_mission
 from ..telemetry.logs import MAX_ARRAY_COLUMNS, formatter
 from .args import check_output, mission_verb
 
-__all__ = ["archive_run", "event_line", "is_archive", "log_from_archive", "register", "write_csv"]
+__all__ = [
+    "archive_run",
+    "ask_remote",
+    "event_line",
+    "is_archive",
+    "log_from_archive",
+    "register",
+    "write_csv",
+]
 
 
 def _run_arg(text: str) -> int:
@@ -61,6 +72,7 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     )
     r = acts.add_parser("runs", help="every run kept: times, loops, states, outcome")
     r.add_argument("--json", action="store_true", help="the run records as JSON")
+    _remote_args(r)
     q = acts.add_parser("query", help="elements of a run over a time range, as CSV")
     _run_and_range(q)
     q.add_argument(
@@ -75,15 +87,11 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     )
     q.add_argument("--loops", action="store_true", help="also the loop and t_ns columns, first")
     q.add_argument("--out", metavar="FILE", help="write the CSV here (default: stdout)")
-    q.add_argument(
-        "--remote",
-        action="store_true",
-        help="ask the mission's ground node over zenoh (as a tool) instead of reading a directory",
-    )
-    q.add_argument("--timeout", type=float, default=30.0, metavar="S", help="with --remote")
+    _remote_args(q)
     e = acts.add_parser("events", help="a run's events, as JSON lines")
     e.add_argument("--run", type=_run_arg, metavar="R", help="the run (default: the last)")
     e.add_argument("--severity", metavar="LIST", help="only these severities (WARNING_HI,FATAL)")
+    _remote_args(e)
     x = acts.add_parser("export", help="a run (or some elements of it) into one file")
     _run_and_range(x)
     x.add_argument("--elements", default="*", metavar="GLOBS", help="default: every element")
@@ -100,6 +108,15 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     g.add_argument("sources", nargs="+", metavar="SRC", help="another archive (DIR/<mission>)")
     g.add_argument("--run", type=_run_arg, metavar="R", help="only this run (default: every one)")
     p.set_defaults(func=cmd_archive)
+
+
+def _remote_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument(
+        "--remote",
+        action="store_true",
+        help="ask the mission's ground node over zenoh (as a tool) instead of reading a directory",
+    )
+    p.add_argument("--timeout", type=float, default=30.0, metavar="S", help="with --remote")
 
 
 def _run_and_range(p: argparse.ArgumentParser) -> None:
@@ -170,12 +187,15 @@ def _merge(mission: Mission, root: Path, args: argparse.Namespace) -> int:
 
 
 def _runs(a: Archive, args: argparse.Namespace) -> int:
-    runs = a.runs()
-    if args.json:
+    return _print_runs(a.runs(), args.json, str(a.root))
+
+
+def _print_runs(runs: list[store.RunInfo], as_json: bool, where: str) -> int:
+    if as_json:
         print(json.dumps([msgspec.to_builtins(r) for r in runs], indent=1))
         return 0
     if not runs:
-        print(f"no run in the archive {a.root}")
+        print(f"no run in the archive {where}")
         return 0
     print(f"{'run':>20}  {'start (UTC)':19}  {'s':>8}  {'loops':>8}  outcome      states")
     for r in runs:
@@ -202,29 +222,21 @@ def _query(a: Archive, args: argparse.Namespace) -> int:
 
 
 def _remote(mission: Mission, args: argparse.Namespace) -> int:
-    """``query --remote``: the same query, answered by the ground node."""
-    import secrets
+    """``runs|query|events --remote``: the same, answered by the ground node."""
+    from ..archive.server import EventsAsk, RunsAsk, runs_from_table
 
-    from ..archive.server import remote_query
-    from ..core.auth import channel
-    from ..ground.link import GroundLink
-
+    if args.action == "runs":
+        table = ask_remote(mission, RunsAsk(), args.timeout)
+        return _print_runs(runs_from_table(table), args.json, f"of {mission.vehicle}'s ground")
+    if args.action == "events":
+        ask = EventsAsk(run=args.run, severity=_severities(args.severity))
+        _print_events(ask_remote(mission, ask, args.timeout))
+        return 0
     if args.out is not None:
         check_output(args.out, "output")
     q = Query(args.elements, run=args.run, start=args.start, end=args.end, every=args.every)
     q.agg = [s.strip() for s in args.agg.split(",") if s.strip()]
-    link = GroundLink(mission, telemetry=False, events=False)
-    try:
-        table = remote_query(
-            link.ns.session,
-            link.keys.archive,
-            channel(link.link_keys, "telemetry"),
-            q,
-            nonce=secrets.randbits(64),
-            timeout_s=args.timeout,
-        )
-    finally:
-        link.close()
+    table = ask_remote(mission, q, args.timeout)
     layout = Layout.for_node(mission, "cn")
     with _open(args.out) as f:
         if args.every is not None:
@@ -234,12 +246,43 @@ def _remote(mission: Mission, args: argparse.Namespace) -> int:
     return 0
 
 
+def ask_remote(mission: Mission, ask: Any, timeout_s: float) -> pa.Table:
+    """One ask (a Query, RunsAsk or EventsAsk) of the mission's ground node
+    over zenoh, as a tool (its own link, closed after); blocks up to
+    ``timeout_s`` for each of the hello and the ask. ArchiveError: no
+    answer, or the station's refusal with its reason."""
+    import secrets
+
+    from ..archive.server import remote_query
+    from ..core.auth import channel
+    from ..ground.link import GroundLink
+
+    link = GroundLink(mission, telemetry=False, events=False)
+    try:
+        return remote_query(
+            link.ns.session,
+            link.keys.archive,
+            channel(link.link_keys, "telemetry"),
+            ask,
+            nonce=secrets.randbits(64),
+            timeout_s=timeout_s,
+        )
+    finally:
+        link.close()
+
+
+def _severities(text: str | None) -> list[str] | None:
+    return [s.strip() for s in text.split(",") if s.strip()] if text else None
+
+
 def _events(a: Archive, args: argparse.Namespace) -> int:
-    sevs = [s.strip() for s in args.severity.split(",") if s.strip()] if args.severity else None
-    table = a.events(args.run, severity=sevs)
+    _print_events(a.events(args.run, severity=_severities(args.severity)))
+    return 0
+
+
+def _print_events(table: pa.Table) -> None:
     for row in table.to_pylist():
         print(event_line(row))
-    return 0
 
 
 def event_line(row: dict[str, Any]) -> str:

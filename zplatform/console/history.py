@@ -6,8 +6,8 @@ A :class:`HistorySource` answers the console's questions of the archive:
 ``every``) and :meth:`~HistorySource.events`. :class:`LocalHistory` reads
 the archive the ground node writes on this host, read-only (never recovers);
 :class:`RemoteHistory` asks the ground node over zenoh
-(``{vehicle}/archive/query``) with this station's telemetry key, and says
-that runs and events are not served there. :func:`history_source` picks
+(``{vehicle}/archive/query``) with this station's telemetry key: the
+same three questions, each one ask (zplatform/archive/server.py). :func:`history_source` picks
 one; :func:`parse_request` reads the history view's line.
 
 Contract: every method blocks (disk or network: call it from a worker
@@ -295,18 +295,25 @@ class RemoteHistory:
         self._now, self._on_close = link.clock.now_ns, link.close
 
     def runs(self) -> list[RunInfo]:
-        raise ArchiveError(
-            f"the run list is not served over zenoh ({self.where} answers queries only): "
-            "pick a run with run=R, or open the console where the ground node writes its archive"
-        )
+        """The station's run list (a ``runs`` ask), oldest first."""
+        from ..archive.server import RunsAsk, runs_from_table
+
+        return list(runs_from_table(self._ask(RunsAsk())))
 
     def events(self, run: int | None) -> pa.Table:
-        raise ArchiveError(f"events are not served over zenoh ({self.where} answers queries only)")
+        """Run ``run``'s events (None: the last) as the station's archive holds them."""
+        from ..archive.server import EventsAsk
+
+        return self._ask(EventsAsk(run=run))
 
     def query(self, q: Query) -> pa.Table:
-        from ..archive.server import remote_query
-
         match_elements(self.layout, q.elements, scalar=q.every is not None)
+        return self._ask(q)
+
+    def _ask(self, what: Any) -> pa.Table:
+        """One ask of ``what`` (a Query, RunsAsk or EventsAsk) of the station,
+        under the lock; ArchiveError only."""
+        from ..archive.server import remote_query
 
         def go() -> pa.Table:
             self._connect()
@@ -315,7 +322,7 @@ class RemoteHistory:
                     self._session,
                     self._key,
                     self._channel,
-                    q,
+                    what,
                     now_ns=self._now(),
                     nonce=secrets.randbits(64),
                     timeout_s=self.timeout_s,

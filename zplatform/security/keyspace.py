@@ -446,9 +446,10 @@ KEYSPACE: tuple[KeyRow, ...] = (
                 "telemetry",
                 "downlink",
                 "zplatform.archive.server.ArchiveServer gn",
-                "a hello (tagged in no run) is answered with the server's session; an ask is "
-                "tagged in that session, its cookie younger than the ask window, its (cookie, "
-                "asker, nonce) not one taken",
+                "a hello (tagged in no run) is answered with the server's session; an ask (of "
+                "a kind: a query, the run list or a run's events; another kind is answered "
+                "with the reason) is tagged in that session, its cookie younger than the ask "
+                "window, its (cookie, asker, nonce) not one taken",
                 "at most MAX_PENDING in hand, archive.serve_per_asker per asker, replies paced "
                 "to archive.serve_bps, per asker archive.serve_asker_bps, at most "
                 "archive.serve_max_bytes per answer (more: an error saying so)",
@@ -466,8 +467,9 @@ KEYSPACE: tuple[KeyRow, ...] = (
             ),
         ),
         when="archive",
-        what="the ground archive: a query's rows as Arrow IPC stream chunks (`zplatform "
-        "archive MISSION --remote query`)",
+        what="the ground archive: a query's rows, the run list or a run's events as Arrow IPC "
+        "stream chunks (`zplatform archive MISSION query|runs|events --remote`, the console's "
+        "remote history)",
     ),
     KeyRow(
         "mirror",
