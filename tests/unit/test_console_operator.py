@@ -13,7 +13,7 @@ from typing import Any
 
 import pytest
 
-from tests.unit.test_authority import Rig, signer
+from tests.unit.test_authority import Rig, mission, signer
 from zplatform.config import CMD_STATUS_NAMES
 from zplatform.config.codes import Command
 from zplatform.console import ConsoleApp, ConsoleModel
@@ -158,6 +158,9 @@ def test_a_watching_console_and_a_mission_without_authority_refuse_nothing_here(
     assert watcher.refusal("WRITE") is None
     assert "holds the command lock" in watcher.status().lock
     assert "as viewer" in _status_text(watcher.status()).plain
+    plain = ConsoleModel(mission(ground=""))  # no `ground:`: no authority to mirror
+    plain.operator = "alice@pad"
+    assert plain.refusal("WRITE") is None and plain.status().lock == ""
 
 
 def test_the_link_signs_as_its_operator(monkeypatch: pytest.MonkeyPatch) -> None:
