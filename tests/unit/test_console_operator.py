@@ -214,3 +214,78 @@ def test_ground_console_takes_operator_and_station(
     )
     with pytest.raises(CommandError, match=r"no operator 'alise'.*did you mean alice\?"):
         args.func(args)
+
+
+def test_the_link_shows_the_arm_awaiting_approval_once_and_waits_its_window_more(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """The link's thread reads GroundLogic.awaiting_approval each turn: the
+    model notes it once, clears it when the command went, and the command's
+    "no verdict" warning waits the ARM's window more."""
+    import zplatform.ground.link as ground_link
+    from zplatform.control.uplink import validate_words
+
+    rig = Rig()
+    model = ConsoleModel(rig.m)
+    link = Link(model, timeout_s=0.0, signer=signer(rig.m, "fd", "pad"))
+    arms = iter([7, 7, 7, None])
+
+    class _Logic:
+        joined = True
+        counters = None
+
+        @property
+        def awaiting_approval(self) -> int | None:
+            try:
+                return next(arms)
+            except StopIteration:
+                link._stop.set()
+                return None
+
+        def result(self, ticket: int) -> None:
+            return None
+
+    class _Fake:
+        def __init__(self, mission: Any, **kw: Any) -> None:
+            self.logic = _Logic()
+            self.waiting_for_run = False
+
+        def next(self, timeout_s: float) -> None:
+            return None
+
+        def submit(self, checked: Any, *, armed: bool) -> int:
+            return 1
+
+        def close(self) -> None:
+            pass
+
+    monkeypatch.setattr(ground_link, "GroundLink", _Fake)
+    link.send(validate_words(rig.m, "launch", []), "LAUNCH", True)
+    link._run()
+    said = "ARM #7 awaits a second operator's approval: `approve 7` at another console"
+    texts = [x.text for x in model.log]
+    assert texts.count(said) == 1
+    assert model.awaiting_arm is None
+    # timeout 0: without the ARM's window the warning would have come at once.
+    assert not any("no verdict" in t for t in texts)
+    assert link.busy
+
+
+def test_the_web_console_signs_each_browser_session_as_the_operator(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    import zplatform.console.web as web
+    from zplatform.console import serve_console
+
+    got: list[list[str]] = []
+
+    class _Web:
+        def __init__(self, argv: list[str], **kw: Any) -> None:
+            got.append(argv)
+
+        def serve(self) -> None:
+            pass
+
+    monkeypatch.setattr(web, "WebConsole", _Web)
+    serve_console(str(ROOT / "configs" / "led_test.yaml"), 0, operator="alice", station="pad")
+    assert got[0][-4:] == ["--operator", "alice", "--station", "pad"]
