@@ -146,7 +146,7 @@ def test_the_status_line_shows_who_commands_the_lock_and_the_arm_awaiting_approv
 def test_approve_n_goes_to_the_vehicle_from_any_operator() -> None:
     rig = Rig()
     assert rig.send("fd@pad", "LOCK") == "ACCEPTED"
-    model = _console(rig, "bob@lounge")  # not the holder, at a view-only station
+    model = _console(rig, "rso@lounge")  # an approver, not the holder, at a view-only station
     texts = _run(model, lambda app: app.run_command("approve 7"))
     assert texts[-1] == "no link: APPROVE 7 not sent"
 
@@ -289,3 +289,46 @@ def test_the_web_console_signs_each_browser_session_as_the_operator(
     monkeypatch.setattr(web, "WebConsole", _Web)
     serve_console(str(ROOT / "configs" / "led_test.yaml"), 0, operator="alice", station="pad")
     assert got[0][-4:] == ["--operator", "alice", "--station", "pad"]
+
+
+def test_another_consoles_open_arm_is_shown_to_the_approver_until_approved() -> None:
+    rig = Rig()
+    assert rig.send("fd@pad", "LOCK") == "ACCEPTED"
+    assert rig.send("fd@pad", "ARM") == "ACCEPTED"
+    n = rig.ch.last_seq
+    rso = _console(rig, "rso@room")
+    said = f"ARM #{n} by fd is open: `approve {n}` if it is yours to approve"
+    assert rso.status().pending_arm == said
+    assert said in _status_text(rso.status()).plain
+    assert _console(rig, "fd@pad").status().pending_arm == ""  # the armer's own: the link says
+    # A refused approval leaves it open; an accepted one closes it.
+    assert rig.send("alice@pad", "APPROVE", ref=n) == "REJECTED_ROLE"
+    _feed(rig, rso)
+    assert rso.status().pending_arm == said
+    assert rig.send("rso@room", "APPROVE", ref=n) == "ACCEPTED"
+    _feed(rig, rso)
+    assert rso.status().pending_arm == ""
+    # An operator without an approving role is refused here, in the CN's words.
+    said = "REJECTED_ROLE: alice has no approving role"
+    assert _cn_says(rig, "alice@pad", Command.APPROVE) == said
+    alice = _console(rig, "alice@pad")
+    texts = _run(alice, lambda app: app.run_command(f"approve {n}"))
+    assert texts[-1] == f"APPROVE {n} by alice@pad: {said} (not sent)"
+
+
+def test_an_open_arm_closes_with_its_window_or_the_next_accepted_command() -> None:
+    rig = Rig()
+    assert rig.send("fd@pad", "LOCK") == "ACCEPTED"
+    assert rig.send("fd@pad", "ARM") == "ACCEPTED"
+    rso = _console(rig, "rso@room")
+    assert rso.status().pending_arm != ""
+    rig.wait(10.5)
+    _feed(rig, rso)
+    assert rso.status().pending_arm == ""  # older than the ARM's 10 s window
+    assert rig.send("fd@pad", "LOCK") == "ACCEPTED"
+    assert rig.send("fd@pad", "ARM") == "ACCEPTED"
+    _feed(rig, rso)
+    assert rso.status().pending_arm != ""
+    assert rig.send("fd@pad", "NOOP") == "ACCEPTED"
+    _feed(rig, rso)
+    assert rso.status().pending_arm == ""

@@ -27,7 +27,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from ..config import CMD_NAMES, Mission
-from ..control.authority import COMMANDING_ROLES
+from ..control.authority import ARM_WINDOW_NS, COMMANDING_ROLES
 from ..control.commands import writable_elements
 from ..control.limits import Limits, mission_limits
 from ..core.datavector import DataVector, ElementSpec, Layout
@@ -201,6 +201,13 @@ class ConsoleModel:
         self.operator = ""
         """``operator@station`` the console's commands are signed as (set by
         its driver; "": a console that only watches)."""
+        g = mission.ground
+        self._two_person = bool(mission.authority and g is not None and g.two_person)
+        self._approving = frozenset(g.approving_roles) if g is not None else frozenset()
+        self.open_arm: tuple[int, str, int] | None = None
+        """The last ARM telemetry showed accepted (two-person missions): its
+        number, its operator and the loop time it was seen at."""
+        self._seen_seq = -1
         self.awaiting_arm: int | None = None
         """The number of this console's accepted ARM whose two-person command
         waits for a second operator's APPROVE (set by the driver from
@@ -222,6 +229,8 @@ class ConsoleModel:
             self._los = False
             self._note(rx_ns, "ACTIVITY_HI", "link", "signal acquired")
         self._rate.add_snapshot(self.dv)
+        if self._two_person:
+            self._see_arm()
         t = int(self.dv.get("cn_time_ns"))
         if self.plotted and rx_ns - self._last_plot_ns >= self.plot_step_ns:
             self._last_plot_ns = rx_ns
@@ -363,11 +372,33 @@ class ConsoleModel:
         who = h[0] if h[1] == "NONE" else f"{h[0]}@{h[1]}"
         return f"{who} holds the command lock ({h[2]:.1f} s left)"
 
+    def _see_arm(self) -> None:
+        """Note an ARM the snapshot shows accepted (anyone's): the approver's
+        console shows it (:meth:`_arm_text`)."""
+        dv = self.dv
+        seq = int(dv.get("cn_cmd_seq"))
+        if seq == self._seen_seq:
+            return
+        self._seen_seq = seq
+        if dv.get_name("cn_cmd_status") != "ACCEPTED":
+            return  # a refused request leaves the ARM open
+        cmd = dv.get_name("cn_cmd")
+        if cmd == "ARM":
+            self.open_arm = (seq, dv.get_name("cn_cmd_operator"), int(dv.get("cn_time_ns")))
+        elif cmd != "APPROVE":  # its command came (or another): the ARM is spent
+            self.open_arm = None
+
     def _arm_text(self) -> str:
         n = self.awaiting_arm
-        if n is None:
+        if n is not None:
+            return f"ARM #{n} awaits a second operator's approval: `approve {n}` at another console"
+        arm = self.open_arm
+        if arm is None or self.operator.split("@")[0] == arm[1]:
             return ""
-        return f"ARM #{n} awaits a second operator's approval: `approve {n}` at another console"
+        dv = self.dv
+        if int(dv.get("cn_arm_approvals")) or int(dv.get("cn_time_ns")) - arm[2] > ARM_WINDOW_NS:
+            return ""
+        return f"ARM #{arm[0]} by {arm[1]} is open: `approve {arm[0]}` if it is yours to approve"
 
     def set_awaiting(self, t_ns: int, arm: int | None) -> None:
         """The driver's ARM awaiting approval (None: none); noted once when it opens."""
@@ -390,8 +421,12 @@ class ConsoleModel:
         op, st = self.operator.split("@", 1)
         me = next((o for o in g.operators if o.name == op), None)
         station = next((s for s in g.stations if s.name == st), None)
-        if me is None or station is None or command == "APPROVE":
-            return None  # the signer refused the unknown; approving is the CN's to judge
+        if me is None or station is None:
+            return None  # the signer refused the unknown names already
+        if command == "APPROVE":  # from any station, lock or not; the ARM is the CN's to judge
+            if not self._approving.intersection(me.roles):
+                return f"REJECTED_ROLE: {op} has no approving role"
+            return None
         if command == "ABORT" and "range_safety" in me.roles:
             return None
         if not COMMANDING_ROLES.intersection(me.roles):
