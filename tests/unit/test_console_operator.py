@@ -332,3 +332,36 @@ def test_an_open_arm_closes_with_its_window_or_the_next_accepted_command() -> No
     assert rig.send("fd@pad", "NOOP") == "ACCEPTED"
     _feed(rig, rso)
     assert rso.status().pending_arm == ""
+
+
+def test_a_lockstep_flight_the_console_shows_the_signed_lock_kept_by_renewals() -> None:
+    """The whole mission in lockstep, its ground logic signed as pat@pad (the
+    console's path): the verdict names pat@pad, and the status line shows the
+    lock held by renewals ten seconds on."""
+    from tests.unit.test_ground_operator import _runner
+    from tests.unit.test_stations_lockstep import Stations
+
+    r = _runner()
+    r.run(0.5)
+    g = r.ground
+    lock = g.command("LOCK", now_ns=r.clock.now_ns())
+    r.run(0.1)
+    (granted,) = g.result(lock) or []
+    model = ConsoleModel(r.mission)
+    model.operator = g.operator
+    model.on_result(0, granted)
+    assert model.last_command == f"LOCK #{granted.seq} by pat@pad: ACCEPTED"
+    r.run(10.0)
+    dv = r.control.dv
+    model.on_snapshot(dv, 1)
+    assert g.lock_renewals == 9
+    left = (int(dv.get("cn_lock_until_ns")) - int(dv.get("cn_time_ns"))) / 1e9
+    assert model.status().lock == f"pat@pad holds the command lock ({left:.1f} s left)"
+    assert model.refusal("NOOP") is None
+    # Another operator's console refuses what the CN refuses, for the same reason.
+    other = ConsoleModel(r.mission)
+    other.operator = "fd@room"
+    other.on_snapshot(dv, 1)
+    assert other.status().lock == model.status().lock
+    assert other.refusal("NOOP") == f"REJECTED_NOT_HOLDER: {model.status().lock}"
+    assert Stations(r).send("fd@room", "NOOP") == "REJECTED_NOT_HOLDER"
