@@ -81,7 +81,8 @@ OPERATOR_COMMANDS = tuple(c.lower() for c in CMD_NAMES[1:])
 
 HELP = (
     "vehicle: " + " | ".join(OPERATOR_COMMANDS) + " (write ELEMENT VALUE, "
-    "prm_set PARAMETER VALUE); console: filter [SEVERITY|all] | plot ELEMENT... | "
+    "prm_set PARAMETER VALUE, handover OPERATOR, approve ARM_NUMBER); "
+    "console: filter [SEVERITY|all] | plot ELEMENT... | "
     "params (show/hide the parameters) | history ELEMENTS [FROM [TO]] [every=1s|raw] "
     "[agg=min,max,mean] [run=R] (the archive) | runs (pick a past run) | clear | quit"
 )
