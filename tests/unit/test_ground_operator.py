@@ -204,13 +204,22 @@ def test_up_with_a_script_refuses_a_mission_with_authority_without_operator(
     assert "--operator NAME --station NAME" in capsys.readouterr().err
 
 
-def test_the_console_refuses_an_operator_it_cannot_sign_for(
-    keydir: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+def test_the_console_refuses_an_operator_it_cannot_sign_for_before_it_opens(
+    keydir: Path,
+    tmp_path: Path,
+    capsys: pytest.CaptureFixture[str],
+    monkeypatch: pytest.MonkeyPatch,
 ) -> None:
+    # The console signs as --operator at --station (tests/unit/test_console_operator.py);
+    # a misspelt name or a missing key file is refused in one line, nothing opened.
     path = keygen(tmp_path, MISSION, keydir)
     capsys.readouterr()
-    assert main(["ground", str(path), "--console", "--operator", "alice", "--station", "pad"]) == 2
-    assert "does not take --operator" in capsys.readouterr().err
+    assert main(["ground", str(path), "--console", "--operator", "alise", "--station", "pad"]) == 2
+    assert "did you mean alice?" in capsys.readouterr().err
+    (keydir / "operator-bob.keys").unlink()
+    monkeypatch.setenv(KEY_FILE_ENV, str(keydir / "gn.keys"))
+    assert main(["ground", str(path), "--console", "--operator", "bob", "--station", "pad"]) == 2
+    assert "operator-bob.keys" in capsys.readouterr().err
 
 
 def test_a_command_returns_when_its_outcome_is_released_not_a_snapshot_later() -> None:

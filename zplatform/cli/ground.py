@@ -169,12 +169,9 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
 def cmd_ground(args: argparse.Namespace) -> int:
     """The console on a TTY (or ``--console``), served with ``--web``, else the prompt."""
     if args.web is not None or args.console or (sys.stdin.isatty() and not args.prompt):
-        if args.operator is not None or args.station is not None:
-            raise CommandError(
-                "the console does not take --operator/--station yet: command as an operator "
-                "with `zplatform ground MISSION --prompt --operator NAME --station NAME` or "
-                "`zplatform cmd`"
-            )
+        # A console that only watches needs no operator; one named signs its
+        # commands (an unknown operator or station fails here, in one line).
+        signer = signer_of(load_mission(args.mission, code=False), args, commands=False)
         try:
             from ..console import run_console, serve_console
         except ImportError as exc:
@@ -194,6 +191,8 @@ def cmd_ground(args: argparse.Namespace) -> int:
                 limits_path=args.limits,
                 history_min=args.history,
                 plot=args.plot,
+                operator=args.operator,
+                station=args.station,
             )
             return 0
         return run_console(
@@ -203,6 +202,7 @@ def cmd_ground(args: argparse.Namespace) -> int:
             limits=limits,
             history_min=args.history,
             plot=args.plot,
+            signer=signer,
         )
     return cmd_prompt(args)
 

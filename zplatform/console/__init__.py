@@ -21,6 +21,7 @@ from typing import TYPE_CHECKING, Any
 from .model import ConsoleModel, Limits, LogLine, Status
 
 if TYPE_CHECKING:
+    from ..control.authority import Signer
     from .app import ConfirmScreen, ConsoleApp
     from .link import Link
 
@@ -57,13 +58,16 @@ def run_console(
     limits: dict[str, object] | None = None,
     history_min: float | None = None,
     plot: list[str] | None = None,
+    signer: Signer | None = None,
 ) -> int:
     """Run the console in this terminal until the operator quits. Blocks.
 
     ``limits``: extra element limits (:mod:`zplatform.control.limits`) over the mission's;
     ``history_min``: minutes of history to open with (None: the default,
     :data:`~.history.DEFAULT_HISTORY_MIN`; 0: none); ``plot``: elements
-    plotted from the start (their history filled too). Raises CommandError
+    plotted from the start (their history filled too); ``signer``: the
+    operator and station its commands are signed as (None: it only watches;
+    :func:`zplatform.ground.identity.station_signer`). Raises CommandError
     for an element ``plot`` cannot plot.
     """
     from ..mission.load import load_mission
@@ -76,7 +80,8 @@ def run_console(
     model = ConsoleModel(mission, los_s=los_s, limits=limits, history_s=minutes * 60)
     if plot:
         model.set_plot(plot)
-    app = ConsoleApp(model, Link(model, timeout_s=timeout_s), history=history_source(mission))
+    link = Link(model, timeout_s=timeout_s, signer=signer)
+    app = ConsoleApp(model, link, history=history_source(mission))
     return app.run() or 0
 
 
@@ -90,12 +95,15 @@ def serve_console(
     limits_path: str | None = None,
     history_min: float | None = None,
     plot: list[str] | None = None,
+    operator: str | None = None,
+    station: str | None = None,
 ) -> None:
     """Serve the console to the operator's browser on ``http://host:port`` until Ctrl-C. Blocks.
 
     Prints the address to open, with its one-time token; every browser
     session is its own ``zplatform ground MISSION --console`` process, which
-    ends with the session and with the server (:mod:`.web`).
+    ends with the session and with the server (:mod:`.web`); with
+    ``operator`` and ``station``, each signs its commands as them.
     """
     import sys
     from pathlib import Path
@@ -119,6 +127,8 @@ def serve_console(
         *(["--limits", str(Path(limits_path).resolve())] if limits_path else []),
         *(["--history", str(history_min)] if history_min is not None else []),
         *(["--plot", *plot] if plot else []),
+        *(["--operator", operator] if operator else []),
+        *(["--station", station] if station else []),
     ]
     setup_logging()
     WebConsole(argv, host=host, port=port, title=f"zplatform ground - {mission.mission}").serve()

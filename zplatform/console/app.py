@@ -373,6 +373,11 @@ class ConsoleApp(App[int]):
             self._note(f"refused: {exc}", "WARNING_HI")
             return
         shown = " ".join([checked.command, *args])
+        with self.model.lock:
+            refused = self.model.refusal(checked.command)
+        if refused is not None:  # the CN would refuse it: said here, in its words, not sent
+            self._note(f"{shown} by {self.model.operator}: {refused} (not sent)", "WARNING_HI")
+            return
         why = needs_arm(self.model.mission, checked.command, args[0] if args else None)
         if why is not None:
 
@@ -487,6 +492,11 @@ def _status_text(s: Status) -> Text:
         else:
             t.append("NO STANDBY", style="bold yellow")
             t.append("  ")
+    if s.operator or s.lock:  # command authority: who this console is, who holds the lock
+        t.append(f"as {s.operator or 'viewer'}  ", style="bold")
+        t.append(f"{s.lock}  ")
+    if s.pending_arm:
+        t.append(f"{s.pending_arm}  ", style="bold yellow")
     t.append(f"tm {s.received} gap {s.gaps} bad {s.bad}")
     for dn, rx, missed, late, off in s.per_dn:
         style = "yellow" if missed or late else None

@@ -23,6 +23,7 @@ import threading
 import time
 from collections.abc import Callable
 
+from ..control.authority import ARM_WINDOW_NS, Signer
 from ..control.uplink import CheckedCommand
 from ..errors import ZPlatformError
 from ..runtime.timebase import NodeClock
@@ -43,8 +44,13 @@ class Link:
     stops the thread and closes the session; it is idempotent.
     """
 
-    def __init__(self, model: ConsoleModel, *, timeout_s: float = 10.0) -> None:
+    def __init__(
+        self, model: ConsoleModel, *, timeout_s: float = 10.0, signer: Signer | None = None
+    ) -> None:
         self.model = model
+        self.signer = signer
+        if signer is not None:
+            model.operator = f"{signer.operator}@{signer.station}"
         self.mission = model.mission
         self.timeout_s = timeout_s
         self.clock = NodeClock()
@@ -92,7 +98,13 @@ class Link:
     def _run(self) -> None:
         from ..ground.link import GroundLink
 
-        link = GroundLink(self.mission, commands=True, clock=self.clock, on_event=self._on_event)
+        link = GroundLink(
+            self.mission,
+            commands=True,
+            clock=self.clock,
+            on_event=self._on_event,
+            signer=self.signer,  # signed as `cmd` signs; the logic renews the lock's lease
+        )
         logic = link.logic
         m = self.model
         waiting: dict[int, tuple[str, float]] = {}  # ticket -> (what, deadline)
@@ -117,6 +129,13 @@ class Link:
                             m.on_refusal(self.now_ns(), what, str(exc))
                         continue
                     waiting[ticket] = (what, time.monotonic() + self.timeout_s)
+                arm = logic.awaiting_approval
+                if arm != m.awaiting_arm:
+                    with m.lock:
+                        m.set_awaiting(self.now_ns(), arm)
+                    if arm is not None:  # the approval may take the ARM's window
+                        extra = ARM_WINDOW_NS / 1e9
+                        waiting = {k: (w, d + extra) for k, (w, d) in waiting.items()}
                 for ticket, (what, deadline) in list(waiting.items()):
                     done = logic.result(ticket)
                     if done is not None:

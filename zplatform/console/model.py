@@ -27,6 +27,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from ..config import CMD_NAMES, Mission
+from ..control.authority import ARM_WINDOW_NS, COMMANDING_ROLES
 from ..control.commands import writable_elements
 from ..control.limits import Limits, mission_limits
 from ..core.datavector import DataVector, ElementSpec, Layout
@@ -80,7 +81,8 @@ OPERATOR_COMMANDS = tuple(c.lower() for c in CMD_NAMES[1:])
 
 HELP = (
     "vehicle: " + " | ".join(OPERATOR_COMMANDS) + " (write ELEMENT VALUE, "
-    "prm_set PARAMETER VALUE); console: filter [SEVERITY|all] | plot ELEMENT... | "
+    "prm_set PARAMETER VALUE, handover OPERATOR, approve ARM_NUMBER); "
+    "console: filter [SEVERITY|all] | plot ELEMENT... | "
     "params (show/hide the parameters) | history ELEMENTS [FROM [TO]] [every=1s|raw] "
     "[agg=min,max,mean] [run=R] (the archive) | runs (pick a past run) | clear | quit"
 )
@@ -133,6 +135,12 @@ class Status:
     """The link has not learned the vehicle's run yet (zplatform.ground.link):
     nothing is shown until it has."""
     history: str = ""
+    operator: str = ""
+    """``operator@station`` this console commands as ("": it only watches)."""
+    lock: str = ""
+    """Who holds the command lock and until when, in words ("": no authority)."""
+    pending_arm: str = ""
+    """This console's ARM awaiting approval, in words ("": none)."""
     """The history fill's state ("filling history...", what it filled, or why
     it could not); "" when the console opened without history."""
 
@@ -191,6 +199,20 @@ class ConsoleModel:
         self._series: dict[str, deque[tuple[float, float]]] = {}
         self._last_plot_ns = 0
         self.version = 0  # bumped on every change the screen should redraw for
+        self.operator = ""
+        """``operator@station`` the console's commands are signed as (set by
+        its driver; "": a console that only watches)."""
+        g = mission.ground
+        self._two_person = bool(mission.authority and g is not None and g.two_person)
+        self._approving = frozenset(g.approving_roles) if g is not None else frozenset()
+        self.open_arm: tuple[int, str, int] | None = None
+        """The last ARM telemetry showed accepted (two-person missions): its
+        number, its operator and the loop time it was seen at."""
+        self._seen_seq = -1
+        self.awaiting_arm: int | None = None
+        """The number of this console's accepted ARM whose two-person command
+        waits for a second operator's APPROVE (set by the driver from
+        :attr:`~zplatform.ground.logic.GroundLogic.awaiting_approval`)."""
 
     # -- feeding ------------------------------------------------------------
     def on_snapshot(
@@ -208,6 +230,8 @@ class ConsoleModel:
             self._los = False
             self._note(rx_ns, "ACTIVITY_HI", "link", "signal acquired")
         self._rate.add_snapshot(self.dv)
+        if self._two_person:
+            self._see_arm()
         t = int(self.dv.get("cn_time_ns"))
         if self.plotted and rx_ns - self._last_plot_ns >= self.plot_step_ns:
             self._last_plot_ns = rx_ns
@@ -322,7 +346,106 @@ class ConsoleModel:
             standby_ready=bool(dv.get("cn_standby_ready")) if redundant else False,
             waiting_for_run=self.waiting_for_run,
             history=self.history,
+            operator=self.operator,
+            lock=self.lock_text(),
+            pending_arm=self._arm_text(),
         )
+
+    # -- command authority (docs/security.md "Stations and operators") -------
+    def _holder(self) -> tuple[str, str, float] | None:
+        """The lock's holder, their station ("NONE": not bound yet) and the
+        seconds left, from the last snapshot; None: nobody (or it ran out)."""
+        dv = self.dv
+        holder = dv.get_name("cn_lock_holder")
+        left = (int(dv.get("cn_lock_until_ns")) - int(dv.get("cn_time_ns"))) / 1e9
+        if holder == "NONE" or left <= 0:
+            return None
+        return holder, dv.get_name("cn_lock_station"), left
+
+    def lock_text(self) -> str:
+        """The CN's words for the lock's holder (Authority.holder_text); ""
+        in a mission without command authority or before any telemetry."""
+        if not self.mission.authority or self.last_rx_ns is None:
+            return ""
+        h = self._holder()
+        if h is None:
+            return "nobody holds the command lock"
+        who = h[0] if h[1] == "NONE" else f"{h[0]}@{h[1]}"
+        return f"{who} holds the command lock ({h[2]:.1f} s left)"
+
+    def _see_arm(self) -> None:
+        """Note an ARM the snapshot shows accepted (anyone's): the approver's
+        console shows it (:meth:`_arm_text`)."""
+        dv = self.dv
+        seq = int(dv.get("cn_cmd_seq"))
+        if seq == self._seen_seq:
+            return
+        self._seen_seq = seq
+        if dv.get_name("cn_cmd_status") != "ACCEPTED":
+            return  # a refused request leaves the ARM open
+        cmd = dv.get_name("cn_cmd")
+        if cmd == "ARM":
+            self.open_arm = (seq, dv.get_name("cn_cmd_operator"), int(dv.get("cn_time_ns")))
+        elif cmd != "APPROVE":  # its command came (or another): the ARM is spent
+            self.open_arm = None
+
+    def _arm_text(self) -> str:
+        n = self.awaiting_arm
+        if n is not None:
+            return f"ARM #{n} awaits a second operator's approval: `approve {n}` at another console"
+        arm = self.open_arm
+        if arm is None or self.operator.split("@")[0] == arm[1]:
+            return ""
+        dv = self.dv
+        if int(dv.get("cn_arm_approvals")) or int(dv.get("cn_time_ns")) - arm[2] > ARM_WINDOW_NS:
+            return ""
+        return f"ARM #{arm[0]} by {arm[1]} is open: `approve {arm[0]}` if it is yours to approve"
+
+    def set_awaiting(self, t_ns: int, arm: int | None) -> None:
+        """The driver's ARM awaiting approval (None: none); noted once when it opens."""
+        if arm == self.awaiting_arm:
+            return
+        self.awaiting_arm = arm
+        if arm is not None:
+            self._note(t_ns, "ACTIVITY_HI", "cmd", self._arm_text())
+        self.version += 1
+
+    def refusal(self, command: str) -> str | None:
+        """What the CN would refuse ``command`` (a command name) from this
+        console's operator with, in its words (``STATUS: reason``), judged
+        from the last snapshot; None when it may go (the CN judges again).
+        Mirrors :meth:`zplatform.control.authority.Authority.check` for the
+        operator's roles, a view-only station and the lock."""
+        g = self.mission.ground
+        if not self.mission.authority or g is None or not self.operator:
+            return None
+        op, st = self.operator.split("@", 1)
+        me = next((o for o in g.operators if o.name == op), None)
+        station = next((s for s in g.stations if s.name == st), None)
+        if me is None or station is None:
+            return None  # the signer refused the unknown names already
+        if command == "APPROVE":  # from any station, lock or not; the ARM is the CN's to judge
+            if not self._approving.intersection(me.roles):
+                return f"REJECTED_ROLE: {op} has no approving role"
+            return None
+        if command == "ABORT" and "range_safety" in me.roles:
+            return None
+        if not COMMANDING_ROLES.intersection(me.roles):
+            return f"REJECTED_VIEW_ONLY: {op} may not command (roles)"
+        if station.may == "view":
+            return f"REJECTED_VIEW_ONLY: station {st} may only view (ground.stations)"
+        if command == "TAKEOVER":
+            if "flight_director" not in me.roles:
+                return f"REJECTED_ROLE: {op} is no flight director"
+            return None
+        if self.last_rx_ns is None:
+            return None  # no telemetry yet: the lock is unknown here
+        h = self._holder()
+        if command == "LOCK" and (h is None or h[0] == op):
+            return None
+        if h is not None and h[0] == op and h[1] in ("NONE", st):
+            return None
+        return f"REJECTED_NOT_HOLDER: {self.lock_text()}"
 
     def format_value(self, spec: ElementSpec) -> str:
         v = self.dv.get(spec.name)
