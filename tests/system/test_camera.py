@@ -79,13 +79,16 @@ def test_camera_frames_go_through_shared_memory_between_processes(tmp_path: Path
     # Every frame the CN's reader saw came through shared memory, and every
     # frame it did not take before the next one came is counted superseded
     # (how many depends on when the box ran the CN's loop, not on the code).
-    # In a loop whose dn0 reply arrived (its published count is current)
-    # the two sides agree up to the frames in flight between them; a reader
+    # In a loop whose own dn0 reply arrived (the row after its previous
+    # loop's, one reply more: its published count is current; a reply that
+    # came late is refused while dn0 still publishes that loop's frame) the
+    # two sides agree up to the frame dn0 publishes after replying; a reader
     # that lost or double-counted frames would drift without bound.
     fresh = next(
         b
         for a, b in zip(rows[-2::-1], rows[::-1], strict=False)
-        if int(b["cn_rx_dn0"]) > int(a["cn_rx_dn0"])
+        if int(b["cn_loop"]) == int(a["cn_loop"]) + 1
+        and int(b["cn_rx_dn0"]) == int(a["cn_rx_dn0"]) + 1
     )
     published = int(fresh["bulk_frame_published"])
     taken = int(fresh["bulk_frame_iox"]) + int(fresh["bulk_frame_shm"])

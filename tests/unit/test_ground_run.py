@@ -186,6 +186,32 @@ def test_a_fresh_ground_refuses_an_earlier_runs_events_as_stale() -> None:
     assert (g.counters.stale_events, g.counters.bad_events) == (1, 0)
 
 
+def test_a_genuine_event_of_the_run_delivered_late_is_taken_once() -> None:
+    """Bound to its run, the ground takes an authentic record of that run
+    delivered long after its stamp (a receiver starved for a second, beside
+    a CPU hog: the console lost a state change so) once; a replay of it is
+    refused by its number, and a stamp beyond the bound ahead is still
+    refused (taken, it would lock every later genuine record out)."""
+    run = Run(RUN2)
+    g = GroundLogic(LED, keys=_keys("gn"), run=run)
+    key = f"{LED.vehicle}/cn/events"
+    ch = channel(_keys("cn"), "events_cn", Run(RUN2))
+    assert ch is not None
+
+    def record(seq: int, t_ns: int) -> bytes:
+        from zplatform.core.events import Event
+
+        return bytes(ch.seal(encode_event(Event("cn", seq, t_ns, 2, "state_change", "x"))))
+
+    late = record(1, RUN2)
+    now = RUN2 + 5 * g.max_age_ns  # delivered five bounds after its stamp
+    assert g.on_event_bytes(key, late, now) is not None
+    assert g.on_event_bytes(key, late, now) is None  # its replay
+    assert g.on_event_bytes(key, record(2, now + g.max_age_ns + 1), now) is None  # ahead
+    assert g.on_event_bytes(key, record(3, now), now) is not None
+    assert (g.counters.stale_events, g.counters.bad_events) == (2, 0)
+
+
 def test_a_gap_fill_reply_of_an_earlier_run_is_refused() -> None:
     written: list[int] = []
     run = Run(RUN2)

@@ -561,7 +561,9 @@ class EventReader:
 
     **Freshness** (with ``now_ns`` and a ``max_age_ns``, the receiver's
     clock bound): a verified record is fresh when stamped within
-    ``max_age_ns`` of ``now_ns`` (either side: a record is published as it
+    ``max_age_ns`` of ``now_ns`` (either side, or only ahead when bound to a
+    known ``run``: then a record stamped long ago is of this run, a genuine
+    one delivered late or a replay its number refuses; a record is published as it
     is emitted) and newer than every record of the same node taken before,
     in its number or in its time: a replay of any record taken is neither
     (both are at most the largest taken), while the node's next record is
@@ -589,6 +591,7 @@ class EventReader:
     ) -> None:
         self._auth = mission.security.auth
         self._max_age = max_age_ns
+        self._run = run
         # Per node with a key: the largest t_ns and the largest seq taken.
         self._newest: dict[str, tuple[int, int]] = {}
         # Made once, for the nodes whose event keys are held: a flood on
@@ -621,7 +624,13 @@ class EventReader:
         if e.node != node:
             raise AuthError(f"a record of {e.node!r} on {node!r}'s key")
         if now_ns is not None and self._max_age is not None:
-            self._fresh(e, now_ns, self._max_age)
+            # Bound to a known run, an authentic record of it stamped long
+            # ago is a genuine one delivered late (a starved receiver), or a
+            # replay the numbers refuse: taken if newer. Without a run, its
+            # age is what tells an earlier run's record.
+            run = self._run
+            late_ok = run is not None and run.known
+            self._fresh(e, now_ns, self._max_age, late_ok=late_ok)
         return e, True
 
     def forged(self, key_expr: str, payload: bytes | bytearray | memoryview) -> bool:
@@ -650,8 +659,8 @@ class EventReader:
             return True
         return False
 
-    def _fresh(self, e: Event, now_ns: int, bound: int) -> None:
-        if abs(e.t_ns - now_ns) > bound:
+    def _fresh(self, e: Event, now_ns: int, bound: int, *, late_ok: bool = False) -> None:
+        if e.t_ns - now_ns > bound or (not late_ok and now_ns - e.t_ns > bound):
             raise StaleRecordError(
                 f"{e.node}'s event #{e.seq} stamped {(e.t_ns - now_ns) / 1e9:+.3f} s from this "
                 f"clock (bound {bound / 1e9:g} s): a replay, or a clock no node can have"
