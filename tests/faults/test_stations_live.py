@@ -100,6 +100,10 @@ def _ready(p: subprocess.Popen[str], what: str) -> None:
     assert line.startswith("READY"), f"{what} did not start: {line!r} (exit {p.poll()})"
 
 
+# With the soaks (-m slow): 23-44 s of namespaces, routers and a WAN; the
+# default suite keeps the routers in process (tests/integration/test_routers.py)
+# and the authority rules in lockstep (tests/unit/test_stations_lockstep.py).
+@pytest.mark.slow
 @pytest.mark.timeout(300)
 def test_stations_through_two_routers_and_a_wan(
     netns_hosts: Callable[..., list[NetnsHost]], tmp_path: Path
