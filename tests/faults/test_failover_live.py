@@ -70,6 +70,7 @@ from tests.faults.missions import mesh_mission
 from tests.faults.netns import NetnsHost, NetnsLab
 from tests.integration.harness import CONFIGS, ROOT
 from tests.terms import driven_terms, two_term_loops
+from tests.waits import wait_until
 from zplatform.cli import registry
 from zplatform.config import Mission
 from zplatform.mission.load import load_mission
@@ -263,14 +264,16 @@ def wait_log(
     text: Callable[[], str], pred: Callable[[str], bool], timeout_s: float, what: str
 ) -> str:
     """Wait until ``pred`` holds on a log the nodes write; the log then."""
-    deadline = time.monotonic() + timeout_s
-    while True:
+
+    def holds() -> str | None:
         t = text()
-        if pred(t):
-            return t
-        if time.monotonic() > deadline:
-            raise AssertionError(f"no {what} in the logs within {timeout_s} s:\n{t[-3000:]}")
-        time.sleep(0.1)  # polling a file the nodes write: no peer to wait on
+        return t if pred(t) else None
+
+    try:
+        return wait_until(holds, timeout_s, what)
+    except AssertionError:
+        msg = f"no {what} in the logs within {timeout_s} s:\n{text()[-3000:]}"
+        raise AssertionError(msg) from None
 
 
 def _commands_accepted(s: dict[str, Any]) -> None:
@@ -348,14 +351,18 @@ class UpFlight:
             raise
 
     def _entry(self, ready: Callable[[registry.Entry], bool], what: str) -> registry.Entry:
-        deadline = time.monotonic() + 60
-        while True:
-            for e in registry.running():
-                if e.pid == self.proc.pid and ready(e):
-                    return e
-            if self.proc.poll() is not None or time.monotonic() > deadline:
-                raise AssertionError(f"`up` did not register {what}:\n{self.output()[-3000:]}")
-            time.sleep(0.05)  # polling the registry file `up` writes: no peer to wait on
+        def entry() -> registry.Entry | None:
+            if self.proc.poll() is not None:
+                raise AssertionError(f"`up` ended before registering {what}")
+            return next(
+                (e for e in registry.running() if e.pid == self.proc.pid and ready(e)), None
+            )
+
+        try:
+            return wait_until(entry, 60, f"`up` to register {what}", poll_s=0.05)
+        except AssertionError:
+            msg = f"`up` did not register {what}:\n{self.output()[-3000:]}"
+            raise AssertionError(msg) from None
 
     @property
     def w(self) -> FlightWatch:
@@ -478,7 +485,7 @@ def test_the_commander_stopped_for_a_second_in_coast_stands_down_and_the_flight_
         f.signal(stopped, signal.SIGSTOP)
         try:
             w.wait_for(lambda v: v["cn_term"] > term, 60, "the other control node in command")
-            time.sleep(max(0.0, 1.0 - (time.monotonic() - t0)))  # the stop lasts 1 s
+            time.sleep(max(0.0, 1.0 - (time.monotonic() - t0)))  # stimulus: the stop lasts 1 s
         finally:
             f.signal(stopped, signal.SIGCONT)
         # Its stand-down is in its log (its event may be lost: it runs before its
@@ -611,10 +618,12 @@ class MeshFlight:
             cwd=ROOT,
         )
         self.procs["world"] = w
-        deadline = time.monotonic() + 60
-        while "READY" not in (self.tmp / "world.log").read_text(errors="replace"):
-            assert w.poll() is None and time.monotonic() < deadline, "the world did not start"
-            time.sleep(0.05)  # polling the world's own log: no peer to wait on
+
+        def ready() -> bool:
+            assert w.poll() is None, "the world did not start"
+            return "READY" in (self.tmp / "world.log").read_text(errors="replace")
+
+        wait_until(ready, 60, "the world's READY", poll_s=0.05)
         port = world.listen.rpartition(":")[2]
         self.relay = dn1.popen(
             [sys.executable, "-m", "tests.faults.worldlink", port, dn0.ns],
@@ -724,7 +733,7 @@ def test_control_nodes_cut_from_each_other_change_nothing(mesh: MeshFlight, rec_
             30,
             f"{standby} holding its takeover",
         )
-        time.sleep(max(0.0, CUT_S - (time.monotonic() - t0)))  # the cut lasts CUT_S
+        time.sleep(max(0.0, CUT_S - (time.monotonic() - t0)))  # stimulus: the cut lasts CUT_S
     finally:
         f.lab.set_pair(f.index("cn"), f.index("cn_b"), up=True)
     healed = w.last()["cn_loop"]
@@ -761,7 +770,7 @@ def test_the_commander_cut_from_everyone_is_replaced_and_stands_down_when_it_hea
     f.hosts[cut].link_down()
     try:
         w.wait_for(lambda v: (v["cn_term"], v["cn_commander"]) == (term + 1, new), 30, "a new term")
-        time.sleep(max(0.0, CUT_S - (time.monotonic() - t0)))  # the cut lasts CUT_S
+        time.sleep(max(0.0, CUT_S - (time.monotonic() - t0)))  # stimulus: the cut lasts CUT_S
     finally:
         f.hosts[cut].link_up()
     text = wait_log(
@@ -845,7 +854,7 @@ def test_the_standby_stopped_for_a_second_gets_the_mirrors_again(
     p.send_signal(signal.SIGSTOP)
     try:
         gone = w.wait_for(lambda v: not v["cn_standby_ready"], 30, f"{standby} not ready")
-        time.sleep(max(0.0, 1.0 - (time.monotonic() - t0)))  # the stop lasts a second
+        time.sleep(max(0.0, 1.0 - (time.monotonic() - t0)))  # stimulus: the stop lasts a second
     finally:
         p.send_signal(signal.SIGCONT)
     back = w.wait_for(lambda v: bool(v["cn_standby_ready"]), 60, f"{standby} ready again")

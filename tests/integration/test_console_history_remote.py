@@ -8,7 +8,6 @@ the station refused an answer too big."""
 from __future__ import annotations
 
 import asyncio
-import time
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -21,6 +20,7 @@ pytest.importorskip("textual_plotext")
 
 from tests.faults.peers import peer_config
 from tests.unit.test_archive import PERIOD, T0, feed
+from tests.waits import wait_matching
 from zplatform.archive import Archive, ArchiveWriter, RunInfo
 from zplatform.archive.server import ArchiveServer
 from zplatform.console import ConsoleApp, ConsoleModel
@@ -30,7 +30,7 @@ from zplatform.console.model import LogLine
 from zplatform.core.auth import KeySet
 from zplatform.core.datavector import DataVector, Layout
 from zplatform.mission.load import load_mission
-from zplatform.runtime.transport import free_port, is_matching
+from zplatform.runtime.transport import free_port
 from zplatform.telemetry.records import EventRecord
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -67,10 +67,7 @@ def station(tmp_path: Path) -> Iterator[Any]:
         max_bytes=20_000,
     )
     querier = b.declare_querier(KEYEXPR)
-    deadline = time.monotonic() + 10
-    while not is_matching(querier):  # the queryable is declared to b
-        assert time.monotonic() < deadline, "the archive's queryable never matched"
-        time.sleep(0.01)
+    wait_matching(querier, 10, "the archive's queryable, declared to b")
     querier.undeclare()
 
     def source(keys: KeySet, timeout_s: float = 10.0) -> RemoteHistory:

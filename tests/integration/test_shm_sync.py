@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import queue
 import threading
-import time
 import uuid
 from collections.abc import Iterator
 from dataclasses import dataclass
@@ -19,6 +18,7 @@ from typing import Any
 
 import pytest
 
+from tests.waits import wait_until
 from tests.zsession import lone_session
 from zplatform.config import Mission
 from zplatform.control.intake import CnRefusals, ReplyCheck, TriggerIntake
@@ -261,10 +261,7 @@ def test_taps_see_the_frames_whichever_path_the_sync_takes(pair: Pair) -> None:
     try:
         # The taps learn of the subscribers from zenoh's matching listeners.
         taps = [pair.cs._taps[0], pair.ds._tap]
-        deadline = time.monotonic() + 10
-        while not all(t.matching for t in taps) and time.monotonic() < deadline:
-            time.sleep(0.01)  # zenoh's routing state, not a peer: no event to wait on here
-        assert all(t.matching for t in taps)
+        wait_until(lambda: all(t.matching for t in taps), 10, "both taps' subscribers")
         frames = []
         for loop in (1, 2, 3):
             served = threading.Thread(target=pair.ds.wait, args=(pair.dn, 10.0))

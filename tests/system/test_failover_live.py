@@ -24,6 +24,7 @@ import pytest
 
 from tests.integration.harness import CONFIGS, ROOT, Cluster
 from tests.terms import driven_terms, two_term_loops
+from tests.waits import wait_until
 from zplatform.recorder import RECORDER_DIR_ENV
 
 FLIGHT = CONFIGS / "flight.yaml"
@@ -186,9 +187,6 @@ def test_a_control_node_restarted_in_flight_resumes_and_the_flight_deploys(
         assert c.tm.get_name("cn_state") in ("ARMED", "FIRE", "DEPLOYED")
         # Its log says so (read until the line is there: a busy host may show
         # the resumed loops in telemetry before the node's log line lands).
-        deadline = time.monotonic() + 30
-        while "resumed the run in flight" not in c.log("cn"):
-            assert time.monotonic() < deadline, c.log("cn")[-3000:]
-            time.sleep(0.05)  # polling a file the node writes: no peer to wait on
+        wait_until(lambda: "resumed the run in flight" in c.log("cn"), 30, "cn's resumed line")
         c.wait_for(lambda dv: dv.get_name("cn_state") == "DEPLOYED", 60, "DEPLOYED")
         assert c.tm.get_name("cn_fault") == "NONE"
