@@ -82,10 +82,7 @@ def child(mission_path: str, variant: str) -> None:
     from zplatform.mission.load import load_mission
 
     m = load_mission(mission_path)
-    if variant == "dn0_queries":
-        _vehicle_child(m)
-        return
-    if variant in ("ground_shm", "dn0_queries_shm"):
+    if variant in ("ground_shm", "dn0_queries", "dn0_queries_shm"):
         _raw_child(m, variant)
         return
     link = GroundLink(m, node="gn")
@@ -103,18 +100,20 @@ def child(mission_path: str, variant: str) -> None:
 
 
 def _raw_child(m: Any, variant: str) -> None:
-    """The baselines, raw zenoh sessions with shared memory on (what the
-    ground node and a device node had before): ``ground_shm``, the ground
-    node's config with a subscriber on the event keys; ``dn0_queries_shm``,
-    dn0's config with a queryable on its sync key; both only count what
-    they take; protocol as :func:`child`."""
+    """A victim that only counts what it takes (protocol as :func:`child`):
+    ``dn0_queries``, dn0's session as ``zenoh_config`` builds it with a
+    queryable on its sync key that answers nothing; the baselines with
+    shared memory forced on (what the nodes had before): ``dn0_queries_shm``
+    the same, ``ground_shm`` the ground node's config with a subscriber on
+    the event keys."""
     import zenoh
 
     from zplatform.runtime.transport import open_session, zenoh_config
 
     node = "gn" if variant == "ground_shm" else "dn0"
     cfg = zenoh_config(m, node)
-    cfg.insert_json5("transport/shared_memory/enabled", "true")
+    if variant.endswith("_shm"):
+        cfg.insert_json5("transport/shared_memory/enabled", "true")
     s = open_session(cfg)
     taken = [0]
 
@@ -133,33 +132,6 @@ def _raw_child(m: Any, variant: str) -> None:
         elif cmd["cmd"] == "rss":
             say({"rss_mb": _rss_mb(), "refused": taken[0]})
     decl.undeclare()
-    s.close()
-
-
-def _vehicle_child(m: Any) -> None:
-    """``dn0_queries``: a device node's session as the mission configures it
-    (shared memory on) with a queryable on its sync key that answers
-    nothing (the intake refuses junk); protocol as :func:`child`."""
-    import zenoh
-
-    from zplatform.runtime.transport import open_session, zenoh_config
-
-    s = open_session(zenoh_config(m, "dn0"))
-    taken = [0]
-
-    def on_query(q: zenoh.Query) -> None:  # hand off only: counted, never answered
-        taken[0] += 1
-
-    qbl = s.declare_queryable(
-        f"{m.vehicle}/dn0/to_cn", zenoh.handlers.Callback(on_query, indirect=False)
-    )
-    say({"ready": True, "rss_mb": _rss_mb()})
-    while (cmd := next_command())["cmd"] != "quit":
-        if cmd["cmd"] == "peers":
-            say({"peers": [str(z) for z in s.info.peers_zid()]})
-        elif cmd["cmd"] == "rss":
-            say({"rss_mb": _rss_mb(), "refused": taken[0]})
-    qbl.undeclare()
     s.close()
 
 
