@@ -660,6 +660,21 @@ def _bulk_event(name: str) -> tuple[Any, Any]:
     return iox, (node, ev)
 
 
+def _bulk_keys(m: Any, mission_text: str, role: str) -> tuple[Any, Any]:
+    """``role``'s keys and run for the zplatform bulk rows, as a node's: the
+    samples tagged and checked (link ``bulk-frame``) when the mission
+    authenticates. Both processes derive one master key from the mission's
+    text (a bench's key, not a secret) and share run 1."""
+    import hashlib
+
+    from zplatform.core.auth import KeySet, Run
+
+    if not m.security.auth:
+        return None, None
+    master = hashlib.sha256(mission_text.encode()).digest()
+    return KeySet.from_master(m, master).for_node(role), Run(1)
+
+
 def _bulk_publisher(variant: str, mission_text: str) -> None:
     """Child: the owner of one bulk variant; on ``{"cmd": "run", "n", "period"}``
     publishes ``n`` samples of :data:`BULK_BYTES`, each stamped (monotonic ns,
@@ -676,7 +691,8 @@ def _bulk_publisher(variant: str, mission_text: str) -> None:
     src = bytearray(BULK_BYTES + 8)
     send: Any
     if variant.startswith("zplatform"):
-        bulk = NodeBulk(session, m.vehicle, m.bulk, "dn0", intra_host=m)
+        keys, run = _bulk_keys(m, mission_text, "dn0")
+        bulk = NodeBulk(session, m.vehicle, m.bulk, "dn0", intra_host=m, keys=keys, run=run)
         w = bulk.writers["frame"]
         w.array[:] = np.frombuffer(os.urandom(n), np.uint8)
 
@@ -745,7 +761,10 @@ class _BulkReader:
         self._got: list[Any] = []
         self._event = __import__("threading").Event()
         if variant.startswith("zplatform"):
-            self.bulk = NodeBulk(self.session, m.vehicle, m.bulk, "cn", intra_host=m)
+            keys, run = _bulk_keys(m, mission_text, "cn")
+            self.bulk = NodeBulk(
+                self.session, m.vehicle, m.bulk, "cn", intra_host=m, keys=keys, run=run
+            )
             self.reader = self.bulk.readers["frame"]
         elif variant == "raw_iceoryx2":
             svc = (

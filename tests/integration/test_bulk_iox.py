@@ -22,6 +22,7 @@ Waits are on samples and counters (``poll_until``), never on a guess.
 from __future__ import annotations
 
 import os
+import secrets
 import signal
 import subprocess
 import sys
@@ -36,15 +37,17 @@ import pytest
 from tests.waits import poll_until
 from tests.zsession import lone_session
 from zplatform.config import Mission
+from zplatform.core.auth import TAG_LEN, KeySet, Run
 from zplatform.core.events import EventLog
 from zplatform.errors import TransportError
 from zplatform.mission.load import decode_mission
-from zplatform.runtime.bulk import STALE_LOOPS, NodeBulk, bulk_key, decode_sample
+from zplatform.runtime.bulk import HEADER, STALE_LOOPS, NodeBulk, bulk_key, decode_sample
 from zplatform.runtime.intrahost import IntraHostPublisher, bulk_service_name
 from zplatform.runtime.transport import free_port, is_matching
 
 ROOT = Path(__file__).resolve().parents[2]
 N = 4096
+RUN = 1_700_000_000_000_000_000
 
 
 def _mission_text(n: int = N) -> str:
@@ -148,9 +151,57 @@ def test_a_forged_sample_in_the_iceoryx2_service_is_refused_and_counted(
             forger.close()
         c = reader.counters()
         assert (c["bulk_frame_bad"], c["bulk_frame_iox"]) == (2, 0)
-        assert not r.on_iox and events.pending == 0
+        # Refused and evented (bulk_refused, once), never a path change.
+        assert not r.on_iox and [e.id for e in events.drain()] == ["bulk_refused"]
         # The genuine owner (the slot free again) is taken at its first sample.
         owner = NodeBulk(session, mission.vehicle, mission.bulk, "dn0", intra_host=mission)
+        try:
+            owner.writers["frame"].array[:] = 9
+            owner.publish(1, 2)
+            reader.receive(1)
+            assert r.on_iox and int(r.array[0]) == 9 and reader.counters()["bulk_frame_iox"] == 1
+        finally:
+            owner.close()
+    finally:
+        reader.close()
+
+
+def test_a_forged_well_formed_sample_over_iceoryx2_fails_the_tag_and_is_counted(
+    mission: Mission, session: Any
+) -> None:
+    """With the mission's keys: a local process that took the publisher
+    slot first feeds the reader a well-formed sample (the channel's layout,
+    newer numbers), untagged or with a tag not the key's; each is refused
+    at the tag, counted in ``bulk_<ch>_bad`` and never copied into the
+    array; the genuine owner's tagged sample is then taken over iceoryx2."""
+    ch = mission.bulk[0]
+    name = bulk_service_name(mission, ch.node, ch.name)
+    keys = KeySet.from_master(mission, secrets.token_bytes(32))
+    events = EventLog("cn")
+    reader = NodeBulk(
+        session, mission.vehicle, mission.bulk, "cn", intra_host=mission, events=events,
+        keys=keys.for_node("cn"), run=Run(RUN),
+    )  # fmt: skip
+    r = reader.readers["frame"]
+    try:
+        for size in (ch.sample_bytes, ch.sample_bytes + TAG_LEN):
+            forger = IntraHostPublisher(name, size, 1, check=False)
+            buf = forger.loan()
+            assert buf is not None
+            sample = bytearray(size)
+            HEADER.pack_into(sample, 0, ch.layout_id, 0, 5, 5, 5)
+            sample[HEADER.size : ch.sample_bytes] = b"\xee" * ch.nbytes
+            buf[:] = sample
+            assert forger.send()
+            reader.receive(0)
+            forger.close()
+        c = reader.counters()
+        assert (c["bulk_frame_bad"], c["bulk_frame_iox"], int(r.array.max())) == (2, 0, 0)
+        assert not r.on_iox and [e.id for e in events.drain()] == ["bulk_refused"]
+        owner = NodeBulk(
+            session, mission.vehicle, mission.bulk, "dn0", intra_host=mission,
+            keys=keys.for_node("dn0"), run=Run(RUN),
+        )  # fmt: skip
         try:
             owner.writers["frame"].array[:] = 9
             owner.publish(1, 2)

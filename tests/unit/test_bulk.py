@@ -115,6 +115,7 @@ def test_counter_elements_by_role() -> None:
         "bulk_cam_copied",
         "bulk_cam_missed",
         "bulk_cam_bad",
+        "bulk_cam_stale",
     ]
     assert counter_elements(chans, "dn1") == []
     assert all(e["type"] == "u32" for e in counter_elements(chans, "cn"))

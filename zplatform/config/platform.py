@@ -147,7 +147,7 @@ def counter_elements(channels: Sequence[BulkChannelConfig], node: str) -> list[d
 
     Owner of a channel: ``bulk_<ch>_published``, ``bulk_<ch>_dropped``.
     Reader: ``bulk_<ch>_iox``, ``bulk_<ch>_shm``, ``bulk_<ch>_copied``, ``bulk_<ch>_missed``,
-    ``bulk_<ch>_bad``. The names match :meth:`NodeBulk.counters`.
+    ``bulk_<ch>_bad``, ``bulk_<ch>_stale``. The names match :meth:`NodeBulk.counters`.
     """
     out: list[dict[str, Any]] = []
     for ch in channels:
@@ -160,7 +160,8 @@ def counter_elements(channels: Sequence[BulkChannelConfig], node: str) -> list[d
                 ("shm", "samples received through zenoh shared memory"),
                 ("copied", "samples received copied (network or shm off)"),
                 ("missed", "samples superseded or lost (seq gaps)"),
-                ("bad", "samples refused (size or layout)"),
+                ("bad", "samples refused as malformed (size, tag or layout)"),
+                ("stale", "authentic samples refused (another run's, ahead, beyond the rate)"),
             )
         out += [
             {"name": f"bulk_{ch.name}_{n}", "type": "u32", "doc": f"{ch.name}: {d}"}

@@ -36,6 +36,7 @@ from ..config import Mission
 from ..errors import CodecError, ZPlatformError
 
 __all__ = [
+    "BULK_PREFIX",
     "KEY_ENV",
     "KEY_FILE_ENV",
     "MACS",
@@ -50,6 +51,7 @@ __all__ = [
     "KeySet",
     "Run",
     "RunError",
+    "bulk_links",
     "channel",
     "channel_key",
     "check_key",
@@ -129,6 +131,10 @@ def link_of(channel_name: str) -> str:
         return "events-" + channel_name[len("events_") :]
     if channel_name in PEER_CHANNELS:
         return PEER_LINK
+    if channel_name.startswith(BULK_PREFIX):
+        # A bulk channel's samples (zplatform.runtime.bulk): their own link,
+        # held by the channel's owner, its readers and the read-only tools.
+        return "bulk-" + channel_name[len(BULK_PREFIX) :]
     name = channel_name.removeprefix("clock_").removeprefix("probe_")
     src, sep, dst = name.partition("_to_")
     if sep and src == "cn" and dst:
@@ -144,6 +150,10 @@ stations' keys derive from (a mission with ``ground:``;
 :mod:`zplatform.control.authority`). No channel is tagged with it."""
 PEER_LINK = "cn-cn_b"
 """The link between a mission's two control nodes (a standby's mirror and clock)."""
+BULK_PREFIX = "bulk_"
+"""Bulk channel ``NAME``'s samples are auth channel ``bulk_NAME``, tagged by
+link ``bulk-NAME`` (:func:`bulk_links`); no other channel name starts so
+(node names are ``cn``, ``cn_b``, ``gn``, ``dnN``)."""
 PEER_CHANNELS = frozenset({"mirror", "clock_peer_to_cn", "clock_cn_to_peer"})
 """The channels :data:`PEER_LINK` tags: the commander's whole Data Vector to
 the standby every loop (``mirror``) and the standby's clock exchange with
@@ -153,6 +163,17 @@ the commander."""
 def _event_links(mission: Mission) -> list[str]:
     nodes = [*mission.control_nodes, *mission.device_nodes, *(["gn"] if mission.has_ground else [])]
     return [f"events-{n}" for n in nodes]
+
+
+def bulk_links(mission: Mission, role: str) -> list[str]:
+    """The bulk channels' links host role ``role`` holds: ``bulk-NAME`` for
+    every channel it owns or reads and, for ``tool``, every channel (a tap
+    checks what it shows; docs/security.md, "Keys per link")."""
+    return [
+        f"bulk-{ch.name}"
+        for ch in mission.bulk
+        if role == "tool" or ch.node == role or role in ch.readers
+    ]
 
 
 def host_roles(mission: Mission) -> tuple[str, ...]:
@@ -178,13 +199,21 @@ def role_links(mission: Mission, role: str) -> tuple[str, ...]:
         # The secret every operator's and station's key derives from
         # (zplatform.control.authority): a control node's alone.
         ops = [OPERATORS_LINK] if mission.ground is not None and mission.has_ground else []
-        return (*(f"cn-{dn}" for dn in dns), *up, "downlink", *peer, *ops, f"events-{role}")
+        return (
+            *(f"cn-{dn}" for dn in dns),
+            *up,
+            "downlink",
+            *peer,
+            *ops,
+            f"events-{role}",
+            *bulk_links(mission, role),
+        )
     if role in dns:
-        return (f"cn-{role}", f"events-{role}")
+        return (f"cn-{role}", f"events-{role}", *bulk_links(mission, role))
     if role == "gn" and mission.has_ground:
-        return ("uplink", "downlink", *_event_links(mission))
+        return ("uplink", "downlink", *_event_links(mission), *bulk_links(mission, role))
     if role == "tool":
-        return ("downlink", *_event_links(mission))
+        return ("downlink", *_event_links(mission), *bulk_links(mission, role))
     raise KeyError_(
         f"mission {mission.mission!r} has no host role {role!r}; its roles: "
         f"{', '.join(host_roles(mission))}"

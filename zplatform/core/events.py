@@ -477,6 +477,14 @@ class EV:
         "{node}: bulk channel {channel} falls back to zenoh: {why} ({fallbacks} fallback(s) "
         "so far; iceoryx2 is taken again when its samples come)",
     )
+    BULK_REFUSED = EventType(
+        130,
+        "bulk_refused",
+        Severity.WARNING_LO,
+        "{node}: bulk samples refused: {bad} bad (size, tag or layout), {stale} stale (another "
+        "run's, stamped ahead, beyond the rate bound); the last: {why}; further refusals are "
+        "counted (bulk_<channel>_bad, _stale), evented at most once a second",
+    )
     TM_NEW_TERM = EventType(
         76,
         "tm_new_term",

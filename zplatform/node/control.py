@@ -220,7 +220,7 @@ class ControlNode:
             recorder=self.flight_recorder,
         )
         self._radio = _Radio(mission, s, space.downlink) if mission.downlink.ccsds else None
-        self.bulk = open_bulk(s, mission, "cn", self.logic)
+        self.bulk = open_bulk(s, mission, "cn", self.logic, keys)
         self.health: NodeHealth | None = None
         if mission.health is not None:
             self.health = NodeHealth(mission, "cn", self.liveness, session=s)

@@ -426,7 +426,7 @@ class DeviceNode:
             shm=shm,
             path=self.dv.handle(f"{self.name}_sync_path"),
         )
-        self.bulk = open_bulk(s, m, self.name, self.logic)
+        self.bulk = open_bulk(s, m, self.name, self.logic, self._keys, self.clock.now_ns)
         if self.name in m.recording_nodes:
             try:
                 rec = open_recorder(

@@ -8,7 +8,18 @@ node's port for the loop) and :func:`pool_size`; the schema and counter
 elements are :mod:`zplatform.config`'s. A reader on the owner's host takes
 the samples over iceoryx2 and drops its zenoh subscriber; zenoh carries a
 sample only while a subscriber matches (another host, a fallback, ``tap``);
-one intake for both (size, layout; seq gaps missed): docs/architecture.md#intra-host.
+one intake for both: docs/architecture.md#intra-host.
+
+With ``security.auth`` on, every sample is ``header || array || tag``: the
+owner tags it once (auth channel ``bulk_NAME``, link ``bulk-NAME``, bound
+to the owner's run; codecs/FORMAT.md §6.1) and the same bytes go over both
+paths. A reader's intake, on both paths, before any copy into its array:
+size, tag (constant time), then freshness (the run it is bound to; numbered
+or stamped later than the last sample taken, stamped no further ahead of
+its clock than ``ahead_ns``), then the channel's rate bound
+(:data:`RATE_BURST`), then the layout. Refusals are counted (``bad``:
+size, tag or layout; ``stale``: another run's, stamped ahead, beyond the
+rate bound) and evented at most once a second (:class:`NodeBulk`).
 
 Contract: zenoh samples come from a shared-memory pool sized from the mission;
 :meth:`BulkWriter.publish` copies the array once per path and, with no chunk
@@ -32,6 +43,7 @@ from typing import Any
 import numpy as np
 import zenoh
 
+from ..core.auth import TAG_LEN, AuthError, Channel, KeySet, Run, RunError
 from ..core.events import EV
 from ..errors import IntraHostError, TransportError
 from ..security.keyspace import key_of
@@ -40,8 +52,10 @@ from .transport import is_matching
 
 __all__ = [
     "BULK_HEADER_BYTES",
+    "DEFAULT_AHEAD_NS",
     "HEADER",
     "MAX_CHANNEL_BYTES",
+    "RATE_BURST",
     "STALE_LOOPS",
     "BulkChannelConfig",
     "BulkHeader",
@@ -49,6 +63,7 @@ __all__ = [
     "BulkStats",
     "BulkWriter",
     "NodeBulk",
+    "bulk_channel",
     "bulk_key",
     "check_bulk_channels",
     "counter_elements",
@@ -72,6 +87,15 @@ from ..config import (
 #: Polls (loops) without an iceoryx2 sample after which a reader on that
 #: path falls back to zenoh (or ``4 * rate_divisor``, if longer).
 STALE_LOOPS = 100
+RATE_BURST = 4
+"""Samples a reader takes ahead of its channel's rate (one every
+``rate_divisor`` polls, its loops): beyond, a sample, however authentic, is
+refused (counted stale), so a key holder publishing faster than the channel
+declares costs the reader at most this burst, then one copy a period."""
+DEFAULT_AHEAD_NS = 1_000_000_000
+"""How far ahead of a reader's clock a sample's stamp may be, when the
+reader is given no bound of its own (a node's: the clock bound and a
+period, :func:`zplatform.control.intake.ahead_bound_ns`)."""
 
 # Sample header, little-endian: layout_id u32, flags u32 (0), seq u64 (the
 # channel's own sample counter: gaps are missed samples), loop u64 (the
@@ -87,15 +111,22 @@ def bulk_key(vehicle: str, channel: BulkChannelConfig) -> str:
     return key_of("bulk", vehicle, owner=channel.node, channel=channel.name)
 
 
+def bulk_channel(name: str) -> str:
+    """The auth channel of bulk channel ``name``'s samples: ``bulk_NAME``
+    (tagged by link ``bulk-NAME``, :func:`zplatform.core.auth.link_of`)."""
+    return f"bulk_{name}"
+
+
 def pool_size(channels: Sequence[BulkChannelConfig], node: str) -> int:
     """Bytes of ``node``'s shared-memory pool: every channel it owns times its
-    :attr:`~BulkChannelConfig.slot_count`, each sample rounded up to 4 KiB
-    pages (chunks are page-aligned in practice). 0 when it owns none."""
+    :attr:`~BulkChannelConfig.slot_count`, each sample (with room for its
+    tag) rounded up to 4 KiB pages (chunks are page-aligned in practice).
+    0 when it owns none."""
     page = 4096
     total = 0
     for ch in channels:
         if ch.node == node:
-            total += ch.slot_count * (-(-ch.sample_bytes // page) * page)
+            total += ch.slot_count * (-(-(ch.sample_bytes + TAG_LEN) // page) * page)
     return total
 
 
@@ -110,6 +141,7 @@ class BulkStats:
     received_copied: int = 0
     missed: int = 0
     bad: int = 0
+    stale: int = 0
 
 
 @dataclass(frozen=True, slots=True)
@@ -121,13 +153,30 @@ class BulkHeader:
 
 
 def decode_sample(
-    data: bytes, channel: BulkChannelConfig
+    data: bytes | memoryview,
+    channel: BulkChannelConfig,
+    auth: Channel | None = None,
+    *,
+    tagged: bool | None = None,
 ) -> tuple[BulkHeader, np.ndarray[Any, Any]]:
     """Header and a read-only array view of one sample's bytes (no copy).
 
-    Raises TransportError if the length or layout does not match ``channel``.
-    For ``zplatform tap`` and tests; the loop uses :class:`BulkReader`.
+    ``auth``: the channel's auth channel (:func:`bulk_channel`), whose tag
+    is checked first, any run's (AuthError, a CodecError, when it does not
+    check); ``tagged``: whether ``data`` carries a tag (default: when
+    ``auth`` is given), skipped unchecked without ``auth`` (a tool without
+    the key). Raises TransportError if the length or layout does not match
+    ``channel``. For ``zplatform tap`` and tests; the loop uses :class:`BulkReader`.
     """
+    if tagged is None:
+        tagged = auth is not None
+    if tagged:
+        if len(data) != channel.sample_bytes + TAG_LEN:
+            raise TransportError(
+                f"bulk {channel.name}: sample of {len(data)} bytes, expected "
+                f"{channel.sample_bytes + TAG_LEN} (with its tag)"
+            )
+        data = auth.open(data, any_run=True) if auth is not None else memoryview(data)[:-TAG_LEN]
     if len(data) != channel.sample_bytes:
         raise TransportError(
             f"bulk {channel.name}: sample of {len(data)} bytes, expected {channel.sample_bytes}"
@@ -157,8 +206,12 @@ class BulkWriter:
         *,
         monotonic: Callable[[], int] = time.monotonic_ns,
         iox: Any | None = None,
+        auth: Channel | None = None,
     ) -> None:
         self.channel = channel
+        self.auth = auth
+        """The channel's auth channel (:func:`bulk_channel`, bound to the
+        owner's run), or None: the mission does not authenticate."""
         self.iox = iox
         """The channel's iceoryx2 publisher (an IntraHostPublisher: same-host
         readers), or None."""
@@ -166,10 +219,11 @@ class BulkWriter:
         self._provider = provider
         self._mono = monotonic
         self._timeout_ns = round(channel.alloc_timeout_ms * 1e6)
-        self._size = channel.sample_bytes
+        self._size = channel.sample_bytes + (TAG_LEN if auth is not None else 0)
         self._layout = channel.layout_id
         # ZShmMut[:] accepts only bytes/bytearray (not a memoryview or an
-        # ndarray), so the frame lives in a bytearray and the array views it.
+        # ndarray), so the frame lives in a bytearray and the array views it;
+        # its tag, when authenticated, in its last TAG_LEN bytes.
         self._buf = bytearray(self._size)
         self.array: np.ndarray[Any, Any] = np.frombuffer(
             self._buf, channel.dtype, math.prod(channel.shape), HEADER.size
@@ -206,7 +260,9 @@ class BulkWriter:
         return loop % self.channel.rate_divisor == self.channel.rate_phase
 
     def publish(self, loop: int, t_ns: int) -> bool:
-        """Send :attr:`array` with ``loop`` and ``t_ns`` in its header.
+        """Send :attr:`array` with ``loop`` and ``t_ns`` in its header, tagged
+        once (in place, no copy: :meth:`~zplatform.core.auth.Channel.seal_tail`)
+        when authenticated; the same bytes go over both paths.
 
         Over iceoryx2 (:attr:`iox`, when a subscriber is attached): one copy
         into a loaned sample; none free counts a drop. Over zenoh, only when
@@ -221,6 +277,8 @@ class BulkWriter:
         the put itself.
         """
         HEADER.pack_into(self._buf, 0, self._layout, 0, self._seq, loop, t_ns)
+        if self.auth is not None:
+            self.auth.seal_tail(self._buf)
         iox = self.iox
         if iox is not None and iox.subscribers:
             loan = iox.loan()
@@ -285,6 +343,12 @@ class BulkReader:
     :meth:`poll` (non-blocking) or :meth:`wait` (blocking, bounded) takes the
     newest sample, if any, into :attr:`array`. Older unread samples are
     superseded, never queued: a slow reader never stalls the session.
+
+    ``auth``: the channel's auth channel (:func:`bulk_channel`), bound to
+    the reader's run (None: the mission does not authenticate, samples
+    carry no tag); ``now_ns``: the reader's clock (the control node's time)
+    and ``ahead_ns`` how far ahead of it a stamp may be (module doc for
+    the intake).
     """
 
     def __init__(
@@ -294,9 +358,15 @@ class BulkReader:
         channel: BulkChannelConfig,
         *,
         iox: Any | None = None,
+        auth: Channel | None = None,
+        now_ns: Callable[[], int] = time.time_ns,
+        ahead_ns: int = DEFAULT_AHEAD_NS,
     ) -> None:
         self.channel = channel
         self.key = key
+        self.auth = auth
+        self._now = now_ns
+        self._ahead = ahead_ns
         self.iox = iox
         """The channel's iceoryx2 subscriber (an IntraHostSubscriber: a
         same-host owner), or None."""
@@ -313,7 +383,7 @@ class BulkReader:
         self.array: np.ndarray[Any, Any] = np.zeros(channel.shape, channel.dtype)
         self.view: np.ndarray[Any, Any] | None = None
         self.header: BulkHeader | None = None
-        self._size = channel.sample_bytes
+        self._size = channel.sample_bytes + (TAG_LEN if auth is not None else 0)
         self._layout = channel.layout_id
         self._count = math.prod(channel.shape)
         self._dtype = channel.dtype  # parsed once: poll must not re-parse the type
@@ -331,6 +401,20 @@ class BulkReader:
         self.received_copied = 0
         self.missed = 0
         self.bad = 0
+        """Samples refused as malformed: the wrong size, a bad tag (forged,
+        another key), a layout not this channel's."""
+        self.stale = 0
+        """Authentic samples refused: another run's (an earlier run's,
+        replayed), stamped further ahead of the reader's clock than
+        ``ahead_ns``, or beyond the channel's rate bound (:data:`RATE_BURST`)."""
+        self.why = ""
+        """Why the last sample was refused (for the refusal's event)."""
+        # The rate bound (a GCRA in polls, the reader's loops): the
+        # theoretical poll of the next sample, one every rate_divisor.
+        self._polls = 0
+        self._tat = 0
+        self._every = channel.rate_divisor
+        self._burst = RATE_BURST * channel.rate_divisor
         self._sub: Any = None
         self._declare()
 
@@ -351,9 +435,12 @@ class BulkReader:
         Returns ``True`` when :attr:`array` (``copy=True``) or :attr:`view`
         (``copy=False``: read-only, valid until the next poll) holds a new,
         checked sample; ``False`` when none arrived or it was refused
-        (counted in ``bad``). Never blocks; copies once out of zenoh and,
-        with ``copy=True``, once into :attr:`array`.
+        (counted in ``bad`` or ``stale``, module doc). Never blocks; copies
+        once out of zenoh (after the size check: the intake's one copy,
+        checked in place after it) and, with ``copy=True``, once into
+        :attr:`array`; a refused sample is never copied into it.
         """
+        self._polls += 1
         iox = self.iox
         if iox is not None:
             got = self._poll_iox(iox, copy)
@@ -365,6 +452,10 @@ class BulkReader:
         self._latest = None
         self._event.clear()
         payload = sample.payload
+        if len(payload) != self._size:  # size first: nothing of it is read
+            self.bad += 1
+            self.why = f"a sample of {len(payload)} bytes, not {self._size}"
+            return False
         shm = payload.as_shm()
         via_shm = shm is not None
         # bytes(shm) is faster than payload.to_bytes() for shm (bench.shm)
@@ -424,21 +515,49 @@ class BulkReader:
         self.changes.append(("zenoh", why))
 
     def _take(self, data: bytes | memoryview, copy: bool) -> bool:
-        """The intake of one sample (size, layout; sequence gaps counted as
-        missed), then into :attr:`array` (or :attr:`view`)."""
+        """The intake of one sample (module doc: size, tag, freshness, rate
+        bound, layout; sequence gaps counted as missed), then into
+        :attr:`array` (or :attr:`view`). Reads ``data`` in place."""
         if len(data) != self._size:
             self.bad += 1
+            self.why = f"a sample of {len(data)} bytes, not {self._size}"
             return False
+        auth = self.auth
+        if auth is not None:
+            try:
+                data = auth.open(data)
+            except RunError as exc:  # an earlier run's genuine sample: a replay
+                self.stale += 1
+                self.why = str(exc)
+                return False
+            except AuthError as exc:
+                self.bad += 1
+                self.why = str(exc)
+                return False
         layout, _flags, seq, loop, t_ns = HEADER.unpack_from(data, 0)
-        if layout != self._layout:
-            self.bad += 1
-            return False
         if self._last_seq is not None and seq <= self._last_seq and t_ns <= self._last_t_ns:
             # A sample taken already (or older): the same one over the other
             # path around a switch. Not taken twice; a restarted owner's
             # sequence starts again at 0 but its stamps go on.
             self.duplicates += 1
             return False
+        if t_ns > self._now() + self._ahead:
+            # Authentic but stamped beyond any owner's clock (a key holder's
+            # bug, a stepped clock): taken, it would refuse every genuine
+            # sample after it as older.
+            self.stale += 1
+            self.why = f"a sample stamped {t_ns}, ahead of this node's clock"
+            return False
+        polls = self._polls
+        if polls < self._tat - self._burst:
+            self.stale += 1
+            self.why = f"samples beyond the rate bound (one every {self._every} loops)"
+            return False
+        if layout != self._layout:
+            self.bad += 1
+            self.why = f"layout {layout:#x}, not this channel's {self._layout:#x}"
+            return False
+        self._tat = max(self._tat, polls) + self._every
         if self._last_seq is not None and seq > self._last_seq + 1:
             self.missed += seq - self._last_seq - 1
         self._last_seq, self._last_t_ns = seq, t_ns
@@ -474,6 +593,7 @@ class BulkReader:
             received_copied=self.received_copied,
             missed=self.missed,
             bad=self.bad,
+            stale=self.stale,
         )
 
     def undeclare(self) -> None:
@@ -505,9 +625,17 @@ class NodeBulk:
         bulk.publish(loop, t_ns)       # writers due on this loop
         bulk.write_counters(dv)        # or bulk.counters() into telemetry
 
+    ``keys``: the node's keys (None: the mission does not authenticate);
+    each channel's samples are then tagged and checked with its auth
+    channel (:func:`bulk_channel`), bound to ``run`` (the node's run: the
+    loop's ``auth_run``; None: bound to none). ``now_ns``: the node's clock
+    (its corrected one on a device node), which stamps events and bounds a
+    sample's stamp ``ahead_ns`` ahead of it. Refusals (a reader's ``bad``
+    and ``stale``) are evented (``bulk_refused``) at most once a second.
+
     Blocks at construction for the pool's first touch (one write of every
     chunk: proportional to the pool). Raises TransportError if the pool
-    cannot be created.
+    cannot be created, KeyError_ when ``keys`` lacks a channel's link.
     """
 
     def __init__(
@@ -522,7 +650,13 @@ class NodeBulk:
         intra_host: Any | None = None,
         events: Any | None = None,
         now_ns: Callable[[], int] = time.time_ns,
+        keys: KeySet | None = None,
+        run: Run | None = None,
+        ahead_ns: int = DEFAULT_AHEAD_NS,
     ) -> None:
+        # Deferred: zplatform.control imports the loop, which names this module.
+        from ..control.intake import RefusalLog
+
         self.node = node
         self.events = events
         """Where path changes are evented (an EventLog; None: kept in
@@ -531,6 +665,9 @@ class NodeBulk:
         self.changes: list[tuple[str, str, str]] = []
         """``(channel, path, why)`` of the path changes :meth:`receive` saw
         (the last ones; cleared when evented)."""
+        self._refusals = RefusalLog(2)
+        self._refused = (0, 0)  # the readers' (bad, stale) when last evented
+        self._tag = TAG_LEN if keys is not None else 0
         self.pool_bytes = pool_size(channels, node) if shared_memory else 0
         self.provider: Any | None = None
         if self.pool_bytes:
@@ -546,12 +683,19 @@ class NodeBulk:
         self.readers: dict[str, BulkReader] = {}
         for ch in channels:
             key = bulk_key(vehicle, ch)
+            if ch.node != node and node not in ch.readers:
+                continue
+            auth = keys.channel(bulk_channel(ch.name), run) if keys is not None else None
             if ch.node == node:
                 pub = self._iox(intra_host, ch, publisher=True) if ch.readers else None
-                self.writers[ch.name] = BulkWriter(session, key, ch, self.provider, iox=pub)
-            elif node in ch.readers:
+                self.writers[ch.name] = BulkWriter(
+                    session, key, ch, self.provider, iox=pub, auth=auth
+                )
+            else:
                 sub = self._iox(intra_host, ch, publisher=False)
-                self.readers[ch.name] = BulkReader(session, key, ch, iox=sub)
+                self.readers[ch.name] = BulkReader(
+                    session, key, ch, iox=sub, auth=auth, now_ns=now_ns, ahead_ns=ahead_ns
+                )
         self._handles: list[tuple[Any, Callable[[], int]]] = []
         self.arrays: dict[str, Any] = {n: w.array for n, w in self.writers.items()}
         """Every channel's array by name: the owned ones (filled by the node's
@@ -572,7 +716,7 @@ class NodeBulk:
         end = intrahost.IntraHostPublisher if publisher else intrahost.IntraHostSubscriber
         try:
             name = intrahost.bulk_service_name(mission, ch.node, ch.name)
-            return end(name, ch.sample_bytes, len(ch.readers))
+            return end(name, ch.sample_bytes + self._tag, len(ch.readers))
         except IntraHostError as exc:
             if mission.transport.intra_host == "shm":
                 raise TransportError(f"bulk {ch.name}: {exc}") from exc
@@ -581,17 +725,38 @@ class NodeBulk:
 
     def receive(self, loop: int) -> None:
         """Take the newest sample of every read channel into its array
-        (:meth:`BulkReader.poll`), then event each reader's path change
-        (:attr:`events`); never blocks (a fallback declares a zenoh
-        subscriber, rarely)."""
+        (:meth:`BulkReader.poll`), then event each reader's path change and
+        the refusals (at most once a second, :attr:`events`); never blocks
+        (a fallback declares a zenoh subscriber, rarely)."""
         for r in self._readers:
             r.poll()
             if r.changes:
                 for path, why in r.changes:
                     self.changes.append((r.channel.name, path, why))
                 r.changes.clear()
-        if self.changes and self.events is not None:
-            self._event_changes()
+        if self.events is not None:
+            if self.changes:
+                self._event_changes()
+            if self._readers:
+                self._event_refusals()
+
+    def _event_refusals(self) -> None:
+        bad = stale = 0
+        for r in self._readers:
+            bad += r.bad
+            stale += r.stale
+        b0, s0 = self._refused
+        if bad == b0 and stale == s0:
+            n = self._refusals.add(self._now(), 0, 0)  # what is left, a period on
+        else:
+            self._refused = (bad, stale)
+            n = self._refusals.add(self._now(), bad - b0, stale - s0)
+        if n is None:
+            return
+        why = next((f"{r.channel.name}: {r.why}" for r in self._readers if r.why), "")
+        self.events.emit(  # type: ignore[union-attr]
+            EV.BULK_REFUSED, self._now(), node=self.node, bad=n[0], stale=n[1], why=why
+        )
 
     def _event_changes(self) -> None:
         t_ns = self._now()
@@ -646,6 +811,7 @@ class NodeBulk:
             out[f"bulk_{name}_copied"] = r.received_copied
             out[f"bulk_{name}_missed"] = r.missed
             out[f"bulk_{name}_bad"] = r.bad
+            out[f"bulk_{name}_stale"] = r.stale
         return out
 
     def write_counters(self, dv: Any) -> None:
@@ -676,9 +842,11 @@ def mission_shm_need(mission: Any) -> int:
         for dn in mission.device_nodes
     )
     nodes = {ch.node for ch in mission.bulk}
+    tag = TAG_LEN if mission.security.auth else 0
     if mission.transport.intra_host != "zenoh":
         need += sum(
-            intrahost.bulk_segment_bytes(ch.sample_bytes, len(ch.readers)) for ch in mission.bulk
+            intrahost.bulk_segment_bytes(ch.sample_bytes + tag, len(ch.readers))
+            for ch in mission.bulk
         )
     return need + sum(pool_size(mission.bulk, n) for n in nodes)
 
@@ -693,11 +861,24 @@ def _getter(bulk: NodeBulk, element: str) -> Callable[[], int]:
     return lambda: int(getattr(end, attr))
 
 
-def open_bulk(session: zenoh.Session, mission: Any, node: str, logic: Any) -> NodeBulk | None:
+def open_bulk(
+    session: zenoh.Session,
+    mission: Any,
+    node: str,
+    logic: Any,
+    keys: KeySet | None,
+    now_ns: Callable[[], int] = time.time_ns,
+) -> NodeBulk | None:
     """The node's bulk channel ends (None when it has none), attached to the
     node's loop (``logic.attach_bulk``), which receives, publishes and counts
     them in its protocol order and hands :attr:`NodeBulk.arrays` to its
-    components. Raises TransportError as :class:`NodeBulk`."""
+    components. ``keys``: the node's (None only when the mission does not
+    authenticate); the channels are bound to the loop's run
+    (``logic.auth_run``), stamps bounded ahead of ``now_ns`` (the node's
+    clock) by the clock bound and a period. Raises TransportError as
+    :class:`NodeBulk`."""
+    from ..control.intake import ahead_bound_ns
+
     mine = [ch for ch in mission.bulk if ch.node == node or node in ch.readers]
     if not mine:
         return None
@@ -709,6 +890,10 @@ def open_bulk(session: zenoh.Session, mission: Any, node: str, logic: Any) -> No
         shared_memory=mission.transport.shared_memory,
         intra_host=mission,
         events=logic.events,
+        now_ns=now_ns,
+        keys=keys,
+        run=logic.auth_run,
+        ahead_ns=ahead_bound_ns(mission),
     )
     logic.attach_bulk(bulk)
     return bulk
