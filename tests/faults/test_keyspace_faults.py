@@ -55,6 +55,7 @@ from zplatform.control.intake import (
     RequestIntake,
     TelemetryIntake,
     TriggerIntake,
+    ahead_bound_ns,
 )
 from zplatform.control.loop import ControlLogic, DeviceLogic
 from zplatform.control.uplink import Uplink
@@ -67,11 +68,17 @@ from zplatform.ground.logic import Gap, GroundLogic
 from zplatform.mission.load import load_mission
 from zplatform.recorder.format import REPLY_FRAMES, REPLY_LEN, REQUEST, REQUEST_MAGIC
 from zplatform.recorder.server import RecorderServer
+from zplatform.runtime.bulk import HEADER as BULK_HEADER
+from zplatform.runtime.bulk import BulkReader, bulk_key
 from zplatform.runtime.clocksync import RUN_ANSWER, ClockLink, ClockResponder, RunAsker
 from zplatform.security.keyspace import ExpandedKey, KeyFrames, expand_keys
 
 ROOT = Path(__file__).resolve().parents[2]
-MISSIONS = {n: load_mission(ROOT / "configs" / f"{n}.yaml") for n in ("flight", "recovery_igniter")}
+# camera: the shipped mission with bulk channels (the bulk row's recipe).
+MISSIONS = {
+    n: load_mission(ROOT / "configs" / f"{n}.yaml")
+    for n in ("flight", "recovery_igniter", "camera")
+}
 MASTER = bytes.fromhex(os.environ[KEY_ENV])
 T0 = 1_700_000_000_000_000_000
 EPOCH = 77
@@ -418,6 +425,69 @@ class EventH(Harness):
 
     def stamp_max(self) -> bytes:
         return self._record(U64_MAX, I64_MAX, 2)
+
+
+class _NoSession:
+    """A zenoh session as a BulkReader declares on it (nothing is delivered:
+    the harness feeds the intake)."""
+
+    def declare_subscriber(self, *a: Any, **k: Any) -> Any:
+        return SimpleNamespace(undeclare=lambda: None)
+
+
+class BulkH(Harness):
+    """A bulk channel's samples at its first reader (BulkReader's intake,
+    the one both paths share: size, tag, freshness, rate bound)."""
+
+    kinds = ("bad", "stale")
+
+    def __init__(self, m: Mission, owner: str, channel: str, t0: int = T0) -> None:
+        (self.bc,) = [c for c in m.bulk if c.name == channel]
+        self.t0, self.m, self.keys = t0, m, _keys(m)
+        self.ch = self.keys.channel(f"bulk_{channel}", Run(t0))  # the owner's, in run t0
+        self.now = t0
+        reader = self.bc.readers[0]
+        self.r = BulkReader(
+            _NoSession(),  # type: ignore[arg-type]
+            bulk_key(m.vehicle, self.bc),
+            self.bc,
+            auth=self.keys.for_node(reader).channel(f"bulk_{channel}", Run(t0)),
+            now_ns=lambda: self.now,
+            ahead_ns=ahead_bound_ns(m),
+        )
+        self.max_len = self.bc.sample_bytes + TAG_LEN
+        self.n = 0
+
+    def _sample(self, seq: int, loop: int, t_ns: int, flags: int = 0) -> bytes:
+        data = bytearray(self.bc.sample_bytes)
+        BULK_HEADER.pack_into(data, 0, self.bc.layout_id, flags, seq, loop, t_ns)
+        return bytes(self.ch.seal(data))
+
+    def genuine(self) -> bytes:
+        self.n += 1
+        # One sample every rate_divisor loops, as its owner publishes them.
+        self.now = self.t0 + self.n * self.bc.rate_divisor * self.m.period_ns
+        return self._sample(self.n, self.n * self.bc.rate_divisor, self.now)
+
+    def feed(self, payload: bytes) -> bool:
+        for _ in range(self.bc.rate_divisor):
+            self.r._polls += 1  # the reader's loops since the last sample
+        return self.r._take(payload, True)
+
+    def counts(self) -> dict[str, int]:
+        # A sample taken already (a replay in this run) is refused as a duplicate.
+        return {"bad": self.r.bad, "stale": self.r.stale + self.r.duplicates}
+
+    def extreme(self, hi: bool) -> bytes:
+        if hi:
+            return self._sample(U64_MAX, U64_MAX, I64_MAX, U32_MAX)
+        return self._sample(0, 0, I64_MIN, 0)
+
+    def stamp_max(self) -> bytes:
+        return self._sample(U64_MAX, U64_MAX, I64_MAX)
+
+    def close(self) -> None:
+        self.r.undeclare()
 
 
 def _asker_node(asker: str) -> str:
@@ -1029,6 +1099,7 @@ RECIPES: dict[tuple[str, str], tuple[type[Harness], Callable[[ExpandedKey], dict
     ("mirror", "sample"): (MirrorH, _none),
     ("probe", "query"): (ProbeAskH, _dn),
     ("probe", "reply"): (ProbeReplyH, _dn),
+    ("bulk", "sample"): (BulkH, lambda k: dict(k.params)),
 }
 """A fault recipe per (row, frame kind) whose frames are tagged and taken by
 a node: the harness and its arguments from the expanded row."""

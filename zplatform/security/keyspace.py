@@ -393,15 +393,19 @@ KEYSPACE: tuple[KeyRow, ...] = (
         frames=(
             KeyFrames(
                 "sample",
-                "",
-                "none: untagged (shared memory, one host)",
+                "bulk_{channel}",
+                "bulk-{channel}",
                 "zplatform.runtime.bulk.BulkReader any",
-                "the channel's sample counter",
-                "one slot, newest wins",
+                "numbered or stamped later than the last taken, stamped at most the clock "
+                "bound and a period ahead of the reader's clock",
+                "one slot, newest wins, one per poll; RATE_BURST ahead of one every "
+                "rate_divisor loops",
+                run_bound=True,
             ),
         ),
         when="bulk",
-        what="bulk channel samples (large arrays), through shared memory on one host",
+        what="bulk channel samples (large arrays); the same tagged bytes go through "
+        "iceoryx2 to readers on the owner's host",
     ),
     KeyRow(
         "recorder",
