@@ -351,7 +351,15 @@ RUN_ANSWER = struct.Struct("<2sB16sQ")
 RUN = T0 - 0x5A5A5A  # the CN's run (a cn_epoch: a clock reading, its low 24 bits random)
 
 
-def auth_messages(frame: bytes) -> list[tuple[str, str, str, int, bytes]]:
+def bulk_sample(mission: object) -> bytes:
+    """The vectors mission's bulk channel ``frame`` (``u8[16]``, dn1's) as its
+    owner publishes it untagged (zplatform/runtime/bulk.py): the 32-byte
+    header (layout_id, flags 0, seq 7, loop 70, t_ns T0), then bytes 0..15."""
+    (ch,) = mission.bulk  # type: ignore[attr-defined]
+    return struct.pack("<IIQQq", ch.layout_id, 0, 7, 70, T0) + bytes(range(ch.nbytes))
+
+
+def auth_messages(frame: bytes, bulk: bytes = b"") -> list[tuple[str, str, str, int, bytes]]:
     """``(what, channel, description, run, message)`` of every tagged vector."""
     event = Event("cn", 0, T0, int(Severity.COMMAND), "cmd_accepted", "command LAUNCH #2 accepted")
     query = CLOCK_QUERY.pack(b"ZQ", 1, 0, NONCE, T0)
@@ -393,6 +401,14 @@ def auth_messages(frame: bytes) -> list[tuple[str, str, str, int, bytes]]:
             RUN,
             RUN_ANSWER.pack(b"ZA", 1, NONCE, RUN),
         ),
+        (
+            "bulk_frame",
+            "bulk_frame",
+            "a sample of bulk channel frame (u8[16], dn1's; header seq 7, loop 70, t_ns T0, "
+            "then bytes 0..15), in the run dn1 follows",
+            RUN,
+            bulk,
+        ),
     ]
 
 
@@ -402,7 +418,7 @@ def write_auth_vectors(mission: object, frame: bytes) -> None:
     keys = KeySet.from_master(mission, MASTER)  # type: ignore[arg-type]
     written = set()
     for mac in MACS:
-        for what, name, description, run, body in auth_messages(frame):
+        for what, name, description, run, body in auth_messages(frame, bulk_sample(mission)):
             link = link_of(name)
             link_key = keys.link_key(link)
             ch_key = channel_key(link_key, vehicle, mac, name)

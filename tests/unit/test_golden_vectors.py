@@ -163,6 +163,7 @@ def test_auth_vectors_present() -> None:
         "events_cn",
         "run_hello",
         "run_answer",
+        "bulk_frame",
     )
     assert sorted(f"{mac}_{w}" for mac in ("blake3", "hmac-sha256") for w in whats) == AUTH_NAMES
 
@@ -248,6 +249,15 @@ def test_auth_vector_by_the_platform(name: str) -> None:
         asker.hello()
         asker._nonce = bytes(range(0xA0, 0xB0))  # the vector's hello
         assert asker.check(sealed) and asker.run.epoch == run == rrun
+    elif what == "bulk_frame":  # dn2's intake takes it; its header and array read back
+        from zplatform.runtime.bulk import decode_sample
+
+        ch = mission.bulk[0]
+        dn2 = keys.for_node("dn2").channel("bulk_frame", Run(run))
+        hdr, arr = decode_sample(sealed, ch, dn2)
+        assert (hdr.layout_id, hdr.seq, hdr.loop) == (ch.layout_id, 7, 70)
+        assert hdr.t_ns == 1_700_000_000_000_000_000
+        assert arr.tobytes() == bytes(range(16))
     else:
         e, verified = EventReader(mission, keys).read("rocket/cn/events", sealed)
         assert verified is True and (e.node, e.id) == ("cn", "cmd_accepted")
