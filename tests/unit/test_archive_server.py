@@ -9,6 +9,7 @@ and serves what it admitted here, in order: no network, no timing."""
 from __future__ import annotations
 
 import itertools
+import struct
 from pathlib import Path
 from types import SimpleNamespace
 from typing import Any
@@ -17,6 +18,7 @@ import pyarrow as pa
 import pytest
 
 from tests.unit.test_archive import T0, feed
+from tests.zsession import lone_session
 from zplatform.archive import Archive, ArchiveWriter, Query, RunInfo
 from zplatform.archive.server import (
     ASK,
@@ -460,3 +462,128 @@ def test_the_cli_prints_runs_and_events_asked_remotely_as_it_prints_them_locally
     assert main(["archive", flight, "events", "--severity", "WARN", "--remote"]) == 2
     err = capsys.readouterr().err  # the station's reason, one line
     assert err == "zplatform: error: the station refused the query: no severity 'WARN'\n"
+
+
+# -- the per-asker bound counts tagged asks only (issue 25) ------------------------------
+
+
+def test_a_keyless_peer_using_a_stations_asker_word_cannot_spend_its_bound(root: Path) -> None:
+    """The defect: the per-asker bound counted asks by their asker word
+    before the tag, so a keyless peer that read station A's word put junk
+    in hand under it and A's genuine ask, in hand at the same time, was
+    refused "N queries in hand already". Now only an ask whose tag checks
+    counts: the junk waits in the inbox (the global bound), is refused
+    unanswered, and A is answered with rows."""
+    clock = Clock()
+    srv = server(root, clock, per_asker=1)
+    a = Station(1).learn(srv)
+    genuine = a.ask(Q)
+    # Junk with A's asker word (read off the wire), untagged and forged-tagged.
+    forged = ask_payload(None, Q, a.cookie, 4242, asker=1) + bytes(TAG_LEN)
+    qj1, qj2, qa = deliver(srv, forged, forged[:-1] + b"\x01", genuine)
+    assert qj1.replies == [] and qj2.replies == []
+    assert answer(a, qa).num_rows == 10
+    assert (srv.over_bound, srv.served, srv.refused) == (0, 1, 2)
+    assert srv._in_hand == {} and srv._counted == {}
+
+
+def test_tagged_asks_still_count_against_their_askers_bound(root: Path) -> None:
+    """The bound holds for genuine asks whatever junk came before."""
+    clock = Clock()
+    srv = server(root, clock, per_asker=1)
+    a1, a2 = Station(1).learn(srv), Station(1).learn(srv)
+    junk = ask_payload(None, Q, a1.cookie, 77, asker=1) + bytes(TAG_LEN)
+    _, q1, q2 = deliver(srv, junk, a1.ask(Q), a2.ask(Q))
+    assert answer(a1, q1).num_rows == 10
+    with pytest.raises(ArchiveError, match="1 queries in hand already"):
+        answer(a2, q2)
+    assert (srv.over_bound, srv.refused) == (1, 1)
+
+
+# -- an ask or hello of another version: one clear error (issue 28) ----------------------
+
+
+def _old_ask(a: ArchiveAsk, magic: bytes = b"ZAQ2") -> bytes:
+    """An ask as a zplatform of another version makes it (ZAQ2: magic, asker,
+    nonce, cookie, then the query's JSON; no kind byte), tagged in the session."""
+    import msgspec
+
+    assert a._channel is not None
+    body = struct.pack("<4sQQq", magic, a.asker, a.nonce, a.cookie) + msgspec.json.encode(Q)
+    return bytes(a._channel.seal(body))
+
+
+def test_an_ask_of_another_version_gets_one_clear_error_reply(root: Path) -> None:
+    """The defect: a tool of the previous version (ZAQ2) asking this ground
+    got no answer at all (refused unanswered as "not an archive ask"), and
+    waited out its timeout. Now one ERROR reply, tagged, echoing its nonce,
+    says which versions; the old asker's own checks take it."""
+    clock = Clock()
+    srv = server(root, clock)
+    a = Station(1).learn(srv)
+    (q,) = deliver(srv, _old_ask(a))
+    (r,) = q.replies
+    assert a.on_reply(r)  # a ZAQ2 asker takes it too: the reply format is unchanged
+    with pytest.raises(
+        ArchiveError, match=r"archive ask version 2 not served; this ground serves ZAQ3"
+    ):
+        a.table()
+    assert (srv.other_version, srv.served, srv.refused) == (1, 1, 0)
+
+
+def test_version_error_replies_are_rate_bounded_and_need_a_tag(root: Path) -> None:
+    clock = Clock()
+    srv = server(root, clock)
+    st = Station(1)
+    a, b, c = st.learn(srv), st.learn(srv), st.learn(srv)
+    qa, qb = deliver(srv, _old_ask(a), _old_ask(b, b"ZAQ9"))
+    assert len(qa.replies) == 1 and qb.replies == []  # one a second
+    assert (srv.other_version, srv.refused) == (2, 1)
+    # An untagged one (a keyless peer) is refused before its magic is read.
+    untagged = struct.pack("<4sQQq", b"ZAQ2", 1, 5, clock.t) + b"{}"
+    clock.t += 2 * S
+    (qu,) = deliver(srv, untagged + bytes(TAG_LEN))
+    assert qu.replies == [] and srv.other_version == 2
+    (qc,) = deliver(srv, _old_ask(c, b"ZAQ4"))  # a second later: answered again
+    assert c.on_reply(qc.replies[0])
+    with pytest.raises(ArchiveError, match="archive ask version 4 not served"):
+        c.table()
+
+
+def test_a_hello_of_another_version_gets_one_clear_error_and_the_asker_says_so(
+    root: Path,
+) -> None:
+    """A newer ground answers this version's hello with one error reply
+    (simulated here by a hello of magic ZAH9 to this one): the asker turns
+    it into the station's reason, not a timeout."""
+    clock = Clock()
+    srv = server(root, clock)
+    a = Station(1).new()
+    assert a._channel is not None
+    hello = bytes(a._channel.seal(struct.pack("<4sQQ", b"ZAH9", a.asker, a.hello_nonce)))
+    (q,) = deliver(srv, hello)
+    (r,) = q.replies
+    assert a.on_reply(r) and a.session is None
+    assert a.error is not None and "archive hello version 9 not served" in a.error
+
+
+def test_the_client_turns_no_answer_into_a_clear_error(root: Path) -> None:
+    """remote_query against a station that answers nothing (an older ground
+    refuses a newer ask unanswered): an ArchiveError (a ZPlatformError)
+    that names the version it asks in, not a bare timeout."""
+    from zplatform.archive.server import remote_query
+    from zplatform.errors import ZPlatformError
+
+    session = lone_session()  # nobody serves the archive: the get ends unanswered
+    try:
+        with pytest.raises(ZPlatformError, match=r"does not answer this one's hello \(ZAH2\)"):
+            remote_query(
+                session,
+                "rocket/archive/query",
+                KEYS.for_node("tool").channel("telemetry"),
+                Q,
+                nonce=1,
+                timeout_s=5.0,
+            )
+    finally:
+        session.close()

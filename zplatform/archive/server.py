@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import secrets
 import struct
+import threading
 import time
 from collections import OrderedDict
 from collections.abc import Callable
@@ -62,6 +63,13 @@ __all__ = [
 
 ASK_MAGIC = b"ZAQ3"
 HELLO_MAGIC = b"ZAH2"
+_NONCE_AT = 12
+"""Where every version's ask and hello carry their nonce (after the magic
+and a u64: ZAQ1's stamp, ZAQ2's and ZAQ3's asker, ZAH2's asker): what a
+version error reply echoes, the one field read of a foreign frame."""
+VERSION_ERROR_EVERY_NS = 1_000_000_000
+"""At most one version error reply (an ask or hello of another version,
+:class:`ArchiveServer`) per this much time; more are refused unanswered."""
 ASK = struct.Struct("<4sQQqB")  # magic, asker, nonce, cookie, kind
 HELLO = struct.Struct("<4sQQ")  # magic, asker, nonce
 MAX_ASK = 4096
@@ -193,9 +201,12 @@ class ArchiveServer(QueryWorker):
     forgotten early), so a recorded ask cannot be replayed later in the same
     session either.
 
-    :class:`ArchiveServer`'s zenoh callback checks the size, reads the asker
-    word (unchecked: only to count) and hands the frame to a bounded inbox
-    (:data:`MAX_PENDING`; more are dropped unanswered, counted ``busy``). Its
+    :class:`ArchiveServer`'s zenoh callback checks the size, hands the frame
+    to a bounded inbox (:data:`MAX_PENDING`, whoever sent it: the pre-tag
+    bound that caps what junk costs; more are dropped unanswered, counted
+    ``busy``) and counts an ask under its asker word only when its tag
+    checks in the session (so a keyless peer that read a station's asker
+    word cannot spend that station's bound). Its
     thread checks the tag, the session, the cookie, runs the query, and replies
     with the answer as an Arrow IPC stream in chunks (:data:`REPLY`: kind, the
     ask's nonce, index, count), each tagged, paced to ``serve_bps``. Per asker
@@ -206,6 +217,12 @@ class ArchiveServer(QueryWorker):
     answer over ``max_bytes`` and a refused query (never cut silently).
     :class:`ArchiveAsk` is the asker's side: it learns the session, then checks
     each reply (tag in the session, nonce, index) and puts the table together.
+
+    An ask or hello of another version (magic ``ZAQn``/``ZAHn`` not this
+    one's) whose tag checks (any run) is answered with one ``ERROR`` reply
+    naming both versions, its body never parsed (the nonce echoed from
+    where every version carries it), at most one a
+    :data:`VERSION_ERROR_EVERY_NS` (more: refused unanswered, counted).
 
     ``open_archive``: the archive to read (called in the serving thread by
     the first ask, then kept until :meth:`close`; called again while it raises); ``channel``: the
@@ -247,8 +264,14 @@ class ArchiveServer(QueryWorker):
         self._max_len = ASK.size + MAX_ASK + tag
         self._min_len = HELLO.size + tag
         self._served: dict[tuple[int, int, int], None] = {}  # (cookie, asker, nonce)
-        self._in_hand: dict[int, int] = {}  # asker -> asks in hand (zenoh's thread counts)
+        self._in_hand: dict[int, int] = {}  # asker -> tagged asks in hand (zenoh's thread counts)
+        self._counted: dict[int, int] = {}  # id() of an ask counted in _in_hand -> its asker
         self._over: set[int] = set()  # id() of asks taken past their asker's bound
+        # The channel serves both threads (zenoh's checks an ask's tag to
+        # count it; the serving thread checks and seals): one at a time,
+        # each for one MAC.
+        self._tag_lock = threading.Lock()
+        self._version_error_ns: int | None = None
         self._buckets: OrderedDict[int, tuple[float, int]] = OrderedDict()
         self._closed = False
         # Opened by the first ask, then kept: one DuckDB connection (and its
@@ -263,6 +286,9 @@ class ArchiveServer(QueryWorker):
         """Hellos answered (each with the session)."""
         self.over_bound = 0
         """Asks refused (answered with the reason) past their asker's bound."""
+        self.other_version = 0
+        """Asks and hellos of another version (answered with one error reply
+        at most once a VERSION_ERROR_EVERY_NS, else refused unanswered)."""
         super().__init__("archive-serve", MAX_PENDING, (zenoh.ZError,))
         self.queryable = session.declare_queryable(
             key_expr, zenoh.handlers.Callback(self.on_query, indirect=False)
@@ -276,7 +302,8 @@ class ArchiveServer(QueryWorker):
     def size_refusal(self, n: int) -> str | None:
         return None if self._min_len <= n <= self._max_len else f"an ask of {n} bytes"
 
-    # zenoh's thread: the size, the asker word to count, hand off; nothing more.
+    # zenoh's thread: the size, the inbox's bound, an ask's tag to count it
+    # under its asker; hand off, nothing more.
     def on_query(self, query: Any) -> None:
         p = query.payload
         n = 0 if p is None else len(p)
@@ -286,10 +313,14 @@ class ArchiveServer(QueryWorker):
             self.last_refusal = why
             query.drop()
             return
-        head = p.to_bytes()[: ASK.size] if n >= ASK.size else b""
-        asker = ASK.unpack(head)[1] if head[:4] == ASK_MAGIC else None
         with self._cv:
-            if len(self._pending) >= self._capacity:
+            if len(self._pending) >= self._capacity:  # the pre-tag bound: anyone's
+                self.busy += 1
+                query.drop()
+                return
+        asker = self._tagged_asker(p.to_bytes()) if n >= ASK.size else None
+        with self._cv:
+            if len(self._pending) >= self._capacity:  # filled meanwhile
                 self.busy += 1
                 query.drop()
                 return
@@ -299,8 +330,25 @@ class ArchiveServer(QueryWorker):
                     self._over.add(id(query))  # answered with the reason once checked
                 else:
                     self._in_hand[asker] = k + 1
+                    self._counted[id(query)] = asker
             self._pending.append(query)
             self._cv.notify()
+
+    def _tagged_asker(self, data: bytes) -> int | None:
+        """The asker word of an ask whose tag checks in the session (zenoh's
+        thread; one MAC), else None: only such an ask counts against its
+        asker's bound. The serving thread checks it all again."""
+        if data[:4] != ASK_MAGIC:
+            return None
+        ch = self._channel
+        if ch is not None:
+            with self._tag_lock:
+                ch.run = self.session
+                try:
+                    ch.open(data)
+                except AuthError:  # RunError included: refused when served
+                    return None
+        return int(ASK.unpack_from(data, 0)[1])
 
     def _stale(self, why: str) -> None:
         self.stale += 1
@@ -312,9 +360,10 @@ class ArchiveServer(QueryWorker):
         ch = self._channel
         if ch is None:
             return data
-        ch.run = self.session if bound else None
         try:
-            return bytes(ch.open(data))
+            with self._tag_lock:
+                ch.run = self.session if bound else None
+                return bytes(ch.open(data))
         except RunError:
             self._stale("an ask of another session (an earlier one's, replayed, or none)")
         except AuthError as exc:
@@ -322,13 +371,12 @@ class ArchiveServer(QueryWorker):
         return None
 
     def serve(self, query: Any) -> None:
-        over = id(query) in self._over
-        self._over.discard(id(query))
+        with self._cv:
+            over = id(query) in self._over
+            self._over.discard(id(query))
+            asker = self._counted.pop(id(query), None)  # the word zenoh's thread counted
         payload = query.payload
         data = payload.to_bytes() if payload is not None else b""
-        asker = None  # the word zenoh's thread counted this ask under
-        if not over and len(data) >= ASK.size and data[:4] == ASK_MAGIC:
-            asker = ASK.unpack_from(data, 0)[1]
         try:
             self._serve(query, data, over)
         finally:
@@ -353,8 +401,18 @@ class ArchiveServer(QueryWorker):
             self._reply(query, SESSION, nonce, 0, 1, cookie)
             return
         if len(data) < ASK.size or data[:4] != ASK_MAGIC:
-            # Junk, or a hello of a wrong length: its tag decides which count.
-            if self._open_frame(data, bound=False) is not None:
+            # Junk, a hello of a wrong length, or another version's ask or
+            # hello: its tag decides which count.
+            if self._open_frame(data, bound=False) is None:
+                return
+            head = data[:4]
+            other = head[:3] in (ASK_MAGIC[:3], HELLO_MAGIC[:3]) and head not in (
+                ASK_MAGIC,
+                HELLO_MAGIC,
+            )
+            if other and len(data) >= _NONCE_AT + 8:
+                self._other_version(query, data)
+            else:
                 self.refuse("not an archive ask or hello")
             return
         body = self._open_frame(data, bound=True)
@@ -428,6 +486,27 @@ class ArchiveServer(QueryWorker):
             if ahead > 0:
                 time.sleep(ahead)  # the serving thread paces; zenoh's thread never waits
 
+    def _other_version(self, query: Any, data: bytes) -> None:
+        """An authentic ask or hello of another version: one error reply
+        naming both (rate bounded), echoing its nonce; nothing else read."""
+        self.other_version += 1
+        what = "ask" if data[:3] == ASK_MAGIC[:3] else "hello"
+        version = data[3:4].decode("ascii", "replace")
+        why = (
+            f"archive {what} version {version} not served; this ground serves "
+            f"{ASK_MAGIC.decode()} (asks) and {HELLO_MAGIC.decode()} (hellos): use a zplatform "
+            "of the ground's version"
+        )
+        now = self._now()
+        last = self._version_error_ns
+        if last is not None and 0 <= now - last < VERSION_ERROR_EVERY_NS:
+            self.refuse(f"{why} (more than one such reply a second: refused unanswered)")
+            return
+        self._version_error_ns = now
+        self.last_refusal = why
+        (nonce,) = struct.unpack_from("<Q", data, _NONCE_AT)
+        self._error(query, nonce, why)
+
     def _error(self, query: Any, nonce: int, why: str) -> None:
         self.served += 1  # before the reply: an asker that has it finds it counted
         self._reply(query, ERROR, nonce, 0, 1, why.encode()[:CHUNK])
@@ -460,8 +539,9 @@ class ArchiveServer(QueryWorker):
         frame = REPLY.pack(kind, nonce, i, n) + data
         ch = self._channel
         if ch is not None:
-            ch.run = self.session
-            out = bytes(ch.seal(frame))
+            with self._tag_lock:
+                ch.run = self.session
+                out = bytes(ch.seal(frame))
         else:
             out = frame
         query.reply(self._key, out)
@@ -549,6 +629,12 @@ class ArchiveAsk:
         return True
 
     def _on_session(self, body: bytes, word: int, kind: int, nonce: int, i: int, n: int) -> bool:
+        if kind == ERROR and nonce == self.hello_nonce and (i, n) == (0, 1):
+            # The station's one error reply to the hello, tagged (any run:
+            # no session is known yet): a ground of another version says so.
+            if self.error is None:
+                self.error = body[REPLY.size :].decode("utf-8", "replace")
+            return True
         ok = kind == SESSION and nonce == self.hello_nonce and (i, n) == (0, 1)
         ok = ok and len(body) == REPLY.size + SESSION_BODY.size
         if not ok:
@@ -611,20 +697,40 @@ def remote_query(
     no answer, a refusal (its reason), or an incomplete one."""
     del now_ns
     asker_ = ArchiveAsk(channel, nonce, asker=asker)
-    _ask_station(session, key_expr, asker_, asker_.hello(), timeout_s, lambda: asker_.session)
+    _ask_station(
+        session,
+        key_expr,
+        asker_,
+        asker_.hello(),
+        timeout_s,
+        lambda: asker_.session is not None or asker_.error is not None,
+    )
+    if asker_.error is not None:
+        raise ArchiveError(f"the station refused the hello: {asker_.error}")
     if asker_.session is None:
         raise ArchiveError(
             f"no station answered on {key_expr} within {timeout_s:g} s"
-            + (f" ({asker_.refused} reply(s) refused)" if asker_.refused else "")
+            + _foreign(asker_.refused, "hello", HELLO_MAGIC)
         )
     _ask_station(session, key_expr, asker_, asker_.ask(query), timeout_s, lambda: asker_.done)
     if asker_.error is None and asker_._count is None:
         raise ArchiveError(
             f"no station answered the ask on {key_expr} within {timeout_s:g} s (the station "
             f"refuses an ask it cannot check, or of another session)"
-            + (f" ({asker_.refused} reply(s) refused)" if asker_.refused else "")
+            + _foreign(asker_.refused, "ask", ASK_MAGIC)
         )
     return asker_.table()
+
+
+def _foreign(refused: int, what: str, magic: bytes) -> str:
+    """What a missing answer may mean: replies that were not this version's
+    (or not for this ask), or a station of another version, which answers
+    nothing (an older ground) or one error reply (a newer one)."""
+    said = f"; {refused} reply(s) refused (another station's, another version's, or forged)"
+    return (said if refused else "") + (
+        f"; a ground of another zplatform version does not answer this one's {what} "
+        f"({magic.decode()}): use a zplatform of the ground's version"
+    )
 
 
 def _ask_station(
