@@ -20,14 +20,7 @@ from zplatform.core.auth import TAG_LEN, KeySet, Run, link_of, role_links
 from zplatform.core.events import EventLog
 from zplatform.ground.tap import TapDecoder
 from zplatform.mission.load import decode_mission
-from zplatform.runtime.bulk import (
-    HEADER,
-    RATE_BURST,
-    NodeBulk,
-    bulk_channel,
-    bulk_key,
-    decode_sample,
-)
+from zplatform.runtime.bulk import HEADER, NodeBulk, bulk_key, decode_sample
 
 MASTER = secrets.token_bytes(32)
 RUN = 1_700_000_000_000_000_000
@@ -85,6 +78,8 @@ def _untagged(m: Mission, seq: int, fill: int, *, tag: bool = False) -> bytes:
 
 def test_every_bulk_channel_has_a_link_its_owner_readers_and_tools_hold() -> None:
     m = _mission()
+    from zplatform.runtime.bulk import bulk_channel
+
     assert bulk_channel("frame") == "bulk_frame" and link_of("bulk_frame") == "bulk-frame"
     holders = {r for r in ("cn", "dn0", "dn1", "gn", "tool") if "bulk-frame" in role_links(m, r)}
     # The owner, its reader and the read-only tools (tap); not dn1, not the ground.
@@ -142,6 +137,8 @@ def test_a_genuine_sample_of_an_earlier_run_is_refused_as_stale(session: zenoh.S
 def test_an_authentic_sample_stamped_ahead_or_beyond_the_rate_is_refused(
     session: zenoh.Session,
 ) -> None:
+    from zplatform.runtime.bulk import RATE_BURST
+
     m = _mission(rate_divisor=10)
     owner, reader, _ = _ends(session, m)
     w, r = owner.writers["frame"], reader.readers["frame"]
