@@ -71,11 +71,14 @@ def test_camera_frames_go_through_shared_memory_between_processes(tmp_path: Path
     samples = [json.loads(line) for line in tap.stdout.splitlines()]
     assert len(samples) == 3
     assert all(s["via"] == "shm" and s["bulk"]["bytes"] == 4194304 + 32 for s in samples), samples
+    # Tagged by dn0 (link bulk-frame) and checked by the tap with the tool's keys.
+    assert all(s["verified"] is True for s in samples), samples
     rows = read_csv(csv)
     last = rows[-1]
     assert int(last["bulk_frame_published"]) >= 500, last  # about one 4 MB frame per loop
     assert int(last["bulk_frame_copied"]) == 0, last  # never a silent copy
     assert int(last["bulk_frame_bad"]) == 0, last
+    assert int(last["bulk_frame_stale"]) == 0, last
     # Every frame the CN's reader saw came through shared memory, and every
     # frame it did not take before the next one came is counted superseded
     # (how many depends on when the box ran the CN's loop, not on the code).

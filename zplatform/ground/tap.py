@@ -96,7 +96,7 @@ class TapDecoder:
                 **({"verified": auth is not None} if self._auth else {}),
                 "bulk": {
                     "channel": ch.name,
-                    "bytes": len(payload),
+                    "bytes": len(payload) - (TAG_LEN if self._auth else 0),  # its tag aside
                     "min": float(arr.min()),
                     "max": float(arr.max()),
                     "mean": float(arr.mean()),
