@@ -453,10 +453,13 @@ KEYSPACE: tuple[KeyRow, ...] = (
                 "a hello (tagged in no run) is answered with the server's session; an ask (of "
                 "a kind: a query, the run list or a run's events; another kind is answered "
                 "with the reason) is tagged in that session, its cookie younger than the ask "
-                "window, its (cookie, asker, nonce) not one taken",
-                "at most MAX_PENDING in hand, archive.serve_per_asker per asker, replies paced "
+                "window, its (cookie, asker, nonce) not one taken; an authentic ask or hello "
+                "of another version gets one error reply naming the versions",
+                "at most MAX_PENDING in hand (anyone's), archive.serve_per_asker per asker "
+                "(tagged asks only), replies paced "
                 "to archive.serve_bps, per asker archive.serve_asker_bps, at most "
-                "archive.serve_max_bytes per answer (more: an error saying so)",
+                "archive.serve_max_bytes per answer (more: an error saying so), one version "
+                "error reply a second",
                 run_bound=True,
             ),
             KeyFrames(
