@@ -192,3 +192,30 @@ def test_a_tap_with_the_tools_keys_checks_and_shows_bulk_samples(
         sub.undeclare()
         owner.close()
         reader.close()
+
+
+def test_a_flood_of_refusals_is_evented_at_most_once_a_second(session: zenoh.Session) -> None:
+    """The first refusal is evented at once; the ones within the next
+    second are counted and evented together once it has passed."""
+    m = _mission()
+    now = [T0 + 10**9]
+    owner, reader, events = _ends(session, m, now_ns=lambda: now[0])
+    r, key = reader.readers["frame"], bulk_key(m.vehicle, m.bulk[0])
+    try:
+        for i in range(3):
+            session.put(key, _untagged(m, 10 + i, 1, tag=True))
+            reader.receive(i)
+            now[0] += 10**8
+        first = events.drain()
+        assert [e.id for e in first] == ["bulk_refused"] and "1 bad" in first[0].text
+        reader.receive(3)  # still within the second: nothing more
+        assert events.drain() == []
+        now[0] += 10**9
+        reader.receive(4)  # the two counted since, at most a period later
+        (later,) = events.drain()
+        assert "2 bad" in later.text and r.bad == 3
+        reader.receive(5)
+        assert events.drain() == []
+    finally:
+        owner.close()
+        reader.close()

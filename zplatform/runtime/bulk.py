@@ -666,7 +666,8 @@ class NodeBulk:
         """``(channel, path, why)`` of the path changes :meth:`receive` saw
         (the last ones; cleared when evented)."""
         self._refusals = RefusalLog(2)
-        self._refused = (0, 0)  # the readers' (bad, stale) when last evented
+        self._refused = (0, 0)  # the readers' (bad, stale) when last counted
+        self._owed = False  # refusals counted in _refusals and not evented yet
         self._tag = TAG_LEN if keys is not None else 0
         self.pool_bytes = pool_size(channels, node) if shared_memory else 0
         self.provider: Any | None = None
@@ -748,10 +749,13 @@ class NodeBulk:
             stale += r.stale
         b0, s0 = self._refused
         if bad == b0 and stale == s0:
+            if not self._owed:  # nothing new, nothing left to event: the usual loop
+                return
             n = self._refusals.add(self._now(), 0, 0)  # what is left, a period on
         else:
             self._refused = (bad, stale)
             n = self._refusals.add(self._now(), bad - b0, stale - s0)
+        self._owed = n is None  # counted, not evented yet
         if n is None:
             return
         why = next((f"{r.channel.name}: {r.why}" for r in self._readers if r.why), "")
