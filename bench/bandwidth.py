@@ -60,8 +60,9 @@ beside a ``raw_iceoryx2_1x<S>B`` floor (:func:`bench.intrahost.run_raw`,
 1 DN), and its target: the 100,000-element point with 0 missed loops and a
 p50 within 1.15x of raw iceoryx2. ``--bulk N`` adds the 4 MB bulk one-way
 rows (``bulk_<variant>_4MB``, :func:`bench.intrahost.run_bulk`: zplatform
-over iceoryx2 and over zenoh, raw iceoryx2, raw zenoh; N samples each at
-20 Hz) and ``params.bulk_4MB_ratios``.
+over iceoryx2 and over zenoh, tagged and checked as a node's samples
+are, raw iceoryx2, raw zenoh; N samples each at 20 Hz) and
+``params.bulk_4MB_ratios``.
 
 Run ``python -m bench.bandwidth [--quick] [--json PATH] [--macs blake3,hmac]
 [--counts N,...] [--splits D,...] [--regions B,...] [--seconds S] [--no-rates]
