@@ -43,6 +43,7 @@ from typing import Any
 import numpy as np
 import zenoh
 
+from ..control.intake import RefusalLog, ahead_bound_ns
 from ..core.auth import TAG_LEN, AuthError, Channel, KeySet, Run, RunError, channel
 from ..core.events import EV
 from ..errors import IntraHostError, TransportError
@@ -654,9 +655,6 @@ class NodeBulk:
         run: Run | None = None,
         ahead_ns: int = DEFAULT_AHEAD_NS,
     ) -> None:
-        # Deferred: zplatform.control imports the loop, which names this module.
-        from ..control.intake import RefusalLog
-
         self.node = node
         self.events = events
         """Where path changes are evented (an EventLog; None: kept in
@@ -882,7 +880,6 @@ def open_bulk(
     (``logic.auth_run``), stamps bounded ahead of ``now_ns`` (the node's
     clock) by the clock bound and a period. Raises TransportError as
     :class:`NodeBulk`."""
-    from ..control.intake import ahead_bound_ns
 
     mine = [ch for ch in mission.bulk if ch.node == node or node in ch.readers]
     if not mine:
