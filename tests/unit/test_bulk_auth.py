@@ -219,3 +219,25 @@ def test_a_flood_of_refusals_is_evented_at_most_once_a_second(session: zenoh.Ses
     finally:
         owner.close()
         reader.close()
+
+
+def test_the_rate_bound_counts_the_readers_loops_not_its_polls(session: zenoh.Session) -> None:
+    """A reader that runs only some loops (a device node whose triggers were
+    missed) polls less often than the channel publishes per poll: its loop
+    numbers, not its polls, are the bound's clock, so none is refused; a
+    run that starts its loops again starts the bound again."""
+    m = _mission(rate_divisor=10)
+    owner, reader, _ = _ends(session, m)
+    w, r = owner.writers["frame"], reader.readers["frame"]
+    try:
+        for i in range(1, 21):  # one poll per sample, each 10 loops after the last
+            w.publish(10 * i, T0 + i)
+            reader.receive(10 * i)
+        assert (r.received_copied + r.received_shm, r.stale) == (20, 0)
+        for i in range(1, 4):  # a new run: its loops from 0 again
+            w.publish(10 * i, T0 + 100 + i)
+            reader.receive(10 * i)
+        assert (r.received_copied + r.received_shm, r.stale) == (23, 0)
+    finally:
+        owner.close()
+        reader.close()

@@ -410,8 +410,9 @@ class BulkReader:
         ``ahead_ns``, or beyond the channel's rate bound (:data:`RATE_BURST`)."""
         self.why = ""
         """Why the last sample was refused (for the refusal's event)."""
-        # The rate bound (a GCRA in polls, the reader's loops): the
-        # theoretical poll of the next sample, one every rate_divisor.
+        # The rate bound (a GCRA in the reader's loops: the loop poll is
+        # given, else its polls): the theoretical loop of the next sample,
+        # one every rate_divisor.
         self._polls = 0
         self._tat = 0
         self._every = channel.rate_divisor
@@ -430,8 +431,12 @@ class BulkReader:
         self._latest = sample
         self._event.set()
 
-    def poll(self, *, copy: bool = True) -> bool:
+    def poll(self, *, copy: bool = True, loop: int | None = None) -> bool:
         """Take the newest sample if one arrived since the last call.
+
+        ``loop``: the reader's loop number (:meth:`NodeBulk.receive`), the
+        rate bound's clock, so loops the reader missed count; None: each
+        poll counts as one loop (tools, tests).
 
         Returns ``True`` when :attr:`array` (``copy=True``) or :attr:`view`
         (``copy=False``: read-only, valid until the next poll) holds a new,
@@ -441,7 +446,12 @@ class BulkReader:
         checked in place after it) and, with ``copy=True``, once into
         :attr:`array`; a refused sample is never copied into it.
         """
-        self._polls += 1
+        if loop is None:
+            self._polls += 1
+        else:
+            if loop < self._polls:  # its loops start again (another run): so does the bound
+                self._tat = min(self._tat, loop)
+            self._polls = loop
         iox = self.iox
         if iox is not None:
             got = self._poll_iox(iox, copy)
@@ -729,7 +739,7 @@ class NodeBulk:
         the refusals (at most once a second, :attr:`events`); never blocks
         (a fallback declares a zenoh subscriber, rarely)."""
         for r in self._readers:
-            r.poll()
+            r.poll(loop=loop)
             if r.changes:
                 for path, why in r.changes:
                     self.changes.append((r.channel.name, path, why))
