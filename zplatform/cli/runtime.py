@@ -499,7 +499,7 @@ def cmd_router(args: argparse.Namespace) -> int:
     setup_logging(args.verbose)
     mission = load_mission(args.mission, code=False)
     listen, connect = list(args.listen or []), list(args.connect or [])
-    name = args.name or "router"
+    name = args.name
     if args.name is not None:
         r = find_router(mission, args.name)
         listen = listen or list(r.listen)

@@ -6,8 +6,11 @@ mission CA and that host's certificate and key. :func:`ensure_mission_pki`
 makes all of it beside the host's key set
 (:func:`zplatform.security.deploy.default_deployment_path`): ``ca.pem`` and ``ca.key``
 (which never leaves this host), ``<node>.pem`` and ``<node>.tls.key`` per node
-(common name: the node's name), ``tool.pem`` and ``tool.tls.key`` for the
-operator's tools, and ``deployment.yaml``. ``zplatform keygen`` calls it and
+(common name: the node's name), ``router-<name>.pem`` and
+``router-<name>.tls.key`` per router of ``ground.routers`` (common name
+``router-<name>``: each its own, so one can be removed without touching the
+others), ``tool.pem`` and ``tool.tls.key`` for the operator's tools, and
+``deployment.yaml``. ``zplatform keygen`` calls it and
 says which files go to which host (:func:`host_files`); ``zplatform up``
 calls it on first use.
 
@@ -31,7 +34,13 @@ from typing import Any
 import msgspec
 
 from ..config import Mission
-from .deploy import ROUTER, TOOL, DeploymentError, default_deployment_path
+from .deploy import (
+    TOOL,
+    DeploymentError,
+    default_deployment_path,
+    router_identities,
+    router_identity,
+)
 
 __all__ = [
     "DEPLOYMENT_FILE",
@@ -288,8 +297,8 @@ def ensure_mission_pki(mission: Mission, directory: str | Path | None = None) ->
         if directory is not None
         else default_deployment_path(mission)
     )
-    # The mission's routers (ground.routers) share one identity, ROUTER.
-    routers = [ROUTER] if mission.ground is not None and mission.ground.routers else []
+    # Each of the mission's routers (ground.routers) has its own identity.
+    routers = router_identities(mission)
     made = ensure_pki(
         path.parent, [*mission.nodes, *routers], ca_name=f"zplatform {mission.mission} CA"
     )
@@ -316,5 +325,8 @@ def host_files(mission: Mission) -> list[tuple[str, list[str]]]:
         # console too, whose frames the gn key set signs): it may command.
         who = "the operator's tools (tap, log, cmd, console)" if r == TOOL else role_host(r)
         rows.append((who, list(leaf_files(r))))
+    g = mission.ground
+    for rt in g.routers if g is not None else []:
+        rows.append((f"router {rt.name}'s host", list(leaf_files(router_identity(rt.name)))))
     rows.append(("no other host (it signs certificates)", ["ca.key"]))
     return rows
