@@ -1,7 +1,7 @@
 """The console commanding a live vehicle over zenoh, as an operator (issue 29).
 
-``zplatform up`` runs a short mission with ``ground:`` (real node processes
-on free ports, authenticated links); the console (``ConsoleApp`` driven by
+A short mission with ``ground:`` flies as ``zplatform node`` processes (the
+CN and its device node, on free ports, authenticated links); the console (``ConsoleApp`` driven by
 textual's pilot, its ``Link`` and ``ConsoleModel``) signs as the flight
 director at the pad, as ``zplatform ground --console --operator fd
 --station pad`` does. Each command goes in at the console's command line
@@ -69,22 +69,29 @@ def vehicle(tmp_path: Path) -> Iterator[Path]:
         ],
     }
     path.write_text(yaml.safe_dump(doc, sort_keys=False))
-    up = subprocess.Popen(
-        [sys.executable, "-m", "zplatform", "up", str(path), "--quiet"],
-        cwd=ROOT,
-        stdout=subprocess.DEVNULL,
-        stderr=subprocess.DEVNULL,
-    )
+    # The vehicle alone, as `zplatform node` processes (what `up` spawns,
+    # less its watcher and the ground node, which the console does not
+    # need: the CN flies without waiting for it).
+    zp = [sys.executable, "-m", "zplatform", "node", str(path)]
+    argvs = [[*zp, "dn0", "--no-realtime"], [*zp, "cn", "--ground-wait", "0", "--no-realtime"]]
+    logs = [tmp_path / "dn0.log", tmp_path / "cn.log"]
+    procs = []
+    for argv, log in zip(argvs, logs, strict=True):
+        with log.open("wb") as f:
+            procs.append(subprocess.Popen(argv, cwd=ROOT, stdout=subprocess.DEVNULL, stderr=f))
     try:
         yield path
-        assert up.poll() is None, "the vehicle ended under the console"
+        for p, log in zip(procs, logs, strict=True):
+            assert p.poll() is None, log.read_text()[-2000:]  # the vehicle flew throughout
     finally:
-        up.send_signal(signal.SIGINT)
-        try:
-            up.wait(timeout=60)
-        except subprocess.TimeoutExpired:
-            up.kill()
-            up.wait()
+        for p in procs[::-1]:  # the CN first
+            p.send_signal(signal.SIGTERM)
+        for p in procs:
+            try:
+                p.wait(timeout=60)
+            except subprocess.TimeoutExpired:
+                p.kill()
+                p.wait()
 
 
 def _shown(model: ConsoleModel, text: str) -> str | None:
