@@ -21,6 +21,7 @@ reaches the vehicle as a zenoh client of the room router
 
 from __future__ import annotations
 
+import json
 import queue
 from collections.abc import Iterator
 from pathlib import Path
@@ -224,6 +225,62 @@ def test_a_router_removed_from_the_mission_is_cut_off_the_others_keep_their_cert
             got.append(req.get())
         assert b"from room" not in got
         assert tm["room"].empty()
+    finally:
+        for s in reversed(opened.values()):
+            s.close()
+
+
+@pytest.mark.parametrize("cert", ["router-pad", "dn0"], ids=["its own", "a node's"])
+def test_a_station_behind_a_router_presenting_a_nodes_certificate_is_cut_off(
+    tmp_path: Path, cert: str
+) -> None:
+    """A router that presents a node's certificate (its start refuses it:
+    tests/unit/test_router_config.py; here a hostile one, made by hand) has
+    that node's rights at the vehicle, not a router's: the station behind it
+    gets no telemetry and its requests never reach the CN, though they reach
+    the router. With its own certificate the same router carries both (the
+    control)."""
+    from zplatform.security.deploy import zenoh_settings
+
+    m = _mission(free_port(), free_port(), free_port())
+    dep = make_test_pki(tmp_path / "pki", [*NODES, *ROUTERS], may_command=True)
+    r = find_router(m, "pad")
+    opened: dict[str, zenoh.Session] = {}
+    try:
+        cn = opened["cn"] = open_session(zenoh_config(m, "cn", deployment=dep))
+        cfg = router_config(m, r.listen, r.connect)  # no identity yet
+        for key, value in zenoh_settings(m, dep, cert).items():
+            cfg.insert_json5(key, json.dumps(value))
+        router = opened["router"] = open_session(cfg)
+        station = opened["station"] = open_session(
+            zenoh_config(m, None, deployment=dep, via=list(r.listen))
+        )
+        at_router: queue.SimpleQueue[bytes] = queue.SimpleQueue()
+        router.declare_subscriber(
+            f"{V}/gn/to_cn",
+            zenoh.handlers.Callback(lambda x: at_router.put(x.payload.to_bytes()), indirect=False),
+        )
+        req: queue.SimpleQueue[bytes] = queue.SimpleQueue()
+        cn.declare_subscriber(
+            f"{V}/gn/to_cn",
+            zenoh.handlers.Callback(lambda x: req.put(x.payload.to_bytes()), indirect=False),
+        )
+        tm: queue.SimpleQueue[bytes] = queue.SimpleQueue()
+        station.declare_subscriber(
+            f"{V}/cn/telemetry",
+            zenoh.handlers.Callback(lambda x: tm.put(x.payload.to_bytes()), indirect=False),
+        )
+        # The station's requests reach the router either way.
+        _until(lambda t: station.put(f"{V}/gn/to_cn", t), at_router, b"request")
+        if cert == "router-pad":
+            _until(lambda t: station.put(f"{V}/gn/to_cn", t), req, b"request 2")
+            _until(lambda t: cn.put(f"{V}/cn/telemetry", t), tm, b"loop 1")
+            return
+        for i in range(50):
+            station.put(f"{V}/gn/to_cn", b"request %d" % i)
+            cn.put(f"{V}/cn/telemetry", b"loop %d" % i)
+        _until(lambda t: station.put(f"{V}/gn/to_cn", t), at_router, b"last")
+        assert req.empty() and tm.empty()
     finally:
         for s in reversed(opened.values()):
             s.close()
