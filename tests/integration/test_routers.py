@@ -17,6 +17,10 @@ reaches the vehicle as a zenoh client of the room router
   gets no telemetry and its requests never reach the CN, while the pad
   router, its certificate unchanged, forwards both (and, the room router
   still listed, the same peer gets both through: the control).
+* A router presenting a node's certificate has that node's rights, not a
+  router's: the station behind it gets no telemetry and its requests,
+  which reach the router, never reach the CN (with its own certificate the
+  same router carries both: the control).
 """
 
 from __future__ import annotations
