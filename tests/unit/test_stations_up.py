@@ -153,3 +153,36 @@ def test_a_station_process_is_spawned_ready_once_its_session_opens(
             end_after_script=False,
         )
     assert calls == [("station:pad", 7.0)]
+
+
+def test_a_station_connects_through_its_router_and_sends_only_with_an_operator(
+    monkeypatch: pytest.MonkeyPatch, tmp_path: Path
+) -> None:
+    """``run_station``: a client of its station's router whether or not it
+    has an operator (before, only a signer's link took the router); with
+    one, the uplink's publisher (to keep the lock), without, nothing to send."""
+    import zplatform.ground.link as ground_link
+    from zplatform.ground.identity import station_signer
+    from zplatform.node.ground import run_station
+
+    got: list[dict[str, Any]] = []
+
+    class _Stop(Exception):
+        pass
+
+    def fake(mission: Any, node: Any, **kw: Any) -> None:
+        got.append(dict(kw, node=node))
+        raise _Stop
+
+    monkeypatch.setattr(ground_link, "NodeSession", fake)
+    m = mission(STATIONS + "    - {name: far, connect: ['tcp/10.2.0.2:7600']}\n")
+    with pytest.raises(_Stop):
+        run_station(m, "far", tmp_path / "far")
+    with pytest.raises(_Stop):
+        run_station(m, "far", tmp_path / "far", signer=station_signer(m, "fd", "far"))
+    assert [(g["node"], g["via"], g["commands"]) for g in got] == [
+        (None, ["tcp/10.2.0.2:7600"], False),
+        (None, ["tcp/10.2.0.2:7600"], True),
+    ]
+    with pytest.raises(Exception, match="lists no station 'near'"):
+        run_station(m, "near", tmp_path / "near")
