@@ -3,10 +3,13 @@
 A mission with ``ground:`` whose station ``pad`` is marked ``start: true``
 (as operator ``fd``) and ``room`` is not: ``up`` runs ``pad`` as a station
 process of its own (``zplatform station``), writing into its own directory,
-and its status line shows it; ``room`` is not started. The station is
-killed: ``up`` reports it, the status line shows it dead, and the vehicle
-flies on (the CN's loop keeps counting, no fault); Ctrl-C then ends the run
-non-zero (a node died, the supervisor's policy), every child reaped.
+and its status line shows it; ``room`` is not started. fd takes the command
+lock from the pad (``zplatform cmd``, which then exits): the station keeps
+it, for two leases and more by the CN's own clock. The station is
+killed: ``up`` reports it, the status line shows it dead, the lock runs out
+(nobody renews it), and the vehicle flies on (the CN's loop keeps
+counting, no fault); Ctrl-C then ends the run non-zero (a node died, the
+supervisor's policy), every child reaped.
 """
 
 from __future__ import annotations
@@ -30,6 +33,9 @@ from zplatform.runtime.transport import rewrite_endpoints
 from .harness import CONFIGS, ROOT
 
 pytestmark = pytest.mark.timeout(180)
+
+LEASE_S = 3
+FD_AT_PAD = ["--operator", "fd", "--station", "pad", "--timeout", "30"]
 
 
 class _Lines:
@@ -69,6 +75,7 @@ def _mission(tmp: Path) -> Path:
             {"name": "room"},
         ],
         "operators": [{"name": "fd", "roles": ["flight_director"]}],
+        "lease_s": LEASE_S,
     }
     path.write_text(yaml.safe_dump(doc, sort_keys=False))
     return path
@@ -103,11 +110,39 @@ def test_up_starts_a_station_shows_it_and_flies_on_when_it_dies(tmp_path: Path) 
         wait_until(lambda: (d / "events.jsonl").exists(), 30, "the station's events log")
         assert d.parent.name == "stations_up.stations"
 
+        lock = subprocess.run(
+            [sys.executable, "-m", "zplatform", "cmd", str(path), "lock", *FD_AT_PAD],
+            cwd=ROOT,
+            capture_output=True,
+            text=True,
+            timeout=90,
+        )
+        assert lock.returncode == 0 and "LOCK #1 by fd@pad: ACCEPTED" in lock.stdout, lock
+        dv = rx.dv
+
+        def snapshot() -> tuple[int, int, str]:  # the CN's time, the lock's end, its holder
+            while rx.next(1.0) is None:
+                assert up.poll() is None, out.text()[-3000:]
+            return (
+                int(dv.get("cn_time_ns")),
+                int(dv.get("cn_lock_until_ns")),
+                dv.get_name("cn_lock_holder"),
+            )
+
+        t, until, holder = snapshot()
+        while holder != "fd":  # the LOCK's loop
+            t, until, holder = snapshot()
+        t_lock = t
+        while t < t_lock + 2 * LEASE_S * 10**9:  # the station renews it, lease after lease
+            t, until, holder = snapshot()
+            assert holder == "fd" and until > t, (holder, until, t)
+        assert int(dv.get("cn_cmd_seq")) >= 3  # renewals: LOCKs after the first
+
         stations[0].kill()
         wait_until(lambda: running("node station:pad died (exit code -9)"), 30, "the report")
         wait_until(lambda: running("stations pad=died(-9)"), 30, "the status line's dead station")
-        while not rx.logic.received:
-            rx.next(1.0)
+        while until > t:  # nobody renews it now: it runs out
+            t, until, holder = snapshot()
         loop = int(rx.dv.get("cn_loop"))
         while int(rx.dv.get("cn_loop")) < loop + 100:  # the vehicle flies on
             assert up.poll() is None, out.text()[-3000:]
@@ -118,7 +153,7 @@ def test_up_starts_a_station_shows_it_and_flies_on_when_it_dies(tmp_path: Path) 
         text = out.text()
         assert rc == 1, text[-3000:]  # a child died: reported, the run ends non-zero
         s = json.loads((tmp_path / "s.json").read_text())
-        assert s["loops"] > loop + 100 and s["final_state"] == "IDLE", s
+        assert s["loops"] > 100 and s["final_state"] == "IDLE", s
         assert "station:pad" not in s["nodes"]  # a station is no node of the summary
         _, alive = psutil.wait_procs(kids, timeout=15)
         assert not alive, alive
