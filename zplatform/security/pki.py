@@ -1,18 +1,15 @@
-"""The mission's PKI: a CA, a certificate per node and one for the tools.
+"""The mission's PKI: a CA, a certificate per node and router, one for the tools.
 
 A mission whose links run mutual TLS (:attr:`zplatform.config.Mission.mtls`)
-needs, on each host, a deployment file (:mod:`zplatform.security.deploy`) naming the
-mission CA and that host's certificate and key. :func:`ensure_mission_pki`
-makes all of it beside the host's key set
-(:func:`zplatform.security.deploy.default_deployment_path`): ``ca.pem`` and ``ca.key``
-(which never leaves this host), ``<node>.pem`` and ``<node>.tls.key`` per node
-(common name: the node's name), ``router-<name>.pem`` and
-``router-<name>.tls.key`` per router of ``ground.routers`` (common name
-``router-<name>``: each its own, so one can be removed without touching the
-others), ``tool.pem`` and ``tool.tls.key`` for the operator's tools, and
-``deployment.yaml``. ``zplatform keygen`` calls it and
-says which files go to which host (:func:`host_files`); ``zplatform up``
-calls it on first use.
+needs, on each host, a deployment file (:mod:`zplatform.security.deploy`)
+naming the mission CA and that host's certificate and key.
+:func:`ensure_mission_pki` makes all of it beside the host's key set
+(:func:`zplatform.security.deploy.default_deployment_path`): ``ca.pem``,
+``ca.key`` (which never leaves this host), ``NAME.pem`` and ``NAME.tls.key``
+per node and per router (``router-<name>``: each its own), ``tool.pem`` and
+``tool.tls.key`` for the tools, ``deployment.yaml`` (common name: the
+identity's name). ``zplatform keygen`` calls it and says which files go to
+which host (:func:`host_files`); ``zplatform up`` calls it on first use.
 
 Contract: keys are ECDSA P-256, mode 0600 in a 0700 directory; nothing that
 exists is overwritten (a second call adds only what is missing, signed by the
