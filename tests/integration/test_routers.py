@@ -8,14 +8,24 @@ reaches the vehicle as a zenoh client of the room router
 * The station gets the CN's telemetry through both routers, its run hello
   on ``{vehicle}/cn/clock`` is answered by the CN, and its request on
   ``{vehicle}/gn/to_cn`` reaches the CN's subscriber.
-* A router forwards, nothing more: a peer presenting the router's
+* A router forwards, nothing more: a peer presenting the pad router's
   certificate, connected to the CN, declares a queryable on dn0's sync key
   and a subscriber on the CN's mirror (what a standby follows); the CN's
   sync query never reaches it, and no mirror sample is routed to it.
+* Each router presents its own certificate: with the room router removed
+  from the mission the CN runs, a peer presenting the room's certificate
+  gets no telemetry and its requests never reach the CN, while the pad
+  router, its certificate unchanged, forwards both (and, the room router
+  still listed, the same peer gets both through: the control).
+* A router presenting a node's certificate has that node's rights, not a
+  router's: the station behind it gets no telemetry and its requests,
+  which reach the router, never reach the CN (with its own certificate the
+  same router carries both: the control).
 """
 
 from __future__ import annotations
 
+import json
 import queue
 from collections.abc import Iterator
 from pathlib import Path
@@ -28,14 +38,21 @@ from tests.pki import make_test_pki
 from zplatform.mission.load import decode_mission
 from zplatform.runtime.router import find_router, router_config
 from zplatform.runtime.transport import free_port, open_session, zenoh_config
-from zplatform.security.deploy import ROUTER
+from zplatform.security.deploy import router_identity
 
 pytestmark = pytest.mark.timeout(120)
 
 V = "rocket"
+NODES = ["cn", "dn0", "gn"]
+ROUTERS = [router_identity("pad"), router_identity("room")]
 
 
-def _mission(cn: int, pad: int, room: int) -> Any:
+def _mission(cn: int, pad: int, room: int, *, with_room: bool = True) -> Any:
+    room_router = (
+        f"    - {{name: room, listen: ['tcp/127.0.0.1:{room}'], connect: ['tcp/127.0.0.1:{pad}']}}"
+        if with_room
+        else ""
+    )
     return decode_mission(f"""
 mission: routed
 security: {{transport: mtls}}
@@ -55,25 +72,27 @@ ground:
     - {{name: fd, roles: [flight_director]}}
   routers:
     - {{name: pad, listen: ['tcp/127.0.0.1:{pad}'], connect: ['tcp/127.0.0.1:{cn}']}}
-    - {{name: room, listen: ['tcp/127.0.0.1:{room}'], connect: ['tcp/127.0.0.1:{pad}']}}
+{room_router}
 """)
 
 
 @pytest.fixture
 def net(tmp_path: Path) -> Iterator[tuple[Any, dict[str, zenoh.Session]]]:
     m = _mission(free_port(), free_port(), free_port())
-    dep = make_test_pki(tmp_path / "pki", ["cn", "dn0", "gn", ROUTER], may_command=True)
+    dep = make_test_pki(tmp_path / "pki", [*NODES, *ROUTERS], may_command=True)
     opened: dict[str, zenoh.Session] = {}
     try:
         opened["cn"] = open_session(zenoh_config(m, "cn", deployment=dep))
         for name in ("pad", "room"):
             r = find_router(m, name)
-            opened[name] = open_session(router_config(m, r.listen, r.connect, deployment=dep))
+            opened[name] = open_session(
+                router_config(m, r.listen, r.connect, deployment=dep, name=name)
+            )
         room = m.ground.stations[1].connect
         opened["station"] = open_session(zenoh_config(m, None, deployment=dep, via=room))
-        # A peer with the router's certificate, straight on the CN.
+        # A peer with the pad router's certificate, straight on the CN.
         cn_ep = m.nodes["cn"].listen
-        opened["rogue"] = open_session(router_config(m, [], cn_ep, deployment=dep))
+        opened["rogue"] = open_session(router_config(m, [], cn_ep, deployment=dep, name="pad"))
         yield m, opened
     finally:
         for s in reversed(opened.values()):
@@ -155,3 +174,117 @@ def test_a_router_certificate_forwards_only_it_drives_no_sync(
     while not seen.empty():
         got.append(seen.get())
     assert got == []
+
+
+@pytest.mark.parametrize("listed", [True, False], ids=["room listed", "room removed"])
+def test_a_router_removed_from_the_mission_is_cut_off_the_others_keep_their_certificates(
+    tmp_path: Path, listed: bool
+) -> None:
+    ports = free_port(), free_port(), free_port()
+    full = _mission(*ports)
+    # The vehicle runs the mission as it now is; the PKI is the one made
+    # with both routers, nobody's certificate remade.
+    at_cn = full if listed else _mission(*ports, with_room=False)
+    dep = make_test_pki(tmp_path / "pki", [*NODES, *ROUTERS], may_command=True)
+    cn_ep = full.nodes["cn"].listen
+    opened: dict[str, zenoh.Session] = {}
+    try:
+        cn = opened["cn"] = open_session(zenoh_config(at_cn, "cn", deployment=dep))
+        # The room router's certificate, connected straight to the CN.
+        room = opened["room"] = open_session(
+            router_config(full, [], cn_ep, deployment=dep, name="room")
+        )
+        pad = opened["pad"] = open_session(
+            router_config(full, [], cn_ep, deployment=dep, name="pad")
+        )
+        tm: dict[str, queue.SimpleQueue[bytes]] = {"pad": queue.SimpleQueue()}
+        tm["room"] = queue.SimpleQueue()
+        for name, s in (("room", room), ("pad", pad)):
+            s.declare_subscriber(
+                f"{V}/cn/telemetry",
+                zenoh.handlers.Callback(
+                    lambda x, q=tm[name]: q.put(x.payload.to_bytes()), indirect=False
+                ),
+            )
+        req: queue.SimpleQueue[bytes] = queue.SimpleQueue()
+        cn.declare_subscriber(
+            f"{V}/gn/to_cn",
+            zenoh.handlers.Callback(lambda x: req.put(x.payload.to_bytes()), indirect=False),
+        )
+        # The pad router, its certificate as it was, forwards both ways.
+        _until(lambda t: cn.put(f"{V}/cn/telemetry", t), tm["pad"], b"loop 1")
+        _until(lambda t: pad.put(f"{V}/gn/to_cn", t), req, b"from pad")
+        if listed:  # the control: the same peer, listed, gets both through
+            _until(lambda t: cn.put(f"{V}/cn/telemetry", t), tm["room"], b"loop 2")
+            _until(lambda t: room.put(f"{V}/gn/to_cn", t), req, b"from room")
+            return
+        for i in range(50):
+            room.put(f"{V}/gn/to_cn", b"from room")
+            cn.put(f"{V}/cn/telemetry", b"loop %d" % (i + 2))
+        # The pad's last sample routed: the CN has routed (or dropped) all before it.
+        _until(lambda t: pad.put(f"{V}/gn/to_cn", t), req, b"pad again")
+        _until(lambda t: cn.put(f"{V}/cn/telemetry", t), tm["pad"], b"last")
+        got = []
+        while not req.empty():
+            got.append(req.get())
+        assert b"from room" not in got
+        assert tm["room"].empty()
+    finally:
+        for s in reversed(opened.values()):
+            s.close()
+
+
+@pytest.mark.parametrize("cert", ["router-pad", "dn0"], ids=["its own", "a node's"])
+def test_a_station_behind_a_router_presenting_a_nodes_certificate_is_cut_off(
+    tmp_path: Path, cert: str
+) -> None:
+    """A router that presents a node's certificate (its start refuses it:
+    tests/unit/test_router_config.py; here a hostile one, made by hand) has
+    that node's rights at the vehicle, not a router's: the station behind it
+    gets no telemetry and its requests never reach the CN, though they reach
+    the router. With its own certificate the same router carries both (the
+    control)."""
+    from zplatform.security.deploy import zenoh_settings
+
+    m = _mission(free_port(), free_port(), free_port())
+    dep = make_test_pki(tmp_path / "pki", [*NODES, *ROUTERS], may_command=True)
+    r = find_router(m, "pad")
+    opened: dict[str, zenoh.Session] = {}
+    try:
+        cn = opened["cn"] = open_session(zenoh_config(m, "cn", deployment=dep))
+        cfg = router_config(m, r.listen, r.connect)  # no identity yet
+        for key, value in zenoh_settings(m, dep, cert).items():
+            cfg.insert_json5(key, json.dumps(value))
+        router = opened["router"] = open_session(cfg)
+        station = opened["station"] = open_session(
+            zenoh_config(m, None, deployment=dep, via=list(r.listen))
+        )
+        at_router: queue.SimpleQueue[bytes] = queue.SimpleQueue()
+        router.declare_subscriber(
+            f"{V}/gn/to_cn",
+            zenoh.handlers.Callback(lambda x: at_router.put(x.payload.to_bytes()), indirect=False),
+        )
+        req: queue.SimpleQueue[bytes] = queue.SimpleQueue()
+        cn.declare_subscriber(
+            f"{V}/gn/to_cn",
+            zenoh.handlers.Callback(lambda x: req.put(x.payload.to_bytes()), indirect=False),
+        )
+        tm: queue.SimpleQueue[bytes] = queue.SimpleQueue()
+        station.declare_subscriber(
+            f"{V}/cn/telemetry",
+            zenoh.handlers.Callback(lambda x: tm.put(x.payload.to_bytes()), indirect=False),
+        )
+        # The station's requests reach the router either way.
+        _until(lambda t: station.put(f"{V}/gn/to_cn", t), at_router, b"request")
+        if cert == "router-pad":
+            _until(lambda t: station.put(f"{V}/gn/to_cn", t), req, b"request 2")
+            _until(lambda t: cn.put(f"{V}/cn/telemetry", t), tm, b"loop 1")
+            return
+        for i in range(50):
+            station.put(f"{V}/gn/to_cn", b"request %d" % i)
+            cn.put(f"{V}/cn/telemetry", b"loop %d" % i)
+        _until(lambda t: station.put(f"{V}/gn/to_cn", t), at_router, b"last")
+        assert req.empty() and tm.empty()
+    finally:
+        for s in reversed(opened.values()):
+            s.close()

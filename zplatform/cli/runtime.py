@@ -17,6 +17,7 @@ import signal
 import sys
 from pathlib import Path
 
+from ..config import Mission
 from ..errors import CommandError, NodeError
 from ..ground.script import MIN_DURATION_S, SETTLE_S
 from ..ground.tap import TAP_SILENCE_S
@@ -194,6 +195,35 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     )
     p.add_argument("-v", "--verbose", action="store_true", help="debug logging")
     p.set_defaults(func=cmd_router)
+
+    p = mission_verb(
+        sub,
+        "station",
+        help="run as a ground station of the mission (ground.stations): receive, log, archive",
+        description="Run as station NAME of the mission's ground.stations: a ground tool "
+        "(through the station's router when it has `connect`) that receives the control "
+        "node's telemetry and every node's events and writes them into a directory of its "
+        "own (events.jsonl; telemetry.csv with --log; its archive under archive/). With an "
+        "operator (--operator, or the station's `operator`) it keeps that operator's "
+        "command lock while they hold it. `up` starts the stations marked `start: true`. "
+        "Prints READY once its session is open; runs until Ctrl-C or SIGTERM.",
+    )
+    p.add_argument("name", help="a station of ground.stations")
+    p.add_argument(
+        "--operator",
+        metavar="NAME",
+        help="the operator it runs as (default: the station's `operator`; none: it watches)",
+    )
+    p.add_argument(
+        "--dir",
+        metavar="DIR",
+        help="where it writes (default: beside the mission's archive, <archive>.stations/NAME)",
+    )
+    p.add_argument("--log", action="store_true", help="also log telemetry to DIR/telemetry.csv")
+    _duration(p, "seconds (default: until Ctrl-C)")
+    p.add_argument("--summary", metavar="JSON", help="write the station's summary JSON here")
+    p.add_argument("-v", "--verbose", action="store_true", help="debug logging")
+    p.set_defaults(func=cmd_station)
 
     p = mission_verb(
         sub,
@@ -469,7 +499,7 @@ def cmd_router(args: argparse.Namespace) -> int:
     setup_logging(args.verbose)
     mission = load_mission(args.mission, code=False)
     listen, connect = list(args.listen or []), list(args.connect or [])
-    name = args.name or "router"
+    name = args.name
     if args.name is not None:
         r = find_router(mission, args.name)
         listen = listen or list(r.listen)
@@ -480,6 +510,55 @@ def cmd_router(args: argparse.Namespace) -> int:
     if not listen and not connect:
         raise CommandError("router: give --name NAME (ground.routers) or --listen/--connect")
     return run_router(mission, listen, connect, name=name)
+
+
+def station_operator(mission: Mission, name: str, operator: str | None) -> str | None:
+    """The operator station ``name`` runs as: ``operator`` if given, else
+    the station's ``operator`` (CommandError for a station the mission does
+    not list)."""
+    from ..ground.identity import check_names
+
+    g = mission.ground
+    st = next((s for s in g.stations if s.name == name), None) if g is not None else None
+    if st is None:
+        listed = ", ".join(s.name for s in g.stations) if g is not None else "none"
+        raise CommandError(
+            f"mission {mission.mission!r} lists no station {name!r} (stations: {listed})"
+        )
+    op = operator if operator is not None else st.operator
+    if op is not None:
+        check_names(mission, op, name)  # a misspelt operator: the closest names
+    return op
+
+
+def cmd_station(args: argparse.Namespace) -> int:
+    """Run one station until stopped (exit 0); 2 for a station or operator
+    the mission does not list, or a missing key file."""
+    from ..ground.identity import station_signer
+    from ..node.ground import run_station, station_dir
+
+    setup_logging(args.verbose)
+    mission = load_mission(args.mission, code=False)
+    op = station_operator(mission, args.name, args.operator)
+    signer = station_signer(mission, op, args.name) if op is not None else None
+    _check_outputs(args, "summary")
+    # As a node: `kill -USR2 PID` dumps the threads (up does, before a SIGKILL).
+    faulthandler.register(signal.SIGUSR2, all_threads=True)
+    summary = run_station(
+        mission,
+        args.name,
+        args.dir or station_dir(mission, args.name),
+        signer=signer,
+        log_csv=args.log,
+        duration_s=args.duration,
+    )
+    write_summary(args.summary, summary)
+    if sessions_left_open():  # as `node`: do not let zenoh's close hold the exit
+        logging.shutdown()
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(0)
+    return 0
 
 
 def cmd_tap(args: argparse.Namespace) -> int:
@@ -545,6 +624,13 @@ def cmd_up(args: argparse.Namespace) -> int:
         ScriptPlayer(mission, load_commands(args.commands))
     # Who the script commands as: a missing name or key file fails here.
     signer_of(mission, args, commands=bool(args.commands))
+    # The stations `up` starts (ground.stations[].start): their operators'
+    # and their own key files, checked here rather than by a dying station.
+    from ..ground.identity import station_signer
+
+    for st in mission.ground.stations if mission.ground is not None else []:
+        if st.start and st.operator is not None:
+            station_signer(mission, st.operator, st.name)
     _check_outputs(args, "log", "summary", "record")
     if not args.free_ports:
         check_ports(mission)  # another `up` of this mission, or anything else, on its ports

@@ -42,6 +42,7 @@ from ..ground.link import GroundLink
 from ..ground.script import MIN_DURATION_S, SETTLE_S
 from ..ground.status import RateMeter, status_line
 from ..mission.load import load_mission
+from ..node.ground import station_dir
 from ..runtime.intrahost import intra_host_mode
 from ..runtime.process import LOG_LEVEL_ENV, PARENT_ENV, STATUS_LINE_ENV, STOP_PIPE_ENV
 from ..runtime.transport import rewrite_endpoints
@@ -66,6 +67,7 @@ __all__ = [
     "format_run_summary",
     "merge_summaries",
     "run_up",
+    "station_states",
     "watch",
 ]
 
@@ -178,6 +180,8 @@ class Children:
 CONTROL_NODES = ("cn", STANDBY)
 ROUTER_PREFIX = "router:"
 """The name ``up`` gives a router's process (``router:pad``)."""
+STATION_PREFIX = "station:"
+"""The name ``up`` gives a station's process (``station:pad``)."""
 
 
 class Watch:
@@ -281,6 +285,9 @@ def watch(
                     if n == "world"
                     else "the stations behind it lose the vehicle, which flies on"
                     if n.startswith(ROUTER_PREFIX)
+                    else "the vehicle flies on; the station's operator keeps the lock no "
+                    "longer than its lease"
+                    if n.startswith(STATION_PREFIX)
                     else "the control node carries on (DN_LOST and the mission's fault response)"
                 )
                 print(f"\nzplatform up: node {n} died (exit code {c}); {what}", file=sys.stderr)
@@ -324,7 +331,11 @@ def watch(
                         )
                     return w
             if not quiet and link.logic.received and now - last_print >= 1.0:
-                line = status_line(mission, link.dv, rate.hz) + sync_paths(mission, link.dv)
+                line = (
+                    status_line(mission, link.dv, rate.hz)
+                    + sync_paths(mission, link.dv)
+                    + station_states(children, w)
+                )
                 print(("\r" + line) if tty else line, end="" if tty else "\n", flush=True)
                 last_print = now
         return w
@@ -421,6 +432,19 @@ def sync_paths(mission: Mission, dv: DataVector) -> str:
         return ""
     paths = " ".join(f"{dn}={dv.get_name(f'{dn}_sync_path')}" for dn in mission.device_nodes)
     return f"  sync {paths}"
+
+
+def station_states(children: Children, w: Watch) -> str:
+    """``  stations pad=up lounge=died(-9)``: each station process ``up``
+    started (``ground.stations[].start``), running or dead with its exit
+    code; empty when it started none."""
+    states = [
+        f"{n[len(STATION_PREFIX) :]}="
+        + ("up" if p.poll() is None and n not in w.died else f"died({p.returncode})")
+        for n, p in children.procs.items()
+        if n.startswith(STATION_PREFIX)
+    ]
+    return f"  stations {' '.join(states)}" if states else ""
 
 
 def _per_node(counts: dict[str, int]) -> str:
@@ -542,6 +566,20 @@ def run_up(
             for r in (g.routers if g is not None else [])
             if r.start
         }
+        # The stations marked `start` (ground.stations): ground processes of
+        # their own, after the nodes, each in its own directory.
+        stations = {
+            f"{STATION_PREFIX}{st.name}": [
+                "station",
+                path,
+                st.name,
+                "--dir",
+                str(station_dir(mission, st.name)),
+                *(["--log"] if log else []),
+            ]
+            for st in (g.stations if g is not None else [])
+            if st.start
+        }
         return _supervise(
             mission,
             spawn,
@@ -549,6 +587,7 @@ def run_up(
             reg,
             world=world,
             routers=routers,
+            stations=stations,
             summary=summary,
             log=log,
             quiet=quiet,
@@ -569,6 +608,7 @@ def _supervise(
     *,
     world: list[str] | None,
     routers: dict[str, list[str]] | None = None,
+    stations: dict[str, list[str]] | None = None,
     summary: str | None,
     log: str | None,
     quiet: bool,
@@ -598,6 +638,9 @@ def _supervise(
             children.spawn(name, argv, ready=ready_timeout_s)
         for name, argv in spawn.items():
             children.spawn(name, [*argv, "--summary", str(summaries[name])])
+        for name, argv in (stations or {}).items():
+            # Ready once its session is open (it waits for nothing else).
+            children.spawn(name, argv, ready=ready_timeout_s)
         reg.update(nodes={n: p.pid for n, p in children.procs.items()})
         link = GroundLink(mission, keys="mission", on_event=w.on_event)
         watch(

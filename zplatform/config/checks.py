@@ -418,6 +418,18 @@ def _check_ground(m: Mission) -> None:
     for i, st in enumerate(g.stations):
         for j, ep in enumerate(st.connect):
             check_endpoint(ep, f"$.ground.stations[{i}].connect[{j}]")
+        if st.operator is not None and st.operator not in names:
+            raise ConfigError(
+                f"station {st.name!r} runs as {st.operator!r}, who is no operator; operators: "
+                f"{sorted(names)}",
+                f"$.ground.stations[{i}].operator",
+            )
+        if st.operator is not None and not st.start:
+            raise ConfigError(
+                f"station {st.name!r}: `operator` is who the station `up` starts runs as; "
+                "say `start: true` too, or drop it",
+                f"$.ground.stations[{i}].operator",
+            )
 
 
 def _check_failover(m: Mission) -> None:

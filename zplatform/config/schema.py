@@ -1362,6 +1362,23 @@ class StationConfig(_Struct):
             "`listen`; empty: to every node, as any tool does."
         ),
     ] = msgspec.field(default_factory=list)
+    start: Annotated[
+        bool,
+        Meta(
+            description="Whether `zplatform up` starts this station on its host: a ground "
+            "process (`zplatform station MISSION NAME`) that receives, logs and archives as "
+            "this station in a directory of its own, and keeps `operator`'s command lock "
+            "while they hold it. Off: the station runs elsewhere."
+        ),
+    ] = False
+    operator: Annotated[
+        str | None,
+        Meta(
+            description="The operator (`ground.operators`) the station started by `up` runs "
+            "as: its requests (lock renewals) are signed with their key and the station's. "
+            "None: it only watches."
+        ),
+    ] = None
 
 
 class RouterConfig(_Struct):

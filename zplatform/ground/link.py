@@ -91,11 +91,11 @@ def max_age_ns_from_env(mission: Mission) -> int:
     return int(ms * 1_000_000)
 
 
-def _station_router(mission: Mission, signer: Signer | None) -> list[str] | None:
-    """The router endpoints of ``signer``'s station (None: none listed)."""
-    if signer is None or mission.ground is None:
+def _station_router(mission: Mission, station: str | None) -> list[str] | None:
+    """The router endpoints of ``station`` (None: none listed)."""
+    if station is None or mission.ground is None:
         return None
-    st = next((s for s in mission.ground.stations if s.name == signer.station), None)
+    st = next((s for s in mission.ground.stations if s.name == station), None)
     return list(st.connect) if st is not None and st.connect else None
 
 
@@ -116,7 +116,9 @@ class GroundLink:
     ``signer``: the operator and station its requests name and are tagged
     by (a mission with ``ground:``; :func:`zplatform.ground.identity.station_signer`),
     who also keeps the command lock while they hold it
-    (:class:`~.logic.GroundLogic`'s ``renew_lock``).
+    (:class:`~.logic.GroundLogic`'s ``renew_lock``). ``station``: the
+    station a link without a signer runs at (a watching station: it
+    connects through that station's router, as a signer's link does).
 
     With authentication the link is bound to the commander's run
     (:attr:`run`), learned from its answer to a run hello
@@ -146,6 +148,7 @@ class GroundLink:
         clock: NodeClock | None = None,
         announce: bool = True,
         signer: Signer | None = None,
+        station: str | None = None,
     ) -> None:
         self.mission = mission
         if keys == "mission":
@@ -169,7 +172,8 @@ class GroundLink:
         self.on_event = on_event
         # A station with a router (ground.stations[].connect) reaches the
         # vehicle through it, as a zenoh client of that router alone.
-        via = _station_router(mission, signer) if node is None else None
+        at = signer.station if signer is not None else station
+        via = _station_router(mission, at) if node is None else None
         overrides: dict[str, Any] = {"via": via} if via else {}
         self.ns = NodeSession(
             mission, node, announce=False, commands=bool(commands or script), **overrides

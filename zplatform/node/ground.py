@@ -42,7 +42,7 @@ if TYPE_CHECKING:
     from ..archive import ArchiveWriter
     from ..archive.server import ArchiveServer
 
-__all__ = ["run_ground_logger"]
+__all__ = ["run_ground_logger", "run_station", "station_dir"]
 
 log = logging.getLogger("zplatform.gn")
 
@@ -59,6 +59,8 @@ def run_ground_logger(
     key_file: str | None = None,
     events_out: str | Path | None = None,
     signer: Signer | None = None,
+    station: str | None = None,
+    archive: str | Path | None = None,
 ) -> GnSummary:
     """Log accepted telemetry snapshots to ``out_csv`` until stopped or
     ``duration_s``. Blocks; returns the summary.
@@ -73,18 +75,41 @@ def run_ground_logger(
     --commands``). ``signer``: the operator and station the script's
     requests name (a mission with ``ground:``), who keeps the command lock
     while they hold it (:class:`~zplatform.ground.logic.GroundLogic`).
+    ``station`` (with ``as_node`` False): run as that station of
+    ``ground.stations`` (:func:`run_station`): through its router, keeping
+    the signer's lock with the uplink's publisher (host role ``gn``), and
+    archiving into ``archive`` (its own directory, not served).
     """
     stop = stop or StopFlag()
     node = "gn" if as_node and mission.has_ground else None
-    link = GroundLink(mission, node=node, key_file=key_file, script=script or (), signer=signer)
+    keep_lock = station is not None and signer is not None and node is None
+    link = GroundLink(
+        mission,
+        node=node,
+        key_file=key_file,
+        script=script or (),
+        signer=signer,
+        station=station,
+        commands=keep_lock,
+    )
     logic = link.logic
     try:
         tlog = TelemetryLog(logic.layout, out_csv, events_out)
     except BaseException:
         link.close()
         raise
-    arch = _open_archive(mission, logic.layout) if node == "gn" else None
-    serve = _serve_archive(link, arch) if arch is not None else None
+    if node == "gn":
+        arch = _open_archive(mission, logic.layout)
+    elif archive is not None:
+        arch = _open_archive(mission, logic.layout, Path(archive))
+    else:
+        arch = None
+    if station is not None:
+        # What `up` waits for (its supervisor): the station's session is open.
+        print("READY", flush=True)
+    # A station's archive is its own (a tool's certificate may declare no
+    # queryable): the ground node's alone answers archive queries.
+    serve = _serve_archive(link, arch) if arch is not None and node == "gn" else None
     sink: _Sink = tlog if arch is None else _Tee(tlog, arch)
     link.on_event = sink.event  # events are handed over in this thread, by link.next
     fill = _Filler(link, sink) if "cn" in mission.recording_nodes else None
@@ -151,6 +176,62 @@ def run_ground_logger(
     )
 
 
+def station_dir(mission: Mission, station: str) -> Path:
+    """The directory of a station ``up`` starts (``ground.stations[].start``):
+    ``<the mission's archive directory>.stations/<station>`` (its events,
+    its telemetry log with ``up --log``, its archive under ``archive/``),
+    beside the ground node's archive, never inside it. Reads nothing."""
+    from ..archive import archive_dir
+
+    root = archive_dir(mission)
+    return root.with_name(root.name + ".stations") / station
+
+
+def run_station(
+    mission: Mission,
+    station: str,
+    directory: str | Path,
+    *,
+    signer: Signer | None = None,
+    log_csv: bool = False,
+    duration_s: float | None = None,
+    stop: StopFlag | None = None,
+) -> GnSummary:
+    """Run as ``station`` of ``mission``'s ``ground.stations`` until stopped
+    or ``duration_s`` (``zplatform station``; what ``up`` starts for a
+    station with ``start: true``): a ground tool (the tool's certificate)
+    connected through the station's router (``connect``) or to every node,
+    receiving the CN's telemetry and every node's events, which it writes
+    into ``directory`` (made, 0700): ``events.jsonl``, ``telemetry.csv``
+    with ``log_csv``, and its archive under ``archive/`` when the mission
+    archives. With ``signer`` (its operator at this station) it keeps their
+    command lock while they hold it; it sends nothing else. Prints ``READY``
+    once its session is open. Blocks; returns its summary. Raises
+    KeyError_ for a missing key, TransportError when the session cannot
+    open, CommandError for a station the mission does not list."""
+    from ..errors import CommandError
+
+    g = mission.ground
+    if g is None or not any(s.name == station for s in g.stations):
+        listed = ", ".join(s.name for s in g.stations) if g is not None else "none"
+        raise CommandError(
+            f"mission {mission.mission!r} lists no station {station!r} (stations: {listed})"
+        )
+    d = Path(directory)
+    d.mkdir(parents=True, exist_ok=True, mode=0o700)
+    return run_ground_logger(
+        mission,
+        d / "telemetry.csv" if log_csv else None,
+        as_node=False,
+        duration_s=duration_s,
+        stop=stop,
+        events_out=d / "events.jsonl",
+        signer=signer,
+        station=station,
+        archive=d / "archive",
+    )
+
+
 class _Sink(Protocol):
     def snapshot(self, rx_ns: int, dv: DataVector) -> None: ...
     def event(self, rec: EventRecord) -> None: ...
@@ -171,15 +252,18 @@ class _Tee:
         self.arch.event(rec)
 
 
-def _open_archive(mission: Mission, layout: Layout) -> ArchiveWriter | None:
-    """The ground node's archive, or None when the mission turns it off or it
-    cannot open (said in the log: the ground logs and commands without it)."""
+def _open_archive(
+    mission: Mission, layout: Layout, root: Path | None = None
+) -> ArchiveWriter | None:
+    """The ground node's archive (a station's: in ``root``), or None when the
+    mission turns it off or it cannot open (said in the log: the ground logs
+    and commands without it)."""
     if not mission.archive.enabled:
         return None
     try:
         from ..archive import ArchiveWriter, archive_dir
 
-        return ArchiveWriter(mission, layout, archive_dir(mission))
+        return ArchiveWriter(mission, layout, root if root is not None else archive_dir(mission))
     except ZPlatformError as exc:
         log.warning("no archive: %s", exc)
         return None

@@ -3,7 +3,7 @@
 A router runs zenoh-python's router mode (one session, ``mode: router``)
 with the mission's transport settings, its mutual TLS and access-control
 list (:func:`zplatform.security.deploy.access_control`: a router presents
-the deployment's ``router`` identity, and its policy lets it forward only
+its own identity, ``router-<name>``, and their policy lets it forward only
 what stations may send and receive: their subscriptions to telemetry and
 events, their requests on ``{vehicle}/gn/to_cn``, run hellos, recorder and
 archive queries and their replies, liveliness tokens; never a device node's
@@ -12,8 +12,8 @@ telemetry once; each router fans it out to its stations (zenoh clients of
 it, ``ground.stations[].connect``) and the next router (docs/deployment.md).
 
 Contract: :func:`router_config` is pure but for the deployment's file
-checks (DeploymentError for a mission with mutual TLS and no ``router``
-identity, TransportError for a setting zenoh refuses); :func:`run_router`
+checks (DeploymentError for a mission with mutual TLS and no certificate of
+the router's own, TransportError for a setting zenoh refuses); :func:`run_router`
 blocks until its stop flag is set, printing ``READY`` once the session is
 open (what ``up``'s supervisor waits for).
 """
@@ -30,7 +30,16 @@ import zenoh
 from ..config import Mission, RouterConfig
 from ..core.messages import lowlatency_for
 from ..errors import TransportError
-from ..security.deploy import ROUTER, Deployment, require_deployment, zenoh_settings
+from ..security.deploy import (
+    ROUTER,
+    Deployment,
+    DeploymentError,
+    check_router_certificate,
+    require_deployment,
+    router_identity,
+    tls_nodes,
+    zenoh_settings,
+)
 from .process import StopFlag
 from .transport import SESSION_CLOSE_S, open_session
 
@@ -71,12 +80,17 @@ def router_config(
     connect: Sequence[str],
     *,
     deployment: Deployment | None = None,
+    name: str | None = None,
 ) -> zenoh.Config:
-    """The zenoh config of a router of ``mission`` listening on ``listen`` and
-    connecting to ``connect`` (module doc). The link settings are the
-    nodes' (lease, low latency, batching: a link's two ends must agree);
-    scouting is off (routers meet by their endpoints, across a WAN);
-    ``deployment``: the mission's (its ``router`` identity and the ACL)."""
+    """The zenoh config of router ``name`` of ``mission`` listening on
+    ``listen`` and connecting to ``connect`` (module doc). The link settings
+    are the nodes' (lease, low latency, batching: a link's two ends must
+    agree); scouting is off (routers meet by their endpoints, across a WAN);
+    ``deployment``: the mission's (the router's own identity,
+    :func:`~zplatform.security.deploy.router_identity`, and the ACL).
+    DeploymentError when the deployment secures the links and ``name`` is
+    None, it has no certificate for the router, or the one it names is
+    not the router's own (:func:`~zplatform.security.deploy.check_router_certificate`)."""
     t = mission.transport
     cfg = zenoh.Config()
     _insert(cfg, "mode", "router")
@@ -92,8 +106,17 @@ def router_config(
         _insert(cfg, "transport/unicast/lowlatency", True)
         _insert(cfg, "transport/unicast/qos/enabled", False)
     _insert(cfg, "transport/link/tx/queue/batching/enabled", t.batching)
-    if deployment is not None:
-        for key, value in zenoh_settings(mission, deployment, ROUTER).items():
+    if deployment is not None and tls_nodes(mission):
+        if name is None:
+            raise DeploymentError(
+                "a router of a mission with mutual TLS presents its own certificate: name it "
+                "(`zplatform router MISSION --name NAME`, a router of ground.routers; "
+                "--listen/--connect replace its endpoints)",
+                "$.nodes",
+            )
+        identity = router_identity(name)
+        check_router_certificate(deployment, identity)
+        for key, value in zenoh_settings(mission, deployment, identity).items():
             _insert(cfg, key, value)
     return cfg
 
@@ -104,17 +127,19 @@ def run_router(
     connect: Sequence[str],
     *,
     stop: StopFlag | None = None,
-    name: str = "router",
+    name: str | None = None,
 ) -> int:
-    """Run one router until ``stop`` (SIGTERM, SIGINT, ``up`` closing its
-    stdin). Prints ``READY`` once open; returns 0. Raises TransportError
-    when the session cannot open (a port in use), DeploymentError for a
-    mission with mutual TLS and no router identity on this host."""
+    """Run router ``name`` (None: one the mission does not list, which a
+    mission with mutual TLS refuses: it has no certificate) until ``stop``
+    (SIGTERM, SIGINT, ``up`` closing its stdin). Prints ``READY`` once
+    open; returns 0. Raises TransportError when the session cannot open (a
+    port in use), DeploymentError for a mission with mutual TLS and no
+    certificate of this router's own on this host."""
     if not listen and not connect:
-        raise TransportError(f"router {name}: give --listen and/or --connect endpoints")
+        raise TransportError(f"router {name or 'router'}: give --listen and/or --connect endpoints")
     stop = stop or StopFlag()
     dep = require_deployment(mission)
-    session = open_session(router_config(mission, listen, connect, deployment=dep))
+    session = open_session(router_config(mission, listen, connect, deployment=dep, name=name))
     try:
         print("READY", flush=True)
         while not stop.is_set():

@@ -41,12 +41,15 @@ __all__ = [
     "ToolIdentity",
     "access_control",
     "check_deployment",
+    "check_router_certificate",
     "check_tool_may_command",
     "decode_deployment",
     "default_deployment_path",
     "find_deployment",
     "load_deployment",
     "require_deployment",
+    "router_identities",
+    "router_identity",
     "router_rules",
     "tls_nodes",
     "tls_settings",
@@ -60,8 +63,24 @@ _T = TypeVar("_T")
 TOOL = "tool"
 """Common name (and ACL subject) of the identity non-node tools present."""
 ROUTER = "router"
-"""Common name (and ACL subject) of the identity every zenoh router of the
-mission presents (``ground.routers``; :mod:`zplatform.runtime.router`)."""
+"""The prefix of a router's identity (:func:`router_identity`). Before each
+router had its own, every router of a mission presented this one; a
+deployment's old ``router`` certificate is named by no access control now."""
+
+
+def router_identity(name: str) -> str:
+    """The identity router ``name`` of ``ground.routers`` presents: its
+    certificate's common name and SAN, its ACL subject and its entry in the
+    deployment's ``nodes`` (``router-pad``; ``-`` is in no node's or
+    router's name, so it names nothing else)."""
+    return f"{ROUTER}-{name}"
+
+
+def router_identities(mission: Mission) -> list[str]:
+    """The identities of ``mission``'s routers (``ground.routers``), in order."""
+    g = mission.ground
+    return [router_identity(r.name) for r in g.routers] if g is not None else []
+
 
 _TLS_PROTOS = ("tls/",)
 
@@ -308,6 +327,12 @@ def tls_settings(dep: Deployment, node: str | None) -> dict[str, Any]:
     where = "$.tool" if node is None else f"$.nodes.{node}"
     if ident is None:
         who = f"node {node!r}" if node is not None else "tools (tap, log, cmd)"
+        if node is not None and node.startswith(f"{ROUTER}-"):
+            who = (
+                f"router {node[len(ROUTER) + 1 :]!r} ({node}: each router presents its own "
+                "certificate; `zplatform keygen MISSION_FILE` makes it, copy it to that "
+                "router's host)"
+            )
         raise DeploymentError(
             f"the deployment gives no cert and key for {who}",
             "$.tool" if node is None else "$.nodes",
@@ -324,6 +349,36 @@ def tls_settings(dep: Deployment, node: str | None) -> dict[str, Any]:
         # An expired cert ends the link, not only new handshakes.
         "close_link_on_expiration": True,
     }
+
+
+def check_router_certificate(dep: Deployment, identity: str) -> None:
+    """Refuse (DeploymentError at ``$.nodes.<identity>.cert``) a router's
+    certificate whose common name is not ``identity``: another router's or
+    a node's, copied or named in its place. The vehicle's access control
+    would take it as the identity it names (a node's rights, or that other
+    router's, whose removal from the mission would then cut this one off):
+    a router presents its own or does not start. Reads the file; a missing
+    or unreadable one is :func:`tls_settings`' error."""
+    from cryptography import x509
+    from cryptography.x509.oid import NameOID
+
+    ident = dep.nodes.get(identity)
+    if ident is None or not Path(ident.cert).is_file():
+        return  # tls_settings says what is missing
+    try:
+        cert = x509.load_pem_x509_certificate(Path(ident.cert).read_bytes())
+    except (OSError, ValueError) as exc:
+        raise DeploymentError(
+            f"cannot read the certificate {ident.cert!r}: {exc}", f"$.nodes.{identity}.cert"
+        ) from exc
+    names = [str(a.value) for a in cert.subject.get_attributes_for_oid(NameOID.COMMON_NAME)]
+    if names != [identity]:
+        raise DeploymentError(
+            f"the certificate {ident.cert!r} is {', '.join(names) or 'nameless'}'s, not "
+            f"{identity}'s: a router presents its own (`zplatform keygen MISSION_FILE` makes "
+            "one per router)",
+            f"$.nodes.{identity}.cert",
+        )
 
 
 def _check_identity_files(ident: Identity | ToolIdentity, where: str) -> None:
@@ -482,13 +537,18 @@ def access_control(mission: Mission, dep: Deployment) -> dict[str, Any]:
     if dep.tool is not None and dep.tool.may_command and mission.has_ground:
         tool_rules.append(rule("tool-command", ["put"], [f"{v}/gn/to_cn"]))
     policies.append({"id": f"p-{TOOL}", "rules": tool_rules, "subjects": [f"s-{TOOL}"]})
-    if mission.ground is not None and mission.ground.routers:
-        known.append(ROUTER)
+    routers = router_identities(mission)
+    if routers:
+        # One subject per router's certificate (its own common name): a
+        # router removed from the mission is named by no subject, so its
+        # certificate is denied everything, and the others' are untouched.
+        # Each gets the same forwarding-only rules.
+        known += routers
         policies.append(
             {
                 "id": f"p-{ROUTER}",
                 "rules": router_rules(mission, rule, common),
-                "subjects": [f"s-{ROUTER}"],
+                "subjects": [f"s-{r}" for r in routers],
             }
         )
     subjects = [{"id": f"s-{k}", "cert_common_names": [k]} for k in known]

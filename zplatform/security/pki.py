@@ -1,15 +1,15 @@
-"""The mission's PKI: a CA, a certificate per node and one for the tools.
+"""The mission's PKI: a CA, a certificate per node and router, one for the tools.
 
 A mission whose links run mutual TLS (:attr:`zplatform.config.Mission.mtls`)
-needs, on each host, a deployment file (:mod:`zplatform.security.deploy`) naming the
-mission CA and that host's certificate and key. :func:`ensure_mission_pki`
-makes all of it beside the host's key set
-(:func:`zplatform.security.deploy.default_deployment_path`): ``ca.pem`` and ``ca.key``
-(which never leaves this host), ``<node>.pem`` and ``<node>.tls.key`` per node
-(common name: the node's name), ``tool.pem`` and ``tool.tls.key`` for the
-operator's tools, and ``deployment.yaml``. ``zplatform keygen`` calls it and
-says which files go to which host (:func:`host_files`); ``zplatform up``
-calls it on first use.
+needs, on each host, a deployment file (:mod:`zplatform.security.deploy`)
+naming the mission CA and that host's certificate and key.
+:func:`ensure_mission_pki` makes all of it beside the host's key set
+(:func:`zplatform.security.deploy.default_deployment_path`): ``ca.pem``,
+``ca.key`` (which never leaves this host), ``NAME.pem`` and ``NAME.tls.key``
+per node and per router (``router-<name>``: each its own), ``tool.pem`` and
+``tool.tls.key`` for the tools, ``deployment.yaml`` (common name: the
+identity's name). ``zplatform keygen`` calls it and says which files go to
+which host (:func:`host_files`); ``zplatform up`` calls it on first use.
 
 Contract: keys are ECDSA P-256, mode 0600 in a 0700 directory; nothing that
 exists is overwritten (a second call adds only what is missing, signed by the
@@ -31,7 +31,13 @@ from typing import Any
 import msgspec
 
 from ..config import Mission
-from .deploy import ROUTER, TOOL, DeploymentError, default_deployment_path
+from .deploy import (
+    TOOL,
+    DeploymentError,
+    default_deployment_path,
+    router_identities,
+    router_identity,
+)
 
 __all__ = [
     "DEPLOYMENT_FILE",
@@ -288,8 +294,8 @@ def ensure_mission_pki(mission: Mission, directory: str | Path | None = None) ->
         if directory is not None
         else default_deployment_path(mission)
     )
-    # The mission's routers (ground.routers) share one identity, ROUTER.
-    routers = [ROUTER] if mission.ground is not None and mission.ground.routers else []
+    # Each of the mission's routers (ground.routers) has its own identity.
+    routers = router_identities(mission)
     made = ensure_pki(
         path.parent, [*mission.nodes, *routers], ca_name=f"zplatform {mission.mission} CA"
     )
@@ -316,5 +322,8 @@ def host_files(mission: Mission) -> list[tuple[str, list[str]]]:
         # console too, whose frames the gn key set signs): it may command.
         who = "the operator's tools (tap, log, cmd, console)" if r == TOOL else role_host(r)
         rows.append((who, list(leaf_files(r))))
+    g = mission.ground
+    for rt in g.routers if g is not None else []:
+        rows.append((f"router {rt.name}'s host", list(leaf_files(router_identity(rt.name)))))
     rows.append(("no other host (it signs certificates)", ["ca.key"]))
     return rows
