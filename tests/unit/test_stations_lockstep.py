@@ -39,8 +39,9 @@ def flight_with_ground() -> Mission:
 
 
 class Stations:
-    """Every station's uplink, numbering as a ground does (the CN's last
-    number plus one), its verdicts read from the CN's vector."""
+    """Every station's uplink, numbering as a ground does (above every number
+    the CN showed, refused ones too: GroundLogic), its verdicts read from the
+    CN's vector."""
 
     def __init__(self, runner: LockstepRunner) -> None:
         self.r = runner
@@ -50,14 +51,19 @@ class Stations:
         self._keys = keys
         self._ups: dict[str, Uplink] = {}
 
-    def send(self, who: str, command: str, element: int = 0, ref: int = 0) -> str:
-        """``who`` (``op@station``) sends ``command``; one loop; its verdict."""
+    def send(
+        self, who: str, command: str, element: int = 0, ref: int = 0, seq: int | None = None
+    ) -> str:
+        """``who`` (``op@station``) sends ``command`` numbered ``seq`` (None:
+        the CN's last number plus one); one loop; its verdict."""
         if who not in self._ups:
             op, st = who.split("@")
             signer = sim_signer(self._keys, self.m, op, st)
             self._ups[who] = Uplink(self.m, self._keys.for_node("gn"), signer=signer)
         dv = self.r.control.dv
-        seq = self.r.control.commands.last_seq + 1
+        if seq is None:
+            shown = max(dv.get("cn_cmd_seq"), dv.get("cn_cmd_reject_seq"))
+            seq = max(self.r.control.commands.last_seq, int(shown)) + 1
         frame = self._ups[who].frame(
             command, seq, element, 0.0, self.r.clock.now_ns(), dv.get("cn_epoch"), ref=ref
         )
@@ -92,9 +98,11 @@ def test_a_flight_with_stations_hand_over_two_person_launch_and_lease_expiry() -
     assert s.send("fd@room", "ARM") == "ACCEPTED"
     assert s.send("fd@room", "LAUNCH") == "REJECTED_NOT_APPROVED"
     assert r.control.dv.get_name("cn_state") == "SAFE"
+    # An operator is no approver. (Refused before the ARM: its number, which
+    # the intake admitted, would sit between the ARM and its command.)
+    assert s.send("pat@pad", "APPROVE", ref=r.control.commands.last_seq) == "REJECTED_ROLE"
     assert s.send("fd@room", "ARM") == "ACCEPTED"
     arm = r.control.commands.last_seq
-    assert s.send("pat@pad", "APPROVE", ref=arm) == "REJECTED_ROLE"  # an operator: no approver
     assert s.send("rso@lounge", "APPROVE", ref=arm) == "ACCEPTED"
     assert s.send("fd@room", "LAUNCH") == "ACCEPTED"
     assert r.control.dv.get_name("cn_state") == "ARMED"
@@ -115,7 +123,7 @@ def test_a_flight_with_stations_hand_over_two_person_launch_and_lease_expiry() -
         "command lock granted: pat@pad holds the command lock",
         "command lock handed: pat@pad handed the command lock to fd",
         "command lock granted: fd@room took up the handed-over lock",
-        "command lock approved: rso@lounge approved ARM #6",
+        f"command lock approved: rso@lounge approved ARM #{arm}",
         "command lock expired: fd@room's command lock expired (no request in its lease)",
         "command lock granted: pat@pad holds the command lock",
         "command lock expired: pat@pad's command lock expired (no request in its lease)",
@@ -160,3 +168,21 @@ def test_range_safety_aborts_the_flight_from_a_view_station() -> None:
     r.step()
     assert r.control.dv.get_name("cn_state") == "ABORTED"
     assert s.holder == "fd@room"  # the abort left the lock where it was
+
+
+def test_a_number_reused_after_an_authority_refusal_is_refused_as_the_live_cn_does() -> None:
+    """A request the authority refuses consumes no number, but the CN's
+    intake admitted it: the same number again is a replay, in lockstep as
+    live (the runner's requests pass the live CN's RequestIntake)."""
+    r = LockstepRunner(flight_with_ground())
+    s = Stations(r)
+    r.run(0.5)
+    n = r.control.commands.last_seq + 1
+    assert s.send("vic@lounge", "NOOP") == "REJECTED_VIEW_ONLY"
+    assert r.control.commands.last_seq == n - 1  # no number consumed
+    assert s.send("pat@pad", "LOCK", seq=n) == "REJECTED_REPLAY"  # numbered n again
+    dv = r.control.dv
+    assert dv.get("cn_cmd_reject_seq") == n and dv.get("cn_cmd_seq") == n - 1
+    assert s.holder == "NONE@NONE"
+    assert s.send("pat@pad", "LOCK", seq=n + 1) == "ACCEPTED"
+    assert s.holder == "pat@pad"
