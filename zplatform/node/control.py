@@ -85,8 +85,6 @@ log = logging.getLogger("zplatform.cn")
 _DROP = zenoh.CongestionControl.DROP
 
 
-
-
 class ControlNode:
     """The CN process: session, sync, ground input, telemetry, logic.
 
