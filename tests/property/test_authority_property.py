@@ -115,8 +115,8 @@ def step(r: Rig, m: Model, who: str, cmd: str, target: int, which: str) -> None:
             "junk": 99_999,
         }[which]
     t = r.t
-    seq = r.ch.last_seq + 1
-    verdict = r.send(f"{op}@{stn}", cmd, element=target, ref=ref)
+    seq = max(r.ch.last_seq, int(r.dv.get("cn_cmd_reject_seq"))) + 1  # as a ground numbers
+    verdict = r.send(f"{op}@{stn}", cmd, element=target, ref=ref, seq=seq)
     consumed = r.ch.last_seq == seq
     ok = verdict == "ACCEPTED"
     holder_before = m.holder
@@ -160,6 +160,8 @@ def step(r: Rig, m: Model, who: str, cmd: str, target: int, which: str) -> None:
         m.chain = -1
     if cmd == "LAUNCH" and consumed:
         m.chain = -1
+    if not consumed and m.chain >= 0 and seq == m.chain + 1:
+        m.chain = seq  # refused without a verdict: its number is spent, the chain goes on
     assert r.dv.get_name("cn_lock_holder") == (m.holder or "NONE")
 
 

@@ -98,11 +98,11 @@ def test_a_flight_with_stations_hand_over_two_person_launch_and_lease_expiry() -
     assert s.send("fd@room", "ARM") == "ACCEPTED"
     assert s.send("fd@room", "LAUNCH") == "REJECTED_NOT_APPROVED"
     assert r.control.dv.get_name("cn_state") == "SAFE"
-    # An operator is no approver. (Refused before the ARM: its number, which
-    # the intake admitted, would sit between the ARM and its command.)
-    assert s.send("pat@pad", "APPROVE", ref=r.control.commands.last_seq) == "REJECTED_ROLE"
     assert s.send("fd@room", "ARM") == "ACCEPTED"
     arm = r.control.commands.last_seq
+    # An operator is no approver: refused without a verdict, its number (which
+    # the CN's intake admitted) between the ARM and its command breaks nothing.
+    assert s.send("pat@pad", "APPROVE", ref=arm) == "REJECTED_ROLE"
     assert s.send("rso@lounge", "APPROVE", ref=arm) == "ACCEPTED"
     assert s.send("fd@room", "LAUNCH") == "ACCEPTED"
     assert r.control.dv.get_name("cn_state") == "ARMED"

@@ -601,11 +601,19 @@ class CommandHandler:
         two-person) without consuming its number: counted in
         ``cn_cmd_rejects`` and ``cn_auth_refused``, shown in
         ``cn_cmd_reject_status``/``_seq``; evented at most once a second (a
-        peer holding one operator's key cannot flood the event stream)."""
+        peer holding one operator's key cannot flood the event stream).
+        The CN's intake admitted its number, so no request can use it again:
+        one numbered just after an open ARM's chain (the ARM's or its last
+        approval's number) moves the chain on, as an approval does, so the
+        armed command still follows it (ARM n, another station's refused
+        request n+1, APPROVE n+2, the command n+3). It confirms nothing: the
+        command must still be the ARM's operator's, inside its window."""
         self._h_rejects.bump()
         self._h_reject_status.set(status)
         self._h_reject_seq.set(seq)
         self._h_auth_refused.bump()
+        if self._arm_seq >= 0 and seq == self._arm_seq + 1:
+            self._armed_at(seq, self._arm_t_ns)
         last = self._refusal_t
         if last is not None and 0 <= t_ns - last < _REFUSAL_EVENT_NS:
             self._refusals_quiet += 1
