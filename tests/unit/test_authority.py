@@ -564,9 +564,9 @@ def test_the_ground_checks_lock_commands_before_sending() -> None:
 
 
 def test_a_standby_takes_the_lock_over_from_the_mirrored_vector() -> None:
-    """A takeover (CommandHandler.adopt): the lock is in the Data Vector, so
-    the new commander keeps its holder and lease; open approvals are not
-    mirrored, so a pending two-person ARM needs them again."""
+    """A takeover (CommandHandler.adopt): the lock and the ARM open for
+    approvals, with its approvals, are in the Data Vector, so the new
+    commander keeps its holder, lease, ARM and approvals."""
     r = Rig()
     r.send("alice@pad", "LOCK")
     r.send("alice@pad", "ARM")
@@ -577,7 +577,15 @@ def test_a_standby_takes_the_lock_over_from_the_mirrored_vector() -> None:
     b.ch.adopt()
     auth = b.ch.authority
     assert auth is not None and (auth.holder, auth.station) == (1, 0)
-    assert auth.until_ns == r.dv.get("cn_lock_until_ns") and not auth.approved()
+    assert auth.until_ns == r.dv.get("cn_lock_until_ns") and auth.approved()
+    a = r.ch.authority
+    assert a is not None
+    assert (auth.arm_seq, auth.arm_operator, auth.arm_t_ns, auth.approvers) == (
+        a.arm_seq,
+        a.arm_operator,
+        a.arm_t_ns,
+        a.approvers,
+    )
+    assert b.send("fd@pad", "APPROVE", ref=a.arm_seq) == "REJECTED_APPROVAL_SELF"
     assert b.send("bob@room", "NOOP") == "REJECTED_NOT_HOLDER"
-    assert b.send("alice@pad", "LAUNCH") == "REJECTED_NOT_ARMED"  # its ARM is gone
     assert b.send("alice@pad", "NOOP") == "ACCEPTED"

@@ -186,3 +186,60 @@ def test_a_number_reused_after_an_authority_refusal_is_refused_as_the_live_cn_do
     assert s.holder == "NONE@NONE"
     assert s.send("pat@pad", "LOCK", seq=n + 1) == "ACCEPTED"
     assert s.holder == "pat@pad"
+
+
+def test_a_standby_takeover_keeps_the_lock_the_open_arm_and_its_approvals() -> None:
+    """The commander dies with an ARM open for approvals and one approval
+    given: the standby takes command from the mirrored vector and resumes
+    the authority's state: the lock's holder, the ARM, its approval (the
+    same approver is refused as approving twice); a second approver's
+    APPROVE is accepted and the two-person LAUNCH is accepted by the new
+    commander."""
+    text = FLIGHT.read_text() + GROUND.replace(
+        "    - {name: vic, roles: [viewer]}\n",
+        "    - {name: vic, roles: [viewer]}\n    - {name: flo, roles: [flight_director]}\n",
+    ).replace("lease_s: 2", "lease_s: 5")
+    r = LockstepRunner(decode_mission(text, source=str(FLIGHT), base_dir=FLIGHT.parent))
+    s = Stations(r)
+    r.run(0.5)
+    assert s.send("pat@pad", "LOCK") == "ACCEPTED"
+    assert s.send("pat@pad", "ARM") == "ACCEPTED"
+    arm = r.control.commands.last_seq
+    assert s.send("rso@lounge", "APPROVE", ref=arm) == "ACCEPTED"
+    r.kill("cn")
+    for _ in range(20):
+        r.step()
+    assert [(node, term) for _, node, term in r.commanders] == [("cn", 1), ("cn_b", 2)]
+    assert r.control.name == "cn_b"
+    dv = r.control.dv
+    assert s.holder == "pat@pad" and dv.get("cn_arm_approvals") == 1
+    assert s.send("fd@room", "NOOP") == "REJECTED_NOT_HOLDER"
+    assert s.send("rso@lounge", "APPROVE", ref=arm) == "REJECTED_APPROVAL_SELF"
+    assert s.send("flo@room", "APPROVE", ref=arm) == "ACCEPTED"
+    assert dv.get("cn_arm_approvals") == 2 and dv.get("cn_arm_open") == arm
+    assert s.send("pat@pad", "LAUNCH") == "ACCEPTED"
+    assert dv.get_name("cn_state") == "ARMED" and s.holder == "pat@pad"
+
+
+def test_a_standby_takeover_resumes_an_arm_awaiting_its_second_operator() -> None:
+    """An ARM waiting for its approval when the commander dies: approved at
+    the new commander, its command accepted there (not armed again)."""
+    r = LockstepRunner(
+        decode_mission(
+            FLIGHT.read_text() + GROUND.replace("lease_s: 2", "lease_s: 5"),
+            source=str(FLIGHT),
+            base_dir=FLIGHT.parent,
+        )
+    )
+    s = Stations(r)
+    r.run(0.5)
+    assert s.send("fd@room", "LOCK") == "ACCEPTED"
+    assert s.send("fd@room", "ARM") == "ACCEPTED"
+    arm = r.control.commands.last_seq
+    r.kill("cn")
+    for _ in range(20):
+        r.step()
+    assert r.control.name == "cn_b" and s.holder == "fd@room"
+    assert s.send("rso@lounge", "APPROVE", ref=arm) == "ACCEPTED"
+    assert s.send("fd@room", "LAUNCH") == "ACCEPTED"
+    assert r.control.dv.get_name("cn_state") == "ARMED"

@@ -352,6 +352,17 @@ def platform_elements(m: Mission) -> dict[str, list[ElementConfig]]:
             ),
             E("cn_lock_until_ns", "i64", 0, doc="the lease's end (loop time, ns; 0: no holder)"),
             E("cn_arm_approvals", "u8", 0, doc="approvals of the current ARM (two-person rule)"),
+            # The ARM open for approvals, in full: a console judges an APPROVE
+            # as the CN would, and a standby or a restarted CN takes it up.
+            E("cn_arm_open", "u64", 0, doc="the number of the ARM open for approvals (0: none)"),
+            E("cn_arm_operator", "enum", "NONE", ops, doc="the operator of that ARM"),
+            E("cn_arm_open_ns", "i64", 0, doc="its loop time (ns): approvals within 10 s"),
+            E(
+                "cn_arm_approvers",
+                "u64",
+                0,
+                doc="who approved it: bit i for ground.operators[i]",
+            ),
             E(
                 "cn_auth_refused",
                 "u32",
