@@ -243,3 +243,33 @@ def test_a_standby_takeover_resumes_an_arm_awaiting_its_second_operator() -> Non
     assert s.send("rso@lounge", "APPROVE", ref=arm) == "ACCEPTED"
     assert s.send("fd@room", "LAUNCH") == "ACCEPTED"
     assert r.control.dv.get_name("cn_state") == "ARMED"
+
+
+def test_a_restart_in_flight_resumes_the_lock_and_the_approved_arm_from_its_recorder() -> None:
+    """Both control nodes die with an approved ARM open; cn restarts and
+    resumes the run from its flight recorder's newest frame, which carries
+    the authority's state: the holder keeps the lock and the approved
+    two-person LAUNCH is accepted without a new ARM or approval."""
+    r = LockstepRunner(
+        decode_mission(
+            FLIGHT.read_text() + GROUND.replace("lease_s: 2", "lease_s: 5"),
+            source=str(FLIGHT),
+            base_dir=FLIGHT.parent,
+        )
+    )
+    s = Stations(r)
+    r.run(0.5)
+    assert s.send("fd@room", "LOCK") == "ACCEPTED"
+    assert s.send("fd@room", "ARM") == "ACCEPTED"
+    arm = r.control.commands.last_seq
+    assert s.send("rso@lounge", "APPROVE", ref=arm) == "ACCEPTED"
+    r.kill("cn_b")
+    r.kill("cn")
+    r.run(0.1)
+    assert r.restart("cn") == "resume"
+    for _ in range(3):
+        r.step()
+    assert r.control.name == "cn" and s.holder == "fd@room"
+    assert s.send("rso@lounge", "APPROVE", ref=arm) == "REJECTED_APPROVAL_SELF"
+    assert s.send("fd@room", "LAUNCH") == "ACCEPTED"
+    assert r.control.dv.get_name("cn_state") == "ARMED"
