@@ -48,6 +48,7 @@ from ..errors import NodeError, RecordingError, ZPlatformError
 from ..ground.logic import GroundLogic
 from ..runtime.clocksync import RELEARN_S, ClockLink, ClockResponder, RunAsker
 from ..runtime.timebase import VirtualClock
+from ..security.identities import sim_signer
 from ..telemetry.logs import CsvLogger
 from ..telemetry.records import CommandOutcome, EventRecord
 from ..world.model import World
@@ -452,6 +453,11 @@ class LockstepRunner:
             script=commands or [],
             run=self._ground_asker.run if self._ground_asker is not None else None,
             signer=signer,
+            # A script line naming its sender (`as alice@pad: ...`) is signed
+            # with that operator's key of the run's own key set.
+            signers=(lambda op, st: sim_signer(keys, mission, op, st))
+            if keys is not None and mission.ground is not None
+            else None,
         )
         # The sync query's form, as the live CN chooses it (transport.sync_query).
         self._bundle = BundleEncoder() if wildcard_sync_for(mission) else None
