@@ -10,10 +10,15 @@ most (a lease renewed by its holder's accepted requests; LOCK, RELEASE,
 HANDOVER, a flight director's TAKEOVER, expiry), range safety's ABORT from
 any station, viewers never, a two-person command's ARM approved by a second
 operator. Every decision is a pure function of the requests and the loop's
-timestamp. Rules: docs/security.md#stations-and-operators.
+timestamp: one verdict, :meth:`AuthorityRules.verdict`, over the state the
+CN keeps and publishes (:class:`LockView`; :func:`read_lock_state` reads it
+back from a vector), which the CN (:meth:`Authority.check`) and a console
+(:meth:`zplatform.console.model.ConsoleModel.refusal`) both call, so their
+rules cannot drift. Rules: docs/security.md#stations-and-operators.
 
-Contract: not thread-safe (the CN's loop thread); :meth:`Authority.identify`
-and :meth:`Authority.check` change nothing; :meth:`Authority.apply` and
+Contract: not thread-safe (the CN's loop thread); :meth:`Authority.identify`,
+:meth:`Authority.check` and :meth:`AuthorityRules.verdict` change nothing
+(the verdict allocates only a refusal's text); :meth:`Authority.apply` and
 :meth:`Authority.expire` do, returning what to announce. Nothing in a
 request can make any of them raise.
 """
