@@ -9,18 +9,14 @@ change of the mission the CN loads, never a re-keying of the vehicle.
 most (a lease renewed by its holder's accepted requests; LOCK, RELEASE,
 HANDOVER, a flight director's TAKEOVER, expiry), range safety's ABORT from
 any station, viewers never, a two-person command's ARM approved by a second
-operator. Every decision is a pure function of the requests and the loop's
-timestamp: one verdict, :meth:`AuthorityRules.verdict`, over the state the
-CN keeps and publishes (:class:`LockView`; :func:`read_lock_state` reads it
-back from a vector), which the CN (:meth:`Authority.check`) and a console
-(:meth:`zplatform.console.model.ConsoleModel.refusal`) both call, so their
-rules cannot drift. Rules: docs/security.md#stations-and-operators.
+operator. One pure verdict (:meth:`AuthorityRules.verdict`, the CN's and a
+console's) over the published state (:func:`read_lock_state`) and the loop's
+time. Rules: docs/security.md#stations-and-operators.
 
 Contract: not thread-safe (the CN's loop thread); :meth:`Authority.identify`,
-:meth:`Authority.check` and :meth:`AuthorityRules.verdict` change nothing
-(the verdict allocates only a refusal's text); :meth:`Authority.apply` and
-:meth:`Authority.expire` do, returning what to announce. Nothing in a
-request can make any of them raise.
+:meth:`Authority.check` and the verdict change nothing (a refusal's text is
+its one allocation); :meth:`Authority.apply` and :meth:`Authority.expire`
+do, returning what to announce. Nothing in a request can make them raise.
 """
 
 from __future__ import annotations

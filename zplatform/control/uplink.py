@@ -11,15 +11,12 @@ runner share, so a script means the same thing live and in ``sim``.
 Command scripts (:func:`parse_commands`, :func:`load_commands`) have one
 command per line (``at 1.0 launch``, ``at 2.0 write seq_leds_mode manual``,
 ``at 3.0 prm_set apogee_target_m 550``); ``#`` starts a comment; times are
-seconds (decimal, read exactly) from the start of loop 1. In a mission with
-``ground:``, a line may say who sends it, ``as alice@pad: at 1.0 lock``, and
-a line ``as alice@pad`` alone makes that operator and station send every
-line after it that names nobody (until the next such line); without either
-the ground's own ``--operator``/``--station`` sends it.
+seconds (decimal, read exactly) from the start of loop 1. ``as alice@pad:
+at 1.0 lock`` names who sends a line, ``as alice@pad`` alone the lines after.
 
 Contract: pure functions (:func:`load_commands` also reads its file); a bad
-script or command raises :class:`~zplatform.errors.CommandError` naming where,
-before anything is sent. See docs/operations.md#commanding.
+script or command raises CommandError naming where, before anything is sent
+(docs/operations.md#commanding).
 """
 
 from __future__ import annotations

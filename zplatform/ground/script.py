@@ -11,14 +11,8 @@ out one at a time: the next is submitted only after the CN's verdict on the
 previous one (the logic numbers them, resends lost frames and reads the
 verdicts), so two commands due together go in consecutive loops.
 
-A line naming its sender (``as alice@pad: at 1.0 lock``, or after a line
-``as alice@pad``: :func:`zplatform.control.uplink.parse_commands`) is sent
-signed as that operator at that station: the player resolves every name at
-construction, by the ``signers`` its driver gives (the key files
-``operator-NAME.keys``/``station-NAME.keys`` as ``cmd --operator`` reads
-them; a lockstep run's keys), and an unknown name or a missing key is a
-CommandError naming the script's line.
-
+A line naming its sender (``as alice@pad: ...``) is signed by the driver's
+``signers`` (key files; a lockstep run's keys), resolved at construction.
 Without a fixed duration a run plays on :data:`SETTLE_S` past the script's
 last command (at least :data:`MIN_DURATION_S`): ``sim`` in virtual time from
 the command's time, ``up`` from its verdict (the ground node's
