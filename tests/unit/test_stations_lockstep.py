@@ -8,6 +8,7 @@ taking the lock once the lease ran out."""
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 
 from zplatform import decode_mission
@@ -271,5 +272,33 @@ def test_a_restart_in_flight_resumes_the_lock_and_the_approved_arm_from_its_reco
         r.step()
     assert r.control.name == "cn" and s.holder == "fd@room"
     assert s.send("rso@lounge", "APPROVE", ref=arm) == "REJECTED_APPROVAL_SELF"
+    assert s.send("fd@room", "LAUNCH") == "ACCEPTED"
+    assert r.control.dv.get_name("cn_state") == "ARMED"
+
+
+def test_a_restart_without_a_standby_resumes_the_approved_arm_from_its_recorder() -> None:
+    """The same without a standby: the recorder's frame carries the last ARM
+    (``cn_arm_seq``, ``cn_arm_t_ns``: kept with a recorder too) beside the
+    authority's state, so the approved LAUNCH follows without a new ARM."""
+    text = re.sub(r"  cn_b:\n(    .*\n){3}", "", FLIGHT.read_text())
+    m = decode_mission(
+        text + GROUND.replace("lease_s: 2", "lease_s: 5"),
+        source=str(FLIGHT),
+        base_dir=FLIGHT.parent,
+    )
+    assert m.standby is None and m.recorder is not None
+    r = LockstepRunner(m)
+    s = Stations(r)
+    r.run(0.5)
+    assert s.send("fd@room", "LOCK") == "ACCEPTED"
+    assert s.send("fd@room", "ARM") == "ACCEPTED"
+    arm = r.control.commands.last_seq
+    assert s.send("rso@lounge", "APPROVE", ref=arm) == "ACCEPTED"
+    r.kill("cn")
+    r.run(0.1)
+    assert r.restart("cn") == "resume"
+    for _ in range(3):
+        r.step()
+    assert s.holder == "fd@room"
     assert s.send("fd@room", "LAUNCH") == "ACCEPTED"
     assert r.control.dv.get_name("cn_state") == "ARMED"

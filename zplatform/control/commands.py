@@ -493,7 +493,8 @@ class CommandHandler:
         self._last_seq = 0
         self._arm_seq = -1
         self._arm_t_ns = 0
-        # A redundant mission mirrors the last ARM (adopt()).
+        # A redundant or recording mission keeps the last ARM in the vector
+        # (a standby's mirror, the recorder's frames: adopt()).
         arm = "cn_arm_seq" in dv.layout.elements
         self._h_arm_seq = dv.handle("cn_arm_seq") if arm else None
         self._h_arm_t = dv.handle("cn_arm_t_ns") if arm else None
@@ -637,8 +638,8 @@ class CommandHandler:
         """Take up the handler's state from the Data Vector (a takeover, or a
         restart's resume from its recorder's frame:
         :meth:`zplatform.control.loop.ControlLogic.adopt`): the pending command
-        (``cn_cmd``), the last number (``cn_cmd_seq``), in a redundant
-        mission the last ARM (``cn_arm_seq``, ``cn_arm_t_ns``), and with
+        (``cn_cmd``), the last number (``cn_cmd_seq``), in a redundant or
+        recording mission the last ARM (``cn_arm_seq``, ``cn_arm_t_ns``), and with
         command authority the lock and the ARM open for approvals with its
         approvals (:func:`~zplatform.control.authority.read_lock_state`)."""
         self._active = self._h_cmd.get() != 0
