@@ -15,6 +15,9 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from tests.unit.test_authority import Rig, mission
+from zplatform.config.codes import Command, CommandStatus
+from zplatform.console import ConsoleModel
+from zplatform.control.authority import Identity, LockState
 from zplatform.control.commands import ARM_WINDOW_NS
 
 S = 1_000_000_000
@@ -115,8 +118,8 @@ def step(r: Rig, m: Model, who: str, cmd: str, target: int, which: str) -> None:
             "junk": 99_999,
         }[which]
     t = r.t
-    seq = r.ch.last_seq + 1
-    verdict = r.send(f"{op}@{stn}", cmd, element=target, ref=ref)
+    seq = max(r.ch.last_seq, int(r.dv.get("cn_cmd_reject_seq"))) + 1  # as a ground numbers
+    verdict = r.send(f"{op}@{stn}", cmd, element=target, ref=ref, seq=seq)
     consumed = r.ch.last_seq == seq
     ok = verdict == "ACCEPTED"
     holder_before = m.holder
@@ -160,6 +163,8 @@ def step(r: Rig, m: Model, who: str, cmd: str, target: int, which: str) -> None:
         m.chain = -1
     if cmd == "LAUNCH" and consumed:
         m.chain = -1
+    if not consumed and m.chain >= 0 and seq == m.chain + 1:
+        m.chain = seq  # refused without a verdict: its number is spent, the chain goes on
     assert r.dv.get_name("cn_lock_holder") == (m.holder or "NONE")
 
 
@@ -179,3 +184,65 @@ def test_any_request_bytes_get_a_verdict_and_never_raise(frames: list[bytes]) ->
         r.dv.set("gn_cmd_seq", r.ch.last_seq + 1)
         assert r.loop(new=True) != "ACCEPTED"
         assert r.dv.get_name("cn_lock_holder") == "NONE"
+
+
+def _state(draw: st.DrawFn, t: int) -> LockState:
+    """A state the CN can publish: no station without a holder, no ARM's
+    operator, time or approvers without an ARM."""
+    n_ops, n_st = len(OPS), len(STATIONS)
+    near = st.integers(t - 12 * S, t + 12 * S)
+    holder = draw(st.integers(-1, n_ops - 1))
+    station = draw(st.integers(-1, n_st - 1)) if holder >= 0 else -1
+    until = draw(near) if holder >= 0 else 0
+    arm = draw(st.sampled_from([-1, 1, 5, 6, 40]))
+    if arm < 0:
+        return LockState(holder, station, until)
+    return LockState(
+        holder,
+        station,
+        until,
+        arm,
+        draw(st.integers(0, n_ops - 1)),
+        draw(near),
+        draw(st.integers(0, (1 << n_ops) - 1)),
+    )
+
+
+@settings(max_examples=400)
+@given(st.data())
+def test_the_console_and_the_cn_give_the_same_verdict(data: st.DataObject) -> None:
+    """Any published state, any request: the console's refusal (from the
+    snapshot) is the CN's (its authority after the loop's expiry), word for
+    word; the state the console reads is the one the CN adopts from the
+    same vector (a standby's takeover)."""
+    r = Rig(M)
+    t = r.t
+    s = _state(data.draw, t)
+    dv = r.dv
+    dv.set("cn_time_ns", t)
+    dv.set("cn_lock_holder", s.holder + 1)
+    dv.set("cn_lock_station", s.station + 1)
+    dv.set("cn_lock_until_ns", s.until_ns)
+    dv.set("cn_arm_open", max(s.arm_seq, 0))
+    dv.set("cn_arm_operator", s.arm_operator + 1)
+    dv.set("cn_arm_open_ns", s.arm_t_ns)
+    dv.set("cn_arm_approvers", s.approvers)
+    r.ch.adopt()
+    auth = r.ch.authority
+    assert auth is not None
+    got = (auth.holder, auth.station, auth.until_ns, auth.arm_seq, auth.arm_operator)
+    assert got == (s.holder, s.station, s.until_ns, s.arm_seq, s.arm_operator)
+    assert (auth.arm_t_ns, auth.approvers) == (s.arm_t_ns, s.approvers)
+    op = data.draw(st.sampled_from(OPS))
+    stn = data.draw(st.sampled_from(STATIONS))
+    cmd = data.draw(st.sampled_from([c.name for c in Command if c != Command.NONE]))
+    target = data.draw(st.integers(0, len(OPS) + 1))
+    ref = data.draw(st.sampled_from([0, 1, 5, 6, 40, max(s.arm_seq, 0)]))
+    model = ConsoleModel(M)
+    model.operator = f"{op}@{stn}"
+    model.on_snapshot(dv, t)
+    auth.expire(t)
+    ident = Identity(OPS.index(op), STATIONS.index(stn))
+    cn = auth.check(ident, Command[cmd], t, target=target, ref=ref)
+    said = None if cn is None else f"{CommandStatus(cn[0]).name}: {cn[1]}"
+    assert model.refusal(cmd, target=target, ref=ref) == said

@@ -113,10 +113,14 @@ class Rig:
         seq: int | None = None,
         up: Uplink | None = None,
     ) -> str:
-        """One loop with ``who`` (``op@station``) sending ``command``; its verdict."""
+        """One loop with ``who`` (``op@station``) sending ``command`` numbered
+        ``seq`` (None: as a ground numbers, above every number the CN showed,
+        refused ones too: the live CN's intake admits each number once); its
+        verdict."""
         op, st = who.split("@")
         up = up if up is not None else self.uplink(op, st)
-        seq = self.ch.last_seq + 1 if seq is None else seq
+        if seq is None:
+            seq = max(self.ch.last_seq, int(self.dv.get("cn_cmd_reject_seq"))) + 1
         up.frame(command, seq, element, 0.0, self.t, 0, ref=ref)
         self.dv.region_view("gn_to_cn")[:] = up.req.region_view("gn_to_cn")
         return self.loop(new=True)
@@ -348,6 +352,33 @@ def test_same_operator_twice_is_refused() -> None:
     assert r.send("fd@pad", "APPROVE", ref=arm) == "REJECTED_APPROVAL_SELF"
 
 
+def test_a_refused_request_between_an_arm_and_its_command_breaks_no_chain() -> None:
+    """Another station's request refused by the authority between the ARM
+    and its approval: the CN's intake admitted its number, so the ground
+    numbers above it; the chain goes on through it (numbers n, n+1 refused,
+    APPROVE n+2, LAUNCH n+3). A gap no refusal explains still breaks it."""
+    r = Rig()
+    r.send("alice@pad", "LOCK")
+    assert r.send("alice@pad", "ARM") == "ACCEPTED"
+    arm = r.ch.last_seq
+    assert r.send("bob@room", "NOOP") == "REJECTED_NOT_HOLDER"
+    assert r.dv.get("cn_cmd_reject_seq") == arm + 1
+    assert r.send("alice@room", "APPROVE", ref=arm) == "REJECTED_ROLE"  # alice: no approver
+    assert r.send("fd@room", "APPROVE", ref=arm) == "ACCEPTED"
+    assert r.ch.last_seq == arm + 3
+    assert r.send("alice@pad", "LAUNCH") == "ACCEPTED"
+    assert r.dv.get_name("cn_state") == "B"
+    # A refusal opens no chain without an ARM, and a number skipped for no
+    # reason the CN saw still leaves the command unarmed.
+    r2 = Rig()
+    r2.send("alice@pad", "LOCK")
+    assert r2.send("bob@room", "NOOP") == "REJECTED_NOT_HOLDER"
+    assert r2.send("alice@pad", "LAUNCH") == "REJECTED_NOT_ARMED"
+    r2.send("alice@pad", "ARM")
+    r2.send("fd@room", "APPROVE", ref=r2.ch.last_seq)
+    assert r2.send("alice@pad", "LAUNCH", seq=r2.ch.last_seq + 2) == "REJECTED_NOT_ARMED"
+
+
 def test_the_arming_director_cannot_approve_their_own_arm() -> None:
     r = Rig()
     r.send("fd@pad", "LOCK")
@@ -533,9 +564,9 @@ def test_the_ground_checks_lock_commands_before_sending() -> None:
 
 
 def test_a_standby_takes_the_lock_over_from_the_mirrored_vector() -> None:
-    """A takeover (CommandHandler.adopt): the lock is in the Data Vector, so
-    the new commander keeps its holder and lease; open approvals are not
-    mirrored, so a pending two-person ARM needs them again."""
+    """A takeover (CommandHandler.adopt): the lock and the ARM open for
+    approvals, with its approvals, are in the Data Vector, so the new
+    commander keeps its holder, lease, ARM and approvals."""
     r = Rig()
     r.send("alice@pad", "LOCK")
     r.send("alice@pad", "ARM")
@@ -546,7 +577,15 @@ def test_a_standby_takes_the_lock_over_from_the_mirrored_vector() -> None:
     b.ch.adopt()
     auth = b.ch.authority
     assert auth is not None and (auth.holder, auth.station) == (1, 0)
-    assert auth.until_ns == r.dv.get("cn_lock_until_ns") and not auth.approved()
+    assert auth.until_ns == r.dv.get("cn_lock_until_ns") and auth.approved()
+    a = r.ch.authority
+    assert a is not None
+    assert (auth.arm_seq, auth.arm_operator, auth.arm_t_ns, auth.approvers) == (
+        a.arm_seq,
+        a.arm_operator,
+        a.arm_t_ns,
+        a.approvers,
+    )
+    assert b.send("fd@pad", "APPROVE", ref=a.arm_seq) == "REJECTED_APPROVAL_SELF"
     assert b.send("bob@room", "NOOP") == "REJECTED_NOT_HOLDER"
-    assert b.send("alice@pad", "LAUNCH") == "REJECTED_NOT_ARMED"  # its ARM is gone
     assert b.send("alice@pad", "NOOP") == "ACCEPTED"

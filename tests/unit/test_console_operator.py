@@ -54,7 +54,7 @@ def _run(model: ConsoleModel, body: Callable[[ConsoleApp], None]) -> list[str]:
     return [x.text for x in model.log]
 
 
-def _cn_says(rig: Rig, who: str, cmd: Command) -> str:
+def _cn_says(rig: Rig, who: str, cmd: Command, *, ref: int = 0) -> str:
     """What the CN's authority refuses ``who``'s ``cmd`` with, ``STATUS: detail``."""
     op, st = who.split("@")
     g = rig.m.ground
@@ -62,7 +62,7 @@ def _cn_says(rig: Rig, who: str, cmd: Command) -> str:
     ident = Identity(
         [o.name for o in g.operators].index(op), [s.name for s in g.stations].index(st)
     )
-    got = rig.ch.authority.check(ident, cmd, rig.t)
+    got = rig.ch.authority.check(ident, cmd, rig.t, ref=ref)
     assert got is not None
     return f"{CMD_STATUS_NAMES[got[0]]}: {got[1]}"
 
@@ -146,9 +146,48 @@ def test_the_status_line_shows_who_commands_the_lock_and_the_arm_awaiting_approv
 def test_approve_n_goes_to_the_vehicle_from_any_operator() -> None:
     rig = Rig()
     assert rig.send("fd@pad", "LOCK") == "ACCEPTED"
+    assert rig.send("fd@pad", "ARM") == "ACCEPTED"
+    n = rig.ch.last_seq
     model = _console(rig, "rso@lounge")  # an approver, not the holder, at a view-only station
-    texts = _run(model, lambda app: app.run_command("approve 7"))
-    assert texts[-1] == "no link: APPROVE 7 not sent"
+    texts = _run(model, lambda app: app.run_command(f"approve {n}"))
+    assert texts[-1] == f"no link: APPROVE {n} not sent"
+
+
+def test_an_out_of_date_approval_and_approving_ones_own_arm_are_refused_here() -> None:
+    """The two approval cases the CN judges from its ARM: the console has
+    the open ARM in telemetry (cn_arm_open, cn_arm_operator, cn_arm_open_ns,
+    cn_arm_approvers) and refuses them in the CN's words."""
+    rig = Rig()
+    assert rig.send("fd@pad", "LOCK") == "ACCEPTED"
+    rso = _console(rig, "rso@lounge")
+    said = "REJECTED_APPROVAL_STALE: approval of ARM #7: no ARM is open"
+    assert rso.refusal("APPROVE", ref=7) == said
+    assert _cn_says(rig, "rso@lounge", Command.APPROVE, ref=7) == said
+    assert rig.send("fd@pad", "ARM") == "ACCEPTED"
+    n = rig.ch.last_seq
+    _feed(rig, rso)
+    said = f"REJECTED_APPROVAL_STALE: approval of ARM #{n - 1}: the current ARM is #{n}"
+    assert rso.refusal("APPROVE", ref=n - 1) == said
+    assert _cn_says(rig, "rso@lounge", Command.APPROVE, ref=n - 1) == said
+    # The director armed it: approving it from another station is approving one's own.
+    fd = _console(rig, "fd@room")
+    said = f"REJECTED_APPROVAL_SELF: fd armed or approved ARM #{n} already: a second operator must"
+    texts = _run(fd, lambda app: app.run_command(f"approve {n}"))
+    assert texts[-1] == f"APPROVE {n} by fd@room: {said} (not sent)"
+    assert _cn_says(rig, "fd@room", Command.APPROVE, ref=n) == said
+    assert rig.send("fd@room", "APPROVE", ref=n) == "REJECTED_APPROVAL_SELF"
+    # Range safety approves; a second approval of theirs is refused here too.
+    assert rso.refusal("APPROVE", ref=n) is None
+    assert rig.send("rso@lounge", "APPROVE", ref=n) == "ACCEPTED"
+    _feed(rig, rso)
+    assert rso.refusal("APPROVE", ref=n) == _cn_says(rig, "rso@lounge", Command.APPROVE, ref=n)
+    assert rso.refusal("APPROVE", ref=n).startswith("REJECTED_APPROVAL_SELF")  # type: ignore[union-attr]
+    # Ten seconds on, the ARM is too old to approve, here as at the CN.
+    rig.wait(4.0)
+    assert rig.send("fd@pad", "NOOP") == "ACCEPTED"  # renews the lease; the ARM stays open
+    rig.wait(7.0)
+    _feed(rig, rso)
+    assert rso.refusal("APPROVE", ref=n) == _cn_says(rig, "rso@lounge", Command.APPROVE, ref=n)
 
 
 def test_a_watching_console_and_a_mission_without_authority_refuse_nothing_here() -> None:

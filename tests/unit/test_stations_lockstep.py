@@ -8,6 +8,7 @@ taking the lock once the lease ran out."""
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 
 from zplatform import decode_mission
@@ -39,8 +40,9 @@ def flight_with_ground() -> Mission:
 
 
 class Stations:
-    """Every station's uplink, numbering as a ground does (the CN's last
-    number plus one), its verdicts read from the CN's vector."""
+    """Every station's uplink, numbering as a ground does (above every number
+    the CN showed, refused ones too: GroundLogic), its verdicts read from the
+    CN's vector."""
 
     def __init__(self, runner: LockstepRunner) -> None:
         self.r = runner
@@ -50,14 +52,19 @@ class Stations:
         self._keys = keys
         self._ups: dict[str, Uplink] = {}
 
-    def send(self, who: str, command: str, element: int = 0, ref: int = 0) -> str:
-        """``who`` (``op@station``) sends ``command``; one loop; its verdict."""
+    def send(
+        self, who: str, command: str, element: int = 0, ref: int = 0, seq: int | None = None
+    ) -> str:
+        """``who`` (``op@station``) sends ``command`` numbered ``seq`` (None:
+        the CN's last number plus one); one loop; its verdict."""
         if who not in self._ups:
             op, st = who.split("@")
             signer = sim_signer(self._keys, self.m, op, st)
             self._ups[who] = Uplink(self.m, self._keys.for_node("gn"), signer=signer)
         dv = self.r.control.dv
-        seq = self.r.control.commands.last_seq + 1
+        if seq is None:
+            shown = max(dv.get("cn_cmd_seq"), dv.get("cn_cmd_reject_seq"))
+            seq = max(self.r.control.commands.last_seq, int(shown)) + 1
         frame = self._ups[who].frame(
             command, seq, element, 0.0, self.r.clock.now_ns(), dv.get("cn_epoch"), ref=ref
         )
@@ -94,7 +101,9 @@ def test_a_flight_with_stations_hand_over_two_person_launch_and_lease_expiry() -
     assert r.control.dv.get_name("cn_state") == "SAFE"
     assert s.send("fd@room", "ARM") == "ACCEPTED"
     arm = r.control.commands.last_seq
-    assert s.send("pat@pad", "APPROVE", ref=arm) == "REJECTED_ROLE"  # an operator: no approver
+    # An operator is no approver: refused without a verdict, its number (which
+    # the CN's intake admitted) between the ARM and its command breaks nothing.
+    assert s.send("pat@pad", "APPROVE", ref=arm) == "REJECTED_ROLE"
     assert s.send("rso@lounge", "APPROVE", ref=arm) == "ACCEPTED"
     assert s.send("fd@room", "LAUNCH") == "ACCEPTED"
     assert r.control.dv.get_name("cn_state") == "ARMED"
@@ -115,7 +124,7 @@ def test_a_flight_with_stations_hand_over_two_person_launch_and_lease_expiry() -
         "command lock granted: pat@pad holds the command lock",
         "command lock handed: pat@pad handed the command lock to fd",
         "command lock granted: fd@room took up the handed-over lock",
-        "command lock approved: rso@lounge approved ARM #6",
+        f"command lock approved: rso@lounge approved ARM #{arm}",
         "command lock expired: fd@room's command lock expired (no request in its lease)",
         "command lock granted: pat@pad holds the command lock",
         "command lock expired: pat@pad's command lock expired (no request in its lease)",
@@ -160,3 +169,136 @@ def test_range_safety_aborts_the_flight_from_a_view_station() -> None:
     r.step()
     assert r.control.dv.get_name("cn_state") == "ABORTED"
     assert s.holder == "fd@room"  # the abort left the lock where it was
+
+
+def test_a_number_reused_after_an_authority_refusal_is_refused_as_the_live_cn_does() -> None:
+    """A request the authority refuses consumes no number, but the CN's
+    intake admitted it: the same number again is a replay, in lockstep as
+    live (the runner's requests pass the live CN's RequestIntake)."""
+    r = LockstepRunner(flight_with_ground())
+    s = Stations(r)
+    r.run(0.5)
+    n = r.control.commands.last_seq + 1
+    assert s.send("vic@lounge", "NOOP") == "REJECTED_VIEW_ONLY"
+    assert r.control.commands.last_seq == n - 1  # no number consumed
+    assert s.send("pat@pad", "LOCK", seq=n) == "REJECTED_REPLAY"  # numbered n again
+    dv = r.control.dv
+    assert dv.get("cn_cmd_reject_seq") == n and dv.get("cn_cmd_seq") == n - 1
+    assert s.holder == "NONE@NONE"
+    assert s.send("pat@pad", "LOCK", seq=n + 1) == "ACCEPTED"
+    assert s.holder == "pat@pad"
+
+
+def test_a_standby_takeover_keeps_the_lock_the_open_arm_and_its_approvals() -> None:
+    """The commander dies with an ARM open for approvals and one approval
+    given: the standby takes command from the mirrored vector and resumes
+    the authority's state: the lock's holder, the ARM, its approval (the
+    same approver is refused as approving twice); a second approver's
+    APPROVE is accepted and the two-person LAUNCH is accepted by the new
+    commander."""
+    text = FLIGHT.read_text() + GROUND.replace(
+        "    - {name: vic, roles: [viewer]}\n",
+        "    - {name: vic, roles: [viewer]}\n    - {name: flo, roles: [flight_director]}\n",
+    ).replace("lease_s: 2", "lease_s: 5")
+    r = LockstepRunner(decode_mission(text, source=str(FLIGHT), base_dir=FLIGHT.parent))
+    s = Stations(r)
+    r.run(0.5)
+    assert s.send("pat@pad", "LOCK") == "ACCEPTED"
+    assert s.send("pat@pad", "ARM") == "ACCEPTED"
+    arm = r.control.commands.last_seq
+    assert s.send("rso@lounge", "APPROVE", ref=arm) == "ACCEPTED"
+    r.kill("cn")
+    for _ in range(20):
+        r.step()
+    assert [(node, term) for _, node, term in r.commanders] == [("cn", 1), ("cn_b", 2)]
+    assert r.control.name == "cn_b"
+    dv = r.control.dv
+    assert s.holder == "pat@pad" and dv.get("cn_arm_approvals") == 1
+    assert s.send("fd@room", "NOOP") == "REJECTED_NOT_HOLDER"
+    assert s.send("rso@lounge", "APPROVE", ref=arm) == "REJECTED_APPROVAL_SELF"
+    assert s.send("flo@room", "APPROVE", ref=arm) == "ACCEPTED"
+    assert dv.get("cn_arm_approvals") == 2 and dv.get("cn_arm_open") == arm
+    assert s.send("pat@pad", "LAUNCH") == "ACCEPTED"
+    assert dv.get_name("cn_state") == "ARMED" and s.holder == "pat@pad"
+
+
+def test_a_standby_takeover_resumes_an_arm_awaiting_its_second_operator() -> None:
+    """An ARM waiting for its approval when the commander dies: approved at
+    the new commander, its command accepted there (not armed again)."""
+    r = LockstepRunner(
+        decode_mission(
+            FLIGHT.read_text() + GROUND.replace("lease_s: 2", "lease_s: 5"),
+            source=str(FLIGHT),
+            base_dir=FLIGHT.parent,
+        )
+    )
+    s = Stations(r)
+    r.run(0.5)
+    assert s.send("fd@room", "LOCK") == "ACCEPTED"
+    assert s.send("fd@room", "ARM") == "ACCEPTED"
+    arm = r.control.commands.last_seq
+    r.kill("cn")
+    for _ in range(20):
+        r.step()
+    assert r.control.name == "cn_b" and s.holder == "fd@room"
+    assert s.send("rso@lounge", "APPROVE", ref=arm) == "ACCEPTED"
+    assert s.send("fd@room", "LAUNCH") == "ACCEPTED"
+    assert r.control.dv.get_name("cn_state") == "ARMED"
+
+
+def test_a_restart_in_flight_resumes_the_lock_and_the_approved_arm_from_its_recorder() -> None:
+    """Both control nodes die with an approved ARM open; cn restarts and
+    resumes the run from its flight recorder's newest frame, which carries
+    the authority's state: the holder keeps the lock and the approved
+    two-person LAUNCH is accepted without a new ARM or approval."""
+    r = LockstepRunner(
+        decode_mission(
+            FLIGHT.read_text() + GROUND.replace("lease_s: 2", "lease_s: 5"),
+            source=str(FLIGHT),
+            base_dir=FLIGHT.parent,
+        )
+    )
+    s = Stations(r)
+    r.run(0.5)
+    assert s.send("fd@room", "LOCK") == "ACCEPTED"
+    assert s.send("fd@room", "ARM") == "ACCEPTED"
+    arm = r.control.commands.last_seq
+    assert s.send("rso@lounge", "APPROVE", ref=arm) == "ACCEPTED"
+    r.kill("cn_b")
+    r.kill("cn")
+    r.run(0.1)
+    assert r.restart("cn") == "resume"
+    for _ in range(3):
+        r.step()
+    assert r.control.name == "cn" and s.holder == "fd@room"
+    assert s.send("rso@lounge", "APPROVE", ref=arm) == "REJECTED_APPROVAL_SELF"
+    assert s.send("fd@room", "LAUNCH") == "ACCEPTED"
+    assert r.control.dv.get_name("cn_state") == "ARMED"
+
+
+def test_a_restart_without_a_standby_resumes_the_approved_arm_from_its_recorder() -> None:
+    """The same without a standby: the recorder's frame carries the last ARM
+    (``cn_arm_seq``, ``cn_arm_t_ns``: kept with a recorder too) beside the
+    authority's state, so the approved LAUNCH follows without a new ARM."""
+    text = re.sub(r"  cn_b:\n(    .*\n){3}", "", FLIGHT.read_text())
+    m = decode_mission(
+        text + GROUND.replace("lease_s: 2", "lease_s: 5"),
+        source=str(FLIGHT),
+        base_dir=FLIGHT.parent,
+    )
+    assert m.standby is None and m.recorder is not None
+    r = LockstepRunner(m)
+    s = Stations(r)
+    r.run(0.5)
+    assert s.send("fd@room", "LOCK") == "ACCEPTED"
+    assert s.send("fd@room", "ARM") == "ACCEPTED"
+    arm = r.control.commands.last_seq
+    assert s.send("rso@lounge", "APPROVE", ref=arm) == "ACCEPTED"
+    r.kill("cn")
+    r.run(0.1)
+    assert r.restart("cn") == "resume"
+    for _ in range(3):
+        r.step()
+    assert s.holder == "fd@room"
+    assert s.send("fd@room", "LAUNCH") == "ACCEPTED"
+    assert r.control.dv.get_name("cn_state") == "ARMED"

@@ -323,7 +323,9 @@ def cmd_node(args: argparse.Namespace) -> int:
         from ..node.ground import run_ground_logger
 
         script = load_commands(args.commands) if args.commands else None
-        signer = signer_of(mission, args, commands=script is not None)
+        # Its own operator is needed only for a line that names nobody.
+        own = script is not None and any(c.operator is None for c in script)
+        signer = signer_of(mission, args, commands=own)
         summary = run_ground_logger(
             mission,
             args.log,
@@ -613,17 +615,24 @@ def cmd_up(args: argparse.Namespace) -> int:
                 f"zplatform up: made the certificates of {mission.mission!r} for mutual TLS "
                 f"({', '.join(pki.made)}) in {pki.directory}"
             )
+    own = False  # a script line goes as the ground's own --operator
     if args.commands:
         from ..control.uplink import load_commands
+        from ..ground.identity import line_signer
         from ..ground.script import ScriptPlayer
 
         # A bad script fails here, line by line, as `sim` checks it: its
         # syntax and every command, element and value against the mission
         # (before, only the syntax was checked and the ground node died on
         # the rest after every other node had started).
-        ScriptPlayer(mission, load_commands(args.commands))
-    # Who the script commands as: a missing name or key file fails here.
-    signer_of(mission, args, commands=bool(args.commands))
+        # A line naming its sender (`as alice@pad: ...`) is checked with its
+        # key files, as the ground node will sign it.
+        script = load_commands(args.commands)
+        ScriptPlayer(mission, script, lambda op, st: line_signer(mission, op, st))
+        own = any(c.operator is None for c in script)
+    # Who the script's lines that name nobody command as: a missing name or
+    # key file fails here.
+    signer_of(mission, args, commands=own)
     # The stations `up` starts (ground.stations[].start): their operators'
     # and their own key files, checked here rather than by a dying station.
     from ..ground.identity import station_signer

@@ -55,7 +55,8 @@ def cmd_sim(args: argparse.Namespace) -> int:
         check_output(args.summary, "summary")
     signer = None
     named = args.operator is not None or args.station is not None
-    if (script or named) and check_names(mission, args.operator, args.station):
+    own = any(c.operator is None for c in script)  # a line sent as --operator
+    if (own or named) and check_names(mission, args.operator, args.station):
         # In virtual time the keys are the run's own (sim_keys): no key files.
         keys = sim_keys(mission)
         if keys is None:

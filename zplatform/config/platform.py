@@ -306,7 +306,23 @@ def platform_elements(m: Mission) -> dict[str, list[ElementConfig]]:
             ),
             E("cn_prm_unsaved", "bool", False, doc="a PRM_SET since the last load or save"),
         ]
-    if m.standby is not None:
+    # The last ARM (the number a hazardous command must follow): mirrored to
+    # a standby, and kept in the flight recorder's frames, so a takeover or a
+    # restart's resume takes up an ARM (and its approvals) where it was.
+    arm: list[ElementConfig] = []
+    if m.standby is not None or m.recorder is not None:
+        arm = [
+            E(
+                "cn_arm_seq",
+                "u64",
+                0,
+                doc="number of the last ARM accepted (0: none; with a standby or a recorder)",
+            ),
+            E("cn_arm_t_ns", "i64", 0, doc="its loop time (ns)"),
+        ]
+    if m.standby is None:
+        cn += arm
+    else:
         # A redundant mission (docs/architecture.md#failover): who commands in
         # which term, and the command handler's and state machine's state that
         # a standby must mirror to continue exactly where the other left off.
@@ -326,8 +342,7 @@ def platform_elements(m: Mission) -> dict[str, list[ElementConfig]]:
                 False,
                 doc="the other control node is alive and mirrors this one",
             ),
-            E("cn_arm_seq", "u64", 0, doc="number of the last ARM accepted (0: none)"),
-            E("cn_arm_t_ns", "i64", 0, doc="its loop time (ns)"),
+            *arm,
             E("cn_holding", "bool", False, doc="a HOLD is in effect"),
         ]
     for dn in m.device_nodes:
@@ -353,6 +368,17 @@ def platform_elements(m: Mission) -> dict[str, list[ElementConfig]]:
             ),
             E("cn_lock_until_ns", "i64", 0, doc="the lease's end (loop time, ns; 0: no holder)"),
             E("cn_arm_approvals", "u8", 0, doc="approvals of the current ARM (two-person rule)"),
+            # The ARM open for approvals, in full: a console judges an APPROVE
+            # as the CN would, and a standby or a restarted CN takes it up.
+            E("cn_arm_open", "u64", 0, doc="the number of the ARM open for approvals (0: none)"),
+            E("cn_arm_operator", "enum", "NONE", ops, doc="the operator of that ARM"),
+            E("cn_arm_open_ns", "i64", 0, doc="its loop time (ns): approvals within 10 s"),
+            E(
+                "cn_arm_approvers",
+                "u64",
+                0,
+                doc="who approved it: bit i for ground.operators[i]",
+            ),
             E(
                 "cn_auth_refused",
                 "u32",

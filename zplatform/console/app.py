@@ -374,7 +374,11 @@ class ConsoleApp(App[int]):
             return
         shown = " ".join([checked.command, *args])
         with self.model.lock:
-            refused = self.model.refusal(checked.command)
+            refused = self.model.refusal(
+                checked.command,
+                target=checked.element,
+                ref=int(checked.value) if checked.command == "APPROVE" else 0,
+            )
         if refused is not None:  # the CN would refuse it: said here, in its words, not sent
             self._note(f"{shown} by {self.model.operator}: {refused} (not sent)", "WARNING_HI")
             return

@@ -27,7 +27,14 @@ from dataclasses import dataclass
 from typing import Any
 
 from ..config import CMD_NAMES, Mission
-from ..control.authority import ARM_WINDOW_NS, COMMANDING_ROLES
+from ..config.codes import Command, CommandStatus
+from ..control.authority import (
+    ARM_WINDOW_NS,
+    STATE_DEPENDENT,
+    AuthorityRules,
+    LockState,
+    read_lock_state,
+)
 from ..control.commands import writable_elements
 from ..control.limits import Limits, mission_limits
 from ..core.datavector import DataVector, ElementSpec, Layout
@@ -204,7 +211,9 @@ class ConsoleModel:
         its driver; "": a console that only watches)."""
         g = mission.ground
         self._two_person = bool(mission.authority and g is not None and g.two_person)
-        self._approving = frozenset(g.approving_roles) if g is not None else frozenset()
+        self._rules = AuthorityRules(g) if mission.authority and g is not None else None
+        """The CN's rules (:class:`~zplatform.control.authority.AuthorityRules`):
+        this console's verdicts are the CN's own function's."""
         self.open_arm: tuple[int, str, int] | None = None
         """The last ARM telemetry showed accepted (two-person missions): its
         number, its operator and the loop time it was seen at."""
@@ -352,26 +361,19 @@ class ConsoleModel:
         )
 
     # -- command authority (docs/security.md "Stations and operators") -------
-    def _holder(self) -> tuple[str, str, float] | None:
-        """The lock's holder, their station ("NONE": not bound yet) and the
-        seconds left, from the last snapshot; None: nobody (or it ran out)."""
-        dv = self.dv
-        holder = dv.get_name("cn_lock_holder")
-        left = (int(dv.get("cn_lock_until_ns")) - int(dv.get("cn_time_ns"))) / 1e9
-        if holder == "NONE" or left <= 0:
-            return None
-        return holder, dv.get_name("cn_lock_station"), left
+    def lock_state(self) -> LockState:
+        """The authority's state the last snapshot showed
+        (:func:`~zplatform.control.authority.read_lock_state`)."""
+        return read_lock_state(self.dv)
 
     def lock_text(self) -> str:
-        """The CN's words for the lock's holder (Authority.holder_text); ""
-        in a mission without command authority or before any telemetry."""
-        if not self.mission.authority or self.last_rx_ns is None:
+        """The CN's words for the lock's holder at the last snapshot's loop
+        time (:meth:`AuthorityRules.lock_text
+        <zplatform.control.authority.AuthorityRules.lock_text>`); "" in a
+        mission without command authority or before any telemetry."""
+        if self._rules is None or self.last_rx_ns is None:
             return ""
-        h = self._holder()
-        if h is None:
-            return "nobody holds the command lock"
-        who = h[0] if h[1] == "NONE" else f"{h[0]}@{h[1]}"
-        return f"{who} holds the command lock ({h[2]:.1f} s left)"
+        return self._rules.lock_text(self.lock_state(), int(self.dv.get("cn_time_ns")))
 
     def _see_arm(self) -> None:
         """Note an ARM the snapshot shows accepted (anyone's): the approver's
@@ -410,42 +412,35 @@ class ConsoleModel:
             self._note(t_ns, "ACTIVITY_HI", "cmd", self._arm_text())
         self.version += 1
 
-    def refusal(self, command: str) -> str | None:
-        """What the CN would refuse ``command`` (a command name) from this
-        console's operator with, in its words (``STATUS: reason``), judged
-        from the last snapshot; None when it may go (the CN judges again).
-        Mirrors :meth:`zplatform.control.authority.Authority.check` for the
-        operator's roles, a view-only station and the lock."""
-        g = self.mission.ground
-        if not self.mission.authority or g is None or not self.operator:
+    def refusal(self, command: str, *, target: int = 0, ref: int = 0) -> str | None:
+        """What the CN would refuse ``command`` (a command name; ``target``:
+        HANDOVER's operator number, ``ref``: APPROVE's ARM number) from this
+        console's operator with, in its words (``STATUS: reason``); None when
+        it may go (the CN judges again). The CN's own verdict
+        (:meth:`AuthorityRules.verdict
+        <zplatform.control.authority.AuthorityRules.verdict>`) over the state
+        the last snapshot published, at its loop time: roles, a view-only
+        station, the lock, and an APPROVE of no open ARM, of one too old, or
+        of one's own. Before any telemetry only what the state cannot change
+        is refused."""
+        rules = self._rules
+        if rules is None or not self.operator or command not in Command.__members__:
             return None
-        op, st = self.operator.split("@", 1)
-        me = next((o for o in g.operators if o.name == op), None)
-        station = next((s for s in g.stations if s.name == st), None)
-        if me is None or station is None:
+        name, _, station = self.operator.partition("@")
+        if name not in rules.operators or station not in rules.stations:
             return None  # the signer refused the unknown names already
-        if command == "APPROVE":  # from any station, lock or not; the ARM is the CN's to judge
-            if not self._approving.intersection(me.roles):
-                return f"REJECTED_ROLE: {op} has no approving role"
-            return None
-        if command == "ABORT" and "range_safety" in me.roles:
-            return None
-        if not COMMANDING_ROLES.intersection(me.roles):
-            return f"REJECTED_VIEW_ONLY: {op} may not command (roles)"
-        if station.may == "view":
-            return f"REJECTED_VIEW_ONLY: station {st} may only view (ground.stations)"
-        if command == "TAKEOVER":
-            if "flight_director" not in me.roles:
-                return f"REJECTED_ROLE: {op} is no flight director"
-            return None
-        if self.last_rx_ns is None:
-            return None  # no telemetry yet: the lock is unknown here
-        h = self._holder()
-        if command == "LOCK" and (h is None or h[0] == op):
-            return None
-        if h is not None and h[0] == op and h[1] in ("NONE", st):
-            return None
-        return f"REJECTED_NOT_HOLDER: {self.lock_text()}"
+        got = rules.verdict(
+            self.lock_state(),
+            rules.operators.index(name),
+            rules.stations.index(station),
+            Command[command],
+            int(self.dv.get("cn_time_ns")),
+            target=target,
+            ref=ref,
+        )
+        if got is None or (self.last_rx_ns is None and got[0] in STATE_DEPENDENT):
+            return None  # no telemetry yet: the lock and the ARM are unknown here
+        return f"{CommandStatus(got[0]).name}: {got[1]}"
 
     def format_value(self, spec: ElementSpec) -> str:
         v = self.dv.get(spec.name)

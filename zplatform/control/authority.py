@@ -9,19 +9,20 @@ change of the mission the CN loads, never a re-keying of the vehicle.
 most (a lease renewed by its holder's accepted requests; LOCK, RELEASE,
 HANDOVER, a flight director's TAKEOVER, expiry), range safety's ABORT from
 any station, viewers never, a two-person command's ARM approved by a second
-operator. Every decision is a pure function of the requests and the loop's
-timestamp. Rules: docs/security.md#stations-and-operators.
+operator. One pure verdict (:meth:`AuthorityRules.verdict`, the CN's and a
+console's) over the published state (:func:`read_lock_state`) and the loop's
+time. Rules: docs/security.md#stations-and-operators.
 
-Contract: not thread-safe (the CN's loop thread); :meth:`Authority.identify`
-and :meth:`Authority.check` change nothing; :meth:`Authority.apply` and
-:meth:`Authority.expire` do, returning what to announce. Nothing in a
-request can make any of them raise.
+Contract: not thread-safe (the CN's loop thread); :meth:`Authority.identify`,
+:meth:`Authority.check` and the verdict change nothing (a refusal's text is
+its one allocation); :meth:`Authority.apply` and :meth:`Authority.expire`
+do, returning what to announce. Nothing in a request can make them raise.
 """
 
 from __future__ import annotations
 
 import hmac
-from typing import TYPE_CHECKING, NamedTuple
+from typing import TYPE_CHECKING, NamedTuple, Protocol
 
 import blake3
 
@@ -31,18 +32,25 @@ from ..errors import ConfigError
 
 if TYPE_CHECKING:
     from ..config import GroundConfig, Mission
+    from ..core.datavector import DataVector
 
 __all__ = [
     "ARM_WINDOW_NS",
     "COMMANDING_ROLES",
     "IDENTITY_LINK",
+    "MAX_OPERATORS",
+    "STATE_DEPENDENT",
     "TAG_BYTES",
     "Authority",
+    "AuthorityRules",
     "Change",
     "Identity",
+    "LockState",
+    "LockView",
     "Signer",
     "check_config",
     "identity_key",
+    "read_lock_state",
     "request_tag",
     "two_person_targets",
 ]
@@ -59,6 +67,18 @@ _NS = 1_000_000_000
 ARM_WINDOW_NS = 10 * _NS
 """How long an accepted ARM confirms the next (hazardous) command, and
 how long it may be approved: 10 s (:mod:`zplatform.control.commands`)."""
+MAX_OPERATORS = 64
+"""Most operators a ``ground:`` section lists: an ARM's approvers are
+published as a bit mask (``cn_arm_approvers``, one bit per operator)."""
+STATE_DEPENDENT = frozenset(
+    {
+        CommandStatus.REJECTED_NOT_HOLDER,
+        CommandStatus.REJECTED_APPROVAL_STALE,
+        CommandStatus.REJECTED_APPROVAL_SELF,
+    }
+)
+"""The verdicts of :meth:`AuthorityRules.verdict` that depend on the lock's
+state (the others only on the operator's roles and the station)."""
 
 
 def identity_key(base: bytes, vehicle: str, kind: str, name: str, key_id: int) -> bytes:
@@ -136,6 +156,12 @@ def check_config(mission: Mission, protected: list[str]) -> None:
             "need an ARM too (drop ABORT from commands.hazardous)",
             "$.commands.hazardous",
         )
+    if len(g.operators) > MAX_OPERATORS:
+        raise ConfigError(
+            f"{len(g.operators)} operators: at most {MAX_OPERATORS} (an ARM's approvers are "
+            "published as one bit each, cn_arm_approvers)",
+            "$.ground.operators",
+        )
     protected_set = set(protected)
     params = {p.name for p in mission.params if p.hazardous}
     for i, t in enumerate(g.two_person):
@@ -158,22 +184,89 @@ def check_config(mission: Mission, protected: list[str]) -> None:
             raise ConfigError(f"{t!r} is listed twice", where)
 
 
-class Authority:
-    """The command lock and the two-person rule at the CN (module doc).
+class LockView(Protocol):
+    """The command lock's and the two-person rule's state, as the CN keeps
+    it (:class:`Authority`) and publishes it (:func:`read_lock_state`):
+    operators and stations are 0-based indices into ``ground.operators`` and
+    ``ground.stations``, ``-1`` none. ``holder`` holds the lock from
+    ``station`` (``-1`` after a handover until the new holder's first
+    request binds it) until ``until_ns``; ``arm_seq`` is the ARM open for
+    approvals (``-1``: none), by ``arm_operator``, accepted at ``arm_t_ns``;
+    ``approvers`` its approvers, bit ``i`` for operator ``i``."""
 
-    ``ground`` is the mission's section, ``vehicle`` and ``mac`` its
-    ``vehicle`` and ``security.mac``, ``base`` the :data:`IDENTITY_LINK`
-    key (None: the CN holds none, so every request is refused as
-    ``REJECTED_OPERATOR_AUTH``, never taken unauthenticated). Operators and
-    stations are indices (0-based) into the section's lists; ``-1`` is
-    none. The lock's state is :attr:`holder`, :attr:`station` (``-1``
-    after a handover until the new holder's first request binds it) and
-    :attr:`until_ns`.
-    """
+    holder: int
+    station: int
+    until_ns: int
+    arm_seq: int
+    arm_operator: int
+    arm_t_ns: int
+    approvers: int
 
-    def __init__(self, ground: GroundConfig, vehicle: str, mac: str, base: bytes | None) -> None:
+
+class LockState:
+    """A :class:`LockView` as a plain record (what telemetry shows:
+    :func:`read_lock_state`; a test's state)."""
+
+    __slots__ = (
+        "approvers",
+        "arm_operator",
+        "arm_seq",
+        "arm_t_ns",
+        "holder",
+        "station",
+        "until_ns",
+    )
+
+    def __init__(
+        self,
+        holder: int = -1,
+        station: int = -1,
+        until_ns: int = 0,
+        arm_seq: int = -1,
+        arm_operator: int = -1,
+        arm_t_ns: int = 0,
+        approvers: int = 0,
+    ) -> None:
+        self.holder = holder
+        self.station = station
+        self.until_ns = until_ns
+        self.arm_seq = arm_seq
+        self.arm_operator = arm_operator
+        self.arm_t_ns = arm_t_ns
+        self.approvers = approvers
+
+    def __repr__(self) -> str:
+        return "LockState(" + ", ".join(f"{k}={getattr(self, k)}" for k in self.__slots__) + ")"
+
+
+def read_lock_state(dv: DataVector) -> LockState:
+    """The authority's state a CN-layout vector shows (a mission with
+    command authority): ``cn_lock_holder``, ``cn_lock_station``,
+    ``cn_lock_until_ns``, ``cn_arm_open``, ``cn_arm_operator``,
+    ``cn_arm_open_ns``, ``cn_arm_approvers`` (what
+    :class:`~zplatform.control.commands.CommandHandler` publishes). What a
+    console judges with, and what a standby's takeover or a restart's resume
+    takes up (:meth:`Authority.adopt`). Pure; allocates the record."""
+    arm = int(dv.get("cn_arm_open"))
+    return LockState(
+        int(dv.get("cn_lock_holder")) - 1,
+        int(dv.get("cn_lock_station")) - 1,
+        int(dv.get("cn_lock_until_ns")),
+        arm if arm else -1,
+        int(dv.get("cn_arm_operator")) - 1,
+        int(dv.get("cn_arm_open_ns")),
+        int(dv.get("cn_arm_approvers")),
+    )
+
+
+class AuthorityRules:
+    """The rules of ``ground`` (roles, view-only stations, revocations), and
+    the one verdict over them (:meth:`verdict`) the CN's :class:`Authority`
+    and a console (:class:`zplatform.console.model.ConsoleModel`) both give.
+    Immutable after construction; pure."""
+
+    def __init__(self, ground: GroundConfig) -> None:
         self.ground = ground
-        self.mac = mac
         self.lease_ns = round(ground.lease_s * _NS)
         self.operators = tuple(o.name for o in ground.operators)
         self.stations = tuple(s.name for s in ground.stations)
@@ -189,6 +282,103 @@ class Authority:
         self._revoked = tuple(
             o.name in whole or f"{o.name}#{o.key_id}" in ids for o in ground.operators
         )
+
+    # -- names ---------------------------------------------------------------
+    def who(self, op: int, st: int = -1) -> str:
+        """``alice@pad`` (``alice`` without a station; ``nobody``)."""
+        if not 0 <= op < len(self.operators):
+            return "nobody"
+        return self.operators[op] + (
+            f"@{self.stations[st]}" if 0 <= st < len(self.stations) else ""
+        )
+
+    def lock_text(self, s: LockView, t_ns: int) -> str:
+        """Who holds the lock of state ``s`` at ``t_ns`` and for how long, in words."""
+        if s.holder < 0 or t_ns > s.until_ns:
+            return "nobody holds the command lock"
+        left = (s.until_ns - t_ns) / _NS
+        return f"{self.who(s.holder, s.station)} holds the command lock ({left:.1f} s left)"
+
+    # -- the verdict -----------------------------------------------------------
+    def verdict(
+        self, s: LockView, op: int, st: int, cmd: int, t_ns: int, *, target: int = 0, ref: int = 0
+    ) -> tuple[int, str] | None:
+        """None when the authority lets operator ``op`` at station ``st``
+        (checked indices) send command ``cmd`` on to the command checks at
+        loop time ``t_ns`` in state ``s``; else ``(status, detail)``.
+        ``target``: HANDOVER's operator number (1-based); ``ref``: APPROVE's
+        ARM number. A lease that ran out by ``t_ns`` counts as ended, and
+        with it its holder's ARM (:meth:`Authority.expire`). Changes nothing;
+        allocates only a refusal's text."""
+        if cmd == Command.ABORT and self._range_safety[op]:
+            return None  # range safety's ABORT: any station, lock or not
+        expired = s.holder >= 0 and t_ns > s.until_ns
+        if cmd == Command.APPROVE:
+            return self._approve(s, op, ref, t_ns, expired)
+        if not self._commands[op]:
+            return CommandStatus.REJECTED_VIEW_ONLY, f"{self.who(op)} may not command (roles)"
+        if self._view_station[st]:
+            return (
+                CommandStatus.REJECTED_VIEW_ONLY,
+                f"station {self.stations[st]} may only view (ground.stations)",
+            )
+        holder = -1 if expired else s.holder
+        if cmd == Command.TAKEOVER:
+            if not self._director[op]:
+                return CommandStatus.REJECTED_ROLE, f"{self.who(op)} is no flight director"
+            return None
+        if cmd == Command.LOCK:
+            if holder < 0 or holder == op:  # a holder may move to another station
+                return None
+            return CommandStatus.REJECTED_NOT_HOLDER, self.lock_text(s, t_ns)
+        if holder != op or s.station not in (-1, st):
+            return CommandStatus.REJECTED_NOT_HOLDER, self.lock_text(s, t_ns)
+        if cmd == Command.HANDOVER:
+            to = target - 1
+            if not 0 <= to < len(self.operators):
+                return CommandStatus.REJECTED_BAD_ARGUMENT, f"no operator number {target}"
+            if not self._commands[to] or self._revoked[to]:
+                return (
+                    CommandStatus.REJECTED_ROLE,
+                    f"{self.who(to)} may not hold the lock (roles, or revoked)",
+                )
+        return None
+
+    def _approve(
+        self, s: LockView, op: int, ref: int, t_ns: int, expired: bool
+    ) -> tuple[int, str] | None:
+        if not self._approves[op]:
+            return CommandStatus.REJECTED_ROLE, f"{self.who(op)} has no approving role"
+        arm = -1 if expired else s.arm_seq  # an ARM dies with its holder's lock
+        if arm < 0 or ref != arm:
+            now = f"the current ARM is #{arm}" if arm >= 0 else "no ARM is open"
+            return CommandStatus.REJECTED_APPROVAL_STALE, f"approval of ARM #{ref}: {now}"
+        if not 0 <= t_ns - s.arm_t_ns <= ARM_WINDOW_NS:
+            return (
+                CommandStatus.REJECTED_APPROVAL_STALE,
+                f"ARM #{ref} is older than {ARM_WINDOW_NS // _NS} s",
+            )
+        if op == s.arm_operator or s.approvers >> op & 1:
+            return (
+                CommandStatus.REJECTED_APPROVAL_SELF,
+                f"{self.who(op)} armed or approved ARM #{ref} already: a second operator must",
+            )
+        return None
+
+
+class Authority(AuthorityRules):
+    """The command lock and the two-person rule at the CN (module doc): the
+    rules (:class:`AuthorityRules`) and the state (a :class:`LockView`).
+
+    ``ground`` is the mission's section, ``vehicle`` and ``mac`` its
+    ``vehicle`` and ``security.mac``, ``base`` the :data:`IDENTITY_LINK`
+    key (None: the CN holds none, so every request is refused as
+    ``REJECTED_OPERATOR_AUTH``, never taken unauthenticated).
+    """
+
+    def __init__(self, ground: GroundConfig, vehicle: str, mac: str, base: bytes | None) -> None:
+        super().__init__(ground)
+        self.mac = mac
         self._op_keys: tuple[bytes, ...] = ()
         self._st_keys: tuple[bytes, ...] = ()
         if base is not None:
@@ -202,26 +392,15 @@ class Authority:
         self.station = -1
         self.until_ns = 0
         self.arm_seq = -1
-        """The current ARM's number (-1: none), its operator and its approvers."""
+        """The current ARM's number (-1: none), its operator, its time and its
+        approvers (a bit per operator)."""
         self.arm_operator = -1
         self.arm_t_ns = 0
-        self.approvers: list[int] = []
-
-    # -- names ---------------------------------------------------------------
-    def who(self, op: int, st: int = -1) -> str:
-        """``alice@pad`` (``alice`` without a station; ``nobody``)."""
-        if not 0 <= op < len(self.operators):
-            return "nobody"
-        return self.operators[op] + (
-            f"@{self.stations[st]}" if 0 <= st < len(self.stations) else ""
-        )
+        self.approvers = 0
 
     def holder_text(self, t_ns: int) -> str:
         """Who holds the lock and for how long, in words."""
-        if self.holder < 0:
-            return "nobody holds the command lock"
-        left = max(self.until_ns - t_ns, 0) / _NS
-        return f"{self.who(self.holder, self.station)} holds the command lock ({left:.1f} s left)"
+        return self.lock_text(self, t_ns)
 
     # -- identity --------------------------------------------------------------
     def identify(
@@ -271,71 +450,23 @@ class Authority:
 
     # -- rules -------------------------------------------------------------------
     def expire(self, t_ns: int) -> Change | None:
-        """End a lease that ran out by ``t_ns`` (its holder went silent)."""
+        """End a lease that ran out by ``t_ns`` (its holder went silent), and
+        with it the holder's open ARM."""
         if self.holder >= 0 and t_ns > self.until_ns:
             who = self.who(self.holder, self.station)
             self.holder, self.station, self.until_ns = -1, -1, 0
+            self.disarm()  # an ARM dies with its holder's lock
             return Change("expired", f"{who}'s command lock expired (no request in its lease)")
         return None
 
     def check(
         self, who: Identity, cmd: int, t_ns: int, *, target: int = 0, ref: int = 0
     ) -> tuple[int, str] | None:
-        """None when the authority lets ``who``'s command ``cmd`` go on to
-        the command checks at ``t_ns`` (after :meth:`expire`), else
-        ``(status, detail)``. ``target``: HANDOVER's operator number
-        (1-based); ``ref``: APPROVE's ARM number. Changes nothing."""
-        op, st = who
-        if cmd == Command.ABORT and self._range_safety[op]:
-            return None  # range safety's ABORT: any station, lock or not
-        if cmd == Command.APPROVE:
-            return self._check_approve(op, ref, t_ns)
-        if not self._commands[op]:
-            return CommandStatus.REJECTED_VIEW_ONLY, f"{self.who(op)} may not command (roles)"
-        if self._view_station[st]:
-            return (
-                CommandStatus.REJECTED_VIEW_ONLY,
-                f"station {self.stations[st]} may only view (ground.stations)",
-            )
-        mine = self.holder == op and self.station in (-1, st)
-        if cmd == Command.TAKEOVER:
-            if not self._director[op]:
-                return CommandStatus.REJECTED_ROLE, f"{self.who(op)} is no flight director"
-            return None
-        if cmd == Command.LOCK:
-            if self.holder < 0 or self.holder == op:  # a holder may move to another station
-                return None
-            return CommandStatus.REJECTED_NOT_HOLDER, self.holder_text(t_ns)
-        if not mine:
-            return CommandStatus.REJECTED_NOT_HOLDER, self.holder_text(t_ns)
-        if cmd == Command.HANDOVER:
-            to = target - 1
-            if not 0 <= to < len(self.operators):
-                return CommandStatus.REJECTED_BAD_ARGUMENT, f"no operator number {target}"
-            if not self._commands[to] or self._revoked[to]:
-                return (
-                    CommandStatus.REJECTED_ROLE,
-                    f"{self.who(to)} may not hold the lock (roles, or revoked)",
-                )
-        return None
-
-    def _check_approve(self, op: int, ref: int, t_ns: int) -> tuple[int, str] | None:
-        if not self._approves[op]:
-            return CommandStatus.REJECTED_ROLE, f"{self.who(op)} has no approving role"
-        if self.arm_seq < 0 or ref != self.arm_seq:
-            now = f"the current ARM is #{self.arm_seq}" if self.arm_seq >= 0 else "no ARM is open"
-            return CommandStatus.REJECTED_APPROVAL_STALE, f"approval of ARM #{ref}: {now}"
-        if not 0 <= t_ns - self.arm_t_ns <= ARM_WINDOW_NS:
-            return (
-                CommandStatus.REJECTED_APPROVAL_STALE,
-                f"ARM #{ref} is older than {ARM_WINDOW_NS // _NS} s",
-            )
-        if op == self.arm_operator or op in self.approvers:
-            return (
-                CommandStatus.REJECTED_APPROVAL_SELF,
-                f"{self.who(op)} armed or approved ARM #{ref} already: a second operator must",
-            )
-        return None
+        """:meth:`AuthorityRules.verdict` on this CN's own state: None when the
+        authority lets ``who``'s command ``cmd`` go on to the command checks
+        at ``t_ns`` (after :meth:`expire`), else ``(status, detail)``.
+        Changes nothing."""
+        return self.verdict(self, who.operator, who.station, cmd, t_ns, target=target, ref=ref)
 
     def apply(
         self, who: Identity, cmd: int, t_ns: int, *, seq: int = 0, target: int = 0
@@ -347,7 +478,7 @@ class Authority:
         op, st = who
         lease = t_ns + self.lease_ns
         if cmd == Command.APPROVE:
-            self.approvers.append(op)
+            self.approvers |= 1 << op
             return Change("approved", f"{self.who(op, st)} approved ARM #{self.arm_seq}")
         if cmd == Command.TAKEOVER:
             was = self.who(self.holder, self.station) if self.holder >= 0 else "nobody"
@@ -379,22 +510,35 @@ class Authority:
         ``t_ns``: it opens a new approval round (an earlier ARM's approvals
         no longer count)."""
         self.arm_seq, self.arm_operator, self.arm_t_ns = seq, op, t_ns
-        self.approvers.clear()
+        self.approvers = 0
 
     def approved(self) -> bool:
         """Whether the current ARM has a second operator's approval."""
-        return bool(self.approvers)
+        return self.approvers != 0
+
+    def approvals(self) -> int:
+        """How many operators approved the current ARM."""
+        return self.approvers.bit_count()
 
     def disarm(self) -> None:
         """The current ARM is used up (its command came, accepted or not)."""
         self.arm_seq, self.arm_operator = -1, -1
-        self.approvers.clear()
+        self.approvers = 0
 
-    def adopt(self, holder: int, station: int, until_ns: int) -> None:
-        """Take up the lock's state from the Data Vector (a standby's takeover):
-        open approvals are not mirrored, so a pending ARM needs them again."""
+    def adopt(self, s: LockView) -> None:
+        """Take up the state ``s`` (:func:`read_lock_state` of the vector a
+        standby mirrored, or of the frame a restarted CN's flight recorder
+        kept): the lock, and an ARM open for approvals with its approvals, so
+        the approvals already given count at the new commander. Values out
+        of range (a vector from another mission cannot pass the layout check;
+        still) are taken as none."""
         n = len(self.operators)
-        self.holder = holder if 0 <= holder < n else -1
-        self.station = station if self.holder >= 0 and 0 <= station < len(self.stations) else -1
-        self.until_ns = until_ns if self.holder >= 0 else 0
-        self.disarm()
+        self.holder = s.holder if 0 <= s.holder < n else -1
+        ok_st = self.holder >= 0 and 0 <= s.station < len(self.stations)
+        self.station = s.station if ok_st else -1
+        self.until_ns = s.until_ns if self.holder >= 0 else 0
+        if s.arm_seq >= 0 and 0 <= s.arm_operator < n:
+            self.arm_seq, self.arm_operator, self.arm_t_ns = s.arm_seq, s.arm_operator, s.arm_t_ns
+            self.approvers = s.approvers & ((1 << n) - 1)
+        else:
+            self.disarm()

@@ -32,7 +32,7 @@ from ..config.codes import Command, CommandStatus
 from ..core.events import EV, EventLog
 from ..errors import ConfigError
 from . import authority as _authority
-from .authority import Authority, Identity
+from .authority import Authority, Identity, read_lock_state
 from .interlocks import output_states
 from .params import ParamSlot, ParamTable
 from .statemachine import logic_writable, why_not_writable
@@ -493,7 +493,8 @@ class CommandHandler:
         self._last_seq = 0
         self._arm_seq = -1
         self._arm_t_ns = 0
-        # A redundant mission mirrors the last ARM (adopt()).
+        # A redundant or recording mission keeps the last ARM in the vector
+        # (a standby's mirror, the recorder's frames: adopt()).
         arm = "cn_arm_seq" in dv.layout.elements
         self._h_arm_seq = dv.handle("cn_arm_seq") if arm else None
         self._h_arm_t = dv.handle("cn_arm_t_ns") if arm else None
@@ -533,6 +534,11 @@ class CommandHandler:
         self._h_lock_station = dv.handle("cn_lock_station")
         self._h_lock_until = dv.handle("cn_lock_until_ns")
         self._h_approvals = dv.handle("cn_arm_approvals")
+        self._h_arm_open = dv.handle("cn_arm_open")
+        self._h_arm_operator = dv.handle("cn_arm_operator")
+        self._h_arm_open_ns = dv.handle("cn_arm_open_ns")
+        self._h_arm_approvers = dv.handle("cn_arm_approvers")
+        self._dv = dv
         self._h_auth_refused = dv.handle("cn_auth_refused")
         cmds, elems = _authority.two_person_targets(mission)
         self._two_cmd = tuple(c in cmds for c in CMD_NAMES)
@@ -556,16 +562,22 @@ class CommandHandler:
         ch = auth.expire(t_ns)
         if ch is not None:  # else nothing changed: the vector shows it already
             self._events.emit(EV.CMD_LOCK, t_ns, what=ch.what, text=ch.text)
-            auth.disarm()  # an ARM dies with its holder's lock
-            self._publish()
+            self._publish()  # the lock and its holder's ARM ended (Authority.expire)
 
     def _publish(self) -> None:
+        """The authority's whole state into the vector (what
+        :func:`~zplatform.control.authority.read_lock_state` reads back: a
+        console's verdicts, a standby's or a restarted CN's :meth:`adopt`)."""
         auth = self._auth
         assert auth is not None
         self._h_lock_holder.set(auth.holder + 1)
         self._h_lock_station.set(auth.station + 1)
         self._h_lock_until.set(auth.until_ns)
-        self._h_approvals.set(min(len(auth.approvers), 255))
+        self._h_approvals.set(min(auth.approvals(), 255))
+        self._h_arm_open.set(max(auth.arm_seq, 0))
+        self._h_arm_operator.set(auth.arm_operator + 1)
+        self._h_arm_open_ns.set(auth.arm_t_ns if auth.arm_seq >= 0 else 0)
+        self._h_arm_approvers.set(auth.approvers)
 
     def _authorize(
         self, data: bytes | bytearray | memoryview, t_ns: int
@@ -601,11 +613,19 @@ class CommandHandler:
         two-person) without consuming its number: counted in
         ``cn_cmd_rejects`` and ``cn_auth_refused``, shown in
         ``cn_cmd_reject_status``/``_seq``; evented at most once a second (a
-        peer holding one operator's key cannot flood the event stream)."""
+        peer holding one operator's key cannot flood the event stream).
+        The CN's intake admitted its number, so no request can use it again:
+        one numbered just after an open ARM's chain (the ARM's or its last
+        approval's number) moves the chain on, as an approval does, so the
+        armed command still follows it (ARM n, another station's refused
+        request n+1, APPROVE n+2, the command n+3). It confirms nothing: the
+        command must still be the ARM's operator's, inside its window."""
         self._h_rejects.bump()
         self._h_reject_status.set(status)
         self._h_reject_seq.set(seq)
         self._h_auth_refused.bump()
+        if self._arm_seq >= 0 and seq == self._arm_seq + 1:
+            self._armed_at(seq, self._arm_t_ns)
         last = self._refusal_t
         if last is not None and 0 <= t_ns - last < _REFUSAL_EVENT_NS:
             self._refusals_quiet += 1
@@ -615,10 +635,13 @@ class CommandHandler:
         self._emit_rejected(status, t_ns, name, seq, detail + more)
 
     def adopt(self) -> None:
-        """Take up the handler's state from the Data Vector (a takeover,
+        """Take up the handler's state from the Data Vector (a takeover, or a
+        restart's resume from its recorder's frame:
         :meth:`zplatform.control.loop.ControlLogic.adopt`): the pending command
-        (``cn_cmd``), the last number (``cn_cmd_seq``) and, in a redundant
-        mission, the last ARM (``cn_arm_seq``, ``cn_arm_t_ns``)."""
+        (``cn_cmd``), the last number (``cn_cmd_seq``), in a redundant or
+        recording mission the last ARM (``cn_arm_seq``, ``cn_arm_t_ns``), and with
+        command authority the lock and the ARM open for approvals with its
+        approvals (:func:`~zplatform.control.authority.read_lock_state`)."""
         self._active = self._h_cmd.get() != 0
         self._last_seq = int(self._h_seq.get())
         if self._h_arm_seq is not None and self._h_arm_t is not None:
@@ -626,11 +649,9 @@ class CommandHandler:
             self._arm_seq = seq if seq else -1
             self._arm_t_ns = int(self._h_arm_t.get())
         if self._auth is not None:
-            self._auth.adopt(
-                int(self._h_lock_holder.get()) - 1,
-                int(self._h_lock_station.get()) - 1,
-                int(self._h_lock_until.get()),
-            )
+            # The lock, and an ARM open for approvals with the approvals given:
+            # the new commander resumes them (docs/architecture.md#failover).
+            self._auth.adopt(read_lock_state(self._dv))
 
     def _armed_at(self, seq: int, t_ns: int) -> None:
         self._arm_seq = seq

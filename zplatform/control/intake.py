@@ -28,6 +28,7 @@ from collections.abc import Callable
 from typing import Generic, Protocol, TypeVar, cast
 
 from ..config import Mission
+from ..config.codes import CommandStatus
 from ..core.auth import NO_RUN, TAG_LEN, Channel, RunError
 from ..core.codec import (
     bundle_entry,
@@ -48,6 +49,7 @@ __all__ = [
     "BACKLOG",
     "CN_REFUSALS",
     "EVENT_PERIOD_NS",
+    "INBOX",
     "MIRRORS",
     "PROBES",
     "PROBE_BURST",
@@ -68,6 +70,10 @@ __all__ = [
 BACKLOG = 4
 """Valid triggers a DN keeps while its loop thread is busy: older ones are
 for loops the CN has closed, so the oldest is let go past this."""
+INBOX = 16
+"""Command request frames a CN keeps between two loops (the newest ones):
+only authentic requests of this run, numbered above every number seen, get
+this far (:class:`RequestIntake`'s mailbox, in every CN driver)."""
 PROBES = 2
 """Probe questions a DN keeps while its loop thread is busy."""
 PROBE_BURST = 8
@@ -640,6 +646,21 @@ class RequestIntake(Intake[None]):
 
     def _took(self) -> None:
         self.reported, self._reported = self._reported, (0, 0)
+
+    def take_refusals(self, out: CnRefusals) -> None:
+        """Put what this intake refused since the last call into ``out``'s
+        command fields (:class:`CnRefusals`: ``cmd_size``, ``cmd_bad``,
+        ``cmd_stale`` and the refusal to report: the stale one with the
+        highest number, else ``REJECTED_AUTH``/0 for bad tags alone), then
+        zero the counts. The one way every CN driver (the live node, the
+        lockstep runner) reads its request intake. Allocates nothing."""
+        out.cmd_size, out.cmd_bad, out.cmd_stale = self.take_counts()
+        if out.cmd_stale:
+            out.cmd_status, out.cmd_seq = self.reported
+        elif out.cmd_bad:
+            out.cmd_status, out.cmd_seq = CommandStatus.REJECTED_AUTH, 0
+        else:
+            out.cmd_status = out.cmd_seq = 0
 
 
 class ReplyCheck(Intake[None]):

@@ -11,11 +11,12 @@ runner share, so a script means the same thing live and in ``sim``.
 Command scripts (:func:`parse_commands`, :func:`load_commands`) have one
 command per line (``at 1.0 launch``, ``at 2.0 write seq_leds_mode manual``,
 ``at 3.0 prm_set apogee_target_m 550``); ``#`` starts a comment; times are
-seconds (decimal, read exactly) from the start of loop 1.
+seconds (decimal, read exactly) from the start of loop 1. ``as alice@pad:
+at 1.0 lock`` names who sends a line, ``as alice@pad`` alone the lines after.
 
 Contract: pure functions (:func:`load_commands` also reads its file); a bad
-script or command raises :class:`~zplatform.errors.CommandError` naming where,
-before anything is sent. See docs/operations.md#commanding.
+script or command raises CommandError naming where, before anything is sent
+(docs/operations.md#commanding).
 """
 
 from __future__ import annotations
@@ -53,7 +54,9 @@ __all__ = [
 
 _COMMANDS = tuple(c.lower() for c in CMD_NAMES if c != "NONE")
 _TWO_ARGS = {"write": "ELEMENT VALUE", "prm_set": "PARAMETER VALUE"}
+_ONE_ARG = {"handover": "OPERATOR", "approve": "ARM_NUMBER"}
 _LINE_RE = re.compile(r"^at\s+(\S+)\s+(\S+)(?:\s+(.*))?$")
+_AS_RE = re.compile(r"^as\s+([^\s@:]+)@([^\s@:]+)\s*(:.*)?$")
 
 
 class ScriptCommand(msgspec.Struct, frozen=True):
@@ -62,7 +65,9 @@ class ScriptCommand(msgspec.Struct, frozen=True):
     ``at_ns`` is the time from the start of loop 1; ``command`` the upper
     case command name; ``element`` and ``value`` (text as written) for
     WRITE, and for PRM_SET the parameter and its value; ``source`` is
-    ``file:line`` for messages.
+    ``file:line`` for messages; ``operator`` and ``station``: who sends it
+    (``as OPERATOR@STATION``, a mission with ``ground:``; None: the ground's
+    own ``--operator``/``--station``).
     """
 
     at_ns: int
@@ -70,6 +75,8 @@ class ScriptCommand(msgspec.Struct, frozen=True):
     element: str | None = None
     value: str | None = None
     source: str = "<script>"
+    operator: str | None = None
+    station: str | None = None
 
 
 # ---------------------------------------------------------------------------
@@ -95,11 +102,25 @@ def parse_commands(text: str, source: str = "<string>") -> list[ScriptCommand]:
     order (stable: file order for equal times).
     """
     out: list[ScriptCommand] = []
+    default: tuple[str | None, str | None] = (None, None)
     for n, raw in enumerate(text.splitlines(), start=1):
         line = raw.split("#", 1)[0].strip()
         if not line:
             continue
         where = f"{source}:{n}"
+        who = default
+        if line.startswith("as ") or line == "as":
+            a = _AS_RE.match(line)
+            if a is None:
+                raise CommandError(
+                    f"{where}: expected 'as OPERATOR@STATION' or 'as OPERATOR@STATION: at "
+                    f"SECONDS COMMAND [ARGS]', got {line!r}"
+                )
+            if a.group(3) is None:  # a header: the lines after it
+                default = (a.group(1), a.group(2))
+                continue
+            who = (a.group(1), a.group(2))
+            line = a.group(3)[1:].strip()
         m = _LINE_RE.match(line)
         if m is None:
             raise CommandError(f"{where}: expected 'at SECONDS COMMAND [ARGS]', got {line!r}")
@@ -112,11 +133,16 @@ def parse_commands(text: str, source: str = "<string>") -> list[ScriptCommand]:
         if cmd in _TWO_ARGS:
             if len(args) != 2:
                 raise CommandError(f"{where}: {cmd} takes {_TWO_ARGS[cmd]}, got {args}")
-            out.append(ScriptCommand(at_ns, cmd.upper(), args[0], args[1], where))
+            out.append(ScriptCommand(at_ns, cmd.upper(), args[0], args[1], where, *who))
+            continue
+        if cmd in _ONE_ARG:  # the command lock's: checked against the mission by the player
+            if len(args) != 1:
+                raise CommandError(f"{where}: {cmd} takes {_ONE_ARG[cmd]}, got {args}")
+            out.append(ScriptCommand(at_ns, cmd.upper(), args[0], None, where, *who))
             continue
         if args:
             raise CommandError(f"{where}: {cmd} takes no arguments, got {' '.join(args)!r}")
-        out.append(ScriptCommand(at_ns, cmd.upper(), source=where))
+        out.append(ScriptCommand(at_ns, cmd.upper(), None, None, where, *who))
     out.sort(key=lambda c: c.at_ns)  # stable
     return out
 

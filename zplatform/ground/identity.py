@@ -27,7 +27,7 @@ from ..core.auth import KEY_ENV, KEY_FILE_ENV, KeyError_, default_key_dir, load_
 from ..errors import CommandError
 from ..security.identities import identity_file_name, load_signer, sim_signer
 
-__all__ = ["check_names", "identity_dir", "station_signer"]
+__all__ = ["check_names", "identity_dir", "line_signer", "station_signer"]
 
 
 def identity_dir(mission: Mission, key_file: str | Path | None = None) -> Path:
@@ -110,3 +110,17 @@ def station_signer(
                 f"copy it to this host (the directory of {KEY_FILE_ENV}, or {d})"
             )
     return load_signer(mission, paths[0], paths[1])
+
+
+def line_signer(
+    mission: Mission, operator: str, station: str, key_file: str | Path | None = None
+) -> Signer:
+    """The signer of a script line naming ``operator`` at ``station`` (``as
+    alice@pad: ...``, :class:`zplatform.ground.script.ScriptPlayer`): their
+    key files read as :func:`station_signer` reads them. CommandError for a
+    mission whose requests name nobody (no ``ground:``, or
+    ``single_operator`` takes them unnamed: a name is still checked)."""
+    signer = station_signer(mission, operator, station, key_file)
+    if signer is None:  # pragma: no cover - check_names raises first for given names
+        raise CommandError(f"mission {mission.mission!r} has no operators to sign as")
+    return signer

@@ -42,6 +42,7 @@ from ..runtime.queries import ask, replies
 from ..runtime.timebase import NodeClock
 from ..runtime.transport import EventPublisher, NodeSession, is_matching
 from ..telemetry.records import CommandOutcome, EventRecord
+from .identity import line_signer
 from .logic import GroundLogic, default_max_age_ns
 
 __all__ = [
@@ -168,6 +169,9 @@ class GroundLink:
             script=script,
             run=self.run,
             signer=signer,
+            # A script line naming its sender is signed with their key files,
+            # read as `cmd --operator` reads them (beside the link's keys).
+            signers=lambda op, st: line_signer(mission, op, st, key_file),
         )
         self.on_event = on_event
         # A station with a router (ground.stations[].connect) reaches the

@@ -37,7 +37,7 @@ from ..core.datavector import DataVector, Layout
 from ..core.events import EV, Event, EventLog, EventReader, EventType, StaleRecordError
 from ..errors import CodecError, CommandError
 from ..telemetry.records import REFUSALS, CommandOutcome, EventRecord, TelemetryCounters
-from .script import ScriptPlayer
+from .script import ScriptPlayer, Signers
 
 __all__ = [
     "FRESH_MARGIN_NS",
@@ -151,12 +151,31 @@ class _Tally(msgspec.Struct):
 class _Plan:
     """One operator command: its steps (ARM first when armed), its outcomes."""
 
-    __slots__ = ("approval", "open", "outcomes", "sent", "source", "steps", "ticket")
+    __slots__ = (
+        "approval",
+        "open",
+        "operator",
+        "outcomes",
+        "sent",
+        "source",
+        "steps",
+        "ticket",
+        "uplink",
+    )
 
-    def __init__(self, ticket: int, steps: list[tuple[str, int, float]], source: str) -> None:
+    def __init__(
+        self,
+        ticket: int,
+        steps: list[tuple[str, int, float]],
+        source: str,
+        uplink: Uplink | None = None,
+        operator: str = "",
+    ) -> None:
         self.ticket = ticket
         self.steps = steps
         self.source = source
+        self.uplink = uplink  # who signs its requests (None: the ground's own uplink)
+        self.operator = operator  # ``operator@station`` they name
         self.approval = False  # its command waits for its ARM's approval (two-person)
         self.sent = 0  # steps sent so far
         self.open = True  # more steps may still be sent
@@ -227,6 +246,9 @@ class GroundLogic:
     ``signer``: the operator and station its requests name and are signed
     by (a mission with ``ground:``, :class:`~zplatform.control.uplink.Uplink`);
     every outcome then names them (:attr:`CommandOutcome.operator`).
+    ``signers``: what signs a script line that names its sender (``as
+    alice@pad: ...``; :class:`~.script.ScriptPlayer`); :meth:`submit`'s
+    ``signer`` sends one command so.
     ``renew_lock``: with a signer, in a mission with command authority, keep
     the command lock while this station's operator holds it (docs/security.md
     #stations-and-operators): when a snapshot shows less than half the lease
@@ -251,9 +273,11 @@ class GroundLogic:
         run: Run | None = None,
         signer: Signer | None = None,
         renew_lock: bool = True,
+        signers: Signers | None = None,
     ) -> None:
         self.mission = mission
         self.run = run
+        self._keys = keys
         self.operator = f"{signer.operator}@{signer.station}" if signer is not None else ""
         """``operator@station`` this ground's requests name ("" without a signer)."""
         self.node = node
@@ -320,7 +344,8 @@ class GroundLogic:
         self._out: list[bytes] = []
         self.outcomes: list[CommandOutcome] = []
         """Every released outcome, in verdict order."""
-        self.player = ScriptPlayer(mission, script) if script else None
+        self._uplinks: dict[str, Uplink] = {}  # per operator@station a script line names
+        self.player = ScriptPlayer(mission, script, signers) if script else None
         # The command lock's lease (renew_lock): whose it is, when it ends.
         g = mission.ground
         self._renew: tuple[int, int, int] | None = None
@@ -630,6 +655,7 @@ class GroundLogic:
         armed: bool = False,
         source: str = "",
         can_send: bool = True,
+        signer: Signer | None = None,
     ) -> int:
         """Queue one operator command that
         :func:`~zplatform.control.uplink.validate_command` checked already (it is
@@ -640,10 +666,11 @@ class GroundLogic:
         run, nothing else waits for a verdict and ``can_send``; otherwise
         with a later snapshot (:meth:`take_requests`). Raises CommandError
         for a mission without a ground node, or a ground without the
-        uplink's key.
+        uplink's key. ``signer``: another operator and station its requests
+        name and are signed by (a script line's ``as``; None: the ground's own).
         """
         self._need_uplink()
-        return self._queue(checked, now_ns, armed, source, can_send)
+        return self._queue(checked, now_ns, armed, source, can_send, signer)
 
     def _need_uplink(self) -> None:
         if self._uplink is None:
@@ -655,13 +682,26 @@ class GroundLogic:
             )
 
     def _queue(
-        self, checked: CheckedCommand, now_ns: int, armed: bool, source: str, can_send: bool
+        self,
+        checked: CheckedCommand,
+        now_ns: int,
+        armed: bool,
+        source: str,
+        can_send: bool,
+        signer: Signer | None = None,
     ) -> int:
         step = (checked.command, checked.element, checked.value)
         steps = [("ARM", 0, 0.0), step] if armed else [step]
         ticket = self._next_ticket
         self._next_ticket += 1
-        plan = _Plan(ticket, steps, source)
+        uplink, operator = None, self.operator
+        if signer is not None:
+            operator = f"{signer.operator}@{signer.station}"
+            uplink = self._uplinks.get(operator)
+            if uplink is None:  # its own request vector, signed as them, in the ground's run
+                uplink = Uplink(self.mission, self._keys, self.run, signer)
+                self._uplinks[operator] = uplink
+        plan = _Plan(ticket, steps, source, uplink, operator)
         plan.approval = armed and self._h_approvals is not None and self._two_person(checked)
         self._plans.append(plan)
         self._tickets[ticket] = plan
@@ -747,7 +787,8 @@ class GroundLogic:
         assert self._uplink is not None
         # APPROVE carries its ARM's number in the value (validate_command).
         ref = int(r.value) if r.cmd == "APPROVE" else 0
-        frame = self._uplink.frame(r.cmd, r.seq, r.index, r.value, rx_ns, r.epoch, ref)
+        uplink = r.plan.uplink if r.plan.uplink is not None else self._uplink
+        frame = uplink.frame(r.cmd, r.seq, r.index, r.value, rx_ns, r.epoch, ref)
         self._out.append(bytes(frame))
 
     def _on_snapshot(self, rx_ns: int, can_send: bool) -> None:
@@ -860,7 +901,7 @@ class GroundLogic:
                 r.plan.source,
                 r.reason,
                 r.reason_from,  # type: ignore[arg-type]
-                self.operator,
+                r.plan.operator,
             )
             r.plan.outcomes.append(o)
             if r.plan.source == _RENEWAL:

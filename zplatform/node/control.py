@@ -32,10 +32,16 @@ import zenoh
 
 from .. import trace
 from ..config import Mission
-from ..config.codes import CommandStatus
 from ..control.failover import Standby, probe_wait_ns
 from ..control.handoff import Mailbox
-from ..control.intake import CnRefusals, MirrorIntake, RefusalLog, ReplyCheck, RequestIntake
+from ..control.intake import (
+    INBOX,
+    CnRefusals,
+    MirrorIntake,
+    RefusalLog,
+    ReplyCheck,
+    RequestIntake,
+)
 from ..control.loop import ControlLogic
 from ..control.params import ParamSaver, params_path, read_params_file
 from ..control.role import (
@@ -77,12 +83,6 @@ __all__ = ["ControlNode", "run_control_node"]
 log = logging.getLogger("zplatform.cn")
 
 _DROP = zenoh.CongestionControl.DROP
-
-
-INBOX = 16
-"""Command request frames kept between two loops (the newest ones): only
-authentic requests of this run, numbered above every number seen, get
-this far (:class:`~zplatform.control.intake.RequestIntake`)."""
 
 
 class ControlNode:
@@ -902,13 +902,7 @@ class ControlNode:
         if req is None:
             r.cmd_size = r.cmd_bad = r.cmd_stale = r.cmd_status = r.cmd_seq = 0
             return r
-        r.cmd_size, r.cmd_bad, r.cmd_stale = req.take_counts()
-        if r.cmd_stale:
-            r.cmd_status, r.cmd_seq = req.reported
-        elif r.cmd_bad:
-            r.cmd_status, r.cmd_seq = CommandStatus.REJECTED_AUTH, 0
-        else:
-            r.cmd_status = r.cmd_seq = 0
+        req.take_refusals(r)
         return r
 
     def run(

@@ -33,7 +33,7 @@ from ..boards import Board
 from ..config import BulkChannelConfig, Mission
 from ..control.authority import Signer
 from ..control.failover import Standby
-from ..control.intake import CnRefusals, TriggerIntake
+from ..control.intake import INBOX, CnRefusals, RequestIntake, TriggerIntake
 from ..control.loop import ControlLogic, DeviceLogic
 from ..control.params import MemorySaver
 from ..control.role import Command, ControlRole, Probe, Release, Resume, Take, check_recorded
@@ -48,6 +48,7 @@ from ..errors import NodeError, RecordingError, ZPlatformError
 from ..ground.logic import GroundLogic
 from ..runtime.clocksync import RELEARN_S, ClockLink, ClockResponder, RunAsker
 from ..runtime.timebase import VirtualClock
+from ..security.identities import sim_signer
 from ..telemetry.logs import CsvLogger
 from ..telemetry.records import CommandOutcome, EventRecord
 from ..world.model import World
@@ -299,6 +300,12 @@ class SimControlNode:
         self.records = name in logic.mission.recording_nodes
         self.recorded: bytes | None = None
         """The newest telemetry frame its flight recorder holds (None: none)."""
+        self.requests: RequestIntake | None = None
+        """Its command inbox while it commands (the live CN's intake, opened
+        at its first loop in command: :meth:`take_requests`)."""
+        self.refused = CnRefusals()
+        self._taken: list[tuple[None, bytes]] = []
+        self._dropped = 0
 
     @property
     def standby(self) -> Standby | None:
@@ -316,6 +323,43 @@ class SimControlNode:
             self._held = (frame, t)
             return
         self.role.mirror(frame, t)
+
+    def take_requests(self, frames: tuple[bytes | bytearray, ...]) -> tuple[list[bytes], int]:
+        """The request ``frames`` that reached it since its last loop, through
+        the live CN's intake (:class:`~zplatform.control.intake.RequestIntake`,
+        as :class:`zplatform.node.control.ControlNode` opens it: bound to its
+        run, its epoch and its handler's last number, a bounded inbox): returns
+        the admitted ones, oldest first, and the inbox's drops since the last
+        call; what the intake refused is in :attr:`refused` (``finish``'s
+        ``refused``), its sync-reply fields zero (the runner moves no bad reply)."""
+        logic = self.logic
+        req = self.requests
+        if req is None:
+            if not logic.mission.has_ground:
+                return [], 0
+            commands = logic.commands
+            req = self.requests = RequestIntake(
+                logic.mission,
+                channel(self.keys, "gn_to_cn", logic.auth_run),
+                int(logic.dv.get("cn_epoch")),
+                lambda: commands.last_seq,
+                INBOX,
+            )
+            self._dropped = 0
+        box = req.box
+        assert box is not None
+        for frame in frames:
+            req.admit(_Query(frame), None)
+        taken = self._taken
+        taken.clear()
+        box.drain(taken)
+        req.take_refusals(self.refused)
+        dropped, self._dropped = box.dropped - self._dropped, box.dropped
+        return [f for _, f in taken], dropped
+
+    def stand_down(self) -> None:
+        """It no longer commands: its inbox is the new commander's (as live)."""
+        self.requests = None
 
     def deliver_held(self, t: int) -> None:
         if self._held is not None:
@@ -409,6 +453,11 @@ class LockstepRunner:
             script=commands or [],
             run=self._ground_asker.run if self._ground_asker is not None else None,
             signer=signer,
+            # A script line naming its sender (`as alice@pad: ...`) is signed
+            # with that operator's key of the run's own key set.
+            signers=(lambda op, st: sim_signer(keys, mission, op, st))
+            if keys is not None and mission.ground is not None
+            else None,
         )
         # The sync query's form, as the live CN chooses it (transport.sync_query).
         self._bundle = BundleEncoder() if wildcard_sync_for(mission) else None
@@ -640,6 +689,7 @@ class LockstepRunner:
             self._mirror(commanders, t)
         for c in running:
             if c.standby is not None:
+                c.stand_down()
                 self._follow(c, loop, t)
         top = max(
             (c for c in self.cns.values() if c.standby is None and not c.dead),
@@ -713,9 +763,17 @@ class LockstepRunner:
                 if term:
                     self.driven.setdefault(loop, {})[dev.node] = term
             cn.reply(i, reply)
-        grounds = ground if reach(c.name, "gn") else ()
+        # As live: every request passes the CN's intake as it arrives (size,
+        # tag, run, a number above every one seen or admitted) before the loop.
+        grounds, dropped = c.take_requests(ground if reach(c.name, "gn") else ())
         saved = c.saver.poll()
-        tm = cn.finish(grounds, loop_overruns=skipped, saves=(saved,) if saved is not None else ())
+        tm = cn.finish(
+            grounds,
+            loop_overruns=skipped,
+            inbox_dropped=dropped,
+            refused=c.refused,
+            saves=(saved,) if saved is not None else (),
+        )
         save = cn.params.take_save()
         if save is not None:
             c.saver.submit(*save)
