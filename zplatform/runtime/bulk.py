@@ -1,33 +1,22 @@
 """Bulk channels: large fixed arrays between nodes, outside the sync loop.
 
-A bulk channel is a named, fixed-size array (``u8[4194304]``, ``f32[1024,1024]``)
-that one node (its *owner*) publishes every ``rate_divisor``-th loop on
-``{vehicle}/{owner}/bulk/{name}`` and its *readers* receive, never in the sync
-query. Holds :class:`BulkWriter`, :class:`BulkReader`, :class:`NodeBulk` (a
-node's port for the loop) and :func:`pool_size`; the schema and counter
-elements are :mod:`zplatform.config`'s. A reader on the owner's host takes
-the samples over iceoryx2 and drops its zenoh subscriber; zenoh carries a
-sample only while a subscriber matches (another host, a fallback, ``tap``);
-one intake for both: docs/architecture.md#intra-host.
+A bulk channel is a named, fixed-size array (``u8[4194304]``) that its *owner*
+publishes every ``rate_divisor``-th loop on ``{vehicle}/{owner}/bulk/{name}``
+for its *readers*, never in the sync query. Holds :class:`BulkWriter`,
+:class:`BulkReader`, :class:`NodeBulk` (a node's port for the loop) and
+:func:`pool_size`. A reader on the owner's host takes the samples over
+iceoryx2; zenoh carries a sample only while a subscriber matches.
 
-With ``security.auth`` on, every sample is ``header || array || tag``: the
-owner tags it once (auth channel ``bulk_NAME``, link ``bulk-NAME``, bound
-to the owner's run; codecs/FORMAT.md §6.1) and the same bytes go over both
-paths. A reader's intake, on both paths, before any copy into its array:
-size, tag (constant time), then freshness (the run it is bound to; numbered
-or stamped later than the last sample taken, stamped no further ahead of
-its clock than ``ahead_ns``), then the channel's rate bound
-(:data:`RATE_BURST`), then the layout. Refusals are counted (``bad``:
-size, tag or layout; ``stale``: another run's, stamped ahead, beyond the
-rate bound) and evented at most once a second (:class:`NodeBulk`).
+With ``security.auth`` on, a sample is ``header || array || tag``, tagged once
+by the owner in its run (codecs/FORMAT.md §6.1); a reader's intake, on both
+paths and before any copy: size, tag, freshness, rate bound
+(:data:`RATE_BURST`), layout; refusals counted (``bad``, ``stale``) and evented
+at most once a second (docs/architecture.md#intra-host).
 
-Contract: zenoh samples come from a shared-memory pool sized from the mission;
-:meth:`BulkWriter.publish` copies the array once per path and, with no chunk
-or sample free, counts a drop (after ``alloc_timeout_ms`` for zenoh's pool;
-never raises, never falls back to a heap copy). A reader's zenoh callback only
-stores the sample in a one-slot mailbox (newest wins); the loop thread's
-:meth:`BulkReader.poll` copies it into the preallocated array (``copy=False``:
-a read-only view). Each end belongs to one thread. Costs: docs/architecture.md#zenoh.
+Contract: :meth:`BulkWriter.publish` copies the array once per path and, with
+no chunk free, counts a drop (never raises, never a heap copy). A reader's
+zenoh callback only stores the sample in a one-slot mailbox (newest wins);
+:meth:`BulkReader.poll`, on the loop's thread, copies it into the array.
 """
 
 from __future__ import annotations
