@@ -233,3 +233,101 @@ def test_a_genuine_header_on_junk_costs_at_most_the_budget_then_the_next_loop_is
     assert not intake.admit(Bytes(t1), None)  # this loop's budget is spent
     assert intake.take_counts() == (0, 11, 0) and intake.took_unchecked == 11 - SPARE
     assert intake.admit(Bytes(t1), None)  # the next loop's
+
+
+class _Payload:
+    def __init__(self, data: bytes) -> None:
+        self._data = data
+
+    def __len__(self) -> int:
+        return len(self._data)
+
+    def to_bytes(self) -> bytes:
+        return self._data
+
+
+class _Query:
+    """A zenoh query as the recorder's server sees it (the replies kept)."""
+
+    def __init__(self, payload: bytes) -> None:
+        self.payload = _Payload(payload)
+        self.replies: list[bytes] = []
+
+    def reply(self, key: str, payload: bytes) -> None:
+        self.replies.append(payload)
+
+    def reply_err(self, payload: bytes) -> None:
+        pass
+
+    def drop(self) -> None:
+        pass
+
+
+class _Session:
+    def declare_queryable(self, key: str, handler: object) -> Any:
+        return type("Q", (), {"undeclare": lambda self: None})()
+
+
+def test_the_recorder_server_refuses_junk_and_a_replayed_request_without_a_body_mac(
+    macs: _Macs,
+) -> None:
+    from zplatform.recorder.format import REQUEST, REQUEST_MAGIC
+    from zplatform.recorder.server import RecorderServer
+
+    ch = channel(KEYS, "telemetry")
+    assert ch is not None
+    rec: Any = type("R", (), {"run": -1})()  # never the run asked: no file is read
+    server = RecorderServer(
+        _Session(),  # type: ignore[arg-type]
+        "v/cn/recorder",
+        rec,
+        channel(KEYS, "telemetry"),
+        now_ns=lambda: T0,
+        max_age_ns=10**9,
+        serve_bps=10**9,
+    )
+    server.close()
+    request = bytes(ch.seal(REQUEST.pack(REQUEST_MAGIC, 7, 1, 5, T0)))
+
+    def serve(payload: bytes) -> _Query:
+        q = _Query(payload)
+        server.serve(q)  # type: ignore[arg-type]
+        return q
+
+    assert serve(request).replies and server.served == 1
+    macs.reset()
+    for _ in range(10):
+        assert serve(request).replies == []  # replayed
+        assert serve(os.urandom(len(request))).replies == []
+    assert macs.n == 0
+    assert server.served == 1 and server.refused == 20
+
+
+def test_the_clock_and_run_askers_refuse_junk_and_replayed_answers_without_a_body_mac(
+    macs: _Macs,
+) -> None:
+    from zplatform.runtime.clocksync import ClockLink, ClockResponder, RunAsker
+
+    dn = KEYS.for_node("dn0")
+    link = ClockLink(M, "dn0", dn)
+    server = ClockResponder(M, KEYS.for_node("cn"), Run(T0))
+    q1, n1 = link.query(T0)
+    r1 = server.answer(q1, T0 + 1, T0 + 2)
+    assert r1 is not None and link.check(r1, n1) is not None
+    _, n2 = link.query(T0 + 10**6)  # the next exchange: r1 is a replay now
+    asker = RunAsker(KEYS.for_node("gn"), Run())
+    a1 = server.answer(asker.hello(), T0, T0)
+    assert a1 is not None and asker.check(a1)
+    asker.hello()  # a new hello: a1 answers a nonce nobody waits for any more
+    macs.reset()
+    for _ in range(10):
+        assert server.answer(q1, T0 + 3, T0 + 4) is None  # the query replayed
+        assert server.answer(os.urandom(len(q1)), T0 + 3, T0 + 4) is None
+        assert link.check(r1, n2) is None
+        assert link.check(os.urandom(len(r1)), n2) is None
+        assert not asker.check(a1)
+        assert not asker.check(os.urandom(len(a1)))
+    assert macs.n == 0
+    assert (link.refused_bad, link.refused_other) == (10, 10)
+    assert (asker.refused_bad, asker.refused_other) == (10, 10)
+    assert server.stale == 10 and server.refused == 20

@@ -857,7 +857,8 @@ class SecurityConfig(_Struct):
         Meta(
             description="Every region frame, telemetry snapshot, command request, clock-sync "
             "exchange and event record carries a 32-byte tag (the run, a header tag checked "
-            "before the body, and a MAC keyed per link: CN<->dnX, the ground's uplink, the telemetry downlink, each node's events, "
+            "before the body, and a MAC keyed per link: CN<->dnX, the ground's uplink, the "
+            "telemetry downlink, each node's events, "
             "and bound to the control node's run); each host holds "
             "only its own links' keys, which never live in the YAML (key files from "
             "`zplatform keygen`, or the environment). Off only for benchmarks and closed "

@@ -4,23 +4,17 @@ off bounded, the newest valid frame first.
 One intake per key a node takes frames on (:class:`TriggerIntake`,
 :class:`ProbeIntake`, :class:`MirrorIntake`, :class:`RequestIntake`,
 :class:`TelemetryIntake`, and :class:`ReplyCheck` for the CN's sync
-replies). It runs in the zenoh callback that received the frame and checks,
-the first failure winning: size (unread, no copy), a rate bound where the
-key has one, then one bounded copy (none for :meth:`Intake.check_view`),
-the tag's header part (the run and the header tag over the frame's first
-bytes: microseconds, whatever the frame's size), freshness as far as the
-header tells it, the body-MAC budget (:data:`MAC_SPARE`), and only then
-the MAC over the body and the rest of freshness. So junk and replays are
-refused without a MAC over their body, and a genuine header spliced onto
-junk costs at most the budget's body MACs between two :meth:`Intake.take_counts`
-(once per loop). A refused frame is only counted: no queue, no decode, no
-event of its own. :meth:`Intake.admit`
-puts an admitted one (its bytes: the one copy) in a bounded :class:`~.handoff.Mailbox`
-(full: the oldest is let go), whose last item is always the newest valid
-frame; :meth:`Intake.check` only checks. Never blocks beyond two short
-locks (the intake's, for these steps; the mailbox's, for a put or a pop),
-never raises for what arrives; the loop thread takes the items and the counts
-(:meth:`Intake.take_counts`, once per loop) and events them (:class:`RefusalLog`).
+replies), run in the zenoh callback. Its checks, the first failure
+winning: size (unread), a rate bound where the key has one, one bounded
+copy (none for :meth:`Intake.check_view`), the header tag, freshness as
+far as the header tells it, the body-MAC budget (:data:`MAC_SPARE`), then
+the body's MAC and the rest of freshness: junk and replays never cost a
+MAC over their body. A refused frame is only counted. :meth:`Intake.admit`
+puts an admitted one (its bytes) in a bounded :class:`~.handoff.Mailbox`
+whose last item is the newest valid frame; :meth:`Intake.check` only
+checks. Never blocks beyond two short locks, never raises for what
+arrives; the loop thread takes the items and, once per loop, the counts
+(:meth:`Intake.take_counts`), and events them (:class:`RefusalLog`).
 Detail: docs/architecture.md#the-intake; per key: docs/keyspace.md;
 the stamps' offsets: codecs/FORMAT.md §2.
 """

@@ -2,25 +2,19 @@
 
 With ``security.auth`` on (the default), every region frame, telemetry
 snapshot, command request, clock exchange, probe, mirror and event record
-travels as ``frame || tag``: the sender's *run* (:data:`RUN_LEN` bytes),
-an 8-byte *header tag* over the run, the frame's length and its first
-:data:`HEADER_LEN` bytes (its header), then 16 bytes of keyed BLAKE3 or
-HMAC-SHA256 over the whole frame, both under keys derived from the link's
-key, the channel and that run (:func:`run_key`). A receiver checks the
-header tag first (microseconds, whatever the frame's size), then freshness
-from the header, and only then the body's MAC (:meth:`Channel.open_header`,
-:meth:`Channel.check_body`): junk and replays never cost a MAC over the
-body. A frame tagged for
-one channel fails on every other; a receiver bound to a run (:class:`Run`,
-learned by the clock exchange or the control node's own ``cn_epoch``)
-refuses every frame of another run (:class:`RunError`), so a frame of an
-earlier run never verifies again. Each host role holds only the links it
-speaks on (:func:`role_links`); replays within a run are the receivers'.
+travels as ``frame || tag``: the sender's *run* (:data:`RUN_LEN` bytes), a
+header tag over the run, the length and the first :data:`HEADER_LEN`
+bytes, then a MAC (keyed BLAKE3 or HMAC-SHA256) over the whole frame, under
+keys derived from the link's key, the channel and that run. Receivers
+check the header first (:meth:`Channel.open_header`, microseconds at any
+size), then freshness, then the body (:meth:`Channel.check_body`). A frame
+tagged for one channel fails on every other; a receiver bound to a run
+(:class:`Run`) refuses every frame of another run (:class:`RunError`).
+Each host role holds only the links it speaks on (:func:`role_links`).
 
 :class:`Channel` tags and checks one channel's frames (``open`` returns a
 view, no copy, or raises :class:`AuthError`; constant-time, before any
-decode; one per thread). :func:`load_keys` finds a host's keys (file,
-``ZPLATFORM_KEY_FILE``, ``ZPLATFORM_KEY``, the mission's key set) and
+decode; one per thread). :func:`load_keys` finds a host's keys and
 :func:`check_key` refuses weak or exposed ones (:class:`KeyError_`);
 loading blocks on file I/O, tagging never blocks. Tag: codecs/FORMAT.md §6.1.
 """
