@@ -331,3 +331,22 @@ def test_the_clock_and_run_askers_refuse_junk_and_replayed_answers_without_a_bod
     assert (link.refused_bad, link.refused_other) == (10, 10)
     assert (asker.refused_bad, asker.refused_other) == (10, 10)
     assert server.stale == 10 and server.refused == 20
+
+
+def test_the_event_intake_refuses_junk_and_passes_replays_on_without_a_body_mac(
+    macs: _Macs,
+) -> None:
+    """The ground's zenoh callback (EventReader.forged): junk of any size is
+    refused by its header tag; a replayed genuine record is passed on to
+    read(), which refuses it by its number, without the callback's MAC."""
+    from zplatform.core.events import Event, EventReader, encode_event
+
+    record = bytes(KEYS.channel("events_cn").seal(encode_event(Event("cn", 1, T0, 2, "x", "y"))))
+    reader = EventReader(M, KEYS.for_node("gn"), 10**9)
+    key = f"{M.vehicle}/cn/events"
+    macs.reset()
+    for _ in range(10):
+        assert reader.forged(key, os.urandom(4096))
+        assert reader.forged(key, os.urandom(len(record)))
+        assert not reader.forged(key, record)
+    assert macs.n == 0
