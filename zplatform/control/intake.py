@@ -258,18 +258,17 @@ class Intake(ABC, Generic[H]):
                 else:
                     self.stale += 1
                 return None
+            if not new:
+                self._unsure += 1  # charged unless admitted: a replay the header could not tell
             try:
                 ch.check_body(frame)
             except CodecError:
-                # A genuine header on another body (or its bit flipped).
-                if new:
+                if new:  # a genuine header on another body (or its bit flipped)
                     self._macs += 1
-                else:
-                    self._unsure += 1
                 raise
             fresh = self._fresh(body, handle)
-            if not new and not fresh:
-                self._unsure += 1  # a replay the header could not tell
+            if fresh and not new:
+                self._unsure -= 1
         except RunError:  # another run's genuine frame (an earlier run's replay): stale
             if self._other_run():
                 self.stale += 1
