@@ -165,13 +165,16 @@ def full_size_refusal(quick: bool) -> dict[str, dict[str, Any]]:
     genuine one costs the receiver, before (the MAC over the body, which
     every refusal paid until the header tag: ``body_mac_*``) and now
     (``TriggerIntake.check_view`` of the frame in place: the header tag,
-    the freshness of its header; ``check_zbytes_*``: ``TriggerIntake.check``
+    the freshness of its header; ``junk``: random bytes, ``forged``: a
+    well-formed newer frame with the run word and a random rest of tag, a
+    keyless peer's best; ``replay``: a genuine frame again;
+    ``check_zbytes_*``: ``TriggerIntake.check``
     of a ``zenoh.ZBytes``, whose ``to_bytes`` copy, zenoh-python's only way
     to read a payload, comes first). Per MAC (``security.mac``)."""
     import zenoh
 
     from zplatform.control.intake import TriggerIntake
-    from zplatform.core.auth import AuthError, KeySet
+    from zplatform.core.auth import RUN_LEN, TAG_LEN, AuthError, KeySet
     from zplatform.core.codec import encode_frame
 
     m, _, _ = _refusal_setup()
@@ -184,6 +187,10 @@ def full_size_refusal(quick: bool) -> dict[str, dict[str, Any]]:
             send = keys.channel("cn_to_dn0")
             genuine = bytes(send.seal(encode_frame(1, 1, 1_700_000_000_000_000_000, bytes(size))))
             junk = os.urandom(len(genuine))
+            # A keyless peer's best: a well-formed newer frame (its header
+            # copied off the wire, the run word too), the rest of its tag random.
+            forged = bytes(send.seal(encode_frame(1, 2, 1_700_000_000_000_000_001, bytes(size))))
+            forged = forged[: len(forged) - TAG_LEN + RUN_LEN] + os.urandom(TAG_LEN - RUN_LEN)
             intake: TriggerIntake[None] = TriggerIntake(
                 m, "dn0", keys.channel("cn_to_dn0"), now_ns=lambda: 1_700_000_000_000_000_000
             )
@@ -195,12 +202,14 @@ def full_size_refusal(quick: bool) -> dict[str, dict[str, Any]]:
                 with contextlib.suppress(AuthError):
                     ch.check_body(frame)
 
-            jv, gv = memoryview(junk), memoryview(genuine)
+            jv, gv, fv = memoryview(junk), memoryview(genuine), memoryview(forged)
             stages: dict[str, Callable[[], object]] = {
                 "body_mac": body_mac,
                 "check_view_junk": partial(intake.check_view, jv, None),
+                "check_view_forged": partial(intake.check_view, fv, None),
                 "check_view_replay": partial(intake.check_view, gv, None),
                 "check_zbytes_junk": partial(intake.check, zenoh.ZBytes(junk), None),
+                "check_zbytes_forged": partial(intake.check, zenoh.ZBytes(forged), None),
                 "check_zbytes_replay": partial(intake.check, zenoh.ZBytes(genuine), None),
             }
             for stage, fn in stages.items():
