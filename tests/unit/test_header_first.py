@@ -32,7 +32,7 @@ from zplatform.control.intake import (
 from zplatform.control.loop import ControlLogic, DeviceLogic
 from zplatform.control.uplink import Uplink
 from zplatform.core import auth
-from zplatform.core.auth import KEY_ENV, TAG_LEN, KeySet, Run, channel
+from zplatform.core.auth import KEY_ENV, RUN_LEN, TAG_LEN, KeySet, Run, channel
 from zplatform.mission.load import load_mission
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -73,6 +73,13 @@ def _junk(n: int) -> Bytes:
     return Bytes(os.urandom(n))
 
 
+def _forged(genuine: bytes) -> Bytes:
+    """A keyless peer's best junk: a genuine, full-size frame's header and run
+    word (copied off the wire), the rest of its tag random."""
+    keep = len(genuine) - TAG_LEN + RUN_LEN
+    return Bytes(genuine[:keep] + os.urandom(len(genuine) - keep))
+
+
 def _trigger(loop: int, t: int, dn: int = 0) -> bytes:
     return bytes(ControlLogic(M, keys=KEYS, epoch=T0).begin(loop, t)[dn])
 
@@ -90,13 +97,15 @@ def _spliced(genuine: bytes) -> bytes:
 def test_a_trigger_intake_refuses_junk_and_replays_without_a_body_mac(macs: _Macs) -> None:
     intake: TriggerIntake[None] = TriggerIntake(M, "dn0", channel(KEYS, "cn_to_dn0"))
     t1 = _trigger(1, T0 + PERIOD)
+    t2 = _trigger(2, T0 + 2 * PERIOD)  # never sent: its header is fresh
     assert intake.admit(Bytes(t1), None)
     macs.reset()
     for _ in range(50):
         assert not intake.admit(_junk(intake.max_len), None)
+        assert not intake.admit(_forged(t2), None)
         assert not intake.admit(Bytes(t1), None)  # replayed
     assert macs.n == 0
-    assert intake.take_counts() == (0, 50, 50)
+    assert intake.take_counts() == (0, 100, 50)
 
 
 def test_check_view_refuses_junk_and_replays_in_place_without_a_body_mac(macs: _Macs) -> None:
@@ -139,10 +148,11 @@ def test_the_telemetry_intake_refuses_junk_and_old_replays_without_a_body_mac(
     later = T0 + 2 * PERIOD + 2 * age  # replayed beyond the freshness bound
     for _ in range(20):
         assert not intake.admit(_junk(intake.max_len), later)
+        assert not intake.admit(_forged(frames[1]), T0 + 2 * PERIOD)
         assert not intake.admit(Bytes(frames[0]), later)
         assert not intake.admit(Bytes(frames[1]), later)
     assert macs.n == 0
-    assert intake.take_counts() == (0, 20, 40) and intake.aged == 40
+    assert intake.take_counts() == (0, 40, 40) and intake.aged == 40
     # Replayed within the bound, the header cannot tell (a takeover's new
     # term may stamp behind the newest): at most the budget's body MACs a loop.
     for _ in range(20):
@@ -167,12 +177,13 @@ def test_the_mirror_intake_refuses_junk_without_a_body_mac_and_replays_within_a_
     macs.reset()
     for _ in range(20):
         assert not intake.admit(_junk(intake.max_len), None)
+        assert not intake.admit(_forged(mirrors[1]), None)
         assert not intake.admit(Bytes(mirrors[0]), None)  # an older loop, replayed
         assert not intake.admit(Bytes(mirrors[1]), None)  # the newest, replayed
     # The term is in the data: a replay costs a body MAC only within the
     # budget of headers that cannot tell, SPARE a loop; junk never does.
     assert macs.n == SPARE
-    assert intake.take_counts() == (0, 20, 40)
+    assert intake.take_counts() == (0, 40, 40)
 
 
 def test_the_probe_intake_refuses_junk_and_replays_without_a_body_mac(macs: _Macs) -> None:
