@@ -1,6 +1,7 @@
 """The cost of a frame's tag: keyed BLAKE3 against HMAC-SHA256, and signatures.
 
     python -m bench.mac [--quick] [--json PATH]
+    python -m bench.mac --full-size [--quick]   # refusing full-size junk and replays
 
 Per MAC (``security.mac``) and frame size (a 256 B region frame, a 325 KB
 reply: the 100,000-element point of ``bench.bandwidth``), the time of
@@ -151,6 +152,72 @@ def refusal_stages(quick: bool) -> dict[str, dict[str, Any]]:
             fig = _measure(fn, n)
             fig["size_bytes"] = size
             out[f"{stage}_{label}"] = fig
+    return out
+
+
+FULL_SIZES = {"325KB": 325_000, "4MB": 4_000_000}
+"""Full-size frames (a 100,000-element reply, the largest region frame) for
+:func:`full_size_refusal`."""
+
+
+def full_size_refusal(quick: bool) -> dict[str, dict[str, Any]]:
+    """In process: what refusing a full-size junk frame and a replayed
+    genuine one costs the receiver, before (the MAC over the body, which
+    every refusal paid until the header tag: ``body_mac_*``) and now
+    (``TriggerIntake.check_view`` of the frame in place: the header tag,
+    the freshness of its header; ``junk``: random bytes, ``forged``: a
+    well-formed newer frame with the run word and a random rest of tag, a
+    keyless peer's best; ``replay``: a genuine frame again;
+    ``check_zbytes_*``: ``TriggerIntake.check``
+    of a ``zenoh.ZBytes``, whose ``to_bytes`` copy, zenoh-python's only way
+    to read a payload, comes first). Per MAC (``security.mac``)."""
+    import zenoh
+
+    from zplatform.control.intake import TriggerIntake
+    from zplatform.core.auth import RUN_LEN, TAG_LEN, AuthError, KeySet
+    from zplatform.core.codec import encode_frame
+
+    m, _, _ = _refusal_setup()
+    n = 200 if quick else 2_000
+    out: dict[str, dict[str, Any]] = {}
+    for mac in MACS:
+        m.security.mac = mac
+        keys = KeySet.from_master(m, KEY)
+        for label, size in FULL_SIZES.items():
+            send = keys.channel("cn_to_dn0")
+            genuine = bytes(send.seal(encode_frame(1, 1, 1_700_000_000_000_000_000, bytes(size))))
+            junk = os.urandom(len(genuine))
+            # A keyless peer's best: a well-formed newer frame (its header
+            # copied off the wire, the run word too), the rest of its tag random.
+            forged = bytes(send.seal(encode_frame(1, 2, 1_700_000_000_000_000_001, bytes(size))))
+            forged = forged[: len(forged) - TAG_LEN + RUN_LEN] + os.urandom(TAG_LEN - RUN_LEN)
+            intake: TriggerIntake[None] = TriggerIntake(
+                m, "dn0", keys.channel("cn_to_dn0"), now_ns=lambda: 1_700_000_000_000_000_000
+            )
+            intake.max_len = len(genuine)  # a full-size frame reaches the tag check
+            assert intake.check(zenoh.ZBytes(genuine), None) is not None
+            recv = keys.channel("cn_to_dn0")
+
+            def body_mac(ch: Any = recv, frame: bytes = junk) -> None:
+                with contextlib.suppress(AuthError):
+                    ch.check_body(frame)
+
+            jv, gv, fv = memoryview(junk), memoryview(genuine), memoryview(forged)
+            stages: dict[str, Callable[[], object]] = {
+                "body_mac": body_mac,
+                "check_view_junk": partial(intake.check_view, jv, None),
+                "check_view_forged": partial(intake.check_view, fv, None),
+                "check_view_replay": partial(intake.check_view, gv, None),
+                "check_zbytes_junk": partial(intake.check, zenoh.ZBytes(junk), None),
+                "check_zbytes_forged": partial(intake.check, zenoh.ZBytes(forged), None),
+                "check_zbytes_replay": partial(intake.check, zenoh.ZBytes(genuine), None),
+            }
+            for stage, fn in stages.items():
+                fig = _measure(fn, n)
+                fig["size_bytes"] = len(genuine)
+                out[f"{mac}_{stage}_{label}"] = fig
+            size_, bad, stale = intake.take_counts()
+            assert size_ == 0 and bad > 0 and stale > 0, (size_, bad, stale)
     return out
 
 
@@ -565,7 +632,7 @@ def _ignore(_reply: Any) -> None:
 def refusal_main(
     quick: bool, json_path: str | None, before: str | None = None, loop_only: bool = False
 ) -> int:
-    variants = {} if loop_only else refusal_stages(quick)
+    variants = {} if loop_only else {**refusal_stages(quick), **full_size_refusal(quick)}
     if not loop_only:
         variants.update(refusal_live(quick))
     variants.update(refusal_loop(quick))
@@ -598,6 +665,12 @@ def main(argv: list[str] | None = None) -> int:
     p = bench_argparser(__doc__.splitlines()[0] if __doc__ else "mac")
     p.add_argument("--refusal", action="store_true", help="the cost of refusing a frame, by stage")
     p.add_argument("--refusal-attacker", metavar="SPEC", help=argparse.SUPPRESS)
+    p.add_argument(
+        "--full-size",
+        action="store_true",
+        help="the cost of refusing a full-size junk or replayed frame, before and after the "
+        "header tag (part of --refusal)",
+    )
     p.add_argument("--before", metavar="PATH", help="--refusal: a result file to compare with")
     p.add_argument(
         "--loop-only", action="store_true", help="--refusal: the loop beside a flood only"
@@ -605,6 +678,14 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     if args.refusal_attacker:
         return refusal_attacker(args.refusal_attacker)
+    if args.full_size:
+        params = {
+            "quick": args.quick,
+            "what": full_size_refusal.__doc__,
+            "command": "flock /tmp/zplatform-bench.lock python -m bench.mac --full-size",
+        }
+        write_result("refusal_full_size", params, full_size_refusal(args.quick), args.json)
+        return 0
     if args.refusal:
         return refusal_main(args.quick, args.json, args.before, args.loop_only)
     scale = 20 if args.quick else 1

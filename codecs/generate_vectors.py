@@ -42,7 +42,20 @@ MISSION = VECTORS / "mission.yaml"
 sys.path.insert(0, str(HERE.parent))  # run from a checkout without installing
 
 from zplatform import DataVector, ElementSpec, Layout, RegionCodec, load_mission  # noqa: E402
-from zplatform.core.auth import MACS, NO_RUN, Channel, KeySet, Run, channel_key, link_of, run_key  # noqa: E402
+from zplatform.core.auth import (  # noqa: E402
+    HEADER_LEN,
+    HTAG_LEN,
+    MACS,
+    NO_RUN,
+    RUN_LEN,
+    Channel,
+    KeySet,
+    Run,
+    channel_key,
+    header_key,
+    link_of,
+    run_key,
+)
 from zplatform.core.datavector import _region_descriptor  # noqa: E402
 from zplatform.core.events import Event, Severity, encode_event  # noqa: E402
 
@@ -423,6 +436,8 @@ def write_auth_vectors(mission: object, frame: bytes) -> None:
             link_key = keys.link_key(link)
             ch_key = channel_key(link_key, vehicle, mac, name)
             sealed = bytes(Channel(link_key, vehicle, name, mac, Run(run)).seal(body))
+            tag = sealed[len(body) :]
+            word = run.to_bytes(8, "little")
             vec = f"{mac}_{what}"
             doc = {
                 "name": vec,
@@ -439,9 +454,16 @@ def write_auth_vectors(mission: object, frame: bytes) -> None:
                 "run": run,
                 "run_word_hex": run.to_bytes(8, "little").hex(),
                 "run_key_hex": run_key(ch_key, run).hex(),
+                "header_context_hex": (b"zplatform/3/header/" + word).hex(),
+                "header_key_hex": header_key(ch_key, run).hex(),
+                "header_input_hex": (
+                    word + len(body).to_bytes(4, "little") + body[:HEADER_LEN]
+                ).hex(),
                 "message_size": len(body),
                 "message_hex": body.hex(),
-                "tag_hex": sealed[len(body) :].hex(),
+                "tag_hex": tag.hex(),
+                "htag_hex": tag[RUN_LEN : RUN_LEN + HTAG_LEN].hex(),
+                "mac_hex": tag[RUN_LEN + HTAG_LEN :].hex(),
             }
             (AUTH / f"{vec}.bin").write_bytes(sealed)
             (AUTH / f"{vec}.json").write_text(json.dumps(doc, indent=2) + "\n")

@@ -43,7 +43,7 @@ from zplatform.runtime.timebase import NodeClock
 from zplatform.runtime.transport import KeySpace, open_session, zenoh_config
 from zplatform.security.deploy import Deployment, ToolIdentity
 
-# Longer than a tag (24 bytes: run word and MAC), so a receiver reads it as a
+# Longer than a tag (32 bytes: run word, header tag and MAC), so a receiver reads it as a
 # frame and refuses it for its tag (a command request: a reject), not its size.
 GARBAGE = b"\x93intruder\x00not-a-frame".ljust(64, b"\x00")
 

@@ -587,3 +587,33 @@ def test_the_client_turns_no_answer_into_a_clear_error(root: Path) -> None:
             )
     finally:
         session.close()
+
+def test_a_junk_or_replayed_ask_is_refused_without_a_mac_over_its_body(
+    root: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Header first (codecs/FORMAT.md §6.1): an ask's fixed fields (asker,
+    nonce, cookie) are within the header tag's bytes, so a replay and junk
+    are refused before the MAC over the ask's body (its JSON)."""
+    import os
+
+    from zplatform.core import auth
+
+    clock = Clock()
+    srv = server(root, clock)
+    a = Station(1).learn(srv)
+    p = a.ask(Q)
+    (q1,) = deliver(srv, p)
+    assert answer(a, q1).num_rows == 10
+    macs = [0]
+    real = auth._RunKey.mac
+
+    def counted(self: Any, frame: bytes | bytearray | memoryview) -> bytes:
+        macs[0] += len(frame) == len(p) - TAG_LEN  # an ask's body, not a reply's
+        return real(self, frame)
+
+    monkeypatch.setattr(auth._RunKey, "mac", counted)
+    junk = p[:4] + os.urandom(len(p) - 4)  # an ask's magic, then junk
+    qs = deliver(srv, p, junk, p, junk)
+    assert all(q.replies == [] for q in qs)
+    assert macs[0] == 0
+    assert (srv.stale, srv.served) == (2, 1)

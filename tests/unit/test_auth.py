@@ -272,22 +272,28 @@ def test_the_tags_are_what_format_md_says() -> None:
     """codecs/FORMAT.md §6.1, computed by hand: a peer in another language
     can implement it from the document."""
     master = GOOD
-    frame = b"\x94\xce\x00\x00\x00\x01" + b"rest of a frame"
     link = hmac.new(master, b"zplatform/2/link/rocket/downlink", hashlib.sha256).digest()
     ks = KeySet.from_master(MINIMAL, master)
     assert ks.link_key("downlink") == link
     for mac in MACS:
         ctx = f"zplatform/2/rocket/{mac}/telemetry".encode()
         ch_key = hmac.new(link, ctx, hashlib.sha256).digest()
-        for epoch in (0, 0x0123456789ABCDEF):
+        for epoch, frame in (
+            (0, b"\x94\xce\x00\x00\x00\x01" + b"rest of a frame"),  # shorter than 40
+            (0x0123456789ABCDEF, bytes(range(256)) * 3),  # longer: its first 40 bytes
+        ):
             word = epoch.to_bytes(8, "little")
             k_run = hmac.new(ch_key, b"zplatform/2/run/" + word, hashlib.sha256).digest()
+            k_head = hmac.new(ch_key, b"zplatform/3/header/" + word, hashlib.sha256).digest()
+            head = word + len(frame).to_bytes(4, "little") + frame[:40]
             if mac == "blake3":
+                htag = blake3.blake3(head, key=k_head).digest()[:8]
                 mac_ = blake3.blake3(frame, key=k_run).digest()[:16]
             else:
+                htag = hmac.new(k_head, head, hashlib.sha256).digest()[:8]
                 mac_ = hmac.new(k_run, frame, hashlib.sha256).digest()[:16]
             ch = Channel(link, "rocket", "telemetry", mac, Run(epoch) if epoch else None)
-            assert bytes(ch.seal(frame)) == frame + word + mac_
+            assert bytes(ch.seal(frame)) == frame + word + htag + mac_
 
 
 def test_a_frame_of_another_run_never_verifies() -> None:

@@ -190,11 +190,19 @@ def test_auth_vector_by_hand(name: str) -> None:
     run_key = hmac.new(ch_key, b"zplatform/2/run/" + word, hashlib.sha256).digest()
     assert (word.hex(), run_key.hex()) == (meta["run_word_hex"], meta["run_key_hex"])
     body = bytes.fromhex(meta["message_hex"])
+    # The header tag (§6.1): its own key, over the run word, the length and
+    # the first 40 bytes.
+    head_key = hmac.new(ch_key, b"zplatform/3/header/" + word, hashlib.sha256).digest()
+    head = word + len(body).to_bytes(4, "little") + body[:40]
+    assert (head_key.hex(), head.hex()) == (meta["header_key_hex"], meta["header_input_hex"])
     if meta["mac"] == "blake3":
+        htag = blake3.blake3(head, key=head_key).digest(8)
         mac = blake3.blake3(body, key=run_key).digest(16)
     else:
+        htag = hmac.new(head_key, head, hashlib.sha256).digest()[:8]
         mac = hmac.new(run_key, body, hashlib.sha256).digest()[:16]
-    tag = word + mac
+    assert (htag.hex(), mac.hex()) == (meta["htag_hex"], meta["mac_hex"])
+    tag = word + htag + mac
     assert tag.hex() == meta["tag_hex"] and sealed == body + tag
     assert len(body) == meta["message_size"]
 

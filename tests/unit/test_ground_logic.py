@@ -168,15 +168,14 @@ def test_the_ground_link_checks_a_snapshots_tag_once(
         cn.begin(1, link.clock.now_ns())
         frame = bytes(cn.finish([]) or b"")
         opened: list[str] = []
-        real_open = Channel.open
+        real_check = Channel.check_body
 
-        def counted(
-            self: Channel, payload: bytes | bytearray | memoryview, **kw: Any
-        ) -> memoryview:
+        def counted(self: Channel, payload: bytes | bytearray | memoryview) -> memoryview:
             opened.append(self.name)
-            return real_open(self, payload, **kw)
+            return real_check(self, payload)
 
-        monkeypatch.setattr(Channel, "open", counted)
+        # Channel.open is open_header then check_body: the body's MAC, once.
+        monkeypatch.setattr(Channel, "check_body", counted)
         sample = types.SimpleNamespace(payload=Bytes(frame))
         link._on_telemetry(sample)  # type: ignore[arg-type]  # as zenoh's thread does
         assert link.next(0) is not None

@@ -669,3 +669,39 @@ def test_the_recorder_server_refuses_a_replayed_request() -> None:
     assert again.replies == [] and server.served == 1 and server.refused == 1
     assert "replay" in server.last_refusal
     assert serve(EPOCH + 1).replies and server.served == 2 and server.refused == 1
+
+
+@pytest.mark.parametrize(("fmt", "channel", "readable"), [(1, None, True), (1, "telemetry", False)])
+def test_a_segment_of_the_tag_without_a_header_tag_is_read_only_untagged(
+    fmt: int, channel: str | None, readable: bool
+) -> None:
+    """Format 1's frames carry the 24-byte tag of before the header tag
+    (codecs/FORMAT.md §6.1): a segment of untagged frames (an archive's)
+    is read as before; a tagged one is refused by name, never misread."""
+    import json as _json
+
+    from zplatform.errors import RecordingError as _RecordingError
+    from zplatform.recorder.format import FORMAT_VERSION
+    from zplatform.recorder.reader import SegmentHead
+
+    meta = {
+        "format": fmt,
+        "mission": "m",
+        "vehicle": "rocket",
+        "node": "cn",
+        "run": 1,
+        "kind": "telemetry",
+        "layout_id": 7,
+        "channel": channel,
+        "period_ns": 10_000_000,
+        "telemetry_divisor": 1,
+        "created_unix_ns": 1,
+    }
+    payload = _json.dumps(meta).encode()
+    if readable:
+        assert SegmentHead.parse(Path("seg"), 1, payload).channel is None
+    else:
+        with pytest.raises(_RecordingError, match="earlier zplatform's authentication tag"):
+            SegmentHead.parse(Path("seg"), 1, payload)
+    meta.update(format=FORMAT_VERSION, channel="telemetry")
+    assert SegmentHead.parse(Path("seg"), 1, _json.dumps(meta).encode()).channel == "telemetry"

@@ -335,8 +335,9 @@ class ArchiveServer(QueryWorker):
             self._cv.notify()
 
     def _tagged_asker(self, data: bytes) -> int | None:
-        """The asker word of an ask whose tag checks in the session (zenoh's
-        thread; one MAC), else None: only such an ask counts against its
+        """The asker word of an ask whose header tag checks in the session
+        (zenoh's thread; the asker word is within the header tag's bytes, so
+        no MAC over the body), else None: only such an ask counts against its
         asker's bound. The serving thread checks it all again."""
         if data[:4] != ASK_MAGIC:
             return None
@@ -345,7 +346,7 @@ class ArchiveServer(QueryWorker):
             with self._tag_lock:
                 ch.run = self.session
                 try:
-                    ch.open(data)
+                    ch.open_header(data)
                 except AuthError:  # RunError included: refused when served
                     return None
         return int(ASK.unpack_from(data, 0)[1])
@@ -354,21 +355,40 @@ class ArchiveServer(QueryWorker):
         self.stale += 1
         self.last_refusal = why
 
-    def _open_frame(self, data: bytes, bound: bool) -> Any:
+    def _open_frame(self, data: bytes, bound: bool, *, body: bool = True) -> Any:
         """``data``'s frame (its tag checked: in the session when ``bound``,
-        any run when not); None when refused (counted)."""
+        any run when not); None when refused (counted). ``body`` False: its
+        header tag only (codecs/FORMAT.md §6.1: an ask's fixed fields are
+        within its bytes), :meth:`_body_ok` to follow."""
         ch = self._channel
         if ch is None:
             return data
         try:
             with self._tag_lock:
                 ch.run = self.session if bound else None
-                return bytes(ch.open(data))
+                frame = ch.open_header(data)
+                if body:
+                    ch.check_body(data)
+                return bytes(frame)
         except RunError:
             self._stale("an ask of another session (an earlier one's, replayed, or none)")
         except AuthError as exc:
             self.refuse(str(exc))
         return None
+
+    def _body_ok(self, data: bytes) -> bool:
+        """Whether the MAC over all of ``data``, whose header tag
+        :meth:`_open_frame` checked, checks too (refused, counted, if not)."""
+        ch = self._channel
+        if ch is None:
+            return True
+        try:
+            with self._tag_lock:  # the channel's key cache is shared
+                ch.check_body(data)
+        except AuthError as exc:
+            self.refuse(str(exc))
+            return False
+        return True
 
     def serve(self, query: Any) -> None:
         with self._cv:
@@ -415,7 +435,9 @@ class ArchiveServer(QueryWorker):
             else:
                 self.refuse("not an archive ask or hello")
             return
-        body = self._open_frame(data, bound=True)
+        # Header first: the cookie and the replay are told from the header
+        # tag's bytes, before the MAC over the ask's body.
+        body = self._open_frame(data, bound=True, body=False)
         if body is None:
             return
         _, asker, nonce, cookie, kind = ASK.unpack_from(body, 0)
@@ -425,6 +447,8 @@ class ArchiveServer(QueryWorker):
             return
         if (cookie, asker, nonce) in self._served:
             self._stale("an ask answered before (a replay)")
+            return
+        if not self._body_ok(data):
             return
         self._forget(self._now())
         if len(self._served) >= REMEMBERED:

@@ -856,8 +856,9 @@ class SecurityConfig(_Struct):
         bool,
         Meta(
             description="Every region frame, telemetry snapshot, command request, clock-sync "
-            "exchange and event record carries a 24-byte tag (the run, and a MAC keyed per "
-            "link: CN<->dnX, the ground's uplink, the telemetry downlink, each node's events, "
+            "exchange and event record carries a 32-byte tag (the run, a header tag checked "
+            "before the body, and a MAC keyed per link: CN<->dnX, the ground's uplink, the "
+            "telemetry downlink, each node's events, "
             "and bound to the control node's run); each host holds "
             "only its own links' keys, which never live in the YAML (key files from "
             "`zplatform keygen`, or the environment). Off only for benchmarks and closed "

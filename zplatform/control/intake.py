@@ -4,17 +4,17 @@ off bounded, the newest valid frame first.
 One intake per key a node takes frames on (:class:`TriggerIntake`,
 :class:`ProbeIntake`, :class:`MirrorIntake`, :class:`RequestIntake`,
 :class:`TelemetryIntake`, and :class:`ReplyCheck` for the CN's sync
-replies). It runs in the zenoh callback that received the frame and checks,
-the first failure winning: size (unread, no copy), a rate bound where the
-key has one, then one bounded copy and the channel's tag (constant time),
-then freshness against the newest admitted. A refused frame is only
-counted: no queue, no decode, no event of its own. :meth:`Intake.admit`
-puts an admitted one (its bytes: the one copy) in a bounded :class:`~.handoff.Mailbox`
-(full: the oldest is let go), whose last item is always the newest valid
-frame; :meth:`Intake.check` only checks. Never blocks beyond two short
-locks (the intake's, for these steps; the mailbox's, for a put or a pop),
-never raises for what arrives; the loop thread takes the items and the counts
-(:meth:`Intake.take_counts`, once per loop) and events them (:class:`RefusalLog`).
+replies), run in the zenoh callback. Its checks, the first failure
+winning: size (unread), a rate bound where the key has one, one bounded
+copy (none for :meth:`Intake.check_view`), the header tag, freshness as
+far as the header tells it, the body-MAC budget (:data:`MAC_SPARE`), then
+the body's MAC and the rest of freshness: junk and replays never cost a
+MAC over their body. A refused frame is only counted. :meth:`Intake.admit`
+puts an admitted one (its bytes) in a bounded :class:`~.handoff.Mailbox`
+whose last item is the newest valid frame; :meth:`Intake.check` only
+checks. Never blocks beyond two short locks, never raises for what
+arrives; the loop thread takes the items and, once per loop, the counts
+(:meth:`Intake.take_counts`), and events them (:class:`RefusalLog`).
 Detail: docs/architecture.md#the-intake; per key: docs/keyspace.md;
 the stamps' offsets: codecs/FORMAT.md §2.
 """
@@ -50,6 +50,7 @@ __all__ = [
     "CN_REFUSALS",
     "EVENT_PERIOD_NS",
     "INBOX",
+    "MAC_SPARE",
     "MIRRORS",
     "PROBES",
     "PROBE_BURST",
@@ -82,6 +83,20 @@ period (:class:`ProbeIntake`'s rate bound: a standby's round is one STATUS,
 one ASK and one RELEASE, at most one round a period)."""
 MIRRORS = 4
 """Mirror frames a control node keeps between two beats (the newest ones)."""
+MAC_SPARE = 2
+"""Wasted body MACs an intake computes between two :meth:`Intake.take_counts`
+(its consumer's loop): for frames whose header looks new, those that fail
+(a genuine header spliced onto another body: the header is authentic,
+so only a peer that saw it, a man in the middle, can); and as many, apart,
+for frames whose header can tell neither new nor stale
+(:meth:`Intake._fresh_header`), those that admit nothing (failed, or a
+genuine frame refused by freshness after it: a replay). A body MAC that
+admits its frame, or that a new-looking genuine frame passes, is not
+charged (a genuine sender's frames, each newer than the last). Once a
+budget is spent, what passes the header into it is dropped unread until
+the next loop: counted bad (a header that looked new: spliced junk, or a
+genuine frame after it, which such a peer could as well have dropped) or
+stale (one that looked old)."""
 EVENT_PERIOD_NS = 1_000_000_000
 """At most one refusal event per intake in this much loop time (:class:`RefusalLog`)."""
 
@@ -166,6 +181,15 @@ class Intake(ABC, Generic[H]):
         self.size = 0
         self.bad = 0
         self.stale = 0
+        # Body MACs that admitted nothing since the last take_counts: of
+        # headers that looked new, and of headers that could not tell.
+        self._macs = 0
+        self._unsure = 0
+        self.unchecked = 0
+        """Frames dropped after their header for want of budget (also in
+        ``bad`` or ``stale``) since the last :meth:`take_counts`; the count
+        the last one took is :attr:`took_unchecked`."""
+        self.took_unchecked = 0
         self.on_other_run: Callable[[], None] | None = None
         """Called (on zenoh's thread: it must not block) for each genuine
         frame of another run (zplatform.core.auth.RunError): a device node's cue
@@ -227,7 +251,30 @@ class Intake(ABC, Generic[H]):
             return data
         try:
             frame = self._frame(data)
-            fresh = self._fresh(ch.open(frame, any_run=self._any_run(frame)), handle)
+            body = ch.open_header(frame, any_run=self._any_run(frame))
+            new = self._fresh_header(body, handle)
+            if new is False:  # a replay, by its authentic header: no body MAC
+                self.stale += 1
+                return None
+            if (self._macs if new else self._unsure) >= MAC_SPARE:
+                # This loop's budget of wasted body MACs is spent: unread.
+                self.unchecked += 1
+                if new:
+                    self.bad += 1
+                else:
+                    self.stale += 1
+                return None
+            if not new:
+                self._unsure += 1  # charged unless admitted: a replay the header could not tell
+            try:
+                ch.check_body(frame)
+            except CodecError:
+                if new:  # a genuine header on another body (or its bit flipped)
+                    self._macs += 1
+                raise
+            fresh = self._fresh(body, handle)
+            if fresh and not new:
+                self._unsure -= 1
         except RunError:  # another run's genuine frame (an earlier run's replay): stale
             if self._other_run():
                 self.stale += 1
@@ -263,6 +310,17 @@ class Intake(ABC, Generic[H]):
         refuses the excess here. Every frame, by default."""
         return True
 
+    def _fresh_header(self, body: memoryview, handle: H) -> bool | None:
+        """Freshness as far as the frame's header tells it, before its body's
+        MAC (with the lock held): ``body``'s first
+        :data:`~zplatform.core.auth.HEADER_LEN` bytes (a region frame's
+        header: seq, t_ns) are authentic, the rest not yet, and must not be
+        read. False: stale (refused, counted stale; records nothing); True:
+        new as far as the header tells; None: it cannot tell (a smaller
+        budget of body MACs, :data:`MAC_SPARE`). CodecError if the header
+        is unreadable. True by default."""
+        return True
+
     @abstractmethod
     def _fresh(self, body: memoryview, handle: H) -> bool | None:
         """Whether the authentic frame ``body`` (with ``handle``) is newer
@@ -275,6 +333,8 @@ class Intake(ABC, Generic[H]):
         with self._lock:
             counts = (self.size, self.bad, self.stale)
             self.size = self.bad = self.stale = 0
+            self._macs = self._unsure = 0
+            self.took_unchecked, self.unchecked = self.unchecked, 0
             self._took()
         return counts
 
@@ -294,6 +354,11 @@ class _StampIntake(Intake[H]):
 
     newest_t = -(1 << 63)
     """The stamp of the newest admitted frame."""
+
+    def _fresh_header(self, body: memoryview, handle: H) -> bool | None:
+        # The stamp is in the header: the whole rule, before the body's MAC.
+        _, t_ns = frame_stamp(body)
+        return not self._ahead(t_ns, handle) and t_ns > self.newest_t
 
     def _fresh(self, body: memoryview, handle: H) -> bool:
         _, t_ns = frame_stamp(body)
@@ -432,6 +497,11 @@ class ProbeIntake(Intake[H]):
     def _any_run(self, frame: bytes | memoryview) -> bool:
         return any_run(frame)
 
+    def _fresh_header(self, body: memoryview, handle: H) -> bool | None:
+        # A question is shorter than HEADER_LEN: the header tag covered it all.
+        asker, t_ns = ask_stamp(body, self._askers)  # CodecError: no such asker (bad)
+        return not (t_ns <= self._newest[asker] or t_ns - self._clock() > self._max_ahead)
+
     def _fresh(self, body: memoryview, handle: H) -> bool | None:
         asker, t_ns = ask_stamp(body, self._askers)  # CodecError: no such asker (bad)
         if t_ns <= self._newest[asker] or t_ns - self._clock() > self._max_ahead:
@@ -476,6 +546,15 @@ class MirrorIntake(Intake[None]):
         self.newest = (0, 0)
         """``(term, loop)`` of the newest admitted mirror."""
         super().__init__("mirror", max_frame_len(self._size, channel), channel, MIRRORS)
+
+    def _fresh_header(self, body: memoryview, handle: None) -> bool | None:
+        # The term is in the data: a loop above the newest's is new (or a
+        # lower term's, refused after the MAC); one not above cannot tell (a
+        # replay, or a new term's: a takeover may go back in loops).
+        seq, _ = frame_stamp(body)
+        if not 1 <= seq <= LOOP_MAX:
+            raise CodecError(f"a mirror of loop {seq}: out of range")
+        return True if seq > self.newest[1] else None
 
     def _fresh(self, body: memoryview, handle: None) -> bool:
         seq, _ = frame_stamp(body)
@@ -543,6 +622,23 @@ class TelemetryIntake(_StampIntake[int]):
         """Authentic snapshots let go because the run was not learned yet
         (a ground bound to a run: zplatform.ground.link); not counted as refused."""
         super().__init__("telemetry", max_frame_len(size, channel), channel, capacity, waker=waker)
+
+    def _fresh_header(self, body: memoryview, handle: int) -> bool | None:
+        # The run and the term are in the data; the stamp alone refuses what
+        # every rule of _fresh would: stamped beyond the bound ahead, or
+        # older than the freshness bound and not newer than the newest (of
+        # the same run and term: not newer; of another: not of now).
+        _, t_ns = frame_stamp(body)
+        age = handle - t_ns
+        if -age > self._max_age:
+            self._ahead_n += 1
+            return False
+        if t_ns > self.newest_t:
+            return True
+        if age > self._max_age:
+            self._aged += 1
+            return False
+        return None  # a recent stamp, not newer: a new term's, or a replay
 
     def _fresh(self, body: memoryview, handle: int) -> bool:
         _, t_ns = frame_stamp(body)
@@ -628,6 +724,14 @@ class RequestIntake(Intake[None]):
         # in another run is refused before any decode (RunError: stale).
         return Channel.run_of(frame) == NO_RUN
 
+    def _fresh_header(self, body: memoryview, handle: None) -> bool | None:
+        # The frame's seq is the request's number (zplatform.control.uplink);
+        # its epoch is in the data: a number above every one seen is new as
+        # far as the header tells, any other cannot tell (the rules of
+        # request_refusal, after the MAC, name its refusal).
+        seq, _ = frame_stamp(body)
+        return True if seq > max(self._last_seq(), self._highest) else None
+
     def _fresh(self, body: memoryview, handle: None) -> bool:
         epoch, seq = self._number.read(frame_data(body, self._size))
         status = request_refusal(epoch, seq, self._epoch, max(self._last_seq(), self._highest))
@@ -681,6 +785,9 @@ class ReplyCheck(Intake[None]):
         """From now on, a reply is fresh only for ``loop``, asked at ``t_ns``
         (the loop thread, before the queries go out)."""
         self.loop, self.t_ns = loop, t_ns
+
+    def _fresh_header(self, body: memoryview, handle: None) -> bool:
+        return self._fresh(body, handle)  # seq and t_ns: the header says it all
 
     def _fresh(self, body: memoryview, handle: None) -> bool:
         seq, t_ns = frame_stamp(body)

@@ -2,19 +2,19 @@
 
 With ``security.auth`` on (the default), every region frame, telemetry
 snapshot, command request, clock exchange, probe, mirror and event record
-travels as ``frame || tag``: the sender's *run* (:data:`RUN_LEN` bytes)
-then 16 bytes of keyed BLAKE3 or HMAC-SHA256 under a key derived from the
-link's key, the channel and that run (:func:`run_key`). A frame tagged for
-one channel fails on every other; a receiver bound to a run (:class:`Run`,
-learned by the clock exchange or the control node's own ``cn_epoch``)
-refuses every frame of another run (:class:`RunError`), so a frame of an
-earlier run never verifies again. Each host role holds only the links it
-speaks on (:func:`role_links`); replays within a run are the receivers'.
+travels as ``frame || tag``: the sender's *run* (:data:`RUN_LEN` bytes), a
+header tag over the run, the length and the first :data:`HEADER_LEN`
+bytes, then a MAC (keyed BLAKE3 or HMAC-SHA256) over the whole frame, under
+keys derived from the link's key, the channel and that run. Receivers
+check the header first (:meth:`Channel.open_header`, microseconds at any
+size), then freshness, then the body (:meth:`Channel.check_body`). A frame
+tagged for one channel fails on every other; a receiver bound to a run
+(:class:`Run`) refuses every frame of another run (:class:`RunError`).
+Each host role holds only the links it speaks on (:func:`role_links`).
 
 :class:`Channel` tags and checks one channel's frames (``open`` returns a
 view, no copy, or raises :class:`AuthError`; constant-time, before any
-decode; one per thread). :func:`load_keys` finds a host's keys (file,
-``ZPLATFORM_KEY_FILE``, ``ZPLATFORM_KEY``, the mission's key set) and
+decode; one per thread). :func:`load_keys` finds a host's keys and
 :func:`check_key` refuses weak or exposed ones (:class:`KeyError_`);
 loading blocks on file I/O, tagging never blocks. Tag: codecs/FORMAT.md §6.1.
 """
@@ -37,6 +37,8 @@ from ..errors import CodecError, ZPlatformError
 
 __all__ = [
     "BULK_PREFIX",
+    "HEADER_LEN",
+    "HTAG_LEN",
     "KEY_ENV",
     "KEY_FILE_ENV",
     "MACS",
@@ -56,6 +58,7 @@ __all__ = [
     "channel_key",
     "check_key",
     "default_key_dir",
+    "header_key",
     "host_roles",
     "key_file_name",
     "link_of",
@@ -72,10 +75,19 @@ RUN_LEN = 8
 """Bytes of the run word that opens every tag (codecs/FORMAT.md §6.1): the
 sender's run (the control node's ``cn_epoch``, little-endian), or
 :data:`NO_RUN`."""
+HTAG_LEN = 8
+"""Bytes of the header tag (codecs/FORMAT.md §6.1): a MAC over the run word,
+the frame's length and its first :data:`HEADER_LEN` bytes, checked before
+the body's; the body's MAC follows, so 64 bits suffice (§6.1's argument)."""
+HEADER_LEN = 40
+"""How many of a frame's first bytes the header tag covers: a region
+frame's whole fixed header (29 bytes at most, codecs/FORMAT.md §2: seq and
+t_ns among them) and the first bytes of its data; a shorter message whole.
+With the run word and the length, one 64-byte block of either MAC."""
 MAC_LEN = 16
 """Bytes of MAC per frame (truncated to 128 bits, as RFC 4868's HMAC-SHA-256-128)."""
-TAG_LEN = RUN_LEN + MAC_LEN
-"""Bytes of tag per frame: the run word, then the MAC under the run's key."""
+TAG_LEN = RUN_LEN + HTAG_LEN + MAC_LEN
+"""Bytes of tag per frame: the run word, the header tag, then the body's MAC."""
 NO_RUN = 0
 """The run of a sender that knows none (a node before its first clock
 exchange, the ground): its frames are tagged under the run-0 key, which
@@ -88,6 +100,9 @@ MACS: tuple[str, ...] = ("blake3", "hmac-sha256")
 """The MACs ``security.mac`` may name."""
 
 _PREFIX = "zplatform/2/"
+_HEADER_CONTEXT = b"zplatform/3/header/"
+"""Derives a run's header key from the channel key (codecs/FORMAT.md §6.1):
+the tag's version 3 (version 2's tag had no header tag)."""
 _MAX_FILE = 64 * 1024  # far more than any key set; a bound on what is read
 # Keys published in the repository (the golden vectors of codecs/vectors/auth,
 # BLAKE3's own test key): anyone can read them, so they are never a real key.
@@ -292,6 +307,14 @@ def run_key(ch_key: bytes, run: int) -> bytes:
     return hmac.digest(ch_key, _RUN_CONTEXT + _run_word(run), "sha256")
 
 
+def header_key(ch_key: bytes, run: int) -> bytes:
+    """The key of a channel's header tags in run ``run`` (codecs/FORMAT.md
+    §6.1): HMAC-SHA256(channel_key, "zplatform/3/header/" || run as u64
+    little-endian). One HMAC from the channel key, so checking the header
+    of a frame naming an unseen run costs one derivation, not two."""
+    return hmac.digest(ch_key, _HEADER_CONTEXT + _run_word(run), "sha256")
+
+
 def _run_word(run: int) -> bytes:
     return (run & _U64).to_bytes(RUN_LEN, "little")
 
@@ -352,17 +375,25 @@ class Channel:
 
     ``link_key``: the key of the channel's link; ``mac``: ``blake3`` or
     ``hmac-sha256``; ``run``: the :class:`Run` this end is bound to (None:
-    bound to none). A tag is the run word then the MAC under the run's key
-    (:func:`run_key`, codecs/FORMAT.md §6.1). Sending, the run word is
-    ``run``'s (:data:`NO_RUN` without one). Receiving, a channel bound to a
-    run takes only frames of that run: another run's (or any while its run
-    is unknown) is refused, as :class:`RunError` when its MAC checks under
-    the key of the run it names (an earlier run's genuine frame, replayed:
-    stale) and AuthError when not (junk: bad); an unbound channel (the
-    ground's) takes any run's frame whose MAC checks under that run's key.
-    The keys of this end's run and of the last other run seen are kept, so
-    re-keying (one HMAC) happens once per run, not per frame (a flood of
-    frames each naming a new run costs one HMAC each on top of the MAC).
+    bound to none). A tag is the run word, the header tag, then the body's
+    MAC, under the run's keys (:func:`run_key`, :func:`header_key`,
+    codecs/FORMAT.md §6.1). Sending, the run word is ``run``'s
+    (:data:`NO_RUN` without one). Receiving, a channel bound to a run takes
+    only frames of that run: another run's (or any while its run is
+    unknown) is refused, as :class:`RunError` when its header tag checks
+    under the keys of the run it names (an earlier run's genuine frame,
+    replayed: stale) and AuthError when not (junk: bad); an unbound channel
+    (the ground's) takes any run's frame whose tags check under that run's
+    keys. Refusing another run's frame never computes the body's MAC. The
+    keys of this end's run and of the last other run seen are kept, so
+    re-keying (two HMACs) happens once per run, not per frame (a flood of
+    frames each naming a new run costs those two HMACs each on top of the
+    header tag).
+
+    Checking is two steps, so a receiver can refuse a replay by its header
+    before it pays for the body: :meth:`open_header` (the length, the run,
+    the header tag: microseconds, whatever the frame's size) and
+    :meth:`check_body` (the MAC over the whole frame); :meth:`open` is both.
 
     :meth:`seal` copies the frame into this channel's own buffer and tags it
     there (the buffer is overwritten by the next call; resized only if the
@@ -373,8 +404,9 @@ class Channel:
     returns a view of the frame inside ``payload`` (no copy) or raises
     AuthError; :meth:`strip` is the same view for a payload whose tag this
     channel's key was already checked on. :meth:`tag` allocates only the
-    tag's 24 bytes. Not thread-safe (the BLAKE3 hasher is kept and reset
-    per frame): one per sending or receiving thread.
+    tag's 32 bytes. Not thread-safe (the BLAKE3 hashers and the header
+    buffer are kept and reused per frame): one per sending or receiving
+    thread.
     """
 
     __slots__ = ("_buf", "_main", "_other", "mac", "name", "run")
@@ -400,10 +432,11 @@ class Channel:
         self._other = _RunKey(base, mac)
 
     def tag(self, frame: bytes | bytearray | memoryview) -> bytes:
-        """The tag of ``frame`` in this channel's sending run: run word and MAC."""
+        """The tag of ``frame`` in this channel's sending run: run word,
+        header tag and MAC."""
         run = self.run
         k = self._main.use(run.word if run is not None else _NO_WORD)
-        return k.word + k.mac(frame)
+        return k.word + k.htag(frame) + k.mac(frame)
 
     def seal(self, frame: bytes | bytearray | memoryview) -> bytearray:
         n = len(frame)
@@ -417,8 +450,10 @@ class Channel:
     def _seal_at(self, mv: memoryview, n: int) -> None:
         run = self.run
         k = self._main.use(run.word if run is not None else _NO_WORD)
+        frame = mv[:n]
         mv[n : n + RUN_LEN] = k.word
-        mv[n + RUN_LEN :] = k.mac(mv[:n])
+        mv[n + RUN_LEN : n + _MAC_AT] = k.htag(frame)
+        mv[n + _MAC_AT :] = k.mac(frame)
 
     def seal_tail(self, buf: bytearray) -> bytearray:
         """Tag the frame that fills ``buf`` but for its last :data:`TAG_LEN`
@@ -452,61 +487,130 @@ class Channel:
 
     def open(self, payload: bytes | bytearray | memoryview, *, any_run: bool = False) -> memoryview:
         """The frame in ``payload`` (a view, no copy) if its tag checks (class
-        doc); RunError for another run's frame on a bound channel, AuthError
-        for any other bad tag. ``any_run``: take any run's frame, even on a
-        bound channel (a clock reply that echoes this end's fresh nonce: how
-        a node learns its run, :mod:`zplatform.runtime.clocksync`)."""
+        doc): :meth:`open_header`, then :meth:`check_body`. RunError for
+        another run's frame on a bound channel, AuthError for any other bad
+        tag. ``any_run``: take any run's frame, even on a bound channel (a
+        clock reply that echoes this end's fresh nonce: how a node learns
+        its run, :mod:`zplatform.runtime.clocksync`)."""
+        self.open_header(payload, any_run=any_run)
+        return self.check_body(payload)
+
+    def open_header(
+        self, payload: bytes | bytearray | memoryview, *, any_run: bool = False
+    ) -> memoryview:
+        """The frame in ``payload`` (a view, no copy) if its run and header
+        tag check: only its first :data:`HEADER_LEN` bytes (and its length)
+        are then authentic; the rest is not until :meth:`check_body` on the
+        same payload. Reads the run word, the header tag and the first
+        :data:`HEADER_LEN` bytes, never the rest (constant time, whatever the
+        frame's size). RunError for another run's frame whose header tag
+        checks under that run's keys (bound channel, not ``any_run``: see
+        :meth:`open`), AuthError for anything else that does not check."""
         mv = memoryview(payload)
         n = len(mv) - TAG_LEN
         if n <= 0:
             raise AuthError(f"{self.name}: {len(mv)} bytes, too short to carry a tag")
         word = mv[n : n + RUN_LEN]
         body = mv[:n]
+        got = mv[n + RUN_LEN : n + _MAC_AT]
         run = self.run
         if run is not None and not any_run and word != run.word:
-            # Another run's: refused either way. Its MAC (under that run's
-            # key, kept for the next one) tells a replay from junk.
-            if hmac.compare_digest(self._other.use(word).mac(body), mv[n + RUN_LEN :]):
-                got = int.from_bytes(word, "little")
+            # Another run's: refused either way. Its header tag (under that
+            # run's keys, kept for the next one) tells a replay from junk.
+            if hmac.compare_digest(self._other.use(word).htag(body), got):
+                epoch = int.from_bytes(word, "little")
                 raise RunError(
-                    f"{self.name}: a frame of run {got}, not of this run ({run.epoch})"
+                    f"{self.name}: a frame of run {epoch}, not of this run ({run.epoch})"
                     if run.known
-                    else f"{self.name}: a frame of run {got} before this node knows its run"
+                    else f"{self.name}: a frame of run {epoch} before this node knows its run"
                 )
-        elif hmac.compare_digest(self._main.use(word).mac(body), mv[n + RUN_LEN :]):
+        elif hmac.compare_digest(self._main.use(word).htag(body), got):
             return body
-        raise AuthError(
+        raise self._bad()
+
+    def check_body(self, payload: bytes | bytearray | memoryview) -> memoryview:
+        """The frame in ``payload`` (a view, no copy) if the MAC over all of
+        it checks under the keys of the run it names: the second step, after
+        :meth:`open_header` passed on the same payload (which chose those
+        keys; alone it checks the MAC of whatever run the payload names).
+        AuthError when it does not check (a genuine header spliced onto
+        another body, or junk)."""
+        mv = memoryview(payload)
+        n = len(mv) - TAG_LEN
+        if n <= 0:
+            raise AuthError(f"{self.name}: {len(mv)} bytes, too short to carry a tag")
+        body = mv[:n]
+        k = self._main.use(mv[n : n + RUN_LEN])
+        if hmac.compare_digest(k.mac(body), mv[n + _MAC_AT :]):
+            return body
+        raise self._bad()
+
+    def _bad(self) -> AuthError:
+        return AuthError(
             f"{self.name}: bad authentication tag (wrong key, forged, or a peer with "
             f"another security.mac; this node's is {self.mac})"
         )
 
 
 _NO_WORD = _run_word(NO_RUN)
+_MAC_AT = RUN_LEN + HTAG_LEN
+_HEAD_IN = RUN_LEN + 4 + HEADER_LEN
 
 
 class _RunKey:
-    """A channel's key in one run (:func:`run_key`) and its MAC; re-keyed
-    only when asked for another run (:meth:`use`)."""
+    """A channel's keys in one run (:func:`header_key`, :func:`run_key`) and
+    its MACs; re-keyed only when asked for another run (:meth:`use`: the
+    header key alone, one HMAC; the body's key when its MAC is first
+    asked for, so a frame refused by its header never derives it).
+    :meth:`htag` builds its input in a buffer of its own (no allocation but
+    the 8-byte result)."""
 
-    __slots__ = ("_base", "_blake3", "hasher", "key", "word")
+    __slots__ = ("_base", "_blake3", "_head", "hasher", "hhasher", "hkey", "key", "word")
 
     def __init__(self, base: bytes, mac: str) -> None:
         self._base = base
         self._blake3 = mac == "blake3"
+        self._head = bytearray(_HEAD_IN)
         self.word = b""
         self.key = b""
+        self.hkey = b""
         self.hasher: Any = None
+        self.hhasher: Any = None
 
     def use(self, word: bytes | memoryview) -> _RunKey:
         if word != self.word:
             w = bytes(word)
-            self.key = hmac.digest(self._base, _RUN_CONTEXT + w, "sha256")
+            self.hkey = hmac.digest(self._base, _HEADER_CONTEXT + w, "sha256")
             if self._blake3:
-                self.hasher = blake3.blake3(key=self.key)
+                self.hhasher = blake3.blake3(key=self.hkey)
+            self.key = b""  # derived by mac() when first needed
+            self.hasher = None
+            self._head[:RUN_LEN] = w
             self.word = w
         return self
 
+    def htag(self, frame: bytes | bytearray | memoryview) -> bytes:
+        """The header tag of ``frame`` (codecs/FORMAT.md §6.1): reads its
+        length and its first :data:`HEADER_LEN` bytes only."""
+        n = len(frame)
+        h = n if n < HEADER_LEN else HEADER_LEN
+        head = self._head
+        head[RUN_LEN : RUN_LEN + 4] = (n & 0xFFFFFFFF).to_bytes(4, "little")
+        head[RUN_LEN + 4 : RUN_LEN + 4 + h] = frame[:h]
+        data = memoryview(head)[: RUN_LEN + 4 + h]
+        hh = self.hhasher
+        if hh is None:
+            return hmac.digest(self.hkey, data, "sha256")[:HTAG_LEN]
+        hh.reset()
+        hh.update(data)
+        return hh.digest(HTAG_LEN)
+
     def mac(self, frame: bytes | bytearray | memoryview) -> bytes:
+        """The MAC over all of ``frame`` (the body's)."""
+        if not self.key:
+            self.key = hmac.digest(self._base, _RUN_CONTEXT + self.word, "sha256")
+            if self._blake3:
+                self.hasher = blake3.blake3(key=self.key)
         h = self.hasher
         if h is None:
             return hmac.digest(self.key, frame, "sha256")[:MAC_LEN]

@@ -644,7 +644,8 @@ class EventReader:
     def forged(self, key_expr: str, payload: bytes | bytearray | memoryview) -> bool:
         """Whether ``payload``, come on ``key_expr``, is refused by its tag
         alone: the mission authenticates, this reader holds the key of the
-        key's node, and the tag does not verify (or there is none). Copies
+        key's node, and the header tag does not verify (or there is none);
+        no MAC over the record's body (:meth:`read` computes it). Copies
         nothing, raises nothing; thread-safe (it reads only what
         ``__init__`` made), so a receiver checks it in zenoh's callback and
         queues no forged record (:class:`~zplatform.ground.link.GroundLink`).
@@ -660,7 +661,10 @@ class EventReader:
         if ch is None:
             return False
         try:
-            ch.open(payload)
+            # The header tag alone (codecs/FORMAT.md §6.1): junk of any size
+            # is refused here for microseconds; a genuine header on another
+            # body, read() refuses by the MAC over the whole record.
+            ch.open_header(payload)
         except RunError:  # genuine, of another run: read() refuses it as stale
             return False
         except AuthError:

@@ -42,6 +42,7 @@ __all__ = [
     "SEGMENT_RE",
     "SYNC",
     "TYPE_NAMES",
+    "UNTAGGED_FORMATS",
     "WRAP",
     "record_crc",
     "segment_name",
@@ -59,7 +60,13 @@ HEAD, FRAME, EVENT, DROPPED, END = 1, 2, 3, 4, 5
 TYPE_NAMES = {HEAD: "HEAD", FRAME: "FRAME", EVENT: "EVENT", DROPPED: "DROPPED", END: "END"}
 COUNTS = struct.Struct("<QQQ")  # DROPPED: first, last, count; END: loops, dropped, events
 
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2
+"""The ``format`` a segment's HEAD names. 2: its frames carry the tag with a
+header tag (codecs/FORMAT.md §6.1, 32 bytes); 1: an earlier zplatform's
+24-byte tag, read only when the segment holds untagged frames (``channel``
+null: an archive's, or a mission without authentication)."""
+UNTAGGED_FORMATS = (1,)
+"""Earlier formats still read when their frames carry no tag."""
 MAX_HEAD_LEN = 64 * 1024
 SEGMENT_RE = re.compile(r"seg-([0-9]{8})\.zfr")
 

@@ -41,6 +41,7 @@ from .format import (
     SEGMENT_RE,
     SYNC,
     TYPE_NAMES,
+    UNTAGGED_FORMATS,
     record_crc,
 )
 
@@ -85,10 +86,15 @@ class SegmentHead(NamedTuple):
             raise RecordingError(f"its header is not JSON ({exc})") from None
         if not isinstance(meta, dict):
             raise RecordingError("its header is not a JSON object")
-        if meta.get("format") != FORMAT_VERSION:
+        fmt = meta.get("format")
+        if fmt in UNTAGGED_FORMATS and meta.get("channel") is not None:
             raise RecordingError(
-                f"recorder format {meta.get('format')!r}, this zplatform reads {FORMAT_VERSION}"
+                f"recorder format {fmt}: its frames carry an earlier zplatform's authentication "
+                f"tag, which this one (format {FORMAT_VERSION}: the tag with a header tag, "
+                "codecs/FORMAT.md §6.1) does not check; read it with the zplatform that wrote it"
             )
+        if fmt != FORMAT_VERSION and fmt not in UNTAGGED_FORMATS:
+            raise RecordingError(f"recorder format {fmt!r}, this zplatform reads {FORMAT_VERSION}")
 
         def field(name: str, typ: type, optional: bool = False) -> Any:
             v = meta.get(name)

@@ -194,7 +194,10 @@ class RecorderServer(QueryWorker):
         data = payload.to_bytes() if payload is not None else b""
         ch = self._channel
         try:
-            body: Any = ch.open(data) if ch is not None else data
+            # Header first (codecs/FORMAT.md §6.1): a request is shorter than
+            # the header tag's bytes, so every check below reads authentic
+            # bytes, and a replay is refused before the body's MAC.
+            body: Any = ch.open_header(data) if ch is not None else data
         except AuthError as exc:
             self.refuse(str(exc))
             return
@@ -213,6 +216,11 @@ class RecorderServer(QueryWorker):
         if ch is not None:  # without tags a replay cannot be told from a request
             if request in self._served:
                 self.refuse(f"a request for loops {first}..{last} served before (a replay)")
+                return
+            try:
+                ch.check_body(data)
+            except AuthError as exc:
+                self.refuse(str(exc))
                 return
             self._served.append(request)
         rec = self.recorder

@@ -224,10 +224,19 @@ class ClockLink:
         clock gone wrong) is refused in :attr:`refused_other`. The reply
         may name any run (its tag is checked under that run's key): taken, it
         is this node's run from then on (:attr:`run`, module doc)."""
+        ch = self._open
         try:
-            body = self._open.open(raw, any_run=True) if self._open is not None else memoryview(raw)
+            body = ch.open_header(raw, any_run=True) if ch is not None else memoryview(raw)
             if len(body) != _REPLY.size:
                 raise AuthError(f"{len(body)} bytes, not a clock reply")
+            # The nonce is within the header tag's bytes (codecs/FORMAT.md
+            # §6.1): a reply to another query (a replay) is refused before
+            # the body's MAC.
+            if body[4 : 4 + NONCE_LEN] != nonce:
+                self.refused_other += 1
+                return None
+            if ch is not None:
+                ch.check_body(raw)
         except AuthError:
             self.refused_bad += 1
             return None
@@ -406,8 +415,8 @@ class ClockResponder:
         """Check query ``raw`` received at ``t2`` (class doc): None (counted,
         :attr:`reason` set) to refuse it; a run hello's whole answer
         (bytes); or ``(index, nonce, t1, t2)`` of a clock query to answer with
-        :meth:`reply`. Costs a length, a few compares and one MAC over at
-        most 28 bytes; allocates the copy's view and the nonce. Not
+        :meth:`reply`. Costs a length, a few compares, a header tag and,
+        for a fresh query, one MAC over its 28 bytes; allocates the copy's view and the nonce. Not
         thread-safe with itself (the caller's lock); :meth:`reply` may run
         on another thread meanwhile (they share no channel)."""
         want = _QUERY.size + (TAG_LEN if self._auth else 0)
@@ -440,7 +449,10 @@ class ClockResponder:
                         f"a query of run {asked}, not of this run ({self.run.epoch}): "
                         "an earlier run's, replayed"
                     )
-            body = ch.open(raw) if ch is not None else memoryview(raw)
+            # A query is shorter than the header tag's bytes (codecs/FORMAT.md
+            # §6.1): its header tag makes it all authentic, and a replay is
+            # refused below before the body's MAC.
+            body = ch.open_header(raw) if ch is not None else memoryview(raw)
         except AuthError as exc:
             self.refused += 1
             self.reason = str(exc)
@@ -473,6 +485,13 @@ class ClockResponder:
                 self.stale += 1
                 self.reason = "a query answered before (a replay)"
                 return None
+            if ch is not None:
+                try:
+                    ch.check_body(raw)
+                except AuthError as exc:
+                    self.refused += 1
+                    self.reason = str(exc)
+                    return None
             tat = max(self._tat[asker], t2)
             if tat - t2 > self._tau:
                 self.refused += 1
@@ -559,9 +578,17 @@ class RunAsker:
         binds :attr:`run` to its run when it is. Never raises for ``raw``."""
         ch = self._open
         try:
-            body = ch.open(raw, any_run=True) if ch is not None else memoryview(raw)
+            body = ch.open_header(raw, any_run=True) if ch is not None else memoryview(raw)
             if len(body) != RUN_ANSWER.size:
                 raise AuthError(f"{len(body)} bytes, not a run answer")
+            # An answer is shorter than the header tag's bytes: its nonce is
+            # authentic already, and an answer to another hello (a replay)
+            # is refused before the body's MAC.
+            if not self._nonce or body[3 : 3 + NONCE_LEN] != self._nonce:
+                self.refused_other += 1
+                return False
+            if ch is not None:
+                ch.check_body(raw)
         except AuthError:
             self.refused_bad += 1
             return False

@@ -242,6 +242,9 @@ class _SimTriggerIntake(TriggerIntake[None]):
     so the newest-stamp rule would refuse the genuine second one. Whether a
     trigger runs is the logic's (:meth:`DeviceLogic.trigger`: loop, term)."""
 
+    def _fresh_header(self, body: memoryview, handle: None) -> bool:
+        return True
+
     def _fresh(self, body: memoryview, handle: None) -> bool:
         return True
 

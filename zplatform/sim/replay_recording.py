@@ -65,7 +65,7 @@ __all__ = [
 MAGIC = b"ZPREC\x00"
 # 2: BEGIN's final flag; 3: PRM_SAVED; 4: HEALTH; 5: FINISH the refusals;
 # 6: the mission's digest in the header; 7: FINISH the querier recoveries
-VERSION = 7
+VERSION = 8
 RECORD_FILE = "cn.zrec"
 MISSION_FILE = "mission.yaml"
 MAX_META_BYTES = 64 * 1024
@@ -529,11 +529,19 @@ class RecordReader:
         magic, version, n = _HEAD.unpack(self._read(_HEAD.size, "header"))
         if magic != MAGIC:
             raise self._fail("not a zplatform recording")
+        if version == VERSION - 1:
+            raise self._fail(
+                f"recording version {version}, made by an earlier zplatform: its frames carry "
+                f"that zplatform's authentication tag (24 bytes; this one reads version "
+                f"{VERSION}, whose frames carry the 32-byte tag with a header tag, "
+                "codecs/FORMAT.md §6.1): replay it with the zplatform that recorded it, or "
+                "record again"
+            )
         if version < VERSION:
             raise self._fail(
                 f"recording version {version}, made by an earlier zplatform (this one reads "
-                f"version {VERSION}: the mission digest, the intake's refusals and the querier "
-                "recoveries): record again"
+                f"version {VERSION}: the header-tagged frames, the mission digest, the intake's "
+                "refusals and the querier recoveries): record again"
             )
         if version != VERSION:
             raise self._fail(f"recording version {version}, expected {VERSION}")
