@@ -426,6 +426,9 @@ class IntraHostClient(_End):
         if not 1 <= n <= self.max_trigger:
             raise IntraHostError(f"intra-host trigger of {n} bytes, bound {self.max_trigger}")
         self.release()
+        # A loan not sent (a caller that lent and never sent) goes back first:
+        # the client may hold one loan at a time.
+        self._loan = None
         try:
             self._loan = self._client.loan_slice_uninit(n)
         except Exception:  # LoanError: every slot held by a stuck peer
