@@ -11,9 +11,8 @@ says when the link has no peer or has stalled, so the sync falls back to zenoh.
 :class:`IntraHostPublisher`/:class:`IntraHostSubscriber`: a bulk channel's
 publish/subscribe service (:func:`bulk_service_name`; ``bulk.py`` uses them).
 
-Copies per hop: the sender frames and tags its region straight in the loaned
-sample (the sync: ``ControlSync.lend``, ``DeviceLogic.trigger(into=...)``),
-the receiver checks it in place and copies once into its Data Vector. Names
+Copies per hop: the sender encodes into the loaned sample, the receiver
+checks it in place and copies once into its Data Vector. Names
 (:func:`sync_link_names`: one kernel and network namespace) hold both nodes;
 segments are sized (:func:`mission_link_sizes`) and refused when ``/dev/shm``
 cannot hold them (:func:`check_shm`); dead processes' resources are removed
