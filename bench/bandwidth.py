@@ -205,10 +205,11 @@ def run_point(
             extra=element_extra(n_elements, n_dn) if region_bytes is None else None,
             mac=mac,
         )
-        if intra_host != "zenoh":
-            raw = yaml.safe_load(mission.read_text())
-            raw.setdefault("transport", {})["intra_host"] = intra_host
-            mission.write_text(yaml.safe_dump(raw, sort_keys=False))
+        # Pinned either way: the mission default (auto) would put a zenoh
+        # point's sync on shared memory, the nodes sharing this host.
+        raw = yaml.safe_load(mission.read_text())
+        raw.setdefault("transport", {})["intra_host"] = intra_host
+        mission.write_text(yaml.safe_dump(raw, sort_keys=False))
         hook = SyncSamples(loops)
         paths: list[str] = []
 

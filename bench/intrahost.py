@@ -39,16 +39,20 @@ Run ``python -m bench.intrahost [--quick] [--priority P] [--json PATH]``; result
 ``bench/results/intrahost.json``. Blocks about 70 s (``--quick``: 15 s).
 
 ``--copies`` (results: ``bench/results/intrahost_copies.json``, a few
-seconds): the receiving end's copies, in one process over a real link, at
-325 KB and 4 MB: a tagged frame copied into the loaned sample, then the
-intake's check and the copy into a preallocated array (the Data Vector),
-``in_place`` (:meth:`~zplatform.control.intake.Intake.check_view`, the
-sync's path now) beside ``copy_out`` (the intake's ``to_bytes`` copy first,
-the path before). Per exchange: ``alloc_bytes`` (tracemalloc's peak above
-the start: a frame-sized figure is a copy), ``memcpy_bytes`` (the copies
-the path makes, counted), and the one-way time from the send until the
-frame is in the array (p50/p99, no pacing, no wake-up: the copies' and
-the tag's cost).
+seconds): one hop's copies, in one process over a real link, at 325 KB and
+4 MB: a region framed and tagged by the sender, then the receiver's
+intake check and the copy into a preallocated array (the Data Vector).
+``encode_into`` (the sync's path now: framed and tagged straight in the
+loaned sample, checked in place,
+:meth:`~zplatform.control.intake.Intake.check_view`) beside
+``encode_copy`` (framed in the sender's buffer, then copied into the loan:
+the path before) and ``copy_out`` (that, and the intake's ``to_bytes`` copy
+out of the sample first: the path before the in-place check). Per
+exchange: ``alloc_bytes`` (tracemalloc's peak above the start: a
+frame-sized figure is a copy), ``memcpy_bytes`` (the copies the path
+makes, the encode's included, counted), and the one-way time from the
+encode until the frame is in the array (p50/p99, no pacing, no wake-up:
+the copies' and the tag's cost).
 """
 
 from __future__ import annotations
@@ -89,6 +93,13 @@ PREFIX = f"zpbench{os.getpid()}_"  # the orchestrator's pid, inherited by the ch
 #: A size besides SIZES that run_raw's ends carry (bench.bandwidth's floors:
 #: a point's largest frame), set in the environment the responder inherits.
 EXTRA_SIZE_ENV = "ZP_BENCH_EXTRA_SIZE"
+#: Which of several raw iceoryx2 responders a child is (:func:`run_raw_many`):
+#: each serves a service of its own, as each DN its own link.
+RESPONDER_ENV = "ZP_BENCH_RESPONDER"
+
+
+def _raw_name(pid: int, variant: str, index: str | None) -> str:
+    return f"bench/{pid}/{variant}" + (f"/{index}" if index else "")
 
 
 def _sizes() -> list[int]:
@@ -170,7 +181,9 @@ def _responder(variant: str, mission_text: str) -> None:
             say({"cpu_s": _cpu_s() - c0, "served": served})
         server.close()
     elif variant.startswith("raw_iceoryx2"):
-        iox, _node, svc, req_ev, res_ev = _iox_services(PREFIX, f"bench/{os.getppid()}/{variant}")
+        iox, _node, svc, req_ev, res_ev = _iox_services(
+            PREFIX, _raw_name(os.getppid(), variant, os.environ.get(RESPONDER_ENV))
+        )
         srv = svc.server_builder().initial_max_slice_len(big).create()
         listener = req_ev.listener_builder().create()
         notifier = res_ev.notifier_builder().create()
@@ -238,7 +251,7 @@ class _Asker:
     """The control node's end of one variant: ``exchange(n)`` returns the
     round trip in ns, or None when no reply came within ``WAIT_S``."""
 
-    def __init__(self, variant: str, mission_text: str) -> None:
+    def __init__(self, variant: str, mission_text: str, index: str | None = None) -> None:
         self.variant = variant
         big = max(_sizes())
         self.src = {n: os.urandom(n) for n in _sizes()}
@@ -256,7 +269,7 @@ class _Asker:
             )
         elif variant.startswith("raw_iceoryx2"):
             iox, self._node, svc, req_ev, res_ev = _iox_services(
-                PREFIX, f"bench/{os.getpid()}/{variant}"
+                PREFIX, _raw_name(os.getpid(), variant, index)
             )
             self.iox = iox
             self.cli = svc.client_builder().initial_max_slice_len(big).create()
@@ -336,9 +349,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         default=20,
         help="SCHED_FIFO priority of this process and the responders (0: off), as bench.sync",
     )
-    ap.add_argument(
-        "--copies", action="store_true", help="the receiving end's copies alone (module doc)"
-    )
+    ap.add_argument("--copies", action="store_true", help="one hop's copies alone (module doc)")
     ap.add_argument("--role", help=argparse_hidden())
     ap.add_argument("--variant", help=argparse_hidden())
     args = ap.parse_args(argv)
@@ -496,24 +507,119 @@ def run_raw(variant: str, n: int, count: int, period_s: float = PERIOD_S) -> dic
     return {"samples_ns": samples, "lost": lost, "cpu_s": cpu}
 
 
+def run_raw_many(responders: int, n: int, count: int, period_s: float = PERIOD_S) -> dict[str, Any]:
+    """Raw iceoryx2 request/response to ``responders`` processes at once, each
+    on a service of its own, ``n`` bytes each way (the floor of a sync with
+    that many DNs: ``bench.sync``'s ``raw_iceoryx2_3_*`` rows): per exchange
+    every request is written and sent (each responder woken), then each
+    reply is waited for and copied out, as the control node's sync does. A
+    warm-up of 5, then ``count`` exchanges paced at ``period_s``. Returns
+    ``{"samples_ns": [...], "lost": k, "cpu_s": every end}``. Blocks
+    ``count * period_s`` plus the responders' start; cleans its files up."""
+    if n not in SIZES.values():
+        os.environ[EXTRA_SIZE_ENV] = str(n)  # the responders inherit it
+    mission_text = two_node_mission("bench_intrahost", free_port(), free_port())
+    variant = "raw_iceoryx2"
+    procs: list[Child] = []
+    askers: list[_Asker] = []
+    samples: list[int] = []
+    lost = 0
+    try:
+        for k in range(responders):
+            os.environ[RESPONDER_ENV] = str(k + 1)
+            procs.append(
+                Child("bench.intrahost", ["--role", "respond", "--variant", variant], mission_text)
+            )
+        os.environ.pop(RESPONDER_ENV, None)
+        for k, proc in enumerate(procs):
+            proc.read()
+            askers.append(_Asker(variant, mission_text, str(k + 1)))
+        cpu = 0.0
+        for block, paced in ((5, False), (count, True)):
+            for proc in procs:
+                proc.send({"cmd": "serve", "n": block})
+            c0 = _cpu_s()
+            t_next = time.monotonic()
+            for _ in range(block):
+                rt = _exchange_many(askers, n)
+                if paced:
+                    if rt is None:
+                        lost += 1
+                    else:
+                        samples.append(rt)
+                    t_next += period_s
+                    while (left := t_next - time.monotonic()) > 0:
+                        time.sleep(left)
+            mine = _cpu_s() - c0
+            theirs = sum(proc.read()["cpu_s"] for proc in procs)
+            cpu = mine + theirs
+    finally:
+        os.environ.pop(RESPONDER_ENV, None)
+        for a in askers:
+            a.close()
+        for proc in procs:
+            proc.close()
+        from zplatform.runtime.intrahost import remove_stale
+
+        remove_stale(PREFIX)
+        for path in _own_files():
+            try:
+                os.unlink(path)
+            except OSError:
+                pass
+    return {"samples_ns": samples, "lost": lost, "cpu_s": cpu}
+
+
+def _exchange_many(askers: list[_Asker], n: int) -> int | None:
+    """One exchange of :func:`run_raw_many`: ns from the first request until
+    the last reply is copied out, or None when one did not come in ``WAIT_S``."""
+    t0 = time.perf_counter_ns()
+    pendings = []
+    for a in askers:
+        loan = a.cli.loan_slice_uninit(n)
+        ctypes.memmove(loan.payload_ptr, a.csrc[n], n)
+        pendings.append(loan.assume_init().send())
+        a.notifier.notify()
+    t_end = time.monotonic() + WAIT_S
+    for a, pending in zip(askers, pendings, strict=True):
+        while (response := pending.receive()) is None:
+            if time.monotonic() >= t_end:
+                return None
+            a.block(a.wait)
+        ctypes.memmove(a.dst.ctypes.data, response.payload_ptr, response.header.number_of_elements)
+        del response
+    return time.perf_counter_ns() - t0
+
+
 COPY_SIZES = {"325KB": 325_000, "4MB": 4_000_000}
 
 
 def run_copies(sizes: dict[str, int], count: int) -> dict[str, dict[str, Any]]:
-    """The receiving end's copies per exchange (module doc, ``--copies``):
-    ``{"in_place_325KB": {...}, "copy_out_325KB": {...}, ...}``. One process,
-    one real link (this run's prefix, removed after); blocks a few seconds."""
+    """One hop's copies per exchange (module doc, ``--copies``):
+    ``{"encode_into_325KB": {...}, "encode_copy_325KB": {...},
+    "copy_out_325KB": {...}, ...}``. The sender frames a region of the size
+    (:class:`~zplatform.core.codec.FrameEncoder`, the header and the
+    region's bytes) and tags it in place (``Channel.seal_tail``): straight
+    in the loaned sample (``encode_into``, the sync's path now), or in its
+    own buffer and then copied into the loan (``encode_copy``, the path
+    before); the receiver checks it in place (``Intake.check_view``) and
+    copies the data into a preallocated array (the Data Vector).
+    ``copy_out``: ``encode_copy`` with the receiver's ``to_bytes`` copy out
+    of the sample before its check (the path before the in-place check).
+    One process, one real link (this run's prefix, removed after); blocks a
+    few seconds."""
     import tracemalloc
 
     from zplatform.control.intake import Intake
-    from zplatform.core.auth import Channel
+    from zplatform.core.auth import TAG_LEN, Channel
+    from zplatform.core.codec import FrameEncoder
     from zplatform.runtime.intrahost import IntraHostClient, IntraHostServer, link_names
 
     class _AnyFresh(Intake[None]):
         def _fresh(self, body: memoryview, handle: None) -> bool:
             return True
 
-    class _CopyOut:  # main's _ViewPayload: to_bytes copies out of the segment
+    class _CopyOut:  # the path before check_view: to_bytes copies out of the segment
         def __init__(self, view: memoryview) -> None:
             self.view = view
 
@@ -527,36 +633,45 @@ def run_copies(sizes: dict[str, int], count: int) -> dict[str, dict[str, Any]]:
     out_rows: dict[str, dict[str, Any]] = {}
     for label, n in sizes.items():
         names = link_names(f"copies{os.getpid()}", "bench", label, "cn", "dn0")
-        frame = bytes(Channel(key, "bench", "bench/copies").seal(os.urandom(n)))
-        intake = _AnyFresh("bench", len(frame), Channel(key, "bench", "bench/copies"))
-        client = IntraHostClient(names, len(frame), 8, prefix=PREFIX, check=False)
-        server = IntraHostServer(names, len(frame), 8, prefix=PREFIX, check=False)
+        enc = FrameEncoder(n, tail=TAG_LEN)
+        flen = enc.frame_len(n)
+        seal = Channel(key, "bench", "bench/copies")
+        intake = _AnyFresh("bench", flen, Channel(key, "bench", "bench/copies"))
+        client = IntraHostClient(names, flen, 8, prefix=PREFIX, check=False)
+        server = IntraHostServer(names, flen, 8, prefix=PREFIX, check=False)
+        region = memoryview(bytearray(os.urandom(n)))
         dv_mv = memoryview(bytearray(n))
         try:
-            args = (client, server, intake, frame, dv_mv, n)
-            for mode in ("in_place", "copy_out"):
-
-                def one(mode: str = mode, args: tuple[Any, ...] = args) -> int:
-                    return _copy_once(args, mode, _CopyOut)
-
-                for _ in range(5):
-                    one()
-                samples = [one() for _ in range(count)]
+            ends = (client, server, intake, enc, seal, region, dv_mv)
+            modes = ("encode_into", "encode_copy", "copy_out")
+            samples: dict[str, list[int]] = {m: [] for m in modes}
+            for k in range(5 + count):  # interleaved: the box's load falls on each alike
+                for mode in modes:
+                    ns = _copy_once(ends, mode, _CopyOut)
+                    if k >= 5:
+                        samples[mode].append(ns)
+            for mode in modes:
                 tracemalloc.start()
                 try:
                     peaks = []
                     for _ in range(5):
                         base = tracemalloc.get_traced_memory()[0]
                         tracemalloc.reset_peak()
-                        one()
+                        _copy_once(ends, mode, _CopyOut)
                         peaks.append(tracemalloc.get_traced_memory()[1] - base)
                 finally:
                     tracemalloc.stop()
-                fig = summarize(samples)
+                fig = summarize(samples[mode])
                 fig["alloc_bytes"] = int(np.median(peaks))
-                # Counted: the loan's copy, the copy into the vector, and
-                # copy_out's to_bytes of the whole frame.
-                fig["memcpy_bytes"] = len(frame) + n + (len(frame) if mode == "copy_out" else 0)
+                # Counted: the encode's copy of the region, the copy of the
+                # tagged frame into the loan (not encode_into's), copy_out's
+                # to_bytes of the whole frame, and the copy into the vector.
+                fig["memcpy_bytes"] = (
+                    n
+                    + (flen if mode != "encode_into" else 0)
+                    + (flen if mode == "copy_out" else 0)
+                    + n
+                )
                 out_rows[f"{mode}_{label}"] = fig
         finally:
             client.close()
@@ -573,23 +688,27 @@ def run_copies(sizes: dict[str, int], count: int) -> dict[str, dict[str, Any]]:
 
 
 def _copy_once(ends: tuple[Any, ...], mode: str, copy_out: Any) -> int:
-    """One exchange of :func:`run_copies`; returns ns from the send until the
-    frame is in the vector. ``ends``: client, server, intake, frame, the
-    vector (a memoryview) and the frame's body length."""
-    client, server, intake, frame, dv_mv, n = ends
-    buf = client.trigger(len(frame))
+    """One exchange of :func:`run_copies`; returns ns from the encode until
+    the frame is in the vector. ``ends``: client, server, intake, the
+    encoder, the sending channel, the region and the vector (memoryviews)."""
+    client, server, intake, enc, seal, region, dv_mv = ends
+    n = len(region)
+    buf = client.trigger(enc.frame_len(n))
     assert buf is not None
     t0 = time.perf_counter_ns()
-    buf[:] = frame  # the sender's one copy into the loan
+    if mode == "encode_into":  # framed and tagged in the loan: no copy of the frame
+        seal.seal_tail(enc.encode_into(buf, 1, 2, 3, region))
+    else:  # framed and tagged in the encoder's buffer, then the one copy into the loan
+        buf[:] = seal.seal_tail(enc.encode(1, 2, 3, region))
     client.send()
     view = server.wait(WAIT_S)
     assert view is not None
-    if mode == "in_place":
-        data: Any = intake.check_view(view, None)
+    if mode == "copy_out":
+        data: Any = intake.check(copy_out(view), None)
     else:
-        data = intake.check(copy_out(view), None)
+        data = intake.check_view(view, None)
     assert data is not None, "the frame's tag must check"
-    dv_mv[:] = memoryview(data)[:n]  # the decode's copy into the vector
+    dv_mv[:] = memoryview(data)[len(data) - n :]  # the decode's copy into the vector
     t1 = time.perf_counter_ns()
     server.respond(b"ok")
     client.collect()

@@ -37,7 +37,15 @@ same scheduling (see *Scheduling* below):
   (:func:`bench.intrahost.run_raw`), the floor of the shared-memory rows;
 * ``*_325KB``: ``zplatform_1dn``, ``zplatform_shm_1dn``, ``raw_zenoh_1``
   and ``raw_iceoryx2_1`` with 325 KB regions each way (the largest region
-  of ``bench.intrahost``, a 100,000-element vector's order).
+  of ``bench.intrahost``, a 100,000-element vector's order);
+* ``*_100000el``: the 100,000-element point of ``bench.bandwidth``
+  (:func:`bench.bandwidth.run_point`: mixed-type scalars, half sensors and
+  half actuators, split evenly across the DNs, BLAKE3 tags) with 1 and 3
+  DNs, over shared memory (``zplatform_shm_<D>dn_100000el``) and over zenoh
+  (``zplatform_3dn_100000el``), beside ``raw_iceoryx2_<D>_100000el``: bare
+  iceoryx2 moving the same bytes (each DN's largest frame, tag included,
+  each way) to 1 or 3 responder processes, every request sent before the
+  replies are collected, as the sync does (:func:`bench.intrahost.run_raw_many`).
 
 What is measured, per loop: the sync exchange's duration. A loop that missed
 its deadline (a DN did not answer in time, or the step ended at or past the
@@ -114,7 +122,10 @@ class Variant:
     transport: str | None = None  # zplatform: the mission's security.transport
     intra_host: str = "zenoh"  # zplatform: the mission's transport.intra_host
     region_bytes: int = REGION_BYTES
+    elements: int | None = None  # bench.bandwidth's element point instead of u8 regions
 
+
+ELEMENTS = 100_000
 
 VARIANTS: tuple[Variant, ...] = (
     Variant("zplatform_1dn", "zplatform", 1),
@@ -137,7 +148,38 @@ VARIANTS: tuple[Variant, ...] = (
     Variant("zplatform_shm_1dn_325KB", "zplatform", 1, intra_host="shm", region_bytes=LARGE_BYTES),
     Variant("raw_zenoh_1_325KB", "zenoh", 1, region_bytes=LARGE_BYTES),
     Variant("raw_iceoryx2_1_325KB", "iceoryx2", 1, region_bytes=LARGE_BYTES),
+    Variant("zplatform_shm_1dn_100000el", "zplatform", 1, intra_host="shm", elements=ELEMENTS),
+    Variant("raw_iceoryx2_1_100000el", "iceoryx2", 1, elements=ELEMENTS),
+    Variant("zplatform_shm_3dn_100000el", "zplatform", 3, intra_host="shm", elements=ELEMENTS),
+    Variant("zplatform_3dn_100000el", "zplatform", 3, elements=ELEMENTS),
+    Variant("raw_iceoryx2_3_100000el", "iceoryx2", 3, elements=ELEMENTS),
 )
+
+
+def element_frame_bytes(n_elements: int, n_dn: int) -> int:
+    """The largest frame (tag included) any DN of ``bench.bandwidth``'s
+    ``n_elements`` point over ``n_dn`` DNs sends or receives: what the raw
+    rows move each way. Loads the mission (seconds at 100,000 elements)."""
+    from bench.bandwidth import element_extra
+    from zplatform.core.auth import TAG_LEN
+    from zplatform.core.codec import frame_overhead
+    from zplatform.core.datavector import Layout
+    from zplatform.mission.load import load_mission
+
+    with tempfile.TemporaryDirectory(prefix="zp-bench-") as tmp:
+        path = make_mission(
+            Path(tmp) / "m.yaml",
+            n_dn=n_dn,
+            region_bytes=1,
+            extra=element_extra(n_elements, n_dn),
+        )
+        m = load_mission(path)
+    sizes = [
+        Layout.for_regions(m, [r]).size
+        for i in range(n_dn)
+        for r in (f"cn_to_dn{i}", f"dn{i}_to_cn")
+    ]
+    return max(frame_overhead(n) + n + TAG_LEN for n in sizes)
 
 
 def _us(ns: float) -> float:
@@ -261,7 +303,22 @@ def run_zplatform(
 def run_variant(v: Variant, *, duration_s: float, priority: int) -> dict[str, Any]:
     """Run one variant at :data:`RATE_HZ` for ``duration_s`` (blocks that long plus start-up)."""
     deadline_ns = round(DEADLINE_MS * 1e6)
-    if v.kind == "zplatform":
+    if v.kind == "zplatform" and v.elements is not None:
+        from bench.bandwidth import run_point
+
+        fig = run_point(
+            n_elements=v.elements,
+            n_dn=v.n,
+            rate_hz=RATE_HZ,
+            duration_s=duration_s,
+            priority=priority,
+            intra_host=v.intra_host,
+        )
+        fig["missed"] = fig["missed_loops"]
+        fig["responders"] = v.n
+        fig["intra_host"] = v.intra_host
+        fig.setdefault("paths", ["zenoh"] * v.n)
+    elif v.kind == "zplatform":
         fig = run_zplatform(
             v.n,
             rate_hz=RATE_HZ,
@@ -275,11 +332,17 @@ def run_variant(v: Variant, *, duration_s: float, priority: int) -> dict[str, An
             intra_host=v.intra_host,
         )
     elif v.kind == "iceoryx2":
-        from bench.intrahost import run_raw
+        from bench.intrahost import run_raw, run_raw_many
 
-        iox = run_raw("raw_iceoryx2", v.region_bytes, max(1, round(duration_s * RATE_HZ)))
+        size = v.region_bytes if v.elements is None else element_frame_bytes(v.elements, v.n)
+        count = max(1, round(duration_s * RATE_HZ))
+        many = v.n > 1  # one service per responder, as one link per DN
+        iox = run_raw_many(v.n, size, count) if many else run_raw("raw_iceoryx2", size, count)
         fig = summarize(iox["samples_ns"], deadline_ns)
-        fig["missed"] = iox["lost"]
+        fig["missed"] = iox["lost"] + int(
+            np.count_nonzero(np.asarray(iox["samples_ns"]) >= deadline_ns)
+        )
+        fig["frame_bytes"] = size
         fig["responders"] = v.n
         fig["cpu_us_per_exchange"] = round(iox["cpu_s"] / max(1, len(iox["samples_ns"])) * 1e6, 1)
     else:
@@ -378,6 +441,18 @@ def ratios(variants: dict[str, dict[str, Any]]) -> dict[str, float | None]:
         ),
         "zplatform_1dn_325KB/raw_zenoh_1_325KB": ("zplatform_1dn_325KB", "raw_zenoh_1_325KB"),
         "raw_iceoryx2_1_325KB/raw_zenoh_1_325KB": ("raw_iceoryx2_1_325KB", "raw_zenoh_1_325KB"),
+        "zplatform_shm_1dn_100000el/raw_iceoryx2_1_100000el": (
+            "zplatform_shm_1dn_100000el",
+            "raw_iceoryx2_1_100000el",
+        ),
+        "zplatform_shm_3dn_100000el/raw_iceoryx2_3_100000el": (
+            "zplatform_shm_3dn_100000el",
+            "raw_iceoryx2_3_100000el",
+        ),
+        "zplatform_shm_3dn_100000el/zplatform_3dn_100000el": (
+            "zplatform_shm_3dn_100000el",
+            "zplatform_3dn_100000el",
+        ),
     }
     return {k: _ratio(variants, a, b) for k, (a, b) in pairs.items()}
 

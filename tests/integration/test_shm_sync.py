@@ -23,7 +23,7 @@ from tests.zsession import lone_session
 from zplatform.config import Mission
 from zplatform.control.intake import CnRefusals, ReplyCheck, TriggerIntake
 from zplatform.control.loop import ControlLogic, DeviceLogic
-from zplatform.core.auth import channel
+from zplatform.core.auth import TAG_LEN, channel
 from zplatform.mission.load import load_mission
 from zplatform.runtime import sync as sync_mod
 from zplatform.runtime.intrahost import (
@@ -59,7 +59,7 @@ class Pair:
         CN got every reply."""
         served = threading.Thread(target=self.ds.wait, args=(self.dn, 10.0))
         served.start()
-        self.cs.sync(self.cn.begin(loop, T0 + loop * PERIOD), self.cn)
+        self.cs.sync(self.cs.begin(self.cn, loop, T0 + loop * PERIOD), self.cn)
         served.join()
         ok = self.cn.pending == 0
         self.cn.finish()
@@ -266,7 +266,10 @@ def test_taps_see_the_frames_whichever_path_the_sync_takes(pair: Pair) -> None:
         for loop in (1, 2, 3):
             served = threading.Thread(target=pair.ds.wait, args=(pair.dn, 10.0))
             served.start()
-            frame = pair.cn.begin(loop, T0 + loop * PERIOD)
+            # A tap subscribes: the trigger is framed in the logic's buffer
+            # (not lent), so the tap can read it after the send.
+            frame = pair.cs.begin(pair.cn, loop, T0 + loop * PERIOD)
+            assert isinstance(frame[0], bytearray)
             frames.append(bytes(frame[0]))
             pair.cs.sync(frame, pair.cn)
             served.join()
@@ -309,3 +312,73 @@ def test_frames_over_shared_memory_are_checked_and_decoded_in_place(
         assert pair.dn.dv.get("dn0_setpoint") == 1.5 * loop
     assert pair.link.on_shm and pair.link.client.replies == 3
     assert kinds == [("trigger", memoryview), ("reply", memoryview)] * 3
+
+
+def test_triggers_and_replies_are_framed_straight_in_their_loans(
+    pair: Pair, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """No copy of a frame into shared memory (docs/architecture.md#intra-host):
+    the CN's trigger is encoded and tagged in its loaned sample (what
+    ``ControlSync.begin`` returns is that sample), the DN's reply in its
+    loaned reply (sent as it is, never copied in by ``respond``), and the
+    bytes are those of the copy path, bit for bit: a twin logic framing the
+    same loop in its own buffer writes the same trigger, and the CN takes
+    the DN's reply (tag checked) into the same region bytes."""
+    loaned: list[memoryview] = []
+    copied: list[int] = []
+    client, server = pair.link.client, pair.ds.shm
+    assert server is not None
+    lend, respond = client.trigger, server.respond
+
+    def spy_trigger(n: int) -> Any:
+        view = lend(n)
+        loaned.append(view)
+        return view
+
+    def spy_respond(frame: Any) -> bool:
+        copied.append(len(frame))
+        return respond(frame)
+
+    monkeypatch.setattr(client, "trigger", spy_trigger)
+    monkeypatch.setattr(server, "respond", spy_respond)
+    twin = ControlLogic(pair.m, keys=sim_keys(pair.m))
+    for loop in (1, 2, 3):
+        t = T0 + loop * PERIOD
+        pair.cn.dv.set("dn0_setpoint", 0.25 * loop)
+        twin.dv.set("dn0_setpoint", 0.25 * loop)
+        served = threading.Thread(target=pair.ds.wait, args=(pair.dn, 10.0))
+        served.start()
+        frames = pair.cs.begin(pair.cn, loop, t)
+        sent = bytes(frames[0])
+        own = frames[0] is loaned[-1] if loaned else False
+        pair.cs.sync(frames, pair.cn)
+        served.join()
+        assert own, "the trigger is the loaned sample itself"
+        assert sent == bytes(twin.begin(loop, t)[0])
+        assert pair.cn.pending == 0
+        assert bytes(pair.cn.dv.region_view("dn0_to_cn")) == bytes(
+            pair.dn.dv.region_view("dn0_to_cn")
+        )
+        pair.dn.run(t)
+        assert pair.dn.dv.get("dn0_setpoint") == 0.25 * loop
+        pair.cn.finish()
+        twin.finish()
+    assert pair.link.on_shm and client.replies == 3 and server.replied == 3
+    assert len(loaned) == 3 and copied == []  # every reply went in its own loan
+    assert pair.ds.reply is None  # gone with its sample: nobody keeps it
+
+
+def test_a_dn_that_keeps_its_replies_copies_them_into_the_loan(pair: Pair) -> None:
+    """A DN whose flight recorder keeps every reply (``keep_reply``) frames it
+    in the logic's buffer, which stays readable after the send, and copies it
+    into the loaned reply: the recorder gets the bytes the CN took."""
+    pair.ds.keep_reply = True
+    for loop in (1, 2):
+        assert pair.loop(loop)
+        assert isinstance(pair.ds.reply, bytearray)
+        kept = bytes(pair.ds.reply)
+        assert bytes(pair.cn.dv.region_view("dn0_to_cn")) == bytes(
+            pair.dn.dv.region_view("dn0_to_cn")
+        )
+        assert kept[: len(kept) - TAG_LEN].endswith(bytes(pair.dn.dv.region_view("dn0_to_cn")))
+    assert pair.link.on_shm

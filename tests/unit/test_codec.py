@@ -444,3 +444,31 @@ def test_node_and_cn_layouts_agree(cn: DataVector, dn: DataVector) -> None:
     dn.set("temp", 21.0)
     RegionCodec(cn, "dn0_to_cn").apply(RegionCodec(dn, "dn0_to_cn").encode(1, 1))
     assert cn.get("temp") == 21.0
+
+
+@pytest.mark.parametrize("n", [0, 1, 255, 256, 65535, 65536, 100_003])
+@pytest.mark.parametrize("tail", [0, 24])
+def test_encode_into_writes_the_bytes_encode_writes(n: int, tail: int) -> None:
+    """A frame encoded into a caller's view (a loaned shared-memory sample)
+    is the encoder's own frame byte for byte, the tail room untouched."""
+    data = bytes(random.Random(n).randrange(256) for _ in range(min(n, 64))) * (n // 64 + 1)
+    data = data[:n]
+    enc = FrameEncoder(tail=tail)
+    want = bytes(enc.encode(7, 2**40 + 3, -5, data))
+    out = bytearray(b"\xaa" * enc.frame_len(n))
+    assert len(out) == len(want)
+    view = enc.encode_into(memoryview(out), 7, 2**40 + 3, -5, data)
+    assert view.obj is out
+    assert bytes(out[: len(out) - tail]) == want[: len(want) - tail]
+    assert bytes(out[len(out) - tail :]) == b"\xaa" * tail
+
+
+def test_encode_into_refuses_a_view_of_another_length_and_bad_headers() -> None:
+
+    enc = FrameEncoder(tail=24)
+    n = enc.frame_len(10)
+    for wrong in (n - 1, n + 1):
+        with pytest.raises(ValueError, match="buffer"):
+            enc.encode_into(memoryview(bytearray(wrong)), 1, 1, 1, bytes(10))
+    with pytest.raises(FrameFormatError):
+        enc.encode_into(memoryview(bytearray(n)), -1, 1, 1, bytes(10))

@@ -125,6 +125,30 @@ def test_up_shows_each_links_path_unless_the_mission_pins_zenoh() -> None:
     assert supervisor.sync_paths(zenoh_only, dv) == ""
 
 
+def test_up_shows_each_bulk_channels_path_from_its_readers_counters() -> None:
+    """``up``'s status line names, per bulk channel, the path its reader's
+    samples took lately: the counter (``bulk_<ch>_iox``, ``_shm``,
+    ``_copied``) that grew most since the last line (one that fell: a
+    restarted reader, counting from zero); ``-`` before any grew; the last
+    path seen while a slow channel's counters stand still."""
+    m = load_mission(CONFIGS / "camera.yaml")
+    dv = DataVector(Layout.for_node(m, "cn"))
+    paths = supervisor.BulkPaths(m)
+    assert paths.line(dv) == "  bulk frame=- flat_field=-"
+    dv.set("bulk_frame_iox", 100)  # the CN reads frame over iceoryx2
+    dv.set("bulk_flat_field_copied", 10)  # dn0 reads flat_field copied off zenoh
+    assert paths.line(dv) == "  bulk frame=iox flat_field=zenoh"
+    dv.set("bulk_frame_iox", 101)  # fell back meanwhile: zenoh's shared memory wins
+    dv.set("bulk_frame_shm", 99)
+    assert paths.line(dv) == "  bulk frame=zenoh-shm flat_field=zenoh"
+    assert paths.line(dv) == "  bulk frame=zenoh-shm flat_field=zenoh"  # nothing moved
+    dv.set("bulk_frame_iox", 5)  # the CN restarted: its counters start again
+    dv.set("bulk_frame_shm", 0)
+    assert paths.line(dv).startswith("  bulk frame=iox ")
+    no_bulk = load_mission(CONFIGS / "led_test.yaml")
+    assert supervisor.BulkPaths(no_bulk).line(DataVector(Layout.for_node(no_bulk, "cn"))) == ""
+
+
 def test_a_link_entry_overrides_the_missions_path_and_names_a_device_node(
     tmp_path: Path,
 ) -> None:

@@ -34,10 +34,10 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from ..config import STANDBY, Mission
+from ..config import STANDBY, Mission, counter_region
 from ..core.datavector import DataVector
 from ..core.events import EV
-from ..errors import NodeError
+from ..errors import DataVectorError, NodeError
 from ..ground.link import GroundLink
 from ..ground.script import MIN_DURATION_S, SETTLE_S
 from ..ground.status import RateMeter, status_line
@@ -228,6 +228,7 @@ def watch(
     stopping the nodes). Fills and returns ``w``. Blocks."""
     tty = sys.stdout.isatty()
     rate = RateMeter()
+    bulk_paths = BulkPaths(mission)
     first_t = 0
     start = time.monotonic()
     try:
@@ -334,6 +335,7 @@ def watch(
                 line = (
                     status_line(mission, link.dv, rate.hz)
                     + sync_paths(mission, link.dv)
+                    + bulk_paths.line(link.dv)
                     + station_states(children, w)
                 )
                 print(("\r" + line) if tty else line, end="" if tty else "\n", flush=True)
@@ -445,6 +447,48 @@ def station_states(children: Children, w: Watch) -> str:
         if n.startswith(STATION_PREFIX)
     ]
     return f"  stations {' '.join(states)}" if states else ""
+
+
+#: A bulk reader's counters (``bulk_<ch>_<counter>``, counter_elements) and
+#: the path each counts: iceoryx2, zenoh's shared memory, zenoh copied.
+BULK_PATHS = (("iox", "iox"), ("shm", "zenoh-shm"), ("copied", "zenoh"))
+
+
+class BulkPaths:
+    """``  bulk frame=iox flat_field=zenoh``: the path each bulk channel's
+    samples took to its reader lately (docs/architecture.md#intra-host), from
+    the reader's counters in telemetry (``bulk_<ch>_iox``, ``_shm``,
+    ``_copied``): the one that grew most between two calls; ``-`` until one
+    has grown (no sample yet, or a single snapshot), and the last path seen
+    while none grows (a slow channel). Channels whose readers report no
+    counters in telemetry (the ground's own) are left out; empty for a
+    mission without such a channel. Not thread-safe (the status loop)."""
+
+    def __init__(self, mission: Mission) -> None:
+        self._channels = [
+            ch.name for ch in mission.bulk if any(counter_region(r) is not None for r in ch.readers)
+        ]
+        self._last: dict[str, tuple[int, ...]] = {}
+        self._path = dict.fromkeys(self._channels, "-")
+
+    def line(self, dv: DataVector) -> str:
+        """The status line's part for telemetry snapshot ``dv``."""
+        parts = []
+        for ch in self._channels:
+            try:
+                now = tuple(int(dv.get(f"bulk_{ch}_{c}")) for c, _ in BULK_PATHS)
+            except DataVectorError:  # a layout without this channel's counters
+                continue
+            before = self._last.get(ch)
+            self._last[ch] = now
+            if before is not None:
+                # One lower than before: the reader restarted (a u32 at 100 Hz
+                # wraps after 497 days), so it counts from zero.
+                grew = [a - b if a >= b else a for a, b in zip(now, before, strict=True)]
+                if any(grew):
+                    self._path[ch] = BULK_PATHS[grew.index(max(grew))][1]
+            parts.append(f"{ch}={self._path[ch]}")
+        return f"  bulk {' '.join(parts)}" if parts else ""
 
 
 def _per_node(counts: dict[str, int]) -> str:

@@ -23,7 +23,7 @@ from __future__ import annotations
 
 import struct
 from collections.abc import Sequence
-from typing import Any, Protocol
+from typing import Any, Protocol, overload
 
 from .. import trace
 from ..boards import Board, HealthCounters, safe_board
@@ -214,7 +214,10 @@ class ControlLogic:
         self._from_dn = tuple(RegionCodec(dv, f"{dn}_to_cn") for dn in dns)
         self._ground = RegionCodec(dv, "gn_to_cn") if mission.has_ground else None
         self._tm = RegionCodec(dv, tail=TAG_LEN if self._seal_tm is not None else 0)
-        self._frames: list[bytearray] = [bytearray() for _ in dns]
+        self._frames: list[bytearray | memoryview] = [bytearray() for _ in dns]
+        self.trigger_lengths: tuple[int, ...] = tuple(c.frame_len for c in self._to_dn)
+        """Bytes of each DN's trigger frame, tag included (``dns`` order): what
+        :meth:`begin`'s ``into`` views must hold."""
         self._dropped = dv.handle("cn_cmd_dropped")
         self._number = RequestNumber(self.layout) if self._ground is not None else None
         # Refusals at the driver's intake: one event a second at most.
@@ -288,10 +291,20 @@ class ControlLogic:
 
     # -- the loop ------------------------------------------------------------
     def begin(
-        self, loop: int, t_ns: int, *, final: bool = False, standby: bool | None = None
-    ) -> list[bytearray]:
+        self,
+        loop: int,
+        t_ns: int,
+        *,
+        final: bool = False,
+        standby: bool | None = None,
+        into: Sequence[memoryview | None] | None = None,
+    ) -> list[bytearray | memoryview]:
         """Open loop ``loop`` at ``t_ns``; returns the query frame of each DN
-        (in ``mission.device_nodes`` order), stamped ``(loop, t_ns)``.
+        (in ``mission.device_nodes`` order), stamped ``(loop, t_ns)``: the
+        logic's own buffers (overwritten by the next call), or, for a DN whose
+        ``into`` view is given (exactly its :attr:`trigger_lengths` bytes, e.g.
+        a loaned shared-memory sample), that view, encoded and tagged in it
+        (the same bytes; no copy of the frame besides the encode's).
 
         ``final``: this is the run's last loop (module doc): every frame
         carries ``dnX_final`` true. The platform owns that element: it is
@@ -328,16 +341,36 @@ class ControlLogic:
             seal = self._seal_to_dn[i]
             if tr is not None:
                 tr.mark("cn.encode", i)
-            frame = codec.encode(loop, t_ns)
-            if tr is not None:
-                tr.mark("cn.encoded", i)
-            frames[i] = seal.seal_tail(frame) if seal is not None else frame
+            out = into[i] if into is not None else None
+            if out is None:
+                frame = codec.encode(loop, t_ns)
+                if tr is not None:
+                    tr.mark("cn.encoded", i)
+                frames[i] = seal.seal_tail(frame) if seal is not None else frame
+            else:
+                view = codec.encode_into(out, loop, t_ns)
+                if tr is not None:
+                    tr.mark("cn.encoded", i)
+                frames[i] = seal.seal_tail(view) if seal is not None else view
             if tr is not None:
                 tr.mark("cn.sealed", i)
         self.pending = len(got)
         if self.recorder is not None:
             self.recorder.begin(loop, t_ns, final, bool(standby))
         return frames
+
+    def trigger_frame(self, i: int) -> bytearray:
+        """DN ``i``'s trigger of the current loop once more, in the logic's own
+        buffer: the very bytes :meth:`begin` wrote (nothing between them
+        changes the region, and the tag is a function of the bytes), for a
+        driver whose shared-memory loan, which :meth:`begin` wrote into, could
+        not go and whose frame zenoh carries instead. One encode and tag."""
+        frame = self._to_dn[i].encode(self.loop, self.t_ns)
+        seal = self._seal_to_dn[i]
+        if seal is not None:
+            frame = seal.seal_tail(frame)
+        self._frames[i] = frame
+        return frame
 
     def reply(self, i: int, payload: bytes | bytearray | memoryview | None) -> bool:
         """Take one reply from DN ``i`` (``None``: the DN answered with an error).
@@ -794,6 +827,9 @@ class DeviceLogic:
         self._seal: Channel | None = channel(keys, f"{node}_to_cn", self._answering)
         # The reply is framed with room for its tag, tagged in place.
         self._out = RegionCodec(dv, f"{node}_to_cn", tail=TAG_LEN if self._seal else 0)
+        self.reply_length = self._out.frame_len
+        """Bytes of every reply frame, tag included: what :meth:`trigger`'s
+        ``into`` view must hold."""
         self._loop = dv.handle(f"{node}_loop")
         self._time = dv.handle(f"{node}_time_ns")
         self._errors = dv.handle(f"{node}_errors")
@@ -874,6 +910,28 @@ class DeviceLogic:
         self.reject_reason = ""
         """Why the last :meth:`trigger` returned None."""
 
+    @overload
+    def trigger(
+        self,
+        payload: bytes | bytearray | memoryview,
+        now_ns: int,
+        *,
+        may_run: bool = ...,
+        authentic: bool = ...,
+        into: None = ...,
+    ) -> bytearray | None: ...
+
+    @overload
+    def trigger(
+        self,
+        payload: bytes | bytearray | memoryview,
+        now_ns: int,
+        *,
+        may_run: bool = ...,
+        authentic: bool = ...,
+        into: memoryview | None,
+    ) -> bytearray | memoryview | None: ...
+
     def trigger(
         self,
         payload: bytes | bytearray | memoryview,
@@ -881,7 +939,8 @@ class DeviceLogic:
         *,
         may_run: bool = True,
         authentic: bool = False,
-    ) -> bytearray | None:
+        into: memoryview | None = None,
+    ) -> bytearray | memoryview | None:
         """Check one CN query frame (or a sync bundle holding it) and frame the reply.
 
         Returns the reply (``dnX_to_cn`` before this loop's run, stamped with
@@ -905,6 +964,12 @@ class DeviceLogic:
         costs tens of microseconds to hundreds (HMAC-SHA256), on the sync's
         critical path (``python -m bench.frame_trace``). Without it (the
         default, and every caller but the live driver) the tag is checked.
+
+        ``into``: a writable view of exactly :attr:`reply_length` bytes (a
+        loaned shared-memory sample) the reply is framed and tagged in, and
+        returned (the same bytes; no copy besides the encode's); None: the
+        logic's own buffer, overwritten by the next reply. Left unwritten
+        when the trigger is refused.
         """
         self.triggered = 0
         tr = trace.tracer
@@ -942,7 +1007,7 @@ class DeviceLogic:
                     return None
                 verdict = guard.admit(term, now_ns, self.last_trigger_ns)
                 if verdict == Verdict.FENCED or verdict == Verdict.LEASED:
-                    return self._fence(frame, term, verdict, now_ns)
+                    return self._fence(frame, term, verdict, now_ns, into)
             # Loop 0 is the CN's warm-up, never a loop.
             newer = frame.seq > 0 and (
                 frame.seq > self._seen_loop or frame.t_ns > self._seen_t + _RESTART_NS
@@ -995,6 +1060,15 @@ class DeviceLogic:
                 )
         if guard is not None:
             self._h_term_seen.set(guard.seen(now_ns))
+        if into is not None:
+            view = self._out.encode_into(into, frame.seq, now_ns)
+            if tr is not None:
+                tr.mark("dn.encoded")
+            if self._seal is not None:
+                self._seal.seal_tail(view)
+            if tr is not None:
+                tr.mark("dn.sealed")
+            return view
         reply = self._out.encode(frame.seq, now_ns)
         if tr is None:
             return self._seal.seal_tail(reply) if self._seal is not None else reply
@@ -1035,7 +1109,9 @@ class DeviceLogic:
             loop=loop,
         )
 
-    def _fence(self, frame: Frame, term: int, verdict: int, now_ns: int) -> bytearray:
+    def _fence(
+        self, frame: Frame, term: int, verdict: int, now_ns: int, into: memoryview | None
+    ) -> bytearray | memoryview:
         """Answer a trigger whose term this node does not run (zplatform.control.fencing):
         the reply says which term it follows (``dnX_term_seen``); nothing of
         the trigger is applied and nothing runs. Evented once a second at most."""
@@ -1062,6 +1138,9 @@ class DeviceLogic:
                 f"term still drives it (its last trigger ran {quiet})",
             )
         self._h_term_seen.set(guard.seen(now_ns))
+        if into is not None:
+            view = self._out.encode_into(into, frame.seq, now_ns)
+            return self._seal.seal_tail(view) if self._seal is not None else view
         reply = self._out.encode(frame.seq, now_ns)
         return self._seal.seal_tail(reply) if self._seal is not None else reply
 

@@ -28,7 +28,7 @@ import secrets
 import stat
 from collections.abc import Mapping
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 import blake3
 
@@ -70,6 +70,9 @@ __all__ = [
     "run_key",
     "write_key_set",
 ]
+
+#: What :meth:`Channel.seal_tail` tags in place: its own buffer, or a view.
+_Buf = TypeVar("_Buf", bytearray, memoryview)
 
 RUN_LEN = 8
 """Bytes of the run word that opens every tag (codecs/FORMAT.md §6.1): the
@@ -455,11 +458,12 @@ class Channel:
         mv[n + RUN_LEN : n + _MAC_AT] = k.htag(frame)
         mv[n + _MAC_AT :] = k.mac(frame)
 
-    def seal_tail(self, buf: bytearray) -> bytearray:
+    def seal_tail(self, buf: _Buf) -> _Buf:
         """Tag the frame that fills ``buf`` but for its last :data:`TAG_LEN`
         bytes, and write the tag there; returns ``buf`` (the frame is read
-        through a view, never copied). ValueError when ``buf`` has no room
-        for a frame and a tag."""
+        through a view, never copied; ``buf`` may be a writable memoryview,
+        e.g. a loaned shared-memory sample). ValueError when ``buf`` has no
+        room for a frame and a tag."""
         mv = memoryview(buf)
         n = len(mv) - TAG_LEN
         if n <= 0:

@@ -150,6 +150,47 @@ class FrameEncoder:
         self._mv[at : at + n] = data
         return self._buf
 
+    def frame_len(self, size: int) -> int:
+        """Bytes :meth:`encode` returns for ``size`` data bytes: the frame and
+        the tail room. What :meth:`encode_into` needs."""
+        return frame_overhead(size) + size + self.tail
+
+    def encode_into(
+        self,
+        out: memoryview,
+        layout_id: int,
+        seq: int,
+        t_ns: int,
+        data: bytes | bytearray | memoryview,
+    ) -> memoryview:
+        """Encode one frame into ``out`` (a writable byte view, e.g. a loaned
+        shared-memory sample) instead of the encoder's buffer: the same bytes
+        :meth:`encode` writes, with the tail room left as it is (a tag goes
+        there in place). One copy of ``data``, no allocation. ``out`` must be
+        exactly :meth:`frame_len` long (ValueError otherwise); raises
+        FrameFormatError for out-of-range header fields. Returns ``out``."""
+        n = len(data)
+        at = frame_overhead(n)
+        if len(out) != at + n + self.tail:
+            raise ValueError(
+                f"a frame of {n} data bytes and {self.tail} of tail room is "
+                f"{at + n + self.tail} bytes, the buffer {len(out)}"
+            )
+        try:
+            _HDR.pack_into(out, 0, 0x94, 0xCE, layout_id, 0xCF, seq, 0xD3, t_ns)
+        except struct.error as exc:
+            raise FrameFormatError(
+                f"header out of range (layout_id {layout_id}, seq {seq}, t_ns {t_ns}): {exc}"
+            ) from exc
+        if n < 256:
+            _BIN8.pack_into(out, _HDR_LEN, 0xC4, n)
+        elif n < 65536:
+            _BIN16.pack_into(out, _HDR_LEN, 0xC5, n)
+        else:
+            _BIN32.pack_into(out, _HDR_LEN, 0xC6, n)
+        out[at : at + n] = data
+        return out
+
 
 _decoder = msgspec.msgpack.Decoder(Frame)
 
@@ -292,6 +333,19 @@ class RegionCodec:
         """Frame the region now (followed by the tail room, if any); the
         returned buffer is reused by the next call."""
         return self._enc.encode(self.layout_id, seq, t_ns, self._view)
+
+    @property
+    def frame_len(self) -> int:
+        """Bytes :meth:`encode` returns: the region's frame and the tail room."""
+        return self._enc.frame_len(self.size)
+
+    def encode_into(self, out: memoryview, seq: int, t_ns: int) -> memoryview:
+        """Frame the region now straight into ``out`` (exactly
+        :attr:`frame_len` bytes, e.g. a loaned shared-memory sample: the tail
+        room is left for the tag, written in place); the same bytes as
+        :meth:`encode`, one copy of the region, no allocation. Returns ``out``;
+        ValueError for another length, FrameFormatError as :meth:`encode`."""
+        return self._enc.encode_into(out, self.layout_id, seq, t_ns, self._view)
 
     def check(self, frame: bytes | bytearray | memoryview) -> Frame:
         """Decode and check without applying (raises CodecError)."""

@@ -628,7 +628,9 @@ class ControlNode:
             or self.stop.is_set()
         )
         standby = ready if self.redundant else None
-        overrun = self.sync.sync(logic.begin(loop, t, final=final, standby=standby), logic)
+        # Triggers over shared memory are encoded straight into their loans.
+        frames = self.sync.begin(logic, loop, t, final=final, standby=standby)
+        overrun = self.sync.sync(frames, logic)
         self._query_recoveries(t)
         self._sync_paths(t)
         grounds = self._grounds

@@ -440,6 +440,7 @@ class DeviceNode:
                 raise NodeError(f"{self.name} cannot start its flight recorder: {exc}") from exc
             rec.attach(self.dv, self.logic.events)
             self.flight_recorder = rec
+            self.sync.keep_reply = True  # it records each reply after the loop ran
             self.liveness.add(rec.heartbeat)
             log.info("%s flight recorder: %s", self.name, rec.directory)
         self._events = EventPublisher(

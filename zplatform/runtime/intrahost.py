@@ -11,8 +11,8 @@ says when the link has no peer or has stalled, so the sync falls back to zenoh.
 :class:`IntraHostPublisher`/:class:`IntraHostSubscriber`: a bulk channel's
 publish/subscribe service (:func:`bulk_service_name`; ``bulk.py`` uses them).
 
-Copies per hop: the sender copies its frame into the loaned sample once, the
-receiver checks it in place and copies once into its Data Vector. Names
+Copies per hop: the sender encodes into the loaned sample, the receiver
+checks it in place and copies once into its Data Vector. Names
 (:func:`sync_link_names`: one kernel and network namespace) hold both nodes;
 segments are sized (:func:`mission_link_sizes`) and refused when ``/dev/shm``
 cannot hold them (:func:`check_shm`); dead processes' resources are removed
@@ -426,6 +426,9 @@ class IntraHostClient(_End):
         if not 1 <= n <= self.max_trigger:
             raise IntraHostError(f"intra-host trigger of {n} bytes, bound {self.max_trigger}")
         self.release()
+        # A loan not sent (a caller that lent and never sent) goes back first:
+        # the client may hold one loan at a time.
+        self._loan = None
         try:
             self._loan = self._client.loan_slice_uninit(n)
         except Exception:  # LoanError: every slot held by a stuck peer

@@ -254,10 +254,11 @@ class ShmQuery:
     ``zenoh.Query`` by :class:`DeviceSync` (``with``, :meth:`reply`,
     :meth:`reply_err`) on the loop thread that owns ``server``."""
 
-    __slots__ = ("server",)
+    __slots__ = ("_lent", "server")
 
     def __init__(self, server: IntraHostServer) -> None:
         self.server = server
+        self._lent: memoryview | None = None
 
     def __enter__(self) -> ShmQuery:
         return self
@@ -265,10 +266,22 @@ class ShmQuery:
     def __exit__(self, *exc: object) -> None:
         pass
 
-    def reply(self, key: object, payload: bytes | bytearray) -> None:
-        """Send ``payload`` back over the link (``key`` is zenoh's, unused):
-        one copy into a loaned sample. A client that has gone gets nothing."""
-        self.server.respond(payload)
+    def lend(self, n: int) -> memoryview | None:
+        """A writable view of a loaned reply of ``n`` bytes to encode the reply
+        in (``DeviceLogic.trigger(into=...)``); None when the client has gone
+        or no sample is free (the reply is then copied in, or goes nowhere)."""
+        self._lent = view = self.server.reply(n)
+        return view
+
+    def reply(self, key: object, payload: bytes | bytearray | memoryview) -> None:
+        """Send ``payload`` back over the link (``key`` is zenoh's, unused): the
+        loan :meth:`lend` gave as it is, any other frame copied into a loaned
+        sample (one copy). A client that has gone gets nothing."""
+        lent, self._lent = self._lent, None
+        if lent is not None and payload is lent:
+            self.server.send()
+        else:
+            self.server.respond(payload)
 
     def reply_err(self, payload: bytes) -> None:
         """No error replies over shared memory: the CN counts the loop as
@@ -319,6 +332,13 @@ class ControlSync:
         self.shm: tuple[ShmLink | None, ...] = tuple(shm) if shm else (None,) * len(dns)
         self._has_shm = any(link is not None for link in self.shm)
         self._sent_shm: list[int] = []
+        # :meth:`lend`'s choice per DN for the coming sync (None: not made,
+        # the sync asks the link), the loans it handed out (the triggers are
+        # encoded straight into them), and the frames the sync sends
+        # (the logic's, a lent one swapped for its copy if its send failed).
+        self._chosen: list[bool | None] = [None] * len(dns)
+        self._lent: list[memoryview | None] = [None] * len(dns)
+        self._out: list[bytearray | memoryview] = [bytearray() for _ in dns]
         self.session = session
         self._trace = trace
         self.dns = list(dns)
@@ -531,8 +551,58 @@ class ControlSync:
         out.reply_foreign = foreign
         out.query_recovered, self._recovered_n = self._recovered_n, 0
 
+    def begin(
+        self,
+        logic: ControlLogic,
+        loop: int,
+        t_ns: int,
+        *,
+        final: bool = False,
+        standby: bool | None = None,
+    ) -> list[bytearray | memoryview]:
+        """``logic.begin`` with each trigger that goes over shared memory this
+        loop encoded straight into its loaned sample (:meth:`lend`): what the
+        driver hands :meth:`sync` next. Blocks never; raises what
+        ``logic.begin`` raises."""
+        into = self.lend(logic.trigger_lengths)
+        return logic.begin(loop, t_ns, final=final, standby=standby, into=into)
+
+    def lend(self, lengths: Sequence[int]) -> list[memoryview | None] | None:
+        """Choose each DN's path for the coming :meth:`sync` now
+        (:meth:`ShmLink.try_shm`, once a loop) and lend a writable view of a
+        loaned shared-memory sample of ``lengths[i]`` bytes (the trigger's
+        length, ``ControlLogic.trigger_lengths``) for each DN whose trigger
+        goes over its link, for ``ControlLogic.begin(into=...)`` to encode
+        and tag the trigger in: the sync then sends the sample as it is, and
+        the frame is never copied (docs/architecture.md#intra-host). None in
+        place of a view: the DN's frame is the logic's own (zenoh carries it,
+        or a tap subscribes to it, which reads it after the send, so it is
+        copied into a loan at the send as before). Returns None when no DN
+        has a link. Valid for the next :meth:`sync` only; never blocks."""
+        if not self._has_shm:
+            return None
+        lent, chosen, taps = self._lent, self._chosen, self._taps
+        for i, link in enumerate(self.shm):
+            lent[i] = None
+            if link is None:
+                continue
+            go = chosen[i] = link.try_shm()
+            if not go or taps[i].matching:
+                continue
+            buf = link.client.trigger(lengths[i])
+            if buf is None:
+                link.no_peer("no sample to lend (the DN holds them all)")
+                chosen[i] = False
+                continue
+            lent[i] = buf
+        return lent
+
     def sync(
-        self, frames: Sequence[bytearray], logic: ControlLogic, *, warmup: bool = False
+        self,
+        frames: Sequence[bytearray | memoryview],
+        logic: ControlLogic,
+        *,
+        warmup: bool = False,
     ) -> bool:
         """Send each DN its frame and hand replies to ``logic.reply`` until
         none is pending or the deadline passed. Returns whether the step
@@ -549,7 +619,14 @@ class ControlSync:
         for i, check in enumerate(self._checks):
             check.expect(logic.loop, logic.t_ns)
             got[i] = False
-        zenoh_too = self._send_shm(frames) if self._has_shm else n
+        if self._has_shm:
+            out = self._out
+            for i in range(n):
+                out[i] = frames[i]
+            zenoh_too = self._send_shm(out, logic)
+            frames = out
+        else:
+            zenoh_too = n
         if warmup:
             callbacks = self._counted
             issued = (1 if self.wildcard and zenoh_too == n else zenoh_too) if zenoh_too else 0
@@ -568,7 +645,7 @@ class ControlSync:
                 self.session,
                 self._all,
                 self._any_counted if warmup else self._any,
-                payload=self._bundle.pack(frames),
+                payload=self._bundle.pack(frames),  # frames of no loan: none went
                 timeout_s=self._query_timeout,
             )
             if tr is not None:
@@ -588,19 +665,29 @@ class ControlSync:
                     trace("issued", i)
                 if tr is not None:
                     tr.mark("sync.issued", i, len(frames[i]))
+                frame = frames[i]
                 ask(
                     self.session,
                     self._keys[i],
                     callbacks[i],
-                    payload=frames[i],
+                    # Only a caller's own view (never a loan: a lent frame
+                    # zenoh carries was swapped for the logic's copy) is copied.
+                    payload=frame if type(frame) is not memoryview else bytes(frame),
                     timeout_s=self._query_timeout,
                 )
                 if tr is not None:
                     tr.mark("sync.sent", i)
-        # The taps after the queries: tools may wait, the DNs may not.
+        # The taps after the queries: tools may wait, the DNs may not. A
+        # trigger encoded into its loan has gone with it: nobody subscribed
+        # when it was lent (a tap that came since misses this one).
         taps = self._taps
+        lent = self._lent
         for i in range(n):
-            taps[i].put(frames[i])
+            frame = frames[i]
+            if lent[i] is None:
+                taps[i].put(frame if type(frame) is not memoryview else bytes(frame))
+            else:
+                lent[i] = None
         if self._sent_shm:
             self._collect_shm(logic, deadline, trace)
         q = self._q
@@ -624,32 +711,50 @@ class ControlSync:
         self._watch(got)
         return end > deadline + (self.timeout_ns // 2 if logic.pending else 0)
 
-    def _send_shm(self, frames: Sequence[bytearray]) -> int:
+    def _send_shm(self, frames: list[bytearray | memoryview], logic: ControlLogic) -> int:
         """Send the triggers of the DNs whose link takes shared memory this
-        loop (:meth:`ShmLink.try_shm`); returns how many DNs zenoh carries.
-        A link without a peer (or a sample to lend) hands its trigger back
-        to zenoh in the same loop: nothing is lost."""
+        loop (:meth:`lend`'s choice, else :meth:`ShmLink.try_shm`); returns
+        how many DNs zenoh carries. A trigger encoded into its loan
+        (:meth:`lend`) goes as it is; any other is copied into a loan (the one
+        copy). A link without a peer (or a sample to lend) hands its trigger
+        back to zenoh in the same loop, a lent one re-encoded in the logic's
+        buffer (``ControlLogic.trigger_frame``, the same bytes): nothing is lost."""
         sent = self._sent_shm
         sent.clear()
         trace = self._trace
+        chosen, lent = self._chosen, self._lent
         for i, link in enumerate(self.shm):
-            if link is None or not link.try_shm():
+            if link is None:
+                continue
+            go, chosen[i] = chosen[i], None
+            if go is None:
+                go = link.try_shm()
+            if not go:
                 continue
             frame = frames[i]
             client = link.client
-            buf = client.trigger(len(frame))
+            buf = lent[i]
             if buf is None:
-                link.no_peer("no sample to lend (the DN holds them all)")
-                continue
+                buf = client.trigger(len(frame))
+                if buf is None:
+                    link.no_peer("no sample to lend (the DN holds them all)")
+                    continue
+                buf[:] = frame  # the one copy of the trigger into shared memory
+            elif frame is not buf:
+                buf[:] = frame  # a caller that did not encode into the loan
+                lent[i] = None  # its frame is its own: the tap may read it
             if trace is not None:
                 trace("issued", i)
-            buf[:] = frame  # the one copy of the trigger into shared memory
             if not client.send():
                 link.no_peer(
                     "no shared-memory server"
                     if client.state is LinkState.NO_PEER
                     else "the send failed"
                 )
+                if lent[i] is not None:
+                    # The loan went with the send: zenoh needs the frame's bytes.
+                    lent[i] = None
+                    frames[i] = logic.trigger_frame(i)
                 continue
             sent.append(i)
         return len(self.dns) - len(sent)
@@ -818,8 +923,13 @@ class DeviceSync:
         self._box = box
         self._tap = TapPublisher(session, self._key)
         self.reply: bytearray | None = None
-        """The last reply frame sent (None: an error reply), the logic's own
-        buffer: valid until the next query is served."""
+        """The last reply frame sent, the logic's own buffer: valid until the
+        next query is served. None: an error reply, or a reply encoded straight
+        into its shared-memory sample (gone with it; see :attr:`keep_reply`)."""
+        self.keep_reply = False
+        """Whether :attr:`reply` must hold every reply (a flight recorder keeps
+        them): replies over shared memory are then framed in the logic's
+        buffer and copied into their sample, as a tap's are."""
         admit = intake.admit
 
         def handoff(query: zenoh.Query) -> None:
@@ -998,10 +1108,18 @@ class DeviceSync:
         path = self._path
         if path is not None:
             path.set(PATH_SHM if type(query) is ShmQuery else PATH_ZENOH)
+        # Over shared memory the reply is framed and tagged straight in its
+        # loaned sample (no copy), unless someone reads it after it went: a
+        # tap subscriber, or the flight recorder (keep_reply).
+        into = None
+        if type(query) is ShmQuery and not self.keep_reply and not self._tap.matching:
+            into = query.lend(logic.reply_length)
         with query:
             # The intake checked this payload's tag already (module doc).
-            reply = logic.trigger(data, self._now(), may_run=may_run, authentic=self._authentic)
-            self.reply = reply
+            reply = logic.trigger(
+                data, self._now(), may_run=may_run, authentic=self._authentic, into=into
+            )
+            self.reply = reply if isinstance(reply, bytearray) else None
             if reply is None:
                 # "dnX: reason": a wildcard query's error replies carry no key.
                 query.reply_err(self._err_prefix + logic.reject_reason.encode())
@@ -1011,8 +1129,8 @@ class DeviceSync:
             trace("replied", logic.last_loop)
         if tr is not None:
             tr.mark("dn.replied", logic.last_loop)
-        if reply is not None:
-            self._tap.put(reply)
+        if reply is not None and into is None:
+            self._tap.put(reply if isinstance(reply, bytearray) else bytes(reply))
 
     def close(self) -> None:
         self.queryable.undeclare()
