@@ -91,16 +91,40 @@ atexit.register(shutil.rmtree, _PYCACHE, True)
 # deadlines: the live tests are built to pass beside a CPU hog, not beside
 # each other by design, and the namespaces and relays they make are named
 # per test run, not per worker.
+# The fault and integration files below start no node process and fly no
+# mission (their nodes' logic, zenoh sessions, routers and relays are in this
+# process, on free ports; the fuzzers are CPU-bound subprocesses with no
+# deadline): they need not wait behind the live tests, and run on whichever
+# worker is free.
 _IN_PROCESS_SYSTEM = {"test_failover_sim.py", "test_flight.py", "test_lockstep_missions.py"}
+_IN_PROCESS = {
+    "faults": {
+        "test_acl_declarations.py",
+        "test_fuzz.py",
+        "test_insider.py",
+        "test_insider_acl.py",
+        "test_insider_terms.py",
+        "test_keyspace_faults.py",
+        "test_wan.py",
+    },
+    "integration": {
+        "test_archive_server.py",
+        "test_console_history_remote.py",
+        "test_ground_event_intake.py",
+        "test_lowlatency.py",
+        "test_recorder_server.py",
+        "test_routers.py",
+        "test_shm_sync.py",
+    },
+    "system": _IN_PROCESS_SYSTEM,
+}
 _LIVE_UNIT = {("unit", "test_world.py")}
 
 
 def _runs_live(path: pathlib.Path) -> bool:
     kind = path.parent.name
-    if kind in {"faults", "integration"}:
-        return True
-    if kind == "system":
-        return path.name not in _IN_PROCESS_SYSTEM
+    if kind in {"faults", "integration", "system"}:
+        return path.name not in _IN_PROCESS[kind]
     return (kind, path.name) in _LIVE_UNIT
 
 
