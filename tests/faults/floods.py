@@ -560,16 +560,32 @@ def _cmd_replay(
     )
 
 
+def _on_zenoh(path: Path) -> Path:
+    """Mission ``path`` with its sync on zenoh (``transport.intra_host:
+    zenoh``), rewritten in place. The floods attack what a network peer
+    reaches: with the nodes on one host the sync would take shared memory
+    (iceoryx2, reached by no peer: the ``bulk`` row's reason), and the
+    control node would send no query for a rogue to answer (the reply
+    flood's attacker waited in vain for one, or got them only while a
+    stalled link fell back to zenoh)."""
+    raw = yaml.safe_load(path.read_text())
+    raw.setdefault("transport", {})["intra_host"] = "zenoh"
+    raw["transport"].pop("intra_host_links", None)
+    path.write_text(yaml.safe_dump(raw, sort_keys=False))
+    return path
+
+
 def case_restart_beside_rogue(tmp: Path, quick: bool) -> CaseResult:
     """dn0 killed and restarted while a rogue answers on its key at ``RATE``
     (junk and dn0's own captured replies): the CN, which took replies only
     from dn0's first session, takes the restarted dn0's (a new zenoh
     session) once the first has gone quiet (:data:`zplatform.runtime.sync.REPIN_AFTER`
-    loops), and never the rogue's (the minimal mission on plain TCP)."""
+    loops), and never the rogue's (the minimal mission on plain TCP, its
+    sync on zenoh: the rogue gets the CN's queries from the start)."""
     r = CaseResult("restart_beside_rogue")
     a: Attacker | None = None
     try:
-        with live(tmp, mission=plain_tcp_mission(MINIMAL, tmp / "plain.yaml")) as c:
+        with live(tmp, mission=_on_zenoh(plain_tcp_mission(MINIMAL, tmp / "plain.yaml"))) as c:
             c.spawn_node("dn0")
             c.spawn_node("cn")
             c.ready()

@@ -26,7 +26,7 @@ operator's command frames on the wire), replayed.
 :func:`case_keyfloods` runs every flood of a mission one after the other in
 ONE flight (``flight`` with its standby: LANDED; ``recovery_igniter``:
 DEPLOYED), nodes as configured (SCHED_FIFO) or without real-time priority,
-their sync on zenoh (the path a network peer reaches, :func:`_on_zenoh`).
+their sync on zenoh (the path a network peer reaches, :func:`floods._on_zenoh`).
 Checks per flood: the flight goes on (no fault, no DN safed), no takeover
 (``cn_term`` and ``cn_commander`` unchanged, with a standby), every node's
 RSS within :data:`~tests.faults.floods.RSS_MARGIN_MB` of before, at most
@@ -72,6 +72,7 @@ from tests.faults.floods import (
     Wiretap,
     _events,
     _Mark,
+    _on_zenoh,
     _window,
     flood_figures,
     operator,
@@ -403,23 +404,6 @@ def _attacker(c: Live, fl: Flood, tmp: Path, flood_s: float, tap: Wiretap) -> At
     if fl.capture == "wiretap":
         a.give(tap.frames)
     return a
-
-
-def _on_zenoh(path: Path) -> Path:
-    """Mission ``path`` with its sync on zenoh (``transport.intra_host:
-    zenoh``), rewritten in place. The floods attack what a network peer
-    reaches: with the nodes on one host the sync would take shared memory
-    (iceoryx2, reached by no peer: the ``bulk`` row's reason), and the
-    control node would send no query for a rogue to answer (the reply
-    flood's attacker waited in vain for one, or got them only while a
-    stalled link fell back to zenoh)."""
-    import yaml
-
-    raw = yaml.safe_load(path.read_text())
-    raw.setdefault("transport", {})["intra_host"] = "zenoh"
-    raw["transport"].pop("intra_host_links", None)
-    path.write_text(yaml.safe_dump(raw, sort_keys=False))
-    return path
 
 
 def case_keyfloods(
