@@ -33,10 +33,16 @@ whenever someone else ran one).
 The suite starts hundreds of Python processes (nodes, ground tools), and
 each compiled every zplatform module from source where the environment
 says ``PYTHONDONTWRITEBYTECODE`` (this machine's does): a fifth of a second
-of CPU per process. They share one bytecode cache of the session instead
-(``PYTHONPYCACHEPREFIX``, a temporary directory removed at exit): the
-first process compiles a module, the others read it; nothing is written
-beside the sources.
+of CPU per process. Likewise each pytest worker compiled, and rewrote the
+asserts of, every test module it collected, run after run (about half of
+its collection's CPU). They all share one bytecode cache instead
+(``PYTHONPYCACHEPREFIX``, and ``sys.pycache_prefix`` here, before any test
+module is imported): the first process compiles a module, the others read
+it. In a virtual environment (scripts/test.sh's ``.venv``) the cache is
+kept there (``zplatform-test-pycache``), for the next run too; elsewhere it
+is a temporary directory removed at exit. Nothing is written beside the
+sources either way (a cached file stands for its source only while the
+source's size and time are unchanged: Python's and pytest's own check).
 """
 
 from __future__ import annotations
@@ -46,6 +52,7 @@ import os
 import pathlib
 import secrets
 import shutil
+import sys
 import tempfile
 
 import pytest
@@ -77,10 +84,16 @@ _ARCHIVE_DIR = tempfile.mkdtemp(prefix="zplatform-test-archive-")
 os.environ["ZPLATFORM_ARCHIVE_DIR"] = _ARCHIVE_DIR
 atexit.register(shutil.rmtree, _ARCHIVE_DIR, True)
 
-_PYCACHE = tempfile.mkdtemp(prefix="zplatform-test-pycache-")
+if sys.prefix != sys.base_prefix:  # a virtual environment: the suite's own
+    _PYCACHE = os.path.join(sys.prefix, "zplatform-test-pycache")
+    os.makedirs(_PYCACHE, exist_ok=True)
+else:
+    _PYCACHE = tempfile.mkdtemp(prefix="zplatform-test-pycache-")
+    atexit.register(shutil.rmtree, _PYCACHE, True)
 os.environ.pop("PYTHONDONTWRITEBYTECODE", None)
 os.environ["PYTHONPYCACHEPREFIX"] = _PYCACHE
-atexit.register(shutil.rmtree, _PYCACHE, True)
+sys.dont_write_bytecode = False
+sys.pycache_prefix = _PYCACHE
 
 
 # Tests that run node processes in real time (loops at 100 Hz, zenoh
