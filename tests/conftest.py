@@ -33,10 +33,16 @@ whenever someone else ran one).
 The suite starts hundreds of Python processes (nodes, ground tools), and
 each compiled every zplatform module from source where the environment
 says ``PYTHONDONTWRITEBYTECODE`` (this machine's does): a fifth of a second
-of CPU per process. They share one bytecode cache of the session instead
-(``PYTHONPYCACHEPREFIX``, a temporary directory removed at exit): the
-first process compiles a module, the others read it; nothing is written
-beside the sources.
+of CPU per process. Likewise each pytest worker compiled, and rewrote the
+asserts of, every test module it collected, run after run (about half of
+its collection's CPU). They all share one bytecode cache instead
+(``PYTHONPYCACHEPREFIX``, and ``sys.pycache_prefix`` here, before any test
+module is imported): the first process compiles a module, the others read
+it. In a virtual environment (scripts/test.sh's ``.venv``) the cache is
+kept there (``zplatform-test-pycache``), for the next run too; elsewhere it
+is a temporary directory removed at exit. Nothing is written beside the
+sources either way (a cached file stands for its source only while the
+source's size and time are unchanged: Python's and pytest's own check).
 """
 
 from __future__ import annotations
@@ -46,6 +52,7 @@ import os
 import pathlib
 import secrets
 import shutil
+import sys
 import tempfile
 
 import pytest
@@ -77,10 +84,16 @@ _ARCHIVE_DIR = tempfile.mkdtemp(prefix="zplatform-test-archive-")
 os.environ["ZPLATFORM_ARCHIVE_DIR"] = _ARCHIVE_DIR
 atexit.register(shutil.rmtree, _ARCHIVE_DIR, True)
 
-_PYCACHE = tempfile.mkdtemp(prefix="zplatform-test-pycache-")
+if sys.prefix != sys.base_prefix:  # a virtual environment: the suite's own
+    _PYCACHE = os.path.join(sys.prefix, "zplatform-test-pycache")
+    os.makedirs(_PYCACHE, exist_ok=True)
+else:
+    _PYCACHE = tempfile.mkdtemp(prefix="zplatform-test-pycache-")
+    atexit.register(shutil.rmtree, _PYCACHE, True)
 os.environ.pop("PYTHONDONTWRITEBYTECODE", None)
 os.environ["PYTHONPYCACHEPREFIX"] = _PYCACHE
-atexit.register(shutil.rmtree, _PYCACHE, True)
+sys.dont_write_bytecode = False
+sys.pycache_prefix = _PYCACHE
 
 
 # Tests that run node processes in real time (loops at 100 Hz, zenoh
@@ -91,16 +104,40 @@ atexit.register(shutil.rmtree, _PYCACHE, True)
 # deadlines: the live tests are built to pass beside a CPU hog, not beside
 # each other by design, and the namespaces and relays they make are named
 # per test run, not per worker.
+# The fault and integration files below start no node process and fly no
+# mission (their nodes' logic, zenoh sessions, routers and relays are in this
+# process, on free ports; the fuzzers are CPU-bound subprocesses with no
+# deadline): they need not wait behind the live tests, and run on whichever
+# worker is free.
 _IN_PROCESS_SYSTEM = {"test_failover_sim.py", "test_flight.py", "test_lockstep_missions.py"}
+_IN_PROCESS = {
+    "faults": {
+        "test_acl_declarations.py",
+        "test_fuzz.py",
+        "test_insider.py",
+        "test_insider_acl.py",
+        "test_insider_terms.py",
+        "test_keyspace_faults.py",
+        "test_wan.py",
+    },
+    "integration": {
+        "test_archive_server.py",
+        "test_console_history_remote.py",
+        "test_ground_event_intake.py",
+        "test_lowlatency.py",
+        "test_recorder_server.py",
+        "test_routers.py",
+        "test_shm_sync.py",
+    },
+    "system": _IN_PROCESS_SYSTEM,
+}
 _LIVE_UNIT = {("unit", "test_world.py")}
 
 
 def _runs_live(path: pathlib.Path) -> bool:
     kind = path.parent.name
-    if kind in {"faults", "integration"}:
-        return True
-    if kind == "system":
-        return path.name not in _IN_PROCESS_SYSTEM
+    if kind in {"faults", "integration", "system"}:
+        return path.name not in _IN_PROCESS[kind]
     return (kind, path.name) in _LIVE_UNIT
 
 

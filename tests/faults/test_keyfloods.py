@@ -14,7 +14,9 @@
 from __future__ import annotations
 
 import json
+import time
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -26,6 +28,7 @@ from tests.faults.keyfloods import (
     flood_plan,
     representatives,
 )
+from tests.payload import FakeQuery
 from zplatform.mission.load import load_mission
 from zplatform.security.keyspace import KEYSPACE, KeyFrames, KeyRow, expand_keys
 
@@ -125,7 +128,7 @@ def test_a_row_added_later_gets_its_flood_or_fails_the_plan() -> None:
 # test_a_lost_route_is_recovered_well_before_the_dns_watchdog). The pad
 # run's reply flood also waited for the CN's queries
 # on dn0's key, sent only over zenoh: the suite now syncs on zenoh
-# (keyfloods._on_zenoh), and the run is back in the default suite.
+# (floods._on_zenoh), and the run is back in the default suite.
 @pytest.mark.timeout(120)
 def test_one_flood_per_class_on_the_pad(tmp_path: Path) -> None:
     """The representative run: a query key, a sample key and the reply path
@@ -151,33 +154,23 @@ def test_every_flood_in_one_flight(mission: str, realtime: bool, tmp_path: Path)
 # -- the commander's own services under a keyless flood (in process) ------------------
 
 
-class _Query:
-    """A query as zenoh hands a queryable's callback one: its payload, and
-    what the server did with it (finalised unanswered, replied, replied an
-    error)."""
+def _recorder_server(m: Any, s: Any) -> Any:
+    """The CN's flight recorder server on session ``s``, its run never the
+    one asked (junk never reaches the files)."""
+    from zplatform.core.auth import KeySet, channel
+    from zplatform.recorder import server as rs
 
-    def __init__(self, payload: bytes) -> None:
-        import zenoh
-
-        self.payload = zenoh.ZBytes(payload)
-        self.dropped = False
-        self.replies: list[bytes] = []
-        self.errors = 0
-
-    def __enter__(self) -> _Query:
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        return None
-
-    def drop(self) -> None:
-        self.dropped = True
-
-    def reply(self, _key: str, payload: bytes) -> None:
-        self.replies.append(bytes(payload))
-
-    def reply_err(self, _payload: bytes) -> None:
-        self.errors += 1
+    keys = KeySet.from_master(m, bytes(range(32)))
+    rec = type("R", (), {"run": -1})()
+    return rs.RecorderServer(
+        s,
+        f"{m.vehicle}/cn/recorder",
+        rec,
+        channel(keys.for_node("cn"), "telemetry"),
+        now_ns=time.time_ns,
+        max_age_ns=10**9,
+        serve_bps=10**9,
+    )
 
 
 def _junk(size: int, n: int) -> list[bytes]:
@@ -197,8 +190,6 @@ def test_a_keyless_clock_flood_never_reaches_the_servers_thread() -> None:
     Now every junk query, and a replay of a genuine one, is refused in
     zenoh's callback: dropped unanswered, no error reply, nothing handed
     to the thread, each counted; the genuine query is still answered."""
-    import time
-
     from tests.zsession import lone_session
     from zplatform.core.auth import KeySet
     from zplatform.runtime.clocksync import ClockLink, ClockServer
@@ -211,10 +202,10 @@ def test_a_keyless_clock_flood_never_reaches_the_servers_thread() -> None:
     s = lone_session()
     server = ClockServer(s, KeySpace(m.vehicle), time.time_ns, m, keys.for_node("cn"))
     try:
-        first = _Query(genuine)
+        first = FakeQuery(genuine)
         server.on_query(first)  # type: ignore[arg-type]
-        flood = [_Query(p) for p in _junk(len(genuine), 2000)]
-        flood += [_Query(genuine) for _ in range(500)]  # the genuine query, replayed
+        flood = [FakeQuery(p) for p in _junk(len(genuine), 2000)]
+        flood += [FakeQuery(genuine) for _ in range(500)]  # the genuine query, replayed
         for q in flood:
             server.on_query(q)  # type: ignore[arg-type]
     finally:
@@ -233,28 +224,15 @@ def test_a_keyless_recorder_flood_is_bounded_before_the_servers_thread() -> None
     callback drops the excess unread: of a burst of 2,000, at most
     REQUEST_BURST (and one more per REQUEST_EVERY_NS) reach the thread;
     every other is dropped unanswered and counted in ``excess``."""
-    import time
-
     from tests.zsession import lone_session
-    from zplatform.core.auth import TAG_LEN, KeySet, channel
+    from zplatform.core.auth import TAG_LEN
     from zplatform.recorder import server as rs
     from zplatform.recorder.format import REQUEST
 
-    m = _LOADED["recovery_igniter"]
-    keys = KeySet.from_master(m, bytes(range(32)))
     s = lone_session()
-    rec = type("R", (), {"run": -1})()  # junk never reaches the files
-    server = rs.RecorderServer(
-        s,
-        f"{m.vehicle}/cn/recorder",
-        rec,  # type: ignore[arg-type]
-        channel(keys.for_node("cn"), "telemetry"),
-        now_ns=time.time_ns,
-        max_age_ns=10**9,
-        serve_bps=10**9,
-    )
+    server = _recorder_server(_LOADED["recovery_igniter"], s)
     t0 = time.monotonic_ns()
-    flood = [_Query(p) for p in _junk(REQUEST.size + TAG_LEN, 2000)]
+    flood = [FakeQuery(p) for p in _junk(REQUEST.size + TAG_LEN, 2000)]
     for q in flood:
         server.on_query(q)
     took = time.monotonic_ns() - t0
@@ -295,29 +273,17 @@ def test_the_recorder_servers_refusals_are_logged_at_most_once_a_second(
     a second at most (a thread of its own; zenoh's callback only counts),
     the last (at close) naming the whole count."""
     import logging
-    import time
 
     from tests.zsession import lone_session
-    from zplatform.core.auth import TAG_LEN, KeySet, channel
+    from zplatform.core.auth import TAG_LEN
     from zplatform.recorder import server as rs
     from zplatform.recorder.format import REQUEST
 
-    m = _LOADED["recovery_igniter"]
-    keys = KeySet.from_master(m, bytes(range(32)))
     s = lone_session()
-    rec = type("R", (), {"run": -1})()
-    server = rs.RecorderServer(
-        s,
-        f"{m.vehicle}/cn/recorder",
-        rec,  # type: ignore[arg-type]
-        channel(keys.for_node("cn"), "telemetry"),
-        now_ns=time.time_ns,
-        max_age_ns=10**9,
-        serve_bps=10**9,
-    )
+    server = _recorder_server(_LOADED["recovery_igniter"], s)
     t0 = time.monotonic()
     with caplog.at_level(logging.WARNING, logger="zplatform.recorder"):
-        for q in [_Query(p) for p in _junk(REQUEST.size + TAG_LEN, 2000)]:
+        for q in [FakeQuery(p) for p in _junk(REQUEST.size + TAG_LEN, 2000)]:
             server.on_query(q)
         server.close()
         s.close()
@@ -349,18 +315,18 @@ def test_a_replayed_clock_query_never_reaches_the_servers_thread_again() -> None
     s = lone_session()
     server = ClockServer(s, KeySpace(m.vehicle), lambda: now[0], m, keys.for_node("cn"))
     try:
-        first = _Query(link.query(now[0])[0])
+        first = FakeQuery(link.query(now[0])[0])
         genuine = [first]
         server.on_query(first)  # type: ignore[arg-type]
         for _ in range(300):
             now[0] += 100_000_000
-            q = _Query(link.query(now[0])[0])
+            q = FakeQuery(link.query(now[0])[0])
             genuine.append(q)
             server.on_query(q)  # type: ignore[arg-type]
             # Served before the next (the backlog holds 64): the thread's pace.
             wait_until(lambda q=q: q.replies, 10, "the server's thread to answer")
         refused = server.refused
-        replay = _Query(first.payload.to_bytes())
+        replay = FakeQuery(first.payload.to_bytes())
         server.on_query(replay)  # type: ignore[arg-type]
     finally:
         server.close()  # joins the thread: what it was handed is served

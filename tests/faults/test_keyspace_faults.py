@@ -36,7 +36,7 @@ from typing import Any, ClassVar
 
 import pytest
 
-from tests.payload import Bytes
+from tests.payload import Bytes, FakeSession, deliver
 from zplatform.archive import Archive
 from zplatform.archive import Query as ArchiveQuery
 from zplatform.archive.server import ASK as ARCHIVE_ASK
@@ -728,31 +728,6 @@ def _ask_nonce(ask: bytes) -> bytes:
     return _ASK.unpack(ask[: _ASK.size])[6]
 
 
-class _Query:
-    """A zenoh query as RecorderServer sees it."""
-
-    def __init__(self, payload: bytes) -> None:
-        self.payload = Bytes(payload)
-        self.replies: list[bytes] = []
-
-    def reply(self, key: str, payload: bytes) -> None:
-        self.replies.append(payload)
-
-    def drop(self) -> None:
-        pass
-
-    def __enter__(self) -> _Query:
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        pass
-
-
-class _Session:
-    def declare_queryable(self, key: str, handler: object) -> Any:
-        return SimpleNamespace(undeclare=lambda: None)
-
-
 class RecorderQueryH(Harness):
     """The CN's flight recorder server: a gap-fill request (RecorderServer);
     its thread is stopped, and each admitted request is served here."""
@@ -765,7 +740,7 @@ class RecorderQueryH(Harness):
         self.ch = channel(self.keys, "telemetry")
         rec: Any = SimpleNamespace(run=-1)  # never the run asked: no file is read
         self.server = RecorderServer(
-            _Session(),  # type: ignore[arg-type]
+            FakeSession(),  # type: ignore[arg-type]
             f"{m.vehicle}/cn/recorder",
             rec,
             channel(self.keys, "telemetry"),
@@ -787,9 +762,7 @@ class RecorderQueryH(Harness):
 
     def feed(self, payload: bytes) -> bool:
         served = self.server.served
-        self.server.on_query(_Query(payload))  # type: ignore[arg-type]
-        while self.server._pending:
-            self.server.serve(self.server._pending.popleft())
+        deliver(self.server, payload)
         return self.server.served > served
 
     def counts(self) -> dict[str, int]:
@@ -877,7 +850,7 @@ class ArchiveQueryH(Harness):
             return Archive(m, Path("/nonexistent/archive"))
 
         self.server = ArchiveServer(
-            _Session(),  # type: ignore[arg-type]
+            FakeSession(),  # type: ignore[arg-type]
             f"{m.vehicle}/archive/query",
             no_archive,
             channel(self.keys, "telemetry"),
@@ -901,9 +874,7 @@ class ArchiveQueryH(Harness):
 
     def feed(self, payload: bytes) -> bool:
         served = self.server.served
-        self.server.on_query(_Query(payload))  # type: ignore[arg-type]
-        while self.server._pending:
-            self.server.serve(self.server._pending.popleft())
+        deliver(self.server, payload)
         return self.server.served > served
 
     def counts(self) -> dict[str, int]:

@@ -15,18 +15,17 @@ import contextlib
 import os
 import queue
 import re
-import shutil
 import socket
 import subprocess
 import sys
 import time
-from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
 import pytest
 import yaml
 
+from tests.tmpfs import mounted_tmpfs
 from zplatform.config.codes import Thread
 from zplatform.core.auth import load_keys
 from zplatform.core.events import Event, EventReader
@@ -244,26 +243,8 @@ def test_a_cpu_hog_beside_the_nodes_raises_its_monitor(tmp_path: Path) -> None:
                 h.wait()
 
 
-@contextlib.contextmanager
-def _tmpfs(where: Path, size: str) -> Iterator[Path]:
-    where.mkdir()
-    if os.geteuid() != 0 or shutil.which("mount") is None:
-        pytest.skip("mounting a tmpfs needs root and mount(8)")
-    r = subprocess.run(
-        ["mount", "-t", "tmpfs", "-o", f"size={size}", "tmpfs", str(where)],
-        capture_output=True,
-        text=True,
-    )
-    if r.returncode != 0:
-        pytest.skip(f"cannot mount a tmpfs here: {r.stderr.strip()}")
-    try:
-        yield where
-    finally:
-        subprocess.run(["umount", "-l", str(where)], check=False)
-
-
 def test_a_full_disk_raises_its_monitor(tmp_path: Path) -> None:
-    with _tmpfs(tmp_path / "disk", "8m") as disk:
+    with mounted_tmpfs(tmp_path / "disk", "8m") as disk:
         path = _mission(
             tmp_path,
             disk_path=str(disk),

@@ -14,11 +14,9 @@
 
 from __future__ import annotations
 
-import contextlib
 import csv
 import io
 import json
-import os
 import subprocess
 import sys
 from collections.abc import Iterator
@@ -28,6 +26,7 @@ import pytest
 import yaml
 
 from tests.integration.harness import CONFIGS, ROOT, Cluster
+from tests.tmpfs import fill, mounted_tmpfs
 from tests.waits import wait_until
 from zplatform.archive import ARCHIVE_DIR_ENV
 from zplatform.recorder import RECORDER_DIR_ENV, recorder_dir
@@ -176,37 +175,8 @@ def test_kill9_of_the_ground_node_then_the_archive_opens_clean(
 @pytest.fixture
 def small_disk(tmp_path: Path) -> Iterator[Path]:
     """A 2 MiB tmpfs at ``tmp_path/disk``, unmounted at the end."""
-    d = tmp_path / "disk"
-    d.mkdir()
-    r = subprocess.run(
-        ["mount", "-t", "tmpfs", "-o", "size=2m", "tmpfs", str(d)],
-        capture_output=True,
-        text=True,
-        check=False,
-    )
-    if r.returncode != 0:
-        pytest.skip(f"cannot mount a small tmpfs for a real full disk (root only): {r.stderr}")
-    try:
+    with mounted_tmpfs(tmp_path / "disk", "2m") as d:
         yield d
-    finally:
-        if subprocess.run(["umount", str(d)], check=False).returncode != 0:
-            subprocess.run(["umount", "-l", str(d)], check=False)  # a handle left: detach
-
-
-def fill(path: Path, leave: int) -> None:
-    """Write ``path`` until the disk is full, then give ``leave`` bytes back:
-    the archive fills those itself, its last writes cut short as on a real disk."""
-    fd = os.open(path, os.O_WRONLY | os.O_CREAT, 0o644)
-    try:
-        with contextlib.suppress(OSError):
-            while True:
-                os.write(fd, b"\0" * 4096)
-        with contextlib.suppress(OSError):
-            while True:
-                os.write(fd, b"\0")
-        os.ftruncate(fd, max(0, os.fstat(fd).st_size - leave))
-    finally:
-        os.close(fd)
 
 
 def events_of(path: Path) -> list[dict[str, object]]:

@@ -8,14 +8,12 @@ for exactly the loops it counted lost, its raw segment without a torn record."""
 
 from __future__ import annotations
 
-import contextlib
-import os
-import subprocess
 from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
 
+from tests.tmpfs import fill, mounted_tmpfs
 from tests.unit.test_archive import T0, feed, small
 from zplatform.archive import Archive, ArchiveWriter, Query, store
 from zplatform.config import Mission
@@ -29,36 +27,8 @@ ROOT = Path(__file__).resolve().parents[2]
 @pytest.fixture
 def disk(tmp_path: Path) -> Iterator[Path]:
     """A 2 MiB tmpfs at ``tmp_path/disk``, unmounted at the end."""
-    d = tmp_path / "disk"
-    d.mkdir()
-    r = subprocess.run(
-        ["mount", "-t", "tmpfs", "-o", "size=2m", "tmpfs", str(d)],
-        capture_output=True,
-        text=True,
-        check=False,
-    )
-    if r.returncode != 0:
-        pytest.skip(f"cannot mount a small tmpfs for a real full disk (root only): {r.stderr}")
-    try:
+    with mounted_tmpfs(tmp_path / "disk", "2m") as d:
         yield d
-    finally:
-        if subprocess.run(["umount", str(d)], check=False).returncode != 0:
-            subprocess.run(["umount", "-l", str(d)], check=False)  # a handle left: detach
-
-
-def fill(path: Path) -> None:
-    """Write ``path`` until the disk is full."""
-    fd = os.open(path, os.O_WRONLY | os.O_CREAT, 0o644)
-    block = b"\0" * 4096
-    try:
-        with contextlib.suppress(OSError):
-            while True:
-                os.write(fd, block)
-        with contextlib.suppress(OSError):  # the last bytes, one by one
-            while True:
-                os.write(fd, b"\0")
-    finally:
-        os.close(fd)
 
 
 @pytest.fixture(scope="module")

@@ -17,6 +17,7 @@ from typing import Any
 import pyarrow as pa
 import pytest
 
+from tests.payload import FakeQuery, FakeSession, deliver
 from tests.unit.test_archive import T0, feed
 from tests.zsession import lone_session
 from zplatform.archive import Archive, ArchiveWriter, Query, RunInfo
@@ -47,42 +48,6 @@ S = 10**9
 NONCES = itertools.count(1000)
 
 
-class _Payload:
-    def __init__(self, data: bytes) -> None:
-        self.data = data
-
-    def __len__(self) -> int:
-        return len(self.data)
-
-    def to_bytes(self) -> bytes:
-        return self.data
-
-
-class _Query:
-    """A zenoh query as the server sees it: its payload, the replies it got."""
-
-    def __init__(self, payload: bytes) -> None:
-        self.payload = _Payload(payload)
-        self.replies: list[bytes] = []
-
-    def reply(self, key: str, payload: bytes) -> None:
-        self.replies.append(payload)
-
-    def drop(self) -> None:
-        pass
-
-    def __enter__(self) -> _Query:
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        pass
-
-
-class _Session:
-    def declare_queryable(self, key: str, handler: object) -> Any:
-        return SimpleNamespace(undeclare=lambda: None)
-
-
 class Clock:
     def __init__(self) -> None:
         self.t = 5 * S
@@ -104,7 +69,7 @@ def root(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 def server(root: Path, clock: Clock, session_word: int = 11, **kw: Any) -> ArchiveServer:
     s = ArchiveServer(
-        _Session(),  # type: ignore[arg-type]
+        FakeSession(),  # type: ignore[arg-type]
         "rocket/archive/query",
         lambda: Archive(MISSION, root, recover=False),
         KEYS.channel("telemetry"),
@@ -117,17 +82,6 @@ def server(root: Path, clock: Clock, session_word: int = 11, **kw: Any) -> Archi
     )
     s.close()  # its thread: each test serves what is admitted, in order
     return s
-
-
-def deliver(srv: ArchiveServer, *payloads: bytes) -> list[_Query]:
-    """Hand ``payloads`` to the server's zenoh callback (all in hand at
-    once), then serve what it admitted, in order; the queries, replies in."""
-    qs = [_Query(p) for p in payloads]
-    for q in qs:
-        srv.on_query(q)
-    while srv._pending:
-        srv.serve(srv._pending.popleft())
-    return qs
 
 
 class Station:
@@ -149,7 +103,7 @@ class Station:
         return a
 
 
-def answer(a: ArchiveAsk, q: _Query) -> pa.Table:
+def answer(a: ArchiveAsk, q: FakeQuery) -> pa.Table:
     for r in q.replies:
         assert a.on_reply(r)
     return a.table()

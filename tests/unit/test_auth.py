@@ -13,6 +13,7 @@ from pathlib import Path
 import blake3
 import pytest
 
+from tests.keys import own_key_home
 from zplatform import load_mission
 from zplatform.core.auth import (
     KEY_ENV,
@@ -43,10 +44,7 @@ GOOD = bytes.fromhex("3f8a1c9e27d45b60f1e83a97c2d0456b8e19f7a3c5d2e0b4a6918f3c7e
 
 @pytest.fixture
 def no_env_key(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> Path:
-    monkeypatch.delenv(KEY_ENV, raising=False)
-    monkeypatch.delenv(KEY_FILE_ENV, raising=False)
-    monkeypatch.setenv("XDG_CONFIG_HOME", str(tmp_path))
-    return tmp_path
+    return own_key_home(monkeypatch, tmp_path)
 
 
 # -- who holds what ------------------------------------------------------------------

@@ -11,6 +11,7 @@ import textwrap
 import pytest
 
 from tests.drive import step_request
+from tests.keys import AUTH_VEHICLE
 from zplatform import DataVector, Layout, decode_mission
 from zplatform.config import Mission
 from zplatform.control.authority import Signer, identity_key
@@ -24,17 +25,10 @@ S = 1_000_000_000
 PERIOD = 10_000_000
 BASE_KEY = bytes(range(7, 39))
 
-MISSION = """
-mission: authtest
-nodes: {cn: {}, dn0: {}, gn: {}}
-health: null
-regions:
-  cn:
-    - {name: x, type: u8}
-  cn_to_dn0:
-    - {name: valve, type: bool}
-  dn0_to_cn:
-    - {name: p, type: f32}
+MISSION = (
+    "mission: authtest\n"
+    + AUTH_VEHICLE
+    + """\
 state_machine:
   initial: A
   states:
@@ -46,6 +40,7 @@ commands:
   hazardous: [LAUNCH]
   writable: [x]
 """
+)
 
 GROUND = """
 ground:

@@ -229,12 +229,12 @@ def test_ground_console_takes_operator_and_station(
     monkeypatch: pytest.MonkeyPatch, tmp_path: Path
 ) -> None:
     import zplatform.console as console
+    from tests.keys import own_key_home
     from tests.unit.test_identities import MISSION, keygen
     from zplatform.cli.main import _load_extras, build_parser
-    from zplatform.core.auth import KEY_ENV, KEY_FILE_ENV
+    from zplatform.core.auth import KEY_FILE_ENV
 
-    monkeypatch.delenv(KEY_ENV, raising=False)
-    monkeypatch.setenv("XDG_CONFIG_HOME", str(tmp_path / "config"))
+    own_key_home(monkeypatch, tmp_path / "config")
     keydir = tmp_path / "keys"
     path = str(keygen(tmp_path, MISSION, keydir))
     monkeypatch.setenv(KEY_FILE_ENV, str(keydir / "gn.keys"))

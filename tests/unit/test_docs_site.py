@@ -17,7 +17,9 @@ import pytest
 
 ROOT = Path(__file__).resolve().parents[2]
 
-pytestmark = pytest.mark.timeout(300)
+# One worker for both tests (pytest-xdist, --dist loadgroup): the site is
+# built once, not once on each worker.
+pytestmark = [pytest.mark.timeout(300), pytest.mark.xdist_group("docs_site")]
 
 PAGES = (
     "index.html",  # README.md

@@ -16,7 +16,7 @@ from typing import Any
 
 import pytest
 
-from tests.payload import Bytes
+from tests.payload import Bytes, FakeQuery
 from zplatform import load_mission
 from zplatform.control.failover import Decision, MirrorReader, Standby
 from zplatform.control.fencing import (
@@ -279,27 +279,6 @@ def test_one_askers_valid_questions_beyond_its_bound_are_refused_and_replays_cos
     assert intake.take_counts() == (0, 0, 0) and intake.excess == 1
     box = intake.box
     assert box is not None and box.dropped == PROBE_BURST + 1 - PROBES
-
-
-class FakeQuery:
-    """What DeviceSync does with a zenoh query: its payload, answered once."""
-
-    def __init__(self, payload: bytes) -> None:
-        self.payload = Bytes(payload)
-        self.replies: list[bytes] = []
-        self.errors: list[bytes] = []
-
-    def __enter__(self) -> FakeQuery:
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        pass
-
-    def reply(self, key: str, payload: bytes | bytearray) -> None:
-        self.replies.append(bytes(payload))
-
-    def reply_err(self, payload: bytes) -> None:
-        self.errors.append(payload)
 
 
 def test_a_probe_flood_leaves_the_device_nodes_loop_its_trigger() -> None:

@@ -25,14 +25,6 @@ from zplatform.sim.lockstep import LockstepRunner, sim_keys
 from zplatform.telemetry.records import format_outcome
 
 
-@pytest.fixture
-def keydir(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> Path:
-    monkeypatch.delenv(KEY_ENV, raising=False)
-    monkeypatch.delenv(KEY_FILE_ENV, raising=False)
-    monkeypatch.setenv("XDG_CONFIG_HOME", str(tmp_path / "config"))
-    return tmp_path / "keys"
-
-
 def test_the_signer_comes_from_the_key_files_beside_the_tools_key(
     keydir: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:

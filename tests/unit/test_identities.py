@@ -11,25 +11,19 @@ from pathlib import Path
 
 import pytest
 
+from tests.keys import AUTH_VEHICLE
 from tests.unit.test_authority import Rig
 from zplatform.cli.main import main
 from zplatform.control.authority import identity_key
 from zplatform.control.uplink import Uplink
-from zplatform.core.auth import KEY_ENV, KEY_FILE_ENV, KeyError_, read_key_file
+from zplatform.core.auth import KeyError_, read_key_file
 from zplatform.mission.load import load_mission
 from zplatform.security.identities import load_signer, read_identity_file
 
-MISSION = """
-mission: idtest
-nodes: {cn: {}, dn0: {}, gn: {}}
-health: null
-regions:
-  cn:
-    - {name: x, type: u8}
-  cn_to_dn0:
-    - {name: valve, type: bool}
-  dn0_to_cn:
-    - {name: p, type: f32}
+MISSION = (
+    "mission: idtest\n"
+    + AUTH_VEHICLE
+    + """\
 ground:
   stations:
     - {name: pad}
@@ -38,16 +32,9 @@ ground:
     - {name: alice, roles: [operator]}
     - {name: bob, roles: [operator]}
 """
+)
 
 VEHICLE_FILES = ("cn.keys", "dn0.keys", "gn.keys", "tool.keys")
-
-
-@pytest.fixture
-def keydir(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> Path:
-    monkeypatch.delenv(KEY_ENV, raising=False)
-    monkeypatch.delenv(KEY_FILE_ENV, raising=False)
-    monkeypatch.setenv("XDG_CONFIG_HOME", str(tmp_path))
-    return tmp_path / "keys"
 
 
 def keygen(tmp_path: Path, text: str, out: Path) -> Path:

@@ -18,6 +18,7 @@ tests/faults/test_keyspace_faults.py until its fault recipe is written.
 from __future__ import annotations
 
 import ast
+import functools
 import importlib
 import inspect
 import re
@@ -192,10 +193,12 @@ class _Module:
         self.path = path
         self.rel = str(path.relative_to(ROOT))
         self.tree = ast.parse(path.read_text())
-        self.parent: dict[ast.AST, ast.AST] = {}
-        for node in ast.walk(self.tree):
-            for child in ast.iter_child_nodes(node):
-                self.parent[child] = node
+
+    @functools.cached_property
+    def parent(self) -> dict[ast.AST, ast.AST]:
+        # Made when first asked (a call's key to resolve), not for every
+        # module at collection: the walk is most of this file's import time.
+        return {c: n for n in ast.walk(self.tree) for c in ast.iter_child_nodes(n)}
 
     def enclosing(self, node: ast.AST, kind: type | tuple[type, ...]) -> ast.AST | None:
         while node in self.parent:

@@ -23,6 +23,7 @@ from pathlib import Path
 import pytest
 import zenoh
 
+from tests.sync_rig import SyncRig
 from tests.waits import wait_until
 from tests.zsession import lone_session
 from zplatform.control.handoff import Mailbox
@@ -40,7 +41,6 @@ from zplatform.runtime.queries import (
     Unanswered,
     ask,
     replies,
-    set_fault,
 )
 from zplatform.runtime.sync import ControlSync, DeviceSync, ProbeSync
 from zplatform.runtime.transport import KeySpace
@@ -378,64 +378,30 @@ def test_the_cn_recovers_a_live_dns_lost_query_route_and_is_answered_again(
     once, says so (take_recoveries), and the DN's next trigger is answered.
     A DN without a token (dead or cut off) is a lost node, not a lost route:
     no recovery however long it stays silent."""
-    m = MINIMAL
-    sim = sim_keys(m)
-    cn = ControlLogic(m, keys=sim)
-    dn = DeviceLogic(m, "dn0", keys=sim)
-    now = iter(range(10**9, 20 * 10**9, 10**7)).__next__
-    ks = KeySpace(m.vehicle)
-    ds = DeviceSync(
-        trio.genuine, ks, "dn0", now, intake=TriggerIntake(m, "dn0", channel(sim, "cn_to_dn0"))
+    fault = LostRoute(KeySpace(MINIMAL.vehicle).dn_to_cn("dn0"))
+    # 20 ms: the lost loops each wait out this deadline
+    rig = SyncRig(
+        MINIMAL, trio.genuine, trio.asker, 20_000_000, ready=trio.ready, alive=alive, fault=fault
     )
-    token = trio.genuine.liveliness().declare_token(ks.alive("dn0")) if alive else None
-    trio.ready()  # the asker has the DN's queryable and token
-    fault = LostRoute(ks.dn_to_cn("dn0"))
-    set_fault(fault)
-    cs = ControlSync(
-        trio.asker,
-        ks,
-        ["dn0"],
-        20_000_000,  # the lost loops each wait out this deadline
-        5.0,
-        checks=[ReplyCheck(m, "dn0", channel(sim, "dn0_to_cn"))],
-    )
-    loop = 0
-
-    def one_loop(serve: bool) -> None:
-        nonlocal loop
-        loop += 1
-        served = threading.Thread(target=ds.wait, args=(dn, 10.0)) if serve else None
-        if served is not None:
-            served.start()
-        cs.sync(cn.begin(loop, 10**9 + loop * 10**7), cn)
-        if served is not None:
-            served.join()
-
-    try:
-        one_loop(serve=True)  # the route works: answered
-        assert cn.pending == 0
+    with rig:
+        rig.loop(serve=True)  # the route works: answered
+        assert rig.cn.pending == 0
         fault.armed = True  # from now on zenoh has no route to dn0's queryable
         recovered: list[tuple[str, int]] = []
         for _ in range(6 * UNANSWERED_LOOPS):  # a bound in loops, not in time
-            one_loop(serve=False)
-            cs.take_recoveries(recovered)
+            rig.loop(serve=False)
+            rig.sync.take_recoveries(recovered)
             if recovered:
                 break
         if not alive:
-            assert (recovered, fault.redeclares, cs.unanswered.recoveries) == ([], 0, [0])
+            assert (recovered, fault.redeclares, rig.sync.unanswered.recoveries) == ([], 0, [0])
             assert fault.lost_queries == 6 * UNANSWERED_LOOPS
             return
         assert recovered == [("dn0", 1)]
-        assert fault.redeclares == 1 and cs.unanswered.recoveries == [1]
+        assert fault.redeclares == 1 and rig.sync.unanswered.recoveries == [1]
         assert UNANSWERED_LOOPS <= fault.lost_queries < 6 * UNANSWERED_LOOPS
-        one_loop(serve=True)  # the querier declared again: the DN answers
-        assert cn.pending == 0
-    finally:
-        set_fault(None)
-        cs.close()
-        ds.close()
-        if token is not None:
-            token.undeclare()
+        rig.loop(serve=True)  # the querier declared again: the DN answers
+        assert rig.cn.pending == 0
 
 
 def test_each_querier_recovery_is_counted_once_in_the_data_vector(trio: Trio) -> None:
@@ -444,47 +410,21 @@ def test_each_querier_recovery_is_counted_once_in_the_data_vector(trio: Trio) ->
     in the loop's ``cn_query_recoveries``, exactly once, from the sync's
     refusals the loop takes (``CnRefusals.query_recovered``, recorded with
     them, so a replay counts the same); answered loops add nothing."""
-    m = MINIMAL
-    sim = sim_keys(m)
-    cn = ControlLogic(m, keys=sim)
-    dn = DeviceLogic(m, "dn0", keys=sim)
-    now = iter(range(10**9, 20 * 10**9, 10**7)).__next__
-    ks = KeySpace(m.vehicle)
-    ds = DeviceSync(
-        trio.genuine, ks, "dn0", now, intake=TriggerIntake(m, "dn0", channel(sim, "cn_to_dn0"))
-    )
-    token = trio.genuine.liveliness().declare_token(ks.alive("dn0"))
-    trio.ready()
-    fault = LostRoute(ks.dn_to_cn("dn0"))
-    set_fault(fault)
-    cs = ControlSync(
-        trio.asker,
-        ks,
-        ["dn0"],
-        5_000_000,  # the lost loops each wait out this deadline
-        5.0,
-        checks=[ReplyCheck(m, "dn0", channel(sim, "dn0_to_cn"))],
-    )
+    fault = LostRoute(KeySpace(MINIMAL.vehicle).dn_to_cn("dn0"))
     refused = CnRefusals()
     per_loop: list[int] = []
-    loop = 0
+    # 5 ms: the lost loops each wait out this deadline
+    rig = SyncRig(MINIMAL, trio.genuine, trio.asker, 5_000_000, ready=trio.ready, fault=fault)
+    with rig:
 
-    def one_loop(serve: bool) -> None:
-        nonlocal loop
-        loop += 1
-        # 1 s: a loop whose trigger the lost route swallowed goes unanswered
-        # (the counts below allow it) without holding the test for 10 s.
-        served = threading.Thread(target=ds.wait, args=(dn, 1.0)) if serve else None
-        if served is not None:
-            served.start()
-        cs.sync(cn.begin(loop, 10**9 + loop * 10**7), cn)
-        if served is not None:
-            served.join()
-        cs.take_refusals(refused)
-        per_loop.append(refused.query_recovered)
-        cn.finish((), refused=refused)
+        def one_loop(serve: bool) -> None:
+            # 1 s: a loop whose trigger the lost route swallowed goes unanswered
+            # (the counts below allow it) without holding the test for 10 s.
+            rig.loop(serve, dn_wait_s=1.0)
+            rig.sync.take_refusals(refused)
+            per_loop.append(refused.query_recovered)
+            rig.cn.finish((), refused=refused)
 
-    try:
         one_loop(serve=True)
         for _ in range(2):  # the route lost, recovered; lost again, recovered again
             fault.armed = True
@@ -495,52 +435,22 @@ def test_each_querier_recovery_is_counted_once_in_the_data_vector(trio: Trio) ->
             one_loop(serve=True)  # answered again
         for _ in range(3):
             one_loop(serve=True)
-        assert fault.redeclares == 2 and cs.unanswered.recoveries == [2]
+        assert fault.redeclares == 2 and rig.sync.unanswered.recoveries == [2]
         assert sorted(per_loop)[-2:] == [1, 1] and sum(per_loop) == 2
-        assert int(cn.dv.get("cn_query_recoveries")) == 2
-    finally:
-        set_fault(None)
-        cs.close()
-        ds.close()
-        token.undeclare()
+        assert int(rig.cn.dv.get("cn_query_recoveries")) == 2
 
 
 def test_a_dn_that_answers_only_late_is_not_a_lost_route(trio: Trio) -> None:
     """Replies that come after the sync's deadline (a busy host) are replies:
     a live DN answering every trigger late gets no recovery, however long."""
-    m = MINIMAL
-    sim = sim_keys(m)
-    cn = ControlLogic(m, keys=sim)
-    dn = DeviceLogic(m, "dn0", keys=sim)
-    now = iter(range(10**9, 20 * 10**9, 10**7)).__next__
-    ks = KeySpace(m.vehicle)
-    ds = DeviceSync(
-        trio.genuine, ks, "dn0", now, intake=TriggerIntake(m, "dn0", channel(sim, "cn_to_dn0"))
-    )
-    token = trio.genuine.liveliness().declare_token(ks.alive("dn0"))
-    trio.ready()
-    cs = ControlSync(
-        trio.asker,
-        ks,
-        ["dn0"],
-        1,  # the deadline passes before any reply can come: every reply is late
-        5.0,
-        checks=[ReplyCheck(m, "dn0", channel(sim, "dn0_to_cn"))],
-    )
-    try:
-        for loop in range(1, 3 * UNANSWERED_LOOPS + 1):
-            served = threading.Thread(target=ds.wait, args=(dn, 10.0))
-            served.start()
-            cs.sync(cn.begin(loop, 10**9 + loop * 10**7), cn)
-            served.join()
-            assert cs._q.get(timeout=10.0)[0] == 0  # the late reply, taken by zenoh's thread
+    # A deadline of 1 ns passes before any reply can come: every reply is late.
+    with SyncRig(MINIMAL, trio.genuine, trio.asker, 1, ready=trio.ready) as rig:
+        for _ in range(3 * UNANSWERED_LOOPS):
+            rig.loop(serve=True)
+            assert rig.sync._q.get(timeout=10.0)[0] == 0  # the late reply, taken by zenoh's thread
         recovered: list[tuple[str, int]] = []
-        cs.take_recoveries(recovered)
-        assert (recovered, cs.unanswered.recoveries) == ([], [0])
-    finally:
-        cs.close()
-        ds.close()
-        token.undeclare()
+        rig.sync.take_recoveries(recovered)
+        assert (recovered, rig.sync.unanswered.recoveries) == ([], [0])
 
 
 class _HeldQuery:
@@ -619,59 +529,20 @@ def test_a_lost_route_is_recovered_well_before_the_dns_watchdog(trio: Trio) -> N
     watchdog = m.faults.dn_watchdog_loops
     after = unanswered_loops(watchdog)
     assert after == 3 and after + 2 < watchdog
-    sim = sim_keys(m)
-    cn = ControlLogic(m, keys=sim)
-    dn = DeviceLogic(m, "dn0", keys=sim)
-    ks = KeySpace(m.vehicle)
-    clock = [10**9]
-    ds = DeviceSync(
-        trio.genuine,
-        ks,
-        "dn0",
-        lambda: clock[0],
-        intake=TriggerIntake(m, "dn0", channel(sim, "cn_to_dn0"), now_ns=lambda: clock[0]),
+    fault = LostRoute(KeySpace(MINIMAL.vehicle).dn_to_cn("dn0"))
+    rig = SyncRig(
+        m, trio.genuine, trio.asker, 20_000_000, ready=trio.ready, fault=fault, unanswered=after
     )
-    token = trio.genuine.liveliness().declare_token(ks.alive("dn0"))
-    trio.ready()
-    fault = LostRoute(ks.dn_to_cn("dn0"))
-    set_fault(fault)
-    cs = ControlSync(
-        trio.asker,
-        ks,
-        ["dn0"],
-        20_000_000,
-        5.0,
-        checks=[ReplyCheck(m, "dn0", channel(sim, "dn0_to_cn"))],
-        unanswered=after,
-    )
-    loop = 0
-
-    def one_loop(serve: bool) -> None:
-        nonlocal loop
-        loop += 1
-        clock[0] = 10**9 + loop * m.period_ns
-        served = threading.Thread(target=ds.wait, args=(dn, 10.0)) if serve else None
-        if served is not None:
-            served.start()
-        cs.sync(cn.begin(loop, clock[0]), cn)
-        if served is not None:
-            served.join()
-
-    try:
-        one_loop(serve=True)
-        assert cn.pending == 0
+    with rig:
+        rig.loop(serve=True)
+        assert rig.cn.pending == 0
         fault.armed = True
         recovered: list[tuple[str, int]] = []
         for _ in range(UNANSWERED_LOOPS):
-            one_loop(serve=False)
-            cs.take_recoveries(recovered)
+            rig.loop(serve=False)
+            rig.sync.take_recoveries(recovered)
             if recovered:
                 break
         assert recovered == [("dn0", 1)] and fault.lost_queries == after
-        one_loop(serve=True)  # the next trigger: answered, inside the watchdog
-        assert cn.pending == 0 and not dn.safed
-    finally:
-        set_fault(None)
-        cs.close()
-        ds.close()
-        token.undeclare()
+        rig.loop(serve=True)  # the next trigger: answered, inside the watchdog
+        assert rig.cn.pending == 0 and not rig.dn.safed

@@ -18,6 +18,7 @@ from typing import Any, BinaryIO
 
 import pytest
 
+from tests.payload import FakeQuery, FakeSession, deliver
 from tests.waits import poll_until
 from zplatform.config import relocate_mission
 from zplatform.control.loop import ControlLogic
@@ -601,36 +602,6 @@ def test_export_reads_one_run_of_several(tmp_path: Path) -> None:
         export(tmp_path, tm.mission, tool, tmp_path / "x.csv", None, run=7)
 
 
-class _Query:
-    """A zenoh query as RecorderServer sees it (the replies kept)."""
-
-    def __init__(self, payload: bytes) -> None:
-        self.payload = _Payload(payload)
-        self.replies: list[bytes] = []
-
-    def reply(self, key: str, payload: bytes) -> None:
-        self.replies.append(payload)
-
-    def drop(self) -> None:
-        pass
-
-
-class _Payload:
-    def __init__(self, data: bytes) -> None:
-        self._data = data
-
-    def __len__(self) -> int:
-        return len(self._data)
-
-    def to_bytes(self) -> bytes:
-        return self._data
-
-
-class _Session:
-    def declare_queryable(self, key: str, handler: object) -> Any:
-        return type("Q", (), {"undeclare": lambda self: None})()
-
-
 def test_the_recorder_server_refuses_a_replayed_request() -> None:
     """A genuine request is served once: the same request again (a replay
     within its stamp's bound) is refused unserved and counted; a new
@@ -644,7 +615,7 @@ def test_the_recorder_server_refuses_a_replayed_request() -> None:
     assert ch is not None
     rec: Any = type("R", (), {"run": -1})()  # never the run asked: no file is read
     server = RecorderServer(
-        _Session(),  # type: ignore[arg-type]
+        FakeSession(),  # type: ignore[arg-type]
         "v/cn/recorder",
         rec,
         channel(keys(m), "telemetry"),
@@ -654,16 +625,13 @@ def test_the_recorder_server_refuses_a_replayed_request() -> None:
     )
     server.close()
 
-    def serve(t_ns: int) -> _Query:
-        q = _Query(bytes(ch.seal(REQUEST.pack(REQUEST_MAGIC, 7, 1, 5, t_ns))))
-        server.on_query(q)  # type: ignore[arg-type]
-        while server._pending:
-            server.serve(server._pending.popleft())
+    def serve(t_ns: int) -> FakeQuery:
+        (q,) = deliver(server, bytes(ch.seal(REQUEST.pack(REQUEST_MAGIC, 7, 1, 5, t_ns))))
         return q
 
     first = serve(EPOCH)
     assert first.replies and server.served == 1
-    again = _Query(first.payload.to_bytes())
+    again = FakeQuery(first.payload.to_bytes())
     server.on_query(again)  # type: ignore[arg-type]
     server.serve(server._pending.popleft())
     assert again.replies == [] and server.served == 1 and server.refused == 1
