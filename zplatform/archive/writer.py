@@ -56,12 +56,14 @@ WAKE_S = 0.1
 """How often the archive's thread takes what was queued."""
 QUEUE_BYTES = 256 * 2**20
 """Most bytes of snapshots the hand-off ring holds."""
-ROW_GROUP_BYTES = 256 * 2**20
+ROW_GROUP_BYTES = 512 * 2**20
 """Most bytes of snapshots in one row group (a large vector gets fewer rows):
-the writer's preallocated block. Large, because a Parquet column chunk costs
-about 30 us to write whatever its rows: a 100,000-element vector at 100 Hz
-in row groups of 167 rows (64 MiB) is 60,000 column chunks a second, more
-than a core can write; in 670 rows (this), 15,000."""
+the writer's preallocated block (allocated once; its pages touched as rows
+fill it: the flight mission's 751-byte vector takes 4.5 MB for its 60 s).
+Large, because a Parquet column chunk costs about 30 us of CPU to write
+whatever its rows: a 100,000-element vector at 100 Hz in row groups of 167
+rows (64 MiB) is 60,000 column chunks a second, more than a core can write;
+in 1,340 rows (this), 7,500."""
 ENCODERS = 2
 """Threads that encode a row group's file groups at once (Parquet's encoder
 releases the GIL): a layout of one file group uses none."""
