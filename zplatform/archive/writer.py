@@ -67,9 +67,11 @@ in 1,340 rows (this), 7,500."""
 ENCODERS = 2
 """Threads that encode a row group's file groups at once (Parquet's encoder
 releases the GIL): a layout of one file group uses none."""
-TAKE_ROWS = 32
-"""Snapshots the archive's thread takes from the ring at a time (their slots
-are freed once they are in the raw segment and the block)."""
+TAKE_BYTES = 16 * 2**20
+"""Bytes of snapshots the archive's thread takes from the ring at a time, at
+most (and at most an eighth of the ring): their slots are freed once they
+are in the raw segment and the block, so a row group written meanwhile
+holds no more of the ring than that."""
 EVENT_BACKLOG = 4096
 """Events queued for the archive's thread, at most."""
 SEGMENT_BYTES = 64 * 2**20
@@ -166,10 +168,11 @@ class ArchiveWriter:
         self._block = np.empty((self._rg_rows, size), np.uint8)
         self._block_rx = np.empty(self._rg_rows, np.int64)
         self._pend_n = 0
-        # The raw records of TAKE_ROWS snapshots, built in place.
+        # The raw records of the snapshots taken at a time, built in place.
+        self._take = max(1, min(cap // 8, TAKE_BYTES // size))
         self._rec_len = HEADER.size + 8 + layout.size
-        self._raw_buf = bytearray(TAKE_ROWS * self._rec_len)
-        self._raw_np = np.frombuffer(self._raw_buf, np.uint8).reshape(TAKE_ROWS, self._rec_len)
+        self._raw_buf = bytearray(self._take * self._rec_len)
+        self._raw_np = np.frombuffer(self._raw_buf, np.uint8).reshape(self._take, self._rec_len)
         self._pool: ThreadPoolExecutor | None = None
         self._decoders: list[store.GroupDecoder] = []
         self._decoders_for = -1
@@ -278,14 +281,14 @@ class ArchiveWriter:
         while self._events:
             evs.append(self._events.popleft())
         cap = self._cap
-        # TAKE_ROWS at a time, read in place in the ring; their slots freed
-        # once they are in the raw segment and the block (a row group
-        # written meanwhile keeps at most TAKE_ROWS slots taken).
+        # A few at a time (TAKE_BYTES), read in place in the ring; their
+        # slots freed once they are in the raw segment and the block (a row
+        # group written meanwhile keeps no more of the ring taken).
         failed: BaseException | None = None
         while self._tail < self._head:
             tail = self._tail
             i = tail % cap
-            n = min(self._head - tail, cap - i, TAKE_ROWS)
+            n = min(self._head - tail, cap - i, self._take)
             rows, rx = self._ring2d[i : i + n], self._rx[i : i + n]
             self._batch_raw = 0
             try:
@@ -322,7 +325,7 @@ class ArchiveWriter:
             self._refill = True
 
     def _frames(self, rows: np.ndarray, rx: np.ndarray, loops: np.ndarray) -> memoryview:
-        """The raw ``FRAME`` records of ``rows`` (at most TAKE_ROWS), built
+        """The raw ``FRAME`` records of ``rows`` (at most ``self._take``), built
         in the preallocated buffer: a view of it, valid until the next call."""
         n, rec = len(rows), self._rec_len
         out = self._raw_np[:n]
