@@ -12,6 +12,7 @@ from pathlib import Path
 
 import numpy as np
 import pyarrow as pa
+import pyarrow.parquet as pq
 import pytest
 
 from tests.unit.test_archive import PERIOD, T0, feed, small
@@ -201,3 +202,57 @@ def test_a_segment_sealed_as_a_zstd_stream_before_is_still_read(
     assert store.raw_segments(tmp_path) == [old]
     loops = [r.loop for r in store._scan(old, lambda _t: None) if r.type == FRAME]
     assert loops == list(range(1, 2001))
+
+
+def test_row_group_files_are_compacted_every_file_s_and_at_the_end(tmp_path: Path) -> None:
+    # Row groups of 100 loops, retention and compaction every 300.
+    w = ArchiveWriter(small(MISSION, row_group_s=1.0, file_s=3.0), LAYOUT, tmp_path)
+    try:
+        feed(w, DataVector(LAYOUT), range(1, 451))
+        # 4 row groups written: parts 0-2 compacted at the third, part 3 alone
+        (hour,) = (tmp_path / "tm" / "run-7").iterdir()
+        assert [p.name for p in store.parquet_files(tmp_path, "tm", 7)] == [
+            "part-000000-000002.parquet",
+            "part-000003.parquet",
+        ]
+        with Archive(MISSION, tmp_path) as a:  # the parts compacted are skipped
+            assert a.query(Query("cn_loop", run=7)).column("loop").to_pylist() == list(
+                range(1, 401)
+            )
+    finally:
+        w.close()
+    # At the end: parts 3 and 4 (loops 401-450) compacted too, every part removed.
+    assert sorted(p.name for p in hour.iterdir()) == [
+        "part-000000-000002.parquet",
+        "part-000003-000004.parquet",
+    ]
+    with Archive(MISSION, tmp_path) as a:
+        t = a.query(Query("cn_state", run=7))
+        assert t.column("loop").to_pylist() == list(range(1, 451))
+        assert t.column("cn_state").to_pylist() == [i // 100 % 4 for i in range(1, 451)]
+        assert a.runs()[0].loops == 450 and a.problems == []
+    assert [
+        pq.ParquetFile(p).metadata.num_row_groups for p in store.parquet_files(tmp_path, "tm", 7)
+    ] == [3, 2]
+
+
+def test_recovery_removes_the_parts_a_compacted_file_covers(tmp_path: Path) -> None:
+    w = ArchiveWriter(small(MISSION, row_group_s=1.0), LAYOUT, tmp_path)
+    feed(w, DataVector(LAYOUT), range(1, 301))
+    w.close()
+    (hour,) = (tmp_path / "tm" / "run-7").iterdir()
+    (merged,) = hour.iterdir()
+    assert merged.name == "part-000000-000002.parquet"
+    # A crash after the compacted file's rename, before its parts' removal:
+    # the parts again beside it, the run open.
+    for i in range(3):
+        t = pq.ParquetFile(merged).read_row_group(i)
+        pq.write_table(t, hour / f"part-{i:06d}.parquet")
+    info = store.read_run(tmp_path, 7)
+    assert info is not None
+    info.outcome = "open"
+    store.write_run(tmp_path, info)
+    with Archive(MISSION, tmp_path) as a:
+        assert a.query(Query("cn_loop")).column("loop").to_pylist() == list(range(1, 301))
+        assert a.runs()[0].outcome == "interrupted"
+    assert [p.name for p in hour.iterdir()] == ["part-000000-000002.parquet"]

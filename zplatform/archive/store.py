@@ -50,6 +50,8 @@ __all__ = [
     "MergeCount",
     "RunInfo",
     "column_groups",
+    "compact",
+    "covered_parts",
     "decode_rows",
     "event_table",
     "file_schema",
@@ -73,7 +75,7 @@ __all__ = [
 ]
 
 _RUN_RE = re.compile(r"run-([0-9]{1,20})")
-_PART_RE = re.compile(r"part-([0-9]{6,})\.parquet")
+_PART_RE = re.compile(r"part-([0-9]{6,})(?:-([0-9]{6,}))?\.parquet")
 META_KEY = b"zplatform.layout"
 _EVENT_DECODER = msgspec.json.Decoder(EventRecord)
 _EVENT_ENCODER = msgspec.json.Encoder()
@@ -193,21 +195,73 @@ def runs_on_disk(root: Path) -> list[int]:
     return sorted(found)
 
 
+def _parts_in(d: Path) -> list[Path]:
+    """The telemetry or event files of directory ``d`` in order: each
+    ``part-N.parquet`` and each compacted ``part-A-B.parquet`` (the rows of
+    parts A to B, :func:`compact`), a part it covers left out (removed a
+    little later: a reader that listed it first still finds it)."""
+    found = [(m, n) for n in _listdir(d) if (m := _PART_RE.fullmatch(n))]
+    ranges = [(int(m.group(1)), int(m.group(2))) for m, _ in found if m.group(2)]
+    keep = [
+        (int(m.group(1)), n)
+        for m, n in found
+        if m.group(2) or not any(lo <= int(m.group(1)) <= hi for lo, hi in ranges)
+    ]
+    return [d / n for _, n in sorted(keep)]
+
+
 def parquet_files(root: Path, kind: str, run: int) -> list[Path]:
-    """Run ``run``'s closed Parquet files of ``kind`` (``tm``/``ev``), sorted."""
+    """Run ``run``'s closed Parquet files of ``kind`` (``tm``/``ev``), in order."""
     base = run_dirs(root, kind, run)
+    if kind != "tm":
+        return _parts_in(base)
     out: list[Path] = []
-    if kind == "tm":
-        with contextlib.suppress(OSError):
-            for hour in sorted(os.listdir(base)):
-                out.extend(
-                    base / hour / n
-                    for n in sorted(os.listdir(base / hour))
-                    if _PART_RE.fullmatch(n)
-                )
-        return out
     with contextlib.suppress(OSError):
-        out = [base / n for n in sorted(os.listdir(base)) if _PART_RE.fullmatch(n)]
+        for hour in sorted(os.listdir(base)):
+            out.extend(_parts_in(base / hour))
+    return out
+
+
+def covered_parts(d: Path) -> list[Path]:
+    """The parts of directory ``d`` a compacted file covers (to remove)."""
+    found = [(m, n) for n in _listdir(d) if (m := _PART_RE.fullmatch(n))]
+    ranges = [(int(m.group(1)), int(m.group(2))) for m, _ in found if m.group(2)]
+    return [
+        d / n
+        for m, n in found
+        if not m.group(2) and any(lo <= int(m.group(1)) <= hi for lo, hi in ranges)
+    ]
+
+
+def _listdir(d: Path) -> list[str]:
+    try:
+        return os.listdir(d)
+    except OSError:
+        return []
+
+
+def compact(d: Path, first: int, last: int) -> Path:
+    """Parts ``first`` to ``last`` of directory ``d`` (one file group each,
+    closed) as one file ``part-first-last.parquet``, their row groups kept;
+    written as ``*.tmp`` and renamed. The parts stay (the caller removes
+    them later: :func:`covered_parts`); readers skip them once it is there.
+    Raises OSError or ArrowException (the temporary file removed)."""
+    out = d / f"part-{first:06d}-{last:06d}.parquet"
+    tmp = out.with_name(out.name + ".tmp")
+    files = [d / f"part-{n:06d}.parquet" for n in range(first, last + 1)]
+    try:
+        schema = pq.read_schema(files[0])
+        with pq.ParquetWriter(tmp, schema, **parquet_options(schema)) as w:
+            for f in files:
+                pf = pq.ParquetFile(f)
+                for i in range(pf.num_row_groups):
+                    t = pf.read_row_group(i).replace_schema_metadata(schema.metadata)
+                    w.write_table(t, row_group_size=max(1, t.num_rows))
+    except BaseException:
+        with contextlib.suppress(OSError):
+            tmp.unlink()
+        raise
+    os.replace(tmp, out)
     return out
 
 
@@ -216,9 +270,9 @@ def next_part(directory: Path) -> int:
     top = -1
     with contextlib.suppress(OSError):
         for n in os.listdir(directory):
-            m = re.fullmatch(r"part-([0-9]{6,})(\.g[0-9]+)?\.parquet(\.tmp)?", n)
+            m = re.fullmatch(r"part-([0-9]{6,})(?:-([0-9]{6,}))?(\.g[0-9]+)?\.parquet(\.tmp)?", n)
             if m:
-                top = max(top, int(m.group(1)))
+                top = max(top, int(m.group(2) or m.group(1)))
     return top + 1
 
 
@@ -540,6 +594,10 @@ def recover(
         if info is None:
             info = RunInfo(run, mission, vehicle, layout.layout_id)
             info.group_columns = GROUP_COLUMNS
+        for hour in _listdir(run_dirs(root, "tm", run)):
+            for f in covered_parts(run_dirs(root, "tm", run) / hour):
+                with contextlib.suppress(OSError):
+                    f.unlink()  # a compaction's parts, its file whole
         refill(root, layout, info, note, schema)
         # The record's counts as the files hold them (a writer that failed
         # before the crash may have counted rows it had not written).

@@ -176,7 +176,10 @@ class ArchiveWriter:
         self._pool: ThreadPoolExecutor | None = None
         self._decoders: list[store.GroupDecoder] = []
         self._decoders_for = -1
-        self._parts: dict[str, int] = {}
+        self._parts: dict[str, int] = {}  # per run/hour: the next part number
+        self._part_dirs: dict[str, Path] = {}
+        self._compacted: dict[str, int] = {}  # per run/hour: the first part not compacted
+        self._covered: list[Path] = []  # parts compacted, removed at the next pass
         self._loop_at = layout.element("cn_loop").offset
         self._epoch_at = layout.element("cn_epoch").offset
         # The archive's thread's own state.
@@ -517,7 +520,8 @@ class ArchiveWriter:
         d.mkdir(parents=True, exist_ok=True)
         key = f"{self._run}/{hour}"
         if key not in self._parts:
-            self._parts[key] = store.next_part(d)
+            self._parts[key] = self._compacted[key] = store.next_part(d)
+            self._part_dirs[key] = d
         part = d / f"part-{self._parts[key]:06d}.parquet"
         self._parts[key] += 1
         tmps = [Path(str(store.group_path(part, k)) + ".tmp") for k in range(len(coders))]
@@ -550,7 +554,38 @@ class ArchiveWriter:
         self._since_retain += len(rows)
         if self._since_retain >= self._retain_rows:
             self._since_retain = 0
+            self._compact(final=False)
             self._retain()
+
+    def _compact(self, *, final: bool) -> None:
+        """Every ``file_s`` and at the run's end: the row-group files of a
+        run of one file group written since the last pass, per hour, as one
+        file (:func:`.store.compact`; a query of an hour opens a few files,
+        not sixty). The parts compacted at the last pass are removed now
+        (``final``: these too), so a reader that listed them before finds
+        them. A failure is counted and told; the parts stay, whole."""
+        for f in self._covered:
+            with contextlib.suppress(OSError):
+                f.unlink()
+        self._covered = []
+        if self._info is None or len(self._coders()) != 1:
+            return  # a wide layout's row groups are large: files of one each
+        for key, nxt in self._parts.items():
+            first, d = self._compacted[key], self._part_dirs[key]
+            if nxt - first < 2:
+                continue
+            try:
+                store.compact(d, first, nxt - 1)
+            except (OSError, pa.ArrowException) as exc:
+                self._fail("compact its files", exc)
+                continue
+            self._compacted[key] = nxt
+            self._covered += [d / f"part-{n:06d}.parquet" for n in range(first, nxt)]
+        if final:
+            for f in self._covered:
+                with contextlib.suppress(OSError):
+                    f.unlink()
+            self._covered = []
 
     def _close_file(self) -> None:
         """Write the events held and the run's record."""
@@ -589,6 +624,7 @@ class ArchiveWriter:
             self._flush_groups()
             info.outcome = "open" if self._refill else outcome
             self._close_file()
+            self._compact(final=True)
             self._retain()
             if self._refill:
                 if self._seg is not None:
@@ -603,6 +639,8 @@ class ArchiveWriter:
             self._refill = False
             self._pend_n = 0
             self._parts.clear()
+            self._part_dirs.clear()
+            self._compacted.clear()
             self._seal_segment()
 
     # -- the end ------------------------------------------------------------
