@@ -6,7 +6,8 @@ A mission's archive (``DIR/<mission>/``) holds, per run (CN epoch ``R``):
 ``EVENT`` per event, its JSON; once closed, compressed into
 ``seg-N.zfr.zsb``: :func:`seal_segment`; zplatform before it wrote
 ``seg-N.zfr.zst``, a zstd stream, still read), ``tm/run-R/hYYYYMMDDHH/part-N.parquet``
-(decoded snapshots, one column per element; an array is one fixed-size-list
+(decoded snapshots, a row group each, ``part-A-B.parquet`` parts A to B
+compacted: :func:`compact`; one column per element; an array is one fixed-size-list
 column, so a query of another element never reads it; a layout of more than
 :data:`GROUP_COLUMNS` elements in file groups, ``part-N.gK.parquet`` beside
 it: :func:`column_groups`), ``ev/run-R/part-N.parquet``

@@ -9,7 +9,9 @@ vector bytes); a full block (``row_group_s`` of rows, at most
 group, its columns transposed from the block a run of same-typed elements at
 a time, the group files encoded on :data:`ENCODERS` threads at once. Each
 row group is a closed file at once, so a query of a running run sees every
-row group written; retention runs every ``file_s``.
+row group written; every ``file_s`` and at the run's end those of a run of
+one file group are compacted, per hour, into one file
+(:func:`.store.compact`), and retention runs.
 
 Contract: :meth:`~ArchiveWriter.snapshot`, :meth:`~ArchiveWriter.event` and
 :meth:`~ArchiveWriter.tick` never block, never raise, and allocate nothing

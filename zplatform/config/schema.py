@@ -796,9 +796,9 @@ class ArchiveConfig(_Struct):
         Meta(
             ge=1,
             le=86_400,
-            description="Seconds of snapshots between two retention passes (`max_bytes`, "
-            "`max_age_days`); the Parquet files are one per row group, partitioned by run and "
-            "hour.",
+            description="Seconds of snapshots between two passes that compact the run's "
+            "row-group files of each hour into one Parquet file (also at the run's end) and "
+            "apply retention (`max_bytes`, `max_age_days`).",
         ),
     ] = 600.0
     queue_s: Annotated[
