@@ -3,25 +3,21 @@
 :class:`ArchiveWriter` takes every snapshot the ground accepted (copied into
 a slot of a preallocated ring) and every event (a bounded queue). Its thread
 wakes every :data:`WAKE_S`, drops loops it already holds, appends the raw
-records (:mod:`.store`) and copies the rows into a preallocated block (rows x
-vector bytes); a full block (``row_group_s`` of rows, at most
-:data:`ROW_GROUP_BYTES`) is written as one closed Parquet file per file
-group, its columns transposed from the block a run of same-typed elements at
-a time, the group files encoded on :data:`ENCODERS` threads at once. Each
-row group is a closed file at once, so a query of a running run sees every
-row group written; every ``file_s`` and at the run's end those of a run of
-one file group are compacted, per hour, into one file
-(:func:`.store.compact`), and retention runs.
+records (:mod:`.store`) and copies the rows into a preallocated block; a
+full block (``row_group_s``, at most :data:`ROW_GROUP_BYTES`) is one closed
+Parquet file per file group, each run of same-typed elements transposed at
+once, the groups encoded on :data:`ENCODERS` threads: a running run is
+queryable up to its last row group. Every ``file_s`` and at the run's end a
+run of one file group has them compacted per hour (:func:`.store.compact`).
 
 Contract: :meth:`~ArchiveWriter.snapshot`, :meth:`~ArchiveWriter.event` and
 :meth:`~ArchiveWriter.tick` never block, never raise, and allocate nothing
 per snapshot; a full queue drops, counted and evented once a second. An I/O
 error (a full disk) is counted and evented once per kind; snapshots the raw
-segment could not take are lost (counted), the segment is cut back to its
-last whole record, the open Parquet file dropped and refilled from the raw
-segment at the run's end (:func:`.store.refill`); writing resumes by itself
-once space is freed. One writer per archive directory (a lock).
-"""
+segment could not take are lost (counted), the segment cut back to its last
+whole record, the pending rows refilled from it at the run's end
+(:func:`.store.refill`); writing resumes once space is freed. One writer per
+archive directory (a lock)."""
 
 from __future__ import annotations
 
