@@ -17,11 +17,15 @@ replayed loop after loop with the loop number and time advanced, fed to an
   ``query_ten_1s``: ten elements aggregated to 1 s buckets (min, max, mean)
   over the hour, each timed :data:`QUERY_ROUNDS` times after one warm-up.
 
-With ``--wide N`` also a layout of N more f32 scalars (:func:`wide`:
-``wide_grouped``, stored in file groups of
-:data:`zplatform.archive.store.GROUP_COLUMNS` elements, and ``wide_whole``,
-every column in one file): ingest rate, and one element queried over the
-rows from a new :class:`Archive` and from one kept.
+With ``--wide N`` also a layout of N more f32 scalars (:func:`wide`), each
+snapshot new random values: ``wide_grouped``, stored in file groups of
+:data:`zplatform.archive.store.GROUP_COLUMNS` elements and offered at
+:data:`WIDE_HZ` (paced, as a ground receives them: the snapshots archived
+and dropped, counted; the writer's CPU per snapshot), ``wide_grouped_max``
+the same as fast as the writer takes them (``flush`` every 100), and
+``wide_whole``, every column in one file (:data:`WIDE_WHOLE_ROWS`, as fast
+as taken): ingest rate, and one element queried over the rows from a new
+:class:`Archive` and from one kept.
 
 Run ``python -m bench.archive [--quick] [--wide N] [--json PATH]``
 (``--quick``: six minutes of telemetry); results go to
@@ -51,8 +55,11 @@ QUICK_S = 360
 """Seconds of telemetry ``--quick`` synthesizes."""
 CSV_ROWS = 30_000
 QUERY_ROUNDS = 5
-WIDE_ROWS = 300
-"""Snapshots of ``--wide``'s layout (3 s at 100 Hz: 120 MB of vectors at 100,000 elements)."""
+WIDE_ROWS = 3000
+"""Snapshots of ``--wide``'s grouped layout (30 s at 100 Hz: 1.2 GB of vectors
+at 100,000 elements, two row groups of 1,340 and the rest)."""
+WIDE_WHOLE_ROWS = 300
+WIDE_HZ = 100.0
 TEN = (
     "apogee_pred_m,nav_h_m,nav_v_mps,cn_state,dn0_state,dn1_state,cn_cpu_pct,"
     "apogee_target_m,main_deploy_m,airbrake_rate_ps"
@@ -70,13 +77,14 @@ def capture(loops: int) -> list[bytes]:
     return out
 
 
-def wide(n_elements: int, rows: int, group_columns: int) -> dict[str, float | int]:
-    """A mission of ``n_elements`` more f32 scalars (a wide region) at
-    100 Hz: ``rows`` snapshots archived with ``group_columns`` elements per
-    file group (0: one file of every column), then one element (the last)
-    queried over them all :data:`QUERY_ROUNDS` times after one warm-up, in a
-    new :class:`Archive` each (the footers parsed each time: a first ask)
-    and in one kept (:data:`QUERY_ROUNDS` more)."""
+def wide(n_elements: int, rows: int, group_columns: int, hz: float) -> dict[str, float | int]:
+    """A mission of ``n_elements`` more f32 scalars (a wide region): ``rows``
+    snapshots of new random values archived with ``group_columns`` elements
+    per file group (0: one file of every column), offered at ``hz`` (paced;
+    0: as fast as the writer takes them, ``flush`` every 100), then one
+    element (the last) queried over them all :data:`QUERY_ROUNDS` times
+    after one warm-up, in a new :class:`Archive` each (the footers parsed
+    each time: a first ask) and in one kept (:data:`QUERY_ROUNDS` more)."""
     import numpy as np
 
     from bench.cluster import make_mission
@@ -92,38 +100,51 @@ def wide(n_elements: int, rows: int, group_columns: int) -> dict[str, float | in
         w = ArchiveWriter(m, layout, root, group_columns=group_columns)
         t0 = 1_800_000_000_000_000_000
         start = time.perf_counter()
+        cpu0 = time.process_time()
         for i in range(1, rows + 1):
-            buf[:] = rng.integers(0, 256, layout.size, np.uint8)
+            buf[:] = np.frombuffer(rng.bytes(layout.size), np.uint8)
             for n, v in (("cn_loop", i), ("cn_time_ns", t0 + i * 10**7), ("cn_epoch", 1)):
                 dv.set(n, v)
             dv.set("cn_state", 0)
+            if hz:
+                ahead = start + i / hz - time.perf_counter()
+                if ahead > 0:
+                    time.sleep(ahead)  # the next snapshot's arrival
             w.snapshot(t0 + i * 10**7 + 1000, dv)
-            if i % 100 == 0:
+            if not hz and i % 100 == 0:
                 w.flush(600.0)
         w.close(600.0)
         ingest = time.perf_counter() - start
+        cpu = time.process_time() - cpu0
+        stats = w.stats()
         q = Query(f"w{n_elements - 1}", run=1)
         cold: list[int] = []
         warm: list[int] = []
         for k in range(QUERY_ROUNDS + 1):
             c0 = time.perf_counter_ns()
             with Archive(m, root) as a:
-                assert a.query(q).num_rows == rows
+                assert a.query(q).num_rows == stats["rows"]
             if k:
                 cold.append(time.perf_counter_ns() - c0)
         with Archive(m, root) as a:
             for k in range(QUERY_ROUNDS + 1):
                 c0 = time.perf_counter_ns()
-                assert a.query(q).num_rows == rows
+                assert a.query(q).num_rows == stats["rows"]
                 if k:
                     warm.append(time.perf_counter_ns() - c0)
         return {
             "elements": len(layout.elements),
             "vector_bytes": layout.size,
-            "rows": rows,
+            "offered_hz": hz,
+            "snapshots": rows,
+            "archived": stats["rows"],
+            "dropped": stats["dropped"],
+            "lost": stats["lost"],
             "group_columns": group_columns,
-            "ingest_rows_per_s": round(rows / ingest, 1),
+            "ingest_rows_per_s": round(stats["rows"] / ingest, 1),
+            "cpu_ms_per_snapshot": round(cpu / rows * 1e3, 2),
             "tm_bytes": du(root / "tm"),
+            "raw_bytes": du(root / "raw"),
             "query_one_new_archive_p50_ms": round(sorted(cold)[len(cold) // 2] / 1e6, 1),
             "query_one_kept_archive_p50_ms": round(sorted(warm)[len(warm) // 2] / 1e6, 1),
         }
@@ -136,8 +157,9 @@ def main() -> None:
         type=int,
         default=0,
         metavar="N",
-        help="also a wide layout: N more f32 scalars, WIDE_ROWS snapshots, stored in file "
-        "groups and whole (wide_grouped, wide_whole)",
+        help="also a wide layout: N more f32 scalars, WIDE_ROWS snapshots stored in file "
+        "groups, offered at WIDE_HZ and as fast as taken (wide_grouped, wide_grouped_max), "
+        "and WIDE_WHOLE_ROWS stored whole (wide_whole)",
     )
     args = ap.parse_args()
     seconds = QUICK_S if args.quick else 3600
@@ -216,8 +238,9 @@ def main() -> None:
     if args.wide:
         from zplatform.archive.store import GROUP_COLUMNS
 
-        extra["wide_grouped"] = wide(args.wide, WIDE_ROWS, GROUP_COLUMNS)
-        extra["wide_whole"] = wide(args.wide, WIDE_ROWS, 0)
+        extra["wide_grouped"] = wide(args.wide, WIDE_ROWS, GROUP_COLUMNS, WIDE_HZ)
+        extra["wide_grouped_max"] = wide(args.wide, WIDE_ROWS, GROUP_COLUMNS, 0)
+        extra["wide_whole"] = wide(args.wide, WIDE_WHOLE_ROWS, 0, 0)
     write_result(
         "archive",
         {

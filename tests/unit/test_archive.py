@@ -91,7 +91,7 @@ def test_a_closed_segment_is_sealed_and_a_lost_run_is_redecoded_from_it(
     w.event(EventRecord(T0, "cn", 1, T0, "WARNING_HI", "fault", "a fault"))
     w.close()
     raw = sorted(p.name for p in (tmp_path / "raw" / "run-7").iterdir())
-    assert raw == ["seg-00000000.zfr.zst"]
+    assert raw == ["seg-00000000.zfr.zsb"]
     # The Parquet files lost, the run left open: all of it comes back from the raw.
     for f in [*tmp_path.glob("tm/run-7/*/*.parquet"), *tmp_path.glob("ev/run-7/*.parquet")]:
         f.unlink()
@@ -200,12 +200,12 @@ def _mission_for_child() -> Mission:
 def test_kill_9_of_the_writer_then_the_archive_opens_clean(
     mission: Mission, tmp_path: Path
 ) -> None:
-    # 1 s row groups of 100 loops: 250 loops leave 2 row groups written and 50
-    # loops held in memory; the raw segment holds all 250.
+    # 1 s row groups of 100 loops: 250 loops leave 2 row groups written (a
+    # closed file each) and 50 loops held in memory; the raw segment holds all 250.
     p = _child(tmp_path, 250)
     try:
         assert p.stdout is not None and p.stdout.readline() == "fed\n"
-        assert list(tmp_path.glob("tm/run-7/*/*.tmp"))  # the open file, half-written
+        assert len(list(tmp_path.glob("tm/run-7/*/part-*.parquet"))) == 2
     finally:
         p.send_signal(signal.SIGKILL)
         p.wait()
@@ -238,8 +238,9 @@ def test_a_damaged_segment_is_skipped_with_a_note_and_the_rest_stays(
 
 
 def test_an_unreadable_parquet_file_is_skipped_with_a_note(
-    mission: Mission, tmp_path: Path
+    mission: Mission, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
+    monkeypatch.setattr(ArchiveWriter, "_compact", lambda self, final: None)  # 3 files kept
     layout = Layout.for_node(mission, "cn")
     w = ArchiveWriter(small(mission, row_group_s=1.0, file_s=1.0), layout, tmp_path)
     feed(w, DataVector(layout), range(1, 301))
@@ -254,8 +255,9 @@ def test_an_unreadable_parquet_file_is_skipped_with_a_note(
 
 
 def test_a_damaged_footer_is_found_when_duckdb_fails_and_skipped(
-    mission: Mission, tmp_path: Path
+    mission: Mission, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
+    monkeypatch.setattr(ArchiveWriter, "_compact", lambda self, final: None)  # 3 files kept
     layout = Layout.for_node(mission, "cn")
     w = ArchiveWriter(small(mission, row_group_s=1.0, file_s=1.0), layout, tmp_path)
     feed(w, DataVector(layout), range(1, 301))

@@ -3,9 +3,11 @@
 A mission's archive (``DIR/<mission>/``) holds, per run (CN epoch ``R``):
 ``raw/run-R/seg-N.zfr`` (the flight recorder's checksummed records: a
 ``HEAD``, then one ``FRAME`` per snapshot, the CN vector's bytes, and one
-``EVENT`` per event, its JSON; once closed, zstd-compressed into
-``seg-N.zfr.zst``), ``tm/run-R/hYYYYMMDDHH/part-N.parquet``
-(decoded snapshots, one column per element; an array is one fixed-size-list
+``EVENT`` per event, its JSON; once closed, compressed into
+``seg-N.zfr.zsb``: :func:`seal_segment`; zplatform before it wrote
+``seg-N.zfr.zst``, a zstd stream, still read), ``tm/run-R/hYYYYMMDDHH/part-N.parquet``
+(decoded snapshots, a row group each, ``part-A-B.parquet`` parts A to B
+compacted: :func:`compact`; one column per element; an array is one fixed-size-list
 column, so a query of another element never reads it; a layout of more than
 :data:`GROUP_COLUMNS` elements in file groups, ``part-N.gK.parquet`` beside
 it: :func:`column_groups`), ``ev/run-R/part-N.parquet``
@@ -26,9 +28,10 @@ import shutil
 import struct
 import tempfile
 import time
+import zlib
 from collections.abc import Callable, Iterable
 from pathlib import Path
-from typing import Any
+from typing import Any, BinaryIO
 
 import msgspec
 import numpy as np
@@ -44,9 +47,12 @@ from ..telemetry.records import EventRecord
 __all__ = [
     "GROUP_COLUMNS",
     "RUN_VERSION",
+    "GroupDecoder",
     "MergeCount",
     "RunInfo",
     "column_groups",
+    "compact",
+    "covered_parts",
     "decode_rows",
     "event_table",
     "file_schema",
@@ -64,12 +70,13 @@ __all__ = [
     "run_dirs",
     "seal_segment",
     "segment_index",
+    "unseal",
     "write_run",
     "write_tm",
 ]
 
 _RUN_RE = re.compile(r"run-([0-9]{1,20})")
-_PART_RE = re.compile(r"part-([0-9]{6,})\.parquet")
+_PART_RE = re.compile(r"part-([0-9]{6,})(?:-([0-9]{6,}))?\.parquet")
 META_KEY = b"zplatform.layout"
 _EVENT_DECODER = msgspec.json.Decoder(EventRecord)
 _EVENT_ENCODER = msgspec.json.Encoder()
@@ -189,21 +196,73 @@ def runs_on_disk(root: Path) -> list[int]:
     return sorted(found)
 
 
+def _parts_in(d: Path) -> list[Path]:
+    """The telemetry or event files of directory ``d`` in order: each
+    ``part-N.parquet`` and each compacted ``part-A-B.parquet`` (the rows of
+    parts A to B, :func:`compact`), a part it covers left out (removed a
+    little later: a reader that listed it first still finds it)."""
+    found = [(m, n) for n in _listdir(d) if (m := _PART_RE.fullmatch(n))]
+    ranges = [(int(m.group(1)), int(m.group(2))) for m, _ in found if m.group(2)]
+    keep = [
+        (int(m.group(1)), n)
+        for m, n in found
+        if m.group(2) or not any(lo <= int(m.group(1)) <= hi for lo, hi in ranges)
+    ]
+    return [d / n for _, n in sorted(keep)]
+
+
 def parquet_files(root: Path, kind: str, run: int) -> list[Path]:
-    """Run ``run``'s closed Parquet files of ``kind`` (``tm``/``ev``), sorted."""
+    """Run ``run``'s closed Parquet files of ``kind`` (``tm``/``ev``), in order."""
     base = run_dirs(root, kind, run)
+    if kind != "tm":
+        return _parts_in(base)
     out: list[Path] = []
-    if kind == "tm":
-        with contextlib.suppress(OSError):
-            for hour in sorted(os.listdir(base)):
-                out.extend(
-                    base / hour / n
-                    for n in sorted(os.listdir(base / hour))
-                    if _PART_RE.fullmatch(n)
-                )
-        return out
     with contextlib.suppress(OSError):
-        out = [base / n for n in sorted(os.listdir(base)) if _PART_RE.fullmatch(n)]
+        for hour in sorted(os.listdir(base)):
+            out.extend(_parts_in(base / hour))
+    return out
+
+
+def covered_parts(d: Path) -> list[Path]:
+    """The parts of directory ``d`` a compacted file covers (to remove)."""
+    found = [(m, n) for n in _listdir(d) if (m := _PART_RE.fullmatch(n))]
+    ranges = [(int(m.group(1)), int(m.group(2))) for m, _ in found if m.group(2)]
+    return [
+        d / n
+        for m, n in found
+        if not m.group(2) and any(lo <= int(m.group(1)) <= hi for lo, hi in ranges)
+    ]
+
+
+def _listdir(d: Path) -> list[str]:
+    try:
+        return os.listdir(d)
+    except OSError:
+        return []
+
+
+def compact(d: Path, first: int, last: int) -> Path:
+    """Parts ``first`` to ``last`` of directory ``d`` (one file group each,
+    closed) as one file ``part-first-last.parquet``, their row groups kept;
+    written as ``*.tmp`` and renamed. The parts stay (the caller removes
+    them later: :func:`covered_parts`); readers skip them once it is there.
+    Raises OSError or ArrowException (the temporary file removed)."""
+    out = d / f"part-{first:06d}-{last:06d}.parquet"
+    tmp = out.with_name(out.name + ".tmp")
+    files = [d / f"part-{n:06d}.parquet" for n in range(first, last + 1)]
+    try:
+        schema = pq.read_schema(files[0])
+        with pq.ParquetWriter(tmp, schema, **parquet_options(schema)) as w:
+            for f in files:
+                pf = pq.ParquetFile(f)
+                for i in range(pf.num_row_groups):
+                    t = pf.read_row_group(i).replace_schema_metadata(schema.metadata)
+                    w.write_table(t, row_group_size=max(1, t.num_rows))
+    except BaseException:
+        with contextlib.suppress(OSError):
+            tmp.unlink()
+        raise
+    os.replace(tmp, out)
     return out
 
 
@@ -212,9 +271,9 @@ def next_part(directory: Path) -> int:
     top = -1
     with contextlib.suppress(OSError):
         for n in os.listdir(directory):
-            m = re.fullmatch(r"part-([0-9]{6,})(\.g[0-9]+)?\.parquet(\.tmp)?", n)
+            m = re.fullmatch(r"part-([0-9]{6,})(?:-([0-9]{6,}))?(\.g[0-9]+)?\.parquet(\.tmp)?", n)
             if m:
-                top = max(top, int(m.group(1)))
+                top = max(top, int(m.group(2) or m.group(1)))
     return top + 1
 
 
@@ -329,11 +388,16 @@ def parquet_options(schema: pa.Schema) -> dict[str, Any]:
     one-element query over the hour 67 -> 12 ms (p50, on a loaded two-core
     machine)."""
     stats = [n for n in ("loop", "t_ns", "rx_ns", "severity") if n in schema.names]
-    delta = [f.name for f in schema if f.type in (pa.int64(), pa.uint64())]
-    split = [f.name for f in schema if pa.types.is_floating(f.type)]
-    other = [f.name for f in schema if f.name not in delta and f.name not in split]
-    encoding = dict.fromkeys(delta, "DELTA_BINARY_PACKED")
-    encoding.update(dict.fromkeys(split, "BYTE_STREAM_SPLIT"))
+    wide = (pa.int64(), pa.uint64())  # made once: a type made per field costs 10 us
+    encoding: dict[str, str] = {}
+    other = []
+    for f in schema:
+        if f.type in wide:
+            encoding[f.name] = "DELTA_BINARY_PACKED"
+        elif pa.types.is_floating(f.type):
+            encoding[f.name] = "BYTE_STREAM_SPLIT"
+        else:
+            other.append(f.name)
     return {
         "compression": "zstd",
         "write_statistics": stats,
@@ -359,6 +423,68 @@ def decode_rows(layout: Layout, schema: pa.Schema, rows: np.ndarray, rx: np.ndar
         else:
             cols.append(pa.array(v))
     return pa.Table.from_arrays(cols, schema=schema)
+
+
+class GroupDecoder:
+    """Decodes blocks of snapshots into one file group's table (group ``k``
+    of ``groups``: :func:`column_groups`), for the writer's hot flush.
+
+    Each run of consecutive elements of one type is transposed at once (one
+    copy of its bytes, rows x elements into elements x rows), and each
+    element's column is a zero-copy view of its row of that: per element
+    one Arrow array, never a strided gather. The schema and the Parquet
+    options are made once (:attr:`schema`, :attr:`options`). Immutable:
+    safe to use from several threads at once."""
+
+    def __init__(self, layout: Layout, groups: list[list[str]], k: int) -> None:
+        self.schema = group_schema(layout, groups, k)
+        self.options = parquet_options(self.schema)
+        self.head = k == 0
+        self._loop = layout.element("cn_loop")
+        self._time = layout.element("cn_time_ns")
+        # (start byte, elements, bytes each, numpy type, array length)
+        runs: list[list[Any]] = []
+        for name in groups[k]:
+            e = layout.element(name)
+            dt = np.dtype(e.scalar.numpy)
+            last = runs[-1] if runs else None
+            if (
+                last is not None
+                and last[3] == dt
+                and last[4] == e.count
+                and last[0] + last[1] * last[2] == e.offset
+            ):
+                last[1] += 1
+            else:
+                runs.append([e.offset, 1, e.size, dt, e.count])
+        self._runs = [tuple(r) for r in runs]
+
+    @staticmethod
+    def _column(rows: np.ndarray, offset: int, dtype: np.dtype[Any]) -> np.ndarray:
+        """One scalar element of every row (a copy: contiguous)."""
+        return np.ascontiguousarray(rows[:, offset : offset + dtype.itemsize]).view(dtype)[:, 0]
+
+    def table(self, rows: np.ndarray, rx: np.ndarray) -> pa.Table:
+        """Snapshots ``rows`` (an ``(n, layout.size)`` uint8 array of CN
+        vectors) received at ``rx`` as this group's table. Copies each
+        element's bytes once; does not keep ``rows``."""
+        n = len(rows)
+        cols: list[pa.Array] = []
+        if self.head:
+            lp, tt = self._loop, self._time
+            lt, tt_ = np.dtype(lp.scalar.numpy), np.dtype(tt.scalar.numpy)
+            cols.append(pa.array(self._column(rows, lp.offset, lt), pa.uint64()))
+            cols.append(pa.array(self._column(rows, tt.offset, tt_), pa.int64()))
+            cols.append(pa.array(np.ascontiguousarray(rx), pa.int64()))
+        for start, count, size, dt, length in self._runs:
+            block = rows[:, start : start + count * size].reshape(n, count, size)
+            # elements x rows: each element's bytes contiguous (the one copy)
+            flat = np.ascontiguousarray(block.transpose(1, 0, 2)).reshape(count, n * size)
+            values = flat.view(dt)
+            for j in range(count):
+                v = pa.array(values[j])
+                cols.append(pa.FixedSizeListArray.from_arrays(v, length) if length else v)
+        return pa.Table.from_arrays(cols, schema=self.schema)
 
 
 EVENT_SCHEMA = pa.schema(
@@ -469,6 +595,10 @@ def recover(
         if info is None:
             info = RunInfo(run, mission, vehicle, layout.layout_id)
             info.group_columns = GROUP_COLUMNS
+        for hour in _listdir(run_dirs(root, "tm", run)):
+            for f in covered_parts(run_dirs(root, "tm", run) / hour):
+                with contextlib.suppress(OSError):
+                    f.unlink()  # a compaction's parts, its file whole
         refill(root, layout, info, note, schema)
         # The record's counts as the files hold them (a writer that failed
         # before the crash may have counted rows it had not written).
@@ -582,11 +712,20 @@ def recount(root: Path, layout: Layout, info: RunInfo, note: Callable[[str], Non
                 info.commands.append(f"{e['node']}: {e['text']}")
 
 
-_SEG_RE = re.compile(r"seg-([0-9]{8})\.zfr(\.zst)?")
+_SEG_RE = re.compile(r"seg-([0-9]{8})\.zfr(\.zst|\.zsb)?")
+ZSB_SYNC = b"\x89ZSB"
+ZSB_HEADER = struct.Struct("<4sIIIII")  # sync, crc, stored, plain, width, reserved
+ZSB_RECORDS = 4096
+"""Records of one length a sealed block holds, at most (41 s of the flight
+mission's snapshots: shorter than the bench's 60 s replay, so the bench's
+sizes owe nothing to it)."""
+ZSB_BYTES = 8 * 2**20
+"""Bytes of segment a sealed block holds, at most."""
+ZSB_LEVEL = 3
 
 
 def segment_index(path: Path) -> int | None:
-    """The index of raw segment ``path`` (``seg-N.zfr``, or sealed ``.zfr.zst``)."""
+    """The index of raw segment ``path`` (``seg-N.zfr``, or sealed ``.zfr.zsb``/``.zfr.zst``)."""
     m = _SEG_RE.fullmatch(path.name)
     return int(m.group(1)) if m else None
 
@@ -598,42 +737,120 @@ def raw_segments(directory: Path) -> list[Path]:
         names = [p for p in directory.iterdir() if _SEG_RE.fullmatch(p.name)]
     except OSError:
         return []
-    return sorted(names, key=lambda p: (segment_index(p), not p.name.endswith(".zst")))
+    return sorted(names, key=lambda p: (segment_index(p), p.name.endswith(".zfr")))
+
+
+def _blocks(data: bytes | memoryview) -> Iterable[tuple[int, int, int]]:
+    """``data`` (a segment) cut into sealed blocks: ``(start, end, width)``,
+    ``width`` the length of each of the block's records (a run of records of
+    one length: the frames), or 0 for bytes that are not whole records (a
+    torn tail), kept as they are."""
+    n = len(data)
+    start, width, count, off = 0, 0, 0, 0
+    while off < n:
+        length, whole = n - off, False  # not a record: the rest, as it is
+        if off + HEADER.size <= n and data[off : off + 4] == SYNC:
+            rec = HEADER.size + struct.unpack_from("<I", data, off + 8)[0]
+            if off + rec <= n:
+                length, whole = rec, True
+        if whole and length == width and count < ZSB_RECORDS and off + length - start <= ZSB_BYTES:
+            count += 1
+        else:
+            if off > start:
+                yield start, off, width
+            start, count, width = off, 1, length if whole else 0
+        off += length
+    if off > start:
+        yield start, off, width
 
 
 def seal_segment(path: Path) -> None:
-    """Compress a closed raw segment into ``seg-N.zfr.zst`` (a standard zstd
-    stream: ``zstd -d`` gives the segment back byte for byte), then remove
-    it. Written as a temporary file renamed, so a crash leaves one whole
-    file or both. On an error (a full disk) the temporary file is removed,
-    the segment left as it is (readable unsealed), and the error raised."""
-    tmp = path.with_name(path.name + ".zst.tmp")
+    """Compress a closed raw segment into ``seg-N.zfr.zsb``, then remove it:
+    blocks (codecs/FORMAT.md §12) of at most :data:`ZSB_RECORDS` records of
+    one length, each stored as its bytes transposed (byte 0 of every record,
+    then byte 1...: a snapshot's slowly changing values side by side) and
+    zstd-compressed, checksummed; decoding gives the segment back byte for
+    byte (:func:`unseal`). Written as a temporary file renamed, so a crash
+    leaves one whole file or both. On an error (a full disk) the temporary
+    file is removed, the segment left as it is (readable unsealed), and the
+    error raised."""
+    tmp = path.with_name(path.name + ".zsb.tmp")
+    codec = pa.Codec("zstd", compression_level=ZSB_LEVEL)
     try:
-        with open(path, "rb") as src, pa.CompressedOutputStream(str(tmp), "zstd") as dst:
-            while chunk := src.read(1 << 20):
-                dst.write(chunk)
-        with open(tmp, "rb") as f:
-            os.fsync(f.fileno())
+        data = path.read_bytes()
+        with open(tmp, "wb") as dst:
+            for start, end, width in _blocks(data):
+                chunk: bytes | memoryview = memoryview(data)[start:end]
+                if width > 1 and end - start > width:
+                    rows = np.frombuffer(data, np.uint8, end - start, start).reshape(-1, width)
+                    chunk = np.ascontiguousarray(rows.T).data
+                stored = codec.compress(chunk, asbytes=True)
+                head = bytearray(ZSB_HEADER.pack(ZSB_SYNC, 0, len(stored), end - start, width, 0))
+                crc = zlib.crc32(stored, zlib.crc32(memoryview(head)[8:]))
+                struct.pack_into("<I", head, 4, crc)
+                dst.write(head)
+                dst.write(stored)
+            dst.flush()
+            os.fsync(dst.fileno())
     except BaseException:
         with contextlib.suppress(OSError):
             tmp.unlink()
         raise
-    os.replace(tmp, path.with_name(path.name + ".zst"))
+    os.replace(tmp, path.with_name(path.name + ".zsb"))
     path.unlink()
+
+
+def unseal(seg: Path, out: BinaryIO, note: Callable[[str], None]) -> None:
+    """Write sealed segment ``seg`` (``.zfr.zsb``) back as the segment it was
+    into ``out``. A block that does not check is skipped (``note`` says where:
+    the records around it stay readable); a torn or damaged block header
+    ends it there."""
+    data = seg.read_bytes()
+    off, n = 0, len(data)
+    codec = pa.Codec("zstd")
+    while off < n:
+        if off + ZSB_HEADER.size > n or data[off : off + 4] != ZSB_SYNC:
+            note(f"{seg.name}: not a sealed block at byte {off}: the rest skipped")
+            return
+        _, crc, stored, plain, width, _ = ZSB_HEADER.unpack_from(data, off)
+        end = off + ZSB_HEADER.size + stored
+        if end > n:
+            note(f"{seg.name}: a torn block at byte {off}: the rest skipped")
+            return
+        body = memoryview(data)[off + ZSB_HEADER.size : end]
+        if zlib.crc32(body, zlib.crc32(memoryview(data)[off + 8 : off + ZSB_HEADER.size])) != crc:
+            note(f"{seg.name}: a damaged block at byte {off} skipped")
+            off = end
+            continue
+        try:
+            raw = codec.decompress(body, decompressed_size=plain, asbytes=True)
+        except (pa.ArrowException, ValueError) as exc:
+            note(f"{seg.name}: a block at byte {off} does not decompress ({exc}): skipped")
+            off = end
+            continue
+        if width > 1 and plain > width and plain % width == 0:
+            rows = np.frombuffer(raw, np.uint8).reshape(width, plain // width)
+            raw = np.ascontiguousarray(rows.T).tobytes()
+        out.write(raw)
+        off = end
 
 
 def _scan(seg: Path, note: Callable[[str], None]) -> Iterable[Any]:
     """The records of raw segment ``seg`` that check (a sealed one unpacked
     to a temporary file first)."""
-    if not seg.name.endswith(".zst"):
+    if seg.name.endswith(".zfr"):
         yield from scan_segment(seg, note)
         return
     with tempfile.TemporaryDirectory() as d:
         plain = Path(d) / seg.name[: -len(".zst")]
         try:
-            with pa.CompressedInputStream(str(seg), "zstd") as src, open(plain, "wb") as dst:
-                while chunk := src.read(1 << 20):
-                    dst.write(chunk)
+            if seg.name.endswith(".zsb"):
+                with open(plain, "wb") as dst:
+                    unseal(seg, dst, note)
+            else:
+                with pa.CompressedInputStream(str(seg), "zstd") as src, open(plain, "wb") as dst:
+                    while chunk := src.read(1 << 20):
+                        dst.write(chunk)
         except (OSError, pa.ArrowException) as exc:
             note(f"{seg.name}: cannot unpack it ({exc}); what it held up to there is read")
         yield from scan_segment(plain, note)

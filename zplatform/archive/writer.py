@@ -3,19 +3,21 @@
 :class:`ArchiveWriter` takes every snapshot the ground accepted (copied into
 a slot of a preallocated ring) and every event (a bounded queue). Its thread
 wakes every :data:`WAKE_S`, drops loops it already holds, appends the raw
-records (:mod:`.store`) and adds the decoded rows to the open Parquet file a
-row group at a time; a file is closed every ``file_s`` or at an hour's
-boundary, then retention runs.
+records (:mod:`.store`) and copies the rows into a preallocated block; a
+full block (``row_group_s``, at most :data:`ROW_GROUP_BYTES`) is one closed
+Parquet file per file group, each run of same-typed elements transposed at
+once, the groups encoded on :data:`ENCODERS` threads: a running run is
+queryable up to its last row group. Every ``file_s`` and at the run's end a
+run of one file group has them compacted per hour (:func:`.store.compact`).
 
 Contract: :meth:`~ArchiveWriter.snapshot`, :meth:`~ArchiveWriter.event` and
 :meth:`~ArchiveWriter.tick` never block, never raise, and allocate nothing
 per snapshot; a full queue drops, counted and evented once a second. An I/O
 error (a full disk) is counted and evented once per kind; snapshots the raw
-segment could not take are lost (counted), the segment is cut back to its
-last whole record, the open Parquet file dropped and refilled from the raw
-segment at the run's end (:func:`.store.refill`); writing resumes by itself
-once space is freed. One writer per archive directory (a lock).
-"""
+segment could not take are lost (counted), the segment cut back to its last
+whole record, the pending rows refilled from it at the run's end
+(:func:`.store.refill`); writing resumes once space is freed. One writer per
+archive directory (a lock)."""
 
 from __future__ import annotations
 
@@ -26,7 +28,9 @@ import logging
 import os
 import threading
 import time
+import zlib
 from collections import deque
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any, BinaryIO
 
@@ -38,11 +42,11 @@ from ..config import Mission
 from ..core.datavector import DataVector, Layout
 from ..core.events import EV, EventLog, EventType
 from ..errors import ArchiveError
-from ..recorder.format import EVENT, FRAME, segment_name
+from ..recorder.format import EVENT, FRAME, HEADER, SYNC, segment_name
 from ..telemetry.records import EventRecord
 from . import store
 
-__all__ = ["EVENT_BACKLOG", "QUEUE_BYTES", "WAKE_S", "ArchiveWriter"]
+__all__ = ["ENCODERS", "EVENT_BACKLOG", "QUEUE_BYTES", "ROW_GROUP_BYTES", "WAKE_S", "ArchiveWriter"]
 
 log = logging.getLogger("zplatform.archive")
 
@@ -50,8 +54,22 @@ WAKE_S = 0.1
 """How often the archive's thread takes what was queued."""
 QUEUE_BYTES = 256 * 2**20
 """Most bytes of snapshots the hand-off ring holds."""
-ROW_GROUP_BYTES = 64 * 2**20
-"""Most bytes of snapshots in one row group (a large vector gets fewer rows)."""
+ROW_GROUP_BYTES = 512 * 2**20
+"""Most bytes of snapshots in one row group (a large vector gets fewer rows):
+the writer's preallocated block (allocated once; its pages touched as rows
+fill it: the flight mission's 751-byte vector takes 4.5 MB for its 60 s).
+Large, because a Parquet column chunk costs about 30 us of CPU to write
+whatever its rows: a 100,000-element vector at 100 Hz in row groups of 167
+rows (64 MiB) is 60,000 column chunks a second, more than a core can write;
+in 1,340 rows (this), 7,500."""
+ENCODERS = 2
+"""Threads that encode a row group's file groups at once (Parquet's encoder
+releases the GIL): a layout of one file group uses none."""
+TAKE_BYTES = 16 * 2**20
+"""Bytes of snapshots the archive's thread takes from the ring at a time, at
+most (and at most an eighth of the ring): their slots are freed once they
+are in the raw segment and the block, so a row group written meanwhile
+holds no more of the ring than that."""
 EVENT_BACKLOG = 4096
 """Events queued for the archive's thread, at most."""
 SEGMENT_BYTES = 64 * 2**20
@@ -74,7 +92,7 @@ def lock_archive(root: Path) -> int | None:
     return fd
 
 
-def _write_all(f: BinaryIO, data: bytes) -> None:
+def _write_all(f: BinaryIO, data: bytes | memoryview) -> None:
     """Write all of ``data`` to the unbuffered ``f`` (a short write, a disk
     filling up, is written on or raises)."""
     view = memoryview(data)
@@ -140,8 +158,26 @@ class ArchiveWriter:
         self.duplicates = 0
         """Snapshots of loops already archived (not written again)."""
         self._schema = store.file_schema(layout)
+        self._ring2d = np.frombuffer(self._ring, np.uint8).reshape(cap, size)
         self._rg_rows = max(1, min(int(cfg.row_group_s * per_s), ROW_GROUP_BYTES // size))
-        self._file_rows = max(self._rg_rows, int(cfg.file_s * per_s))
+        self._retain_rows = max(self._rg_rows, int(cfg.file_s * per_s))
+        self._since_retain = 0
+        # The open row group: preallocated, filled by the archive's thread.
+        self._block = np.empty((self._rg_rows, size), np.uint8)
+        self._block_rx = np.empty(self._rg_rows, np.int64)
+        self._pend_n = 0
+        # The raw records of the snapshots taken at a time, built in place.
+        self._take = max(1, min(cap // 8, TAKE_BYTES // size))
+        self._rec_len = HEADER.size + 8 + layout.size
+        self._raw_buf = bytearray(self._take * self._rec_len)
+        self._raw_np = np.frombuffer(self._raw_buf, np.uint8).reshape(self._take, self._rec_len)
+        self._pool: ThreadPoolExecutor | None = None
+        self._decoders: list[store.GroupDecoder] = []
+        self._decoders_for = -1
+        self._parts: dict[str, int] = {}  # per run/hour: the next part number
+        self._part_dirs: dict[str, Path] = {}
+        self._compacted: dict[str, int] = {}  # per run/hour: the first part not compacted
+        self._covered: list[Path] = []  # parts compacted, removed at the next pass
         self._loop_at = layout.element("cn_loop").offset
         self._epoch_at = layout.element("cn_epoch").offset
         # The archive's thread's own state.
@@ -153,15 +189,7 @@ class ArchiveWriter:
         self._seg_bytes = 0
         self._seg_index = 0
         self._synced = 0.0
-        self._pend: list[np.ndarray] = []
-        self._pend_rx: list[np.ndarray] = []
-        self._pend_n = 0
-        self._pw: pq.ParquetWriter | None = None  # group 0's; the others in _pw_groups
-        self._pw_groups: list[pq.ParquetWriter] = []
         self._groups: list[list[str]] = store.column_groups(layout, 0)
-        self._pw_path: Path | None = None
-        self._pw_hour = ""
-        self._pw_rows = 0
         self._ev_pend: list[EventRecord] = []
         self._early_events: list[EventRecord] = []
         self._refill = False
@@ -249,31 +277,33 @@ class ArchiveWriter:
                 lambda: self._tail >= target or not self._thread.is_alive(), timeout_s
             )
 
-    def _take(self) -> tuple[np.ndarray, np.ndarray]:
-        """Copy the queued snapshots out of the ring and free their slots."""
-        head, tail, cap, size = self._head, self._tail, self._cap, self._size
-        n = head - tail
-        ring = np.frombuffer(self._ring, np.uint8).reshape(cap, size)
-        idx = np.arange(tail, head) % cap
-        rows, rx = ring[idx], self._rx[idx]  # fancy indexing copies
-        self._tail = head
-        return rows[:n], rx[:n]
-
     def _drain(self) -> None:
-        rows, rx = self._take()
         evs = []
         while self._events:
             evs.append(self._events.popleft())
-        self._batch_raw = 0
-        try:
-            if len(rows):
+        cap = self._cap
+        # A few at a time (TAKE_BYTES), read in place in the ring; their
+        # slots freed once they are in the raw segment and the block (a row
+        # group written meanwhile keeps no more of the ring taken).
+        failed: BaseException | None = None
+        while self._tail < self._head:
+            tail = self._tail
+            i = tail % cap
+            n = min(self._head - tail, cap - i, self._take)
+            rows, rx = self._ring2d[i : i + n], self._rx[i : i + n]
+            self._batch_raw = 0
+            try:
                 epochs = rows[:, self._epoch_at : self._epoch_at + 8].copy().view("<u8")[:, 0]
                 cuts = np.flatnonzero(np.diff(epochs)) + 1
-                for part in np.split(np.arange(len(rows)), cuts):
-                    self._ingest(int(epochs[part[0]]), rows[part], rx[part])
-        except (OSError, pa.ArrowException, ArchiveError) as exc:
-            self.lost += len(rows) - self._batch_raw  # those in the raw segment are kept
-            self._failure("write", exc)
+                for part in np.split(np.arange(n), cuts):
+                    a, b = int(part[0]), int(part[-1]) + 1
+                    self._ingest(int(epochs[a]), rows[a:b], rx[a:b])
+            except (OSError, pa.ArrowException, ArchiveError) as exc:
+                self.lost += n - self._batch_raw  # those in the raw segment are kept
+                failed = failed or exc
+            self._tail = tail + n
+        if failed is not None:
+            self._failure("write", failed)  # counted once a wake-up, as one write
         try:
             for e in evs:
                 self._event(e)
@@ -283,26 +313,32 @@ class ArchiveWriter:
 
     def _failure(self, what: str, exc: BaseException) -> None:
         """A write failed (a full disk): counted, told once per kind; the
-        open Parquet file and the rows and events pending for it are
-        dropped (their ``*.tmp`` removed: a broken writer cannot be written
-        on, and the space is freed). They are in the raw segment: the run's
-        end re-decodes them (:func:`.store.refill`), so after space is freed
+        rows and events pending for the Parquet files are dropped (a row
+        group's files half written are removed where they failed: the
+        space comes back). They are in the raw segment: the run's end
+        re-decodes them (:func:`.store.refill`), so after space is freed
         the archive goes on and the run ends whole but for what the raw
         segment could not take (counted in :attr:`lost`)."""
         self._fail(what, exc)
-        pws, self._pw, self._pw_groups = [self._pw, *self._pw_groups], None, []
-        for k, pw in enumerate(pws):
-            if pw is None:
-                continue
-            with contextlib.suppress(Exception):  # broken already: only its handle to free
-                pw.close()
-            if self._pw_path is not None:
-                with contextlib.suppress(OSError):
-                    os.unlink(str(store.group_path(self._pw_path, k)) + ".tmp")
-        self._pend, self._pend_rx, self._pend_n = [], [], 0
+        self._pend_n = 0
         self._ev_pend = []
         if self._run is not None:
             self._refill = True
+
+    def _frames(self, rows: np.ndarray, rx: np.ndarray, loops: np.ndarray) -> memoryview:
+        """The raw ``FRAME`` records of ``rows`` (at most ``self._take``), built
+        in the preallocated buffer: a view of it, valid until the next call."""
+        n, rec = len(rows), self._rec_len
+        out = self._raw_np[:n]
+        out[:, HEADER.size : HEADER.size + 8] = rx.view(np.uint8).reshape(n, 8)
+        out[:, HEADER.size + 8 :] = rows
+        buf, mv = self._raw_buf, memoryview(self._raw_buf)
+        for i, lp in enumerate(loops.tolist()):
+            at = i * rec
+            HEADER.pack_into(buf, at, SYNC, 0, rec - HEADER.size, FRAME, 0, 0, lp)
+            crc = zlib.crc32(mv[at + 8 : at + rec])  # recorder.format.record_crc
+            HEADER.pack_into(buf, at, SYNC, crc, rec - HEADER.size, FRAME, 0, 0, lp)
+        return mv[: n * rec]
 
     def _ingest(self, run: int, rows: np.ndarray, rx: np.ndarray) -> None:
         if run != self._run:
@@ -329,24 +365,23 @@ class ArchiveWriter:
         assert info is not None
         if info.in_order and (int(loops[0]) <= self._max_loop or bool(np.any(np.diff(loops) <= 0))):
             info.in_order = False  # a late loop (a gap filled out of order): queries sort
-        self._raw(
-            b"".join(
-                store.raw_record(FRAME, lp, rx[i].tobytes() + rows[i].tobytes())
-                for i, lp in enumerate(loops.tolist())
-            )
-        )
+        self._raw(self._frames(rows, rx, loops))
         # Taken only once in the raw segment: a loop whose write failed is
         # not seen, so a later copy of it (a gap fill) is archived.
         self._seen |= new
         self.duplicates += dups
         self._batch_raw += n_in
         self._max_loop = max(self._max_loop, int(loops.max()))
-        self._pend.append(rows)
-        self._pend_rx.append(rx)
-        self._pend_n += len(rows)
         self.rows += len(rows)
-        if self._pend_n >= self._rg_rows:
-            self._flush_groups(final=False)
+        at = 0
+        while at < len(rows):
+            k = min(len(rows) - at, self._rg_rows - self._pend_n)
+            self._block[self._pend_n : self._pend_n + k] = rows[at : at + k]
+            self._block_rx[self._pend_n : self._pend_n + k] = rx[at : at + k]
+            self._pend_n += k
+            at += k
+            if self._pend_n >= self._rg_rows:
+                self._flush_groups()
 
     def _event(self, e: EventRecord) -> None:
         if self._run is None:
@@ -427,7 +462,7 @@ class ArchiveWriter:
         self._seg_index += 1
         self._seg, self._seg_bytes = seg, len(head)
 
-    def _raw(self, data: bytes) -> None:
+    def _raw(self, data: bytes | memoryview) -> None:
         """Append ``data`` (whole records) to the run's raw segment. On an
         error (a full disk) the segment is cut back to its last whole record
         and the error raised: no torn record between good ones."""
@@ -450,65 +485,108 @@ class ArchiveWriter:
             self._synced = now
             os.fsync(self._seg.fileno())
 
-    def _flush_groups(self, *, final: bool) -> None:
-        """The pending rows as row groups of ``row_group_s`` each; ``final``:
-        the rest too, else the rest stays pending."""
-        if not self._pend_n:
-            return
-        rows = np.concatenate(self._pend) if len(self._pend) > 1 else self._pend[0]
-        rx = np.concatenate(self._pend_rx) if len(self._pend_rx) > 1 else self._pend_rx[0]
-        n, at = len(rows), 0
-        while n - at >= self._rg_rows or (final and at < n):
-            k = min(self._rg_rows, n - at)
-            self._write_group(rows[at : at + k], rx[at : at + k])
-            at += k
-        self._pend, self._pend_rx = ([rows[at:]], [rx[at:]]) if at < n else ([], [])
-        self._pend_n = n - at
+    def _flush_groups(self) -> None:
+        """The block's rows (if any) as one row group: one closed file per
+        file group (:meth:`_write_group`)."""
+        n, self._pend_n = self._pend_n, 0
+        if n:
+            self._write_group(self._block[:n], self._block_rx[:n])
+
+    def _coders(self) -> list[store.GroupDecoder]:
+        """The run's file groups' decoders (made once per grouping)."""
+        assert self._info is not None
+        gc = self._info.group_columns
+        if self._decoders_for != gc:
+            groups = store.column_groups(self.layout, gc)
+            n = len(groups)
+            self._decoders = [store.GroupDecoder(self.layout, groups, k) for k in range(n)]
+            self._decoders_for = gc
+        return self._decoders
 
     def _write_group(self, rows: np.ndarray, rx: np.ndarray) -> None:
-        """One row group of the open file (opened, or closed first at an
-        hour's boundary)."""
-        table = store.decode_rows(self.layout, self._schema, rows, rx)
+        """``rows`` as one row group: a closed file per file group in the
+        hour of its first row, written as ``*.tmp``, the groups renamed
+        first and group 0 last (a reader that sees a group-0 file sees its
+        groups); then the events held and the run's record, and every
+        ``file_s`` retention. On an error the ``*.tmp`` files are removed
+        and it is raised."""
         assert self._info is not None and self._run is not None
+        coders = self._coders()
+        t_at = self.layout.element("cn_time_ns").offset
+        hour = store.hour_dir(int(rows[0, t_at : t_at + 8].view("<i8")[0]))
+        d = store.run_dirs(self.root, "tm", self._run) / hour
+        d.mkdir(parents=True, exist_ok=True)
+        key = f"{self._run}/{hour}"
+        if key not in self._parts:
+            self._parts[key] = self._compacted[key] = store.next_part(d)
+            self._part_dirs[key] = d
+        part = d / f"part-{self._parts[key]:06d}.parquet"
+        self._parts[key] += 1
+        tmps = [Path(str(store.group_path(part, k)) + ".tmp") for k in range(len(coders))]
+
+        def write(k: int) -> None:
+            c = coders[k]
+            pq.write_table(c.table(rows, rx), tmps[k], **c.options)
+
+        try:
+            if len(coders) == 1:
+                write(0)
+            else:
+                if self._pool is None:
+                    self._pool = ThreadPoolExecutor(ENCODERS, thread_name_prefix="archive-enc")
+                # every group's file done (or failed) before any is renamed
+                futures = [self._pool.submit(write, k) for k in range(len(coders))]
+                errors = [f.exception() for f in futures]
+                for exc in errors:
+                    if exc is not None:
+                        raise exc
+            for k in range(len(coders) - 1, -1, -1):
+                os.replace(tmps[k], store.group_path(part, k))
+        except BaseException:
+            for t in tmps:
+                with contextlib.suppress(OSError):
+                    t.unlink()
+            raise
         store._account(self._info, self.layout, rows)
-        hour = store.hour_dir(int(table.column("t_ns")[0].as_py()))
-        if self._pw is not None and hour != self._pw_hour:
-            self._close_file()
-        if self._pw is None:
-            d = store.run_dirs(self.root, "tm", self._run) / hour
-            d.mkdir(parents=True, exist_ok=True)
-            self._pw_path = d / f"part-{store.next_part(d):06d}.parquet"
-            writers = []
-            for k in range(len(self._groups)):
-                schema = store.group_schema(self.layout, self._groups, k)
-                writers.append(
-                    pq.ParquetWriter(
-                        str(store.group_path(self._pw_path, k)) + ".tmp",
-                        schema,
-                        **store.parquet_options(schema),
-                    )
-                )
-            self._pw, self._pw_groups = writers[0], writers[1:]
-            self._pw_hour, self._pw_rows = hour, 0
-        for pw in [self._pw, *self._pw_groups]:
-            part = table if len(self._groups) == 1 else table.select(pw.schema.names)
-            pw.write_table(part, row_group_size=len(rows))
-        self._pw_rows += len(rows)
-        if self._pw_rows >= self._file_rows:
-            self._close_file()
+        self._close_file()
+        self._since_retain += len(rows)
+        if self._since_retain >= self._retain_rows:
+            self._since_retain = 0
+            self._compact(final=False)
+            self._retain()
+
+    def _compact(self, *, final: bool) -> None:
+        """Every ``file_s`` and at the run's end: the row-group files of a
+        run of one file group written since the last pass, per hour, as one
+        file (:func:`.store.compact`; a query of an hour opens a few files,
+        not sixty). The parts compacted at the last pass are removed now
+        (``final``: these too), so a reader that listed them before finds
+        them. A failure is counted and told; the parts stay, whole."""
+        for f in self._covered:
+            with contextlib.suppress(OSError):
+                f.unlink()
+        self._covered = []
+        if self._info is None or len(self._coders()) != 1:
+            return  # a wide layout's row groups are large: files of one each
+        for key, nxt in self._parts.items():
+            first, d = self._compacted[key], self._part_dirs[key]
+            if nxt - first < 2:
+                continue
+            try:
+                store.compact(d, first, nxt - 1)
+            except (OSError, pa.ArrowException) as exc:
+                self._fail("compact its files", exc)
+                continue
+            self._compacted[key] = nxt
+            self._covered += [d / f"part-{n:06d}.parquet" for n in range(first, nxt)]
+        if final:
+            for f in self._covered:
+                with contextlib.suppress(OSError):
+                    f.unlink()
+            self._covered = []
 
     def _close_file(self) -> None:
-        """Close (rename) the open telemetry file, write the events held and
-        the run's record, apply retention."""
-        if self._pw is not None:
-            assert self._pw_path is not None
-            # The groups first, group 0 last: a reader that sees a group-0
-            # file sees its groups (store.write_tm, store.recover).
-            for k, pw in reversed(list(enumerate([self._pw, *self._pw_groups]))):
-                pw.close()
-                path = store.group_path(self._pw_path, k)
-                os.replace(str(path) + ".tmp", path)
-            self._pw, self._pw_groups = None, []
+        """Write the events held and the run's record."""
         if self._ev_pend and self._run is not None:
             d = store.run_dirs(self.root, "ev", self._run)
             d.mkdir(parents=True, exist_ok=True)
@@ -518,7 +596,6 @@ class ArchiveWriter:
             self._ev_pend = []
         if self._info is not None:
             store.write_run(self.root, self._info)
-        self._retain()
 
     def _retain(self) -> None:
         def removed(run: int, size: int, why: str) -> None:
@@ -542,9 +619,11 @@ class ArchiveWriter:
         info = self._info
         assert info is not None
         try:
-            self._flush_groups(final=True)
+            self._flush_groups()
             info.outcome = "open" if self._refill else outcome
             self._close_file()
+            self._compact(final=True)
+            self._retain()
             if self._refill:
                 if self._seg is not None:
                     with contextlib.suppress(OSError):
@@ -556,6 +635,10 @@ class ArchiveWriter:
         finally:
             self._run = None
             self._refill = False
+            self._pend_n = 0
+            self._parts.clear()
+            self._part_dirs.clear()
+            self._compacted.clear()
             self._seal_segment()
 
     # -- the end ------------------------------------------------------------
@@ -572,6 +655,8 @@ class ArchiveWriter:
         except (OSError, pa.ArrowException) as exc:
             self._fail("close its files", exc)
         finally:
+            if self._pool is not None:
+                self._pool.shutdown()
             os.close(self._lock_fd)
 
     def stats(self) -> dict[str, int]:

@@ -784,10 +784,11 @@ class ArchiveConfig(_Struct):
         Meta(
             ge=0.1,
             le=3600,
-            description="Seconds of snapshots per Parquet row group (fewer for a large vector: "
-            "at most 64 MiB of rows). Larger groups make smaller files and faster queries; a "
-            "crash loses none of the open group's rows that reached the raw segment (they are "
-            "re-decoded from it).",
+            description="Seconds of snapshots per Parquet row group, each written as a closed "
+            "file (fewer for a large vector: at most 512 MiB of rows). A running run is "
+            "queryable up to its last row group; larger groups make fewer files and faster "
+            "queries; a crash loses none of the open group's rows that reached the raw segment "
+            "(they are re-decoded from it).",
         ),
     ] = 60.0
     file_s: Annotated[
@@ -795,8 +796,9 @@ class ArchiveConfig(_Struct):
         Meta(
             ge=1,
             le=86_400,
-            description="Seconds of snapshots per Parquet file; a file is also closed at an "
-            "hour's boundary (the files are partitioned by run and hour).",
+            description="Seconds of snapshots between two passes that compact the run's "
+            "row-group files of each hour into one Parquet file (also at the run's end) and "
+            "apply retention (`max_bytes`, `max_age_days`).",
         ),
     ] = 600.0
     queue_s: Annotated[

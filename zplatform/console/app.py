@@ -256,7 +256,7 @@ class ConsoleApp(App[int]):
                 kept = {n: m.seed_series(n, pts, step_s) for n, pts in got.items()}
                 added = m.seed_events(lines) if events else 0
                 # Where each series' archive ends: a running run shows only up
-                # to the last file the ground closed (docs/archive.md).
+                # to the last row group the ground wrote (docs/archive.md).
                 xs = {n: m.plot_series()[n][0] for n, v in kept.items() if v}
                 done = [
                     f"{v} point(s) of {n}"
