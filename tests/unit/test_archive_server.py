@@ -542,6 +542,7 @@ def test_the_client_turns_no_answer_into_a_clear_error(root: Path) -> None:
     finally:
         session.close()
 
+
 def test_a_junk_or_replayed_ask_is_refused_without_a_mac_over_its_body(
     root: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
