@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 
-from tests.unit.test_identities import MISSION, keydir, keygen  # noqa: F401 (fixture)
+from tests.unit.test_identities import MISSION, keygen
 from tests.unit.test_stations_lockstep import flight_with_ground
 from zplatform.control.uplink import ScriptCommand, parse_commands
 from zplatform.errors import CommandError
@@ -131,7 +131,7 @@ def test_a_line_naming_an_operator_in_a_mission_without_ground_is_refused() -> N
 
 def test_a_line_is_signed_with_the_key_files_cmd_operator_reads(
     tmp_path: Path,
-    keydir: Path,  # noqa: F811 (fixture)
+    keydir: Path,
 ) -> None:
     path = keygen(tmp_path, MISSION, keydir)
     m = load_mission(path)
