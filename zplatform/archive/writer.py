@@ -20,6 +20,8 @@ once space is freed. One writer per archive directory (a lock).
 from __future__ import annotations
 
 import contextlib
+import ctypes
+import ctypes.util
 import errno
 import fcntl
 import logging
@@ -42,9 +44,40 @@ from ..recorder.format import EVENT, FRAME, segment_name
 from ..telemetry.records import EventRecord
 from . import store
 
-__all__ = ["EVENT_BACKLOG", "QUEUE_BYTES", "WAKE_S", "ArchiveWriter"]
+__all__ = ["EVENT_BACKLOG", "QUEUE_BYTES", "WAKE_S", "ArchiveWriter", "release_memory"]
 
 log = logging.getLogger("zplatform.archive")
+
+
+def _libc_trim() -> Any:
+    """glibc's ``malloc_trim`` (None elsewhere: musl, macOS)."""
+    with contextlib.suppress(OSError, AttributeError):
+        name = ctypes.util.find_library("c")
+        if name:
+            trim = ctypes.CDLL(name).malloc_trim
+            trim.argtypes = [ctypes.c_size_t]
+            trim.restype = ctypes.c_int
+            return trim
+    return None
+
+
+_trim = _libc_trim()
+
+
+def release_memory() -> None:
+    """Give back to the system the memory a Parquet write left free in the
+    allocators: Arrow's pool (``release_unused``: mimalloc or jemalloc keep
+    freed pages) and glibc's heaps (``malloc_trim``). Issue 25: encoding a
+    row group (a minute of the flight mission's 190 columns, decoded, then
+    dictionary- and zstd-encoded) left the ground node 26-40 MB larger for
+    good, about a minute into every flight; the soak saw it "during a
+    flood", whichever flood ran then (``python -m bench.ground_memory
+    --variant archive``). Costs a few ms of the archive's thread per row
+    group; blocks nothing else but other threads' allocations meanwhile."""
+    pa.default_memory_pool().release_unused()
+    if _trim is not None:
+        _trim(0)
+
 
 WAKE_S = 0.1
 """How often the archive's thread takes what was queued."""
@@ -139,6 +172,10 @@ class ArchiveWriter:
         """Snapshots archived (each loop once)."""
         self.duplicates = 0
         """Snapshots of loops already archived (not written again)."""
+        self.releases = 0
+        """Times the archive's thread gave its Parquet writes' memory back
+        (:func:`release_memory`): once per row group written, once per file
+        closed."""
         self._schema = store.file_schema(layout)
         self._rg_rows = max(1, min(int(cfg.row_group_s * per_s), ROW_GROUP_BYTES // size))
         self._file_rows = max(self._rg_rows, int(cfg.file_s * per_s))
@@ -493,9 +530,15 @@ class ArchiveWriter:
         for pw in [self._pw, *self._pw_groups]:
             part = table if len(self._groups) == 1 else table.select(pw.schema.names)
             pw.write_table(part, row_group_size=len(rows))
+        del table, part  # the decoded group: freed before the memory is given back
+        self._release()
         self._pw_rows += len(rows)
         if self._pw_rows >= self._file_rows:
             self._close_file()
+
+    def _release(self) -> None:
+        release_memory()
+        self.releases += 1
 
     def _close_file(self) -> None:
         """Close (rename) the open telemetry file, write the events held and
@@ -519,6 +562,7 @@ class ArchiveWriter:
         if self._info is not None:
             store.write_run(self.root, self._info)
         self._retain()
+        self._release()
 
     def _retain(self) -> None:
         def removed(run: int, size: int, why: str) -> None:
