@@ -149,8 +149,8 @@ def test_every_parquet_write_gives_its_memory_back(
 
 
 def test_the_loops_a_run_archived_are_kept_as_ranges(mission: Mission, tmp_path: Path) -> None:
-    """Issue 25: the archive kept every loop of a run in a set (about 70
-    bytes a loop: 25 MB an hour at 100 Hz, seen as the ground's slow growth
+    """Issue 25: the archive kept every loop of a run in a set (about 80
+    bytes a loop: 28 MB an hour at 100 Hz, seen as the ground's slow growth
     in ``bench.ground_memory --variant archive``). Now as ranges of
     consecutive loops: 600 loops with a hole of 99 are 2 ranges; the hole
     filled late (a gap fill), 1; a repeat changes nothing."""

@@ -91,8 +91,8 @@ def release_memory() -> None:
 class LoopSet:
     """A set of loop numbers kept as sorted, disjoint, inclusive ranges: a
     run's loops, nearly all consecutive, cost one range, not an entry each.
-    (Issue 25: the archive's set of a run's loops grew by about 70 bytes a
-    loop, 25 MB an hour of a 100 Hz run.) Adding at the end is O(1), anywhere
+    (Issue 25: the archive's set of a run's loops grew by about 80 bytes a
+    loop, 28 MB an hour of a 100 Hz run.) Adding at the end is O(1), anywhere
     O(log n) to find and O(n) in ranges to insert; not thread-safe."""
 
     __slots__ = ("_hi", "_lo")
