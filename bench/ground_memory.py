@@ -28,7 +28,9 @@ vector, in a temporary directory) fed one row group of snapshots (60 s of
 them at 100 Hz, ``archive.row_group_s``) per cycle: the growth the flight soak
 saw "during a flood", about a minute into every flight, whichever flood
 ran then (issue 25); ``archive_no_release`` the same with
-:func:`~zplatform.archive.writer.release_memory` a no-op (the writer before).
+:func:`~zplatform.archive.writer.release_memory` a no-op (the allocators
+keep what the writes freed, as before issue 25's fix). ``rss_mb[0]`` is
+taken once the writer's thread has warmed up (the ground's start).
 ``--process``: the fault suite's attacker (``tests/faults/attacker.py``
 ``key-put``, a tool's config of the mission) in a process of its own each
 cycle, instead of a session of this process.
@@ -164,7 +166,7 @@ def _archive_child(variant: str) -> None:
     from zplatform.mission.load import load_mission
 
     if variant == "archive_no_release":
-        archive_writer.release_memory = lambda: None  # the writer before issue 25's fix
+        archive_writer.release_memory = lambda: None  # the allocators keep what was freed
     m = load_mission(REPO_ROOT / "configs" / "flight.yaml")
     layout = Layout.for_node(m, "cn")
     dv = DataVector(layout)
@@ -172,6 +174,9 @@ def _archive_child(variant: str) -> None:
         w = ArchiveWriter(m, layout, root)
         group = int(m.archive.row_group_s * m.loop_hz / m.telemetry_divisor)
         t0, loop = time.time_ns(), 0
+        deadline = time.monotonic() + 30.0
+        while not w.releases and time.monotonic() < deadline:  # its warm-up: the ground's start
+            time.sleep(0.01)
         say({"ready": True, "rss_mb": _rss_mb()})
         while (cmd := next_command())["cmd"] != "quit":
             if cmd["cmd"] == "cycle":

@@ -238,8 +238,8 @@ class ArchiveWriter:
         length), as of the archive thread's last batch."""
         self.releases = 0
         """Times the archive's thread gave its Parquet writes' memory back
-        (:func:`release_memory`): once per row group written, once per file
-        closed."""
+        (:func:`release_memory`): once after its warm-up at start, once per
+        row group written (its rows freed), once per file closed."""
         self._schema = store.file_schema(layout)
         self._rg_rows = max(1, min(int(cfg.row_group_s * per_s), ROW_GROUP_BYTES // size))
         self._file_rows = max(self._rg_rows, int(cfg.file_s * per_s))
@@ -327,11 +327,30 @@ class ArchiveWriter:
         self._note(EV.ARCHIVE_DAMAGED, what=what[:300])
 
     def _main(self) -> None:
+        self._warm_up()
         while not self._stop.wait(WAKE_S):
             self._drain_safely()
             with self._drained:
                 self._drained.notify_all()
         self._drain_safely()
+
+    def _warm_up(self) -> None:
+        """Encode one snapshot's row as the files are written, into memory,
+        and give the memory back: the Parquet code is paged in and the
+        encoder's allocations made once, at start, not in the middle of a
+        flight (issue 25: the ground's first row group, a minute in, was
+        its biggest step, +14 MB after the release, 8 now). Never raises."""
+        try:
+            rows = np.zeros((1, self._size), np.uint8)
+            table = store.decode_rows(self.layout, self._schema, rows, np.zeros(1, np.int64))
+            with pq.ParquetWriter(
+                pa.BufferOutputStream(), table.schema, **store.parquet_options(table.schema)
+            ) as pw:
+                pw.write_table(table)
+            del rows, table, pw
+        except Exception as exc:  # a layout decode_rows cannot take shows at the first row group
+            log.debug("archive warm-up: %s", exc)
+        self._release()
 
     def _drain_safely(self) -> None:
         try:
@@ -563,12 +582,21 @@ class ArchiveWriter:
         rows = np.concatenate(self._pend) if len(self._pend) > 1 else self._pend[0]
         rx = np.concatenate(self._pend_rx) if len(self._pend_rx) > 1 else self._pend_rx[0]
         n, at = len(rows), 0
+        groups = []
         while n - at >= self._rg_rows or (final and at < n):
             k = min(self._rg_rows, n - at)
-            self._write_group(rows[at : at + k], rx[at : at + k])
+            groups.append((rows[at : at + k], rx[at : at + k]))
             at += k
-        self._pend, self._pend_rx = ([rows[at:]], [rx[at:]]) if at < n else ([], [])
+        # The rest copied: a view would keep every pending row alive.
+        self._pend, self._pend_rx = ([rows[at:].copy()], [rx[at:].copy()]) if at < n else ([], [])
         self._pend_n = n - at
+        del rows, rx
+        while groups:
+            g_rows, g_rx = groups.pop(0)
+            self._write_group(g_rows, g_rx)
+            # Its rows and decoded table freed first: then their memory goes back.
+            del g_rows, g_rx
+            self._release()
 
     def _write_group(self, rows: np.ndarray, rx: np.ndarray) -> None:
         """One row group of the open file (opened, or closed first at an
@@ -598,8 +626,6 @@ class ArchiveWriter:
         for pw in [self._pw, *self._pw_groups]:
             part = table if len(self._groups) == 1 else table.select(pw.schema.names)
             pw.write_table(part, row_group_size=len(rows))
-        del table, part  # the decoded group: freed before the memory is given back
-        self._release()
         self._pw_rows += len(rows)
         if self._pw_rows >= self._file_rows:
             self._close_file()
