@@ -81,8 +81,9 @@ def release_memory() -> None:
     dictionary- and zstd-encoded) left the ground node 26-40 MB larger for
     good, about a minute into every flight; the soak saw it "during a
     flood", whichever flood ran then (``python -m bench.ground_memory
-    --variant archive``). Costs a few ms of the archive's thread per row
-    group; blocks nothing else but other threads' allocations meanwhile."""
+    --variant archive``). Costs the calling thread (the archive's) under a
+    millisecond here; other threads' allocations wait meanwhile. Never
+    raises."""
     pa.default_memory_pool().release_unused()
     if _trim is not None:
         _trim(0)
