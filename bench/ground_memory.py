@@ -22,6 +22,15 @@ instead (dn0's config as ``zenoh_config`` builds it: shared memory only
 where it helps), a queryable on its sync key, the junk in gets: what the
 vehicle's nodes pay (``refused``: the queries it took); ``dn0_queries_shm``
 the same on a raw session with shared memory on (dn0 before).
+``archive``: no flood; the ground node's archive writer
+(:class:`~zplatform.archive.ArchiveWriter`, the flight mission's 190-element
+vector, in a temporary directory) fed one row group of snapshots (60 s of
+them at 100 Hz, ``archive.row_group_s``) per cycle: the growth the flight soak
+saw "during a flood", about a minute into every flight, whichever flood
+ran then (issue 25); ``archive_no_release`` the same with
+:func:`~zplatform.archive.writer.release_memory` a no-op (the allocators
+keep what the writes freed, as before issue 25's fix). ``rss_mb[0]`` is
+taken once the writer's thread has warmed up (the ground's start).
 ``--process``: the fault suite's attacker (``tests/faults/attacker.py``
 ``key-put``, a tool's config of the mission) in a process of its own each
 cycle, instead of a session of this process.
@@ -53,7 +62,14 @@ import yaml
 from bench.common import REPO_ROOT, Child, bench_argparser, next_command, say
 from zplatform.ground.link import EVENT_MAX
 
-VARIANTS = ("as_is", "ground_shm", "dn0_queries", "dn0_queries_shm")
+VARIANTS = (
+    "as_is",
+    "ground_shm",
+    "dn0_queries",
+    "dn0_queries_shm",
+    "archive",
+    "archive_no_release",
+)
 
 
 def _rss_mb() -> float:
@@ -82,6 +98,9 @@ def child(mission_path: str, variant: str) -> None:
     from zplatform.mission.load import load_mission
 
     m = load_mission(mission_path)
+    if variant.startswith("archive"):
+        _archive_child(variant)
+        return
     if variant in ("ground_shm", "dn0_queries", "dn0_queries_shm"):
         _raw_child(m, variant)
         return
@@ -133,6 +152,47 @@ def _raw_child(m: Any, variant: str) -> None:
             say({"rss_mb": _rss_mb(), "refused": taken[0]})
     decl.undeclare()
     s.close()
+
+
+def _archive_child(variant: str) -> None:
+    """The ground's archive writer alone (module doc): ``cycle`` feeds it
+    one row group of snapshots of the flight mission and waits until its
+    thread took them; ``rss`` reports; ``quit``."""
+    import tempfile
+
+    from zplatform.archive import ArchiveWriter
+    from zplatform.archive import writer as archive_writer
+    from zplatform.core.datavector import DataVector, Layout
+    from zplatform.mission.load import load_mission
+
+    if variant == "archive_no_release":
+        archive_writer.release_memory = lambda: None  # the allocators keep what was freed
+    m = load_mission(REPO_ROOT / "configs" / "flight.yaml")
+    layout = Layout.for_node(m, "cn")
+    dv = DataVector(layout)
+    with tempfile.TemporaryDirectory(prefix="zplatform-bench-archive-") as root:
+        w = ArchiveWriter(m, layout, root)
+        group = int(m.archive.row_group_s * m.loop_hz / m.telemetry_divisor)
+        t0, loop = time.time_ns(), 0
+        deadline = time.monotonic() + 30.0
+        while not w.releases and time.monotonic() < deadline:  # its warm-up: the ground's start
+            time.sleep(0.01)
+        say({"ready": True, "rss_mb": _rss_mb()})
+        while (cmd := next_command())["cmd"] != "quit":
+            if cmd["cmd"] == "cycle":
+                for _ in range(group):
+                    loop += 1
+                    dv.set("cn_epoch", 1)
+                    dv.set("cn_loop", loop)
+                    dv.set("cn_time_ns", t0 + loop * m.period_ns)
+                    w.snapshot(t0 + loop * m.period_ns, dv)
+                    if loop % 500 == 0:
+                        w.flush(60)  # within the hand-off ring's room
+                w.flush(60)
+                say({"rows": w.rows})
+            elif cmd["cmd"] == "rss":
+                say({"rss_mb": _rss_mb(), "refused": 0, "releases": w.releases})
+        w.close()
 
 
 def _flood_gets(mission: Path, ep: str, key: str, rate: float, seconds: float) -> int:
@@ -269,7 +329,13 @@ def run_variant(
         rss = [gn.read()["rss_mb"]]
         sent: list[int] = []
         refused = 0
-        for _ in range(cycles):
+        if variant.startswith("archive"):
+            for _ in range(cycles):
+                gn.send({"cmd": "cycle"})
+                sent.append(int(gn.read()["rows"]))
+                gn.send({"cmd": "rss"})
+                rss.append(gn.read()["rss_mb"])
+        for _ in range(0 if variant.startswith("archive") else cycles):
             flood = _flood_process if process else _flood
             if variant.startswith("dn0_queries"):
                 flood = _flood_gets

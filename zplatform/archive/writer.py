@@ -22,6 +22,8 @@ archive directory (a lock)."""
 from __future__ import annotations
 
 import contextlib
+import ctypes
+import ctypes.util
 import errno
 import fcntl
 import logging
@@ -29,7 +31,9 @@ import os
 import threading
 import time
 import zlib
+from bisect import bisect_right
 from collections import deque
+from collections.abc import Iterable
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any, BinaryIO
@@ -46,9 +50,101 @@ from ..recorder.format import EVENT, FRAME, HEADER, SYNC, segment_name
 from ..telemetry.records import EventRecord
 from . import store
 
-__all__ = ["ENCODERS", "EVENT_BACKLOG", "QUEUE_BYTES", "ROW_GROUP_BYTES", "WAKE_S", "ArchiveWriter"]
+__all__ = [
+    "ENCODERS",
+    "EVENT_BACKLOG",
+    "QUEUE_BYTES",
+    "ROW_GROUP_BYTES",
+    "WAKE_S",
+    "ArchiveWriter",
+    "LoopSet",
+    "release_memory",
+]
 
 log = logging.getLogger("zplatform.archive")
+
+
+def _libc_trim() -> Any:
+    """glibc's ``malloc_trim`` (None elsewhere: musl, macOS)."""
+    with contextlib.suppress(OSError, AttributeError):
+        name = ctypes.util.find_library("c")
+        if name:
+            trim = ctypes.CDLL(name).malloc_trim
+            trim.argtypes = [ctypes.c_size_t]
+            trim.restype = ctypes.c_int
+            return trim
+    return None
+
+
+_trim = _libc_trim()
+
+
+def release_memory() -> None:
+    """Give back to the system the memory a Parquet write left free in the
+    allocators: Arrow's pool (``release_unused``: mimalloc or jemalloc keep
+    freed pages) and glibc's heaps (``malloc_trim``). Issue 25: encoding a
+    row group (a minute of the flight mission's 190 columns, decoded, then
+    dictionary- and zstd-encoded) left the ground node 26-40 MB larger for
+    good, about a minute into every flight; the soak saw it "during a
+    flood", whichever flood ran then (``python -m bench.ground_memory
+    --variant archive``). Costs the calling thread (the archive's) under a
+    millisecond here; other threads' allocations wait meanwhile. Never
+    raises."""
+    pa.default_memory_pool().release_unused()
+    if _trim is not None:
+        _trim(0)
+
+
+class LoopSet:
+    """A set of loop numbers kept as sorted, disjoint, inclusive ranges: a
+    run's loops, nearly all consecutive, cost one range, not an entry each.
+    (Issue 25: the archive's set of a run's loops grew by about 80 bytes a
+    loop, 28 MB an hour of a 100 Hz run.) Adding at the end is O(1), anywhere
+    O(log n) to find and O(n) in ranges to insert; not thread-safe."""
+
+    __slots__ = ("_hi", "_lo")
+
+    def __init__(self, loops: Iterable[int] = ()) -> None:
+        self._lo: list[int] = []
+        self._hi: list[int] = []
+        for lp in sorted(loops):
+            self.add(lp)
+
+    def __contains__(self, lp: int) -> bool:
+        i = bisect_right(self._lo, lp) - 1
+        return i >= 0 and lp <= self._hi[i]
+
+    def add(self, lp: int) -> None:
+        lo, hi = self._lo, self._hi
+        i = bisect_right(lo, lp) - 1  # the range starting at or before lp
+        if i >= 0 and lp <= hi[i]:
+            return
+        j = i + 1  # the range after lp
+        joins_next = j < len(lo) and lo[j] == lp + 1
+        if i >= 0 and hi[i] == lp - 1:
+            if joins_next:  # lp fills the hole between two ranges
+                hi[i] = hi[j]
+                del lo[j], hi[j]
+            else:
+                hi[i] = lp
+        elif joins_next:
+            lo[j] = lp
+        else:
+            lo.insert(j, lp)
+            hi.insert(j, lp)
+
+    @property
+    def ranges(self) -> int:
+        """How many ranges it holds (its size in memory)."""
+        return len(self._lo)
+
+    def __len__(self) -> int:
+        return sum(h - lo + 1 for lo, h in zip(self._lo, self._hi, strict=True))
+
+    def max(self, default: int) -> int:
+        """The highest loop held (``default`` when none)."""
+        return self._hi[-1] if self._hi else default
+
 
 WAKE_S = 0.1
 """How often the archive's thread takes what was queued."""
@@ -157,6 +253,14 @@ class ArchiveWriter:
         """Snapshots archived (each loop once)."""
         self.duplicates = 0
         """Snapshots of loops already archived (not written again)."""
+        self.loop_ranges = 0
+        """Ranges of consecutive loops the run's record of its archived loops
+        holds (:class:`LoopSet`: 1 for a run without a hole, whatever its
+        length), as of the archive thread's last batch."""
+        self.releases = 0
+        """Times the archive's thread gave its Parquet writes' memory back
+        (:func:`release_memory`): once after its warm-up at start, once per
+        row group written (its rows freed), once per file closed."""
         self._schema = store.file_schema(layout)
         self._ring2d = np.frombuffer(self._ring, np.uint8).reshape(cap, size)
         self._rg_rows = max(1, min(int(cfg.row_group_s * per_s), ROW_GROUP_BYTES // size))
@@ -183,7 +287,7 @@ class ArchiveWriter:
         # The archive's thread's own state.
         self._run: int | None = None
         self._info: store.RunInfo | None = None
-        self._seen: set[int] = set()
+        self._seen = LoopSet()  # the run's loops archived (their ranges: bounded)
         self._max_loop = -1
         self._seg: BinaryIO | None = None
         self._seg_bytes = 0
@@ -254,11 +358,30 @@ class ArchiveWriter:
         self._note(EV.ARCHIVE_DAMAGED, what=what[:300])
 
     def _main(self) -> None:
+        self._warm_up()
         while not self._stop.wait(WAKE_S):
             self._drain_safely()
             with self._drained:
                 self._drained.notify_all()
         self._drain_safely()
+
+    def _warm_up(self) -> None:
+        """Encode one snapshot's row as the files are written, into memory,
+        and give the memory back: the Parquet code is paged in and the
+        encoder's allocations made once, at start, not in the middle of a
+        flight (issue 25: the ground's first row group, a minute in, was
+        its biggest step, +14 MB after the release, 8 now). Never raises."""
+        try:
+            rows = np.zeros((1, self._size), np.uint8)
+            table = store.decode_rows(self.layout, self._schema, rows, np.zeros(1, np.int64))
+            with pq.ParquetWriter(
+                pa.BufferOutputStream(), table.schema, **store.parquet_options(table.schema)
+            ) as pw:
+                pw.write_table(table)
+            del rows, table, pw
+        except Exception as exc:  # a layout decode_rows cannot take shows at the first row group
+            log.debug("archive warm-up: %s", exc)
+        self._release()
 
     def _drain_safely(self) -> None:
         try:
@@ -368,9 +491,11 @@ class ArchiveWriter:
         self._raw(self._frames(rows, rx, loops))
         # Taken only once in the raw segment: a loop whose write failed is
         # not seen, so a later copy of it (a gap fill) is archived.
-        self._seen |= new
+        for lp in sorted(new):
+            self._seen.add(lp)
         self.duplicates += dups
         self._batch_raw += n_in
+        self.loop_ranges = self._seen.ranges
         self._max_loop = max(self._max_loop, int(loops.max()))
         self.rows += len(rows)
         at = 0
@@ -412,8 +537,10 @@ class ArchiveWriter:
         self._info = info
         self._groups = store.column_groups(self.layout, info.group_columns)
         self._info.outcome = "open"
-        self._seen = store.loops_in(store.parquet_files(self.root, "tm", run), self._damage)
-        self._max_loop = max(self._seen, default=-1)
+        self._seen = LoopSet(
+            store.loops_in(store.parquet_files(self.root, "tm", run), self._damage)
+        )
+        self._max_loop = self._seen.max(-1)
         raw = store.run_dirs(self.root, "raw", run)
         raw.mkdir(parents=True, exist_ok=True)
         used = [store.segment_index(p) for p in raw.iterdir()]
@@ -585,6 +712,10 @@ class ArchiveWriter:
                     f.unlink()
             self._covered = []
 
+    def _release(self) -> None:
+        release_memory()
+        self.releases += 1
+
     def _close_file(self) -> None:
         """Write the events held and the run's record."""
         if self._ev_pend and self._run is not None:
@@ -596,6 +727,9 @@ class ArchiveWriter:
             self._ev_pend = []
         if self._info is not None:
             store.write_run(self.root, self._info)
+        # Each row group closes its files here: their encoders' memory goes
+        # back to the system (the ground's step in the flood soak).
+        self._release()
 
     def _retain(self) -> None:
         def removed(run: int, size: int, why: str) -> None:
