@@ -644,3 +644,27 @@ def test_gc_guard_plugs_into_the_loop_as_slack_hook(monkeypatch: pytest.MonkeyPa
 def test_gc_guard_validation() -> None:
     with pytest.raises(SchedulerError, match="threshold_ns must be >= 0"):
         GcGuard(threshold_ns=-1)
+
+
+def test_the_control_nodes_overrun_hook_counts_every_skipped_period() -> None:
+    """The defect (seen as a hole of 3 loops with ``cn_loop_overruns`` up by
+    1 in a live recorder test): the control node's ``on_overrun`` added 1
+    per overrun, but one overrun skips every deadline it passed, so the
+    loops no one ran went uncounted. Its count must equal the scheduler's
+    ``skipped_periods``, over overruns of 1, 2 (ending on a deadline) and 3
+    periods."""
+    from types import SimpleNamespace
+
+    from zplatform.node.control import ControlNode
+
+    clock = FakeClock()
+    node = SimpleNamespace(mission=SimpleNamespace(period_ns=10 * MS), health=None, _skipped=0)
+    stalls = {1: 12 * MS, 4: 29 * MS, 8: 31 * MS}
+
+    def step(k: int, deadline: int) -> None:
+        clock.advance(stalls.get(k, 1 * MS))
+
+    loop = make_loop(clock, on_overrun=lambda k, late: ControlNode._on_overrun(node, k, late))  # type: ignore[arg-type]
+    stats = loop.run(step, max_loops=12)
+    assert stats.overruns == 3
+    assert node._skipped == stats.skipped_periods == 1 + 2 + 3

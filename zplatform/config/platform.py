@@ -250,7 +250,7 @@ def platform_elements(m: Mission) -> dict[str, list[ElementConfig]]:
         E("cn_loop", "u64", 0, doc="loop number, from 1"),
         E("cn_time_ns", "i64", 0, doc="the loop's scheduled start, CN time (ns)"),
         E("cn_state", "enum", initial, states, doc="the state machine's state"),
-        E("cn_loop_overruns", "u32", 0, doc="loops that overran their period"),
+        E("cn_loop_overruns", "u32", 0, doc="periods skipped after loops that overran theirs"),
         E("cn_sync_overruns", "u32", 0, doc="loops whose sync passed the deadline"),
         E("cn_errors", "u32", 0, doc="non-critical errors counted"),
         E("cn_last_error", "u16", 0, doc="code of the last non-critical error"),

@@ -593,7 +593,11 @@ class ControlNode:
 
     # -- the loop ------------------------------------------------------------
     def _on_overrun(self, k: int, lateness_ns: int) -> None:
-        self._skipped += 1  # an input of the next loop (replayed as such)
+        # The periods the scheduler skips (every deadline passed: ceil of the
+        # lateness over the period), not 1 per overrun: cn_loop_overruns
+        # counts the loops no one ran, as after a takeover's gap. An input of
+        # the next loop (replayed as such).
+        self._skipped += -(-lateness_ns // self.mission.period_ns)
         if self.health is not None:
             self.health.overran()
 
