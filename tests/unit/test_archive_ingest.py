@@ -256,3 +256,28 @@ def test_recovery_removes_the_parts_a_compacted_file_covers(tmp_path: Path) -> N
         assert a.query(Query("cn_loop")).column("loop").to_pylist() == list(range(1, 301))
         assert a.runs()[0].outcome == "interrupted"
     assert [p.name for p in hour.iterdir()] == ["part-000000-000002.parquet"]
+
+
+def test_a_row_group_that_failed_leaves_no_hole_for_compaction(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    w = ArchiveWriter(small(MISSION, row_group_s=1.0, file_s=3.0), LAYOUT, tmp_path)
+    write = pq.write_table
+    calls = 0
+
+    def full_once(*args: object, **kwargs: object) -> None:
+        nonlocal calls
+        calls += 1
+        if calls == 2:  # the second row group's file: a full disk
+            raise OSError(28, "No space left on device")
+        write(*args, **kwargs)  # type: ignore[arg-type]
+
+    monkeypatch.setattr(pq, "write_table", full_once)
+    feed(w, DataVector(LAYOUT), range(1, 601))
+    w.close()
+    s = w.stats()
+    # One write failed, counted once; no compaction tripped over its number.
+    assert (s["errors"], s["lost"], s["rows"]) == (1, 0, 600)
+    with Archive(MISSION, tmp_path) as a:  # its rows re-decoded from the raw segment
+        assert a.query(Query("cn_loop")).column("loop").to_pylist() == list(range(1, 601))
+        assert a.runs()[0].outcome == "ended" and a.problems == []

@@ -583,7 +583,7 @@ def recover(
         for tmp in (root / kind).glob("run-*/**/*.tmp"):
             with contextlib.suppress(OSError):
                 tmp.unlink()
-    schema = file_schema(layout)
+    schema: pa.Schema | None = None  # made for a run to refill only (1 s at 100,000 elements)
     for run in runs_on_disk(root):
         try:
             info = read_run(root, run)
@@ -599,6 +599,8 @@ def recover(
             for f in covered_parts(run_dirs(root, "tm", run) / hour):
                 with contextlib.suppress(OSError):
                     f.unlink()  # a compaction's parts, its file whole
+        if schema is None:
+            schema = file_schema(layout)
         refill(root, layout, info, note, schema)
         # The record's counts as the files hold them (a writer that failed
         # before the crash may have counted rows it had not written).

@@ -673,6 +673,9 @@ class ArchiveWriter:
             for t in tmps:
                 with contextlib.suppress(OSError):
                     t.unlink()
+            # Its number is a hole: compaction starts after it (the parts
+            # before it in this hour stay as they are).
+            self._compacted[key] = self._parts[key]
             raise
         store._account(self._info, self.layout, rows)
         self._close_file()
