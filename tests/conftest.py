@@ -104,6 +104,10 @@ sys.pycache_prefix = _PYCACHE
 # deadlines: the live tests are built to pass beside a CPU hog, not beside
 # each other by design, and the namespaces and relays they make are named
 # per test run, not per worker.
+# NOTE: with pytest 9.2 and pytest-xdist 3.8 no xdist_group takes effect
+# (xdist still renames the items' old ``_nodeid``, which pytest 9.2 no longer
+# reads: pytest-xdist issue 1386), so today the live tests are spread over
+# both workers like any other; this grouping holds again once xdist is fixed.
 # The fault and integration files below start no node process and fly no
 # mission (their nodes' logic, zenoh sessions, routers and relays are in this
 # process, on free ports; the fuzzers are CPU-bound subprocesses with no
