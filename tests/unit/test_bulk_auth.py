@@ -395,3 +395,42 @@ def test_a_replayed_or_junk_full_size_sample_is_refused_without_a_pass_over_its_
         sub.undeclare()
         owner.close()
         reader.close()
+
+
+def test_a_genuine_header_spliced_onto_another_array_costs_one_pass_and_is_refused(
+    session: zenoh.Session, passes: _Passes
+) -> None:
+    """cn's genuine tag and a new header, on an array the owner never
+    hashed: the header passes, the one pass over the array finds another
+    digest, the summary's MAC fails: bad, never taken."""
+    import blake3
+
+    from zplatform.runtime.bulk import SUMMARY_BYTES, body_digest, summary_of
+
+    m = _mission(size=4 * 1024 * 1024)
+    ch = m.bulk[0]
+    owner, reader, _ = _ends(session, m)
+    r, key = reader.readers["frame"], bulk_key(m.vehicle, ch)
+    keys = KeySet.from_master(m, MASTER).for_node("dn0")
+    tags = [keys.channel(f"bulk_frame/{rd}", Run(RUN)) for rd in ch.readers]
+    try:
+        data = bytearray(ch.sample_bytes)
+        HEADER.pack_into(data, 0, ch.layout_id, 0, 1, 1, T0 + 1)
+        summary = bytearray(SUMMARY_BYTES + TAG_LEN)
+        summary_of(summary, data, ch.sample_bytes)
+        summary[SUMMARY_BYTES - 32 : SUMMARY_BYTES] = body_digest(
+            blake3.blake3(), memoryview(data)[HEADER.size :]
+        )
+        for t in tags:
+            data += t.seal_tail(summary)[SUMMARY_BYTES:]
+        data[HEADER.size + 5] ^= 0xFF  # the splice: one byte of the array
+        passes.n = 0
+        session.put(key, bytes(data))
+        assert not r.wait(5.0)
+        assert (passes.n, r.bad, r.stale, int(r.array[5])) == (1, 1, 0, 0)
+        data[HEADER.size + 5] ^= 0xFF  # the very sample the owner tagged is taken
+        session.put(key, bytes(data))
+        assert r.wait(5.0) and r.header is not None and r.header.seq == 1
+    finally:
+        owner.close()
+        reader.close()
