@@ -781,7 +781,7 @@ def _bulk_event(name: str) -> tuple[Any, Any]:
 
 def _bulk_keys(m: Any, mission_text: str, role: str) -> tuple[Any, Any]:
     """``role``'s keys and run for the zplatform bulk rows, as a node's: the
-    samples tagged and checked (link ``bulk-frame``) when the mission
+    samples tagged and checked (link ``bulk-frame-cn``) when the mission
     authenticates. Both processes derive one master key from the mission's
     text (a bench's key, not a secret) and share run 1."""
     import hashlib

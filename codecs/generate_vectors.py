@@ -372,6 +372,15 @@ def bulk_sample(mission: object) -> bytes:
     return struct.pack("<IIQQq", ch.layout_id, 0, 7, 70, T0) + bytes(range(ch.nbytes))
 
 
+def bulk_summary(sample: bytes) -> bytes:
+    """What a bulk sample's tag for one reader covers (FORMAT.md §6.1): its
+    32-byte header, its length (u32) and a u32 0, then BLAKE3-256 of its
+    array."""
+    import blake3
+
+    return sample[:32] + struct.pack("<II", len(sample), 0) + blake3.blake3(sample[32:]).digest()
+
+
 def auth_messages(frame: bytes, bulk: bytes = b"") -> list[tuple[str, str, str, int, bytes]]:
     """``(what, channel, description, run, message)`` of every tagged vector."""
     event = Event("cn", 0, T0, int(Severity.COMMAND), "cmd_accepted", "command LAUNCH #2 accepted")
@@ -416,11 +425,12 @@ def auth_messages(frame: bytes, bulk: bytes = b"") -> list[tuple[str, str, str, 
         ),
         (
             "bulk_frame",
-            "bulk_frame",
-            "a sample of bulk channel frame (u8[16], dn1's; header seq 7, loop 70, t_ns T0, "
-            "then bytes 0..15), in the run dn1 follows",
+            "bulk_frame/dn2",
+            "the summary of a sample of bulk channel frame (u8[16], dn1's; header seq 7, "
+            "loop 70, t_ns T0, then bytes 0..15: sample_hex), tagged for its reader dn2 "
+            "in the run dn1 follows; on the wire: sample || this tag",
             RUN,
-            bulk,
+            bulk_summary(bulk) if bulk else b"",
         ),
     ]
 
@@ -465,6 +475,8 @@ def write_auth_vectors(mission: object, frame: bytes) -> None:
                 "htag_hex": tag[RUN_LEN : RUN_LEN + HTAG_LEN].hex(),
                 "mac_hex": tag[RUN_LEN + HTAG_LEN :].hex(),
             }
+            if what == "bulk_frame":  # the sample the summary is of
+                doc["sample_hex"] = bulk_sample(mission).hex()
             (AUTH / f"{vec}.bin").write_bytes(sealed)
             (AUTH / f"{vec}.json").write_text(json.dumps(doc, indent=2) + "\n")
             written.add(vec)

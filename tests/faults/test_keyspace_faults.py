@@ -34,6 +34,7 @@ from pathlib import Path
 from types import SimpleNamespace
 from typing import Any, ClassVar
 
+import blake3
 import pytest
 
 from tests.payload import Bytes, FakeSession, deliver
@@ -69,7 +70,7 @@ from zplatform.mission.load import load_mission
 from zplatform.recorder.format import REPLY_FRAMES, REPLY_LEN, REQUEST, REQUEST_MAGIC
 from zplatform.recorder.server import RecorderServer
 from zplatform.runtime.bulk import HEADER as BULK_HEADER
-from zplatform.runtime.bulk import BulkReader, bulk_key
+from zplatform.runtime.bulk import SUMMARY_BYTES, BulkReader, body_digest, bulk_key, summary_of
 from zplatform.runtime.clocksync import RUN_ANSWER, ClockLink, ClockResponder, RunAsker
 from zplatform.security.keyspace import ExpandedKey, KeyFrames, expand_keys
 
@@ -436,32 +437,40 @@ class _NoSession:
 
 
 class BulkH(Harness):
-    """A bulk channel's samples at its first reader (BulkReader's intake,
-    the one both paths share: size, tag, freshness, rate bound)."""
+    """A bulk channel's samples at one of its readers (BulkReader's intake,
+    the one both paths share: size, its tag's header, freshness, rate
+    bound, then the pass over the array)."""
 
     kinds = ("bad", "stale")
 
-    def __init__(self, m: Mission, owner: str, channel: str, t0: int = T0) -> None:
+    def __init__(self, m: Mission, owner: str, channel: str, reader: str, t0: int = T0) -> None:
         (self.bc,) = [c for c in m.bulk if c.name == channel]
         self.t0, self.m, self.keys = t0, m, _keys(m)
-        self.ch = self.keys.channel(f"bulk_{channel}", Run(t0))  # the owner's, in run t0
+        # The owner's tags (one per reader), in run t0.
+        self.tags = [self.keys.channel(f"bulk_{channel}/{r}", Run(t0)) for r in self.bc.readers]
         self.now = t0
-        reader = self.bc.readers[0]
         self.r = BulkReader(
             _NoSession(),  # type: ignore[arg-type]
             bulk_key(m.vehicle, self.bc),
             self.bc,
-            auth=self.keys.for_node(reader).channel(f"bulk_{channel}", Run(t0)),
+            auth=self.keys.for_node(reader).channel(f"bulk_{channel}/{reader}", Run(t0)),
             now_ns=lambda: self.now,
             ahead_ns=ahead_bound_ns(m),
         )
-        self.max_len = self.bc.sample_bytes + TAG_LEN
+        self.max_len = self.bc.sample_bytes + TAG_LEN * len(self.bc.readers)
         self.n = 0
 
     def _sample(self, seq: int, loop: int, t_ns: int, flags: int = 0) -> bytes:
-        data = bytearray(self.bc.sample_bytes)
+        n = self.bc.sample_bytes
+        data = bytearray(n)
         BULK_HEADER.pack_into(data, 0, self.bc.layout_id, flags, seq, loop, t_ns)
-        return bytes(self.ch.seal(data))
+        summary = bytearray(SUMMARY_BYTES + TAG_LEN)
+        summary_of(summary, data, n)
+        digest = body_digest(blake3.blake3(), memoryview(data)[BULK_HEADER.size :])
+        summary[SUMMARY_BYTES - len(digest) : SUMMARY_BYTES] = digest
+        for ch in self.tags:
+            data += ch.seal_tail(summary)[SUMMARY_BYTES:]
+        return bytes(data)
 
     def genuine(self) -> bytes:
         self.n += 1

@@ -205,6 +205,10 @@ def test_auth_vector_by_hand(name: str) -> None:
     tag = word + htag + mac
     assert tag.hex() == meta["tag_hex"] and sealed == body + tag
     assert len(body) == meta["message_size"]
+    if "sample_hex" in meta:  # a bulk sample's summary (§6.1): header, length, digest
+        sample = bytes.fromhex(meta["sample_hex"])
+        digest = blake3.blake3(sample[32:]).digest()
+        assert body == sample[:32] + len(sample).to_bytes(4, "little") + bytes(4) + digest
 
 
 @pytest.mark.parametrize("name", AUTH_NAMES)
@@ -257,12 +261,13 @@ def test_auth_vector_by_the_platform(name: str) -> None:
         asker.hello()
         asker._nonce = bytes(range(0xA0, 0xB0))  # the vector's hello
         assert asker.check(sealed) and asker.run.epoch == run == rrun
-    elif what == "bulk_frame":  # dn2's intake takes it; its header and array read back
+    elif what == "bulk_frame":  # dn2's intake takes the sample; header and array read back
         from zplatform.runtime.bulk import decode_sample
 
         ch = mission.bulk[0]
-        dn2 = keys.for_node("dn2").channel("bulk_frame", Run(run))
-        hdr, arr = decode_sample(sealed, ch, dn2)
+        dn2 = keys.for_node("dn2").channel("bulk_frame/dn2", Run(run))
+        sample = bytes.fromhex(meta["sample_hex"]) + sealed[-32:]  # its one reader's tag
+        hdr, arr = decode_sample(sample, ch, dn2)
         assert (hdr.layout_id, hdr.seq, hdr.loop) == (ch.layout_id, 7, 70)
         assert hdr.t_ns == 1_700_000_000_000_000_000
         assert arr.tobytes() == bytes(range(16))

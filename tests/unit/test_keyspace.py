@@ -466,6 +466,7 @@ _HOLDS = {
     "node": r"cn|cn_b|gn|dn[0-9]+|\{\}",
     "asker": r"dn[0-9]+|peer|\{\}",
     "channel": r"[a-z][a-z0-9_]*|\{\}",
+    "reader": r"cn|cn_b|gn|dn[0-9]+|\{\}",
 }
 
 
@@ -503,7 +504,7 @@ def test_every_channel_a_mission_keys_has_a_row(path: Path) -> None:
     assert {f"events_{n}" for n in [*m.control_nodes, *m.device_nodes]} <= chans
     if m.standby is not None:
         assert chans >= auth.PEER_CHANNELS
-    assert {f"bulk_{ch.name}" for ch in m.bulk} <= chans
+    assert {f"bulk_{ch.name}/{r}" for ch in m.bulk for r in ch.readers} <= chans
 
 
 # -- the who-columns are what the access-control list allows -------------------------

@@ -1225,9 +1225,9 @@ class BulkChannelConfig(msgspec.Struct, forbid_unknown_fields=True, omit_default
     (`bulk_<name>_published`, `_dropped` on the owner; `_iox` (iceoryx2,
     a same-host owner), `_shm` (zenoh's shared memory), `_copied`,
     `_missed`, `_bad`, `_stale` on each reader). With `security.auth`, every
-    sample is tagged under link `bulk-<name>` (held by the owner, the
-    readers and the read-only tools) and checked by each reader before it
-    is taken (docs/security.md).
+    sample carries a tag per reader, under link `bulk-<name>-<reader>`
+    (held by the owner and that reader only), which that reader checks
+    before it takes the sample (docs/security.md).
     """
 
     name: Annotated[str, Meta(description="Unique channel name: `[a-z][a-z0-9_]*`.")]

@@ -150,9 +150,13 @@ def link_of(channel_name: str) -> str:
     if channel_name in PEER_CHANNELS:
         return PEER_LINK
     if channel_name.startswith(BULK_PREFIX):
-        # A bulk channel's samples (zplatform.runtime.bulk): their own link,
-        # held by the channel's owner, its readers and the read-only tools.
-        return "bulk-" + channel_name[len(BULK_PREFIX) :]
+        # A bulk channel's samples for one reader (zplatform.runtime.bulk):
+        # ``bulk_NAME/READER``, their own link, held by the channel's owner
+        # and that reader only (no reader can forge another's samples).
+        name, sep, reader = channel_name[len(BULK_PREFIX) :].partition("/")
+        if sep and name and reader:
+            return f"bulk-{name}-{reader}"
+        raise ValueError(f"{channel_name!r} is not a channel (bulk: bulk_NAME/READER)")
     name = channel_name.removeprefix("clock_").removeprefix("probe_")
     src, sep, dst = name.partition("_to_")
     if sep and src == "cn" and dst:
@@ -169,9 +173,10 @@ stations' keys derive from (a mission with ``ground:``;
 PEER_LINK = "cn-cn_b"
 """The link between a mission's two control nodes (a standby's mirror and clock)."""
 BULK_PREFIX = "bulk_"
-"""Bulk channel ``NAME``'s samples are auth channel ``bulk_NAME``, tagged by
-link ``bulk-NAME`` (:func:`bulk_links`); no other channel name starts so
-(node names are ``cn``, ``cn_b``, ``gn``, ``dnN``)."""
+"""Bulk channel ``NAME``'s samples carry one tag per reader: reader R's on
+auth channel ``bulk_NAME/R``, tagged by link ``bulk-NAME-R``
+(:func:`bulk_links`); no other channel name starts so (node names are
+``cn``, ``cn_b``, ``gn``, ``dnN``)."""
 PEER_CHANNELS = frozenset({"mirror", "clock_peer_to_cn", "clock_cn_to_peer"})
 """The channels :data:`PEER_LINK` tags: the commander's whole Data Vector to
 the standby every loop (``mirror``) and the standby's clock exchange with
@@ -184,14 +189,19 @@ def _event_links(mission: Mission) -> list[str]:
 
 
 def bulk_links(mission: Mission, role: str) -> list[str]:
-    """The bulk channels' links host role ``role`` holds: ``bulk-NAME`` for
-    every channel it owns or reads and, for ``tool``, every channel (a tap
-    checks what it shows; docs/security.md, "Keys per link")."""
-    return [
-        f"bulk-{ch.name}"
-        for ch in mission.bulk
-        if role == "tool" or ch.node == role or role in ch.readers
-    ]
+    """The bulk channels' links host role ``role`` holds: ``bulk-NAME-R``
+    for every reader R of every channel it owns, and its own
+    ``bulk-NAME-ROLE`` for every channel it reads. A reader holds no other
+    reader's link (so it cannot forge samples another reader takes), and
+    ``tool`` none (a tap shows bulk samples unverified; docs/security.md,
+    "Keys per link")."""
+    out: list[str] = []
+    for ch in mission.bulk:
+        if ch.node == role:
+            out += [f"bulk-{ch.name}-{r}" for r in ch.readers]
+        elif role in ch.readers:
+            out.append(f"bulk-{ch.name}-{role}")
+    return out
 
 
 def host_roles(mission: Mission) -> tuple[str, ...]:

@@ -26,7 +26,7 @@ from ..core.codec import RegionCodec
 from ..core.datavector import DataVector, Layout
 from ..core.events import EventReader
 from ..errors import CodecError, CommandError, TransportError
-from ..runtime.bulk import bulk_channel, bulk_key, decode_sample
+from ..runtime.bulk import bulk_key, decode_sample, tags_bytes
 from ..runtime.transport import KeySpace
 from ..telemetry.logs import f32_value
 from ..telemetry.records import EventRecord
@@ -60,11 +60,10 @@ class TapDecoder:
 
         self._events = EventReader(mission, keys)
         self._by_key: dict[str, Any] = {}
-        # A bulk sample is checked with its channel's key (tool.keys holds
-        # every bulk-NAME link), else shown unverified.
-        self._bulk = {
-            bulk_key(mission.vehicle, c): (c, chan(bulk_channel(c.name))) for c in mission.bulk
-        }
+        # A bulk sample carries a tag per reader, each on a link only the
+        # owner and that reader hold (no tool: a tool key can forge none),
+        # so a tap shows it unverified, as a sync frame it cannot check.
+        self._bulk = {bulk_key(mission.vehicle, c): c for c in mission.bulk}
         cn = DataVector(Layout.for_node(mission, "cn"))
         self._by_key[space.telemetry] = (RegionCodec(cn), cn, chan("telemetry"))
         for region in mission.region_names():
@@ -83,9 +82,9 @@ class TapDecoder:
             return {"key": key, "event": msgspec.to_builtins(EventRecord.of(e, rx_ns, verified))}
         bulk = self._bulk.get(key)
         if bulk is not None:
-            ch, auth = bulk
+            ch = bulk
             try:
-                hdr, arr = decode_sample(payload, ch, auth, tagged=self._auth)
+                hdr, arr = decode_sample(payload, ch, tagged=self._auth)
             except (TransportError, CodecError) as exc:
                 return {"key": key, "error": str(exc)}
             return {
@@ -93,10 +92,10 @@ class TapDecoder:
                 "seq": hdr.seq,
                 "loop": hdr.loop,
                 "t_ns": hdr.t_ns,
-                **({"verified": auth is not None} if self._auth else {}),
+                **({"verified": False} if self._auth else {}),
                 "bulk": {
                     "channel": ch.name,
-                    "bytes": len(payload) - (TAG_LEN if self._auth else 0),  # its tag aside
+                    "bytes": len(payload) - tags_bytes(ch, self._auth),  # its tags aside
                     "min": float(arr.min()),
                     "max": float(arr.max()),
                     "mean": float(arr.mean()),

@@ -7,11 +7,21 @@ for its *readers*, never in the sync query. Holds :class:`BulkWriter`,
 :func:`pool_size`. A reader on the owner's host takes the samples over
 iceoryx2; zenoh carries a sample only while a subscriber matches.
 
-With ``security.auth`` on, a sample is ``header || array || tag``, tagged once
-by the owner in its run (codecs/FORMAT.md §6.1); a reader's intake, on both
-paths and before any copy: size, tag, freshness, rate bound
-(:data:`RATE_BURST`), layout; refusals counted (``bad``, ``stale``) and evented
-at most once a second (docs/architecture.md#intra-host).
+With ``security.auth`` on, a sample is ``header || array || tags``: one
+32-byte tag per reader, in ``readers`` order, each on that reader's own
+link (``bulk-NAME-READER``: the owner and that reader hold it, nobody else),
+in the owner's run (codecs/FORMAT.md §6.1). The owner makes one pass over
+the array (its BLAKE3 digest, :func:`body_digest`), then tags, per reader,
+the 72-byte *summary* (:data:`SUMMARY_BYTES`: the header, the sample's
+length and that digest). A reader's intake, on both paths and before any
+copy, header first: size; its tag's run and header tag (over the header
+and the length: no pass over the body); freshness, rate bound
+(:data:`RATE_BURST`), layout, from the authenticated header; only then the
+body pass (the digest) and its tag's MAC over the summary. A poll takes at
+most one sample, so a reader makes at most one body pass per loop (and
+only for a header that is genuine and new). Refusals counted (``bad``,
+``stale``) and evented at most once a second
+(docs/architecture.md#intra-host).
 
 Contract: :meth:`BulkWriter.publish` copies the array once per path and, with
 no chunk free, counts a drop (never raises, never a heap copy). A reader's
@@ -29,6 +39,7 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
+import blake3
 import numpy as np
 import zenoh
 
@@ -43,16 +54,19 @@ from .transport import is_matching
 __all__ = [
     "BULK_HEADER_BYTES",
     "DEFAULT_AHEAD_NS",
+    "DIGEST_THREADS",
     "HEADER",
     "MAX_CHANNEL_BYTES",
     "RATE_BURST",
     "STALE_LOOPS",
+    "SUMMARY_BYTES",
     "BulkChannelConfig",
     "BulkHeader",
     "BulkReader",
     "BulkStats",
     "BulkWriter",
     "NodeBulk",
+    "body_digest",
     "bulk_channel",
     "bulk_key",
     "check_bulk_channels",
@@ -62,6 +76,8 @@ __all__ = [
     "mission_shm_need",
     "parse_bulk_type",
     "pool_size",
+    "summary_of",
+    "tags_bytes",
 ]
 
 from ..config import (
@@ -94,6 +110,43 @@ period, :func:`zplatform.control.intake.ahead_bound_ns`)."""
 HEADER = struct.Struct("<IIQQq")
 assert HEADER.size == BULK_HEADER_BYTES
 
+DIGEST_BYTES = 32
+SUMMARY_BYTES = BULK_HEADER_BYTES + 8 + DIGEST_BYTES
+"""Bytes of the summary each reader's tag covers (codecs/FORMAT.md §6.1):
+the sample's header (32), its length (u32, header and array) and a u32 0,
+then the array's BLAKE3 digest (32). Its first 40 bytes (the header tag's,
+:data:`zplatform.core.auth.HEADER_LEN`) are the header and the length, so
+the header tag is checked before any pass over the array."""
+_DIGEST_AT = BULK_HEADER_BYTES + 8
+DIGEST_THREADS = 1
+"""Threads of the one BLAKE3 pass over an array (owner and reader alike):
+one, the loop's own: on a 2-core host a second thread did not pay (4 MB,
+p50 0.48 ms with one, 0.49 ms with two, on this box's shared cores) and
+would take the core the other node's loop runs on."""
+
+
+def body_digest(hasher: Any, array: bytes | bytearray | memoryview) -> bytes:
+    """The one pass over a sample's array (module doc): BLAKE3-256 of
+    ``array`` with ``hasher`` (a ``blake3.blake3()``, reset here, kept by
+    the caller: no allocation but the 32-byte digest)."""
+    hasher.reset()
+    hasher.update(array)
+    return hasher.digest(DIGEST_BYTES)
+
+
+def summary_of(out: bytearray, header: bytes | bytearray | memoryview, length: int) -> None:
+    """Write a sample's header and ``length`` into the first 40 bytes of
+    summary ``out`` (:data:`SUMMARY_BYTES` or more); the digest is
+    written after (:func:`body_digest`)."""
+    out[:BULK_HEADER_BYTES] = header[:BULK_HEADER_BYTES]
+    struct.pack_into("<II", out, BULK_HEADER_BYTES, length & 0xFFFF_FFFF, 0)
+
+
+def tags_bytes(channel: BulkChannelConfig, auth: bool) -> int:
+    """Bytes of the tags a sample of ``channel`` carries: one
+    :data:`~zplatform.core.auth.TAG_LEN` per reader when authenticated."""
+    return TAG_LEN * len(channel.readers) if auth else 0
+
 
 def bulk_key(vehicle: str, channel: BulkChannelConfig) -> str:
     """``{vehicle}/{owner}/bulk/{name}`` (docs/architecture.md#key-space), from
@@ -101,22 +154,24 @@ def bulk_key(vehicle: str, channel: BulkChannelConfig) -> str:
     return key_of("bulk", vehicle, owner=channel.node, channel=channel.name)
 
 
-def bulk_channel(name: str) -> str:
-    """The auth channel of bulk channel ``name``'s samples: ``bulk_NAME``
-    (tagged by link ``bulk-NAME``, :func:`zplatform.core.auth.link_of`)."""
-    return f"bulk_{name}"
+def bulk_channel(name: str, reader: str) -> str:
+    """The auth channel of bulk channel ``name``'s tag for ``reader``:
+    ``bulk_NAME/READER`` (tagged by link ``bulk-NAME-READER``,
+    :func:`zplatform.core.auth.link_of`)."""
+    return f"bulk_{name}/{reader}"
 
 
 def pool_size(channels: Sequence[BulkChannelConfig], node: str) -> int:
     """Bytes of ``node``'s shared-memory pool: every channel it owns times its
     :attr:`~BulkChannelConfig.slot_count`, each sample (with room for its
-    tag) rounded up to 4 KiB pages (chunks are page-aligned in practice).
+    readers' tags) rounded up to 4 KiB pages (chunks are page-aligned in practice).
     0 when it owns none."""
     page = 4096
     total = 0
     for ch in channels:
         if ch.node == node:
-            total += ch.slot_count * (-(-(ch.sample_bytes + TAG_LEN) // page) * page)
+            size = ch.sample_bytes + tags_bytes(ch, True)
+            total += ch.slot_count * (-(-size // page) * page)
     return total
 
 
@@ -151,22 +206,39 @@ def decode_sample(
 ) -> tuple[BulkHeader, np.ndarray[Any, Any]]:
     """Header and a read-only array view of one sample's bytes (no copy).
 
-    ``auth``: the channel's auth channel (:func:`bulk_channel`), whose tag
-    is checked first, any run's (AuthError, a CodecError, when it does not
-    check); ``tagged``: whether ``data`` carries a tag (default: when
-    ``auth`` is given), skipped unchecked without ``auth`` (a tool without
-    the key). Raises TransportError if the length or layout does not match
-    ``channel``. For ``zplatform tap`` and tests; the loop uses :class:`BulkReader`.
+    ``auth``: one reader's auth channel of it (:func:`bulk_channel`), whose
+    tag among the sample's is checked first (header first, then the body's
+    digest), any run's (AuthError, a CodecError, when it does not check);
+    ``tagged``: whether ``data`` carries its readers' tags (default: when
+    ``auth`` is given), skipped unchecked without ``auth`` (a tool: it holds
+    no bulk key). Raises TransportError if the length or layout does not
+    match ``channel``. For ``zplatform tap`` and tests; the loop uses
+    :class:`BulkReader`.
     """
     if tagged is None:
         tagged = auth is not None
     if tagged:
-        if len(data) != channel.sample_bytes + TAG_LEN:
+        tags = tags_bytes(channel, True)
+        if len(data) != channel.sample_bytes + tags:
             raise TransportError(
                 f"bulk {channel.name}: sample of {len(data)} bytes, expected "
-                f"{channel.sample_bytes + TAG_LEN} (with its tag)"
+                f"{channel.sample_bytes + tags} (with its {len(channel.readers)} tags)"
             )
-        data = auth.open(data, any_run=True) if auth is not None else memoryview(data)[:-TAG_LEN]
+        mv = memoryview(data)
+        n = channel.sample_bytes
+        if auth is not None:
+            reader = auth.name.rpartition("/")[2]
+            if reader not in channel.readers:
+                raise TransportError(f"bulk {channel.name}: {reader!r} is none of its readers")
+            at = n + TAG_LEN * channel.readers.index(reader)
+            summary = bytearray(SUMMARY_BYTES + TAG_LEN)
+            summary_of(summary, mv, n)
+            summary[SUMMARY_BYTES:] = mv[at : at + TAG_LEN]
+            auth.open_header(summary, any_run=True)
+            digest = body_digest(blake3.blake3(), mv[HEADER.size : n])
+            summary[_DIGEST_AT:SUMMARY_BYTES] = digest
+            auth.check_body(summary)
+        data = mv[:n]
     if len(data) != channel.sample_bytes:
         raise TransportError(
             f"bulk {channel.name}: sample of {len(data)} bytes, expected {channel.sample_bytes}"
@@ -196,12 +268,18 @@ class BulkWriter:
         *,
         monotonic: Callable[[], int] = time.monotonic_ns,
         iox: Any | None = None,
-        auth: Channel | None = None,
+        auths: Sequence[Channel] | None = None,
     ) -> None:
         self.channel = channel
-        self.auth = auth
-        """The channel's auth channel (:func:`bulk_channel`, bound to the
-        owner's run), or None: the mission does not authenticate."""
+        self.auths = tuple(auths) if auths is not None else None
+        """The channel's auth channels, one per reader in ``readers`` order
+        (:func:`bulk_channel`, bound to the owner's run), or None: the
+        mission does not authenticate."""
+        if self.auths is not None and len(self.auths) != len(channel.readers):
+            raise ValueError(
+                f"bulk {channel.name}: {len(self.auths)} auth channels for "
+                f"{len(channel.readers)} readers"
+            )
         self.iox = iox
         """The channel's iceoryx2 publisher (an IntraHostPublisher: same-host
         readers), or None."""
@@ -209,12 +287,18 @@ class BulkWriter:
         self._provider = provider
         self._mono = monotonic
         self._timeout_ns = round(channel.alloc_timeout_ms * 1e6)
-        self._size = channel.sample_bytes + (TAG_LEN if auth is not None else 0)
+        self._n = channel.sample_bytes
+        self._size = self._n + tags_bytes(channel, self.auths is not None)
         self._layout = channel.layout_id
         # ZShmMut[:] accepts only bytes/bytearray (not a memoryview or an
         # ndarray), so the frame lives in a bytearray and the array views it;
-        # its tag, when authenticated, in its last TAG_LEN bytes.
+        # its readers' tags, when authenticated, after it.
         self._buf = bytearray(self._size)
+        self._mv = memoryview(self._buf)
+        # The summary each reader's tag covers, and room for that tag
+        # (Channel.seal_tail writes it there, then it is copied in place).
+        self._summary = bytearray(SUMMARY_BYTES + TAG_LEN)
+        self._hasher = blake3.blake3(max_threads=DIGEST_THREADS)
         self.array: np.ndarray[Any, Any] = np.frombuffer(
             self._buf, channel.dtype, math.prod(channel.shape), HEADER.size
         ).reshape(channel.shape)
@@ -251,8 +335,9 @@ class BulkWriter:
 
     def publish(self, loop: int, t_ns: int) -> bool:
         """Send :attr:`array` with ``loop`` and ``t_ns`` in its header, tagged
-        once (in place, no copy: :meth:`~zplatform.core.auth.Channel.seal_tail`)
-        when authenticated; the same bytes go over both paths.
+        when authenticated (module doc: one pass over the array, its digest,
+        then a tag per reader over the 72-byte summary, written in place
+        after the array: no copy of it); the same bytes go over both paths.
 
         Over iceoryx2 (:attr:`iox`, when a subscriber is attached): one copy
         into a loaned sample; none free counts a drop. Over zenoh, only when
@@ -267,8 +352,8 @@ class BulkWriter:
         the put itself.
         """
         HEADER.pack_into(self._buf, 0, self._layout, 0, self._seq, loop, t_ns)
-        if self.auth is not None:
-            self.auth.seal_tail(self._buf)
+        if self.auths is not None:
+            self._seal()
         iox = self.iox
         if iox is not None and iox.subscribers:
             loan = iox.loan()
@@ -299,6 +384,16 @@ class BulkWriter:
         self.published += 1
         self.published_zenoh += 1
         return True
+
+    def _seal(self) -> None:
+        n, mv, s = self._n, self._mv, self._summary
+        summary_of(s, mv, n)
+        s[_DIGEST_AT:SUMMARY_BYTES] = body_digest(self._hasher, mv[HEADER.size : n])
+        at = n
+        for auth in self.auths:  # type: ignore[union-attr]
+            auth.seal_tail(s)
+            mv[at : at + TAG_LEN] = s[SUMMARY_BYTES:]
+            at += TAG_LEN
 
     def _alloc(self) -> Any | None:
         deadline = self._mono() + self._timeout_ns
@@ -334,11 +429,11 @@ class BulkReader:
     newest sample, if any, into :attr:`array`. Older unread samples are
     superseded, never queued: a slow reader never stalls the session.
 
-    ``auth``: the channel's auth channel (:func:`bulk_channel`), bound to
-    the reader's run (None: the mission does not authenticate, samples
-    carry no tag); ``now_ns``: the reader's clock (the control node's time)
-    and ``ahead_ns`` how far ahead of it a stamp may be (module doc for
-    the intake).
+    ``auth``: this reader's auth channel of it (:func:`bulk_channel`: its
+    own tag among the sample's), bound to the reader's run (None: the
+    mission does not authenticate, samples carry no tag); ``now_ns``: the
+    reader's clock (the control node's time) and ``ahead_ns`` how far ahead
+    of it a stamp may be (module doc for the intake).
     """
 
     def __init__(
@@ -373,7 +468,19 @@ class BulkReader:
         self.array: np.ndarray[Any, Any] = np.zeros(channel.shape, channel.dtype)
         self.view: np.ndarray[Any, Any] | None = None
         self.header: BulkHeader | None = None
-        self._size = channel.sample_bytes + (TAG_LEN if auth is not None else 0)
+        self._n = channel.sample_bytes
+        self._size = self._n + tags_bytes(channel, auth is not None)
+        self._tag_at = self._n
+        if auth is not None:
+            reader = auth.name.rpartition("/")[2]
+            if reader not in channel.readers:
+                raise ValueError(f"bulk {channel.name}: {reader!r} is none of its readers")
+            self._tag_at += TAG_LEN * channel.readers.index(reader)
+        self._summary = bytearray(SUMMARY_BYTES + TAG_LEN)
+        self._hasher = blake3.blake3(max_threads=DIGEST_THREADS)
+        self.body_passes = 0
+        """Passes over a sample's array (its digest) made by the intake: one
+        per sample whose header passed (never for junk or a replay)."""
         self._layout = channel.layout_id
         self._count = math.prod(channel.shape)
         self._dtype = channel.dtype  # parsed once: poll must not re-parse the type
@@ -523,9 +630,15 @@ class BulkReader:
             self.why = f"a sample of {len(data)} bytes, not {self._size}"
             return False
         auth = self.auth
+        summary = self._summary
         if auth is not None:
+            # Header first: this reader's tag over the header and the length
+            # (the summary's first 40 bytes), before any pass over the array.
+            summary_of(summary, data, self._n)
+            at = self._tag_at
+            summary[SUMMARY_BYTES:] = data[at : at + TAG_LEN]
             try:
-                data = auth.open(data)
+                auth.open_header(summary)
             except RunError as exc:  # an earlier run's genuine sample: a replay
                 self.stale += 1
                 self.why = str(exc)
@@ -557,6 +670,18 @@ class BulkReader:
             self.bad += 1
             self.why = f"layout {layout:#x}, not this channel's {self._layout:#x}"
             return False
+        if auth is not None:
+            # The body pass: one per poll at most (a poll takes one sample),
+            # and only for a genuine header that is new and within the rate.
+            self.body_passes += 1
+            mv = memoryview(data)
+            summary[_DIGEST_AT:SUMMARY_BYTES] = body_digest(self._hasher, mv[HEADER.size : self._n])
+            try:
+                auth.check_body(summary)
+            except AuthError as exc:  # a genuine header spliced onto another array
+                self.bad += 1
+                self.why = str(exc)
+                return False
         self._tat = max(self._tat, polls) + self._every
         if self._last_seq is not None and seq > self._last_seq + 1:
             self.missed += seq - self._last_seq - 1
@@ -626,8 +751,9 @@ class NodeBulk:
         bulk.write_counters(dv)        # or bulk.counters() into telemetry
 
     ``keys``: the node's keys (None: the mission does not authenticate);
-    each channel's samples are then tagged and checked with its auth
-    channel (:func:`bulk_channel`), bound to ``run`` (the node's run: the
+    each channel's samples are then tagged (one tag per reader) and
+    checked (a reader its own tag) with the auth channels of
+    :func:`bulk_channel`, bound to ``run`` (the node's run: the
     loop's ``auth_run``; None: bound to none). ``now_ns``: the node's clock
     (its corrected one on a device node), which stamps events and bounds a
     sample's stamp ``ahead_ns`` ahead of it. Refusals (a reader's ``bad``
@@ -665,7 +791,7 @@ class NodeBulk:
         self._refusals = RefusalLog(2)
         self._refused = (0, 0)  # the readers' (bad, stale) when last counted
         self._owed = False  # refusals counted in _refusals and not evented yet
-        self._tag = TAG_LEN if keys is not None else 0
+        self._auth = keys is not None
         self.pool_bytes = pool_size(channels, node) if shared_memory else 0
         self.provider: Any | None = None
         if self.pool_bytes:
@@ -683,14 +809,20 @@ class NodeBulk:
             key = bulk_key(vehicle, ch)
             if ch.node != node and node not in ch.readers:
                 continue
-            # The channel's name spelled out (tests/unit/test_keyspace.py traces it).
-            auth = channel(keys, f"bulk_{ch.name}", run)
             if ch.node == node:
+                # One tag per reader, on its own link (the channel's name
+                # spelled out: tests/unit/test_keyspace.py traces it).
+                auths = (
+                    [keys.channel(f"bulk_{ch.name}/{r}", run) for r in ch.readers]
+                    if keys is not None
+                    else None
+                )
                 pub = self._iox(intra_host, ch, publisher=True) if ch.readers else None
                 self.writers[ch.name] = BulkWriter(
-                    session, key, ch, self.provider, iox=pub, auth=auth
+                    session, key, ch, self.provider, iox=pub, auths=auths
                 )
             else:
+                auth = channel(keys, f"bulk_{ch.name}/{node}", run)
                 sub = self._iox(intra_host, ch, publisher=False)
                 self.readers[ch.name] = BulkReader(
                     session, key, ch, iox=sub, auth=auth, now_ns=now_ns, ahead_ns=ahead_ns
@@ -715,7 +847,7 @@ class NodeBulk:
         end = intrahost.IntraHostPublisher if publisher else intrahost.IntraHostSubscriber
         try:
             name = intrahost.bulk_service_name(mission, ch.node, ch.name)
-            return end(name, ch.sample_bytes + self._tag, len(ch.readers))
+            return end(name, ch.sample_bytes + tags_bytes(ch, self._auth), len(ch.readers))
         except IntraHostError as exc:
             if mission.transport.intra_host == "shm":
                 raise TransportError(f"bulk {ch.name}: {exc}") from exc
@@ -844,10 +976,10 @@ def mission_shm_need(mission: Any) -> int:
         for dn in mission.device_nodes
     )
     nodes = {ch.node for ch in mission.bulk}
-    tag = TAG_LEN if mission.security.auth else 0
+    auth = bool(mission.security.auth)
     if mission.transport.intra_host != "zenoh":
         need += sum(
-            intrahost.bulk_segment_bytes(ch.sample_bytes + tag, len(ch.readers))
+            intrahost.bulk_segment_bytes(ch.sample_bytes + tags_bytes(ch, auth), len(ch.readers))
             for ch in mission.bulk
         )
     return need + sum(pool_size(mission.bulk, n) for n in nodes)

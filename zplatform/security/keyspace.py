@@ -393,19 +393,21 @@ KEYSPACE: tuple[KeyRow, ...] = (
         frames=(
             KeyFrames(
                 "sample",
-                "bulk_{channel}",
-                "bulk-{channel}",
-                "zplatform.runtime.bulk.BulkReader any",
-                "numbered or stamped later than the last taken, stamped at most the clock "
-                "bound and a period ahead of the reader's clock",
+                "bulk_{channel}/{reader}",
+                "bulk-{channel}-{reader}",
+                "zplatform.runtime.bulk.BulkReader {reader}",
+                "header first (its own tag of the sample's, one per reader): numbered or "
+                "stamped later than the last taken, stamped at most the clock bound and a "
+                "period ahead of the reader's clock; then one pass over the array",
                 "one slot, newest wins, one per poll; RATE_BURST ahead of one every "
                 "rate_divisor loops",
                 run_bound=True,
             ),
         ),
         when="bulk",
-        what="bulk channel samples (large arrays); the same tagged bytes go through "
-        "iceoryx2 to readers on the owner's host",
+        what="bulk channel samples (large arrays), a tag per reader on a link only the "
+        "owner and that reader hold; the same tagged bytes go through iceoryx2 to "
+        "readers on the owner's host",
     ),
     KeyRow(
         "recorder",
@@ -642,12 +644,18 @@ def _bindings(r: KeyRow, mission: Mission) -> list[dict[str, str]]:
         return [{"cn": n} for n in mission.control_nodes]
     if fields == {"owner", "channel"}:
         return [{"owner": b.node, "channel": b.name} for b in mission.bulk]
+    if fields == {"owner", "channel", "reader"}:
+        return [
+            {"owner": b.node, "channel": b.name, "reader": r}
+            for b in mission.bulk
+            for r in b.readers
+        ]
     raise ValueError(f"row {r.name!r}: no expansion for placeholders {sorted(fields)}")
 
 
 def expand_keys(mission: Mission, rows: Iterable[KeyRow] = KEYSPACE) -> tuple[ExpandedKey, ...]:
     """The rows ``mission`` uses, one per binding of their placeholders (per
-    device node, per node, per control node, per bulk channel), in table
+    device node, per node, per control node, per bulk channel and reader), in table
     order. A wildcard row whose frames name a device node or a node
     (``sync_all``, ``all_events``) expands once per such node, with the
     same key. Pure."""
