@@ -4,7 +4,7 @@ Three namespaces on one bridge: the vehicle LAN (``zplatform node`` cn and
 dn0), the pad (its router, ``zplatform router --name pad``, connected to the
 CN; the pad station's ``cmd`` is its client) and the control room (its
 router, connected to the pad router through the WAN relay,
-tests/faults/wan.py, 80 ms each way and 1 % of chunks lost; the room's and
+bench/wan.py, 80 ms each way and 1 % of chunks lost; the room's and
 the viewers' lounge's ``cmd`` are clients of the room router). Mutual TLS
 and the generated access control throughout, the mission's own PKI and key
 files from ``zplatform keygen``.
@@ -138,7 +138,7 @@ def test_stations_through_two_routers_and_a_wan(
     )
     router = [*zp, "router", str(path), "--name"]
     _ready(pad.popen([*router, "pad"], pipe_stdio=True, env=env, cwd=ROOT), "the pad router")
-    wan = [sys.executable, "-m", "tests.faults.wan", f"127.0.0.1:{WAN}", f"{pad.addr}:{PAD}"]
+    wan = [sys.executable, "-m", "bench.wan", f"127.0.0.1:{WAN}", f"{pad.addr}:{PAD}"]
     _ready(room.popen([*wan, "--seed", "29"], pipe_stdio=True, env=env, cwd=ROOT), "the WAN")
     _ready(room.popen([*router, "room"], pipe_stdio=True, env=env, cwd=ROOT), "the room router")
 

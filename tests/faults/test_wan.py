@@ -1,4 +1,4 @@
-"""The WAN relay (tests/faults/wan.py) carries a byte stream both ways
+"""The WAN relay (bench/wan.py) carries a byte stream both ways
 intact and in order, whatever it delays: a lost chunk waits, it is never
 dropped."""
 
@@ -9,7 +9,7 @@ import threading
 
 import pytest
 
-from tests.faults.wan import Wan
+from bench.wan import Wan
 
 
 @pytest.mark.timeout(60)

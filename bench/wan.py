@@ -1,4 +1,4 @@
-"""A WAN between two routers, as a TCP relay: ``python -m tests.faults.wan
+"""A WAN between two routers, as a TCP relay: ``python -m bench.wan
 LISTEN_HOST:PORT UPSTREAM_HOST:PORT [--delay-ms 80] [--loss 0.01] [--seed 0]``.
 
 This kernel has no netem, so the WAN is made here: every chunk read from
@@ -142,7 +142,7 @@ def _hostport(text: str) -> tuple[str, int]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m tests.faults.wan", description=__doc__)
+    p = argparse.ArgumentParser(prog="python -m bench.wan", description=__doc__)
     p.add_argument("listen", type=_hostport)
     p.add_argument("upstream", type=_hostport)
     p.add_argument("--delay-ms", type=float, default=80.0)
