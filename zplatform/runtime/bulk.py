@@ -2,26 +2,16 @@
 
 A bulk channel is a named, fixed-size array (``u8[4194304]``) that its *owner*
 publishes every ``rate_divisor``-th loop on ``{vehicle}/{owner}/bulk/{name}``
-for its *readers*, never in the sync query. Holds :class:`BulkWriter`,
-:class:`BulkReader`, :class:`NodeBulk` (a node's port for the loop) and
-:func:`pool_size`. A reader on the owner's host takes the samples over
-iceoryx2; zenoh carries a sample only while a subscriber matches.
+for its *readers* (:class:`BulkWriter`, :class:`BulkReader`, :class:`NodeBulk`);
+a same-host reader takes them over iceoryx2, zenoh only while one matches.
 
 With ``security.auth`` on, a sample is ``header || array || tags``: one
-32-byte tag per reader, in ``readers`` order, each on that reader's own
-link (``bulk-NAME-READER``: the owner and that reader hold it, nobody else),
-in the owner's run (codecs/FORMAT.md §6.1). The owner makes one pass over
-the array (its BLAKE3 digest, :func:`body_digest`), then tags, per reader,
-the 72-byte *summary* (:data:`SUMMARY_BYTES`: the header, the sample's
-length and that digest). A reader's intake, on both paths and before any
-copy, header first: size; its tag's run and header tag (over the header
-and the length: no pass over the body); freshness, rate bound
-(:data:`RATE_BURST`), layout, from the authenticated header; only then the
-body pass (the digest) and its tag's MAC over the summary. A poll takes at
-most one sample, so a reader makes at most one body pass per loop (and
-only for a header that is genuine and new). Refusals counted (``bad``,
-``stale``) and evented at most once a second
-(docs/architecture.md#intra-host).
+32-byte tag per reader (link ``bulk-NAME-READER``, held by the owner and that
+reader only) over a summary of the header, the length and the array's BLAKE3
+digest (:func:`body_digest`), in the owner's run (codecs/FORMAT.md §6.1). A
+reader checks header first (size, run, header tag, freshness, rate bound
+:data:`RATE_BURST`, layout), then at most one body pass per loop; refusals
+counted (``bad``, ``stale``), evented once a second (docs/architecture.md#intra-host).
 
 Contract: :meth:`BulkWriter.publish` copies the array once per path and, with
 no chunk free, counts a drop (never raises, never a heap copy). A reader's
