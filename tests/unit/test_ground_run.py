@@ -426,3 +426,31 @@ def test_a_ground_link_follows_a_restarted_control_node_asking_at_most_once_a_se
     link._on_telemetry(types.SimpleNamespace(payload=Bytes(bytes(cn.finish([]) or b""))))
     assert link.next(0) is not None  # the new run followed
     assert link.run.epoch == new_run and link.logic.counters.epoch == new_run
+
+
+def test_a_link_that_never_learned_a_run_says_hello_ten_times_as_often(
+    link: Any, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The defect (`up`'s summary empty when the control node died within a
+    second of starting: its link's first hello found no one, and the next
+    came a second later): until the link learns its first run it says
+    hello every FIRST_HELLO_S; once it has, at most once a RELEARN_S."""
+    import time
+
+    from zplatform.ground import link as link_mod
+
+    asked: list[bytes] = []
+    monkeypatch.setattr(link_mod, "ask", lambda *a, **kw: asked.append(kw["payload"]))
+    assert not link.run.known
+    link._last_hello = time.monotonic() - 1.5 * link_mod.FIRST_HELLO_S
+    link._learn_run()
+    link._learn_run()
+    assert len(asked) == 1  # one FIRST_HELLO_S after the last: another, once
+    link.run.set(link.clock.now_ns() - 5 * PERIOD)  # learned
+    link._relearn = True  # then a snapshot of another run
+    link._last_hello = time.monotonic() - 1.5 * link_mod.FIRST_HELLO_S
+    link._learn_run()
+    assert len(asked) == 1  # learned once: RELEARN_S paces the hellos
+    link._last_hello -= link_mod.RELEARN_S
+    link._learn_run()
+    assert len(asked) == 2

@@ -69,6 +69,10 @@ ALIVE_BACKLOG = 1024
 _BACKLOG_BYTES = 64 * 2**20
 RELEARN_S = 1.0
 """Run hellos a link sends at most one of per this many seconds (module doc)."""
+FIRST_HELLO_S = 0.1
+"""Until a link learned its first run, it says hello this often: a control
+node that comes up (or dies) within a second of the link is still seen. Not
+after: a flood of them would only meet the commander's hello bound."""
 RUN_ANSWERS = 8
 """Answers to run hellos kept for the caller's thread (more are let go)."""
 RUN_HELLO_TIMEOUT_S = 1.0
@@ -200,6 +204,7 @@ class GroundLink:
         self._run_box: Mailbox[bytes] = Mailbox(RUN_ANSWERS, self._waker)
         self._relearn = False  # set on zenoh's thread by a snapshot of another run
         self._last_hello = -RELEARN_S
+        self._learned = False  # a run was known once (then RELEARN_S paces hellos)
         self._tm.on_other_run = self._on_other_run
         self._ev_box: Mailbox[tuple[str, bytes, int]] = Mailbox(EVENT_BACKLOG, self._waker)
         self._tap_box: Mailbox[tuple[str, bytes, bool]] = Mailbox(TAP_BACKLOG, self._waker)
@@ -275,7 +280,9 @@ class GroundLink:
         if run.known and not self._relearn:
             return
         now = time.monotonic()
-        if now - self._last_hello < RELEARN_S:
+        if run.known:
+            self._learned = True
+        if now - self._last_hello < (RELEARN_S if self._learned else FIRST_HELLO_S):
             return
         self._last_hello = now
         self._relearn = False

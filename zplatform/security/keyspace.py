@@ -301,7 +301,8 @@ KEYSPACE: tuple[KeyRow, ...] = (
                 "downlink",
                 "zplatform.runtime.clocksync.RunAsker gn",
                 _NONCE + " (the latest hello's), its run the tag's",
-                "one answer per hello; a hello at most once a RELEARN_S",
+                "one answer per hello; a hello every FIRST_HELLO_S until the first run, "
+                "then at most once a RELEARN_S",
             ),
         ),
         when="always",
