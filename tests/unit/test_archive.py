@@ -363,6 +363,33 @@ def test_a_full_disk_is_counted_told_once_and_the_archive_goes_on(
     assert loops == [*range(1, 101), *range(301, 401)]
 
 
+def test_a_full_disk_failing_writes_and_compaction_is_told_once(
+    mission: Mission, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The defect (a live full-disk test saw two archive_failed events): a
+    full disk fails the raw writes and then the compaction of the Parquet
+    files, each told as its own kind. One full disk is one message; both
+    failures are counted."""
+    layout = Layout.for_node(mission, "cn")
+    w = ArchiveWriter(mission, layout, tmp_path)
+    dv = DataVector(layout)
+    feed(w, dv, range(1, 101))
+
+    def full(*a: object, **kw: object) -> None:
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(ArchiveWriter, "_raw", full)
+    feed(w, dv, range(101, 201))  # the raw write fails (the archive's thread)
+    # ... and the compaction's, as the archive's thread tells it
+    w._fail("compact its files", OSError(28, "No space left on device"))
+    events = EventLog("gn", 16)
+    w.tick(T0, events)
+    told = [e for e in events.drain() if e.id == "archive_failed"]
+    assert w.errors == 2 and len(told) == 1
+    monkeypatch.undo()
+    w.close()
+
+
 def test_retention_removes_the_oldest_runs_whole(mission: Mission, tmp_path: Path) -> None:
     layout = Layout.for_node(mission, "cn")
     dv = DataVector(layout)

@@ -62,6 +62,7 @@ __all__ = [
 ]
 
 log = logging.getLogger("zplatform.archive")
+_FILE_KINDS = frozenset({"write", "compact its files", "close its files", "compress a raw segment"})
 
 
 def _libc_trim() -> Any:
@@ -348,8 +349,11 @@ class ArchiveWriter:
 
     def _fail(self, what: str, exc: BaseException) -> None:
         self.errors += 1
-        if what not in self._failed:  # once per kind
-            self._failed.add(what)
+        # Told once per kind; the file operations one full disk fails all at
+        # once (write, compact, close, compress) are one kind: one message.
+        kind = "files" if what in _FILE_KINDS else what
+        if kind not in self._failed:
+            self._failed.add(kind)
             log.warning("the ground archive cannot %s: %s", what, exc)
             self._note(EV.ARCHIVE_FAILED, what=what, error=str(exc)[:200])
 
