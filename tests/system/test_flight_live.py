@@ -7,9 +7,9 @@ chute switches behind the real :class:`~zplatform.boards.SerialBoard`,
 talking the serial protocol over a pty to the world process, which plays
 the board's firmware with the physics behind its pins.
 
-The HIL mission flies whole, from the pad to the ground, in the default
-suite (about a minute); the plain flight's whole live run is with the soaks
-(``-m slow``). The default suite also flies the HIL mission to burnout:
+Both missions fly whole, from the pad to the ground (about a minute each),
+with the soaks (``-m slow``). The default suite flies the HIL mission to
+burnout:
 its nodes as processes, ARM and LAUNCH from ``zplatform cmd``, and the
 state machine's lift-off and burnout seen by dn0's IMU through the serial
 board (a few seconds of flight, about 15 s in all).
@@ -102,13 +102,14 @@ def flown(tmp_path_factory: pytest.TempPathFactory) -> Callable[[str], Path]:
     return fly
 
 
-# A whole flight in real time (about a minute) each. The HIL flight, end to
-# end on its pty, is in the default suite; the plain flight's live run is
-# with the soaks (-m slow): the default suite flies it in lockstep
-# (tests/system/test_flight.py), its HIL twin differs from it only in dn0's
-# board (above), and sim against live runs on led_test too
-# (tests/system/test_sim_equals_live.py).
-@pytest.mark.parametrize("name", [pytest.param("flight", marks=pytest.mark.slow), "flight_hil"])
+# A whole flight in real time (about a minute) each, with the soaks (-m
+# slow; a minute of the default suite's six): the default suite flies both
+# in lockstep (tests/system/test_flight.py), the HIL mission live to
+# burnout on its pty (below), the flight live through takeovers and
+# restarts to its deploy (tests/system/test_failover_live.py), and sim
+# against live bit for bit on led_test (tests/system/test_sim_equals_live.py).
+@pytest.mark.slow
+@pytest.mark.parametrize("name", ["flight", "flight_hil"])
 def test_up_lands_under_both_chutes_with_the_states_of_sim(
     flown: Callable[[str], Path], name: str
 ) -> None:
