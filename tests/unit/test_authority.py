@@ -584,3 +584,41 @@ def test_a_standby_takes_the_lock_over_from_the_mirrored_vector() -> None:
     assert b.send("fd@pad", "APPROVE", ref=a.arm_seq) == "REJECTED_APPROVAL_SELF"
     assert b.send("bob@room", "NOOP") == "REJECTED_NOT_HOLDER"
     assert b.send("alice@pad", "NOOP") == "ACCEPTED"
+
+
+# ------------------------------------------- when the CN last heard a station
+
+
+def test_the_cn_stamps_when_it_last_heard_each_station_by_verified_tags_only() -> None:
+    """cn_heard_<station>_ns: the loop time of the last request whose
+    operator and station tags verified, accepted or refused by the
+    authority; a request whose tags fail stamps nothing."""
+    r = Rig()
+    assert [r.dv.get(f"cn_heard_{s}_ns") for s in ("pad", "room", "lounge")] == [0, 0, 0]
+    t_lock = r.t
+    assert r.send("alice@pad", "LOCK") == "ACCEPTED"
+    assert r.dv.get("cn_heard_pad_ns") == t_lock
+    t_refused = r.t
+    assert r.send("bob@room", "NOOP") == "REJECTED_NOT_HOLDER"  # authority-refused
+    assert r.dv.get("cn_heard_room_ns") == t_refused
+    assert r.dv.get("cn_heard_pad_ns") == t_lock
+    # A forged operator tag and a bad station tag "from" the lounge: not heard.
+    bob = signer(r.m, "bob", "lounge")
+    forged = Signer("alice", bob.operator_key, "lounge", bob.station_key)
+    assert r.send("x@y", "NOOP", up=Uplink(r.m, signer=forged)) == "REJECTED_OPERATOR_AUTH"
+    bad_st = Signer("alice", signer(r.m, "alice", "lounge").operator_key, "lounge", bytes(32))
+    assert r.send("x@y", "NOOP", up=Uplink(r.m, signer=bad_st)) == "REJECTED_STATION"
+    assert r.dv.get("cn_heard_lounge_ns") == 0
+    # A lease renewal (the holder's LOCK again) is heard too.
+    r.wait(2.0)
+    t_renew = r.t
+    assert r.send("alice@pad", "LOCK") == "ACCEPTED"
+    assert r.dv.get("cn_heard_pad_ns") == t_renew
+    assert r.dv.get("cn_heard_room_ns") == t_refused
+
+
+def test_a_mission_without_authority_has_no_heard_elements() -> None:
+    single = mission(GROUND.replace("  lease_s: 5\n", "  lease_s: 5\n  single_operator: true\n"))
+    names = Layout.for_node(single, "cn").elements
+    assert not [n for n in names if n.startswith("cn_heard_")]
+    assert "cn_heard_pad_ns" in Layout.for_node(mission(), "cn").elements

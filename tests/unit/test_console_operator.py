@@ -12,14 +12,17 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from textual.widgets import Static
 
-from tests.unit.test_authority import Rig, mission, signer
+from tests.unit.test_authority import S, Rig, mission, signer
 from zplatform.config import CMD_STATUS_NAMES
 from zplatform.config.codes import Command
 from zplatform.console import ConsoleApp, ConsoleModel
+from zplatform.console.model import StationRow
 from zplatform.console.app import _status_text
 from zplatform.console.link import Link
 from zplatform.control.authority import Identity
+from zplatform.core.datavector import DataVector, Layout
 from zplatform.errors import CommandError
 from zplatform.telemetry.records import CommandOutcome
 
@@ -404,3 +407,64 @@ def test_a_lockstep_flight_the_console_shows_the_signed_lock_kept_by_renewals() 
     assert other.status().lock == model.status().lock
     assert other.refusal("NOOP") == f"REJECTED_NOT_HOLDER: {model.status().lock}"
     assert Stations(r).send("fd@room", "NOOP") == "REJECTED_NOT_HOLDER"
+
+
+# ---------------------------------------------------- every station, heard
+
+
+def test_the_status_lists_every_station_with_the_holder_and_when_last_heard() -> None:
+    """From a hand-made vector: every station of the mission, its right, the
+    lock's holder at its station, and the heard age in loop time (a view
+    station that sent nothing is "not heard")."""
+    rig = Rig()
+    model = ConsoleModel(rig.m)
+    dv = DataVector(Layout.for_node(rig.m, "cn"))
+    t = 50 * S
+    dv.set("cn_time_ns", t)
+    dv.set("cn_lock_holder", "alice")
+    dv.set("cn_lock_station", "pad")
+    dv.set("cn_lock_until_ns", t + 3 * S)
+    dv.set("cn_heard_pad_ns", t - S // 2)
+    dv.set("cn_heard_room_ns", t - 12 * S)
+    model.on_snapshot(dv, t)
+    model.tick(t)
+    rows = model.status().stations
+    assert rows == (
+        StationRow("pad", "command", "alice", 0.5),
+        StationRow("room", "command", "", 12.0),
+        StationRow("lounge", "view", "", None),
+    )
+    assert [r.text() for r in rows] == [
+        "pad (command) alice holds the lock, heard 0.5 s ago",
+        "room (command), heard 12.0 s ago",
+        "lounge (view), not heard",
+    ]
+    # A lease that ran out marks no holder.
+    dv.set("cn_time_ns", t + 4 * S)
+    model.on_snapshot(dv, t + 4 * S)
+    assert [r.holder for r in model.status().stations] == ["", "", ""]
+
+
+def test_a_mission_without_authority_lists_no_stations() -> None:
+    model = ConsoleModel(mission(""))
+    rig = Rig()
+    model.on_snapshot(DataVector(Layout.for_node(model.mission, "cn")), rig.t)
+    assert model.status().stations == ()
+
+
+def test_the_console_app_shows_every_station_and_when_it_was_heard() -> None:
+    rig = Rig()
+    assert rig.send("alice@pad", "LOCK") == "ACCEPTED"
+    rig.wait(1.0)
+    model = _console(rig, "bob@room")
+    shown: list[str] = []
+
+    def look(app: ConsoleApp) -> None:
+        app.refresh_view()
+        shown.append(str(app.query_one("#status", Static).content))
+
+    _run(model, look)
+    assert (
+        "stations: pad (command) alice holds the lock, heard 1.0 s ago; "
+        "room (command), not heard; lounge (view), not heard"
+    ) in shown[0]

@@ -386,6 +386,20 @@ def platform_elements(m: Mission) -> dict[str, list[ElementConfig]]:
                 doc="requests refused by operator, station, lock or two-person checks",
             ),
         ]
+        if m.authority:
+            # When the CN last heard each station (a request whose operator and
+            # station tags verified, accepted or refused): the consoles' station
+            # list, with no presence key of its own (docs/operations.md).
+            cn += [
+                E(
+                    f"cn_heard_{s.name}_ns",
+                    "i64",
+                    0,
+                    doc=f"loop time (ns) of the last request from station {s.name} "
+                    "whose tags verified (0: not heard)",
+                )
+                for s in g.stations
+            ]
     out: dict[str, list[ElementConfig]] = {"cn": cn}
     for dn in m.device_nodes:
         # Set by the CN in the trigger of its planned last loop: the DN then

@@ -501,6 +501,8 @@ def _status_text(s: Status) -> Text:
         t.append(f"{s.lock}  ")
     if s.pending_arm:
         t.append(f"{s.pending_arm}  ", style="bold yellow")
+    if s.stations:  # every station of the mission: its right, the holder, when last heard
+        t.append("stations: " + "; ".join(r.text() for r in s.stations) + "\n")
     t.append(f"tm {s.received} gap {s.gaps} bad {s.bad}")
     for dn, rx, missed, late, off in s.per_dn:
         style = "yellow" if missed or late else None

@@ -57,6 +57,7 @@ __all__ = [
     "ConsoleModel",
     "Limits",
     "LogLine",
+    "StationRow",
     "Status",
     "archived_event_line",
     "severity_rank",
@@ -116,6 +117,30 @@ class LogLine:
 
 
 @dataclass(frozen=True, slots=True)
+class StationRow:
+    """One station of the mission's ``ground.stations``, as the last snapshot
+    showed it: listed from the mission, not discovered (a station has no
+    presence of its own on the wire; docs/operations.md)."""
+
+    name: str
+    may: str
+    """``command`` or ``view`` (``ground.stations[].may``)."""
+    holder: str
+    """The operator holding the command lock from this station ("": none)."""
+    heard_s: float | None
+    """Seconds (loop time) since the CN last heard a genuine request from it
+    (``cn_heard_<station>_ns``); None: not heard since the CN started."""
+
+    def text(self) -> str:
+        """``pad (command) alice holds the lock, heard 1.2 s ago``, in words."""
+        t = f"{self.name} ({self.may})"
+        if self.holder:
+            t += f" {self.holder} holds the lock"
+        heard = "not heard" if self.heard_s is None else f"heard {self.heard_s:.1f} s ago"
+        return f"{t}, {heard}"
+
+
+@dataclass(frozen=True, slots=True)
 class Status:
     """The header line's facts, at one moment."""
 
@@ -148,6 +173,9 @@ class Status:
     """Who holds the command lock and until when, in words ("": no authority)."""
     pending_arm: str = ""
     """This console's ARM awaiting approval, in words ("": none)."""
+    stations: tuple[StationRow, ...] = ()
+    """Every station of the mission, its right, the lock's holder, when last
+    heard (empty: no command authority, or no telemetry yet)."""
     """The history fill's state ("filling history...", what it filled, or why
     it could not); "" when the console opened without history."""
 
@@ -358,6 +386,7 @@ class ConsoleModel:
             operator=self.operator,
             lock=self.lock_text(),
             pending_arm=self._arm_text(),
+            stations=self.station_rows(),
         )
 
     # -- command authority (docs/security.md "Stations and operators") -------
@@ -374,6 +403,27 @@ class ConsoleModel:
         if self._rules is None or self.last_rx_ns is None:
             return ""
         return self._rules.lock_text(self.lock_state(), int(self.dv.get("cn_time_ns")))
+
+    def station_rows(self) -> tuple[StationRow, ...]:
+        """Every station of ``ground.stations`` at the last snapshot's loop
+        time: its right, the operator holding the lock from it (a lease that
+        ran out holds nothing), and how long ago the CN last heard it
+        (``cn_heard_<station>_ns``, 0: not heard). Empty in a mission without
+        command authority or before any telemetry. Allocates the rows."""
+        g = self.mission.ground
+        if self._rules is None or g is None or self.last_rx_ns is None:
+            return ()
+        dv = self.dv
+        now = int(dv.get("cn_time_ns"))
+        lock = self.lock_state()
+        held = lock.holder >= 0 and now <= lock.until_ns
+        rows = []
+        for i, st in enumerate(g.stations):
+            heard = int(dv.get(f"cn_heard_{st.name}_ns"))
+            holder = self._rules.operators[lock.holder] if held and lock.station == i else ""
+            age = None if heard == 0 else max(0, now - heard) / 1e9
+            rows.append(StationRow(st.name, st.may, holder, age))
+        return tuple(rows)
 
     def _see_arm(self) -> None:
         """Note an ARM the snapshot shows accepted (anyone's): the approver's

@@ -540,6 +540,8 @@ class CommandHandler:
         self._h_arm_approvers = dv.handle("cn_arm_approvers")
         self._dv = dv
         self._h_auth_refused = dv.handle("cn_auth_refused")
+        # Per station of ground.stations: when its last genuine request came.
+        self._h_heard = tuple(dv.handle(f"cn_heard_{s}_ns") for s in self._auth.stations)
         cmds, elems = _authority.two_person_targets(mission)
         self._two_cmd = tuple(c in cmds for c in CMD_NAMES)
         two = [False] * len(lay.elements)
@@ -603,6 +605,9 @@ class CommandHandler:
         who = auth.identify(op, st, mv[:o], mv[o : o + tb], mv[s_ : s_ + tb])
         if not isinstance(who, Identity):
             return who
+        # Its tags verified: it was genuinely that station, whatever the
+        # authority's verdict (a lease renewal, a refused request included).
+        self._h_heard[who.station].set(t_ns)
         why = auth.check(who, cmd, t_ns, target=target, ref=ref)
         if why is not None:
             return why[0], f"{auth.who(*who)}: {why[1]}"
