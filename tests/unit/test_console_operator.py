@@ -14,13 +14,13 @@ from typing import Any
 import pytest
 from textual.widgets import Static
 
-from tests.unit.test_authority import S, Rig, mission, signer
+from tests.unit.test_authority import Rig, S, mission, signer
 from zplatform.config import CMD_STATUS_NAMES
 from zplatform.config.codes import Command
 from zplatform.console import ConsoleApp, ConsoleModel
-from zplatform.console.model import StationRow
 from zplatform.console.app import _status_text
 from zplatform.console.link import Link
+from zplatform.console.model import StationRow
 from zplatform.control.authority import Identity
 from zplatform.core.datavector import DataVector, Layout
 from zplatform.errors import CommandError
