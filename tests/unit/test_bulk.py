@@ -414,3 +414,46 @@ def test_a_sample_over_both_paths_is_taken_once_and_a_restarted_owner_again(
     assert r._take(sample(0, 900), True)  # the owner restarted
     assert (r.duplicates, r.missed, r.bad) == (2, 0, 0)
     reader.close()
+
+
+class _Iox:
+    """An iceoryx2 publisher port with one subscriber: it sends every sample
+    it loans, and has no sample to loan when ``full``."""
+
+    def __init__(self, *, full: bool = False) -> None:
+        self.subscribers = 1
+        self.full = full
+
+    def loan(self) -> bytearray | None:
+        return None if self.full else bytearray(1)
+
+    def send(self) -> bool:
+        return True
+
+    def close(self) -> None:
+        pass
+
+
+def test_a_sample_one_path_carried_and_another_dropped_is_counted_once_each(
+    session: zenoh.Session,
+) -> None:
+    """The defect (test_camera beside the hog: the CN's reader had taken 3
+    samples more than dn0 said it published): with a tap subscribed over
+    zenoh and its pool full, a sample sent over iceoryx2 was counted neither
+    published nor given a new number, so the next one went out under the
+    same number. Now a sample a path carried is published and takes the
+    next number, and one a path could not carry is dropped, both when both
+    happen; a sample no path carried spends no number (the readers' gaps
+    are samples some path carried)."""
+    sub = session.declare_subscriber("t/dn0/bulk/cam", lambda s: None)  # a tap listens
+    w = BulkWriter(session, "t/dn0/bulk/cam", _ch(alloc_timeout_ms=0), _FullProvider())
+    iox = _Iox()
+    w.iox = iox  # type: ignore[assignment]
+    assert w.publish(0, 0) is False  # iceoryx2 carried it, zenoh's pool was full
+    assert (w.published, w.dropped, w.published_iox, w._seq) == (1, 1, 1, 1)
+    iox.full = True
+    assert w.publish(1, 0) is False  # no path carried it: no number spent
+    assert (w.published, w.dropped, w._seq) == (1, 2, 1)
+    w.iox = None
+    w.undeclare()
+    sub.undeclare()

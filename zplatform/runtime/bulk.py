@@ -334,46 +334,54 @@ class BulkWriter:
         a zenoh subscriber matches (:attr:`remote`; nobody: no bytes sent):
         with a provider, one copy into a shared-memory chunk. If none is
         free, retry (garbage-collecting released chunks) for at most the
-        channel's ``alloc_timeout_ms``, then count a drop and return
-        ``False``; never raises for an exhausted pool. Without a provider
-        (shared memory off): one copy into a zenoh buffer. Returns ``True``
-        when the sample was put (or nobody listens: the sequence number
-        moves on either way). Raises TransportError only if zenoh refuses
-        the put itself.
+        channel's ``alloc_timeout_ms``, then give up on that path; never
+        raises for an exhausted pool. Without a provider (shared memory
+        off): one copy into a zenoh buffer. Each call counts once: in
+        :attr:`published` (and takes the next sequence number) when a path
+        carried it or nobody listens, and in :attr:`dropped` when a path
+        could not (both when one did and another did not): so a reader's
+        sequence gaps (its ``missed``) are samples some path carried, and
+        one number never names two samples. Returns ``True`` when every
+        path that listens carried it. Raises TransportError only if zenoh
+        refuses the put itself.
         """
         HEADER.pack_into(self._buf, 0, self._layout, 0, self._seq, loop, t_ns)
         if self.auths is not None:
             self._seal()
+        carried = lost = False
         iox = self.iox
         if iox is not None and iox.subscribers:
             loan = iox.loan()
-            if loan is None:
-                self.dropped += 1
-            else:
+            if loan is not None:
                 loan[:] = self._buf  # the sample's one copy, into shared memory
                 if iox.send():
                     self.published_iox += 1
-        if not (self.remote or is_matching(self._pub)):
+                    carried = True
+            lost = not carried
+        if self.remote or is_matching(self._pub):
+            if self._provider is None:
+                payload: Any = self._buf
+            else:
+                payload = chunk = self._alloc()
+                if chunk is not None:
+                    chunk[:] = self._buf
+            if payload is None:
+                lost = True
+            else:
+                try:
+                    self._pub.put(payload)
+                except zenoh.ZError as exc:
+                    raise TransportError(f"bulk put on {self.key} failed: {exc}") from exc
+                self.published_zenoh += 1
+                carried = True
+        elif not lost:
+            carried = True  # nobody listens: its number is spent all the same
+        if carried:
             self._seq += 1
             self.published += 1
-            return True
-        if self._provider is None:
-            payload: Any = self._buf
-        else:
-            chunk = self._alloc()
-            if chunk is None:
-                self.dropped += 1
-                return False
-            chunk[:] = self._buf
-            payload = chunk
-        try:
-            self._pub.put(payload)
-        except zenoh.ZError as exc:
-            raise TransportError(f"bulk put on {self.key} failed: {exc}") from exc
-        self._seq += 1
-        self.published += 1
-        self.published_zenoh += 1
-        return True
+        if lost:
+            self.dropped += 1
+        return not lost
 
     def _seal(self) -> None:
         n, mv, s = self._n, self._mv, self._summary
