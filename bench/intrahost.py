@@ -412,14 +412,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
             a.close()
         for p in procs.values():
             p.close()
-        from zplatform.runtime.intrahost import remove_stale
-
-        remove_stale(PREFIX)
-        for path in _own_files():
-            try:
-                os.unlink(path)
-            except OSError:
-                pass
+        _clean_up()
 
     result: dict[str, dict[str, Any]] = {}
     for key, samples in lat.items():
@@ -496,15 +489,20 @@ def run_raw(variant: str, n: int, count: int, period_s: float = PERIOD_S) -> dic
         if asker is not None:
             asker.close()
         proc.close()
-        from zplatform.runtime.intrahost import remove_stale
-
-        remove_stale(PREFIX)
-        for path in _own_files():
-            try:
-                os.unlink(path)
-            except OSError:
-                pass
+        _clean_up()
     return {"samples_ns": samples, "lost": lost, "cpu_s": cpu}
+
+
+def _clean_up() -> None:
+    """Remove the iceoryx2 files a run made (its services' and this process's)."""
+    from zplatform.runtime.intrahost import remove_stale
+
+    remove_stale(PREFIX)
+    for path in _own_files():
+        try:
+            os.unlink(path)
+        except OSError:
+            pass
 
 
 def run_raw_many(responders: int, n: int, count: int, period_s: float = PERIOD_S) -> dict[str, Any]:
@@ -559,14 +557,7 @@ def run_raw_many(responders: int, n: int, count: int, period_s: float = PERIOD_S
             a.close()
         for proc in procs:
             proc.close()
-        from zplatform.runtime.intrahost import remove_stale
-
-        remove_stale(PREFIX)
-        for path in _own_files():
-            try:
-                os.unlink(path)
-            except OSError:
-                pass
+        _clean_up()
     return {"samples_ns": samples, "lost": lost, "cpu_s": cpu}
 
 

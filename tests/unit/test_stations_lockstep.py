@@ -35,6 +35,18 @@ ground:
 """
 
 
+def _long_lease_runner() -> LockstepRunner:
+    """The flight with the ground section, its lease 5 s (it outlasts a
+    takeover or a restart), in lockstep."""
+    return LockstepRunner(
+        decode_mission(
+            FLIGHT.read_text() + GROUND.replace("lease_s: 2", "lease_s: 5"),
+            source=str(FLIGHT),
+            base_dir=FLIGHT.parent,
+        )
+    )
+
+
 def flight_with_ground() -> Mission:
     return decode_mission(FLIGHT.read_text() + GROUND, source=str(FLIGHT), base_dir=FLIGHT.parent)
 
@@ -225,13 +237,7 @@ def test_a_standby_takeover_keeps_the_lock_the_open_arm_and_its_approvals() -> N
 def test_a_standby_takeover_resumes_an_arm_awaiting_its_second_operator() -> None:
     """An ARM waiting for its approval when the commander dies: approved at
     the new commander, its command accepted there (not armed again)."""
-    r = LockstepRunner(
-        decode_mission(
-            FLIGHT.read_text() + GROUND.replace("lease_s: 2", "lease_s: 5"),
-            source=str(FLIGHT),
-            base_dir=FLIGHT.parent,
-        )
-    )
+    r = _long_lease_runner()
     s = Stations(r)
     r.run(0.5)
     assert s.send("fd@room", "LOCK") == "ACCEPTED"
@@ -251,13 +257,7 @@ def test_a_restart_in_flight_resumes_the_lock_and_the_approved_arm_from_its_reco
     resumes the run from its flight recorder's newest frame, which carries
     the authority's state: the holder keeps the lock and the approved
     two-person LAUNCH is accepted without a new ARM or approval."""
-    r = LockstepRunner(
-        decode_mission(
-            FLIGHT.read_text() + GROUND.replace("lease_s: 2", "lease_s: 5"),
-            source=str(FLIGHT),
-            base_dir=FLIGHT.parent,
-        )
-    )
+    r = _long_lease_runner()
     s = Stations(r)
     r.run(0.5)
     assert s.send("fd@room", "LOCK") == "ACCEPTED"
