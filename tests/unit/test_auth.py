@@ -257,6 +257,19 @@ def test_seal_and_open(mac: str) -> None:
             other.open(sealed)
 
 
+@pytest.mark.parametrize("mac", MACS)
+def test_a_twin_channel_tags_alike_with_state_of_its_own(mac: str) -> None:
+    """Channel is not thread-safe: a second thread takes a twin (the archive
+    server's zenoh thread, which checks asks while the serving thread seals
+    replies). Same tags, same run; no hasher, buffer or key cache shared."""
+    ch = Channel(GOOD, "rocket", "telemetry", mac, Run(7))
+    tw = ch.twin()
+    frame = b"x" * 100
+    assert bytes(tw.seal(frame)) == bytes(ch.seal(frame)) and tw.run is ch.run
+    assert bytes(tw.open(bytes(ch.seal(frame)))) == frame
+    assert tw._main is not ch._main and tw._other is not ch._other and tw._buf is not ch._buf
+
+
 def test_peers_with_another_mac_refuse_each_other_saying_so() -> None:
     b3 = Channel(GOOD, "rocket", "telemetry", "blake3")
     hm = Channel(GOOD, "rocket", "telemetry", "hmac-sha256")

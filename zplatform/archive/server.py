@@ -23,7 +23,6 @@ from __future__ import annotations
 
 import secrets
 import struct
-import threading
 import time
 from collections import OrderedDict
 from collections.abc import Callable
@@ -267,10 +266,10 @@ class ArchiveServer(QueryWorker):
         self._in_hand: dict[int, int] = {}  # asker -> tagged asks in hand (zenoh's thread counts)
         self._counted: dict[int, int] = {}  # id() of an ask counted in _in_hand -> its asker
         self._over: set[int] = set()  # id() of asks taken past their asker's bound
-        # The channel serves both threads (zenoh's checks an ask's tag to
-        # count it; the serving thread checks and seals): one at a time,
-        # each for one MAC.
-        self._tag_lock = threading.Lock()
+        # zenoh's thread checks an ask's header tag (to count it under its
+        # asker) with a channel of its own: it never waits on the serving
+        # thread's MACs (a reply's seal covers a whole Arrow chunk).
+        self._rx_channel = channel.twin() if channel is not None else None
         self._version_error_ns: int | None = None
         self._buckets: OrderedDict[int, tuple[float, int]] = OrderedDict()
         self._closed = False
@@ -341,14 +340,13 @@ class ArchiveServer(QueryWorker):
         asker's bound. The serving thread checks it all again."""
         if data[:4] != ASK_MAGIC:
             return None
-        ch = self._channel
+        ch = self._rx_channel
         if ch is not None:
-            with self._tag_lock:
-                ch.run = self.session
-                try:
-                    ch.open_header(data)
-                except AuthError:  # RunError included: refused when served
-                    return None
+            ch.run = self.session
+            try:
+                ch.open_header(data)
+            except AuthError:  # RunError included: refused when served
+                return None
         return int(ASK.unpack_from(data, 0)[1])
 
     def _stale(self, why: str) -> None:
@@ -364,12 +362,11 @@ class ArchiveServer(QueryWorker):
         if ch is None:
             return data
         try:
-            with self._tag_lock:
-                ch.run = self.session if bound else None
-                frame = ch.open_header(data)
-                if body:
-                    ch.check_body(data)
-                return bytes(frame)
+            ch.run = self.session if bound else None
+            frame = ch.open_header(data)
+            if body:
+                ch.check_body(data)
+            return bytes(frame)
         except RunError:
             self._stale("an ask of another session (an earlier one's, replayed, or none)")
         except AuthError as exc:
@@ -383,8 +380,7 @@ class ArchiveServer(QueryWorker):
         if ch is None:
             return True
         try:
-            with self._tag_lock:  # the channel's key cache is shared
-                ch.check_body(data)
+            ch.check_body(data)
         except AuthError as exc:
             self.refuse(str(exc))
             return False
@@ -563,9 +559,8 @@ class ArchiveServer(QueryWorker):
         frame = REPLY.pack(kind, nonce, i, n) + data
         ch = self._channel
         if ch is not None:
-            with self._tag_lock:
-                ch.run = self.session
-                out = bytes(ch.seal(frame))
+            ch.run = self.session
+            out = bytes(ch.seal(frame))
         else:
             out = frame
         query.reply(self._key, out)

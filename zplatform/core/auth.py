@@ -444,6 +444,18 @@ class Channel:
         self._main = _RunKey(base, mac)
         self._other = _RunKey(base, mac)
 
+    def twin(self) -> Channel:
+        """A channel of the same key, name, MAC and run with hashers and
+        buffers of its own: for a second thread (this class is not
+        thread-safe). Costs no key derivation."""
+        c = Channel.__new__(Channel)
+        c.name, c.mac, c.run = self.name, self.mac, self.run
+        base = self._main._base
+        c._buf = bytearray()
+        c._main = _RunKey(base, self.mac)
+        c._other = _RunKey(base, self.mac)
+        return c
+
     def tag(self, frame: bytes | bytearray | memoryview) -> bytes:
         """The tag of ``frame`` in this channel's sending run: run word,
         header tag and MAC."""
