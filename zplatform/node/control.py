@@ -281,9 +281,11 @@ class ControlNode:
                 zenoh.handlers.Callback(self._on_peer, indirect=False),
                 history=True,
             )
-        if not self.redundant or name == "cn":
+        if not self.redundant:
             # The device nodes wait for a control node's token, then set their
-            # clocks by `cn`'s server. A standby announces once it follows.
+            # clocks by its server (served above). A redundant mission's `cn`
+            # announces in wait_ready, once it knows whether it serves the
+            # clock; a standby, once it follows.
             self.ns.announce()
         self.first_loop_ns = 0
         self.last_loop_ns = 0
@@ -432,6 +434,14 @@ class ControlNode:
             # by cn's before they come up. Device nodes already running mean a
             # run may be going on: ask them first (_first_to_command).
             self._serve_clock()
+        if self.redundant and self.name == "cn":
+            # Only now: its token tells a starting device node that the clock
+            # is served. Announced in __init__, the token came before the
+            # server by this look for running device nodes (ALIVE_LOOK_S),
+            # and a device node starting then found no clock: its 200
+            # exchanges ended unanswered at once, counted and evented as a
+            # silent clock (clock_timeout), before it asked again.
+            self.ns.announce()
         if dns:
             try:
                 wait_for_nodes(self.ns.session, self.ns.keys, dns, timeout_s, self.stop.event)
