@@ -553,3 +553,43 @@ def test_check_view_checks_a_frame_in_place_and_refuses_as_check_does() -> None:
     assert check.check_view(memoryview(good), None) is None
     size, bad, stale = check.take_counts()
     assert size == 1 and stale == 1 and bad == 2
+
+
+# -- terms: a new commander's first triggers ---------------------------------
+
+FLIGHT = load_mission(ROOT / "configs" / "flight.yaml")
+FLIGHT_KEYS = KeySet.from_master(FLIGHT, bytes.fromhex(os.environ[KEY_ENV]))
+
+
+def _term_trigger(term: int, loop: int, t: int) -> bytes:
+    cn = ControlLogic(FLIGHT, keys=FLIGHT_KEYS, epoch=T0)
+    cn.take_command(term, loop)
+    return bytes(cn.begin(loop, t)[0])
+
+
+def test_a_new_terms_trigger_is_fresh_though_stamped_before_the_old_terms_last() -> None:
+    """A commander stalled for a few loops sends on as the standby takes
+    over: its trigger of term 2, stamped at 52.511 s, reached dn0 after dn0
+    granted term 3 and before the new commander's first trigger, stamped at
+    its loop's start, 52.494 s. By one stamp for all terms that trigger was
+    refused as a replay, and the next ones too: dn0 safed, no valid trigger
+    for 106 ms (the live SIGSTOP takeover beside a CPU hog). Fresh per term
+    now: the new term's is taken (then run); the old term's is taken to be
+    fenced and answered by the logic; replays of either, and a dead term's,
+    are refused."""
+    p = FLIGHT.period_ns
+    intake: TriggerIntake[str] = TriggerIntake(FLIGHT, "dn0", channel(FLIGHT_KEYS, "cn_to_dn0"))
+    old_188 = _term_trigger(2, 188, T0 + 188 * p)
+    old_190 = _term_trigger(2, 190, T0 + 190 * p + p // 2)  # late, stalled
+    new_188 = _term_trigger(3, 188, T0 + 188 * p + p // 4)  # stamped before old_190
+    new_189 = _term_trigger(3, 189, T0 + 189 * p)
+    assert intake.admit(Bytes(old_188), "old 188")
+    assert intake.admit(Bytes(old_190), "old 190")
+    assert intake.admit(Bytes(new_188), "new 188")  # refused as a replay before
+    assert not intake.admit(Bytes(new_188), "new 188 replayed")
+    assert intake.admit(Bytes(new_189), "new 189")
+    assert not intake.admit(Bytes(old_190), "old 190 replayed")
+    old_191 = _term_trigger(2, 191, T0 + 191 * p)
+    assert intake.admit(Bytes(old_191), "old 191")  # to be fenced by the logic
+    assert not intake.admit(Bytes(_term_trigger(1, 192, T0 + 192 * p)), "term 1: dead")
+    assert intake.take_counts() == (0, 0, 3)

@@ -387,7 +387,21 @@ class TriggerIntake(_StampIntake[H]):
     and no further ahead of ``now_ns`` (the node's corrected clock, the
     CN's time) than the clock bound and a period
     (``clock.offset_bound_ms``, as :class:`~zplatform.control.loop.DeviceLogic`
-    believes a trigger). Its mailbox keeps :data:`BACKLOG` triggers."""
+    believes a trigger). Its mailbox keeps :data:`BACKLOG` triggers.
+
+    In a mission with a standby control node a loop's trigger (loop > 0) is
+    fresh in its own term (``dnX_term``, read after the body's MAC):
+    stamped later than every one admitted of that term, of the newest term
+    or the one before it (a lower one is refused: no commander runs it).
+    So a new commander's first triggers are taken even when stamped before
+    a trigger of the old commander that came meanwhile (a stalled commander
+    still sending as the standby takes over: the old term's trigger,
+    admitted here, is fenced and answered by the logic,
+    :mod:`zplatform.control.fencing`); by one global stamp, the new term's
+    first loops were refused as replays and the device node went without
+    a trigger past its watchdog. A replay is still refused (not newer in its
+    term); a header not newer than the newest stamp cannot tell, so it
+    costs at most :data:`MAC_SPARE` body MACs a loop, as elsewhere."""
 
     def __init__(
         self,
@@ -404,7 +418,49 @@ class TriggerIntake(_StampIntake[H]):
         longest = max(own, bundle_size(lens)) if wildcard_sync_for(mission) else own
         self._now = now_ns
         self._max_ahead = ahead_bound_ns(mission)
+        # Terms (class doc): where the term sits in the trigger's data; the
+        # newest term and the one before it, each with its newest stamp.
+        self._term_at = -1
+        self._data_len = 0
+        if mission.standby is not None:
+            region = lay.region(f"cn_to_{node}")
+            self._term_at = lay.element(f"{node}_term").offset - region.offset
+            self._data_len = region.size
+        self._term_hi, self._t_hi = -1, -(1 << 63)
+        self._term_lo, self._t_lo = -1, -(1 << 63)
         super().__init__(f"{node}'s sync query", longest, channel, BACKLOG)
+
+    def _fresh_header(self, body: memoryview, handle: H) -> bool | None:
+        seq, t_ns = frame_stamp(body)
+        if self._ahead(t_ns, handle):
+            return False
+        if t_ns > self.newest_t:
+            return True
+        # Not newer than the newest: a replay, or a new term's (class doc).
+        return None if self._term_at >= 0 and seq > 0 else False
+
+    def _fresh(self, body: memoryview, handle: H) -> bool:
+        seq, t_ns = frame_stamp(body)
+        if self._term_at < 0 or seq == 0:  # no terms; or a warm-up, of any term
+            return super()._fresh(body, handle)
+        if self._ahead(t_ns, handle):
+            return False
+        at = self._term_at
+        term = int.from_bytes(frame_data(body, self._data_len)[at : at + 4], "little")
+        if term > TERM_MAX:  # no commander runs it; the newest, it would fence them all
+            return False
+        if term > self._term_hi:
+            self._term_lo, self._t_lo = self._term_hi, self._t_hi
+            self._term_hi, self._t_hi = term, t_ns
+        elif term == self._term_hi and t_ns > self._t_hi:
+            self._t_hi = t_ns
+        elif term == self._term_lo and t_ns > self._t_lo:
+            self._t_lo = t_ns
+        else:  # not newer in its term, or a term below the two newest
+            self._replayed(t_ns, handle)
+            return False
+        self.newest_t = max(self.newest_t, t_ns)
+        return True
 
     def _frame(self, data: bytes) -> bytes | memoryview:
         return bundle_entry(data, self._index) if is_bundle(data) else data
