@@ -103,7 +103,8 @@ KEYSPACE: tuple[KeyRow, ...] = (
                 "cn_to_{dn}",
                 "cn-{dn}",
                 "zplatform.control.intake.TriggerIntake {dn}",
-                _STAMP + " (the trigger's t_ns)",
+                _STAMP + " (the trigger's t_ns; with a standby, admitted of its own term: the "
+                "newest term or the one before)",
                 "mailbox of BACKLOG, newest wins; older answered may_run=False",
             ),
             KeyFrames(
