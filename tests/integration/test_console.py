@@ -240,14 +240,25 @@ async def _flight_screen(c: Cluster) -> None:
             return s == "COAST" and len([x for x in heights if x > 1.0]) >= 3
 
         await _until(pilot, coasting, "COAST, the altitude climbing")
+
+        def moves() -> list[str]:
+            return [x.split("state ", 1)[1].split(" (")[0]
+                    for x in _text(app, "#events-text").splitlines()
+                    if "state_change: state " in x]  # fmt: skip
+
+        # The state machine's changes as the CN's events, in order (the status
+        # line shows the current state; ARMED lasts 2 s, which a press on a
+        # busy box may outlast). The status line's state comes with
+        # telemetry, which a busy console takes before events, and an event
+        # zenoh dropped on the way to a starved console is filled from the
+        # CN's recorder: so the pane may show them a little after COAST.
+        try:
+            await _until(pilot, lambda: len(moves()) >= 3, "the three state changes")
+        except AssertionError as exc:
+            raise AssertionError(f"{exc}: {_text(app, '#events-text')}") from None
         events = _text(app, "#events-text")
         assert "ARM #1: ACCEPTED" in events and "LAUNCH #2: ACCEPTED" in events, events
-        # the state machine's changes as the CN's events, in order (the
-        # status line shows the current state; ARMED lasts 2 s, which a
-        # press on a busy box may outlast)
-        moves = [x.split("state ", 1)[1].split(" (")[0] for x in events.splitlines()
-                 if "state_change: state " in x]  # fmt: skip
-        assert moves == ["SAFE -> ARMED", "ARMED -> BOOST", "BOOST -> COAST"], events
+        assert moves() == ["SAFE -> ARMED", "ARMED -> BOOST", "BOOST -> COAST"], events
         assert states[-1] == "COAST", states
         climb = [h for h in heights if h > 1.0]
         assert climb == sorted(climb) and climb[-1] > 50.0, heights  # past burnout, up
