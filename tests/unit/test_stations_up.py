@@ -186,3 +186,73 @@ def test_a_station_connects_through_its_router_and_sends_only_with_an_operator(
     ]
     with pytest.raises(Exception, match="lists no station 'near'"):
         run_station(m, "near", tmp_path / "near")
+
+
+def test_a_restarted_station_keeps_what_its_earlier_process_wrote(
+    monkeypatch: pytest.MonkeyPatch, tmp_path: Path
+) -> None:
+    """Issue 29 follow-up: ``run_station`` twice into one directory (``up``
+    restarting it, or a second run): its events and telemetry rows follow
+    the first process's, under the CSV's one header; what a process killed
+    mid-write left (a row and an event without their newline) is cut off,
+    not glued to the next line. Before, each start truncated both files."""
+    import json
+
+    import zplatform.node.ground as node_ground
+    from zplatform.core.datavector import DataVector, Layout
+    from zplatform.node.ground import run_station
+    from zplatform.runtime.process import StopFlag
+    from zplatform.telemetry.logs import read_csv
+    from zplatform.telemetry.records import EventRecord
+
+    m = mission(STATIONS + "archive: {enabled: false}\n")
+    d = tmp_path / "pad"
+    # What each station process receives: snapshots (their loop) and events (their seq).
+    feeds = [[("tm", 1), ("ev", 1), ("tm", 2)], [("ev", 2), ("tm", 3), ("tm", 4)]]
+
+    class Link:  # the station's GroundLink: feeds one process's share, then stops it
+        def __init__(self, mission: Any, **kw: Any) -> None:
+            layout = Layout.for_node(mission, "cn")
+            counters = SimpleNamespace(
+                received=0, gaps=0, rejected=0, first_seq=0, last_seq=0, refused={}, epoch_changes=0
+            )
+            self.logic = SimpleNamespace(
+                layout=layout,
+                dv=DataVector(layout),
+                received=False,
+                counters=counters,
+                player=None,
+                finish=lambda t: None,
+            )
+            self.clock = SimpleNamespace(now_ns=lambda: 0)
+            self.on_event: Any = None
+            self.feed = feeds.pop(0)
+
+        def next(self, timeout: float) -> int | None:
+            if not self.feed:
+                stop.event.set()
+                return None
+            kind, k = self.feed.pop(0)
+            if kind == "ev":
+                self.on_event(EventRecord(k, "cn", k, k, "INFO", "cmd_accepted", f"ev {k}"))
+                return None
+            self.logic.dv.set("cn_loop", k)
+            self.logic.received = True
+            self.logic.counters.received += 1
+            return 1000 + k
+
+        def close(self) -> None:
+            pass
+
+    monkeypatch.setattr(node_ground, "GroundLink", Link)
+    stop = StopFlag(install=False)
+    assert run_station(m, "pad", d, log_csv=True, stop=stop).events_logged == 1
+    with (d / "telemetry.csv").open("a") as f:  # the first process killed mid-write
+        f.write("1003,3")
+    with (d / "events.jsonl").open("a") as f:
+        f.write('{"rx_time_ns":')
+    stop = StopFlag(install=False)
+    run_station(m, "pad", d, log_csv=True, stop=stop)
+    assert [r["cn_loop"] for r in read_csv(d / "telemetry.csv")] == ["1", "2", "3", "4"]
+    lines = (d / "events.jsonl").read_text().splitlines()
+    assert [json.loads(line)["text"] for line in lines] == ["ev 1", "ev 2"]
