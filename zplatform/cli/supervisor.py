@@ -10,14 +10,11 @@ the ``--summary`` JSON (:class:`~zplatform.telemetry.summary.RunSummary`).
 
 Contract: :func:`run_up` blocks until the run ends (its duration, the
 script's last verdict plus :data:`~zplatform.ground.script.SETTLE_S` or
-``--settle``, a stop, or the CN's death) and returns the exit code. A dead DN
-or ground node is reported and the rest run on (the run ends non-zero); a
-dead CN ends the flight. A dead station is reported too, and restarted
-(:class:`StationRestarts`: after a growing pause, and no more after
-:data:`STATION_RAPID_DEATHS` rapid deaths in a row), never waited for: the
-watch goes on meanwhile. The nodes are signalled before ``up`` closes its
-own zenoh session, which closes last, in a thread, for at most
-:data:`LINK_CLOSE_S`.
+``--settle``, a stop, or the CN's death) and returns the exit code. A dead DN,
+ground node or station is reported and the rest run on (the run ends
+non-zero; a station is restarted, :class:`StationRestarts`); a dead CN ends
+the flight. The nodes are signalled before ``up`` closes its own zenoh
+session, which closes last, in a thread, for at most :data:`LINK_CLOSE_S`.
 
 What a node's death does and how a run ends: docs/operations.md#running-missions.
 """
@@ -459,7 +456,7 @@ def watch(
                     else "the stations behind it lose the vehicle, which flies on"
                     if n.startswith(ROUTER_PREFIX)
                     else "the vehicle flies on; the station's operator keeps the lock no "
-                    "longer than its lease"
+                    "longer than its lease, unless the station is back to renew it"
                     if n.startswith(STATION_PREFIX)
                     else "the control node carries on (DN_LOST and the mission's fault response)"
                 )

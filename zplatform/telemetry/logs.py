@@ -7,14 +7,10 @@ row per telemetry snapshot: enums by name, bools as ``0``/``1``, integers in
 decimal, floats in the shortest text that reads back exactly; ASCII, one
 newline per row, never quoted. Also here: the events JSONL beside it
 (:class:`EventWriter`, :func:`events_path`), :func:`read_csv` and the plot
-(:func:`plot_telemetry`, :func:`plot_markers`).
-
-A log opened with ``append`` (a station's, which a restart reopens) keeps
-what an earlier process wrote: events are appended; telemetry rows are
-appended under the file's header when it is this layout's, else they go to
-the first ``NAME.N.csv`` that is (a file read by ``plot`` and
-:func:`read_csv` has one header). A last line without its newline (a
-process killed mid-write) is cut off first, said in the log: it is no row.
+(:func:`plot_telemetry`, :func:`plot_markers`). With ``append`` (a station's
+logs) what is there is kept: rows go under the file's header when it is
+theirs, else to the first ``NAME.N.csv`` that is (a CSV has one header),
+after a torn last line is cut off (said in the log).
 
 Contract: the same snapshots give the same bytes: nothing in a row depends on
 the wall clock, dict or set order, or the platform (the lockstep runner's
