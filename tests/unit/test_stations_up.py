@@ -323,9 +323,10 @@ class _FakeChildren:
     def said_ready(self, name: str) -> bool | None:
         return True if self.respawned == "ready" else None
 
-    def kill(self, name: str) -> None:
+    def kill(self, name: str) -> bool:
         self.calls.append(("kill", name))
         self.procs[name].returncode = -9
+        return True
 
 
 def _watch_station(
@@ -407,6 +408,9 @@ def test_a_station_in_a_crash_loop_is_restarted_no_more_after_five_rapid_deaths(
     for k, delay in enumerate((2, 4, 8, 16), start=2):
         assert f"; restart {k} in {delay} s" in said
     code = -9 if respawned == "hangs" else 1
+    assert said.count("not ready in 10 s after its restart: killed") == (
+        5 if respawned == "hangs" else 0
+    )
     assert "it is not restarted again" in said
     assert supervisor.station_states(children, w) == (  # type: ignore[arg-type]
         f"  stations pad=died({code}; 5 rapid deaths: not restarted)"
@@ -460,3 +464,48 @@ def test_a_respawned_station_is_read_for_its_ready_without_blocking(
             if q.poll() is None:
                 q.kill()
             q.wait()
+
+
+def test_up_notes_its_stations_ready_and_records_a_restarted_ones_pid(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """``_supervise``: a station spawned READY counts as up from then (its
+    death within a minute is a rapid one), and each restart updates the
+    run's record of the processes' PIDs (``ps``)."""
+    import signal
+
+    pids = iter(range(100, 200))
+
+    def spawn(self: Any, name: str, argv: list[str], *, ready: float | None = None) -> None:
+        self.procs[name] = SimpleNamespace(pid=next(pids), poll=lambda: None)
+
+    recorded: list[dict[str, int]] = []
+    got: dict[str, Any] = {}
+
+    def watch(m: Any, children: Any, link: Any, w: Any, stopping: Any, **kw: Any) -> Any:
+        got["rapid_restart_in"] = w.stations.died(PAD, -9, supervisor.time.monotonic())
+        children.procs[PAD] = SimpleNamespace(pid=7, poll=lambda: None)  # restarted
+        kw["on_spawn"]()
+        return w
+
+    monkeypatch.setattr(supervisor.Children, "spawn", spawn)
+    monkeypatch.setattr(supervisor.Children, "stop_all", lambda self: {})
+    monkeypatch.setattr(supervisor, "GroundLink", lambda *a, **kw: SimpleNamespace(close=None))
+    monkeypatch.setattr(supervisor, "_close_link", lambda link: None)
+    monkeypatch.setattr(supervisor, "watch", watch)
+    monkeypatch.setattr(signal, "signal", lambda *a: None)  # pytest keeps its own
+    supervisor._supervise(
+        mission(),
+        {},
+        Path("."),
+        SimpleNamespace(update=lambda **kw: recorded.append(kw["nodes"])),
+        world=None,
+        stations={PAD: ["station"]},
+        summary=None,
+        log=None,
+        quiet=True,
+        ready_timeout_s=7.0,
+        end_after_script=False,
+    )
+    assert got["rapid_restart_in"] == 2 * supervisor.STATION_RESTART_S
+    assert recorded == [{PAD: 100}, {PAD: 7}]

@@ -170,11 +170,14 @@ class Children:
         del self._said[name]
         return said.split(b"\n", 1)[0].strip() == b"READY"
 
-    def kill(self, name: str) -> None:
-        """SIGKILL the child ``name`` (one that never came up); reaped by :meth:`dead`."""
+    def kill(self, name: str) -> bool:
+        """SIGKILL the child ``name`` (one that never came up), reaped by
+        :meth:`dead`; False when it had ended already."""
         p = self.procs[name]
-        if p.poll() is None:
-            p.kill()
+        if p.poll() is not None:
+            return False
+        p.kill()
+        return True
 
     def dead(self) -> list[tuple[str, int]]:
         return [(n, p.returncode) for n, p in self.procs.items() if p.poll() is not None]
@@ -557,9 +560,9 @@ def _restart_stations(
             print(f"\nzplatform up: {n} is up again", file=sys.stderr)
         elif said is False or now - started > ready_timeout_s:
             w.stations.killed(n)
-            children.kill(n)
-            why = "said no READY" if said is False else f"not ready within {ready_timeout_s:g} s"
-            print(f"\nzplatform up: {n} {why} after its restart: killed", file=sys.stderr)
+            if children.kill(n):  # else it ended by itself: its death is reported
+                why = "said no READY" if said is False else f"not ready in {ready_timeout_s:g} s"
+                print(f"\nzplatform up: {n} {why} after its restart: killed", file=sys.stderr)
 
 
 def _close_link(link: GroundLink) -> None:
