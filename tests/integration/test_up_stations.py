@@ -6,10 +6,11 @@ process of its own (``zplatform station``), writing into its own directory,
 and its status line shows it; ``room`` is not started. fd takes the command
 lock from the pad (``zplatform cmd``, which then exits): the station keeps
 it, for two leases and more by the CN's own clock. The station is
-killed: ``up`` reports it, the status line shows it dead, the lock runs out
-(nobody renews it), and the vehicle flies on (the CN's loop keeps
-counting, no fault); Ctrl-C then ends the run non-zero (a node died, the
-supervisor's policy), every child reaped.
+killed: ``up`` reports it with its restart to come, restarts it, and the
+status line shows it up again; the restarted station appends to its
+events log (what the first process wrote is kept), and the vehicle flies
+on (the CN's loop keeps counting, no fault); Ctrl-C then ends the run
+non-zero (a child died, the supervisor's policy), every child reaped.
 """
 
 from __future__ import annotations
@@ -138,11 +139,18 @@ def test_up_starts_a_station_shows_it_and_flies_on_when_it_dies(tmp_path: Path) 
             assert holder == "fd" and until > t, (holder, until, t)
         assert int(dv.get("cn_cmd_seq")) >= 3  # renewals: LOCKs after the first
 
+        events = d / "events.jsonl"
+        written = events.read_bytes()
+        written = written[: written.rfind(b"\n") + 1]  # its whole lines
+        assert written, "the station logged no event before its kill"
         stations[0].kill()
-        wait_until(lambda: running("node station:pad died (exit code -9)"), 30, "the report")
-        wait_until(lambda: running("stations pad=died(-9)"), 30, "the status line's dead station")
-        while until > t:  # nobody renews it now: it runs out
-            t, until, holder = snapshot()
+        said = wait_until(lambda: running("node station:pad died (exit code -9)"), 30, "the report")
+        assert "; restart 1 in " in said, said
+        wait_until(lambda: running("station:pad is up again"), 90, "the station's restart")
+        wait_until(lambda: running("stations pad=up(1 restart)"), 30, "the status line's restart")
+        again = [p for p in psutil.Process(up.pid).children() if "station" in p.cmdline()]
+        assert len(again) == 1 and again[0].pid != stations[0].pid
+        assert events.read_bytes().startswith(written)  # appended to: nothing lost
         loop = int(rx.dv.get("cn_loop"))
         while int(rx.dv.get("cn_loop")) < loop + 100:  # the vehicle flies on
             assert up.poll() is None, out.text()[-3000:]
@@ -155,7 +163,7 @@ def test_up_starts_a_station_shows_it_and_flies_on_when_it_dies(tmp_path: Path) 
         s = json.loads((tmp_path / "s.json").read_text())
         assert s["loops"] > 100 and s["final_state"] == "IDLE", s
         assert "station:pad" not in s["nodes"]  # a station is no node of the summary
-        _, alive = psutil.wait_procs(kids, timeout=15)
+        _, alive = psutil.wait_procs([*kids, *again], timeout=15)
         assert not alive, alive
     finally:
         rx.close()

@@ -3,14 +3,23 @@
 from __future__ import annotations
 
 import io
+import json
 import math
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
 
 from zplatform import DataVector, DataVectorError, Layout, decode_mission
-from zplatform.telemetry.logs import MAX_ARRAY_COLUMNS, CsvLogger, csv_columns, read_csv
+from zplatform.telemetry.logs import (
+    MAX_ARRAY_COLUMNS,
+    CsvLogger,
+    EventWriter,
+    csv_columns,
+    read_csv,
+)
+from zplatform.telemetry.records import EventRecord
 
 MISSION = """
 mission: tmtest
@@ -174,3 +183,71 @@ def test_one_unpack_covers_every_column(dv: DataVector) -> None:
     n_values = len(log._struct.unpack_from(dv.buf, 0))
     assert n_values == len(log.columns) - 1
     assert log._struct.size <= dv.layout.size
+
+
+# ------------------------------------------------- a log reopened (station restart)
+
+
+def _log_rows(dv: DataVector, p: Path, loops: range, **kw: Any) -> CsvLogger:
+    with CsvLogger(p, dv.layout, **kw) as log:
+        for k in loops:
+            dv.set("cn_loop", k)
+            log.write(1000 + k, dv)
+    return log
+
+
+def test_an_appending_log_keeps_the_rows_before_it_under_one_header(
+    dv: DataVector, tmp_path: Path
+) -> None:
+    """A restarted station's CSV: the earlier process's rows stay, the new
+    ones follow under the one header (``plot`` reads the whole), and the
+    torn row a killed process left is cut off, not glued to the next."""
+    p = tmp_path / "telemetry.csv"
+    _log_rows(dv, p, range(3), append=True)  # no file yet: written with its header
+    with p.open("a") as f:
+        f.write("1003,3,17")  # killed mid-row: no newline
+    log = _log_rows(dv, p, range(4, 6), append=True)
+    assert log.path == p
+    assert [r["cn_loop"] for r in read_csv(p)] == ["0", "1", "2", "4", "5"]
+    assert p.read_text().count("rx_time_ns") == 1
+    _log_rows(dv, p, range(6, 7))  # without append: written anew, as every --log file is
+    assert [r["cn_loop"] for r in read_csv(p)] == ["6"]
+
+
+def test_an_appending_log_of_another_layout_goes_to_a_numbered_file(
+    dv: DataVector, tmp_path: Path
+) -> None:
+    """The mission changed between two runs of a station: the old CSV is
+    left as it was; the new layout's rows go to ``telemetry.1.csv``, and
+    on to it again on the next restart."""
+    p = tmp_path / "telemetry.csv"
+    other = DataVector(Layout.for_node(decode_mission(MISSION.replace("flag", "flog")), "cn"))
+    _log_rows(other, p, range(2), append=True)
+    before = p.read_bytes()
+    assert _log_rows(dv, p, range(2, 4), append=True).path == tmp_path / "telemetry.1.csv"
+    assert _log_rows(dv, p, range(4, 5), append=True).path == tmp_path / "telemetry.1.csv"
+    assert p.read_bytes() == before
+    assert [r["cn_loop"] for r in read_csv(tmp_path / "telemetry.1.csv")] == ["2", "3", "4"]
+    # A header cut short (killed before its first row was written): rewritten.
+    (tmp_path / "t2.csv").write_text("rx_time_ns,cn_lo")
+    _log_rows(dv, tmp_path / "t2.csv", range(1), append=True)
+    assert [r["cn_loop"] for r in read_csv(tmp_path / "t2.csv")] == ["0"]
+
+
+def test_an_appending_event_log_keeps_the_events_before_it(tmp_path: Path) -> None:
+    p = tmp_path / "events.jsonl"
+
+    def rec(seq: int) -> EventRecord:
+        return EventRecord(seq, "cn", seq, seq, "INFO", "loop_started", f"event {seq}")
+
+    with EventWriter(p, append=True) as w:
+        w.write(rec(1))
+    with p.open("a") as f:
+        f.write('{"rx_time_ns": 2, "node"')  # killed mid-line
+    with EventWriter(p, append=True) as w:
+        w.write(rec(3))
+        assert w.count == 1
+    assert [json.loads(line)["seq"] for line in p.read_text().splitlines()] == [1, 3]
+    with EventWriter(p) as w:  # without append: written anew
+        w.write(rec(4))
+    assert [json.loads(line)["seq"] for line in p.read_text().splitlines()] == [4]

@@ -203,7 +203,8 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         description="Run as station NAME of the mission's ground.stations: a ground tool "
         "(through the station's router when it has `connect`) that receives the control "
         "node's telemetry and every node's events and writes them into a directory of its "
-        "own (events.jsonl; telemetry.csv with --log; its archive under archive/). With an "
+        "own (events.jsonl; telemetry.csv with --log; its archive under archive/), "
+        "appending to what an earlier run or restart wrote there. With an "
         "operator (--operator, or the station's `operator`) it keeps that operator's "
         "command lock while they hold it. `up` starts the stations marked `start: true`. "
         "Prints READY once its session is open; runs until Ctrl-C or SIGTERM.",

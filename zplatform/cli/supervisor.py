@@ -10,17 +10,18 @@ the ``--summary`` JSON (:class:`~zplatform.telemetry.summary.RunSummary`).
 
 Contract: :func:`run_up` blocks until the run ends (its duration, the
 script's last verdict plus :data:`~zplatform.ground.script.SETTLE_S` or
-``--settle``, a stop, or the CN's death) and returns the exit code. A dead DN
-or ground node is reported and the rest run on (the run ends non-zero); a
-dead CN ends the flight. The nodes are signalled before ``up`` closes its own
-zenoh session, which closes last, in a thread, for at most
-:data:`LINK_CLOSE_S`.
+``--settle``, a stop, or the CN's death) and returns the exit code. A dead DN,
+ground node or station is reported and the rest run on (the run ends
+non-zero; a station is restarted, :class:`StationRestarts`); a dead CN ends
+the flight. The nodes are signalled before ``up`` closes its own zenoh
+session, which closes last, in a thread, for at most :data:`LINK_CLOSE_S`.
 
 What a node's death does and how a run ends: docs/operations.md#running-missions.
 """
 
 from __future__ import annotations
 
+import math
 import os
 import select
 import shutil
@@ -31,6 +32,7 @@ import tempfile
 import threading
 import time
 from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -62,6 +64,7 @@ from ..telemetry.summary import (
 
 __all__ = [
     "Children",
+    "StationRestarts",
     "Watch",
     "format_board_lines",
     "format_run_summary",
@@ -90,6 +93,8 @@ class Children:
 
     def __init__(self, *, quiet: bool = False, status_line: bool = False) -> None:
         self.procs: dict[str, subprocess.Popen[bytes]] = {}
+        self._argv: dict[str, list[str]] = {}
+        self._said: dict[str, bytes] = {}  # a respawned child's output before its first line
         # `up --quiet`: the nodes log warnings and errors only (LOG_LEVEL_ENV).
         self._env = {LOG_LEVEL_ENV: "WARNING"} if quiet else {}
         if status_line:
@@ -100,20 +105,8 @@ class Children:
     def spawn(self, name: str, argv: list[str], *, ready: float | None = None) -> None:
         """Start ``zplatform ARGV``; with ``ready`` (seconds), wait for its
         first output line to be ``READY`` (NodeError if it is not, in time)."""
-        env = dict(os.environ, PYTHONUNBUFFERED="1", **self._env)
-        env[PARENT_ENV] = str(os.getpid())
-        env[STOP_PIPE_ENV] = "1"
-        # A new session: a Ctrl-C in the terminal reaches `up` alone, which
-        # then stops the nodes in order (CN first, so the ground logs the end).
-        # stdin: a pipe `up` closes to stop the node (and the kernel closes if
-        # `up` dies), beside SIGTERM.
-        proc = subprocess.Popen(
-            [sys.executable, "-m", "zplatform", *argv],
-            env=env,
-            start_new_session=True,
-            stdin=subprocess.PIPE,
-            stdout=subprocess.PIPE if ready is not None else None,
-        )
+        self._argv[name] = argv
+        proc = self._popen(argv, piped=ready is not None)
         self.procs[name] = proc
         if ready is not None:
             assert proc.stdout is not None
@@ -125,6 +118,66 @@ class Children:
                     if got
                     else f"{name} was not ready within {ready:g} s"
                 )
+
+    def _popen(self, argv: list[str], *, piped: bool) -> subprocess.Popen[bytes]:
+        env = dict(os.environ, PYTHONUNBUFFERED="1", **self._env)
+        env[PARENT_ENV] = str(os.getpid())
+        env[STOP_PIPE_ENV] = "1"
+        # A new session: a Ctrl-C in the terminal reaches `up` alone, which
+        # then stops the nodes in order (CN first, so the ground logs the end).
+        # stdin: a pipe `up` closes to stop the node (and the kernel closes if
+        # `up` dies), beside SIGTERM.
+        return subprocess.Popen(
+            [sys.executable, "-m", "zplatform", *argv],
+            env=env,
+            start_new_session=True,
+            stdin=subprocess.PIPE,
+            stdout=subprocess.PIPE if piped else None,
+        )
+
+    def respawn(self, name: str) -> None:
+        """Start the dead child ``name`` again with the arguments it was
+        spawned with, not waiting for it (:meth:`said_ready` tells). The dead
+        process's pipes are closed; OSError when it cannot start (the dead
+        one is kept). Called while ``up`` holds its zenoh
+        session: ``subprocess`` forks and execs at once (vfork on Linux),
+        which is safe there; a bare ``os.fork`` is not
+        (docs/architecture.md#zenoh)."""
+        proc = self._popen(self._argv[name], piped=True)  # OSError: the dead one stays
+        old, self.procs[name] = self.procs[name], proc
+        for pipe in (old.stdin, old.stdout):
+            if pipe is not None:
+                pipe.close()
+        self._said[name] = b""
+
+    def said_ready(self, name: str) -> bool | None:
+        """Whether the respawned child ``name``'s first output line was
+        ``READY``: None while no whole line has come, False for another line
+        or its output's end. Never blocks (reads what its pipe holds)."""
+        out = self.procs[name].stdout
+        if out is None or name not in self._said:
+            return None
+        fd = out.fileno()
+        if not select.select([fd], [], [], 0)[0]:
+            return None
+        chunk = os.read(fd, 256)
+        said = self._said[name] + chunk
+        if not chunk or len(said) > 256:  # its output ended, or a line no READY is
+            return False
+        if b"\n" not in said:
+            self._said[name] = said
+            return None
+        del self._said[name]
+        return said.split(b"\n", 1)[0].strip() == b"READY"
+
+    def kill(self, name: str) -> bool:
+        """SIGKILL the child ``name`` (one that never came up), reaped by
+        :meth:`dead`; False when it had ended already."""
+        p = self.procs[name]
+        if p.poll() is not None:
+            return False
+        p.kill()
+        return True
 
     def dead(self) -> list[tuple[str, int]]:
         return [(n, p.returncode) for n, p in self.procs.items() if p.poll() is not None]
@@ -182,6 +235,119 @@ ROUTER_PREFIX = "router:"
 """The name ``up`` gives a router's process (``router:pad``)."""
 STATION_PREFIX = "station:"
 """The name ``up`` gives a station's process (``station:pad``)."""
+STATION_RESTART_S = 1.0
+"""How long after a station's death ``up`` restarts it; each rapid death in
+a row (:data:`STATION_RAPID_S`) doubles it, up to :data:`STATION_RESTART_MAX_S`."""
+STATION_RESTART_MAX_S = 30.0
+STATION_RAPID_S = 60.0
+"""A station that dies sooner than this after it said ``READY`` (or before
+it said it) died rapidly."""
+STATION_RAPID_DEATHS = 5
+"""Rapid deaths in a row after which ``up`` restarts a station no more (a
+crash loop, which restarting does not mend); the status line says so."""
+
+
+@dataclass
+class _Station:
+    """One station's restart record (:class:`StationRestarts`)."""
+
+    up_since: float | None
+    """When its running process said READY; None while it has not."""
+    started: float = 0.0
+    """When its running process was (re)started."""
+    rapid: int = 0
+    """Rapid deaths in a row."""
+    restarts: int = 0
+    code: int | None = None
+    """Its last death's exit code."""
+    due: float | None = None
+    """When its pending restart is due; None when none is pending."""
+    gave_up: bool = False
+    killed: bool = False
+    """Killed before its READY (its death not seen yet)."""
+
+
+class StationRestarts:
+    """When ``up`` restarts the stations it started, and what their status
+    says (sans-IO: the caller gives the time, ``time.monotonic``, and does
+    the spawning). A station is not flight-critical: a dead one is restarted
+    :data:`STATION_RESTART_S` after its death, twice as late after each
+    rapid death in a row (at most :data:`STATION_RESTART_MAX_S`), and no more
+    after :data:`STATION_RAPID_DEATHS` of them; one that ran
+    :data:`STATION_RAPID_S` since its ``READY`` starts the count again. Not
+    thread-safe (the watch loop)."""
+
+    def __init__(self) -> None:
+        self._st: dict[str, _Station] = {}
+
+    def ready(self, name: str, now: float) -> None:
+        """Station ``name``'s process said ``READY`` at ``now``."""
+        st = self._st.setdefault(name, _Station(up_since=now, started=now))
+        st.up_since = now
+
+    def died(self, name: str, code: int, now: float) -> float | None:
+        """Station ``name`` died (exit ``code``) at ``now``: the seconds until
+        its restart, or None when it is restarted no more. One this was
+        never told of counts as up long before."""
+        st = self._st.setdefault(name, _Station(up_since=-math.inf))
+        rapid = st.up_since is None or now - st.up_since < STATION_RAPID_S
+        st.rapid = st.rapid + 1 if rapid else 0
+        st.code, st.up_since = code, None
+        if st.rapid >= STATION_RAPID_DEATHS:
+            st.gave_up, st.due = True, None
+            return None
+        delay = min(STATION_RESTART_MAX_S, STATION_RESTART_S * 2**st.rapid)
+        st.due = now + delay
+        return delay
+
+    def due(self, now: float) -> list[str]:
+        """The stations whose restart is due at ``now``, each once: they
+        count as restarted (starting) from now."""
+        names = [n for n, st in self._st.items() if st.due is not None and now >= st.due]
+        for n in names:
+            st = self._st[n]
+            st.due, st.started, st.killed = None, now, False
+            st.restarts += 1
+        return names
+
+    def killed(self, name: str) -> None:
+        """Station ``name``, restarted, was killed before its ``READY``: it
+        is starting no more (its death, once seen, is a rapid one)."""
+        self._st[name].killed = True
+
+    def starting(self) -> list[tuple[str, float]]:
+        """The restarted stations not yet ``READY``, with when each started."""
+        return [
+            (n, st.started)
+            for n, st in self._st.items()
+            if st.restarts
+            and st.up_since is None
+            and st.due is None
+            and not (st.gave_up or st.killed)
+        ]
+
+    def restarts(self, name: str) -> int:
+        st = self._st.get(name)
+        return st.restarts if st is not None else 0
+
+    def state(self, name: str, code: int | None, now: float) -> str:
+        """Station ``name``'s part of the status line (``up``, ``up(2
+        restarts)``, ``starting(restart 2)``, ``died(-9; restart 2 in 4
+        s)``, ``died(-9; 5 rapid deaths: not restarted)``), its process
+        running (``code`` None) or dead with ``code``."""
+        st = self._st.get(name)
+        if st is not None and st.gave_up:
+            return f"died({st.code}; {st.rapid} rapid deaths: not restarted)"
+        if st is not None and st.due is not None:
+            left = max(0, math.ceil(st.due - now))
+            return f"died({st.code}; restart {st.restarts + 1} in {left} s)"
+        if code is not None:
+            return f"died({code})"
+        if st is None or not st.restarts:
+            return "up"
+        if st.up_since is None:
+            return f"starting(restart {st.restarts})"
+        return f"up({st.restarts} restart{'s' if st.restarts > 1 else ''})"
 
 
 class Watch:
@@ -195,6 +361,7 @@ class Watch:
         self.script_done = False
         self.script_done_at: float | None = None
         """When (``time.monotonic``) the ground node said its script was done."""
+        self.stations = StationRestarts()
 
     def on_event(self, rec: EventRecord) -> None:
         """Note the ground node's ``script_done`` (the link's callback: no I/O)."""
@@ -220,12 +387,17 @@ def watch(
     ready_timeout_s: float = 60.0,
     end_after_script: bool = False,
     settle_s: float | None = None,
+    on_spawn: Callable[[], None] | None = None,
 ) -> Watch:
     """Live status until the CN finishes, ``stopping()`` or (with
     ``end_after_script``) the script's end (module doc; ``settle_s``: how
     long after the last verdict, None for the default), through ``link``
     (opened with ``on_event=w.on_event``; the caller closes it, after
-    stopping the nodes). Fills and returns ``w``. Blocks."""
+    stopping the nodes). Restarts the dead stations
+    (:class:`StationRestarts`, ``w.stations``), never waiting for one:
+    one not ``READY`` within ``ready_timeout_s`` of its restart is killed,
+    a rapid death; ``on_spawn`` is called after each restart. Fills and
+    returns ``w``. Blocks."""
     tty = sys.stdout.isatty()
     rate = RateMeter()
     bulk_paths = BulkPaths(mission)
@@ -287,10 +459,12 @@ def watch(
                     else "the stations behind it lose the vehicle, which flies on"
                     if n.startswith(ROUTER_PREFIX)
                     else "the vehicle flies on; the station's operator keeps the lock no "
-                    "longer than its lease"
+                    "longer than its lease, unless the station is back to renew it"
                     if n.startswith(STATION_PREFIX)
                     else "the control node carries on (DN_LOST and the mission's fault response)"
                 )
+                if n.startswith(STATION_PREFIX):
+                    what += _station_restart(w.stations, n, c, time.monotonic())
                 print(f"\nzplatform up: node {n} died (exit code {c}); {what}", file=sys.stderr)
                 if n == "gn" and end_after_script and w.script_done_at is None:
                     # The run was to end after the ground node's script, which
@@ -303,6 +477,8 @@ def watch(
                         "rest of it is not sent; the vehicle flies on; Ctrl-C ends the run",
                         file=sys.stderr,
                     )
+            if not stopping():
+                _restart_stations(children, w, ready_timeout_s, on_spawn)
             got = link.next(0.2)
             if got is not None:
                 rate.add_snapshot(link.dv)
@@ -344,6 +520,49 @@ def watch(
     finally:
         if tty and not quiet:
             print()
+
+
+def _station_restart(restarts: StationRestarts, name: str, code: int, now: float) -> str:
+    """Note station ``name``'s death; what ``up`` says of its restart."""
+    delay = restarts.died(name, code, now)
+    if delay is None:
+        return (
+            f"; it died {STATION_RAPID_DEATHS} times in a row within {STATION_RAPID_S:g} s of "
+            "starting: it is not restarted again"
+        )
+    return f"; restart {restarts.restarts(name) + 1} in {delay:g} s"
+
+
+def _restart_stations(
+    children: Children, w: Watch, ready_timeout_s: float, on_spawn: Callable[[], None] | None
+) -> None:
+    """Restart the stations whose time has come, and see whether those
+    restarted are ``READY`` (never blocks: a station's start must not hold
+    the watch, nor its crash loop the vehicle's nodes, which it never
+    touches). One that says something else, or is not ready within
+    ``ready_timeout_s``, is killed: its death is a rapid one."""
+    now = time.monotonic()
+    for n in w.stations.due(now):
+        try:
+            children.respawn(n)
+        except OSError as exc:  # the dead process stays: a death of its own
+            what = _station_restart(w.stations, n, w.died.get(n, -1), now)
+            print(f"\nzplatform up: {n} could not be restarted ({exc}){what}", file=sys.stderr)
+            continue
+        w.died.pop(n, None)
+        print(f"\nzplatform up: restarting {n} (restart {w.stations.restarts(n)})", file=sys.stderr)
+        if on_spawn is not None:
+            on_spawn()
+    for n, started in w.stations.starting():
+        said = children.said_ready(n)
+        if said:
+            w.stations.ready(n, now)
+            print(f"\nzplatform up: {n} is up again", file=sys.stderr)
+        elif said is False or now - started > ready_timeout_s:
+            w.stations.killed(n)
+            if children.kill(n):  # else it ended by itself: its death is reported
+                why = "said no READY" if said is False else f"not ready in {ready_timeout_s:g} s"
+                print(f"\nzplatform up: {n} {why} after its restart: killed", file=sys.stderr)
 
 
 def _close_link(link: GroundLink) -> None:
@@ -437,12 +656,14 @@ def sync_paths(mission: Mission, dv: DataVector) -> str:
 
 
 def station_states(children: Children, w: Watch) -> str:
-    """``  stations pad=up lounge=died(-9)``: each station process ``up``
-    started (``ground.stations[].start``), running or dead with its exit
-    code; empty when it started none."""
+    """``  stations pad=up lounge=died(-9; restart 2 in 4 s)``: each station
+    process ``up`` started (``ground.stations[].start``), running or dead
+    with its exit code, and its restarts (:meth:`StationRestarts.state`);
+    empty when it started none."""
+    now = time.monotonic()
     states = [
         f"{n[len(STATION_PREFIX) :]}="
-        + ("up" if p.poll() is None and n not in w.died else f"died({p.returncode})")
+        + w.stations.state(n, None if p.poll() is None else p.returncode, now)
         for n, p in children.procs.items()
         if n.startswith(STATION_PREFIX)
     ]
@@ -685,7 +906,12 @@ def _supervise(
         for name, argv in (stations or {}).items():
             # Ready once its session is open (it waits for nothing else).
             children.spawn(name, argv, ready=ready_timeout_s)
-        reg.update(nodes={n: p.pid for n, p in children.procs.items()})
+            w.stations.ready(name, time.monotonic())
+
+        def pids() -> None:  # `ps`'s record of the processes, a restarted station's too
+            reg.update(nodes={n: p.pid for n, p in children.procs.items()})
+
+        pids()
         link = GroundLink(mission, keys="mission", on_event=w.on_event)
         watch(
             mission,
@@ -697,6 +923,7 @@ def _supervise(
             ready_timeout_s=ready_timeout_s,
             end_after_script=end_after_script,
             settle_s=settle_s,
+            on_spawn=pids,
         )
     finally:
         # The nodes first (CN, DNs and ground, world), then our own session:

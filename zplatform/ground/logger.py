@@ -23,14 +23,24 @@ __all__ = ["TelemetryLog", "log_summary_line"]
 class TelemetryLog:
     """A telemetry CSV (``csv``, optional) and an events file (``events``,
     optional; :func:`~zplatform.telemetry.logs.events_path` beside the CSV is the
-    convention). Files are created (truncated) at construction; :meth:`close`
+    convention). Files are created (truncated) at construction; with
+    ``append`` (a station's, which a restart reopens), what is there is kept
+    and this log goes after it (:mod:`zplatform.telemetry.logs`: the rows
+    of another layout go to a numbered CSV, :attr:`csv_path`). :meth:`close`
     flushes and closes them, idempotent."""
 
-    def __init__(self, layout: Layout, csv: str | Path | None, events: str | Path | None) -> None:
-        self.csv_path = Path(csv) if csv is not None else None
+    def __init__(
+        self,
+        layout: Layout,
+        csv: str | Path | None,
+        events: str | Path | None,
+        *,
+        append: bool = False,
+    ) -> None:
+        self._csv = CsvLogger(csv, layout, append=append) if csv is not None else None
+        self._events = EventWriter(events, append=append) if events is not None else None
+        self.csv_path = self._csv.path if self._csv is not None else None
         self.events_path = Path(events) if events is not None else None
-        self._csv = CsvLogger(csv, layout) if csv is not None else None
-        self._events = EventWriter(events) if events is not None else None
 
     @classmethod
     def beside(cls, layout: Layout, csv: str | Path | None) -> TelemetryLog:

@@ -61,6 +61,7 @@ def run_ground_logger(
     signer: Signer | None = None,
     station: str | None = None,
     archive: str | Path | None = None,
+    append: bool = False,
 ) -> GnSummary:
     """Log accepted telemetry snapshots to ``out_csv`` until stopped or
     ``duration_s``. Blocks; returns the summary.
@@ -79,6 +80,9 @@ def run_ground_logger(
     ``ground.stations`` (:func:`run_station`): through its router, keeping
     the signer's lock with the uplink's publisher (host role ``gn``), and
     archiving into ``archive`` (its own directory, not served).
+    ``append``: keep what ``out_csv`` and ``events_out`` hold and log after
+    it (:class:`~zplatform.ground.logger.TelemetryLog`), as a station does;
+    otherwise they are written anew, as every ``--log`` file is.
     """
     stop = stop or StopFlag()
     node = "gn" if as_node and mission.has_ground else None
@@ -94,7 +98,7 @@ def run_ground_logger(
     )
     logic = link.logic
     try:
-        tlog = TelemetryLog(logic.layout, out_csv, events_out)
+        tlog = TelemetryLog(logic.layout, out_csv, events_out, append=append)
     except BaseException:
         link.close()
         raise
@@ -204,11 +208,15 @@ def run_station(
     receiving the CN's telemetry and every node's events, which it writes
     into ``directory`` (made, 0700): ``events.jsonl``, ``telemetry.csv``
     with ``log_csv``, and its archive under ``archive/`` when the mission
-    archives. With ``signer`` (its operator at this station) it keeps their
-    command lock while they hold it; it sends nothing else. Prints ``READY``
-    once its session is open. Blocks; returns its summary. Raises
-    KeyError_ for a missing key, TransportError when the session cannot
-    open, CommandError for a station the mission does not list."""
+    archives. The directory is the station's record across its runs and
+    restarts: both logs are appended to, never truncated (a CSV of another
+    layout is left alone: the rows go to ``telemetry.N.csv``), and the
+    archive keeps each run apart, each loop once. With ``signer`` (its
+    operator at this station) it keeps their command lock while they hold
+    it; it sends nothing else. Prints ``READY`` once its session is open.
+    Blocks; returns its summary. Raises KeyError_ for a missing key,
+    TransportError when the session cannot open, CommandError for a
+    station the mission does not list."""
     from ..errors import CommandError
 
     g = mission.ground
@@ -229,6 +237,7 @@ def run_station(
         signer=signer,
         station=station,
         archive=d / "archive",
+        append=True,
     )
 
 

@@ -7,7 +7,10 @@ row per telemetry snapshot: enums by name, bools as ``0``/``1``, integers in
 decimal, floats in the shortest text that reads back exactly; ASCII, one
 newline per row, never quoted. Also here: the events JSONL beside it
 (:class:`EventWriter`, :func:`events_path`), :func:`read_csv` and the plot
-(:func:`plot_telemetry`, :func:`plot_markers`).
+(:func:`plot_telemetry`, :func:`plot_markers`). With ``append`` (a station's
+logs) what is there is kept: rows go under the file's header when it is
+theirs, else to the first ``NAME.N.csv`` that is (a CSV has one header),
+after a torn last line is cut off (said in the log).
 
 Contract: the same snapshots give the same bytes: nothing in a row depends on
 the wall clock, dict or set order, or the platform (the lockstep runner's
@@ -20,6 +23,8 @@ from __future__ import annotations
 
 import csv
 import json
+import logging
+import os
 import struct
 from collections.abc import Callable
 from pathlib import Path
@@ -44,6 +49,8 @@ __all__ = [
     "plot_telemetry",
     "read_csv",
 ]
+
+log = logging.getLogger("zplatform.telemetry")
 
 MAX_ARRAY_COLUMNS = 16
 
@@ -116,17 +123,31 @@ class CsvLogger:
 
     ``target`` is a path (opened for writing, truncated) or an open text
     stream (not closed by :meth:`close`). The header is written at
-    construction. :meth:`write` raises DataVectorError when the vector's
-    layout is not the logger's (another mission config).
+    construction. With ``append`` (a path only), a log already there is
+    kept and the rows go after it (module doc: its header must be this
+    layout's, else they go to ``NAME.N.csv``; :attr:`path` says where).
+    :meth:`write` raises DataVectorError when the vector's layout is not the
+    logger's (another mission config).
     """
 
-    def __init__(self, target: str | Path | TextIO, layout: Layout) -> None:
+    def __init__(
+        self, target: str | Path | TextIO, layout: Layout, *, append: bool = False
+    ) -> None:
+        self.path: Path | None = None
+        """The file written (None for a stream)."""
+        header = ",".join(csv_columns(layout)) + "\n"
         if isinstance(target, str | Path):
-            self._f: TextIO = open(target, "w", encoding="ascii", newline="")  # noqa: SIM115
+            self.path = _csv_to_append(Path(target), header) if append else Path(target)
+            self._f: TextIO = open(  # noqa: SIM115
+                self.path, "a" if append else "w", encoding="ascii", newline=""
+            )
             self._owned = True
+            # The header goes into an empty file only (one appended to has it).
+            fresh = os.fstat(self._f.fileno()).st_size == 0
         else:
             self._f = target
             self._owned = False
+            fresh = True
         self.layout = layout
         self.rows = 0
         fmt = ["<"]
@@ -146,7 +167,8 @@ class CsvLogger:
         self._formatters = tuple(formatters)
         self._columns = csv_columns(layout)
         assert len(self._columns) == len(formatters) + 1
-        self._f.write(",".join(self._columns) + "\n")
+        if fresh:
+            self._f.write(header)
 
     @property
     def columns(self) -> list[str]:
@@ -192,6 +214,63 @@ class CsvLogger:
         self.close()
 
 
+def _csv_to_append(path: Path, header: str) -> Path:
+    """Where a log of ``header`` appends (module doc): ``path`` when it is
+    absent, empty or starts with ``header`` (its torn last row cut off),
+    else the first of ``NAME.1.csv``, ``NAME.2.csv``... that is. A file
+    holding only part of the header (torn) is emptied. Files of another
+    header are never changed."""
+    want = header.encode("ascii")
+    p, n = path, 0
+    while not _takes(p, want):
+        n += 1
+        p = path.with_name(f"{path.stem}.{n}{path.suffix}")
+    if p != path:
+        log.warning("%s holds another layout's columns: the rows go to %s", path, p)
+    return p
+
+
+def _takes(p: Path, header: bytes) -> bool:
+    """Whether rows under ``header`` may be appended to ``p`` (made ready
+    for them: a torn last row cut off, a torn header emptied)."""
+    try:
+        with open(p, "rb") as f:
+            head = f.read(len(header))
+    except FileNotFoundError:
+        return True
+    if head == header:
+        _cut_torn_tail(p)
+        return True
+    if not header.startswith(head) or len(head) != p.stat().st_size:
+        return False  # another layout's log
+    if head:  # a header cut short: no row was ever under it
+        log.warning("%s: its header was cut short (%d bytes): rewritten", p, len(head))
+        os.truncate(p, 0)
+    return True
+
+
+def _cut_torn_tail(path: Path) -> int:
+    """Cut off ``path``'s last line when it has no newline (a process killed
+    mid-write left it: no whole row or event), saying so in the log; return
+    the bytes cut (0: the file ends with a newline, or is empty)."""
+    with open(path, "r+b") as f:
+        end = pos = f.seek(0, os.SEEK_END)
+        while pos > 0:
+            step = min(pos, 65536)
+            f.seek(pos - step)
+            chunk = f.read(step)
+            if pos == end and chunk.endswith(b"\n"):
+                return 0
+            i = chunk.rfind(b"\n")
+            if i >= 0:
+                pos = pos - step + i + 1
+                break
+            pos -= step
+        f.truncate(pos)
+    log.warning("%s: its last line was cut short (%d bytes, no newline): removed", path, end - pos)
+    return end - pos
+
+
 def read_csv(source: str | Path | TextIO) -> list[dict[str, str]]:
     """Read a telemetry CSV into one dict per row (column -> text). For tests and tools."""
     if isinstance(source, str | Path):
@@ -221,12 +300,16 @@ class EventWriter:
     ``rx_time_ns`` (the receiver's clock, as in the CSV), then the event's
     ``node``, ``seq``, ``t_ns``, ``severity`` (its name), ``id`` and
     ``text``. Flushed after each event: events are rare and an operator may
-    ``tail -f`` the file.
+    ``tail -f`` the file. The file is truncated at construction; with
+    ``append``, the events go after those already there (module doc).
+    :attr:`count` counts this writer's own.
     """
 
-    def __init__(self, target: str | Path) -> None:
+    def __init__(self, target: str | Path, *, append: bool = False) -> None:
         self.path = Path(target)
-        self._f: TextIO = open(self.path, "w", encoding="utf-8")  # noqa: SIM115
+        if append and self.path.exists():
+            _cut_torn_tail(self.path)
+        self._f: TextIO = open(self.path, "a" if append else "w", encoding="utf-8")  # noqa: SIM115
         self.count = 0
 
     def write(self, rec: EventRecord) -> None:
