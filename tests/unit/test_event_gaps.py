@@ -21,13 +21,12 @@ from zplatform.core.auth import KeySet, Run
 from zplatform.core.events import EV, Event, EventLog, encode_event
 from zplatform.errors import CodecError
 from zplatform.ground.gapfill import GapFill
-from zplatform.ground.logic import EventGap, GroundLogic
+from zplatform.ground.logic import GroundLogic
 from zplatform.mission.load import decode_mission
 from zplatform.recorder import RECORDER_DIR_ENV, open_recorder
+from zplatform.recorder import format as fmt
 from zplatform.recorder.format import (
-    EVENTS_MAGIC,
     REPLY_END,
-    REPLY_EVENTS,
     REPLY_FRAMES,
     REPLY_LEN,
     REPLY_TOTALS,
@@ -48,6 +47,9 @@ PERIOD = MISSION.period_ns
 S = 1_000_000_000
 CN_EVENTS = f"{MISSION.vehicle}/cn/events"
 DN_EVENTS = f"{MISSION.vehicle}/dn0/events"
+# New with event gaps: read where used, so each test fails by itself without them.
+EVENTS_MAGIC = getattr(fmt, "EVENTS_MAGIC", b"ZRE1")
+REPLY_EVENTS = getattr(fmt, "REPLY_EVENTS", 3)
 
 
 class Vehicle:
@@ -193,6 +195,8 @@ def test_a_filled_event_replayed_is_refused(vehicle: Vehicle) -> None:
     assert [(r.seq, r.filled) for r in v.shown] == [(0, False), (2, False), (1, True)]
     assert v.fill.refused == 1 and "again" in v.fill.last_refusal  # #1 again (#0, #2 arrived)
     # The gap is closed: the same record brought again fills nothing.
+    from zplatform.ground.logic import EventGap
+
     gap = EventGap("cn", EPOCH, 1, 1, 1, 5)
     with pytest.raises(CodecError, match="not being filled"):
         v.ground.check_filled(gap, v.sent[1][1])
