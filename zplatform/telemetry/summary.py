@@ -152,6 +152,9 @@ class RunSummary(msgspec.Struct, frozen=True):
     takeover: str | None = None
     """A redundant mission whose command changed hands: who commanded, in
     which term, for how many loops (None: one commander throughout)."""
+    events_missed: int | None = None
+    """Verified events the ground node saw numbered past (None: no ground
+    summary); the CN's filled from its recorder count here too."""
 
 
 S = TypeVar("S", CnSummary, DnSummary, GnSummary)
