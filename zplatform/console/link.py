@@ -123,16 +123,20 @@ class Link:
         fill = None
         replies: Mailbox[tuple[int, bytes | None]] = Mailbox(_FILL_BACKLOG)
         if "cn" in self.mission.recording_nodes:
-            # Events only: no snapshot is handed in, so no telemetry gap is asked.
-            fill = GapFill(
-                self.mission,
-                link.link_keys,
-                logic.events,
-                lambda _rx, _dv: None,
-                run=logic.run,
-                logic=logic,
-                on_event=self._on_event,
-            )
+            try:
+                # Events only: no snapshot is handed in, so no telemetry gap is asked.
+                fill = GapFill(
+                    self.mission,
+                    link.link_keys,
+                    logic.events,
+                    lambda _rx, _dv: None,
+                    run=logic.run,
+                    logic=logic,
+                    on_event=self._on_event,
+                )
+            except ZPlatformError as exc:  # keys without the downlink's: shown, not filled
+                with m.lock:
+                    m.note(self.now_ns(), f"missed events are not filled: {exc}", "WARNING_LO")
         try:
             while not self._stop.is_set():
                 t = link.next(0.05)
