@@ -10,6 +10,7 @@ from __future__ import annotations
 
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -399,3 +400,48 @@ def test_the_console_shows_a_filled_event_in_its_place_and_the_missed_count() ->
     cn.begin(1, EPOCH)
     m.on_snapshot(cn.dv, EPOCH, g.counters)
     assert m.status().events_missed == 4
+
+
+def test_the_consoles_link_asks_and_shows_the_filled_events_in_its_pane(
+    vehicle: Vehicle,
+) -> None:
+    """The console's thread drives an events-only fill: its requests go out
+    as zenoh gets on the recorder's key, their replies come back through a
+    mailbox, and the filled events reach the model in their place."""
+    from types import SimpleNamespace
+
+    from zplatform.console.link import Link
+    from zplatform.control.handoff import Mailbox
+
+    v = vehicle
+    model = ConsoleModel(MISSION)
+    link = Link(model)
+    v.fill._on_event = link._on_event  # as the console's thread builds it
+    v.shown.clear()
+    v.step("SAFE -> ARMED")
+    v.step("ARMED -> BOOST", drop=(1,))
+    v.step("BOOST -> COAST")
+    for r in v.shown:
+        model.on_event(r)  # the live ones, as the link hands them over
+    v.written()
+    asked: list[tuple[str, bytes, int]] = []
+    replies: Mailbox[tuple[int, bytes | None]] = Mailbox(8)
+    zenoh_side: Any = SimpleNamespace(
+        keys=SimpleNamespace(recorder=f"{MISSION.vehicle}/cn/recorder"),
+        query=lambda key, payload, _timeout, _into, rid: asked.append((key, payload, rid)),
+    )
+    link.clock = SimpleNamespace(now_ns=lambda: v.now)  # type: ignore[assignment]
+    link._pump(zenoh_side, v.fill, replies)
+    ((key, payload, rid),) = asked
+    assert key == f"{MISSION.vehicle}/cn/recorder"
+    (q,) = deliver(v.server, payload)
+    for p in q.replies:
+        replies.put((rid, p))
+    replies.put((rid, None))  # the get is over
+    link._pump(zenoh_side, v.fill, replies)
+    assert [x.text.split(": ", 1)[1] for x in model.events()] == [
+        "SAFE -> ARMED",
+        "ARMED -> BOOST (filled)",
+        "BOOST -> COAST",
+    ]
+    assert len(asked) == 1  # nothing more to ask
