@@ -65,9 +65,16 @@ from zplatform.core.codec import BundleEncoder, decode_frame, encode_frame
 from zplatform.core.datavector import DataVector, Layout
 from zplatform.core.events import Event, EventLog, encode_event
 from zplatform.ground.gapfill import GapFill
-from zplatform.ground.logic import Gap, GroundLogic
+from zplatform.ground.logic import EventGap, Gap, GroundLogic
 from zplatform.mission.load import load_mission
-from zplatform.recorder.format import REPLY_FRAMES, REPLY_LEN, REQUEST, REQUEST_MAGIC
+from zplatform.recorder.format import (
+    REPLY_BYTES,
+    REPLY_EVENTS,
+    REPLY_FRAMES,
+    REPLY_LEN,
+    REQUEST,
+    REQUEST_MAGIC,
+)
 from zplatform.recorder.server import RecorderServer
 from zplatform.runtime.bulk import HEADER as BULK_HEADER
 from zplatform.runtime.bulk import SUMMARY_BYTES, BulkReader, body_digest, bulk_key, summary_of
@@ -837,6 +844,75 @@ class GapFillH(Harness):
         return self._reply(_restamp(self._frame(), self.ch, self.n))
 
 
+class EventFillH(Harness):
+    """The ground's event gap fill: the CN's events in the recorder's
+    replies to an events request (GapFill, GroundLogic.check_filled), for a
+    gap of numbers 1..1000 of the CN's events."""
+
+    kinds = ("bad",)
+
+    @classmethod
+    def by_design(cls) -> dict[str, str]:
+        why = (
+            "a genuine record (the CN's tag, this run) numbered outside the gap is one of "
+            "the same loops that did arrive: skipped, neither taken nor counted"
+        )
+        return {"extreme_max": why, "extreme_min": why, "extreme_stamp": why}
+
+    def harmless(self, old: Harness | None) -> None:
+        f = self.gf._evf
+        assert f is not None
+        for bad in (self.extreme(True), self.extreme(False), self.stamp_max()):
+            assert not self.feed(bad), "a record outside the gap was taken"
+        assert self.gf.refused == 0 and not f.got, "a genuine record was counted or kept"
+        assert self.feed(self.genuine()), "the gap's genuine record is refused after them"
+
+    def __init__(self, m: Mission, t0: int = T0) -> None:
+        self.t0 = t0
+        self.m, self.keys = m, _keys(m)
+        self.seal = self.keys.channel("events_cn", Run(t0))  # as the CN tags its events
+        run = _ground_run(m, self.keys, t0)
+        self.logic = GroundLogic(m, keys=self.keys, run=run)
+        self.gf = GapFill(m, self.keys, EventLog("gn"), lambda rx, dv: None, run=run)
+        gap = EventGap("cn", t0, 1, 1000, 1, 100)
+        # A gap the logic found (GroundLogic._number), for the fill to take.
+        self.logic._ev_open[gap] = set()
+        self.logic.event_gaps.append(gap)
+        self.gf._logic = self.logic
+        req = self.gf.take_request(self.t0)
+        assert req is not None
+        self.rid = req[0]
+        self.max_len = 1 + REPLY_LEN.size + REPLY_BYTES
+        self.n = 0
+
+    def _reply(self, record: bytes) -> bytes:
+        return bytes([REPLY_EVENTS]) + REPLY_LEN.pack(len(record)) + record
+
+    def _event(self, seq: int, t_ns: int) -> bytes:
+        e = Event("cn", seq, t_ns, 4, "error", f"event {seq}")
+        return bytes(self.seal.seal(encode_event(e)))
+
+    def genuine(self) -> bytes:
+        self.n += 1
+        return self._reply(self._event(self.n, self.t0 + self.n))
+
+    def feed(self, payload: bytes) -> bool:
+        f = self.gf._evf
+        assert f is not None
+        got = len(f.got)
+        self.gf.on_reply(self.rid, payload)
+        return len(f.got) > got
+
+    def counts(self) -> dict[str, int]:
+        return {"bad": self.gf.refused}
+
+    def extreme(self, hi: bool) -> bytes:
+        return self._reply(self._event(U64_MAX if hi else 0, I64_MAX if hi else I64_MIN))
+
+    def stamp_max(self) -> bytes:
+        return self._reply(self._event(U64_MAX, I64_MAX))
+
+
 def _archive_session(t0: int) -> int:
     """The archive server's session word of the ground that started at ``t0``."""
     return (t0 & U64_MAX) or 1
@@ -1073,6 +1149,7 @@ RECIPES: dict[tuple[str, str], tuple[type[Harness], Callable[[ExpandedKey], dict
     ("clock", "reply:run_answer"): (RunAnswerH, _asker),
     ("recorder", "query"): (RecorderQueryH, _none),
     ("recorder", "reply"): (GapFillH, _none),
+    ("recorder", "reply:events_cn"): (EventFillH, _none),
     ("archive", "query"): (ArchiveQueryH, _none),
     ("archive", "reply"): (ArchiveReplyH, _none),
     ("mirror", "sample"): (MirrorH, _none),
@@ -1087,7 +1164,9 @@ a node: the harness and its arguments from the expanded row."""
 def _kind(f: KeyFrames) -> str:
     """The recipe's kind of frame ``f``: its kind, and its channel for the
     run hello, which shares the clock's row (``query:run_hello``)."""
-    return f"{f.kind}:{f.channel}" if f.channel.startswith("run_") else f.kind
+    if f.channel.startswith("run_") or (f.kind == "reply" and f.channel.startswith("events_")):
+        return f"{f.kind}:{f.channel}"  # a row's second kind of reply (the recorder's events)
+    return f.kind
 
 
 def _harness(m: Mission, k: ExpandedKey, kind: str, t0: int) -> Harness:
@@ -1175,6 +1254,7 @@ GROUND_RECEIVERS = frozenset(
         ("events", "sample"),
         ("all_events", "sample"),
         ("recorder", "reply"),
+        ("recorder", "reply:events_cn"),
         ("archive", "reply"),
     }
 )

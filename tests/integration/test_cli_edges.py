@@ -179,6 +179,7 @@ def test_tap_prints_events_decoded() -> None:
         "id": "cmd_rejected",
         "text": "command LAUNCH #4 rejected",
         "verified": True,
+        "filled": False,  # live, not filled from the CN's recorder
     }
     # Forged (untagged), it is refused, not shown as the CN's.
     d = dec.decode("rocket/cn/events", encode_event(ev))

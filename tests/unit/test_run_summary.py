@@ -53,3 +53,31 @@ def test_one_commander_says_nothing_of_command(tmp_path: Path) -> None:
     s = merge_summaries(mission, paths, {"cn": 0})
     assert s.loops == 800 and s.takeover is None
     assert "command changed hands" not in format_run_summary(s)
+
+
+def test_the_grounds_missed_events_are_said(tmp_path: Path) -> None:
+    """The ground node's events_missed reaches `up`'s line and the log's."""
+    from zplatform.ground.logger import log_summary_line
+    from zplatform.telemetry.summary import GnSummary
+
+    mission = load_mission(FLIGHT, code=False)
+    paths = {"cn": tmp_path / "cn.json", "gn": tmp_path / "gn.json"}
+    write_summary(paths["cn"], _cn("cn", 800, 800, 1, commanding=True, took=0))
+    gn = GnSummary(
+        telemetry_received=800,
+        telemetry_gaps=0,
+        telemetry_bad=0,
+        first_seq=1,
+        last_seq=800,
+        final_state="LANDED",
+        events_missed=3,
+        events_filled=2,
+        events_unfilled=1,
+    )
+    write_summary(paths["gn"], gn)
+    s = merge_summaries(mission, paths, {"cn": 0, "gn": 0})
+    assert s.events_missed == 3
+    assert format_run_summary(s).endswith("; events missed 3 (the ground's events_missed)")
+    assert log_summary_line(gn, None, "ev.jsonl").endswith(
+        "; 3 event(s) did not arrive, 2 of them filled from the CN's recorder"
+    )

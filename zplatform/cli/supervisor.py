@@ -622,6 +622,7 @@ def merge_summaries(
         bad_frames=cn.bad_frames if cn else None,
         telemetry_received=gn.telemetry_received if gn else None,
         telemetry_gaps=gn.telemetry_gaps if gn else None,
+        events_missed=gn.events_missed if gn else None,
         commands=gn.commands if gn else [],
         errors=cn.errors if cn else None,
         final_state=cn.final_state if cn else None,
@@ -642,6 +643,8 @@ def format_run_summary(s: RunSummary) -> str:
         f"{s.telemetry_received} (gaps {s.telemetry_gaps}); errors {s.errors}; final state "
         f"{s.final_state}"
     )
+    if s.events_missed:
+        line += f"; events missed {s.events_missed} (the ground's events_missed)"
     return f"{line}; {s.takeover}" if s.takeover else line
 
 

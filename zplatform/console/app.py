@@ -504,6 +504,8 @@ def _status_text(s: Status) -> Text:
     if s.stations:  # every station of the mission: its right, the holder, when last heard
         t.append("stations: " + "; ".join(r.text() for r in s.stations) + "\n")
     t.append(f"tm {s.received} gap {s.gaps} bad {s.bad}")
+    if s.events_missed:
+        t.append(f" ev missed {s.events_missed}")
     for dn, rx, missed, late, off in s.per_dn:
         style = "yellow" if missed or late else None
         # rx/missed/late counts, then the clock offset the CN applies.

@@ -11,6 +11,11 @@ logic at once (:meth:`~zplatform.ground.link.GroundLink.submit`) and never
 stall the telemetry: the logic sends each when the one before has its
 verdict (ARM n, then COMMAND n+1 for an armed one).
 
+When the mission's CN has a flight recorder, the thread also fills the
+control node's events that did not arrive (a starved console drops some)
+from it (:class:`~zplatform.ground.gapfill.GapFill`, events only: the
+console logs no telemetry): they reach the model marked filled.
+
 Only the mission file is needed: the session connects to the endpoints the
 mission lists, so the console runs on any host that can reach them.
 """
@@ -22,13 +27,19 @@ import queue
 import threading
 import time
 from collections.abc import Callable
+from typing import TYPE_CHECKING
 
 from ..control.authority import ARM_WINDOW_NS, Signer
+from ..control.handoff import Mailbox
 from ..control.uplink import CheckedCommand
 from ..errors import ZPlatformError
 from ..runtime.timebase import NodeClock
 from ..telemetry.records import EventRecord
 from .model import ConsoleModel
+
+if TYPE_CHECKING:
+    from ..ground.gapfill import GapFill
+    from ..ground.link import GroundLink
 
 __all__ = ["Link"]
 
@@ -96,6 +107,7 @@ class Link:
             self.model.on_event(rec)
 
     def _run(self) -> None:
+        from ..ground.gapfill import GapFill
         from ..ground.link import GroundLink
 
         link = GroundLink(
@@ -108,9 +120,28 @@ class Link:
         logic = link.logic
         m = self.model
         waiting: dict[int, tuple[str, float]] = {}  # ticket -> (what, deadline)
+        fill = None
+        replies: Mailbox[tuple[int, bytes | None]] = Mailbox(_FILL_BACKLOG)
+        if "cn" in self.mission.recording_nodes:
+            try:
+                # Events only: no snapshot is handed in, so no telemetry gap is asked.
+                fill = GapFill(
+                    self.mission,
+                    link.link_keys,
+                    logic.events,
+                    lambda _rx, _dv: None,
+                    run=logic.run,
+                    logic=logic,
+                    on_event=self._on_event,
+                )
+            except ZPlatformError as exc:  # keys without the downlink's: shown, not filled
+                with m.lock:
+                    m.note(self.now_ns(), f"missed events are not filled: {exc}", "WARNING_LO")
         try:
             while not self._stop.is_set():
                 t = link.next(0.05)
+                if fill is not None:
+                    self._pump(link, fill, replies)
                 m.waiting_for_run = link.waiting_for_run  # one bool: no lock needed
                 if t is not None:
                     counters = logic.counters
@@ -162,3 +193,24 @@ class Link:
                 self.busy = bool(waiting)
         finally:
             link.close()
+
+    def _pump(
+        self, link: GroundLink, fill: GapFill, replies: Mailbox[tuple[int, bytes | None]]
+    ) -> None:
+        """The event gap fill's replies in, its requests out, time on."""
+        now = self.clock.now_ns
+        while (item := replies.pop()) is not None:
+            rid, payload = item
+            if payload is None:
+                fill.on_done(rid, now())
+            else:
+                fill.on_reply(rid, payload)
+        req = fill.take_request(now())
+        if req is not None:
+            rid, payload, timeout_s = req
+            link.query(link.keys.recorder, payload, timeout_s, replies, rid)
+        fill.tick(now())
+
+
+_FILL_BACKLOG = 64
+"""Event gap-fill replies waiting for the console's thread, at most."""

@@ -114,6 +114,8 @@ class LogLine:
     severity: str
     source: str
     text: str
+    seq: int = -1
+    """The event's number (its node's; -1: not an event)."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -176,6 +178,9 @@ class Status:
     stations: tuple[StationRow, ...] = ()
     """Every station of the mission, its right, the lock's holder, when last
     heard (empty: no command authority, or no telemetry yet)."""
+    events_missed: int = 0
+    """Verified events that did not arrive (the ground's ``events_missed``;
+    the control node's are filled from its recorder when it has one)."""
     """The history fill's state ("filling history...", what it filled, or why
     it could not); "" when the console opened without history."""
 
@@ -211,6 +216,7 @@ class ConsoleModel:
         self.received = 0
         self.gaps = 0
         self.bad = 0
+        self.events_missed = 0
         self.last_rx_ns: int | None = None
         self.now_ns: int | None = None
         self.waiting_for_run = False
@@ -262,6 +268,7 @@ class ConsoleModel:
             self.received += 1
         else:
             self.received, self.gaps, self.bad = counters.received, counters.gaps, counters.rejected
+            self.events_missed = counters.events_missed
         self.last_rx_ns = rx_ns
         if self._los:
             self._los = False
@@ -310,9 +317,26 @@ class ConsoleModel:
         return len(old)
 
     def on_event(self, rec: EventRecord) -> None:
-        mark = " (unverified)" if rec.verified is False else ""
-        self.log.append(LogLine(rec.t_ns, rec.severity, rec.node, f"{rec.id}: {rec.text}{mark}"))
+        """One event: appended; one filled from the recorder (``filled``,
+        late by design) is put in its place among its node's events, after
+        the last numbered below it, and marked so."""
+        mark = " (unverified)" if rec.verified is False else " (filled)" if rec.filled else ""
+        line = LogLine(rec.t_ns, rec.severity, rec.node, f"{rec.id}: {rec.text}{mark}", rec.seq)
         self.version += 1
+        if not rec.filled:
+            self.log.append(line)
+            return
+        lines = list(self.log)
+        at = len(lines)
+        for i in range(len(lines) - 1, -1, -1):
+            x = lines[i]
+            if x.source == rec.node and x.seq >= 0:
+                if x.seq < rec.seq:
+                    break
+                at = i  # a later one of its node: before it
+        lines.insert(at, line)
+        self.log.clear()
+        self.log.extend(lines[-(self.log.maxlen or len(lines)) :])
 
     def on_result(self, t_ns: int, outcome: CommandOutcome) -> None:
         """A command outcome: the CN's verdict with its reason."""
@@ -374,6 +398,7 @@ class ConsoleModel:
             received=self.received,
             gaps=self.gaps,
             bad=self.bad,
+            events_missed=self.events_missed,
             per_dn=dns,
             cmd_seq=int(dv.get("cn_cmd_seq")),
             cmd_status=dv.get_name("cn_cmd_status"),

@@ -269,6 +269,24 @@ class EV:
         Severity.WARNING_LO,
         "loops {first}..{last}: {n} snapshot(s) not filled from the control node's recorder: {why}",
     )
+    EVENTS_MISSED = EventType(
+        77,
+        "events_missed",
+        Severity.WARNING_LO,
+        "{n} event(s) of {what} did not arrive: {fate}",
+    )
+    EVENTS_FILLED = EventType(
+        78,
+        "events_filled",
+        Severity.ACTIVITY_LO,
+        "filled {n} event(s) of {node} (#{first}..#{last}) from the control node's recorder",
+    )
+    EVENTS_UNFILLED = EventType(
+        79,
+        "events_unfilled",
+        Severity.WARNING_LO,
+        "{n} event(s) of {node} ({which}) not filled from the control node's recorder: {why}",
+    )
     # the flight recorder (zplatform.recorder), on the node that records
     RECORDER_DROPPING = EventType(
         80,
@@ -640,6 +658,25 @@ class EventReader:
             late_ok = run is not None and run.known
             self._fresh(e, now_ns, self._max_age, late_ok=late_ok)
         return e, True
+
+    def read_filled(self, node: str, payload: bytes | bytearray | memoryview) -> Event:
+        """One record of ``node`` a gap fill brought (not off the network:
+        :mod:`zplatform.ground.gapfill`): its tag checked with ``node``'s key
+        as :meth:`read` checks it (RunError for another run's, on a bound
+        reader; AuthError for a bad tag, none, no key held for ``node``, or
+        a record naming another node; FrameFormatError for anything that is
+        not a record), never its freshness: it is late by design, and its
+        number is what its receiver checks (not one taken already). Reads
+        nothing of :meth:`read`'s state, changes none."""
+        from .auth import AuthError
+
+        ch = self._channels.get(node)
+        if ch is None:
+            raise AuthError(f"no key for {node!r}'s events: a filled record cannot be checked")
+        e = decode_event(ch.open(payload))
+        if e.node != node:
+            raise AuthError(f"a record of {e.node!r} on {node!r}'s key")
+        return e
 
     def forged(self, key_expr: str, payload: bytes | bytearray | memoryview) -> bool:
         """Whether ``payload``, come on ``key_expr``, is refused by its tag

@@ -16,6 +16,15 @@ gap's run, range, divisor, replay and stamp; refused frames are counted
 (:attr:`GapFill.refused`, :attr:`GapFill.last_refusal`), never raised.
 Loops never run are counted apart (:attr:`GapFill.not_run`); each request
 ends in ``gap_filled`` / ``gap_unfilled`` events.
+
+Given the ground's logic, it also fills the gaps in the control node's event
+numbers the logic found (:attr:`GroundLogic.event_gaps`): an events request
+for the loops they were filed under, one gap at a time, after the telemetry
+gaps; every record a reply brings is checked as a live one is (its node's
+tag, the run, a number of the gap not taken yet:
+:meth:`GroundLogic.check_filled`), and when the gap's requests are over the
+records are handed on in number order, marked filled, and the gap ends in
+``events_filled`` / ``events_unfilled`` events.
 Detail: docs/architecture.md#the-gap-fill.
 """
 
@@ -29,18 +38,22 @@ from ..config import Mission
 from ..core.auth import TAG_LEN, KeySet, Run, channel
 from ..core.codec import RegionCodec
 from ..core.datavector import DataVector, Layout
-from ..core.events import EV, EventLog
+from ..core.events import EV, Event, EventLog
 from ..errors import CodecError
 from ..recorder.format import (
+    EVENTS_MAGIC,
     MAX_REQUEST_LOOPS,
+    REPLY_BYTES,
     REPLY_END,
+    REPLY_EVENTS,
     REPLY_FRAMES,
     REPLY_LEN,
     REPLY_TOTALS,
     REQUEST,
     REQUEST_MAGIC,
 )
-from .logic import Gap, GroundLogic, default_max_age_ns
+from ..telemetry.records import EventRecord
+from .logic import EventGap, Gap, GroundLogic, default_max_age_ns
 
 __all__ = ["GapFill"]
 
@@ -74,6 +87,34 @@ class _Ask:
         self.not_run = 0
 
 
+class _EvFill:
+    """The event gap being filled: its chunks of loops, the request in
+    flight (``rid``, 0: none), its tries, and the records checked so far."""
+
+    __slots__ = (
+        "chunk",
+        "deadline",
+        "ended",
+        "gap",
+        "got",
+        "not_before",
+        "not_held",
+        "rid",
+        "tries",
+    )
+
+    def __init__(self, gap: EventGap) -> None:
+        self.gap = gap
+        self.chunk = 0  # the chunk of MAX_REQUEST_LOOPS loops asked next
+        self.rid = 0
+        self.tries = 0
+        self.not_before = 0
+        self.deadline = 0
+        self.ended = False  # the request in flight had its END
+        self.not_held = 0  # loops the recorder said it does not hold
+        self.got: dict[int, Event] = {}  # number -> record, checked
+
+
 class _Row(NamedTuple):
     epoch: int
     loop: int
@@ -93,8 +134,10 @@ class GapFill:
     when they do not hold it. ``run``: the run the ground learned
     (:attr:`GroundLogic.run`): a frame of another run is refused (an
     earlier run's, replayed), and so is every frame while it is unknown;
-    None: bound to none. Not thread-safe: the driver's thread calls
-    everything.
+    None: bound to none. ``logic``: the ground's logic, whose event gaps
+    of the control node are filled too (module doc; it is told so:
+    :attr:`GroundLogic.fill_events_of`), the records handed to
+    ``on_event``. Not thread-safe: the driver's thread calls everything.
     """
 
     def __init__(
@@ -108,6 +151,8 @@ class GapFill:
         tries: int = 3,
         retry_s: float = 1.0,
         run: Run | None = None,
+        logic: GroundLogic | None = None,
+        on_event: Callable[[EventRecord], None] | None = None,
     ) -> None:
         rec = mission.recorder
         self._bps = rec.serve_bps if rec is not None else 1_000_000
@@ -141,6 +186,16 @@ class GapFill:
         """Frames in replies that did not check."""
         self.last_refusal = ""
         self.requests = 0
+        # Event gaps (module doc): the logic's, filled one at a time.
+        self._logic = logic
+        self._on_event = on_event
+        self._evf: _EvFill | None = None
+        if logic is not None and rec is not None and "cn" in mission.recording_nodes:
+            logic.fill_events_of = frozenset({"cn"})
+        self.events_filled = 0
+        """Events handed on filled from the recorder."""
+        self.events_unfilled = 0
+        """Missing events the recorder's replies did not bring (given up)."""
 
     @property
     def busy(self) -> bool:
@@ -177,8 +232,10 @@ class GapFill:
         (hand its replies and its end back with that id; ``timeout_s`` is
         the zenoh get's), or None: one is in flight, or nothing is due (a
         range asked again waits ``retry_s`` times its tries)."""
-        if self._ask is not None or not self._todo:
+        if self._ask is not None or (self._evf is not None and self._evf.rid):
             return None
+        if not self._todo:
+            return self._ask_events(now_ns)
         gap, tries, not_before = self._todo[0]
         if now_ns < not_before:
             return None
@@ -192,10 +249,131 @@ class GapFill:
         ch = self._channel
         return self._next_id, (bytes(ch.seal(body)) if ch is not None else body), timeout_ns / _NS
 
+    def _ask_events(self, now_ns: int) -> tuple[int, bytes, float] | None:
+        """The next events request (module doc), or None: none is due."""
+        f = self._evf
+        if f is None:
+            logic = self._logic
+            if logic is None or not logic.event_gaps:
+                return None
+            f = self._evf = _EvFill(logic.event_gaps.popleft())
+        if now_ns < f.not_before:
+            return None
+        gap = f.gap
+        first = gap.first_loop + f.chunk * MAX_REQUEST_LOOPS
+        last = min(first + MAX_REQUEST_LOOPS - 1, gap.last_loop)
+        timeout_ns = 3 * _NS
+        self._next_id += 1
+        f.rid = self._next_id
+        f.tries += 1
+        f.ended = False
+        f.deadline = now_ns + timeout_ns + _NS
+        self.requests += 1
+        body = REQUEST.pack(EVENTS_MAGIC, gap.run, first, last, now_ns)
+        ch = self._channel
+        return f.rid, (bytes(ch.seal(body)) if ch is not None else body), timeout_ns / _NS
+
+    def _on_events(self, f: _EvFill, payload: bytes) -> None:
+        """One reply of the events request in flight (:meth:`on_reply`)."""
+        logic = self._logic
+        assert logic is not None
+        if payload[0] == REPLY_END and len(payload) == 1 + REPLY_TOTALS.size:
+            f.ended = True
+            f.not_held += REPLY_TOTALS.unpack_from(payload, 1)[1]
+            return
+        if payload[0] != REPLY_EVENTS:
+            self._refuse("a reply of an unknown kind")
+            return
+        off, end = 1, len(payload)
+        while off < end:
+            if end - off < REPLY_LEN.size:
+                self._refuse("a reply cut inside an event's length")
+                return
+            (n,) = REPLY_LEN.unpack_from(payload, off)
+            off += REPLY_LEN.size
+            if n > REPLY_BYTES or n > end - off:
+                self._refuse(f"an event of {n} bytes in a reply")
+                return
+            raw = payload[off : off + n]
+            off += n
+            try:
+                e = logic.check_filled(f.gap, raw)
+            except CodecError as exc:
+                self._refuse(str(exc))
+                continue
+            if e is None:
+                continue  # genuine, of the same loops, not missing
+            if e.seq in f.got:
+                self._refuse(f"{e.node}'s event #{e.seq} again in a reply (a replay)")
+            else:
+                f.got[e.seq] = e
+
+    def _events_done(self, f: _EvFill, now_ns: int) -> None:
+        """The events request in flight is over: the next chunk, again
+        later, or the gap's end (:meth:`_end_events`)."""
+        f.rid = 0
+        gap = f.gap
+        if not f.ended:
+            if f.tries < self._tries:
+                f.not_before = now_ns + int(self._retry_ns * f.tries)
+                return
+            self._end_events(now_ns, f"no answer after {f.tries} request(s)")
+            return
+        f.tries = 0
+        f.chunk += 1
+        done = len(f.got) == gap.last - gap.first + 1
+        if done or gap.first_loop + f.chunk * MAX_REQUEST_LOOPS > gap.last_loop:
+            why = (
+                "the recorder does not hold all of their loops"
+                if f.not_held
+                else "not among the records of their loops (the recorder dropped them)"
+            )
+            self._end_events(now_ns, why)
+
+    def _end_events(self, now_ns: int, why: str) -> None:
+        """The event gap being filled is over: its records handed on in
+        number order, marked filled; the rest told not filled."""
+        f, self._evf = self._evf, None
+        logic = self._logic
+        if f is None or logic is None:
+            return
+        gap = f.gap
+        taken = []
+        for seq in sorted(f.got):
+            rec = logic.take_filled(gap, f.got[seq], now_ns)
+            if rec is not None:
+                taken.append(seq)
+                if self._on_event is not None:
+                    self._on_event(rec)
+        if taken:
+            self.events_filled += len(taken)
+            self._events.emit(
+                EV.EVENTS_FILLED,
+                now_ns,
+                n=len(taken),
+                node=gap.node,
+                first=taken[0],
+                last=taken[-1],
+            )
+        n, rest = logic.close_event_gap(gap)
+        if n:
+            self.events_unfilled += n
+            self._events.emit(
+                EV.EVENTS_UNFILLED, now_ns, n=n, node=gap.node, which=rest.which, why=why
+            )
+
     def on_reply(self, rid: int, payload: bytes) -> None:
-        """One reply of request ``rid``: frames (each checked, module doc)
-        or the recorder's end totals. A reply of a request no longer in
-        flight is ignored; an empty one is refused (counted). Never raises."""
+        """One reply of request ``rid``: frames (each checked, module doc),
+        events (each checked, for an events request) or the recorder's end
+        totals. A reply of a request no longer in flight is ignored; an
+        empty one is refused (counted). Never raises."""
+        f = self._evf
+        if f is not None and f.rid and f.rid == rid:
+            if not payload:
+                self._refuse("an empty reply")
+            else:
+                self._on_events(f, payload)
+            return
         ask = self._ask
         if ask is None or ask.id != rid:
             return
@@ -252,6 +430,10 @@ class GapFill:
     def on_done(self, rid: int, now_ns: int) -> None:
         """Request ``rid`` is over (all replies in, or its time ran out): keep
         what came, ask again later for what did not, tell the outcome."""
+        f = self._evf
+        if f is not None and f.rid and f.rid == rid:
+            self._events_done(f, now_ns)
+            return
         ask = self._ask
         if ask is None or ask.id != rid:
             return
@@ -300,12 +482,21 @@ class GapFill:
         ask = self._ask
         if ask is not None and now_ns > ask.deadline:
             self.on_done(ask.id, now_ns)
+        f = self._evf
+        if f is not None and f.rid and now_ns > f.deadline:
+            self._events_done(f, now_ns)
         if self._held and now_ns - self._held[0].rx_ns > self._hold_ns:
             self._abandon(now_ns, f"not filled within {self._hold_ns / _NS:g} s")
 
     def finish(self, now_ns: int) -> None:
-        """The log ends: whatever is still open is given up, every row written."""
+        """The log ends: whatever is still open is given up, every row
+        written, every event gap ended (what came handed on)."""
         self._abandon(now_ns, "the log ended first")
+        logic = self._logic
+        while logic is not None and (self._evf is not None or logic.event_gaps):
+            if self._evf is None:
+                self._evf = _EvFill(logic.event_gaps.popleft())
+            self._end_events(now_ns, "the log ended first")
 
     def _abandon(self, now_ns: int, why: str) -> None:
         ask, self._ask = self._ask, None

@@ -92,4 +92,9 @@ def log_summary_line(s: GnSummary, csv: str | Path | None, events: str | Path | 
         text += f" -> {csv}"
     if events is not None:
         text += f"; {s.events_logged} event(s) -> {events}"
+    if s.events_missed:
+        text += (
+            f"; {s.events_missed} event(s) did not arrive, {s.events_filled} of them filled "
+            "from the CN's recorder"
+        )
     return text

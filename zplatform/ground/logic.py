@@ -31,7 +31,7 @@ from ..config import STANDBY, Mission
 from ..control.authority import ARM_WINDOW_NS, Signer, two_person_targets
 from ..control.commands import protected_elements
 from ..control.uplink import CheckedCommand, ScriptCommand, Uplink, validate_command
-from ..core.auth import TAG_LEN, AuthError, KeySet, Run, RunError, channel, link_of
+from ..core.auth import TAG_LEN, AuthError, Channel, KeySet, Run, RunError, channel, link_of
 from ..core.codec import Frame, RegionCodec
 from ..core.datavector import DataVector, Layout
 from ..core.events import EV, Event, EventLog, EventReader, EventType, StaleRecordError
@@ -42,6 +42,7 @@ from .script import ScriptPlayer, Signers
 __all__ = [
     "FRESH_MARGIN_NS",
     "REASON_GRACE_NS",
+    "EventGap",
     "Gap",
     "GroundLogic",
     "default_max_age_ns",
@@ -61,6 +62,8 @@ _RENEWAL = "lock renewal"
 """The source of the LOCKs :class:`GroundLogic` sends to keep its lease."""
 _CMD_EVENTS = 64  # recent cmd_accepted/cmd_rejected events kept for matching
 _GAPS_KEPT = 256
+_TELL_NS = 1_000_000_000  # events_missed: at most one event this often
+_TELL_PARTS = 8  # gaps named in one events_missed event (the rest counted)
 
 
 class Gap(NamedTuple):
@@ -70,6 +73,26 @@ class Gap(NamedTuple):
     epoch: int
     first: int
     last: int
+
+
+class EventGap(NamedTuple):
+    """Events ``first``..``last`` (their numbers) of ``node`` that never
+    arrived, between two verified records of run ``run`` (the run word of
+    their tags); ``first_loop``..``last_loop``: the control node's loops they
+    were filed under in its recorder, at most (estimated from the stamps of
+    the records either side and the last snapshot; 0, 0 when not known)."""
+
+    node: str
+    run: int
+    first: int
+    last: int
+    first_loop: int
+    last_loop: int
+
+    @property
+    def which(self) -> str:
+        """``#5..#7``, or ``#5`` for one."""
+        return f"#{self.first}" if self.first == self.last else f"#{self.first}..#{self.last}"
 
 
 def default_max_age_ns(mission: Mission) -> int:
@@ -146,6 +169,7 @@ class _Tally(msgspec.Struct):
     first_seq: int = -1
     bad_events: int = 0
     stale_events: int = 0
+    events_missed: int = 0
 
 
 class _Plan:
@@ -311,6 +335,20 @@ class GroundLogic:
         self.gaps: deque[Gap] = deque(maxlen=_GAPS_KEPT)
         """Runs of missing telemetry loops, oldest first, for a gap filler to
         take (the oldest are forgotten past a bound: nobody is taking them)."""
+        # Event numbers (on_event_bytes): per node, the run, number and stamp
+        # of the last verified record; the gaps open for a filler (each with
+        # the numbers filled so far), told in one events_missed a second.
+        self._ev_last: dict[str, tuple[int, int, int]] = {}
+        self._ev_open: dict[EventGap, set[int]] = {}
+        self._ev_tell: list[tuple[EventGap, str]] = []
+        self._ev_told = -(1 << 63)
+        self.event_gaps: deque[EventGap] = deque()
+        """Gaps in the numbers of the events of :attr:`fill_events_of`, to be
+        filled (:class:`~zplatform.ground.gapfill.GapFill` takes them);
+        at most ``256`` open at once (more are told not filled)."""
+        self.fill_events_of: frozenset[str] = frozenset()
+        """The nodes whose missing events a gap filler asks of the control
+        node's recorder (its driver sets it; none: every gap is only told)."""
         self.last_refusal = ""
         """The detail of the latest refused or bad snapshot ("" if none)."""
         self.waited = 0
@@ -924,8 +962,11 @@ class GroundLogic:
 
     def tick(self, now_ns: int) -> None:
         """Let time pass (the caller's clock): reasons whose grace ran out
-        are derived and their outcomes released."""
+        are derived and their outcomes released; event gaps not told yet
+        are (:meth:`on_event_bytes`)."""
         self._release(now_ns)
+        if self._ev_tell:
+            self._tell_missed(now_ns)
 
     def finish(self, now_ns: int) -> None:
         """Release every decided outcome now (derived where the CN's event
@@ -933,11 +974,14 @@ class GroundLogic:
         self._release(now_ns, all_=True)
 
     # -- events --------------------------------------------------------------
-    def on_event(self, e: Event, rx_ns: int, verified: bool | None = None) -> EventRecord:
+    def on_event(
+        self, e: Event, rx_ns: int, verified: bool | None = None, *, filled: bool = False
+    ) -> EventRecord:
         """Take one event received at ``rx_ns``: a CN command event whose tag
         verified (``verified`` True, or None when the mission does not
         authenticate) explains a verdict (module doc). Returns the record to
-        show or log."""
+        show or log (``filled``: marked as filled from the recorder,
+        :meth:`take_filled`)."""
         ce = _read_cmd_event(e) if verified is not False else None
         if ce is not None:
             self._cmd_events.append(ce)
@@ -945,7 +989,7 @@ class GroundLogic:
                 if not r.reason_from:
                     self._match(r)
             self._release(rx_ns)
-        return EventRecord.of(e, rx_ns, verified)
+        return EventRecord.of(e, rx_ns, verified, filled)
 
     def forged_event(self, key_expr: str, payload: bytes | bytearray | memoryview) -> bool:
         """Whether an event record is refused by its tag alone
@@ -962,7 +1006,18 @@ class GroundLogic:
         (counted in ``bad_events``) if it is not one, or its tag fails;
         None (counted in ``stale_events``) if it is authentic but not fresh
         (:class:`~zplatform.core.events.EventReader`: a replay, or stamped beyond
-        :attr:`max_age_ns` of ``rx_ns``)."""
+        :attr:`max_age_ns` of ``rx_ns``).
+
+        A verified record (its node's tag checked) numbered past the next of
+        its node's run is a gap: the numbers skipped are counted in
+        ``events_missed``, told in one ``events_missed`` event (at most one
+        a second, naming every gap since the last) saying whether they will
+        be filled, and a gap of a node in :attr:`fill_events_of` is queued
+        in :attr:`event_gaps`. A record of another run than the node's last,
+        or numbered at or below its last (a restarted node numbers from 0;
+        :class:`~zplatform.core.events.EventReader` took it as later by its
+        stamp), starts the count again: no gap. Unverified records (no key,
+        no authentication) number nothing."""
         try:
             e, verified = self._events_in.read(key_expr, payload, rx_ns)
         except RunError:  # another run's genuine record
@@ -977,7 +1032,113 @@ class GroundLogic:
         except CodecError:
             self._n.bad_events += 1
             return None
+        if verified:
+            self._number(e, Channel.run_of(payload), rx_ns)
         return self.on_event(e, rx_ns, verified)
+
+    # -- event numbers: gaps detected, told, filled ----------------------------
+    def _number(self, e: Event, run: int, rx_ns: int) -> None:
+        """Follow ``e``'s node's numbers (:meth:`on_event_bytes`)."""
+        last = self._ev_last.get(e.node)
+        self._ev_last[e.node] = (run, e.seq, e.t_ns)
+        if last is None or last[0] != run or e.seq <= last[1]:
+            return  # the first seen, another run's, or a restarted node's
+        if e.seq == last[1] + 1:
+            return
+        first, lastn = last[1] + 1, e.seq - 1
+        self._n.events_missed += lastn - first + 1
+        gap = EventGap(e.node, run, first, lastn, *self._loops_of(run, last[2], e.t_ns))
+        if e.node not in self.fill_events_of:
+            fate = f"not filled ({e.node} serves no recorder to ask)"
+            if e.node in CONTROL_NODES:
+                fate = "not filled (this ground does not ask the control node's recorder)"
+        elif not gap.first_loop:
+            fate = "not filled (no snapshot of that run places them in loops)"
+        elif len(self._ev_open) >= _GAPS_KEPT:
+            fate = f"not filled ({_GAPS_KEPT} gaps are being filled already)"
+        else:
+            fate = "asked of the control node's recorder"
+            self._ev_open[gap] = set()
+            self.event_gaps.append(gap)
+        self._ev_tell.append((gap, fate))
+        self._tell_missed(rx_ns)
+
+    def _loops_of(self, run: int, t_from: int, t_to: int) -> tuple[int, int]:
+        """The CN loops events stamped ``t_from``..``t_to`` of run ``run``
+        were filed under, with a margin (a loop's events carry its stamp,
+        or the clock's within it; the recorder files them under the loop's
+        frame); (0, 0) when no snapshot of that run was accepted."""
+        if run != self._epoch or self._last_seq < 0:
+            return 0, 0
+        margin = 2 + self._div
+        first = self._last_seq + (t_from - self._last_t) // self._period - margin
+        last = self._last_seq + (t_to - self._last_t) // self._period + margin
+        return max(first, 1), max(last, first, 1)
+
+    def _tell_missed(self, now_ns: int) -> None:
+        """One ``events_missed`` event for the gaps not told yet, unless one
+        was emitted less than a second ago (:meth:`tick` tells them then)."""
+        if now_ns - self._ev_told < _TELL_NS:
+            return
+        tell, self._ev_tell = self._ev_tell, []
+        self._ev_told = now_ns
+        n = sum(g.last - g.first + 1 for g, _ in tell)
+        named = tell[:_TELL_PARTS]
+        what = ", ".join(f"{g.node} ({g.which})" for g, _ in named)
+        if len(tell) > len(named):
+            what += f" and {len(tell) - len(named)} more gap(s)"
+        fates = dict.fromkeys(f for _, f in tell)
+        if len(fates) == 1:
+            fate = next(iter(fates))
+        else:
+            fate = "; ".join(f"{g.node} {g.which}: {f}" for g, f in named)
+        self.events.emit(EV.EVENTS_MISSED, now_ns, n=n, what=what, fate=fate)
+
+    def check_filled(self, gap: EventGap, payload: bytes | bytearray | memoryview) -> Event | None:
+        """The record in ``payload`` (as a gap fill brought it, tag
+        included) if it may fill ``gap``: its node's tag checks for the
+        gap's run (:meth:`~zplatform.core.events.EventReader.read_filled`),
+        and its number is one of the gap's not filled yet; None for a
+        genuine record numbered outside the gap (one of the same loops that
+        did arrive). Raises CodecError (why) otherwise: a bad tag, another
+        run's, not a record, a number of the gap filled already (a replay),
+        a gap no longer open. Changes nothing."""
+        if gap not in self._ev_open:
+            raise CodecError(f"{gap.node}'s events {gap.which} are not being filled")
+        e = self._events_in.read_filled(gap.node, payload)
+        run = Channel.run_of(payload)
+        if run != gap.run:
+            raise RunError(f"{gap.node}'s event #{e.seq} of run {run}, not {gap.run}")
+        if not gap.first <= e.seq <= gap.last:
+            return None  # a genuine one of the same loops that did arrive
+        if e.seq in self._ev_open[gap]:
+            raise CodecError(f"{gap.node}'s event #{e.seq} filled already (a replay)")
+        return e
+
+    def take_filled(self, gap: EventGap, e: Event, rx_ns: int) -> EventRecord | None:
+        """Take ``e``, which :meth:`check_filled` passed, as filled at
+        ``rx_ns`` (:meth:`on_event`, marked ``filled``); None when its
+        number was filled since (nothing taken)."""
+        taken = self._ev_open.get(gap)
+        if taken is None or e.seq in taken:
+            return None
+        taken.add(e.seq)
+        return self.on_event(e, rx_ns, True, filled=True)
+
+    def close_event_gap(self, gap: EventGap) -> tuple[int, EventGap]:
+        """Forget ``gap`` (its filling is over): how many of its numbers
+        were not filled (0: none), and the gap from the first of them to the
+        last. Costs what was filled, whatever the gap's size."""
+        taken = self._ev_open.pop(gap, set())
+        n = gap.last - gap.first + 1 - len(taken)
+        if n <= 0:
+            return 0, gap
+        first, last = gap.first, gap.last
+        while first in taken:
+            first += 1
+        while last in taken:
+            last -= 1
+        return n, gap._replace(first=first, last=last)
 
 
 def _derived(r: _Request) -> tuple[str, str]:

@@ -56,7 +56,7 @@ from ..control.role import (
     check_recorded,
 )
 from ..control.watchdog import Watchdog
-from ..core.auth import KeySet, channel, load_keys, new_run_epoch
+from ..core.auth import KeySet, Run, channel, load_keys, new_run_epoch
 from ..core.codec import Frame
 from ..core.datavector import DataVector
 from ..core.events import EV
@@ -351,6 +351,9 @@ class ControlNode:
             max_age_ns=default_max_age_ns(m),
             serve_bps=m.recorder.serve_bps,
             divisor=m.telemetry_divisor,
+            # Its own channel and run (the serving thread's): tags the
+            # recorded events a ground's event gap fill asks for.
+            events=channel(self.keys, f"events_{self.name}", Run()),
         )
 
     def _stop_serving(self) -> None:

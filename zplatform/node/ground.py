@@ -177,6 +177,9 @@ def run_ground_logger(
         telemetry_filled=fill.fill.filled if fill is not None else 0,
         telemetry_unfilled=fill.fill.unfilled if fill is not None else 0,
         telemetry_not_run=fill.fill.not_run if fill is not None else 0,
+        events_missed=c.events_missed,
+        events_filled=fill.fill.events_filled if fill is not None else 0,
+        events_unfilled=fill.fill.events_unfilled if fill is not None else 0,
     )
 
 
@@ -319,7 +322,13 @@ class _Filler:
     def __init__(self, link: GroundLink, tlog: _Sink) -> None:
         self.link = link
         self.fill = GapFill(
-            link.mission, link.link_keys, link.logic.events, tlog.snapshot, run=link.logic.run
+            link.mission,
+            link.link_keys,
+            link.logic.events,
+            tlog.snapshot,
+            run=link.logic.run,
+            logic=link.logic,  # the CN's missing events too, handed to the log
+            on_event=tlog.event,
         )
         # Bounded like every hand-off from zenoh: a peer flooding replies
         # lets the oldest go, and the loops they held are asked for again

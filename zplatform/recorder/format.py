@@ -6,8 +6,9 @@ record header (:data:`HEADER`: sync word, CRC-32, length, type, flags, loop),
 the record types (``HEAD``, ``FRAME``, ``EVENT``, ``DROPPED``, ``END``; ``WRAP``
 marks the unused rest of the RAM ring and is never written to a file), the
 segment names (:func:`segment_name`, :data:`SEGMENT_RE`), the gap-fill
-request (:data:`REQUEST`, at most :data:`MAX_REQUEST_LOOPS` loops) and reply
-kinds (frames, at most :data:`REPLY_BYTES` per reply; end, with totals).
+request (:data:`REQUEST`, at most :data:`MAX_REQUEST_LOOPS` loops; for frames,
+or for the events filed under them) and reply kinds (frames or events, at
+most :data:`REPLY_BYTES` per reply; end, with totals).
 
 Contract: pure definitions and :func:`record_crc`; nothing here does I/O,
 blocks or raises. The checksum covers the length and the type, so a reader
@@ -27,6 +28,7 @@ __all__ = [
     "DROPPED",
     "END",
     "EVENT",
+    "EVENTS_MAGIC",
     "FORMAT_VERSION",
     "FRAME",
     "HEAD",
@@ -36,6 +38,7 @@ __all__ = [
     "MAX_REQUEST_LOOPS",
     "REPLY_BYTES",
     "REPLY_END",
+    "REPLY_EVENTS",
     "REPLY_FRAMES",
     "REQUEST",
     "REQUEST_MAGIC",
@@ -71,15 +74,19 @@ MAX_HEAD_LEN = 64 * 1024
 SEGMENT_RE = re.compile(r"seg-([0-9]{8})\.zfr")
 
 REQUEST_MAGIC = b"ZRQ1"
+EVENTS_MAGIC = b"ZRE1"
+"""A request for the ``EVENT`` records filed under a range of loops (the
+ground fills its event gaps so), where :data:`REQUEST_MAGIC` asks for frames."""
 REQUEST = struct.Struct("<4sQQQq")  # magic, run, first loop, last loop, t_ns
 MAX_REQUEST_LOOPS = 6000
 """Most loops one gap-fill request may ask for (a longer gap takes several)."""
-REPLY_FRAMES, REPLY_END = 1, 2
+REPLY_FRAMES, REPLY_END, REPLY_EVENTS = 1, 2, 3
 REPLY_BYTES = 32 * 1024
 """Most bytes of frames in one reply (a longer frame goes alone): well under
 what zenoh's lowlatency transport carries unfragmented."""
 REPLY_LEN = struct.Struct("<I")
 REPLY_TOTALS = struct.Struct("<QQQ")  # frames sent, loops not held, loops never run
+# (an events request's END: events sent, loops not held, 0)
 
 
 def segment_name(index: int) -> str:

@@ -15,7 +15,10 @@ commander's loop past the device nodes' watchdog (issue 25).
 One serving thread checks each request (tag, stamp, not served before, a
 range of this run), drops and counts one that does not check, reads the
 segment files (never the loop's buffer) and replies in paced chunks ending
-with an ``END`` reply that counts what was sent (:class:`RecorderServer`).
+with an ``END`` reply that counts what was sent (:class:`RecorderServer`):
+the frames of the loops asked, or (an events request) the ``EVENT`` records
+filed under them, each tagged on the way out with the node's events key as
+it was when published (the recorder keeps them untagged).
 Detail: docs/architecture.md#the-gap-fill.
 """
 
@@ -35,10 +38,13 @@ from ..control.handoff import QueryWorker
 from ..core.auth import TAG_LEN, AuthError, Channel
 from .format import (
     DROPPED,
+    EVENT,
+    EVENTS_MAGIC,
     FRAME,
     MAX_REQUEST_LOOPS,
     REPLY_BYTES,
     REPLY_END,
+    REPLY_EVENTS,
     REPLY_FRAMES,
     REPLY_LEN,
     REPLY_TOTALS,
@@ -93,7 +99,12 @@ class RecorderServer(QueryWorker):
     ``channel``: the telemetry channel (its own instance: channels are not
     thread-safe), None when the mission does not authenticate; ``now_ns``:
     this node's clock; ``max_age_ns``: how far a request's stamp may be from
-    it; ``divisor``: the mission's telemetry divisor. Declares the
+    it; ``divisor``: the mission's telemetry divisor; ``events``: the node's
+    events channel (its own instance, bound to a
+    :class:`~zplatform.core.auth.Run` of its own, which the serving thread
+    sets to the recorder's run), which tags the event records an events
+    request is answered with (None: the mission does not authenticate, they
+    go untagged). Declares the
     queryable and starts the thread at construction; :meth:`close` stops
     both (idempotent)."""
 
@@ -109,6 +120,7 @@ class RecorderServer(QueryWorker):
         serve_bps: int,
         divisor: int = 1,
         mono_ns: Callable[[], int] = time.monotonic_ns,
+        events: Channel | None = None,
     ) -> None:
         self.recorder = recorder
         self._mono = mono_ns
@@ -117,6 +129,7 @@ class RecorderServer(QueryWorker):
         self.excess = 0
         """Requests dropped unanswered, unread, beyond the rate bound (module doc)."""
         self._channel = channel
+        self._events = events
         self._now = now_ns
         self._max_age = max_age_ns
         self._bps = serve_bps
@@ -130,6 +143,7 @@ class RecorderServer(QueryWorker):
         self.served = 0
         """Requests answered."""
         self.frames_sent = 0
+        self.events_sent = 0
         super().__init__("recorder-serve", MAX_PENDING, (zenoh.ZError,))
         self.logged = 0
         """Refusals (:attr:`refusals`) reported in the log so far."""
@@ -202,7 +216,7 @@ class RecorderServer(QueryWorker):
             self.refuse(str(exc))
             return
         magic, run, first, last, t_ns = REQUEST.unpack(body)
-        if magic != REQUEST_MAGIC:
+        if magic not in (REQUEST_MAGIC, EVENTS_MAGIC):
             self.refuse("not a recorder request")
             return
         age = self._now() - t_ns
@@ -212,7 +226,7 @@ class RecorderServer(QueryWorker):
         if first < 1 or last < first or last - first >= MAX_REQUEST_LOOPS:
             self.refuse(f"a range of loops {first}..{last}")
             return
-        request = (t_ns, run, first, last)
+        request = (t_ns, run, first, last)  # a stamp is never reused: the kind need not be in
         if ch is not None:  # without tags a replay cannot be told from a request
             if request in self._served:
                 self.refuse(f"a request for loops {first}..{last} served before (a replay)")
@@ -223,6 +237,9 @@ class RecorderServer(QueryWorker):
                 self.refuse(str(exc))
                 return
             self._served.append(request)
+        if magic == EVENTS_MAGIC:
+            self._serve_events(query, run, first, last)
+            return
         rec = self.recorder
         div = self._div
         asked = set(range(first + (-first) % div, last + 1, div))  # the telemetry loops
@@ -294,6 +311,62 @@ class RecorderServer(QueryWorker):
             nbytes += self._reply(query, out)
             self._pace(start, nbytes)
         self.frames_sent += len(sent)
+
+    def _serve_events(self, query: zenoh.Query, run: int, first: int, last: int) -> None:
+        """Answer an events request: the ``EVENT`` records of run ``run``
+        filed under loops ``first..last``, tagged, in paced chunks of
+        :data:`~.format.REPLY_EVENTS`; then ``END`` with the events sent and
+        the loops of the range this recorder does not hold (before its
+        oldest, after its newest written, or another run's)."""
+        rec = self.recorder
+        sent = 0
+        held = 0
+        if run == rec.run:
+            deadline = time.monotonic() + WRITE_WAIT_S
+            while rec.written_loop < min(last, rec.loop) and time.monotonic() < deadline:
+                time.sleep(0.005)
+            with rec.lock:
+                ours = [s for s in rec.segments if s.run == run and s.first]
+                todo = [(s.path, s.size) for s in ours if s.last >= first]
+                oldest = ours[0].first if ours else 0
+            ch = self._events
+            if ch is not None and ch.run is not None:
+                ch.run.set(run)  # tagged as the node tagged them: for this run
+            start = time.monotonic()
+            out = bytearray([REPLY_EVENTS])
+            nbytes = 0
+            records = itertools.chain.from_iterable(
+                scan_segment(
+                    path,
+                    lambda _t: None,
+                    limit=size,
+                    # The first frame past the range ends the scan.
+                    want=lambda typ, loop: (
+                        (typ == EVENT and loop >= first) or (typ == FRAME and loop > last)
+                    ),
+                )
+                for path, size in todo
+            )
+            for r in records:
+                if r.loop > last:
+                    break
+                body = bytes(ch.seal(r.payload)) if ch is not None else r.payload
+                if len(out) > 1 and len(out) + REPLY_LEN.size + len(body) > REPLY_BYTES:
+                    nbytes += self._reply(query, out)
+                    self._pace(start, nbytes)
+                    out = bytearray([REPLY_EVENTS])
+                out += REPLY_LEN.pack(len(body))
+                out += body
+                sent += 1
+            if len(out) > 1:
+                nbytes += self._reply(query, out)
+                self._pace(start, nbytes)
+            if oldest:
+                held = max(0, min(last, rec.written_loop) - max(first, oldest) + 1)
+        self.events_sent += sent
+        tail = REPLY_TOTALS.pack(sent, last - first + 1 - held, 0)
+        self._reply(query, bytes([REPLY_END]) + tail)
+        self.served += 1
 
     def _reply(self, query: zenoh.Query, payload: bytes | bytearray) -> int:
         # A reply travels with its query's QoS (zenoh 1.x): the ground asks

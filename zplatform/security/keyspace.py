@@ -438,9 +438,20 @@ KEYSPACE: tuple[KeyRow, ...] = (
                 "the gap fill's bounded hold",
                 run_bound=True,
             ),
+            KeyFrames(
+                "reply",
+                "events_cn",
+                "events-cn",
+                "zplatform.ground.gapfill.GapFill gn",
+                "the run followed, a number of an event gap being filled, not taken yet "
+                "(live or filled); the loops' other records skipped",
+                "one event gap asked at a time, its records held until its end",
+                run_bound=True,
+            ),
         ),
         when="recorder",
-        what="the CN's flight recorder: recorded telemetry for a loop range (gap fill)",
+        what="the CN's flight recorder: recorded telemetry, or the CN's recorded events, for a "
+        "loop range (gap fill)",
     ),
     KeyRow(
         "archive",

@@ -85,6 +85,10 @@ class TelemetryCounters(msgspec.Struct, frozen=True):
     """A redundant mission's term followed (0: no terms, or none yet)."""
     term_changes: int = 0
     """Takeovers the ground followed: a newer term's snapshots."""
+    events_missed: int = 0
+    """Verified event records that did not arrive: numbers skipped between
+    two of one node's run (:meth:`~zplatform.ground.logic.GroundLogic.on_event_bytes`),
+    whether filled later from the control node's recorder or not."""
 
     @property
     def rejected(self) -> int:
@@ -146,8 +150,10 @@ class EventRecord(msgspec.Struct, frozen=True):
     ``node``, ``seq``, ``t_ns``, ``severity`` (by name), ``id`` and ``text``,
     and ``verified``: True when its node's tag checked, False when the
     receiver holds no key for that node (shown marked unverified), None when
-    the mission does not authenticate. One line of the events JSONL, in this
-    field order."""
+    the mission does not authenticate; ``filled``: True when it did not
+    arrive live but was filled from the control node's flight recorder
+    (:mod:`zplatform.ground.gapfill`: later than the events after it, same
+    checks). One line of the events JSONL, in this field order."""
 
     rx_time_ns: int
     node: str
@@ -157,10 +163,15 @@ class EventRecord(msgspec.Struct, frozen=True):
     id: str
     text: str
     verified: bool | None = None
+    filled: bool = False
 
     @classmethod
-    def of(cls, e: Event, rx_time_ns: int, verified: bool | None = None) -> EventRecord:
-        return cls(rx_time_ns, e.node, e.seq, e.t_ns, e.severity_name, e.id, e.text, verified)
+    def of(
+        cls, e: Event, rx_time_ns: int, verified: bool | None = None, filled: bool = False
+    ) -> EventRecord:
+        return cls(
+            rx_time_ns, e.node, e.seq, e.t_ns, e.severity_name, e.id, e.text, verified, filled
+        )
 
 
 class ParamRow(msgspec.Struct, frozen=True):

@@ -103,7 +103,10 @@ class GnSummary(msgspec.Struct, frozen=True):
     ``events_logged``: event records written to the events file;
     ``telemetry_filled``/``telemetry_unfilled``: gap loops written from the
     CN's flight recorder / given up; ``telemetry_not_run``: gap loops the
-    CN never ran (skipped periods: no loss) (:mod:`zplatform.ground.gapfill`)."""
+    CN never ran (skipped periods: no loss) (:mod:`zplatform.ground.gapfill`);
+    ``events_missed``: verified events that did not arrive (numbers
+    skipped), ``events_filled``/``events_unfilled``: of those, the CN's
+    filled from its recorder / not."""
 
     telemetry_received: int
     telemetry_gaps: int
@@ -120,6 +123,9 @@ class GnSummary(msgspec.Struct, frozen=True):
     telemetry_filled: int = 0
     telemetry_unfilled: int = 0
     telemetry_not_run: int = 0
+    events_missed: int = 0
+    events_filled: int = 0
+    events_unfilled: int = 0
 
 
 class RunSummary(msgspec.Struct, frozen=True):
@@ -146,6 +152,9 @@ class RunSummary(msgspec.Struct, frozen=True):
     takeover: str | None = None
     """A redundant mission whose command changed hands: who commanded, in
     which term, for how many loops (None: one commander throughout)."""
+    events_missed: int | None = None
+    """Verified events the ground node saw numbered past (None: no ground
+    summary); the CN's filled from its recorder count here too."""
 
 
 S = TypeVar("S", CnSummary, DnSummary, GnSummary)
