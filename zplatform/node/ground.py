@@ -173,6 +173,9 @@ def run_ground_logger(
         telemetry_filled=fill.fill.filled if fill is not None else 0,
         telemetry_unfilled=fill.fill.unfilled if fill is not None else 0,
         telemetry_not_run=fill.fill.not_run if fill is not None else 0,
+        telemetry_iox=c.iox,
+        telemetry_duplicates=c.duplicates,
+        telemetry_fallbacks=c.path_fallbacks,
     )
 
 

@@ -85,6 +85,14 @@ class TelemetryCounters(msgspec.Struct, frozen=True):
     """A redundant mission's term followed (0: no terms, or none yet)."""
     term_changes: int = 0
     """Takeovers the ground followed: a newer term's snapshots."""
+    iox: int = 0
+    """Snapshots that came over iceoryx2 (a ground node on the CN's host,
+    zplatform.runtime.tmiox), of those its intake admitted; the rest came by zenoh."""
+    duplicates: int = 0
+    """Snapshots dropped as the other path's copy of one taken (iceoryx2 and
+    zenoh both carry each): not refusals."""
+    path_fallbacks: int = 0
+    """Times the telemetry fell back from iceoryx2 to zenoh."""
 
     @property
     def rejected(self) -> int:

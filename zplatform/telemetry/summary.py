@@ -103,7 +103,9 @@ class GnSummary(msgspec.Struct, frozen=True):
     ``events_logged``: event records written to the events file;
     ``telemetry_filled``/``telemetry_unfilled``: gap loops written from the
     CN's flight recorder / given up; ``telemetry_not_run``: gap loops the
-    CN never ran (skipped periods: no loss) (:mod:`zplatform.ground.gapfill`)."""
+    CN never ran (skipped periods: no loss) (:mod:`zplatform.ground.gapfill`);
+    ``telemetry_iox``, ``_duplicates``, ``_fallbacks``: a ground on the CN's
+    host (:class:`~zplatform.telemetry.records.TelemetryCounters`)."""
 
     telemetry_received: int
     telemetry_gaps: int
@@ -120,6 +122,12 @@ class GnSummary(msgspec.Struct, frozen=True):
     telemetry_filled: int = 0
     telemetry_unfilled: int = 0
     telemetry_not_run: int = 0
+    telemetry_iox: int = 0
+    """Snapshots that came over iceoryx2 (zplatform.runtime.tmiox)."""
+    telemetry_duplicates: int = 0
+    """Copies dropped as duplicates (the same snapshot by the other path)."""
+    telemetry_fallbacks: int = 0
+    """Times the telemetry fell back from iceoryx2 to zenoh."""
 
 
 class RunSummary(msgspec.Struct, frozen=True):
