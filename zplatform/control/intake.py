@@ -192,9 +192,18 @@ class Dedupe:
             return
         seq, t_ns = stamp
         i = seq % DEDUPE_WINDOW
-        self._seqs[i], self._stamps[i], self._lens[i], self._paths[i] = seq, t_ns, n, path
         at = i * TAG_LEN
-        self._tags[at : at + TAG_LEN] = memoryview(frame)[n - TAG_LEN :]
+        tag = memoryview(frame)[n - TAG_LEN :]
+        if (
+            self._seqs[i] == seq
+            and self._stamps[i] == t_ns
+            and self._lens[i] == n
+            and memoryview(self._tags)[at : at + TAG_LEN] == tag
+        ):
+            self._paths[i] |= path  # admitted again (no keys: no freshness)
+            return
+        self._seqs[i], self._stamps[i], self._lens[i], self._paths[i] = seq, t_ns, n, path
+        self._tags[at : at + TAG_LEN] = tag
 
 
 class _InPlace:
