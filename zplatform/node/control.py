@@ -698,6 +698,8 @@ class ControlNode:
             self._mirror_pub.put(logic.mirror)
         if tm is not None:
             tr = trace.tracer
+            if tr is not None:  # the frame is ready: either path's latency counts from here
+                tr.mark("tm.put", loop, len(tm))
             if type(tm) is memoryview:
                 # The lent sample: everything reads it before it goes (zenoh
                 # only if a subscriber came since the lend: rare, one copy).
@@ -707,11 +709,11 @@ class ControlNode:
                     self._tm_pub.pub.put(bytes(tm))
                 assert tmx is not None
                 tmx.publish(tm)
+                if tr is not None:
+                    tr.mark("tm.sent", loop)
             else:
                 if tmx is not None:  # the local path first
                     tmx.publish(tm)
-                if tr is not None:
-                    tr.mark("tm.put", loop, len(tm))
                 self._tm_pub.put(tm)
                 if tr is not None:
                     tr.mark("tm.sent", loop)
