@@ -130,6 +130,12 @@ class GroundLink:
     (:class:`~.logic.GroundLogic`'s ``renew_lock``). ``station``: the
     station a link without a signer runs at (a watching station: it
     connects through that station's router, as a signer's link does).
+    ``intra_host``: as the ground node (``node="gn"``) on the CN's host,
+    also take the telemetry over iceoryx2 when the mission allows it
+    (:mod:`zplatform.runtime.tmiox`: zenoh's subscriber stays, each
+    snapshot is taken once; :attr:`tm_paths`); a tool never does. Under
+    ``transport.intra_host: shm`` an end that cannot open raises
+    TransportError.
 
     With authentication the link is bound to the commander's run
     (:attr:`run`), learned from its answer to a run hello
