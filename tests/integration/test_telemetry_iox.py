@@ -18,7 +18,10 @@ it would put on zenoh are handed to the ground node's zenoh callback
 * the publisher gone (or silent) falls back to zenoh with one event, and
   the ground keeps every frame zenoh carries;
 * a ground on another host (another host tag) or a mission pinned to zenoh
-  never uses iceoryx2.
+  never uses iceoryx2;
+* the CN's real loop (``ControlNode.step``) encodes each frame into its
+  loan when zenoh takes no copy, and copies it into one when a zenoh
+  subscriber matches: the same bytes on both paths.
 
 Waits are on the receiver's counts (``poll_until``), never on a guess.
 """
@@ -37,9 +40,11 @@ import yaml
 from tests.waits import poll_until
 from zplatform.config import Mission
 from zplatform.control.loop import ControlLogic
-from zplatform.core.auth import KEY_ENV, TAG_LEN, KeySet, new_run_epoch
+from zplatform.core.auth import KEY_ENV, TAG_LEN, KeySet, channel, new_run_epoch
+from zplatform.core.codec import frame_stamp
 from zplatform.ground.link import GroundLink
-from zplatform.mission.load import load_mission
+from zplatform.mission.load import decode_mission, load_mission
+from zplatform.node.control import ControlNode
 from zplatform.runtime import intrahost, tmiox
 from zplatform.runtime.intrahost import IntraHostPublisher, IntraHostSubscriber
 from zplatform.runtime.tmiox import (
@@ -48,7 +53,7 @@ from zplatform.runtime.tmiox import (
     open_telemetry_publisher,
     telemetry_path_wanted,
 )
-from zplatform.runtime.transport import rewrite_endpoints
+from zplatform.runtime.transport import free_port, rewrite_endpoints
 
 pytest.importorskip("iceoryx2")
 
@@ -376,3 +381,55 @@ def test_publish_without_a_subscriber_sends_nothing(tmp_path: Path) -> None:
         assert len(tm) - TAG_LEN > 0 and not tmx.publish(tm)
     finally:
         tmx.close()
+
+
+def test_the_control_nodes_loop_lends_when_zenoh_takes_no_copy_and_copies_when_it_does() -> None:
+    # The CN's real loop (ControlNode.step; a mission without device nodes,
+    # so nothing waits) and a ground's iceoryx2 subscriber alone: every
+    # frame is encoded and tagged straight into its loan. With a zenoh
+    # subscriber too, each is copied into a loan, the same bytes both ways.
+    cn, gn = free_port(), free_port()
+    m = decode_mission(
+        "mission: tm_step\nnodes:\n"
+        f"  cn: {{listen: ['tcp/127.0.0.1:{cn}']}}\n"
+        f"  gn: {{listen: ['tcp/127.0.0.1:{gn}'], connect: ['tcp/127.0.0.1:{cn}']}}\n"
+        "regions:\n  cn:\n    - {name: x, type: u32}\n"
+    )
+    keys = KeySet.from_master(m, bytes.fromhex(os.environ[KEY_ENV]))
+    node = ControlNode(m, keys=keys)
+    sub = tmiox.open_telemetry_subscriber(m, True)
+    zenoh_got: list[bytes] = []
+    try:
+        tmx = node._tm_iox
+        assert tmx is not None and tmx.subscribed
+        seal = channel(keys, "telemetry", node.logic.auth_run)
+        assert seal is not None
+        t0 = time.monotonic_ns()
+
+        def take() -> bytes:
+            view = sub.receive_next()
+            assert view is not None
+            data = bytes(view)
+            sub.release()
+            return data
+
+        for k in range(3):
+            node.step(k, t0 + k * m.period_ns)
+            frame = take()
+            assert frame_stamp(seal.open(frame))[0] == k + 1  # genuine, of loop k + 1
+        assert (tmx.sent, tmx.lent, tmx.dropped) == (3, 3, 0)
+        tap = node.ns.session.declare_subscriber(
+            node.ns.keys.telemetry, lambda s: zenoh_got.append(s.payload.to_bytes())
+        )
+        try:
+            assert poll_until(node._tm_pub.wanted, 10)
+            node.step(3, t0 + 3 * m.period_ns)
+            frame = take()
+            assert poll_until(lambda: zenoh_got, 10)
+            assert zenoh_got == [frame]
+            assert (tmx.sent, tmx.lent) == (4, 3)
+        finally:
+            tap.undeclare()
+    finally:
+        sub.close()
+        node.close()
