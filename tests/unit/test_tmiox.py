@@ -98,6 +98,10 @@ def test_a_late_copy_within_the_window_is_a_duplicate_not_a_stale_refusal() -> N
     for f in frames[1:]:
         assert not intake.admit(_Payload(f), now, ZENOH)
     assert intake.duplicates == DEDUPE_WINDOW and intake.take_counts() == (0, 0, 0)
+    # Each path's admissions are counted (the ground's path and counters).
+    assert (intake.taken_iox, intake.taken_zenoh) == (DEDUPE_WINDOW + 1, 0)
+    assert not intake.admit(_Payload(frames[0]), now, ZENOH)  # slot reused: a replay
+    assert intake.taken_zenoh == 0 and intake.take_counts() == (0, 0, 1)
 
 
 def test_dedupe_never_takes_a_frame_without_the_fixed_header() -> None:

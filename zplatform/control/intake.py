@@ -287,6 +287,11 @@ class Intake(ABC, Generic[H]):
     :attr:`duplicates`, never as a refusal. None: one path."""
     duplicates = 0
     """Frames dropped as the other path's copy of one admitted (never reset)."""
+    taken_iox = 0
+    """Frames :meth:`admit_view` (or :meth:`admit`) admitted by path
+    :data:`IOX` (never reset; under the lock, whatever thread admits)."""
+    taken_zenoh = 0
+    """Frames admitted by path :data:`ZENOH` (never reset)."""
 
     def check(self, payload: Payload, handle: H) -> bytes | None:
         """The frame's bytes when it passes every check, else None (counted)."""
@@ -322,7 +327,14 @@ class Intake(ABC, Generic[H]):
             if data is None:
                 return False
             box.put((handle, data))  # under the lock: admission order is mailbox order
+            self._count(path)
             return True
+
+    def _count(self, path: int) -> None:
+        if path == IOX:
+            self.taken_iox += 1
+        else:
+            self.taken_zenoh += 1
 
     def admit_view(self, view: memoryview, handle: H, path: int = IOX) -> bool:
         """:meth:`admit` of a frame read in place (a sample in shared memory,
@@ -341,6 +353,7 @@ class Intake(ABC, Generic[H]):
             if data is None:
                 return False
             box.put((handle, bytes(data)))  # the frame's one copy, after its checks
+            self._count(path)
             return True
 
     def _check(self, payload: Payload, handle: H, path: int = ZENOH) -> bytes | None:

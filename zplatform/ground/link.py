@@ -222,7 +222,6 @@ class GroundLink:
             self._waker,
             dedupe=tm_sub is not None,
         )
-        self._tm_zenoh = 0  # frames zenoh's intake admitted (its callback writes)
         self.tm_paths = TelemetryPaths()
         """The telemetry's path (``tm_paths.path``: ``iox`` or ``zenoh``) and
         its fallbacks (zplatform.runtime.tmiox)."""
@@ -436,8 +435,9 @@ class GroundLink:
         """The telemetry's path and counts (zplatform.runtime.tmiox) into the
         logic; a change evented (``tm_on_shm``, ``tm_fallback``)."""
         paths = self.tm_paths
-        change = paths.update(rx.taken, self._tm_zenoh, rx.publishers, rx.error)
-        self.logic.count_paths(rx.taken, self._tm.duplicates, paths.fallbacks)
+        tm = self._tm
+        change = paths.update(tm.taken_iox, tm.taken_zenoh, rx.publishers, rx.error)
+        self.logic.count_paths(tm.taken_iox, tm.duplicates, paths.fallbacks)
         if change is not None:
             path, why = change
             ev = EV.TM_ON_SHM if path == "iox" else EV.TM_FALLBACK
@@ -573,8 +573,7 @@ class GroundLink:
     # -- taps and liveliness -------------------------------------------------
     # zenoh's thread: the intakes (module doc), each stamped on arrival.
     def _on_telemetry(self, sample: zenoh.Sample) -> None:
-        if self._tm.admit(sample.payload, self.clock.now_ns()):
-            self._tm_zenoh += 1  # this callback is the only writer
+        self._tm.admit(sample.payload, self.clock.now_ns())
 
     def _on_event(self, sample: zenoh.Sample) -> None:
         p = sample.payload

@@ -217,7 +217,8 @@ class TelemetryReceiver:
         self._now = now_ns
         self._path = IOX
         self.taken = 0
-        """Frames the intake admitted from iceoryx2 (never reset)."""
+        """Frames the intake admitted from iceoryx2 (never reset; the
+        intake's ``taken_iox`` too)."""
         self.samples = 0
         """Samples received, admitted or not."""
         self.error = ""
