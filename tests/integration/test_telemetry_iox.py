@@ -42,6 +42,8 @@ from zplatform.config import Mission
 from zplatform.control.loop import ControlLogic
 from zplatform.core.auth import KEY_ENV, TAG_LEN, KeySet, channel, new_run_epoch
 from zplatform.core.codec import frame_stamp
+from zplatform.errors import IntraHostError, TransportError
+from zplatform.ground import link as link_module
 from zplatform.ground.link import GroundLink
 from zplatform.mission.load import decode_mission, load_mission
 from zplatform.node.control import ControlNode
@@ -433,3 +435,34 @@ def test_the_control_nodes_loop_lends_when_zenoh_takes_no_copy_and_copies_when_i
     finally:
         sub.close()
         node.close()
+
+
+def test_an_end_that_cannot_open_stops_a_pinned_node_and_leaves_auto_on_zenoh(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    usage = type("U", (), {"free": 4096})  # /dev/shm too small for the service
+    monkeypatch.setattr(intrahost.shutil, "disk_usage", lambda _p: usage)
+
+    def refused(*_a: Any, **_k: Any) -> None:
+        raise IntraHostError("iceoryx2 refused")
+
+    monkeypatch.setattr(link_module, "open_telemetry_subscriber", refused)
+    for mode in ("auto", "shm"):
+        (tmp_path / mode).mkdir()
+        m = _mission(tmp_path / mode, mode)
+        keys = KeySet.from_master(m, bytes.fromhex(os.environ[KEY_ENV]))
+        length = ControlLogic(m, keys=keys).telemetry_length
+        if mode == "shm":
+            with pytest.raises(TransportError, match=r"telemetry over iceoryx2: .*4096 free"):
+                open_telemetry_publisher(m, length)
+            with pytest.raises(TransportError, match="telemetry over iceoryx2: iceoryx2 refused"):
+                GroundLink(m, node="gn", keys=keys)
+            continue
+        assert open_telemetry_publisher(m, length) is None
+        link = GroundLink(m, node="gn", keys=keys)
+        try:
+            assert link.telemetry_iox is None and link._tm.dedupe is None
+            (ev,) = [e for e in link.logic.events.drain() if e.id == "tm_fallback"]
+            assert "no iceoryx2 end (iceoryx2 refused)" in ev.text
+        finally:
+            link.close()

@@ -191,20 +191,9 @@ class GroundLink:
             signers=lambda op, st: line_signer(mission, op, st, key_file),
         )
         self.on_event = on_event
-        # A station with a router (ground.stations[].connect) reaches the
-        # vehicle through it, as a zenoh client of that router alone.
-        at = signer.station if signer is not None else station
-        via = _station_router(mission, at) if node is None else None
-        overrides: dict[str, Any] = {"via": via} if via else {}
-        self.ns = NodeSession(
-            mission, node, announce=False, commands=bool(commands or script), **overrides
-        )
-        self.keys = self.ns.keys
-        session = self.ns.session
-        # One mailbox per kind (module doc), one waker for the caller's thread.
-        self._waker = Waker()
         # The ground node on the CN's host also takes telemetry over iceoryx2
         # (zplatform.runtime.tmiox), zenoh's subscriber kept: each frame once.
+        # Before the session: a pinned `shm` that cannot open leaves nothing open.
         tm_sub = None
         why_not = ""
         if node == "gn" and telemetry and intra_host and telemetry_path_wanted(mission):
@@ -214,6 +203,23 @@ class GroundLink:
                 if mission.transport.intra_host == "shm":
                     raise TransportError(f"telemetry over iceoryx2: {exc}") from exc
                 why_not = f"no iceoryx2 end ({exc})"
+        # A station with a router (ground.stations[].connect) reaches the
+        # vehicle through it, as a zenoh client of that router alone.
+        at = signer.station if signer is not None else station
+        via = _station_router(mission, at) if node is None else None
+        overrides: dict[str, Any] = {"via": via} if via else {}
+        try:
+            self.ns = NodeSession(
+                mission, node, announce=False, commands=bool(commands or script), **overrides
+            )
+        except BaseException:
+            if tm_sub is not None:
+                tm_sub.close()
+            raise
+        self.keys = self.ns.keys
+        session = self.ns.session
+        # One mailbox per kind (module doc), one waker for the caller's thread.
+        self._waker = Waker()
         self._tm = TelemetryIntake(
             mission,
             channel(keys, "telemetry", self.run),
