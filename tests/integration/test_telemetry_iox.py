@@ -21,7 +21,11 @@ it would put on zenoh are handed to the ground node's zenoh callback
   never uses iceoryx2;
 * the CN's real loop (``ControlNode.step``) encodes each frame into its
   loan when zenoh takes no copy, and copies it into one when a zenoh
-  subscriber matches: the same bytes on both paths.
+  subscriber matches: the same bytes on both paths;
+* between processes: a CN publisher killed with SIGKILL (its port left in
+  iceoryx2's state) falls back once, and the ground misses no frame zenoh
+  carried; an end that cannot open stops a node pinned to ``shm`` and
+  leaves ``auto`` on zenoh.
 
 Waits are on the receiver's counts (``poll_until``), never on a guess.
 """
@@ -29,6 +33,9 @@ Waits are on the receiver's counts (``poll_until``), never on a guess.
 from __future__ import annotations
 
 import os
+import signal
+import subprocess
+import sys
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -58,8 +65,10 @@ from zplatform.runtime.tmiox import (
 from zplatform.runtime.transport import free_port, rewrite_endpoints
 
 pytest.importorskip("iceoryx2")
+pytestmark = pytest.mark.timeout(120)
 
-CONFIGS = Path(__file__).resolve().parents[2] / "configs"
+ROOT = Path(__file__).resolve().parents[2]
+CONFIGS = ROOT / "configs"
 
 
 class _Payload:
@@ -466,3 +475,97 @@ def test_an_end_that_cannot_open_stops_a_pinned_node_and_leaves_auto_on_zenoh(
             assert "no iceoryx2 end (iceoryx2 refused)" in ev.text
         finally:
             link.close()
+
+
+def _spawn_cn(path: Path, run: int) -> subprocess.Popen[bytes]:
+    return subprocess.Popen(
+        [sys.executable, "-m", "tests.integration.test_telemetry_iox", str(path), str(run)],
+        cwd=ROOT,
+        stdout=subprocess.PIPE,
+        env=dict(os.environ, PYTHONUNBUFFERED="1"),
+    )
+
+
+def _cn_main(path: str, run: str) -> None:
+    """Child: a CN's telemetry (its loop logic in run ``run`` and its
+    iceoryx2 publisher); says ``ready`` once a subscriber is attached, then
+    each 10 ms prints a frame (hex, what zenoh would carry) and sends it
+    over iceoryx2, until killed."""
+    m = load_mission(path)
+    keys = KeySet.from_master(m, bytes.fromhex(os.environ[KEY_ENV]))
+    logic = ControlLogic(m, keys=keys, epoch=int(run))
+    tmx = open_telemetry_publisher(m, logic.telemetry_length)
+    if tmx is None or not poll_until(lambda: tmx.subscribed, 20):
+        print("error no subscriber", flush=True)
+        return
+    print("ready", flush=True)
+    loop = 0
+    while True:
+        loop += 1
+        logic.begin(loop, time.time_ns())
+        tm = logic.finish()
+        assert tm is not None
+        print(bytes(tm).hex(), flush=True)  # before the send: every frame sent is told
+        tmx.publish(tm)
+        time.sleep(0.01)  # stimulus: the CN's period
+
+
+def test_a_kill_9d_publisher_falls_back_once_and_the_ground_misses_nothing(
+    tmp_path: Path,
+) -> None:
+    m = _mission(tmp_path)
+    keys = KeySet.from_master(m, bytes.fromhex(os.environ[KEY_ENV]))
+    run = new_run_epoch(time.time_ns())
+    got: list[str] = []
+    link = GroundLink(m, node="gn", keys=keys, on_event=lambda r: got.append(r.id))
+    assert link._ev_pub is not None and link.run is not None
+    link._ev_pub.undeclare()  # its events to on_event (no peer here)
+    link._ev_pub = None
+    link.run.set(run)
+    rx = link.telemetry_iox
+    assert rx is not None
+    child = _spawn_cn(tmp_path / "m.yaml", run)
+    try:
+        assert child.stdout is not None
+        said = child.stdout.readline().decode().strip()
+        assert said == "ready", said
+        frames = []
+        while rx.taken < 5:  # frames the ground took over iceoryx2
+            line = child.stdout.readline().decode().strip()
+            assert line, f"the CN child ended (rc {child.poll()})"
+            frames.append(bytes.fromhex(line))
+            link._on_telemetry(_Sample(frames[-1]))  # type: ignore[arg-type]
+            while link.next(0.0) is not None:
+                pass
+        os.kill(child.pid, signal.SIGKILL)
+        child.wait()
+        for line in child.stdout.read().decode().split():  # what it told before it died
+            frames.append(bytes.fromhex(line))
+            link._on_telemetry(_Sample(frames[-1]))  # type: ignore[arg-type]
+        # Its publisher stays in iceoryx2's state (dead, not removed): the
+        # CN's next frames come by zenoh alone (a restarted CN's, same run).
+        logic = ControlLogic(m, keys=keys, epoch=run)
+        for loop in range(len(frames) + 1, len(frames) + STALE_FRAMES + 6):
+            logic.begin(loop, time.time_ns())
+            tm = logic.finish()
+            assert tm is not None
+            link._on_telemetry(_Sample(bytes(tm)))  # type: ignore[arg-type]
+            while link.next(0.0) is not None:
+                pass
+        total = len(frames) + STALE_FRAMES + 5
+        c = link.logic.counters
+        assert (c.received, c.gaps, c.bad, sum(c.refused.values())) == (total, 0, 0, 0)
+        assert c.path_fallbacks == 1 and link.tm_paths.path == "zenoh"
+        assert [i for i in got if i in ("tm_on_shm", "tm_fallback")] == [
+            "tm_on_shm",
+            "tm_fallback",
+        ]
+    finally:
+        if child.poll() is None:
+            child.kill()
+            child.wait()
+        link.close()
+
+
+if __name__ == "__main__":
+    _cn_main(sys.argv[1], sys.argv[2])
