@@ -8,19 +8,15 @@ and two event services that wake the other side (request/response ports
 cannot join a wait set); each side blocks in its listener with a deadline,
 never spinning. A timeout is "no reply", counted; :attr:`IntraHostClient.state`
 says when the link has no peer or has stalled, so the sync falls back to zenoh.
-:class:`IntraHostPublisher`/:class:`IntraHostSubscriber`: a bulk channel's
-publish/subscribe service (:func:`bulk_service_name`; ``bulk.py`` uses them),
-and the CN's telemetry to a ground node on its host (:func:`telemetry_service_name`:
-every frame queued in order, :data:`TELEMETRY_BUFFER` deep, and an event
-service that wakes the ground's receiving thread; ``zplatform/node/control.py``
-publishes, ``zplatform/ground/link.py`` takes them).
+:class:`IntraHostPublisher`/:class:`IntraHostSubscriber`: a publish/subscribe
+service, a bulk channel's (:func:`bulk_service_name`, ``bulk.py``) or the telemetry's
+(:func:`telemetry_service_name`, ``tmiox.py``).
 
-Copies per hop: the sender encodes into the loaned sample, the receiver
-checks it in place and copies once into its Data Vector. Names
-(:func:`sync_link_names`: one kernel and network namespace) hold both nodes;
-segments are sized (:func:`mission_link_sizes`) and refused when ``/dev/shm``
-cannot hold them (:func:`check_shm`); dead processes' resources are removed
-before an end opens (:func:`remove_stale`). Costs: docs/architecture.md#intra-host.
+Copies per hop: the sender encodes into the loan, the receiver checks it in
+place and copies once. Names (:func:`sync_link_names`: one kernel and network
+namespace) hold both nodes; segments are sized (:func:`mission_link_sizes`) and
+refused when ``/dev/shm`` cannot hold them (:func:`check_shm`); dead processes'
+resources go before an end opens (:func:`remove_stale`). docs/architecture.md#intra-host.
 """
 
 from __future__ import annotations

@@ -1,35 +1,21 @@
 """The CN's telemetry over iceoryx2 to a ground node on its host (issue 27).
 
-Zenoh carries every telemetry frame as before (taps, tools, stations, a
-remote ground, the ground node's own subscriber: nothing a tool sees
-changes). When the ground node shares the control node's host and the
-mission allows it (``transport.intra_host`` ``auto`` or ``shm``, as the
-sync's links and bulk channels), the CN also publishes each frame into an
-iceoryx2 publish/subscribe service (:func:`~.intrahost.telemetry_service_name`;
-every frame queued, :data:`~.intrahost.TELEMETRY_BUFFER` deep, and an
-event that wakes the ground's receiving thread):
-
-* :class:`TelemetryPublisher` (the CN's loop thread): the frame is encoded
-  and tagged straight into the loaned sample when nobody reads it after
-  the send (no zenoh subscriber matches: :meth:`TelemetryPublisher.lend`),
-  else copied once into a loan from the logic's buffer, and sent before
-  the zenoh put (the local path first). The same bytes as over zenoh.
-* :class:`TelemetryReceiver` (the ground node, a thread of its own that
-  blocks on the wake-up event): each sample goes through the ground's
-  telemetry intake in place (size, header tag, freshness, the body-MAC
-  budget: :meth:`~zplatform.control.intake.Intake.admit_view`), then is
-  copied once into its mailbox; zenoh's copy of a frame taken (or
-  iceoryx2's of one zenoh brought first) is dropped as a duplicate, never
-  counted as a refusal (:class:`~zplatform.control.intake.Dedupe`).
-  :class:`TelemetryPaths` (the ground's thread) says which path carries
-  the telemetry and events each change: onto iceoryx2 at its first frame
-  taken (``tm_on_shm``), back to zenoh (``tm_fallback``) when zenoh
-  carried :data:`STALE_FRAMES` frames in a row that iceoryx2 did not, the
-  publisher is gone while zenoh still brings frames, or the service
-  failed. The ground's zenoh subscriber stays declared throughout, so a
-  fallback loses no frame zenoh carried.
-
-Cost and figures: docs/architecture.md#intra-host.
+Zenoh carries every frame as before (taps, tools, stations, a remote
+ground, and the ground node's own subscriber). With a ground node and
+``transport.intra_host`` not ``zenoh``, the CN also publishes each frame
+into an iceoryx2 service (:func:`~.intrahost.telemetry_service_name`, every
+frame queued, an event to wake the reader): :class:`TelemetryPublisher`
+encodes and tags it straight into the loan when zenoh takes no copy
+(:meth:`~TelemetryPublisher.lend`), else copies it into one, and sends it
+before the zenoh put. The ground node's :class:`TelemetryReceiver` (a
+thread blocked on the event) hands each sample in place to the same
+telemetry intake as zenoh's (``Intake.admit_view``), which takes each
+frame once (``Dedupe``: the other path's copy is a duplicate, never a
+refusal). :class:`TelemetryPaths` tells the path: ``iox`` from a frame it
+brought first (``tm_on_shm``), back to ``zenoh`` once (``tm_fallback``)
+after :data:`STALE_FRAMES` frames only zenoh brought, a frame with the
+publisher gone, or a failed receiver; no frame zenoh carried is lost.
+Detail and figures: docs/architecture.md#intra-host.
 """
 
 from __future__ import annotations
