@@ -131,7 +131,11 @@ COPIES: dict[str, tuple[int, str]] = {
     "cn.applied": (1, "the data into the vector"),
     "tm.encode": (1, "the whole vector into the encoder's buffer"),
     "tm.seal": (0, "the tag, written in place after the frame"),
-    "tm.put": (0, "none when nobody subscribes (skipped); else ZBytes(bytearray), 1"),
+    "tm.put": (
+        0,
+        "none when nobody subscribes (skipped); else ZBytes(bytearray), 1; "
+        "and one into an iceoryx2 loan for a ground on the CN's host",
+    ),
 }
 
 

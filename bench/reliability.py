@@ -206,6 +206,9 @@ def ground_main(argv: list[str]) -> None:
             "offset_delay_ns": offset.delay_ns if offset is not None else None,
             "bad": c.rejected,
             "gaps": c.gaps,
+            "iox": c.iox,
+            "duplicates": c.duplicates,
+            "fallbacks": c.path_fallbacks,
         }
         link.close()
     Path(out).write_text(json.dumps(doc))

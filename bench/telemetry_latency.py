@@ -19,8 +19,16 @@ with every snapshot sent. Figures: ``p50_us``, ``p99_us``, ``max_us``,
 ``lost`` (snapshots never decoded), ``deadline_miss_rate`` (lost or over 30 ms).
 Target: p99 < 2 ms (``params.targets``).
 
-Blocks ``--seconds`` per mission (quick 5, full 30) plus start-up.
-Run ``python -m bench.telemetry_latency [--quick] [--json PATH]``.
+``--intra-host iox|zenoh|both`` runs each mission with its telemetry to the
+(same-host) ground over iceoryx2 (``transport.intra_host: auto``: zenoh
+still carries every frame, the ground takes each once, by the path that
+brought it first) and/or over zenoh alone (``zenoh``), as variants
+``<mission>_iox`` / ``<mission>_zenoh``; the default (``mission``) runs each
+mission as it is written. ``tm_iox``: snapshots the ground took over
+iceoryx2, ``tm_duplicates``: copies it dropped (the other path's).
+
+Blocks ``--seconds`` per mission and path (quick 5, full 30) plus start-up.
+Run ``python -m bench.telemetry_latency [--quick] [--intra-host both] [--json PATH]``.
 """
 
 from __future__ import annotations
@@ -53,10 +61,17 @@ TM_DEADLINE_MS = 30.0
 TARGET_P99_US = 2000.0
 
 
-def mission_copy(src: Path, dst: Path) -> Path:
-    """``src`` with every endpoint on a free loopback port (gn added if missing)."""
+#: ``--intra-host`` choices: the ``transport.intra_host`` each variant runs with.
+INTRA_HOST = {"iox": "auto", "zenoh": "zenoh"}
+
+
+def mission_copy(src: Path, dst: Path, intra_host: str | None = None) -> Path:
+    """``src`` with every endpoint on a free loopback port (gn added if
+    missing) and, when given, ``transport.intra_host``."""
     doc = yaml.safe_load(src.read_text())
     relocate_mission(doc, src)  # the copy finds the mission's code from anywhere
+    if intra_host is not None:
+        doc.setdefault("transport", {})["intra_host"] = intra_host
     nodes = doc["nodes"]
     nodes.setdefault("gn", {})
     ports = {n: free_port() for n in nodes}
@@ -69,7 +84,7 @@ def mission_copy(src: Path, dst: Path) -> Path:
     return dst
 
 
-def generated(path: Path, n_elements: int, n_dn: int = 3) -> Path:
+def generated(path: Path, n_elements: int, n_dn: int = 3, intra_host: str | None = None) -> Path:
     """A bandwidth-style mission of ``n_elements`` mixed elements, with a ground node."""
     tmp = make_mission(
         path.with_suffix(".raw.yaml"),
@@ -79,7 +94,7 @@ def generated(path: Path, n_elements: int, n_dn: int = 3) -> Path:
         extra=element_extra(n_elements, n_dn),
         name=f"elements_{n_elements}",
     )
-    return mission_copy(tmp, path)
+    return mission_copy(tmp, path, intra_host)
 
 
 def run_mission(mpath: Path, seconds: float, priority: int) -> dict[str, Any]:
@@ -118,6 +133,9 @@ def run_mission(mpath: Path, seconds: float, priority: int) -> dict[str, Any]:
     fig["tm_bytes"] = tm_bytes
     fig["ground_clock_offset_ns"] = gn.get("offset_ns")
     fig["tm_bad"] = gn.get("bad")
+    fig["tm_iox"] = gn.get("iox")
+    fig["tm_duplicates"] = gn.get("duplicates")
+    fig["tm_fallbacks"] = gn.get("fallbacks")
     if latm.size:
         p50, p99 = np.percentile(latm, [50.0, 99.0])
         fig["same_host_p50_us"] = round(float(p50) / 1e3, 2)
@@ -131,7 +149,20 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     parser = bench_argparser(__doc__.splitlines()[0] if __doc__ else "telemetry_latency")
     parser.add_argument("--seconds", type=float, default=None)
     parser.add_argument("--priority", type=int, default=PRIORITY)
+    parser.add_argument(
+        "--intra-host",
+        choices=("mission", "iox", "zenoh", "both"),
+        default="mission",
+        help="the ground's telemetry path (module doc); default: as each mission says",
+    )
     args = parser.parse_args(argv)
+    paths: list[str | None] = (
+        [None]
+        if args.intra_host == "mission"
+        else ["iox", "zenoh"]
+        if args.intra_host == "both"
+        else [args.intra_host]
+    )
     os.environ.setdefault("ZPLATFORM_KEY", secrets.token_hex(32))
     seconds = args.seconds or (5.0 if args.quick else 30.0)
     sched = inherit_fifo(args.priority)
@@ -139,23 +170,37 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     variants: dict[str, dict[str, Any]] = {}
     with tempfile.TemporaryDirectory(prefix="zp-tm-") as tmp:
         d = Path(tmp)
-        plan: list[tuple[str, Path]] = [
-            ("led_test", mission_copy(REPO_ROOT / "configs" / "led_test.yaml", d / "led.yaml")),
-            (
-                "thesis_200",
-                mission_copy(REPO_ROOT / "configs" / "thesis_200.yaml", d / "t200.yaml"),
-            ),
-        ]
-        for name, path in plan:
-            print(f"running {name} ({seconds:.0f} s) ...", flush=True)
-            variants[name] = run_mission(path, seconds, args.priority)
-        for n in counts:
-            name = f"elements_{n}_3dn"
-            print(f"running {name} ({seconds:.0f} s) ...", flush=True)
-            try:
-                variants[name] = run_mission(generated(d / f"e{n}.yaml", n), seconds, args.priority)
-            except Exception as exc:  # reported, not hidden
-                variants[name] = {"error": repr(exc)[:300]}
+        for p in paths:
+            mode = INTRA_HOST[p] if p is not None else None
+            sfx = f"_{p}" if p is not None else ""
+            plan: list[tuple[str, Path]] = [
+                (
+                    f"led_test{sfx}",
+                    mission_copy(
+                        REPO_ROOT / "configs" / "led_test.yaml", d / f"led{sfx}.yaml", mode
+                    ),
+                ),
+                (
+                    f"thesis_200{sfx}",
+                    mission_copy(
+                        REPO_ROOT / "configs" / "thesis_200.yaml", d / f"t200{sfx}.yaml", mode
+                    ),
+                ),
+            ]
+            for name, path in plan:
+                print(f"running {name} ({seconds:.0f} s) ...", flush=True)
+                variants[name] = run_mission(path, seconds, args.priority)
+            for n in counts:
+                name = f"elements_{n}_3dn{sfx}"
+                print(f"running {name} ({seconds:.0f} s) ...", flush=True)
+                try:
+                    variants[name] = run_mission(
+                        generated(d / f"e{n}{sfx}.yaml", n, intra_host=mode),
+                        seconds,
+                        args.priority,
+                    )
+                except Exception as exc:  # reported, not hidden
+                    variants[name] = {"error": repr(exc)[:300]}
     worst = max(
         (v["p99_us"] for v in variants.values() if v.get("p99_us") is not None), default=None
     )
@@ -165,6 +210,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         "quick": bool(args.quick),
         "scheduling": sched,
         "auth": "on",
+        "intra_host": args.intra_host,
         "clock": "CN node clock at put -> ground node clock at decode + clock-sync offset",
         "thesis": "R8: telemetry within 30 ms (requirement)",
         "targets": [

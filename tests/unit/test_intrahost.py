@@ -395,3 +395,41 @@ def test_a_signal_during_a_wait_ends_it_without_raising(prefix: str) -> None:
         signal.setitimer(signal.ITIMER_REAL, 0)
         signal.signal(signal.SIGALRM, old)
         server.close()
+
+
+def test_the_telemetry_service_stays_within_its_computed_bound(prefix: str) -> None:
+    # Both control nodes' publishers (and their restarts) and the ground's
+    # subscriber, every frame queued TELEMETRY_BUFFER deep, its wake-up event.
+    n = 325_000
+    pubs = 2
+    name = "zplatform/bound/rocket/x/cn/gn/telemetry"
+    sub = intrahost.IntraHostSubscriber(
+        name, n, 1, prefix=prefix, buffer=intrahost.TELEMETRY_BUFFER, publishers=pubs, wake=True
+    )
+    pub = intrahost.IntraHostPublisher(
+        name,
+        n,
+        1,
+        prefix=prefix,
+        buffer=intrahost.TELEMETRY_BUFFER,
+        publishers=pubs,
+        wake=True,
+        need=intrahost.telemetry_segment_bytes(n, pubs),
+    )
+    try:
+        for i in range(intrahost.TELEMETRY_BUFFER + 2):  # more than it queues
+            loan = pub.loan()
+            assert loan is not None
+            loan[:1] = bytes([i])
+            assert pub.send()
+        used = sum(os.path.getsize(p) for p in leftovers(prefix))
+        assert n < used <= intrahost.telemetry_segment_bytes(n, pubs)
+        # Queued in order, the oldest overwritten past the buffer.
+        got = []
+        while (view := sub.receive_next()) is not None:
+            got.append(view[0])
+            sub.release()
+        assert got == list(range(2, intrahost.TELEMETRY_BUFFER + 2))
+    finally:
+        pub.close()
+        sub.close()

@@ -47,6 +47,7 @@ from ..mission.load import load_mission
 from ..node.ground import station_dir
 from ..runtime.intrahost import intra_host_mode
 from ..runtime.process import LOG_LEVEL_ENV, PARENT_ENV, STATUS_LINE_ENV, STOP_PIPE_ENV
+from ..runtime.tmiox import telemetry_path_wanted
 from ..runtime.transport import rewrite_endpoints
 from ..telemetry.logs import events_path
 from ..telemetry.records import EventRecord
@@ -362,11 +363,21 @@ class Watch:
         self.script_done_at: float | None = None
         """When (``time.monotonic``) the ground node said its script was done."""
         self.stations = StationRestarts()
+        self.tm_path = "zenoh"
+        """The path the ground node's telemetry takes (``iox`` or ``zenoh``),
+        by its last ``tm_on_shm`` or ``tm_fallback`` event (zplatform.runtime.tmiox)."""
 
     def on_event(self, rec: EventRecord) -> None:
-        """Note the ground node's ``script_done`` (the link's callback: no I/O)."""
-        if rec.node == "gn" and rec.id == EV.SCRIPT_DONE.name and self.script_done_at is None:
+        """Note the ground node's ``script_done`` and telemetry path (the
+        link's callback: no I/O)."""
+        if rec.node != "gn":
+            return
+        if rec.id == EV.SCRIPT_DONE.name and self.script_done_at is None:
             self.script_done_at = time.monotonic()
+        elif rec.id == EV.TM_ON_SHM.name:
+            self.tm_path = "iox"
+        elif rec.id == EV.TM_FALLBACK.name:
+            self.tm_path = "zenoh"
 
 
 def _cn_from_telemetry(mission: Mission, dv: DataVector, first_t: int) -> CnSummary:
@@ -512,6 +523,7 @@ def watch(
                     status_line(mission, link.dv, rate.hz)
                     + sync_paths(mission, link.dv)
                     + bulk_paths.line(link.dv)
+                    + telemetry_path(mission, w)
                     + station_states(children, w)
                 )
                 print(("\r" + line) if tty else line, end="" if tty else "\n", flush=True)
@@ -656,6 +668,16 @@ def sync_paths(mission: Mission, dv: DataVector) -> str:
         return ""
     paths = " ".join(f"{dn}={dv.get_name(f'{dn}_sync_path')}" for dn in mission.device_nodes)
     return f"  sync {paths}"
+
+
+def telemetry_path(mission: Mission, w: Watch) -> str:
+    """``  tm=iox``: the path the ground node's telemetry takes (iceoryx2 on
+    the CN's host, else zenoh; :attr:`Watch.tm_path`, from its events);
+    empty for a mission whose telemetry stays on zenoh
+    (:func:`~zplatform.runtime.tmiox.telemetry_path_wanted`)."""
+    if not telemetry_path_wanted(mission):
+        return ""
+    return f"  tm={w.tm_path}"
 
 
 def station_states(children: Children, w: Watch) -> str:

@@ -265,8 +265,11 @@ class TransportConfig(_Struct):
             "`auto` only in that a DN that cannot open its end refuses to start, and a CN "
             "whose DN has no shared-memory end events it (`sync_fallback`). A redundant "
             "mission (`failover`) syncs over zenoh: `shm` is a config error there. The "
-            "path each link takes: `dnX_sync_path`. Discovery, liveliness, taps, the "
-            "ground and other hosts stay on zenoh."
+            "path each link takes: `dnX_sync_path`. Bulk channels and, to a ground node on "
+            "the CN's host, telemetry take iceoryx2 too unless this is `zenoh` (telemetry "
+            "still goes over zenoh as well; `shm`: a CN or ground node whose end cannot open "
+            "refuses to start). Discovery, liveliness, taps, tools and other hosts stay on "
+            "zenoh."
         ),
     ] = "auto"
     intra_host_links: Annotated[

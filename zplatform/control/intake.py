@@ -33,6 +33,7 @@ from ..core.auth import NO_RUN, TAG_LEN, Channel, RunError
 from ..core.codec import (
     bundle_entry,
     bundle_size,
+    fixed_stamp,
     frame_data,
     frame_stamp,
     is_bundle,
@@ -48,13 +49,17 @@ from .handoff import Mailbox, Waker
 __all__ = [
     "BACKLOG",
     "CN_REFUSALS",
+    "DEDUPE_WINDOW",
     "EVENT_PERIOD_NS",
     "INBOX",
+    "IOX",
     "MAC_SPARE",
     "MIRRORS",
     "PROBES",
     "PROBE_BURST",
+    "ZENOH",
     "CnRefusals",
+    "Dedupe",
     "Intake",
     "MirrorIntake",
     "Payload",
@@ -127,6 +132,78 @@ def max_frame_len(size: int, channel: Channel | None) -> int:
 
 
 _NO_VIEW = memoryview(b"")
+
+ZENOH, IOX = 1, 2
+"""The paths a frame can come by (:meth:`Intake.admit`'s ``path``): zenoh,
+or iceoryx2 shared memory (a telemetry frame to a ground on the CN's host)."""
+DEDUPE_WINDOW = 64
+"""Frames a two-path intake remembers (:class:`Dedupe`): a frame the other
+path brings this many frames late is no longer told from a replay."""
+
+
+class Dedupe:
+    """The frames a two-path intake admitted lately (:data:`DEDUPE_WINDOW`,
+    a ring by loop number), each with the path it came by: a frame that
+    arrives again, the very same (fixed-width header: loop number, stamp,
+    length, and its last :data:`~zplatform.core.auth.TAG_LEN` bytes: its
+    tag), by the *other* path is the copy that path carries (the same
+    telemetry over iceoryx2 and zenoh), dropped as a duplicate: not taken
+    twice, and not counted as refused. Only once per frame and path: a
+    further copy (a replay on either path) goes through the intake, which
+    refuses it as not fresh. Nothing is ever admitted by it, so a forged
+    copy costs nothing; a frame without the fixed-width header is never
+    a duplicate. Not thread-safe: the intake's lock. Preallocated; a check
+    allocates two small slices at most."""
+
+    __slots__ = ("_lens", "_paths", "_seqs", "_stamps", "_tags")
+
+    def __init__(self) -> None:
+        k = DEDUPE_WINDOW
+        self._seqs = [-1] * k
+        self._stamps = [0] * k
+        self._lens = [0] * k
+        self._paths = [0] * k
+        self._tags = bytearray(k * TAG_LEN)
+
+    def repeat(self, frame: bytes | memoryview, path: int) -> bool:
+        """Whether ``frame`` is a frame admitted by another path, coming by
+        ``path`` for the first time (then noted: a second copy is not)."""
+        n = len(frame)
+        stamp = fixed_stamp(frame) if n > TAG_LEN else None
+        if stamp is None:
+            return False
+        seq, t_ns = stamp
+        i = seq % DEDUPE_WINDOW
+        if self._seqs[i] != seq or self._stamps[i] != t_ns or self._lens[i] != n:
+            return False
+        if self._paths[i] & path:
+            return False  # this path brought it already: a replay
+        at = i * TAG_LEN
+        if memoryview(self._tags)[at : at + TAG_LEN] != memoryview(frame)[n - TAG_LEN :]:
+            return False
+        self._paths[i] |= path
+        return True
+
+    def note(self, frame: bytes | memoryview, path: int) -> None:
+        """Remember ``frame``, admitted by ``path``."""
+        n = len(frame)
+        stamp = fixed_stamp(frame) if n > TAG_LEN else None
+        if stamp is None:
+            return
+        seq, t_ns = stamp
+        i = seq % DEDUPE_WINDOW
+        at = i * TAG_LEN
+        tag = memoryview(frame)[n - TAG_LEN :]
+        if (
+            self._seqs[i] == seq
+            and self._stamps[i] == t_ns
+            and self._lens[i] == n
+            and memoryview(self._tags)[at : at + TAG_LEN] == tag
+        ):
+            self._paths[i] |= path  # admitted again (no keys: no freshness)
+            return
+        self._seqs[i], self._stamps[i], self._lens[i], self._paths[i] = seq, t_ns, n, path
+        self._tags[at : at + TAG_LEN] = tag
 
 
 class _InPlace:
@@ -203,6 +280,19 @@ class Intake(ABC, Generic[H]):
         (:meth:`zplatform.control.loop.DeviceLogic.trigger`'s ``authentic``)."""
         return self._open is not None
 
+    dedupe: Dedupe | None = None
+    """Set on an intake that takes one sender's frames by two paths (the
+    ground's telemetry over iceoryx2 and zenoh): the other path's copy of a
+    frame admitted is dropped as a duplicate (:class:`Dedupe`), counted in
+    :attr:`duplicates`, never as a refusal. None: one path."""
+    duplicates = 0
+    """Frames dropped as the other path's copy of one admitted (never reset)."""
+    taken_iox = 0
+    """Frames :meth:`admit_view` (or :meth:`admit`) admitted by path
+    :data:`IOX` (never reset; under the lock, whatever thread admits)."""
+    taken_zenoh = 0
+    """Frames admitted by path :data:`ZENOH` (never reset)."""
+
     def check(self, payload: Payload, handle: H) -> bytes | None:
         """The frame's bytes when it passes every check, else None (counted)."""
         with self._lock:
@@ -226,19 +316,47 @@ class Intake(ABC, Generic[H]):
             finally:
                 held.view = _NO_VIEW
 
-    def admit(self, payload: Payload, handle: H) -> bool:
+    def admit(self, payload: Payload, handle: H, path: int = ZENOH) -> bool:
         """Check ``payload``; put ``(handle, its bytes)`` in the mailbox when
-        it passes (returns True), else count why (False)."""
+        it passes (returns True), else count why (False). ``path``: the path
+        it came by (:data:`ZENOH`, :data:`IOX`), for :attr:`dedupe`."""
         box = self.box
         assert box is not None, "an intake without a mailbox only checks"
         with self._lock:
-            data = self._check(payload, handle)
+            data = self._check(payload, handle, path)
             if data is None:
                 return False
             box.put((handle, data))  # under the lock: admission order is mailbox order
+            self._count(path)
             return True
 
-    def _check(self, payload: Payload, handle: H) -> bytes | None:
+    def _count(self, path: int) -> None:
+        if path == IOX:
+            self.taken_iox += 1
+        else:
+            self.taken_zenoh += 1
+
+    def admit_view(self, view: memoryview, handle: H, path: int = IOX) -> bool:
+        """:meth:`admit` of a frame read in place (a sample in shared memory,
+        as :meth:`check_view`): every check on ``view`` itself, then one copy
+        (``bytes``) into the mailbox, only of a frame that passed. The
+        caller keeps ``view`` alive until this returns."""
+        box = self.box
+        assert box is not None, "an intake without a mailbox only checks"
+        with self._lock:
+            held = self._in_place
+            held.view = view
+            try:
+                data = self._check(held, handle, path)
+            finally:
+                held.view = _NO_VIEW
+            if data is None:
+                return False
+            box.put((handle, bytes(data)))  # the frame's one copy, after its checks
+            self._count(path)
+            return True
+
+    def _check(self, payload: Payload, handle: H, path: int = ZENOH) -> bytes | None:
         n = len(payload)
         if not self._min <= n <= self.max_len:
             self.size += 1
@@ -246,6 +364,19 @@ class Intake(ABC, Generic[H]):
         if not self._within_rate():
             return None
         data = payload.to_bytes()
+        dedupe = self.dedupe
+        if dedupe is not None:
+            if dedupe.repeat(data, path):  # the other path's copy of one taken
+                self.duplicates += 1
+                return None
+            checked = self._checked(data, handle)
+            if checked is not None:
+                dedupe.note(checked, path)
+            return checked
+        return self._checked(data, handle)
+
+    def _checked(self, data: bytes, handle: H) -> bytes | None:
+        """The tag and freshness of ``data`` (what :meth:`_check` read)."""
         ch = self._open
         if ch is None:
             return data
@@ -647,7 +778,9 @@ class TelemetryIntake(_StampIntake[int]):
     they are only counted in :attr:`waiting`), are also counted in
     :attr:`aged`, those stamped beyond it after in :attr:`ahead` (what the
     logic calls ``stale`` and ``ahead``). ``capacity``: snapshots kept while
-    the consumer is busy."""
+    the consumer is busy. ``dedupe``: the snapshots come by two paths (a
+    ground on the CN's host: iceoryx2 and zenoh, :meth:`Intake.admit_view`
+    and :meth:`Intake.admit`), each taken once (:class:`Dedupe`)."""
 
     def __init__(
         self,
@@ -656,7 +789,11 @@ class TelemetryIntake(_StampIntake[int]):
         capacity: int,
         max_age_ns: int,
         waker: Waker | None = None,
+        *,
+        dedupe: bool = False,
     ) -> None:
+        if dedupe:  # two paths: iceoryx2 and zenoh (zplatform.ground.link)
+            self.dedupe = Dedupe()
         lay = Layout.for_node(mission, "cn")
         size = lay.size
         self._max_age = max_age_ns

@@ -99,7 +99,7 @@ class LoopRecorder(Protocol):
         inbox_dropped: int,
         refused: CnRefusals | None,
         saves: Sequence[SaveResult],
-        telemetry: bytearray | None,
+        telemetry: bytearray | memoryview | None,
     ) -> None: ...
 
 
@@ -429,6 +429,30 @@ class ControlLogic:
         self.pending -= 1
         return True
 
+    @overload
+    def finish(
+        self,
+        grounds: Sequence[bytes | bytearray | memoryview] = ...,
+        *,
+        sync_overrun: bool = ...,
+        loop_overruns: int = ...,
+        inbox_dropped: int = ...,
+        refused: CnRefusals | None = ...,
+        saves: Sequence[SaveResult] = ...,
+        tm_into: None = None,
+    ) -> bytearray | None: ...
+    @overload
+    def finish(
+        self,
+        grounds: Sequence[bytes | bytearray | memoryview] = ...,
+        *,
+        sync_overrun: bool = ...,
+        loop_overruns: int = ...,
+        inbox_dropped: int = ...,
+        refused: CnRefusals | None = ...,
+        saves: Sequence[SaveResult] = ...,
+        tm_into: memoryview | None,
+    ) -> bytearray | memoryview | None: ...
     def finish(
         self,
         grounds: Sequence[bytes | bytearray | memoryview] = (),
@@ -438,7 +462,8 @@ class ControlLogic:
         inbox_dropped: int = 0,
         refused: CnRefusals | None = None,
         saves: Sequence[SaveResult] = (),
-    ) -> bytearray | None:
+        tm_into: memoryview | None = None,
+    ) -> bytearray | memoryview | None:
         """Close the loop: count misses, take one command request from
         ``grounds`` (the frames that arrived since the last loop, oldest
         first: each is checked, and refused, before one is chosen; of the
@@ -459,6 +484,10 @@ class ControlLogic:
         last loop (:class:`~zplatform.control.intake.CnRefusals`; module doc);
         ``saves``: parameter saves (PRM_SAVE) its saver finished since the
         last loop. All are inputs, not measured here, so a replay repeats them.
+        ``tm_into``: a writable view of exactly :attr:`telemetry_length`
+        bytes (a loaned shared-memory sample) that a telemetry frame of
+        this loop is encoded and tagged in, and returned as (:meth:`telemetry`);
+        unused on other loops.
         """
         loop, t = self.loop, self.t_ns
         for i, got in enumerate(self._got):
@@ -506,15 +535,17 @@ class ControlLogic:
         self.commands.step(new_request, t)
         self.statemachine.step(t)
         self.controllers.run(loop, t)
-        tm: bytearray | None = None
+        tm: bytearray | memoryview | None = None
         if loop % self._divisor == 0:
-            tm = self.telemetry()
+            tm = self.telemetry(tm_into)
         if self.redundant:  # the standby mirrors the whole vector every loop
             # The same frame, tagged for the standby (a copy into the mirror
             # channel's buffer: the telemetry's tag sits in the encoder's).
-            body = tm if tm is not None else self._tm.encode(loop, t)
+            body: bytearray | memoryview = tm if tm is not None else self._tm.encode(loop, t)
             if self._seal_mirror is None:  # no keys: no tag anywhere
-                self.mirror = body
+                # (A frame in a loan, which goes before the mirror does, is
+                # copied: the CN never lends in a redundant mission.)
+                self.mirror = body if type(body) is bytearray else bytearray(body)
             else:
                 frame = memoryview(body)[: len(body) - TAG_LEN] if self._seal_tm else body
                 self.mirror = self._seal_mirror.seal(frame)
@@ -641,20 +672,42 @@ class ControlLogic:
         self._ground.write(best)
         return True
 
-    def telemetry(self) -> bytearray:
+    @property
+    def telemetry_length(self) -> int:
+        """Bytes of every telemetry frame, its tag included: what
+        :meth:`telemetry`'s ``into`` must hold."""
+        return self._tm.frame_len
+
+    @overload
+    def telemetry(self, into: None = None) -> bytearray: ...
+    @overload
+    def telemetry(self, into: memoryview) -> memoryview: ...
+    def telemetry(self, into: memoryview | None = None) -> bytearray | memoryview:
         """The whole vector framed now, tagged (what :meth:`finish` returns on
         a telemetry loop; a driver's final snapshot off the divisor). One
         copy of the vector, into the telemetry encoder's buffer, which the
-        next call overwrites."""
+        next call overwrites, or into ``into`` (exactly :attr:`telemetry_length`
+        bytes, a loaned shared-memory sample: the same bytes, tagged in
+        place; ValueError for another length), returned then."""
         tr = trace.tracer
         if tr is not None:
             tr.mark("tm.encode", self.loop)
+        seal = self._seal_tm
+        if into is not None:
+            view = self._tm.encode_into(into, self.loop, self.t_ns)
+            if tr is not None:
+                tr.mark("tm.encoded", self.loop)
+            if seal is not None:
+                seal.seal_tail(view)  # the tag in place, in the loan
+            if tr is not None:
+                tr.mark("tm.sealed", self.loop)
+            return view
         tm = self._tm.encode(self.loop, self.t_ns)
         if tr is None:
-            return self._seal_tm.seal_tail(tm) if self._seal_tm is not None else tm
+            return seal.seal_tail(tm) if seal is not None else tm
         tr.mark("tm.encoded", self.loop)
-        if self._seal_tm is not None:
-            tm = self._seal_tm.seal_tail(tm)
+        if seal is not None:
+            tm = seal.seal_tail(tm)
         tr.mark("tm.sealed", self.loop)
         return tm
 

@@ -40,6 +40,7 @@ __all__ = [
     "bundle_size",
     "decode_frame",
     "encode_frame",
+    "fixed_stamp",
     "frame_data",
     "frame_overhead",
     "frame_stamp",
@@ -245,6 +246,16 @@ def frame_stamp(frame: bytes | bytearray | memoryview) -> tuple[int, int]:
         return seq, t_ns
     f = decode_frame(frame)
     return f.seq, f.t_ns
+
+
+def fixed_stamp(frame: bytes | bytearray | memoryview) -> tuple[int, int] | None:
+    """``(seq, t_ns)`` of a frame with the fixed-width header (what
+    zplatform writes), read at their offsets; None for anything else
+    (never decoded, never raises). Constant time, no copy."""
+    if not _fixed_width(frame):
+        return None
+    _, _, _, _, seq, _, t_ns = _HDR.unpack_from(frame, 0)
+    return seq, t_ns
 
 
 def frame_data(frame: bytes | bytearray | memoryview, size: int) -> memoryview:

@@ -503,6 +503,20 @@ class EV:
         "run's, stamped ahead, beyond the rate bound); the last: {why}; further refusals are "
         "counted (bulk_<channel>_bad, _stale), evented at most once a second",
     )
+    TM_ON_SHM = EventType(
+        131,
+        "tm_on_shm",
+        Severity.ACTIVITY_LO,
+        "{node}: telemetry takes iceoryx2 shared memory ({why}; transport.intra_host); zenoh "
+        "still carries it, each snapshot taken once",
+    )
+    TM_FALLBACK = EventType(
+        132,
+        "tm_fallback",
+        Severity.WARNING_LO,
+        "{node}: telemetry falls back to zenoh: {why} ({fallbacks} fallback(s) so far; "
+        "iceoryx2 is taken again when its frames come)",
+    )
     TM_NEW_TERM = EventType(
         76,
         "tm_new_term",

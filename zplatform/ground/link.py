@@ -35,11 +35,17 @@ from ..control.intake import TelemetryIntake
 from ..control.uplink import CheckedCommand, ScriptCommand, validate_command
 from ..core.auth import KeySet, Run, channel, load_keys
 from ..core.datavector import DataVector
-from ..core.events import MAX_TEXT, Event
-from ..errors import CommandError, TransportError
+from ..core.events import EV, MAX_TEXT, Event
+from ..errors import CommandError, IntraHostError, TransportError
 from ..runtime.clocksync import RunAsker
 from ..runtime.queries import ask, replies
 from ..runtime.timebase import NodeClock
+from ..runtime.tmiox import (
+    TelemetryPaths,
+    TelemetryReceiver,
+    open_telemetry_subscriber,
+    telemetry_path_wanted,
+)
 from ..runtime.transport import EventPublisher, NodeSession, is_matching
 from ..telemetry.records import CommandOutcome, EventRecord
 from .identity import line_signer
@@ -124,6 +130,12 @@ class GroundLink:
     (:class:`~.logic.GroundLogic`'s ``renew_lock``). ``station``: the
     station a link without a signer runs at (a watching station: it
     connects through that station's router, as a signer's link does).
+    ``intra_host``: as the ground node (``node="gn"``) on the CN's host,
+    also take the telemetry over iceoryx2 when the mission allows it
+    (:mod:`zplatform.runtime.tmiox`: zenoh's subscriber stays, each
+    snapshot is taken once; :attr:`tm_paths`); a tool never does. Under
+    ``transport.intra_host: shm`` an end that cannot open raises
+    TransportError.
 
     With authentication the link is bound to the commander's run
     (:attr:`run`), learned from its answer to a run hello
@@ -154,6 +166,7 @@ class GroundLink:
         announce: bool = True,
         signer: Signer | None = None,
         station: str | None = None,
+        intra_host: bool = True,
     ) -> None:
         self.mission = mission
         if keys == "mission":
@@ -178,14 +191,31 @@ class GroundLink:
             signers=lambda op, st: line_signer(mission, op, st, key_file),
         )
         self.on_event = on_event
+        # The ground node on the CN's host also takes telemetry over iceoryx2
+        # (zplatform.runtime.tmiox), zenoh's subscriber kept: each frame once.
+        # Before the session: a pinned `shm` that cannot open leaves nothing open.
+        tm_sub = None
+        why_not = ""
+        if node == "gn" and telemetry and intra_host and telemetry_path_wanted(mission):
+            try:
+                tm_sub = open_telemetry_subscriber(mission, keys is not None)
+            except IntraHostError as exc:
+                if mission.transport.intra_host == "shm":
+                    raise TransportError(f"telemetry over iceoryx2: {exc}") from exc
+                why_not = f"no iceoryx2 end ({exc})"
         # A station with a router (ground.stations[].connect) reaches the
         # vehicle through it, as a zenoh client of that router alone.
         at = signer.station if signer is not None else station
         via = _station_router(mission, at) if node is None else None
         overrides: dict[str, Any] = {"via": via} if via else {}
-        self.ns = NodeSession(
-            mission, node, announce=False, commands=bool(commands or script), **overrides
-        )
+        try:
+            self.ns = NodeSession(
+                mission, node, announce=False, commands=bool(commands or script), **overrides
+            )
+        except BaseException:
+            if tm_sub is not None:
+                tm_sub.close()
+            raise
         self.keys = self.ns.keys
         session = self.ns.session
         # One mailbox per kind (module doc), one waker for the caller's thread.
@@ -196,7 +226,16 @@ class GroundLink:
             max(2, min(TELEMETRY_BACKLOG, _BACKLOG_BYTES // self.logic.max_frame_len)),
             self.logic.max_age_ns,
             self._waker,
+            dedupe=tm_sub is not None,
         )
+        self.tm_paths = TelemetryPaths()
+        """The telemetry's path (``tm_paths.path``: ``iox`` or ``zenoh``) and
+        its fallbacks (zplatform.runtime.tmiox)."""
+        self._tm_iox: TelemetryReceiver | None = None
+        if why_not:
+            self.logic.events.emit(
+                EV.TM_FALLBACK, self.clock.now_ns(), node=node, why=why_not, fallbacks=0
+            )
         assert self._tm.box is not None
         self._tm_box = self._tm.box
         # The run hello (module doc): answers come through their own mailbox.
@@ -215,6 +254,8 @@ class GroundLink:
         self._subs: list[zenoh.Subscriber[None]] = []
         if telemetry:
             self._subscribe(self.keys.telemetry, self._on_telemetry)
+        if tm_sub is not None:
+            self._tm_iox = TelemetryReceiver(tm_sub, self._tm, self.clock.now_ns)
         if events:
             self._subscribe(self.keys.all_events, self._on_event)
         self._pub: zenoh.Publisher | None = None
@@ -379,6 +420,9 @@ class GroundLink:
         size, bad, stale = self._tm.take_counts()
         if size or bad or stale:
             logic.refused(size, bad, stale, self._tm.aged, now_ns, self._tm.ahead)
+        rx = self._tm_iox
+        if rx is not None:
+            self._tm_path(rx, now_ns)
         oversize = self._ev_oversize
         if oversize != self._ev_oversize_seen:
             logic.refused_events(oversize - self._ev_oversize_seen)
@@ -392,6 +436,25 @@ class GroundLink:
         elif logic.events.pending:
             for e in logic.events.drain():
                 self._own_event(e)
+
+    def _tm_path(self, rx: TelemetryReceiver, now_ns: int) -> None:
+        """The telemetry's path and counts (zplatform.runtime.tmiox) into the
+        logic; a change evented (``tm_on_shm``, ``tm_fallback``)."""
+        paths = self.tm_paths
+        tm = self._tm
+        change = paths.update(tm.taken_iox, tm.taken_zenoh, rx.publishers, rx.error)
+        self.logic.count_paths(tm.taken_iox, tm.duplicates, paths.fallbacks)
+        if change is not None:
+            path, why = change
+            ev = EV.TM_ON_SHM if path == "iox" else EV.TM_FALLBACK
+            self.logic.events.emit(
+                ev, now_ns, node=self.logic.node, why=why, fallbacks=paths.fallbacks
+            )
+
+    @property
+    def telemetry_iox(self) -> TelemetryReceiver | None:
+        """The iceoryx2 path's receiver (a ground node on the CN's host), or None."""
+        return self._tm_iox
 
     def _own_event(self, e: Event) -> None:
         if self.on_event is not None:
@@ -627,6 +690,8 @@ class GroundLink:
             return
         self._closed = True
         try:
+            if self._tm_iox is not None:
+                self._tm_iox.close()
             if self._ev_pub is not None:
                 self._ev_pub.undeclare()
             for s in self._subs:

@@ -170,6 +170,9 @@ class _Tally(msgspec.Struct):
     bad_events: int = 0
     stale_events: int = 0
     events_missed: int = 0
+    iox: int = 0
+    duplicates: int = 0
+    path_fallbacks: int = 0
 
 
 class _Plan:
@@ -476,6 +479,14 @@ class GroundLogic:
             self._note(
                 "not_newer", f"{stale - aged} replayed snapshot(s), not newer than one taken", rx_ns
             )
+
+    def count_paths(self, iox: int, duplicates: int, fallbacks: int) -> None:
+        """The telemetry's paths as the driver counted them (totals: a ground
+        on the CN's host, zplatform.runtime.tmiox): snapshots its intake
+        admitted over iceoryx2, copies dropped as duplicates (the other
+        path's copy of one taken: not refusals), fallbacks to zenoh."""
+        n = self._n
+        n.iox, n.duplicates, n.path_fallbacks = iox, duplicates, fallbacks
 
     def refused_events(self, n: int) -> None:
         """Count ``n`` event records the driver refused as they arrived: for

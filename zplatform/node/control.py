@@ -73,6 +73,7 @@ from ..runtime.queries import unanswered_loops
 from ..runtime.scheduler import GcGuard, PeriodicLoop
 from ..runtime.sync import ControlSync, ProbeSync, SyncTrace, TapPublisher, open_shm_links
 from ..runtime.timebase import NodeClock
+from ..runtime.tmiox import open_telemetry_publisher
 from ..runtime.transport import EventPublisher, NodeSession, wait_for_nodes
 from ..sim.replay_recording import Recorder
 from ..telemetry.summary import CnSummary, LoopWork, cn_summary
@@ -134,6 +135,17 @@ class ControlNode:
             shm_links = open_shm_links(mission, name)
         except IntraHostError as exc:
             raise NodeError(f"control node cannot open its intra-host links: {exc}") from exc
+        # The telemetry to a ground node on this host (zplatform.runtime.tmiox),
+        # beside zenoh's; a redundant mission's frame is read after the send
+        # (the standby's mirror), so it is never encoded into a loan there.
+        try:
+            self._tm_iox = open_telemetry_publisher(mission, self.logic.telemetry_length)
+        except TransportError as exc:
+            for link in shm_links or ():
+                if link is not None:
+                    link.client.close()
+            raise NodeError(f"control node cannot open its intra-host telemetry: {exc}") from exc
+        self._tm_lend = self._tm_iox is not None and not self.redundant
         self.ns = NodeSession(mission, name, announce=False, lowlatency=lowlatency)
         s = self.ns.session
         space = self.ns.keys
@@ -670,6 +682,14 @@ class ControlNode:
         dropped, self._seen_dropped = d_total - self._seen_dropped, d_total
         saver = self._saver
         saved = saver.poll() if saver is not None else None
+        tmx = self._tm_iox
+        # A ground node on this host: this loop's telemetry encoded straight
+        # into a loaned sample when zenoh takes no copy of it.
+        into = (
+            tmx.lend(self._tm_pub.wanted())
+            if self._tm_lend and tmx is not None and loop % self.mission.telemetry_divisor == 0
+            else None
+        )
         tm = logic.finish(
             grounds,
             sync_overrun=overrun,
@@ -677,6 +697,7 @@ class ControlNode:
             inbox_dropped=dropped,
             refused=self._take_refusals(),
             saves=(saved,) if saved is not None else (),
+            tm_into=into,
         )
         if saver is not None:
             save = logic.params.take_save()
@@ -690,15 +711,31 @@ class ControlNode:
             self._mirror_pub.put(logic.mirror)
         if tm is not None:
             tr = trace.tracer
-            if tr is not None:
+            if tr is not None:  # the frame is ready: either path's latency counts from here
                 tr.mark("tm.put", loop, len(tm))
-            self._tm_pub.put(tm)
-            if tr is not None:
-                tr.mark("tm.sent", loop)
-            if rec is not None:
-                rec.frame(loop, tm, t)
+            if type(tm) is memoryview:
+                # The lent sample: everything reads it before it goes (zenoh
+                # only if a subscriber came since the lend: rare, one copy).
+                if rec is not None:
+                    rec.frame(loop, tm, t)
+                if self._tm_pub.wanted():
+                    self._tm_pub.pub.put(bytes(tm))
+                assert tmx is not None
+                tmx.publish(tm)
+                if tr is not None:
+                    tr.mark("tm.sent", loop)
+            else:
+                if tmx is not None:  # the local path first
+                    tmx.publish(tm)
+                self._tm_pub.put(tm)
+                if tr is not None:
+                    tr.mark("tm.sent", loop)
+                if rec is not None:
+                    rec.frame(loop, tm, t)
             if self._radio is not None:
                 self._radio.send(self.dv, loop, t)
+        elif into is not None:
+            tmx.withdraw()  # type: ignore[union-attr]
         end = self._mono()
         if self.watchdog is not None:
             self.watchdog.stroke(end, t)
@@ -1017,6 +1054,8 @@ class ControlNode:
             rec = self.flight_recorder
             if last % self.mission.telemetry_divisor:  # the last snapshot was not sent yet
                 tm = self.logic.telemetry()
+                if self._tm_iox is not None:
+                    self._tm_iox.publish(tm)
                 self._tm_pub.put(tm)
                 if rec is not None:
                     rec.frame(last, tm, self.logic.t_ns)
@@ -1039,6 +1078,8 @@ class ControlNode:
             if self.bulk is not None:
                 self.bulk.close()
             self._tm_pub.undeclare()
+            if self._tm_iox is not None:
+                self._tm_iox.close()
         finally:
             if self.watchdog is not None:
                 # A loop that ended in an exception leaves the watchdog armed.

@@ -180,6 +180,9 @@ def run_ground_logger(
         events_missed=c.events_missed,
         events_filled=fill.fill.events_filled if fill is not None else 0,
         events_unfilled=fill.fill.events_unfilled if fill is not None else 0,
+        telemetry_iox=c.iox,
+        telemetry_duplicates=c.duplicates,
+        telemetry_fallbacks=c.path_fallbacks,
     )
 
 

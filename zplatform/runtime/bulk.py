@@ -968,7 +968,8 @@ class NodeBulk:
 def mission_shm_need(mission: Any) -> int:
     """Shared memory the mission's intra-host links and bulk pools take, in
     bytes: the sync's links, zenoh's bulk pools and the bulk channels'
-    iceoryx2 segments (when ``transport.intra_host`` is not ``zenoh``)."""
+    iceoryx2 segments and the telemetry's to a ground node on the CN's host
+    (when ``transport.intra_host`` is not ``zenoh``)."""
     need = sum(
         intrahost.segment_bytes(*intrahost.mission_link_sizes(mission, dn))
         for dn in mission.device_nodes
@@ -980,6 +981,9 @@ def mission_shm_need(mission: Any) -> int:
             intrahost.bulk_segment_bytes(ch.sample_bytes + tags_bytes(ch, auth), len(ch.readers))
             for ch in mission.bulk
         )
+        if mission.has_ground:
+            n = intrahost.telemetry_sample_bytes(mission, auth)
+            need += intrahost.telemetry_segment_bytes(n, 2 * len(mission.control_nodes))
     return need + sum(pool_size(mission.bulk, n) for n in nodes)
 
 

@@ -8,15 +8,15 @@ and two event services that wake the other side (request/response ports
 cannot join a wait set); each side blocks in its listener with a deadline,
 never spinning. A timeout is "no reply", counted; :attr:`IntraHostClient.state`
 says when the link has no peer or has stalled, so the sync falls back to zenoh.
-:class:`IntraHostPublisher`/:class:`IntraHostSubscriber`: a bulk channel's
-publish/subscribe service (:func:`bulk_service_name`; ``bulk.py`` uses them).
+:class:`IntraHostPublisher`/:class:`IntraHostSubscriber`: a publish/subscribe
+service, a bulk channel's (:func:`bulk_service_name`, ``bulk.py``) or the telemetry's
+(:func:`telemetry_service_name`, ``tmiox.py``).
 
-Copies per hop: the sender encodes into the loaned sample, the receiver
-checks it in place and copies once into its Data Vector. Names
-(:func:`sync_link_names`: one kernel and network namespace) hold both nodes;
-segments are sized (:func:`mission_link_sizes`) and refused when ``/dev/shm``
-cannot hold them (:func:`check_shm`); dead processes' resources are removed
-before an end opens (:func:`remove_stale`). Costs: docs/architecture.md#intra-host.
+Copies per hop: the sender encodes into the loan, the receiver checks it in
+place and copies once. Names (:func:`sync_link_names`: one kernel and network
+namespace) hold both nodes; segments are sized (:func:`mission_link_sizes`) and
+refused when ``/dev/shm`` cannot hold them (:func:`check_shm`); dead processes'
+resources go before an end opens (:func:`remove_stale`). docs/architecture.md#intra-host.
 """
 
 from __future__ import annotations
@@ -37,7 +37,7 @@ import msgspec
 
 from ..config import Mission
 from ..core.auth import TAG_LEN
-from ..core.codec import max_frame_length
+from ..core.codec import frame_overhead, max_frame_length
 from ..core.datavector import Layout
 from ..core.messages import check_intra_host, intra_host_mode
 from ..errors import IntraHostError
@@ -46,6 +46,7 @@ __all__ = [
     "DEFAULT_DEADLINE_S",
     "PREFIX",
     "STALL_AFTER",
+    "TELEMETRY_BUFFER",
     "IntraHostClient",
     "IntraHostPublisher",
     "IntraHostServer",
@@ -64,6 +65,9 @@ __all__ = [
     "remove_stale",
     "segment_bytes",
     "sync_link_names",
+    "telemetry_sample_bytes",
+    "telemetry_segment_bytes",
+    "telemetry_service_name",
 ]
 
 #: The file-name prefix of every iceoryx2 resource zplatform creates (in
@@ -82,6 +86,10 @@ SLOTS = 4
 #: Per-sample bookkeeping iceoryx2 adds to a segment, and the fixed part of
 #: a link (management segments, connections), both measured on 0.10 with
 #: margin (tests/unit/test_intrahost.py checks the bound on the real files).
+#: Telemetry frames queued for the ground's subscriber (every frame counts:
+#: the ground logs them all); an older one is overwritten only when its
+#: receiving thread is this many frames behind, and zenoh still carries it.
+TELEMETRY_BUFFER = 8
 _SAMPLE_OVERHEAD = 256
 _LINK_FIXED = 64 * 1024
 _NAME_RE = re.compile(r"[A-Za-z0-9_.-]{1,64}")
@@ -156,6 +164,34 @@ def bulk_service_name(mission: Mission, owner: str, channel: str) -> str:
     kernel and network namespace meet. Raises IntraHostError as :func:`link_names`."""
     names = link_names(_mission_name(mission), mission.vehicle, host_tag(), owner, channel)
     return names.sync.rsplit("/", 1)[0] + "/bulk"
+
+
+def telemetry_service_name(mission: Mission) -> str:
+    """The iceoryx2 publish/subscribe service of the CN's telemetry to a
+    ground node on this host, named as :func:`bulk_service_name` (the
+    mission's name and digest, the vehicle, :func:`host_tag`): only the
+    control node and the ground node of one mission on one kernel and
+    network namespace meet. Its wake-up event service is this name and
+    ``_wake``. Raises IntraHostError as :func:`link_names`."""
+    names = link_names(_mission_name(mission), mission.vehicle, host_tag(), "cn", "gn")
+    return names.sync.rsplit("/", 1)[0] + "/telemetry"
+
+
+def telemetry_sample_bytes(mission: Mission, auth: bool) -> int:
+    """Bytes of one telemetry sample: the CN's whole-vector frame as its
+    encoder writes it (the fixed-width header, :func:`frame_overhead`) and,
+    with ``auth``, its tag. Every sample is exactly this long; the
+    ground's intake refuses any other length."""
+    n = Layout.for_node(mission, "cn").size
+    return frame_overhead(n) + n + (TAG_LEN if auth else 0)
+
+
+def telemetry_segment_bytes(sample_bytes: int, publishers: int) -> int:
+    """Upper bound of the telemetry service's shared memory: each
+    publisher's data segment (every subscriber slot's queue and borrow,
+    and the loan) and the fixed part."""
+    slots = bulk_subscribers(1) * (TELEMETRY_BUFFER + 1) + 1
+    return publishers * slots * (sample_bytes + _SAMPLE_OVERHEAD) + _LINK_FIXED
 
 
 def sync_link_names(mission: Mission, dn: str, cn: str = "cn") -> LinkNames:
@@ -691,19 +727,37 @@ class IntraHostServer(_End):
 
 
 class _PubSub:
-    """What both ends of a bulk channel's iceoryx2 service hold: a node and
-    the publish/subscribe service (:func:`bulk_service_name`), sized from
-    the channel alone so its owner and readers open it alike."""
+    """What both ends of a publish/subscribe service hold (a bulk channel's,
+    :func:`bulk_service_name`, or the telemetry's, :func:`telemetry_service_name`):
+    a node and the service, sized from the channel alone so its owner and
+    readers open it alike. ``buffer``: samples queued per subscriber (a
+    bulk channel's 1: newest wins; the telemetry's :data:`TELEMETRY_BUFFER`);
+    ``publishers``: publisher ports the service admits; ``wake``: also an
+    event service (the name and ``_wake``) the publisher notifies after each
+    sample, so a subscriber can block (:meth:`IntraHostSubscriber.wait`)."""
 
-    def __init__(self, name: str, sample_bytes: int, readers: int, prefix: str) -> None:
-        if sample_bytes < 1 or readers < 1:
-            raise IntraHostError("intra-host bulk: a sample of >= 1 byte and >= 1 reader")
+    def __init__(
+        self,
+        name: str,
+        sample_bytes: int,
+        readers: int,
+        prefix: str,
+        *,
+        buffer: int = 1,
+        publishers: int = 1,
+        wake: bool = False,
+    ) -> None:
+        if sample_bytes < 1 or readers < 1 or buffer < 1 or publishers < 1:
+            raise IntraHostError(
+                "intra-host pub/sub: a sample of >= 1 byte, >= 1 reader, buffer and publisher"
+            )
         # A node's start removes what dead processes left (a kill -9'd owner's
         # publisher would hold the service's one publisher slot).
         self.stale_removed = remove_stale(prefix)
         iox = self._iox = _iox()
         self.name = name
         self.sample_bytes = sample_bytes
+        self._wake: Any = None
         try:
             self._node = (
                 iox.NodeBuilder.new()
@@ -715,17 +769,26 @@ class _PubSub:
             self._service = (
                 self._node.service_builder(iox.ServiceName.new(name))
                 .publish_subscribe(iox.Slice[ctypes.c_uint8])
-                .max_publishers(1)
+                .max_publishers(publishers)
                 .max_subscribers(subs)
-                .max_nodes(subs + 2)
+                .max_nodes(subs + 2 * publishers)
                 .history_size(0)
-                .subscriber_max_buffer_size(1)
+                .subscriber_max_buffer_size(buffer)
                 .subscriber_max_borrowed_samples(1)
-                .enable_safe_overflow(True)  # newest wins: a slow reader never stalls the owner
+                .enable_safe_overflow(True)  # a slow reader never stalls the owner
                 .open_or_create()
             )
+            if wake:
+                self._wake = (
+                    self._node.service_builder(iox.ServiceName.new(f"{name}_wake"))
+                    .event()
+                    .max_nodes(subs + 2 * publishers)
+                    .max_listeners(subs)
+                    .max_notifiers(publishers)
+                    .open_or_create()
+                )
         except Exception as exc:
-            raise IntraHostError(f"intra-host bulk {name}: cannot open ({exc!r})") from exc
+            raise IntraHostError(f"intra-host pub/sub {name}: cannot open ({exc!r})") from exc
 
     @property
     def publishers(self) -> int:
@@ -738,17 +801,20 @@ class _PubSub:
         return int(self._service.dynamic_config.number_of_subscribers)
 
     def close(self) -> None:
-        """Drop the port, the service, the node. Idempotent."""
-        for attr in ("_port", "_sample", "_service", "_node"):
+        """Drop the ports, the services, the node. Idempotent."""
+        for attr in ("_port", "_sample", "_notifier", "_listener", "_wake", "_service", "_node"):
             self.__dict__.pop(attr, None)
 
 
 class IntraHostPublisher(_PubSub):
-    """A bulk channel owner's iceoryx2 publisher: :meth:`loan` a sample,
-    write it, :meth:`send`. Samples are exactly ``sample_bytes`` long. Not
-    thread-safe (the owner's loop thread). Raises IntraHostError when it
-    cannot open (``/dev/shm`` too small with ``check``, iceoryx2 refused, the
-    publisher slot held by a live process); never after."""
+    """A publisher (a bulk channel owner's, the CN's telemetry): :meth:`loan`
+    a sample, write it, :meth:`send`. Samples are exactly ``sample_bytes``
+    long. Not thread-safe (the owner's loop thread). Raises IntraHostError
+    when it cannot open (``/dev/shm`` too small with ``check``, iceoryx2
+    refused, every publisher slot held by a live process); never after.
+    ``buffer``, ``publishers``, ``wake``: the service's (:class:`_PubSub`),
+    the same at every end; ``need``: the shared memory ``check`` asks for
+    (default: a bulk channel's, :func:`bulk_segment_bytes`)."""
 
     def __init__(
         self,
@@ -758,10 +824,18 @@ class IntraHostPublisher(_PubSub):
         *,
         prefix: str = PREFIX,
         check: bool = True,
+        buffer: int = 1,
+        publishers: int = 1,
+        wake: bool = False,
+        need: int | None = None,
     ) -> None:
         if check:
-            check_shm(bulk_segment_bytes(sample_bytes, readers), what=f"intra-host bulk {name}")
-        super().__init__(name, sample_bytes, readers, prefix)
+            if need is None:
+                need = bulk_segment_bytes(sample_bytes, readers)
+            check_shm(need, what=f"intra-host pub/sub {name}")
+        super().__init__(
+            name, sample_bytes, readers, prefix, buffer=buffer, publishers=publishers, wake=wake
+        )
         iox = self._iox
         try:
             self._port = (
@@ -771,8 +845,9 @@ class IntraHostPublisher(_PubSub):
                 .max_loaned_samples(1)
                 .create()
             )
+            self._notifier = self._wake.notifier_builder().create() if wake else None
         except Exception as exc:
-            raise IntraHostError(f"intra-host bulk {name}: no publisher ({exc!r})") from exc
+            raise IntraHostError(f"intra-host pub/sub {name}: no publisher ({exc!r})") from exc
         self._sample: Any = None
 
     def loan(self) -> memoryview | None:
@@ -785,30 +860,52 @@ class IntraHostPublisher(_PubSub):
             return None
         return _view(self._sample.payload_ptr, self.sample_bytes)
 
+    def withdraw(self) -> None:
+        """Give a loaned sample back unsent (its view must not be used after)."""
+        self._sample = None
+
     def send(self) -> bool:
-        """Deliver the loaned sample to every subscriber (newest wins in each
-        one's one-slot buffer); False when it could not go. Never blocks."""
+        """Deliver the loaned sample to every subscriber (a full buffer drops
+        its oldest) and, with ``wake``, notify; False when it could not go.
+        Never blocks."""
         sample, self._sample = self._sample, None
         if sample is None:
             return False
         try:
             sample.assume_init().send()
-        except Exception:  # SendError: a broken connection
+            if self._notifier is not None:
+                self._notifier.notify()
+        except Exception:  # SendError, NotifierNotifyError: a broken connection
             return False
         return True
 
 
 class IntraHostSubscriber(_PubSub):
-    """A bulk channel reader's iceoryx2 subscriber: :meth:`receive` the
-    newest sample in place. Not thread-safe (the reader's loop thread).
-    Raises IntraHostError when it cannot open; never after."""
+    """A subscriber (a bulk channel reader's, the ground's telemetry):
+    :meth:`receive` the newest sample, or :meth:`receive_next` each in
+    order, in place. Not thread-safe (the reader's thread). Raises
+    IntraHostError when it cannot open; never after. ``buffer``,
+    ``publishers``, ``wake``: the service's (:class:`IntraHostPublisher`)."""
 
-    def __init__(self, name: str, sample_bytes: int, readers: int, *, prefix: str = PREFIX) -> None:
-        super().__init__(name, sample_bytes, readers, prefix)
+    def __init__(
+        self,
+        name: str,
+        sample_bytes: int,
+        readers: int,
+        *,
+        prefix: str = PREFIX,
+        buffer: int = 1,
+        publishers: int = 1,
+        wake: bool = False,
+    ) -> None:
+        super().__init__(
+            name, sample_bytes, readers, prefix, buffer=buffer, publishers=publishers, wake=wake
+        )
         try:
-            self._port = self._service.subscriber_builder().buffer_size(1).create()
+            self._port = self._service.subscriber_builder().buffer_size(buffer).create()
+            self._listener = self._wake.listener_builder().create() if wake else None
         except Exception as exc:
-            raise IntraHostError(f"intra-host bulk {name}: no subscriber ({exc!r})") from exc
+            raise IntraHostError(f"intra-host pub/sub {name}: no subscriber ({exc!r})") from exc
         self._sample: Any = None
 
     def receive(self) -> memoryview | None:
@@ -827,6 +924,33 @@ class IntraHostSubscriber(_PubSub):
             return None
         self._sample = sample
         return _view(sample.payload_ptr, sample.header.number_of_elements).toreadonly()
+
+    def receive_next(self) -> memoryview | None:
+        """The oldest sample queued (each in the order sent) as a read-only
+        view in shared memory, valid until the next call or :meth:`release`;
+        None when none is queued. Any length comes back (the caller's intake
+        checks it). Never blocks. Raises IntraHostError for a broken
+        connection (the caller's path has failed)."""
+        self._sample = None
+        try:
+            sample = self._port.receive()
+        except Exception as exc:  # ReceiveError
+            raise IntraHostError(f"intra-host pub/sub {self.name}: {exc!r}") from exc
+        if sample is None:
+            return None
+        self._sample = sample
+        return _view(sample.payload_ptr, sample.header.number_of_elements).toreadonly()
+
+    def wait(self, timeout_s: float) -> None:
+        """Block until a publisher's notification (a sample was sent) or
+        ``timeout_s``; returns at once if one is pending. Never spins; a
+        subscriber opened without ``wake`` sleeps ``timeout_s``. Then
+        :meth:`receive_next` until None."""
+        listener = self._listener
+        if listener is None:
+            time.sleep(timeout_s)
+            return
+        _wait(listener, self._iox.Duration.from_secs_f64(max(0.0, timeout_s)))
 
     def release(self) -> None:
         """Give the sample back (its view must not be used after)."""

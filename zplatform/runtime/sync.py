@@ -131,6 +131,10 @@ class TapPublisher:
     def _on_matching(self, status: zenoh.MatchingStatus) -> None:
         self.matching = bool(status.matching)
 
+    def wanted(self) -> bool:
+        """Whether a put now would go (:meth:`put`'s test; never blocks)."""
+        return self.matching or (self._exact and is_matching(self.pub))
+
     def put(self, payload: bytes | bytearray) -> None:
         """Publish ``payload`` if anyone subscribes (never blocks: DROP)."""
         if self.matching or (self._exact and is_matching(self.pub)):

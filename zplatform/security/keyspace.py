@@ -178,7 +178,9 @@ KEYSPACE: tuple[KeyRow, ...] = (
             ),
         ),
         when="always",
-        what="the whole CN Data Vector every `telemetry_divisor` loops, while someone subscribes",
+        what="the whole CN Data Vector every `telemetry_divisor` loops, while someone "
+        "subscribes; the same tagged bytes also go through iceoryx2 to a ground node on the "
+        "CN's host (`transport.intra_host` not `zenoh`), which takes each frame once",
     ),
     KeyRow(
         "downlink",

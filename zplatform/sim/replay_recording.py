@@ -385,7 +385,7 @@ class Recorder:
         inbox_dropped: int,
         refused: CnRefusals | None,
         saves: Sequence[SaveResult],
-        telemetry: bytearray | None,
+        telemetry: bytearray | memoryview | None,
     ) -> None:
         if not self._dropping:
             for save in saves:  # rare: a PRM_SAVE finished

@@ -89,6 +89,14 @@ class TelemetryCounters(msgspec.Struct, frozen=True):
     """Verified event records that did not arrive: numbers skipped between
     two of one node's run (:meth:`~zplatform.ground.logic.GroundLogic.on_event_bytes`),
     whether filled later from the control node's recorder or not."""
+    iox: int = 0
+    """Snapshots that came over iceoryx2 (a ground node on the CN's host,
+    zplatform.runtime.tmiox), of those its intake admitted; the rest came by zenoh."""
+    duplicates: int = 0
+    """Snapshots dropped as the other path's copy of one taken (iceoryx2 and
+    zenoh both carry each): not refusals."""
+    path_fallbacks: int = 0
+    """Times the telemetry fell back from iceoryx2 to zenoh."""
 
     @property
     def rejected(self) -> int:

@@ -106,7 +106,9 @@ class GnSummary(msgspec.Struct, frozen=True):
     CN never ran (skipped periods: no loss) (:mod:`zplatform.ground.gapfill`);
     ``events_missed``: verified events that did not arrive (numbers
     skipped), ``events_filled``/``events_unfilled``: of those, the CN's
-    filled from its recorder / not."""
+    filled from its recorder / not.;
+    ``telemetry_iox``, ``_duplicates``, ``_fallbacks``: a ground on the CN's
+    host (:class:`~zplatform.telemetry.records.TelemetryCounters`)."""
 
     telemetry_received: int
     telemetry_gaps: int
@@ -126,6 +128,12 @@ class GnSummary(msgspec.Struct, frozen=True):
     events_missed: int = 0
     events_filled: int = 0
     events_unfilled: int = 0
+    telemetry_iox: int = 0
+    """Snapshots that came over iceoryx2 (zplatform.runtime.tmiox)."""
+    telemetry_duplicates: int = 0
+    """Copies dropped as duplicates (the same snapshot by the other path)."""
+    telemetry_fallbacks: int = 0
+    """Times the telemetry fell back from iceoryx2 to zenoh."""
 
 
 class RunSummary(msgspec.Struct, frozen=True):
