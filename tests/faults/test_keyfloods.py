@@ -246,23 +246,22 @@ def test_a_keyless_recorder_flood_is_bounded_before_the_servers_thread() -> None
     assert all(not q.replies and not q.errors for q in flood)
 
 
-def test_replayed_run_hellos_are_bounded_before_their_mac() -> None:
+def test_replayed_run_hellos_are_refused_by_their_nonce() -> None:
     """A run hello is answered statelessly, so a captured one could be
-    replayed for ever, each costing the clock server a MAC and an answer.
-    Of 100 replays at one instant, HELLO_BURST are answered; the rest are
-    refused before their MAC, counted."""
+    replayed for ever, each costing the clock server a MAC, an answer and
+    a share of the rate bound a ground's hello needs. Of 100 replays at one
+    instant, one is answered; the rest are refused by their nonce (kept:
+    HELLO_KEPT) before their MAC and the bound, counted stale."""
     from zplatform.core.auth import KeySet
     from zplatform.runtime import clocksync as cs
 
     m = _LOADED["recovery_igniter"]
     keys = KeySet.from_master(m, bytes(range(32)))
     hello = cs.RunAsker(keys.for_node("gn")).hello()
-    kw = {"mono_ns": lambda: 5 * 10**9} if hasattr(cs, "HELLO_BURST") else {}
-    responder = cs.ClockResponder(m, keys.for_node("cn"), **kw)  # type: ignore[arg-type]
+    responder = cs.ClockResponder(m, keys.for_node("cn"), mono_ns=lambda: 5 * 10**9)
     answered = sum(responder.answer(hello, 0, 0) is not None for _ in range(100))
-    burst = getattr(cs, "HELLO_BURST", 16)
-    assert answered == burst
-    assert responder.refused == 100 - burst == getattr(responder, "hello_excess", 0)
+    assert answered == 1
+    assert responder.refused == 99 == responder.stale and responder.hello_excess == 0
 
 
 def test_the_recorder_servers_refusals_are_logged_at_most_once_a_second(

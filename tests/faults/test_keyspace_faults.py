@@ -949,27 +949,32 @@ class RunHelloH(Harness):
     """The commander's end of the run hello (ClockResponder): a ground's or
     a tool's hello, on the clock's queryable."""
 
-    kinds = ("bad",)
+    kinds = ("bad", "stale")
 
     @classmethod
     def by_design(cls) -> dict[str, str]:
-        why = (
-            "a run hello is answered statelessly (a SYN cookie): a replayed one is "
-            "answered again, and its answer echoes a nonce no asker awaits any more"
-        )
-        return {"replay": why, "replay_old_run": why}
+        # A replay of this responder's hellos is refused by its nonce (stale);
+        # a hello names no run, so one sent to an earlier run's commander is
+        # a hello like any other here.
+        return {
+            "replay_old_run": (
+                "a run hello names no run: one an earlier run's commander answered "
+                "is answered again, and its answer echoes a nonce no asker awaits any more"
+            )
+        }
 
     def harmless(self, old: Harness | None) -> None:
-        # The replayed hello is answered; the asker that sent it takes one
-        # answer per hello, and an asker that did not send it takes none:
-        # the answer teaches nobody a run (what a run word tells anyway).
+        # The earlier run's hello is answered; the asker that sent it takes
+        # one answer per hello, and an asker that did not send it takes
+        # none: the answer teaches nobody a run (what a run word tells anyway).
         sender = old if isinstance(old, RunHelloH) else self
         hello = sender.asker.hello()
-        first = self.responder.answer(hello, self.t0, self.t0 + 1)
-        assert first is not None and sender.asker.check(first), "the genuine hello's answer"
+        if old is not None:
+            first = old.responder.answer(hello, old.t0, old.t0 + 1)
+            assert first is not None and sender.asker.check(first), "the genuine hello's answer"
         again = self.responder.answer(hello, self.t0, self.t0 + 2)
-        assert again is not None, "a replayed hello is answered (stateless, by design)"
-        assert not sender.asker.check(again), "a second answer to one hello was taken"
+        assert again is not None, "another run's hello is answered (it names no run)"
+        assert old is None or not sender.asker.check(again), "a second answer was taken"
         if old is not None:
             assert not self.asker.check(again), "an answer to another asker's hello was taken"
 
@@ -987,7 +992,8 @@ class RunHelloH(Harness):
         return self.responder.answer(payload, self.t0, self.t0 + 1) is not None
 
     def counts(self) -> dict[str, int]:
-        return {"bad": self.responder.refused}
+        r = self.responder
+        return {"bad": r.refused - r.stale, "stale": r.stale}
 
     def extreme(self, hi: bool) -> bytes:
         assert self.ch is not None

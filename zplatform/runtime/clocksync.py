@@ -57,6 +57,7 @@ from .transport import KeySpace
 
 __all__ = [
     "ESTIMATORS",
+    "HELLO_KEPT",
     "ClockEstimate",
     "ClockEstimator",
     "ClockLink",
@@ -282,11 +283,16 @@ def _believable(t1: int, t2: int, t3: int, sent: tuple[bytes, int], nonce: bytes
 HELLO_BURST = 16
 """Run hellos (:class:`RunAsker`) a clock server answers at once; then one
 every :data:`HELLO_EVERY_NS`. The ground and tools ask once at start, then
-at most once a second; a hello is answered statelessly, so a replayed one
-would be answered for ever: beyond the bound it is refused before its MAC
-(a flood of them delays a ground's learning of the run, never the loop)."""
+at most once a :data:`RELEARN_S`. The bound counts only authentic hellos
+not answered before (:class:`ClockResponder`: after the header tag and the
+nonces of :data:`HELLO_KEPT`), so junk never spends it."""
 HELLO_EVERY_NS = 50_000_000
 _HELLO_TAU_NS = (HELLO_BURST - 1) * HELLO_EVERY_NS
+HELLO_KEPT = 256
+"""Nonces of the authentic run hellos a clock server saw last (answered,
+or refused by the rate bound) that it keeps, a preallocated ring: a hello
+carrying one of them (a replay) is refused, counted stale, and spends
+nothing of the bound (:class:`ClockResponder`)."""
 
 _Checked = tuple[int, bytes, int, int]
 """A clock query :meth:`ClockResponder.check` passed: ``(index, nonce, t1, t2)``."""
@@ -344,7 +350,13 @@ class ClockResponder:
         self._mono = mono_ns
         self._hello_tat = -(1 << 63)
         self.hello_excess = 0
-        """Run hellos refused unread by their rate bound (also in :attr:`refused`)."""
+        """Authentic run hellos, not seen before, refused by their rate bound
+        (also in :attr:`refused`)."""
+        # The nonces of the last HELLO_KEPT authentic hellos, oldest first
+        # from _hello_at, and the same as a set (b"": no nonce yet).
+        self._hello_ring = [b""] * HELLO_KEPT
+        self._hello_at = 0
+        self._hello_seen: set[bytes] = set()
         self.run = run if run is not None else Run(new_run_epoch(time.time_ns()))
         r = self.run
         # Queries are opened unbound (a hello names no run; the run is checked
@@ -380,8 +392,8 @@ class ClockResponder:
         self._ref: list[tuple[int, int] | None] = [None] * askers
         self._ref_sync: list[tuple[int, int] | None] = [None] * askers
         self.stale = 0
-        """Authentic queries refused as replays: not fresh, or answered before
-        (also in :attr:`refused`)."""
+        """Authentic queries refused as replays: not fresh, or answered before;
+        and run hellos seen before (also in :attr:`refused`)."""
         self.ask_excess = 0
         """Authentic fresh queries refused beyond their asker's rate bound
         (also in :attr:`refused`)."""
@@ -421,16 +433,6 @@ class ClockResponder:
         on another thread meanwhile (they share no channel)."""
         want = _QUERY.size + (TAG_LEN if self._auth else 0)
         if len(raw) == RUN_HELLO.size + (TAG_LEN if self._auth else 0) and raw[:2] == _H_MAGIC:
-            # A hello is answered statelessly, so a captured one replays
-            # forever: bounded before its MAC (GCRA, one integer).
-            now = self._mono()
-            tat = max(self._hello_tat, now)
-            if tat - now > _HELLO_TAU_NS:
-                self.hello_excess += 1
-                self.refused += 1
-                self.reason = "run hellos beyond their rate bound"
-                return None
-            self._hello_tat = tat + HELLO_EVERY_NS
             return self._answer_hello(raw)
         try:
             if len(raw) != want or raw[:3] != _Q_MAGIC + bytes((_VERSION,)):
@@ -520,13 +522,33 @@ class ClockResponder:
         return bytes(seal.seal(reply)) if seal is not None else reply
 
     def _answer_hello(self, raw: bytes) -> bytes | None:
-        """The answer to a run hello (:class:`RunAsker`): statelessly, this
-        run, the nonce echoed; None (counted) for a bad tag or version. A
-        replayed hello is answered again: its answer echoes a nonce nobody
-        waits for any more."""
+        """The answer to a run hello (:class:`RunAsker`): this run, the nonce
+        echoed; None (counted, :attr:`reason` set) to refuse it. In order:
+        the header tag and the version (junk: refused, spending nothing);
+        with keys, its nonce among the last :data:`HELLO_KEPT` seen (a
+        replay: refused, counted :attr:`stale`), then the MAC, then the
+        nonce is kept (answered or not: a ground's next hello has a new
+        one); then the rate bound (:data:`HELLO_BURST`, GCRA, one
+        integer), which only those reach (:attr:`hello_excess`).
+
+        What a replayer of captured hellos can still do: holding at most
+        :data:`HELLO_KEPT` of them, have each answered once, until
+        :data:`HELLO_KEPT` others were seen since (it pushes none out with
+        its own replays): one pass, which keeps the bound spent for at most
+        ``(HELLO_KEPT - HELLO_BURST) * HELLO_EVERY_NS`` (12 s), then a
+        ground's hello (one a :data:`RELEARN_S`) finds the bound free.
+        Holding more, it can cycle them and keep the bound spent for as
+        long as it replays: that takes more than :data:`HELLO_KEPT`
+        distinct hellos, i.e. a watcher of the link for as many of a
+        ground's (re-)learnings, at most one a :data:`RELEARN_S` (minutes
+        of provoking them with another run's telemetry), and it delays only
+        the learning of the run, never the loop. A new control node run (a
+        new responder) starts with an empty ring."""
         ch = self._hello_open
         try:
-            body = ch.open(raw, any_run=True) if ch is not None else memoryview(raw)
+            # A hello is shorter than the header tag's bytes (codecs/FORMAT.md
+            # §6.1): its header tag makes it all authentic, the nonce too.
+            body = ch.open_header(raw, any_run=True) if ch is not None else memoryview(raw)
             if body[2] != _VERSION:
                 raise AuthError(f"a run hello of version {body[2]}, not {_VERSION}")
         except AuthError as exc:
@@ -534,6 +556,32 @@ class ClockResponder:
             self.reason = str(exc)
             return None
         _, _, nonce = RUN_HELLO.unpack(body)
+        if ch is not None:  # without tags a replay cannot be told from a hello
+            seen = self._hello_seen
+            if nonce in seen:
+                self.refused += 1
+                self.stale += 1
+                self.reason = "a run hello seen before (a replay)"
+                return None
+            try:
+                ch.check_body(raw)
+            except AuthError as exc:
+                self.refused += 1
+                self.reason = str(exc)
+                return None
+            ring, at = self._hello_ring, self._hello_at
+            seen.discard(ring[at])
+            ring[at] = nonce
+            seen.add(nonce)
+            self._hello_at = (at + 1) % HELLO_KEPT
+        now = self._mono()
+        tat = max(self._hello_tat, now)
+        if tat - now > _HELLO_TAU_NS:
+            self.hello_excess += 1
+            self.refused += 1
+            self.reason = "run hellos beyond their rate bound"
+            return None
+        self._hello_tat = tat + HELLO_EVERY_NS
         self.hellos += 1
         answer = RUN_ANSWER.pack(_A_MAGIC, _VERSION, nonce, self.run.epoch)
         seal = self._hello_seal

@@ -291,9 +291,10 @@ KEYSPACE: tuple[KeyRow, ...] = (
                 "run_hello",
                 "downlink",
                 "zplatform.runtime.clocksync.ClockResponder commander",
-                "any (a run hello names no run; answered statelessly, its nonce echoed)",
-                "HELLO_BURST, then one every HELLO_EVERY_NS, before the MAC; the clock's serving "
-                "thread and backlog",
+                "any (a run hello names no run; its nonce echoed): none of the last "
+                "HELLO_KEPT nonces seen",
+                "after the header tag and the nonces: HELLO_BURST, then one every "
+                "HELLO_EVERY_NS; the clock's serving thread and backlog",
             ),
             KeyFrames(
                 "reply",
