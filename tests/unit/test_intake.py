@@ -553,3 +553,33 @@ def test_check_view_checks_a_frame_in_place_and_refuses_as_check_does() -> None:
     assert check.check_view(memoryview(good), None) is None
     size, bad, stale = check.take_counts()
     assert size == 1 and stale == 1 and bad == 2
+
+
+def test_a_keyless_probe_flood_never_spends_the_bound_a_genuine_question_needs() -> None:
+    """Issue 25: the probe intake's channel-wide rate bound came before the
+    tag, so a keyless flood of question-sized junk spent it and the
+    standby's genuine question, at the same instant, was refused (a takeover
+    delayed for as long as the flood lasts). Now only a question whose tag
+    checks spends a bound (its asker's): every junk question is refused
+    bad, none beyond a bound, and the genuine one is admitted."""
+    from zplatform.control.intake import PROBE_BURST
+
+    clock = [T0]
+    ch = channel(FKEYS, "probe_cn_to_dn0")
+    intake: ProbeIntake[None] = ProbeIntake(
+        "dn0",
+        channel(FKEYS, "probe_cn_to_dn0"),
+        Waker(),
+        period_ns=FLIGHT.period_ns,
+        now_ns=lambda: clock[0],
+        clock_ns=lambda: clock[0],
+        bound_ns=round(FLIGHT.clock.offset_bound_ms * 1e6),
+    )
+    genuine = ask_frame(ch, ASK, 1, 1, 1, new_nonce(), T0)
+    flood = 20 * PROBE_BURST
+    for i in range(flood):
+        junk = bytearray(genuine)
+        junk[-20] ^= 1 + i % 255  # the same size, a header tag that fails
+        assert not intake.admit(Bytes(bytes(junk)), None)
+    assert intake.admit(Bytes(genuine), None)
+    assert intake.take_counts() == (0, flood, 0) and intake.excess == 0

@@ -5,11 +5,14 @@ One intake per key a node takes frames on (:class:`TriggerIntake`,
 :class:`ProbeIntake`, :class:`MirrorIntake`, :class:`RequestIntake`,
 :class:`TelemetryIntake`, and :class:`ReplyCheck` for the CN's sync
 replies), run in the zenoh callback. Its checks, the first failure
-winning: size (unread), a rate bound where the key has one, one bounded
-copy (none for :meth:`Intake.check_view`), the header tag, freshness as
-far as the header tells it, the body-MAC budget (:data:`MAC_SPARE`), then
-the body's MAC and the rest of freshness: junk and replays never cost a
-MAC over their body. A refused frame is only counted. :meth:`Intake.admit`
+winning: size (unread), one bounded copy (none for
+:meth:`Intake.check_view`), the header tag, freshness as far as the
+header tells it, the body-MAC budget (:data:`MAC_SPARE`), then the body's
+MAC, the rest of freshness and a per-asker rate bound where the key has
+one (:class:`ProbeIntake`): junk and replays never cost a MAC over their
+body, and spend no bound a genuine frame needs (issue 25; a key without
+tags, in a mission that does not authenticate, has its bound before the
+copy). A refused frame is only counted. :meth:`Intake.admit`
 puts an admitted one (its bytes) in a bounded :class:`~.handoff.Mailbox`
 whose last item is the newest valid frame; :meth:`Intake.check` only
 checks. Never blocks beyond two short locks, never raises for what
@@ -211,7 +214,7 @@ class Intake(ABC, Generic[H]):
     def check_view(self, view: memoryview, handle: H) -> memoryview | None:
         """:meth:`check` over a frame read in place (a loaned sample in
         shared memory, :mod:`zplatform.runtime.intrahost`): the same checks
-        in the same order (size, rate, tag, freshness), with no copy; returns
+        in the same order (size, tag, freshness), with no copy; returns
         ``view`` itself when it passes. The caller keeps the memory under
         ``view`` alive, and its bytes as checked, until it has copied what it
         needs (docs/architecture.md#intra-host: why a writer of that memory
@@ -306,8 +309,10 @@ class Intake(ABC, Generic[H]):
 
     def _within_rate(self) -> bool:
         """Whether a frame of the right size may be read now (before any
-        copy; with the lock held): a key with a rate bound counts and
-        refuses the excess here. Every frame, by default."""
+        copy; with the lock held): a key with a rate bound and no tag (a
+        mission that does not authenticate) counts and refuses the excess
+        here. Never for an authenticated key: a bound before the tag is one
+        junk can spend (module doc). Every frame, by default."""
         return True
 
     def _fresh_header(self, body: memoryview, handle: H) -> bool | None:
@@ -430,24 +435,20 @@ class ProbeIntake(Intake[H]):
     :data:`PROBES` questions (``waker``: the trigger mailbox's, so the node's
     loop wakes for either).
 
-    **Rate bounds** (``now_ns``: the clock they run on; ``period_ns``: the
-    mission's loop period). Two, each a token bucket kept as one integer
-    (GCRA: constant time, no allocation), so a flood costs the callback a
-    length, a clock read and a compare per question, and never reaches the
-    loop thread beyond a few answers a period:
-
-    * per channel, *before any copy* (the asker is not known unread): at
-      most ``askers`` * :data:`PROBE_BURST` questions at once, then
-      ``askers`` a period, whoever sends them;
-    * per asker, once the tag proved who asks: at most :data:`PROBE_BURST`
-      at once, then one a period.
-
-    What exceeds either is refused unanswered and counted in
-    :attr:`excess`. A flood from a peer without the key uses up the
-    channel's bound, so a genuine question sent meanwhile may be refused
-    too (the standby asks again later): the flood delays a takeover for as
-    long as it lasts, never the device node's loop. Without authentication
-    only the channel's bound applies (the asker cannot be told)."""
+    **Rate bound** (``now_ns``: the clock it runs on; ``period_ns``: the
+    mission's loop period): a token bucket kept as one integer (GCRA:
+    constant time, no allocation) per asker, once the tag proved who asks
+    and the question is fresh: at most :data:`PROBE_BURST` at once, then
+    one a period; what exceeds it is refused unanswered and counted in
+    :attr:`excess`. So a flood reaches the loop thread with a few answers
+    a period at most, and only a key holder's questions spend a bound:
+    junk (a bad header tag) is refused for the cost of the tag, and a
+    replay by its stamp, neither spending any asker's bound, so a genuine
+    question sent during a keyless flood is answered (issue 25: a bound
+    per channel before the tag let such a flood refuse the standby's
+    questions, delaying a takeover). Without authentication the asker
+    cannot be told: one bound per channel, before any copy, of ``askers``
+    * :data:`PROBE_BURST` questions at once, then ``askers`` a period."""
 
     def __init__(
         self,
@@ -486,6 +487,8 @@ class ProbeIntake(Intake[H]):
         return True
 
     def _within_rate(self) -> bool:
+        if self._open is not None:
+            return True  # authenticated: the asker's bound, after its tag (class doc)
         now = self._now()
         tat = max(self._tat_all, now)
         if tat - now > self._tau_all:

@@ -949,7 +949,7 @@ class DeviceSync:
             self._key, zenoh.handlers.Callback(handoff, indirect=False)
         )
         # A redundant mission's probes (zplatform.control.fencing): their own intake
-        # (size, its rate bound, tag, freshness: zplatform.control.intake.ProbeIntake),
+        # (size, tag, freshness, the asker's rate bound: zplatform.control.intake.ProbeIntake),
         # waking the same wait as the triggers.
         self.probes = probes
         self._probe_q: zenoh.Queryable[Any] | None = None
