@@ -314,6 +314,44 @@ def test_the_recorder_server_refuses_junk_and_a_replayed_request_without_a_body_
     assert server.served == 1 and server.refused == 20
 
 
+def test_a_keyless_recorder_flood_never_spends_the_bound_a_grounds_request_needs() -> None:
+    """Issue 25: the recorder server's rate bound came before any check, so
+    a keyless flood of request-sized junk spent it and the ground's genuine
+    request, at the same instant, was dropped unanswered (``excess``). Now
+    zenoh's callback checks the header tag first: every junk request is
+    refused (counted, never handed off), none beyond the bound, and the
+    genuine one is handed to the serving thread."""
+    from tests.payload import FakeQuery
+    from zplatform.recorder.format import REQUEST, REQUEST_MAGIC
+    from zplatform.recorder.server import REQUEST_BURST, RecorderServer
+
+    ch = channel(KEYS, "telemetry")
+    assert ch is not None
+    rec: Any = type("R", (), {"run": -1})()  # never the run asked: no file is read
+    server = RecorderServer(
+        _Session(),  # type: ignore[arg-type]
+        "v/cn/recorder",
+        rec,
+        channel(KEYS, "telemetry"),
+        now_ns=lambda: T0,
+        max_age_ns=10**9,
+        serve_bps=10**9,
+        mono_ns=lambda: 5 * 10**9,  # one instant: the bound never refills
+    )
+    try:
+        request = bytes(ch.seal(REQUEST.pack(REQUEST_MAGIC, 7, 1, 5, T0)))
+        flood = [FakeQuery(os.urandom(len(request))) for _ in range(20 * REQUEST_BURST)]
+        for q in flood:
+            server.on_query(q)
+        assert all(q.dropped for q in flood)
+        assert server.refused == len(flood) and server.excess == 0 and server.busy == 0
+        genuine = FakeQuery(request)
+        server.on_query(genuine)
+        assert not genuine.dropped and server.excess == 0  # handed to the serving thread
+    finally:
+        server.close()
+
+
 def test_the_clock_and_run_askers_refuse_junk_and_replayed_answers_without_a_body_mac(
     macs: _Macs,
 ) -> None:

@@ -2,15 +2,21 @@
 
 :class:`RecorderServer` declares a queryable on ``{vehicle}/cn/recorder``
 (formats: :mod:`~.format`) and costs the control loop nothing but the GIL's
-share of one thread. Zenoh's callback checks a rate bound first (a GCRA:
-:data:`REQUEST_BURST`, then one every :data:`REQUEST_EVERY_NS`; the excess
-dropped unanswered, counted in ``excess``), then the size, and hands the
-query to a bounded inbox (:data:`MAX_PENDING`; more dropped, counted in
-``busy``); it never blocks. Every refusal is reported in the log by a thread
-of its own, at most once a :data:`LOG_PERIOD_S` (count, why the last).
-Why the bound: a keyless flood kept the serving thread busy with tag
-checks, and a Python thread that never waits held the GIL from the
-commander's loop past the device nodes' watchdog (issue 25).
+share of one thread. Zenoh's callback checks the size (unread), then the
+request's header tag (one copy of its 68 bytes, a channel of its own:
+junk is dropped unanswered, counted in ``refused``), then a rate bound (a
+GCRA: :data:`REQUEST_BURST`, then one every :data:`REQUEST_EVERY_NS`; the
+excess dropped unanswered, counted in ``excess``), and hands the query to
+a bounded inbox (:data:`MAX_PENDING`; more dropped, counted in ``busy``);
+it never blocks. Every refusal is reported in the log by a thread of its
+own, at most once a :data:`LOG_PERIOD_S` (count, why the last). Why the
+bound: a keyless flood kept the serving thread busy with tag checks, and
+a Python thread that never waits held the GIL from the commander's loop
+past the device nodes' watchdog (issue 25). Why after the header tag:
+a bound, or an inbox, that junk reaches is one junk spends, and a keyless
+flood then refused the ground's genuine requests (issue 25): now only
+authentic requests (or their replays, refused by the serving thread)
+spend them.
 
 One serving thread checks each request (tag, stamp, not served before, a
 range of this run), drops and counts one that does not check, reads the
@@ -113,9 +119,13 @@ class RecorderServer(QueryWorker):
         self.recorder = recorder
         self._mono = mono_ns
         self._tat = -(1 << 63)  # the rate bound's theoretical arrival time
-        self._rate_lock = threading.Lock()
+        # zenoh's threads: the header tag (with a channel of its own: the
+        # serving thread's is not shared) and the rate bound, under one lock.
+        self._rx_lock = threading.Lock()
+        self._rx_channel = channel.twin() if channel is not None else None
         self.excess = 0
-        """Requests dropped unanswered, unread, beyond the rate bound (module doc)."""
+        """Authentic requests dropped unanswered beyond the rate bound (module doc)."""
+        self._refused_tag = 0  # by their header tag, on zenoh's threads (in `refused`)
         self._channel = channel
         self._now = now_ns
         self._max_age = max_age_ns
@@ -139,6 +149,13 @@ class RecorderServer(QueryWorker):
         self.queryable = session.declare_queryable(
             key_expr, zenoh.handlers.Callback(self.on_query, indirect=False)
         )
+
+    @property
+    def refused(self) -> int:
+        """Requests dropped unanswered because they did not check: of a wrong
+        size or header tag (zenoh's callback), or any other check (the
+        serving thread)."""
+        return super().refused + self._refused_tag
 
     @property
     def refusals(self) -> int:
@@ -171,10 +188,33 @@ class RecorderServer(QueryWorker):
             self.log_refusals()
 
     def on_query(self, query: Any) -> None:
-        """The queryable's callback: the rate bound, then (the base's) the
-        size and the hand-off (module doc). Never blocks beyond a short lock."""
+        """The queryable's callback: the size (unread), the header tag, the
+        rate bound, then (the base's) the hand-off (module doc). Never blocks
+        beyond a short lock; never raises for what arrives."""
+        p = query.payload
+        n = 0 if p is None else len(p)
+        why = self.size_refusal(n)
+        if why is None and self._rx_channel is not None:
+            # A request is shorter than the header tag's bytes (codecs/FORMAT.md
+            # §6.1): its header tag is all the serving thread's tag check
+            # would refuse junk by, for a copy of 68 bytes.
+            data = p.to_bytes()
+            with self._rx_lock:
+                try:
+                    self._rx_channel.open_header(data)
+                except AuthError as exc:
+                    why = str(exc)
+        if why is not None:
+            with self._rx_lock:
+                if n == self._req_len:
+                    self._refused_tag += 1
+                else:
+                    self._refused_rx += 1
+                self.last_refusal = why
+            query.drop()
+            return
         now = self._mono()
-        with self._rate_lock:
+        with self._rx_lock:
             tat = max(self._tat, now)
             over = tat - now > _REQUEST_TAU_NS
             if over:
