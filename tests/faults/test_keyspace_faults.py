@@ -776,9 +776,9 @@ class RecorderQueryH(Harness):
 
     def counts(self) -> dict[str, int]:
         s = self.server
-        # Junk of the right size is refused by its header tag in zenoh's
-        # callback, the rest of the checks on the serving thread: both bad.
-        return {"size": s._refused_rx, "bad": s._refused_tag + s._refused_checked}
+        # Junk of the right size is refused by its header tag (or stamp) in
+        # zenoh's callback, the rest of the checks on the serving thread: both bad.
+        return {"size": s._refused_rx, "bad": s._refused_early + s._refused_checked}
 
     def extreme(self, hi: bool) -> bytes:
         if hi:

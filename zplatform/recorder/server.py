@@ -4,7 +4,8 @@
 (formats: :mod:`~.format`) and costs the control loop nothing but the GIL's
 share of one thread. Zenoh's callback checks the size (unread), then the
 request's header tag (one copy of its 68 bytes, a channel of its own:
-junk is dropped unanswered, counted in ``refused``), then a rate bound (a
+junk is dropped unanswered, counted in ``refused``) and its stamp (within
+``max_age_ns``: an older replay is refused alike), then a rate bound (a
 GCRA: :data:`REQUEST_BURST`, then one every :data:`REQUEST_EVERY_NS`; the
 excess dropped unanswered, counted in ``excess``), and hands the query to
 a bounded inbox (:data:`MAX_PENDING`; more dropped, counted in ``busy``);
@@ -125,7 +126,7 @@ class RecorderServer(QueryWorker):
         self._rx_channel = channel.twin() if channel is not None else None
         self.excess = 0
         """Authentic requests dropped unanswered beyond the rate bound (module doc)."""
-        self._refused_tag = 0  # by their header tag, on zenoh's threads (in `refused`)
+        self._refused_early = 0  # by header tag or stamp, on zenoh's threads (in `refused`)
         self._channel = channel
         self._now = now_ns
         self._max_age = max_age_ns
@@ -153,9 +154,9 @@ class RecorderServer(QueryWorker):
     @property
     def refused(self) -> int:
         """Requests dropped unanswered because they did not check: of a wrong
-        size or header tag (zenoh's callback), or any other check (the
-        serving thread)."""
-        return super().refused + self._refused_tag
+        size, header tag or stamp (zenoh's callback), or any other check
+        (the serving thread)."""
+        return super().refused + self._refused_early
 
     @property
     def refusals(self) -> int:
@@ -201,13 +202,19 @@ class RecorderServer(QueryWorker):
             data = p.to_bytes()
             with self._rx_lock:
                 try:
-                    self._rx_channel.open_header(data)
+                    body = self._rx_channel.open_header(data)
                 except AuthError as exc:
                     why = str(exc)
+                else:
+                    # The stamp is authentic now: a replay older than the
+                    # bound spends no share of the rate bound either.
+                    age = self._now() - REQUEST.unpack_from(body)[4]
+                    if abs(age) > self._max_age:
+                        why = f"a request stamped {age / 1e9:+.3f} s from this node's clock"
         if why is not None:
             with self._rx_lock:
                 if n == self._req_len:
-                    self._refused_tag += 1
+                    self._refused_early += 1
                 else:
                     self._refused_rx += 1
                 self.last_refusal = why
