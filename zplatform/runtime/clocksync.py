@@ -294,6 +294,16 @@ or refused by the rate bound) that it keeps, a preallocated ring: a hello
 carrying one of them (a replay) is refused, counted stale, and spends
 nothing of the bound (:class:`ClockResponder`)."""
 
+
+class _Payload(Protocol):
+    """What :meth:`RunAsker.screen` reads: ``zenoh.ZBytes`` (its length is
+    free, ``to_bytes`` copies)."""
+
+    def __len__(self) -> int: ...
+
+    def to_bytes(self) -> bytes: ...
+
+
 _Checked = tuple[int, bytes, int, int]
 """A clock query :meth:`ClockResponder.check` passed: ``(index, nonce, t1, t2)``."""
 
@@ -607,6 +617,11 @@ class RunAsker:
         self.run = run if run is not None else Run()
         self._seal = channel(keys, "run_hello")
         self._open = channel(keys, "run_answer", self.run)
+        # screen()'s: zenoh's threads, a channel and a lock of their own.
+        self._screen = self._open.twin() if self._open is not None else None
+        self._screen_lock = threading.Lock()
+        self.screened = 0
+        """Answers :meth:`screen` refused (zenoh's threads write it)."""
         self._nonce = b""
         self.refused_bad = 0
         self.refused_other = 0
@@ -620,6 +635,36 @@ class RunAsker:
         body = RUN_HELLO.pack(_H_MAGIC, _VERSION, self._nonce)
         seal = self._seal
         return bytes(seal.seal(body)) if seal is not None else body
+
+    def screen(self, payload: _Payload) -> bytes | None:
+        """The bytes of ``payload`` (a reply's, ``zenoh.ZBytes``) when it may
+        be the answer to the latest hello: its length (unread), then its
+        header tag (any run) and the hello's nonce echoed, both within the
+        header tag's bytes (no MAC over the body); else None. For zenoh's
+        reply callback, before the hand-off (thread-safe; never raises,
+        never blocks beyond a short lock): junk and answers to other hellos
+        are refused there (counted in :attr:`screened`), so a flood of them
+        never displaces the answer in a bounded mailbox. :meth:`check`
+        decides."""
+        ch = self._screen
+        n = len(payload)
+        with self._screen_lock:
+            if n != RUN_ANSWER.size + (TAG_LEN if ch is not None else 0):
+                self.screened += 1
+                return None
+            raw = payload.to_bytes()  # 59 bytes at most
+            if ch is None:
+                return raw  # without tags, junk cannot be told: check() judges
+            nonce = self._nonce  # one attribute read: hello() may set the next
+            try:
+                body = ch.open_header(raw, any_run=True)
+            except AuthError:
+                self.screened += 1
+                return None
+            if not nonce or body[3 : 3 + NONCE_LEN] != nonce:
+                self.screened += 1
+                return None
+        return raw
 
     def check(self, raw: bytes | bytearray | memoryview) -> bool:
         """Whether ``raw`` is the answer to the latest hello (class doc);
