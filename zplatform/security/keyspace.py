@@ -401,8 +401,8 @@ KEYSPACE: tuple[KeyRow, ...] = (
                 "header first (its own tag of the sample's, one per reader): numbered or "
                 "stamped later than the last taken, stamped at most the clock bound and a "
                 "period ahead of the reader's clock; then one pass over the array",
-                "one slot, newest wins, one per poll; RATE_BURST ahead of one every "
-                "rate_divisor loops",
+                "one slot, the newest whose header passed wins (zenoh's callback checks "
+                "it first), one per poll; RATE_BURST ahead of one every rate_divisor loops",
                 run_bound=True,
             ),
         ),
