@@ -399,3 +399,50 @@ def test_the_event_intake_refuses_junk_and_passes_replays_on_without_a_body_mac(
         assert reader.forged(key, os.urandom(len(record)))
         assert not reader.forged(key, record)
     assert macs.n == 0
+
+
+# -- frames dropped unchecked are in the Data Vector (issue 25) ------------------
+
+
+def test_a_dn_counts_triggers_dropped_unchecked_in_its_data_vector(macs: _Macs) -> None:
+    """Issue 25: the triggers a DN's intake dropped after their header, their
+    body's MAC unchecked because the loop's budget was spent (a man in the
+    middle splicing the fresh trigger's header onto junk), were kept on the
+    intake only. Now the driver hands them to the logic: counted in
+    ``dn0_unchecked_frames`` (and in ``dn0_bad_frames``, as refused), and
+    the refusal event says how many."""
+    intake: TriggerIntake[None] = TriggerIntake(FLIGHT, "dn0", channel(FKEYS, "cn_to_dn0"))
+    cn = ControlLogic(FLIGHT, keys=FKEYS.for_node("cn"), epoch=T0)
+    dn = DeviceLogic(FLIGHT, "dn0", keys=FKEYS.for_node("dn0"))
+    t1 = bytes(cn.begin(1, T0 + FLIGHT.period_ns)[0])
+    for _ in range(10):
+        assert not intake.admit(Bytes(_spliced(t1)), None)
+    size, bad, stale = intake.take_counts()
+    dn.refused(size, bad, stale, T0, unchecked=intake.took_unchecked)
+    assert dn.dv.get("dn0_bad_frames") == 10
+    assert dn.dv.get("dn0_unchecked_frames") == 10 - SPARE
+    (ev,) = [e for e in dn.events.drain() if e.id == "bad_frame"]
+    assert f"{10 - SPARE} of them dropped after their header, unchecked" in ev.text
+
+
+def test_a_cn_counts_requests_dropped_unchecked_in_its_data_vector(macs: _Macs) -> None:
+    """The same on the control node: command requests whose genuine header
+    (a number above every one seen) carries another body, past the budget,
+    reach the loop's refusals (``cmd_unchecked``) and ``cn_unchecked_frames``."""
+    from zplatform.control.intake import CnRefusals
+
+    up = Uplink(M, KEYS)
+    intake = RequestIntake(M, channel(KEYS, "gn_to_cn", Run(T0)), T0, lambda: 0, 16)
+    fresh = bytes(up.frame("NOOP", 1, 0, 0.0, 0, T0))
+    for _ in range(10):
+        assert not intake.admit(Bytes(_spliced(fresh)), None)
+    r = CnRefusals()
+    intake.take_refusals(r)
+    assert (r.cmd_bad, r.cmd_unchecked) == (10, 10 - SPARE)
+    cn = ControlLogic(M, keys=KEYS, epoch=T0)
+    cn.begin(1, T0 + M.period_ns)
+    cn.finish((), refused=r)
+    assert cn.dv.get("cn_bad_frames") == 10
+    assert cn.dv.get("cn_unchecked_frames") == 10 - SPARE
+    (ev,) = [e for e in cn.events.drain() if e.id == "bad_frame"]
+    assert f"{10 - SPARE} of them dropped after their header, unchecked" in ev.text

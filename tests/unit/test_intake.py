@@ -419,6 +419,32 @@ def test_refusals_are_counted_evented_once_a_second_recorded_and_replayed(
     assert res.identical and res.loops == 300, res.first_difference
 
 
+def test_frames_dropped_unchecked_are_counted_recorded_and_replayed(tmp_path: Path) -> None:
+    """Issue 25: the frames an intake dropped after their header for want of
+    body-MAC budget were not in the Data Vector. Now the loop's refusals
+    carry them (``reply_unchecked``, ``cmd_unchecked``), ``cn_unchecked_frames``
+    counts them, the recording keeps them, and a replay is identical."""
+    cn = ControlLogic(M, keys=KEYS, epoch=T0)
+    rec = Recorder(tmp_path / "rec", M, LED, cn.dv)
+    cn.recorder = rec
+    r = CnRefusals()
+    for n in range(1, 101):
+        cn.begin(n, T0 + n * PERIOD)
+        r.clear()
+        r.reply_bad, r.reply_unchecked, r.cmd_bad, r.cmd_unchecked = 5, 3, 4, 2
+        cn.finish((), refused=r)
+    rec.close()
+    assert cn.dv.get("cn_bad_frames") == 100 * 9
+    assert cn.dv.get("cn_unchecked_frames") == 100 * 5
+    bad = [e for e in cn.events.drain() if e.id == "bad_frame"]
+    assert bad and all("dropped after their header, unchecked" in e.text for e in bad)
+    (loop,) = [x for x in RecordReader(tmp_path / "rec").loops() if x.loop == 7]
+    got = CnRefusals().set_fields(loop.refused)
+    assert (got.reply_unchecked, got.cmd_unchecked) == (3, 2)
+    res = replay(tmp_path / "rec", LED)
+    assert res.identical and res.loops == 100, res.first_difference
+
+
 def test_a_dn_counts_refused_queries_and_events_them_once_a_second() -> None:
     dn = DeviceLogic(M, "dn0", keys=KEYS)
     for k in range(300):

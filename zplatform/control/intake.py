@@ -5,14 +5,11 @@ One intake per key a node takes frames on (:class:`TriggerIntake`,
 :class:`ProbeIntake`, :class:`MirrorIntake`, :class:`RequestIntake`,
 :class:`TelemetryIntake`, and :class:`ReplyCheck` for the CN's sync
 replies), run in the zenoh callback. Its checks, the first failure
-winning: size (unread), one bounded copy (none for
-:meth:`Intake.check_view`), the header tag, freshness as far as the
-header tells it, the body-MAC budget (:data:`MAC_SPARE`), then the body's
-MAC, the rest of freshness and a per-asker rate bound where the key has
-one (:class:`ProbeIntake`): junk and replays never cost a MAC over their
-body, and spend no bound a genuine frame needs (issue 25; a key without
-tags, in a mission that does not authenticate, has its bound before the
-copy). A refused frame is only counted. :meth:`Intake.admit`
+winning: size (unread), one copy (none for :meth:`Intake.check_view`),
+the header tag, freshness from the header, the body-MAC budget
+(:data:`MAC_SPARE`), the body's MAC, the rest of freshness, a per-asker
+rate bound (:class:`ProbeIntake`): junk and replays never cost a body MAC
+nor spend a bound (issue 25). A refused frame is only counted. :meth:`Intake.admit`
 puts an admitted one (its bytes) in a bounded :class:`~.handoff.Mailbox`
 whose last item is the newest valid frame; :meth:`Intake.check` only
 checks. Never blocks beyond two short locks, never raises for what
@@ -757,11 +754,12 @@ class RequestIntake(Intake[None]):
     def take_refusals(self, out: CnRefusals) -> None:
         """Put what this intake refused since the last call into ``out``'s
         command fields (:class:`CnRefusals`: ``cmd_size``, ``cmd_bad``,
-        ``cmd_stale`` and the refusal to report: the stale one with the
+        ``cmd_stale``, ``cmd_unchecked`` and the refusal to report: the stale one with the
         highest number, else ``REJECTED_AUTH``/0 for bad tags alone), then
         zero the counts. The one way every CN driver (the live node, the
         lockstep runner) reads its request intake. Allocates nothing."""
         out.cmd_size, out.cmd_bad, out.cmd_stale = self.take_counts()
+        out.cmd_unchecked = self.took_unchecked
         if out.cmd_stale:
             out.cmd_status, out.cmd_seq = self.reported
         elif out.cmd_bad:
@@ -810,7 +808,11 @@ class CnRefusals:
     the highest number; ``REJECTED_AUTH``/0 when only bad tags came). Not a
     refusal, but the sync's count of the loop too (so a replay counts it):
     ``query_recovered``, the device nodes whose querier was declared again
-    (:class:`~zplatform.runtime.queries.Unanswered`; not in :attr:`total`)."""
+    (:class:`~zplatform.runtime.queries.Unanswered`; not in :attr:`total`).
+    Of the refused, those dropped after their header for want of body-MAC
+    budget (:attr:`Intake.took_unchecked`, :data:`MAC_SPARE`; already in
+    the counts above, so not in :attr:`total`): ``reply_unchecked``,
+    ``cmd_unchecked``."""
 
     __slots__ = (
         "cmd_bad",
@@ -818,11 +820,13 @@ class CnRefusals:
         "cmd_size",
         "cmd_stale",
         "cmd_status",
+        "cmd_unchecked",
         "query_recovered",
         "reply_bad",
         "reply_foreign",
         "reply_size",
         "reply_stale",
+        "reply_unchecked",
     )  # CN_REFUSALS: their recorded order
 
     def __init__(self) -> None:
@@ -833,6 +837,7 @@ class CnRefusals:
         self.cmd_size = self.cmd_bad = self.cmd_stale = 0
         self.cmd_status = self.cmd_seq = 0
         self.query_recovered = 0
+        self.reply_unchecked = self.cmd_unchecked = 0
 
     @property
     def total(self) -> int:
@@ -868,6 +873,8 @@ CN_REFUSALS = (
     "cmd_status",
     "cmd_seq",
     "query_recovered",
+    "reply_unchecked",
+    "cmd_unchecked",
 )
 """:class:`CnRefusals`' fields in their recorded order."""
 

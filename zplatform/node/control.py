@@ -907,6 +907,7 @@ class ControlNode:
         req = self._requests
         if req is None:
             r.cmd_size = r.cmd_bad = r.cmd_stale = r.cmd_status = r.cmd_seq = 0
+            r.cmd_unchecked = 0
             return r
         req.take_refusals(r)
         return r

@@ -2,22 +2,15 @@
 
 :class:`RecorderServer` declares a queryable on ``{vehicle}/cn/recorder``
 (formats: :mod:`~.format`) and costs the control loop nothing but the GIL's
-share of one thread. Zenoh's callback checks the size (unread), then the
-request's header tag (one copy of its 68 bytes, a channel of its own:
-junk is dropped unanswered, counted in ``refused``) and its stamp (within
-``max_age_ns``: an older replay is refused alike), then a rate bound (a
-GCRA: :data:`REQUEST_BURST`, then one every :data:`REQUEST_EVERY_NS`; the
-excess dropped unanswered, counted in ``excess``), and hands the query to
-a bounded inbox (:data:`MAX_PENDING`; more dropped, counted in ``busy``);
-it never blocks. Every refusal is reported in the log by a thread of its
-own, at most once a :data:`LOG_PERIOD_S` (count, why the last). Why the
-bound: a keyless flood kept the serving thread busy with tag checks, and
-a Python thread that never waits held the GIL from the commander's loop
-past the device nodes' watchdog (issue 25). Why after the header tag:
-a bound, or an inbox, that junk reaches is one junk spends, and a keyless
-flood then refused the ground's genuine requests (issue 25): now only
-authentic requests (or their replays, refused by the serving thread)
-spend them.
+share of one thread. Zenoh's callback checks the size (unread), the
+request's header tag and stamp (a channel of its own: junk and old
+replays dropped unanswered, counted in ``refused``), then a rate bound
+(a GCRA: :data:`REQUEST_BURST`, then one every :data:`REQUEST_EVERY_NS`;
+the excess counted in ``excess``), and hands the query to a bounded inbox
+(:data:`MAX_PENDING`; more counted in ``busy``); it never blocks. A
+thread of its own logs refusals at most once a :data:`LOG_PERIOD_S`. The
+bound keeps a replayer from holding the GIL from the loop with tag checks;
+it comes after the tag so junk never spends it (issue 25).
 
 One serving thread checks each request (tag, stamp, not served before, a
 range of this run), drops and counts one that does not check, reads the

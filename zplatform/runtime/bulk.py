@@ -15,11 +15,8 @@ counted (``bad``, ``stale``), evented once a second (docs/architecture.md#intra-
 
 Contract: :meth:`BulkWriter.publish` copies the array once per path and, with
 no chunk free, counts a drop (never raises, never a heap copy). A reader's
-zenoh callback copies a sample of the right size out of zenoh, checks its
-header (tag, stamp: no pass over the array) and only then stores it in a
-one-slot mailbox (the newest header-valid sample wins: junk never
-displaces it); :meth:`BulkReader.poll`, on the loop's thread, checks it
-whole and copies it into the array.
+zenoh callback keeps a sample whose header passed in a one-slot mailbox
+(junk never displaces it); :meth:`BulkReader.poll` copies it into the array.
 """
 
 from __future__ import annotations

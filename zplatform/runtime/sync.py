@@ -538,17 +538,19 @@ class ControlSync:
         (its ``reply_*`` fields; then zeroed), and the queriers declared again
         since (``query_recovered``: the loop counts them in
         ``cn_query_recoveries``). The loop thread, once a loop."""
-        size = bad = stale = 0
+        size = bad = stale = unchecked = 0
         for c in self._checks:
             s, b, st = c.take_counts()
             size += s
             bad += b
             stale += st
+            unchecked += c.took_unchecked
         with self._count_lock:
             foreign, oversize = self._foreign, self._oversize
             self._foreign = self._oversize = 0
         out.reply_size, out.reply_bad, out.reply_stale = size + oversize, bad, stale
         out.reply_foreign = foreign
+        out.reply_unchecked = unchecked
         out.query_recovered, self._recovered_n = self._recovered_n, 0
 
     def begin(
@@ -1076,10 +1078,12 @@ class DeviceSync:
         finally:
             size, bad, stale = self.intake.take_counts()
             now = self._now()
-            logic.refused(size, bad, stale, now)
+            logic.refused(size, bad, stale, now, unchecked=self.intake.took_unchecked)
             if self.probes is not None:
                 size, bad, stale = self.probes.take_counts()
-                logic.probes_refused(size, bad, stale, self.probes.excess, now)
+                logic.probes_refused(
+                    size, bad, stale, self.probes.excess, now, unchecked=self.probes.took_unchecked
+                )
 
     def _answer(self, item: tuple[zenoh.Query, bytes], logic: DeviceLogic) -> None:
         """Answer one probe question (:meth:`DeviceLogic.probe`)."""
