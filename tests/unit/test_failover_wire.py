@@ -461,3 +461,55 @@ def test_a_mirror_stamped_beyond_the_clock_bound_is_refused_and_counted() -> Non
     assert sb.bad == 2 and sb.mirrored == 1
     assert sb.mirror(genuine, at(2)) and sb.mirrored == 2
     assert sb.origin == at(1)
+
+
+def test_junk_probe_replies_from_many_peers_never_push_a_device_nodes_reply_out(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """Issue 25: a probe round's replies waited in a bounded mailbox (four
+    per device node) unchecked but for one reply per replier, so keyless
+    peers answering from many sessions (junk, or replies to earlier
+    questions) after the device node pushed its reply out, and the round
+    found no answer (a takeover delayed). Now zenoh's callback screens each
+    reply (header tag, node, the question's nonce) before the mailbox: the
+    junk is refused there, counted, and the device node's reply is taken."""
+    from types import SimpleNamespace
+
+    from zplatform.runtime import sync
+    from zplatform.runtime.transport import KeySpace
+
+    sb = _standby()
+    assert sb.mirror(_mirror(_commander(), 1), at(1))
+    asks = sb.ask(5, at(5))
+    genuine = [_dn_reply(sb, i) for i in range(len(FLIGHT.device_nodes))]
+    earlier = [bytes(r) for r in genuine]  # replies to this round: replayed next round
+    asks = sb.ask(8, at(8))  # a new round, new nonces
+    genuine = [_dn_reply(sb, i) for i in range(len(FLIGHT.device_nodes))]
+    peers = iter(range(10**6))
+
+    def reply(data: bytes) -> Any:  # each from a zenoh session of its own
+        ok = SimpleNamespace(payload=Bytes(data))
+        return SimpleNamespace(ok=ok, replier_id=SimpleNamespace(zid=next(peers)))
+
+    def ask(session: Any, key: str, handler: Any, **kw: Any) -> None:
+        i = keys.index(key)
+        handler(reply(genuine[i]))  # the device node answers first
+        for _ in range(10):
+            handler(reply(bytes(len(genuine[i]))))  # junk of the right size
+            handler(reply(earlier[i]))  # its reply to the question before
+
+    space = KeySpace(FLIGHT.vehicle)
+    keys = [space.probe(dn) for dn in FLIGHT.device_nodes]
+    monkeypatch.setattr(sync, "ask", ask)
+    cn_b = KEYS.for_node("cn_b")
+    screens = [cn_b.channel(f"probe_{dn}_to_cn", sb.logic.auth_run) for dn in FLIGHT.device_nodes]
+    probes = sync.ProbeSync(
+        None,  # type: ignore[arg-type]
+        space,
+        FLIGHT.device_nodes,
+        50_000_000,
+        screens=screens,
+    )
+    assert probes.round(asks, sb.answer) == len(FLIGHT.device_nodes)
+    assert probes.screened == 20 * len(FLIGHT.device_nodes)
+    assert all(a is not None for a in sb.answers)

@@ -272,7 +272,15 @@ class ControlNode:
                 zenoh.handlers.Callback(self._on_mirror, indirect=False),
                 allowed_origin=zenoh.Locality.REMOTE,
             )
-            self.probes = ProbeSync(s, space, mission.device_nodes, probe_wait_ns(mission))
+            # Its own channels for the replies' screen (zenoh's threads):
+            # junk never pushes a device node's reply out (issue 25).
+            screens = [
+                channel(keys, f"probe_{dn}_to_cn", self.logic.auth_run)
+                for dn in mission.device_nodes
+            ]
+            self.probes = ProbeSync(
+                s, space, mission.device_nodes, probe_wait_ns(mission), screens=screens
+            )
             self._peer = next(n for n in mission.control_nodes if n != name)
             self._peer_seen = False
             self._ready_token: zenoh.LivelinessToken | None = None

@@ -32,9 +32,11 @@ import zenoh
 
 from .. import trace as tracer
 from ..config import Mission
+from ..control.fencing import ask_nonce, screen_reply
 from ..control.handoff import Handoff, Mailbox, Waker
 from ..control.intake import CnRefusals, ProbeIntake, ReplyCheck, TriggerIntake
 from ..control.loop import ControlLogic, DeviceLogic
+from ..core.auth import Channel
 from ..core.codec import BundleEncoder
 from ..errors import IntraHostError
 from .intrahost import (
@@ -1174,16 +1176,31 @@ class ProbeSync:
     timeout: an impostor declaring a "complete" probe queryable cannot take
     the question, a congested link cannot block the asker). Replies wait in
     a bounded mailbox (a peer answering many times cannot grow memory); the
-    caller checks each one (tag, nonce). Not thread-safe: one thread asks."""
+    caller checks each one (tag, nonce). With ``screens`` (each device node's
+    ``probe_dnX_to_cn`` channel, this object's own), zenoh's callback
+    screens each reply first (:func:`~zplatform.control.fencing.screen_reply`:
+    header tag, node, the question's nonce): junk and replies to other
+    questions, from however many peers, never push a device node's reply out
+    of the mailbox (issue 25; counted in :attr:`screened`). Not thread-safe:
+    one thread asks."""
 
     def __init__(
-        self, session: zenoh.Session, keys: KeySpace, dns: Sequence[str], timeout_ns: int
+        self,
+        session: zenoh.Session,
+        keys: KeySpace,
+        dns: Sequence[str],
+        timeout_ns: int,
+        screens: Sequence[Channel | None] | None = None,
     ) -> None:
         self.session = session
         self._keys = [keys.probe(dn) for dn in dns]
         self.timeout_ns = timeout_ns
         self._box: Mailbox[tuple[int, bytes]] = Mailbox(4 * max(len(dns), 1))
         box = self._box
+        self._nonces = [b""] * len(dns)  # each question's, for the screen
+        self._screen_lock = threading.Lock()  # the screens' channels: zenoh's threads
+        self.screened = 0
+        """Replies the screen refused (zenoh's threads write it)."""
 
         # One reply per replier per question is read (a DN answers once): a
         # peer flooding answers cannot push the DN's out of the mailbox.
@@ -1191,11 +1208,20 @@ class ProbeSync:
 
         def make(i: int) -> Callable[[zenoh.Reply], None]:
             cap = self._caps[i]
+            screen = screens[i] if screens is not None else None
 
             def on_reply(reply: zenoh.Reply) -> None:  # zenoh's thread: hand off
                 ok = reply.ok
-                if ok is not None and len(ok.payload) <= _ERR_MAX and cap.admit(reply):
-                    box.put((i, ok.payload.to_bytes()))
+                if ok is None or len(ok.payload) > _ERR_MAX:
+                    return
+                data = ok.payload.to_bytes()
+                if screen is not None:
+                    with self._screen_lock:
+                        if not screen_reply(screen, data, i, self._nonces[i]):
+                            self.screened += 1
+                            return
+                if cap.admit(reply):
+                    box.put((i, data))
 
             return on_reply
 
@@ -1211,6 +1237,7 @@ class ProbeSync:
         timeout_s = max(self.timeout_ns / 1e9, 0.005)
         for i, question in enumerate(asks):
             self._caps[i].reset()
+            self._nonces[i] = ask_nonce(question)  # one reference swap: read by the screen
             # Every queryable on dnX/probe (a peer that declares a "complete"
             # one cannot take the question from the DN); `answer` takes only
             # the DN's (tag, nonce).
