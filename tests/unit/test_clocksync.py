@@ -83,6 +83,9 @@ class _Record:
 class _Payload:
     raw: bytes
 
+    def __len__(self) -> int:
+        return len(self.raw)
+
     def to_bytes(self) -> bytes:
         return self.raw
 
@@ -380,10 +383,14 @@ def test_a_replayed_real_reply_is_refused_and_counted() -> None:
 
 
 def test_a_late_rogue_is_never_read() -> None:
+    """A rogue answering after the CN: the exchange ends at the CN's answer;
+    the rogue's reply is refused in zenoh's callback (its header tag,
+    counted), never read by the exchange."""
     s = _sim(rogues=[_rogue(30 * MS)], rogues_first=False)
     link = _link()
     est = estimate_offset(s, KEYS, s.now_ns, link, exchanges=10)
-    assert abs(est.offset_ns - (s.cn_node - s.dn_node)) <= 1 and link.refused == 0
+    assert abs(est.offset_ns - (s.cn_node - s.dn_node)) <= 1
+    assert link.refused == link.screened == 10
 
 
 def test_the_cn_answers_only_its_dns_queries() -> None:
@@ -435,15 +442,35 @@ def test_a_congested_link_drops_clock_queries_and_counts_timeouts(fn: Any) -> No
 
 
 @pytest.mark.parametrize("fn", [estimate_offset, estimate_offset_zenoh])
-def test_a_flooding_rogue_gets_one_reply_read_per_exchange(fn: Any) -> None:
+def test_a_flooding_rogue_gets_no_reply_read(fn: Any) -> None:
     """A peer without the key answers every query 2000 times before the CN:
-    one of its replies per exchange is read (and refused), the rest are let
-    go in zenoh's callback, and the CN's answer is still the one taken."""
+    each of its replies is refused in zenoh's callback by its header tag
+    (ClockLink.screen, counted), none reaches the exchange, and the CN's
+    answer is the one taken."""
     s = _sim(rogues=[_rogue(30 * MS)], flood=2000)
     link = _link()
     est = fn(s, KEYS, s.now_ns, link, exchanges=20)
     assert abs(est.offset_ns - (s.cn_node - s.dn_node)) <= 1, est
-    assert (link.refused_bad, link.refused_other, link.timeouts) == (20, 0, 0)
+    assert (link.refused_bad, link.refused_other, link.timeouts) == (20 * 2000, 0, 0)
+    assert link.screened == 20 * 2000
+
+
+def test_junk_replies_from_many_peers_never_crowd_out_the_cns() -> None:
+    """Issue 25: an exchange's replies waited unchecked in a mailbox of
+    CLOCK_REPLIERS_MAX + 1 (one per replier, the oldest let go), so keyless
+    peers answering from more sessions right after the CN, before the
+    exchange read it, pushed the CN's answer out and every exchange timed
+    out (the node never synchronised). Now zenoh's callback screens each
+    reply (length, header tag, the query's nonce) first: the junk is refused
+    there, counted, and the CN's answer is taken."""
+    from zplatform.runtime.clocksync import CLOCK_REPLIERS_MAX
+
+    rogues = [_rogue(k * MS) for k in range(2 * CLOCK_REPLIERS_MAX)]
+    s = _sim(rogues=rogues, rogues_first=False)
+    link = _link()
+    est = estimate_offset(s, KEYS, s.now_ns, link, exchanges=10)
+    assert abs(est.offset_ns - (s.cn_node - s.dn_node)) <= 1, est
+    assert link.timeouts == 0 and link.screened == 10 * 2 * CLOCK_REPLIERS_MAX
 
 
 def test_a_dns_clock_timeouts_are_counted_and_evented_at_most_once_a_second() -> None:

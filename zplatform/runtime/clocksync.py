@@ -165,6 +165,15 @@ class ZenohTimestampsError(ClockSyncError):
     """
 
 
+class _Payload(Protocol):
+    """What :meth:`ClockLink.screen` and :meth:`RunAsker.screen` read:
+    ``zenoh.ZBytes`` (its length is free, ``to_bytes`` copies)."""
+
+    def __len__(self) -> int: ...
+
+    def to_bytes(self) -> bytes: ...
+
+
 class ClockLink:
     """A DN's end of the clock exchange (module doc), sans-IO.
 
@@ -199,9 +208,14 @@ class ClockLink:
             self.index = mission.device_nodes.index(dn)
             self._seal = channel(keys, f"clock_{dn}_to_cn", self._asking)
             self._open = channel(keys, f"clock_cn_to_{dn}", self.run)
-        self.refused_bad = 0
-        self.refused_other = 0
+        # What check() refused (the estimating thread's) and what screen()
+        # refused (zenoh's threads'): one writer each, summed when read.
+        self._bad = self._other = 0
+        self._screened_bad = self._screened_other = 0
         self.timeouts = 0
+        # screen()'s: zenoh's threads, a channel and a lock of their own.
+        self._screen = self._open.twin() if self._open is not None else None
+        self._screen_lock = threading.Lock()
         self._sent = (b"", 0)  # the last query's nonce and stamp
 
     def query(self, t1: int) -> tuple[bytes, bytes]:
@@ -215,6 +229,35 @@ class ClockLink:
         body = _QUERY.pack(_Q_MAGIC, _VERSION, self.index, nonce, t1)
         seal = self._seal
         return (bytes(seal.seal(body)) if seal is not None else body), nonce
+
+    def screen(self, payload: _Payload, nonce: bytes) -> bytes | None:
+        """The bytes of ``payload`` (a reply's, ``zenoh.ZBytes``) when it may
+        be the CN's reply to the query with ``nonce``: its length (unread),
+        its header tag (any run) and the nonce echoed, all within the header
+        tag's bytes (no MAC over the body); else None, counted in
+        :attr:`refused_bad` or :attr:`refused_other` (and :attr:`screened`).
+        For zenoh's reply callback, before the hand-off
+        (thread-safe: a channel and a lock of its own; never raises):
+        junk never takes a place a genuine reply needs. :meth:`check`
+        decides."""
+        ch = self._screen
+        n = len(payload)
+        with self._screen_lock:
+            if n != _REPLY.size + (TAG_LEN if ch is not None else 0):
+                self._screened_bad += 1
+                return None
+            raw = payload.to_bytes()
+            if ch is None:
+                return raw  # without tags, junk cannot be told: check() judges
+            try:
+                body = ch.open_header(raw, any_run=True)
+            except AuthError:
+                self._screened_bad += 1
+                return None
+            if body[4 : 4 + NONCE_LEN] != nonce:
+                self._screened_other += 1  # authentic: another exchange's (a replay)
+                return None
+        return raw
 
     def check(self, raw: bytes, nonce: bytes) -> tuple[int, int, int] | None:
         """``(t1, t2, t3)`` of the CN's reply to the query with ``nonce``;
@@ -234,19 +277,19 @@ class ClockLink:
             # §6.1): a reply to another query (a replay) is refused before
             # the body's MAC.
             if body[4 : 4 + NONCE_LEN] != nonce:
-                self.refused_other += 1
+                self._other += 1
                 return None
             if ch is not None:
                 ch.check_body(raw)
         except AuthError:
-            self.refused_bad += 1
+            self._bad += 1
             return None
         magic, version, index, echo, t1, t2, t3 = _REPLY.unpack(body)
         if magic != _R_MAGIC or version != _VERSION or index != self.index:
-            self.refused_bad += 1
+            self._bad += 1
             return None
         if echo != nonce or not _believable(t1, t2, t3, self._sent, nonce):
-            self.refused_other += 1
+            self._other += 1
             return None
         if self._open is not None and echo == self._sent[0]:
             # Authentic and the answer to this node's latest, fresh, query:
@@ -254,6 +297,21 @@ class ClockLink:
             self.run.set(Channel.run_of(raw))
             self._answered = True
         return t1, t2, t3
+
+    @property
+    def refused_bad(self) -> int:
+        """Replies refused for a bad tag or not a reply (module doc)."""
+        return self._bad + self._screened_bad
+
+    @property
+    def refused_other(self) -> int:
+        """Authentic replies refused as another exchange's (module doc)."""
+        return self._other + self._screened_other
+
+    @property
+    def screened(self) -> int:
+        """Of those, the replies :meth:`screen` refused in zenoh's callback."""
+        return self._screened_bad + self._screened_other
 
     @property
     def refused(self) -> int:
@@ -293,15 +351,6 @@ HELLO_KEPT = 256
 or refused by the rate bound) that it keeps, a preallocated ring: a hello
 carrying one of them (a replay) is refused, counted stale, and spends
 nothing of the bound (:class:`ClockResponder`)."""
-
-
-class _Payload(Protocol):
-    """What :meth:`RunAsker.screen` reads: ``zenoh.ZBytes`` (its length is
-    free, ``to_bytes`` copies)."""
-
-    def __len__(self) -> int: ...
-
-    def to_bytes(self) -> bytes: ...
 
 
 _Checked = tuple[int, bytes, int, int]
@@ -882,7 +931,13 @@ def _exchange(
     def on_reply(r: zenoh.Reply) -> None:
         t4 = now_ns()  # in zenoh's thread, before any hand-off
         ok = r.ok
-        if ok is None or not cap.admit(r):
+        if ok is None:
+            return
+        # The screen first (length, header tag, this query's nonce): junk and
+        # replies to other queries, from however many peers, never take a
+        # place among the CLOCK_REPLIERS_MAX read (issue 25).
+        data = link.screen(ok.payload, nonce)
+        if data is None or not cap.admit(r):
             return
         stack = getattr(ok, "timestamp_stack", None)
         stamps: list[int] = []
@@ -892,7 +947,7 @@ def _exchange(
                 if isinstance(ts, bytes | bytearray):
                     continue
                 stamps.append(ts.get_time_as_ntp64().as_nanos())
-        replies.put((ok.payload.to_bytes(), t4, stamps))
+        replies.put((data, t4, stamps))
 
     t1 = now_ns()
     payload, nonce = link.query(t1)
