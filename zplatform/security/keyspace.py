@@ -284,7 +284,8 @@ KEYSPACE: tuple[KeyRow, ...] = (
                 "cn-{dn}; cn-cn_b for the standby",
                 "zplatform.runtime.clocksync.ClockLink {asker}",
                 _NONCE_TIMES,
-                "the first valid reply ends the exchange",
+                "screened in zenoh's callback (header tag, nonce); the first valid reply "
+                "ends the exchange",
             ),
             KeyFrames(
                 "query",
@@ -516,8 +517,8 @@ KEYSPACE: tuple[KeyRow, ...] = (
                 "cn-{dn}",
                 "zplatform.control.intake.ProbeIntake {dn}",
                 _STAMP + " from the same control node",
-                "per channel before any copy (askers x PROBE_BURST, then askers a period), "
-                "per asker after the tag (PROBE_BURST, then one a period); mailbox of PROBES",
+                "per asker after the tag and freshness (PROBE_BURST, then one a period; "
+                "without authentication per channel before any copy); mailbox of PROBES",
             ),
             KeyFrames(
                 "reply",
@@ -525,7 +526,8 @@ KEYSPACE: tuple[KeyRow, ...] = (
                 "cn-{dn}",
                 "zplatform.control.failover.Standby.answer control",
                 _NONCE,
-                "the round's bounded mailbox, one reply taken per DN",
+                "screened in zenoh's callback (header tag, node, nonce), then the round's "
+                "bounded mailbox, one reply taken per DN",
             ),
         ),
         when="standby",
