@@ -602,10 +602,11 @@ def test_a_keyless_flood_never_takes_the_inbox_a_stations_ask_needs(root: Path) 
 
 
 def test_replayed_asks_never_take_the_inbox_a_stations_ask_needs(root: Path) -> None:
-    """The same for a replayer: asks recorded in an earlier session, and an
-    ask of this one answered before, are refused as stale by their header
-    (its run word, cookie and nonce are within the header tag's bytes) on
-    zenoh's thread, never in hand, and a station's new ask is answered."""
+    """The same for a replayer: asks recorded in an earlier session, an
+    ask of this one answered before, and a hello answered before, are
+    refused as stale by their header (the run word, cookie, asker and nonce
+    are within the header tag's bytes) on zenoh's thread, never in hand,
+    and a station's new ask is answered."""
     from zplatform.archive.server import MAX_PENDING
 
     clock = Clock()
@@ -618,8 +619,11 @@ def test_replayed_asks_never_take_the_inbox_a_stations_ask_needs(root: Path) -> 
     (q1,) = deliver(new, first)
     assert answer(a, q1).num_rows == 10
     a = Station(1).learn(new)
-    replays = [recorded, first] * (2 * MAX_PENDING)
+    hello = Station(3).new().hello()
+    (qh,) = deliver(new, hello)
+    assert len(qh.replies) == 1
+    replays = [recorded, first, hello] * (2 * MAX_PENDING)
     *qr, qa = deliver(new, *replays, a.ask(Q))
     assert qa.replies and answer(a, qa).num_rows == 10
     assert all(q.dropped and not q.replies for q in qr)
-    assert (new.busy, new.stale, new.served) == (0, len(replays), 2)
+    assert (new.busy, new.stale, new.served, new.hellos) == (0, len(replays), 2, 3)

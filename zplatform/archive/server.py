@@ -86,6 +86,10 @@ REMEMBERED = 4096
 refused with a reason (the older ones are never forgotten early)."""
 ASKERS = 1024
 """Askers whose byte bucket is kept (the least recently served one is let go)."""
+HELLOS_KEPT = 256
+"""Hellos (asker word and nonce) a server keeps, to refuse a replay of one
+in zenoh's callback before it takes a place in the inbox (stale): a
+replayer needs more captured hellos than this to have any answered twice."""
 QUERY, RUNS, EVENTS = 1, 2, 3
 KINDS = {QUERY: "query", RUNS: "runs", EVENTS: "events"}
 """An ask's kind byte: what its JSON body is and what is answered."""
@@ -278,6 +282,10 @@ class ArchiveServer(QueryWorker):
             self._rx_channel.run = None  # the header tag of any run (_tagged_asker)
         self._rx_lock = threading.Lock()  # zenoh's threads may call back at once
         self._refused_early = 0  # by their header tag, on zenoh's threads (in `refused`)
+        # The last HELLOS_KEPT hellos' asker and nonce (a ring, and as a set).
+        self._hellos_ring = [b""] * HELLOS_KEPT
+        self._hellos_at = 0
+        self._hellos_seen: set[bytes] = set()
         self._version_error_ns: int | None = None
         self._buckets: OrderedDict[int, tuple[float, int]] = OrderedDict()
         self._closed = False
@@ -356,8 +364,9 @@ class ArchiveServer(QueryWorker):
         """Zenoh's thread (its own channel, under its own lock): None, the
         frame refused and counted, when it can never be served: its header
         tag checks in no run (junk), or it is an ask of another session, or
-        whose cookie expired, or answered before (stale: all within the
-        header tag's bytes, so no MAC over the body). Else the asker word
+        whose cookie expired, or answered before, or a hello among the last
+        :data:`HELLOS_KEPT` (stale: all within the header tag's bytes, so no
+        MAC over the body). Else the asker word
         of an ask of the session, which counts against its asker's bound,
         or -1 for any other frame (a hello, another version's), counted
         under none. The serving thread checks it all again."""
@@ -370,6 +379,23 @@ class ArchiveServer(QueryWorker):
                     self._refused_early += 1
                     self.last_refusal = str(exc)
                     return None
+        if ch is not None and data[:4] == HELLO_MAGIC and len(data) == HELLO.size + TAG_LEN:
+            # A hello is answered statelessly: a replay of one seen lately
+            # (asker and nonce, within the header tag's bytes) is refused
+            # here, never in hand (HELLOS_KEPT; the one copy is its 16 bytes).
+            key = data[4 : HELLO.size]
+            with self._rx_lock:
+                seen = self._hellos_seen
+                if key in seen:
+                    self._stale_early += 1
+                    self.last_refusal = "a hello seen before (a replay)"
+                    return None
+                ring, at = self._hellos_ring, self._hellos_at
+                seen.discard(ring[at])
+                ring[at] = key
+                seen.add(key)
+                self._hellos_at = (at + 1) % HELLOS_KEPT
+            return -1
         if data[:4] != ASK_MAGIC or len(data) < ASK.size:
             return -1
         _, asker, nonce, cookie, _ = ASK.unpack_from(data, 0)
