@@ -446,3 +446,43 @@ def test_a_cn_counts_requests_dropped_unchecked_in_its_data_vector(macs: _Macs) 
     assert cn.dv.get("cn_unchecked_frames") == 10 - SPARE
     (ev,) = [e for e in cn.events.drain() if e.id == "bad_frame"]
     assert f"{10 - SPARE} of them dropped after their header, unchecked" in ev.text
+
+
+def test_a_replayed_recorder_request_never_spends_the_bound_a_grounds_request_needs() -> None:
+    """Issue 25, the replayer's door: a captured request replayed within its
+    stamp's bound passed the header tag and spent the rate bound (refused
+    only by the serving thread, as served before), so the ground's next
+    request, at the same instant, was dropped. Now zenoh's callback keeps
+    the last REMEMBERED requests it let through and refuses a replay of one
+    there: the bound is the ground's."""
+    from tests.payload import FakeQuery
+    from zplatform.recorder.format import REQUEST, REQUEST_MAGIC
+    from zplatform.recorder.server import REQUEST_BURST, RecorderServer
+
+    ch = channel(KEYS, "telemetry")
+    assert ch is not None
+    rec: Any = type("R", (), {"run": -1})()
+    server = RecorderServer(
+        _Session(),  # type: ignore[arg-type]
+        "v/cn/recorder",
+        rec,
+        channel(KEYS, "telemetry"),
+        now_ns=lambda: T0,
+        max_age_ns=10**9,
+        serve_bps=10**9,
+        mono_ns=lambda: 5 * 10**9,  # one instant: the bound never refills
+    )
+    try:
+        captured = bytes(ch.seal(REQUEST.pack(REQUEST_MAGIC, 7, 1, 5, T0)))
+        first = FakeQuery(captured)
+        server.on_query(first)
+        assert not first.dropped
+        flood = [FakeQuery(captured) for _ in range(20 * REQUEST_BURST)]
+        for q in flood:
+            server.on_query(q)
+        genuine = FakeQuery(bytes(ch.seal(REQUEST.pack(REQUEST_MAGIC, 7, 6, 9, T0))))
+        server.on_query(genuine)
+        assert not genuine.dropped and server.excess == 0
+        assert all(q.dropped for q in flood)
+    finally:
+        server.close()

@@ -60,8 +60,10 @@ __all__ = [
 MAX_PENDING = 2
 """Requests waiting or being served; any more are dropped unanswered."""
 REMEMBERED = 64
-"""Requests served that a server remembers, to refuse a replay of one while
-its stamp is still within the bound (older ones are refused by the stamp)."""
+"""Requests a server remembers (served, and let through zenoh's callback),
+to refuse a replay of one while its stamp is still within the bound (older
+ones are refused by the stamp): in the callback, so such a replay spends
+no share of the rate bound (a ground asks one at a time: far fewer)."""
 LOG_PERIOD_S = 1.0
 """At most one log line of refused requests this often (:class:`RecorderServer`)."""
 log = logging.getLogger("zplatform.recorder")
@@ -120,6 +122,11 @@ class RecorderServer(QueryWorker):
         self.excess = 0
         """Authentic requests dropped unanswered beyond the rate bound (module doc)."""
         self._refused_early = 0  # by header tag or stamp, on zenoh's threads (in `refused`)
+        # The last REMEMBERED requests zenoh's callback let through (their
+        # run, range and stamp: a ring, and as a set): a replay is refused there.
+        self._seen_ring = [b""] * REMEMBERED
+        self._seen_at = 0
+        self._seen: set[bytes] = set()
         self._channel = channel
         self._now = now_ns
         self._max_age = max_age_ns
@@ -200,10 +207,20 @@ class RecorderServer(QueryWorker):
                     why = str(exc)
                 else:
                     # The stamp is authentic now: a replay older than the
-                    # bound spends no share of the rate bound either.
+                    # bound, or one of a request seen lately (the last
+                    # REMEMBERED), spends no share of the rate bound either.
                     age = self._now() - REQUEST.unpack_from(body)[4]
+                    key = bytes(body[4 : REQUEST.size])  # run, range, stamp
                     if abs(age) > self._max_age:
                         why = f"a request stamped {age / 1e9:+.3f} s from this node's clock"
+                    elif key in self._seen:
+                        why = "a request seen before (a replay)"
+                    else:
+                        ring, at = self._seen_ring, self._seen_at
+                        self._seen.discard(ring[at])
+                        ring[at] = key
+                        self._seen.add(key)
+                        self._seen_at = (at + 1) % REMEMBERED
         if why is not None:
             with self._rx_lock:
                 if n == self._req_len:
