@@ -266,7 +266,7 @@ class ControlNode:
             )
             assert self.mirror_intake.box is not None
             self._mirrors: Mailbox[tuple[None, bytes]] = self.mirror_intake.box
-            self._mirror_log = RefusalLog(3)
+            self._mirror_log = RefusalLog(4)  # size, bad, stale, then those unchecked
             self._mirror_sub = s.declare_subscriber(
                 space.mirror,
                 zenoh.handlers.Callback(self._on_mirror, indirect=False),
@@ -386,15 +386,22 @@ class ControlNode:
     def _mirror_refusals(self, t_ns: int) -> None:
         """The mirrors the intake refused since the last call, evented at most
         once a second (the loop thread, every loop or beat)."""
-        ev = self._mirror_log.add(t_ns, *self.mirror_intake.take_counts())
+        intake = self.mirror_intake
+        ev = self._mirror_log.add(t_ns, *intake.take_counts(), intake.took_unchecked)
         if ev is not None:
+            unchecked = (
+                f"; {ev[3]} of them dropped after their header, unchecked (the body-MAC "
+                "budget spent)"
+                if ev[3]
+                else ""
+            )
             self.logic.events.emit(
                 EV.BAD_FRAME,
                 t_ns,
-                source=f"{sum(ev)} mirror frame(s)",
+                source=f"{sum(ev[:3])} mirror frame(s)",
                 reason=f"refused as they arrived by {self.name}: {ev[0]} of a wrong size, "
                 f"{ev[1]} with bad tags or values out of range, {ev[2]} not newer than the "
-                "newest (replayed, or its own)",
+                "newest (replayed, or its own)" + unchecked,
             )
 
     def _on_ground(self, sample: zenoh.Sample) -> None:
