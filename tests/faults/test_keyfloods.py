@@ -217,52 +217,46 @@ def test_a_keyless_clock_flood_never_reaches_the_servers_thread() -> None:
     assert server.dropped == 0  # the backlog never filled: nothing else was handed off
 
 
-def test_a_keyless_recorder_flood_is_bounded_before_the_servers_thread() -> None:
+def test_a_keyless_recorder_flood_never_reaches_the_servers_thread() -> None:
     """Issue 25 (the fault suite's "commander service flood", now fixed): gap-fill
     requests of the right size, junk, each cost the recorder server's thread
-    a tag check, back to back during a flood. Now a rate bound in zenoh's
-    callback drops the excess unread: of a burst of 2,000, at most
-    REQUEST_BURST (and one more per REQUEST_EVERY_NS) reach the thread;
-    every other is dropped unanswered and counted in ``excess``."""
+    a tag check, back to back during a flood. Then a rate bound in zenoh's
+    callback dropped the excess unread, and with it the ground's genuine
+    requests. Now zenoh's callback checks the header tag first: of a burst
+    of 2,000, none reaches the thread nor the rate bound; each is dropped
+    unanswered and counted as refused."""
     from tests.zsession import lone_session
     from zplatform.core.auth import TAG_LEN
-    from zplatform.recorder import server as rs
     from zplatform.recorder.format import REQUEST
 
     s = lone_session()
     server = _recorder_server(_LOADED["recovery_igniter"], s)
-    t0 = time.monotonic_ns()
     flood = [FakeQuery(p) for p in _junk(REQUEST.size + TAG_LEN, 2000)]
     for q in flood:
         server.on_query(q)
-    took = time.monotonic_ns() - t0
     server.close()
     s.close()
-    burst = getattr(rs, "REQUEST_BURST", 8)
-    every = getattr(rs, "REQUEST_EVERY_NS", 10**8)
-    excess = getattr(server, "excess", 0)
-    assert len(flood) - excess <= burst + took // every + 1  # past the rate bound
-    assert sum(q.dropped for q in flood) >= excess  # each dropped unanswered
-    assert all(not q.replies and not q.errors for q in flood)
+    assert server.excess == 0 and server.busy == 0 and server.served == 0
+    assert server.refused == len(flood)
+    assert all(q.dropped and not q.replies and not q.errors for q in flood)
 
 
-def test_replayed_run_hellos_are_bounded_before_their_mac() -> None:
+def test_replayed_run_hellos_are_refused_by_their_nonce() -> None:
     """A run hello is answered statelessly, so a captured one could be
-    replayed for ever, each costing the clock server a MAC and an answer.
-    Of 100 replays at one instant, HELLO_BURST are answered; the rest are
-    refused before their MAC, counted."""
+    replayed for ever, each costing the clock server a MAC, an answer and
+    a share of the rate bound a ground's hello needs. Of 100 replays at one
+    instant, one is answered; the rest are refused by their nonce (kept:
+    HELLO_KEPT) before their MAC and the bound, counted stale."""
     from zplatform.core.auth import KeySet
     from zplatform.runtime import clocksync as cs
 
     m = _LOADED["recovery_igniter"]
     keys = KeySet.from_master(m, bytes(range(32)))
     hello = cs.RunAsker(keys.for_node("gn")).hello()
-    kw = {"mono_ns": lambda: 5 * 10**9} if hasattr(cs, "HELLO_BURST") else {}
-    responder = cs.ClockResponder(m, keys.for_node("cn"), **kw)  # type: ignore[arg-type]
+    responder = cs.ClockResponder(m, keys.for_node("cn"), mono_ns=lambda: 5 * 10**9)
     answered = sum(responder.answer(hello, 0, 0) is not None for _ in range(100))
-    burst = getattr(cs, "HELLO_BURST", 16)
-    assert answered == burst
-    assert responder.refused == 100 - burst == getattr(responder, "hello_excess", 0)
+    assert answered == 1
+    assert responder.refused == 99 == responder.stale and responder.hello_excess == 0
 
 
 def test_the_recorder_servers_refusals_are_logged_at_most_once_a_second(
@@ -291,7 +285,7 @@ def test_the_recorder_servers_refusals_are_logged_at_most_once_a_second(
     lines = [r.getMessage() for r in caplog.records if "recorder requests refused" in r.message]
     assert 1 <= len(lines) <= took / getattr(rs, "LOG_PERIOD_S", 1.0) + 2
     total = getattr(server, "refusals", -1)
-    assert total >= server.excess > 0
+    assert total == server.refused == 2000
     assert lines[-1].startswith(f"recorder requests refused: {total} so far")
 
 

@@ -185,7 +185,10 @@ def test_a_forged_ask_is_refused_and_counted_as_bad(root: Path) -> None:
     stranger._channel.run = srv.session  # it even guessed the session
     qs = deliver(srv, flipped, stranger.ask(Q), stranger.hello())
     assert all(q.replies == [] for q in qs)
-    assert (srv.refused, srv.stale, srv._refused_checked, srv.served, srv.hellos) == (3, 0, 3, 0, 1)
+    # The stranger's two by their header tag on zenoh's thread (never in the
+    # inbox), the spliced MAC by the serving thread.
+    assert (srv.refused, srv.stale, srv._refused_early, srv._refused_checked) == (3, 0, 2, 1)
+    assert (srv.served, srv.hellos) == (0, 1)
 
 
 def test_an_answer_of_another_session_is_refused_by_the_asker(root: Path) -> None:
@@ -572,3 +575,55 @@ def test_a_junk_or_replayed_ask_is_refused_without_a_mac_over_its_body(
     assert all(q.replies == [] for q in qs)
     assert macs[0] == 0
     assert (srv.stale, srv.served) == (2, 1)
+
+
+# -- the inbox holds only frames that can be served (issue 25) ---------------------------
+
+
+def test_a_keyless_flood_never_takes_the_inbox_a_stations_ask_needs(root: Path) -> None:
+    """Issue 25: the inbox's bound (MAX_PENDING, anyone's) came before the
+    tag, so a keyless flood of ask-sized junk filled it and a station's
+    genuine ask, at the same time, was dropped unanswered (``busy``). Now
+    zenoh's callback checks the header tag first: the junk is refused and
+    counted there, never in hand, and the station is answered."""
+    import os
+
+    from zplatform.archive.server import MAX_PENDING
+
+    clock = Clock()
+    srv = server(root, clock)
+    a = Station(1).learn(srv)
+    genuine = a.ask(Q)
+    junk = [genuine[:4] + os.urandom(len(genuine) - 4) for _ in range(4 * MAX_PENDING)]
+    *qj, qa = deliver(srv, *junk, genuine)
+    assert qa.replies and answer(a, qa).num_rows == 10
+    assert all(q.dropped and not q.replies for q in qj)
+    assert (srv.busy, srv.refused, srv._refused_early, srv.served) == (0, len(junk), len(junk), 1)
+
+
+def test_replayed_asks_never_take_the_inbox_a_stations_ask_needs(root: Path) -> None:
+    """The same for a replayer: asks recorded in an earlier session, an
+    ask of this one answered before, and a hello answered before, are
+    refused as stale by their header (the run word, cookie, asker and nonce
+    are within the header tag's bytes) on zenoh's thread, never in hand,
+    and a station's new ask is answered."""
+    from zplatform.archive.server import MAX_PENDING
+
+    clock = Clock()
+    old = server(root, clock, session_word=11)
+    b = Station(2).learn(old)
+    recorded = b.ask(Q)
+    new = server(root, clock, session_word=12)
+    a = Station(1).learn(new)
+    first = a.ask(Q)
+    (q1,) = deliver(new, first)
+    assert answer(a, q1).num_rows == 10
+    a = Station(1).learn(new)
+    hello = Station(3).new().hello()
+    (qh,) = deliver(new, hello)
+    assert len(qh.replies) == 1
+    replays = [recorded, first, hello] * (2 * MAX_PENDING)
+    *qr, qa = deliver(new, *replays, a.ask(Q))
+    assert qa.replies and answer(a, qa).num_rows == 10
+    assert all(q.dropped and not q.replies for q in qr)
+    assert (new.busy, new.stale, new.served, new.hellos) == (0, len(replays), 2, 3)

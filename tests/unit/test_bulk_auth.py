@@ -434,3 +434,75 @@ def test_a_genuine_header_spliced_onto_another_array_costs_one_pass_and_is_refus
     finally:
         owner.close()
         reader.close()
+
+
+class _Sample:
+    """A zenoh sample as the reader's callback gets one (not in shared memory)."""
+
+    def __init__(self, data: bytes) -> None:
+        self.payload = self
+        self._data = data
+
+    def __len__(self) -> int:
+        return len(self._data)
+
+    def as_shm(self) -> None:
+        return None
+
+    def to_bytes(self) -> bytes:
+        return self._data
+
+
+def _genuine(m: Mission, seq: int, fill: int) -> bytes:
+    """A sample as the owner tags it (both readers' tags, the owner's run)."""
+    import blake3
+
+    from zplatform.runtime.bulk import SUMMARY_BYTES, body_digest, summary_of
+
+    ch = m.bulk[0]
+    keys = KeySet.from_master(m, MASTER).for_node("dn0")
+    data = bytearray(ch.sample_bytes)
+    HEADER.pack_into(data, 0, ch.layout_id, 0, seq, seq, T0 + seq)
+    data[HEADER.size :] = bytes([fill]) * ch.nbytes
+    summary = bytearray(SUMMARY_BYTES + TAG_LEN)
+    summary_of(summary, data, ch.sample_bytes)
+    summary[SUMMARY_BYTES - 32 : SUMMARY_BYTES] = body_digest(
+        blake3.blake3(), memoryview(data)[HEADER.size :]
+    )
+    for rd in ch.readers:
+        data += keys.channel(f"bulk_frame/{rd}", Run(RUN)).seal_tail(summary)[SUMMARY_BYTES:]
+    return bytes(data)
+
+
+def test_junk_after_a_genuine_sample_never_displaces_it_before_the_poll(
+    session: zenoh.Session,
+) -> None:
+    """Issue 25: the reader's zenoh callback kept the newest sample of any
+    kind in its one slot, so a keyless flood on the bulk key (plain TCP)
+    replaced the genuine sample before any check, and the reader never got
+    one. Now the callback checks the size, this reader's header tag and the
+    header's stamp first: a genuine sample followed by junk (full size,
+    well-formed headers with a tag of zeros or the genuine header's, and a
+    replay of an older genuine sample) before the poll is still taken, and
+    each is counted."""
+    m = _mission()
+    _, reader, _ = _ends(session, m)
+    r = reader.readers["frame"]
+    try:
+        older, genuine = _genuine(m, 1, 1), _genuine(m, 2, 2)
+        spliced = bytearray(_untagged(m, 9, 0xEE, tag=True))
+        spliced[-2 * TAG_LEN :] = genuine[-2 * TAG_LEN :]  # the genuine tags, another header
+        junk = [
+            _untagged(m, 9, 0xEE, tag=True),  # well-formed, newer, a tag of zeros
+            bytes(spliced),
+            bytes([0x5A]) * len(genuine),
+            older,  # a genuine sample, older: replayed
+        ] * 8
+        r._on_sample(_Sample(genuine))  # type: ignore[arg-type]
+        for data in junk:
+            r._on_sample(_Sample(data))  # type: ignore[arg-type]
+        assert r.poll() and r.header is not None and r.header.seq == 2
+        assert int(r.array[0]) == 2
+        assert (r.bad, r.stale, r.duplicates) == (24, 0, 8)
+    finally:
+        reader.close()

@@ -83,6 +83,9 @@ class _Record:
 class _Payload:
     raw: bytes
 
+    def __len__(self) -> int:
+        return len(self.raw)
+
     def to_bytes(self) -> bytes:
         return self.raw
 
@@ -380,10 +383,14 @@ def test_a_replayed_real_reply_is_refused_and_counted() -> None:
 
 
 def test_a_late_rogue_is_never_read() -> None:
+    """A rogue answering after the CN: the exchange ends at the CN's answer;
+    the rogue's reply is refused in zenoh's callback (its header tag,
+    counted), never read by the exchange."""
     s = _sim(rogues=[_rogue(30 * MS)], rogues_first=False)
     link = _link()
     est = estimate_offset(s, KEYS, s.now_ns, link, exchanges=10)
-    assert abs(est.offset_ns - (s.cn_node - s.dn_node)) <= 1 and link.refused == 0
+    assert abs(est.offset_ns - (s.cn_node - s.dn_node)) <= 1
+    assert link.refused == link.screened == 10
 
 
 def test_the_cn_answers_only_its_dns_queries() -> None:
@@ -435,15 +442,35 @@ def test_a_congested_link_drops_clock_queries_and_counts_timeouts(fn: Any) -> No
 
 
 @pytest.mark.parametrize("fn", [estimate_offset, estimate_offset_zenoh])
-def test_a_flooding_rogue_gets_one_reply_read_per_exchange(fn: Any) -> None:
+def test_a_flooding_rogue_gets_no_reply_read(fn: Any) -> None:
     """A peer without the key answers every query 2000 times before the CN:
-    one of its replies per exchange is read (and refused), the rest are let
-    go in zenoh's callback, and the CN's answer is still the one taken."""
+    each of its replies is refused in zenoh's callback by its header tag
+    (ClockLink.screen, counted), none reaches the exchange, and the CN's
+    answer is the one taken."""
     s = _sim(rogues=[_rogue(30 * MS)], flood=2000)
     link = _link()
     est = fn(s, KEYS, s.now_ns, link, exchanges=20)
     assert abs(est.offset_ns - (s.cn_node - s.dn_node)) <= 1, est
-    assert (link.refused_bad, link.refused_other, link.timeouts) == (20, 0, 0)
+    assert (link.refused_bad, link.refused_other, link.timeouts) == (20 * 2000, 0, 0)
+    assert link.screened == 20 * 2000
+
+
+def test_junk_replies_from_many_peers_never_crowd_out_the_cns() -> None:
+    """Issue 25: an exchange's replies waited unchecked in a mailbox of
+    CLOCK_REPLIERS_MAX + 1 (one per replier, the oldest let go), so keyless
+    peers answering from more sessions right after the CN, before the
+    exchange read it, pushed the CN's answer out and every exchange timed
+    out (the node never synchronised). Now zenoh's callback screens each
+    reply (length, header tag, the query's nonce) first: the junk is refused
+    there, counted, and the CN's answer is taken."""
+    from zplatform.runtime.clocksync import CLOCK_REPLIERS_MAX
+
+    rogues = [_rogue(k * MS) for k in range(2 * CLOCK_REPLIERS_MAX)]
+    s = _sim(rogues=rogues, rogues_first=False)
+    link = _link()
+    est = estimate_offset(s, KEYS, s.now_ns, link, exchanges=10)
+    assert abs(est.offset_ns - (s.cn_node - s.dn_node)) <= 1, est
+    assert link.timeouts == 0 and link.screened == 10 * 2 * CLOCK_REPLIERS_MAX
 
 
 def test_a_dns_clock_timeouts_are_counted_and_evented_at_most_once_a_second() -> None:
@@ -608,3 +635,78 @@ def test_a_clock_asker_is_bounded_after_its_tag() -> None:
     assert answered == burst
     assert cn.ask_excess == 40 == cn.refused and cn.stale == 0
     assert cn.answer(link.query(T0 + every)[0], T0 + every, T0 + every + 1) is not None
+
+
+# -- the run hello: junk and replays never spend its rate bound (issue 25) --------
+
+
+def _hello_responder(now: list[int]) -> ClockResponder:
+    return ClockResponder(IGNITER, ALL_KEYS.for_node("cn"), mono_ns=lambda: now[0])
+
+
+def test_keyless_run_hellos_never_spend_the_bound_a_grounds_hello_needs() -> None:
+    """Issue 25: the run hello's rate bound was checked before its tag, so
+    a keyless flood of hello-shaped junk (magic right, tag wrong) spent it
+    and a ground's genuine hello, at the same instant, went unanswered. Now
+    the header tag comes first: every junk hello is refused (counted), the
+    bound untouched, and the ground's hello is answered."""
+    from zplatform.runtime.clocksync import HELLO_BURST, RunAsker
+
+    now = [5 * 10**9]
+    cn = _hello_responder(now)
+    asker = RunAsker(ALL_KEYS.for_node("gn"))
+    genuine = asker.hello()
+    for i in range(10 * HELLO_BURST):
+        junk = bytearray(genuine)
+        junk[3:19] = i.to_bytes(16, "little")  # another nonce, the tag not redone
+        assert cn.answer(bytes(junk), 0, 0) is None
+    assert cn.refused == 10 * HELLO_BURST and cn.hello_excess == 0 and cn.hellos == 0
+    answer = cn.answer(genuine, 0, 0)
+    assert answer is not None and asker.check(answer) and asker.run.epoch == cn.run.epoch
+
+
+def test_a_replayed_run_hello_is_answered_once_and_spends_no_more_of_the_bound() -> None:
+    """Issue 25: a captured hello, replayed, was answered again and again
+    (up to the bound), so its replayer kept a ground from learning the run.
+    Now its nonce is remembered (:data:`HELLO_KEPT` of them): replays are
+    refused, counted stale, before the MAC and the bound, and a ground's
+    hello meanwhile is answered."""
+    from zplatform.runtime.clocksync import RunAsker
+
+    now = [5 * 10**9]
+    cn = _hello_responder(now)
+    captured = RunAsker(ALL_KEYS.for_node("gn")).hello()
+    answered = sum(cn.answer(captured, 0, 0) is not None for _ in range(100))
+    assert answered == 1 and cn.hellos == 1
+    assert cn.refused == 99 == cn.stale and cn.hello_excess == 0
+    assert "replay" in cn.reason
+    ground = RunAsker(ALL_KEYS.for_node("gn"))
+    answer = cn.answer(ground.hello(), 0, 0)
+    assert answer is not None and ground.check(answer)
+
+
+def test_a_replayer_of_many_hellos_spends_the_bound_for_one_pass_at_most() -> None:
+    """The remaining cost (ClockResponder._answer_hello): a replayer holding
+    :data:`HELLO_KEPT` captured hellos has each answered (or refused by the
+    bound) once; a second pass is refused whole as replays, without the
+    bound, so a ground's hello after the first pass is answered as soon as
+    the bound refills (one HELLO_EVERY_NS). A hello pushed out of the ring
+    by HELLO_KEPT newer ones is taken again (the ring's limit)."""
+    from zplatform.runtime.clocksync import HELLO_BURST, HELLO_EVERY_NS, HELLO_KEPT, RunAsker
+
+    now = [5 * 10**9]
+    cn = _hello_responder(now)
+    captured = [RunAsker(ALL_KEYS.for_node("gn")).hello() for _ in range(HELLO_KEPT)]
+    first = sum(cn.answer(h, 0, 0) is not None for h in captured)
+    assert first == HELLO_BURST and cn.hello_excess == HELLO_KEPT - HELLO_BURST
+    stale = cn.stale
+    assert all(cn.answer(h, 0, 0) is None for h in captured)
+    assert cn.stale - stale == HELLO_KEPT and cn.hello_excess == HELLO_KEPT - HELLO_BURST
+    now[0] += HELLO_EVERY_NS
+    ground = RunAsker(ALL_KEYS.for_node("gn"))
+    answer = cn.answer(ground.hello(), 0, 0)
+    assert answer is not None and ground.check(answer)
+    # The ground's hello pushed the oldest captured one out: it is new again.
+    now[0] += HELLO_EVERY_NS
+    assert cn.answer(captured[0], 0, 0) is not None
+    assert cn.answer(captured[1], 0, 0) is None  # still kept: a replay

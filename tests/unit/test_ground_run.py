@@ -454,3 +454,46 @@ def test_a_link_that_never_learned_a_run_says_hello_ten_times_as_often(
     link._last_hello -= link_mod.RELEARN_S
     link._learn_run()
     assert len(asked) == 2
+
+
+def test_a_flood_of_junk_run_answers_never_pushes_the_commanders_out(
+    link: Any, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Issue 25: the link's reply callback put every reply to its hello in
+    a bounded mailbox (RUN_ANSWERS) unchecked, so a keyless queryable on
+    the clock key answering with junk (or with replayed answers to earlier
+    hellos) after the commander pushed the genuine answer out, and the
+    ground never learned the run. Now the callback screens each reply (its
+    header tag and the nonce echoed) before the hand-off: the junk and the
+    replays are refused there, counted, and the commander's answer is taken."""
+    from tests.payload import Bytes
+    from zplatform.ground import link as link_mod
+
+    asked: list[bytes] = []
+    handlers: list[Any] = []
+
+    def ask(*a: Any, **kw: Any) -> None:
+        asked.append(kw["payload"])
+        handlers.append(a[2])  # the replies' callback, as zenoh calls it
+
+    monkeypatch.setattr(link_mod, "ask", ask)
+    link._last_hello -= 10.0
+    link._learn_run()
+    assert len(asked) == 1 and not link.run.known
+    on_reply = handlers[0]
+    now = link.clock.now_ns()
+    responder = ClockResponder(link.mission, _keys("cn"), Run(now))
+    old_answer = responder.answer(clocksync.RunAsker(_keys("gn")).hello(), 0, 0)
+    genuine = responder.answer(asked[0], 0, 0)
+    assert genuine is not None and old_answer is not None
+
+    def reply(data: bytes) -> Any:
+        return types.SimpleNamespace(ok=types.SimpleNamespace(payload=Bytes(data)))
+
+    on_reply(reply(genuine))
+    junk = [genuine[:-24] + bytes(24), old_answer] * (2 * link_mod.RUN_ANSWERS)
+    for data in junk:
+        on_reply(reply(data))
+    link._learn_run()  # the caller's thread takes what came
+    assert link.run.known and link.run.epoch == now
+    assert link._asker.screened == len(junk)

@@ -314,6 +314,44 @@ def test_the_recorder_server_refuses_junk_and_a_replayed_request_without_a_body_
     assert server.served == 1 and server.refused == 20
 
 
+def test_a_keyless_recorder_flood_never_spends_the_bound_a_grounds_request_needs() -> None:
+    """Issue 25: the recorder server's rate bound came before any check, so
+    a keyless flood of request-sized junk spent it and the ground's genuine
+    request, at the same instant, was dropped unanswered (``excess``). Now
+    zenoh's callback checks the header tag first: every junk request is
+    refused (counted, never handed off), none beyond the bound, and the
+    genuine one is handed to the serving thread."""
+    from tests.payload import FakeQuery
+    from zplatform.recorder.format import REQUEST, REQUEST_MAGIC
+    from zplatform.recorder.server import REQUEST_BURST, RecorderServer
+
+    ch = channel(KEYS, "telemetry")
+    assert ch is not None
+    rec: Any = type("R", (), {"run": -1})()  # never the run asked: no file is read
+    server = RecorderServer(
+        _Session(),  # type: ignore[arg-type]
+        "v/cn/recorder",
+        rec,
+        channel(KEYS, "telemetry"),
+        now_ns=lambda: T0,
+        max_age_ns=10**9,
+        serve_bps=10**9,
+        mono_ns=lambda: 5 * 10**9,  # one instant: the bound never refills
+    )
+    try:
+        request = bytes(ch.seal(REQUEST.pack(REQUEST_MAGIC, 7, 1, 5, T0)))
+        flood = [FakeQuery(os.urandom(len(request))) for _ in range(20 * REQUEST_BURST)]
+        for q in flood:
+            server.on_query(q)
+        assert all(q.dropped for q in flood)
+        assert server.refused == len(flood) and server.excess == 0 and server.busy == 0
+        genuine = FakeQuery(request)
+        server.on_query(genuine)
+        assert not genuine.dropped and server.excess == 0  # handed to the serving thread
+    finally:
+        server.close()
+
+
 def test_the_clock_and_run_askers_refuse_junk_and_replayed_answers_without_a_body_mac(
     macs: _Macs,
 ) -> None:
@@ -361,3 +399,90 @@ def test_the_event_intake_refuses_junk_and_passes_replays_on_without_a_body_mac(
         assert reader.forged(key, os.urandom(len(record)))
         assert not reader.forged(key, record)
     assert macs.n == 0
+
+
+# -- frames dropped unchecked are in the Data Vector (issue 25) ------------------
+
+
+def test_a_dn_counts_triggers_dropped_unchecked_in_its_data_vector(macs: _Macs) -> None:
+    """Issue 25: the triggers a DN's intake dropped after their header, their
+    body's MAC unchecked because the loop's budget was spent (a man in the
+    middle splicing the fresh trigger's header onto junk), were kept on the
+    intake only. Now the driver hands them to the logic: counted in
+    ``dn0_unchecked_frames`` (and in ``dn0_bad_frames``, as refused), and
+    the refusal event says how many."""
+    intake: TriggerIntake[None] = TriggerIntake(FLIGHT, "dn0", channel(FKEYS, "cn_to_dn0"))
+    cn = ControlLogic(FLIGHT, keys=FKEYS.for_node("cn"), epoch=T0)
+    dn = DeviceLogic(FLIGHT, "dn0", keys=FKEYS.for_node("dn0"))
+    t1 = bytes(cn.begin(1, T0 + FLIGHT.period_ns)[0])
+    for _ in range(10):
+        assert not intake.admit(Bytes(_spliced(t1)), None)
+    size, bad, stale = intake.take_counts()
+    dn.refused(size, bad, stale, T0, unchecked=intake.took_unchecked)
+    assert dn.dv.get("dn0_bad_frames") == 10
+    assert dn.dv.get("dn0_unchecked_frames") == 10 - SPARE
+    (ev,) = [e for e in dn.events.drain() if e.id == "bad_frame"]
+    assert f"{10 - SPARE} of them dropped after their header, unchecked" in ev.text
+
+
+def test_a_cn_counts_requests_dropped_unchecked_in_its_data_vector(macs: _Macs) -> None:
+    """The same on the control node: command requests whose genuine header
+    (a number above every one seen) carries another body, past the budget,
+    reach the loop's refusals (``cmd_unchecked``) and ``cn_unchecked_frames``."""
+    from zplatform.control.intake import CnRefusals
+
+    up = Uplink(M, KEYS)
+    intake = RequestIntake(M, channel(KEYS, "gn_to_cn", Run(T0)), T0, lambda: 0, 16)
+    fresh = bytes(up.frame("NOOP", 1, 0, 0.0, 0, T0))
+    for _ in range(10):
+        assert not intake.admit(Bytes(_spliced(fresh)), None)
+    r = CnRefusals()
+    intake.take_refusals(r)
+    assert (r.cmd_bad, r.cmd_unchecked) == (10, 10 - SPARE)
+    cn = ControlLogic(M, keys=KEYS, epoch=T0)
+    cn.begin(1, T0 + M.period_ns)
+    cn.finish((), refused=r)
+    assert cn.dv.get("cn_bad_frames") == 10
+    assert cn.dv.get("cn_unchecked_frames") == 10 - SPARE
+    (ev,) = [e for e in cn.events.drain() if e.id == "bad_frame"]
+    assert f"{10 - SPARE} of them dropped after their header, unchecked" in ev.text
+
+
+def test_a_replayed_recorder_request_never_spends_the_bound_a_grounds_request_needs() -> None:
+    """Issue 25, the replayer's door: a captured request replayed within its
+    stamp's bound passed the header tag and spent the rate bound (refused
+    only by the serving thread, as served before), so the ground's next
+    request, at the same instant, was dropped. Now zenoh's callback keeps
+    the last REMEMBERED requests it let through and refuses a replay of one
+    there: the bound is the ground's."""
+    from tests.payload import FakeQuery
+    from zplatform.recorder.format import REQUEST, REQUEST_MAGIC
+    from zplatform.recorder.server import REQUEST_BURST, RecorderServer
+
+    ch = channel(KEYS, "telemetry")
+    assert ch is not None
+    rec: Any = type("R", (), {"run": -1})()
+    server = RecorderServer(
+        _Session(),  # type: ignore[arg-type]
+        "v/cn/recorder",
+        rec,
+        channel(KEYS, "telemetry"),
+        now_ns=lambda: T0,
+        max_age_ns=10**9,
+        serve_bps=10**9,
+        mono_ns=lambda: 5 * 10**9,  # one instant: the bound never refills
+    )
+    try:
+        captured = bytes(ch.seal(REQUEST.pack(REQUEST_MAGIC, 7, 1, 5, T0)))
+        first = FakeQuery(captured)
+        server.on_query(first)
+        assert not first.dropped
+        flood = [FakeQuery(captured) for _ in range(20 * REQUEST_BURST)]
+        for q in flood:
+            server.on_query(q)
+        genuine = FakeQuery(bytes(ch.seal(REQUEST.pack(REQUEST_MAGIC, 7, 6, 9, T0))))
+        server.on_query(genuine)
+        assert not genuine.dropped and server.excess == 0
+        assert all(q.dropped for q in flood)
+    finally:
+        server.close()

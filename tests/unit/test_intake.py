@@ -419,6 +419,32 @@ def test_refusals_are_counted_evented_once_a_second_recorded_and_replayed(
     assert res.identical and res.loops == 300, res.first_difference
 
 
+def test_frames_dropped_unchecked_are_counted_recorded_and_replayed(tmp_path: Path) -> None:
+    """Issue 25: the frames an intake dropped after their header for want of
+    body-MAC budget were not in the Data Vector. Now the loop's refusals
+    carry them (``reply_unchecked``, ``cmd_unchecked``), ``cn_unchecked_frames``
+    counts them, the recording keeps them, and a replay is identical."""
+    cn = ControlLogic(M, keys=KEYS, epoch=T0)
+    rec = Recorder(tmp_path / "rec", M, LED, cn.dv)
+    cn.recorder = rec
+    r = CnRefusals()
+    for n in range(1, 101):
+        cn.begin(n, T0 + n * PERIOD)
+        r.clear()
+        r.reply_bad, r.reply_unchecked, r.cmd_bad, r.cmd_unchecked = 5, 3, 4, 2
+        cn.finish((), refused=r)
+    rec.close()
+    assert cn.dv.get("cn_bad_frames") == 100 * 9
+    assert cn.dv.get("cn_unchecked_frames") == 100 * 5
+    bad = [e for e in cn.events.drain() if e.id == "bad_frame"]
+    assert bad and all("dropped after their header, unchecked" in e.text for e in bad)
+    (loop,) = [x for x in RecordReader(tmp_path / "rec").loops() if x.loop == 7]
+    got = CnRefusals().set_fields(loop.refused)
+    assert (got.reply_unchecked, got.cmd_unchecked) == (3, 2)
+    res = replay(tmp_path / "rec", LED)
+    assert res.identical and res.loops == 100, res.first_difference
+
+
 def test_a_dn_counts_refused_queries_and_events_them_once_a_second() -> None:
     dn = DeviceLogic(M, "dn0", keys=KEYS)
     for k in range(300):
@@ -557,12 +583,10 @@ def test_check_view_checks_a_frame_in_place_and_refuses_as_check_does() -> None:
 
 # -- terms: a new commander's first triggers ---------------------------------
 
-FLIGHT = load_mission(ROOT / "configs" / "flight.yaml")
-FLIGHT_KEYS = KeySet.from_master(FLIGHT, bytes.fromhex(os.environ[KEY_ENV]))
 
 
 def _term_trigger(term: int, loop: int, t: int) -> bytes:
-    cn = ControlLogic(FLIGHT, keys=FLIGHT_KEYS, epoch=T0)
+    cn = ControlLogic(FLIGHT, keys=FKEYS, epoch=T0)
     cn.take_command(term, loop)
     return bytes(cn.begin(loop, t)[0])
 
@@ -578,7 +602,7 @@ def test_a_new_terms_trigger_is_fresh_though_stamped_before_the_old_terms_last()
     fenced and answered by the logic; replays of either, and a dead term's,
     are refused."""
     p = FLIGHT.period_ns
-    intake: TriggerIntake[str] = TriggerIntake(FLIGHT, "dn0", channel(FLIGHT_KEYS, "cn_to_dn0"))
+    intake: TriggerIntake[str] = TriggerIntake(FLIGHT, "dn0", channel(FKEYS, "cn_to_dn0"))
     old_188 = _term_trigger(2, 188, T0 + 188 * p)
     old_190 = _term_trigger(2, 190, T0 + 190 * p + p // 2)  # late, stalled
     new_188 = _term_trigger(3, 188, T0 + 188 * p + p // 4)  # stamped before old_190
@@ -593,3 +617,33 @@ def test_a_new_terms_trigger_is_fresh_though_stamped_before_the_old_terms_last()
     assert intake.admit(Bytes(old_191), "old 191")  # to be fenced by the logic
     assert not intake.admit(Bytes(_term_trigger(1, 192, T0 + 192 * p)), "term 1: dead")
     assert intake.take_counts() == (0, 0, 3)
+
+
+def test_a_keyless_probe_flood_never_spends_the_bound_a_genuine_question_needs() -> None:
+    """Issue 25: the probe intake's channel-wide rate bound came before the
+    tag, so a keyless flood of question-sized junk spent it and the
+    standby's genuine question, at the same instant, was refused (a takeover
+    delayed for as long as the flood lasts). Now only a question whose tag
+    checks spends a bound (its asker's): every junk question is refused
+    bad, none beyond a bound, and the genuine one is admitted."""
+    from zplatform.control.intake import PROBE_BURST
+
+    clock = [T0]
+    ch = channel(FKEYS, "probe_cn_to_dn0")
+    intake: ProbeIntake[None] = ProbeIntake(
+        "dn0",
+        channel(FKEYS, "probe_cn_to_dn0"),
+        Waker(),
+        period_ns=FLIGHT.period_ns,
+        now_ns=lambda: clock[0],
+        clock_ns=lambda: clock[0],
+        bound_ns=round(FLIGHT.clock.offset_bound_ms * 1e6),
+    )
+    genuine = ask_frame(ch, ASK, 1, 1, 1, new_nonce(), T0)
+    flood = 20 * PROBE_BURST
+    for i in range(flood):
+        junk = bytearray(genuine)
+        junk[-20] ^= 1 + i % 255  # the same size, a header tag that fails
+        assert not intake.admit(Bytes(bytes(junk)), None)
+    assert intake.admit(Bytes(genuine), None)
+    assert intake.take_counts() == (0, flood, 0) and intake.excess == 0

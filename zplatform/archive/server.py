@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import secrets
 import struct
+import threading
 import time
 from collections import OrderedDict
 from collections.abc import Callable
@@ -85,6 +86,10 @@ REMEMBERED = 4096
 refused with a reason (the older ones are never forgotten early)."""
 ASKERS = 1024
 """Askers whose byte bucket is kept (the least recently served one is let go)."""
+HELLOS_KEPT = 256
+"""Hellos (asker word and nonce) a server keeps, to refuse a replay of one
+in zenoh's callback before it takes a place in the inbox (stale): a
+replayer needs more captured hellos than this to have any answered twice."""
 QUERY, RUNS, EVENTS = 1, 2, 3
 KINDS = {QUERY: "query", RUNS: "runs", EVENTS: "events"}
 """An ask's kind byte: what its JSON body is and what is answered."""
@@ -200,12 +205,15 @@ class ArchiveServer(QueryWorker):
     forgotten early), so a recorded ask cannot be replayed later in the same
     session either.
 
-    :class:`ArchiveServer`'s zenoh callback checks the size, hands the frame
-    to a bounded inbox (:data:`MAX_PENDING`, whoever sent it: the pre-tag
-    bound that caps what junk costs; more are dropped unanswered, counted
-    ``busy``) and counts an ask under its asker word only when its tag
-    checks in the session (so a keyless peer that read a station's asker
-    word cannot spend that station's bound). Its
+    :class:`ArchiveServer`'s zenoh callback checks the size, then the
+    header tag (a channel of its own, any run's: junk is refused there,
+    counted, and never takes a place in the inbox, issue 25), refuses as
+    stale an ask of another session, with an expired cookie or answered
+    before (all within the header tag's bytes), hands the rest to a
+    bounded inbox (:data:`MAX_PENDING`; more are dropped unanswered,
+    counted ``busy``) and counts an ask under its asker word (tagged in the
+    session: a keyless peer that read a station's asker word cannot spend
+    that station's bound). Its
     thread checks the tag, the session, the cookie, runs the query, and replies
     with the answer as an Arrow IPC stream in chunks (:data:`REPLY`: kind, the
     ask's nonce, index, count), each tagged, paced to ``serve_bps``. Per asker
@@ -270,6 +278,14 @@ class ArchiveServer(QueryWorker):
         # asker) with a channel of its own: it never waits on the serving
         # thread's MACs (a reply's seal covers a whole Arrow chunk).
         self._rx_channel = channel.twin() if channel is not None else None
+        if self._rx_channel is not None:
+            self._rx_channel.run = None  # the header tag of any run (_tagged_asker)
+        self._rx_lock = threading.Lock()  # zenoh's threads may call back at once
+        self._refused_early = 0  # by their header tag, on zenoh's threads (in `refused`)
+        # The last HELLOS_KEPT hellos' asker and nonce (a ring, and as a set).
+        self._hellos_ring = [b""] * HELLOS_KEPT
+        self._hellos_at = 0
+        self._hellos_seen: set[bytes] = set()
         self._version_error_ns: int | None = None
         self._buckets: OrderedDict[int, tuple[float, int]] = OrderedDict()
         self._closed = False
@@ -278,9 +294,8 @@ class ArchiveServer(QueryWorker):
         self._archive: Archive | None = None
         self.served = 0
         """Queries answered (with rows, or with an error saying why)."""
-        self.stale = 0
-        """Asks refused unanswered as stale: another session's, an expired
-        cookie, one taken before (a replay)."""
+        self._stale_checked = 0  # the serving thread's
+        self._stale_early = 0  # zenoh's threads' (_tagged_asker)
         self.hellos = 0
         """Hellos answered (each with the session)."""
         self.over_bound = 0
@@ -294,15 +309,22 @@ class ArchiveServer(QueryWorker):
         )
 
     @property
+    def stale(self) -> int:
+        """Asks refused unanswered as stale: another session's, an expired
+        cookie, one taken before (a replay)."""
+        return self._stale_checked + self._stale_early
+
+    @property
     def refused(self) -> int:
         """Frames dropped unanswered because they did not check (stale ones included)."""
-        return self._refused_rx + self._refused_checked + self.stale
+        return self._refused_rx + self._refused_early + self._refused_checked + self.stale
 
     def size_refusal(self, n: int) -> str | None:
         return None if self._min_len <= n <= self._max_len else f"an ask of {n} bytes"
 
-    # zenoh's thread: the size, the inbox's bound, an ask's tag to count it
-    # under its asker; hand off, nothing more.
+    # zenoh's thread: the size, the header tag (any run's: junk never takes
+    # a place in the inbox), an ask's session to count it under its asker,
+    # the inbox's bound; hand off, nothing more.
     def on_query(self, query: Any) -> None:
         p = query.payload
         n = 0 if p is None else len(p)
@@ -313,11 +335,16 @@ class ArchiveServer(QueryWorker):
             query.drop()
             return
         with self._cv:
-            if len(self._pending) >= self._capacity:  # the pre-tag bound: anyone's
+            if len(self._pending) >= self._capacity:  # full of authentic frames already
                 self.busy += 1
                 query.drop()
                 return
-        asker = self._tagged_asker(p.to_bytes()) if n >= ASK.size else None
+        asker = self._tagged_asker(p.to_bytes())
+        if asker is None:  # junk: refused, counted, spending no place in the inbox
+            query.drop()
+            return
+        if asker < 0:
+            asker = None  # a hello, another version's, another session's: counted under none
         with self._cv:
             if len(self._pending) >= self._capacity:  # filled meanwhile
                 self.busy += 1
@@ -334,23 +361,59 @@ class ArchiveServer(QueryWorker):
             self._cv.notify()
 
     def _tagged_asker(self, data: bytes) -> int | None:
-        """The asker word of an ask whose header tag checks in the session
-        (zenoh's thread; the asker word is within the header tag's bytes, so
-        no MAC over the body), else None: only such an ask counts against its
-        asker's bound. The serving thread checks it all again."""
-        if data[:4] != ASK_MAGIC:
-            return None
+        """Zenoh's thread (its own channel, under its own lock): None, the
+        frame refused and counted, when it can never be served: its header
+        tag checks in no run (junk), or it is an ask of another session, or
+        whose cookie expired, or answered before, or a hello among the last
+        :data:`HELLOS_KEPT` (stale: all within the header tag's bytes, so no
+        MAC over the body). Else the asker word
+        of an ask of the session, which counts against its asker's bound,
+        or -1 for any other frame (a hello, another version's), counted
+        under none. The serving thread checks it all again."""
         ch = self._rx_channel
         if ch is not None:
-            ch.run = self.session
-            try:
-                ch.open_header(data)
-            except AuthError:  # RunError included: refused when served
+            with self._rx_lock:
+                try:
+                    ch.open_header(data)  # unbound: any run's whose header tag checks
+                except AuthError as exc:
+                    self._refused_early += 1
+                    self.last_refusal = str(exc)
+                    return None
+        if ch is not None and data[:4] == HELLO_MAGIC and len(data) == HELLO.size + TAG_LEN:
+            # A hello is answered statelessly: a replay of one seen lately
+            # (asker and nonce, within the header tag's bytes) is refused
+            # here, never in hand (HELLOS_KEPT; the one copy is its 16 bytes).
+            key = data[4 : HELLO.size]
+            with self._rx_lock:
+                seen = self._hellos_seen
+                if key in seen:
+                    self._stale_early += 1
+                    self.last_refusal = "a hello seen before (a replay)"
+                    return None
+                ring, at = self._hellos_ring, self._hellos_at
+                seen.discard(ring[at])
+                ring[at] = key
+                seen.add(key)
+                self._hellos_at = (at + 1) % HELLOS_KEPT
+            return -1
+        if data[:4] != ASK_MAGIC or len(data) < ASK.size:
+            return -1
+        _, asker, nonce, cookie, _ = ASK.unpack_from(data, 0)
+        if ch is not None:
+            age = self._now() - cookie
+            if (
+                Channel.run_of(data) != self.session.epoch
+                or not 0 <= age <= self._max_age
+                or (cookie, asker, nonce) in self._served  # one lookup: safe beside the writer
+            ):
+                with self._rx_lock:
+                    self._stale_early += 1
+                    self.last_refusal = "an ask of another session, an expired cookie or a replay"
                 return None
-        return int(ASK.unpack_from(data, 0)[1])
+        return int(asker)
 
     def _stale(self, why: str) -> None:
-        self.stale += 1
+        self._stale_checked += 1
         self.last_refusal = why
 
     def _open_frame(self, data: bytes, bound: bool, *, body: bool = True) -> Any:

@@ -256,6 +256,13 @@ def platform_elements(m: Mission) -> dict[str, list[ElementConfig]]:
         E("cn_last_error", "u16", 0, doc="code of the last non-critical error"),
         E("cn_bad_frames", "u32", 0, doc="frames refused (shape, layout, tag)"),
         E(
+            "cn_unchecked_frames",
+            "u32",
+            0,
+            doc="of those, frames dropped after their header, their body's MAC not "
+            "checked: the loop's body-MAC budget was spent (spliced headers)",
+        ),
+        E(
             "cn_query_recoveries",
             "u32",
             0,
@@ -426,6 +433,13 @@ def platform_elements(m: Mission) -> dict[str, list[ElementConfig]]:
             E(f"{dn}_loop_overruns", "u32", 0, doc=f"{dn}'s loops that overran"),
             E(f"{dn}_errors", "u32", 0, doc=f"{dn}'s non-critical errors"),
             E(f"{dn}_bad_frames", "u32", 0, doc=f"triggers {dn} refused"),
+            E(
+                f"{dn}_unchecked_frames",
+                "u32",
+                0,
+                doc=f"of those, frames {dn} dropped after their header, their body's MAC "
+                "not checked: the loop's body-MAC budget was spent (spliced headers)",
+            ),
             E(f"{dn}_clock_offset_ns", "i64", 0, doc=f"{dn}'s clock correction (ns)"),
             E(f"{dn}_clock_drift_ns", "i64", 0, doc=f"{dn}'s clock error at the last re-sync"),
             E(f"{dn}_safed", "bool", False, doc=f"{dn} safed its actuators (why: next)"),

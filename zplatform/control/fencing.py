@@ -41,6 +41,7 @@ __all__ = [
     "TermGuard",
     "Verdict",
     "ask_frame",
+    "ask_nonce",
     "ask_size",
     "ask_stamp",
     "attested_term",
@@ -48,6 +49,7 @@ __all__ = [
     "read_ask",
     "read_reply",
     "reply_frame",
+    "screen_reply",
 ]
 
 VERSION = 1
@@ -222,6 +224,39 @@ def reply_frame(ch: Channel | None, r: ProbeReply) -> bytes:
         r.last_t_ns,
     )
     return bytes(ch.seal(body)) if ch is not None else body
+
+
+_ASK_NONCE_AT = 10  # after magic, version, kind, index, asker and term (_ASK)
+
+
+def ask_nonce(frame: bytes | bytearray | memoryview) -> bytes:
+    """The nonce of probe question ``frame`` (as :func:`ask_frame` made it;
+    read, not checked): what its reply must echo."""
+    return bytes(frame[_ASK_NONCE_AT : _ASK_NONCE_AT + NONCE_LEN])
+
+
+def screen_reply(
+    ch: Channel, payload: bytes | bytearray | memoryview, index: int, nonce: bytes
+) -> bool:
+    """Whether ``payload`` may be device node ``index``'s reply to the
+    question with ``nonce``: its header tag checks on ``ch`` (the node's
+    ``probe_dnX_to_cn`` channel; a channel no other thread uses), and its
+    magic, version, node and echoed nonce, all within the header tag's
+    bytes: no MAC over the body. For zenoh's reply callback, before the
+    hand-off (:class:`~zplatform.runtime.sync.ProbeSync`): junk and replies
+    to other questions never take a place a genuine reply needs.
+    :func:`read_reply` decides. Never raises."""
+    try:
+        body = ch.open_header(payload)
+    except CodecError:
+        return False
+    return (
+        len(body) == _REPLY.size
+        and body[:2] == _R_MAGIC
+        and body[2] == VERSION
+        and body[3] == index
+        and body[4 : 4 + NONCE_LEN] == nonce
+    )
 
 
 def read_reply(

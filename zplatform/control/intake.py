@@ -5,11 +5,11 @@ One intake per key a node takes frames on (:class:`TriggerIntake`,
 :class:`ProbeIntake`, :class:`MirrorIntake`, :class:`RequestIntake`,
 :class:`TelemetryIntake`, and :class:`ReplyCheck` for the CN's sync
 replies), run in the zenoh callback. Its checks, the first failure
-winning: size (unread), a rate bound where the key has one, one bounded
-copy (none for :meth:`Intake.check_view`), the header tag, freshness as
-far as the header tells it, the body-MAC budget (:data:`MAC_SPARE`), then
-the body's MAC and the rest of freshness: junk and replays never cost a
-MAC over their body. A refused frame is only counted. :meth:`Intake.admit`
+winning: size (unread), one copy (none for :meth:`Intake.check_view`),
+the header tag, freshness from the header, the body-MAC budget
+(:data:`MAC_SPARE`), the body's MAC, the rest of freshness, a per-asker
+rate bound (:class:`ProbeIntake`): junk and replays never cost a body MAC
+nor spend a bound (issue 25). A refused frame is only counted. :meth:`Intake.admit`
 puts an admitted one (its bytes) in a bounded :class:`~.handoff.Mailbox`
 whose last item is the newest valid frame; :meth:`Intake.check` only
 checks. Never blocks beyond two short locks, never raises for what
@@ -301,7 +301,7 @@ class Intake(ABC, Generic[H]):
     def check_view(self, view: memoryview, handle: H) -> memoryview | None:
         """:meth:`check` over a frame read in place (a loaned sample in
         shared memory, :mod:`zplatform.runtime.intrahost`): the same checks
-        in the same order (size, rate, tag, freshness), with no copy; returns
+        in the same order (size, tag, freshness), with no copy; returns
         ``view`` itself when it passes. The caller keeps the memory under
         ``view`` alive, and its bytes as checked, until it has copied what it
         needs (docs/architecture.md#intra-host: why a writer of that memory
@@ -437,8 +437,10 @@ class Intake(ABC, Generic[H]):
 
     def _within_rate(self) -> bool:
         """Whether a frame of the right size may be read now (before any
-        copy; with the lock held): a key with a rate bound counts and
-        refuses the excess here. Every frame, by default."""
+        copy; with the lock held): a key with a rate bound and no tag (a
+        mission that does not authenticate) counts and refuses the excess
+        here. Never for an authenticated key: a bound before the tag is one
+        junk can spend (module doc). Every frame, by default."""
         return True
 
     def _fresh_header(self, body: memoryview, handle: H) -> bool | None:
@@ -617,24 +619,20 @@ class ProbeIntake(Intake[H]):
     :data:`PROBES` questions (``waker``: the trigger mailbox's, so the node's
     loop wakes for either).
 
-    **Rate bounds** (``now_ns``: the clock they run on; ``period_ns``: the
-    mission's loop period). Two, each a token bucket kept as one integer
-    (GCRA: constant time, no allocation), so a flood costs the callback a
-    length, a clock read and a compare per question, and never reaches the
-    loop thread beyond a few answers a period:
-
-    * per channel, *before any copy* (the asker is not known unread): at
-      most ``askers`` * :data:`PROBE_BURST` questions at once, then
-      ``askers`` a period, whoever sends them;
-    * per asker, once the tag proved who asks: at most :data:`PROBE_BURST`
-      at once, then one a period.
-
-    What exceeds either is refused unanswered and counted in
-    :attr:`excess`. A flood from a peer without the key uses up the
-    channel's bound, so a genuine question sent meanwhile may be refused
-    too (the standby asks again later): the flood delays a takeover for as
-    long as it lasts, never the device node's loop. Without authentication
-    only the channel's bound applies (the asker cannot be told)."""
+    **Rate bound** (``now_ns``: the clock it runs on; ``period_ns``: the
+    mission's loop period): a token bucket kept as one integer (GCRA:
+    constant time, no allocation) per asker, once the tag proved who asks
+    and the question is fresh: at most :data:`PROBE_BURST` at once, then
+    one a period; what exceeds it is refused unanswered and counted in
+    :attr:`excess`. So a flood reaches the loop thread with a few answers
+    a period at most, and only a key holder's questions spend a bound:
+    junk (a bad header tag) is refused for the cost of the tag, and a
+    replay by its stamp, neither spending any asker's bound, so a genuine
+    question sent during a keyless flood is answered (issue 25: a bound
+    per channel before the tag let such a flood refuse the standby's
+    questions, delaying a takeover). Without authentication the asker
+    cannot be told: one bound per channel, before any copy, of ``askers``
+    * :data:`PROBE_BURST` questions at once, then ``askers`` a period."""
 
     def __init__(
         self,
@@ -673,6 +671,8 @@ class ProbeIntake(Intake[H]):
         return True
 
     def _within_rate(self) -> bool:
+        if self._open is not None:
+            return True  # authenticated: the asker's bound, after its tag (class doc)
         now = self._now()
         tat = max(self._tat_all, now)
         if tat - now > self._tau_all:
@@ -947,11 +947,12 @@ class RequestIntake(Intake[None]):
     def take_refusals(self, out: CnRefusals) -> None:
         """Put what this intake refused since the last call into ``out``'s
         command fields (:class:`CnRefusals`: ``cmd_size``, ``cmd_bad``,
-        ``cmd_stale`` and the refusal to report: the stale one with the
+        ``cmd_stale``, ``cmd_unchecked`` and the refusal to report: the stale one with the
         highest number, else ``REJECTED_AUTH``/0 for bad tags alone), then
         zero the counts. The one way every CN driver (the live node, the
         lockstep runner) reads its request intake. Allocates nothing."""
         out.cmd_size, out.cmd_bad, out.cmd_stale = self.take_counts()
+        out.cmd_unchecked = self.took_unchecked
         if out.cmd_stale:
             out.cmd_status, out.cmd_seq = self.reported
         elif out.cmd_bad:
@@ -1000,7 +1001,11 @@ class CnRefusals:
     the highest number; ``REJECTED_AUTH``/0 when only bad tags came). Not a
     refusal, but the sync's count of the loop too (so a replay counts it):
     ``query_recovered``, the device nodes whose querier was declared again
-    (:class:`~zplatform.runtime.queries.Unanswered`; not in :attr:`total`)."""
+    (:class:`~zplatform.runtime.queries.Unanswered`; not in :attr:`total`).
+    Of the refused, those dropped after their header for want of body-MAC
+    budget (:attr:`Intake.took_unchecked`, :data:`MAC_SPARE`; already in
+    the counts above, so not in :attr:`total`): ``reply_unchecked``,
+    ``cmd_unchecked``."""
 
     __slots__ = (
         "cmd_bad",
@@ -1008,11 +1013,13 @@ class CnRefusals:
         "cmd_size",
         "cmd_stale",
         "cmd_status",
+        "cmd_unchecked",
         "query_recovered",
         "reply_bad",
         "reply_foreign",
         "reply_size",
         "reply_stale",
+        "reply_unchecked",
     )  # CN_REFUSALS: their recorded order
 
     def __init__(self) -> None:
@@ -1023,6 +1030,7 @@ class CnRefusals:
         self.cmd_size = self.cmd_bad = self.cmd_stale = 0
         self.cmd_status = self.cmd_seq = 0
         self.query_recovered = 0
+        self.reply_unchecked = self.cmd_unchecked = 0
 
     @property
     def total(self) -> int:
@@ -1058,6 +1066,8 @@ CN_REFUSALS = (
     "cmd_status",
     "cmd_seq",
     "query_recovered",
+    "reply_unchecked",
+    "cmd_unchecked",
 )
 """:class:`CnRefusals`' fields in their recorded order."""
 

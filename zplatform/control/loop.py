@@ -221,13 +221,14 @@ class ControlLogic:
         self._dropped = dv.handle("cn_cmd_dropped")
         self._number = RequestNumber(self.layout) if self._ground is not None else None
         # Refusals at the driver's intake: one event a second at most.
-        self._refusals = RefusalLog(7)
+        self._refusals = RefusalLog(8)  # CN_REFUSALS' seven counts, then those unchecked
         self._out_of_range = RefusalLog(1)  # replies naming a term no node can run
         self._shown = (0, 0)  # the refusal cn_cmd_reject_status/_seq show
         self._rx = tuple(dv.handle(f"cn_rx_{dn}") for dn in dns)
         self._missed = tuple(dv.handle(f"cn_missed_{dn}") for dn in dns)
         self._late = tuple(dv.handle(f"cn_late_{dn}") for dn in dns)
         self._bad = dv.handle("cn_bad_frames")
+        self._unchecked = dv.handle("cn_unchecked_frames")
         self._recoveries = dv.handle("cn_query_recoveries")
         self._sync_overruns = dv.handle("cn_sync_overruns")
         self._loop_overruns = dv.handle("cn_loop_overruns")
@@ -584,21 +585,27 @@ class ControlLogic:
         counts one (:meth:`CommandHandler.count_refused`: ``cn_cmd_rejects``,
         the highest number in ``cn_cmd_reject_seq``). Evented together, at
         most once a second (a ``bad_frame`` and a ``cmd_rejected`` event).
-        The sync's querier recoveries of the loop go into
-        ``cn_query_recoveries`` (the driver events them)."""
+        Of them, those dropped after their header, their body's MAC not
+        checked (the intakes' budget spent: ``reply_unchecked``,
+        ``cmd_unchecked``), also go into ``cn_unchecked_frames``, and the
+        ``bad_frame`` event says how many. The sync's querier recoveries of
+        the loop go into ``cn_query_recoveries`` (the driver events them)."""
         if r is not None and r.query_recovered:
             self._recoveries.bump(r.query_recovered)
         if r is not None and r.total:
             self._bad.bump(r.total - r.cmd_stale)  # a stale request is a reject, not a bad frame
+            unchecked = r.reply_unchecked + r.cmd_unchecked
+            if unchecked:
+                self._unchecked.bump(unchecked)
             if r.cmd_bad or r.cmd_stale:
                 self._shown = (r.cmd_status, r.cmd_seq)
                 self.commands.count_refused(r.cmd_bad + r.cmd_stale, r.cmd_status, r.cmd_seq)
-            ev = self._refusals.add(t, *r.fields()[:7])
+            ev = self._refusals.add(t, *r.fields()[:7], unchecked)
         else:
             ev = self._refusals.add(t)
         if ev is None:
             return
-        rs, rb, rst, rf, cs, cb, cst = ev
+        rs, rb, rst, rf, cs, cb, cst, un = ev
         if rs + rb + rst + rf + cs + cb:
             self.events.emit(
                 EV.BAD_FRAME,
@@ -606,7 +613,7 @@ class ControlLogic:
                 source=f"{rs + rb + rst + rf + cs + cb} frame(s)",
                 reason=f"refused as they arrived: sync replies: {rs} of a wrong size, {rb} with "
                 f"bad tags, {rst} replayed (not for the loop asked), {rf} from no device node; "
-                f"command requests: {cs} of a wrong size, {cb} with bad tags",
+                f"command requests: {cs} of a wrong size, {cb} with bad tags" + _unchecked_note(un),
             )
         if cb + cst:
             status, seq = self._shown
@@ -887,6 +894,7 @@ class DeviceLogic:
         self._time = dv.handle(f"{node}_time_ns")
         self._errors = dv.handle(f"{node}_errors")
         self._bad = dv.handle(f"{node}_bad_frames")
+        self._unchecked = dv.handle(f"{node}_unchecked_frames")
         self._h_safed = dv.handle(f"{node}_safed")
         self._h_safed_why = dv.handle(f"{node}_safed_why")
         self._h_final = dv.handle(f"{node}_final")
@@ -921,13 +929,13 @@ class DeviceLogic:
                     for suffix, attr, _ in BOARD_LINK_COUNTERS
                 )
         self._bulk: BulkPort | None = None
-        self._refusals = RefusalLog(3)
+        self._refusals = RefusalLog(4)  # size, bad, stale, then those unchecked
         # Terms (zplatform.control.fencing), in a mission with a standby control node:
         # where the trigger's term sits in its data, and this node's guard.
         self.guard: TermGuard | None = None
         self._term_at = 0
         self._fenced_log = RefusalLog(2)
-        self._probe_log = RefusalLog(4)
+        self._probe_log = RefusalLog(5)  # size, bad, stale, excess, then those unchecked
         self._term_log = RefusalLog(1)  # triggers naming a term no node can run
         self._askers = len(mission.control_nodes)
         if mission.standby is not None:
@@ -1255,50 +1263,69 @@ class DeviceLogic:
             ),
         )
 
-    def refused(self, size: int, bad: int, stale: int, now_ns: int) -> None:
+    def refused(self, size: int, bad: int, stale: int, now_ns: int, *, unchecked: int = 0) -> None:
         """Count the sync queries the driver's intake refused as they arrived
         (:class:`~zplatform.control.intake.TriggerIntake`), unanswered: ``size`` of a
         wrong size, ``bad`` with a bad tag, ``stale`` replayed (not newer
         than the last trigger, or another run's genuine trigger: an earlier
         run's, zplatform.core.auth.Run). Each is a bad frame
-        (``dnX_bad_frames``, in the lockstep runner as live); they are
-        evented together, at most once a second
-        (:class:`~zplatform.control.intake.RefusalLog`). Call it whenever the driver
-        waited, with zeros too: the last counts of a burst go out then."""
+        (``dnX_bad_frames``, in the lockstep runner as live); of them,
+        ``unchecked`` were dropped after their header, their body's MAC not
+        checked (the intake's budget spent,
+        :attr:`~zplatform.control.intake.Intake.took_unchecked`), also
+        counted in ``dnX_unchecked_frames``. They are evented together, at
+        most once a second (:class:`~zplatform.control.intake.RefusalLog`).
+        Call it whenever the driver waited, with zeros too: the last counts
+        of a burst go out then."""
         if size or bad or stale:
             self._bad.bump(size + bad + stale)
-        ev = self._refusals.add(now_ns, size, bad, stale)
+        if unchecked:
+            self._unchecked.bump(unchecked)
+        ev = self._refusals.add(now_ns, size, bad, stale, unchecked)
         if ev is not None:
             self.events.emit(
                 EV.BAD_FRAME,
                 now_ns,
-                source=f"{sum(ev)} sync quer(ies)",
+                source=f"{sum(ev[:3])} sync quer(ies)",
                 reason=f"refused as they arrived, unanswered: {ev[0]} of a wrong size, "
                 f"{ev[1]} with bad tags, {ev[2]} replayed (not newer than the last trigger, "
-                "or another run's)",
+                "or another run's)" + _unchecked_note(ev[3]),
             )
 
     def probes_refused(
-        self, size: int, bad: int, stale: int, excess: int, now_ns: int, *, reason: str = ""
+        self,
+        size: int,
+        bad: int,
+        stale: int,
+        excess: int,
+        now_ns: int,
+        *,
+        reason: str = "",
+        unchecked: int = 0,
     ) -> None:
         """Count the probe questions refused (:class:`~zplatform.control.intake.ProbeIntake`
         as they arrived, unanswered, or :meth:`probe`): ``size`` of a wrong
         size, ``bad`` with a bad tag or out of range, ``stale`` replayed,
         ``excess`` beyond the rate bound. Each is a bad frame
-        (``dnX_bad_frames``), evented together at most once a second
+        (``dnX_bad_frames``; ``unchecked`` of them, dropped after their
+        header for want of body-MAC budget, also in
+        ``dnX_unchecked_frames``), evented together at most once a second
         (``reason``: the last refusal's, if any). Call it whenever the
         driver waited, with zeros too."""
         n = size + bad + stale + excess
         if n:
             self._bad.bump(n)
-        ev = self._probe_log.add(now_ns, size, bad, stale, excess)
+        if unchecked:
+            self._unchecked.bump(unchecked)
+        ev = self._probe_log.add(now_ns, size, bad, stale, excess, unchecked)
         if ev is not None:
             self.events.emit(
                 EV.BAD_FRAME,
                 now_ns,
-                source=f"{sum(ev)} probe question(s)",
+                source=f"{sum(ev[:4])} probe question(s)",
                 reason=f"refused: {ev[0]} of a wrong size, {ev[1]} bad (tag or values), "
                 f"{ev[2]} replayed, {ev[3]} beyond the rate bound"
+                + _unchecked_note(ev[4])
                 + (f"; the last: {reason}" if reason else ""),
             )
 
@@ -1501,3 +1528,14 @@ def _attach_health(health: HealthInput | None, port: HealthPort) -> None:
     if health is None:
         raise ConfigError("the mission has no `health:` section: no health elements", "$.health")
     health.port = port
+
+
+def _unchecked_note(n: int) -> str:
+    """What a refusal event adds for frames dropped after their header, their
+    body's MAC not checked (the intake's budget, MAC_SPARE, spent)."""
+    if not n:
+        return ""
+    return (
+        f"; {n} of them dropped after their header, unchecked (the body-MAC budget spent: "
+        "genuine headers on other bodies, a man in the middle)"
+    )

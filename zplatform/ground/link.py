@@ -327,20 +327,25 @@ class GroundLink:
             return
         self._last_hello = now
         self._relearn = False
-        box = self._run_box
-
-        def on_reply(reply: zenoh.Reply) -> None:
-            ok = reply.ok  # hand off only
-            if ok is not None:
-                box.put(ok.payload.to_bytes())
-
         ask(
             self.ns.session,
             self.keys.clock,
-            replies(on_reply, lambda: None),
+            replies(self._on_run_answer, lambda: None),
             payload=asker.hello(),
             timeout_s=RUN_HELLO_TIMEOUT_S,
         )
+
+    def _on_run_answer(self, reply: zenoh.Reply) -> None:
+        # zenoh's thread: screen (header tag and nonce: junk and replies to
+        # other hellos never reach the bounded mailbox, where a flood of them
+        # would push the commander's answer out), then hand off only.
+        ok = reply.ok
+        asker = self._asker
+        if ok is None or asker is None:
+            return
+        data = asker.screen(ok.payload)
+        if data is not None:
+            self._run_box.put(data)
 
     @property
     def waiting_for_run(self) -> bool:

@@ -278,13 +278,21 @@ class ControlNode:
             )
             assert self.mirror_intake.box is not None
             self._mirrors: Mailbox[tuple[None, bytes]] = self.mirror_intake.box
-            self._mirror_log = RefusalLog(3)
+            self._mirror_log = RefusalLog(4)  # size, bad, stale, then those unchecked
             self._mirror_sub = s.declare_subscriber(
                 space.mirror,
                 zenoh.handlers.Callback(self._on_mirror, indirect=False),
                 allowed_origin=zenoh.Locality.REMOTE,
             )
-            self.probes = ProbeSync(s, space, mission.device_nodes, probe_wait_ns(mission))
+            # Its own channels for the replies' screen (zenoh's threads):
+            # junk never pushes a device node's reply out (issue 25).
+            screens = [
+                channel(keys, f"probe_{dn}_to_cn", self.logic.auth_run)
+                for dn in mission.device_nodes
+            ]
+            self.probes = ProbeSync(
+                s, space, mission.device_nodes, probe_wait_ns(mission), screens=screens
+            )
             self._peer = next(n for n in mission.control_nodes if n != name)
             self._peer_seen = False
             self._ready_token: zenoh.LivelinessToken | None = None
@@ -395,15 +403,22 @@ class ControlNode:
     def _mirror_refusals(self, t_ns: int) -> None:
         """The mirrors the intake refused since the last call, evented at most
         once a second (the loop thread, every loop or beat)."""
-        ev = self._mirror_log.add(t_ns, *self.mirror_intake.take_counts())
+        intake = self.mirror_intake
+        ev = self._mirror_log.add(t_ns, *intake.take_counts(), intake.took_unchecked)
         if ev is not None:
+            unchecked = (
+                f"; {ev[3]} of them dropped after their header, unchecked (the body-MAC "
+                "budget spent)"
+                if ev[3]
+                else ""
+            )
             self.logic.events.emit(
                 EV.BAD_FRAME,
                 t_ns,
-                source=f"{sum(ev)} mirror frame(s)",
+                source=f"{sum(ev[:3])} mirror frame(s)",
                 reason=f"refused as they arrived by {self.name}: {ev[0]} of a wrong size, "
                 f"{ev[1]} with bad tags or values out of range, {ev[2]} not newer than the "
-                "newest (replayed, or its own)",
+                "newest (replayed, or its own)" + unchecked,
             )
 
     def _on_ground(self, sample: zenoh.Sample) -> None:
@@ -957,6 +972,7 @@ class ControlNode:
         req = self._requests
         if req is None:
             r.cmd_size = r.cmd_bad = r.cmd_stale = r.cmd_status = r.cmd_seq = 0
+            r.cmd_unchecked = 0
             return r
         req.take_refusals(r)
         return r

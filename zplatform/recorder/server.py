@@ -2,15 +2,15 @@
 
 :class:`RecorderServer` declares a queryable on ``{vehicle}/cn/recorder``
 (formats: :mod:`~.format`) and costs the control loop nothing but the GIL's
-share of one thread. Zenoh's callback checks a rate bound first (a GCRA:
-:data:`REQUEST_BURST`, then one every :data:`REQUEST_EVERY_NS`; the excess
-dropped unanswered, counted in ``excess``), then the size, and hands the
-query to a bounded inbox (:data:`MAX_PENDING`; more dropped, counted in
-``busy``); it never blocks. Every refusal is reported in the log by a thread
-of its own, at most once a :data:`LOG_PERIOD_S` (count, why the last).
-Why the bound: a keyless flood kept the serving thread busy with tag
-checks, and a Python thread that never waits held the GIL from the
-commander's loop past the device nodes' watchdog (issue 25).
+share of one thread. Zenoh's callback checks the size (unread), the
+request's header tag and stamp (a channel of its own: junk and old
+replays dropped unanswered, counted in ``refused``), then a rate bound
+(a GCRA: :data:`REQUEST_BURST`, then one every :data:`REQUEST_EVERY_NS`;
+the excess counted in ``excess``), and hands the query to a bounded inbox
+(:data:`MAX_PENDING`; more counted in ``busy``); it never blocks. A
+thread of its own logs refusals at most once a :data:`LOG_PERIOD_S`. The
+bound keeps a replayer from holding the GIL from the loop with tag checks;
+it comes after the tag so junk never spends it (issue 25).
 
 One serving thread checks each request (tag, stamp, not served before, a
 range of this run), drops and counts one that does not check, reads the
@@ -66,8 +66,10 @@ __all__ = [
 MAX_PENDING = 2
 """Requests waiting or being served; any more are dropped unanswered."""
 REMEMBERED = 64
-"""Requests served that a server remembers, to refuse a replay of one while
-its stamp is still within the bound (older ones are refused by the stamp)."""
+"""Requests a server remembers (served, and let through zenoh's callback),
+to refuse a replay of one while its stamp is still within the bound (older
+ones are refused by the stamp): in the callback, so such a replay spends
+no share of the rate bound (a ground asks one at a time: far fewer)."""
 LOG_PERIOD_S = 1.0
 """At most one log line of refused requests this often (:class:`RecorderServer`)."""
 log = logging.getLogger("zplatform.recorder")
@@ -125,9 +127,18 @@ class RecorderServer(QueryWorker):
         self.recorder = recorder
         self._mono = mono_ns
         self._tat = -(1 << 63)  # the rate bound's theoretical arrival time
-        self._rate_lock = threading.Lock()
+        # zenoh's threads: the header tag (with a channel of its own: the
+        # serving thread's is not shared) and the rate bound, under one lock.
+        self._rx_lock = threading.Lock()
+        self._rx_channel = channel.twin() if channel is not None else None
         self.excess = 0
-        """Requests dropped unanswered, unread, beyond the rate bound (module doc)."""
+        """Authentic requests dropped unanswered beyond the rate bound (module doc)."""
+        self._refused_early = 0  # by header tag or stamp, on zenoh's threads (in `refused`)
+        # The last REMEMBERED requests zenoh's callback let through (their
+        # run, range and stamp: a ring, and as a set): a replay is refused there.
+        self._seen_ring = [b""] * REMEMBERED
+        self._seen_at = 0
+        self._seen: set[bytes] = set()
         self._channel = channel
         self._events = events
         self._now = now_ns
@@ -153,6 +164,13 @@ class RecorderServer(QueryWorker):
         self.queryable = session.declare_queryable(
             key_expr, zenoh.handlers.Callback(self.on_query, indirect=False)
         )
+
+    @property
+    def refused(self) -> int:
+        """Requests dropped unanswered because they did not check: of a wrong
+        size, header tag or stamp (zenoh's callback), or any other check
+        (the serving thread)."""
+        return super().refused + self._refused_early
 
     @property
     def refusals(self) -> int:
@@ -185,10 +203,49 @@ class RecorderServer(QueryWorker):
             self.log_refusals()
 
     def on_query(self, query: Any) -> None:
-        """The queryable's callback: the rate bound, then (the base's) the
-        size and the hand-off (module doc). Never blocks beyond a short lock."""
+        """The queryable's callback: the size (unread), the header tag, the
+        rate bound, then (the base's) the hand-off (module doc). Never blocks
+        beyond a short lock; never raises for what arrives."""
+        p = query.payload
+        n = 0 if p is None else len(p)
+        why = self.size_refusal(n)
+        if why is None and self._rx_channel is not None:
+            # A request is shorter than the header tag's bytes (codecs/FORMAT.md
+            # §6.1): its header tag is all the serving thread's tag check
+            # would refuse junk by, for a copy of 68 bytes.
+            data = p.to_bytes()
+            with self._rx_lock:
+                try:
+                    body = self._rx_channel.open_header(data)
+                except AuthError as exc:
+                    why = str(exc)
+                else:
+                    # The stamp is authentic now: a replay older than the
+                    # bound, or one of a request seen lately (the last
+                    # REMEMBERED), spends no share of the rate bound either.
+                    age = self._now() - REQUEST.unpack_from(body)[4]
+                    key = bytes(body[4 : REQUEST.size])  # run, range, stamp
+                    if abs(age) > self._max_age:
+                        why = f"a request stamped {age / 1e9:+.3f} s from this node's clock"
+                    elif key in self._seen:
+                        why = "a request seen before (a replay)"
+                    else:
+                        ring, at = self._seen_ring, self._seen_at
+                        self._seen.discard(ring[at])
+                        ring[at] = key
+                        self._seen.add(key)
+                        self._seen_at = (at + 1) % REMEMBERED
+        if why is not None:
+            with self._rx_lock:
+                if n == self._req_len:
+                    self._refused_early += 1
+                else:
+                    self._refused_rx += 1
+                self.last_refusal = why
+            query.drop()
+            return
         now = self._mono()
-        with self._rate_lock:
+        with self._rx_lock:
             tat = max(self._tat, now)
             over = tat - now > _REQUEST_TAU_NS
             if over:

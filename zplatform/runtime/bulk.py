@@ -15,8 +15,8 @@ counted (``bad``, ``stale``), evented once a second (docs/architecture.md#intra-
 
 Contract: :meth:`BulkWriter.publish` copies the array once per path and, with
 no chunk free, counts a drop (never raises, never a heap copy). A reader's
-zenoh callback only stores the sample in a one-slot mailbox (newest wins);
-:meth:`BulkReader.poll`, on the loop's thread, copies it into the array.
+zenoh callback keeps a sample whose header passed in a one-slot mailbox
+(junk never displaces it); :meth:`BulkReader.poll` copies it into the array.
 """
 
 from __future__ import annotations
@@ -483,8 +483,18 @@ class BulkReader:
         self._count = math.prod(channel.shape)
         self._dtype = channel.dtype  # parsed once: poll must not re-parse the type
         self._shape = channel.shape
-        self._latest: zenoh.Sample | None = None
+        # The zenoh path's one-slot mailbox (_on_sample): the newest sample
+        # whose header passed, as (bytes, via shared memory, seq, t_ns).
+        self._latest: tuple[bytes, bool, int, int] | None = None
         self._event = threading.Event()
+        # zenoh's threads' own: a channel (a twin of auth), a summary, the
+        # refusals counted there (folded into bad/stale/duplicates by poll,
+        # the loop's thread, so each counter has one writer), one lock.
+        self._rx_lock = threading.Lock()
+        self._rx_auth = auth.twin() if auth is not None else None
+        self._rx_summary = bytearray(SUMMARY_BYTES + TAG_LEN)
+        self._rx_bad = self._rx_stale = self._rx_dup = 0
+        self._rx_why = ""
         self._last_seq: int | None = None
         self._last_t_ns = 0
         self.duplicates = 0
@@ -520,9 +530,62 @@ class BulkReader:
         )
 
     def _on_sample(self, sample: zenoh.Sample) -> None:
-        # zenoh's thread: hand off only (docs/architecture.md#zenoh). Replacing the slot
-        # releases the superseded sample (and its shared-memory chunk).
-        self._latest = sample
+        """Zenoh's thread: the sample's header checks, then the hand-off
+        (docs/architecture.md#intra-host). Its size (unread), one copy out
+        of zenoh (zenoh-python has no read in place: the intake's one copy,
+        made here instead of in :meth:`poll`; the chunk is released at
+        once), then, with authentication, this reader's header tag over the
+        header and the length (no pass over the array), and the header's
+        stamp: not ahead of the reader's clock beyond ``ahead_ns``, and
+        newer than the sample in the slot (a replay, or the same sample over
+        the other path, is let go). Only a sample that passes replaces the
+        slot: a keyless flood on the bulk key (plain TCP) costs a copy per
+        sample, as zenoh's own reception of it does, and never displaces
+        the genuine sample before :meth:`poll` takes it (issue 25). Never
+        blocks beyond a short lock; never raises for what arrives."""
+        payload = sample.payload
+        n = len(payload)
+        if n != self._size:
+            with self._rx_lock:
+                self._rx_bad += 1
+                self._rx_why = f"a sample of {n} bytes, not {self._size}"
+            return
+        shm = payload.as_shm()
+        # bytes(shm) is faster than payload.to_bytes() for shm (bench.shm)
+        data = bytes(shm) if shm is not None else payload.to_bytes()
+        via_shm = shm is not None
+        del sample, payload, shm  # release the chunk now
+        _, _, seq, _, t_ns = HEADER.unpack_from(data, 0)
+        with self._rx_lock:
+            auth = self._rx_auth
+            if auth is not None:
+                summary = self._rx_summary
+                summary_of(summary, data, self._n)
+                at = self._tag_at
+                summary[SUMMARY_BYTES:] = data[at : at + TAG_LEN]
+                try:
+                    auth.open_header(summary)
+                except RunError as exc:  # an earlier run's genuine sample: a replay
+                    self._rx_stale += 1
+                    self._rx_why = str(exc)
+                    return
+                except AuthError as exc:
+                    self._rx_bad += 1
+                    self._rx_why = str(exc)
+                    return
+                if t_ns > self._now() + self._ahead:
+                    self._rx_stale += 1
+                    self._rx_why = f"a sample stamped {t_ns}, ahead of this node's clock"
+                    return
+                held = self._latest
+                last = self._last_seq  # the loop thread's: one read, a race costs a poll
+                if (held is not None and seq <= held[2] and t_ns <= held[3]) or (
+                    last is not None and seq <= last and t_ns <= self._last_t_ns
+                ):
+                    self._rx_dup += 1  # not newer than the one waiting, or one taken
+                    return
+            # Replacing the slot lets the superseded sample's bytes go.
+            self._latest = (data, via_shm, seq, t_ns)
         self._event.set()
 
     def poll(self, *, copy: bool = True, loop: int | None = None) -> bool:
@@ -535,10 +598,12 @@ class BulkReader:
         Returns ``True`` when :attr:`array` (``copy=True``) or :attr:`view`
         (``copy=False``: read-only, valid until the next poll) holds a new,
         checked sample; ``False`` when none arrived or it was refused
-        (counted in ``bad`` or ``stale``, module doc). Never blocks; copies
-        once out of zenoh (after the size check: the intake's one copy,
-        checked in place after it) and, with ``copy=True``, once into
-        :attr:`array`; a refused sample is never copied into it.
+        (counted in ``bad`` or ``stale``, module doc; with what zenoh's
+        callback refused, :meth:`_on_sample`). Never blocks; copies once
+        out of zenoh (after the size check: the intake's one copy, made in
+        zenoh's callback, checked in place after it) and, with
+        ``copy=True``, once into :attr:`array`; a refused sample is never
+        copied into it.
         """
         if loop is None:
             self._polls += 1
@@ -546,26 +611,22 @@ class BulkReader:
             if loop < self._polls:  # its loops start again (another run): so does the bound
                 self._tat = min(self._tat, loop)
             self._polls = loop
+        with self._rx_lock:
+            self._fold_rx()
         iox = self.iox
         if iox is not None:
             got = self._poll_iox(iox, copy)
             if got is not None:
                 return got
-        sample = self._latest
-        if sample is None:
+        with self._rx_lock:
+            held = self._latest
+            self._latest = None
+            self._event.clear()
+        if held is None:
             return False
-        self._latest = None
-        self._event.clear()
-        payload = sample.payload
-        if len(payload) != self._size:  # size first: nothing of it is read
-            self.bad += 1
-            self.why = f"a sample of {len(payload)} bytes, not {self._size}"
-            return False
-        shm = payload.as_shm()
-        via_shm = shm is not None
-        # bytes(shm) is faster than payload.to_bytes() for shm (bench.shm)
-        data = bytes(shm) if shm is not None else payload.to_bytes()
-        del sample, payload, shm  # release the chunk now, not at the next poll
+        data, via_shm, _, _ = held
+        # The whole intake again (the header's checks are microseconds): the
+        # callback's screen decided only what waits in the slot.
         if not self._take(data, copy):
             return False
         if via_shm:
@@ -573,6 +634,16 @@ class BulkReader:
         else:
             self.received_copied += 1
         return True
+
+    def _fold_rx(self) -> None:
+        """Fold what zenoh's callback refused into the counters (the loop's
+        thread, with the callback's lock held)."""
+        if self._rx_bad or self._rx_stale:
+            self.why = self._rx_why
+        self.bad += self._rx_bad
+        self.stale += self._rx_stale
+        self.duplicates += self._rx_dup
+        self._rx_bad = self._rx_stale = self._rx_dup = 0
 
     def _poll_iox(self, iox: Any, copy: bool) -> bool | None:
         """The iceoryx2 path's part of :meth:`poll`: whether a sample from it

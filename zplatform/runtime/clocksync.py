@@ -57,6 +57,7 @@ from .transport import KeySpace
 
 __all__ = [
     "ESTIMATORS",
+    "HELLO_KEPT",
     "ClockEstimate",
     "ClockEstimator",
     "ClockLink",
@@ -164,6 +165,15 @@ class ZenohTimestampsError(ClockSyncError):
     """
 
 
+class _Payload(Protocol):
+    """What :meth:`ClockLink.screen` and :meth:`RunAsker.screen` read:
+    ``zenoh.ZBytes`` (its length is free, ``to_bytes`` copies)."""
+
+    def __len__(self) -> int: ...
+
+    def to_bytes(self) -> bytes: ...
+
+
 class ClockLink:
     """A DN's end of the clock exchange (module doc), sans-IO.
 
@@ -198,9 +208,14 @@ class ClockLink:
             self.index = mission.device_nodes.index(dn)
             self._seal = channel(keys, f"clock_{dn}_to_cn", self._asking)
             self._open = channel(keys, f"clock_cn_to_{dn}", self.run)
-        self.refused_bad = 0
-        self.refused_other = 0
+        # What check() refused (the estimating thread's) and what screen()
+        # refused (zenoh's threads'): one writer each, summed when read.
+        self._bad = self._other = 0
+        self._screened_bad = self._screened_other = 0
         self.timeouts = 0
+        # screen()'s: zenoh's threads, a channel and a lock of their own.
+        self._screen = self._open.twin() if self._open is not None else None
+        self._screen_lock = threading.Lock()
         self._sent = (b"", 0)  # the last query's nonce and stamp
 
     def query(self, t1: int) -> tuple[bytes, bytes]:
@@ -214,6 +229,35 @@ class ClockLink:
         body = _QUERY.pack(_Q_MAGIC, _VERSION, self.index, nonce, t1)
         seal = self._seal
         return (bytes(seal.seal(body)) if seal is not None else body), nonce
+
+    def screen(self, payload: _Payload, nonce: bytes) -> bytes | None:
+        """The bytes of ``payload`` (a reply's, ``zenoh.ZBytes``) when it may
+        be the CN's reply to the query with ``nonce``: its length (unread),
+        its header tag (any run) and the nonce echoed, all within the header
+        tag's bytes (no MAC over the body); else None, counted in
+        :attr:`refused_bad` or :attr:`refused_other` (and :attr:`screened`).
+        For zenoh's reply callback, before the hand-off
+        (thread-safe: a channel and a lock of its own; never raises):
+        junk never takes a place a genuine reply needs. :meth:`check`
+        decides."""
+        ch = self._screen
+        n = len(payload)
+        with self._screen_lock:
+            if n != _REPLY.size + (TAG_LEN if ch is not None else 0):
+                self._screened_bad += 1
+                return None
+            raw = payload.to_bytes()
+            if ch is None:
+                return raw  # without tags, junk cannot be told: check() judges
+            try:
+                body = ch.open_header(raw, any_run=True)
+            except AuthError:
+                self._screened_bad += 1
+                return None
+            if body[4 : 4 + NONCE_LEN] != nonce:
+                self._screened_other += 1  # authentic: another exchange's (a replay)
+                return None
+        return raw
 
     def check(self, raw: bytes, nonce: bytes) -> tuple[int, int, int] | None:
         """``(t1, t2, t3)`` of the CN's reply to the query with ``nonce``;
@@ -233,19 +277,19 @@ class ClockLink:
             # §6.1): a reply to another query (a replay) is refused before
             # the body's MAC.
             if body[4 : 4 + NONCE_LEN] != nonce:
-                self.refused_other += 1
+                self._other += 1
                 return None
             if ch is not None:
                 ch.check_body(raw)
         except AuthError:
-            self.refused_bad += 1
+            self._bad += 1
             return None
         magic, version, index, echo, t1, t2, t3 = _REPLY.unpack(body)
         if magic != _R_MAGIC or version != _VERSION or index != self.index:
-            self.refused_bad += 1
+            self._bad += 1
             return None
         if echo != nonce or not _believable(t1, t2, t3, self._sent, nonce):
-            self.refused_other += 1
+            self._other += 1
             return None
         if self._open is not None and echo == self._sent[0]:
             # Authentic and the answer to this node's latest, fresh, query:
@@ -253,6 +297,21 @@ class ClockLink:
             self.run.set(Channel.run_of(raw))
             self._answered = True
         return t1, t2, t3
+
+    @property
+    def refused_bad(self) -> int:
+        """Replies refused for a bad tag or not a reply (module doc)."""
+        return self._bad + self._screened_bad
+
+    @property
+    def refused_other(self) -> int:
+        """Authentic replies refused as another exchange's (module doc)."""
+        return self._other + self._screened_other
+
+    @property
+    def screened(self) -> int:
+        """Of those, the replies :meth:`screen` refused in zenoh's callback."""
+        return self._screened_bad + self._screened_other
 
     @property
     def refused(self) -> int:
@@ -282,11 +341,17 @@ def _believable(t1: int, t2: int, t3: int, sent: tuple[bytes, int], nonce: bytes
 HELLO_BURST = 16
 """Run hellos (:class:`RunAsker`) a clock server answers at once; then one
 every :data:`HELLO_EVERY_NS`. The ground and tools ask once at start, then
-at most once a second; a hello is answered statelessly, so a replayed one
-would be answered for ever: beyond the bound it is refused before its MAC
-(a flood of them delays a ground's learning of the run, never the loop)."""
+at most once a :data:`RELEARN_S`. The bound counts only authentic hellos
+not answered before (:class:`ClockResponder`: after the header tag and the
+nonces of :data:`HELLO_KEPT`), so junk never spends it."""
 HELLO_EVERY_NS = 50_000_000
 _HELLO_TAU_NS = (HELLO_BURST - 1) * HELLO_EVERY_NS
+HELLO_KEPT = 256
+"""Nonces of the authentic run hellos a clock server saw last (answered,
+or refused by the rate bound) that it keeps, a preallocated ring: a hello
+carrying one of them (a replay) is refused, counted stale, and spends
+nothing of the bound (:class:`ClockResponder`)."""
+
 
 _Checked = tuple[int, bytes, int, int]
 """A clock query :meth:`ClockResponder.check` passed: ``(index, nonce, t1, t2)``."""
@@ -344,7 +409,13 @@ class ClockResponder:
         self._mono = mono_ns
         self._hello_tat = -(1 << 63)
         self.hello_excess = 0
-        """Run hellos refused unread by their rate bound (also in :attr:`refused`)."""
+        """Authentic run hellos, not seen before, refused by their rate bound
+        (also in :attr:`refused`)."""
+        # The nonces of the last HELLO_KEPT authentic hellos, oldest first
+        # from _hello_at, and the same as a set (b"": no nonce yet).
+        self._hello_ring = [b""] * HELLO_KEPT
+        self._hello_at = 0
+        self._hello_seen: set[bytes] = set()
         self.run = run if run is not None else Run(new_run_epoch(time.time_ns()))
         r = self.run
         # Queries are opened unbound (a hello names no run; the run is checked
@@ -380,8 +451,8 @@ class ClockResponder:
         self._ref: list[tuple[int, int] | None] = [None] * askers
         self._ref_sync: list[tuple[int, int] | None] = [None] * askers
         self.stale = 0
-        """Authentic queries refused as replays: not fresh, or answered before
-        (also in :attr:`refused`)."""
+        """Authentic queries refused as replays: not fresh, or answered before;
+        and run hellos seen before (also in :attr:`refused`)."""
         self.ask_excess = 0
         """Authentic fresh queries refused beyond their asker's rate bound
         (also in :attr:`refused`)."""
@@ -421,16 +492,6 @@ class ClockResponder:
         on another thread meanwhile (they share no channel)."""
         want = _QUERY.size + (TAG_LEN if self._auth else 0)
         if len(raw) == RUN_HELLO.size + (TAG_LEN if self._auth else 0) and raw[:2] == _H_MAGIC:
-            # A hello is answered statelessly, so a captured one replays
-            # forever: bounded before its MAC (GCRA, one integer).
-            now = self._mono()
-            tat = max(self._hello_tat, now)
-            if tat - now > _HELLO_TAU_NS:
-                self.hello_excess += 1
-                self.refused += 1
-                self.reason = "run hellos beyond their rate bound"
-                return None
-            self._hello_tat = tat + HELLO_EVERY_NS
             return self._answer_hello(raw)
         try:
             if len(raw) != want or raw[:3] != _Q_MAGIC + bytes((_VERSION,)):
@@ -520,13 +581,33 @@ class ClockResponder:
         return bytes(seal.seal(reply)) if seal is not None else reply
 
     def _answer_hello(self, raw: bytes) -> bytes | None:
-        """The answer to a run hello (:class:`RunAsker`): statelessly, this
-        run, the nonce echoed; None (counted) for a bad tag or version. A
-        replayed hello is answered again: its answer echoes a nonce nobody
-        waits for any more."""
+        """The answer to a run hello (:class:`RunAsker`): this run, the nonce
+        echoed; None (counted, :attr:`reason` set) to refuse it. In order:
+        the header tag and the version (junk: refused, spending nothing);
+        with keys, its nonce among the last :data:`HELLO_KEPT` seen (a
+        replay: refused, counted :attr:`stale`), then the MAC, then the
+        nonce is kept (answered or not: a ground's next hello has a new
+        one); then the rate bound (:data:`HELLO_BURST`, GCRA, one
+        integer), which only those reach (:attr:`hello_excess`).
+
+        What a replayer of captured hellos can still do: holding at most
+        :data:`HELLO_KEPT` of them, have each answered once, until
+        :data:`HELLO_KEPT` others were seen since (it pushes none out with
+        its own replays): one pass, which keeps the bound spent for at most
+        ``(HELLO_KEPT - HELLO_BURST) * HELLO_EVERY_NS`` (12 s), then a
+        ground's hello (one a :data:`RELEARN_S`) finds the bound free.
+        Holding more, it can cycle them and keep the bound spent for as
+        long as it replays: that takes more than :data:`HELLO_KEPT`
+        distinct hellos, i.e. a watcher of the link for as many of a
+        ground's (re-)learnings, at most one a :data:`RELEARN_S` (minutes
+        of provoking them with another run's telemetry), and it delays only
+        the learning of the run, never the loop. A new control node run (a
+        new responder) starts with an empty ring."""
         ch = self._hello_open
         try:
-            body = ch.open(raw, any_run=True) if ch is not None else memoryview(raw)
+            # A hello is shorter than the header tag's bytes (codecs/FORMAT.md
+            # §6.1): its header tag makes it all authentic, the nonce too.
+            body = ch.open_header(raw, any_run=True) if ch is not None else memoryview(raw)
             if body[2] != _VERSION:
                 raise AuthError(f"a run hello of version {body[2]}, not {_VERSION}")
         except AuthError as exc:
@@ -534,6 +615,32 @@ class ClockResponder:
             self.reason = str(exc)
             return None
         _, _, nonce = RUN_HELLO.unpack(body)
+        if ch is not None:  # without tags a replay cannot be told from a hello
+            seen = self._hello_seen
+            if nonce in seen:
+                self.refused += 1
+                self.stale += 1
+                self.reason = "a run hello seen before (a replay)"
+                return None
+            try:
+                ch.check_body(raw)
+            except AuthError as exc:
+                self.refused += 1
+                self.reason = str(exc)
+                return None
+            ring, at = self._hello_ring, self._hello_at
+            seen.discard(ring[at])
+            ring[at] = nonce
+            seen.add(nonce)
+            self._hello_at = (at + 1) % HELLO_KEPT
+        now = self._mono()
+        tat = max(self._hello_tat, now)
+        if tat - now > _HELLO_TAU_NS:
+            self.hello_excess += 1
+            self.refused += 1
+            self.reason = "run hellos beyond their rate bound"
+            return None
+        self._hello_tat = tat + HELLO_EVERY_NS
         self.hellos += 1
         answer = RUN_ANSWER.pack(_A_MAGIC, _VERSION, nonce, self.run.epoch)
         seal = self._hello_seal
@@ -559,6 +666,11 @@ class RunAsker:
         self.run = run if run is not None else Run()
         self._seal = channel(keys, "run_hello")
         self._open = channel(keys, "run_answer", self.run)
+        # screen()'s: zenoh's threads, a channel and a lock of their own.
+        self._screen = self._open.twin() if self._open is not None else None
+        self._screen_lock = threading.Lock()
+        self.screened = 0
+        """Answers :meth:`screen` refused (zenoh's threads write it)."""
         self._nonce = b""
         self.refused_bad = 0
         self.refused_other = 0
@@ -572,6 +684,36 @@ class RunAsker:
         body = RUN_HELLO.pack(_H_MAGIC, _VERSION, self._nonce)
         seal = self._seal
         return bytes(seal.seal(body)) if seal is not None else body
+
+    def screen(self, payload: _Payload) -> bytes | None:
+        """The bytes of ``payload`` (a reply's, ``zenoh.ZBytes``) when it may
+        be the answer to the latest hello: its length (unread), then its
+        header tag (any run) and the hello's nonce echoed, both within the
+        header tag's bytes (no MAC over the body); else None. For zenoh's
+        reply callback, before the hand-off (thread-safe; never raises,
+        never blocks beyond a short lock): junk and answers to other hellos
+        are refused there (counted in :attr:`screened`), so a flood of them
+        never displaces the answer in a bounded mailbox. :meth:`check`
+        decides."""
+        ch = self._screen
+        n = len(payload)
+        with self._screen_lock:
+            if n != RUN_ANSWER.size + (TAG_LEN if ch is not None else 0):
+                self.screened += 1
+                return None
+            raw = payload.to_bytes()  # 59 bytes at most
+            if ch is None:
+                return raw  # without tags, junk cannot be told: check() judges
+            nonce = self._nonce  # one attribute read: hello() may set the next
+            try:
+                body = ch.open_header(raw, any_run=True)
+            except AuthError:
+                self.screened += 1
+                return None
+            if not nonce or body[3 : 3 + NONCE_LEN] != nonce:
+                self.screened += 1
+                return None
+        return raw
 
     def check(self, raw: bytes | bytearray | memoryview) -> bool:
         """Whether ``raw`` is the answer to the latest hello (class doc);
@@ -789,7 +931,13 @@ def _exchange(
     def on_reply(r: zenoh.Reply) -> None:
         t4 = now_ns()  # in zenoh's thread, before any hand-off
         ok = r.ok
-        if ok is None or not cap.admit(r):
+        if ok is None:
+            return
+        # The screen first (length, header tag, this query's nonce): junk and
+        # replies to other queries, from however many peers, never take a
+        # place among the CLOCK_REPLIERS_MAX read (issue 25).
+        data = link.screen(ok.payload, nonce)
+        if data is None or not cap.admit(r):
             return
         stack = getattr(ok, "timestamp_stack", None)
         stamps: list[int] = []
@@ -799,7 +947,7 @@ def _exchange(
                 if isinstance(ts, bytes | bytearray):
                     continue
                 stamps.append(ts.get_time_as_ntp64().as_nanos())
-        replies.put((ok.payload.to_bytes(), t4, stamps))
+        replies.put((data, t4, stamps))
 
     t1 = now_ns()
     payload, nonce = link.query(t1)

@@ -32,9 +32,11 @@ import zenoh
 
 from .. import trace as tracer
 from ..config import Mission
+from ..control.fencing import ask_nonce, screen_reply
 from ..control.handoff import Handoff, Mailbox, Waker
 from ..control.intake import CnRefusals, ProbeIntake, ReplyCheck, TriggerIntake
 from ..control.loop import ControlLogic, DeviceLogic
+from ..core.auth import Channel
 from ..core.codec import BundleEncoder
 from ..errors import IntraHostError
 from .intrahost import (
@@ -542,17 +544,19 @@ class ControlSync:
         (its ``reply_*`` fields; then zeroed), and the queriers declared again
         since (``query_recovered``: the loop counts them in
         ``cn_query_recoveries``). The loop thread, once a loop."""
-        size = bad = stale = 0
+        size = bad = stale = unchecked = 0
         for c in self._checks:
             s, b, st = c.take_counts()
             size += s
             bad += b
             stale += st
+            unchecked += c.took_unchecked
         with self._count_lock:
             foreign, oversize = self._foreign, self._oversize
             self._foreign = self._oversize = 0
         out.reply_size, out.reply_bad, out.reply_stale = size + oversize, bad, stale
         out.reply_foreign = foreign
+        out.reply_unchecked = unchecked
         out.query_recovered, self._recovered_n = self._recovered_n, 0
 
     def begin(
@@ -953,7 +957,7 @@ class DeviceSync:
             self._key, zenoh.handlers.Callback(handoff, indirect=False)
         )
         # A redundant mission's probes (zplatform.control.fencing): their own intake
-        # (size, its rate bound, tag, freshness: zplatform.control.intake.ProbeIntake),
+        # (size, tag, freshness, the asker's rate bound: zplatform.control.intake.ProbeIntake),
         # waking the same wait as the triggers.
         self.probes = probes
         self._probe_q: zenoh.Queryable[Any] | None = None
@@ -1080,10 +1084,12 @@ class DeviceSync:
         finally:
             size, bad, stale = self.intake.take_counts()
             now = self._now()
-            logic.refused(size, bad, stale, now)
+            logic.refused(size, bad, stale, now, unchecked=self.intake.took_unchecked)
             if self.probes is not None:
                 size, bad, stale = self.probes.take_counts()
-                logic.probes_refused(size, bad, stale, self.probes.excess, now)
+                logic.probes_refused(
+                    size, bad, stale, self.probes.excess, now, unchecked=self.probes.took_unchecked
+                )
 
     def _answer(self, item: tuple[zenoh.Query, bytes], logic: DeviceLogic) -> None:
         """Answer one probe question (:meth:`DeviceLogic.probe`)."""
@@ -1174,16 +1180,31 @@ class ProbeSync:
     timeout: an impostor declaring a "complete" probe queryable cannot take
     the question, a congested link cannot block the asker). Replies wait in
     a bounded mailbox (a peer answering many times cannot grow memory); the
-    caller checks each one (tag, nonce). Not thread-safe: one thread asks."""
+    caller checks each one (tag, nonce). With ``screens`` (each device node's
+    ``probe_dnX_to_cn`` channel, this object's own), zenoh's callback
+    screens each reply first (:func:`~zplatform.control.fencing.screen_reply`:
+    header tag, node, the question's nonce): junk and replies to other
+    questions, from however many peers, never push a device node's reply out
+    of the mailbox (issue 25; counted in :attr:`screened`). Not thread-safe:
+    one thread asks."""
 
     def __init__(
-        self, session: zenoh.Session, keys: KeySpace, dns: Sequence[str], timeout_ns: int
+        self,
+        session: zenoh.Session,
+        keys: KeySpace,
+        dns: Sequence[str],
+        timeout_ns: int,
+        screens: Sequence[Channel | None] | None = None,
     ) -> None:
         self.session = session
         self._keys = [keys.probe(dn) for dn in dns]
         self.timeout_ns = timeout_ns
         self._box: Mailbox[tuple[int, bytes]] = Mailbox(4 * max(len(dns), 1))
         box = self._box
+        self._nonces = [b""] * len(dns)  # each question's, for the screen
+        self._screen_lock = threading.Lock()  # the screens' channels: zenoh's threads
+        self.screened = 0
+        """Replies the screen refused (zenoh's threads write it)."""
 
         # One reply per replier per question is read (a DN answers once): a
         # peer flooding answers cannot push the DN's out of the mailbox.
@@ -1191,11 +1212,20 @@ class ProbeSync:
 
         def make(i: int) -> Callable[[zenoh.Reply], None]:
             cap = self._caps[i]
+            screen = screens[i] if screens is not None else None
 
             def on_reply(reply: zenoh.Reply) -> None:  # zenoh's thread: hand off
                 ok = reply.ok
-                if ok is not None and len(ok.payload) <= _ERR_MAX and cap.admit(reply):
-                    box.put((i, ok.payload.to_bytes()))
+                if ok is None or len(ok.payload) > _ERR_MAX:
+                    return
+                data = ok.payload.to_bytes()
+                if screen is not None:
+                    with self._screen_lock:
+                        if not screen_reply(screen, data, i, self._nonces[i]):
+                            self.screened += 1
+                            return
+                if cap.admit(reply):
+                    box.put((i, data))
 
             return on_reply
 
@@ -1211,6 +1241,7 @@ class ProbeSync:
         timeout_s = max(self.timeout_ns / 1e9, 0.005)
         for i, question in enumerate(asks):
             self._caps[i].reset()
+            self._nonces[i] = ask_nonce(question)  # one reference swap: read by the screen
             # Every queryable on dnX/probe (a peer that declares a "complete"
             # one cannot take the question from the DN); `answer` takes only
             # the DN's (tag, nonce).

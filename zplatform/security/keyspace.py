@@ -287,16 +287,18 @@ KEYSPACE: tuple[KeyRow, ...] = (
                 "cn-{dn}; cn-cn_b for the standby",
                 "zplatform.runtime.clocksync.ClockLink {asker}",
                 _NONCE_TIMES,
-                "the first valid reply ends the exchange",
+                "screened in zenoh's callback (header tag, nonce); the first valid reply "
+                "ends the exchange",
             ),
             KeyFrames(
                 "query",
                 "run_hello",
                 "downlink",
                 "zplatform.runtime.clocksync.ClockResponder commander",
-                "any (a run hello names no run; answered statelessly, its nonce echoed)",
-                "HELLO_BURST, then one every HELLO_EVERY_NS, before the MAC; the clock's serving "
-                "thread and backlog",
+                "any (a run hello names no run; its nonce echoed): none of the last "
+                "HELLO_KEPT nonces seen",
+                "after the header tag and the nonces: HELLO_BURST, then one every "
+                "HELLO_EVERY_NS; the clock's serving thread and backlog",
             ),
             KeyFrames(
                 "reply",
@@ -403,8 +405,8 @@ KEYSPACE: tuple[KeyRow, ...] = (
                 "header first (its own tag of the sample's, one per reader): numbered or "
                 "stamped later than the last taken, stamped at most the clock bound and a "
                 "period ahead of the reader's clock; then one pass over the array",
-                "one slot, newest wins, one per poll; RATE_BURST ahead of one every "
-                "rate_divisor loops",
+                "one slot, the newest whose header passed wins (zenoh's callback checks "
+                "it first), one per poll; RATE_BURST ahead of one every rate_divisor loops",
                 run_bound=True,
             ),
         ),
@@ -529,8 +531,8 @@ KEYSPACE: tuple[KeyRow, ...] = (
                 "cn-{dn}",
                 "zplatform.control.intake.ProbeIntake {dn}",
                 _STAMP + " from the same control node",
-                "per channel before any copy (askers x PROBE_BURST, then askers a period), "
-                "per asker after the tag (PROBE_BURST, then one a period); mailbox of PROBES",
+                "per asker after the tag and freshness (PROBE_BURST, then one a period; "
+                "without authentication per channel before any copy); mailbox of PROBES",
             ),
             KeyFrames(
                 "reply",
@@ -538,7 +540,8 @@ KEYSPACE: tuple[KeyRow, ...] = (
                 "cn-{dn}",
                 "zplatform.control.failover.Standby.answer control",
                 _NONCE,
-                "the round's bounded mailbox, one reply taken per DN",
+                "screened in zenoh's callback (header tag, node, nonce), then the round's "
+                "bounded mailbox, one reply taken per DN",
             ),
         ),
         when="standby",

@@ -558,7 +558,7 @@ class LockstepRunner:
         if data is not None:
             reply = dev.trigger(data, t, authentic=d.intake.authenticates)
         size, bad, stale = d.intake.take_counts()
-        dev.refused(size, bad, stale, t)
+        dev.refused(size, bad, stale, t, unchecked=d.intake.took_unchecked)
         if d.cued:
             d.cued = False
             if d.asked_ns is None or t - d.asked_ns >= round(RELEARN_S * 1e9):

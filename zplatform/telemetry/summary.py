@@ -106,7 +106,7 @@ class GnSummary(msgspec.Struct, frozen=True):
     CN never ran (skipped periods: no loss) (:mod:`zplatform.ground.gapfill`);
     ``events_missed``: verified events that did not arrive (numbers
     skipped), ``events_filled``/``events_unfilled``: of those, the CN's
-    filled from its recorder / not.;
+    filled from its recorder / not;
     ``telemetry_iox``, ``_duplicates``, ``_fallbacks``: a ground on the CN's
     host (:class:`~zplatform.telemetry.records.TelemetryCounters`)."""
 
