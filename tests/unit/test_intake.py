@@ -584,7 +584,6 @@ def test_check_view_checks_a_frame_in_place_and_refuses_as_check_does() -> None:
 # -- terms: a new commander's first triggers ---------------------------------
 
 
-
 def _term_trigger(term: int, loop: int, t: int) -> bytes:
     cn = ControlLogic(FLIGHT, keys=FKEYS, epoch=T0)
     cn.take_command(term, loop)
