@@ -3,8 +3,8 @@ elements, a run's telemetry files are split into groups of at most that
 many element columns (``part-N.parquet`` with the loop and times, then
 ``part-N.gK.parquet``), so a query of one element parses and reads one
 group's file beside group 0's, never the others'. Here the flight mission's
-187 elements with ``GROUP_COLUMNS`` 64: three groups; every answer equals
-that of the same rows stored in one file."""
+elements (about 190) with ``GROUP_COLUMNS`` 64: three groups or more; every
+answer equals that of the same rows stored in one file."""
 
 from __future__ import annotations
 
@@ -45,7 +45,9 @@ def test_a_wide_run_is_stored_in_groups_of_at_most_group_columns(pair: tuple[Pat
     assert store.read_run(ref, 7).group_columns == 1024  # type: ignore[union-attr]
     (part,) = store.parquet_files(wide, "tm", 7)
     groups = store.column_groups(LAYOUT, 64)
-    assert [len(g) for g in groups] == [64, 64, len(NAMES) - 128]
+    n = len(NAMES)
+    assert len(groups) >= 3
+    assert [len(g) for g in groups] == [64] * (n // 64) + ([n % 64] if n % 64 else [])
     for k, g in enumerate(groups):
         schema = pq.read_schema(store.group_path(part, k))
         head = ["loop", "t_ns", "rx_ns"] if k == 0 else []
