@@ -203,7 +203,7 @@ def test_a_restarted_station_keeps_what_its_earlier_process_wrote(
     from zplatform.node.ground import run_station
     from zplatform.runtime.process import StopFlag
     from zplatform.telemetry.logs import read_csv
-    from zplatform.telemetry.records import EventRecord
+    from zplatform.telemetry.records import EventRecord, TelemetryCounters
 
     m = mission(STATIONS + "archive: {enabled: false}\n")
     d = tmp_path / "pad"
@@ -213,8 +213,9 @@ def test_a_restarted_station_keeps_what_its_earlier_process_wrote(
     class Link:  # the station's GroundLink: feeds one process's share, then stops it
         def __init__(self, mission: Any, **kw: Any) -> None:
             layout = Layout.for_node(mission, "cn")
-            counters = SimpleNamespace(
-                received=0, gaps=0, rejected=0, first_seq=0, last_seq=0, refused={}, epoch_changes=0
+            counters = SimpleNamespace(  # TelemetryCounters' fields, writable
+                **{f: getattr(TelemetryCounters(), f) for f in TelemetryCounters.__struct_fields__},
+                rejected=0,
             )
             self.logic = SimpleNamespace(
                 layout=layout,

@@ -11,13 +11,10 @@ logic at once (:meth:`~zplatform.ground.link.GroundLink.submit`) and never
 stall the telemetry: the logic sends each when the one before has its
 verdict (ARM n, then COMMAND n+1 for an armed one).
 
-When the mission's CN has a flight recorder, the thread also fills the
-control node's events that did not arrive (a starved console drops some)
-from it (:class:`~zplatform.ground.gapfill.GapFill`, events only: the
-console logs no telemetry): they reach the model marked filled.
-
-Only the mission file is needed: the session connects to the endpoints the
-mission lists, so the console runs on any host that can reach them.
+It also fills the control node's events that did not arrive from the
+CN's flight recorder (:class:`~zplatform.ground.gapfill.GapFill`, events
+only): they reach the model marked filled. Only the mission file is needed:
+the console runs on any host that can reach the endpoints it lists.
 """
 
 from __future__ import annotations

@@ -7,25 +7,16 @@ link is back, and writes the log **in loop order**: while a gap is being
 filled, arriving snapshots are held (copies, in memory, at most
 ``hold_s``); with nothing to fill each is written as accepted (no copy).
 
-Sans-IO, single-threaded (the driver's thread): the driver hands in every
-accepted snapshot (:meth:`GapFill.snapshot`), sends the requests it is
-given (:meth:`GapFill.take_request`, one at a time) and hands back their
-replies and end (:meth:`GapFill.on_reply`, :meth:`GapFill.on_done`).
+Sans-IO, single-threaded: the driver hands in snapshots
+(:meth:`GapFill.snapshot`), sends requests (:meth:`GapFill.take_request`)
+and hands back replies (:meth:`GapFill.on_reply`, :meth:`GapFill.on_done`).
 Every frame a reply carries is checked as live telemetry is, then for the
-gap's run, range, divisor, replay and stamp; refused frames are counted
-(:attr:`GapFill.refused`, :attr:`GapFill.last_refusal`), never raised.
-Loops never run are counted apart (:attr:`GapFill.not_run`); each request
-ends in ``gap_filled`` / ``gap_unfilled`` events.
-
-Given the ground's logic, it also fills the gaps in the control node's event
-numbers the logic found (:attr:`GroundLogic.event_gaps`): an events request
-for the loops they were filed under, one gap at a time, after the telemetry
-gaps; every record a reply brings is checked as a live one is (its node's
-tag, the run, a number of the gap not taken yet:
-:meth:`GroundLogic.check_filled`), and when the gap's requests are over the
-records are handed on in number order, marked filled, and the gap ends in
-``events_filled`` / ``events_unfilled`` events.
-Detail: docs/architecture.md#the-gap-fill.
+gap's run, range, divisor, replay and stamp; refused ones are counted.
+Loops never run are counted apart (:attr:`GapFill.not_run`); requests end
+in ``gap_filled`` / ``gap_unfilled`` events. Then the gaps in the CN's
+event numbers (:attr:`GroundLogic.event_gaps`): records checked as live ones
+(:meth:`GroundLogic.check_filled`), handed on in number order, marked
+filled (``events_filled`` / ``events_unfilled``). See docs/architecture.md.
 """
 
 from __future__ import annotations

@@ -8,17 +8,14 @@ replays dropped unanswered, counted in ``refused``), then a rate bound
 (a GCRA: :data:`REQUEST_BURST`, then one every :data:`REQUEST_EVERY_NS`;
 the excess counted in ``excess``), and hands the query to a bounded inbox
 (:data:`MAX_PENDING`; more counted in ``busy``); it never blocks. A
-thread of its own logs refusals at most once a :data:`LOG_PERIOD_S`. The
-bound keeps a replayer from holding the GIL from the loop with tag checks;
-it comes after the tag so junk never spends it (issue 25).
+thread logs refusals at most once a :data:`LOG_PERIOD_S`. The bound comes
+after the tag so junk never spends it (issue 25).
 
 One serving thread checks each request (tag, stamp, not served before, a
 range of this run), drops and counts one that does not check, reads the
 segment files (never the loop's buffer) and replies in paced chunks ending
-with an ``END`` reply that counts what was sent (:class:`RecorderServer`):
-the frames of the loops asked, or (an events request) the ``EVENT`` records
-filed under them, each tagged on the way out with the node's events key as
-it was when published (the recorder keeps them untagged).
+with an ``END`` reply that counts what was sent: the frames of the loops
+asked, or their ``EVENT`` records, tagged on the way out as when published.
 Detail: docs/architecture.md#the-gap-fill.
 """
 
