@@ -27,6 +27,7 @@ import ctypes.util
 import errno
 import fcntl
 import logging
+import mmap
 import os
 import threading
 import time
@@ -34,7 +35,7 @@ import zlib
 from bisect import bisect_right
 from collections import deque
 from collections.abc import Iterable
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
 from typing import Any, BinaryIO
 
@@ -43,6 +44,8 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 
 from ..config import Mission
+from ..config.checks import archive_sizing
+from ..config.schema import ARCHIVE_QUEUE_BYTES, ARCHIVE_ROW_GROUP_BYTES
 from ..core.datavector import DataVector, Layout
 from ..core.events import EV, EventLog, EventType
 from ..errors import ArchiveError
@@ -149,16 +152,18 @@ class LoopSet:
 
 WAKE_S = 0.1
 """How often the archive's thread takes what was queued."""
-QUEUE_BYTES = 256 * 2**20
-"""Most bytes of snapshots the hand-off ring holds."""
-ROW_GROUP_BYTES = 512 * 2**20
-"""Most bytes of snapshots in one row group (a large vector gets fewer rows):
-the writer's preallocated block (allocated once; its pages touched as rows
-fill it: the flight mission's 751-byte vector takes 4.5 MB for its 60 s).
-Large, because a Parquet column chunk costs about 30 us of CPU to write
-whatever its rows: a 100,000-element vector at 100 Hz in row groups of 167
-rows (64 MiB) is 60,000 column chunks a second, more than a core can write;
-in 1,340 rows (this), 7,500."""
+QUEUE_BYTES = ARCHIVE_QUEUE_BYTES
+"""Most bytes of snapshots the hand-off ring holds (``archive.queue_s``:
+:func:`zplatform.config.checks.archive_sizing`)."""
+ROW_GROUP_BYTES = ARCHIVE_ROW_GROUP_BYTES
+"""Most bytes of snapshots in one row group (``archive.row_group_s``: a
+large vector gets fewer rows, or its mission is refused): the writer's
+preallocated block, mapped once at start (:func:`prefaulted`: the flight
+mission's 757-byte vector takes 4.5 MB for its 60 s). Large, because a
+Parquet column chunk costs 15 to 30 us of CPU to write whatever its rows: a
+100,000-element vector at 100 Hz in row groups of 167 rows (64 MiB) is
+60,000 column chunks a second, more than a core can write; in 1,340 rows
+(this), 7,500."""
 ENCODERS = 2
 """Threads that encode a row group's file groups at once (Parquet's encoder
 releases the GIL): a layout of one file group uses none."""
@@ -187,6 +192,18 @@ def lock_archive(root: Path) -> int | None:
         os.close(fd)
         return None
     return fd
+
+
+def prefaulted(nbytes: int) -> mmap.mmap:
+    """``nbytes`` of zeroed anonymous memory, its pages mapped now (Linux's
+    ``MAP_POPULATE``; elsewhere as first touched). Why: a page first touched
+    costs a fault, and the writer's block and ring are touched row by row
+    as snapshots come: 0.5 ms per 400 KB row of a 100,000-element vector in
+    its first row group, on the archive's thread (the ring's, on the
+    receive path), against 0.15 ms for the whole 512 MiB mapped at once at
+    start. Raises OSError when the memory cannot be had."""
+    flags = mmap.MAP_PRIVATE | mmap.MAP_ANONYMOUS | getattr(mmap, "MAP_POPULATE", 0)
+    return mmap.mmap(-1, max(nbytes, 1), flags=flags)
 
 
 def _write_all(f: BinaryIO, data: bytes | memoryview) -> None:
@@ -222,6 +239,8 @@ class ArchiveWriter:
         self._group_columns = group_columns
         cfg = mission.archive
         self.cfg = cfg
+        self.sizing = archive_sizing(mission, layout.size)
+        """Its row group's and queue's rows (the block and the ring it holds)."""
         try:
             fd = lock_archive(self.root)
         except OSError as exc:
@@ -229,11 +248,22 @@ class ArchiveWriter:
         if fd is None:
             raise ArchiveError(f"another ground node writes the archive {self.root}")
         self._lock_fd = fd
-        size = max(layout.size, 1)
+        size = self.sizing.vector_bytes
         per_s = mission.loop_hz / mission.telemetry_divisor
-        cap = max(16, min(int(cfg.queue_s * per_s), QUEUE_BYTES // size))
+        cap = self.sizing.queue_rows
         self._size, self._cap = size, cap
-        self._ring = bytearray(cap * size)
+        self._rg_rows = self.sizing.row_group_rows
+        try:  # both mapped now, whole: never a page fault on the receive path
+            self._ring = prefaulted(cap * size)
+            self._block = np.frombuffer(prefaulted(self._rg_rows * size), np.uint8)
+        except OSError as exc:
+            os.close(fd)
+            raise ArchiveError(
+                f"cannot map the archive's queue and row group "
+                f"({(self.sizing.queue_bytes + self.sizing.block_bytes) / 2**20:.0f} MiB): "
+                f"{exc.strerror}"
+            ) from None
+        self._block = self._block.reshape(self._rg_rows, size)
         self._ring_mv = memoryview(self._ring)
         self._rx = np.zeros(cap, np.int64)
         self._head = 0  # written by the receive path only
@@ -264,11 +294,9 @@ class ArchiveWriter:
         row group written (its rows freed), once per file closed."""
         self._schema = store.file_schema(layout)
         self._ring2d = np.frombuffer(self._ring, np.uint8).reshape(cap, size)
-        self._rg_rows = max(1, min(int(cfg.row_group_s * per_s), ROW_GROUP_BYTES // size))
         self._retain_rows = max(self._rg_rows, int(cfg.file_s * per_s))
         self._since_retain = 0
-        # The open row group: preallocated, filled by the archive's thread.
-        self._block = np.empty((self._rg_rows, size), np.uint8)
+        # The open row group (self._block, mapped above): filled by the archive's thread.
         self._block_rx = np.empty(self._rg_rows, np.int64)
         self._pend_n = 0
         # The raw records of the snapshots taken at a time, built in place.
@@ -277,6 +305,7 @@ class ArchiveWriter:
         self._raw_buf = bytearray(self._take * self._rec_len)
         self._raw_np = np.frombuffer(self._raw_buf, np.uint8).reshape(self._take, self._rec_len)
         self._pool: ThreadPoolExecutor | None = None
+        self._sealing: deque[Future[None]] = deque()  # raw segments being sealed, in order
         self._decoders: list[store.GroupDecoder] = []
         self._decoders_for = -1
         self._parts: dict[str, int] = {}  # per run/hour: the next part number
@@ -405,6 +434,7 @@ class ArchiveWriter:
             )
 
     def _drain(self) -> None:
+        self._reap_seals(wait=False)
         evs = []
         while self._events:
             evs.append(self._events.popleft())
@@ -555,9 +585,20 @@ class ArchiveWriter:
         for e in early:
             self._event(e)
 
+    def _executor(self) -> ThreadPoolExecutor:
+        """The encoder threads (made at the first use)."""
+        if self._pool is None:
+            self._pool = ThreadPoolExecutor(ENCODERS, thread_name_prefix="archive-enc")
+        return self._pool
+
     def _seal_segment(self) -> None:
-        """Close the open raw segment and compress it (:func:`.store.seal_segment`;
-        when that fails, a full disk, it stays as it is: readable unsealed)."""
+        """Close the open raw segment and hand its compression
+        (:func:`.store.seal_segment`) to the encoder threads: the archive's
+        thread goes on taking snapshots meanwhile (a 64 MiB segment of a
+        100,000-element vector fills every 1.6 s at 100 Hz). The plain
+        segment stays until its sealed file is whole (renamed), so a crash
+        meanwhile loses nothing; a failure (a full disk) leaves it as it is,
+        readable unsealed, and is told by :meth:`_reap_seals`."""
         seg, self._seg = self._seg, None
         if seg is None:
             return
@@ -566,10 +607,18 @@ class ArchiveWriter:
                 os.fsync(seg.fileno())
         finally:
             seg.close()
-        try:
-            store.seal_segment(Path(str(seg.name)))
-        except (OSError, pa.ArrowException) as exc:
-            self._fail("compress a raw segment", exc)
+        self._sealing.append(self._executor().submit(store.seal_segment, Path(str(seg.name))))
+
+    def _reap_seals(self, *, wait: bool) -> None:
+        """Tell the failures of the seals done (``wait``: of every seal handed
+        off, waited for first: a run's end, before its raw segments are read
+        again)."""
+        while self._sealing and (wait or self._sealing[0].done()):
+            exc = self._sealing.popleft().exception()
+            if isinstance(exc, (OSError, pa.ArrowException)):
+                self._fail("compress a raw segment", exc)
+            elif exc is not None:
+                self._fail("archive (an unexpected error)", exc)
 
     def _open_segment(self) -> None:
         """Seal the open raw segment, start the next one with its ``HEAD``
@@ -663,10 +712,9 @@ class ArchiveWriter:
             if len(coders) == 1:
                 write(0)
             else:
-                if self._pool is None:
-                    self._pool = ThreadPoolExecutor(ENCODERS, thread_name_prefix="archive-enc")
                 # every group's file done (or failed) before any is renamed
-                futures = [self._pool.submit(write, k) for k in range(len(coders))]
+                pool = self._executor()
+                futures = [pool.submit(write, k) for k in range(len(coders))]
                 errors = [f.exception() for f in futures]
                 for exc in errors:
                     if exc is not None:
@@ -769,6 +817,7 @@ class ArchiveWriter:
                 if self._seg is not None:
                     with contextlib.suppress(OSError):
                         os.fsync(self._seg.fileno())
+                self._reap_seals(wait=True)  # no segment renamed under refill's reading
                 store.refill(self.root, self.layout, info, self._damage, self._schema)
                 store.recount(self.root, self.layout, info, self._damage)
                 info.outcome = outcome
@@ -781,6 +830,7 @@ class ArchiveWriter:
             self._part_dirs.clear()
             self._compacted.clear()
             self._seal_segment()
+            self._reap_seals(wait=True)  # the run's segments all sealed when it ends
 
     # -- the end ------------------------------------------------------------
     def close(self, timeout_s: float = 30.0) -> None:
