@@ -19,7 +19,6 @@ from tests.unit.test_archive import feed, small
 from zplatform.archive import Archive, ArchiveWriter, Query, store
 from zplatform.archive import writer as writer_mod
 from zplatform.config import Mission
-from zplatform.config.schema import ARCHIVE_QUEUE_BYTES, ARCHIVE_ROW_GROUP_BYTES
 from zplatform.core.datavector import DataVector, Layout
 from zplatform.core.events import EventLog
 from zplatform.errors import ConfigError
@@ -55,8 +54,8 @@ def test_the_row_group_and_queue_are_sized_from_the_mission(tmp_path: Path) -> N
     size = Layout.for_node(m, "cn").size
     assert size > 400_000
     sizing = writer_mod.archive_sizing(m, size)
-    assert sizing.row_group_rows == ARCHIVE_ROW_GROUP_BYTES // size  # 1,341: 13.41 s
-    assert sizing.queue_rows == ARCHIVE_QUEUE_BYTES // size
+    assert sizing.row_group_rows == writer_mod.ROW_GROUP_BYTES // size  # 1,341: 13.41 s
+    assert sizing.queue_rows == writer_mod.QUEUE_BYTES // size
     # Set: exactly what the mission says, and the writer holds just that.
     m = _wide("{row_group_s: 1, queue_s: 0.5, file_s: 10}")
     w = ArchiveWriter(m, Layout.for_node(m, "cn"), tmp_path / "wide")
@@ -73,12 +72,12 @@ def test_a_row_group_or_queue_the_archive_cannot_hold_is_refused_naming_its_fiel
     assert err.value.path == "$.archive.row_group_s"
     assert "6000 snapshots" in err.value.reason and "more than the 512 MiB" in err.value.reason
     size = Layout.for_node(_wide(), "cn").size
-    rows = ARCHIVE_ROW_GROUP_BYTES // size  # 1,341
+    rows = writer_mod.ROW_GROUP_BYTES // size  # 1,341
     assert f"at most {rows / 100:g} s ({rows} snapshots)" in err.value.reason
     with pytest.raises(ConfigError) as err:
         _wide("{queue_s: 10}")
     assert err.value.path == "$.archive.queue_s"
-    rows = ARCHIVE_QUEUE_BYTES // size
+    rows = writer_mod.QUEUE_BYTES // size
     assert "more than the 256 MiB" in err.value.reason
     assert f"at most {rows / 100:g} s ({rows} snapshots)" in err.value.reason
     # What fits loads; an archive turned off holds nothing.
