@@ -1,14 +1,18 @@
 """The archive's writing side: the receive path copies, the archive's thread writes.
 
 :class:`ArchiveWriter` takes every snapshot the ground accepted (copied into
-a slot of a preallocated ring) and every event (a bounded queue). Its thread
-wakes every :data:`WAKE_S`, drops loops it already holds, appends the raw
-records (:mod:`.store`) and copies the rows into a preallocated block; a
-full block (``row_group_s``, at most :data:`ROW_GROUP_BYTES`) is one closed
-Parquet file per file group, each run of same-typed elements transposed at
-once, the groups encoded on :data:`ENCODERS` threads: a running run is
-queryable up to its last row group. Every ``file_s`` and at the run's end a
-run of one file group has them compacted per hour (:func:`.store.compact`).
+a slot of a preallocated ring) and every event (a bounded queue). The ring
+and the block below are sized from the mission
+(:func:`zplatform.config.checks.archive_sizing`) and mapped whole at start
+(:func:`prefaulted`). Its thread wakes every :data:`WAKE_S`, drops loops it
+already holds, appends the raw records (:mod:`.store`; a closed segment is
+sealed on the encoder threads) and copies the rows into the preallocated
+block; a full block (``row_group_s``, at most :data:`ROW_GROUP_BYTES`) is
+one closed Parquet file per file group, each run of same-typed elements
+transposed at once, the groups encoded on :data:`ENCODERS` threads: a
+running run is queryable up to its last row group. Every ``file_s`` and at
+the run's end a run of one file group has them compacted per hour
+(:func:`.store.compact`).
 
 Contract: :meth:`~ArchiveWriter.snapshot`, :meth:`~ArchiveWriter.event` and
 :meth:`~ArchiveWriter.tick` never block, never raise, and allocate nothing
@@ -166,7 +170,8 @@ Parquet column chunk costs 15 to 30 us of CPU to write whatever its rows: a
 (this), 7,500."""
 ENCODERS = 2
 """Threads that encode a row group's file groups at once (Parquet's encoder
-releases the GIL): a layout of one file group uses none."""
+releases the GIL) and seal the closed raw segments (made at the first use:
+a layout of one file group uses them for its seals only)."""
 TAKE_BYTES = 16 * 2**20
 """Bytes of snapshots the archive's thread takes from the ring at a time, at
 most (and at most an eighth of the ring): their slots are freed once they
