@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import errno
 import io
+import re
 import threading
 from pathlib import Path
 
@@ -211,3 +212,37 @@ def test_a_wide_run_is_written_lz4_and_a_narrow_one_zstd(
     with Archive(m, tmp_path / "wide") as a, Archive(m, tmp_path / "narrow") as b:
         q = Query("cn_loop,apogee_target_m,dn1_state")
         assert a.query(q).equals(b.query(q))
+
+
+def _resident_kb(address: int) -> tuple[int, int]:
+    """``(Size, Rss)`` in kB of this process's mapping that holds ``address``."""
+    found = False
+    size = 0
+    for line in Path("/proc/self/smaps").read_text().splitlines():
+        head = line.split()[0] if line.split() else ""
+        if re.fullmatch(r"[0-9a-f]+-[0-9a-f]+", head):
+            if found:
+                break
+            lo, hi = (int(x, 16) for x in head.split("-"))
+            found = lo <= address < hi
+        elif found and head == "Size:":
+            size = int(line.split()[1])
+        elif found and head == "Rss:":
+            return size, int(line.split()[1])
+    raise LookupError(hex(address))
+
+
+@pytest.mark.skipif(not Path("/proc/self/smaps").exists(), reason="Linux's /proc")
+def test_the_ring_and_the_block_are_mapped_whole_at_start(tmp_path: Path) -> None:
+    """Never a first-touch page fault on the receive path (the ring) nor in
+    the archive's thread's copy (the block): both resident before any
+    snapshot came."""
+    layout = Layout.for_node(FLIGHT, "cn")
+    w = ArchiveWriter(FLIGHT, layout, tmp_path)
+    try:
+        for arr in (w._block, w._ring2d):
+            size_kb, rss_kb = _resident_kb(arr.__array_interface__["data"][0])
+            assert size_kb * 1024 >= arr.nbytes
+            assert rss_kb * 1024 >= arr.nbytes  # (a mapping may hold more than it)
+    finally:
+        w.close()
