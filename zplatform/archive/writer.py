@@ -1,27 +1,23 @@
 """The archive's writing side: the receive path copies, the archive's thread writes.
 
 :class:`ArchiveWriter` takes every snapshot the ground accepted (copied into
-a slot of a preallocated ring) and every event (a bounded queue). The ring
-and the block below are sized from the mission
-(:func:`zplatform.config.checks.archive_sizing`) and mapped whole at start
-(:func:`prefaulted`). Its thread wakes every :data:`WAKE_S`, drops loops it
-already holds, appends the raw records (:mod:`.store`; a closed segment is
-sealed on the encoder threads) and copies the rows into the preallocated
-block; a full block (``row_group_s``, at most :data:`ROW_GROUP_BYTES`) is
-one closed Parquet file per file group, each run of same-typed elements
-transposed at once, the groups encoded on :data:`ENCODERS` threads: a
-running run is queryable up to its last row group. Every ``file_s`` and at
-the run's end a run of one file group has them compacted per hour
-(:func:`.store.compact`).
+a slot of a ring) and every event (a bounded queue); the ring and the row
+group's block are sized from the mission (``archive_sizing`` in
+:mod:`zplatform.config.checks`) and mapped whole at start. Its thread wakes
+every :data:`WAKE_S`, drops loops it already holds, appends the raw records
+(:mod:`.store`; a closed segment is sealed on the encoder threads) and
+copies the rows into the block; a full block is one closed Parquet file per
+file group, encoded on :data:`ENCODERS` threads: a running run is queryable
+up to its last row group. Every ``file_s`` and at the run's end a run of
+one file group has them compacted per hour (:func:`.store.compact`).
 
 Contract: :meth:`~ArchiveWriter.snapshot`, :meth:`~ArchiveWriter.event` and
 :meth:`~ArchiveWriter.tick` never block, never raise, and allocate nothing
 per snapshot; a full queue drops, counted and evented once a second. An I/O
-error (a full disk) is counted and evented once per kind; snapshots the raw
-segment could not take are lost (counted), the segment cut back to its last
-whole record, the pending rows refilled from it at the run's end
-(:func:`.store.refill`); writing resumes once space is freed. One writer per
-archive directory (a lock)."""
+error (a full disk) is counted and evented once per kind; what the raw
+segment could not take is lost (counted), the rest refilled from it at the
+run's end (:func:`.store.refill`); writing resumes once space is freed. One
+writer per archive directory (a lock)."""
 
 from __future__ import annotations
 
