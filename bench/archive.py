@@ -43,6 +43,7 @@ from bench.common import bench_argparser, summarize, write_result
 from zplatform import LockstepRunner, load_mission
 from zplatform.archive import Archive, ArchiveWriter, Query
 from zplatform.archive.store import du
+from zplatform.config.checks import archive_sizing
 from zplatform.control.uplink import load_commands
 from zplatform.core.datavector import DataVector, Layout
 from zplatform.telemetry.logs import CsvLogger
@@ -249,7 +250,7 @@ def main() -> None:
             "hz": hz,
             "vector_bytes": layout.size,
             "elements": len(layout.elements),
-            "row_group_s": m.archive.row_group_s,
+            "row_group_s": archive_sizing(m, layout.size).row_group_rows / hz,
             "file_s": m.archive.file_s,
         },
         {

@@ -167,7 +167,7 @@ def _archive_child(variant: str) -> None:
     dv = DataVector(layout)
     with tempfile.TemporaryDirectory(prefix="zplatform-bench-archive-") as root:
         w = ArchiveWriter(m, layout, root)
-        group = int(m.archive.row_group_s * m.loop_hz / m.telemetry_divisor)
+        group = w.sizing.row_group_rows
         t0, loop = time.time_ns(), 0
         deadline = time.monotonic() + 30.0
         while not w.releases and time.monotonic() < deadline:  # its warm-up: the ground's start

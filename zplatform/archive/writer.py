@@ -1,23 +1,23 @@
 """The archive's writing side: the receive path copies, the archive's thread writes.
 
 :class:`ArchiveWriter` takes every snapshot the ground accepted (copied into
-a slot of a preallocated ring) and every event (a bounded queue). Its thread
-wakes every :data:`WAKE_S`, drops loops it already holds, appends the raw
-records (:mod:`.store`) and copies the rows into a preallocated block; a
-full block (``row_group_s``, at most :data:`ROW_GROUP_BYTES`) is one closed
-Parquet file per file group, each run of same-typed elements transposed at
-once, the groups encoded on :data:`ENCODERS` threads: a running run is
-queryable up to its last row group. Every ``file_s`` and at the run's end a
-run of one file group has them compacted per hour (:func:`.store.compact`).
+a slot of a ring) and every event (a bounded queue); the ring and the row
+group's block are sized from the mission (``archive_sizing`` in
+:mod:`zplatform.config.checks`) and mapped whole at start. Its thread wakes
+every :data:`WAKE_S`, drops loops it already holds, appends the raw records
+(:mod:`.store`; a closed segment is sealed on the encoder threads) and
+copies the rows into the block; a full block is one closed Parquet file per
+file group, encoded on :data:`ENCODERS` threads: a running run is queryable
+up to its last row group. Every ``file_s`` and at the run's end a run of
+one file group has them compacted per hour (:func:`.store.compact`).
 
 Contract: :meth:`~ArchiveWriter.snapshot`, :meth:`~ArchiveWriter.event` and
 :meth:`~ArchiveWriter.tick` never block, never raise, and allocate nothing
 per snapshot; a full queue drops, counted and evented once a second. An I/O
-error (a full disk) is counted and evented once per kind; snapshots the raw
-segment could not take are lost (counted), the segment cut back to its last
-whole record, the pending rows refilled from it at the run's end
-(:func:`.store.refill`); writing resumes once space is freed. One writer per
-archive directory (a lock)."""
+error (a full disk) is counted and evented once per kind; what the raw
+segment could not take is lost (counted), the rest refilled from it at the
+run's end (:func:`.store.refill`); writing resumes once space is freed. One
+writer per archive directory (a lock)."""
 
 from __future__ import annotations
 
@@ -27,6 +27,7 @@ import ctypes.util
 import errno
 import fcntl
 import logging
+import mmap
 import os
 import threading
 import time
@@ -34,7 +35,7 @@ import zlib
 from bisect import bisect_right
 from collections import deque
 from collections.abc import Iterable
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
 from typing import Any, BinaryIO
 
@@ -43,6 +44,8 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 
 from ..config import Mission
+from ..config.checks import archive_sizing
+from ..config.schema import ARCHIVE_QUEUE_BYTES, ARCHIVE_ROW_GROUP_BYTES
 from ..core.datavector import DataVector, Layout
 from ..core.events import EV, EventLog, EventType
 from ..errors import ArchiveError
@@ -149,19 +152,22 @@ class LoopSet:
 
 WAKE_S = 0.1
 """How often the archive's thread takes what was queued."""
-QUEUE_BYTES = 256 * 2**20
-"""Most bytes of snapshots the hand-off ring holds."""
-ROW_GROUP_BYTES = 512 * 2**20
-"""Most bytes of snapshots in one row group (a large vector gets fewer rows):
-the writer's preallocated block (allocated once; its pages touched as rows
-fill it: the flight mission's 751-byte vector takes 4.5 MB for its 60 s).
-Large, because a Parquet column chunk costs about 30 us of CPU to write
-whatever its rows: a 100,000-element vector at 100 Hz in row groups of 167
-rows (64 MiB) is 60,000 column chunks a second, more than a core can write;
-in 1,340 rows (this), 7,500."""
+QUEUE_BYTES = ARCHIVE_QUEUE_BYTES
+"""Most bytes of snapshots the hand-off ring holds (``archive.queue_s``:
+:func:`zplatform.config.checks.archive_sizing`)."""
+ROW_GROUP_BYTES = ARCHIVE_ROW_GROUP_BYTES
+"""Most bytes of snapshots in one row group (``archive.row_group_s``: a
+large vector gets fewer rows, or its mission is refused): the writer's
+preallocated block, mapped once at start (:func:`prefaulted`: the flight
+mission's 757-byte vector takes 4.5 MB for its 60 s). Large, because a
+Parquet column chunk costs 15 to 30 us of CPU to write whatever its rows: a
+100,000-element vector at 100 Hz in row groups of 167 rows (64 MiB) is
+60,000 column chunks a second, more than a core can write; in 1,340 rows
+(this), 7,500."""
 ENCODERS = 2
 """Threads that encode a row group's file groups at once (Parquet's encoder
-releases the GIL): a layout of one file group uses none."""
+releases the GIL) and seal the closed raw segments (made at the first use:
+a layout of one file group uses them for its seals only)."""
 TAKE_BYTES = 16 * 2**20
 """Bytes of snapshots the archive's thread takes from the ring at a time, at
 most (and at most an eighth of the ring): their slots are freed once they
@@ -187,6 +193,18 @@ def lock_archive(root: Path) -> int | None:
         os.close(fd)
         return None
     return fd
+
+
+def prefaulted(nbytes: int) -> mmap.mmap:
+    """``nbytes`` of zeroed anonymous memory, its pages mapped now (Linux's
+    ``MAP_POPULATE``; elsewhere as first touched). Why: a page first touched
+    costs a fault, and the writer's block and ring are touched row by row
+    as snapshots come: 0.5 ms per 400 KB row of a 100,000-element vector in
+    its first row group, on the archive's thread (the ring's, on the
+    receive path), against 0.15 ms for the whole 512 MiB mapped at once at
+    start. Raises OSError when the memory cannot be had."""
+    flags = mmap.MAP_PRIVATE | mmap.MAP_ANONYMOUS | getattr(mmap, "MAP_POPULATE", 0)
+    return mmap.mmap(-1, max(nbytes, 1), flags=flags)
 
 
 def _write_all(f: BinaryIO, data: bytes | memoryview) -> None:
@@ -222,6 +240,8 @@ class ArchiveWriter:
         self._group_columns = group_columns
         cfg = mission.archive
         self.cfg = cfg
+        self.sizing = archive_sizing(mission, layout.size)
+        """Its row group's and queue's rows (the block and the ring it holds)."""
         try:
             fd = lock_archive(self.root)
         except OSError as exc:
@@ -229,11 +249,22 @@ class ArchiveWriter:
         if fd is None:
             raise ArchiveError(f"another ground node writes the archive {self.root}")
         self._lock_fd = fd
-        size = max(layout.size, 1)
+        size = self.sizing.vector_bytes
         per_s = mission.loop_hz / mission.telemetry_divisor
-        cap = max(16, min(int(cfg.queue_s * per_s), QUEUE_BYTES // size))
+        cap = self.sizing.queue_rows
         self._size, self._cap = size, cap
-        self._ring = bytearray(cap * size)
+        self._rg_rows = self.sizing.row_group_rows
+        try:  # both mapped now, whole: never a page fault on the receive path
+            self._ring = prefaulted(cap * size)
+            self._block = np.frombuffer(prefaulted(self._rg_rows * size), np.uint8)
+        except OSError as exc:
+            os.close(fd)
+            raise ArchiveError(
+                f"cannot map the archive's queue and row group "
+                f"({(self.sizing.queue_bytes + self.sizing.block_bytes) / 2**20:.0f} MiB): "
+                f"{exc.strerror}"
+            ) from None
+        self._block = self._block.reshape(self._rg_rows, size)
         self._ring_mv = memoryview(self._ring)
         self._rx = np.zeros(cap, np.int64)
         self._head = 0  # written by the receive path only
@@ -264,11 +295,9 @@ class ArchiveWriter:
         row group written (its rows freed), once per file closed."""
         self._schema = store.file_schema(layout)
         self._ring2d = np.frombuffer(self._ring, np.uint8).reshape(cap, size)
-        self._rg_rows = max(1, min(int(cfg.row_group_s * per_s), ROW_GROUP_BYTES // size))
         self._retain_rows = max(self._rg_rows, int(cfg.file_s * per_s))
         self._since_retain = 0
-        # The open row group: preallocated, filled by the archive's thread.
-        self._block = np.empty((self._rg_rows, size), np.uint8)
+        # The open row group (self._block, mapped above): filled by the archive's thread.
         self._block_rx = np.empty(self._rg_rows, np.int64)
         self._pend_n = 0
         # The raw records of the snapshots taken at a time, built in place.
@@ -277,6 +306,7 @@ class ArchiveWriter:
         self._raw_buf = bytearray(self._take * self._rec_len)
         self._raw_np = np.frombuffer(self._raw_buf, np.uint8).reshape(self._take, self._rec_len)
         self._pool: ThreadPoolExecutor | None = None
+        self._sealing: deque[Future[None]] = deque()  # raw segments being sealed, in order
         self._decoders: list[store.GroupDecoder] = []
         self._decoders_for = -1
         self._parts: dict[str, int] = {}  # per run/hour: the next part number
@@ -374,16 +404,19 @@ class ArchiveWriter:
         and give the memory back: the Parquet code is paged in and the
         encoder's allocations made once, at start, not in the middle of a
         flight (issue 25: the ground's first row group, a minute in, was
-        its biggest step, +14 MB after the release, 8 now). Never raises."""
+        its biggest step, +14 MB after the release, 8 now). The file groups'
+        decoders of a new run are made here too, and the row is group 0's
+        file only: a 100,000-element layout's whole row took 3.2 s of CPU
+        (its 100,000 columns in one file), group 0's 1,024 a few ms. Never
+        raises."""
         try:
-            rows = np.zeros((1, self._size), np.uint8)
-            table = store.decode_rows(self.layout, self._schema, rows, np.zeros(1, np.int64))
-            with pq.ParquetWriter(
-                pa.BufferOutputStream(), table.schema, **store.parquet_options(table.schema)
-            ) as pw:
+            gc = store.GROUP_COLUMNS if self._group_columns is None else self._group_columns
+            coder = self._coders(gc)[0]
+            table = coder.table(np.zeros((1, self._size), np.uint8), np.zeros(1, np.int64))
+            with pq.ParquetWriter(pa.BufferOutputStream(), table.schema, **coder.options) as pw:
                 pw.write_table(table)
-            del rows, table, pw
-        except Exception as exc:  # a layout decode_rows cannot take shows at the first row group
+            del table, pw
+        except Exception as exc:  # a layout the decoder cannot take shows at the first row group
             log.debug("archive warm-up: %s", exc)
         self._release()
 
@@ -405,6 +438,7 @@ class ArchiveWriter:
             )
 
     def _drain(self) -> None:
+        self._reap_seals(wait=False)
         evs = []
         while self._events:
             evs.append(self._events.popleft())
@@ -555,9 +589,20 @@ class ArchiveWriter:
         for e in early:
             self._event(e)
 
+    def _executor(self) -> ThreadPoolExecutor:
+        """The encoder threads (made at the first use)."""
+        if self._pool is None:
+            self._pool = ThreadPoolExecutor(ENCODERS, thread_name_prefix="archive-enc")
+        return self._pool
+
     def _seal_segment(self) -> None:
-        """Close the open raw segment and compress it (:func:`.store.seal_segment`;
-        when that fails, a full disk, it stays as it is: readable unsealed)."""
+        """Close the open raw segment and hand its compression
+        (:func:`.store.seal_segment`) to the encoder threads: the archive's
+        thread goes on taking snapshots meanwhile (a 64 MiB segment of a
+        100,000-element vector fills every 1.6 s at 100 Hz). The plain
+        segment stays until its sealed file is whole (renamed), so a crash
+        meanwhile loses nothing; a failure (a full disk) leaves it as it is,
+        readable unsealed, and is told by :meth:`_reap_seals`."""
         seg, self._seg = self._seg, None
         if seg is None:
             return
@@ -566,10 +611,18 @@ class ArchiveWriter:
                 os.fsync(seg.fileno())
         finally:
             seg.close()
-        try:
-            store.seal_segment(Path(str(seg.name)))
-        except (OSError, pa.ArrowException) as exc:
-            self._fail("compress a raw segment", exc)
+        self._sealing.append(self._executor().submit(store.seal_segment, Path(str(seg.name))))
+
+    def _reap_seals(self, *, wait: bool) -> None:
+        """Tell the failures of the seals done (``wait``: of every seal handed
+        off, waited for first: a run's end, before its raw segments are read
+        again)."""
+        while self._sealing and (wait or self._sealing[0].done()):
+            exc = self._sealing.popleft().exception()
+            if isinstance(exc, (OSError, pa.ArrowException)):
+                self._fail("compress a raw segment", exc)
+            elif exc is not None:
+                self._fail("archive (an unexpected error)", exc)
 
     def _open_segment(self) -> None:
         """Seal the open raw segment, start the next one with its ``HEAD``
@@ -623,10 +676,12 @@ class ArchiveWriter:
         if n:
             self._write_group(self._block[:n], self._block_rx[:n])
 
-    def _coders(self) -> list[store.GroupDecoder]:
-        """The run's file groups' decoders (made once per grouping)."""
-        assert self._info is not None
-        gc = self._info.group_columns
+    def _coders(self, gc: int | None = None) -> list[store.GroupDecoder]:
+        """The file groups' decoders of the run (or of ``gc`` elements per
+        group), made once per grouping."""
+        if gc is None:
+            assert self._info is not None
+            gc = self._info.group_columns
         if self._decoders_for != gc:
             groups = store.column_groups(self.layout, gc)
             n = len(groups)
@@ -663,10 +718,9 @@ class ArchiveWriter:
             if len(coders) == 1:
                 write(0)
             else:
-                if self._pool is None:
-                    self._pool = ThreadPoolExecutor(ENCODERS, thread_name_prefix="archive-enc")
                 # every group's file done (or failed) before any is renamed
-                futures = [self._pool.submit(write, k) for k in range(len(coders))]
+                pool = self._executor()
+                futures = [pool.submit(write, k) for k in range(len(coders))]
                 errors = [f.exception() for f in futures]
                 for exc in errors:
                     if exc is not None:
@@ -769,6 +823,7 @@ class ArchiveWriter:
                 if self._seg is not None:
                     with contextlib.suppress(OSError):
                         os.fsync(self._seg.fileno())
+                self._reap_seals(wait=True)  # no segment renamed under refill's reading
                 store.refill(self.root, self.layout, info, self._damage, self._schema)
                 store.recount(self.root, self.layout, info, self._damage)
                 info.outcome = outcome
@@ -781,6 +836,7 @@ class ArchiveWriter:
             self._part_dirs.clear()
             self._compacted.clear()
             self._seal_segment()
+            self._reap_seals(wait=True)  # the run's segments all sealed when it ends
 
     # -- the end ------------------------------------------------------------
     def close(self, timeout_s: float = 30.0) -> None:

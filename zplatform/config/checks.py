@@ -17,7 +17,7 @@ import re
 import unicodedata
 from collections.abc import Collection, Sequence
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import msgspec
 
@@ -25,6 +25,10 @@ from ..errors import ConfigError
 from .platform import HEALTH_METRICS, _add_platform_elements, element_spec
 from .schema import (
     _DN_RE,
+    ARCHIVE_QUEUE_BYTES,
+    ARCHIVE_QUEUE_S,
+    ARCHIVE_ROW_GROUP_BYTES,
+    ARCHIVE_ROW_GROUP_S,
     MAX_ARRAY_COUNT,
     MAX_CHANNEL_BYTES,
     MAX_REGION_BYTES,
@@ -147,7 +151,9 @@ def parse_mission(text: bytes | str, source: str = "<string>") -> Mission:
     _check_params(mission)
     _check_ground(mission)
     n_platform = _add_platform_elements(mission)
-    _check_elements(mission, n_platform)
+    vector_bytes = _check_elements(mission, n_platform)
+    if mission.archive.enabled:
+        archive_sizing(mission, vector_bytes)
     return mission
 
 
@@ -609,7 +615,9 @@ def _check_params(m: Mission) -> None:
             )
 
 
-def _check_elements(m: Mission, n_platform: dict[str, int]) -> None:
+def _check_elements(m: Mission, n_platform: dict[str, int]) -> int:
+    """Names, types, sizes and initial values of every element; returns the
+    control node's vector's bytes (every region)."""
     seen: dict[str, tuple[str, str]] = {}
     vector_bytes = 0
     for region, elements in m.regions.items():
@@ -659,6 +667,7 @@ def _check_elements(m: Mission, n_platform: dict[str, int]) -> None:
                     f"{where}.type",
                 )
             e.initial = _check_initial(e, where)
+    return vector_bytes
 
 
 def _check_element_type(e: ElementConfig, where: str) -> None:
@@ -757,15 +766,82 @@ def _check_initial(e: ElementConfig, where: str) -> Value:
 
 
 def _check_archive(m: Mission) -> None:
-    """The archive's directory is a path and a file holds a row group."""
+    """The archive's directory is a path."""
     a = m.archive
     if a.dir is not None and (not a.dir or "\x00" in a.dir):
         raise ConfigError("the archive directory must be a non-empty path", "$.archive.dir")
-    if a.row_group_s > a.file_s:
-        raise ConfigError(
-            f"a row group ({a.row_group_s:g} s) must fit in a file ({a.file_s:g} s)",
-            "$.archive.row_group_s",
+
+
+class ArchiveSizing(NamedTuple):
+    """What the ground archive holds in memory for a mission (:func:`archive_sizing`)."""
+
+    row_group_rows: int
+    """Snapshots per row group: the open one is a preallocated block of these rows."""
+    queue_rows: int
+    """Snapshots the hand-off queue (a preallocated ring) holds."""
+    vector_bytes: int
+    """Bytes of one snapshot (the control node's Data Vector)."""
+
+    @property
+    def block_bytes(self) -> int:
+        return self.row_group_rows * self.vector_bytes
+
+    @property
+    def queue_bytes(self) -> int:
+        return self.queue_rows * self.vector_bytes
+
+
+def archive_sizing(m: Mission, vector_bytes: int) -> ArchiveSizing:
+    """The archive's row group and queue for ``m`` whose control node's
+    vector is ``vector_bytes`` long: ``archive.row_group_s`` and
+    ``archive.queue_s`` of snapshots at the telemetry rate, as set, or when
+    unset their defaults cut to what :data:`ARCHIVE_ROW_GROUP_BYTES` and
+    :data:`ARCHIVE_QUEUE_BYTES` hold. Raises ConfigError (naming the field
+    and the most that fits) when a value set needs more than that, and when
+    ``file_s`` is shorter than a row group."""
+    a = m.archive
+    size = max(vector_bytes, 1)
+    per_s = m.loop_hz / m.telemetry_divisor
+    mib = 2**20
+
+    def refuse(what: str, s: float, rows: int, cap: int, least: int, path: str) -> ConfigError:
+        most = max(cap // size, least)
+        return ConfigError(
+            f"{what} of {s:g} s is {rows} snapshots of the control node's {size}-byte vector "
+            f"at {per_s:g} Hz, {rows * size / mib:.0f} MiB: more than the {cap // mib} MiB the "
+            f"archive holds for it; at most {most / per_s:g} s ({most} snapshots), or unset "
+            "for the most that fits",
+            path,
         )
+
+    if a.row_group_s is None:
+        rg = max(1, min(int(ARCHIVE_ROW_GROUP_S * per_s), ARCHIVE_ROW_GROUP_BYTES // size))
+    else:
+        rg = max(1, int(a.row_group_s * per_s))
+        if rg * size > ARCHIVE_ROW_GROUP_BYTES:
+            raise refuse(
+                "a row group", a.row_group_s, rg, ARCHIVE_ROW_GROUP_BYTES, 1,
+                "$.archive.row_group_s",
+            )  # fmt: skip
+    least = max(1, min(16, ARCHIVE_QUEUE_BYTES // size))  # the ring takes a few at a time
+    if a.queue_s is None:
+        queue = max(least, min(int(ARCHIVE_QUEUE_S * per_s), ARCHIVE_QUEUE_BYTES // size))
+    else:
+        want = int(a.queue_s * per_s)
+        if want * size > ARCHIVE_QUEUE_BYTES:
+            raise refuse(
+                "a queue", a.queue_s, want, ARCHIVE_QUEUE_BYTES, least, "$.archive.queue_s"
+            )
+        queue = max(least, want)
+    if rg > int(a.file_s * per_s):
+        raise ConfigError(
+            f"each row group ({rg / per_s:g} s) is written as closed files when it fills, and "
+            f"every file_s ({a.file_s:g} s) the files written since the last pass are compacted "
+            "into one and retention runs: a pass would find at most one row group's files to "
+            "compact (file_s must be at least a row group)",
+            "$.archive.row_group_s" if a.row_group_s is not None else "$.archive.file_s",
+        )
+    return ArchiveSizing(rg, queue, size)
 
 
 def _check_recorder(m: Mission) -> None:

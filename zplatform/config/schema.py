@@ -35,6 +35,14 @@ MAX_REGION_BYTES = 256 * 1024 * 1024
 """Most bytes in one region (256 MiB): a region travels whole in one frame per loop."""
 MAX_VECTOR_BYTES = 256 * 1024 * 1024
 """Most bytes in a Data Vector (256 MiB); the CN's holds every region."""
+ARCHIVE_ROW_GROUP_BYTES = 512 * 2**20
+"""Most bytes of snapshots in the ground archive's open row group (held in memory)."""
+ARCHIVE_QUEUE_BYTES = 256 * 2**20
+"""Most bytes of snapshots the ground archive's hand-off queue holds."""
+ARCHIVE_ROW_GROUP_S = 60.0
+"""``archive.row_group_s`` when unset (fewer seconds for a large vector)."""
+ARCHIVE_QUEUE_S = 10.0
+"""``archive.queue_s`` when unset (fewer seconds for a large vector)."""
 MISSION_NAME_MAX = 128
 """Longest mission name, in characters."""
 
@@ -783,17 +791,17 @@ class ArchiveConfig(_Struct):
         ),
     ] = 365.0
     row_group_s: Annotated[
-        float,
+        Annotated[float, Meta(ge=0.1, le=3600)] | None,
         Meta(
-            ge=0.1,
-            le=3600,
             description="Seconds of snapshots per Parquet row group, each written as a closed "
-            "file (fewer for a large vector: at most 512 MiB of rows). A running run is "
-            "queryable up to its last row group; larger groups make fewer files and faster "
-            "queries; a crash loses none of the open group's rows that reached the raw segment "
-            "(they are re-decoded from it).",
+            "file; the archive holds the open one in memory (its rows x the control node's "
+            "vector, at most 512 MiB: a longer group of a large vector is refused here, naming "
+            "the most that fits). `null` (the default): 60 s, or what 512 MiB holds of a "
+            "larger vector. A running run is queryable up to its last row group; larger "
+            "groups make fewer files and faster queries; a crash loses none of the open "
+            "group's rows that reached the raw segment (they are re-decoded from it).",
         ),
-    ] = 60.0
+    ] = None
     file_s: Annotated[
         float,
         Meta(
@@ -805,14 +813,15 @@ class ArchiveConfig(_Struct):
         ),
     ] = 600.0
     queue_s: Annotated[
-        float,
+        Annotated[float, Meta(ge=0.1, le=600)] | None,
         Meta(
-            ge=0.1,
-            le=600,
             description="Seconds of snapshots the hand-off queue between the receive path and "
-            "the archive's thread holds (at most 256 MiB); a full queue drops, counted.",
+            "the archive's thread holds (at least 16 snapshots, at most 256 MiB: a longer "
+            "queue of a large vector is refused here, naming the most that fits); a full queue "
+            "drops, counted. `null` (the default): 10 s, or what 256 MiB holds of a larger "
+            "vector.",
         ),
-    ] = 10.0
+    ] = None
     serve_bps: Annotated[
         int,
         Meta(
