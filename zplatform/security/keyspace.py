@@ -437,8 +437,10 @@ KEYSPACE: tuple[KeyRow, ...] = (
                 "telemetry",
                 "downlink",
                 "zplatform.ground.gapfill.GapFill gn",
-                "the run followed, a loop in the range asked not yet taken, stamped at "
-                "most the clock bound after the ask",
+                "screened in zenoh's callback (ReplyScreen: the request in flight, its kind, "
+                "the first frame's header tag and run, a loop of the range; the END whole, "
+                "tagged, with the request's stamp); the run followed, a loop in the range "
+                "asked not yet taken, stamped at most the clock bound after the ask",
                 "the gap fill's bounded hold",
                 run_bound=True,
             ),
