@@ -488,9 +488,11 @@ KEYSPACE: tuple[KeyRow, ...] = (
                 "telemetry",
                 "downlink",
                 "zplatform.archive.server.ArchiveAsk tool",
-                "the hello's nonce (the session), then the session and the ask's nonce, each "
-                "chunk index once, within the count announced",
-                "the asker's bounded mailbox",
+                "screened in zenoh's callback (ArchiveAsk.screen: size, header tag, session, "
+                "nonce, kind, index); the hello's nonce (the session), then the session and "
+                "the ask's nonce, each chunk index once, within the count announced",
+                "the asker's mailbox, bounded by replies and bytes (REPLY_BACKLOG, "
+                "REPLY_BACKLOG_BYTES), junk refused before it",
                 run_bound=True,
             ),
         ),
