@@ -516,7 +516,8 @@ KEYSPACE: tuple[KeyRow, ...] = (
                 "from the other control node, term and loop in range, (term, loop) "
                 "later than every mirror admitted; at most the clock bound and a period "
                 "ahead of the standby's clock (Standby.mirror)",
-                "mailbox of MIRRORS, newest kept; junk and stale refused before it",
+                "mailbox of MIRRORS, newest kept; junk and stale refused before it "
+                "(counted: cn_mirror_refused)",
             ),
         ),
         when="standby",
