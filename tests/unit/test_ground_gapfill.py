@@ -314,3 +314,9 @@ def test_a_flood_of_junk_replies_before_and_among_the_genuine_ones_fills_the_gap
     assert filler._q.dropped == 0
     assert (filler.fill.filled, filler.fill.unfilled) == (2, 0)
     assert filler.fill.refused == 2000
+    # Evented once (at most once a second), with the count.
+    (ev,) = [e for e in logic.events.drain() if e.id == "bad_frame"]
+    assert ev.text.startswith("2000 gap-fill reply(s)")
+    now[0] += S // 2
+    filler.pump()
+    assert not [e for e in logic.events.drain() if e.id == "bad_frame"]

@@ -27,6 +27,7 @@ from collections.abc import Callable
 from typing import NamedTuple
 
 from ..config import Mission
+from ..control.intake import RefusalLog
 from ..core.auth import TAG_LEN, AuthError, Channel, KeySet, Run, channel
 from ..core.codec import RegionCodec
 from ..core.datavector import DataVector, Layout
@@ -139,7 +140,7 @@ class ReplyScreen:
         if n < 1 + REPLY_LEN.size:
             return "a reply cut inside its first length"
         (k,) = REPLY_LEN.unpack_from(p, 1)
-        if k > n - 1 - REPLY_LEN.size or k < _SEQ_AT + 8:
+        if k > n - 1 - REPLY_LEN.size or k < (_SEQ_AT + 8 if e.kind == REPLY_FRAMES else 1):
             return f"a first item of {k} bytes in a reply"
         if ch is None:
             return None
@@ -284,6 +285,10 @@ class GapFill:
         no telemetry of them exists, so they are not missing from the log."""
         self._refused = 0
         self._last_refusal = ""
+        self._latest = ""  # the latest reason (the event's)
+        self._ref_log = RefusalLog(1)  # refusals evented at most once a second
+        self._ref_seen = (0, 0)  # (ours, the screen's) counted in the event log so far
+        self._ev_why = ""
         self.requests = 0
         # Event gaps (module doc): the logic's, filled one at a time.
         self._logic = logic
@@ -551,8 +556,28 @@ class GapFill:
 
     def _refuse(self, why: str) -> None:
         self._refused += 1
+        self._latest = why
         if not self._last_refusal:
             self._last_refusal = why
+
+    def _event_refusals(self, now_ns: int) -> None:
+        """The replies and frames refused since the last call, evented at
+        most once a second (a ``bad_frame`` event of the ground's log)."""
+        ours, screened = self._refused, self.screen.refused
+        seen = self._ref_seen
+        if screened > seen[1]:
+            self._ev_why = self.screen.last_refusal
+        elif ours > seen[0]:
+            self._ev_why = self._latest
+        self._ref_seen = (ours, screened)
+        ev = self._ref_log.add(now_ns, ours - seen[0] + screened - seen[1])
+        if ev is not None:
+            self._events.emit(
+                EV.BAD_FRAME,
+                now_ns,
+                source=f"{ev[0]} gap-fill reply(s) or frame(s) from the recorder's key",
+                reason=f"refused (the last: {self._ev_why})",
+            )
 
     def on_done(self, rid: int, now_ns: int) -> None:
         """Request ``rid`` is over (all replies in, or its time ran out): keep
@@ -605,7 +630,8 @@ class GapFill:
     # -- time ----------------------------------------------------------------
     def tick(self, now_ns: int) -> None:
         """Let time pass: a request whose end never came is over; rows held
-        longer than ``hold_s`` are written, the gaps still open given up."""
+        longer than ``hold_s`` are written, the gaps still open given up;
+        refusals since the last event evented (at most once a second)."""
         ask = self._ask
         if ask is not None and now_ns > ask.deadline:
             self.on_done(ask.id, now_ns)
@@ -614,6 +640,7 @@ class GapFill:
             self._events_done(f, now_ns)
         if self._held and now_ns - self._held[0].rx_ns > self._hold_ns:
             self._abandon(now_ns, f"not filled within {self._hold_ns / _NS:g} s")
+        self._event_refusals(now_ns)
 
     def finish(self, now_ns: int) -> None:
         """The log ends: whatever is still open is given up, every row
