@@ -627,3 +627,72 @@ def test_replayed_asks_never_take_the_inbox_a_stations_ask_needs(root: Path) -> 
     assert qa.replies and answer(a, qa).num_rows == 10
     assert all(q.dropped and not q.replies for q in qr)
     assert (new.busy, new.stale, new.served, new.hellos) == (0, len(replays), 2, 3)
+
+
+def _station_link(monkeypatch: pytest.MonkeyPatch, srv: ArchiveServer, flood: Any) -> None:
+    """zenoh for ``_ask_station``: the get is served by ``srv`` at once and
+    ``flood(genuine)`` lists what reaches the reply callback, in order."""
+    import zplatform.runtime.queries as queries
+
+    def ask(_s: Any, _k: str, handler: Any, *, payload: bytes, **_kw: Any) -> None:
+        on_reply, on_done = handler
+        (q,) = deliver(srv, payload)
+        for data in flood(q.replies):
+            ok = SimpleNamespace(payload=SimpleNamespace(to_bytes=lambda d=data: d))
+            on_reply(SimpleNamespace(ok=ok))
+        on_done()
+
+    monkeypatch.setattr(queries, "replies", lambda on_reply, on_done: (on_reply, on_done))
+    monkeypatch.setattr(queries, "ask", ask)
+
+
+def test_a_junk_flood_before_and_among_the_answer_never_pushes_it_out(
+    root: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Issue 25: zenoh's callback screens each reply to an ask (size, header
+    tag, the session, the ask's nonce, kind, index) before its mailbox, so
+    70,000 junk replies (more than the 65,536 places it has) before and
+    among the station's answer push none of it out; each is counted once."""
+    from zplatform.archive.server import DATA, _ask_station
+
+    srv = server(root, Clock())
+    a = Station(1).learn(srv)
+    other_key = KeySet.from_master(MISSION, bytes(32)).channel("telemetry", Run(a.session))
+    old_session = KEYS.channel("telemetry", Run(a.session + 1))  # an earlier session's
+    genuine_ch = KEYS.channel("telemetry", Run(a.session))
+    head = REPLY.pack(DATA, a.nonce, 0, 1)
+    junk = [
+        b"",
+        bytes(200),  # no tag
+        bytes(other_key.seal(head + b"forged")),  # a keyless peer's
+        bytes(old_session.seal(head + b"replayed")),  # another session's
+        bytes(genuine_ch.seal(REPLY.pack(DATA, a.nonce + 1, 0, 1) + b"x")),  # another ask's
+    ]
+    n_junk = 70_000
+    flood = [junk[i % len(junk)] for i in range(n_junk)]
+    _station_link(monkeypatch, srv, lambda genuine: [*flood[:1000], *genuine, *flood[1000:]])
+    _ask_station(None, "rocket/archive/query", a, a.ask(Q), 1.0, lambda: a.done)  # type: ignore[arg-type]
+    with Archive(MISSION, root) as local:
+        assert a.table().equals(local.query(Q))
+    assert a.refused == n_junk
+
+
+def test_an_asks_mailbox_is_bounded_by_bytes(root: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Replies that pass the screen (the answer's own chunk, replayed) hold
+    at most REPLY_BACKLOG_BYTES in the mailbox: the rest are refused in
+    zenoh's callback, counted in ``dropped``."""
+    import zplatform.archive.server as server_mod
+
+    srv = server(root, Clock())
+    a = Station(1).learn(srv)
+
+    def flood(genuine: list[bytes]) -> list[bytes]:
+        (chunk,) = genuine
+        monkeypatch.setattr(server_mod, "REPLY_BACKLOG_BYTES", 3 * len(chunk))
+        return [chunk] * 10
+
+    _station_link(monkeypatch, srv, flood)
+    server_mod._ask_station(None, "k", a, a.ask(Q), 1.0, lambda: a.done)  # type: ignore[arg-type]
+    assert a.table().num_rows == 10
+    # 3 held (the answer, then its index twice again, never read: done), 7 refused
+    assert (a.dropped, a.refused) == (7, 0)

@@ -27,6 +27,7 @@ from zplatform.mission.load import decode_mission
 from zplatform.recorder import RECORDER_DIR_ENV, open_recorder
 from zplatform.recorder import format as fmt
 from zplatform.recorder.format import (
+    REPLY_DONE,
     REPLY_END,
     REPLY_FRAMES,
     REPLY_LEN,
@@ -238,7 +239,8 @@ def test_junk_or_forged_replies_carry_no_events_in(vehicle: Vehicle) -> None:
         out += REPLY_LEN.pack(len(f)) + f
     v.fill.on_reply(rid, bytes(out))
     assert v.fill.refused == len(junk) + len(forged)
-    v.fill.on_reply(rid, bytes([REPLY_END]) + REPLY_TOTALS.pack(0, 0, 0))
+    tm_end = KEYS.channel("telemetry", Run(EPOCH))  # the request was stamped v.now
+    v.fill.on_reply(rid, bytes(tm_end.seal(REPLY_DONE.pack(REPLY_END, 0, 0, 0, v.now))))
     v.fill.on_done(rid, v.now)
     assert [r.seq for r in v.shown] == [0, 3]  # nothing came in
     said = {e.id: e.text for e in v.said()}
@@ -363,9 +365,10 @@ def test_the_recorder_answers_an_events_request_with_tagged_events_only(
     assert end[0] == REPLY_END and REPLY_TOTALS.unpack_from(end, 1) == (2, 0, 0)
     # Past what is written: not held; another run: nothing of it here.
     assert REPLY_TOTALS.unpack_from(ask(EVENTS_MAGIC, 4, 10)[-1], 1) == (1, 6, 0)
-    assert ask(EVENTS_MAGIC, 1, 4, run=EPOCH + 1) == [
-        bytes([REPLY_END]) + REPLY_TOTALS.pack(0, 4, 0)
-    ]
+    (other,) = ask(EVENTS_MAGIC, 1, 4, run=EPOCH + 1)
+    # The END is tagged under the run asked for, with the request's stamp.
+    opened = KEYS.channel("telemetry", Run(EPOCH + 1)).open(other)
+    assert REPLY_DONE.unpack(opened) == (REPLY_END, 0, 4, 0, v.now)
     # A frames request still brings frames alone.
     assert {p[0] for p in ask(REQUEST_MAGIC, 1, 4)} == {REPLY_FRAMES, REPLY_END}
     assert v.server.events_sent == 3 and v.server.refused == 0
@@ -428,7 +431,7 @@ def test_the_consoles_link_asks_and_shows_the_filled_events_in_its_pane(
     replies: Mailbox[tuple[int, bytes | None]] = Mailbox(8)
     zenoh_side: Any = SimpleNamespace(
         keys=SimpleNamespace(recorder=f"{MISSION.vehicle}/cn/recorder"),
-        query=lambda key, payload, _timeout, _into, rid: asked.append((key, payload, rid)),
+        query=lambda key, payload, _timeout, _into, rid, *_: asked.append((key, payload, rid)),
     )
     link.clock = SimpleNamespace(now_ns=lambda: v.now)  # type: ignore[assignment]
     link._pump(zenoh_side, v.fill, replies)

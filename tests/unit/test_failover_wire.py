@@ -513,3 +513,50 @@ def test_junk_probe_replies_from_many_peers_never_push_a_device_nodes_reply_out(
     assert probes.round(asks, sb.answer) == len(FLIGHT.device_nodes)
     assert probes.screened == 20 * len(FLIGHT.device_nodes)
     assert all(a is not None for a in sb.answers)
+
+
+def test_the_mirrors_refused_are_counted_in_the_data_vector() -> None:
+    """Issue 25: the mirrors a control node's intake refused were only
+    evented; now they go into ``cn_mirror_refused`` with the next loop (an
+    input of the loop, as the other refusals), exactly, and a standby's,
+    counted while it follows, with its first loop in command. Still one
+    event for a flood."""
+    from types import SimpleNamespace
+
+    from zplatform.control.intake import CnRefusals, RefusalLog
+    from zplatform.node.control import ControlNode
+
+    cn = _commander()
+    node: Any = SimpleNamespace(
+        mirror_intake=_mirror_intake("cn"),
+        _mirror_log=RefusalLog(4),
+        _mirror_unfiled=0,
+        logic=cn,
+        name="cn",
+        _refused=CnRefusals(),
+        sync=SimpleNamespace(take_refusals=lambda r: None),
+        _requests=None,
+    )
+    genuine = _mirror(_commander(who=1), 1)
+    intake = node.mirror_intake
+    for _ in range(3):
+        assert not intake.admit(Bytes(b"\x94" + bytes(len(genuine) - 1)), None)  # bad tag
+        assert not intake.admit(Bytes(b"x" * (intake.max_len + 1)), None)  # too long
+    cn.events.drain()
+    ControlNode._mirror_refusals(node, at(2))
+    cn.begin(2, at(2))
+    cn.finish(refused=ControlNode._take_refusals(node))
+    assert cn.dv.get("cn_mirror_refused") == 6
+    (ev,) = [e for e in cn.events.drain() if e.id == "bad_frame"]
+    assert ev.text.startswith("6 mirror frame(s)")
+    # Beats without a loop (a standby following): kept, then filed with the next loop.
+    for t in (at(3), at(3) + P // 2):
+        assert not intake.admit(Bytes(b"\x94" + bytes(len(genuine) - 1)), None)
+        ControlNode._mirror_refusals(node, t)
+    assert cn.dv.get("cn_mirror_refused") == 6
+    cn.begin(3, at(3))
+    cn.finish(refused=ControlNode._take_refusals(node))
+    assert cn.dv.get("cn_mirror_refused") == 8
+    cn.begin(4, at(4))
+    cn.finish(refused=ControlNode._take_refusals(node))
+    assert cn.dv.get("cn_mirror_refused") == 8  # counted once

@@ -6,8 +6,10 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
+import pytest
+
 from zplatform.control.loop import ControlLogic
-from zplatform.core.auth import KeySet
+from zplatform.core.auth import KeySet, Run
 from zplatform.core.codec import decode_frame, encode_frame
 from zplatform.core.datavector import DataVector
 from zplatform.core.events import Event
@@ -15,10 +17,10 @@ from zplatform.ground.gapfill import GapFill
 from zplatform.ground.logic import Gap, GroundLogic
 from zplatform.mission.load import decode_mission
 from zplatform.recorder.format import (
+    REPLY_DONE,
     REPLY_END,
     REPLY_FRAMES,
     REPLY_LEN,
-    REPLY_TOTALS,
     REQUEST,
     REQUEST_MAGIC,
 )
@@ -76,8 +78,10 @@ def reply(*payloads: bytes) -> bytes:
     return bytes(out)
 
 
-def end(sent: int, not_held: int, not_run: int = 0) -> bytes:
-    return bytes([REPLY_END]) + REPLY_TOTALS.pack(sent, not_held, not_run)
+def end(stamp: int, sent: int, not_held: int, not_run: int = 0, run: int = EPOCH) -> bytes:
+    """The recorder's END reply to the request stamped ``stamp`` (tagged)."""
+    body = REPLY_DONE.pack(REPLY_END, sent, not_held, not_run, stamp)
+    return bytes(KEYS.channel("telemetry", Run(run)).seal(body))
 
 
 def test_a_gap_is_asked_for_exactly_and_written_in_loop_order() -> None:
@@ -98,7 +102,7 @@ def test_a_gap_is_asked_for_exactly_and_written_in_loop_order() -> None:
     bad_tag = frames(keys=KeySet.from_master(MISSION, bytes(32)))[16]
     g.fill.on_reply(rid, reply(*(TM[n] for n in range(11, 16)), forged, bad_tag, TM[30]))
     g.fill.on_reply(rid, reply(*(TM[n] for n in range(16, 21)), TM[12]))  # 12 again: refused
-    g.fill.on_reply(rid, end(10, 0))
+    g.fill.on_reply(rid, end(now, 10, 0))
     assert len(g.rows) == 10  # nothing written before the request is over
     g.fill.on_done(rid, now + S)
     assert [loop for _, loop in g.rows] == list(range(1, 26))
@@ -119,7 +123,7 @@ def test_loops_the_recorder_does_not_hold_are_given_up_and_said() -> None:
     g.live(*range(1, 6), *range(11, 14))
     rid, _, _ = g.fill.take_request(EPOCH) or (0, b"", 0.0)
     g.fill.on_reply(rid, reply(TM[6], TM[7]))
-    g.fill.on_reply(rid, end(2, 3))
+    g.fill.on_reply(rid, end(EPOCH, 2, 3))
     g.fill.on_done(rid, EPOCH + S)
     assert [loop for _, loop in g.rows] == [1, 2, 3, 4, 5, 6, 7, 11, 12, 13]
     said = {e.id: e.text for e in g.events()}
@@ -136,7 +140,7 @@ def test_loops_that_never_ran_are_no_loss() -> None:
     g.live(*range(1, 6), *range(11, 14))  # 6..10 missing: 9 and 10 never ran (overruns)
     rid, _, _ = g.fill.take_request(EPOCH) or (0, b"", 0.0)
     g.fill.on_reply(rid, reply(TM[6], TM[7], TM[8]))
-    g.fill.on_reply(rid, end(3, 0, 2))
+    g.fill.on_reply(rid, end(EPOCH, 3, 0, 2))
     g.fill.on_done(rid, EPOCH + S)
     assert [loop for _, loop in g.rows] == [1, 2, 3, 4, 5, 6, 7, 8, 11, 12, 13]
     assert (g.fill.filled, g.fill.unfilled, g.fill.not_run) == (3, 0, 2)
@@ -230,7 +234,89 @@ def test_an_empty_reply_a_replayed_frame_and_a_frame_stamped_after_the_ask_are_c
     g.fill.on_reply(rid, reply(late))
     g.fill.on_reply(rid, reply(*(TM[n] for n in range(11, 21)), TM[11]))
     assert g.fill.refused == 3
-    g.fill.on_reply(rid, end(10, 0))
+    g.fill.on_reply(rid, end(now, 10, 0))
     g.fill.on_done(rid, now + S)
     assert g.rows[11] == (EPOCH + 12 * PERIOD, 12)  # the genuine stamp
     assert (g.fill.filled, g.fill.unfilled) == (10, 0)
+
+
+def test_a_flood_of_junk_replies_before_and_among_the_genuine_ones_fills_the_gap(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """Issue 25: the ground's fill mailbox (FILL_BACKLOG) takes only replies
+    zenoh's callback screened (size, kind, header tag, run, the request's
+    range and stamp): 2,000 junk replies before and among the genuine ones
+    (more than the mailbox holds after the genuine frames) push none of
+    them out; the gap is filled and every junk reply counted once."""
+    from types import SimpleNamespace
+
+    from zplatform.ground import link as link_mod
+    from zplatform.node.ground import FILL_BACKLOG, _Filler
+
+    asked: list[tuple[bytes, Any]] = []
+    monkeypatch.setattr(link_mod, "replies", lambda on_reply, on_done: (on_reply, on_done))
+    monkeypatch.setattr(
+        link_mod, "ask", lambda _s, _k, handler, **kw: asked.append((kw["payload"], handler))
+    )
+    logic = GroundLogic(MISSION, keys=GROUND_KEYS)
+    rows: list[int] = []
+    now = [EPOCH + 6 * PERIOD]
+    fake: Any = SimpleNamespace(
+        mission=MISSION,
+        link_keys=GROUND_KEYS,
+        logic=logic,
+        clock=SimpleNamespace(now_ns=lambda: now[0]),
+        keys=SimpleNamespace(recorder=f"{MISSION.vehicle}/cn/recorder"),
+        ns=SimpleNamespace(session=None),
+    )
+    fake.query = lambda *a: link_mod.GroundLink.query(fake, *a)
+    sink: Any = SimpleNamespace(
+        snapshot=lambda _rx, dv: rows.append(int(dv.get("cn_loop"))), event=lambda _r: None
+    )
+    filler = _Filler(fake, sink)
+    for n in (1, 2, 5):  # 3..4 lost
+        rx = EPOCH + n * PERIOD + 1000
+        assert logic.on_telemetry(TM[n], rx)
+        filler.fill.snapshot(logic, rx)
+    filler.pump()
+    ((payload, (on_reply, on_done)),) = asked
+    stamp = REQUEST.unpack(KEYS.channel("telemetry").open(payload))[4]
+    assert stamp == now[0]
+
+    def deliver(data: bytes) -> None:
+        ok = SimpleNamespace(payload=SimpleNamespace(to_bytes=lambda: data))
+        on_reply(SimpleNamespace(ok=ok))
+
+    forged = frames(keys=KeySet.from_master(MISSION, bytes(32)), last=4)[3]
+    other_key = KeySet.from_master(MISSION, bytes(32)).channel("telemetry", Run(EPOCH))
+    junk = [
+        b"",
+        b"\x07" + bytes(100),  # a kind no reply has
+        reply(forged),  # a keyless peer's frame of a loop asked for
+        reply(TM[30]),  # a genuine frame, not of the range asked (a replay)
+        bytes(other_key.seal(REPLY_DONE.pack(REPLY_END, 0, 2, 0, stamp))),  # forged END
+        end(stamp - 1, 0, 2),  # a genuine END of another request (a replay)
+        bytes([REPLY_END]) + bytes(24),  # the untagged END of before
+    ]
+    flood = [junk[i % len(junk)] for i in range(2000)]
+    for p in flood[:600]:
+        deliver(p)
+    deliver(reply(TM[3], TM[4]))
+    for p in flood[600:1700]:  # more than the mailbox holds after the frames
+        deliver(p)
+    deliver(end(stamp, 2, 0))
+    for p in flood[1700:]:
+        deliver(p)
+    on_done()
+    assert FILL_BACKLOG < 1700 - 600
+    filler.pump()
+    assert rows == [1, 2, 3, 4, 5]
+    assert filler._q.dropped == 0
+    assert (filler.fill.filled, filler.fill.unfilled) == (2, 0)
+    assert filler.fill.refused == 2000
+    # Evented once (at most once a second), with the count.
+    (ev,) = [e for e in logic.events.drain() if e.id == "bad_frame"]
+    assert ev.text.startswith("2000 gap-fill reply(s)")
+    now[0] += S // 2
+    filler.pump()
+    assert not [e for e in logic.events.drain() if e.id == "bad_frame"]

@@ -82,13 +82,13 @@ def test_the_final_loop_flag_is_recorded_and_replayed(tmp_path: Path) -> None:
     assert res.identical and res.loops == 3, res
 
 
-@pytest.mark.parametrize("version", [2, 3, 4, 5, 7, 8])
+@pytest.mark.parametrize("version", [2, 3, 4, 5, 7, 8, 9])
 def test_a_recording_of_an_earlier_format_is_refused_by_name(tmp_path: Path, version: int) -> None:
     """Versions 2 to 4 end a loop without the intake's refusals, 2 to 5
     have no mission digest, 7's frames carry the tag without a header tag
     (codecs/FORMAT.md §6.1), 8's loops end without the frames dropped
-    unchecked: refused with one error that says to record again, never
-    misread."""
+    unchecked, 9's without the mirrors refused: refused with one error
+    that says to record again, never misread."""
     m = load_mission(MISSION)
     cn = ControlLogic(m, keys=None, epoch=1)
     rec = Recorder(tmp_path / "rec", m, MISSION, cn.dv)
@@ -104,3 +104,28 @@ def test_a_recording_of_an_earlier_format_is_refused_by_name(tmp_path: Path, ver
         RecordingError, match=f"version {version}, made by an earlier zplatform.*record again"
     ):
         RecordReader(tmp_path / "rec")
+
+
+def test_the_mirrors_refused_are_recorded_and_replayed(tmp_path: Path) -> None:
+    """A redundant mission's ``cn_mirror_refused`` comes from an input of
+    the loop (the refusals' ``mirror_refused``, in FINISH since version
+    10): recorded, read back and replayed bit for bit."""
+    from zplatform import replay
+    from zplatform.control.intake import CnRefusals
+    from zplatform.core.auth import load_keys
+
+    flight = ROOT / "configs" / "flight.yaml"
+    m = load_mission(flight)
+    cn = ControlLogic(m, keys=load_keys(m, "cn"), epoch=1)
+    rec = Recorder(tmp_path / "rec", m, flight, cn.dv)
+    cn.recorder = rec
+    for n, refused in ((1, 0), (2, 5), (3, 2)):
+        r = CnRefusals()
+        r.mirror_refused = refused
+        cn.begin(n, n * m.period_ns)
+        cn.finish(refused=r)
+    rec.close()
+    assert cn.dv.get("cn_mirror_refused") == 7
+    assert [r.refused[-1] for r in RecordReader(tmp_path / "rec").loops()] == [0, 5, 2]
+    res = replay(tmp_path / "rec", flight)
+    assert res.identical and res.loops == 3, res

@@ -68,7 +68,7 @@ _HEAD = struct.Struct("<6sHI")
 _ITEM = struct.Struct("<BBI")
 # FINISH: sync_overrun, loop_overruns, inbox_dropped, the intake's refusals, the
 # querier recoveries
-_FINISH = struct.Struct("<BII7IBQIII")
+_FINISH = struct.Struct("<BII7IBQIIII")
 
 
 @pytest.fixture(autouse=True)
@@ -333,7 +333,7 @@ def test_a_health_block_in_a_mission_without_health_is_a_recording_error(
         # A refusal's status the loop would have to name (hypothesis found it:
         # a ValueError out of the control loop's refusal event, not this error).
         (
-            _items(BEGIN, (8, 0, bytes(_FINISH.size - 21) + bytes([_N_STATUS]) + bytes(20))),
+            _items(BEGIN, (8, 0, bytes(_FINISH.size - 25) + bytes([_N_STATUS]) + bytes(24))),
             f"loop 1: FINISH with command status {_N_STATUS} (at most {_N_STATUS - 1})",
         ),
     ],

@@ -48,6 +48,8 @@ __all__ = [
     "MAX_PENDING",
     "QUERY",
     "REPLY",
+    "REPLY_BACKLOG",
+    "REPLY_BACKLOG_BYTES",
     "RUNS",
     "RUNS_SCHEMA",
     "SESSION_BODY",
@@ -86,6 +88,12 @@ REMEMBERED = 4096
 refused with a reason (the older ones are never forgotten early)."""
 ASKERS = 1024
 """Askers whose byte bucket is kept (the least recently served one is let go)."""
+REPLY_BACKLOG = 1 << 16
+"""Replies an ask's mailbox holds waiting for the asking thread, at most."""
+REPLY_BACKLOG_BYTES = 32 << 20
+"""Bytes of replies an ask's mailbox holds, at most (a thousand chunks: the
+asking thread checks them far faster than a station paces them); more are
+refused in zenoh's callback, counted (:attr:`ArchiveAsk.dropped`)."""
 HELLOS_KEPT = 256
 """Hellos (asker word and nonce) a server keeps, to refuse a replay of one
 in zenoh's callback before it takes a place in the inbox (stale): a
@@ -662,12 +670,57 @@ class ArchiveAsk:
         self._chunks: dict[int, bytes] = {}
         self._count: int | None = None
         self.error: str | None = None
-        self.refused = 0
-        """Replies refused: a bad tag, another session's, another ask's, a
-        repeated or impossible index."""
+        self._refused = 0
         self.max_len = REPLY.size + CHUNK + (TAG_LEN if channel is not None else 0)
         if channel is not None:
             channel.run = None  # until the session is learned: any run's answer to the hello
+        # zenoh's callback's (screen): a channel of its own, unbound (the run
+        # word is compared with the session here), under one lock.
+        self._rx = channel.twin() if channel is not None else None
+        self._rx_lock = threading.Lock()
+        self.screened = 0
+        """Replies refused in zenoh's callback (:meth:`screen`)."""
+        self.dropped = 0
+        """Screened replies refused because the mailbox held :data:`REPLY_BACKLOG`
+        replies or :data:`REPLY_BACKLOG_BYTES` bytes (:func:`remote_query`)."""
+
+    @property
+    def refused(self) -> int:
+        """Replies refused: a bad tag, another session's, another ask's, a
+        repeated or impossible index; in zenoh's callback (:attr:`screened`)
+        or after."""
+        return self._refused + self.screened
+
+    def screen(self, payload: bytes) -> bool:
+        """Whether a reply may take a place in the ask's mailbox (issue 25):
+        zenoh's callback calls it first. Its size, its header tag (the
+        first bytes: the reply's header, constant time), the session learned
+        (before it: any), then the header's nonce (the hello's, then the
+        ask's), kind and index. Thread-safe; copies nothing; never raises."""
+        with self._rx_lock:
+            ok = self._screen(payload)
+            if not ok:
+                self.screened += 1
+            return ok
+
+    def _screen(self, payload: bytes) -> bool:
+        ch = self._rx
+        tag = TAG_LEN if ch is not None else 0
+        if not REPLY.size + tag <= len(payload) <= self.max_len:
+            return False
+        session = self.session
+        if ch is not None:
+            try:
+                ch.open_header(payload, any_run=True)
+            except AuthError:
+                return False
+            word = int.from_bytes(payload[-TAG_LEN : -TAG_LEN + RUN_LEN], "little")
+            if session is not None and word != session:
+                return False
+        kind, nonce, i, n = REPLY.unpack_from(payload, 0)
+        if session is None:
+            return nonce == self.hello_nonce and kind in (SESSION, ERROR) and (i, n) == (0, 1)
+        return nonce == self.nonce and kind in (DATA, ERROR) and i < n <= self.max_chunks
 
     def hello(self) -> bytes:
         """This ask's hello (module doc)."""
@@ -683,15 +736,15 @@ class ArchiveAsk:
     def on_reply(self, payload: bytes) -> bool:
         """Take one reply (the hello's, then the ask's); True when admitted. Never raises."""
         if not REPLY.size <= len(payload) <= self.max_len:
-            self.refused += 1
+            self._refused += 1
             return False
         try:
             body = bytes(self._channel.open(payload)) if self._channel is not None else payload
         except AuthError:  # RunError included: another session's
-            self.refused += 1
+            self._refused += 1
             return False
         if len(body) < REPLY.size:
-            self.refused += 1
+            self._refused += 1
             return False
         kind, nonce, i, n = REPLY.unpack_from(body, 0)
         if self.session is None:
@@ -701,7 +754,7 @@ class ArchiveAsk:
         ok = ok and (self._count is None or n == self._count) and i not in self._chunks
         ok = ok and n <= self.max_chunks and self.error is None
         if not ok:
-            self.refused += 1
+            self._refused += 1
             return False
         if kind == ERROR:
             self.error = body[REPLY.size :].decode("utf-8", "replace")
@@ -720,13 +773,13 @@ class ArchiveAsk:
         ok = kind == SESSION and nonce == self.hello_nonce and (i, n) == (0, 1)
         ok = ok and len(body) == REPLY.size + SESSION_BODY.size
         if not ok:
-            self.refused += 1
+            self._refused += 1
             return False
         session, cookie = SESSION_BODY.unpack_from(body, REPLY.size)
         ch = self._channel
         if ch is not None:
             if session == 0 or word != session:  # tagged in the session it names
-                self.refused += 1
+                self._refused += 1
                 return False
             ch.run = Run(session)  # from now on: only this session's answers
         self.session, self.cookie = session, cookie
@@ -823,16 +876,32 @@ def _ask_station(
     timeout_s: float,
     done: Callable[[], object],
 ) -> None:
-    """One get of ``payload``, its replies fed to ``asker`` until ``done()``."""
+    """One get of ``payload``, its replies fed to ``asker`` until ``done()``.
+    Zenoh's callback screens each reply (:meth:`ArchiveAsk.screen`) before
+    the mailbox, which holds at most :data:`REPLY_BACKLOG` replies and
+    :data:`REPLY_BACKLOG_BYTES` bytes (more refused, counted in
+    :attr:`ArchiveAsk.dropped`): junk never takes a genuine reply's place."""
     from ..control.handoff import Mailbox
     from ..runtime.queries import ask, replies
 
-    box: Mailbox[bytes | None] = Mailbox(1 << 16)
+    box: Mailbox[bytes | None] = Mailbox(REPLY_BACKLOG + 1)  # and the end's None
+    lock = threading.Lock()
+    held = [0, 0]  # replies, bytes in the mailbox (zenoh's thread adds, this one takes)
 
     def on_reply(reply: zenoh.Reply) -> None:
-        ok = reply.ok
-        if ok is not None:
-            box.put(ok.payload.to_bytes())
+        ok = reply.ok  # screen, hand off only
+        if ok is None:
+            return
+        data = ok.payload.to_bytes()
+        if not asker.screen(data):
+            return
+        with lock:
+            if held[0] >= REPLY_BACKLOG or held[1] + len(data) > REPLY_BACKLOG_BYTES:
+                asker.dropped += 1
+                return
+            held[0] += 1
+            held[1] += len(data)
+        box.put(data)
 
     ask(
         session,
@@ -846,4 +915,7 @@ def _ask_station(
         item = box.get(left)
         if item is None:
             break
+        with lock:
+            held[0] -= 1
+            held[1] -= len(item)
         asker.on_reply(item)

@@ -351,6 +351,13 @@ def platform_elements(m: Mission) -> dict[str, list[ElementConfig]]:
             ),
             *arm,
             E("cn_holding", "bool", False, doc="a HOLD is in effect"),
+            E(
+                "cn_mirror_refused",
+                "u32",
+                0,
+                doc="mirror frames refused as they arrived (size, tag, range, not newer): "
+                "the commander's, and a standby's own, added when it takes command",
+            ),
         ]
     for dn in m.device_nodes:
         cn += [

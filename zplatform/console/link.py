@@ -205,7 +205,7 @@ class Link:
         req = fill.take_request(now())
         if req is not None:
             rid, payload, timeout_s = req
-            link.query(link.keys.recorder, payload, timeout_s, replies, rid)
+            link.query(link.keys.recorder, payload, timeout_s, replies, rid, fill.screen)
         fill.tick(now())
 
 

@@ -1005,7 +1005,9 @@ class CnRefusals:
     Of the refused, those dropped after their header for want of body-MAC
     budget (:attr:`Intake.took_unchecked`, :data:`MAC_SPARE`; already in
     the counts above, so not in :attr:`total`): ``reply_unchecked``,
-    ``cmd_unchecked``."""
+    ``cmd_unchecked``. Mirror frames the node's :class:`MirrorIntake`
+    refused (a redundant mission; not in :attr:`total`, they are counted
+    apart: ``cn_mirror_refused``): ``mirror_refused``."""
 
     __slots__ = (
         "cmd_bad",
@@ -1014,6 +1016,7 @@ class CnRefusals:
         "cmd_stale",
         "cmd_status",
         "cmd_unchecked",
+        "mirror_refused",
         "query_recovered",
         "reply_bad",
         "reply_foreign",
@@ -1031,6 +1034,7 @@ class CnRefusals:
         self.cmd_status = self.cmd_seq = 0
         self.query_recovered = 0
         self.reply_unchecked = self.cmd_unchecked = 0
+        self.mirror_refused = 0
 
     @property
     def total(self) -> int:
@@ -1068,6 +1072,7 @@ CN_REFUSALS = (
     "query_recovered",
     "reply_unchecked",
     "cmd_unchecked",
+    "mirror_refused",
 )
 """:class:`CnRefusals`' fields in their recorded order."""
 

@@ -229,6 +229,9 @@ class ControlLogic:
         self._late = tuple(dv.handle(f"cn_late_{dn}") for dn in dns)
         self._bad = dv.handle("cn_bad_frames")
         self._unchecked = dv.handle("cn_unchecked_frames")
+        self._mirror_refused = (
+            dv.handle("cn_mirror_refused") if mission.standby is not None else None
+        )
         self._recoveries = dv.handle("cn_query_recoveries")
         self._sync_overruns = dv.handle("cn_sync_overruns")
         self._loop_overruns = dv.handle("cn_loop_overruns")
@@ -589,9 +592,13 @@ class ControlLogic:
         checked (the intakes' budget spent: ``reply_unchecked``,
         ``cmd_unchecked``), also go into ``cn_unchecked_frames``, and the
         ``bad_frame`` event says how many. The sync's querier recoveries of
-        the loop go into ``cn_query_recoveries`` (the driver events them)."""
+        the loop go into ``cn_query_recoveries`` (the driver events them),
+        the mirrors the driver's intake refused into ``cn_mirror_refused``
+        (the driver events them too)."""
         if r is not None and r.query_recovered:
             self._recoveries.bump(r.query_recovered)
+        if r is not None and r.mirror_refused and self._mirror_refused is not None:
+            self._mirror_refused.bump(r.mirror_refused)
         if r is not None and r.total:
             self._bad.bump(r.total - r.cmd_stale)  # a stale request is a reject, not a bad frame
             unchecked = r.reply_unchecked + r.cmd_unchecked

@@ -21,12 +21,14 @@ filled (``events_filled`` / ``events_unfilled``). See docs/architecture.md.
 
 from __future__ import annotations
 
+import threading
 from collections import deque
 from collections.abc import Callable
 from typing import NamedTuple
 
 from ..config import Mission
-from ..core.auth import TAG_LEN, KeySet, Run, channel
+from ..control.intake import RefusalLog
+from ..core.auth import TAG_LEN, AuthError, Channel, KeySet, Run, channel
 from ..core.codec import RegionCodec
 from ..core.datavector import DataVector, Layout
 from ..core.events import EV, Event, EventLog
@@ -35,20 +37,126 @@ from ..recorder.format import (
     EVENTS_MAGIC,
     MAX_REQUEST_LOOPS,
     REPLY_BYTES,
+    REPLY_DONE,
     REPLY_END,
     REPLY_EVENTS,
     REPLY_FRAMES,
     REPLY_LEN,
-    REPLY_TOTALS,
     REQUEST,
     REQUEST_MAGIC,
 )
 from ..telemetry.records import EventRecord
 from .logic import EventGap, Gap, GroundLogic, default_max_age_ns
 
-__all__ = ["GapFill"]
+__all__ = ["GapFill", "ReplyScreen"]
 
 _NS = 1_000_000_000
+_SEQ_AT = 7  # a region frame's seq: u64 big-endian at offset 7 (codecs/FORMAT.md §2)
+
+
+class _Expect(NamedTuple):
+    """The request in flight, as :class:`ReplyScreen` checks its replies."""
+
+    rid: int
+    kind: int  # REPLY_FRAMES or REPLY_EVENTS
+    run: int
+    first: int
+    last: int
+    stamp: int
+
+
+def _end_totals(ch: Channel | None, payload: bytes, run: int, stamp: int) -> tuple[int, ...] | str:
+    """The totals of the ``END`` reply ``payload`` (:data:`REPLY_DONE`) if it
+    answers the request of ``run`` stamped ``stamp``, else why not."""
+    if len(payload) != REPLY_DONE.size + (TAG_LEN if ch is not None else 0):
+        return f"an end reply of {len(payload)} bytes"
+    if ch is not None:
+        try:
+            body = ch.open(payload, any_run=True)
+        except AuthError as exc:
+            return str(exc)
+        if Channel.run_of(payload) != run:
+            return f"an end reply of run {Channel.run_of(payload)}, not {run}"
+    else:
+        body = memoryview(payload)
+    _, sent, not_held, not_run, t_ns = REPLY_DONE.unpack_from(body)
+    if t_ns != stamp:
+        return "an end reply of another request"
+    return sent, not_held, not_run
+
+
+class ReplyScreen:
+    """Screens the recorder's replies in zenoh's callback, before the
+    ground's bounded mailbox (issue 25): a reply of the request in flight,
+    of its kind and of a size a recorder sends; a chunk's first frame (or
+    event record) with a header tag that checks for the request's run (and
+    for frames a loop of the range); an ``END`` whole (tag, run, the
+    request's stamp). Junk from a keyless peer so never takes a place a
+    genuine reply needs. Refusals are counted (:attr:`refused`, in
+    :attr:`GapFill.refused`); a reply of a request no longer in flight is
+    dropped uncounted (a late genuine one). Thread-safe (one lock); copies
+    nothing, allocates nothing but an error's text; never raises."""
+
+    __slots__ = ("_ev", "_expect", "_lock", "_max", "_tm", "last_refusal", "refused")
+
+    def __init__(self, tm: Channel | None, ev: Channel | None, frame_max: int) -> None:
+        self._tm = tm.twin() if tm is not None else None  # unbound: the run is checked here
+        if self._tm is not None:
+            self._tm.run = None
+        self._ev = ev
+        self._max = 1 + REPLY_LEN.size + max(REPLY_BYTES, frame_max)
+        self._lock = threading.Lock()
+        self._expect: _Expect | None = None
+        self.refused = 0
+        self.last_refusal = ""
+
+    def expect(self, e: _Expect | None) -> None:
+        """The request now in flight (the driver's thread)."""
+        self._expect = e  # one reference swap
+
+    def __call__(self, rid: int, payload: bytes) -> bool:
+        """Whether ``payload``, a reply of request ``rid``, may be queued."""
+        e = self._expect
+        if e is None or e.rid != rid:
+            return False
+        with self._lock:
+            why = self._why(e, payload)
+            if why is None:
+                return True
+            self.refused += 1
+            self.last_refusal = why
+            return False
+
+    def _why(self, e: _Expect, p: bytes) -> str | None:
+        n = len(p)
+        if not 1 < n <= self._max:
+            return f"a reply of {n} bytes"
+        if p[0] == REPLY_END:
+            why = _end_totals(self._tm, p, e.run, e.stamp)
+            return why if isinstance(why, str) else None
+        if p[0] != e.kind:
+            return f"a reply of kind {p[0]} to a request for kind {e.kind}"
+        ch = self._tm if e.kind == REPLY_FRAMES else self._ev
+        if n < 1 + REPLY_LEN.size:
+            return "a reply cut inside its first length"
+        (k,) = REPLY_LEN.unpack_from(p, 1)
+        if k > n - 1 - REPLY_LEN.size or k < (_SEQ_AT + 8 if e.kind == REPLY_FRAMES else 1):
+            return f"a first item of {k} bytes in a reply"
+        if ch is None:
+            return None
+        item = memoryview(p)[1 + REPLY_LEN.size : 1 + REPLY_LEN.size + k]
+        try:
+            ch.open_header(item, any_run=True)
+        except AuthError as exc:
+            return str(exc)
+        run = Channel.run_of(item)
+        if run != e.run:
+            return f"a reply of run {run}, not {e.run}"
+        if e.kind == REPLY_FRAMES:
+            seq = int.from_bytes(item[_SEQ_AT : _SEQ_AT + 8], "big")
+            if not e.first <= seq <= e.last:
+                return f"a reply from loop {seq}, not asked for ({e.first}..{e.last})"
+        return None
 
 
 class _Ask:
@@ -91,6 +199,7 @@ class _EvFill:
         "not_before",
         "not_held",
         "rid",
+        "stamp",
         "tries",
     )
 
@@ -98,6 +207,7 @@ class _EvFill:
         self.gap = gap
         self.chunk = 0  # the chunk of MAX_REQUEST_LOOPS loops asked next
         self.rid = 0
+        self.stamp = 0  # the request in flight's
         self.tries = 0
         self.not_before = 0
         self.deadline = 0
@@ -173,9 +283,12 @@ class GapFill:
         self.not_run = 0
         """Gap loops the CN never ran (its scheduler skipped their periods):
         no telemetry of them exists, so they are not missing from the log."""
-        self.refused = 0
-        """Frames in replies that did not check."""
-        self.last_refusal = ""
+        self._refused = 0
+        self._last_refusal = ""
+        self._latest = ""  # the latest reason (the event's)
+        self._ref_log = RefusalLog(1)  # refusals evented at most once a second
+        self._ref_seen = (0, 0)  # (ours, the screen's) counted in the event log so far
+        self._ev_why = ""
         self.requests = 0
         # Event gaps (module doc): the logic's, filled one at a time.
         self._logic = logic
@@ -187,6 +300,21 @@ class GapFill:
         """Events handed on filled from the recorder."""
         self.events_unfilled = 0
         """Missing events the recorder's replies did not bring (given up)."""
+        ev = None
+        if keys is not None and logic is not None and logic.fill_events_of:
+            ev = channel(keys, "events_cn")
+        self.screen = ReplyScreen(self._channel, ev, self._frame_max)
+        """For the zenoh callback of the requests' replies (:class:`ReplyScreen`)."""
+
+    @property
+    def refused(self) -> int:
+        """Replies refused in zenoh's callback (:attr:`screen`) and frames
+        or records in replies that did not check."""
+        return self._refused + self.screen.refused
+
+    @property
+    def last_refusal(self) -> str:
+        return self._last_refusal or self.screen.last_refusal
 
     @property
     def busy(self) -> bool:
@@ -237,6 +365,9 @@ class GapFill:
         self._ask = _Ask(self._next_id, gap, tries + 1, now_ns + timeout_ns + _NS, now_ns)
         self.requests += 1
         body = REQUEST.pack(REQUEST_MAGIC, gap.epoch, gap.first, gap.last, now_ns)
+        self.screen.expect(
+            _Expect(self._next_id, REPLY_FRAMES, gap.epoch, gap.first, gap.last, now_ns)
+        )
         ch = self._channel
         return self._next_id, (bytes(ch.seal(body)) if ch is not None else body), timeout_ns / _NS
 
@@ -261,6 +392,8 @@ class GapFill:
         f.deadline = now_ns + timeout_ns + _NS
         self.requests += 1
         body = REQUEST.pack(EVENTS_MAGIC, gap.run, first, last, now_ns)
+        f.stamp = now_ns
+        self.screen.expect(_Expect(f.rid, REPLY_EVENTS, gap.run, first, last, now_ns))
         ch = self._channel
         return f.rid, (bytes(ch.seal(body)) if ch is not None else body), timeout_ns / _NS
 
@@ -268,9 +401,13 @@ class GapFill:
         """One reply of the events request in flight (:meth:`on_reply`)."""
         logic = self._logic
         assert logic is not None
-        if payload[0] == REPLY_END and len(payload) == 1 + REPLY_TOTALS.size:
-            f.ended = True
-            f.not_held += REPLY_TOTALS.unpack_from(payload, 1)[1]
+        if payload[0] == REPLY_END:
+            got = _end_totals(self._channel, payload, f.gap.run, f.stamp)
+            if isinstance(got, str):
+                self._refuse(got)
+            else:
+                f.ended = True
+                f.not_held += got[1]
             return
         if payload[0] != REPLY_EVENTS:
             self._refuse("a reply of an unknown kind")
@@ -371,8 +508,12 @@ class GapFill:
         if not payload:
             self._refuse("an empty reply")
             return
-        if payload[0] == REPLY_END and len(payload) == 1 + REPLY_TOTALS.size:
-            _, ask.not_held, ask.not_run = REPLY_TOTALS.unpack_from(payload, 1)
+        if payload[0] == REPLY_END:
+            got = _end_totals(self._channel, payload, ask.epoch, ask.asked)
+            if isinstance(got, str):
+                self._refuse(got)
+            else:
+                _, ask.not_held, ask.not_run = got
             return
         if payload[0] != REPLY_FRAMES:
             self._refuse("a reply of an unknown kind")
@@ -414,9 +555,29 @@ class GapFill:
             ask.got[seq] = (frame.t_ns, data)
 
     def _refuse(self, why: str) -> None:
-        self.refused += 1
-        if not self.last_refusal:
-            self.last_refusal = why
+        self._refused += 1
+        self._latest = why
+        if not self._last_refusal:
+            self._last_refusal = why
+
+    def _event_refusals(self, now_ns: int) -> None:
+        """The replies and frames refused since the last call, evented at
+        most once a second (a ``bad_frame`` event of the ground's log)."""
+        ours, screened = self._refused, self.screen.refused
+        seen = self._ref_seen
+        if screened > seen[1]:
+            self._ev_why = self.screen.last_refusal
+        elif ours > seen[0]:
+            self._ev_why = self._latest
+        self._ref_seen = (ours, screened)
+        ev = self._ref_log.add(now_ns, ours - seen[0] + screened - seen[1])
+        if ev is not None:
+            self._events.emit(
+                EV.BAD_FRAME,
+                now_ns,
+                source=f"{ev[0]} gap-fill reply(s) or frame(s) from the recorder's key",
+                reason=f"refused (the last: {self._ev_why})",
+            )
 
     def on_done(self, rid: int, now_ns: int) -> None:
         """Request ``rid`` is over (all replies in, or its time ran out): keep
@@ -469,7 +630,8 @@ class GapFill:
     # -- time ----------------------------------------------------------------
     def tick(self, now_ns: int) -> None:
         """Let time pass: a request whose end never came is over; rows held
-        longer than ``hold_s`` are written, the gaps still open given up."""
+        longer than ``hold_s`` are written, the gaps still open given up;
+        refusals since the last event evented (at most once a second)."""
         ask = self._ask
         if ask is not None and now_ns > ask.deadline:
             self.on_done(ask.id, now_ns)
@@ -478,6 +640,7 @@ class GapFill:
             self._events_done(f, now_ns)
         if self._held and now_ns - self._held[0].rx_ns > self._hold_ns:
             self._abandon(now_ns, f"not filled within {self._hold_ns / _NS:g} s")
+        self._event_refusals(now_ns)
 
     def finish(self, now_ns: int) -> None:
         """The log ends: whatever is still open is given up, every row

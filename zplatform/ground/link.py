@@ -635,12 +635,17 @@ class GroundLink:
         timeout_s: float,
         into: Mailbox[tuple[int, bytes | None]],
         tag: int,
+        screen: Callable[[int, bytes], bool] | None = None,
     ) -> None:
         """Send one get on ``key_expr`` (every reply kept: no consolidation)
         and return at once: each reply's payload is queued into ``into`` as
         ``(tag, payload)`` as it arrives (error replies are skipped), then
         ``(tag, None)`` when the get is over (every replier done, or
         ``timeout_s`` passed). For the gap fill from the CN's recorder.
+        ``screen(tag, payload)``: whether a reply may be queued, checked in
+        zenoh's callback first (the gap fill's
+        :class:`~zplatform.ground.gapfill.ReplyScreen`), so junk never takes
+        a place in ``into`` (issue 25).
 
         Sent by :func:`zplatform.runtime.queries.ask`: every queryable on the key
         is asked (a peer declaring a "complete" recorder queryable cannot
@@ -649,9 +654,11 @@ class GroundLink:
         congested link. Never blocks."""
 
         def on_reply(reply: zenoh.Reply) -> None:
-            ok = reply.ok  # hand off only
+            ok = reply.ok  # screen, hand off only
             if ok is not None:
-                into.put((tag, ok.payload.to_bytes()))
+                data = ok.payload.to_bytes()
+                if screen is None or screen(tag, data):
+                    into.put((tag, data))
 
         ask(
             self.ns.session,

@@ -189,6 +189,9 @@ class ControlNode:
         self._taken: list[tuple[None, bytes]] = []
         self._seen_dropped = 0
         self._refused = CnRefusals()
+        # Mirrors the intake refused, not yet in the vector (cn_mirror_refused):
+        # a standby's, while it follows, go in with its first loop in command.
+        self._mirror_unfiled = 0
         # Queriers the sync declared again (a live DN unanswered, zenoh#2517).
         self._recoveries: list[tuple[str, int]] = []
         self._recovered_dns: dict[str, int] = {}
@@ -402,9 +405,12 @@ class ControlNode:
 
     def _mirror_refusals(self, t_ns: int) -> None:
         """The mirrors the intake refused since the last call, evented at most
-        once a second (the loop thread, every loop or beat)."""
+        once a second, and counted for ``cn_mirror_refused`` (the next loop's
+        :meth:`_take_refusals`; the loop thread, every loop or beat)."""
         intake = self.mirror_intake
-        ev = self._mirror_log.add(t_ns, *intake.take_counts(), intake.took_unchecked)
+        counts = intake.take_counts()
+        self._mirror_unfiled += sum(counts)
+        ev = self._mirror_log.add(t_ns, *counts, intake.took_unchecked)
         if ev is not None:
             unchecked = (
                 f"; {ev[3]} of them dropped after their header, unchecked (the body-MAC "
@@ -969,6 +975,7 @@ class ControlNode:
         """What the intakes refused since the last loop (an input of the loop)."""
         r = self._refused
         self.sync.take_refusals(r)
+        r.mirror_refused, self._mirror_unfiled = self._mirror_unfiled, 0
         req = self._requests
         if req is None:
             r.cmd_size = r.cmd_bad = r.cmd_stale = r.cmd_status = r.cmd_seq = 0

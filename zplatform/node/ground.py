@@ -354,7 +354,7 @@ class _Filler:
         req = fill.take_request(now())
         if req is not None:
             rid, payload, timeout_s = req
-            self.link.query(self.link.keys.recorder, payload, timeout_s, self._q, rid)
+            self.link.query(self.link.keys.recorder, payload, timeout_s, self._q, rid, fill.screen)
         fill.tick(now())
 
     def drain(self, grace_s: float) -> None:

@@ -37,6 +37,7 @@ __all__ = [
     "MAX_HEAD_LEN",
     "MAX_REQUEST_LOOPS",
     "REPLY_BYTES",
+    "REPLY_DONE",
     "REPLY_END",
     "REPLY_EVENTS",
     "REPLY_FRAMES",
@@ -87,6 +88,11 @@ what zenoh's lowlatency transport carries unfragmented."""
 REPLY_LEN = struct.Struct("<I")
 REPLY_TOTALS = struct.Struct("<QQQ")  # frames sent, loops not held, loops never run
 # (an events request's END: events sent, loops not held, 0)
+REPLY_DONE = struct.Struct("<BQQQq")
+"""The ``END`` reply: its kind byte, :data:`REPLY_TOTALS`, then the stamp of
+the request it answers; tagged (the telemetry channel, under the request's
+run) when the mission authenticates, so a ground screens it as it does the
+frames (codecs/FORMAT.md §12)."""
 
 
 def segment_name(index: int) -> str:

@@ -13,9 +13,9 @@ after the tag so junk never spends it (issue 25).
 
 One serving thread checks each request (tag, stamp, not served before, a
 range of this run), drops and counts one that does not check, reads the
-segment files (never the loop's buffer) and replies in paced chunks ending
-with an ``END`` reply that counts what was sent: the frames of the loops
-asked, or their ``EVENT`` records, tagged on the way out as when published.
+segment files (never the loop's buffer) and replies in paced chunks (the
+frames of the loops asked, or their ``EVENT`` records, tagged as when
+published), then a tagged ``END`` with the totals and the request's stamp.
 Detail: docs/architecture.md#the-gap-fill.
 """
 
@@ -32,7 +32,7 @@ from typing import Any
 import zenoh
 
 from ..control.handoff import QueryWorker
-from ..core.auth import TAG_LEN, AuthError, Channel
+from ..core.auth import TAG_LEN, AuthError, Channel, Run
 from .format import (
     DROPPED,
     EVENT,
@@ -40,11 +40,11 @@ from .format import (
     FRAME,
     MAX_REQUEST_LOOPS,
     REPLY_BYTES,
+    REPLY_DONE,
     REPLY_END,
     REPLY_EVENTS,
     REPLY_FRAMES,
     REPLY_LEN,
-    REPLY_TOTALS,
     REQUEST,
     REQUEST_MAGIC,
 )
@@ -137,6 +137,11 @@ class RecorderServer(QueryWorker):
         self._seen_at = 0
         self._seen: set[bytes] = set()
         self._channel = channel
+        # The END reply's (the serving thread's): tagged under the run the
+        # request names, so the ground's screen takes it as a frame of it.
+        self._end_ch = channel.twin() if channel is not None else None
+        if self._end_ch is not None:
+            self._end_ch.run = Run()
         self._events = events
         self._now = now_ns
         self._max_age = max_age_ns
@@ -292,7 +297,7 @@ class RecorderServer(QueryWorker):
                 return
             self._served.append(request)
         if magic == EVENTS_MAGIC:
-            self._serve_events(query, run, first, last)
+            self._serve_events(query, run, first, last, t_ns)
             return
         rec = self.recorder
         div = self._div
@@ -321,9 +326,18 @@ class RecorderServer(QueryWorker):
                 top = rec.written_loop
                 not_run = {n for n in asked - sent - dropped if oldest <= n <= top}
         not_held = len(asked - sent - not_run)
-        tail = bytes([REPLY_END]) + REPLY_TOTALS.pack(len(sent), not_held, len(not_run))
-        self._reply(query, tail)
+        self._end(query, run, t_ns, len(sent), not_held, len(not_run))
         self.served += 1
+
+    def _end(self, query: zenoh.Query, run: int, t_ns: int, *totals: int) -> None:
+        """The ``END`` reply (:data:`~.format.REPLY_DONE`): ``totals``, the
+        request's stamp ``t_ns``, tagged under ``run`` (codecs/FORMAT.md §12)."""
+        body = REPLY_DONE.pack(REPLY_END, *totals, t_ns)
+        ch = self._end_ch
+        if ch is not None and ch.run is not None:
+            ch.run.set(run)
+            body = bytes(ch.seal(body))
+        self._reply(query, body)
 
     def _send(
         self,
@@ -366,7 +380,7 @@ class RecorderServer(QueryWorker):
             self._pace(start, nbytes)
         self.frames_sent += len(sent)
 
-    def _serve_events(self, query: zenoh.Query, run: int, first: int, last: int) -> None:
+    def _serve_events(self, query: zenoh.Query, run: int, first: int, last: int, t_ns: int) -> None:
         """Answer an events request: the ``EVENT`` records of run ``run``
         filed under loops ``first..last``, tagged, in paced chunks of
         :data:`~.format.REPLY_EVENTS`; then ``END`` with the events sent and
@@ -418,8 +432,7 @@ class RecorderServer(QueryWorker):
             if oldest:
                 held = max(0, min(last, rec.written_loop) - max(first, oldest) + 1)
         self.events_sent += sent
-        tail = REPLY_TOTALS.pack(sent, last - first + 1 - held, 0)
-        self._reply(query, bytes([REPLY_END]) + tail)
+        self._end(query, run, t_ns, sent, last - first + 1 - held, 0)
         self.served += 1
 
     def _reply(self, query: zenoh.Query, payload: bytes | bytearray) -> int:

@@ -437,8 +437,10 @@ KEYSPACE: tuple[KeyRow, ...] = (
                 "telemetry",
                 "downlink",
                 "zplatform.ground.gapfill.GapFill gn",
-                "the run followed, a loop in the range asked not yet taken, stamped at "
-                "most the clock bound after the ask",
+                "screened in zenoh's callback (ReplyScreen: the request in flight, its kind, "
+                "the first frame's header tag and run, a loop of the range; the END whole, "
+                "tagged, with the request's stamp); the run followed, a loop in the range "
+                "asked not yet taken, stamped at most the clock bound after the ask",
                 "the gap fill's bounded hold",
                 run_bound=True,
             ),
@@ -486,9 +488,11 @@ KEYSPACE: tuple[KeyRow, ...] = (
                 "telemetry",
                 "downlink",
                 "zplatform.archive.server.ArchiveAsk tool",
-                "the hello's nonce (the session), then the session and the ask's nonce, each "
-                "chunk index once, within the count announced",
-                "the asker's bounded mailbox",
+                "screened in zenoh's callback (ArchiveAsk.screen: size, header tag, session, "
+                "nonce, kind, index); the hello's nonce (the session), then the session and "
+                "the ask's nonce, each chunk index once, within the count announced",
+                "the asker's mailbox, bounded by replies and bytes (REPLY_BACKLOG, "
+                "REPLY_BACKLOG_BYTES), junk refused before it",
                 run_bound=True,
             ),
         ),
@@ -512,7 +516,8 @@ KEYSPACE: tuple[KeyRow, ...] = (
                 "from the other control node, term and loop in range, (term, loop) "
                 "later than every mirror admitted; at most the clock bound and a period "
                 "ahead of the standby's clock (Standby.mirror)",
-                "mailbox of MIRRORS, newest kept; junk and stale refused before it",
+                "mailbox of MIRRORS, newest kept; junk and stale refused before it "
+                "(counted: cn_mirror_refused)",
             ),
         ),
         when="standby",

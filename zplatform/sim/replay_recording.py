@@ -65,8 +65,9 @@ __all__ = [
 MAGIC = b"ZPREC\x00"
 # 2: BEGIN's final flag; 3: PRM_SAVED; 4: HEALTH; 5: FINISH the refusals;
 # 6: the mission's digest in the header; 7: FINISH the querier recoveries;
-# 8: the header-tagged frames; 9: FINISH the frames dropped unchecked
-VERSION = 9
+# 8: the header-tagged frames; 9: FINISH the frames dropped unchecked;
+# 10: FINISH the mirrors refused
+VERSION = 10
 RECORD_FILE = "cn.zrec"
 MISSION_FILE = "mission.yaml"
 MAX_META_BYTES = 64 * 1024
@@ -89,7 +90,7 @@ PRM_SAVED, HEALTH = 11, 12  # 10 was FOREIGN (version 4 and before)
 
 _ITEM = struct.Struct("<BBI")  # type, dn, length
 _BEGIN = struct.Struct("<QqB")
-_FINISH = struct.Struct("<BII" + "I" * 7 + "BQIII")
+_FINISH = struct.Struct("<BII" + "I" * 7 + "BQIIII")
 _CMD_STATUS = 7  # the refusals' cmd_status, after their seven counts
 _STATUSES = frozenset(int(s) for s in CommandStatus)
 _U32 = struct.Struct("<I")
@@ -542,8 +543,8 @@ class RecordReader:
             raise self._fail(
                 f"recording version {version}, made by an earlier zplatform (this one reads "
                 f"version {VERSION}: the header-tagged frames, the mission digest, the intake's "
-                "refusals with the frames dropped unchecked, and the querier recoveries): "
-                "record again"
+                "refusals with the frames dropped unchecked and the mirrors refused, and the "
+                "querier recoveries): record again"
             )
         if version != VERSION:
             raise self._fail(f"recording version {version}, expected {VERSION}")
