@@ -258,7 +258,8 @@ async def _flight_screen(c: Cluster) -> None:
             raise AssertionError(f"{exc}: {_text(app, '#events-text')}") from None
         events = _text(app, "#events-text")
         assert "ARM #1: ACCEPTED" in events and "LAUNCH #2: ACCEPTED" in events, events
-        assert moves() == ["SAFE -> ARMED", "ARMED -> BOOST", "BOOST -> COAST"], events
+        # (the flight goes on meanwhile: DROGUE and MAIN may follow)
+        assert moves()[:3] == ["SAFE -> ARMED", "ARMED -> BOOST", "BOOST -> COAST"], events
         assert states[-1] == "COAST", states
         climb = [h for h in heights if h > 1.0]
         assert climb == sorted(climb) and climb[-1] > 50.0, heights  # past burnout, up
