@@ -555,11 +555,13 @@ def test_a_kill_9d_publisher_falls_back_once_and_the_ground_misses_nothing(
         total = len(frames) + STALE_FRAMES + 5
         c = link.logic.counters
         assert (c.received, c.gaps, c.bad, sum(c.refused.values())) == (total, 0, 0, 0)
-        assert c.path_fallbacks == 1 and link.tm_paths.path == "zenoh"
-        assert [i for i in got if i in ("tm_on_shm", "tm_fallback")] == [
-            "tm_on_shm",
-            "tm_fallback",
-        ]
+        # On zenoh at the end, by one fallback after the kill; a ground
+        # thread starved beside a CPU hog may also have fallen back (and come
+        # back) while the CN ran: each fallback told once, after an iox spell.
+        paths = [i for i in got if i in ("tm_on_shm", "tm_fallback")]
+        assert link.tm_paths.path == "zenoh" and paths[-1] == "tm_fallback", paths
+        assert paths == ["tm_on_shm", "tm_fallback"] * (len(paths) // 2), paths
+        assert c.path_fallbacks == len(paths) // 2 >= 1
     finally:
         if child.poll() is None:
             child.kill()
