@@ -614,8 +614,16 @@ def test_a_new_terms_trigger_is_fresh_though_stamped_before_the_old_terms_last()
     assert not intake.admit(Bytes(old_190), "old 190 replayed")
     old_191 = _term_trigger(2, 191, T0 + 191 * p)
     assert intake.admit(Bytes(old_191), "old 191")  # to be fenced by the logic
-    assert not intake.admit(Bytes(_term_trigger(1, 192, T0 + 192 * p)), "term 1: dead")
+    # term 1, below the two newest: refused unless stamped later than every
+    # trigger admitted (then the logic fences it, as without terms)
+    assert not intake.admit(Bytes(_term_trigger(1, 190, T0 + 190 * p)), "term 1: dead")
     assert intake.take_counts() == (0, 0, 3)
+    assert intake.admit(Bytes(_term_trigger(4, 192, T0 + 192 * p)), "term 4, leased")
+    assert intake.admit(Bytes(_term_trigger(5, 193, T0 + 193 * p)), "term 5, leased")
+    # term 3 still drives the node: its next trigger, stamped later, is taken
+    assert intake.admit(Bytes(_term_trigger(3, 194, T0 + 194 * p)), "term 3, driving")
+    assert not intake.admit(Bytes(new_189), "term 3's old one replayed")
+    assert intake.take_counts() == (0, 0, 1)
 
 
 def test_a_keyless_probe_flood_never_spends_the_bound_a_genuine_question_needs() -> None:

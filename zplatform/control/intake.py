@@ -525,7 +525,8 @@ class TriggerIntake(_StampIntake[H]):
     In a mission with a standby control node a loop's trigger (loop > 0) is
     fresh in its own term (``dnX_term``, read after the body's MAC):
     stamped later than every one admitted of that term, of the newest term
-    or the one before it (a lower one is refused: no commander runs it).
+    or the one before it; of an older term, later than every one admitted
+    (the rule without terms, which holds for every term).
     So a new commander's first triggers are taken even when stamped before
     a trigger of the old commander that came meanwhile (a stalled commander
     still sending as the standby takes over: the old term's trigger,
@@ -589,7 +590,12 @@ class TriggerIntake(_StampIntake[H]):
             self._t_hi = t_ns
         elif term == self._term_lo and t_ns > self._t_lo:
             self._t_lo = t_ns
-        else:  # not newer in its term, or a term below the two newest
+        elif term in (self._term_hi, self._term_lo) or t_ns <= self.newest_t:
+            # Not newer in its term; or an older term's, not newer than every
+            # trigger admitted (the rule without terms, which always holds):
+            # a term pushed out by two newer ones (a standby's takeovers the
+            # device nodes leased while the commander still drives them) is
+            # still taken while its stamps lead, for the logic to run or fence.
             self._replayed(t_ns, handle)
             return False
         self.newest_t = max(self.newest_t, t_ns)
