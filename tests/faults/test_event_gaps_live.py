@@ -14,13 +14,10 @@ from typing import Any
 
 import pytest
 
-from tests.faults.missions import relay_links
 from tests.faults.relay import FaultRelay
-from tests.faults.test_recorder_live import recorder_mission, rows
-from tests.integration.harness import Cluster
+from tests.faults.test_recorder_live import logging_behind_a_relay, rows
 from tests.waits import wait_until
 from zplatform.ground.link import GroundLink
-from zplatform.mission.load import load_mission
 
 pytestmark = pytest.mark.timeout(180)
 
@@ -48,23 +45,12 @@ def events(path: Path) -> list[dict[str, Any]]:
 def test_events_missed_in_a_link_cut_are_filled_from_the_cn_recorder(
     tmp_path: Path, fault_relay: Callable[..., FaultRelay], monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    c = Cluster(recorder_mission(tmp_path, monkeypatch), tmp_path)
-    relay = relay_links(c.path, fault_relay, ["gn"], seed=21)["gn"]
-    c.mission = load_mission(c.path)
-    gn_csv = tmp_path / "gn.csv"
     gn_events = tmp_path / "gn.events.jsonl"
 
     def cmd_events() -> list[dict[str, Any]]:
         return [e for e in events(gn_events) if e["id"] in ("cmd_accepted", "cmd_rejected")]
 
-    with c:
-        c.spawn("dn0")
-        c.spawn("gn", "--log", str(gn_csv))
-        c.spawn("cn")
-        c.wait_for(lambda dv: int(dv.get("cn_loop")) >= 100, 60, "the CN looping")
-        wait_until(
-            lambda: gn_csv.exists() and len(rows(gn_csv)) >= 50, 30, "the GN logging", poll_s=0.1
-        )
+    with logging_behind_a_relay(tmp_path, fault_relay, monkeypatch, 21) as (c, relay, gn_csv):
         op = GroundLink(c.mission, commands=True)
         try:
             op.command("noop", timeout_s=20)  # #1: the GN sees its event

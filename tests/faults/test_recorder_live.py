@@ -14,11 +14,12 @@
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import itertools
 import subprocess
 import sys
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import pytest
@@ -57,6 +58,32 @@ def recorded_loops(directory: Path) -> list[int]:
     return [rec.loop for _, rec in r.records() if rec.type == FRAME]
 
 
+@contextlib.contextmanager
+def logging_behind_a_relay(
+    tmp_path: Path,
+    fault_relay: Callable[..., FaultRelay],
+    monkeypatch: pytest.MonkeyPatch,
+    seed: int,
+) -> Iterator[tuple[Cluster, FaultRelay, Path]]:
+    """dn0, the ground node (logging to ``gn.csv``, its link behind a fault
+    relay) and the CN of :func:`recorder_mission`, running: the CN past
+    loop 100 and the ground's log 50 rows long. Yields the cluster, the
+    relay and the log's path; every process is stopped after."""
+    c = Cluster(recorder_mission(tmp_path, monkeypatch), tmp_path)
+    relay = relay_links(c.path, fault_relay, ["gn"], seed=seed)["gn"]
+    c.mission = load_mission(c.path)
+    gn_csv = tmp_path / "gn.csv"
+    with c:
+        c.spawn("dn0")
+        c.spawn("gn", "--log", str(gn_csv))
+        c.spawn("cn")
+        c.wait_for(lambda dv: int(dv.get("cn_loop")) >= 100, 60, "the CN looping")
+        wait_until(
+            lambda: gn_csv.exists() and len(rows(gn_csv)) >= 50, 30, "the GN logging", poll_s=0.1
+        )
+        yield c, relay, gn_csv
+
+
 def zplatform(*args: str) -> subprocess.CompletedProcess[str]:
     return subprocess.run(
         [sys.executable, "-m", "zplatform", *args],
@@ -70,18 +97,7 @@ def zplatform(*args: str) -> subprocess.CompletedProcess[str]:
 def test_ground_fills_a_5s_link_cut_from_the_cn_recorder(
     tmp_path: Path, fault_relay: Callable[..., FaultRelay], monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    c = Cluster(recorder_mission(tmp_path, monkeypatch), tmp_path)
-    relay = relay_links(c.path, fault_relay, ["gn"], seed=20)["gn"]
-    c.mission = load_mission(c.path)
-    gn_csv = tmp_path / "gn.csv"
-    with c:
-        c.spawn("dn0")
-        c.spawn("gn", "--log", str(gn_csv))
-        c.spawn("cn")
-        c.wait_for(lambda dv: int(dv.get("cn_loop")) >= 100, 60, "the CN looping")
-        wait_until(
-            lambda: gn_csv.exists() and len(rows(gn_csv)) >= 50, 30, "the GN logging", poll_s=0.1
-        )
+    with logging_behind_a_relay(tmp_path, fault_relay, monkeypatch, 20) as (c, relay, gn_csv):
         relay.partition()
         c.advance(500)  # 5 s of loops, on the test's own link to the CN
         healed_at = int(c.tm.get("cn_loop"))
