@@ -279,16 +279,13 @@ class _Session:
         return type("Q", (), {"undeclare": lambda self: None})()
 
 
-def test_the_recorder_server_refuses_junk_and_a_replayed_request_without_a_body_mac(
-    macs: _Macs,
-) -> None:
-    from zplatform.recorder.format import REQUEST, REQUEST_MAGIC
+def _recorder_server(**kw: Any) -> Any:
+    """A CN's recorder server on a fake session, at T0, holding no run
+    (never the run asked: no file is read); ``kw``: more of its arguments."""
     from zplatform.recorder.server import RecorderServer
 
-    ch = channel(KEYS, "telemetry")
-    assert ch is not None
-    rec: Any = type("R", (), {"run": -1})()  # never the run asked: no file is read
-    server = RecorderServer(
+    rec: Any = type("R", (), {"run": -1})()
+    return RecorderServer(
         _Session(),  # type: ignore[arg-type]
         "v/cn/recorder",
         rec,
@@ -296,7 +293,18 @@ def test_the_recorder_server_refuses_junk_and_a_replayed_request_without_a_body_
         now_ns=lambda: T0,
         max_age_ns=10**9,
         serve_bps=10**9,
+        **kw,
     )
+
+
+def test_the_recorder_server_refuses_junk_and_a_replayed_request_without_a_body_mac(
+    macs: _Macs,
+) -> None:
+    from zplatform.recorder.format import REQUEST, REQUEST_MAGIC
+
+    ch = channel(KEYS, "telemetry")
+    assert ch is not None
+    server = _recorder_server()
     server.close()
     request = bytes(ch.seal(REQUEST.pack(REQUEST_MAGIC, 7, 1, 5, T0)))
 
@@ -323,21 +331,11 @@ def test_a_keyless_recorder_flood_never_spends_the_bound_a_grounds_request_needs
     genuine one is handed to the serving thread."""
     from tests.payload import FakeQuery
     from zplatform.recorder.format import REQUEST, REQUEST_MAGIC
-    from zplatform.recorder.server import REQUEST_BURST, RecorderServer
+    from zplatform.recorder.server import REQUEST_BURST
 
     ch = channel(KEYS, "telemetry")
     assert ch is not None
-    rec: Any = type("R", (), {"run": -1})()  # never the run asked: no file is read
-    server = RecorderServer(
-        _Session(),  # type: ignore[arg-type]
-        "v/cn/recorder",
-        rec,
-        channel(KEYS, "telemetry"),
-        now_ns=lambda: T0,
-        max_age_ns=10**9,
-        serve_bps=10**9,
-        mono_ns=lambda: 5 * 10**9,  # one instant: the bound never refills
-    )
+    server = _recorder_server(mono_ns=lambda: 5 * 10**9)  # one instant: the bound never refills
     try:
         request = bytes(ch.seal(REQUEST.pack(REQUEST_MAGIC, 7, 1, 5, T0)))
         flood = [FakeQuery(os.urandom(len(request))) for _ in range(20 * REQUEST_BURST)]
@@ -457,21 +455,11 @@ def test_a_replayed_recorder_request_never_spends_the_bound_a_grounds_request_ne
     there: the bound is the ground's."""
     from tests.payload import FakeQuery
     from zplatform.recorder.format import REQUEST, REQUEST_MAGIC
-    from zplatform.recorder.server import REQUEST_BURST, RecorderServer
+    from zplatform.recorder.server import REQUEST_BURST
 
     ch = channel(KEYS, "telemetry")
     assert ch is not None
-    rec: Any = type("R", (), {"run": -1})()
-    server = RecorderServer(
-        _Session(),  # type: ignore[arg-type]
-        "v/cn/recorder",
-        rec,
-        channel(KEYS, "telemetry"),
-        now_ns=lambda: T0,
-        max_age_ns=10**9,
-        serve_bps=10**9,
-        mono_ns=lambda: 5 * 10**9,  # one instant: the bound never refills
-    )
+    server = _recorder_server(mono_ns=lambda: 5 * 10**9)  # one instant: the bound never refills
     try:
         captured = bytes(ch.seal(REQUEST.pack(REQUEST_MAGIC, 7, 1, 5, T0)))
         first = FakeQuery(captured)
