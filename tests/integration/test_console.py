@@ -253,7 +253,10 @@ async def _flight_screen(c: Cluster) -> None:
         # zenoh dropped on the way to a starved console is filled from the
         # CN's recorder: so the pane may show them a little after COAST.
         try:
-            await _until(pilot, lambda: len(moves()) >= 3, "the three state changes")
+            want = {"SAFE -> ARMED", "ARMED -> BOOST", "BOOST -> COAST"}
+            # every one of the three, a filled one in its place (the next
+            # move may come live before a dropped one is filled)
+            await _until(pilot, lambda: want <= set(moves()), "the three state changes")
         except AssertionError as exc:
             raise AssertionError(f"{exc}: {_text(app, '#events-text')}") from None
         events = _text(app, "#events-text")
