@@ -55,11 +55,42 @@ def test_a_verified_link_carries_every_loop_until_it_misses() -> None:
     assert link.on_shm and link.changes == [("shm", "its reply passed the intake")]
     link.changes.clear()
     assert all(link.try_shm() for _ in range(500))
-    link.missed("no reply within the deadline")
+    link.missed("a reply the intake refused")
     assert not link.on_shm and link.fallbacks == 1
-    assert link.changes == [("zenoh", "no reply within the deadline")]
+    assert link.changes == [("zenoh", "a reply the intake refused")]
     # Back on zenoh: the next try comes RETRY_LOOPS loops later.
     assert _tries(link, RETRY_LOOPS)[0] == RETRY_LOOPS
+
+
+def test_a_verified_link_falls_back_on_the_second_timeout_in_a_row() -> None:
+    """One late reply is the box's scheduling: the link stays; a reply in
+    between starts the count again; FALL_AFTER in a row is a stall."""
+    assert sync_mod.FALL_AFTER == 2
+    link = _link()
+    link.try_shm()
+    link.took()
+    link.changes.clear()
+    for _ in range(5):  # late, answered, late, answered...
+        assert link.try_shm()
+        link.missed("no reply within the deadline", timeout=True)
+        assert link.on_shm and link.changes == []
+        assert link.try_shm()
+        link.took()
+    assert link.try_shm()
+    link.missed("no reply within the deadline", timeout=True)
+    assert link.try_shm()  # still on shared memory for the second try
+    link.missed("no reply within the deadline", timeout=True)
+    assert not link.on_shm and link.fallbacks == 1
+    assert link.changes == [("zenoh", "no reply within the deadline, 2 loops in a row")]
+    assert _tries(link, RETRY_LOOPS)[0] == RETRY_LOOPS
+    # Returned, then a timeout and no server: no server falls back at once.
+    link.took()
+    link.changes.clear()
+    link.try_shm()
+    link.missed("no reply within the deadline", timeout=True)
+    link.try_shm()
+    link.no_peer("no shared-memory server")
+    assert link.changes == [("zenoh", "no shared-memory server")] and link.fallbacks == 2
 
 
 def test_failed_tries_back_off_doubling_up_to_the_bound() -> None:

@@ -84,6 +84,11 @@ peer) before the CN tries shared memory again (:class:`ShmLink`)."""
 RETRY_MAX_LOOPS = 1000
 """The longest wait between tries: a link whose tries keep failing doubles
 its wait each time up to this."""
+FALL_AFTER = 2
+"""Loops in a row a verified link must lose to a timeout before it falls
+back to zenoh. One late reply is the box's scheduling (zenoh's path would
+have lost the same loop, and at a higher cost per exchange); two in a row
+is a stall. A refused reply, or no server, falls back at once."""
 
 SyncTrace = Callable[[str, int], None]
 """``trace(hop, n)``: one hop of a sync exchange, called where it happens
@@ -173,7 +178,9 @@ class ShmLink:
     only then is the link *verified* and the flight's loops take it. Any
     miss (no server, no reply in the deadline, a reply the intake refuses)
     puts the link back on zenoh from the next loop (no server: from this
-    one, the trigger goes over zenoh at once), and it is tried again after
+    one, the trigger goes over zenoh at once), except a verified link's
+    timeout, which falls back only when :data:`FALL_AFTER` loops in a row
+    time out (one late reply is scheduling, not a stalled link); it is tried again after
     :data:`RETRY_LOOPS` loops on probation; a try that loses its loop
     doubles the wait up to :data:`RETRY_MAX_LOOPS`. So a failed or stalled
     link costs the loop within its deadline, and a try at most one loop per
@@ -197,6 +204,7 @@ class ShmLink:
         self._loops = 0
         self._retry_at = 0
         self._failed = 0  # tries in a row that lost their loop
+        self._late = 0  # a verified link's loops in a row lost to a timeout
         self._told_no_peer = False
 
     def try_shm(self) -> bool:
@@ -214,14 +222,23 @@ class ShmLink:
         this loop; tried again after :data:`RETRY_LOOPS` (nothing was lost)."""
         self._retry_at = self._loops + RETRY_LOOPS
         if self.on_shm:
+            self._late = 0
             self._fall(why)
         elif self.pinned and not self._told_no_peer:
             self._told_no_peer = True  # once: a DN on another host stays peerless
             self.changes.append(("zenoh", f"pinned to shm, but {why}"))
 
-    def missed(self, why: str) -> None:
-        """The trigger went but no valid reply came back: this loop is lost."""
+    def missed(self, why: str, *, timeout: bool = False) -> None:
+        """The trigger went but no valid reply came back: this loop is lost.
+        ``timeout``: no reply came in the deadline (a verified link stays
+        until :data:`FALL_AFTER` in a row); otherwise the reply was refused."""
         if self.on_shm:
+            if timeout:
+                self._late += 1
+                if self._late < FALL_AFTER:
+                    return  # the next loop tries the link again
+                why = f"{why}, {self._late} loops in a row"
+            self._late = 0
             self._failed = 0
             self._fall(why)
         else:
@@ -240,6 +257,7 @@ class ShmLink:
 
     def took(self) -> None:
         """A reply over the link passed the intake."""
+        self._late = 0
         if not self.on_shm:
             self.on_shm = True
             self._failed = 0
@@ -779,7 +797,7 @@ class ControlSync:
             t_end = time.monotonic() + (deadline - self._mono()) / 1e9
             reply = client.collect(t_end)
             if reply is None:
-                link.missed("no reply within the deadline")
+                link.missed("no reply within the deadline", timeout=True)
                 continue
             if trace is not None:
                 trace("taken", i)
