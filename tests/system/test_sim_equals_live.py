@@ -5,6 +5,7 @@ replays bit for bit through the lockstep runner."""
 
 from __future__ import annotations
 
+import itertools
 import json
 import subprocess
 import sys
@@ -58,7 +59,7 @@ def live_run(request: pytest.FixtureRequest) -> Path:
         path = [r[f"{dn}_sync_path"] for r in rows]
         assert set(path) <= {"shm", "zenoh"} and "shm" in path, (dn, set(path))
         first = path.index("shm")
-        left = sum(a == "shm" and b == "zenoh" for a, b in zip(path[first:], path[first + 1 :]))
+        left = sum(a == "shm" and b == "zenoh" for a, b in itertools.pairwise(path[first:]))
         told = sum(
             e["id"] == "sync_fallback" and e["text"].startswith(f"cn: {dn}'s sync") for e in events
         )

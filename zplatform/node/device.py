@@ -252,6 +252,41 @@ class ClockResync:
             self.ended.set()
 
 
+class StarvedWait:
+    """Whether the device node's own starvation, not the control node's
+    silence, explains a wait that found no trigger (the loop thread; no
+    allocation).
+
+    A wait that ended more than ``overslept_ns`` after the last wake-up means
+    this process was not scheduled (a loaded box): zenoh's thread starved with
+    the loop's, and a trigger may still wait unread in its socket. The
+    driver then waits one more idle period before the watchdog judges, once
+    per silence (reset by a trigger), so a control node truly gone costs one
+    period more, and only on a box that starved this node."""
+
+    __slots__ = ("_graced", "_last", "_overslept")
+
+    def __init__(self, overslept_ns: int, now_ns: int) -> None:
+        self._overslept = overslept_ns
+        self._last = now_ns
+        self._graced = False
+
+    def idle(self, now_ns: int) -> bool:
+        """A wait ended without a trigger at ``now_ns`` (monotonic): True to
+        wait once more before the watchdog judges."""
+        late = now_ns - self._last > self._overslept
+        self._last = now_ns
+        if late and not self._graced:
+            self._graced = True
+            return True
+        return False
+
+    def triggered(self, now_ns: int) -> None:
+        """A trigger came at ``now_ns``: the next silence starts afresh."""
+        self._last = now_ns
+        self._graced = False
+
+
 class DeviceNode:
     """One DN process. Build, :meth:`start` (blocks for clock sync), :meth:`run`.
 
@@ -532,10 +567,13 @@ class DeviceNode:
             # Wake at least once a period without a trigger: the watchdog
             # safes the node when the control node has gone quiet.
             idle_s = min(0.2, period / 1e9)
+            starved = StarvedWait(int(idle_s * 1e9) + period, mono())
             while not self.stop.is_set():
                 if not wait(logic, idle_s):
                     m0 = mono()
                     loop_hb.beat_at(m0)  # alive, if idle: no trigger came
+                    if starved.idle(m0):
+                        continue  # this node overslept: a trigger may be unread yet
                     logic.watchdog(now())
                     if wd is not None:
                         wd.stroke(m0, now())
@@ -543,6 +581,7 @@ class DeviceNode:
                     continue
                 t = now()
                 m0 = mono()
+                starved.triggered(m0)
                 loop_hb.beat_at(m0)
                 if health is not None:  # lateness: from the CN's scheduled start
                     health.note(t - logic.last_t_ns)
