@@ -451,8 +451,8 @@ def test_a_replayed_recorder_request_never_spends_the_bound_a_grounds_request_ne
     stamp's bound passed the header tag and spent the rate bound (refused
     only by the serving thread, as served before), so the ground's next
     request, at the same instant, was dropped. Now zenoh's callback keeps
-    the last REMEMBERED requests it let through and refuses a replay of one
-    there: the bound is the ground's."""
+    every request it let through while its stamp is within the bound and
+    refuses a replay of one there: the bound is the ground's."""
     from tests.payload import FakeQuery
     from zplatform.recorder.format import REQUEST, REQUEST_MAGIC
     from zplatform.recorder.server import REQUEST_BURST
@@ -472,5 +472,52 @@ def test_a_replayed_recorder_request_never_spends_the_bound_a_grounds_request_ne
         server.on_query(genuine)
         assert not genuine.dropped and server.excess == 0
         assert all(q.dropped for q in flood)
+    finally:
+        server.close()
+
+
+def test_more_captured_requests_than_a_ring_holds_are_all_refused_while_fresh() -> None:
+    """Issue 25: zenoh's callback remembered the last 64 requests, so a
+    replayer holding more could cycle them, each replay let through again
+    once 64 others had passed. Now a request is remembered until its stamp
+    leaves the bound: 200 captured requests (let through one per rate
+    period), replayed in turn, are every one refused; once the clock has
+    moved past their stamps' bound the stamp refuses them, and the memory
+    has forgotten them (it stays bounded)."""
+    from tests.payload import FakeQuery
+    from zplatform.recorder.format import REQUEST, REQUEST_MAGIC
+    from zplatform.recorder.server import REQUEST_EVERY_NS
+
+    ch = channel(KEYS, "telemetry")
+    assert ch is not None
+    mono, clock = [0], [T0]
+    server = _recorder_server(mono_ns=lambda: mono[0])
+    server._now = lambda: clock[0]
+    server.stop_serving()  # the callback is the point: what it hands off is cleared
+    try:
+        captured = [
+            bytes(ch.seal(REQUEST.pack(REQUEST_MAGIC, 7, 1 + k, 5 + k, T0 + k))) for k in range(200)
+        ]
+        for c in captured:  # the genuine ground's, one per rate period
+            mono[0] += REQUEST_EVERY_NS
+            q = FakeQuery(c)
+            server.on_query(q)
+            assert not q.dropped
+            server._pending.clear()
+        refused = server.refused
+        for _ in range(3):
+            for c in captured:
+                mono[0] += REQUEST_EVERY_NS
+                q = FakeQuery(c)
+                server.on_query(q)
+                assert q.dropped
+        assert server.refused == refused + 600 and server.excess == 0
+        assert len(server._seen) == 200
+        assert server.last_refusal == "a request seen before (a replay)"
+        clock[0] = T0 + 10**9 + 300  # past every stamp's bound
+        q = FakeQuery(captured[0])
+        server.on_query(q)
+        assert q.dropped and "stamped" in (server.last_refusal or "")
+        assert len(server._seen) == 0
     finally:
         server.close()

@@ -63,10 +63,9 @@ __all__ = [
 MAX_PENDING = 2
 """Requests waiting or being served; any more are dropped unanswered."""
 REMEMBERED = 64
-"""Requests a server remembers (served, and let through zenoh's callback),
-to refuse a replay of one while its stamp is still within the bound (older
-ones are refused by the stamp): in the callback, so such a replay spends
-no share of the rate bound (a ground asks one at a time: far fewer)."""
+"""Requests the serving thread remembers (served), a second check behind
+the callback's: zenoh's callback remembers every request it let through
+until its stamp leaves the bound (:meth:`RecorderServer.on_query`)."""
 LOG_PERIOD_S = 1.0
 """At most one log line of refused requests this often (:class:`RecorderServer`)."""
 log = logging.getLogger("zplatform.recorder")
@@ -85,12 +84,13 @@ class RecorderServer(QueryWorker):
     """Serves gap-fill requests from ``recorder``'s files (module doc).
 
     The serving thread checks each request (the telemetry channel's tag, a
-    stamp within the clock bound, none of the last :data:`REMEMBERED`
-    served, a range of at most :data:`~.format.MAX_REQUEST_LOOPS` loops of
-    this run); one that does not check is dropped unanswered and counted
-    (:attr:`refused`, :attr:`last_refusal`), never raised. It reads the
-    segment files (waits up to :data:`WRITE_WAIT_S` for loops still in the
-    loop's buffer, never reading it) and replies in chunks of at most
+    stamp within the clock bound, none let through before (the callback's
+    memory, :meth:`on_query`) or served lately, a range of at most
+    :data:`~.format.MAX_REQUEST_LOOPS` loops of this run); one that does not
+    check is dropped unanswered and counted (:attr:`refused`,
+    :attr:`last_refusal`), never raised. It reads the segment files (waits
+    up to :data:`WRITE_WAIT_S` for loops still in the loop's buffer, never
+    reading it) and replies in chunks of at most
     :data:`~.format.REPLY_BYTES` paced to ``serve_bps``; a blocked reply
     holds this thread, never the loop. The final ``END`` reply counts the
     frames sent, the loops not held and the loops never run.
@@ -131,10 +131,12 @@ class RecorderServer(QueryWorker):
         self.excess = 0
         """Authentic requests dropped unanswered beyond the rate bound (module doc)."""
         self._refused_early = 0  # by header tag or stamp, on zenoh's threads (in `refused`)
-        # The last REMEMBERED requests zenoh's callback let through (their
-        # run, range and stamp: a ring, and as a set): a replay is refused there.
-        self._seen_ring = [b""] * REMEMBERED
-        self._seen_at = 0
+        # Every request zenoh's callback let through whose stamp is still
+        # within the bound (its run, range and stamp, with the stamp, in the
+        # order let through; and as a set): a replay of any is refused there.
+        # Only requests within the rate bound are kept, so at most
+        # REQUEST_BURST + (2 * max_age_ns) / REQUEST_EVERY_NS of them.
+        self._seen_fifo: deque[tuple[int, bytes]] = deque()
         self._seen: set[bytes] = set()
         self._channel = channel
         # The END reply's (the serving thread's): tagged under the run the
@@ -206,8 +208,18 @@ class RecorderServer(QueryWorker):
 
     def on_query(self, query: Any) -> None:
         """The queryable's callback: the size (unread), the header tag, the
-        rate bound, then (the base's) the hand-off (module doc). Never blocks
-        beyond a short lock; never raises for what arrives."""
+        stamp (within ``max_age_ns`` of this node's clock), not a request let
+        through before, the rate bound, then (the base's) the hand-off
+        (module doc). Never blocks beyond a short lock; never raises for
+        what arrives.
+
+        Replays: a request let through is remembered until its stamp leaves
+        the bound, so a replay of any, however many were captured, is
+        refused by the stamp or by the memory, before the rate bound (it
+        spends none of it). A request beyond the rate bound is not
+        remembered (the memory stays bounded by the rate): it was never
+        served, and its replay is one more authentic request, bounded as
+        the genuine asker's own."""
         p = query.payload
         n = 0 if p is None else len(p)
         why = self.size_refusal(n)
@@ -223,20 +235,17 @@ class RecorderServer(QueryWorker):
                     why = str(exc)
                 else:
                     # The stamp is authentic now: a replay older than the
-                    # bound, or one of a request seen lately (the last
-                    # REMEMBERED), spends no share of the rate bound either.
-                    age = self._now() - REQUEST.unpack_from(body)[4]
+                    # bound, or of a request let through within it, spends
+                    # no share of the rate bound either.
+                    now_ns = self._now()
+                    stamp = REQUEST.unpack_from(body)[4]
+                    age = now_ns - stamp
                     key = bytes(body[4 : REQUEST.size])  # run, range, stamp
+                    self._forget(now_ns)
                     if abs(age) > self._max_age:
                         why = f"a request stamped {age / 1e9:+.3f} s from this node's clock"
                     elif key in self._seen:
                         why = "a request seen before (a replay)"
-                    else:
-                        ring, at = self._seen_ring, self._seen_at
-                        self._seen.discard(ring[at])
-                        ring[at] = key
-                        self._seen.add(key)
-                        self._seen_at = (at + 1) % REMEMBERED
         if why is not None:
             with self._rx_lock:
                 if n == self._req_len:
@@ -248,16 +257,33 @@ class RecorderServer(QueryWorker):
             return
         now = self._mono()
         with self._rx_lock:
-            tat = max(self._tat, now)
-            over = tat - now > _REQUEST_TAU_NS
-            if over:
-                self.excess += 1
+            remember = self._rx_channel is not None
+            if remember and key in self._seen:
+                # Its twin let through on another of zenoh's threads meanwhile.
+                self._refused_early += 1
+                self.last_refusal = "a request seen before (a replay)"
+                over = True
             else:
-                self._tat = tat + REQUEST_EVERY_NS
+                tat = max(self._tat, now)
+                over = tat - now > _REQUEST_TAU_NS
+                if over:
+                    self.excess += 1
+                else:
+                    self._tat = tat + REQUEST_EVERY_NS
+                    if remember:
+                        self._seen_fifo.append((stamp, key))
+                        self._seen.add(key)
         if over:
             query.drop()
             return
         super().on_query(query)
+
+    def _forget(self, now_ns: int) -> None:
+        """Forget the requests let through whose stamp has left the bound
+        (oldest let through first; with the lock held)."""
+        fifo, limit = self._seen_fifo, now_ns - self._max_age
+        while fifo and fifo[0][0] < limit:
+            self._seen.discard(fifo.popleft()[1])
 
     def size_refusal(self, n: int) -> str | None:
         return None if n == self._req_len else f"a request of {n} bytes"
