@@ -446,6 +446,29 @@ def test_a_cn_counts_requests_dropped_unchecked_in_its_data_vector(macs: _Macs) 
     assert f"{10 - SPARE} of them dropped after their header, unchecked" in ev.text
 
 
+def test_a_ground_counts_snapshots_dropped_unchecked(macs: _Macs) -> None:
+    """Issue 25, the ground's side: snapshots its intake dropped after their
+    header (a genuine, fresh snapshot's header spliced onto junk, past the
+    budget) were kept on the intake only. Now the link hands them to the
+    ground's logic: ``unchecked`` in its counters (and in ``bad``), and the
+    first is an event."""
+    from zplatform.ground.logic import GroundLogic
+
+    cn = ControlLogic(M, keys=KEYS, epoch=T0)
+    cn.begin(1, T0 + PERIOD)
+    fresh = bytes(cn.telemetry())
+    intake = TelemetryIntake(M, channel(KEYS, "telemetry", Run(T0)), 8, 10**9)
+    for _ in range(10):
+        assert not intake.admit(Bytes(_spliced(fresh)), T0 + PERIOD)
+    size, bad, stale = intake.take_counts()
+    ground = GroundLogic(M, keys=KEYS)
+    ground.refused(size, bad, stale, intake.aged, T0, intake.ahead, unchecked=intake.took_unchecked)
+    c = ground.counters
+    assert (c.bad, c.unchecked) == (10, 10 - SPARE)
+    evs = [e for e in ground.events.drain() if e.id == "tm_refused"]
+    assert any(f"{10 - SPARE} snapshot(s) dropped after their header" in e.text for e in evs)
+
+
 def test_a_replayed_recorder_request_never_spends_the_bound_a_grounds_request_needs() -> None:
     """Issue 25, the replayer's door: a captured request replayed within its
     stamp's bound passed the header tag and spent the rate bound (refused

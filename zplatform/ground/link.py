@@ -424,7 +424,8 @@ class GroundLink:
         logic = self.logic
         size, bad, stale = self._tm.take_counts()
         if size or bad or stale:
-            logic.refused(size, bad, stale, self._tm.aged, now_ns, self._tm.ahead)
+            tm = self._tm
+            logic.refused(size, bad, stale, tm.aged, now_ns, tm.ahead, unchecked=tm.took_unchecked)
         rx = self._tm_iox
         if rx is not None:
             self._tm_path(rx, now_ns)

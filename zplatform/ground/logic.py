@@ -173,6 +173,7 @@ class _Tally(msgspec.Struct):
     iox: int = 0
     duplicates: int = 0
     path_fallbacks: int = 0
+    unchecked: int = 0
 
 
 class _Plan:
@@ -441,16 +442,34 @@ class GroundLogic:
         return self._max_len
 
     def refused(
-        self, size: int, bad: int, stale: int, aged: int, rx_ns: int, ahead: int = 0
+        self,
+        size: int,
+        bad: int,
+        stale: int,
+        aged: int,
+        rx_ns: int,
+        ahead: int = 0,
+        *,
+        unchecked: int = 0,
     ) -> None:
         """Count snapshots the driver's intake refused as they arrived (module
         doc): ``size`` too long and ``bad`` with a bad tag count as bad;
         ``stale`` authentic ones that were not fresh: ``ahead`` of them
         stamped beyond the freshness bound after they arrived (refused
         ``ahead``), ``aged`` beyond it before (``stale``), the rest replays
-        not newer than the newest let through (``not_newer``). The first of
-        each kind is an event, as for :meth:`on_telemetry`'s own."""
+        not newer than the newest let through (``not_newer``); ``unchecked``
+        of them all were dropped after their header, their body's tag not
+        checked for want of the body-MAC budget (``unchecked``). The first
+        of each kind is an event, as for :meth:`on_telemetry`'s own."""
         n = self._n
+        if unchecked:
+            n.unchecked += unchecked
+            self._note(
+                "unchecked",
+                f"{unchecked} snapshot(s) dropped after their header, unchecked: the "
+                "body-MAC budget was spent (codecs/FORMAT.md)",
+                rx_ns,
+            )
         if ahead:
             n.refused["ahead"] += ahead
             stale -= ahead

@@ -97,6 +97,10 @@ class TelemetryCounters(msgspec.Struct, frozen=True):
     zenoh both carry each): not refusals."""
     path_fallbacks: int = 0
     """Times the telemetry fell back from iceoryx2 to zenoh."""
+    unchecked: int = 0
+    """Snapshots dropped after their authentic-looking header without their
+    body's tag checked, the body-MAC budget spent (also counted in ``bad``
+    or ``refused``): a flood of junk or replays behind genuine headers."""
 
     @property
     def rejected(self) -> int:
