@@ -107,6 +107,39 @@ def test_a_closed_segment_is_sealed_and_a_lost_run_is_redecoded_from_it(
         assert a.runs()[0].outcome == "interrupted" and a.problems == []
 
 
+def test_an_event_filled_from_the_recorder_is_archived_marked_filled(
+    mission: Mission, tmp_path: Path
+) -> None:
+    """The events table says which events were filled from the control node's
+    recorder (the console and the events JSONL say it too); a run's events file
+    written before the column existed reads back beside a newer one, not filled."""
+    import pyarrow.parquet as pq
+
+    layout = Layout.for_node(mission, "cn")
+    w = ArchiveWriter(mission, layout, tmp_path)
+    feed(w, DataVector(layout), range(1, 301))
+    w.event(EventRecord(T0, "cn", 1, T0, "WARNING_HI", "fault", "live"))
+    w.event(EventRecord(T0 + 5, "cn", 2, T0 + 1, "WARNING_HI", "fault", "filled", True, True))
+    w.close()
+    (part,) = store.parquet_files(tmp_path, "ev", 7)
+    new = pq.read_table(part)
+    assert new.column("filled").to_pylist() == [False, True]
+    # An older writer's part, before it: the same events without the column.
+    older = part
+    part.rename(part.with_name("part-000001.parquet"))
+    pq.write_table(new.drop_columns(["filled"]), older)
+    with Archive(mission, tmp_path) as a:
+        t = a.events(7)
+        assert t.schema == store.EVENT_SCHEMA
+        got = list(zip(t.column("text").to_pylist(), t.column("filled").to_pylist(), strict=True))
+        assert sorted(got) == [
+            ("filled", False),
+            ("filled", True),
+            ("live", False),
+            ("live", False),
+        ]
+
+
 def test_a_late_loop_is_in_its_place_in_a_query(mission: Mission, tmp_path: Path) -> None:
     layout = Layout.for_node(mission, "cn")
     w = ArchiveWriter(small(mission, row_group_s=1.0), layout, tmp_path)

@@ -324,7 +324,9 @@ class Archive:
         return pa.schema(fields).empty_table()
 
     def events(self, run: int | None = None, *, severity: list[str] | None = None) -> pa.Table:
-        """Run ``run``'s events in receive order, those of ``severity`` (names) only."""
+        """Run ``run``'s events in receive order, those of ``severity`` (names)
+        only, in :data:`~.store.EVENT_SCHEMA` (``filled`` False for events an
+        archive written before the column kept)."""
         info = self.run(run)
         sevs = [s.upper() for s in severity or []]
         known = [s.name for s in Severity]
@@ -334,8 +336,13 @@ class Archive:
         where = ""
         if sevs:
             where = " WHERE severity IN (" + ", ".join("?" * len(sevs)) + ")"
-        sql = f"SELECT * FROM read_parquet(?){where} ORDER BY rx_ns, node, seq"
-        return self._sql(sql, "ev", info.run, list(sevs), store.EVENT_SCHEMA.empty_table())
+        # union_by_name: a run's files from before the ``filled`` column
+        # beside newer ones (the column is then null for the older rows).
+        sql = (
+            f"SELECT * FROM read_parquet(?, union_by_name = true){where} ORDER BY rx_ns, node, seq"
+        )
+        t = self._sql(sql, "ev", info.run, list(sevs), store.EVENT_SCHEMA.empty_table())
+        return store.events_in_schema(t)
 
     def close(self) -> None:
         self._db.close()

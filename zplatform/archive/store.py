@@ -36,6 +36,7 @@ from typing import Any, BinaryIO
 import msgspec
 import numpy as np
 import pyarrow as pa
+import pyarrow.compute as pc
 import pyarrow.parquet as pq
 
 from ..core.datavector import Layout
@@ -511,8 +512,21 @@ EVENT_SCHEMA = pa.schema(
         ("id", pa.string()),
         ("text", pa.string()),
         ("verified", pa.bool_()),
+        ("filled", pa.bool_()),
     ]
 )
+"""An archived event; ``filled``: it came from the control node's flight
+recorder, filling a gap, not live (:class:`~zplatform.telemetry.records.EventRecord`)."""
+
+
+def events_in_schema(t: pa.Table) -> pa.Table:
+    """``t`` (events read back) in :data:`EVENT_SCHEMA`: ``filled`` False
+    where files written before the column have none."""
+    if "filled" not in t.column_names:
+        t = t.append_column("filled", pa.nulls(t.num_rows, pa.bool_()))
+    filled = pc.fill_null(t.column("filled"), False)
+    t = t.set_column(t.column_names.index("filled"), "filled", filled)
+    return t.select(EVENT_SCHEMA.names).cast(EVENT_SCHEMA)
 
 
 def event_table(events: Iterable[EventRecord]) -> pa.Table:
@@ -528,6 +542,7 @@ def event_table(events: Iterable[EventRecord]) -> pa.Table:
             "id": [e.id for e in evs],
             "text": [e.text for e in evs],
             "verified": [e.verified for e in evs],
+            "filled": [e.filled for e in evs],
         },
         schema=EVENT_SCHEMA,
     )

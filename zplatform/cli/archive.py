@@ -298,6 +298,7 @@ def event_line(row: dict[str, Any]) -> str:
             "id": row["id"],
             "text": row["text"],
             "verified": row["verified"],
+            "filled": bool(row.get("filled", False)),
         }
     )
 
