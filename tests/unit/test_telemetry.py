@@ -251,3 +251,17 @@ def test_an_appending_event_log_keeps_the_events_before_it(tmp_path: Path) -> No
     with EventWriter(p) as w:  # without append: written anew
         w.write(rec(4))
     assert [json.loads(line)["seq"] for line in p.read_text().splitlines()] == [4]
+
+
+def test_a_grounds_log_has_each_row_on_disk_as_it_is_taken(dv: DataVector, tmp_path: Path) -> None:
+    """A ground or station killed with SIGKILL loses no row it took: the
+    ground's log flushes each one (read here before the log is closed)."""
+    from zplatform.ground.logger import TelemetryLog
+
+    p = tmp_path / "tm.csv"
+    log = TelemetryLog.beside(dv.layout, p)
+    for k in range(3):
+        dv.set("cn_loop", k)
+        log.snapshot(1000 + k, dv)
+        assert [r["cn_loop"] for r in read_csv(p)] == [str(i) for i in range(k + 1)]
+    log.close()

@@ -26,8 +26,10 @@ class TelemetryLog:
     convention). Files are created (truncated) at construction; with
     ``append`` (a station's, which a restart reopens), what is there is kept
     and this log goes after it (:mod:`zplatform.telemetry.logs`: the rows
-    of another layout go to a numbered CSV, :attr:`csv_path`). :meth:`close`
-    flushes and closes them, idempotent."""
+    of another layout go to a numbered CSV, :attr:`csv_path`). Each row and
+    each event is flushed to the file as it is written (one write a snapshot:
+    a ground or station killed with SIGKILL loses no row it took, and
+    ``tail -f`` shows the last). :meth:`close` closes them, idempotent."""
 
     def __init__(
         self,
@@ -58,6 +60,7 @@ class TelemetryLog:
     def snapshot(self, rx_ns: int, dv: DataVector) -> None:
         if self._csv is not None:
             self._csv.write(rx_ns, dv)
+            self._csv.flush()
 
     def event(self, rec: EventRecord) -> None:
         if self._events is not None:
