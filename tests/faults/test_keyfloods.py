@@ -128,7 +128,11 @@ def test_a_row_added_later_gets_its_flood_or_fails_the_plan() -> None:
 # test_a_lost_route_is_recovered_well_before_the_dns_watchdog). The pad
 # run's reply flood also waited for the CN's queries
 # on dn0's key, sent only over zenoh: the suite now syncs on zenoh
-# (floods._on_zenoh), and the run is back in the default suite.
+# (floods._on_zenoh), and the run is back in the default suite. It still
+# failed in 5 of 9 hogged full-suite runs (passing 6 of 6 alone beside the
+# hog): the live tests' xdist group had not taken effect since pytest 9.2
+# (tests/conftest.py), so another live mission's SCHED_FIFO nodes shared the
+# two cores with this one's. The group holds again.
 @pytest.mark.timeout(120)
 def test_one_flood_per_class_on_the_pad(tmp_path: Path) -> None:
     """The representative run: a query key, a sample key and the reply path
