@@ -180,11 +180,12 @@ class ShmLink:
     puts the link back on zenoh from the next loop (no server: from this
     one, the trigger goes over zenoh at once), except a verified link's
     timeout, which falls back only when :data:`FALL_AFTER` loops in a row
-    time out (one late reply is scheduling, not a stalled link); it is tried again after
-    :data:`RETRY_LOOPS` loops on probation; a try that loses its loop
-    doubles the wait up to :data:`RETRY_MAX_LOOPS`. So a failed or stalled
-    link costs the loop within its deadline, and a try at most one loop per
-    wait. Path changes of a verified link are queued in :attr:`changes`
+    time out (one late reply is scheduling, not a stalled link). It is
+    tried again after :data:`RETRY_LOOPS` loops on probation; a try that
+    loses its loop doubles the wait up to :data:`RETRY_MAX_LOOPS`. So a
+    failed link costs the loop within its deadline, a stalled one
+    :data:`FALL_AFTER` loops, and a try at most one loop per wait. Path
+    changes of a verified link are queued in :attr:`changes`
     for the driver to event. Not thread-safe: the loop thread."""
 
     def __init__(self, dn: str, client: IntraHostClient, *, pinned: bool = False) -> None:
