@@ -183,6 +183,7 @@ def run_ground_logger(
         telemetry_iox=c.iox,
         telemetry_duplicates=c.duplicates,
         telemetry_fallbacks=c.path_fallbacks,
+        telemetry_unchecked=c.unchecked,
     )
 
 

@@ -134,6 +134,9 @@ class GnSummary(msgspec.Struct, frozen=True):
     """Copies dropped as duplicates (the same snapshot by the other path)."""
     telemetry_fallbacks: int = 0
     """Times the telemetry fell back from iceoryx2 to zenoh."""
+    telemetry_unchecked: int = 0
+    """Of ``telemetry_bad``, snapshots dropped after their header unchecked
+    (the body-MAC budget spent: a flood behind genuine headers)."""
 
 
 class RunSummary(msgspec.Struct, frozen=True):
