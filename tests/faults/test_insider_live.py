@@ -141,7 +141,7 @@ def case_insider(tmp: Path, role: str) -> CaseResult:
 # suite's first run did between two floods: another live test's real-time
 # mission shared the two cores, the live tests' xdist group having had no
 # effect since pytest 9.2 (tests/conftest.py; fixed). Beside the CPU hog,
-# alone, this file then passed 80 of 82 role runs. The failure kept (the dn1
+# alone, this file then passed 91 of 93 role runs. The failure kept (the dn1
 # insider's query flood on dn0's trigger key) had both device nodes safe
 # together, the control node unscheduled for about 100 ms, with no other
 # mission on the box: dn0's zenoh threads, refusing 4,800 queries/s at about
