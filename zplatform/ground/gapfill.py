@@ -29,7 +29,7 @@ from typing import NamedTuple
 from ..config import Mission
 from ..control.intake import RefusalLog
 from ..core.auth import TAG_LEN, AuthError, Channel, KeySet, Run, channel
-from ..core.codec import RegionCodec
+from ..core.codec import RegionCodec, fixed_stamp
 from ..core.datavector import DataVector, Layout
 from ..core.events import EV, Event, EventLog
 from ..errors import CodecError
@@ -51,7 +51,6 @@ from .logic import EventGap, Gap, GroundLogic, default_max_age_ns
 __all__ = ["GapFill", "ReplyScreen"]
 
 _NS = 1_000_000_000
-_SEQ_AT = 7  # a region frame's seq: u64 big-endian at offset 7 (codecs/FORMAT.md §2)
 
 
 class _Expect(NamedTuple):
@@ -140,7 +139,7 @@ class ReplyScreen:
         if n < 1 + REPLY_LEN.size:
             return "a reply cut inside its first length"
         (k,) = REPLY_LEN.unpack_from(p, 1)
-        if k > n - 1 - REPLY_LEN.size or k < (_SEQ_AT + 8 if e.kind == REPLY_FRAMES else 1):
+        if k > n - 1 - REPLY_LEN.size or k < 1:
             return f"a first item of {k} bytes in a reply"
         if ch is None:
             return None
@@ -153,7 +152,10 @@ class ReplyScreen:
         if run != e.run:
             return f"a reply of run {run}, not {e.run}"
         if e.kind == REPLY_FRAMES:
-            seq = int.from_bytes(item[_SEQ_AT : _SEQ_AT + 8], "big")
+            stamp = fixed_stamp(item)
+            if stamp is None:
+                return "a reply whose first item is not a region frame"
+            seq = stamp[0]
             if not e.first <= seq <= e.last:
                 return f"a reply from loop {seq}, not asked for ({e.first}..{e.last})"
         return None
@@ -287,7 +289,7 @@ class GapFill:
         self._last_refusal = ""
         self._latest = ""  # the latest reason (the event's)
         self._ref_log = RefusalLog(1)  # refusals evented at most once a second
-        self._ref_seen = (0, 0)  # (ours, the screen's) counted in the event log so far
+        self._ref_ours = self._ref_screened = 0  # counted in the event log so far
         self._ev_why = ""
         self.requests = 0
         # Event gaps (module doc): the logic's, filled one at a time.
@@ -564,13 +566,13 @@ class GapFill:
         """The replies and frames refused since the last call, evented at
         most once a second (a ``bad_frame`` event of the ground's log)."""
         ours, screened = self._refused, self.screen.refused
-        seen = self._ref_seen
-        if screened > seen[1]:
+        new = ours - self._ref_ours + screened - self._ref_screened
+        if screened > self._ref_screened:
             self._ev_why = self.screen.last_refusal
-        elif ours > seen[0]:
+        elif ours > self._ref_ours:
             self._ev_why = self._latest
-        self._ref_seen = (ours, screened)
-        ev = self._ref_log.add(now_ns, ours - seen[0] + screened - seen[1])
+        self._ref_ours, self._ref_screened = ours, screened
+        ev = self._ref_log.add(now_ns, new)
         if ev is not None:
             self._events.emit(
                 EV.BAD_FRAME,
