@@ -54,6 +54,18 @@ def feed(w: ArchiveWriter, dv: DataVector, loops: range | list[int], epoch: int 
     assert w.flush()
 
 
+def lose_parquet(root: Path, run: int) -> None:
+    """Run ``run``'s Parquet files lost and the run left open (a writer
+    killed before it closed them): opening the archive must re-decode it
+    from the raw segments."""
+    for f in [*root.glob(f"tm/run-{run}/*/*.parquet"), *root.glob(f"ev/run-{run}/*.parquet")]:
+        f.unlink()
+    info = store.read_run(root, run)
+    assert info is not None
+    info.outcome = "open"
+    store.write_run(root, info)
+
+
 def test_rows_written_once_each_and_read_back(mission: Mission, tmp_path: Path) -> None:
     layout = Layout.for_node(mission, "cn")
     w = ArchiveWriter(mission, layout, tmp_path)
@@ -95,12 +107,7 @@ def test_a_closed_segment_is_sealed_and_a_lost_run_is_redecoded_from_it(
     raw = sorted(p.name for p in (tmp_path / "raw" / "run-7").iterdir())
     assert raw == ["seg-00000000.zfr.zsb"]
     # The Parquet files lost, the run left open: all of it comes back from the raw.
-    for f in [*tmp_path.glob("tm/run-7/*/*.parquet"), *tmp_path.glob("ev/run-7/*.parquet")]:
-        f.unlink()
-    info = store.read_run(tmp_path, 7)
-    assert info is not None
-    info.outcome = "open"
-    store.write_run(tmp_path, info)
+    lose_parquet(tmp_path, 7)
     with Archive(mission, tmp_path) as a:
         assert a.query(Query("cn_loop")).column("loop").to_pylist() == list(range(1, 301))
         assert a.events(7).column("text").to_pylist() == ["a fault"]

@@ -16,7 +16,7 @@ from pathlib import Path
 import pyarrow.parquet as pq
 import pytest
 
-from tests.unit.test_archive import feed, small
+from tests.unit.test_archive import feed, lose_parquet, small
 from zplatform.archive import Archive, ArchiveWriter, Query, store
 from zplatform.archive import writer as writer_mod
 from zplatform.config import Mission
@@ -175,12 +175,7 @@ def test_a_seal_that_fails_is_told_once_and_its_segment_stays_readable(
     told = [e for e in events.drain() if e.id == "archive_failed"]
     assert len(told) == 1 and "compress a raw segment" in told[0].text
     # The Parquet files lost, the run re-decoded from the plain segments.
-    for f in tmp_path.glob("tm/run-7/*/*.parquet"):
-        f.unlink()
-    info = store.read_run(tmp_path, 7)
-    assert info is not None
-    info.outcome = "open"
-    store.write_run(tmp_path, info)
+    lose_parquet(tmp_path, 7)
     with Archive(FLIGHT, tmp_path) as a:
         assert a.query(Query("cn_loop")).column("loop").to_pylist() == list(range(1, 601))
 
