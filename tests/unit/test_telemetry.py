@@ -265,3 +265,20 @@ def test_a_grounds_log_has_each_row_on_disk_as_it_is_taken(dv: DataVector, tmp_p
         log.snapshot(1000 + k, dv)
         assert [r["cn_loop"] for r in read_csv(p)] == [str(i) for i in range(k + 1)]
     log.close()
+
+
+def test_a_grounds_log_on_a_full_disk_counts_what_it_loses_and_goes_on(
+    dv: DataVector, caplog: pytest.LogCaptureFixture
+) -> None:
+    """/dev/full refuses every write (ENOSPC): the ground's receive path
+    never sees the error; each row lost is counted, the spell logged once."""
+    from zplatform.ground.logger import TelemetryLog
+
+    log = TelemetryLog(dv.layout, "/dev/full", "/dev/full")
+    for k in range(3):
+        dv.set("cn_loop", k)
+        log.snapshot(1000 + k, dv)
+    log.close()
+    assert log.errors >= 3
+    told = [r for r in caplog.records if "cannot be written" in r.getMessage()]
+    assert len(told) == 1

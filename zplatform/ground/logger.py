@@ -10,6 +10,7 @@ logged, for ``zplatform log`` and ``up``.
 
 from __future__ import annotations
 
+import logging
 from pathlib import Path
 
 from ..core.datavector import DataVector, Layout
@@ -18,6 +19,8 @@ from ..telemetry.records import EventRecord
 from ..telemetry.summary import GnSummary
 
 __all__ = ["TelemetryLog", "log_summary_line"]
+
+log = logging.getLogger("zplatform.ground")
 
 
 class TelemetryLog:
@@ -29,7 +32,11 @@ class TelemetryLog:
     of another layout go to a numbered CSV, :attr:`csv_path`). Each row and
     each event is flushed to the file as it is written (one write a snapshot:
     a ground or station killed with SIGKILL loses no row it took, and
-    ``tail -f`` shows the last). :meth:`close` closes them, idempotent."""
+    ``tail -f`` shows the last). A file that cannot take a row or an event
+    (a full or failing disk) never stops the ground: each one lost is
+    counted (:attr:`errors`), the first of a spell and the recovery logged,
+    and the next is tried again (the archive keeps its own copy).
+    :meth:`close` closes them, idempotent."""
 
     def __init__(
         self,
@@ -43,6 +50,9 @@ class TelemetryLog:
         self._events = EventWriter(events, append=append) if events is not None else None
         self.csv_path = self._csv.path if self._csv is not None else None
         self.events_path = Path(events) if events is not None else None
+        self.errors = 0
+        """Rows and events the files could not take (class doc)."""
+        self._failing = False
 
     @classmethod
     def beside(cls, layout: Layout, csv: str | Path | None) -> TelemetryLog:
@@ -59,18 +69,48 @@ class TelemetryLog:
 
     def snapshot(self, rx_ns: int, dv: DataVector) -> None:
         if self._csv is not None:
-            self._csv.write(rx_ns, dv)
-            self._csv.flush()
+            try:
+                self._csv.write(rx_ns, dv)
+                self._csv.flush()
+            except OSError as exc:
+                self._failed(exc)
+                return
+            if self._failing:
+                self._recovered()
 
     def event(self, rec: EventRecord) -> None:
         if self._events is not None:
-            self._events.write(rec)
+            try:
+                self._events.write(rec)
+            except OSError as exc:
+                self._failed(exc)
+                return
+            if self._failing:
+                self._recovered()
+
+    def _failed(self, exc: OSError) -> None:
+        self.errors += 1
+        if not self._failing:
+            self._failing = True
+            log.warning(
+                "the ground's log (%s) cannot be written: %s; what it cannot take is counted "
+                "and lost from it (the archive keeps its own copy)",
+                self.csv_path or self.events_path,
+                exc.strerror or exc,
+            )
+
+    def _recovered(self) -> None:
+        self._failing = False
+        log.warning("the ground's log is written again, %d row(s) or event(s) lost", self.errors)
 
     def close(self) -> None:
-        if self._csv is not None:
-            self._csv.close()
-        if self._events is not None:
-            self._events.close()
+        for f in (self._csv, self._events):
+            if f is None:
+                continue
+            try:
+                f.close()
+            except OSError as exc:  # the last buffered bytes: a full disk at the end
+                self._failed(exc)
 
 
 def log_summary_line(s: GnSummary, csv: str | Path | None, events: str | Path | None) -> str:
