@@ -132,9 +132,9 @@ async def _big_screen(c: Cluster) -> None:
                      "the parameter, marked hazardous")  # fmt: skip
         table = _text(app, "#params-table")
         assert "[60, 390] m" in table and "SAFE" in table, table
-        await _paste(pilot, "prm_set ", *"depl", "tab")
+        await _paste(pilot, "prm_set depl", "tab")
         assert app.query_one("#cmd").value == "prm_set deploy_altitude_m "  # type: ignore[attr-defined]
-        await pilot.press(*"300", "enter")
+        await _paste(pilot, "300", "enter")
         await _until(pilot, lambda: isinstance(app.screen, ConfirmScreen), "the confirmation")
         await pilot.press("y")
         await _until(
@@ -172,7 +172,7 @@ async def _big_screen(c: Cluster) -> None:
             assert model.dv.get_name("cn_state") in ("ARMED", "FIRE", "DEPLOYED", "NO_FIRE")
 
         # Completion and history on the command line.
-        await pilot.press(*"noo", "tab")
+        await _paste(pilot, "noo", "tab")
         assert app.query_one("#cmd").value == "noop "  # type: ignore[attr-defined]
         await pilot.press("enter", "up")
         assert app.query_one("#cmd").value == "noop"  # type: ignore[attr-defined]
