@@ -511,6 +511,13 @@ def test_ps_shows_the_file_the_user_started(
         a.remove()
 
 
+def test_a_device_given_as_the_mission_is_named_for_what_it_is(runtime: Path) -> None:
+    """`check /dev/null` (or a pipe) is not called a directory."""
+    with pytest.raises(CommandError) as exc:
+        registry.resolve_mission("/dev/null")
+    assert "/dev/null is a device, pipe or socket, not a mission file" in str(exc.value)
+
+
 def test_a_directory_named_like_a_running_mission_does_not_hide_it(
     runtime: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:

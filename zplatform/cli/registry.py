@@ -203,8 +203,9 @@ def resolve_mission(arg: str) -> str:
         if e.name == arg:
             return e.mission_file
     if p.exists():
+        kind = "a directory" if p.is_dir() else "a device, pipe or socket"
         raise CommandError(
-            f"{arg} is a directory, not a mission file, and no running mission is named "
+            f"{arg} is {kind}, not a mission file, and no running mission is named "
             f"{arg!r}; {_describe(entries)}"
         )
     looks_like_path = os.sep in arg or arg.endswith((".yaml", ".yml"))
