@@ -2,8 +2,8 @@
 
 :class:`DeviceNode` opens the session, waits for the CN, measures its clock
 offset (:mod:`zplatform.runtime.clocksync`, the estimator ``clock.estimator`` names),
-applies it once and locks the clock, declares the sync queryable, then
-announces liveliness: from that moment the CN may trigger loops. Its loop
+applies it once and locks the clock, declares the sync queryable, then, its
+loop serving, announces liveliness: from that moment the CN may trigger loops. Its loop
 waits for the CN's query (the trigger), answers it at once
 (:meth:`DeviceLogic.trigger <zplatform.control.loop.DeviceLogic.trigger>`), then runs
 :meth:`~zplatform.control.loop.DeviceLogic.run` with the query's loop number and one
@@ -359,7 +359,8 @@ class DeviceNode:
         self._stopped_cleanly = False
 
     def start(self, ready_timeout_s: float = 60.0) -> int:
-        """Wait for the CN, sync the clock, declare the queryable, announce.
+        """Wait for the CN, sync the clock, declare the queryable (:meth:`run`
+        announces the node's liveliness, once it serves).
 
         Returns the applied offset (ns). Raises NodeError on failure.
         """
@@ -492,7 +493,6 @@ class DeviceNode:
             self._resync.start()
         else:
             self._resync = None  # no re-sync, and no run to learn
-        self.ns.announce()
         return est.offset_ns
 
     def _estimate_by(self, deadline: float, exchanges: int) -> ClockEstimate:
@@ -563,6 +563,12 @@ class DeviceNode:
             wd.open()
         gc_guard = GcGuard()
         gc_guard.freeze_after_startup()
+        # Alive only now, serving: announced at the end of start(), the token
+        # let the control node's warm-up query a node that was still
+        # promoting its threads and collecting (tens of ms): its queries went
+        # unanswered, and it re-declared its queriers as if zenoh had lost a
+        # route (query_recovered, a warning at most starts).
+        self.ns.announce()
         try:
             # Wake at least once a period without a trigger: the watchdog
             # safes the node when the control node has gone quiet.
