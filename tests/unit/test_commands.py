@@ -666,3 +666,74 @@ def test_warns_about_a_command_transition_the_whitelist_blocks(
     (rec,) = [r for r in caplog.records if r.name == "zplatform.commands"]
     assert "refuses command LAUNCH" in rec.getMessage()
     assert "$.state_machine.states.A.transitions[0]" in rec.getMessage()
+
+
+# --------------------------------------------------------------------------- latched faults
+
+FAULTED = """
+commands:
+  hazardous: [LAUNCH, WRITE]
+  writable: [x, cn_fault]
+  whitelist:
+    A: [NOOP, LAUNCH, ABORT, WRITE, ARM]
+"""
+
+
+def _latch(r: Rig, seq: int, fault: str = "SYNC_OVERRUNS") -> int:
+    """ARM n, WRITE cn_fault (WRITE is hazardous here); returns the next number."""
+    assert r.send("ARM", seq) == "ACCEPTED"
+    code = r.dv.layout.element("cn_fault").enum.index(fault)  # type: ignore[union-attr]
+    assert r.send("WRITE", seq + 1, "cn_fault", float(code)) == "ACCEPTED"
+    assert r.dv.get_name("cn_fault") == fault
+    return seq + 2
+
+
+def test_a_hazardous_command_is_refused_while_a_fault_is_latched_naming_it() -> None:
+    r = Rig(mission(FAULTED))
+    n = _latch(r, 1)
+    assert r.send("ARM", n) == "ACCEPTED"
+    assert r.send("LAUNCH", n + 1) == "REJECTED_NOT_ALLOWED"
+    assert r.dv.get_name("cn_state") == "A" and r.cmd == "NONE"
+    why = [e for e in r.events.drain() if e.id == "cmd_rejected"][-1].text
+    assert "a fault is latched (SYNC_OVERRUNS): clear cn_fault first (WRITE cn_fault NONE)" in why
+    # ABORT and NOOP are never refused for a fault; a hazardous WRITE clears it.
+    assert r.send("NOOP", n + 2) == "ACCEPTED"
+    assert r.send("ARM", n + 3) == "ACCEPTED"
+    assert r.send("WRITE", n + 4, "cn_fault", 0.0) == "ACCEPTED"
+    assert r.send("ARM", n + 5) == "ACCEPTED"
+    assert r.send("LAUNCH", n + 6) == "ACCEPTED"
+    assert r.dv.get_name("cn_state") == "B"
+
+
+def test_abort_is_accepted_with_a_fault_latched() -> None:
+    r = Rig(mission(FAULTED))
+    n = _latch(r, 1)
+    assert r.send("ABORT", n) == "ACCEPTED"
+    assert r.dv.get_name("cn_state") == "E"
+
+
+def test_refused_while_faulted_is_the_missions_to_widen_or_empty() -> None:
+    r = Rig(mission(FAULTED + "  refused_while_faulted: []\n"))
+    n = _latch(r, 1)
+    assert r.send("ARM", n) == "ACCEPTED"
+    assert r.send("LAUNCH", n + 1) == "ACCEPTED"  # the mission said so
+    r = Rig(mission(FAULTED + "  refused_while_faulted: [LAUNCH, HOLD]\n"))
+    n = _latch(r, 1)
+    assert r.send("ARM", n) == "ACCEPTED"
+    assert r.send("LAUNCH", n + 1) == "REJECTED_NOT_ALLOWED"
+
+
+@pytest.mark.parametrize(
+    ("entry", "why"),
+    [
+        ("ABORT", "ABORT is never refused for a fault: it is the response to one"),
+        ("WRITE", "WRITE is never refused for a fault: WRITE cn_fault NONE is how"),
+        ("ARM", "ARM is never refused for a fault"),
+        ("FLY", "'FLY' is not a command"),
+    ],
+)
+def test_refused_while_faulted_names_its_bad_entry(entry: str, why: str) -> None:
+    with pytest.raises(ConfigError) as ei:
+        Rig(mission(FAULTED + f"  refused_while_faulted: [LAUNCH, {entry}]\n"))
+    assert ei.value.path == "$.commands.refused_while_faulted[1]"
+    assert why in ei.value.reason

@@ -166,7 +166,11 @@ def test_a_tool_key_cannot_command() -> None:
         loop += 1
         cn.begin(loop, T0 + loop * PERIOD)
         cn.finish([bytes(up.frame(cmd, seq, 0, 0.0, T0, EPOCH))])
-    assert cn.dv.get_name("cn_state") == "ARMED"
+    # Judged by the CN: its device nodes never answered here, so DN_LOST is
+    # latched and the LAUNCH is refused for it (commands.refused_while_faulted).
+    assert cn.dv.get("cn_cmd_seq") == 2 and cn.dv.get_name("cn_fault") == "DN_LOST"
+    assert cn.dv.get_name("cn_cmd_status") == "REJECTED_NOT_ALLOWED"
+    assert cn.dv.get_name("cn_state") == "SAFE"
 
 
 def test_events_are_authenticated_per_node() -> None:

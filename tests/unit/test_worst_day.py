@@ -426,3 +426,34 @@ def test_a_dn_that_was_stopped_safes_before_it_runs_again() -> None:
     t += 150 * PERIOD  # stopped for 1.5 s
     dn.step(bytes(codec.encode(151, t)), t)
     assert dn.safed and dn.dv.get("led_a_fb") is False
+
+
+# -- a launch on the pad with a fault latched ---------------------------------------
+
+
+def test_a_launch_with_a_fault_latched_is_refused_and_never_lights_the_motor() -> None:
+    """A fault latched on the pad (here written; live, a burst of late
+    replies latches SYNC_OVERRUNS) and an operator's ARM + LAUNCH: before,
+    the LAUNCH was accepted, ARMED drove the launch output for a loop and
+    the fault then took the vehicle to ABORTED (the motor lit, recovery
+    safed). LAUNCH is refused, naming the fault; cleared, the flight goes."""
+    script = (
+        "at 0.3 write cn_fault SYNC_OVERRUNS\nat 0.5 arm\nat 0.6 launch\n"
+        "at 1.0 write cn_fault NONE\nat 1.5 arm\nat 1.6 launch\n"
+    )
+    r = LockstepRunner(IGN, commands=parse_commands(script))
+    dv = r.control.dv
+    while r.loop < 150:  # until the fault is cleared: nothing driven, still SAFE
+        r.step()
+        assert (dv.get("dn0_launch_cmd"), dv.get("dn0_launch_fb")) == (0, 0), r.loop
+        assert dv.get_name("cn_state") == "SAFE", r.loop
+    while r.loop < 1600:  # apogee ~8 s after the launch, the igniter 2.5 s later
+        r.step()
+    res = r.result()
+    got = [(c.status, c.reason) for c in res.commands]
+    assert got[2] == (
+        "REJECTED_NOT_ALLOWED",
+        "a fault is latched (SYNC_OVERRUNS): clear cn_fault first (WRITE cn_fault NONE)",
+    ), got
+    assert [s for s, _ in got] == ["ACCEPTED"] * 2 + ["REJECTED_NOT_ALLOWED"] + ["ACCEPTED"] * 3
+    assert res.final_state == "DEPLOYED", res.states

@@ -120,6 +120,7 @@ def cmd_check(args: argparse.Namespace) -> int:
     Exit 0 with warnings, 2 with ``--strict`` (each warning printed as an
     error line), 2 for a mission that does not load or a deployment that
     does not fit it."""
+    from ..control.commands import refused_while_faulted
     from ..mission.safety import doors, safety_warnings
 
     # load_mission builds every controller and device on scratch vectors,
@@ -132,6 +133,9 @@ def cmd_check(args: argparse.Namespace) -> int:
     writable, outputs = doors(m)
     rep["writable"] = [msgspec.to_builtins(w) for w in writable]
     rep["hazardous_outputs"] = [msgspec.to_builtins(h) for h in outputs]
+    faulted = refused_while_faulted(m)
+    rep["hazardous_commands"] = list(m.commands.hazardous)
+    rep["refused_while_faulted"] = faulted
     rc = 2 if args.strict and warnings else 0
     if args.json:
         rep["warnings"] = [msgspec.to_builtins(w) for w in warnings]
@@ -157,6 +161,12 @@ def cmd_check(args: argparse.Namespace) -> int:
         for e in writable:
             arm = "  (ARM n, then WRITE n+1)" if e.protected else ""
             print(f"  {e.element:<24} in {', '.join(e.states)}{arm}")
+    if m.commands.hazardous or faulted:
+        print(
+            f"hazardous commands: {', '.join(m.commands.hazardous) or 'none'} (ARM n, then n+1); "
+            f"refused while a fault is latched: {', '.join(faulted) or 'none'} "
+            "(commands.refused_while_faulted)"
+        )
     if outputs:
         print(f"hazardous outputs: {len(outputs)} (hazardous_outputs; interlocked on their node):")
         for h in outputs:

@@ -498,7 +498,8 @@ class CommandsConfig(_Struct):
     state; their checks come first, docs/security.md#stations-and-operators). A
     request is checked in this order, the first failure giving its verdict:
     a known command, a number above the last (`REJECTED_REPLAY`), the
-    state's whitelist (`REJECTED_NOT_ALLOWED`), an ARM just before a
+    state's whitelist (`REJECTED_NOT_ALLOWED`), a latched fault for the
+    `refused_while_faulted` commands (`REJECTED_NOT_ALLOWED`), an ARM just before a
     hazardous command, a protected WRITE or a hazardous parameter's PRM_SET
     (`REJECTED_NOT_ARMED`), a WRITE's element and value or a PRM_SET's
     parameter and value (`REJECTED_BAD_ARGUMENT`), a WRITE's states
@@ -548,6 +549,17 @@ class CommandsConfig(_Struct):
             description="Elements a WRITE may set only as a hazardous command (ARM n, then "
             "WRITE n+1). Default: every controller mode when the mission has hazardous "
             "commands, else none."
+        ),
+    ] = None
+    refused_while_faulted: Annotated[
+        list[str] | None,
+        Meta(
+            description="Commands refused while a fault is latched in `cn_fault` "
+            "(`REJECTED_NOT_ALLOWED`, naming the fault): an operator clears it first "
+            "(`WRITE cn_fault NONE`). Else a LAUNCH accepted on the pad with a fault latched "
+            "would enter its state, drive that state's outputs for a loop, then leave on "
+            "the fault (the launch output lit, then ABORTED). Never ABORT, NOOP, ARM, WRITE "
+            "or a lock command. Default: the hazardous commands; `[]`: none."
         ),
     ] = None
 

@@ -9,10 +9,10 @@ load-time checks of the ``commands`` section (:func:`check_config`, ...).
 Contract: on the CN's loop thread, :meth:`CommandHandler.admit` refuses a
 request for another run or numbered not above the last (that rule), and
 :meth:`CommandHandler.step` validates the admitted one (first failure wins:
-unknown, the state's whitelist, ARM for hazardous commands, argument, the
-element's or parameter's states and bounds, a save still being written),
-writes the verdict to ``cn_cmd_seq`` /
-``cn_cmd_status`` with a ``cmd_accepted`` or ``cmd_rejected`` event, and keeps
+unknown, the state's whitelist, a latched fault (:func:`refused_while_faulted`),
+ARM for hazardous commands, argument, the element's or parameter's states
+and bounds, a save still being written), writes the verdict to ``cn_cmd_seq``
+/ ``cn_cmd_status`` with a ``cmd_accepted`` or ``cmd_rejected`` event, and keeps
 an accepted command in ``cn_cmd`` until a transition consumes it or a state
 that does not handle it steps. Nothing in a request can make it raise.
 What the intake refused is counted by :meth:`CommandHandler.count_refused`.
@@ -28,7 +28,7 @@ import struct
 from typing import TYPE_CHECKING, Any
 
 from ..config import CMD_NAMES
-from ..config.codes import Command, CommandStatus
+from ..config.codes import Command, CommandStatus, Fault
 from ..core.events import EV, EventLog
 from ..errors import ConfigError
 from . import authority as _authority
@@ -234,6 +234,28 @@ def _state_names(mission: Mission) -> list[str]:
     return list(sm.states) if sm is not None else ["IDLE"]
 
 
+_FAULT_PROOF = {
+    "ABORT": "it is the response to one",
+    "NOOP": "it moves nothing",
+    "ARM": "it confirms the next command, which is checked itself",
+    "WRITE": "WRITE cn_fault NONE is how an operator clears it",
+    **{
+        c: "it moves the command lock, no vehicle state"
+        for c in ("LOCK", "RELEASE", "HANDOVER", "TAKEOVER", "APPROVE")
+    },
+}
+"""Commands ``commands.refused_while_faulted`` may not list, and why."""
+
+
+def refused_while_faulted(mission: Mission) -> list[str]:
+    """The commands refused while ``cn_fault`` holds a fault:
+    ``commands.refused_while_faulted``, by default the hazardous ones. Pure."""
+    cfg = mission.commands
+    if cfg.refused_while_faulted is not None:
+        return list(cfg.refused_while_faulted)
+    return [c for c in cfg.hazardous if c not in _FAULT_PROOF]  # a hazardous WRITE still clears
+
+
 def check_config(mission: Mission, *, warn: bool = True) -> None:
     """Check the ``commands`` section; raises ConfigError naming the YAML path.
 
@@ -251,6 +273,9 @@ def check_config(mission: Mission, *, warn: bool = True) -> None:
       it (:func:`transition_readers`): a WRITE must never fire a transition
       (the ground would drive the flight's events).
 
+    * ``refused_while_faulted`` entries are command names, never ABORT,
+      NOOP, ARM, WRITE (it clears the fault) or a lock command;
+
     With ``warn``, logs a warning for a ``cn_cmd == X`` transition in a
     state whose whitelist refuses ``X`` (the transition can never fire).
     """
@@ -265,6 +290,12 @@ def check_config(mission: Mission, *, warn: bool = True) -> None:
             raise ConfigError("ARM cannot be hazardous: it is the confirmation itself", w)
         if h in _LOCK_NAMES:
             raise ConfigError(f"{h} moves the command lock, it cannot be hazardous", w)
+    for i, c in enumerate(cfg.refused_while_faulted or ()):
+        w = f"$.commands.refused_while_faulted[{i}]"
+        if c not in commands:
+            raise ConfigError(f"{c!r} is not a command; commands: {', '.join(commands)}", w)
+        if c in _FAULT_PROOF:
+            raise ConfigError(f"{c} is never refused for a fault: {_FAULT_PROOF[c]}", w)
     for state, allowed in cfg.whitelist.items():
         w = f"$.commands.whitelist.{state}"
         if state not in states:
@@ -472,6 +503,10 @@ class CommandHandler:
             tuple(s not in wl or c in wl[s] for c in CMD_NAMES) for s in states
         )
         self._hazardous = tuple(c in mission.commands.hazardous for c in CMD_NAMES)
+        faulted = refused_while_faulted(mission)
+        self._fault_refuses = tuple(c in faulted for c in CMD_NAMES)
+        self._h_fault = dv.handle("cn_fault")
+        self._fault_names = self._h_fault.spec.enum or ()
         targets: list[Handle | None] = [None] * len(dv.layout.elements)
         # Per element index, the states (by cn_state's index) a WRITE may set it in.
         may: list[tuple[bool, ...]] = [()] * len(dv.layout.elements)
@@ -819,6 +854,15 @@ class CommandHandler:
                 CommandStatus.REJECTED_NOT_ALLOWED,
                 f"not allowed in state {self._states[state]}",
             )
+        if self._fault_refuses[cmd]:
+            fault = int(self._h_fault.get())
+            if fault != Fault.NONE:
+                names = self._fault_names
+                return (
+                    CommandStatus.REJECTED_NOT_ALLOWED,
+                    f"a fault is latched ({names[fault] if fault < len(names) else fault}): "
+                    "clear cn_fault first (WRITE cn_fault NONE)",
+                )
         slot = self.params.slot(self._g_elem.get()) if cmd == Command.PRM_SET else None
         hazardous = (
             self._hazardous[cmd]
