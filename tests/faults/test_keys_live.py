@@ -277,9 +277,11 @@ def test_a_dn_that_cannot_run_safes_and_the_cn_faults(tmp_path: Path) -> None:
     """Without authentication (a closed bench) the rogue (+30 ms, complete)
     does move the DNs' clocks: every real trigger is then stale. Before, the
     DNs answered each one and ran none, never safed, and the flight ended
-    ARMED with no fault. (With +30 ms and +5 s answering together the DNs'
-    corrections disagree with their residuals and the CN refuses to start,
-    which was visible already.)"""
+    ARMED with no fault. Now a DN safes, the CN latches DN_SAFED, and the
+    LAUNCH is refused for it (or, if it came first, the fault aborts).
+    (With +30 ms and +5 s answering together the DNs' corrections disagree
+    with their residuals and the CN refuses to start, which was visible
+    already.)"""
     with Cluster(MISSION, tmp_path, transport="plain") as c:
         raw = yaml.safe_load(c.path.read_text())
         raw["security"]["auth"] = False
@@ -288,7 +290,15 @@ def test_a_dn_that_cannot_run_safes_and_the_cn_faults(tmp_path: Path) -> None:
         with rogue_clock(c, tagged=False, shifts=((30 * MS, True),)):
             _fly(c)
             c.wait_for(lambda dv: dv.get_name("cn_fault") != "NONE", 60, "a fault")
-            c.wait_for(lambda dv: dv.get_name("cn_state") == "ABORTED", 30, "ABORTED after LAUNCH")
+            # The script's ARM + LAUNCH: after the fault latched, the LAUNCH is
+            # refused for it (commands.refused_while_faulted); before, it is
+            # accepted and the fault aborts the flight.
+            c.wait_for(lambda dv: int(dv.get("cn_cmd_seq")) == 2, 30, "the LAUNCH's verdict")
+            if c.tm.get_name("cn_cmd_status") == "ACCEPTED":
+                c.wait_for(lambda dv: dv.get_name("cn_state") == "ABORTED", 30, "ABORTED")
+            else:
+                assert c.tm.get_name("cn_cmd_status") == "REJECTED_NOT_ALLOWED"
+                assert c.tm.get_name("cn_state") == "SAFE"
         tm = c.tm
         assert tm.get_name("cn_fault") == "DN_SAFED"
         safed = [dn for dn in ("dn0", "dn1") if tm.get_name(f"{dn}_safed_why") == "CANNOT_RUN"]
