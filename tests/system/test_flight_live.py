@@ -174,8 +174,13 @@ def test_the_hil_mission_lifts_off_and_burns_out_on_dn0s_serial_board(tmp_path: 
             c.spawn(n)
         c.wait_for(lambda dv: dv.get("dn0_board_received") > 50, 60, "dn0's link up")
         r = _zp("cmd", str(c.path), "launch", "--arm")
-        assert r.returncode == 0 and "ACCEPTED" in r.stdout, r.stdout + r.stderr
-        c.wait_for(seen, 30, "burnout")
+        # A pty stalled past the fault limit before the launch latches the
+        # fault first: the LAUNCH is then refused for it (refused_while_faulted).
+        refused = "a fault is latched" in r.stdout + r.stderr
+        assert refused or (r.returncode == 0 and "ACCEPTED" in r.stdout), r.stdout + r.stderr
+        if not refused:
+            c.wait_for(seen, 30, "burnout")
+        seen(c.tm)
         dv = c.tm
         link = {n: int(dv.get(f"dn0_board_{n}")) for n in
                 ("ok", "sent", "received", "timeouts", "late", "bad_frames", "device_errors",
@@ -193,7 +198,7 @@ def test_the_hil_mission_lifts_off_and_burns_out_on_dn0s_serial_board(tmp_path: 
         assert link["sent"] > 500, link  # 5 s and more of 100 Hz
     else:  # the pty stalled past the fault limit on a loaded host (as in the slow test)
         assert fault == "CONTROLLER_FAILED" and link["timeouts"] >= 25, (fault, link)
-        assert states[-1] == "ABORTED" and "ARMED" in states, states
+        assert (states[-1] == "ABORTED" and "ARMED" in states) or states == ["SAFE"], states
     # Every WRITE answered (the HELLO_ACK is one more frame) or timed out;
     # a timed-out WRITE's answer may still come, counted late.
     answered = link["received"] - 1 - link["late"]
