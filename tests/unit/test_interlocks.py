@@ -211,6 +211,7 @@ def test_check_lists_every_writable_element_and_hazardous_output(
     m = load_mission(FLIGHT)
     writable, outputs = doors(m)
     assert [(w.element, w.states, w.protected) for w in writable] == [
+        ("cn_fault", ["SAFE"], False),  # a fault latched on the pad is cleared there
         ("ekf_mode", ["SAFE"], True),
         ("airbrakes_mode", ["SAFE", "LANDED"], True),
         ("dn1_airbrake_cmd", ["SAFE", "LANDED"], False),
@@ -224,12 +225,12 @@ def test_check_lists_every_writable_element_and_hazardous_output(
     ]
     assert main(["check", str(FLIGHT)]) == 0
     out = capsys.readouterr().out
-    assert "WRITE may set 3 element(s) (commands.writable; deny by default):" in out
+    assert "WRITE may set 4 element(s) (commands.writable; deny by default):" in out
     assert "  airbrakes_mode           in SAFE, LANDED  (ARM n, then WRITE n+1)\n" in out
     assert "  dn0_motor_cmd            dn0: driven only in ARMED; else false\n" in out
     assert main(["check", str(FLIGHT), "--json"]) == 0
     rep = json.loads(capsys.readouterr().out)
-    assert rep["writable"][2] == {
+    assert rep["writable"][3] == {
         "element": "dn1_airbrake_cmd",
         "states": ["SAFE", "LANDED"],
         "protected": False,
@@ -244,12 +245,12 @@ def test_check_refuses_a_flight_event_writable_where_a_transition_reads_it(
     """The issue's first attack as a mission: the shipped flight with its
     apogee flag writable (ABORTED allows WRITE and leaves on ev_apogee)."""
     text = FLIGHT.read_text().replace(
-        "  writable: [ekf_mode, airbrakes_mode, dn1_airbrake_cmd]",
-        "  writable: [ekf_mode, airbrakes_mode, dn1_airbrake_cmd, ev_apogee]",
+        "  writable: [ekf_mode, airbrakes_mode, dn1_airbrake_cmd, cn_fault]",
+        "  writable: [ekf_mode, airbrakes_mode, dn1_airbrake_cmd, cn_fault, ev_apogee]",
     )
     path = tmp_path / "flight.yaml"
     path.write_text(text.replace('pythonpath: [".."]', f"pythonpath: [{str(ROOT)!r}]"))
     assert main(["check", str(path)]) == 2
     err = capsys.readouterr().err
     assert "element 'ev_apogee' is read by a transition of state ABORTED" in err
-    assert err.rstrip().endswith("- at `$.commands.writable[3]`")
+    assert err.rstrip().endswith("- at `$.commands.writable[4]`")

@@ -39,6 +39,12 @@ class Squib(Actuator):
         self.board.set_digital(1, False)
 
 
+def haz() -> dict[str, object]:
+    """A hazardous LAUNCH, and how an operator clears a fault that refuses
+    it (``fault_never_cleared`` otherwise)."""
+    return {"hazardous": ["LAUNCH"], "writable": ["cn_fault"]}
+
+
 def mission(**sections: object) -> dict[str, object]:
     doc: dict[str, object] = {
         "mission": "smells",
@@ -87,7 +93,7 @@ def test_a_plain_write_that_can_enable_a_controller_is_reported() -> None:
     "commands",
     [
         # modes are protected by default then
-        {"hazardous": ["LAUNCH"], "writable": ["vent_mode"]},
+        {"hazardous": ["LAUNCH"], "writable": ["vent_mode", "cn_fault"]},
         {
             "protected": ["vent_mode"],
             "writable": ["vent_mode"],
@@ -109,7 +115,7 @@ def test_without_a_ground_node_no_command_smell() -> None:
 
 
 def test_an_actuator_without_a_safe_value() -> None:
-    doc = mission(commands={"hazardous": ["LAUNCH"]})
+    doc = mission(commands=haz())
     doc["devices"] = [
         {
             "name": "ign",
@@ -138,7 +144,7 @@ def test_pyrotechnic_outputs_need_hazardous_commands() -> None:
     (w,) = warnings_of(doc)
     assert (w.kind, w.path) == ("pyrotechnic_without_hazardous", "$.commands.hazardous")
     assert "(ign, cutter)" in w.message
-    doc["commands"] = {"hazardous": ["LAUNCH"]}
+    doc["commands"] = haz()
     assert warnings_of(doc) == []
 
 
@@ -146,7 +152,7 @@ def test_a_pyrotechnic_mission_whose_control_node_cannot_resume() -> None:
     """Pyrotechnic outputs, one control node and no flight recorder for it: a
     control node lost in flight ends the flight, and one restarted mid-run
     starts over. A recorder (it resumes from it) or a standby closes it."""
-    doc = mission(commands={"hazardous": ["LAUNCH"]})
+    doc = mission(commands=haz())
     doc["devices"][0]["config"]["pyrotechnic"] = True  # type: ignore[index]
     (w,) = warnings_of(doc)
     assert (w.kind, w.path) == ("control_node_cannot_resume", "$.nodes")
@@ -160,7 +166,7 @@ def test_a_hazardous_mission_on_plain_links(
 ) -> None:
     """Plain links are the mission's choice (the flood tests need them), and
     `check` says what it costs; `--strict` refuses it."""
-    doc = mission(commands={"hazardous": ["LAUNCH"]}, security={"transport": "plain"})
+    doc = mission(commands=haz(), security={"transport": "plain"})
     (w,) = warnings_of(doc)
     assert (w.kind, w.path) == ("plain_transport_with_hazardous", "$.security.transport")
     assert "hazardous commands (LAUNCH)" in w.message and "auto" in w.message
@@ -171,7 +177,7 @@ def test_a_hazardous_mission_on_plain_links(
     doc["commands"] = {"protected": ["vent_mode"], "writable": ["vent_mode"]}
     assert warnings_of(doc) == []
     path = tmp_path / "m.yaml"
-    path.write_text(yaml.safe_dump(mission(commands={"hazardous": ["LAUNCH"]})))
+    path.write_text(yaml.safe_dump(mission(commands=haz())))
     assert main(["check", str(path), "--json"]) == 0
     rep = json.loads(capsys.readouterr().out)
     assert (rep["transport"], rep["deployment"]) == ("mtls", None)
@@ -216,7 +222,26 @@ def test_check_prints_warnings_lists_them_in_json_and_strict_fails(
     assert main(["check", str(path), "--strict", "--json"]) == 2
     assert json.loads(capsys.readouterr().out)["ok"] is False
     clean = tmp_path / "clean.yaml"
-    clean.write_text(yaml.safe_dump(mission(commands={"hazardous": ["LAUNCH"]})))
+    clean.write_text(yaml.safe_dump(mission(commands=haz())))
     assert main(["check", str(clean), "--strict"]) == 0
     out, err = capsys.readouterr()
     assert err == "" and "mission smells: OK  (" in out
+
+
+def test_a_fault_no_write_can_clear_refuses_the_launch_until_a_restart() -> None:
+    """LAUNCH is refused while a fault is latched (commands.refused_while_faulted):
+    a mission where no WRITE may clear cn_fault in the states that accept it
+    keeps a pad fault until the control node restarts."""
+    doc = mission(commands={"hazardous": ["LAUNCH"], "whitelist": {"FLIGHT": ["NOOP"]}})
+    (w,) = warnings_of(doc)
+    assert (w.kind, w.path) == ("fault_never_cleared", "$.commands.writable")
+    assert w.message.startswith("a fault latched in SAFE refuses LAUNCH until the control node")
+    assert "write_states: {cn_fault: [SAFE]}" in w.message
+    doc["commands"] = {
+        **haz(),
+        "write_states": {"cn_fault": ["SAFE"]},
+        "whitelist": {"FLIGHT": ["NOOP"]},
+    }
+    assert warnings_of(doc) == []
+    doc["commands"] = {"hazardous": ["LAUNCH"], "refused_while_faulted": []}
+    assert warnings_of(doc) == []  # the mission's choice: LAUNCH is never refused for a fault

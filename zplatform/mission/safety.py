@@ -4,7 +4,8 @@
 :func:`zplatform.mission.load.load_mission` for what the loader cannot refuse (each
 is legal, and sometimes meant) but an operator should know before flight:
 ``unprotected_mode``, ``no_safe_value``, ``pyrotechnic_without_hazardous``,
-``plain_transport_with_hazardous``, ``control_node_cannot_resume``, each a
+``plain_transport_with_hazardous``, ``control_node_cannot_resume``,
+``fault_never_cleared``, each a
 :class:`SafetyWarning` naming its YAML path. :func:`doors` lists what
 ``zplatform check`` prints besides: every element a WRITE may set and every
 hazardous output, each with its states.
@@ -24,7 +25,12 @@ from typing import Literal
 import msgspec
 
 from ..config import CMD_NAMES, Mission
-from ..control.commands import protected_elements, writable_elements, write_states
+from ..control.commands import (
+    protected_elements,
+    refused_while_faulted,
+    writable_elements,
+    write_states,
+)
 from ..control.devices import Actuator
 from ..control.interlocks import safe_value
 from ..core.components import decode_component_config, load_component_class, mission_code_path
@@ -37,6 +43,7 @@ WarningKind = Literal[
     "pyrotechnic_without_hazardous",
     "plain_transport_with_hazardous",
     "control_node_cannot_resume",
+    "fault_never_cleared",
 ]
 
 
@@ -174,6 +181,8 @@ def safety_warnings(mission: Mission) -> list[SafetyWarning]:
                 "(cn_b) or a `recorder:` section (the control node resumes from it)",
             )
         )
+    if has_commands:
+        out.extend(_faults_never_cleared(mission))
     if mission.commands.hazardous and mission.security.transport == "plain":
         out.append(
             SafetyWarning(
@@ -185,4 +194,32 @@ def safety_warnings(mission: Mission) -> list[SafetyWarning]:
                 "TLS with access control) unless the network is closed",
             )
         )
+    return out
+
+
+def _faults_never_cleared(mission: Mission) -> list[SafetyWarning]:
+    """``fault_never_cleared``: a command refused while a fault is latched
+    (``commands.refused_while_faulted``) in a state where no WRITE may clear
+    ``cn_fault``: one fault latched there refuses it until the control node
+    restarts."""
+    sm = mission.state_machine
+    wl = mission.commands.whitelist
+    clear = set(write_states(mission).get("cn_fault", ()))
+    out = []
+    for c in refused_while_faulted(mission):
+        stuck = [
+            s
+            for s in (sm.states if sm is not None else {})
+            if (s not in wl or c in wl[s]) and s not in clear
+        ]
+        if stuck:
+            out.append(
+                SafetyWarning(
+                    "fault_never_cleared",
+                    "$.commands.writable",
+                    f"a fault latched in {', '.join(stuck)} refuses {c} until the control node "
+                    "restarts: no WRITE may clear cn_fault there; list cn_fault in "
+                    f"commands.writable (write_states: {{cn_fault: [{stuck[0]}]}})",
+                )
+            )
     return out
