@@ -737,3 +737,14 @@ def test_refused_while_faulted_names_its_bad_entry(entry: str, why: str) -> None
         Rig(mission(FAULTED + f"  refused_while_faulted: [LAUNCH, {entry}]\n"))
     assert ei.value.path == "$.commands.refused_while_faulted[1]"
     assert why in ei.value.reason
+
+
+def test_a_fault_no_write_may_clear_is_told_so() -> None:
+    """cn_fault not writable where LAUNCH is refused: the reason names the
+    way out (a restart), not a WRITE the CN would refuse."""
+    r = Rig(mission(FAULTED + "  write_states: {cn_fault: [B]}\n"))
+    r.dv.set("cn_fault", r.dv.layout.element("cn_fault").enum.index("DN_LOST"))  # type: ignore[union-attr]
+    assert r.send("ARM", 1) == "ACCEPTED"
+    assert r.send("LAUNCH", 2) == "REJECTED_NOT_ALLOWED"
+    why = [e for e in r.events.drain() if e.id == "cmd_rejected"][-1].text
+    assert "a fault is latched (DN_LOST): no WRITE may clear cn_fault in A: restart" in why

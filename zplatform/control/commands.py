@@ -858,10 +858,16 @@ class CommandHandler:
             fault = int(self._h_fault.get())
             if fault != Fault.NONE:
                 names = self._fault_names
+                may = self._may_write[self._h_fault.spec.index]
+                how = (
+                    "clear cn_fault first (WRITE cn_fault NONE)"
+                    if state < len(may) and may[state]
+                    else f"no WRITE may clear cn_fault in {self._states[state]}: restart the "
+                    "control node (zplatform check: fault_never_cleared)"
+                )
                 return (
                     CommandStatus.REJECTED_NOT_ALLOWED,
-                    f"a fault is latched ({names[fault] if fault < len(names) else fault}): "
-                    "clear cn_fault first (WRITE cn_fault NONE)",
+                    f"a fault is latched ({names[fault] if fault < len(names) else fault}): {how}",
                 )
         slot = self.params.slot(self._g_elem.get()) if cmd == Command.PRM_SET else None
         hazardous = (
