@@ -685,23 +685,30 @@ def test_a_replayed_run_hello_is_answered_once_and_spends_no_more_of_the_bound()
     assert answer is not None and ground.check(answer)
 
 
-def test_a_replayer_of_many_hellos_spends_the_bound_for_one_pass_at_most() -> None:
+def test_a_replayer_of_many_hellos_spends_the_bound_for_one_pass_at_most(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
     """The remaining cost (ClockResponder._answer_hello): a replayer holding
     :data:`HELLO_KEPT` captured hellos has each answered (or refused by the
     bound) once; a second pass is refused whole as replays, without the
     bound, so a ground's hello after the first pass is answered as soon as
     the bound refills (one HELLO_EVERY_NS). A hello pushed out of the ring
-    by HELLO_KEPT newer ones is taken again (the ring's limit)."""
-    from zplatform.runtime.clocksync import HELLO_BURST, HELLO_EVERY_NS, HELLO_KEPT, RunAsker
+    by HELLO_KEPT newer ones is taken again (the ring's limit), shown on a
+    ring of 256 that a test fills twice quickly."""
+    from zplatform.runtime import clocksync
+    from zplatform.runtime.clocksync import HELLO_BURST, HELLO_EVERY_NS, RunAsker
+
+    monkeypatch.setattr(clocksync, "HELLO_KEPT", 256)
+    kept = clocksync.HELLO_KEPT
 
     now = [5 * 10**9]
     cn = _hello_responder(now)
-    captured = [RunAsker(ALL_KEYS.for_node("gn")).hello() for _ in range(HELLO_KEPT)]
+    captured = [RunAsker(ALL_KEYS.for_node("gn")).hello() for _ in range(kept)]
     first = sum(cn.answer(h, 0, 0) is not None for h in captured)
-    assert first == HELLO_BURST and cn.hello_excess == HELLO_KEPT - HELLO_BURST
+    assert first == HELLO_BURST and cn.hello_excess == kept - HELLO_BURST
     stale = cn.stale
     assert all(cn.answer(h, 0, 0) is None for h in captured)
-    assert cn.stale - stale == HELLO_KEPT and cn.hello_excess == HELLO_KEPT - HELLO_BURST
+    assert cn.stale - stale == kept and cn.hello_excess == kept - HELLO_BURST
     now[0] += HELLO_EVERY_NS
     ground = RunAsker(ALL_KEYS.for_node("gn"))
     answer = cn.answer(ground.hello(), 0, 0)
@@ -710,3 +717,28 @@ def test_a_replayer_of_many_hellos_spends_the_bound_for_one_pass_at_most() -> No
     now[0] += HELLO_EVERY_NS
     assert cn.answer(captured[0], 0, 0) is not None
     assert cn.answer(captured[1], 0, 0) is None  # still kept: a replay
+
+
+def test_more_captured_hellos_than_the_old_ring_held_are_answered_one_pass_only() -> None:
+    """Issue 25, left last stop: the ring kept 256 nonces, so a replayer
+    holding more captured hellos pushed its own out and cycled them, each
+    pass spending the bound a ground's hello needs, for as long as it
+    replayed. It keeps 65,536 now: 1,000 captured hellos are answered (or
+    refused by the bound) once, and every later pass is refused whole as
+    replays, the bound untouched."""
+    from zplatform.runtime.clocksync import HELLO_BURST, HELLO_EVERY_NS, HELLO_KEPT, RunAsker
+
+    assert HELLO_KEPT == 65_536
+    now = [5 * 10**9]
+    cn = _hello_responder(now)
+    captured = [RunAsker(ALL_KEYS.for_node("gn")).hello() for _ in range(1000)]
+    first = sum(cn.answer(h, 0, 0) is not None for h in captured)
+    assert first == HELLO_BURST and cn.hello_excess == 1000 - HELLO_BURST
+    for _ in range(3):
+        stale = cn.stale
+        now[0] += HELLO_EVERY_NS  # time passes: the bound would let one through
+        assert all(cn.answer(h, 0, 0) is None for h in captured)
+        assert cn.stale - stale == 1000 and cn.hello_excess == 1000 - HELLO_BURST
+    ground = RunAsker(ALL_KEYS.for_node("gn"))
+    answer = cn.answer(ground.hello(), 0, 0)
+    assert answer is not None and ground.check(answer)

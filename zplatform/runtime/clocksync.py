@@ -346,11 +346,15 @@ not answered before (:class:`ClockResponder`: after the header tag and the
 nonces of :data:`HELLO_KEPT`), so junk never spends it."""
 HELLO_EVERY_NS = 50_000_000
 _HELLO_TAU_NS = (HELLO_BURST - 1) * HELLO_EVERY_NS
-HELLO_KEPT = 256
+HELLO_KEPT = 65_536
 """Nonces of the authentic run hellos a clock server saw last (answered,
-or refused by the rate bound) that it keeps, a preallocated ring: a hello
-carrying one of them (a replay) is refused, counted stale, and spends
-nothing of the bound (:class:`ClockResponder`)."""
+or refused by the rate bound) that it keeps, a preallocated ring (512 KiB
+of references; about 5 MB with its set once full): a hello carrying one of
+them (a replay) is refused, counted stale, and spends nothing of the bound
+(:class:`ClockResponder`). Cycling replays past it takes more distinct
+captured hellos than that, i.e. as many of the askers' (re-)learnings,
+each at most one a :data:`RELEARN_S`: 18 hours of provoking one asker
+(with 256, four minutes)."""
 
 
 _Checked = tuple[int, bytes, int, int]
@@ -590,19 +594,20 @@ class ClockResponder:
         one); then the rate bound (:data:`HELLO_BURST`, GCRA, one
         integer), which only those reach (:attr:`hello_excess`).
 
-        What a replayer of captured hellos can still do: holding at most
-        :data:`HELLO_KEPT` of them, have each answered once, until
+        What a replayer of captured hellos can still do: holding N of them,
+        N at most :data:`HELLO_KEPT`, have each answered once, until
         :data:`HELLO_KEPT` others were seen since (it pushes none out with
-        its own replays): one pass, which keeps the bound spent for at most
-        ``(HELLO_KEPT - HELLO_BURST) * HELLO_EVERY_NS`` (12 s), then a
-        ground's hello (one a :data:`RELEARN_S`) finds the bound free.
-        Holding more, it can cycle them and keep the bound spent for as
-        long as it replays: that takes more than :data:`HELLO_KEPT`
-        distinct hellos, i.e. a watcher of the link for as many of a
-        ground's (re-)learnings, at most one a :data:`RELEARN_S` (minutes
-        of provoking them with another run's telemetry), and it delays only
-        the learning of the run, never the loop. A new control node run (a
-        new responder) starts with an empty ring."""
+        its own replays): one pass, which keeps the bound spent for
+        ``(N - HELLO_BURST) * HELLO_EVERY_NS`` at most (50 ms a captured
+        hello), then a ground's hello (one a :data:`RELEARN_S`) finds the
+        bound free. Holding more, it can cycle them and keep the bound
+        spent for as long as it replays: that takes more than
+        :data:`HELLO_KEPT` distinct hellos, i.e. a watcher of the link for
+        as many of a ground's (re-)learnings, at most one a
+        :data:`RELEARN_S` (18 hours of provoking them with another run's
+        telemetry), and it delays only the learning of the run, never the
+        loop. A new control node run (a new responder) starts with an
+        empty ring."""
         ch = self._hello_open
         try:
             # A hello is shorter than the header tag's bytes (codecs/FORMAT.md
