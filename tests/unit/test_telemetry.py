@@ -272,13 +272,51 @@ def test_a_grounds_log_on_a_full_disk_counts_what_it_loses_and_goes_on(
 ) -> None:
     """/dev/full refuses every write (ENOSPC): the ground's receive path
     never sees the error; each row lost is counted, the spell logged once."""
+    from zplatform.core.events import EventLog
     from zplatform.ground.logger import TelemetryLog
 
+    events = EventLog("gn")
     log = TelemetryLog(dv.layout, "/dev/full", "/dev/full")
     for k in range(3):
         dv.set("cn_loop", k)
         log.snapshot(1000 + k, dv)
+        log.tick(1000 + k, events)
     log.close()
     assert log.errors >= 3
     told = [r for r in caplog.records if "cannot be written" in r.getMessage()]
     assert len(told) == 1
+    # Evented once for the spell, for the operator's console.
+    (e,) = events.drain()
+    assert e.id == "ground_log_failed" and "/dev/full" in e.text and "No space" in e.text
+
+
+def test_a_grounds_log_that_recovers_says_so_once_with_what_it_lost(
+    dv: DataVector, tmp_path: Path
+) -> None:
+    """A spell of failed writes, then a disk that takes them again: one
+    ground_log_failed, then one ground_log_resumed with the count lost."""
+    from zplatform.core.events import EventLog
+    from zplatform.ground.logger import TelemetryLog
+
+    events = EventLog("gn")
+    log = TelemetryLog(dv.layout, tmp_path / "tm.csv", None)
+    csv = log._csv
+    assert csv is not None
+    real = csv.write
+
+    def full(*args: object) -> None:
+        raise OSError(28, "No space left on device")
+
+    csv.write = full  # type: ignore[method-assign]
+    for k in range(4):
+        log.snapshot(1000 + k, dv)
+        log.tick(1000 + k, events)
+    csv.write = real  # type: ignore[method-assign]
+    log.snapshot(2000, dv)
+    log.tick(2000, events)
+    log.snapshot(2001, dv)
+    log.tick(2001, events)
+    log.close()
+    got = [(e.id, e.text) for e in events.drain()]
+    assert [i for i, _ in got] == ["ground_log_failed", "ground_log_resumed"], got
+    assert "4 row(s) or event(s) lost from it so far" in got[1][1]

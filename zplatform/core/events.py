@@ -517,6 +517,19 @@ class EV:
         "{node}: telemetry falls back to zenoh: {why} ({fallbacks} fallback(s) so far; "
         "iceoryx2 is taken again when its frames come)",
     )
+    GROUND_LOG_FAILED = EventType(
+        133,
+        "ground_log_failed",
+        Severity.WARNING_LO,
+        "the ground's log ({path}) cannot be written: {error}; what it cannot take is counted "
+        "and lost from it (the archive keeps its own copy)",
+    )
+    GROUND_LOG_RESUMED = EventType(
+        134,
+        "ground_log_resumed",
+        Severity.ACTIVITY_LO,
+        "the ground's log ({path}) is written again: {lost} row(s) or event(s) lost from it so far",
+    )
     TM_NEW_TERM = EventType(
         76,
         "tm_new_term",

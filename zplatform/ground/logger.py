@@ -12,8 +12,10 @@ from __future__ import annotations
 
 import logging
 from pathlib import Path
+from typing import Any
 
 from ..core.datavector import DataVector, Layout
+from ..core.events import EV, EventLog, EventType
 from ..telemetry.logs import CsvLogger, EventWriter, events_path
 from ..telemetry.records import EventRecord
 from ..telemetry.summary import GnSummary
@@ -34,9 +36,10 @@ class TelemetryLog:
     a ground or station killed with SIGKILL loses no row it took, and
     ``tail -f`` shows the last). A file that cannot take a row or an event
     (a full or failing disk) never stops the ground: each one lost is
-    counted (:attr:`errors`), the first of a spell and the recovery logged,
+    counted (:attr:`errors`), the first of a spell and the recovery logged
+    and evented (:meth:`tick`: ``ground_log_failed``, ``ground_log_resumed``),
     and the next is tried again (the archive keeps its own copy).
-    :meth:`close` closes them, idempotent."""
+    :meth:`close` closes them, idempotent. One thread writes and ticks."""
 
     def __init__(
         self,
@@ -53,6 +56,8 @@ class TelemetryLog:
         self.errors = 0
         """Rows and events the files could not take (class doc)."""
         self._failing = False
+        # What tick() tells the ground's event log: a spell's start and end.
+        self._notes: list[tuple[EventType, dict[str, Any]]] = []
 
     @classmethod
     def beside(cls, layout: Layout, csv: str | Path | None) -> TelemetryLog:
@@ -88,20 +93,34 @@ class TelemetryLog:
             if self._failing:
                 self._recovered()
 
+    def tick(self, now_ns: int, events: EventLog) -> None:
+        """Tell ``events`` (the ground's) a spell of failed writes as it
+        starts and as it ends, once each (class doc). Never raises."""
+        notes = self._notes
+        if notes:
+            for ev, args in notes:
+                events.emit(ev, now_ns, **args)
+            notes.clear()
+
     def _failed(self, exc: OSError) -> None:
         self.errors += 1
         if not self._failing:
             self._failing = True
+            path = str(self.csv_path or self.events_path)
+            error = str(exc.strerror or exc)[:200]
             log.warning(
                 "the ground's log (%s) cannot be written: %s; what it cannot take is counted "
                 "and lost from it (the archive keeps its own copy)",
-                self.csv_path or self.events_path,
-                exc.strerror or exc,
+                path,
+                error,
             )
+            self._notes.append((EV.GROUND_LOG_FAILED, {"path": path, "error": error}))
 
     def _recovered(self) -> None:
         self._failing = False
         log.warning("the ground's log is written again, %d row(s) or event(s) lost", self.errors)
+        path = str(self.csv_path or self.events_path)
+        self._notes.append((EV.GROUND_LOG_RESUMED, {"path": path, "lost": self.errors}))
 
     def close(self) -> None:
         for f in (self._csv, self._events):

@@ -124,6 +124,7 @@ def run_ground_logger(
             if duration_s is not None and time.monotonic() - start >= duration_s:
                 break
             t = link.next(0.2 if fill is None or not fill.busy else 0.02)
+            tlog.tick(link.clock.now_ns(), logic.events)
             if arch is not None:
                 arch.tick(link.clock.now_ns(), logic.events)
             if fill is not None:
