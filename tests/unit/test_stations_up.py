@@ -200,6 +200,7 @@ def test_a_restarted_station_keeps_what_its_earlier_process_wrote(
 
     import zplatform.node.ground as node_ground
     from zplatform.core.datavector import DataVector, Layout
+    from zplatform.core.events import EventLog
     from zplatform.node.ground import run_station
     from zplatform.runtime.process import StopFlag
     from zplatform.telemetry.logs import read_csv
@@ -224,6 +225,7 @@ def test_a_restarted_station_keeps_what_its_earlier_process_wrote(
                 counters=counters,
                 player=None,
                 finish=lambda t: None,
+                events=EventLog("gn"),  # the ground's own events (its log's, its archive's)
             )
             self.clock = SimpleNamespace(now_ns=lambda: 0)
             self.on_event: Any = None
