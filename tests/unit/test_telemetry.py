@@ -320,3 +320,30 @@ def test_a_grounds_log_that_recovers_says_so_once_with_what_it_lost(
     got = [(e.id, e.text) for e in events.drain()]
     assert [i for i, _ in got] == ["ground_log_failed", "ground_log_resumed"], got
     assert "4 row(s) or event(s) lost from it so far" in got[1][1]
+
+
+def test_a_full_csv_beside_an_events_file_that_takes_writes_is_one_spell(
+    dv: DataVector, tmp_path: Path
+) -> None:
+    """Each file has its own spell: the events file taking its writes does
+    not end the CSV's (before, one flag for both ended and started a spell
+    at every row: an event pair per snapshot on the console)."""
+    from zplatform.core.events import EventLog
+    from zplatform.ground.logger import TelemetryLog
+
+    events = EventLog("gn")
+    log = TelemetryLog(dv.layout, tmp_path / "tm.csv", tmp_path / "tm.events.jsonl")
+    csv = log._csv
+    assert csv is not None
+
+    def full(*args: object) -> None:
+        raise OSError(28, "No space left on device")
+
+    csv.write = full  # type: ignore[method-assign]
+    for k in range(5):
+        log.snapshot(1000 + k, dv)
+        log.event(EventRecord(1000 + k, "cn", k, k, "INFO", "cmd_accepted", f"ev {k}"))
+        log.tick(1000 + k, events)
+    log.close()
+    assert [e.id for e in events.drain()] == ["ground_log_failed"]
+    assert log.errors == 5 and log.event_count == 5

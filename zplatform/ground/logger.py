@@ -55,7 +55,10 @@ class TelemetryLog:
         self.events_path = Path(events) if events is not None else None
         self.errors = 0
         """Rows and events the files could not take (class doc)."""
-        self._failing = False
+        # The file each spell of failed writes is on (a path in it: failing),
+        # each its own: a full CSV beside an events file that still takes
+        # writes must not end and start a spell at every row.
+        self._failing: set[str] = set()
         # What tick() tells the ground's event log: a spell's start and end.
         self._notes: list[tuple[EventType, dict[str, Any]]] = []
 
@@ -78,20 +81,20 @@ class TelemetryLog:
                 self._csv.write(rx_ns, dv)
                 self._csv.flush()
             except OSError as exc:
-                self._failed(exc)
+                self._failed(str(self.csv_path), exc)
                 return
             if self._failing:
-                self._recovered()
+                self._recovered(str(self.csv_path))
 
     def event(self, rec: EventRecord) -> None:
         if self._events is not None:
             try:
                 self._events.write(rec)
             except OSError as exc:
-                self._failed(exc)
+                self._failed(str(self.events_path), exc)
                 return
             if self._failing:
-                self._recovered()
+                self._recovered(str(self.events_path))
 
     def tick(self, now_ns: int, events: EventLog) -> None:
         """Tell ``events`` (the ground's) a spell of failed writes as it
@@ -102,11 +105,10 @@ class TelemetryLog:
                 events.emit(ev, now_ns, **args)
             notes.clear()
 
-    def _failed(self, exc: OSError) -> None:
+    def _failed(self, path: str, exc: OSError) -> None:
         self.errors += 1
-        if not self._failing:
-            self._failing = True
-            path = str(self.csv_path or self.events_path)
+        if path not in self._failing:
+            self._failing.add(path)
             error = str(exc.strerror or exc)[:200]
             log.warning(
                 "the ground's log (%s) cannot be written: %s; what it cannot take is counted "
@@ -116,20 +118,25 @@ class TelemetryLog:
             )
             self._notes.append((EV.GROUND_LOG_FAILED, {"path": path, "error": error}))
 
-    def _recovered(self) -> None:
-        self._failing = False
-        log.warning("the ground's log is written again, %d row(s) or event(s) lost", self.errors)
-        path = str(self.csv_path or self.events_path)
+    def _recovered(self, path: str) -> None:
+        if path not in self._failing:
+            return
+        self._failing.discard(path)
+        log.warning(
+            "the ground's log (%s) is written again, %d row(s) or event(s) lost",
+            path,
+            self.errors,
+        )
         self._notes.append((EV.GROUND_LOG_RESUMED, {"path": path, "lost": self.errors}))
 
     def close(self) -> None:
-        for f in (self._csv, self._events):
+        for f, path in ((self._csv, self.csv_path), (self._events, self.events_path)):
             if f is None:
                 continue
             try:
                 f.close()
             except OSError as exc:  # the last buffered bytes: a full disk at the end
-                self._failed(exc)
+                self._failed(str(path), exc)
 
 
 def log_summary_line(s: GnSummary, csv: str | Path | None, events: str | Path | None) -> str:
