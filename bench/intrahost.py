@@ -53,6 +53,11 @@ frame-sized figure is a copy), ``memcpy_bytes`` (the copies the path
 makes, the encode's included, counted), and the one-way time from the
 encode until the frame is in the array (p50/p99, no pacing, no wake-up:
 the copies' and the tag's cost).
+
+``--misses`` (results: ``bench/results/intrahost_misses.json``, about 10 s):
+what a reply that never comes costs the control node, per deadline (0.5,
+2 and 10 ms), beside a bare listener's own ``timed_wait`` of the same
+length (:func:`run_misses`).
 """
 
 from __future__ import annotations
@@ -350,6 +355,9 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         help="SCHED_FIFO priority of this process and the responders (0: off), as bench.sync",
     )
     ap.add_argument("--copies", action="store_true", help="one hop's copies alone (module doc)")
+    ap.add_argument(
+        "--misses", action="store_true", help="what a reply that never comes costs (module doc)"
+    )
     ap.add_argument("--role", help=argparse_hidden())
     ap.add_argument("--variant", help=argparse_hidden())
     args = ap.parse_args(argv)
@@ -371,6 +379,16 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
             args.json,
         )
         return doc
+
+    if args.misses:
+        count = 10 if args.quick else 40
+        rows = run_misses(MISS_DEADLINES_S, count)
+        return write_result(
+            "intrahost_misses",
+            {"deadlines_s": MISS_DEADLINES_S, "count": count, "notes": [run_misses.__doc__]},
+            rows,
+            args.json,
+        )
 
     rounds = 2 if args.quick else ROUNDS
     from bench.sync import inherit_fifo
@@ -583,6 +601,66 @@ def _exchange_many(askers: list[_Asker], n: int) -> int | None:
 
 
 COPY_SIZES = {"325KB": 325_000, "4MB": 4_000_000}
+
+
+MISS_DEADLINES_S = (0.0005, 0.002, 0.01)
+
+
+def run_misses(deadlines_s: tuple[float, ...], count: int) -> dict[str, dict[str, Any]]:
+    """What a reply that never comes costs (``--misses``): per deadline,
+    ``carrier_<ms>`` times :meth:`IntraHostClient.exchange
+    <zplatform.runtime.intrahost.IntraHostClient.exchange>` with that
+    deadline against a server attached that never replies (a device node
+    hung: trigger, send, wait, the miss counted), and
+    ``listener_timed_wait_<ms>`` a bare iceoryx2 listener's own
+    ``timed_wait`` of the same duration, nothing notifying it (the way the
+    carrier waited before: the socket's SO_RCVTIMEO, counted in the
+    kernel's jiffies). ``over_deadline``: each p50 over the deadline. One
+    process, interleaved, this run's prefix removed after; blocks about
+    ``count`` x the deadlines' sum x 5."""
+    from zplatform.runtime.intrahost import IntraHostClient, IntraHostServer, link_names
+
+    names = link_names(f"misses{os.getpid()}", "bench", "m", "cn", "dn0")
+    server = IntraHostServer(names, 64, 64, prefix=PREFIX, check=False)
+    client = IntraHostClient(names, 64, 64, prefix=PREFIX, check=False, stall_after=1 << 30)
+    iox, _node, _svc, ev, _res = _iox_services(PREFIX, _raw_name(os.getpid(), "misses", None))
+    listener = ev.listener_builder().create()
+    rows: dict[str, dict[str, Any]] = {}
+    try:
+        for d in deadlines_s:
+            label = f"{d * 1e3:g}ms"
+            client.set_deadline(d)
+            dur = iox.Duration.from_secs_f64(d)
+            samples: dict[str, list[int]] = {"carrier": [], "listener_timed_wait": []}
+            for _ in range(count):
+                view = client.trigger(8)
+                assert view is not None, "no loan for the trigger"
+                view[:] = bytes(8)
+                t0 = time.perf_counter_ns()
+                got = client.exchange()
+                samples["carrier"].append(time.perf_counter_ns() - t0)
+                assert got is None, "the server never replies"
+                server.poll()  # take the trigger, as a hung DN's queue would hold it
+                t0 = time.perf_counter_ns()
+                listener.timed_wait(dur)
+                samples["listener_timed_wait"].append(time.perf_counter_ns() - t0)
+            for what, xs in samples.items():
+                fig = summarize(xs)
+                fig["over_deadline"] = round(fig["p50_us"] / (d * 1e6), 2)
+                rows[f"{what}_{label}"] = fig
+    finally:
+        del listener
+        client.close()
+        server.close()
+    from zplatform.runtime.intrahost import remove_stale
+
+    remove_stale(PREFIX)
+    for path in _own_files():
+        try:
+            os.unlink(path)
+        except OSError:
+            pass
+    return rows
 
 
 def run_copies(sizes: dict[str, int], count: int) -> dict[str, dict[str, Any]]:

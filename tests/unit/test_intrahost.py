@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import os
 import threading
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 
 import pytest
 
@@ -394,6 +394,81 @@ def test_a_signal_during_a_wait_ends_it_without_raising(prefix: str) -> None:
     finally:
         signal.setitimer(signal.ITIMER_REAL, 0)
         signal.signal(signal.SIGALRM, old)
+        server.close()
+
+
+def _ends(wait: Callable[[], object]) -> bool:
+    """Whether ``wait()`` returns on its own, within 20 s (it takes at most
+    a few ms when it honours its timeout). A wait that does not is ended by
+    a signal to its thread, so the test fails instead of hanging."""
+    import signal
+
+    old = signal.signal(signal.SIGALRM, lambda *_: None)
+    t = threading.Thread(target=wait, daemon=True)
+    try:
+        t.start()
+        t.join(20.0)
+        ended = not t.is_alive()
+        while t.is_alive():
+            signal.pthread_kill(t.ident or 0, signal.SIGALRM)  # EINTR ends the wait
+            t.join(0.1)
+        return ended
+    finally:
+        signal.signal(signal.SIGALRM, old)
+
+
+@pytest.mark.parametrize("timeout_s", [5e-7, 0.0, -1.0])
+def test_a_wait_of_under_a_microsecond_ends(prefix: str, timeout_s: float) -> None:
+    """A deadline's last sliver: iceoryx2's listener timed_wait read one
+    under a microsecond as 0, which the kernel takes for forever: a device
+    node blocked until its next trigger, and for good once its control node
+    had gone (it then outlived its SIGTERM; CI saw it)."""
+    names = link_names("sliver", "rocket", 1, "cn", "dn0")
+    server = IntraHostServer(names, 64, 64, prefix=prefix, check=False)
+    name = "zplatform/sliver/rocket/x/cn/gn/telemetry"
+    sub = intrahost.IntraHostSubscriber(name, 64, 1, prefix=prefix, wake=True)
+    try:
+        assert _ends(lambda: server.block(timeout_s))
+        assert _ends(lambda: server.wait(timeout_s))
+        assert _ends(lambda: sub.wait(timeout_s))
+    finally:
+        sub.close()
+        server.close()
+
+
+def test_a_reply_deadline_that_ends_in_a_sliver_is_kept(
+    prefix: str, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The control node's collect, its deadline's last sliver under a
+    microsecond and no reply coming (a dead device node): a miss, counted,
+    never a loop blocked for good. Its clock is stepped by 0.1 µs a reading,
+    so the sliver comes every time."""
+    import time as real_time
+    from types import SimpleNamespace
+
+    names = link_names("sliverc", "rocket", 1, "cn", "dn0")
+    server = IntraHostServer(names, 64, 64, prefix=prefix, check=False)
+    client = IntraHostClient(names, 64, 64, prefix=prefix, deadline_s=1e-6)
+    now = [1000.0]
+
+    def monotonic() -> float:
+        now[0] += 1e-7
+        return now[0]
+
+    monkeypatch.setattr(
+        intrahost, "time", SimpleNamespace(monotonic=monotonic, sleep=real_time.sleep)
+    )
+    got: list[object] = []
+    try:
+        view = client.trigger(7)
+        assert view is not None
+        view[:] = b"trigger"
+        assert client.send()
+        assert _ends(lambda: got.append(client.collect()))
+        assert got == [None]
+        assert (client.sent, client.replies, client.timeouts) == (1, 0, 1)
+    finally:
+        client.close()
         server.close()
 
 

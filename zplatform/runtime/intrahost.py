@@ -5,8 +5,8 @@ samples, over iceoryx2 shared memory between nodes of one host.
 DN's) move bytes only: frames, tags and freshness stay the sync's
 (``zplatform/runtime/sync.py``). Each link is one request/response service
 and two event services that wake the other side (request/response ports
-cannot join a wait set); each side blocks in its listener with a deadline,
-never spinning. A timeout is "no reply", counted; :attr:`IntraHostClient.state`
+cannot join a wait set); each side blocks on its listener with a deadline
+(:class:`_Waiter`), never spinning. A timeout is "no reply", counted; :attr:`IntraHostClient.state`
 says when the link has no peer or has stalled, so the sync falls back to zenoh.
 :class:`IntraHostPublisher`/:class:`IntraHostSubscriber`: a publish/subscribe
 service, a bulk channel's (:func:`bulk_service_name`, ``bulk.py``) or the telemetry's
@@ -354,6 +354,7 @@ class _End:
             port = make()
             self._notifier = notify.notifier_builder().create()
             self._listener = listen.listener_builder().create()
+            self._waiter = _Waiter(self._iox, self._listener)
         except Exception as exc:
             raise IntraHostError(f"intra-host link {self.names.sync}: no {what} ({exc!r})") from exc
         return port
@@ -361,24 +362,64 @@ class _End:
     def close(self) -> None:
         """Drop every port, then the services, then the node (shared memory
         goes with its last holder). Idempotent."""
+        waiter = self.__dict__.pop("_waiter", None)
+        if waiter is not None:
+            waiter.close()
         for attr in ("_client", "_server", "_notifier", "_listener"):
             self.__dict__.pop(attr, None)
         for attr in ("_req_ev", "_res_ev", "_service", "_node"):
             self.__dict__.pop(attr, None)
 
 
-def _wait(listener: Any, duration: Any) -> None:
-    """``listener.timed_wait(duration)``; a signal that interrupts it (the
-    node's SIGTERM handler ran: iceoryx2's ListenerWaitError InterruptSignal)
-    ends the wait early instead of raising, as a spurious wake-up: every
-    caller checks its deadline and what arrived after a wait."""
-    try:
-        listener.timed_wait(duration)
-    except Exception as exc:  # iceoryx2's ListenerWaitError
-        if "Interrupt" not in repr(exc):
-            # A broken listener returns at once, every time: pause, never spin
-            # (the caller's deadline still ends its wait).
+class _Waiter:
+    """A blocking wait on one listener with a timeout, through an iceoryx2
+    ``WaitSet`` (epoll) the listener is attached to, never the listener's own
+    ``timed_wait``.
+
+    Why: in iceoryx2 0.10 ``Listener.timed_wait`` hands its timeout to the
+    socket's SO_RCVTIMEO, which the kernel counts in whole jiffies (4 ms at
+    HZ=250) from whole microseconds. A 2 ms deadline waited 8 ms, and a wait
+    of under a microsecond (a deadline's last sliver) became 0, which the
+    kernel reads as *forever*: a device node blocked there until its next
+    trigger, and for good once the control node had gone. The WaitSet waits
+    in milliseconds rounded up (2 ms takes 2.1 ms; a sliver, 1 ms); its own
+    signal handling is off, so a node's SIGTERM handler ends a wait early
+    (epoll's EINTR), as a spurious wake-up. Every caller checks its deadline
+    and what arrived after a wait. Never raises.
+    """
+
+    def __init__(self, iox: Any, listener: Any) -> None:
+        self._listener = listener
+        self._duration = iox.Duration.from_secs_f64
+        self._ws = (
+            iox.WaitSetBuilder.new()
+            .signal_handling_mode(iox.SignalHandlingMode.Disabled)
+            .create(iox.ServiceType.Ipc)
+        )
+        self._guard = self._ws.attach_notification(listener)
+
+    def wait(self, duration: Any) -> None:
+        """Block until the listener is notified or ``duration`` (an iceoryx2
+        Duration) passes; returns at once if a notification is pending, and
+        consumes what is pending when it returns."""
+        try:
+            ids, _result = self._ws.wait_and_process_with_timeout(duration)
+            if ids:
+                self._listener.try_wait()  # consumed: the next wait blocks again
+        except Exception:  # WaitSetRunError / ListenerWaitError: a broken reactor
+            # It returns at once, every time: pause, never spin (the
+            # caller's deadline still ends its wait).
             time.sleep(0.001)
+
+    def wait_s(self, seconds: float) -> None:
+        """:meth:`wait` for ``seconds``; returns at once when it is <= 0."""
+        if seconds > 0:
+            self.wait(self._duration(seconds))
+
+    def close(self) -> None:
+        """Detach before the listener goes (the guard, then the set). Idempotent."""
+        self.__dict__.pop("_guard", None)
+        self.__dict__.pop("_ws", None)
 
 
 def _view(ptr: int, n: int) -> memoryview:
@@ -529,7 +570,7 @@ class IntraHostClient(_End):
                 del pending
                 self._missed()
                 return None
-            _wait(self._listener, wait)
+            self._waiter.wait(wait)
             # Woken by an earlier, late reply's event: wait out what is left.
             wait = self._iox.Duration.from_secs_f64(max(0.0, t_end - time.monotonic()))
         n = response.header.number_of_elements
@@ -639,7 +680,6 @@ class IntraHostServer(_End):
         ``timeout_s``; never spins."""
         self._active = self._loan = self._held = None
         t_end = time.monotonic() + timeout_s
-        iox = self._iox
         while True:
             request = None
             while (newer := self._server.receive()) is not None:
@@ -657,7 +697,7 @@ class IntraHostServer(_End):
             left = t_end - time.monotonic()
             if left <= 0:
                 return None
-            _wait(self._listener, iox.Duration.from_secs_f64(left))
+            self._waiter.wait_s(left)
 
     def poll(self) -> memoryview | None:
         """:meth:`wait` without waiting: the newest trigger queued, or None."""
@@ -667,7 +707,7 @@ class IntraHostServer(_End):
         """Wait until any notification on the trigger event (a trigger, or a
         :meth:`waker`'s) or ``timeout_s``; returns at once if one is pending.
         Never spins. Then :meth:`poll`: the wake may be for something else."""
-        _wait(self._listener, self._iox.Duration.from_secs_f64(max(0.0, timeout_s)))
+        self._waiter.wait_s(timeout_s)
 
     def waker(self) -> Callable[[], None]:
         """A function that wakes :meth:`block` (another notifier on the
@@ -802,6 +842,9 @@ class _PubSub:
 
     def close(self) -> None:
         """Drop the ports, the services, the node. Idempotent."""
+        waiter = self.__dict__.pop("_waiter", None)
+        if waiter is not None:
+            waiter.close()
         for attr in ("_port", "_sample", "_notifier", "_listener", "_wake", "_service", "_node"):
             self.__dict__.pop(attr, None)
 
@@ -904,6 +947,7 @@ class IntraHostSubscriber(_PubSub):
         try:
             self._port = self._service.subscriber_builder().buffer_size(buffer).create()
             self._listener = self._wake.listener_builder().create() if wake else None
+            self._waiter = _Waiter(self._iox, self._listener) if wake else None
         except Exception as exc:
             raise IntraHostError(f"intra-host pub/sub {name}: no subscriber ({exc!r})") from exc
         self._sample: Any = None
@@ -946,11 +990,11 @@ class IntraHostSubscriber(_PubSub):
         ``timeout_s``; returns at once if one is pending. Never spins; a
         subscriber opened without ``wake`` sleeps ``timeout_s``. Then
         :meth:`receive_next` until None."""
-        listener = self._listener
-        if listener is None:
-            time.sleep(timeout_s)
+        waiter = self._waiter
+        if waiter is None:
+            time.sleep(max(0.0, timeout_s))
             return
-        _wait(listener, self._iox.Duration.from_secs_f64(max(0.0, timeout_s)))
+        waiter.wait_s(timeout_s)
 
     def release(self) -> None:
         """Give the sample back (its view must not be used after)."""
