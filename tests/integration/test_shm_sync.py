@@ -131,6 +131,37 @@ def test_the_sync_takes_shared_memory_once_a_reply_passed_the_intake(pair: Pair)
     assert pair.cs.paths() == ["shm"]
 
 
+def test_the_shared_memory_path_marks_the_trace_points_with_its_frames(pair: Pair) -> None:
+    """bench.bandwidth sizes its raw floors, and bench.frame_trace splits a
+    loop, from these points: unmarked over shared memory, the floors moved
+    0-byte frames beside a 100,000-element point."""
+    from zplatform import trace
+
+    assert pair.loop(1)  # zenoh's first reply puts the link on shared memory
+    ring = trace.Ring(256)
+    trace.install(ring)
+    served = threading.Thread(target=pair.ds.wait, args=(pair.dn, 10.0))
+    served.start()
+    try:
+        frames = pair.cs.begin(pair.cn, 2, T0 + 2 * PERIOD)
+        trigger = len(frames[0])
+        pair.cs.sync(frames, pair.cn)
+    finally:
+        trace.uninstall()
+        served.join()
+    assert pair.cn.pending == 0 and pair.link.client.replies == 2
+    marks = [(name, n, v) for name, n, v, _t in ring.records() if name.startswith("sync.")]
+    reply = marks[2][2]  # the reply's length: a whole frame, within the link's bound
+    assert pair.sizes[1] - 8 <= reply <= pair.sizes[1]
+    assert marks == [
+        ("sync.issued", 0, trigger),
+        ("sync.sent", 0, 0),
+        ("sync.back", 0, reply),
+        ("sync.shm", 0, 0),
+        ("sync.taken", 0, 0),
+    ]
+
+
 def test_a_dead_shm_server_falls_back_to_zenoh_in_the_same_loop_and_returns(
     pair: Pair, monkeypatch: pytest.MonkeyPatch
 ) -> None:

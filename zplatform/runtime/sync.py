@@ -749,6 +749,7 @@ class ControlSync:
         sent = self._sent_shm
         sent.clear()
         trace = self._trace
+        tr = tracer.tracer
         chosen, lent = self._chosen, self._lent
         for i, link in enumerate(self.shm):
             if link is None:
@@ -772,6 +773,8 @@ class ControlSync:
                 lent[i] = None  # its frame is its own: the tap may read it
             if trace is not None:
                 trace("issued", i)
+            if tr is not None:
+                tr.mark("sync.issued", i, len(frame))
             if not client.send():
                 link.no_peer(
                     "no shared-memory server"
@@ -783,6 +786,8 @@ class ControlSync:
                     lent[i] = None
                     frames[i] = logic.trigger_frame(i)
                 continue
+            if tr is not None:
+                tr.mark("sync.sent", i)
             sent.append(i)
         return len(self.dns) - len(sent)
 
@@ -791,6 +796,7 @@ class ControlSync:
         (:class:`~zplatform.control.intake.ReplyCheck`: size, tag, the loop
         asked), to ``logic.reply``, waiting at most until ``deadline``."""
         got, checks = self._got, self._checks
+        tr = tracer.tracer
         for i in self._sent_shm:
             link = self.shm[i]
             assert link is not None
@@ -802,6 +808,10 @@ class ControlSync:
                 continue
             if trace is not None:
                 trace("taken", i)
+            if tr is not None:  # as zenoh's reply path marks them (bench.frame_trace)
+                tr.mark("sync.back", i, len(reply))
+                tr.mark("sync.shm", i)
+                tr.mark("sync.taken", i)
             # Checked in place (size, tag, the loop asked), no copy; the
             # logic decodes it from shared memory into the Data Vector (the
             # reply's one copy), then the sample goes back.
