@@ -54,15 +54,15 @@ Blocks for a few minutes (``--quick``: about 3 min with both MACs): each
 point runs ``--seconds`` (quick 5, full 15) per MAC plus its start-up (a
 100k-element mission takes each process about 10-20 s to load).
 
-``--intra-host shm|both`` runs the element points (also) with the sync
-over iceoryx2 (``zp_<N>el_<D>dn_shm_<M>``, ``transport.intra_host: shm``)
-beside a ``raw_iceoryx2_1x<S>B`` floor (:func:`bench.intrahost.run_raw`,
-1 DN), and its target: the 100,000-element point with 0 missed loops and a
-p50 within 1.15x of raw iceoryx2. ``--bulk N`` adds the 4 MB bulk one-way
-rows (``bulk_<variant>_4MB``, :func:`bench.intrahost.run_bulk`: zplatform
-over iceoryx2 and over zenoh, tagged and checked as a node's samples
-are, raw iceoryx2, raw zenoh; N samples each at 20 Hz) and
-``params.bulk_4MB_ratios``.
+``--intra-host shm|both`` runs the element points (also) with the sync over
+iceoryx2 (``zp_<N>el_<D>dn_shm_<M>``, ``transport.intra_host: shm``) beside
+a ``raw_iceoryx2_<D>x<S>B`` floor (:func:`bench.intrahost.run_raw`, or
+``run_raw_many`` for several DNs), and its target: the 100,000-element point
+with 0 missed loops and a p50 within 1.15x of raw iceoryx2. ``--bulk N``
+adds the 4 MB bulk one-way rows (``bulk_<variant>_4MB``,
+:func:`bench.intrahost.run_bulk`: zplatform over iceoryx2 and over zenoh,
+tagged and checked as a node's samples are, raw iceoryx2, raw zenoh; N
+samples each at 20 Hz) and ``params.bulk_4MB_ratios``.
 
 Run ``python -m bench.bandwidth [--quick] [--json PATH] [--macs blake3,hmac]
 [--counts N,...] [--splits D,...] [--regions B,...] [--seconds S] [--no-rates]
@@ -282,22 +282,28 @@ def run_point(
     return fig
 
 
-def run_floor_iceoryx2(size: int, rate_hz: float, duration_s: float) -> dict[str, Any]:
-    """The same bytes by bare iceoryx2 request/response (one responder,
-    ``size`` B each way, :func:`bench.intrahost.run_raw`): the floor of an
-    intra-host point."""
-    from bench.intrahost import run_raw
+def run_floor_iceoryx2(size: int, rate_hz: float, duration_s: float, n: int = 1) -> dict[str, Any]:
+    """The same bytes by bare iceoryx2 request/response, ``size`` B each way:
+    one responder (:func:`bench.intrahost.run_raw`) or ``n``, each on a
+    service of its own, every request sent before any reply is collected,
+    as the sync does (:func:`bench.intrahost.run_raw_many`): the floor of
+    an intra-host point with ``n`` DNs."""
+    from bench.intrahost import run_raw, run_raw_many
 
     deadline_ns = round(min(DEADLINE_MS, 0.5 * 1e3 / rate_hz) * 1e6)
-    res = run_raw("raw_iceoryx2", size, max(1, round(duration_s * rate_hz)), 1.0 / rate_hz)
+    count = max(1, round(duration_s * rate_hz))
+    if n == 1:
+        res = run_raw("raw_iceoryx2", size, count, 1.0 / rate_hz)
+    else:
+        res = run_raw_many(n, size, count, 1.0 / rate_hz)
     fig = summarize(res["samples_ns"], deadline_ns)
     fig["missed"] = res["lost"] + int(
         np.count_nonzero(np.asarray(res["samples_ns"]) >= deadline_ns)
     )
     fig["cpu_us_per_exchange"] = round(res["cpu_s"] / max(1, fig["msgs"]) * 1e6, 1)
-    fig["n_dn"] = 1
+    fig["n_dn"] = n
     fig["frame_bytes_max"] = size
-    fig["bytes_per_loop"] = 2 * size
+    fig["bytes_per_loop"] = 2 * n * size
     fig["transport"] = "raw_iceoryx2"
     return fig
 
@@ -590,10 +596,10 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         )
         floors(d, int(fig["frame_bytes_max"]))
         size = int(fig["frame_bytes_max"])
-        iox_floor = f"raw_iceoryx2_1x{size}B"
-        if ih == "shm" and d == 1 and not args.no_floors and iox_floor not in variants:
-            print(f"  floor raw_iceoryx2 1x{size}B ...", flush=True)
-            variants[iox_floor] = run_floor_iceoryx2(size, RATE_HZ, min(seconds, 10.0))
+        iox_floor = f"raw_iceoryx2_{d}x{size}B"
+        if ih == "shm" and not args.no_floors and iox_floor not in variants:
+            print(f"  floor raw_iceoryx2 {d}x{size}B ...", flush=True)
+            variants[iox_floor] = run_floor_iceoryx2(size, RATE_HZ, min(seconds, 10.0), d)
     if args.bulk:
         from bench.intrahost import run_bulk
 
