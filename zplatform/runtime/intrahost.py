@@ -6,11 +6,11 @@ DN's) move bytes only: frames, tags and freshness stay the sync's
 (``zplatform/runtime/sync.py``). Each link is one request/response service
 and two event services that wake the other side (request/response ports
 cannot join a wait set); each side blocks on its listener with a deadline
-(:class:`_Waiter`), never spinning. A timeout is "no reply", counted; :attr:`IntraHostClient.state`
-says when the link has no peer or has stalled, so the sync falls back to zenoh.
-:class:`IntraHostPublisher`/:class:`IntraHostSubscriber`: a publish/subscribe
-service, a bulk channel's (:func:`bulk_service_name`, ``bulk.py``) or the telemetry's
-(:func:`telemetry_service_name`, ``tmiox.py``).
+(:class:`_Waiter`), never spinning. A timeout is "no reply", counted;
+:attr:`IntraHostClient.state` says when the link has no peer or has stalled,
+so the sync falls back to zenoh. :class:`IntraHostPublisher`/:class:`IntraHostSubscriber`:
+a publish/subscribe service, a bulk channel's (:func:`bulk_service_name`,
+``bulk.py``) or the telemetry's (:func:`telemetry_service_name`, ``tmiox.py``).
 
 Copies per hop: the sender encodes into the loan, the receiver checks it in
 place and copies once. Names (:func:`sync_link_names`: one kernel and network
@@ -378,11 +378,13 @@ class _Waiter:
 
     Why: in iceoryx2 0.10 ``Listener.timed_wait`` hands its timeout to the
     socket's SO_RCVTIMEO, which the kernel counts in whole jiffies (4 ms at
-    HZ=250) from whole microseconds. A 2 ms deadline waited 8 ms, and a wait
-    of under a microsecond (a deadline's last sliver) became 0, which the
-    kernel reads as *forever*: a device node blocked there until its next
-    trigger, and for good once the control node had gone. The WaitSet waits
-    in milliseconds rounded up (2 ms takes 2.1 ms; a sliver, 1 ms); its own
+    HZ=250) from whole microseconds. A missed 2 ms deadline cost 5.7 ms
+    (p50; up to 8), and a wait of under a microsecond (a deadline's last
+    sliver) became 0, which the kernel reads as *forever*: a device node
+    blocked there until its next trigger, and for good once the control node
+    had gone. The WaitSet waits in milliseconds rounded up (a missed 2 ms
+    deadline costs 2.2 ms; a sliver, 1 ms; ``python -m bench.intrahost
+    --misses``); its own
     signal handling is off, so a node's SIGTERM handler ends a wait early
     (epoll's EINTR), as a spurious wake-up. Every caller checks its deadline
     and what arrived after a wait. Never raises.
