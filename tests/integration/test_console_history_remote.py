@@ -70,7 +70,9 @@ def station(tmp_path: Path) -> Iterator[Any]:
     wait_matching(querier, 10, "the archive's queryable, declared to b")
     querier.undeclare()
 
-    def source(keys: KeySet, timeout_s: float = 10.0) -> RemoteHistory:
+    # Generous: a busy host (a CPU hog and a real-time mission beside it)
+    # can hold the station's first DuckDB query for seconds; behaviour, not speed.
+    def source(keys: KeySet, timeout_s: float = 30.0) -> RemoteHistory:
         return RemoteHistory(
             LAYOUT, b, KEYEXPR, keys.channel("telemetry"), lambda: STAMP, timeout_s=timeout_s
         )
@@ -101,8 +103,10 @@ def test_the_console_reads_history_over_zenoh_and_tells_every_refusal(station: A
         await _settle(pilot)
         # Filled on open: loops 101..300 in 50 ms buckets, each one's last value.
         with model.lock:
-            xs, ys = model.plot_series()["apogee_target_m"]
+            series = model.plot_series()
             said = model.status().history
+        assert "apogee_target_m" in series, f"the fill on open did not land: {said}"
+        xs, ys = series["apogee_target_m"]
         step = 50_000_000
         assert list(zip(xs, ys, strict=True)) == [
             ((START + k * step) / 1e9, (5 * k + 5) / 4) for k in range(20, 60)
