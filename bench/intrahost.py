@@ -652,14 +652,7 @@ def run_misses(deadlines_s: tuple[float, ...], count: int) -> dict[str, dict[str
         del listener
         client.close()
         server.close()
-    from zplatform.runtime.intrahost import remove_stale
-
-    remove_stale(PREFIX)
-    for path in _own_files():
-        try:
-            os.unlink(path)
-        except OSError:
-            pass
+    _clean_up()
     return rows
 
 
@@ -745,14 +738,7 @@ def run_copies(sizes: dict[str, int], count: int) -> dict[str, dict[str, Any]]:
         finally:
             client.close()
             server.close()
-    from zplatform.runtime.intrahost import remove_stale
-
-    remove_stale(PREFIX)
-    for path in _own_files():
-        try:
-            os.unlink(path)
-        except OSError:
-            pass
+    _clean_up()
     return out_rows
 
 
@@ -1055,14 +1041,7 @@ def run_bulk(count: int, period_s: float) -> dict[str, dict[str, Any]]:
             if reader is not None:
                 reader.close()
             child.close()
-    from zplatform.runtime.intrahost import remove_stale
-
-    remove_stale(PREFIX)
-    for path in _own_files():
-        try:
-            os.unlink(path)
-        except OSError:
-            pass
+    _clean_up()
     return out
 
 
