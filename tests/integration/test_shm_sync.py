@@ -151,8 +151,7 @@ def test_the_shared_memory_path_marks_the_trace_points_with_its_frames(pair: Pai
         served.join()
     assert pair.cn.pending == 0 and pair.link.client.replies == 2
     marks = [(name, n, v) for name, n, v, _t in ring.records() if name.startswith("sync.")]
-    reply = marks[2][2]  # the reply's length: a whole frame, within the link's bound
-    assert pair.sizes[1] - 8 <= reply <= pair.sizes[1]
+    reply = pair.dn.reply_length  # the DN's reply frame, every loop the same length
     assert marks == [
         ("sync.issued", 0, trigger),
         ("sync.sent", 0, 0),
