@@ -175,3 +175,52 @@ def test_zenoh_dials_only_from_the_greater_rank() -> None:
     finally:
         x.close()
         z.close()
+
+
+def test_a_node_opens_its_session_at_once_and_finds_the_node_it_dials_when_it_comes(
+    tmp_path: Path,
+) -> None:
+    """A node's session does not wait in ``zenoh.open`` for the nodes it
+    dials (zenoh's ``open/return_conditions/connect_scouted``, whose wait
+    cost every start-up half a second, ``scouting/delay``, when a peer it
+    dials was not up yet): each node waits for the peers it needs by
+    liveliness instead. Opened before the node it dials exists, dn0 still
+    finds it when it comes, and a query reaches it. A tool keeps zenoh's
+    default (it sends at once, to nodes already running)."""
+    path = tmp_path / "minimal.yaml"
+    rewrite_endpoints(ROOT / "configs" / "minimal.yaml", path)
+    m = load_mission(path)
+    for n in m.nodes:
+        assert (
+            json.loads(zenoh_config(m, n).get_json("open/return_conditions/connect_scouted"))
+            is False
+        )
+    assert json.loads(zenoh_config(m, None).get_json("open/return_conditions/connect_scouted")) in (
+        None,
+        True,
+    )
+
+    dn0 = open_session(zenoh_config(m, "dn0"))  # cn, which dn0 dials, is not up
+    try:
+        tokens: queue.Queue[bool] = queue.Queue()
+        sub = dn0.liveliness().declare_subscriber(
+            "t/cn/alive",
+            zenoh.handlers.Callback(
+                lambda s: tokens.put(s.kind == zenoh.SampleKind.PUT), indirect=False
+            ),
+            history=True,
+        )
+        cn = open_session(zenoh_config(m, "cn"))
+        try:
+            q = cn.declare_queryable("t/cn/q", lambda query: query.reply("t/cn/q", b"here"))
+            token = cn.liveliness().declare_token("t/cn/alive")
+            assert tokens.get(timeout=30) is True  # dn0 dialed cn once it listened
+            replies = [r.ok.payload.to_bytes() for r in dn0.get("t/cn/q", timeout=10) if r.ok]
+            assert replies == [b"here"]
+            token.undeclare()
+            q.undeclare()
+        finally:
+            cn.close()
+        sub.undeclare()
+    finally:
+        dn0.close()

@@ -337,6 +337,12 @@ def zenoh_config(
     _insert(cfg, "scouting/multicast/autoconnect_strategy", one_way)
     if node is not None:
         _insert(cfg, "id", zid_for(dial_ranks(mission)[node]))
+        # A node's open does not wait for the nodes it dials: it waits for
+        # the peers it needs by liveliness (wait_for_nodes), and zenoh's wait
+        # cost each start-up its scouting delay (500 ms) whenever a dialed
+        # node was not listening yet, as at every `up`. A tool keeps the
+        # wait: it sends at once, to nodes already running.
+        _insert(cfg, "open/return_conditions/connect_scouted", False)
     _insert(cfg, "transport/link/tx/lease", t.lease_ms)
     ll = lowlatency_for(mission) if lowlatency is None else lowlatency
     if ll:
