@@ -1,9 +1,12 @@
-"""``up``'s stop: its own zenoh session never decides a node's fate.
+"""``up``'s stop: the world outlives the device nodes, and ``up``'s own
+zenoh session never decides a node's fate.
 
-The nodes are processes (stand-ins here: a CN that ends its run, a DN that
-runs until signalled); ``up``'s link is a fake whose close hangs, as a
-mutual-TLS session's close can on a busy host. ``up`` must signal every node
-before it closes its session, and return without waiting on that close.
+The order: the CN first, then the device nodes and the ground at once, the
+world once the device nodes are down. The nodes are processes (stand-ins
+here: a CN that ends its run, a DN that runs until signalled); ``up``'s link
+is a fake whose close hangs, as a mutual-TLS session's close can on a busy
+host. ``up`` must signal every node before it closes its session, and
+return without waiting on that close.
 """
 
 from __future__ import annotations
@@ -140,3 +143,45 @@ def test_a_script_run_ends_its_settle_after_the_last_verdict(
     )
     assert w.script_done
     assert now[0] == pytest.approx(100.0 + ends_at)
+
+
+def test_up_stops_the_control_node_then_the_rest_and_the_world_once_the_device_nodes_are_down() -> (
+    None
+):
+    """``stop_all``'s order: the CN signalled and gone first (its final loop
+    tells the device nodes the run ended); then the device nodes and the
+    ground at once; the world once the device nodes have stopped (they safe
+    their outputs into it), not after the ground's archive is written."""
+    events: list[str] = []
+
+    class Proc:
+        def __init__(self, name: str) -> None:
+            self.name, self.stdin, self.code = name, None, None
+
+        def poll(self) -> int | None:
+            return self.code
+
+        def send_signal(self, sig: int) -> None:
+            events.append(f"signal {self.name}")
+
+        def wait(self, timeout: float | None = None) -> int:
+            events.append(f"gone {self.name}")
+            self.code = 0
+            return 0
+
+    children = supervisor.Children()
+    for n in ("world", "dn0", "dn1", "gn", "cn"):  # the order `up` spawns them
+        children.procs[n] = Proc(n)  # type: ignore[assignment]
+    assert children.stop_all() == {n: 0 for n in ("cn", "dn0", "dn1", "gn", "world")}
+    assert events == [
+        "signal cn",
+        "gone cn",
+        "signal dn0",
+        "signal dn1",
+        "signal gn",
+        "gone dn0",
+        "gone dn1",
+        "signal world",
+        "gone gn",
+        "gone world",
+    ]

@@ -184,13 +184,24 @@ class Children:
         return [(n, p.returncode) for n, p in self.procs.items() if p.poll() is not None]
 
     def stop(self, names: list[str], timeout_s: float = STOP_GRACE_S) -> dict[str, int]:
-        codes: dict[str, int] = {}
+        """SIGTERM the children ``names`` (and close their stdin), then wait
+        for each (:meth:`_wait`); their exit codes."""
+        self._signal(names)
+        return self._wait(names, timeout_s)
+
+    def _signal(self, names: list[str]) -> None:
         for n in names:
             p = self.procs.get(n)
             if p is not None and p.poll() is None:
                 p.send_signal(signal.SIGTERM)
                 if p.stdin is not None:
                     p.stdin.close()
+
+    def _wait(self, names: list[str], timeout_s: float = STOP_GRACE_S) -> dict[str, int]:
+        """Wait for each signalled child of ``names``: past ``STOP_SLOW_S`` it
+        is called slow, past ``timeout_s`` its threads are dumped and it is
+        killed."""
+        codes: dict[str, int] = {}
         for n in names:
             p = self.procs.get(n)
             if p is None:
@@ -222,12 +233,18 @@ class Children:
         """Stop the CN first and wait for it: its last loop is flagged final
         (``dnX_final``), so the DNs, still running, see the run end rather
         than a lost CN, and the ground logs the end. Then the DNs and the
-        ground; the vehicle world last (the DNs safe their outputs into it
-        as they stop)."""
+        ground at once; the vehicle world once the device nodes have
+        stopped (they safe their outputs into it as they stop), while the
+        ground may still be writing its archive."""
         cns = [n for n in self.procs if n in CONTROL_NODES]  # with a standby, both at once
         codes = self.stop(cns)
-        codes.update(self.stop([n for n in self.procs if n not in (*cns, "world")]))
-        codes.update(self.stop([n for n in self.procs if n == "world"]))
+        rest = [n for n in self.procs if n not in (*cns, "world")]
+        self._signal(rest)
+        dns = [n for n in rest if n != "gn" and not n.startswith((ROUTER_PREFIX, STATION_PREFIX))]
+        codes.update(self._wait(dns))
+        world = [n for n in self.procs if n == "world"]
+        self._signal(world)
+        codes.update(self._wait([n for n in rest if n not in dns] + world))
         return codes
 
 
@@ -490,7 +507,8 @@ def watch(
                     )
             if not stopping():
                 _restart_stations(children, w, ready_timeout_s, on_spawn)
-            got = link.next(0.2)
+            # Short: the control node's exit (the run's end) is seen this soon.
+            got = link.next(0.05)
             if got is not None:
                 rate.add_snapshot(link.dv)
                 if first_t == 0:
