@@ -26,11 +26,15 @@ from zplatform.core.auth import NO_RUN, Channel, KeySet, Run
 from zplatform.errors import ClockSyncError
 from zplatform.mission.load import load_mission
 from zplatform.runtime.clocksync import (
+    ADAPT_AFTER,
+    ADAPT_FACTOR,
+    ADAPT_FLOOR_S,
     ESTIMATORS,
     ClockEstimate,
     ClockEstimator,
     ClockLink,
     ClockResponder,
+    ExchangeTimeout,
     ZenohTimestampsError,
     estimate_offset,
     estimate_offset_zenoh,
@@ -127,6 +131,7 @@ class SimSession:
     the clock key, answering before the CN (``rogues_first``, each
     ``flood`` times) or after it. ``congested``: the link stopped draining
     (no query gets through; a BLOCKing get raises :class:`_Blocked`).
+    ``lost``: the gets (counted from 1) whose reply never arrives.
     ``kwargs``: each get's options.
     """
 
@@ -146,6 +151,7 @@ class SimSession:
     rogues_first: bool = True
     flood: int = 1
     congested: bool = False
+    lost: set[int] = field(default_factory=set)
     kwargs: list[dict[str, Any]] = field(default_factory=list)
     responder: ClockResponder = field(default_factory=_responder)
 
@@ -162,6 +168,8 @@ class SimSession:
             # ends it at its timeout (here: later than the asker waits).
             if kw.get("congestion_control") != zenoh.CongestionControl.DROP:
                 raise _Blocked("a BLOCKing get on a congested link stalls the asking thread")
+            return
+        if self.gets in self.lost:  # its reply DROPped on the way: zenoh ends it at its timeout
             return
         ti = kw.get("timestamp_instrumentation")
         self.instrumented.append(ti is not None)
@@ -439,6 +447,41 @@ def test_a_congested_link_drops_clock_queries_and_counts_timeouts(fn: Any) -> No
         assert kw["target"] == zenoh.QueryTarget.ALL
         assert kw["consolidation"] == zenoh.ConsolidationMode.NONE
         assert 0 < kw["timeout"] == 0.001
+
+
+def test_an_exchange_timeout_follows_the_answered_round_trips() -> None:
+    """The caller's timeout until ADAPT_AFTER answers, then twenty median
+    round trips, at least the floor, never above the caller's."""
+    t = ExchangeTimeout(1.0)
+    for _ in range(ADAPT_AFTER - 1):
+        t.answered(0, 130 * US)
+        assert t.next_s() == 1.0
+    t.answered(0, 130 * US)
+    assert t.next_s() == ADAPT_FLOOR_S  # 20 x 130 us is below the floor
+    slow = ExchangeTimeout(1.0)
+    for rtt_ms in (9, 10, 10, 11, 10, 10, 400, 10, 10):  # one outlier: the median holds
+        slow.answered(5_000, 5_000 + rtt_ms * 1_000_000)
+    assert slow.next_s() == pytest.approx(ADAPT_FACTOR * 0.010)
+    capped = ExchangeTimeout(0.15)
+    for _ in range(ADAPT_AFTER):
+        capped.answered(0, 10_000_000)  # 20 x 10 ms = 0.2 s, above the caller's 0.15 s
+    assert capped.next_s() == 0.15
+
+
+@pytest.mark.parametrize("fn", [estimate_offset, estimate_offset_zenoh])
+def test_a_lost_clock_reply_costs_the_adapted_timeout_not_the_whole_one(fn: Any) -> None:
+    """A reply DROPped on a busy link (zenoh ends its query only at its
+    timeout): once ADAPT_AFTER exchanges were answered, each exchange waits
+    the adapted timeout, so the lost one costs that, not the caller's 1 s;
+    it is counted, and the estimate is of the rest."""
+    s = _sim(lost={12})
+    link = _link()
+    est = fn(s, KEYS, s.now_ns, link, exchanges=20, timeout_s=1.0)
+    timeouts = [kw["timeout"] for kw in s.kwargs]
+    assert timeouts[:ADAPT_AFTER] == [1.0] * ADAPT_AFTER
+    assert timeouts[ADAPT_AFTER:] == [ADAPT_FLOOR_S] * (20 - ADAPT_AFTER)  # sim round trip 130 us
+    assert link.timeouts == 1 and est.exchanges == 19
+    assert est.offset_ns == 49_000_000  # CN node clock minus the DN's (the sim's offsets)
 
 
 @pytest.mark.parametrize("fn", [estimate_offset, estimate_offset_zenoh])

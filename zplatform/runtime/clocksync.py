@@ -64,6 +64,7 @@ __all__ = [
     "ClockResponder",
     "ClockServer",
     "Estimator",
+    "ExchangeTimeout",
     "RunAsker",
     "ZenohTimestampsError",
     "estimate_offset",
@@ -1002,6 +1003,48 @@ def learn_run(
     return False
 
 
+ADAPT_AFTER = 8
+"""Answered exchanges after which a series' timeout follows their round trip
+(:class:`ExchangeTimeout`)."""
+ADAPT_FACTOR = 20
+ADAPT_FLOOR_S = 0.1
+
+
+class ExchangeTimeout:
+    """The timeout of a clock series' next exchange: the caller's
+    ``timeout_s`` until :data:`ADAPT_AFTER` exchanges were answered, then
+    :data:`ADAPT_FACTOR` times their median round trip, at least
+    :data:`ADAPT_FLOOR_S`, never more than ``timeout_s``.
+
+    Why: a clock reply goes DROP (its query's QoS), and one dropped on a
+    busy link left its exchange waiting out the whole timeout (1 s), which
+    at start-up delayed every node of the mission by it (seen in about one
+    start in six; the control node had served the query). A reply later
+    than twenty median round trips is no sample the estimate keeps (it
+    keeps the fastest), and fewer than half the exchanges can be that late
+    while the median holds, so the series' half-answered rule is not
+    spent by it. Sans-IO; allocates one list of at most ``exchanges``."""
+
+    __slots__ = ("_cap", "_rtts")
+
+    def __init__(self, timeout_s: float) -> None:
+        self._cap = timeout_s
+        self._rtts: list[int] = []
+
+    def answered(self, t1_ns: int, t4_ns: int) -> None:
+        """An exchange answered: its round trip on the asker's clock."""
+        self._rtts.append(max(0, t4_ns - t1_ns))
+
+    def next_s(self) -> float:
+        """The next exchange's timeout (s)."""
+        n = len(self._rtts)
+        if n < ADAPT_AFTER:
+            return self._cap
+        rtts = sorted(self._rtts)
+        median_ns = rtts[n // 2] if n % 2 else (rtts[n // 2 - 1] + rtts[n // 2]) / 2
+        return min(self._cap, max(ADAPT_FLOOR_S, ADAPT_FACTOR * median_ns / 1e9))
+
+
 def estimate_offset(
     session: zenoh.Session,
     keys: KeySpace,
@@ -1017,7 +1060,9 @@ def estimate_offset(
     Each exchange is :class:`ClockLink`'s (authenticated, nonce-bound);
     replies it refuses and exchanges left unanswered are counted there.
     Blocks for the exchanges (about 0.3 ms each on loopback), each at most
-    ``timeout_s`` whatever the peers do (:func:`_exchange`), and stops early
+    ``timeout_s`` whatever the peers do (:func:`_exchange`), and, once a few
+    were answered, at most twenty times their median round trip
+    (:class:`ExchangeTimeout`, floored at 0.1 s), and stops early
     once half of them can no longer get a valid reply. Raises
     ClockSyncError when fewer than half the exchanges get a valid reply
     (the CN's clock server is unreachable, or only peers without the key
@@ -1025,13 +1070,15 @@ def estimate_offset(
     """
     samples: list[tuple[int, int]] = []
     missed = 0
+    timeout = ExchangeTimeout(timeout_s)
     for _ in range(exchanges):
-        x = _exchange(session, keys, link, now_ns, timeout_s)
+        x = _exchange(session, keys, link, now_ns, timeout.next_s())
         if x is None:
             missed += 1
             if missed > exchanges - exchanges // 2:
                 break  # half can no longer answer: stop asking a silent clock
             continue
+        timeout.answered(x.t1, x.t4)
         t1, t2, t3, t4 = x.t1, x.t2, x.t3, x.t4
         samples.append((((t2 - t1) + (t3 - t4)) // 2, (t4 - t1) - (t3 - t2)))
     if len(samples) < exchanges // 2:
@@ -1108,12 +1155,13 @@ def estimate_offset_zenoh(
     exchanges (a 100 ppm drift over 200 exchanges moves the DN's mapping by
     about 6 us).
 
-    Blocks for the exchanges, each at most ``timeout_s``, and stops early
-    once half of them can no longer get a valid reply (as
-    :func:`estimate_offset`). Raises ClockSyncError when fewer than half of
-    them get a valid reply (the CN's clock server is unreachable), and its
-    subclass :class:`ZenohTimestampsError` where :func:`estimate_offset`
-    would have succeeded: when at least half got a valid reply but fewer
+    Blocks for the exchanges, each at most ``timeout_s`` (less once a few
+    were answered, :class:`ExchangeTimeout`), and stops early once half of
+    them can no longer get a valid reply (as :func:`estimate_offset`).
+    Raises ClockSyncError when fewer than half of them get a valid reply
+    (the CN's clock server is unreachable), and its subclass
+    :class:`ZenohTimestampsError` where :func:`estimate_offset` would have
+    succeeded: when at least half got a valid reply but fewer
     than half of the replies carried zenoh's four timestamps, or when a
     bracket is inverted by more than ``max_inversion_ns`` (its lower bound
     above its upper bound: zenoh's clock, the host's real-time clock, was
@@ -1125,13 +1173,15 @@ def estimate_offset_zenoh(
     answered = 0  # valid replies to their own exchange, stamped or not
     cn_lo, cn_hi, dn_lo, dn_hi = -(1 << 63), 1 << 63, -(1 << 63), 1 << 63
     missed = 0
+    timeout = ExchangeTimeout(timeout_s)
     for _ in range(exchanges):
-        x = _exchange(session, keys, link, now_ns, timeout_s, ti)
+        x = _exchange(session, keys, link, now_ns, timeout.next_s(), ti)
         if x is None:
             missed += 1
             if missed > exchanges - exchanges // 2:
                 break  # half can no longer answer: stop asking a silent clock
             continue
+        timeout.answered(x.t1, x.t4)
         answered += 1
         if len(x.stamps) != 4:
             continue
