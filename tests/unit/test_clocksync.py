@@ -450,8 +450,9 @@ def test_a_congested_link_drops_clock_queries_and_counts_timeouts(fn: Any) -> No
 
 
 def test_an_exchange_timeout_follows_the_answered_round_trips() -> None:
-    """The caller's timeout until ADAPT_AFTER answers, then twenty median
-    round trips, at least the floor, never above the caller's."""
+    """The caller's timeout for the first ADAPT_AFTER exchanges, then twenty
+    median round trips, at least the floor, never above the caller's; a
+    miss counts as a trip of the time it waited."""
     t = ExchangeTimeout(1.0)
     for _ in range(ADAPT_AFTER - 1):
         t.answered(0, 130 * US)
@@ -462,6 +463,14 @@ def test_an_exchange_timeout_follows_the_answered_round_trips() -> None:
     for rtt_ms in (9, 10, 10, 11, 10, 10, 400, 10, 10):  # one outlier: the median holds
         slow.answered(5_000, 5_000 + rtt_ms * 1_000_000)
     assert slow.next_s() == pytest.approx(ADAPT_FACTOR * 0.010)
+    turned = ExchangeTimeout(1.0)  # fast answers, then a host too slow to answer in time
+    for _ in range(ADAPT_AFTER):
+        turned.answered(0, 130 * US)
+    for _ in range(ADAPT_AFTER - 1):
+        turned.missed(turned.next_s())
+        assert turned.next_s() == ADAPT_FLOOR_S  # the median is still an answer
+    turned.missed(turned.next_s())
+    assert turned.next_s() == 1.0  # as many misses as answers: back to the caller's
     capped = ExchangeTimeout(0.15)
     for _ in range(ADAPT_AFTER):
         capped.answered(0, 10_000_000)  # 20 x 10 ms = 0.2 s, above the caller's 0.15 s

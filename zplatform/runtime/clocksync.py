@@ -1004,7 +1004,7 @@ def learn_run(
 
 
 ADAPT_AFTER = 8
-"""Answered exchanges after which a series' timeout follows their round trip
+"""Exchanges after which a series' timeout follows their round trips
 (:class:`ExchangeTimeout`)."""
 ADAPT_FACTOR = 20
 ADAPT_FLOOR_S = 0.1
@@ -1012,7 +1012,7 @@ ADAPT_FLOOR_S = 0.1
 
 class ExchangeTimeout:
     """The timeout of a clock series' next exchange: the caller's
-    ``timeout_s`` until :data:`ADAPT_AFTER` exchanges were answered, then
+    ``timeout_s`` for the first :data:`ADAPT_AFTER` exchanges, then
     :data:`ADAPT_FACTOR` times their median round trip, at least
     :data:`ADAPT_FLOOR_S`, never more than ``timeout_s``.
 
@@ -1021,9 +1021,12 @@ class ExchangeTimeout:
     at start-up delayed every node of the mission by it (seen in about one
     start in six; the control node had served the query). A reply later
     than twenty median round trips is no sample the estimate keeps (it
-    keeps the fastest), and fewer than half the exchanges can be that late
-    while the median holds, so the series' half-answered rule is not
-    spent by it. Sans-IO; allocates one list of at most ``exchanges``."""
+    keeps the fastest). An exchange left unanswered counts as a round trip
+    of the time it waited (:meth:`missed`): a host that turns slow after
+    the first answers, so that most exchanges go unanswered, brings the
+    median, and the timeout, back up to ``timeout_s`` within as many
+    misses as there were answers; one lost reply among many does not move
+    it. Sans-IO; allocates one list of at most ``exchanges``."""
 
     __slots__ = ("_cap", "_rtts")
 
@@ -1034,6 +1037,10 @@ class ExchangeTimeout:
     def answered(self, t1_ns: int, t4_ns: int) -> None:
         """An exchange answered: its round trip on the asker's clock."""
         self._rtts.append(max(0, t4_ns - t1_ns))
+
+    def missed(self, waited_s: float) -> None:
+        """An exchange unanswered after ``waited_s``: at least that long a trip."""
+        self._rtts.append(int(waited_s * 1e9))
 
     def next_s(self) -> float:
         """The next exchange's timeout (s)."""
@@ -1060,8 +1067,8 @@ def estimate_offset(
     Each exchange is :class:`ClockLink`'s (authenticated, nonce-bound);
     replies it refuses and exchanges left unanswered are counted there.
     Blocks for the exchanges (about 0.3 ms each on loopback), each at most
-    ``timeout_s`` whatever the peers do (:func:`_exchange`), and, once a few
-    were answered, at most twenty times their median round trip
+    ``timeout_s`` whatever the peers do (:func:`_exchange`), and after a
+    few at most twenty times their median round trip
     (:class:`ExchangeTimeout`, floored at 0.1 s), and stops early
     once half of them can no longer get a valid reply. Raises
     ClockSyncError when fewer than half the exchanges get a valid reply
@@ -1072,8 +1079,10 @@ def estimate_offset(
     missed = 0
     timeout = ExchangeTimeout(timeout_s)
     for _ in range(exchanges):
-        x = _exchange(session, keys, link, now_ns, timeout.next_s())
+        wait_s = timeout.next_s()
+        x = _exchange(session, keys, link, now_ns, wait_s)
         if x is None:
+            timeout.missed(wait_s)
             missed += 1
             if missed > exchanges - exchanges // 2:
                 break  # half can no longer answer: stop asking a silent clock
@@ -1155,8 +1164,8 @@ def estimate_offset_zenoh(
     exchanges (a 100 ppm drift over 200 exchanges moves the DN's mapping by
     about 6 us).
 
-    Blocks for the exchanges, each at most ``timeout_s`` (less once a few
-    were answered, :class:`ExchangeTimeout`), and stops early once half of
+    Blocks for the exchanges, each at most ``timeout_s`` (less after a
+    few, :class:`ExchangeTimeout`), and stops early once half of
     them can no longer get a valid reply (as :func:`estimate_offset`).
     Raises ClockSyncError when fewer than half of them get a valid reply
     (the CN's clock server is unreachable), and its subclass
@@ -1175,8 +1184,10 @@ def estimate_offset_zenoh(
     missed = 0
     timeout = ExchangeTimeout(timeout_s)
     for _ in range(exchanges):
-        x = _exchange(session, keys, link, now_ns, timeout.next_s(), ti)
+        wait_s = timeout.next_s()
+        x = _exchange(session, keys, link, now_ns, wait_s, ti)
         if x is None:
+            timeout.missed(wait_s)
             missed += 1
             if missed > exchanges - exchanges // 2:
                 break  # half can no longer answer: stop asking a silent clock
