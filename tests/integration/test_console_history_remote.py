@@ -8,6 +8,9 @@ the station refused an answer too big."""
 from __future__ import annotations
 
 import asyncio
+import sys
+import threading
+import traceback
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -85,6 +88,25 @@ def station(tmp_path: Path) -> Iterator[Any]:
         a.close()
 
 
+def _server_state(server: ArchiveServer) -> str:
+    """What the station did, and where its serving thread is now: the
+    failure's diagnosis (it was seen twice in hogged CI runs, with both
+    asks unanswered for their 30 s and the cause not shown)."""
+    stacks = {t.name: t.ident for t in threading.enumerate()}
+    frames = sys._current_frames()
+    ident = stacks.get("archive-serve")
+    where = (
+        "".join(traceback.format_stack(frames[ident]))
+        if ident is not None and ident in frames
+        else "no archive-serve thread"
+    )
+    return (
+        f"the station: served {server.served}, hellos {server.hellos}, refused "
+        f"{server.refused} (stale {server.stale}, busy {server.busy}, over bound "
+        f"{server.over_bound}, last: {server.last_refusal!r}); its serving thread:\n{where}"
+    )
+
+
 async def _settle(pilot: Any) -> None:
     for _ in range(2):
         await pilot.app.workers.wait_for_complete()
@@ -105,7 +127,9 @@ def test_the_console_reads_history_over_zenoh_and_tells_every_refusal(station: A
         with model.lock:
             series = model.plot_series()
             said = model.status().history
-        assert "apogee_target_m" in series, f"the fill on open did not land: {said}"
+        assert "apogee_target_m" in series, (
+            f"the fill on open did not land: {said}; {_server_state(server)}"
+        )
         xs, ys = series["apogee_target_m"]
         step = 50_000_000
         assert list(zip(xs, ys, strict=True)) == [
