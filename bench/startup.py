@@ -20,7 +20,6 @@ writes ``bench/results/startup.json``. Blocks for about ``runs × (D + 4 s)``.
 
 from __future__ import annotations
 
-import json
 import os
 import statistics
 import subprocess
@@ -30,7 +29,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from bench.common import REPO_ROOT, RESULTS_DIR, bench_argparser, machine_info
+from bench.common import REPO_ROOT, bench_argparser, write_result
 from zplatform import load_mission
 
 MISSION = REPO_ROOT / "configs" / "recovery_igniter.yaml"
@@ -120,6 +119,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--mission", type=Path, default=MISSION)
     p.add_argument("--against", type=Path, default=None, help="another checkout to time too")
     a = p.parse_args(argv)
+    a.mission = a.mission.resolve()  # one file for both trees (each runs from its own directory)
     runs = a.runs or (3 if a.quick else 12)
     m = load_mission(a.mission)
     processes = len(m.nodes) + 1 + (1 if m.world is not None else 0)  # + up itself
@@ -155,11 +155,7 @@ def main(argv: list[str] | None = None) -> int:
         "this": _commit(REPO_ROOT),
         "load_average_at_end": os.getloadavg(),
     }
-    doc = {"bench": "startup", "machine": machine_info(), "params": params, "variants": variants}
-    path = Path(a.json) if a.json else RESULTS_DIR / "startup.json"
-    path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(json.dumps(doc, indent=2) + "\n", encoding="utf-8")
-    print(f"startup ({path})")
+    write_result("startup", params, variants, a.json)  # its latency table has no column here
     for name, fig in variants.items():
         print(f"  {name}: " + ", ".join(f"{k} {v}" for k, v in fig.items() if k != "wall_s"))
     return 0
