@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import os
 import threading
+import time
 from collections.abc import Callable, Iterator
 
 import pytest
@@ -468,6 +469,52 @@ def test_a_reply_deadline_that_ends_in_a_sliver_is_kept(
         assert got == [None]
         assert (client.sent, client.replies, client.timeouts) == (1, 0, 1)
     finally:
+        client.close()
+        server.close()
+
+
+@pytest.mark.parametrize(
+    ("seconds", "ms"),
+    [(1e-9, 1), (0.001, 1), (0.0010001, 2), (0.0025, 3), (0.01, 10), (1.0, 1000)],
+)
+def test_a_wait_takes_whole_milliseconds_rounded_up_from_a_table_built_at_start(
+    prefix: str, seconds: float, ms: int
+) -> None:
+    """The WaitSet counts whole milliseconds, rounded up: a loop's wait takes
+    that Duration from a table built when the end opened, the same object
+    every time (none built per wait); a wait over a second builds its own."""
+    names = link_names("table", "rocket", 1, "cn", "dn0")
+    server = IntraHostServer(names, 64, 64, prefix=prefix, check=False)
+    try:
+        waiter = server._waiter
+        assert waiter.duration(seconds).as_millis() == ms
+        assert waiter.duration(seconds) is waiter.duration(seconds)
+        assert waiter.duration(2.5).as_secs_f64() == 2.5
+        assert waiter.duration(2.5) is not waiter.duration(2.5)
+    finally:
+        server.close()
+
+
+def test_collect_against_a_given_deadline_builds_no_duration(prefix: str) -> None:
+    """The sync collects each device node's reply against one deadline for
+    all: a silent peer's miss, counted, with iceoryx2's Duration out of
+    reach (so none is built per loop)."""
+    from types import SimpleNamespace
+
+    names = link_names("nodur", "rocket", 1, "cn", "dn0")
+    server = IntraHostServer(names, 64, 64, prefix=prefix, check=False)
+    client = IntraHostClient(names, 64, 64, prefix=prefix, deadline_s=0.002)
+    iox = client._iox
+    try:
+        client._iox = SimpleNamespace()
+        view = client.trigger(7)
+        assert view is not None
+        view[:] = b"trigger"
+        assert client.send()
+        assert client.collect(time.monotonic() + 0.003) is None
+        assert (client.sent, client.replies, client.timeouts) == (1, 0, 1)
+    finally:
+        client._iox = iox
         client.close()
         server.close()
 

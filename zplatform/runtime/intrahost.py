@@ -24,6 +24,7 @@ from __future__ import annotations
 import ctypes
 import enum
 import hashlib
+import math
 import os
 import re
 import shutil
@@ -390,9 +391,15 @@ class _Waiter:
     and what arrived after a wait. Never raises.
     """
 
+    #: Waits of up to this many milliseconds take a Duration built at start
+    #: (the WaitSet counts whole milliseconds, rounded up, so nothing finer is
+    #: lost): a loop's waits allocate none. A longer wait (no loop's) builds one.
+    TABLE_MS = 1000
+
     def __init__(self, iox: Any, listener: Any) -> None:
         self._listener = listener
         self._duration = iox.Duration.from_secs_f64
+        self._ms = tuple(iox.Duration.from_millis(i) for i in range(self.TABLE_MS + 1))
         self._ws = (
             iox.WaitSetBuilder.new()
             .signal_handling_mode(iox.SignalHandlingMode.Disabled)
@@ -414,9 +421,18 @@ class _Waiter:
             time.sleep(0.001)
 
     def wait_s(self, seconds: float) -> None:
-        """:meth:`wait` for ``seconds``; returns at once when it is <= 0."""
+        """:meth:`wait` for ``seconds``, rounded up to a whole millisecond as
+        the WaitSet would; returns at once when it is <= 0."""
         if seconds > 0:
-            self.wait(self._duration(seconds))
+            self.wait(self.duration(seconds))
+
+    def duration(self, seconds: float) -> Any:
+        """The Duration a wait of ``seconds`` (> 0) takes: whole milliseconds,
+        rounded up (at least 1), from the table up to :attr:`TABLE_MS`."""
+        ms = math.ceil(seconds * 1000.0)
+        if ms <= self.TABLE_MS:
+            return self._ms[ms if ms > 0 else 1]
+        return self._duration(seconds)
 
     def close(self) -> None:
         """Detach before the listener goes (the guard, then the set). Idempotent."""
@@ -561,7 +577,7 @@ class IntraHostClient(_End):
             t_end = self._t_sent + self.deadline_s
             wait = self._deadline  # preallocated: the common case allocates no Duration
         else:
-            wait = self._iox.Duration.from_secs_f64(max(0.0, t_end - time.monotonic()))
+            wait = self._waiter.duration(t_end - time.monotonic())
         while True:
             response = pending.receive()
             if response is not None:
@@ -574,7 +590,7 @@ class IntraHostClient(_End):
                 return None
             self._waiter.wait(wait)
             # Woken by an earlier, late reply's event: wait out what is left.
-            wait = self._iox.Duration.from_secs_f64(max(0.0, t_end - time.monotonic()))
+            wait = self._waiter.duration(t_end - time.monotonic())
         n = response.header.number_of_elements
         if n > self.max_reply:
             self.refused += 1
