@@ -114,8 +114,16 @@ sys.pycache_prefix = _PYCACHE
 # mission (their nodes' logic, zenoh sessions, routers and relays are in this
 # process, on free ports; the fuzzers are CPU-bound subprocesses with no
 # deadline): they need not wait behind the live tests, and run on whichever
-# worker is free.
-_IN_PROCESS_SYSTEM = {"test_failover_sim.py", "test_flight.py", "test_lockstep_missions.py"}
+# worker is free. So does a test marked ``no_mission`` in a live file: it
+# starts processes (a CLI verb, the web console's server, a relay) but no
+# node and no mission, so it is no busier a neighbour than an in-process
+# test, and the live worker's share (the suite's critical path) stays short.
+_IN_PROCESS_SYSTEM = {
+    "test_failover_sim.py",
+    "test_flight.py",
+    "test_lockstep_missions.py",
+    "test_role.py",
+}
 _IN_PROCESS = {
     "faults": {
         "test_acl_declarations.py",
@@ -169,7 +177,7 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
     if not config.pluginmanager.hasplugin("xdist"):
         return
     for item in items:
-        if _runs_live(item.path):
+        if _runs_live(item.path) and item.get_closest_marker("no_mission") is None:
             item.add_marker(pytest.mark.xdist_group("live"))
     if hasattr(config, "workerinput") and config.getvalue("loadgroup"):
         for item in items:

@@ -94,6 +94,10 @@ def zplatform(*args: str) -> subprocess.CompletedProcess[str]:
     )
 
 
+# A 5 s cut: with the soaks (-m slow). A cut filled from the CN's recorder
+# stays in the default suite (tests/faults/test_event_gaps_live.py), and the
+# gap fill's rules in tests/unit/test_ground_gapfill.py.
+@pytest.mark.slow
 def test_ground_fills_a_5s_link_cut_from_the_cn_recorder(
     tmp_path: Path, fault_relay: Callable[..., FaultRelay], monkeypatch: pytest.MonkeyPatch
 ) -> None:

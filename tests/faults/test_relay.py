@@ -23,6 +23,9 @@ from tests.faults.peers import ECHO_KEY, echo, get_once, peer_config
 from tests.faults.relay import DirStats, FaultPlan, FaultRelay, RelayProcess
 from zplatform.runtime.transport import free_port
 
+# The relay and zenoh sessions only: no node, no mission (tests/conftest.py).
+pytestmark = pytest.mark.no_mission
+
 ROOT = Path(__file__).resolve().parents[2]
 
 LOSSY_TIMEOUT_S = 0.05  # a lost get costs little while faults are on

@@ -84,6 +84,7 @@ def test_up_log_to_a_missing_directory_is_refused_before_spawning() -> None:
     assert "not alive" not in r.stderr and "loops" not in r.stdout
 
 
+@pytest.mark.no_mission
 def test_sim_log_to_a_bad_path(tmp_path: Path) -> None:
     r = _zp("sim", "configs/minimal.yaml", "--log", str(tmp_path / "no" / "x.csv"))
     _clear_error(r, 2, "cannot write telemetry log", "no directory")
@@ -91,11 +92,13 @@ def test_sim_log_to_a_bad_path(tmp_path: Path) -> None:
     _clear_error(r, 2, "it is a directory")
 
 
+@pytest.mark.no_mission
 def test_plot_of_a_missing_csv(tmp_path: Path) -> None:
     r = _zp("plot", str(tmp_path / "missing.csv"), "cn_state", "--out", str(tmp_path / "p.png"))
     _clear_error(r, 2, "no such telemetry CSV")
 
 
+@pytest.mark.no_mission
 def test_unknown_mission_names_what_is_running(runtime: Path) -> None:
     r = _zp("ground", "no_such_mission")
     _clear_error(
@@ -117,6 +120,7 @@ def test_tap_rejects_a_bad_key_expression() -> None:
     _clear_error(r, 2, "'rocket/**/' is not a zenoh key expression")
 
 
+@pytest.mark.no_mission
 def test_tap_with_no_publisher_says_so(tmp_path: Path) -> None:
     mission = tmp_path / "m.yaml"
     rewrite_endpoints(CONFIGS / "minimal.yaml", mission)  # nobody runs there
@@ -125,6 +129,7 @@ def test_tap_with_no_publisher_says_so(tmp_path: Path) -> None:
     assert r.stdout == ""
 
 
+@pytest.mark.no_mission
 def test_tap_without_bounds_gives_up_on_silence(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
 ) -> None:
@@ -216,6 +221,7 @@ def test_verbs_that_need_an_extra_name_it(
 # ---------------------------------------------------------------- output
 
 
+@pytest.mark.no_mission
 def test_check_json_into_a_closed_pipe_is_quiet() -> None:
     # A pipe whose reader is gone before the first byte: the very first
     # write breaks it, every time (one process, not rounds of them hoping
@@ -538,6 +544,7 @@ def test_a_directory_named_like_a_running_mission_does_not_hide_it(
         a.remove()
 
 
+@pytest.mark.no_mission
 @pytest.mark.parametrize(
     ("line", "phrase"),
     [

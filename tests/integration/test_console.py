@@ -195,6 +195,10 @@ async def _small_screen(c: Cluster) -> None:
         await pilot.press("ctrl+q")
 
 
+# With the soaks (-m slow): the console live in the default suite is
+# test_console_shows_the_flight_live (link, confirmed commands, verdicts, the
+# CN's state changes); LOS and the views are tests/unit/test_console_model.py's.
+@pytest.mark.slow
 def test_console_against_running_mission(tmp_path: Path) -> None:
     with Cluster(CONFIGS / "recovery_igniter.yaml", tmp_path) as c:
         for n in ("world", "dn0", "dn1", "cn"):

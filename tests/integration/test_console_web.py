@@ -153,6 +153,7 @@ def _gone(p: psutil.Process, within_s: float) -> None:
 # -- admission -------------------------------------------------------------------
 
 
+@pytest.mark.no_mission
 def test_no_console_without_the_token_right_host_and_same_origin(served: Served) -> None:
     s = served
 
@@ -209,6 +210,7 @@ def test_no_console_without_the_token_right_host_and_same_origin(served: Served)
     assert "warning: the web console listens" not in log  # 127.0.0.1: no warning
 
 
+@pytest.mark.no_mission
 def test_listening_beyond_loopback_warns_once(tmp_path: Path) -> None:
     s = Served(_mission(tmp_path), tmp_path, "--host", "0.0.0.0")
     try:
@@ -235,6 +237,7 @@ def _upgrade(headers: dict[str, str]) -> dict[str, str]:
     }
 
 
+@pytest.mark.no_mission
 def test_page_and_assets_load_only_from_the_server(served: Served) -> None:
     """The page names no other origin; every asset it names is served here."""
     s = served
@@ -269,6 +272,7 @@ def test_page_and_assets_load_only_from_the_server(served: Served) -> None:
 
 
 @pytest.mark.parametrize("how", ["close", "drop"])
+@pytest.mark.no_mission
 def test_console_ends_with_its_websocket(served: Served, how: str) -> None:
     """A closed WebSocket, or a connection dropped without a close, ends its console."""
     s = served
@@ -331,6 +335,7 @@ def test_console_ends_when_its_server_is_killed(tmp_path: Path) -> None:
 
 
 @pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
+@pytest.mark.no_mission
 def test_server_stopped_ends_its_consoles_then_itself(served: Served, sig: int) -> None:
     """Ctrl-C or SIGTERM to the server alone: its console quits, the server exits 0."""
     s = served
@@ -409,6 +414,7 @@ def _packet(meta: dict[str, object]) -> bytes:
 
 
 @pytest.mark.parametrize("end", ["stdin", "stdout"])
+@pytest.mark.no_mission
 def test_console_exits_when_its_pipe_to_the_server_ends(tmp_path: Path, end: str) -> None:
     """End of stdin, or a broken stdout, ends the console cleanly and says why.
 
@@ -440,6 +446,7 @@ def test_console_exits_when_its_pipe_to_the_server_ends(tmp_path: Path, end: str
 # Waits out the 10 s hard exit: with the soaks (-m slow); the other ends of
 # the console's life (socket, server killed, stdin) are in the default suite.
 @pytest.mark.slow
+@pytest.mark.no_mission
 def test_console_that_cannot_exit_is_cut_short(tmp_path: Path) -> None:
     """A quit right after a resize, as the console starts, ends it within the grace.
 
@@ -471,6 +478,7 @@ def test_console_that_cannot_exit_is_cut_short(tmp_path: Path) -> None:
             p.wait()
 
 
+@pytest.mark.no_mission
 def test_console_dies_with_its_server_even_with_its_pipes_open(tmp_path: Path) -> None:
     """The parent-death signal alone ends a console whose server died.
 

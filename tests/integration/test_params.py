@@ -79,6 +79,7 @@ def _loaded(path: Path) -> tuple[ParamLoad, dict[str, object]]:
     return status, table.values()
 
 
+@pytest.mark.no_mission
 @pytest.mark.parametrize("kill_at", SAVE_STEPS)
 def test_a_kill_at_any_step_of_a_save_leaves_the_old_file_or_the_new(
     tmp_path: Path, kill_at: str
@@ -102,6 +103,7 @@ def test_a_kill_at_any_step_of_a_save_leaves_the_old_file_or_the_new(
     assert {q.name for q in path.parent.iterdir()} == files
 
 
+@pytest.mark.no_mission
 def test_two_writers_of_one_file_take_turns(tmp_path: Path) -> None:
     """A writer that holds the file's lock (stopped at "partial", its temporary
     file half written) keeps another from touching the temporary file; the
@@ -140,6 +142,7 @@ def test_two_writers_of_one_file_take_turns(tmp_path: Path) -> None:
             first.wait()
 
 
+@pytest.mark.no_mission
 def test_a_kill_before_the_first_save_leaves_no_file(tmp_path: Path) -> None:
     path = tmp_path / "prmkill.params"
     for kill_at in SAVE_STEPS[: SAVE_STEPS.index("renamed")]:

@@ -79,6 +79,9 @@ def _insert(cfg: zenoh.Config, key: str, value: Any) -> None:
     cfg.insert_json5(key, json.dumps(value))
 
 
+# With the soaks (-m slow): unknown peers under the default transport stay
+# in the default suite across namespaces (tests/faults/test_tls_acl.py).
+@pytest.mark.slow
 def test_unknown_peers_get_no_session_under_the_default_transport(tmp_path: Path) -> None:
     with Cluster(CONFIGS / "recovery_igniter.yaml", tmp_path) as c:
         m = c.mission

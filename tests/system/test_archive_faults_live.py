@@ -121,6 +121,10 @@ def same_row(row: dict[str, str], rec: dict[str, str]) -> bool:
     }
 
 
+# With the soaks (-m slow): the ground killed in flight stays in the default
+# suite (tests/faults/test_worst_day_live.py, gn_kill9), the archive's
+# recovery in tests/unit/test_archive*.py.
+@pytest.mark.slow
 def test_kill9_of_the_ground_node_then_the_archive_opens_clean(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
@@ -185,6 +189,9 @@ def events_of(path: Path) -> list[dict[str, object]]:
     return [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
 
 
+# With the soaks (-m slow): a full disk's rules are tests/unit/test_archive_full_disk.py's
+# (in process, every write failing where the test says).
+@pytest.mark.slow
 def test_a_full_disk_never_stops_the_grounds_log_and_the_archive_resumes(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch, small_disk: Path
 ) -> None:

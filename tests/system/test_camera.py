@@ -8,6 +8,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 from tests.waits import wait_until
 from zplatform import LockstepRunner, load_mission
 from zplatform.cli.registry import running
@@ -29,6 +31,10 @@ def test_camera_in_sim_frames_reach_the_controller_a_loop_later(tmp_path: Path) 
     assert len(means) > 1  # the pattern moves frame by frame
 
 
+# Six seconds of 4 MB frames: with the soaks (-m slow). Bulk channels over
+# shared memory between processes stay in the default suite
+# (tests/integration/test_bulk_shm.py, tests/integration/test_bulk_iox.py).
+@pytest.mark.slow
 def test_camera_frames_go_through_shared_memory_between_processes(tmp_path: Path) -> None:
     """As processes on one host the frames travel through shared memory,
     never copied: iceoryx2 to the CN's reader, zenoh's to a tool's `tap`;

@@ -53,6 +53,9 @@ async def _settle(pilot: Any) -> None:
         await pilot.pause()
 
 
+# With the soaks (-m slow): the console's history over zenoh stays in the
+# default suite (tests/integration/test_console_history_remote.py).
+@pytest.mark.slow
 def test_console_history_from_a_running_ground(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
