@@ -385,8 +385,7 @@ def test_the_cn_recovers_a_live_dns_lost_query_route_and_is_answered_again(
         MINIMAL, trio.genuine, trio.asker, 20_000_000, ready=trio.ready, alive=alive, fault=fault
     )
     with rig:
-        rig.loop(serve=True)  # the route works: answered
-        assert rig.cn.pending == 0
+        assert _answered(rig)  # the route works
         fault.armed = True  # from now on zenoh has no route to dn0's queryable
         recovered: list[tuple[str, int]] = []
         for _ in range(6 * UNANSWERED_LOOPS):  # a bound in loops, not in time
@@ -401,8 +400,19 @@ def test_the_cn_recovers_a_live_dns_lost_query_route_and_is_answered_again(
         assert recovered == [("dn0", 1)]
         assert fault.redeclares == 1 and rig.sync.unanswered.recoveries == [1]
         assert UNANSWERED_LOOPS <= fault.lost_queries < 6 * UNANSWERED_LOOPS
-        rig.loop(serve=True)  # the querier declared again: the DN answers
-        assert rig.cn.pending == 0
+        assert _answered(rig)  # the querier declared again: the DN answers
+
+
+def _answered(rig: SyncRig, tries: int = 10) -> bool:
+    """Whether a loop dn0 serves is answered within the sync's deadline,
+    within ``tries`` loops: a host busy beside a CPU hog may hold one reply
+    past a 20 ms deadline (CI saw it), and a loop answered ends the
+    unanswered streak all the same."""
+    for _ in range(tries):
+        rig.loop(serve=True)
+        if rig.cn.pending == 0:
+            return True
+    return False
 
 
 def test_each_querier_recovery_is_counted_once_in_the_data_vector(trio: Trio) -> None:

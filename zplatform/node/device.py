@@ -53,6 +53,7 @@ from ..runtime.clocksync import (
     ClockEstimate,
     ClockLink,
     Estimator,
+    drift_exchanges,
     estimator_for,
     learn_run,
 )
@@ -390,7 +391,7 @@ class DeviceNode:
                 keys,
                 self.clock.now_ns,
                 self.clock_link,
-                exchanges=max(50, m.clock.exchanges // 4),
+                exchanges=drift_exchanges(m.clock),
                 keep_fraction=m.clock.keep_fraction,
             )
         except (TransportError, ClockSyncError) as exc:

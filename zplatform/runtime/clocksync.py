@@ -116,10 +116,23 @@ DRIFT_PPM = 1000
 which its freshness reference follows: far beyond any quartz's."""
 
 
+DRIFT_EXCHANGES_MIN = 50
+"""The fewest exchanges of a device node's second start-up series, the one
+that measures its corrected clock's residual (:func:`drift_exchanges`)."""
+
+
+def drift_exchanges(clock: ClockConfig) -> int:
+    """Exchanges of a device node's residual series at start-up (after the
+    offset's ``clock.exchanges``): a quarter of those, at least
+    :data:`DRIFT_EXCHANGES_MIN`."""
+    return max(DRIFT_EXCHANGES_MIN, clock.exchanges // 4)
+
+
 def ask_bound(clock: ClockConfig) -> tuple[int, int]:
     """``(burst, every_ns)``: the per-asker rate bound of a clock server
-    (:class:`ClockResponder`): two start-up series (``clock.exchanges``:
-    a node restarted right after it started) and an in-flight one
+    (:class:`ClockResponder`): two start-ups (a node restarted right after
+    it started), each its offset's series (``clock.exchanges``) and its
+    residual's (:func:`drift_exchanges`), and an in-flight series
     (:data:`RESYNC_EXCHANGES`) at once, then one query every ``every_ns``:
     an in-flight series every re-sync period (``clock.resync_s``) or, on
     cues, every :data:`RELEARN_S`, whichever is sooner (a start-up series
@@ -127,7 +140,7 @@ def ask_bound(clock: ClockConfig) -> tuple[int, int]:
     finds its start-up series cut short (``ClockSyncError``) and starts
     when it is back."""
     period_s = min(clock.resync_s, RELEARN_S) if clock.resync_s > 0 else RELEARN_S
-    burst = 2 * clock.exchanges + RESYNC_EXCHANGES + ASK_SLACK
+    burst = 2 * (clock.exchanges + drift_exchanges(clock)) + RESYNC_EXCHANGES + ASK_SLACK
     return burst, round(period_s * 1e9 / RESYNC_EXCHANGES)
 
 
@@ -161,9 +174,15 @@ class ZenohTimestampsError(ClockSyncError):
     Raised by :func:`estimate_offset_zenoh` where :func:`estimate_offset`
     would have succeeded: the replies lack zenoh's four timestamps (the CN's
     zenoh does not stamp), or zenoh's clock and the node clock disagree over
-    the exchanges (a host clock stepped). :class:`ClockEstimator` falls back
-    to :func:`estimate_offset` on it.
+    the exchanges (a host clock stepped). ``node_estimate``: what
+    :func:`estimate_offset` gives from the same exchanges' node-clock times
+    (None when they are too few), which :class:`ClockEstimator` returns
+    instead of asking a second series.
     """
+
+    def __init__(self, message: str, node_estimate: ClockEstimate | None = None) -> None:
+        super().__init__(message)
+        self.node_estimate = node_estimate
 
 
 class _Payload(Protocol):
@@ -1179,6 +1198,11 @@ def estimate_offset_zenoh(
     """
     ti = zenoh.TimestampInstrumentationBuilder().set_send(True).set_receive(True).build()
     samples: list[tuple[int, int]] = []
+    # Every answered exchange's node-clock sample, as estimate_offset takes
+    # it: where zenoh's stamps cannot give the offset, these do, and no
+    # second series is asked (one start-up stays within the clock server's
+    # rate bound for its asker, ask_bound).
+    node: list[tuple[int, int]] = []
     answered = 0  # valid replies to their own exchange, stamped or not
     cn_lo, cn_hi, dn_lo, dn_hi = -(1 << 63), 1 << 63, -(1 << 63), 1 << 63
     missed = 0
@@ -1194,6 +1218,7 @@ def estimate_offset_zenoh(
             continue
         timeout.answered(x.t1, x.t4)
         answered += 1
+        node.append((((x.t2 - x.t1) + (x.t3 - x.t4)) // 2, (x.t4 - x.t1) - (x.t3 - x.t2)))
         if len(x.stamps) != 4:
             continue
         t1, t2, t3, t4 = x.t1, x.t2, x.t3, x.t4_cb
@@ -1201,12 +1226,14 @@ def estimate_offset_zenoh(
         cn_lo, cn_hi = max(cn_lo, t3 - t3z), min(cn_hi, t2 - t2z)
         dn_lo, dn_hi = max(dn_lo, t1 - t1z), min(dn_hi, t4 - t4z)
         samples.append((((t2z - t1z) + (t3z - t4z)) // 2, (t4z - t1z) - (t3z - t2z)))
+    by_node = _fastest(node, keep_fraction) if len(node) >= exchanges // 2 else None
     if len(samples) < exchanges // 2:
         if answered >= exchanges // 2:
             raise ZenohTimestampsError(
                 f"zenoh-timestamp clock sync: {keys.clock} answered {answered} of "
                 f"{exchanges} exchanges, but only {len(samples)} replies carried zenoh's "
-                "four timestamps (does the CN's zenoh stamp instrumented queries?)"
+                "four timestamps (does the CN's zenoh stamp instrumented queries?)",
+                by_node,
             )
         raise ClockSyncError(
             f"zenoh-timestamp clock sync got {len(samples)} of {exchanges} "
@@ -1218,7 +1245,8 @@ def estimate_offset_zenoh(
         raise ZenohTimestampsError(
             f"zenoh-timestamp clock sync: the {side}'s zenoh clock and node clock "
             f"disagree by {inversion / 1e3:.1f} us over the exchanges (a host clock "
-            "stepped?): zenoh's times cannot be mapped into node time"
+            "stepped?): zenoh's times cannot be mapped into node time",
+            by_node,
         )
     est = _fastest(samples, keep_fraction)
     map_cn = (cn_lo + cn_hi) // 2
@@ -1259,13 +1287,19 @@ class ClockEstimator:
 
     Made by :func:`estimator_for`. ``primary`` is the chosen function;
     ``fallback`` (``zenoh_ts`` only: :func:`estimate_offset`) is what a call
-    runs instead when the primary raises :class:`ZenohTimestampsError`, i.e.
+    gives instead when the primary raises :class:`ZenohTimestampsError`, i.e.
     when the CN answered but zenoh's timestamps could not give the offset
     (the CN's zenoh does not stamp; a host clock stepped during the
-    exchanges). The fallback is per call: the next call tries ``zenoh_ts``
-    again. A WARNING is logged when calls start falling back, an INFO line
-    when ``zenoh_ts`` works again; ``fallbacks`` counts them, and the
-    estimate's ``estimator`` field names the one that produced it. Any other
+    exchanges): the node-clock estimate of the same exchanges the error
+    carries, else a series of its own (a primary that carries none). The
+    same exchanges, because a second series of every start-up
+    that fell back (seen under a CPU hog) spent the clock server's rate
+    bound for the asker (:func:`ask_bound`): a device node restarted soon
+    after found its series refused and could not start. The fallback is per
+    call: the next call tries ``zenoh_ts`` again. A WARNING is logged when
+    calls start falling back, an INFO line when ``zenoh_ts`` works again;
+    ``fallbacks`` counts them, and the estimate's ``estimator`` field names
+    the one that produced it. Any other
     ClockSyncError (the CN unreachable: fewer than half the exchanges
     answered) is raised as is, with no second attempt.
     """
@@ -1311,6 +1345,8 @@ class ClockEstimator:
             if not self._falling_back:
                 log.warning("%s; falling back to the node-clock estimator", exc)
                 self._falling_back = True
+            if exc.node_estimate is not None:  # the same exchanges, by the node clock
+                return exc.node_estimate
             try:
                 return run(self.fallback)
             except ClockSyncError as exc2:

@@ -276,8 +276,9 @@ KEYSPACE: tuple[KeyRow, ...] = (
                 "stamped within a day (QUERY_SPAN_NS) of the CN's clock and at most "
                 "FRESH_NS older than the asker's newest (against the CN's clock), its nonce "
                 "not among the asker's last answered_kept",
-                "per asker after the tag, ask_bound (two start-up series, clock.exchanges, "
-                "and a re-sync series, then one series a re-sync period); refused in "
+                "per asker after the tag, ask_bound (two start-ups, clock.exchanges and "
+                "the residual's drift_exchanges each, and a re-sync series, then one series "
+                "a re-sync period); refused in "
                 "zenoh's callback, unanswered; checked ones: one serving thread, at most "
                 "CLOCK_BACKLOG queued, the rest dropped and counted",
             ),
