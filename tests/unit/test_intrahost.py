@@ -481,14 +481,21 @@ def test_a_wait_takes_whole_milliseconds_rounded_up_from_a_table_built_at_start(
     prefix: str, seconds: float, ms: int
 ) -> None:
     """The WaitSet counts whole milliseconds, rounded up: a loop's wait takes
-    that Duration from a table built when the end opened, the same object
-    every time (none built per wait); a wait over a second builds its own."""
+    that Duration from a table built once per process, the same object
+    every time and for every end (none built per wait); a wait over a
+    second builds its own."""
     names = link_names("table", "rocket", 1, "cn", "dn0")
     server = IntraHostServer(names, 64, 64, prefix=prefix, check=False)
     try:
         waiter = server._waiter
         assert waiter.duration(seconds).as_millis() == ms
         assert waiter.duration(seconds) is waiter.duration(seconds)
+        other = IntraHostServer(link_names("table2", "rocket", 1, "cn", "dn0"), 64, 64,
+                                prefix=prefix, check=False)  # fmt: skip
+        try:
+            assert other._waiter.duration(seconds) is waiter.duration(seconds)
+        finally:
+            other.close()
         assert waiter.duration(2.5).as_secs_f64() == 2.5
         assert waiter.duration(2.5) is not waiter.duration(2.5)
     finally:

@@ -391,15 +391,19 @@ class _Waiter:
     and what arrived after a wait. Never raises.
     """
 
-    #: Waits of up to this many milliseconds take a Duration built at start
-    #: (the WaitSet counts whole milliseconds, rounded up, so nothing finer is
-    #: lost): a loop's waits allocate none. A longer wait (no loop's) builds one.
+    #: Waits of up to this many milliseconds take a Duration built once per
+    #: process, by the first end that opens (the WaitSet counts whole
+    #: milliseconds, rounded up, so nothing finer is lost): a loop's waits
+    #: allocate none. A longer wait (no loop's) builds one.
     TABLE_MS = 1000
+    _table: tuple[Any, ...] = ()
 
     def __init__(self, iox: Any, listener: Any) -> None:
         self._listener = listener
         self._duration = iox.Duration.from_secs_f64
-        self._ms = tuple(iox.Duration.from_millis(i) for i in range(self.TABLE_MS + 1))
+        if not _Waiter._table:
+            _Waiter._table = tuple(iox.Duration.from_millis(i) for i in range(self.TABLE_MS + 1))
+        self._ms = _Waiter._table
         self._ws = (
             iox.WaitSetBuilder.new()
             .signal_handling_mode(iox.SignalHandlingMode.Disabled)
