@@ -1203,6 +1203,7 @@ def estimate_offset_zenoh(
     # second series is asked (one start-up stays within the clock server's
     # rate bound for its asker, ask_bound).
     node: list[tuple[int, int]] = []
+    first_t1 = last_t4 = 0  # the answered exchanges' span, for the error's words
     answered = 0  # valid replies to their own exchange, stamped or not
     cn_lo, cn_hi, dn_lo, dn_hi = -(1 << 63), 1 << 63, -(1 << 63), 1 << 63
     missed = 0
@@ -1218,6 +1219,9 @@ def estimate_offset_zenoh(
             continue
         timeout.answered(x.t1, x.t4)
         answered += 1
+        if answered == 1:
+            first_t1 = x.t1
+        last_t4 = x.t4
         node.append((((x.t2 - x.t1) + (x.t3 - x.t4)) // 2, (x.t4 - x.t1) - (x.t3 - x.t2)))
         if len(x.stamps) != 4:
             continue
@@ -1244,8 +1248,9 @@ def estimate_offset_zenoh(
         side = "CN" if cn_lo - cn_hi >= dn_lo - dn_hi else "DN"
         raise ZenohTimestampsError(
             f"zenoh-timestamp clock sync: the {side}'s zenoh clock and node clock "
-            f"disagree by {inversion / 1e3:.1f} us over the exchanges (a host clock "
-            "stepped?): zenoh's times cannot be mapped into node time",
+            f"disagree by {inversion / 1e3:.1f} us over the exchanges' "
+            f"{(last_t4 - first_t1) / 1e9:.1f} s (a host clock stepped, or slewed over a "
+            "long series?): zenoh's times cannot be mapped into node time",
             by_node,
         )
     est = _fastest(samples, keep_fraction)
