@@ -1230,14 +1230,17 @@ def estimate_offset_zenoh(
         cn_lo, cn_hi = max(cn_lo, t3 - t3z), min(cn_hi, t2 - t2z)
         dn_lo, dn_hi = max(dn_lo, t1 - t1z), min(dn_hi, t4 - t4z)
         samples.append((((t2z - t1z) + (t3z - t4z)) // 2, (t4z - t1z) - (t3z - t2z)))
-    by_node = _fastest(node, keep_fraction) if len(node) >= exchanges // 2 else None
+
+    def by_node() -> ClockEstimate | None:  # only when zenoh's stamps cannot serve
+        return _fastest(node, keep_fraction) if len(node) >= exchanges // 2 else None
+
     if len(samples) < exchanges // 2:
         if answered >= exchanges // 2:
             raise ZenohTimestampsError(
                 f"zenoh-timestamp clock sync: {keys.clock} answered {answered} of "
                 f"{exchanges} exchanges, but only {len(samples)} replies carried zenoh's "
                 "four timestamps (does the CN's zenoh stamp instrumented queries?)",
-                by_node,
+                by_node(),
             )
         raise ClockSyncError(
             f"zenoh-timestamp clock sync got {len(samples)} of {exchanges} "
@@ -1251,7 +1254,7 @@ def estimate_offset_zenoh(
             f"disagree by {inversion / 1e3:.1f} us over the exchanges' "
             f"{(last_t4 - first_t1) / 1e9:.1f} s (a host clock stepped, or slewed over a "
             "long series?): zenoh's times cannot be mapped into node time",
-            by_node,
+            by_node(),
         )
     est = _fastest(samples, keep_fraction)
     map_cn = (cn_lo + cn_hi) // 2
