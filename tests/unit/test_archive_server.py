@@ -696,3 +696,58 @@ def test_an_asks_mailbox_is_bounded_by_bytes(root: Path, monkeypatch: pytest.Mon
     assert a.table().num_rows == 10
     # 3 held (the answer, then its index twice again, never read: done), 7 refused
     assert (a.dropped, a.refused) == (7, 0)
+
+
+@pytest.mark.parametrize("lost", ["hello", "ask", "hello answer"])
+def test_a_get_lost_on_the_way_is_sent_again_and_answered_once(
+    root: Path, monkeypatch: pytest.MonkeyPatch, lost: str
+) -> None:
+    """A hello, an ask, or a hello's answer zenoh DROPped on a congested
+    link (nothing comes back and the get does not end before its timeout)
+    cost the asker RESEND_AFTER_S, not the whole timeout, which used to end
+    in "no station answered": the hello goes again under a fresh nonce, the
+    ask as it is, and the station answers each once (a copy of an ask it
+    served is refused as a replay, never served twice)."""
+    import zplatform.runtime.queries as queries
+    from zplatform.archive.server import HELLO_MAGIC, remote_query
+
+    srv = server(root, Clock())
+    calls: list[str] = []
+
+    def ask(_s: Any, _k: str, handler: Any, *, payload: bytes, **_kw: Any) -> None:
+        on_reply, on_done = handler
+        kind = "hello" if payload[:4] == HELLO_MAGIC else "ask"
+        calls.append(kind)
+        first = calls.count(kind) == 1
+        if lost == kind and first:
+            return  # lost on its way: no reply, and zenoh ends it only at its timeout
+        (q,) = deliver(srv, payload)
+        if lost == "hello answer" and kind == "hello" and first:
+            return  # the station answered; the answer was lost
+        for data in q.replies:
+            ok = SimpleNamespace(payload=SimpleNamespace(to_bytes=lambda d=data: d))
+            on_reply(SimpleNamespace(ok=ok))
+        on_done()
+
+    monkeypatch.setattr(queries, "replies", lambda on_reply, on_done: (on_reply, on_done))
+    monkeypatch.setattr(queries, "ask", ask)
+    got = remote_query(
+        None,  # type: ignore[arg-type]
+        "rocket/archive/query",
+        KEYS.for_node("tool").channel("telemetry"),
+        Q,
+        nonce=next(NONCES),
+        timeout_s=30.0,
+    )
+    with Archive(MISSION, root) as local:
+        assert got.equals(local.query(Q))
+    assert (
+        calls
+        == {
+            "hello": ["hello", "hello", "ask"],
+            "ask": ["hello", "ask", "ask"],
+            "hello answer": ["hello", "hello", "ask"],
+        }[lost]
+    )
+    assert srv.hellos == (2 if lost == "hello answer" else 1)
+    assert srv.served == 1 and srv.refused == 0

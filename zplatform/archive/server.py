@@ -94,6 +94,13 @@ REPLY_BACKLOG_BYTES = 32 << 20
 """Bytes of replies an ask's mailbox holds, at most (a thousand chunks: the
 asking thread checks them far faster than a station paces them); more are
 refused in zenoh's callback, counted (:attr:`ArchiveAsk.dropped`)."""
+RESEND_AFTER_S = 0.5
+"""How long an asker waits on a silent station (no reply, its get not ended)
+before it sends again (:func:`remote_query`), then twice as long each
+time: a hello or an ask zenoh DROPped on a congested link costs that wait,
+not the whole timeout."""
+MAX_SENDS = 6
+"""Gets an asker sends for one hello or one ask, at most."""
 HELLOS_KEPT = 256
 """Hellos (asker word and nonce) a server keeps, to refuse a replay of one
 in zenoh's callback before it takes a place in the inbox (stale): a
@@ -664,6 +671,9 @@ class ArchiveAsk:
         self._channel, self.nonce = channel, nonce
         self.asker = asker if asker is not None else secrets.randbits(64)
         self.hello_nonce = secrets.randbits(64)
+        # Every hello sent (a re-sent one has a nonce of its own: the station
+        # refuses a hello it has seen): the answer to any of them teaches.
+        self._hellos = {self.hello_nonce}
         self.session: int | None = None
         """The session learned (None: no hello answered yet)."""
         self.cookie = 0
@@ -719,12 +729,19 @@ class ArchiveAsk:
                 return False
         kind, nonce, i, n = REPLY.unpack_from(payload, 0)
         if session is None:
-            return nonce == self.hello_nonce and kind in (SESSION, ERROR) and (i, n) == (0, 1)
+            return nonce in self._hellos and kind in (SESSION, ERROR) and (i, n) == (0, 1)
         return nonce == self.nonce and kind in (DATA, ERROR) and i < n <= self.max_chunks
 
     def hello(self) -> bytes:
         """This ask's hello (module doc)."""
         return hello_payload(self._channel, self.asker, self.hello_nonce)
+
+    def hello_again(self) -> bytes:
+        """A hello to send again, under a fresh nonce (the station refuses a
+        hello it has seen); the answer to any hello of this ask teaches."""
+        self.hello_nonce = secrets.randbits(64)
+        self._hellos.add(self.hello_nonce)
+        return self.hello()
 
     def ask(self, query: Ask) -> bytes:
         """The ask of ``query`` (its kind: its type) in the session learned.
@@ -764,13 +781,13 @@ class ArchiveAsk:
         return True
 
     def _on_session(self, body: bytes, word: int, kind: int, nonce: int, i: int, n: int) -> bool:
-        if kind == ERROR and nonce == self.hello_nonce and (i, n) == (0, 1):
+        if kind == ERROR and nonce in self._hellos and (i, n) == (0, 1):
             # The station's one error reply to the hello, tagged (any run:
             # no session is known yet): a ground of another version says so.
             if self.error is None:
                 self.error = body[REPLY.size :].decode("utf-8", "replace")
             return True
-        ok = kind == SESSION and nonce == self.hello_nonce and (i, n) == (0, 1)
+        ok = kind == SESSION and nonce in self._hellos and (i, n) == (0, 1)
         ok = ok and len(body) == REPLY.size + SESSION_BODY.size
         if not ok:
             self._refused += 1
@@ -824,7 +841,8 @@ def remote_query(
     """Ask the station(s) serving ``key_expr`` for ``query`` (a telemetry
     query, the run list or a run's events, :data:`KINDS`): a hello, then
     the ask in the session it teaches (module doc); blocks up to
-    ``timeout_s`` for each. ``channel``: the telemetry channel, this call's
+    ``timeout_s`` for each, sending either again to a silent station
+    (:func:`_ask_station`, docs/archive.md). ``channel``: the telemetry channel, this call's
     (its run is set to the session); ``now_ns``: unused (the freshness is
     the station's cookie; kept for callers of the first version);
     ``asker``: the station's word (random by default). The replies come
@@ -839,6 +857,7 @@ def remote_query(
         asker_.hello(),
         timeout_s,
         lambda: asker_.session is not None or asker_.error is not None,
+        asker_.hello_again,
     )
     if asker_.error is not None:
         raise ArchiveError(f"the station refused the hello: {asker_.error}")
@@ -847,7 +866,11 @@ def remote_query(
             f"no station answered on {key_expr} within {timeout_s:g} s"
             + _foreign(asker_.refused, "hello", HELLO_MAGIC)
         )
-    _ask_station(session, key_expr, asker_, asker_.ask(query), timeout_s, lambda: asker_.done)
+    # Sent again as it is: the station answers an ask once and refuses its
+    # copies as replays, so a copy never doubles its work; a lost answer to
+    # one it served is not asked again (its copies are refused).
+    ask_ = asker_.ask(query)
+    _ask_station(session, key_expr, asker_, ask_, timeout_s, lambda: asker_.done, lambda: ask_)
     if asker_.error is None and asker_._count is None:
         raise ArchiveError(
             f"no station answered the ask on {key_expr} within {timeout_s:g} s (the station "
@@ -875,16 +898,27 @@ def _ask_station(
     payload: bytes,
     timeout_s: float,
     done: Callable[[], object],
+    again: Callable[[], bytes] | None = None,
 ) -> None:
-    """One get of ``payload``, its replies fed to ``asker`` until ``done()``.
+    """Gets of ``payload``, their replies fed to ``asker`` until ``done()``,
+    every get ended, or ``timeout_s`` (and a second for the last get's end).
     Zenoh's callback screens each reply (:meth:`ArchiveAsk.screen`) before
     the mailbox, which holds at most :data:`REPLY_BACKLOG` replies and
     :data:`REPLY_BACKLOG_BYTES` bytes (more refused, counted in
-    :attr:`ArchiveAsk.dropped`): junk never takes a genuine reply's place."""
+    :attr:`ArchiveAsk.dropped`): junk never takes a genuine reply's place.
+
+    ``again``: what to send when the station stays silent (no reply, no get
+    ended) for :data:`RESEND_AFTER_S`, then twice as long each time, at
+    most :data:`MAX_SENDS` gets in all, each ending with the first's
+    deadline: a get or its answer DROPped on the way costs that wait, not
+    the whole timeout. A station that answers, or ends a get unanswered
+    (no station, or a refusal), is not asked again. Every get shares one
+    mailbox, so a slow answer to the first is taken as well."""
     from ..control.handoff import Mailbox
     from ..runtime.queries import ask, replies
 
-    box: Mailbox[bytes | None] = Mailbox(REPLY_BACKLOG + 1)  # and the end's None
+    # The replies, then one b"" per get ended (a reply is never empty: screened).
+    box: Mailbox[bytes] = Mailbox(REPLY_BACKLOG + MAX_SENDS)
     lock = threading.Lock()
     held = [0, 0]  # replies, bytes in the mailbox (zenoh's thread adds, this one takes)
 
@@ -903,18 +937,41 @@ def _ask_station(
             held[1] += len(data)
         box.put(data)
 
-    ask(
-        session,
-        key_expr,
-        replies(on_reply, lambda: box.put(None)),
-        payload=payload,
-        timeout_s=timeout_s,
-    )
-    deadline = time.monotonic() + timeout_s + 1.0
-    while not done() and (left := deadline - time.monotonic()) > 0:
-        item = box.get(left)
-        if item is None:
+    deadline = time.monotonic() + timeout_s
+
+    def send(data: bytes) -> None:
+        ask(
+            session,
+            key_expr,
+            replies(on_reply, lambda: box.put(b"")),
+            payload=data,
+            timeout_s=max(0.001, deadline - time.monotonic()),
+        )
+
+    send(payload)
+    sent, ended = 1, 0
+    heard = time.monotonic()  # the last reply or get ended
+    quiet_s = RESEND_AFTER_S
+    end = deadline + 1.0
+    while not done() and ended < sent:
+        now = time.monotonic()
+        if now >= end:
             break
+        wake = end
+        if again is not None and sent < MAX_SENDS and ended == 0 and now < deadline:
+            if now - heard >= quiet_s:
+                send(again())
+                sent += 1
+                heard, quiet_s = now, 2 * quiet_s
+                continue
+            wake = min(wake, heard + quiet_s)
+        item = box.get(max(0.0, wake - now))
+        if item is None:
+            continue  # its wait ran out: look again
+        heard = time.monotonic()
+        if not item:
+            ended += 1
+            continue
         with lock:
             held[0] -= 1
             held[1] -= len(item)
