@@ -236,7 +236,11 @@ def test_a_cpu_hog_beside_the_nodes_raises_its_monitor(tmp_path: Path) -> None:
             q.close()
             assert text.startswith("monitor hog: dn0_sys_cpu_pct = ")
             assert text.endswith("for 2 loops; transition to HOT requested")
-            assert float(c.tm.get("dn0_sys_cpu_pct")) > 90
+            # The value it tripped on, in the event: the telemetry read now
+            # may be a later sample, when the hogs shared the box with the
+            # test's neighbours (a quiet run saw 56 % there after the trip).
+            tripped = float(text.removeprefix("monitor hog: dn0_sys_cpu_pct = ").split()[0])
+            assert tripped > 90, text
         finally:
             for h in hogs:
                 h.kill()
