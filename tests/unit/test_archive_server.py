@@ -629,14 +629,25 @@ def test_replayed_asks_never_take_the_inbox_a_stations_ask_needs(root: Path) -> 
     assert (new.busy, new.stale, new.served, new.hellos) == (0, len(replays), 2, 3)
 
 
-def _station_link(monkeypatch: pytest.MonkeyPatch, srv: ArchiveServer, flood: Any) -> None:
+def _station_link(
+    monkeypatch: pytest.MonkeyPatch, srv: ArchiveServer, flood: Any, lost: Any = None
+) -> None:
     """zenoh for ``_ask_station``: the get is served by ``srv`` at once and
-    ``flood(genuine)`` lists what reaches the reply callback, in order."""
+    ``flood(genuine)`` lists what reaches the reply callback, in order.
+    ``lost(payload)``: ``"get"`` loses the get on its way (the station never
+    sees it), ``"answer"`` the station's answer (it served it); either way
+    nothing comes back and the get does not end (zenoh ends it at its
+    timeout); None: neither."""
     import zplatform.runtime.queries as queries
 
     def ask(_s: Any, _k: str, handler: Any, *, payload: bytes, **_kw: Any) -> None:
         on_reply, on_done = handler
+        what = lost(payload) if lost is not None else None
+        if what == "get":
+            return
         (q,) = deliver(srv, payload)
+        if what == "answer":
+            return
         for data in flood(q.replies):
             ok = SimpleNamespace(payload=SimpleNamespace(to_bytes=lambda d=data: d))
             on_reply(SimpleNamespace(ok=ok))
@@ -708,29 +719,19 @@ def test_a_get_lost_on_the_way_is_sent_again_and_answered_once(
     in "no station answered": the hello goes again under a fresh nonce, the
     ask as it is, and the station answers each once (a copy of an ask it
     served is refused as a replay, never served twice)."""
-    import zplatform.runtime.queries as queries
     from zplatform.archive.server import HELLO_MAGIC, remote_query
 
     srv = server(root, Clock())
     calls: list[str] = []
 
-    def ask(_s: Any, _k: str, handler: Any, *, payload: bytes, **_kw: Any) -> None:
-        on_reply, on_done = handler
+    def lose(payload: bytes) -> str | None:  # the first get of the kind ``lost`` names
         kind = "hello" if payload[:4] == HELLO_MAGIC else "ask"
         calls.append(kind)
-        first = calls.count(kind) == 1
-        if lost == kind and first:
-            return  # lost on its way: no reply, and zenoh ends it only at its timeout
-        (q,) = deliver(srv, payload)
-        if lost == "hello answer" and kind == "hello" and first:
-            return  # the station answered; the answer was lost
-        for data in q.replies:
-            ok = SimpleNamespace(payload=SimpleNamespace(to_bytes=lambda d=data: d))
-            on_reply(SimpleNamespace(ok=ok))
-        on_done()
+        if calls.count(kind) > 1 or not lost.startswith(kind):
+            return None
+        return "answer" if lost.endswith("answer") else "get"
 
-    monkeypatch.setattr(queries, "replies", lambda on_reply, on_done: (on_reply, on_done))
-    monkeypatch.setattr(queries, "ask", ask)
+    _station_link(monkeypatch, srv, lambda genuine: genuine, lose)
     got = remote_query(
         None,  # type: ignore[arg-type]
         "rocket/archive/query",
