@@ -96,11 +96,12 @@ asking thread checks them far faster than a station paces them); more are
 refused in zenoh's callback, counted (:attr:`ArchiveAsk.dropped`)."""
 RESEND_AFTER_S = 0.5
 """How long an asker waits on a silent station (no reply, its get not ended)
-before it sends again (:func:`remote_query`), then twice as long each
-time: a hello or an ask zenoh DROPped on a congested link costs that wait,
-not the whole timeout."""
-MAX_SENDS = 6
-"""Gets an asker sends for one hello or one ask, at most."""
+before it sends its hello again (:func:`remote_query`), then twice as long
+each time: a hello or its answer zenoh DROPped on a congested link costs
+that wait, not the whole timeout."""
+MAX_SENDS = 3
+"""Gets an asker sends for one hello, at most (each takes a place in a busy
+station's inbox until it is answered)."""
 HELLOS_KEPT = 256
 """Hellos (asker word and nonce) a server keeps, to refuse a replay of one
 in zenoh's callback before it takes a place in the inbox (stale): a
@@ -841,8 +842,9 @@ def remote_query(
     """Ask the station(s) serving ``key_expr`` for ``query`` (a telemetry
     query, the run list or a run's events, :data:`KINDS`): a hello, then
     the ask in the session it teaches (module doc); blocks up to
-    ``timeout_s`` for each, sending either again to a silent station
-    (:func:`_ask_station`, docs/archive.md). ``channel``: the telemetry channel, this call's
+    ``timeout_s`` for each, the hello sent again to a silent station
+    (:func:`_ask_station`, docs/archive.md). ``channel``: the telemetry
+    channel, this call's
     (its run is set to the session); ``now_ns``: unused (the freshness is
     the station's cookie; kept for callers of the first version);
     ``asker``: the station's word (random by default). The replies come
@@ -866,11 +868,10 @@ def remote_query(
             f"no station answered on {key_expr} within {timeout_s:g} s"
             + _foreign(asker_.refused, "hello", HELLO_MAGIC)
         )
-    # Sent again as it is: the station answers an ask once and refuses its
-    # copies as replays, so a copy never doubles its work; a lost answer to
-    # one it served is not asked again (its copies are refused).
-    ask_ = asker_.ask(query)
-    _ask_station(session, key_expr, asker_, ask_, timeout_s, lambda: asker_.done, lambda: ask_)
+    # Sent once: a copy would be refused as a replay once the first is
+    # served, so a slow station (its first DuckDB query on a busy host)
+    # would count a genuine asker's copies among its replays.
+    _ask_station(session, key_expr, asker_, asker_.ask(query), timeout_s, lambda: asker_.done)
     if asker_.error is None and asker_._count is None:
         raise ArchiveError(
             f"no station answered the ask on {key_expr} within {timeout_s:g} s (the station "
