@@ -444,6 +444,45 @@ def test_node_health_samples_on_its_thread_and_times_gc(tmp_path: Path) -> None:
     assert h._on_gc not in gc.callbacks
 
 
+def test_a_stalled_thread_is_logged_once_with_where_every_thread_stands(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    m = load_mission(
+        _with_health(MINIMAL, tmp_path, {"rate_hz": 10, "deadlines_ms": {"clock": 50}})
+    )
+    live = Liveness(thread_deadlines_ns(m))
+    hb = live.add(Heartbeat("clock"))
+    release = threading.Event()
+
+    def _held_in_here() -> None:  # what the stack must name
+        hb.beat()
+        release.wait(30)
+        hb.beat()
+
+    t = threading.Thread(target=_held_in_here, name="clock-resync", daemon=True)
+    h = NodeHealth(m, "dn0", live, sampler=lambda: (0.0,) * 6)
+    caplog.set_level("WARNING", logger="zplatform.health")
+
+    def told() -> list[str]:
+        return [r.getMessage() for r in caplog.records if "past their deadline" in r.getMessage()]
+
+    t.start()
+    h.start()
+    try:
+        wait_until(lambda: told(), 10, "the stall logged")
+        (text,) = told()
+        assert text.startswith("dn0: thread(s) clock past their deadline")
+        assert "thread clock-resync (" in text and "in _held_in_here" in text
+        assert "release.wait(30)" in text
+        n = h.samples
+        wait_until(lambda: h.samples >= n + 2, 10, "two more samples")
+        assert len(told()) == 1  # once per stall, however long it lasts
+    finally:
+        release.set()
+        t.join(10)
+        h.close()
+
+
 def test_the_zenoh_probe_checks_in_from_zenohs_thread_only(tmp_path: Path) -> None:
     from zplatform.runtime.transport import NodeSession
 

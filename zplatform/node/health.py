@@ -4,8 +4,9 @@
 (:mod:`zplatform.core.health` has the elements and the contract). It runs one
 thread, ``health``, which once per health period samples the process and the
 host through psutil (:class:`ResourceSampler`), latches the threads past their
-deadline, and probes zenoh with a query nobody answers, whose finalisation on
-zenoh's thread checks in for ``zenoh``.
+deadline (and logs, once per stall, where every Python thread of the process
+stands: :func:`thread_stacks`), and probes zenoh with a query nobody answers,
+whose finalisation on zenoh's thread checks in for ``zenoh``.
 
 Contract: the loop thread's calls never block: :meth:`NodeHealth.note` and
 :meth:`NodeHealth.overran` are one compare or add per loop,
@@ -23,19 +24,21 @@ from __future__ import annotations
 import gc
 import logging
 import math
+import sys
 import threading
 import time
+import traceback
 from collections.abc import Callable
 from typing import Any
 
 import zenoh
 
 from ..config import Mission
-from ..core.health import BLOCK_SIZE, LOOP_FIELDS, SAMPLED, Heartbeat, Liveness
+from ..core.health import BLOCK_SIZE, LOOP_FIELDS, SAMPLED, Heartbeat, Liveness, stalled_names
 from ..runtime.queries import ask, replies
 from ..runtime.transport import KeySpace
 
-__all__ = ["NodeHealth", "ResourceSampler", "Sample"]
+__all__ = ["NodeHealth", "ResourceSampler", "Sample", "thread_stacks"]
 
 log = logging.getLogger("zplatform.health")
 
@@ -47,6 +50,19 @@ _NAN = math.nan
 # Chips whose readings are the CPU's (x86 coretemp/k10temp, a Raspberry Pi's
 # cpu_thermal, other SoCs); without any, the hottest sensor the host has.
 _CPU_CHIPS = ("coretemp", "k10temp", "zenpower", "cpu_thermal", "cpu-thermal", "soc_thermal")
+
+
+def thread_stacks() -> str:
+    """Where every Python thread of this process stands now: per thread its
+    name, ident and stack, innermost call last (a thread running native code,
+    zenoh's, shows the Python call that entered it). Takes the GIL, allocates:
+    for a rare diagnostic (a stalled thread), never the loop thread's."""
+    names = {t.ident: t.name for t in threading.enumerate()}
+    parts = []
+    for ident, frame in sys._current_frames().items():
+        stack = "".join(traceback.format_stack(frame)).rstrip()
+        parts.append(f"thread {names.get(ident, '(not a threading.Thread)')} ({ident}):\n{stack}")
+    return "\n".join(parts)
 
 
 class ResourceSampler:
@@ -141,6 +157,7 @@ class NodeHealth:
         self.sample_ns = 0
         """How long the last sample took (ns), for the benchmark."""
         self._latched = 0
+        self._told = 0  # the stalled threads whose stall was logged with the stacks
         # The loop's window (loop thread), gc's (whichever thread collects).
         self._late_max = 0
         self._overruns = 0
@@ -254,7 +271,19 @@ class NodeHealth:
             self.samples += 1
             SAMPLED.pack_into(self._staging, 0, *values, self.samples & 0xFFFF_FFFF)
             self.sample_ns = clock() - t0
-            self._latched |= self._liveness.stalled(clock())
+            stalled = self._liveness.stalled(clock())
+            self._latched |= stalled
+            if stalled & ~self._told:
+                # A thread past its deadline: where it waits is what its
+                # event cannot say (a lock, a peer, zenoh's call). Once per
+                # stall; a thread that checks in again may be told again.
+                log.warning(
+                    "%s: thread(s) %s past their deadline; the process's threads now:\n%s",
+                    self.node,
+                    ", ".join(stalled_names(stalled & ~self._told)),
+                    thread_stacks(),
+                )
+            self._told = stalled
             if self._probe is not None:
                 try:
                     # Session-local, DROP, target ALL, a timeout: the one way
