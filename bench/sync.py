@@ -2,7 +2,7 @@
 
 Variants, run one after the other in one invocation, all at the same loop
 rate (100 Hz), with the same 256 B regions, the same 2 ms deadline and the
-same scheduling (see *Scheduling* below):
+same scheduling but the ``_cfs`` rows (see *Scheduling* below):
 
 * ``zplatform_1dn`` / ``zplatform_3dn``: a real zplatform cluster
   (:class:`bench.cluster.BenchCluster`): 1 or 3 device-node processes and the
@@ -35,6 +35,16 @@ same scheduling (see *Scheduling* below):
   pins ``intra_host: zenoh``, so it measures zenoh as before;
   ``raw_iceoryx2_1``: bare iceoryx2 request/response with event wake-ups
   (:func:`bench.intrahost.run_raw`), the floor of the shared-memory rows;
+* ``zplatform_shm_1dn_cfs`` / ``raw_iceoryx2_1_cfs``: the same two with
+  normal scheduling (SCHED_OTHER, whatever ``--priority`` says): what
+  real-time priority costs a wake-up. The kernel wakes a SCHED_FIFO thread
+  on an idle CPU, where SCHED_OTHER's wake-affine placement keeps it on the
+  waker's; on a VM an idle vCPU is halted, and waking it costs about
+  200 us (docs/architecture.md#intra-host). Only these rows: on the shared
+  memory path the loop threads wake each other; zenoh's runtime threads
+  are process-wide and keep the policy they started with, so a zenoh row
+  in this process could not be run without real-time priority after one
+  with it;
 * ``*_325KB``: ``zplatform_1dn``, ``zplatform_shm_1dn``, ``raw_zenoh_1``
   and ``raw_iceoryx2_1`` with 325 KB regions each way (the largest region
   of ``bench.intrahost``, a 100,000-element vector's order);
@@ -66,7 +76,8 @@ off), every node of a zplatform cluster runs SCHED_FIFO P on all its threads
 (the mission's ``priority``). So that the baselines are not at a
 disadvantage, this process switches its main thread to SCHED_FIFO P before
 anything starts: the threads zenoh creates later and the responder processes
-the baselines spawn inherit the policy.
+the baselines spawn inherit the policy. The ``_cfs`` rows run with normal
+scheduling (:func:`normal_scheduling`), their nodes and responders too.
 
 What blocks: :func:`main` blocks for the sum of the variants' durations (10 s
 each with ``--quick``, 30 s otherwise) plus the start-up of each variant's
@@ -84,7 +95,9 @@ from __future__ import annotations
 import json
 import os
 import tempfile
-from dataclasses import dataclass
+from collections.abc import Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -123,6 +136,7 @@ class Variant:
     intra_host: str = "zenoh"  # zplatform: the mission's transport.intra_host
     region_bytes: int = REGION_BYTES
     elements: int | None = None  # bench.bandwidth's element point instead of u8 regions
+    realtime: bool = True  # False: SCHED_OTHER whatever --priority says (the ``_cfs`` rows)
 
 
 ELEMENTS = 100_000
@@ -144,6 +158,8 @@ VARIANTS: tuple[Variant, ...] = (
     Variant("zplatform_shm_1dn", "zplatform", 1, intra_host="shm"),
     Variant("zplatform_shm_3dn", "zplatform", 3, intra_host="shm"),
     Variant("raw_iceoryx2_1", "iceoryx2", 1),
+    Variant("zplatform_shm_1dn_cfs", "zplatform", 1, intra_host="shm", realtime=False),
+    Variant("raw_iceoryx2_1_cfs", "iceoryx2", 1, realtime=False),
     Variant("zplatform_1dn_325KB", "zplatform", 1, region_bytes=LARGE_BYTES),
     Variant("zplatform_shm_1dn_325KB", "zplatform", 1, intra_host="shm", region_bytes=LARGE_BYTES),
     Variant("raw_zenoh_1_325KB", "zenoh", 1, region_bytes=LARGE_BYTES),
@@ -300,8 +316,26 @@ def run_zplatform(
     return fig
 
 
+@contextmanager
+def normal_scheduling() -> Iterator[str]:
+    """The calling thread in SCHED_OTHER for the block (the processes it
+    spawns and the threads it starts inherit it), its policy and priority
+    restored after. Yields the scheduling it ran with, for the row."""
+    policy, param = os.sched_getscheduler(0), os.sched_getparam(0)
+    os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
+    try:
+        yield "SCHED_OTHER"
+    finally:
+        os.sched_setscheduler(0, policy, param)
+
+
 def run_variant(v: Variant, *, duration_s: float, priority: int) -> dict[str, Any]:
     """Run one variant at :data:`RATE_HZ` for ``duration_s`` (blocks that long plus start-up)."""
+    if not v.realtime:
+        with normal_scheduling() as sched:
+            fig = run_variant(replace(v, realtime=True), duration_s=duration_s, priority=0)
+        fig["scheduling"] = sched
+        return fig
     deadline_ns = round(DEADLINE_MS * 1e6)
     if v.kind == "zplatform" and v.elements is not None:
         from bench.bandwidth import run_point
@@ -431,6 +465,12 @@ def ratios(variants: dict[str, dict[str, Any]]) -> dict[str, float | None]:
         "zplatform_shm_3dn/zplatform_3dn": ("zplatform_shm_3dn", "zplatform_3dn"),
         "zplatform_shm_3dn/raw_zenoh_3": ("zplatform_shm_3dn", "raw_zenoh_3"),
         "raw_iceoryx2_1/raw_zenoh_1": ("raw_iceoryx2_1", "raw_zenoh_1"),
+        "zplatform_shm_1dn_cfs/raw_iceoryx2_1_cfs": (
+            "zplatform_shm_1dn_cfs",
+            "raw_iceoryx2_1_cfs",
+        ),
+        "zplatform_shm_1dn/zplatform_shm_1dn_cfs": ("zplatform_shm_1dn", "zplatform_shm_1dn_cfs"),
+        "raw_iceoryx2_1/raw_iceoryx2_1_cfs": ("raw_iceoryx2_1", "raw_iceoryx2_1_cfs"),
         "zplatform_shm_1dn_325KB/raw_iceoryx2_1_325KB": (
             "zplatform_shm_1dn_325KB",
             "raw_iceoryx2_1_325KB",
