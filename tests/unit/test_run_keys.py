@@ -4,7 +4,11 @@ what they answer, and follow their vector's run."""
 
 from __future__ import annotations
 
+import threading
+import time
+from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import msgspec
 
@@ -18,7 +22,7 @@ from zplatform.control.loop import ControlLogic, DeviceLogic
 from zplatform.control.uplink import load_commands
 from zplatform.core.auth import NO_RUN, RUN_LEN, TAG_LEN, Channel, Run
 from zplatform.node.device import ClockResync
-from zplatform.runtime.clocksync import ClockLink, ClockServer, estimate_offset
+from zplatform.runtime.clocksync import ClockLink, ClockServer, ClockSyncError, estimate_offset
 from zplatform.runtime.process import StopFlag
 from zplatform.runtime.transport import KeySpace
 from zplatform.sim.lockstep import DEFAULT_START_NS, LockstepRunner, sim_keys
@@ -284,3 +288,44 @@ def test_a_device_node_without_resyncs_learns_a_new_run_by_a_hello_on_demand() -
     assert intake.admit(Bytes(second), None)
     reply = dn.trigger(second, at(2), authentic=True)
     assert reply is not None and dn.triggered == 2 and Channel.run_of(reply) == NEW
+
+
+def test_a_late_reply_never_checks_the_idle_clock_thread_in() -> None:
+    """A clock reply read after its series ended (zenoh's thread reads the
+    clock in the reply's callback) must not check the re-sync thread in:
+    that made an idle thread look busy, and past its deadline while it
+    waited for the next re-sync (a live flight without real-time priority
+    latched THREAD_STALLED so). The thread's own reads still check it in."""
+    mission = msgspec.structs.replace(
+        IGNITER, clock=msgspec.structs.replace(IGNITER.clock, resync_s=3600.0)
+    )
+    readers: list[Callable[[], int]] = []
+    during: list[int] = []
+
+    def estimate(session: Any, keys: Any, now: Callable[[], int], link: Any, **kw: Any) -> Any:
+        hb = resync.heartbeat
+        hb.idle()
+        now()  # the thread's own read: it checks in
+        during.append(hb.age_ns(time.monotonic_ns()))
+        readers.append(now)
+        raise ClockSyncError("no answer")  # the series is over either way
+
+    link = ClockLink(mission, "dn0", None)
+    stop = StopFlag(install=False)
+    resync = ClockResync(
+        mission, "dn0", None, KeySpace(mission.vehicle), time.monotonic_ns, link, estimate,
+        stop, lambda: False,
+    )  # fmt: skip
+    resync.start()
+    try:
+        resync.cue()
+        assert resync.ended.wait(30.0)
+        assert during and during[0] >= 0  # checked in during the series
+        assert resync.heartbeat.age_ns(time.monotonic_ns()) == -1  # idle after it
+        late = threading.Thread(target=readers[0])  # a late reply's callback
+        late.start()
+        late.join(10)
+        assert resync.heartbeat.age_ns(time.monotonic_ns()) == -1
+    finally:
+        stop.set()
+        resync.close()

@@ -201,9 +201,16 @@ class ClockResync:
         # read, i.e. every exchange (each waits at most its timeout).
         hb = self.heartbeat
         now_ns = self._now
+        me = threading.get_ident()
 
         def now() -> int:
-            hb.beat()
+            # This thread's reads alone check in: zenoh's thread reads the
+            # clock too (a reply's arrival), and a reply that came after its
+            # exchange gave up, once the series had ended, checked in for an
+            # idle thread, which then "stalled" waiting for its next re-sync
+            # (THREAD_STALLED; aborts recovery_igniter from ARMED).
+            if threading.get_ident() == me:
+                hb.beat()
             return now_ns()
 
         hb.idle()
